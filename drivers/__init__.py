@@ -1,0 +1,1 @@
+"""Device drivers (arms, pose sources) and their simulators."""

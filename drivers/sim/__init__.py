@@ -1,0 +1,1 @@
+"""Simulators that speak each device's real protocol."""

@@ -1,0 +1,227 @@
+/*
+ * blend.c — ScLERP, DLB, DIB and the baselines Lin, Dec, Log. Conventions in dq.h.
+ */
+#include "blend.h"
+
+#include <math.h>
+
+#include "dq.h"
+
+/* ---- ScLERP ----------------------------------------------------------------------------- */
+
+void dq_sclerp_prepare(const double *a, const double *b, dq_sclerp_pair *p)
+{
+    double ac[8], bb[8], rel[8], l[6];
+    double dot = a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3];
+    double sg = dot < 0.0 ? -1.0 : 1.0; /* shortest path */
+    for (int i = 0; i < 8; i++) bb[i] = sg * b[i];
+    dq_conj(a, ac);
+    dq_mul(ac, bb, rel);
+    dq_log(rel, l);
+    double phi = sqrt(l[0] * l[0] + l[1] * l[1] + l[2] * l[2]);
+    for (int i = 0; i < 4; i++) { p->p0[i] = a[i]; p->p3[i] = a[4 + i]; }
+    p->phi = phi;
+    if (phi > 0.0) {
+        double s[4] = {0.0, l[0] / phi, l[1] / phi, l[2] / phi};
+        double h = s[1] * l[3] + s[2] * l[4] + s[3] * l[5];
+        double m[4] = {0.0, (l[3] - h * s[1]) / phi, (l[4] - h * s[2]) / phi,
+                       (l[5] - h * s[3]) / phi};
+        double t1[4], t2[4];
+        p->h = h;
+        p->pure = 0;
+        dq_qmul(a, s, p->p1);
+        dq_qmul(a + 4, s, t1);
+        dq_qmul(a, m, t2);
+        for (int i = 0; i < 4; i++) { p->q[i] = t1[i] + t2[i]; p->p2[i] = 0.0; }
+    } else {
+        double d[4] = {0.0, l[3], l[4], l[5]};
+        p->h = 0.0;
+        p->pure = 1;
+        dq_qmul(a, d, p->p2);
+        for (int i = 0; i < 4; i++) { p->p1[i] = 0.0; p->q[i] = 0.0; }
+    }
+}
+
+/* a exp(tau l) with exp(tau l) = (C + S s) + eps (-tau h S + S m' + tau h C s),
+ * C = cos(tau phi), S = sin(tau phi); the products with a are the precomputed p0..q. */
+void dq_sclerp_eval(const dq_sclerp_pair *p, double tau, double *out)
+{
+    if (p->pure) {
+        for (int i = 0; i < 4; i++) {
+            out[i] = p->p0[i];
+            out[4 + i] = p->p3[i] + tau * p->p2[i];
+        }
+        return;
+    }
+    double ang = tau * p->phi;
+    double C = cos(ang), S = sin(ang);
+    double th = tau * p->h;
+    for (int i = 0; i < 4; i++) {
+        out[i] = C * p->p0[i] + S * p->p1[i];
+        out[4 + i] = C * p->p3[i] + S * p->q[i] + th * (C * p->p1[i] - S * p->p0[i]);
+    }
+}
+
+void dq_sclerp(const double *a, const double *b, double tau, double *out)
+{
+    dq_sclerp_pair p;
+    dq_sclerp_prepare(a, b, &p);
+    dq_sclerp_eval(&p, tau, out);
+}
+
+/* ---- weights ---------------------------------------------------------------------------- */
+
+int dq_weights(const double *w, size_t n, double *wn, size_t *bad)
+{
+    double sum = 0.0;
+    for (size_t i = 0; i < n; i++) {
+        double v = w[i];
+        if (!(v * 0.0 == 0.0)) { *bad = i; return DQ_E_NONFINITE; }
+        if (v < 0.0) { *bad = i; return DQ_E_WEIGHT_NEG; }
+        sum += v;
+    }
+    if (!(sum > 0.0) || !(sum * 0.0 == 0.0)) { *bad = n; return DQ_E_WEIGHT_SUM; }
+    double inv = 1.0 / sum;
+    for (size_t i = 0; i < n; i++) wn[i] = w[i] * inv;
+    return DQ_OK;
+}
+
+/* ---- DLB -------------------------------------------------------------------------------- */
+
+static size_t argmax(const double *w, size_t n)
+{
+    size_t k = 0;
+    for (size_t i = 1; i < n; i++)
+        if (w[i] > w[k]) k = i;
+    return k;
+}
+
+static void normalize_unit(double *q)
+{
+    double rr = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3];
+    double inv = 1.0 / sqrt(rr);
+    double k = (q[0] * q[4] + q[1] * q[5] + q[2] * q[6] + q[3] * q[7]) * inv * inv;
+    for (int i = 0; i < 4; i++) {
+        q[4 + i] = (q[4 + i] - k * q[i]) * inv;
+        q[i] *= inv;
+    }
+}
+
+void dq_dlb(const double *q, const double *w, size_t n, double *out)
+{
+    const double *pv = q + 8 * argmax(w, n);
+    double s[8] = {0, 0, 0, 0, 0, 0, 0, 0};
+    for (size_t i = 0; i < n; i++) {
+        const double *qi = q + 8 * i;
+        double dot = pv[0] * qi[0] + pv[1] * qi[1] + pv[2] * qi[2] + pv[3] * qi[3];
+        double wi = dot < 0.0 ? -w[i] : w[i];
+        for (int k = 0; k < 8; k++) s[k] += wi * qi[k];
+    }
+    /* <pivot, s> >= w_pivot > 0, so the real part never vanishes. */
+    normalize_unit(s);
+    for (int k = 0; k < 8; k++) out[k] = s[k];
+}
+
+/* ---- DIB -------------------------------------------------------------------------------- */
+
+/* Weighted sum of log(bc q_i) for all i, where bc is the conjugate of the current mean. */
+static double log_sum(const double *bc, const double *q, const double *w, size_t n, double *x)
+{
+    double x0 = 0, x1 = 0, x2 = 0, x3 = 0, x4 = 0, x5 = 0;
+    for (size_t i = 0; i < n; i++) {
+        double rel[8], l[6];
+        dq_mul(bc, q + 8 * i, rel);
+        dq_log(rel, l);
+        double wi = w[i];
+        x0 += wi * l[0]; x1 += wi * l[1]; x2 += wi * l[2];
+        x3 += wi * l[3]; x4 += wi * l[4]; x5 += wi * l[5];
+    }
+    x[0] = x0; x[1] = x1; x[2] = x2; x[3] = x3; x[4] = x4; x[5] = x5;
+    return sqrt(x0 * x0 + x1 * x1 + x2 * x2 + x3 * x3 + x4 * x4 + x5 * x5);
+}
+
+void dq_dib(const double *q, const double *w, size_t n, double tol, int max_iter, double *out,
+            int *iters, double *residual)
+{
+    double b[8], bc[8], x[6], e[8], nb[8];
+    dq_dlb(q, w, n, b);
+    int k = 0;
+    double res;
+    for (;;) {
+        dq_conj(b, bc);
+        res = log_sum(bc, q, w, n, x);
+        /* "!(res >= tol)" also ends the loop on NaN, which validated input never produces. */
+        if (!(res >= tol) || k >= max_iter) break;
+        dq_exp(x, e);
+        dq_mul(b, e, nb);
+        normalize_unit(nb); /* keeps rounding from drifting off the unit manifold */
+        for (int i = 0; i < 8; i++) b[i] = nb[i];
+        k++;
+    }
+    for (int i = 0; i < 8; i++) out[i] = b[i];
+    *iters = k;
+    *residual = res;
+}
+
+/* ---- baselines -------------------------------------------------------------------------- */
+
+void dq_lin(const double *q, const double *w, size_t n, double *m_out)
+{
+    double m[16];
+    for (int k = 0; k < 16; k++) m_out[k] = 0.0;
+    for (size_t i = 0; i < n; i++) {
+        dq_to_matrix(q + 8 * i, m);
+        for (int k = 0; k < 16; k++) m_out[k] += w[i] * m[k];
+    }
+    /* The weights sum to 1 up to rounding; the bottom row is exactly [0 0 0 1] by definition. */
+    m_out[12] = m_out[13] = m_out[14] = 0.0;
+    m_out[15] = 1.0;
+}
+
+void dq_dec(const double *q, const double *w, size_t n, double tol, int max_iter, double *out)
+{
+    /* Rotation: the spherical weighted mean (Buss and Fillmore), computed as DIB on the
+     * rotation parts alone; for two poses it is slerp. Translation: the weighted mean. */
+    double t[3] = {0, 0, 0}, r[4] = {0, 0, 0, 0};
+    const double *pv = q + 8 * argmax(w, n);
+    for (size_t i = 0; i < n; i++) {
+        double qi[4], ti[3];
+        dq_to_pose(q + 8 * i, qi, ti);
+        double dot = pv[0] * qi[0] + pv[1] * qi[1] + pv[2] * qi[2] + pv[3] * qi[3];
+        double wi = dot < 0.0 ? -w[i] : w[i];
+        for (int k = 0; k < 4; k++) r[k] += wi * qi[k];
+        for (int k = 0; k < 3; k++) t[k] += w[i] * ti[k];
+    }
+    double b[8] = {r[0], r[1], r[2], r[3], 0, 0, 0, 0};
+    normalize_unit(b);
+    for (int it = 0; it <= max_iter; it++) {
+        double x[6] = {0, 0, 0, 0, 0, 0}, bc[8], e[8], nb[8];
+        dq_conj(b, bc);
+        for (size_t i = 0; i < n; i++) {
+            const double *qi = q + 8 * i;
+            double rot[8] = {qi[0], qi[1], qi[2], qi[3], 0, 0, 0, 0}, rel[8], l[6];
+            dq_mul(bc, rot, rel);
+            dq_log(rel, l);
+            for (int k = 0; k < 3; k++) x[k] += w[i] * l[k];
+        }
+        double res = sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2]);
+        if (!(res >= tol) || it == max_iter) break;
+        dq_exp(x, e);
+        dq_mul(b, e, nb);
+        normalize_unit(nb);
+        for (int k = 0; k < 8; k++) b[k] = nb[k];
+    }
+    double rq[4] = {b[0], b[1], b[2], b[3]};
+    dq_from_pose(rq, t, out);
+}
+
+void dq_logblend(const double *q, const double *w, size_t n, double *out)
+{
+    double x[6] = {0, 0, 0, 0, 0, 0};
+    for (size_t i = 0; i < n; i++) {
+        double l[6];
+        dq_log(q + 8 * i, l);
+        for (int k = 0; k < 6; k++) x[k] += w[i] * l[k];
+    }
+    dq_exp(x, out);
+}

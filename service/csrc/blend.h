@@ -1,0 +1,52 @@
+/*
+ * blend.h — blending of rigid motions (Kavan et al., "Dual Quaternions for Rigid Transformation
+ * Blending"): ScLERP, DLB, DIB and the paper's baselines Lin, Dec and Log.
+ *
+ * Every function here takes unit dual quaternions (see dq_unit) and weights that are
+ * non-negative and sum to 1 (see dq_weights); the module validates before calling.
+ * Conventions are those of dq.h.
+ */
+#ifndef DQPOSE_BLEND_H
+#define DQPOSE_BLEND_H
+
+#include <stddef.h>
+
+/* ScLERP(tau; a, b) = a (a* b)^tau, b first put in a's hemisphere. The screw of a* b is
+ * computed once per pair, so evaluating many tau costs one sincos and ~30 flops each. */
+typedef struct {
+    double p0[4];  /* a_r */
+    double p1[4];  /* a_r (0, s)        s: screw axis */
+    double p3[4];  /* a_d */
+    double q[4];   /* a_d (0, s) + a_r (0, m')   m' = d_perp / phi */
+    double p2[4];  /* a_r (0, d) for a pure translation */
+    double phi;    /* half the rotation angle of a* b */
+    double h;      /* half the translation along the axis */
+    int pure;      /* phi == 0: a pure translation, the axis is undefined */
+} dq_sclerp_pair;
+
+void dq_sclerp_prepare(const double *a, const double *b, dq_sclerp_pair *p);
+void dq_sclerp_eval(const dq_sclerp_pair *p, double tau, double *out);
+void dq_sclerp(const double *a, const double *b, double tau, double *out);
+
+/* Checks weights (finite, >= 0, positive sum) and writes them normalised to sum 1.
+ * On error *bad is the offending index (for a zero sum, n). */
+int dq_weights(const double *w, size_t n, double *wn, size_t *bad);
+
+/* DLB: the normalised weighted sum, every input first put in the hemisphere of the pose with
+ * the largest weight. */
+void dq_dlb(const double *q, const double *w, size_t n, double *out);
+
+/* DIB: start at DLB, then b <- b exp(sum w_i log(b* q_i)) until |step| < tol or max_iter steps.
+ * *iters is the number of steps taken, *residual the norm of the last step computed (at the
+ * returned mean). */
+void dq_dib(const double *q, const double *w, size_t n, double tol, int max_iter, double *out,
+            int *iters, double *residual);
+
+/* Baselines. Lin writes a 4x4 row-major matrix (not rigid in general). Dec blends the
+ * rotation (spherical weighted mean, slerp for two) and the translation (weighted mean)
+ * separately. Log is exp of the weighted sum of principal logs (Alexa's log-matrix blend). */
+void dq_lin(const double *q, const double *w, size_t n, double *m_out);
+void dq_dec(const double *q, const double *w, size_t n, double tol, int max_iter, double *out);
+void dq_logblend(const double *q, const double *w, size_t n, double *out);
+
+#endif

@@ -1,0 +1,315 @@
+/*
+ * dq.c — dual-quaternion algebra, exp/log, conversions and screw parameters.
+ * Conventions are stated once in dq.h.
+ */
+#include "dq.h"
+
+#include <math.h>
+
+void dq_mul(const double *a, const double *b, double *out)
+{
+    double r[4], d1[4], d2[4];
+    dq_qmul(a, b, r);
+    dq_qmul(a, b + 4, d1);
+    dq_qmul(a + 4, b, d2);
+    out[0] = r[0]; out[1] = r[1]; out[2] = r[2]; out[3] = r[3];
+    out[4] = d1[0] + d2[0]; out[5] = d1[1] + d2[1];
+    out[6] = d1[2] + d2[2]; out[7] = d1[3] + d2[3];
+}
+
+void dq_conj(const double *a, double *out)
+{
+    out[0] = a[0]; out[1] = -a[1]; out[2] = -a[2]; out[3] = -a[3];
+    out[4] = a[4]; out[5] = -a[5]; out[6] = -a[6]; out[7] = -a[7];
+}
+
+void dq_norm(const double *a, double *n, double *n_d)
+{
+    double rr = a[0] * a[0] + a[1] * a[1] + a[2] * a[2] + a[3] * a[3];
+    double rd = a[0] * a[4] + a[1] * a[5] + a[2] * a[6] + a[3] * a[7];
+    double nr = sqrt(rr);
+    *n = nr;
+    *n_d = nr > 0.0 ? rd / nr : 0.0;
+}
+
+/* Divide by the dual-number norm: r/|r| and d/|r| - r <r,d>/|r|^3, which makes the result
+ * exactly unit (|r| = 1 and <r, d> = 0). */
+static inline void normalize_by(const double *q, double rr, double *out)
+{
+    double inv = 1.0 / sqrt(rr);
+    double rd = q[0] * q[4] + q[1] * q[5] + q[2] * q[6] + q[3] * q[7];
+    double k = rd * inv * inv;
+    double r0 = q[0], r1 = q[1], r2 = q[2], r3 = q[3];
+    out[4] = (q[4] - k * r0) * inv;
+    out[5] = (q[5] - k * r1) * inv;
+    out[6] = (q[6] - k * r2) * inv;
+    out[7] = (q[7] - k * r3) * inv;
+    out[0] = r0 * inv; out[1] = r1 * inv; out[2] = r2 * inv; out[3] = r3 * inv;
+}
+
+int dq_normalize(const double *q, double *out)
+{
+    if (!dq_finite8(q)) return DQ_E_NONFINITE;
+    double rr = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3];
+    /* Below this the direction of the real part is noise. */
+    if (!(rr > 1e-200)) return DQ_E_ZERO;
+    normalize_by(q, rr, out);
+    if (!dq_finite8(out)) return DQ_E_OVERFLOW;
+    return DQ_OK;
+}
+
+int dq_unit(const double *q, double *out)
+{
+    if (!dq_finite8(q)) return DQ_E_NONFINITE;
+    double rr = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3];
+    if (!(rr > 1e-200)) return DQ_E_ZERO;
+    /* |r|^2 - 1 ~ 2 (|r| - 1): compare squared norms to avoid a sqrt on the fast path. */
+    double e = rr - 1.0;
+    if (fabs(e) > 2.0 * DQ_UNIT_TOL + DQ_UNIT_TOL * DQ_UNIT_TOL) {
+        if (fabs(sqrt(rr) - 1.0) > DQ_UNIT_TOL) return DQ_E_NOT_UNIT;
+    }
+    double rd = q[0] * q[4] + q[1] * q[5] + q[2] * q[6] + q[3] * q[7];
+    if (rd != 0.0) {
+        double dd = q[4] * q[4] + q[5] * q[5] + q[6] * q[6] + q[7] * q[7];
+        /* Relative to the size of the dual part, so a 1 km translation has the same slack as 1 m. */
+        double scale = dd > 1.0 ? sqrt(dd) : 1.0;
+        if (fabs(rd) > DQ_UNIT_TOL * scale) return DQ_E_DUAL;
+    }
+    if (e == 0.0 && rd == 0.0) {
+        if (out != q) for (int i = 0; i < 8; i++) out[i] = q[i];
+        return DQ_OK;
+    }
+    normalize_by(q, rr, out);
+    if (!dq_finite8(out)) return DQ_E_OVERFLOW;
+    return DQ_OK;
+}
+
+/* ---- exp / log -------------------------------------------------------------------------- */
+
+/* exp(x), x = [r, d] (real and dual vector parts). With phi = |r|:
+ *   real = (cos phi, sinc(phi) r)
+ *   dual = (-sinc(phi) <r,d>, sinc(phi) d + c(phi) <r,d> r),  c = (phi cos phi - sin phi)/phi^3
+ * i.e. the dual part is the derivative of the quaternion exp along d. */
+void dq_exp(const double *x, double *out)
+{
+    const double *r = x, *d = x + 3;
+    double y = r[0] * r[0] + r[1] * r[1] + r[2] * r[2];
+    double rd = r[0] * d[0] + r[1] * d[1] + r[2] * d[2];
+    double cs, sc, c;
+    if (y < 1e-2) {
+        /* Taylor series in y = phi^2; 7 terms leave < 1e-19 relative error at y = 1e-2. */
+        cs = 1.0 + y * (-1.0 / 2 + y * (1.0 / 24 + y * (-1.0 / 720 + y * (1.0 / 40320
+              + y * (-1.0 / 3628800 + y * (1.0 / 479001600))))));
+        sc = 1.0 + y * (-1.0 / 6 + y * (1.0 / 120 + y * (-1.0 / 5040 + y * (1.0 / 362880
+              + y * (-1.0 / 39916800 + y * (1.0 / 6227020800.0))))));
+        c = -1.0 / 3 + y * (1.0 / 30 + y * (-1.0 / 840 + y * (1.0 / 45360 + y * (-1.0 / 3991680
+              + y * (1.0 / 518918400 + y * (-1.0 / 93405312000.0))))));
+    } else {
+        double phi = sqrt(y);
+        double s = sin(phi);
+        cs = cos(phi);
+        sc = s / phi;
+        c = (phi * cs - s) / (phi * y);
+    }
+    out[0] = cs;
+    out[1] = sc * r[0]; out[2] = sc * r[1]; out[3] = sc * r[2];
+    double k = c * rd;
+    out[4] = -sc * rd;
+    out[5] = sc * d[0] + k * r[0];
+    out[6] = sc * d[1] + k * r[1];
+    out[7] = sc * d[2] + k * r[2];
+}
+
+/* log(q) for unit q. With the real part (w, v), n = |v| = sin(phi), phi = theta/2, w >= 0:
+ *   real = a v,                     a = phi / sin(phi)
+ *   dual = a v_d + b (w <v,v_d> - w_d n^2) v,   b = (sin(phi) - phi cos(phi)) / sin(phi)^3
+ * Both a and b are smooth in n^2, so near theta = 0 the series in n^2 avoids atan2 and the
+ * cancellation in b; near theta = pi (w -> 0) the closed form is well conditioned. */
+void dq_log(const double *q, double *out)
+{
+    double w = q[0], v0 = q[1], v1 = q[2], v2 = q[3];
+    double wd = q[4], u0 = q[5], u1 = q[6], u2 = q[7];
+    if (w < 0.0) { /* the same pose, the short way round */
+        w = -w; v0 = -v0; v1 = -v1; v2 = -v2;
+        wd = -wd; u0 = -u0; u1 = -u1; u2 = -u2;
+    }
+    double x = v0 * v0 + v1 * v1 + v2 * v2;
+    double a, b;
+    if (x < DQ_LOG_SERIES_MAX) {
+        /* asin(n)/n and (n - asin(n) sqrt(1-n^2))/n^3 in x = n^2; 8 terms < 1e-18 at x = 1e-2. */
+        a = 1.0 + x * (1.0 / 6 + x * (3.0 / 40 + x * (5.0 / 112 + x * (35.0 / 1152
+              + x * (63.0 / 2816 + x * (231.0 / 13312 + x * (143.0 / 10240)))))));
+        b = 1.0 / 3 + x * (2.0 / 15 + x * (8.0 / 105 + x * (16.0 / 315 + x * (128.0 / 3465
+              + x * (256.0 / 9009 + x * (1024.0 / 45045 + x * (2048.0 / 109395)))))));
+    } else {
+        double n = sqrt(x);
+        double phi = atan2(n, w);
+        a = phi / n;
+        b = (1.0 - a * w) / x;
+    }
+    double vu = v0 * u0 + v1 * u1 + v2 * u2;
+    double k = b * (w * vu - wd * x);
+    out[0] = a * v0; out[1] = a * v1; out[2] = a * v2;
+    out[3] = a * u0 + k * v0;
+    out[4] = a * u1 + k * v1;
+    out[5] = a * u2 + k * v2;
+}
+
+void dq_pow(const double *q, double tau, double *out)
+{
+    double l[6];
+    dq_log(q, l);
+    for (int i = 0; i < 6; i++) l[i] *= tau;
+    dq_exp(l, out);
+}
+
+/* ---- conversions ------------------------------------------------------------------------ */
+
+void dq_to_matrix(const double *q, double *m)
+{
+    double w = q[0], x = q[1], y = q[2], z = q[3];
+    double t[3];
+    /* t = 2 vec(d r*) */
+    t[0] = 2.0 * (-q[4] * x + q[5] * w - q[6] * z + q[7] * y);
+    t[1] = 2.0 * (-q[4] * y + q[5] * z + q[6] * w - q[7] * x);
+    t[2] = 2.0 * (-q[4] * z - q[5] * y + q[6] * x + q[7] * w);
+    m[0] = 1.0 - 2.0 * (y * y + z * z); m[1] = 2.0 * (x * y - w * z);       m[2] = 2.0 * (x * z + w * y);       m[3] = t[0];
+    m[4] = 2.0 * (x * y + w * z);       m[5] = 1.0 - 2.0 * (x * x + z * z); m[6] = 2.0 * (y * z - w * x);       m[7] = t[1];
+    m[8] = 2.0 * (x * z - w * y);       m[9] = 2.0 * (y * z + w * x);       m[10] = 1.0 - 2.0 * (x * x + y * y); m[11] = t[2];
+    m[12] = 0.0; m[13] = 0.0; m[14] = 0.0; m[15] = 1.0;
+}
+
+/* Rotation matrix -> quaternion by the largest-diagonal branch (Shepperd), which keeps the
+ * divisor >= 1/2 and so is accurate near every angle including pi. */
+static void quat_from_rot(const double *m, int stride, double *q)
+{
+#define M(i, j) m[(i) * stride + (j)]
+    double tr = M(0, 0) + M(1, 1) + M(2, 2);
+    if (tr >= M(0, 0) && tr >= M(1, 1) && tr >= M(2, 2)) {
+        double s = 2.0 * sqrt(1.0 + tr);
+        q[0] = 0.25 * s;
+        q[1] = (M(2, 1) - M(1, 2)) / s;
+        q[2] = (M(0, 2) - M(2, 0)) / s;
+        q[3] = (M(1, 0) - M(0, 1)) / s;
+    } else if (M(0, 0) >= M(1, 1) && M(0, 0) >= M(2, 2)) {
+        double s = 2.0 * sqrt(1.0 + M(0, 0) - M(1, 1) - M(2, 2));
+        q[0] = (M(2, 1) - M(1, 2)) / s;
+        q[1] = 0.25 * s;
+        q[2] = (M(0, 1) + M(1, 0)) / s;
+        q[3] = (M(0, 2) + M(2, 0)) / s;
+    } else if (M(1, 1) >= M(2, 2)) {
+        double s = 2.0 * sqrt(1.0 + M(1, 1) - M(0, 0) - M(2, 2));
+        q[0] = (M(0, 2) - M(2, 0)) / s;
+        q[1] = (M(0, 1) + M(1, 0)) / s;
+        q[2] = 0.25 * s;
+        q[3] = (M(1, 2) + M(2, 1)) / s;
+    } else {
+        double s = 2.0 * sqrt(1.0 + M(2, 2) - M(0, 0) - M(1, 1));
+        q[0] = (M(1, 0) - M(0, 1)) / s;
+        q[1] = (M(0, 2) + M(2, 0)) / s;
+        q[2] = (M(1, 2) + M(2, 1)) / s;
+        q[3] = 0.25 * s;
+    }
+#undef M
+    /* A canonical sign keeps conversions deterministic. */
+    if (q[0] < 0.0) { q[0] = -q[0]; q[1] = -q[1]; q[2] = -q[2]; q[3] = -q[3]; }
+}
+
+static void dual_from_rt(const double *r, const double *t, double *out)
+{
+    /* d = 1/2 (0, t) r */
+    out[0] = r[0]; out[1] = r[1]; out[2] = r[2]; out[3] = r[3];
+    out[4] = 0.5 * (-t[0] * r[1] - t[1] * r[2] - t[2] * r[3]);
+    out[5] = 0.5 * (t[0] * r[0] + t[1] * r[3] - t[2] * r[2]);
+    out[6] = 0.5 * (-t[0] * r[3] + t[1] * r[0] + t[2] * r[1]);
+    out[7] = 0.5 * (t[0] * r[2] - t[1] * r[1] + t[2] * r[0]);
+}
+
+int dq_from_matrix(const double *m, double *out)
+{
+    if (!dq_finite_n(m, 16)) return DQ_E_NONFINITE;
+    if (fabs(m[12]) > DQ_UNIT_TOL || fabs(m[13]) > DQ_UNIT_TOL || fabs(m[14]) > DQ_UNIT_TOL ||
+        fabs(m[15] - 1.0) > DQ_UNIT_TOL)
+        return DQ_E_NOT_RIGID;
+    /* R^T R = I within tolerance, det = +1 within tolerance. */
+    for (int i = 0; i < 3; i++) {
+        for (int j = i; j < 3; j++) {
+            double s = m[i] * m[j] + m[4 + i] * m[4 + j] + m[8 + i] * m[8 + j];
+            if (fabs(s - (i == j ? 1.0 : 0.0)) > DQ_UNIT_TOL) return DQ_E_NOT_RIGID;
+        }
+    }
+    double det = m[0] * (m[5] * m[10] - m[6] * m[9]) - m[1] * (m[4] * m[10] - m[6] * m[8]) +
+                 m[2] * (m[4] * m[9] - m[5] * m[8]);
+    if (fabs(det - 1.0) > DQ_UNIT_TOL) return DQ_E_NOT_RIGID;
+    double q[4], t[3] = {m[3], m[7], m[11]};
+    quat_from_rot(m, 4, q);
+    double inv = 1.0 / sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+    for (int i = 0; i < 4; i++) q[i] *= inv;
+    dual_from_rt(q, t, out);
+    return DQ_OK;
+}
+
+int dq_from_pose(const double *quat, const double *t, double *out)
+{
+    if (!dq_finite_n(quat, 4) || !dq_finite_n(t, 3)) return DQ_E_NONFINITE;
+    double rr = quat[0] * quat[0] + quat[1] * quat[1] + quat[2] * quat[2] + quat[3] * quat[3];
+    if (!(rr > 1e-200)) return DQ_E_ZERO;
+    double n = sqrt(rr);
+    if (fabs(n - 1.0) > DQ_UNIT_TOL) return DQ_E_NOT_UNIT;
+    double q[4] = {quat[0] / n, quat[1] / n, quat[2] / n, quat[3] / n};
+    dual_from_rt(q, t, out);
+    if (!dq_finite8(out)) return DQ_E_OVERFLOW;
+    return DQ_OK;
+}
+
+void dq_to_pose(const double *q, double *quat, double *t)
+{
+    double w = q[0], x = q[1], y = q[2], z = q[3];
+    quat[0] = w; quat[1] = x; quat[2] = y; quat[3] = z;
+    t[0] = 2.0 * (-q[4] * x + q[5] * w - q[6] * z + q[7] * y);
+    t[1] = 2.0 * (-q[4] * y + q[5] * z + q[6] * w - q[7] * x);
+    t[2] = 2.0 * (-q[4] * z - q[5] * y + q[6] * x + q[7] * w);
+}
+
+void dq_transform_point(const double *q, const double *p, double *out)
+{
+    double w = q[0], x = q[1], y = q[2], z = q[3];
+    double t[3];
+    t[0] = 2.0 * (-q[4] * x + q[5] * w - q[6] * z + q[7] * y);
+    t[1] = 2.0 * (-q[4] * y + q[5] * z + q[6] * w - q[7] * x);
+    t[2] = 2.0 * (-q[4] * z - q[5] * y + q[6] * x + q[7] * w);
+    /* p' = p + 2w (v x p) + 2 v x (v x p) */
+    double cx = y * p[2] - z * p[1], cy = z * p[0] - x * p[2], cz = x * p[1] - y * p[0];
+    double ccx = y * cz - z * cy, ccy = z * cx - x * cz, ccz = x * cy - y * cx;
+    out[0] = p[0] + 2.0 * (w * cx + ccx) + t[0];
+    out[1] = p[1] + 2.0 * (w * cy + ccy) + t[1];
+    out[2] = p[2] + 2.0 * (w * cz + ccz) + t[2];
+}
+
+void dq_screw(const double *q, double *theta, double *d, double *l, double *m)
+{
+    /* log = [ (theta/2) l, (d/2) l + (theta/2) m ] */
+    double x[6];
+    dq_log(q, x);
+    double phi = sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2]);
+    if (phi > 0.0) {
+        double s0 = x[0] / phi, s1 = x[1] / phi, s2 = x[2] / phi;
+        double hd = s0 * x[3] + s1 * x[4] + s2 * x[5];
+        *theta = 2.0 * phi;
+        *d = 2.0 * hd;
+        l[0] = s0; l[1] = s1; l[2] = s2;
+        m[0] = (x[3] - hd * s0) / phi;
+        m[1] = (x[4] - hd * s1) / phi;
+        m[2] = (x[5] - hd * s2) / phi;
+    } else {
+        double tn = 2.0 * sqrt(x[3] * x[3] + x[4] * x[4] + x[5] * x[5]);
+        *theta = 0.0;
+        *d = tn;
+        m[0] = m[1] = m[2] = 0.0;
+        if (tn > 0.0) {
+            l[0] = 2.0 * x[3] / tn; l[1] = 2.0 * x[4] / tn; l[2] = 2.0 * x[5] / tn;
+        } else {
+            l[0] = l[1] = l[2] = 0.0;
+        }
+    }
+}

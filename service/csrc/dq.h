@@ -1,0 +1,91 @@
+/*
+ * dq.h — unit dual quaternions for rigid motions, in pure C99.
+ *
+ * Conventions (the whole project uses them):
+ *   - A dual quaternion is 8 doubles [w, x, y, z, w', x', y', z']: real part r first, then the
+ *     dual part d = 1/2 * t * r (t the translation as a pure quaternion).
+ *   - Quaternions are scalar first. Metres, radians.
+ *   - A pose T_a_b maps points from frame b to frame a; composition is the product.
+ *   - log(q) is a 6-vector [real vector part, dual vector part] = half the se(3) twist (w, v),
+ *     with the rotation taken the short way (angle in [0, pi]).
+ *   - q and -q are the same pose.
+ *
+ * Functions that can fail return DQ_OK or a DQ_E* code; nothing here allocates or touches Python.
+ */
+#ifndef DQPOSE_DQ_H
+#define DQPOSE_DQ_H
+
+#include <stddef.h>
+
+/* Result codes. The module turns each into a ValueError naming the argument. */
+enum {
+    DQ_OK = 0,
+    DQ_E_NONFINITE = 1,   /* NaN or infinity in the input */
+    DQ_E_ZERO = 2,        /* zero (or vanishing) quaternion */
+    DQ_E_NOT_UNIT = 3,    /* real part norm off 1 by more than DQ_UNIT_TOL */
+    DQ_E_DUAL = 4,        /* dual part not orthogonal to the real part */
+    DQ_E_NOT_RIGID = 5,   /* matrix not orthonormal, det != 1, or bottom row != [0 0 0 1] */
+    DQ_E_WEIGHT_NEG = 6,  /* a negative weight */
+    DQ_E_WEIGHT_SUM = 7,  /* weights sum to zero */
+    DQ_E_OVERFLOW = 8     /* the result is not finite (input too large) */
+};
+
+/* Inputs within this distance of unit norm are normalised; further off is an error. */
+#define DQ_UNIT_TOL 1e-6
+
+/* Algebra (any dual quaternion). */
+void dq_mul(const double *a, const double *b, double *out);
+void dq_conj(const double *a, double *out);
+/* Dual-number norm |q| = n + eps * n_d. */
+void dq_norm(const double *a, double *n, double *n_d);
+
+/* Checks that q is finite and unit within DQ_UNIT_TOL, then writes the exact unit version
+ * (real part normalised, dual part made orthogonal to it). out may alias q. */
+int dq_unit(const double *q, double *out);
+/* Normalises any dual quaternion with a non-zero real part. */
+int dq_normalize(const double *q, double *out);
+
+/* exp: 6-vector -> unit dual quaternion; log: unit dual quaternion -> 6-vector. */
+void dq_exp(const double *x, double *out);
+void dq_log(const double *q, double *out);
+/* Series form of log, valid for |vec(q_r)|^2 < DQ_LOG_SERIES_MAX with scalar part >= 0. */
+#define DQ_LOG_SERIES_MAX 1e-2
+void dq_pow(const double *q, double tau, double *out);
+
+/* Conversions. Matrices are 4x4 row-major. */
+int dq_from_matrix(const double *m, double *out);
+void dq_to_matrix(const double *q, double *m);
+int dq_from_pose(const double *quat, const double *t, double *out);
+void dq_to_pose(const double *q, double *quat, double *t);
+void dq_transform_point(const double *q, const double *p, double *out);
+
+/* Screw parameters of a unit dual quaternion: rotation angle theta in [0, pi], translation d
+ * along the axis, axis direction l and moment m (m = p x l for any point p on the axis).
+ * A pure translation has theta = 0, l = t/|t|, d = |t|, m = 0; the identity has all zeros. */
+void dq_screw(const double *q, double *theta, double *d, double *l, double *m);
+
+/* Quaternion product c = a b (scalar first); c may alias neither a nor b. */
+static inline void dq_qmul(const double *a, const double *b, double *c)
+{
+    c[0] = a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3];
+    c[1] = a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2];
+    c[2] = a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1];
+    c[3] = a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0];
+}
+
+/* Sum of 8 values is finite (NaN/Inf check without libm calls). */
+static inline int dq_finite8(const double *q)
+{
+    double s = 0.0;
+    for (int i = 0; i < 8; i++) s += q[i] * 0.0;
+    return s == 0.0;
+}
+
+static inline int dq_finite_n(const double *v, size_t n)
+{
+    double s = 0.0;
+    for (size_t i = 0; i < n; i++) s += v[i] * 0.0;
+    return s == 0.0;
+}
+
+#endif

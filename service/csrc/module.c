@@ -1,0 +1,768 @@
+/*
+ * module.c — the only file of the core that knows CPython and NumPy.
+ *
+ * Each Python function converts its arguments to C-contiguous float64 arrays, checks their
+ * trailing ("core") shapes, broadcasts the leading dimensions, and runs a kernel over every
+ * element with the GIL released for batches. A kernel validates its element and returns a
+ * DQ_E* code; the first failure becomes a ValueError naming the argument, the index and the
+ * problem. Nothing here does geometry: that is in dq.c and blend.c.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <numpy/arrayobject.h>
+
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "blend.h"
+#include "dq.h"
+
+#define MAX_IN 3
+#define MAX_OUT 3
+/* Below this many elements releasing the GIL costs more than it gives. */
+#define GIL_RELEASE_MIN 64
+
+/* ---- arguments ---------------------------------------------------------------------------- */
+
+typedef struct {
+    const char *name;
+    int ncore;          /* trailing dims that belong to one element: 0, 1 or 2 */
+    npy_intp core[2];   /* their sizes; -1 = any (the set size n of a blend) */
+    int optional;       /* None allowed (weights) */
+} in_spec;
+
+typedef struct {
+    int ncore;
+    npy_intp core[2];   /* -1 = the n of input 0 */
+} out_spec;
+
+typedef struct {
+    PyArrayObject *arr;
+    const double *data;
+    npy_intp core_size;
+    int lead_nd;
+    npy_intp lead[NPY_MAXDIMS];
+    npy_intp stride[NPY_MAXDIMS]; /* in elements of core_size, 0 where broadcast */
+} arg;
+
+/* What a kernel gets for one element. */
+typedef struct {
+    const double *in[MAX_IN];
+    double *out[MAX_OUT];
+    npy_intp n;        /* set size for blends */
+    void *ctx;
+    int bad_arg;       /* set by a kernel on failure: which input */
+    npy_intp bad_sub;  /* and which sub-element of it (pose in a set, weight index) */
+    double *scratch;
+} elem;
+
+typedef int (*kernel_fn)(elem *e);
+
+static void format_shape(char *buf, size_t len, int nd, const npy_intp *shape)
+{
+    size_t k = (size_t)snprintf(buf, len, "(");
+    for (int i = 0; i < nd && k < len; i++)
+        k += (size_t)snprintf(buf + k, len - k, i + 1 < nd ? "%ld, " : "%ld", (long)shape[i]);
+    if (nd == 1 && k < len) k += (size_t)snprintf(buf + k, len - k, ",");
+    if (k < len) snprintf(buf + k, len - k, ")");
+}
+
+static const char *core_text(const in_spec *s)
+{
+    if (s->ncore == 0) return "(...)";
+    if (s->ncore == 1) {
+        switch (s->core[0]) {
+        case 8: return "(..., 8)";
+        case 6: return "(..., 6)";
+        case 4: return "(..., 4)";
+        case 3: return "(..., 3)";
+        default: return "(..., n)";
+        }
+    }
+    if (s->core[0] == 4 && s->core[1] == 4) return "(..., 4, 4)";
+    return "(..., n, 8)";
+}
+
+/* Problem text for a code, with the details of the offending values where it helps. */
+static void problem_text(int code, const double *v, int kind, char *buf, size_t len)
+{
+    switch (code) {
+    case DQ_E_NONFINITE:
+        snprintf(buf, len, "contains NaN or infinity");
+        return;
+    case DQ_E_ZERO:
+        snprintf(buf, len, "zero quaternion");
+        return;
+    case DQ_E_NOT_UNIT: {
+        double n = sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2] + v[3] * v[3]);
+        snprintf(buf, len, "quaternion norm %.9g is not unit (tolerance %g)", n, DQ_UNIT_TOL);
+        return;
+    }
+    case DQ_E_DUAL: {
+        double rd = v[0] * v[4] + v[1] * v[5] + v[2] * v[6] + v[3] * v[7];
+        snprintf(buf, len,
+                 "dual part is not orthogonal to the real part (<r, d> = %.3g): not a rigid motion",
+                 rd);
+        return;
+    }
+    case DQ_E_NOT_RIGID: {
+        if (kind == 16) {
+            double worst = 0.0;
+            for (int i = 0; i < 3; i++)
+                for (int j = 0; j < 3; j++) {
+                    double s = v[i] * v[j] + v[4 + i] * v[4 + j] + v[8 + i] * v[8 + j];
+                    double e = fabs(s - (i == j ? 1.0 : 0.0));
+                    if (e > worst) worst = e;
+                }
+            double det = v[0] * (v[5] * v[10] - v[6] * v[9]) - v[1] * (v[4] * v[10] - v[6] * v[8]) +
+                         v[2] * (v[4] * v[9] - v[5] * v[8]);
+            if (fabs(v[12]) > DQ_UNIT_TOL || fabs(v[13]) > DQ_UNIT_TOL ||
+                fabs(v[14]) > DQ_UNIT_TOL || fabs(v[15] - 1.0) > DQ_UNIT_TOL)
+                snprintf(buf, len, "not a rigid transform: bottom row is not [0, 0, 0, 1]");
+            else if (worst > DQ_UNIT_TOL)
+                snprintf(buf, len,
+                         "not a rigid transform: rotation block is not orthonormal "
+                         "(|R^T R - I| = %.3g, tolerance %g)", worst, DQ_UNIT_TOL);
+            else
+                snprintf(buf, len, "not a rigid transform: det(R) = %.9g, not 1", det);
+            return;
+        }
+        snprintf(buf, len, "not a rigid transform");
+        return;
+    }
+    case DQ_E_WEIGHT_NEG:
+        snprintf(buf, len, "negative weight %g", v[0]);
+        return;
+    case DQ_E_WEIGHT_SUM:
+        snprintf(buf, len, "all weights are zero (the weights need a positive sum)");
+        return;
+    case DQ_E_OVERFLOW:
+        snprintf(buf, len, "result is not finite (input too large)");
+        return;
+    default:
+        snprintf(buf, len, "invalid value");
+    }
+}
+
+/* Converts one argument and checks its core shape. */
+static int load_arg(PyObject *obj, const in_spec *s, arg *a, npy_intp *n_io)
+{
+    a->arr = (PyArrayObject *)PyArray_FROM_OTF(obj, NPY_DOUBLE, NPY_ARRAY_IN_ARRAY);
+    if (!a->arr) {
+        PyObject *type, *value, *tb;
+        PyErr_Fetch(&type, &value, &tb);
+        PyErr_Format(PyExc_ValueError, "%s: not convertible to a float64 array (%S)", s->name,
+                     value ? value : Py_None);
+        Py_XDECREF(type); Py_XDECREF(value); Py_XDECREF(tb);
+        return -1;
+    }
+    int nd = PyArray_NDIM(a->arr);
+    npy_intp *sh = PyArray_DIMS(a->arr);
+    int ok = nd >= s->ncore;
+    for (int k = 0; ok && k < s->ncore; k++) {
+        npy_intp want = s->core[k], got = sh[nd - s->ncore + k];
+        if (want >= 0 && got != want) ok = 0;
+    }
+    if (!ok) {
+        char shape[160];
+        format_shape(shape, sizeof shape, nd, sh);
+        PyErr_Format(PyExc_ValueError, "%s: expected shape %s, got %s", s->name, core_text(s),
+                     shape);
+        return -1;
+    }
+    /* The set size n: the first input with a free core dimension defines it. */
+    for (int k = 0; k < s->ncore; k++) {
+        if (s->core[k] < 0) {
+            npy_intp got = sh[nd - s->ncore + k];
+            if (*n_io < 0) {
+                *n_io = got;
+            } else if (got != *n_io) {
+                PyErr_Format(PyExc_ValueError,
+                             "%s: length %zd does not match the number of poses (%zd)", s->name,
+                             (Py_ssize_t)got, (Py_ssize_t)*n_io);
+                return -1;
+            }
+        }
+    }
+    a->lead_nd = nd - s->ncore;
+    a->core_size = 1;
+    for (int k = 0; k < s->ncore; k++) a->core_size *= sh[nd - s->ncore + k];
+    for (int k = 0; k < a->lead_nd; k++) a->lead[k] = sh[k];
+    a->data = (const double *)PyArray_DATA(a->arr);
+    return 0;
+}
+
+/* Writes "name[i, j]" for the element at flat sub-index `flat` of an array whose index space
+ * is `shape`. */
+static void format_index(char *buf, size_t len, const char *name, int nd, const npy_intp *shape,
+                         npy_intp flat)
+{
+    if (nd == 0) {
+        snprintf(buf, len, "%s", name);
+        return;
+    }
+    npy_intp idx[NPY_MAXDIMS];
+    for (int k = nd - 1; k >= 0; k--) {
+        npy_intp d = shape[k] > 0 ? shape[k] : 1;
+        idx[k] = flat % d;
+        flat /= d;
+    }
+    size_t p = (size_t)snprintf(buf, len, "%s[", name);
+    for (int k = 0; k < nd && p < len; k++)
+        p += (size_t)snprintf(buf + p, len - p, k + 1 < nd ? "%ld, " : "%ld", (long)idx[k]);
+    if (p < len) snprintf(buf + p, len - p, "]");
+}
+
+/*
+ * Runs `kern` over the broadcast of the inputs. objs[i] may be NULL/None for optional inputs.
+ * Returns a new reference: the single output, or a tuple when nout > 1.
+ */
+static PyObject *run(kernel_fn kern, void *ctx, int nin, PyObject **objs, const in_spec *is,
+                     int nout, const out_spec *os, size_t scratch_per_n)
+{
+    arg a[MAX_IN];
+    PyArrayObject *outs[MAX_OUT] = {NULL, NULL, NULL};
+    int present[MAX_IN];
+    npy_intp n = -1;
+    PyObject *result = NULL;
+    double *scratch = NULL;
+    memset(a, 0, sizeof a);
+
+    for (int i = 0; i < nin; i++) {
+        present[i] = !(objs[i] == NULL || (is[i].optional && objs[i] == Py_None));
+        if (!present[i]) continue;
+        if (load_arg(objs[i], &is[i], &a[i], &n) < 0) goto done;
+    }
+    if (n == 0) {
+        PyErr_Format(PyExc_ValueError, "%s: empty set of poses", is[0].name);
+        goto done;
+    }
+
+    /* Broadcast the leading dimensions (right-aligned, as NumPy does). */
+    int out_nd = 0;
+    npy_intp out_lead[NPY_MAXDIMS];
+    for (int i = 0; i < nin; i++)
+        if (present[i] && a[i].lead_nd > out_nd) out_nd = a[i].lead_nd;
+    for (int k = 0; k < out_nd; k++) out_lead[k] = 1;
+    for (int i = 0; i < nin; i++) {
+        if (!present[i]) continue;
+        int off = out_nd - a[i].lead_nd;
+        for (int k = 0; k < a[i].lead_nd; k++) {
+            npy_intp d = a[i].lead[k];
+            if (d == 1) continue;
+            if (out_lead[off + k] == 1) {
+                out_lead[off + k] = d;
+            } else if (out_lead[off + k] != d) {
+                char s1[160], s2[160];
+                format_shape(s1, sizeof s1, a[i].lead_nd, a[i].lead);
+                format_shape(s2, sizeof s2, out_nd, out_lead);
+                PyErr_Format(PyExc_ValueError,
+                             "shape mismatch: %s has leading shape %s, which does not broadcast "
+                             "with %s",
+                             is[i].name, s1, s2);
+                goto done;
+            }
+        }
+    }
+    npy_intp total = 1;
+    for (int k = 0; k < out_nd; k++) total *= out_lead[k];
+    for (int i = 0; i < nin; i++) {
+        if (!present[i]) continue;
+        int off = out_nd - a[i].lead_nd;
+        npy_intp st = 1;
+        for (int k = out_nd - 1; k >= 0; k--) {
+            int ak = k - off;
+            if (ak < 0 || a[i].lead[ak] == 1) {
+                a[i].stride[k] = 0;
+            } else {
+                a[i].stride[k] = st;
+                st *= a[i].lead[ak];
+            }
+        }
+    }
+
+    for (int j = 0; j < nout; j++) {
+        npy_intp dims[NPY_MAXDIMS + 2];
+        for (int k = 0; k < out_nd; k++) dims[k] = out_lead[k];
+        for (int k = 0; k < os[j].ncore; k++) dims[out_nd + k] = os[j].core[k] < 0 ? n : os[j].core[k];
+        outs[j] = (PyArrayObject *)PyArray_SimpleNew(out_nd + os[j].ncore, dims, NPY_DOUBLE);
+        if (!outs[j]) goto done;
+    }
+    npy_intp out_core[MAX_OUT];
+    for (int j = 0; j < nout; j++) {
+        out_core[j] = 1;
+        for (int k = 0; k < os[j].ncore; k++) out_core[j] *= os[j].core[k] < 0 ? n : os[j].core[k];
+    }
+    if (scratch_per_n) {
+        scratch = (double *)malloc(sizeof(double) * scratch_per_n * (size_t)(n > 0 ? n : 1));
+        if (!scratch) {
+            PyErr_NoMemory();
+            goto done;
+        }
+    }
+
+    elem e;
+    memset(&e, 0, sizeof e);
+    e.ctx = ctx;
+    e.n = n;
+    e.scratch = scratch;
+    int code = DQ_OK;
+    npy_intp bad_elem = -1;
+    npy_intp bad_off = 0;
+    npy_intp idx[NPY_MAXDIMS];
+    npy_intp off[MAX_IN];
+    for (int k = 0; k < out_nd; k++) idx[k] = 0;
+    for (int i = 0; i < nin; i++) off[i] = 0;
+
+    NPY_BEGIN_THREADS_DEF;
+    if (total >= GIL_RELEASE_MIN) NPY_BEGIN_THREADS;
+    for (npy_intp t = 0; t < total; t++) {
+        for (int i = 0; i < nin; i++) e.in[i] = present[i] ? a[i].data + off[i] * a[i].core_size : NULL;
+        for (int j = 0; j < nout; j++) e.out[j] = (double *)PyArray_DATA(outs[j]) + t * out_core[j];
+        code = kern(&e);
+        if (code != DQ_OK) {
+            bad_elem = t;
+            bad_off = off[e.bad_arg];
+            break;
+        }
+        /* odometer over the broadcast index */
+        for (int k = out_nd - 1; k >= 0; k--) {
+            idx[k]++;
+            for (int i = 0; i < nin; i++) off[i] += a[i].stride[k];
+            if (idx[k] < out_lead[k]) break;
+            for (int i = 0; i < nin; i++) off[i] -= a[i].stride[k] * out_lead[k];
+            idx[k] = 0;
+        }
+    }
+    NPY_END_THREADS;
+    (void)bad_elem;
+
+    if (code != DQ_OK) {
+        int bi = e.bad_arg;
+        const in_spec *s = &is[bi];
+        /* Index within the argument: its own leading index, then the sub-element of the set. */
+        int nd = a[bi].lead_nd;
+        npy_intp shape[NPY_MAXDIMS + 1];
+        for (int k = 0; k < nd; k++) shape[k] = a[bi].lead[k];
+        npy_intp flat = bad_off;
+        npy_intp sub_size = a[bi].core_size;
+        int has_sub = s->ncore >= 1 && s->core[0] < 0;
+        if (has_sub) {
+            shape[nd++] = n;
+            flat = flat * n + e.bad_sub;
+            sub_size = a[bi].core_size / (n > 0 ? n : 1);
+        }
+        char where[256], what[256];
+        if (code == DQ_E_WEIGHT_SUM) {
+            format_index(where, sizeof where, s->name, a[bi].lead_nd, a[bi].lead, bad_off);
+        } else {
+            format_index(where, sizeof where, s->name, nd, shape, flat);
+        }
+        const double *v = a[bi].data + flat * sub_size;
+        problem_text(code, v, (int)sub_size, what, sizeof what);
+        PyErr_Format(PyExc_ValueError, "%s: %s", where, what);
+        goto done;
+    }
+
+    if (nout == 1) {
+        result = (PyObject *)outs[0];
+        outs[0] = NULL;
+    } else {
+        result = PyTuple_New(nout);
+        if (!result) goto done;
+        for (int j = 0; j < nout; j++) {
+            PyTuple_SET_ITEM(result, j, (PyObject *)outs[j]);
+            outs[j] = NULL;
+        }
+    }
+
+done:
+    free(scratch);
+    for (int i = 0; i < nin; i++) Py_XDECREF(a[i].arr);
+    for (int j = 0; j < nout; j++) Py_XDECREF(outs[j]);
+    return result;
+}
+
+/* ---- kernels ------------------------------------------------------------------------------ */
+
+/* Validates a pose input into buf; sets the failing argument on error. */
+#define UNIT_IN(e, i, buf)                                   \
+    do {                                                     \
+        int rc_ = dq_unit((e)->in[i], (buf));                \
+        if (rc_) { (e)->bad_arg = (i); return rc_; }         \
+    } while (0)
+
+static int k_mul(elem *e)
+{
+    if (!dq_finite8(e->in[0])) { e->bad_arg = 0; return DQ_E_NONFINITE; }
+    if (!dq_finite8(e->in[1])) { e->bad_arg = 1; return DQ_E_NONFINITE; }
+    dq_mul(e->in[0], e->in[1], e->out[0]);
+    if (!dq_finite8(e->out[0])) { e->bad_arg = 0; return DQ_E_OVERFLOW; }
+    return DQ_OK;
+}
+
+static int k_conj(elem *e)
+{
+    if (!dq_finite8(e->in[0])) { e->bad_arg = 0; return DQ_E_NONFINITE; }
+    dq_conj(e->in[0], e->out[0]);
+    return DQ_OK;
+}
+
+static int k_normalize(elem *e)
+{
+    int rc = dq_normalize(e->in[0], e->out[0]);
+    if (rc) e->bad_arg = 0;
+    return rc;
+}
+
+static int k_unit(elem *e)
+{
+    UNIT_IN(e, 0, e->out[0]);
+    return DQ_OK;
+}
+
+static int k_log(elem *e)
+{
+    double q[8];
+    UNIT_IN(e, 0, q);
+    dq_log(q, e->out[0]);
+    return DQ_OK;
+}
+
+static int k_exp(elem *e)
+{
+    if (!dq_finite_n(e->in[0], 6)) { e->bad_arg = 0; return DQ_E_NONFINITE; }
+    dq_exp(e->in[0], e->out[0]);
+    if (!dq_finite8(e->out[0])) { e->bad_arg = 0; return DQ_E_OVERFLOW; }
+    return DQ_OK;
+}
+
+static int k_power(elem *e)
+{
+    double q[8];
+    UNIT_IN(e, 0, q);
+    double tau = e->in[1][0];
+    if (!(tau * 0.0 == 0.0)) { e->bad_arg = 1; return DQ_E_NONFINITE; }
+    dq_pow(q, tau, e->out[0]);
+    if (!dq_finite8(e->out[0])) { e->bad_arg = 1; return DQ_E_OVERFLOW; }
+    return DQ_OK;
+}
+
+/* The pair's screw is cached between elements: with one pair and many tau (the usual
+ * trajectory case) it is validated and prepared once. */
+typedef struct {
+    const double *a, *b;
+    dq_sclerp_pair pair;
+} sclerp_ctx;
+
+static int k_sclerp(elem *e)
+{
+    sclerp_ctx *c = (sclerp_ctx *)e->ctx;
+    if (e->in[0] != c->a || e->in[1] != c->b) {
+        double a[8], b[8];
+        UNIT_IN(e, 0, a);
+        UNIT_IN(e, 1, b);
+        dq_sclerp_prepare(a, b, &c->pair);
+        c->a = e->in[0];
+        c->b = e->in[1];
+    }
+    double tau = e->in[2][0];
+    if (!(tau * 0.0 == 0.0)) { e->bad_arg = 2; return DQ_E_NONFINITE; }
+    dq_sclerp_eval(&c->pair, tau, e->out[0]);
+    if (!dq_finite8(e->out[0])) { e->bad_arg = 2; return DQ_E_OVERFLOW; }
+    return DQ_OK;
+}
+
+static int k_from_matrix(elem *e)
+{
+    int rc = dq_from_matrix(e->in[0], e->out[0]);
+    if (rc) e->bad_arg = 0;
+    return rc;
+}
+
+static int k_to_matrix(elem *e)
+{
+    double q[8];
+    UNIT_IN(e, 0, q);
+    dq_to_matrix(q, e->out[0]);
+    return DQ_OK;
+}
+
+static int k_from_pose(elem *e)
+{
+    int rc = dq_from_pose(e->in[0], e->in[1], e->out[0]);
+    if (rc) e->bad_arg = (rc == DQ_E_NONFINITE && dq_finite_n(e->in[0], 4)) ? 1 : 0;
+    return rc;
+}
+
+static int k_to_pose(elem *e)
+{
+    double q[8];
+    UNIT_IN(e, 0, q);
+    dq_to_pose(q, e->out[0], e->out[1]);
+    return DQ_OK;
+}
+
+static int k_transform(elem *e)
+{
+    double q[8];
+    UNIT_IN(e, 0, q);
+    if (!dq_finite_n(e->in[1], 3)) { e->bad_arg = 1; return DQ_E_NONFINITE; }
+    dq_transform_point(q, e->in[1], e->out[0]);
+    if (!dq_finite_n(e->out[0], 3)) { e->bad_arg = 1; return DQ_E_OVERFLOW; }
+    return DQ_OK;
+}
+
+static int k_screw(elem *e)
+{
+    double q[8];
+    UNIT_IN(e, 0, q);
+    dq_screw(q, e->out[0], e->out[1], e->out[2], e->out[2] + 3);
+    return DQ_OK;
+}
+
+/* Blends: scratch holds n unit poses then n normalised weights. */
+enum { M_LIN = 0, M_DEC, M_LOG, M_SCLERP, M_DLB, M_DIB };
+
+typedef struct {
+    int method;
+    double tol;
+    int max_iter;
+} blend_ctx;
+
+static int load_set(elem *e)
+{
+    npy_intp n = e->n;
+    double *q = e->scratch, *w = e->scratch + 8 * n;
+    for (npy_intp i = 0; i < n; i++) {
+        int rc = dq_unit(e->in[0] + 8 * i, q + 8 * i);
+        if (rc) { e->bad_arg = 0; e->bad_sub = i; return rc; }
+    }
+    if (e->in[1]) {
+        size_t bad = 0;
+        int rc = dq_weights(e->in[1], (size_t)n, w, &bad);
+        if (rc) { e->bad_arg = 1; e->bad_sub = (npy_intp)bad; return rc; }
+    } else {
+        for (npy_intp i = 0; i < n; i++) w[i] = 1.0 / (double)n;
+    }
+    return DQ_OK;
+}
+
+static int k_blend(elem *e)
+{
+    blend_ctx *c = (blend_ctx *)e->ctx;
+    int rc = load_set(e);
+    if (rc) return rc;
+    size_t n = (size_t)e->n;
+    double *q = e->scratch, *w = e->scratch + 8 * n;
+    switch (c->method) {
+    case M_LIN: dq_lin(q, w, n, e->out[0]); break;
+    case M_DEC: dq_dec(q, w, n, c->tol, c->max_iter, e->out[0]); break;
+    case M_LOG: dq_logblend(q, w, n, e->out[0]); break;
+    case M_SCLERP: {
+        /* ScLERP of a pair with weights (1 - tau, tau). */
+        dq_sclerp(q, q + 8, w[1], e->out[0]);
+        break;
+    }
+    case M_DLB: dq_dlb(q, w, n, e->out[0]); break;
+    default: {
+        int it = 0;
+        double res = 0.0;
+        dq_dib(q, w, n, c->tol, c->max_iter, e->out[0], &it, &res);
+        if (e->out[1]) e->out[1][0] = (double)it;
+        if (e->out[2]) e->out[2][0] = res;
+    }
+    }
+    double *o = e->out[0];
+    if (!dq_finite_n(o, c->method == M_LIN ? 16 : 8)) { e->bad_arg = 0; e->bad_sub = 0; return DQ_E_OVERFLOW; }
+    return DQ_OK;
+}
+
+/* ---- Python functions ------------------------------------------------------------------- */
+
+static const in_spec S_DQ_A = {"a", 1, {8, 0}, 0};
+static const in_spec S_DQ_B = {"b", 1, {8, 0}, 0};
+static const out_spec O_DQ = {1, {8, 0}};
+
+static PyObject *call1(kernel_fn k, PyObject *x, in_spec s, out_spec o)
+{
+    PyObject *objs[1] = {x};
+    return run(k, NULL, 1, objs, &s, 1, &o, 0);
+}
+
+static PyObject *py_mul(PyObject *self, PyObject *args)
+{
+    PyObject *objs[2];
+    if (!PyArg_ParseTuple(args, "OO:mul", &objs[0], &objs[1])) return NULL;
+    in_spec is[2] = {S_DQ_A, S_DQ_B};
+    return run(k_mul, NULL, 2, objs, is, 1, &O_DQ, 0);
+}
+
+static PyObject *py_conj(PyObject *self, PyObject *x) { return call1(k_conj, x, S_DQ_A, O_DQ); }
+static PyObject *py_normalize(PyObject *self, PyObject *x) { return call1(k_normalize, x, S_DQ_A, O_DQ); }
+static PyObject *py_unit(PyObject *self, PyObject *args)
+{
+    PyObject *x;
+    const char *name = "dq";
+    if (!PyArg_ParseTuple(args, "O|s:unit", &x, &name)) return NULL;
+    in_spec s = {name, 1, {8, 0}, 0};
+    return call1(k_unit, x, s, O_DQ);
+}
+static PyObject *py_log(PyObject *self, PyObject *x)
+{
+    out_spec o = {1, {6, 0}};
+    return call1(k_log, x, S_DQ_A, o);
+}
+static PyObject *py_exp(PyObject *self, PyObject *x)
+{
+    in_spec s = {"x", 1, {6, 0}, 0};
+    return call1(k_exp, x, s, O_DQ);
+}
+static PyObject *py_from_matrix(PyObject *self, PyObject *x)
+{
+    in_spec s = {"T", 2, {4, 4}, 0};
+    return call1(k_from_matrix, x, s, O_DQ);
+}
+static PyObject *py_to_matrix(PyObject *self, PyObject *x)
+{
+    out_spec o = {2, {4, 4}};
+    return call1(k_to_matrix, x, S_DQ_A, o);
+}
+
+static PyObject *py_power(PyObject *self, PyObject *args)
+{
+    PyObject *objs[2];
+    if (!PyArg_ParseTuple(args, "OO:power", &objs[0], &objs[1])) return NULL;
+    in_spec is[2] = {S_DQ_A, {"tau", 0, {0, 0}, 0}};
+    return run(k_power, NULL, 2, objs, is, 1, &O_DQ, 0);
+}
+
+static PyObject *py_sclerp(PyObject *self, PyObject *args)
+{
+    PyObject *objs[3];
+    if (!PyArg_ParseTuple(args, "OOO:sclerp", &objs[0], &objs[1], &objs[2])) return NULL;
+    in_spec is[3] = {S_DQ_A, S_DQ_B, {"tau", 0, {0, 0}, 0}};
+    sclerp_ctx c;
+    memset(&c, 0, sizeof c);
+    return run(k_sclerp, &c, 3, objs, is, 1, &O_DQ, 0);
+}
+
+static PyObject *py_from_pose(PyObject *self, PyObject *args)
+{
+    PyObject *objs[2];
+    if (!PyArg_ParseTuple(args, "OO:from_pose", &objs[0], &objs[1])) return NULL;
+    in_spec is[2] = {{"q", 1, {4, 0}, 0}, {"t", 1, {3, 0}, 0}};
+    return run(k_from_pose, NULL, 2, objs, is, 1, &O_DQ, 0);
+}
+
+static PyObject *py_to_pose(PyObject *self, PyObject *x)
+{
+    PyObject *objs[1] = {x};
+    in_spec is[1] = {S_DQ_A};
+    out_spec os[2] = {{1, {4, 0}}, {1, {3, 0}}};
+    return run(k_to_pose, NULL, 1, objs, is, 2, os, 0);
+}
+
+static PyObject *py_transform(PyObject *self, PyObject *args)
+{
+    PyObject *objs[2];
+    if (!PyArg_ParseTuple(args, "OO:transform", &objs[0], &objs[1])) return NULL;
+    in_spec is[2] = {S_DQ_A, {"p", 1, {3, 0}, 0}};
+    out_spec o = {1, {3, 0}};
+    return run(k_transform, NULL, 2, objs, is, 1, &o, 0);
+}
+
+static PyObject *py_screw(PyObject *self, PyObject *x)
+{
+    PyObject *objs[1] = {x};
+    in_spec is[1] = {S_DQ_A};
+    /* theta, d, and [l | m] packed as 6 values; the Python side splits them. */
+    out_spec os[3] = {{0, {0, 0}}, {0, {0, 0}}, {1, {6, 0}}};
+    return run(k_screw, NULL, 1, objs, is, 3, os, 0);
+}
+
+/* blend(dqs, weights, method, tol, max_iter) -> out, or (out, iterations, residual) for DIB */
+static PyObject *py_blend(PyObject *self, PyObject *args)
+{
+    PyObject *objs[2];
+    blend_ctx c = {M_DIB, 1e-12, 100};
+    if (!PyArg_ParseTuple(args, "OOi|di:blend", &objs[0], &objs[1], &c.method, &c.tol, &c.max_iter))
+        return NULL;
+    if (c.method < M_LIN || c.method > M_DIB) {
+        PyErr_SetString(PyExc_ValueError, "method: unknown blending method");
+        return NULL;
+    }
+    if (!(c.tol >= 0.0) || !(c.tol * 0.0 == 0.0)) {
+        PyErr_SetString(PyExc_ValueError, "tol: must be finite and >= 0");
+        return NULL;
+    }
+    if (c.max_iter < 0) {
+        PyErr_SetString(PyExc_ValueError, "max_iter: must be >= 0");
+        return NULL;
+    }
+    in_spec is[2] = {{"dqs", 2, {-1, 8}, 0}, {"weights", 1, {-1, 0}, 1}};
+    if (c.method == M_SCLERP) {
+        /* exactly two poses */
+        PyArrayObject *arr = (PyArrayObject *)PyArray_FROM_OTF(objs[0], NPY_DOUBLE, NPY_ARRAY_IN_ARRAY);
+        if (!arr) return NULL;
+        int ok = PyArray_NDIM(arr) >= 2 && PyArray_DIM(arr, PyArray_NDIM(arr) - 2) == 2;
+        npy_intp n = PyArray_NDIM(arr) >= 2 ? PyArray_DIM(arr, PyArray_NDIM(arr) - 2) : 0;
+        Py_DECREF(arr);
+        if (!ok) {
+            PyErr_Format(PyExc_ValueError, "dqs: sclerp blends exactly 2 poses, got %zd",
+                         (Py_ssize_t)n);
+            return NULL;
+        }
+    }
+    if (c.method == M_LIN) {
+        out_spec o = {2, {4, 4}};
+        return run(k_blend, &c, 2, objs, is, 1, &o, 9);
+    }
+    if (c.method == M_DIB) {
+        out_spec os[3] = {O_DQ, {0, {0, 0}}, {0, {0, 0}}};
+        return run(k_blend, &c, 2, objs, is, 3, os, 9);
+    }
+    return run(k_blend, &c, 2, objs, is, 1, &O_DQ, 9);
+}
+
+static PyMethodDef methods[] = {
+    {"mul", py_mul, METH_VARARGS, "mul(a, b): dual-quaternion product a b."},
+    {"conj", py_conj, METH_O, "conj(a): quaternion conjugate of both parts (the inverse of a pose)."},
+    {"normalize", py_normalize, METH_O, "normalize(a): divide by the dual-number norm."},
+    {"unit", py_unit, METH_VARARGS, "unit(a, name='dq'): validate poses, return them exactly unit."},
+    {"log", py_log, METH_O, "log(a) -> [...,6]."},
+    {"exp", py_exp, METH_O, "exp(x[...,6]) -> [...,8]."},
+    {"power", py_power, METH_VARARGS, "power(a, tau) = exp(tau log a)."},
+    {"sclerp", py_sclerp, METH_VARARGS, "sclerp(a, b, tau)."},
+    {"from_matrix", py_from_matrix, METH_O, "from_matrix(T[...,4,4]) -> [...,8]."},
+    {"to_matrix", py_to_matrix, METH_O, "to_matrix(a) -> [...,4,4]."},
+    {"from_pose", py_from_pose, METH_VARARGS, "from_pose(q[...,4], t[...,3]) -> [...,8]."},
+    {"to_pose", py_to_pose, METH_O, "to_pose(a) -> (q[...,4], t[...,3])."},
+    {"transform", py_transform, METH_VARARGS, "transform(a, p[...,3]) -> [...,3]."},
+    {"screw", py_screw, METH_O, "screw(a) -> (theta, d, [l | m])."},
+    {"blend", py_blend, METH_VARARGS, "blend(dqs, weights, method, tol, max_iter)."},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef moddef = {
+    PyModuleDef_HEAD_INIT, "_dqcore",
+    "C core of dqpose: dual-quaternion algebra and blending. Use service.dq instead.", -1, methods,
+    NULL, NULL, NULL, NULL,
+};
+
+PyMODINIT_FUNC PyInit__dqcore(void)
+{
+    import_array();
+    PyObject *m = PyModule_Create(&moddef);
+    if (!m) return NULL;
+    PyModule_AddIntConstant(m, "LIN", M_LIN);
+    PyModule_AddIntConstant(m, "DEC", M_DEC);
+    PyModule_AddIntConstant(m, "LOG", M_LOG);
+    PyModule_AddIntConstant(m, "SCLERP", M_SCLERP);
+    PyModule_AddIntConstant(m, "DLB", M_DLB);
+    PyModule_AddIntConstant(m, "DIB", M_DIB);
+    PyModule_AddObject(m, "UNIT_TOL", PyFloat_FromDouble(DQ_UNIT_TOL));
+    return m;
+}

@@ -1,0 +1,46 @@
+"""A first look at dqpose: blend and interpolate a few sample poses and print the results."""
+from __future__ import annotations
+
+import numpy as np
+
+from service import dq
+
+
+def _fmt(pose: np.ndarray) -> str:
+    q, t = dq.to_pose(pose)
+    if q[0] < 0:  # q and -q are the same rotation; print the one with w >= 0
+        q = -q
+    angle = np.degrees(2 * np.arctan2(np.linalg.norm(q[1:]), q[0]))
+    return (f"t = [{t[0]:+.4f} {t[1]:+.4f} {t[2]:+.4f}] m   "
+            f"q = [{q[0]:+.4f} {q[1]:+.4f} {q[2]:+.4f} {q[3]:+.4f}]   ({angle:6.2f} deg)")
+
+
+def main() -> None:
+    # Three measurements of one tool pose, as three sensors might report it.
+    def rz(deg: float) -> list[float]:
+        h = np.radians(deg) / 2
+        return [np.cos(h), 0.0, 0.0, np.sin(h)]
+
+    poses = dq.from_pose(np.array([rz(29.0), rz(31.5), rz(30.2)]),
+                         np.array([[0.500, 0.101, 0.300], [0.503, 0.099, 0.298], [0.499, 0.100, 0.301]]))
+    weights = np.array([1.0, 0.5, 2.0])
+    print("Three measured poses (weights 1, 0.5, 2):")
+    for p in poses:
+        print("  ", _fmt(p))
+    print("\nBlended with each method:")
+    for method in dq.METHODS:
+        if method == "sclerp":
+            continue  # two poses only; shown below
+        print(f"  {method:6s}", _fmt(dq.blend(poses, weights, method=method)))
+    mean, iters, res = dq.dib(poses, weights, return_info=True)
+    print(f"  DIB converged in {int(iters)} steps, residual {float(res):.1e}")
+
+    print("\nScLERP from the first pose to a pose 90 deg and 0.3 m away (screw motion):")
+    goal = dq.from_pose(rz(120.0), [0.8, 0.1, 0.3])
+    taus = np.linspace(0.0, 1.0, 5)
+    for tau, p in zip(taus, dq.sclerp(poses[0], goal, taus)):
+        print(f"  tau = {tau:4.2f}  ", _fmt(p))
+
+
+if __name__ == "__main__":
+    main()

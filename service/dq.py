@@ -1,0 +1,210 @@
+"""Dual quaternions for rigid motions: NumPy in, NumPy out, computed by the C core.
+
+Conventions (stated once, used everywhere in dqpose):
+
+* A dual quaternion is a float64 array of shape ``(..., 8)``: ``[w, x, y, z, w', x', y', z']``,
+  real part first; the dual part is ``1/2 * t * r``.
+* Quaternions are scalar first ``[w, x, y, z]``; metres, radians, seconds.
+* A pose named ``T_a_b`` maps points from frame b to frame a; ``mul(T_a_b, T_b_c) = T_a_c``.
+* ``log`` returns ``(..., 6)``: the real vector part, then the dual vector part. It is half the
+  se(3) twist ``(omega, v)`` of the same motion, with the rotation taken the short way.
+* ``q`` and ``-q`` are the same pose. Quaternions within 1e-6 of unit norm are normalised;
+  anything further off, non-finite, or not rigid raises ``ValueError`` naming the argument.
+
+Every function broadcasts over leading dimensions like a NumPy ufunc and releases the GIL on
+batches.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from service import _dqcore as _c
+
+__all__ = [
+    "METHODS", "UNIT_TOL", "DIBResult", "Screw",
+    "identity", "mul", "conj", "inv", "normalize", "log", "exp", "power",
+    "from_matrix", "to_matrix", "from_pose", "to_pose", "transform", "screw",
+    "sclerp", "dlb", "dib", "lin", "dec", "logblend", "blend",
+]
+
+UNIT_TOL = _c.UNIT_TOL
+METHODS = ("lin", "dec", "log", "sclerp", "dlb", "dib")
+_METHOD_CODES = {"lin": _c.LIN, "dec": _c.DEC, "log": _c.LOG, "sclerp": _c.SCLERP,
+                 "dlb": _c.DLB, "dib": _c.DIB}
+
+
+class DIBResult(NamedTuple):
+    """The DIB mean with how it was reached (arrays over the leading dimensions)."""
+    mean: np.ndarray
+    iterations: np.ndarray
+    residual: np.ndarray
+
+
+class Screw(NamedTuple):
+    """Screw parameters: rotation angle in [0, pi], translation along the axis, axis direction,
+    moment (p x axis for any point p on the axis)."""
+    theta: np.ndarray
+    d: np.ndarray
+    axis: np.ndarray
+    moment: np.ndarray
+
+
+def identity(shape: tuple[int, ...] = ()) -> np.ndarray:
+    """Identity poses of the given leading shape."""
+    out = np.zeros(tuple(shape) + (8,))
+    out[..., 0] = 1.0
+    return out
+
+
+# The algebra maps straight onto the core; these are the documented names.
+def mul(a, b) -> np.ndarray:
+    """Product ``a b``: for poses, ``mul(T_a_b, T_b_c) = T_a_c``."""
+    return _c.mul(a, b)
+
+
+def conj(a) -> np.ndarray:
+    """Quaternion conjugate of both parts; the inverse of a unit dual quaternion."""
+    return _c.conj(a)
+
+
+inv = conj
+
+
+def normalize(a) -> np.ndarray:
+    """Divide by the dual-number norm, so the result is exactly unit (any non-zero real part)."""
+    return _c.normalize(a)
+
+
+def log(a) -> np.ndarray:
+    """``(..., 8) -> (..., 6)``: half the se(3) twist, rotation taken the short way."""
+    return _c.log(a)
+
+
+def exp(x) -> np.ndarray:
+    """``(..., 6) -> (..., 8)``; the inverse of :func:`log`."""
+    return _c.exp(x)
+
+
+def power(a, tau) -> np.ndarray:
+    """``exp(tau * log(a))``: the screw motion of ``a`` scaled by ``tau``."""
+    return _c.power(a, tau)
+
+
+def from_matrix(T) -> np.ndarray:
+    """4x4 rigid transforms ``(..., 4, 4)`` to dual quaternions (scalar part >= 0)."""
+    return _c.from_matrix(T)
+
+
+def to_matrix(a) -> np.ndarray:
+    """Dual quaternions to 4x4 homogeneous matrices."""
+    return _c.to_matrix(a)
+
+
+def from_pose(q_wxyz, t) -> np.ndarray:
+    """Rotation quaternion ``[w, x, y, z]`` and translation ``[x, y, z]`` to a dual quaternion."""
+    return _c.from_pose(q_wxyz, t)
+
+
+def to_pose(a) -> tuple[np.ndarray, np.ndarray]:
+    """Dual quaternion to ``(q_wxyz, t)``. The quaternion keeps the sign of the input."""
+    return _c.to_pose(a)
+
+
+def transform(a, p) -> np.ndarray:
+    """Apply poses to points ``(..., 3)``: ``R p + t``."""
+    return _c.transform(a, p)
+
+
+def screw(a) -> Screw:
+    """Screw parameters of each pose (see :class:`Screw`)."""
+    theta, d, lm = _c.screw(a)
+    return Screw(theta, d, lm[..., :3], lm[..., 3:])
+
+
+def sclerp(a, b, tau) -> np.ndarray:
+    """Screw linear interpolation ``a (a* b)^tau`` along the shortest screw.
+
+    ``a``, ``b`` are ``(..., 8)`` and ``tau`` a scalar or array; all three broadcast together, so
+    one pair with ``tau`` of shape ``(N,)`` gives ``(N, 8)``. The screw of a pair is computed
+    once however many ``tau`` it is evaluated at.
+    """
+    return _c.sclerp(a, b, tau)
+
+
+def _method_code(method: str) -> int:
+    try:
+        return _METHOD_CODES[method]
+    except (KeyError, TypeError):
+        raise ValueError(f"method: unknown blending method {method!r}; "
+                         f"expected one of {', '.join(METHODS)}") from None
+
+
+def dlb(dqs, weights=None) -> np.ndarray:
+    """Dual-quaternion linear blending: the normalised weighted sum, ``(..., n, 8) -> (..., 8)``."""
+    return _c.blend(dqs, weights, _c.DLB)
+
+
+def dib(dqs, weights=None, tol: float = 1e-12, max_iter: int = 100, *, return_info: bool = False):
+    """Dual-quaternion iterative blending: the exact bi-invariant weighted mean.
+
+    Starts at DLB and takes Gauss-Newton steps ``b <- b exp(sum w_i log(b* q_i))`` until the step
+    is shorter than ``tol`` or ``max_iter`` steps were taken. With ``return_info`` returns a
+    :class:`DIBResult` with the number of steps and the final residual (the norm of the weighted
+    log sum at the returned mean; half-twist units: radians and metres).
+    """
+    mean, iters, res = _c.blend(dqs, weights, _c.DIB, float(tol), _as_iter(max_iter))
+    if return_info:
+        return DIBResult(mean, iters.astype(np.int64), res)
+    return mean
+
+
+def _as_iter(max_iter) -> int:
+    if isinstance(max_iter, (bool, np.bool_)) or int(max_iter) != max_iter:
+        raise ValueError(f"max_iter: must be a whole number, got {max_iter!r}")
+    m = int(max_iter)
+    if m < 0 or m > 1_000_000:
+        raise ValueError(f"max_iter: must be within 0..1000000, got {m}")
+    return m
+
+
+def lin(dqs, weights=None) -> np.ndarray:
+    """Linear blend of 4x4 matrices ``(..., n, 8) -> (..., 4, 4)``. Not rigid in general."""
+    return _c.blend(dqs, weights, _c.LIN)
+
+
+def dec(dqs, weights=None, tol: float = 1e-12, max_iter: int = 100) -> np.ndarray:
+    """Rotation (spherical weighted mean) and translation (weighted mean) blended separately."""
+    return _c.blend(dqs, weights, _c.DEC, float(tol), _as_iter(max_iter))
+
+
+def logblend(dqs, weights=None) -> np.ndarray:
+    """Alexa's log-matrix blend: ``exp(sum w_i log q_i)`` with principal logs."""
+    return _c.blend(dqs, weights, _c.LOG)
+
+
+def _nearest_rigid(M: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(M[..., :3, :3])
+    D = np.ones(U.shape[:-1])
+    D[..., -1] = np.sign(np.linalg.det(U @ Vt))
+    out = M.copy()
+    out[..., :3, :3] = (U * D[..., None, :]) @ Vt
+    return out
+
+
+def blend(dqs, weights=None, method: str = "dib", tol: float = 1e-12, max_iter: int = 100):
+    """Blend ``(..., n, 8)`` poses with ``weights`` ``(..., n)`` (default: equal) into ``(..., 8)``.
+
+    ``method`` is one of ``"lin", "dec", "log", "sclerp", "dlb", "dib"``; ``"sclerp"`` needs
+    exactly two poses and interpolates at ``tau = w_1 / (w_0 + w_1)``. ``"lin"`` blends matrices,
+    which is not rigid; its rotation block is projected to the nearest rotation here (use
+    :func:`lin` for the raw blend). Weights must be finite, non-negative, with a positive sum;
+    they are normalised to sum 1.
+    """
+    code = _method_code(method)
+    if code == _c.DIB:
+        return _c.blend(dqs, weights, code, float(tol), _as_iter(max_iter))[0]
+    if code == _c.LIN:
+        return _c.from_matrix(_nearest_rigid(_c.blend(dqs, weights, code)))
+    return _c.blend(dqs, weights, code, float(tol), _as_iter(max_iter))
