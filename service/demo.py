@@ -44,3 +44,8 @@ def main() -> None:
 
 if __name__ == "__main__":
     main()
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("demo", help="blend and interpolate sample poses and print the results")
+    p.set_defaults(func=lambda args: main() or 0)
