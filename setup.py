@@ -1,5 +1,8 @@
-"""Builds the C core against the NumPy headers (everything else is in pyproject.toml)."""
+"""Builds the C core against the NumPy headers and generates the gRPC stubs from proto/
+(everything else is in pyproject.toml)."""
+import glob
 import os
+import re
 
 import numpy
 from setuptools import Extension, setup
@@ -20,4 +23,44 @@ core = Extension(
     libraries=["m"],
 )
 
+PROTO_ROOT = "proto"
+PROTO_OUT = os.path.join("service", "_proto")
+
+
+def generate_stubs() -> None:
+    """proto/dqpose/v1/*.proto -> service/_proto/dqpose/v1/*_pb2*.py (never committed).
+
+    protoc names imports after the proto path (``from dqpose.v1 import ...``); they are rewritten
+    to live under ``service._proto`` so the stubs do not claim a top-level ``dqpose`` package.
+    """
+    from grpc_tools import protoc  # a build requirement (pyproject.toml)
+    import grpc_tools
+
+    protos = sorted(glob.glob(os.path.join(PROTO_ROOT, "dqpose", "**", "*.proto"), recursive=True))
+    wkt = os.path.join(os.path.dirname(grpc_tools.__file__), "_proto")
+    os.makedirs(PROTO_OUT, exist_ok=True)
+    rc = protoc.main(["grpc_tools.protoc", f"-I{PROTO_ROOT}", f"-I{wkt}",
+                      f"--python_out={PROTO_OUT}", f"--pyi_out={PROTO_OUT}",
+                      f"--grpc_python_out={PROTO_OUT}", *protos])
+    if rc != 0:
+        raise SystemExit(f"protoc failed on {protos} (exit {rc})")
+    for dirpath, _, files in os.walk(PROTO_OUT):
+        init = os.path.join(dirpath, "__init__.py")
+        if not os.path.exists(init):
+            open(init, "w").close()
+        for name in files:
+            if name.endswith((".py", ".pyi")) and name != "__init__.py":
+                path = os.path.join(dirpath, name)
+                with open(path) as f:
+                    src = f.read()
+                fixed = re.sub(r"^from dqpose(\.[\w.]+)? import", r"from service._proto.dqpose\1 import",
+                               src, flags=re.M)
+                if fixed != src:
+                    with open(path, "w") as f:
+                        f.write(fixed)
+
+
+# Generated whenever setuptools runs this file: metadata, wheel and editable builds all need the
+# packages under service/_proto to exist (pyproject.toml lists them).
+generate_stubs()
 setup(ext_modules=[core])
