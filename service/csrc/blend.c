@@ -7,6 +7,10 @@
 
 #include "dq.h"
 
+/* The same threshold as dq_screw: below it m' = d_perp / phi could overflow, and the rotation
+ * is far below rounding, so the pair is interpolated as a pure translation. */
+#define SCLERP_MIN_PHI 1e-150
+
 /* ---- ScLERP ----------------------------------------------------------------------------- */
 
 void dq_sclerp_prepare(const double *a, const double *b, dq_sclerp_pair *p)
@@ -21,7 +25,7 @@ void dq_sclerp_prepare(const double *a, const double *b, dq_sclerp_pair *p)
     double phi = sqrt(l[0] * l[0] + l[1] * l[1] + l[2] * l[2]);
     for (int i = 0; i < 4; i++) { p->p0[i] = a[i]; p->p3[i] = a[4 + i]; }
     p->phi = phi;
-    if (phi > 0.0) {
+    if (phi > SCLERP_MIN_PHI) {
         double s[4] = {0.0, l[0] / phi, l[1] / phi, l[2] / phi};
         double h = s[1] * l[3] + s[2] * l[4] + s[3] * l[5];
         double m[4] = {0.0, (l[3] - h * s[1]) / phi, (l[4] - h * s[2]) / phi,
@@ -73,15 +77,25 @@ void dq_sclerp(const double *a, const double *b, double tau, double *out)
 
 int dq_weights(const double *w, size_t n, double *wn, size_t *bad)
 {
-    double sum = 0.0;
+    double sum = 0.0, big = 0.0;
     for (size_t i = 0; i < n; i++) {
         double v = w[i];
         if (!(v * 0.0 == 0.0)) { *bad = i; return DQ_E_NONFINITE; }
         if (v < 0.0) { *bad = i; return DQ_E_WEIGHT_NEG; }
+        if (v > big) big = v;
         sum += v;
     }
-    if (!(sum > 0.0) || !(sum * 0.0 == 0.0)) { *bad = n; return DQ_E_WEIGHT_SUM; }
+    if (!(sum > 0.0)) { *bad = n; return DQ_E_WEIGHT_SUM; }
     double inv = 1.0 / sum;
+    if (!(sum * 0.0 == 0.0) || !(inv * 0.0 == 0.0)) {
+        /* Finite weights whose sum overflows (or whose sum is subnormal, so 1/sum overflows):
+         * scale by the largest first; they are still a valid set of weights. */
+        sum = 0.0;
+        for (size_t i = 0; i < n; i++) sum += w[i] / big;
+        inv = 1.0 / sum;
+        for (size_t i = 0; i < n; i++) wn[i] = (w[i] / big) * inv;
+        return DQ_OK;
+    }
     for (size_t i = 0; i < n; i++) wn[i] = w[i] * inv;
     return DQ_OK;
 }

@@ -6,6 +6,19 @@
 
 #include <math.h>
 
+/* Dual parts with |d|^2 beyond this (translations beyond ~2e150 m) overflow the products in
+ * to_matrix, log and screw; validation and conversions reject them so every result is finite. */
+#define DUAL_NORM2_MAX 1e300
+/* Half rotation angles at or below this count as zero in dq_screw (blend.c's ScLERP uses the
+ * same value): the moment |t|/phi would overflow, and the rotation is far below rounding. */
+#define DQ_SCREW_MIN_PHI 1e-150
+
+static inline int dual_too_large(const double *q)
+{
+    double dd = q[4] * q[4] + q[5] * q[5] + q[6] * q[6] + q[7] * q[7];
+    return !(dd <= DUAL_NORM2_MAX);
+}
+
 void dq_mul(const double *a, const double *b, double *out)
 {
     double r[4], d1[4], d2[4];
@@ -68,6 +81,7 @@ int dq_unit(const double *q, double *out)
     if (fabs(e) > 2.0 * DQ_UNIT_TOL + DQ_UNIT_TOL * DQ_UNIT_TOL) {
         if (fabs(sqrt(rr) - 1.0) > DQ_UNIT_TOL) return DQ_E_NOT_UNIT;
     }
+    if (dual_too_large(q)) return DQ_E_OVERFLOW;
     double rd = q[0] * q[4] + q[1] * q[5] + q[2] * q[6] + q[3] * q[7];
     if (rd != 0.0) {
         double dd = q[4] * q[4] + q[5] * q[5] + q[6] * q[6] + q[7] * q[7];
@@ -246,6 +260,7 @@ int dq_from_matrix(const double *m, double *out)
     double inv = 1.0 / sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
     for (int i = 0; i < 4; i++) q[i] *= inv;
     dual_from_rt(q, t, out);
+    if (!dq_finite8(out) || dual_too_large(out)) return DQ_E_OVERFLOW;
     return DQ_OK;
 }
 
@@ -258,7 +273,7 @@ int dq_from_pose(const double *quat, const double *t, double *out)
     if (fabs(n - 1.0) > DQ_UNIT_TOL) return DQ_E_NOT_UNIT;
     double q[4] = {quat[0] / n, quat[1] / n, quat[2] / n, quat[3] / n};
     dual_from_rt(q, t, out);
-    if (!dq_finite8(out)) return DQ_E_OVERFLOW;
+    if (!dq_finite8(out) || dual_too_large(out)) return DQ_E_OVERFLOW;
     return DQ_OK;
 }
 
@@ -292,7 +307,9 @@ void dq_screw(const double *q, double *theta, double *d, double *l, double *m)
     double x[6];
     dq_log(q, x);
     double phi = sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2]);
-    if (phi > 0.0) {
+    /* Below DQ_SCREW_MIN_PHI the moment (~|t|/phi) could overflow; such a rotation is below
+     * rounding of any pose, so it is treated as the pure translation it is numerically. */
+    if (phi > DQ_SCREW_MIN_PHI) {
         double s0 = x[0] / phi, s1 = x[1] / phi, s2 = x[2] / phi;
         double hd = s0 * x[3] + s1 * x[4] + s2 * x[5];
         *theta = 2.0 * phi;
