@@ -14,6 +14,7 @@ import sys
 # module paths, in the order the help lists them
 COMMANDS = [
     "service.demo",
+    "service.properties",
 ]
 
 
