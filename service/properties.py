@@ -447,14 +447,18 @@ def format_table(table: Table, verbose: bool = False) -> str:
     bad = table.mismatches()
     compared = sum(table.expected(m, p) is not None for m in table.methods for p in PROPERTIES)
     lines.append("")
-    lines.append(f"{compared - len(bad)}/{compared} cells agree with the paper"
-                 + ("." if not bad else ": disagree at " + ", ".join(f"{m} {p}" for m, p in bad)))
+    if compared:
+        lines.append(f"{compared - len(bad)}/{compared} cells agree with the paper"
+                     + ("." if not bad else ": disagree at " + ", ".join(f"{m} {p}" for m, p in bad)))
+    else:
+        lines.append("The paper has no column for these methods.")
     if verbose:
         lines.append("")
+        name = max(len(m) for m in table.methods)
         for m in table.methods:
             for prop in PROPERTIES:
                 c = table.cells[m][prop]
-                lines.append(f"{m:<7} {prop:<12} {_sym(c.holds)}  {c.reason}")
+                lines.append(f"{m:<{name}} {prop:<12} {_sym(c.holds)}  {c.reason}")
     return "\n".join(lines)
 
 
