@@ -1,0 +1,544 @@
+"""AgileX PiPER arm over CAN (any ``python-can`` bus), commanded in tool space.
+
+Our own codec for the frames we use (standard 11-bit ids, 8 data bytes, big-endian):
+
+* ``0x151`` motion mode: control mode, move mode, speed percent, MIT mode, residence time,
+  installation position (one byte each);
+* ``0x152``/``0x153``/``0x154`` end-pose command and ``0x2A2``/``0x2A3``/``0x2A4`` end-pose
+  feedback: signed int32 pairs (X, Y), (Z, RX), (RY, RZ); positions in 0.001 mm, angles in
+  0.001 degree, static-axes ``sxyz`` Euler angles (``R = Rz(RZ) Ry(RY) Rx(RX)``).
+
+``PiperArm`` runs a receive thread that assembles feedback poses, counts and skips malformed
+frames, and watches the command stream: if ``servo`` set-points stop arriving the arm is told to
+hold where it is. Poses cross the interface as dual quaternions ``T_base_tool``.
+"""
+from __future__ import annotations
+
+import math
+import struct
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+import can
+import numpy as np
+
+from drivers.base import Arm, ArmError, ArmStatus
+from drivers.euler import quat_from_sxyz, sxyz_from_quat
+from service import dq
+
+__all__ = [
+    "MOTION_CTRL_2", "END_POSE_CTRL", "END_POSE_FEEDBACK", "CTRL_MODE_CAN", "MOVE_P", "MOVE_J",
+    "MOVE_L", "MotionMode", "EndPose", "FrameError", "EndPoseAssembler",
+    "encode_motion_mode", "decode_motion_mode", "encode_end_pose", "decode_pair",
+    "pose_to_units", "units_to_pose", "PiperArm",
+]
+
+MOTION_CTRL_2 = 0x151
+END_POSE_CTRL = (0x152, 0x153, 0x154)
+END_POSE_FEEDBACK = (0x2A2, 0x2A3, 0x2A4)
+CTRL_MODE_CAN = 0x01
+MOVE_P, MOVE_J, MOVE_L = 0x00, 0x01, 0x02
+
+# Feedback block of the arm; ids here that the protocol does not define are malformed.
+FEEDBACK_BLOCK = range(0x2A0, 0x2B0)
+KNOWN_FEEDBACK = frozenset({0x2A1, *END_POSE_FEEDBACK, 0x2A5, 0x2A6, 0x2A7, 0x2A8})
+# Command block (0x150-0x15F are all defined by the protocol).
+COMMAND_BLOCK = range(0x150, 0x160)
+
+_UNITS_PER_M = 1e6            # 0.001 mm
+_UNITS_PER_RAD = 180e3 / math.pi  # 0.001 degree
+# The PiPER reaches ~0.63 m; anything beyond this is a corrupted frame, not a pose.
+MAX_ABS_POSITION_M = 2.0
+MAX_ABS_ANGLE_UNITS = 180_000
+_INT32 = struct.Struct(">ii")
+
+
+class FrameError(ValueError):
+    """A frame that is not a valid PiPER frame; ``reason`` is a short key for counting."""
+
+    def __init__(self, reason: str, message: str):
+        super().__init__(message)
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class MotionMode:
+    ctrl_mode: int = CTRL_MODE_CAN
+    move_mode: int = MOVE_P
+    speed_percent: int = 100
+    mit_mode: int = 0x00
+    residence_time: int = 0
+    installation_pos: int = 0x00
+
+
+@dataclass(frozen=True)
+class EndPose:
+    """One end pose in protocol units: X, Y, Z in 0.001 mm and RX, RY, RZ in 0.001 degree."""
+    x: int
+    y: int
+    z: int
+    rx: int
+    ry: int
+    rz: int
+
+    def as_tuple(self) -> tuple[int, int, int, int, int, int]:
+        return (self.x, self.y, self.z, self.rx, self.ry, self.rz)
+
+
+def _check_frame(msg: can.Message) -> None:
+    if msg.is_error_frame:
+        raise FrameError("error_frame", f"frame 0x{msg.arbitration_id:X}: CAN error frame")
+    if msg.is_remote_frame:
+        raise FrameError("remote_frame", f"frame 0x{msg.arbitration_id:X}: remote frame")
+    if msg.is_extended_id:
+        raise FrameError("extended_id", f"frame 0x{msg.arbitration_id:X}: extended id, "
+                         "PiPER uses standard 11-bit ids")
+    if msg.dlc != 8 or len(msg.data) != 8:
+        raise FrameError("dlc", f"frame 0x{msg.arbitration_id:X}: DLC {msg.dlc}, expected 8")
+
+
+def encode_motion_mode(mode: MotionMode = MotionMode()) -> can.Message:
+    fields = (mode.ctrl_mode, mode.move_mode, mode.speed_percent, mode.mit_mode,
+              mode.residence_time, mode.installation_pos)
+    for name, v in zip(("ctrl_mode", "move_mode", "speed_percent", "mit_mode",
+                        "residence_time", "installation_pos"), fields):
+        if not 0 <= int(v) <= 255:
+            raise ValueError(f"mode.{name}: {v} does not fit in one byte")
+    if not 0 <= mode.speed_percent <= 100:
+        raise ValueError(f"mode.speed_percent: {mode.speed_percent} is outside 0..100")
+    return can.Message(arbitration_id=MOTION_CTRL_2, is_extended_id=False,
+                       data=bytes(int(v) for v in fields) + b"\x00\x00")
+
+
+def decode_motion_mode(msg: can.Message) -> MotionMode:
+    _check_frame(msg)
+    if msg.arbitration_id != MOTION_CTRL_2:
+        raise FrameError("unknown_id", f"frame 0x{msg.arbitration_id:X}: not a 0x151 frame")
+    d = msg.data
+    if d[2] > 100:
+        raise FrameError("value", f"frame 0x151: speed percent {d[2]} is outside 0..100")
+    return MotionMode(d[0], d[1], d[2], d[3], d[4], d[5])
+
+
+def encode_end_pose(p: EndPose, ids: Sequence[int] = END_POSE_CTRL) -> list[can.Message]:
+    """Three frames (X, Y), (Z, RX), (RY, RZ); ``ids`` picks command or feedback ids."""
+    vals = p.as_tuple()
+    return [can.Message(arbitration_id=i, is_extended_id=False,
+                        data=_INT32.pack(vals[2 * k], vals[2 * k + 1]))
+            for k, i in enumerate(ids)]
+
+
+def decode_pair(msg: can.Message, ids: Sequence[int]) -> tuple[int, int, int]:
+    """``(index 0..2 of the frame within ids, first value, second value)``; values checked."""
+    _check_frame(msg)
+    try:
+        k = list(ids).index(msg.arbitration_id)
+    except ValueError:
+        raise FrameError("unknown_id", f"frame 0x{msg.arbitration_id:X}: not an end-pose frame") \
+            from None
+    a, b = _INT32.unpack(bytes(msg.data))
+    names = (("X", "Y"), ("Z", "RX"), ("RY", "RZ"))[k]
+    for name, v in zip(names, (a, b)):
+        if name.startswith("R"):
+            ok = abs(v) <= MAX_ABS_ANGLE_UNITS
+        else:
+            ok = abs(v) <= MAX_ABS_POSITION_M * _UNITS_PER_M
+        if not ok:
+            raise FrameError("value", f"frame 0x{msg.arbitration_id:X}: {name} = {v} is not a "
+                             "possible end-pose value")
+    return k, a, b
+
+
+def _round_units(v: float) -> int:
+    return int(round(v))
+
+
+def pose_to_units(pose) -> EndPose:
+    """A dual quaternion to the nearest protocol integers (0.001 mm, 0.001 deg, sxyz)."""
+    q, t = dq.to_pose(dq.normalize(np.asarray(pose, dtype=float)))
+    r = sxyz_from_quat(q)
+    xyz = [_round_units(v * _UNITS_PER_M) for v in t]
+    rxyz = [_round_units(v * _UNITS_PER_RAD) for v in r]
+    # Rounding can push +-180 deg one unit past the range; the same angle is on the other side.
+    rxyz = [v - 360_000 if v > MAX_ABS_ANGLE_UNITS else v + 360_000 if v < -MAX_ABS_ANGLE_UNITS
+            else v for v in rxyz]
+    return EndPose(*xyz, *rxyz)
+
+
+def units_to_pose(p: EndPose) -> np.ndarray:
+    """Protocol integers to a dual quaternion (exact conversion, no rounding)."""
+    rx, ry, rz = (v / _UNITS_PER_RAD for v in (p.rx, p.ry, p.rz))
+    t = np.array([p.x, p.y, p.z], dtype=float) / _UNITS_PER_M
+    return dq.from_pose(quat_from_sxyz(rx, ry, rz), t)
+
+
+class EndPoseAssembler:
+    """Collects the three frames of one end pose. A pose is complete when the last frame of a
+    set arrives and the other two arrived since the previous complete pose, so a pose never
+    mixes two cycles once a set is torn."""
+
+    def __init__(self, ids: Sequence[int]):
+        self.ids = tuple(ids)
+        self._parts: list[Optional[tuple[int, int]]] = [None, None, None]
+
+    def feed(self, msg: can.Message) -> Optional[EndPose]:
+        k, a, b = decode_pair(msg, self.ids)
+        self._parts[k] = (a, b)
+        if k != 2:
+            return None
+        parts, self._parts = self._parts, [None, None, None]
+        if parts[0] is None or parts[1] is None:
+            return None
+        return EndPose(*parts[0], *parts[1], *parts[2])
+
+
+def _unit_pose(pose, name: str) -> np.ndarray:
+    a = np.asarray(pose, dtype=float)
+    if a.shape != (8,):
+        raise ValueError(f"{name}: expected a dual quaternion of shape (8,), got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name}: contains non-finite values")
+    n = float(np.linalg.norm(a[:4]))
+    if abs(n - 1.0) > dq.UNIT_TOL:
+        raise ValueError(f"{name}: quaternion norm {n:.6g} is not unit (tolerance {dq.UNIT_TOL})")
+    return dq.normalize(a)
+
+
+def _delta(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """(translation distance in m, rotation angle in rad) from pose a to pose b."""
+    qa, ta = dq.to_pose(a)
+    qb, tb = dq.to_pose(b)
+    c = abs(float(np.dot(qa, qb)))
+    return float(np.linalg.norm(tb - ta)), 2.0 * math.acos(min(1.0, c))
+
+
+def _interpolate(a: np.ndarray, b: np.ndarray, f: float) -> np.ndarray:
+    """Straight line in translation, slerp in rotation (the path of the arm's MOVE L)."""
+    qa, ta = dq.to_pose(a)
+    qb, tb = dq.to_pose(b)
+    ra = dq.from_pose(qa, np.zeros(3))
+    rb = dq.from_pose(qb, np.zeros(3))
+    q = dq.to_pose(dq.sclerp(ra, rb, f))[0]
+    return dq.from_pose(q, ta + f * (tb - ta))
+
+
+class PiperArm(Arm):
+    """A PiPER on ``bus`` (``can.Bus`` of any interface), in end-pose (MOVE P) mode.
+
+    Safety: every target must lie in ``workspace`` (axis-aligned box in the base frame, metres);
+    ``servo`` refuses set-points further than ``max_jump`` (m, rad) from the previous one and
+    rate-limits the rest to ``max_speed``/``max_angular_speed`` and ``max_accel``; if no servo
+    set-point arrives for ``watchdog`` seconds the arm is told to hold its measured pose.
+    The arm counts as connected while end-pose feedback is younger than ``stale_timeout``.
+    """
+
+    name = "piper"
+
+    def __init__(self, bus: can.BusABC, *, period: float = 0.005,
+                 max_speed: float = 0.25, max_angular_speed: float = math.radians(90),
+                 max_accel: float = 2.0,
+                 workspace: tuple[Sequence[float], Sequence[float]] =
+                 ((-0.7, -0.7, -0.2), (0.7, 0.7, 0.8)),
+                 max_jump: tuple[float, float] = (0.02, math.radians(5)),
+                 watchdog: float = 0.1, stale_timeout: float = 0.1,
+                 position_tolerance: float = 5e-4, angle_tolerance: float = math.radians(0.2)):
+        for name, v in (("period", period), ("max_speed", max_speed),
+                        ("max_angular_speed", max_angular_speed), ("max_accel", max_accel),
+                        ("watchdog", watchdog), ("stale_timeout", stale_timeout),
+                        ("position_tolerance", position_tolerance),
+                        ("angle_tolerance", angle_tolerance)):
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name}: must be a positive number, got {v!r}")
+        lo, hi = (np.asarray(w, dtype=float) for w in workspace)
+        if lo.shape != (3,) or hi.shape != (3,) or not np.all(lo < hi):
+            raise ValueError(f"workspace: expected ((xmin, ymin, zmin), (xmax, ymax, zmax)) with "
+                             f"min < max, got {workspace!r}")
+        self.bus = bus
+        self.period = float(period)
+        self.max_speed = float(max_speed)
+        self.max_angular_speed = float(max_angular_speed)
+        self.max_accel = float(max_accel)
+        self.workspace = (lo, hi)
+        self.max_jump = (float(max_jump[0]), float(max_jump[1]))
+        self.watchdog = float(watchdog)
+        self.stale_timeout = float(stale_timeout)
+        self.position_tolerance = float(position_tolerance)
+        self.angle_tolerance = float(angle_tolerance)
+
+        self._lock = threading.Lock()
+        self._send_lock = threading.Lock()
+        self._assembler = EndPoseAssembler(END_POSE_FEEDBACK)
+        self._pose: Optional[np.ndarray] = None
+        self._pose_time = 0.0        # bus timestamp of the last complete feedback
+        self._pose_mono = -math.inf  # our monotonic clock at that moment
+        self._first_mono = time.monotonic()
+        self.frames = 0
+        self.poses = 0
+        self.malformed: Counter = Counter()
+        self.watchdog_stops = 0
+        self._mode_sent: Optional[MotionMode] = None
+        # servo stream state
+        self._setpoint: Optional[np.ndarray] = None
+        self._velocity = np.zeros(2)   # (m/s, rad/s) of the last servo step
+        self._last_servo = -math.inf
+        self._servo_active = False
+        self._abort = threading.Event()
+        self._closed = threading.Event()
+        self._thread = threading.Thread(target=self._receive, name="piper-rx", daemon=True)
+        self._thread.start()
+
+    # ---- receive side -------------------------------------------------------------------------
+    def _receive(self) -> None:
+        while not self._closed.is_set():
+            try:
+                msg = self.bus.recv(timeout=min(0.02, self.watchdog / 2))
+            except (can.CanError, OSError, ValueError):
+                if self._closed.is_set():
+                    return
+                time.sleep(0.01)
+                continue
+            if msg is not None:
+                self._handle(msg)
+            self._check_watchdog()
+
+    def _handle(self, msg: can.Message) -> None:
+        i = msg.arbitration_id
+        if i not in FEEDBACK_BLOCK:
+            return  # other devices and the arm's other reports are not ours to judge
+        with self._lock:
+            self.frames += 1
+        if i not in KNOWN_FEEDBACK:
+            self._count("unknown_id")
+            return
+        if i not in END_POSE_FEEDBACK:
+            return
+        try:
+            ep = self._assembler.feed(msg)
+        except FrameError as e:
+            self._count(e.reason)
+            return
+        if ep is None:
+            return
+        pose = units_to_pose(ep)
+        stamp = msg.timestamp if msg.timestamp else time.time()
+        with self._lock:
+            self._pose, self._pose_time, self._pose_mono = pose, stamp, time.monotonic()
+            self.poses += 1
+
+    def _count(self, reason: str) -> None:
+        with self._lock:
+            self.malformed[reason] += 1
+
+    def _check_watchdog(self) -> None:
+        with self._lock:
+            stalled = (self._servo_active
+                       and time.monotonic() - self._last_servo > self.watchdog)
+            if stalled:
+                self._servo_active = False
+        if stalled:
+            self.watchdog_stops += 1
+            try:
+                self._hold()
+            except ArmError:
+                pass  # no feedback to hold at; status() already reports the loss
+
+    # ---- helpers -------------------------------------------------------------------------------
+    def _send(self, msgs: Sequence[can.Message]) -> None:
+        with self._send_lock:
+            try:
+                for m in msgs:
+                    self.bus.send(m, timeout=0.05)
+            except (can.CanError, OSError) as e:
+                raise ArmError(f"PiPER: CAN send failed: {e}") from e
+
+    def _command(self, pose: np.ndarray, speed_percent: int = 100) -> None:
+        mode = MotionMode(CTRL_MODE_CAN, MOVE_P, speed_percent)
+        msgs = encode_end_pose(pose_to_units(pose), END_POSE_CTRL)
+        if mode != self._mode_sent:
+            msgs = [encode_motion_mode(mode)] + msgs
+            self._mode_sent = mode
+        self._send(msgs)
+
+    def _fresh_pose(self) -> tuple[float, np.ndarray]:
+        with self._lock:
+            pose, stamp, mono = self._pose, self._pose_time, self._pose_mono
+        age = time.monotonic() - mono
+        if pose is None:
+            raise ArmError(f"PiPER: no end-pose feedback received yet (waited "
+                           f"{time.monotonic() - self._first_mono:.2f} s)")
+        if age > self.stale_timeout:
+            raise ArmError(f"PiPER: end-pose feedback is stale ({age:.2f} s old, limit "
+                           f"{self.stale_timeout:.2f} s)")
+        return stamp, pose.copy()
+
+    def _check_workspace(self, pose: np.ndarray, name: str) -> None:
+        t = dq.to_pose(pose)[1]
+        lo, hi = self.workspace
+        if np.any(t < lo) or np.any(t > hi):
+            raise ValueError(f"{name}: position {np.round(t, 4).tolist()} m is outside the "
+                             f"workspace {lo.tolist()}..{hi.tolist()}")
+
+    def _hold(self) -> None:
+        _, pose = self._fresh_pose()
+        with self._lock:
+            self._setpoint = pose
+            self._velocity = np.zeros(2)
+        self._command(pose)
+
+    def wait_for_feedback(self, timeout: float = 1.0) -> tuple[float, np.ndarray]:
+        """Block until fresh feedback arrives (or raise ``ArmError`` after ``timeout``)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                return self._fresh_pose()
+            except ArmError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.005)
+
+    # ---- Arm interface -----------------------------------------------------------------------
+    def tool_pose(self) -> tuple[float, np.ndarray]:
+        return self._fresh_pose()
+
+    def servo(self, pose) -> None:
+        target = _unit_pose(pose, "pose")
+        self._check_workspace(target, "pose")
+        now = time.monotonic()
+        with self._lock:
+            prev = self._setpoint if self._servo_active else None
+            last = self._last_servo
+            v_prev = self._velocity.copy() if self._servo_active else np.zeros(2)
+        if prev is None:
+            prev = self._fresh_pose()[1]
+            dt = self.period
+        else:
+            self._fresh_pose()
+            dt = min(max(now - last, self.period), self.watchdog)
+        dist, ang = _delta(prev, target)
+        if dist > self.max_jump[0] or ang > self.max_jump[1]:
+            raise ArmError(f"pose: set-point jumps {dist:.4f} m / {math.degrees(ang):.2f} deg from "
+                           f"the previous one (limits {self.max_jump[0]:.4f} m / "
+                           f"{math.degrees(self.max_jump[1]):.2f} deg); use move() for large "
+                           "motions")
+        # Rate limit: one common fraction keeps the set-point on the requested path.
+        want = np.array([dist, ang]) / dt
+        vmax = np.array([self.max_speed, self.max_angular_speed])
+        amax = np.array([self.max_accel, self.max_accel * self.max_angular_speed / self.max_speed])
+        allowed = np.minimum(vmax, v_prev + amax * dt)
+        f = 1.0
+        for w, a in zip(want, allowed):
+            if w > a:
+                f = min(f, a / w)
+        sent = target if f >= 1.0 else _interpolate(prev, target, f)
+        with self._lock:
+            self._setpoint = sent
+            self._velocity = want * f
+            self._last_servo = now
+            self._servo_active = True
+        self._command(sent)
+
+    def move(self, pose, speed: float, accel: float, timeout: Optional[float] = None) -> None:
+        """Trapezoidal straight-line move streamed at ``period``; returns once the feedback is
+        within tolerance of ``pose`` (``ArmError`` on ``timeout``, loss of feedback or stop)."""
+        target = _unit_pose(pose, "pose")
+        self._check_workspace(target, "pose")
+        for name, v, lim in (("speed", speed, self.max_speed), ("accel", accel, self.max_accel)):
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and 0 < v <= lim):
+                raise ValueError(f"{name}: must be within (0, {lim}], got {v!r}")
+        with self._lock:
+            self._servo_active = False
+        self._abort.clear()
+        _, start = self._fresh_pose()
+        dist, ang = _delta(start, target)
+        # Rotation runs at the same fraction of its limit as translation does of its own.
+        scale = self.max_angular_speed / self.max_speed
+        s = max(dist, ang / scale)  # path length in translation-equivalent metres
+        if s > 0:
+            t_acc = speed / accel
+            if accel * t_acc * t_acc >= s:   # triangular profile
+                t_acc = math.sqrt(s / accel)
+                t_flat, v = 0.0, accel * t_acc
+            else:
+                v = speed
+                t_flat = (s - accel * t_acc * t_acc) / speed
+            duration = 2 * t_acc + t_flat
+
+            def progress(t: float) -> float:
+                if t < t_acc:
+                    return 0.5 * accel * t * t
+                if t < t_acc + t_flat:
+                    return 0.5 * accel * t_acc * t_acc + v * (t - t_acc)
+                r = max(duration - t, 0.0)
+                return s - 0.5 * accel * r * r
+        else:
+            duration = 0.0
+        if timeout is None:
+            timeout = duration + 2.0
+        t0 = time.monotonic()
+        deadline = t0 + timeout
+        next_tick = t0
+        while True:
+            if self._abort.is_set():
+                raise ArmError("move: stopped before reaching the target")
+            now = time.monotonic()
+            el = now - t0
+            if el < duration:
+                sp = _interpolate(start, target, progress(el) / s)
+            else:
+                sp = target
+            self._command(sp)
+            _, cur = self._fresh_pose()
+            if el >= duration:
+                d, a = _delta(cur, target)
+                if d <= self.position_tolerance and a <= self.angle_tolerance:
+                    with self._lock:
+                        self._setpoint = target
+                        self._velocity = np.zeros(2)
+                    return
+            if now > deadline:
+                d, a = _delta(cur, target)
+                raise ArmError(f"move: target not reached within {timeout:.2f} s (still "
+                               f"{d * 1000:.2f} mm / {math.degrees(a):.3f} deg away)")
+            next_tick += self.period
+            time.sleep(max(0.0, next_tick - time.monotonic()))
+
+    def stop(self) -> None:
+        """Command the measured pose as the target, ending any servo stream or move."""
+        self._abort.set()
+        with self._lock:
+            self._servo_active = False
+        self._hold()
+
+    def status(self) -> ArmStatus:
+        with self._lock:
+            mono, poses, frames = self._pose_mono, self.poses, self.frames
+            malformed = dict(self.malformed)
+        age = time.monotonic() - mono
+        connected = age <= self.stale_timeout and not self._closed.is_set()
+        if self._closed.is_set():
+            error = "closed"
+        elif poses == 0:
+            error = "no end-pose feedback received yet"
+        elif not connected:
+            error = f"end-pose feedback is stale ({age:.2f} s old)"
+        else:
+            error = ""
+        return ArmStatus(connected=connected, error=error,
+                         extra={"feedback_age": age, "poses": poses, "frames": frames,
+                                "malformed": malformed, "watchdog_stops": self.watchdog_stops})
+
+    def close(self) -> None:
+        if self._closed.is_set():
+            return
+        try:
+            with self._lock:
+                active = self._servo_active
+            if active:
+                self.stop()
+        except ArmError:
+            pass
+        self._closed.set()
+        self._thread.join(timeout=1.0)

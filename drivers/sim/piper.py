@@ -1,0 +1,218 @@
+"""A simulated AgileX PiPER on any ``python-can`` bus.
+
+Publishes end-pose feedback (0x2A2-0x2A4) at ``rate`` and follows end-pose commands
+(0x152-0x154, applied when the 0x154 frame of a complete set arrives) while the last 0x151 frame
+selected CAN command mode with MOVE P or MOVE L. The motion model moves the tool straight towards
+the target at ``max_speed * speed_percent / 100`` (rotation by slerp at the same fraction of
+``max_angular_speed``), so it lags like the real arm instead of jumping. Malformed frames are
+counted and skipped.
+
+From the shell: ``dqpose sim piper --channel can0 --interface socketcan`` (or
+``python -m drivers.sim.piper``).
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import threading
+import time
+from collections import Counter
+from typing import Optional, Sequence
+
+import can
+import numpy as np
+
+from drivers.euler import dq_from_xyz_sxyz
+from drivers.piper import (COMMAND_BLOCK, CTRL_MODE_CAN, END_POSE_CTRL, END_POSE_FEEDBACK,
+                           MOTION_CTRL_2, MOVE_L, MOVE_P, EndPoseAssembler, FrameError,
+                           MotionMode, _delta, _interpolate, decode_motion_mode, encode_end_pose,
+                           pose_to_units, units_to_pose)
+from service import dq
+
+__all__ = ["PiperSim", "HOME", "main", "add_arguments", "run"]
+
+#: a reachable tool pose, pointing down: 0.2 m forward, 0.3 m up
+HOME = dq_from_xyz_sxyz([0.2, 0.0, 0.3], [math.pi, 0.0, 0.0])
+
+
+class PiperSim:
+    """The simulated arm; ``start()`` runs it in a thread, ``close()`` stops it.
+
+    Test hooks: ``set_pose``, ``pose``, ``target``, ``mode``, ``pause_feedback``, ``log`` (the
+    decoded commands, newest last) and ``malformed`` (counts by reason).
+    """
+
+    def __init__(self, bus: can.BusABC, *, rate: float = 200.0, pose=HOME,
+                 max_speed: float = 0.5, max_angular_speed: float = math.radians(180)):
+        if not (math.isfinite(rate) and 0 < rate <= 2000):
+            raise ValueError(f"rate: must be within (0, 2000] Hz, got {rate!r}")
+        self.bus = bus
+        self.rate = float(rate)
+        self.max_speed = float(max_speed)
+        self.max_angular_speed = float(max_angular_speed)
+        self._lock = threading.Lock()
+        self._pose = dq.normalize(np.asarray(pose, dtype=float))
+        self._target: Optional[np.ndarray] = None
+        self.mode: Optional[MotionMode] = None
+        self._assembler = EndPoseAssembler(END_POSE_CTRL)
+        self.malformed: Counter = Counter()
+        self.log: list[tuple[float, str, object]] = []
+        self.feedback_enabled = threading.Event()
+        self.feedback_enabled.set()
+        self._stop = threading.Event()
+        self._thread: Optional[threading.Thread] = None
+
+    # ---- test hooks ------------------------------------------------------------------------------
+    @property
+    def pose(self) -> np.ndarray:
+        with self._lock:
+            return self._pose.copy()
+
+    @property
+    def target(self) -> Optional[np.ndarray]:
+        with self._lock:
+            return None if self._target is None else self._target.copy()
+
+    def set_pose(self, pose) -> None:
+        """Teleport the tool (and drop any target), as if moved by hand."""
+        with self._lock:
+            self._pose = dq.normalize(np.asarray(pose, dtype=float))
+            self._target = None
+
+    def pause_feedback(self, paused: bool = True) -> None:
+        """Stop (or resume) publishing feedback, like an arm whose bus link died."""
+        if paused:
+            self.feedback_enabled.clear()
+        else:
+            self.feedback_enabled.set()
+
+    # ---- protocol --------------------------------------------------------------------------------
+    def handle(self, msg: can.Message) -> None:
+        i = msg.arbitration_id
+        if i not in COMMAND_BLOCK:
+            return
+        try:
+            if i == MOTION_CTRL_2:
+                mode = decode_motion_mode(msg)
+                with self._lock:
+                    self.mode = mode
+                self.log.append((time.time(), "mode", mode))
+            elif i in END_POSE_CTRL:
+                ep = self._assembler.feed(msg)
+                if ep is not None:
+                    self.log.append((time.time(), "end_pose", ep))
+                    with self._lock:
+                        if self._following():
+                            self._target = units_to_pose(ep)
+        except FrameError as e:
+            self.malformed[e.reason] += 1
+
+    def _following(self) -> bool:
+        m = self.mode
+        return m is not None and m.ctrl_mode == CTRL_MODE_CAN and m.move_mode in (MOVE_P, MOVE_L)
+
+    def step(self, dt: float) -> None:
+        """Advance the motion model by ``dt`` seconds."""
+        with self._lock:
+            if self._target is None or not self._following():
+                return
+            frac = self.mode.speed_percent / 100.0
+            dist, ang = _delta(self._pose, self._target)
+            f = 1.0
+            if dist > 0:
+                f = min(f, self.max_speed * frac * dt / dist)
+            if ang > 0:
+                f = min(f, self.max_angular_speed * frac * dt / ang)
+            self._pose = self._target.copy() if f >= 1.0 else \
+                dq.normalize(_interpolate(self._pose, self._target, f))
+
+    def publish(self) -> None:
+        for m in encode_end_pose(pose_to_units(self.pose), END_POSE_FEEDBACK):
+            self.bus.send(m)
+
+    def _run(self) -> None:
+        period = 1.0 / self.rate
+        next_tick = time.monotonic()
+        last = next_tick
+        while not self._stop.is_set():
+            while True:
+                try:
+                    msg = self.bus.recv(timeout=0.0)
+                except (can.CanError, OSError):
+                    msg = None
+                if msg is None:
+                    break
+                self.handle(msg)
+            now = time.monotonic()
+            self.step(now - last)
+            last = now
+            if self.feedback_enabled.is_set():
+                try:
+                    self.publish()
+                except (can.CanError, OSError):
+                    pass  # a full or closed bus drops feedback, as on hardware
+            next_tick += period
+            delay = next_tick - time.monotonic()
+            if delay < -period:   # fell behind (loaded machine): do not burst to catch up
+                next_tick = time.monotonic()
+            # Wake early for commands so they are not a whole period late.
+            self._stop.wait(max(0.0, delay))
+
+    def start(self) -> "PiperSim":
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="piper-sim", daemon=True)
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=1.0)
+            self._thread = None
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--channel", default="can0", help="CAN channel (default can0)")
+    p.add_argument("--interface", default="socketcan",
+                   help="python-can interface: socketcan, virtual, ... (default socketcan)")
+    p.add_argument("--rate", type=float, default=200.0, help="feedback rate in Hz (default 200)")
+    p.add_argument("--duration", type=float, default=None,
+                   help="stop after this many seconds (default: until Ctrl-C)")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        bus = can.Bus(interface=args.interface, channel=args.channel)
+    except (can.CanError, OSError, ValueError, ImportError) as e:
+        print(f"dqpose sim piper: cannot open {args.interface} channel {args.channel!r}: {e}")
+        return 2
+    sim = PiperSim(bus, rate=args.rate)
+    print(f"simulated PiPER on {args.interface}:{args.channel}, feedback at {args.rate:g} Hz",
+          flush=True)
+    try:
+        sim.start()
+        end = math.inf if args.duration is None else time.monotonic() + args.duration
+        while time.monotonic() < end:
+            time.sleep(min(0.2, max(0.0, end - time.monotonic())))
+    except KeyboardInterrupt:
+        pass
+    finally:
+        sim.close()
+        bus.shutdown()
+    return 0
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    p = argparse.ArgumentParser(prog="dqpose sim piper", description=__doc__.split("\n\n")[0])
+    add_arguments(p)
+    return run(p.parse_args(argv))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

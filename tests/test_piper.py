@@ -1,0 +1,388 @@
+"""PiPER codec, simulator and driver against each other and against the real ``piper_sdk``, all on
+python-can's in-process ``virtual`` bus."""
+import math
+import struct
+import time
+import uuid
+
+import can
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from drivers.base import ArmError
+from drivers.euler import dq_from_xyz_sxyz
+from drivers.piper import (END_POSE_CTRL, END_POSE_FEEDBACK, EndPose, EndPoseAssembler,
+                           FrameError, MotionMode, PiperArm, _delta, decode_motion_mode,
+                           encode_end_pose, encode_motion_mode, pose_to_units, units_to_pose)
+from drivers.sim.piper import HOME, PiperSim
+from service import dq
+
+# piper_sdk 0.6.2 still passes python-can's deprecated ``bustype``.
+pytestmark = pytest.mark.filterwarnings("ignore:The 'bustype' argument is deprecated")
+
+# Half a unit of quantisation per axis: 0.5 um and 0.0005 deg.
+POS_Q = math.sqrt(3) * 0.5e-6
+ANG_Q = math.radians(0.0005) * 3
+
+
+def wait_until(pred, timeout=2.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        v = pred()
+        if v:
+            return v
+        time.sleep(0.005)
+    return pred()
+
+
+def sdk_pose(ints):
+    """Reference conversion of piper_sdk integers: SciPy static-axes 'xyz' = Rz Ry Rx."""
+    x, y, z, rx, ry, rz = ints
+    R = Rotation.from_euler("xyz", np.array([rx, ry, rz]) / 1000.0, degrees=True).as_matrix()
+    M = np.eye(4)
+    M[:3, :3] = R
+    M[:3, 3] = np.array([x, y, z]) / 1e6
+    return dq.from_matrix(M)
+
+
+def near(a, b, pos, ang):
+    d, r = _delta(a, b)
+    return d <= pos and r <= ang
+
+
+def random_poses(rng, n):
+    xyz = np.column_stack([rng.uniform(0.1, 0.4, n), rng.uniform(-0.25, 0.25, n),
+                           rng.uniform(0.1, 0.4, n)])
+    e = np.column_stack([rng.uniform(-np.pi, np.pi, n), rng.uniform(-1.4, 1.4, n),
+                         rng.uniform(-np.pi, np.pi, n)])
+    return dq_from_xyz_sxyz(xyz, e)
+
+
+@pytest.fixture
+def channel():
+    return f"piper-{uuid.uuid4().hex[:8]}"
+
+
+@pytest.fixture
+def bus_factory(channel):
+    buses = []
+
+    def make():
+        b = can.Bus(interface="virtual", channel=channel)
+        buses.append(b)
+        return b
+    yield make
+    for b in buses:
+        b.shutdown()
+
+
+@pytest.fixture
+def sim(bus_factory):
+    s = PiperSim(bus_factory()).start()
+    yield s
+    s.close()
+
+
+@pytest.fixture
+def arm(sim, bus_factory):
+    a = PiperArm(bus_factory())
+    a.wait_for_feedback(2.0)
+    yield a
+    a.close()
+
+
+@pytest.fixture
+def sdk(channel):
+    from piper_sdk import C_PiperInterface_V2
+    p = C_PiperInterface_V2(channel, judge_flag=False, can_auto_init=False)
+    p.CreateCanBus(channel, bustype="virtual", judge_flag=False)
+    p.ConnectPort(can_init=False, piper_init=False, start_thread=True)
+    yield p
+    p.DisconnectPort()
+
+
+# ---- codec -------------------------------------------------------------------------------------
+def test_units_round_trip_within_quantisation():
+    rng = np.random.default_rng(1)
+    for T in random_poses(rng, 200):
+        back = units_to_pose(pose_to_units(T))
+        d, a = _delta(T, back)
+        assert d <= POS_Q and a <= ANG_Q
+
+
+def test_units_are_micrometres_and_millidegrees():
+    T = dq_from_xyz_sxyz([0.123456, -0.5, 0.25], np.radians([10.0, -20.5, 179.9]))
+    assert pose_to_units(T).as_tuple() == (123456, -500000, 250000, 10000, -20500, 179900)
+
+
+def test_frames_big_endian_signed_pairs():
+    frames = encode_end_pose(EndPose(1, -2, 3, 4, -5, 6), END_POSE_FEEDBACK)
+    assert [f.arbitration_id for f in frames] == list(END_POSE_FEEDBACK)
+    assert bytes(frames[0].data) == bytes.fromhex("00000001fffffffe")
+    asm = EndPoseAssembler(END_POSE_FEEDBACK)
+    assert [asm.feed(f) for f in frames][-1] == EndPose(1, -2, 3, 4, -5, 6)
+
+
+def test_assembler_drops_torn_sets():
+    frames = encode_end_pose(EndPose(1, 2, 3, 4, 5, 6), END_POSE_FEEDBACK)
+    asm = EndPoseAssembler(END_POSE_FEEDBACK)
+    assert asm.feed(frames[0]) is None
+    assert asm.feed(frames[2]) is None      # 0x2A3 missing: no pose
+    assert asm.feed(frames[1]) is None
+    assert asm.feed(frames[2]) is None      # 0x2A2 was consumed by the torn set
+    for f in frames:
+        out = asm.feed(f)
+    assert out == EndPose(1, 2, 3, 4, 5, 6)
+
+
+@pytest.mark.parametrize("msg,reason", [
+    (can.Message(arbitration_id=0x2A2, data=b"\x00" * 6, is_extended_id=False), "dlc"),
+    (can.Message(arbitration_id=0x2A2, data=b"\x00" * 8, is_extended_id=True), "extended_id"),
+    (can.Message(arbitration_id=0x2A3, data=struct.pack(">ii", 0, 200_000),
+                 is_extended_id=False), "value"),
+    (can.Message(arbitration_id=0x2A2, data=struct.pack(">ii", 2**31 - 1, 0),
+                 is_extended_id=False), "value"),
+    (can.Message(arbitration_id=0x2A9, data=b"\x00" * 8, is_extended_id=False), "unknown_id"),
+])
+def test_decoder_rejects_malformed(msg, reason):
+    with pytest.raises(FrameError) as e:
+        EndPoseAssembler(END_POSE_FEEDBACK).feed(msg)
+    assert e.value.reason == reason
+
+
+def test_motion_mode_bad_values():
+    with pytest.raises(ValueError, match="speed_percent"):
+        encode_motion_mode(MotionMode(speed_percent=101))
+    bad = can.Message(arbitration_id=0x151, data=bytes([1, 0, 150, 0, 0, 0, 0, 0]),
+                      is_extended_id=False)
+    with pytest.raises(FrameError):
+        decode_motion_mode(bad)
+
+
+# ---- against piper_sdk -------------------------------------------------------------------------
+def test_our_frames_equal_piper_sdk_frames(sdk, bus_factory):
+    listener = bus_factory()
+    rng = np.random.default_rng(2)
+    for _ in range(5):
+        ints = [int(v) for v in rng.integers(-600_000, 600_000, 3)] + \
+               [int(v) for v in rng.integers(-180_000, 180_001, 3)]
+        speed = int(rng.integers(0, 101))
+        sdk.MotionCtrl_2(0x01, 0x00, speed, 0x00)
+        sdk.EndPoseCtrl(*ints)
+        got = []
+        while len(got) < 4:
+            m = listener.recv(1.0)
+            assert m is not None, "piper_sdk sent fewer frames than expected"
+            got.append(m)
+        assert bytes(got[0].data) == bytes(encode_motion_mode(MotionMode(1, 0, speed)).data)
+        assert decode_motion_mode(got[0]) == MotionMode(1, 0, speed)
+        ours = encode_end_pose(EndPose(*ints), END_POSE_CTRL)
+        assert [(m.arbitration_id, bytes(m.data)) for m in got[1:]] == \
+               [(m.arbitration_id, bytes(m.data)) for m in ours]
+        asm = EndPoseAssembler(END_POSE_CTRL)
+        assert [asm.feed(m) for m in got[1:]][-1] == EndPose(*ints)
+
+
+def test_piper_sdk_reads_sim_end_pose(sdk, sim):
+    rng = np.random.default_rng(3)
+    for T in random_poses(rng, 5):
+        sim.set_pose(T)
+        want = pose_to_units(T).as_tuple()
+
+        def read():
+            e = sdk.GetArmEndPoseMsgs().end_pose
+            got = (e.X_axis, e.Y_axis, e.Z_axis, e.RX_axis, e.RY_axis, e.RZ_axis)
+            return got if got == want else None
+        got = wait_until(read)
+        assert got == want
+        # The integers piper_sdk reports, read with SciPy's Rz Ry Rx, are the simulated pose.
+        d, a = _delta(sdk_pose(got), T)
+        assert d <= POS_Q and a <= ANG_Q
+
+
+def test_sim_follows_piper_sdk_end_pose_ctrl(sdk, sim):
+    target_ints = (250_000, -50_000, 200_000, 170_000, 10_000, -30_000)
+    sdk.EndPoseCtrl(*target_ints)           # not in CAN command mode yet: ignored
+    time.sleep(0.05)
+    assert sim.target is None
+    sdk.MotionCtrl_2(0x01, 0x00, 100, 0x00)
+    sdk.EndPoseCtrl(*target_ints)
+    target = sdk_pose(target_ints)
+    assert wait_until(lambda: sim.target is not None)
+    d, a = _delta(sim.target, target)
+    assert d < 1e-9 and a < 1e-9
+    assert wait_until(lambda: near(sim.pose, target, 1e-9, 1e-9), timeout=5.0)
+
+    def sdk_sees_target():
+        e = sdk.GetArmEndPoseMsgs().end_pose
+        return (e.X_axis, e.Y_axis, e.Z_axis, e.RX_axis, e.RY_axis, e.RZ_axis) == target_ints
+    assert wait_until(sdk_sees_target)
+
+
+def test_sim_motion_is_rate_limited(sdk, sim):
+    start = sim.pose
+    sdk.MotionCtrl_2(0x01, 0x00, 20, 0x00)     # 20 % of 0.5 m/s
+    target = dq.mul(dq.from_pose([1, 0, 0, 0], [0.0, 0.1, 0.0]), start)
+    sdk.EndPoseCtrl(*pose_to_units(target).as_tuple())
+    assert wait_until(lambda: sim.target is not None)
+    t0 = time.monotonic()
+    assert wait_until(lambda: _delta(sim.pose, target)[0] < 1e-6, timeout=5.0)
+    # 0.1 m at 0.1 m/s cannot take less than a second (no upper bound: the machine may be slow)
+    assert time.monotonic() - t0 > 0.8
+
+
+def test_arm_and_piper_sdk_decode_the_same_feedback(sdk, arm, sim):
+    rng = np.random.default_rng(4)
+    for T in random_poses(rng, 3):
+        sim.set_pose(T)
+        want = pose_to_units(T).as_tuple()
+        wait_until(lambda: (lambda e: (e.X_axis, e.Y_axis, e.Z_axis, e.RX_axis, e.RY_axis,
+                                       e.RZ_axis))(sdk.GetArmEndPoseMsgs().end_pose) == want)
+        assert wait_until(lambda: near(arm.tool_pose()[1], sdk_pose(want), 1e-12, 1e-9))
+
+
+def test_arm_commands_are_what_piper_sdk_decodes(sdk, arm, sim):
+    before = sdk.GetArmCtrlCode151().time_stamp
+    T = dq.mul(dq.from_pose([1, 0, 0, 0], [0.002, 0, 0]), sim.pose)
+    arm.servo(T)
+    assert wait_until(lambda: sdk.GetArmCtrlCode151().time_stamp != before)
+    ctrl = sdk.GetArmCtrlCode151().ctrl_151
+    assert (ctrl.ctrl_mode, ctrl.move_mode, ctrl.move_spd_rate_ctrl, ctrl.mit_mode) == \
+        (0x01, 0x00, 100, 0x00)
+
+
+# ---- our driver against our simulator ----------------------------------------------------------
+def test_tool_pose_matches_sim(arm, sim):
+    t, T = arm.tool_pose()
+    assert abs(t - time.time()) < 5.0
+    d, a = _delta(T, sim.pose)
+    assert d <= POS_Q and a <= ANG_Q
+    assert arm.status().ok
+
+
+def test_move_reaches_target_and_blocks(arm, sim):
+    target = dq_from_xyz_sxyz([0.25, 0.05, 0.25], [math.pi - 0.3, 0.15, 0.4])
+    arm.move(target, speed=0.2, accel=1.0)
+    d, a = _delta(arm.tool_pose()[1], target)
+    assert d <= arm.position_tolerance and a <= arm.angle_tolerance
+    d, a = _delta(sim.pose, target)
+    assert d <= arm.position_tolerance + 1e-6 and a <= arm.angle_tolerance + 1e-6
+
+
+def test_servo_follows_path(arm, sim):
+    start = arm.tool_pose()[1]
+    q0, t0 = dq.to_pose(start)
+    lags = []
+    for k in range(150):   # 0.75 s at 200 Hz, 0.06 m/s along y
+        sp = dq.from_pose(q0, t0 + [0.0, 0.0003 * k, 0.0])
+        arm.servo(sp)
+        time.sleep(arm.period)
+        lags.append(_delta(sim.pose, sp)[0])
+    final = dq.from_pose(q0, t0 + [0.0, 0.0003 * 149, 0.0])
+    assert wait_until(lambda: _delta(sim.pose, final)[0] < 1e-5)
+    # The sim never strays from the straight line it was asked to follow.
+    assert max(lags) < 0.01
+
+
+def test_servo_rate_limits_fast_streams(arm, sim):
+    start = arm.tool_pose()[1]
+    q0, t0 = dq.to_pose(start)
+    # 0.015 m per 5 ms set-point = 3 m/s requested, far above max_speed (0.25 m/s)
+    arm.servo(dq.from_pose(q0, t0 + [0.015, 0, 0]))
+    assert wait_until(lambda: any(k == "end_pose" for _, k, _ in sim.log))
+    ep = [v for _, k, v in sim.log if k == "end_pose"][-1]
+    step = _delta(units_to_pose(ep), start)[0]
+    assert 0 < step <= arm.max_accel * arm.period * arm.period + 2e-6
+
+
+def test_servo_refuses_jumps_and_bad_input(arm):
+    start = arm.tool_pose()[1]
+    q0, t0 = dq.to_pose(start)
+    with pytest.raises(ArmError, match="jumps"):
+        arm.servo(dq.from_pose(q0, t0 + [0.1, 0, 0]))
+    with pytest.raises(ValueError, match="workspace"):
+        arm.servo(dq.from_pose(q0, [2.0, 0, 0]))
+    with pytest.raises(ValueError, match="pose: quaternion norm"):
+        arm.servo(np.array([2.0, 0, 0, 0, 0, 0, 0, 0]))
+    with pytest.raises(ValueError, match="pose: expected"):
+        arm.servo(np.zeros(6))
+    with pytest.raises(ValueError, match="speed"):
+        arm.move(start, speed=10.0, accel=1.0)
+    with pytest.raises(ValueError, match="accel"):
+        arm.move(start, speed=0.1, accel=-1.0)
+
+
+def test_watchdog_holds_on_stalled_stream(arm, sim):
+    start = arm.tool_pose()[1]
+    q0, t0 = dq.to_pose(start)
+    for k in range(1, 20):
+        arm.servo(dq.from_pose(q0, t0 + [0.0004 * k, 0, 0]))
+        time.sleep(arm.period)
+    # the caller stalls: no more set-points
+    assert wait_until(lambda: arm.status().extra["watchdog_stops"] == 1)
+    held = sim.target
+    measured = sim.pose
+    assert held is not None and _delta(held, measured)[0] < 0.005
+    time.sleep(0.05)
+    assert _delta(sim.target, held) == (0.0, 0.0)
+
+
+def test_stop_ends_motion(arm, sim):
+    start = arm.tool_pose()[1]
+    q0, t0 = dq.to_pose(start)
+    for k in range(1, 10):
+        arm.servo(dq.from_pose(q0, t0 + [0.0005 * k, 0, 0]))
+        time.sleep(arm.period)
+    arm.stop()
+    assert wait_until(lambda: _delta(sim.pose, sim.target)[0] < 1e-6)
+    p = sim.pose
+    time.sleep(0.05)
+    assert _delta(sim.pose, p)[0] < 1e-6
+
+
+def test_stale_feedback_is_reported(arm, sim):
+    sim.pause_feedback()
+    assert wait_until(lambda: not arm.status().connected)
+    st = arm.status()
+    assert not st.ok and "stale" in st.error
+    with pytest.raises(ArmError, match="stale"):
+        arm.tool_pose()
+    with pytest.raises(ArmError, match="stale"):
+        arm.servo(sim.pose)
+    sim.pause_feedback(False)
+    assert wait_until(lambda: arm.status().connected)
+
+
+def test_no_feedback_fails_fast(bus_factory):
+    with PiperArm(bus_factory()) as arm:
+        with pytest.raises(ArmError, match="no end-pose feedback"):
+            arm.wait_for_feedback(0.2)
+        assert "no end-pose feedback" in arm.status().error
+
+
+def test_malformed_frames_counted_and_skipped(arm, sim, bus_factory):
+    rogue = bus_factory()
+    bad = [
+        can.Message(arbitration_id=0x2A2, data=b"\x01\x02", is_extended_id=False),
+        can.Message(arbitration_id=0x2A3, data=b"\x00" * 8, is_extended_id=True),
+        can.Message(arbitration_id=0x2AB, data=b"\x00" * 8, is_extended_id=False),
+        can.Message(arbitration_id=0x2A4, data=struct.pack(">ii", 500_000, 0),
+                    is_extended_id=False),
+        can.Message(arbitration_id=0x2A2, is_remote_frame=True, dlc=8, is_extended_id=False),
+        # commands for the sim
+        can.Message(arbitration_id=0x152, data=b"\x00" * 3, is_extended_id=False),
+        can.Message(arbitration_id=0x151, data=bytes([1, 0, 200, 0, 0, 0, 0, 0]),
+                    is_extended_id=False),
+    ]
+    for m in bad:
+        rogue.send(m)
+    want = {"dlc": 1, "extended_id": 1, "unknown_id": 1, "value": 1, "remote_frame": 1}
+    assert wait_until(lambda: arm.status().extra["malformed"] == want)
+    assert wait_until(lambda: dict(sim.malformed) == {"dlc": 1, "value": 1})
+    assert sim.target is None and sim.mode is None
+    # and the driver keeps decoding good feedback
+    T = random_poses(np.random.default_rng(5), 1)[0]
+    sim.set_pose(T)
+    assert wait_until(lambda: near(arm.tool_pose()[1], T, POS_Q, ANG_Q))
+    assert arm.status().ok
