@@ -15,6 +15,7 @@ import sys
 COMMANDS = [
     "service.demo",
     "service.properties",
+    "service.cli_grpc",
 ]
 
 

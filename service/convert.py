@@ -1,0 +1,100 @@
+"""Protobuf messages <-> NumPy arrays for the gRPC layer, with errors named after proto fields.
+
+The core names its arguments (``q[3]: zero quaternion``); only this layer knows that ``q[3]`` came
+from ``poses[3].orientation``, so conversion validates per field and renames.
+"""
+from __future__ import annotations
+
+import re
+
+import numpy as np
+
+from service import dq
+from service._proto.dqpose.v1 import blending_pb2 as pb
+from service._proto.dqpose.v1 import geometry_pb2 as geo
+
+_INDEXED = re.compile(r"^(\w+)(\[\d+\])?(.*)$", re.S)
+
+
+class FieldError(ValueError):
+    """Invalid input, with a message that starts with the proto field path."""
+
+
+def rename(err: ValueError, names: dict[str, str]) -> FieldError:
+    """``"q[3]: x"`` with ``{"q": "poses{}.orientation"}`` -> ``"poses[3].orientation: x"``.
+
+    ``{}`` in a target marks where the core's index goes; an unknown name is kept as it is.
+    """
+    msg = str(err)
+    m = _INDEXED.match(msg)
+    if m and m.group(1) in names:
+        msg = names[m.group(1)].replace("{}", m.group(2) or "") + m.group(3)
+    return FieldError(msg)
+
+
+def poses_to_dqs(poses, field: str, sub: str = "") -> np.ndarray:
+    """Repeated ``Pose`` (or the ``.pose`` of repeated ``StampedPose`` with ``sub=".pose"``) to
+    ``(n, 8)``; errors read ``{field}[i]{sub}.orientation: ...``."""
+    if sub:
+        poses = [p.pose for p in poses]
+    # One flat list through np.array is the cheapest path out of upb messages (no per-pose
+    # array objects).
+    flat = np.array([(o.w, o.x, o.y, o.z, t.x, t.y, t.z)
+                     for o, t in ((p.orientation, p.position) for p in poses)], dtype=np.float64)
+    flat = flat.reshape(-1, 7)
+    try:
+        return dq.from_pose(flat[:, :4], flat[:, 4:])
+    except ValueError as e:
+        raise rename(e, {"q": f"{field}{{}}{sub}.orientation",
+                         "t": f"{field}{{}}{sub}.position"}) from None
+
+
+def dq_to_pose(a: np.ndarray, out: geo.Pose | None = None) -> geo.Pose:
+    """One ``(8,)`` dual quaternion to a ``Pose`` (written into ``out`` when given)."""
+    q, t = dq.to_pose(a)
+    pose = geo.Pose() if out is None else out
+    pose.position.x, pose.position.y, pose.position.z = t.tolist()
+    o = pose.orientation
+    o.w, o.x, o.y, o.z = q.tolist()
+    return pose
+
+
+def poses_to_arrays(poses) -> tuple[np.ndarray, np.ndarray]:
+    """Repeated ``Pose`` to ``(q (n, 4), t (n, 3))`` without validation (client side)."""
+    flat = np.array([(p.orientation.w, p.orientation.x, p.orientation.y, p.orientation.z,
+                      p.position.x, p.position.y, p.position.z) for p in poses], dtype=np.float64)
+    flat = flat.reshape(-1, 7)
+    return flat[:, :4], flat[:, 4:]
+
+
+def dqs_to_poses(dqs: np.ndarray) -> list[geo.Pose]:
+    """``(n, 8)`` to a list of ``Pose`` messages."""
+    q, t = dq.to_pose(np.asarray(dqs, dtype=np.float64).reshape(-1, 8))
+    return [geo.Pose(position=geo.Vector3(x=x, y=y, z=z),
+                     orientation=geo.Quaternion(w=qw, x=qx, y=qy, z=qz))
+            for (qw, qx, qy, qz), (x, y, z) in zip(q.tolist(), t.tolist())]
+
+
+def stamped_to_arrays(stamped, field: str = "keyframes") -> tuple[np.ndarray, np.ndarray]:
+    """Repeated ``StampedPose`` to ``(times (n,), dqs (n, 8))``."""
+    times = np.array([s.time for s in stamped], dtype=np.float64)
+    return times, poses_to_dqs(stamped, field, ".pose")
+
+
+def arrays_to_stamped(times: np.ndarray, dqs: np.ndarray) -> list[geo.StampedPose]:
+    """``(n,)`` times and ``(n, 8)`` poses to ``StampedPose`` messages."""
+    q, t = dq.to_pose(np.asarray(dqs, dtype=np.float64).reshape(-1, 8))
+    return [geo.StampedPose(time=s, pose=geo.Pose(
+                position=geo.Vector3(x=x, y=y, z=z),
+                orientation=geo.Quaternion(w=qw, x=qx, y=qy, z=qz)))
+            for s, (qw, qx, qy, qz), (x, y, z) in zip(np.asarray(times).tolist(), q.tolist(),
+                                                      t.tolist())]
+
+
+METHOD_NAMES = {pb.METHOD_UNSPECIFIED: "dib", pb.METHOD_DIB: "dib", pb.METHOD_DLB: "dlb",
+                pb.METHOD_SCLERP: "sclerp", pb.METHOD_LIN: "lin", pb.METHOD_DEC: "dec",
+                pb.METHOD_LOG: "log"}
+METHOD_ENUMS = {name: code for code, name in METHOD_NAMES.items() if code != pb.METHOD_UNSPECIFIED}
+INTERPOLATION_NAMES = {pb.INTERPOLATION_UNSPECIFIED: "screw", pb.INTERPOLATION_SCREW: "screw",
+                       pb.INTERPOLATION_TOOL_LINEAR: "tool_linear"}
+INTERPOLATION_ENUMS = {"screw": pb.INTERPOLATION_SCREW, "tool_linear": pb.INTERPOLATION_TOOL_LINEAR}

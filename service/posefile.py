@@ -1,0 +1,234 @@
+"""Pose files for the command line: JSON (the grpcurl request body) or CSV in, CSV or JSON out.
+
+No gRPC here; the same files work for ``--local`` and for calls to a server.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import json
+import sys
+from typing import NamedTuple
+
+import numpy as np
+
+from service import dq
+
+POSE_COLUMNS = ("x", "y", "z", "qw", "qx", "qy", "qz")
+
+
+class BlendFile(NamedTuple):
+    dqs: np.ndarray
+    weights: np.ndarray | None
+    method: str | None
+    format: str
+
+
+class InterpolateFile(NamedTuple):
+    times_k: np.ndarray
+    dqs_k: np.ndarray
+    times: np.ndarray | None
+    mode: str | None
+    format: str
+
+
+def _load(path: str) -> tuple[str, str]:
+    """File text and its format (``json`` or ``csv``: by extension, else by the first char)."""
+    if path == "-":
+        text = sys.stdin.read()
+    else:
+        try:
+            with open(path, encoding="utf-8") as f:
+                text = f.read()
+        except OSError as e:
+            raise OSError(f"{path}: {e.strerror}") from None
+    low = path.lower()
+    if low.endswith(".json"):
+        return text, "json"
+    if low.endswith((".csv", ".txt")):
+        return text, "csv"
+    return text, "json" if text.lstrip()[:1] in ("{", "[") else "csv"
+
+
+def parse_floats(name: str, text: str) -> np.ndarray:
+    try:
+        return np.array([float(v) for v in text.split(",") if v.strip()], dtype=np.float64)
+    except ValueError:
+        raise ValueError(f"{name}: expected comma-separated numbers, got {text!r}") from None
+
+
+def _vec(field: str, value, names: tuple[str, ...]) -> list[float]:
+    if value is None:
+        return [0.0] * len(names)
+    if isinstance(value, dict):
+        unknown = set(value) - set(names)
+        if unknown:
+            raise ValueError(f"{field}: unknown key {sorted(unknown)[0]!r}; expected {', '.join(names)}")
+        value = [value.get(k, 0.0) for k in names]
+    if not isinstance(value, (list, tuple)) or len(value) != len(names):
+        raise ValueError(f"{field}: expected [{', '.join(names)}] or an object with those keys")
+    try:
+        return [float(v) for v in value]
+    except (TypeError, ValueError):
+        raise ValueError(f"{field}: expected numbers, got {value!r}") from None
+
+
+def _json_poses(field: str, poses, stamped: bool) -> tuple[np.ndarray, np.ndarray]:
+    if not isinstance(poses, list):
+        raise ValueError(f"{field}: expected a list")
+    times, rows = [], []
+    for i, p in enumerate(poses):
+        where = f"{field}[{i}]"
+        if not isinstance(p, dict):
+            raise ValueError(f"{where}: expected an object")
+        if stamped:
+            try:
+                times.append(float(p.get("time", 0.0)))
+            except (TypeError, ValueError):
+                raise ValueError(f"{where}.time: expected a number") from None
+            p, where = p.get("pose") or {}, where + ".pose"
+        rows.append(_vec(f"{where}.orientation", p.get("orientation"), ("w", "x", "y", "z"))
+                    + _vec(f"{where}.position", p.get("position"), ("x", "y", "z")))
+    return np.array(times), np.array(rows, dtype=np.float64).reshape(-1, 7)
+
+
+def _csv_rows(text: str, columns: tuple[str, ...], optional: tuple[str, ...] = ()) -> tuple[np.ndarray, list[int]]:
+    """Rows of ``columns`` (+ any ``optional`` present) and their line numbers."""
+    lines = [(n, row) for n, row in enumerate(csv.reader(io.StringIO(text)), 1)
+             if row and not row[0].lstrip().startswith("#")]
+    if not lines:
+        return np.empty((0, len(columns))), []
+    header = [c.strip().lower() for c in lines[0][1]]
+    if set(columns) <= set(header):
+        order = [header.index(c) for c in columns + tuple(o for o in optional if o in header)]
+        lines = lines[1:]
+    else:
+        width = len(lines[0][1])
+        if width not in (len(columns), len(columns) + len(optional)):
+            raise ValueError(f"line {lines[0][0]}: expected the columns "
+                             f"{','.join(columns + optional)}, got {width} values")
+        order = list(range(width))
+    out = []
+    for n, row in lines:
+        try:
+            out.append([float(row[j]) for j in order])
+        except (IndexError, ValueError):
+            raise ValueError(f"line {n}: expected {len(order)} numbers, got {','.join(row)!r}") from None
+    return np.array(out, dtype=np.float64).reshape(-1, len(order)), [n for n, _ in lines]
+
+
+def _to_dqs(field: str, flat: np.ndarray, sub: str = "") -> np.ndarray:
+    try:
+        return dq.from_pose(flat[:, :4], flat[:, 4:7])
+    except ValueError as e:
+        msg = str(e)
+        for short, long in (("q", "orientation"), ("t", "position")):
+            if msg.startswith(short + "["):
+                idx, rest = msg[len(short):].split("]", 1)
+                msg = f"{field}{idx}]{sub}.{long}{rest}"
+        raise ValueError(msg) from None
+
+
+def _enum(field: str, value, prefix: str, names: tuple[str, ...]) -> str | None:
+    if value in (None, "", 0):
+        return None
+    v = str(value).lower()
+    v = v[len(prefix) + 1:] if v.startswith(prefix + "_") else v
+    if v not in names:
+        raise ValueError(f"{field}: unknown value {value!r}; expected one of {', '.join(names)}")
+    return v
+
+
+def read_blend(path: str) -> BlendFile:
+    text, fmt = _load(path)
+    if fmt == "json":
+        try:
+            doc = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{path}: not valid JSON ({e})") from None
+        doc = {"poses": doc} if isinstance(doc, list) else doc
+        if not isinstance(doc, dict):
+            raise ValueError(f"{path}: expected an object with \"poses\" or a list of poses")
+        _, flat = _json_poses("poses", doc.get("poses", []), stamped=False)
+        w = doc.get("weights")
+        weights = None if not w else np.asarray(w, dtype=np.float64)
+        method = _enum("method", doc.get("method"), "method",
+                       ("dib", "dlb", "sclerp", "lin", "dec", "log"))
+    else:
+        rows, _ = _csv_rows(text, POSE_COLUMNS[:7], ("weight",))
+        flat = np.concatenate([rows[:, 3:7], rows[:, :3]], axis=1)
+        weights = rows[:, 7] if rows.shape[1] == 8 else None
+        method = None
+    if flat.shape[0] == 0:
+        raise ValueError(f"{path}: no poses")
+    return BlendFile(_to_dqs("poses", flat), weights, method, fmt)
+
+
+def read_interpolate(path: str) -> InterpolateFile:
+    text, fmt = _load(path)
+    times = mode = None
+    if fmt == "json":
+        try:
+            doc = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{path}: not valid JSON ({e})") from None
+        doc = {"keyframes": doc} if isinstance(doc, list) else doc
+        if not isinstance(doc, dict):
+            raise ValueError(f"{path}: expected an object with \"keyframes\" or a list of them")
+        times_k, flat = _json_poses("keyframes", doc.get("keyframes", []), stamped=True)
+        if doc.get("times"):
+            times = np.asarray(doc["times"], dtype=np.float64)
+        mode = _enum("interpolation", doc.get("interpolation"), "interpolation",
+                     ("screw", "tool_linear"))
+        sub = ".pose"
+    else:
+        rows, _ = _csv_rows(text, ("t",) + POSE_COLUMNS)
+        times_k = rows[:, 0]
+        flat = np.concatenate([rows[:, 4:8], rows[:, 1:4]], axis=1)
+        sub = ""
+    if flat.shape[0] == 0:
+        raise ValueError(f"{path}: no keyframes")
+    return InterpolateFile(times_k, _to_dqs("keyframes", flat, sub), times, mode, fmt)
+
+
+def sample_times(times_k: np.ndarray, step: float) -> np.ndarray:
+    """Every ``step`` seconds from the first keyframe time, plus the last keyframe time."""
+    if not (np.isfinite(step) and step > 0):
+        raise ValueError(f"--step: must be a positive number of seconds, got {step!r}")
+    t0, t1 = float(np.min(times_k)), float(np.max(times_k))
+    n = int(np.floor((t1 - t0) / step * (1 + 1e-12))) + 1
+    if n > 10_000_000:
+        raise ValueError(f"--step: {step} s gives {n} samples; use a larger step")
+    t = t0 + step * np.arange(n)
+    return t if t[-1] >= t1 else np.append(t, t1)
+
+
+def _pose_rows(dqs: np.ndarray) -> np.ndarray:
+    q, t = dq.to_pose(dqs.reshape(-1, 8))
+    q = np.where(q[:, :1] < 0, -q, q)  # q and -q are one rotation; print w >= 0
+    return np.concatenate([t, q], axis=1)
+
+
+def _pose_json(row) -> dict:
+    x, y, z, qw, qx, qy, qz = (float(v) for v in row)
+    return {"position": {"x": x, "y": y, "z": z}, "orientation": {"w": qw, "x": qx, "y": qy, "z": qz}}
+
+
+def format_blend(mean: np.ndarray, iterations: int, residual: float, fmt: str) -> str:
+    row = _pose_rows(mean)[0]
+    if fmt == "json":
+        return json.dumps({"pose": _pose_json(row), "iterations": int(iterations),
+                           "residual": float(residual)}, indent=2) + "\n"
+    return ",".join(POSE_COLUMNS) + "\n" + ",".join(f"{v:.12g}" for v in row) + "\n"
+
+
+def format_samples(times: np.ndarray, dqs: np.ndarray, fmt: str) -> str:
+    rows = _pose_rows(dqs)
+    if fmt == "json":
+        return json.dumps({"samples": [{"time": float(t), "pose": _pose_json(r)}
+                                       for t, r in zip(times, rows)]}, indent=2) + "\n"
+    out = io.StringIO()
+    out.write("t," + ",".join(POSE_COLUMNS) + "\n")
+    np.savetxt(out, np.concatenate([np.asarray(times).reshape(-1, 1), rows], axis=1),
+               fmt="%.12g", delimiter=",")
+    return out.getvalue()
