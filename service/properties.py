@@ -490,7 +490,7 @@ def _positive_int(text: str) -> int:
 
 def add_parser(sub) -> None:
     p = sub.add_parser("properties",
-                       help="measure Table 1 of Kavan et al. (blending properties) on this build",
+                       help="measure Table 1 of Kavan et al. on this build",
                        description="Measure rigidity, bi-invariance, coordinate invariance, n > 2, "
                                    "constant speed and shortest path of every blending method, "
                                    "compare with the paper's Table 1, exit 1 on any disagreement.")
