@@ -11,7 +11,7 @@ $(BIN)/python:
 # Build tools first, then the project without build isolation so the C core compiles
 # against the same NumPy it runs with.
 setup: $(BIN)/python
-	$(BIN)/python -m pip install -q --upgrade pip "setuptools>=68" wheel "numpy>=2.0" "grpcio-tools>=1.60"
+	$(BIN)/python -m pip install -q --upgrade pip "setuptools>=77" wheel "numpy>=2.0" "grpcio-tools>=1.60"
 	$(BIN)/python -m pip install -q --no-build-isolation -e '.[test]'
 
 run: setup
