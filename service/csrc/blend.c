@@ -1,6 +1,14 @@
 /*
  * blend.c — ScLERP, DLB, DIB and the baselines Lin, Dec, Log. Conventions in dq.h.
  */
+/* GCC will not if-convert a select over a division while FP traps count as side effects, and
+ * then the batch loops do not vectorise. This changes no value: it is not -ffast-math (NaN,
+ * infinities, signed zeros and rounding are untouched); it applies to this file, before the
+ * headers so their inline functions get it too. */
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC optimize("no-trapping-math")
+#endif
+
 #include "blend.h"
 
 #include <math.h>
@@ -10,6 +18,55 @@
 /* The same threshold as dq_screw: below it m' = d_perp / phi could overflow, and the rotation
  * is far below rounding, so the pair is interpolated as a pure translation. */
 #define SCLERP_MIN_PHI 1e-150
+
+/* ---- vector-friendly elementary functions ----------------------------------------------------
+ * The batch loops below run over blocks of poses stored side by side, with every branch written
+ * as a select, so GCC vectorises them. libm's atan2/sin/cos are calls and stop that, so these
+ * loops use Cephes' atan (rational 4/5, ~1 ulp) and sin/cos kernels (Cody-Waite reduction by
+ * pi/2, ~1 ulp) instead. */
+
+/* Where the compiler supports it, the batch loops are built twice, for AVX2 and for the baseline
+ * ISA, and the loader picks one (ifunc). ISO C mode (-std=c99) means -ffp-contract=off, so no
+ * FMA is formed and both versions give the same bits. */
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__) && \
+    !defined(DQ_NO_CLONES)
+#define DQ_CLONES __attribute__((target_clones("avx2", "default")))
+#else
+#define DQ_CLONES
+#endif
+#define DQ_BATCH DQ_CLONES
+
+#define DQ_PIO2 1.57079632679489661923
+#define DQ_PIO4 7.85398163397448309616E-1
+#define DQ_MOREBITS 6.123233995736765886130E-17 /* pi/2 - DQ_PIO2 */
+/* Rows of the block in the batch loops. */
+#define DQ_BLK 64
+
+/* atan(t) for t in [0, 1] */
+static inline double atan_01(double t)
+{
+    int big = t > 0.66;
+    double tr = (t - 1.0) / (t + 1.0); /* unconditionally, so the select needs no branch */
+    double x = big ? tr : t;
+    double y = big ? DQ_PIO4 : 0.0;
+    double mb = big ? 0.5 * DQ_MOREBITS : 0.0;
+    double z = x * x;
+    double p = ((((-8.750608600031904122785E-1 * z - 1.615753718733365076637E1) * z
+                  - 7.500855792314704667340E1) * z - 1.228866684490136173410E2) * z
+                - 6.485021904942025371773E1) * z;
+    double q = ((((z + 2.485846490142306297962E1) * z + 1.650270098316988542046E2) * z
+                 + 4.328810604912902668951E2) * z + 4.853903996359136964868E2) * z
+               + 1.945506571482613964425E2;
+    return y + ((x * (p / q) + x) + mb);
+}
+
+/* atan2(n, w) for n, w >= 0, not both zero */
+static inline double atan2_q1(double n, double w)
+{
+    int swap = n > w;
+    double r = atan_01((swap ? w : n) / (swap ? n : w));
+    return swap ? DQ_PIO2 + (DQ_MOREBITS - r) : r;
+}
 
 /* ---- ScLERP ----------------------------------------------------------------------------- */
 
@@ -138,17 +195,55 @@ void dq_dlb(const double *q, const double *w, size_t n, double *out)
 
 /* ---- DIB -------------------------------------------------------------------------------- */
 
+/* w_i log(bc q_i) for a block of m <= DQ_BLK poses, as the columns of L: dq_mul and dq_log
+ * (both branches, then a select) written out so the loop vectorises. */
+static inline void wlog_block(const double *bc, const double *q, const double *w,
+                                     size_t m, double L[6][DQ_BLK])
+{
+    for (size_t j = 0; j < m; j++) {
+        const double *qi = q + 8 * j;
+        double r[4], d1[4], d2[4];
+        dq_qmul(bc, qi, r);
+        dq_qmul(bc, qi + 4, d1);
+        dq_qmul(bc + 4, qi, d2);
+        double sg = r[0] < 0.0 ? -1.0 : 1.0; /* the short way round */
+        double w0 = sg * r[0], v0 = sg * r[1], v1 = sg * r[2], v2 = sg * r[3];
+        double wd = sg * (d1[0] + d2[0]), u0 = sg * (d1[1] + d2[1]);
+        double u1 = sg * (d1[2] + d2[2]), u2 = sg * (d1[3] + d2[3]);
+        double x = v0 * v0 + v1 * v1 + v2 * v2;
+        double as = 1.0 + x * (1.0 / 6 + x * (3.0 / 40 + x * (5.0 / 112 + x * (35.0 / 1152
+              + x * (63.0 / 2816 + x * (231.0 / 13312 + x * (143.0 / 10240)))))));
+        double bs = 1.0 / 3 + x * (2.0 / 15 + x * (8.0 / 105 + x * (16.0 / 315 + x * (128.0 / 3465
+              + x * (256.0 / 9009 + x * (1024.0 / 45045 + x * (2048.0 / 109395)))))));
+        double n = sqrt(x);
+        double ac = atan2_q1(n, w0) / n;
+        double bcl = (1.0 - ac * w0) / x;
+        int ser = x < DQ_LOG_SERIES_MAX;
+        double a = ser ? as : ac, b = ser ? bs : bcl;
+        double vu = v0 * u0 + v1 * u1 + v2 * u2;
+        double k = b * (w0 * vu - wd * x);
+        double wi = w[j];
+        L[0][j] = wi * (a * v0); L[1][j] = wi * (a * v1); L[2][j] = wi * (a * v2);
+        L[3][j] = wi * (a * u0 + k * v0);
+        L[4][j] = wi * (a * u1 + k * v1);
+        L[5][j] = wi * (a * u2 + k * v2);
+    }
+}
+
 /* Weighted sum of log(bc q_i) for all i, where bc is the conjugate of the current mean. */
-static double log_sum(const double *bc, const double *q, const double *w, size_t n, double *x)
+DQ_BATCH static double log_sum(const double *bc, const double *q, const double *w, size_t n,
+                               double *x)
 {
     double x0 = 0, x1 = 0, x2 = 0, x3 = 0, x4 = 0, x5 = 0;
-    for (size_t i = 0; i < n; i++) {
-        double rel[8], l[6];
-        dq_mul(bc, q + 8 * i, rel);
-        dq_log(rel, l);
-        double wi = w[i];
-        x0 += wi * l[0]; x1 += wi * l[1]; x2 += wi * l[2];
-        x3 += wi * l[3]; x4 += wi * l[4]; x5 += wi * l[5];
+    double L[6][DQ_BLK];
+    for (size_t i0 = 0; i0 < n; i0 += DQ_BLK) {
+        size_t m = n - i0 < DQ_BLK ? n - i0 : DQ_BLK;
+        wlog_block(bc, q + 8 * i0, w + i0, m, L);
+        /* Summed in order, outside the vector loop, so the result does not depend on the width. */
+        for (size_t j = 0; j < m; j++) {
+            x0 += L[0][j]; x1 += L[1][j]; x2 += L[2][j];
+            x3 += L[3][j]; x4 += L[4][j]; x5 += L[5][j];
+        }
     }
     x[0] = x0; x[1] = x1; x[2] = x2; x[3] = x3; x[4] = x4; x[5] = x5;
     return sqrt(x0 * x0 + x1 * x1 + x2 * x2 + x3 * x3 + x4 * x4 + x5 * x5);
