@@ -16,6 +16,7 @@ COMMANDS = [
     "service.demo",
     "service.properties",
     "service.cli_grpc",
+    "drivers.sim.cli",
 ]
 
 
