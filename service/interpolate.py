@@ -54,13 +54,13 @@ def interpolate(times_k, dqs_k, times, mode: str = "screw") -> np.ndarray:
     bad = np.flatnonzero(step <= 0)
     if bad.size:
         i = bad[0] + 1
-        raise ValueError(f"times_k[{i}]: {tk[i]!r} is not after the previous keyframe time "
-                         f"{tk[i - 1]!r} (keyframe times must be strictly increasing)")
+        raise ValueError(f"times_k[{i}]: {float(tk[i])!r} is not after the previous keyframe time "
+                         f"{float(tk[i - 1])!r} (keyframe times must be strictly increasing)")
     bad = np.flatnonzero((t < tk[0]) | (t > tk[-1]))
     if bad.size:
         i = bad[0]
-        raise ValueError(f"times[{i}]: {t[i]!r} is outside the keyframe range "
-                         f"[{tk[0]!r}, {tk[-1]!r}]")
+        raise ValueError(f"times[{i}]: {float(t[i])!r} is outside the keyframe range "
+                         f"[{float(tk[0])!r}, {float(tk[-1])!r}]")
     # Validates every keyframe once, naming it, before any segment math.
     q_k, p_k = _to_pose(dqs_k)
 

@@ -1,0 +1,459 @@
+"""The gRPC server, through the generated stubs, against a real server on 127.0.0.1."""
+from __future__ import annotations
+
+import json
+import os
+import queue
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+import urllib.request
+
+import grpc
+import numpy as np
+import pytest
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+from grpc_reflection.v1alpha.proto_reflection_descriptor_database import (
+    ProtoReflectionDescriptorDatabase)
+
+from service import dq
+from service.interpolate import interpolate
+from service.server import ServerConfig, start
+from service._proto.dqpose.v1 import blending_pb2 as pb
+from service._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
+from service._proto.dqpose.v1 import geometry_pb2 as geo
+from _grpc_server import ServerThread, make_pki
+
+MAX_POSES = 200
+MAX_BYTES = 64 * 1024
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+@pytest.fixture(scope="module")
+def server():
+    with ServerThread(max_poses=MAX_POSES, max_message_bytes=MAX_BYTES) as s:
+        yield s
+
+
+@pytest.fixture(scope="module")
+def stub(server):
+    with grpc.insecure_channel(server.target) as ch:
+        yield pb_grpc.BlendingStub(ch)
+
+
+def random_poses(rng, n):
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return q, rng.uniform(-1, 1, size=(n, 3))
+
+
+def pose_msg(q, t):
+    return geo.Pose(position=geo.Vector3(x=t[0], y=t[1], z=t[2]),
+                    orientation=geo.Quaternion(w=q[0], x=q[1], y=q[2], z=q[3]))
+
+
+def msg_to_dq(p):
+    o, t = p.orientation, p.position
+    return dq.from_pose([o.w, o.x, o.y, o.z], [t.x, t.y, t.z])
+
+
+def same_pose(a, b, atol=1e-9):
+    s = np.sign(np.dot(a[:4], b[:4]))
+    np.testing.assert_allclose(s * a, b, atol=atol)
+
+
+def blend_req(q, t, weights=(), method=pb.METHOD_UNSPECIFIED, **kw):
+    return pb.BlendRequest(poses=[pose_msg(a, b) for a, b in zip(q, t)], weights=list(weights),
+                           method=method, **kw)
+
+
+# --------------------------------------------------------------------------- every RPC
+
+@pytest.mark.parametrize("method, name, n", [
+    (pb.METHOD_UNSPECIFIED, "dib", 10), (pb.METHOD_DIB, "dib", 10), (pb.METHOD_DLB, "dlb", 10),
+    (pb.METHOD_SCLERP, "sclerp", 2), (pb.METHOD_LIN, "lin", 10), (pb.METHOD_DEC, "dec", 10),
+    (pb.METHOD_LOG, "log", 10)])
+def test_blend_matches_the_core(stub, method, name, n):
+    rng = np.random.default_rng(n + method)
+    q, t = random_poses(rng, n)
+    w = rng.uniform(0.1, 2.0, n)
+    r = stub.Blend(blend_req(q, t, w, method), timeout=10)
+    same_pose(msg_to_dq(r.pose), dq.blend(dq.from_pose(q, t), w, name))
+    if name == "dib":
+        assert r.iterations > 0 and r.residual < 1e-9
+    else:
+        assert r.iterations == 0
+
+
+def test_blend_defaults_equal_weights_and_honours_tolerance_and_iterations(stub):
+    q, t = random_poses(np.random.default_rng(7), 6)
+    r = stub.Blend(blend_req(q, t), timeout=10)
+    same_pose(msg_to_dq(r.pose), dq.dib(dq.from_pose(q, t)))
+    one = stub.Blend(blend_req(q, t, max_iterations=1), timeout=10)
+    assert one.iterations == 1 and one.residual > r.residual
+    loose = stub.Blend(blend_req(q, t, tolerance=1e-2), timeout=10)
+    assert loose.iterations < r.iterations
+
+
+@pytest.mark.parametrize("interp, mode", [(pb.INTERPOLATION_UNSPECIFIED, "screw"),
+                                          (pb.INTERPOLATION_SCREW, "screw"),
+                                          (pb.INTERPOLATION_TOOL_LINEAR, "tool_linear")])
+def test_interpolate_matches_the_domain_function(stub, interp, mode):
+    rng = np.random.default_rng(11)
+    q, t = random_poses(rng, 4)
+    times_k = np.array([0.0, 0.5, 1.5, 2.0])
+    times = rng.uniform(0, 2, 100)
+    req = pb.InterpolateRequest(
+        keyframes=[geo.StampedPose(time=s, pose=pose_msg(a, b)) for s, a, b in zip(times_k, q, t)],
+        times=times.tolist(), interpolation=interp)
+    r = stub.Interpolate(req, timeout=10)
+    assert [s.time for s in r.samples] == times.tolist()
+    want = interpolate(times_k, dq.from_pose(q, t), times, mode)
+    for s, w in zip(r.samples, want):
+        same_pose(msg_to_dq(s.pose), w)
+
+
+def test_blend_stream_answers_each_request_in_order(stub):
+    rng = np.random.default_rng(5)
+    reqs = [blend_req(*random_poses(rng, 5), method=pb.METHOD_DLB) for _ in range(50)]
+    got = list(stub.BlendStream(iter(reqs), timeout=10))
+    assert len(got) == 50
+    for req, r in zip(reqs, got):
+        same_pose(msg_to_dq(r.pose), msg_to_dq(stub.Blend(req, timeout=10).pose), atol=1e-12)
+
+
+def test_blend_stream_names_the_bad_request(stub):
+    rng = np.random.default_rng(6)
+    reqs = [blend_req(*random_poses(rng, 3)) for _ in range(5)]
+    reqs[3].poses[1].orientation.Clear()
+    call = stub.BlendStream(iter(reqs), timeout=10)
+    got = []
+    with pytest.raises(grpc.RpcError) as e:
+        for r in call:
+            got.append(r)
+    assert len(got) == 3
+    assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert e.value.details() == "requests[3].poses[1].orientation: zero quaternion"
+
+
+# --------------------------------------------------------------------------- bad input
+
+def _interp_req(times_k=(0.0, 1.0, 2.0), times=(0.5,), bad_key=None, interp=0):
+    kf = [geo.StampedPose(time=s, pose=pose_msg([1, 0, 0, 0], [0, 0, 0])) for s in times_k]
+    if bad_key is not None:
+        kf[bad_key].pose.orientation.w = 0.0
+    return pb.InterpolateRequest(keyframes=kf, times=list(times), interpolation=interp)
+
+
+def _poses(n, fix=None):
+    q = np.tile([1.0, 0, 0, 0], (n, 1))
+    t = np.zeros((n, 3))
+    for (i, what), v in (fix or {}).items():
+        (q if what == "q" else t)[i] = v
+    return q, t
+
+
+NAN = float("nan")
+BAD_INPUTS = [
+    ("Blend", blend_req(*_poses(3, {(1, "t"): [0, NAN, 0]})),
+     "poses[1].position: contains NaN or infinity"),
+    ("Blend", blend_req(*_poses(3, {(2, "q"): [NAN, 0, 0, 0]})),
+     "poses[2].orientation: contains NaN or infinity"),
+    ("Blend", blend_req(*_poses(4, {(3, "q"): [0, 0, 0, 0]})), "poses[3].orientation: zero quaternion"),
+    ("Blend", blend_req(*_poses(2, {(0, "q"): [2, 0, 0, 0]})),
+     "poses[0].orientation: quaternion norm 2 is not unit (tolerance 1e-06)"),
+    ("Blend", blend_req(*_poses(3), weights=[1, -1, 1]), "weights[1]: negative weight -1"),
+    ("Blend", blend_req(*_poses(3), weights=[0, 0, 0]),
+     "weights: all weights are zero (the weights need a positive sum)"),
+    ("Blend", blend_req(*_poses(3), weights=[1, NAN, 1]), "weights[1]: contains NaN or infinity"),
+    ("Blend", blend_req(*_poses(3), weights=[1, 2]),
+     "weights: length 2 does not match the number of poses (3)"),
+    ("Blend", pb.BlendRequest(), "poses: empty request: no poses"),
+    ("Blend", blend_req(*_poses(MAX_POSES + 1)),
+     f"poses: {MAX_POSES + 1} poses exceed the server limit of {MAX_POSES}"),
+    ("Blend", blend_req(*_poses(3), method=pb.METHOD_SCLERP), "poses: sclerp blends exactly 2 poses, got 3"),
+    ("Blend", blend_req(*_poses(2), method=42), "method: unknown Method value 42"),
+    ("Blend", blend_req(*_poses(2), tolerance=-1.0), "tolerance: must be finite and >= 0"),
+    ("Blend", blend_req(*_poses(2), tolerance=NAN), "tolerance: must be finite and >= 0"),
+    ("Blend", blend_req(*_poses(2), max_iterations=2_000_000),
+     "max_iterations: 2000000 exceeds the limit of 1000000"),
+    ("Interpolate", _interp_req(times_k=(0.0, 1.0, 0.5)),
+     "keyframes[2].time: 0.5 is not after the previous keyframe time 1.0"),
+    ("Interpolate", _interp_req(times_k=(0.0, 1.0, 1.0)),
+     "keyframes[2].time: 1.0 is not after the previous keyframe time 1.0"),
+    ("Interpolate", _interp_req(times=(0.5, 2.5)),
+     "times[1]: 2.5 is outside the keyframe range [0.0, 2.0]"),
+    ("Interpolate", _interp_req(times=(NAN,)), "times[0]: contains NaN or infinity"),
+    ("Interpolate", _interp_req(times_k=(0.0,)), "keyframes: need at least 2 keyframes, got 1"),
+    ("Interpolate", _interp_req(times=()), "times: empty request: no times"),
+    ("Interpolate", pb.InterpolateRequest(), "keyframes: empty request: no keyframes"),
+    ("Interpolate", _interp_req(bad_key=1), "keyframes[1].pose.orientation: zero quaternion"),
+    ("Interpolate", _interp_req(interp=7), "interpolation: unknown Interpolation value 7"),
+    ("Interpolate", _interp_req(times=np.linspace(0, 2, MAX_POSES + 1)),
+     f"times: {MAX_POSES + 1} times exceed the server limit of {MAX_POSES}"),
+]
+
+
+@pytest.mark.parametrize("rpc, request_, message", BAD_INPUTS,
+                         ids=[m.split(":")[0] + "-" + str(i) for i, (_, _, m) in enumerate(BAD_INPUTS)])
+def test_bad_input_is_invalid_argument_naming_the_field(stub, rpc, request_, message):
+    with pytest.raises(grpc.RpcError) as e:
+        getattr(stub, rpc)(request_, timeout=10)
+    assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert e.value.details().startswith(message), e.value.details()
+
+
+def test_oversized_request_is_resource_exhausted_and_the_server_stays_up(stub):
+    big = blend_req(*_poses(MAX_POSES), weights=[1.0] * MAX_POSES)
+    big.weights.extend([1.0] * (MAX_BYTES // 8))
+    assert big.ByteSize() > MAX_BYTES
+    with pytest.raises(grpc.RpcError) as e:
+        stub.Blend(big, timeout=10)
+    assert e.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+    assert "larger than max" in e.value.details()
+    assert stub.Blend(blend_req(*_poses(2)), timeout=10).pose.orientation.w == pytest.approx(1.0)
+
+
+def test_expired_deadline_is_deadline_exceeded(stub):
+    req = _interp_req(times=np.linspace(0, 2, MAX_POSES))
+    with pytest.raises(grpc.RpcError) as e:
+        stub.Interpolate(req, timeout=1e-6)
+    assert e.value.code() == grpc.StatusCode.DEADLINE_EXCEEDED
+
+
+def test_never_returns_nan_for_cancelling_rotations(stub):
+    # Two opposite 180-degree turns blended linearly: no defined mean for some methods; whatever
+    # the server answers must be finite or an INVALID_ARGUMENT.
+    q = np.array([[0.0, 1, 0, 0], [0.0, 0, 1, 0]])
+    t = np.zeros((2, 3))
+    for m in (pb.METHOD_DLB, pb.METHOD_LOG, pb.METHOD_LIN, pb.METHOD_DEC, pb.METHOD_DIB):
+        try:
+            r = stub.Blend(blend_req(q, t, method=m), timeout=10)
+        except grpc.RpcError as e:
+            assert e.code() == grpc.StatusCode.INVALID_ARGUMENT
+            continue
+        p = r.pose
+        assert np.isfinite([p.position.x, p.position.y, p.position.z, p.orientation.w,
+                            p.orientation.x, p.orientation.y, p.orientation.z, r.residual]).all()
+
+
+# --------------------------------------------------------------------------- health, reflection
+
+def test_health_is_serving(server):
+    with grpc.insecure_channel(server.target) as ch:
+        h = health_pb2_grpc.HealthStub(ch)
+        for name in ("", "dqpose.v1.Blending"):
+            r = h.Check(health_pb2.HealthCheckRequest(service=name), timeout=5)
+            assert r.status == health_pb2.HealthCheckResponse.SERVING
+
+
+def test_reflection_lists_and_describes_the_services(server):
+    with grpc.insecure_channel(server.target) as ch:
+        db = ProtoReflectionDescriptorDatabase(ch)
+        services = set(db.get_services())
+        assert {"dqpose.v1.Blending", "grpc.health.v1.Health"} <= services
+        fd = db.FindFileContainingSymbol("dqpose.v1.Blending")
+        assert fd.package == "dqpose.v1"
+        assert [m.name for m in fd.service[0].method] == ["Blend", "Interpolate", "BlendStream"]
+
+
+def _grpcurl() -> str | None:
+    """grpcurl from PATH or Go's bin dir, installed with `go install` when Go is present."""
+    found = shutil.which("grpcurl")
+    if found:
+        return found
+    go = shutil.which("go")
+    if not go:
+        return None
+    gobin = subprocess.run([go, "env", "GOPATH"], capture_output=True, text=True).stdout.strip()
+    exe = os.path.join(gobin, "bin", "grpcurl")
+    if not os.path.exists(exe):
+        try:
+            subprocess.run([go, "install", "github.com/fullstorydev/grpcurl/cmd/grpcurl@v1.9.4"],
+                           capture_output=True, timeout=600, check=True)
+        except (subprocess.SubprocessError, OSError):
+            return None
+    return exe if os.path.exists(exe) else None
+
+
+def test_grpcurl_lists_services_and_calls_blend_with_json(server):
+    exe = _grpcurl()
+    if exe is None:
+        pytest.skip("grpcurl not installed and `go install github.com/fullstorydev/grpcurl/"
+                    "cmd/grpcurl@v1.9.4` failed or Go is missing")
+    out = subprocess.run([exe, "-plaintext", server.target, "list"], capture_output=True,
+                         text=True, timeout=60, check=True).stdout.split()
+    assert "dqpose.v1.Blending" in out and "grpc.health.v1.Health" in out
+    body = {"poses": [{"position": {"x": 0.1}, "orientation": {"w": 1}},
+                      {"position": {"x": 0.3}, "orientation": {"w": 1}}],
+            "weights": [1, 1], "method": "METHOD_DLB"}
+    res = subprocess.run([exe, "-plaintext", "-d", json.dumps(body), server.target,
+                          "dqpose.v1.Blending/Blend"], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    assert json.loads(res.stdout)["pose"]["position"]["x"] == pytest.approx(0.2)
+    body["poses"][1]["orientation"] = {}
+    res = subprocess.run([exe, "-plaintext", "-d", json.dumps(body), server.target,
+                          "dqpose.v1.Blending/Blend"], capture_output=True, text=True, timeout=60)
+    assert "InvalidArgument" in res.stderr and "poses[1].orientation: zero quaternion" in res.stderr
+
+
+# --------------------------------------------------------------------------- security
+
+def _blend_ok(channel, metadata=None):
+    return pb_grpc.BlendingStub(channel).Blend(blend_req(*_poses(2)), timeout=5, metadata=metadata)
+
+
+def _code(fn):
+    try:
+        fn()
+    except grpc.RpcError as e:
+        return e.code(), e.details()
+    return grpc.StatusCode.OK, ""
+
+
+def test_bearer_token_accepted_and_rejected():
+    with ServerThread(token="s3cret-token") as s, grpc.insecure_channel(s.target) as ch:
+        assert _blend_ok(ch, [("authorization", "Bearer s3cret-token")]).pose.orientation.w == 1.0
+        code, details = _code(lambda: _blend_ok(ch))
+        assert code == grpc.StatusCode.UNAUTHENTICATED and "missing bearer token" in details
+        code, details = _code(lambda: _blend_ok(ch, [("authorization", "Bearer s3cret-tokeX")]))
+        assert code == grpc.StatusCode.UNAUTHENTICATED and details == "authorization: invalid bearer token"
+        stream = pb_grpc.BlendingStub(ch).BlendStream(iter([blend_req(*_poses(2))]), timeout=5)
+        assert _code(lambda: list(stream))[0] == grpc.StatusCode.UNAUTHENTICATED
+        # health stays open for load balancers and HEALTHCHECK
+        r = health_pb2_grpc.HealthStub(ch).Check(health_pb2.HealthCheckRequest(), timeout=5)
+        assert r.status == health_pb2.HealthCheckResponse.SERVING
+
+
+@pytest.fixture(scope="module")
+def pki():
+    return make_pki()
+
+
+def test_tls_accepted_with_the_ca_and_rejected_without(pki):
+    with ServerThread(tls_cert=pki["server_cert"], tls_key=pki["server_key"]) as s:
+        creds = grpc.ssl_channel_credentials(pki["ca"])
+        with grpc.secure_channel(s.target, creds) as ch:
+            assert _blend_ok(ch).pose.orientation.w == 1.0
+        with grpc.secure_channel(s.target, grpc.ssl_channel_credentials(pki["other_ca"])) as ch:
+            assert _code(lambda: _blend_ok(ch))[0] == grpc.StatusCode.UNAVAILABLE
+        with grpc.insecure_channel(s.target) as ch:  # plaintext against TLS
+            assert _code(lambda: _blend_ok(ch))[0] == grpc.StatusCode.UNAVAILABLE
+
+
+def test_mtls_needs_a_client_certificate_from_the_client_ca(pki):
+    with ServerThread(tls_cert=pki["server_cert"], tls_key=pki["server_key"],
+                      client_ca=pki["ca"]) as s:
+        good = grpc.ssl_channel_credentials(pki["ca"], pki["client_key"], pki["client_cert"])
+        with grpc.secure_channel(s.target, good) as ch:
+            assert _blend_ok(ch).pose.orientation.w == 1.0
+        for creds in (grpc.ssl_channel_credentials(pki["ca"]),
+                      grpc.ssl_channel_credentials(pki["ca"], pki["other_client_key"],
+                                                   pki["other_client_cert"])):
+            with grpc.secure_channel(s.target, creds) as ch:
+                assert _code(lambda: _blend_ok(ch))[0] == grpc.StatusCode.UNAVAILABLE
+
+
+# --------------------------------------------------------------------------- lifecycle
+
+def test_second_server_on_the_same_port_fails(server):
+    import asyncio
+
+    with pytest.raises(OSError, match=f"cannot listen on 127.0.0.1:{server.port}"):
+        asyncio.run(start(ServerConfig(port=server.port)))
+    res = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--port", str(server.port)],
+                         capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert res.returncode == 2
+    # gRPC core logs its own line first; ours is the last and says what failed
+    assert res.stderr.splitlines()[-1].startswith(
+        f"dqpose serve: error: cannot listen on 127.0.0.1:{server.port}")
+
+
+def test_concurrent_clients_get_their_own_answers(server):
+    errors = []
+
+    def worker(seed):
+        rng = np.random.default_rng(seed)
+        with grpc.insecure_channel(server.target) as ch:
+            s = pb_grpc.BlendingStub(ch)
+            for _ in range(40):
+                q, t = random_poses(rng, 5)
+                try:
+                    same_pose(msg_to_dq(s.Blend(blend_req(q, t), timeout=10).pose),
+                              dq.dib(dq.from_pose(q, t)))
+                except Exception as e:  # collected: assertion errors in threads are lost
+                    errors.append(e)
+
+    threads = [threading.Thread(target=worker, args=(i,)) for i in range(8)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert not errors, errors[:3]
+
+
+def test_metrics_count_calls():
+    with socket_free_port() as port, ServerThread(metrics_port=port) as s:
+        with grpc.insecure_channel(s.target) as ch:
+            _blend_ok(ch)
+            _code(lambda: pb_grpc.BlendingStub(ch).Blend(pb.BlendRequest(), timeout=5))
+        text = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5).read().decode()
+    assert re.search(r'dqpose_grpc_calls_total\{code="OK",rpc="Blend"\} 1\.0', text)
+    assert re.search(r'dqpose_grpc_calls_total\{code="INVALID_ARGUMENT",rpc="Blend"\} 1\.0', text)
+    assert 'dqpose_grpc_call_seconds_count{rpc="Blend"} 2.0' in text
+
+
+class socket_free_port:
+    def __enter__(self):
+        import socket
+
+        with socket.socket() as so:
+            so.bind(("127.0.0.1", 0))
+            return so.getsockname()[1]
+
+    def __exit__(self, *exc):
+        pass
+
+
+def test_sigterm_drains_in_flight_calls_and_exits_zero():
+    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", "0",
+                             "--grace", "20"], cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    try:
+        first = json.loads(proc.stderr.readline())
+        assert first["event"] == "serving"
+        target = first["address"]
+        with grpc.insecure_channel(target) as ch:
+            stub = pb_grpc.BlendingStub(ch)
+            requests: queue.Queue = queue.Queue()
+            stream = stub.BlendStream(iter(requests.get, None), timeout=60)
+            requests.put(blend_req(*_poses(2)))
+            next(stream)
+            watch = health_pb2_grpc.HealthStub(ch).Watch(health_pb2.HealthCheckRequest(), timeout=60)
+            assert next(watch).status == health_pb2.HealthCheckResponse.SERVING
+
+            proc.send_signal(signal.SIGTERM)
+            assert next(watch).status == health_pb2.HealthCheckResponse.NOT_SERVING
+            watch.cancel()
+            # the stream that was open before SIGTERM keeps working until the client ends it
+            for _ in range(5):
+                requests.put(blend_req(*_poses(3)))
+                assert next(stream).pose.orientation.w == pytest.approx(1.0)
+            requests.put(None)
+            assert list(stream) == []
+            # new calls are refused once the server drains
+            assert _code(lambda: _blend_ok(ch))[0] == grpc.StatusCode.UNAVAILABLE
+        assert proc.wait(timeout=30) == 0
+        lines = [json.loads(x) for x in proc.stderr.read().splitlines() if x.startswith("{")]
+        calls = [x for x in lines if "rpc" in x]
+        assert any(x["rpc"] == "BlendStream" and x["code"] == "OK" and x["messages"] == 6
+                   for x in calls), calls
+        assert all(isinstance(x["ms"], float) for x in calls)
+        assert lines[-1] == {"event": "stopped"}
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
