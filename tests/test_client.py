@@ -1,0 +1,206 @@
+"""service.client (NumPy in/out) and the `dqpose blend | interpolate | health` commands, against a
+real server on 127.0.0.1."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import grpc
+import numpy as np
+import pytest
+
+from service import dq
+from service.client import Client
+from service.interpolate import interpolate
+
+from _grpc_server import ServerThread
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+@pytest.fixture(scope="module")
+def server():
+    with ServerThread(token="tok") as s:
+        yield s
+
+
+@pytest.fixture(scope="module")
+def client(server):
+    with Client(server.target, token="tok") as c:
+        yield c
+
+
+def _poses(seed, n):
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return dq.from_pose(q, rng.uniform(-1, 1, (n, 3)))
+
+
+def _same(a, b, atol=1e-9):
+    a, b = np.asarray(a), np.asarray(b)
+    s = np.sign(np.sum(a[..., :4] * b[..., :4], axis=-1, keepdims=True))
+    np.testing.assert_allclose(a * s, b, atol=atol)
+
+
+def test_blend_round_trips_numpy(client):
+    dqs = _poses(1, 7)
+    w = np.arange(1.0, 8.0)
+    for method in ("dib", "dlb", "dec", "log", "lin"):
+        got = client.blend(dqs, w, method)
+        assert got.shape == (8,)
+        _same(got, dq.blend(dqs, w, method))
+    mean, iterations, residual = client.blend(dqs, return_info=True)
+    info = dq.dib(dqs, return_info=True)
+    _same(mean, info.mean)
+    assert iterations == int(info.iterations) and residual < 1e-9
+
+
+def test_interpolate_round_trips_numpy(client):
+    dqs_k = _poses(2, 3)
+    times = np.linspace(0, 2, 41)
+    for mode in ("screw", "tool_linear"):
+        got = client.interpolate([0, 1, 2], dqs_k, times, mode)
+        assert got.shape == (41, 8)
+        _same(got, interpolate([0, 1, 2], dqs_k, times, mode))
+
+
+def test_blend_stream_yields_one_mean_per_batch(client):
+    batches = [(_poses(s, 4), None) for s in range(20)]
+    got = list(client.blend_stream(batches, method="dlb"))
+    assert len(got) == 20
+    for (d, _), g in zip(batches, got):
+        _same(g, dq.dlb(d))
+
+
+def test_invalid_argument_becomes_value_error_with_the_servers_message(client):
+    dqs = _poses(3, 3)
+    with pytest.raises(ValueError, match=r"^weights\[2\]: negative weight -1$"):
+        client.blend(dqs, [1, 1, -1])
+    with pytest.raises(ValueError, match=r"^times\[0\]: 5\.0 is outside the keyframe range"):
+        client.interpolate([0, 1], dqs[:2], [5.0])
+    with pytest.raises(ValueError, match=r"^method: unknown blending method 'avg'"):
+        client.blend(dqs, method="avg")
+
+
+def test_wrong_token_is_unauthenticated_rpc_error(server):
+    with Client(server.target, token="nope") as c:
+        with pytest.raises(grpc.RpcError) as e:
+            c.blend(_poses(4, 2))
+        assert e.value.code() == grpc.StatusCode.UNAUTHENTICATED
+        assert c.health() == "SERVING"
+
+
+# --------------------------------------------------------------------------- the CLI
+
+def dqpose(*args, stdin=None):
+    return subprocess.run([sys.executable, "-m", "service.cli", *args], input=stdin,
+                          capture_output=True, text=True, timeout=60, cwd=ROOT)
+
+
+@pytest.fixture(scope="module")
+def token_file(tmp_path_factory):
+    p = tmp_path_factory.mktemp("tok") / "token"
+    p.write_text("tok\n")
+    return str(p)
+
+
+@pytest.fixture
+def pose_files(tmp_path):
+    dqs = _poses(5, 3)
+    q, t = dq.to_pose(dqs)
+    csv_path = tmp_path / "poses.csv"
+    csv_path.write_text("x,y,z,qw,qx,qy,qz,weight\n" + "".join(
+        ",".join(map(repr, [*ti.tolist(), *qi.tolist(), w])) + "\n" for qi, ti, w in zip(q, t, [1.0, 2.0, 3.0])))
+    json_path = tmp_path / "poses.json"
+    json_path.write_text(json.dumps({
+        "poses": [{"position": dict(zip("xyz", ti)), "orientation": dict(zip("wxyz", qi))}
+                  for qi, ti in zip(q.tolist(), t.tolist())],
+        "weights": [1, 2, 3], "method": "METHOD_DLB"}))
+    return dqs, str(csv_path), str(json_path)
+
+
+def _csv_pose(text):
+    header, row = text.strip().splitlines()
+    assert header == "x,y,z,qw,qx,qy,qz"
+    v = np.array(row.split(","), dtype=float)
+    return dq.from_pose(v[3:], v[:3])
+
+
+def test_cli_blend_csv_on_the_server_matches_local(server, token_file, pose_files):
+    dqs, csv_path, _ = pose_files
+    remote = dqpose("blend", csv_path, "--target", server.target, "--token-file", token_file)
+    local = dqpose("blend", csv_path, "--local")
+    assert remote.returncode == 0 and local.returncode == 0, remote.stderr + local.stderr
+    want = dq.dib(dqs, [1.0, 2.0, 3.0])
+    _same(_csv_pose(remote.stdout), want, atol=1e-10)
+    _same(_csv_pose(local.stdout), want, atol=1e-10)
+
+
+def test_cli_blend_json_uses_the_files_method_and_prints_json(pose_files):
+    dqs, _, json_path = pose_files
+    res = dqpose("blend", json_path, "--local")
+    assert res.returncode == 0, res.stderr
+    out = json.loads(res.stdout)
+    p = out["pose"]
+    got = dq.from_pose([p["orientation"][k] for k in "wxyz"], [p["position"][k] for k in "xyz"])
+    _same(got, dq.dlb(dqs, [1, 2, 3]), atol=1e-10)
+    assert out["iterations"] == 0
+
+
+def test_cli_interpolate_from_stdin_csv(server, token_file):
+    keys = "t,x,y,z,qw,qx,qy,qz\n0,0,0,0,1,0,0,0\n1,0.3,0,0,0.7071067811865476,0,0,0.7071067811865476\n"
+    res = dqpose("interpolate", "-", "--step", "0.25", "--mode", "tool_linear",
+                 "--target", server.target, "--token-file", token_file, stdin=keys)
+    assert res.returncode == 0, res.stderr
+    rows = np.loadtxt(res.stdout.splitlines()[1:], delimiter=",")
+    np.testing.assert_allclose(rows[:, 0], [0, 0.25, 0.5, 0.75, 1.0])
+    np.testing.assert_allclose(rows[:, 1], 0.3 * rows[:, 0], atol=1e-12)  # straight tool path
+    assert res.stdout.splitlines()[0] == "t,x,y,z,qw,qx,qy,qz"
+
+
+@pytest.mark.parametrize("args, stdin, message", [
+    (["blend", "-", "--local"], "x,y,z,qw,qx,qy,qz\n0,0,0,0,0,0,0\n",
+     "dqpose blend: error: poses[0].orientation: zero quaternion"),
+    (["blend", "-", "--local"], "0,0,0,1,0,0,0\n0,0,0,1,0,0,0\n",
+     None),
+    (["blend", "-", "--local", "--weights", "1,-2"], "0,0,0,1,0,0,0\n0,0,0,1,0,0,0\n",
+     "dqpose blend: error: weights[1]: negative weight -2"),
+    (["blend", "-", "--local"], "0,0,abc,1,0,0,0\n", "dqpose blend: error: line 1: expected 7 numbers"),
+    (["blend", "/nonexistent/poses.csv", "--local"], None,
+     "dqpose blend: error: /nonexistent/poses.csv: No such file or directory"),
+    (["blend", "-", "--local"], '{"poses": [', "dqpose blend: error: -: not valid JSON"),
+    (["interpolate", "-", "--local", "--times", "0,3"], "0,0,0,0,1,0,0,0\n1,0,0,0,1,0,0,0\n",
+     "dqpose interpolate: error: times[1]: 3.0 is outside the keyframe range [0.0, 1.0]"),
+    (["interpolate", "-", "--local"], "1,0,0,0,1,0,0,0\n0,0,0,0,1,0,0,0\n",
+     "dqpose interpolate: error: times_k[1]: 0.0 is not after the previous keyframe time 1.0"),
+])
+def test_cli_errors_are_one_line_and_exit_2(args, stdin, message):
+    res = dqpose(*args, stdin=stdin)
+    if message is None:
+        assert res.returncode == 0, res.stderr
+        return
+    assert res.returncode == 2
+    assert len(res.stderr.strip().splitlines()) == 1, res.stderr
+    assert res.stderr.startswith(message), res.stderr
+
+
+def test_cli_server_errors_and_unreachable_server(server, token_file):
+    zero = "0,0,0,0,0,0,0\n0,0,0,1,0,0,0\n"
+    res = dqpose("blend", "-", "--target", server.target, "--token-file", token_file,
+                 stdin=zero.replace("0,0,0,0,0,0,0", "0,0,0,1,0,0,0"))
+    assert res.returncode == 0, res.stderr
+    res = dqpose("blend", "-", "--target", server.target, stdin="0,0,0,1,0,0,0\n")
+    assert res.returncode == 2 and "UNAUTHENTICATED" in res.stderr
+    res = dqpose("blend", "-", "--target", "127.0.0.1:1", "--timeout", "2", stdin="0,0,0,1,0,0,0\n")
+    assert res.returncode == 2
+    assert res.stderr.startswith("dqpose blend: error: no answer from the server at 127.0.0.1:1")
+
+
+def test_cli_health(server):
+    res = dqpose("health", "--target", server.target)
+    assert res.returncode == 0 and res.stdout.strip() == "SERVING"
+    res = dqpose("health", "--target", "127.0.0.1:1", "--timeout", "1")
+    assert res.returncode == 1
