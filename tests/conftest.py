@@ -1,0 +1,52 @@
+"""Shared test fixtures: a seeded RNG, random unit dual quaternions, the hypothesis profile."""
+from __future__ import annotations
+
+import os
+import sys
+import zlib
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, settings
+
+# reference.py sits next to the tests; make it importable however pytest was started.
+sys.path.insert(0, os.path.dirname(__file__))
+
+import reference  # noqa: E402
+
+# Deterministic by default so CI failures reproduce; HYPOTHESIS_PROFILE=dev explores more.
+settings.register_profile("ci", max_examples=200, deadline=None, derandomize=True,
+                          suppress_health_check=[HealthCheck.too_slow])
+settings.register_profile("dev", max_examples=1000, deadline=None)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
+
+
+def _shape(shape) -> tuple[int, ...]:
+    return (int(shape),) if np.ndim(shape) == 0 else tuple(int(k) for k in shape)
+
+
+def random_quaternions(rng: np.random.Generator, shape=()) -> np.ndarray:
+    """Uniformly distributed unit quaternions (..., 4), both signs."""
+    q = rng.normal(size=_shape(shape) + (4,))
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def random_dqs(rng: np.random.Generator, shape=(), scale: float = 1.0) -> np.ndarray:
+    """Random unit dual quaternions (..., 8): uniform rotations, translations ~ N(0, scale^2)."""
+    shape = _shape(shape)
+    r = random_quaternions(rng, shape)
+    t = scale * rng.normal(size=shape + (3,))
+    return reference.dq_from_rt(r, t)
+
+
+@pytest.fixture
+def rng(request) -> np.random.Generator:
+    """A generator seeded from the test's name: reproducible and different for each test."""
+    seed = zlib.crc32(request.node.nodeid.encode())
+    return np.random.default_rng(seed)
+
+
+@pytest.fixture
+def make_dqs(rng):
+    """``make_dqs(shape, scale=1.0)``: random unit dual quaternions from the test's RNG."""
+    return lambda shape=(), scale=1.0: random_dqs(rng, shape, scale)
