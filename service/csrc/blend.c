@@ -68,6 +68,32 @@ static inline double atan2_q1(double n, double w)
     return swap ? DQ_PIO2 + (DQ_MOREBITS - r) : r;
 }
 
+/* Angles beyond this go to libm: the three-part Cody-Waite reduction stays exact far past it. */
+#define DQ_SINCOS_MAX 1e5
+
+/* sin and cos of x for |x| <= DQ_SINCOS_MAX: reduction by pi/2 (Cephes' DP1..DP3 split, so
+ * k * part is exact), Cephes' kernels on [-pi/4, pi/4], quadrant by selects. */
+static inline void sincos_v(double x, double *s_out, double *c_out)
+{
+    const double magic = 6755399441055744.0; /* 1.5 * 2^52: adding it rounds to an integer */
+    double kd = (x * 0.63661977236758134308 + magic) - magic;
+    double r = ((x - kd * 1.57079625129699707031) - kd * 7.54978941586159635335E-8)
+               - kd * 5.39030285815811905290E-15;
+    double z = r * r;
+    double s = r + r * (z * (((((1.58962301576546568060E-10 * z - 2.50507477628578072866E-8) * z
+                 + 2.75573136213857245213E-6) * z - 1.98412698295895385996E-4) * z
+                 + 8.33333333332211858878E-3) * z - 1.66666666666666307295E-1));
+    double c = 1.0 - 0.5 * z + z * z * (((((-1.13585365213876817300E-11 * z
+                 + 2.08757008419747316778E-9) * z - 2.75573141792967388112E-7) * z
+                 + 2.48015872888517045348E-5) * z - 1.38888888888730564116E-3) * z
+                 + 4.16666666666665929218E-2);
+    /* quadrant k mod 4 as q = k - 4 round(k / 4) in {-2, -1, 0, 1, 2} */
+    double qd = kd - 4.0 * ((kd * 0.25 + magic) - magic);
+    double so = fabs(qd) == 1.0 ? c : s, co = fabs(qd) == 1.0 ? s : c;
+    *s_out = fabs(qd - 0.5) > 1.0 ? -so : so; /* negated in quadrants 2 and 3 (-1) */
+    *c_out = fabs(qd + 0.5) > 1.0 ? -co : co; /* negated in quadrants 1 and 2 */
+}
+
 /* ---- ScLERP ----------------------------------------------------------------------------- */
 
 void dq_sclerp_prepare(const double *a, const double *b, dq_sclerp_pair *p)
@@ -128,6 +154,98 @@ void dq_sclerp(const double *a, const double *b, double tau, double *out)
     dq_sclerp_pair p;
     dq_sclerp_prepare(a, b, &p);
     dq_sclerp_eval(&p, tau, out);
+}
+
+/* Independent pairs: a_i exp(tau_i log(a_i* b_i)), in blocks like log_sum. Here nothing is
+ * shared between the poses, so the screw form of dq_sclerp_prepare would cost more than it
+ * saves; exp and log are written out with both of their branches and a select. */
+static inline void sclerp_block(const double *restrict a, const double *restrict b,
+                                const double *restrict tau, size_t m, double *restrict out)
+{
+    double L[6][DQ_BLK], E[8][DQ_BLK];
+    /* 1: tau log(a* b), b in a's hemisphere; the log as dq_log (w = |<a_r, b_r>| >= 0) */
+    for (size_t j = 0; j < m; j++) {
+        const double *aj = a + 8 * j, *bj = b + 8 * j;
+        double dot = aj[0] * bj[0] + aj[1] * bj[1] + aj[2] * bj[2] + aj[3] * bj[3];
+        double sg = dot < 0.0 ? -1.0 : 1.0; /* shortest path */
+        double ac[8] = {aj[0], -aj[1], -aj[2], -aj[3], aj[4], -aj[5], -aj[6], -aj[7]};
+        double bb[8] = {sg * bj[0], sg * bj[1], sg * bj[2], sg * bj[3],
+                        sg * bj[4], sg * bj[5], sg * bj[6], sg * bj[7]};
+        double r[4], d1[4], d2[4];
+        dq_qmul(ac, bb, r);
+        dq_qmul(ac, bb + 4, d1);
+        dq_qmul(ac + 4, bb, d2);
+        double w0 = r[0], v0 = r[1], v1 = r[2], v2 = r[3];
+        double wd = d1[0] + d2[0], u0 = d1[1] + d2[1], u1 = d1[2] + d2[2], u2 = d1[3] + d2[3];
+        double x = v0 * v0 + v1 * v1 + v2 * v2;
+        double as = 1.0 + x * (1.0 / 6 + x * (3.0 / 40 + x * (5.0 / 112 + x * (35.0 / 1152
+              + x * (63.0 / 2816 + x * (231.0 / 13312 + x * (143.0 / 10240)))))));
+        double bs = 1.0 / 3 + x * (2.0 / 15 + x * (8.0 / 105 + x * (16.0 / 315 + x * (128.0 / 3465
+              + x * (256.0 / 9009 + x * (1024.0 / 45045 + x * (2048.0 / 109395)))))));
+        double n = sqrt(x);
+        double acl = atan2_q1(n, w0) / n;
+        double bcl = (1.0 - acl * w0) / x;
+        int ser = x < DQ_LOG_SERIES_MAX;
+        double la = ser ? as : acl, lb = ser ? bs : bcl;
+        double vu = v0 * u0 + v1 * u1 + v2 * u2;
+        double k = lb * (w0 * vu - wd * x);
+        double t = tau[j];
+        L[0][j] = t * (la * v0); L[1][j] = t * (la * v1); L[2][j] = t * (la * v2);
+        L[3][j] = t * (la * u0 + k * v0);
+        L[4][j] = t * (la * u1 + k * v1);
+        L[5][j] = t * (la * u2 + k * v2);
+    }
+    /* 2: exp, as dq_exp */
+    for (size_t j = 0; j < m; j++) {
+        double lr0 = L[0][j], lr1 = L[1][j], lr2 = L[2][j];
+        double ld0 = L[3][j], ld1 = L[4][j], ld2 = L[5][j];
+        double y = lr0 * lr0 + lr1 * lr1 + lr2 * lr2;
+        double rd = lr0 * ld0 + lr1 * ld1 + lr2 * ld2;
+        double css = 1.0 + y * (-1.0 / 2 + y * (1.0 / 24 + y * (-1.0 / 720 + y * (1.0 / 40320
+              + y * (-1.0 / 3628800 + y * (1.0 / 479001600))))));
+        double scs = 1.0 + y * (-1.0 / 6 + y * (1.0 / 120 + y * (-1.0 / 5040 + y * (1.0 / 362880
+              + y * (-1.0 / 39916800 + y * (1.0 / 6227020800.0))))));
+        double cs_ = -1.0 / 3 + y * (1.0 / 30 + y * (-1.0 / 840 + y * (1.0 / 45360
+              + y * (-1.0 / 3991680 + y * (1.0 / 518918400 + y * (-1.0 / 93405312000.0))))));
+        double phi = sqrt(y);
+        double sn, cn;
+        sincos_v(y < DQ_SINCOS_MAX * DQ_SINCOS_MAX ? phi : 0.0, &sn, &cn);
+        double scl = sn / phi, ccl = (phi * cn - sn) / (phi * y);
+        int es = y < 1e-2;
+        double cs = es ? css : cn, sc = es ? scs : scl, c = es ? cs_ : ccl;
+        double kk = c * rd;
+        E[0][j] = cs; E[1][j] = sc * lr0; E[2][j] = sc * lr1; E[3][j] = sc * lr2;
+        E[4][j] = -sc * rd;
+        E[5][j] = sc * ld0 + kk * lr0;
+        E[6][j] = sc * ld1 + kk * lr1;
+        E[7][j] = sc * ld2 + kk * lr2;
+    }
+    /* 3: a e, as dq_mul */
+    for (size_t j = 0; j < m; j++) {
+        const double *aj = a + 8 * j;
+        double e[8] = {E[0][j], E[1][j], E[2][j], E[3][j], E[4][j], E[5][j], E[6][j], E[7][j]};
+        double o[4], d1[4], d2[4];
+        double *oj = out + 8 * j;
+        dq_qmul(aj, e, o);
+        dq_qmul(aj, e + 4, d1);
+        dq_qmul(aj + 4, e, d2);
+        oj[0] = o[0]; oj[1] = o[1]; oj[2] = o[2]; oj[3] = o[3];
+        oj[4] = d1[0] + d2[0]; oj[5] = d1[1] + d2[1]; oj[6] = d1[2] + d2[2]; oj[7] = d1[3] + d2[3];
+    }
+}
+
+DQ_BATCH void dq_sclerp_pairs(const double *a, const double *b, const double *tau, size_t n,
+                              double *out)
+{
+    for (size_t i0 = 0; i0 < n; i0 += DQ_BLK) {
+        size_t m = n - i0 < DQ_BLK ? n - i0 : DQ_BLK;
+        sclerp_block(a + 8 * i0, b + 8 * i0, tau + i0, m, out + 8 * i0);
+    }
+    /* Screw angles beyond the reduction's range (|tau| ~ 1e5 and more): libm's sin/cos. */
+    for (size_t i = 0; i < n; i++) {
+        double t = tau[i];
+        if (t > 1e4 || t < -1e4) dq_sclerp(a + 8 * i, b + 8 * i, t, out + 8 * i);
+    }
 }
 
 /* ---- weights ---------------------------------------------------------------------------- */

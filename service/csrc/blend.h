@@ -27,6 +27,8 @@ typedef struct {
 void dq_sclerp_prepare(const double *a, const double *b, dq_sclerp_pair *p);
 void dq_sclerp_eval(const dq_sclerp_pair *p, double tau, double *out);
 void dq_sclerp(const double *a, const double *b, double tau, double *out);
+/* dq_sclerp for n independent pairs (out[i] from a[i], b[i], tau[i]); vectorised. */
+void dq_sclerp_pairs(const double *a, const double *b, const double *tau, size_t n, double *out);
 
 /* Checks weights (finite, >= 0, positive sum) and writes them normalised to sum 1.
  * On error *bad is the offending index (for a zero sum, n). */
