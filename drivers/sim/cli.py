@@ -12,6 +12,8 @@ import importlib
 
 SIMULATORS = {
     "ur": "drivers.sim.ursim:main",
+    "piper": "drivers.sim.piper:main",
+    "camera": "drivers.sim.camera:main",
 }
 
 

@@ -1,0 +1,546 @@
+"""Camera pose source: ChArUco boards and single ArUco markers with OpenCV's object API.
+
+Each accepted view gives ``T_camera_board`` (maps board points to camera coordinates) with a
+6x6 covariance; a rejected view gives a :class:`Rejection` with the reason. Frames come from a
+``cv2.VideoCapture`` device, a video file, a folder of images, or images passed to
+:meth:`CharucoCamera.detect`.
+
+Board frame: origin at the outer top-left chessboard corner (for a single marker: its centre),
+x along the squares, y down the board, z into the board.
+
+Covariance convention: right perturbation in the tangent space at the pose,
+``T_true = T_est * Exp(delta)`` with ``delta = (omega, v)``, rotation first (radians), then
+translation (metres), both in the board frame. It is ``s^2 (J^T J)^-1`` with ``J`` the Jacobian
+of the reprojected corners with respect to ``delta`` and ``s^2`` the residual variance per pixel
+coordinate (``sum r^2 / (2N - 6)``, floored at ``min_pixel_sigma^2``).
+"""
+from __future__ import annotations
+
+import glob
+import json
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Iterator, Optional, Union
+
+import cv2
+import numpy as np
+
+from drivers.base import Measurement, PoseSource
+from service import dq
+
+__all__ = ["Intrinsics", "BoardSpec", "Detection", "Rejection", "CharucoCamera",
+           "load_intrinsics", "load_board", "open_frames", "FolderFrames", "VideoFrames",
+           "IMAGE_EXTENSIONS"]
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
+
+
+# ---- configuration -----------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics: ``K`` 3x3, OpenCV distortion coefficients, image ``size`` (w, h)."""
+    K: np.ndarray
+    dist: np.ndarray = field(default_factory=lambda: np.zeros(5))
+    size: tuple[int, int] = (640, 480)
+
+    def __post_init__(self):
+        K = np.asarray(self.K, dtype=float)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)):
+            raise ValueError(f"K: expected a finite 3x3 matrix, got shape {K.shape}")
+        if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1 or np.any(K[[1, 2, 2], [0, 0, 1]] != 0):
+            raise ValueError("K: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
+        dist = np.asarray(self.dist, dtype=float).ravel()
+        if dist.size not in (0, 4, 5, 8, 12, 14) or not np.all(np.isfinite(dist)):
+            raise ValueError(f"dist: expected 4, 5, 8, 12 or 14 finite coefficients, got "
+                             f"{dist.size}")
+        size = tuple(int(v) for v in self.size)
+        if len(size) != 2 or min(size) <= 0:
+            raise ValueError(f"size: expected (width, height) > 0, got {self.size!r}")
+        object.__setattr__(self, "K", K)
+        object.__setattr__(self, "dist", dist if dist.size else np.zeros(5))
+        object.__setattr__(self, "size", size)
+
+
+def _read_mapping(path: str, what: str) -> dict:
+    if not os.path.isfile(path):
+        raise ValueError(f"{what}: no such file: {path!r}")
+    with open(path, "r", encoding="utf-8") as f:
+        text = f.read()
+    try:
+        if path.lower().endswith(".json"):
+            data = json.loads(text)
+        else:
+            import yaml
+            # OpenCV FileStorage YAML starts with a %YAML directive and tags matrices.
+            if text.startswith("%YAML"):
+                text = text.split("\n", 1)[1].replace("!!opencv-matrix", "")
+            data = yaml.safe_load(text)
+    except Exception as e:  # json and yaml raise different types; the message is what matters
+        raise ValueError(f"{what}: cannot parse {path!r}: {e}") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{what}: {path!r} does not hold a mapping")
+    return data
+
+
+def _matrix(value, key: str, shape=None) -> np.ndarray:
+    # OpenCV / ROS style {rows, cols, data}
+    if isinstance(value, dict) and "data" in value:
+        a = np.asarray(value["data"], dtype=float)
+        if "rows" in value and "cols" in value:
+            a = a.reshape(int(value["rows"]), int(value["cols"]))
+    else:
+        try:
+            a = np.asarray(value, dtype=float)
+        except (TypeError, ValueError):
+            raise ValueError(f"{key}: not a numeric array") from None
+    if shape is not None:
+        if a.size != int(np.prod(shape)):
+            raise ValueError(f"{key}: expected {int(np.prod(shape))} numbers, got {a.size}")
+        a = a.reshape(shape)
+    return a
+
+
+def load_intrinsics(path: str) -> Intrinsics:
+    """Read intrinsics from YAML or JSON. Accepted keys: ``K`` / ``camera_matrix`` (3x3 nested
+    list, 9 numbers, or ``{rows, cols, data}``), ``dist`` / ``distortion`` /
+    ``distortion_coefficients`` / ``D``, and ``image_size`` / ``size`` ``[w, h]`` or
+    ``image_width`` + ``image_height`` (ROS ``camera_info`` and OpenCV files both work)."""
+    data = _read_mapping(path, "intrinsics")
+
+    def pick(*keys):
+        for k in keys:
+            if k in data:
+                return k, data[k]
+        return None, None
+    k, K = pick("K", "camera_matrix", "cameraMatrix")
+    if K is None:
+        raise ValueError(f"intrinsics: {path!r} has no K (or camera_matrix)")
+    K = _matrix(K, f"intrinsics.{k}", (3, 3))
+    kd, dist = pick("dist", "distortion", "distortion_coefficients", "dist_coeffs", "D")
+    dist = np.zeros(5) if dist is None else _matrix(dist, f"intrinsics.{kd}").ravel()
+    ks, size = pick("image_size", "size")
+    if size is None:
+        if "image_width" in data and "image_height" in data:
+            size = (data["image_width"], data["image_height"])
+        else:
+            raise ValueError(f"intrinsics: {path!r} has no image_size (or image_width and "
+                             "image_height)")
+    try:
+        size = tuple(int(v) for v in _matrix(size, "intrinsics.image_size").ravel())
+    except ValueError:
+        raise ValueError(f"intrinsics.image_size: expected [width, height], got {size!r}") \
+            from None
+    return Intrinsics(K=K, dist=dist, size=size)
+
+
+@dataclass(frozen=True)
+class BoardSpec:
+    """A ChArUco board (``kind="charuco"``: ``squares`` (x, y), ``square_length`` and
+    ``marker_length`` in metres) or one ArUco marker (``kind="marker"``: ``marker_length``,
+    ``marker_id``; None accepts the only marker in view)."""
+    kind: str = "charuco"
+    squares: tuple[int, int] = (7, 5)
+    square_length: float = 0.04
+    marker_length: float = 0.03
+    dictionary_name: str = "DICT_5X5_100"
+    marker_id: Optional[int] = None
+
+    def __post_init__(self):
+        if self.kind not in ("charuco", "marker"):
+            raise ValueError(f"board.kind: expected 'charuco' or 'marker', got {self.kind!r}")
+        if not hasattr(cv2.aruco, self.dictionary_name) or \
+                not self.dictionary_name.startswith("DICT_"):
+            raise ValueError(f"board.dictionary_name: unknown ArUco dictionary "
+                             f"{self.dictionary_name!r}")
+        if not (self.marker_length > 0 and math.isfinite(self.marker_length)):
+            raise ValueError(f"board.marker_length: must be positive, got {self.marker_length}")
+        if self.kind == "charuco":
+            sx, sy = (int(v) for v in self.squares)
+            if sx < 2 or sy < 2:
+                raise ValueError(f"board.squares: need at least 2x2 squares, got {self.squares}")
+            if not self.square_length > self.marker_length:
+                raise ValueError("board.marker_length: must be smaller than square_length")
+            object.__setattr__(self, "squares", (sx, sy))
+
+    @property
+    def dictionary(self):
+        return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary_name))
+
+    @property
+    def cv_board(self) -> "cv2.aruco.CharucoBoard":
+        return cv2.aruco.CharucoBoard(self.squares, self.square_length, self.marker_length,
+                                      self.dictionary)
+
+    @property
+    def extent(self) -> tuple[float, float]:
+        """Width and height of the pattern in metres."""
+        if self.kind == "charuco":
+            return self.squares[0] * self.square_length, self.squares[1] * self.square_length
+        return self.marker_length, self.marker_length
+
+    @property
+    def n_corners(self) -> int:
+        return (self.squares[0] - 1) * (self.squares[1] - 1) if self.kind == "charuco" else 4
+
+
+def load_board(path: str) -> BoardSpec:
+    """A :class:`BoardSpec` from YAML/JSON with the same field names."""
+    data = _read_mapping(path, "board")
+    allowed = {"kind", "squares", "square_length", "marker_length", "dictionary_name",
+               "marker_id"}
+    extra = set(data) - allowed
+    if extra:
+        raise ValueError(f"board: unknown keys {sorted(extra)} in {path!r}")
+    if "squares" in data:
+        data["squares"] = tuple(data["squares"])
+    return BoardSpec(**data)
+
+
+# ---- results -----------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Detection:
+    """An accepted view: ``pose`` is ``T_camera_board``; ``covariance`` as in the module doc;
+    ``rms`` the reprojection error in pixels (RMS point distance); ``ambiguity`` how much worse
+    the other IPPE solution explains the corners, in pixel-noise variances (large is good)."""
+    pose: np.ndarray
+    covariance: np.ndarray
+    rms: float
+    n_points: int
+    ambiguity: float
+    ids: np.ndarray
+    image_points: np.ndarray
+    object_points: np.ndarray
+
+    @property
+    def ok(self) -> bool:
+        return True
+
+
+@dataclass(frozen=True)
+class Rejection:
+    """A rejected view. ``reason`` is one of ``no_board``, ``too_few_corners``, ``collinear``,
+    ``ambiguous``, ``reprojection``, ``pnp_failed``; ``message`` says it in words."""
+    reason: str
+    message: str
+    n_points: int = 0
+
+    @property
+    def ok(self) -> bool:
+        return False
+
+    def __str__(self) -> str:
+        return self.message
+
+
+# ---- frame sources -----------------------------------------------------------------------------
+class FolderFrames:
+    """Images of a folder in name order. An unreadable image raises ``ValueError``."""
+
+    def __init__(self, folder: str):
+        if not os.path.isdir(folder):
+            raise ValueError(f"source: no such folder: {folder!r}")
+        self.paths = sorted(p for p in glob.glob(os.path.join(folder, "*"))
+                            if p.lower().endswith(IMAGE_EXTENSIONS))
+        if not self.paths:
+            raise ValueError(f"source: no images ({', '.join(IMAGE_EXTENSIONS)}) in {folder!r}")
+        self._next = 0
+        self.current: Optional[str] = None
+
+    def read(self) -> Optional[np.ndarray]:
+        if self._next >= len(self.paths):
+            return None
+        path = self.paths[self._next]
+        self._next += 1
+        self.current = path
+        return read_image(path)
+
+    def close(self) -> None:
+        pass
+
+
+class VideoFrames:
+    """A ``cv2.VideoCapture`` device index or video file."""
+
+    def __init__(self, source: Union[int, str]):
+        self.cap = cv2.VideoCapture(source)
+        if not self.cap.isOpened():
+            self.cap.release()
+            what = f"camera device {source}" if isinstance(source, int) else f"video {source!r}"
+            raise ValueError(f"source: cannot open {what}")
+        self.current = source
+
+    def read(self) -> Optional[np.ndarray]:
+        ok, frame = self.cap.read()
+        return frame if ok else None
+
+    def close(self) -> None:
+        self.cap.release()
+
+
+def read_image(path: str) -> np.ndarray:
+    if not os.path.isfile(path):
+        raise ValueError(f"image: no such file: {path!r}")
+    img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"image: cannot decode {path!r} (not an image, or corrupt)")
+    return img
+
+
+def open_frames(source: Union[int, str]):
+    """A device index (int or digit string), a folder of images, one image, or a video file."""
+    if isinstance(source, (int, np.integer)) or (isinstance(source, str) and source.isdigit()):
+        return VideoFrames(int(source))
+    if not isinstance(source, (str, os.PathLike)):
+        raise ValueError(f"source: expected a device index or a path, got {source!r}")
+    source = os.fspath(source)
+    if os.path.isdir(source):
+        return FolderFrames(source)
+    if not os.path.exists(source):
+        raise ValueError(f"source: no such file or folder: {source!r}")
+    if source.lower().endswith(IMAGE_EXTENSIONS):
+        frames = FolderFrames.__new__(FolderFrames)
+        frames.paths, frames._next, frames.current = [source], 0, None
+        return frames
+    return VideoFrames(source)
+
+
+# ---- the detector ------------------------------------------------------------------------------
+def _inv_right_jacobian_so3(phi: np.ndarray) -> np.ndarray:
+    """``d Log(Exp(phi) Exp(w)) / d w`` at ``w = 0``."""
+    theta = float(np.linalg.norm(phi))
+    P = np.array([[0, -phi[2], phi[1]], [phi[2], 0, -phi[0]], [-phi[1], phi[0], 0]])
+    if theta < 1e-6:
+        return np.eye(3) + 0.5 * P + P @ P / 12.0
+    c = 1.0 / theta ** 2 - (1 + math.cos(theta)) / (2 * theta * math.sin(theta))
+    return np.eye(3) + 0.5 * P + c * (P @ P)
+
+
+def _to_gray(image: np.ndarray) -> np.ndarray:
+    img = np.asarray(image)
+    if img.dtype != np.uint8:
+        if img.dtype == np.uint16:
+            img = (img / 257).astype(np.uint8)
+        else:
+            raise ValueError(f"image: expected uint8 or uint16 pixels, got {img.dtype}")
+    if img.ndim == 2:
+        return img
+    if img.ndim == 3 and img.shape[2] == 3:
+        return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    if img.ndim == 3 and img.shape[2] == 4:
+        return cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY)
+    if img.ndim == 3 and img.shape[2] == 1:
+        return img[:, :, 0]
+    raise ValueError(f"image: expected a grey or BGR image, got shape {img.shape}")
+
+
+class CharucoCamera(PoseSource):
+    """Pose source for a ChArUco board or a single ArUco marker.
+
+    ``source`` (optional) is anything :func:`open_frames` accepts; without it, call
+    :meth:`detect` on images yourself. Rejection thresholds: ``min_corners`` (ChArUco corners),
+    ``min_spread`` (smallest singular value of the centred board points over the largest: below
+    it the corners are collinear), ``ambiguity_chi2`` (the second IPPE solution's sum of squared
+    reprojection errors must exceed the first's by this many pixel-noise variances, the
+    variance estimated from the first's residual), ``max_reprojection_px`` (RMS point distance).
+    """
+
+    def __init__(self, intrinsics: Union[Intrinsics, str], board: Optional[BoardSpec] = None,
+                 source=None, *, name: str = "camera", min_corners: int = 6,
+                 min_spread: float = 0.1, ambiguity_chi2: float = 25.0,
+                 max_reprojection_px: float = 1.0,
+                 min_pixel_sigma: float = 0.02):
+        self.intrinsics = load_intrinsics(intrinsics) if isinstance(intrinsics, str) \
+            else intrinsics
+        if not isinstance(self.intrinsics, Intrinsics):
+            raise ValueError("intrinsics: expected an Intrinsics or a path to a YAML/JSON file")
+        self.board = board or BoardSpec()
+        if self.board.kind == "charuco" and min_corners < 4:
+            raise ValueError(f"min_corners: PnP needs at least 4, got {min_corners}")
+        self.name = name
+        self.min_corners = int(min_corners)
+        self.min_spread = float(min_spread)
+        self.ambiguity_chi2 = float(ambiguity_chi2)
+        self.max_reprojection_px = float(max_reprojection_px)
+        self.min_pixel_sigma = float(min_pixel_sigma)
+        self.last_rejection: Optional[Rejection] = None
+        self.last_detection: Optional[Detection] = None
+        if self.board.kind == "charuco":
+            self._cv_board = self.board.cv_board
+            self._detector = cv2.aruco.CharucoDetector(
+                self._cv_board, cv2.aruco.CharucoParameters(), cv2.aruco.DetectorParameters(),
+                cv2.aruco.RefineParameters())
+        else:
+            params = cv2.aruco.DetectorParameters()
+            params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+            self._detector = cv2.aruco.ArucoDetector(self.board.dictionary, params)
+            h = self.board.marker_length / 2
+            # ArUco corner order: top-left, top-right, bottom-right, bottom-left (y down)
+            self._marker_obj = np.array([[-h, -h, 0], [h, -h, 0], [h, h, 0], [-h, h, 0]],
+                                        dtype=np.float64)
+        self.frames = open_frames(source) if source is not None else None
+        self.exhausted = False
+
+    # ---- detection ---------------------------------------------------------------------------
+    def _points(self, gray) -> Union[tuple[np.ndarray, np.ndarray, np.ndarray], Rejection]:
+        if self.board.kind == "charuco":
+            corners, ids, _, marker_ids = self._detector.detectBoard(gray)
+            n = 0 if ids is None else len(ids)
+            if n == 0 and (marker_ids is None or len(marker_ids) == 0):
+                return Rejection("no_board", "no board in view (no markers found)")
+            if n < self.min_corners:
+                return Rejection("too_few_corners", f"too few ChArUco corners: {n} < "
+                                 f"{self.min_corners}", n)
+            obj, img = self._cv_board.matchImagePoints(corners, ids)
+            return (obj.reshape(-1, 3).astype(np.float64), img.reshape(-1, 2).astype(np.float64),
+                    ids.ravel())
+        corners, ids, _ = self._detector.detectMarkers(gray)
+        if ids is None or len(ids) == 0:
+            return Rejection("no_board", "no marker in view")
+        ids = ids.ravel()
+        if self.board.marker_id is None:
+            if len(ids) > 1:
+                return Rejection("no_board", f"{len(ids)} markers in view ({sorted(ids)}) and "
+                                 "no marker_id chosen")
+            k = 0
+        else:
+            hits = np.flatnonzero(ids == self.board.marker_id)
+            if hits.size == 0:
+                return Rejection("no_board", f"marker {self.board.marker_id} not in view "
+                                 f"(saw {sorted(ids.tolist())})")
+            k = int(hits[0])
+        return (self._marker_obj.copy(), corners[k].reshape(4, 2).astype(np.float64),
+                ids[k:k + 1])
+
+    def detect(self, image: np.ndarray) -> Union[Detection, Rejection]:
+        """Detect the board in one image (grey or BGR). Also sets ``last_detection`` /
+        ``last_rejection``."""
+        result = self._detect(_to_gray(image))
+        if isinstance(result, Rejection):
+            self.last_rejection = result
+        else:
+            self.last_detection = result
+        return result
+
+    def _detect(self, gray: np.ndarray) -> Union[Detection, Rejection]:
+        pts = self._points(gray)
+        if isinstance(pts, Rejection):
+            return pts
+        obj, img, ids = pts
+        n = len(obj)
+        centred = obj[:, :2] - obj[:, :2].mean(axis=0)
+        sv = np.linalg.svd(centred, compute_uv=False)
+        spread = sv[1] / sv[0] if sv[0] > 0 else 0.0
+        if spread < self.min_spread:
+            return Rejection("collinear", f"corners nearly collinear (spread {spread:.3f} < "
+                             f"{self.min_spread})", n)
+        K, dist = self.intrinsics.K, self.intrinsics.dist
+        try:
+            count, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, img, K, dist,
+                                                         flags=cv2.SOLVEPNP_IPPE)
+            good = [k for k in range(count)
+                    if np.all(np.isfinite(rvecs[k])) and np.all(np.isfinite(tvecs[k]))]
+            rvecs = [rvecs[k] for k in good]
+            tvecs = [tvecs[k] for k in good]
+            if not rvecs:
+                # IPPE's decomposition divides by the tilt, so it returns NaN for an exactly
+                # fronto-parallel view; there its two solutions coincide and there is no flip.
+                count, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, img, K, dist,
+                                                             flags=cv2.SOLVEPNP_SQPNP)
+        except cv2.error as e:
+            return Rejection("pnp_failed", f"solvePnP failed: {getattr(e, 'msg', e)}", n)
+        if not rvecs or not np.all(np.isfinite(rvecs[0])):
+            return Rejection("pnp_failed", "solvePnP found no solution", n)
+        ss = []
+        for rv, tv in zip(rvecs, tvecs):
+            p, _ = cv2.projectPoints(obj, rv, tv, K, dist)
+            ss.append(float(np.sum((p.reshape(-1, 2) - img) ** 2)))
+        order = np.argsort(ss)
+        rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvecs[order[0]].copy(),
+                                          tvecs[order[0]].copy())
+        if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+            return Rejection("pnp_failed", "pose refinement diverged", n)
+        proj, J = cv2.projectPoints(obj, rvec, tvec, K, dist)
+        r = (proj.reshape(-1, 2) - img).ravel()
+        rms = float(math.sqrt(np.sum(r ** 2) / n))   # RMS point distance in pixels
+        if not math.isfinite(rms) or rms > self.max_reprojection_px:
+            return Rejection("reprojection", f"reprojection error {rms:.3f} px > "
+                             f"{self.max_reprojection_px} px", n)
+        if float(tvec[2, 0]) <= 0:
+            return Rejection("pnp_failed", "solution puts the board behind the camera", n)
+        R, _ = cv2.Rodrigues(rvec)
+        # Chain rule to our right perturbation (omega, v): rvec moves by Jr^-1 omega, t by R v.
+        J_delta = np.hstack([J[:, 0:3] @ _inv_right_jacobian_so3(rvec.ravel()), J[:, 3:6] @ R])
+        dof = max(2 * n - 6, 1)
+        s2 = max(float(r @ r) / dof, self.min_pixel_sigma ** 2)
+        try:
+            info = J_delta.T @ J_delta / s2
+            cov = np.linalg.inv(info)
+        except np.linalg.LinAlgError:
+            return Rejection("collinear", "pose is not observable from these corners "
+                             "(singular Jacobian)", n)
+        cov = 0.5 * (cov + cov.T)
+        M = np.eye(4)
+        M[:3, :3] = R
+        M[:3, 3] = tvec.ravel()
+        pose = dq.from_matrix(M)
+        # The planar flip: IPPE's other solution is a distinct local minimum. It matters when it
+        # explains the corners almost as well (small chi-square difference) yet lies outside the
+        # uncertainty of the accepted pose (large Mahalanobis distance); when both are small the
+        # two solutions are one blurry minimum that the covariance already describes.
+        ambiguity = math.inf
+        if len(rvecs) > 1:
+            ambiguity = (ss[order[1]] - float(r @ r)) / s2
+            Rf, _ = cv2.Rodrigues(rvecs[order[1]])
+            Mf = np.eye(4)
+            Mf[:3, :3] = Rf
+            Mf[:3, 3] = np.ravel(tvecs[order[1]])
+            d_flip = 2.0 * dq.log(dq.mul(dq.inv(pose), dq.from_matrix(Mf)))
+            apart = float(d_flip @ info @ d_flip)
+            if ambiguity < self.ambiguity_chi2 and apart > self.ambiguity_chi2:
+                return Rejection("ambiguous", f"ambiguous pose: IPPE's flipped solution "
+                                 f"reprojects with {math.sqrt(ss[order[1]] / n):.3f} px RMS "
+                                 f"against {rms:.3f} px (chi-square difference {ambiguity:.1f} "
+                                 f"< {self.ambiguity_chi2:g}) but lies "
+                                 f"{math.sqrt(apart):.1f} sigma away", n)
+        return Detection(pose=pose, covariance=cov, rms=rms, n_points=n,
+                         ambiguity=ambiguity, ids=np.asarray(ids), image_points=img,
+                         object_points=obj)
+
+    # ---- PoseSource ---------------------------------------------------------------------------
+    def grab(self) -> Optional[np.ndarray]:
+        """The next frame of ``source`` (None at its end)."""
+        if self.frames is None:
+            raise ValueError("source: this camera has no frame source; call detect(image)")
+        frame = self.frames.read()
+        if frame is None:
+            self.exhausted = True
+        return frame
+
+    def read(self, timeout: Optional[float] = None) -> Optional[Measurement]:
+        """The next frame as a measurement; None when the view was rejected (see
+        ``last_rejection``) or the source has ended (``exhausted``)."""
+        frame = self.grab()
+        if frame is None:
+            return None
+        stamp = time.time()
+        result = self.detect(frame)
+        if isinstance(result, Rejection):
+            return None
+        self.last_rejection = None
+        return Measurement(source=self.name, time=stamp, pose=result.pose,
+                           covariance=result.covariance)
+
+    def __iter__(self) -> Iterator[Measurement]:
+        """Accepted views until the source ends (rejected views are skipped)."""
+        while True:
+            m = self.read()
+            if m is not None:
+                yield m
+            elif self.exhausted:
+                return
+
+    def close(self) -> None:
+        if self.frames is not None:
+            self.frames.close()

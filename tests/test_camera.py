@@ -1,0 +1,283 @@
+"""CharucoCamera (real OpenCV detection) on images rendered by the simulated camera."""
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from drivers.camera import (BoardSpec, CharucoCamera, Detection, Intrinsics, Rejection,
+                            _inv_right_jacobian_so3, load_board, load_intrinsics, open_frames)
+from drivers.sim import camera as simcam
+from drivers.sim.camera import DEFAULT_INTRINSICS, BoardRenderer, look_at, random_view
+from service import dq
+
+
+def errors(T_est, T_true):
+    """(rotation error in degrees, translation error in mm)."""
+    E = dq.mul(dq.inv(T_true), T_est)
+    q, _ = dq.to_pose(E)
+    ang = math.degrees(2 * math.acos(min(1.0, abs(q[0]))))
+    d = np.linalg.norm(dq.to_pose(T_est)[1] - dq.to_pose(T_true)[1]) * 1000
+    return ang, d
+
+
+@pytest.fixture(scope="module")
+def renderer():
+    return BoardRenderer()
+
+
+@pytest.fixture
+def cam(renderer):
+    return CharucoCamera(renderer.intrinsics)
+
+
+FRONT = look_at([0.14, 0.1, -0.45], [0.14, 0.1, 0.0])
+OBLIQUE = look_at([0.3, 0.25, -0.35], [0.14, 0.1, 0.0])
+
+
+def test_renderer_puts_corners_where_the_pose_projects_them(renderer):
+    board = BoardSpec()
+    img = renderer.render(OBLIQUE)
+    det = cv2.aruco.CharucoDetector(board.cv_board)
+    corners, ids, _, _ = det.detectBoard(img)
+    obj, seen = board.cv_board.matchImagePoints(corners, ids)
+    M = dq.to_matrix(OBLIQUE)
+    rvec, _ = cv2.Rodrigues(M[:3, :3])
+    proj, _ = cv2.projectPoints(obj, rvec, M[:3, 3], renderer.intrinsics.K, None)
+    err = np.linalg.norm(proj.reshape(-1, 2) - seen.reshape(-1, 2), axis=1)
+    assert len(err) == board.n_corners
+    assert np.median(err) < 0.1
+
+
+def test_twenty_random_views_are_accurate(renderer, cam):
+    rng = np.random.default_rng(20)
+    rot, trans = [], []
+    for _ in range(20):
+        T = random_view(rng)
+        d = cam.detect(renderer.render(T))
+        assert isinstance(d, Detection), d
+        a, t = errors(d.pose, T)
+        rot.append(a)
+        trans.append(t)
+    print(f"\n20 clean views: median {np.median(rot):.4f} deg / {np.median(trans):.4f} mm, "
+          f"max {np.max(rot):.4f} deg / {np.max(trans):.4f} mm")
+    assert np.median(rot) <= 0.05
+    assert np.median(trans) <= 0.2
+
+
+def test_covariance_matches_the_errors(renderer, cam):
+    """Squared Mahalanobis distances of the true errors average ~6 (chi-square, 6 dof) if the
+    covariance is right; a wrong tangent convention or a wrong scale is far off."""
+    rng = np.random.default_rng(21)
+    m2 = []
+    for _ in range(20):
+        T = random_view(rng)
+        d = cam.detect(renderer.render(T, noise=3.0, blur=0.6, rng=rng))
+        assert d.ok, d
+        delta = 2 * dq.log(dq.mul(dq.inv(d.pose), T))   # T_true = T_est Exp(delta)
+        m2.append(delta @ np.linalg.solve(d.covariance, delta))
+    assert 2.0 < np.mean(m2) < 15.0
+
+
+def test_covariance_positive_definite_and_grows_with_noise(renderer, cam):
+    traces = []
+    for noise in (0.0, 8.0, 24.0):
+        d = cam.detect(renderer.render(OBLIQUE, noise=noise, rng=np.random.default_rng(0)))
+        assert d.ok, d
+        assert d.covariance.shape == (6, 6)
+        assert np.allclose(d.covariance, d.covariance.T)
+        assert np.min(np.linalg.eigvalsh(d.covariance)) > 0
+        traces.append(np.trace(d.covariance))
+    assert traces[0] < traces[1] < traces[2]
+
+
+def test_inverse_right_jacobian_matches_finite_differences():
+    rng = np.random.default_rng(3)
+    # angles below pi (a rotation vector wraps beyond), and tiny ones for the series branch
+    for phi in [0.6 * rng.normal(size=3), 1e-8 * rng.normal(size=3), np.array([0.0, 3.0, 0.1])]:
+        R0 = Rotation.from_rotvec(phi)
+        num = np.zeros((3, 3))
+        h = 1e-7
+        for k in range(3):
+            w = np.zeros(3)
+            w[k] = h
+            num[:, k] = ((R0 * Rotation.from_rotvec(w)).as_rotvec()
+                         - (R0 * Rotation.from_rotvec(-w)).as_rotvec()) / (2 * h)
+        assert np.allclose(_inv_right_jacobian_so3(phi), num, atol=1e-6)
+
+
+def test_board_mostly_out_of_frame_is_rejected(renderer, cam):
+    # close up, aimed past the top-left corner of the board
+    img = renderer.render(look_at([-0.05, -0.05, -0.25], [-0.05, -0.05, 0.0]))
+    r = cam.detect(img)
+    assert isinstance(r, Rejection)
+    assert r.reason in ("too_few_corners", "no_board")
+    assert r.n_points < cam.min_corners
+    assert cam.last_rejection is r
+
+
+def test_heavily_occluded_board_is_rejected(renderer, cam):
+    img = renderer.render(FRONT)
+    occluded = np.full_like(img, 255)
+    occluded[150:300, 200:360] = img[150:300, 200:360]
+    r = cam.detect(occluded)
+    assert isinstance(r, Rejection) and r.reason == "too_few_corners"
+    assert 0 < r.n_points < 6
+    assert f"{r.n_points} < 6" in r.message
+    # the same view unoccluded is fine
+    assert cam.detect(img).ok
+
+
+def test_collinear_corners_are_rejected():
+    board = BoardSpec(squares=(7, 2))     # one row of inner corners
+    r = BoardRenderer(board)
+    cam = CharucoCamera(r.intrinsics, board)
+    res = cam.detect(r.render(look_at([0.14, 0.04, -0.4], [0.14, 0.04, 0.0])))
+    assert isinstance(res, Rejection) and res.reason == "collinear", res
+
+
+def test_large_reprojection_error_is_rejected(renderer):
+    wrong = Intrinsics(K=renderer.intrinsics.K, dist=[0.8, 0, 0, 0, 0], size=(640, 480))
+    res = CharucoCamera(wrong).detect(renderer.render(OBLIQUE))
+    assert isinstance(res, Rejection) and res.reason == "reprojection", res
+
+
+def test_no_board_is_rejected(cam):
+    res = cam.detect(np.full((480, 640), 128, np.uint8))
+    assert isinstance(res, Rejection) and res.reason == "no_board"
+
+
+def test_single_marker_close_is_accurate_and_far_is_ambiguous():
+    board = BoardSpec(kind="marker", marker_length=0.05, marker_id=7)
+    r = BoardRenderer(board)
+    cam = CharucoCamera(r.intrinsics, board)
+    rng = np.random.default_rng(5)
+    near = [look_at([0.08, 0.05, -0.3], [0, 0, 0]), look_at([0.0, 0.0, -0.3], [0, 0, 0]),
+            look_at([-0.1, 0.02, -0.25], [0, 0, 0])]
+    for T in near:
+        d = cam.detect(r.render(T, noise=2.0, rng=rng))
+        assert d.ok, d
+        a, t = errors(d.pose, T)
+        assert a < 1.0 and t < 2.0
+    far = cam.detect(r.render(look_at([0.1, 0.05, -1.0], [0, 0, 0]), noise=2.0, rng=rng))
+    assert isinstance(far, Rejection) and far.reason == "ambiguous", far
+    # a marker id not in view
+    other = CharucoCamera(r.intrinsics, BoardSpec(kind="marker", marker_length=0.05,
+                                                  marker_id=8))
+    res = other.detect(r.render(near[0]))
+    assert res.reason == "no_board" and "marker 8 not in view" in res.message
+
+
+def test_image_folder_source_and_sim_cli(tmp_path):
+    out = tmp_path / "views"
+    assert simcam.main(["--out", str(out), "--count", "4", "--seed", "9"]) == 0
+    truth = json.loads((out / "poses.json").read_text())
+    intr_file = tmp_path / "intrinsics.json"
+    intr_file.write_text(json.dumps({"K": truth["K"], "dist": truth["dist"],
+                                     "image_size": truth["image_size"]}))
+    with CharucoCamera(str(intr_file), source=str(out), name="cam0") as cam:
+        ms = list(cam)
+        assert cam.exhausted and cam.read() is None
+    assert len(ms) == 4
+    for m, name in zip(ms, sorted(truth["T_camera_board"])):
+        assert m.source == "cam0" and m.covariance.shape == (6, 6)
+        a, t = errors(m.pose, np.array(truth["T_camera_board"][name]))
+        assert a < 0.2 and t < 1.0
+
+
+def test_video_file_source(tmp_path, renderer):
+    path = str(tmp_path / "clip.avi")
+    w = cv2.VideoWriter(path, cv2.VideoWriter_fourcc(*"MJPG"), 10, (640, 480), False)
+    if not w.isOpened():
+        pytest.skip("this OpenCV build cannot write MJPG video")
+    for _ in range(3):
+        w.write(renderer.render(OBLIQUE))
+    w.release()
+    with CharucoCamera(renderer.intrinsics, source=path) as cam:
+        ms = list(cam)
+    assert len(ms) == 3
+    a, t = errors(ms[0].pose, OBLIQUE)
+    assert a < 0.5 and t < 2.0      # JPEG compression costs some accuracy
+
+
+def test_unreadable_and_missing_inputs_give_clear_errors(tmp_path, renderer):
+    folder = tmp_path / "imgs"
+    folder.mkdir()
+    cv2.imwrite(str(folder / "a.png"), renderer.render(OBLIQUE))
+    (folder / "b.png").write_text("this is not a PNG")
+    cam = CharucoCamera(renderer.intrinsics, source=str(folder))
+    assert cam.read() is not None
+    with pytest.raises(ValueError, match=r"image: cannot decode .*b\.png"):
+        cam.read()
+    with pytest.raises(ValueError, match="source: no such file or folder"):
+        CharucoCamera(renderer.intrinsics, source=str(tmp_path / "missing"))
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(ValueError, match="source: no images"):
+        CharucoCamera(renderer.intrinsics, source=str(empty))
+    (tmp_path / "clip.mp4").write_text("not a video")
+    with pytest.raises(ValueError, match="source: cannot open video"):
+        open_frames(str(tmp_path / "clip.mp4"))
+    with pytest.raises(ValueError, match="image: expected"):
+        CharucoCamera(renderer.intrinsics).detect(np.zeros((4, 4), np.float32))
+    with pytest.raises(ValueError, match="source: this camera has no frame source"):
+        CharucoCamera(renderer.intrinsics).read()
+
+
+def test_intrinsics_files(tmp_path):
+    K = DEFAULT_INTRINSICS.K
+    # OpenCV FileStorage YAML, as written by calibration tools
+    p = str(tmp_path / "cv.yaml")
+    fs = cv2.FileStorage(p, cv2.FILE_STORAGE_WRITE)
+    fs.write("camera_matrix", K)
+    fs.write("distortion_coefficients", np.array([[0.1, -0.2, 0.0, 0.0, 0.05]]))
+    fs.write("image_width", 640)
+    fs.write("image_height", 480)
+    fs.release()
+    intr = load_intrinsics(p)
+    assert np.allclose(intr.K, K) and np.allclose(intr.dist, [0.1, -0.2, 0, 0, 0.05])
+    assert intr.size == (640, 480)
+    # ROS camera_info style
+    ros = tmp_path / "ros.yaml"
+    ros.write_text("image_width: 800\nimage_height: 600\ncamera_matrix:\n  rows: 3\n  cols: 3\n"
+                   "  data: [600, 0, 399.5, 0, 600, 299.5, 0, 0, 1]\n"
+                   "distortion_coefficients:\n  rows: 1\n  cols: 5\n  data: [0, 0, 0, 0, 0]\n")
+    assert load_intrinsics(str(ros)).size == (800, 600)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("K: [[1, 2], [3, 4]]\nimage_size: [640, 480]\n")
+    with pytest.raises(ValueError, match="intrinsics.K: expected 9 numbers"):
+        load_intrinsics(str(bad))
+    bad.write_text("K: [600, 0, 320, 0, 600, 240, 0, 0, 1]\n")
+    with pytest.raises(ValueError, match="image_size"):
+        load_intrinsics(str(bad))
+    bad.write_text("K: [[[\n")
+    with pytest.raises(ValueError, match="cannot parse"):
+        load_intrinsics(str(bad))
+    with pytest.raises(ValueError, match="no such file"):
+        load_intrinsics(str(tmp_path / "nope.yaml"))
+    with pytest.raises(ValueError, match="K: expected"):
+        Intrinsics(K=-np.eye(3))
+
+
+def test_board_files_and_bad_boards(tmp_path):
+    p = tmp_path / "board.yaml"
+    p.write_text("squares: [5, 4]\nsquare_length: 0.03\nmarker_length: 0.022\n"
+                 "dictionary_name: DICT_4X4_50\n")
+    b = load_board(str(p))
+    assert b.squares == (5, 4) and b.n_corners == 12
+    p.write_text("squares: [5, 4]\ncolour: red\n")
+    with pytest.raises(ValueError, match="unknown keys"):
+        load_board(str(p))
+    with pytest.raises(ValueError, match="dictionary_name"):
+        BoardSpec(dictionary_name="DICT_NOPE")
+    with pytest.raises(ValueError, match="marker_length"):
+        BoardSpec(square_length=0.02, marker_length=0.03)
+
+
+def test_renderer_bad_input(renderer):
+    with pytest.raises(ValueError, match="behind the camera"):
+        renderer.render(look_at([0.14, 0.1, 0.45], [0.14, 0.1, 1.0]))  # looking away
+    with pytest.raises(ValueError, match="dist"):
+        BoardRenderer(intrinsics=Intrinsics(K=DEFAULT_INTRINSICS.K, dist=[0.1, 0, 0, 0, 0]))
