@@ -340,6 +340,8 @@ class URSim:
         self.v = (self.p - p_old) / dt
         self.w = _rel_rotvec(q_old, self.q) / dt
         if finished:
+            # a trapezoid or a stop ends at rest; the last step's difference quotient is not it
+            self.v, self.w = np.zeros(3), np.zeros(3)
             if self.busy is action and action is not None:
                 self.busy = None
                 self._ready(2)
@@ -402,7 +404,8 @@ class URSim:
                 "pose": self.values["actual_TCP_pose"], "runtime_state": self.runtime_state,
                 "safety_status_bits": self.safety_bits, "servoing": self.servoing,
                 "busy": self.busy[0] if self.busy else None,
-                "moving": bool(np.any(self.v) or np.any(self.w)),
+                # rounding leaves ~1e-14 rad/s on a resting arm
+                "moving": bool(np.linalg.norm(self.v) > 1e-9 or np.linalg.norm(self.w) > 1e-9),
                 "output_int_register_0": self.values.get("output_int_register_0", 0),
                 "rtde_clients": sum(1 for s in self.sessions if s.alive),
                 "scripts": len(self.scripts), "version": list(self.cfg.version),
@@ -815,6 +818,24 @@ class URSimProcess:
 
     def __exit__(self, *exc):
         self.close()
+
+
+def servo_lag_cycles(entries: list[dict], history: np.ndarray, tol: float = 1e-6) -> np.ndarray:
+    """For each servoL command in a hook log, the cycles from its receipt until the arm stood
+    within ``tol`` metres of it or of a later set-point (a set-point overwritten before the
+    controller read it is reached when its successor is). -1 where it never was."""
+    cmds = [e for e in entries if e["cmd"] == SERVOL]
+    targets = np.array([e["args"][:3] for e in cmds]).reshape(-1, 3)
+    ticks, pos = history[:, 0], history[:, 2:5]
+    # distance from every history sample to every set-point, then "reached set-point j or later"
+    dist = np.linalg.norm(pos[:, None, :] - targets[None, :, :], axis=-1) <= tol
+    reached_later = np.flip(np.logical_or.accumulate(np.flip(dist, axis=1), axis=1), axis=1)
+    lags = np.full(len(cmds), -1)
+    for i, e in enumerate(cmds):
+        hit = np.nonzero((ticks > e["tick"]) & reached_later[:, i])[0]
+        if hit.size:
+            lags[i] = int(ticks[hit[0]] - e["tick"])
+    return lags
 
 
 def _address_free(host: str) -> bool:
