@@ -154,19 +154,33 @@ def dib(dqs, weights=None, tol: float = 1e-12, max_iter: int = 100, *, return_in
     :class:`DIBResult` with the number of steps and the final residual (the norm of the weighted
     log sum at the returned mean; half-twist units: radians and metres).
     """
-    mean, iters, res = _c.blend(dqs, weights, _c.DIB, float(tol), _as_iter(max_iter))
+    mean, iters, res = _c.blend(dqs, weights, _c.DIB, _as_tol(tol), _as_iter(max_iter))
     if return_info:
         return DIBResult(mean, iters.astype(np.int64), res)
     return mean
 
 
 def _as_iter(max_iter) -> int:
-    if isinstance(max_iter, (bool, np.bool_)) or int(max_iter) != max_iter:
+    try:
+        m = int(max_iter)
+        whole = m == max_iter and not isinstance(max_iter, (bool, np.bool_))
+    except (TypeError, ValueError, OverflowError):
+        whole = False
+    if not whole:
         raise ValueError(f"max_iter: must be a whole number, got {max_iter!r}")
-    m = int(max_iter)
-    if m < 0 or m > 1_000_000:
+    if not 0 <= m <= 1_000_000:
         raise ValueError(f"max_iter: must be within 0..1000000, got {m}")
     return m
+
+
+def _as_tol(tol) -> float:
+    try:
+        t = float(tol)
+    except (TypeError, ValueError):
+        t = float("nan")
+    if not (0.0 <= t < float("inf")):
+        raise ValueError(f"tol: must be finite and >= 0, got {tol!r}")
+    return t
 
 
 def lin(dqs, weights=None) -> np.ndarray:
@@ -176,7 +190,7 @@ def lin(dqs, weights=None) -> np.ndarray:
 
 def dec(dqs, weights=None, tol: float = 1e-12, max_iter: int = 100) -> np.ndarray:
     """Rotation (spherical weighted mean) and translation (weighted mean) blended separately."""
-    return _c.blend(dqs, weights, _c.DEC, float(tol), _as_iter(max_iter))
+    return _c.blend(dqs, weights, _c.DEC, _as_tol(tol), _as_iter(max_iter))
 
 
 def logblend(dqs, weights=None) -> np.ndarray:
@@ -204,7 +218,7 @@ def blend(dqs, weights=None, method: str = "dib", tol: float = 1e-12, max_iter: 
     """
     code = _method_code(method)
     if code == _c.DIB:
-        return _c.blend(dqs, weights, code, float(tol), _as_iter(max_iter))[0]
+        return _c.blend(dqs, weights, code, _as_tol(tol), _as_iter(max_iter))[0]
     if code == _c.LIN:
         return _c.from_matrix(_nearest_rigid(_c.blend(dqs, weights, code)))
-    return _c.blend(dqs, weights, code, float(tol), _as_iter(max_iter))
+    return _c.blend(dqs, weights, code, _as_tol(tol), _as_iter(max_iter))

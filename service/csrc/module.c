@@ -493,7 +493,8 @@ static int k_to_matrix(elem *e)
 static int k_from_pose(elem *e)
 {
     int rc = dq_from_pose(e->in[0], e->in[1], e->out[0]);
-    if (rc) e->bad_arg = (rc == DQ_E_NONFINITE && dq_finite_n(e->in[0], 4)) ? 1 : 0;
+    /* A unit q cannot overflow the result, so then the translation is to blame. */
+    if (rc) e->bad_arg = ((rc == DQ_E_NONFINITE || rc == DQ_E_OVERFLOW) && dq_finite_n(e->in[0], 4)) ? 1 : 0;
     return rc;
 }
 
