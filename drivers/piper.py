@@ -243,7 +243,7 @@ class PiperArm(Arm):
                  workspace: tuple[Sequence[float], Sequence[float]] =
                  ((-0.7, -0.7, -0.2), (0.7, 0.7, 0.8)),
                  max_jump: tuple[float, float] = (0.02, math.radians(5)),
-                 watchdog: float = 0.1, stale_timeout: float = 0.1,
+                 watchdog: float = 0.1, stale_timeout: float = 0.2,
                  position_tolerance: float = 5e-4, angle_tolerance: float = math.radians(0.2)):
         for name, v in (("period", period), ("max_speed", max_speed),
                         ("max_angular_speed", max_angular_speed), ("max_accel", max_accel),
@@ -270,6 +270,9 @@ class PiperArm(Arm):
 
         self._lock = threading.Lock()
         self._send_lock = threading.Lock()
+        # Serialises everything that decides a set-point (servo, move ticks, holds), so a
+        # watchdog or stop() hold can never be overtaken by a set-point decided before it.
+        self._cmd_lock = threading.RLock()
         self._assembler = EndPoseAssembler(END_POSE_FEEDBACK)
         self._pose: Optional[np.ndarray] = None
         self._pose_time = 0.0        # bus timestamp of the last complete feedback
@@ -333,17 +336,20 @@ class PiperArm(Arm):
             self.malformed[reason] += 1
 
     def _check_watchdog(self) -> None:
-        with self._lock:
-            stalled = (self._servo_active
-                       and time.monotonic() - self._last_servo > self.watchdog)
+        if not self._servo_active:   # unlocked peek; decided again under the lock
+            return
+        with self._cmd_lock:
+            with self._lock:
+                stalled = (self._servo_active
+                           and time.monotonic() - self._last_servo > self.watchdog)
+                if stalled:
+                    self._servo_active = False
             if stalled:
-                self._servo_active = False
-        if stalled:
-            self.watchdog_stops += 1
-            try:
-                self._hold()
-            except ArmError:
-                pass  # no feedback to hold at; status() already reports the loss
+                self.watchdog_stops += 1
+                try:
+                    self._hold()
+                except ArmError:
+                    pass  # no feedback to hold at; status() already reports the loss
 
     # ---- helpers -------------------------------------------------------------------------------
     def _send(self, msgs: Sequence[can.Message]) -> None:
@@ -406,6 +412,10 @@ class PiperArm(Arm):
     def servo(self, pose) -> None:
         target = _unit_pose(pose, "pose")
         self._check_workspace(target, "pose")
+        with self._cmd_lock:
+            self._servo(target)
+
+    def _servo(self, target: np.ndarray) -> None:
         now = time.monotonic()
         with self._lock:
             prev = self._setpoint if self._servo_active else None
@@ -481,15 +491,16 @@ class PiperArm(Arm):
         deadline = t0 + timeout
         next_tick = t0
         while True:
-            if self._abort.is_set():
-                raise ArmError("move: stopped before reaching the target")
             now = time.monotonic()
             el = now - t0
             if el < duration:
                 sp = _interpolate(start, target, progress(el) / s)
             else:
                 sp = target
-            self._command(sp)
+            with self._cmd_lock:
+                if self._abort.is_set():
+                    raise ArmError("move: stopped before reaching the target")
+                self._command(sp)
             _, cur = self._fresh_pose()
             if el >= duration:
                 d, a = _delta(cur, target)
@@ -507,10 +518,11 @@ class PiperArm(Arm):
 
     def stop(self) -> None:
         """Command the measured pose as the target, ending any servo stream or move."""
-        self._abort.set()
-        with self._lock:
-            self._servo_active = False
-        self._hold()
+        with self._cmd_lock:
+            self._abort.set()
+            with self._lock:
+                self._servo_active = False
+            self._hold()
 
     def status(self) -> ArmStatus:
         with self._lock:
