@@ -111,7 +111,7 @@ static void floor_sclerp_tau(void *c)
 static void core_sclerp_pairs(void *c)
 {
     job *j = c;
-    for (size_t i = 0; i < j->n; i++) dq_sclerp(j->a + 8 * i, j->b + 8 * i, j->tau[i], j->out + 8 * i);
+    dq_sclerp_pairs(j->a, j->b, j->tau, j->n, j->out);
 }
 
 static void floor_sclerp_pairs(void *c)
