@@ -78,5 +78,9 @@ def rotvec_from_pose(pose) -> np.ndarray:
     """Dual quaternions ``(..., 8)`` to UR poses ``(..., 6)`` ``[x, y, z, rx, ry, rz]``, rotation
     angle in ``[0, pi]``."""
     a = _as_array(pose, "pose", 8)
-    q, t = dq.to_pose(a)
+    try:
+        q, t = dq.to_pose(a)
+    except ValueError as e:     # the core names its argument "a"; ours is "pose"
+        msg = str(e)
+        raise ValueError("pose" + msg[1:] if msg.startswith("a") else msg) from None
     return np.concatenate([t, rotvec_from_quat(q)], axis=-1)

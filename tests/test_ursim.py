@@ -22,9 +22,15 @@ from drivers.sim import ursim  # noqa: E402
 HOME = [0.4, -0.1, 0.3, 2.2, 2.2, 0.0]
 
 
+# The lag tests measure the servo pipeline. On a loaded machine the simulator process itself may
+# be descheduled and then read a burst of set-points at once; a generous speed limit keeps such
+# bursts from being clipped (the speed limit has its own test).
+FAST = ("--max-linear-speed", "5")
+
+
 @pytest.fixture(scope="module")
 def sim():
-    with ursim.URSimProcess() as s:
+    with ursim.URSimProcess(args=FAST) as s:
         yield s
 
 
@@ -115,6 +121,22 @@ def test_servoStop_decelerates_to_rest(sim, rtde):
     p_end = recv.getActualTCPPose()
     time.sleep(0.05)
     assert recv.getActualTCPPose() == p_end
+
+
+def test_servo_speed_is_limited(sim, rtde):
+    recv, ctrl = rtde
+    _at_rest(sim)
+    tick0 = sim.state()["tick"]
+    jump = list(HOME)
+    jump[0] += 0.1                                      # 0.1 m at once
+    jump[5] += 0.3                                      # and 0.3 rad
+    assert ctrl.servoL(jump, 0.0, 0.0, 0.002, 0.1, 300)
+    assert _wait(lambda: np.allclose(recv.getActualTCPPose(), jump, atol=1e-12))
+    assert ctrl.servoStop()
+    hist = sim.history(tick0)
+    step = np.linalg.norm(np.diff(hist[:, 2:5], axis=0), axis=1)
+    assert step.max() == pytest.approx(5.0 * 0.002, rel=1e-9)     # --max-linear-speed 5
+    assert np.count_nonzero(step > 1e-12) == 10                    # 0.1 m at 10 mm per cycle
 
 
 def test_moveL_blocks_until_the_move_ends(sim, rtde):

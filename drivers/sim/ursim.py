@@ -234,7 +234,11 @@ class URSim:
                 SAFETY_MODE_PROTECTIVE if self.safety_bits & PROTECTIVE_STOP_BIT else
                 SAFETY_MODE_NORMAL)
         v["safety_mode"] = v["safety_status"] = mode
-        self.history.append((self.tick, v["timestamp"], *pose))
+        sample = (self.tick, v["timestamp"], *pose)
+        if self.history and self.history[-1][0] == self.tick:
+            self.history[-1] = sample       # a hook moved the arm within this cycle
+        else:
+            self.history.append(sample)
 
     def reg(self, kind, i):
         return self.values.get(f"input_{kind}_register_{i}", 0)
@@ -363,6 +367,11 @@ class URSim:
             self.p, self.q = p6[:3].copy(), quat_from_rotvec(p6[3:])
             self.v, self.w = np.zeros(3), np.zeros(3)
             self.servoing = False
+            if self.reg("int", 0) in REALTIME:
+                # The script re-reads a realtime command's registers every cycle; point them at
+                # the new pose so the arm holds it instead of heading back to the old set-point.
+                for i in range(6):
+                    self.values[f"input_double_register_{i}"] = float(p6[i])
             self.background = None
             if self.busy:
                 self.busy = None
@@ -820,7 +829,7 @@ class URSimProcess:
         self.close()
 
 
-def servo_lag_cycles(entries: list[dict], history: np.ndarray, tol: float = 1e-6) -> np.ndarray:
+def servo_lag_cycles(entries: list[dict], history: np.ndarray, tol: float = 1e-9) -> np.ndarray:
     """For each servoL command in a hook log, the cycles from its receipt until the arm stood
     within ``tol`` metres of it or of a later set-point (a set-point overwritten before the
     controller read it is reached when its successor is). -1 where it never was."""

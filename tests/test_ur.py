@@ -1,0 +1,245 @@
+"""URArm (drivers.ur) through the real ur_rtde client against the simulated controller."""
+from __future__ import annotations
+
+import socket
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rtde_control")
+
+from drivers.base import ArmError  # noqa: E402
+from drivers.convert import pose_from_rotvec, rotvec_from_pose  # noqa: E402
+from drivers.sim import ursim  # noqa: E402
+from drivers.ur import Limits, LimitError, URArm  # noqa: E402
+from service import dq  # noqa: E402
+
+HOME = np.array([0.4, -0.1, 0.3, 2.2, 2.2, 0.0])
+DETECT = 0.5        # seconds the issue allows for noticing a protective stop or a lost controller
+
+
+# The lag tests measure the servo pipeline. On a loaded machine the simulator process itself may
+# be descheduled and then read a burst of set-points at once; a generous speed limit keeps such
+# bursts from being clipped (the speed limit has its own test).
+FAST = ("--max-linear-speed", "5")
+
+
+@pytest.fixture(scope="module")
+def sim():
+    with ursim.URSimProcess(args=FAST) as s:
+        yield s
+
+
+@pytest.fixture(scope="module")
+def arm(sim):
+    # A long watchdog here: a loaded CI machine may pause the test loop for tens of ms; the
+    # watchdog test shortens it.
+    a = URArm(sim.host, watchdog_periods=100)
+    yield a
+    a.close()
+
+
+@pytest.fixture
+def home(sim, arm):
+    sim.set_pose(HOME)
+    assert _wait(lambda: np.allclose(rotvec_from_pose(arm.tool_pose()[1]), HOME, atol=1e-12))
+    arm._last_setpoint = None       # the arm was teleported; measure the next step from there
+    return HOME.copy()
+
+
+def _wait(pred, timeout=2.0):
+    deadline = time.monotonic() + timeout
+    while not pred():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.001)
+    return True
+
+
+def _latency(pred, timeout=2.0):
+    t0 = time.monotonic()
+    assert _wait(pred, timeout), "not detected"
+    return time.monotonic() - t0
+
+
+def _same_pose(a, b, atol=1e-12):
+    return np.abs(a - b).max() <= atol or np.abs(a + b).max() <= atol
+
+
+def _ramp(p0, direction, n, distance):
+    """Set-points from rest to rest along a line (cosine profile)."""
+    s = 0.5 - 0.5 * np.cos(np.pi * np.arange(1, n + 1) / n)
+    out = np.tile(p0, (n, 1))
+    out[:, :3] += distance * s[:, None] * np.asarray(direction, float)
+    return out
+
+
+def test_connects_and_reports(arm):
+    st = arm.status()
+    assert st.ok, st
+    assert arm.period == 0.002 and st.extra["frequency"] == 500.0   # e-series
+
+
+def test_tool_pose_is_the_simulated_pose(sim, arm):
+    p6 = [0.35, 0.05, 0.5, -0.4, 0.3, 2.9]
+    sim.set_pose(p6)
+    assert _wait(lambda: _same_pose(arm.tool_pose()[1], pose_from_rotvec(p6)))
+
+
+def test_servo_follows_the_path(sim, arm, home):
+    start, tick0 = sim.log()["next"], sim.state()["tick"]
+    path = _ramp(home, [1.0, 0.5, -0.5], 500, 0.05)     # 1 s at 500 Hz, peak 0.095 m/s
+    for p in path:
+        arm.servo(pose_from_rotvec(p))
+    time.sleep(0.02)                                    # let the arm catch up before stopping
+    arm.stop()
+    entries = [e for e in sim.log(start)["entries"] if e["cmd"] == ursim.SERVOL]
+    assert np.allclose([e["args"][:6] for e in entries], path, atol=1e-12)
+    lags = ursim.servo_lag_cycles(entries, sim.history(tick0))
+    assert lags.min() >= 1 and lags.max() <= 3, f"lag (cycles) {np.bincount(lags + 1)}"
+    assert _same_pose(arm.tool_pose()[1], pose_from_rotvec(path[-1]))
+
+
+def test_move_blocks_until_the_target(sim, arm, home):
+    target = home.copy()
+    target[:3] += [-0.05, 0.03, 0.02]
+    target[3:] = rotvec_from_pose(dq.mul(pose_from_rotvec(home), dq.exp([0, 0, 0.1, 0, 0, 0])))[3:]
+    arm.move(pose_from_rotvec(target), 0.2, 1.0)
+    st = sim.state()
+    assert st["busy"] is None and not st["moving"]
+    assert _same_pose(arm.tool_pose()[1], pose_from_rotvec(target))
+
+
+def test_jumps_and_limits_are_refused_and_the_arm_stopped(sim, arm, home):
+    start = sim.log()["next"]
+    path = _ramp(home, [0, 1.0, 0], 100, 0.01)
+    for p in path[:50]:
+        arm.servo(pose_from_rotvec(p))
+    jump = path[49].copy()
+    jump[1] += 0.01                                     # 10 mm in one 2 ms period: 5 m/s
+    with pytest.raises(LimitError, match="more than one period at 0.25 m/s"):
+        arm.servo(pose_from_rotvec(jump))
+    cmds = [e["cmd"] for e in sim.log(start)["entries"]]
+    assert cmds.count(ursim.SERVOL) == 50 and ursim.SERVO_STOP in cmds[50:]
+    assert not sim.state()["servoing"] and not sim.state()["moving"]
+    assert rotvec_from_pose(arm.tool_pose()[1])[1] < jump[1] - 0.005   # never went there
+    at = rotvec_from_pose(arm.tool_pose()[1])
+    # from rest, a full-speed step is an acceleration of v / period = 125 m/s^2
+    step = at.copy()
+    step[0] += 0.25 * arm.period
+    with pytest.raises(LimitError, match="m/s\\^2, above the 2.0 m/s\\^2 limit"):
+        arm.servo(pose_from_rotvec(step))
+    turned = dq.mul(pose_from_rotvec(at), dq.exp([0.0, 0.0, 0.5 * 1.5 * arm.period, 0, 0, 0]))
+    with pytest.raises(LimitError, match="turns .* deg"):
+        arm.servo(turned)                               # 1.5 rad/s > 1 rad/s
+    far = at.copy()
+    far[2] = 1.5
+    with pytest.raises(LimitError, match="outside the workspace box"):
+        arm.move(pose_from_rotvec(far), 0.1, 0.5)
+    with pytest.raises(ValueError, match="^speed: must be within"):
+        arm.move(pose_from_rotvec(at), 2.0, 0.5)
+    with pytest.raises(ValueError, match="^pose: expected a dual quaternion of shape"):
+        arm.servo(np.zeros(6))
+    with pytest.raises(ValueError, match="^pose"):
+        arm.servo(2 * pose_from_rotvec(at))             # not unit
+    assert sim.log(start)["entries"][-1]["cmd"] != ursim.SERVOL
+    assert arm.status().ok                              # refusals are not faults
+
+
+def test_watchdog_stops_a_stalled_stream(sim, arm, home):
+    arm.watchdog_periods = 10
+    try:
+        start, stops = sim.log()["next"], arm.watchdog_stops
+        for p in _ramp(home, [0, 0, 1.0], 200, 0.02)[:100]:   # stop at full speed (0.16 m/s)
+            arm.servo(pose_from_rotvec(p))
+        assert _wait(lambda: arm.watchdog_stops == stops + 1)
+        assert _wait(lambda: not sim.state()["moving"])
+        cmds = [e["cmd"] for e in sim.log(start)["entries"]]
+        assert cmds[-2:] == [ursim.SERVO_STOP, 0]      # servoStop, then the client's clear
+        assert not sim.state()["servoing"]
+    finally:
+        arm.watchdog_periods = 100
+
+
+def test_protective_stop_is_reported_and_recovered(sim, arm, home):
+    sim.protective_stop(True)
+    latency = _latency(lambda: arm.status().protective_stop)
+    assert latency < DETECT
+    st = arm.status()
+    assert not st.ok and st.error == "protective stop"
+    with pytest.raises(ArmError, match="protective stop"):
+        arm.servo(pose_from_rotvec(home))
+    with pytest.raises(ArmError, match="cannot recover: protective stop"):
+        arm.recover()
+    sim.protective_stop(False)
+    assert _wait(lambda: not arm.status().protective_stop)
+    arm.recover()
+    assert arm.status().ok
+    arm.servo(pose_from_rotvec(home))                   # commands work again
+    arm.stop()
+
+
+@pytest.fixture
+def doomed_sim():
+    with ursim.URSimProcess() as s:
+        yield s
+
+
+def test_lost_controller_is_detected(doomed_sim):
+    sim = doomed_sim
+    arm = URArm(sim.host)
+    try:
+        assert arm.status().ok
+        # a controller that stops sending while its sockets stay open: the pose goes stale
+        sim.call("pause_stream", seconds=0.6)
+        stale_pose = arm._recv.getActualTCPPose()
+        latency = _latency(lambda: not arm.status().connected)
+        assert latency < DETECT
+        assert "stopped sending data" in arm.status().error
+        assert arm._recv.getActualTCPPose() == stale_pose    # ur_rtde alone would not notice
+        with pytest.raises(ArmError, match="stopped sending data"):
+            arm.tool_pose()
+        assert _wait(lambda: arm.status().connected)      # the stream resumed
+        arm.recover()
+        # a controller that dies
+        sim.kill()
+        latency = _latency(lambda: not arm.status().connected)
+        assert latency < DETECT
+        with pytest.raises(ArmError, match="lost|stopped sending"):
+            arm.servo(arm._last_setpoint if arm._last_setpoint is not None else
+                      pose_from_rotvec(HOME))
+    finally:
+        arm.close()
+
+
+def test_unreachable_host_fails_fast():
+    host = next(h for h in (f"127.0.0.{i}" for i in range(250, 20, -1)) if ursim._address_free(h))
+    t0 = time.monotonic()
+    with pytest.raises(ArmError, match=f"^host: cannot reach a UR controller at {host}:30004"):
+        URArm(host, connect_timeout=0.5)
+    # a host whose ports accept connections but never answer (not a UR controller)
+    listeners = []
+    try:
+        for port in (30004, 29999, 30003):
+            s = socket.socket()
+            s.bind((host, port))
+            s.listen(4)
+            listeners.append(s)
+        with pytest.raises(ArmError, match=f"^host: {host}:30004 does not answer as a UR"):
+            URArm(host, connect_timeout=0.5)
+    finally:
+        for s in listeners:
+            s.close()
+    assert time.monotonic() - t0 < 10        # a guard against a hang, not a benchmark
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="^host:"):
+        URArm("")
+    with pytest.raises(ValueError, match="^frequency:"):
+        URArm("127.0.0.1", frequency=1000)
+    with pytest.raises(ValueError, match="^limits.max_linear_speed:"):
+        Limits(max_linear_speed=-1)
+    with pytest.raises(ValueError, match="^limits.workspace_min:"):
+        Limits(workspace_min=(0, 0, 2), workspace_max=(1, 1, 1))
