@@ -130,6 +130,7 @@ class URArm(Arm):
         self._last_step = np.zeros(6)           # its displacement from the one before
         self._last_servo_time = 0.0
         self._servoing = False
+        self._moving = False
         self.watchdog_stops = 0
         self._ts, self._ts_changed = self._recv.getTimestamp(), time.monotonic()
         self._closed = threading.Event()
@@ -244,6 +245,7 @@ class URArm(Arm):
         the arm and raises :class:`LimitError`. The first set-point is measured from the
         actual pose, with the arm at rest.
         """
+        t0 = self._ctrl.initPeriod()        # the checks below count towards the period
         p6 = self._validate(pose)
         self._check()
         target = pose_from_rotvec(p6)
@@ -285,7 +287,6 @@ class URArm(Arm):
             self._last_setpoint = None
             raise LimitError(problem + "; the arm was stopped")
         with self._lock:
-            t0 = self._ctrl.initPeriod()
             ok = self._ctrl.servoL(p6.tolist(), 0.0, 0.0, dt, self.lookahead, self.gain)
             if ok:
                 self._last_setpoint, self._last_step = target, step
@@ -299,7 +300,12 @@ class URArm(Arm):
 
     def move(self, pose: np.ndarray, speed: float, accel: float) -> None:
         """Blocking straight-line move (``moveL``) at ``speed`` m/s and ``accel`` m/s^2, both
-        within the limits; the target must lie in the workspace box (so does the whole line)."""
+        within the limits; the target must lie in the workspace box (so does the whole line).
+
+        The move is sent asynchronously and watched from here: a blocking ``moveL`` in ur_rtde
+        does not return when the controller disappears mid-move. A lost controller or a safety
+        stop raises :class:`ArmError` within ``stale_after`` plus a poll; ``stop()`` from another
+        thread ends the move (and ``move`` raises)."""
         p6 = self._validate(pose)
         L = self.limits
         for name, v, hi in (("speed", speed, L.max_linear_speed), ("accel", accel, L.max_linear_accel)):
@@ -307,22 +313,56 @@ class URArm(Arm):
                 raise ValueError(f"{name}: must be within (0, {hi}], got {v!r}")
         L.check_workspace("pose", p6[:3])
         self._check()
+        here = np.asarray(self._recv.getActualTCPPose())
+        rel = dq.mul(pose_from_rotvec(p6), dq.conj(pose_from_rotvec(here)))
+        angle = float(np.linalg.norm(rotvec_from_quat(rel[:4])))
+        if angle > 1e-9 and np.linalg.norm(p6[:3] - here[:3]) > 1e-9:
+            # UR turns the tool in step with the translation: keep that turn within the limit
+            dist = float(np.linalg.norm(p6[:3] - here[:3]))
+            if angle / dist * speed > L.max_angular_speed:
+                raise ValueError(f"speed: {speed} m/s over {dist:.4f} m turns the tool at "
+                                 f"{angle / dist * speed:.3f} rad/s, above the "
+                                 f"{L.max_angular_speed} rad/s limit")
+        length = max(float(np.linalg.norm(p6[:3] - here[:3])), angle)
+        timeout = 2.0 * (length / speed + speed / accel) + 2.0
         with self._state_lock:
             self._servoing = False
-        with self._lock:
-            self._last_setpoint = None
-            ok = self._ctrl.moveL(p6.tolist(), float(speed), float(accel))
-        if not ok:
-            self._check()
-            time.sleep(2 * self.stale_after)    # let the monitor name the cause, if there is one
-            self._check()
-            raise ArmError("moveL did not complete")
+            self._moving = True
+        try:
+            with self._lock:
+                self._last_setpoint = None
+                op = self._ctrl.getAsyncOperationProgressEx().operationId()
+                if not self._ctrl.moveL(p6.tolist(), float(speed), float(accel), True):
+                    self._check()
+                    raise ArmError("moveL was refused by the controller")
+            started = False
+            deadline = time.monotonic() + timeout
+            while True:
+                self._check()
+                if not self._moving:
+                    raise ArmError("move: stopped before reaching the target")
+                status = self._ctrl.getAsyncOperationProgressEx()
+                started = started or status.operationId() != op
+                if started and not status.isAsyncOperationRunning():
+                    return
+                if time.monotonic() > deadline:
+                    self.stop()
+                    raise ArmError(f"move: not finished within {timeout:.1f} s; the arm was stopped")
+                time.sleep(min(0.005, self.period))
+        finally:
+            self._moving = False
 
     def stop(self) -> None:
-        """Stop servoing and decelerate at ``stop_decel`` m/s^2."""
+        """Stop servoing or a move and decelerate at ``stop_decel`` m/s^2."""
         with self._state_lock:
-            self._servoing = False
-        if self._ctrl.isConnected():
+            servoing, moving = self._servoing, self._moving
+            self._servoing = self._moving = False
+        if not self._ctrl.isConnected():
+            return
+        if moving and not servoing:
+            with self._lock:
+                self._ctrl.stopL(self.stop_decel)
+        else:
             self._stop_servo()
 
     def close(self) -> None:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import socket
+import threading
 import time
 
 import numpy as np
@@ -111,6 +112,18 @@ def test_move_blocks_until_the_target(sim, arm, home):
     assert _same_pose(arm.tool_pose()[1], pose_from_rotvec(target))
 
 
+def test_stop_ends_a_move(sim, arm, home):
+    target = home.copy()
+    target[1] += 0.1
+    threading.Timer(0.2, arm.stop).start()
+    with pytest.raises(ArmError, match="stopped before reaching the target"):
+        arm.move(pose_from_rotvec(target), 0.1, 1.0)
+    assert _wait(lambda: not sim.state()["moving"])
+    y = rotvec_from_pose(arm.tool_pose()[1])[1]
+    assert home[1] + 0.005 < y < target[1] - 0.05
+    assert arm.status().ok
+
+
 def test_jumps_and_limits_are_refused_and_the_arm_stopped(sim, arm, home):
     start = sim.log()["next"]
     path = _ramp(home, [0, 1.0, 0], 100, 0.01)
@@ -202,13 +215,19 @@ def test_lost_controller_is_detected(doomed_sim):
             arm.tool_pose()
         assert _wait(lambda: arm.status().connected)      # the stream resumed
         arm.recover()
-        # a controller that dies
-        sim.kill()
-        latency = _latency(lambda: not arm.status().connected)
-        assert latency < DETECT
+        # a controller that dies in the middle of a move (ur_rtde's own blocking moveL would
+        # wait for it for minutes)
+        killed = []
+        timer = threading.Timer(0.2, lambda: (sim.kill(), killed.append(time.monotonic())))
+        target = HOME.copy()
+        target[0] += 0.1
+        timer.start()
         with pytest.raises(ArmError, match="lost|stopped sending"):
-            arm.servo(arm._last_setpoint if arm._last_setpoint is not None else
-                      pose_from_rotvec(HOME))
+            arm.move(pose_from_rotvec(target), 0.05, 0.5)     # 2 s
+        assert time.monotonic() - killed[0] < DETECT
+        assert not arm.status().connected
+        with pytest.raises(ArmError, match="lost|stopped sending"):
+            arm.servo(pose_from_rotvec(target))
     finally:
         arm.close()
 

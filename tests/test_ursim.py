@@ -168,6 +168,25 @@ def test_moveL_blocks_until_the_move_ends(sim, rtde):
     assert np.abs(accel).max() <= 1.0 + 1e-6
 
 
+def test_async_moveL_reports_progress_and_stopL_ends_it(sim, rtde):
+    recv, ctrl = rtde
+    _at_rest(sim)
+    op = ctrl.getAsyncOperationProgressEx().operationId()
+    target = list(HOME)
+    target[2] += 0.1
+    assert ctrl.moveL(target, 0.1, 1.0, True)           # returns at once
+    status = ctrl.getAsyncOperationProgressEx()
+    assert status.isAsyncOperationRunning() and status.operationId() == (op + 1) % 128
+    assert _wait(lambda: sim.state()["moving"])
+    ctrl.stopL(5.0)
+    assert not sim.state()["moving"]
+    assert not ctrl.getAsyncOperationProgressEx().isAsyncOperationRunning()
+    assert HOME[2] < recv.getActualTCPPose()[2] < target[2]
+    assert ctrl.moveL(target, 0.25, 2.0, True)
+    assert _wait(lambda: not ctrl.getAsyncOperationProgressEx().isAsyncOperationRunning())
+    assert np.allclose(recv.getActualTCPPose(), target, atol=1e-12)
+
+
 def test_second_control_interface_is_refused(sim, rtde):
     with pytest.raises(RuntimeError, match="already in use"):
         rtde_control.RTDEControlInterface(sim.host)

@@ -207,6 +207,8 @@ class URSim:
         self.executing = False
         self.busy = None             # ("move", _Move) | ("stop", decel) while the script blocks
         self.background = None       # an async move or stop the script does not wait for
+        self.async_running = False   # the script's async progress word (output_int_register_2)
+        self.async_count = self.async_op = 0
         self.servoing = False
         self.servo_target = None
         self.servo_queue: collections.deque = collections.deque(maxlen=cfg.servo_lag + 1)
@@ -246,6 +248,28 @@ class URSim:
     def _ready(self, code):
         self.values["output_int_register_0"] = code
 
+    def _write_async(self, value):
+        """The control script's async status word: op id in bits 24-30, a change counter in
+        16-23, bit 15 while an operation runs, progress below."""
+        self.async_count = (self.async_count + 1) % 128
+        if value == 0:
+            self.async_op = (self.async_op + 1) % 128
+        word = self.async_count * 65536 + self.async_op * 16777216
+        if value >= 0:
+            word += min(value, 32767) + 32768
+        self.values["output_int_register_2"] = word
+
+    def _set_background(self, action, tracked=False):
+        """Replace the motion the script does not wait for; ``tracked`` ones (async moveL,
+        stopL) report start and end in the async status word."""
+        if self.async_running:
+            self._write_async(-1)
+            self.async_running = False
+        self.background = action
+        if tracked:
+            self._write_async(0)
+            self.async_running = True
+
     # ---------------------------------------------------------------- the control script
     def _script_cycle(self):
         if self.runtime_state != PLAYING or self.busy is not None:
@@ -273,7 +297,7 @@ class URSim:
             self.servo_target = (p, q)
             if not self.servoing:
                 self.servoing = True
-                self.background = None
+                self._set_background(None)
                 self.servo_queue.clear()
                 self.servo_queue.extend([(self.p.copy(), self.q.copy())] * self.cfg.servo_lag)
         elif cmd == MOVEL:
@@ -282,17 +306,17 @@ class URSim:
             move = _Move(self.p.copy(), self.q.copy(), p, q, max(v, 1e-6), max(a, 1e-6), self.cfg)
             self.servoing = False
             if self.reg("int", 1) == 1:
-                self.background = ("move", move)
+                self._set_background(("move", move), tracked=True)
             else:
-                self.background = None
+                self._set_background(None)
                 self.busy = ("move", move)
         elif cmd in (SERVO_STOP, SPEED_STOP, STOPL, STOPJ):
             self.servoing = False
             decel = self.reg("double", 0) or 10.0
             if cmd in (STOPL, STOPJ) and self.reg("int", 1) == 1:
-                self.background = ("stop", decel)
+                self._set_background(("stop", decel), tracked=True)
             else:
-                self.background = None
+                self._set_background(None)
                 self.busy = ("stop", decel)
         elif cmd == STOP_SCRIPT:
             self._end_program()
@@ -304,7 +328,7 @@ class URSim:
         self.executing = False
         self.busy = None
         if self.servoing or self.background:
-            self.background = ("stop", 10.0)   # a stopped program ramps the arm down
+            self._set_background(("stop", 10.0))   # a stopped program ramps the arm down
         self.servoing = False
 
     def start_program(self, text: str):
@@ -312,9 +336,11 @@ class URSim:
             self.scripts.append(text)
             self.runtime_state = PLAYING
             self.executing = False
-            self.busy = self.background = None
+            self.busy = None
+            self._set_background(None)
             self.servoing = False
             self._ready(1)
+            self._write_async(-1)
 
     # ---------------------------------------------------------------- motion model
     def _motion_cycle(self):
@@ -350,7 +376,7 @@ class URSim:
                 self.busy = None
                 self._ready(2)
             else:
-                self.background = None
+                self._set_background(None)
 
     def step(self):
         with self.lock:
@@ -372,7 +398,7 @@ class URSim:
                 # the new pose so the arm holds it instead of heading back to the old set-point.
                 for i in range(6):
                     self.values[f"input_double_register_{i}"] = float(p6[i])
-            self.background = None
+            self._set_background(None)
             if self.busy:
                 self.busy = None
                 self._ready(2)
@@ -384,7 +410,8 @@ class URSim:
                 self.safety_bits |= bit
                 self.v, self.w = np.zeros(3), np.zeros(3)   # category 1 stop, modelled as instant
                 self.servoing = False
-                self.busy = self.background = None
+                self.busy = None
+                self._set_background(None)
                 if self.runtime_state == PLAYING:
                     self.runtime_state = PAUSED
             else:
@@ -516,7 +543,7 @@ class URSim:
                 if "input_int_register_0" in fields:
                     self.log.append({
                         "tick": self.tick, "time": self.tick * self.dt,
-                        "wall": time.monotonic() - self.t0, "recipe": recipe.id,
+                        "mono": time.monotonic(), "recipe": recipe.id,
                         "cmd": fields["input_int_register_0"],
                         "args": [fields[n] for n in recipe.names if n.startswith("input_double")],
                         "ints": [fields[n] for n in recipe.names[1:]
