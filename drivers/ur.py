@@ -98,6 +98,10 @@ class URArm(Arm):
             raise ValueError(f"lookahead: must be within [0.03, 0.2] s, got {lookahead!r}")
         if not 100 <= gain <= 2000:
             raise ValueError(f"gain: must be within [100, 2000], got {gain!r}")
+        for name, v in (("stale_after", stale_after), ("connect_timeout", connect_timeout),
+                        ("stop_decel", stop_decel)):
+            if not (isinstance(v, numbers.Real) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{name}: must be a positive number, got {v!r}")
         if int(watchdog_periods) != watchdog_periods or watchdog_periods < 1:
             raise ValueError(f"watchdog_periods: must be a whole number >= 1, got {watchdog_periods!r}")
         self.host, self.limits = host, limits

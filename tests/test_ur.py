@@ -258,6 +258,8 @@ def test_bad_arguments():
         URArm("")
     with pytest.raises(ValueError, match="^frequency:"):
         URArm("127.0.0.1", frequency=1000)
+    with pytest.raises(ValueError, match="^stale_after:"):
+        URArm("127.0.0.1", stale_after=0)
     with pytest.raises(ValueError, match="^limits.max_linear_speed:"):
         Limits(max_linear_speed=-1)
     with pytest.raises(ValueError, match="^limits.workspace_min:"):
