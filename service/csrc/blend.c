@@ -156,6 +156,36 @@ void dq_sclerp(const double *a, const double *b, double tau, double *out)
     dq_sclerp_eval(&p, tau, out);
 }
 
+/* s log(a b) for unit a, b, as dq_log but with both of its branches computed and one selected,
+ * so the block loops that inline it vectorise. The product is put in the short hemisphere. */
+static inline void scaled_log_of_product(const double *a, const double *b, double s, double *l)
+{
+    double r[4], d1[4], d2[4];
+    dq_qmul(a, b, r);
+    dq_qmul(a, b + 4, d1);
+    dq_qmul(a + 4, b, d2);
+    double sg = r[0] < 0.0 ? -1.0 : 1.0; /* the short way round */
+    double w0 = sg * r[0], v0 = sg * r[1], v1 = sg * r[2], v2 = sg * r[3];
+    double wd = sg * (d1[0] + d2[0]), u0 = sg * (d1[1] + d2[1]);
+    double u1 = sg * (d1[2] + d2[2]), u2 = sg * (d1[3] + d2[3]);
+    double x = v0 * v0 + v1 * v1 + v2 * v2;
+    double as = 1.0 + x * (1.0 / 6 + x * (3.0 / 40 + x * (5.0 / 112 + x * (35.0 / 1152
+          + x * (63.0 / 2816 + x * (231.0 / 13312 + x * (143.0 / 10240)))))));
+    double bs = 1.0 / 3 + x * (2.0 / 15 + x * (8.0 / 105 + x * (16.0 / 315 + x * (128.0 / 3465
+          + x * (256.0 / 9009 + x * (1024.0 / 45045 + x * (2048.0 / 109395)))))));
+    double n = sqrt(x);
+    double acl = atan2_q1(n, w0) / n;
+    double bcl = (1.0 - acl * w0) / x;
+    int ser = x < DQ_LOG_SERIES_MAX;
+    double la = ser ? as : acl, lb = ser ? bs : bcl;
+    double vu = v0 * u0 + v1 * u1 + v2 * u2;
+    double k = lb * (w0 * vu - wd * x);
+    l[0] = s * (la * v0); l[1] = s * (la * v1); l[2] = s * (la * v2);
+    l[3] = s * (la * u0 + k * v0);
+    l[4] = s * (la * u1 + k * v1);
+    l[5] = s * (la * u2 + k * v2);
+}
+
 /* Independent pairs: a_i exp(tau_i log(a_i* b_i)), in blocks like log_sum. Here nothing is
  * shared between the poses, so the screw form of dq_sclerp_prepare would cost more than it
  * saves; exp and log are written out with both of their branches and a select. */
@@ -163,37 +193,14 @@ static inline void sclerp_block(const double *restrict a, const double *restrict
                                 const double *restrict tau, size_t m, double *restrict out)
 {
     double L[6][DQ_BLK], E[8][DQ_BLK];
-    /* 1: tau log(a* b), b in a's hemisphere; the log as dq_log (w = |<a_r, b_r>| >= 0) */
+    /* 1: tau log(a* b) */
     for (size_t j = 0; j < m; j++) {
-        const double *aj = a + 8 * j, *bj = b + 8 * j;
-        double dot = aj[0] * bj[0] + aj[1] * bj[1] + aj[2] * bj[2] + aj[3] * bj[3];
-        double sg = dot < 0.0 ? -1.0 : 1.0; /* shortest path */
+        const double *aj = a + 8 * j;
         double ac[8] = {aj[0], -aj[1], -aj[2], -aj[3], aj[4], -aj[5], -aj[6], -aj[7]};
-        double bb[8] = {sg * bj[0], sg * bj[1], sg * bj[2], sg * bj[3],
-                        sg * bj[4], sg * bj[5], sg * bj[6], sg * bj[7]};
-        double r[4], d1[4], d2[4];
-        dq_qmul(ac, bb, r);
-        dq_qmul(ac, bb + 4, d1);
-        dq_qmul(ac + 4, bb, d2);
-        double w0 = r[0], v0 = r[1], v1 = r[2], v2 = r[3];
-        double wd = d1[0] + d2[0], u0 = d1[1] + d2[1], u1 = d1[2] + d2[2], u2 = d1[3] + d2[3];
-        double x = v0 * v0 + v1 * v1 + v2 * v2;
-        double as = 1.0 + x * (1.0 / 6 + x * (3.0 / 40 + x * (5.0 / 112 + x * (35.0 / 1152
-              + x * (63.0 / 2816 + x * (231.0 / 13312 + x * (143.0 / 10240)))))));
-        double bs = 1.0 / 3 + x * (2.0 / 15 + x * (8.0 / 105 + x * (16.0 / 315 + x * (128.0 / 3465
-              + x * (256.0 / 9009 + x * (1024.0 / 45045 + x * (2048.0 / 109395)))))));
-        double n = sqrt(x);
-        double acl = atan2_q1(n, w0) / n;
-        double bcl = (1.0 - acl * w0) / x;
-        int ser = x < DQ_LOG_SERIES_MAX;
-        double la = ser ? as : acl, lb = ser ? bs : bcl;
-        double vu = v0 * u0 + v1 * u1 + v2 * u2;
-        double k = lb * (w0 * vu - wd * x);
-        double t = tau[j];
-        L[0][j] = t * (la * v0); L[1][j] = t * (la * v1); L[2][j] = t * (la * v2);
-        L[3][j] = t * (la * u0 + k * v0);
-        L[4][j] = t * (la * u1 + k * v1);
-        L[5][j] = t * (la * u2 + k * v2);
+        double l[6];
+        /* the log's own hemisphere choice is the shortest path: (a* b)_w = <a_r, b_r> */
+        scaled_log_of_product(ac, b + 8 * j, tau[j], l);
+        for (int k = 0; k < 6; k++) L[k][j] = l[k];
     }
     /* 2: exp, as dq_exp */
     for (size_t j = 0; j < m; j++) {
@@ -330,31 +337,9 @@ static inline void wlog_block(const double *bc, const double *q, const double *w
 {
     for (size_t j = 0; j < m; j++) {
         const double *qi = q + 8 * j;
-        double r[4], d1[4], d2[4];
-        dq_qmul(bc, qi, r);
-        dq_qmul(bc, qi + 4, d1);
-        dq_qmul(bc + 4, qi, d2);
-        double sg = r[0] < 0.0 ? -1.0 : 1.0; /* the short way round */
-        double w0 = sg * r[0], v0 = sg * r[1], v1 = sg * r[2], v2 = sg * r[3];
-        double wd = sg * (d1[0] + d2[0]), u0 = sg * (d1[1] + d2[1]);
-        double u1 = sg * (d1[2] + d2[2]), u2 = sg * (d1[3] + d2[3]);
-        double x = v0 * v0 + v1 * v1 + v2 * v2;
-        double as = 1.0 + x * (1.0 / 6 + x * (3.0 / 40 + x * (5.0 / 112 + x * (35.0 / 1152
-              + x * (63.0 / 2816 + x * (231.0 / 13312 + x * (143.0 / 10240)))))));
-        double bs = 1.0 / 3 + x * (2.0 / 15 + x * (8.0 / 105 + x * (16.0 / 315 + x * (128.0 / 3465
-              + x * (256.0 / 9009 + x * (1024.0 / 45045 + x * (2048.0 / 109395)))))));
-        double n = sqrt(x);
-        double ac = atan2_q1(n, w0) / n;
-        double bcl = (1.0 - ac * w0) / x;
-        int ser = x < DQ_LOG_SERIES_MAX;
-        double a = ser ? as : ac, b = ser ? bs : bcl;
-        double vu = v0 * u0 + v1 * u1 + v2 * u2;
-        double k = b * (w0 * vu - wd * x);
-        double wi = w[j];
-        L[0][j] = wi * (a * v0); L[1][j] = wi * (a * v1); L[2][j] = wi * (a * v2);
-        L[3][j] = wi * (a * u0 + k * v0);
-        L[4][j] = wi * (a * u1 + k * v1);
-        L[5][j] = wi * (a * u2 + k * v2);
+        double l[6];
+        scaled_log_of_product(bc, qi, w[j], l);
+        for (int k = 0; k < 6; k++) L[k][j] = l[k];
     }
 }
 
