@@ -57,7 +57,9 @@ def add_parser(sub) -> None:
     p.add_argument("--grace", type=float, default=10.0, help="shutdown drain time, s (default: %(default)s)")
     p.add_argument("--metrics-port", type=int, help="serve Prometheus metrics on this port")
     p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"],
-                   help="'info' logs one JSON line per call (default: %(default)s)")
+                   help="JSON log lines on standard error (default: %(default)s)")
+    p.add_argument("--no-call-log", action="store_true",
+                   help="skip the per-call line (method, status, duration) logged at info")
     p.set_defaults(func=_serve)
 
     p = sub.add_parser("health", help="check a server's gRPC health (exit 0 when SERVING)",
@@ -126,6 +128,8 @@ def _serve(args) -> int:
     from service.server import ServerConfig, serve
 
     logging.basicConfig(level=args.log_level.upper(), format="%(message)s", stream=sys.stderr)
+    if args.no_call_log:
+        logging.getLogger("dqpose.calls").setLevel(logging.WARNING)
     token_file = args.token_file or os.environ.get("DQPOSE_TOKEN_FILE")
     try:
         token = _read(token_file, "r").strip() if token_file else None

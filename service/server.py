@@ -164,17 +164,13 @@ class Blending(pb_grpc.BlendingServicer):
         code = "OK"
         i = 0
         try:
-            # read()/write() rather than async-for/yield: fewer awaitables per message.
-            while True:
-                request = await context.read()
-                if request is grpc.aio.EOF:
-                    break
+            async for request in request_iterator:
                 try:
                     response = self.blend(request)
                 except FieldError as e:
                     code = "INVALID_ARGUMENT"
                     await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"requests[{i}].{e}")
-                await context.write(response)
+                yield response
                 i += 1
         except asyncio.CancelledError:
             code = "CANCELLED"

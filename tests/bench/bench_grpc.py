@@ -1,0 +1,310 @@
+"""gRPC benchmark: Blend of 10 poses (1 and 8 clients), BlendStream throughput, where the time
+goes (C core vs adapter vs gRPC transport), and memory over many calls.
+
+    .venv/bin/python -m tests.bench.bench_grpc            # full run (~2-3 min)
+    .venv/bin/python -m tests.bench.bench_grpc --quick    # smaller counts
+    .venv/bin/python -m tests.bench.bench_grpc --server sync   # threaded grpc.server instead
+
+The server runs as a separate process (`dqpose serve`, per-call log lines on unless --quiet-log),
+like in production. `ghz` (go install github.com/bojand/ghz/cmd/ghz@latest) is used when found
+for the load-generator rows: a Go client costs far less per call than a Python one, so its
+numbers are the server's; the Python-client rows are what a Python caller sees.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import timeit
+from concurrent import futures
+
+import grpc
+import numpy as np
+
+from service import dq
+from service.convert import poses_to_dqs
+from service.server import Blending
+from service._proto.dqpose.v1 import blending_pb2 as pb
+from service._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
+from service._proto.dqpose.v1 import geometry_pb2 as geo
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+PROTO = os.path.join(ROOT, "proto")
+
+
+def request10(seed: int = 0) -> pb.BlendRequest:
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=(10, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    t = rng.uniform(-1, 1, (10, 3))
+    return pb.BlendRequest(poses=[
+        geo.Pose(position=geo.Vector3(x=b[0], y=b[1], z=b[2]),
+                 orientation=geo.Quaternion(w=a[0], x=a[1], y=a[2], z=a[3]))
+        for a, b in zip(q.tolist(), t.tolist())])
+
+
+def us_per_call(fn, n: int) -> float:
+    fn()
+    return min(timeit.repeat(fn, number=n, repeat=3)) / n * 1e6
+
+
+# --------------------------------------------------------------------------- servers
+
+class _SyncBlending(pb_grpc.BlendingServicer):
+    """The same adapter behind the threaded server, for comparison only."""
+
+    def __init__(self):
+        self.b = Blending()
+
+    def Blend(self, request, context):
+        try:
+            return self.b.blend(request)
+        except ValueError as e:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
+
+    def BlendStream(self, request_iterator, context):
+        for r in request_iterator:
+            yield self.b.blend(r)
+
+
+def serve_sync(port: int) -> None:
+    server = grpc.server(futures.ThreadPoolExecutor(max_workers=8),
+                         options=[("grpc.so_reuseport", 0)])
+    pb_grpc.add_BlendingServicer_to_server(_SyncBlending(), server)
+    from grpc_reflection.v1alpha import reflection
+    reflection.enable_server_reflection(("dqpose.v1.Blending", reflection.SERVICE_NAME), server)
+    port = server.add_insecure_port(f"127.0.0.1:{port}")
+    server.start()
+    print(json.dumps({"event": "serving", "address": f"127.0.0.1:{port}"}), file=sys.stderr,
+          flush=True)
+    server.wait_for_termination()
+
+
+class ServerProcess:
+    def __init__(self, kind: str, quiet_log: bool):
+        if kind == "aio":
+            cmd = [sys.executable, "-m", "service.cli", "serve", "--port", "0", "--grace", "2",
+                   *(["--no-call-log"] if quiet_log else [])]
+        else:
+            cmd = [sys.executable, "-m", "tests.bench.bench_grpc", "--serve-sync"]
+        self.log = tempfile.TemporaryFile("w+")
+        self.proc = subprocess.Popen(cmd, cwd=ROOT, stderr=subprocess.PIPE, text=True)
+        line = json.loads(self.proc.stderr.readline())
+        self.target = line["address"]
+        # Drain stderr (one log line per call) into a file so the pipe never blocks the server.
+        self._drain = threading.Thread(target=shutil.copyfileobj,
+                                       args=(self.proc.stderr, self.log), daemon=True)
+        self._drain.start()
+
+    def rss_mb(self) -> float:
+        with open(f"/proc/{self.proc.pid}/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024
+        return float("nan")
+
+    def stop(self) -> int:
+        self.proc.terminate()
+        try:
+            return self.proc.wait(15)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            return self.proc.wait()
+
+
+# --------------------------------------------------------------------------- clients
+
+def python_unary(target: str, n: int) -> np.ndarray:
+    req = request10()
+    with grpc.insecure_channel(target) as ch:
+        call = pb_grpc.BlendingStub(ch).Blend
+        for _ in range(min(500, n)):
+            call(req, timeout=5)
+        lat = np.empty(n)
+        for i in range(n):
+            t0 = time.perf_counter()
+            call(req, timeout=5)
+            lat[i] = time.perf_counter() - t0
+    return lat
+
+
+def _python_worker(target: str, seconds: float, q) -> None:
+    req = request10()
+    lat = []
+    with grpc.insecure_channel(target) as ch:
+        call = pb_grpc.BlendingStub(ch).Blend
+        call(req, timeout=5)
+        end = time.perf_counter() + seconds
+        while (t0 := time.perf_counter()) < end:
+            call(req, timeout=5)
+            lat.append(time.perf_counter() - t0)
+    q.put(lat)
+
+
+def python_clients(target: str, clients: int, seconds: float) -> tuple[float, np.ndarray]:
+    """``clients`` processes (one channel each) for ``seconds``: calls/s and latencies."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")
+    q = ctx.Queue()
+    procs = [ctx.Process(target=_python_worker, args=(target, seconds, q)) for _ in range(clients)]
+    for p in procs:
+        p.start()
+    lat = [q.get() for _ in procs]
+    for p in procs:
+        p.join()
+    allat = np.concatenate([np.array(x) for x in lat])
+    return len(allat) / seconds, allat
+
+
+def python_stream(target: str, n: int) -> float:
+    """Blends per second through one BlendStream with requests sent ahead."""
+    reqs = [request10(i % 16) for i in range(n)]
+    with grpc.insecure_channel(target) as ch:
+        stub = pb_grpc.BlendingStub(ch)
+        for _ in stub.BlendStream(iter(reqs[:200])):
+            pass
+        t0 = time.perf_counter()
+        count = sum(1 for _ in stub.BlendStream(iter(reqs)))
+        dt = time.perf_counter() - t0
+    assert count == n
+    return n / dt
+
+
+def find_tool(name: str) -> str | None:
+    found = shutil.which(name)
+    if found:
+        return found
+    go = shutil.which("go")
+    if go:
+        gopath = subprocess.run([go, "env", "GOPATH"], capture_output=True, text=True).stdout.strip()
+        exe = os.path.join(gopath, "bin", name)
+        if os.path.exists(exe):
+            return exe
+    return None
+
+
+def ghz(exe: str, target: str, clients: int, n: int, data_path: str) -> dict:
+    out = subprocess.run(
+        [exe, "--insecure", "--proto", os.path.join(PROTO, "dqpose/v1/blending.proto"),
+         "--import-paths", PROTO, "--call", "dqpose.v1.Blending/Blend", "-D", data_path,
+         "-c", str(clients), "--connections", str(clients), "-n", str(n), "--format", "json",
+         target], capture_output=True, text=True, check=True).stdout
+    d = json.loads(out)
+    pct = {x["percentage"]: x["latency"] / 1e9 for x in d["latencyDistribution"] or []}
+    return {"rps": d["rps"], "p50": pct.get(50, float("nan")), "p99": pct.get(99, float("nan")),
+            "errors": {k: v for k, v in d["statusCodeDistribution"].items() if k != "OK"}}
+
+
+def json_body(req: pb.BlendRequest) -> str:
+    from google.protobuf import json_format
+    return json_format.MessageToJson(req)
+
+
+# --------------------------------------------------------------------------- main
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="smaller counts (~40 s)")
+    ap.add_argument("--server", choices=["aio", "sync"], default="aio")
+    ap.add_argument("--quiet-log", action="store_true", help="serve with --no-call-log")
+    ap.add_argument("--serve-sync", action="store_true", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.serve_sync:
+        serve_sync(0)
+        return 0
+
+    n1 = 3000 if args.quick else 10000
+    secs = 5.0 if args.quick else 10.0
+    n_stream = 20000 if args.quick else 50000
+    n_mem = 20000 if args.quick else 100000
+
+    rows: list[tuple[str, str, str, str, str]] = []
+
+    def row(what, p50="", p99="", rate="", note=""):
+        rows.append((what, p50, p99, rate, note))
+
+    def us(x):
+        return f"{x * 1e6:.0f} us"
+
+    # -- where the time goes, without transport
+    req = request10()
+    dqs = poses_to_dqs(req.poses, "poses")
+    core = us_per_call(lambda: dq.dib(dqs, None, 1e-12, 100, return_info=True), 2000)
+    conv = us_per_call(lambda: poses_to_dqs(req.poses, "poses"), 2000)
+    adapter = us_per_call(lambda: Blending().blend(req), 2000)
+    data = req.SerializeToString()
+    parse = us_per_call(lambda: pb.BlendRequest.FromString(data), 2000)
+    row("C core: dq.dib of 10 poses", f"{core:.1f} us", note="in process")
+    row("messages -> array (10 poses)", f"{conv:.1f} us", note="in process")
+    row("adapter: Blending.blend(request)", f"{adapter:.1f} us",
+        note="convert + core + response, no transport")
+    row("protobuf parse of the request", f"{parse:.1f} us", note="in process")
+
+    srv = ServerProcess(args.server, args.quiet_log)
+    errors = 0
+    try:
+        lat = python_unary(srv.target, n1)
+        p50, p99 = np.percentile(lat, [50, 99])
+        row("Blend 10 poses, 1 Python client", us(p50), us(p99), f"{1 / lat.mean():.0f}/s",
+            f"gRPC layer ~{p50 * 1e6 - adapter:.0f} us of the p50")
+        exe = find_tool("ghz")
+        if exe:
+            with tempfile.NamedTemporaryFile("w", suffix=".json", delete=False) as f:
+                f.write(json_body(req))
+            g1 = ghz(exe, srv.target, 1, n1, f.name)
+            row("Blend 10 poses, 1 client (ghz)", us(g1["p50"]), us(g1["p99"]),
+                f"{g1['rps']:.0f}/s", f"errors {g1['errors'] or 0}")
+            g8 = ghz(exe, srv.target, 8, int(n1 * 3), f.name)
+            row("Blend 10 poses, 8 clients (ghz)", us(g8["p50"]), us(g8["p99"]),
+                f"{g8['rps']:.0f}/s", f"errors {g8['errors'] or 0}")
+            errors += sum(g1["errors"].values()) + sum(g8["errors"].values())
+        else:
+            row("ghz", note="not installed: go install github.com/bojand/ghz/cmd/ghz@latest")
+        rate8, lat8 = python_clients(srv.target, 8, secs)
+        p50, p99 = np.percentile(lat8, [50, 99])
+        row("Blend 10 poses, 8 Python client processes", us(p50), us(p99), f"{rate8:.0f}/s",
+            "clients share the 2 cores with the server")
+        sr = python_stream(srv.target, n_stream)
+        row("BlendStream 10 poses, 1 stream (Python)", rate=f"{sr:.0f} blends/s",
+            note=f"{n_stream} requests sent ahead")
+        # -- memory over many calls
+        rss0 = srv.rss_mb()
+        t0 = time.perf_counter()
+        if exe:
+            gm = ghz(exe, srv.target, 8, n_mem, f.name)
+            errors += sum(gm["errors"].values())
+            how = f"ghz, 8 clients, errors {gm['errors'] or 0}"
+        else:
+            lat = python_unary(srv.target, n_mem)
+            how = "Python client"
+        dt = time.perf_counter() - t0
+        rss1 = srv.rss_mb()
+        row(f"{n_mem} Blend calls: server RSS", rate=f"{n_mem / dt:.0f}/s",
+            note=f"{rss0:.1f} -> {rss1:.1f} MB ({rss1 - rss0:+.1f} MB), {how}")
+    finally:
+        rc = srv.stop()
+    row("server exit code after SIGTERM", note=str(rc))
+
+    load = os.getloadavg()
+    print(f"\ngRPC benchmark ({args.server} server, per-call log "
+          f"{'off' if args.quiet_log else 'on'}; loopback; {os.cpu_count()} CPUs, load average "
+          f"{load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f})\n")
+    head = ("what", "p50", "p99", "throughput", "note")
+    widths = [max(len(r[i]) for r in rows + [head]) for i in range(5)]
+    fmt = "| " + " | ".join(f"{{:{w}}}" for w in widths) + " |"
+    print(fmt.format(*head))
+    print("|" + "|".join("-" * (w + 2) for w in widths) + "|")
+    for r in rows:
+        print(fmt.format(*r))
+    return 1 if errors else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
