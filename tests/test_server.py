@@ -219,10 +219,16 @@ def test_oversized_request_is_resource_exhausted_and_the_server_stays_up(stub):
 
 
 def test_expired_deadline_is_deadline_exceeded(stub):
-    req = _interp_req(times=np.linspace(0, 2, MAX_POSES))
-    with pytest.raises(grpc.RpcError) as e:
-        stub.Interpolate(req, timeout=1e-6)
-    assert e.value.code() == grpc.StatusCode.DEADLINE_EXCEEDED
+    # A stream the client never feeds: the deadline, not the work, ends it.
+    requests: queue.Queue = queue.Queue()
+    stream = stub.BlendStream(iter(requests.get, None), timeout=0.3)
+    try:
+        with pytest.raises(grpc.RpcError) as e:
+            next(stream)
+        assert e.value.code() == grpc.StatusCode.DEADLINE_EXCEEDED
+    finally:
+        requests.put(None)
+    assert stub.Blend(blend_req(*_poses(2)), timeout=10).pose.orientation.w == pytest.approx(1.0)
 
 
 def test_never_returns_nan_for_cancelling_rotations(stub):
