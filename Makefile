@@ -14,14 +14,16 @@ setup: $(BIN)/python
 	$(BIN)/python -m pip install -q --upgrade pip "setuptools>=77" wheel "numpy>=2.0" "grpcio-tools>=1.60"
 	$(BIN)/python -m pip install -q --no-build-isolation -e '.[test]'
 
+# The gRPC server on 127.0.0.1:50051 until Ctrl-C (`dqpose serve --help` for TLS, tokens, ports).
 run: setup
-	$(BIN)/dqpose demo
+	$(BIN)/dqpose serve --host 127.0.0.1 --port 50051
 
 test: setup
 	$(BIN)/python -m pytest -q
 
 bench: setup
 	$(BIN)/python -m tests.bench.bench_core
+	$(BIN)/python -m tests.bench.bench_grpc
 
 clean:
-	rm -rf $(VENV) build *.egg-info service/*.so
+	rm -rf $(VENV) build *.egg-info service/*.so service/_proto

@@ -19,7 +19,8 @@ import time
 import grpc
 import numpy as np
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
-from grpc_reflection.v1alpha import reflection
+from grpc_reflection.v1alpha import _async as reflection_aio
+from grpc_reflection.v1alpha import reflection, reflection_pb2_grpc
 
 from service import dq
 from service.convert import (INTERPOLATION_NAMES, METHOD_NAMES, FieldError, arrays_to_stamped,
@@ -269,6 +270,19 @@ class _Metrics:
         self.server.shutdown()
 
 
+class _Reflection(reflection_aio.ReflectionServicer):
+    """Server reflection that also resolves method symbols (``dqpose.v1.Blending.Blend``), which
+    ghz asks for and protobuf's Python descriptor pool cannot find: a method lives in the file of
+    its service."""
+
+    def _file_containing_symbol(self, request, fully_qualified_name):
+        response = super()._file_containing_symbol(request, fully_qualified_name)
+        if response.HasField("error_response") and "." in fully_qualified_name:
+            parent = fully_qualified_name.rsplit(".", 1)[0]
+            return super()._file_containing_symbol(request, parent)
+        return response
+
+
 # --------------------------------------------------------------------------- lifecycle
 
 class Running:
@@ -312,7 +326,7 @@ async def start(cfg: ServerConfig) -> Running:
     pb_grpc.add_BlendingServicer_to_server(Blending(cfg.max_poses, metrics), server)
     health_servicer = health.aio.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
-    reflection.enable_server_reflection(SERVICE_NAMES, server)
+    reflection_pb2_grpc.add_ServerReflectionServicer_to_server(_Reflection(SERVICE_NAMES), server)
     address = f"{cfg.host}:{cfg.port}"
     try:
         if cfg.tls_cert or cfg.tls_key:

@@ -265,6 +265,8 @@ def test_reflection_lists_and_describes_the_services(server):
         fd = db.FindFileContainingSymbol("dqpose.v1.Blending")
         assert fd.package == "dqpose.v1"
         assert [m.name for m in fd.service[0].method] == ["Blend", "Interpolate", "BlendStream"]
+        # method symbols resolve too (ghz looks them up; the Python pool alone cannot)
+        assert db.FindFileContainingSymbol("dqpose.v1.Blending.Blend").name == fd.name
 
 
 def _grpcurl() -> str | None:
