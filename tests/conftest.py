@@ -50,3 +50,16 @@ def rng(request) -> np.random.Generator:
 def make_dqs(rng):
     """``make_dqs(shape, scale=1.0)``: random unit dual quaternions from the test's RNG."""
     return lambda shape=(), scale=1.0: random_dqs(rng, shape, scale)
+
+
+@pytest.fixture(scope="module")
+def sim():
+    """One simulated UR controller (its own process, a free 127.0.0.x) per test module.
+
+    The lag tests measure the servo pipeline. On a loaded machine the simulator process itself
+    may be descheduled and then read a burst of set-points at once; a generous speed limit keeps
+    such bursts from being clipped (the speed limit has its own test)."""
+    pytest.importorskip("rtde_control")
+    from drivers.sim import ursim
+    with ursim.URSimProcess(args=("--max-linear-speed", "5")) as s:
+        yield s

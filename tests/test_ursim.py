@@ -22,17 +22,6 @@ from drivers.sim import ursim  # noqa: E402
 HOME = [0.4, -0.1, 0.3, 2.2, 2.2, 0.0]
 
 
-# The lag tests measure the servo pipeline. On a loaded machine the simulator process itself may
-# be descheduled and then read a burst of set-points at once; a generous speed limit keeps such
-# bursts from being clipped (the speed limit has its own test).
-FAST = ("--max-linear-speed", "5")
-
-
-@pytest.fixture(scope="module")
-def sim():
-    with ursim.URSimProcess(args=FAST) as s:
-        yield s
-
 
 @pytest.fixture(scope="module")
 def rtde(sim):
