@@ -180,7 +180,7 @@ BAD_INPUTS = [
     ("Blend", blend_req(*_poses(2), tolerance=-1.0), "tolerance: must be finite and >= 0"),
     ("Blend", blend_req(*_poses(2), tolerance=NAN), "tolerance: must be finite and >= 0"),
     ("Blend", blend_req(*_poses(2), max_iterations=2_000_000),
-     "max_iterations: 2000000 exceeds the limit of 1000000"),
+     "max_iterations: 2000000 exceeds the limit of 1000"),
     ("Interpolate", _interp_req(times_k=(0.0, 1.0, 0.5)),
      "keyframes[2].time: 0.5 is not after the previous keyframe time 1.0"),
     ("Interpolate", _interp_req(times_k=(0.0, 1.0, 1.0)),
