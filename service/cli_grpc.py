@@ -127,9 +127,14 @@ def _serve(args) -> int:
 
     from service.server import ServerConfig, serve
 
+    from service.server import BatchedLineHandler
+
     logging.basicConfig(level=args.log_level.upper(), format="%(message)s", stream=sys.stderr)
+    calls = logging.getLogger("dqpose.calls")
     if args.no_call_log:
-        logging.getLogger("dqpose.calls").setLevel(logging.WARNING)
+        calls.setLevel(logging.WARNING)
+    calls.addHandler(BatchedLineHandler(sys.stderr))
+    calls.propagate = False
     token_file = args.token_file or os.environ.get("DQPOSE_TOKEN_FILE")
     try:
         token = _read(token_file, "r").strip() if token_file else None

@@ -192,10 +192,45 @@ class Blending(pb_grpc.BlendingServicer):
         if self._metrics is not None:
             self._metrics.observe(rpc, code, dt)
         if self._log_calls:
-            line = {"rpc": rpc, "code": code, "ms": round(dt * 1e3, 3), "peer": context.peer()}
-            if messages is not None:
-                line["messages"] = messages
-            call_log.info(json.dumps(line))
+            # Hand-built JSON: json.dumps costs more than the rest of the line; the values are
+            # our own names, a number and an address (quoted through json for safety).
+            extra = "" if messages is None else f', "messages": {messages}'
+            call_log.info(f'{{"rpc": "{rpc}", "code": "{code}", "ms": {dt * 1e3:.3f}, '
+                          f'"peer": {json.dumps(context.peer())}{extra}}}')
+
+
+class BatchedLineHandler(logging.Handler):
+    """Collects log lines and writes them in one call per ``flush`` (``serve`` flushes every
+    0.25 s and at shutdown): one write per batch instead of a system call on every RPC."""
+
+    def __init__(self, stream):
+        super().__init__()
+        self.stream = stream
+        self.lines: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            self.lines.append(self.format(record))
+        except Exception:
+            self.handleError(record)
+
+    def flush(self) -> None:
+        with self.lock:
+            lines, self.lines = self.lines, []
+        if lines:
+            self.stream.write("\n".join(lines) + "\n")
+            self.stream.flush()
+
+
+def _flush_call_log() -> None:
+    for h in call_log.handlers:
+        h.flush()
+
+
+async def _flush_periodically(period: float) -> None:
+    while True:
+        await asyncio.sleep(period)
+        _flush_call_log()
 
 
 # --------------------------------------------------------------------------- auth, metrics
@@ -367,8 +402,12 @@ async def serve(cfg: ServerConfig, ready=None) -> int:
                          "metrics_port": cfg.metrics_port}))
     if ready is not None:
         ready(running)
+    flusher = asyncio.create_task(_flush_periodically(0.25))
     await stop.wait()
+    _flush_call_log()
     log.info(json.dumps({"event": "shutting_down", "grace_s": cfg.grace_s}))
     await running.stop(cfg.grace_s)
+    flusher.cancel()
+    _flush_call_log()
     log.info(json.dumps({"event": "stopped"}))
     return 0
