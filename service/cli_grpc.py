@@ -10,15 +10,21 @@ import sys
 EXIT_ERROR = 2
 BLEND_CSV = "x,y,z,qw,qx,qy,qz[,weight]"
 INTERPOLATE_CSV = "t,x,y,z,qw,qx,qy,qz"
+BLEND_JSON = """\
+          {"poses": [{"position": {"x": 0.5, "y": 0, "z": 0.3},
+                      "orientation": {"w": 1, "x": 0, "y": 0, "z": 0}}, ...],
+           "weights": [1, 2], "method": "dib"}"""
+INTERPOLATE_JSON = """\
+          {"keyframes": [{"time": 0, "pose": {"position": {"x": 0.5, "y": 0, "z": 0.3},
+                                              "orientation": {"w": 1}}}, ...],
+           "times": [0, 0.5], "interpolation": "tool_linear"}"""
 
 POSE_FORMATS = """\
 input formats (FILE, or - for standard input; chosen by the extension, else sniffed):
-  JSON  the request body grpcurl would send, e.g.
-          {"poses": [{"position": {"x": 0.5, "y": 0, "z": 0.3},
-                      "orientation": {"w": 1, "x": 0, "y": 0, "z": 0}}, ...],
-           "weights": [1, 2], "method": "dib"}
+  JSON  the request body grpcurl sends (enums as METHOD_DLB or just dlb), e.g.
+%s
         positions may also be [x, y, z] and orientations [w, x, y, z]; a bare list of
-        poses is accepted too. Missing fields are zero, as in protobuf.
+        %s is accepted too. Missing fields are zero, as in protobuf.
   CSV   one pose per line, columns %s
         (a header line naming the columns is optional; columns are matched by name when present).
 units: metres; quaternions scalar first (w, x, y, z), unit norm.
@@ -73,7 +79,8 @@ def add_parser(sub) -> None:
         "blend", help="blend poses from a JSON or CSV file",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Blend the poses in FILE into one (on the server at --target, or --local).",
-        epilog=POSE_FORMATS % BLEND_CSV + "\nexample: dqpose blend --method dlb poses.csv")
+        epilog=POSE_FORMATS % (BLEND_JSON, "poses", BLEND_CSV)
+               + "\nexample: dqpose blend --method dlb poses.csv")
     p.add_argument("file", metavar="FILE", help="poses (JSON or CSV; - reads standard input)")
     p.add_argument("--method", choices=["dib", "dlb", "sclerp", "lin", "dec", "log"],
                    help="blending method (default: the file's \"method\", else dib)")
@@ -90,9 +97,7 @@ def add_parser(sub) -> None:
         description="Sample the motion through the keyframes in FILE (on the server at --target, "
                     "or --local). Times outside the keyframe range are an error: the motion is "
                     "never extrapolated.",
-        epilog=(POSE_FORMATS % INTERPOLATE_CSV).replace(
-            '{"poses": [{"position"', '{"keyframes": [{"time": 0, "pose": {"position"').replace(
-            '"weights": [1, 2], "method": "dib"}', '"times": [0, 0.5], "interpolation": "screw"}')
+        epilog=POSE_FORMATS % (INTERPOLATE_JSON, "keyframes", INTERPOLATE_CSV)
                + "\nexample: dqpose interpolate --step 0.002 --mode tool_linear keyframes.csv")
     p.add_argument("file", metavar="FILE", help="keyframes (JSON or CSV; - reads standard input)")
     p.add_argument("--mode", choices=["screw", "tool_linear"],
