@@ -736,7 +736,7 @@ def _parse_version(text: str):
 def main(argv: list[str] | None = None) -> int:
     d = SimConfig()
     ap = argparse.ArgumentParser(prog="dqpose sim ur", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--host", default=d.host, help="loopback address to serve on (default %(default)s)")
+    ap.add_argument("--host", default=d.host, help="address to serve on (default %(default)s; one simulator per address, 0.0.0.0 only inside a container)")
     ap.add_argument("--hook-port", type=int, default=d.hook_port, help="JSON-lines test hooks port")
     ap.add_argument("--pose", type=_parse_pose, default=d.pose, help="initial TCP pose 'x y z rx ry rz'")
     ap.add_argument("--version", type=_parse_version, default=d.version,
