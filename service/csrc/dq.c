@@ -81,15 +81,16 @@ int dq_unit(const double *q, double *out)
     if (fabs(e) > 2.0 * DQ_UNIT_TOL + DQ_UNIT_TOL * DQ_UNIT_TOL) {
         if (fabs(sqrt(rr) - 1.0) > DQ_UNIT_TOL) return DQ_E_NOT_UNIT;
     }
-    if (dual_too_large(q)) return DQ_E_OVERFLOW;
+    double dd = q[4] * q[4] + q[5] * q[5] + q[6] * q[6] + q[7] * q[7];
+    if (!(dd <= DUAL_NORM2_MAX)) return DQ_E_OVERFLOW;
     double rd = q[0] * q[4] + q[1] * q[5] + q[2] * q[6] + q[3] * q[7];
-    if (rd != 0.0) {
-        double dd = q[4] * q[4] + q[5] * q[5] + q[6] * q[6] + q[7] * q[7];
-        /* Relative to the size of the dual part, so a 1 km translation has the same slack as 1 m. */
-        double scale = dd > 1.0 ? sqrt(dd) : 1.0;
-        if (fabs(rd) > DQ_UNIT_TOL * scale) return DQ_E_DUAL;
-    }
-    if (e == 0.0 && rd == 0.0) {
+    /* Relative to the size of the dual part, so a 1 km translation has the same slack as 1 m;
+     * squared, so no sqrt (rd^2 <= rr dd cannot overflow after the check above). */
+    double scale2 = dd > 1.0 ? dd : 1.0;
+    if (rd * rd > DQ_UNIT_TOL * DQ_UNIT_TOL * scale2) return DQ_E_DUAL;
+    /* Unit to a few ulps already (any computed pose): normalising would move it by as little, so
+     * the input is used as it is and a batch pays no sqrt or division per pose. */
+    if (fabs(e) <= 1e-15 && rd * rd <= 1e-30 * scale2) {
         if (out != q) for (int i = 0; i < 8; i++) out[i] = q[i];
         return DQ_OK;
     }
