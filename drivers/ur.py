@@ -1,7 +1,7 @@
 """Universal Robots arms through ``ur_rtde`` (pinned to 1.6.5): :class:`URArm`.
 
 Poses cross the interface as dual quaternions ``T_base_tool``; the controller speaks
-``[x, y, z, rx, ry, rz]`` (metres, rotation vector), converted by :mod:`drivers.convert`.
+``[x, y, z, rx, ry, rz]`` (metres, rotation vector), converted by :mod:`drivers.rotvec`.
 
 Safety, enforced here and not left to the caller: every set-point is checked against a speed,
 acceleration and workspace :class:`Limits` and refused (the arm is stopped, :class:`LimitError`
@@ -23,7 +23,7 @@ from typing import Optional
 import numpy as np
 
 from drivers.base import Arm, ArmError, ArmStatus
-from drivers.convert import pose_from_rotvec, rotvec_from_pose, rotvec_from_quat
+from drivers.rotvec import pose_from_rotvec, rotvec_from_pose, rotvec_from_quat
 from drivers.sim.rtde_protocol import request_version
 from service import dq
 

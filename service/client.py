@@ -16,7 +16,7 @@ import grpc
 import numpy as np
 
 from service import dq
-from service.convert import INTERPOLATION_ENUMS, METHOD_ENUMS, poses_to_arrays
+from service.messages import INTERPOLATION_ENUMS, METHOD_ENUMS, poses_to_arrays
 from service._proto.dqpose.v1 import blending_pb2 as pb
 from service._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
 from service._proto.dqpose.v1 import geometry_pb2 as geo

@@ -1,6 +1,6 @@
 """The dqpose gRPC server (``dqpose serve``): a thin adapter over :mod:`service.dq`.
 
-Messages in -> NumPy arrays (:mod:`service.convert`) -> domain functions (:mod:`service.dq`,
+Messages in -> NumPy arrays (:mod:`service.messages`) -> domain functions (:mod:`service.dq`,
 :mod:`service.interpolate`) -> messages out. Every invalid input becomes ``INVALID_ARGUMENT`` with
 a message that starts with the proto field path; anything unexpected becomes ``INTERNAL`` and is
 logged, and the server keeps running.
@@ -23,7 +23,7 @@ from grpc_reflection.v1alpha import _async as reflection_aio
 from grpc_reflection.v1alpha import reflection, reflection_pb2_grpc
 
 from service import dq
-from service.convert import (INTERPOLATION_NAMES, METHOD_NAMES, FieldError, arrays_to_stamped,
+from service.messages import (INTERPOLATION_NAMES, METHOD_NAMES, FieldError, arrays_to_stamped,
                              dq_to_pose, poses_to_dqs, rename, stamped_to_arrays)
 from service.interpolate import interpolate
 from service._proto.dqpose.v1 import blending_pb2 as pb

@@ -11,7 +11,7 @@ import pytest
 pytest.importorskip("rtde_control")
 
 from drivers.base import ArmError  # noqa: E402
-from drivers.convert import pose_from_rotvec, rotvec_from_pose  # noqa: E402
+from drivers.rotvec import pose_from_rotvec, rotvec_from_pose  # noqa: E402
 from drivers.sim import ursim  # noqa: E402
 from drivers.ur import Limits, LimitError, URArm  # noqa: E402
 from service import dq  # noqa: E402

@@ -28,7 +28,7 @@ import grpc
 import numpy as np
 
 from service import dq
-from service.convert import poses_to_dqs
+from service.messages import poses_to_dqs
 from service.server import Blending
 from service._proto.dqpose.v1 import blending_pb2 as pb
 from service._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc

@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from drivers.convert import pose_from_rotvec, rotvec_from_pose
+from drivers.rotvec import pose_from_rotvec, rotvec_from_pose
 from drivers.sim import ursim
 from drivers.ur import URArm
 

@@ -1,4 +1,4 @@
-"""drivers.convert: rotation vectors <-> quaternions <-> dual quaternions, checked against SciPy
+"""drivers.rotvec: rotation vectors <-> quaternions <-> dual quaternions, checked against SciPy
 and against closed forms that are exact where the tested code uses series."""
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from drivers.convert import pose_from_rotvec, quat_from_rotvec, rotvec_from_pose, rotvec_from_quat
+from drivers.rotvec import pose_from_rotvec, quat_from_rotvec, rotvec_from_pose, rotvec_from_quat
 from service import dq
 
 

@@ -1,0 +1,72 @@
+"""service.messages: protobuf messages <-> arrays, and errors renamed to proto field paths."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service import dq
+from service.messages import (FieldError, arrays_to_stamped, dq_to_pose, dqs_to_poses,
+                              poses_to_dqs, rename, stamped_to_arrays)
+from service._proto.dqpose.v1 import geometry_pb2 as geo
+
+
+def _pose(q, t) -> geo.Pose:
+    return geo.Pose(position=geo.Vector3(x=t[0], y=t[1], z=t[2]),
+                    orientation=geo.Quaternion(w=q[0], x=q[1], y=q[2], z=q[3]))
+
+
+def test_rename_maps_the_core_argument_to_the_field_path():
+    e = rename(ValueError("q[3]: zero quaternion"), {"q": "poses{}.orientation"})
+    assert isinstance(e, FieldError) and str(e) == "poses[3].orientation: zero quaternion"
+    # no index in the core's message: the placeholder disappears
+    assert str(rename(ValueError("weights: all weights are zero"), {"weights": "weights{}"})) == \
+        "weights: all weights are zero"
+    # an unknown name is kept
+    assert str(rename(ValueError("x[1]: bad"), {"q": "poses{}"})) == "x[1]: bad"
+
+
+def test_poses_round_trip_through_messages(make_dqs):
+    dqs = make_dqs(7, scale=2.0)
+    back = poses_to_dqs(dqs_to_poses(dqs), "poses")
+    # q and -q are one pose; compare with the sign of the scalar part aligned
+    s = np.sign(np.sum(back[:, :4] * dqs[:, :4], axis=1))[:, None]
+    np.testing.assert_allclose(back, s * dqs, atol=1e-15)
+    one = dq_to_pose(dqs[2])
+    np.testing.assert_allclose(poses_to_dqs([one], "poses")[0] * s[2], dqs[2], atol=1e-15)
+
+
+def test_stamped_round_trip(make_dqs):
+    dqs = make_dqs(5)
+    times = np.array([0.0, 0.1, 0.25, 1.0, 2.5])
+    t2, d2 = stamped_to_arrays(arrays_to_stamped(times, dqs))
+    np.testing.assert_array_equal(t2, times)
+    s = np.sign(np.sum(d2[:, :4] * dqs[:, :4], axis=1))[:, None]
+    np.testing.assert_allclose(d2, s * dqs, atol=1e-15)
+
+
+@pytest.mark.parametrize("q,t,message", [
+    ((0, 0, 0, 0), (0, 0, 0), r"^poses\[1\]\.orientation: zero quaternion"),
+    ((1.1, 0, 0, 0), (0, 0, 0), r"^poses\[1\]\.orientation: quaternion norm 1.1 is not unit"),
+    ((np.nan, 0, 0, 0), (0, 0, 0), r"^poses\[1\]\.orientation: contains NaN or infinity"),
+    ((1, 0, 0, 0), (0, np.inf, 0), r"^poses\[1\]\.position: contains NaN or infinity"),
+])
+def test_bad_poses_name_the_field(q, t, message):
+    poses = [_pose((1, 0, 0, 0), (0, 0, 0)), _pose(q, t)]
+    with pytest.raises(FieldError, match=message):
+        poses_to_dqs(poses, "poses")
+
+
+def test_keyframe_errors_name_the_pose_inside_the_stamped_message():
+    stamped = [geo.StampedPose(time=0.0, pose=_pose((1, 0, 0, 0), (0, 0, 0))),
+               geo.StampedPose(time=1.0, pose=_pose((0, 0, 0, 0), (0, 0, 0)))]
+    with pytest.raises(FieldError, match=r"^keyframes\[1\]\.pose\.orientation: zero quaternion"):
+        stamped_to_arrays(stamped)
+
+
+def test_an_empty_message_is_the_identity_only_if_the_quaternion_is_set():
+    # proto3 defaults every field to 0: a Pose with no orientation is a zero quaternion, which
+    # must be refused rather than silently read as some rotation
+    with pytest.raises(FieldError, match="zero quaternion"):
+        poses_to_dqs([geo.Pose()], "poses")
+    ident = poses_to_dqs([geo.Pose(orientation=geo.Quaternion(w=1))], "poses")
+    np.testing.assert_array_equal(ident[0], dq.identity())
