@@ -121,6 +121,17 @@ class Client:
                 raise ValueError(e.details()) from e
             raise
 
+    def blend_batch(self, dqs, weights=None, method: str = "dib") -> np.ndarray:
+        """Blend many independent sets in one call: ``dqs`` ``(m, n, 8)`` (or a list of ``(n_i, 8)``
+        arrays) with ``weights`` ``(m, n)`` (or a list, or None) -> ``(m, 8)``."""
+        ws = [None] * len(dqs) if weights is None else weights
+        if len(ws) != len(dqs):
+            raise ValueError(f"weights: {len(ws)} weight sets for {len(dqs)} pose sets")
+        req = pb.BlendBatchRequest(requests=[self.blend_request(d, w, method)
+                                             for d, w in zip(dqs, ws)])
+        r = self._call(self.stub.BlendBatch, req)
+        return _to_dqs([x.pose for x in r.responses])
+
     def interpolate(self, times_k, dqs_k, times, mode: str = "screw") -> np.ndarray:
         """Poses ``(N, 8)`` at ``times`` between keyframes ``dqs_k`` ``(K, 8)`` at ``times_k``;
         ``mode`` is ``"screw"`` or ``"tool_linear"`` (see :mod:`service.interpolate`)."""

@@ -110,6 +110,21 @@ class Blending(pb_grpc.BlendingServicer):
         dq_to_pose(mean, response.pose)
         return response
 
+    def blend_batch(self, request: pb.BlendBatchRequest) -> pb.BlendBatchResponse:
+        requests = request.requests
+        self._check_count("requests", len(requests), "requests")
+        total = sum(len(r.poses) for r in requests)
+        if total > 10 * self.max_poses:
+            raise FieldError(f"requests: {total} poses in all exceed the server limit of "
+                             f"{10 * self.max_poses} per batch")
+        responses = []
+        for i, r in enumerate(requests):
+            try:
+                responses.append(self.blend(r))
+            except FieldError as e:
+                raise FieldError(f"requests[{i}].{e}") from None
+        return pb.BlendBatchResponse(responses=responses)
+
     def interpolate_request(self, request: pb.InterpolateRequest) -> pb.InterpolateResponse:
         k, n = len(request.keyframes), len(request.times)
         self._check_count("keyframes", k, "keyframes")
@@ -146,6 +161,21 @@ class Blending(pb_grpc.BlendingServicer):
             await context.abort(grpc.StatusCode.INTERNAL, "internal error (see the server log)")
         finally:
             self._done("Blend", code, t0, context)
+
+    async def BlendBatch(self, request, context):
+        t0 = time.perf_counter()
+        code = "OK"
+        try:
+            return self.blend_batch(request)
+        except FieldError as e:
+            code = "INVALID_ARGUMENT"
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
+        except Exception:
+            code = "INTERNAL"
+            log.exception("BlendBatch failed")
+            await context.abort(grpc.StatusCode.INTERNAL, "internal error (see the server log)")
+        finally:
+            self._done("BlendBatch", code, t0, context, messages=len(request.requests))
 
     async def Interpolate(self, request, context):
         t0 = time.perf_counter()

@@ -75,6 +75,18 @@ def test_blend_stream_yields_one_mean_per_batch(client):
         _same(g, dq.dlb(d))
 
 
+def test_blend_batch_returns_one_mean_per_set(client):
+    sets = np.stack([_poses(s, 5) for s in range(30)])
+    weights = np.random.default_rng(1).uniform(0.1, 1.0, (30, 5))
+    got = client.blend_batch(sets, weights)
+    assert got.shape == (30, 8)
+    # the same numbers as the core's batched DIB over a leading axis
+    for g, w in zip(got, dq.dib(sets, weights)):
+        _same(g, w)
+    with pytest.raises(ValueError, match=r"^weights: 2 weight sets for 30 pose sets$"):
+        client.blend_batch(sets, weights[:2])
+
+
 def test_invalid_argument_becomes_value_error_with_the_servers_message(client):
     dqs = _poses(3, 3)
     with pytest.raises(ValueError, match=r"^weights\[2\]: negative weight -1$"):

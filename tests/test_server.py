@@ -140,6 +140,35 @@ def test_blend_stream_names_the_bad_request(stub):
     assert e.value.details() == "requests[3].poses[1].orientation: zero quaternion"
 
 
+def test_blend_batch_answers_each_request_in_order(stub):
+    rng = np.random.default_rng(8)
+    reqs = [blend_req(*random_poses(rng, int(rng.integers(2, 8))), method=m)
+            for m in (pb.METHOD_DIB, pb.METHOD_DLB, pb.METHOD_LOG) for _ in range(20)]
+    got = stub.BlendBatch(pb.BlendBatchRequest(requests=reqs), timeout=10).responses
+    assert len(got) == len(reqs)
+    for req, r in zip(reqs, got):
+        one = stub.Blend(req, timeout=10)
+        same_pose(msg_to_dq(r.pose), msg_to_dq(one.pose), atol=1e-12)
+        assert (r.iterations, r.residual) == (one.iterations, one.residual)
+
+
+@pytest.mark.parametrize("breaks, message", [
+    (lambda reqs: reqs[3].poses[1].orientation.Clear(),
+     "requests[3].poses[1].orientation: zero quaternion"),
+    (lambda reqs: reqs[2].weights.extend([1.0, -1.0, 1.0]),
+     "requests[2].weights[1]: negative weight -1"),
+    (lambda reqs: reqs.clear(), "requests: empty request: no requests"),
+])
+def test_blend_batch_names_the_bad_request(stub, breaks, message):
+    rng = np.random.default_rng(9)
+    reqs = [blend_req(*random_poses(rng, 3)) for _ in range(5)]
+    breaks(reqs)
+    with pytest.raises(grpc.RpcError) as e:
+        stub.BlendBatch(pb.BlendBatchRequest(requests=reqs), timeout=10)
+    assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert e.value.details() == message
+
+
 # --------------------------------------------------------------------------- bad input
 
 def _interp_req(times_k=(0.0, 1.0, 2.0), times=(0.5,), bad_key=None, interp=0):
@@ -264,7 +293,8 @@ def test_reflection_lists_and_describes_the_services(server):
         assert {"dqpose.v1.Blending", "grpc.health.v1.Health"} <= services
         fd = db.FindFileContainingSymbol("dqpose.v1.Blending")
         assert fd.package == "dqpose.v1"
-        assert [m.name for m in fd.service[0].method] == ["Blend", "Interpolate", "BlendStream"]
+        assert [m.name for m in fd.service[0].method] == ["Blend", "Interpolate", "BlendStream",
+                                                          "BlendBatch"]
         # method symbols resolve too (ghz looks them up; the Python pool alone cannot)
         assert db.FindFileContainingSymbol("dqpose.v1.Blending.Blend").name == fd.name
 

@@ -177,6 +177,21 @@ def python_stream(target: str, n: int) -> float:
     return n / dt
 
 
+def python_batch(target: str, n: int, batch: int = 500) -> float:
+    """Blends per second through BlendBatch calls of ``batch`` requests each."""
+    reqs = [request10(i % 16) for i in range(batch)]
+    msg = pb.BlendBatchRequest(requests=reqs)
+    with grpc.insecure_channel(target) as ch:
+        stub = pb_grpc.BlendingStub(ch)
+        stub.BlendBatch(msg)
+        calls = max(1, n // batch)
+        t0 = time.perf_counter()
+        for _ in range(calls):
+            assert len(stub.BlendBatch(msg).responses) == batch
+        dt = time.perf_counter() - t0
+    return calls * batch / dt
+
+
 def find_tool(name: str) -> str | None:
     found = shutil.which(name)
     if found:
@@ -274,6 +289,10 @@ def main(argv=None) -> int:
         sr = python_stream(srv.target, n_stream)
         row("BlendStream 10 poses, 1 stream (Python)", rate=f"{sr:.0f} blends/s",
             note=f"{n_stream} requests sent ahead")
+        if args.server == "aio":
+            br = python_batch(srv.target, n_stream)
+            row("BlendBatch 10 poses x 500 per call, 1 client", rate=f"{br:.0f} blends/s",
+                note="many blends per message")
         # -- memory over many calls
         rss0 = srv.rss_mb()
         t0 = time.perf_counter()
