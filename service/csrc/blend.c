@@ -376,10 +376,12 @@ void dq_dib(const double *q, const double *w, size_t n, double tol, int max_iter
         if (!(res >= tol) || k >= max_iter) break;
         dq_exp(x, e);
         dq_mul(b, e, nb);
-        normalize_unit(nb); /* keeps rounding from drifting off the unit manifold */
         for (int i = 0; i < 8; i++) b[i] = nb[i];
         k++;
     }
+    /* Products of unit dual quaternions drift off the unit manifold by rounding only (~1e-16 a
+     * step), which the log-sum does not notice; one normalisation at the end removes it. */
+    normalize_unit(b);
     for (int i = 0; i < 8; i++) out[i] = b[i];
     *iters = k;
     *residual = res;
