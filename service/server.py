@@ -147,50 +147,32 @@ class Blending(pb_grpc.BlendingServicer):
 
     # -- RPCs
 
-    async def Blend(self, request, context):
+    async def _unary(self, rpc: str, handle, request, context, messages: int | None = None):
+        """One unary call: the response of ``handle(request)``, INVALID_ARGUMENT for a FieldError,
+        INTERNAL (logged) for anything else, and one log line and metric either way."""
         t0 = time.perf_counter()
         code = "OK"
         try:
-            return self.blend(request)
+            return handle(request)
         except FieldError as e:
             code = "INVALID_ARGUMENT"
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
         except Exception:
             code = "INTERNAL"
-            log.exception("Blend failed")
+            log.exception("%s failed", rpc)
             await context.abort(grpc.StatusCode.INTERNAL, "internal error (see the server log)")
         finally:
-            self._done("Blend", code, t0, context)
+            self._done(rpc, code, t0, context, messages)
+
+    async def Blend(self, request, context):
+        return await self._unary("Blend", self.blend, request, context)
 
     async def BlendBatch(self, request, context):
-        t0 = time.perf_counter()
-        code = "OK"
-        try:
-            return self.blend_batch(request)
-        except FieldError as e:
-            code = "INVALID_ARGUMENT"
-            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
-        except Exception:
-            code = "INTERNAL"
-            log.exception("BlendBatch failed")
-            await context.abort(grpc.StatusCode.INTERNAL, "internal error (see the server log)")
-        finally:
-            self._done("BlendBatch", code, t0, context, messages=len(request.requests))
+        return await self._unary("BlendBatch", self.blend_batch, request, context,
+                                 messages=len(request.requests))
 
     async def Interpolate(self, request, context):
-        t0 = time.perf_counter()
-        code = "OK"
-        try:
-            return self.interpolate_request(request)
-        except FieldError as e:
-            code = "INVALID_ARGUMENT"
-            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
-        except Exception:
-            code = "INTERNAL"
-            log.exception("Interpolate failed")
-            await context.abort(grpc.StatusCode.INTERNAL, "internal error (see the server log)")
-        finally:
-            self._done("Interpolate", code, t0, context)
+        return await self._unary("Interpolate", self.interpolate_request, request, context)
 
     async def BlendStream(self, request_iterator, context):
         t0 = time.perf_counter()
