@@ -139,16 +139,22 @@ def _enum(field: str, value, prefix: str, names: tuple[str, ...]) -> str | None:
     return v
 
 
+def _json_doc(path: str, text: str, key: str) -> dict:
+    """The JSON object of a file; a bare list is taken as the list under ``key``."""
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: not valid JSON ({e})") from None
+    doc = {key: doc} if isinstance(doc, list) else doc
+    if not isinstance(doc, dict):
+        raise ValueError(f"{path}: expected an object with \"{key}\" or a list of {key}")
+    return doc
+
+
 def read_blend(path: str) -> BlendFile:
     text, fmt = _load(path)
     if fmt == "json":
-        try:
-            doc = json.loads(text)
-        except json.JSONDecodeError as e:
-            raise ValueError(f"{path}: not valid JSON ({e})") from None
-        doc = {"poses": doc} if isinstance(doc, list) else doc
-        if not isinstance(doc, dict):
-            raise ValueError(f"{path}: expected an object with \"poses\" or a list of poses")
+        doc = _json_doc(path, text, "poses")
         _, flat = _json_poses("poses", doc.get("poses", []), stamped=False)
         w = doc.get("weights")
         weights = None if not w else np.asarray(w, dtype=np.float64)
@@ -168,13 +174,7 @@ def read_interpolate(path: str) -> InterpolateFile:
     text, fmt = _load(path)
     times = mode = None
     if fmt == "json":
-        try:
-            doc = json.loads(text)
-        except json.JSONDecodeError as e:
-            raise ValueError(f"{path}: not valid JSON ({e})") from None
-        doc = {"keyframes": doc} if isinstance(doc, list) else doc
-        if not isinstance(doc, dict):
-            raise ValueError(f"{path}: expected an object with \"keyframes\" or a list of them")
+        doc = _json_doc(path, text, "keyframes")
         times_k, flat = _json_poses("keyframes", doc.get("keyframes", []), stamped=True)
         if doc.get("times"):
             times = np.asarray(doc["times"], dtype=np.float64)
