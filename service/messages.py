@@ -5,32 +5,12 @@ from ``poses[3].orientation``, so conversion validates per field and renames.
 """
 from __future__ import annotations
 
-import re
-
 import numpy as np
 
 from service import dq
+from service.errors import FieldError, rename
 from service._proto.dqpose.v1 import blending_pb2 as pb
 from service._proto.dqpose.v1 import geometry_pb2 as geo
-
-_INDEXED = re.compile(r"^(\w+)(\[\d+\])?(.*)$", re.S)
-
-
-class FieldError(ValueError):
-    """Invalid input, with a message that starts with the proto field path."""
-
-
-def rename(err: ValueError, names: dict[str, str]) -> FieldError:
-    """``"q[3]: x"`` with ``{"q": "poses{}.orientation"}`` -> ``"poses[3].orientation: x"``.
-
-    ``{}`` in a target marks where the core's index goes; an unknown name is kept as it is.
-    """
-    msg = str(err)
-    m = _INDEXED.match(msg)
-    if m and m.group(1) in names:
-        msg = names[m.group(1)].replace("{}", m.group(2) or "") + m.group(3)
-    return FieldError(msg)
-
 
 def poses_to_dqs(poses, field: str, sub: str = "") -> np.ndarray:
     """Repeated ``Pose`` (or the ``.pose`` of repeated ``StampedPose`` with ``sub=".pose"``) to

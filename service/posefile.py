@@ -13,6 +13,7 @@ from typing import NamedTuple
 import numpy as np
 
 from service import dq
+from service.errors import rename
 
 POSE_COLUMNS = ("x", "y", "z", "qw", "qx", "qy", "qz")
 
@@ -121,12 +122,8 @@ def _to_dqs(field: str, flat: np.ndarray, sub: str = "") -> np.ndarray:
     try:
         return dq.from_pose(flat[:, :4], flat[:, 4:7])
     except ValueError as e:
-        msg = str(e)
-        for short, long in (("q", "orientation"), ("t", "position")):
-            if msg.startswith(short + "["):
-                idx, rest = msg[len(short):].split("]", 1)
-                msg = f"{field}{idx}]{sub}.{long}{rest}"
-        raise ValueError(msg) from None
+        raise rename(e, {"q": f"{field}{{}}{sub}.orientation",
+                         "t": f"{field}{{}}{sub}.position"}) from None
 
 
 def _enum(field: str, value, prefix: str, names: tuple[str, ...]) -> str | None:

@@ -6,23 +6,13 @@ import pytest
 
 from service import dq
 from service.messages import (FieldError, arrays_to_stamped, dq_to_pose, dqs_to_poses,
-                              poses_to_dqs, rename, stamped_to_arrays)
+                              poses_to_dqs, stamped_to_arrays)
 from service._proto.dqpose.v1 import geometry_pb2 as geo
 
 
 def _pose(q, t) -> geo.Pose:
     return geo.Pose(position=geo.Vector3(x=t[0], y=t[1], z=t[2]),
                     orientation=geo.Quaternion(w=q[0], x=q[1], y=q[2], z=q[3]))
-
-
-def test_rename_maps_the_core_argument_to_the_field_path():
-    e = rename(ValueError("q[3]: zero quaternion"), {"q": "poses{}.orientation"})
-    assert isinstance(e, FieldError) and str(e) == "poses[3].orientation: zero quaternion"
-    # no index in the core's message: the placeholder disappears
-    assert str(rename(ValueError("weights: all weights are zero"), {"weights": "weights{}"})) == \
-        "weights: all weights are zero"
-    # an unknown name is kept
-    assert str(rename(ValueError("x[1]: bad"), {"q": "poses{}"})) == "x[1]: bad"
 
 
 def test_poses_round_trip_through_messages(make_dqs):

@@ -1,0 +1,26 @@
+"""Errors named after the caller's fields.
+
+The core names its own arguments (``q[3]: zero quaternion``); a layer that knows where ``q[3]``
+came from (a proto field, a file's key) renames it with :func:`rename`.
+"""
+from __future__ import annotations
+
+import re
+
+_INDEXED = re.compile(r"^(\w+)(\[\d+\])?(.*)$", re.S)
+
+
+class FieldError(ValueError):
+    """Invalid input, with a message that starts with the caller's field path."""
+
+
+def rename(err: ValueError, names: dict[str, str]) -> FieldError:
+    """``"q[3]: x"`` with ``{"q": "poses{}.orientation"}`` -> ``"poses[3].orientation: x"``.
+
+    ``{}`` in a target marks where the core's index goes; an unknown name is kept as it is.
+    """
+    msg = str(err)
+    m = _INDEXED.match(msg)
+    if m and m.group(1) in names:
+        msg = names[m.group(1)].replace("{}", m.group(2) or "") + m.group(3)
+    return FieldError(msg)

@@ -1,0 +1,12 @@
+"""service.errors: the core's argument names replaced by the caller's field paths."""
+from service.errors import FieldError, rename
+
+
+def test_rename_maps_the_core_argument_to_the_field_path():
+    e = rename(ValueError("q[3]: zero quaternion"), {"q": "poses{}.orientation"})
+    assert isinstance(e, FieldError) and str(e) == "poses[3].orientation: zero quaternion"
+    # no index in the core's message: the placeholder disappears
+    assert str(rename(ValueError("weights: all weights are zero"), {"weights": "weights{}"})) == \
+        "weights: all weights are zero"
+    # an unknown name is kept
+    assert str(rename(ValueError("x[1]: bad"), {"q": "poses{}"})) == "x[1]: bad"

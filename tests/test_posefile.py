@@ -1,0 +1,118 @@
+"""service.posefile: the JSON and CSV pose files of `dqpose blend` / `dqpose interpolate`."""
+from __future__ import annotations
+
+import csv
+import io
+import json
+
+import numpy as np
+import pytest
+
+from service import dq
+from service.posefile import (format_blend, format_samples, read_blend, read_interpolate,
+                              sample_times)
+
+
+def _same(a, b, atol=1e-12):
+    s = np.sign(np.sum(a[..., :4] * b[..., :4], axis=-1))[..., None]
+    np.testing.assert_allclose(s * a, b, atol=atol)
+
+
+@pytest.fixture
+def poses(make_dqs):
+    return make_dqs(4)
+
+
+def _rows(dqs):
+    q, t = dq.to_pose(dqs)
+    return np.concatenate([t, q], axis=1)
+
+
+def test_csv_with_and_without_header_and_weights(tmp_path, poses):
+    rows = _rows(poses)
+    w = np.array([1.0, 2.0, 0.5, 1.0])
+    headed = tmp_path / "p.csv"
+    headed.write_text("# measured\nqw,qx,qy,qz,x,y,z,weight\n" + "".join(
+        ",".join(repr(float(v)) for v in (*r[3:], *r[:3], wi)) + "\n" for r, wi in zip(rows, w)))
+    f = read_blend(str(headed))
+    _same(f.dqs, poses)
+    np.testing.assert_array_equal(f.weights, w)
+    assert f.format == "csv" and f.method is None
+    bare = tmp_path / "bare.txt"
+    bare.write_text("".join(",".join(repr(float(v)) for v in r) + "\n" for r in rows))
+    g = read_blend(str(bare))
+    _same(g.dqs, poses)
+    assert g.weights is None
+
+
+def test_json_is_the_grpcurl_body(tmp_path, poses):
+    rows = _rows(poses)
+    body = {"poses": [{"position": dict(zip("xyz", r[:3])),
+                       "orientation": dict(zip("wxyz", r[3:]))} for r in rows],
+            "weights": [1, 1, 2, 2], "method": "METHOD_DLB"}
+    p = tmp_path / "req.json"
+    p.write_text(json.dumps(body))
+    f = read_blend(str(p))
+    _same(f.dqs, poses)
+    assert f.method == "dlb" and f.format == "json"
+    np.testing.assert_array_equal(f.weights, [1, 1, 2, 2])
+
+
+def test_keyframes_and_times(tmp_path, poses):
+    rows = _rows(poses)
+    tk = np.array([0.0, 0.5, 1.0, 2.0])
+    p = tmp_path / "k.csv"
+    p.write_text("t,x,y,z,qw,qx,qy,qz\n" + "".join(
+        ",".join(repr(float(v)) for v in (s, *r)) + "\n" for s, r in zip(tk, rows)))
+    f = read_interpolate(str(p))
+    np.testing.assert_array_equal(f.times_k, tk)
+    _same(f.dqs_k, poses)
+    t = sample_times(tk, 0.3)
+    assert t[0] == 0.0 and t[-1] == 2.0 and np.all(np.diff(t) > 0)
+    np.testing.assert_allclose(np.diff(t[:-1]), 0.3)
+
+
+@pytest.mark.parametrize("text, message", [
+    ("x,y,z,qw,qx,qy,qz\n0,0,0,0,0,0,0\n", r"^poses\[0\]\.orientation: zero quaternion"),
+    ("0,0,0,1,0,0,0\n0,0,nan,1,0,0,0\n", r"^poses\[1\]\.position: contains NaN or infinity"),
+    ("0,0,0,1,0,0\n", r"^line 1: expected the columns"),
+    ("0,0,0,1,0,0,0\n0,0,zero,1,0,0,0\n", r"^line 2: expected 7 numbers"),
+    ('{"poses": [{"orientation": {"w": 1, "q": 2}}]}', r"^poses\[0\]\.orientation: unknown key 'q'"),
+    ('{"poses": [1]}', r"^poses\[0\]: expected an object"),
+    ('{"poses": [{"orientation": {"w": 1}}], "method": "fancy"}', r"^method: unknown value 'fancy'"),
+    ("{not json", r"not valid JSON"),
+    ('"a string"', r'expected an object with "poses"'),
+    ("", r"no poses"),
+])
+def test_bad_files_say_where(tmp_path, text, message):
+    p = tmp_path / ("bad.json" if text.lstrip()[:1] in "{[\"" and text else "bad.csv")
+    p.write_text(text)
+    with pytest.raises(ValueError, match=message):
+        read_blend(str(p))
+
+
+def test_missing_file_names_the_path(tmp_path):
+    with pytest.raises(OSError, match=r"nope\.csv: No such file"):
+        read_blend(str(tmp_path / "nope.csv"))
+
+
+def test_bad_step():
+    with pytest.raises(ValueError, match=r"^--step: must be a positive number"):
+        sample_times(np.array([0.0, 1.0]), 0.0)
+    with pytest.raises(ValueError, match=r"^--step: .* samples; use a larger step"):
+        sample_times(np.array([0.0, 1e6]), 1e-6)
+
+
+def test_output_round_trips(poses):
+    mean = dq.dib(poses)
+    text = format_blend(mean, 3, 1e-13, "csv")
+    row = np.array(next(csv.reader(io.StringIO(text.splitlines()[1]))), dtype=float)
+    _same(dq.from_pose(row[3:], row[:3]), mean, atol=1e-11)
+    doc = json.loads(format_blend(mean, 3, 1e-13, "json"))
+    assert doc["iterations"] == 3
+    times = np.array([0.0, 0.25, 0.5, 0.75])
+    lines = format_samples(times, poses, "csv").splitlines()
+    assert lines[0] == "t,x,y,z,qw,qx,qy,qz" and len(lines) == 5
+    back = np.array([list(map(float, l.split(","))) for l in lines[1:]])
+    np.testing.assert_allclose(back[:, 0], times)
+    _same(dq.from_pose(back[:, 4:], back[:, 1:4]), poses, atol=1e-11)
