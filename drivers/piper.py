@@ -6,11 +6,16 @@ Our own codec for the frames we use (standard 11-bit ids, 8 data bytes, big-endi
   installation position (one byte each);
 * ``0x152``/``0x153``/``0x154`` end-pose command and ``0x2A2``/``0x2A3``/``0x2A4`` end-pose
   feedback: signed int32 pairs (X, Y), (Z, RX), (RY, RZ); positions in 0.001 mm, angles in
-  0.001 degree, static-axes ``sxyz`` Euler angles (``R = Rz(RZ) Ry(RY) Rx(RX)``).
+  0.001 degree, static-axes ``sxyz`` Euler angles (``R = Rz(RZ) Ry(RY) Rx(RX)``);
+* ``0x2A1`` arm status: control mode, arm status, mode feedback, teach status, motion status,
+  trajectory number (one byte each), then a big-endian uint16 error code whose high byte flags
+  joints 1-6 beyond their angle limit and whose low byte flags joints 1-6 with a communication
+  error (bits 0-5).
 
-``PiperArm`` runs a receive thread that assembles feedback poses, counts and skips malformed
-frames, and watches the command stream: if ``servo`` set-points stop arriving the arm is told to
-hold where it is. Poses cross the interface as dual quaternions ``T_base_tool``.
+``PiperArm`` runs a receive thread that assembles feedback poses, decodes the arm status, counts
+and skips malformed frames, and watches the command stream: if ``servo`` set-points stop arriving
+the arm is told to hold where it is. While the arm reports a stop or fault, ``servo`` and
+``move`` refuse to command it. Poses cross the interface as dual quaternions ``T_base_tool``.
 """
 from __future__ import annotations
 
@@ -33,7 +38,10 @@ __all__ = [
     "MOTION_CTRL_2", "END_POSE_CTRL", "END_POSE_FEEDBACK", "CTRL_MODE_CAN", "MOVE_P", "MOVE_J",
     "MOVE_L", "MotionMode", "EndPose", "FrameError", "EndPoseAssembler",
     "encode_motion_mode", "decode_motion_mode", "encode_end_pose", "decode_pair",
-    "pose_to_units", "units_to_pose", "PiperArm",
+    "pose_to_units", "units_to_pose", "ARM_STATUS_FEEDBACK", "ARM_STATUS_NAMES",
+    "ARM_NORMAL", "ARM_EMERGENCY_STOP", "ARM_COLLISION", "EMERGENCY_STATES",
+    "PROTECTIVE_STATES", "REJECTION_STATES", "TEACH_STATES", "StatusReport",
+    "encode_arm_status", "decode_arm_status", "describe_status", "PiperArm",
 ]
 
 MOTION_CTRL_2 = 0x151
@@ -41,6 +49,27 @@ END_POSE_CTRL = (0x152, 0x153, 0x154)
 END_POSE_FEEDBACK = (0x2A2, 0x2A3, 0x2A4)
 CTRL_MODE_CAN = 0x01
 MOVE_P, MOVE_J, MOVE_L = 0x00, 0x01, 0x02
+ARM_STATUS_FEEDBACK = 0x2A1
+
+#: arm_status (byte 1 of 0x2A1) as piper_sdk 0.6.2 documents it
+ARM_STATUS_NAMES = {
+    0x00: "normal", 0x01: "emergency stop", 0x02: "no solution for the target",
+    0x03: "singularity", 0x04: "target angle over limit", 0x05: "joint communication error",
+    0x06: "joint brake not released", 0x07: "collision", 0x08: "overspeed during teach drag",
+    0x09: "joint status abnormal", 0x0A: "other error", 0x0B: "teach recording",
+    0x0C: "teach trajectory executing", 0x0D: "teach trajectory paused",
+    0x0E: "main controller over temperature", 0x0F: "release resistor over temperature",
+}
+ARM_NORMAL, ARM_EMERGENCY_STOP, ARM_COLLISION = 0x00, 0x01, 0x07
+EMERGENCY_STATES = frozenset({0x01})
+# The arm has stopped itself (hardware fault, collision, overheating, brakes holding) and will not
+# follow commands until an operator clears the cause: a protective stop in UR's sense.
+PROTECTIVE_STATES = frozenset({0x05, 0x06, 0x07, 0x08, 0x09, 0x0A, 0x0E, 0x0F})
+# The arm refused the last target (its own planner); it stays where it is, which is safe, but it
+# is not following us. Not a safety stop.
+REJECTION_STATES = frozenset({0x02, 0x03, 0x04})
+# Someone is teaching or replaying by hand; not ours to command.
+TEACH_STATES = frozenset({0x0B, 0x0C, 0x0D})
 
 # Feedback block of the arm; ids here that the protocol does not define are malformed.
 FEEDBACK_BLOCK = range(0x2A0, 0x2B0)
@@ -54,6 +83,7 @@ _UNITS_PER_RAD = 180e3 / math.pi  # 0.001 degree
 MAX_ABS_POSITION_M = 2.0
 MAX_ABS_ANGLE_UNITS = 180_000
 _INT32 = struct.Struct(">ii")
+_STATUS = struct.Struct(">6BH")
 
 
 class FrameError(ValueError):
@@ -175,6 +205,74 @@ def units_to_pose(p: EndPose) -> np.ndarray:
     return dq.from_pose(quat_from_sxyz(rx, ry, rz), t)
 
 
+@dataclass(frozen=True)
+class StatusReport:
+    """One 0x2A1 arm status frame, fields as the protocol names them."""
+    ctrl_mode: int = 0x00
+    arm_status: int = ARM_NORMAL
+    mode_feed: int = MOVE_P
+    teach_status: int = 0x00
+    motion_status: int = 0x00
+    trajectory_num: int = 0
+    err_code: int = 0
+
+    @property
+    def angle_limit_joints(self) -> tuple[int, ...]:
+        """Joints (1-6) the arm reports beyond their angle limit (high byte of err_code)."""
+        return tuple(j for j in range(1, 7) if self.err_code >> (8 + j - 1) & 1)
+
+    @property
+    def comm_error_joints(self) -> tuple[int, ...]:
+        """Joints (1-6) the arm reports a communication error for (low byte of err_code)."""
+        return tuple(j for j in range(1, 7) if self.err_code >> (j - 1) & 1)
+
+
+def encode_arm_status(s: StatusReport) -> can.Message:
+    names = ("ctrl_mode", "arm_status", "mode_feed", "teach_status", "motion_status",
+             "trajectory_num")
+    for name in names:
+        v = getattr(s, name)
+        if not 0 <= int(v) <= 255:
+            raise ValueError(f"status.{name}: {v} does not fit in one byte")
+    if not 0 <= int(s.err_code) <= 0xFFFF:
+        raise ValueError(f"status.err_code: {s.err_code} does not fit in 16 bits")
+    return can.Message(arbitration_id=ARM_STATUS_FEEDBACK, is_extended_id=False,
+                       data=_STATUS.pack(*(int(getattr(s, n)) for n in names), int(s.err_code)))
+
+
+def decode_arm_status(msg: can.Message) -> StatusReport:
+    """Values are passed through unchecked: an arm_status this codec does not know is judged by
+    ``describe_status`` (as a fault), so a newer firmware's stop is never dropped as noise."""
+    _check_frame(msg)
+    if msg.arbitration_id != ARM_STATUS_FEEDBACK:
+        raise FrameError("unknown_id", f"frame 0x{msg.arbitration_id:X}: not a 0x2A1 frame")
+    return StatusReport(*_STATUS.unpack(bytes(msg.data)))
+
+
+def describe_status(s: StatusReport) -> tuple[bool, bool, str]:
+    """``(emergency_stop, protective_stop, error)`` for one report; ``error`` is empty when the
+    arm is fit to command. Any err_code bit (a joint beyond its limit or not talking) is a
+    protective stop, and so is an arm_status code the protocol does not define."""
+    code = s.arm_status
+    emergency = code in EMERGENCY_STATES
+    known = code in ARM_STATUS_NAMES
+    protective = code in PROTECTIVE_STATES or not known
+    parts = []
+    if code != ARM_NORMAL:
+        name = ARM_STATUS_NAMES.get(code, "unknown arm status")
+        parts.append(f"{name} (arm_status 0x{code:02X})")
+    joints = [f"joint {j} angle over limit" for j in s.angle_limit_joints] + \
+             [f"joint {j} communication error" for j in s.comm_error_joints]
+    if joints:
+        protective = True
+        parts.append(", ".join(joints) + f" (err_code 0x{s.err_code:04X})")
+    elif s.err_code:
+        # only reserved bits: nothing we can name, but not nothing either
+        protective = True
+        parts.append(f"reserved error bits (err_code 0x{s.err_code:04X})")
+    return emergency, protective, "; ".join(parts)
+
+
 class EndPoseAssembler:
     """Collects the three frames of one end pose. A pose is complete when the last frame of a
     set arrives and the other two arrived since the previous complete pose, so a pose never
@@ -232,7 +330,21 @@ class PiperArm(Arm):
     ``servo`` refuses set-points further than ``max_jump`` (m, rad) from the previous one and
     rate-limits the rest to ``max_speed``/``max_angular_speed`` and ``max_accel``; if no servo
     set-point arrives for ``watchdog`` seconds the arm is told to hold its measured pose.
-    The arm counts as connected while end-pose feedback is younger than ``stale_timeout``.
+    The arm counts as connected while both end-pose feedback and arm status (0x2A1) are younger
+    than ``stale_timeout``.
+
+    Arm status: ``status()`` sets ``emergency_stop`` for arm_status 0x01 and ``protective_stop``
+    for the states where the arm has stopped itself and an operator must clear the cause
+    (``PROTECTIVE_STATES``: joint communication error, brake not released, collision, overspeed
+    in teach drag, joint status abnormal, other error, over-temperature; also any err_code bit and
+    any arm_status code the protocol does not define). Every non-normal report -- including the
+    arm refusing a target (no solution, singularity, target angle over limit) and hand teaching --
+    puts its text in ``error``, and while one stands ``servo`` and ``move`` raise ``ArmError``
+    with that text instead of sending anything; a running ``move`` ends with that error at its
+    next tick. ``stop`` still sends the measured pose as the target (a target the arm can reach,
+    the way out of a refusal state). When a report first goes bad the servo stream is ended, and
+    the next command re-sends the 0x151 motion mode, so nothing resumes on its own once the
+    cause is cleared.
     """
 
     name = "piper"
@@ -282,6 +394,10 @@ class PiperArm(Arm):
         self.poses = 0
         self.malformed: Counter = Counter()
         self.watchdog_stops = 0
+        self._report: Optional[StatusReport] = None
+        self._report_mono = -math.inf
+        self._fault = (False, False, "")   # describe_status of the last report
+        self.reports = 0
         self._mode_sent: Optional[MotionMode] = None
         # servo stream state
         self._setpoint: Optional[np.ndarray] = None
@@ -316,6 +432,9 @@ class PiperArm(Arm):
         if i not in KNOWN_FEEDBACK:
             self._count("unknown_id")
             return
+        if i == ARM_STATUS_FEEDBACK:
+            self._handle_status(msg)
+            return
         if i not in END_POSE_FEEDBACK:
             return
         try:
@@ -330,6 +449,29 @@ class PiperArm(Arm):
         with self._lock:
             self._pose, self._pose_time, self._pose_mono = pose, stamp, time.monotonic()
             self.poses += 1
+
+    def _handle_status(self, msg: can.Message) -> None:
+        try:
+            report = decode_arm_status(msg)
+        except FrameError as e:
+            self._count(e.reason)
+            return
+        fault = describe_status(report)
+        with self._lock:
+            prev, was_bad = self._report, bool(self._fault[2])
+            self._report, self._report_mono, self._fault = report, time.monotonic(), fault
+            self.reports += 1
+        went_bad = bool(fault[2]) and not was_bad
+        left_can = (prev is not None and prev.ctrl_mode == CTRL_MODE_CAN
+                    and report.ctrl_mode != CTRL_MODE_CAN)
+        if went_bad or left_can or (was_bad and not fault[2]):
+            # Under the command lock so no set-point decided before this report goes out after
+            # it. The arm may have left CAN command mode while stopped, hence the 0x151 re-send.
+            with self._cmd_lock:
+                if went_bad:
+                    with self._lock:
+                        self._servo_active = False
+                self._mode_sent = None
 
     def _count(self, reason: str) -> None:
         with self._lock:
@@ -380,6 +522,24 @@ class PiperArm(Arm):
                            f"{self.stale_timeout:.2f} s)")
         return stamp, pose.copy()
 
+    def _fresh_status(self) -> tuple[StatusReport, tuple[bool, bool, str]]:
+        with self._lock:
+            report, mono, fault = self._report, self._report_mono, self._fault
+        if report is None:
+            raise ArmError(f"PiPER: no arm status feedback (0x2A1) received yet (waited "
+                           f"{time.monotonic() - self._first_mono:.2f} s)")
+        age = time.monotonic() - mono
+        if age > self.stale_timeout:
+            raise ArmError(f"PiPER: arm status feedback (0x2A1) is stale ({age:.2f} s old, limit "
+                           f"{self.stale_timeout:.2f} s)")
+        return report, fault
+
+    def _check_commandable(self, what: str) -> None:
+        """Raise ``ArmError`` unless the arm's latest status says it may be commanded."""
+        error = self._fresh_status()[1][2]
+        if error:
+            raise ArmError(f"{what}: not sent, the PiPER reports {error}")
+
     def _check_workspace(self, pose: np.ndarray, name: str) -> None:
         t = dq.to_pose(pose)[1]
         lo, hi = self.workspace
@@ -395,11 +555,14 @@ class PiperArm(Arm):
         self._command(pose)
 
     def wait_for_feedback(self, timeout: float = 1.0) -> tuple[float, np.ndarray]:
-        """Block until fresh feedback arrives (or raise ``ArmError`` after ``timeout``)."""
+        """Block until fresh end-pose and arm status feedback arrive (or raise ``ArmError``
+        after ``timeout``); returns the pose."""
         deadline = time.monotonic() + timeout
         while True:
             try:
-                return self._fresh_pose()
+                pose = self._fresh_pose()
+                self._fresh_status()
+                return pose
             except ArmError:
                 if time.monotonic() > deadline:
                     raise
@@ -416,6 +579,7 @@ class PiperArm(Arm):
             self._servo(target)
 
     def _servo(self, target: np.ndarray) -> None:
+        self._check_commandable("servo")
         now = time.monotonic()
         with self._lock:
             prev = self._setpoint if self._servo_active else None
@@ -462,6 +626,7 @@ class PiperArm(Arm):
             self._servo_active = False
         self._abort.clear()
         _, start = self._fresh_pose()
+        self._check_commandable("move")
         dist, ang = _delta(start, target)
         # Rotation runs at the same fraction of its limit as translation does of its own.
         scale = self.max_angular_speed / self.max_speed
@@ -500,6 +665,7 @@ class PiperArm(Arm):
             with self._cmd_lock:
                 if self._abort.is_set():
                     raise ArmError("move: stopped before reaching the target")
+                self._check_commandable("move")
                 self._command(sp)
             _, cur = self._fresh_pose()
             if el >= duration:
@@ -525,22 +691,39 @@ class PiperArm(Arm):
             self._hold()
 
     def status(self) -> ArmStatus:
+        """The stop flags are those of the last status report even when it is stale (then
+        ``connected`` is False and ``error`` says so): the last thing the arm said."""
         with self._lock:
             mono, poses, frames = self._pose_mono, self.poses, self.frames
+            report, report_mono, reports = self._report, self._report_mono, self.reports
+            emergency, protective, fault = self._fault
             malformed = dict(self.malformed)
-        age = time.monotonic() - mono
-        connected = age <= self.stale_timeout and not self._closed.is_set()
+        now = time.monotonic()
+        age, report_age = now - mono, now - report_mono
+        connected = (age <= self.stale_timeout and report_age <= self.stale_timeout
+                     and not self._closed.is_set())
         if self._closed.is_set():
             error = "closed"
         elif poses == 0:
             error = "no end-pose feedback received yet"
-        elif not connected:
+        elif age > self.stale_timeout:
             error = f"end-pose feedback is stale ({age:.2f} s old)"
+        elif reports == 0:
+            error = "no arm status feedback (0x2A1) received yet"
+        elif report_age > self.stale_timeout:
+            error = f"arm status feedback (0x2A1) is stale ({report_age:.2f} s old)"
         else:
-            error = ""
-        return ArmStatus(connected=connected, error=error,
-                         extra={"feedback_age": age, "poses": poses, "frames": frames,
-                                "malformed": malformed, "watchdog_stops": self.watchdog_stops})
+            error = fault
+        extra = {"feedback_age": age, "poses": poses, "frames": frames, "malformed": malformed,
+                 "watchdog_stops": self.watchdog_stops, "status_age": report_age,
+                 "reports": reports}
+        if report is not None:
+            extra.update(ctrl_mode=report.ctrl_mode, arm_status=report.arm_status,
+                         mode_feed=report.mode_feed, teach_status=report.teach_status,
+                         motion_status=report.motion_status,
+                         trajectory_num=report.trajectory_num, err_code=report.err_code)
+        return ArmStatus(connected=connected, protective_stop=protective,
+                         emergency_stop=emergency, error=error, extra=extra)
 
     def close(self) -> None:
         if self._closed.is_set():

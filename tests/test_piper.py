@@ -12,9 +12,11 @@ from scipy.spatial.transform import Rotation
 
 from drivers.base import ArmError
 from drivers.euler import dq_from_xyz_sxyz
-from drivers.piper import (END_POSE_CTRL, END_POSE_FEEDBACK, EndPose, EndPoseAssembler,
-                           FrameError, MotionMode, PiperArm, _delta, decode_motion_mode,
-                           encode_end_pose, encode_motion_mode, pose_to_units, units_to_pose)
+from drivers.piper import (ARM_STATUS_FEEDBACK, END_POSE_CTRL, END_POSE_FEEDBACK, MOVE_L, MOVE_P,
+                           EndPose, EndPoseAssembler, FrameError, MotionMode, PiperArm,
+                           StatusReport, _delta, decode_arm_status, decode_motion_mode,
+                           describe_status, encode_arm_status, encode_end_pose,
+                           encode_motion_mode, pose_to_units, units_to_pose)
 from drivers.sim.piper import HOME, PiperSim
 from service import dq
 
@@ -161,6 +163,54 @@ def test_motion_mode_bad_values():
         decode_motion_mode(bad)
 
 
+def test_arm_status_frame_layout():
+    s = StatusReport(ctrl_mode=0x01, arm_status=0x07, mode_feed=0x02, teach_status=0x00,
+                     motion_status=0x01, trajectory_num=5, err_code=0x0410)
+    m = encode_arm_status(s)
+    assert m.arbitration_id == ARM_STATUS_FEEDBACK and not m.is_extended_id
+    assert bytes(m.data) == bytes.fromhex("0107020001050410")
+    assert decode_arm_status(m) == s
+    # high byte: angle limits, low byte: communication errors
+    assert s.angle_limit_joints == (3,) and s.comm_error_joints == (5,)
+    assert StatusReport(err_code=0x3F3F).angle_limit_joints == (1, 2, 3, 4, 5, 6)
+
+
+@pytest.mark.parametrize("report,emergency,protective,words", [
+    (StatusReport(), False, False, []),
+    (StatusReport(arm_status=0x01), True, False, ["emergency stop", "0x01"]),
+    (StatusReport(arm_status=0x07), False, True, ["collision", "0x07"]),
+    (StatusReport(arm_status=0x05, err_code=0x0002), False, True,
+     ["joint communication error (arm_status 0x05)", "joint 2 communication error"]),
+    (StatusReport(err_code=0x0400), False, True, ["joint 3 angle over limit", "0x0400"]),
+    (StatusReport(arm_status=0x0E), False, True, ["over temperature"]),
+    (StatusReport(arm_status=0x42), False, True, ["unknown arm status", "0x42"]),
+    # refusals and hand teaching stop our commands but are no safety stop
+    (StatusReport(arm_status=0x02), False, False, ["no solution"]),
+    (StatusReport(arm_status=0x0B), False, False, ["teach recording"]),
+])
+def test_describe_status(report, emergency, protective, words):
+    e, p, text = describe_status(report)
+    assert (e, p) == (emergency, protective)
+    assert bool(text) == bool(words)
+    for w in words:
+        assert w in text
+
+
+def test_arm_status_codec_bad_input():
+    with pytest.raises(ValueError, match="status.err_code"):
+        encode_arm_status(StatusReport(err_code=0x10000))
+    with pytest.raises(ValueError, match="status.motion_status"):
+        encode_arm_status(StatusReport(motion_status=256))
+    with pytest.raises(FrameError) as e:
+        decode_arm_status(can.Message(arbitration_id=0x2A1, data=b"\x00" * 7,
+                                      is_extended_id=False))
+    assert e.value.reason == "dlc"
+    with pytest.raises(FrameError) as e:
+        decode_arm_status(can.Message(arbitration_id=0x2A2, data=b"\x00" * 8,
+                                      is_extended_id=False))
+    assert e.value.reason == "unknown_id"
+
+
 # ---- against piper_sdk -------------------------------------------------------------------------
 def test_our_frames_equal_piper_sdk_frames(sdk, bus_factory):
     listener = bus_factory()
@@ -231,6 +281,60 @@ def test_sim_motion_is_rate_limited(sdk, sim):
     assert wait_until(lambda: _delta(sim.pose, target)[0] < 1e-6, timeout=5.0)
     # 0.1 m at 0.1 m/s cannot take less than a second (no upper bound: the machine may be slow)
     assert time.monotonic() - t0 > 0.8
+
+
+def sdk_status(sdk):
+    s = sdk.GetArmStatus().arm_status
+    return (int(s.ctrl_mode), int(s.arm_status), int(s.mode_feed), int(s.teach_status),
+            int(s.motion_status), int(s.trajectory_num), int(s.err_code))
+
+
+def test_our_status_decoder_matches_piper_sdk(sdk, bus_factory):
+    tx = bus_factory()
+    rng = np.random.default_rng(6)
+    for k in range(1, 9):
+        # bytes piper_sdk has names for (it maps other values to UNKNOWN), err_code anything
+        raw = bytes([rng.integers(0, 8), rng.integers(0, 16), rng.integers(0, 6),
+                     rng.integers(0, 8), rng.integers(0, 2), k]) + \
+            int(rng.integers(0, 1 << 16)).to_bytes(2, "big")
+        msg = can.Message(arbitration_id=0x2A1, data=raw, is_extended_id=False)
+        tx.send(msg)
+        assert wait_until(lambda: sdk_status(sdk)[5] == k)
+        ours = decode_arm_status(msg)
+        assert sdk_status(sdk) == (ours.ctrl_mode, ours.arm_status, ours.mode_feed,
+                                   ours.teach_status, ours.motion_status, ours.trajectory_num,
+                                   ours.err_code)
+        err = sdk.GetArmStatus().arm_status.err_status
+        assert tuple(j for j in range(1, 7) if getattr(err, f"joint_{j}_angle_limit")) == \
+            ours.angle_limit_joints
+        assert tuple(j for j in range(1, 7)
+                     if getattr(err, f"communication_status_joint_{j}")) == ours.comm_error_joints
+        assert bytes(encode_arm_status(ours).data) == raw
+
+
+def test_piper_sdk_reads_sim_status(sdk, sim):
+    assert wait_until(lambda: sdk.GetArmStatus().time_stamp != 0)
+    assert sdk_status(sdk)[:2] == (0x00, 0x00)      # standby, normal: no 0x151 yet
+    # MOVE L at 20 % of 0.5 m/s: 0.05 m takes about half a second
+    sdk.MotionCtrl_2(0x01, MOVE_L, 20, 0x00)
+    target = dq.mul(dq.from_pose([1, 0, 0, 0], [0.0, 0.05, 0.0]), sim.pose)
+    sdk.EndPoseCtrl(*pose_to_units(target).as_tuple())
+    assert wait_until(lambda: sdk_status(sdk)[:5] == (0x01, 0x00, MOVE_L, 0x00, 0x01))
+    assert wait_until(lambda: sdk_status(sdk)[4] == 0x00, timeout=5.0)
+    assert _delta(sim.pose, target)[0] < 1e-6
+
+    sim.collide()
+    sim.set_joint_errors(angle_limit=(3,), communication=(5, 6))
+    assert wait_until(lambda: sdk_status(sdk)[1] == 0x07)
+    assert wait_until(lambda: sdk_status(sdk)[6] == 0x0430)
+    err = sdk.GetArmStatus().arm_status.err_status
+    assert err.joint_3_angle_limit and not err.joint_2_angle_limit
+    assert err.communication_status_joint_5 and err.communication_status_joint_6
+    assert not err.communication_status_joint_3
+    sim.emergency_stop()
+    assert wait_until(lambda: sdk_status(sdk)[1] == 0x01)
+    sim.clear_faults()
+    assert wait_until(lambda: sdk_status(sdk)[1] == 0x00 and sdk_status(sdk)[6] == 0)
 
 
 def test_arm_and_piper_sdk_decode_the_same_feedback(sdk, arm, sim):
@@ -400,3 +504,115 @@ def test_malformed_frames_counted_and_skipped(arm, sim, bus_factory):
     sim.set_pose(T)
     assert wait_until(lambda: near(arm.tool_pose()[1], T, POS_Q, ANG_Q))
     assert arm.status().ok
+
+
+# ---- arm status (0x2A1) through the driver -----------------------------------------------------
+def end_poses(sim):
+    return [v for _, k, v in sim.log if k == "end_pose"]
+
+
+def test_status_extra_follows_the_arm(arm, sim):
+    st = arm.status()
+    assert st.ok and st.extra["arm_status"] == 0 and st.extra["err_code"] == 0
+    start = arm.tool_pose()[1]
+    target = dq.mul(dq.from_pose([1, 0, 0, 0], [0.0, 0.0, 0.01]), start)
+    arm.move(target, speed=0.1, accel=1.0)
+    assert wait_until(lambda: arm.status().extra["motion_status"] == 0x00)
+    st = arm.status()
+    assert (st.extra["ctrl_mode"], st.extra["mode_feed"]) == (0x01, MOVE_P)
+
+
+def test_emergency_stop_reported_and_commands_refused(arm, sim):
+    start = arm.tool_pose()[1]
+    q0, t0 = dq.to_pose(start)
+    for k in range(1, 5):
+        arm.servo(dq.from_pose(q0, t0 + [0.0004 * k, 0, 0]))
+        time.sleep(arm.period)
+    sim.emergency_stop()
+    assert wait_until(lambda: arm.status().emergency_stop, timeout=0.5)
+    st = arm.status()
+    assert st.connected and not st.ok and not st.protective_stop
+    assert st.error == "emergency stop (arm_status 0x01)"
+    sent = len(end_poses(sim))
+    here = arm.tool_pose()[1]
+    with pytest.raises(ArmError, match=r"servo: not sent, the PiPER reports emergency stop"):
+        arm.servo(here)
+    time.sleep(arm.watchdog + 0.05)   # the stop ended the stream: no watchdog hold either
+    assert len(end_poses(sim)) == sent and arm.status().extra["watchdog_stops"] == 0
+    with pytest.raises(ArmError, match=r"move: not sent, the PiPER reports emergency stop"):
+        arm.move(dq.from_pose(q0, t0), speed=0.1, accel=1.0)
+    assert len(end_poses(sim)) == sent
+
+    sim.clear_faults()
+    assert wait_until(lambda: arm.status().ok)
+    modes = sum(1 for _, k, _ in sim.log if k == "mode")
+    arm.move(dq.from_pose(q0, t0), speed=0.1, accel=1.0)
+    assert _delta(sim.pose, dq.from_pose(q0, t0))[0] <= arm.position_tolerance + 1e-6
+    # the motion mode is selected again after a stop
+    assert sum(1 for _, k, _ in sim.log if k == "mode") == modes + 1
+
+
+def test_collision_and_joint_errors_reported(arm, sim):
+    sim.collide()
+    sim.set_joint_errors(angle_limit=(3,))
+    assert wait_until(lambda: arm.status().extra.get("err_code") == 0x0400, timeout=0.5)
+    st = arm.status()
+    assert st.protective_stop and not st.emergency_stop and not st.ok
+    assert st.error == "collision (arm_status 0x07); joint 3 angle over limit (err_code 0x0400)"
+    with pytest.raises(ArmError, match="collision.*joint 3 angle over limit"):
+        arm.servo(arm.tool_pose()[1])
+    sim.inject_status(0x00, 0x0010)    # joint errors alone are a protective stop too
+    assert wait_until(lambda: arm.status().error == "joint 5 communication error "
+                      "(err_code 0x0010)")
+    assert arm.status().protective_stop
+    sim.clear_faults()
+    assert wait_until(lambda: arm.status().ok)
+    q0, t0 = dq.to_pose(arm.tool_pose()[1])
+    arm.servo(dq.from_pose(q0, t0 + [0.0005, 0, 0]))
+    assert wait_until(lambda: sim.target is not None)
+
+
+def test_running_move_ends_on_collision(arm, sim):
+    sim.max_speed = 0.02            # a 0.05 m move takes a few seconds
+    q0, t0 = dq.to_pose(arm.tool_pose()[1])
+    import threading
+    threading.Timer(0.15, sim.collide).start()
+    with pytest.raises(ArmError, match=r"move: not sent, the PiPER reports collision"):
+        arm.move(dq.from_pose(q0, t0 + [0.05, 0, 0]), speed=0.2, accel=1.0, timeout=5.0)
+    sent = len(end_poses(sim))
+    time.sleep(0.05)
+    assert len(end_poses(sim)) == sent
+    assert sim.target is None
+
+
+def test_stale_status_counts_as_disconnected(arm, sim):
+    sim.pause_status()
+    assert wait_until(lambda: not arm.status().connected)
+    st = arm.status()
+    assert "arm status feedback (0x2A1) is stale" in st.error
+    arm.tool_pose()     # the pose itself is still fresh
+    with pytest.raises(ArmError, match=r"0x2A1\) is stale"):
+        arm.servo(sim.pose)
+    sim.pause_status(False)
+    assert wait_until(lambda: arm.status().ok)
+
+
+def test_no_status_fails_fast(sim, bus_factory):
+    sim.pause_status()
+    with PiperArm(bus_factory()) as arm:
+        with pytest.raises(ArmError, match=r"no arm status feedback \(0x2A1\)"):
+            arm.wait_for_feedback(0.2)
+        assert "no arm status feedback" in arm.status().error
+
+
+def test_malformed_status_frames_counted_and_skipped(arm, sim, bus_factory):
+    rogue = bus_factory()
+    # an emergency stop in a 7-byte frame is not a frame, and must not read as one
+    rogue.send(can.Message(arbitration_id=0x2A1, data=bytes([1, 1, 0, 0, 0, 0, 0]),
+                           is_extended_id=False))
+    rogue.send(can.Message(arbitration_id=0x2A1, data=bytes([1, 1, 0, 0, 0, 0, 0, 0]),
+                           is_extended_id=True))
+    assert wait_until(lambda: arm.status().extra["malformed"] == {"dlc": 1, "extended_id": 1})
+    assert arm.status().ok and not arm.status().emergency_stop
+    sim.emergency_stop()            # and well-formed reports still get through
+    assert wait_until(lambda: arm.status().emergency_stop)

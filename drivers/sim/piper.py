@@ -1,11 +1,18 @@
 """A simulated AgileX PiPER on any ``python-can`` bus.
 
-Publishes end-pose feedback (0x2A2-0x2A4) at ``rate`` and follows end-pose commands
+Publishes end-pose feedback (0x2A2-0x2A4) and arm status (0x2A1) at ``rate`` and follows
+end-pose commands
 (0x152-0x154, applied when the 0x154 frame of a complete set arrives) while the last 0x151 frame
 selected CAN command mode with MOVE P or MOVE L. The motion model moves the tool straight towards
 the target at ``max_speed * speed_percent / 100`` (rotation by slerp at the same fraction of
 ``max_angular_speed``), so it lags like the real arm instead of jumping. Malformed frames are
 counted and skipped.
+
+The status frame reports the control and move mode of the last 0x151 (standby and MOVE P before
+any), motion status "not reached" while the tool is short of its target, and whatever stop or
+fault a test injected (``emergency_stop``, ``collide``, ``set_joint_errors``, ``inject_status``).
+While a stop or fault stands the arm halts where it is, drops its target and ignores end-pose
+commands; ``clear_faults`` ends it, and the arm then waits for a new target.
 
 From the shell: ``dqpose sim piper --channel can0 --interface socketcan`` (or
 ``python -m drivers.sim.piper``).
@@ -23,10 +30,11 @@ import can
 import numpy as np
 
 from drivers.euler import dq_from_xyz_sxyz
-from drivers.piper import (COMMAND_BLOCK, CTRL_MODE_CAN, END_POSE_CTRL, END_POSE_FEEDBACK,
-                           MOTION_CTRL_2, MOVE_L, MOVE_P, EndPoseAssembler, FrameError,
-                           MotionMode, _delta, _interpolate, decode_motion_mode, encode_end_pose,
-                           pose_to_units, units_to_pose)
+from drivers.piper import (ARM_COLLISION, ARM_EMERGENCY_STOP, ARM_NORMAL, COMMAND_BLOCK,
+                           CTRL_MODE_CAN, END_POSE_CTRL, END_POSE_FEEDBACK, MOTION_CTRL_2, MOVE_L,
+                           MOVE_P, EndPoseAssembler, FrameError, MotionMode, StatusReport,
+                           _delta, _interpolate, decode_motion_mode, encode_arm_status,
+                           encode_end_pose, pose_to_units, units_to_pose)
 from service import dq
 
 __all__ = ["PiperSim", "HOME", "main", "add_arguments", "run"]
@@ -39,7 +47,9 @@ class PiperSim:
     """The simulated arm; ``start()`` runs it in a thread, ``close()`` stops it.
 
     Test hooks: ``set_pose``, ``pose``, ``target``, ``mode``, ``pause_feedback``, ``log`` (the
-    decoded commands, newest last) and ``malformed`` (counts by reason).
+    decoded commands, newest last), ``malformed`` (counts by reason), ``status_report`` (what the
+    next 0x2A1 will say), ``pause_status`` and the fault injectors ``emergency_stop``, ``collide``,
+    ``set_joint_errors``, ``inject_status`` and ``clear_faults``.
     """
 
     def __init__(self, bus: can.BusABC, *, rate: float = 200.0, pose=HOME,
@@ -54,11 +64,15 @@ class PiperSim:
         self._pose = dq.normalize(np.asarray(pose, dtype=float))
         self._target: Optional[np.ndarray] = None
         self.mode: Optional[MotionMode] = None
+        self._arm_status = ARM_NORMAL
+        self._err_code = 0
         self._assembler = EndPoseAssembler(END_POSE_CTRL)
         self.malformed: Counter = Counter()
         self.log: list[tuple[float, str, object]] = []
         self.feedback_enabled = threading.Event()
         self.feedback_enabled.set()
+        self.status_enabled = threading.Event()
+        self.status_enabled.set()
         self._stop = threading.Event()
         self._thread: Optional[threading.Thread] = None
 
@@ -86,6 +100,60 @@ class PiperSim:
         else:
             self.feedback_enabled.set()
 
+    def pause_status(self, paused: bool = True) -> None:
+        """Stop (or resume) publishing 0x2A1 only, the pose feedback going on."""
+        if paused:
+            self.status_enabled.clear()
+        else:
+            self.status_enabled.set()
+
+    def inject_status(self, arm_status: int, err_code: int = 0) -> None:
+        """Report ``arm_status`` and ``err_code`` from now on (any non-zero value halts the arm)."""
+        if not 0 <= int(arm_status) <= 255:
+            raise ValueError(f"arm_status: {arm_status} does not fit in one byte")
+        if not 0 <= int(err_code) <= 0xFFFF:
+            raise ValueError(f"err_code: {err_code} does not fit in 16 bits")
+        with self._lock:
+            self._arm_status, self._err_code = int(arm_status), int(err_code)
+            if self._stopped():
+                self._target = None
+
+    def emergency_stop(self) -> None:
+        self.inject_status(ARM_EMERGENCY_STOP, self._err_code)
+
+    def collide(self) -> None:
+        self.inject_status(ARM_COLLISION, self._err_code)
+
+    def set_joint_errors(self, angle_limit: Sequence[int] = (),
+                         communication: Sequence[int] = ()) -> None:
+        """Flag joints (1-6) beyond their angle limit and joints with a communication error."""
+        code = 0
+        for name, joints, shift in (("angle_limit", angle_limit, 8),
+                                    ("communication", communication, 0)):
+            for j in joints:
+                if not 1 <= int(j) <= 6:
+                    raise ValueError(f"{name}: joint {j} is not one of 1..6")
+                code |= 1 << (shift + int(j) - 1)
+        self.inject_status(self._arm_status, code)
+
+    def clear_faults(self) -> None:
+        self.inject_status(ARM_NORMAL, 0)
+
+    def _stopped(self) -> bool:
+        return self._arm_status != ARM_NORMAL or self._err_code != 0
+
+    @property
+    def status_report(self) -> StatusReport:
+        with self._lock:
+            m = self.mode
+            # step() lands exactly on the target, so equality is "reached"
+            moving = self._target is not None and not np.array_equal(self._pose, self._target)
+            return StatusReport(ctrl_mode=m.ctrl_mode if m else 0x00,
+                                arm_status=self._arm_status,
+                                mode_feed=m.move_mode if m else MOVE_P,
+                                motion_status=0x01 if moving else 0x00,
+                                err_code=self._err_code)
+
     # ---- protocol --------------------------------------------------------------------------------
     def handle(self, msg: can.Message) -> None:
         i = msg.arbitration_id
@@ -102,7 +170,7 @@ class PiperSim:
                 if ep is not None:
                     self.log.append((time.time(), "end_pose", ep))
                     with self._lock:
-                        if self._following():
+                        if self._following() and not self._stopped():
                             self._target = units_to_pose(ep)
         except FrameError as e:
             self.malformed[e.reason] += 1
@@ -114,7 +182,7 @@ class PiperSim:
     def step(self, dt: float) -> None:
         """Advance the motion model by ``dt`` seconds."""
         with self._lock:
-            if self._target is None or not self._following():
+            if self._target is None or not self._following() or self._stopped():
                 return
             frac = self.mode.speed_percent / 100.0
             dist, ang = _delta(self._pose, self._target)
@@ -129,6 +197,8 @@ class PiperSim:
     def publish(self) -> None:
         for m in encode_end_pose(pose_to_units(self.pose), END_POSE_FEEDBACK):
             self.bus.send(m)
+        if self.status_enabled.is_set():
+            self.bus.send(encode_arm_status(self.status_report))
 
     def _run(self) -> None:
         period = 1.0 / self.rate
