@@ -251,8 +251,10 @@ def decode_arm_status(msg: can.Message) -> StatusReport:
 
 def describe_status(s: StatusReport) -> tuple[bool, bool, str]:
     """``(emergency_stop, protective_stop, error)`` for one report; ``error`` is empty when the
-    arm is fit to command. Any err_code bit (a joint beyond its limit or not talking) is a
-    protective stop, and so is an arm_status code the protocol does not define."""
+    arm is fit to command. ``EMERGENCY_STATES`` and ``PROTECTIVE_STATES`` set the flags;
+    ``REJECTION_STATES`` and ``TEACH_STATES`` only give the error text. Any err_code bit (a joint
+    beyond its limit or not talking) is a protective stop, and so is an arm_status code the
+    protocol does not define."""
     code = s.arm_status
     emergency = code in EMERGENCY_STATES
     known = code in ARM_STATUS_NAMES
@@ -341,8 +343,10 @@ class PiperArm(Arm):
     arm refusing a target (no solution, singularity, target angle over limit) and hand teaching --
     puts its text in ``error``, and while one stands ``servo`` and ``move`` raise ``ArmError``
     with that text instead of sending anything; a running ``move`` ends with that error at its
-    next tick. ``stop`` still sends the measured pose as the target (a target the arm can reach,
-    the way out of a refusal state). When a report first goes bad the servo stream is ended, and
+    next tick. ``stop`` still sends the measured pose as the target: a target the arm can reach,
+    which should end a refusal state (our reading of the protocol, not tried on hardware; the
+    simulator keeps an injected state until it is cleared). When a report first goes bad the
+    servo stream is ended, and
     the next command re-sends the 0x151 motion mode, so nothing resumes on its own once the
     cause is cleared.
     """

@@ -12,11 +12,13 @@ from scipy.spatial.transform import Rotation
 
 from drivers.base import ArmError
 from drivers.euler import dq_from_xyz_sxyz
-from drivers.piper import (ARM_STATUS_FEEDBACK, END_POSE_CTRL, END_POSE_FEEDBACK, MOVE_L, MOVE_P,
-                           EndPose, EndPoseAssembler, FrameError, MotionMode, PiperArm,
-                           StatusReport, _delta, decode_arm_status, decode_motion_mode,
-                           describe_status, encode_arm_status, encode_end_pose,
-                           encode_motion_mode, pose_to_units, units_to_pose)
+from drivers.piper import (ARM_STATUS_FEEDBACK, ARM_STATUS_NAMES, EMERGENCY_STATES,
+                           END_POSE_CTRL, END_POSE_FEEDBACK, MOVE_L, MOVE_P, PROTECTIVE_STATES,
+                           REJECTION_STATES, TEACH_STATES, EndPose, EndPoseAssembler,
+                           FrameError, MotionMode, PiperArm, StatusReport, _delta,
+                           decode_arm_status, decode_motion_mode, describe_status,
+                           encode_arm_status, encode_end_pose, encode_motion_mode,
+                           pose_to_units, units_to_pose)
 from drivers.sim.piper import HOME, PiperSim
 from service import dq
 
@@ -194,6 +196,11 @@ def test_describe_status(report, emergency, protective, words):
     assert bool(text) == bool(words)
     for w in words:
         assert w in text
+
+
+def test_status_classes_cover_every_code_once():
+    classes = [{0x00}, EMERGENCY_STATES, PROTECTIVE_STATES, REJECTION_STATES, TEACH_STATES]
+    assert sorted(c for cls in classes for c in cls) == sorted(ARM_STATUS_NAMES)
 
 
 def test_arm_status_codec_bad_input():
