@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from service import dq
+from service.errors import rename
 
 MODES = ("screw", "tool_linear")
 
@@ -82,7 +83,4 @@ def _to_pose(dqs_k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     try:
         return dq.to_pose(dqs_k)
     except ValueError as e:
-        msg = str(e)
-        if msg.startswith(("a[", "a:")):
-            msg = "dqs_k" + msg[1:]
-        raise ValueError(msg) from None
+        raise rename(e, {"a": "dqs_k{}"}) from None
