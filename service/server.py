@@ -204,39 +204,27 @@ class Blending(pb_grpc.BlendingServicer):
         if self._metrics is not None:
             self._metrics.observe(rpc, code, dt)
         if self._log_calls:
-            # Hand-built JSON: json.dumps costs more than the rest of the line; the values are
-            # our own names, a number and an address (quoted through json for safety).
+            # A logging record per call costs more than the rest of the adapter, so lines are
+            # queued here and go through logging in batches (_flush_call_log). Hand-built JSON:
+            # the values are our own names, numbers and an address (quoted through json).
             extra = "" if messages is None else f', "messages": {messages}'
-            call_log.info(f'{{"rpc": "{rpc}", "code": "{code}", "ms": {dt * 1e3:.3f}, '
-                          f'"peer": {json.dumps(context.peer())}{extra}}}')
+            _pending_calls.append(
+                f'{{"t": {time.time():.6f}, "rpc": "{rpc}", "code": "{code}", '
+                f'"ms": {dt * 1e3:.3f}, "peer": {json.dumps(context.peer())}{extra}}}')
+            if len(_pending_calls) >= 1024:  # bounded even where nothing flushes periodically
+                _flush_call_log()
 
 
-class BatchedLineHandler(logging.Handler):
-    """Collects log lines and writes them in one call per ``flush`` (``serve`` flushes every
-    0.25 s and at shutdown): one write per batch instead of a system call on every RPC."""
-
-    def __init__(self, stream):
-        super().__init__()
-        self.stream = stream
-        self.lines: list[str] = []
-
-    def emit(self, record: logging.LogRecord) -> None:
-        try:
-            self.lines.append(self.format(record))
-        except Exception:
-            self.handleError(record)
-
-    def flush(self) -> None:
-        with self.lock:
-            lines, self.lines = self.lines, []
-        if lines:
-            self.stream.write("\n".join(lines) + "\n")
-            self.stream.flush()
+# Call log lines waiting for the next flush (the event loop is single-threaded: no lock needed).
+_pending_calls: list[str] = []
 
 
 def _flush_call_log() -> None:
-    for h in call_log.handlers:
-        h.flush()
+    """Hands the queued call lines to the ``dqpose.calls`` logger as one record."""
+    if _pending_calls:
+        lines = "\n".join(_pending_calls)
+        _pending_calls.clear()
+        call_log.info(lines)
 
 
 async def _flush_periodically(period: float) -> None:
