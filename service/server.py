@@ -18,13 +18,16 @@ import time
 
 import grpc
 import numpy as np
+from google.protobuf.message import DecodeError
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import _async as reflection_aio
 from grpc_reflection.v1alpha import reflection, reflection_pb2_grpc
 
 from service import dq
-from service.messages import (INTERPOLATION_NAMES, METHOD_NAMES, FieldError, arrays_to_stamped,
-                             dq_to_pose, poses_to_dqs, rename, stamped_to_arrays)
+from service.errors import FieldError, rename
+from service.messages import (INTERPOLATION_NAMES, METHOD_NAMES, arrays_to_stamped,
+                              decode_blend_request, dq_to_pose, flat_to_dqs, poses_to_flat,
+                              stamped_to_arrays)
 from service.interpolate import interpolate
 from service._proto.dqpose.v1 import blending_pb2 as pb
 from service._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
@@ -78,18 +81,33 @@ class Blending(pb_grpc.BlendingServicer):
             raise FieldError(f"{field}: {n} {what} exceed the server limit of {self.max_poses}")
 
     def blend(self, request: pb.BlendRequest) -> pb.BlendResponse:
-        self._check_count("poses", len(request.poses), "poses")
-        dqs = poses_to_dqs(request.poses, "poses")
-        weights = request.weights
-        weights = np.array(weights, dtype=np.float64) if len(weights) else None
-        method = METHOD_NAMES.get(request.method)
+        return self._blend(poses_to_flat(request.poses), request.weights, request.method,
+                           request.tolerance, request.max_iterations)
+
+    def blend_bytes(self, data: bytes) -> pb.BlendResponse:
+        """The hot path: a serialized BlendRequest decoded in C, no protobuf objects per pose."""
+        fields = decode_blend_request(data)
+        if fields is None:
+            try:
+                request = pb.BlendRequest.FromString(data)
+            except DecodeError:
+                raise FieldError("request: not a valid dqpose.v1.BlendRequest message") from None
+            return self.blend(request)
+        return self._blend(*fields)
+
+    def _blend(self, flat, weights, method_code: int, tolerance: float,
+               max_iterations: int) -> pb.BlendResponse:
+        self._check_count("poses", len(flat), "poses")
+        dqs = flat_to_dqs(flat, "poses")
+        weights = np.asarray(weights, dtype=np.float64) if len(weights) else None
+        method = METHOD_NAMES.get(method_code)
         if method is None:
-            raise FieldError(f"method: unknown Method value {request.method}")
-        tol = request.tolerance or DEFAULT_TOLERANCE
+            raise FieldError(f"method: unknown Method value {method_code}")
+        tol = tolerance or DEFAULT_TOLERANCE
         if not (math.isfinite(tol) and tol > 0):
             raise FieldError(f"tolerance: must be finite and >= 0 (0 means {DEFAULT_TOLERANCE}), "
-                             f"got {request.tolerance!r}")
-        max_iter = request.max_iterations or DEFAULT_MAX_ITERATIONS
+                             f"got {tolerance!r}")
+        max_iter = max_iterations or DEFAULT_MAX_ITERATIONS
         if max_iter > MAX_ITERATIONS_LIMIT:
             raise FieldError(f"max_iterations: {max_iter} exceeds the limit of "
                              f"{MAX_ITERATIONS_LIMIT}")
@@ -120,7 +138,7 @@ class Blending(pb_grpc.BlendingServicer):
         responses = []
         for i, r in enumerate(requests):
             try:
-                responses.append(self.blend(r))
+                responses.append(self.blend_bytes(r.SerializeToString()))
             except FieldError as e:
                 raise FieldError(f"requests[{i}].{e}") from None
         return pb.BlendBatchResponse(responses=responses)
@@ -164,8 +182,9 @@ class Blending(pb_grpc.BlendingServicer):
         finally:
             self._done(rpc, code, t0, context, messages)
 
-    async def Blend(self, request, context):
-        return await self._unary("Blend", self.blend, request, context)
+    async def Blend(self, request: bytes, context):
+        # Registered without a deserializer (add_blending): the request arrives as bytes.
+        return await self._unary("Blend", self.blend_bytes, request, context)
 
     async def BlendBatch(self, request, context):
         return await self._unary("BlendBatch", self.blend_batch, request, context,
@@ -181,7 +200,7 @@ class Blending(pb_grpc.BlendingServicer):
         try:
             async for request in request_iterator:
                 try:
-                    response = self.blend(request)
+                    response = self.blend_bytes(request)
                 except FieldError as e:
                     code = "INVALID_ARGUMENT"
                     await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"requests[{i}].{e}")
@@ -231,6 +250,26 @@ async def _flush_periodically(period: float) -> None:
     while True:
         await asyncio.sleep(period)
         _flush_call_log()
+
+
+def add_blending(servicer: Blending, server) -> None:
+    """``add_BlendingServicer_to_server`` with one difference: Blend and BlendStream get their
+    requests as bytes, which ``Blending.blend_bytes`` decodes without protobuf objects."""
+    raw = dict(request_deserializer=None,
+               response_serializer=pb.BlendResponse.SerializeToString)
+    handlers = {
+        "Blend": grpc.unary_unary_rpc_method_handler(servicer.Blend, **raw),
+        "Interpolate": grpc.unary_unary_rpc_method_handler(
+            servicer.Interpolate, request_deserializer=pb.InterpolateRequest.FromString,
+            response_serializer=pb.InterpolateResponse.SerializeToString),
+        "BlendStream": grpc.stream_stream_rpc_method_handler(servicer.BlendStream, **raw),
+        "BlendBatch": grpc.unary_unary_rpc_method_handler(
+            servicer.BlendBatch, request_deserializer=pb.BlendBatchRequest.FromString,
+            response_serializer=pb.BlendBatchResponse.SerializeToString),
+    }
+    name = pb.DESCRIPTOR.services_by_name["Blending"].full_name
+    server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(name, handlers),))
+    server.add_registered_method_handlers(name, handlers)
 
 
 # --------------------------------------------------------------------------- auth, metrics
@@ -360,7 +399,7 @@ async def start(cfg: ServerConfig) -> Running:
     interceptors = [BearerTokenAuth(cfg.token)] if cfg.token else []
     server = grpc.aio.server(options=server_options(cfg), interceptors=interceptors)
     metrics = _Metrics(cfg.host, cfg.metrics_port) if cfg.metrics_port is not None else None
-    pb_grpc.add_BlendingServicer_to_server(Blending(cfg.max_poses, metrics), server)
+    add_blending(Blending(cfg.max_poses, metrics), server)
     health_servicer = health.aio.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     reflection_pb2_grpc.add_ServerReflectionServicer_to_server(_Reflection(SERVICE_NAMES), server)

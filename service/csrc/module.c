@@ -18,6 +18,7 @@
 
 #include "blend.h"
 #include "dq.h"
+#include "wire.h"
 
 #define MAX_IN 3
 #define MAX_OUT 3
@@ -784,6 +785,42 @@ static PyObject *py_blend(PyObject *self, PyObject *args)
     return run(k_blend, &c, 2, objs, is, 1, &O_DQ, 9);
 }
 
+/* blend_request_from_wire(bytes) -> (poses (n, 7) [qw qx qy qz x y z], weights (m,), method,
+ * tolerance, max_iterations), or None when the bytes are not a BlendRequest this decoder
+ * understands (the caller then uses the protobuf parser, which says what is wrong). */
+static PyObject *py_blend_request_from_wire(PyObject *self, PyObject *arg)
+{
+    Py_buffer view;
+    if (PyObject_GetBuffer(arg, &view, PyBUF_SIMPLE) < 0) return NULL;
+    dq_blend_request r;
+    memset(&r, 0, sizeof r);
+    PyObject *result = NULL;
+    PyArrayObject *poses = NULL, *weights = NULL;
+    if (dq_wire_blend_request((const uint8_t *)view.buf, (size_t)view.len, &r) < 0) {
+        result = Py_None;
+        Py_INCREF(result);
+        goto done;
+    }
+    npy_intp pd[2] = {(npy_intp)r.n_poses, 7}, wd[1] = {(npy_intp)r.n_weights};
+    poses = (PyArrayObject *)PyArray_SimpleNew(2, pd, NPY_DOUBLE);
+    weights = (PyArrayObject *)PyArray_SimpleNew(1, wd, NPY_DOUBLE);
+    if (!poses || !weights) goto done;
+    r.poses = r.n_poses ? (double *)PyArray_DATA(poses) : NULL;
+    r.weights = r.n_weights ? (double *)PyArray_DATA(weights) : NULL;
+    if (dq_wire_blend_request((const uint8_t *)view.buf, (size_t)view.len, &r) < 0) {
+        result = Py_None;
+        Py_INCREF(result);
+        goto done;
+    }
+    result = Py_BuildValue("(OOLdK)", poses, weights, (long long)r.method, r.tolerance,
+                           (unsigned long long)r.max_iterations);
+done:
+    Py_XDECREF(poses);
+    Py_XDECREF(weights);
+    PyBuffer_Release(&view);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"mul", py_mul, METH_VARARGS, "mul(a, b): dual-quaternion product a b."},
     {"conj", py_conj, METH_O, "conj(a): quaternion conjugate of both parts (the inverse of a pose)."},
@@ -800,6 +837,8 @@ static PyMethodDef methods[] = {
     {"transform", py_transform, METH_VARARGS, "transform(a, p[...,3]) -> [...,3]."},
     {"screw", py_screw, METH_O, "screw(a) -> (theta, d, [l | m])."},
     {"blend", py_blend, METH_VARARGS, "blend(dqs, weights, method, tol, max_iter)."},
+    {"blend_request_from_wire", py_blend_request_from_wire, METH_O,
+     "blend_request_from_wire(bytes) -> (poses, weights, method, tolerance, max_iterations) or None."},
     {NULL, NULL, 0, NULL},
 };
 

@@ -1,0 +1,36 @@
+/*
+ * wire.h — a decoder for one message of the API contract, dqpose.v1.BlendRequest, straight from
+ * its protobuf wire bytes into arrays, in pure C99.
+ *
+ * Why: reading ten poses out of parsed protobuf objects in Python costs more than the blend
+ * itself; the server's hot path decodes the bytes here instead. The decoder follows the protobuf
+ * encoding rules (fields in any order, repeated scalars packed or not, a repeated message field
+ * merged field by field, the last value of a scalar wins, unknown fields skipped), and reports
+ * anything it does not understand as an error so the caller can fall back to the full protobuf
+ * parser. tests/test_wire.py checks it against that parser on random messages.
+ *
+ * Field numbers (proto/dqpose/v1): BlendRequest {poses=1; weights=2; method=3; tolerance=4;
+ * max_iterations=5}, Pose {position=1; orientation=2}, Vector3 {x=1; y=2; z=3},
+ * Quaternion {w=1; x=2; y=3; z=4}.
+ */
+#ifndef DQPOSE_WIRE_H
+#define DQPOSE_WIRE_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+typedef struct {
+    double *poses;      /* n_poses rows of [qw, qx, qy, qz, x, y, z]; NULL to only count */
+    size_t n_poses;
+    double *weights;    /* n_weights values; NULL to only count */
+    size_t n_weights;
+    int64_t method;
+    double tolerance;
+    uint64_t max_iterations;
+} dq_blend_request;
+
+/* Decodes buf. With r->poses / r->weights NULL it only counts (first pass); with arrays of the
+ * counted sizes it fills them (second pass). Returns 0, or -1 for bytes it cannot decode. */
+int dq_wire_blend_request(const uint8_t *buf, size_t len, dq_blend_request *r);
+
+#endif
