@@ -169,6 +169,22 @@ def test_blend_batch_names_the_bad_request(stub, breaks, message):
     assert e.value.details() == message
 
 
+def test_bytes_that_are_not_a_blend_request_are_invalid_argument(server):
+    # Blend decodes request bytes itself (service/csrc/wire.c, then protobuf as the fallback),
+    # so undecodable bytes must come back as INVALID_ARGUMENT, not INTERNAL.
+    with grpc.insecure_channel(server.target) as ch:
+        raw = ch.unary_unary("/dqpose.v1.Blending/Blend", request_serializer=None,
+                             response_deserializer=pb.BlendResponse.FromString)
+        with pytest.raises(grpc.RpcError) as e:
+            raw(b"\x0a\xff\xff\xff", timeout=10)   # a Pose whose length runs past the end
+        assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+        assert e.value.details() == "request: not a valid dqpose.v1.BlendRequest message"
+        # and the same connection still serves a good request
+        q, t = random_poses(np.random.default_rng(3), 3)
+        ok = raw(blend_req(q, t).SerializeToString(), timeout=10)
+        same_pose(msg_to_dq(ok.pose), dq.dib(dq.from_pose(q, t)))
+
+
 # --------------------------------------------------------------------------- bad input
 
 def _interp_req(times_k=(0.0, 1.0, 2.0), times=(0.5,), bad_key=None, interp=0):
