@@ -40,6 +40,17 @@ def wait_until(pred, timeout=2.0):
     return pred()
 
 
+def _servo_along_x(arm, steps: int, step: float):
+    """Streams ``steps`` set-points ``step`` metres apart along x from the current pose, one per
+    period; returns the start pose and its (q, t)."""
+    start = arm.tool_pose()[1]
+    q0, t0 = dq.to_pose(start)
+    for k in range(1, steps + 1):
+        arm.servo(dq.from_pose(q0, t0 + [step * k, 0, 0]))
+        time.sleep(arm.period)
+    return start, q0, t0
+
+
 def sdk_pose(ints):
     """Reference conversion of piper_sdk integers: SciPy static-axes 'xyz' = Rz Ry Rx."""
     x, y, z, rx, ry, rz = ints
@@ -426,11 +437,7 @@ def test_servo_refuses_jumps_and_bad_input(arm):
 
 
 def test_watchdog_holds_on_stalled_stream(arm, sim):
-    start = arm.tool_pose()[1]
-    q0, t0 = dq.to_pose(start)
-    for k in range(1, 20):
-        arm.servo(dq.from_pose(q0, t0 + [0.0004 * k, 0, 0]))
-        time.sleep(arm.period)
+    start, q0, t0 = _servo_along_x(arm, 19, 0.0004)
     # the caller stalls: no more set-points
     assert wait_until(lambda: arm.status().extra["watchdog_stops"] >= 1)
     held = sim.target
@@ -454,11 +461,7 @@ def test_move_times_out_and_can_be_stopped(arm, sim):
 
 
 def test_stop_ends_motion(arm, sim):
-    start = arm.tool_pose()[1]
-    q0, t0 = dq.to_pose(start)
-    for k in range(1, 10):
-        arm.servo(dq.from_pose(q0, t0 + [0.0005 * k, 0, 0]))
-        time.sleep(arm.period)
+    start, q0, t0 = _servo_along_x(arm, 9, 0.0005)
     arm.stop()
     assert wait_until(lambda: _delta(sim.pose, sim.target)[0] < 1e-6)
     p = sim.pose
@@ -530,11 +533,7 @@ def test_status_extra_follows_the_arm(arm, sim):
 
 
 def test_emergency_stop_reported_and_commands_refused(arm, sim):
-    start = arm.tool_pose()[1]
-    q0, t0 = dq.to_pose(start)
-    for k in range(1, 5):
-        arm.servo(dq.from_pose(q0, t0 + [0.0004 * k, 0, 0]))
-        time.sleep(arm.period)
+    start, q0, t0 = _servo_along_x(arm, 4, 0.0004)
     sim.emergency_stop()
     assert wait_until(lambda: arm.status().emergency_stop, timeout=0.5)
     st = arm.status()
