@@ -16,7 +16,7 @@ import grpc
 import numpy as np
 
 from service import dq
-from service.messages import INTERPOLATION_ENUMS, METHOD_ENUMS, poses_to_arrays
+from service.messages import INTERPOLATION_ENUMS, METHOD_ENUMS, pose_msgs, poses_to_arrays
 from service._proto.dqpose.v1 import blending_pb2 as pb
 from service._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
 from service._proto.dqpose.v1 import geometry_pb2 as geo
@@ -32,9 +32,7 @@ def _pose_msgs(dqs) -> list[geo.Pose]:
     q = a[:, :4]
     t = 2.0 * _qmul(a[:, 4:], _qconj(q))[:, 1:] / np.maximum(
         np.einsum("ij,ij->i", q, q), np.finfo(float).tiny)[:, None]
-    return [geo.Pose(position=geo.Vector3(x=x, y=y, z=z),
-                     orientation=geo.Quaternion(w=qw, x=qx, y=qy, z=qz))
-            for (qw, qx, qy, qz), (x, y, z) in zip(q.tolist(), t.tolist())]
+    return pose_msgs(q, t)
 
 
 def _qconj(q):

@@ -62,12 +62,16 @@ def poses_to_arrays(poses) -> tuple[np.ndarray, np.ndarray]:
     return flat[:, :4], flat[:, 4:]
 
 
-def dqs_to_poses(dqs: np.ndarray) -> list[geo.Pose]:
-    """``(n, 8)`` to a list of ``Pose`` messages."""
-    q, t = dq.to_pose(np.asarray(dqs, dtype=np.float64).reshape(-1, 8))
+def pose_msgs(q: np.ndarray, t: np.ndarray) -> list[geo.Pose]:
+    """Rows of ``q (n, 4)`` and ``t (n, 3)`` to ``Pose`` messages, as given (no validation)."""
     return [geo.Pose(position=geo.Vector3(x=x, y=y, z=z),
                      orientation=geo.Quaternion(w=qw, x=qx, y=qy, z=qz))
-            for (qw, qx, qy, qz), (x, y, z) in zip(q.tolist(), t.tolist())]
+            for (qw, qx, qy, qz), (x, y, z) in zip(np.asarray(q).tolist(), np.asarray(t).tolist())]
+
+
+def dqs_to_poses(dqs: np.ndarray) -> list[geo.Pose]:
+    """``(n, 8)`` to a list of ``Pose`` messages."""
+    return pose_msgs(*dq.to_pose(np.asarray(dqs, dtype=np.float64).reshape(-1, 8)))
 
 
 def stamped_to_arrays(stamped, field: str = "keyframes") -> tuple[np.ndarray, np.ndarray]:
@@ -78,12 +82,8 @@ def stamped_to_arrays(stamped, field: str = "keyframes") -> tuple[np.ndarray, np
 
 def arrays_to_stamped(times: np.ndarray, dqs: np.ndarray) -> list[geo.StampedPose]:
     """``(n,)`` times and ``(n, 8)`` poses to ``StampedPose`` messages."""
-    q, t = dq.to_pose(np.asarray(dqs, dtype=np.float64).reshape(-1, 8))
-    return [geo.StampedPose(time=s, pose=geo.Pose(
-                position=geo.Vector3(x=x, y=y, z=z),
-                orientation=geo.Quaternion(w=qw, x=qx, y=qy, z=qz)))
-            for s, (qw, qx, qy, qz), (x, y, z) in zip(np.asarray(times).tolist(), q.tolist(),
-                                                      t.tolist())]
+    return [geo.StampedPose(time=s, pose=p)
+            for s, p in zip(np.asarray(times).tolist(), dqs_to_poses(dqs))]
 
 
 METHOD_NAMES = {pb.METHOD_UNSPECIFIED: "dib", pb.METHOD_DIB: "dib", pb.METHOD_DLB: "dlb",
