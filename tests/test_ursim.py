@@ -99,6 +99,11 @@ def test_servoStop_decelerates_to_rest(sim, rtde):
         t = ctrl.initPeriod()
         ctrl.servoL(p.tolist(), 0.0, 0.0, 0.002, 0.1, 300)
         ctrl.waitPeriod(t)
+    # A set-point far ahead keeps the arm moving at the speed limit for 0.3 s, so it is still
+    # moving when servoStop lands even if this process is descheduled for a while (CI machines).
+    p[1] += 0.3
+    ctrl.servoL(p.tolist(), 0.0, 0.0, 0.002, 0.1, 300)
+    time.sleep(0.03)
     tick0 = sim.state()["tick"]
     assert ctrl.servoStop(2.0)                          # blocks until the arm is at rest
     st = sim.state()
