@@ -49,6 +49,9 @@ def request10(seed: int = 0) -> pb.BlendRequest:
         for a, b in zip(q.tolist(), t.tolist())])
 
 
+STREAM_LEN = 1000   # requests per ghz BlendStream call
+
+
 def us_per_call(fn, n: int) -> float:
     fn()
     return min(timeit.repeat(fn, number=n, repeat=3)) / n * 1e6
@@ -86,9 +89,50 @@ def serve_sync(port: int) -> None:
     server.wait_for_termination()
 
 
+def serve_echo(port: int) -> None:
+    """The transport ceiling: grpc.aio answering each BlendStream request with one fixed
+    pre-serialized reply, with the server's read-ahead but none of its work."""
+    import asyncio
+
+    import uvloop
+
+    reply = pb.BlendResponse(pose=request10().poses[0], iterations=3).SerializeToString()
+
+    async def stream(request_iterator, context):
+        pending: asyncio.Queue = asyncio.Queue(maxsize=64)
+
+        async def read():
+            while True:
+                r = await context.read()
+                await pending.put(r)
+                if r is grpc.aio.EOF:
+                    return
+        reader = asyncio.ensure_future(read())
+        try:
+            while await pending.get() is not grpc.aio.EOF:
+                await context.write(reply)
+        finally:
+            reader.cancel()
+
+    async def run():
+        server = grpc.aio.server(options=[("grpc.so_reuseport", 0)])
+        handler = grpc.stream_stream_rpc_method_handler(stream)
+        server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(
+            "dqpose.v1.Blending", {"BlendStream": handler}),))
+        bound = server.add_insecure_port(f"127.0.0.1:{port}")
+        await server.start()
+        print(json.dumps({"event": "serving", "address": f"127.0.0.1:{bound}"}),
+              file=sys.stderr, flush=True)
+        await server.wait_for_termination()
+
+    uvloop.run(run())
+
+
 class ServerProcess:
     def __init__(self, kind: str, quiet_log: bool):
-        if kind == "aio":
+        if kind == "echo":
+            cmd = [sys.executable, "-m", "tests.bench.bench_grpc", "--serve-echo"]
+        elif kind == "aio":
             cmd = [sys.executable, "-m", "service.cli", "serve", "--port", "0", "--grace", "2",
                    *(["--no-call-log"] if quiet_log else [])]
         else:
@@ -217,6 +261,21 @@ def ghz(exe: str, target: str, clients: int, n: int, data_path: str) -> dict:
             "errors": {k: v for k, v in d["statusCodeDistribution"].items() if k != "OK"}}
 
 
+def ghz_stream(exe: str, target: str, data_path: str, per_stream: int, streams: int = 20) -> float:
+    """Blends per second over ``streams`` BlendStream calls of ``per_stream`` requests each,
+    one after another (a Go client: what the server sustains)."""
+    out = subprocess.run(
+        [exe, "--insecure", "--proto", os.path.join(PROTO, "dqpose/v1/blending.proto"),
+         "--import-paths", PROTO, "--call", "dqpose.v1.Blending/BlendStream", "-D", data_path,
+         "-c", "1", "-n", str(streams), "--format", "json", target],
+        capture_output=True, text=True, check=True).stdout
+    d = json.loads(out)
+    bad = {k: v for k, v in d["statusCodeDistribution"].items() if k != "OK"}
+    if bad:
+        raise RuntimeError(f"ghz BlendStream: {bad}")
+    return d["rps"] * per_stream
+
+
 def json_body(req: pb.BlendRequest) -> str:
     from google.protobuf import json_format
     return json_format.MessageToJson(req)
@@ -230,9 +289,13 @@ def main(argv=None) -> int:
     ap.add_argument("--server", choices=["aio", "sync"], default="aio")
     ap.add_argument("--quiet-log", action="store_true", help="serve with --no-call-log")
     ap.add_argument("--serve-sync", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--serve-echo", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.serve_sync:
         serve_sync(0)
+        return 0
+    if args.serve_echo:
+        serve_echo(0)
         return 0
 
     n1 = 3000 if args.quick else 10000
@@ -295,6 +358,25 @@ def main(argv=None) -> int:
         sr = python_stream(srv.target, n_stream)
         row("BlendStream 10 poses, 1 stream (Python)", rate=f"{sr:.0f} blends/s",
             note=f"{n_stream} requests sent ahead")
+        if exe:
+            with tempfile.NamedTemporaryFile("w", suffix=".json", delete=False) as fs:
+                fs.write("[" + ",".join(json_body(request10(i % 16))
+                                        for i in range(STREAM_LEN)) + "]")
+            gs = ghz_stream(exe, srv.target, fs.name, STREAM_LEN)
+            row("BlendStream 10 poses, 1 stream (ghz)", rate=f"{gs:.0f} blends/s",
+                note=f"20 streams of {STREAM_LEN} requests")
+        # The same client against a grpc.aio stream that does no work: the transport's ceiling.
+        echo = ServerProcess("echo", True)
+        try:
+            er = python_stream(echo.target, n_stream)
+            row("  ceiling: grpc.aio fixed-reply stream (Python)", rate=f"{er:.0f} msgs/s",
+                note="same client, server does no work")
+            if exe:
+                eg = ghz_stream(exe, echo.target, fs.name, STREAM_LEN)
+                row("  ceiling: grpc.aio fixed-reply stream (ghz)", rate=f"{eg:.0f} msgs/s",
+                    note="same client, server does no work")
+        finally:
+            echo.stop()
         if args.server == "aio":
             br = python_batch(srv.target, n_stream)
             row("BlendBatch 10 poses x 500 per call, 1 client", rate=f"{br:.0f} blends/s",
