@@ -46,6 +46,14 @@ def decode_blend_request(data: bytes):
     return _dqcore.blend_request_from_wire(data)
 
 
+def blend_wire(data: bytes, max_poses: int, default_tol: float, default_max_iter: int,
+               max_iter_limit: int) -> bytes | None:
+    """The served Blend from request bytes to ``BlendResponse`` bytes, all in C
+    (service/csrc/wire.h: ``dq_wire_blend``), for plain valid requests; ``None`` for anything
+    else, which the full path then handles and names."""
+    return _dqcore.blend_wire(data, max_poses, default_tol, default_max_iter, max_iter_limit)
+
+
 def dq_to_pose(a: np.ndarray, out: geo.Pose | None = None) -> geo.Pose:
     """One ``(8,)`` dual quaternion to a ``Pose`` (written into ``out`` when given)."""
     q, t = dq.to_pose(a)

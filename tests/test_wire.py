@@ -1,6 +1,7 @@
-"""service/csrc/wire.c (through service.messages.decode_blend_request): the C decoder of
-BlendRequest bytes must agree with the protobuf parser on every message, and refuse (None) what
-the parser refuses."""
+"""service/csrc/wire.c (through service.messages): the C decoder of BlendRequest bytes must
+agree with the protobuf parser on every message, and refuse (None) what the parser refuses; the
+C served Blend (bytes to bytes) must answer exactly what the full Python path answers, and leave
+every error to it."""
 from __future__ import annotations
 
 import struct
@@ -9,7 +10,10 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from service.messages import decode_blend_request
+from service.errors import FieldError
+from service.messages import blend_wire, decode_blend_request, pose_msgs
+from service.server import (DEFAULT_MAX_ITERATIONS, DEFAULT_TOLERANCE, MAX_ITERATIONS_LIMIT,
+                            Blending)
 from service._proto.dqpose.v1 import blending_pb2 as pb
 from service._proto.dqpose.v1 import geometry_pb2 as geo
 from google.protobuf.message import DecodeError
@@ -98,3 +102,100 @@ def test_damaged_bytes_are_refused_or_read_as_protobuf_reads_them(req, data):
     got = decode_blend_request(raw)
     if got is not None:  # None is always safe: the server then uses protobuf's parser
         assert_same(got, want)
+
+
+# ---- the served Blend: dq_wire_blend (service.messages.blend_wire) against the full path
+
+def _full_path(blending, data: bytes):
+    """What the server answers without the C fast path: response bytes, or None for an error."""
+    try:
+        return blending.blend_bytes(data).SerializeToString()
+    except FieldError:
+        return None
+
+
+def _fast_path(blending, data: bytes):
+    return blend_wire(data, blending.max_poses, DEFAULT_TOLERANCE, DEFAULT_MAX_ITERATIONS,
+                      MAX_ITERATIONS_LIMIT)
+
+
+@st.composite
+def near_unit_requests(draw):
+    """Requests close to valid ones, so most take the fast path and the rest sit on its edges:
+    norms at the 1e-6 tolerance, zero and negative weights, odd methods and limits."""
+    plain = draw(st.booleans())
+    n = draw(st.integers(1, 5) if plain else st.integers(0, 7))
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    off = [0.0, 1e-9, 9e-7, -9e-7] + ([] if plain else [2e-6, -2e-6])
+    q *= 1 + np.array(draw(st.lists(st.sampled_from(off), min_size=n, max_size=n)))[:, None]
+    t = rng.uniform(-3, 3, (n, 3)) * draw(st.sampled_from([0.0, 1.0, 1e3]))
+    if plain:
+        weights = draw(st.one_of(st.just([]), st.lists(st.floats(0.1, 10.0), min_size=n,
+                                                       max_size=n)))
+        return pb.BlendRequest(
+            poses=pose_msgs(q, t), weights=weights, method=draw(st.integers(0, 6)),
+            tolerance=draw(st.sampled_from([0.0, 1e-12, 1e-6])),
+            max_iterations=draw(st.sampled_from([0, 1, 3, 100, 1000])))
+    weights = draw(st.one_of(
+        st.just([]),
+        st.lists(st.sampled_from([0.0, 0.5, 1.0, 3.0, -1.0, float("nan")]), min_size=n,
+                 max_size=n),
+        st.lists(st.floats(0.0, 10.0), min_size=0, max_size=8)))
+    return pb.BlendRequest(
+        poses=pose_msgs(q, t), weights=weights,
+        method=draw(st.sampled_from([0, 1, 2, 3, 4, 5, 6, 7, -1])),
+        tolerance=draw(st.sampled_from([0.0, -0.0, 1e-12, 1e-6, 1.0, -1e-9, float("nan"),
+                                        float("inf")])),
+        max_iterations=draw(st.sampled_from([0, 1, 3, 100, 1000, 1001, 2**32 - 1])))
+
+
+@given(near_unit_requests())
+def test_served_blend_is_the_full_path_byte_for_byte(req):
+    blending = Blending(max_poses=5)
+    data = req.SerializeToString()
+    fast, full = _fast_path(blending, data), _full_path(blending, data)
+    if full is None:
+        assert fast is None           # every error is left to the full path, which names it
+    else:
+        assert fast is None or fast == full
+    served = None
+    try:
+        served = blending.blend_wire(data)
+    except FieldError:
+        pass
+    assert served == full
+
+
+def test_served_blend_takes_the_fast_path_for_plain_requests():
+    rng = np.random.default_rng(11)
+    blending = Blending()
+    for method in (0, 1, 2, 3, 5, 6):
+        for weights in ([], [1.0, 3.0]):
+            q = rng.normal(size=(2, 4))
+            q /= np.linalg.norm(q, axis=1, keepdims=True)
+            q[1] *= 1 + 5e-7                      # within the tolerance: normalised, as in Python
+            t = np.array([[0.0, 0.0, 0.0], [1e3, -2.0, -0.0]])
+            data = pb.BlendRequest(poses=pose_msgs(q, t), weights=weights,
+                                   method=method).SerializeToString()
+            fast = _fast_path(blending, data)
+            assert fast is not None and fast == _full_path(blending, data), (method, weights)
+            r = pb.BlendResponse.FromString(fast)
+            assert np.isfinite(r.residual) and (method in (0, 1) or r.iterations == 0)
+    # LIN projects its matrix blend in Python, so it is always the full path
+    data = pb.BlendRequest(poses=pose_msgs(q, t), method=4).SerializeToString()
+    assert _fast_path(blending, data) is None
+    assert blending.blend_wire(data) == _full_path(blending, data)
+
+
+def test_served_blend_of_many_poses_is_the_full_path():
+    # beyond the fast path's stack buffer (32 poses): the heap branch
+    rng = np.random.default_rng(12)
+    q = rng.normal(size=(500, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    data = pb.BlendRequest(poses=pose_msgs(q, rng.normal(size=(500, 3))),
+                           weights=rng.uniform(0.1, 1, 500)).SerializeToString()
+    blending = Blending()
+    fast = _fast_path(blending, data)
+    assert fast is not None and fast == _full_path(blending, data)

@@ -821,6 +821,35 @@ done:
     return result;
 }
 
+/* blend_wire(bytes, max_poses, default_tol, default_max_iter, max_iter_limit) -> BlendResponse
+ * bytes, or None outside the plain case (see dq_wire_blend); the caller then takes the full path. */
+static PyObject *py_blend_wire(PyObject *self, PyObject *args)
+{
+    Py_buffer view;
+    Py_ssize_t max_poses;
+    dq_wire_config cfg;
+    unsigned int dmi, lim;
+    if (!PyArg_ParseTuple(args, "y*ndII:blend_wire", &view, &max_poses, &cfg.default_tol, &dmi,
+                          &lim))
+        return NULL;
+    cfg.max_poses = max_poses > 0 ? (size_t)max_poses : 0;
+    cfg.default_max_iter = dmi;
+    cfg.max_iter_limit = lim;
+    uint8_t out[DQ_WIRE_RESPONSE_MAX];
+    size_t n = 0;
+    int rc;
+    if (view.len > 65536) { /* thousands of poses: let other threads run meanwhile */
+        Py_BEGIN_ALLOW_THREADS
+        rc = dq_wire_blend((const uint8_t *)view.buf, (size_t)view.len, &cfg, out, &n);
+        Py_END_ALLOW_THREADS
+    } else {
+        rc = dq_wire_blend((const uint8_t *)view.buf, (size_t)view.len, &cfg, out, &n);
+    }
+    PyBuffer_Release(&view);
+    if (rc) Py_RETURN_NONE;
+    return PyBytes_FromStringAndSize((const char *)out, (Py_ssize_t)n);
+}
+
 static PyMethodDef methods[] = {
     {"mul", py_mul, METH_VARARGS, "mul(a, b): dual-quaternion product a b."},
     {"conj", py_conj, METH_O, "conj(a): quaternion conjugate of both parts (the inverse of a pose)."},
@@ -839,6 +868,8 @@ static PyMethodDef methods[] = {
     {"blend", py_blend, METH_VARARGS, "blend(dqs, weights, method, tol, max_iter)."},
     {"blend_request_from_wire", py_blend_request_from_wire, METH_O,
      "blend_request_from_wire(bytes) -> (poses, weights, method, tolerance, max_iterations) or None."},
+    {"blend_wire", py_blend_wire, METH_VARARGS,
+     "blend_wire(bytes, max_poses, default_tol, default_max_iter, max_iter_limit) -> bytes or None."},
     {NULL, NULL, 0, NULL},
 };
 

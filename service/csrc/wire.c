@@ -3,7 +3,11 @@
  */
 #include "wire.h"
 
+#include <stdlib.h>
 #include <string.h>
+
+#include "blend.h"
+#include "dq.h"
 
 enum { WT_VARINT = 0, WT_I64 = 1, WT_LEN = 2, WT_I32 = 5 };
 
@@ -163,4 +167,113 @@ int dq_wire_blend_request(const uint8_t *buf, size_t len, dq_blend_request *r)
     r->n_poses = np;
     r->n_weights = nw;
     return 0;
+}
+
+/* ---- the served Blend ----------------------------------------------------------------------- */
+
+static uint8_t *put_double(uint8_t *p, int field, double d)
+{
+    uint64_t v;
+    memcpy(&v, &d, sizeof v);
+    if (!v) return p; /* proto3 omits +0.0 (only: the runtime compares bits) */
+    *p++ = (uint8_t)(field << 3 | WT_I64);
+    for (int i = 0; i < 8; i++) *p++ = (uint8_t)(v >> (8 * i));
+    return p;
+}
+
+/* A submessage of doubles (fields 1..n); short enough that its length is one byte. */
+static uint8_t *put_doubles(uint8_t *p, int field, const double *d, int n)
+{
+    uint8_t *len = p + 1;
+    *p = (uint8_t)(field << 3 | WT_LEN);
+    p += 2;
+    for (int k = 0; k < n; k++) p = put_double(p, k + 1, d[k]);
+    *len = (uint8_t)(p - len - 1);
+    return p;
+}
+
+static size_t encode_response(const double *quat, const double *t, uint32_t iterations,
+                              double residual, uint8_t *out)
+{
+    uint8_t *p = out, *len = out + 1;
+    *p = (uint8_t)(1 << 3 | WT_LEN); /* pose: always present, as the server sets it */
+    p += 2;
+    p = put_doubles(p, 1, t, 3);
+    p = put_doubles(p, 2, quat, 4);
+    *len = (uint8_t)(p - len - 1);
+    if (iterations) {
+        *p++ = (uint8_t)(2 << 3 | WT_VARINT);
+        for (uint32_t v = iterations;; v >>= 7) {
+            if (v < 0x80) { *p++ = (uint8_t)v; break; }
+            *p++ = (uint8_t)(v | 0x80);
+        }
+    }
+    p = put_double(p, 3, residual);
+    return (size_t)(p - out);
+}
+
+enum { FAST_DIB, FAST_DLB, FAST_SCLERP, FAST_DEC, FAST_LOG };
+
+int dq_wire_blend(const uint8_t *buf, size_t len, const dq_wire_config *cfg, uint8_t *out,
+                  size_t *out_len)
+{
+    dq_blend_request r;
+    memset(&r, 0, sizeof r);
+    if (dq_wire_blend_request(buf, len, &r) < 0) return -1;
+    size_t n = r.n_poses, m = r.n_weights;
+    if (n == 0 || n > cfg->max_poses || (m && m != n)) return -1;
+    int method;
+    switch (r.method) {
+    case 0: case 1: method = FAST_DIB; break;
+    case 2: method = FAST_DLB; break;
+    case 3: method = FAST_SCLERP; if (n != 2) return -1; break;
+    case 5: method = FAST_DEC; break;
+    case 6: method = FAST_LOG; break;
+    default: return -1; /* LIN (projected in Python) and unknown values */
+    }
+    double tol = r.tolerance != 0.0 ? r.tolerance : cfg->default_tol;
+    if (!(tol > 0.0 && tol * 0.0 == 0.0)) return -1;
+    uint64_t max_iter = r.max_iterations ? r.max_iterations : cfg->default_max_iter;
+    if (max_iter > cfg->max_iter_limit) return -1;
+
+    /* rows [qw qx qy qz x y z], weights in, unit dual quaternions, normalised weights */
+    double stack[16 * 32];
+    size_t need = 7 * n + m + 8 * n + n;
+    double *mem = need <= sizeof stack / sizeof stack[0] ? stack : malloc(need * sizeof(double));
+    if (!mem) return -1;
+    int rc = -1;
+    r.poses = mem;
+    r.weights = m ? mem + 7 * n : NULL;
+    r.n_poses = n;
+    r.n_weights = m;
+    double *q = mem + 7 * n + m, *w = q + 8 * n;
+    if (m == 0) r.weights = NULL;
+    if (dq_wire_blend_request(buf, len, &r) < 0) goto done;
+    for (size_t i = 0; i < n; i++) {
+        double tmp[8];
+        if (dq_from_pose(r.poses + 7 * i, r.poses + 7 * i + 4, tmp)) goto done;
+        if (dq_unit(tmp, q + 8 * i)) goto done;
+    }
+    if (m) {
+        size_t bad;
+        if (dq_weights(r.weights, n, w, &bad)) goto done;
+    } else {
+        for (size_t i = 0; i < n; i++) w[i] = 1.0 / (double)n;
+    }
+    double mean[8], unit[8], quat[4], t[3], residual = 0.0;
+    int iterations = 0;
+    switch (method) {
+    case FAST_DIB: dq_dib(q, w, n, tol, (int)max_iter, mean, &iterations, &residual); break;
+    case FAST_DLB: dq_dlb(q, w, n, mean); break;
+    case FAST_SCLERP: dq_sclerp(q, q + 8, w[1], mean); break;
+    case FAST_DEC: dq_dec(q, w, n, tol, (int)max_iter, mean); break;
+    default: dq_logblend(q, w, n, mean); break;
+    }
+    if (!dq_finite8(mean) || !(residual * 0.0 == 0.0) || dq_unit(mean, unit)) goto done;
+    dq_to_pose(unit, quat, t);
+    *out_len = encode_response(quat, t, (uint32_t)iterations, residual, out);
+    rc = 0;
+done:
+    if (mem != stack) free(mem);
+    return rc;
 }

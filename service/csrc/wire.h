@@ -33,4 +33,27 @@ typedef struct {
  * counted sizes it fills them (second pass). Returns 0, or -1 for bytes it cannot decode. */
 int dq_wire_blend_request(const uint8_t *buf, size_t len, dq_blend_request *r);
 
+/* The served Blend from request bytes to response bytes (dqpose.v1.BlendResponse {Pose pose=1;
+ * uint32 iterations=2; double residual=3}), with no object per pose.
+ *
+ * It takes only the plain case: a decodable request with 1..max_poses poses (each finite, unit
+ * within DQ_UNIT_TOL), no weights or one valid weight per pose, method UNSPECIFIED, DIB, DLB,
+ * SCLERP (2 poses), DEC or LOG, tolerance 0 (= default_tol) or finite > 0, max_iterations 0
+ * (= default_max_iter) or <= max_iter_limit, and a finite result. Anything else returns -1 and
+ * writes nothing: the caller then takes its full path, which names the problem. On success it
+ * returns 0 and the response is out[0 .. *out_len), byte for byte what the protobuf runtime
+ * writes for the same values (proto3: zero scalars omitted, -0.0 kept). The arithmetic is the
+ * same sequence of calls as the Python API's (dq_from_pose, dq_unit, dq_weights, the blend,
+ * dq_unit, dq_to_pose), so both paths give identical bits. */
+#define DQ_WIRE_RESPONSE_MAX 96
+typedef struct {
+    size_t max_poses;
+    double default_tol;
+    uint32_t default_max_iter;
+    uint32_t max_iter_limit;
+} dq_wire_config;
+
+int dq_wire_blend(const uint8_t *buf, size_t len, const dq_wire_config *cfg, uint8_t *out,
+                  size_t *out_len);
+
 #endif
