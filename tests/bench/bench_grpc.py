@@ -249,26 +249,32 @@ def find_tool(name: str) -> str | None:
     return None
 
 
-def ghz(exe: str, target: str, clients: int, n: int, data_path: str) -> dict:
+def ghz(exe: str, target: str, clients: int, n: int, data_path: str,
+        procs: int | None = None) -> dict:
+    """ghz's summary; ``procs`` caps the Go runtime's threads (GOMAXPROCS): on 2 cores a
+    single-client load generator otherwise spins on both and takes CPU from the server."""
+    env = dict(os.environ, GOMAXPROCS=str(procs)) if procs else None
     out = subprocess.run(
         [exe, "--insecure", "--proto", os.path.join(PROTO, "dqpose/v1/blending.proto"),
          "--import-paths", PROTO, "--call", "dqpose.v1.Blending/Blend", "-D", data_path,
          "-c", str(clients), "--connections", str(clients), "-n", str(n), "--format", "json",
-         target], capture_output=True, text=True, check=True).stdout
+         target], capture_output=True, text=True, check=True, env=env).stdout
     d = json.loads(out)
     pct = {x["percentage"]: x["latency"] / 1e9 for x in d["latencyDistribution"] or []}
     return {"rps": d["rps"], "p50": pct.get(50, float("nan")), "p99": pct.get(99, float("nan")),
             "errors": {k: v for k, v in d["statusCodeDistribution"].items() if k != "OK"}}
 
 
-def ghz_stream(exe: str, target: str, data_path: str, per_stream: int, streams: int = 20) -> float:
+def ghz_stream(exe: str, target: str, data_path: str, per_stream: int, streams: int = 20,
+               procs: int | None = None) -> float:
     """Blends per second over ``streams`` BlendStream calls of ``per_stream`` requests each,
-    one after another (a Go client: what the server sustains)."""
+    one after another (a Go client: what the server sustains); ``procs`` as in :func:`ghz`."""
+    env = dict(os.environ, GOMAXPROCS=str(procs)) if procs else None
     out = subprocess.run(
         [exe, "--insecure", "--proto", os.path.join(PROTO, "dqpose/v1/blending.proto"),
          "--import-paths", PROTO, "--call", "dqpose.v1.Blending/BlendStream", "-D", data_path,
          "-c", "1", "-n", str(streams), "--format", "json", target],
-        capture_output=True, text=True, check=True).stdout
+        capture_output=True, text=True, check=True, env=env).stdout
     d = json.loads(out)
     bad = {k: v for k, v in d["statusCodeDistribution"].items() if k != "OK"}
     if bad:
@@ -348,10 +354,13 @@ def main(argv=None) -> int:
             g1 = ghz(exe, srv.target, 1, n1, f.name)
             row("Blend 10 poses, 1 client (ghz)", us(g1["p50"]), us(g1["p99"]),
                 f"{g1['rps']:.0f}/s", f"errors {g1['errors'] or 0}")
+            g1p = ghz(exe, srv.target, 1, n1, f.name, procs=1)
+            row("Blend 10 poses, 1 client (ghz, GOMAXPROCS=1)", us(g1p["p50"]), us(g1p["p99"]),
+                f"{g1p['rps']:.0f}/s", f"errors {g1p['errors'] or 0}; client on one thread")
             g8 = ghz(exe, srv.target, 8, int(n1 * 3), f.name)
             row("Blend 10 poses, 8 clients (ghz)", us(g8["p50"]), us(g8["p99"]),
                 f"{g8['rps']:.0f}/s", f"errors {g8['errors'] or 0}")
-            errors += sum(g1["errors"].values()) + sum(g8["errors"].values())
+            errors += sum(sum(g["errors"].values()) for g in (g1, g1p, g8))
         else:
             row("ghz", note="not installed: go install github.com/bojand/ghz/cmd/ghz@latest")
         rate8, lat8 = python_clients(srv.target, 8, secs)
@@ -368,6 +377,9 @@ def main(argv=None) -> int:
             gs = ghz_stream(exe, srv.target, fs.name, STREAM_LEN)
             row("BlendStream 10 poses, 1 stream (ghz)", rate=f"{gs:.0f} blends/s",
                 note=f"20 streams of {STREAM_LEN} requests")
+            gs1 = ghz_stream(exe, srv.target, fs.name, STREAM_LEN, procs=1)
+            row("BlendStream 10 poses, 1 stream (ghz, GOMAXPROCS=1)", rate=f"{gs1:.0f} blends/s",
+                note="client on one thread")
         # The same client against a grpc.aio stream that does no work: the transport's ceiling.
         echo = ServerProcess("echo", True)
         try:
@@ -378,6 +390,9 @@ def main(argv=None) -> int:
                 eg = ghz_stream(exe, echo.target, fs.name, STREAM_LEN)
                 row("  ceiling: grpc.aio fixed-reply stream (ghz)", rate=f"{eg:.0f} msgs/s",
                     note="same client, server does no work")
+                eg1 = ghz_stream(exe, echo.target, fs.name, STREAM_LEN, procs=1)
+                row("  ceiling: grpc.aio fixed-reply stream (ghz, GOMAXPROCS=1)",
+                    rate=f"{eg1:.0f} msgs/s", note="same client, server does no work")
         finally:
             echo.stop()
         if args.server == "aio":
