@@ -511,3 +511,22 @@ def test_sigterm_drains_in_flight_calls_and_exits_zero():
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_blend_stream_cancelled_mid_way_leaves_the_server_serving(stub):
+    # The server reads ahead of its replies; a client that leaves with requests still unread
+    # must end the reading task too, and the next stream must see only its own replies.
+    rng = np.random.default_rng(21)
+    reqs = [blend_req(*random_poses(rng, 4)) for _ in range(300)]
+    call = stub.BlendStream(iter(reqs), timeout=10)
+    next(call)
+    call.cancel()
+    with pytest.raises(grpc.RpcError) as e:
+        for _ in call:
+            pass
+    assert e.value.code() == grpc.StatusCode.CANCELLED
+    fresh = [blend_req(*random_poses(rng, 3), method=pb.METHOD_DLB) for _ in range(20)]
+    got = list(stub.BlendStream(iter(fresh), timeout=10))
+    assert len(got) == 20
+    for req, r in zip(fresh, got):
+        same_pose(msg_to_dq(r.pose), msg_to_dq(stub.Blend(req, timeout=10).pose), atol=1e-12)
