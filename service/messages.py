@@ -77,6 +77,55 @@ def pose_msgs(q: np.ndarray, t: np.ndarray) -> list[geo.Pose]:
             for (qw, qx, qy, qz), (x, y, z) in zip(np.asarray(q).tolist(), np.asarray(t).tolist())]
 
 
+# One Pose as a length-delimited field with every double written out (proto3 parsers take
+# explicit zeros), so a whole repeated field is one NumPy record array: Pose {position=1
+# Vector3 {x=1; y=2; z=3}; orientation=2 Quaternion {w=1; x=2; y=3; z=4}}.
+_POSE_RECORD = np.dtype([("k", "u1"), ("n", "u1"),
+                         ("pk", "u1"), ("pn", "u1"), ("p", [("k", "u1"), ("v", "<f8")], 3),
+                         ("ok", "u1"), ("on", "u1"), ("o", [("k", "u1"), ("v", "<f8")], 4)])
+
+
+def _varint(v: int) -> bytes:
+    out = bytearray()
+    while v >= 0x80:
+        out.append(v & 0x7F | 0x80)
+        v >>= 7
+    out.append(v)
+    return bytes(out)
+
+
+def poses_wire(q: np.ndarray, t: np.ndarray, field: int = 1) -> bytes:
+    """Rows of ``q (n, 4)`` and ``t (n, 3)`` as repeated ``Pose`` field ``field``, in wire bytes:
+    what ``pose_msgs`` plus serialisation gives (values as given), ~20x faster."""
+    q, t = np.asarray(q, dtype=np.float64), np.asarray(t, dtype=np.float64)
+    r = np.empty(len(q), _POSE_RECORD)
+    r["k"], r["n"] = field << 3 | 2, _POSE_RECORD.itemsize - 2
+    r["pk"], r["pn"], r["ok"], r["on"] = 0x0A, 27, 0x12, 36
+    r["p"]["k"], r["o"]["k"] = [0x09, 0x11, 0x19], [0x09, 0x11, 0x19, 0x21]
+    r["p"]["v"], r["o"]["v"] = t, q
+    return r.tobytes()
+
+
+def blend_request_wire(q: np.ndarray, t: np.ndarray, weights=None, method: int = 0,
+                       tolerance: float = 0.0, max_iterations: int = 0) -> bytes:
+    """A serialized ``BlendRequest`` from arrays, without a message object per pose."""
+    if not 0 <= int(max_iterations) <= 0xFFFFFFFF or int(max_iterations) != max_iterations:
+        raise ValueError(f"max_iterations: must be a whole number within 0..4294967295, "
+                         f"got {max_iterations!r}")
+    parts = [poses_wire(q, t)]
+    if weights is not None and len(weights):
+        w = np.asarray(weights, dtype="<f8").ravel()
+        parts += [b"\x12", _varint(8 * len(w)), w.tobytes()]          # packed doubles
+    if method:
+        parts += [b"\x18", _varint(method & 0xFFFFFFFFFFFFFFFF)]      # enum: int32 as varint
+    tol = np.float64(tolerance).astype("<f8").tobytes()
+    if tol != bytes(8):                                               # -0.0 is sent, as protobuf does
+        parts += [b"\x21", tol]
+    if max_iterations:
+        parts += [b"\x28", _varint(int(max_iterations))]
+    return b"".join(parts)
+
+
 def dqs_to_poses(dqs: np.ndarray) -> list[geo.Pose]:
     """``(n, 8)`` to a list of ``Pose`` messages."""
     return pose_msgs(*dq.to_pose(np.asarray(dqs, dtype=np.float64).reshape(-1, 8)))

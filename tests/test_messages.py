@@ -3,10 +3,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from service import dq
-from service.messages import (FieldError, arrays_to_stamped, dq_to_pose, dqs_to_poses,
-                              poses_to_dqs, stamped_to_arrays)
+from service.messages import (FieldError, arrays_to_stamped, blend_request_wire, dq_to_pose,
+                              dqs_to_poses, pose_msgs, poses_to_dqs, stamped_to_arrays)
+from service._proto.dqpose.v1 import blending_pb2 as pb
 from service._proto.dqpose.v1 import geometry_pb2 as geo
 
 
@@ -60,3 +63,33 @@ def test_an_empty_message_is_the_identity_only_if_the_quaternion_is_set():
         poses_to_dqs([geo.Pose()], "poses")
     ident = poses_to_dqs([geo.Pose(orientation=geo.Quaternion(w=1))], "poses")
     np.testing.assert_array_equal(ident[0], dq.identity())
+
+
+# ---- the client's request encoder: wire bytes from arrays, without message objects
+
+_doubles = st.one_of(st.just(0.0), st.just(-0.0), st.floats(allow_nan=True, allow_infinity=True))
+
+
+@settings(max_examples=200)
+@given(n=st.integers(0, 5), data=st.data())
+def test_blend_request_wire_is_what_protobuf_would_send(n, data):
+    q = np.array(data.draw(st.lists(st.lists(_doubles, min_size=4, max_size=4), min_size=n,
+                                    max_size=n))).reshape(n, 4)
+    t = np.array(data.draw(st.lists(st.lists(_doubles, min_size=3, max_size=3), min_size=n,
+                                    max_size=n))).reshape(n, 3)
+    w = data.draw(st.lists(_doubles, max_size=6))
+    method = data.draw(st.sampled_from([0, 1, 3, 6, -1, 2**31 - 1]))
+    tol = data.draw(_doubles)
+    max_iter = data.draw(st.sampled_from([0, 1, 127, 128, 2**32 - 1]))
+    want = pb.BlendRequest(poses=pose_msgs(q, t), weights=w, method=method, tolerance=tol,
+                           max_iterations=max_iter)
+    got = pb.BlendRequest.FromString(blend_request_wire(q, t, w, method, tol, max_iter))
+    # bit for bit, NaN payloads and the sign of zero included
+    assert got.SerializeToString() == want.SerializeToString()
+
+
+def test_blend_request_wire_refuses_out_of_range_iterations():
+    q, t = np.array([[1.0, 0, 0, 0]]), np.zeros((1, 3))
+    for bad in (-1, 2**32, 2.5):
+        with pytest.raises(ValueError, match="max_iterations: must be a whole number"):
+            blend_request_wire(q, t, max_iterations=bad)
