@@ -2,8 +2,11 @@
 
 Each accepted view gives ``T_camera_board`` (maps board points to camera coordinates) with a
 6x6 covariance; a rejected view gives a :class:`Rejection` with the reason. Frames come from a
-``cv2.VideoCapture`` device, a video file, a folder of images, or images passed to
-:meth:`CharucoCamera.detect`.
+``cv2.VideoCapture`` device, a video file, a folder of images, any object with ``read()`` and
+``close()`` (a frame source of your own), or images passed to :meth:`CharucoCamera.detect`.
+Frame sources return the next image, or None at their end; a live device is read by a
+background thread (:class:`LiveFrames`), so ``read(timeout)`` can give up on a stalled camera
+and always returns the newest frame rather than a queue of old ones.
 
 Board frame: origin at the outer top-left chessboard corner (for a single marker: its centre),
 x along the squares, y down the board, z into the board.
@@ -20,6 +23,7 @@ import glob
 import json
 import math
 import os
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Iterator, Optional, Union
@@ -221,7 +225,8 @@ class Detection:
 @dataclass(frozen=True)
 class Rejection:
     """A rejected view. ``reason`` is one of ``no_board``, ``too_few_corners``, ``collinear``,
-    ``ambiguous``, ``reprojection``, ``pnp_failed``; ``message`` says it in words."""
+    ``ambiguous``, ``reprojection``, ``pnp_failed``, or ``no_frame`` (the source gave no frame
+    within the timeout); ``message`` says it in words."""
     reason: str
     message: str
     n_points: int = 0
@@ -248,7 +253,7 @@ class FolderFrames:
         self._next = 0
         self.current: Optional[str] = None
 
-    def read(self) -> Optional[np.ndarray]:
+    def read(self, timeout: Optional[float] = None) -> Optional[np.ndarray]:
         if self._next >= len(self.paths):
             return None
         path = self.paths[self._next]
@@ -271,12 +276,65 @@ class VideoFrames:
             raise ValueError(f"source: cannot open {what}")
         self.current = source
 
-    def read(self) -> Optional[np.ndarray]:
+    def read(self, timeout: Optional[float] = None) -> Optional[np.ndarray]:
         ok, frame = self.cap.read()
         return frame if ok else None
 
     def close(self) -> None:
         self.cap.release()
+
+
+class LiveFrames:
+    """A live frame source (a camera device) read by a background thread that keeps only the
+    newest frame: ``read(timeout)`` returns a frame not returned before, waits at most
+    ``timeout`` seconds for one (then raises ``TimeoutError``: a stalled or unplugged camera must
+    not hang a fusion loop), and returns None once the source has ended. A consumer slower than
+    the camera skips frames instead of falling behind; ``dropped`` counts them."""
+
+    def __init__(self, frames):
+        self._frames = frames
+        self.current = getattr(frames, "current", None)
+        self._cond = threading.Condition()
+        self._frame: Optional[np.ndarray] = None
+        self._fresh = False
+        self._ended = False
+        self._error: Optional[BaseException] = None
+        self._closing = False
+        self.dropped = 0
+        self._thread = threading.Thread(target=self._run, name="camera-frames", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            while not self._closing:
+                frame = self._frames.read()
+                with self._cond:
+                    if frame is None:
+                        break
+                    self.dropped += self._fresh
+                    self._frame, self._fresh = frame, True
+                    self._cond.notify_all()
+        except Exception as e:   # handed to the reader, which raises it
+            self._error = e
+        with self._cond:
+            self._ended = True
+            self._cond.notify_all()
+
+    def read(self, timeout: Optional[float] = None) -> Optional[np.ndarray]:
+        with self._cond:
+            if not self._cond.wait_for(lambda: self._fresh or self._ended, timeout):
+                raise TimeoutError(f"no frame within {timeout:g} s")
+            if self._fresh:
+                self._fresh = False
+                return self._frame
+            if self._error is not None:
+                raise self._error
+            return None
+
+    def close(self) -> None:
+        self._closing = True
+        self._frames.close()        # also unblocks a read() in progress on most backends
+        self._thread.join(timeout=2.0)
 
 
 def read_image(path: str) -> np.ndarray:
@@ -289,9 +347,12 @@ def read_image(path: str) -> np.ndarray:
 
 
 def open_frames(source: Union[int, str]):
-    """A device index (int or digit string), a folder of images, one image, or a video file."""
+    """A device index (int or digit string), a folder of images, one image, a video file, or a
+    frame source object (``read(timeout=None)`` and ``close()``), used as it is."""
     if isinstance(source, (int, np.integer)) or (isinstance(source, str) and source.isdigit()):
-        return VideoFrames(int(source))
+        return LiveFrames(VideoFrames(int(source)))
+    if callable(getattr(source, "read", None)) and callable(getattr(source, "close", None)):
+        return source
     if not isinstance(source, (str, os.PathLike)):
         raise ValueError(f"source: expected a device index or a path, got {source!r}")
     source = os.fspath(source)
@@ -509,19 +570,25 @@ class CharucoCamera(PoseSource):
                          object_points=obj)
 
     # ---- PoseSource ---------------------------------------------------------------------------
-    def grab(self) -> Optional[np.ndarray]:
-        """The next frame of ``source`` (None at its end)."""
+    def grab(self, timeout: Optional[float] = None) -> Optional[np.ndarray]:
+        """The next frame of ``source`` (None at its end; ``TimeoutError`` when a live source
+        gives none within ``timeout`` seconds)."""
         if self.frames is None:
             raise ValueError("source: this camera has no frame source; call detect(image)")
-        frame = self.frames.read()
+        frame = self.frames.read(timeout)
         if frame is None:
             self.exhausted = True
         return frame
 
     def read(self, timeout: Optional[float] = None) -> Optional[Measurement]:
-        """The next frame as a measurement; None when the view was rejected (see
-        ``last_rejection``) or the source has ended (``exhausted``)."""
-        frame = self.grab()
+        """The next frame as a measurement; None when the view was rejected, or no frame came
+        within ``timeout`` seconds (see ``last_rejection``), or the source has ended
+        (``exhausted``)."""
+        try:
+            frame = self.grab(timeout)
+        except TimeoutError as e:
+            self.last_rejection = Rejection("no_frame", f"camera {self.name}: {e}")
+            return None
         if frame is None:
             return None
         stamp = time.time()

@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from drivers.camera import (BoardSpec, CharucoCamera, Detection, Intrinsics, Rejection,
-                            _inv_right_jacobian_so3, load_board, load_intrinsics, open_frames)
+from drivers.camera import (BoardSpec, CharucoCamera, Detection, Intrinsics, LiveFrames,
+                            Rejection, _inv_right_jacobian_so3, load_board, load_intrinsics,
+                            open_frames)
 from drivers.sim import camera as simcam
 from drivers.sim.camera import DEFAULT_INTRINSICS, BoardRenderer, look_at, random_view
 from service import dq
@@ -281,3 +282,65 @@ def test_renderer_bad_input(renderer):
         renderer.render(look_at([0.14, 0.1, 0.45], [0.14, 0.1, 1.0]))  # looking away
     with pytest.raises(ValueError, match="dist"):
         BoardRenderer(intrinsics=Intrinsics(K=DEFAULT_INTRINSICS.K, dist=[0.1, 0, 0, 0, 0]))
+
+
+class _StandInDevice:
+    """Stands in for a camera device (none exists on a test machine): ``read`` blocks until a
+    frame is pushed, like ``cv2.VideoCapture.read`` on a live camera; None ends the stream."""
+
+    def __init__(self):
+        import queue
+        self.q: "queue.Queue" = queue.Queue()
+
+    def push(self, item) -> None:
+        self.q.put(item)
+
+    def read(self, timeout=None):
+        item = self.q.get()
+        if isinstance(item, Exception):
+            raise item
+        return item
+
+    def close(self) -> None:
+        self.q.put(None)
+
+
+def test_live_source_times_out_then_delivers_the_newest_frame(renderer):
+    import time
+    device = _StandInDevice()
+    with CharucoCamera(renderer.intrinsics, source=LiveFrames(device), name="wrist") as cam:
+        t0 = time.monotonic()
+        assert cam.read(timeout=0.2) is None                # the camera stalls
+        waited = time.monotonic() - t0
+        assert 0.2 <= waited < 1.5
+        assert cam.last_rejection.reason == "no_frame" and "wrist" in str(cam.last_rejection)
+        assert not cam.exhausted
+        for T in (FRONT, OBLIQUE, FRONT, OBLIQUE):          # frames arrive faster than we read
+            device.push(renderer.render(T))
+        deadline = time.monotonic() + 5
+        while not device.q.empty() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.05)
+        m = cam.read(timeout=2.0)
+        assert m is not None and errors(m.pose, OBLIQUE)[0] < 0.1   # the last one pushed
+        assert cam.frames.dropped == 3
+        assert cam.read(timeout=0.1) is None and cam.last_rejection.reason == "no_frame"
+        device.push(None)                                   # the device goes away
+        assert cam.read(timeout=2.0) is None and cam.exhausted
+
+
+def test_live_source_errors_reach_the_reader(renderer):
+    device = _StandInDevice()
+    with CharucoCamera(renderer.intrinsics, source=LiveFrames(device)) as cam:
+        device.push(OSError("camera unplugged"))
+        with pytest.raises(OSError, match="camera unplugged"):
+            cam.read(timeout=2.0)
+
+
+def test_a_frame_source_object_is_used_as_it_is(renderer):
+    device = _StandInDevice()
+    device.push(renderer.render(FRONT))
+    device.push(None)
+    with CharucoCamera(renderer.intrinsics, source=device) as cam:
+        ms = list(cam)
+    assert len(ms) == 1 and errors(ms[0].pose, FRONT)[0] < 0.1
