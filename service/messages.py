@@ -54,6 +54,15 @@ def blend_wire(data: bytes, max_poses: int, default_tol: float, default_max_iter
     return _dqcore.blend_wire(data, max_poses, default_tol, default_max_iter, max_iter_limit)
 
 
+def blend_batch_wire(data: bytes, max_requests: int, max_total_poses: int, max_poses: int,
+                     default_tol: float, default_max_iter: int, max_iter_limit: int):
+    """The served BlendBatch in C: ``(BlendBatchResponse bytes, number of requests)`` when the
+    batch is within the limits and every request is plain and valid (see :func:`blend_wire`);
+    ``None`` for anything else."""
+    return _dqcore.blend_batch_wire(data, max_requests, max_total_poses, max_poses, default_tol,
+                                    default_max_iter, max_iter_limit)
+
+
 def dq_to_pose(a: np.ndarray, out: geo.Pose | None = None) -> geo.Pose:
     """One ``(8,)`` dual quaternion to a ``Pose`` (written into ``out`` when given)."""
     q, t = dq.to_pose(a)

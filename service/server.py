@@ -25,9 +25,9 @@ from grpc_reflection.v1alpha import reflection, reflection_pb2_grpc
 
 from service import dq
 from service.errors import FieldError, rename
-from service.messages import (INTERPOLATION_NAMES, METHOD_NAMES, arrays_to_stamped, blend_wire,
-                              decode_blend_request, dq_to_pose, flat_to_dqs, poses_to_flat,
-                              stamped_to_arrays)
+from service.messages import (INTERPOLATION_NAMES, METHOD_NAMES, arrays_to_stamped,
+                              blend_batch_wire, blend_wire, decode_blend_request, dq_to_pose,
+                              flat_to_dqs, poses_to_flat, stamped_to_arrays)
 from service.interpolate import interpolate
 from service._proto.dqpose.v1 import blending_pb2 as pb
 from service._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
@@ -137,6 +137,20 @@ class Blending(pb_grpc.BlendingServicer):
         dq_to_pose(mean, response.pose)
         return response
 
+    def blend_batch_wire(self, data: bytes) -> tuple[bytes, int]:
+        """What BlendBatch serves: ``(BlendBatchResponse bytes, number of requests)``, from C
+        when every request is plain and valid, else from :meth:`blend_batch` (which raises the
+        FieldError naming the request and the problem)."""
+        out = blend_batch_wire(data, self.max_poses, 10 * self.max_poses, self.max_poses,
+                               DEFAULT_TOLERANCE, DEFAULT_MAX_ITERATIONS, MAX_ITERATIONS_LIMIT)
+        if out is not None:
+            return out
+        try:
+            request = pb.BlendBatchRequest.FromString(data)
+        except DecodeError:
+            raise FieldError("request: not a valid dqpose.v1.BlendBatchRequest message") from None
+        return self.blend_batch(request).SerializeToString(), len(request.requests)
+
     def blend_batch(self, request: pb.BlendBatchRequest) -> pb.BlendBatchResponse:
         requests = request.requests
         self._check_count("requests", len(requests), "requests")
@@ -174,13 +188,18 @@ class Blending(pb_grpc.BlendingServicer):
 
     # -- RPCs
 
-    async def _unary(self, rpc: str, handle, request, context, messages: int | None = None):
+    async def _unary(self, rpc: str, handle, request, context, counted: bool = False):
         """One unary call: the response of ``handle(request)``, INVALID_ARGUMENT for a FieldError,
-        INTERNAL (logged) for anything else, and one log line and metric either way."""
+        INTERNAL (logged) for anything else, and one log line and metric either way. With
+        ``counted``, ``handle`` returns ``(response, messages)`` and the log line counts them."""
         t0 = time.perf_counter()
         code = "OK"
+        messages = None
         try:
-            return handle(request)
+            response = handle(request)
+            if counted:
+                response, messages = response
+            return response
         except FieldError as e:
             code = "INVALID_ARGUMENT"
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
@@ -195,9 +214,10 @@ class Blending(pb_grpc.BlendingServicer):
         # Registered without a deserializer (add_blending): the request arrives as bytes.
         return await self._unary("Blend", self.blend_wire, request, context)
 
-    async def BlendBatch(self, request, context):
-        return await self._unary("BlendBatch", self.blend_batch, request, context,
-                                 messages=len(request.requests))
+    async def BlendBatch(self, request: bytes, context):
+        # Registered without a deserializer, like Blend.
+        return await self._unary("BlendBatch", self.blend_batch_wire, request, context,
+                                 counted=True)
 
     async def Interpolate(self, request, context):
         return await self._unary("Interpolate", self.interpolate_request, request, context)
@@ -297,8 +317,8 @@ def add_blending(servicer: Blending, server) -> None:
             response_serializer=pb.InterpolateResponse.SerializeToString),
         "BlendStream": grpc.stream_stream_rpc_method_handler(servicer.BlendStream, **raw),
         "BlendBatch": grpc.unary_unary_rpc_method_handler(
-            servicer.BlendBatch, request_deserializer=pb.BlendBatchRequest.FromString,
-            response_serializer=pb.BlendBatchResponse.SerializeToString),
+            servicer.BlendBatch, request_deserializer=None,
+            response_serializer=None),
     }
     name = pb.DESCRIPTOR.services_by_name["Blending"].full_name
     server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(name, handlers),))

@@ -7,11 +7,12 @@ from __future__ import annotations
 import struct
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from service.errors import FieldError
-from service.messages import blend_wire, decode_blend_request, pose_msgs
+from service.messages import blend_batch_wire, blend_wire, decode_blend_request, pose_msgs
 from service.server import (DEFAULT_MAX_ITERATIONS, DEFAULT_TOLERANCE, MAX_ITERATIONS_LIMIT,
                             Blending)
 from service._proto.dqpose.v1 import blending_pb2 as pb
@@ -64,7 +65,11 @@ def test_agrees_with_protobuf(req):
 
 
 def _key(field, wt):
-    return bytes([field << 3 | wt])
+    v, out = field << 3 | wt, bytearray()
+    while v >= 0x80:
+        out.append(v & 0x7F | 0x80)
+        v >>= 7
+    return bytes(out + bytes([v]))
 
 
 def test_unpacked_weights_merged_poses_and_unknown_fields():
@@ -199,3 +204,74 @@ def test_served_blend_of_many_poses_is_the_full_path():
     blending = Blending()
     fast = _fast_path(blending, data)
     assert fast is not None and fast == _full_path(blending, data)
+
+
+# ---- the served BlendBatch: dq_wire_blend_batch against the full path
+
+def _batch_full_path(blending, data: bytes):
+    try:
+        return blending.blend_batch(pb.BlendBatchRequest.FromString(data)).SerializeToString()
+    except FieldError:
+        return None
+
+
+def _batch_fast_path(blending, data: bytes):
+    return blend_batch_wire(data, blending.max_poses, 10 * blending.max_poses, blending.max_poses,
+                            DEFAULT_TOLERANCE, DEFAULT_MAX_ITERATIONS, MAX_ITERATIONS_LIMIT)
+
+
+@given(st.lists(near_unit_requests(), max_size=6))
+def test_served_batch_is_the_full_path_byte_for_byte(reqs):
+    blending = Blending(max_poses=5)
+    data = pb.BlendBatchRequest(requests=reqs).SerializeToString()
+    fast, full = _batch_fast_path(blending, data), _batch_full_path(blending, data)
+    if full is None:
+        assert fast is None
+    elif fast is not None:
+        assert fast == (full, len(reqs))
+    try:
+        served = blending.blend_batch_wire(data)
+    except FieldError:
+        served = None
+    assert served == (None if full is None else (full, len(reqs)))
+
+
+def test_served_batch_takes_the_fast_path_for_plain_requests():
+    rng = np.random.default_rng(13)
+    reqs = []
+    for i in range(200):
+        q = rng.normal(size=(i % 7 + 1, 4))
+        q /= np.linalg.norm(q, axis=1, keepdims=True)
+        reqs.append(pb.BlendRequest(poses=pose_msgs(q, rng.normal(size=(len(q), 3))),
+                                    method=[0, 1, 2, 5, 6][i % 5]))
+    blending = Blending()
+    data = pb.BlendBatchRequest(requests=reqs).SerializeToString()
+    fast = _batch_fast_path(blending, data)
+    assert fast is not None and fast == (_batch_full_path(blending, data), 200)
+    # beyond the limits (here 10 requests, 50 poses in all) it is the full path, which says why
+    small = Blending(max_poses=10)
+    assert _batch_fast_path(small, data) is None
+    with pytest.raises(FieldError, match="requests: 200 requests exceed the server limit of 10"):
+        small.blend_batch_wire(data)
+    assert _batch_fast_path(blending, b"") is None          # an empty batch is an error
+    with pytest.raises(FieldError, match="requests: empty request"):
+        blending.blend_batch_wire(b"")
+
+
+def test_field_numbers_beyond_protobufs_range_are_refused():
+    # 2^32 + 1 would read as field 1 (poses) if the number were cut to 32 bits; protobuf refuses
+    # anything above 2^29 - 1 and accepts (skips) that one.
+    body = pb.BlendRequest(poses=pose_msgs(np.array([[1.0, 0, 0, 0]]), np.zeros((1, 3))))
+    pose_bytes = body.poses[0].SerializeToString()
+    for number, ok in ((2**32 + 1, False), (2**29, False), (2**29 - 1, True)):
+        data = _key(number, 2) + bytes([len(pose_bytes)]) + pose_bytes
+        got = decode_blend_request(data)
+        if ok:
+            assert_same(got, parsed(pb.BlendRequest.FromString(data)))
+        else:
+            with pytest.raises(DecodeError):
+                pb.BlendRequest.FromString(data)
+            assert got is None
+            assert _fast_path(Blending(), data) is None
+            batch = _key(1, 2) + bytes([len(data)]) + data
+            assert _batch_fast_path(Blending(), batch) is None

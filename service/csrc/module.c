@@ -850,6 +850,50 @@ static PyObject *py_blend_wire(PyObject *self, PyObject *args)
     return PyBytes_FromStringAndSize((const char *)out, (Py_ssize_t)n);
 }
 
+/* blend_batch_wire(bytes, max_requests, max_total_poses, max_poses, default_tol,
+ * default_max_iter, max_iter_limit) -> (BlendBatchResponse bytes, number of requests), or None
+ * outside the plain case (an empty batch, limits exceeded, any request not plain). */
+static PyObject *py_blend_batch_wire(PyObject *self, PyObject *args)
+{
+    Py_buffer view;
+    Py_ssize_t max_requests, max_total, max_poses;
+    dq_wire_config cfg;
+    unsigned int dmi, lim;
+    if (!PyArg_ParseTuple(args, "y*nnndII:blend_batch_wire", &view, &max_requests, &max_total,
+                          &max_poses, &cfg.default_tol, &dmi, &lim))
+        return NULL;
+    cfg.max_poses = max_poses > 0 ? (size_t)max_poses : 0;
+    cfg.default_max_iter = dmi;
+    cfg.max_iter_limit = lim;
+    PyObject *result = NULL;
+    size_t n_req = 0, n_poses = 0, n = 0;
+    if (dq_wire_batch_count((const uint8_t *)view.buf, (size_t)view.len, &n_req, &n_poses) ||
+        n_req == 0 || n_req > (size_t)max_requests || n_poses > (size_t)max_total) {
+        result = Py_None;
+        Py_INCREF(result);
+        goto done;
+    }
+    uint8_t *out = PyMem_Malloc(n_req * DQ_WIRE_BATCH_ITEM_MAX);
+    if (!out) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    int rc;
+    Py_BEGIN_ALLOW_THREADS
+    rc = dq_wire_blend_batch((const uint8_t *)view.buf, (size_t)view.len, &cfg, out, &n);
+    Py_END_ALLOW_THREADS
+    if (rc) {
+        result = Py_None;
+        Py_INCREF(result);
+    } else {
+        result = Py_BuildValue("(y#n)", (const char *)out, (Py_ssize_t)n, (Py_ssize_t)n_req);
+    }
+    PyMem_Free(out);
+done:
+    PyBuffer_Release(&view);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"mul", py_mul, METH_VARARGS, "mul(a, b): dual-quaternion product a b."},
     {"conj", py_conj, METH_O, "conj(a): quaternion conjugate of both parts (the inverse of a pose)."},
@@ -868,6 +912,9 @@ static PyMethodDef methods[] = {
     {"blend", py_blend, METH_VARARGS, "blend(dqs, weights, method, tol, max_iter)."},
     {"blend_request_from_wire", py_blend_request_from_wire, METH_O,
      "blend_request_from_wire(bytes) -> (poses, weights, method, tolerance, max_iterations) or None."},
+    {"blend_batch_wire", py_blend_batch_wire, METH_VARARGS,
+     "blend_batch_wire(bytes, max_requests, max_total_poses, max_poses, default_tol, "
+     "default_max_iter, max_iter_limit) -> (bytes, n) or None."},
     {"blend_wire", py_blend_wire, METH_VARARGS,
      "blend_wire(bytes, max_poses, default_tol, default_max_iter, max_iter_limit) -> bytes or None."},
     {NULL, NULL, 0, NULL},

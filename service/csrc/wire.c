@@ -68,7 +68,7 @@ static int doubles(cursor c, double *out, int nfields)
 {
     while (c.p < c.end) {
         uint64_t key;
-        if (varint(&c, &key)) return -1;
+        if (varint(&c, &key) || (key >> 3) > 0x1FFFFFFF) return -1; /* field numbers < 2^29 */
         int field = (int)(key >> 3), wt = (int)(key & 7);
         if (field == 0) return -1;
         if (field >= 1 && field <= nfields) {
@@ -80,23 +80,38 @@ static int doubles(cursor c, double *out, int nfields)
     return 0;
 }
 
-/* One Pose into row [qw, qx, qy, qz, x, y, z] (merged into what the row already holds). */
-static int pose(cursor c, double *row)
+/* Walks the fields of a message: every field numbered 1..max_field must be length-delimited
+ * and goes to fn(field, sub, ctx); other fields are skipped. -1 on undecodable bytes (field
+ * numbers outside protobuf's 1..2^29-1 included) or when fn fails. */
+static int each_message_field(cursor c, int max_field, int (*fn)(int, cursor, void *), void *ctx)
 {
     while (c.p < c.end) {
         uint64_t key;
         cursor sub;
         if (varint(&c, &key)) return -1;
-        int field = (int)(key >> 3), wt = (int)(key & 7);
-        if (field == 0) return -1;
-        if (field == 1 || field == 2) {
-            if (wt != WT_LEN || length(&c, &sub)) return -1;
-            if (field == 1 ? doubles(sub, row + 4, 3) : doubles(sub, row, 4)) return -1;
+        uint64_t field = key >> 3;
+        int wt = (int)(key & 7);
+        if (field == 0 || field > 0x1FFFFFFF) return -1;
+        if (field <= (uint64_t)max_field) {
+            if (wt != WT_LEN || length(&c, &sub) || fn((int)field, sub, ctx)) return -1;
         } else if (skip(&c, wt)) {
             return -1;
         }
     }
     return 0;
+}
+
+/* Pose field 1 (position) or 2 (orientation) into row [qw, qx, qy, qz, x, y, z]. */
+static int pose_field(int field, cursor sub, void *row)
+{
+    double *r = (double *)row;
+    return field == 1 ? doubles(sub, r + 4, 3) : doubles(sub, r, 4);
+}
+
+/* One Pose into its row (merged into what the row already holds). */
+static int pose(cursor c, double *row)
+{
+    return each_message_field(c, 2, pose_field, row);
 }
 
 int dq_wire_blend_request(const uint8_t *buf, size_t len, dq_blend_request *r)
@@ -110,7 +125,7 @@ int dq_wire_blend_request(const uint8_t *buf, size_t len, dq_blend_request *r)
     while (c.p < c.end) {
         uint64_t key, v;
         cursor sub;
-        if (varint(&c, &key)) return -1;
+        if (varint(&c, &key) || (key >> 3) > 0x1FFFFFFF) return -1; /* field numbers < 2^29 */
         int field = (int)(key >> 3), wt = (int)(key & 7);
         switch (field) {
         case 0:
@@ -276,4 +291,59 @@ int dq_wire_blend(const uint8_t *buf, size_t len, const dq_wire_config *cfg, uin
 done:
     if (mem != stack) free(mem);
     return rc;
+}
+
+/* ---- the served BlendBatch -------------------------------------------------------------------- */
+
+/* Calls fn(1, sub, ctx) for every BlendRequest of a BlendBatchRequest {requests=1}. */
+static int each_request(const uint8_t *buf, size_t len, int (*fn)(int, cursor, void *), void *ctx)
+{
+    cursor c = {buf, buf + len};
+    return each_message_field(c, 1, fn, ctx);
+}
+
+typedef struct { size_t n_requests, n_poses; } batch_count;
+
+static int count_one(int field, cursor sub, void *ctx)
+{
+    (void)field;
+    batch_count *bc = (batch_count *)ctx;
+    dq_blend_request r;
+    memset(&r, 0, sizeof r);
+    if (dq_wire_blend_request(sub.p, (size_t)(sub.end - sub.p), &r) < 0) return -1;
+    bc->n_requests++;
+    bc->n_poses += r.n_poses;
+    return 0;
+}
+
+int dq_wire_batch_count(const uint8_t *buf, size_t len, size_t *n_requests, size_t *n_poses)
+{
+    batch_count bc = {0, 0};
+    if (each_request(buf, len, count_one, &bc)) return -1;
+    *n_requests = bc.n_requests;
+    *n_poses = bc.n_poses;
+    return 0;
+}
+
+typedef struct { const dq_wire_config *cfg; uint8_t *p; } batch_out;
+
+static int blend_one(int field, cursor sub, void *ctx)
+{
+    (void)field;
+    batch_out *bo = (batch_out *)ctx;
+    size_t n = 0;
+    if (dq_wire_blend(sub.p, (size_t)(sub.end - sub.p), bo->cfg, bo->p + 2, &n)) return -1;
+    bo->p[0] = (uint8_t)(1 << 3 | WT_LEN);
+    bo->p[1] = (uint8_t)n; /* n <= DQ_WIRE_RESPONSE_MAX < 128: one length byte */
+    bo->p += 2 + n;
+    return 0;
+}
+
+int dq_wire_blend_batch(const uint8_t *buf, size_t len, const dq_wire_config *cfg, uint8_t *out,
+                        size_t *out_len)
+{
+    batch_out bo = {cfg, out};
+    if (each_request(buf, len, blend_one, &bo)) return -1;
+    *out_len = (size_t)(bo.p - out);
+    return 0;
 }

@@ -56,4 +56,14 @@ typedef struct {
 int dq_wire_blend(const uint8_t *buf, size_t len, const dq_wire_config *cfg, uint8_t *out,
                   size_t *out_len);
 
+/* The served BlendBatch: BlendBatchRequest {repeated BlendRequest requests=1} bytes to
+ * BlendBatchResponse {repeated BlendResponse responses=1} bytes, each request as dq_wire_blend.
+ * dq_wire_batch_count counts the requests and their poses (-1 for bytes it cannot decode);
+ * dq_wire_blend_batch then writes at most n_requests * DQ_WIRE_BATCH_ITEM_MAX bytes to out, or
+ * returns -1 when any request is not plain (the caller's full path then names the problem). */
+#define DQ_WIRE_BATCH_ITEM_MAX (DQ_WIRE_RESPONSE_MAX + 2)
+int dq_wire_batch_count(const uint8_t *buf, size_t len, size_t *n_requests, size_t *n_poses);
+int dq_wire_blend_batch(const uint8_t *buf, size_t len, const dq_wire_config *cfg, uint8_t *out,
+                        size_t *out_len);
+
 #endif
