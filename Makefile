@@ -14,9 +14,10 @@ setup: $(BIN)/python
 	$(BIN)/python -m pip install -q --upgrade pip "setuptools>=77" wheel "numpy>=2.0" "grpcio-tools>=1.60"
 	$(BIN)/python -m pip install -q --no-build-isolation -e '.[test]'
 
-# The gRPC server on 127.0.0.1:50051 until Ctrl-C (`dqpose serve --help` for TLS, tokens, ports).
+# The gRPC server on 127.0.0.1:50051 with the simulated devices beside it, until Ctrl-C
+# (`dqpose serve --help` for TLS, tokens, ports; drop --sims for the server alone).
 run: setup
-	$(BIN)/dqpose serve --host 127.0.0.1 --port 50051
+	$(BIN)/dqpose serve --host 127.0.0.1 --port 50051 --sims
 
 test: setup
 	$(BIN)/python -m pytest -q

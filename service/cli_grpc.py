@@ -5,6 +5,7 @@ Parsers only here; grpc and NumPy are imported when a command runs (``dqpose --h
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 
 EXIT_ERROR = 2
@@ -66,6 +67,9 @@ def add_parser(sub) -> None:
                    help="JSON log lines on standard error (default: %(default)s)")
     p.add_argument("--no-call-log", action="store_true",
                    help="skip the per-call line (method, status, duration) logged at info")
+    p.add_argument("--sims", action="store_true",
+                   help="also start the simulated devices (a UR controller, camera views; see "
+                        "drivers/sim/fleet.py) and log where they are")
     p.set_defaults(func=_serve)
 
     p = sub.add_parser("health", help="check a server's gRPC health (exit 0 when SERVING)",
@@ -127,6 +131,7 @@ def _read(path: str, mode: str = "rb") -> bytes:
 
 def _serve(args) -> int:
     import asyncio
+    import contextlib
     import logging
     import os
 
@@ -151,11 +156,16 @@ def _serve(args) -> int:
             client_ca=_read(args.client_ca) if args.client_ca else None,
             token=token, max_message_bytes=args.max_message_bytes, max_poses=args.max_poses,
             keepalive_s=args.keepalive, grace_s=args.grace, metrics_port=args.metrics_port)
-        try:  # libuv's loop: ~8 % more calls/s with 8 clients, lower p99 (BENCHMARKS.md)
-            import uvloop
-        except ImportError:
-            return asyncio.run(serve(cfg))
-        return uvloop.run(serve(cfg))
+        with contextlib.ExitStack() as stack:
+            if args.sims:
+                from drivers.sim.fleet import Fleet
+                for info in stack.enter_context(Fleet()).info:
+                    logging.getLogger("dqpose").info(json.dumps({"event": "simulator", **info}))
+            try:  # libuv's loop: ~8 % more calls/s with 8 clients, lower p99 (BENCHMARKS.md)
+                import uvloop
+            except ImportError:
+                return asyncio.run(serve(cfg))
+            return uvloop.run(serve(cfg))
     except (OSError, ValueError) as e:
         return _fail("serve", str(e))
 

@@ -744,6 +744,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--servo-lag", type=int, default=d.servo_lag, help="servo lag in cycles")
     ap.add_argument("--max-linear-speed", type=float, default=d.max_linear_speed)
     ap.add_argument("--max-angular-speed", type=float, default=d.max_angular_speed)
+    ap.add_argument("--exit-with-parent", action="store_true",
+                    help="stop when the process that started this one ends (even if killed)")
     args = ap.parse_args(argv)
     if args.servo_lag < 0:
         ap.error("--servo-lag: must be >= 0")
@@ -757,6 +759,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ursim: cannot serve on {cfg.host}: {e}", file=sys.stderr)
         return 3
     signal.signal(signal.SIGTERM, lambda *_: sim.stopping.set())
+    if args.exit_with_parent:
+        threading.Thread(target=_stop_when_orphaned, args=(sim.stopping, os.getppid()),
+                         daemon=True).start()
     print(f"ursim {'.'.join(map(str, cfg.version))} on {cfg.host}: RTDE {RTDE_PORT}, dashboard "
           f"{DASHBOARD_PORT}, script {SCRIPT_PORT}, hooks {cfg.hook_port}; "
           f"{1 / cfg.period:.0f} Hz", flush=True)
@@ -765,6 +770,13 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         sim.shutdown()
     return 0
+
+
+def _stop_when_orphaned(stopping: threading.Event, parent: int) -> None:
+    # A parent killed with SIGKILL cannot stop its children; the re-parenting shows it instead.
+    while not stopping.wait(0.2):
+        if os.getppid() != parent:
+            stopping.set()
 
 
 # -------------------------------------------------------------------- running it from tests
@@ -780,7 +792,8 @@ class URSimProcess:
                 continue
             self.host = addr
             self.proc = subprocess.Popen(
-                [sys.executable, "-m", "drivers.sim.ursim", "--host", addr, *map(str, args)],
+                [sys.executable, "-m", "drivers.sim.ursim", "--host", addr, "--exit-with-parent",
+                 *map(str, args)],
                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                 cwd=os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
             err = self._wait_ready(timeout)
