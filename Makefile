@@ -9,10 +9,11 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 
 # Build tools first, then the project without build isolation so the C core compiles
-# against the same NumPy it runs with.
+# against the same NumPy it runs with (PYTHONWARNINGS: setuptools otherwise prints a box of
+# asterisks about editable installs on every run).
 setup: $(BIN)/python
 	$(BIN)/python -m pip install -q --upgrade pip "setuptools>=77" wheel "numpy>=2.0" "grpcio-tools>=1.60"
-	$(BIN)/python -m pip install -q --no-build-isolation -e '.[test]'
+	PYTHONWARNINGS=ignore $(BIN)/python -m pip install -q --no-build-isolation -e '.[test]'
 
 # The gRPC server on 127.0.0.1:50051 with the simulated devices beside it, until Ctrl-C
 # (`dqpose serve --help` for TLS, tokens, ports; drop --sims for the server alone).
