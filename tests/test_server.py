@@ -183,6 +183,24 @@ def test_bytes_that_are_not_a_blend_request_are_invalid_argument(server):
         q, t = random_poses(np.random.default_rng(3), 3)
         ok = raw(blend_req(q, t).SerializeToString(), timeout=10)
         same_pose(msg_to_dq(ok.pose), dq.dib(dq.from_pose(q, t)))
+        # BlendBatch and BlendStream take bytes too
+        batch = ch.unary_unary("/dqpose.v1.Blending/BlendBatch", request_serializer=None,
+                               response_deserializer=pb.BlendBatchResponse.FromString)
+        with pytest.raises(grpc.RpcError) as e:
+            batch(b"\x0a\x02\xff\xff", timeout=10)
+        assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+        assert e.value.details() == "request: not a valid dqpose.v1.BlendBatchRequest message"
+        stream = ch.stream_stream("/dqpose.v1.Blending/BlendStream", request_serializer=None,
+                                  response_deserializer=pb.BlendResponse.FromString)
+        good = blend_req(q, t).SerializeToString()
+        got = []
+        with pytest.raises(grpc.RpcError) as e:
+            for r in stream(iter([good, b"\x0a\xff\xff\xff", good]), timeout=10):
+                got.append(r)
+        assert len(got) == 1 and e.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+        assert e.value.details() == "requests[1].request: not a valid dqpose.v1.BlendRequest message"
+        assert len(batch(pb.BlendBatchRequest(requests=[blend_req(q, t)] * 3).SerializeToString(),
+                         timeout=10).responses) == 3
 
 
 # --------------------------------------------------------------------------- bad input
