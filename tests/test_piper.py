@@ -19,7 +19,7 @@ from drivers.piper import (ARM_STATUS_FEEDBACK, ARM_STATUS_NAMES, EMERGENCY_STAT
                            decode_arm_status, decode_motion_mode, describe_status,
                            encode_arm_status, encode_end_pose, encode_motion_mode,
                            pose_to_units, units_to_pose)
-from drivers.sim.piper import HOME, PiperSim
+from drivers.sim.piper import PiperSim
 from service import dq
 
 # piper_sdk 0.6.2 still passes python-can's deprecated ``bustype``.
