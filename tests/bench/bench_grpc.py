@@ -4,6 +4,7 @@ goes (C core vs adapter vs gRPC transport), and memory over many calls.
     .venv/bin/python -m tests.bench.bench_grpc            # full run (~2-3 min)
     .venv/bin/python -m tests.bench.bench_grpc --quick    # smaller counts
     .venv/bin/python -m tests.bench.bench_grpc --server sync   # threaded grpc.server instead
+    .venv/bin/python -m tests.bench.bench_grpc --plot docs/bench_grpc.png
 
 The server runs as a separate process (`dqpose serve`, per-call log lines on unless --quiet-log),
 like in production. `ghz` (go install github.com/bojand/ghz/cmd/ghz@latest) is used when found
@@ -306,6 +307,7 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="smaller counts (~40 s)")
     ap.add_argument("--server", choices=["aio", "sync"], default="aio")
     ap.add_argument("--quiet-log", action="store_true", help="serve with --no-call-log")
+    ap.add_argument("--plot", metavar="PATH", help="also save the throughputs as a bar chart (PNG)")
     ap.add_argument("--serve-sync", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--serve-echo", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -322,9 +324,12 @@ def main(argv=None) -> int:
     n_mem = 20000 if args.quick else 100000
 
     rows: list[tuple[str, str, str, str, str]] = []
+    rates: dict[str, float] = {}          # for --plot: blends (or messages) per second
 
     def row(what, p50="", p99="", rate="", note=""):
         rows.append((what, p50, p99, rate, note))
+        if rate and not what[0].isdigit():          # not the memory row
+            rates[what.strip()] = float(rate.split()[0].rstrip("/s"))
 
     def us(x):
         return f"{x * 1e6:.0f} us"
@@ -396,8 +401,8 @@ def main(argv=None) -> int:
                 fm.write("[" + ",".join(json_body(request_measured(i))
                                         for i in range(STREAM_LEN)) + "]")
             gm1 = ghz_stream(exe, srv.target, fm.name, STREAM_LEN, procs=1)
-            row("  same, 10 measurements of one pose", rate=f"{gm1:.0f} blends/s",
-                note="5 deg / 2 cm noise: DIB ~3 steps")
+            row("BlendStream 10 measurements of one pose (ghz, GOMAXPROCS=1)",
+                rate=f"{gm1:.0f} blends/s", note="5 deg / 2 cm noise: DIB ~3 steps")
         # The same client against a grpc.aio stream that does no work: the transport's ceiling.
         echo = ServerProcess("echo", True)
         try:
@@ -446,7 +451,34 @@ def main(argv=None) -> int:
     print("|" + "|".join("-" * (w + 2) for w in widths) + "|")
     for r in rows:
         print(fmt.format(*r))
+    if args.plot:
+        plot(args.plot, rates, f"{os.cpu_count()} CPUs, loopback, call log "
+                               f"{'off' if args.quiet_log else 'on'}")
     return 1 if errors else 0
+
+
+def plot(path: str, rates: dict[str, float], conditions: str) -> None:
+    """Throughput per way of calling, log scale: where a reader sees at a glance which RPC to
+    use and how close each is to what grpc.aio allows."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    names = list(rates)[::-1]
+    values = [rates[k] for k in names]
+    colors = ["0.7" if k.startswith("ceiling") else "C0" for k in names]
+    fig, ax = plt.subplots(figsize=(9, 0.32 * len(names) + 1.4))
+    ax.barh(range(len(names)), values, color=colors)
+    for i, v in enumerate(values):
+        ax.text(v, i, f" {v / 1000:.1f}k", va="center", fontsize=8)
+    ax.set_yticks(range(len(names)), names, fontsize=8)
+    ax.set_xscale("log")
+    ax.set_xlabel("blends (or calls, messages) per second")
+    ax.set_xlim(right=max(values) * 4)            # room for the value labels
+    fig.suptitle(f"dqpose gRPC throughput, 10 poses per blend ({conditions})\n"
+                 f"grey: a grpc.aio stream that does no work, the transport's ceiling", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    print(f"plot saved to {path}")
 
 
 if __name__ == "__main__":
