@@ -122,9 +122,9 @@ def blend_request_wire(q: np.ndarray, t: np.ndarray, weights=None, method: int =
         raise ValueError(f"max_iterations: must be a whole number within 0..4294967295, "
                          f"got {max_iterations!r}")
     parts = [poses_wire(q, t)]
-    if weights is not None and len(weights):
-        w = np.asarray(weights, dtype="<f8").ravel()
-        parts += [b"\x12", _varint(8 * len(w)), w.tobytes()]          # packed doubles
+    w = np.asarray([] if weights is None else weights, dtype="<f8").ravel()
+    if w.size:
+        parts += [b"\x12", _varint(8 * w.size), w.tobytes()]          # packed doubles
     if method:
         parts += [b"\x18", _varint(method & 0xFFFFFFFFFFFFFFFF)]      # enum: int32 as varint
     tol = np.float64(tolerance).astype("<f8").tobytes()
