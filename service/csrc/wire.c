@@ -262,7 +262,6 @@ int dq_wire_blend(const uint8_t *buf, size_t len, const dq_wire_config *cfg, uin
     r.n_poses = n;
     r.n_weights = m;
     double *q = mem + 7 * n + m, *w = q + 8 * n;
-    if (m == 0) r.weights = NULL;
     if (dq_wire_blend_request(buf, len, &r) < 0) goto done;
     for (size_t i = 0; i < n; i++) {
         double tmp[8];
