@@ -16,6 +16,7 @@ import argparse
 import json
 import math
 import os
+import sys
 from typing import Optional, Sequence
 
 import cv2
@@ -174,7 +175,11 @@ def run(args: argparse.Namespace) -> int:
     os.makedirs(args.out, exist_ok=True)
     rng = np.random.default_rng(args.seed)
     truth = {}
-    for i in range(args.count):
+    views = range(args.count)
+    if args.count >= 50 and sys.stderr.isatty():   # ~50 ms a view: worth a bar past a few seconds
+        from tqdm import tqdm
+        views = tqdm(views, desc="rendering", unit="view", leave=False)
+    for i in views:
         T = random_view(rng, board)
         name = f"view_{i:04d}.png"
         img = renderer.render(T, blur=args.blur, noise=args.noise, rng=rng)
