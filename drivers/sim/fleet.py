@@ -58,7 +58,7 @@ class Fleet(contextlib.ExitStack):
             folder = self.enter_context(tempfile.TemporaryDirectory(prefix="dqpose-camera-"))
         args = argparse.Namespace(out=folder, count=20, seed=0, blur=0.5, noise=1.0,
                                   intrinsics=None, board=None)
-        with contextlib.redirect_stdout(open(os.devnull, "w")):
+        with open(os.devnull, "w") as quiet, contextlib.redirect_stdout(quiet):
             if camera.run(args) != 0:
                 raise OSError(f"sims: cannot render the camera views into {folder}")
         return {"device": "camera", "images": folder,
