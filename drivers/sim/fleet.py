@@ -39,7 +39,10 @@ class Fleet(contextlib.ExitStack):
         try:
             if "ur" in self.devices:
                 from drivers.sim.ursim import URSimProcess
-                sim = self.enter_context(URSimProcess())
+                try:
+                    sim = self.enter_context(URSimProcess())
+                except RuntimeError as e:   # as OSError: the CLI reports it in one line
+                    raise OSError(f"sims: {e}") from None
                 self.info.append({"device": "ur", "host": sim.host,
                                   "use": f"drivers.ur.URArm({sim.host!r})"})
             if "camera" in self.devices:
