@@ -21,6 +21,7 @@ from drivers.piper import (ARM_STATUS_FEEDBACK, ARM_STATUS_NAMES, EMERGENCY_STAT
                            pose_to_units, units_to_pose)
 from drivers.sim.piper import PiperSim
 from service import dq
+from _polling import wait_until
 
 # piper_sdk 0.6.2 still passes python-can's deprecated ``bustype``.
 pytestmark = pytest.mark.filterwarnings("ignore:The 'bustype' argument is deprecated")
@@ -28,16 +29,6 @@ pytestmark = pytest.mark.filterwarnings("ignore:The 'bustype' argument is deprec
 # Half a unit of quantisation per axis: 0.5 um and 0.0005 deg.
 POS_Q = math.sqrt(3) * 0.5e-6
 ANG_Q = math.radians(0.0005) * 3
-
-
-def wait_until(pred, timeout=2.0):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        v = pred()
-        if v:
-            return v
-        time.sleep(0.005)
-    return pred()
 
 
 def _servo_along_x(arm, steps: int, step: float):

@@ -15,6 +15,7 @@ from drivers.rotvec import pose_from_rotvec, rotvec_from_pose  # noqa: E402
 from drivers.sim import ursim  # noqa: E402
 from drivers.ur import Limits, LimitError, URArm  # noqa: E402
 from service import dq  # noqa: E402
+from _polling import wait_until
 
 HOME = np.array([0.4, -0.1, 0.3, 2.2, 2.2, 0.0])
 DETECT = 0.5        # seconds the issue allows for noticing a protective stop or a lost controller
@@ -33,23 +34,14 @@ def arm(sim):
 @pytest.fixture
 def home(sim, arm):
     sim.set_pose(HOME)
-    assert _wait(lambda: np.allclose(rotvec_from_pose(arm.tool_pose()[1]), HOME, atol=1e-12))
+    assert wait_until(lambda: np.allclose(rotvec_from_pose(arm.tool_pose()[1]), HOME, atol=1e-12))
     arm._last_setpoint = None       # the arm was teleported; measure the next step from there
     return HOME.copy()
 
 
-def _wait(pred, timeout=2.0):
-    deadline = time.monotonic() + timeout
-    while not pred():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.001)
-    return True
-
-
 def _latency(pred, timeout=2.0):
     t0 = time.monotonic()
-    assert _wait(pred, timeout), "not detected"
+    assert wait_until(pred, timeout), "not detected"
     return time.monotonic() - t0
 
 
@@ -74,7 +66,7 @@ def test_connects_and_reports(arm):
 def test_tool_pose_is_the_simulated_pose(sim, arm):
     p6 = [0.35, 0.05, 0.5, -0.4, 0.3, 2.9]
     sim.set_pose(p6)
-    assert _wait(lambda: _same_pose(arm.tool_pose()[1], pose_from_rotvec(p6)))
+    assert wait_until(lambda: _same_pose(arm.tool_pose()[1], pose_from_rotvec(p6)))
 
 
 def test_servo_follows_the_path(sim, arm, home):
@@ -107,7 +99,7 @@ def test_stop_ends_a_move(sim, arm, home):
     threading.Timer(0.2, arm.stop).start()
     with pytest.raises(ArmError, match="stopped before reaching the target"):
         arm.move(pose_from_rotvec(target), 0.1, 1.0)
-    assert _wait(lambda: not sim.state()["moving"])
+    assert wait_until(lambda: not sim.state()["moving"])
     y = rotvec_from_pose(arm.tool_pose()[1])[1]
     assert home[1] + 0.005 < y < target[1] - 0.05
     assert arm.status().ok
@@ -155,8 +147,8 @@ def test_watchdog_stops_a_stalled_stream(sim, arm, home):
         start, stops = sim.log()["next"], arm.watchdog_stops
         for p in _ramp(home, [0, 0, 1.0], 200, 0.02)[:100]:   # stop at full speed (0.16 m/s)
             arm.servo(pose_from_rotvec(p))
-        assert _wait(lambda: arm.watchdog_stops == stops + 1)
-        assert _wait(lambda: not sim.state()["moving"])
+        assert wait_until(lambda: arm.watchdog_stops == stops + 1)
+        assert wait_until(lambda: not sim.state()["moving"])
         cmds = [e["cmd"] for e in sim.log(start)["entries"]]
         assert cmds[-2:] == [ursim.SERVO_STOP, 0]      # servoStop, then the client's clear
         assert not sim.state()["servoing"]
@@ -175,7 +167,7 @@ def test_protective_stop_is_reported_and_recovered(sim, arm, home):
     with pytest.raises(ArmError, match="cannot recover: protective stop"):
         arm.recover()
     sim.protective_stop(False)
-    assert _wait(lambda: not arm.status().protective_stop)
+    assert wait_until(lambda: not arm.status().protective_stop)
     arm.recover()
     assert arm.status().ok
     arm.servo(pose_from_rotvec(home))                   # commands work again
@@ -202,7 +194,7 @@ def test_lost_controller_is_detected(doomed_sim):
         assert arm._recv.getActualTCPPose() == stale_pose    # ur_rtde alone would not notice
         with pytest.raises(ArmError, match="stopped sending data"):
             arm.tool_pose()
-        assert _wait(lambda: arm.status().connected)      # the stream resumed
+        assert wait_until(lambda: arm.status().connected)      # the stream resumed
         arm.recover()
         # a controller that dies in the middle of a move (ur_rtde's own blocking moveL would
         # wait for it for minutes)

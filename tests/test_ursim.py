@@ -18,6 +18,7 @@ rtde_control = pytest.importorskip("rtde_control")
 rtde_receive = pytest.importorskip("rtde_receive")
 
 from drivers.sim import ursim  # noqa: E402
+from _polling import wait_until
 
 HOME = [0.4, -0.1, 0.3, 2.2, 2.2, 0.0]
 
@@ -32,15 +33,6 @@ def rtde(sim):
     recv.disconnect()
 
 
-def _wait(pred, timeout=2.0):
-    deadline = time.monotonic() + timeout
-    while not pred():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.002)
-    return True
-
-
 def _at_rest(sim, pose=HOME):
     sim.set_pose(pose)
 
@@ -53,9 +45,9 @@ def test_interfaces_connect_and_read_the_simulated_pose(sim, rtde):
     assert recv.getRobotMode() == 7 and recv.getSafetyMode() == 1
     target = [0.31, 0.12, 0.45, 0.1, -0.2, 1.3]
     sim.set_pose(target)
-    assert _wait(lambda: np.allclose(recv.getActualTCPPose(), target, atol=1e-12))
+    assert wait_until(lambda: np.allclose(recv.getActualTCPPose(), target, atol=1e-12))
     t0 = recv.getTimestamp()
-    assert _wait(lambda: recv.getTimestamp() > t0)      # data keeps streaming
+    assert wait_until(lambda: recv.getTimestamp() > t0)      # data keeps streaming
 
 
 def test_servoL_at_500_hz_follows_the_path_with_little_lag(sim, rtde):
@@ -125,7 +117,7 @@ def test_servo_speed_is_limited(sim, rtde):
     jump[0] += 0.1                                      # 0.1 m at once
     jump[5] += 0.3                                      # and 0.3 rad
     assert ctrl.servoL(jump, 0.0, 0.0, 0.002, 0.1, 300)
-    assert _wait(lambda: np.allclose(recv.getActualTCPPose(), jump, atol=1e-12))
+    assert wait_until(lambda: np.allclose(recv.getActualTCPPose(), jump, atol=1e-12))
     assert ctrl.servoStop()
     hist = sim.history(tick0)
     step = np.linalg.norm(np.diff(hist[:, 2:5], axis=0), axis=1)
@@ -171,13 +163,13 @@ def test_async_moveL_reports_progress_and_stopL_ends_it(sim, rtde):
     assert ctrl.moveL(target, 0.1, 1.0, True)           # returns at once
     status = ctrl.getAsyncOperationProgressEx()
     assert status.isAsyncOperationRunning() and status.operationId() == (op + 1) % 128
-    assert _wait(lambda: sim.state()["moving"])
+    assert wait_until(lambda: sim.state()["moving"])
     ctrl.stopL(5.0)
     assert not sim.state()["moving"]
     assert not ctrl.getAsyncOperationProgressEx().isAsyncOperationRunning()
     assert HOME[2] < recv.getActualTCPPose()[2] < target[2]
     assert ctrl.moveL(target, 0.25, 2.0, True)
-    assert _wait(lambda: not ctrl.getAsyncOperationProgressEx().isAsyncOperationRunning())
+    assert wait_until(lambda: not ctrl.getAsyncOperationProgressEx().isAsyncOperationRunning())
     assert np.allclose(recv.getActualTCPPose(), target, atol=1e-12)
 
 
@@ -202,12 +194,12 @@ def test_dashboard_answers_like_a_robot(sim):
 def test_protective_stop_is_seen_by_the_client(sim, rtde):
     recv, ctrl = rtde
     sim.protective_stop(True)
-    assert _wait(lambda: recv.isProtectiveStopped())
+    assert wait_until(lambda: recv.isProtectiveStopped())
     assert not ctrl.moveL(HOME, 0.1, 0.5)               # refused, as on a robot
     sim.protective_stop(False)
-    assert _wait(lambda: not recv.isProtectiveStopped())
+    assert wait_until(lambda: not recv.isProtectiveStopped())
     assert ctrl.reuploadScript()                        # the program must be started again
-    assert _wait(lambda: ctrl.isProgramRunning())
+    assert wait_until(lambda: ctrl.isProgramRunning())
 
 
 def test_stopScript_ends_the_program(sim, rtde):
