@@ -28,4 +28,4 @@ bench: setup
 	$(BIN)/python -m tests.bench.bench_grpc
 
 clean:
-	rm -rf $(VENV) build *.egg-info service/*.so service/_proto
+	rm -rf $(VENV) build *.egg-info service/*.so service/rpc/_proto

@@ -24,14 +24,14 @@ core = Extension(
 )
 
 PROTO_ROOT = "proto"
-PROTO_OUT = os.path.join("service", "_proto")
+PROTO_OUT = os.path.join("service", "rpc", "_proto")
 
 
 def generate_stubs() -> None:
-    """proto/dqpose/v1/*.proto -> service/_proto/dqpose/v1/*_pb2*.py (never committed).
+    """proto/dqpose/v1/*.proto -> service/rpc/_proto/dqpose/v1/*_pb2*.py (never committed).
 
     protoc names imports after the proto path (``from dqpose.v1 import ...``); they are rewritten
-    to live under ``service._proto`` so the stubs do not claim a top-level ``dqpose`` package.
+    to live under ``service.rpc._proto`` so the stubs do not claim a top-level ``dqpose`` package.
     """
     from grpc_tools import protoc  # a build requirement (pyproject.toml)
     import grpc_tools
@@ -53,7 +53,7 @@ def generate_stubs() -> None:
                 path = os.path.join(dirpath, name)
                 with open(path) as f:
                     src = f.read()
-                fixed = re.sub(r"^from dqpose(\.[\w.]+)? import", r"from service._proto.dqpose\1 import",
+                fixed = re.sub(r"^from dqpose(\.[\w.]+)? import", r"from service.rpc._proto.dqpose\1 import",
                                src, flags=re.M)
                 if fixed != src:
                     with open(path, "w") as f:
@@ -61,6 +61,6 @@ def generate_stubs() -> None:
 
 
 # Generated whenever setuptools runs this file: metadata, wheel and editable builds all need the
-# packages under service/_proto to exist (pyproject.toml lists them).
+# packages under service/rpc/_proto to exist (pyproject.toml lists them).
 generate_stubs()
 setup(ext_modules=[core])

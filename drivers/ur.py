@@ -24,7 +24,7 @@ import numpy as np
 
 from drivers.base import Arm, ArmError, ArmStatus
 from drivers.rotvec import pose_from_rotvec, rotvec_from_pose, rotvec_from_quat
-from drivers.sim.rtde_protocol import request_version
+from drivers.rtde import request_version
 from service import dq
 
 RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT = 30004, 29999, 30003

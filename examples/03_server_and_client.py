@@ -1,7 +1,7 @@
 """03 — Start the gRPC server and call it from Python.
 
 Starts `dqpose serve` on a free port (as `make run` does on 50051), blends and interpolates
-through `service.client.Client`, shows the error a bad request gets, then stops the server with
+through `service.rpc.client.Client`, shows the error a bad request gets, then stops the server with
 SIGTERM, which drains calls in flight and exits 0.
 
     .venv/bin/python examples/03_server_and_client.py
@@ -14,7 +14,7 @@ import sys
 import numpy as np
 
 from service import dq
-from service.client import Client
+from service.rpc.client import Client
 
 server = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", "0"],
                           stderr=subprocess.PIPE, text=True)

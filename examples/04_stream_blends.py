@@ -15,7 +15,7 @@ import time
 import numpy as np
 
 from service import dq
-from service.client import Client
+from service.rpc.client import Client
 
 rng = np.random.default_rng(4)
 true = dq.from_pose([1.0, 0, 0, 0], [0.5, 0.0, 0.2])

@@ -32,7 +32,6 @@ paper.
 """
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 import zlib
@@ -45,7 +44,7 @@ from service import dq
 
 __all__ = [
     "Method", "Cell", "Table", "METHODS", "PROPERTIES", "PAPER", "DEFAULT_TOL",
-    "measure", "measure_method", "format_table", "add_parser",
+    "measure", "measure_method", "format_table",
 ]
 
 # (dqs (..., n, 8), weights (..., n)) -> 4x4 matrices (..., 4, 4). Matrices, not dual quaternions,
@@ -471,33 +470,3 @@ def format_table(table: Table, verbose: bool = False) -> str:
                 c = table.cells[m][prop]
                 lines.append(f"{m:<{name}} {prop:<12} {_sym(c.holds)}  {c.reason}")
     return "\n".join(lines)
-
-
-def _main(args: argparse.Namespace) -> int:
-    # ~0.5 ms per trial: a bar only where the wait becomes noticeable, and only for a person
-    table = measure(trials=args.trials, seed=args.seed, tol=args.tol,
-                    progress=args.trials >= 5000 and sys.stderr.isatty())
-    print(format_table(table, verbose=args.verbose))
-    return 1 if table.mismatches() else 0
-
-
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 8:
-        raise argparse.ArgumentTypeError(f"must be >= 8, got {value}")
-    return value
-
-
-def add_parser(sub) -> None:
-    p = sub.add_parser("properties",
-                       help="measure Table 1 of Kavan et al. on this build",
-                       description="Measure rigidity, bi-invariance, coordinate invariance, n > 2, "
-                                   "constant speed and shortest path of every blending method, "
-                                   "compare with the paper's Table 1, exit 1 on any disagreement.")
-    p.add_argument("--trials", type=_positive_int, default=200,
-                   help="random input sets per property (default 200)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--tol", type=float, default=DEFAULT_TOL,
-                   help=f"largest deviation for a property to hold (default {DEFAULT_TOL:g})")
-    p.add_argument("-v", "--verbose", action="store_true", help="print each cell's reason")
-    p.set_defaults(func=_main)

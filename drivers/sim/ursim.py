@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from drivers.rotvec import quat_from_rotvec, rotvec_from_quat
-from drivers.sim import rtde_protocol as rp
+from drivers import rtde as rp
 
 RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT = 30004, 29999, 30003
 HOOK_PORT = 30010

@@ -29,11 +29,11 @@ import grpc
 import numpy as np
 
 from service import dq
-from service.messages import decode_blend_request, pose_msgs, poses_to_dqs
-from service.server import Blending
-from service._proto.dqpose.v1 import blending_pb2 as pb
-from service._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
-from service._proto.dqpose.v1 import geometry_pb2 as geo
+from service.rpc.convert import decode_blend_request, pose_msgs, poses_to_dqs
+from service.rpc.blending import Blending
+from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
+from service.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
+from service.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 PROTO = os.path.join(ROOT, "proto")

@@ -1,4 +1,4 @@
-"""service.messages: protobuf messages <-> arrays, and errors renamed to proto field paths."""
+"""service.rpc.convert: protobuf messages <-> arrays, and errors renamed to proto field paths."""
 from __future__ import annotations
 
 import numpy as np
@@ -7,10 +7,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from service import dq
-from service.messages import (FieldError, arrays_to_stamped, blend_request_wire, dq_to_pose,
-                              dqs_to_poses, pose_msgs, poses_to_dqs, stamped_to_arrays)
-from service._proto.dqpose.v1 import blending_pb2 as pb
-from service._proto.dqpose.v1 import geometry_pb2 as geo
+from service.rpc.convert import (FieldError, arrays_to_stamped, blend_request_wire, dq_to_pose,
+                                 dqs_to_poses, pose_msgs, poses_to_dqs, stamped_to_arrays)
+from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
+from service.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 
 
 def _pose(q, t) -> geo.Pose:

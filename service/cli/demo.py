@@ -1,4 +1,5 @@
-"""A first look at dqpose: blend and interpolate a few sample poses and print the results."""
+"""``dqpose demo``: a first look at dqpose: blend and interpolate a few sample poses and print
+the results."""
 from __future__ import annotations
 
 import numpy as np
@@ -46,6 +47,8 @@ if __name__ == "__main__":
     main()
 
 
-def add_parser(sub) -> None:
-    p = sub.add_parser("demo", help="blend and interpolate sample poses and print the results")
+def configure(name: str, p) -> None:
+    p.description = ("Blend three measurements of one tool pose with every method, and follow a "
+                     "screw motion from one pose to another: a first look at what dqpose "
+                     "computes, printed as positions (m), quaternions and angles (deg).")
     p.set_defaults(func=lambda args: main() or 0)

@@ -14,7 +14,7 @@ import pytest
 
 from drivers.sim.fleet import Fleet
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 
 
 def test_serve_with_sims_brings_up_reachable_devices_and_takes_them_down():
@@ -24,7 +24,7 @@ def test_serve_with_sims_brings_up_reachable_devices_and_takes_them_down():
     from drivers.sim.ursim import _address_free
     from drivers.ur import URArm
     from service import dq
-    from service.client import Client
+    from service.rpc.client import Client
 
     proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", "0",
                              "--sims", "--no-call-log"], cwd=ROOT, stderr=subprocess.PIPE,

@@ -2,7 +2,7 @@
 
 Each simulator owns its options: ``SIMULATORS`` maps a device name to ``"module:function"``, and
 that function takes the remaining command-line arguments (``main(argv) -> exit code``). Modules
-are imported only when their simulator runs, so building the ``dqpose`` parser stays light.
+are imported only when their simulator runs.
 To add a simulator, add one entry here.
 """
 from __future__ import annotations
@@ -17,10 +17,8 @@ SIMULATORS = {
 }
 
 
-def add_parser(sub) -> None:
-    p = sub.add_parser("sim", help="run a device simulator that speaks the real protocol",
-                       description="Run a device simulator; `dqpose sim DEVICE --help` lists "
-                                   "its options.")
+def configure(name: str, p) -> None:
+    p.description = "Run a device simulator; `dqpose sim DEVICE --help` lists its options."
     p.add_argument("device", choices=sorted(SIMULATORS), help="which simulator")
     p.add_argument("args", nargs=argparse.REMAINDER, help="the simulator's own options")
     p.set_defaults(func=run)

@@ -1,4 +1,4 @@
-"""service.posefile: the JSON and CSV pose files of `dqpose blend` / `dqpose interpolate`."""
+"""service.cli.posefile: the JSON and CSV pose files of `dqpose blend` / `dqpose interpolate`."""
 from __future__ import annotations
 
 import csv
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from service import dq
-from service.posefile import (format_blend, format_samples, read_blend, read_interpolate,
-                              sample_times)
+from service.cli.posefile import (format_blend, format_samples, read_blend, read_interpolate,
+                                  sample_times)
 
 
 def _same(a, b, atol=1e-12):

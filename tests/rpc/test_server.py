@@ -22,15 +22,15 @@ from grpc_reflection.v1alpha.proto_reflection_descriptor_database import (
 
 from service import dq
 from service.interpolate import interpolate
-from service.server import ServerConfig, start
-from service._proto.dqpose.v1 import blending_pb2 as pb
-from service._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
-from service._proto.dqpose.v1 import geometry_pb2 as geo
+from service.rpc.server import ServerConfig, start
+from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
+from service.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
+from service.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 from _grpc_server import ServerThread, make_pki
 
 MAX_POSES = 200
 MAX_BYTES = 64 * 1024
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
 @pytest.fixture(scope="module")

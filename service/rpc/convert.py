@@ -9,8 +9,8 @@ import numpy as np
 
 from service import _dqcore, dq
 from service.errors import FieldError, rename
-from service._proto.dqpose.v1 import blending_pb2 as pb
-from service._proto.dqpose.v1 import geometry_pb2 as geo
+from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
+from service.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 
 def poses_to_flat(poses) -> np.ndarray:
     """Repeated ``Pose`` to ``(n, 7)`` rows ``[qw, qx, qy, qz, x, y, z]``, unvalidated."""

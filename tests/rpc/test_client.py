@@ -1,4 +1,4 @@
-"""service.client (NumPy in/out) and the `dqpose blend | interpolate | health` commands, against a
+"""service.rpc.client (NumPy in/out) and the `dqpose blend | interpolate | health` commands, against a
 real server on 127.0.0.1."""
 from __future__ import annotations
 
@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 
 from service import dq
-from service.client import Client
+from service.rpc.client import Client
 from service.interpolate import interpolate
 
 from _grpc_server import ServerThread
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
 @pytest.fixture(scope="module")

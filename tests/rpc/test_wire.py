@@ -1,4 +1,4 @@
-"""service/csrc/wire.c (through service.messages): the C decoder of BlendRequest bytes must
+"""service/csrc/wire.c (through service.rpc.convert): the C decoder of BlendRequest bytes must
 agree with the protobuf parser on every message, and refuse (None) what the parser refuses; the
 C served Blend (bytes to bytes) must answer exactly what the full Python path answers, and leave
 every error to it."""
@@ -12,11 +12,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from service.errors import FieldError
-from service.messages import blend_batch_wire, blend_wire, decode_blend_request, pose_msgs
-from service.server import (DEFAULT_MAX_ITERATIONS, DEFAULT_TOLERANCE, MAX_ITERATIONS_LIMIT,
-                            Blending)
-from service._proto.dqpose.v1 import blending_pb2 as pb
-from service._proto.dqpose.v1 import geometry_pb2 as geo
+from service.rpc.convert import blend_batch_wire, blend_wire, decode_blend_request, pose_msgs
+from service.rpc.blending import (DEFAULT_MAX_ITERATIONS, DEFAULT_TOLERANCE, MAX_ITERATIONS_LIMIT,
+                                  Blending)
+from service.rpc.server import ServerConfig
+from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
+from service.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 from google.protobuf.message import DecodeError
 
 # Zeros matter: proto3 leaves zero fields off the wire, which is what a fixed-layout reader
@@ -109,7 +110,7 @@ def test_damaged_bytes_are_refused_or_read_as_protobuf_reads_them(req, data):
         assert_same(got, want)
 
 
-# ---- the served Blend: dq_wire_blend (service.messages.blend_wire) against the full path
+# ---- the served Blend: dq_wire_blend (service.rpc.convert.blend_wire) against the full path
 
 def _full_path(blending, data: bytes):
     """What the server answers without the C fast path: response bytes, or None for an error."""
@@ -158,7 +159,7 @@ def near_unit_requests(draw):
 
 @given(near_unit_requests())
 def test_served_blend_is_the_full_path_byte_for_byte(req):
-    blending = Blending(max_poses=5)
+    blending = Blending(ServerConfig(max_poses=5))
     data = req.SerializeToString()
     fast, full = _fast_path(blending, data), _full_path(blending, data)
     if full is None:
@@ -222,7 +223,7 @@ def _batch_fast_path(blending, data: bytes):
 
 @given(st.lists(near_unit_requests(), max_size=6))
 def test_served_batch_is_the_full_path_byte_for_byte(reqs):
-    blending = Blending(max_poses=5)
+    blending = Blending(ServerConfig(max_poses=5))
     data = pb.BlendBatchRequest(requests=reqs).SerializeToString()
     fast, full = _batch_fast_path(blending, data), _batch_full_path(blending, data)
     if full is None:
@@ -249,7 +250,7 @@ def test_served_batch_takes_the_fast_path_for_plain_requests():
     fast = _batch_fast_path(blending, data)
     assert fast is not None and fast == (_batch_full_path(blending, data), 200)
     # beyond the limits (here 10 requests, 50 poses in all) it is the full path, which says why
-    small = Blending(max_poses=10)
+    small = Blending(ServerConfig(max_poses=10))
     assert _batch_fast_path(small, data) is None
     with pytest.raises(FieldError, match="requests: 200 requests exceed the server limit of 10"):
         small.blend_batch_wire(data)
@@ -278,19 +279,19 @@ def test_field_numbers_beyond_protobufs_range_are_refused():
 
 
 def test_wire_paths_survive_mutated_input_under_sanitizers(tmp_path):
-    # Memory safety of the C that reads untrusted bytes, checked directly: tests/fuzz_wire.c
+    # Memory safety of the C that reads untrusted bytes, checked directly: tests/rpc/fuzz_wire.c
     # built with AddressSanitizer and UBSan, fed mutations of valid requests and batches.
     import shutil
     import subprocess
     cc = shutil.which("gcc") or shutil.which("cc")
     if cc is None:
         pytest.skip("no C compiler")
-    root = __import__("pathlib").Path(__file__).resolve().parents[1]
+    root = __import__("pathlib").Path(__file__).resolve().parents[2]
     csrc = root / "service" / "csrc"
     exe = tmp_path / "fuzz_wire"
     build = subprocess.run(
         [cc, "-std=c99", "-O1", "-g", "-fsanitize=address,undefined", "-fno-sanitize-recover=all",
-         "-fno-omit-frame-pointer", f"-I{csrc}", str(root / "tests" / "fuzz_wire.c"),
+         "-fno-omit-frame-pointer", f"-I{csrc}", str(root / "tests" / "rpc" / "fuzz_wire.c"),
          *(str(csrc / f) for f in ("wire.c", "blend.c", "dq.c")), "-lm", "-o", str(exe)],
         capture_output=True, text=True)
     if build.returncode:

@@ -16,11 +16,11 @@ import grpc
 import numpy as np
 
 from service import dq
-from service.messages import (INTERPOLATION_ENUMS, METHOD_ENUMS, blend_request_wire, pose_msgs,
-                              poses_to_arrays)
-from service._proto.dqpose.v1 import blending_pb2 as pb
-from service._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
-from service._proto.dqpose.v1 import geometry_pb2 as geo
+from service.rpc.convert import (INTERPOLATION_ENUMS, METHOD_ENUMS, blend_request_wire, pose_msgs,
+                                 poses_to_arrays)
+from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
+from service.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
+from service.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 
 DEFAULT_TARGET = "127.0.0.1:50051"
 

@@ -1,0 +1,57 @@
+"""The ``dqpose`` command line.
+
+``COMMANDS`` maps each command to the module that owns it and its one-line help. ``dqpose --help``
+imports none of those modules (so no NumPy, C core or grpc: it answers in milliseconds); running
+or asking for the help of one command imports only its module, whose ``configure(name, parser)``
+adds the arguments and sets ``func`` (parsed ``argparse.Namespace`` -> exit code). Command modules
+keep their top level light and import the heavy parts inside the command.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# command -> (module, help); in the order the help lists them
+COMMANDS = {
+    "serve": ("service.cli.serve", "run the gRPC server"),
+    "health": ("service.cli.serve", "check a server's gRPC health (exit 0 when SERVING)"),
+    "blend": ("service.cli.blend", "blend poses from a JSON or CSV file"),
+    "interpolate": ("service.cli.blend",
+                    "interpolate between time-stamped keyframes from a JSON or CSV file"),
+    "demo": ("service.cli.demo", "blend and interpolate sample poses and print the results"),
+    "properties": ("service.cli.properties", "measure Table 1 of Kavan et al. on this build"),
+    "sim": ("service.cli.sim", "run a device simulator that speaks the real protocol"),
+}
+
+
+def _chosen(argv: list[str]) -> str | None:
+    """The command named in ``argv`` (the top-level parser takes no options but ``-h``)."""
+    for a in argv:
+        if not a.startswith("-"):
+            return a
+    return None
+
+
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The parser, with the arguments of the command in ``argv`` (of every command when
+    ``argv`` is None: for documentation and tests)."""
+    parser = argparse.ArgumentParser(
+        prog="dqpose",
+        description="Average, fuse and interpolate rigid poses with dual quaternions.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    chosen = None if argv is None else _chosen(argv)
+    for name, (module, help) in COMMANDS.items():
+        p = sub.add_parser(name, help=help, description=help[:1].upper() + help[1:] + ".")
+        if argv is None or name == chosen:
+            importlib.import_module(module).configure(name, p)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser(argv).parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        return 130

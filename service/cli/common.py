@@ -1,0 +1,50 @@
+"""What every command shares: the exit code for errors, reading a file given on the command line,
+and the options and client of the commands that call a server. Light to import: grpc is imported
+when a client is made."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+EXIT_ERROR = 2
+
+
+def fail(cmd: str, msg: str) -> int:
+    print(f"dqpose {cmd}: error: {msg}", file=sys.stderr)
+    return EXIT_ERROR
+
+
+def read(path: str, mode: str = "rb") -> bytes:
+    with open(path, mode) as f:
+        return f.read()
+
+
+def connection_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("server connection")
+    g.add_argument("--target", default="127.0.0.1:50051", help="server address (default: %(default)s)")
+    g.add_argument("--token-file", help="file holding the bearer token")
+    g.add_argument("--tls-ca", metavar="PEM", help="CA certificate to verify the server (enables TLS)")
+    g.add_argument("--tls", action="store_true", help="TLS with the system's root certificates")
+    g.add_argument("--cert", metavar="PEM", help="client certificate for mTLS")
+    g.add_argument("--key", metavar="PEM", help="client private key for mTLS")
+    g.add_argument("--timeout", type=float, default=10.0, help="deadline in seconds (default: %(default)s)")
+
+
+def client(args):
+    """The :class:`service.rpc.client.Client` the connection options describe."""
+    from service.rpc.client import Client
+
+    token = read(args.token_file, "r").strip() if args.token_file else None
+    return Client(args.target, token=token, tls=args.tls,
+                  root_certificates=read(args.tls_ca) if args.tls_ca else None,
+                  certificate_chain=read(args.cert) if args.cert else None,
+                  private_key=read(args.key) if args.key else None, timeout=args.timeout)
+
+
+def rpc_failure(cmd: str, args, e) -> int:
+    import grpc
+
+    if e.code() in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED):
+        return fail(cmd, f"no answer from the server at {args.target} ({e.code().name}: "
+                         f"{e.details()}); start one with `dqpose serve`, or add --local")
+    return fail(cmd, f"{e.code().name}: {e.details()}")

@@ -1,0 +1,98 @@
+"""``dqpose serve`` (the gRPC server, optionally with the simulated devices beside it) and
+``dqpose health`` (ask a server's health service)."""
+from __future__ import annotations
+
+import json
+import sys
+
+from service.cli.common import client, connection_args, fail, read
+
+
+def configure(name: str, p) -> None:
+    if name == "serve":
+        p.description = ("Serve dqpose.v1.Blending with the gRPC health service and reflection. "
+                         "Stops gracefully on SIGTERM/SIGINT: health turns NOT_SERVING, calls in "
+                         "flight finish (up to --grace seconds), exit code 0.")
+        p.add_argument("--host", default="127.0.0.1", help="address to bind (default: %(default)s)")
+        p.add_argument("--port", type=int, default=50051, help="port; 0 picks a free one (default: %(default)s)")
+        p.add_argument("--tls-cert", metavar="PEM", help="server certificate chain (enables TLS)")
+        p.add_argument("--tls-key", metavar="PEM", help="server private key")
+        p.add_argument("--client-ca", metavar="PEM", help="CA for client certificates (requires mTLS)")
+        p.add_argument("--token-file", help="file holding a bearer token every call must carry "
+                                            "(health stays open); env DQPOSE_TOKEN_FILE also works")
+        p.add_argument("--max-message-bytes", type=int, default=4 * 1024 * 1024,
+                       help="largest request/response; larger is RESOURCE_EXHAUSTED (default: %(default)s)")
+        p.add_argument("--max-poses", type=int, default=10_000,
+                       help="most poses, keyframes or times per request (default: %(default)s)")
+        p.add_argument("--keepalive", type=float, default=60.0, help="keepalive ping period, s (default: %(default)s)")
+        p.add_argument("--grace", type=float, default=10.0, help="shutdown drain time, s (default: %(default)s)")
+        p.add_argument("--metrics-port", type=int, help="serve Prometheus metrics on this port")
+        p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"],
+                       help="JSON log lines on standard error (default: %(default)s)")
+        p.add_argument("--no-call-log", action="store_true",
+                       help="skip the per-call line (method, status, duration) logged at info")
+        p.add_argument("--sims", action="store_true",
+                       help="also start the simulated devices (a UR controller, camera views; see "
+                            "drivers/sim/fleet.py) and log where they are")
+        p.set_defaults(func=_serve)
+    else:
+        p.description = ("Ask the grpc.health.v1 service; prints the status and exits 0 when "
+                         "SERVING, 1 otherwise (for HEALTHCHECK and scripts).")
+        connection_args(p)
+        p.add_argument("--service", default="", help="service name to check (default: the server)")
+        p.set_defaults(func=_health)
+
+
+def _serve(args) -> int:
+    import asyncio
+    import contextlib
+    import logging
+    import os
+
+    from service.rpc.server import ServerConfig, serve
+
+    logging.basicConfig(level=args.log_level.upper(), format="%(message)s", stream=sys.stderr)
+    calls = logging.getLogger("dqpose.calls")
+    if args.no_call_log:
+        calls.setLevel(logging.WARNING)
+    calls.addHandler(logging.StreamHandler(sys.stderr))
+    calls.propagate = False
+    token_file = args.token_file or os.environ.get("DQPOSE_TOKEN_FILE")
+    try:
+        token = read(token_file, "r").strip() if token_file else None
+        if token_file and not token:
+            return fail("serve", f"--token-file: {token_file} is empty")
+        cfg = ServerConfig(
+            host=args.host, port=args.port,
+            tls_cert=read(args.tls_cert) if args.tls_cert else None,
+            tls_key=read(args.tls_key) if args.tls_key else None,
+            client_ca=read(args.client_ca) if args.client_ca else None,
+            token=token, max_message_bytes=args.max_message_bytes, max_poses=args.max_poses,
+            keepalive_s=args.keepalive, grace_s=args.grace, metrics_port=args.metrics_port)
+        with contextlib.ExitStack() as stack:
+            if args.sims:
+                from drivers.sim.fleet import Fleet
+                for info in stack.enter_context(Fleet()).info:
+                    logging.getLogger("dqpose").info(json.dumps({"event": "simulator", **info}))
+            try:  # libuv's loop: ~8 % more calls/s with 8 clients, lower p99 (BENCHMARKS.md)
+                import uvloop
+            except ImportError:
+                return asyncio.run(serve(cfg))
+            return uvloop.run(serve(cfg))
+    except (OSError, ValueError) as e:
+        return fail("serve", str(e))
+
+
+def _health(args) -> int:
+    import grpc
+
+    try:
+        with client(args) as c:
+            status = c.health(args.service)
+    except OSError as e:
+        return fail("health", str(e))
+    except grpc.RpcError as e:
+        print(f"dqpose health: {args.target}: {e.code().name}", file=sys.stderr)
+        return 1
+    print(status)
+    return 0 if status == "SERVING" else 1

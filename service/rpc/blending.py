@@ -1,0 +1,235 @@
+"""The ``dqpose.v1.Blending`` service: Blend, BlendStream and BlendBatch answered bytes to bytes
+by the C fast path (``service/csrc/wire.c``) when a request is plain and valid, else through
+protobuf and :mod:`service.dq`, whose errors name the proto field; and Interpolate."""
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+
+import grpc
+import numpy as np
+from google.protobuf.message import DecodeError
+
+from service import dq
+from service.errors import FieldError, rename
+from service.interpolate import interpolate
+from service.rpc.calls import INTERNAL_DETAILS, Calls, log
+from service.rpc.convert import (INTERPOLATION_NAMES, METHOD_NAMES, arrays_to_stamped,
+                                 blend_batch_wire, blend_wire, decode_blend_request, dq_to_pose,
+                                 flat_to_dqs, poses_to_flat, stamped_to_arrays)
+from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
+from service.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
+
+DEFAULT_TOLERANCE = 1e-12
+DEFAULT_MAX_ITERATIONS = 100
+STREAM_READ_AHEAD = 64         # requests a BlendStream reads ahead of its replies
+# DIB converges in a handful of steps; the cap keeps one request from holding the event loop
+# (10k poses x 1000 steps is ~0.2 s of core time).
+MAX_ITERATIONS_LIMIT = 1000
+
+
+class Blending(pb_grpc.BlendingServicer):
+    """The ``dqpose.v1.Blending`` service. ``blend``/``interpolate_request`` are plain functions of
+    a request (no gRPC context), so the benchmark can time the adapter without the transport."""
+
+    NAME = pb.DESCRIPTOR.services_by_name["Blending"].full_name
+
+    def __init__(self, cfg=None, calls: Calls | None = None):
+        """``cfg`` is the server's ``ServerConfig`` (its defaults when None)."""
+        self.max_poses = cfg.max_poses if cfg is not None else 10_000
+        self.calls = calls or Calls()
+
+    # -- request -> response, no transport
+
+    def _check_count(self, field: str, n: int, what: str) -> None:
+        if n == 0:
+            raise FieldError(f"{field}: empty request: no {what}")
+        if n > self.max_poses:
+            raise FieldError(f"{field}: {n} {what} exceed the server limit of {self.max_poses}")
+
+    def blend(self, request: pb.BlendRequest) -> pb.BlendResponse:
+        return self._blend(poses_to_flat(request.poses), request.weights, request.method,
+                           request.tolerance, request.max_iterations)
+
+    def blend_bytes(self, data: bytes) -> pb.BlendResponse:
+        """The hot path: a serialized BlendRequest decoded in C, no protobuf objects per pose."""
+        fields = decode_blend_request(data)
+        if fields is None:
+            try:
+                request = pb.BlendRequest.FromString(data)
+            except DecodeError:
+                raise FieldError("request: not a valid dqpose.v1.BlendRequest message") from None
+            return self.blend(request)
+        return self._blend(*fields)
+
+    def blend_wire(self, data: bytes) -> bytes:
+        """What Blend and BlendStream serve: ``BlendResponse`` bytes for request bytes, from the
+        C fast path when the request is plain and valid, else from :meth:`blend_bytes` (which
+        raises the FieldError naming the problem). Both give identical bytes."""
+        out = blend_wire(data, self.max_poses, DEFAULT_TOLERANCE, DEFAULT_MAX_ITERATIONS,
+                         MAX_ITERATIONS_LIMIT)
+        return out if out is not None else self.blend_bytes(data).SerializeToString()
+
+    def _blend(self, flat, weights, method_code: int, tolerance: float,
+               max_iterations: int) -> pb.BlendResponse:
+        self._check_count("poses", len(flat), "poses")
+        dqs = flat_to_dqs(flat, "poses")
+        weights = np.asarray(weights, dtype=np.float64) if len(weights) else None
+        method = METHOD_NAMES.get(method_code)
+        if method is None:
+            raise FieldError(f"method: unknown Method value {method_code}")
+        tol = tolerance or DEFAULT_TOLERANCE
+        if not (math.isfinite(tol) and tol > 0):
+            raise FieldError(f"tolerance: must be finite and >= 0 (0 means {DEFAULT_TOLERANCE}), "
+                             f"got {tolerance!r}")
+        max_iter = max_iterations or DEFAULT_MAX_ITERATIONS
+        if max_iter > MAX_ITERATIONS_LIMIT:
+            raise FieldError(f"max_iterations: {max_iter} exceeds the limit of "
+                             f"{MAX_ITERATIONS_LIMIT}")
+        iterations, residual = 0, 0.0
+        try:
+            if method == "dib":
+                mean, iterations, residual = dq.dib(dqs, weights, tol, max_iter, return_info=True)
+                iterations, residual = int(iterations), float(residual)
+            else:
+                mean = dq.blend(dqs, weights, method, tol, max_iter)
+        except ValueError as e:
+            raise rename(e, {"dqs": "poses{}", "weights": "weights{}"}) from None
+        if not (np.isfinite(mean).all() and math.isfinite(residual)):
+            # Never hand a NaN to a robot: say which input made the mean undefined.
+            raise FieldError(f"poses: the {method} blend of these poses is undefined "
+                             f"(rotations cancel out); use other weights or method DIB")
+        response = pb.BlendResponse(iterations=iterations, residual=residual)
+        dq_to_pose(mean, response.pose)
+        return response
+
+    def blend_batch_wire(self, data: bytes) -> tuple[bytes, int]:
+        """What BlendBatch serves: ``(BlendBatchResponse bytes, number of requests)``, from C
+        when every request is plain and valid, else from :meth:`blend_batch` (which raises the
+        FieldError naming the request and the problem)."""
+        out = blend_batch_wire(data, self.max_poses, 10 * self.max_poses, self.max_poses,
+                               DEFAULT_TOLERANCE, DEFAULT_MAX_ITERATIONS, MAX_ITERATIONS_LIMIT)
+        if out is not None:
+            return out
+        try:
+            request = pb.BlendBatchRequest.FromString(data)
+        except DecodeError:
+            raise FieldError("request: not a valid dqpose.v1.BlendBatchRequest message") from None
+        return self.blend_batch(request).SerializeToString(), len(request.requests)
+
+    def blend_batch(self, request: pb.BlendBatchRequest) -> pb.BlendBatchResponse:
+        requests = request.requests
+        self._check_count("requests", len(requests), "requests")
+        total = sum(len(r.poses) for r in requests)
+        if total > 10 * self.max_poses:
+            raise FieldError(f"requests: {total} poses in all exceed the server limit of "
+                             f"{10 * self.max_poses} per batch")
+        responses = []
+        for i, r in enumerate(requests):
+            try:
+                responses.append(self.blend_bytes(r.SerializeToString()))
+            except FieldError as e:
+                raise FieldError(f"requests[{i}].{e}") from None
+        return pb.BlendBatchResponse(responses=responses)
+
+    def interpolate_request(self, request: pb.InterpolateRequest) -> pb.InterpolateResponse:
+        k, n = len(request.keyframes), len(request.times)
+        self._check_count("keyframes", k, "keyframes")
+        if k < 2:
+            raise FieldError(f"keyframes: need at least 2 keyframes, got {k}")
+        self._check_count("times", n, "times")
+        mode = INTERPOLATION_NAMES.get(request.interpolation)
+        if mode is None:
+            raise FieldError(f"interpolation: unknown Interpolation value {request.interpolation}")
+        times_k, dqs_k = stamped_to_arrays(request.keyframes, "keyframes")
+        times = np.array(request.times, dtype=np.float64)
+        try:
+            out = interpolate(times_k, dqs_k, times, mode)
+        except ValueError as e:
+            raise rename(e, {"times_k": "keyframes{}.time", "dqs_k": "keyframes{}.pose",
+                             "times": "times{}"}) from None
+        if not np.isfinite(out).all():
+            raise FieldError("keyframes: interpolation produced non-finite poses")
+        return pb.InterpolateResponse(samples=arrays_to_stamped(times, out))
+
+    # -- RPCs
+
+    def register(self, server) -> None:
+        """``add_BlendingServicer_to_server`` with one difference: Blend, BlendStream and
+        BlendBatch take and return bytes, which the ``*_wire`` methods turn into each other
+        without protobuf objects."""
+        raw = dict(request_deserializer=None, response_serializer=None)
+        handlers = {
+            "Blend": grpc.unary_unary_rpc_method_handler(self.Blend, **raw),
+            "Interpolate": grpc.unary_unary_rpc_method_handler(
+                self.Interpolate, request_deserializer=pb.InterpolateRequest.FromString,
+                response_serializer=pb.InterpolateResponse.SerializeToString),
+            "BlendStream": grpc.stream_stream_rpc_method_handler(self.BlendStream, **raw),
+            "BlendBatch": grpc.unary_unary_rpc_method_handler(self.BlendBatch, **raw),
+        }
+        server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(self.NAME, handlers),))
+        server.add_registered_method_handlers(self.NAME, handlers)
+
+    async def Blend(self, request: bytes, context):
+        # Registered without a deserializer (register): the request arrives as bytes.
+        return await self.calls.unary("Blend", self.blend_wire, request, context)
+
+    async def BlendBatch(self, request: bytes, context):
+        # Registered without a deserializer, like Blend.
+        return await self.calls.unary("BlendBatch", self.blend_batch_wire, request, context,
+                                      counted=True)
+
+    async def Interpolate(self, request, context):
+        return await self.calls.unary("Interpolate", self.interpolate_request, request, context)
+
+    async def BlendStream(self, request_iterator, context):
+        # Reading runs ahead of writing (a reader task feeding a queue of STREAM_READ_AHEAD):
+        # in grpc.aio every read and every write is a round trip through gRPC's poller thread,
+        # and overlapping the two is worth ~1.5x in blends/s (BENCHMARKS.md). The bound keeps
+        # HTTP/2 flow control as the client's backpressure. request_iterator stays unused: the
+        # reader takes the messages with context.read().
+        t0 = time.perf_counter()
+        code = "OK"
+        i = 0
+        pending: asyncio.Queue = asyncio.Queue(maxsize=STREAM_READ_AHEAD)
+        reader = asyncio.ensure_future(_read_all(context, pending))
+        try:
+            while True:
+                request = await pending.get()
+                if request is grpc.aio.EOF:
+                    break
+                if isinstance(request, Exception):
+                    raise request
+                try:
+                    response = self.blend_wire(request)
+                except FieldError as e:
+                    code = "INVALID_ARGUMENT"
+                    await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"requests[{i}].{e}")
+                await context.write(response)
+                i += 1
+        except asyncio.CancelledError:
+            code = "CANCELLED"
+            raise
+        except grpc.aio.AbortError:
+            raise
+        except Exception:
+            code = "INTERNAL"
+            log.exception("BlendStream failed")
+            await context.abort(grpc.StatusCode.INTERNAL, INTERNAL_DETAILS)
+        finally:
+            reader.cancel()
+            self.calls.done("BlendStream", code, t0, context, messages=i)
+
+
+async def _read_all(context, pending: asyncio.Queue) -> None:
+    """Puts every request of a stream into ``pending``, then ``grpc.aio.EOF``; a read that
+    fails puts its exception instead, for the writer to raise."""
+    try:
+        while True:
+            request = await context.read()
+            await pending.put(request)
+            if request is grpc.aio.EOF:
+                return
+    except Exception as e:   # the writer is still consuming, so this put finds room
+        await pending.put(e)
