@@ -1,1 +1,48 @@
-"""Device drivers (arms, pose sources) and their simulators."""
+"""Device drivers (arms, pose sources) and their simulators.
+
+Backends are chosen by name, as python-can chooses a bus by ``interface``:
+``open_arm("ur:192.168.1.10")``, ``open_arm("piper:socketcan:can0")``,
+``open_source("charuco:/path/to/images", intrinsics="camera.yaml")``. The text after the first
+colon is the backend's channel; keyword arguments go to the backend (``limits=``, ...). Backend
+modules are imported only when opened.
+"""
+from __future__ import annotations
+
+import importlib
+
+__all__ = ["ARMS", "SOURCES", "open_arm", "open_source"]
+
+#: arm backends: name -> "module:class"; the class's ``open(channel, **kwargs)`` makes one
+ARMS = {
+    "ur": "drivers.ur:URArm",
+    "piper": "drivers.piper:PiperArm",
+}
+#: pose source backends, the same way
+SOURCES = {
+    "charuco": "drivers.camera:CharucoCamera",
+}
+
+
+def _open(kind: str, table: dict, spec: str, kwargs: dict):
+    if not isinstance(spec, str):
+        raise ValueError(f"{kind}: expected '<backend>:<channel>', got {spec!r}")
+    name, sep, channel = spec.partition(":")
+    if name not in table:
+        raise ValueError(f"{kind}: unknown backend {name!r} in {spec!r}; known: "
+                         f"{', '.join(sorted(table))} (as '<backend>:<channel>')")
+    if not sep or not channel:
+        raise ValueError(f"{kind}: {spec!r} has no channel; expected '{name}:<channel>'")
+    module, cls = table[name].split(":")
+    return getattr(importlib.import_module(module), cls).open(channel, **kwargs)
+
+
+def open_arm(spec: str, **kwargs):
+    """An :class:`~drivers.base.Arm` by name: ``"ur:<host>"`` or
+    ``"piper:<python-can interface>:<channel>"``."""
+    return _open("arm", ARMS, spec, kwargs)
+
+
+def open_source(spec: str, **kwargs):
+    """A :class:`~drivers.base.PoseSource` by name: ``"charuco:<folder, video or camera index>"``
+    (keyword ``intrinsics=`` is required)."""
+    return _open("source", SOURCES, spec, kwargs)

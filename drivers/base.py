@@ -10,10 +10,15 @@ project's convention (``[w, x, y, z, w', x', y', z']``, metres, seconds); a tool
 from __future__ import annotations
 
 import abc
+import math
+import numbers
 from dataclasses import dataclass, field
 from typing import Iterator, Optional
 
 import numpy as np
+
+from drivers.rotvec import rotvec_from_quat
+from service import dq
 
 
 @dataclass(frozen=True)
@@ -71,11 +76,154 @@ class ArmError(RuntimeError):
     """The arm cannot do what was asked (lost connection, protective stop, refused command)."""
 
 
+class LimitError(ArmError):
+    """A command was refused because it breaks a safety limit. ``limit`` names the field of
+    :class:`Limits` (``"max_linear_speed"``, ``"workspace"``, ...), ``value`` is what the command
+    asked for and ``bound`` the limit, both in the units of that field. A refused ``servo()``
+    set-point has also brought the arm to a controlled stop; a refused ``move()`` sent nothing."""
+
+    def __init__(self, message: str, limit: str, value, bound):
+        super().__init__(message)
+        self.limit, self.value, self.bound = limit, value, bound
+
+
+def _positive(name: str, v) -> float:
+    if isinstance(v, bool) or not (isinstance(v, numbers.Real) and math.isfinite(v) and v > 0):
+        raise ValueError(f"limits.{name}: must be a positive finite number, got {v!r}")
+    return float(v)
+
+
+@dataclass(frozen=True)
+class Limits:
+    """What a command may ask of any arm, in the tool frame's motion relative to the base.
+
+    ``servo()`` set-points are one ``period`` apart: the step between two of them is checked
+    against ``max_linear_step``/``max_angular_step`` and, divided by the period, against the
+    speeds; the change of step against the accelerations. Every target lies in the box
+    ``workspace_min``..``workspace_max`` (base frame). The defaults suit a UR5e on an open bench;
+    each backend may have its own defaults (``PiperArm.DEFAULT_LIMITS``); set the box to your
+    cell."""
+    max_linear_speed: float = 0.25      # m/s
+    max_angular_speed: float = 1.0      # rad/s
+    max_linear_accel: float = 2.0       # m/s^2
+    max_angular_accel: float = 4.0      # rad/s^2
+    workspace_min: tuple = (-1.0, -1.0, -0.2)   # m, base frame
+    workspace_max: tuple = (1.0, 1.0, 1.2)
+    max_linear_step: float = 0.02       # m per set-point
+    max_angular_step: float = math.radians(5)   # rad per set-point
+
+    def __post_init__(self):
+        for name in ("max_linear_speed", "max_angular_speed", "max_linear_accel",
+                     "max_angular_accel", "max_linear_step", "max_angular_step"):
+            object.__setattr__(self, name, _positive(name, getattr(self, name)))
+        try:
+            lo, hi = np.asarray(self.workspace_min, float), np.asarray(self.workspace_max, float)
+        except (TypeError, ValueError):
+            lo = hi = np.zeros(0)
+        if lo.shape != (3,) or hi.shape != (3,) or not np.all(np.isfinite(lo) & np.isfinite(hi)):
+            raise ValueError("limits.workspace_min/max: expected three finite numbers each")
+        if np.any(lo >= hi):
+            raise ValueError(f"limits.workspace_min: {lo.tolist()} is not below "
+                             f"workspace_max {hi.tolist()}")
+        object.__setattr__(self, "workspace_min", tuple(lo.tolist()))
+        object.__setattr__(self, "workspace_max", tuple(hi.tolist()))
+
+    def check_workspace(self, name: str, t, consequence: str) -> None:
+        """Raise :class:`LimitError` if the position ``t`` (m) is outside the box."""
+        t = np.asarray(t, dtype=float)
+        if np.any(t < self.workspace_min) or np.any(t > self.workspace_max):
+            raise LimitError(f"{name}: position {np.round(t, 4).tolist()} m is outside "
+                             f"limits.workspace {list(self.workspace_min)}.."
+                             f"{list(self.workspace_max)} m; {consequence}", "workspace",
+                             tuple(t.tolist()), (self.workspace_min, self.workspace_max))
+
+    def check_move(self, pose: np.ndarray, speed, accel) -> None:
+        """The arguments of ``Arm.move``: speed and acceleration within (0, limit] (else
+        ``ValueError``), the target in the workspace (else :class:`LimitError`)."""
+        for name, v, hi in (("speed", speed, self.max_linear_speed),
+                            ("accel", accel, self.max_linear_accel)):
+            if isinstance(v, bool) or not (isinstance(v, numbers.Real) and math.isfinite(v)
+                                           and 0 < v <= hi):
+                raise ValueError(f"{name}: must be within (0, {hi:g}], got {v!r}")
+        self.check_workspace("pose", dq.to_pose(pose)[1], "the move was not sent")
+
+    def check_servo(self, target: np.ndarray, prev: np.ndarray, prev_step: np.ndarray,
+                    period: float) -> np.ndarray:
+        """Check one servo set-point ``target`` (unit dual quaternion) that follows ``prev`` by
+        one ``period``, whose own step from the one before was ``prev_step`` (zeros from rest).
+
+        Returns this step, ``[dx, dy, dz, rx, ry, rz]`` (translation, then the rotation vector
+        of ``target * prev^-1``, both in the base frame); raises :class:`LimitError` for the
+        first limit broken, in the order workspace, step, speed, acceleration. The caller must
+        stop the arm before passing the error on: the message says it was stopped."""
+        stop = "the arm was stopped"
+        qt, tt = dq.to_pose(target)
+        qp, tp = dq.to_pose(prev)
+        self.check_workspace("pose", tt, stop)
+        step = np.concatenate([tt - tp, rotvec_from_quat(dq.mul(target, dq.conj(prev))[:4])])
+        lin, ang = float(np.linalg.norm(step[:3])), float(np.linalg.norm(step[3:]))
+        ms = 1e3 * period
+        dv = float(np.linalg.norm(step[:3] - prev_step[:3])) / period ** 2
+        dw = float(np.linalg.norm(step[3:] - prev_step[3:])) / period ** 2
+        # A small tolerance: a stream planned exactly at a limit must pass despite rounding.
+        checks = (
+            ("max_linear_step", lin, 1e-9, "m", "step"),
+            ("max_angular_step", ang, 1e-9, "rad", "turn"),
+            ("max_linear_speed", lin / period, 1e-9, "m/s", f"speed over one {ms:g} ms period"),
+            ("max_angular_speed", ang / period, 1e-9, "rad/s",
+             f"angular speed over one {ms:g} ms period"),
+            ("max_linear_accel", dv, 1e-6, "m/s^2", "acceleration"),
+            ("max_angular_accel", dw, 1e-6, "rad/s^2", "angular acceleration"),
+        )
+        for limit, value, tol, unit, what in checks:
+            bound = getattr(self, limit)
+            if value > bound * (1 + tol):
+                raise LimitError(f"pose: set-point needs a {what} of {value:.4g} {unit}, above "
+                                 f"limits.{limit} = {bound:g} {unit}; {stop}", limit, value, bound)
+        return step
+
+
+def unit_pose(pose, name: str = "pose") -> np.ndarray:
+    """``pose`` as a float64 (8,) unit dual quaternion, else ``ValueError`` naming ``name``."""
+    a = np.asarray(pose, dtype=np.float64)
+    if a.shape != (8,):
+        raise ValueError(f"{name}: expected a dual quaternion of shape (8,), got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name}: contains NaN or infinity")
+    n = float(np.linalg.norm(a[:4]))
+    if abs(n - 1.0) > dq.UNIT_TOL:
+        raise ValueError(f"{name}: quaternion norm {n:.6g} is not unit (tolerance {dq.UNIT_TOL})")
+    return dq.normalize(a)
+
+
+def pose_delta(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """(translation distance in m, rotation angle in rad) from unit pose ``a`` to ``b``."""
+    qa, ta = dq.to_pose(a)
+    qb, tb = dq.to_pose(b)
+    c = abs(float(np.dot(qa, qb)))
+    return float(np.linalg.norm(tb - ta)), 2.0 * math.acos(min(1.0, c))
+
+
+def tool_line(a: np.ndarray, b: np.ndarray, f: float) -> np.ndarray:
+    """The pose a fraction ``f`` of the way from ``a`` to ``b`` on the path of a tool-space
+    linear move (straight line in translation, slerp in rotation)."""
+    from service.interpolate import interpolate
+    return interpolate([0.0, 1.0], np.stack([a, b]), [float(f)], "tool_linear")[0]
+
+
 class Arm(abc.ABC):
-    """An arm commanded in tool space."""
+    """An arm commanded in tool space.
+
+    Every backend takes ``limits=`` (:class:`Limits`) and applies them the same way: ``servo()``
+    set-points go through :meth:`Limits.check_servo`, and one that breaks a limit brings the arm
+    to a controlled stop and raises :class:`LimitError`; a set-point is never changed to fit.
+    ``move()`` arguments go through :meth:`Limits.check_move`. ``servo()`` returns once the
+    period since the previous set-point has passed, so a loop of ``servo()`` calls streams at
+    ``period``."""
 
     #: controller period in seconds (servo commands are sent once per period)
     period: float = 0.008
+    limits: Limits = Limits()
 
     @abc.abstractmethod
     def tool_pose(self) -> tuple[float, np.ndarray]:

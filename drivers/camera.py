@@ -407,6 +407,16 @@ class CharucoCamera(PoseSource):
     variance estimated from the first's residual), ``max_reprojection_px`` (RMS point distance).
     """
 
+    @classmethod
+    def open(cls, channel: str, *, intrinsics: Union[Intrinsics, str, None] = None,
+             **kwargs) -> "CharucoCamera":
+        """``drivers.open_source("charuco:<source>", intrinsics=...)``: ``source`` is anything
+        :func:`open_frames` accepts (folder, image, video file, device index)."""
+        if intrinsics is None:
+            raise ValueError("intrinsics: required (an Intrinsics or a YAML/JSON file such as "
+                             "the poses.json of `dqpose sim camera`)")
+        return cls(intrinsics, source=channel, **kwargs)
+
     def __init__(self, intrinsics: Union[Intrinsics, str], board: Optional[BoardSpec] = None,
                  source=None, *, name: str = "camera", min_corners: int = 6,
                  min_spread: float = 0.1, ambiguity_chi2: float = 25.0,

@@ -12,6 +12,9 @@ Our own codec for the frames we use (standard 11-bit ids, 8 data bytes, big-endi
   joints 1-6 beyond their angle limit and whose low byte flags joints 1-6 with a communication
   error (bits 0-5).
 
+By name: ``drivers.open_arm("piper:socketcan:can0")`` (``piper:<python-can interface>:<channel>``;
+``piper:udp_multicast:239.74.163.2`` reaches ``dqpose sim piper`` in another process).
+
 ``PiperArm`` runs a receive thread that assembles feedback poses, decodes the arm status, counts
 and skips malformed frames, and watches the command stream: if ``servo`` set-points stop arriving
 the arm is told to hold where it is. While the arm reports a stop or fault, ``servo`` and
@@ -30,9 +33,11 @@ from typing import Optional, Sequence
 import can
 import numpy as np
 
-from drivers.base import Arm, ArmError, ArmStatus
+from drivers.base import (Arm, ArmError, ArmStatus, LimitError, Limits, pose_delta, tool_line,
+                          unit_pose)
 from drivers.euler import quat_from_sxyz, sxyz_from_quat
 from service import dq
+from service.profile import Trapezoid
 
 __all__ = [
     "MOTION_CTRL_2", "END_POSE_CTRL", "END_POSE_FEEDBACK", "CTRL_MODE_CAN", "MOVE_P", "MOVE_J",
@@ -41,7 +46,8 @@ __all__ = [
     "pose_to_units", "units_to_pose", "ARM_STATUS_FEEDBACK", "ARM_STATUS_NAMES",
     "ARM_NORMAL", "ARM_EMERGENCY_STOP", "ARM_COLLISION", "EMERGENCY_STATES",
     "PROTECTIVE_STATES", "REJECTION_STATES", "TEACH_STATES", "StatusReport",
-    "encode_arm_status", "decode_arm_status", "describe_status", "PiperArm",
+    "encode_arm_status", "decode_arm_status", "describe_status", "COMMAND_BLOCK",
+    "FEEDBACK_BLOCK", "KNOWN_FEEDBACK", "PiperArm",
 ]
 
 MOTION_CTRL_2 = 0x151
@@ -295,45 +301,16 @@ class EndPoseAssembler:
         return EndPose(*parts[0], *parts[1], *parts[2])
 
 
-def _unit_pose(pose, name: str) -> np.ndarray:
-    a = np.asarray(pose, dtype=float)
-    if a.shape != (8,):
-        raise ValueError(f"{name}: expected a dual quaternion of shape (8,), got {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name}: contains non-finite values")
-    n = float(np.linalg.norm(a[:4]))
-    if abs(n - 1.0) > dq.UNIT_TOL:
-        raise ValueError(f"{name}: quaternion norm {n:.6g} is not unit (tolerance {dq.UNIT_TOL})")
-    return dq.normalize(a)
-
-
-def _delta(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
-    """(translation distance in m, rotation angle in rad) from pose a to pose b."""
-    qa, ta = dq.to_pose(a)
-    qb, tb = dq.to_pose(b)
-    c = abs(float(np.dot(qa, qb)))
-    return float(np.linalg.norm(tb - ta)), 2.0 * math.acos(min(1.0, c))
-
-
-def _interpolate(a: np.ndarray, b: np.ndarray, f: float) -> np.ndarray:
-    """Straight line in translation, slerp in rotation (the path of the arm's MOVE L)."""
-    qa, ta = dq.to_pose(a)
-    qb, tb = dq.to_pose(b)
-    ra = dq.from_pose(qa, np.zeros(3))
-    rb = dq.from_pose(qb, np.zeros(3))
-    q = dq.to_pose(dq.sclerp(ra, rb, f))[0]
-    return dq.from_pose(q, ta + f * (tb - ta))
-
-
 class PiperArm(Arm):
     """A PiPER on ``bus`` (``can.Bus`` of any interface), in end-pose (MOVE P) mode.
 
-    Safety: every target must lie in ``workspace`` (axis-aligned box in the base frame, metres);
-    ``servo`` refuses set-points further than ``max_jump`` (m, rad) from the previous one and
-    rate-limits the rest to ``max_speed``/``max_angular_speed`` and ``max_accel``; if no servo
-    set-point arrives for ``watchdog`` seconds the arm is told to hold its measured pose.
-    The arm counts as connected while both end-pose feedback and arm status (0x2A1) are younger
-    than ``stale_timeout``.
+    Safety, as every :class:`~drivers.base.Arm`: ``servo`` set-points are checked against
+    ``limits`` (:meth:`Limits.check_servo`, one ``period`` apart) and one that breaks a limit is
+    not sent: the arm is told to hold its measured pose and :class:`LimitError` is raised;
+    ``move`` checks its arguments with :meth:`Limits.check_move`. If no servo set-point arrives
+    for ``watchdog`` seconds the arm is told to hold its measured pose. The arm counts as
+    connected while both end-pose feedback and arm status (0x2A1) are younger than
+    ``stale_timeout``. ``own_bus`` shuts the bus down on ``close()`` (``open_arm`` does).
 
     Arm status: ``status()`` sets ``emergency_stop`` for arm_status 0x01 and ``protective_stop``
     for the states where the arm has stopped itself and an operator must clear the cause
@@ -353,32 +330,46 @@ class PiperArm(Arm):
 
     name = "piper"
 
-    def __init__(self, bus: can.BusABC, *, period: float = 0.005,
-                 max_speed: float = 0.25, max_angular_speed: float = math.radians(90),
-                 max_accel: float = 2.0,
-                 workspace: tuple[Sequence[float], Sequence[float]] =
-                 ((-0.7, -0.7, -0.2), (0.7, 0.7, 0.8)),
-                 max_jump: tuple[float, float] = (0.02, math.radians(5)),
+    #: the PiPER reaches about 0.63 m
+    DEFAULT_LIMITS = Limits(max_angular_speed=math.radians(90),
+                            workspace_min=(-0.7, -0.7, -0.2), workspace_max=(0.7, 0.7, 0.8))
+
+    @classmethod
+    def open(cls, channel: str, **kwargs) -> "PiperArm":
+        """``drivers.open_arm("piper:<interface>:<channel>")``: a python-can bus of that
+        interface and channel (``virtual:can0``, ``socketcan:can0``,
+        ``udp_multicast:239.74.163.2``), owned and shut down by the arm."""
+        interface, sep, chan = channel.partition(":")
+        if not sep or not interface or not chan:
+            raise ValueError(f"channel: expected '<python-can interface>:<channel>' such as "
+                             f"'virtual:can0' or 'udp_multicast:239.74.163.2', got {channel!r}")
+        try:
+            bus = can.Bus(interface=interface, channel=chan)
+        except (can.CanError, OSError, ValueError, ImportError) as e:
+            raise ArmError(f"channel: cannot open python-can {interface} channel {chan!r}: "
+                           f"{e}") from None
+        try:
+            return cls(bus, own_bus=True, **kwargs)
+        except BaseException:
+            bus.shutdown()
+            raise
+
+    def __init__(self, bus: can.BusABC, *, period: float = 0.005, limits: Optional[Limits] = None,
                  watchdog: float = 0.1, stale_timeout: float = 0.2,
-                 position_tolerance: float = 5e-4, angle_tolerance: float = math.radians(0.2)):
-        for name, v in (("period", period), ("max_speed", max_speed),
-                        ("max_angular_speed", max_angular_speed), ("max_accel", max_accel),
-                        ("watchdog", watchdog), ("stale_timeout", stale_timeout),
+                 position_tolerance: float = 5e-4, angle_tolerance: float = math.radians(0.2),
+                 own_bus: bool = False):
+        for name, v in (("period", period), ("watchdog", watchdog),
+                        ("stale_timeout", stale_timeout),
                         ("position_tolerance", position_tolerance),
                         ("angle_tolerance", angle_tolerance)):
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name}: must be a positive number, got {v!r}")
-        lo, hi = (np.asarray(w, dtype=float) for w in workspace)
-        if lo.shape != (3,) or hi.shape != (3,) or not np.all(lo < hi):
-            raise ValueError(f"workspace: expected ((xmin, ymin, zmin), (xmax, ymax, zmax)) with "
-                             f"min < max, got {workspace!r}")
+        if limits is not None and not isinstance(limits, Limits):
+            raise ValueError(f"limits: expected a drivers.base.Limits, got {type(limits).__name__}")
         self.bus = bus
+        self._own_bus = bool(own_bus)
         self.period = float(period)
-        self.max_speed = float(max_speed)
-        self.max_angular_speed = float(max_angular_speed)
-        self.max_accel = float(max_accel)
-        self.workspace = (lo, hi)
-        self.max_jump = (float(max_jump[0]), float(max_jump[1]))
+        self.limits = limits or self.DEFAULT_LIMITS
         self.watchdog = float(watchdog)
         self.stale_timeout = float(stale_timeout)
         self.position_tolerance = float(position_tolerance)
@@ -405,7 +396,7 @@ class PiperArm(Arm):
         self._mode_sent: Optional[MotionMode] = None
         # servo stream state
         self._setpoint: Optional[np.ndarray] = None
-        self._velocity = np.zeros(2)   # (m/s, rad/s) of the last servo step
+        self._step = np.zeros(6)       # the last servo step (Limits.check_servo)
         self._last_servo = -math.inf
         self._servo_active = False
         self._abort = threading.Event()
@@ -544,18 +535,11 @@ class PiperArm(Arm):
         if error:
             raise ArmError(f"{what}: not sent, the PiPER reports {error}")
 
-    def _check_workspace(self, pose: np.ndarray, name: str) -> None:
-        t = dq.to_pose(pose)[1]
-        lo, hi = self.workspace
-        if np.any(t < lo) or np.any(t > hi):
-            raise ValueError(f"{name}: position {np.round(t, 4).tolist()} m is outside the "
-                             f"workspace {lo.tolist()}..{hi.tolist()}")
-
     def _hold(self) -> None:
         _, pose = self._fresh_pose()
         with self._lock:
             self._setpoint = pose
-            self._velocity = np.zeros(2)
+            self._step = np.zeros(6)
         self._command(pose)
 
     def wait_for_feedback(self, timeout: float = 1.0) -> tuple[float, np.ndarray]:
@@ -577,110 +561,86 @@ class PiperArm(Arm):
         return self._fresh_pose()
 
     def servo(self, pose) -> None:
-        target = _unit_pose(pose, "pose")
-        self._check_workspace(target, "pose")
+        """Send one set-point, then wait out the period since this call began. A set-point that
+        breaks a limit is not sent: the arm holds its measured pose and :class:`LimitError` is
+        raised. The first set-point of a stream is measured from the measured pose, at rest."""
+        t0 = time.monotonic()
+        target = unit_pose(pose)
         with self._cmd_lock:
             self._servo(target)
+        delay = t0 + self.period - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
 
     def _servo(self, target: np.ndarray) -> None:
         self._check_commandable("servo")
-        now = time.monotonic()
         with self._lock:
-            prev = self._setpoint if self._servo_active else None
-            last = self._last_servo
-            v_prev = self._velocity.copy() if self._servo_active else np.zeros(2)
+            active = self._servo_active
+            prev, prev_step = (self._setpoint, self._step.copy()) if active else (None, np.zeros(6))
         if prev is None:
             prev = self._fresh_pose()[1]
-            dt = self.period
         else:
             self._fresh_pose()
-            dt = min(max(now - last, self.period), self.watchdog)
-        dist, ang = _delta(prev, target)
-        if dist > self.max_jump[0] or ang > self.max_jump[1]:
-            raise ArmError(f"pose: set-point jumps {dist:.4f} m / {math.degrees(ang):.2f} deg from "
-                           f"the previous one (limits {self.max_jump[0]:.4f} m / "
-                           f"{math.degrees(self.max_jump[1]):.2f} deg); use move() for large "
-                           "motions")
-        # Rate limit: one common fraction keeps the set-point on the requested path.
-        want = np.array([dist, ang]) / dt
-        vmax = np.array([self.max_speed, self.max_angular_speed])
-        amax = np.array([self.max_accel, self.max_accel * self.max_angular_speed / self.max_speed])
-        allowed = np.minimum(vmax, v_prev + amax * dt)
-        f = 1.0
-        for w, a in zip(want, allowed):
-            if w > a:
-                f = min(f, a / w)
-        sent = target if f >= 1.0 else _interpolate(prev, target, f)
+        try:
+            step = self.limits.check_servo(target, prev, prev_step, self.period)
+        except LimitError:
+            with self._lock:
+                self._servo_active = False
+            try:
+                self._hold()
+            except ArmError:
+                pass  # no feedback to hold at; status() reports the loss
+            raise
         with self._lock:
-            self._setpoint = sent
-            self._velocity = want * f
-            self._last_servo = now
+            self._setpoint = target
+            self._step = step
+            self._last_servo = time.monotonic()
             self._servo_active = True
-        self._command(sent)
+        self._command(target)
 
     def move(self, pose, speed: float, accel: float, timeout: Optional[float] = None) -> None:
         """Trapezoidal straight-line move streamed at ``period``; returns once the feedback is
-        within tolerance of ``pose`` (``ArmError`` on ``timeout``, loss of feedback or stop)."""
-        target = _unit_pose(pose, "pose")
-        self._check_workspace(target, "pose")
-        for name, v, lim in (("speed", speed, self.max_speed), ("accel", accel, self.max_accel)):
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and 0 < v <= lim):
-                raise ValueError(f"{name}: must be within (0, {lim}], got {v!r}")
+        within tolerance of ``pose`` (``ArmError`` on ``timeout``, loss of feedback or stop).
+        ``speed`` and ``accel`` are m/s and m/s^2; the rotation runs on the same profile, scaled
+        so it stays within the angular limits."""
+        target = unit_pose(pose)
+        L = self.limits
+        L.check_move(target, speed, accel)
         with self._lock:
             self._servo_active = False
         self._abort.clear()
         _, start = self._fresh_pose()
         self._check_commandable("move")
-        dist, ang = _delta(start, target)
-        # Rotation runs at the same fraction of its limit as translation does of its own.
-        scale = self.max_angular_speed / self.max_speed
-        s = max(dist, ang / scale)  # path length in translation-equivalent metres
-        if s > 0:
-            t_acc = speed / accel
-            if accel * t_acc * t_acc >= s:   # triangular profile
-                t_acc = math.sqrt(s / accel)
-                t_flat, v = 0.0, accel * t_acc
-            else:
-                v = speed
-                t_flat = (s - accel * t_acc * t_acc) / speed
-            duration = 2 * t_acc + t_flat
-
-            def progress(t: float) -> float:
-                if t < t_acc:
-                    return 0.5 * accel * t * t
-                if t < t_acc + t_flat:
-                    return 0.5 * accel * t_acc * t_acc + v * (t - t_acc)
-                r = max(duration - t, 0.0)
-                return s - 0.5 * accel * r * r
-        else:
-            duration = 0.0
+        dist, ang = pose_delta(start, target)
+        # radians per translation-equivalent metre, within both angular limits
+        scale = min(L.max_angular_speed / L.max_linear_speed,
+                    L.max_angular_accel / L.max_linear_accel)
+        profile = Trapezoid(max(dist, ang / scale), speed, accel)
         if timeout is None:
-            timeout = duration + 2.0
+            timeout = profile.duration + 2.0
         t0 = time.monotonic()
         deadline = t0 + timeout
         next_tick = t0
         while True:
             now = time.monotonic()
             el = now - t0
-            if el < duration:
-                sp = _interpolate(start, target, progress(el) / s)
-            else:
-                sp = target
+            sp = tool_line(start, target, profile.fraction(el)) if el < profile.duration \
+                else target
             with self._cmd_lock:
                 if self._abort.is_set():
                     raise ArmError("move: stopped before reaching the target")
                 self._check_commandable("move")
                 self._command(sp)
             _, cur = self._fresh_pose()
-            if el >= duration:
-                d, a = _delta(cur, target)
+            if el >= profile.duration:
+                d, a = pose_delta(cur, target)
                 if d <= self.position_tolerance and a <= self.angle_tolerance:
                     with self._lock:
                         self._setpoint = target
-                        self._velocity = np.zeros(2)
+                        self._step = np.zeros(6)
                     return
             if now > deadline:
-                d, a = _delta(cur, target)
+                d, a = pose_delta(cur, target)
                 raise ArmError(f"move: target not reached within {timeout:.2f} s (still "
                                f"{d * 1000:.2f} mm / {math.degrees(a):.3f} deg away)")
             next_tick += self.period
@@ -741,3 +701,5 @@ class PiperArm(Arm):
             pass
         self._closed.set()
         self._thread.join(timeout=1.0)
+        if self._own_bus:
+            self.bus.shutdown()

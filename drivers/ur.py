@@ -3,12 +3,14 @@
 Poses cross the interface as dual quaternions ``T_base_tool``; the controller speaks
 ``[x, y, z, rx, ry, rz]`` (metres, rotation vector), converted by :mod:`drivers.rotvec`.
 
-Safety, enforced here and not left to the caller: every set-point is checked against a speed,
-acceleration and workspace :class:`Limits` and refused (the arm is stopped, :class:`LimitError`
-raised) rather than jumped to; a watchdog stops servoing when ``servo()`` calls stall; a monitor
-notices a lost controller (``isConnected()`` false, or data timestamps that stopped advancing
-while the receive side keeps returning the last pose) and protective or emergency stops, and
-every later command raises :class:`~drivers.base.ArmError`.
+Safety, enforced here and not left to the caller: every set-point is checked against the
+:class:`~drivers.base.Limits` as every arm checks them and refused (the arm is stopped,
+:class:`~drivers.base.LimitError` raised) rather than jumped to; a watchdog stops servoing
+when ``servo()`` calls stall; a monitor notices a lost controller (``isConnected()`` false, or
+data timestamps that stopped advancing while the receive side keeps returning the last pose) and
+protective or emergency stops, and every later command raises :class:`~drivers.base.ArmError`.
+
+By name: ``drivers.open_arm("ur:192.168.1.10", limits=...)``.
 """
 from __future__ import annotations
 
@@ -17,12 +19,11 @@ import numbers
 import socket
 import threading
 import time
-from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
 
-from drivers.base import Arm, ArmError, ArmStatus
+from drivers.base import Arm, ArmError, ArmStatus, LimitError, Limits, unit_pose
 from drivers.rotvec import pose_from_rotvec, rotvec_from_pose, rotvec_from_quat
 from drivers.rtde import request_version
 from service import dq
@@ -31,41 +32,6 @@ RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT = 30004, 29999, 30003
 CB3_MAJOR = 3
 _RECEIVE_VARIABLES = ["timestamp", "actual_TCP_pose", "runtime_state", "robot_mode",
                       "safety_mode", "robot_status_bits", "safety_status_bits"]
-
-
-class LimitError(ArmError):
-    """A command was refused because it breaks a safety limit; the arm was stopped."""
-
-
-@dataclass(frozen=True)
-class Limits:
-    """What a command may ask of the arm. The defaults suit a UR5e on an open bench; set the
-    workspace box to your cell."""
-    max_linear_speed: float = 0.25      # m/s
-    max_angular_speed: float = 1.0      # rad/s
-    max_linear_accel: float = 2.0       # m/s^2
-    max_angular_accel: float = 4.0      # rad/s^2
-    workspace_min: tuple = (-1.0, -1.0, -0.2)   # m, base frame
-    workspace_max: tuple = (1.0, 1.0, 1.2)
-
-    def __post_init__(self):
-        for name in ("max_linear_speed", "max_angular_speed", "max_linear_accel",
-                     "max_angular_accel"):
-            v = getattr(self, name)
-            if not (isinstance(v, numbers.Real) and math.isfinite(v) and v > 0):
-                raise ValueError(f"limits.{name}: must be a positive finite number, got {v!r}")
-        lo, hi = np.asarray(self.workspace_min, float), np.asarray(self.workspace_max, float)
-        if lo.shape != (3,) or hi.shape != (3,) or not np.all(np.isfinite(lo) & np.isfinite(hi)):
-            raise ValueError("limits.workspace_min/max: expected three finite numbers each")
-        if np.any(lo >= hi):
-            raise ValueError(f"limits.workspace_min: {lo.tolist()} is not below "
-                             f"workspace_max {hi.tolist()}")
-
-    def check_workspace(self, name: str, t: np.ndarray) -> None:
-        lo, hi = np.asarray(self.workspace_min), np.asarray(self.workspace_max)
-        if np.any(t < lo) or np.any(t > hi):
-            raise LimitError(f"{name}: position {np.round(t, 4).tolist()} m is outside the "
-                             f"workspace box {list(self.workspace_min)}..{list(self.workspace_max)}")
 
 
 def _probe(host: str, port: int, timeout: float) -> None:
@@ -86,8 +52,13 @@ class URArm(Arm):
     timeout, so the ports are probed first.
     """
 
+    @classmethod
+    def open(cls, channel: str, **kwargs) -> "URArm":
+        """``drivers.open_arm("ur:<channel>")``: the channel is the controller's host."""
+        return cls(channel, **kwargs)
+
     def __init__(self, host: str, frequency: Optional[float] = None, *,
-                 limits: Limits = Limits(), watchdog_periods: int = 25, stale_after: float = 0.1,
+                 limits: Optional[Limits] = None, watchdog_periods: int = 25, stale_after: float = 0.1,
                  connect_timeout: float = 2.0, lookahead: float = 0.1, gain: float = 300.0,
                  stop_decel: float = 10.0):
         if not isinstance(host, str) or not host:
@@ -104,7 +75,9 @@ class URArm(Arm):
                 raise ValueError(f"{name}: must be a positive number, got {v!r}")
         if int(watchdog_periods) != watchdog_periods or watchdog_periods < 1:
             raise ValueError(f"watchdog_periods: must be a whole number >= 1, got {watchdog_periods!r}")
-        self.host, self.limits = host, limits
+        if limits is not None and not isinstance(limits, Limits):
+            raise ValueError(f"limits: expected a drivers.base.Limits, got {type(limits).__name__}")
+        self.host, self.limits = host, limits or Limits()
         self.lookahead, self.gain, self.stop_decel = float(lookahead), float(gain), float(stop_decel)
         self.watchdog_periods, self.stale_after = int(watchdog_periods), float(stale_after)
 
@@ -232,64 +205,32 @@ class URArm(Arm):
         self._check()
         return time.monotonic(), pose_from_rotvec(self._recv.getActualTCPPose())
 
-    @staticmethod
-    def _validate(pose) -> np.ndarray:
-        a = np.asarray(pose, dtype=np.float64)
-        if a.shape != (8,):
-            raise ValueError(f"pose: expected a dual quaternion of shape (8,), got {a.shape}")
-        if not np.all(np.isfinite(a)):
-            raise ValueError("pose: contains NaN or infinity")
-        return rotvec_from_pose(a)      # raises ValueError for a non-unit pose
-
     def servo(self, pose: np.ndarray) -> None:
         """Send one set-point and wait out the period (``initPeriod``/``servoL``/``waitPeriod``).
 
-        A set-point farther than one period at the speed limit from the previous one, or whose
-        step changes faster than the acceleration limit allows, or outside the workspace, stops
-        the arm and raises :class:`LimitError`. The first set-point is measured from the
-        actual pose, with the arm at rest.
+        A set-point that breaks a limit (:meth:`Limits.check_servo`) stops the arm and raises
+        :class:`LimitError`. The first set-point is measured from the actual pose, with the arm
+        at rest.
         """
         t0 = self._ctrl.initPeriod()        # the checks below count towards the period
-        p6 = self._validate(pose)
+        target = unit_pose(pose)
+        p6 = rotvec_from_pose(target)
         self._check()
-        target = pose_from_rotvec(p6)
         if self._last_setpoint is None:
             prev, prev_step = pose_from_rotvec(self._recv.getActualTCPPose()), np.zeros(6)
         else:
             prev, prev_step = self._last_setpoint, self._last_step
-        # displacement from the previous set-point: translation, then rotation vector (base frame)
-        step = np.concatenate([p6[:3] - rotvec_from_pose(prev)[:3],
-                               rotvec_from_quat(dq.mul(target, dq.conj(prev))[:4])])
-        lin, ang = float(np.linalg.norm(step[:3])), float(np.linalg.norm(step[3:]))
-        dt, L = self.period, self.limits
-        problem = ""
+        dt = self.period
         try:
-            L.check_workspace("pose", p6[:3])
-        except LimitError as e:
-            problem = str(e)
-        if not problem and lin > L.max_linear_speed * dt * (1 + 1e-9):
-            problem = (f"pose: set-point is {lin * 1e3:.3f} mm from the last one, more than one "
-                       f"period at {L.max_linear_speed} m/s ({L.max_linear_speed * dt * 1e3:.3f} mm)")
-        elif not problem and ang > L.max_angular_speed * dt * (1 + 1e-9):
-            problem = (f"pose: set-point turns {math.degrees(ang):.4f} deg from the last one, more "
-                       f"than one period at {L.max_angular_speed} rad/s")
-        elif not problem:
-            dv = float(np.linalg.norm(step[:3] - prev_step[:3])) / dt ** 2
-            dw = float(np.linalg.norm(step[3:] - prev_step[3:])) / dt ** 2
-            if dv > L.max_linear_accel * (1 + 1e-6):
-                problem = (f"pose: set-point needs {dv:.2f} m/s^2, above the "
-                           f"{L.max_linear_accel} m/s^2 limit")
-            elif dw > L.max_angular_accel * (1 + 1e-6):
-                problem = (f"pose: set-point needs {dw:.2f} rad/s^2, above the "
-                           f"{L.max_angular_accel} rad/s^2 limit")
-        if problem:
+            step = self.limits.check_servo(target, prev, prev_step, dt)
+        except LimitError:
             with self._state_lock:
                 was = self._servoing
                 self._servoing = False
             if was:
                 self._stop_servo()
             self._last_setpoint = None
-            raise LimitError(problem + "; the arm was stopped")
+            raise
         with self._lock:
             ok = self._ctrl.servoL(p6.tolist(), 0.0, 0.0, dt, self.lookahead, self.gain)
             if ok:
@@ -303,19 +244,18 @@ class URArm(Arm):
         self._ctrl.waitPeriod(t0)
 
     def move(self, pose: np.ndarray, speed: float, accel: float) -> None:
-        """Blocking straight-line move (``moveL``) at ``speed`` m/s and ``accel`` m/s^2, both
-        within the limits; the target must lie in the workspace box (so does the whole line).
+        """Blocking straight-line move (``moveL``) at ``speed`` m/s and ``accel`` m/s^2
+        (:meth:`Limits.check_move`: within the limits, the target in the workspace box, and so
+        the whole line).
 
         The move is sent asynchronously and watched from here: a blocking ``moveL`` in ur_rtde
         does not return when the controller disappears mid-move. A lost controller or a safety
         stop raises :class:`ArmError` within ``stale_after`` plus a poll; ``stop()`` from another
         thread ends the move (and ``move`` raises)."""
-        p6 = self._validate(pose)
+        target = unit_pose(pose)
         L = self.limits
-        for name, v, hi in (("speed", speed, L.max_linear_speed), ("accel", accel, L.max_linear_accel)):
-            if not (isinstance(v, numbers.Real) and math.isfinite(v) and 0 < v <= hi):
-                raise ValueError(f"{name}: must be within (0, {hi}], got {v!r}")
-        L.check_workspace("pose", p6[:3])
+        L.check_move(target, speed, accel)
+        p6 = rotvec_from_pose(target)
         self._check()
         here = np.asarray(self._recv.getActualTCPPose())
         rel = dq.mul(pose_from_rotvec(p6), dq.conj(pose_from_rotvec(here)))

@@ -10,9 +10,11 @@ workspace limits. Against a real arm, drop the simulator and pass the robot's ad
 import numpy as np
 
 from drivers.sim.ursim import URSimProcess
-from drivers.ur import LimitError, URArm
+from drivers.base import LimitError
+from drivers.ur import URArm
 from service import dq
 from service.interpolate import interpolate
+from service.profile import smoothstep
 
 with URSimProcess() as sim, URArm(sim.host) as arm:
     print(f"connected to {sim.host}, controller period {arm.period * 1e3:.0f} ms")
@@ -23,8 +25,7 @@ with URSimProcess() as sim, URArm(sim.host) as arm:
 
     T = 1.5
     k = np.arange(int(round(T / arm.period)) + 1) * arm.period
-    s = k / T
-    s = s * s * (3 - 2 * s)              # smoothstep: starts and ends at rest, bounded acceleration
+    s = smoothstep(k / T)                # starts and ends at rest, bounded acceleration
     path = interpolate([0.0, 1.0], np.array([start, goal]), s, "tool_linear")
 
     for pose in path[1:]:

@@ -3,22 +3,26 @@ fresh machine has something to point the drivers at.
 
 - ``ur``: a simulated UR e-series controller (RTDE 30004, dashboard 29999, script 30003) on the
   first free loopback address from 127.0.0.20, in its own process:
-  ``URArm(host)`` or ``rtde_receive.RTDEReceiveInterface(host)``.
+  ``drivers.open_arm("ur:<host>")`` or ``rtde_receive.RTDEReceiveInterface(host)``.
+- ``piper``: a simulated PiPER in its own process on python-can's ``udp_multicast`` bus, on a
+  multicast group of its own (so two fleets on one machine do not share an arm):
+  ``drivers.open_arm("piper:udp_multicast:<group>")``.
 - ``camera``: views of the default ChArUco board from 20 random poses, rendered into a folder
   with ``poses.json`` (the true ``T_camera_board`` of each and the intrinsics):
-  ``CharucoCamera(DEFAULT_INTRINSICS, source=folder)``.
+  ``drivers.open_source("charuco:<folder>", intrinsics="<folder>/poses.json")``.
 
-The PiPER simulator needs a CAN bus shared between processes (SocketCAN ``vcan0`` on Linux, set up
-as root); start it with ``dqpose sim piper --interface socketcan --channel vcan0``.
+Each ``info`` entry's ``use`` is that call. The simulator processes end with the server, even
+when it is killed; the camera folder is removed on a clean exit only.
 """
 from __future__ import annotations
 
 import contextlib
 import os
+import random
 import tempfile
 from typing import Optional
 
-DEVICES = ("ur", "camera")
+DEVICES = ("ur", "piper", "camera")
 
 
 class Fleet(contextlib.ExitStack):
@@ -43,14 +47,27 @@ class Fleet(contextlib.ExitStack):
                     sim = self.enter_context(URSimProcess())
                 except RuntimeError as e:   # as OSError: the CLI reports it in one line
                     raise OSError(f"sims: {e}") from None
-                self.info.append({"device": "ur", "host": sim.host,
-                                  "use": f"drivers.ur.URArm({sim.host!r})"})
+                self.info.append({"device": "ur", "host": sim.host, "spec": f"ur:{sim.host}",
+                                  "use": f"drivers.open_arm('ur:{sim.host}')"})
+            if "piper" in self.devices:
+                self.info.append(self._piper())
             if "camera" in self.devices:
                 self.info.append(self._camera())
         except BaseException:
             self.close()
             raise
         return self
+
+    def _piper(self) -> dict:
+        from drivers.sim.piper import PiperSimProcess
+        # 239.74.0.0/16 is organisation-local; a random group keeps fleets apart
+        group = f"239.74.{random.randrange(256)}.{random.randrange(1, 255)}"
+        try:
+            sim = self.enter_context(PiperSimProcess("udp_multicast", group))
+        except RuntimeError as e:
+            raise OSError(f"sims: {e}") from None
+        return {"device": "piper", "bus": "udp_multicast", "channel": group, "pid": sim.pid,
+                "spec": sim.spec, "use": f"drivers.open_arm('{sim.spec}')"}
 
     def _camera(self) -> dict:
         import argparse
@@ -64,6 +81,6 @@ class Fleet(contextlib.ExitStack):
         with open(os.devnull, "w") as quiet, contextlib.redirect_stdout(quiet):
             if camera.run(args) != 0:
                 raise OSError(f"sims: cannot render the camera views into {folder}")
-        return {"device": "camera", "images": folder,
-                "use": f"drivers.camera.CharucoCamera(drivers.sim.camera.DEFAULT_INTRINSICS, "
-                       f"source={folder!r})"}
+        spec, intrinsics = f"charuco:{folder}", os.path.join(folder, "poses.json")
+        return {"device": "camera", "images": folder, "spec": spec,
+                "use": f"drivers.open_source({spec!r}, intrinsics={intrinsics!r})"}

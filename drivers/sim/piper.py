@@ -14,13 +14,20 @@ fault a test injected (``emergency_stop``, ``collide``, ``set_joint_errors``, ``
 While a stop or fault stands the arm halts where it is, drops its target and ignores end-pose
 commands; ``clear_faults`` ends it, and the arm then waits for a new target.
 
-From the shell: ``dqpose sim piper --channel can0 --interface socketcan`` (or
-``python -m drivers.sim.piper``).
+From the shell: ``dqpose sim piper`` (or ``python -m drivers.sim.piper``) serves on python-can's
+``udp_multicast`` interface, group ``239.74.163.2``: a bus that crosses processes on one machine
+without root or a CAN adapter (hop limit 1, so frames stay on the local link), reached with
+``drivers.open_arm("piper:udp_multicast:239.74.163.2")``. On a CAN adapter or a ``vcan``
+device: ``--interface socketcan --channel can0``. :class:`PiperSimProcess` runs it from Python.
 """
 from __future__ import annotations
 
 import argparse
 import math
+import os
+import signal
+import subprocess
+import sys
 import threading
 import time
 from collections import Counter
@@ -29,15 +36,21 @@ from typing import Optional, Sequence
 import can
 import numpy as np
 
+from drivers.base import pose_delta, tool_line
+from drivers.sim import stop_when_orphaned
 from drivers.euler import dq_from_xyz_sxyz
 from drivers.piper import (ARM_COLLISION, ARM_EMERGENCY_STOP, ARM_NORMAL, COMMAND_BLOCK,
                            CTRL_MODE_CAN, END_POSE_CTRL, END_POSE_FEEDBACK, MOTION_CTRL_2, MOVE_L,
                            MOVE_P, EndPoseAssembler, FrameError, MotionMode, StatusReport,
-                           _delta, _interpolate, decode_motion_mode, encode_arm_status,
-                           encode_end_pose, pose_to_units, units_to_pose)
+                           decode_motion_mode, encode_arm_status, encode_end_pose, pose_to_units,
+                           units_to_pose)
 from service import dq
 
-__all__ = ["PiperSim", "HOME", "main", "add_arguments", "run"]
+__all__ = ["PiperSim", "PiperSimProcess", "HOME", "DEFAULT_INTERFACE", "DEFAULT_CHANNEL", "main",
+           "add_arguments", "run"]
+
+#: python-can's multicast-over-UDP bus: reaches every process on this machine, needs no root
+DEFAULT_INTERFACE, DEFAULT_CHANNEL = "udp_multicast", "239.74.163.2"
 
 #: a reachable tool pose, pointing down: 0.2 m forward, 0.3 m up
 HOME = dq_from_xyz_sxyz([0.2, 0.0, 0.3], [math.pi, 0.0, 0.0])
@@ -185,14 +198,14 @@ class PiperSim:
             if self._target is None or not self._following() or self._stopped():
                 return
             frac = self.mode.speed_percent / 100.0
-            dist, ang = _delta(self._pose, self._target)
+            dist, ang = pose_delta(self._pose, self._target)
             f = 1.0
             if dist > 0:
                 f = min(f, self.max_speed * frac * dt / dist)
             if ang > 0:
                 f = min(f, self.max_angular_speed * frac * dt / ang)
             self._pose = self._target.copy() if f >= 1.0 else \
-                dq.normalize(_interpolate(self._pose, self._target, f))
+                dq.normalize(tool_line(self._pose, self._target, f))
 
     def publish(self) -> None:
         for m in encode_end_pose(pose_to_units(self.pose), END_POSE_FEEDBACK):
@@ -248,34 +261,106 @@ class PiperSim:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--channel", default="can0", help="CAN channel (default can0)")
-    p.add_argument("--interface", default="socketcan",
-                   help="python-can interface: socketcan, virtual, ... (default socketcan)")
+    p.add_argument("--interface", default=DEFAULT_INTERFACE,
+                   help="python-can interface: udp_multicast (crosses processes on this machine), "
+                        "socketcan (a CAN adapter or vcan), virtual (this process only), ... "
+                        "(default %(default)s)")
+    p.add_argument("--channel", default=DEFAULT_CHANNEL,
+                   help="the interface's channel: a multicast group for udp_multicast, a device "
+                        "such as can0 for socketcan (default %(default)s)")
     p.add_argument("--rate", type=float, default=200.0, help="feedback rate in Hz (default 200)")
     p.add_argument("--duration", type=float, default=None,
                    help="stop after this many seconds (default: until Ctrl-C)")
+    p.add_argument("--exit-with-parent", action="store_true",
+                   help="stop when the process that started this one ends (even if killed)")
+
+
+def _hint(interface: str) -> str:
+    if interface == "socketcan":
+        return ("; a CAN adapter must be up (ip link set can0 up type can bitrate 1000000), or "
+                "make a virtual one as root: modprobe vcan && ip link add dev vcan0 type vcan && "
+                "ip link set up vcan0; without root use the default --interface udp_multicast")
+    if interface == "udp_multicast":
+        return "; python-can's udp_multicast needs the msgpack package (pip install msgpack)"
+    return ""
 
 
 def run(args: argparse.Namespace) -> int:
     try:
         bus = can.Bus(interface=args.interface, channel=args.channel)
     except (can.CanError, OSError, ValueError, ImportError) as e:
-        print(f"dqpose sim piper: cannot open {args.interface} channel {args.channel!r}: {e}")
+        print(f"dqpose sim piper: cannot open python-can {args.interface} channel "
+              f"{args.channel!r}: {e}{_hint(args.interface)}", file=sys.stderr)
         return 2
     sim = PiperSim(bus, rate=args.rate)
-    print(f"simulated PiPER on {args.interface}:{args.channel}, feedback at {args.rate:g} Hz",
-          flush=True)
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    if args.exit_with_parent:
+        stop_when_orphaned(stop)
+    print(f"simulated PiPER on {args.interface}:{args.channel}, feedback at {args.rate:g} Hz; "
+          f"drivers.open_arm('piper:{args.interface}:{args.channel}')", flush=True)
     try:
         sim.start()
         end = math.inf if args.duration is None else time.monotonic() + args.duration
-        while time.monotonic() < end:
-            time.sleep(min(0.2, max(0.0, end - time.monotonic())))
+        while time.monotonic() < end and not stop.is_set():
+            stop.wait(min(0.2, max(0.0, end - time.monotonic())))
     except KeyboardInterrupt:
         pass
     finally:
         sim.close()
         bus.shutdown()
     return 0
+
+
+class PiperSimProcess:
+    """``dqpose sim piper`` in its own process (so another process, e.g. the server, shares its
+    bus), stopped by ``close()`` or when this process ends. ``spec`` is its ``open_arm`` name."""
+
+    def __init__(self, interface: str = DEFAULT_INTERFACE, channel: str = DEFAULT_CHANNEL, *,
+                 args: tuple = (), timeout: float = 10.0):
+        self.interface, self.channel = interface, channel
+        self.spec = f"piper:{interface}:{channel}"
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "drivers.sim.piper", "--interface", interface, "--channel",
+             channel, "--exit-with-parent", *map(str, args)],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            cwd=os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+        self.pid = self.proc.pid
+        # The first line is printed once the bus is open; a failure ends the process instead.
+        ready = threading.Event()
+        line: list[str] = []
+        reader = threading.Thread(target=lambda: (line.append(self.proc.stdout.readline()),
+                                                  ready.set()), daemon=True)
+        reader.start()
+        if not ready.wait(timeout) or not line[0]:
+            self._end()
+            err = self.proc.stderr.read().strip()
+            self._close_pipes()
+            raise RuntimeError(f"could not start the PiPER simulator on {interface}:{channel}: "
+                               f"{err or f'no answer within {timeout:g} s'}")
+
+    def _end(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+    def _close_pipes(self) -> None:
+        for f in (self.proc.stdout, self.proc.stderr):
+            f.close()
+
+    def close(self) -> None:
+        self._end()
+        self._close_pipes()
+
+    def __enter__(self) -> "PiperSimProcess":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:

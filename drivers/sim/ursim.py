@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import collections
 import json
-import math
 import os
 import re
 import signal
@@ -40,8 +39,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.rotvec import quat_from_rotvec, rotvec_from_quat
 from drivers import rtde as rp
+from drivers.rotvec import quat_from_rotvec, rotvec_from_quat
+from drivers.sim import stop_when_orphaned
+from service.profile import Trapezoid
 
 RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT = 30004, 29999, 30003
 HOOK_PORT = 30010
@@ -96,30 +97,6 @@ def _limit(v, vmax):
     return v * (vmax / n) if n > vmax else v
 
 
-class _Trapezoid:
-    """Distance along a path of length ``L`` under speed ``v`` and acceleration ``a``."""
-
-    def __init__(self, L, v, a):
-        self.L, self.a = L, a
-        if L * a >= v * v:
-            self.v, self.ta = v, v / a
-            self.T = L / v + v / a
-        else:
-            self.v = math.sqrt(L * a)
-            self.ta = self.v / a
-            self.T = 2.0 * self.ta
-
-    def __call__(self, t):
-        if t >= self.T:
-            return self.L
-        if t < self.ta:
-            return 0.5 * self.a * t * t
-        if t > self.T - self.ta:
-            r = self.T - t
-            return self.L - 0.5 * self.a * r * r
-        return 0.5 * self.a * self.ta * self.ta + self.v * (t - self.ta)
-
-
 class _Move:
     def __init__(self, p0, q0, p1, q1, v, a, cfg: SimConfig):
         self.p0, self.p1, self.q0 = p0, p1, q0
@@ -132,15 +109,15 @@ class _Move:
         else:  # pure rotation: UR reads v and a as rad/s and rad/s^2
             v = min(v, cfg.max_angular_speed)
             self.length = angle
-        self.profile = _Trapezoid(self.length, v, a) if self.length > 0 else None
+        self.profile = Trapezoid(self.length, v, a)
         self.t = 0.0
 
     def step(self, dt):
         """Advance and return (p, q, finished)."""
         self.t += dt
-        if self.profile is None or self.t >= self.profile.T:
+        if self.t >= self.profile.duration:
             return self.p1.copy(), self.q1.copy(), True
-        f = self.profile(self.t) / self.length
+        f = self.profile.fraction(self.t)
         return self.p0 + f * (self.p1 - self.p0), _qmul(self.q0, quat_from_rotvec(f * self.w)), False
 
 
@@ -738,12 +715,15 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="dqpose sim ur", description=__doc__.split("\n\n")[0])
     ap.add_argument("--host", default=d.host, help="address to serve on (default %(default)s; one simulator per address, 0.0.0.0 only inside a container)")
     ap.add_argument("--hook-port", type=int, default=d.hook_port, help="JSON-lines test hooks port")
-    ap.add_argument("--pose", type=_parse_pose, default=d.pose, help="initial TCP pose 'x y z rx ry rz'")
+    ap.add_argument("--pose", type=_parse_pose, default=d.pose, help="initial TCP pose 'x y z rx ry rz' (metres, rotation vector in radians)")
     ap.add_argument("--version", type=_parse_version, default=d.version,
                     help="controller version major.minor.bugfix.build (major 3 = CB3, 125 Hz)")
-    ap.add_argument("--servo-lag", type=int, default=d.servo_lag, help="servo lag in cycles")
-    ap.add_argument("--max-linear-speed", type=float, default=d.max_linear_speed)
-    ap.add_argument("--max-angular-speed", type=float, default=d.max_angular_speed)
+    ap.add_argument("--servo-lag", type=int, default=d.servo_lag, help="servo lag in controller cycles (2 ms e-series, 8 ms CB3; default %(default)s)")
+    ap.add_argument("--max-linear-speed", type=float, default=d.max_linear_speed, metavar="M_PER_S",
+                    help="the model's tool speed limit in m/s (default %(default)g)")
+    ap.add_argument("--max-angular-speed", type=float, default=d.max_angular_speed,
+                    metavar="RAD_PER_S",
+                    help="the model's tool rotation speed limit in rad/s (default %(default)g)")
     ap.add_argument("--exit-with-parent", action="store_true",
                     help="stop when the process that started this one ends (even if killed)")
     args = ap.parse_args(argv)
@@ -760,8 +740,7 @@ def main(argv: list[str] | None = None) -> int:
         return 3
     signal.signal(signal.SIGTERM, lambda *_: sim.stopping.set())
     if args.exit_with_parent:
-        threading.Thread(target=_stop_when_orphaned, args=(sim.stopping, os.getppid()),
-                         daemon=True).start()
+        stop_when_orphaned(sim.stopping)
     print(f"ursim {'.'.join(map(str, cfg.version))} on {cfg.host}: RTDE {RTDE_PORT}, dashboard "
           f"{DASHBOARD_PORT}, script {SCRIPT_PORT}, hooks {cfg.hook_port}; "
           f"{1 / cfg.period:.0f} Hz", flush=True)
@@ -770,13 +749,6 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         sim.shutdown()
     return 0
-
-
-def _stop_when_orphaned(stopping: threading.Event, parent: int) -> None:
-    # A parent killed with SIGKILL cannot stop its children; the re-parenting shows it instead.
-    while not stopping.wait(0.2):
-        if os.getppid() != parent:
-            stopping.set()
 
 
 # -------------------------------------------------------------------- running it from tests
