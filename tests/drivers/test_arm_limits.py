@@ -1,0 +1,260 @@
+"""One over-limit policy for every arm: the same tests against URArm (the real ur_rtde client and
+the simulated controller in its own process) and PiperArm (python-can virtual bus and PiperSim),
+both opened by name with the same ``Limits``."""
+from __future__ import annotations
+
+import math
+import uuid
+
+import can
+import numpy as np
+import pytest
+
+import drivers
+from drivers.base import LimitError, Limits, pose_delta
+from service import dq
+from service.profile import Trapezoid
+from _polling import wait_until
+
+LIMITS = Limits(max_linear_speed=0.2, max_angular_speed=1.0, max_linear_accel=2.0,
+                max_angular_accel=4.0, workspace_min=(-0.7, -0.7, -0.2),
+                workspace_max=(0.7, 0.7, 0.8), max_linear_step=0.02,
+                max_angular_step=math.radians(5))
+# PiPER quantises to 0.001 mm and 0.001 deg per axis
+POS_Q, ANG_Q = math.sqrt(3) * 0.5e-6, math.radians(0.0005) * 3
+
+
+class URRig:
+    """The UR arm and what its simulated controller saw."""
+
+    def __init__(self):
+        pytest.importorskip("rtde_control")
+        from drivers.rotvec import pose_from_rotvec
+        from drivers.sim import ursim
+        self._ursim, self._pose_from_rotvec = ursim, pose_from_rotvec
+        # a fast model: the simulator's own speed limit must not be what stops the arm
+        self.sim = ursim.URSimProcess(args=("--max-linear-speed", "5"))
+        self.home = np.array([0.4, -0.1, 0.3, 2.2, 2.2, 0.0])
+        self.arm = drivers.open_arm(f"ur:{self.sim.host}", limits=LIMITS, watchdog_periods=100)
+
+    def reset(self):
+        self.arm.stop()
+        self.sim.set_pose(self.home)
+        target = self._pose_from_rotvec(self.home)
+        assert wait_until(lambda: pose_delta(self.arm.tool_pose()[1], target)[0] < 1e-9)
+        self._mark = self.sim.log()["next"]
+
+    def received(self) -> list[np.ndarray]:
+        """The servo set-points the controller received since ``reset``."""
+        return [self._pose_from_rotvec(e["args"][:6]) for e in self.sim.log(self._mark)["entries"]
+                if e["cmd"] == self._ursim.SERVOL]
+
+    def stopped(self) -> bool:
+        st = self.sim.state()
+        cmds = [e["cmd"] for e in self.sim.log(self._mark)["entries"]]
+        return self._ursim.SERVO_STOP in cmds and not st["servoing"] and not st["moving"]
+
+    def close(self):
+        self.arm.close()
+        self.sim.close()
+
+
+class PiperRig:
+    """The PiPER arm and what its simulator saw."""
+
+    def __init__(self):
+        from drivers.sim.piper import PiperSim
+        channel = f"limits-{uuid.uuid4().hex[:8]}"
+        self.bus = can.Bus(interface="virtual", channel=channel)
+        self.sim = PiperSim(self.bus).start()
+        self.home = self.sim.pose
+        # generous timeouts: the test machine is shared and Python threads get starved
+        self.arm = drivers.open_arm(f"piper:virtual:{channel}", limits=LIMITS, watchdog=0.2,
+                                    stale_timeout=0.5)
+        self.arm.wait_for_feedback(2.0)
+
+    def reset(self):
+        self.sim.set_pose(self.home)
+        assert wait_until(lambda: pose_delta(self.arm.tool_pose()[1], self.home)[0] < POS_Q)
+        self.arm.stop()
+        # the hold has arrived: what the simulator logs from here on is the test's
+        assert wait_until(lambda: self.sim.target is not None
+                          and pose_delta(self.sim.target, self.home)[0] < POS_Q)
+        self._mark = len(self.sim.log)
+
+    def received(self) -> list[np.ndarray]:
+        from drivers.piper import units_to_pose
+        return [units_to_pose(v) for _, k, v in self.sim.log[self._mark:] if k == "end_pose"]
+
+    def stopped(self) -> bool:
+        # holding still where it is: the target is the pose it reached
+        target = self.sim.target
+        return target is not None and pose_delta(self.sim.pose, target)[0] < 1e-9
+
+    def close(self):
+        self.arm.close()
+        self.sim.close()
+        self.bus.shutdown()
+
+
+@pytest.fixture(scope="module", params=["ur", "piper"])
+def rig(request):
+    r = URRig() if request.param == "ur" else PiperRig()
+    yield r
+    r.close()
+
+
+@pytest.fixture
+def arm(rig):
+    rig.reset()
+    return rig.arm
+
+
+def _stream(arm, fraction: float = 1.0, length: float = 0.02, turn: float = 0.05,
+            speed: float = 0.1, accel: float = 1.0):
+    """Servo the first ``fraction`` of a trapezoidal move of ``length`` m along (1, 1, -1)/sqrt(3)
+    turning ``turn`` rad about the base z axis, within LIMITS; returns the set-points sent."""
+    start = arm.tool_pose()[1]
+    q0, t0 = dq.to_pose(start)
+    axis = np.array([1.0, 1.0, -1.0]) / math.sqrt(3)
+    p = Trapezoid(length, speed, accel)
+    n = int(math.ceil(p.duration / arm.period))
+    sent = []
+    for k in range(1, int(n * fraction) + 1):
+        f = p.fraction(k * arm.period)
+        rot = dq.from_pose([math.cos(f * turn / 2), 0, 0, math.sin(f * turn / 2)], [0, 0, 0])
+        pose = dq.from_pose(dq.to_pose(dq.mul(rot, dq.from_pose(q0, [0, 0, 0])))[0],
+                            t0 + f * length * axis)
+        arm.servo(pose)
+        sent.append(pose)
+    return sent
+
+
+def _same(a, b) -> bool:
+    d, r = pose_delta(a, b)
+    return d <= POS_Q + 1e-12 and r <= ANG_Q + 1e-12
+
+
+def test_stream_within_the_limits_is_sent_unchanged(rig, arm):
+    sent = _stream(arm)
+    got = rig.received()[:len(sent)]
+    assert len(got) == len(sent)
+    assert all(_same(a, b) for a, b in zip(got, sent))
+    assert wait_until(lambda: _same(arm.tool_pose()[1], sent[-1]))
+    assert arm.status().ok
+
+
+def _offending(arm, sent, limit):
+    """A set-point after the stream ``sent`` (cruising at 0.1 m/s) that breaks ``limit`` only."""
+    dt, L = arm.period, LIMITS
+    last, before = sent[-1], sent[-2]
+    q, t = dq.to_pose(last)
+    step = t - dq.to_pose(before)[1]
+    u = step / np.linalg.norm(step)
+
+    def turned(angle):
+        r = dq.from_pose([math.cos(angle / 2), 0, 0, math.sin(angle / 2)], [0, 0, 0])
+        return dq.to_pose(dq.mul(r, dq.from_pose(q, [0, 0, 0])))[0]
+    # keep turning at the stream's rate (its rotation stays within the limits)
+    w = pose_delta(before, last)[1]
+    if limit == "max_linear_speed":
+        return dq.from_pose(turned(w), t + 1.5 * L.max_linear_speed * dt * u)
+    if limit == "max_linear_accel":
+        return dq.from_pose(turned(w), t + step + 1.5 * L.max_linear_accel * dt * dt * u)
+    if limit == "max_angular_speed":
+        return dq.from_pose(turned(1.5 * L.max_angular_speed * dt), t + step)
+    if limit == "max_angular_accel":
+        return dq.from_pose(turned(w + 1.5 * L.max_angular_accel * dt * dt), t + step)
+    if limit == "max_linear_step":
+        return dq.from_pose(q, t + 0.03 * u)
+    if limit == "max_angular_step":
+        return dq.from_pose(turned(math.radians(8)), t + step)
+    if limit == "workspace":
+        return dq.from_pose(q, [t[0], t[1], 0.95])
+    raise AssertionError(limit)
+
+
+@pytest.mark.parametrize("limit", ["max_linear_speed", "max_angular_speed", "max_linear_accel",
+                                   "max_angular_accel", "max_linear_step", "max_angular_step",
+                                   "workspace"])
+def test_over_limit_setpoint_is_refused_and_the_arm_stopped(rig, arm, limit):
+    sent = _stream(arm, fraction=0.5)            # cruising at 0.1 m/s
+    bad = _offending(arm, sent, limit)
+    with pytest.raises(LimitError, match=f"limits.{limit}") as info:
+        arm.servo(bad)
+    e = info.value
+    assert e.limit == limit and str(e).endswith("the arm was stopped")
+    if limit == "workspace":
+        assert e.value[2] == pytest.approx(0.95) and e.bound == (LIMITS.workspace_min,
+                                                                  LIMITS.workspace_max)
+    else:
+        assert e.bound == getattr(LIMITS, limit) and e.bound < e.value < 2 * e.bound
+        assert f"{e.bound:g}" in str(e)
+    assert wait_until(rig.stopped)
+    got = rig.received()
+    assert all(_same(a, b) for a, b in zip(got, sent))          # never changed to fit
+    assert not any(_same(g, bad) for g in got)                  # and never sent
+    assert pose_delta(arm.tool_pose()[1], sent[-1])[0] < 0.01   # stopped near the stream's end
+    assert arm.status().ok                                      # a refusal is not a fault
+    _stream(arm, fraction=0.3)                                  # a new stream starts from rest
+
+
+def test_a_first_setpoint_is_measured_from_rest(arm):
+    here = arm.tool_pose()[1]
+    q, t = dq.to_pose(here)
+    # one period at full speed from rest: an acceleration of v / period
+    with pytest.raises(LimitError, match="limits.max_linear_accel") as info:
+        arm.servo(dq.from_pose(q, t + [0.9 * LIMITS.max_linear_speed * arm.period, 0, 0]))
+    assert info.value.value == pytest.approx(0.9 * LIMITS.max_linear_speed / arm.period)
+
+
+def test_move_and_servo_arguments_are_checked_the_same(arm):
+    here = arm.tool_pose()[1]
+    q, t = dq.to_pose(here)
+    with pytest.raises(ValueError, match=r"^speed: must be within \(0, 0.2\], got 2.0"):
+        arm.move(here, 2.0, 0.5)
+    with pytest.raises(ValueError, match=r"^accel: must be within \(0, 2\], got -1"):
+        arm.move(here, 0.1, -1)
+    with pytest.raises(LimitError, match="is outside limits.workspace .*the move was not sent") \
+            as info:
+        arm.move(dq.from_pose(q, [t[0], t[1], 0.95]), 0.1, 0.5)
+    assert info.value.limit == "workspace"
+    for call in (arm.servo, lambda p: arm.move(p, 0.1, 0.5)):
+        with pytest.raises(ValueError, match=r"^pose: expected a dual quaternion of shape \(8,\)"):
+            call(np.zeros(6))
+        with pytest.raises(ValueError, match="^pose: quaternion norm 2 is not unit"):
+            call(2 * here)
+        with pytest.raises(ValueError, match="^pose: contains NaN"):
+            call(np.full(8, np.nan))
+    assert arm.status().ok
+
+
+def test_both_arms_expose_what_an_executor_needs(arm):
+    assert arm.limits is LIMITS and 0 < arm.period <= 0.01
+
+
+def test_limits_are_validated():
+    with pytest.raises(ValueError, match="^limits.max_linear_speed:"):
+        Limits(max_linear_speed=-1)
+    with pytest.raises(ValueError, match="^limits.max_angular_step:"):
+        Limits(max_angular_step=math.inf)
+    with pytest.raises(ValueError, match="^limits.workspace_min:"):
+        Limits(workspace_min=(0, 0, 2), workspace_max=(1, 1, 1))
+    with pytest.raises(ValueError, match="^limits.workspace_min/max: expected three"):
+        Limits(workspace_min=(0, 0))
+
+
+def test_backends_by_name():
+    with pytest.raises(ValueError, match=r"^arm: unknown backend 'kuka' in 'kuka:1.2.3.4'; "
+                                         r"known: piper, ur"):
+        drivers.open_arm("kuka:1.2.3.4")
+    with pytest.raises(ValueError, match="^arm: 'ur' has no channel"):
+        drivers.open_arm("ur")
+    with pytest.raises(ValueError, match="^channel: expected '<python-can interface>:<channel>'"):
+        drivers.open_arm("piper:can0")
+    with pytest.raises(ValueError, match="^source: unknown backend 'lidar'.*known: charuco"):
+        drivers.open_source("lidar:/dev/x")
+    with pytest.raises(ValueError, match="^intrinsics: required"):
+        drivers.open_source("charuco:/nowhere")
+    with pytest.raises(ValueError, match="^limits: expected a drivers.base.Limits"):
+        drivers.open_arm("piper:virtual:nobody", limits=(0.1, 0.2))
