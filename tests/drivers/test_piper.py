@@ -10,17 +10,19 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from drivers.base import ArmError
+from drivers.base import ArmError, LimitError
+from drivers.base import pose_delta as _delta
 from drivers.euler import dq_from_xyz_sxyz
 from drivers.piper import (ARM_STATUS_FEEDBACK, ARM_STATUS_NAMES, EMERGENCY_STATES,
                            END_POSE_CTRL, END_POSE_FEEDBACK, MOVE_L, MOVE_P, PROTECTIVE_STATES,
                            REJECTION_STATES, TEACH_STATES, EndPose, EndPoseAssembler,
-                           FrameError, MotionMode, PiperArm, StatusReport, _delta,
+                           FrameError, MotionMode, PiperArm, StatusReport,
                            decode_arm_status, decode_motion_mode, describe_status,
                            encode_arm_status, encode_end_pose, encode_motion_mode,
                            pose_to_units, units_to_pose)
 from drivers.sim.piper import PiperSim
 from service import dq
+from service.profile import Trapezoid
 from _polling import wait_until
 
 # piper_sdk 0.6.2 still passes python-can's deprecated ``bustype``.
@@ -32,13 +34,13 @@ ANG_Q = math.radians(0.0005) * 3
 
 
 def _servo_along_x(arm, steps: int, step: float):
-    """Streams ``steps`` set-points ``step`` metres apart along x from the current pose, one per
-    period; returns the start pose and its (q, t)."""
+    """Streams ``steps`` set-points along x from the current pose, speeding up at 1 m/s^2 from
+    rest to ``step`` metres per period; returns the start pose and its (q, t)."""
     start = arm.tool_pose()[1]
     q0, t0 = dq.to_pose(start)
+    profile = Trapezoid(1.0, step / arm.period, 1.0)
     for k in range(1, steps + 1):
-        arm.servo(dq.from_pose(q0, t0 + [step * k, 0, 0]))
-        time.sleep(arm.period)
+        arm.servo(dq.from_pose(q0, t0 + [profile(k * arm.period), 0, 0]))
     return start, q0, t0
 
 
@@ -358,7 +360,7 @@ def test_arm_and_piper_sdk_decode_the_same_feedback(sdk, arm, sim):
 
 def test_arm_commands_are_what_piper_sdk_decodes(sdk, arm, sim):
     before = sdk.GetArmCtrlCode151().time_stamp
-    T = dq.mul(dq.from_pose([1, 0, 0, 0], [0.002, 0, 0]), sim.pose)
+    T = dq.mul(dq.from_pose([1, 0, 0, 0], [0.00001, 0, 0]), sim.pose)   # within the limits
     arm.servo(T)
     assert wait_until(lambda: sdk.GetArmCtrlCode151().time_stamp != before)
     ctrl = sdk.GetArmCtrlCode151().ctrl_151
@@ -387,36 +389,29 @@ def test_move_reaches_target_and_blocks(arm, sim):
 def test_servo_follows_path(arm, sim):
     start = arm.tool_pose()[1]
     q0, t0 = dq.to_pose(start)
+    profile = Trapezoid(0.04, 0.06, 0.5)     # ~0.8 s at 200 Hz, 0.06 m/s along y
     lags = []
-    for k in range(150):   # 0.75 s at 200 Hz, 0.06 m/s along y
-        sp = dq.from_pose(q0, t0 + [0.0, 0.0003 * k, 0.0])
-        arm.servo(sp)
-        time.sleep(arm.period)
+    n = int(math.ceil(profile.duration / arm.period))
+    for k in range(1, n + 1):
+        sp = dq.from_pose(q0, t0 + [0.0, profile(k * arm.period), 0.0])
+        arm.servo(sp)                         # returns once the period is over
         lags.append(_delta(sim.pose, sp)[0])
-    final = dq.from_pose(q0, t0 + [0.0, 0.0003 * 149, 0.0])
+    final = dq.from_pose(q0, t0 + [0.0, 0.04, 0.0])
     assert wait_until(lambda: _delta(sim.pose, final)[0] < 1e-5)
     # The sim never strays from the straight line it was asked to follow.
     assert max(lags) < 0.01
 
 
-def test_servo_rate_limits_fast_streams(arm, sim):
+def test_servo_refuses_jumps_and_bad_input(arm, sim):
+    # the over-limit policy itself is tested against both arms in test_arm_limits.py
     start = arm.tool_pose()[1]
     q0, t0 = dq.to_pose(start)
-    # 0.015 m per 5 ms set-point = 3 m/s requested, far above max_speed (0.25 m/s)
-    arm.servo(dq.from_pose(q0, t0 + [0.015, 0, 0]))
-    assert wait_until(lambda: any(k == "end_pose" for _, k, _ in sim.log))
-    ep = [v for _, k, v in sim.log if k == "end_pose"][-1]
-    step = _delta(units_to_pose(ep), start)[0]
-    assert 0 < step <= arm.max_accel * arm.period * arm.period + 2e-6
-
-
-def test_servo_refuses_jumps_and_bad_input(arm):
-    start = arm.tool_pose()[1]
-    q0, t0 = dq.to_pose(start)
-    with pytest.raises(ArmError, match="jumps"):
+    with pytest.raises(LimitError, match="limits.max_linear_step"):
         arm.servo(dq.from_pose(q0, t0 + [0.1, 0, 0]))
-    with pytest.raises(ValueError, match="workspace"):
+    with pytest.raises(LimitError, match="outside limits.workspace"):
         arm.servo(dq.from_pose(q0, [2.0, 0, 0]))
+    assert not any(k == "end_pose" and _delta(units_to_pose(v), start)[0] > 1e-5
+                   for _, k, v in sim.log)
     with pytest.raises(ValueError, match="pose: quaternion norm"):
         arm.servo(np.array([2.0, 0, 0, 0, 0, 0, 0, 0]))
     with pytest.raises(ValueError, match="pose: expected"):
@@ -568,7 +563,7 @@ def test_collision_and_joint_errors_reported(arm, sim):
     sim.clear_faults()
     assert wait_until(lambda: arm.status().ok)
     q0, t0 = dq.to_pose(arm.tool_pose()[1])
-    arm.servo(dq.from_pose(q0, t0 + [0.0005, 0, 0]))
+    arm.servo(dq.from_pose(q0, t0 + [0.00001, 0, 0]))
     assert wait_until(lambda: sim.target is not None)
 
 

@@ -10,10 +10,10 @@ import pytest
 
 pytest.importorskip("rtde_control")
 
-from drivers.base import ArmError  # noqa: E402
+from drivers.base import ArmError, LimitError, Limits  # noqa: E402
 from drivers.rotvec import pose_from_rotvec, rotvec_from_pose  # noqa: E402
 from drivers.sim import ursim  # noqa: E402
-from drivers.ur import Limits, LimitError, URArm  # noqa: E402
+from drivers.ur import URArm  # noqa: E402
 from service import dq  # noqa: E402
 from _polling import wait_until
 
@@ -106,13 +106,14 @@ def test_stop_ends_a_move(sim, arm, home):
 
 
 def test_jumps_and_limits_are_refused_and_the_arm_stopped(sim, arm, home):
+    # the policy is tested against both arms in test_arm_limits.py; here, what ur_rtde sees
     start = sim.log()["next"]
     path = _ramp(home, [0, 1.0, 0], 100, 0.01)
     for p in path[:50]:
         arm.servo(pose_from_rotvec(p))
     jump = path[49].copy()
     jump[1] += 0.01                                     # 10 mm in one 2 ms period: 5 m/s
-    with pytest.raises(LimitError, match="more than one period at 0.25 m/s"):
+    with pytest.raises(LimitError, match="above limits.max_linear_speed = 0.25 m/s"):
         arm.servo(pose_from_rotvec(jump))
     cmds = [e["cmd"] for e in sim.log(start)["entries"]]
     assert cmds.count(ursim.SERVOL) == 50 and ursim.SERVO_STOP in cmds[50:]
@@ -122,14 +123,14 @@ def test_jumps_and_limits_are_refused_and_the_arm_stopped(sim, arm, home):
     # from rest, a full-speed step is an acceleration of v / period = 125 m/s^2
     step = at.copy()
     step[0] += 0.25 * arm.period
-    with pytest.raises(LimitError, match="m/s\\^2, above the 2.0 m/s\\^2 limit"):
+    with pytest.raises(LimitError, match="m/s\\^2, above limits.max_linear_accel = 2 m/s\\^2"):
         arm.servo(pose_from_rotvec(step))
     turned = dq.mul(pose_from_rotvec(at), dq.exp([0.0, 0.0, 0.5 * 1.5 * arm.period, 0, 0, 0]))
-    with pytest.raises(LimitError, match="turns .* deg"):
+    with pytest.raises(LimitError, match="limits.max_angular_speed = 1 rad/s"):
         arm.servo(turned)                               # 1.5 rad/s > 1 rad/s
     far = at.copy()
     far[2] = 1.5
-    with pytest.raises(LimitError, match="outside the workspace box"):
+    with pytest.raises(LimitError, match="outside limits.workspace"):
         arm.move(pose_from_rotvec(far), 0.1, 0.5)
     with pytest.raises(ValueError, match="^speed: must be within"):
         arm.move(pose_from_rotvec(at), 2.0, 0.5)
@@ -137,6 +138,11 @@ def test_jumps_and_limits_are_refused_and_the_arm_stopped(sim, arm, home):
         arm.servo(np.zeros(6))
     with pytest.raises(ValueError, match="^pose"):
         arm.servo(2 * pose_from_rotvec(at))             # not unit
+    turn = at.copy()
+    turn[0] += 0.01
+    turn[3:] = rotvec_from_pose(dq.mul(pose_from_rotvec(at), dq.exp([0, 0, 0.5, 0, 0, 0])))[3:]
+    with pytest.raises(ValueError, match="^speed: 0.2 m/s over 0.0100 m turns the tool"):
+        arm.move(pose_from_rotvec(turn), 0.2, 0.5)      # moveL would turn the tool too fast
     assert sim.log(start)["entries"][-1]["cmd"] != ursim.SERVOL
     assert arm.status().ok                              # refusals are not faults
 

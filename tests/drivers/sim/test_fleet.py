@@ -8,6 +8,8 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
+import time
 
 import numpy as np
 import pytest
@@ -17,12 +19,20 @@ from drivers.sim.fleet import Fleet
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 
 
+def _gone(pid: int) -> bool:
+    """The process has ended (a zombie nobody reaps counts as ended)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except FileNotFoundError:
+        return True
+
+
 def test_serve_with_sims_brings_up_reachable_devices_and_takes_them_down():
     pytest.importorskip("rtde_control")
-    from drivers.camera import CharucoCamera, read_image
-    from drivers.sim.camera import DEFAULT_INTRINSICS
+    import drivers
+    from drivers.camera import read_image
     from drivers.sim.ursim import _address_free
-    from drivers.ur import URArm
     from service import dq
     from service.rpc.client import Client
 
@@ -37,13 +47,22 @@ def test_serve_with_sims_brings_up_reachable_devices_and_takes_them_down():
             e = json.loads(line)
             events[e.get("device", e["event"])] = e
         host, folder = events["ur"]["host"], events["camera"]["images"]
-
-        with URArm(host) as arm:                      # the real ur_rtde client, end to end
+        # every device is reached by the name its "use" line gives
+        assert events["ur"]["use"] == f"drivers.open_arm('ur:{host}')"
+        with drivers.open_arm(events["ur"]["spec"]) as arm:   # the real ur_rtde client
             _, pose = arm.tool_pose()
             assert np.isclose(np.linalg.norm(pose[:4]), 1.0)
+        piper = events["piper"]
+        assert piper["use"] == f"drivers.open_arm('{piper['spec']}')"
+        assert piper["spec"].startswith("piper:udp_multicast:239.")
+        with drivers.open_arm(piper["spec"]) as arm:          # another process, over UDP
+            _, pose = arm.wait_for_feedback(5.0)
+            assert arm.status().ok and np.isclose(np.linalg.norm(pose[:4]), 1.0)
         with open(os.path.join(folder, "poses.json")) as f:
             truth = json.load(f)["T_camera_board"]
-        cam = CharucoCamera(DEFAULT_INTRINSICS)
+        cam = drivers.open_source(events["camera"]["spec"],
+                                  intrinsics=os.path.join(folder, "poses.json"))
+        assert cam.read().source == "camera"
         errors = []
         for name, T in truth.items():
             d = cam.detect(read_image(os.path.join(folder, name)))
@@ -57,7 +76,8 @@ def test_serve_with_sims_brings_up_reachable_devices_and_takes_them_down():
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=30) == 0
         assert _address_free(host)                    # the UR simulator is gone
-        assert not os.path.exists(folder)             # and its temporary views
+        assert _gone(piper["pid"])                    # the PiPER simulator too
+        assert not os.path.exists(folder)             # and the temporary views
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -70,23 +90,25 @@ def test_unknown_device_is_named():
 
 def test_simulators_do_not_outlive_a_killed_server():
     pytest.importorskip("rtde_control")
-    import time
-
     from drivers.sim.ursim import _address_free
-    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", "0",
-                             "--sims"], cwd=ROOT, stderr=subprocess.PIPE, text=True)
-    try:
-        host = None
-        while True:
-            e = json.loads(proc.stderr.readline())
-            host = e.get("host", host)
-            if e["event"] == "serving":
-                break
-        assert not _address_free(host)
-    finally:
-        proc.kill()                                   # no chance to clean up
-        proc.wait()
-    deadline = time.monotonic() + 5
-    while not _address_free(host) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert _address_free(host)
+    # A killed server cannot remove its camera views: give it a temporary directory of ours.
+    with tempfile.TemporaryDirectory(prefix="dqpose-test-fleet-") as tmp:
+        proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", "0",
+                                 "--sims"], cwd=ROOT, stderr=subprocess.PIPE, text=True,
+                                env={**os.environ, "TMPDIR": tmp})
+        try:
+            events = {}
+            while "serving" not in events:
+                e = json.loads(proc.stderr.readline())
+                events[e.get("device", e["event"])] = e
+            host, pid = events["ur"]["host"], events["piper"]["pid"]
+            assert not _address_free(host) and not _gone(pid)
+            assert events["camera"]["images"].startswith(tmp)
+        finally:
+            proc.kill()                               # no chance to clean up
+            proc.wait()
+            proc.stderr.close()
+        deadline = time.monotonic() + 5
+        while not (_address_free(host) and _gone(pid)) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert _address_free(host) and _gone(pid)
