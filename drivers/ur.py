@@ -58,7 +58,8 @@ class URArm(Arm):
         return cls(channel, **kwargs)
 
     def __init__(self, host: str, frequency: Optional[float] = None, *,
-                 limits: Optional[Limits] = None, watchdog_periods: int = 25, stale_after: float = 0.1,
+                 limits: Optional[Limits] = None, watchdog_periods: int = 25,
+                 stale_after: float = 0.1,
                  connect_timeout: float = 2.0, lookahead: float = 0.1, gain: float = 300.0,
                  stop_decel: float = 10.0):
         if not isinstance(host, str) or not host:

@@ -61,8 +61,9 @@ class Trapezoid:
         a, v, ta, T = self.accel, self.peak_speed, self.t_accel, self.duration
         t = np.clip(t, 0.0, T)
         r = T - t
+        cruise = 0.5 * a * ta * ta + v * (t - ta)
         s = np.where(t < ta, 0.5 * a * t * t,
-                     np.where(r < ta, self.length - 0.5 * a * r * r, 0.5 * a * ta * ta + v * (t - ta)))
+                     np.where(r < ta, self.length - 0.5 * a * r * r, cruise))
         s = np.clip(s, 0.0, self.length)
         return float(s) if s.ndim == 0 else s
 

@@ -24,9 +24,7 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import signal
-import subprocess
 import sys
 import threading
 import time
@@ -37,7 +35,7 @@ import can
 import numpy as np
 
 from drivers.base import pose_delta, tool_line
-from drivers.sim import stop_when_orphaned
+from drivers.sim import end_process, start_process, stop_when_orphaned
 from drivers.euler import dq_from_xyz_sxyz
 from drivers.piper import (ARM_COLLISION, ARM_EMERGENCY_STOP, ARM_NORMAL, COMMAND_BLOCK,
                            CTRL_MODE_CAN, END_POSE_CTRL, END_POSE_FEEDBACK, MOTION_CTRL_2, MOVE_L,
@@ -320,11 +318,8 @@ class PiperSimProcess:
                  args: tuple = (), timeout: float = 10.0):
         self.interface, self.channel = interface, channel
         self.spec = f"piper:{interface}:{channel}"
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "drivers.sim.piper", "--interface", interface, "--channel",
-             channel, "--exit-with-parent", *map(str, args)],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-            cwd=os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+        self.proc = start_process("drivers.sim.piper", "--interface", interface, "--channel",
+                                  channel, *args)
         self.pid = self.proc.pid
         # The first line is printed once the bus is open; a failure ends the process instead.
         ready = threading.Event()
@@ -333,28 +328,15 @@ class PiperSimProcess:
                                                   ready.set()), daemon=True)
         reader.start()
         if not ready.wait(timeout) or not line[0]:
-            self._end()
+            if self.proc.poll() is None:
+                self.proc.kill()
             err = self.proc.stderr.read().strip()
-            self._close_pipes()
+            end_process(self.proc)
             raise RuntimeError(f"could not start the PiPER simulator on {interface}:{channel}: "
                                f"{err or f'no answer within {timeout:g} s'}")
 
-    def _end(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(5)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-
-    def _close_pipes(self) -> None:
-        for f in (self.proc.stdout, self.proc.stderr):
-            f.close()
-
     def close(self) -> None:
-        self._end()
-        self._close_pipes()
+        end_process(self.proc)
 
     def __enter__(self) -> "PiperSimProcess":
         return self

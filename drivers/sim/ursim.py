@@ -31,17 +31,16 @@ import re
 import signal
 import socket
 import struct
-import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from drivers import rtde as rp
 from drivers.rotvec import quat_from_rotvec, rotvec_from_quat
-from drivers.sim import stop_when_orphaned
+from drivers.sim import end_process, start_process, stop_when_orphaned
 from service.profile import Trapezoid
 
 RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT = 30004, 29999, 30003
@@ -715,11 +714,15 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="dqpose sim ur", description=__doc__.split("\n\n")[0])
     ap.add_argument("--host", default=d.host, help="address to serve on (default %(default)s; one simulator per address, 0.0.0.0 only inside a container)")
     ap.add_argument("--hook-port", type=int, default=d.hook_port, help="JSON-lines test hooks port")
-    ap.add_argument("--pose", type=_parse_pose, default=d.pose, help="initial TCP pose 'x y z rx ry rz' (metres, rotation vector in radians)")
+    ap.add_argument("--pose", type=_parse_pose, default=d.pose,
+                    help="initial TCP pose 'x y z rx ry rz' (metres, rotation vector in radians)")
     ap.add_argument("--version", type=_parse_version, default=d.version,
                     help="controller version major.minor.bugfix.build (major 3 = CB3, 125 Hz)")
-    ap.add_argument("--servo-lag", type=int, default=d.servo_lag, help="servo lag in controller cycles (2 ms e-series, 8 ms CB3; default %(default)s)")
-    ap.add_argument("--max-linear-speed", type=float, default=d.max_linear_speed, metavar="M_PER_S",
+    ap.add_argument("--servo-lag", type=int, default=d.servo_lag,
+                    help="servo lag in controller cycles (2 ms e-series, 8 ms CB3; "
+                         "default %(default)s)")
+    ap.add_argument("--max-linear-speed", type=float, default=d.max_linear_speed,
+                    metavar="M_PER_S",
                     help="the model's tool speed limit in m/s (default %(default)g)")
     ap.add_argument("--max-angular-speed", type=float, default=d.max_angular_speed,
                     metavar="RAD_PER_S",
@@ -763,11 +766,7 @@ class URSimProcess:
             if host is None and not _address_free(addr):
                 continue
             self.host = addr
-            self.proc = subprocess.Popen(
-                [sys.executable, "-m", "drivers.sim.ursim", "--host", addr, "--exit-with-parent",
-                 *map(str, args)],
-                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                cwd=os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+            self.proc = start_process("drivers.sim.ursim", "--host", addr, *args)
             err = self._wait_ready(timeout)
             if err is None:
                 return
@@ -824,15 +823,7 @@ class URSimProcess:
             self._conn.close()
         except (AttributeError, OSError):
             pass
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(5)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        for f in (self.proc.stdout, self.proc.stderr):
-            f.close()
+        end_process(self.proc)
 
     def __enter__(self):
         return self
