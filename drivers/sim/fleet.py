@@ -11,7 +11,8 @@ fresh machine has something to point the drivers at.
   with ``poses.json`` (the true ``T_camera_board`` of each and the intrinsics):
   ``drivers.open_source("charuco:<folder>", intrinsics="<folder>/poses.json")``.
 
-Each ``info`` entry's ``use`` is that call. The simulator processes end with the server, even
+Each ``info`` entry's ``use`` is that call (an ``error`` instead says why a device that needs a
+missing package was left out). The simulator processes end with the server, even
 when it is killed; the camera folder is removed on a clean exit only.
 """
 from __future__ import annotations
@@ -59,7 +60,13 @@ class Fleet(contextlib.ExitStack):
         return self
 
     def _piper(self) -> dict:
+        import importlib.util
+
         from drivers.sim.piper import PiperSimProcess
+        if importlib.util.find_spec("msgpack") is None:
+            # python-can's udp_multicast encodes frames with msgpack (python-can[multicast])
+            return {"device": "piper", "error": "not started: python-can's udp_multicast bus "
+                    "needs msgpack (pip install 'python-can[multicast]')"}
         # 239.74.0.0/16 is organisation-local; a random group keeps fleets apart
         group = f"239.74.{random.randrange(256)}.{random.randrange(1, 255)}"
         try:

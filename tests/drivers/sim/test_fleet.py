@@ -30,6 +30,7 @@ def _gone(pid: int) -> bool:
 
 def test_serve_with_sims_brings_up_reachable_devices_and_takes_them_down():
     pytest.importorskip("rtde_control")
+    pytest.importorskip("msgpack")                    # the PiPER simulator's udp_multicast bus
     import drivers
     from drivers.camera import read_image
     from drivers.sim.ursim import _address_free
@@ -90,6 +91,7 @@ def test_unknown_device_is_named():
 
 def test_simulators_do_not_outlive_a_killed_server():
     pytest.importorskip("rtde_control")
+    pytest.importorskip("msgpack")
     from drivers.sim.ursim import _address_free
     # A killed server cannot remove its camera views: give it a temporary directory of ours.
     with tempfile.TemporaryDirectory(prefix="dqpose-test-fleet-") as tmp:
