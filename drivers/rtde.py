@@ -12,6 +12,9 @@ import socket
 import struct
 from dataclasses import dataclass, field
 
+# the controller's fixed ports: RTDE, the dashboard server, the secondary (script) interface
+RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT = 30004, 29999, 30003
+
 # message types (ASCII letters)
 REQUEST_PROTOCOL_VERSION = ord("V")
 GET_URCONTROL_VERSION = ord("v")
@@ -166,7 +169,8 @@ def read_message(sock: socket.socket) -> tuple[int, bytes]:
     return kind, read_exact(sock, size - HEADER.size)
 
 
-def request_version(host: str, port: int = 30004, timeout: float = 1.0) -> tuple[int, int, int, int]:
+def request_version(host: str, port: int = RTDE_PORT,
+                    timeout: float = 1.0) -> tuple[int, int, int, int]:
     """Ask a controller for its software version (``major, minor, bugfix, build``) with a short
     RTDE exchange; raises ``OSError`` on any failure within ``timeout`` seconds."""
     with socket.create_connection((host, port), timeout=timeout) as s:

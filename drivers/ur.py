@@ -25,10 +25,9 @@ import numpy as np
 
 from drivers.base import Arm, ArmError, ArmStatus, LimitError, Limits, unit_pose
 from drivers.rotvec import pose_from_rotvec, rotvec_from_pose, rotvec_from_quat
-from drivers.rtde import request_version
+from drivers.rtde import DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT, request_version
 from service import dq
 
-RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT = 30004, 29999, 30003
 CB3_MAJOR = 3
 _RECEIVE_VARIABLES = ["timestamp", "actual_TCP_pose", "runtime_state", "robot_mode",
                       "safety_mode", "robot_status_bits", "safety_status_bits"]

@@ -43,7 +43,7 @@ from drivers.rotvec import quat_from_rotvec, rotvec_from_quat
 from drivers.sim import end_process, start_process, stop_when_orphaned
 from service.profile import Trapezoid
 
-RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT = 30004, 29999, 30003
+RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT = rp.RTDE_PORT, rp.DASHBOARD_PORT, rp.SCRIPT_PORT
 HOOK_PORT = 30010
 
 # runtime_state values
