@@ -227,8 +227,6 @@ static size_t encode_response(const double *quat, const double *t, uint32_t iter
     return (size_t)(p - out);
 }
 
-enum { FAST_DIB, FAST_DLB, FAST_SCLERP, FAST_DEC, FAST_LOG };
-
 int dq_wire_blend(const uint8_t *buf, size_t len, const dq_wire_config *cfg, uint8_t *out,
                   size_t *out_len)
 {
@@ -237,19 +235,15 @@ int dq_wire_blend(const uint8_t *buf, size_t len, const dq_wire_config *cfg, uin
     if (dq_wire_blend_request(buf, len, &r) < 0) return -1;
     size_t n = r.n_poses, m = r.n_weights;
     if (n == 0 || n > cfg->max_poses || (m && m != n)) return -1;
-    int method;
-    switch (r.method) {
-    case 0: case 1: method = FAST_DIB; break;
-    case 2: method = FAST_DLB; break;
-    case 3: method = FAST_SCLERP; if (n != 2) return -1; break;
-    case 5: method = FAST_DEC; break;
-    case 6: method = FAST_LOG; break;
-    default: return -1; /* LIN (projected in Python) and unknown values */
-    }
-    double tol = r.tolerance != 0.0 ? r.tolerance : cfg->default_tol;
-    if (!(tol > 0.0 && tol * 0.0 == 0.0)) return -1;
+    dq_blend_params p;
+    /* METHOD_UNSPECIFIED means DIB; any other value is a dq_method or refused by the check */
+    p.method = r.method == 0 ? DQ_DIB : (int)r.method;
+    if (dq_blend_check(p.method, n)) return -1;
+    p.tol = r.tolerance != 0.0 ? r.tolerance : cfg->default_tol;
+    if (!(p.tol > 0.0 && p.tol * 0.0 == 0.0)) return -1;
     uint64_t max_iter = r.max_iterations ? r.max_iterations : cfg->default_max_iter;
     if (max_iter > cfg->max_iter_limit) return -1;
+    p.max_iter = (int)max_iter;
 
     /* rows [qw qx qy qz x y z], weights in, unit dual quaternions, normalised weights */
     double stack[16 * 32];
@@ -268,22 +262,11 @@ int dq_wire_blend(const uint8_t *buf, size_t len, const dq_wire_config *cfg, uin
         if (dq_from_pose(r.poses + 7 * i, r.poses + 7 * i + 4, tmp)) goto done;
         if (dq_unit(tmp, q + 8 * i)) goto done;
     }
-    if (m) {
-        size_t bad;
-        if (dq_weights(r.weights, n, w, &bad)) goto done;
-    } else {
-        for (size_t i = 0; i < n; i++) w[i] = 1.0 / (double)n;
-    }
-    double mean[8], unit[8], quat[4], t[3], residual = 0.0;
-    int iterations = 0;
-    switch (method) {
-    case FAST_DIB: dq_dib(q, w, n, tol, (int)max_iter, mean, &iterations, &residual); break;
-    case FAST_DLB: dq_dlb(q, w, n, mean); break;
-    case FAST_SCLERP: dq_sclerp(q, q + 8, w[1], mean); break;
-    case FAST_DEC: dq_dec(q, w, n, tol, (int)max_iter, mean); break;
-    default: dq_logblend(q, w, n, mean); break;
-    }
-    if (!dq_finite8(mean) || !(residual * 0.0 == 0.0) || dq_unit(mean, unit)) goto done;
+    size_t bad;
+    if (dq_weights(r.weights, n, w, &bad)) goto done;
+    double mean[8], unit[8], quat[4], t[3], residual;
+    int iterations;
+    if (dq_blend_set(q, w, n, &p, mean, &iterations, &residual) || dq_unit(mean, unit)) goto done;
     dq_to_pose(unit, quat, t);
     *out_len = encode_response(quat, t, (uint32_t)iterations, residual, out);
     rc = 0;

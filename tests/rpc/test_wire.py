@@ -40,7 +40,7 @@ def requests(draw):
         poses.append(p)
     return pb.BlendRequest(
         poses=poses, weights=draw(st.lists(floats, max_size=6)),
-        method=draw(st.sampled_from([0, 1, 2, 3, 6, 7, -1, 2**31 - 1])),
+        method=draw(st.sampled_from([0, 1, 2, 3, 4, 5, 6, 7, -1, 2**31 - 1])),
         tolerance=draw(floats), max_iterations=draw(st.integers(0, 2**32 - 1)))
 
 
@@ -126,10 +126,11 @@ def _fast_path(blending, data: bytes):
 
 
 @st.composite
-def near_unit_requests(draw):
+def near_unit_requests(draw, plain=None):
     """Requests close to valid ones, so most take the fast path and the rest sit on its edges:
-    norms at the 1e-6 tolerance, zero and negative weights, odd methods and limits."""
-    plain = draw(st.booleans())
+    norms at the 1e-6 tolerance, zero and negative weights, odd methods and limits. With
+    ``plain=True`` only valid ones, every method."""
+    plain = draw(st.booleans()) if plain is None else plain
     n = draw(st.integers(1, 5) if plain else st.integers(0, 7))
     rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
     q = rng.normal(size=(n, 4))
@@ -174,10 +175,21 @@ def test_served_blend_is_the_full_path_byte_for_byte(req):
     assert served == full
 
 
+@given(near_unit_requests(plain=True))
+def test_fast_path_answers_every_valid_request_of_every_method(req):
+    blending = Blending(ServerConfig(max_poses=5))
+    data = req.SerializeToString()
+    full = _full_path(blending, data)
+    if full is not None:          # ScLERP of other than two poses is the one refusal
+        assert _fast_path(blending, data) == full
+    else:
+        assert req.method == pb.METHOD_SCLERP and len(req.poses) != 2
+
+
 def test_served_blend_takes_the_fast_path_for_plain_requests():
     rng = np.random.default_rng(11)
     blending = Blending()
-    for method in (0, 1, 2, 3, 5, 6):
+    for method in range(7):                       # every method, LIN included
         for weights in ([], [1.0, 3.0]):
             q = rng.normal(size=(2, 4))
             q /= np.linalg.norm(q, axis=1, keepdims=True)
@@ -189,10 +201,21 @@ def test_served_blend_takes_the_fast_path_for_plain_requests():
             assert fast is not None and fast == _full_path(blending, data), (method, weights)
             r = pb.BlendResponse.FromString(fast)
             assert np.isfinite(r.residual) and (method in (0, 1) or r.iterations == 0)
-    # LIN projects its matrix blend in Python, so it is always the full path
-    data = pb.BlendRequest(poses=pose_msgs(q, t), method=4).SerializeToString()
-    assert _fast_path(blending, data) is None
-    assert blending.blend_wire(data) == _full_path(blending, data)
+
+
+def test_served_lin_is_the_full_path_on_cancelling_and_det_negative_blends():
+    # LIN's projection on its hard inputs: rotations by pi about the axes, whose matrix blend
+    # has det < 0 or vanishes, with ties in the weights (the nearest rotation is not unique)
+    blending = Blending()
+    axes = np.array([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+    for weights in ([], [1.0, 1.0, 1.0], [1.0, 1.0, 1.0 + 1e-9], [2.0, 1.0, 1.0], [1.0, 2.0, 2.0]):
+        for q in (axes, axes[:3], axes[1:]):
+            n = len(q)
+            w = weights[:n] if len(weights) >= n else []
+            data = pb.BlendRequest(poses=pose_msgs(q, np.arange(3 * n).reshape(n, 3)),
+                                   weights=w, method=pb.METHOD_LIN).SerializeToString()
+            fast = _fast_path(blending, data)
+            assert fast is not None and fast == _full_path(blending, data), (q, w)
 
 
 def test_served_blend_of_many_poses_is_the_full_path():
@@ -244,7 +267,7 @@ def test_served_batch_takes_the_fast_path_for_plain_requests():
         q = rng.normal(size=(i % 7 + 1, 4))
         q /= np.linalg.norm(q, axis=1, keepdims=True)
         reqs.append(pb.BlendRequest(poses=pose_msgs(q, rng.normal(size=(len(q), 3))),
-                                    method=[0, 1, 2, 5, 6][i % 5]))
+                                    method=[0, 1, 2, 4, 5, 6][i % 6]))
     blending = Blending()
     data = pb.BlendBatchRequest(requests=reqs).SerializeToString()
     fast = _batch_fast_path(blending, data)
@@ -305,8 +328,9 @@ def test_wire_paths_survive_mutated_input_under_sanitizers(tmp_path):
 
     seeds = [req(10), req(2, method=3), req(40),
              req(5, weights=[1, 2, 3, 4, 5], method=2, tolerance=1e-9, max_iterations=7),
-             req(3, method=5), req(4, method=6),
-             pb.BlendBatchRequest(requests=[req(3), req(4, method=6), req(2, method=3)])]
+             req(3, method=5), req(4, method=6), req(4, method=4),
+             pb.BlendBatchRequest(requests=[req(3), req(4, method=6), req(2, method=3),
+                                            req(3, method=4)])]
     paths = []
     for i, s in enumerate(seeds):
         p = tmp_path / f"seed{i}.bin"
