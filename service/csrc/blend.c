@@ -35,7 +35,6 @@
 #else
 #define DQ_CLONES
 #endif
-#define DQ_BATCH DQ_CLONES
 
 #define DQ_PIO2 1.57079632679489661923
 #define DQ_PIO4 7.85398163397448309616E-1
@@ -242,7 +241,7 @@ static inline void sclerp_block(const double *restrict a, const double *restrict
     }
 }
 
-DQ_BATCH void dq_sclerp_pairs(const double *a, const double *b, const double *tau, size_t n,
+DQ_CLONES void dq_sclerp_pairs(const double *a, const double *b, const double *tau, size_t n,
                               double *out)
 {
     for (size_t i0 = 0; i0 < n; i0 += DQ_BLK) {
@@ -349,7 +348,7 @@ static inline void wlog_block(const double *bc, const double *q, const double *w
 }
 
 /* Weighted sum of log(bc q_i) for all i, where bc is the conjugate of the current mean. */
-DQ_BATCH static double log_sum(const double *bc, const double *q, const double *w, size_t n,
+DQ_CLONES static double log_sum(const double *bc, const double *q, const double *w, size_t n,
                                double *x)
 {
     double x0 = 0, x1 = 0, x2 = 0, x3 = 0, x4 = 0, x5 = 0;
