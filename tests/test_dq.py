@@ -878,6 +878,23 @@ def test_bad_shapes_are_rejected(f, args, pattern):
         f(*args)
 
 
+NOT_FLOAT = [SET[:2].astype(complex), SET[:2].astype(object), SET[:2].astype(str),
+             [[1, 0, 0, 0, 0, 0, 0, 0], [1j, 0, 0, 0, 0, 0, 0, 0]]]
+
+
+@pytest.mark.parametrize("method", list(dq.METHODS))
+def test_non_float_sets_get_one_message_for_every_method(method):
+    # one conversion in the core for every method (sclerp once converted twice, unnamed)
+    for bad in NOT_FLOAT:
+        with pytest.raises(ValueError, match=r"^dqs: not convertible to a float64 array"):
+            dq.blend(bad, method=method)
+        with pytest.raises(ValueError, match=r"^weights: not convertible to a float64 array"):
+            dq.blend(SET[:2], np.array(bad)[:, 0], method=method)
+    for bad in NOT_FLOAT[:3]:
+        with pytest.raises(ValueError, match=r"^a: not convertible to a float64 array"):
+            dq.sclerp(bad[0], SET[1], 0.5)
+
+
 def test_bad_methods_are_rejected():
     for m in ("foo", "DIB", None, 3, ""):
         with pytest.raises(ValueError, match=r"^method: unknown blending method .*expected one of lin, dec"):

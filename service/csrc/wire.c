@@ -30,6 +30,18 @@ static int varint(cursor *c, uint64_t *out)
     return -1; /* more than 10 bytes */
 }
 
+/* A field's tag: at most 5 bytes and 32 bits, field number not 0, as protobuf reads it (a longer
+ * tag is corrupt to it, however the varint decodes). So every number is within 1..2^29-1. */
+static int tag(cursor *c, int *field, int *wt)
+{
+    uint64_t key;
+    const uint8_t *start = c->p;
+    if (varint(c, &key) || c->p - start > 5 || key > 0xFFFFFFFFu || (key >> 3) == 0) return -1;
+    *field = (int)(key >> 3);
+    *wt = (int)(key & 7);
+    return 0;
+}
+
 static int fixed64(cursor *c, double *out)
 {
     if (c->end - c->p < 8) return -1;
@@ -40,10 +52,12 @@ static int fixed64(cursor *c, double *out)
     return 0;
 }
 
+/* A length-delimited field's body. Its length, like a tag, is corrupt to protobuf beyond 5 bytes. */
 static int length(cursor *c, cursor *sub)
 {
     uint64_t n;
-    if (varint(c, &n) || n > (uint64_t)(c->end - c->p)) return -1;
+    const uint8_t *start = c->p;
+    if (varint(c, &n) || c->p - start > 5 || n > (uint64_t)(c->end - c->p)) return -1;
     sub->p = c->p;
     sub->end = c->p + n;
     c->p += n;
@@ -67,11 +81,9 @@ static int skip(cursor *c, int wt)
 static int doubles(cursor c, double *out, int nfields)
 {
     while (c.p < c.end) {
-        uint64_t key;
-        if (varint(&c, &key) || (key >> 3) > 0x1FFFFFFF) return -1; /* field numbers < 2^29 */
-        int field = (int)(key >> 3), wt = (int)(key & 7);
-        if (field == 0) return -1;
-        if (field >= 1 && field <= nfields) {
+        int field, wt;
+        if (tag(&c, &field, &wt)) return -1;
+        if (field <= nfields) {
             if (wt != WT_I64 || fixed64(&c, &out[field - 1])) return -1;
         } else if (skip(&c, wt)) {
             return -1;
@@ -81,19 +93,16 @@ static int doubles(cursor c, double *out, int nfields)
 }
 
 /* Walks the fields of a message: every field numbered 1..max_field must be length-delimited
- * and goes to fn(field, sub, ctx); other fields are skipped. -1 on undecodable bytes (field
- * numbers outside protobuf's 1..2^29-1 included) or when fn fails. */
+ * and goes to fn(field, sub, ctx); other fields are skipped. -1 on undecodable bytes (see tag)
+ * or when fn fails. */
 static int each_message_field(cursor c, int max_field, int (*fn)(int, cursor, void *), void *ctx)
 {
     while (c.p < c.end) {
-        uint64_t key;
+        int field, wt;
         cursor sub;
-        if (varint(&c, &key)) return -1;
-        uint64_t field = key >> 3;
-        int wt = (int)(key & 7);
-        if (field == 0 || field > 0x1FFFFFFF) return -1;
-        if (field <= (uint64_t)max_field) {
-            if (wt != WT_LEN || length(&c, &sub) || fn((int)field, sub, ctx)) return -1;
+        if (tag(&c, &field, &wt)) return -1;
+        if (field <= max_field) {
+            if (wt != WT_LEN || length(&c, &sub) || fn(field, sub, ctx)) return -1;
         } else if (skip(&c, wt)) {
             return -1;
         }
@@ -123,13 +132,11 @@ int dq_wire_blend_request(const uint8_t *buf, size_t len, dq_blend_request *r)
     r->tolerance = 0.0;
     r->max_iterations = 0;
     while (c.p < c.end) {
-        uint64_t key, v;
+        uint64_t v;
         cursor sub;
-        if (varint(&c, &key) || (key >> 3) > 0x1FFFFFFF) return -1; /* field numbers < 2^29 */
-        int field = (int)(key >> 3), wt = (int)(key & 7);
+        int field, wt;
+        if (tag(&c, &field, &wt)) return -1;
         switch (field) {
-        case 0:
-            return -1; /* field number 0 is invalid */
         case 1:
             if (wt != WT_LEN || length(&c, &sub)) return -1;
             if (fill) {
