@@ -5,7 +5,8 @@
  * Why: reading ten poses out of parsed protobuf objects in Python costs more than the blend
  * itself; the server's hot path decodes the bytes here instead. The decoder follows the protobuf
  * encoding rules (fields in any order, repeated scalars packed or not, a repeated message field
- * merged field by field, the last value of a scalar wins, unknown fields skipped), and reports
+ * merged field by field, the last value of a scalar wins, unknown fields skipped, varints not
+ * necessarily minimal but tags and lengths of at most 5 bytes as protobuf reads them), and reports
  * anything it does not understand as an error so the caller can fall back to the full protobuf
  * parser. tests/rpc/test_wire.py checks it against that parser on random messages.
  *
