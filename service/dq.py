@@ -23,16 +23,36 @@ import numpy as np
 from service import _dqcore as _c
 
 __all__ = [
-    "METHODS", "UNIT_TOL", "DIBResult", "Screw",
+    "METHODS", "Method", "UNIT_TOL", "DIBResult", "Screw",
     "identity", "mul", "conj", "inv", "normalize", "log", "exp", "power",
     "from_matrix", "to_matrix", "from_pose", "to_pose", "transform", "screw",
     "sclerp", "dlb", "dib", "lin", "dec", "logblend", "blend",
 ]
 
 UNIT_TOL = _c.UNIT_TOL
-METHODS = ("lin", "dec", "log", "sclerp", "dlb", "dib")
-_METHOD_CODES = {"lin": _c.LIN, "dec": _c.DEC, "log": _c.LOG, "sclerp": _c.SCLERP,
-                 "dlb": _c.DLB, "dib": _c.DIB}
+
+
+class Method(NamedTuple):
+    """A blending method: its code in the C core (= its ``dqpose.v1.Method`` value), its name in
+    the paper's tables, and what it computes, in one line for help texts."""
+    code: int
+    label: str
+    description: str
+
+
+# The blending methods, written once, in the order of the paper's Table 1. Every other list
+# derives from this one: the proto enum maps by name (METHOD_<NAME>), the CLI takes the names
+# and descriptions. Tests check the C enum (blend.h; tests/test_dq.py) and the proto enum
+# (tests/rpc/test_convert.py) against it.
+METHODS: dict[str, Method] = {
+    "lin": Method(4, "Lin", "weighted mean of the 4x4 matrices, projected to the nearest rotation"),
+    "dec": Method(5, "Dec", "rotation (spherical mean) and translation (mean) blended separately"),
+    "log": Method(6, "Log", "exp of the weighted sum of the principal logs (Alexa)"),
+    "sclerp": Method(3, "ScLERP", "screw motion between exactly two poses, at tau = w1 / (w0 + w1)"),
+    "dlb": Method(2, "DLB", "normalised weighted sum of the dual quaternions (closed form)"),
+    "dib": Method(1, "DIB", "iterative bi-invariant weighted mean (exact; Kavan et al.)"),
+}
+_DIB, _DLB, _LIN, _DEC, _LOG = (METHODS[m].code for m in ("dib", "dlb", "lin", "dec", "log"))
 
 
 class DIBResult(NamedTuple):
@@ -135,7 +155,7 @@ def sclerp(a, b, tau) -> np.ndarray:
 
 def _method_code(method: str) -> int:
     try:
-        return _METHOD_CODES[method]
+        return METHODS[method].code
     except (KeyError, TypeError):
         raise ValueError(f"method: unknown blending method {method!r}; "
                          f"expected one of {', '.join(METHODS)}") from None
@@ -143,7 +163,7 @@ def _method_code(method: str) -> int:
 
 def dlb(dqs, weights=None) -> np.ndarray:
     """Dual-quaternion linear blending: the normalised weighted sum, ``(..., n, 8) -> (..., 8)``."""
-    return _c.blend(dqs, weights, _c.DLB)
+    return _c.blend(dqs, weights, _DLB)
 
 
 def dib(dqs, weights=None, tol: float = 1e-12, max_iter: int = 100, *, return_info: bool = False):
@@ -154,7 +174,7 @@ def dib(dqs, weights=None, tol: float = 1e-12, max_iter: int = 100, *, return_in
     :class:`DIBResult` with the number of steps and the final residual (the norm of the weighted
     log sum at the returned mean; half-twist units: radians and metres).
     """
-    mean, iters, res = _c.blend(dqs, weights, _c.DIB, _as_tol(tol), _as_iter(max_iter))
+    mean, iters, res = _c.blend(dqs, weights, _DIB, _as_tol(tol), _as_iter(max_iter))
     if return_info:
         return DIBResult(mean, iters.astype(np.int64), res)
     return mean
@@ -184,41 +204,30 @@ def _as_tol(tol) -> float:
 
 
 def lin(dqs, weights=None) -> np.ndarray:
-    """Linear blend of 4x4 matrices ``(..., n, 8) -> (..., 4, 4)``. Not rigid in general."""
-    return _c.blend(dqs, weights, _c.LIN)
+    """Linear blend of 4x4 matrices ``(..., n, 8) -> (..., 4, 4)``. Not rigid in general
+    (``blend(..., method="lin")`` projects it to the nearest rigid motion)."""
+    return _c.lin(dqs, weights)
 
 
 def dec(dqs, weights=None, tol: float = 1e-12, max_iter: int = 100) -> np.ndarray:
     """Rotation (spherical weighted mean) and translation (weighted mean) blended separately."""
-    return _c.blend(dqs, weights, _c.DEC, _as_tol(tol), _as_iter(max_iter))
+    return _c.blend(dqs, weights, _DEC, _as_tol(tol), _as_iter(max_iter))
 
 
 def logblend(dqs, weights=None) -> np.ndarray:
     """Alexa's log-matrix blend: ``exp(sum w_i log q_i)`` with principal logs."""
-    return _c.blend(dqs, weights, _c.LOG)
-
-
-def _nearest_rigid(M: np.ndarray) -> np.ndarray:
-    U, _, Vt = np.linalg.svd(M[..., :3, :3])
-    D = np.ones(U.shape[:-1])
-    D[..., -1] = np.sign(np.linalg.det(U @ Vt))
-    out = M.copy()
-    out[..., :3, :3] = (U * D[..., None, :]) @ Vt
-    return out
+    return _c.blend(dqs, weights, _LOG)
 
 
 def blend(dqs, weights=None, method: str = "dib", tol: float = 1e-12, max_iter: int = 100):
     """Blend ``(..., n, 8)`` poses with ``weights`` ``(..., n)`` (default: equal) into ``(..., 8)``.
 
-    ``method`` is one of ``"lin", "dec", "log", "sclerp", "dlb", "dib"``; ``"sclerp"`` needs
-    exactly two poses and interpolates at ``tau = w_1 / (w_0 + w_1)``. ``"lin"`` blends matrices,
-    which is not rigid; its rotation block is projected to the nearest rotation here (use
+    ``method`` is a name of :data:`METHODS`; ``"sclerp"`` needs exactly two poses and
+    interpolates at ``tau = w_1 / (w_0 + w_1)``. ``"lin"`` blends matrices, which is not rigid;
+    its rotation block is projected to the nearest rotation (in the Frobenius norm) here (use
     :func:`lin` for the raw blend). Weights must be finite, non-negative, with a positive sum;
     they are normalised to sum 1.
     """
     code = _method_code(method)
-    if code == _c.DIB:
-        return _c.blend(dqs, weights, code, _as_tol(tol), _as_iter(max_iter))[0]
-    if code == _c.LIN:
-        return _c.from_matrix(_nearest_rigid(_c.blend(dqs, weights, code)))
-    return _c.blend(dqs, weights, code, _as_tol(tol), _as_iter(max_iter))
+    out = _c.blend(dqs, weights, code, _as_tol(tol), _as_iter(max_iter))
+    return out[0] if code == _DIB else out

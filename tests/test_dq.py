@@ -446,6 +446,88 @@ def test_near_unit_inputs_are_normalised(rng):
     assert_dq_close(u, q)
 
 
+# ---- Lin's projection (blend.c: the top eigenvector of Bar-Itzhack's 4x4 matrix, by Jacobi) -----
+
+def svd_nearest_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation nearest to M (..., 3, 3) in the Frobenius norm: the SVD with det correction."""
+    U, _, Vt = np.linalg.svd(M)
+    D = np.ones(U.shape[:-1])
+    D[..., -1] = np.sign(np.linalg.det(U @ Vt))
+    return (U * D[..., None, :]) @ Vt
+
+
+def fit(R: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """trace(R^T M), which the nearest rotation maximises."""
+    return np.einsum("...ij,...ij->...", R, M)
+
+
+@pytest.mark.parametrize("n", [2, 3, 4, 6])
+def test_lin_blend_is_the_nearest_rigid_motion(rng, n):
+    Q = random_dqs(rng, (3000, n), 3.0)     # uniform rotations: far apart, some det(M) < 0
+    w = rng.uniform(0.0, 1.0, (3000, n))
+    w[:, 0] += 1e-3
+    M = dq.lin(Q, w)
+    out = dq.blend(Q, w, method="lin")
+    T = dq.to_matrix(out)
+    R, want = T[..., :3, :3], svd_nearest_rotation(M[..., :3, :3])
+    np.testing.assert_allclose(np.linalg.det(R), 1.0, rtol=0, atol=1e-14)
+    assert_matrices_close(T[..., :3, 3:], M[..., :3, 3:], tscale(M))
+    np.testing.assert_allclose(fit(R, M[..., :3, :3]), fit(want, M[..., :3, :3]), rtol=0, atol=1e-13)
+    # where the answer is unique enough: the eigengap of K is 2 (s2 + sign(det M) s3)
+    s = np.linalg.svd(M[..., :3, :3], compute_uv=False)
+    gap = 2 * (s[:, 1] + np.sign(np.linalg.det(M[..., :3, :3])) * s[:, 2])
+    ok = gap > 1e-3
+    assert ok.mean() > 0.9
+    np.testing.assert_allclose(R[ok], want[ok], rtol=0, atol=1e-12)
+    assert out[:, 0].min() >= 0.0            # canonical sign, as from_matrix gives
+    if n >= 3:
+        assert (np.linalg.det(M[..., :3, :3]) < 0).sum() > 10
+
+
+# The four rotations diag(1,1,1), diag(1,-1,-1), diag(-1,1,-1), diag(-1,-1,1) span the convex hull
+# of SO(3) as U conv{D_k} V^T: blending U D_k V^T with weights beta gives M = U diag(D beta) V^T,
+# whose K has the eigenvalues 4 beta_k - 1. So the nearest rotation is U D_k V^T for the largest
+# beta_k, and the gap between the two largest weights sets how unique it is.
+D4 = np.array([np.diag(d) for d in ([1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1])], float)
+
+
+@pytest.mark.parametrize("gap", [0.3, 1e-3, 1e-6, 1e-9, 0.0])
+def test_lin_projection_near_ties(rng, gap):
+    m = 1000
+    U, V = ref.rot_exp(rng.normal(size=(m, 3))), ref.rot_exp(rng.normal(size=(m, 3)))
+    Rk = U[:, None] @ D4[None] @ np.swapaxes(V, -1, -2)[:, None]          # (m, 4, 3, 3)
+    x = rng.uniform(0.34, 0.45, m) if gap < 0.3 else rng.uniform(0.34, 0.35, m)
+    rest = 1 - 2 * x - gap
+    u = rng.uniform(0, 1, m)
+    beta = np.stack([x + gap, x, u * rest, (1 - u) * rest], axis=-1)
+    perm = rng.permuted(np.tile(np.arange(4), (m, 1)), axis=1)
+    beta = np.take_along_axis(beta, np.argsort(perm, axis=1), axis=1)    # slot perm[i] holds beta[i]
+    first = perm[:, 0]
+    Q = ref.dq_from_matrix(ref.make(Rk, rng.normal(size=(m, 4, 3))))
+    M = dq.lin(Q, beta)[..., :3, :3]
+    R = dq.to_matrix(dq.blend(Q, beta, method="lin"))[..., :3, :3]
+    exact = Rk[np.arange(m), first]
+    np.testing.assert_allclose(fit(R, M), 4 * beta.max(axis=1) - 1, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(np.swapaxes(R, -1, -2) @ R, np.broadcast_to(np.eye(3), R.shape),
+                               rtol=0, atol=1e-14)
+    assert (np.linalg.det(M) < 0).sum() > m // 10 or gap == 0.3
+    if gap > 0:
+        # an eigenvector is as accurate as rounding over the eigengap (4 gap); so is the SVD's
+        tol = max(1e-12, 1e-14 / gap)
+        np.testing.assert_allclose(R, exact, rtol=0, atol=tol)
+        np.testing.assert_allclose(svd_nearest_rotation(M), exact, rtol=0, atol=tol)
+    # all four weights equal: M = 0, every rotation is as near; still a rotation, no NaN
+    Z = dq.blend(Q[:5], np.full((5, 4), 0.25), method="lin")
+    assert np.isfinite(Z).all()
+    np.testing.assert_allclose(np.linalg.det(dq.to_matrix(Z)[:, :3, :3]), 1.0, atol=1e-14)
+
+
+def test_the_method_table_is_the_c_enum():
+    from service import _dqcore
+    assert _dqcore.METHODS == {name.upper(): m.code for name, m in dq.METHODS.items()}
+    assert all(m.description and m.label.lower() == name for name, m in dq.METHODS.items())
+
+
 # ---- broadcasting -------------------------------------------------------------------------------
 
 def test_broadcasting_of_leading_dimensions(rng):
@@ -794,6 +876,23 @@ def test_bad_weights_are_rejected(f):
 def test_bad_shapes_are_rejected(f, args, pattern):
     with pytest.raises(ValueError, match=pattern):
         f(*args)
+
+
+NOT_FLOAT = [SET[:2].astype(complex), SET[:2].astype(object), SET[:2].astype(str),
+             [[1, 0, 0, 0, 0, 0, 0, 0], [1j, 0, 0, 0, 0, 0, 0, 0]]]
+
+
+@pytest.mark.parametrize("method", list(dq.METHODS))
+def test_non_float_sets_get_one_message_for_every_method(method):
+    # one conversion in the core for every method (sclerp once converted twice, unnamed)
+    for bad in NOT_FLOAT:
+        with pytest.raises(ValueError, match=r"^dqs: not convertible to a float64 array"):
+            dq.blend(bad, method=method)
+        with pytest.raises(ValueError, match=r"^weights: not convertible to a float64 array"):
+            dq.blend(SET[:2], np.array(bad)[:, 0], method=method)
+    for bad in NOT_FLOAT[:3]:
+        with pytest.raises(ValueError, match=r"^a: not convertible to a float64 array"):
+            dq.sclerp(bad[0], SET[1], 0.5)
 
 
 def test_bad_methods_are_rejected():

@@ -33,12 +33,17 @@ units: metres; quaternions scalar first (w, x, y, z), unit norm.
 def configure(name: str, p) -> None:
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     if name == "blend":
+        from service.dq import METHODS  # NumPy and the C core: only for this command's help
+
+        methods = "".join(f"  {m:8s}{spec.description}\n" for m, spec in METHODS.items())
         p.description = "Blend the poses in FILE into one (on the server at --target, or --local)."
         p.epilog = (POSE_FORMATS % (BLEND_JSON, "poses", BLEND_CSV)
+                    + "\nmethods (--method):\n" + methods
                     + "\nexample: dqpose blend --method dlb poses.csv")
         p.add_argument("file", metavar="FILE", help="poses (JSON or CSV; - reads standard input)")
-        p.add_argument("--method", choices=["dib", "dlb", "sclerp", "lin", "dec", "log"],
-                       help="blending method (default: the file's \"method\", else dib)")
+        p.add_argument("--method", choices=list(METHODS),
+                       help="blending method, see below (default: the file's \"method\", "
+                            "else dib)")
         p.add_argument("--weights", help="comma-separated weights (default: the file's, else equal)")
         func = _blend
     else:

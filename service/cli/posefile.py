@@ -155,8 +155,7 @@ def read_blend(path: str) -> BlendFile:
         _, flat = _json_poses("poses", doc.get("poses", []), stamped=False)
         w = doc.get("weights")
         weights = None if not w else np.asarray(w, dtype=np.float64)
-        method = _enum("method", doc.get("method"), "method",
-                       ("dib", "dlb", "sclerp", "lin", "dec", "log"))
+        method = _enum("method", doc.get("method"), "method", tuple(dq.METHODS))
     else:
         rows, _ = _csv_rows(text, POSE_COLUMNS[:7], ("weight",))
         flat = np.concatenate([rows[:, 3:7], rows[:, :3]], axis=1)

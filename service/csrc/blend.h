@@ -3,13 +3,45 @@
  * Blending"): ScLERP, DLB, DIB and the paper's baselines Lin, Dec and Log.
  *
  * Every function here takes unit dual quaternions (see dq_unit) and weights that are
- * non-negative and sum to 1 (see dq_weights); the module validates before calling.
+ * non-negative and sum to 1 (see dq_weights); the callers (module.c, wire.c) validate first.
  * Conventions are those of dq.h.
  */
 #ifndef DQPOSE_BLEND_H
 #define DQPOSE_BLEND_H
 
 #include <stddef.h>
+
+/* The blending methods, X(NAME, value). The values are those of dqpose.v1.Method, so the wire
+ * decoder passes a request's method through unchanged. service/dq.py's METHODS table is the one
+ * list of names; tests check this enum (tests/test_dq.py) and the proto enum
+ * (tests/rpc/test_convert.py) against it. */
+#define DQ_METHODS(X) X(DIB, 1) X(DLB, 2) X(SCLERP, 3) X(LIN, 4) X(DEC, 5) X(LOG, 6)
+
+#define DQ_METHOD_ENUM_(name, value) DQ_##name = value,
+typedef enum { DQ_METHODS(DQ_METHOD_ENUM_) } dq_method;
+#undef DQ_METHOD_ENUM_
+
+typedef struct {
+    int method;    /* a dq_method */
+    double tol;    /* DIB, DEC: stop when the step is shorter */
+    int max_iter;  /* DIB, DEC: at most this many steps */
+} dq_blend_params;
+
+/* 1 when method is a dq_method. */
+int dq_method_known(int method);
+
+/* Whether method can blend a set of n poses: DQ_OK, DQ_E_METHOD, or DQ_E_SET_SIZE (SCLERP
+ * takes exactly two). */
+int dq_blend_check(int method, size_t n);
+
+/* The one dispatch: the set q (n unit poses) with weights w (from dq_weights) blended by
+ * p->method into the unit pose out. SCLERP interpolates the pair at tau = w[1]. LIN's matrix
+ * blend is projected to the nearest rigid motion (the nearest rotation in the Frobenius norm,
+ * the weighted mean of the translations); dq_lin is the raw blend. *iters and *residual are
+ * DIB's (0 for the other methods). Returns DQ_OK, a dq_blend_check code, or DQ_E_OVERFLOW when
+ * the result is not finite. */
+int dq_blend_set(const double *q, const double *w, size_t n, const dq_blend_params *p,
+                 double *out, int *iters, double *residual);
 
 /* ScLERP(tau; a, b) = a (a* b)^tau, b first put in a's hemisphere. The screw of a* b is
  * computed once per pair, so evaluating many tau costs one sincos and ~30 flops each. */
@@ -30,8 +62,8 @@ void dq_sclerp(const double *a, const double *b, double tau, double *out);
 /* dq_sclerp for n independent pairs (out[i] from a[i], b[i], tau[i]); vectorised. */
 void dq_sclerp_pairs(const double *a, const double *b, const double *tau, size_t n, double *out);
 
-/* Checks weights (finite, >= 0, positive sum) and writes them normalised to sum 1.
- * On error *bad is the offending index (for a zero sum, n). */
+/* Checks weights (finite, >= 0, positive sum) and writes them normalised to sum 1; w NULL
+ * means equal weights. On error *bad is the offending index (for a zero sum, n). */
 int dq_weights(const double *w, size_t n, double *wn, size_t *bad);
 
 /* DLB: the normalised weighted sum, every input first put in the hemisphere of the pose with
@@ -44,7 +76,8 @@ void dq_dlb(const double *q, const double *w, size_t n, double *out);
 void dq_dib(const double *q, const double *w, size_t n, double tol, int max_iter, double *out,
             int *iters, double *residual);
 
-/* Baselines. Lin writes a 4x4 row-major matrix (not rigid in general). Dec blends the
+/* Baselines. Lin writes the weighted sum of the 4x4 row-major matrices (not rigid in general;
+ * dq_blend_set projects it). Dec blends the
  * rotation (spherical weighted mean, slerp for two) and the translation (weighted mean)
  * separately. Log is exp of the weighted sum of principal logs (Alexa's log-matrix blend). */
 void dq_lin(const double *q, const double *w, size_t n, double *m_out);

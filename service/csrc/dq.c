@@ -36,15 +36,6 @@ void dq_conj(const double *a, double *out)
     out[4] = a[4]; out[5] = -a[5]; out[6] = -a[6]; out[7] = -a[7];
 }
 
-void dq_norm(const double *a, double *n, double *n_d)
-{
-    double rr = a[0] * a[0] + a[1] * a[1] + a[2] * a[2] + a[3] * a[3];
-    double rd = a[0] * a[4] + a[1] * a[5] + a[2] * a[6] + a[3] * a[7];
-    double nr = sqrt(rr);
-    *n = nr;
-    *n_d = nr > 0.0 ? rd / nr : 0.0;
-}
-
 /* Divide by the dual-number norm: r/|r| and d/|r| - r <r,d>/|r|^3, which makes the result
  * exactly unit (|r| = 1 and <r, d> = 0). */
 static inline void normalize_by(const double *q, double rr, double *out)

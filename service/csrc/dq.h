@@ -27,7 +27,9 @@ enum {
     DQ_E_NOT_RIGID = 5,   /* matrix not orthonormal, det != 1, or bottom row != [0 0 0 1] */
     DQ_E_WEIGHT_NEG = 6,  /* a negative weight */
     DQ_E_WEIGHT_SUM = 7,  /* weights sum to zero */
-    DQ_E_OVERFLOW = 8     /* the result is not finite (input too large) */
+    DQ_E_OVERFLOW = 8,    /* the result is not finite (input too large) */
+    DQ_E_METHOD = 9,      /* not a blending method (blend.h) */
+    DQ_E_SET_SIZE = 10    /* a blending method given a set size it cannot take (ScLERP: 2) */
 };
 
 /* Inputs within this distance of unit norm are normalised; further off is an error. */
@@ -36,8 +38,6 @@ enum {
 /* Algebra (any dual quaternion). */
 void dq_mul(const double *a, const double *b, double *out);
 void dq_conj(const double *a, double *out);
-/* Dual-number norm |q| = n + eps * n_d. */
-void dq_norm(const double *a, double *n, double *n_d);
 
 /* Checks that q is finite and unit within DQ_UNIT_TOL, then writes the exact unit version
  * (real part normalised, dual part made orthogonal to it). out may alias q. */

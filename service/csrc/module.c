@@ -310,7 +310,6 @@ static PyObject *run(kernel_fn kern, void *ctx, int nin, PyObject **objs, const 
     e.n = n;
     e.scratch = scratch;
     int code = DQ_OK;
-    npy_intp bad_elem = -1;
     npy_intp bad_off = 0;
     npy_intp idx[NPY_MAXDIMS];
     npy_intp off[MAX_IN];
@@ -324,7 +323,6 @@ static PyObject *run(kernel_fn kern, void *ctx, int nin, PyObject **objs, const 
         for (int j = 0; j < nout; j++) e.out[j] = (double *)PyArray_DATA(outs[j]) + t * out_core[j];
         code = kern(&e);
         if (code != DQ_OK) {
-            bad_elem = t;
             bad_off = off[e.bad_arg];
             break;
         }
@@ -338,8 +336,12 @@ static PyObject *run(kernel_fn kern, void *ctx, int nin, PyObject **objs, const 
         }
     }
     NPY_END_THREADS;
-    (void)bad_elem;
 
+    if (code == DQ_E_SET_SIZE) { /* every set has the same size: no index to name */
+        PyErr_Format(PyExc_ValueError, "%s: sclerp blends exactly 2 poses, got %zd", is[0].name,
+                     (Py_ssize_t)n);
+        goto done;
+    }
     if (code != DQ_OK) {
         int bi = e.bad_arg;
         const in_spec *s = &is[bi];
@@ -416,12 +418,6 @@ static int k_normalize(elem *e)
     int rc = dq_normalize(e->in[0], e->out[0]);
     if (rc) e->bad_arg = 0;
     return rc;
-}
-
-static int k_unit(elem *e)
-{
-    UNIT_IN(e, 0, e->out[0]);
-    return DQ_OK;
 }
 
 static int k_log(elem *e)
@@ -526,14 +522,6 @@ static int k_screw(elem *e)
 }
 
 /* Blends: scratch holds n unit poses then n normalised weights. */
-enum { M_LIN = 0, M_DEC, M_LOG, M_SCLERP, M_DLB, M_DIB };
-
-typedef struct {
-    int method;
-    double tol;
-    int max_iter;
-} blend_ctx;
-
 static int load_set(elem *e)
 {
     npy_intp n = e->n;
@@ -542,43 +530,39 @@ static int load_set(elem *e)
         int rc = dq_unit(e->in[0] + 8 * i, q + 8 * i);
         if (rc) { e->bad_arg = 0; e->bad_sub = i; return rc; }
     }
-    if (e->in[1]) {
-        size_t bad = 0;
-        int rc = dq_weights(e->in[1], (size_t)n, w, &bad);
-        if (rc) { e->bad_arg = 1; e->bad_sub = (npy_intp)bad; return rc; }
-    } else {
-        for (npy_intp i = 0; i < n; i++) w[i] = 1.0 / (double)n;
-    }
+    size_t bad = 0;
+    int rc = dq_weights(e->in[1], (size_t)n, w, &bad);
+    if (rc) { e->bad_arg = 1; e->bad_sub = (npy_intp)bad; return rc; }
     return DQ_OK;
 }
 
 static int k_blend(elem *e)
 {
-    blend_ctx *c = (blend_ctx *)e->ctx;
+    const dq_blend_params *p = (const dq_blend_params *)e->ctx;
+    e->bad_arg = 0;
+    e->bad_sub = 0;
+    /* the set size before the poses: it is wrong for every set alike */
+    int rc = dq_blend_check(p->method, (size_t)e->n);
+    if (!rc) rc = load_set(e);
+    if (rc) return rc;
+    int iters;
+    double residual;
+    const double *q = e->scratch, *w = e->scratch + 8 * e->n;
+    rc = dq_blend_set(q, w, (size_t)e->n, p, e->out[0], &iters, &residual);
+    if (rc) { e->bad_arg = 0; e->bad_sub = 0; return rc; }
+    if (e->out[1]) e->out[1][0] = (double)iters;
+    if (e->out[2]) e->out[2][0] = residual;
+    return DQ_OK;
+}
+
+/* Lin's raw matrix blend (dq.lin), which dq_blend_set projects. */
+static int k_lin(elem *e)
+{
     int rc = load_set(e);
     if (rc) return rc;
-    size_t n = (size_t)e->n;
-    double *q = e->scratch, *w = e->scratch + 8 * n;
-    switch (c->method) {
-    case M_LIN: dq_lin(q, w, n, e->out[0]); break;
-    case M_DEC: dq_dec(q, w, n, c->tol, c->max_iter, e->out[0]); break;
-    case M_LOG: dq_logblend(q, w, n, e->out[0]); break;
-    case M_SCLERP: {
-        /* ScLERP of a pair with weights (1 - tau, tau). */
-        dq_sclerp(q, q + 8, w[1], e->out[0]);
-        break;
-    }
-    case M_DLB: dq_dlb(q, w, n, e->out[0]); break;
-    default: {
-        int it = 0;
-        double res = 0.0;
-        dq_dib(q, w, n, c->tol, c->max_iter, e->out[0], &it, &res);
-        if (e->out[1]) e->out[1][0] = (double)it;
-        if (e->out[2]) e->out[2][0] = res;
-    }
-    }
-    double *o = e->out[0];
-    if (!dq_finite_n(o, c->method == M_LIN ? 16 : 8)) { e->bad_arg = 0; e->bad_sub = 0; return DQ_E_OVERFLOW; }
+    const double *q = e->scratch, *w = e->scratch + 8 * e->n;
+    dq_lin(q, w, (size_t)e->n, e->out[0]);
+    if (!dq_finite_n(e->out[0], 16)) { e->bad_arg = 0; e->bad_sub = 0; return DQ_E_OVERFLOW; }
     return DQ_OK;
 }
 
@@ -604,14 +588,6 @@ static PyObject *py_mul(PyObject *self, PyObject *args)
 
 static PyObject *py_conj(PyObject *self, PyObject *x) { return call1(k_conj, x, S_DQ_A, O_DQ); }
 static PyObject *py_normalize(PyObject *self, PyObject *x) { return call1(k_normalize, x, S_DQ_A, O_DQ); }
-static PyObject *py_unit(PyObject *self, PyObject *args)
-{
-    PyObject *x;
-    const char *name = "dq";
-    if (!PyArg_ParseTuple(args, "O|s:unit", &x, &name)) return NULL;
-    in_spec s = {name, 1, {8, 0}, 0};
-    return call1(k_unit, x, s, O_DQ);
-}
 static PyObject *py_log(PyObject *self, PyObject *x)
 {
     out_spec o = {1, {6, 0}};
@@ -741,48 +717,41 @@ static PyObject *py_screw(PyObject *self, PyObject *x)
     return run(k_screw, NULL, 1, objs, is, 3, os, 0);
 }
 
+static const in_spec S_SET[2] = {{"dqs", 2, {-1, 8}, 0}, {"weights", 1, {-1, 0}, 1}};
+
 /* blend(dqs, weights, method, tol, max_iter) -> out, or (out, iterations, residual) for DIB */
 static PyObject *py_blend(PyObject *self, PyObject *args)
 {
     PyObject *objs[2];
-    blend_ctx c = {M_DIB, 1e-12, 100};
-    if (!PyArg_ParseTuple(args, "OOi|di:blend", &objs[0], &objs[1], &c.method, &c.tol, &c.max_iter))
+    dq_blend_params p = {DQ_DIB, 1e-12, 100};
+    if (!PyArg_ParseTuple(args, "OOi|di:blend", &objs[0], &objs[1], &p.method, &p.tol, &p.max_iter))
         return NULL;
-    if (c.method < M_LIN || c.method > M_DIB) {
+    if (!dq_method_known(p.method)) {
         PyErr_SetString(PyExc_ValueError, "method: unknown blending method");
         return NULL;
     }
-    if (!(c.tol >= 0.0) || !(c.tol * 0.0 == 0.0)) {
+    if (!(p.tol >= 0.0) || !(p.tol * 0.0 == 0.0)) {
         PyErr_SetString(PyExc_ValueError, "tol: must be finite and >= 0");
         return NULL;
     }
-    if (c.max_iter < 0) {
+    if (p.max_iter < 0) {
         PyErr_SetString(PyExc_ValueError, "max_iter: must be >= 0");
         return NULL;
     }
-    in_spec is[2] = {{"dqs", 2, {-1, 8}, 0}, {"weights", 1, {-1, 0}, 1}};
-    if (c.method == M_SCLERP) {
-        /* exactly two poses */
-        PyArrayObject *arr = (PyArrayObject *)PyArray_FROM_OTF(objs[0], NPY_DOUBLE, NPY_ARRAY_IN_ARRAY);
-        if (!arr) return NULL;
-        int ok = PyArray_NDIM(arr) >= 2 && PyArray_DIM(arr, PyArray_NDIM(arr) - 2) == 2;
-        npy_intp n = PyArray_NDIM(arr) >= 2 ? PyArray_DIM(arr, PyArray_NDIM(arr) - 2) : 0;
-        Py_DECREF(arr);
-        if (!ok) {
-            PyErr_Format(PyExc_ValueError, "dqs: sclerp blends exactly 2 poses, got %zd",
-                         (Py_ssize_t)n);
-            return NULL;
-        }
-    }
-    if (c.method == M_LIN) {
-        out_spec o = {2, {4, 4}};
-        return run(k_blend, &c, 2, objs, is, 1, &o, 9);
-    }
-    if (c.method == M_DIB) {
+    if (p.method == DQ_DIB) {
         out_spec os[3] = {O_DQ, {0, {0, 0}}, {0, {0, 0}}};
-        return run(k_blend, &c, 2, objs, is, 3, os, 9);
+        return run(k_blend, &p, 2, objs, S_SET, 3, os, 9);
     }
-    return run(k_blend, &c, 2, objs, is, 1, &O_DQ, 9);
+    return run(k_blend, &p, 2, objs, S_SET, 1, &O_DQ, 9);
+}
+
+/* lin(dqs, weights) -> the raw matrix blend (..., 4, 4) */
+static PyObject *py_lin(PyObject *self, PyObject *args)
+{
+    PyObject *objs[2];
+    if (!PyArg_ParseTuple(args, "OO:lin", &objs[0], &objs[1])) return NULL;
+    out_spec o = {2, {4, 4}};
+    return run(k_lin, NULL, 2, objs, S_SET, 1, &o, 9);
 }
 
 /* blend_request_from_wire(bytes) -> (poses (n, 7) [qw qx qy qz x y z], weights (m,), method,
@@ -898,7 +867,6 @@ static PyMethodDef methods[] = {
     {"mul", py_mul, METH_VARARGS, "mul(a, b): dual-quaternion product a b."},
     {"conj", py_conj, METH_O, "conj(a): quaternion conjugate of both parts (the inverse of a pose)."},
     {"normalize", py_normalize, METH_O, "normalize(a): divide by the dual-number norm."},
-    {"unit", py_unit, METH_VARARGS, "unit(a, name='dq'): validate poses, return them exactly unit."},
     {"log", py_log, METH_O, "log(a) -> [...,6]."},
     {"exp", py_exp, METH_O, "exp(x[...,6]) -> [...,8]."},
     {"power", py_power, METH_VARARGS, "power(a, tau) = exp(tau log a)."},
@@ -910,6 +878,7 @@ static PyMethodDef methods[] = {
     {"transform", py_transform, METH_VARARGS, "transform(a, p[...,3]) -> [...,3]."},
     {"screw", py_screw, METH_O, "screw(a) -> (theta, d, [l | m])."},
     {"blend", py_blend, METH_VARARGS, "blend(dqs, weights, method, tol, max_iter)."},
+    {"lin", py_lin, METH_VARARGS, "lin(dqs, weights): the raw matrix blend -> [...,4,4]."},
     {"blend_request_from_wire", py_blend_request_from_wire, METH_O,
      "blend_request_from_wire(bytes) -> (poses, weights, method, tolerance, max_iterations) or None."},
     {"blend_batch_wire", py_blend_batch_wire, METH_VARARGS,
@@ -931,12 +900,25 @@ PyMODINIT_FUNC PyInit__dqcore(void)
     import_array();
     PyObject *m = PyModule_Create(&moddef);
     if (!m) return NULL;
-    PyModule_AddIntConstant(m, "LIN", M_LIN);
-    PyModule_AddIntConstant(m, "DEC", M_DEC);
-    PyModule_AddIntConstant(m, "LOG", M_LOG);
-    PyModule_AddIntConstant(m, "SCLERP", M_SCLERP);
-    PyModule_AddIntConstant(m, "DLB", M_DLB);
-    PyModule_AddIntConstant(m, "DIB", M_DIB);
+    /* METHODS: {"DIB": 1, ...}, the C enum as it is, for the test against service/dq.py */
+    PyObject *codes = PyDict_New();
+    if (!codes || PyModule_AddObject(m, "METHODS", codes) < 0) {
+        Py_XDECREF(codes);
+        Py_DECREF(m);
+        return NULL;
+    }
+#define ADD_METHOD_(name, value)                                                  \
+    do {                                                                          \
+        PyObject *v_ = PyLong_FromLong(DQ_##name);                                \
+        if (!v_ || PyDict_SetItemString(codes, #name, v_) < 0) {                  \
+            Py_XDECREF(v_);                                                       \
+            Py_DECREF(m);                                                         \
+            return NULL;                                                          \
+        }                                                                         \
+        Py_DECREF(v_);                                                            \
+    } while (0);
+    DQ_METHODS(ADD_METHOD_)
+#undef ADD_METHOD_
     PyModule_AddObject(m, "UNIT_TOL", PyFloat_FromDouble(DQ_UNIT_TOL));
     return m;
 }

@@ -30,6 +30,18 @@ static int varint(cursor *c, uint64_t *out)
     return -1; /* more than 10 bytes */
 }
 
+/* A field's tag: at most 5 bytes and 32 bits, field number not 0, as protobuf reads it (a longer
+ * tag is corrupt to it, however the varint decodes). So every number is within 1..2^29-1. */
+static int tag(cursor *c, int *field, int *wt)
+{
+    uint64_t key;
+    const uint8_t *start = c->p;
+    if (varint(c, &key) || c->p - start > 5 || key > 0xFFFFFFFFu || (key >> 3) == 0) return -1;
+    *field = (int)(key >> 3);
+    *wt = (int)(key & 7);
+    return 0;
+}
+
 static int fixed64(cursor *c, double *out)
 {
     if (c->end - c->p < 8) return -1;
@@ -40,10 +52,12 @@ static int fixed64(cursor *c, double *out)
     return 0;
 }
 
+/* A length-delimited field's body. Its length, like a tag, is corrupt to protobuf beyond 5 bytes. */
 static int length(cursor *c, cursor *sub)
 {
     uint64_t n;
-    if (varint(c, &n) || n > (uint64_t)(c->end - c->p)) return -1;
+    const uint8_t *start = c->p;
+    if (varint(c, &n) || c->p - start > 5 || n > (uint64_t)(c->end - c->p)) return -1;
     sub->p = c->p;
     sub->end = c->p + n;
     c->p += n;
@@ -67,11 +81,9 @@ static int skip(cursor *c, int wt)
 static int doubles(cursor c, double *out, int nfields)
 {
     while (c.p < c.end) {
-        uint64_t key;
-        if (varint(&c, &key) || (key >> 3) > 0x1FFFFFFF) return -1; /* field numbers < 2^29 */
-        int field = (int)(key >> 3), wt = (int)(key & 7);
-        if (field == 0) return -1;
-        if (field >= 1 && field <= nfields) {
+        int field, wt;
+        if (tag(&c, &field, &wt)) return -1;
+        if (field <= nfields) {
             if (wt != WT_I64 || fixed64(&c, &out[field - 1])) return -1;
         } else if (skip(&c, wt)) {
             return -1;
@@ -81,19 +93,16 @@ static int doubles(cursor c, double *out, int nfields)
 }
 
 /* Walks the fields of a message: every field numbered 1..max_field must be length-delimited
- * and goes to fn(field, sub, ctx); other fields are skipped. -1 on undecodable bytes (field
- * numbers outside protobuf's 1..2^29-1 included) or when fn fails. */
+ * and goes to fn(field, sub, ctx); other fields are skipped. -1 on undecodable bytes (see tag)
+ * or when fn fails. */
 static int each_message_field(cursor c, int max_field, int (*fn)(int, cursor, void *), void *ctx)
 {
     while (c.p < c.end) {
-        uint64_t key;
+        int field, wt;
         cursor sub;
-        if (varint(&c, &key)) return -1;
-        uint64_t field = key >> 3;
-        int wt = (int)(key & 7);
-        if (field == 0 || field > 0x1FFFFFFF) return -1;
-        if (field <= (uint64_t)max_field) {
-            if (wt != WT_LEN || length(&c, &sub) || fn((int)field, sub, ctx)) return -1;
+        if (tag(&c, &field, &wt)) return -1;
+        if (field <= max_field) {
+            if (wt != WT_LEN || length(&c, &sub) || fn(field, sub, ctx)) return -1;
         } else if (skip(&c, wt)) {
             return -1;
         }
@@ -123,13 +132,11 @@ int dq_wire_blend_request(const uint8_t *buf, size_t len, dq_blend_request *r)
     r->tolerance = 0.0;
     r->max_iterations = 0;
     while (c.p < c.end) {
-        uint64_t key, v;
+        uint64_t v;
         cursor sub;
-        if (varint(&c, &key) || (key >> 3) > 0x1FFFFFFF) return -1; /* field numbers < 2^29 */
-        int field = (int)(key >> 3), wt = (int)(key & 7);
+        int field, wt;
+        if (tag(&c, &field, &wt)) return -1;
         switch (field) {
-        case 0:
-            return -1; /* field number 0 is invalid */
         case 1:
             if (wt != WT_LEN || length(&c, &sub)) return -1;
             if (fill) {
@@ -227,8 +234,6 @@ static size_t encode_response(const double *quat, const double *t, uint32_t iter
     return (size_t)(p - out);
 }
 
-enum { FAST_DIB, FAST_DLB, FAST_SCLERP, FAST_DEC, FAST_LOG };
-
 int dq_wire_blend(const uint8_t *buf, size_t len, const dq_wire_config *cfg, uint8_t *out,
                   size_t *out_len)
 {
@@ -237,19 +242,15 @@ int dq_wire_blend(const uint8_t *buf, size_t len, const dq_wire_config *cfg, uin
     if (dq_wire_blend_request(buf, len, &r) < 0) return -1;
     size_t n = r.n_poses, m = r.n_weights;
     if (n == 0 || n > cfg->max_poses || (m && m != n)) return -1;
-    int method;
-    switch (r.method) {
-    case 0: case 1: method = FAST_DIB; break;
-    case 2: method = FAST_DLB; break;
-    case 3: method = FAST_SCLERP; if (n != 2) return -1; break;
-    case 5: method = FAST_DEC; break;
-    case 6: method = FAST_LOG; break;
-    default: return -1; /* LIN (projected in Python) and unknown values */
-    }
-    double tol = r.tolerance != 0.0 ? r.tolerance : cfg->default_tol;
-    if (!(tol > 0.0 && tol * 0.0 == 0.0)) return -1;
+    dq_blend_params p;
+    /* METHOD_UNSPECIFIED means DIB; any other value is a dq_method or refused by the check */
+    p.method = r.method == 0 ? DQ_DIB : (int)r.method;
+    if (dq_blend_check(p.method, n)) return -1;
+    p.tol = r.tolerance != 0.0 ? r.tolerance : cfg->default_tol;
+    if (!(p.tol > 0.0 && p.tol * 0.0 == 0.0)) return -1;
     uint64_t max_iter = r.max_iterations ? r.max_iterations : cfg->default_max_iter;
     if (max_iter > cfg->max_iter_limit) return -1;
+    p.max_iter = (int)max_iter;
 
     /* rows [qw qx qy qz x y z], weights in, unit dual quaternions, normalised weights */
     double stack[16 * 32];
@@ -268,22 +269,11 @@ int dq_wire_blend(const uint8_t *buf, size_t len, const dq_wire_config *cfg, uin
         if (dq_from_pose(r.poses + 7 * i, r.poses + 7 * i + 4, tmp)) goto done;
         if (dq_unit(tmp, q + 8 * i)) goto done;
     }
-    if (m) {
-        size_t bad;
-        if (dq_weights(r.weights, n, w, &bad)) goto done;
-    } else {
-        for (size_t i = 0; i < n; i++) w[i] = 1.0 / (double)n;
-    }
-    double mean[8], unit[8], quat[4], t[3], residual = 0.0;
-    int iterations = 0;
-    switch (method) {
-    case FAST_DIB: dq_dib(q, w, n, tol, (int)max_iter, mean, &iterations, &residual); break;
-    case FAST_DLB: dq_dlb(q, w, n, mean); break;
-    case FAST_SCLERP: dq_sclerp(q, q + 8, w[1], mean); break;
-    case FAST_DEC: dq_dec(q, w, n, tol, (int)max_iter, mean); break;
-    default: dq_logblend(q, w, n, mean); break;
-    }
-    if (!dq_finite8(mean) || !(residual * 0.0 == 0.0) || dq_unit(mean, unit)) goto done;
+    size_t bad;
+    if (dq_weights(r.weights, n, w, &bad)) goto done;
+    double mean[8], unit[8], quat[4], t[3], residual;
+    int iterations;
+    if (dq_blend_set(q, w, n, &p, mean, &iterations, &residual) || dq_unit(mean, unit)) goto done;
     dq_to_pose(unit, quat, t);
     *out_len = encode_response(quat, t, (uint32_t)iterations, residual, out);
     rc = 0;

@@ -5,9 +5,10 @@
  * Why: reading ten poses out of parsed protobuf objects in Python costs more than the blend
  * itself; the server's hot path decodes the bytes here instead. The decoder follows the protobuf
  * encoding rules (fields in any order, repeated scalars packed or not, a repeated message field
- * merged field by field, the last value of a scalar wins, unknown fields skipped), and reports
+ * merged field by field, the last value of a scalar wins, unknown fields skipped, varints not
+ * necessarily minimal but tags and lengths of at most 5 bytes as protobuf reads them), and reports
  * anything it does not understand as an error so the caller can fall back to the full protobuf
- * parser. tests/test_wire.py checks it against that parser on random messages.
+ * parser. tests/rpc/test_wire.py checks it against that parser on random messages.
  *
  * Field numbers (proto/dqpose/v1): BlendRequest {poses=1; weights=2; method=3; tolerance=4;
  * max_iterations=5}, Pose {position=1; orientation=2}, Vector3 {x=1; y=2; z=3},
@@ -37,14 +38,14 @@ int dq_wire_blend_request(const uint8_t *buf, size_t len, dq_blend_request *r);
  * uint32 iterations=2; double residual=3}), with no object per pose.
  *
  * It takes only the plain case: a decodable request with 1..max_poses poses (each finite, unit
- * within DQ_UNIT_TOL), no weights or one valid weight per pose, method UNSPECIFIED, DIB, DLB,
- * SCLERP (2 poses), DEC or LOG, tolerance 0 (= default_tol) or finite > 0, max_iterations 0
- * (= default_max_iter) or <= max_iter_limit, and a finite result. Anything else returns -1 and
- * writes nothing: the caller then takes its full path, which names the problem. On success it
- * returns 0 and the response is out[0 .. *out_len), byte for byte what the protobuf runtime
- * writes for the same values (proto3: zero scalars omitted, -0.0 kept). The arithmetic is the
- * same sequence of calls as the Python API's (dq_from_pose, dq_unit, dq_weights, the blend,
- * dq_unit, dq_to_pose), so both paths give identical bits. */
+ * within DQ_UNIT_TOL), no weights or one valid weight per pose, any method (SCLERP with 2
+ * poses), tolerance 0 (= default_tol) or finite > 0, max_iterations 0 (= default_max_iter) or
+ * <= max_iter_limit, and a finite result. Anything else returns -1 and writes nothing: the caller
+ * then takes its full path, which names the problem. On success it returns 0 and the response is
+ * out[0 .. *out_len), byte for byte what the protobuf runtime writes for the same values (proto3:
+ * zero scalars omitted, -0.0 kept). The arithmetic is the same sequence of calls as the Python
+ * API's (dq_from_pose, dq_unit, dq_weights, dq_blend_set, dq_unit, dq_to_pose), so both paths
+ * give identical bits. */
 #define DQ_WIRE_RESPONSE_MAX 96
 typedef struct {
     size_t max_poses;

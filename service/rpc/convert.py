@@ -152,10 +152,9 @@ def arrays_to_stamped(times: np.ndarray, dqs: np.ndarray) -> list[geo.StampedPos
             for s, p in zip(np.asarray(times).tolist(), dqs_to_poses(dqs))]
 
 
-METHOD_NAMES = {pb.METHOD_UNSPECIFIED: "dib", pb.METHOD_DIB: "dib", pb.METHOD_DLB: "dlb",
-                pb.METHOD_SCLERP: "sclerp", pb.METHOD_LIN: "lin", pb.METHOD_DEC: "dec",
-                pb.METHOD_LOG: "log"}
-METHOD_ENUMS = {name: code for code, name in METHOD_NAMES.items() if code != pb.METHOD_UNSPECIFIED}
+# dq.METHODS by name: its "dlb" is METHOD_DLB (tests/rpc/test_convert.py checks the values too).
+METHOD_ENUMS = {name: pb.Method.Value(f"METHOD_{name.upper()}") for name in dq.METHODS}
+METHOD_NAMES = {pb.METHOD_UNSPECIFIED: "dib", **{code: name for name, code in METHOD_ENUMS.items()}}
 INTERPOLATION_NAMES = {pb.INTERPOLATION_UNSPECIFIED: "screw", pb.INTERPOLATION_SCREW: "screw",
                        pb.INTERPOLATION_TOOL_LINEAR: "tool_linear"}
 INTERPOLATION_ENUMS = {"screw": pb.INTERPOLATION_SCREW, "tool_linear": pb.INTERPOLATION_TOOL_LINEAR}

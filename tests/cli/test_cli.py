@@ -50,3 +50,14 @@ def test_help_of_every_command_renders():
     sub = next(a for a in parser._actions if a.dest == "command")
     for name, p in sub.choices.items():
         assert name in p.format_help()
+
+
+def test_blend_help_explains_every_method():
+    from service import dq
+    parser = build_parser(["blend"])
+    sub = next(a for a in parser._actions if a.dest == "command").choices["blend"]
+    text = sub.format_help()
+    for name, m in dq.METHODS.items():
+        assert f"  {name:8s}{m.description}\n" in text
+    method = next(a for a in sub._actions if a.dest == "method")
+    assert method.choices == list(dq.METHODS)

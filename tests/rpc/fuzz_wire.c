@@ -41,13 +41,26 @@ int main(int argc, char **argv)
     for (long it = 0; it < iters; it++) {
         int k = (int)(rnd() % (unsigned)ns);
         size_t len = lens[k];
-        uint8_t *buf = malloc(len ? len : 1);
+        int muts = 1 + (int)(rnd() % 4);
+        uint8_t *buf = malloc(len + 8 * (size_t)muts + 1);
         memcpy(buf, seeds[k], len);
-        for (int m = 0, muts = 1 + (int)(rnd() % 4); m < muts && len; m++) {
+        for (int m = 0; m < muts && len; m++) {
             size_t i = rnd() % len;
-            switch (rnd() % 3) {
+            switch (rnd() % 4) {
             case 0: buf[i] = (uint8_t)rnd(); break;
             case 1: buf[i] ^= (uint8_t)(1u << (rnd() % 8)); break;
+            case 2: {
+                /* the varint (tag, length or value) ending at i, if one does, made 1..8 bytes
+                 * longer with the same value: what protobuf reads up to 5 or 10 bytes */
+                size_t extra = 1 + rnd() % 8;
+                if (buf[i] & 0x80) break;
+                memmove(buf + i + 1 + extra, buf + i + 1, len - i - 1);
+                buf[i] |= 0x80;
+                memset(buf + i + 1, 0x80, extra - 1);
+                buf[i + extra] = 0x00;
+                len += extra;
+                break;
+            }
             default: len = i; /* truncate */
             }
         }

@@ -7,8 +7,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from service import dq
-from service.rpc.convert import (FieldError, arrays_to_stamped, blend_request_wire, dq_to_pose,
-                                 dqs_to_poses, pose_msgs, poses_to_dqs, stamped_to_arrays)
+from service.rpc.convert import (METHOD_ENUMS, METHOD_NAMES, FieldError, arrays_to_stamped,
+                                 blend_request_wire, dq_to_pose, dqs_to_poses, pose_msgs,
+                                 poses_to_dqs, stamped_to_arrays)
 from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from service.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 
@@ -93,3 +94,11 @@ def test_blend_request_wire_refuses_out_of_range_iterations():
     for bad in (-1, 2**32, 2.5):
         with pytest.raises(ValueError, match="max_iterations: must be a whole number"):
             blend_request_wire(q, t, max_iterations=bad)
+
+
+def test_the_method_table_is_the_proto_enum():
+    # by name and by value: the C fast path passes a request's Method value to the core as is
+    proto = {name: value for name, value in pb.Method.items() if name != "METHOD_UNSPECIFIED"}
+    assert proto == {f"METHOD_{name.upper()}": m.code for name, m in dq.METHODS.items()}
+    assert METHOD_NAMES == {pb.METHOD_UNSPECIFIED: "dib", **{m.code: n for n, m in dq.METHODS.items()}}
+    assert METHOD_ENUMS == {n: m.code for n, m in dq.METHODS.items()}

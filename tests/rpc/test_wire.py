@@ -40,7 +40,7 @@ def requests(draw):
         poses.append(p)
     return pb.BlendRequest(
         poses=poses, weights=draw(st.lists(floats, max_size=6)),
-        method=draw(st.sampled_from([0, 1, 2, 3, 6, 7, -1, 2**31 - 1])),
+        method=draw(st.sampled_from([0, 1, 2, 3, 4, 5, 6, 7, -1, 2**31 - 1])),
         tolerance=draw(floats), max_iterations=draw(st.integers(0, 2**32 - 1)))
 
 
@@ -126,10 +126,11 @@ def _fast_path(blending, data: bytes):
 
 
 @st.composite
-def near_unit_requests(draw):
+def near_unit_requests(draw, plain=None):
     """Requests close to valid ones, so most take the fast path and the rest sit on its edges:
-    norms at the 1e-6 tolerance, zero and negative weights, odd methods and limits."""
-    plain = draw(st.booleans())
+    norms at the 1e-6 tolerance, zero and negative weights, odd methods and limits. With
+    ``plain=True`` only valid ones, every method."""
+    plain = draw(st.booleans()) if plain is None else plain
     n = draw(st.integers(1, 5) if plain else st.integers(0, 7))
     rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
     q = rng.normal(size=(n, 4))
@@ -174,10 +175,21 @@ def test_served_blend_is_the_full_path_byte_for_byte(req):
     assert served == full
 
 
+@given(near_unit_requests(plain=True))
+def test_fast_path_answers_every_valid_request_of_every_method(req):
+    blending = Blending(ServerConfig(max_poses=5))
+    data = req.SerializeToString()
+    full = _full_path(blending, data)
+    if full is not None:          # ScLERP of other than two poses is the one refusal
+        assert _fast_path(blending, data) == full
+    else:
+        assert req.method == pb.METHOD_SCLERP and len(req.poses) != 2
+
+
 def test_served_blend_takes_the_fast_path_for_plain_requests():
     rng = np.random.default_rng(11)
     blending = Blending()
-    for method in (0, 1, 2, 3, 5, 6):
+    for method in range(7):                       # every method, LIN included
         for weights in ([], [1.0, 3.0]):
             q = rng.normal(size=(2, 4))
             q /= np.linalg.norm(q, axis=1, keepdims=True)
@@ -189,10 +201,21 @@ def test_served_blend_takes_the_fast_path_for_plain_requests():
             assert fast is not None and fast == _full_path(blending, data), (method, weights)
             r = pb.BlendResponse.FromString(fast)
             assert np.isfinite(r.residual) and (method in (0, 1) or r.iterations == 0)
-    # LIN projects its matrix blend in Python, so it is always the full path
-    data = pb.BlendRequest(poses=pose_msgs(q, t), method=4).SerializeToString()
-    assert _fast_path(blending, data) is None
-    assert blending.blend_wire(data) == _full_path(blending, data)
+
+
+def test_served_lin_is_the_full_path_on_cancelling_and_det_negative_blends():
+    # LIN's projection on its hard inputs: rotations by pi about the axes, whose matrix blend
+    # has det < 0 or vanishes, with ties in the weights (the nearest rotation is not unique)
+    blending = Blending()
+    axes = np.array([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+    for weights in ([], [1.0, 1.0, 1.0], [1.0, 1.0, 1.0 + 1e-9], [2.0, 1.0, 1.0], [1.0, 2.0, 2.0]):
+        for q in (axes, axes[:3], axes[1:]):
+            n = len(q)
+            w = weights[:n] if len(weights) >= n else []
+            data = pb.BlendRequest(poses=pose_msgs(q, np.arange(3 * n).reshape(n, 3)),
+                                   weights=w, method=pb.METHOD_LIN).SerializeToString()
+            fast = _fast_path(blending, data)
+            assert fast is not None and fast == _full_path(blending, data), (q, w)
 
 
 def test_served_blend_of_many_poses_is_the_full_path():
@@ -244,7 +267,7 @@ def test_served_batch_takes_the_fast_path_for_plain_requests():
         q = rng.normal(size=(i % 7 + 1, 4))
         q /= np.linalg.norm(q, axis=1, keepdims=True)
         reqs.append(pb.BlendRequest(poses=pose_msgs(q, rng.normal(size=(len(q), 3))),
-                                    method=[0, 1, 2, 5, 6][i % 5]))
+                                    method=[0, 1, 2, 4, 5, 6][i % 6]))
     blending = Blending()
     data = pb.BlendBatchRequest(requests=reqs).SerializeToString()
     fast = _batch_fast_path(blending, data)
@@ -278,6 +301,166 @@ def test_field_numbers_beyond_protobufs_range_are_refused():
             assert _batch_fast_path(Blending(), batch) is None
 
 
+# ---- the same bytes written differently: protobuf reads any varint of up to 10 bytes (tags: 5),
+# minimal or not; re-encoding every varint of a message with padding puts the decoder's edges
+# (over-long tags, lengths and values, in every position) where the fast path must read exactly
+# what protobuf reads and refuse exactly what it refuses.
+
+NESTED = {"batch": {1: "request"}, "request": {1: "pose"}, "pose": {1: None, 2: None}}
+
+
+def _read_varint(b: bytes, i: int) -> tuple[int, int]:
+    v = shift = 0
+    while True:
+        v |= (b[i] & 0x7F) << shift
+        shift += 7
+        i += 1
+        if not b[i - 1] & 0x80:
+            return v, i
+
+
+def _padded_varint(v: int, pad: int) -> bytes:
+    """v as a varint with pad more bytes than it needs (continuation bits over zero groups)."""
+    out = bytearray(_key(v >> 3, v & 7))         # _key writes the minimal varint of field<<3|wt
+    if pad:
+        out[-1] |= 0x80
+        out += b"\x80" * (pad - 1) + b"\x00"
+    return bytes(out)
+
+
+def reencode(data: bytes, kind: str, pad) -> bytes:
+    """A serialized message (BlendBatchRequest "batch", BlendRequest "request", Pose "pose")
+    with every tag, length and varint value written with pad() extra bytes."""
+    out, i = bytearray(), 0
+    while i < len(data):
+        key, i = _read_varint(data, i)
+        field, wt = key >> 3, key & 7
+        out += _padded_varint(key, pad())
+        if wt == 0:
+            v, i = _read_varint(data, i)
+            out += _padded_varint(v, pad())
+        elif wt == 1:
+            out += data[i:i + 8]
+            i += 8
+        elif wt == 2:
+            n, i = _read_varint(data, i)
+            body = data[i:i + n]
+            i += n
+            sub = NESTED.get(kind, {}).get(field, "")
+            if sub != "":
+                body = reencode(body, sub, pad) if sub else _reencode_doubles(body, pad)
+            out += _padded_varint(len(body), pad()) + body
+        else:
+            raise AssertionError(f"wire type {wt} in a message we wrote")
+    return bytes(out)
+
+
+def _reencode_doubles(body: bytes, pad) -> bytes:
+    """A Vector3 / Quaternion: tags padded, the doubles as they are."""
+    out, i = bytearray(), 0
+    while i < len(body):
+        key, i = _read_varint(body, i)
+        out += _padded_varint(key, pad()) + body[i:i + 8]
+        i += 8
+    return bytes(out)
+
+
+# Mostly minimal; 4 extra bytes is the longest tag protobuf reads, 9 the longest other varint.
+PADS = st.sampled_from([0, 0, 0, 0, 0, 0, 1, 3, 4, 4, 5, 6, 8, 9, 9, 10])
+
+
+def _protobuf_request(data: bytes):
+    try:
+        return pb.BlendRequest.FromString(data)
+    except DecodeError:
+        return None
+
+
+def _protobuf_path(blending, data: bytes):
+    """The answer through protobuf's parser alone (the full path asks the C decoder first)."""
+    req = _protobuf_request(data)
+    if req is None:
+        return None
+    try:
+        return blending.blend(req).SerializeToString()
+    except FieldError:
+        return None
+
+
+@settings(max_examples=300)
+@given(requests(), st.data())
+def test_padded_varints_are_read_or_refused_as_protobuf_does(req, data):
+    raw = reencode(req.SerializeToString(), "request", lambda: data.draw(PADS))
+    want, got = _protobuf_request(raw), decode_blend_request(raw)
+    if want is None:
+        assert got is None
+    else:   # no group or unknown field here, so the decoder reads all protobuf reads
+        assert_same(got, parsed(want))
+
+
+@settings(max_examples=200)
+@given(near_unit_requests(), st.data())
+def test_served_blend_of_padded_varints_is_protobufs_answer(req, data):
+    raw = reencode(req.SerializeToString(), "request", lambda: data.draw(PADS))
+    blending = Blending(ServerConfig(max_poses=5))
+    want = _protobuf_path(blending, raw)
+    fast = _fast_path(blending, raw)
+    assert fast is None or fast == want
+    assert want is not None or fast is None
+    try:
+        served = blending.blend_wire(raw)
+    except FieldError:
+        served = None
+    assert served == want
+
+
+@settings(max_examples=100)
+@given(st.lists(near_unit_requests(plain=True), min_size=1, max_size=4), st.data())
+def test_served_batch_of_padded_varints_is_protobufs_answer(reqs, data):
+    raw = reencode(pb.BlendBatchRequest(requests=reqs).SerializeToString(), "batch",
+                   lambda: data.draw(PADS))
+    blending = Blending(ServerConfig(max_poses=5))
+    try:
+        pb.BlendBatchRequest.FromString(raw)
+    except DecodeError:
+        assert _batch_fast_path(blending, raw) is None
+        with pytest.raises(FieldError, match="not a valid dqpose.v1.BlendBatchRequest"):
+            blending.blend_batch_wire(raw)
+        return
+    fast = _batch_fast_path(blending, raw)
+    assert fast is None or fast == blending.blend_batch_wire(raw)
+
+
+def test_tags_and_lengths_longer_than_five_bytes_are_refused():
+    # the examples of issue 8: method = DLB under a 6-byte tag; a Quaternion's w under one; then
+    # the Pose's and the Quaternion's lengths in 6 bytes
+    valid = pb.BlendRequest(poses=pose_msgs(np.array([[1.0, 0, 0, 0]]), np.zeros((1, 3))))
+    w = bytes.fromhex("09") + struct.pack("<d", 1.0)                   # Quaternion {w = 1}
+
+    def pose(pad_len_pose, pad_len_quat):
+        quat = b"\x12" + _padded_varint(len(w), pad_len_quat) + w
+        return b"\x0a" + _padded_varint(len(quat), pad_len_pose) + quat
+
+    cases = [valid.SerializeToString() + bytes.fromhex("98808080800002"),
+             bytes.fromhex("0a10120e898080808000000000000000f03f"), pose(5, 0), pose(0, 5)]
+    five = [valid.SerializeToString() + bytes.fromhex("988080800002"),      # 5 bytes: read
+            bytes.fromhex("0a0f120d8980808000000000000000f03f"), pose(4, 0), pose(0, 4)]
+    for data in cases:
+        with pytest.raises(DecodeError):
+            pb.BlendRequest.FromString(data)
+        assert decode_blend_request(data) is None
+        assert _fast_path(Blending(), data) is None
+        with pytest.raises(FieldError, match="not a valid dqpose.v1.BlendRequest"):
+            Blending().blend_wire(data)
+        batch = _key(1, 2) + bytes([len(data)]) + data
+        assert _batch_fast_path(Blending(), batch) is None
+        with pytest.raises(FieldError, match="not a valid dqpose.v1.BlendBatchRequest"):
+            Blending().blend_batch_wire(batch)
+    for data in five:
+        assert_same(decode_blend_request(data), parsed(pb.BlendRequest.FromString(data)))
+        assert _fast_path(Blending(), data) == _protobuf_path(Blending(), data) is not None
+
+
 def test_wire_paths_survive_mutated_input_under_sanitizers(tmp_path):
     # Memory safety of the C that reads untrusted bytes, checked directly: tests/rpc/fuzz_wire.c
     # built with AddressSanitizer and UBSan, fed mutations of valid requests and batches.
@@ -305,8 +488,9 @@ def test_wire_paths_survive_mutated_input_under_sanitizers(tmp_path):
 
     seeds = [req(10), req(2, method=3), req(40),
              req(5, weights=[1, 2, 3, 4, 5], method=2, tolerance=1e-9, max_iterations=7),
-             req(3, method=5), req(4, method=6),
-             pb.BlendBatchRequest(requests=[req(3), req(4, method=6), req(2, method=3)])]
+             req(3, method=5), req(4, method=6), req(4, method=4),
+             pb.BlendBatchRequest(requests=[req(3), req(4, method=6), req(2, method=3),
+                                            req(3, method=4)])]
     paths = []
     for i, s in enumerate(seeds):
         p = tmp_path / f"seed{i}.bin"
