@@ -115,8 +115,27 @@ def _pose_records(q: np.ndarray, t: np.ndarray, field: int = 1) -> np.ndarray:
 
 def poses_wire(q: np.ndarray, t: np.ndarray, field: int = 1) -> bytes:
     """Rows of ``q (n, 4)`` and ``t (n, 3)`` as repeated ``Pose`` field ``field``, in wire bytes:
-    what ``pose_msgs`` plus serialisation gives (values as given), ~20x faster."""
-    return _pose_records(q, t, field).tobytes()
+    what ``pose_msgs`` plus serialisation gives (values as given), ~40x faster: one template
+    pose repeated, the doubles written through strided views."""
+    q, t = np.asarray(q, dtype=np.float64), np.asarray(t, dtype=np.float64)
+    n = len(q)
+    out = bytearray(_POSE_TEMPLATE * n)
+    buf = np.frombuffer(out, np.uint8)
+    if field != 1:
+        buf[::_POSE_RECORD.itemsize] = field << 3 | 2
+    _doubles_at(buf, 5, (n, 3), (_POSE_RECORD.itemsize, 9))[...] = t
+    _doubles_at(buf, 34, (n, 4), (_POSE_RECORD.itemsize, 9))[...] = q
+    return bytes(out)
+
+
+def _doubles_at(buf: np.ndarray, offset: int, shape: tuple, strides: tuple) -> np.ndarray:
+    """A float64 view of ``buf`` at any byte offset and strides (unaligned is fine for NumPy)."""
+    if 0 in shape:
+        return np.empty(shape)
+    return np.ndarray(shape, "<f8", buf, offset, strides)
+
+
+_POSE_TEMPLATE = _pose_records(np.zeros((1, 4)), np.zeros((1, 3))).tobytes()
 
 
 def blend_request_wire(q: np.ndarray, t: np.ndarray, weights=None, method: int = 0,
@@ -139,13 +158,6 @@ def blend_request_wire(q: np.ndarray, t: np.ndarray, weights=None, method: int =
     return b"".join(parts)
 
 
-def _doubles_at(buf: np.ndarray, offset: int, shape: tuple, strides: tuple) -> np.ndarray:
-    """A float64 view of ``buf`` at any byte offset and strides (unaligned is fine for NumPy)."""
-    if 0 in shape:
-        return np.empty(shape)
-    return np.ndarray(shape, "<f8", buf, offset, strides)
-
-
 def blend_batch_items_wire(q: np.ndarray, t: np.ndarray, counts: np.ndarray,
                            weights: np.ndarray, weight_counts: np.ndarray, method: int = 0,
                            tolerance: float = 0.0, max_iterations: int = 0
@@ -164,8 +176,7 @@ def blend_batch_items_wire(q: np.ndarray, t: np.ndarray, counts: np.ndarray,
     # the scalar fields after the poses and weights: an empty request with them set
     tail = blend_request_wire(np.empty((0, 4)), np.empty((0, 3)), None, method, tolerance,
                               max_iterations)
-    pose = poses_wire(np.zeros((1, 4)), np.zeros((1, 3)))
-    size = len(pose)
+    pose, size = _POSE_TEMPLATE, len(_POSE_TEMPLATE)
     if m and (counts == counts[0]).all() and (weight_counts == weight_counts[0]).all():
         shapes, which = np.array([[counts[0], weight_counts[0]]]), np.zeros(m, np.int64)
     else:
