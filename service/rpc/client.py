@@ -115,7 +115,8 @@ def _flat_to_dqs(flat: np.ndarray) -> np.ndarray:
 
 def _blend_answer(data: bytes) -> tuple[np.ndarray, int, float]:
     r = pb.BlendResponse.FromString(data)
-    return _flat_to_dqs(poses_to_flat([r.pose]))[0], r.iterations, r.residual
+    p, o = r.pose.position, r.pose.orientation
+    return dq.from_pose((o.w, o.x, o.y, o.z), (p.x, p.y, p.z)), r.iterations, r.residual
 
 
 def _blend_batch_answer(data: bytes) -> np.ndarray:
