@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from service.cli.common import client, connection_args, fail, rpc_failure
+from service.cli.common import client, connection_args, failure
 
 BLEND_CSV = "x,y,z,qw,qx,qy,qz[,weight]"
 INTERPOLATE_CSV = "t,x,y,z,qw,qx,qy,qz"
@@ -70,8 +70,6 @@ def configure(name: str, p) -> None:
 
 
 def _blend(args) -> int:
-    import grpc
-
     from service import dq
     from service.cli import posefile as io
 
@@ -87,17 +85,13 @@ def _blend(args) -> int:
         else:
             with client(args) as c:
                 mean, iterations, residual = c.blend(req.dqs, weights, method, return_info=True)
-    except (OSError, ValueError) as e:
-        return fail("blend", str(e))
-    except grpc.RpcError as e:
-        return rpc_failure("blend", args, e)
+    except Exception as e:
+        return failure("blend", args, e)
     sys.stdout.write(io.format_blend(mean, iterations, residual, fmt))
     return 0
 
 
 def _interpolate(args) -> int:
-    import grpc
-
     from service.cli import posefile as io
     from service.interpolate import interpolate
 
@@ -116,9 +110,7 @@ def _interpolate(args) -> int:
         else:
             with client(args) as c:
                 out = c.interpolate(req.times_k, req.dqs_k, times, mode)
-    except (OSError, ValueError) as e:
-        return fail("interpolate", str(e))
-    except grpc.RpcError as e:
-        return rpc_failure("interpolate", args, e)
+    except Exception as e:
+        return failure("interpolate", args, e)
     sys.stdout.write(io.format_samples(times, out, fmt))
     return 0

@@ -41,10 +41,20 @@ def client(args):
                   private_key=read(args.key) if args.key else None, timeout=args.timeout)
 
 
-def rpc_failure(cmd: str, args, e) -> int:
-    import grpc
+def failure(cmd: str, args, e: Exception) -> int:
+    """The one-line message and exit code of a command that computes here (``--local``) or on a
+    server; what is neither bad input nor a failed call is raised on."""
+    if not getattr(args, "local", False):
+        from service.rpc.client import RequestTooLarge, RpcError
 
-    if e.code() in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED):
-        return fail(cmd, f"no answer from the server at {args.target} ({e.code().name}: "
-                         f"{e.details()}); start one with `dqpose serve`, or add --local")
-    return fail(cmd, f"{e.code().name}: {e.details()}")
+        code = e.code.name if isinstance(e, RpcError) else None
+        if isinstance(e, RequestTooLarge) or code == "RESOURCE_EXHAUSTED":
+            return fail(cmd, f"{e}; or compute it in this process with --local")
+        if code in ("UNAVAILABLE", "DEADLINE_EXCEEDED"):
+            return fail(cmd, f"no answer from the server at {args.target} ({e}); start one "
+                             f"with `dqpose serve`, or add --local")
+        if code is not None:
+            return fail(cmd, str(e))
+    if isinstance(e, (OSError, ValueError)):
+        return fail(cmd, str(e))
+    raise e

@@ -93,29 +93,58 @@ def _json_poses(field: str, poses, stamped: bool) -> tuple[np.ndarray, np.ndarra
     return np.array(times), np.array(rows, dtype=np.float64).reshape(-1, 7)
 
 
-def _csv_rows(text: str, columns: tuple[str, ...], optional: tuple[str, ...] = ()) -> tuple[np.ndarray, list[int]]:
-    """Rows of ``columns`` (+ any ``optional`` present) and their line numbers."""
+def _number(cell: str) -> bool:
+    try:
+        float(cell)
+    except ValueError:
+        return False
+    return True
+
+
+def _csv_rows(text: str, columns: tuple[str, ...], optional: tuple[str, ...] = (),
+              refused: dict[str, str] | None = None) -> np.ndarray:
+    """Rows of ``columns`` (+ any ``optional`` present). A first line with no number in it is a
+    header: columns are then matched by name, and a missing one, an unknown one, or one named
+    in ``refused`` (name -> why) is an error. Without a header the columns are positional."""
     lines = [(n, row) for n, row in enumerate(csv.reader(io.StringIO(text)), 1)
              if row and not row[0].lstrip().startswith("#")]
     if not lines:
-        return np.empty((0, len(columns))), []
-    header = [c.strip().lower() for c in lines[0][1]]
-    if set(columns) <= set(header):
-        order = [header.index(c) for c in columns + tuple(o for o in optional if o in header)]
+        return np.empty((0, len(columns)))
+    expected = ",".join(columns) + "".join(f"[,{o}]" for o in optional)
+    first_line, first = lines[0]
+    if not any(_number(c) for c in first):
+        header = [c.strip().lower() for c in first]
+        for c in header:
+            if c in (refused or {}):
+                raise ValueError(f"line {first_line}: column {c}: {refused[c]}")
+            if c not in columns + optional:
+                raise ValueError(f"line {first_line}: unknown column {c!r}; expected {expected}")
+        missing = [c for c in columns if c not in header]
+        if missing:
+            raise ValueError(f"line {first_line}: missing column {missing[0]}; expected "
+                             f"{expected}")
+        names = list(columns) + [o for o in optional if o in header]
+        order = [header.index(c) for c in names]
+        width = len(header)
         lines = lines[1:]
     else:
-        width = len(lines[0][1])
+        width = len(first)
         if width not in (len(columns), len(columns) + len(optional)):
-            raise ValueError(f"line {lines[0][0]}: expected the columns "
-                             f"{','.join(columns + optional)}, got {width} values")
+            raise ValueError(f"line {first_line}: expected the columns {expected}, got {width} "
+                             f"values")
+        names = list((columns + optional)[:width])
         order = list(range(width))
-    out = []
-    for n, row in lines:
-        try:
-            out.append([float(row[j]) for j in order])
-        except (IndexError, ValueError):
-            raise ValueError(f"line {n}: expected {len(order)} numbers, got {','.join(row)!r}") from None
-    return np.array(out, dtype=np.float64).reshape(-1, len(order)), [n for n, _ in lines]
+    out = np.empty((len(lines), len(order)))
+    for i, (n, row) in enumerate(lines):
+        if len(row) != width:
+            raise ValueError(f"line {n}: expected {width} values ({','.join(names)}), got "
+                             f"{len(row)}")
+        for j, (k, name) in enumerate(zip(order, names)):
+            try:
+                out[i, j] = float(row[k])
+            except ValueError:
+                raise ValueError(f"line {n}, column {name}: {row[k]!r} is not a number") from None
+    return out
 
 
 def _to_dqs(field: str, flat: np.ndarray, sub: str = "") -> np.ndarray:
@@ -157,7 +186,9 @@ def read_blend(path: str) -> BlendFile:
         weights = None if not w else np.asarray(w, dtype=np.float64)
         method = _enum("method", doc.get("method"), "method", tuple(dq.METHODS))
     else:
-        rows, _ = _csv_rows(text, POSE_COLUMNS[:7], ("weight",))
+        rows = _csv_rows(text, POSE_COLUMNS, ("weight",), refused={
+            "t": "a time column means keyframes: sample the motion through them with "
+                 "`dqpose interpolate`"})
         flat = np.concatenate([rows[:, 3:7], rows[:, :3]], axis=1)
         weights = rows[:, 7] if rows.shape[1] == 8 else None
         method = None
@@ -178,7 +209,8 @@ def read_interpolate(path: str) -> InterpolateFile:
                      ("screw", "tool_linear"))
         sub = ".pose"
     else:
-        rows, _ = _csv_rows(text, ("t",) + POSE_COLUMNS)
+        rows = _csv_rows(text, ("t",) + POSE_COLUMNS, refused={
+            "weight": "weights belong to poses that are blended: `dqpose blend`"})
         times_k = rows[:, 0]
         flat = np.concatenate([rows[:, 4:8], rows[:, 1:4]], axis=1)
         sub = ""

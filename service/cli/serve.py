@@ -6,6 +6,7 @@ import json
 import sys
 
 from service.cli.common import client, connection_args, fail, read
+from service.rpc import DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
 
 
 def configure(name: str, p) -> None:
@@ -20,9 +21,9 @@ def configure(name: str, p) -> None:
         p.add_argument("--client-ca", metavar="PEM", help="CA for client certificates (requires mTLS)")
         p.add_argument("--token-file", help="file holding a bearer token every call must carry "
                                             "(health stays open); env DQPOSE_TOKEN_FILE also works")
-        p.add_argument("--max-message-bytes", type=int, default=4 * 1024 * 1024,
+        p.add_argument("--max-message-bytes", type=int, default=DEFAULT_MAX_MESSAGE_BYTES,
                        help="largest request/response; larger is RESOURCE_EXHAUSTED (default: %(default)s)")
-        p.add_argument("--max-poses", type=int, default=10_000,
+        p.add_argument("--max-poses", type=int, default=DEFAULT_MAX_POSES,
                        help="most poses, keyframes or times per request (default: %(default)s)")
         p.add_argument("--keepalive", type=float, default=60.0, help="keepalive ping period, s (default: %(default)s)")
         p.add_argument("--grace", type=float, default=10.0, help="shutdown drain time, s (default: %(default)s)")
@@ -80,19 +81,21 @@ def _serve(args) -> int:
                 return asyncio.run(serve(cfg))
             return uvloop.run(serve(cfg))
     except (OSError, ValueError) as e:
-        return fail("serve", str(e))
+        setting = getattr(e, "setting", None)    # server.AddressInUse: which flag to change
+        hint = f"; choose another --{setting.replace('_', '-')}" if setting else ""
+        return fail("serve", f"{e}{hint}")
 
 
 def _health(args) -> int:
-    import grpc
+    from service.rpc.client import RpcError
 
     try:
         with client(args) as c:
             status = c.health(args.service)
     except OSError as e:
         return fail("health", str(e))
-    except grpc.RpcError as e:
-        print(f"dqpose health: {args.target}: {e.code().name}", file=sys.stderr)
+    except RpcError as e:
+        print(f"dqpose health: {args.target}: {e.code.name}", file=sys.stderr)
         return 1
     print(status)
     return 0 if status == "SERVING" else 1

@@ -4,3 +4,9 @@
 every servicer shares: status mapping, call log, metrics), one module per service (``blending``),
 ``convert`` (messages <-> arrays, errors named by field path) and ``client`` (the NumPy client).
 """
+
+# The server's default limits, which the client must know to split what it sends under them.
+# Here because this module imports nothing: `dqpose serve --help` shows them without grpc.
+DEFAULT_MAX_MESSAGE_BYTES = 4 * 1024 * 1024
+DEFAULT_MAX_POSES = 10_000        # per request: poses, keyframes, sampled times, batch requests
+BATCH_POSE_FACTOR = 10            # a BlendBatch may carry this many times max_poses poses in all

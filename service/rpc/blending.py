@@ -14,6 +14,7 @@ from google.protobuf.message import DecodeError
 from service import dq
 from service.errors import FieldError, rename
 from service.interpolate import interpolate
+from service.rpc import BATCH_POSE_FACTOR, DEFAULT_MAX_POSES
 from service.rpc.calls import INTERNAL_DETAILS, Calls, log
 from service.rpc.convert import (INTERPOLATION_NAMES, METHOD_NAMES, arrays_to_stamped,
                                  blend_batch_wire, blend_wire, decode_blend_request, dq_to_pose,
@@ -37,7 +38,7 @@ class Blending(pb_grpc.BlendingServicer):
 
     def __init__(self, cfg=None, calls: Calls | None = None):
         """``cfg`` is the server's ``ServerConfig`` (its defaults when None)."""
-        self.max_poses = cfg.max_poses if cfg is not None else 10_000
+        self.max_poses = cfg.max_poses if cfg is not None else DEFAULT_MAX_POSES
         self.calls = calls or Calls()
 
     # -- request -> response, no transport
@@ -108,8 +109,9 @@ class Blending(pb_grpc.BlendingServicer):
         """What BlendBatch serves: ``(BlendBatchResponse bytes, number of requests)``, from C
         when every request is plain and valid, else from :meth:`blend_batch` (which raises the
         FieldError naming the request and the problem)."""
-        out = blend_batch_wire(data, self.max_poses, 10 * self.max_poses, self.max_poses,
-                               DEFAULT_TOLERANCE, DEFAULT_MAX_ITERATIONS, MAX_ITERATIONS_LIMIT)
+        out = blend_batch_wire(data, self.max_poses, BATCH_POSE_FACTOR * self.max_poses,
+                               self.max_poses, DEFAULT_TOLERANCE, DEFAULT_MAX_ITERATIONS,
+                               MAX_ITERATIONS_LIMIT)
         if out is not None:
             return out
         try:
@@ -122,9 +124,9 @@ class Blending(pb_grpc.BlendingServicer):
         requests = request.requests
         self._check_count("requests", len(requests), "requests")
         total = sum(len(r.poses) for r in requests)
-        if total > 10 * self.max_poses:
+        if total > BATCH_POSE_FACTOR * self.max_poses:
             raise FieldError(f"requests: {total} poses in all exceed the server limit of "
-                             f"{10 * self.max_poses} per batch")
+                             f"{BATCH_POSE_FACTOR * self.max_poses} per batch")
         responses = []
         for i, r in enumerate(requests):
             try:

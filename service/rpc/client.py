@@ -4,44 +4,101 @@
 ...     mean = c.blend(dqs, weights=[1, 3])                   # (8,)
 ...     path = c.interpolate([0, 1], dqs[:2], np.linspace(0, 1, 50), mode="tool_linear")
 
-``INVALID_ARGUMENT`` from the server is raised as ``ValueError`` with the server's message (which
-names the proto field, e.g. ``poses[3].orientation: zero quaternion``); every other failure is the
-``grpc.RpcError`` itself.
+Every failed call raises :class:`RpcError` with the status ``code`` and the server's ``details``.
+``INVALID_ARGUMENT`` is :class:`InvalidArgument`, also a ``ValueError`` whose text is the server's
+message alone (it names the proto field, e.g. ``poses[3].orientation: zero quaternion``), like
+the ``ValueError`` of the same input computed locally.
+
+Requests are written as protobuf wire bytes straight from the arrays and sent through the channel
+as bytes; BlendBatch answers are read back the same way (:mod:`service.rpc.convert`), so no
+message object is made per pose. ``blend_batch`` and ``interpolate`` split what is larger than
+the server takes in one message (``max_message_bytes``, ``max_poses``: the server's
+``--max-message-bytes`` and ``--max-poses``) into several calls, two in flight at a time.
 """
 from __future__ import annotations
 
+import re
+from collections import deque
 from typing import Iterable, Iterator
 
 import grpc
 import numpy as np
 
 from service import dq
-from service.rpc.convert import (INTERPOLATION_ENUMS, METHOD_ENUMS, blend_request_wire, pose_msgs,
-                                 poses_to_arrays)
+from service.rpc import BATCH_POSE_FACTOR, DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
+from service.rpc.convert import (INTERPOLATION_ENUMS, METHOD_ENUMS, blend_batch_items_wire,
+                                 blend_request_wire, blend_responses_from_wire,
+                                 interpolate_request_wire, poses_to_flat, stamped_poses_wire)
 from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
-from service.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
-from service.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 
 DEFAULT_TARGET = "127.0.0.1:50051"
+SERVICE = pb.DESCRIPTOR.services_by_name["Blending"].full_name
+# Largest answer per item, to keep answers under the message limit too: BlendBatchResponse item
+# = tag, length, BlendResponse {pose (2 + 67), iterations (1 + up to 5), residual (1 + 8)};
+# InterpolateResponse item = tag, length, StampedPose {time (1 + 8), pose (2 + 67)}.
+_BLEND_ANSWER_MAX = 2 + 69 + 6 + 9
+_SAMPLE_ANSWER_MAX = 2 + 9 + 69
+_IN_FLIGHT = 2          # calls of one split request outstanding: the next is sent while one is read
 
 
-def _pose_arrays(dqs) -> tuple[np.ndarray, np.ndarray]:
+class RpcError(Exception):
+    """A call the server (or the channel) failed: ``code`` is the ``grpc.StatusCode``,
+    ``details`` the message."""
+
+    def __init__(self, code: grpc.StatusCode, details: str):
+        super().__init__(f"{code.name}: {details}")
+        self.code = code
+        self.details = details
+
+
+class InvalidArgument(RpcError, ValueError):
+    """``INVALID_ARGUMENT``: the input is wrong; the text is the server's message naming it."""
+
+    def __str__(self) -> str:
+        return self.details
+
+
+class RequestTooLarge(ValueError):
+    """An input the client cannot split under the server's limits (e.g. more keyframes than
+    ``max_poses``)."""
+
+
+def _rpc_error(e: grpc.RpcError, field: str = "", offset: int = 0) -> RpcError:
+    """Ours from grpc's; ``field[i]`` in the message is renumbered by ``offset`` (the position of
+    a split call's first item in the whole input)."""
+    code = e.code() if callable(getattr(e, "code", None)) else grpc.StatusCode.UNKNOWN
+    details = (e.details() if callable(getattr(e, "details", None)) else None) or str(e)
+    if field and offset:
+        details = re.sub(rf"^{re.escape(field)}\[(\d+)\]",
+                         lambda m: f"{field}[{int(m.group(1)) + offset}]", details)
+    cls = InvalidArgument if code == grpc.StatusCode.INVALID_ARGUMENT else RpcError
+    return cls(code, details)
+
+
+def _method_code(method: str) -> int:
+    if method not in METHOD_ENUMS:
+        raise ValueError(f"method: unknown blending method {method!r}; expected one of "
+                         f"{', '.join(METHOD_ENUMS)}")
+    return METHOD_ENUMS[method]
+
+
+def _dq_rows(dqs, name: str) -> np.ndarray:
     a = np.asarray(dqs, dtype=np.float64)
     if a.ndim != 2 or a.shape[1] != 8:
-        raise ValueError(f"dqs: expected shape (n, 8), got {a.shape}")
-    # Sent as (q, t) exactly as given: validation is the server's job, so its messages apply.
-    q = a[:, :4]
-    t = 2.0 * _qmul(a[:, 4:], _qconj(q))[:, 1:] / np.maximum(
-        np.einsum("ij,ij->i", q, q), np.finfo(float).tiny)[:, None]
-    return q, t
+        raise ValueError(f"{name}: expected shape (n, 8), got {a.shape}")
+    return a
 
 
-def _pose_msgs(dqs) -> list[geo.Pose]:
-    return pose_msgs(*_pose_arrays(dqs))
-
-
-def _qconj(q):
-    return q * np.array([1.0, -1.0, -1.0, -1.0])
+def _pose_arrays(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(n, 8)`` to the ``(q, t)`` of the wire, by the core when the poses are valid. Invalid
+    ones are sent as they are, so that the server's message, naming the field, applies."""
+    try:
+        return dq.to_pose(a)
+    except ValueError:
+        q = a[:, :4]
+        t = 2.0 * _qmul(a[:, 4:], q * [1.0, -1.0, -1.0, -1.0])[:, 1:] / np.maximum(
+            np.einsum("ij,ij->i", q, q), np.finfo(float).tiny)[:, None]
+        return q, t
 
 
 def _qmul(a, b):
@@ -52,29 +109,88 @@ def _qmul(a, b):
                     axis=-1)
 
 
-def _to_dqs(poses) -> np.ndarray:
-    q, t = poses_to_arrays(poses)
-    return dq.from_pose(q, t)
+def _flat_to_dqs(flat: np.ndarray) -> np.ndarray:
+    return dq.from_pose(flat[:, :4], flat[:, 4:7])
+
+
+def _blend_answer(data: bytes) -> tuple[np.ndarray, int, float]:
+    r = pb.BlendResponse.FromString(data)
+    p, o = r.pose.position, r.pose.orientation
+    return dq.from_pose((o.w, o.x, o.y, o.z), (p.x, p.y, p.z)), r.iterations, r.residual
+
+
+def _blend_batch_answer(data: bytes) -> np.ndarray:
+    fast = blend_responses_from_wire(data)
+    if fast is not None:
+        return _flat_to_dqs(fast[0])
+    r = pb.BlendBatchResponse.FromString(data)   # a layout the fast reader does not take
+    return _flat_to_dqs(poses_to_flat([x.pose for x in r.responses]))
+
+
+def _interpolate_answer(data: bytes) -> np.ndarray:
+    r = pb.InterpolateResponse.FromString(data)
+    return _flat_to_dqs(poses_to_flat([s.pose for s in r.samples]))
+
+
+def _sets(dqs, weights):
+    """``(m, n, 8)`` or a list of ``(n_i, 8)``, and weights ``(m, n)``, a list, or None, to the
+    flat arrays of :func:`blend_batch_items_wire`."""
+    if isinstance(dqs, np.ndarray) and dqs.dtype != object:
+        a = np.asarray(dqs, dtype=np.float64)
+        if a.ndim != 3 or a.shape[2] != 8:
+            raise ValueError(f"dqs: expected shape (m, n, 8) or a list of (n, 8) arrays, "
+                             f"got {a.shape}")
+        sets = list(a)
+        flat, counts = a.reshape(-1, 8), np.full(len(a), a.shape[1])
+    else:
+        sets = [_dq_rows(d, f"dqs[{i}]") for i, d in enumerate(dqs)]
+        flat = np.concatenate(sets) if sets else np.empty((0, 8))
+        counts = np.array([len(d) for d in sets], dtype=np.int64)
+    m = len(sets)
+    if weights is None:
+        return flat, counts, np.empty(0), np.zeros(m, np.int64)
+    if isinstance(weights, np.ndarray) and weights.dtype != object and weights.ndim == 2:
+        ws = list(weights)
+    else:
+        ws = list(weights)
+    if len(ws) != m:
+        raise ValueError(f"weights: {len(ws)} weight sets for {m} pose sets")
+    ws = [np.empty(0) if w is None else np.asarray(w, dtype=np.float64).ravel() for w in ws]
+    w_counts = np.array([len(w) for w in ws], dtype=np.int64)
+    return flat, counts, (np.concatenate(ws) if ws else np.empty(0)), w_counts
 
 
 class Client:
     """A channel to one server. ``tls=True`` uses the system roots; pass ``root_certificates``
     (PEM bytes) for a private CA and ``certificate_chain``/``private_key`` for mTLS. ``token`` is
     sent as ``authorization: Bearer <token>``. ``timeout`` (seconds) is the deadline of every
-    call."""
+    call. ``max_message_bytes`` and ``max_poses`` are the server's limits (its
+    ``--max-message-bytes`` and ``--max-poses``; the defaults are the server's): calls are split
+    to stay within them."""
 
     def __init__(self, target: str = DEFAULT_TARGET, *, token: str | None = None,
                  tls: bool = False, root_certificates: bytes | None = None,
                  certificate_chain: bytes | None = None, private_key: bytes | None = None,
-                 timeout: float = 10.0, options: list | None = None):
+                 timeout: float = 10.0, max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
+                 max_poses: int = DEFAULT_MAX_POSES, options: list | None = None):
+        if max_message_bytes < 1024 or max_poses < 1:
+            raise ValueError(f"max_message_bytes, max_poses: must be at least 1024 and 1, got "
+                             f"{max_message_bytes} and {max_poses}")
         opts = [("grpc.max_receive_message_length", 64 * 1024 * 1024)] + list(options or [])
         if tls or root_certificates or certificate_chain:
             creds = grpc.ssl_channel_credentials(root_certificates, private_key, certificate_chain)
             self.channel = grpc.secure_channel(target, creds, options=opts)
         else:
             self.channel = grpc.insecure_channel(target, options=opts)
-        self.stub = pb_grpc.BlendingStub(self.channel)
+        # No (de)serializers: requests go out as the bytes convert.py writes, answers come back
+        # as bytes for the readers above.
+        self._blend = self.channel.unary_unary(f"/{SERVICE}/Blend")
+        self._blend_batch = self.channel.unary_unary(f"/{SERVICE}/BlendBatch")
+        self._blend_stream = self.channel.stream_stream(f"/{SERVICE}/BlendStream")
+        self._interpolate = self.channel.unary_unary(f"/{SERVICE}/Interpolate")
         self.timeout = timeout
+        self.max_message_bytes = max_message_bytes
+        self.max_poses = max_poses
         self.metadata = (("authorization", f"Bearer {token}"),) if token else None
 
     def close(self) -> None:
@@ -86,77 +202,141 @@ class Client:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def _call(self, method, request):
+    def _call(self, method, request: bytes) -> bytes:
         try:
             return method(request, timeout=self.timeout, metadata=self.metadata)
         except grpc.RpcError as e:
-            if e.code() == grpc.StatusCode.INVALID_ARGUMENT:
-                raise ValueError(e.details()) from e
-            raise
+            raise _rpc_error(e) from None
+
+    def _split_calls(self, method, requests, field: str, read) -> list:
+        """``read`` of each answer to ``requests`` (``(first item, bytes)`` pairs), in order,
+        with up to ``_IN_FLIGHT`` calls outstanding; an error names the item in the whole
+        input."""
+        pending: deque = deque()
+        out = []
+        try:
+            for first, data in requests:
+                pending.append((first, method.future(data, timeout=self.timeout,
+                                                     metadata=self.metadata)))
+                while len(pending) >= _IN_FLIGHT:
+                    out.append(self._answer(pending.popleft(), field, read))
+            while pending:
+                out.append(self._answer(pending.popleft(), field, read))
+        finally:
+            for _, f in pending:
+                f.cancel()
+        return out
 
     @staticmethod
-    def blend_request(dqs, weights=None, method: str = "dib", tolerance: float = 0.0,
-                      max_iterations: int = 0) -> pb.BlendRequest:
-        if method not in METHOD_ENUMS:
-            raise ValueError(f"method: unknown blending method {method!r}; expected one of "
-                             f"{', '.join(METHOD_ENUMS)}")
-        # Built as wire bytes and parsed: ~7x faster than a message object per pose.
-        return pb.BlendRequest.FromString(blend_request_wire(
-            *_pose_arrays(dqs), weights, METHOD_ENUMS[method], tolerance, max_iterations))
+    def _answer(pending, field: str, read):
+        first, future = pending
+        try:
+            return read(future.result())
+        except grpc.RpcError as e:
+            raise _rpc_error(e, field, first) from None
+
+    def _check_count(self, field: str, n: int, what: str) -> None:
+        if n > self.max_poses:
+            raise RequestTooLarge(f"{field}: {n} {what} exceed the server limit of "
+                                  f"{self.max_poses} per request (Client max_poses, the "
+                                  f"server's --max-poses)")
 
     def blend(self, dqs, weights=None, method: str = "dib", tolerance: float = 0.0,
               max_iterations: int = 0, *, return_info: bool = False):
         """Blend ``(n, 8)`` poses on the server; ``(8,)``, or ``(mean, iterations, residual)``
         with ``return_info``. Zero ``tolerance``/``max_iterations`` mean the server defaults."""
-        r = self._call(self.stub.Blend,
-                       self.blend_request(dqs, weights, method, tolerance, max_iterations))
-        mean = _to_dqs([r.pose])[0]
-        return (mean, r.iterations, r.residual) if return_info else mean
+        a = _dq_rows(dqs, "dqs")
+        self._check_count("dqs", len(a), "poses")
+        data = blend_request_wire(*_pose_arrays(a), weights, _method_code(method), tolerance,
+                                  max_iterations)
+        mean, iterations, residual = _blend_answer(self._call(self._blend, data))
+        return (mean, iterations, residual) if return_info else mean
 
     def blend_stream(self, batches: Iterable[tuple], method: str = "dib") -> Iterator[np.ndarray]:
-        """Stream ``(dqs, weights)`` pairs (weights may be None); yields one ``(8,)`` per pair."""
-        requests = (self.blend_request(d, w, method) for d, w in batches)
+        """Stream ``(dqs, weights)`` pairs (weights may be None); yields one ``(8,)`` per pair, in
+        order. The stream has no deadline. A pair that cannot be sent (wrong shape) ends the
+        stream and raises its ``ValueError`` after the answers to the pairs before it."""
+        code = _method_code(method)
+        refused: list[Exception] = []
+
+        def requests():
+            try:
+                for i, (d, w) in enumerate(batches):
+                    yield blend_request_wire(*_pose_arrays(_dq_rows(d, f"batches[{i}] dqs")), w,
+                                             code)
+            except Exception as e:   # raised to the caller below, not lost in grpc's thread
+                refused.append(e)
+
         try:
-            for r in self.stub.BlendStream(requests, metadata=self.metadata):
-                yield _to_dqs([r.pose])[0]
+            for data in self._blend_stream(requests(), metadata=self.metadata):
+                yield _blend_answer(data)[0]
         except grpc.RpcError as e:
-            if e.code() == grpc.StatusCode.INVALID_ARGUMENT:
-                raise ValueError(e.details()) from e
-            raise
+            raise _rpc_error(e) from None
+        if refused:
+            raise refused[0]
 
     def blend_batch(self, dqs, weights=None, method: str = "dib") -> np.ndarray:
-        """Blend many independent sets in one call: ``dqs`` ``(m, n, 8)`` (or a list of ``(n_i, 8)``
-        arrays) with ``weights`` ``(m, n)`` (or a list, or None) -> ``(m, 8)``."""
-        ws = [None] * len(dqs) if weights is None else weights
-        if len(ws) != len(dqs):
-            raise ValueError(f"weights: {len(ws)} weight sets for {len(dqs)} pose sets")
-        req = pb.BlendBatchRequest(requests=[self.blend_request(d, w, method)
-                                             for d, w in zip(dqs, ws)])
-        r = self._call(self.stub.BlendBatch, req)
-        return _to_dqs([x.pose for x in r.responses])
+        """Blend many independent sets: ``dqs`` ``(m, n, 8)`` or a list of ``(n_i, 8)`` arrays,
+        ``weights`` ``(m, n)``, a list (of arrays or None), or None -> ``(m, 8)``. Any number of
+        sets: they go in as many calls as the server's limits need."""
+        code = _method_code(method)
+        flat, counts, weights, w_counts = _sets(dqs, weights)
+        q, t = _pose_arrays(flat)
+        buf, offsets = blend_batch_items_wire(q, t, counts, weights, w_counts, code)
+        cum = np.concatenate([[0], np.cumsum(counts)])
+        m = len(counts)
+        per_call = max(1, min(self.max_poses, self.max_message_bytes // _BLEND_ANSWER_MAX))
+
+        def chunks():
+            i = 0
+            while True:
+                j = min(m, i + per_call,
+                        int(np.searchsorted(offsets, offsets[i] + self.max_message_bytes,
+                                            "right")) - 1,
+                        int(np.searchsorted(cum, cum[i] + BATCH_POSE_FACTOR * self.max_poses,
+                                            "right")) - 1)
+                j = max(j, min(m, i + 1))      # one set too large alone: the server says so
+                yield i, buf[offsets[i]:offsets[j]].tobytes()
+                if j >= m:
+                    return
+                i = j
+
+        parts = self._split_calls(self._blend_batch, chunks(), "requests", _blend_batch_answer)
+        return np.concatenate(parts).reshape(-1, 8)
 
     def interpolate(self, times_k, dqs_k, times, mode: str = "screw") -> np.ndarray:
         """Poses ``(N, 8)`` at ``times`` between keyframes ``dqs_k`` ``(K, 8)`` at ``times_k``;
-        ``mode`` is ``"screw"`` or ``"tool_linear"`` (see :mod:`service.interpolate`)."""
+        ``mode`` is ``"screw"`` or ``"tool_linear"`` (see :mod:`service.interpolate`). Any number
+        of times: they go in as many calls as the server's limits need, each with the keyframes."""
         if mode not in INTERPOLATION_ENUMS:
             raise ValueError(f"mode: unknown interpolation {mode!r}; expected one of "
                              f"{', '.join(INTERPOLATION_ENUMS)}")
         tk = np.asarray(times_k, dtype=np.float64).ravel()
-        poses = _pose_msgs(dqs_k)
-        if len(tk) != len(poses):
+        a = _dq_rows(dqs_k, "dqs_k")
+        if len(tk) != len(a):
             raise ValueError(f"times_k: length {len(tk)} does not match the number of keyframes "
-                             f"({len(poses)})")
-        req = pb.InterpolateRequest(
-            keyframes=[geo.StampedPose(time=s, pose=p) for s, p in zip(tk.tolist(), poses)],
-            times=np.asarray(times, dtype=np.float64).ravel().tolist(),
-            interpolation=INTERPOLATION_ENUMS[mode])
-        r = self._call(self.stub.Interpolate, req)
-        return _to_dqs([s.pose for s in r.samples]).reshape(-1, 8)
+                             f"({len(a)})")
+        self._check_count("dqs_k", len(a), "keyframes")
+        keyframes = stamped_poses_wire(tk, *_pose_arrays(a))
+        times = np.asarray(times, dtype=np.float64).ravel()
+        room = self.max_message_bytes - len(keyframes) - 16     # 16: the times field's header
+        per_call = min(self.max_poses, room // 8, self.max_message_bytes // _SAMPLE_ANSWER_MAX)
+        if per_call < 1:
+            raise RequestTooLarge(f"dqs_k: {len(a)} keyframes fill the server's message limit "
+                                  f"of {self.max_message_bytes} bytes (Client max_message_bytes)")
+        code = INTERPOLATION_ENUMS[mode]
+        chunks = ((i, interpolate_request_wire(keyframes, times[i:i + per_call], code))
+                  for i in range(0, max(len(times), 1), per_call))
+        parts = self._split_calls(self._interpolate, chunks, "times", _interpolate_answer)
+        return np.concatenate(parts).reshape(-1, 8)
 
     def health(self, service: str = "") -> str:
         """The health status name (``"SERVING"``, ``"NOT_SERVING"``, ...)."""
         from grpc_health.v1 import health_pb2, health_pb2_grpc
 
-        r = health_pb2_grpc.HealthStub(self.channel).Check(
-            health_pb2.HealthCheckRequest(service=service), timeout=self.timeout)
+        try:
+            r = health_pb2_grpc.HealthStub(self.channel).Check(
+                health_pb2.HealthCheckRequest(service=service), timeout=self.timeout)
+        except grpc.RpcError as e:
+            raise _rpc_error(e) from None
         return health_pb2.HealthCheckResponse.ServingStatus.Name(r.status)

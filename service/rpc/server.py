@@ -9,15 +9,18 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import errno
 import hmac
 import json
 import signal
+import socket
 
 import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import _async as reflection_aio
 from grpc_reflection.v1alpha import reflection, reflection_pb2_grpc
 
+from service.rpc import DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
 from service.rpc.blending import Blending
 from service.rpc.calls import Calls, log
 
@@ -36,8 +39,8 @@ class ServerConfig:
     tls_key: bytes | None = None
     client_ca: bytes | None = None     # PEM; requires and verifies client certificates (mTLS)
     token: str | None = None           # bearer token required on every RPC except health
-    max_message_bytes: int = 4 * 1024 * 1024
-    max_poses: int = 10_000            # per request: poses, keyframes and sampled times
+    max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
+    max_poses: int = DEFAULT_MAX_POSES  # per request: poses, keyframes and sampled times
     keepalive_s: float = 60.0
     grace_s: float = 10.0              # drain time on SIGTERM before in-flight calls are cancelled
     metrics_port: int | None = None
@@ -168,18 +171,65 @@ def server_options(cfg: ServerConfig) -> list[tuple[str, int]]:
     ]
 
 
+class AddressInUse(OSError):
+    """Another process listens on the address; ``setting`` is the ``ServerConfig`` field that
+    names it (``"port"`` or ``"metrics_port"``)."""
+
+    def __init__(self, what: str, address: str, setting: str):
+        super().__init__(f"cannot {what} {address}: address already in use")
+        self.errno = errno.EADDRINUSE
+        self.setting = setting
+
+
+def _bind_error(host: str, port: int) -> OSError | None:
+    """Why gRPC could not bind ``host:port``, found by binding a plain socket as gRPC does
+    (SO_REUSEADDR, no SO_REUSEPORT); gRPC itself only says that it failed."""
+    try:
+        infos = socket.getaddrinfo(host.strip("[]"), port, type=socket.SOCK_STREAM,
+                                   flags=socket.AI_PASSIVE)
+    except socket.gaierror as e:
+        return OSError(e.strerror)
+    for family, kind, proto, _, addr in infos:
+        with socket.socket(family, kind, proto) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                s.bind(addr)
+            except OSError as e:
+                return e
+    return None
+
+
+def _listen_error(address: str, host: str, port: int) -> OSError | None:
+    e = _bind_error(host, port)
+    if e is None:
+        return None
+    if e.errno == errno.EADDRINUSE:
+        return AddressInUse("listen on", address, "port")
+    return OSError(f"cannot listen on {address}: {(e.strerror or str(e)).lower()}")
+
+
 async def start(cfg: ServerConfig) -> Running:
-    """Build, bind and start a server. Raises ``OSError`` when the address cannot be bound."""
+    """Build, bind and start a server. Raises ``OSError`` when the address cannot be bound
+    (:class:`AddressInUse` when another process listens there)."""
+    address = f"{cfg.host}:{cfg.port}"
+    # Checked before gRPC tries: its failed bind logs a line of its own on standard error.
+    if cfg.port and (problem := _listen_error(address, cfg.host, cfg.port)) is not None:
+        raise problem
     interceptors = [BearerTokenAuth(cfg.token)] if cfg.token else []
     server = grpc.aio.server(options=server_options(cfg), interceptors=interceptors)
-    metrics = _Metrics(cfg.host, cfg.metrics_port) if cfg.metrics_port is not None else None
+    try:
+        metrics = _Metrics(cfg.host, cfg.metrics_port) if cfg.metrics_port is not None else None
+    except OSError as e:
+        where = f"{cfg.host}:{cfg.metrics_port}"
+        if e.errno == errno.EADDRINUSE:
+            raise AddressInUse("serve metrics on", where, "metrics_port") from None
+        raise OSError(f"cannot serve metrics on {where}: {(e.strerror or str(e)).lower()}") from None
     calls = Calls(metrics)
     for cls in SERVICERS:
         cls(cfg, calls).register(server)
     health_servicer = health.aio.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     reflection_pb2_grpc.add_ServerReflectionServicer_to_server(_Reflection(SERVICE_NAMES), server)
-    address = f"{cfg.host}:{cfg.port}"
     try:
         if cfg.tls_cert or cfg.tls_key:
             if not (cfg.tls_cert and cfg.tls_key):
@@ -192,10 +242,13 @@ async def start(cfg: ServerConfig) -> Running:
             if cfg.client_ca:
                 raise ValueError("client_ca: mTLS needs a server certificate and key (TLS)")
             port = server.add_insecure_port(address)
-    except RuntimeError as e:  # grpc reports a failed bind as RuntimeError
+    except (RuntimeError, ValueError) as e:  # grpc reports a failed bind as RuntimeError
         if metrics is not None:
             metrics.close()
-        raise OSError(f"cannot listen on {address}: {e}") from None
+        if isinstance(e, ValueError):
+            raise
+        raise (_listen_error(address, cfg.host, cfg.port)
+               or OSError(f"cannot listen on {address}: {e}")) from None
     if port == 0:
         raise OSError(f"cannot listen on {address}")
     await server.start()

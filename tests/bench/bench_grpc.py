@@ -249,6 +249,60 @@ def python_batch(target: str, n: int, batch: int = 500) -> float:
     return calls * batch / dt
 
 
+def dqs10(seed: int = 0) -> np.ndarray:
+    """The poses of :func:`request10` as a user holds them: a ``(10, 8)`` array."""
+    r = request10(seed)
+    return poses_to_dqs(r.poses, "poses")
+
+
+def client_unary(target: str, n: int) -> np.ndarray:
+    """Latencies of ``Client.blend`` (the shipped client: arrays in, array out)."""
+    from service.rpc.client import Client
+
+    dqs = dqs10()
+    with Client(target) as c:
+        for _ in range(min(500, n)):
+            c.blend(dqs)
+        lat = np.empty(n)
+        for i in range(n):
+            t0 = time.perf_counter()
+            c.blend(dqs)
+            lat[i] = time.perf_counter() - t0
+    return lat
+
+
+def client_stream(target: str, n: int) -> float:
+    """Blends per second through ``Client.blend_stream`` of ``n`` ``(dqs, None)`` pairs."""
+    from service.rpc.client import Client
+
+    sets = [(dqs10(i % 16), None) for i in range(n)]
+    with Client(target) as c:
+        for _ in c.blend_stream(sets[:200]):
+            pass
+        t0 = time.perf_counter()
+        count = sum(1 for _ in c.blend_stream(sets))
+        dt = time.perf_counter() - t0
+    assert count == n
+    return n / dt
+
+
+def client_batch(target: str, m: int = 20_000, repeat: int = 3) -> float:
+    """Blends per second through ``Client.blend_batch`` of an ``(m, 10, 8)`` array (split by
+    the client under the server's 4 MiB and 10,000-request limits)."""
+    from service.rpc.client import Client
+
+    sets = np.stack([dqs10(i % 16) for i in range(m)])
+    with Client(target, timeout=60) as c:
+        c.blend_batch(sets[:500])
+        best = float("inf")
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            out = c.blend_batch(sets)
+            best = min(best, time.perf_counter() - t0)
+    assert out.shape == (m, 8)
+    return m / best
+
+
 def find_tool(name: str) -> str | None:
     found = shutil.which(name)
     if found:
@@ -364,6 +418,10 @@ def main(argv=None) -> int:
         p50, p99 = np.percentile(lat, [50, 99])
         row("Blend 10 poses, 1 Python client", us(p50), us(p99), f"{1 / lat.mean():.0f}/s",
             f"gRPC layer ~{p50 * 1e6 - served:.0f} us of the p50")
+        lat = client_unary(srv.target, n1)
+        p50, p99 = np.percentile(lat, [50, 99])
+        row("Blend 10 poses, Client.blend", us(p50), us(p99), f"{1 / lat.mean():.0f}/s",
+            "the shipped client: (10, 8) array in, (8,) out")
         exe = find_tool("ghz")
         if exe:
             with tempfile.NamedTemporaryFile("w", suffix=".json", delete=False) as f:
@@ -387,6 +445,9 @@ def main(argv=None) -> int:
         sr = python_stream(srv.target, n_stream)
         row("BlendStream 10 poses, 1 stream (Python)", rate=f"{sr:.0f} blends/s",
             note=f"{n_stream} requests sent ahead")
+        cs = client_stream(srv.target, n_stream)
+        row("BlendStream 10 poses, Client.blend_stream", rate=f"{cs:.0f} blends/s",
+            note=f"{n_stream} (dqs, None) pairs of (10, 8) arrays")
         if exe:
             with tempfile.NamedTemporaryFile("w", suffix=".json", delete=False) as fs:
                 fs.write("[" + ",".join(json_body(request10(i % 16))
@@ -422,6 +483,9 @@ def main(argv=None) -> int:
             br = python_batch(srv.target, n_stream)
             row("BlendBatch 10 poses x 500 per call, 1 client", rate=f"{br:.0f} blends/s",
                 note="many blends per message")
+            cb = client_batch(srv.target)
+            row("BlendBatch 10 poses, Client.blend_batch", rate=f"{cb:.0f} blends/s",
+                note="(20000, 10, 8) array in, (20000, 8) out; split in 4 MiB calls")
         # -- memory over many calls
         rss0 = srv.rss_mb()
         t0 = time.perf_counter()

@@ -75,8 +75,17 @@ def test_keyframes_and_times(tmp_path, poses):
 @pytest.mark.parametrize("text, message", [
     ("x,y,z,qw,qx,qy,qz\n0,0,0,0,0,0,0\n", r"^poses\[0\]\.orientation: zero quaternion"),
     ("0,0,0,1,0,0,0\n0,0,nan,1,0,0,0\n", r"^poses\[1\]\.position: contains NaN or infinity"),
-    ("0,0,0,1,0,0\n", r"^line 1: expected the columns"),
-    ("0,0,0,1,0,0,0\n0,0,zero,1,0,0,0\n", r"^line 2: expected 7 numbers"),
+    ("0,0,0,1,0,0\n", r"^line 1: expected the columns x,y,z,qw,qx,qy,qz\[,weight\], got 6 values"),
+    ("0,0,0,1,0,0,0\n0,0,zero,1,0,0,0\n", r"^line 2, column z: 'zero' is not a number$"),
+    ("# measured\nx,y,z,qw,qx,qy,qz\n0,0,0,1,0,0,0\n0,0,0,1,abc,0,0\n",
+     r"^line 4, column qx: 'abc' is not a number$"),
+    ("qw,qx,qy,qz,x,y,z,weight\n1,0,0,0,0,0,0,\n", r"^line 2, column weight: '' is not a number$"),
+    ("x,y,z,qw,qx,qy,qz\n0,0,0,1,0,0\n", r"^line 2: expected 7 values \(x,y,z,qw,qx,qy,qz\), got 6$"),
+    ("x,y,z,qw,qx,qy\n0,0,0,1,0,0\n", r"^line 1: missing column qz; expected x,y,z,qw,qx,qy,qz"),
+    ("x,y,z,qw,qx,qy,qz,colour\n0,0,0,1,0,0,0,red\n", r"^line 1: unknown column 'colour'"),
+    # a time column means keyframes: blending them would silently drop the times
+    ("t,x,y,z,qw,qx,qy,qz\n0,0,0,0,1,0,0,0\n1,1,0,0,1,0,0,0\n",
+     r"^line 1: column t: a time column means keyframes: .*`dqpose interpolate`$"),
     ('{"poses": [{"orientation": {"w": 1, "q": 2}}]}', r"^poses\[0\]\.orientation: unknown key 'q'"),
     ('{"poses": [1]}', r"^poses\[0\]: expected an object"),
     ('{"poses": [{"orientation": {"w": 1}}], "method": "fancy"}', r"^method: unknown value 'fancy'"),
@@ -116,3 +125,30 @@ def test_output_round_trips(poses):
     back = np.array([list(map(float, l.split(","))) for l in lines[1:]])
     np.testing.assert_allclose(back[:, 0], times)
     _same(dq.from_pose(back[:, 4:], back[:, 1:4]), poses, atol=1e-11)
+
+
+def test_csv_columns_are_matched_by_name_in_any_order(tmp_path, poses):
+    rows = _rows(poses)
+    tk = np.array([0.0, 0.5, 1.0, 2.0])
+    p = tmp_path / "k.csv"
+    p.write_text("qw,qx,qy,qz,T,x,y,z\n" + "".join(
+        ",".join(repr(float(v)) for v in (*r[3:], s, *r[:3])) + "\n" for s, r in zip(tk, rows)))
+    f = read_interpolate(str(p))
+    np.testing.assert_array_equal(f.times_k, tk)
+    _same(f.dqs_k, poses)
+
+
+@pytest.mark.parametrize("text, message", [
+    # poses without times: the header is a header, and it says what is missing
+    ("x,y,z,qw,qx,qy,qz\n0,0,0,1,0,0,0\n1,0,0,1,0,0,0\n",
+     r"^line 1: missing column t; expected t,x,y,z,qw,qx,qy,qz$"),
+    ("x,y,z,qw,qx,qy,qz,weight\n0,0,0,1,0,0,0,1\n1,0,0,1,0,0,0,1\n",
+     r"^line 1: column weight: weights belong to poses that are blended"),
+    ("t,x,y,z,qw,qx,qy,qz\n0,0,0,0,1,0,0,0\n1,1,0,0,one,0,0,0\n",
+     r"^line 3, column qw: 'one' is not a number$"),
+])
+def test_bad_keyframe_files_say_where(tmp_path, text, message):
+    p = tmp_path / "k.csv"
+    p.write_text(text)
+    with pytest.raises(ValueError, match=message):
+        read_interpolate(str(p))

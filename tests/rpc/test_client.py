@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from service import dq
-from service.rpc.client import Client
+from service.rpc.client import Client, InvalidArgument, RequestTooLarge, RpcError
 from service.interpolate import interpolate
 
 from _grpc_server import ServerThread
@@ -97,12 +97,101 @@ def test_invalid_argument_becomes_value_error_with_the_servers_message(client):
         client.blend(dqs, method="avg")
 
 
-def test_wrong_token_is_unauthenticated_rpc_error(server):
+def test_every_failed_call_is_our_rpc_error_naming_status_and_message(server):
+    dqs = _poses(4, 2)
     with Client(server.target, token="nope") as c:
-        with pytest.raises(grpc.RpcError) as e:
-            c.blend(_poses(4, 2))
-        assert e.value.code() == grpc.StatusCode.UNAUTHENTICATED
+        calls = {"blend": lambda: c.blend(dqs),
+                 "blend_batch": lambda: c.blend_batch([dqs, dqs]),
+                 "blend_stream": lambda: list(c.blend_stream([(dqs, None)])),
+                 "interpolate": lambda: c.interpolate([0, 1], dqs, [0.5])}
+        for name, call in calls.items():
+            with pytest.raises(RpcError) as e:
+                call()
+            assert not isinstance(e.value, grpc.RpcError), name
+            assert e.value.code == grpc.StatusCode.UNAUTHENTICATED, name
+            assert e.value.details == "authorization: invalid bearer token", name
+            assert str(e.value) == "UNAUTHENTICATED: authorization: invalid bearer token", name
         assert c.health() == "SERVING"
+    with Client("127.0.0.1:1", timeout=2) as c:
+        with pytest.raises(RpcError) as e:
+            c.blend(dqs)
+        assert e.value.code == grpc.StatusCode.UNAVAILABLE and str(e.value).startswith("UNAVAILABLE: ")
+        with pytest.raises(RpcError):
+            c.health()
+
+
+def test_invalid_argument_is_both_our_rpc_error_and_a_value_error(client):
+    with pytest.raises(InvalidArgument) as e:
+        client.blend(_poses(3, 3), [1, 1, -1])
+    assert isinstance(e.value, ValueError) and isinstance(e.value, RpcError)
+    assert e.value.code == grpc.StatusCode.INVALID_ARGUMENT
+    bad = [(_poses(1, 3), None), (np.zeros((2, 8)), None), (_poses(2, 3), None)]
+    with pytest.raises(InvalidArgument, match=r"^requests\[1\]\.poses\[0\]\.orientation: zero quaternion"):
+        list(client.blend_stream(bad))
+
+
+def test_blend_batch_of_20000_sets_is_split_under_the_message_limit(client):
+    # 20,000 sets of 10 poses are ~14 MB, over the server's 4 MiB and 10,000-request limits
+    sets = _poses(6, 20_000 * 10).reshape(20_000, 10, 8)
+    got = client.blend_batch(sets, method="dlb")
+    assert got.shape == (20_000, 8)
+    _same(got, dq.dlb(sets))
+
+
+def test_blend_batch_takes_lists_of_sets_of_any_size_with_or_without_weights(client):
+    rng = np.random.default_rng(7)
+    sets = [_poses(s, n) for s, n in enumerate([1, 5, 3, 5, 8, 2])]
+    weights = [None, rng.uniform(0.5, 1, 5), None, rng.uniform(0.5, 1, 5), rng.uniform(0.5, 1, 8),
+               [1.0, 3.0]]
+    got = client.blend_batch(sets, weights)
+    for g, d, w in zip(got, sets, weights):
+        _same(g, dq.dib(d, w))
+
+
+def test_blend_batch_splits_under_the_servers_own_limits_and_names_the_set():
+    sets = _poses(8, 300 * 4).reshape(300, 4, 8)
+    with ServerThread(max_message_bytes=16 * 1024, max_poses=50) as small:
+        with Client(small.target, max_message_bytes=16 * 1024, max_poses=50) as c:
+            _same(c.blend_batch(sets, method="dlb"), dq.dlb(sets))
+            bad = sets.copy()
+            bad[237, 2] = 0.0            # in a later call: the message counts from the first set
+            with pytest.raises(InvalidArgument,
+                               match=r"^requests\[237\]\.poses\[2\]\.orientation: zero quaternion"):
+                c.blend_batch(bad)
+        with Client(small.target) as c:  # a client that does not know the server's limits
+            with pytest.raises(RpcError) as e:
+                c.blend_batch(sets)
+            assert e.value.code in (grpc.StatusCode.RESOURCE_EXHAUSTED,
+                                    grpc.StatusCode.INVALID_ARGUMENT)
+            assert e.value.details
+
+
+def test_interpolate_of_more_times_than_the_server_takes_is_split(client):
+    dqs_k = _poses(9, 3)
+    times = np.linspace(0, 2, 25_001)
+    got = client.interpolate([0, 1, 2], dqs_k, times, "tool_linear")
+    assert got.shape == (25_001, 8)
+    _same(got, interpolate([0, 1, 2], dqs_k, times, "tool_linear"))
+    times[17_500] = 3.0                  # in the second call: named by its place in the whole
+    with pytest.raises(InvalidArgument, match=r"^times\[17500\]: 3\.0 is outside the keyframe range"):
+        client.interpolate([0, 1, 2], dqs_k, times)
+
+
+def test_what_cannot_be_split_is_refused_before_sending(client):
+    with pytest.raises(RequestTooLarge, match=r"^dqs_k: 10001 keyframes exceed the server limit of 10000"):
+        client.interpolate(np.arange(10_001.0), _poses(10, 10_001), [0.5])
+    with pytest.raises(RequestTooLarge, match=r"^dqs: 10001 poses exceed the server limit of 10000"):
+        client.blend(_poses(10, 10_001))
+
+
+def test_a_stream_item_of_the_wrong_shape_raises_after_the_answers_before_it(client):
+    batches = [(_poses(11, 3), None), (_poses(12, 2), None), (np.zeros((2, 7)), None)]
+    got = []
+    with pytest.raises(ValueError, match=r"^batches\[2\] dqs: expected shape \(n, 8\), got \(2, 7\)$"):
+        for mean in client.blend_stream(batches):
+            got.append(mean)
+    assert len(got) == 2
+    _same(got[1], dq.dib(batches[1][0]))
 
 
 # --------------------------------------------------------------------------- the CLI
@@ -180,7 +269,8 @@ def test_cli_interpolate_from_stdin_csv(server, token_file):
      None),
     (["blend", "-", "--local", "--weights", "1,-2"], "0,0,0,1,0,0,0\n0,0,0,1,0,0,0\n",
      "dqpose blend: error: weights[1]: negative weight -2"),
-    (["blend", "-", "--local"], "0,0,abc,1,0,0,0\n", "dqpose blend: error: line 1: expected 7 numbers"),
+    (["blend", "-", "--local"], "0,0,abc,1,0,0,0\n",
+     "dqpose blend: error: line 1, column z: 'abc' is not a number"),
     (["blend", "/nonexistent/poses.csv", "--local"], None,
      "dqpose blend: error: /nonexistent/poses.csv: No such file or directory"),
     (["blend", "-", "--local"], '{"poses": [', "dqpose blend: error: -: not valid JSON"),
@@ -216,3 +306,28 @@ def test_cli_health(server):
     assert res.returncode == 0 and res.stdout.strip() == "SERVING"
     res = dqpose("health", "--target", "127.0.0.1:1", "--timeout", "1")
     assert res.returncode == 1
+
+
+def test_cli_interpolate_at_a_fine_step_is_split_and_matches_local(server, token_file):
+    keys = "t,x,y,z,qw,qx,qy,qz\n0,0,0,0,1,0,0,0\n2,0.3,0,0,0.7071067811865476,0,0,0.7071067811865476\n"
+    args = ("interpolate", "-", "--step", "0.0001", "--format", "csv")
+    remote = dqpose(*args, "--target", server.target, "--token-file", token_file, stdin=keys)
+    local = dqpose(*args, "--local", stdin=keys)
+    assert remote.returncode == 0, remote.stderr
+    got = np.loadtxt(remote.stdout.splitlines()[1:], delimiter=",")
+    want = np.loadtxt(local.stdout.splitlines()[1:], delimiter=",")
+    assert got.shape == (20_001, 8)
+    np.testing.assert_array_equal(got[:, 0], want[:, 0])
+    np.testing.assert_allclose(got, want, atol=1e-11)
+
+
+def test_cli_oversize_input_names_local(server, token_file, tmp_path):
+    keys = tmp_path / "many.csv"
+    keys.write_text("t,x,y,z,qw,qx,qy,qz\n" + "".join(f"{i},0,0,0,1,0,0,0\n" for i in range(10_001)))
+    res = dqpose("interpolate", str(keys), "--times", "0.5", "--target", server.target,
+                 "--token-file", token_file)
+    assert res.returncode == 2
+    assert res.stderr.startswith("dqpose interpolate: error: dqs_k: 10001 keyframes exceed the "
+                                 "server limit of 10000"), res.stderr
+    assert res.stderr.rstrip().endswith("or compute it in this process with --local")
+    assert dqpose("interpolate", str(keys), "--times", "0.5", "--local").returncode == 0

@@ -8,8 +8,10 @@ from hypothesis import strategies as st
 
 from service import dq
 from service.rpc.convert import (METHOD_ENUMS, METHOD_NAMES, FieldError, arrays_to_stamped,
-                                 blend_request_wire, dq_to_pose, dqs_to_poses, pose_msgs,
-                                 poses_to_dqs, stamped_to_arrays)
+                                 blend_batch_items_wire, blend_request_wire,
+                                 blend_responses_from_wire, dq_to_pose, dqs_to_poses,
+                                 interpolate_request_wire, pose_msgs, poses_to_dqs,
+                                 stamped_poses_wire, stamped_to_arrays)
 from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from service.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 
@@ -102,3 +104,96 @@ def test_the_method_table_is_the_proto_enum():
     assert proto == {f"METHOD_{name.upper()}": m.code for name, m in dq.METHODS.items()}
     assert METHOD_NAMES == {pb.METHOD_UNSPECIFIED: "dib", **{m.code: n for n, m in dq.METHODS.items()}}
     assert METHOD_ENUMS == {n: m.code for n, m in dq.METHODS.items()}
+
+
+def _rows(data, n, width):
+    return np.array(data.draw(st.lists(st.lists(_doubles, min_size=width, max_size=width),
+                                       min_size=n, max_size=n))).reshape(n, width)
+
+
+@settings(max_examples=150)
+@given(data=st.data())
+def test_blend_batch_items_are_what_protobuf_would_send(data):
+    # sets of different sizes, some with weights (of any length: the server judges them)
+    counts = np.array(data.draw(st.lists(st.integers(0, 4), max_size=6)), dtype=np.int64)
+    w_counts = np.array([data.draw(st.integers(0, 4)) for _ in counts], dtype=np.int64)
+    q, t = _rows(data, int(counts.sum()), 4), _rows(data, int(counts.sum()), 3)
+    w = _rows(data, int(w_counts.sum()), 1).ravel()
+    method = data.draw(st.sampled_from([0, 2, 6, -1]))
+    tol = data.draw(_doubles)
+    max_iter = data.draw(st.sampled_from([0, 3, 200, 2**32 - 1]))
+    buf, offsets = blend_batch_items_wire(q, t, counts, w, w_counts, method, tol, max_iter)
+    ps, ws = np.cumsum(np.r_[0, counts]), np.cumsum(np.r_[0, w_counts])
+    want = [pb.BlendRequest(poses=pose_msgs(q[ps[i]:ps[i + 1]], t[ps[i]:ps[i + 1]]),
+                            weights=w[ws[i]:ws[i + 1]], method=method, tolerance=tol,
+                            max_iterations=max_iter) for i in range(len(counts))]
+    got = pb.BlendBatchRequest.FromString(buf.tobytes())
+    assert [r.SerializeToString() for r in got.requests] == [r.SerializeToString() for r in want]
+    # every run of items is a batch of its own: what the client sends when it splits
+    for i in range(len(counts)):
+        one = pb.BlendBatchRequest.FromString(buf[offsets[i]:offsets[i + 1]].tobytes())
+        assert [r.SerializeToString() for r in one.requests] == [want[i].SerializeToString()]
+
+
+@settings(max_examples=100)
+@given(n=st.integers(0, 4), data=st.data())
+def test_interpolate_request_wire_is_what_protobuf_would_send(n, data):
+    times_k, q, t = _rows(data, n, 1).ravel(), _rows(data, n, 4), _rows(data, n, 3)
+    times = _rows(data, data.draw(st.integers(0, 5)), 1).ravel()
+    mode = data.draw(st.sampled_from([0, 1, 2, -3]))
+    want = pb.InterpolateRequest(keyframes=[geo.StampedPose(time=s, pose=p) for s, p in
+                                            zip(times_k.tolist(), pose_msgs(q, t))],
+                                 times=times, interpolation=mode)
+    got = pb.InterpolateRequest.FromString(
+        interpolate_request_wire(stamped_poses_wire(times_k, q, t), times, mode))
+    assert got.SerializeToString() == want.SerializeToString()
+
+
+def _answer(data, zeros):
+    """A BlendResponse as the server may send it: any value may be zero (then left off)."""
+    value = _doubles if zeros else st.floats(allow_nan=True).filter(lambda v: v != 0)
+    r = pb.BlendResponse()
+    p, o = r.pose.position, r.pose.orientation
+    p.x, p.y, p.z = (data.draw(value) for _ in range(3))
+    o.w, o.x, o.y, o.z = (data.draw(value) for _ in range(4))
+    r.iterations = data.draw(st.sampled_from([0, 1, 27, 127, 128, 1000, 2**32 - 1]))
+    r.residual = data.draw(value)
+    return r
+
+
+def _read(r):
+    p, o = r.pose.position, r.pose.orientation
+    return [o.w, o.x, o.y, o.z, p.x, p.y, p.z], r.iterations, r.residual
+
+
+@settings(max_examples=150)
+@given(m=st.integers(1, 6), data=st.data())
+def test_blend_answers_read_without_messages_are_the_parsers_values(m, data):
+    # one layout (every value present, the same iterations): what the server sends for a method
+    uniform = [_answer(data, zeros=False) for _ in range(m)]
+    for r in uniform[1:]:
+        r.iterations = uniform[0].iterations
+    mixed = [_answer(data, zeros=True) for _ in range(m)]
+    for answers in (uniform, mixed):
+        raw = pb.BlendBatchResponse(responses=answers).SerializeToString()
+        got = blend_responses_from_wire(raw)
+        if got is None:       # a layout it does not take (then the client parses with protobuf)
+            assert answers is mixed
+            continue
+        want = [_read(r) for r in pb.BlendBatchResponse.FromString(raw).responses]
+        # bit for bit: NaN payloads and the sign of zero included
+        assert got[0].tobytes() == np.array([w[0] for w in want], "<f8").reshape(-1, 7).tobytes()
+        assert got[1].tolist() == [w[1] for w in want]
+        assert got[2].tobytes() == np.array([w[2] for w in want], "<f8").tobytes()
+
+
+def test_blend_answers_of_one_layout_are_read_without_messages():
+    r = pb.BlendResponse(pose=pose_msgs(np.array([[0.5, 0.5, 0.5, 0.5]]),
+                                        np.array([[0.1, -0.2, 0.3]]))[0],
+                         iterations=3, residual=1e-13)
+    got = blend_responses_from_wire(pb.BlendBatchResponse(responses=[r] * 5).SerializeToString())
+    assert got is not None
+    np.testing.assert_array_equal(got[0], [[0.5, 0.5, 0.5, 0.5, 0.1, -0.2, 0.3]] * 5)
+    assert got[1].tolist() == [3] * 5 and got[2].tolist() == [1e-13] * 5
+    assert blend_responses_from_wire(b"") is not None
+    assert blend_responses_from_wire(b"\x0a\x05junk!") is None

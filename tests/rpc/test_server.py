@@ -435,14 +435,33 @@ def test_mtls_needs_a_client_certificate_from_the_client_ca(pki):
 def test_second_server_on_the_same_port_fails(server):
     import asyncio
 
-    with pytest.raises(OSError, match=f"cannot listen on 127.0.0.1:{server.port}"):
+    from service.rpc.server import AddressInUse
+
+    with pytest.raises(AddressInUse, match=f"^cannot listen on 127.0.0.1:{server.port}: address "
+                                           f"already in use$") as e:
         asyncio.run(start(ServerConfig(port=server.port)))
+    assert e.value.setting == "port"
     res = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--port", str(server.port)],
                          capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert res.returncode == 2
-    # gRPC core logs its own line first; ours is the last and says what failed
-    assert res.stderr.splitlines()[-1].startswith(
-        f"dqpose serve: error: cannot listen on 127.0.0.1:{server.port}")
+    # one line, ours (not gRPC core's bind log), naming the flag to change
+    assert res.stderr == (f"dqpose serve: error: cannot listen on 127.0.0.1:{server.port}: "
+                          f"address already in use; choose another --port\n")
+
+
+def test_metrics_port_in_use_names_the_metrics_flag(server):
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        res = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--port", "0",
+                              "--metrics-port", str(port)],
+                             capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert res.returncode == 2
+    assert res.stderr == (f"dqpose serve: error: cannot serve metrics on 127.0.0.1:{port}: "
+                          f"address already in use; choose another --metrics-port\n")
 
 
 def test_concurrent_clients_get_their_own_answers(server):
