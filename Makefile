@@ -2,18 +2,36 @@
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
+EXTRAS := devices,planning,test
 
-.PHONY: setup run test bench clean
+# The install is redone only when one of its inputs changed: Python sources are an editable
+# install, but the C core, the generated stubs and the dependency lists are built from these.
+# A missing C core or stub folder (deleted by hand) forces it too.
+STAMP  := $(VENV)/.installed
+INPUTS := Makefile pyproject.toml setup.py $(wildcard service/csrc/*.c service/csrc/*.h) \
+          $(shell find proto -name '*.proto')
+MISSING := $(if $(wildcard service/_dqcore*.so),,FORCE) \
+           $(if $(wildcard service/rpc/_proto/dqpose/v1/*_pb2.py),,FORCE)
+
+.PHONY: setup run test bench clean FORCE
 
 $(BIN)/python:
+	@echo "make: creating the virtual environment $(VENV) (a few seconds)"
 	$(PYTHON) -m venv $(VENV)
 
 # Build tools first, then the project without build isolation so the C core compiles
 # against the same NumPy it runs with (PYTHONWARNINGS: setuptools otherwise prints a box of
 # asterisks about editable installs on every run).
-setup: $(BIN)/python
+$(STAMP): $(INPUTS) $(MISSING) | $(BIN)/python
+	@echo "make: installing the build tools into $(VENV): pip, setuptools, wheel, numpy, grpcio-tools (~15 s the first time)"
 	$(BIN)/python -m pip install -q --upgrade pip "setuptools>=77" wheel "numpy>=2.0" "grpcio-tools>=1.60"
-	PYTHONWARNINGS=ignore $(BIN)/python -m pip install -q --no-build-isolation -e '.[test]'
+	@echo "make: installing dqpose[$(EXTRAS)] and its dependencies, building the C core, generating the gRPC stubs (~1-2 min and ~300 MB of downloads the first time, ~5 s after a change)"
+	PYTHONWARNINGS=ignore $(BIN)/python -m pip install -q --no-build-isolation -e '.[$(EXTRAS)]'
+	@touch $@
+
+FORCE:
+
+setup: $(STAMP)
 
 # The gRPC server on 127.0.0.1:50051 with the simulated devices beside it, until Ctrl-C
 # (`dqpose serve --help` for TLS, tokens, ports; drop --sims for the server alone).

@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 from drivers.base import Measurement, PoseSource
-from service import dq
+from service import dq, lie
 
 __all__ = ["Intrinsics", "BoardSpec", "Detection", "Rejection", "CharucoCamera",
            "load_intrinsics", "load_board", "open_frames", "FolderFrames", "VideoFrames",
@@ -368,16 +368,6 @@ def open_frames(source: Union[int, str]):
 
 
 # ---- the detector ------------------------------------------------------------------------------
-def _inv_right_jacobian_so3(phi: np.ndarray) -> np.ndarray:
-    """``d Log(Exp(phi) Exp(w)) / d w`` at ``w = 0``."""
-    theta = float(np.linalg.norm(phi))
-    P = np.array([[0, -phi[2], phi[1]], [phi[2], 0, -phi[0]], [-phi[1], phi[0], 0]])
-    if theta < 1e-6:
-        return np.eye(3) + 0.5 * P + P @ P / 12.0
-    c = 1.0 / theta ** 2 - (1 + math.cos(theta)) / (2 * theta * math.sin(theta))
-    return np.eye(3) + 0.5 * P + c * (P @ P)
-
-
 def _to_gray(image: np.ndarray) -> np.ndarray:
     img = np.asarray(image)
     if img.dtype != np.uint8:
@@ -542,7 +532,7 @@ class CharucoCamera(PoseSource):
             return Rejection("pnp_failed", "solution puts the board behind the camera", n)
         R, _ = cv2.Rodrigues(rvec)
         # Chain rule to our right perturbation (omega, v): rvec moves by Jr^-1 omega, t by R v.
-        J_delta = np.hstack([J[:, 0:3] @ _inv_right_jacobian_so3(rvec.ravel()), J[:, 3:6] @ R])
+        J_delta = np.hstack([J[:, 0:3] @ lie.so3_right_jacobian_inv(rvec.ravel()), J[:, 3:6] @ R])
         dof = max(2 * n - 6, 1)
         s2 = max(float(r @ r) / dof, self.min_pixel_sigma ** 2)
         try:

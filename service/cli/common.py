@@ -14,6 +14,12 @@ def fail(cmd: str, msg: str) -> int:
     return EXIT_ERROR
 
 
+def missing_devices(cmd: str, e: ModuleNotFoundError) -> int:
+    """A device library that is not installed: the server and core install without them."""
+    return fail(cmd, f"{e} (the device libraries are the [devices] extra: "
+                     f"pip install 'dqpose[devices]')")
+
+
 def read(path: str, mode: str = "rb") -> bytes:
     with open(path, mode) as f:
         return f.read()

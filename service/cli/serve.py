@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import sys
 
-from service.cli.common import client, connection_args, fail, read
+from service.cli.common import client, connection_args, fail, missing_devices, read
 from service.rpc import DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
 
 
@@ -73,7 +73,11 @@ def _serve(args) -> int:
         with contextlib.ExitStack() as stack:
             if args.sims:
                 from drivers.sim.fleet import Fleet
-                for info in stack.enter_context(Fleet()).info:
+                try:
+                    fleet = stack.enter_context(Fleet())
+                except ModuleNotFoundError as e:
+                    return missing_devices("serve --sims", e)
+                for info in fleet.info:
                     logging.getLogger("dqpose").info(json.dumps({"event": "simulator", **info}))
             try:  # libuv's loop: ~8 % more calls/s with 8 clients, lower p99 (BENCHMARKS.md)
                 import uvloop

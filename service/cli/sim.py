@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 import importlib
 
+from service.cli.common import missing_devices
+
 SIMULATORS = {
     "ur": "drivers.sim.ursim:main",
     "piper": "drivers.sim.piper:main",
@@ -26,4 +28,8 @@ def configure(name: str, p) -> None:
 
 def run(args: argparse.Namespace) -> int:
     module, function = SIMULATORS[args.device].split(":")
-    return int(getattr(importlib.import_module(module), function)(args.args) or 0)
+    try:
+        simulator = getattr(importlib.import_module(module), function)
+    except ModuleNotFoundError as e:
+        return missing_devices(f"sim {args.device}", e)
+    return int(simulator(args.args) or 0)

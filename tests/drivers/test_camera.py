@@ -5,10 +5,9 @@ import math
 import cv2
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from drivers.camera import (BoardSpec, CharucoCamera, Detection, Intrinsics, LiveFrames,
-                            Rejection, _inv_right_jacobian_so3, load_board, load_intrinsics,
+                            Rejection, load_board, load_intrinsics,
                             open_frames)
 from drivers.sim import camera as simcam
 from drivers.sim.camera import DEFAULT_INTRINSICS, BoardRenderer, look_at, random_view
@@ -92,21 +91,6 @@ def test_covariance_positive_definite_and_grows_with_noise(renderer, cam):
         assert np.min(np.linalg.eigvalsh(d.covariance)) > 0
         traces.append(np.trace(d.covariance))
     assert traces[0] < traces[1] < traces[2]
-
-
-def test_inverse_right_jacobian_matches_finite_differences():
-    rng = np.random.default_rng(3)
-    # angles below pi (a rotation vector wraps beyond), and tiny ones for the series branch
-    for phi in [0.6 * rng.normal(size=3), 1e-8 * rng.normal(size=3), np.array([0.0, 3.0, 0.1])]:
-        R0 = Rotation.from_rotvec(phi)
-        num = np.zeros((3, 3))
-        h = 1e-7
-        for k in range(3):
-            w = np.zeros(3)
-            w[k] = h
-            num[:, k] = ((R0 * Rotation.from_rotvec(w)).as_rotvec()
-                         - (R0 * Rotation.from_rotvec(-w)).as_rotvec()) / (2 * h)
-        assert np.allclose(_inv_right_jacobian_so3(phi), num, atol=1e-6)
 
 
 def test_board_mostly_out_of_frame_is_rejected(renderer, cam):
