@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 import queue
 import re
@@ -279,6 +280,85 @@ def test_oversized_request_is_resource_exhausted_and_the_server_stays_up(stub):
     assert e.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
     assert "larger than max" in e.value.details()
     assert stub.Blend(blend_req(*_poses(2)), timeout=10).pose.orientation.w == pytest.approx(1.0)
+
+
+# An answer over the server's --max-message-bytes: gRPC would refuse to send it after the call
+# was recorded as OK, with a traceback in the log; the server must say RESOURCE_EXHAUSTED itself,
+# naming the size, the limit and what to do, and log and count that.
+
+SMALL_BYTES = 16 * 1024
+
+
+def _oversized_calls(stub, rng):
+    """(rpc, call of the first k items, message start, n) for answers over SMALL_BYTES to
+    requests of n items under it."""
+    q, t = random_poses(rng, 2)
+    kf = [geo.StampedPose(time=float(i), pose=pose_msg(q[i], t[i])) for i in range(2)]
+    times = rng.uniform(0, 1, 1000)
+    # 15 bytes a request in the batch, 17 an answer (which carries an empty position).
+    batch = [pb.BlendRequest(poses=[geo.Pose(orientation=geo.Quaternion(w=1.0))])] * 1000
+    return [
+        ("Interpolate", lambda k: stub.Interpolate(
+            pb.InterpolateRequest(keyframes=kf, times=list(times[:k])), timeout=10),
+         "times: the response to 1000 times is ", 1000),
+        ("BlendBatch", lambda k: stub.BlendBatch(
+            pb.BlendBatchRequest(requests=batch[:k]), timeout=10),
+         "requests: the response to 1000 requests is ", 1000),
+    ]
+
+
+def test_an_answer_over_the_message_limit_is_resource_exhausted_logged_and_counted(caplog):
+    caplog.set_level(logging.INFO, logger="dqpose.calls")
+    rng = np.random.default_rng(12)
+    # The client may send and receive more than the server: only the server's limit is tested.
+    big = [("grpc.max_send_message_length", 1 << 24), ("grpc.max_receive_message_length", 1 << 24)]
+    with socket_free_port() as port, ServerThread(max_message_bytes=SMALL_BYTES, max_poses=2000,
+                                                  metrics_port=port) as s:
+        with grpc.insecure_channel(s.target, options=big) as ch:
+            stub = pb_grpc.BlendingStub(ch)
+            for rpc, call, start, n in _oversized_calls(stub, rng):
+                code, details = _code(lambda: call(n))
+                assert code == grpc.StatusCode.RESOURCE_EXHAUSTED, (rpc, code, details)
+                m = re.fullmatch(re.escape(start) + rf"(\d+) bytes, over the server's max message "
+                                 rf"size of {SMALL_BYTES} bytes; send about (\d+) \w+ per call, "
+                                 rf"or fewer", details)
+                assert m and int(m[1]) > SMALL_BYTES, details
+                assert _code(lambda: call(int(m[2])))[0] == grpc.StatusCode.OK, rpc
+        text = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5).read().decode()
+        s.stop()
+        s.running.calls.flush()
+    for rpc in ("Interpolate", "BlendBatch"):
+        assert re.search(rf'dqpose_grpc_calls_total\{{code="RESOURCE_EXHAUSTED",rpc="{rpc}"\}} 1\.0',
+                         text), text
+        assert re.search(rf'dqpose_grpc_calls_total\{{code="OK",rpc="{rpc}"\}} 1\.0', text), text
+    calls = [json.loads(line) for r in caplog.records if r.name == "dqpose.calls"
+             for line in r.getMessage().splitlines()]
+    assert [(c["rpc"], c["code"]) for c in calls] == [
+        ("Interpolate", "RESOURCE_EXHAUSTED"), ("Interpolate", "OK"),
+        ("BlendBatch", "RESOURCE_EXHAUSTED"), ("BlendBatch", "OK")]
+    errors = [r for r in caplog.records if r.levelno >= logging.WARNING]
+    assert not errors, [r.getMessage() for r in errors]
+
+
+def test_a_stream_answer_over_the_message_limit_is_resource_exhausted(caplog):
+    caplog.set_level(logging.INFO, logger="dqpose.calls")
+    # 22 bytes in, 24 out (the answer carries an empty position): a limit of 23 takes the
+    # request and cannot send its answer.
+    req = pb.BlendRequest(poses=[geo.Pose(orientation=geo.Quaternion(w=0.6, x=0.8))])
+    assert req.ByteSize() <= 23
+    with ServerThread(max_message_bytes=23) as s, grpc.insecure_channel(s.target) as ch:
+        stream = pb_grpc.BlendingStub(ch).BlendStream(iter([req]), timeout=10)
+        code, details = _code(lambda: list(stream))
+        s.stop()
+        s.running.calls.flush()
+    assert code == grpc.StatusCode.RESOURCE_EXHAUSTED, (code, details)
+    assert details.startswith("requests[0].request: the response to 1 request is 24 bytes, over "
+                              "the server's max message size of 23 bytes"), details
+    calls = [json.loads(line) for r in caplog.records if r.name == "dqpose.calls"
+             for line in r.getMessage().splitlines()]
+    assert [(c["rpc"], c["code"]) for c in calls] == [("BlendStream", "RESOURCE_EXHAUSTED")]
+    errors = [r for r in caplog.records if r.levelno >= logging.WARNING]
+    assert not errors, [r.getMessage() for r in errors]
 
 
 def test_expired_deadline_is_deadline_exceeded(stub):
