@@ -252,6 +252,8 @@ BAD_INPUTS = [
     ("Interpolate", _interp_req(times=(0.5, 2.5)),
      "times[1]: 2.5 is outside the keyframe range [0.0, 2.0]"),
     ("Interpolate", _interp_req(times=(NAN,)), "times[0]: contains NaN or infinity"),
+    ("Interpolate", _interp_req(times_k=(-1e308, 1e308), times=(1e308,)),
+     "keyframes[1].time: the span from the previous keyframe time -1e+308 to 1e+308 overflows"),
     ("Interpolate", _interp_req(times_k=(0.0,)), "keyframes: need at least 2 keyframes, got 1"),
     ("Interpolate", _interp_req(times=()), "times: empty request: no times"),
     ("Interpolate", pb.InterpolateRequest(), "keyframes: empty request: no keyframes"),
