@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import queue
 import re
@@ -17,6 +18,8 @@ import urllib.request
 import grpc
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha.proto_reflection_descriptor_database import (
     ProtoReflectionDescriptorDatabase)
@@ -271,6 +274,131 @@ def test_bad_input_is_invalid_argument_naming_the_field(stub, rpc, request_, mes
         getattr(stub, rpc)(request_, timeout=10)
     assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT
     assert e.value.details().startswith(message), e.value.details()
+
+
+# ---------------------------------------------------------------------------- extreme values
+
+# Every refusal names a field of the request, whatever the values: no internal variable (tau,
+# dqs, q, a) may leak into a message.
+FIELD_PATH = re.compile(r"^(keyframes|times|poses|weights|method|tolerance|max_iterations|requests"
+                        r"|interpolation)(\[\d+\])?(\.\w+(\[\d+\])?)*: ")
+BIG = 1.7976931348623157e308
+FINITE = st.sampled_from([0.0, -0.0, 1.0, -1.0, 0.5, 1e308, -1e308, BIG, -BIG, 1e300, -1e300,
+                          1e150, -1e154, 5e-324, -5e-324, 2.2250738585072014e-308, 1e-300])
+# (a translation of 1e150 is within what the core takes, 1e154 is not)
+EXTREME = FINITE | st.sampled_from([NAN, float("inf"), float("-inf")]) | st.floats()
+UNIT = st.sampled_from([(1.0, 0, 0, 0), (0.0, 1, 0, 0), (0.0, 0, 0, -1), (0.6, 0.8, 0, 0),
+                        (0.5, 0.5, 0.5, 0.5), (-0.5, 0.5, -0.5, 0.5), (0.0, 0.6, 0, -0.8)])
+# Counts at the server's limits as well as small ones.
+COUNT = st.integers(1, 4) | st.integers(0, 4) | st.sampled_from([MAX_POSES, MAX_POSES + 1])
+POSE_FIELDS = ("position.x", "position.y", "position.z", "orientation.w", "orientation.x",
+               "orientation.y", "orientation.z")
+
+
+def _set(msg, path: str, value) -> None:
+    *parents, leaf = path.split(".")
+    for name in parents:
+        msg = getattr(msg, name)
+    setattr(msg, leaf, value)
+
+
+@st.composite
+def _with_extremes(draw, values: list, poses: list) -> None:
+    """A plain request's values and poses with up to three of them made extreme (in place), so
+    that one extreme value usually gets past the checks into the math."""
+    for _ in range(draw(st.integers(0, 3))):
+        if poses and (not values or draw(st.booleans())):
+            i = draw(st.integers(0, len(poses) - 1))
+            _set(poses[i], draw(st.sampled_from(POSE_FIELDS)), draw(EXTREME))
+        elif values:
+            values[draw(st.integers(0, len(values) - 1))] = draw(EXTREME)
+
+
+@st.composite
+def plain_poses(draw, n: int) -> list:
+    """``n`` plain poses: unit orientations, positions within +-10 m (at most 4 distinct)."""
+    distinct = draw(st.lists(st.tuples(UNIT, st.tuples(*[st.floats(-10, 10)] * 3)),
+                             min_size=1, max_size=4))
+    return [pose_msg(*distinct[i % len(distinct)]) for i in range(n)]
+
+
+@st.composite
+def extreme_blend_requests(draw, small=False):
+    poses = draw(plain_poses(draw(st.integers(1, 3) if small else COUNT)))
+    weights = draw(st.just([]) | st.lists(st.floats(0, 10), min_size=len(poses),
+                                          max_size=len(poses)))
+    draw(_with_extremes(weights, poses))
+    return pb.BlendRequest(
+        poses=poses, weights=weights,
+        method=draw(st.sampled_from(list(range(7)) * 3 + [7, -1, 2**31 - 1])),
+        tolerance=draw(st.just(0.0) | st.floats(1e-15, 1e-3) | EXTREME),
+        max_iterations=draw(st.sampled_from([0, 1, 2, 1000, 1001, 2**32 - 1])))
+
+
+@st.composite
+def extreme_interpolate_requests(draw):
+    # Plain increasing times in [-1, 1] at an extreme scale: at BIG the keyframe span overflows,
+    # at 5e-324 neighbouring times are subnormal or collapse into one.
+    k = draw(st.integers(2, 4) | st.integers(2, 4) | COUNT)
+    unit = st.floats(-1, 1) | st.sampled_from([-1.0, -0.5, 0.0, 0.5, 1.0])
+    plain_k = sorted(draw(st.lists(unit, min_size=min(k, 2), max_size=k, unique=True)))
+    lo, hi = (plain_k[0], plain_k[-1]) if plain_k else (0.0, 0.0)
+    plain = draw(st.lists(st.floats(lo, hi) | st.sampled_from(plain_k or [0.0]), min_size=1,
+                          max_size=4))
+    scale = draw(st.sampled_from([1.0, 1e-300, 5e-324, 1e300, 1e308, BIG]))
+    times_k = [scale * s for s in plain_k]
+    times = [scale * plain[i % len(plain)] for i in range(draw(COUNT))]
+    kf = [geo.StampedPose(time=s, pose=p) for s, p in zip(times_k, draw(plain_poses(k)))]
+    values = times_k + times
+    draw(_with_extremes(values, [f.pose for f in kf]))
+    for f, s in zip(kf, values):
+        f.time = s
+    return pb.InterpolateRequest(keyframes=kf, times=values[len(kf):],
+                                 interpolation=draw(st.sampled_from([0, 1, 2] * 3 + [3, -1])))
+
+
+def _answer_or_field_error(call, check):
+    try:
+        check(call())
+    except grpc.RpcError as e:
+        assert e.code() == grpc.StatusCode.INVALID_ARGUMENT, (e.code(), e.details())
+        assert FIELD_PATH.match(e.details()), e.details()
+
+
+def _finite_pose(p):
+    v = [p.position.x, p.position.y, p.position.z, p.orientation.w, p.orientation.x,
+         p.orientation.y, p.orientation.z]
+    assert np.isfinite(v).all(), p
+
+
+@given(extreme_blend_requests())
+def test_extreme_blend_requests_get_a_finite_answer_or_a_field_error(stub, request_):
+    def check(r):
+        _finite_pose(r.pose)
+        assert math.isfinite(r.residual)
+    _answer_or_field_error(lambda: stub.Blend(request_, timeout=10), check)
+    _answer_or_field_error(lambda: list(stub.BlendStream(iter([request_]), timeout=10)),
+                           lambda rs: [check(r) for r in rs])
+
+
+@given(st.lists(extreme_blend_requests(small=True), min_size=1, max_size=3).flatmap(
+    lambda rs: COUNT.map(lambda n: [rs[i % len(rs)] for i in range(n)])))
+def test_extreme_blend_batches_get_finite_answers_or_a_field_error(stub, requests_):
+    def check(r):
+        for one in r.responses:
+            _finite_pose(one.pose)
+            assert math.isfinite(one.residual)
+    _answer_or_field_error(
+        lambda: stub.BlendBatch(pb.BlendBatchRequest(requests=requests_), timeout=10), check)
+
+
+@given(extreme_interpolate_requests())
+def test_extreme_interpolate_requests_get_finite_answers_or_a_field_error(stub, request_):
+    def check(r):
+        assert len(r.samples) == len(request_.times)
+        for s in r.samples:
+            _finite_pose(s.pose)
+    _answer_or_field_error(lambda: stub.Interpolate(request_, timeout=10), check)
 
 
 def test_oversized_request_is_resource_exhausted_and_the_server_stays_up(stub):
