@@ -51,12 +51,19 @@ def interpolate(times_k, dqs_k, times, mode: str = "screw") -> np.ndarray:
                          f"({dqs_k.shape[0]})")
     if tk.shape[0] < 2:
         raise ValueError(f"times_k: need at least 2 keyframes, got {tk.shape[0]}")
-    step = np.diff(tk)
+    with np.errstate(over="ignore"):   # an overflowing span is refused below, not warned about
+        step = np.diff(tk)
     bad = np.flatnonzero(step <= 0)
     if bad.size:
         i = bad[0] + 1
         raise ValueError(f"times_k[{i}]: {float(tk[i])!r} is not after the previous keyframe time "
                          f"{float(tk[i - 1])!r} (keyframe times must be strictly increasing)")
+    # The segment fraction divides by the span: an infinite one would make it NaN.
+    bad = np.flatnonzero(np.isinf(step))
+    if bad.size:
+        i = bad[0] + 1
+        raise ValueError(f"times_k[{i}]: the span from the previous keyframe time "
+                         f"{float(tk[i - 1])!r} to {float(tk[i])!r} overflows a float64")
     bad = np.flatnonzero((t < tk[0]) | (t > tk[-1]))
     if bad.size:
         i = bad[0]

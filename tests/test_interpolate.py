@@ -85,6 +85,8 @@ def test_antipodal_keyframe_gives_the_same_motion():
     ([0.0, 1.0, 2.0], [0.5, 2.5], "times[1]: 2.5 is outside the keyframe range [0.0, 2.0]"),
     ([0.0, 1.0, 2.0], [-1e-9], "times[0]: -1e-09 is outside the keyframe range"),
     ([0.0, 1.0, 2.0], [np.inf], "times[0]: contains NaN or infinity"),
+    ([-1e308, 1e308, 1.5e308], [1e308],
+     "times_k[1]: the span from the previous keyframe time -1e+308 to 1e+308 overflows a float64"),
 ])
 def test_bad_times_name_the_argument(times_k, times, message):
     with pytest.raises(ValueError, match="^" + re.escape(message)):

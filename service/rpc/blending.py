@@ -14,8 +14,8 @@ from google.protobuf.message import DecodeError
 from service import dq
 from service.errors import FieldError, rename
 from service.interpolate import interpolate
-from service.rpc import BATCH_POSE_FACTOR, DEFAULT_MAX_POSES
-from service.rpc.calls import INTERNAL_DETAILS, Calls, log
+from service.rpc import BATCH_POSE_FACTOR, DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
+from service.rpc.calls import INTERNAL_DETAILS, Calls, fit, log, refusal
 from service.rpc.convert import (INTERPOLATION_NAMES, METHOD_NAMES, arrays_to_stamped,
                                  blend_batch_wire, blend_wire, decode_blend_request, dq_to_pose,
                                  flat_to_dqs, poses_to_flat, stamped_to_arrays)
@@ -39,6 +39,9 @@ class Blending(pb_grpc.BlendingServicer):
     def __init__(self, cfg=None, calls: Calls | None = None):
         """``cfg`` is the server's ``ServerConfig`` (its defaults when None)."""
         self.max_poses = cfg.max_poses if cfg is not None else DEFAULT_MAX_POSES
+        # gRPC refuses to send more (server_options); the *_wire answers are checked against it.
+        self.max_message_bytes = (cfg.max_message_bytes if cfg is not None
+                                  else DEFAULT_MAX_MESSAGE_BYTES)
         self.calls = calls or Calls()
 
     # -- request -> response, no transport
@@ -70,7 +73,9 @@ class Blending(pb_grpc.BlendingServicer):
         raises the FieldError naming the problem). Both give identical bytes."""
         out = blend_wire(data, self.max_poses, DEFAULT_TOLERANCE, DEFAULT_MAX_ITERATIONS,
                          MAX_ITERATIONS_LIMIT)
-        return out if out is not None else self.blend_bytes(data).SerializeToString()
+        if out is None:
+            out = self.blend_bytes(data).SerializeToString()
+        return fit(out, self.max_message_bytes, "request", 1, "request")
 
     def _blend(self, flat, weights, method_code: int, tolerance: float,
                max_iterations: int) -> pb.BlendResponse:
@@ -112,13 +117,13 @@ class Blending(pb_grpc.BlendingServicer):
         out = blend_batch_wire(data, self.max_poses, BATCH_POSE_FACTOR * self.max_poses,
                                self.max_poses, DEFAULT_TOLERANCE, DEFAULT_MAX_ITERATIONS,
                                MAX_ITERATIONS_LIMIT)
-        if out is not None:
-            return out
-        try:
-            request = pb.BlendBatchRequest.FromString(data)
-        except DecodeError:
-            raise FieldError("request: not a valid dqpose.v1.BlendBatchRequest message") from None
-        return self.blend_batch(request).SerializeToString(), len(request.requests)
+        if out is None:
+            try:
+                request = pb.BlendBatchRequest.FromString(data)
+            except DecodeError:
+                raise FieldError("request: not a valid dqpose.v1.BlendBatchRequest message") from None
+            out = self.blend_batch(request).SerializeToString(), len(request.requests)
+        return fit(out[0], self.max_message_bytes, "requests", out[1], "requests"), out[1]
 
     def blend_batch(self, request: pb.BlendBatchRequest) -> pb.BlendBatchResponse:
         requests = request.requests
@@ -155,18 +160,24 @@ class Blending(pb_grpc.BlendingServicer):
             raise FieldError("keyframes: interpolation produced non-finite poses")
         return pb.InterpolateResponse(samples=arrays_to_stamped(times, out))
 
+    def interpolate_wire(self, request: pb.InterpolateRequest) -> bytes:
+        """What Interpolate serves: ``InterpolateResponse`` bytes."""
+        return fit(self.interpolate_request(request).SerializeToString(), self.max_message_bytes,
+                   "times", len(request.times), "times")
+
     # -- RPCs
 
     def register(self, server) -> None:
-        """``add_BlendingServicer_to_server`` with one difference: Blend, BlendStream and
+        """``add_BlendingServicer_to_server`` with two differences: Blend, BlendStream and
         BlendBatch take and return bytes, which the ``*_wire`` methods turn into each other
-        without protobuf objects."""
+        without protobuf objects; every RPC returns bytes, so the ``*_wire`` methods can check
+        their size."""
         raw = dict(request_deserializer=None, response_serializer=None)
         handlers = {
             "Blend": grpc.unary_unary_rpc_method_handler(self.Blend, **raw),
             "Interpolate": grpc.unary_unary_rpc_method_handler(
                 self.Interpolate, request_deserializer=pb.InterpolateRequest.FromString,
-                response_serializer=pb.InterpolateResponse.SerializeToString),
+                response_serializer=None),
             "BlendStream": grpc.stream_stream_rpc_method_handler(self.BlendStream, **raw),
             "BlendBatch": grpc.unary_unary_rpc_method_handler(self.BlendBatch, **raw),
         }
@@ -183,7 +194,7 @@ class Blending(pb_grpc.BlendingServicer):
                                       counted=True)
 
     async def Interpolate(self, request, context):
-        return await self.calls.unary("Interpolate", self.interpolate_request, request, context)
+        return await self.calls.unary("Interpolate", self.interpolate_wire, request, context)
 
     async def BlendStream(self, request_iterator, context):
         # Reading runs ahead of writing (a reader task feeding a queue of STREAM_READ_AHEAD):
@@ -205,9 +216,12 @@ class Blending(pb_grpc.BlendingServicer):
                     raise request
                 try:
                     response = self.blend_wire(request)
-                except FieldError as e:
-                    code = "INVALID_ARGUMENT"
-                    await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"requests[{i}].{e}")
+                except Exception as e:
+                    status = refusal(e)
+                    if status is None:
+                        raise
+                    code = status.name
+                    await context.abort(status, f"requests[{i}].{e}")
                 await context.write(response)
                 i += 1
         except asyncio.CancelledError:

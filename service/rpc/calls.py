@@ -1,8 +1,9 @@
 """What every servicer shares: one call in, one status out, one log line and one metric sample.
 
 A handler raises :class:`~service.errors.FieldError` for bad input (``INVALID_ARGUMENT`` with its
-text, which starts with the proto field path); anything else is ``INTERNAL``, logged with its
-traceback, and the server keeps running.
+text, which starts with the proto field path) and :class:`TooLarge` for an answer over the
+server's max message size (``RESOURCE_EXHAUSTED``, see :func:`fit`); anything else is
+``INTERNAL``, logged with its traceback, and the server keeps running.
 """
 from __future__ import annotations
 
@@ -19,6 +20,37 @@ log = logging.getLogger("dqpose.server")
 call_log = logging.getLogger("dqpose.calls")
 
 INTERNAL_DETAILS = "internal error (see the server log)"
+
+
+class TooLarge(Exception):
+    """An answer over the server's max message size: ``RESOURCE_EXHAUSTED`` with this text."""
+
+
+def fit(response: bytes, limit: int, field: str, count: int, noun: str) -> bytes:
+    """``response`` when it fits in one message of ``limit`` bytes (the server's
+    ``max_message_bytes``), else :class:`TooLarge` naming the size, the limit and how many of the
+    ``count`` ``noun`` of the request's ``field`` would fit.
+
+    Checked before sending because gRPC's own refusal ("Sent message larger than max") comes
+    after the handler returned: the call would be logged and counted as OK, with a traceback."""
+    size = len(response)
+    if size <= limit:
+        return response
+    what = f"{field}: the response to {count} {noun} is {size} bytes, over the server's max " \
+           f"message size of {limit} bytes"
+    per_call = count * limit // size   # the average answer per item: "about"
+    if per_call < 1:
+        raise TooLarge(f"{what}; the server's max message size is too small for one answer")
+    raise TooLarge(f"{what}; send about {per_call} {noun} per call, or fewer")
+
+
+def refusal(e: Exception) -> grpc.StatusCode | None:
+    """The status a handler's deliberate refusal stands for; None for anything else (INTERNAL)."""
+    if isinstance(e, FieldError):
+        return grpc.StatusCode.INVALID_ARGUMENT
+    if isinstance(e, TooLarge):
+        return grpc.StatusCode.RESOURCE_EXHAUSTED
+    return None
 
 
 class Calls:
@@ -61,9 +93,9 @@ class Calls:
             self.flush()
 
     async def unary(self, rpc: str, handle, request, context, counted: bool = False):
-        """One unary call: the response of ``handle(request)``, INVALID_ARGUMENT for a FieldError,
-        INTERNAL (logged) for anything else, and one record either way. With ``counted``,
-        ``handle`` returns ``(response, messages)`` and the record counts them."""
+        """One unary call: the response of ``handle(request)``, the :func:`refusal` status for a
+        FieldError or TooLarge, INTERNAL (logged) for anything else, and one record either way.
+        With ``counted``, ``handle`` returns ``(response, messages)`` and the record counts them."""
         t0 = time.perf_counter()
         code = "OK"
         messages = None
@@ -72,12 +104,13 @@ class Calls:
             if counted:
                 response, messages = response
             return response
-        except FieldError as e:
-            code = "INVALID_ARGUMENT"
-            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
-        except Exception:
-            code = "INTERNAL"
-            log.exception("%s failed", rpc)
-            await context.abort(grpc.StatusCode.INTERNAL, INTERNAL_DETAILS)
+        except Exception as e:
+            status = refusal(e)
+            details = str(e)
+            if status is None:
+                log.exception("%s failed", rpc)
+                status, details = grpc.StatusCode.INTERNAL, INTERNAL_DETAILS
+            code = status.name
+            await context.abort(status, details)
         finally:
             self.done(rpc, code, t0, context, messages)
