@@ -19,6 +19,7 @@ COMMANDS = {
     "blend": ("service.cli.blend", "blend poses from a JSON or CSV file"),
     "interpolate": ("service.cli.blend",
                     "interpolate between time-stamped keyframes from a JSON or CSV file"),
+    "fuse": ("service.cli.fuse", "fuse measurements of one body from a JSON or CSV file"),
     "demo": ("service.cli.demo", "blend and interpolate sample poses and print the results"),
     "properties": ("service.cli.properties", "measure Table 1 of Kavan et al. on this build"),
     "sim": ("service.cli.sim", "run a device simulator that speaks the real protocol"),

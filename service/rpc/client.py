@@ -2,6 +2,7 @@
 
 >>> with Client("127.0.0.1:50051") as c:                      # doctest: +SKIP
 ...     mean = c.blend(dqs, weights=[1, 3])                   # (8,)
+...     fused = c.fuse(dqs, covariances, names=["cam1", "arm"])  # service.fusion.Fused
 ...     path = c.interpolate([0, 1], dqs[:2], np.linspace(0, 1, 50), mode="tool_linear")
 
 Every failed call raises :class:`RpcError` with the status ``code`` and the server's ``details``.
@@ -19,20 +20,24 @@ from __future__ import annotations
 
 import re
 from collections import deque
-from typing import Iterable, Iterator
+from typing import Iterable, Iterator, NamedTuple, Optional, Sequence
 
 import grpc
 import numpy as np
 
-from service import dq
+from service import dq, fusion
 from service.rpc import BATCH_POSE_FACTOR, DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
-from service.rpc.convert import (INTERPOLATION_ENUMS, METHOD_ENUMS, blend_batch_items_wire,
-                                 blend_request_wire, blend_responses_from_wire,
-                                 interpolate_request_wire, poses_to_flat, stamped_poses_wire)
+from service.rpc.convert import (DEFAULT_PROBABILITY, INTERPOLATION_ENUMS, METHOD_ENUMS,
+                                 blend_batch_items_wire, blend_request_wire,
+                                 blend_responses_from_wire, fused_from_msg,
+                                 interpolate_request_wire, measurement_msgs, options_msg,
+                                 pose_arrays, poses_to_flat, stamped_poses_wire)
 from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
+from service.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 
 DEFAULT_TARGET = "127.0.0.1:50051"
 SERVICE = pb.DESCRIPTOR.services_by_name["Blending"].full_name
+FUSION = fpb.DESCRIPTOR.services_by_name["Fusion"].full_name
 # Largest answer per item, to keep answers under the message limit too: BlendBatchResponse item
 # = tag, length, BlendResponse {pose (2 + 67), iterations (1 + up to 5), residual (1 + 8)};
 # InterpolateResponse item = tag, length, StampedPose {time (1 + 8), pose (2 + 67)}.
@@ -56,6 +61,32 @@ class InvalidArgument(RpcError, ValueError):
 
     def __str__(self) -> str:
         return self.details
+
+
+class Batch(NamedTuple):
+    """One ``StreamFuse`` request's measurements (a plain tuple in this order works too):
+    ``poses`` ``(n, 8)`` (``T_frame_body``), ``covariances`` ``(n, 6, 6)`` or ``weights`` ``(n,)``
+    or neither (identity), and per measurement its source ``names``, ``bodies`` and ``times``."""
+    poses: np.ndarray
+    covariances: Optional[np.ndarray] = None
+    weights: Optional[np.ndarray] = None
+    names: Optional[Sequence[str]] = None
+    bodies: Optional[Sequence[str]] = None
+    times: Optional[np.ndarray] = None
+
+
+class StreamAnswer(NamedTuple):
+    """One ``StreamFuse`` answer, after request ``request``: the fused pose of ``body`` at
+    ``time`` (``fused``; its per-measurement arrays index ``measurements``, the stream-wide
+    numbers of the fused measurements), or an error entry: ``fused`` None, ``error`` the
+    server's message naming ``measurement`` of that request (-1: the request itself)."""
+    request: int
+    body: str
+    time: float
+    fused: Optional[fusion.Fused]
+    measurements: np.ndarray
+    error: Optional[str] = None
+    measurement: int = -1
 
 
 class RequestTooLarge(ValueError):
@@ -87,26 +118,6 @@ def _dq_rows(dqs, name: str) -> np.ndarray:
     if a.ndim != 2 or a.shape[1] != 8:
         raise ValueError(f"{name}: expected shape (n, 8), got {a.shape}")
     return a
-
-
-def _pose_arrays(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(n, 8)`` to the ``(q, t)`` of the wire, by the core when the poses are valid. Invalid
-    ones are sent as they are, so that the server's message, naming the field, applies."""
-    try:
-        return dq.to_pose(a)
-    except ValueError:
-        q = a[:, :4]
-        t = 2.0 * _qmul(a[:, 4:], q * [1.0, -1.0, -1.0, -1.0])[:, 1:] / np.maximum(
-            np.einsum("ij,ij->i", q, q), np.finfo(float).tiny)[:, None]
-        return q, t
-
-
-def _qmul(a, b):
-    aw, ax, ay, az = a.T
-    bw, bx, by, bz = b.T
-    return np.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw],
-                    axis=-1)
 
 
 def _flat_to_dqs(flat: np.ndarray) -> np.ndarray:
@@ -188,6 +199,8 @@ class Client:
         self._blend_batch = self.channel.unary_unary(f"/{SERVICE}/BlendBatch")
         self._blend_stream = self.channel.stream_stream(f"/{SERVICE}/BlendStream")
         self._interpolate = self.channel.unary_unary(f"/{SERVICE}/Interpolate")
+        self._fuse = self.channel.unary_unary(f"/{FUSION}/Fuse")
+        self._stream_fuse = self.channel.stream_stream(f"/{FUSION}/StreamFuse")
         self.timeout = timeout
         self.max_message_bytes = max_message_bytes
         self.max_poses = max_poses
@@ -247,7 +260,7 @@ class Client:
         with ``return_info``. Zero ``tolerance``/``max_iterations`` mean the server defaults."""
         a = _dq_rows(dqs, "dqs")
         self._check_count("dqs", len(a), "poses")
-        data = blend_request_wire(*_pose_arrays(a), weights, _method_code(method), tolerance,
+        data = blend_request_wire(*pose_arrays(a), weights, _method_code(method), tolerance,
                                   max_iterations)
         mean, iterations, residual = _blend_answer(self._call(self._blend, data))
         return (mean, iterations, residual) if return_info else mean
@@ -262,7 +275,7 @@ class Client:
         def requests():
             try:
                 for i, (d, w) in enumerate(batches):
-                    yield blend_request_wire(*_pose_arrays(_dq_rows(d, f"batches[{i}] dqs")), w,
+                    yield blend_request_wire(*pose_arrays(_dq_rows(d, f"batches[{i}] dqs")), w,
                                              code)
             except Exception as e:   # raised to the caller below, not lost in grpc's thread
                 refused.append(e)
@@ -281,7 +294,7 @@ class Client:
         sets: they go in as many calls as the server's limits need."""
         code = _method_code(method)
         flat, counts, weights, w_counts = _sets(dqs, weights)
-        q, t = _pose_arrays(flat)
+        q, t = pose_arrays(flat)
         buf, offsets = blend_batch_items_wire(q, t, counts, weights, w_counts, code)
         cum = np.concatenate([[0], np.cumsum(counts)])
         m = len(counts)
@@ -317,7 +330,7 @@ class Client:
             raise ValueError(f"times_k: length {len(tk)} does not match the number of keyframes "
                              f"({len(a)})")
         self._check_count("dqs_k", len(a), "keyframes")
-        keyframes = stamped_poses_wire(tk, *_pose_arrays(a))
+        keyframes = stamped_poses_wire(tk, *pose_arrays(a))
         times = np.asarray(times, dtype=np.float64).ravel()
         room = self.max_message_bytes - len(keyframes) - 16     # 16: the times field's header
         per_call = min(self.max_poses, room // 8, self.max_message_bytes // _SAMPLE_ANSWER_MAX)
@@ -329,6 +342,65 @@ class Client:
                   for i in range(0, max(len(times), 1), per_call))
         parts = self._split_calls(self._interpolate, chunks, "times", _interpolate_answer)
         return np.concatenate(parts).reshape(-1, 8)
+
+    def fuse(self, poses, covariances=None, *, weights=None,
+             names: Optional[Sequence[str]] = None,
+             sources: Optional[Iterable[fusion.Source]] = None, robust: bool = False,
+             probability: float = DEFAULT_PROBABILITY, body: str = "", times=None,
+             time: float = 0.0) -> fusion.Fused:
+        """:func:`service.fusion.fuse` on the server (same arguments, same result), for one
+        ``body``; ``times`` per measurement and the fusion ``time`` (0: the newest) go with
+        them."""
+        n = len(np.asarray(poses))
+        request = fpb.FuseRequest(
+            measurements=measurement_msgs(poses, covariances, weights, names, [body] * n, times),
+            options=options_msg(robust, time, sources, probability))
+        return fused_from_msg(self.fuse_request(request), probability)
+
+    def fuse_request(self, request: fpb.FuseRequest) -> fpb.FusedPose:
+        """Fuse as messages, for a caller that holds a ``FuseRequest`` (``dqpose fuse``)."""
+        return fpb.FusedPose.FromString(self._call(self._fuse, request.SerializeToString()))
+
+    def stream_fuse(self, batches: Iterable, *, sources: Optional[Iterable[fusion.Source]] = None,
+                    robust: bool = False, probability: float = DEFAULT_PROBABILITY,
+                    time: float = 0.0, output_rate: float = 0.0) -> Iterator[StreamAnswer]:
+        """Stream :class:`Batch` es (measurements of any bodies each) to ``StreamFuse``; yields
+        :class:`StreamAnswer` s as they come, fused poses and error entries for measurements
+        the server could not use (the stream goes on). The stream has no deadline; options the
+        server refuses end it with :class:`InvalidArgument`. A batch that cannot be sent (wrong
+        shape) ends the stream and raises its ``ValueError`` after the answers before it."""
+        refused: list[Exception] = []
+        first = fpb.FuseStreamRequest(options=options_msg(robust, time, sources, probability),
+                                      output_rate=output_rate)
+
+        def requests():
+            try:
+                for i, b in enumerate(batches):
+                    b = b if isinstance(b, Batch) else Batch(*b)
+                    try:
+                        ms = measurement_msgs(*b)
+                    except ValueError as e:
+                        raise ValueError(f"batches[{i}].{e}") from None
+                    msg = first if i == 0 else fpb.FuseStreamRequest()
+                    msg.measurements.extend(ms)
+                    yield msg.SerializeToString()
+            except Exception as e:   # raised to the caller below, not lost in grpc's thread
+                refused.append(e)
+
+        try:
+            for data in self._stream_fuse(requests(), metadata=self.metadata):
+                a = fpb.FusedPose.FromString(data)
+                if a.HasField("error"):
+                    yield StreamAnswer(a.request, a.body, a.time, None, np.empty(0, np.int64),
+                                       a.error.details, a.error.measurement)
+                else:
+                    yield StreamAnswer(a.request, a.body, a.time,
+                                       fused_from_msg(a, probability),
+                                       np.array(a.measurements, dtype=np.int64))
+        except grpc.RpcError as e:
+            raise _rpc_error(e) from None
+        if refused:
+            raise refused[0]
 
     def health(self, service: str = "") -> str:
         """The health status name (``"SERVING"``, ``"NOT_SERVING"``, ...)."""

@@ -5,11 +5,15 @@ from ``poses[3].orientation``, so conversion validates per field and renames.
 """
 from __future__ import annotations
 
+import math
+from typing import NamedTuple
+
 import numpy as np
 
-from service import _dqcore, dq
+from service import _dqcore, dq, fusion
 from service.errors import FieldError, rename
 from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
+from service.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from service.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 
 def poses_to_flat(poses) -> np.ndarray:
@@ -337,3 +341,262 @@ METHOD_NAMES = {pb.METHOD_UNSPECIFIED: "dib", **{code: name for name, code in ME
 INTERPOLATION_NAMES = {pb.INTERPOLATION_UNSPECIFIED: "screw", pb.INTERPOLATION_SCREW: "screw",
                        pb.INTERPOLATION_TOOL_LINEAR: "tool_linear"}
 INTERPOLATION_ENUMS = {"screw": pb.INTERPOLATION_SCREW, "tool_linear": pb.INTERPOLATION_TOOL_LINEAR}
+
+
+# ---- fusion --------------------------------------------------------------------------------------
+COVARIANCE_SIZE = fusion.DOF * fusion.DOF
+DEFAULT_PROBABILITY = 0.999
+
+
+class Measurements(NamedTuple):
+    """Repeated ``Measurement`` as arrays; ``index[k]`` is the message's measurement of row k."""
+    index: np.ndarray          # (n,) int
+    bodies: tuple[str, ...]
+    sources: tuple[str, ...]
+    times: np.ndarray          # (n,)
+    poses: np.ndarray          # (n, 8) T_frame_body, unit
+    covariances: np.ndarray    # (n, 6, 6), as given (the domain checks SPD and finiteness)
+
+
+def _measurement_covariance(m, where: str) -> np.ndarray:
+    """A measurement's 6x6 covariance: its 36 values, or I / weight (weight 0 means 1)."""
+    k = len(m.covariance)
+    if k == 0:
+        w = m.weight or 1.0
+        if not (math.isfinite(w) and w > 0.0):
+            raise FieldError(f"{where}.weight: must be positive and finite (0 means 1), got {w!r}")
+        return np.eye(fusion.DOF) / w
+    if k != COVARIANCE_SIZE:
+        raise FieldError(f"{where}.covariance: expected {COVARIANCE_SIZE} values (6x6, row-major, "
+                         f"rotation first) or none, got {k}")
+    if m.weight:
+        raise FieldError(f"{where}.weight: give a covariance or a weight, not both")
+    return np.array(m.covariance, dtype=np.float64).reshape(fusion.DOF, fusion.DOF)
+
+
+def measurements_to_arrays(ms, field: str = "measurements",
+                           errors: list | None = None) -> Measurements:
+    """Repeated ``Measurement`` to :class:`Measurements`. A bad measurement raises the
+    :class:`FieldError` naming it (``{field}[i].time: ...``); with ``errors`` (a list) it is
+    appended there as ``(i, FieldError)`` and left out instead."""
+    keep, covs, times, flat = [], [], [], []
+    for i, m in enumerate(ms):
+        where = f"{field}[{i}]"
+        try:
+            if not math.isfinite(m.time):
+                raise FieldError(f"{where}.time: must be finite, got {m.time!r}")
+            S = _measurement_covariance(m, where)
+        except FieldError as e:
+            if errors is None:
+                raise
+            errors.append((i, e))
+            continue
+        keep.append(i)
+        covs.append(S)
+        times.append(m.time)
+        p = m.pose
+        o, t = p.orientation, p.position
+        flat.append((o.w, o.x, o.y, o.z, t.x, t.y, t.z))
+    flat = np.array(flat, dtype=np.float64).reshape(-1, 7)
+    index = np.array(keep, dtype=np.int64)
+    try:
+        poses = dq.from_pose(flat[:, :4], flat[:, 4:])
+    except ValueError:
+        # Name the measurement, not the row: one at a time to find every bad one.
+        good = []
+        for k, i in enumerate(keep):
+            try:
+                _pose_from_row(flat[k], f"{field}[{i}].pose")
+            except FieldError as e:
+                if errors is None:
+                    raise
+                errors.append((i, e))
+                continue
+            good.append(k)
+        index, flat = index[good], flat[good]
+        covs = [covs[k] for k in good]
+        times = [times[k] for k in good]
+        poses = dq.from_pose(flat[:, :4], flat[:, 4:])
+    if errors:
+        errors.sort(key=lambda x: x[0])
+    ms = list(ms)
+    return Measurements(index, tuple(ms[i].body for i in index), tuple(ms[i].source for i in index),
+                        np.array(times, dtype=np.float64),
+                        poses, np.array(covs, dtype=np.float64).reshape(-1, fusion.DOF, fusion.DOF))
+
+
+def _pose_from_row(row: np.ndarray, where: str) -> np.ndarray:
+    """One ``[qw, qx, qy, qz, x, y, z]`` to ``(8,)``; errors read ``{where}.orientation: ...``."""
+    try:
+        return dq.from_pose(row[None, :4], row[None, 4:])[0]
+    except ValueError as e:
+        raise rename(e, {"q": f"{where}.orientation", "t": f"{where}.position"}) from None
+
+
+def _optional_pose(msg, name: str, where: str) -> np.ndarray | None:
+    if not msg.HasField(name):
+        return None
+    o, t = getattr(msg, name).orientation, getattr(msg, name).position
+    return _pose_from_row(np.array([o.w, o.x, o.y, o.z, t.x, t.y, t.z], dtype=np.float64),
+                          f"{where}.{name}")
+
+
+class Options(NamedTuple):
+    """``FusionOptions`` as the domain's arguments."""
+    robust: bool
+    time: float                      # 0: the newest measurement's
+    sources: tuple[fusion.Source, ...]
+    probability: float
+
+
+def options_from_msg(options, field: str = "options") -> Options:
+    """``FusionOptions`` to :class:`Options`. Frames are converted here; the domain checks the
+    rest of the sources (names, duplicates) when it fuses."""
+    # Time alignment (latency, max_skew) is not in service.fusion yet: refuse what would be
+    # silently ignored.
+    if options.max_skew:
+        raise FieldError(f"{field}.max_skew: time alignment is not available yet; leave it 0")
+    sources = []
+    for k, s in enumerate(options.sources):
+        where = f"{field}.sources[{k}]"
+        if s.latency:
+            raise FieldError(f"{where}.latency: time alignment is not available yet; leave it 0")
+        sources.append(fusion.Source(s.name, _optional_pose(s, "extrinsic", where),
+                                     _optional_pose(s, "body_offset", where)))
+    if not math.isfinite(options.time):
+        raise FieldError(f"{field}.time: must be finite, got {options.time!r}")
+    p = options.probability or DEFAULT_PROBABILITY
+    if not 0.0 < p < 1.0:
+        raise FieldError(f"{field}.probability: must be within (0, 1) (0 means "
+                         f"{DEFAULT_PROBABILITY}), got {options.probability!r}")
+    return Options(bool(options.robust), float(options.time), tuple(sources), p)
+
+
+def options_msg(robust: bool = False, time: float = 0.0, sources=(), probability: float = 0.0):
+    """``FusionOptions`` from the domain's arguments (``sources``: :class:`fusion.Source`)."""
+    msg = fpb.FusionOptions(robust=bool(robust), time=float(time),
+                            probability=float(probability or 0.0))
+    for s in sources or ():
+        out = msg.sources.add(name=s.name)
+        if s.extrinsic is not None:
+            dq_to_pose(np.asarray(s.extrinsic, dtype=np.float64), out.extrinsic)
+        if s.body_offset is not None:
+            dq_to_pose(np.asarray(s.body_offset, dtype=np.float64), out.body_offset)
+    return msg
+
+
+def measurement_msgs(poses, covariances=None, weights=None, names=None, bodies=None,
+                     times=None) -> list:
+    """``Measurement`` messages from arrays (client side; values as given, the server checks
+    them): ``poses`` ``(n, 8)``, ``covariances`` ``(n, 6, 6)`` or ``weights`` ``(n,)`` or
+    neither, and per-measurement ``names`` (sources), ``bodies`` and ``times``."""
+    a = np.asarray(poses, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != 8:
+        raise ValueError(f"poses: expected shape (n, 8), got {a.shape}")
+    n = len(a)
+
+    def column(x, name, tail=()):
+        if x is None:
+            return None
+        if isinstance(x, str):
+            raise ValueError(f"{name}: expected one value per measurement, got a string")
+        c = list(x) if not tail else np.asarray(x, dtype=np.float64)
+        if len(c) != n or (tail and c.shape[1:] != tail):
+            shape = ", ".join(str(k) for k in (n,) + tail)
+            raise ValueError(f"{name}: expected ({shape}) for {n} poses, got "
+                             f"{getattr(c, 'shape', (len(c),))}")
+        return c
+
+    covariances = column(covariances, "covariances", (fusion.DOF, fusion.DOF))
+    weights, names = column(weights, "weights"), column(names, "names")
+    bodies, times = column(bodies, "bodies"), column(times, "times")
+    if covariances is not None and weights is not None:
+        raise ValueError("weights: give covariances or weights, not both")
+    q, t = pose_arrays(a)
+    out = []
+    for i, m in enumerate(pose_msgs(q, t)):
+        msg = fpb.Measurement(pose=m, source=names[i] if names else "",
+                              body=bodies[i] if bodies else "",
+                              time=float(times[i]) if times is not None else 0.0)
+        if covariances is not None:
+            msg.covariance.extend(covariances[i].ravel().tolist())
+        elif weights is not None:
+            msg.weight = float(weights[i])
+        out.append(msg)
+    return out
+
+
+def pose_arrays(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(n, 8)`` to the ``(q, t)`` of the wire (client side), by the core when the poses are
+    valid. Invalid ones are sent as they are, so that the server's message, naming the field,
+    applies."""
+    try:
+        return dq.to_pose(a)
+    except ValueError:
+        q = a[:, :4]
+        t = 2.0 * _qmul(a[:, 4:], q * [1.0, -1.0, -1.0, -1.0])[:, 1:] / np.maximum(
+            np.einsum("ij,ij->i", q, q), np.finfo(float).tiny)[:, None]
+        return q, t
+
+
+def _qmul(a, b):
+    aw, ax, ay, az = a.T
+    bw, bx, by, bz = b.T
+    return np.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw],
+                    axis=-1)
+
+
+STATUS_ENUMS = {s: s.value + 1 for s in fusion.Status}     # proto 0 is an error entry
+STATUS_NAMES = {v: k for k, v in STATUS_ENUMS.items()}
+
+
+def fused_to_msg(f: fusion.Fused, body: str, time: float, out=None):
+    """A :class:`fusion.Fused` into a ``FusedPose`` (written into ``out`` when given)."""
+    msg = fpb.FusedPose() if out is None else out
+    msg.body, msg.time = body, float(time)
+    dq_to_pose(f.mean, msg.pose)
+    msg.covariance.extend(f.covariance.ravel().tolist())
+    msg.inliers.extend(f.inliers.tolist())
+    msg.rejected.extend(r.index for r in f.rejected)
+    msg.rejected_sources.extend(r.source for r in f.rejected)
+    msg.reasons.extend(r.reason for r in f.rejected)
+    msg.chi2, msg.dof, msg.iterations = f.chi2, f.dof, f.iterations
+    msg.status = STATUS_ENUMS[f.status]
+    msg.distances.extend(f.distances.tolist())
+    msg.nis.extend(f.nis.tolist())
+    msg.tested.extend(f.tested.tolist())
+    msg.residuals.extend(f.residuals.ravel().tolist())
+    for s in f.sources:
+        msg.sources.add(name=s.name, count=s.count, rejected=s.rejected, nis_mean=s.nis_mean,
+                        low=s.low, high=s.high, verdict=int(s.verdict))
+    return msg
+
+
+def fused_from_msg(msg, probability: float = DEFAULT_PROBABILITY) -> fusion.Fused:
+    """A ``FusedPose`` back into the :class:`fusion.Fused` it was made from (client side);
+    ``probability`` is the request's (the gate of each rejection)."""
+    p, o = msg.pose.position, msg.pose.orientation
+    nis = np.array(msg.nis, dtype=np.float64)
+    gate = math.sqrt(fusion.chi2_quantile(probability, fusion.DOF))
+    rejected = [fusion.Rejection(int(i), source, math.sqrt(nis[i]), gate, probability)
+                for i, source in zip(msg.rejected, msg.rejected_sources)]
+
+    def frozen(a):
+        a = np.ascontiguousarray(a)
+        a.flags.writeable = False
+        return a
+
+    return fusion.Fused(
+        status=STATUS_NAMES.get(msg.status, fusion.Status.CONVERGED),
+        mean=frozen(dq.from_pose((o.w, o.x, o.y, o.z), (p.x, p.y, p.z))),
+        covariance=frozen(np.array(msg.covariance, dtype=np.float64).reshape(6, 6)),
+        residuals=frozen(np.array(msg.residuals, dtype=np.float64).reshape(-1, 6)),
+        distances=frozen(np.array(msg.distances, dtype=np.float64)),
+        nis=frozen(nis),
+        tested=frozen(np.array(msg.tested, dtype=bool)),
+        inliers=frozen(np.array(msg.inliers, dtype=np.int64)),
+        rejected=tuple(rejected),
+        chi2=msg.chi2, dof=msg.dof, iterations=msg.iterations,
+        sources=tuple(fusion.SourceStats(s.name, s.count, s.rejected, s.nis_mean, s.low, s.high,
+                                         fusion.Verdict(s.verdict)) for s in msg.sources))

@@ -2,8 +2,9 @@
 
 Config, start and graceful stop, bearer-token auth, TLS and mTLS, Prometheus metrics, the health
 service, reflection and the call log (:mod:`service.rpc.calls`). The services themselves are the
-servicers of ``SERVICERS``, one module each (:mod:`service.rpc.blending`); each turns messages into
-NumPy arrays for the domain (:mod:`service.dq`, ...) and names bad input by its proto field.
+servicers of ``SERVICERS``, one module each (:mod:`service.rpc.blending`,
+:mod:`service.rpc.fusion`); each turns messages into NumPy arrays for the domain
+(:mod:`service.dq`, :mod:`service.fusion`, ...) and names bad input by its proto field.
 """
 from __future__ import annotations
 
@@ -23,10 +24,11 @@ from grpc_reflection.v1alpha import reflection, reflection_pb2_grpc
 from service.rpc import DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
 from service.rpc.blending import Blending
 from service.rpc.calls import Calls, log
+from service.rpc.fusion import Fusion
 
 # The services this server offers: each class takes (config, calls), has NAME (the full proto
 # service name) and register(server).
-SERVICERS = (Blending,)
+SERVICERS = (Blending, Fusion)
 SERVICE_NAMES = tuple(s.NAME for s in SERVICERS) + (
     health_pb2.DESCRIPTOR.services_by_name["Health"].full_name, reflection.SERVICE_NAME)
 

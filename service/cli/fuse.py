@@ -1,0 +1,210 @@
+"""``dqpose fuse``: measurements of one body from a JSON or CSV file, fused on a server (the
+``dqpose.v1.Fusion`` service) or ``--local``ly by the same code, printed as text or JSON."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from service.cli.common import client, connection_args, failure
+
+AXES = ("wx", "wy", "wz", "vx", "vy", "vz")
+BASE_COLUMNS = ("source", "time", "x", "y", "z", "qw", "qx", "qy", "qz")
+SIGMA_COLUMNS = tuple(f"sigma_{a}" for a in AXES)
+COVARIANCE_COLUMNS = tuple(f"c{i}{j}" for i in range(6) for j in range(6))
+NUMBER_COLUMNS = ("weight",) + SIGMA_COLUMNS + COVARIANCE_COLUMNS    # optional, by header
+
+EPILOG = """\
+input formats (FILE, or - for standard input; chosen by the extension, else sniffed):
+  JSON  the FuseRequest body grpcurl sends to dqpose.v1.Fusion/Fuse, e.g.
+          {"measurements": [
+             {"source": "cam1", "body": "box", "time": 12.5,
+              "pose": {"position": {"x": 0.5, "y": 0, "z": 0.3},
+                       "orientation": {"w": 1, "x": 0, "y": 0, "z": 0}},
+              "covariance": [36 values, row-major]},
+             {"source": "arm", "pose": {...}, "weight": 4}, ...],
+           "options": {"robust": true,
+                       "sources": [{"name": "cam1", "extrinsic": {"position": {...},
+                                                                  "orientation": {...}}},
+                                   {"name": "arm", "body_offset": {...}}]}}
+        a bare list of measurements is accepted too.
+  CSV   one measurement per line, columns source,time,x,y,z,qw,qx,qy,qz and, by header
+        name, optionally:
+          body                      the body (all lines name the same one)
+          sigma_wx .. sigma_vz      standard deviations of [wx wy wz vx vy vz] (rad, m):
+                                    a diagonal covariance
+          c00 c01 .. c55            the full covariance, row i column j
+          weight                    isotropic covariance I / weight
+        neither: identity covariance. A header line is needed for the optional columns.
+        (frames of the sources: use JSON's "options".)
+covariance convention: 6x6, rotation first [wx wy wz vx vy vz] (radians, then metres), for a
+right (body-frame) perturbation: the true pose is T * Exp(xi), xi ~ N(0, Sigma) (GTSAM's Pose3).
+A measurement is T_frame_body in its source's frame; the fused pose is T_world_body.
+
+output: the fused pose, its covariance, chi2 and dof, the measurements the robust mode rejected
+with the reason, and per source its mean normalised innovation squared (NIS, 6 expected) and
+verdict (consistent, optimistic: claims too small a covariance, pessimistic, untested).
+
+example: dqpose fuse --robust --local measurements.csv
+"""
+
+
+def configure(name: str, p) -> None:
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
+    p.description = ("Fuse the measurements of one body in FILE into its maximum-likelihood pose "
+                     "with a covariance (on the server at --target, or --local).")
+    p.epilog = EPILOG
+    p.add_argument("file", metavar="FILE", help="measurements (JSON or CSV; - reads standard input)")
+    p.add_argument("--robust", action="store_true",
+                   help="reject gross outliers (default: the file's \"options\", else off)")
+    p.add_argument("--probability", type=float,
+                   help="of the outlier gate and the consistency intervals (default: the "
+                        "file's, else 0.999)")
+    p.add_argument("--time", type=float,
+                   help="fusion time, s (default: the file's, else the newest measurement's)")
+    p.add_argument("--format", choices=["text", "json"], default="text",
+                   help="output: text for people, or the FusedPose as JSON (default: %(default)s)")
+    p.add_argument("--local", action="store_true", help="compute in this process, no server")
+    connection_args(p)
+    p.set_defaults(func=_fuse)
+
+
+def read_request(path: str):
+    """A ``FuseRequest`` from a JSON or CSV file (see the help)."""
+    from service.cli import posefile
+    from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
+
+    text, fmt = posefile._load(path)
+    if fmt == "json":
+        import json
+
+        from google.protobuf import json_format
+
+        try:
+            doc = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{path}: not valid JSON ({e})") from None
+        doc = {"measurements": doc} if isinstance(doc, list) else doc
+        try:
+            request = json_format.ParseDict(doc, pb.FuseRequest())
+        except json_format.ParseError as e:
+            raise ValueError(f"{path}: not a dqpose.v1.FuseRequest: {e}") from None
+    else:
+        request = pb.FuseRequest(measurements=_csv_measurements(text))
+    if not request.measurements:
+        raise ValueError(f"{path}: no measurements")
+    return request
+
+
+def _csv_measurements(text: str) -> list:
+    import csv
+    import io
+
+    from service.cli import posefile
+    from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
+
+    # The text columns (source, body) are taken out, the numbers read by posefile's reader.
+    lines = [row for row in csv.reader(io.StringIO(text))
+             if row and not row[0].lstrip().startswith("#")]
+    if not lines:
+        return []
+    header = None if any(posefile._number(c) for c in lines[0]) else [
+        c.strip().lower() for c in lines[0]]
+    cols = header or list(BASE_COLUMNS)
+    texts = {c: cols.index(c) for c in ("source", "body") if c in cols}
+    numbers = [i for i, c in enumerate(cols) if c not in texts]
+    body_rows = lines[1:] if header else lines
+    table = "\n".join(",".join(r[i] if i < len(r) else "" for i in numbers) for r in
+                      ([header] if header else []) + body_rows)
+    if "source" not in texts:
+        raise ValueError(f"line 1: missing column source; expected {','.join(BASE_COLUMNS)}")
+    unknown = [c for c in cols if c not in BASE_COLUMNS + ("body",) + NUMBER_COLUMNS]
+    if unknown:
+        raise ValueError(f"line 1: unknown column {unknown[0]!r}; expected "
+                         f"{','.join(BASE_COLUMNS)} and optionally body, weight, "
+                         f"sigma_wx..sigma_vz or c00..c55 (see --help)")
+    rows = posefile._csv_rows(table, BASE_COLUMNS[1:], NUMBER_COLUMNS)
+    have = [c for c in NUMBER_COLUMNS if c in cols]
+    groups = {"weight": [c for c in have if c == "weight"], "sigma": [c for c in have if c in SIGMA_COLUMNS],
+              "covariance": [c for c in have if c in COVARIANCE_COLUMNS]}
+    for name, want in (("sigma", SIGMA_COLUMNS), ("covariance", COVARIANCE_COLUMNS)):
+        if groups[name] and len(groups[name]) != len(want):
+            missing = next(c for c in want if c not in groups[name])
+            raise ValueError(f"line 1: missing column {missing} (the {name} columns come all "
+                             f"together)")
+    given = [g for g in ("weight", "sigma", "covariance") if groups[g] and groups[g][0] in have]
+    if len(given) > 1:
+        raise ValueError(f"line 1: columns of both {given[0]} and {given[1]}; give one")
+    at = {c: 8 + k for k, c in enumerate(have)}
+    out = []
+    for line, r in zip(body_rows, rows):
+        m = pb.Measurement(source=line[texts["source"]].strip(), time=r[0],
+                           body=line[texts["body"]].strip() if "body" in texts else "")
+        m.pose.position.x, m.pose.position.y, m.pose.position.z = r[1:4]
+        o = m.pose.orientation
+        o.w, o.x, o.y, o.z = r[4:8]
+        if "weight" in given:
+            m.weight = r[at["weight"]]
+        elif "sigma" in given:
+            sd = [r[at[c]] for c in SIGMA_COLUMNS]
+            m.covariance.extend(sd[i] * sd[i] if i == j else 0.0
+                                for i in range(6) for j in range(6))
+        elif "covariance" in given:
+            m.covariance.extend(r[at[c]] for c in COVARIANCE_COLUMNS)
+        out.append(m)
+    return out
+
+
+def _fuse(args) -> int:
+    try:
+        request = read_request(args.file)
+        if args.robust:
+            request.options.robust = True
+        if args.probability is not None:
+            request.options.probability = args.probability
+        if args.time is not None:
+            request.options.time = args.time
+        if args.local:
+            from service.rpc.fusion import Fusion
+
+            fused = Fusion().fuse(request)
+        else:
+            with client(args) as c:
+                fused = c.fuse_request(request)
+    except Exception as e:
+        return failure("fuse", args, e)
+    sys.stdout.write(format_fused(fused, args.format))
+    return 0
+
+
+def format_fused(msg, fmt: str) -> str:
+    """A ``FusedPose`` as text for people, or as its JSON (proto field names)."""
+    from google.protobuf import json_format
+
+    if fmt == "json":
+        return json_format.MessageToJson(msg, preserving_proto_field_name=True) + "\n"
+    from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
+
+    p, o = msg.pose.position, msg.pose.orientation
+    sign = -1.0 if o.w < 0 else 1.0          # q and -q are one rotation; print w >= 0
+    lines = [f"body {msg.body!r} at time {msg.time:.9g} s: "
+             f"{pb.FusionStatus.Name(msg.status)[len('FUSION_STATUS_'):].lower()} in "
+             f"{msg.iterations} iterations",
+             "pose T_world_body (x,y,z,qw,qx,qy,qz):",
+             "  " + ",".join(f"{v:.12g}" for v in (p.x, p.y, p.z, sign * o.w, sign * o.x,
+                                                   sign * o.y, sign * o.z)),
+             "covariance (rotation first [wx wy wz vx vy vz], right perturbation):"]
+    c = list(msg.covariance)
+    lines += ["  " + " ".join(f"{v: .6e}" for v in c[6 * i:6 * i + 6]) for i in range(6)]
+    lines.append(f"chi2 {msg.chi2:.6g} with {msg.dof} dof; inliers "
+                 f"{','.join(str(i) for i in msg.inliers)}")
+    if msg.rejected:
+        lines.append("rejected:")
+        lines += [f"  {reason}" for reason in msg.reasons]
+    lines.append("sources (NIS: normalised innovation squared, 6 expected):")
+    for s in msg.sources:
+        verdict = pb.Verdict.Name(s.verdict)[len("VERDICT_"):].lower()
+        lines.append(f"  {s.name or '(unnamed)'}: {s.count} tested, {s.rejected} rejected, "
+                     f"NIS mean {s.nis_mean:.4g} in [{s.low:.4g}, {s.high:.4g}]: {verdict}"
+                     if s.count else
+                     f"  {s.name or '(unnamed)'}: {s.rejected} rejected, {verdict}")
+    return "\n".join(lines) + "\n"
