@@ -92,6 +92,10 @@ class Source:
     latency_sigma: Optional[float] = None
 
 
+def _who(index: int, source: str) -> str:
+    return f"measurement {index}" + (f" ({source})" if source else "")
+
+
 @dataclass(frozen=True)
 class Rejection:
     """Measurement ``index`` (of source ``source``, ``""`` when unnamed) failed the gate: its
@@ -104,7 +108,7 @@ class Rejection:
 
     @property
     def reason(self) -> str:
-        who = f"measurement {self.index}" + (f" ({self.source})" if self.source else "")
+        who = _who(self.index, self.source)
         return (f"{who}: Mahalanobis distance {self.distance:.3g} against the other inliers is "
                 f"beyond the gate {self.gate:.3g} (chi2, {DOF} dof, p = {self.probability:g})")
 
@@ -133,6 +137,11 @@ class Fused:
     squared (0 for a measurement with no other inlier to check it against, flagged in
     ``tested``). ``chi2`` is the sum of the inliers' squared distances (the cost at the optimum,
     twice GTSAM's graph error) with ``dof = 6 (len(inliers) - 1)`` degrees of freedom.
+
+    With times, ``mean`` is the pose at ``time`` and ``covariance`` its marginal (the twist's and
+    the estimated latencies' uncertainty included); residuals, distances and NIS are against the
+    prediction at each measurement's own time; ``chi2`` adds the priors' terms and ``dof`` is
+    ``6 (len(inliers) - 1)``, less 6 more when the twist has no prior.
     """
     status: Status
     mean: np.ndarray
@@ -545,7 +554,7 @@ class Dropped:
 
     @property
     def reason(self) -> str:
-        who = f"measurement {self.index}" + (f" ({self.source})" if self.source else "")
+        who = _who(self.index, self.source)
         when = f"{self.age:.6g} s before" if self.age >= 0 else f"{-self.age:.6g} s after"
         return f"{who}: taken {when} the fusion time, beyond max_skew {self.max_skew:g} s"
 
@@ -686,8 +695,8 @@ def _motion_solve(Z, W, model: _Model, X, V, ell, tol: float, max_iter: int):
         G = _motion_jacobian(V, dt, r, model)
         GtW = np.swapaxes(G, 1, 2) @ W
         Hp, gp = model.prior_terms(V, ell)
-        H = np.einsum("nij,njk->ik", GtW, G) + Hp
-        g = np.einsum("nij,nj->i", GtW, r) + gp
+        H = np.tensordot(GtW, G, axes=([0, 2], [0, 1])) + Hp
+        g = (GtW @ r[..., None]).sum(axis=0)[:, 0] + gp
         delta = np.linalg.solve(H, g)
         step = float(np.linalg.norm(delta))
         for _ in range(_MAX_HALVINGS):
@@ -719,7 +728,8 @@ def _motion_fit(Z, W, model: _Model, inlier: np.ndarray, tol: float, max_iter: i
     dt, r, cost = _motion_evaluate(X, V, ell, Z, W, model)
     G = _motion_jacobian(V, dt, r, model)
     Hp, _ = model.prior_terms(V, ell)
-    H = np.einsum("nji,njk,nkl->il", G[inlier], W[inlier], G[inlier]) + Hp
+    GtW = np.swapaxes(G[inlier], 1, 2) @ W[inlier]
+    H = np.tensordot(GtW, G[inlier], axes=([0, 2], [0, 1])) + Hp
     return _MotionFit(status, X, V, ell, H, dt, r, G, cost, model.prior_cost(V, ell), iterations)
 
 
@@ -740,12 +750,12 @@ def _determined_without_each(model: _Model, inlier: np.ndarray) -> np.ndarray:
 def _motion_nis(fit: _MotionFit, S, W, inlier: np.ndarray, model: _Model):
     """:func:`_nis` for the joint state: ``K = G Hj⁻¹ Gᵀ`` with the 6 × dim Jacobians."""
     G, r = fit.G, fit.r
-    own = np.einsum("nji,njk,nkl->nil", G, W, G) * inlier[:, None, None]
+    own = np.swapaxes(G, 1, 2) @ W @ G * inlier[:, None, None]
     Hj = fit.H[None] - own
     tested = ~inlier | _determined_without_each(model, inlier)
     Hj[~tested] = np.eye(model.dim)
     K = G @ np.linalg.solve(Hj, np.swapaxes(G, 1, 2))
-    nu = r + inlier[:, None] * np.einsum("nij,njk,nk->ni", K, W, r)
+    nu = r + inlier[:, None] * (K @ W @ r[..., None])[..., 0]
     nis = np.einsum("ni,ni->n", nu, np.linalg.solve(S + K, nu[..., None])[..., 0])
     return np.where(tested, nis, 0.0), tested
 
