@@ -590,14 +590,21 @@ def _latency(s: Source, k: int) -> tuple[float, Optional[float]]:
     return latency, _seconds(s.latency_sigma, f"sources[{k}].latency_sigma", "positive")
 
 
-def _twist_information(twist_covariance) -> np.ndarray:
-    C = np.asarray(twist_covariance, dtype=np.float64) if not isinstance(
-        twist_covariance, str) else None
-    if C is None or C.shape != (DOF, DOF):
-        got = "a string" if C is None else f"shape {C.shape}"
-        raise ValueError(f"twist_covariance: expected shape (6, 6), got {got}")
+def _shape(x):
+    """``np.shape`` that names a ragged sequence rather than raising NumPy's error."""
     try:
-        C = _covariances(C[None], None, 1)[0]
+        return np.shape(x)
+    except ValueError:
+        return "a ragged sequence"
+
+
+def _twist_information(twist_covariance) -> np.ndarray:
+    """The information of the twist's zero-mean prior, checked like a measurement's covariance."""
+    shape = _shape(twist_covariance)
+    if shape != (DOF, DOF):
+        raise ValueError(f"twist_covariance: expected shape (6, 6), got {shape}")
+    try:
+        C = _covariances([twist_covariance], None, 1)[0]
     except ValueError as e:
         raise rename(e, {"covariances": "twist_covariance"}) from None
     Wp = np.linalg.inv(C)
@@ -1004,10 +1011,12 @@ class Tracker:
         if not m.body:
             raise ValueError(f"{name}.body: empty (every measurement names its body)")
         time = _seconds(m.time, f"{name}.time")
+        if _shape(m.pose) != (8,):
+            raise ValueError(f"{name}.pose: expected shape (8,), got {_shape(m.pose)}")
         pose = _pose(m.pose, f"{name}.pose")
-        if m.covariance is not None and np.shape(m.covariance) != (DOF, DOF):
+        if m.covariance is not None and _shape(m.covariance) != (DOF, DOF):
             raise ValueError(f"{name}.covariance: expected shape (6, 6), "
-                             f"got {np.shape(m.covariance)}")
+                             f"got {_shape(m.covariance)}")
         try:
             cov = _covariances(None if m.covariance is None else [m.covariance],
                                None if m.weight is None else [m.weight], 1)[0]

@@ -275,6 +275,23 @@ def test_robust_rejects_a_flipped_camera_pose_and_keeps_the_rest():
         assert np.abs(f.mean - g.mean).max() < 1e-12
 
 
+def test_robust_without_outliers_keeps_nearly_everything_and_never_readmits_a_dropped_one():
+    rng = np.random.default_rng(74)
+    kept = total = 0
+    for _ in range(10):
+        Z, S, names, stamps, T = scene(rng)
+        f = fusion.fuse(Z, S, names=names, sources=SOURCES, times=stamps, robust=True,
+                        max_skew=0.15)
+        assert f.dropped and not {d.index for d in f.dropped} & set(f.inliers)
+        assert not {d.index for d in f.dropped} & {r.index for r in f.rejected}
+        kept += f.inliers.size
+        total += len(names) - len(f.dropped)
+        if not f.rejected:
+            g = fusion.fuse(Z, S, names=names, sources=SOURCES, times=stamps, max_skew=0.15)
+            assert np.abs(f.mean - g.mean).max() < 1e-12
+    assert kept >= 0.99 * total
+
+
 # ---- the Gauss-Newton model ----------------------------------------------------------------------
 def test_the_jacobian_is_exact_for_pose_twist_and_latency():
     rng = np.random.default_rng(70)
@@ -319,6 +336,8 @@ def test_the_twist_is_the_generating_one_for_noise_free_data():
     (dict(times=[0.0, 0.1], max_extrapolation=np.inf), r"^max_extrapolation: must be finite"),
     (dict(times=[0.0, 0.1], twist_covariance=np.eye(3)),
      r"^twist_covariance: expected shape \(6, 6\)"),
+    (dict(times=[0.0, 0.1], twist_covariance=[[1, 2], [3]]),
+     r"^twist_covariance: expected shape \(6, 6\), got a ragged sequence"),
     (dict(times=[0.0, 0.1], twist_covariance=-np.eye(6)),
      r"^twist_covariance: not positive definite"),
     (dict(time=1.0), r"^time: needs the measurements' times"),
@@ -415,6 +434,8 @@ def test_tracker_bodies_are_independent():
      r"^measurements\[0\]\.covariance: not positive definite"),
     (Measurement("arm", "box", 0.0, np.eye(1, 8)[0], weight=0.0),
      r"^measurements\[0\]\.weight: must be positive"),
+    (Measurement("arm", "box", 0.0, [[1, 0], [0]]),
+     r"^measurements\[0\]\.pose: expected shape \(8,\), got a ragged sequence"),
     ("pose", r"^measurements\[0\]: expected a Measurement, got str"),
 ])
 def test_tracker_bad_measurement_names_it(measurement, message):
