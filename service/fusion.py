@@ -25,8 +25,16 @@ innovation squared (NIS: the measurement against the fit of the other inliers, `
 of freedom for a consistent source); the answer is always the plain maximum-likelihood fit of the
 inliers, so a rejected measurement never moves it.
 
-Time alignment (measurements at different times, latency, a constant-twist motion model) is not
-here yet; it will enter as keyword arguments of :func:`fuse` and fields of :class:`Source`.
+Time alignment (:func:`fuse` with ``times``): a measurement stamped ``t`` by a source with latency
+``ℓ`` was taken at ``τ = t − ℓ``. The body moves with a constant body twist ``V`` over the window,
+``T(τ) = X · Exp((τ − time) V)`` with ``X`` the pose at the fusion time, so the prediction of
+measurement i is ``P_i = X Exp(dt_i V)``, ``dt_i = τ_i − time``, and its residual
+``r_i = Log(P_i⁻¹ Z_i)``. Pose, twist (and the latencies a source asks to have estimated) are
+found jointly by Gauss–Newton with exact Jacobians: for ``X · Exp(δ)``, ``V + ε`` and ``ℓ + λ`` the
+prediction moves by ``Exp(η)`` on the right with ``η = Ad(Exp(−dt V)) δ + dt Jr(dt V) ε − V λ``,
+and ``r_i`` by ``−Jl⁻¹(r_i) η``. The covariance is the inverse of the joint information; its pose
+block is the marginal at the fusion time, so it carries the twist's (and latencies') uncertainty.
+:class:`Tracker` keeps a sliding window of measurements per body for live streams.
 """
 from __future__ import annotations
 
@@ -42,7 +50,7 @@ from service import dq, lie
 from service.errors import rename
 
 __all__ = ["DOF", "Status", "Verdict", "Source", "Rejection", "SourceStats", "Fused",
-           "fuse", "chi2_quantile"]
+           "fuse", "chi2_quantile", "Dropped", "Latency", "Measurement", "Tracker"]
 
 DOF = 6
 # Relative asymmetry a covariance may have and still be taken as symmetric (its mean with its
@@ -71,10 +79,21 @@ class Verdict(enum.IntEnum):
 @dataclass(frozen=True)
 class Source:
     """A source's frames: ``extrinsic`` is ``T_world_frame`` and ``body_offset`` the body in the
-    frame the source measures (``T_flange_body`` for an arm); ``None`` is the identity."""
+    frame the source measures (``T_flange_body`` for an arm); ``None`` is the identity.
+
+    ``latency`` (seconds): a measurement stamped ``t`` was taken at ``t - latency`` (used when
+    :func:`fuse` is given times). ``latency_sigma``: ``None`` takes the latency as exact; a
+    positive value makes it a prior ``N(latency, latency_sigma²)`` and estimates it from the data
+    jointly with the motion (reported in :attr:`Fused.latencies`)."""
     name: str
     extrinsic: Optional[np.ndarray] = None
     body_offset: Optional[np.ndarray] = None
+    latency: float = 0.0
+    latency_sigma: Optional[float] = None
+
+
+def _who(index: int, source: str) -> str:
+    return f"measurement {index}" + (f" ({source})" if source else "")
 
 
 @dataclass(frozen=True)
@@ -89,7 +108,7 @@ class Rejection:
 
     @property
     def reason(self) -> str:
-        who = f"measurement {self.index}" + (f" ({self.source})" if self.source else "")
+        who = _who(self.index, self.source)
         return (f"{who}: Mahalanobis distance {self.distance:.3g} against the other inliers is "
                 f"beyond the gate {self.gate:.3g} (chi2, {DOF} dof, p = {self.probability:g})")
 
@@ -118,6 +137,11 @@ class Fused:
     squared (0 for a measurement with no other inlier to check it against, flagged in
     ``tested``). ``chi2`` is the sum of the inliers' squared distances (the cost at the optimum,
     twice GTSAM's graph error) with ``dof = 6 (len(inliers) - 1)`` degrees of freedom.
+
+    With times, ``mean`` is the pose at ``time`` and ``covariance`` its marginal (the twist's and
+    the estimated latencies' uncertainty included); residuals, distances and NIS are against the
+    prediction at each measurement's own time; ``chi2`` adds the priors' terms and ``dof`` is
+    ``6 (len(inliers) - 1)``, less 6 more when the twist has no prior.
     """
     status: Status
     mean: np.ndarray
@@ -132,6 +156,16 @@ class Fused:
     dof: int
     iterations: int
     sources: tuple[SourceStats, ...]
+    # With times (None / empty without): the fusion time the mean is the pose at; the body twist
+    # V with T(t) = mean · Exp((t - time) V) and its covariance; how far (seconds) the fusion
+    # time lies outside the span of the measurements used; the measurements dropped for skew;
+    # the latencies estimated online.
+    time: Optional[float] = None
+    twist: Optional[np.ndarray] = None
+    twist_covariance: Optional[np.ndarray] = None
+    extrapolation: float = 0.0
+    dropped: tuple["Dropped", ...] = ()
+    latencies: tuple["Latency", ...] = ()
 
 
 # ---- χ² quantiles (no SciPy in the core) -------------------------------------------------------
@@ -283,7 +317,8 @@ def _sources(sources: Optional[Iterable[Source]]) -> dict[str, Source]:
         table[s.name] = Source(
             s.name,
             None if s.extrinsic is None else _pose(s.extrinsic, f"sources[{k}].extrinsic"),
-            None if s.body_offset is None else _pose(s.body_offset, f"sources[{k}].body_offset"))
+            None if s.body_offset is None else _pose(s.body_offset, f"sources[{k}].body_offset"),
+            *_latency(s, k))
     return table
 
 
@@ -398,28 +433,9 @@ def _consensus(Z: np.ndarray, S: np.ndarray, gate2: float) -> np.ndarray:
 
 
 def _robust(Z, S, W, gate2, tol, max_iter):
-    inlier = _consensus(Z, S, gate2)
-    seen = set()
-    status = None
-    while True:
-        fit = _fit(Z, W, inlier, tol, max_iter)
-        nis, tested = _nis(fit, S, W, inlier)
-        key = inlier.tobytes()
-        if key in seen:
-            status = Status.GATE_UNSTABLE
-            break
-        seen.add(key)
-        fails = inlier & tested & (nis > gate2)
-        if fails.any():  # one at a time: an outlier inside pulls the others' innovations
-            worst = int(np.argmax(np.where(fails, nis, -np.inf)))
-            inlier = inlier.copy()
-            inlier[worst] = False
-            continue
-        joins = ~inlier & (nis <= gate2)
-        if not joins.any():
-            break
-        inlier = inlier | joins
-    return fit, nis, tested, inlier, status
+    return _gate(_consensus(Z, S, gate2), np.ones(Z.shape[0], dtype=bool),
+                 lambda inlier: _fit(Z, W, inlier, tol, max_iter),
+                 lambda fit, inlier: _nis(fit, S, W, inlier), gate2)
 
 
 # ---- consistency -------------------------------------------------------------------------------
@@ -451,7 +467,9 @@ def _frozen(a: np.ndarray) -> np.ndarray:
 # ---- the API -----------------------------------------------------------------------------------
 def fuse(poses, covariances=None, *, weights=None, names: Optional[Sequence[str]] = None,
          sources: Optional[Iterable[Source]] = None, robust: bool = False,
-         probability: float = 0.999, tol: float = 1e-12, max_iter: int = 100) -> Fused:
+         probability: float = 0.999, tol: float = 1e-12, max_iter: int = 100,
+         times=None, time: Optional[float] = None, max_skew: Optional[float] = None,
+         max_extrapolation: Optional[float] = 0.1, twist_covariance=None) -> Fused:
     """Fuse ``poses`` ``(n, 8)`` (``T_frame_body`` each) with ``covariances`` ``(n, 6, 6)`` (or
     scalar ``weights`` ``(n,)``, covariance ``I / w``; neither: identity) into ``T_world_body``.
 
@@ -460,6 +478,15 @@ def fuse(poses, covariances=None, *, weights=None, names: Optional[Sequence[str]
     leave-one-out NIS exceeds the χ² quantile ``probability`` (6 dof); ``probability`` also sets
     the per-source consistency interval. Bad input is a ``ValueError`` naming the argument and
     index.
+
+    ``times`` ``(n,)`` (seconds, the sources' stamps) turns on time alignment: the result is the
+    pose at ``time`` (default: the newest time a measurement was taken, stamp minus latency) under
+    a constant-twist motion model estimated with it; a measurement taken more than ``max_skew``
+    from ``time`` is dropped (:attr:`Fused.dropped`); a ``time`` more than ``max_extrapolation``
+    outside the measurements' span is refused (``None``: unbounded). ``twist_covariance`` is an
+    optional zero-mean prior on the body twist, needed when the measurements are all from one
+    instant and ``time`` is another. Without ``times`` none of this applies and latencies are
+    ignored.
     """
     Z = _poses(poses)
     n = Z.shape[0]
@@ -478,6 +505,13 @@ def fuse(poses, covariances=None, *, weights=None, names: Optional[Sequence[str]
     W = np.linalg.inv(S)
     W = 0.5 * (W + np.swapaxes(W, 1, 2))
     gate2 = chi2_quantile(probability, DOF)
+    if times is not None:
+        return _fuse_in_time(Z, S, W, names, table, times, time, max_skew, max_extrapolation,
+                             twist_covariance, robust, probability, gate2, tol, max_iter)
+    for key, value in (("time", time), ("max_skew", max_skew),
+                       ("twist_covariance", twist_covariance)):
+        if value is not None:
+            raise ValueError(f"{key}: needs the measurements' times (times=...)")
 
     if robust and n > 1:
         fit, nis, tested, inlier, gate_status = _robust(Z, S, W, gate2, tol, max_iter)
@@ -506,3 +540,489 @@ def fuse(poses, covariances=None, *, weights=None, names: Optional[Sequence[str]
         iterations=fit.iterations,
         sources=_source_stats(names, nis, tested, inlier, probability),
     )
+
+
+# ---- time alignment and motion -----------------------------------------------------------------
+@dataclass(frozen=True)
+class Dropped:
+    """Measurement ``index`` (of source ``source``) was taken ``age`` seconds before the fusion
+    time (negative: after it), further than ``max_skew`` from it; it did not enter the fit."""
+    index: int
+    source: str
+    age: float
+    max_skew: float
+
+    @property
+    def reason(self) -> str:
+        who = _who(self.index, self.source)
+        when = f"{self.age:.6g} s before" if self.age >= 0 else f"{-self.age:.6g} s after"
+        return f"{who}: taken {when} the fusion time, beyond max_skew {self.max_skew:g} s"
+
+
+@dataclass(frozen=True)
+class Latency:
+    """Source ``name``'s latency estimated online: from the prior ``configured`` ± ``prior_sigma``
+    to ``value`` ± ``sigma`` (its marginal standard deviation)."""
+    name: str
+    configured: float
+    prior_sigma: float
+    value: float
+    sigma: float
+
+
+def _seconds(x, name: str, least: Optional[str] = None) -> float:
+    """A finite number of seconds; ``least`` ``"positive"`` or ``"nonnegative"`` bounds it."""
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected seconds, got {type(x).__name__}") from None
+    if not math.isfinite(v):
+        raise ValueError(f"{name}: must be finite, got {v!r}")
+    if (least == "positive" and not v > 0.0) or (least == "nonnegative" and v < 0.0):
+        raise ValueError(f"{name}: must be {least}, got {v!r}")
+    return v
+
+
+def _latency(s: Source, k: int) -> tuple[float, Optional[float]]:
+    latency = _seconds(s.latency, f"sources[{k}].latency")
+    if s.latency_sigma is None:
+        return latency, None
+    return latency, _seconds(s.latency_sigma, f"sources[{k}].latency_sigma", "positive")
+
+
+def _shape(x):
+    """``np.shape`` that names a ragged sequence rather than raising NumPy's error."""
+    try:
+        return np.shape(x)
+    except ValueError:
+        return "a ragged sequence"
+
+
+def _twist_information(twist_covariance) -> np.ndarray:
+    """The information of the twist's zero-mean prior, checked like a measurement's covariance."""
+    shape = _shape(twist_covariance)
+    if shape != (DOF, DOF):
+        raise ValueError(f"twist_covariance: expected shape (6, 6), got {shape}")
+    try:
+        C = _covariances([twist_covariance], None, 1)[0]
+    except ValueError as e:
+        raise rename(e, {"covariances": "twist_covariance"}) from None
+    Wp = np.linalg.inv(C)
+    return 0.5 * (Wp + Wp.T)
+
+
+@dataclass(frozen=True)
+class _Model:
+    """What the motion fit needs besides the poses: per measurement its stamp relative to the
+    fusion time, its configured latency and its slot among the estimated latencies (-1: exact);
+    per estimated latency its prior; whether the twist is estimated and its prior information."""
+    stamp: np.ndarray
+    latency: np.ndarray
+    slot: np.ndarray
+    prior: np.ndarray
+    prior_w: np.ndarray
+    twist: bool
+    twist_w: Optional[np.ndarray]
+
+    @property
+    def offset(self) -> int:  # where the latencies start in the state vector
+        return 12 if self.twist else 6
+
+    @property
+    def dim(self) -> int:
+        return self.offset + self.prior.size
+
+    def take(self, mask: np.ndarray) -> "_Model":
+        return _Model(self.stamp[mask], self.latency[mask], self.slot[mask], self.prior,
+                      self.prior_w, self.twist, self.twist_w)
+
+    def dt(self, ell: np.ndarray) -> np.ndarray:
+        """``τ_i − time`` with the latencies ``ell`` in the estimated slots."""
+        est = self.slot >= 0
+        lat = np.where(est, ell[np.where(est, self.slot, 0)] if ell.size else 0.0, self.latency)
+        return self.stamp - lat
+
+    def prior_cost(self, V: np.ndarray, ell: np.ndarray) -> float:
+        c = float(np.sum(self.prior_w * (ell - self.prior) ** 2))
+        if self.twist and self.twist_w is not None:
+            c += float(V @ self.twist_w @ V)
+        return c
+
+    def prior_terms(self, V: np.ndarray, ell: np.ndarray):
+        """The priors' information and the gradient they add (the descent direction's sign)."""
+        H = np.zeros((self.dim, self.dim))
+        g = np.zeros(self.dim)
+        if self.twist and self.twist_w is not None:
+            H[6:12, 6:12] = self.twist_w
+            g[6:12] = -self.twist_w @ V
+        k = np.arange(self.prior.size) + self.offset
+        H[k, k] = self.prior_w
+        g[k] = -self.prior_w * (ell - self.prior)
+        return H, g
+
+
+@dataclass(frozen=True)
+class _MotionFit:
+    status: Status
+    mean: np.ndarray       # the pose at the fusion time
+    V: np.ndarray          # the body twist (zeros when not estimated)
+    ell: np.ndarray        # the estimated latencies
+    H: np.ndarray          # joint information at the optimum, priors included
+    dt: np.ndarray         # τ_i − time, all measurements
+    r: np.ndarray          # residuals Log(P_i⁻¹ Z_i), all measurements
+    G: np.ndarray          # Jl⁻¹(r_i) B_i: minus the residuals' Jacobian, (n, 6, dim)
+    cost: np.ndarray       # r_iᵀ W_i r_i, all measurements
+    prior_cost: float
+    iterations: int
+
+
+def _motion_evaluate(X, V, ell, Z, W, model: _Model):
+    dt = model.dt(ell)
+    r, cost = _evaluate(dq.mul(X, lie.se3_exp(dt[:, None] * V)), Z, W)
+    return dt, r, cost
+
+
+def _motion_jacobian(V, dt, r, model: _Model) -> np.ndarray:
+    """``G_i = Jl⁻¹(r_i) [Ad(Exp(−dt V)), dt Jr(dt V), −V e_slot]``: ``r_i`` moves by ``−G_i Δ``."""
+    B = np.zeros(r.shape[:1] + (DOF, model.dim))
+    B[:, :, :6] = lie.adjoint(lie.se3_exp(-dt[:, None] * V))
+    if model.twist:
+        B[:, :, 6:12] = dt[:, None, None] * lie.se3_right_jacobian(dt[:, None] * V)
+    est = np.flatnonzero(model.slot >= 0)
+    B[est, :, model.offset + model.slot[est]] = -V
+    return lie.se3_left_jacobian_inv(r) @ B
+
+
+def _motion_solve(Z, W, model: _Model, X, V, ell, tol: float, max_iter: int):
+    """Gauss-Newton over pose, twist and latencies; the step and its halving as in :func:`_solve`."""
+    dt, r, cost = _motion_evaluate(X, V, ell, Z, W, model)
+    total = cost.sum() + model.prior_cost(V, ell)
+    off = model.offset
+    for it in range(1, max_iter + 1):
+        G = _motion_jacobian(V, dt, r, model)
+        GtW = np.swapaxes(G, 1, 2) @ W
+        Hp, gp = model.prior_terms(V, ell)
+        H = np.tensordot(GtW, G, axes=([0, 2], [0, 1])) + Hp
+        g = (GtW @ r[..., None]).sum(axis=0)[:, 0] + gp
+        delta = np.linalg.solve(H, g)
+        step = float(np.linalg.norm(delta))
+        for _ in range(_MAX_HALVINGS):
+            X_new = dq.normalize(dq.mul(X, lie.se3_exp(delta[:6])))
+            V_new = V + delta[6:12] if model.twist else V
+            ell_new = ell + delta[off:]
+            dt_new, r_new, cost_new = _motion_evaluate(X_new, V_new, ell_new, Z, W, model)
+            total_new = cost_new.sum() + model.prior_cost(V_new, ell_new)
+            if total_new <= total * (1.0 + _COST_SLACK) or step < tol:
+                break
+            delta = 0.5 * delta
+            step *= 0.5
+        X, V, ell, dt, r, total = X_new, V_new, ell_new, dt_new, r_new, total_new
+        if step < tol:
+            return X, V, ell, Status.CONVERGED, it
+    return X, V, ell, Status.MAX_ITERATIONS, max_iter
+
+
+def _motion_fit(Z, W, model: _Model, inlier: np.ndarray, tol: float, max_iter: int) -> _MotionFit:
+    """Fit of the measurements ``inlier`` selects, evaluated at every measurement."""
+    Zi, Wi, mi = Z[inlier], W[inlier], model.take(inlier)
+    V, ell = np.zeros(DOF), model.prior.copy()
+    if model.twist:  # the measurement nearest the fusion time, at rest: GN finds the motion
+        X = Zi[int(np.argmin(np.abs(mi.dt(ell))))]
+    else:  # one instant: the start of the static fit
+        weights = np.exp(np.linalg.slogdet(Wi)[1] / DOF)
+        X = dq.dib(Zi, weights / weights.max())
+    X, V, ell, status, iterations = _motion_solve(Zi, Wi, mi, X, V, ell, tol, max_iter)
+    dt, r, cost = _motion_evaluate(X, V, ell, Z, W, model)
+    G = _motion_jacobian(V, dt, r, model)
+    Hp, _ = model.prior_terms(V, ell)
+    GtW = np.swapaxes(G[inlier], 1, 2) @ W[inlier]
+    H = np.tensordot(GtW, G[inlier], axes=([0, 2], [0, 1])) + Hp
+    return _MotionFit(status, X, V, ell, H, dt, r, G, cost, model.prior_cost(V, ell), iterations)
+
+
+def _determined_without_each(model: _Model, inlier: np.ndarray) -> np.ndarray:
+    """For each measurement: do the inliers other than it determine the state? The twist needs
+    two instants unless it has a prior; the latencies always have theirs."""
+    others = np.count_nonzero(inlier) - inlier.astype(int)
+    if not model.twist or model.twist_w is not None:
+        return others >= 1
+    taken = model.stamp - model.latency
+    values, inverse, counts = np.unique(taken[inlier], return_inverse=True,
+                                        return_counts=True)
+    alone = np.zeros(inlier.shape, dtype=bool)
+    alone[inlier] = counts[inverse] == 1
+    return values.size - alone >= 2
+
+
+def _motion_nis(fit: _MotionFit, S, W, inlier: np.ndarray, model: _Model):
+    """:func:`_nis` for the joint state: ``K = G Hj⁻¹ Gᵀ`` with the 6 × dim Jacobians."""
+    G, r = fit.G, fit.r
+    own = np.swapaxes(G, 1, 2) @ W @ G * inlier[:, None, None]
+    Hj = fit.H[None] - own
+    tested = ~inlier | _determined_without_each(model, inlier)
+    Hj[~tested] = np.eye(model.dim)
+    K = G @ np.linalg.solve(Hj, np.swapaxes(G, 1, 2))
+    nu = r + inlier[:, None] * (K @ W @ r[..., None])[..., 0]
+    nis = np.einsum("ni,ni->n", nu, np.linalg.solve(S + K, nu[..., None])[..., 0])
+    return np.where(tested, nis, 0.0), tested
+
+
+def _robust_motion(Z, S, W, model: _Model, allowed: np.ndarray, gate2, tol, max_iter):
+    """:func:`_robust` over time: the consensus start compares the measurements brought to the
+    fusion time with the twist of a first fit of all of them (an outlier biases that twist; the
+    gate that follows judges every measurement against the fit of the others)."""
+    first = _motion_fit(Z, W, model, allowed, tol, max_iter)
+    back = lie.se3_exp(-first.dt[:, None] * first.V)
+    Zt, St = dq.normalize(dq.mul(Z, back)), lie.cov_compose(S, back, None)
+    inlier = np.zeros_like(allowed)
+    inlier[allowed] = _consensus(Zt[allowed], St[allowed], gate2)
+    if not _determined_without_each(model, inlier)[~inlier].all():
+        inlier = allowed.copy()  # the consensus is of one instant: the twist needs more
+    return _gate(inlier, allowed, lambda m: _motion_fit(Z, W, model, m, tol, max_iter),
+                 lambda fit, m: _motion_nis(fit, S, W, m, model), gate2)
+
+
+def _gate(inlier, allowed, fit_of, nis_of, gate2):
+    """From ``inlier``: remove the worst failing inlier, one at a time (an outlier inside pulls
+    the others' innovations), then admit every ``allowed`` measurement that passes; until
+    nothing changes or a set repeats."""
+    seen = set()
+    status = None
+    while True:
+        fit = fit_of(inlier)
+        nis, tested = nis_of(fit, inlier)
+        key = inlier.tobytes()
+        if key in seen:
+            status = Status.GATE_UNSTABLE
+            break
+        seen.add(key)
+        fails = inlier & tested & (nis > gate2)
+        if fails.any():
+            worst = int(np.argmax(np.where(fails, nis, -np.inf)))
+            inlier = inlier.copy()
+            inlier[worst] = False
+            continue
+        joins = allowed & ~inlier & (nis <= gate2)
+        if not joins.any():
+            break
+        inlier = inlier | joins
+    return fit, nis, tested, inlier, status
+
+
+def _fuse_in_time(Z, S, W, names, table, times, time, max_skew, max_extrapolation,
+                  twist_covariance, robust, probability, gate2, tol, max_iter) -> Fused:
+    n = Z.shape[0]
+    stamps = _finite(times, "times", (), n)
+    latency = np.array([table[s].latency if s in table else 0.0 for s in names])
+    taken = stamps - latency
+    time = float(taken.max()) if time is None else _seconds(time, "time")
+    Wp = None if twist_covariance is None else _twist_information(twist_covariance)
+    if max_skew is None:
+        drop = np.zeros(n, dtype=bool)
+    else:
+        max_skew = _seconds(max_skew, "max_skew", "nonnegative")
+        drop = np.abs(time - taken) > max_skew
+    keep = ~drop
+    if not keep.any():
+        nearest = float(np.abs(time - taken).min())
+        raise ValueError(f"max_skew: every measurement was taken more than {max_skew:g} s from "
+                         f"the fusion time {time!r} (the nearest {nearest:.6g} s)")
+    lo, hi = float(taken[keep].min()), float(taken[keep].max())
+    extrapolation = max(0.0, time - hi, lo - time)
+    if max_extrapolation is not None:
+        max_extrapolation = _seconds(max_extrapolation, "max_extrapolation", "nonnegative")
+        if extrapolation > max_extrapolation:
+            raise ValueError(f"time: {time!r} is {extrapolation:.6g} s outside the span "
+                             f"[{lo!r}, {hi!r}] of the measurements, beyond max_extrapolation "
+                             f"{max_extrapolation:g} s")
+    twist = Wp is not None or np.unique(taken[keep]).size > 1
+    if not twist and extrapolation > 0.0:
+        raise ValueError(f"time: the measurements were all taken at {lo!r}; bringing them to "
+                         f"{time!r} needs the body's twist, which one instant does not show "
+                         f"(give twist_covariance)")
+    estimated = [s for s in dict.fromkeys(names) if s in table
+                 and table[s].latency_sigma is not None]
+    model = _Model(
+        stamp=stamps - time, latency=latency,
+        slot=np.array([estimated.index(s) if s in estimated else -1 for s in names], dtype=int),
+        prior=np.array([table[s].latency for s in estimated], dtype=np.float64),
+        prior_w=np.array([table[s].latency_sigma ** -2 for s in estimated], dtype=np.float64),
+        twist=twist, twist_w=Wp)
+
+    if robust and np.count_nonzero(keep) > 1:
+        fit, nis, tested, inlier, gate_status = _robust_motion(Z, S, W, model, keep, gate2, tol,
+                                                               max_iter)
+    else:
+        inlier = keep.copy()
+        fit = _motion_fit(Z, W, model, inlier, tol, max_iter)
+        nis, tested = _motion_nis(fit, S, W, inlier, model)
+        gate_status = None
+    gate = math.sqrt(gate2)
+    rejected = tuple(Rejection(int(i), names[i], float(math.sqrt(nis[i])), gate, probability)
+                     for i in np.flatnonzero(~inlier & keep))
+    dropped = tuple(Dropped(int(i), names[i], float(time - taken[i]), max_skew)
+                    for i in np.flatnonzero(drop))
+    P = np.linalg.inv(fit.H)
+    P = 0.5 * (P + P.T)
+    off = model.offset
+    latencies = tuple(Latency(s, table[s].latency, table[s].latency_sigma, float(fit.ell[k]),
+                              float(math.sqrt(P[off + k, off + k])))
+                      for k, s in enumerate(estimated))
+    k = int(np.count_nonzero(inlier))
+    # Each prior is as many residuals as the parameters it constrains: only the twist's
+    # unconstrained 6 reduce the degrees of freedom beyond the pose's.
+    dof = DOF * (k - 1) - (DOF if twist and Wp is None else 0)
+    return Fused(
+        status=gate_status if gate_status is not None else fit.status,
+        mean=_frozen(fit.mean),
+        covariance=_frozen(P[:6, :6]),
+        residuals=_frozen(fit.r),
+        distances=_frozen(np.sqrt(fit.cost)),
+        nis=_frozen(nis),
+        tested=_frozen(tested),
+        inliers=_frozen(np.flatnonzero(inlier)),
+        rejected=rejected,
+        chi2=float(fit.cost[inlier].sum() + fit.prior_cost),
+        dof=dof,
+        iterations=fit.iterations,
+        # a dropped measurement is neither tested nor counted as rejected by the gate
+        sources=_source_stats(names, nis, tested & keep, inlier | drop, probability),
+        time=time,
+        twist=_frozen(fit.V) if twist else None,
+        twist_covariance=_frozen(P[6:12, 6:12]) if twist else None,
+        extrapolation=float(extrapolation),
+        dropped=dropped,
+        latencies=latencies,
+    )
+
+
+# ---- per-body state for live streams -----------------------------------------------------------
+@dataclass(frozen=True)
+class Measurement:
+    """One pose of ``body`` from ``source`` stamped ``time`` (the proto's ``Measurement``):
+    ``pose`` ``T_frame_body`` ``(8,)``, ``covariance`` ``(6, 6)``, or (``None``) isotropic
+    ``I / weight`` (no weight: 1)."""
+    source: str
+    body: str
+    time: float
+    pose: np.ndarray
+    covariance: Optional[np.ndarray] = None
+    weight: Optional[float] = None
+
+
+class _Window:
+    """One body's measurements, validated, in arrival order (the order of a fusion's indices)."""
+
+    def __init__(self):
+        self.items: list[Measurement] = []
+        self.taken: list[float] = []
+        self.newest = -math.inf
+
+    def prune(self, window: float) -> None:
+        if self.taken and min(self.taken) < self.newest - window:
+            keep = [i for i, t in enumerate(self.taken) if t >= self.newest - window]
+            self.items = [self.items[i] for i in keep]
+            self.taken = [self.taken[i] for i in keep]
+
+
+class Tracker:
+    """Sliding-window state of many bodies, keyed by name, for a live stream of measurements.
+
+    :meth:`add` keeps each body's measurements taken (stamp minus the source's latency) within
+    ``window`` seconds of its newest; one taken further back than that is a ``ValueError`` naming
+    it. :meth:`estimate` fuses a body's window at a time with :func:`fuse` (its keyword options
+    are those given here). Bodies are independent: nothing of one enters another's estimate.
+    """
+
+    def __init__(self, window: float, *, sources: Optional[Iterable[Source]] = None,
+                 robust: bool = False, probability: float = 0.999,
+                 max_skew: Optional[float] = None, max_extrapolation: Optional[float] = 0.1,
+                 twist_covariance=None, tol: float = 1e-12, max_iter: int = 100):
+        self.window = _seconds(window, "window", "positive")
+        self.sources = tuple(sources or ())
+        self._table = _sources(self.sources)
+        self._options = dict(sources=self.sources, robust=robust, probability=probability,
+                             max_skew=max_skew, max_extrapolation=max_extrapolation,
+                             twist_covariance=twist_covariance, tol=tol, max_iter=max_iter)
+        # the options' checks are fuse's: one fusion of a placeholder runs them now, not later
+        fuse(np.array([[1.0, 0, 0, 0, 0, 0, 0, 0]]), times=[0.0], **self._options)
+        self._bodies: dict[str, _Window] = {}
+
+    @property
+    def bodies(self) -> tuple[str, ...]:
+        return tuple(self._bodies)
+
+    def measurements(self, body: str) -> tuple[Measurement, ...]:
+        """``body``'s window, in the order of the indices in its :meth:`estimate`."""
+        return tuple(self._window(body).items)
+
+    def remove(self, body: str) -> None:
+        self._window(body)
+        del self._bodies[body]
+
+    def add(self, *measurements: Measurement) -> None:
+        """Add measurements of any bodies; all or none (the first bad one is a ``ValueError``
+        naming ``measurements[k]``, its body, source and time)."""
+        newest = {}
+        checked = []
+        for k, m in enumerate(measurements):
+            checked.append(self._check(k, m))
+            w = self._bodies.get(m.body)
+            floor = max(newest.get(m.body, -math.inf), w.newest if w else -math.inf)
+            taken = checked[-1][1]
+            if taken < floor - self.window:
+                raise ValueError(
+                    f"measurements[{k}] (body {m.body!r}, source {m.source!r}, time "
+                    f"{m.time!r}): taken at {taken!r}, {floor - taken:.6g} s before the newest "
+                    f"measurement of the body, beyond the window {self.window:g} s")
+            newest[m.body] = max(floor, taken)
+        for m, taken in checked:
+            w = self._bodies.setdefault(m.body, _Window())
+            w.items.append(m)
+            w.taken.append(taken)
+            w.newest = max(w.newest, taken)
+        for body in newest:
+            self._bodies[body].prune(self.window)
+
+    def estimate(self, body: str, time: Optional[float] = None) -> Fused:
+        """``body``'s pose at ``time`` (default: its newest measurement's) from its window."""
+        items = self._window(body).items
+        poses = np.array([m.pose for m in items])
+        covs = np.array([m.covariance for m in items])
+        return fuse(poses, covs, names=[m.source for m in items],
+                    times=[m.time for m in items], time=time, **self._options)
+
+    def _window(self, body: str) -> _Window:
+        try:
+            return self._bodies[body]
+        except (KeyError, TypeError):
+            raise ValueError(f"body: no measurements of {body!r}") from None
+
+    def _check(self, k: int, m: Measurement) -> tuple[Measurement, float]:
+        """The measurement with its pose normalised and its covariance made explicit, and the
+        time it was taken."""
+        name = f"measurements[{k}]"
+        if not isinstance(m, Measurement):
+            raise ValueError(f"{name}: expected a Measurement, got {type(m).__name__}")
+        for field in ("body", "source"):
+            if not isinstance(getattr(m, field), str):
+                raise ValueError(f"{name}.{field}: expected a string, "
+                                 f"got {type(getattr(m, field)).__name__}")
+        if not m.body:
+            raise ValueError(f"{name}.body: empty (every measurement names its body)")
+        time = _seconds(m.time, f"{name}.time")
+        if _shape(m.pose) != (8,):
+            raise ValueError(f"{name}.pose: expected shape (8,), got {_shape(m.pose)}")
+        pose = _pose(m.pose, f"{name}.pose")
+        if m.covariance is not None and _shape(m.covariance) != (DOF, DOF):
+            raise ValueError(f"{name}.covariance: expected shape (6, 6), "
+                             f"got {_shape(m.covariance)}")
+        try:
+            cov = _covariances(None if m.covariance is None else [m.covariance],
+                               None if m.weight is None else [m.weight], 1)[0]
+        except ValueError as e:
+            raise rename(e, {"covariances": f"{name}.covariance",
+                             "weights": f"{name}.weight"}) from None
+        src = self._table.get(m.source)
+        latency = src.latency if src is not None else 0.0
+        return Measurement(m.source, m.body, time, pose, cov), time - latency
