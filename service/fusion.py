@@ -247,11 +247,14 @@ def _covariances(covariances, weights, n: int) -> np.ndarray:
         i = int(np.flatnonzero(bad)[0])
         raise ValueError(f"covariances[{i}]: not symmetric (largest asymmetry {asym[i]:.3g})")
     S = 0.5 * (S + np.swapaxes(S, 1, 2))
-    for i in range(n):  # one Cholesky per matrix, so the message can name the index
-        try:
-            np.linalg.cholesky(S[i])
-        except np.linalg.LinAlgError:
-            raise ValueError(f"covariances[{i}]: not positive definite") from None
+    try:
+        np.linalg.cholesky(S)
+    except np.linalg.LinAlgError:
+        for i in range(n):  # one matrix at a time, so the message can name the index
+            try:
+                np.linalg.cholesky(S[i])
+            except np.linalg.LinAlgError:
+                raise ValueError(f"covariances[{i}]: not positive definite") from None
     return S
 
 

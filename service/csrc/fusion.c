@@ -42,7 +42,7 @@ static int chol6(const double *A, double *L, double *di)
     for (int j = 0; j < 6; j++) {
         double d = A[6 * j + j];
         for (int k = 0; k < j; k++) d -= L[6 * j + k] * L[6 * j + k];
-        if (!(d > 0.0) || !(d * 0.0 == 0.0)) return 0;
+        if (!(d > 0.0)) return 0; /* also NaN; an infinite pivot makes the result non-finite */
         double ljj = sqrt(d), inv = 1.0 / ljj;
         L[6 * j + j] = ljj;
         di[j] = inv;
@@ -180,14 +180,14 @@ static const double D_SERIES[8] = {1.0 / 12, 1.0 / 720, 1.0 / 30240, 1.0 / 12096
                                    1.0 / 47900160, 691.0 / 1307674368000.0,
                                    1.0 / 74724249600.0, 3617.0 / 10670622842880000.0};
 
-static void mul3(const double *a, const double *b, double *c)
+static inline void mul3(const double *a, const double *b, double *c)
 {
     for (int i = 0; i < 3; i++)
         for (int j = 0; j < 3; j++)
             c[3 * i + j] = a[3 * i] * b[j] + a[3 * i + 1] * b[3 + j] + a[3 * i + 2] * b[6 + j];
 }
 
-static void hat3(const double *w, double *K)
+static inline void hat3(const double *w, double *K)
 {
     K[0] = 0.0;   K[1] = -w[2]; K[2] = w[1];
     K[3] = w[2];  K[4] = 0.0;   K[5] = -w[0];
@@ -197,7 +197,7 @@ static void hat3(const double *w, double *K)
 /* Jl^-1(xi) = [[Ji, 0], [-Ji Q Ji, Ji]] with Ji = I - w^/2 + D w^2 and Q Barfoot's eq. 7.86 (the
  * formulas of service/lie.py). s2, ch are the squared sine and the cosine of half the rotation
  * angle, from the quaternion xi came from, so no trigonometric call is needed. */
-static void jl_inv(const double *xi, double s2, double ch, double *J)
+static inline void jl_inv(const double *xi, double s2, double ch, double *J)
 {
     const double *w = xi, *v = xi + 3;
     double t2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
@@ -247,7 +247,7 @@ static void jl_inv(const double *xi, double s2, double ch, double *J)
 
 /* r = Log(xc z) (xc the inverse of the estimate), and the squared sine and the cosine of half
  * its rotation angle. */
-static void residual(const double *xc, const double *z, double *r, double *sc)
+static inline void residual(const double *xc, const double *z, double *r, double *sc)
 {
     double p[8], l[6];
     dq_mul(xc, z, p);
@@ -513,6 +513,7 @@ int dq_fuse(const double *z, const double *cov, const unsigned char *inlier, siz
             jl_inv(m + W_R, m[W_SC], m[W_SC + 1], m + W_A);
         }
         if ((rc = leave_one_out(cov, work, n, inlier, n_in, H, per->nis, per->tested))) return rc;
+        if (!dq_finite_n(per->nis, n)) return DQ_E_OVERFLOW;
     }
     return DQ_OK;
 }

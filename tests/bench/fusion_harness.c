@@ -98,8 +98,8 @@ int main(int argc, char **argv)
         qsort(t, (size_t)samples, sizeof(double), cmpd);
         double it = 0.0;
         for (size_t k = 0; k < P; k++) it += iters[k];
-        printf("{\"nis\": %d, \"seconds\": %.9g, \"iterations\": %.3f}\n", with_nis,
-               t[samples / 2], it / (double)P);
+        printf("{\"nis\": %d, \"seconds\": %.9g, \"best\": %.9g, \"iterations\": %.3f}\n",
+               with_nis, t[samples / 2], t[0], it / (double)P);
     }
     save("mean", mean, 8 * P);
     save("covariance", covariance, 36 * P);
