@@ -78,11 +78,12 @@ def test_agrees_near_pi():
     for k in range(10):
         axis = rng.normal(size=3)
         axis /= np.linalg.norm(axis)
-        X = random_pose(rng)
-        half = np.deg2rad(89.5 + 0.05 * k)
-        Z = np.array([dq.mul(X, lie.se3_exp(np.r_[s * half * axis, rng.normal(size=3) * 0.1]))
-                      for s in (1.0, -1.0)] + [dq.mul(X, lie.se3_exp(np.r_[rng.normal(size=3) * 0.3,
-                                                                           0.0, 0.0, 0.1]))])
+        # two measurements (89.5 + 0.05 k) deg either side of X about one axis, a third off it
+        xi = np.zeros((3, 6))
+        xi[:2, :3] = np.outer([1.0, -1.0], np.deg2rad(89.5 + 0.05 * k) * axis)
+        xi[:2, 3:] = rng.normal(size=(2, 3)) * 0.1
+        xi[2, :3], xi[2, 5] = rng.normal(size=3) * 0.3, 0.1
+        Z = dq.mul(random_pose(rng), lie.se3_exp(xi))
         S = np.array([random_cov(rng, (30, 60), (0.05, 0.2)) for _ in range(3)])
         b = assert_agrees(Z, S)
         assert np.linalg.norm(b["residuals"][:2, :3], axis=1).max() > 1.5

@@ -720,6 +720,20 @@ static PyObject *py_screw(PyObject *self, PyObject *x)
 
 static const in_spec S_SET[2] = {{"dqs", 2, {-1, 8}, 0}, {"weights", 1, {-1, 0}, 1}};
 
+/* The stopping rule of an iteration (DIB, DEC, fusion): 0, or -1 with a ValueError. */
+static int check_iteration(double tol, int max_iter)
+{
+    if (!(tol >= 0.0) || !(tol * 0.0 == 0.0)) {
+        PyErr_SetString(PyExc_ValueError, "tol: must be finite and >= 0");
+        return -1;
+    }
+    if (max_iter < 0) {
+        PyErr_SetString(PyExc_ValueError, "max_iter: must be >= 0");
+        return -1;
+    }
+    return 0;
+}
+
 /* blend(dqs, weights, method, tol, max_iter) -> out, or (out, iterations, residual) for DIB */
 static PyObject *py_blend(PyObject *self, PyObject *args)
 {
@@ -731,14 +745,7 @@ static PyObject *py_blend(PyObject *self, PyObject *args)
         PyErr_SetString(PyExc_ValueError, "method: unknown blending method");
         return NULL;
     }
-    if (!(p.tol >= 0.0) || !(p.tol * 0.0 == 0.0)) {
-        PyErr_SetString(PyExc_ValueError, "tol: must be finite and >= 0");
-        return NULL;
-    }
-    if (p.max_iter < 0) {
-        PyErr_SetString(PyExc_ValueError, "max_iter: must be >= 0");
-        return NULL;
-    }
+    if (check_iteration(p.tol, p.max_iter) < 0) return NULL;
     if (p.method == DQ_DIB) {
         out_spec os[3] = {O_DQ, {0, {0, 0}}, {0, {0, 0}}};
         return run(k_blend, &p, 2, objs, S_SET, 3, os, 9);
@@ -875,14 +882,7 @@ static PyObject *py_fuse(PyObject *self, PyObject *args)
     int want_nis = 1;
     if (!PyArg_ParseTuple(args, "OOO|dip:fuse", &zo, &so, &io, &p.tol, &p.max_iter, &want_nis))
         return NULL;
-    if (!(p.tol >= 0.0) || !(p.tol * 0.0 == 0.0)) {
-        PyErr_SetString(PyExc_ValueError, "tol: must be finite and >= 0");
-        return NULL;
-    }
-    if (p.max_iter < 0) {
-        PyErr_SetString(PyExc_ValueError, "max_iter: must be >= 0");
-        return NULL;
-    }
+    if (check_iteration(p.tol, p.max_iter) < 0) return NULL;
     PyArrayObject *Z = NULL, *S = NULL, *M = NULL, *outs[9] = {NULL};
     PyObject *result = NULL;
     double *work = NULL, *zu = NULL;

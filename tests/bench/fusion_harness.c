@@ -15,41 +15,7 @@
 
 #include "dq.h"
 #include "fusion.h"
-
-static const char *dir;
-
-static double *load(const char *name, size_t count)
-{
-    char path[4096];
-    snprintf(path, sizeof path, "%s/%s.bin", dir, name);
-    FILE *f = fopen(path, "rb");
-    double *v = malloc(sizeof(double) * count);
-    if (!f || !v || fread(v, sizeof(double), count, f) != count) { perror(path); exit(2); }
-    fclose(f);
-    return v;
-}
-
-static void save(const char *name, const double *v, size_t count)
-{
-    char path[4096];
-    snprintf(path, sizeof path, "%s/%s.out", dir, name);
-    FILE *f = fopen(path, "wb");
-    if (!f || fwrite(v, sizeof(double), count, f) != count) { perror(path); exit(2); }
-    fclose(f);
-}
-
-static double now(void)
-{
-    struct timespec ts;
-    clock_gettime(CLOCK_MONOTONIC, &ts);
-    return ts.tv_sec + 1e-9 * ts.tv_nsec;
-}
-
-static int cmpd(const void *a, const void *b)
-{
-    double x = *(const double *)a, y = *(const double *)b;
-    return (x > y) - (x < y);
-}
+#include "harness_io.h"
 
 /* One pass over all problems; returns seconds per problem. */
 static double pass(const double *z, const double *cov, size_t P, size_t n, int with_nis,
@@ -82,7 +48,12 @@ int main(int argc, char **argv)
     dir = argv[1];
     size_t P = (size_t)atol(argv[2]), n = (size_t)atol(argv[3]);
     int samples = atoi(argv[4]);
-    double *z = load("poses", P * n * 8), *cov = load("covariances", P * n * 36);
+    size_t nz, ns;
+    double *z = load("poses", &nz), *cov = load("covariances", &ns);
+    if (nz != P * n * 8 || ns != P * n * 36) {
+        fprintf(stderr, "inputs do not hold %zu problems of %zu measurements\n", P, n);
+        return 2;
+    }
     double *work = malloc(sizeof(double) * dq_fuse_workspace(n));
     double *mean = malloc(sizeof(double) * 8 * P), *covariance = malloc(sizeof(double) * 36 * P);
     double *res = malloc(sizeof(double) * 6 * n), *dist = malloc(sizeof(double) * n);
