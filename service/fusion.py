@@ -18,7 +18,7 @@ Conventions (stated once; :mod:`service.lie` holds the tangent-space tools used 
 * Scalar weights are the isotropic special case: ``Σ_i = I / w_i``.
 
 The maximum-likelihood estimate is found by Gauss–Newton on SE(3) from the DIB mean
-(:func:`service.dq.dib`) until a step is shorter than ``tol``; its covariance is the inverse of the
+(:func:`service.dq.dib`) until a step is shorter than ``tol``, in the C core (``fusion.c``); its covariance is the inverse of the
 information ``Σ Jᵢᵀ Σᵢ⁻¹ Jᵢ`` at the optimum (GTSAM's marginal). The robust mode starts from the
 largest pairwise-consistent group and gates every measurement on its leave-one-out normalised
 innovation squared (NIS: the measurement against the fit of the other inliers, ``χ²`` with 6 degrees
@@ -46,6 +46,7 @@ from typing import Iterable, Optional, Sequence
 
 import numpy as np
 
+from service import _dqcore as _c
 from service import dq, lie
 from service.errors import rename
 
@@ -56,7 +57,8 @@ DOF = 6
 # Relative asymmetry a covariance may have and still be taken as symmetric (its mean with its
 # transpose is used): a product J Σ Jᵀ computed in float64 is asymmetric at ~1e-16.
 _SYMMETRY_TOL = 1e-9
-# A Gauss-Newton step that raises the cost by more than this (relative) is halved.
+# The motion model's Gauss-Newton halves a step that raises the cost by more than _COST_SLACK
+# (relative), at most _MAX_HALVINGS times: the rule of the static fit in service/csrc/fusion.c.
 _COST_SLACK = 1e-12
 _MAX_HALVINGS = 30
 
@@ -283,11 +285,14 @@ def _covariances(covariances, weights, n: int) -> np.ndarray:
         i = int(np.flatnonzero(bad)[0])
         raise ValueError(f"covariances[{i}]: not symmetric (largest asymmetry {asym[i]:.3g})")
     S = 0.5 * (S + np.swapaxes(S, 1, 2))
-    for i in range(n):  # one Cholesky per matrix, so the message can name the index
-        try:
-            np.linalg.cholesky(S[i])
-        except np.linalg.LinAlgError:
-            raise ValueError(f"covariances[{i}]: not positive definite") from None
+    try:
+        np.linalg.cholesky(S)
+    except np.linalg.LinAlgError:
+        for i in range(n):  # one matrix at a time, so the message can name the index
+            try:
+                np.linalg.cholesky(S[i])
+            except np.linalg.LinAlgError:
+                raise ValueError(f"covariances[{i}]: not positive definite") from None
     return S
 
 
@@ -338,82 +343,27 @@ def _to_world(Z: np.ndarray, S: np.ndarray, names: tuple[str, ...],
     return dq.normalize(Z), S
 
 
-# ---- the maximum-likelihood core (one set of measurements; what the C core will do) ------------
+# ---- the maximum-likelihood core (service/csrc/fusion.c; tests/fusion_reference.py in NumPy) ----
 @dataclass(frozen=True)
 class _Fit:
     status: Status
     mean: np.ndarray
-    H: np.ndarray          # information at the optimum
-    r: np.ndarray          # residuals Log(mean⁻¹ Z_i), all measurements
-    A: np.ndarray          # Jl⁻¹(r_i)
-    cost: np.ndarray       # r_iᵀ W_i r_i, all measurements
+    covariance: np.ndarray  # inverse information at the optimum
+    r: np.ndarray           # residuals Log(mean⁻¹ Z_i), all measurements
+    distances: np.ndarray   # sqrt(r_iᵀ Σ_i⁻¹ r_i), all measurements
+    nis: np.ndarray         # leave-one-out NIS against the fit of the other inliers
+    tested: np.ndarray
+    chi2: float             # the inliers' squared distances summed (the cost at the optimum)
     iterations: int
 
 
-def _evaluate(X: np.ndarray, Z: np.ndarray, W: np.ndarray):
-    r = lie.se3_log(dq.mul(dq.conj(X), Z))
-    cost = np.einsum("ni,nij,nj->n", r, W, r)
-    return r, cost
-
-
-def _solve(Z: np.ndarray, W: np.ndarray, start: np.ndarray, tol: float, max_iter: int):
-    """Gauss-Newton for ``min Σ r_iᵀ W_i r_i`` over ``X``; returns mean, status, steps taken."""
-    X = start
-    r, cost = _evaluate(X, Z, W)
-    total = cost.sum()
-    for it in range(1, max_iter + 1):
-        A = lie.se3_left_jacobian_inv(r)
-        AtW = np.swapaxes(A, 1, 2) @ W
-        H = np.einsum("nij,njk->ik", AtW, A)
-        g = np.einsum("nij,nj->i", AtW, r)
-        delta = np.linalg.solve(H, g)
-        step = float(np.linalg.norm(delta))
-        for _ in range(_MAX_HALVINGS):
-            X_new = dq.normalize(dq.mul(X, lie.se3_exp(delta)))
-            r_new, cost_new = _evaluate(X_new, Z, W)
-            total_new = cost_new.sum()
-            if total_new <= total * (1.0 + _COST_SLACK) or step < tol:
-                break
-            delta = 0.5 * delta
-            step *= 0.5
-        X, r, total = X_new, r_new, total_new
-        if step < tol:
-            return X, Status.CONVERGED, it
-    return X, Status.MAX_ITERATIONS, max_iter
-
-
-def _fit(Z: np.ndarray, W: np.ndarray, inlier: np.ndarray, tol: float, max_iter: int) -> _Fit:
-    """ML fit of the measurements ``inlier`` selects, evaluated at every measurement."""
-    Zi, Wi = Z[inlier], W[inlier]
-    # DIB weights from each information's size, det(W)^(1/6): a scalar that scales with it.
-    weights = np.exp(np.linalg.slogdet(Wi)[1] / DOF)
-    start = dq.dib(Zi, weights / weights.max())
-    if Zi.shape[0] == 1:
-        mean, status, iterations = Zi[0].copy(), Status.CONVERGED, 0
-    else:
-        mean, status, iterations = _solve(Zi, Wi, start, tol, max_iter)
-    r, cost = _evaluate(mean, Z, W)
-    A = lie.se3_left_jacobian_inv(r)
-    H = np.einsum("nji,njk,nkl->il", A[inlier], W[inlier], A[inlier])
-    return _Fit(status, mean, H, r, A, cost, iterations)
-
-
-def _nis(fit: _Fit, S: np.ndarray, W: np.ndarray, inlier: np.ndarray):
-    """Leave-one-out NIS of every measurement against the fit of the other inliers.
-
-    One Gauss-Newton step from the full optimum removes measurement j: with ``Hj = H - Ajᵀ Wj Aj``
-    (``H`` itself for an outlier) its innovation is ``ν = r + K W r`` (``r`` for an outlier),
-    ``K = A Hj⁻¹ Aᵀ``, with covariance ``Σ + K``. Measurements with no other inlier are untested.
-    """
-    A, r = fit.A, fit.r
-    own = np.einsum("nji,njk,nkl->nil", A, W, A) * inlier[:, None, None]
-    Hj = fit.H[None] - own
-    tested = ~inlier | (np.count_nonzero(inlier) > 1)
-    Hj[~tested] = np.eye(DOF)
-    K = A @ np.linalg.solve(Hj, np.swapaxes(A, 1, 2))
-    nu = r + inlier[:, None] * np.einsum("nij,njk,nk->ni", K, W, r)
-    nis = np.einsum("ni,ni->n", nu, np.linalg.solve(S + K, nu[..., None])[..., 0])
-    return np.where(tested, nis, 0.0), tested
+def _fit(Z: np.ndarray, S: np.ndarray, inlier: np.ndarray, tol: float, max_iter: int) -> _Fit:
+    """ML fit of the measurements ``inlier`` selects, evaluated at every measurement, with the
+    leave-one-out NIS of each: measurement j against the fit of the other inliers (one
+    Gauss-Newton step from the optimum; an outlier against all inliers; untested without
+    another inlier)."""
+    mean, P, r, d, nis, tested, status, iterations, chi2 = _c.fuse(Z, S, inlier, tol, max_iter)
+    return _Fit(Status(int(status)), mean, P, r, d, nis, tested, float(chi2), int(iterations))
 
 
 # ---- robust mode -------------------------------------------------------------------------------
@@ -432,10 +382,11 @@ def _consensus(Z: np.ndarray, S: np.ndarray, gate2: float) -> np.ndarray:
     return agree[best].copy()
 
 
-def _robust(Z, S, W, gate2, tol, max_iter):
+def _robust(Z, S, gate2, tol, max_iter):
+    # the C fit computes each measurement's leave-one-out NIS with the fit itself
     return _gate(_consensus(Z, S, gate2), np.ones(Z.shape[0], dtype=bool),
-                 lambda inlier: _fit(Z, W, inlier, tol, max_iter),
-                 lambda fit, inlier: _nis(fit, S, W, inlier), gate2)
+                 lambda inlier: _fit(Z, S, inlier, tol, max_iter),
+                 lambda fit, inlier: (fit.nis, fit.tested), gate2)
 
 
 # ---- consistency -------------------------------------------------------------------------------
@@ -502,10 +453,11 @@ def fuse(poses, covariances=None, *, weights=None, names: Optional[Sequence[str]
     tol = dq._as_tol(tol)
     max_iter = dq._as_iter(max_iter)
     Z, S = _to_world(Z, S, names, table)
-    W = np.linalg.inv(S)
-    W = 0.5 * (W + np.swapaxes(W, 1, 2))
     gate2 = chi2_quantile(probability, DOF)
     if times is not None:
+        # the motion model's fit is NumPy: it works with the information matrices
+        W = np.linalg.inv(S)
+        W = 0.5 * (W + np.swapaxes(W, 1, 2))
         return _fuse_in_time(Z, S, W, names, table, times, time, max_skew, max_extrapolation,
                              twist_covariance, robust, probability, gate2, tol, max_iter)
     for key, value in (("time", time), ("max_skew", max_skew),
@@ -514,28 +466,27 @@ def fuse(poses, covariances=None, *, weights=None, names: Optional[Sequence[str]
             raise ValueError(f"{key}: needs the measurements' times (times=...)")
 
     if robust and n > 1:
-        fit, nis, tested, inlier, gate_status = _robust(Z, S, W, gate2, tol, max_iter)
+        fit, nis, tested, inlier, gate_status = _robust(Z, S, gate2, tol, max_iter)
     else:
         inlier = np.ones(n, dtype=bool)
-        fit = _fit(Z, W, inlier, tol, max_iter)
-        nis, tested = _nis(fit, S, W, inlier)
+        fit = _fit(Z, S, inlier, tol, max_iter)
+        nis, tested = fit.nis, fit.tested
         gate_status = None
     gate = math.sqrt(gate2)
     rejected = tuple(Rejection(int(i), names[i], float(math.sqrt(nis[i])), gate, probability)
                      for i in np.flatnonzero(~inlier))
     k = int(np.count_nonzero(inlier))
-    P = np.linalg.inv(fit.H)
     return Fused(
         status=gate_status if gate_status is not None else fit.status,
         mean=_frozen(fit.mean),
-        covariance=_frozen(0.5 * (P + P.T)),
+        covariance=_frozen(fit.covariance),
         residuals=_frozen(fit.r),
-        distances=_frozen(np.sqrt(fit.cost)),
+        distances=_frozen(fit.distances),
         nis=_frozen(nis),
         tested=_frozen(tested),
         inliers=_frozen(np.flatnonzero(inlier)),
         rejected=rejected,
-        chi2=float(fit.cost[inlier].sum()),
+        chi2=fit.chi2,
         dof=DOF * (k - 1),
         iterations=fit.iterations,
         sources=_source_stats(names, nis, tested, inlier, probability),
@@ -674,6 +625,14 @@ class _MotionFit:
     cost: np.ndarray       # r_iᵀ W_i r_i, all measurements
     prior_cost: float
     iterations: int
+
+
+def _evaluate(X: np.ndarray, Z: np.ndarray, W: np.ndarray):
+    """Residuals ``Log(X⁻¹ Z_i)`` and their costs ``r_iᵀ W_i r_i`` (the static fit does this in
+    C, service/csrc/fusion.c)."""
+    r = lie.se3_log(dq.mul(dq.conj(X), Z))
+    cost = np.einsum("ni,nij,nj->n", r, W, r)
+    return r, cost
 
 
 def _motion_evaluate(X, V, ell, Z, W, model: _Model):

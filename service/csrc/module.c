@@ -5,7 +5,7 @@
  * trailing ("core") shapes, broadcasts the leading dimensions, and runs a kernel over every
  * element with the GIL released for batches. A kernel validates its element and returns a
  * DQ_E* code; the first failure becomes a ValueError naming the argument, the index and the
- * problem. Nothing here does geometry: that is in dq.c and blend.c.
+ * problem. Nothing here does geometry: that is in dq.c, blend.c and fusion.c.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -18,6 +18,7 @@
 
 #include "blend.h"
 #include "dq.h"
+#include "fusion.h"
 #include "wire.h"
 
 #define MAX_IN 3
@@ -719,6 +720,20 @@ static PyObject *py_screw(PyObject *self, PyObject *x)
 
 static const in_spec S_SET[2] = {{"dqs", 2, {-1, 8}, 0}, {"weights", 1, {-1, 0}, 1}};
 
+/* The stopping rule of an iteration (DIB, DEC, fusion): 0, or -1 with a ValueError. */
+static int check_iteration(double tol, int max_iter)
+{
+    if (!(tol >= 0.0) || !(tol * 0.0 == 0.0)) {
+        PyErr_SetString(PyExc_ValueError, "tol: must be finite and >= 0");
+        return -1;
+    }
+    if (max_iter < 0) {
+        PyErr_SetString(PyExc_ValueError, "max_iter: must be >= 0");
+        return -1;
+    }
+    return 0;
+}
+
 /* blend(dqs, weights, method, tol, max_iter) -> out, or (out, iterations, residual) for DIB */
 static PyObject *py_blend(PyObject *self, PyObject *args)
 {
@@ -730,14 +745,7 @@ static PyObject *py_blend(PyObject *self, PyObject *args)
         PyErr_SetString(PyExc_ValueError, "method: unknown blending method");
         return NULL;
     }
-    if (!(p.tol >= 0.0) || !(p.tol * 0.0 == 0.0)) {
-        PyErr_SetString(PyExc_ValueError, "tol: must be finite and >= 0");
-        return NULL;
-    }
-    if (p.max_iter < 0) {
-        PyErr_SetString(PyExc_ValueError, "max_iter: must be >= 0");
-        return NULL;
-    }
+    if (check_iteration(p.tol, p.max_iter) < 0) return NULL;
     if (p.method == DQ_DIB) {
         out_spec os[3] = {O_DQ, {0, {0, 0}}, {0, {0, 0}}};
         return run(k_blend, &p, 2, objs, S_SET, 3, os, 9);
@@ -863,6 +871,155 @@ done:
     return result;
 }
 
+/* fuse(poses (..., n, 8), covariances (..., n, 6, 6), inliers (..., n) bool or None, tol,
+ * max_iter, nis) -> (mean, covariance, residuals, distances, nis, tested, status, iterations,
+ * chi2), each with the leading shape; nis and tested are None when nis is false. The leading
+ * shapes of the arguments must be equal (a batch of independent problems, no broadcasting). */
+static PyObject *py_fuse(PyObject *self, PyObject *args)
+{
+    PyObject *zo, *so, *io;
+    dq_fuse_params p = {1e-12, 100};
+    int want_nis = 1;
+    if (!PyArg_ParseTuple(args, "OOO|dip:fuse", &zo, &so, &io, &p.tol, &p.max_iter, &want_nis))
+        return NULL;
+    if (check_iteration(p.tol, p.max_iter) < 0) return NULL;
+    PyArrayObject *Z = NULL, *S = NULL, *M = NULL, *outs[9] = {NULL};
+    PyObject *result = NULL;
+    double *work = NULL, *zu = NULL;
+    Z = (PyArrayObject *)PyArray_FROM_OTF(zo, NPY_DOUBLE, NPY_ARRAY_IN_ARRAY);
+    if (!Z) goto done;
+    S = (PyArrayObject *)PyArray_FROM_OTF(so, NPY_DOUBLE, NPY_ARRAY_IN_ARRAY);
+    if (!S) goto done;
+    int nd = PyArray_NDIM(Z);
+    npy_intp *zs = PyArray_DIMS(Z), *ss = PyArray_DIMS(S);
+    if (nd < 2 || zs[nd - 1] != 8) {
+        char sh[160];
+        format_shape(sh, sizeof sh, nd, zs);
+        PyErr_Format(PyExc_ValueError, "poses: expected shape (..., n, 8), got %s", sh);
+        goto done;
+    }
+    int lead = nd - 2;
+    npy_intp n = zs[lead];
+    if (PyArray_NDIM(S) != nd + 1 || !PyArray_CompareLists(ss, zs, lead + 1) || ss[nd - 1] != 6 ||
+        ss[nd] != 6) {
+        char sh[160];
+        format_shape(sh, sizeof sh, PyArray_NDIM(S), ss);
+        PyErr_Format(PyExc_ValueError,
+                     "covariances: expected shape (..., n, 6, 6) matching poses, got %s", sh);
+        goto done;
+    }
+    if (io != Py_None) {
+        M = (PyArrayObject *)PyArray_FROM_OTF(io, NPY_BOOL, NPY_ARRAY_IN_ARRAY);
+        if (!M) goto done;
+        if (PyArray_NDIM(M) != lead + 1 || !PyArray_CompareLists(PyArray_DIMS(M), zs, lead + 1)) {
+            char sh[160];
+            format_shape(sh, sizeof sh, PyArray_NDIM(M), PyArray_DIMS(M));
+            PyErr_Format(PyExc_ValueError, "inliers: expected shape (..., n) matching poses, got %s",
+                         sh);
+            goto done;
+        }
+    }
+    if (n == 0) {
+        PyErr_SetString(PyExc_ValueError, "poses: no measurements");
+        goto done;
+    }
+    npy_intp batch = 1;
+    for (int k = 0; k < lead; k++) batch *= zs[k];
+    /* outputs: mean, covariance, residuals, distances, nis, tested, status, iterations, chi2 */
+    {
+        npy_intp d[NPY_MAXDIMS + 2];
+        for (int k = 0; k < lead; k++) d[k] = zs[k];
+        int types[9] = {NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE, NPY_BOOL,
+                        NPY_INT64, NPY_INT64, NPY_DOUBLE};
+        int core[9] = {1, 2, 2, 1, 1, 1, 0, 0, 0};
+        npy_intp cd[9][2] = {{8, 0}, {6, 6}, {n, 6}, {n, 0}, {n, 0}, {n, 0}, {0, 0}, {0, 0}, {0, 0}};
+        for (int j = 0; j < 9; j++) {
+            if ((j == 4 || j == 5) && !want_nis) continue;
+            for (int k = 0; k < core[j]; k++) d[lead + k] = cd[j][k];
+            outs[j] = (PyArrayObject *)PyArray_SimpleNew(lead + core[j], d, types[j]);
+            if (!outs[j]) goto done;
+        }
+    }
+    size_t nw = dq_fuse_workspace((size_t)n);
+    work = (double *)malloc(sizeof(double) * nw);
+    zu = (double *)malloc(sizeof(double) * 8 * (size_t)n);
+    if (!work || !zu) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    const double *zd = PyArray_DATA(Z), *sd = PyArray_DATA(S);
+    const unsigned char *id = M ? (const unsigned char *)PyArray_DATA(M) : NULL;
+    int code = DQ_OK;
+    npy_intp bad_b = 0;
+    size_t bad_i = 0;
+    const char *bad_name = "poses";
+    NPY_BEGIN_THREADS_DEF;
+    if (batch * n >= GIL_RELEASE_MIN) NPY_BEGIN_THREADS;
+    for (npy_intp b = 0; b < batch && code == DQ_OK; b++) {
+        const double *zb = zd + 8 * n * b, *sb = sd + 36 * n * b;
+        for (npy_intp i = 0; i < n && code == DQ_OK; i++) {
+            code = dq_unit(zb + 8 * i, zu + 8 * i);
+            if (code) { bad_i = (size_t)i; bad_name = "poses"; }
+            else if (!dq_finite_n(sb + 36 * i, 36)) {
+                code = DQ_E_NONFINITE; bad_i = (size_t)i; bad_name = "covariances";
+            }
+        }
+        if (code) { bad_b = b; break; }
+        dq_fused f;
+        dq_fuse_outputs per = {
+            (double *)PyArray_DATA(outs[2]) + 6 * n * b, (double *)PyArray_DATA(outs[3]) + n * b,
+            want_nis ? (double *)PyArray_DATA(outs[4]) + n * b : NULL,
+            want_nis ? (unsigned char *)PyArray_DATA(outs[5]) + n * b : NULL};
+        code = dq_fuse(zu, sb, id ? id + n * b : NULL, (size_t)n, &p, work, &f, &per, &bad_i);
+        if (code) { bad_b = b; bad_name = "covariances"; break; }
+        memcpy((double *)PyArray_DATA(outs[0]) + 8 * b, f.mean, sizeof f.mean);
+        memcpy((double *)PyArray_DATA(outs[1]) + 36 * b, f.covariance, sizeof f.covariance);
+        ((npy_int64 *)PyArray_DATA(outs[6]))[b] = f.status;
+        ((npy_int64 *)PyArray_DATA(outs[7]))[b] = f.iterations;
+        ((double *)PyArray_DATA(outs[8]))[b] = f.chi2;
+    }
+    NPY_END_THREADS;
+    if (code != DQ_OK) {
+        char where[256], what[256];
+        npy_intp shape[NPY_MAXDIMS + 1];
+        for (int k = 0; k < lead; k++) shape[k] = zs[k];
+        shape[lead] = n;
+        if (code == DQ_E_NO_INLIERS) {
+            format_index(where, sizeof where, "inliers", lead, shape, bad_b);
+            PyErr_Format(PyExc_ValueError, "%s: selects no measurement", where);
+        } else if (code == DQ_E_SINGULAR || code == DQ_E_OVERFLOW) {
+            format_index(where, sizeof where, "covariances", lead, shape, bad_b);
+            PyErr_Format(PyExc_ValueError, "%s: %s", where,
+                         code == DQ_E_SINGULAR ? "the information is not positive definite"
+                                               : "the result is not finite (input too large)");
+        } else {
+            format_index(where, sizeof where, bad_name, lead + 1, shape, bad_b * n + (npy_intp)bad_i);
+            if (code == DQ_E_NOT_SPD)
+                snprintf(what, sizeof what, "not positive definite");
+            else
+                problem_text(code, zd + 8 * (n * bad_b + (npy_intp)bad_i), 8, what, sizeof what);
+            PyErr_Format(PyExc_ValueError, "%s: %s", where, what);
+        }
+        goto done;
+    }
+    result = PyTuple_New(9);
+    if (!result) goto done;
+    for (int j = 0; j < 9; j++) {
+        PyObject *o = outs[j] ? (PyObject *)outs[j] : Py_None;
+        if (!outs[j]) Py_INCREF(Py_None);
+        PyTuple_SET_ITEM(result, j, o);
+        outs[j] = NULL;
+    }
+done:
+    free(work);
+    free(zu);
+    Py_XDECREF(Z);
+    Py_XDECREF(S);
+    Py_XDECREF(M);
+    for (int j = 0; j < 9; j++) Py_XDECREF(outs[j]);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"mul", py_mul, METH_VARARGS, "mul(a, b): dual-quaternion product a b."},
     {"conj", py_conj, METH_O, "conj(a): quaternion conjugate of both parts (the inverse of a pose)."},
@@ -878,6 +1035,9 @@ static PyMethodDef methods[] = {
     {"transform", py_transform, METH_VARARGS, "transform(a, p[...,3]) -> [...,3]."},
     {"screw", py_screw, METH_O, "screw(a) -> (theta, d, [l | m])."},
     {"blend", py_blend, METH_VARARGS, "blend(dqs, weights, method, tol, max_iter)."},
+    {"fuse", py_fuse, METH_VARARGS,
+     "fuse(poses, covariances, inliers, tol, max_iter, nis) -> (mean, covariance, residuals, "
+     "distances, nis, tested, status, iterations, chi2)."},
     {"lin", py_lin, METH_VARARGS, "lin(dqs, weights): the raw matrix blend -> [...,4,4]."},
     {"blend_request_from_wire", py_blend_request_from_wire, METH_O,
      "blend_request_from_wire(bytes) -> (poses, weights, method, tolerance, max_iterations) or None."},

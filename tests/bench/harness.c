@@ -14,52 +14,14 @@
 
 #include "blend.h"
 #include "dq.h"
+#include "harness_io.h"
 
 void floor_sclerp(const double *a, const double *b, double tau, double *out);
 void floor_dlb(const double *q, const double *w, size_t n, double *out);
 int floor_dib(const double *q, const double *w, size_t n, double tol, int max_iter, double *out);
 
-static const char *dir;
-
-static double *load(const char *name, size_t *count)
-{
-    char path[4096];
-    snprintf(path, sizeof path, "%s/%s.bin", dir, name);
-    FILE *f = fopen(path, "rb");
-    if (!f) { perror(path); exit(2); }
-    fseek(f, 0, SEEK_END);
-    long len = ftell(f);
-    fseek(f, 0, SEEK_SET);
-    double *v = malloc((size_t)len);
-    if (!v || fread(v, 1, (size_t)len, f) != (size_t)len) { perror(path); exit(2); }
-    fclose(f);
-    *count = (size_t)len / sizeof(double);
-    return v;
-}
-
-static void save(const char *name, const double *v, size_t count)
-{
-    char path[4096];
-    snprintf(path, sizeof path, "%s/%s.out", dir, name);
-    FILE *f = fopen(path, "wb");
-    if (!f || fwrite(v, sizeof(double), count, f) != count) { perror(path); exit(2); }
-    fclose(f);
-}
-
-static double now(void)
-{
-    struct timespec ts;
-    clock_gettime(CLOCK_MONOTONIC, &ts);
-    return ts.tv_sec + 1e-9 * ts.tv_nsec;
-}
-
 typedef void (*job_fn)(void *ctx);
 
-static int cmpd(const void *a, const void *b)
-{
-    double x = *(const double *)a, y = *(const double *)b;
-    return (x > y) - (x < y);
-}
 
 /* Median over SAMPLES samples of the time of one call, each sample long enough (>= 2 ms) that
  * the clock resolution does not matter; one warm-up sample first. */

@@ -1,0 +1,519 @@
+/*
+ * fusion.c — maximum-likelihood fusion of poses with full covariances (see fusion.h).
+ *
+ * Every measurement is whitened once by the Cholesky factor of its covariance, S_i = L_i L_i^T:
+ * the cost is |L_i^-1 r_i|^2 and its information contribution B_i^T B_i with B_i = L_i^-1 A_i,
+ * which is cheaper and better conditioned than forming S_i^-1.
+ */
+#include "fusion.h"
+
+#include <math.h>
+
+#include "blend.h"
+#include "dq.h"
+
+/* A step that raises the cost by more than this (relative) is halved, at most MAX_HALVINGS
+ * times (service/fusion.py's reference uses the same values). */
+#define COST_SLACK 1e-12
+#define MAX_HALVINGS 30
+/* The DIB start runs with dq.dib's defaults. */
+#define START_TOL 1e-12
+#define START_MAX_ITER 100
+/* Below this rotation angle the Jacobian coefficients come from their Taylor series (the closed
+ * forms divide cancelling differences by up to t^5); service/lie.py uses the same. */
+#define SERIES_ANGLE 0.5
+
+/* The workspace: a block of W_PER doubles per measurement (its covariance factor L, Jacobian A,
+ * information B^T B, the prefix sum of the others', and r, e = L^-1 r, sin and cos of half the
+ * rotation angle for the current and a trial estimate), then the DIB start's packed poses and
+ * weights (10 per measurement: the pose, its weight and the normalised weight). */
+enum { W_L = 0, W_A = 36, W_OWN = 72, W_PRE = 108, W_R = 144, W_E = 150, W_SC = 156,
+       W_R2 = 158, W_E2 = 164, W_SC2 = 170, W_DI = 172, W_PER = 178 };
+
+size_t dq_fuse_workspace(size_t n) { return (W_PER + 10) * n; }
+
+/* ---- 6x6 linear algebra --------------------------------------------------------------------- */
+
+/* A = L L^T from the lower triangle of A (L's upper triangle is left as it was: nothing reads
+ * it), di the inverse of L's diagonal (the solves multiply by
+ * it); 0 when a pivot is not positive (or not finite). */
+static int chol6(const double *A, double *L, double *di)
+{
+    for (int j = 0; j < 6; j++) {
+        double d = A[6 * j + j];
+        for (int k = 0; k < j; k++) d -= L[6 * j + k] * L[6 * j + k];
+        if (!(d > 0.0)) return 0; /* also NaN; an infinite pivot makes the result non-finite */
+        double ljj = sqrt(d), inv = 1.0 / ljj;
+        L[6 * j + j] = ljj;
+        di[j] = inv;
+        for (int i = j + 1; i < 6; i++) {
+            double s = A[6 * i + j];
+            for (int k = 0; k < j; k++) s -= L[6 * i + k] * L[6 * j + k];
+            L[6 * i + j] = s * inv;
+        }
+    }
+    return 1;
+}
+
+/* x = L^-1 b; x may alias b. */
+static void lower_solve(const double *L, const double *di, const double *b, double *x)
+{
+    for (int i = 0; i < 6; i++) {
+        double s = b[i];
+        for (int k = 0; k < i; k++) s -= L[6 * i + k] * x[k];
+        x[i] = s * di[i];
+    }
+}
+
+/* x = L^-T b; x may alias b. */
+static void upper_solve(const double *L, const double *di, const double *b, double *x)
+{
+    for (int i = 5; i >= 0; i--) {
+        double s = b[i];
+        for (int k = i + 1; k < 6; k++) s -= L[6 * k + i] * x[k];
+        x[i] = s * di[i];
+    }
+}
+
+/* B = L^-1 M for a 6x6 M, row by row (each row a whole 6-vector, which vectorises). */
+static void lower_solve_matrix(const double *L, const double *di, const double *M, double *B)
+{
+    for (int i = 0; i < 6; i++) {
+        double row[6];
+        for (int c = 0; c < 6; c++) row[c] = M[6 * i + c];
+        for (int k = 0; k < i; k++) {
+            double l = L[6 * i + k];
+            for (int c = 0; c < 6; c++) row[c] -= l * B[6 * k + c];
+        }
+        for (int c = 0; c < 6; c++) B[6 * i + c] = row[c] * di[i];
+    }
+}
+
+/* B = L^-1 A for A = Jl^-1 = [[J, 0], [M, J]]: B's upper-right 3x3 block stays zero. */
+static void whiten_jacobian(const double *L, const double *di, const double *A, double *B)
+{
+    for (int i = 0; i < 3; i++) {
+        double row[3] = {A[6 * i], A[6 * i + 1], A[6 * i + 2]};
+        for (int k = 0; k < i; k++) {
+            double l = L[6 * i + k];
+            for (int c = 0; c < 3; c++) row[c] -= l * B[6 * k + c];
+        }
+        for (int c = 0; c < 3; c++) B[6 * i + c] = row[c] * di[i];
+        B[6 * i + 3] = B[6 * i + 4] = B[6 * i + 5] = 0.0;
+    }
+    for (int i = 3; i < 6; i++) {
+        double row[6];
+        for (int c = 0; c < 6; c++) row[c] = A[6 * i + c];
+        for (int k = 0; k < i; k++) {
+            double l = L[6 * i + k];
+            for (int c = 0; c < 6; c++) row[c] -= l * B[6 * k + c];
+        }
+        for (int c = 0; c < 6; c++) B[6 * i + c] = row[c] * di[i];
+    }
+}
+
+/* G += B^T B (upper triangle) for B from whiten_jacobian: its first three rows end in zeros. */
+static void add_gram_whitened(const double *B, double *G)
+{
+    for (int k = 0; k < 3; k++)
+        for (int i = 0; i < 3; i++) {
+            double b = B[6 * k + i];
+            for (int j = i; j < 3; j++) G[6 * i + j] += b * B[6 * k + j];
+        }
+    for (int k = 3; k < 6; k++)
+        for (int i = 0; i < 6; i++) {
+            double b = B[6 * k + i];
+            for (int j = i; j < 6; j++) G[6 * i + j] += b * B[6 * k + j];
+        }
+}
+
+/* G += B^T B (symmetric: the upper triangle, then mirrored by the caller via mirror6). */
+static void add_gram(const double *B, double *G)
+{
+    for (int k = 0; k < 6; k++)
+        for (int i = 0; i < 6; i++) {
+            double b = B[6 * k + i];
+            for (int j = i; j < 6; j++) G[6 * i + j] += b * B[6 * k + j];
+        }
+}
+
+static void mirror6(double *G)
+{
+    for (int i = 0; i < 6; i++)
+        for (int j = 0; j < i; j++) G[6 * i + j] = G[6 * j + i];
+}
+
+/* P = A^-1 from A's Cholesky factor L: (L^-1)^T L^-1, symmetric by construction. */
+static void chol6_inverse(const double *L, const double *di, double *P)
+{
+    double Li[36];
+    for (int c = 0; c < 6; c++) {
+        double e[6] = {0, 0, 0, 0, 0, 0};
+        e[c] = 1.0;
+        lower_solve(L, di, e, e);
+        for (int r = 0; r < 6; r++) Li[6 * r + c] = e[r];
+    }
+    for (int i = 0; i < 36; i++) P[i] = 0.0;
+    add_gram(Li, P);
+    mirror6(P);
+}
+
+/* ---- SE(3) ----------------------------------------------------------------------------------- */
+
+static double series8(const double *c, double t2)
+{
+    double s = 0.0;
+    for (int k = 7; k >= 0; k--) s = s * t2 + c[k];
+    return s;
+}
+
+static const double C_SERIES[8] = {1.0 / 6, -1.0 / 120, 1.0 / 5040, -1.0 / 362880, 1.0 / 39916800,
+                                   -1.0 / 6227020800.0, 1.0 / 1307674368000.0,
+                                   -1.0 / 355687428096000.0};
+static const double C2_SERIES[8] = {1.0 / 24, -1.0 / 720, 1.0 / 40320, -1.0 / 3628800,
+                                    1.0 / 479001600, -1.0 / 87178291200.0,
+                                    1.0 / 20922789888000.0, -1.0 / 6402373705728000.0};
+static const double C3_SERIES[8] = {1.0 / 120, -1.0 / 2520, 1.0 / 120960, -1.0 / 9979200,
+                                    1.0 / 1245404160, -1.0 / 217945728000.0,
+                                    1.0 / 50812489728000.0, -1.0 / 15205637551104000.0};
+static const double D_SERIES[8] = {1.0 / 12, 1.0 / 720, 1.0 / 30240, 1.0 / 1209600,
+                                   1.0 / 47900160, 691.0 / 1307674368000.0,
+                                   1.0 / 74724249600.0, 3617.0 / 10670622842880000.0};
+
+static inline void mul3(const double *a, const double *b, double *c)
+{
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++)
+            c[3 * i + j] = a[3 * i] * b[j] + a[3 * i + 1] * b[3 + j] + a[3 * i + 2] * b[6 + j];
+}
+
+static inline void hat3(const double *w, double *K)
+{
+    K[0] = 0.0;   K[1] = -w[2]; K[2] = w[1];
+    K[3] = w[2];  K[4] = 0.0;   K[5] = -w[0];
+    K[6] = -w[1]; K[7] = w[0];  K[8] = 0.0;
+}
+
+/* Jl^-1(xi) = [[Ji, 0], [-Ji Q Ji, Ji]] with Ji = I - w^/2 + D w^2 and Q Barfoot's eq. 7.86 (the
+ * formulas of service/lie.py). s2, ch are the squared sine and the cosine of half the rotation
+ * angle, from the quaternion xi came from, so no trigonometric call is needed. */
+static inline void jl_inv(const double *xi, double s2, double ch, double *J)
+{
+    const double *w = xi, *v = xi + 3;
+    double t2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
+    double C, c2, c3, D;
+    if (t2 < SERIES_ANGLE * SERIES_ANGLE) {
+        C = series8(C_SERIES, t2);
+        c2 = series8(C2_SERIES, t2);
+        c3 = series8(C3_SERIES, t2);
+        D = series8(D_SERIES, t2);
+    } else {
+        double t = sqrt(t2), sh = sqrt(s2), it2 = 1.0 / t2, it3 = it2 / t;
+        double st = 2.0 * sh * ch, ct = 1.0 - 2.0 * s2;
+        C = (t - st) * it3;
+        c2 = 0.5 * (t2 - 4.0 * s2) * it2 * it2;
+        c3 = 0.5 * (2.0 * t - 3.0 * st + t * ct) * it3 * it2;
+        D = (1.0 - 0.5 * t * ch / sh) * it2;
+    }
+    /* Q's products of w^ and v^ collapse to rank-one terms (a^ b^ = b a^T - (a.b) I, w^ w = 0):
+     * w^ v^ w^ = -(w.v) w^, w^ w^ = w w^T - t^2 I, w^ w^ v^ + v^ w^ w^ = w u^T - u w^T - 2 t^2 v^
+     * with u = w x v; so Q = v^/2 + C (v w^T + w v^T - 2(w.v) I - (w.v) w^)
+     * + c2 (w u^T - u w^T - 2 t^2 v^ + 3 (w.v) w^) - 2 c3 (w.v) (w w^T - t^2 I). */
+    double wv = w[0] * v[0] + w[1] * v[1] + w[2] * v[2];
+    double u[3] = {w[1] * v[2] - w[2] * v[1], w[2] * v[0] - w[0] * v[2], w[0] * v[1] - w[1] * v[0]};
+    double W[9], V[9], Q[9], Ji[9], T[9], M[9];
+    hat3(w, W);
+    hat3(v, V);
+    double kv = 0.5 - 2.0 * c2 * t2, kw = 3.0 * c2 * wv - C * wv, kww = -2.0 * c3 * wv;
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++) {
+            double ww = w[i] * w[j] - (i == j ? t2 : 0.0);
+            Q[3 * i + j] = kv * V[3 * i + j] + kw * W[3 * i + j] +
+                           C * (v[i] * w[j] + w[i] * v[j] - (i == j ? 2.0 * wv : 0.0)) +
+                           c2 * (w[i] * u[j] - u[i] * w[j]) + kww * ww;
+            Ji[3 * i + j] = (i == j ? 1.0 : 0.0) - 0.5 * W[3 * i + j] + D * ww;
+        }
+    mul3(Ji, Q, T);
+    mul3(T, Ji, M);
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++) {
+            double a = Ji[3 * i + j];
+            J[6 * i + j] = a;
+            J[6 * i + 3 + j] = 0.0;
+            J[6 * (i + 3) + j] = -M[3 * i + j];
+            J[6 * (i + 3) + 3 + j] = a;
+        }
+}
+
+/* r = Log(xc z) (xc the inverse of the estimate), and the squared sine and the cosine of half
+ * its rotation angle. */
+static inline void residual(const double *xc, const double *z, double *r, double *sc)
+{
+    double p[8], l[6];
+    dq_mul(xc, z, p);
+    if (p[0] < 0.0)
+        for (int k = 0; k < 8; k++) p[k] = -p[k];
+    dq_log(p, l);
+    for (int k = 0; k < 6; k++) r[k] = 2.0 * l[k];
+    sc[0] = p[1] * p[1] + p[2] * p[2] + p[3] * p[3];
+    sc[1] = p[0];
+}
+
+static inline int selected(const unsigned char *inlier, size_t i) { return !inlier || inlier[i]; }
+
+/* Residuals, their whitened forms e = L^-1 r and the cost at X for the measurements `use`
+ * selects (NULL: all), or with want = 0 the others; r, e, sc at offsets ro, eo, so of each
+ * measurement's workspace. */
+static double evaluate(const double *X, const double *z, double *work, size_t n,
+                       const unsigned char *use, int want, int ro, int eo, int so)
+{
+    double xc[8], total = 0.0;
+    dq_conj(X, xc);
+    for (size_t i = 0; i < n; i++) {
+        if (selected(use, i) != want) continue;
+        double *m = work + W_PER * i;
+        residual(xc, z + 8 * i, m + ro, m + so);
+        lower_solve(m + W_L, m + W_DI, m + ro, m + eo);
+        const double *e = m + eo;
+        total += e[0] * e[0] + e[1] * e[1] + e[2] * e[2] + e[3] * e[3] + e[4] * e[4] + e[5] * e[5];
+    }
+    return total;
+}
+
+/* The information H (full) and the gradient g = sum B^T e over `use`, from r, e, sc at ro, eo,
+ * so; each measurement's A = Jl^-1(r) and own = B^T B (upper triangle) kept when keep. */
+static void linearize(double *work, size_t n, const unsigned char *use, int ro, int eo, int so,
+                      double *H, double *g, int keep)
+{
+    for (int k = 0; k < 36; k++) H[k] = 0.0;
+    for (int k = 0; k < 6; k++) g[k] = 0.0;
+    for (size_t i = 0; i < n; i++) {
+        if (!selected(use, i)) continue;
+        double *m = work + W_PER * i;
+        double A[36], B[36];
+        jl_inv(m + ro, m[so], m[so + 1], A);
+        whiten_jacobian(m + W_L, m + W_DI, A, B);
+        const double *e = m + eo;
+        for (int c = 0; c < 6; c++) {
+            double s = 0.0;
+            for (int k = 0; k < 6; k++) s += B[6 * k + c] * e[k];
+            g[c] += s;
+        }
+        if (keep) {
+            for (int k = 0; k < 36; k++) m[W_A + k] = A[k];
+            for (int k = 0; k < 36; k++) m[W_OWN + k] = 0.0;
+            add_gram_whitened(B, m + W_OWN);
+            for (int k = 0; k < 36; k++) H[k] += m[W_OWN + k];
+        } else {
+            add_gram_whitened(B, H);
+        }
+    }
+    mirror6(H);
+}
+
+/* Gauss-Newton from X over the selected measurements (see fusion.h); X is updated in place and
+ * the selected measurements' r, e, sc at it are left in the W_R, W_E, W_SC slots. */
+static int solve(double *X, const double *z, double *work, size_t n, const unsigned char *use,
+                 const dq_fuse_params *p, int *status, int *iterations)
+{
+    /* The current point's r, e, sc and a trial point's swap between two slots. */
+    int ro = W_R, eo = W_E, so = W_SC, rt = W_R2, et = W_E2, st = W_SC2;
+    double total = evaluate(X, z, work, n, use, 1, ro, eo, so);
+    for (int it = 1; it <= p->max_iter; it++) {
+        double H[36], g[6], L[36], di[6], delta[6], Xn[8];
+        linearize(work, n, use, ro, eo, so, H, g, 0);
+        if (!chol6(H, L, di)) return DQ_E_SINGULAR;
+        lower_solve(L, di, g, delta);
+        upper_solve(L, di, delta, delta);
+        double step = sqrt(delta[0] * delta[0] + delta[1] * delta[1] + delta[2] * delta[2] +
+                           delta[3] * delta[3] + delta[4] * delta[4] + delta[5] * delta[5]);
+        double total_new = total;
+        for (int h = 0; h < MAX_HALVINGS; h++) {
+            double half[6], E[8], P[8];
+            for (int k = 0; k < 6; k++) half[k] = 0.5 * delta[k];
+            dq_exp(half, E);
+            dq_mul(X, E, P);
+            if (dq_normalize(P, Xn)) return DQ_E_OVERFLOW;
+            total_new = evaluate(Xn, z, work, n, use, 1, rt, et, st);
+            if (total_new <= total * (1.0 + COST_SLACK) || step < p->tol) break;
+            for (int k = 0; k < 6; k++) delta[k] *= 0.5;
+            step *= 0.5;
+        }
+        for (int k = 0; k < 8; k++) X[k] = Xn[k];
+        int t;
+        t = ro; ro = rt; rt = t;
+        t = eo; eo = et; et = t;
+        t = so; so = st; st = t;
+        total = total_new;
+        if (step < p->tol) {
+            *status = DQ_FUSE_CONVERGED;
+            *iterations = it;
+            break;
+        }
+    }
+    if (*status != DQ_FUSE_CONVERGED) {
+        *status = DQ_FUSE_MAX_ITERATIONS;
+        *iterations = p->max_iter;
+    }
+    if (ro != W_R)
+        for (size_t i = 0; i < n; i++) {
+            if (!selected(use, i)) continue;
+            double *m = work + W_PER * i;
+            for (int k = 0; k < 6; k++) m[W_R + k] = m[ro + k];
+            for (int k = 0; k < 6; k++) m[W_E + k] = m[eo + k];
+            for (int k = 0; k < 2; k++) m[W_SC + k] = m[so + k];
+        }
+    return DQ_OK;
+}
+
+/* The start: DIB of the selected poses weighted by det(S_i^-1)^(1/6) = (prod diag L_i)^(-1/3),
+ * a scalar that scales with the information. */
+static int start(const double *z, double *work, size_t n, const unsigned char *use, double *X)
+{
+    double *q = work + W_PER * n, *w = q + 8 * n, *wn = w + n;
+    size_t m = 0;
+    double big = 0.0;
+    for (size_t i = 0; i < n; i++) {
+        if (!selected(use, i)) continue;
+        const double *L = work + W_PER * i + W_L;
+        double prod = L[0] * L[7] * L[14] * L[21] * L[28] * L[35], wi;
+        if (prod > 1e-290 && prod < 1e290) {
+            wi = 1.0 / cbrt(prod);
+        } else { /* the product under- or overflows: the same through logarithms */
+            double s = log(L[0]) + log(L[7]) + log(L[14]) + log(L[21]) + log(L[28]) + log(L[35]);
+            wi = exp(-s / 3.0);
+        }
+        for (int k = 0; k < 8; k++) q[8 * m + k] = z[8 * i + k];
+        w[m] = wi;
+        if (wi > big) big = wi;
+        m++;
+    }
+    for (size_t i = 0; i < m; i++) w[i] /= big;
+    size_t bad;
+    if (dq_weights(w, m, wn, &bad)) return DQ_E_OVERFLOW;
+    int iters;
+    double res;
+    dq_dib(q, wn, m, START_TOL, START_MAX_ITER, X, &iters, &res);
+    return dq_finite8(X) ? DQ_OK : DQ_E_OVERFLOW;
+}
+
+/* NIS of every measurement against the fit of the other inliers (fusion.h), from the A, own,
+ * r, e kept by the final linearisation and the information H of all inliers. */
+static int leave_one_out(const double *cov, double *work, size_t n, const unsigned char *use,
+                         size_t n_in, const double *H, double *nis, unsigned char *tested)
+{
+    /* Hj = (sum of the inliers before j) + (sum after j): no subtraction, so a dominant
+     * measurement does not cancel the others' information away. */
+    double acc[36];
+    for (int k = 0; k < 36; k++) acc[k] = 0.0;
+    for (size_t i = 0; i < n; i++) {
+        double *m = work + W_PER * i;
+        for (int k = 0; k < 36; k++) m[W_PRE + k] = acc[k];
+        if (selected(use, i))
+            for (int k = 0; k < 36; k++) acc[k] += m[W_OWN + k];
+    }
+    for (int k = 0; k < 36; k++) acc[k] = 0.0; /* now the sum after j */
+    for (size_t jj = n; jj-- > 0;) {
+        double *m = work + W_PER * jj;
+        int in = selected(use, jj);
+        int t = !in || n_in > 1;
+        tested[jj] = (unsigned char)t;
+        if (!t) {
+            nis[jj] = 0.0;
+        } else {
+            double Hj[36], M[36], dm[6], dn[6], At[36], G[36], K[36], Wr[6], nu[6], T[36], N[36], y[6];
+            if (in) {
+                for (int k = 0; k < 36; k++) Hj[k] = m[W_PRE + k] + acc[k];
+                mirror6(Hj);
+            } else {
+                for (int k = 0; k < 36; k++) Hj[k] = H[k];
+            }
+            if (!chol6(Hj, M, dm)) return DQ_E_SINGULAR;
+            const double *A = m + W_A;
+            for (int r = 0; r < 6; r++)
+                for (int c = 0; c < 6; c++) At[6 * r + c] = A[6 * c + r];
+            lower_solve_matrix(M, dm, At, G); /* G = M^-1 A^T, K = G^T G = A Hj^-1 A^T */
+            for (int k = 0; k < 36; k++) K[k] = 0.0;
+            add_gram(G, K);
+            mirror6(K);
+            for (int k = 0; k < 6; k++) nu[k] = m[W_R + k];
+            if (in) {
+                upper_solve(m + W_L, m + W_DI, m + W_E, Wr); /* S^-1 r = L^-T e */
+                for (int r = 0; r < 6; r++) {
+                    double s = 0.0;
+                    for (int c = 0; c < 6; c++) s += K[6 * r + c] * Wr[c];
+                    nu[r] += s;
+                }
+            }
+            const double *S = cov + 36 * jj;
+            for (int k = 0; k < 36; k++) T[k] = S[k] + K[k];
+            if (!chol6(T, N, dn)) return DQ_E_SINGULAR;
+            lower_solve(N, dn, nu, y);
+            nis[jj] = y[0] * y[0] + y[1] * y[1] + y[2] * y[2] + y[3] * y[3] + y[4] * y[4] +
+                      y[5] * y[5];
+        }
+        if (in)
+            for (int k = 0; k < 36; k++) acc[k] += m[W_OWN + k];
+    }
+    return DQ_OK;
+}
+
+int dq_fuse(const double *z, const double *cov, const unsigned char *inlier, size_t n,
+            const dq_fuse_params *p, double *work, dq_fused *out, const dq_fuse_outputs *per,
+            size_t *bad)
+{
+    size_t n_in = 0, first = 0;
+    for (size_t i = 0; i < n; i++) {
+        if (!chol6(cov + 36 * i, work + W_PER * i + W_L, work + W_PER * i + W_DI)) {
+            *bad = i;
+            return DQ_E_NOT_SPD;
+        }
+        if (selected(inlier, i) && n_in++ == 0) first = i;
+    }
+    if (n_in == 0) return DQ_E_NO_INLIERS;
+    int rc;
+    if (n_in == 1) { /* its own estimate: no step to take */
+        for (int k = 0; k < 8; k++) out->mean[k] = z[8 * first + k];
+        out->status = DQ_FUSE_CONVERGED;
+        out->iterations = 0;
+    } else {
+        out->status = -1;
+        if ((rc = start(z, work, n, inlier, out->mean))) return rc;
+        if ((rc = solve(out->mean, z, work, n, inlier, p, &out->status, &out->iterations)))
+            return rc;
+    }
+    /* Everything at the returned mean: residuals of all (the inliers' are there after solve),
+     * information of the inliers. */
+    if (n_in == 1)
+        evaluate(out->mean, z, work, n, NULL, 1, W_R, W_E, W_SC);
+    else
+        evaluate(out->mean, z, work, n, inlier, 0, W_R, W_E, W_SC);
+    double H[36], g[6], L[36], di[6];
+    linearize(work, n, inlier, W_R, W_E, W_SC, H, g, 1);
+    if (!chol6(H, L, di)) return DQ_E_SINGULAR;
+    chol6_inverse(L, di, out->covariance);
+    double chi2 = 0.0;
+    for (size_t i = 0; i < n; i++) {
+        const double *m = work + W_PER * i;
+        const double *e = m + W_E;
+        double c = e[0] * e[0] + e[1] * e[1] + e[2] * e[2] + e[3] * e[3] + e[4] * e[4] + e[5] * e[5];
+        if (selected(inlier, i)) chi2 += c;
+        if (per->distances) per->distances[i] = sqrt(c);
+        if (per->residuals)
+            for (int k = 0; k < 6; k++) per->residuals[6 * i + k] = m[W_R + k];
+    }
+    out->chi2 = chi2;
+    if (!dq_finite8(out->mean) || !dq_finite_n(out->covariance, 36) || !(chi2 * 0.0 == 0.0))
+        return DQ_E_OVERFLOW;
+    if (per->nis && per->tested) {
+        /* A of the outliers too: linearize kept only the inliers'. */
+        for (size_t i = 0; i < n; i++) {
+            if (selected(inlier, i)) continue;
+            double *m = work + W_PER * i;
+            jl_inv(m + W_R, m[W_SC], m[W_SC + 1], m + W_A);
+        }
+        if ((rc = leave_one_out(cov, work, n, inlier, n_in, H, per->nis, per->tested))) return rc;
+        if (!dq_finite_n(per->nis, n)) return DQ_E_OVERFLOW;
+    }
+    return DQ_OK;
+}
