@@ -44,6 +44,7 @@ test: setup
 bench: setup
 	$(BIN)/python -m tests.bench.bench_core
 	$(BIN)/python -m tests.bench.bench_grpc
+	$(BIN)/python -m tests.bench.bench_fusion_core
 
 clean:
 	rm -rf $(VENV) build *.egg-info service/*.so service/rpc/_proto
