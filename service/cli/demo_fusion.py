@@ -163,7 +163,8 @@ def run(steps: int = 60, *, seed: int = 0, arm_sigma=(2e-3, 1e-3), noise: float 
     return Result(names + ("fused",), times, rot, trans)
 
 
-def report(result: Result, out=sys.stdout) -> None:
+def report(result: Result, out=None) -> None:
+    out = out or sys.stdout       # looked up now: the caller may have redirected it
     print(f"{'source':10s} {'views':>5s}  {'rotation error (deg)':>24s}  "
           f"{'translation error (mm)':>24s}", file=out)
     print(f"{'':10s} {'':5s}  {'median':>11s} {'RMS':>12s}  {'median':>11s} {'RMS':>12s}",
