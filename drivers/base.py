@@ -23,8 +23,17 @@ from service import dq
 
 @dataclass(frozen=True)
 class Measurement:
-    """One pose measurement. ``covariance`` is 6x6 in the tangent space at ``pose`` (rotation
-    first, radians then metres); when it is unknown, ``weight`` says how much to trust it."""
+    """One pose measurement, in the convention :func:`service.fusion.fuse` and the Fusion service
+    take.
+
+    ``pose`` is ``T_frame_body`` as a unit dual quaternion (a camera's ``T_camera_board``, an
+    arm's ``T_base_tool``); ``time`` is when it was taken, in seconds of ``time.time()`` (Unix
+    time), the one clock every driver stamps with. ``covariance`` is 6x6, row-major, **rotation
+    first** ``[wx wy wz vx vy vz]`` (radians, then metres), of a **right (body-frame)
+    perturbation** with the SE(3) exponential: the true pose is ``pose * Exp(xi)``,
+    ``xi ~ N(0, covariance)``, ``Exp`` = :func:`service.lie.se3_exp` (GTSAM's ``Pose3``
+    convention, ``retract`` = compose with ``Expmap``). When it is unknown (None), ``weight``
+    says how much to trust the pose: the covariance is then ``I / weight``."""
     source: str
     time: float
     pose: np.ndarray
@@ -89,7 +98,7 @@ class LimitError(ArmError):
 
 def _positive(name: str, v) -> float:
     if isinstance(v, bool) or not (isinstance(v, numbers.Real) and math.isfinite(v) and v > 0):
-        raise ValueError(f"limits.{name}: must be a positive finite number, got {v!r}")
+        raise ValueError(f"{name}: must be a positive finite number, got {v!r}")
     return float(v)
 
 
@@ -115,7 +124,7 @@ class Limits:
     def __post_init__(self):
         for name in ("max_linear_speed", "max_angular_speed", "max_linear_accel",
                      "max_angular_accel", "max_linear_step", "max_angular_step"):
-            object.__setattr__(self, name, _positive(name, getattr(self, name)))
+            object.__setattr__(self, name, _positive(f"limits.{name}", getattr(self, name)))
         try:
             lo, hi = np.asarray(self.workspace_min, float), np.asarray(self.workspace_max, float)
         except (TypeError, ValueError):
@@ -211,6 +220,14 @@ def tool_line(a: np.ndarray, b: np.ndarray, f: float) -> np.ndarray:
     return interpolate([0.0, 1.0], np.stack([a, b]), [float(f)], "tool_linear")[0]
 
 
+def pose_covariance(rotation_sigma: float, translation_sigma: float) -> np.ndarray:
+    """The isotropic 6x6 covariance ``diag(rs^2, rs^2, rs^2, ts^2, ts^2, ts^2)`` (rad, m) in the
+    :class:`Measurement` convention; each sigma positive and finite, else ``ValueError``."""
+    rs = _positive("rotation_sigma", rotation_sigma)
+    ts = _positive("translation_sigma", translation_sigma)
+    return np.diag([rs * rs] * 3 + [ts * ts] * 3)
+
+
 class Arm(abc.ABC):
     """An arm commanded in tool space.
 
@@ -224,10 +241,31 @@ class Arm(abc.ABC):
     #: controller period in seconds (servo commands are sent once per period)
     period: float = 0.008
     limits: Limits = Limits()
+    #: the source name of this arm's measurements
+    name: str = "arm"
+    #: (rotation rad, translation m): the 1-sigma per axis of a reported tool pose, the
+    #: covariance :meth:`measure` attaches. Each backend's default is its vendor's pose
+    #: repeatability (ISO 9283, taken as 3 sigma); an uncalibrated arm's absolute accuracy is
+    #: far worse (millimetres): set ``pose_sigma`` to it when fusing with other sources.
+    pose_sigma: tuple[float, float] = (1e-4, 1e-4)
 
     @abc.abstractmethod
     def tool_pose(self) -> tuple[float, np.ndarray]:
-        """(time in seconds, T_base_tool as a dual quaternion)."""
+        """(``time.time()`` in seconds when the pose was read, T_base_tool as a dual
+        quaternion)."""
+
+    def measure(self, covariance: Optional[np.ndarray] = None) -> Measurement:
+        """The tool pose as a :class:`Measurement` (source ``name``, the time it was read), with
+        ``covariance`` or, by default, the isotropic one of ``pose_sigma``."""
+        stamp, pose = self.tool_pose()
+        if covariance is None:
+            covariance = pose_covariance(*self.pose_sigma)
+        else:
+            covariance = np.asarray(covariance, dtype=np.float64)
+            if covariance.shape != (6, 6) or not np.all(np.isfinite(covariance)):
+                raise ValueError(f"covariance: expected a finite 6x6 matrix, got shape "
+                                 f"{covariance.shape}")
+        return Measurement(source=self.name, time=stamp, pose=pose, covariance=covariance)
 
     @abc.abstractmethod
     def servo(self, pose: np.ndarray) -> None:

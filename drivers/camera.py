@@ -11,11 +11,14 @@ and always returns the newest frame rather than a queue of old ones.
 Board frame: origin at the outer top-left chessboard corner (for a single marker: its centre),
 x along the squares, y down the board, z into the board.
 
-Covariance convention: right perturbation in the tangent space at the pose,
-``T_true = T_est * Exp(delta)`` with ``delta = (omega, v)``, rotation first (radians), then
-translation (metres), both in the board frame. It is ``s^2 (J^T J)^-1`` with ``J`` the Jacobian
-of the reprojected corners with respect to ``delta`` and ``s^2`` the residual variance per pixel
-coordinate (``sum r^2 / (2N - 6)``, floored at ``min_pixel_sigma^2``).
+Covariance convention: the fusion convention of :class:`drivers.base.Measurement`, a right
+(body-frame) perturbation with the SE(3) exponential, ``T_true = T_est * Exp(xi)``,
+``xi = (omega, v)``, rotation first (radians), then translation (metres), both in the board
+frame (GTSAM's ``Pose3``). It is ``s^2 (J^T J)^-1`` with ``J`` the Jacobian of the reprojected
+corners with respect to ``xi`` at 0 and ``s^2`` the residual variance per pixel coordinate
+(``sum r^2 / (2N - 6)``, floored at ``min_pixel_sigma^2``). OpenCV's Jacobian is with respect
+to its own parameters, the rotation vector and translation ``(rvec, tvec)``; :func:`pnp_chart`
+is the exact chain-rule factor from ``xi`` to them.
 """
 from __future__ import annotations
 
@@ -34,7 +37,7 @@ import numpy as np
 from drivers.base import Measurement, PoseSource
 from service import dq, lie
 
-__all__ = ["Intrinsics", "BoardSpec", "Detection", "Rejection", "CharucoCamera",
+__all__ = ["Intrinsics", "BoardSpec", "Detection", "Rejection", "CharucoCamera", "pnp_chart",
            "load_intrinsics", "load_board", "open_frames", "FolderFrames", "VideoFrames",
            "IMAGE_EXTENSIONS"]
 
@@ -368,6 +371,24 @@ def open_frames(source: Union[int, str]):
 
 
 # ---- the detector ------------------------------------------------------------------------------
+def pnp_chart(rvec) -> np.ndarray:
+    """``d(rvec, tvec) / d xi`` at ``xi = 0`` for ``T(rvec, tvec) * Exp(xi)``, 6x6.
+
+    With ``R = Exp(rvec)``, ``T * Exp(xi)`` has rotation ``R Exp(omega)`` and translation
+    ``t + R Jl(omega) v`` (the SE(3) exponential's translation is ``Jl(omega) v``). The rotation
+    vector of ``R Exp(omega)`` is ``rvec + Jr(rvec)^-1 omega`` to first order; ``Jl(omega) v`` is
+    ``v + O(|omega| |v|)``, so its derivative at 0 is ``R`` in ``v`` and 0 in ``omega``. Hence
+    ``[[Jr(rvec)^-1, 0], [0, R]]``: the SO(3) x R^3 right perturbation ``(R Exp(omega), t + R v)``
+    and the SE(3) one share their first derivative at the pose (they differ at second order),
+    and it is this factor, not the identity, between OpenCV's parameters and either.
+    """
+    w = np.asarray(rvec, dtype=np.float64).ravel()
+    J = np.zeros((6, 6))
+    J[:3, :3] = lie.so3_right_jacobian_inv(w)
+    J[3:, 3:] = cv2.Rodrigues(w)[0]
+    return J
+
+
 def _to_gray(image: np.ndarray) -> np.ndarray:
     img = np.asarray(image)
     if img.dtype != np.uint8:
@@ -531,8 +552,7 @@ class CharucoCamera(PoseSource):
         if float(tvec[2, 0]) <= 0:
             return Rejection("pnp_failed", "solution puts the board behind the camera", n)
         R, _ = cv2.Rodrigues(rvec)
-        # Chain rule to our right perturbation (omega, v): rvec moves by Jr^-1 omega, t by R v.
-        J_delta = np.hstack([J[:, 0:3] @ lie.so3_right_jacobian_inv(rvec.ravel()), J[:, 3:6] @ R])
+        J_delta = J[:, 0:6] @ pnp_chart(rvec)
         dof = max(2 * n - 6, 1)
         s2 = max(float(r @ r) / dof, self.min_pixel_sigma ** 2)
         try:

@@ -50,5 +50,18 @@ if __name__ == "__main__":
 def configure(name: str, p) -> None:
     p.description = ("Blend three measurements of one tool pose with every method, and follow a "
                      "screw motion from one pose to another: a first look at what dqpose "
-                     "computes, printed as positions (m), quaternions and angles (deg).")
-    p.set_defaults(func=lambda args: main() or 0)
+                     "computes, printed as positions (m), quaternions and angles (deg). "
+                     "`dqpose demo fusion`: two simulated cameras and a simulated UR holding a "
+                     "board, fused live through the Fusion service; prints each source's error "
+                     "and the fused one's against the ground truth and plots them over time.")
+    p.add_argument("mode", nargs="?", choices=("blend", "fusion"), default="blend",
+                   help="blend (default): the blending methods; fusion: live pose fusion")
+    from service.cli import demo_fusion
+    demo_fusion.add_arguments(p)
+
+    def run(args) -> int:
+        if args.mode == "fusion":
+            return demo_fusion.main(args)
+        main()
+        return 0
+    p.set_defaults(func=run)

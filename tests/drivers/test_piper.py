@@ -611,3 +611,13 @@ def test_malformed_status_frames_counted_and_skipped(arm, sim, bus_factory):
     assert arm.status().ok and not arm.status().emergency_stop
     sim.emergency_stop()            # and well-formed reports still get through
     assert wait_until(lambda: arm.status().emergency_stop)
+
+
+def test_measure_is_the_tool_pose_with_its_time_and_covariance(arm, sim):
+    m = arm.measure()
+    assert m.source == "piper"
+    assert abs(m.time - time.time()) < 5.0
+    d, a = _delta(m.pose, sim.pose)
+    assert d <= POS_Q and a <= ANG_Q
+    rs, ts = PiperArm.pose_sigma
+    assert np.allclose(m.covariance, np.diag([rs * rs] * 3 + [ts * ts] * 3))

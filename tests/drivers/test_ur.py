@@ -251,3 +251,26 @@ def test_bad_arguments():
         Limits(max_linear_speed=-1)
     with pytest.raises(ValueError, match="^limits.workspace_min:"):
         Limits(workspace_min=(0, 0, 2), workspace_max=(1, 1, 1))
+
+
+def test_measure_is_the_tool_pose_with_its_time_and_covariance(arm, home):
+    before = time.time()
+    m = arm.measure()
+    after = time.time()
+    assert m.source == "ur"
+    assert before <= m.time <= after     # time.time(), the clock every driver stamps with
+    assert np.allclose(rotvec_from_pose(m.pose), home, atol=1e-12)
+    rs, ts = URArm.pose_sigma
+    assert np.allclose(m.covariance, np.diag([rs * rs] * 3 + [ts * ts] * 3))
+    arm.pose_sigma = (1e-3, 2e-3)        # e.g. the absolute accuracy of an uncalibrated arm
+    try:
+        assert np.allclose(np.diag(arm.measure().covariance), [1e-6] * 3 + [4e-6] * 3)
+        C = np.diag(np.arange(1.0, 7.0))
+        assert np.array_equal(arm.measure(C).covariance, C)
+        with pytest.raises(ValueError, match="covariance: expected a finite 6x6"):
+            arm.measure(np.eye(3))
+        arm.pose_sigma = (0.0, 1e-3)
+        with pytest.raises(ValueError, match="rotation_sigma: must be a positive"):
+            arm.measure()
+    finally:
+        del arm.pose_sigma
