@@ -121,13 +121,12 @@ def _unit(rng) -> np.ndarray:
 
 def corrupt(rng, kind: str, X: np.ndarray, Z: np.ndarray) -> np.ndarray:
     """A gross error of ``kind`` replacing measurement ``Z`` of the truth ``X``."""
-    q, t = dq.to_pose(X)
+    t = dq.to_pose(X)[1]
     if kind == "wrong marker":  # another marker in the workspace
         return _random_pose_near(rng, t, 0.2)
-    R = dq.to_matrix(X)[:3, :3]
     if kind == "flipped PnP":  # 180 deg about a horizontal world axis through the body
         phi = rng.uniform(0.0, 2.0 * np.pi)
-        axis_body = R.T @ np.array([np.cos(phi), np.sin(phi), 0.0])
+        axis_body = dq.to_matrix(Z)[:3, :3].T @ np.array([np.cos(phi), np.sin(phi), 0.0])
         return dq.mul(Z, lie.se3_exp(np.r_[np.pi * axis_body, 0.0, 0.0, 0.0]))
     if kind == "stale arm":  # where the body was before it was put down here
         turn = np.deg2rad(rng.uniform(5.0, 30.0)) * _unit(rng)
@@ -137,9 +136,10 @@ def corrupt(rng, kind: str, X: np.ndarray, Z: np.ndarray) -> np.ndarray:
     raise ValueError(f"kind: unknown outlier kind {kind!r}")
 
 
-def make_trial(rng, profs, n_cameras: int, fraction: float) -> Trial:
-    """One scene: ``n_cameras`` cameras and the arm see the body once each; ``fraction`` of the
-    measurements (stochastically rounded per trial) become gross outliers."""
+def make_trial(rng, rng_outliers, profs, n_cameras: int, fraction: float) -> Trial:
+    """One scene drawn from ``rng``: ``n_cameras`` cameras and the arm see the body once each;
+    ``fraction`` of the measurements (stochastically rounded per trial) become gross outliers,
+    drawn from ``rng_outliers`` (so the fraction does not change the scenes)."""
     X = dq.from_pose(_random_rotation(rng), rng.uniform(-0.2, 0.2, 3) + [0.0, 0.0, 0.1])
     R = dq.to_matrix(X)[:3, :3]
     use = list(profs[:n_cameras]) + [p for p in profs if p.name == ARM]
@@ -154,13 +154,12 @@ def make_trial(rng, profs, n_cameras: int, fraction: float) -> Trial:
     xi = np.array([rng.multivariate_normal(np.zeros(6), s) for s in S])
     clean = dq.mul(X, lie.se3_exp(-xi))
     n = len(use)
-    k = int(np.floor(fraction * n + rng.uniform()))
-    bad = rng.choice(n, k, replace=False)
+    k = int(np.floor(fraction * n + rng_outliers.uniform()))
+    bad = rng_outliers.choice(n, k, replace=False)
     Z, kinds = clean.copy(), [""] * n
     for i in bad:
-        kinds[i] = ("stale arm" if use[i].name == ARM
-                    else KINDS[int(rng.integers(2))])
-        Z[i] = corrupt(rng, kinds[i], X, clean[i])
+        kinds[i] = "stale arm" if use[i].name == ARM else KINDS[int(rng_outliers.integers(2))]
+        Z[i] = corrupt(rng_outliers, kinds[i], X, clean[i])
     outlier = np.zeros(n, dtype=bool)
     outlier[bad] = True
     return Trial(X, Z, clean, S, tuple(p.name for p in use), outlier, tuple(kinds))
@@ -168,10 +167,10 @@ def make_trial(rng, profs, n_cameras: int, fraction: float) -> Trial:
 
 def trials(seed: int, n: int, fraction: float) -> list[Trial]:
     """``n`` trials of one outlier fraction; the same seed gives the same bodies and noise for
-    every fraction until the outliers are drawn."""
+    every fraction, so the outlier-free run is the clean version of the others."""
     profs = profiles()
-    rng = np.random.default_rng(seed)
-    return [make_trial(rng, profs, 2 + k % 3, fraction) for k in range(n)]
+    rng, rng_outliers = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(2))
+    return [make_trial(rng, rng_outliers, profs, 2 + k % 3, fraction) for k in range(n)]
 
 
 def sigmas_off(Z: np.ndarray, X: np.ndarray, S: np.ndarray) -> np.ndarray:
@@ -405,7 +404,7 @@ def plot(path, methods, results):
                                             ("trans", "translation error (mm)"))):
             ax = axes[row, col]
             data = [np.maximum(getattr(res[m], attr), 1e-4) for m in shown]
-            ax.boxplot(data, vert=False, whis=(5, 95), showfliers=False)
+            ax.boxplot(data, orientation="horizontal", whis=(5, 95), showfliers=False)
             ax.set_xscale("log")
             ax.set_yticks(range(1, len(shown) + 1), shown, fontsize=8)
             ax.invert_yaxis()
