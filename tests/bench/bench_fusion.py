@@ -196,44 +196,17 @@ def nees(X_hat: np.ndarray, P: np.ndarray, X: np.ndarray) -> float:
 # ---- peers -------------------------------------------------------------------------------------
 def _gtsam():
     try:
-        import gtsam
-        return gtsam
+        from tests import _gtsam
+        return _gtsam
     except ImportError:
         return None
 
 
-def gtsam_graph(gtsam, Z, S):
-    # smart=False: GTSAM's default drops the off-diagonal entries of a covariance whose
-    # off-diagonals are all tiny in absolute value (see ../shared/notes/fusion.md).
-    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    for z, s in zip(Z, S):
-        graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(dq.to_matrix(z)),
-                                         gtsam.noiseModel.Gaussian.Covariance(s, False)))
-    values.insert(0, gtsam.Pose3(dq.to_matrix(Z[0])))
-    return graph, values
-
-
-def gtsam_fuse(gtsam, Z, S):
-    """What a GTSAM user runs: priors, LM (tight tolerances), the marginal."""
-    graph, values = gtsam_graph(gtsam, Z, S)
-    p = gtsam.LevenbergMarquardtParams()
-    p.setRelativeErrorTol(1e-16)
-    p.setAbsoluteErrorTol(1e-16)
-    p.setMaxIterations(500)
-    result = gtsam.LevenbergMarquardtOptimizer(graph, values, p).optimize()
-    P = gtsam.Marginals(graph, result).marginalCovariance(0)
-    return graph, result, dq.from_matrix(result.atPose3(0).matrix()), P
-
-
-def gtsam_optimum(gtsam, graph, result):
-    """LM stops ~1e-8 rad short on these flat optima; GTSAM's own Gauss-Newton steps finish."""
-    for _ in range(200):
-        delta = graph.linearize(result).optimize()
-        result = result.retract(delta)
-        if np.linalg.norm(delta.at(0)) < 1e-13:
-            break
-    return (dq.from_matrix(result.atPose3(0).matrix()),
-            gtsam.Marginals(graph, result).marginalCovariance(0))
+def gtsam_fuse(ref, Z, S):
+    """What a GTSAM user runs: priors, LM started at the first measurement, the marginal."""
+    graph, values = ref.priors(Z, S)
+    result = ref.lm(graph, values)
+    return graph, result, ref.pose(result), ref.marginal(graph, result)
 
 
 def naive(Rotation, Z):
@@ -260,7 +233,7 @@ def _timed(fn):
 def run(seed: int, n: int):
     """Every method on every trial of every fraction; returns results and the checks."""
     from scipy.spatial.transform import Rotation
-    gtsam = _gtsam()
+    ref = _gtsam()
     methods = list(CAMERAS) + [ARM, "DLB (1/trace)", "DIB (1/trace)", "ours ML", "ours robust",
                                 "GTSAM LM + marginals", "naive (mean t + Rotation.mean)"]
     results = {}
@@ -293,11 +266,12 @@ def run(seed: int, n: int):
             add("ours ML", f.mean, f.covariance, s)
             fr, s = _timed(lambda: fusion.fuse(tr.Z, tr.S, names=tr.names, robust=True))
             add("ours robust", fr.mean, fr.covariance, s)
-            if gtsam is not None:
-                (graph, result, Xg, Pg), s = _timed(lambda: gtsam_fuse(gtsam, tr.Z, tr.S))
+            if ref is not None:
+                (graph, result, Xg, Pg), s = _timed(lambda: gtsam_fuse(ref, tr.Z, tr.S))
                 add("GTSAM LM + marginals", Xg, Pg, s)
                 if fraction == 0.0:
-                    Xo, Po = gtsam_optimum(gtsam, graph, result)
+                    optimum = ref.finish(graph, result)
+                    Xo, Po = ref.pose(optimum), ref.marginal(graph, optimum)
                     dev = float(np.linalg.norm(lie.se3_log(dq.mul(dq.conj(f.mean), Xo))))
                     checks["dev_pose"] = max(checks["dev_pose"], dev)
                     checks["dev_cov"] = max(checks["dev_cov"], float(
@@ -325,7 +299,7 @@ def run(seed: int, n: int):
         results[fraction] = res
         robust_info[fraction] = dict(oracle=oracle, gross=gross, rejected_gross=rejected_gross,
                                      false_rej=false_rej, n_out=n_out, n_meas=n_meas)
-    return methods, results, checks, robust_info, gtsam is not None
+    return methods, results, checks, robust_info, ref is not None
 
 
 def _fmt_s(s):
