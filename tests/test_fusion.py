@@ -7,6 +7,7 @@ from service import dq, fusion, lie
 from service.fusion import Source, Status, Verdict
 
 gtsam = pytest.importorskip("gtsam")
+from tests import _gtsam  # noqa: E402  (needs gtsam)
 
 
 # ---- scenes ------------------------------------------------------------------------------------
@@ -37,29 +38,9 @@ def nees(f, X):
 
 
 def gtsam_fuse(Z, S, start=None):
-    # smart=False: GTSAM's default takes a covariance whose off-diagonal entries are all below
-    # 1e-9 in absolute value for a diagonal one and drops them (a tiny covariance loses its
-    # correlations).
-    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    for z, s in zip(Z, S):
-        graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(dq.to_matrix(z)),
-                                         gtsam.noiseModel.Gaussian.Covariance(s, False)))
-    values.insert(0, gtsam.Pose3(dq.to_matrix(Z[0] if start is None else start)))
-    p = gtsam.LevenbergMarquardtParams()
-    p.setRelativeErrorTol(1e-16)
-    p.setAbsoluteErrorTol(1e-16)
-    p.setMaxIterations(500)
-    result = gtsam.LevenbergMarquardtOptimizer(graph, values, p).optimize()
-    # LM (and GTSAM's Gauss-Newton optimizer) stop when the error stops decreasing in float64,
-    # which on these flat optima leaves the pose up to ~1e-8 rad off (its gradient is not zero
-    # there). GTSAM's own linearisation and step, iterated until the step is below 1e-13, finish it.
-    for _ in range(200):
-        delta = graph.linearize(result).optimize()
-        result = result.retract(delta)
-        if np.linalg.norm(delta.at(0)) < 1e-13:
-            break
-    return (dq.from_matrix(result.atPose3(0).matrix()),
-            gtsam.Marginals(graph, result).marginalCovariance(0), 2.0 * graph.error(result))
+    graph, values = _gtsam.priors(Z, S, start)
+    result = _gtsam.finish(graph, _gtsam.lm(graph, values))
+    return _gtsam.pose(result), _gtsam.marginal(graph, result), 2.0 * graph.error(result)
 
 
 def assert_matches_gtsam(Z, S, start=None):
