@@ -45,6 +45,7 @@ bench: setup
 	$(BIN)/python -m tests.bench.bench_core
 	$(BIN)/python -m tests.bench.bench_grpc
 	$(BIN)/python -m tests.bench.bench_fusion_core
+	$(BIN)/python -m tests.bench.bench_fusion
 
 clean:
 	rm -rf $(VENV) build *.egg-info service/*.so service/rpc/_proto

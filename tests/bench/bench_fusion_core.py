@@ -71,11 +71,9 @@ def c_core(Z, S, samples: int):
 
 
 def gtsam_fuse(gtsam, Z, S, params):
-    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    for z, s in zip(Z, S):
-        graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(dq.to_matrix(z)),
-                                         gtsam.noiseModel.Gaussian.Covariance(s, False)))
-    values.insert(0, gtsam.Pose3(dq.to_matrix(Z[0])))
+    from tests._gtsam import priors
+
+    graph, values = priors(Z, S)
     result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
     return result.atPose3(0).matrix(), gtsam.Marginals(graph, result).marginalCovariance(0)
 
