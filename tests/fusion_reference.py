@@ -4,7 +4,8 @@ is tested against. The same math, written with :mod:`service.lie`'s vectorised J
 * ``r_i = Log(X⁻¹ Z_i)``, Jacobian ``-Jl⁻¹(r_i)``, cost ``Σ r_iᵀ W_i r_i`` over the inliers,
   ``W_i = Σ_i⁻¹``;
 * Gauss–Newton from the DIB mean weighted by ``det(W_i)^(1/6)``, a step that raises the cost by
-  more than 1e-12 (relative) halved up to 30 times, until a step is shorter than ``tol``;
+  more than 1e-12 (relative) halved up to 30 times, until a step is shorter than ``tol`` (that
+  step is not taken: the point it was computed at is the optimum to within ``tol``);
 * at the optimum: the information ``H = Σ Aᵢᵀ Wᵢ Aᵢ`` (``A = Jl⁻¹(r)``) and each measurement's
   leave-one-out NIS against the fit of the other inliers.
 """
@@ -48,6 +49,8 @@ def _solve(Z, W, start, tol, max_iter):
         g = np.einsum("nij,nj->i", AtW, r)
         delta = np.linalg.solve(H, g)
         step = float(np.linalg.norm(delta))
+        if step < tol:
+            return X, 0, it
         for _ in range(MAX_HALVINGS):
             X_new = dq.normalize(dq.mul(X, lie.se3_exp(delta)))
             r_new, cost_new = _evaluate(X_new, Z, W)
@@ -57,7 +60,7 @@ def _solve(Z, W, start, tol, max_iter):
             delta = 0.5 * delta
             step *= 0.5
         X, r, total = X_new, r_new, total_new
-        if step < tol:
+        if step < tol:  # halved below tol: the line search found no lower cost
             return X, 0, it
     return X, 1, max_iter
 

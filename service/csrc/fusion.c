@@ -76,7 +76,8 @@ static void upper_solve(const double *L, const double *di, const double *b, doub
 }
 
 /* B = L^-1 M for a 6x6 M, row by row (each row a whole 6-vector, which vectorises). */
-static void lower_solve_matrix(const double *L, const double *di, const double *M, double *B)
+static void lower_solve_matrix(const double *L, const double *di, const double *M,
+                               double *restrict B)
 {
     for (int i = 0; i < 6; i++) {
         double row[6];
@@ -90,7 +91,8 @@ static void lower_solve_matrix(const double *L, const double *di, const double *
 }
 
 /* B = L^-1 A for A = Jl^-1 = [[J, 0], [M, J]]: B's upper-right 3x3 block stays zero. */
-static void whiten_jacobian(const double *L, const double *di, const double *A, double *B)
+static void whiten_jacobian(const double *L, const double *di, const double *A,
+                            double *restrict B)
 {
     for (int i = 0; i < 3; i++) {
         double row[3] = {A[6 * i], A[6 * i + 1], A[6 * i + 2]};
@@ -113,7 +115,7 @@ static void whiten_jacobian(const double *L, const double *di, const double *A, 
 }
 
 /* G += B^T B (upper triangle) for B from whiten_jacobian: its first three rows end in zeros. */
-static void add_gram_whitened(const double *B, double *G)
+static void add_gram_whitened(const double *restrict B, double *restrict G)
 {
     for (int k = 0; k < 3; k++)
         for (int i = 0; i < 3; i++) {
@@ -128,7 +130,7 @@ static void add_gram_whitened(const double *B, double *G)
 }
 
 /* G += B^T B (symmetric: the upper triangle, then mirrored by the caller via mirror6). */
-static void add_gram(const double *B, double *G)
+static void add_gram(const double *restrict B, double *restrict G)
 {
     for (int k = 0; k < 6; k++)
         for (int i = 0; i < 6; i++) {
@@ -180,7 +182,7 @@ static const double D_SERIES[8] = {1.0 / 12, 1.0 / 720, 1.0 / 30240, 1.0 / 12096
                                    1.0 / 47900160, 691.0 / 1307674368000.0,
                                    1.0 / 74724249600.0, 3617.0 / 10670622842880000.0};
 
-static inline void mul3(const double *a, const double *b, double *c)
+static inline void mul3(const double *a, const double *b, double *restrict c)
 {
     for (int i = 0; i < 3; i++)
         for (int j = 0; j < 3; j++)
@@ -197,7 +199,7 @@ static inline void hat3(const double *w, double *K)
 /* Jl^-1(xi) = [[Ji, 0], [-Ji Q Ji, Ji]] with Ji = I - w^/2 + D w^2 and Q Barfoot's eq. 7.86 (the
  * formulas of service/lie.py). s2, ch are the squared sine and the cosine of half the rotation
  * angle, from the quaternion xi came from, so no trigonometric call is needed. */
-static inline void jl_inv(const double *xi, double s2, double ch, double *J)
+static inline void jl_inv(const double *xi, double s2, double ch, double *restrict J)
 {
     const double *w = xi, *v = xi + 3;
     double t2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
@@ -281,16 +283,18 @@ static double evaluate(const double *X, const double *z, double *work, size_t n,
 }
 
 /* The information H (full) and the gradient g = sum B^T e over `use`, from r, e, sc at ro, eo,
- * so; each measurement's A = Jl^-1(r) and own = B^T B (upper triangle) kept when keep. */
+ * so; each measurement's A = Jl^-1(r) is kept in its workspace (the leave-one-out statistics
+ * need it at the optimum, and which linearisation is the last one is known only after its step
+ * is solved). */
 static void linearize(double *work, size_t n, const unsigned char *use, int ro, int eo, int so,
-                      double *H, double *g, int keep)
+                      double *H, double *g)
 {
     for (int k = 0; k < 36; k++) H[k] = 0.0;
     for (int k = 0; k < 6; k++) g[k] = 0.0;
     for (size_t i = 0; i < n; i++) {
         if (!selected(use, i)) continue;
-        double *m = work + W_PER * i;
-        double A[36], B[36];
+        double *m = work + W_PER * i, *A = m + W_A;
+        double B[36];
         jl_inv(m + ro, m[so], m[so + 1], A);
         whiten_jacobian(m + W_L, m + W_DI, A, B);
         const double *e = m + eo;
@@ -299,34 +303,39 @@ static void linearize(double *work, size_t n, const unsigned char *use, int ro, 
             for (int k = 0; k < 6; k++) s += B[6 * k + c] * e[k];
             g[c] += s;
         }
-        if (keep) {
-            for (int k = 0; k < 36; k++) m[W_A + k] = A[k];
-            for (int k = 0; k < 36; k++) m[W_OWN + k] = 0.0;
-            add_gram_whitened(B, m + W_OWN);
-            for (int k = 0; k < 36; k++) H[k] += m[W_OWN + k];
-        } else {
-            add_gram_whitened(B, H);
-        }
+        add_gram_whitened(B, H);
     }
     mirror6(H);
 }
 
 /* Gauss-Newton from X over the selected measurements (see fusion.h); X is updated in place and
- * the selected measurements' r, e, sc at it are left in the W_R, W_E, W_SC slots. */
+ * the selected measurements' r, e, sc at it are left in the W_R, W_E, W_SC slots. A step shorter
+ * than tol is not taken: the point it was computed at is the optimum to within tol, and its
+ * linearisation (H, and each measurement's A) is the one at X. *current says whether H
+ * is at the returned X (not so when the step limit or a line search ended the loop). */
 static int solve(double *X, const double *z, double *work, size_t n, const unsigned char *use,
-                 const dq_fuse_params *p, int *status, int *iterations)
+                 const dq_fuse_params *p, int *status, int *iterations, double *H, int *current)
 {
     /* The current point's r, e, sc and a trial point's swap between two slots. */
     int ro = W_R, eo = W_E, so = W_SC, rt = W_R2, et = W_E2, st = W_SC2;
     double total = evaluate(X, z, work, n, use, 1, ro, eo, so);
+    *current = 0;
+    *status = DQ_FUSE_MAX_ITERATIONS;
+    *iterations = p->max_iter;
     for (int it = 1; it <= p->max_iter; it++) {
-        double H[36], g[6], L[36], di[6], delta[6], Xn[8];
-        linearize(work, n, use, ro, eo, so, H, g, 0);
+        double g[6], L[36], di[6], delta[6], Xn[8];
+        linearize(work, n, use, ro, eo, so, H, g);
         if (!chol6(H, L, di)) return DQ_E_SINGULAR;
         lower_solve(L, di, g, delta);
         upper_solve(L, di, delta, delta);
         double step = sqrt(delta[0] * delta[0] + delta[1] * delta[1] + delta[2] * delta[2] +
                            delta[3] * delta[3] + delta[4] * delta[4] + delta[5] * delta[5]);
+        if (step < p->tol) {
+            *status = DQ_FUSE_CONVERGED;
+            *iterations = it;
+            *current = 1;
+            break;
+        }
         double total_new = total;
         for (int h = 0; h < MAX_HALVINGS; h++) {
             double half[6], E[8], P[8];
@@ -345,15 +354,11 @@ static int solve(double *X, const double *z, double *work, size_t n, const unsig
         t = eo; eo = et; et = t;
         t = so; so = st; st = t;
         total = total_new;
-        if (step < p->tol) {
+        if (step < p->tol) { /* halved below tol: the line search found no lower cost */
             *status = DQ_FUSE_CONVERGED;
             *iterations = it;
             break;
         }
-    }
-    if (*status != DQ_FUSE_CONVERGED) {
-        *status = DQ_FUSE_MAX_ITERATIONS;
-        *iterations = p->max_iter;
     }
     if (ro != W_R)
         for (size_t i = 0; i < n; i++) {
@@ -397,8 +402,8 @@ static int start(const double *z, double *work, size_t n, const unsigned char *u
     return dq_finite8(X) ? DQ_OK : DQ_E_OVERFLOW;
 }
 
-/* NIS of every measurement against the fit of the other inliers (fusion.h), from the A, own,
- * r, e kept by the final linearisation and the information H of all inliers. */
+/* NIS of every measurement against the fit of the other inliers (fusion.h), from the A, r, e
+ * kept by the final linearisation and the information H of all inliers. */
 static int leave_one_out(const double *cov, double *work, size_t n, const unsigned char *use,
                          size_t n_in, const double *H, double *nis, unsigned char *tested)
 {
@@ -409,8 +414,13 @@ static int leave_one_out(const double *cov, double *work, size_t n, const unsign
     for (size_t i = 0; i < n; i++) {
         double *m = work + W_PER * i;
         for (int k = 0; k < 36; k++) m[W_PRE + k] = acc[k];
-        if (selected(use, i))
+        if (selected(use, i)) { /* own = B^T B, B = L^-1 A: the measurement's information */
+            double B[36];
+            whiten_jacobian(m + W_L, m + W_DI, m + W_A, B);
+            for (int k = 0; k < 36; k++) m[W_OWN + k] = 0.0;
+            add_gram_whitened(B, m + W_OWN);
             for (int k = 0; k < 36; k++) acc[k] += m[W_OWN + k];
+        }
     }
     for (int k = 0; k < 36; k++) acc[k] = 0.0; /* now the sum after j */
     for (size_t jj = n; jj-- > 0;) {
@@ -471,25 +481,25 @@ int dq_fuse(const double *z, const double *cov, const unsigned char *inlier, siz
         if (selected(inlier, i) && n_in++ == 0) first = i;
     }
     if (n_in == 0) return DQ_E_NO_INLIERS;
-    int rc;
+    int rc, current = 0;
+    double H[36], g[6], L[36], di[6];
     if (n_in == 1) { /* its own estimate: no step to take */
         for (int k = 0; k < 8; k++) out->mean[k] = z[8 * first + k];
         out->status = DQ_FUSE_CONVERGED;
         out->iterations = 0;
     } else {
-        out->status = -1;
         if ((rc = start(z, work, n, inlier, out->mean))) return rc;
-        if ((rc = solve(out->mean, z, work, n, inlier, p, &out->status, &out->iterations)))
+        if ((rc = solve(out->mean, z, work, n, inlier, p, &out->status, &out->iterations, H,
+                        &current)))
             return rc;
     }
     /* Everything at the returned mean: residuals of all (the inliers' are there after solve),
-     * information of the inliers. */
+     * information of the inliers (already there when solve's last linearisation was at it). */
     if (n_in == 1)
         evaluate(out->mean, z, work, n, NULL, 1, W_R, W_E, W_SC);
     else
         evaluate(out->mean, z, work, n, inlier, 0, W_R, W_E, W_SC);
-    double H[36], g[6], L[36], di[6];
-    linearize(work, n, inlier, W_R, W_E, W_SC, H, g, 1);
+    if (!current) linearize(work, n, inlier, W_R, W_E, W_SC, H, g);
     if (!chol6(H, L, di)) return DQ_E_SINGULAR;
     chol6_inverse(L, di, out->covariance);
     double chi2 = 0.0;

@@ -9,8 +9,9 @@
  *
  * dq_fuse starts at the DIB mean (dq_dib) of the inliers, weighted by det(S_i^-1)^(1/6), and takes
  * Gauss-Newton steps X <- X Exp(d), halving a step that raises the cost, until a step is shorter
- * than tol. The covariance is the inverse of the information sum_i Jl^-T S_i^-1 Jl^-1 at the
- * optimum (GTSAM's marginal). Every measurement, inlier or not, gets its residual, Mahalanobis
+ * than tol (that step is not taken: X is the optimum to within tol, and the information the step
+ * was solved with is the one at X). The covariance is the inverse of the information
+ * sum_i Jl^-T S_i^-1 Jl^-1 at the optimum (GTSAM's marginal). Every measurement, inlier or not, gets its residual, Mahalanobis
  * distance and leave-one-out NIS at the optimum (see dq_fuse).
  *
  * Nothing here allocates or touches Python; the caller validates the poses (unit) and passes
