@@ -574,8 +574,15 @@ def test_running_move_ends_on_collision(arm, sim):
     threading.Timer(0.15, sim.collide).start()
     with pytest.raises(ArmError, match=r"move: not sent, the PiPER reports collision"):
         arm.move(dq.from_pose(q0, t0 + [0.05, 0, 0]), speed=0.2, accel=1.0, timeout=5.0)
+    # a frame sent just before the collision was seen may still be on the (multicast) bus: let
+    # the count settle, then nothing more may arrive; a driver still streaming never settles
+    def settled(quiet=0.1):
+        before = len(end_poses(sim))
+        time.sleep(quiet)
+        return len(end_poses(sim)) == before
+    assert wait_until(settled, timeout=2.0)
     sent = len(end_poses(sim))
-    time.sleep(0.05)
+    time.sleep(0.2)
     assert len(end_poses(sim)) == sent
     assert sim.target is None
 
