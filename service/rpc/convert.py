@@ -441,43 +441,78 @@ def _optional_pose(msg, name: str, where: str) -> np.ndarray | None:
                           f"{where}.{name}")
 
 
+DEFAULT_MAX_EXTRAPOLATION = 0.1
+DEFAULT_WINDOW = 0.2
+
+
 class Options(NamedTuple):
-    """``FusionOptions`` as the domain's arguments."""
+    """``FusionOptions`` as the domain's arguments (:meth:`fuse_kwargs` those of
+    :func:`fusion.fuse` and :class:`fusion.Tracker`)."""
     robust: bool
     time: float                      # 0: the newest measurement's
     sources: tuple[fusion.Source, ...]
     probability: float
+    max_skew: float | None = None
+    max_extrapolation: float | None = DEFAULT_MAX_EXTRAPOLATION
+    window: float = 0.0              # 0: DEFAULT_WINDOW (StreamFuse)
+    twist_covariance: np.ndarray | None = None
+
+    def fuse_kwargs(self) -> dict:
+        return dict(sources=self.sources, robust=self.robust, probability=self.probability,
+                    max_skew=self.max_skew, max_extrapolation=self.max_extrapolation,
+                    twist_covariance=self.twist_covariance)
 
 
 def options_from_msg(options, field: str = "options") -> Options:
-    """``FusionOptions`` to :class:`Options`. Frames are converted here; the domain checks the
-    rest of the sources (names, duplicates) when it fuses."""
-    # Time alignment (latency, max_skew) is not in service.fusion yet: refuse what would be
-    # silently ignored.
-    if options.max_skew:
-        raise FieldError(f"{field}.max_skew: time alignment is not available yet; leave it 0")
+    """``FusionOptions`` to :class:`Options`: frames converted and the proto's zeros turned into
+    the domain's defaults here; the domain checks the rest (names, duplicates, signs, the twist
+    prior) and its errors are renamed to these fields."""
     sources = []
     for k, s in enumerate(options.sources):
         where = f"{field}.sources[{k}]"
-        if s.latency:
-            raise FieldError(f"{where}.latency: time alignment is not available yet; leave it 0")
         sources.append(fusion.Source(s.name, _optional_pose(s, "extrinsic", where),
-                                     _optional_pose(s, "body_offset", where)))
+                                     _optional_pose(s, "body_offset", where), s.latency,
+                                     s.latency_sigma or None))
     if not math.isfinite(options.time):
         raise FieldError(f"{field}.time: must be finite, got {options.time!r}")
     p = options.probability or DEFAULT_PROBABILITY
     if not 0.0 < p < 1.0:
         raise FieldError(f"{field}.probability: must be within (0, 1) (0 means "
                          f"{DEFAULT_PROBABILITY}), got {options.probability!r}")
-    return Options(bool(options.robust), float(options.time), tuple(sources), p)
+    k = len(options.twist_covariance)
+    if k not in (0, COVARIANCE_SIZE):
+        raise FieldError(f"{field}.twist_covariance: expected {COVARIANCE_SIZE} values (6x6, "
+                         f"row-major, rotation first) or none, got {k}")
+    extrapolation = options.max_extrapolation or DEFAULT_MAX_EXTRAPOLATION
+    return Options(
+        bool(options.robust), float(options.time), tuple(sources), p,
+        max_skew=options.max_skew or None,
+        max_extrapolation=None if extrapolation == math.inf else extrapolation,
+        window=options.window,
+        twist_covariance=np.array(options.twist_covariance, dtype=np.float64).reshape(
+            fusion.DOF, fusion.DOF) if k else None)
 
 
-def options_msg(robust: bool = False, time: float = 0.0, sources=(), probability: float = 0.0):
-    """``FusionOptions`` from the domain's arguments (``sources``: :class:`fusion.Source`)."""
+def options_msg(robust: bool = False, time: float = 0.0, sources=(), probability: float = 0.0,
+                max_skew: float | None = None,
+                max_extrapolation: float | None = DEFAULT_MAX_EXTRAPOLATION,
+                window: float = 0.0, twist_covariance=None):
+    """``FusionOptions`` from the domain's arguments (``sources``: :class:`fusion.Source`;
+    ``max_extrapolation`` None: unbounded)."""
     msg = fpb.FusionOptions(robust=bool(robust), time=float(time),
-                            probability=float(probability or 0.0))
+                            probability=float(probability or 0.0),
+                            max_skew=float(max_skew or 0.0),
+                            max_extrapolation=math.inf if max_extrapolation is None
+                            else float(max_extrapolation),
+                            window=float(window or 0.0))
+    if twist_covariance is not None:
+        c = np.asarray(twist_covariance, dtype=np.float64)
+        if c.shape != (fusion.DOF, fusion.DOF):
+            raise ValueError(f"twist_covariance: expected shape (6, 6), got {c.shape}")
+        msg.twist_covariance.extend(c.ravel().tolist())
     for s in sources or ():
-        out = msg.sources.add(name=s.name)
+        out = msg.sources.add(name=s.name, latency=float(s.latency),
+                              latency_sigma=float(s.latency_sigma or 0.0))
         if s.extrinsic is not None:
             dq_to_pose(np.asarray(s.extrinsic, dtype=np.float64), out.extrinsic)
         if s.body_offset is not None:
@@ -570,12 +605,23 @@ def fused_to_msg(f: fusion.Fused, body: str, time: float, out=None):
     for s in f.sources:
         msg.sources.add(name=s.name, count=s.count, rejected=s.rejected, nis_mean=s.nis_mean,
                         low=s.low, high=s.high, verdict=int(s.verdict))
+    for d in f.dropped:
+        msg.dropped.add(index=d.index, source=d.source, age=d.age, reason=d.reason)
+    if f.twist is not None:
+        msg.twist.extend(f.twist.tolist())
+        msg.twist_covariance.extend(f.twist_covariance.ravel().tolist())
+    msg.extrapolation = f.extrapolation
+    for a in f.latencies:
+        msg.latencies.add(source=a.name, configured=a.configured, prior_sigma=a.prior_sigma,
+                          value=a.value, sigma=a.sigma)
     return msg
 
 
-def fused_from_msg(msg, probability: float = DEFAULT_PROBABILITY) -> fusion.Fused:
+def fused_from_msg(msg, probability: float = DEFAULT_PROBABILITY,
+                   max_skew: float | None = None) -> fusion.Fused:
     """A ``FusedPose`` back into the :class:`fusion.Fused` it was made from (client side);
-    ``probability`` is the request's (the gate of each rejection)."""
+    ``probability`` and ``max_skew`` are the request's (the gate of each rejection, the bound
+    of each drop)."""
     p, o = msg.pose.position, msg.pose.orientation
     nis = np.array(msg.nis, dtype=np.float64)
     gate = math.sqrt(fusion.chi2_quantile(probability, fusion.DOF))
@@ -599,4 +645,13 @@ def fused_from_msg(msg, probability: float = DEFAULT_PROBABILITY) -> fusion.Fuse
         rejected=tuple(rejected),
         chi2=msg.chi2, dof=msg.dof, iterations=msg.iterations,
         sources=tuple(fusion.SourceStats(s.name, s.count, s.rejected, s.nis_mean, s.low, s.high,
-                                         fusion.Verdict(s.verdict)) for s in msg.sources))
+                                         fusion.Verdict(s.verdict)) for s in msg.sources),
+        time=msg.time,
+        twist=frozen(np.array(msg.twist, dtype=np.float64)) if msg.twist else None,
+        twist_covariance=frozen(np.array(msg.twist_covariance, dtype=np.float64).reshape(6, 6))
+        if msg.twist else None,
+        extrapolation=msg.extrapolation,
+        dropped=tuple(fusion.Dropped(d.index, d.source, d.age, max_skew or 0.0)
+                      for d in msg.dropped),
+        latencies=tuple(fusion.Latency(a.source, a.configured, a.prior_sigma, a.value, a.sigma)
+                        for a in msg.latencies))
