@@ -907,47 +907,55 @@ class Window(NamedTuple):
     covariances: np.ndarray
 
 
-class _Window:
-    """One body's measurements in preallocated arrays that grow to the largest window seen and
-    are compacted in place: no allocation per measurement, memory flat over a long stream."""
+class _Store:
+    """Every body's measurements in one set of preallocated arrays, in arrival order, each row
+    tagged with its body. A message costs a few NumPy operations whatever the number of bodies
+    in it; rows that fell out of their body's window are dropped when the arrays are full
+    (compacted in place, grown only when the live rows fill half), so memory follows the largest
+    live window, flat over a long stream."""
 
-    def __init__(self, capacity: int = 16):
+    _ARRAYS = ("ids", "body", "codes", "times", "taken", "poses", "covs")
+
+    def __init__(self, capacity: int = 256):
         self.n = 0
-        self.newest = -math.inf
         self.ids = np.empty(capacity, np.int64)
+        self.body = np.empty(capacity, np.int64)
         self.codes = np.empty(capacity, np.int64)
         self.times = np.empty(capacity)
         self.taken = np.empty(capacity)
         self.poses = np.empty((capacity, 8))
         self.covs = np.empty((capacity, DOF, DOF))
 
-    _ARRAYS = ("ids", "codes", "times", "taken", "poses", "covs")
+    def live(self, newest: np.ndarray, window: float) -> np.ndarray:
+        body = self.body[:self.n]
+        return self.taken[:self.n] >= newest[body] - window
 
-    def append(self, **rows) -> None:
-        m = len(rows["ids"])
-        need = self.n + m
-        if need > len(self.ids):
-            size = max(2 * len(self.ids), need)
-            for a in self._ARRAYS:
-                old = getattr(self, a)
-                new = np.empty((size,) + old.shape[1:], old.dtype)
-                new[:self.n] = old[:self.n]
-                setattr(self, a, new)
-        for a in self._ARRAYS:
-            getattr(self, a)[self.n:need] = rows[a]
-        self.n = need
-        self.newest = max(self.newest, float(rows["taken"].max()))
+    def rows(self, b: int, newest: np.ndarray, window: float) -> np.ndarray:
+        """Body ``b``'s rows in its window, in arrival order."""
+        body = self.body[:self.n]
+        return np.flatnonzero((body == b) & (self.taken[:self.n] >= newest[b] - window))
 
-    def prune(self, window: float) -> None:
-        taken = self.taken[:self.n]
-        keep = taken >= self.newest - window
-        if keep.all():
-            return
-        k = int(np.count_nonzero(keep))
+    def keep(self, mask: np.ndarray) -> None:
+        k = int(np.count_nonzero(mask))
         for a in self._ARRAYS:
             arr = getattr(self, a)
-            arr[:k] = arr[:self.n][keep]
+            arr[:k] = arr[:self.n][mask]
         self.n = k
+
+    def append(self, newest: np.ndarray, window: float, **rows) -> None:
+        m = len(rows["ids"])
+        if self.n + m > len(self.ids):
+            self.keep(self.live(newest, window))
+            if 2 * (self.n + m) > len(self.ids):
+                size = max(2 * len(self.ids), 2 * (self.n + m))
+                for a in self._ARRAYS:
+                    old = getattr(self, a)
+                    new = np.empty((size,) + old.shape[1:], old.dtype)
+                    new[:self.n] = old[:self.n]
+                    setattr(self, a, new)
+        for a in self._ARRAYS:
+            getattr(self, a)[self.n:self.n + m] = rows[a]
+        self.n += m
 
 
 class Tracker:
@@ -974,8 +982,12 @@ class Tracker:
                              twist_covariance=twist_covariance, tol=tol, max_iter=max_iter)
         # the options' checks are fuse's: one fusion of a placeholder runs them now, not later
         fuse(np.array([[1.0, 0, 0, 0, 0, 0, 0, 0]]), times=[0.0], **self._options)
-        self._bodies: dict[str, _Window] = {}
-        # source names as small integers in the windows, with each one's configured latency
+        self._store = _Store()
+        # bodies and sources as small integers in the store: a body's newest taken time, a
+        # source's configured latency
+        self._body_codes: dict[str, int] = {}
+        self._active: dict[str, None] = {}        # bodies with measurements, in order
+        self._newest = np.full(16, -math.inf)
         self._codes: dict[str, int] = {}
         self._names: list[str] = []
         self._latency = np.empty(0)
@@ -983,15 +995,13 @@ class Tracker:
 
     @property
     def bodies(self) -> tuple[str, ...]:
-        return tuple(self._bodies)
+        return tuple(self._active)
 
     def window_of(self, body: str) -> Window:
-        """``body``'s window as arrays (copies), in the order of its :meth:`estimate`'s indices."""
-        w = self._window(body)
-        n = w.n
-        return Window(w.ids[:n].copy(), tuple(self._names[c] for c in w.codes[:n]),
-                      w.times[:n].copy(), w.taken[:n].copy(), w.poses[:n].copy(),
-                      w.covs[:n].copy())
+        """``body``'s window as arrays, in the order of its :meth:`estimate`'s indices."""
+        s, rows = self._store, self._rows(body)
+        return Window(s.ids[rows], tuple(self._names[c] for c in s.codes[rows]), s.times[rows],
+                      s.taken[rows], s.poses[rows], s.covs[rows])
 
     def measurements(self, body: str) -> tuple[Measurement, ...]:
         """``body``'s window, in the order of the indices in its :meth:`estimate`."""
@@ -1001,16 +1011,18 @@ class Tracker:
 
     def newest(self, body: str) -> float:
         """When ``body``'s newest measurement was taken."""
-        return self._window(body).newest
+        return float(self._newest[self._code_of(body)])
 
     def oldest(self, body: str) -> float:
         """When the oldest measurement in ``body``'s window was taken."""
-        w = self._window(body)
-        return float(w.taken[:w.n].min())
+        return float(self._store.taken[self._rows(body)].min())
 
     def remove(self, body: str) -> None:
-        self._window(body)
-        del self._bodies[body]
+        b = self._code_of(body)
+        s = self._store
+        s.keep(s.body[:s.n] != b)
+        self._newest[b] = -math.inf
+        del self._active[body]
 
     def add(self, *measurements: Measurement) -> None:
         """Add measurements of any bodies; all or none (the first bad one is a ``ValueError``
@@ -1058,24 +1070,34 @@ class Tracker:
 
     def estimate(self, body: str, time: Optional[float] = None) -> Fused:
         """``body``'s pose at ``time`` (default: its newest measurement's) from its window."""
-        w = self._window(body)
-        n = w.n
-        return fuse(w.poses[:n], w.covs[:n], names=[self._names[c] for c in w.codes[:n]],
-                    times=w.times[:n], time=time, **self._options)
+        s, rows = self._store, self._rows(body)
+        return fuse(s.poses[rows], s.covs[rows], names=[self._names[c] for c in s.codes[rows]],
+                    times=s.times[rows], time=time, **self._options)
 
-    def _window(self, body: str) -> _Window:
-        try:
-            return self._bodies[body]
-        except (KeyError, TypeError):
-            raise ValueError(f"body: no measurements of {body!r}") from None
+    def _code_of(self, body: str) -> int:
+        if body not in self._active:
+            raise ValueError(f"body: no measurements of {body!r}")
+        return self._body_codes[body]
 
-    def _code(self, source: str) -> int:
+    def _rows(self, body: str) -> np.ndarray:
+        return self._store.rows(self._code_of(body), self._newest, self.window)
+
+    def _source_code(self, source: str) -> int:
         code = self._codes.get(source)
         if code is None:
             code = self._codes[source] = len(self._names)
             self._names.append(source)
             src = self._table.get(source)
             self._latency = np.append(self._latency, src.latency if src is not None else 0.0)
+        return code
+
+    def _body_code(self, body: str) -> int:
+        code = self._body_codes.get(body)
+        if code is None:
+            code = self._body_codes[body] = len(self._body_codes)
+            if code >= len(self._newest):
+                self._newest = np.concatenate([self._newest, np.full(len(self._newest),
+                                                                     -math.inf)])
         return code
 
     def _ingest(self, bodies, sources, times, poses, covariances, ids, all_or_none: bool):
@@ -1090,72 +1112,67 @@ class Tracker:
         if ids.shape != (n,):
             raise ValueError(f"ids: expected shape {(n,)}, got {ids.shape}")
         errors: dict[int, ValueError] = {}
-
-        def refuse(k, e):
-            errors.setdefault(k, e)
-
         for k, (b, s) in enumerate(zip(bodies, sources)):
             if not isinstance(b, str) or not b:
-                refuse(k, ValueError(f"measurements[{k}].body: " + (
+                errors[k] = ValueError(f"measurements[{k}].body: " + (
                     "empty (every measurement names its body)" if isinstance(b, str) else
-                    f"expected a string, got {type(b).__name__}")))
+                    f"expected a string, got {type(b).__name__}"))
             elif not isinstance(s, str):
-                refuse(k, ValueError(f"measurements[{k}].source: expected a string, "
-                                     f"got {type(s).__name__}"))
-        bad = ~np.isfinite(times)
-        for k in np.flatnonzero(bad):
-            refuse(int(k), ValueError(f"measurements[{k}].time: must be finite, "
-                                      f"got {float(times[k])!r}"))
-        ok = ~bad
+                errors[k] = ValueError(f"measurements[{k}].source: expected a string, "
+                                       f"got {type(s).__name__}")
+        ok = np.isfinite(times)
+        for k in np.flatnonzero(~ok).tolist():
+            errors.setdefault(k, ValueError(f"measurements[{k}].time: must be finite, "
+                                            f"got {float(times[k])!r}"))
         ok[list(errors)] = False
         # The batch is checked at once; only a batch with a bad one is checked row by row. The
         # poses are kept as given (fuse normalises them), so that an estimate is exactly fuse of
         # what was given; the covariances symmetrised (which fuse leaves as they are).
         covs = np.array(covs)
-        for field, arrays, check in (
-                ("pose", poses.copy(), lambda a: _poses(a)),
-                ("covariance", covs, lambda a: _covariances(a, None, len(a)))):
+        for arrays, check in ((poses.copy(), lambda a: _poses(a)),
+                              (covs, lambda a: _covariances(a, None, len(a)))):
             rows = np.flatnonzero(ok)
             try:
                 arrays[rows] = check(arrays[rows])
             except ValueError:
-                for k in rows:
+                for k in rows.tolist():
                     try:
                         arrays[k] = check(arrays[k:k + 1])[0]
                     except ValueError as e:
                         ok[k] = False
-                        refuse(int(k), rename(e, {"poses": f"measurements[{k}].pose",
-                                                  "covariances": f"measurements[{k}].covariance"}))
-        codes = np.array([self._code(s) if ok[k] else 0 for k, s in enumerate(sources)],
+                        errors.setdefault(k, rename(e, {
+                            "poses": f"measurements[{k}].pose",
+                            "covariances": f"measurements[{k}].covariance"}))
+        codes = np.array([self._source_code(s) if ok[k] else 0 for k, s in enumerate(sources)],
                          dtype=np.int64)
+        body = np.array([self._body_code(b) if ok[k] else 0 for k, b in enumerate(bodies)],
+                        dtype=np.int64)
         taken = times - (self._latency[codes] if self._names else 0.0)
-        floors: dict[str, float] = {}
-        groups: dict[str, list[int]] = {}
-        for k in np.flatnonzero(ok).tolist():
-            b = bodies[k]
-            floor = floors.get(b)
-            if floor is None:
-                w = self._bodies.get(b)
-                floor = w.newest if w is not None else -math.inf
+        # Taken no further back than the window before the body's newest, counting the earlier
+        # measurements of the same call: checked at once against the newest of the whole call,
+        # and only the rows that fail that (stricter) test one by one in order.
+        newest = self._newest.copy()
+        np.maximum.at(newest, body[ok], taken[ok])
+        for k in np.flatnonzero(ok & (taken < newest[body] - self.window)).tolist():
+            floor = max([self._newest[body[k]]] + [
+                taken[j] for j in range(k) if ok[j] and body[j] == body[k]])
             if taken[k] < floor - self.window:
-                refuse(k, ValueError(
-                    f"measurements[{k}] (body {b!r}, source {sources[k]!r}, time "
+                ok[k] = False
+                errors[k] = ValueError(
+                    f"measurements[{k}] (body {bodies[k]!r}, source {sources[k]!r}, time "
                     f"{float(times[k])!r}): taken at {float(taken[k])!r}, "
                     f"{floor - taken[k]:.6g} s before the newest measurement of the body, "
-                    f"beyond the window {self.window:g} s"))
-                continue
-            floors[b] = max(floor, float(taken[k]))
-            groups.setdefault(b, []).append(k)
+                    f"beyond the window {self.window:g} s")
         if all_or_none and errors:
             return [min(errors.items())]
         self._count += n
-        for b, rows in groups.items():
-            w = self._bodies.get(b)
-            if w is None:
-                w = self._bodies[b] = _Window()
-            w.append(ids=ids[rows], codes=codes[rows], times=times[rows], taken=taken[rows],
-                     poses=poses[rows], covs=covs[rows])
-            w.prune(self.window)
+        if ok.any():
+            np.maximum.at(self._newest, body[ok], taken[ok])
+            self._store.append(self._newest, self.window, ids=ids[ok], body=body[ok],
+                               codes=codes[ok], times=times[ok], taken=taken[ok],
+                               poses=poses[ok], covs=covs[ok])
+            for k in np.flatnonzero(ok).tolist():
+                self._active.setdefault(bodies[k], None)
         return sorted(errors.items())
 
 

@@ -5,6 +5,7 @@ from ``poses[3].orientation``, so conversion validates per field and renames.
 """
 from __future__ import annotations
 
+import itertools
 import math
 from typing import NamedTuple
 
@@ -358,71 +359,70 @@ class Measurements(NamedTuple):
     covariances: np.ndarray    # (n, 6, 6), as given (the domain checks SPD and finiteness)
 
 
-def _measurement_covariance(m, where: str) -> np.ndarray:
-    """A measurement's 6x6 covariance: its 36 values, or I / weight (weight 0 means 1)."""
-    k = len(m.covariance)
-    if k == 0:
-        w = m.weight or 1.0
-        if not (math.isfinite(w) and w > 0.0):
-            raise FieldError(f"{where}.weight: must be positive and finite (0 means 1), got {w!r}")
-        return np.eye(fusion.DOF) / w
-    if k != COVARIANCE_SIZE:
-        raise FieldError(f"{where}.covariance: expected {COVARIANCE_SIZE} values (6x6, row-major, "
-                         f"rotation first) or none, got {k}")
-    if m.weight:
-        raise FieldError(f"{where}.weight: give a covariance or a weight, not both")
-    return np.array(m.covariance, dtype=np.float64).reshape(fusion.DOF, fusion.DOF)
-
-
 def measurements_to_arrays(ms, field: str = "measurements",
                            errors: list | None = None) -> Measurements:
     """Repeated ``Measurement`` to :class:`Measurements`. A bad measurement raises the
     :class:`FieldError` naming it (``{field}[i].time: ...``); with ``errors`` (a list) it is
-    appended there as ``(i, FieldError)`` and left out instead."""
-    keep, covs, times, flat = [], [], [], []
-    for i, m in enumerate(ms):
-        where = f"{field}[{i}]"
-        try:
-            if not math.isfinite(m.time):
-                raise FieldError(f"{where}.time: must be finite, got {m.time!r}")
-            S = _measurement_covariance(m, where)
-        except FieldError as e:
-            if errors is None:
-                raise
-            errors.append((i, e))
-            continue
-        keep.append(i)
-        covs.append(S)
-        times.append(m.time)
-        p = m.pose
-        o, t = p.orientation, p.position
-        flat.append((o.w, o.x, o.y, o.z, t.x, t.y, t.z))
-    flat = np.array(flat, dtype=np.float64).reshape(-1, 7)
-    index = np.array(keep, dtype=np.int64)
+    appended there as ``(i, FieldError)`` and left out instead. Each field is read for all
+    measurements at once and checked in NumPy; only the measurements with a problem are looked
+    at one by one, to name it."""
+    ms = list(ms)
+    n = len(ms)
+    times = np.array([m.time for m in ms], dtype=np.float64)
+    weights = np.array([m.weight for m in ms], dtype=np.float64)
+    counts = np.array([len(m.covariance) for m in ms], dtype=np.int64)
+    flat = np.array([(o.w, o.x, o.y, o.z, t.x, t.y, t.z) for o, t in
+                     ((m.pose.orientation, m.pose.position) for m in ms)],
+                    dtype=np.float64).reshape(-1, 7)
+    full = counts == COVARIANCE_SIZE
+    bad = {}
+    if full.all() and not weights.any() and np.isfinite(times).all():
+        # the common case, every measurement with its 36 values: one pass, no checks to name
+        covs = np.fromiter(itertools.chain.from_iterable(m.covariance for m in ms),
+                           np.float64, n * COVARIANCE_SIZE).reshape(n, fusion.DOF, fusion.DOF)
+        problems = ()
+    else:
+        covs = np.empty((n, COVARIANCE_SIZE))
+        for k in np.flatnonzero(full).tolist():
+            covs[k] = ms[k].covariance
+        covs = covs.reshape(n, fusion.DOF, fusion.DOF)
+        iso = counts == 0
+        w = np.where(weights == 0.0, 1.0, weights)        # weight 0 means 1
+        covs[iso] = np.eye(fusion.DOF) / w[iso, None, None]
+        problems = (
+        (~np.isfinite(times), lambda i: f"time: must be finite, got {ms[i].time!r}"),
+        (~iso & ~full, lambda i: f"covariance: expected {COVARIANCE_SIZE} values (6x6, "
+                                 f"row-major, rotation first) or none, got {counts[i]}"),
+        (full & (weights != 0.0), lambda i: "weight: give a covariance or a weight, not both"),
+        (iso & ~(np.isfinite(w) & (w > 0.0)),
+         lambda i: f"weight: must be positive and finite (0 means 1), got {w[i]!r}"))
+    for mask, text in problems:
+        for i in np.flatnonzero(mask).tolist():
+            bad.setdefault(i, FieldError(f"{field}[{i}].{text(i)}"))
+    keep = np.ones(n, dtype=bool)
+    if bad:
+        keep[list(bad)] = False
+    index = np.flatnonzero(keep)
     try:
-        poses = dq.from_pose(flat[:, :4], flat[:, 4:])
+        poses = dq.from_pose(flat[index, :4], flat[index, 4:])
     except ValueError:
         # Name the measurement, not the row: one at a time to find every bad one.
-        good = []
-        for k, i in enumerate(keep):
+        for i in index.tolist():
             try:
-                _pose_from_row(flat[k], f"{field}[{i}].pose")
+                _pose_from_row(flat[i], f"{field}[{i}].pose")
             except FieldError as e:
-                if errors is None:
-                    raise
-                errors.append((i, e))
-                continue
-            good.append(k)
-        index, flat = index[good], flat[good]
-        covs = [covs[k] for k in good]
-        times = [times[k] for k in good]
-        poses = dq.from_pose(flat[:, :4], flat[:, 4:])
-    if errors:
+                bad[i] = e
+                keep[i] = False
+        index = np.flatnonzero(keep)
+        poses = dq.from_pose(flat[index, :4], flat[index, 4:])
+    if bad:
+        found = sorted(bad.items())
+        if errors is None:
+            raise found[0][1]
+        errors.extend(found)
         errors.sort(key=lambda x: x[0])
-    ms = list(ms)
     return Measurements(index, tuple(ms[i].body for i in index), tuple(ms[i].source for i in index),
-                        np.array(times, dtype=np.float64),
-                        poses, np.array(covs, dtype=np.float64).reshape(-1, fusion.DOF, fusion.DOF))
+                        times[index], poses, covs[index])
 
 
 def _pose_from_row(row: np.ndarray, where: str) -> np.ndarray:

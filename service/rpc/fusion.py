@@ -106,9 +106,12 @@ class Stream:
         newest measurement has reached (not before the oldest one in its window)."""
         if not self.rate:
             return [None]
-        first = first_tick(self.tracker.oldest(body), self.rate)
-        k = max(self.next_tick.get(body, first), first)
         newest = self.tracker.newest(body)
+        k = self.next_tick.get(body)
+        if k is not None and k / self.rate > newest:
+            return []           # most requests: the body's next tick not reached yet
+        first = first_tick(self.tracker.oldest(body), self.rate)
+        k = first if k is None else max(k, first)
         due = []
         while k / self.rate <= newest:
             due.append(k / self.rate)
