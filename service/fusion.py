@@ -40,9 +40,9 @@ from __future__ import annotations
 
 import enum
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
-from typing import Iterable, Optional, Sequence
+from typing import Iterable, NamedTuple, Optional, Sequence
 
 import numpy as np
 
@@ -51,7 +51,7 @@ from service import dq, lie
 from service.errors import rename
 
 __all__ = ["DOF", "Status", "Verdict", "Source", "Rejection", "SourceStats", "Fused",
-           "fuse", "chi2_quantile", "Dropped", "Latency", "Measurement", "Tracker"]
+           "fuse", "chi2_quantile", "Dropped", "Latency", "Measurement", "Window", "Tracker"]
 
 DOF = 6
 # Relative asymmetry a covariance may have and still be taken as symmetric (its mean with its
@@ -436,8 +436,10 @@ def fuse(poses, covariances=None, *, weights=None, names: Optional[Sequence[str]
     from ``time`` is dropped (:attr:`Fused.dropped`); a ``time`` more than ``max_extrapolation``
     outside the measurements' span is refused (``None``: unbounded). ``twist_covariance`` is an
     optional zero-mean prior on the body twist, needed when the measurements are all from one
-    instant and ``time`` is another. Without ``times`` none of this applies and latencies are
-    ignored.
+    instant and ``time`` is another. Measurements all taken at one instant and fused at that
+    instant give the static fit exactly (the same C core, bit for bit); then the twist keeps its
+    prior and each estimated latency its prior, as one instant shows neither. Without ``times``
+    none of this applies and latencies are ignored.
     """
     Z = _poses(poses)
     n = Z.shape[0]
@@ -465,6 +467,12 @@ def fuse(poses, covariances=None, *, weights=None, names: Optional[Sequence[str]
         if value is not None:
             raise ValueError(f"{key}: needs the measurements' times (times=...)")
 
+    return _fuse_static(Z, S, names, robust, probability, gate2, tol, max_iter)
+
+
+def _fuse_static(Z, S, names, robust, probability, gate2, tol, max_iter) -> Fused:
+    """The fit of one instant: the C core's, robust or not."""
+    n = Z.shape[0]
     if robust and n > 1:
         fit, nis, tested, inlier, gate_status = _robust(Z, S, gate2, tol, max_iter)
     else:
@@ -549,8 +557,9 @@ def _shape(x):
         return "a ragged sequence"
 
 
-def _twist_information(twist_covariance) -> np.ndarray:
-    """The information of the twist's zero-mean prior, checked like a measurement's covariance."""
+def _twist_information(twist_covariance) -> tuple[np.ndarray, np.ndarray]:
+    """The twist's zero-mean prior checked like a measurement's covariance, and its
+    information."""
     shape = _shape(twist_covariance)
     if shape != (DOF, DOF):
         raise ValueError(f"twist_covariance: expected shape (6, 6), got {shape}")
@@ -559,7 +568,7 @@ def _twist_information(twist_covariance) -> np.ndarray:
     except ValueError as e:
         raise rename(e, {"covariances": "twist_covariance"}) from None
     Wp = np.linalg.inv(C)
-    return 0.5 * (Wp + Wp.T)
+    return C, 0.5 * (Wp + Wp.T)
 
 
 @dataclass(frozen=True)
@@ -775,7 +784,8 @@ def _fuse_in_time(Z, S, W, names, table, times, time, max_skew, max_extrapolatio
     latency = np.array([table[s].latency if s in table else 0.0 for s in names])
     taken = stamps - latency
     time = float(taken.max()) if time is None else _seconds(time, "time")
-    Wp = None if twist_covariance is None else _twist_information(twist_covariance)
+    twist_prior, Wp = (None, None) if twist_covariance is None else _twist_information(
+        twist_covariance)
     if max_skew is None:
         drop = np.zeros(n, dtype=bool)
     else:
@@ -794,7 +804,22 @@ def _fuse_in_time(Z, S, W, names, table, times, time, max_skew, max_extrapolatio
             raise ValueError(f"time: {time!r} is {extrapolation:.6g} s outside the span "
                              f"[{lo!r}, {hi!r}] of the measurements, beyond max_extrapolation "
                              f"{max_extrapolation:g} s")
-    twist = Wp is not None or np.unique(taken[keep]).size > 1
+    one_instant = bool(taken[keep].min() == taken[keep].max())
+    if one_instant and extrapolation == 0.0:
+        # All taken at the fusion time: nothing moves, the answer is the static fit itself (its
+        # C core), bit for bit; the twist keeps its prior, each latency its prior (one instant
+        # shows neither).
+        f = _fuse_static(Z, S, names, robust, probability, gate2, tol, max_iter)
+        estimated = [s for s in dict.fromkeys(names) if s in table
+                     and table[s].latency_sigma is not None]
+        return replace(
+            f, time=time, extrapolation=0.0,
+            twist=None if Wp is None else _frozen(np.zeros(DOF)),
+            twist_covariance=None if Wp is None else _frozen(twist_prior),
+            latencies=tuple(Latency(s, table[s].latency, table[s].latency_sigma,
+                                    table[s].latency, table[s].latency_sigma)
+                            for s in estimated))
+    twist = Wp is not None or not one_instant
     if not twist and extrapolation > 0.0:
         raise ValueError(f"time: the measurements were all taken at {lo!r}; bringing them to "
                          f"{time!r} needs the body's twist, which one instant does not show "
@@ -869,28 +894,80 @@ class Measurement:
     weight: Optional[float] = None
 
 
-class _Window:
-    """One body's measurements, validated, in arrival order (the order of a fusion's indices)."""
+class Window(NamedTuple):
+    """A body's sliding window as arrays, in arrival order (the order of the indices of its
+    :meth:`Tracker.estimate`): per measurement the caller's number (``ids``), source, stamp,
+    the time it was taken (stamp minus the source's latency), pose (as given: checked to be a
+    unit rigid motion, normalised by :func:`fuse`) and covariance (symmetrised)."""
+    ids: np.ndarray
+    sources: tuple[str, ...]
+    times: np.ndarray
+    taken: np.ndarray
+    poses: np.ndarray
+    covariances: np.ndarray
 
-    def __init__(self):
-        self.items: list[Measurement] = []
-        self.taken: list[float] = []
-        self.newest = -math.inf
 
-    def prune(self, window: float) -> None:
-        if self.taken and min(self.taken) < self.newest - window:
-            keep = [i for i, t in enumerate(self.taken) if t >= self.newest - window]
-            self.items = [self.items[i] for i in keep]
-            self.taken = [self.taken[i] for i in keep]
+class _Store:
+    """Every body's measurements in one set of preallocated arrays, in arrival order, each row
+    tagged with its body. A message costs a few NumPy operations whatever the number of bodies
+    in it; rows that fell out of their body's window are dropped when the arrays are full
+    (compacted in place, grown only when the live rows fill half), so memory follows the largest
+    live window, flat over a long stream."""
+
+    _ARRAYS = ("ids", "body", "codes", "times", "taken", "poses", "covs")
+
+    def __init__(self, capacity: int = 256):
+        self.n = 0
+        self.ids = np.empty(capacity, np.int64)
+        self.body = np.empty(capacity, np.int64)
+        self.codes = np.empty(capacity, np.int64)
+        self.times = np.empty(capacity)
+        self.taken = np.empty(capacity)
+        self.poses = np.empty((capacity, 8))
+        self.covs = np.empty((capacity, DOF, DOF))
+
+    def live(self, newest: np.ndarray, window: float) -> np.ndarray:
+        body = self.body[:self.n]
+        return self.taken[:self.n] >= newest[body] - window
+
+    def rows(self, b: int, newest: np.ndarray, window: float) -> np.ndarray:
+        """Body ``b``'s rows in its window, in arrival order."""
+        body = self.body[:self.n]
+        return np.flatnonzero((body == b) & (self.taken[:self.n] >= newest[b] - window))
+
+    def keep(self, mask: np.ndarray) -> None:
+        k = int(np.count_nonzero(mask))
+        for a in self._ARRAYS:
+            arr = getattr(self, a)
+            arr[:k] = arr[:self.n][mask]
+        self.n = k
+
+    def append(self, newest: np.ndarray, window: float, **rows) -> None:
+        m = len(rows["ids"])
+        if self.n + m > len(self.ids):
+            self.keep(self.live(newest, window))
+            if 2 * (self.n + m) > len(self.ids):
+                size = max(2 * len(self.ids), 2 * (self.n + m))
+                for a in self._ARRAYS:
+                    old = getattr(self, a)
+                    new = np.empty((size,) + old.shape[1:], old.dtype)
+                    new[:self.n] = old[:self.n]
+                    setattr(self, a, new)
+        for a in self._ARRAYS:
+            getattr(self, a)[self.n:self.n + m] = rows[a]
+        self.n += m
 
 
 class Tracker:
     """Sliding-window state of many bodies, keyed by name, for a live stream of measurements.
 
-    :meth:`add` keeps each body's measurements taken (stamp minus the source's latency) within
-    ``window`` seconds of its newest; one taken further back than that is a ``ValueError`` naming
-    it. :meth:`estimate` fuses a body's window at a time with :func:`fuse` (its keyword options
-    are those given here). Bodies are independent: nothing of one enters another's estimate.
+    Each body keeps its measurements taken (stamp minus the source's latency) within ``window``
+    seconds of its newest; one taken further back than that is refused, naming it.
+    :meth:`ingest` takes arrays of measurements of any bodies, checks them together in NumPy and
+    keeps every valid one, returning the errors of the others (a live stream goes on past a bad
+    measurement); :meth:`add` takes :class:`Measurement` s, all or none. :meth:`estimate` fuses a
+    body's window at a time with :func:`fuse` (its keyword options are those given here).
+    Bodies are independent: nothing of one enters another's estimate.
     """
 
     def __init__(self, window: float, *, sources: Optional[Iterable[Source]] = None,
@@ -905,83 +982,203 @@ class Tracker:
                              twist_covariance=twist_covariance, tol=tol, max_iter=max_iter)
         # the options' checks are fuse's: one fusion of a placeholder runs them now, not later
         fuse(np.array([[1.0, 0, 0, 0, 0, 0, 0, 0]]), times=[0.0], **self._options)
-        self._bodies: dict[str, _Window] = {}
+        self._store = _Store()
+        # bodies and sources as small integers in the store: a body's newest taken time, a
+        # source's configured latency
+        self._body_codes: dict[str, int] = {}
+        self._active: dict[str, None] = {}        # bodies with measurements, in order
+        self._newest = np.full(16, -math.inf)
+        self._codes: dict[str, int] = {}
+        self._names: list[str] = []
+        self._latency = np.empty(0)
+        self._count = 0            # measurements offered so far: the default ids
 
     @property
     def bodies(self) -> tuple[str, ...]:
-        return tuple(self._bodies)
+        return tuple(self._active)
+
+    def window_of(self, body: str) -> Window:
+        """``body``'s window as arrays, in the order of its :meth:`estimate`'s indices."""
+        s, rows = self._store, self._rows(body)
+        return Window(s.ids[rows], tuple(self._names[c] for c in s.codes[rows]), s.times[rows],
+                      s.taken[rows], s.poses[rows], s.covs[rows])
 
     def measurements(self, body: str) -> tuple[Measurement, ...]:
         """``body``'s window, in the order of the indices in its :meth:`estimate`."""
-        return tuple(self._window(body).items)
+        w = self.window_of(body)
+        return tuple(Measurement(s, body, float(t), p, c)
+                     for s, t, p, c in zip(w.sources, w.times, w.poses, w.covariances))
+
+    def newest(self, body: str) -> float:
+        """When ``body``'s newest measurement was taken."""
+        return float(self._newest[self._code_of(body)])
+
+    def oldest(self, body: str) -> float:
+        """When the oldest measurement in ``body``'s window was taken."""
+        return float(self._store.taken[self._rows(body)].min())
 
     def remove(self, body: str) -> None:
-        self._window(body)
-        del self._bodies[body]
+        b = self._code_of(body)
+        s = self._store
+        s.keep(s.body[:s.n] != b)
+        self._newest[b] = -math.inf
+        del self._active[body]
 
     def add(self, *measurements: Measurement) -> None:
         """Add measurements of any bodies; all or none (the first bad one is a ``ValueError``
         naming ``measurements[k]``, its body, source and time)."""
-        newest = {}
-        checked = []
+        n = len(measurements)
+        poses, covs, times = np.empty((n, 8)), np.empty((n, DOF, DOF)), np.empty(n)
         for k, m in enumerate(measurements):
-            checked.append(self._check(k, m))
-            w = self._bodies.get(m.body)
-            floor = max(newest.get(m.body, -math.inf), w.newest if w else -math.inf)
-            taken = checked[-1][1]
-            if taken < floor - self.window:
-                raise ValueError(
-                    f"measurements[{k}] (body {m.body!r}, source {m.source!r}, time "
-                    f"{m.time!r}): taken at {taken!r}, {floor - taken:.6g} s before the newest "
-                    f"measurement of the body, beyond the window {self.window:g} s")
-            newest[m.body] = max(floor, taken)
-        for m, taken in checked:
-            w = self._bodies.setdefault(m.body, _Window())
-            w.items.append(m)
-            w.taken.append(taken)
-            w.newest = max(w.newest, taken)
-        for body in newest:
-            self._bodies[body].prune(self.window)
+            name = f"measurements[{k}]"
+            if not isinstance(m, Measurement):
+                raise ValueError(f"{name}: expected a Measurement, got {type(m).__name__}")
+            times[k] = _seconds(m.time, f"{name}.time")
+            if _shape(m.pose) != (8,):
+                raise ValueError(f"{name}.pose: expected shape (8,), got {_shape(m.pose)}")
+            try:
+                poses[k] = m.pose
+            except (TypeError, ValueError):
+                raise ValueError(f"{name}.pose: expected numbers, got "
+                                 f"{type(m.pose).__name__}") from None
+            if m.covariance is not None and _shape(m.covariance) != (DOF, DOF):
+                raise ValueError(f"{name}.covariance: expected shape (6, 6), "
+                                 f"got {_shape(m.covariance)}")
+            try:
+                covs[k] = _covariances(None if m.covariance is None else [m.covariance],
+                                       None if m.weight is None else [m.weight], 1)[0]
+            except ValueError as e:
+                raise rename(e, {"covariances": f"{name}.covariance",
+                                 "weights": f"{name}.weight"}) from None
+        errors = self._ingest([m.body for m in measurements], [m.source for m in measurements],
+                              times, poses, covs, None, all_or_none=True)
+        if errors:
+            raise errors[0][1]
+
+    def ingest(self, bodies: Sequence[str], sources: Sequence[str], times, poses,
+               covariances=None, *, ids=None) -> list[tuple[int, ValueError]]:
+        """Add measurements given as arrays: ``bodies`` and ``sources`` (one name each),
+        ``times`` ``(n,)`` (stamps), ``poses`` ``(n, 8)`` (``T_frame_body``), ``covariances``
+        ``(n, 6, 6)`` (``None``: identity), and the caller's numbers ``ids`` ``(n,)`` (default:
+        counting every measurement offered to this tracker), which :meth:`window_of` returns.
+        Every valid measurement is kept; returned are ``(k, ValueError)`` for the others, each
+        naming ``measurements[k]`` and the problem (a time that is not finite, a pose that is not
+        a unit rigid motion, a covariance that is not symmetric positive definite, a time taken
+        further back than the window). Arrays of the wrong shape are a ``ValueError`` for the
+        call."""
+        return self._ingest(bodies, sources, times, poses, covariances, ids, all_or_none=False)
 
     def estimate(self, body: str, time: Optional[float] = None) -> Fused:
         """``body``'s pose at ``time`` (default: its newest measurement's) from its window."""
-        items = self._window(body).items
-        poses = np.array([m.pose for m in items])
-        covs = np.array([m.covariance for m in items])
-        return fuse(poses, covs, names=[m.source for m in items],
-                    times=[m.time for m in items], time=time, **self._options)
+        s, rows = self._store, self._rows(body)
+        return fuse(s.poses[rows], s.covs[rows], names=[self._names[c] for c in s.codes[rows]],
+                    times=s.times[rows], time=time, **self._options)
 
-    def _window(self, body: str) -> _Window:
-        try:
-            return self._bodies[body]
-        except (KeyError, TypeError):
-            raise ValueError(f"body: no measurements of {body!r}") from None
+    def _code_of(self, body: str) -> int:
+        if body not in self._active:
+            raise ValueError(f"body: no measurements of {body!r}")
+        return self._body_codes[body]
 
-    def _check(self, k: int, m: Measurement) -> tuple[Measurement, float]:
-        """The measurement with its pose normalised and its covariance made explicit, and the
-        time it was taken."""
-        name = f"measurements[{k}]"
-        if not isinstance(m, Measurement):
-            raise ValueError(f"{name}: expected a Measurement, got {type(m).__name__}")
-        for field in ("body", "source"):
-            if not isinstance(getattr(m, field), str):
-                raise ValueError(f"{name}.{field}: expected a string, "
-                                 f"got {type(getattr(m, field)).__name__}")
-        if not m.body:
-            raise ValueError(f"{name}.body: empty (every measurement names its body)")
-        time = _seconds(m.time, f"{name}.time")
-        if _shape(m.pose) != (8,):
-            raise ValueError(f"{name}.pose: expected shape (8,), got {_shape(m.pose)}")
-        pose = _pose(m.pose, f"{name}.pose")
-        if m.covariance is not None and _shape(m.covariance) != (DOF, DOF):
-            raise ValueError(f"{name}.covariance: expected shape (6, 6), "
-                             f"got {_shape(m.covariance)}")
-        try:
-            cov = _covariances(None if m.covariance is None else [m.covariance],
-                               None if m.weight is None else [m.weight], 1)[0]
-        except ValueError as e:
-            raise rename(e, {"covariances": f"{name}.covariance",
-                             "weights": f"{name}.weight"}) from None
-        src = self._table.get(m.source)
-        latency = src.latency if src is not None else 0.0
-        return Measurement(m.source, m.body, time, pose, cov), time - latency
+    def _rows(self, body: str) -> np.ndarray:
+        return self._store.rows(self._code_of(body), self._newest, self.window)
+
+    def _source_code(self, source: str) -> int:
+        code = self._codes.get(source)
+        if code is None:
+            code = self._codes[source] = len(self._names)
+            self._names.append(source)
+            src = self._table.get(source)
+            self._latency = np.append(self._latency, src.latency if src is not None else 0.0)
+        return code
+
+    def _body_code(self, body: str) -> int:
+        code = self._body_codes.get(body)
+        if code is None:
+            code = self._body_codes[body] = len(self._body_codes)
+            if code >= len(self._newest):
+                self._newest = np.concatenate([self._newest, np.full(len(self._newest),
+                                                                     -math.inf)])
+        return code
+
+    def _ingest(self, bodies, sources, times, poses, covariances, ids, all_or_none: bool):
+        n = len(bodies)
+        if len(sources) != n:
+            raise ValueError(f"sources: expected {n} names, got {len(sources)}")
+        times = _finite_shape(times, "times", (n,))
+        poses = _finite_shape(poses, "poses", (n, 8))
+        covs = (np.broadcast_to(np.eye(DOF), (n, DOF, DOF)) if covariances is None
+                else _finite_shape(covariances, "covariances", (n, DOF, DOF)))
+        ids = np.arange(self._count, self._count + n) if ids is None else np.asarray(ids, np.int64)
+        if ids.shape != (n,):
+            raise ValueError(f"ids: expected shape {(n,)}, got {ids.shape}")
+        errors: dict[int, ValueError] = {}
+        for k, (b, s) in enumerate(zip(bodies, sources)):
+            if not isinstance(b, str) or not b:
+                errors[k] = ValueError(f"measurements[{k}].body: " + (
+                    "empty (every measurement names its body)" if isinstance(b, str) else
+                    f"expected a string, got {type(b).__name__}"))
+            elif not isinstance(s, str):
+                errors[k] = ValueError(f"measurements[{k}].source: expected a string, "
+                                       f"got {type(s).__name__}")
+        ok = np.isfinite(times)
+        for k in np.flatnonzero(~ok).tolist():
+            errors.setdefault(k, ValueError(f"measurements[{k}].time: must be finite, "
+                                            f"got {float(times[k])!r}"))
+        ok[list(errors)] = False
+        # The batch is checked at once; only a batch with a bad one is checked row by row. The
+        # poses are kept as given (fuse normalises them), so that an estimate is exactly fuse of
+        # what was given; the covariances symmetrised (which fuse leaves as they are).
+        covs = np.array(covs)
+        for arrays, check in ((poses.copy(), lambda a: _poses(a)),
+                              (covs, lambda a: _covariances(a, None, len(a)))):
+            rows = np.flatnonzero(ok)
+            try:
+                arrays[rows] = check(arrays[rows])
+            except ValueError:
+                for k in rows.tolist():
+                    try:
+                        arrays[k] = check(arrays[k:k + 1])[0]
+                    except ValueError as e:
+                        ok[k] = False
+                        errors.setdefault(k, rename(e, {
+                            "poses": f"measurements[{k}].pose",
+                            "covariances": f"measurements[{k}].covariance"}))
+        codes = np.array([self._source_code(s) if ok[k] else 0 for k, s in enumerate(sources)],
+                         dtype=np.int64)
+        body = np.array([self._body_code(b) if ok[k] else 0 for k, b in enumerate(bodies)],
+                        dtype=np.int64)
+        taken = times - (self._latency[codes] if self._names else 0.0)
+        # Taken no further back than the window before the body's newest, counting the earlier
+        # measurements of the same call: checked at once against the newest of the whole call,
+        # and only the rows that fail that (stricter) test one by one in order.
+        newest = self._newest.copy()
+        np.maximum.at(newest, body[ok], taken[ok])
+        for k in np.flatnonzero(ok & (taken < newest[body] - self.window)).tolist():
+            floor = max([self._newest[body[k]]] + [
+                taken[j] for j in range(k) if ok[j] and body[j] == body[k]])
+            if taken[k] < floor - self.window:
+                ok[k] = False
+                errors[k] = ValueError(
+                    f"measurements[{k}] (body {bodies[k]!r}, source {sources[k]!r}, time "
+                    f"{float(times[k])!r}): taken at {float(taken[k])!r}, "
+                    f"{floor - taken[k]:.6g} s before the newest measurement of the body, "
+                    f"beyond the window {self.window:g} s")
+        if all_or_none and errors:
+            return [min(errors.items())]
+        self._count += n
+        if ok.any():
+            np.maximum.at(self._newest, body[ok], taken[ok])
+            self._store.append(self._newest, self.window, ids=ids[ok], body=body[ok],
+                               codes=codes[ok], times=times[ok], taken=taken[ok],
+                               poses=poses[ok], covs=covs[ok])
+            for k in np.flatnonzero(ok).tolist():
+                self._active.setdefault(bodies[k], None)
+        return sorted(errors.items())
+
+
+def _finite_shape(x, name: str, shape: tuple) -> np.ndarray:
+    """``x`` as float64 of ``shape`` (values unchecked: the rows are checked one by one)."""
+    a = np.asarray(x, dtype=np.float64)
+    if a.shape != shape:
+        raise ValueError(f"{name}: expected shape {shape}, got {a.shape}")
+    return a

@@ -452,3 +452,59 @@ def test_tracker_bad_options_fail_at_construction():
         Tracker(0.2, max_skew=-1.0)
     with pytest.raises(ValueError, match=r"^sources\[0\]: a source needs a name"):
         Tracker(0.2, sources=[Source("")])
+
+
+def test_tracker_ingest_keeps_the_valid_measurements_and_names_the_others():
+    rng = np.random.default_rng(74)
+    T = trajectory(lie.se3_exp(rng.normal(size=6)), False)
+    ms = stream(rng, T, end=0.3)
+    tracker, alone = Tracker(WINDOW, sources=SOURCES), Tracker(WINDOW, sources=SOURCES)
+    head, batch = ms[:-10], ms[-10:]
+    tracker.add(*head)
+    alone.add(*head)
+    poses = np.array([m.pose for m in batch])
+    covs = np.array([m.covariance for m in batch])
+    times = np.array([m.time for m in batch])
+    names = [m.source for m in batch]
+    bodies = ["box"] * 10
+    poses[1, 0] = np.nan
+    covs[4, 1, 1] = -1.0
+    times[6] = np.inf
+    times[8] -= 0.5
+    bodies[9] = ""
+    errors = tracker.ingest(bodies, names, times, poses, covs, ids=np.arange(100, 110))
+    assert [k for k, _ in errors] == [1, 4, 6, 8, 9]
+    text = [str(e) for _, e in errors]
+    assert text[0] == "measurements[1].pose: contains NaN or infinity"
+    assert text[1] == "measurements[4].covariance: not positive definite"
+    assert text[2] == "measurements[6].time: must be finite, got inf"
+    assert text[3].startswith("measurements[8] (body 'box'") and "beyond the window" in text[3]
+    assert text[4] == "measurements[9].body: empty (every measurement names its body)"
+    good = [0, 2, 3, 5, 7]
+    alone.add(*[batch[k] for k in good])
+    w = tracker.window_of("box")
+    assert w.ids[-5:].tolist() == [100 + k for k in good]
+    f, g = tracker.estimate("box"), alone.estimate("box")
+    assert np.array_equal(f.mean, g.mean) and np.array_equal(f.covariance, g.covariance)
+
+
+def test_one_instant_at_its_time_is_the_static_fusion_bit_for_bit():
+    rng = np.random.default_rng(75)
+    X = lie.se3_exp(rng.normal(size=6))
+    S = np.array([CAM_A, CAM_B, ARM, ARM])
+    Z = np.concatenate([sample(rng, lambda t: X[None], C, np.zeros(1)) for C in S])
+    Z[3] = dq.mul(Z[3], lie.se3_exp(np.array([0, 2.5, 0, 0.2, 0, 0])))   # a flipped one
+    names = ["cam_a", "cam_b", "arm", "arm"]
+    for robust in (False, True):
+        static = fusion.fuse(Z, S, names=names, robust=robust)
+        f = fusion.fuse(Z, S, names=names, robust=robust, times=[1.5] * 4, time=1.5,
+                        max_skew=0.01, sources=[Source("arm", latency_sigma=0.01)])
+        assert np.array_equal(f.mean, static.mean)
+        assert np.array_equal(f.covariance, static.covariance)
+        assert np.array_equal(f.nis, static.nis) and f.rejected == static.rejected
+        assert f.time == 1.5 and f.dropped == () and f.twist is None
+        assert f.latencies == (fusion.Latency("arm", 0.0, 0.01, 0.0, 0.01),)
+    prior = np.diag([0.5 ** 2] * 3 + [0.2 ** 2] * 3)
+    f = fusion.fuse(Z[:3], S[:3], times=[1.5] * 3, twist_covariance=prior)
+    assert np.array_equal(f.mean, fusion.fuse(Z[:3], S[:3]).mean)
+    assert np.array_equal(f.twist, np.zeros(6)) and np.array_equal(f.twist_covariance, prior)

@@ -22,10 +22,11 @@ input formats (FILE, or - for standard input; chosen by the extension, else snif
                        "orientation": {"w": 1, "x": 0, "y": 0, "z": 0}},
               "covariance": [36 values, row-major]},
              {"source": "arm", "pose": {...}, "weight": 4}, ...],
-           "options": {"robust": true,
-                       "sources": [{"name": "cam1", "extrinsic": {"position": {...},
-                                                                  "orientation": {...}}},
-                                   {"name": "arm", "body_offset": {...}}]}}
+           "options": {"robust": true, "max_skew": 0.1,
+                       "sources": [{"name": "cam1", "latency": 0.04,
+                                    "extrinsic": {"position": {...}, "orientation": {...}}},
+                                   {"name": "arm", "latency": 0.004, "latency_sigma": 0.005,
+                                    "body_offset": {...}}]}}
         a bare list of measurements is accepted too.
   CSV   one measurement per line, columns source,time,x,y,z,qw,qx,qy,qz and, by header
         name, optionally:
@@ -40,8 +41,14 @@ covariance convention: 6x6, rotation first [wx wy wz vx vy vz] (radians, then me
 right (body-frame) perturbation: the true pose is T * Exp(xi), xi ~ N(0, Sigma) (GTSAM's Pose3).
 A measurement is T_frame_body in its source's frame; the fused pose is T_world_body.
 
+time: a measurement stamped t by a source with latency L was taken at t - L. Measurements taken
+at different instants are fused at the fusion time (--time; default the newest instant) under a
+constant body twist estimated with the pose; all taken at one instant, they give the static
+fusion exactly.
+
 output: the fused pose, its covariance, chi2 and dof, the measurements the robust mode rejected
-with the reason, and per source its mean normalised innovation squared (NIS, 6 expected) and
+and those dropped for --max-skew with the reason, the body twist and the latencies estimated
+online (with time alignment), and per source its mean normalised innovation squared (NIS, 6 expected) and
 verdict (consistent, optimistic: claims too small a covariance, pessimistic, untested).
 
 example: dqpose fuse --robust --local measurements.csv
@@ -61,6 +68,12 @@ def configure(name: str, p) -> None:
                         "file's, else 0.999)")
     p.add_argument("--time", type=float,
                    help="fusion time, s (default: the file's, else the newest measurement's)")
+    p.add_argument("--max-skew", type=float,
+                   help="drop measurements taken further than this from the fusion time, s "
+                        "(default: the file's, else none dropped)")
+    p.add_argument("--max-extrapolation", type=float,
+                   help="how far the fusion time may lie outside the measurements' span, s; "
+                        "inf: unbounded (default: the file's, else 0.1)")
     p.add_argument("--format", choices=["text", "json"], default="text",
                    help="output: text for people, or the FusedPose as JSON (default: %(default)s)")
     p.add_argument("--local", action="store_true", help="compute in this process, no server")
@@ -163,6 +176,10 @@ def _fuse(args) -> int:
             request.options.probability = args.probability
         if args.time is not None:
             request.options.time = args.time
+        if args.max_skew is not None:
+            request.options.max_skew = args.max_skew
+        if args.max_extrapolation is not None:
+            request.options.max_extrapolation = args.max_extrapolation
         if args.local:
             from service.rpc.fusion import Fusion
 
@@ -200,6 +217,20 @@ def format_fused(msg, fmt: str) -> str:
     if msg.rejected:
         lines.append("rejected:")
         lines += [f"  {reason}" for reason in msg.reasons]
+    if msg.dropped:
+        lines.append("dropped:")
+        lines += [f"  {d.reason}" for d in msg.dropped]
+    if msg.twist:
+        lines.append("body twist V (wx,wy,wz rad/s, vx,vy,vz m/s; T(t) = pose * Exp((t - time) V)) "
+                     "and its standard deviations:")
+        sd = [max(c, 0.0) ** 0.5 for c in list(msg.twist_covariance)[::7]]
+        lines.append("  " + ",".join(f"{v:.6g}" for v in msg.twist))
+        lines.append("  " + ",".join(f"{v:.3g}" for v in sd))
+    if msg.extrapolation:
+        lines.append(f"extrapolated {msg.extrapolation:.6g} s beyond the measurements")
+    for a in msg.latencies:
+        lines.append(f"latency of {a.source}: {a.value:.6g} +- {a.sigma:.3g} s "
+                     f"(configured {a.configured:g} +- {a.prior_sigma:g} s)")
     lines.append("sources (NIS: normalised innovation squared, 6 expected):")
     for s in msg.sources:
         verdict = pb.Verdict.Name(s.verdict)[len("VERDICT_"):].lower()

@@ -27,7 +27,8 @@ import numpy as np
 
 from service import dq, fusion
 from service.rpc import BATCH_POSE_FACTOR, DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
-from service.rpc.convert import (DEFAULT_PROBABILITY, INTERPOLATION_ENUMS, METHOD_ENUMS,
+from service.rpc.convert import (DEFAULT_MAX_EXTRAPOLATION, DEFAULT_PROBABILITY,
+                                 DEFAULT_WINDOW, INTERPOLATION_ENUMS, METHOD_ENUMS,
                                  blend_batch_items_wire, blend_request_wire,
                                  blend_responses_from_wire, fused_from_msg,
                                  interpolate_request_wire, measurement_msgs, options_msg,
@@ -347,15 +348,19 @@ class Client:
              names: Optional[Sequence[str]] = None,
              sources: Optional[Iterable[fusion.Source]] = None, robust: bool = False,
              probability: float = DEFAULT_PROBABILITY, body: str = "", times=None,
-             time: float = 0.0) -> fusion.Fused:
+             time: Optional[float] = None, max_skew: Optional[float] = None,
+             max_extrapolation: Optional[float] = DEFAULT_MAX_EXTRAPOLATION,
+             twist_covariance=None) -> fusion.Fused:
         """:func:`service.fusion.fuse` on the server (same arguments, same result), for one
-        ``body``; ``times`` per measurement and the fusion ``time`` (0: the newest) go with
-        them."""
+        ``body``. The server always fuses with times (``times`` None: all 0): measurements
+        taken at one instant give the static fusion, exactly; ``time`` None (or 0) is the
+        newest instant a measurement was taken."""
         n = len(np.asarray(poses))
         request = fpb.FuseRequest(
             measurements=measurement_msgs(poses, covariances, weights, names, [body] * n, times),
-            options=options_msg(robust, time, sources, probability))
-        return fused_from_msg(self.fuse_request(request), probability)
+            options=options_msg(robust, time or 0.0, sources, probability, max_skew,
+                                max_extrapolation, twist_covariance=twist_covariance))
+        return fused_from_msg(self.fuse_request(request), probability, max_skew)
 
     def fuse_request(self, request: fpb.FuseRequest) -> fpb.FusedPose:
         """Fuse as messages, for a caller that holds a ``FuseRequest`` (``dqpose fuse``)."""
@@ -363,15 +368,23 @@ class Client:
 
     def stream_fuse(self, batches: Iterable, *, sources: Optional[Iterable[fusion.Source]] = None,
                     robust: bool = False, probability: float = DEFAULT_PROBABILITY,
-                    time: float = 0.0, output_rate: float = 0.0) -> Iterator[StreamAnswer]:
+                    output_rate: float = 0.0, window: float = DEFAULT_WINDOW,
+                    max_skew: Optional[float] = None,
+                    max_extrapolation: Optional[float] = DEFAULT_MAX_EXTRAPOLATION,
+                    twist_covariance=None) -> Iterator[StreamAnswer]:
         """Stream :class:`Batch` es (measurements of any bodies each) to ``StreamFuse``; yields
-        :class:`StreamAnswer` s as they come, fused poses and error entries for measurements
-        the server could not use (the stream goes on). The stream has no deadline; options the
-        server refuses end it with :class:`InvalidArgument`. A batch that cannot be sent (wrong
-        shape) ends the stream and raises its ``ValueError`` after the answers before it."""
+        :class:`StreamAnswer` s as they come: fused poses of each body over its sliding
+        ``window`` (seconds) at the ticks ``k / output_rate`` of the measurements' time (0: one
+        per body after each batch that carried it; see the proto), and error entries for
+        measurements the server could not use (the stream goes on). The stream has no
+        deadline; options the server refuses end it with :class:`InvalidArgument`. A batch that
+        cannot be sent (wrong shape) ends the stream and raises its ``ValueError`` after the
+        answers before it."""
         refused: list[Exception] = []
-        first = fpb.FuseStreamRequest(options=options_msg(robust, time, sources, probability),
-                                      output_rate=output_rate)
+        first = fpb.FuseStreamRequest(
+            options=options_msg(robust, 0.0, sources, probability, max_skew, max_extrapolation,
+                                window, twist_covariance),
+            output_rate=output_rate)
 
         def requests():
             try:
@@ -395,7 +408,7 @@ class Client:
                                        a.error.details, a.error.measurement)
                 else:
                     yield StreamAnswer(a.request, a.body, a.time,
-                                       fused_from_msg(a, probability),
+                                       fused_from_msg(a, probability, max_skew),
                                        np.array(a.measurements, dtype=np.int64))
         except grpc.RpcError as e:
             raise _rpc_error(e) from None

@@ -5,6 +5,7 @@ from ``poses[3].orientation``, so conversion validates per field and renames.
 """
 from __future__ import annotations
 
+import itertools
 import math
 from typing import NamedTuple
 
@@ -358,71 +359,70 @@ class Measurements(NamedTuple):
     covariances: np.ndarray    # (n, 6, 6), as given (the domain checks SPD and finiteness)
 
 
-def _measurement_covariance(m, where: str) -> np.ndarray:
-    """A measurement's 6x6 covariance: its 36 values, or I / weight (weight 0 means 1)."""
-    k = len(m.covariance)
-    if k == 0:
-        w = m.weight or 1.0
-        if not (math.isfinite(w) and w > 0.0):
-            raise FieldError(f"{where}.weight: must be positive and finite (0 means 1), got {w!r}")
-        return np.eye(fusion.DOF) / w
-    if k != COVARIANCE_SIZE:
-        raise FieldError(f"{where}.covariance: expected {COVARIANCE_SIZE} values (6x6, row-major, "
-                         f"rotation first) or none, got {k}")
-    if m.weight:
-        raise FieldError(f"{where}.weight: give a covariance or a weight, not both")
-    return np.array(m.covariance, dtype=np.float64).reshape(fusion.DOF, fusion.DOF)
-
-
 def measurements_to_arrays(ms, field: str = "measurements",
                            errors: list | None = None) -> Measurements:
     """Repeated ``Measurement`` to :class:`Measurements`. A bad measurement raises the
     :class:`FieldError` naming it (``{field}[i].time: ...``); with ``errors`` (a list) it is
-    appended there as ``(i, FieldError)`` and left out instead."""
-    keep, covs, times, flat = [], [], [], []
-    for i, m in enumerate(ms):
-        where = f"{field}[{i}]"
-        try:
-            if not math.isfinite(m.time):
-                raise FieldError(f"{where}.time: must be finite, got {m.time!r}")
-            S = _measurement_covariance(m, where)
-        except FieldError as e:
-            if errors is None:
-                raise
-            errors.append((i, e))
-            continue
-        keep.append(i)
-        covs.append(S)
-        times.append(m.time)
-        p = m.pose
-        o, t = p.orientation, p.position
-        flat.append((o.w, o.x, o.y, o.z, t.x, t.y, t.z))
-    flat = np.array(flat, dtype=np.float64).reshape(-1, 7)
-    index = np.array(keep, dtype=np.int64)
+    appended there as ``(i, FieldError)`` and left out instead. Each field is read for all
+    measurements at once and checked in NumPy; only the measurements with a problem are looked
+    at one by one, to name it."""
+    ms = list(ms)
+    n = len(ms)
+    times = np.array([m.time for m in ms], dtype=np.float64)
+    weights = np.array([m.weight for m in ms], dtype=np.float64)
+    counts = np.array([len(m.covariance) for m in ms], dtype=np.int64)
+    flat = np.array([(o.w, o.x, o.y, o.z, t.x, t.y, t.z) for o, t in
+                     ((m.pose.orientation, m.pose.position) for m in ms)],
+                    dtype=np.float64).reshape(-1, 7)
+    full = counts == COVARIANCE_SIZE
+    bad = {}
+    if full.all() and not weights.any() and np.isfinite(times).all():
+        # the common case, every measurement with its 36 values: one pass, no checks to name
+        covs = np.fromiter(itertools.chain.from_iterable(m.covariance for m in ms),
+                           np.float64, n * COVARIANCE_SIZE).reshape(n, fusion.DOF, fusion.DOF)
+        problems = ()
+    else:
+        covs = np.empty((n, COVARIANCE_SIZE))
+        for k in np.flatnonzero(full).tolist():
+            covs[k] = ms[k].covariance
+        covs = covs.reshape(n, fusion.DOF, fusion.DOF)
+        iso = counts == 0
+        w = np.where(weights == 0.0, 1.0, weights)        # weight 0 means 1
+        covs[iso] = np.eye(fusion.DOF) / w[iso, None, None]
+        problems = (
+        (~np.isfinite(times), lambda i: f"time: must be finite, got {ms[i].time!r}"),
+        (~iso & ~full, lambda i: f"covariance: expected {COVARIANCE_SIZE} values (6x6, "
+                                 f"row-major, rotation first) or none, got {counts[i]}"),
+        (full & (weights != 0.0), lambda i: "weight: give a covariance or a weight, not both"),
+        (iso & ~(np.isfinite(w) & (w > 0.0)),
+         lambda i: f"weight: must be positive and finite (0 means 1), got {w[i]!r}"))
+    for mask, text in problems:
+        for i in np.flatnonzero(mask).tolist():
+            bad.setdefault(i, FieldError(f"{field}[{i}].{text(i)}"))
+    keep = np.ones(n, dtype=bool)
+    if bad:
+        keep[list(bad)] = False
+    index = np.flatnonzero(keep)
     try:
-        poses = dq.from_pose(flat[:, :4], flat[:, 4:])
+        poses = dq.from_pose(flat[index, :4], flat[index, 4:])
     except ValueError:
         # Name the measurement, not the row: one at a time to find every bad one.
-        good = []
-        for k, i in enumerate(keep):
+        for i in index.tolist():
             try:
-                _pose_from_row(flat[k], f"{field}[{i}].pose")
+                _pose_from_row(flat[i], f"{field}[{i}].pose")
             except FieldError as e:
-                if errors is None:
-                    raise
-                errors.append((i, e))
-                continue
-            good.append(k)
-        index, flat = index[good], flat[good]
-        covs = [covs[k] for k in good]
-        times = [times[k] for k in good]
-        poses = dq.from_pose(flat[:, :4], flat[:, 4:])
-    if errors:
+                bad[i] = e
+                keep[i] = False
+        index = np.flatnonzero(keep)
+        poses = dq.from_pose(flat[index, :4], flat[index, 4:])
+    if bad:
+        found = sorted(bad.items())
+        if errors is None:
+            raise found[0][1]
+        errors.extend(found)
         errors.sort(key=lambda x: x[0])
-    ms = list(ms)
     return Measurements(index, tuple(ms[i].body for i in index), tuple(ms[i].source for i in index),
-                        np.array(times, dtype=np.float64),
-                        poses, np.array(covs, dtype=np.float64).reshape(-1, fusion.DOF, fusion.DOF))
+                        times[index], poses, covs[index])
 
 
 def _pose_from_row(row: np.ndarray, where: str) -> np.ndarray:
@@ -441,43 +441,78 @@ def _optional_pose(msg, name: str, where: str) -> np.ndarray | None:
                           f"{where}.{name}")
 
 
+DEFAULT_MAX_EXTRAPOLATION = 0.1
+DEFAULT_WINDOW = 0.2
+
+
 class Options(NamedTuple):
-    """``FusionOptions`` as the domain's arguments."""
+    """``FusionOptions`` as the domain's arguments (:meth:`fuse_kwargs` those of
+    :func:`fusion.fuse` and :class:`fusion.Tracker`)."""
     robust: bool
     time: float                      # 0: the newest measurement's
     sources: tuple[fusion.Source, ...]
     probability: float
+    max_skew: float | None = None
+    max_extrapolation: float | None = DEFAULT_MAX_EXTRAPOLATION
+    window: float = 0.0              # 0: DEFAULT_WINDOW (StreamFuse)
+    twist_covariance: np.ndarray | None = None
+
+    def fuse_kwargs(self) -> dict:
+        return dict(sources=self.sources, robust=self.robust, probability=self.probability,
+                    max_skew=self.max_skew, max_extrapolation=self.max_extrapolation,
+                    twist_covariance=self.twist_covariance)
 
 
 def options_from_msg(options, field: str = "options") -> Options:
-    """``FusionOptions`` to :class:`Options`. Frames are converted here; the domain checks the
-    rest of the sources (names, duplicates) when it fuses."""
-    # Time alignment (latency, max_skew) is not in service.fusion yet: refuse what would be
-    # silently ignored.
-    if options.max_skew:
-        raise FieldError(f"{field}.max_skew: time alignment is not available yet; leave it 0")
+    """``FusionOptions`` to :class:`Options`: frames converted and the proto's zeros turned into
+    the domain's defaults here; the domain checks the rest (names, duplicates, signs, the twist
+    prior) and its errors are renamed to these fields."""
     sources = []
     for k, s in enumerate(options.sources):
         where = f"{field}.sources[{k}]"
-        if s.latency:
-            raise FieldError(f"{where}.latency: time alignment is not available yet; leave it 0")
         sources.append(fusion.Source(s.name, _optional_pose(s, "extrinsic", where),
-                                     _optional_pose(s, "body_offset", where)))
+                                     _optional_pose(s, "body_offset", where), s.latency,
+                                     s.latency_sigma or None))
     if not math.isfinite(options.time):
         raise FieldError(f"{field}.time: must be finite, got {options.time!r}")
     p = options.probability or DEFAULT_PROBABILITY
     if not 0.0 < p < 1.0:
         raise FieldError(f"{field}.probability: must be within (0, 1) (0 means "
                          f"{DEFAULT_PROBABILITY}), got {options.probability!r}")
-    return Options(bool(options.robust), float(options.time), tuple(sources), p)
+    k = len(options.twist_covariance)
+    if k not in (0, COVARIANCE_SIZE):
+        raise FieldError(f"{field}.twist_covariance: expected {COVARIANCE_SIZE} values (6x6, "
+                         f"row-major, rotation first) or none, got {k}")
+    extrapolation = options.max_extrapolation or DEFAULT_MAX_EXTRAPOLATION
+    return Options(
+        bool(options.robust), float(options.time), tuple(sources), p,
+        max_skew=options.max_skew or None,
+        max_extrapolation=None if extrapolation == math.inf else extrapolation,
+        window=options.window,
+        twist_covariance=np.array(options.twist_covariance, dtype=np.float64).reshape(
+            fusion.DOF, fusion.DOF) if k else None)
 
 
-def options_msg(robust: bool = False, time: float = 0.0, sources=(), probability: float = 0.0):
-    """``FusionOptions`` from the domain's arguments (``sources``: :class:`fusion.Source`)."""
+def options_msg(robust: bool = False, time: float = 0.0, sources=(), probability: float = 0.0,
+                max_skew: float | None = None,
+                max_extrapolation: float | None = DEFAULT_MAX_EXTRAPOLATION,
+                window: float = 0.0, twist_covariance=None):
+    """``FusionOptions`` from the domain's arguments (``sources``: :class:`fusion.Source`;
+    ``max_extrapolation`` None: unbounded)."""
     msg = fpb.FusionOptions(robust=bool(robust), time=float(time),
-                            probability=float(probability or 0.0))
+                            probability=float(probability or 0.0),
+                            max_skew=float(max_skew or 0.0),
+                            max_extrapolation=math.inf if max_extrapolation is None
+                            else float(max_extrapolation),
+                            window=float(window or 0.0))
+    if twist_covariance is not None:
+        c = np.asarray(twist_covariance, dtype=np.float64)
+        if c.shape != (fusion.DOF, fusion.DOF):
+            raise ValueError(f"twist_covariance: expected shape (6, 6), got {c.shape}")
+        msg.twist_covariance.extend(c.ravel().tolist())
     for s in sources or ():
-        out = msg.sources.add(name=s.name)
+        out = msg.sources.add(name=s.name, latency=float(s.latency),
+                              latency_sigma=float(s.latency_sigma or 0.0))
         if s.extrinsic is not None:
             dq_to_pose(np.asarray(s.extrinsic, dtype=np.float64), out.extrinsic)
         if s.body_offset is not None:
@@ -570,12 +605,23 @@ def fused_to_msg(f: fusion.Fused, body: str, time: float, out=None):
     for s in f.sources:
         msg.sources.add(name=s.name, count=s.count, rejected=s.rejected, nis_mean=s.nis_mean,
                         low=s.low, high=s.high, verdict=int(s.verdict))
+    for d in f.dropped:
+        msg.dropped.add(index=d.index, source=d.source, age=d.age, reason=d.reason)
+    if f.twist is not None:
+        msg.twist.extend(f.twist.tolist())
+        msg.twist_covariance.extend(f.twist_covariance.ravel().tolist())
+    msg.extrapolation = f.extrapolation
+    for a in f.latencies:
+        msg.latencies.add(source=a.name, configured=a.configured, prior_sigma=a.prior_sigma,
+                          value=a.value, sigma=a.sigma)
     return msg
 
 
-def fused_from_msg(msg, probability: float = DEFAULT_PROBABILITY) -> fusion.Fused:
+def fused_from_msg(msg, probability: float = DEFAULT_PROBABILITY,
+                   max_skew: float | None = None) -> fusion.Fused:
     """A ``FusedPose`` back into the :class:`fusion.Fused` it was made from (client side);
-    ``probability`` is the request's (the gate of each rejection)."""
+    ``probability`` and ``max_skew`` are the request's (the gate of each rejection, the bound
+    of each drop)."""
     p, o = msg.pose.position, msg.pose.orientation
     nis = np.array(msg.nis, dtype=np.float64)
     gate = math.sqrt(fusion.chi2_quantile(probability, fusion.DOF))
@@ -599,4 +645,13 @@ def fused_from_msg(msg, probability: float = DEFAULT_PROBABILITY) -> fusion.Fuse
         rejected=tuple(rejected),
         chi2=msg.chi2, dof=msg.dof, iterations=msg.iterations,
         sources=tuple(fusion.SourceStats(s.name, s.count, s.rejected, s.nis_mean, s.low, s.high,
-                                         fusion.Verdict(s.verdict)) for s in msg.sources))
+                                         fusion.Verdict(s.verdict)) for s in msg.sources),
+        time=msg.time,
+        twist=frozen(np.array(msg.twist, dtype=np.float64)) if msg.twist else None,
+        twist_covariance=frozen(np.array(msg.twist_covariance, dtype=np.float64).reshape(6, 6))
+        if msg.twist else None,
+        extrapolation=msg.extrapolation,
+        dropped=tuple(fusion.Dropped(d.index, d.source, d.age, max_skew or 0.0)
+                      for d in msg.dropped),
+        latencies=tuple(fusion.Latency(a.source, a.configured, a.prior_sigma, a.value, a.sigma)
+                        for a in msg.latencies))

@@ -1,9 +1,6 @@
-"""The ``dqpose.v1.Fusion`` service: Fuse (one body, one answer) and StreamFuse (many bodies, a
-live stream), both answered by :func:`service.fusion.fuse`, whose errors name the proto field.
-
-StreamFuse keeps its per-body state in a :class:`Snapshot` made per stream: the only part that
-changes when :mod:`service.fusion` grows its sliding-window tracker (time alignment, output-rate
-pacing): a class with the same ``update`` replaces it.
+"""The ``dqpose.v1.Fusion`` service: Fuse (one body, one answer, :func:`service.fusion.fuse`) and
+StreamFuse (many bodies, a live stream: a :class:`service.fusion.Tracker` per stream, answered at
+output ticks paced on the measurements' time), errors named by proto field.
 """
 from __future__ import annotations
 
@@ -18,31 +15,34 @@ from service import fusion
 from service.errors import FieldError, rename
 from service.rpc import DEFAULT_MAX_POSES
 from service.rpc.calls import INTERNAL_DETAILS, Calls, log
-from service.rpc.convert import (Measurements, Options, fused_to_msg, measurements_to_arrays,
-                                 options_from_msg)
+from service.rpc.convert import (DEFAULT_WINDOW, Measurements, Options, fused_to_msg,
+                                 measurements_to_arrays, options_from_msg)
 from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 from service.rpc._proto.dqpose.v1 import fusion_pb2_grpc as pb_grpc
 
 # The domain's per-measurement arguments, as fields of a Measurement.
-_MEASUREMENT_FIELDS = {"poses": "pose", "covariances": "covariance"}
+_MEASUREMENT_FIELDS = {"poses": "pose", "covariances": "covariance", "times": "time"}
+_OPTION_FIELDS = ("probability", "time", "max_skew", "max_extrapolation", "window",
+                  "twist_covariance")
 _INDEXED = re.compile(r"^(\w+)\[(\d+)\]")
 
 
 def _options_error(e: ValueError, field: str) -> FieldError:
-    return rename(e, {"sources": f"{field}.sources{{}}", "probability": f"{field}.probability"})
+    return rename(e, {"sources": f"{field}.sources{{}}",
+                      **{name: f"{field}.{name}" for name in _OPTION_FIELDS}})
 
 
-def _domain_error(e: ValueError, index: np.ndarray, field: str, options: str):
-    """The domain's ``ValueError`` about row ``k`` of the arrays it was given as ``(k, error
-    naming the message's measurement index[k])``; ``(None, error)`` for one about the options."""
+def _domain_error(e: ValueError, index: np.ndarray, field: str, options: str) -> FieldError:
+    """The domain's ``ValueError`` about row ``k`` of the arrays it was given, naming the
+    message's measurement ``index[k]``; one about the options, naming the option."""
     hit = _INDEXED.match(str(e))
     if hit is None or hit[1] not in _MEASUREMENT_FIELDS:
-        return None, _options_error(e, options)
+        return _options_error(e, options)
     k = int(hit[2])
-    return k, rename(e, {hit[1]: f"{field}[{int(index[k])}].{_MEASUREMENT_FIELDS[hit[1]]}"})
+    return rename(e, {hit[1]: f"{field}[{int(index[k])}].{_MEASUREMENT_FIELDS[hit[1]]}"})
 
 
-def unknown_sources(m: Measurements, options: Options, field: str) -> list[int]:
+def unknown_sources(m: Measurements, options: Options, field: str) -> list:
     """Rows of ``m`` whose source the options do not list (when they list any), each with the
     error naming it: a misspelt name would otherwise silently lose its frames."""
     if not options.sources:
@@ -54,62 +54,80 @@ def unknown_sources(m: Measurements, options: Options, field: str) -> list[int]:
             for k in range(len(m.index)) if m.sources[k] not in known]
 
 
-def fuse_rows(m: Measurements, rows: list[int], options: Options, field: str,
-              errors: list | None = None, options_field: str = "options"):
-    """:func:`fusion.fuse` of rows ``rows`` of ``m``: ``(rows fused, Fused)``. A measurement the
-    domain refuses raises its error (naming ``{field}[i]``), or with ``errors`` is appended there
-    as ``(i, FieldError)`` and the rest are fused (``(rows, None)`` when none is left)."""
-    rows = list(rows)
-    while rows:
-        try:
-            return rows, fusion.fuse(m.poses[rows], m.covariances[rows],
-                                     names=[m.sources[k] for k in rows], sources=options.sources,
-                                     robust=options.robust, probability=options.probability)
-        except ValueError as e:
-            k, err = _domain_error(e, m.index[rows], field, options_field)
-            if k is None or errors is None:
-                raise err from None
-            errors.append((int(m.index[rows[k]]), err))
-            del rows[k]
-    return rows, None
+def first_tick(t: float, rate: float) -> int:
+    """The first tick ``k`` (at ``k / rate``) at or after ``t``, exactly in floating point."""
+    k = math.ceil(t * rate)
+    while (k - 1) / rate >= t:
+        k -= 1
+    while k / rate < t:
+        k += 1
+    return k
 
 
-def check_options(options: Options, field: str) -> None:
-    """The domain's checks of the sources, before any measurement arrives (StreamFuse): one
-    identity measurement fused with them."""
-    try:
-        fusion.fuse(np.array([[1.0, 0, 0, 0, 0, 0, 0, 0]]), sources=options.sources,
-                    probability=options.probability)
-    except ValueError as e:
-        raise _options_error(e, field) from None
+class Stream:
+    """One StreamFuse stream's state: a :class:`fusion.Tracker` of its bodies and, with an output
+    rate, each body's next tick. Nothing here reads a clock: the answers are a function of the
+    requests alone, so a recorded stream replays to the same answers."""
 
-
-class Snapshot:
-    """StreamFuse's per-body state until :mod:`service.fusion` has its sliding-window tracker:
-    none. Each request's measurements of a body are fused alone, at the newest one's time (or
-    the options' time)."""
-
-    def __init__(self, options: Options):
+    def __init__(self, options: Options, rate: float, field: str = "requests[0].options"):
         self.options = options
+        self.rate = rate
+        try:
+            self.tracker = fusion.Tracker(options.window or DEFAULT_WINDOW,
+                                          **options.fuse_kwargs())
+        except ValueError as e:
+            raise _options_error(e, field) from None
+        self.next_tick: dict[str, int] = {}
 
     def update(self, m: Measurements, ids: np.ndarray, field: str):
-        """Measurements ``m`` of one request (``ids``: their stream-wide numbers): ``(answers,
-        errors)``, answers ``(body, time, Fused, ids of the fused measurements)`` per body in
-        order of first appearance, errors ``(measurement index, FieldError)``."""
+        """Measurements ``m`` of one request (``ids``: their stream-wide numbers) into the
+        tracker: ``(answers, errors)``, answers ``(body, Fused or FieldError, ids of the fused
+        measurements)`` in order of the bodies' first appearance, then of time; errors
+        ``(measurement index, FieldError)``."""
         errors = unknown_sources(m, self.options, field)
         bad = {k for k, _ in errors}
         errors = [(int(m.index[k]), e) for k, e in errors]
-        groups: dict[str, list[int]] = {}
-        for k, body in enumerate(m.bodies):
-            if k not in bad:
-                groups.setdefault(body, []).append(k)
+        rows = [k for k in range(len(m.index)) if k not in bad]
+        refused = self.tracker.ingest([m.bodies[k] for k in rows], [m.sources[k] for k in rows],
+                                      m.times[rows], m.poses[rows], m.covariances[rows],
+                                      ids=ids[rows])
+        for j, e in refused:
+            i = int(m.index[rows[j]])
+            errors.append((i, rename(e, {"measurements": f"{field}[{i}]"})))
+        refused = {rows[j] for j, _ in refused}
         answers = []
-        for body, rows in groups.items():
-            rows, fused = fuse_rows(m, rows, self.options, field, errors)
-            if fused is not None:
-                answers.append((body, self.options.time or float(m.times[rows].max()), fused,
-                                ids[rows]))
+        for body in dict.fromkeys(m.bodies[k] for k in rows if k not in refused):
+            for t in self._due(body):
+                answers.append(self._answer(body, t, field))
         return answers, errors
+
+    def _due(self, body: str) -> list:
+        """The fusion times due for ``body``: its newest with no output rate, else the ticks its
+        newest measurement has reached (not before the oldest one in its window)."""
+        if not self.rate:
+            return [None]
+        newest = self.tracker.newest(body)
+        k = self.next_tick.get(body)
+        if k is not None and k / self.rate > newest:
+            return []           # most requests: the body's next tick not reached yet
+        first = first_tick(self.tracker.oldest(body), self.rate)
+        k = first if k is None else max(k, first)
+        due = []
+        while k / self.rate <= newest:
+            due.append(k / self.rate)
+            k += 1
+        self.next_tick[body] = k
+        return due
+
+    def _answer(self, body: str, t, field: str):
+        ids = self.tracker.window_of(body).ids
+        try:
+            return body, self.tracker.estimate(body, t), ids
+        except ValueError as e:
+            at = f"{t!r} s" if t is not None else "its newest measurement"
+            where = field.rsplit(".", 1)[0]
+            return body, FieldError(f"{where}: body {body!r} at {at}: "
+                                    f"{_options_error(e, 'options')}"), ids
 
 
 class Fusion(pb_grpc.FusionServicer):
@@ -117,8 +135,6 @@ class Fusion(pb_grpc.FusionServicer):
     context): ``dqpose fuse --local`` answers with it."""
 
     NAME = pb.DESCRIPTOR.services_by_name["Fusion"].full_name
-    # StreamFuse's per-stream state (see Snapshot): made from the stream's Options.
-    State = Snapshot
 
     def __init__(self, cfg=None, calls: Calls | None = None):
         """``cfg`` is the server's ``ServerConfig`` (its defaults when None)."""
@@ -143,11 +159,17 @@ class Fusion(pb_grpc.FusionServicer):
                 raise FieldError(f"measurements[{k}].body: {body!r} differs from "
                                  f"measurements[0].body {m.bodies[0]!r} (Fuse fuses one body; "
                                  f"StreamFuse takes many)")
+        if options.window:
+            raise FieldError("options.window: Fuse keeps no window (StreamFuse does); leave it 0")
         unknown = unknown_sources(m, options, "measurements")
         if unknown:
             raise unknown[0][1]
-        _, fused = fuse_rows(m, range(len(m.index)), options, "measurements")
-        return fused_to_msg(fused, m.bodies[0], options.time or float(m.times.max()))
+        try:
+            fused = fusion.fuse(m.poses, m.covariances, names=m.sources, times=m.times,
+                                time=options.time or None, **options.fuse_kwargs())
+        except ValueError as e:
+            raise _domain_error(e, m.index, "measurements", "options") from None
+        return fused_to_msg(fused, m.bodies[0], fused.time)
 
     def stream_options(self, request: pb.FuseStreamRequest):
         """The first request's options as the stream's state; a ``FieldError`` ends the stream."""
@@ -156,8 +178,10 @@ class Fusion(pb_grpc.FusionServicer):
         if not (math.isfinite(rate) and rate >= 0.0):
             raise FieldError(f"requests[0].output_rate: must be finite and >= 0 (0: an answer "
                              f"after every request), got {rate!r}")
-        check_options(options, "requests[0].options")
-        return self.State(options)
+        if options.time:
+            raise FieldError("requests[0].options.time: StreamFuse answers at its output ticks, "
+                             "or at each body's newest measurement; leave it 0")
+        return Stream(options, rate)
 
     def stream_step(self, state, request: pb.FuseStreamRequest, r: int,
                     first_id: int) -> list[pb.FusedPose]:
@@ -183,8 +207,11 @@ class Fusion(pb_grpc.FusionServicer):
         answers, more = state.update(m, first_id + m.index, field)
         for i, e in sorted(errors + more, key=lambda x: x[0]):
             error(i, e, request.measurements[i].body)
-        for body, t, fused, ids in answers:
-            msg = fused_to_msg(fused, body, t)
+        for body, fused, ids in answers:
+            if isinstance(fused, FieldError):
+                error(-1, fused, body)
+                continue
+            msg = fused_to_msg(fused, body, fused.time)
             msg.request = r
             msg.measurements.extend(ids.tolist())
             out.append(msg)

@@ -66,7 +66,8 @@ def test_csv_with_sigmas_on_the_server_and_local(server, capsys, tmp_path):
     path = tmp_path / "m.csv"
     write_csv(path, Z, sd, names)
     S = np.array([np.diag(s * s) for s in sd])
-    want = fusion.fuse(Z, S, names=names, robust=True)
+    # stamped 10 ms apart: fused with time alignment (the body's twist estimated with it)
+    want = fusion.fuse(Z, S, names=names, robust=True, times=0.01 * np.arange(5))
     code, out, err = run(capsys, "fuse", "--robust", "--target", server.target, "--format",
                          "json", str(path))
     assert code == 0, err
@@ -166,3 +167,27 @@ def test_csv_full_covariance_columns(capsys, tmp_path):
     path.write_text(lines[0] + ",weight\n" + lines[1] + ",2\n")
     code, _, err = run(capsys, "fuse", "--local", str(path))
     assert code == 2 and "columns of both weight and covariance; give one" in err
+
+
+def test_time_alignment_options_and_output(server, capsys, tmp_path):
+    """A body moving 0.1 m/s along x, stamped by two sources; the last one 0.27 s late."""
+    path = tmp_path / "moving.csv"
+    rows = [("a", 0.00, 0.100), ("b", 0.01, 0.101), ("a", 0.02, 0.102), ("b", 0.03, 0.103),
+            ("a", 0.30, 0.130)]
+    path.write_text("source,time,x,y,z,qw,qx,qy,qz,weight\n" + "".join(
+        f"{s},{t!r},{x!r},0,0,1,0,0,0,10000\n" for s, t, x in rows))
+    args = ["fuse", "--max-skew", "0.1", "--time", "0.03", "--format", "json", str(path)]
+    code, out, err = run(capsys, *args[:-1], "--local", str(path))
+    assert code == 0, err
+    doc = json.loads(out)
+    assert [d["index"] for d in doc["dropped"]] == [4] and doc["dropped"][0]["source"] == "a"
+    assert doc["time"] == 0.03 and doc["twist"][3] == pytest.approx(0.1, abs=1e-9)
+    assert doc["pose"]["position"]["x"] == pytest.approx(0.103, abs=1e-9)
+    code, remote, _ = run(capsys, *args[:-1], "--target", server.target, str(path))
+    assert code == 0 and json.loads(remote)["dropped"] == doc["dropped"]
+    code, text, _ = run(capsys, "fuse", "--local", "--max-skew", "0.1", "--time", "0.03",
+                        str(path))
+    assert "dropped:\n  measurement 4 (a): taken 0.27 s after the fusion time, beyond max_skew " \
+           "0.1 s" in text and "body twist V" in text
+    code, _, err = run(capsys, "fuse", "--local", "--time", "0.5", str(path))
+    assert code == 2 and err.startswith("dqpose fuse: error: options.time: 0.5 is 0.2 s outside")

@@ -1,0 +1,272 @@
+"""StreamFuse throughput: measurements of many moving bodies streamed in messages of 10 through the
+shipped ``Client.stream_fuse`` into one server (a separate ``dqpose serve`` process); one table:
+measurements/s and messages/s sustained, answers/s, p50/p99 latency per message, server RSS at
+the start and the end; then the server's per-message cost in process (cProfile, or py-spy when
+installed) split into its parts.
+
+    .venv/bin/python -m tests.bench.bench_fusion_stream                 # ~1 min
+    .venv/bin/python -m tests.bench.bench_fusion_stream --minutes 10    # the memory run
+    .venv/bin/python -m tests.bench.bench_fusion_stream --plot docs/bench_fusion_stream.png
+
+Scene: ``--bodies`` bodies on constant-twist screws, each measured in turn (round robin) by one
+of two sources with latencies, 10 measurements a message with full covariances; the server keeps
+a ``--window`` per body and answers each body at ``--output-rate`` (ticks on the measurements'
+time). Latency of a message: from the client handing it to gRPC to the arrival of its first
+answer. So that every message has one, each carries an 11th measurement with no body, which the
+server answers at once with an error entry (after it has taken in, and fused at the ticks due,
+the message's 10 others): the probe adds one error entry per message to the server's work.
+Rows: paced at the target rate (20,000 measurements/s), and unpaced (as fast as the client
+sends), which shows the ceiling.
+"""
+from __future__ import annotations
+
+import argparse
+import cProfile
+import io
+import pstats
+import shutil
+import sys
+import threading
+import time
+
+import numpy as np
+
+from service import dq, fusion, lie
+from service.rpc.client import Batch, Client
+from tests.bench.bench_grpc import ServerProcess
+
+PER_MESSAGE = 10
+COV = np.diag(np.r_[np.full(3, np.deg2rad(0.3)), np.full(3, 1e-3)] ** 2)
+SOURCES = [fusion.Source("cam", latency=0.03), fusion.Source("arm", latency=0.004)]
+
+
+class Scene:
+    """Message ``i`` holds measurements ``10 i .. 10 i + 9`` of the whole stream: measurement
+    ``j`` is of body ``j % bodies`` stamped ``j / rate`` (``rate`` measurements/s in all), by
+    the camera or the arm in turn, plus the probe."""
+
+    def __init__(self, bodies: int, rate: float, seed: int = 0):
+        rng = np.random.default_rng(seed)
+        self.bodies, self.rate = bodies, rate
+        self.X0 = lie.se3_exp(rng.normal(size=(bodies, 6)))
+        self.V = rng.normal(size=(bodies, 6)) * 0.2
+        self.names = [f"body{b}" for b in range(bodies)]
+        self.cov = np.broadcast_to(COV, (PER_MESSAGE + 1, 6, 6))
+
+    def batch(self, i: int) -> Batch:
+        j = np.arange(i * PER_MESSAGE, (i + 1) * PER_MESSAGE)
+        b = j % self.bodies
+        src = np.where((j // self.bodies) % 2 == 0, 0, 1)
+        stamps = j / self.rate
+        taken = stamps - np.where(src == 0, 0.03, 0.004)
+        Z = dq.mul(self.X0[b], lie.se3_exp(taken[:, None] * self.V[b]))
+        return Batch(np.concatenate([Z, Z[:1]]), self.cov,
+                     names=[SOURCES[s].name for s in src] + ["cam"],
+                     bodies=[self.names[k] for k in b] + [""],
+                     times=np.concatenate([stamps, stamps[:1]]))
+
+
+def run(target: str, scene: Scene, seconds: float, msg_rate: float | None, args,
+        rss=None) -> dict:
+    """Stream for ``seconds``; ``msg_rate`` None: unpaced. Latencies of messages after the
+    first second (warm-up) only."""
+    n_max = int(seconds * (msg_rate or 20000)) + 1
+    sent = np.full(n_max, np.nan)
+    first_answer = np.full(n_max, np.nan)
+    answers = [0]
+    stop = [False]
+    t_start = [0.0]
+
+    def batches():
+        t0 = time.perf_counter()
+        t_start[0] = t0
+        for i in range(n_max):
+            if msg_rate:
+                due = t0 + i / msg_rate
+                while (now := time.perf_counter()) < due:
+                    time.sleep(min(due - now, 0.0005))
+            b = scene.batch(i)
+            if time.perf_counter() - t0 > seconds or stop[0]:
+                return
+            sent[i] = time.perf_counter()
+            yield b
+
+    samples = []
+
+    def sample_rss():
+        while not stop[0]:
+            samples.append((time.perf_counter(), rss()))
+            time.sleep(1.0)
+
+    sampler = threading.Thread(target=sample_rss, daemon=True)
+    sampler.start()
+    with Client(target) as c:
+        for a in c.stream_fuse(batches(), sources=SOURCES, output_rate=args.output_rate,
+                               window=args.window):
+            if np.isnan(first_answer[a.request]):
+                first_answer[a.request] = time.perf_counter()
+            answers[0] += a.error is None
+    stop[0] = True
+    sampler.join()
+    done = ~np.isnan(sent)
+    n = int(done.sum())
+    elapsed = np.nanmax(sent) - t_start[0]
+    warm = done & (sent > t_start[0] + 1.0)
+    lat = (first_answer - sent)[warm]
+    return dict(messages=n / elapsed, measurements=n * PER_MESSAGE / elapsed,
+                answers=answers[0] / elapsed, p50=np.nanpercentile(lat, 50) * 1e3,
+                p99=np.nanpercentile(lat, 99) * 1e3, max=np.nanmax(lat) * 1e3,
+                missing=int(np.isnan(lat).sum()), rss=samples, n=n)
+
+
+def per_message_cost(scene: Scene, args, messages: int = 6000) -> str:
+    """The server's per-message path in process (no transport): request bytes parsed, then
+    ``Fusion.stream_step``; cProfile of the parts, or py-spy's top functions when installed."""
+    from service.rpc.convert import measurement_msgs as msgs, options_msg
+    from service.rpc.fusion import Fusion
+    from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
+
+    data = []
+    for i in range(messages):
+        b = scene.batch(i)
+        data.append(pb.FuseStreamRequest(measurements=msgs(
+            b.poses, b.covariances, names=b.names, bodies=b.bodies,
+            times=b.times)).SerializeToString())
+    from service.rpc.convert import measurements_to_arrays
+
+    f = Fusion()
+
+    def stream(rate):
+        return f.stream_options(pb.FuseStreamRequest(
+            output_rate=rate, options=options_msg(sources=SOURCES, window=args.window)))
+
+    state = stream(args.output_rate)
+
+    def go(lo, hi, state=state):
+        for r in range(lo, hi):
+            for a in f.stream_step(state, pb.FuseStreamRequest.FromString(data[r]), r,
+                                   r * (PER_MESSAGE + 1)):
+                a.SerializeToString()
+
+    def us(fn, n, repeat=3):
+        best = np.inf
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            fn()
+            best = min(best, time.perf_counter() - t0)
+        return best / n * 1e6
+
+    # The stream runs over consecutive chunks (a tracker cannot take the same times twice): the
+    # best chunk, as the machine is shared.
+    chunk = messages // 6
+
+    def chunks(state, pick):
+        go(0, chunk, state)
+        return pick([us(lambda k=k: go(k * chunk, (k + 1) * chunk, state), chunk, 1)
+                     for k in range(1, 5)])
+
+    per = chunks(state, np.mean)      # the ticks fall in some chunks: all of them
+    # the same messages with no tick due (output_rate 1e-9 Hz: one tick, at 0): the ingest path
+    ingest = chunks(stream(1e-9), min)
+    parsed = [pb.FuseStreamRequest.FromString(d) for d in data[:chunk]]
+    parse = us(lambda: [pb.FuseStreamRequest.FromString(d) for d in data[:chunk]], chunk)
+    convert = us(lambda: [measurements_to_arrays(m.measurements, "m", []) for m in parsed],
+                 chunk)
+    tracker = state.tracker
+    bodies = tracker.bodies[:50]
+    fit = us(lambda: [tracker.estimate(b, tracker.newest(b) - 0.01) for b in bodies],
+             len(bodies))
+    size = np.mean([len(tracker.window_of(b).ids) for b in bodies])
+    ticks = args.output_rate * args.bodies / (args.rate / PER_MESSAGE)
+    out = io.StringIO()
+    out.write(
+        f"server per-message path in process (parse + stream_step + answers serialised), "
+        f"{PER_MESSAGE} measurements + probe a message:\n"
+        f"  all: {per:.0f} us/message at output_rate {args.output_rate:g} Hz "
+        f"({ticks:.3f} estimates a message on average)\n"
+        f"  ingest only (no tick due): {ingest:.0f} us/message, of which protobuf parse "
+        f"{parse:.1f} us and messages to arrays {convert:.0f} us; the rest is Tracker.ingest "
+        f"(batched checks, window arrays) and the service's bookkeeping\n"
+        f"  one estimate (Tracker.estimate, {size:.0f} measurements in the window): "
+        f"{fit / 1e3:.2f} ms\n")
+    if shutil.which("py-spy"):
+        out.write("(py-spy is installed: `py-spy top --pid <server pid>` gives the same split "
+                  "live)\n")
+    pr = cProfile.Profile()
+    pr.enable()
+    go(5 * chunk, messages)
+    pr.disable()
+    st = pstats.Stats(pr, stream=out)
+    st.sort_stats("cumulative").print_stats(
+        r"stream_step|update|ingest|_ingest|measurements_to_arrays|_covariances|_poses|_due|"
+        r"estimate|fused_to_msg|unknown_sources|append|FromString|SerializeToString")
+    return out.getvalue()
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--rate", type=float, default=20000.0, help="measurements/s (paced row)")
+    ap.add_argument("--bodies", type=int, default=100)
+    ap.add_argument("--output-rate", type=float, default=1.0, help="answers per body, Hz")
+    ap.add_argument("--window", type=float, default=0.1, help="seconds per body")
+    ap.add_argument("--seconds", type=float, default=20.0, help="length of each row")
+    ap.add_argument("--minutes", type=float, help="one paced run this long (memory), no "
+                                                  "unpaced row")
+    ap.add_argument("--no-profile", action="store_true")
+    ap.add_argument("--plot", metavar="PATH", help="RSS and latency over the paced run (PNG)")
+    args = ap.parse_args(argv)
+
+    scene = Scene(args.bodies, args.rate)
+    server = ServerProcess("aio", quiet_log=True)
+    try:
+        rows = []
+        if args.minutes:
+            rows.append(("paced", run(server.target, scene, args.minutes * 60,
+                                      args.rate / PER_MESSAGE, args, server.rss_mb)))
+        else:
+            rows.append(("paced", run(server.target, scene, args.seconds,
+                                      args.rate / PER_MESSAGE, args, server.rss_mb)))
+            rows.append(("unpaced", run(server.target, scene, args.seconds, None, args,
+                                        server.rss_mb)))
+    finally:
+        server.stop()
+
+    print(f"StreamFuse, one server (dqpose serve --no-call-log), Python Client.stream_fuse; "
+          f"{args.bodies} bodies, {PER_MESSAGE} measurements (full covariances) + 1 probe a "
+          f"message, window {args.window:g} s, output_rate {args.output_rate:g} Hz per body")
+    head = ("row", "meas/s", "msgs/s", "answers/s", "p50 ms", "p99 ms", "max ms",
+            "RSS start MB", "RSS end MB", "seconds")
+    print("| " + " | ".join(head) + " |")
+    print("|" + "---|" * len(head))
+    for name, r in rows:
+        rss = [m for _, m in r["rss"]]
+        start = rss[min(2, len(rss) - 1)] if rss else float("nan")   # after the warm-up
+        print(f"| {name} | {r['measurements']:.0f} | {r['messages']:.0f} | {r['answers']:.1f} | "
+              f"{r['p50']:.2f} | {r['p99']:.2f} | {r['max']:.1f} | {start:.1f} | "
+              f"{rss[-1] if rss else float('nan'):.1f} | "
+              f"{(r['rss'][-1][0] - r['rss'][0][0]) if r['rss'] else 0:.0f} |")
+    if not args.no_profile:
+        print()
+        print(per_message_cost(scene, args))
+    if args.plot:
+        plot(args.plot, rows[0][1])
+    return 0
+
+
+def plot(path: str, r: dict) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t0 = r["rss"][0][0]
+    fig, ax = plt.subplots(figsize=(7, 3))
+    ax.plot([t - t0 for t, _ in r["rss"]], [m for _, m in r["rss"]])
+    ax.set_xlabel("s")
+    ax.set_ylabel("server RSS, MB")
+    ax.set_title("StreamFuse paced run: server memory")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
