@@ -815,7 +815,9 @@ def _motion_fit(Z, S, W, model: _Model, inlier: np.ndarray, tol: float,
         Cinv = None
         X, V, ell, status, iterations = _motion_solve(Zi, Wi, mi, X, V, ell, tol, max_iter)
     else:
-        iterations, at = 0, ell
+        # the constant-twist fit starts it: cheap, and near when the model error is small
+        X, V, ell, _, iterations = _motion_solve(Zi, Wi, mi, X, V, ell, tol, max_iter)
+        at = ell
         Cinv = _information(Si, mi.dt(at), model.accel)
         for _ in range(_PASSES if ell.size else 1):
             X, V, ell, status, it = _motion_solve(Zi, Wi, mi, X, V, ell, tol, max_iter, Cinv)
