@@ -36,7 +36,7 @@ and ``r_i`` by ``−Jl⁻¹(r_i) η``. The covariance is the inverse of the join
 block is the marginal at the fusion time, so it carries the twist's (and latencies') uncertainty.
 
 A body that accelerates leaves the constant-twist model, and without process noise the fit then
-claims more than it knows (mean NEES 8.3 instead of 6 for the accelerating body of
+claims more than it knows (mean NEES 7.4–8.3 instead of 6 for the accelerating body of
 tests/test_fusion_time.py). ``acceleration_psd`` ``Q`` (6 × 6, rotation first, rad²/s³ and m²/s³)
 models exactly this, and nothing more: the true pose at ``τ`` is
 ``T(τ) = X · Exp(dt V) · Exp(ε(τ))`` with ``ε`` the twice-integrated white noise of power
