@@ -93,3 +93,91 @@ def test_errors_and_nees_measure_what_they_say():
     P = np.diag([1e-4, 2e-4, 1e-4, 1e-6, 4e-6, 1e-6])
     Xt = dq.mul(X, lie.se3_exp(xi))
     assert bench.nees(X, P, Xt) == pytest.approx(xi @ np.linalg.solve(P, xi))
+
+
+# ---- the moving body -----------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def moving():
+    return bench.moving_scene(seed=3, seconds=2.0)
+
+
+def test_moving_path_is_smooth_realistic_and_accelerating(moving):
+    w, v, alpha, acc = moving.path.motion(np.arange(0.0, 2.0, 0.01))
+    assert 0.2 <= np.median(v) <= 0.5 and v.max() < 0.6
+    assert 30 <= np.degrees(np.median(w)) <= 90 and np.degrees(w.max()) < 120
+    assert np.median(acc) > 0.1 and np.degrees(np.median(alpha)) > 10  # never a constant twist
+    # smooth: the pose 1 ms apart moves by speed × 1 ms, nothing jumps
+    T = moving.path(np.arange(0.0, 2.0, 0.001))
+    step = lie.se3_log(dq.mul(dq.conj(T[:-1]), T[1:]))
+    assert np.linalg.norm(step[:, 3:], axis=1).max() < 0.6e-3
+    assert np.linalg.norm(step[:, :3], axis=1).max() < np.radians(120) * 1e-3
+
+
+def test_moving_streams_have_their_rates_latencies_and_stamps(moving):
+    names = [s.name for s in moving.streams]
+    assert names == list(bench.MOVING_CAMERAS) + [bench.ARM]
+    for s in moving.streams:
+        rate, latency = ((bench.ARM_RATE, bench.ARM_LATENCY) if s.name == bench.ARM else
+                         (bench.CAMERA_RATE, bench.CAMERA_LATENCY))
+        assert s.rate == rate and s.latency == latency
+        np.testing.assert_allclose(np.diff(s.capture), 1 / rate, rtol=1e-9)
+        assert 0 <= s.capture[0] < 1 / rate and s.capture[-1] > 2.0 - 1 / rate - 1e-9
+        np.testing.assert_allclose(s.stamp - s.capture, latency, atol=1e-12)
+    assert np.diff(moving.queries) == pytest.approx(1 / bench.QUERY_RATE)
+    # the cameras' frames are not in step
+    assert len({round(s.capture[0], 6) for s in moving.streams}) == len(moving.streams)
+
+
+def test_moving_measurements_follow_their_covariances_at_the_capture_time(moving):
+    white = []
+    for s in moving.streams:
+        e = lie.se3_log(dq.mul(dq.conj(s.Z), moving.path(s.capture)))
+        w = np.linalg.solve(np.linalg.cholesky(s.S), e[..., None])[..., 0]
+        k = len(w)
+        assert np.abs(w.mean(axis=0)).max() < 6 / np.sqrt(k), s.name
+        assert np.abs(np.cov(w.T) - np.eye(6)).max() < 6 * np.sqrt(2 / k), s.name
+        white.append(w)
+        # against the stamp (latency not subtracted) the error is far beyond the noise
+        e = lie.se3_log(dq.mul(dq.conj(s.Z), moving.path(s.stamp)))
+        w = np.linalg.solve(np.linalg.cholesky(s.S), e[..., None])[..., 0]
+        assert np.median(np.einsum("ni,ni->n", w, w)) > 100, s.name
+    arm = moving.streams[-1]
+    assert np.sqrt(np.diag(arm.S[0]))[3:].max() < 0.3e-3  # a precise arm
+
+
+def test_moving_window_holds_what_was_stamped_in_it(moving):
+    t_q = 1.2345
+    Z, S, names, stamps = moving.window(t_q)
+    assert np.all(stamps <= t_q) and np.all(stamps > t_q - bench.FUSION_WINDOW)
+    for s in moving.streams:
+        inside = (s.stamp <= t_q) & (s.stamp > t_q - bench.FUSION_WINDOW)
+        assert names.count(s.name) == inside.sum()
+    assert len(names) == len(Z) == len(S)
+
+
+def test_single_source_interpolates_and_extrapolates_along_the_screw():
+    """On a constant-twist path without noise, ScLERP between the bracketing samples and the
+    extrapolation of the newest two are exact; only what was stamped by the query is used."""
+    V = np.array([0.3, -0.2, 0.5, 0.2, 0.1, -0.15])
+    X0 = lie.se3_exp(np.array([0.1, 0.2, -0.3, 0.05, 0.0, 0.3]))
+    capture = np.arange(0.0, 1.0, 1 / 30)
+    Z = dq.mul(X0, lie.se3_exp(capture[:, None] * V))
+    s = bench.Stream("cam", 30.0, 0.04, capture, capture + 0.04, Z, np.zeros((capture.size, 6, 6)))
+    for t_q, time in ((0.5, 0.41), (0.5, 0.49), (0.5, 0.3)):
+        got = bench.single(s, t_q, time)
+        want = dq.mul(X0, lie.se3_exp(time * V))
+        assert np.linalg.norm(lie.se3_log(dq.mul(dq.conj(got), want))) < 1e-12
+    # at t_q = 0.5 the newest known frame was taken at 0.4333: time 0.49 is an extrapolation;
+    # a frame stamped after t_q would have made it an interpolation, and must not be used
+    noisy = s.Z.copy()
+    noisy[14:] = dq.mul(noisy[14:], lie.se3_exp(np.full(6, 0.1)))  # captured at 0.4667 on
+    s2 = bench.Stream("cam", 30.0, 0.04, capture, capture + 0.04, noisy, s.S)
+    assert np.array_equal(bench.single(s2, 0.5, 0.49), bench.single(s, 0.5, 0.49))
+
+
+def test_acceleration_rule_is_the_paths_rms_acceleration_over_the_window(moving):
+    Q = bench.acceleration_rule(moving.path, 2.0)
+    _, _, alpha, acc = moving.path.motion(np.arange(0.0, 2.0, 0.01))
+    assert Q[0, 0] == pytest.approx(bench.FUSION_WINDOW * np.mean(alpha ** 2) / 3)
+    assert Q[3, 3] == pytest.approx(bench.FUSION_WINDOW * np.mean(acc ** 2) / 3)
+    assert np.count_nonzero(Q - np.diag(np.diag(Q))) == 0
