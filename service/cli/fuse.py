@@ -74,6 +74,10 @@ def configure(name: str, p) -> None:
     p.add_argument("--max-extrapolation", type=float,
                    help="how far the fusion time may lie outside the measurements' span, s; "
                         "inf: unbounded (default: the file's, else 0.1)")
+    p.add_argument("--acceleration-psd", type=float, nargs=2, metavar=("ROT", "TRANS"),
+                   help="let the twist drift: white-noise acceleration with this power spectral "
+                        "density on each rotation (rad^2/s^3) and translation (m^2/s^3) axis; "
+                        "rule of thumb a^2 * window (default: the file's, else a constant twist)")
     p.add_argument("--format", choices=["text", "json"], default="text",
                    help="output: text for people, or the FusedPose as JSON (default: %(default)s)")
     p.add_argument("--local", action="store_true", help="compute in this process, no server")
@@ -180,6 +184,11 @@ def _fuse(args) -> int:
             request.options.max_skew = args.max_skew
         if args.max_extrapolation is not None:
             request.options.max_extrapolation = args.max_extrapolation
+        if args.acceleration_psd is not None:
+            rot, trans = args.acceleration_psd
+            del request.options.acceleration_psd[:]
+            request.options.acceleration_psd.extend(
+                (rot if i < 3 else trans) if i == j else 0.0 for i in range(6) for j in range(6))
         if args.local:
             from service.rpc.fusion import Fusion
 

@@ -350,7 +350,7 @@ class Client:
              probability: float = DEFAULT_PROBABILITY, body: str = "", times=None,
              time: Optional[float] = None, max_skew: Optional[float] = None,
              max_extrapolation: Optional[float] = DEFAULT_MAX_EXTRAPOLATION,
-             twist_covariance=None) -> fusion.Fused:
+             twist_covariance=None, acceleration_psd=None) -> fusion.Fused:
         """:func:`service.fusion.fuse` on the server (same arguments, same result), for one
         ``body``. The server always fuses with times (``times`` None: all 0): measurements
         taken at one instant give the static fusion, exactly; ``time`` None (or 0) is the
@@ -359,7 +359,8 @@ class Client:
         request = fpb.FuseRequest(
             measurements=measurement_msgs(poses, covariances, weights, names, [body] * n, times),
             options=options_msg(robust, time or 0.0, sources, probability, max_skew,
-                                max_extrapolation, twist_covariance=twist_covariance))
+                                max_extrapolation, twist_covariance=twist_covariance,
+                                acceleration_psd=acceleration_psd))
         return fused_from_msg(self.fuse_request(request), probability, max_skew)
 
     def fuse_request(self, request: fpb.FuseRequest) -> fpb.FusedPose:
@@ -371,7 +372,8 @@ class Client:
                     output_rate: float = 0.0, window: float = DEFAULT_WINDOW,
                     max_skew: Optional[float] = None,
                     max_extrapolation: Optional[float] = DEFAULT_MAX_EXTRAPOLATION,
-                    twist_covariance=None) -> Iterator[StreamAnswer]:
+                    twist_covariance=None,
+                    acceleration_psd=None) -> Iterator[StreamAnswer]:
         """Stream :class:`Batch` es (measurements of any bodies each) to ``StreamFuse``; yields
         :class:`StreamAnswer` s as they come: fused poses of each body over its sliding
         ``window`` (seconds) at the ticks ``k / output_rate`` of the measurements' time (0: one
@@ -383,7 +385,7 @@ class Client:
         refused: list[Exception] = []
         first = fpb.FuseStreamRequest(
             options=options_msg(robust, 0.0, sources, probability, max_skew, max_extrapolation,
-                                window, twist_covariance),
+                                window, twist_covariance, acceleration_psd),
             output_rate=output_rate)
 
         def requests():

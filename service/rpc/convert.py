@@ -456,11 +456,13 @@ class Options(NamedTuple):
     max_extrapolation: float | None = DEFAULT_MAX_EXTRAPOLATION
     window: float = 0.0              # 0: DEFAULT_WINDOW (StreamFuse)
     twist_covariance: np.ndarray | None = None
+    acceleration_psd: np.ndarray | None = None
 
     def fuse_kwargs(self) -> dict:
         return dict(sources=self.sources, robust=self.robust, probability=self.probability,
                     max_skew=self.max_skew, max_extrapolation=self.max_extrapolation,
-                    twist_covariance=self.twist_covariance)
+                    twist_covariance=self.twist_covariance,
+                    acceleration_psd=self.acceleration_psd)
 
 
 def options_from_msg(options, field: str = "options") -> Options:
@@ -479,24 +481,26 @@ def options_from_msg(options, field: str = "options") -> Options:
     if not 0.0 < p < 1.0:
         raise FieldError(f"{field}.probability: must be within (0, 1) (0 means "
                          f"{DEFAULT_PROBABILITY}), got {options.probability!r}")
-    k = len(options.twist_covariance)
-    if k not in (0, COVARIANCE_SIZE):
-        raise FieldError(f"{field}.twist_covariance: expected {COVARIANCE_SIZE} values (6x6, "
-                         f"row-major, rotation first) or none, got {k}")
+    matrices = {}
+    for name in ("twist_covariance", "acceleration_psd"):
+        k = len(getattr(options, name))
+        if k not in (0, COVARIANCE_SIZE):
+            raise FieldError(f"{field}.{name}: expected {COVARIANCE_SIZE} values (6x6, "
+                             f"row-major, rotation first) or none, got {k}")
+        matrices[name] = np.array(getattr(options, name), dtype=np.float64).reshape(
+            fusion.DOF, fusion.DOF) if k else None
     extrapolation = options.max_extrapolation or DEFAULT_MAX_EXTRAPOLATION
     return Options(
         bool(options.robust), float(options.time), tuple(sources), p,
         max_skew=options.max_skew or None,
         max_extrapolation=None if extrapolation == math.inf else extrapolation,
-        window=options.window,
-        twist_covariance=np.array(options.twist_covariance, dtype=np.float64).reshape(
-            fusion.DOF, fusion.DOF) if k else None)
+        window=options.window, **matrices)
 
 
 def options_msg(robust: bool = False, time: float = 0.0, sources=(), probability: float = 0.0,
                 max_skew: float | None = None,
                 max_extrapolation: float | None = DEFAULT_MAX_EXTRAPOLATION,
-                window: float = 0.0, twist_covariance=None):
+                window: float = 0.0, twist_covariance=None, acceleration_psd=None):
     """``FusionOptions`` from the domain's arguments (``sources``: :class:`fusion.Source`;
     ``max_extrapolation`` None: unbounded)."""
     msg = fpb.FusionOptions(robust=bool(robust), time=float(time),
@@ -505,11 +509,13 @@ def options_msg(robust: bool = False, time: float = 0.0, sources=(), probability
                             max_extrapolation=math.inf if max_extrapolation is None
                             else float(max_extrapolation),
                             window=float(window or 0.0))
-    if twist_covariance is not None:
-        c = np.asarray(twist_covariance, dtype=np.float64)
-        if c.shape != (fusion.DOF, fusion.DOF):
-            raise ValueError(f"twist_covariance: expected shape (6, 6), got {c.shape}")
-        msg.twist_covariance.extend(c.ravel().tolist())
+    for name, value in (("twist_covariance", twist_covariance),
+                        ("acceleration_psd", acceleration_psd)):
+        if value is not None:
+            c = np.asarray(value, dtype=np.float64)
+            if c.shape != (fusion.DOF, fusion.DOF):
+                raise ValueError(f"{name}: expected shape (6, 6), got {c.shape}")
+            getattr(msg, name).extend(c.ravel().tolist())
     for s in sources or ():
         out = msg.sources.add(name=s.name, latency=float(s.latency),
                               latency_sigma=float(s.latency_sigma or 0.0))

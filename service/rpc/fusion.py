@@ -23,7 +23,7 @@ from service.rpc._proto.dqpose.v1 import fusion_pb2_grpc as pb_grpc
 # The domain's per-measurement arguments, as fields of a Measurement.
 _MEASUREMENT_FIELDS = {"poses": "pose", "covariances": "covariance", "times": "time"}
 _OPTION_FIELDS = ("probability", "time", "max_skew", "max_extrapolation", "window",
-                  "twist_covariance")
+                  "twist_covariance", "acceleration_psd")
 _INDEXED = re.compile(r"^(\w+)\[(\d+)\]")
 
 

@@ -191,3 +191,30 @@ def test_time_alignment_options_and_output(server, capsys, tmp_path):
            "0.1 s" in text and "body twist V" in text
     code, _, err = run(capsys, "fuse", "--local", "--time", "0.5", str(path))
     assert code == 2 and err.startswith("dqpose fuse: error: options.time: 0.5 is 0.2 s outside")
+
+
+def test_acceleration_psd_option(server, capsys, tmp_path):
+    """--acceleration-psd ROT TRANS is a diagonal random-walk twist: the domain's answer with
+    that matrix, and a larger covariance than the constant twist claims."""
+    path = tmp_path / "accelerating.csv"
+    rows = [(t, 0.1 * t + 0.5 * t * t) for t in (0.01 * k for k in range(10))]   # 1 m/s^2, x
+    path.write_text("source,time,x,y,z,qw,qx,qy,qz,weight\n" + "".join(
+        f"a,{t!r},{x!r},0,0,1,0,0,0,10000\n" for t, x in rows))
+    args = ["fuse", "--format", "json", str(path)]
+    code, out, err = run(capsys, *args[:-1], "--local", "--acceleration-psd", "0.01", "0.1",
+                         str(path))
+    assert code == 0, err
+    doc = json.loads(out)
+    Z = dq.from_pose(np.tile([1.0, 0, 0, 0], (len(rows), 1)),
+                     [[x, 0, 0] for _, x in rows])
+    want = fusion.fuse(Z, weights=np.full(len(rows), 1e4), times=[t for t, _ in rows],
+                       acceleration_psd=np.diag([0.01] * 3 + [0.1] * 3))
+    assert_pose(pose_of(doc), want.mean, atol=1e-12)
+    np.testing.assert_allclose(np.reshape(doc["covariance"], (6, 6)), want.covariance,
+                               rtol=1e-12)
+    code, remote, _ = run(capsys, *args[:-1], "--target", server.target,
+                          "--acceleration-psd", "0.01", "0.1", str(path))
+    assert code == 0
+    np.testing.assert_allclose(json.loads(remote)["covariance"], doc["covariance"], rtol=1e-12)
+    code, plain, _ = run(capsys, *args[:-1], "--local", str(path))
+    assert np.reshape(json.loads(plain)["covariance"], (6, 6))[3, 3] < want.covariance[3, 3]

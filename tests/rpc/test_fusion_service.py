@@ -179,6 +179,10 @@ def _request(Z, S, **kw):
      "options.twist_covariance: expected 36 values"),
     (lambda r: r.options.twist_covariance.extend((-np.eye(6)).ravel().tolist()),
      "options.twist_covariance: not positive definite"),
+    (lambda r: r.options.acceleration_psd.extend([1.0] * 35),
+     "options.acceleration_psd: expected 36 values"),
+    (lambda r: r.options.acceleration_psd.extend((-np.eye(6)).ravel().tolist()),
+     "options.acceleration_psd: not positive semidefinite"),
     (lambda r: setattr(r.options, "probability", 1.5), "options.probability: must be within"),
     (lambda r: r.ClearField("measurements"), "measurements: empty request: no measurements"),
 ])
@@ -267,6 +271,23 @@ def test_fuse_a_moving_body_at_the_query_time(client):
     e = got.twist - TWIST
     assert e @ np.linalg.solve(got.twist_covariance, e) < CHI2_6_999
     assert abs(got.latencies[0].value - ARM_LATENCY) < 3 * got.latencies[0].sigma
+
+
+def test_fuse_acceleration_psd_as_in_process(client):
+    """The random-walk twist through the server: the domain's answer, and a covariance that
+    grows with it (the same data without it is claimed to be known better)."""
+    Z, S, names, _, stamps, T = moving(22)
+    Q = np.diag([0.5, 0.5, 0.5, 0.05, 0.05, 0.05])
+    t = stamps.max() - 0.03
+    got = client.fuse(Z, S, names=names, sources=SOURCES, times=stamps, time=t,
+                      acceleration_psd=Q)
+    want = fusion.fuse(Z, S, names=names, sources=SOURCES, times=stamps, time=t,
+                       acceleration_psd=Q)
+    s = np.sign(got.mean[:4] @ want.mean[:4])
+    np.testing.assert_allclose(s * got.mean, want.mean, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got.covariance, want.covariance, rtol=1e-12, atol=0)
+    plain = client.fuse(Z, S, names=names, sources=SOURCES, times=stamps, time=t)
+    assert np.linalg.det(got.covariance) > 1.5 * np.linalg.det(plain.covariance)
 
 
 def test_fuse_max_skew_drops_with_a_reason(client):
