@@ -483,10 +483,7 @@ def fuse(poses, covariances=None, *, weights=None, names: Optional[Sequence[str]
     Z, S = _to_world(Z, S, names, table)
     gate2 = chi2_quantile(probability, DOF)
     if times is not None:
-        # the motion model's fit is NumPy: it works with the information matrices
-        W = np.linalg.inv(S)
-        W = 0.5 * (W + np.swapaxes(W, 1, 2))
-        return _fuse_in_time(Z, S, W, names, table, times, time, max_skew, max_extrapolation,
+        return _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
                              twist_covariance, acceleration_psd, robust, probability, gate2,
                              tol, max_iter)
     for key, value in (("time", time), ("max_skew", max_skew),
@@ -687,19 +684,21 @@ class _MotionFit:
     H: np.ndarray          # joint information at the optimum, priors included
     dt: np.ndarray         # τ_i − time, all measurements
     r: np.ndarray          # residuals Log(P_i⁻¹ Z_i), all measurements
-    G: np.ndarray          # Jl⁻¹(r_i) B_i: minus the residuals' Jacobian, (n, 6, dim)
+    G: Optional[np.ndarray]  # Jl⁻¹(r_i) B_i: minus the residuals' Jacobian, (n, 6, dim)
     cost: np.ndarray       # r_iᵀ W_i r_i, all measurements (W_i with its model error's share)
     chi2: float            # the inliers' cost (with the model error: rᵀ C⁻¹ r) and the priors'
     iterations: int
     Cinv: Optional[np.ndarray] = None  # the inliers' joint information, with the model error
+    # the constant-twist fit (C) computes the leave-one-out NIS with the fit, for these
+    nis: Optional[np.ndarray] = None
+    tested: Optional[np.ndarray] = None
 
 
 def _evaluate(X: np.ndarray, Z: np.ndarray, W: np.ndarray):
-    """Residuals ``Log(X⁻¹ Z_i)`` and their costs ``r_iᵀ W_i r_i`` (the static fit does this in
-    C, service/csrc/fusion.c)."""
+    """Residuals ``Log(X⁻¹ Z_i)`` and their costs ``r_iᵀ W_i r_i`` (the static and the
+    constant-twist fits do this in C, service/csrc/fusion.c)."""
     r = lie.se3_log(dq.mul(dq.conj(X), Z))
-    cost = np.einsum("ni,nij,nj->n", r, W, r)
-    return r, cost
+    return r, None if W is None else np.einsum("ni,nij,nj->n", r, W, r)
 
 
 def _motion_evaluate(X, V, ell, Z, W, model: _Model):
@@ -754,35 +753,38 @@ def _marginal_information(S: np.ndarray, dt: np.ndarray, accel: Optional[np.ndar
     return 0.5 * (W + np.swapaxes(W, 1, 2))
 
 
-def _data_cost(r: np.ndarray, cost: np.ndarray, Cinv: Optional[np.ndarray]) -> float:
-    if Cinv is None:
-        return cost.sum()
+def _data_cost(r: np.ndarray, info: np.ndarray) -> float:
+    """``rᵀ C⁻¹ r`` with ``info`` the joint information ``C⁻¹`` ``(6n, 6n)``, or (the reference
+    tests/fusion_reference.py checks the C constant-twist fit with) the measurements' own
+    ``(n, 6, 6)`` when they are independent."""
+    if info.ndim == 3:
+        return float(np.einsum("ni,nij,nj->", r, info, r))
     rf = r.ravel()
-    return float(rf @ Cinv @ rf)
+    return float(rf @ info @ rf)
 
 
-def _normal(G: np.ndarray, r: np.ndarray, W: np.ndarray, Cinv: Optional[np.ndarray]):
-    """The data's information ``Gᵀ W G`` and gradient ``Gᵀ W r`` (``W`` block diagonal, or the
-    joint ``Cinv`` when the model error correlates the measurements)."""
-    if Cinv is None:
-        GtW = np.swapaxes(G, 1, 2) @ W
+def _normal(G: np.ndarray, r: np.ndarray, info: np.ndarray):
+    """The data's information ``Gᵀ C⁻¹ G`` and gradient ``Gᵀ C⁻¹ r`` (``info`` as for
+    :func:`_data_cost`)."""
+    if info.ndim == 3:
+        GtW = np.swapaxes(G, 1, 2) @ info
         return (np.tensordot(GtW, G, axes=([0, 2], [0, 1])),
                 (GtW @ r[..., None]).sum(axis=0)[:, 0])
     Gf = G.reshape(-1, G.shape[-1])
-    CG = Cinv @ Gf
+    CG = info @ Gf
     return Gf.T @ CG, CG.T @ r.ravel()
 
 
-def _motion_solve(Z, W, model: _Model, X, V, ell, tol: float, max_iter: int, Cinv=None):
-    """Gauss-Newton over pose, twist and latencies; the step and its halving as in :func:`_solve`.
-    ``Cinv``: the joint information of the residuals (the model error held at its value at the
-    start of this solve), or None for independent measurements of information ``W``."""
-    dt, r, cost = _motion_evaluate(X, V, ell, Z, W, model)
-    total = _data_cost(r, cost, Cinv) + model.prior_cost(V, ell)
+def _motion_solve(Z, model: _Model, X, V, ell, tol: float, max_iter: int, info: np.ndarray):
+    """Gauss-Newton over pose, twist and latencies in NumPy, for residuals correlated by the
+    model error: ``info`` their joint information (held at its value at the start of this
+    solve). The step and its halving are the C constant-twist fit's (``dq_motion_fit``)."""
+    dt, r, _ = _motion_evaluate(X, V, ell, Z, None, model)
+    total = _data_cost(r, info) + model.prior_cost(V, ell)
     off = model.offset
     for it in range(1, max_iter + 1):
         G = _motion_jacobian(V, dt, r, model)
-        Hd, gd = _normal(G, r, W, Cinv)
+        Hd, gd = _normal(G, r, info)
         Hp, gp = model.prior_terms(V, ell)
         H = Hd + Hp
         g = gd + gp
@@ -792,8 +794,8 @@ def _motion_solve(Z, W, model: _Model, X, V, ell, tol: float, max_iter: int, Cin
             X_new = dq.normalize(dq.mul(X, lie.se3_exp(delta[:6])))
             V_new = V + delta[6:12] if model.twist else V
             ell_new = ell + delta[off:]
-            dt_new, r_new, cost_new = _motion_evaluate(X_new, V_new, ell_new, Z, W, model)
-            total_new = _data_cost(r_new, cost_new, Cinv) + model.prior_cost(V_new, ell_new)
+            dt_new, r_new, _ = _motion_evaluate(X_new, V_new, ell_new, Z, None, model)
+            total_new = _data_cost(r_new, info) + model.prior_cost(V_new, ell_new)
             if total_new <= total * (1.0 + _COST_SLACK) or step < tol:
                 break
             delta = 0.5 * delta
@@ -810,40 +812,56 @@ _LATENCY_SETTLED = 1e-9
 _PASSES = 4
 
 
-def _motion_fit(Z, S, W, model: _Model, inlier: np.ndarray, tol: float,
+def _motion_start(Z, S, model: _Model, inlier: np.ndarray) -> np.ndarray:
+    """Where the motion fit starts: the inlier nearest the fusion time, at rest (Gauss-Newton
+    finds the motion), or with no twist (one instant) the static fit's start."""
+    Zi = Z[inlier]
+    if model.twist:
+        return Zi[int(np.argmin(np.abs(model.take(inlier).dt(model.prior))))]
+    weights = np.exp(-np.linalg.slogdet(S[inlier])[1] / DOF)
+    return dq.dib(Zi, weights / weights.max())
+
+
+def _constant_twist(Z, S, model: _Model, inlier, X, tol, max_iter, tested=None):
+    """The C constant-twist fit (``dq_motion_fit``) from ``X``: the ``_dqcore.motion_fit``
+    tuple."""
+    return _c.motion_fit(Z, S, inlier, X, model.stamp, model.latency, model.slot, model.prior,
+                         model.prior_w, model.twist, model.twist_w, tested, tol, max_iter)
+
+
+def _motion_fit(Z, S, model: _Model, inlier: np.ndarray, tol: float,
                 max_iter: int) -> _MotionFit:
-    """Fit of the measurements ``inlier`` selects, evaluated at every measurement."""
-    Zi, Si, Wi, mi = Z[inlier], S[inlier], W[inlier], model.take(inlier)
-    V, ell = np.zeros(DOF), model.prior.copy()
-    if model.twist:  # the measurement nearest the fusion time, at rest: GN finds the motion
-        X = Zi[int(np.argmin(np.abs(mi.dt(ell))))]
-    else:  # one instant: the start of the static fit
-        weights = np.exp(np.linalg.slogdet(Wi)[1] / DOF)
-        X = dq.dib(Zi, weights / weights.max())
+    """Fit of the measurements ``inlier`` selects, evaluated at every measurement. The constant
+    twist is fitted in C, leave-one-out NIS included; the correlated model in NumPy from the
+    constant-twist fit."""
+    X = _motion_start(Z, S, model, inlier)
     if model.accel is None:
-        Cinv = None
-        X, V, ell, status, iterations = _motion_solve(Zi, Wi, mi, X, V, ell, tol, max_iter)
-    else:
-        # the constant-twist fit starts it: cheap, and near when the model error is small
-        X, V, ell, _, iterations = _motion_solve(Zi, Wi, mi, X, V, ell, tol, max_iter)
+        tested = ~inlier | _determined_without_each(model, inlier)
+        (X, V, ell, H, chi2, status, iterations, dt, r, cost, _,
+         nis) = _constant_twist(Z, S, model, inlier, X, tol, max_iter, tested)
+        return _MotionFit(Status(int(status)), X, V, ell, H, dt, r, None, cost, float(chi2),
+                          int(iterations), nis=nis, tested=tested)
+    Zi, Si, mi = Z[inlier], S[inlier], model.take(inlier)
+    # the constant-twist fit starts it: cheap, and near when the model error is small
+    X, V, ell, *_, iterations = _constant_twist(Z, S, model, inlier, X, tol, max_iter)[:7]
+    iterations = int(iterations)
+    at = ell
+    Cinv = _information(Si, mi.dt(at), model.accel)
+    for _ in range(_PASSES if ell.size else 1):
+        X, V, ell, status, it = _motion_solve(Zi, mi, X, V, ell, tol, max_iter, Cinv)
+        iterations += it
+        if np.all(np.abs(ell - at) < _LATENCY_SETTLED):
+            break
         at = ell
         Cinv = _information(Si, mi.dt(at), model.accel)
-        for _ in range(_PASSES if ell.size else 1):
-            X, V, ell, status, it = _motion_solve(Zi, Wi, mi, X, V, ell, tol, max_iter, Cinv)
-            iterations += it
-            if np.all(np.abs(ell - at) < _LATENCY_SETTLED):
-                break
-            at = ell
-            Cinv = _information(Si, mi.dt(at), model.accel)
-    dt, r, cost = _motion_evaluate(X, V, ell, Z, W, model)
+    dt, r, _ = _motion_evaluate(X, V, ell, Z, None, model)
     Wm = _marginal_information(S, dt, model.accel)
-    if Wm is not None:
-        cost = np.einsum("ni,nij,nj->n", r, Wm, r)
+    cost = np.einsum("ni,nij,nj->n", r, Wm, r)
     G = _motion_jacobian(V, dt, r, model)
     Hp, _ = model.prior_terms(V, ell)
-    Hd, _ = _normal(G[inlier], r[inlier], W[inlier], Cinv)
+    Hd, _ = _normal(G[inlier], r[inlier], Cinv)
     H = Hd + Hp
-    chi2 = _data_cost(r[inlier], cost[inlier], Cinv) + model.prior_cost(V, ell)
+    chi2 = _data_cost(r[inlier], Cinv) + model.prior_cost(V, ell)
     return _MotionFit(status, X, V, ell, H, dt, r, G, cost, float(chi2), iterations, Cinv)
 
 
@@ -861,19 +879,12 @@ def _determined_without_each(model: _Model, inlier: np.ndarray) -> np.ndarray:
     return values.size - alone >= 2
 
 
-def _motion_nis(fit: _MotionFit, S, W, inlier: np.ndarray, model: _Model):
-    """:func:`_nis` for the joint state: ``K = G Hj⁻¹ Gᵀ`` with the 6 × dim Jacobians."""
-    if model.accel is not None:
-        return _correlated_nis(fit, S, inlier, model)
-    G, r = fit.G, fit.r
-    own = np.swapaxes(G, 1, 2) @ W @ G * inlier[:, None, None]
-    Hj = fit.H[None] - own
-    tested = ~inlier | _determined_without_each(model, inlier)
-    Hj[~tested] = np.eye(model.dim)
-    K = G @ np.linalg.solve(Hj, np.swapaxes(G, 1, 2))
-    nu = r + inlier[:, None] * (K @ W @ r[..., None])[..., 0]
-    nis = np.einsum("ni,ni->n", nu, np.linalg.solve(S + K, nu[..., None])[..., 0])
-    return np.where(tested, nis, 0.0), tested
+def _motion_nis(fit: _MotionFit, S, inlier: np.ndarray, model: _Model):
+    """Each measurement's leave-one-out NIS against the fit of the other inliers (:func:`_nis`
+    for the joint state; the constant-twist fit computed them with the fit)."""
+    if fit.nis is not None:
+        return fit.nis, fit.tested
+    return _correlated_nis(fit, S, inlier, model)
 
 
 def _blocks(A: np.ndarray, B: np.ndarray) -> np.ndarray:
@@ -922,11 +933,11 @@ def _correlated_nis(fit: _MotionFit, S, inlier: np.ndarray, model: _Model):
     return np.where(tested, nis, 0.0), tested
 
 
-def _robust_motion(Z, S, W, model: _Model, allowed: np.ndarray, gate2, tol, max_iter):
+def _robust_motion(Z, S, model: _Model, allowed: np.ndarray, gate2, tol, max_iter):
     """:func:`_robust` over time: the consensus start compares the measurements brought to the
     fusion time with the twist of a first fit of all of them (an outlier biases that twist; the
     gate that follows judges every measurement against the fit of the others)."""
-    first = _motion_fit(Z, S, W, model, allowed, tol, max_iter)
+    first = _motion_fit(Z, S, model, allowed, tol, max_iter)
     back = lie.se3_exp(-first.dt[:, None] * first.V)
     Wm = _marginal_information(S, first.dt, model.accel)
     Sm = S if Wm is None else np.linalg.inv(Wm)
@@ -935,8 +946,8 @@ def _robust_motion(Z, S, W, model: _Model, allowed: np.ndarray, gate2, tol, max_
     inlier[allowed] = _consensus(Zt[allowed], St[allowed], gate2)
     if not _determined_without_each(model, inlier)[~inlier].all():
         inlier = allowed.copy()  # the consensus is of one instant: the twist needs more
-    return _gate(inlier, allowed, lambda m: _motion_fit(Z, S, W, model, m, tol, max_iter),
-                 lambda fit, m: _motion_nis(fit, S, W, m, model), gate2)
+    return _gate(inlier, allowed, lambda m: _motion_fit(Z, S, model, m, tol, max_iter),
+                 lambda fit, m: _motion_nis(fit, S, m, model), gate2)
 
 
 def _gate(inlier, allowed, fit_of, nis_of, gate2):
@@ -966,7 +977,7 @@ def _gate(inlier, allowed, fit_of, nis_of, gate2):
     return fit, nis, tested, inlier, status
 
 
-def _fuse_in_time(Z, S, W, names, table, times, time, max_skew, max_extrapolation,
+def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
                   twist_covariance, acceleration_psd, robust, probability, gate2, tol,
                   max_iter) -> Fused:
     n = Z.shape[0]
@@ -1025,12 +1036,12 @@ def _fuse_in_time(Z, S, W, names, table, times, time, max_skew, max_extrapolatio
         twist=twist, twist_w=Wp, accel=accel)
 
     if robust and np.count_nonzero(keep) > 1:
-        fit, nis, tested, inlier, gate_status = _robust_motion(Z, S, W, model, keep, gate2, tol,
+        fit, nis, tested, inlier, gate_status = _robust_motion(Z, S, model, keep, gate2, tol,
                                                                max_iter)
     else:
         inlier = keep.copy()
-        fit = _motion_fit(Z, S, W, model, inlier, tol, max_iter)
-        nis, tested = _motion_nis(fit, S, W, inlier, model)
+        fit = _motion_fit(Z, S, model, inlier, tol, max_iter)
+        nis, tested = _motion_nis(fit, S, inlier, model)
         gate_status = None
     gate = math.sqrt(gate2)
     rejected = tuple(Rejection(int(i), names[i], float(math.sqrt(nis[i])), gate, probability)

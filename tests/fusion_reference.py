@@ -1,5 +1,7 @@
 """The maximum-likelihood fusion in NumPy: the reference the C core (``service/csrc/fusion.c``)
-is tested against. The same math, written with :mod:`service.lie`'s vectorised Jacobians:
+is tested against. The same math, written with :mod:`service.lie`'s vectorised Jacobians.
+
+The static fit (:func:`fit`, ``dq_fuse``):
 
 * ``r_i = Log(X⁻¹ Z_i)``, Jacobian ``-Jl⁻¹(r_i)``, cost ``Σ r_iᵀ W_i r_i`` over the inliers,
   ``W_i = Σ_i⁻¹``;
@@ -15,7 +17,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from service import dq, lie
+from service import dq, fusion, lie
 
 COST_SLACK = 1e-12
 MAX_HALVINGS = 30
@@ -96,3 +98,49 @@ def fit(Z, S, inlier=None, tol=1e-12, max_iter=100) -> Fit:
     P = np.linalg.inv(H)
     return Fit(status, mean, 0.5 * (P + P.T), r, np.sqrt(cost), np.where(tested, nis, 0.0),
                tested, float(cost[inlier].sum()), iterations)
+
+
+class MotionFit(NamedTuple):
+    mean: np.ndarray
+    twist: np.ndarray
+    ell: np.ndarray
+    H: np.ndarray           # joint information at the estimate, priors included
+    chi2: float
+    status: int
+    iterations: int
+    dt: np.ndarray
+    residuals: np.ndarray
+    cost: np.ndarray
+    G: np.ndarray
+    nis: np.ndarray
+
+
+def motion_fit(Z, S, model, inlier, start, tested, tol=1e-12, max_iter=100) -> MotionFit:
+    """The constant-twist fit (``dq_motion_fit``) of the measurements ``inlier`` selects from
+    ``start`` (``model`` a :class:`service.fusion._Model` without ``accel``): the Gauss-Newton
+    loop of :func:`service.fusion._motion_solve` with the measurements' own (block-diagonal)
+    information; then at the estimate the information ``H = Σ G_iᵀ W_i G_i`` of the inliers
+    plus the priors' and, where ``tested``, the leave-one-out NIS ``νᵀ (S + K)⁻¹ ν`` with
+    ``K = G Hj⁻¹ Gᵀ``, ``Hj`` the priors' and the other inliers' information (summed, so a
+    dominant measurement does not cancel the others away; ``H`` for an outlier) and
+    ``ν = r + K W r`` (``r`` for an outlier)."""
+    W = np.linalg.inv(S)
+    W = 0.5 * (W + np.swapaxes(W, 1, 2))
+    n, dim = Z.shape[0], model.dim
+    X, V, ell, status, iterations = fusion._motion_solve(
+        Z[inlier], model.take(inlier), start, np.zeros(6), model.prior.copy(), tol, max_iter,
+        W[inlier])
+    dt, r, cost = fusion._motion_evaluate(X, V, ell, Z, W, model)
+    G = fusion._motion_jacobian(V, dt, r, model)
+    Hp, _ = model.prior_terms(V, ell)
+    own = np.einsum("nji,njk,nkl->nil", G, W, G) * inlier[:, None, None]
+    H = own.sum(axis=0) + Hp
+    others = (inlier[None, :] & ~np.eye(n, dtype=bool)).astype(float)
+    Hj = np.where(inlier[:, None, None], Hp + np.einsum("jk,kab->jab", others, own), H[None])
+    Hj[~tested] = np.eye(dim)
+    K = G @ np.linalg.solve(Hj, np.swapaxes(G, 1, 2))
+    nu = r + inlier[:, None] * np.einsum("nij,njk,nk->ni", K, W, r)
+    nis = np.einsum("ni,ni->n", nu, np.linalg.solve(S + K, nu[..., None])[..., 0])
+    chi2 = float(cost[inlier].sum()) + model.prior_cost(V, ell)
+    return MotionFit(X, V, ell, 0.5 * (H + H.T), chi2, int(status), iterations, dt, r, cost, G,
+                     np.where(tested, nis, 0.0))

@@ -1020,6 +1020,170 @@ done:
     return result;
 }
 
+/* An array of `type` and exactly `shape` (nd <= 3), or NULL with a ValueError naming it. */
+static PyArrayObject *exact_array(PyObject *o, int type, const char *name, int nd,
+                                  const npy_intp *shape)
+{
+    PyArrayObject *a = (PyArrayObject *)PyArray_FROM_OTF(o, type, NPY_ARRAY_IN_ARRAY);
+    if (!a) return NULL;
+    if (PyArray_NDIM(a) != nd || !PyArray_CompareLists(PyArray_DIMS(a), shape, nd)) {
+        char want[80], got[160];
+        format_shape(want, sizeof want, nd, shape);
+        format_shape(got, sizeof got, PyArray_NDIM(a), PyArray_DIMS(a));
+        PyErr_Format(PyExc_ValueError, "%s: expected shape %s, got %s", name, want, got);
+        Py_DECREF(a);
+        return NULL;
+    }
+    return a;
+}
+
+/* motion_fit(poses (n, 8), covariances (n, 6, 6), inliers (n,) bool or None, start (8,),
+ * stamps (n,), latencies (n,), slots (n,) int, priors (k,), prior_information (k,), twist,
+ * twist_information (6, 6) or None, tested (n,) bool or None, tol, max_iter, jacobians)
+ * -> (mean, twist, ell, H, chi2, status, iterations, dt, residuals, cost, G, nis): the
+ * constant-twist fit of fusion.h's dq_motion_fit, one problem a call; G is None unless
+ * jacobians, nis None without tested. */
+static PyObject *py_motion_fit(PyObject *self, PyObject *args)
+{
+    PyObject *o[12];
+    int twist = 0, want_g = 0;
+    dq_fuse_params p = {1e-12, 100};
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOpOO|dip:motion_fit", &o[0], &o[1], &o[2], &o[3], &o[4],
+                          &o[5], &o[6], &o[7], &o[8], &twist, &o[10], &o[11], &p.tol,
+                          &p.max_iter, &want_g))
+        return NULL;
+    if (check_iteration(p.tol, p.max_iter) < 0) return NULL;
+    PyArrayObject *a[12] = {NULL}, *outs[12] = {NULL};
+    PyObject *result = NULL;
+    double *work = NULL, *zu = NULL;
+    a[0] = (PyArrayObject *)PyArray_FROM_OTF(o[0], NPY_DOUBLE, NPY_ARRAY_IN_ARRAY);
+    if (!a[0]) goto done;
+    if (PyArray_NDIM(a[0]) != 2 || PyArray_DIMS(a[0])[1] != 8 || PyArray_DIMS(a[0])[0] == 0) {
+        PyErr_SetString(PyExc_ValueError, "poses: expected shape (n, 8), n >= 1");
+        goto done;
+    }
+    npy_intp n = PyArray_DIMS(a[0])[0];
+    a[7] = (PyArrayObject *)PyArray_FROM_OTF(o[7], NPY_DOUBLE, NPY_ARRAY_IN_ARRAY);
+    if (!a[7]) goto done;
+    if (PyArray_NDIM(a[7]) != 1) {
+        PyErr_SetString(PyExc_ValueError, "priors: expected shape (k,)");
+        goto done;
+    }
+    npy_intp k = PyArray_DIMS(a[7])[0];
+    {
+        static const char *names[12] = {"poses", "covariances", "inliers", "start", "stamps",
+                                        "latencies", "slots", "priors", "prior_information",
+                                        "twist", "twist_information", "tested"};
+        /* poses and priors are converted above, twist is a flag (-1: none of these) */
+        const int types[12] = {-1, NPY_DOUBLE, NPY_BOOL, NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE,
+                               NPY_INT64, -1, NPY_DOUBLE, -1, NPY_DOUBLE, NPY_BOOL};
+        const int nds[12] = {0, 3, 1, 1, 1, 1, 1, 0, 1, 0, 2, 1};
+        const npy_intp shapes[12][3] = {{0}, {n, 6, 6}, {n}, {8}, {n}, {n}, {n}, {0}, {k},
+                                        {0}, {6, 6}, {n}};
+        for (int j = 1; j < 12; j++) {
+            if (types[j] < 0 || ((j == 2 || j == 10 || j == 11) && o[j] == Py_None)) continue;
+            if (!(a[j] = exact_array(o[j], types[j], names[j], nds[j], shapes[j]))) goto done;
+        }
+    }
+    const double *zd = PyArray_DATA(a[0]), *sd = PyArray_DATA(a[1]);
+    dq_motion_model m = {PyArray_DATA(a[4]), PyArray_DATA(a[5]), PyArray_DATA(a[6]), (size_t)k,
+                         PyArray_DATA(a[7]), PyArray_DATA(a[8]), twist,
+                         a[10] ? PyArray_DATA(a[10]) : NULL};
+    for (npy_intp i = 0; i < n; i++)
+        if (m.slot[i] < -1 || m.slot[i] >= k) {
+            PyErr_Format(PyExc_ValueError, "slots[%ld]: %lld is not -1 or a latency index < %ld",
+                         (long)i, (long long)m.slot[i], (long)k);
+            goto done;
+        }
+    npy_intp dim = (npy_intp)dq_motion_dim(&m);
+    {
+        /* mean, twist, ell, H, chi2, status, iterations, dt, residuals, cost, G, nis */
+        const int types[12] = {NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE,
+                               NPY_INT64, NPY_INT64, NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE,
+                               NPY_DOUBLE, NPY_DOUBLE};
+        const int nds[12] = {1, 1, 1, 2, 0, 0, 0, 1, 2, 1, 3, 1};
+        const npy_intp shapes[12][3] = {{8}, {6}, {k}, {dim, dim}, {0}, {0}, {0}, {n}, {n, 6},
+                                        {n}, {n, 6, dim}, {n}};
+        for (int j = 0; j < 12; j++) {
+            if ((j == 10 && !want_g) || (j == 11 && !a[11])) continue;
+            if (!(outs[j] = (PyArrayObject *)PyArray_SimpleNew(nds[j], shapes[j], types[j])))
+                goto done;
+        }
+    }
+    work = (double *)malloc(sizeof(double) * dq_motion_workspace((size_t)n, &m));
+    zu = (double *)malloc(sizeof(double) * 8 * (size_t)n);
+    if (!work || !zu) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    int code = DQ_OK;
+    size_t bad = 0;
+    const char *bad_name = "poses";
+    dq_motion_fitted f;
+    f.ell = PyArray_DATA(outs[2]);
+    f.H = PyArray_DATA(outs[3]);
+    dq_motion_outputs per = {PyArray_DATA(outs[7]), PyArray_DATA(outs[8]), PyArray_DATA(outs[9]),
+                             outs[10] ? PyArray_DATA(outs[10]) : NULL,
+                             outs[11] ? PyArray_DATA(outs[11]) : NULL};
+    double start[8];
+    NPY_BEGIN_THREADS_DEF;
+    NPY_BEGIN_THREADS;
+    for (npy_intp i = 0; i < n && code == DQ_OK; i++) {
+        if ((code = dq_unit(zd + 8 * i, zu + 8 * i))) bad = (size_t)i;
+        else if (!dq_finite_n(sd + 36 * i, 36)) {
+            code = DQ_E_NONFINITE; bad = (size_t)i; bad_name = "covariances";
+        }
+    }
+    if (code == DQ_OK && (code = dq_unit(PyArray_DATA(a[3]), start))) bad_name = "start";
+    if (code == DQ_OK) {
+        code = dq_motion_fit(zu, sd, a[2] ? PyArray_DATA(a[2]) : NULL, (size_t)n, &m, start,
+                             a[11] ? PyArray_DATA(a[11]) : NULL, &p, work, &f, &per, &bad);
+        bad_name = "covariances";
+    }
+    NPY_END_THREADS;
+    if (code != DQ_OK) {
+        char what[256];
+        if (code == DQ_E_NO_INLIERS)
+            PyErr_SetString(PyExc_ValueError, "inliers: selects no measurement");
+        else if (code == DQ_E_SINGULAR)
+            PyErr_SetString(PyExc_ValueError, "covariances: the information is not positive definite");
+        else if (code == DQ_E_OVERFLOW)
+            PyErr_SetString(PyExc_ValueError, "covariances: the result is not finite (input too large)");
+        else if (strcmp(bad_name, "start") == 0) {
+            problem_text(code, PyArray_DATA(a[3]), 8, what, sizeof what);
+            PyErr_Format(PyExc_ValueError, "start: %s", what);
+        } else {
+            if (code == DQ_E_NOT_SPD)
+                snprintf(what, sizeof what, "not positive definite");
+            else
+                problem_text(code, zd + 8 * bad, 8, what, sizeof what);
+            PyErr_Format(PyExc_ValueError, "%s[%zu]: %s", bad_name, bad, what);
+        }
+        goto done;
+    }
+    memcpy(PyArray_DATA(outs[0]), f.mean, sizeof f.mean);
+    memcpy(PyArray_DATA(outs[1]), f.twist, sizeof f.twist);
+    *(double *)PyArray_DATA(outs[4]) = f.chi2;
+    *(npy_int64 *)PyArray_DATA(outs[5]) = f.status;
+    *(npy_int64 *)PyArray_DATA(outs[6]) = f.iterations;
+    result = PyTuple_New(12);
+    if (!result) goto done;
+    for (int j = 0; j < 12; j++) {
+        PyObject *r = outs[j] ? (PyObject *)outs[j] : Py_None;
+        if (!outs[j]) Py_INCREF(Py_None);
+        PyTuple_SET_ITEM(result, j, r);
+        outs[j] = NULL;
+    }
+done:
+    free(work);
+    free(zu);
+    for (int j = 0; j < 12; j++) {
+        Py_XDECREF(a[j]);
+        Py_XDECREF(outs[j]);
+    }
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"mul", py_mul, METH_VARARGS, "mul(a, b): dual-quaternion product a b."},
     {"conj", py_conj, METH_O, "conj(a): quaternion conjugate of both parts (the inverse of a pose)."},
@@ -1038,6 +1202,7 @@ static PyMethodDef methods[] = {
     {"fuse", py_fuse, METH_VARARGS,
      "fuse(poses, covariances, inliers, tol, max_iter, nis) -> (mean, covariance, residuals, "
      "distances, nis, tested, status, iterations, chi2)."},
+    {"motion_fit", py_motion_fit, METH_VARARGS, "motion_fit(...): the constant-twist fit (fusion.h)."},
     {"lin", py_lin, METH_VARARGS, "lin(dqs, weights): the raw matrix blend -> [...,4,4]."},
     {"blend_request_from_wire", py_blend_request_from_wire, METH_O,
      "blend_request_from_wire(bytes) -> (poses, weights, method, tolerance, max_iterations) or None."},
