@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from service import _dqcore as _c
-from service import dq, lie
+from service import dq, fusion, lie
 
 import fusion_reference as ref
 from test_fusion import measure, random_cov, random_pose
@@ -179,3 +179,187 @@ def test_errors_name_the_argument_and_index():
         _c.fuse(Z, S, None, np.nan)
     with pytest.raises(ValueError, match="max_iter: must be >= 0"):
         _c.fuse(Z, S, None, 1e-12, -1)
+
+
+# ---- the constant-twist time-aligned fit (dq_motion_fit, bound as _dqcore.motion_fit) ---------
+MOTION = ("mean", "twist", "ell", "H", "chi2", "status", "iterations", "dt", "residuals", "cost",
+          "G", "nis")
+
+
+def motion_scene(rng, n, estimate=(True, True), twist_prior=False, one_instant=False,
+                 cov=random_cov):
+    """n measurements of a body on a screw by three sources (latencies 20, 5, 0 ms; the first two
+    estimated from 30 ± 10 and 0 ± 10 ms where ``estimate`` says), stamped over 0.1 s before the
+    fusion time 0: the poses, covariances and the model of service.fusion."""
+    X0, V0 = random_pose(rng), rng.normal(size=6) * np.array([1, 1, 1, 0.3, 0.3, 0.3])
+    source = np.arange(n) % 3
+    truth = np.array([0.02, 0.005, 0.0])[source]
+    stamp = (np.full(n, -0.04) if one_instant else -rng.uniform(0.0, 0.1, n)) + truth
+    S = np.array([cov(rng) for _ in range(n)])
+    Z = measure(rng, dq.mul(X0, lie.se3_exp((stamp - truth)[:, None] * V0)), S)
+    slots = [k for k, e in enumerate(estimate) if e]
+    slot = np.array([slots.index(s) if s in slots else -1 for s in source])
+    model = fusion._Model(stamp=stamp, latency=truth, slot=slot,
+                          prior=np.array([0.03, 0.0])[slots], prior_w=np.full(len(slots), 1e4),
+                          twist=True, twist_w=np.linalg.inv(np.diag([1, 1, 1, 0.1, 0.1, 0.1]) ** 2)
+                          if twist_prior else None)
+    return Z, S, model
+
+
+def motion_core(Z, S, model, inlier, start, tested, tol=1e-12, max_iter=100, jacobians=True):
+    return dict(zip(MOTION, _c.motion_fit(Z, S, inlier, start, model.stamp, model.latency,
+                                          model.slot, model.prior, model.prior_w, model.twist,
+                                          model.twist_w, tested, tol, max_iter, jacobians)))
+
+
+def assert_motion_agrees(Z, S, model, inlier=None, tol=1e-12, max_iter=100, rel=1e-12):
+    n = Z.shape[0]
+    inlier = np.ones(n, bool) if inlier is None else inlier
+    tested = ~inlier | fusion._determined_without_each(model, inlier)
+    start = fusion._motion_start(Z, S, model, inlier)
+    a = ref.motion_fit(Z, S, model, inlier, start, tested, tol, max_iter)
+    b = motion_core(Z, S, model, inlier, start, tested, tol, max_iter)
+    assert int(b["status"]) == a.status and int(b["iterations"]) == a.iterations
+    assert np.abs(lie.se3_log(dq.mul(dq.conj(a.mean), b["mean"]))).max() < 1e3 * rel
+    assert np.abs(b["twist"] - a.twist).max() <= 1e3 * rel * max(1.0, np.abs(a.twist).max())
+    assert np.abs(b["ell"] - a.ell).max(initial=0.0) <= 1e2 * rel
+    # the information spans the pose's, the twist's (dt² smaller) and the latencies'
+    d = np.sqrt(np.diag(a.H))
+    assert np.abs((b["H"] - a.H) / np.outer(d, d)).max() <= 10 * rel
+    assert np.array_equal(b["H"], b["H"].T)
+    assert np.abs(b["dt"] - a.dt).max() <= 1e2 * rel
+    assert np.abs(b["residuals"] - a.residuals).max() < 1e3 * rel
+    assert np.abs(b["G"] - a.G).max() <= 10 * rel * np.abs(a.G).max()
+    big = max(1.0, a.cost.max())
+    assert np.abs(b["cost"] - a.cost).max() <= 1e3 * rel * big
+    assert b["chi2"] == pytest.approx(a.chi2, rel=1e3 * rel, abs=1e-20)
+    assert np.abs(b["nis"] - a.nis).max() <= 1e4 * rel * max(1.0, a.nis.max())
+    assert np.array_equal(b["nis"] == 0.0, ~tested | (a.nis == 0.0))
+    return b
+
+
+@pytest.mark.parametrize("n", [5, 7, 20, 90])
+@pytest.mark.parametrize("estimate", [(False, False), (True, False), (True, True)])
+def test_motion_fit_agrees_with_the_reference(n, estimate):
+    rng = np.random.default_rng(400 + n + 7 * sum(estimate))
+    for trial in range(6):
+        Z, S, model = motion_scene(rng, n, estimate, twist_prior=trial % 2 == 1)
+        b = assert_motion_agrees(Z, S, model)
+        assert int(b["status"]) == 0 and b["H"].shape == (model.dim, model.dim)
+        assert b["ell"].shape == (sum(estimate),) and b["G"].shape == (n, 6, model.dim)
+
+
+def test_motion_fit_agrees_on_inlier_subsets_and_ignores_the_outliers():
+    rng = np.random.default_rng(410)
+    for _ in range(20):
+        n = 12
+        Z, S, model = motion_scene(rng, n, twist_prior=bool(rng.integers(2)))
+        inlier = rng.random(n) < 0.7
+        inlier[:3] = True  # two instants at least, every source
+        b = assert_motion_agrees(Z, S, model, inlier)
+        Zm = Z.copy()
+        Zm[~inlier] = random_pose(rng)
+        start = fusion._motion_start(Z, S, model, inlier)
+        c = motion_core(Zm, S, model, inlier, start, None)
+        for k in ("mean", "twist", "ell", "H", "chi2"):
+            assert np.array_equal(c[k], b[k]), k
+        assert c["nis"] is None
+
+
+def test_motion_fit_agrees_near_pi():
+    """Residual rotations near pi (the closed forms of Jl⁻¹, not the series): at each of two
+    instants two measurements (89.5 + 0.05 k)° either side of the prediction about one axis."""
+    rng = np.random.default_rng(412)
+    for k in range(10):
+        Z, S, model = motion_scene(rng, 6, twist_prior=True,
+                                   cov=lambda r: random_cov(r, (30, 60), (0.05, 0.2)))
+        model = fusion._Model(np.array([-0.05, -0.05, 0.0, 0.0, -0.05, 0.0]), np.zeros(6),
+                              model.slot, model.prior, model.prior_w, True, model.twist_w)
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        xi = rng.normal(size=(6, 6)) * 0.05
+        xi[:4, :3] = np.outer([1.0, -1.0, 1.0, -1.0], np.deg2rad(89.5 + 0.05 * k) * axis)
+        Z = dq.mul(Z[np.array([4, 4, 5, 5, 4, 5])], lie.se3_exp(xi))
+        b = assert_motion_agrees(Z, S, model, rel=1e-11)
+        assert np.linalg.norm(b["residuals"][:, :3], axis=1).max() > 1.5
+
+
+def test_motion_fit_agrees_with_a_tiny_covariance():
+    """One measurement 1e4 times more certain than the rest: the others' leave-one-out
+    information is summed, not its subtracted from the total. Its σ of ~1e-7 leaves the state
+    determined only to rounding amplified by cond(H) ~ 1e10: the two fits (run to the step limit,
+    so that neither stops at a different step below tol) agree to 1e-7 of the state's σ and the
+    information and the NIS to ~1e-8 and ~1e-5, not 1e-12."""
+    rng = np.random.default_rng(413)
+    for _ in range(10):
+        Z, S, model = motion_scene(rng, 10, twist_prior=True)
+        S[4] *= 1e-8
+        Z[4] = measure(rng, Z[4], S[4:5])[0]
+        inlier = tested = np.ones(10, bool)
+        start = fusion._motion_start(Z, S, model, inlier)
+        a = ref.motion_fit(Z, S, model, inlier, start, tested, 0.0, 12)
+        b = motion_core(Z, S, model, inlier, start, tested, 0.0, 12)
+        d = np.concatenate([lie.se3_log(dq.mul(dq.conj(a.mean), b["mean"])),
+                            b["twist"] - a.twist, b["ell"] - a.ell])
+        assert np.abs(d / np.sqrt(np.diag(np.linalg.inv(a.H)))).max() < 1e-6
+        scale = np.sqrt(np.diag(a.H))
+        assert np.abs((b["H"] - a.H) / np.outer(scale, scale)).max() < 1e-7
+        assert np.abs(b["nis"] - a.nis).max() < 1e-4 * a.nis.max()
+        assert b["chi2"] == pytest.approx(a.chi2, rel=1e-5)
+        assert (b["nis"] > 0).all()
+
+
+def test_motion_fit_of_one_instant_with_a_twist_prior():
+    """All taken at one instant 40 ms before the fusion time: the twist comes from its prior
+    alone, and the leave-one-out NIS is defined for every measurement."""
+    rng = np.random.default_rng(414)
+    for _ in range(10):
+        Z, S, model = motion_scene(rng, 6, (False, False), twist_prior=True, one_instant=True)
+        b = assert_motion_agrees(Z, S, model)
+        assert np.abs(b["dt"] + 0.04).max() < 1e-15 and (b["nis"] > 0).all()
+
+
+def test_motion_fit_step_limit():
+    rng = np.random.default_rng(415)
+    Z, S, model = motion_scene(rng, 20)
+    for max_iter in (0, 1, 2):
+        b = assert_motion_agrees(Z, S, model, max_iter=max_iter)
+        assert int(b["status"]) == 1 and int(b["iterations"]) == max_iter
+
+
+def test_motion_fit_errors():
+    rng = np.random.default_rng(416)
+    Z, S, model = motion_scene(rng, 6)
+    start, ones = Z[0], np.ones(6, bool)
+
+    def call(Z=Z, S=S, inlier=None, start=start, slot=model.slot, twist_w=None, tested=ones):
+        return _c.motion_fit(Z, S, inlier, start, model.stamp, model.latency, slot, model.prior,
+                             model.prior_w, True, twist_w, tested)
+
+    bad = S.copy()
+    bad[2] -= 2.0 * np.abs(bad[2]).max() * np.eye(6)
+    with pytest.raises(ValueError, match=r"covariances\[2\]: not positive definite"):
+        call(S=bad)
+    bad = Z.copy()
+    bad[3, 0] = np.nan
+    with pytest.raises(ValueError, match=r"poses\[3\]: contains NaN"):
+        call(Z=bad)
+    bad = Z.copy()
+    bad[1] *= 1.1
+    with pytest.raises(ValueError, match=r"poses\[1\]: quaternion norm"):
+        call(Z=bad)
+    with pytest.raises(ValueError, match=r"start: quaternion norm"):
+        call(start=2 * start)
+    with pytest.raises(ValueError, match="inliers: selects no measurement"):
+        call(inlier=np.zeros(6, bool))
+    # one instant without a twist prior: the twist is not determined
+    with pytest.raises(ValueError, match="information is not positive definite"):
+        call(inlier=np.array([True, False, False, False, False, False]))
+    with pytest.raises(ValueError, match=r"slots\[0\]: 2 is not -1 or a latency index"):
+        call(slot=np.full(6, 2))
+    with pytest.raises(ValueError, match=r"covariances: expected shape \(6, 6, 6\)"):
+        call(S=S[:5])
+    with pytest.raises(ValueError, match=r"twist_information: expected shape \(6, 6\)"):
+        call(twist_w=np.eye(5))
+    with pytest.raises(ValueError, match=r"poses: expected shape \(n, 8\)"):
+        call(Z=Z[:, :7])
