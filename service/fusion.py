@@ -30,7 +30,8 @@ Time alignment (:func:`fuse` with ``times``): a measurement stamped ``t`` by a s
 ``T(τ) = X · Exp((τ − time) V)`` with ``X`` the pose at the fusion time, so the prediction of
 measurement i is ``P_i = X Exp(dt_i V)``, ``dt_i = τ_i − time``, and its residual
 ``r_i = Log(P_i⁻¹ Z_i)``. Pose, twist (and the latencies a source asks to have estimated) are
-found jointly by Gauss–Newton with exact Jacobians: for ``X · Exp(δ)``, ``V + ε`` and ``ℓ + λ`` the
+found jointly by Gauss–Newton with exact Jacobians (in C, ``dq_motion_fit`` in
+``fusion.c``, leave-one-out NIS included; the correlated model below is NumPy): for ``X · Exp(δ)``, ``V + ε`` and ``ℓ + λ`` the
 prediction moves by ``Exp(η)`` on the right with ``η = Ad(Exp(−dt V)) δ + dt Jr(dt V) ε − V λ``,
 and ``r_i`` by ``−Jl⁻¹(r_i) η``. The covariance is the inverse of the joint information; its pose
 block is the marginal at the fusion time, so it carries the twist's (and latencies') uncertainty.

@@ -11,11 +11,18 @@ correlated) covariances per call, on the same problems (the scenes of tests/test
   ``Marginals``, with its default parameters and with tight ones (relative and absolute error
   tolerance 1e-16, as tests/test_fusion.py uses before it finishes with Gauss–Newton steps).
 
+A second table: the time-aligned estimate (constant twist, one latency estimated, one
+configured; the scenes of tests/test_fusion_core.py) of 20 and 90 measurements by the C kernel
+``_dqcore.motion_fit`` (fit, information and leave-one-out NIS), the NumPy reference
+(tests/fusion_reference.py, the block-diagonal fit the service ran before the kernel) and
+``service.fusion.fuse(..., times=...)`` end to end.
+
 Times are medians of repeated samples after a warm-up (the C rows: the median pass over all
 problems, and the best pass). ``max dev`` is the largest over the problems of
 ``|Log(ours⁻¹ theirs)|`` (rad/m) and of the covariance difference relative to its largest entry.
 
-Options: ``--problems N`` (default 300), ``--quick`` (fewer samples, for a smoke run).
+Options: ``--problems N`` (default 300), ``--quick`` (fewer samples, for a smoke run),
+``--motion-only`` (the second table only).
 """
 from __future__ import annotations
 
@@ -85,12 +92,71 @@ def deviation(mean, cov, ref_mean, ref_cov):
     return float(np.abs(e).max()), float(c.max())
 
 
+def motion_table(samples: int, count: int = 20):
+    sys.path.insert(0, str(HERE.parent))  # the tests' own imports (fusion_reference)
+    import fusion_reference as ref
+    from tests.test_fusion_core import motion_scene
+
+    rng = np.random.default_rng(11)
+    sources = [fusion.Source("a", latency=0.03, latency_sigma=0.01),
+               fusion.Source("b", latency=0.005), fusion.Source("c")]
+    rows = []
+    for n in (20, 90):
+        scenes = [motion_scene(rng, n, (True, False)) for _ in range(count)]
+        args = []
+        for Z, S, model in scenes:
+            inlier = np.ones(n, bool)
+            tested = ~inlier | fusion._determined_without_each(model, inlier)
+            args.append((Z, S, model, inlier, fusion._motion_start(Z, S, model, inlier), tested))
+        k = iter(range(10 ** 9))
+
+        def kernel():
+            Z, S, m, inlier, start, tested = args[next(k) % count]
+            return _dqcore.motion_fit(Z, S, inlier, start, m.stamp, m.latency, m.slot, m.prior,
+                                      m.prior_w, m.twist, m.twist_w, tested)
+
+        def numpy():
+            return ref.motion_fit(*args[next(k) % count])
+
+        def api():
+            Z, S, m, *_ = scenes[next(k) % count]
+            names = ["abc"[i % 3] for i in range(n)]
+            return fusion.fuse(Z, S, names=names, sources=sources, times=m.stamp, time=0.0)
+
+        c = [kernel() for _ in range(count)]
+        r = [numpy() for _ in range(count)]
+        f = [api() for _ in range(count)]
+        dev = max(float(np.abs(lie.se3_log(dq.mul(dq.conj(a.mean), b[0]))).max())
+                  for a, b in zip(r, c))
+        steps = np.mean([int(b[6]) for b in c])
+        base = per_call(kernel, samples)
+        rows.append((n, "C kernel _dqcore.motion_fit", base, base, f"{dev:.1e}",
+                     f"{steps:.1f} Gauss-Newton steps, NIS included"))
+        rows.append((n, "NumPy reference (tests/fusion_reference.py)",
+                     per_call(numpy, max(3, samples // 3)), base, "—", "the pre-kernel path"))
+        rows.append((n, "service.fusion.fuse(..., times=...)", per_call(api, samples), base, "—",
+                     f"validation, frames, report; {np.mean([x.iterations for x in f]):.1f} steps"))
+    head = ["n", "implementation", "per estimate", "× C kernel", "max dev pose", "note"]
+    lines = [[str(n), label, fmt_time(t), f"{t / b:.1f}", d, note]
+             for n, label, t, b, d, note in rows]
+    w = [max(len(h), *(len(l[i]) for l in lines)) for i, h in enumerate(head)]
+    print("Time-aligned estimate (constant twist; pose, twist and one latency estimated, one "
+          "configured), 20 scenes each; target: well under 0.2 ms from Python")
+    print("| " + " | ".join(h.ljust(w[i]) for i, h in enumerate(head)) + " |")
+    print("|" + "|".join("-" * (x + 2) for x in w) + "|")
+    for l in lines:
+        print("| " + " | ".join(c.ljust(w[i]) for i, c in enumerate(l)) + " |")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--problems", type=int, default=300)
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--motion-only", action="store_true")
     args = ap.parse_args(argv)
     samples = 5 if args.quick else 15
+    if args.motion_only:
+        return motion_table(samples)
     Z, S = problems(args.problems)
     P = len(Z)
 
@@ -148,6 +214,8 @@ def main(argv=None):
     print("|" + "|".join("-" * (x + 2) for x in w) + "|")
     for l in lines:
         print("| " + " | ".join(c.ljust(w[i]) for i, c in enumerate(l)) + " |")
+    print()
+    motion_table(samples)
 
 
 if __name__ == "__main__":
