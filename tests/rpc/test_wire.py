@@ -328,8 +328,9 @@ def _padded_varint(v: int, pad: int) -> bytes:
     return bytes(out)
 
 
-def reencode(data: bytes, kind: str, pad) -> bytes:
-    """A serialized message (BlendBatchRequest "batch", BlendRequest "request", Pose "pose")
+def reencode(data: bytes, kind: str, pad, nested: dict = NESTED) -> bytes:
+    """A serialized message (BlendBatchRequest "batch", BlendRequest "request", Pose "pose";
+    other kinds by ``nested``: kind -> {field: kind of its submessage, None for doubles})
     with every tag, length and varint value written with pad() extra bytes."""
     out, i = bytearray(), 0
     while i < len(data):
@@ -346,9 +347,10 @@ def reencode(data: bytes, kind: str, pad) -> bytes:
             n, i = _read_varint(data, i)
             body = data[i:i + n]
             i += n
-            sub = NESTED.get(kind, {}).get(field, "")
+            sub = nested.get(kind, {}).get(field, "")
             if sub != "":
-                body = reencode(body, sub, pad) if sub else _reencode_doubles(body, pad)
+                body = (reencode(body, sub, pad, nested) if sub
+                        else _reencode_doubles(body, pad))
             out += _padded_varint(len(body), pad()) + body
         else:
             raise AssertionError(f"wire type {wt} in a message we wrote")
