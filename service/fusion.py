@@ -1138,9 +1138,10 @@ class Tracker:
                all_or_none: bool):
         """Checked measurements (``ok``; ``errors`` those refused so far) into the windows: the
         window-floor check, then the store."""
-        codes = np.array([self._source_code(s) if ok[k] else 0 for k, s in enumerate(sources)],
+        use = ok.tolist()
+        codes = np.array([self._source_code(s) if u else 0 for u, s in zip(use, sources)],
                          dtype=np.int64)
-        body = np.array([self._body_code(b) if ok[k] else 0 for k, b in enumerate(bodies)],
+        body = np.array([self._body_code(b) if u else 0 for u, b in zip(use, bodies)],
                         dtype=np.int64)
         taken = times - (self._latency[codes] if self._names else 0.0)
         # Taken no further back than the window before the body's newest, counting the earlier
@@ -1161,7 +1162,13 @@ class Tracker:
         if all_or_none and errors:
             return [min(errors.items())]
         self._count += offered
-        if ok.any():
+        if ok.all():
+            np.maximum.at(self._newest, body, taken)
+            self._store.append(self._newest, self.window, ids=ids, body=body, codes=codes,
+                               times=times, taken=taken, poses=poses, covs=covs)
+            for b in bodies:
+                self._active.setdefault(b, None)
+        elif ok.any():
             np.maximum.at(self._newest, body[ok], taken[ok])
             self._store.append(self._newest, self.window, ids=ids[ok], body=body[ok],
                                codes=codes[ok], times=times[ok], taken=taken[ok],
@@ -1196,6 +1203,8 @@ def _check_rows(bodies, sources, times, poses, covs):
     for arrays, check in ((poses.copy(), lambda a: _poses(a)),
                           (covs, lambda a: _covariances(a, None, len(a)))):
         rows = np.flatnonzero(ok)
+        if not len(rows):
+            break
         try:
             arrays[rows] = check(arrays[rows])
         except ValueError:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 import re
 import time
+import zlib
 
 import grpc
 import numpy as np
@@ -57,12 +58,25 @@ def unknown_sources(m: Measurements, options: Options, field: str) -> list:
             for k in range(len(m.index)) if m.sources[k] not in known]
 
 
-def first_tick(t: float, rate: float) -> int:
-    """The first tick ``k`` (at ``k / rate``) at or after ``t``, exactly in floating point."""
-    k = math.ceil(t * rate)
-    while (k - 1) / rate >= t:
+def tick_phase(body: str) -> float:
+    """Where ``body``'s ticks sit in the output period, as a fraction of it in [0, 1): from the
+    CRC-32 of its name, so that many bodies' ticks spread over the period instead of falling due
+    together (one burst of estimates), and a recorded stream replays to the same ticks."""
+    return zlib.crc32(body.encode()) / 2.0**32
+
+
+def tick_time(k: int, rate: float, phase: float) -> float:
+    """Tick ``k`` of a body whose ticks have ``phase`` (:func:`tick_phase`)."""
+    return (k + phase) / rate
+
+
+def first_tick(t: float, rate: float, phase: float = 0.0) -> int:
+    """The first tick ``k`` (at :func:`tick_time`) at or after ``t``, exactly in floating
+    point."""
+    k = math.ceil(t * rate - phase)
+    while tick_time(k - 1, rate, phase) >= t:
         k -= 1
-    while k / rate < t:
+    while tick_time(k, rate, phase) < t:
         k += 1
     return k
 
@@ -81,6 +95,7 @@ class Stream:
         except ValueError as e:
             raise _options_error(e, field) from None
         self.next_tick: dict[str, int] = {}
+        self.phase: dict[str, float] = {}
 
     def update(self, m: Measurements, ids: np.ndarray, field: str, codes=None):
         """Measurements ``m`` of one request (``ids``: their stream-wide numbers) into the
@@ -126,13 +141,16 @@ class Stream:
             return [None]
         newest = self.tracker.newest(body)
         k = self.next_tick.get(body)
-        if k is not None and k / self.rate > newest:
+        phase = self.phase.get(body)
+        if phase is None:
+            phase = self.phase[body] = tick_phase(body)
+        if k is not None and tick_time(k, self.rate, phase) > newest:
             return []           # most requests: the body's next tick not reached yet
-        first = first_tick(self.tracker.oldest(body), self.rate)
+        first = first_tick(self.tracker.oldest(body), self.rate, phase)
         k = first if k is None else max(k, first)
         due = []
-        while k / self.rate <= newest:
-            due.append(k / self.rate)
+        while (t := tick_time(k, self.rate, phase)) <= newest:
+            due.append(t)
             k += 1
         self.next_tick[body] = k
         return due
