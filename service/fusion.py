@@ -1316,41 +1316,37 @@ class Tracker:
         ids = np.arange(self._count, self._count + n) if ids is None else np.asarray(ids, np.int64)
         if ids.shape != (n,):
             raise ValueError(f"ids: expected shape {(n,)}, got {ids.shape}")
-        errors: dict[int, ValueError] = {}
-        for k, (b, s) in enumerate(zip(bodies, sources)):
-            if not isinstance(b, str) or not b:
-                errors[k] = ValueError(f"measurements[{k}].body: " + (
-                    "empty (every measurement names its body)" if isinstance(b, str) else
-                    f"expected a string, got {type(b).__name__}"))
-            elif not isinstance(s, str):
-                errors[k] = ValueError(f"measurements[{k}].source: expected a string, "
-                                       f"got {type(s).__name__}")
-        ok = np.isfinite(times)
-        for k in np.flatnonzero(~ok).tolist():
-            errors.setdefault(k, ValueError(f"measurements[{k}].time: must be finite, "
-                                            f"got {float(times[k])!r}"))
-        ok[list(errors)] = False
-        # The batch is checked at once; only a batch with a bad one is checked row by row. The
-        # poses are kept as given (fuse normalises them), so that an estimate is exactly fuse of
-        # what was given; the covariances symmetrised (which fuse leaves as they are).
-        covs = np.array(covs)
-        for arrays, check in ((poses.copy(), lambda a: _poses(a)),
-                              (covs, lambda a: _covariances(a, None, len(a)))):
-            rows = np.flatnonzero(ok)
-            try:
-                arrays[rows] = check(arrays[rows])
-            except ValueError:
-                for k in rows.tolist():
-                    try:
-                        arrays[k] = check(arrays[k:k + 1])[0]
-                    except ValueError as e:
-                        ok[k] = False
-                        errors.setdefault(k, rename(e, {
-                            "poses": f"measurements[{k}].pose",
-                            "covariances": f"measurements[{k}].covariance"}))
-        codes = np.array([self._source_code(s) if ok[k] else 0 for k, s in enumerate(sources)],
+        ok, errors, covs = _check_rows(bodies, sources, times, poses, covs)
+        return self._admit(bodies, sources, times, poses, covs, ids, ok, errors, n, all_or_none)
+
+    @staticmethod
+    def refusals(bodies, sources, times, poses, covariances) -> list[tuple[int, ValueError]]:
+        """What :meth:`ingest` would refuse of these measurements (arrays as it takes them) by
+        the checks that need no state (all but the window), each ``(k, ValueError)`` naming
+        ``measurements[k]``."""
+        return sorted(_check_rows(bodies, sources, np.asarray(times, np.float64),
+                                  np.asarray(poses, np.float64),
+                                  np.asarray(covariances, np.float64))[1].items())
+
+    def _ingest_valid(self, bodies, sources, times, poses, covariances, ids,
+                      offered: int) -> list[tuple[int, ValueError]]:
+        """:meth:`ingest` of measurements already checked by its rules, with nothing checked
+        again but the window: ``times`` finite, ``poses`` unit (as ``dq.from_pose`` makes them),
+        ``covariances`` the symmetric part of symmetric positive definite ones, every body named.
+        service/csrc/wire.c checks them so for StreamFuse. ``offered``: how many measurements
+        the caller had, these and those it refused (they count, as in :meth:`ingest`)."""
+        n = len(bodies)
+        return self._admit(bodies, sources, times, poses, covariances, ids, np.ones(n, bool), {},
+                           offered, False)
+
+    def _admit(self, bodies, sources, times, poses, covs, ids, ok, errors, offered: int,
+               all_or_none: bool):
+        """Checked measurements (``ok``; ``errors`` those refused so far) into the windows: the
+        window-floor check, then the store."""
+        use = ok.tolist()
+        codes = np.array([self._source_code(s) if u else 0 for u, s in zip(use, sources)],
                          dtype=np.int64)
-        body = np.array([self._body_code(b) if ok[k] else 0 for k, b in enumerate(bodies)],
+        body = np.array([self._body_code(b) if u else 0 for u, b in zip(use, bodies)],
                         dtype=np.int64)
         taken = times - (self._latency[codes] if self._names else 0.0)
         # Taken no further back than the window before the body's newest, counting the earlier
@@ -1370,8 +1366,14 @@ class Tracker:
                     f"beyond the window {self.window:g} s")
         if all_or_none and errors:
             return [min(errors.items())]
-        self._count += n
-        if ok.any():
+        self._count += offered
+        if ok.all():
+            np.maximum.at(self._newest, body, taken)
+            self._store.append(self._newest, self.window, ids=ids, body=body, codes=codes,
+                               times=times, taken=taken, poses=poses, covs=covs)
+            for b in bodies:
+                self._active.setdefault(b, None)
+        elif ok.any():
             np.maximum.at(self._newest, body[ok], taken[ok])
             self._store.append(self._newest, self.window, ids=ids[ok], body=body[ok],
                                codes=codes[ok], times=times[ok], taken=taken[ok],
@@ -1379,6 +1381,47 @@ class Tracker:
             for k in np.flatnonzero(ok).tolist():
                 self._active.setdefault(bodies[k], None)
         return sorted(errors.items())
+
+
+def _check_rows(bodies, sources, times, poses, covs):
+    """The checks of :meth:`Tracker.ingest` that need no state: ``(ok, errors, covs)``, ``ok``
+    the rows that pass, ``errors`` ``{k: ValueError}`` of the others, ``covs`` a copy with the
+    rows that pass symmetrised."""
+    errors: dict[int, ValueError] = {}
+    for k, (b, s) in enumerate(zip(bodies, sources)):
+        if not isinstance(b, str) or not b:
+            errors[k] = ValueError(f"measurements[{k}].body: " + (
+                "empty (every measurement names its body)" if isinstance(b, str) else
+                f"expected a string, got {type(b).__name__}"))
+        elif not isinstance(s, str):
+            errors[k] = ValueError(f"measurements[{k}].source: expected a string, "
+                                   f"got {type(s).__name__}")
+    ok = np.isfinite(times)
+    for k in np.flatnonzero(~ok).tolist():
+        errors.setdefault(k, ValueError(f"measurements[{k}].time: must be finite, "
+                                        f"got {float(times[k])!r}"))
+    ok[list(errors)] = False
+    # The batch is checked at once; only a batch with a bad one is checked row by row. The
+    # poses are kept as given (fuse normalises them), so that an estimate is exactly fuse of
+    # what was given; the covariances symmetrised (which fuse leaves as they are).
+    covs = np.array(covs)
+    for arrays, check in ((poses.copy(), lambda a: _poses(a)),
+                          (covs, lambda a: _covariances(a, None, len(a)))):
+        rows = np.flatnonzero(ok)
+        if not len(rows):
+            break
+        try:
+            arrays[rows] = check(arrays[rows])
+        except ValueError:
+            for k in rows.tolist():
+                try:
+                    arrays[k] = check(arrays[k:k + 1])[0]
+                except ValueError as e:
+                    ok[k] = False
+                    errors.setdefault(k, rename(e, {
+                        "poses": f"measurements[{k}].pose",
+                        "covariances": f"measurements[{k}].covariance"}))
+    return ok, errors, covs
 
 
 def _finite_shape(x, name: str, shape: tuple) -> np.ndarray:

@@ -8,6 +8,7 @@
 #include "fusion.h"
 
 #include <math.h>
+#include <string.h>
 
 #include "blend.h"
 #include "dq.h"
@@ -78,6 +79,39 @@ static inline void upper_solve_m(const double *L, const double *di, const double
 }
 
 static int chol6(const double *A, double *L, double *di) { return chol(A, L, di, 6); }
+
+/* A diagonal shift, relative to each diagonal entry, well beyond the rounding of any 6x6
+ * Cholesky (~1e-15): a matrix that factors when shifted down by it is positive definite to
+ * LAPACK too, one that fails shifted up by it is not; in between the two may differ. */
+#define SPD_MARGIN 1e-8
+/* Entries outside this range (but zero) could underflow or overflow in the products. */
+#define SPD_SMALL 1e-100
+#define SPD_LARGE 1e100
+
+int dq_covariance_check(const double *S, double sym_tol, double *sym)
+{
+    if (!dq_finite_n(S, 36)) return DQ_E_NONFINITE;
+    double scale = 0.0, asym = 0.0;
+    int extreme = 0;
+    for (int i = 0; i < 6; i++) {
+        for (int j = 0; j < 6; j++) {
+            double a = fabs(S[6 * i + j]), d = fabs(S[6 * i + j] - S[6 * j + i]);
+            if (a > scale) scale = a;
+            if (d > asym) asym = d;
+            if (a != 0.0 && (a < SPD_SMALL || a > SPD_LARGE)) extreme = 1;
+        }
+    }
+    if (!(asym <= sym_tol * scale)) return DQ_E_ASYMMETRIC;
+    if (extreme) return DQ_E_BORDERLINE;
+    for (int i = 0; i < 6; i++)
+        for (int j = 0; j < 6; j++) sym[6 * i + j] = 0.5 * (S[6 * i + j] + S[6 * j + i]);
+    double A[36], L[36], di[6];
+    memcpy(A, sym, sizeof A);
+    for (int j = 0; j < 6; j++) A[7 * j] = sym[7 * j] - SPD_MARGIN * fabs(sym[7 * j]);
+    if (chol6(A, L, di)) return DQ_OK;
+    for (int j = 0; j < 6; j++) A[7 * j] = sym[7 * j] + SPD_MARGIN * fabs(sym[7 * j]);
+    return chol6(A, L, di) ? DQ_E_BORDERLINE : DQ_E_NOT_SPD;
+}
 
 static void lower_solve(const double *L, const double *di, const double *b, double *x)
 {

@@ -32,8 +32,20 @@ typedef enum {
 enum {
     DQ_E_NOT_SPD = 11,     /* a covariance is not symmetric positive definite (*bad: which) */
     DQ_E_SINGULAR = 12,    /* the information at the optimum is not positive definite */
-    DQ_E_NO_INLIERS = 13   /* the inlier mask selects no measurement */
+    DQ_E_NO_INLIERS = 13,  /* the inlier mask selects no measurement */
+    DQ_E_ASYMMETRIC = 14,  /* a covariance is not symmetric within the tolerance */
+    DQ_E_BORDERLINE = 15   /* too close to the edge of positive definite to be sure */
 };
+
+/*
+ * Checks one covariance (36 values, row-major) by the rules of service/fusion.py's _covariances:
+ * finite; symmetric, max |S - S^T| <= sym_tol * max |S| (the tolerance is the caller's, so the
+ * rule has one source); positive definite, by Cholesky of its symmetric part, which it writes
+ * to sym (0.5 (S + S^T), the same operations as NumPy's, so the same bits). Returns DQ_OK,
+ * DQ_E_NONFINITE, DQ_E_ASYMMETRIC, DQ_E_NOT_SPD, or DQ_E_BORDERLINE where LAPACK's factorisation
+ * could decide otherwise than ours (the caller then asks LAPACK, through NumPy).
+ */
+int dq_covariance_check(const double *S, double sym_tol, double *sym);
 
 typedef struct {
     double tol;    /* stop when a Gauss-Newton step is shorter than this */

@@ -871,6 +871,72 @@ done:
     return result;
 }
 
+/* fuse_stream_from_wire(bytes, sym_tol) -> (poses (n, 8), covariances (n, 6, 6), times (n,),
+ * codes (n,) uint8, bodies, sources (tuples of str), spans (n, 2): each measurement's offset and
+ * length in the bytes), or None outside the plain case (see dq_wire_fuse_stream). */
+static PyObject *py_fuse_stream_from_wire(PyObject *self, PyObject *args)
+{
+    Py_buffer view;
+    double sym_tol;
+    if (!PyArg_ParseTuple(args, "y*d:fuse_stream_from_wire", &view, &sym_tol)) return NULL;
+    const uint8_t *buf = (const uint8_t *)view.buf;
+    PyObject *result = NULL, *bodies = NULL, *sources = NULL;
+    PyArrayObject *poses = NULL, *covs = NULL, *times = NULL, *codes = NULL, *spans = NULL;
+    uint32_t *sp = NULL;
+    dq_fuse_stream r;
+    memset(&r, 0, sizeof r);
+    if (dq_wire_fuse_count(buf, (size_t)view.len, &r)) goto none;
+    npy_intp n = (npy_intp)r.n;
+    npy_intp d8[2] = {n, 8}, d36[3] = {n, 6, 6}, d1[1] = {n}, d2[2] = {n, 2};
+    poses = (PyArrayObject *)PyArray_ZEROS(2, d8, NPY_DOUBLE, 0);
+    covs = (PyArrayObject *)PyArray_ZEROS(3, d36, NPY_DOUBLE, 0);
+    times = (PyArrayObject *)PyArray_ZEROS(1, d1, NPY_DOUBLE, 0);
+    codes = (PyArrayObject *)PyArray_ZEROS(1, d1, NPY_UINT8, 0);
+    spans = (PyArrayObject *)PyArray_ZEROS(2, d2, NPY_INT64, 0);
+    sp = PyMem_Malloc((size_t)(6 * n + 1) * sizeof *sp);
+    if (!poses || !covs || !times || !codes || !spans || !sp) {
+        if (!PyErr_Occurred()) PyErr_NoMemory();
+        goto done;
+    }
+    r.poses = (double *)PyArray_DATA(poses);
+    r.covs = (double *)PyArray_DATA(covs);
+    r.times = (double *)PyArray_DATA(times);
+    r.codes = (uint8_t *)PyArray_DATA(codes);
+    r.spans = sp;
+    if (dq_wire_fuse_stream(buf, (size_t)view.len, sym_tol, &r)) goto none;
+    bodies = PyTuple_New(n);
+    sources = PyTuple_New(n);
+    if (!bodies || !sources) goto done;
+    int64_t *out = (int64_t *)PyArray_DATA(spans);
+    for (npy_intp i = 0; i < n; i++) {
+        const uint32_t *s = sp + 6 * i;
+        PyObject *src = PyUnicode_DecodeASCII((const char *)buf + s[2], s[3], NULL);
+        if (!src) goto done;
+        PyTuple_SET_ITEM(sources, i, src);
+        PyObject *body = PyUnicode_DecodeASCII((const char *)buf + s[4], s[5], NULL);
+        if (!body) goto done;
+        PyTuple_SET_ITEM(bodies, i, body);
+        out[2 * i] = s[0];
+        out[2 * i + 1] = s[1];
+    }
+    result = PyTuple_Pack(7, poses, covs, times, codes, bodies, sources, spans);
+    goto done;
+none:
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    Py_XDECREF(poses);
+    Py_XDECREF(covs);
+    Py_XDECREF(times);
+    Py_XDECREF(codes);
+    Py_XDECREF(spans);
+    Py_XDECREF(bodies);
+    Py_XDECREF(sources);
+    PyMem_Free(sp);
+    PyBuffer_Release(&view);
+    return result;
+}
+
 /* fuse(poses (..., n, 8), covariances (..., n, 6, 6), inliers (..., n) bool or None, tol,
  * max_iter, nis) -> (mean, covariance, residuals, distances, nis, tested, status, iterations,
  * chi2), each with the leading shape; nis and tested are None when nis is false. The leading
@@ -1206,6 +1272,9 @@ static PyMethodDef methods[] = {
     {"lin", py_lin, METH_VARARGS, "lin(dqs, weights): the raw matrix blend -> [...,4,4]."},
     {"blend_request_from_wire", py_blend_request_from_wire, METH_O,
      "blend_request_from_wire(bytes) -> (poses, weights, method, tolerance, max_iterations) or None."},
+    {"fuse_stream_from_wire", py_fuse_stream_from_wire, METH_VARARGS,
+     "fuse_stream_from_wire(bytes, sym_tol) -> (poses, covariances, times, codes, bodies, "
+     "sources, spans) or None."},
     {"blend_batch_wire", py_blend_batch_wire, METH_VARARGS,
      "blend_batch_wire(bytes, max_requests, max_total_poses, max_poses, default_tol, "
      "default_max_iter, max_iter_limit) -> (bytes, n) or None."},
@@ -1245,5 +1314,8 @@ PyMODINIT_FUNC PyInit__dqcore(void)
     DQ_METHODS(ADD_METHOD_)
 #undef ADD_METHOD_
     PyModule_AddObject(m, "UNIT_TOL", PyFloat_FromDouble(DQ_UNIT_TOL));
+    /* fuse_stream_from_wire's codes up to this one are measurements_to_arrays's, the rest the
+     * Tracker's (wire.h) */
+    PyModule_AddIntConstant(m, "MEASUREMENT_CONVERT_LAST", DQ_MEAS_CONVERT_LAST);
     return m;
 }

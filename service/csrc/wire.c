@@ -8,6 +8,7 @@
 
 #include "blend.h"
 #include "dq.h"
+#include "fusion.h"
 
 enum { WT_VARINT = 0, WT_I64 = 1, WT_LEN = 2, WT_I32 = 5 };
 
@@ -334,5 +335,175 @@ int dq_wire_blend_batch(const uint8_t *buf, size_t len, const dq_wire_config *cf
     batch_out bo = {cfg, out};
     if (each_request(buf, len, blend_one, &bo)) return -1;
     *out_len = (size_t)(bo.p - out);
+    return 0;
+}
+
+/* ---- StreamFuse: FuseStreamRequest to arrays -------------------------------------------------- */
+
+typedef struct {
+    double row[7];       /* the Pose: [qw qx qy qz x y z] */
+    double cov[36];
+    size_t ncov;
+    double time, weight;
+    cursor source, body;
+} measurement;
+
+/* A repeated double, packed or not: values beyond 36 are only counted. */
+static int covariance_value(cursor *c, int wt, measurement *m)
+{
+    double d;
+    cursor sub;
+    if (wt == WT_I64) {
+        if (fixed64(c, &d)) return -1;
+        if (m->ncov < 36) m->cov[m->ncov] = d;
+        m->ncov++;
+        return 0;
+    }
+    if (wt != WT_LEN || length(c, &sub) || (sub.end - sub.p) % 8) return -1;
+    while (sub.p < sub.end) {
+        if (fixed64(&sub, &d)) return -1;
+        if (m->ncov < 36) m->cov[m->ncov] = d;
+        m->ncov++;
+    }
+    return 0;
+}
+
+static int ascii(cursor s)
+{
+    for (const uint8_t *p = s.p; p < s.end; p++)
+        if (*p & 0x80) return 0;
+    return 1;
+}
+
+/* One Measurement's fields, merged as protobuf merges them (the last scalar or string wins, Pose
+ * fields merge, covariance values append); -1 for an unknown field or a non-ASCII name. */
+static int measurement_fields(cursor c, measurement *m)
+{
+    memset(m, 0, sizeof *m);
+    m->source.p = m->source.end = m->body.p = m->body.end = c.p;
+    while (c.p < c.end) {
+        int field, wt;
+        cursor sub;
+        if (tag(&c, &field, &wt)) return -1;
+        switch (field) {
+        case 1:
+        case 2:
+            if (wt != WT_LEN || length(&c, &sub) || !ascii(sub)) return -1;
+            *(field == 1 ? &m->source : &m->body) = sub;
+            break;
+        case 3:
+            if (wt != WT_I64 || fixed64(&c, &m->time)) return -1;
+            break;
+        case 4:
+            if (wt != WT_LEN || length(&c, &sub) || pose(sub, m->row)) return -1;
+            break;
+        case 5:
+            if (covariance_value(&c, wt, m)) return -1;
+            break;
+        case 6:
+            if (wt != WT_I64 || fixed64(&c, &m->weight)) return -1;
+            break;
+        default:
+            return -1;
+        }
+    }
+    return 0;
+}
+
+static int is_finite(double x) { return x * 0.0 == 0.0; }
+
+/* The checks, in the Python path's order; -1 where the two paths could differ. */
+static int check_measurement(measurement *m, double sym_tol, double *pose_out, double *cov_out,
+                             uint8_t *code)
+{
+    for (int k = 0; k < 8; k++) pose_out[k] = 0.0;
+    double w = m->weight == 0.0 ? 1.0 : m->weight; /* weight 0 (or -0) means 1 */
+    if (!is_finite(m->time)) { *code = DQ_MEAS_TIME; return 0; }
+    if (m->ncov != 0 && m->ncov != 36) { *code = DQ_MEAS_COV_COUNT; return 0; }
+    if (m->ncov == 36 && m->weight != 0.0) { *code = DQ_MEAS_COV_AND_WEIGHT; return 0; }
+    if (m->ncov == 0 && !(is_finite(w) && w > 0.0)) { *code = DQ_MEAS_WEIGHT; return 0; }
+    if (dq_from_pose(m->row, m->row + 4, pose_out)) {
+        for (int k = 0; k < 8; k++) pose_out[k] = 0.0;
+        *code = DQ_MEAS_POSE;
+        return 0;
+    }
+    double unit[8];
+    if (dq_unit(pose_out, unit)) return -1; /* the Tracker's pose check, never seen to fail */
+    if (m->body.p == m->body.end) { *code = DQ_MEAS_BODY; return 0; }
+    const double *S = m->cov;
+    double iso[36];
+    if (m->ncov == 0) {
+        /* np.eye(6) / w */
+        for (int k = 0; k < 36; k++) iso[k] = (k % 7 ? 0.0 : 1.0) / w;
+        S = iso;
+    }
+    switch (dq_covariance_check(S, sym_tol, cov_out)) {
+    case DQ_OK: *code = DQ_MEAS_OK; return 0;
+    case DQ_E_NONFINITE: *code = DQ_MEAS_COV_NONFINITE; break;
+    case DQ_E_ASYMMETRIC: *code = DQ_MEAS_COV_ASYMMETRIC; break;
+    case DQ_E_NOT_SPD: *code = DQ_MEAS_COV_NOT_SPD; break;
+    default: return -1;
+    }
+    memcpy(cov_out, S, 36 * sizeof(double)); /* as given: the Python check names the problem */
+    return 0;
+}
+
+/* Walks the request: fn(measurement body, ctx) for each measurement, in order; -1 for options,
+ * an output rate or an unknown field (the protobuf path's), or undecodable bytes. */
+static int each_measurement(const uint8_t *buf, size_t len, int (*fn)(cursor, void *), void *ctx)
+{
+    cursor c = {buf, buf + len};
+    if (len > 0xFFFFFFFFu) return -1; /* spans are 32 bits */
+    while (c.p < c.end) {
+        int field, wt;
+        cursor sub;
+        if (tag(&c, &field, &wt)) return -1;
+        if (field != 3 || wt != WT_LEN || length(&c, &sub) || fn(sub, ctx)) return -1;
+    }
+    return 0;
+}
+
+static int count_measurement(cursor sub, void *ctx)
+{
+    (void)sub;
+    ((dq_fuse_stream *)ctx)->n++;
+    return 0;
+}
+
+int dq_wire_fuse_count(const uint8_t *buf, size_t len, dq_fuse_stream *r)
+{
+    r->n = 0;
+    return each_measurement(buf, len, count_measurement, r);
+}
+
+typedef struct {
+    dq_fuse_stream *r;
+    const uint8_t *buf;
+    double sym_tol;
+    size_t i;
+} fill_state;
+
+static int fill_measurement(cursor sub, void *ctx)
+{
+    fill_state *f = (fill_state *)ctx;
+    dq_fuse_stream *r = f->r;
+    size_t i = f->i++;
+    measurement m;
+    if (i >= r->n || measurement_fields(sub, &m)) return -1;
+    r->times[i] = m.time;
+    uint32_t *s = r->spans + 6 * i;
+    s[0] = (uint32_t)(sub.p - f->buf);
+    s[1] = (uint32_t)(sub.end - sub.p);
+    s[2] = (uint32_t)(m.source.p - f->buf);
+    s[3] = (uint32_t)(m.source.end - m.source.p);
+    s[4] = (uint32_t)(m.body.p - f->buf);
+    s[5] = (uint32_t)(m.body.end - m.body.p);
+    return check_measurement(&m, f->sym_tol, r->poses + 8 * i, r->covs + 36 * i, r->codes + i);
+}
+
+int dq_wire_fuse_stream(const uint8_t *buf, size_t len, double sym_tol, dq_fuse_stream *r)
+{
+    fill_state f = {r, buf, sym_tol, 0};
+    if (each_measurement(buf, len, fill_measurement, &f) || f.i != r->n) return -1;
     return 0;
 }

@@ -67,4 +67,55 @@ int dq_wire_batch_count(const uint8_t *buf, size_t len, size_t *n_requests, size
 int dq_wire_blend_batch(const uint8_t *buf, size_t len, const dq_wire_config *cfg, uint8_t *out,
                         size_t *out_len);
 
+/*
+ * StreamFuse's hot path: FuseStreamRequest {FusionOptions options=1; double output_rate=2;
+ * repeated Measurement measurements=3} wire bytes to arrays, every measurement checked here by
+ * the rules of the Python path it replaces. Measurement {string source=1; string body=2;
+ * double time=3; Pose pose=4; repeated double covariance=5; double weight=6}.
+ *
+ * The plain case only: no options or output_rate (those are the first request's, which the
+ * protobuf path reads), no unknown field in a request or a measurement, names in ASCII (so
+ * that they are valid UTF-8 as protobuf requires), and no measurement on an edge where the two
+ * paths could decide differently (a pose from_pose accepts but the unit check would not; a
+ * covariance with extreme entries or on the edge of positive definite: see
+ * dq_covariance_check). Anything else returns -1 and the caller parses the bytes with
+ * protobuf, which names every problem.
+ *
+ * Each measurement gets a code: which check refused it, in the order the Python path checks
+ * (first what service/rpc/convert.py measurements_to_arrays checks, then what
+ * service/fusion.py Tracker checks). The texts are the Python path's, in one place: the caller
+ * runs that path's check on a refused measurement alone to name it.
+ */
+enum {
+    DQ_MEAS_OK = 0,
+    /* measurements_to_arrays */
+    DQ_MEAS_TIME = 1,            /* time not finite */
+    DQ_MEAS_COV_COUNT = 2,       /* covariance of neither 0 nor 36 values */
+    DQ_MEAS_COV_AND_WEIGHT = 3,  /* both a covariance and a weight */
+    DQ_MEAS_WEIGHT = 4,          /* weight (0 = 1) not positive and finite */
+    DQ_MEAS_POSE = 5,            /* dq_from_pose refuses the pose */
+    DQ_MEAS_CONVERT_LAST = 5,
+    /* Tracker */
+    DQ_MEAS_BODY = 6,            /* no body */
+    DQ_MEAS_COV_NONFINITE = 7,
+    DQ_MEAS_COV_ASYMMETRIC = 8,
+    DQ_MEAS_COV_NOT_SPD = 9
+};
+
+typedef struct {
+    size_t n;          /* measurements (dq_wire_fuse_count), and the rows of the arrays below */
+    double *poses;     /* n x 8: the pose as dq_from_pose makes it (a refused pose: zeros) */
+    double *covs;      /* n x 36: the symmetric part of the covariance (I / weight when none);
+                        * as given where code >= DQ_MEAS_COV_NONFINITE */
+    double *times;     /* n */
+    uint32_t *spans;   /* n x 6: offset and length in buf of the measurement, its source, its body */
+    uint8_t *codes;    /* n */
+} dq_fuse_stream;
+
+/* Counts the measurements (r->n); -1 outside the plain case at the request's level. */
+int dq_wire_fuse_count(const uint8_t *buf, size_t len, dq_fuse_stream *r);
+/* Fills r's arrays (r->n rows, as counted) and checks every measurement; -1 outside the plain
+ * case. sym_tol: the relative symmetry tolerance of a covariance (service/fusion.py's). */
+int dq_wire_fuse_stream(const uint8_t *buf, size_t len, double sym_tol, dq_fuse_stream *r);
+
 #endif

@@ -376,7 +376,8 @@ class Client:
                     acceleration_psd=None) -> Iterator[StreamAnswer]:
         """Stream :class:`Batch` es (measurements of any bodies each) to ``StreamFuse``; yields
         :class:`StreamAnswer` s as they come: fused poses of each body over its sliding
-        ``window`` (seconds) at the ticks ``k / output_rate`` of the measurements' time (0: one
+        ``window`` (seconds) at its ticks ``(k + phase) / output_rate`` of the measurements'
+        time, ``phase`` in [0, 1) fixed by the body's name (0: one
         per body after each batch that carried it; see the proto), and error entries for
         measurements the server could not use (the stream goes on). The stream has no
         deadline; options the server refuses end it with :class:`InvalidArgument`. A batch that

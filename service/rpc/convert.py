@@ -360,12 +360,13 @@ class Measurements(NamedTuple):
 
 
 def measurements_to_arrays(ms, field: str = "measurements",
-                           errors: list | None = None) -> Measurements:
+                           errors: list | None = None, first: int = 0) -> Measurements:
     """Repeated ``Measurement`` to :class:`Measurements`. A bad measurement raises the
     :class:`FieldError` naming it (``{field}[i].time: ...``); with ``errors`` (a list) it is
     appended there as ``(i, FieldError)`` and left out instead. Each field is read for all
     measurements at once and checked in NumPy; only the measurements with a problem are looked
-    at one by one, to name it."""
+    at one by one, to name it. ``first``: the number the texts give ``ms[0]`` (``ms`` a part of
+    the field)."""
     ms = list(ms)
     n = len(ms)
     times = np.array([m.time for m in ms], dtype=np.float64)
@@ -395,10 +396,10 @@ def measurements_to_arrays(ms, field: str = "measurements",
                                  f"row-major, rotation first) or none, got {counts[i]}"),
         (full & (weights != 0.0), lambda i: "weight: give a covariance or a weight, not both"),
         (iso & ~(np.isfinite(w) & (w > 0.0)),
-         lambda i: f"weight: must be positive and finite (0 means 1), got {w[i]!r}"))
+         lambda i: f"weight: must be positive and finite (0 means 1), got {float(w[i])!r}"))
     for mask, text in problems:
         for i in np.flatnonzero(mask).tolist():
-            bad.setdefault(i, FieldError(f"{field}[{i}].{text(i)}"))
+            bad.setdefault(i, FieldError(f"{field}[{first + i}].{text(i)}"))
     keep = np.ones(n, dtype=bool)
     if bad:
         keep[list(bad)] = False
@@ -409,7 +410,7 @@ def measurements_to_arrays(ms, field: str = "measurements",
         # Name the measurement, not the row: one at a time to find every bad one.
         for i in index.tolist():
             try:
-                _pose_from_row(flat[i], f"{field}[{i}].pose")
+                _pose_from_row(flat[i], f"{field}[{first + i}].pose")
             except FieldError as e:
                 bad[i] = e
                 keep[i] = False
@@ -423,6 +424,41 @@ def measurements_to_arrays(ms, field: str = "measurements",
         errors.sort(key=lambda x: x[0])
     return Measurements(index, tuple(ms[i].body for i in index), tuple(ms[i].source for i in index),
                         times[index], poses, covs[index])
+
+
+class WireMeasurements(NamedTuple):
+    """A ``FuseStreamRequest``'s measurements decoded and checked in C
+    (:func:`fuse_stream_from_wire`): every row, refused or not, with ``codes`` saying which check
+    refused it (0: none; up to ``CONVERT_LAST`` those of :func:`measurements_to_arrays`, the
+    rest :class:`fusion.Tracker`'s) and ``spans`` where its bytes are."""
+    poses: np.ndarray          # (n, 8), as dq.from_pose makes them
+    covariances: np.ndarray    # (n, 6, 6) symmetrised (as given where the Tracker refuses it)
+    times: np.ndarray          # (n,)
+    codes: np.ndarray          # (n,) uint8
+    bodies: tuple[str, ...]
+    sources: tuple[str, ...]
+    spans: np.ndarray          # (n, 2): offset and length of the Measurement in the bytes
+
+    CONVERT_LAST = _dqcore.MEASUREMENT_CONVERT_LAST
+
+
+def fuse_stream_from_wire(data: bytes) -> WireMeasurements | None:
+    """A serialized ``FuseStreamRequest`` of measurements only, decoded and checked by the C
+    core (service/csrc/wire.h ``dq_wire_fuse_stream``) by the rules of
+    :func:`measurements_to_arrays` and :meth:`fusion.Tracker.ingest`; ``None`` for anything
+    else (options, unknown fields, bytes protobuf would refuse, a measurement on the edge of a
+    rule), which the protobuf path then takes."""
+    out = _dqcore.fuse_stream_from_wire(data, fusion._SYMMETRY_TOL)
+    return None if out is None else WireMeasurements(*out)
+
+
+def wire_measurement_error(data: bytes, span, field: str, i: int) -> FieldError:
+    """The error :func:`measurements_to_arrays` names measurement ``i`` (its bytes at ``span``)
+    with: one Measurement parsed and checked the protobuf way, so the text has one source."""
+    msg = fpb.Measurement.FromString(data[int(span[0]):int(span[0]) + int(span[1])])
+    errors: list = []
+    measurements_to_arrays([msg], field, errors, first=i)
+    return errors[0][1]
 
 
 def _pose_from_row(row: np.ndarray, where: str) -> np.ndarray:

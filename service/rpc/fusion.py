@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 import re
 import time
+import zlib
 
 import grpc
 import numpy as np
@@ -15,8 +16,11 @@ from service import fusion
 from service.errors import FieldError, rename
 from service.rpc import DEFAULT_MAX_POSES
 from service.rpc.calls import INTERNAL_DETAILS, Calls, log
-from service.rpc.convert import (DEFAULT_WINDOW, Measurements, Options, fused_to_msg,
-                                 measurements_to_arrays, options_from_msg)
+from google.protobuf.message import DecodeError
+
+from service.rpc.convert import (DEFAULT_WINDOW, Measurements, Options, fuse_stream_from_wire,
+                                 fused_to_msg, measurements_to_arrays, options_from_msg,
+                                 wire_measurement_error)
 from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 from service.rpc._proto.dqpose.v1 import fusion_pb2_grpc as pb_grpc
 
@@ -54,12 +58,25 @@ def unknown_sources(m: Measurements, options: Options, field: str) -> list:
             for k in range(len(m.index)) if m.sources[k] not in known]
 
 
-def first_tick(t: float, rate: float) -> int:
-    """The first tick ``k`` (at ``k / rate``) at or after ``t``, exactly in floating point."""
-    k = math.ceil(t * rate)
-    while (k - 1) / rate >= t:
+def tick_phase(body: str) -> float:
+    """Where ``body``'s ticks sit in the output period, as a fraction of it in [0, 1): from the
+    CRC-32 of its name, so that many bodies' ticks spread over the period instead of falling due
+    together (one burst of estimates), and a recorded stream replays to the same ticks."""
+    return zlib.crc32(body.encode()) / 2.0**32
+
+
+def tick_time(k: int, rate: float, phase: float) -> float:
+    """Tick ``k`` of a body whose ticks have ``phase`` (:func:`tick_phase`)."""
+    return (k + phase) / rate
+
+
+def first_tick(t: float, rate: float, phase: float = 0.0) -> int:
+    """The first tick ``k`` (at :func:`tick_time`) at or after ``t``, exactly in floating
+    point."""
+    k = math.ceil(t * rate - phase)
+    while tick_time(k - 1, rate, phase) >= t:
         k -= 1
-    while k / rate < t:
+    while tick_time(k, rate, phase) < t:
         k += 1
     return k
 
@@ -78,23 +95,39 @@ class Stream:
         except ValueError as e:
             raise _options_error(e, field) from None
         self.next_tick: dict[str, int] = {}
+        self.phase: dict[str, float] = {}
 
-    def update(self, m: Measurements, ids: np.ndarray, field: str):
+    def update(self, m: Measurements, ids: np.ndarray, field: str, codes=None):
         """Measurements ``m`` of one request (``ids``: their stream-wide numbers) into the
         tracker: ``(answers, errors)``, answers ``(body, Fused or FieldError, ids of the fused
         measurements)`` in order of the bodies' first appearance, then of time; errors
-        ``(measurement index, FieldError)``."""
+        ``(measurement index, FieldError)``. ``codes`` (from the C decoder, one a row): the
+        rows are checked already by the tracker's rules, those with a code refused (and named by
+        the tracker's own check of that row alone), the others taken in unchecked."""
         errors = unknown_sources(m, self.options, field)
         bad = {k for k, _ in errors}
         errors = [(int(m.index[k]), e) for k, e in errors]
         rows = [k for k in range(len(m.index)) if k not in bad]
-        refused = self.tracker.ingest([m.bodies[k] for k in rows], [m.sources[k] for k in rows],
-                                      m.times[rows], m.poses[rows], m.covariances[rows],
-                                      ids=ids[rows])
-        for j, e in refused:
-            i = int(m.index[rows[j]])
+        if codes is None:
+            refused = [(rows[j], e) for j, e in self.tracker.ingest(
+                [m.bodies[k] for k in rows], [m.sources[k] for k in rows], m.times[rows],
+                m.poses[rows], m.covariances[rows], ids=ids[rows])]
+        else:
+            refused = [(k, fusion.Tracker.refusals(
+                m.bodies[k:k + 1], m.sources[k:k + 1], m.times[k:k + 1], m.poses[k:k + 1],
+                m.covariances[k:k + 1])[0][1]) for k in rows if codes[k]]
+            good = rows if not refused else [k for k in rows if not codes[k]]
+            if len(good) == len(m.index):     # the common case: no row to leave out
+                refused += self.tracker._ingest_valid(m.bodies, m.sources, m.times, m.poses,
+                                                      m.covariances, ids, len(rows))
+            else:
+                refused += [(good[j], e) for j, e in self.tracker._ingest_valid(
+                    [m.bodies[k] for k in good], [m.sources[k] for k in good], m.times[good],
+                    m.poses[good], m.covariances[good], ids[good], len(rows))]
+        for k, e in refused:
+            i = int(m.index[k])
             errors.append((i, rename(e, {"measurements": f"{field}[{i}]"})))
-        refused = {rows[j] for j, _ in refused}
+        refused = {k for k, _ in refused}
         answers = []
         for body in dict.fromkeys(m.bodies[k] for k in rows if k not in refused):
             for t in self._due(body):
@@ -108,13 +141,16 @@ class Stream:
             return [None]
         newest = self.tracker.newest(body)
         k = self.next_tick.get(body)
-        if k is not None and k / self.rate > newest:
+        phase = self.phase.get(body)
+        if phase is None:
+            phase = self.phase[body] = tick_phase(body)
+        if k is not None and tick_time(k, self.rate, phase) > newest:
             return []           # most requests: the body's next tick not reached yet
-        first = first_tick(self.tracker.oldest(body), self.rate)
+        first = first_tick(self.tracker.oldest(body), self.rate, phase)
         k = first if k is None else max(k, first)
         due = []
-        while k / self.rate <= newest:
-            due.append(k / self.rate)
+        while (t := tick_time(k, self.rate, phase)) <= newest:
+            due.append(t)
             k += 1
         self.next_tick[body] = k
         return due
@@ -128,6 +164,13 @@ class Stream:
             where = field.rsplit(".", 1)[0]
             return body, FieldError(f"{where}: body {body!r} at {at}: "
                                     f"{_options_error(e, 'options')}"), ids
+
+
+def _error_entry(r: int, measurement: int, details: str, body: str = "") -> pb.FusedPose:
+    """A StreamFuse answer saying what request ``r`` (its ``measurement``, -1: all of it) had
+    wrong."""
+    return pb.FusedPose(body=body, request=r, error=pb.FuseError(
+        request=r, measurement=measurement, details=details))
 
 
 class Fusion(pb_grpc.FusionServicer):
@@ -188,28 +231,63 @@ class Fusion(pb_grpc.FusionServicer):
         """The answers to request ``r`` of a stream (its measurements numbered from
         ``first_id``): fused poses and error entries, never an exception for bad input."""
         out = []
-
-        def error(measurement: int, e: FieldError, body: str = "") -> None:
-            out.append(pb.FusedPose(body=body, request=r, error=pb.FuseError(
-                request=r, measurement=measurement, details=str(e))))
-
         if r and (request.HasField("options") or request.output_rate):
-            error(-1, FieldError(f"requests[{r}].options: only the first request carries "
-                                 f"options and output_rate; these are ignored"))
+            out.append(_error_entry(r, -1, f"requests[{r}].options: only the first request "
+                                           f"carries options and output_rate; these are ignored"))
         n = len(request.measurements)
         if n > self.max_poses:
-            error(-1, FieldError(f"requests[{r}].measurements: {n} measurements exceed the "
-                                 f"server limit of {self.max_poses}; none was used"))
+            out.append(_error_entry(r, -1, f"requests[{r}].measurements: {n} measurements "
+                                           f"exceed the server limit of {self.max_poses}; none "
+                                           f"was used"))
             return out
         errors: list = []
         field = f"requests[{r}].measurements"
         m = measurements_to_arrays(request.measurements, field, errors)
         answers, more = state.update(m, first_id + m.index, field)
-        for i, e in sorted(errors + more, key=lambda x: x[0]):
-            error(i, e, request.measurements[i].body)
+        bodies = [request.measurements[i].body for i, _ in errors + more]
+        return out + self._answers(r, errors + more, bodies, answers)
+
+    def stream_step_wire(self, state, data: bytes, r: int, first_id: int):
+        """:meth:`stream_step` of request ``r``'s bytes: ``(answers, its number of
+        measurements)``. A plain request (measurements only) is decoded and checked in C
+        (:func:`convert.fuse_stream_from_wire`) and its valid measurements go to the tracker
+        unchecked; any other takes the protobuf path. Both give the same answers. Bytes that are
+        not a FuseStreamRequest are an error entry for the request."""
+        w = fuse_stream_from_wire(data) if r else None
+        if w is None or len(w.times) > self.max_poses:
+            try:
+                request = pb.FuseStreamRequest.FromString(data)
+            except DecodeError:
+                return [_error_entry(r, -1, f"requests[{r}]: not a valid "
+                                            f"dqpose.v1.FuseStreamRequest message; none of it "
+                                            f"was used")], 0
+            return self.stream_step(state, request, r, first_id), len(request.measurements)
+        field = f"requests[{r}].measurements"
+        n = len(w.times)
+        convert = np.flatnonzero((w.codes > 0) & (w.codes <= w.CONVERT_LAST))
+        errors = [(i, wire_measurement_error(data, w.spans[i], field, i)) for i in convert.tolist()]
+        if errors:
+            index = np.flatnonzero((w.codes == 0) | (w.codes > w.CONVERT_LAST))
+            m = Measurements(index, tuple(w.bodies[i] for i in index.tolist()),
+                             tuple(w.sources[i] for i in index.tolist()), w.times[index],
+                             w.poses[index], w.covariances[index])
+            codes = w.codes[index]
+        else:
+            index = np.arange(n)
+            m = Measurements(index, w.bodies, w.sources, w.times, w.poses, w.covariances)
+            codes = w.codes
+        answers, more = state.update(m, first_id + index, field, codes)
+        errors += more
+        return self._answers(r, errors, [w.bodies[i] for i, _ in errors], answers), n
+
+    def _answers(self, r: int, errors: list, bodies: list, answers: list) -> list:
+        """Request ``r``'s error entries (``errors`` ``(measurement, FieldError)``, of the
+        measurements of ``bodies``) in order of measurement, then its fused poses."""
+        out = [_error_entry(r, i, str(e), body)
+               for (i, e), body in sorted(zip(errors, bodies), key=lambda x: x[0][0])]
         for body, fused, ids in answers:
             if isinstance(fused, FieldError):
-                error(-1, fused, body)
+                out.append(_error_entry(r, -1, str(fused), body))
                 continue
             msg = fused_to_msg(fused, body, fused.time)
             msg.request = r
@@ -220,7 +298,18 @@ class Fusion(pb_grpc.FusionServicer):
     # -- RPCs
 
     def register(self, server) -> None:
-        pb_grpc.add_FusionServicer_to_server(self, server)
+        """``add_FusionServicer_to_server`` except that StreamFuse takes its requests as bytes,
+        which :meth:`stream_step_wire` decodes (the C decoder for plain ones)."""
+        handlers = {
+            "Fuse": grpc.unary_unary_rpc_method_handler(
+                self.Fuse, request_deserializer=pb.FuseRequest.FromString,
+                response_serializer=pb.FusedPose.SerializeToString),
+            "StreamFuse": grpc.stream_stream_rpc_method_handler(
+                self.StreamFuse, request_deserializer=None,
+                response_serializer=pb.FusedPose.SerializeToString),
+        }
+        server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(self.NAME, handlers),))
+        server.add_registered_method_handlers(self.NAME, handlers)
 
     async def Fuse(self, request, context):
         return await self.calls.unary("Fuse", self.fuse, request, context)
@@ -232,16 +321,26 @@ class Fusion(pb_grpc.FusionServicer):
         next_id = 0
         state = None
         try:
-            async for request in request_iterator:
+            # Registered without a deserializer (register): each request arrives as bytes.
+            async for data in request_iterator:
                 if state is None:
                     try:
+                        try:
+                            request = pb.FuseStreamRequest.FromString(data)
+                        except DecodeError:
+                            raise FieldError("requests[0]: not a valid "
+                                             "dqpose.v1.FuseStreamRequest message") from None
                         state = self.stream_options(request)
                     except FieldError as e:
                         code = "INVALID_ARGUMENT"
                         await context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
-                for answer in self.stream_step(state, request, r, next_id):
+                    answers = self.stream_step(state, request, r, next_id)
+                    n = len(request.measurements)
+                else:
+                    answers, n = self.stream_step_wire(state, data, r, next_id)
+                for answer in answers:
                     await context.write(answer)
-                next_id += len(request.measurements)
+                next_id += n
                 r += 1
         except Exception as e:
             if isinstance(e, grpc.aio.AbortError):

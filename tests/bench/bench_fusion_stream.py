@@ -1,8 +1,8 @@
 """StreamFuse throughput: measurements of many moving bodies streamed in messages of 10 through the
 shipped ``Client.stream_fuse`` into one server (a separate ``dqpose serve`` process); one table:
 measurements/s and messages/s sustained, answers/s, p50/p99 latency per message, server RSS at
-the start and the end; then the server's per-message cost in process (cProfile, or py-spy when
-installed) split into its parts.
+the start and the end; then the server's per-message cost in process, split into its parts
+(the served path: C decoder then tracker; and the protobuf path it replaces), with cProfile.
 
     .venv/bin/python -m tests.bench.bench_fusion_stream                 # ~1 min
     .venv/bin/python -m tests.bench.bench_fusion_stream --minutes 10    # the memory run
@@ -24,7 +24,6 @@ import argparse
 import cProfile
 import io
 import pstats
-import shutil
 import sys
 import threading
 import time
@@ -120,8 +119,10 @@ def run(target: str, scene: Scene, seconds: float, msg_rate: float | None, args,
 
 
 def per_message_cost(scene: Scene, args, messages: int = 6000) -> str:
-    """The server's per-message path in process (no transport): request bytes parsed, then
-    ``Fusion.stream_step``; cProfile of the parts, or py-spy's top functions when installed."""
+    """The server's per-message path in process (no transport): request bytes to answers by
+    ``Fusion.stream_step_wire`` (what StreamFuse serves: the C decoder, then the tracker), and
+    for comparison the protobuf path (bytes parsed, then ``Fusion.stream_step``); cProfile of
+    the parts."""
     from service.rpc.convert import measurement_msgs as msgs, options_msg
     from service.rpc.fusion import Fusion
     from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
@@ -132,7 +133,7 @@ def per_message_cost(scene: Scene, args, messages: int = 6000) -> str:
         data.append(pb.FuseStreamRequest(measurements=msgs(
             b.poses, b.covariances, names=b.names, bodies=b.bodies,
             times=b.times)).SerializeToString())
-    from service.rpc.convert import measurements_to_arrays
+    from service.rpc.convert import fuse_stream_from_wire, measurements_to_arrays
 
     f = Fusion()
 
@@ -142,10 +143,15 @@ def per_message_cost(scene: Scene, args, messages: int = 6000) -> str:
 
     state = stream(args.output_rate)
 
-    def go(lo, hi, state=state):
+    def go(lo, hi, state=state, wire=True):
+        # r + 1: request 0 is the one with the options, which always takes the protobuf path
         for r in range(lo, hi):
-            for a in f.stream_step(state, pb.FuseStreamRequest.FromString(data[r]), r,
-                                   r * (PER_MESSAGE + 1)):
+            if wire:
+                answers = f.stream_step_wire(state, data[r], r + 1, r * (PER_MESSAGE + 1))[0]
+            else:
+                answers = f.stream_step(state, pb.FuseStreamRequest.FromString(data[r]), r + 1,
+                                        r * (PER_MESSAGE + 1))
+            for a in answers:
                 a.SerializeToString()
 
     def us(fn, n, repeat=3):
@@ -160,14 +166,16 @@ def per_message_cost(scene: Scene, args, messages: int = 6000) -> str:
     # best chunk, as the machine is shared.
     chunk = messages // 6
 
-    def chunks(state, pick):
-        go(0, chunk, state)
-        return pick([us(lambda k=k: go(k * chunk, (k + 1) * chunk, state), chunk, 1)
+    def chunks(state, pick, wire=True):
+        go(0, chunk, state, wire)
+        return pick([us(lambda k=k: go(k * chunk, (k + 1) * chunk, state, wire), chunk, 1)
                      for k in range(1, 5)])
 
     per = chunks(state, np.mean)      # the ticks fall in some chunks: all of them
     # the same messages with no tick due (output_rate 1e-9 Hz: one tick, at 0): the ingest path
     ingest = chunks(stream(1e-9), min)
+    ingest_pb = chunks(stream(1e-9), min, wire=False)
+    decode = us(lambda: [fuse_stream_from_wire(d) for d in data[:chunk]], chunk)
     parsed = [pb.FuseStreamRequest.FromString(d) for d in data[:chunk]]
     parse = us(lambda: [pb.FuseStreamRequest.FromString(d) for d in data[:chunk]], chunk)
     convert = us(lambda: [measurements_to_arrays(m.measurements, "m", []) for m in parsed],
@@ -184,22 +192,23 @@ def per_message_cost(scene: Scene, args, messages: int = 6000) -> str:
         f"{PER_MESSAGE} measurements + probe a message:\n"
         f"  all: {per:.0f} us/message at output_rate {args.output_rate:g} Hz "
         f"({ticks:.3f} estimates a message on average)\n"
-        f"  ingest only (no tick due): {ingest:.0f} us/message, of which protobuf parse "
-        f"{parse:.1f} us and messages to arrays {convert:.0f} us; the rest is Tracker.ingest "
-        f"(batched checks, window arrays) and the service's bookkeeping\n"
+        f"  ingest only (no tick due): {ingest:.0f} us/message, of which the C decoder "
+        f"(decode and every check) {decode:.1f} us; the rest is Python: the probe's error "
+        f"entry, Tracker._ingest_valid (window floor, store), the service's bookkeeping\n"
+        f"  the same through the protobuf path: {ingest_pb:.0f} us/message, of which protobuf "
+        f"parse {parse:.1f} us and messages to arrays {convert:.0f} us; the rest "
+        f"Tracker.ingest (batched checks, window arrays) and the bookkeeping\n"
         f"  one estimate (Tracker.estimate, {size:.0f} measurements in the window): "
         f"{fit / 1e3:.2f} ms\n")
-    if shutil.which("py-spy"):
-        out.write("(py-spy is installed: `py-spy top --pid <server pid>` gives the same split "
-                  "live)\n")
     pr = cProfile.Profile()
     pr.enable()
     go(5 * chunk, messages)
     pr.disable()
     st = pstats.Stats(pr, stream=out)
     st.sort_stats("cumulative").print_stats(
-        r"stream_step|update|ingest|_ingest|measurements_to_arrays|_covariances|_poses|_due|"
-        r"estimate|fused_to_msg|unknown_sources|append|FromString|SerializeToString")
+        r"stream_step|update|ingest|_admit|refusals|measurements_to_arrays|_covariances|_poses|"
+        r"_due|estimate|fused_to_msg|unknown_sources|append|fuse_stream_from_wire|FromString|"
+        r"SerializeToString")
     return out.getvalue()
 
 

@@ -1,6 +1,7 @@
 /*
  * fuzz_wire.c — mutational fuzzing of the server's C wire paths (dq_wire_blend_request,
- * dq_wire_blend, dq_wire_batch_count, dq_wire_blend_batch) from seed messages, built by
+ * dq_wire_blend, dq_wire_batch_count, dq_wire_blend_batch, dq_wire_fuse_count,
+ * dq_wire_fuse_stream) from seed messages, built by
  * tests/test_wire.py with AddressSanitizer and UBSan: any out-of-bounds read or write, or
  * undefined behaviour, on any input ends the run with a report.
  *
@@ -37,7 +38,7 @@ int main(int argc, char **argv)
         fclose(f);
     }
     dq_wire_config cfg = {50, 1e-12, 100, 1000};
-    long answered = 0, batches = 0;
+    long answered = 0, batches = 0, streams = 0;
     for (long it = 0; it < iters; it++) {
         int k = (int)(rnd() % (unsigned)ns);
         size_t len = lens[k];
@@ -82,8 +83,27 @@ int main(int argc, char **argv)
             }
             free(bo);
         }
+        dq_fuse_stream fs;
+        if (dq_wire_fuse_count(exact, len, &fs) == 0 && fs.n > 0 && fs.n < 4096) {
+            /* exact-size arrays, so a write past a row is caught */
+            fs.poses = malloc(fs.n * 8 * sizeof(double));
+            fs.covs = malloc(fs.n * 36 * sizeof(double));
+            fs.times = malloc(fs.n * sizeof(double));
+            fs.spans = malloc(fs.n * 6 * sizeof(uint32_t));
+            fs.codes = malloc(fs.n);
+            if (dq_wire_fuse_stream(exact, len, 1e-9, &fs) == 0) {
+                for (size_t j = 0; j < fs.n; j++) {
+                    const uint32_t *sp = fs.spans + 6 * j;
+                    for (int k = 0; k < 6; k += 2)
+                        if ((size_t)sp[k] + sp[k + 1] > len) abort();
+                    if (fs.codes[j] > DQ_MEAS_COV_NOT_SPD) abort();
+                }
+                streams++;
+            }
+            free(fs.poses); free(fs.covs); free(fs.times); free(fs.spans); free(fs.codes);
+        }
         free(exact);
     }
-    printf("%ld %ld %ld\n", iters, answered, batches);
+    printf("%ld %ld %ld %ld\n", iters, answered, batches, streams);
     return 0;
 }

@@ -3,6 +3,8 @@ service.fusion.fuse in process; bad input is INVALID_ARGUMENT naming the measure
 answers per body, and survives a bad measurement with an error entry for it."""
 from __future__ import annotations
 
+import zlib
+
 import numpy as np
 import pytest
 
@@ -10,7 +12,7 @@ from service import dq, fusion, lie
 from service.fusion import Source, Status, Verdict
 from service.rpc import convert
 from service.rpc.client import Batch, Client, InvalidArgument
-from service.rpc.fusion import Fusion
+from service.rpc.fusion import Fusion, tick_phase
 from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 
 from _grpc_server import ServerThread
@@ -337,7 +339,13 @@ def test_stream_answers_each_body_at_its_output_ticks(client):
     assert not [a.error for a in answers if a.error]
     for body, (Z, S, names, _, stamps, T) in scenes.items():
         taken = stamps - np.array([LATENCY[n] for n in names])
-        ticks = np.arange(np.ceil(taken.min() * rate), np.floor(taken.max() * rate) + 1) / rate
+        # each body on its own grid: (k + phase) / rate, the phase from its name
+        phase = tick_phase(body)
+        assert phase == zlib.crc32(body.encode()) / 2**32 and 0 < phase < 1
+        k = np.arange(np.ceil(taken.min() * rate - phase), np.floor(taken.max() * rate - phase)
+                      + 1)
+        ticks = (k + phase) / rate
+        assert taken.min() <= ticks[0] and ticks[-1] <= taken.max()
         mine = [a for a in answers if a.body == body]
         assert [a.time for a in mine] == ticks.tolist()      # every tick once, in order
         # each answered after the request whose measurements first reached its tick

@@ -11,6 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from service import dq
 from service.errors import FieldError
 from service.rpc.convert import blend_batch_wire, blend_wire, decode_blend_request, pose_msgs
 from service.rpc.blending import (DEFAULT_MAX_ITERATIONS, DEFAULT_TOLERANCE, MAX_ITERATIONS_LIMIT,
@@ -328,8 +329,9 @@ def _padded_varint(v: int, pad: int) -> bytes:
     return bytes(out)
 
 
-def reencode(data: bytes, kind: str, pad) -> bytes:
-    """A serialized message (BlendBatchRequest "batch", BlendRequest "request", Pose "pose")
+def reencode(data: bytes, kind: str, pad, nested: dict = NESTED) -> bytes:
+    """A serialized message (BlendBatchRequest "batch", BlendRequest "request", Pose "pose";
+    other kinds by ``nested``: kind -> {field: kind of its submessage, None for doubles})
     with every tag, length and varint value written with pad() extra bytes."""
     out, i = bytearray(), 0
     while i < len(data):
@@ -346,9 +348,10 @@ def reencode(data: bytes, kind: str, pad) -> bytes:
             n, i = _read_varint(data, i)
             body = data[i:i + n]
             i += n
-            sub = NESTED.get(kind, {}).get(field, "")
+            sub = nested.get(kind, {}).get(field, "")
             if sub != "":
-                body = reencode(body, sub, pad) if sub else _reencode_doubles(body, pad)
+                body = (reencode(body, sub, pad, nested) if sub
+                        else _reencode_doubles(body, pad))
             out += _padded_varint(len(body), pad()) + body
         else:
             raise AssertionError(f"wire type {wt} in a message we wrote")
@@ -475,7 +478,8 @@ def test_wire_paths_survive_mutated_input_under_sanitizers(tmp_path):
     build = subprocess.run(
         [cc, "-std=c99", "-O1", "-g", "-fsanitize=address,undefined", "-fno-sanitize-recover=all",
          "-fno-omit-frame-pointer", f"-I{csrc}", str(root / "tests" / "rpc" / "fuzz_wire.c"),
-         *(str(csrc / f) for f in ("wire.c", "blend.c", "dq.c")), "-lm", "-o", str(exe)],
+         *(str(csrc / f) for f in ("wire.c", "blend.c", "dq.c", "fusion.c")), "-lm", "-o",
+         str(exe)],
         capture_output=True, text=True)
     if build.returncode:
         pytest.skip(f"cannot build with sanitizers here: {build.stderr[-300:]}")
@@ -490,7 +494,8 @@ def test_wire_paths_survive_mutated_input_under_sanitizers(tmp_path):
              req(5, weights=[1, 2, 3, 4, 5], method=2, tolerance=1e-9, max_iterations=7),
              req(3, method=5), req(4, method=6), req(4, method=4),
              pb.BlendBatchRequest(requests=[req(3), req(4, method=6), req(2, method=3),
-                                            req(3, method=4)])]
+                                            req(3, method=4)]),
+             _fuse_stream_seed(rng)]
     paths = []
     for i, s in enumerate(seeds):
         p = tmp_path / f"seed{i}.bin"
@@ -498,6 +503,23 @@ def test_wire_paths_survive_mutated_input_under_sanitizers(tmp_path):
         paths.append(str(p))
     run = subprocess.run([str(exe), "50000", *paths], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr[-3000:]
-    iters, answered, batches = map(int, run.stdout.split())
+    iters, answered, batches, streams = map(int, run.stdout.split())
     # the mutations must leave some requests valid, or the blend and encoder went unexercised
-    assert iters == 50000 and answered > 1000 and batches > 100
+    assert iters == 50000 and answered > 1000 and batches > 100 and streams > 100
+
+
+def _fuse_stream_seed(rng):
+    """A StreamFuse request of 8 measurements: covariances, weights, names, one of each error."""
+    from service.rpc.convert import measurement_msgs
+    from service.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
+    q = rng.normal(size=(8, 4))
+    Z = dq.from_pose(q / np.linalg.norm(q, axis=1, keepdims=True), rng.normal(size=(8, 3)))
+    A = rng.normal(size=(8, 6, 6))
+    S = A @ np.swapaxes(A, 1, 2) + np.eye(6)
+    ms = measurement_msgs(Z, S, names=["cam", "arm"] * 4, bodies=["a", "b", "", "c"] * 2,
+                          times=np.arange(8) * 0.01)
+    del ms[1].covariance[:]
+    ms[1].weight = 2.0
+    ms[3].covariance[1] += 1.0
+    ms[5].time = float("nan")
+    return fpb.FuseStreamRequest(measurements=ms)
