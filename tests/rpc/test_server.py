@@ -948,8 +948,13 @@ def test_start_options_out_of_range_are_a_value_error_naming_the_field(field, va
 def _bad_pem(pki) -> list[tuple[dict, str]]:
     """(ServerConfig PEM fields, the message) for a bad certificate, a bad or mismatched key
     and a garbage client CA."""
+    from cryptography.hazmat.primitives import serialization
+
     cert, key = pki["server_cert"], pki["server_key"]
     broken = cert[:100] + cert[-40:]          # PEM armour around a broken body
+    encrypted = serialization.load_pem_private_key(key, None).private_bytes(
+        serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+        serialization.BestAvailableEncryption(b"secret"))
     return [
         (dict(tls_cert=b"not a certificate", tls_key=key),
          "tls_cert: no PEM certificate in it"),
@@ -958,6 +963,8 @@ def _bad_pem(pki) -> list[tuple[dict, str]]:
         (dict(tls_cert=cert, tls_key=b"garbage"), "tls_key: no PEM private key in it"),
         (dict(tls_cert=cert, tls_key=pki["client_key"]),
          "tls_key: the private key does not match the certificate"),
+        # gRPC cannot use it; OpenSSL would ask for the password on the terminal
+        (dict(tls_cert=cert, tls_key=encrypted), "tls_key: encrypted private keys are not supported"),
         (dict(tls_cert=cert, tls_key=key, client_ca=b"garbage"),
          "client_ca: no PEM certificate in it"),
         (dict(tls_cert=cert, tls_key=key, client_ca="\u00e9t\u00e9".encode()),
