@@ -777,7 +777,7 @@ def test_calls_cut_when_the_grace_period_ends_are_logged_and_counted(caplog):
     first = fpb.FuseStreamRequest(options=convert.options_msg(sources=[Source("cam")]))
     first.measurements.extend(convert.measurement_msgs(
         dq.from_pose([1.0, 0, 0, 0], [0.1, 0.2, 0.3])[None], np.eye(6)[None] * 1e-4,
-        names=["cam"]))
+        names=["cam"], bodies=["box"]))
     with socket_free_port() as port:
         s = ServerThread(metrics_port=port)
         with grpc.insecure_channel(s.target) as ch:
