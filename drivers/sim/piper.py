@@ -322,15 +322,11 @@ class PiperSimProcess:
                                   channel, *args)
         self.pid = self.proc.pid
         # The first line is printed once the bus is open; a failure ends the process instead.
-        ready = threading.Event()
-        line: list[str] = []
-        reader = threading.Thread(target=lambda: (line.append(self.proc.stdout.readline()),
-                                                  ready.set()), daemon=True)
-        reader.start()
-        if not ready.wait(timeout) or not line[0]:
+        if self.proc.first_line(timeout) is None:
             if self.proc.poll() is None:
                 self.proc.kill()
-            err = self.proc.stderr.read().strip()
+            self.proc.wait()
+            err = self.proc.errors()
             end_process(self.proc)
             raise RuntimeError(f"could not start the PiPER simulator on {interface}:{channel}: "
                                f"{err or f'no answer within {timeout:g} s'}")

@@ -11,9 +11,11 @@ from service.rpc import DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
 
 def configure(name: str, p) -> None:
     if name == "serve":
-        p.description = ("Serve dqpose.v1.Blending with the gRPC health service and reflection. "
-                         "Stops gracefully on SIGTERM/SIGINT: health turns NOT_SERVING, calls in "
-                         "flight finish (up to --grace seconds), exit code 0.")
+        p.description = ("Serve dqpose.v1.Blending and dqpose.v1.Fusion with the gRPC health "
+                         "service and reflection. Stops gracefully on SIGTERM/SIGINT: health "
+                         "turns NOT_SERVING and new calls are UNAVAILABLE at once, the listener "
+                         "closes --drain seconds later, calls in flight get --grace seconds more "
+                         "to finish; exit code 0.")
         p.add_argument("--host", default="127.0.0.1", help="address to bind (default: %(default)s)")
         p.add_argument("--port", type=int, default=50051, help="port; 0 picks a free one (default: %(default)s)")
         p.add_argument("--tls-cert", metavar="PEM", help="server certificate chain (enables TLS)")
@@ -26,7 +28,14 @@ def configure(name: str, p) -> None:
         p.add_argument("--max-poses", type=int, default=DEFAULT_MAX_POSES,
                        help="most poses, keyframes or times per request (default: %(default)s)")
         p.add_argument("--keepalive", type=float, default=60.0, help="keepalive ping period, s (default: %(default)s)")
-        p.add_argument("--grace", type=float, default=10.0, help="shutdown drain time, s (default: %(default)s)")
+        p.add_argument("--drain", type=float, default=0.5,
+                       help="after SIGTERM, how long health answers NOT_SERVING (and new calls "
+                            "UNAVAILABLE) before the listener closes, so that load balancers "
+                            "polling health see it; with 0 a call that arrives as it closes may "
+                            "be CANCELLED by gRPC, s (default: %(default)s)")
+        p.add_argument("--grace", type=float, default=10.0,
+                       help="once the listener closed, how long calls in flight get to finish "
+                            "before they are cancelled, s (default: %(default)s)")
         p.add_argument("--metrics-port", type=int, help="serve Prometheus metrics on this port")
         p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"],
                        help="JSON log lines on standard error (default: %(default)s)")
@@ -50,7 +59,7 @@ def _serve(args) -> int:
     import logging
     import os
 
-    from service.rpc.server import ServerConfig, serve
+    from service.rpc.server import ConfigError, ServerConfig, serve
 
     logging.basicConfig(level=args.log_level.upper(), format="%(message)s", stream=sys.stderr)
     calls = logging.getLogger("dqpose.calls")
@@ -69,7 +78,8 @@ def _serve(args) -> int:
             tls_key=read(args.tls_key) if args.tls_key else None,
             client_ca=read(args.client_ca) if args.client_ca else None,
             token=token, max_message_bytes=args.max_message_bytes, max_poses=args.max_poses,
-            keepalive_s=args.keepalive, grace_s=args.grace, metrics_port=args.metrics_port)
+            keepalive_s=args.keepalive, grace_s=args.grace, drain_s=args.drain,
+            metrics_port=args.metrics_port)
         with contextlib.ExitStack() as stack:
             if args.sims:
                 from drivers.sim.fleet import Fleet
@@ -84,10 +94,24 @@ def _serve(args) -> int:
             except ImportError:
                 return asyncio.run(serve(cfg))
             return uvloop.run(serve(cfg))
+    except ConfigError as e:
+        path = getattr(args, e.setting, None) if e.setting in PEM_FLAGS else None
+        return fail("serve", f"{_flag(e.setting)}{f' {path}' if path else ''}: {e.problem}")
     except (OSError, ValueError) as e:
         setting = getattr(e, "setting", None)    # server.AddressInUse: which flag to change
-        hint = f"; choose another --{setting.replace('_', '-')}" if setting else ""
+        hint = f"; choose another {_flag(setting)}" if setting else ""
         return fail("serve", f"{e}{hint}")
+
+
+# ServerConfig fields whose flag is not the field's name with dashes; PEM_FLAGS name files
+FLAGS = {"keepalive_s": "--keepalive", "grace_s": "--grace", "drain_s": "--drain",
+         "token": "--token-file"}
+PEM_FLAGS = ("tls_cert", "tls_key", "client_ca")
+
+
+def _flag(setting: str) -> str:
+    """The ``dqpose serve`` flag that sets the ServerConfig field ``setting``."""
+    return FLAGS.get(setting, "--" + setting.replace("_", "-"))
 
 
 def _health(args) -> int:

@@ -54,20 +54,41 @@ def refusal(e: Exception) -> grpc.StatusCode | None:
 
 
 class Calls:
-    """Records finished calls: a Prometheus sample (``metrics.observe``) and a JSON log line on
-    ``dqpose.calls``. One per server, shared by its servicers.
+    """Records calls: every call that :meth:`begin` counts in gets exactly one :meth:`done`, a
+    Prometheus sample (``metrics.observe``) and a JSON log line on ``dqpose.calls``. One per
+    server, shared by its servicers.
 
     A logging record per call costs more than a whole Blend, so lines are queued and handed to
     logging in batches (:meth:`flush`, every 0.25 s while serving, and at 1024 lines). The event
-    loop is single-threaded: the queue needs no lock."""
+    loop is single-threaded: the queue and the count of open calls need no lock.
+
+    At shutdown the server waits for the open calls (:meth:`settled`); once the grace period is
+    over it sets ``cut``: a stream that then ends "OK" ended because gRPC cancelled it (a cancelled
+    stream reads as a stream the client closed), and is recorded as CANCELLED, as its client saw."""
 
     def __init__(self, metrics=None):
         self.metrics = metrics
         self.logging = call_log.isEnabledFor(logging.INFO)
+        self.cut = False
         self._pending: list[str] = []
+        self._open = 0
+        self._settled: asyncio.Event | None = None
+
+    @property
+    def open(self) -> int:
+        """Calls begun and not yet done."""
+        return self._open
+
+    def begin(self) -> float:
+        """Counts a call in; returns its start time, for :meth:`done`."""
+        self._open += 1
+        return time.perf_counter()
 
     def done(self, rpc: str, code: str, t0: float, context, messages: int | None = None) -> None:
         dt = time.perf_counter() - t0
+        self._open -= 1
+        if self.cut and code == "OK":
+            code = "CANCELLED"
         if self.metrics is not None:
             self.metrics.observe(rpc, code, dt)
         if self.logging:
@@ -79,6 +100,21 @@ class Calls:
                 f'"ms": {dt * 1e3:.3f}, "peer": {json.dumps(context.peer())}{extra}}}')
             if len(self._pending) >= 1024:  # bounded even where nothing flushes periodically
                 self.flush()
+        if self._open == 0 and self._settled is not None:
+            self._settled.set()
+
+    async def settled(self, timeout: float) -> bool:
+        """Waits up to ``timeout`` s for every open call to be done; whether they all were."""
+        if self._open == 0:
+            return True
+        self._settled = asyncio.Event()
+        try:
+            await asyncio.wait_for(self._settled.wait(), timeout)
+            return True
+        except asyncio.TimeoutError:
+            return False
+        finally:
+            self._settled = None
 
     def flush(self) -> None:
         """Hands the queued lines to the ``dqpose.calls`` logger as one record."""
@@ -96,7 +132,7 @@ class Calls:
         """One unary call: the response of ``handle(request)``, the :func:`refusal` status for a
         FieldError or TooLarge, INTERNAL (logged) for anything else, and one record either way.
         With ``counted``, ``handle`` returns ``(response, messages)`` and the record counts them."""
-        t0 = time.perf_counter()
+        t0 = self.begin()
         code = "OK"
         messages = None
         try:
@@ -114,3 +150,11 @@ class Calls:
             await context.abort(status, details)
         finally:
             self.done(rpc, code, t0, context, messages)
+
+    async def refuse(self, rpc: str, context, status: grpc.StatusCode, details: str) -> None:
+        """A call refused before its handler runs (shutting down, no token): recorded too."""
+        t0 = self.begin()
+        try:
+            await context.abort(status, details)
+        finally:
+            self.done(rpc, status.name, t0, context)

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import math
 import re
-import time
 import zlib
 
 import grpc
@@ -315,7 +314,7 @@ class Fusion(pb_grpc.FusionServicer):
         return await self.calls.unary("Fuse", self.fuse, request, context)
 
     async def StreamFuse(self, request_iterator, context):
-        t0 = time.perf_counter()
+        t0 = self.calls.begin()
         code = "OK"
         r = 0
         next_id = 0

@@ -9,15 +9,21 @@ servicers of ``SERVICERS``, one module each (:mod:`service.rpc.blending`,
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import errno
 import hmac
 import json
+import math
+import numbers
+import os
 import signal
 import socket
+import ssl
+import tempfile
 
 import grpc
-from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import _async as reflection_aio
 from grpc_reflection.v1alpha import reflection, reflection_pb2_grpc
 
@@ -33,8 +39,23 @@ SERVICE_NAMES = tuple(s.NAME for s in SERVICERS) + (
     health_pb2.DESCRIPTOR.services_by_name["Health"].full_name, reflection.SERVICE_NAME)
 
 
+class ConfigError(ValueError):
+    """A :class:`ServerConfig` value the server cannot start with: ``setting`` names the field,
+    ``problem`` says what is wrong (with the allowed range); ``str()`` is ``"setting: problem"``."""
+
+    def __init__(self, setting: str, problem: str):
+        super().__init__(f"{setting}: {problem}")
+        self.setting, self.problem = setting, problem
+
+
+INT32_MAX = 2**31 - 1   # gRPC's channel arguments (sizes, milliseconds) are C ints
+
+
 @dataclasses.dataclass
 class ServerConfig:
+    """What a server starts with; every value is checked here (:meth:`check`, at construction
+    and again by :func:`start`), for ``dqpose serve`` and Python callers alike."""
+
     host: str = "127.0.0.1"
     port: int = 50051                  # 0 picks a free port
     tls_cert: bytes | None = None      # PEM chain; with tls_key enables TLS
@@ -44,25 +65,153 @@ class ServerConfig:
     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
     max_poses: int = DEFAULT_MAX_POSES  # per request: poses, keyframes and sampled times
     keepalive_s: float = 60.0
-    grace_s: float = 10.0              # drain time on SIGTERM before in-flight calls are cancelled
+    grace_s: float = 10.0              # time calls in flight get to finish once the listener closes
+    drain_s: float = 0.5               # on SIGTERM (serve): health NOT_SERVING, new calls
+                                       # UNAVAILABLE, the listener still open
     metrics_port: int | None = None
 
+    def __post_init__(self):
+        self.check()
 
-# --------------------------------------------------------------------------- the adapter
+    def check(self) -> None:
+        """Raises :class:`ConfigError` for the first value out of range, and for a certificate,
+        key or client CA that does not load (checked here because gRPC, given one, only says
+        that it failed to bind)."""
+        _integer(self, "port", 0, 65535)
+        if self.metrics_port is not None:
+            _integer(self, "metrics_port", 1, 65535)
+        _integer(self, "max_message_bytes", 1, INT32_MAX)
+        # a message of at most INT32_MAX bytes holds fewer poses than that
+        _integer(self, "max_poses", 1, INT32_MAX)
+        _seconds(self, "keepalive_s", 0.001, INT32_MAX // 1000)
+        _seconds(self, "grace_s")
+        _seconds(self, "drain_s")
+        _check_tls(self.tls_cert, self.tls_key, self.client_ca)
 
-# --------------------------------------------------------------------------- auth, metrics
+
+def _integer(cfg, name: str, lo: int, hi: int) -> None:
+    v = getattr(cfg, name)
+    if isinstance(v, bool) or not isinstance(v, numbers.Integral):
+        raise ConfigError(name, f"must be an integer, got {v!r}")
+    if not lo <= v <= hi:
+        raise ConfigError(name, f"must be within {lo}..{hi}, got {v}")
+
+
+def _seconds(cfg, name: str, lo: float = 0.0, hi: float | None = None) -> None:
+    v = getattr(cfg, name)
+    if isinstance(v, bool) or not isinstance(v, numbers.Real):
+        raise ConfigError(name, f"must be a number of seconds, got {v!r}")
+    if hi is None:
+        if not (math.isfinite(v) and v >= lo):
+            raise ConfigError(name, f"must be a finite number of seconds >= {lo:g}, got {v:g}")
+    elif not lo <= v <= hi:
+        raise ConfigError(name, f"must be within {lo:g}..{hi} seconds, got {v:g}")
+
+
+# --------------------------------------------------------------------------- TLS files
+
+@contextlib.contextmanager
+def _pem_path(data: bytes):
+    """A path that holds ``data``, for OpenSSL, which loads keys and chains only from files: an
+    anonymous in-memory file where the OS has them (the key never touches a disk), else a
+    private temporary directory."""
+    try:
+        fd = os.memfd_create("dqpose-pem")
+    except (AttributeError, OSError):
+        with tempfile.TemporaryDirectory() as d:     # mode 0700
+            path = os.path.join(d, "pem")
+            with open(path, "wb") as f:
+                f.write(data)
+            yield path
+        return
+    try:
+        os.write(fd, data)
+        yield f"/proc/self/fd/{fd}"
+    finally:
+        os.close(fd)
+
+
+def _certificates(setting: str, data: bytes) -> None:
+    """Every PEM certificate in ``data`` parses, and there is one."""
+    try:
+        ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT).load_verify_locations(cadata=data.decode("ascii"))
+    except (UnicodeDecodeError, ssl.SSLError):
+        raise ConfigError(setting, "no PEM certificate in it") from None
+
+
+class _Encrypted(Exception):
+    pass
+
+
+def _encrypted():
+    raise _Encrypted   # rather than OpenSSL's prompt on the terminal
+
+
+def _check_tls(cert: bytes | None, key: bytes | None, client_ca: bytes | None) -> None:
+    """The certificate chain, its key and the client CA load, as gRPC will load them, and the
+    key is the certificate's (OpenSSL here, BoringSSL in gRPC: the same PEM formats)."""
+    if not (cert or key):
+        if client_ca:
+            raise ConfigError("client_ca", "mTLS needs a server certificate and key (TLS)")
+        return
+    if not cert:
+        raise ConfigError("tls_cert", "TLS needs a certificate with the key")
+    if not key:
+        raise ConfigError("tls_key", "TLS needs a private key with the certificate")
+    _certificates("tls_cert", cert)
+    with _pem_path(cert) as cert_path, _pem_path(key) as key_path:
+        try:
+            ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER).load_cert_chain(cert_path, key_path,
+                                                                     password=_encrypted)
+        except _Encrypted:
+            raise ConfigError("tls_key", "encrypted private keys are not supported") from None
+        except ssl.SSLError as e:
+            if "KEY_VALUES_MISMATCH" in str(e):
+                raise ConfigError("tls_key", "the private key does not match the "
+                                             "certificate") from None
+            raise ConfigError("tls_key", "no PEM private key in it") from None
+    if client_ca:
+        _certificates("client_ca", client_ca)
+
+
+# --------------------------------------------------------------------------- gate, auth, health, metrics
+
+OPEN_PREFIXES = ("/grpc.health.v1.Health/",)   # what no interceptor refuses
+
+
+def _rpc_name(details) -> str:
+    return details.method.rsplit("/", 1)[-1]
+
+
+class Gate(grpc.aio.ServerInterceptor):
+    """Once closed (SIGTERM), every new call but health is UNAVAILABLE ("server is shutting
+    down"), recorded like any call. UNAVAILABLE is what retry policies retry, on another server
+    where there is one; gRPC's own stop can leave a call that arrives at that moment CANCELLED,
+    which they do not. Health stays open so that it can say NOT_SERVING."""
+
+    DETAILS = "server is shutting down"
+
+    def __init__(self, calls: Calls):
+        self.closed = False
+        self._calls = calls
+
+    async def intercept_service(self, continuation, details):
+        if not self.closed or details.method.startswith(OPEN_PREFIXES):
+            return await continuation(details)
+        return _refusing_handler(await continuation(details), self._calls, _rpc_name(details),
+                                 grpc.StatusCode.UNAVAILABLE, self.DETAILS)
+
 
 class BearerTokenAuth(grpc.aio.ServerInterceptor):
     """Requires ``authorization: Bearer <token>`` metadata; the health service stays open so
     load balancers and the Docker HEALTHCHECK need no secret."""
 
-    OPEN_PREFIXES = ("/grpc.health.v1.Health/",)
-
-    def __init__(self, token: str):
+    def __init__(self, token: str, calls: Calls):
         self._expected = ("Bearer " + token).encode()
+        self._calls = calls
 
     async def intercept_service(self, continuation, details):
-        if details.method.startswith(self.OPEN_PREFIXES):
+        if details.method.startswith(OPEN_PREFIXES):
             return await continuation(details)
         got = None
         for key, value in details.invocation_metadata or ():
@@ -74,25 +223,76 @@ class BearerTokenAuth(grpc.aio.ServerInterceptor):
             return await continuation(details)
         reason = ("authorization: missing bearer token (send metadata 'authorization: Bearer "
                   "<token>')" if got is None else "authorization: invalid bearer token")
-        return _abort_handler(await continuation(details), grpc.StatusCode.UNAUTHENTICATED, reason)
+        return _refusing_handler(await continuation(details), self._calls, _rpc_name(details),
+                                 grpc.StatusCode.UNAUTHENTICATED, reason)
 
 
-def _abort_handler(handler, code: grpc.StatusCode, details: str):
+def _refusing_handler(handler, calls: Calls, rpc: str, code: grpc.StatusCode, details: str):
     """A handler of the same shape as ``handler`` that fails every call with ``code``."""
-    async def abort(request_or_iterator, context):
-        await context.abort(code, details)
+    async def refuse(request_or_iterator, context):
+        await calls.refuse(rpc, context, code, details)
 
     if handler is None:
         return None
     kw = dict(request_deserializer=handler.request_deserializer,
               response_serializer=handler.response_serializer)
     if handler.request_streaming and handler.response_streaming:
-        return grpc.stream_stream_rpc_method_handler(abort, **kw)
+        return grpc.stream_stream_rpc_method_handler(refuse, **kw)
     if handler.request_streaming:
-        return grpc.stream_unary_rpc_method_handler(abort, **kw)
+        return grpc.stream_unary_rpc_method_handler(refuse, **kw)
     if handler.response_streaming:
-        return grpc.unary_stream_rpc_method_handler(abort, **kw)
-    return grpc.unary_unary_rpc_method_handler(abort, **kw)
+        return grpc.unary_stream_rpc_method_handler(refuse, **kw)
+    return grpc.unary_unary_rpc_method_handler(refuse, **kw)
+
+
+class Health(health_pb2_grpc.HealthServicer):
+    """The standard ``grpc.health.v1`` service. Unlike grpc_health's reference servicer, its
+    Watch streams end (after their last status) once the server closes: an open watch would
+    otherwise hold the shutdown for the whole grace period."""
+
+    def __init__(self):
+        self._status: dict[str, int] = {}
+        self._changed = asyncio.Condition()
+        self._closed = False
+
+    async def set(self, service: str, status: int) -> None:
+        async with self._changed:
+            self._status[service] = status
+            self._changed.notify_all()
+
+    async def not_serving(self) -> None:
+        """Every service NOT_SERVING, for good: the server is shutting down."""
+        async with self._changed:
+            for service in self._status:
+                self._status[service] = health_pb2.HealthCheckResponse.NOT_SERVING
+            self._changed.notify_all()
+
+    async def close(self) -> None:
+        """Ends every Watch, once it has sent the current status."""
+        async with self._changed:
+            self._closed = True
+            self._changed.notify_all()
+
+    async def Check(self, request, context):
+        status = self._status.get(request.service)
+        if status is None:
+            await context.abort(grpc.StatusCode.NOT_FOUND,
+                                f"service: unknown service {request.service!r}")
+        return health_pb2.HealthCheckResponse(status=status)
+
+    async def Watch(self, request, context):
+        unknown = health_pb2.HealthCheckResponse.SERVICE_UNKNOWN
+        sent = None
+        while True:
+            async with self._changed:
+                await self._changed.wait_for(
+                    lambda: self._closed or self._status.get(request.service, unknown) != sent)
+                status, closed = self._status.get(request.service, unknown), self._closed
+            if status != sent:     # written without the lock: a slow watcher holds up no one
+                await context.write(health_pb2.HealthCheckResponse(status=status))
+                sent = status
+            if closed:
+                return
 
 
 class _Metrics:
@@ -142,18 +342,37 @@ class _Reflection(reflection_aio.ReflectionServicer):
 class Running:
     """A started server: its bound port, health servicer and a graceful ``stop``."""
 
-    def __init__(self, server, health_servicer, port: int, calls: Calls):
+    def __init__(self, server, health_servicer: Health, gate: Gate, port: int, calls: Calls):
         self.server = server
         self.health = health_servicer
+        self.gate = gate
         self.port = port
         self.calls = calls
         self.metrics = calls.metrics
 
-    async def stop(self, grace: float | None) -> None:
-        # NOT_SERVING first, so health watchers and load balancers stop sending new calls,
-        # then drain what is in flight.
-        await self.health.enter_graceful_shutdown()
-        await self.server.stop(grace)
+    async def stop(self, grace: float | None, drain: float = 0.0) -> None:
+        """Health NOT_SERVING and new calls UNAVAILABLE at once; after ``drain`` s (for load
+        balancers that poll health) the listener closes and health watches end; calls in flight
+        get ``grace`` s more to finish (None: none), then are cancelled. Returns once every call
+        is recorded: its log line flushed and its metric counted."""
+        self.gate.closed = True
+        await self.health.not_serving()
+        if drain > 0:
+            await asyncio.sleep(drain)
+        await self.health.close()
+        grace = grace or 0.0
+        # The grace period is timed here, on the calls this server counts, so that a stream cut
+        # by it is known as cut (Calls.cut); gRPC's own limit is only a backstop for the calls
+        # it alone sees (reflection).
+        stopping = asyncio.ensure_future(self.server.stop(grace + 1.0))
+        if not await self.calls.settled(grace):
+            self.calls.cut = True
+            await self.server.stop(None)    # a later stop(None) cancels what is left at once
+        await stopping
+        # Cancelled handlers record themselves as they unwind, after gRPC's stop returned.
+        if not await self.calls.settled(5.0):
+            log.warning(json.dumps({"event": "calls_not_recorded", "open": self.calls.open}))
+        self.calls.flush()
         if self.metrics is not None:
             self.metrics.close()
 
@@ -211,14 +430,14 @@ def _listen_error(address: str, host: str, port: int) -> OSError | None:
 
 
 async def start(cfg: ServerConfig) -> Running:
-    """Build, bind and start a server. Raises ``OSError`` when the address cannot be bound
-    (:class:`AddressInUse` when another process listens there)."""
+    """Build, bind and start a server. Raises :class:`ConfigError` for a value the server cannot
+    start with, ``OSError`` when the address cannot be bound (:class:`AddressInUse` when another
+    process listens there)."""
+    cfg.check()          # again: the fields may have changed since the config was made
     address = f"{cfg.host}:{cfg.port}"
     # Checked before gRPC tries: its failed bind logs a line of its own on standard error.
     if cfg.port and (problem := _listen_error(address, cfg.host, cfg.port)) is not None:
         raise problem
-    interceptors = [BearerTokenAuth(cfg.token)] if cfg.token else []
-    server = grpc.aio.server(options=server_options(cfg), interceptors=interceptors)
     try:
         metrics = _Metrics(cfg.host, cfg.metrics_port) if cfg.metrics_port is not None else None
     except OSError as e:
@@ -227,28 +446,25 @@ async def start(cfg: ServerConfig) -> Running:
             raise AddressInUse("serve metrics on", where, "metrics_port") from None
         raise OSError(f"cannot serve metrics on {where}: {(e.strerror or str(e)).lower()}") from None
     calls = Calls(metrics)
+    gate = Gate(calls)
+    interceptors = [gate] + ([BearerTokenAuth(cfg.token, calls)] if cfg.token else [])
+    server = grpc.aio.server(options=server_options(cfg), interceptors=interceptors)
     for cls in SERVICERS:
         cls(cfg, calls).register(server)
-    health_servicer = health.aio.HealthServicer()
+    health_servicer = Health()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     reflection_pb2_grpc.add_ServerReflectionServicer_to_server(_Reflection(SERVICE_NAMES), server)
     try:
-        if cfg.tls_cert or cfg.tls_key:
-            if not (cfg.tls_cert and cfg.tls_key):
-                raise ValueError("tls: both a certificate and a key are needed")
+        if cfg.tls_cert:            # cfg.check(): with its key, and both load
             creds = grpc.ssl_server_credentials(
-                [(cfg.tls_key, cfg.tls_cert)], root_certificates=cfg.client_ca,
-                require_client_auth=cfg.client_ca is not None)
+                [(cfg.tls_key, cfg.tls_cert)], root_certificates=cfg.client_ca or None,
+                require_client_auth=bool(cfg.client_ca))
             port = server.add_secure_port(address, creds)
         else:
-            if cfg.client_ca:
-                raise ValueError("client_ca: mTLS needs a server certificate and key (TLS)")
             port = server.add_insecure_port(address)
-    except (RuntimeError, ValueError) as e:  # grpc reports a failed bind as RuntimeError
+    except RuntimeError as e:  # grpc reports a failed bind as RuntimeError
         if metrics is not None:
             metrics.close()
-        if isinstance(e, ValueError):
-            raise
         raise (_listen_error(address, cfg.host, cfg.port)
                or OSError(f"cannot listen on {address}: {e}")) from None
     if port == 0:
@@ -257,16 +473,24 @@ async def start(cfg: ServerConfig) -> Running:
     await health_servicer.set("", health_pb2.HealthCheckResponse.SERVING)
     for cls in SERVICERS:
         await health_servicer.set(cls.NAME, health_pb2.HealthCheckResponse.SERVING)
-    return Running(server, health_servicer, port, calls)
+    return Running(server, health_servicer, gate, port, calls)
 
 
 async def serve(cfg: ServerConfig, ready=None) -> int:
-    """Run until SIGTERM/SIGINT, then shut down gracefully; returns the exit code (0)."""
+    """Run until SIGTERM/SIGINT, then shut down gracefully (:meth:`Running.stop`, with the
+    config's drain and grace); returns the exit code (0)."""
     running = await start(cfg)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
+
+    def closing():
+        # At once, in the signal's own callback: a call that gRPC hands over after this one is
+        # refused, whatever else the loop has queued.
+        running.gate.closed = True
+        stop.set()
+
     for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, stop.set)
+        loop.add_signal_handler(sig, closing)
     log.info(json.dumps({"event": "serving", "address": f"{cfg.host}:{running.port}",
                          "tls": bool(cfg.tls_cert), "mtls": bool(cfg.client_ca),
                          "auth": "bearer" if cfg.token else "none",
@@ -276,9 +500,9 @@ async def serve(cfg: ServerConfig, ready=None) -> int:
     flusher = asyncio.create_task(running.calls.flush_periodically(0.25))
     await stop.wait()
     running.calls.flush()
-    log.info(json.dumps({"event": "shutting_down", "grace_s": cfg.grace_s}))
-    await running.stop(cfg.grace_s)
+    log.info(json.dumps({"event": "shutting_down", "drain_s": cfg.drain_s,
+                         "grace_s": cfg.grace_s}))
+    await running.stop(cfg.grace_s, cfg.drain_s)
     flusher.cancel()
-    running.calls.flush()
     log.info(json.dumps({"event": "stopped"}))
     return 0

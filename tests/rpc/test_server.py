@@ -760,6 +760,50 @@ def test_sigterm_drains_in_flight_calls_and_exits_zero():
             proc.wait()
 
 
+def _call_lines(caplog) -> list[dict]:
+    return [json.loads(line) for r in caplog.records if r.name == "dqpose.calls"
+            for line in r.getMessage().splitlines()]
+
+
+def test_calls_cut_when_the_grace_period_ends_are_logged_and_counted(caplog):
+    # Streams still open when the grace period runs out are cancelled by gRPC; their handlers
+    # record them as they unwind, which must happen before the last flush and before the
+    # metrics close: every call that started gets exactly one line and one sample.
+    from service.fusion import Source
+    from service.rpc import convert
+    from service.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
+
+    caplog.set_level(logging.INFO, logger="dqpose.calls")
+    first = fpb.FuseStreamRequest(options=convert.options_msg(sources=[Source("cam")]))
+    first.measurements.extend(convert.measurement_msgs(
+        dq.from_pose([1.0, 0, 0, 0], [0.1, 0.2, 0.3])[None], np.eye(6)[None] * 1e-4,
+        names=["cam"], bodies=["box"]))
+    with socket_free_port() as port:
+        s = ServerThread(metrics_port=port)
+        with grpc.insecure_channel(s.target) as ch:
+            blends: queue.Queue = queue.Queue()
+            blend = pb_grpc.BlendingStub(ch).BlendStream(iter(blends.get, None), timeout=60)
+            fuses: queue.Queue = queue.Queue()
+            fuse = ch.stream_stream(
+                "/dqpose.v1.Fusion/StreamFuse", request_serializer=fpb.FuseStreamRequest.SerializeToString,
+                response_deserializer=fpb.FusedPose.FromString)(iter(fuses.get, None), timeout=60)
+            for _ in range(3):
+                blends.put(blend_req(*_poses(2)))
+                next(blend)
+            fuses.put(first)
+            assert next(fuse).HasField("pose")
+            s.stop(grace=0.2)               # both streams are still open
+            blends.put(None)
+            fuses.put(None)
+        metrics = s.running.metrics
+    calls = sorted((c["rpc"], c["code"], c["messages"]) for c in _call_lines(caplog))
+    assert calls == [("BlendStream", "CANCELLED", 3), ("StreamFuse", "CANCELLED", 1)], calls
+    from prometheus_client import generate_latest
+    text = generate_latest(metrics._registry).decode()
+    for rpc in ("BlendStream", "StreamFuse"):
+        assert re.search(rf'dqpose_grpc_calls_total\{{code="CANCELLED",rpc="{rpc}"\}} 1\.0', text), text
+
+
 def test_blend_stream_cancelled_mid_way_leaves_the_server_serving(stub):
     # The server reads ahead of its replies; a client that leaves with requests still unread
     # must end the reading task too, and the next stream must see only its own replies.
@@ -777,3 +821,177 @@ def test_blend_stream_cancelled_mid_way_leaves_the_server_serving(stub):
     assert len(got) == 20
     for req, r in zip(fresh, got):
         same_pose(msg_to_dq(r.pose), msg_to_dq(stub.Blend(req, timeout=10).pose), atol=1e-12)
+
+
+# --------------------------------------------------------------------------- shutdown
+
+def _serve(*flags) -> tuple[subprocess.Popen, str]:
+    """``dqpose serve --port 0 FLAGS`` in its own process; (process, address) once it serves."""
+    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", "0", *flags],
+                            cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    line = proc.stderr.readline()
+    try:
+        first = json.loads(line)
+    except ValueError:
+        proc.kill()
+        raise AssertionError(line + proc.stderr.read()) from None
+    assert first["event"] == "serving", first
+    return proc, first["address"]
+
+
+def _log_after(proc) -> list[dict]:
+    """The JSON lines the server logs until it exits (it must exit with 0)."""
+    assert proc.wait(timeout=60) == 0
+    return [json.loads(x) for x in proc.stderr.read().splitlines() if x.startswith("{")]
+
+
+@pytest.mark.parametrize("run", range(3))
+def test_calls_arriving_after_sigterm_are_unavailable_never_cancelled(run):
+    # UNAVAILABLE is what retry policies retry (on another server where there is one);
+    # CANCELLED is not retried. A call may still be served if it reaches the server before the
+    # signal does; from the first refusal on, every call is refused, the same way.
+    proc, target = _serve()
+    try:
+        with grpc.insecure_channel(target) as ch:
+            assert _code(lambda: _blend_ok(ch))[0] == grpc.StatusCode.OK
+            proc.send_signal(signal.SIGTERM)
+            codes = []
+            while not codes or codes[-1] == grpc.StatusCode.OK:
+                codes.append(_code(lambda: _blend_ok(ch))[0])
+                assert len(codes) < 1000, "still served long after SIGTERM"
+            assert codes[-1] == grpc.StatusCode.UNAVAILABLE, codes[-1]
+            for _ in range(5):
+                code, details = _code(lambda: _blend_ok(ch))
+                assert code == grpc.StatusCode.UNAVAILABLE, code
+                assert details == "server is shutting down", details
+        lines = _log_after(proc)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    blends = [x["code"] for x in lines if x.get("rpc") == "Blend"]
+    # every call answered is logged once, with the code its client got
+    assert blends == ["OK"] + [c.name for c in codes] + ["UNAVAILABLE"] * 5, blends
+
+
+def test_health_says_not_serving_for_the_drain_delay_before_the_listener_closes():
+    proc, target = _serve("--drain", "5")
+    try:
+        with grpc.insecure_channel(target) as ch:
+            health = health_pb2_grpc.HealthStub(ch)
+            check = lambda: health.Check(health_pb2.HealthCheckRequest(), timeout=5).status
+            assert check() == health_pb2.HealthCheckResponse.SERVING
+            proc.send_signal(signal.SIGTERM)
+            status = check()
+            while status == health_pb2.HealthCheckResponse.SERVING:
+                status = check()
+            # a load balancer polling health sees NOT_SERVING, not a closed port
+            assert status == health_pb2.HealthCheckResponse.NOT_SERVING
+            assert _code(lambda: _blend_ok(ch))[0] == grpc.StatusCode.UNAVAILABLE
+            assert proc.poll() is None
+        lines = _log_after(proc)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert {"event": "shutting_down", "drain_s": 5.0, "grace_s": 10.0} in lines
+
+
+def test_an_open_health_watch_ends_at_shutdown_and_does_not_hold_the_process():
+    # A grace period of ten minutes: the process ends long before it only if the watch ends.
+    proc, target = _serve("--grace", "600", "--drain", "0.2")
+    try:
+        with grpc.insecure_channel(target) as ch:
+            watch = health_pb2_grpc.HealthStub(ch).Watch(health_pb2.HealthCheckRequest(),
+                                                         timeout=60)
+            assert next(watch).status == health_pb2.HealthCheckResponse.SERVING
+            proc.send_signal(signal.SIGTERM)
+            assert next(watch).status == health_pb2.HealthCheckResponse.NOT_SERVING
+            assert list(watch) == []        # ended by the server, with OK
+        assert proc.wait(timeout=30) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+# --------------------------------------------------------------------------- start options
+
+@pytest.mark.parametrize("field, value, message", [
+    ("port", 116686, "port: must be within 0..65535, got 116686"),
+    ("port", -1, "port: must be within 0..65535, got -1"),
+    ("port", 5.5, "port: must be an integer, got 5.5"),
+    ("metrics_port", 0, "metrics_port: must be within 1..65535, got 0"),
+    ("max_message_bytes", -1, "max_message_bytes: must be within 1..2147483647, got -1"),
+    ("max_message_bytes", 2**31, "max_message_bytes: must be within 1..2147483647, got 2147483648"),
+    ("max_poses", 0, "max_poses: must be within 1..2147483647, got 0"),
+    ("max_poses", -5, "max_poses: must be within 1..2147483647, got -5"),
+    ("grace_s", -1.0, "grace_s: must be a finite number of seconds >= 0, got -1"),
+    ("grace_s", math.nan, "grace_s: must be a finite number of seconds >= 0, got nan"),
+    ("drain_s", -0.5, "drain_s: must be a finite number of seconds >= 0, got -0.5"),
+    ("keepalive_s", 0.0, "keepalive_s: must be within 0.001..2147483 seconds, got 0"),
+    ("keepalive_s", math.inf, "keepalive_s: must be within 0.001..2147483 seconds, got inf"),
+])
+def test_start_options_out_of_range_are_a_value_error_naming_the_field(field, value, message):
+    import asyncio
+
+    with pytest.raises(ValueError) as e:
+        ServerConfig(**{"port": 0, field: value})
+    assert str(e.value) == message
+    cfg = ServerConfig(port=0)
+    setattr(cfg, field, value)          # changed after construction: start() checks again
+    with pytest.raises(ValueError) as e:
+        asyncio.run(start(cfg))
+    assert str(e.value) == message
+
+
+def _bad_pem(pki) -> list[tuple[dict, str]]:
+    """(ServerConfig PEM fields, the message) for a bad certificate, a bad or mismatched key
+    and a garbage client CA."""
+    from cryptography.hazmat.primitives import serialization
+
+    cert, key = pki["server_cert"], pki["server_key"]
+    broken = cert[:100] + cert[-40:]          # PEM armour around a broken body
+    encrypted = serialization.load_pem_private_key(key, None).private_bytes(
+        serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+        serialization.BestAvailableEncryption(b"secret"))
+    return [
+        (dict(tls_cert=b"not a certificate", tls_key=key),
+         "tls_cert: no PEM certificate in it"),
+        (dict(tls_cert=broken, tls_key=key), "tls_cert: no PEM certificate in it"),
+        (dict(tls_cert=key, tls_key=key), "tls_cert: no PEM certificate in it"),
+        (dict(tls_cert=cert, tls_key=b"garbage"), "tls_key: no PEM private key in it"),
+        (dict(tls_cert=cert, tls_key=pki["client_key"]),
+         "tls_key: the private key does not match the certificate"),
+        # gRPC cannot use it; OpenSSL would ask for the password on the terminal
+        (dict(tls_cert=cert, tls_key=encrypted), "tls_key: encrypted private keys are not supported"),
+        (dict(tls_cert=cert, tls_key=key, client_ca=b"garbage"),
+         "client_ca: no PEM certificate in it"),
+        (dict(tls_cert=cert, tls_key=key, client_ca="\u00e9t\u00e9".encode()),
+         "client_ca: no PEM certificate in it"),
+    ]
+
+
+def test_bad_certificates_keys_and_client_cas_are_named_before_binding(pki):
+    import asyncio
+
+    for fields, message in _bad_pem(pki):
+        with pytest.raises(ValueError) as e:
+            asyncio.run(start(ServerConfig(port=0, **fields)))
+        assert str(e.value) == message, fields
+
+
+def test_serve_names_the_bad_pem_file_and_the_problem(pki, tmp_path):
+    for i, (fields, message) in enumerate(_bad_pem(pki)):
+        args = []
+        for field, data in fields.items():
+            path = tmp_path / f"{i}-{field}.pem"
+            path.write_bytes(data)
+            args += ["--" + field.replace("_", "-"), str(path)]
+        setting, problem = message.split(": ", 1)
+        flag = "--" + setting.replace("_", "-")
+        res = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--port", "0", *args],
+                             capture_output=True, text=True, timeout=30, cwd=ROOT)
+        assert res.returncode == 2, res.stderr
+        assert res.stderr == (f"dqpose serve: error: {flag} {tmp_path}/{i}-{setting}.pem: "
+                              f"{problem}\n")
