@@ -323,6 +323,15 @@ def _fmt_s(s):
     return f"{m * 1e6:.0f} µs" if m < 1e-3 else f"{m * 1e3:.2f} ms"
 
 
+def _markdown(head: list[str], lines: list[list[str]]) -> str:
+    """A Markdown table with columns padded to their widest cell."""
+    w = [max(len(h), *(len(l[i]) for l in lines)) for i, h in enumerate(head)]
+    out = ["| " + " | ".join(h.ljust(w[i]) for i, h in enumerate(head)) + " |",
+           "|" + "|".join("-" * (x + 2) for x in w) + "|"]
+    out += ["| " + " | ".join(c.ljust(w[i]) for i, c in enumerate(l)) + " |" for l in lines]
+    return "\n".join(out)
+
+
 def render(methods, results) -> str:
     head = ["outliers", "method", "median rot (deg)", "median trans (mm)", "mean NEES",
             "time / fusion"]
@@ -335,11 +344,7 @@ def render(methods, results) -> str:
             lines.append([f"{fraction:.0%}", m, f"{np.median(r.rot):.3f}",
                           f"{np.median(r.trans):.3f}",
                           f"{np.mean(r.nees):.3g}" if r.nees else "—", _fmt_s(r.seconds)])
-    w = [max(len(h), *(len(l[i]) for l in lines)) for i, h in enumerate(head)]
-    out = ["| " + " | ".join(h.ljust(w[i]) for i, h in enumerate(head)) + " |",
-           "|" + "|".join("-" * (x + 2) for x in w) + "|"]
-    out += ["| " + " | ".join(c.ljust(w[i]) for i, c in enumerate(l)) + " |" for l in lines]
-    return "\n".join(out)
+    return _markdown(head, lines)
 
 
 def summary(methods, results, checks, robust_info, have_gtsam, n) -> str:
@@ -599,11 +604,7 @@ def render_moving(methods, results) -> str:
             lines.append([when, f"{m} (ScLERP)" if single_ else m, f"{np.median(r.rot):.3f}",
                           f"{np.median(r.trans):.3f}",
                           f"{np.mean(r.nees):.3g}" if r.nees else "—", _fmt_s(r.seconds)])
-    w = [max(len(h), *(len(l[i]) for l in lines)) for i, h in enumerate(head)]
-    out = ["| " + " | ".join(h.ljust(w[i]) for i, h in enumerate(head)) + " |",
-           "|" + "|".join("-" * (x + 2) for x in w) + "|"]
-    out += ["| " + " | ".join(c.ljust(w[i]) for i, c in enumerate(l)) + " |" for l in lines]
-    return "\n".join(out)
+    return _markdown(head, lines)
 
 
 def summary_moving(methods, results, latencies, scene, Q) -> str:

@@ -14,6 +14,8 @@ from google.protobuf.message import DecodeError
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from _mutate import damaged
+
 from service import dq, fusion
 from service.rpc import convert
 from service.rpc.convert import fuse_stream_from_wire, measurement_msgs, options_msg
@@ -141,13 +143,8 @@ def test_stream_with_output_ticks_answers_as_the_protobuf_path(sizes, data):
 @settings(max_examples=200, deadline=None)
 @given(requests(1), st.data())
 def test_damaged_requests_answer_as_the_protobuf_path(req, data):
-    raw = bytearray(req.SerializeToString())
-    if raw:
-        for _ in range(data.draw(st.integers(1, 3))):
-            i = data.draw(st.integers(0, len(raw) - 1))
-            raw[i] = data.draw(st.integers(0, 255))
-        raw = raw[:data.draw(st.integers(0, len(raw)))]
-    run_both([bytes(raw)], with_sources=data.draw(st.booleans()))
+    raw = damaged(req.SerializeToString(), data)
+    run_both([raw], with_sources=data.draw(st.booleans()))
 
 
 @settings(max_examples=150, deadline=None)

@@ -11,6 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from _mutate import damaged
+
 from service import dq
 from service.errors import FieldError
 from service.rpc.convert import blend_batch_wire, blend_wire, decode_blend_request, pose_msgs
@@ -94,13 +96,7 @@ def test_unpacked_weights_merged_poses_and_unknown_fields():
 @settings(max_examples=300)
 @given(requests(), st.data())
 def test_damaged_bytes_are_refused_or_read_as_protobuf_reads_them(req, data):
-    raw = bytearray(req.SerializeToString())
-    if raw:
-        for _ in range(data.draw(st.integers(1, 3))):
-            i = data.draw(st.integers(0, len(raw) - 1))
-            raw[i] = data.draw(st.integers(0, 255))
-        raw = raw[:data.draw(st.integers(0, len(raw)))]
-    raw = bytes(raw)
+    raw = damaged(req.SerializeToString(), data)
     try:
         want = parsed(pb.BlendRequest.FromString(raw))
     except DecodeError:
