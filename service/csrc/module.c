@@ -941,6 +941,22 @@ done:
  * max_iter, nis) -> (mean, covariance, residuals, distances, nis, tested, status, iterations,
  * chi2), each with the leading shape; nis and tested are None when nis is false. The leading
  * shapes of the arguments must be equal (a batch of independent problems, no broadcasting). */
+/* A tuple of the n outputs (None for a NULL one), taking their references: outs[j] is left
+ * NULL so the caller's cleanup does not release them again. NULL when the tuple cannot be made
+ * (then outs keeps its references). */
+static PyObject *steal_tuple(PyArrayObject **outs, int n)
+{
+    PyObject *t = PyTuple_New(n);
+    if (!t) return NULL;
+    for (int j = 0; j < n; j++) {
+        PyObject *o = outs[j] ? (PyObject *)outs[j] : Py_None;
+        if (!outs[j]) Py_INCREF(Py_None);
+        PyTuple_SET_ITEM(t, j, o);
+        outs[j] = NULL;
+    }
+    return t;
+}
+
 static PyObject *py_fuse(PyObject *self, PyObject *args)
 {
     PyObject *zo, *so, *io;
@@ -1068,14 +1084,7 @@ static PyObject *py_fuse(PyObject *self, PyObject *args)
         }
         goto done;
     }
-    result = PyTuple_New(9);
-    if (!result) goto done;
-    for (int j = 0; j < 9; j++) {
-        PyObject *o = outs[j] ? (PyObject *)outs[j] : Py_None;
-        if (!outs[j]) Py_INCREF(Py_None);
-        PyTuple_SET_ITEM(result, j, o);
-        outs[j] = NULL;
-    }
+    result = steal_tuple(outs, 9);
 done:
     free(work);
     free(zu);
@@ -1232,14 +1241,7 @@ static PyObject *py_motion_fit(PyObject *self, PyObject *args)
     *(double *)PyArray_DATA(outs[4]) = f.chi2;
     *(npy_int64 *)PyArray_DATA(outs[5]) = f.status;
     *(npy_int64 *)PyArray_DATA(outs[6]) = f.iterations;
-    result = PyTuple_New(12);
-    if (!result) goto done;
-    for (int j = 0; j < 12; j++) {
-        PyObject *r = outs[j] ? (PyObject *)outs[j] : Py_None;
-        if (!outs[j]) Py_INCREF(Py_None);
-        PyTuple_SET_ITEM(result, j, r);
-        outs[j] = NULL;
-    }
+    result = steal_tuple(outs, 12);
 done:
     free(work);
     free(zu);
