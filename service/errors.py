@@ -14,6 +14,16 @@ class FieldError(ValueError):
     """Invalid input, with a message that starts with the caller's field path."""
 
 
+class Infeasible(ValueError):
+    """Well-formed input whose demands cannot be met (waypoint times too short for the limits, a
+    path the limits cannot follow): gRPC's ``FAILED_PRECONDITION`` rather than
+    ``INVALID_ARGUMENT``. The message starts with the argument it is about, like any ValueError."""
+
+
+class FieldInfeasible(FieldError, Infeasible):
+    """An :class:`Infeasible` renamed to the caller's field path."""
+
+
 def rename(err: ValueError, names: dict[str, str]) -> FieldError:
     """``"q[3]: x"`` with ``{"q": "poses{}.orientation"}`` -> ``"poses[3].orientation: x"``.
 
@@ -23,4 +33,4 @@ def rename(err: ValueError, names: dict[str, str]) -> FieldError:
     m = _INDEXED.match(msg)
     if m and m.group(1) in names:
         msg = names[m.group(1)].replace("{}", m.group(2) or "") + m.group(3)
-    return FieldError(msg)
+    return FieldInfeasible(msg) if isinstance(err, Infeasible) else FieldError(msg)

@@ -339,9 +339,9 @@ def arrays_to_stamped(times: np.ndarray, dqs: np.ndarray) -> list[geo.StampedPos
 # dq.METHODS by name: its "dlb" is METHOD_DLB (tests/rpc/test_convert.py checks the values too).
 METHOD_ENUMS = {name: pb.Method.Value(f"METHOD_{name.upper()}") for name in dq.METHODS}
 METHOD_NAMES = {pb.METHOD_UNSPECIFIED: "dib", **{code: name for name, code in METHOD_ENUMS.items()}}
-INTERPOLATION_NAMES = {pb.INTERPOLATION_UNSPECIFIED: "screw", pb.INTERPOLATION_SCREW: "screw",
-                       pb.INTERPOLATION_TOOL_LINEAR: "tool_linear"}
-INTERPOLATION_ENUMS = {"screw": pb.INTERPOLATION_SCREW, "tool_linear": pb.INTERPOLATION_TOOL_LINEAR}
+INTERPOLATION_NAMES = {geo.INTERPOLATION_UNSPECIFIED: "screw", geo.INTERPOLATION_SCREW: "screw",
+                       geo.INTERPOLATION_TOOL_LINEAR: "tool_linear"}
+INTERPOLATION_ENUMS = {"screw": geo.INTERPOLATION_SCREW, "tool_linear": geo.INTERPOLATION_TOOL_LINEAR}
 
 
 # ---- fusion --------------------------------------------------------------------------------------

@@ -103,9 +103,9 @@ def test_blend_defaults_equal_weights_and_honours_tolerance_and_iterations(stub)
     assert loose.iterations < r.iterations
 
 
-@pytest.mark.parametrize("interp, mode", [(pb.INTERPOLATION_UNSPECIFIED, "screw"),
-                                          (pb.INTERPOLATION_SCREW, "screw"),
-                                          (pb.INTERPOLATION_TOOL_LINEAR, "tool_linear")])
+@pytest.mark.parametrize("interp, mode", [(geo.INTERPOLATION_UNSPECIFIED, "screw"),
+                                          (geo.INTERPOLATION_SCREW, "screw"),
+                                          (geo.INTERPOLATION_TOOL_LINEAR, "tool_linear")])
 def test_interpolate_matches_the_domain_function(stub, interp, mode):
     rng = np.random.default_rng(11)
     q, t = random_poses(rng, 4)
