@@ -32,19 +32,56 @@ from service.rpc.convert import (DEFAULT_MAX_EXTRAPOLATION, DEFAULT_PROBABILITY,
                                  blend_batch_items_wire, blend_request_wire,
                                  blend_responses_from_wire, fused_from_msg,
                                  interpolate_request_wire, measurement_msgs, options_msg,
-                                 pose_arrays, poses_to_flat, stamped_poses_wire)
+                                 limits_msg, plan_msg, pose_arrays, poses_to_arrays,
+                                 poses_to_flat, samples_from_msgs, stamped_msgs,
+                                 stamped_poses_wire)
 from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from service.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
+from service.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
 
 DEFAULT_TARGET = "127.0.0.1:50051"
 SERVICE = pb.DESCRIPTOR.services_by_name["Blending"].full_name
 FUSION = fpb.DESCRIPTOR.services_by_name["Fusion"].full_name
+TRAJECTORIES = tpb.DESCRIPTOR.services_by_name["Trajectories"].full_name
 # Largest answer per item, to keep answers under the message limit too: BlendBatchResponse item
 # = tag, length, BlendResponse {pose (2 + 67), iterations (1 + up to 5), residual (1 + 8)};
 # InterpolateResponse item = tag, length, StampedPose {time (1 + 8), pose (2 + 67)}.
 _BLEND_ANSWER_MAX = 2 + 69 + 6 + 9
 _SAMPLE_ANSWER_MAX = 2 + 9 + 69
 _IN_FLIGHT = 2          # calls of one split request outstanding: the next is sent while one is read
+
+
+class Segment(NamedTuple):
+    start: float
+    duration: float
+    binding: str        # the Limits field that decides the segment's speed, or "time"
+
+
+class Planned(NamedTuple):
+    """What :meth:`Client.plan` returns: the samples and the plan's duration and segments."""
+    time: np.ndarray              # (N,)
+    pose: np.ndarray              # (N, 8)
+    linear_velocity: np.ndarray   # (N, 3) tool point, base frame, m/s
+    angular_velocity: np.ndarray  # (N, 3) tool, base frame, rad/s
+    duration: float
+    segments: tuple
+
+
+class Feedback(NamedTuple):
+    """One ``ExecutionFeedback`` of :meth:`Client.execute`."""
+    time: float
+    commanded: Optional[np.ndarray]
+    actual: Optional[np.ndarray]
+    state: str          # "WORKING", "FINISHED", "LIMITED", "STALLED", "STOPPED", ...
+    message: str
+
+
+def _pose_or_none(msg, field: str) -> Optional[np.ndarray]:
+    if not msg.HasField(field):
+        return None
+    p = getattr(msg, field)
+    return dq.from_pose([p.orientation.w, p.orientation.x, p.orientation.y, p.orientation.z],
+                        [p.position.x, p.position.y, p.position.z])
 
 
 class RpcError(Exception):
@@ -202,6 +239,13 @@ class Client:
         self._interpolate = self.channel.unary_unary(f"/{SERVICE}/Interpolate")
         self._fuse = self.channel.unary_unary(f"/{FUSION}/Fuse")
         self._stream_fuse = self.channel.stream_stream(f"/{FUSION}/StreamFuse")
+        self._plan = self.channel.unary_stream(
+            f"/{TRAJECTORIES}/Plan", request_serializer=tpb.PlanRequest.SerializeToString,
+            response_deserializer=tpb.TrajectorySample.FromString)
+        self._smooth = self.channel.unary_unary(f"/{TRAJECTORIES}/Smooth")
+        self._execute = self.channel.unary_stream(
+            f"/{TRAJECTORIES}/Execute", request_serializer=tpb.ExecuteRequest.SerializeToString,
+            response_deserializer=tpb.ExecutionFeedback.FromString)
         self.timeout = timeout
         self.max_message_bytes = max_message_bytes
         self.max_poses = max_poses
@@ -417,6 +461,56 @@ class Client:
             raise _rpc_error(e) from None
         if refused:
             raise refused[0]
+
+    def plan(self, waypoints, limits, rate_hz: float, interpolation: str = "tool_linear", *,
+             start_velocity=None) -> Planned:
+        """:func:`service.trajectory.plan` on the server, sampled at ``rate_hz``: the samples
+        (first at 0 on the first waypoint, last on the last one) with the plan's duration and
+        segments. ``waypoints``: :class:`~service.trajectory.Waypoint` s or ``(8,)`` poses. The
+        stream has no deadline (a long plan is many samples)."""
+        request = plan_msg(waypoints, limits, rate_hz, interpolation, start_velocity)
+        try:
+            msgs = list(self._plan(request, metadata=self.metadata))
+        except grpc.RpcError as e:
+            raise _rpc_error(e) from None
+        info = msgs[0].plan
+        segments = tuple(Segment(s.start, s.duration, s.binding) for s in info.segments)
+        return Planned(*samples_from_msgs(msgs), duration=info.duration, segments=segments)
+
+    def smooth(self, times, poses, limits, smoothing: float = 1.0,
+               rate_hz: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`service.trajectory.smooth` on the server: ``(times (M,), poses (M, 8))``."""
+        times = np.asarray(times, dtype=np.float64).ravel()
+        a = _dq_rows(poses, "poses")
+        if len(times) != len(a):
+            raise ValueError(f"times: length {len(times)} does not match the number of poses "
+                             f"({len(a)})")
+        self._check_count("poses", len(a), "poses")
+        request = tpb.SmoothRequest(poses=stamped_msgs(times, a), limits=limits_msg(limits),
+                                    smoothing=smoothing, rate_hz=rate_hz)
+        answer = tpb.SmoothResponse.FromString(self._call(self._smooth,
+                                                          request.SerializeToString()))
+        q, t = poses_to_arrays([p.pose for p in answer.samples])
+        out = dq.from_pose(q, t) if len(answer.samples) else np.zeros((0, 8))
+        return np.array([p.time for p in answer.samples], dtype=np.float64), out
+
+    def execute(self, arm: str, waypoints, limits, interpolation: str = "tool_linear",
+                ) -> Iterator[Feedback]:
+        """Runs a plan on the server's arm ``arm`` (see ``dqpose serve --arm``), yielding
+        :class:`Feedback` as the server streams it: the arm's state, commanded and actual poses.
+        Closing the iterator (or the client going away) stops the arm within one period."""
+        request = tpb.ExecuteRequest(arm=arm, plan=plan_msg(waypoints, limits, 0.0,
+                                                            interpolation))
+        call = self._execute(request, metadata=self.metadata)
+        try:
+            for m in call:
+                yield Feedback(m.time, _pose_or_none(m, "commanded"), _pose_or_none(m, "actual"),
+                               tpb.ExecutionState.Name(m.state).removeprefix("EXECUTION_"),
+                               m.message)
+        except grpc.RpcError as e:
+            raise _rpc_error(e) from None
+        finally:
+            call.cancel()
 
     def health(self, service: str = "") -> str:
         """The health status name (``"SERVING"``, ``"NOT_SERVING"``, ...)."""

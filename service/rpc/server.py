@@ -31,10 +31,11 @@ from service.rpc import DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
 from service.rpc.blending import Blending
 from service.rpc.calls import Calls, log
 from service.rpc.fusion import Fusion
+from service.rpc.trajectories import Trajectories
 
 # The services this server offers: each class takes (config, calls), has NAME (the full proto
 # service name) and register(server).
-SERVICERS = (Blending, Fusion)
+SERVICERS = (Blending, Fusion, Trajectories)
 SERVICE_NAMES = tuple(s.NAME for s in SERVICERS) + (
     health_pb2.DESCRIPTOR.services_by_name["Health"].full_name, reflection.SERVICE_NAME)
 
@@ -69,6 +70,11 @@ class ServerConfig:
     drain_s: float = 0.5               # on SIGTERM (serve): health NOT_SERVING, new calls
                                        # UNAVAILABLE, the listener still open
     metrics_port: int | None = None
+    # Arms that Trajectories.Execute may drive, by the name a request gives (opened by whoever
+    # starts the server: `dqpose serve --arm NAME=SPEC`), and ``executor(arm, trajectory)``,
+    # which starts running a plan on one (drivers.executor; this package imports no driver).
+    arms: dict = dataclasses.field(default_factory=dict)
+    executor: object = None
 
     def __post_init__(self):
         self.check()
@@ -87,6 +93,12 @@ class ServerConfig:
         _seconds(self, "grace_s")
         _seconds(self, "drain_s")
         _check_tls(self.tls_cert, self.tls_key, self.client_ca)
+        for name in self.arms:
+            if not (isinstance(name, str) and name.isidentifier()):
+                raise ConfigError("arms", f"an arm's name must be a word (letters, digits, _), "
+                                          f"got {name!r}")
+        if self.arms and not callable(self.executor):
+            raise ConfigError("executor", "arms need an executor to run plans on them")
 
 
 def _integer(cfg, name: str, lo: int, hi: int) -> None:

@@ -1,0 +1,187 @@
+"""The ``dqpose.v1.Trajectories`` service: Plan (:func:`service.trajectory.plan`, streamed as
+samples), Smooth (:func:`service.trajectory.smooth`) and Execute (a plan run on an arm the server
+was started with, fed by the executor at the arm's own period, never paced by the network).
+
+The arms come from whoever starts the server (``ServerConfig.arms`` and ``.executor``; the
+``dqpose serve --arm`` command opens them): this package imports no driver.
+"""
+from __future__ import annotations
+
+import asyncio
+import math
+
+import grpc
+import numpy as np
+
+from service import trajectory
+from service.errors import FieldError, Infeasible, rename
+from service.rpc.calls import INTERNAL_DETAILS, Calls, log, refusal
+from service.rpc.convert import (arrays_to_stamped, dq_to_pose, limits_from_msg, plan_from_msg,
+                                 plan_info_msg, sample_msgs, stamped_to_arrays)
+from service.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
+
+#: how many samples a plan may stream, as a multiple of the server's max poses per request
+SAMPLES_PER_MAX_POSES = 100
+#: samples converted and written per step of the Plan stream (bounds the memory of messages)
+CHUNK = 500
+
+
+def _planned(args, field: str = ""):
+    """:func:`trajectory.plan` of :class:`PlanArgs`, its errors named by proto field."""
+    try:
+        return trajectory.plan(args.waypoints, args.limits, args.interpolation,
+                               start_velocity=args.start_velocity)
+    except ValueError as e:
+        raise rename(e, {"waypoints": f"{field}waypoints{{}}", "limits": f"{field}limits",
+                         "start_velocity": f"{field}start_linear_velocity"}) from None
+
+
+class Trajectories:
+    NAME = "dqpose.v1.Trajectories"
+
+    def __init__(self, cfg, calls: Calls):
+        self.calls = calls
+        self.max_poses = cfg.max_poses
+        self.arms = dict(cfg.arms)
+        self.executor = cfg.executor
+        self._busy: set[str] = set()
+
+    # -- domain, message in, message(s) out
+
+    def plan(self, request: pb.PlanRequest):
+        """``(trajectory, rate)`` for a PlanRequest; FieldError / Infeasible naming the field."""
+        self._check_count("waypoints", len(request.waypoints))
+        args = plan_from_msg(request)
+        traj = _planned(args)
+        n = math.floor(traj.duration * args.rate_hz) + 2
+        if n > SAMPLES_PER_MAX_POSES * self.max_poses:
+            raise FieldError(f"rate_hz: {args.rate_hz:g} Hz over {traj.duration:.3f} s is {n} "
+                             f"samples, over the server's limit of "
+                             f"{SAMPLES_PER_MAX_POSES * self.max_poses}")
+        return traj, args.rate_hz
+
+    def smooth(self, request: pb.SmoothRequest) -> pb.SmoothResponse:
+        self._check_count("poses", len(request.poses))
+        if not request.HasField("limits"):
+            raise FieldError("limits: required (velocity and acceleration limits)")
+        limits = limits_from_msg(request.limits)
+        times, dqs = stamped_to_arrays(request.poses, "poses")
+        smoothing = request.smoothing or 1.0
+        try:
+            t, out = trajectory.smooth(times, dqs, limits, smoothing=smoothing,
+                                       rate_hz=request.rate_hz)
+        except ValueError as e:
+            raise rename(e, {"times": "poses{}.time", "poses": "poses{}.pose",
+                             "limits": "limits"}) from None
+        if len(t) > SAMPLES_PER_MAX_POSES * self.max_poses:
+            raise FieldError(f"rate_hz: {len(t)} samples are over the server's limit")
+        return pb.SmoothResponse(samples=arrays_to_stamped(t, out))
+
+    def _check_count(self, field: str, n: int) -> None:
+        if n > self.max_poses:
+            raise FieldError(f"{field}: {n} exceed the server limit of {self.max_poses} per "
+                             f"request")
+
+    # -- RPCs
+
+    def register(self, server) -> None:
+        handlers = {
+            "Plan": grpc.unary_stream_rpc_method_handler(
+                self.Plan, request_deserializer=pb.PlanRequest.FromString,
+                response_serializer=pb.TrajectorySample.SerializeToString),
+            "Smooth": grpc.unary_unary_rpc_method_handler(
+                self.Smooth, request_deserializer=pb.SmoothRequest.FromString,
+                response_serializer=pb.SmoothResponse.SerializeToString),
+            "Execute": grpc.unary_stream_rpc_method_handler(
+                self.Execute, request_deserializer=pb.ExecuteRequest.FromString,
+                response_serializer=pb.ExecutionFeedback.SerializeToString),
+        }
+        server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(self.NAME, handlers),))
+        server.add_registered_method_handlers(self.NAME, handlers)
+
+    async def Smooth(self, request, context):
+        return await self.calls.unary("Smooth", self.smooth, request, context)
+
+    async def _refused(self, rpc: str, e: Exception, context) -> str:
+        status = refusal(e)
+        details = str(e)
+        if status is None:
+            log.exception("%s failed", rpc)
+            status, details = grpc.StatusCode.INTERNAL, INTERNAL_DETAILS
+        await context.abort(status, details)
+
+    async def Plan(self, request, context):
+        t0 = self.calls.begin()
+        code, sent = "OK", 0
+        try:
+            try:
+                traj, rate = self.plan(request)
+            except Exception as e:
+                code = (refusal(e) or grpc.StatusCode.INTERNAL).name
+                await self._refused("Plan", e, context)
+            n = math.floor(traj.duration * rate + 1e-9) + 1
+            times = np.arange(n) / rate
+            if times[-1] < traj.duration:      # the last sample is on the last waypoint
+                times = np.append(times, traj.duration)
+            for i in range(0, len(times), CHUNK):
+                msgs = sample_msgs(traj.sample(times[i:i + CHUNK]))
+                if i == 0:
+                    msgs[0].plan.CopyFrom(plan_info_msg(traj))
+                for m in msgs:
+                    await context.write(m)
+                sent += len(msgs)
+        except asyncio.CancelledError:
+            code = "CANCELLED"
+            raise
+        finally:
+            self.calls.done("Plan", code, t0, context, messages=sent)
+
+    async def Execute(self, request, context):
+        t0 = self.calls.begin()
+        code, sent = "OK", 0
+        name = request.arm
+        run = None
+        try:
+            try:
+                run = self._start_execution(request)
+            except Exception as e:
+                code = (refusal(e) or grpc.StatusCode.INTERNAL).name
+                await self._refused("Execute", e, context)
+            async for fb in run.feedback():
+                await context.write(_feedback_msg(fb))
+                sent += 1
+        except asyncio.CancelledError:
+            code = "CANCELLED"
+            raise
+        finally:
+            if run is not None:
+                run.cancel()             # a client that left stops the arm (no-op once done)
+                self._busy.discard(name)
+            self.calls.done("Execute", code, t0, context, messages=sent)
+
+    def _start_execution(self, request):
+        name = request.arm
+        if name not in self.arms:
+            known = ", ".join(sorted(self.arms)) or "none: start the server with --arm NAME=SPEC"
+            raise FieldError(f"arm: unknown arm {name!r} (this server's arms: {known})")
+        if name in self._busy:
+            raise _Busy(f"arm: {name!r} is executing another plan")
+        args = plan_from_msg(request.plan, "plan.", need_rate=False)
+        traj = _planned(args, "plan.")
+        arm = self.arms[name]
+        run = self.executor(arm, traj)
+        self._busy.add(name)
+        return run
+
+
+class _Busy(FieldError, Infeasible):
+    """The arm is in use: FAILED_PRECONDITION."""
+
+
+def _feedback_msg(fb) -> pb.ExecutionFeedback:
+    msg = pb.ExecutionFeedback(time=fb.time, state=int(fb.state), message=fb.message or "")
+    if fb.commanded is not None:
+        dq_to_pose(fb.commanded, msg.commanded)
+    if fb.actual is not None:
+        dq_to_pose(fb.actual, msg.actual)
+    return msg
