@@ -260,3 +260,125 @@ def format_samples(times: np.ndarray, dqs: np.ndarray, fmt: str) -> str:
     np.savetxt(out, np.concatenate([np.asarray(times).reshape(-1, 1), rows], axis=1),
                fmt="%.12g", delimiter=",")
     return out.getvalue()
+
+
+LIMIT_KEYS = ("max_linear_velocity", "max_angular_velocity", "max_linear_acceleration",
+              "max_angular_acceleration", "max_linear_jerk", "max_angular_jerk")
+
+
+class PlanFile(NamedTuple):
+    dqs: np.ndarray                 # (K, 8) waypoints
+    times: np.ndarray               # (K,) 0: as fast as the limits allow
+    blend_radii: np.ndarray         # (K,)
+    limits: dict                    # the file's limits (LIMIT_KEYS), possibly partial
+    rate_hz: float | None
+    mode: str | None
+    format: str
+
+
+class StampedFile(NamedTuple):
+    times: np.ndarray
+    dqs: np.ndarray
+    limits: dict
+    smoothing: float | None
+    rate_hz: float | None
+    format: str
+
+
+def _limits(doc: dict) -> dict:
+    limits = doc.get("limits") or {}
+    if not isinstance(limits, dict):
+        raise ValueError("limits: expected an object with " + ", ".join(LIMIT_KEYS))
+    unknown = set(limits) - set(LIMIT_KEYS)
+    if unknown:
+        raise ValueError(f"limits: unknown key {sorted(unknown)[0]!r}; expected "
+                         f"{', '.join(LIMIT_KEYS)}")
+    out = {}
+    for k, v in limits.items():
+        try:
+            out[k] = float(v)
+        except (TypeError, ValueError):
+            raise ValueError(f"limits.{k}: expected a number, got {v!r}") from None
+    return out
+
+
+def _optional_number(doc: dict, key: str) -> float | None:
+    v = doc.get(key)
+    if v is None:
+        return None
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        raise ValueError(f"{key}: expected a number, got {v!r}") from None
+
+
+def read_plan(path: str) -> PlanFile:
+    """Waypoints: JSON as grpcurl sends a ``dqpose.v1.PlanRequest`` (a bare list is the
+    waypoints), or CSV ``x,y,z,qw,qx,qy,qz`` with optional ``time`` and ``blend_radius``
+    columns (by header)."""
+    text, fmt = _load(path)
+    if fmt == "json":
+        doc = _json_doc(path, text, "waypoints")
+        wps = doc.get("waypoints", [])
+        _, flat = _json_poses("waypoints", wps, stamped=True)
+        extra = np.array([[_optional_number(w, "time") or 0.0,
+                           _optional_number(w, "blend_radius") or 0.0] for w in wps],
+                         dtype=np.float64).reshape(-1, 2)
+        limits, rate = _limits(doc), _optional_number(doc, "rate_hz")
+        mode = _enum("interpolation", doc.get("interpolation"), "interpolation",
+                     ("screw", "tool_linear"))
+        sub = ".pose"
+    else:
+        rows = _csv_rows(text, POSE_COLUMNS, ("time", "blend_radius"))
+        flat = np.concatenate([rows[:, 3:7], rows[:, :3]], axis=1)
+        extra = np.zeros((len(rows), 2))
+        extra[:, :rows.shape[1] - 7] = rows[:, 7:]
+        limits, rate, mode, sub = {}, None, None, ""
+    if flat.shape[0] == 0:
+        raise ValueError(f"{path}: no waypoints")
+    return PlanFile(_to_dqs("waypoints", flat, sub), extra[:, 0], extra[:, 1], limits, rate,
+                    mode, fmt)
+
+
+def read_stamped(path: str) -> StampedFile:
+    """Time-stamped poses: JSON as grpcurl sends a ``dqpose.v1.SmoothRequest`` (a bare list is
+    the poses), or CSV ``t,x,y,z,qw,qx,qy,qz``."""
+    text, fmt = _load(path)
+    if fmt == "json":
+        doc = _json_doc(path, text, "poses")
+        times, flat = _json_poses("poses", doc.get("poses", []), stamped=True)
+        limits = _limits(doc)
+        smoothing, rate = _optional_number(doc, "smoothing"), _optional_number(doc, "rate_hz")
+        sub = ".pose"
+    else:
+        rows = _csv_rows(text, ("t",) + POSE_COLUMNS)
+        times = rows[:, 0]
+        flat = np.concatenate([rows[:, 4:8], rows[:, 1:4]], axis=1)
+        limits, smoothing, rate, sub = {}, None, None, ""
+    if flat.shape[0] == 0:
+        raise ValueError(f"{path}: no poses")
+    return StampedFile(times, _to_dqs("poses", flat, sub), limits, smoothing, rate, fmt)
+
+
+VELOCITY_COLUMNS = ("vx", "vy", "vz", "wx", "wy", "wz")
+
+
+def format_trajectory(times: np.ndarray, dqs: np.ndarray, velocities: np.ndarray | None,
+                      fmt: str) -> str:
+    """Samples as CSV ``t,x,y,z,qw,qx,qy,qz[,vx,vy,vz,wx,wy,wz]`` or as JSON ``{"samples":
+    [...]}`` (TrajectorySample fields when there are velocities, else StampedPose)."""
+    if velocities is None:
+        return format_samples(times, dqs, fmt)
+    rows = _pose_rows(dqs)
+    if fmt == "json":
+        def vec(v):
+            return {"x": float(v[0]), "y": float(v[1]), "z": float(v[2])}
+        return json.dumps({"samples": [
+            {"time": float(t), "pose": _pose_json(r), "linear_velocity": vec(v[:3]),
+             "angular_velocity": vec(v[3:])} for t, r, v in zip(times, rows, velocities)]},
+            indent=2) + "\n"
+    out = io.StringIO()
+    out.write("t," + ",".join(POSE_COLUMNS + VELOCITY_COLUMNS) + "\n")
+    np.savetxt(out, np.concatenate([np.asarray(times).reshape(-1, 1), rows, velocities], axis=1),
+               fmt="%.12g", delimiter=",")
+    return out.getvalue()

@@ -1,0 +1,168 @@
+"""``dqpose plan`` and ``dqpose smooth``: a time-scaled path through waypoints, and a noisy
+recorded path smoothed, both under linear and angular limits, from a JSON or CSV file; on a server
+(the ``dqpose.v1.Trajectories`` service) or ``--local``ly by the same code. CSV or JSON out,
+and ``--plot`` draws position, velocity, acceleration and jerk against the limits."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from service.cli.common import client, connection_args, failure
+
+PLAN_EPILOG = """\
+input formats (FILE, or - for standard input; chosen by the extension, else sniffed):
+  JSON  the PlanRequest body grpcurl sends to dqpose.v1.Trajectories/Plan, e.g.
+          {"waypoints": [{"pose": {"position": {"x": 0.4, "y": 0, "z": 0.3},
+                                   "orientation": {"w": 0, "x": 1, "y": 0, "z": 0}}},
+                         {"pose": {...}, "blend_radius": 0.02},
+                         {"pose": {...}, "time": 4.0}],
+           "limits": {"max_linear_velocity": 0.25, "max_angular_velocity": 1.0,
+                      "max_linear_acceleration": 1.0, "max_angular_acceleration": 2.0,
+                      "max_linear_jerk": 10, "max_angular_jerk": 20},
+           "rate_hz": 125, "interpolation": "TOOL_LINEAR"}
+        a bare list of waypoints is accepted too.
+  CSV   one waypoint per line: x,y,z,qw,qx,qy,qz and, by header name, time (s from the start
+        it must be reached; 0: as fast as the limits allow) and blend_radius (m).
+poses are T_base_tool; limits are norms of the tool point's (linear) and the tool's (angular)
+motion in the base frame. Flags override the file's limits; velocity and acceleration limits are
+required, a jerk limit of 0 (the default) means none.
+
+output: samples at --rate as CSV t,x,y,z,qw,qx,qy,qz,vx,vy,vz,wx,wy,wz (or JSON with -o x.json),
+and on standard error the duration and, per segment, the limit that decides its speed.
+
+example: dqpose plan --local path.csv --max-linear-velocity 0.2 --max-angular-velocity 1 \\
+           --max-linear-acceleration 1 --max-angular-acceleration 2 --plot plan.png
+"""
+
+SMOOTH_EPILOG = """\
+input formats (FILE, or - for standard input):
+  JSON  the SmoothRequest body of dqpose.v1.Trajectories/Smooth: {"poses": [{"time": 0.0,
+        "pose": {...}}, ...], "limits": {...}, "smoothing": 1, "rate_hz": 0}
+  CSV   t,x,y,z,qw,qx,qy,qz, times strictly increasing.
+output: the smoothed poses as CSV t,x,y,z,qw,qx,qy,qz (or JSON with -o x.json).
+
+example: dqpose smooth --local demo.csv --max-linear-velocity 0.5 --max-angular-velocity 2 \\
+           --max-linear-acceleration 2 --max-angular-acceleration 4 --plot smooth.png
+"""
+
+_LIMIT_HELP = {
+    "max_linear_velocity": "m/s", "max_angular_velocity": "rad/s",
+    "max_linear_acceleration": "m/s^2", "max_angular_acceleration": "rad/s^2",
+    "max_linear_jerk": "m/s^3, 0: none", "max_angular_jerk": "rad/s^3, 0: none",
+}
+
+
+def configure(name: str, p) -> None:
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
+    if name == "plan":
+        p.description = ("Plan the fastest motion through the waypoints in FILE that the limits "
+                         "allow (on the server at --target, or --local) and print its samples.")
+        p.epilog = PLAN_EPILOG
+        p.add_argument("file", metavar="FILE", help="waypoints (JSON or CSV; - reads standard input)")
+        p.add_argument("--rate", type=float, help="samples per second (default: the file's, else 125)")
+        p.add_argument("--interpolation", choices=("tool_linear", "screw"),
+                       help="tool point on straight lines (default), or screw motions (ScLERP)")
+    else:
+        p.description = ("Smooth the noisy recorded path in FILE (fidelity plus jerk) under the "
+                         "velocity and acceleration limits (on the server at --target, or "
+                         "--local) and print it.")
+        p.epilog = SMOOTH_EPILOG
+        p.add_argument("file", metavar="FILE", help="time-stamped poses (JSON or CSV; - reads standard input)")
+        p.add_argument("--smoothing", type=float, help="see service/smoothing.py (default: the file's, else 1)")
+        p.add_argument("--rate", type=float, help="resample at this rate (default: the input times)")
+    g = p.add_argument_group("limits (override the file's)")
+    for key, unit in _LIMIT_HELP.items():
+        g.add_argument("--" + key.replace("_", "-"), type=float, dest=key, metavar="X",
+                       help=unit)
+    p.add_argument("-o", "--output", help="write the samples here (.json: JSON, else CSV; default: standard output as CSV)")
+    p.add_argument("--plot", metavar="PNG", help="draw position, velocity, acceleration and jerk against the limits")
+    p.add_argument("--local", action="store_true", help="compute in this process instead of on a server")
+    connection_args(p)
+    p.set_defaults(func=_plan if name == "plan" else _smooth)
+
+
+def _limits(args, from_file: dict):
+    from service import trajectory
+    values = dict(from_file)
+    for key in _LIMIT_HELP:
+        if getattr(args, key) is not None:
+            values[key] = getattr(args, key)
+    missing = [k for k in _LIMIT_HELP if "jerk" not in k and k not in values]
+    if missing:
+        raise ValueError(f"--{missing[0].replace('_', '-')}: required (or \"limits\" in the "
+                         f"JSON file)")
+    return trajectory.Limits(**values)
+
+
+def _write(args, text: str) -> None:
+    if args.output:
+        with open(args.output, "w", encoding="utf-8") as f:
+            f.write(text)
+    else:
+        sys.stdout.write(text)
+
+
+def _plan(args) -> int:
+    import numpy as np
+
+    from service import trajectory
+    from service.cli.posefile import format_trajectory, read_plan
+
+    try:
+        f = read_plan(args.file)
+        limits = _limits(args, f.limits)
+        rate = args.rate or f.rate_hz or 125.0
+        mode = args.interpolation or f.mode or "tool_linear"
+        waypoints = [trajectory.Waypoint(pose=p, time=t, blend_radius=r)
+                     for p, t, r in zip(f.dqs, f.times, f.blend_radii)]
+        if args.local:
+            traj = trajectory.plan(waypoints, limits, mode)
+            s = traj.at_rate(rate)
+            times, poses = s.time, s.pose
+            vel = np.concatenate([s.linear_velocity, s.angular_velocity], axis=1)
+            duration, segments = traj.duration, traj.segments
+        else:
+            with client(args) as c:
+                p = c.plan(waypoints, limits, rate, mode)
+            times, poses, duration, segments = p.time, p.pose, p.duration, p.segments
+            vel = np.concatenate([p.linear_velocity, p.angular_velocity], axis=1)
+        fmt = "json" if (args.output or "").lower().endswith(".json") else "csv"
+        _write(args, format_trajectory(times, poses, vel, fmt))
+        print(f"duration {duration:.4f} s, {len(times)} samples at {rate:g} Hz", file=sys.stderr)
+        for i, seg in enumerate(segments):
+            print(f"  segment {i}: {seg.start:.4f} .. {seg.start + seg.duration:.4f} s, "
+                  f"bound by {seg.binding}", file=sys.stderr)
+        if args.plot:
+            from service.cli.plots import plot_motion
+            plot_motion(args.plot, times, poses, limits, title=f"dqpose plan {args.file}")
+            print(f"plot: {args.plot}", file=sys.stderr)
+    except Exception as e:
+        return failure("plan", args, e)
+    return 0
+
+
+def _smooth(args) -> int:
+    from service import trajectory
+    from service.cli.posefile import format_trajectory, read_stamped
+
+    try:
+        f = read_stamped(args.file)
+        limits = _limits(args, f.limits)
+        smoothing = args.smoothing or f.smoothing or 1.0
+        rate = args.rate or f.rate_hz or 0.0
+        if args.local:
+            times, poses = trajectory.smooth(f.times, f.dqs, limits, smoothing=smoothing,
+                                             rate_hz=rate)
+        else:
+            with client(args) as c:
+                times, poses = c.smooth(f.times, f.dqs, limits, smoothing, rate)
+        fmt = "json" if (args.output or "").lower().endswith(".json") else "csv"
+        _write(args, format_trajectory(times, poses, None, fmt))
+        if args.plot:
+            from service.cli.plots import plot_motion
+            plot_motion(args.plot, times, poses, limits, title=f"dqpose smooth {args.file}",
+                        raw=(f.times, f.dqs))
+            print(f"plot: {args.plot}", file=sys.stderr)
+    except Exception as e:
+        return failure("smooth", args, e)
+    return 0
