@@ -41,6 +41,11 @@ def configure(name: str, p) -> None:
                        help="JSON log lines on standard error (default: %(default)s)")
         p.add_argument("--no-call-log", action="store_true",
                        help="skip the per-call line (method, status, duration) logged at info")
+        p.add_argument("--arm", action="append", default=[], metavar="NAME=SPEC",
+                       help="an arm Trajectories.Execute may drive, by name: e.g. "
+                            "ur=ur:192.168.1.10 or piper=piper:socketcan:can0 (see "
+                            "drivers.open_arm); repeat for more arms. Each is connected at "
+                            "start and stopped when the server stops.")
         p.add_argument("--sims", action="store_true",
                        help="also start the simulated devices (a UR controller, camera views; see "
                             "drivers/sim/fleet.py) and log where they are")
@@ -72,6 +77,7 @@ def _serve(args) -> int:
         token = read(token_file, "r").strip() if token_file else None
         if token_file and not token:
             return fail("serve", f"--token-file: {token_file} is empty")
+        arm_specs = _arm_specs(args.arm)
         cfg = ServerConfig(
             host=args.host, port=args.port,
             tls_cert=read(args.tls_cert) if args.tls_cert else None,
@@ -89,6 +95,20 @@ def _serve(args) -> int:
                     return missing_devices("serve --sims", e)
                 for info in fleet.info:
                     logging.getLogger("dqpose").info(json.dumps({"event": "simulator", **info}))
+            if arm_specs:
+                try:
+                    import drivers
+                    from drivers.executor import Executor
+                except ModuleNotFoundError as e:
+                    return missing_devices("serve --arm", e)
+                for name, spec in arm_specs.items():
+                    try:
+                        cfg.arms[name] = stack.enter_context(drivers.open_arm(spec))
+                    except (OSError, ValueError, RuntimeError) as e:
+                        return fail("serve", f"--arm {name}={spec}: {e}")
+                    logging.getLogger("dqpose").info(json.dumps(
+                        {"event": "arm", "name": name, "spec": spec}))
+                cfg.executor = Executor
             try:  # libuv's loop: ~8 % more calls/s with 8 clients, lower p99 (BENCHMARKS.md)
                 import uvloop
             except ImportError:
@@ -101,6 +121,22 @@ def _serve(args) -> int:
         setting = getattr(e, "setting", None)    # server.AddressInUse: which flag to change
         hint = f"; choose another {_flag(setting)}" if setting else ""
         return fail("serve", f"{e}{hint}")
+
+
+def _arm_specs(values: list[str]) -> dict[str, str]:
+    """``--arm NAME=SPEC`` values by name; ValueError naming the flag for a malformed or
+    repeated one."""
+    out: dict[str, str] = {}
+    for v in values:
+        name, sep, spec = v.partition("=")
+        if not sep or not name or not spec:
+            raise ValueError(f"--arm: expected NAME=SPEC (e.g. ur=ur:192.168.1.10), got {v!r}")
+        if not name.isidentifier():
+            raise ValueError(f"--arm: the name {name!r} must be a word (letters, digits, _)")
+        if name in out:
+            raise ValueError(f"--arm: {name!r} is given twice")
+        out[name] = spec
+    return out
 
 
 # ServerConfig fields whose flag is not the field's name with dashes; PEM_FLAGS name files
