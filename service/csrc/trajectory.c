@@ -1,0 +1,524 @@
+/*
+ * trajectory.c — the planner and the dense evaluation of trajectory.h.
+ *
+ * Why the limits hold (the bounds every ramp is sized by; tau = (t - t0) / T, |g'| <= h =
+ * 1 / (1 - beta), |g''| <= h / beta, g(1 - g) <= 1/4):
+ *   velocity   (1 - g) V_A + g V_B: a convex combination, so never above the larger cruise.
+ *   linear     a = (g'/T) (V_B(t) - V_A(t)) + centripetal terms (SCREW only: the tool point is on
+ *              a helix, its velocity turns at rate nu * ds/dt). |V_B(t) - V_A(t)| is at most the
+ *              difference at the corner plus how far each turned during the ramp, which gives
+ *              |a| <= (h/T) D + (h/2)(kA + kB) + max(kA, kB), k = nu sigma |V| (0 on lines);
+ *              |j| <= (h/(beta T^2)) D + (h/T)(3 + 1/(2 beta))(kA + kB) + max(nu sigma k).
+ *   angular    the blend rotation is E_B(s_B) E_A(s_A) q with E_B a rotation about w_B, which
+ *              keeps the angle between w_B and the rotated w_A, so with the cross product
+ *              X = |w_A x w_B| of the two cruise angular velocities:
+ *              |alpha| <= (h/T) |w_B - w_A| + X/4,
+ *              |j| <= (h/(beta T^2)) |w_B - w_A| + 2 (h/T) X + (4/27) X max(|w_A|, |w_B|).
+ *   radius     the tool point is within max(|V_A|, |V_B|) T / 2 of the corner (the distance
+ *              along each path left to travel, a convex function of tau, so largest at the ends).
+ * The shortest T meeting all of them is solved in closed form for the beta of the leading
+ * (1/T) terms — exactly the 1-D time-optimal S-curve on straight lines — and the cruise rates are
+ * lowered (bisection on a common factor) wherever a ramp cannot meet its radius, a constant term
+ * leaves no room, or the ramps do not fit in their segment.
+ */
+#include "trajectory.h"
+
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "dq.h"
+
+/* With no jerk limit the ramps still get jerk phases, so the acceleration stays continuous (C2
+ * position); this fraction of the ramp costs at most 5 % of its time. */
+#define BETA_FREE 0.05
+#define BISECT 60
+/* A blend that would need its two segments below this fraction of their speed is turned into a
+ * stop, which is then faster. */
+#define BLEND_MIN_FACTOR 0.25
+#define SWEEPS 100
+
+static double norm3(const double *v) { return sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]); }
+
+static void cross3(const double *a, const double *b, double *c)
+{
+    c[0] = a[1] * b[2] - a[2] * b[1];
+    c[1] = a[2] * b[0] - a[0] * b[2];
+    c[2] = a[0] * b[1] - a[1] * b[0];
+}
+
+/* R(q) v for a unit quaternion q = (w, u): v + 2w (u x v) + 2 u x (u x v) */
+static void rotate(const double *q, const double *v, double *out)
+{
+    double t[3], tt[3];
+    cross3(q + 1, v, t);
+    for (int i = 0; i < 3; i++) t[i] *= 2.0;
+    cross3(q + 1, t, tt);
+    for (int i = 0; i < 3; i++) out[i] = v[i] + q[0] * t[i] + tt[i];
+}
+
+/* ---- the ramp shape ------------------------------------------------------------------------ */
+
+double dq_traj_g(double tau, double beta)
+{
+    double h = 1.0 / (1.0 - beta);
+    if (tau <= beta) return h * tau * tau / (2.0 * beta);
+    if (tau >= 1.0 - beta) return 1.0 - h * (1.0 - tau) * (1.0 - tau) / (2.0 * beta);
+    return h * (tau - 0.5 * beta);
+}
+
+static double G_left(double tau, double beta, double h)
+{
+    if (tau <= beta) return h * tau * tau * tau / (6.0 * beta);
+    double u = tau - beta;
+    return h * beta * beta / 6.0 + h * beta * u / 2.0 + h * u * u / 2.0;
+}
+
+/* g is point-symmetric about (1/2, 1/2), so G(tau) = tau - 1/2 + G(1 - tau). */
+double dq_traj_G(double tau, double beta)
+{
+    double h = 1.0 / (1.0 - beta);
+    if (tau <= 0.5) return G_left(tau, beta, h);
+    return tau - 0.5 + G_left(1.0 - tau, beta, h);
+}
+
+/* ---- ramps ----------------------------------------------------------------------------------- */
+
+/* The motion on one side of a ramp: its velocities at the corner and what bounds the rest. */
+typedef struct {
+    double v[3], w[3];  /* tool-point and angular velocity at the junction */
+    double speed, spin; /* |v|, |w| (constant along a segment) */
+    double nus, kappa;  /* rate at which v turns; centripetal acceleration = nus * speed */
+} side;
+
+static const side REST = {{0, 0, 0}, {0, 0, 0}, 0, 0, 0, 0};
+
+static side side_of(const dq_traj_seg *g, double sigma, int at_end)
+{
+    side s;
+    const double *cv = at_end ? g->cv1 : g->cv0;
+    for (int i = 0; i < 3; i++) { s.v[i] = sigma * cv[i]; s.w[i] = sigma * g->w[i]; }
+    s.speed = sigma * g->len;
+    s.spin = sigma * g->theta;
+    s.nus = sigma * g->nu;
+    s.kappa = s.nus * s.speed;
+    return s;
+}
+
+/* Largest x = 1/T with c2 x^2 + c1 x + c0 <= lim; -1 when c0 leaves no room, INFINITY when
+ * nothing depends on x. */
+static double x_max(double c2, double c1, double c0, double lim)
+{
+    double r = lim - c0;
+    if (!(r > 0.0)) return -1.0;
+    double den = c1 + sqrt(c1 * c1 + 4.0 * c2 * r);
+    return den > 0.0 ? 2.0 * r / den : INFINITY;
+}
+
+/* The shortest ramp from A to B within the limits: its duration, beta and the limit that
+ * decides it. Returns 0, or -1 when no duration will do (a constant term is over its limit). */
+static int ramp(const side *A, const side *B, const dq_traj_limits *L, double *T, double *beta,
+                int *bind)
+{
+    double dv[3], dw[3], x[3];
+    for (int i = 0; i < 3; i++) { dv[i] = B->v[i] - A->v[i]; dw[i] = B->w[i] - A->w[i]; }
+    double Dl = norm3(dv), Da = norm3(dw);
+    cross3(A->w, B->w, x);
+    double X = norm3(x);
+    /* beta of the time-optimal S-curve for the leading terms: (1 - beta) T >= Acc,
+     * beta (1 - beta) T^2 >= Jrk */
+    double Acc = fmax(Dl / L->acc[0], Da / L->acc[1]);
+    double Jrk = fmax(L->jerk[0] > 0 ? Dl / L->jerk[0] : 0.0, L->jerk[1] > 0 ? Da / L->jerk[1] : 0.0);
+    double b;
+    if (L->jerk[0] <= 0 && L->jerk[1] <= 0) b = BETA_FREE;
+    else if (Acc * Acc >= Jrk) b = Acc > 0 ? (Jrk / Acc) / (Acc + Jrk / Acc) : 0.5;
+    else b = 0.5;
+    b = fmin(0.5, fmax(b, 1e-3));
+    double h = 1.0 / (1.0 - b);
+    double kA = A->kappa, kB = B->kappa;
+    double xs[4] = {
+        x_max(0.0, h * Dl, 0.5 * h * (kA + kB) + fmax(kA, kB), L->acc[0]),
+        x_max(0.0, h * Da, 0.25 * X, L->acc[1]),
+        L->jerk[0] > 0 ? x_max(h / b * Dl, h * (3.0 + 0.5 / b) * (kA + kB),
+                               fmax(A->nus * kA, B->nus * kB), L->jerk[0]) : INFINITY,
+        L->jerk[1] > 0 ? x_max(h / b * Da, 2.0 * h * X, 4.0 / 27.0 * X * fmax(A->spin, B->spin),
+                               L->jerk[1]) : INFINITY,
+    };
+    static const int names[4] = {DQ_BIND_LIN_ACC, DQ_BIND_ANG_ACC, DQ_BIND_LIN_JERK,
+                                 DQ_BIND_ANG_JERK};
+    double xm = INFINITY;
+    int k = 0;
+    for (int i = 0; i < 4; i++) {
+        if (xs[i] < 0) return -1;
+        if (xs[i] < xm) { xm = xs[i]; k = i; }
+    }
+    *T = isinf(xm) ? 0.0 : 1.0 / xm;
+    *beta = b;
+    *bind = names[k];
+    return 0;
+}
+
+/* ---- the planner ----------------------------------------------------------------------------- */
+
+typedef struct {
+    dq_traj_seg *seg;
+    size_t n;
+    const double *radius;
+    const dq_traj_limits *L;
+    double sigma0;
+} plan_ctx;
+
+static int blended(const plan_ctx *c, size_t k) { return k > 0 && k < c->n && c->seg[k].blend_in; }
+
+/* The ramp at the start of segment k (k == n: the stop after the last one), at rates sa, sb of
+ * the segments before and after it. */
+static int ramp_at(const plan_ctx *c, size_t k, double sa, double sb, double *T, double *beta,
+                   int *bind)
+{
+    side A, B;
+    if (k == 0) {
+        A = side_of(&c->seg[0], c->sigma0, 0);
+        B = side_of(&c->seg[0], sb, 0);
+    } else if (k == c->n) {
+        A = side_of(&c->seg[k - 1], sa, 1);
+        B = REST;
+    } else if (blended(c, k)) {
+        A = side_of(&c->seg[k - 1], sa, 1);
+        B = side_of(&c->seg[k], sb, 0);
+    } else {
+        return -2; /* a stop: two ramps through rest, see ramp_up / ramp_down */
+    }
+    return ramp(&A, &B, c->L, T, beta, bind);
+}
+
+static int ramp_up(const plan_ctx *c, size_t k, double s, double *T, double *beta, int *bind)
+{
+    if (k == 0 || blended(c, k)) return ramp_at(c, k, k ? c->seg[k - 1].sigma : 0.0, s, T, beta, bind);
+    side B = side_of(&c->seg[k], s, 0);
+    return ramp(&REST, &B, c->L, T, beta, bind);
+}
+
+static int ramp_down(const plan_ctx *c, size_t k, double s, double *T, double *beta, int *bind)
+{
+    if (k + 1 == c->n || blended(c, k + 1))
+        return ramp_at(c, k + 1, s, k + 1 < c->n ? c->seg[k + 1].sigma : 0.0, T, beta, bind);
+    side A = side_of(&c->seg[k], s, 1);
+    return ramp(&A, &REST, c->L, T, beta, bind);
+}
+
+/* A blended corner k at rates scaled by f: feasible and within its radius. */
+static int corner_ok(const plan_ctx *c, size_t k, double f, int *bind)
+{
+    double T, b, sa = f * c->seg[k - 1].sigma, sb = f * c->seg[k].sigma;
+    if (ramp_at(c, k, sa, sb, &T, &b, bind) < 0) return 0;
+    return 0.5 * T * fmax(sa * c->seg[k - 1].len, sb * c->seg[k].len) <= c->radius[k];
+}
+
+/* Segment k at cruise rate s: both ramps feasible and fitting in s in [0, 1]. */
+static int fits(const plan_ctx *c, size_t k, double s, int *bind)
+{
+    double tu, bu, td, bd;
+    int b1, b2;
+    if (ramp_up(c, k, s, &tu, &bu, &b1) < 0 || ramp_down(c, k, s, &td, &bd, &b2) < 0) {
+        *bind = DQ_BIND_LIN_ACC;
+        return 0;
+    }
+    double sa = k == 0 ? c->sigma0 : 0.0;
+    *bind = tu >= td ? b1 : b2;
+    return 0.5 * (sa + s) * tu + 0.5 * s * td <= 1.0;
+}
+
+/* The largest factor in (0, 1] for which ok holds (ok(1) is known false), 0 if none. */
+#define BISECT_FACTOR(ok_expr, out)                        \
+    do {                                                   \
+        double lo_ = 0.0, hi_ = 1.0;                       \
+        for (int it_ = 0; it_ < BISECT; it_++) {           \
+            double f = 0.5 * (lo_ + hi_);                  \
+            if (ok_expr) lo_ = f; else hi_ = f;            \
+        }                                                  \
+        (out) = lo_;                                       \
+    } while (0)
+
+/* Cruise rates from the caps scaled by lam, lowered until every ramp fits; then the time law. */
+static int solve(plan_ctx *c, const double *lam, size_t *bad)
+{
+    size_t n = c->n;
+    int bind;
+    for (size_t k = 0; k < n; k++) {
+        c->seg[k].sigma = lam[k] * c->seg[k].cap;
+        c->seg[k].bind = lam[k] < 1.0 ? DQ_BIND_TIME : c->seg[k].cap_bind;
+    }
+    int settled = 0;
+    for (int sweep = 0; sweep < SWEEPS && !settled; sweep++) {
+        settled = 1;
+        for (size_t k = 1; k < n; k++) {
+            if (!blended(c, k) || corner_ok(c, k, 1.0, &bind)) continue;
+            double f;
+            BISECT_FACTOR(corner_ok(c, k, f, &bind), f);
+            if (f < BLEND_MIN_FACTOR) {
+                /* a radius too small for the turn (a reversal, say): stopping is faster */
+                c->seg[k].blend_in = 0;
+                settled = 0;
+                continue;
+            }
+            corner_ok(c, k, f, &bind);
+            c->seg[k - 1].sigma *= f;
+            c->seg[k].sigma *= f;
+            c->seg[k - 1].bind = c->seg[k].bind = bind;
+            settled = 0;
+        }
+        for (size_t k = 0; k < n; k++) {
+            double s = c->seg[k].sigma;
+            if (fits(c, k, s, &bind)) continue;
+            double f;
+            BISECT_FACTOR(fits(c, k, f * s, &bind), f);
+            if (f <= 0.0) {
+                *bad = k;
+                return k == 0 && c->sigma0 > 0 ? DQ_TRAJ_E_START : DQ_TRAJ_E_STUCK;
+            }
+            fits(c, k, f * s, &bind);
+            c->seg[k].sigma = f * s;
+            c->seg[k].bind = bind;
+            settled = 0;
+        }
+    }
+    if (!settled) { *bad = 0; return DQ_TRAJ_E_STUCK; }
+    double t = 0.0;
+    for (size_t k = 0; k < n; k++) {
+        dq_traj_seg *g = &c->seg[k];
+        ramp_up(c, k, g->sigma, &g->tu, &g->bu, &bind);
+        ramp_down(c, k, g->sigma, &g->td, &g->bd, &bind);
+        g->sigma_a = k == 0 ? c->sigma0 : 0.0;
+        double su = 0.5 * (g->sigma_a + g->sigma) * g->tu;
+        g->tc = fmax(0.0, (1.0 - su - 0.5 * g->sigma * g->td) / g->sigma);
+        if (k > 0) {
+            const dq_traj_seg *p = &c->seg[k - 1];
+            t = p->start + p->tu + p->tc + (g->blend_in ? 0.0 : p->td);
+        }
+        g->start = t;
+    }
+    return DQ_OK;
+}
+
+/* When waypoint m (>= 1) is reached: the end of a stop, the middle of a blend. */
+static double arrival(const plan_ctx *c, size_t m)
+{
+    if (m == c->n) {
+        const dq_traj_seg *g = &c->seg[m - 1];
+        return g->start + g->tu + g->tc + g->td;
+    }
+    const dq_traj_seg *g = &c->seg[m];
+    return g->blend_in ? g->start + 0.5 * g->tu : g->start;
+}
+
+static void geometry(const double *a, const double *b, int mode, dq_traj_seg *g)
+{
+    double ac[8], rel[8], l[6], wb[3];
+    memcpy(g->a, a, sizeof g->a);
+    memcpy(g->b, b, sizeof g->b);
+    dq_conj(a, ac);
+    dq_mul(ac, b, rel);
+    dq_log(rel, l);
+    for (int i = 0; i < 3; i++) { wb[i] = 2.0 * l[i]; g->vb[i] = 2.0 * l[3 + i]; }
+    g->theta = norm3(wb);
+    rotate(a, wb, g->w);
+    double qa[4], ta[3], qb[4], tb[3];
+    dq_to_pose(a, qa, ta);
+    dq_to_pose(b, qb, tb);
+    g->qa_conj[0] = a[0];
+    for (int i = 1; i < 4; i++) g->qa_conj[i] = -a[i];
+    for (int i = 0; i < 3; i++) { g->pa[i] = ta[i]; g->dp[i] = tb[i] - ta[i]; }
+    if (mode == DQ_TRAJ_SCREW) {
+        dq_sclerp_prepare(a, b, &g->pair);
+        rotate(a, g->vb, g->cv0);
+        rotate(b, g->vb, g->cv1);
+        g->len = norm3(g->vb);
+        g->nu = g->theta;
+    } else {
+        double ra[8] = {a[0], a[1], a[2], a[3], 0, 0, 0, 0}, rb[8] = {b[0], b[1], b[2], b[3], 0, 0, 0, 0};
+        dq_sclerp_prepare(ra, rb, &g->pair);
+        memcpy(g->cv0, g->dp, sizeof g->cv0);
+        memcpy(g->cv1, g->dp, sizeof g->cv1);
+        g->len = norm3(g->dp);
+        g->nu = 0.0;
+    }
+}
+
+/* The cruise alone: speed limits, and on a helix its centripetal acceleration and jerk. */
+static void cap_of(dq_traj_seg *g, const dq_traj_limits *L)
+{
+    double best = INFINITY;
+    int bind = DQ_BIND_LIN_VEL;
+#define CAP_(value, name) do { double v_ = (value); if (v_ < best) { best = v_; bind = (name); } } while (0)
+    if (g->len > 0) CAP_(L->vel[0] / g->len, DQ_BIND_LIN_VEL);
+    if (g->theta > 0) CAP_(L->vel[1] / g->theta, DQ_BIND_ANG_VEL);
+    if (g->nu * g->len > 0) {
+        CAP_(sqrt(L->acc[0] / (g->nu * g->len)), DQ_BIND_LIN_ACC);
+        if (L->jerk[0] > 0) CAP_(cbrt(L->jerk[0] / (g->nu * g->nu * g->len)), DQ_BIND_LIN_JERK);
+    }
+#undef CAP_
+    g->cap = best;
+    g->cap_bind = bind;
+}
+
+/* Timed waypoints: the cruise of the segments since the previous timed waypoint is slowed by one
+ * common factor lam until the waypoint is reached on time. A blended corner couples neighbouring
+ * intervals, so the sweep repeats until every time holds. */
+static int meet_times(plan_ctx *c, const double *times, double *lam, size_t *bad)
+{
+    size_t K = c->n + 1;
+    int rc = solve(c, lam, bad);
+    for (int sweep = 0; !rc && sweep < 20; sweep++) {
+        size_t p = 0;
+        for (size_t m = 1; m < K && !rc; m++) {
+            if (!(times[m] > 0)) continue;
+            for (size_t k = p; k < m; k++) lam[k] = 1.0;
+            if ((rc = solve(c, lam, bad))) break;
+            double tol = 1e-9 * fmax(1.0, times[m]);
+            if (arrival(c, m) > times[m] + tol) { *bad = m; return DQ_TRAJ_E_TIME; }
+            double lo = 0.0, hi = 1.0;
+            for (int it = 0; it < BISECT && !rc && fabs(arrival(c, m) - times[m]) > 0.1 * tol; it++) {
+                double f = 0.5 * (lo + hi);
+                for (size_t k = p; k < m; k++) lam[k] = f;
+                rc = solve(c, lam, bad);
+                if (arrival(c, m) > times[m]) lo = f; else hi = f;
+            }
+            p = m;
+        }
+        if (rc || (rc = solve(c, lam, bad))) break;
+        int met = 1;
+        for (size_t m = 1; m < K; m++)
+            if (times[m] > 0 && fabs(arrival(c, m) - times[m]) > 1e-9 * fmax(1.0, times[m])) met = 0;
+        if (met) return DQ_OK;
+    }
+    if (!rc) { *bad = 0; rc = DQ_TRAJ_E_STUCK; }
+    return rc;
+}
+
+int dq_traj_plan(const double *wp, size_t K, int mode, const double *radius, const double *times,
+                 const dq_traj_limits *lim, double sigma0, dq_traj_seg *seg, double *duration,
+                 size_t *bad)
+{
+    size_t n = K - 1;
+    plan_ctx c = {seg, n, radius, lim, sigma0};
+    double *lam = malloc(n * sizeof *lam);
+    if (!lam) return DQ_TRAJ_E_MEMORY;
+    int timed = 0;
+    for (size_t k = 0; k < n; k++) {
+        geometry(wp + 8 * k, wp + 8 * (k + 1), mode, &seg[k]);
+        cap_of(&seg[k], lim);
+        seg[k].blend_in = k > 0 && radius[k] > 0;
+        lam[k] = 1.0;
+        timed |= times[k + 1] > 0;
+    }
+    int rc = timed ? meet_times(&c, times, lam, bad) : solve(&c, lam, bad);
+    free(lam);
+    if (!rc) *duration = arrival(&c, n);
+    return rc;
+}
+
+/* ---- dense evaluation ------------------------------------------------------------------------ */
+
+/* s and ds/dt of segment g at time tl after its start. */
+static void seg_s(const dq_traj_seg *g, double tl, double *s, double *sd)
+{
+    double su = 0.5 * (g->sigma_a + g->sigma) * g->tu;
+    if (tl < g->tu) {
+        double tau = tl / g->tu, G = dq_traj_G(tau, g->bu), gg = dq_traj_g(tau, g->bu);
+        *s = g->tu * (g->sigma_a * (tau - G) + g->sigma * G);
+        *sd = g->sigma_a * (1.0 - gg) + g->sigma * gg;
+    } else if (tl < g->tu + g->tc) {
+        *s = su + g->sigma * (tl - g->tu);
+        *sd = g->sigma;
+    } else if (tl < g->tu + g->tc + g->td) {
+        double tau = (tl - g->tu - g->tc) / g->td;
+        *s = su + g->sigma * (g->tc + g->td * (tau - dq_traj_G(tau, g->bd)));
+        *sd = g->sigma * (1.0 - dq_traj_g(tau, g->bd));
+    } else {
+        *s = 1.0;
+        *sd = 0.0;
+    }
+    *s = fmin(1.0, fmax(0.0, *s));
+}
+
+/* Rotation r, tool point p and their rates of segment g at s (rate sd). */
+static void seg_at(const dq_traj_seg *g, int mode, double s, double sd, double *r, double *p,
+                   double *v, double *w)
+{
+    double out[8];
+    dq_sclerp_eval(&g->pair, s, out);
+    memcpy(r, out, 4 * sizeof(double));
+    if (mode == DQ_TRAJ_SCREW) {
+        double rc[4] = {out[0], -out[1], -out[2], -out[3]}, t[4];
+        dq_qmul(out + 4, rc, t);
+        for (int i = 0; i < 3; i++) p[i] = 2.0 * t[1 + i];
+        rotate(r, g->vb, v);
+    } else {
+        for (int i = 0; i < 3; i++) { p[i] = g->pa[i] + s * g->dp[i]; v[i] = g->dp[i]; }
+    }
+    for (int i = 0; i < 3; i++) { v[i] *= sd; w[i] = sd * g->w[i]; }
+}
+
+static void from_rp(const double *r, const double *p, double *out)
+{
+    double tq[4] = {0.0, 0.5 * p[0], 0.5 * p[1], 0.5 * p[2]};
+    memcpy(out, r, 4 * sizeof(double));
+    dq_qmul(tq, r, out + 4);
+}
+
+void dq_traj_eval(const dq_traj_seg *seg, size_t nseg, int mode, double duration,
+                  const double *t, size_t n, double *pose, double *lin, double *ang)
+{
+    size_t k = 0;
+    for (size_t i = 0; i < n; i++) {
+        double ti = t[i], *o = pose + 8 * i, *v = lin + 3 * i, *w = ang + 3 * i;
+        if (ti <= 0.0 || ti >= duration) {
+            /* the ends exactly; the start moves at the start rate, the end is at rest */
+            const dq_traj_seg *g = ti <= 0.0 ? &seg[0] : &seg[nseg - 1];
+            memcpy(o, ti <= 0.0 ? g->a : g->b, 8 * sizeof(double));
+            double sd = ti <= 0.0 ? g->sigma_a : 0.0, r[4], p[3];
+            seg_at(g, mode, ti <= 0.0 ? 0.0 : 1.0, sd, r, p, v, w);
+            continue;
+        }
+        /* the last segment started by ti; sorted times keep the previous one as the guess */
+        if (!(seg[k].start <= ti && (k + 1 == nseg || seg[k + 1].start > ti))) {
+            size_t lo = 0, hi = nseg;
+            while (hi - lo > 1) {
+                size_t mid = (lo + hi) / 2;
+                if (seg[mid].start <= ti) lo = mid; else hi = mid;
+            }
+            k = lo;
+        }
+        const dq_traj_seg *g = &seg[k];
+        double s, sd, r[4], p[3];
+        seg_s(g, ti - g->start, &s, &sd);
+        const dq_traj_seg *q = k > 0 && g->blend_in ? &seg[k - 1] : NULL;
+        if (q && ti >= q->start + q->tu + q->tc + q->td) q = NULL;
+        if (!q) {
+            if (mode == DQ_TRAJ_SCREW) {
+                dq_sclerp_eval(&g->pair, s, o); /* ScLERP itself, not a rebuilt pose */
+                rotate(o, g->vb, v);
+                for (int j = 0; j < 3; j++) { v[j] *= sd; w[j] = sd * g->w[j]; }
+            } else {
+                seg_at(g, mode, s, sd, r, p, v, w);
+                from_rp(r, p, o);
+            }
+            continue;
+        }
+        /* a blend: segment k's progress applied on top of segment k-1's */
+        double s0, sd0, r0[4], p0[3], v0[3], w0[3], e[4], rr[4], w0r[3];
+        seg_s(q, ti - q->start, &s0, &sd0);
+        seg_at(g, mode, s, sd, r, p, v, w);
+        seg_at(q, mode, s0, sd0, r0, p0, v0, w0);
+        dq_qmul(r, g->qa_conj, e);
+        dq_qmul(e, r0, rr);
+        rotate(e, w0, w0r);
+        double pp[3];
+        for (int j = 0; j < 3; j++) {
+            pp[j] = p0[j] + p[j] - g->pa[j];
+            v[j] += v0[j];
+            w[j] += w0r[j];
+        }
+        from_rp(rr, pp, o);
+    }
+}
