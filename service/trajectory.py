@@ -161,25 +161,25 @@ def _waypoints(waypoints) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
                 raise FieldError(f"waypoints[{i}].{name}: must be finite and >= 0, got {v!r}")
             out[i] = v
     try:
-        q, t = dq.to_pose(poses)          # checks each pose is a unit dual quaternion
+        dq.to_pose(poses)                 # checks each pose is a unit dual quaternion
     except ValueError as e:
         raise rename(e, {"a": "waypoints{}.pose"}) from None
-    poses = dq.from_pose(q / np.linalg.norm(q, axis=1, keepdims=True), t)
+    poses = dq.normalize(poses)
     # one hemisphere along the path, so the stream never flips sign
     flip = np.cumprod(np.where(np.einsum("ij,ij->i", poses[1:, :4], poses[:-1, :4]) < 0, -1.0, 1.0))
     poses[1:] *= flip[:, None]
     if times[0] != 0:
         raise FieldError(f"waypoints[0].time: the first waypoint is the start (time 0), "
-                         f"got {times[0]!r}")
+                         f"got {float(times[0])!r}")
     timed = np.flatnonzero(times)
     for a, b in zip(timed[:-1], timed[1:]):
         if times[b] <= times[a]:
-            raise FieldError(f"waypoints[{b}].time: {times[b]!r} is not after waypoints[{a}].time "
-                             f"{times[a]!r} (times must increase)")
+            raise FieldError(f"waypoints[{b}].time: {float(times[b])!r} is not after waypoints[{a}].time "
+                             f"{float(times[a])!r} (times must increase)")
     for i in (0, len(wps) - 1):
         if radius[i] > 0:
             raise FieldError(f"waypoints[{i}].blend_radius: the first and last waypoints are "
-                             f"not blended, got {radius[i]!r}")
+                             f"not blended, got {float(radius[i])!r}")
     return poses, times, radius
 
 
@@ -244,8 +244,8 @@ def plan(waypoints, limits: Limits, interpolation: str = "tool_linear", *,
     over = np.flatnonzero(radius > half_len)
     if over.size:
         i = over[0]
-        raise FieldError(f"waypoints[{i}].blend_radius: {radius[i]!r} m is more than half a "
-                         f"neighbouring segment ({half_len[i]!r} m)")
+        raise FieldError(f"waypoints[{i}].blend_radius: {float(radius[i])!r} m is more than half a "
+                         f"neighbouring segment ({float(half_len[i])!r} m)")
     sigma0 = 0.0 if start_velocity is None else _start_rate(start_velocity, poses, mode,
                                                             length, angle)
     v0 = sigma0 * np.array([length[0], angle[0]])
@@ -255,7 +255,7 @@ def plan(waypoints, limits: Limits, interpolation: str = "tool_linear", *,
     code, bad, table, duration, segs = _c.traj_plan(poses, mode, radius, times,
                                                    limits.as_array(), sigma0)
     if code == _E_TIME:
-        raise Infeasible(f"waypoints[{bad}].time: {times[bad]!r} s cannot be met under the "
+        raise Infeasible(f"waypoints[{bad}].time: {float(times[bad])!r} s cannot be met under the "
                          f"limits")
     if code == _E_START:
         raise Infeasible("start_velocity: cannot be brought to rest within the first segment "

@@ -50,13 +50,19 @@ def peaks(times: np.ndarray, poses: np.ndarray) -> Peaks:
     return Peaks(top(lin), top(ang))
 
 
-def violation(p: Peaks, limits) -> float:
-    """The worst ratio over the limits (jerk 0 = none) minus 1: <= 0 means every limit held."""
+# What rounding (float64 poses near 1 m, 1 ms steps) can add to [velocity, acceleration, jerk]
+# measured by finite differences: ~1e-16 / dt^k, with room for the conversions.
+NOISE_1KHZ = (1e-9, 1e-6, 1e-4)
+
+
+def violation(p: Peaks, limits, noise=(0.0, 0.0, 0.0)) -> float:
+    """The worst ratio over the limits (jerk 0 = none) minus 1, each peak first lowered by the
+    rounding ``noise`` of its order: <= 0 means every limit held."""
     lim_lin = (limits.max_linear_velocity, limits.max_linear_acceleration, limits.max_linear_jerk)
     lim_ang = (limits.max_angular_velocity, limits.max_angular_acceleration,
                limits.max_angular_jerk)
     worst = -1.0
-    for peak, lim in zip(np.concatenate([p.linear, p.angular]), lim_lin + lim_ang):
+    for peak, lim, eps in zip(np.concatenate([p.linear, p.angular]), lim_lin + lim_ang, 2 * tuple(noise)):
         if lim > 0:
-            worst = max(worst, peak / lim - 1.0)
+            worst = max(worst, (peak - eps) / lim - 1.0)
     return worst

@@ -91,7 +91,6 @@ typedef struct {
     double nus, kappa;  /* rate at which v turns; centripetal acceleration = nus * speed */
 } side;
 
-static const side REST = {{0, 0, 0}, {0, 0, 0}, 0, 0, 0, 0};
 
 static side side_of(const dq_traj_seg *g, double sigma, int at_end)
 {
@@ -170,62 +169,58 @@ typedef struct {
 
 static int blended(const plan_ctx *c, size_t k) { return k > 0 && k < c->n && c->seg[k].blend_in; }
 
-/* The ramp at the start of segment k (k == n: the stop after the last one), at rates sa, sb of
- * the segments before and after it. */
-static int ramp_at(const plan_ctx *c, size_t k, double sa, double sb, double *T, double *beta,
-                   int *bind)
+/* The blend ramp at corner k between segment k-1 at rate sa and segment k at rate sb. */
+static int corner_ramp(const plan_ctx *c, size_t k, double sa, double sb, double *T, double *beta,
+                       int *bind)
 {
-    side A, B;
-    if (k == 0) {
-        A = side_of(&c->seg[0], c->sigma0, 0);
-        B = side_of(&c->seg[0], sb, 0);
-    } else if (k == c->n) {
-        A = side_of(&c->seg[k - 1], sa, 1);
-        B = REST;
-    } else if (blended(c, k)) {
-        A = side_of(&c->seg[k - 1], sa, 1);
-        B = side_of(&c->seg[k], sb, 0);
-    } else {
-        return -2; /* a stop: two ramps through rest, see ramp_up / ramp_down */
-    }
+    side A = side_of(&c->seg[k - 1], sa, 1), B = side_of(&c->seg[k], sb, 0);
     return ramp(&A, &B, c->L, T, beta, bind);
 }
 
-static int ramp_up(const plan_ctx *c, size_t k, double s, double *T, double *beta, int *bind)
-{
-    if (k == 0 || blended(c, k)) return ramp_at(c, k, k ? c->seg[k - 1].sigma : 0.0, s, T, beta, bind);
-    side B = side_of(&c->seg[k], s, 0);
-    return ramp(&REST, &B, c->L, T, beta, bind);
-}
-
-static int ramp_down(const plan_ctx *c, size_t k, double s, double *T, double *beta, int *bind)
-{
-    if (k + 1 == c->n || blended(c, k + 1))
-        return ramp_at(c, k + 1, s, k + 1 < c->n ? c->seg[k + 1].sigma : 0.0, T, beta, bind);
-    side A = side_of(&c->seg[k], s, 1);
-    return ramp(&A, &REST, c->L, T, beta, bind);
-}
-
-/* A blended corner k at rates scaled by f: feasible and within its radius. */
+/* A blended corner k with its two corner rates scaled by f: feasible and within its radius. */
 static int corner_ok(const plan_ctx *c, size_t k, double f, int *bind)
 {
-    double T, b, sa = f * c->seg[k - 1].sigma, sb = f * c->seg[k].sigma;
-    if (ramp_at(c, k, sa, sb, &T, &b, bind) < 0) return 0;
+    double T, b, sa = f * c->seg[k - 1].sig_out, sb = f * c->seg[k].sig_in;
+    if (corner_ramp(c, k, sa, sb, &T, &b, bind) < 0) return 0;
     return 0.5 * T * fmax(sa * c->seg[k - 1].len, sb * c->seg[k].len) <= c->radius[k];
 }
 
-/* Segment k at cruise rate s: both ramps feasible and fitting in s in [0, 1]. */
-static int fits(const plan_ctx *c, size_t k, double s, int *bind)
+/* The five phases of segment k (trajectory.h) at cruise rate s and corner rates si, so (the
+ * cruise's duration left 0). Returns the s it covers outside the cruise, or -1 when a ramp is
+ * infeasible; *bind the limit of the longest ramp of its own. */
+static double phases(const plan_ctx *c, size_t k, double s, double si, double so, double *T,
+                     double *B, double *R, int *bind)
 {
-    double tu, bu, td, bd;
-    int b1, b2;
-    if (ramp_up(c, k, s, &tu, &bu, &b1) < 0 || ramp_down(c, k, s, &td, &bd, &b2) < 0) {
-        *bind = DQ_BIND_LIN_ACC;
-        return 0;
+    const dq_traj_seg *g = &c->seg[k];
+    int b1 = DQ_BIND_LIN_ACC, b3 = DQ_BIND_LIN_ACC, b;
+    double r[6] = {0.0, si, s, s, so, 0.0};
+    memset(T, 0, 5 * sizeof *T);
+    for (int i = 0; i < 5; i++) B[i] = 0.5;
+    if (blended(c, k) && corner_ramp(c, k, c->seg[k - 1].sig_out, si, &T[0], &B[0], &b) < 0) return -1;
+    side S0 = side_of(g, si, 0), S1 = side_of(g, s, 0), S2 = side_of(g, s, 1), S3 = side_of(g, so, 1);
+    if (ramp(&S0, &S1, c->L, &T[1], &B[1], &b1) < 0) return -1;
+    if (ramp(&S2, &S3, c->L, &T[3], &B[3], &b3) < 0) return -1;
+    if (blended(c, k + 1) && corner_ramp(c, k + 1, so, c->seg[k + 1].sig_in, &T[4], &B[4], &b) < 0)
+        return -1;
+    *bind = T[1] >= T[3] ? b1 : b3;
+    double covered = 0.0;
+    for (int i = 0; i < 5; i++) {
+        if (R) { R[i] = r[i]; R[5] = r[5]; }
+        covered += 0.5 * (r[i] + r[i + 1]) * T[i];
     }
-    double sa = k == 0 ? c->sigma0 : 0.0;
-    *bind = tu >= td ? b1 : b2;
-    return 0.5 * (sa + s) * tu + 0.5 * s * td <= 1.0;
+    return covered;
+}
+
+/* Segment k with its rates scaled to cruise f * sigma: every ramp feasible, all within s <= 1.
+ * Corner rates never exceed the cruise; the start rate sigma0 is given. */
+static int fits(const plan_ctx *c, size_t k, double f, int *bind)
+{
+    const dq_traj_seg *g = &c->seg[k];
+    double s = f * g->sigma, T[5], B[5];
+    double si = blended(c, k) ? fmin(g->sig_in, s) : g->sig_in;
+    double so = fmin(g->sig_out, s);
+    double covered = phases(c, k, s, si, so, T, B, NULL, bind);
+    return covered >= 0.0 && covered <= 1.0;
 }
 
 /* The largest factor in (0, 1] for which ok holds (ok(1) is known false), 0 if none. */
@@ -239,14 +234,18 @@ static int fits(const plan_ctx *c, size_t k, double s, int *bind)
         (out) = lo_;                                       \
     } while (0)
 
-/* Cruise rates from the caps scaled by lam, lowered until every ramp fits; then the time law. */
+/* Cruise rates from the caps scaled by lam; corner rates lowered until each blend fits its
+ * radius, cruise rates until each segment's ramps fit in it; then the time law. */
 static int solve(plan_ctx *c, const double *lam, size_t *bad)
 {
     size_t n = c->n;
     int bind;
     for (size_t k = 0; k < n; k++) {
-        c->seg[k].sigma = lam[k] * c->seg[k].cap;
-        c->seg[k].bind = lam[k] < 1.0 ? DQ_BIND_TIME : c->seg[k].cap_bind;
+        dq_traj_seg *g = &c->seg[k];
+        g->sigma = lam[k] * g->cap;
+        g->bind = lam[k] < 1.0 ? DQ_BIND_TIME : g->cap_bind;
+        g->sig_in = blended(c, k) ? g->sigma : k == 0 ? c->sigma0 : 0.0;
+        g->sig_out = blended(c, k + 1) ? g->sigma : 0.0;
     }
     int settled = 0;
     for (int sweep = 0; sweep < SWEEPS && !settled; sweep++) {
@@ -255,30 +254,24 @@ static int solve(plan_ctx *c, const double *lam, size_t *bad)
             if (!blended(c, k) || corner_ok(c, k, 1.0, &bind)) continue;
             double f;
             BISECT_FACTOR(corner_ok(c, k, f, &bind), f);
-            if (f < BLEND_MIN_FACTOR) {
-                /* a radius too small for the turn (a reversal, say): stopping is faster */
-                c->seg[k].blend_in = 0;
-                settled = 0;
-                continue;
-            }
-            corner_ok(c, k, f, &bind);
-            c->seg[k - 1].sigma *= f;
-            c->seg[k].sigma *= f;
-            c->seg[k - 1].bind = c->seg[k].bind = bind;
+            c->seg[k - 1].sig_out *= f;   /* f = 0: no blend fits, a stop */
+            c->seg[k].sig_in *= f;
             settled = 0;
         }
         for (size_t k = 0; k < n; k++) {
-            double s = c->seg[k].sigma;
-            if (fits(c, k, s, &bind)) continue;
+            dq_traj_seg *g = &c->seg[k];
+            if (fits(c, k, 1.0, &bind)) continue;
             double f;
-            BISECT_FACTOR(fits(c, k, f * s, &bind), f);
+            BISECT_FACTOR(fits(c, k, f, &bind), f);
             if (f <= 0.0) {
                 *bad = k;
                 return k == 0 && c->sigma0 > 0 ? DQ_TRAJ_E_START : DQ_TRAJ_E_STUCK;
             }
-            fits(c, k, f * s, &bind);
-            c->seg[k].sigma = f * s;
-            c->seg[k].bind = bind;
+            fits(c, k, f, &bind);
+            g->sigma *= f;
+            if (blended(c, k)) g->sig_in = fmin(g->sig_in, g->sigma);
+            g->sig_out = fmin(g->sig_out, g->sigma);
+            g->bind = bind;
             settled = 0;
         }
     }
@@ -286,29 +279,28 @@ static int solve(plan_ctx *c, const double *lam, size_t *bad)
     double t = 0.0;
     for (size_t k = 0; k < n; k++) {
         dq_traj_seg *g = &c->seg[k];
-        ramp_up(c, k, g->sigma, &g->tu, &g->bu, &bind);
-        ramp_down(c, k, g->sigma, &g->td, &g->bd, &bind);
-        g->sigma_a = k == 0 ? c->sigma0 : 0.0;
-        double su = 0.5 * (g->sigma_a + g->sigma) * g->tu;
-        g->tc = fmax(0.0, (1.0 - su - 0.5 * g->sigma * g->td) / g->sigma);
+        double covered = phases(c, k, g->sigma, g->sig_in, g->sig_out, g->T, g->beta, g->rate, &bind);
+        g->T[2] = fmax(0.0, (1.0 - covered) / g->sigma);
         if (k > 0) {
             const dq_traj_seg *p = &c->seg[k - 1];
-            t = p->start + p->tu + p->tc + (g->blend_in ? 0.0 : p->td);
+            t = p->start + p->T[0] + p->T[1] + p->T[2] + p->T[3] + (g->blend_in ? 0.0 : p->T[4]);
         }
         g->start = t;
     }
     return DQ_OK;
 }
 
+static double seg_duration(const dq_traj_seg *g)
+{
+    return g->T[0] + g->T[1] + g->T[2] + g->T[3] + g->T[4];
+}
+
 /* When waypoint m (>= 1) is reached: the end of a stop, the middle of a blend. */
 static double arrival(const plan_ctx *c, size_t m)
 {
-    if (m == c->n) {
-        const dq_traj_seg *g = &c->seg[m - 1];
-        return g->start + g->tu + g->tc + g->td;
-    }
+    if (m == c->n) return c->seg[m - 1].start + seg_duration(&c->seg[m - 1]);
     const dq_traj_seg *g = &c->seg[m];
-    return g->blend_in ? g->start + 0.5 * g->tu : g->start;
+    return g->blend_in ? g->start + 0.5 * g->T[0] : g->start;
 }
 
 static void geometry(const double *a, const double *b, int mode, dq_traj_seg *g)
@@ -419,26 +411,24 @@ int dq_traj_plan(const double *wp, size_t K, int mode, const double *radius, con
 
 /* ---- dense evaluation ------------------------------------------------------------------------ */
 
-/* s and ds/dt of segment g at time tl after its start. */
+/* s and ds/dt of segment g at time tl after its start: each phase takes the rate from R[i] to
+ * R[i+1] with the ramp shape (the cruise: equal rates). */
 static void seg_s(const dq_traj_seg *g, double tl, double *s, double *sd)
 {
-    double su = 0.5 * (g->sigma_a + g->sigma) * g->tu;
-    if (tl < g->tu) {
-        double tau = tl / g->tu, G = dq_traj_G(tau, g->bu), gg = dq_traj_g(tau, g->bu);
-        *s = g->tu * (g->sigma_a * (tau - G) + g->sigma * G);
-        *sd = g->sigma_a * (1.0 - gg) + g->sigma * gg;
-    } else if (tl < g->tu + g->tc) {
-        *s = su + g->sigma * (tl - g->tu);
-        *sd = g->sigma;
-    } else if (tl < g->tu + g->tc + g->td) {
-        double tau = (tl - g->tu - g->tc) / g->td;
-        *s = su + g->sigma * (g->tc + g->td * (tau - dq_traj_G(tau, g->bd)));
-        *sd = g->sigma * (1.0 - dq_traj_g(tau, g->bd));
-    } else {
-        *s = 1.0;
-        *sd = 0.0;
+    double s0 = 0.0;
+    for (int i = 0; i < 5; i++) {
+        double T = g->T[i], x = g->rate[i], y = g->rate[i + 1];
+        if (tl < T) {
+            double tau = tl / T, G = dq_traj_G(tau, g->beta[i]), gg = dq_traj_g(tau, g->beta[i]);
+            *s = fmin(1.0, fmax(0.0, s0 + T * (x * (tau - G) + y * G)));
+            *sd = x * (1.0 - gg) + y * gg;
+            return;
+        }
+        tl -= T;
+        s0 += 0.5 * (x + y) * T;
     }
-    *s = fmin(1.0, fmax(0.0, *s));
+    *s = 1.0;
+    *sd = 0.0;
 }
 
 /* Rotation r, tool point p and their rates of segment g at s (rate sd). */
@@ -476,7 +466,7 @@ void dq_traj_eval(const dq_traj_seg *seg, size_t nseg, int mode, double duration
             /* the ends exactly; the start moves at the start rate, the end is at rest */
             const dq_traj_seg *g = ti <= 0.0 ? &seg[0] : &seg[nseg - 1];
             memcpy(o, ti <= 0.0 ? g->a : g->b, 8 * sizeof(double));
-            double sd = ti <= 0.0 ? g->sigma_a : 0.0, r[4], p[3];
+            double sd = ti <= 0.0 ? g->rate[1] : 0.0, r[4], p[3];
             seg_at(g, mode, ti <= 0.0 ? 0.0 : 1.0, sd, r, p, v, w);
             continue;
         }
@@ -493,7 +483,7 @@ void dq_traj_eval(const dq_traj_seg *seg, size_t nseg, int mode, double duration
         double s, sd, r[4], p[3];
         seg_s(g, ti - g->start, &s, &sd);
         const dq_traj_seg *q = k > 0 && g->blend_in ? &seg[k - 1] : NULL;
-        if (q && ti >= q->start + q->tu + q->tc + q->td) q = NULL;
+        if (q && ti >= q->start + seg_duration(q)) q = NULL;
         if (!q) {
             if (mode == DQ_TRAJ_SCREW) {
                 dq_sclerp_eval(&g->pair, s, o); /* ScLERP itself, not a rebuilt pose */

@@ -52,10 +52,13 @@ typedef struct {
     double len, theta, nu; /* |c'|, rotation angle, rate at which c' turns (SCREW: theta) */
     double cap;            /* the largest cruise rate the velocity limits and the cruise allow */
     int cap_bind;
-    /* time law */
-    double start, sigma, sigma_a;    /* start time; cruise rate; rate at the start of the ramp-up */
-    double tu, bu, tc, td, bd;       /* ramp-up (duration, beta), cruise, ramp-down */
-    int blend_in;                    /* the ramp-up is shared with the previous segment's ramp-down */
+    /* time law: five phases, each taking ds/dt from rate[i] to rate[i+1] over T[i] with the ramp
+     * shape of fraction beta[i]: the blend from the previous segment (rates 0 -> sig_in; T 0 when
+     * the corner is a stop), the ramp to the cruise, the cruise, the ramp to sig_out, the blend
+     * into the next segment (sig_out -> 0). */
+    double start, sigma, sig_in, sig_out;
+    double T[5], beta[5], rate[6];
+    int blend_in;                    /* phase 0 is shared with the previous segment's phase 4 */
     int bind;
 } dq_traj_seg;
 
