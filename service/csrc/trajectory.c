@@ -177,12 +177,14 @@ static int corner_ramp(const plan_ctx *c, size_t k, double sa, double sb, double
     return ramp(&A, &B, c->L, T, beta, bind);
 }
 
-/* A blended corner k with its two corner rates scaled by f: feasible and within its radius. */
-static int corner_ok(const plan_ctx *c, size_t k, double f, int *bind)
+/* How far a blended corner k, its two corner rates scaled by f, misses its radius: the tool
+ * point's largest distance from the corner over the radius, minus 1 (<= 0: fits; INFINITY: no
+ * ramp satisfies the limits). */
+static double corner_gap(const plan_ctx *c, size_t k, double f, int *bind)
 {
     double T, b, sa = f * c->seg[k - 1].sig_out, sb = f * c->seg[k].sig_in;
-    if (corner_ramp(c, k, sa, sb, &T, &b, bind) < 0) return 0;
-    return 0.5 * T * fmax(sa * c->seg[k - 1].len, sb * c->seg[k].len) <= c->radius[k];
+    if (corner_ramp(c, k, sa, sb, &T, &b, bind) < 0) return INFINITY;
+    return 0.5 * T * fmax(sa * c->seg[k - 1].len, sb * c->seg[k].len) / c->radius[k] - 1.0;
 }
 
 /* The five phases of segment k (trajectory.h) at cruise rate s and corner rates si, so (the
@@ -211,28 +213,48 @@ static double phases(const plan_ctx *c, size_t k, double s, double si, double so
     return covered;
 }
 
-/* Segment k with its rates scaled to cruise f * sigma: every ramp feasible, all within s <= 1.
- * Corner rates never exceed the cruise; the start rate sigma0 is given. */
-static int fits(const plan_ctx *c, size_t k, double f, int *bind)
+/* Segment k with its rates scaled to cruise f * sigma: how much more than its s in [0, 1] its
+ * ramps need (<= 0: they fit; INFINITY: a ramp is infeasible). Corner rates never exceed the
+ * cruise; the start rate sigma0 is given. */
+static double fit_gap(const plan_ctx *c, size_t k, double f, int *bind)
 {
     const dq_traj_seg *g = &c->seg[k];
     double s = f * g->sigma, T[5], B[5];
     double si = blended(c, k) ? fmin(g->sig_in, s) : g->sig_in;
     double so = fmin(g->sig_out, s);
     double covered = phases(c, k, s, si, so, T, B, NULL, bind);
-    return covered >= 0.0 && covered <= 1.0;
+    return covered < 0.0 ? INFINITY : covered - 1.0;
 }
 
-/* The largest factor in (0, 1] for which ok holds (ok(1) is known false), 0 if none. */
-#define BISECT_FACTOR(ok_expr, out)                        \
-    do {                                                   \
-        double lo_ = 0.0, hi_ = 1.0;                       \
-        for (int it_ = 0; it_ < BISECT; it_++) {           \
-            double f = 0.5 * (lo_ + hi_);                  \
-            if (ok_expr) lo_ = f; else hi_ = f;            \
-        }                                                  \
-        (out) = lo_;                                       \
-    } while (0)
+typedef double (*gap_fn)(const plan_ctx *, size_t, double, int *);
+
+/* The largest factor f in [0, 1] with gap(f) <= 0, given gap(0) <= 0 < gap(1), to within
+ * 1e-9 of f or of the gap: regula falsi (Illinois), which converges in a few steps where the
+ * gap is smooth, with bisection where it is infinite. */
+static double largest_factor(gap_fn gap, const plan_ctx *c, size_t k, int *bind)
+{
+    double lo = 0.0, hi = 1.0, glo = gap(c, k, 0.0, bind), ghi = gap(c, k, 1.0, bind);
+    int last = 0;
+    for (int it = 0; it < BISECT && hi - lo > 1e-9 && glo < -1e-9; it++) {
+        double f = 0.5 * (lo + hi);
+        if (isfinite(ghi)) {
+            f = lo + (hi - lo) * glo / (glo - ghi);
+            f = fmin(fmax(f, lo + 1e-3 * (hi - lo)), hi - 1e-3 * (hi - lo));
+        }
+        double gf = gap(c, k, f, bind);
+        if (gf <= 0.0) {
+            lo = f; glo = gf;
+            if (last < 0 && isfinite(ghi)) ghi *= 0.5;
+            last = -1;
+        } else {
+            hi = f; ghi = gf;
+            if (last > 0) glo *= 0.5;
+            last = 1;
+        }
+    }
+    gap(c, k, lo, bind);
+    return lo;
+}
 
 /* Cruise rates from the caps scaled by lam; corner rates lowered until each blend fits its
  * radius, cruise rates until each segment's ramps fit in it; then the time law. */
@@ -251,23 +273,20 @@ static int solve(plan_ctx *c, const double *lam, size_t *bad)
     for (int sweep = 0; sweep < SWEEPS && !settled; sweep++) {
         settled = 1;
         for (size_t k = 1; k < n; k++) {
-            if (!blended(c, k) || corner_ok(c, k, 1.0, &bind)) continue;
-            double f;
-            BISECT_FACTOR(corner_ok(c, k, f, &bind), f);
+            if (!blended(c, k) || corner_gap(c, k, 1.0, &bind) <= 0.0) continue;
+            double f = largest_factor(corner_gap, c, k, &bind);
             c->seg[k - 1].sig_out *= f;   /* f = 0: no blend fits, a stop */
             c->seg[k].sig_in *= f;
             settled = 0;
         }
         for (size_t k = 0; k < n; k++) {
             dq_traj_seg *g = &c->seg[k];
-            if (fits(c, k, 1.0, &bind)) continue;
-            double f;
-            BISECT_FACTOR(fits(c, k, f, &bind), f);
+            if (fit_gap(c, k, 1.0, &bind) <= 0.0) continue;
+            double f = largest_factor(fit_gap, c, k, &bind);
             if (f <= 0.0) {
                 *bad = k;
                 return k == 0 && c->sigma0 > 0 ? DQ_TRAJ_E_START : DQ_TRAJ_E_STUCK;
             }
-            fits(c, k, f, &bind);
             g->sigma *= f;
             if (blended(c, k)) g->sig_in = fmin(g->sig_in, g->sigma);
             g->sig_out = fmin(g->sig_out, g->sigma);
@@ -281,19 +300,21 @@ static int solve(plan_ctx *c, const double *lam, size_t *bad)
         dq_traj_seg *g = &c->seg[k];
         double covered = phases(c, k, g->sigma, g->sig_in, g->sig_out, g->T, g->beta, g->rate, &bind);
         g->T[2] = fmax(0.0, (1.0 - covered) / g->sigma);
+        g->t_at[0] = g->s_at[0] = 0.0;
+        for (int i = 0; i < 5; i++) {
+            g->t_at[i + 1] = g->t_at[i] + g->T[i];
+            g->s_at[i + 1] = g->s_at[i] + 0.5 * (g->rate[i] + g->rate[i + 1]) * g->T[i];
+        }
         if (k > 0) {
             const dq_traj_seg *p = &c->seg[k - 1];
-            t = p->start + p->T[0] + p->T[1] + p->T[2] + p->T[3] + (g->blend_in ? 0.0 : p->T[4]);
+            t = p->start + (g->blend_in ? p->t_at[4] : p->t_at[5]); /* a blend overlaps phase 4 */
         }
         g->start = t;
     }
     return DQ_OK;
 }
 
-static double seg_duration(const dq_traj_seg *g)
-{
-    return g->T[0] + g->T[1] + g->T[2] + g->T[3] + g->T[4];
-}
+static double seg_duration(const dq_traj_seg *g) { return g->t_at[5]; }
 
 /* When waypoint m (>= 1) is reached: the end of a stop, the middle of a blend. */
 static double arrival(const plan_ctx *c, size_t m)
@@ -411,39 +432,43 @@ int dq_traj_plan(const double *wp, size_t K, int mode, const double *radius, con
 
 /* ---- dense evaluation ------------------------------------------------------------------------ */
 
-/* s and ds/dt of segment g at time tl after its start: each phase takes the rate from R[i] to
- * R[i+1] with the ramp shape (the cruise: equal rates). */
+/* s and ds/dt of segment g at time tl after its start: each phase takes the rate from rate[i]
+ * to rate[i+1] with the ramp shape (the cruise: equal rates, no shape to evaluate). */
 static void seg_s(const dq_traj_seg *g, double tl, double *s, double *sd)
 {
-    double s0 = 0.0;
-    for (int i = 0; i < 5; i++) {
-        double T = g->T[i], x = g->rate[i], y = g->rate[i + 1];
-        if (tl < T) {
-            double tau = tl / T, G = dq_traj_G(tau, g->beta[i]), gg = dq_traj_g(tau, g->beta[i]);
-            *s = fmin(1.0, fmax(0.0, s0 + T * (x * (tau - G) + y * G)));
-            *sd = x * (1.0 - gg) + y * gg;
-            return;
-        }
-        tl -= T;
-        s0 += 0.5 * (x + y) * T;
+    int i = 0;
+    while (i < 5 && tl >= g->t_at[i + 1]) i++;
+    if (i == 5) { *s = 1.0; *sd = 0.0; return; }
+    double T = g->T[i], x = g->rate[i], y = g->rate[i + 1], u = tl - g->t_at[i];
+    if (x == y) {
+        *s = g->s_at[i] + x * u;
+        *sd = x;
+    } else {
+        double tau = u / T, G = dq_traj_G(tau, g->beta[i]), gg = dq_traj_g(tau, g->beta[i]);
+        *s = g->s_at[i] + T * (x * (tau - G) + y * G);
+        *sd = x * (1.0 - gg) + y * gg;
     }
-    *s = 1.0;
-    *sd = 0.0;
+    *s = fmin(1.0, fmax(0.0, *s));
 }
 
 /* Rotation r, tool point p and their rates of segment g at s (rate sd). */
 static void seg_at(const dq_traj_seg *g, int mode, double s, double sd, double *r, double *p,
                    double *v, double *w)
 {
-    double out[8];
-    dq_sclerp_eval(&g->pair, s, out);
-    memcpy(r, out, 4 * sizeof(double));
     if (mode == DQ_TRAJ_SCREW) {
+        double out[8];
+        dq_sclerp_eval(&g->pair, s, out);
+        memcpy(r, out, 4 * sizeof(double));
         double rc[4] = {out[0], -out[1], -out[2], -out[3]}, t[4];
         dq_qmul(out + 4, rc, t);
         for (int i = 0; i < 3; i++) p[i] = 2.0 * t[1 + i];
         rotate(r, g->vb, v);
     } else {
+        /* the real part of the rotation pair's ScLERP: the slerp */
+        const dq_sclerp_pair *q = &g->pair;
+        double C = 1.0, S = 0.0;
+        if (!q->pure) { C = cos(s * q->phi); S = sin(s * q->phi); }
+        for (int i = 0; i < 4; i++) r[i] = C * q->p0[i] + S * q->p1[i];
         for (int i = 0; i < 3; i++) { p[i] = g->pa[i] + s * g->dp[i]; v[i] = g->dp[i]; }
     }
     for (int i = 0; i < 3; i++) { v[i] *= sd; w[i] = sd * g->w[i]; }

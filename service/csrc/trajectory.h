@@ -58,6 +58,7 @@ typedef struct {
      * into the next segment (sig_out -> 0). */
     double start, sigma, sig_in, sig_out;
     double T[5], beta[5], rate[6];
+    double t_at[6], s_at[6];         /* time since start and s at the start of each phase */
     int blend_in;                    /* phase 0 is shared with the previous segment's phase 4 */
     int bind;
 } dq_traj_seg;
