@@ -38,6 +38,10 @@
 #define BLEND_MIN_FACTOR 0.25
 #define SWEEPS 100
 
+/* fmin/fmax are library calls under -std=c99; nothing here is NaN (the input is checked). */
+static inline double lo2(double a, double b) { return a < b ? a : b; }
+static inline double hi2(double a, double b) { return a > b ? a : b; }
+
 static double norm3(const double *v) { return sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]); }
 
 static void cross3(const double *a, const double *b, double *c)
@@ -59,7 +63,7 @@ static void rotate(const double *q, const double *v, double *out)
 
 /* ---- the ramp shape ------------------------------------------------------------------------ */
 
-double dq_traj_g(double tau, double beta)
+static inline double shape_g(double tau, double beta)
 {
     double h = 1.0 / (1.0 - beta);
     if (tau <= beta) return h * tau * tau / (2.0 * beta);
@@ -67,7 +71,7 @@ double dq_traj_g(double tau, double beta)
     return h * (tau - 0.5 * beta);
 }
 
-static double G_left(double tau, double beta, double h)
+static inline double G_left(double tau, double beta, double h)
 {
     if (tau <= beta) return h * tau * tau * tau / (6.0 * beta);
     double u = tau - beta;
@@ -75,12 +79,13 @@ static double G_left(double tau, double beta, double h)
 }
 
 /* g is point-symmetric about (1/2, 1/2), so G(tau) = tau - 1/2 + G(1 - tau). */
-double dq_traj_G(double tau, double beta)
+static inline double shape_G(double tau, double beta)
 {
     double h = 1.0 / (1.0 - beta);
     if (tau <= 0.5) return G_left(tau, beta, h);
     return tau - 0.5 + G_left(1.0 - tau, beta, h);
 }
+
 
 /* ---- ramps ----------------------------------------------------------------------------------- */
 
@@ -126,21 +131,21 @@ static int ramp(const side *A, const side *B, const dq_traj_limits *L, double *T
     double X = norm3(x);
     /* beta of the time-optimal S-curve for the leading terms: (1 - beta) T >= Acc,
      * beta (1 - beta) T^2 >= Jrk */
-    double Acc = fmax(Dl / L->acc[0], Da / L->acc[1]);
-    double Jrk = fmax(L->jerk[0] > 0 ? Dl / L->jerk[0] : 0.0, L->jerk[1] > 0 ? Da / L->jerk[1] : 0.0);
+    double Acc = hi2(Dl / L->acc[0], Da / L->acc[1]);
+    double Jrk = hi2(L->jerk[0] > 0 ? Dl / L->jerk[0] : 0.0, L->jerk[1] > 0 ? Da / L->jerk[1] : 0.0);
     double b;
     if (L->jerk[0] <= 0 && L->jerk[1] <= 0) b = BETA_FREE;
     else if (Acc * Acc >= Jrk) b = Acc > 0 ? (Jrk / Acc) / (Acc + Jrk / Acc) : 0.5;
     else b = 0.5;
-    b = fmin(0.5, fmax(b, 1e-3));
+    b = lo2(0.5, hi2(b, 1e-3));
     double h = 1.0 / (1.0 - b);
     double kA = A->kappa, kB = B->kappa;
     double xs[4] = {
-        x_max(0.0, h * Dl, 0.5 * h * (kA + kB) + fmax(kA, kB), L->acc[0]),
+        x_max(0.0, h * Dl, 0.5 * h * (kA + kB) + hi2(kA, kB), L->acc[0]),
         x_max(0.0, h * Da, 0.25 * X, L->acc[1]),
         L->jerk[0] > 0 ? x_max(h / b * Dl, h * (3.0 + 0.5 / b) * (kA + kB),
-                               fmax(A->nus * kA, B->nus * kB), L->jerk[0]) : INFINITY,
-        L->jerk[1] > 0 ? x_max(h / b * Da, 2.0 * h * X, 4.0 / 27.0 * X * fmax(A->spin, B->spin),
+                               hi2(A->nus * kA, B->nus * kB), L->jerk[0]) : INFINITY,
+        L->jerk[1] > 0 ? x_max(h / b * Da, 2.0 * h * X, 4.0 / 27.0 * X * hi2(A->spin, B->spin),
                                L->jerk[1]) : INFINITY,
     };
     static const int names[4] = {DQ_BIND_LIN_ACC, DQ_BIND_ANG_ACC, DQ_BIND_LIN_JERK,
@@ -184,7 +189,7 @@ static double corner_gap(const plan_ctx *c, size_t k, double f, int *bind)
 {
     double T, b, sa = f * c->seg[k - 1].sig_out, sb = f * c->seg[k].sig_in;
     if (corner_ramp(c, k, sa, sb, &T, &b, bind) < 0) return INFINITY;
-    return 0.5 * T * fmax(sa * c->seg[k - 1].len, sb * c->seg[k].len) / c->radius[k] - 1.0;
+    return 0.5 * T * hi2(sa * c->seg[k - 1].len, sb * c->seg[k].len) / c->radius[k] - 1.0;
 }
 
 /* The five phases of segment k (trajectory.h) at cruise rate s and corner rates si, so (the
@@ -220,8 +225,8 @@ static double fit_gap(const plan_ctx *c, size_t k, double f, int *bind)
 {
     const dq_traj_seg *g = &c->seg[k];
     double s = f * g->sigma, T[5], B[5];
-    double si = blended(c, k) ? fmin(g->sig_in, s) : g->sig_in;
-    double so = fmin(g->sig_out, s);
+    double si = blended(c, k) ? lo2(g->sig_in, s) : g->sig_in;
+    double so = lo2(g->sig_out, s);
     double covered = phases(c, k, s, si, so, T, B, NULL, bind);
     return covered < 0.0 ? INFINITY : covered - 1.0;
 }
@@ -239,7 +244,7 @@ static double largest_factor(gap_fn gap, const plan_ctx *c, size_t k, int *bind)
         double f = 0.5 * (lo + hi);
         if (isfinite(ghi)) {
             f = lo + (hi - lo) * glo / (glo - ghi);
-            f = fmin(fmax(f, lo + 1e-3 * (hi - lo)), hi - 1e-3 * (hi - lo));
+            f = lo2(hi2(f, lo + 1e-3 * (hi - lo)), hi - 1e-3 * (hi - lo));
         }
         double gf = gap(c, k, f, bind);
         if (gf <= 0.0) {
@@ -288,8 +293,8 @@ static int solve(plan_ctx *c, const double *lam, size_t *bad)
                 return k == 0 && c->sigma0 > 0 ? DQ_TRAJ_E_START : DQ_TRAJ_E_STUCK;
             }
             g->sigma *= f;
-            if (blended(c, k)) g->sig_in = fmin(g->sig_in, g->sigma);
-            g->sig_out = fmin(g->sig_out, g->sigma);
+            if (blended(c, k)) g->sig_in = lo2(g->sig_in, g->sigma);
+            g->sig_out = lo2(g->sig_out, g->sigma);
             g->bind = bind;
             settled = 0;
         }
@@ -299,7 +304,7 @@ static int solve(plan_ctx *c, const double *lam, size_t *bad)
     for (size_t k = 0; k < n; k++) {
         dq_traj_seg *g = &c->seg[k];
         double covered = phases(c, k, g->sigma, g->sig_in, g->sig_out, g->T, g->beta, g->rate, &bind);
-        g->T[2] = fmax(0.0, (1.0 - covered) / g->sigma);
+        g->T[2] = hi2(0.0, (1.0 - covered) / g->sigma);
         g->t_at[0] = g->s_at[0] = 0.0;
         for (int i = 0; i < 5; i++) {
             g->t_at[i + 1] = g->t_at[i] + g->T[i];
@@ -387,7 +392,7 @@ static int meet_times(plan_ctx *c, const double *times, double *lam, size_t *bad
             if (!(times[m] > 0)) continue;
             for (size_t k = p; k < m; k++) lam[k] = 1.0;
             if ((rc = solve(c, lam, bad))) break;
-            double tol = 1e-9 * fmax(1.0, times[m]);
+            double tol = 1e-9 * hi2(1.0, times[m]);
             if (arrival(c, m) > times[m] + tol) { *bad = m; return DQ_TRAJ_E_TIME; }
             double lo = 0.0, hi = 1.0;
             for (int it = 0; it < BISECT && !rc && fabs(arrival(c, m) - times[m]) > 0.1 * tol; it++) {
@@ -401,7 +406,7 @@ static int meet_times(plan_ctx *c, const double *times, double *lam, size_t *bad
         if (rc || (rc = solve(c, lam, bad))) break;
         int met = 1;
         for (size_t m = 1; m < K; m++)
-            if (times[m] > 0 && fabs(arrival(c, m) - times[m]) > 1e-9 * fmax(1.0, times[m])) met = 0;
+            if (times[m] > 0 && fabs(arrival(c, m) - times[m]) > 1e-9 * hi2(1.0, times[m])) met = 0;
         if (met) return DQ_OK;
     }
     if (!rc) { *bad = 0; rc = DQ_TRAJ_E_STUCK; }
@@ -444,11 +449,11 @@ static void seg_s(const dq_traj_seg *g, double tl, double *s, double *sd)
         *s = g->s_at[i] + x * u;
         *sd = x;
     } else {
-        double tau = u / T, G = dq_traj_G(tau, g->beta[i]), gg = dq_traj_g(tau, g->beta[i]);
+        double tau = u / T, G = shape_G(tau, g->beta[i]), gg = shape_g(tau, g->beta[i]);
         *s = g->s_at[i] + T * (x * (tau - G) + y * G);
         *sd = x * (1.0 - gg) + y * gg;
     }
-    *s = fmin(1.0, fmax(0.0, *s));
+    *s = lo2(1.0, hi2(0.0, *s));
 }
 
 /* Rotation r, tool point p and their rates of segment g at s (rate sd). */

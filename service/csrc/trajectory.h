@@ -77,8 +77,4 @@ int dq_traj_plan(const double *wp, size_t K, int mode, const double *radius, con
 void dq_traj_eval(const dq_traj_seg *seg, size_t nseg, int mode, double duration,
                   const double *t, size_t n, double *pose, double *lin, double *ang);
 
-/* ds/dt of the normalised ramp shape: g(tau), and its integral G(tau) (G(1) = 1/2). */
-double dq_traj_g(double tau, double beta);
-double dq_traj_G(double tau, double beta);
-
 #endif
