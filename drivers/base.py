@@ -228,15 +228,36 @@ def pose_covariance(rotation_sigma: float, translation_sigma: float) -> np.ndarr
     return np.diag([rs * rs] * 3 + [ts * ts] * 3)
 
 
+class Pacer:
+    """Cycle deadlines for a servo stream, one ``period`` apart on an absolute schedule, so a
+    stream keeps the controller's rate instead of drifting by the caller's overhead every cycle
+    (a loop that waits a period from each call's start runs ~1 % slow at 500 Hz, and the
+    controller then sees a cycle without a set-point every ~100 cycles). A call late by less than
+    a period keeps the schedule (the next wait is shorter); later than that, the stream restarts
+    from now."""
+
+    def __init__(self, period: float):
+        self.period = float(period)
+        self._next: Optional[float] = None
+
+    def cycle(self, now: float) -> float:
+        """The start of the cycle a set-point sent at ``now`` belongs to; the caller waits until
+        that start plus one period."""
+        start = self._next if self._next is not None and 0 <= now - self._next < self.period \
+            else now
+        self._next = start + self.period
+        return start
+
+
 class Arm(abc.ABC):
     """An arm commanded in tool space.
 
     Every backend takes ``limits=`` (:class:`Limits`) and applies them the same way: ``servo()``
     set-points go through :meth:`Limits.check_servo`, and one that breaks a limit brings the arm
     to a controlled stop and raises :class:`LimitError`; a set-point is never changed to fit.
-    ``move()`` arguments go through :meth:`Limits.check_move`. ``servo()`` returns once the
-    period since the previous set-point has passed, so a loop of ``servo()`` calls streams at
-    ``period``."""
+    ``move()`` arguments go through :meth:`Limits.check_move`. ``servo()`` returns at the end of
+    its cycle on the :class:`Pacer` schedule, so a loop of ``servo()`` calls streams at
+    ``period`` without drifting."""
 
     #: controller period in seconds (servo commands are sent once per period)
     period: float = 0.008
