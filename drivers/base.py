@@ -166,10 +166,8 @@ class Limits:
         first limit broken, in the order workspace, step, speed, acceleration. The caller must
         stop the arm before passing the error on: the message says it was stopped."""
         stop = "the arm was stopped"
-        qt, tt = dq.to_pose(target)
-        qp, tp = dq.to_pose(prev)
-        self.check_workspace("pose", tt, stop)
-        step = np.concatenate([tt - tp, rotvec_from_quat(dq.mul(target, dq.conj(prev))[:4])])
+        self.check_workspace("pose", dq.to_pose(target)[1], stop)
+        step = servo_step(target, prev)
         lin, ang = float(np.linalg.norm(step[:3])), float(np.linalg.norm(step[3:]))
         ms = 1e3 * period
         dv = float(np.linalg.norm(step[:3] - prev_step[:3])) / period ** 2
@@ -190,6 +188,14 @@ class Limits:
                 raise LimitError(f"pose: set-point needs a {what} of {value:.4g} {unit}, above "
                                  f"limits.{limit} = {bound:g} {unit}; {stop}", limit, value, bound)
         return step
+
+
+def servo_step(target: np.ndarray, prev: np.ndarray) -> np.ndarray:
+    """The step from set-point ``prev`` to ``target`` as :meth:`Limits.check_servo` measures it:
+    ``[dx, dy, dz, rx, ry, rz]``, the translation and the rotation vector of
+    ``target * prev^-1``, both in the base frame."""
+    return np.concatenate([dq.to_pose(target)[1] - dq.to_pose(prev)[1],
+                           rotvec_from_quat(dq.mul(target, dq.conj(prev))[:4])])
 
 
 def unit_pose(pose, name: str = "pose") -> np.ndarray:
