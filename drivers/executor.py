@@ -182,7 +182,8 @@ class Executor:
         bad = np.flatnonzero(np.diff(t) <= 0)
         if bad.size:
             i = bad[0] + 1
-            raise ValueError(f"times[{i}]: {t[i]!r} is not after the previous time {t[i - 1]!r}")
+            raise ValueError(f"times[{i}]: {float(t[i])!r} is not after the previous time "
+                             f"{float(t[i - 1])!r}")
         with self._push_lock:
             with self._cond:
                 if self._finished_input or self._done.is_set():
@@ -190,7 +191,7 @@ class Executor:
                                      f"({self.result.name})")
                 tail, t0, k0 = self._tail, self._t0, self._next_slot
             if tail is not None and t[0] <= tail[0]:
-                raise ValueError(f"times[0]: {t[0]!r} is not after the last pushed time "
+                raise ValueError(f"times[0]: {float(t[0])!r} is not after the last pushed time "
                                  f"{tail[0]!r}")
             if t0 is None:
                 self._check_start(p[0])
