@@ -326,12 +326,21 @@ class Executor:
             self._cond.notify_all()
 
     def _fault(self, e: ArmError) -> tuple[Result, str]:
-        try:
-            st = self.arm.status()
-        except ArmError:
-            return Result.ERROR, str(e)
-        if st.protective_stop or st.emergency_stop:
-            return Result.PROTECTIVE_STOP, str(e)
+        # A controller may refuse a command (a paused program) a cycle or two before its status
+        # data says why: give the report a few periods to arrive.
+        deadline = time.monotonic() + max(10 * self.period, 0.05)
+        while True:
+            try:
+                st = self.arm.status()
+            except ArmError:
+                return Result.ERROR, str(e)
+            if st.protective_stop or st.emergency_stop:
+                what = "emergency stop" if st.emergency_stop else "protective stop"
+                msg = str(e) if what in str(e) else f"{what}: {e}"
+                return Result.PROTECTIVE_STOP, msg
+            if time.monotonic() > deadline:
+                break
+            time.sleep(self.period)
         self._stop_arm()
         return Result.ERROR, str(e)
 

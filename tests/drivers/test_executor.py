@@ -44,6 +44,11 @@ class URExec(URRig):
 
 class PiperExec(PiperRig):
     def reset(self):
+        # a stop's hold may still be on the bus: let it land before the teleport, not after
+        n = -1
+        while n != len(self.sim.log):
+            n = len(self.sim.log)
+            time.sleep(0.02)
         super().reset()
         self._arrival_mark = len(self.sim.arrivals)
 
