@@ -46,6 +46,7 @@ bench: setup
 	$(BIN)/python -m tests.bench.bench_grpc
 	$(BIN)/python -m tests.bench.bench_fusion_core
 	$(BIN)/python -m tests.bench.bench_fusion
+	$(BIN)/python -m tests.bench.bench_trajectory
 
 clean:
 	rm -rf $(VENV) build *.egg-info service/*.so service/rpc/_proto

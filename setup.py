@@ -16,7 +16,7 @@ if os.environ.get("DQPOSE_NATIVE") == "1":
 
 core = Extension(
     "service._dqcore",
-    sources=[os.path.join(CSRC, f) for f in ("dq.c", "blend.c", "fusion.c", "wire.c", "module.c")],
+    sources=[os.path.join(CSRC, f) for f in ("dq.c", "blend.c", "fusion.c", "wire.c", "trajectory.c", "module.c")],
     include_dirs=[numpy.get_include(), CSRC],
     define_macros=[("NPY_NO_DEPRECATED_API", "NPY_2_0_API_VERSION")],
     extra_compile_args=extra,

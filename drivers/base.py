@@ -166,10 +166,8 @@ class Limits:
         first limit broken, in the order workspace, step, speed, acceleration. The caller must
         stop the arm before passing the error on: the message says it was stopped."""
         stop = "the arm was stopped"
-        qt, tt = dq.to_pose(target)
-        qp, tp = dq.to_pose(prev)
-        self.check_workspace("pose", tt, stop)
-        step = np.concatenate([tt - tp, rotvec_from_quat(dq.mul(target, dq.conj(prev))[:4])])
+        self.check_workspace("pose", dq.to_pose(target)[1], stop)
+        step = servo_step(target, prev)
         lin, ang = float(np.linalg.norm(step[:3])), float(np.linalg.norm(step[3:]))
         ms = 1e3 * period
         dv = float(np.linalg.norm(step[:3] - prev_step[:3])) / period ** 2
@@ -190,6 +188,14 @@ class Limits:
                 raise LimitError(f"pose: set-point needs a {what} of {value:.4g} {unit}, above "
                                  f"limits.{limit} = {bound:g} {unit}; {stop}", limit, value, bound)
         return step
+
+
+def servo_step(target: np.ndarray, prev: np.ndarray) -> np.ndarray:
+    """The step from set-point ``prev`` to ``target`` as :meth:`Limits.check_servo` measures it:
+    ``[dx, dy, dz, rx, ry, rz]``, the translation and the rotation vector of
+    ``target * prev^-1``, both in the base frame."""
+    return np.concatenate([dq.to_pose(target)[1] - dq.to_pose(prev)[1],
+                           rotvec_from_quat(dq.mul(target, dq.conj(prev))[:4])])
 
 
 def unit_pose(pose, name: str = "pose") -> np.ndarray:
@@ -228,15 +234,36 @@ def pose_covariance(rotation_sigma: float, translation_sigma: float) -> np.ndarr
     return np.diag([rs * rs] * 3 + [ts * ts] * 3)
 
 
+class Pacer:
+    """Cycle deadlines for a servo stream, one ``period`` apart on an absolute schedule, so a
+    stream keeps the controller's rate instead of drifting by the caller's overhead every cycle
+    (a loop that waits a period from each call's start runs ~1 % slow at 500 Hz, and the
+    controller then sees a cycle without a set-point every ~100 cycles). A call late by less than
+    a period keeps the schedule (the next wait is shorter); later than that, the stream restarts
+    from now."""
+
+    def __init__(self, period: float):
+        self.period = float(period)
+        self._next: Optional[float] = None
+
+    def cycle(self, now: float) -> float:
+        """The start of the cycle a set-point sent at ``now`` belongs to; the caller waits until
+        that start plus one period."""
+        start = self._next if self._next is not None and 0 <= now - self._next < self.period \
+            else now
+        self._next = start + self.period
+        return start
+
+
 class Arm(abc.ABC):
     """An arm commanded in tool space.
 
     Every backend takes ``limits=`` (:class:`Limits`) and applies them the same way: ``servo()``
     set-points go through :meth:`Limits.check_servo`, and one that breaks a limit brings the arm
     to a controlled stop and raises :class:`LimitError`; a set-point is never changed to fit.
-    ``move()`` arguments go through :meth:`Limits.check_move`. ``servo()`` returns once the
-    period since the previous set-point has passed, so a loop of ``servo()`` calls streams at
-    ``period``."""
+    ``move()`` arguments go through :meth:`Limits.check_move`. ``servo()`` returns at the end of
+    its cycle on the :class:`Pacer` schedule, so a loop of ``servo()`` calls streams at
+    ``period`` without drifting."""
 
     #: controller period in seconds (servo commands are sent once per period)
     period: float = 0.008

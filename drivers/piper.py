@@ -33,8 +33,8 @@ from typing import Optional, Sequence
 import can
 import numpy as np
 
-from drivers.base import (Arm, ArmError, ArmStatus, LimitError, Limits, pose_delta, tool_line,
-                          unit_pose)
+from drivers.base import (Arm, ArmError, ArmStatus, LimitError, Limits, Pacer, pose_delta,
+                          tool_line, unit_pose)
 from drivers.euler import quat_from_sxyz, sxyz_from_quat
 from service import dq
 from service.profile import Trapezoid
@@ -372,6 +372,7 @@ class PiperArm(Arm):
         self.bus = bus
         self._own_bus = bool(own_bus)
         self.period = float(period)
+        self._pacer = Pacer(self.period)
         self.limits = limits or self.DEFAULT_LIMITS
         self.watchdog = float(watchdog)
         self.stale_timeout = float(stale_timeout)
@@ -564,14 +565,15 @@ class PiperArm(Arm):
         return self._fresh_pose()
 
     def servo(self, pose) -> None:
-        """Send one set-point, then wait out the period since this call began. A set-point that
+        """Send one set-point, then wait for the end of its cycle (:class:`~drivers.base.Pacer`
+        schedule). A set-point that
         breaks a limit is not sent: the arm holds its measured pose and :class:`LimitError` is
         raised. The first set-point of a stream is measured from the measured pose, at rest."""
         t0 = time.monotonic()
         target = unit_pose(pose)
         with self._cmd_lock:
             self._servo(target)
-        delay = t0 + self.period - time.monotonic()
+        delay = self._pacer.cycle(t0) + self.period - time.monotonic()
         if delay > 0:
             time.sleep(delay)
 

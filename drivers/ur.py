@@ -14,6 +14,7 @@ By name: ``drivers.open_arm("ur:192.168.1.10", limits=...)``.
 """
 from __future__ import annotations
 
+import datetime
 import math
 import numbers
 import socket
@@ -23,7 +24,7 @@ from typing import Optional
 
 import numpy as np
 
-from drivers.base import Arm, ArmError, ArmStatus, LimitError, Limits, unit_pose
+from drivers.base import Arm, ArmError, ArmStatus, LimitError, Limits, Pacer, unit_pose
 from drivers.rotvec import pose_from_rotvec, rotvec_from_pose, rotvec_from_quat
 from drivers.rtde import DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT, request_version
 from service import dq
@@ -94,6 +95,7 @@ class URArm(Arm):
             raise ArmError(f"host: {host}:{RTDE_PORT} does not answer as a UR controller ({e})") from None
         self.frequency = float(frequency or (500.0 if self.version[0] > CB3_MAJOR else 125.0))
         self.period = 1.0 / self.frequency
+        self._pacer = Pacer(self.period)
 
         import rtde_control
         import rtde_receive
@@ -211,7 +213,8 @@ class URArm(Arm):
         return time.time(), pose_from_rotvec(self._recv.getActualTCPPose())
 
     def servo(self, pose: np.ndarray) -> None:
-        """Send one set-point and wait out the period (``initPeriod``/``servoL``/``waitPeriod``).
+        """Send one set-point and wait for the end of its cycle (``initPeriod``/``servoL``/
+        ``waitPeriod`` on the :class:`~drivers.base.Pacer` schedule).
 
         A set-point that breaks a limit (:meth:`Limits.check_servo`) stops the arm and raises
         :class:`LimitError`. The first set-point is measured from the actual pose, with the arm
@@ -246,7 +249,10 @@ class URArm(Arm):
         if not ok:
             self._check()
             raise ArmError("servoL was refused by the controller")
-        self._ctrl.waitPeriod(t0)
+        # ur_rtde's clock comes back as a timedelta (steady_clock); waitPeriod ends one period
+        # after the cycle start it is given, which is on the schedule rather than at t0.
+        start = self._pacer.cycle(t0.total_seconds())
+        self._ctrl.waitPeriod(datetime.timedelta(seconds=start))
 
     def move(self, pose: np.ndarray, speed: float, accel: float) -> None:
         """Blocking straight-line move (``moveL``) at ``speed`` m/s and ``accel`` m/s^2

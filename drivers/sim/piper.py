@@ -80,6 +80,9 @@ class PiperSim:
         self._assembler = EndPoseAssembler(END_POSE_CTRL)
         self.malformed: Counter = Counter()
         self.log: list[tuple[float, str, object]] = []
+        #: CLOCK_MONOTONIC when each complete end-pose command arrived (its 0x154 frame), to
+        #: measure a command stream's period at the arm's side
+        self.arrivals: list[float] = []
         self.feedback_enabled = threading.Event()
         self.feedback_enabled.set()
         self.status_enabled = threading.Event()
@@ -166,7 +169,8 @@ class PiperSim:
                                 err_code=self._err_code)
 
     # ---- protocol --------------------------------------------------------------------------------
-    def handle(self, msg: can.Message) -> None:
+    def handle(self, msg: can.Message, arrived: Optional[float] = None) -> None:
+        """Apply one frame; ``arrived`` is when it was received (monotonic; default now)."""
         i = msg.arbitration_id
         if i not in COMMAND_BLOCK:
             return
@@ -179,6 +183,7 @@ class PiperSim:
             elif i in END_POSE_CTRL:
                 ep = self._assembler.feed(msg)
                 if ep is not None:
+                    self.arrivals.append(time.monotonic() if arrived is None else arrived)
                     self.log.append((time.time(), "end_pose", ep))
                     with self._lock:
                         if self._following() and not self._stopped():
@@ -216,14 +221,6 @@ class PiperSim:
         next_tick = time.monotonic()
         last = next_tick
         while not self._stop.is_set():
-            while True:
-                try:
-                    msg = self.bus.recv(timeout=0.0)
-                except (can.CanError, OSError):
-                    msg = None
-                if msg is None:
-                    break
-                self.handle(msg)
             now = time.monotonic()
             self.step(now - last)
             last = now
@@ -233,11 +230,20 @@ class PiperSim:
                 except (can.CanError, OSError):
                     pass  # a full or closed bus drops feedback, as on hardware
             next_tick += period
-            delay = next_tick - time.monotonic()
-            if delay < -period:   # fell behind (loaded machine): do not burst to catch up
+            if next_tick - time.monotonic() < -period:   # fell behind (loaded machine): no burst
                 next_tick = time.monotonic()
-            # Wake early for commands so they are not a whole period late.
-            self._stop.wait(max(0.0, delay))
+            # Wait for the next tick on the bus, so a command is taken (and stamped) when it
+            # arrives rather than up to a period late.
+            while not self._stop.is_set():
+                delay = next_tick - time.monotonic()
+                try:
+                    msg = self.bus.recv(timeout=max(0.0, delay))
+                except (can.CanError, OSError):
+                    msg = None
+                if msg is not None:
+                    self.handle(msg, time.monotonic())
+                elif delay <= 0:
+                    break
 
     def start(self) -> "PiperSim":
         self._stop.clear()

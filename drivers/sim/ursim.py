@@ -441,10 +441,18 @@ class URSim:
             self.stream_paused_until = time.monotonic() + float(req.get("seconds", 1.0))
             return {"paused": True}
         if op == "log":
+            # optional "cmd" (only that command) and "keys" (only those fields): a minute of
+            # set-point arrival times at 500 Hz stays a small reply
+            cmd, keys = req.get("cmd"), req.get("keys")
             with self.lock:
                 since = max(int(req.get("since", 0)) - self.log_base, 0)
                 entries = list(self.log)[since:]
-                return {"entries": entries, "next": self.log_base + len(self.log)}
+                nxt = self.log_base + len(self.log)
+            if cmd is not None:
+                entries = [e for e in entries if e["cmd"] == cmd]
+            if keys is not None:
+                entries = [{k: e[k] for k in keys} for e in entries]
+            return {"entries": entries, "next": nxt}
         if op == "history":
             since = int(req.get("since_tick", 0))
             with self.lock:
@@ -459,7 +467,8 @@ class URSim:
         try:
             while sess.alive and not self.stopping.is_set():
                 kind, body = rp.read_message(sess.sock)
-                self._rtde_message(sess, kind, body)
+                # stamped before any lock: when the set-point arrived, not when the cycle let go
+                self._rtde_message(sess, kind, body, time.monotonic())
         except (OSError, ConnectionError, struct.error):
             pass
         finally:
@@ -470,7 +479,7 @@ class URSim:
                     self.sessions.remove(sess)
             sess.close()
 
-    def _rtde_message(self, sess: _Session, kind: int, body: bytes):
+    def _rtde_message(self, sess: _Session, kind: int, body: bytes, arrived: float):
         if kind == rp.REQUEST_PROTOCOL_VERSION:
             ok = len(body) >= 2 and struct.unpack(">H", body[:2])[0] in (1, 2)
             sess.send(rp.frame(kind, bytes([int(ok)])))
@@ -517,9 +526,11 @@ class URSim:
             with self.lock:
                 self.values.update(fields)
                 if "input_int_register_0" in fields:
+                    if len(self.log) == self.log.maxlen:
+                        self.log_base += 1      # the oldest entry falls out
                     self.log.append({
                         "tick": self.tick, "time": self.tick * self.dt,
-                        "mono": time.monotonic(), "recipe": recipe.id,
+                        "mono": arrived, "recipe": recipe.id,
                         "cmd": fields["input_int_register_0"],
                         "args": [fields[n] for n in recipe.names if n.startswith("input_double")],
                         "ints": [fields[n] for n in recipe.names[1:]
@@ -806,8 +817,12 @@ class URSimProcess:
     def protective_stop(self, on: bool = True) -> dict:
         return self.call("protective_stop", on=on)
 
-    def log(self, since: int = 0) -> dict:
-        return self.call("log", since=since)
+    def log(self, since: int = 0, cmd: int | None = None, keys: list | None = None) -> dict:
+        """Received commands from index ``since`` (``next`` is where the next call starts); each
+        entry has the cycle ``tick``, ``mono`` (this machine's CLOCK_MONOTONIC when the package
+        arrived), ``cmd``, ``args``, ``ints``. ``cmd`` keeps one command, ``keys`` those fields."""
+        kw = {k: v for k, v in (("cmd", cmd), ("keys", keys)) if v is not None}
+        return self.call("log", since=since, **kw)
 
     def history(self, since_tick: int = 0) -> np.ndarray:
         """Rows ``[tick, time, x, y, z, rx, ry, rz]``."""

@@ -1,0 +1,438 @@
+"""Execute a stream of time-stamped poses on any :class:`~drivers.base.Arm`.
+
+A dedicated thread feeds the arm one set-point per controller period from a buffer; the caller
+(a gRPC stream, a planner) only fills the buffer, ahead of time, and never paces the arm: a late
+network costs a controlled stop, never a late or doubled set-point. The arm's own ``servo()``
+keeps the absolute cycle schedule (:class:`~drivers.base.Pacer`) and checks every set-point
+against its :class:`~drivers.base.Limits`.
+
+The buffer holds samples on the plan's clock, pushed in chunks (``push(times, poses)``) at any
+rate; they are resampled at the arm's period when pushed (:func:`service.interpolate.interpolate`),
+so the control thread only pops. Each run ends in one :class:`Result`, in the style of ruckig's
+result codes (positive: ended as controlled, negative: a fault):
+
+* ``FINISHED``: ``finish()`` was called, every sample was sent and the arm settled on the last;
+* ``STOPPED``: ``cancel()`` (a client gone, a user's stop): ``arm.stop()`` in the next period;
+* ``STALLED``: the buffer ran dry before ``finish()``: the arm decelerates along its last step
+  within ``stop_fraction`` of its acceleration limits, then stops;
+* ``LIMITED``: a set-point broke the arm's Limits; the arm stopped itself, the message is the
+  :class:`~drivers.base.LimitError`'s;
+* ``PROTECTIVE_STOP``: the arm reports a protective or emergency stop; nothing more is sent
+  (the arm has stopped itself, and a stop command would wait on a halted controller);
+* ``ERROR``: anything else (lost connection, the arm moved before the first set-point).
+
+A feedback record (:class:`Feedback`) per ``feedback_every`` set-points, and always one last with
+the final result, goes to ``callback`` (called on the control thread: hand it on, e.g. with
+``loop.call_soon_threadsafe``) or, without one, to a queue read with :meth:`Executor.feedback`.
+
+    ex = Executor(arm)
+    traj = plan(...).at_rate(1 / arm.period)
+    ex.push(traj.time, traj.pose)
+    ex.finish()
+    assert ex.wait() == Result.FINISHED
+"""
+from __future__ import annotations
+
+import collections
+import enum
+import math
+import numbers
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import numpy as np
+
+from drivers.base import Arm, ArmError, LimitError, pose_delta, servo_step
+from drivers.rotvec import quat_from_rotvec
+from service import dq
+from service.interpolate import MODES, interpolate
+
+__all__ = ["Result", "Feedback", "Executor"]
+
+
+class Result(enum.IntEnum):
+    OK = 0                  # working
+    FINISHED = 1
+    STOPPED = 2
+    STALLED = 3
+    LIMITED = -1
+    PROTECTIVE_STOP = -2
+    ERROR = -3
+
+
+@dataclass(frozen=True)
+class Feedback:
+    """One step: ``time`` the set-point's time on the plan's clock, ``stamp`` the ``time.time()``
+    the actual pose was read, ``commanded`` and ``actual`` ``T_base_tool`` (``actual`` None when
+    the arm could not be read), ``result`` ``OK`` while running, else how the run ended, with
+    ``message``."""
+    time: float
+    stamp: float
+    commanded: np.ndarray
+    actual: Optional[np.ndarray]
+    result: Result
+    message: str = ""
+
+
+def _positive(name: str, v) -> float:
+    if isinstance(v, bool) or not (isinstance(v, numbers.Real) and math.isfinite(v) and v > 0):
+        raise ValueError(f"{name}: must be a positive finite number, got {v!r}")
+    return float(v)
+
+
+def _tolerance(name: str, v) -> tuple[float, float]:
+    try:
+        lin, ang = v
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected (metres, radians), got {v!r}") from None
+    return _positive(f"{name}[0]", lin), _positive(f"{name}[1]", ang)
+
+
+class Executor:
+    """Feeds ``arm`` from a buffer in its own thread, one set-point per ``arm.period``.
+
+    ``interpolation`` resamples pushed samples onto the arm's period (``"tool_linear"`` or
+    ``"screw"``; samples already at the arm's rate come out unchanged). The first set-point goes
+    out once ``prefill`` seconds of the plan are buffered (or ``finish()`` was called); if they do
+    not arrive within ``stall_timeout`` seconds of the first push the run ends ``STALLED`` without
+    moving. ``start_tolerance`` (m, rad): how far the plan's first pose may be from the arm's
+    actual pose; by default what one set-point from rest may move under the arm's acceleration
+    limits (90 % of ``max_*_accel * period**2``), since anything more would be refused by
+    the Limits anyway. At the end the last pose is held until the arm is within
+    ``settle_tolerance`` (m, rad) of it, for at most ``settle_timeout`` s, then ``arm.stop()``.
+    """
+
+    def __init__(self, arm: Arm, *, interpolation: str = "tool_linear", prefill: float = 0.02,
+                 stall_timeout: float = 1.0, feedback_every: int = 1,
+                 callback: Optional[Callable[[Feedback], None]] = None,
+                 start_tolerance: Optional[tuple[float, float]] = None,
+                 settle_tolerance: tuple[float, float] = (1e-5, 1e-4),
+                 settle_timeout: float = 1.0, stop_fraction: float = 0.5,
+                 max_feedback: int = 100_000):
+        if not isinstance(arm, Arm):
+            raise ValueError(f"arm: expected a drivers.base.Arm, got {type(arm).__name__}")
+        if interpolation not in MODES:
+            raise ValueError(f"interpolation: unknown {interpolation!r}; expected one of "
+                             f"{', '.join(MODES)}")
+        if not (isinstance(prefill, numbers.Real) and math.isfinite(prefill) and prefill >= 0):
+            raise ValueError(f"prefill: must be a finite number >= 0, got {prefill!r}")
+        for name, v in (("feedback_every", feedback_every), ("max_feedback", max_feedback)):
+            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
+                raise ValueError(f"{name}: must be a whole number >= 1, got {v!r}")
+        if not (isinstance(stop_fraction, numbers.Real) and 0 < stop_fraction <= 1):
+            raise ValueError(f"stop_fraction: must be within (0, 1], got {stop_fraction!r}")
+        self.arm = arm
+        self.period = float(arm.period)
+        L = arm.limits
+        self.interpolation = interpolation
+        self.prefill = float(prefill)
+        self.stall_timeout = _positive("stall_timeout", stall_timeout)
+        self.settle_timeout = _positive("settle_timeout", settle_timeout)
+        self.feedback_every = int(feedback_every)
+        self.stop_fraction = float(stop_fraction)
+        self.start_tolerance = _tolerance("start_tolerance", start_tolerance) \
+            if start_tolerance is not None else \
+            (0.9 * L.max_linear_accel * self.period ** 2,
+             0.9 * L.max_angular_accel * self.period ** 2)
+        self.settle_tolerance = _tolerance("settle_tolerance", settle_tolerance)
+        self._callback = callback
+
+        self._cond = threading.Condition()      # guards the buffer and the run state
+        self._slots: collections.deque = collections.deque()   # (plan time, pose) per period
+        self._t0: Optional[float] = None        # plan time of the first set-point
+        self._next_slot = 0                     # index of the next slot to resample
+        self._tail: Optional[tuple[float, np.ndarray]] = None  # the last pushed sample
+        self._finished_input = False
+        self._cancel = threading.Event()
+        self._push_lock = threading.Lock()      # one pusher resamples at a time
+        self._feedback: collections.deque = collections.deque(maxlen=int(max_feedback))
+        self.dropped = 0                        # feedback records that fell out of the queue
+        self.result = Result.OK
+        self.message = ""
+        self.sent = 0                           # set-points sent
+        self._done = threading.Event()
+        self._thread: Optional[threading.Thread] = None
+
+    # ------------------------------------------------------------------ caller side
+    def push(self, times, poses) -> None:
+        """Append samples: ``times`` ``(N,)`` seconds on the plan's clock, strictly increasing
+        and after every sample pushed before; ``poses`` ``(N, 8)`` unit dual quaternions
+        ``T_base_tool``. The first push checks that the plan starts at the arm's actual pose
+        (``ValueError`` naming the distance and the tolerance) and starts the run."""
+        t = np.asarray(times, dtype=np.float64)
+        p = np.asarray(poses, dtype=np.float64)
+        if t.ndim != 1 or t.size == 0:
+            raise ValueError(f"times: expected a non-empty 1-D array, got shape {t.shape}")
+        if p.shape != (t.size, 8):
+            raise ValueError(f"poses: expected shape ({t.size}, 8) to match times, got {p.shape}")
+        bad = np.flatnonzero(~np.isfinite(t))
+        if bad.size:
+            raise ValueError(f"times[{bad[0]}]: contains NaN or infinity")
+        bad = np.flatnonzero(~np.all(np.isfinite(p), axis=1))
+        if bad.size:
+            raise ValueError(f"poses[{bad[0]}]: contains NaN or infinity")
+        norms = np.linalg.norm(p[:, :4], axis=1)
+        bad = np.flatnonzero(np.abs(norms - 1.0) > dq.UNIT_TOL)
+        if bad.size:
+            raise ValueError(f"poses[{bad[0]}]: quaternion norm {norms[bad[0]]:.6g} is not unit "
+                             f"(tolerance {dq.UNIT_TOL})")
+        p = dq.normalize(p)
+        bad = np.flatnonzero(np.diff(t) <= 0)
+        if bad.size:
+            i = bad[0] + 1
+            raise ValueError(f"times[{i}]: {float(t[i])!r} is not after the previous time "
+                             f"{float(t[i - 1])!r}")
+        with self._push_lock:
+            with self._cond:
+                if self._finished_input or self._done.is_set():
+                    raise ValueError("push: the plan was already finished or the run has ended "
+                                     f"({self.result.name})")
+                tail, t0, k0 = self._tail, self._t0, self._next_slot
+            if tail is not None and t[0] <= tail[0]:
+                raise ValueError(f"times[0]: {float(t[0])!r} is not after the last pushed time "
+                                 f"{tail[0]!r}")
+            if t0 is None:
+                self._check_start(p[0])
+                t0 = float(t[0])
+            slots = self._resample(t0, k0, tail, t, p)
+            with self._cond:
+                self._t0 = t0
+                self._tail = (float(t[-1]), p[-1])
+                self._next_slot = k0 + len(slots)
+                self._slots.extend(slots)
+                self._cond.notify_all()
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._run, name="executor", daemon=True)
+                self._thread.start()
+
+    def _resample(self, t0, k0, tail, t, p) -> list[tuple[float, np.ndarray]]:
+        """The period slots from index ``k0`` on that the samples (after ``tail``) cover."""
+        if tail is not None:
+            t = np.concatenate([[tail[0]], t])
+            p = np.concatenate([tail[1][None], p])
+        k1 = int(math.floor((t[-1] - t0) / self.period + 1e-9)) + 1
+        if k1 <= k0:
+            return []
+        st = t0 + self.period * np.arange(k0, k1)
+        if t.size == 1:   # the very first sample alone: it is slot 0
+            return [(float(st[0]), p[0])]
+        # rounding may put the last slot a hair past the last sample
+        poses = interpolate(t, p, np.minimum(st, t[-1]), self.interpolation)
+        return list(zip(st.tolist(), poses))
+
+    def finish(self) -> None:
+        """No more samples: the run ends ``FINISHED`` after the last one. A plan whose end is
+        not on the period grid gets one more set-point, on its last pose."""
+        with self._push_lock, self._cond:
+            if self._tail is None:
+                raise ValueError("finish: no samples were pushed")
+            if self._finished_input:
+                return
+            last_slot = self._t0 + self.period * (self._next_slot - 1)
+            if self._tail[0] - last_slot > 1e-9:
+                self._slots.append((self._t0 + self.period * self._next_slot, self._tail[1]))
+                self._next_slot += 1
+            self._finished_input = True
+            self._cond.notify_all()
+
+    def cancel(self) -> None:
+        """Stop the arm (``arm.stop()``) in the next period; the run ends ``STOPPED``."""
+        self._cancel.set()
+        with self._cond:
+            self._cond.notify_all()
+
+    def wait(self, timeout: Optional[float] = None) -> Optional[Result]:
+        """The final result once the run ended, else None after ``timeout`` seconds."""
+        return self.result if self._done.wait(timeout) else None
+
+    @property
+    def done(self) -> bool:
+        return self._done.is_set()
+
+    @property
+    def buffered(self) -> float:
+        """Seconds of the plan buffered and not yet sent."""
+        with self._cond:
+            return len(self._slots) * self.period
+
+    def feedback(self, timeout: Optional[float] = None) -> Optional[Feedback]:
+        """The oldest unread record (without a ``callback``), waiting up to ``timeout`` s;
+        None when there is none (and, once the run ended, none will come)."""
+        with self._cond:
+            if not self._cond.wait_for(lambda: self._feedback or self._done.is_set(), timeout):
+                return None
+            return self._feedback.popleft() if self._feedback else None
+
+    def close(self) -> None:
+        """Cancel a run still going and wait for its end."""
+        if self._thread is not None and not self._done.is_set():
+            self.cancel()
+            self._done.wait()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _check_start(self, first: np.ndarray) -> None:
+        d, a = pose_delta(self.arm.tool_pose()[1], first)
+        tl, ta = self.start_tolerance
+        if d > tl or a > ta:
+            raise ValueError(f"poses[0]: the plan starts {d:.4g} m and {math.degrees(a):.4g} deg "
+                             f"from the arm's actual pose; it must start within {tl:.3g} m and "
+                             f"{math.degrees(ta):.3g} deg of it (start_tolerance); the arm was "
+                             "not moved")
+
+    # ------------------------------------------------------------------ control thread
+    def _emit(self, fb: Feedback) -> None:
+        if self._callback is not None:
+            self._callback(fb)
+            return
+        with self._cond:
+            if len(self._feedback) == self._feedback.maxlen:
+                self.dropped += 1
+            self._feedback.append(fb)
+            self._cond.notify_all()
+
+    def _actual(self) -> tuple[float, Optional[np.ndarray]]:
+        try:
+            return self.arm.tool_pose()
+        except ArmError:
+            return time.time(), None
+
+    def _run(self) -> None:
+        self._last: Optional[tuple[float, np.ndarray]] = None   # the last set-point sent
+        self._step = np.zeros(6)
+        try:
+            result, message = self._execute()
+        except LimitError as e:
+            result, message = Result.LIMITED, str(e)
+        except ArmError as e:
+            result, message = self._fault(e)
+        except Exception as e:  # the run must end with a result, whatever broke
+            result, message = Result.ERROR, f"{type(e).__name__}: {e}"
+            self._stop_arm()
+        stamp, actual = self._actual()
+        t, pose = self._last if self._last is not None else (self._t0, None)
+        fb = Feedback(t, stamp, pose, actual, result, message)
+        with self._cond:
+            self.result, self.message = result, message
+        self._done.set()
+        self._emit(fb)
+        with self._cond:
+            self._cond.notify_all()
+
+    def _fault(self, e: ArmError) -> tuple[Result, str]:
+        # A controller may refuse a command (a paused program) a cycle or two before its status
+        # data says why: give the report a few periods to arrive.
+        deadline = time.monotonic() + max(10 * self.period, 0.05)
+        while True:
+            try:
+                st = self.arm.status()
+            except ArmError:
+                return Result.ERROR, str(e)
+            if st.protective_stop or st.emergency_stop:
+                what = "emergency stop" if st.emergency_stop else "protective stop"
+                msg = str(e) if what in str(e) else f"{what}: {e}"
+                return Result.PROTECTIVE_STOP, msg
+            if time.monotonic() > deadline:
+                break
+            time.sleep(self.period)
+        self._stop_arm()
+        return Result.ERROR, str(e)
+
+    def _stop_arm(self) -> None:
+        try:
+            self.arm.stop()
+        except ArmError:
+            pass   # the arm is gone or faulted; it stops itself then
+
+    def _send(self, t: float, pose: np.ndarray) -> None:
+        self.arm.servo(pose)
+        if self._last is not None:
+            self._step = servo_step(pose, self._last[1])
+        self._last = (t, pose)
+        self.sent += 1
+        if self.sent % self.feedback_every == 0:
+            stamp, actual = self._actual()
+            self._emit(Feedback(t, stamp, pose, actual, Result.OK))
+
+    def _execute(self) -> tuple[Result, str]:
+        need = int(math.ceil(self.prefill / self.period - 1e-9)) + 1
+        with self._cond:
+            ready = self._cond.wait_for(lambda: len(self._slots) >= need or self._finished_input
+                                        or self._cancel.is_set(), self.stall_timeout)
+        if self._cancel.is_set():
+            return Result.STOPPED, "cancelled before the first set-point; the arm was not moved"
+        if not ready:
+            return Result.STALLED, (f"fewer than {self.prefill:g} s of the plan arrived within "
+                                    f"{self.stall_timeout:g} s; the arm was not moved")
+        # The arm may have moved since the first push.
+        try:
+            self._check_start(self._slots[0][1])
+        except ValueError as e:
+            return Result.ERROR, str(e)
+        while True:
+            if self._cancel.is_set():
+                self._stop_arm()
+                return Result.STOPPED, "cancelled; the arm was stopped"
+            with self._cond:
+                slot = self._slots.popleft() if self._slots else None
+                finished = self._finished_input
+            if slot is not None:
+                self._send(*slot)
+            elif finished:
+                return self._settle()
+            else:
+                return self._decelerate()
+
+    def _settle(self) -> tuple[Result, str]:
+        t, goal = self._last
+        tl, ta = self.settle_tolerance
+        deadline = time.monotonic() + self.settle_timeout
+        while True:
+            if self._cancel.is_set():
+                self._stop_arm()
+                return Result.STOPPED, "cancelled while settling; the arm was stopped"
+            d, a = pose_delta(self.arm.tool_pose()[1], goal)
+            if d <= tl and a <= ta:
+                self._stop_arm()
+                return Result.FINISHED, ""
+            if time.monotonic() > deadline:
+                self._stop_arm()
+                return Result.ERROR, (f"the last pose was not reached within "
+                                      f"{self.settle_timeout:g} s ({d:.4g} m and "
+                                      f"{math.degrees(a):.4g} deg away); the arm was stopped")
+            self._send(t, goal)
+
+    def _decelerate(self) -> tuple[Result, str]:
+        """Brake along the last step, shortening it by ``stop_fraction`` of the acceleration
+        limits each period, so the stop passes the same Limits as the plan."""
+        L, P = self.arm.limits, self.period
+        dl = self.stop_fraction * L.max_linear_accel * P * P
+        da = self.stop_fraction * L.max_angular_accel * P * P
+        t, pose = self._last
+        lin, ang = self._step[:3].copy(), self._step[3:].copy()
+        n = 0
+        while True:
+            nl, na = float(np.linalg.norm(lin)), float(np.linalg.norm(ang))
+            if nl == 0 and na == 0:
+                break
+            if self._cancel.is_set():
+                self._stop_arm()
+                return Result.STOPPED, "cancelled while stopping after a stall; the arm was stopped"
+            lin = lin * (max(nl - dl, 0.0) / nl) if nl > 0 else lin
+            ang = ang * (max(na - da, 0.0) / na) if na > 0 else ang
+            q, p = dq.to_pose(pose)
+            pose = dq.from_pose(dq.mul(dq.from_pose(quat_from_rotvec(ang), [0, 0, 0]),
+                                       dq.from_pose(q, [0, 0, 0]))[:4], p + lin)
+            t += P
+            self._send(t, pose)
+            n += 1
+        self._stop_arm()
+        return Result.STALLED, (f"the buffer ran dry at plan time {t - n * P:.4f} s before "
+                                f"finish(); the arm was brought to rest in {n} set-points and "
+                                "stopped")

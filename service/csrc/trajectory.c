@@ -1,0 +1,544 @@
+/*
+ * trajectory.c — the planner and the dense evaluation of trajectory.h.
+ *
+ * Why the limits hold (the bounds every ramp is sized by; tau = (t - t0) / T, |g'| <= h =
+ * 1 / (1 - beta), |g''| <= h / beta, g(1 - g) <= 1/4):
+ *   velocity   (1 - g) V_A + g V_B: a convex combination, so never above the larger cruise.
+ *   linear     a = (g'/T) (V_B(t) - V_A(t)) + centripetal terms (SCREW only: the tool point is on
+ *              a helix, its velocity turns at rate nu * ds/dt). |V_B(t) - V_A(t)| is at most the
+ *              difference at the corner plus how far each turned during the ramp, which gives
+ *              |a| <= (h/T) D + (h/2)(kA + kB) + max(kA, kB), k = nu sigma |V| (0 on lines);
+ *              |j| <= (h/(beta T^2)) D + (h/T)(3 + 1/(2 beta))(kA + kB) + max(nu sigma k).
+ *   angular    the blend rotation is E_B(s_B) E_A(s_A) q with E_B a rotation about w_B, which
+ *              keeps the angle between w_B and the rotated w_A, so with the cross product
+ *              X = |w_A x w_B| of the two cruise angular velocities:
+ *              |alpha| <= (h/T) |w_B - w_A| + X/4,
+ *              |j| <= (h/(beta T^2)) |w_B - w_A| + 2 (h/T) X + (4/27) X max(|w_A|, |w_B|).
+ *   radius     the tool point is within max(|V_A|, |V_B|) T / 2 of the corner (the distance
+ *              along each path left to travel, a convex function of tau, so largest at the ends).
+ * The shortest T meeting all of them is solved in closed form for the beta of the leading
+ * (1/T) terms — exactly the 1-D time-optimal S-curve on straight lines — and the cruise rates are
+ * lowered (bisection on a common factor) wherever a ramp cannot meet its radius, a constant term
+ * leaves no room, or the ramps do not fit in their segment.
+ */
+#include "trajectory.h"
+
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "dq.h"
+
+/* With no jerk limit the ramps still get jerk phases, so the acceleration stays continuous (C2
+ * position); this fraction of the ramp costs at most 5 % of its time. */
+#define BETA_FREE 0.05
+#define BISECT 60
+/* A blend that would need its two segments below this fraction of their speed is turned into a
+ * stop, which is then faster. */
+#define BLEND_MIN_FACTOR 0.25
+#define SWEEPS 100
+
+/* fmin/fmax are library calls under -std=c99; nothing here is NaN (the input is checked). */
+static inline double lo2(double a, double b) { return a < b ? a : b; }
+static inline double hi2(double a, double b) { return a > b ? a : b; }
+
+static double norm3(const double *v) { return sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]); }
+
+static void cross3(const double *a, const double *b, double *c)
+{
+    c[0] = a[1] * b[2] - a[2] * b[1];
+    c[1] = a[2] * b[0] - a[0] * b[2];
+    c[2] = a[0] * b[1] - a[1] * b[0];
+}
+
+/* R(q) v for a unit quaternion q = (w, u): v + 2w (u x v) + 2 u x (u x v) */
+static void rotate(const double *q, const double *v, double *out)
+{
+    double t[3], tt[3];
+    cross3(q + 1, v, t);
+    for (int i = 0; i < 3; i++) t[i] *= 2.0;
+    cross3(q + 1, t, tt);
+    for (int i = 0; i < 3; i++) out[i] = v[i] + q[0] * t[i] + tt[i];
+}
+
+/* ---- the ramp shape ------------------------------------------------------------------------ */
+
+static inline double shape_g(double tau, double beta)
+{
+    double h = 1.0 / (1.0 - beta);
+    if (tau <= beta) return h * tau * tau / (2.0 * beta);
+    if (tau >= 1.0 - beta) return 1.0 - h * (1.0 - tau) * (1.0 - tau) / (2.0 * beta);
+    return h * (tau - 0.5 * beta);
+}
+
+static inline double G_left(double tau, double beta, double h)
+{
+    if (tau <= beta) return h * tau * tau * tau / (6.0 * beta);
+    double u = tau - beta;
+    return h * beta * beta / 6.0 + h * beta * u / 2.0 + h * u * u / 2.0;
+}
+
+/* g is point-symmetric about (1/2, 1/2), so G(tau) = tau - 1/2 + G(1 - tau). */
+static inline double shape_G(double tau, double beta)
+{
+    double h = 1.0 / (1.0 - beta);
+    if (tau <= 0.5) return G_left(tau, beta, h);
+    return tau - 0.5 + G_left(1.0 - tau, beta, h);
+}
+
+
+/* ---- ramps ----------------------------------------------------------------------------------- */
+
+/* The motion on one side of a ramp: its velocities at the corner and what bounds the rest. */
+typedef struct {
+    double v[3], w[3];  /* tool-point and angular velocity at the junction */
+    double speed, spin; /* |v|, |w| (constant along a segment) */
+    double nus, kappa;  /* rate at which v turns; centripetal acceleration = nus * speed */
+} side;
+
+
+static side side_of(const dq_traj_seg *g, double sigma, int at_end)
+{
+    side s;
+    const double *cv = at_end ? g->cv1 : g->cv0;
+    for (int i = 0; i < 3; i++) { s.v[i] = sigma * cv[i]; s.w[i] = sigma * g->w[i]; }
+    s.speed = sigma * g->len;
+    s.spin = sigma * g->theta;
+    s.nus = sigma * g->nu;
+    s.kappa = s.nus * s.speed;
+    return s;
+}
+
+/* Largest x = 1/T with c2 x^2 + c1 x + c0 <= lim; -1 when c0 leaves no room, INFINITY when
+ * nothing depends on x. */
+static double x_max(double c2, double c1, double c0, double lim)
+{
+    double r = lim - c0;
+    if (!(r > 0.0)) return -1.0;
+    double den = c1 + sqrt(c1 * c1 + 4.0 * c2 * r);
+    return den > 0.0 ? 2.0 * r / den : INFINITY;
+}
+
+/* The shortest ramp from A to B within the limits: its duration, beta and the limit that
+ * decides it. Returns 0, or -1 when no duration will do (a constant term is over its limit). */
+static int ramp(const side *A, const side *B, const dq_traj_limits *L, double *T, double *beta,
+                int *bind)
+{
+    double dv[3], dw[3], x[3];
+    for (int i = 0; i < 3; i++) { dv[i] = B->v[i] - A->v[i]; dw[i] = B->w[i] - A->w[i]; }
+    double Dl = norm3(dv), Da = norm3(dw);
+    cross3(A->w, B->w, x);
+    double X = norm3(x);
+    /* beta of the time-optimal S-curve for the leading terms: (1 - beta) T >= Acc,
+     * beta (1 - beta) T^2 >= Jrk */
+    double Acc = hi2(Dl / L->acc[0], Da / L->acc[1]);
+    double Jrk = hi2(L->jerk[0] > 0 ? Dl / L->jerk[0] : 0.0, L->jerk[1] > 0 ? Da / L->jerk[1] : 0.0);
+    double b;
+    if (L->jerk[0] <= 0 && L->jerk[1] <= 0) b = BETA_FREE;
+    else if (Acc * Acc >= Jrk) b = Acc > 0 ? (Jrk / Acc) / (Acc + Jrk / Acc) : 0.5;
+    else b = 0.5;
+    b = lo2(0.5, hi2(b, 1e-3));
+    double h = 1.0 / (1.0 - b);
+    double kA = A->kappa, kB = B->kappa;
+    double xs[4] = {
+        x_max(0.0, h * Dl, 0.5 * h * (kA + kB) + hi2(kA, kB), L->acc[0]),
+        x_max(0.0, h * Da, 0.25 * X, L->acc[1]),
+        L->jerk[0] > 0 ? x_max(h / b * Dl, h * (3.0 + 0.5 / b) * (kA + kB),
+                               hi2(A->nus * kA, B->nus * kB), L->jerk[0]) : INFINITY,
+        L->jerk[1] > 0 ? x_max(h / b * Da, 2.0 * h * X, 4.0 / 27.0 * X * hi2(A->spin, B->spin),
+                               L->jerk[1]) : INFINITY,
+    };
+    static const int names[4] = {DQ_BIND_LIN_ACC, DQ_BIND_ANG_ACC, DQ_BIND_LIN_JERK,
+                                 DQ_BIND_ANG_JERK};
+    double xm = INFINITY;
+    int k = 0;
+    for (int i = 0; i < 4; i++) {
+        if (xs[i] < 0) return -1;
+        if (xs[i] < xm) { xm = xs[i]; k = i; }
+    }
+    *T = isinf(xm) ? 0.0 : 1.0 / xm;
+    *beta = b;
+    *bind = names[k];
+    return 0;
+}
+
+/* ---- the planner ----------------------------------------------------------------------------- */
+
+typedef struct {
+    dq_traj_seg *seg;
+    size_t n;
+    const double *radius;
+    const dq_traj_limits *L;
+    double sigma0;
+} plan_ctx;
+
+static int blended(const plan_ctx *c, size_t k) { return k > 0 && k < c->n && c->seg[k].blend_in; }
+
+/* The blend ramp at corner k between segment k-1 at rate sa and segment k at rate sb. */
+static int corner_ramp(const plan_ctx *c, size_t k, double sa, double sb, double *T, double *beta,
+                       int *bind)
+{
+    side A = side_of(&c->seg[k - 1], sa, 1), B = side_of(&c->seg[k], sb, 0);
+    return ramp(&A, &B, c->L, T, beta, bind);
+}
+
+/* How far a blended corner k, its two corner rates scaled by f, misses its radius: the tool
+ * point's largest distance from the corner over the radius, minus 1 (<= 0: fits; INFINITY: no
+ * ramp satisfies the limits). */
+static double corner_gap(const plan_ctx *c, size_t k, double f, int *bind)
+{
+    double T, b, sa = f * c->seg[k - 1].sig_out, sb = f * c->seg[k].sig_in;
+    if (corner_ramp(c, k, sa, sb, &T, &b, bind) < 0) return INFINITY;
+    return 0.5 * T * hi2(sa * c->seg[k - 1].len, sb * c->seg[k].len) / c->radius[k] - 1.0;
+}
+
+/* The five phases of segment k (trajectory.h) at cruise rate s and corner rates si, so (the
+ * cruise's duration left 0). Returns the s it covers outside the cruise, or -1 when a ramp is
+ * infeasible; *bind the limit of the longest ramp of its own. */
+static double phases(const plan_ctx *c, size_t k, double s, double si, double so, double *T,
+                     double *B, double *R, int *bind)
+{
+    const dq_traj_seg *g = &c->seg[k];
+    int b1 = DQ_BIND_LIN_ACC, b3 = DQ_BIND_LIN_ACC, b;
+    double r[6] = {0.0, si, s, s, so, 0.0};
+    memset(T, 0, 5 * sizeof *T);
+    for (int i = 0; i < 5; i++) B[i] = 0.5;
+    if (blended(c, k) && corner_ramp(c, k, c->seg[k - 1].sig_out, si, &T[0], &B[0], &b) < 0) return -1;
+    side S0 = side_of(g, si, 0), S1 = side_of(g, s, 0), S2 = side_of(g, s, 1), S3 = side_of(g, so, 1);
+    if (ramp(&S0, &S1, c->L, &T[1], &B[1], &b1) < 0) return -1;
+    if (ramp(&S2, &S3, c->L, &T[3], &B[3], &b3) < 0) return -1;
+    if (blended(c, k + 1) && corner_ramp(c, k + 1, so, c->seg[k + 1].sig_in, &T[4], &B[4], &b) < 0)
+        return -1;
+    *bind = T[1] >= T[3] ? b1 : b3;
+    double covered = 0.0;
+    for (int i = 0; i < 5; i++) {
+        if (R) { R[i] = r[i]; R[5] = r[5]; }
+        covered += 0.5 * (r[i] + r[i + 1]) * T[i];
+    }
+    return covered;
+}
+
+/* Segment k with its rates scaled to cruise f * sigma: how much more than its s in [0, 1] its
+ * ramps need (<= 0: they fit; INFINITY: a ramp is infeasible). Corner rates never exceed the
+ * cruise; the start rate sigma0 is given. */
+static double fit_gap(const plan_ctx *c, size_t k, double f, int *bind)
+{
+    const dq_traj_seg *g = &c->seg[k];
+    double s = f * g->sigma, T[5], B[5];
+    double si = blended(c, k) ? lo2(g->sig_in, s) : g->sig_in;
+    double so = lo2(g->sig_out, s);
+    double covered = phases(c, k, s, si, so, T, B, NULL, bind);
+    return covered < 0.0 ? INFINITY : covered - 1.0;
+}
+
+typedef double (*gap_fn)(const plan_ctx *, size_t, double, int *);
+
+/* The largest factor f in [0, 1] with gap(f) <= 0, given gap(0) <= 0 < gap(1), to within
+ * 1e-9 of f or of the gap: regula falsi (Illinois), which converges in a few steps where the
+ * gap is smooth, with bisection where it is infinite. */
+static double largest_factor(gap_fn gap, const plan_ctx *c, size_t k, int *bind)
+{
+    double lo = 0.0, hi = 1.0, glo = gap(c, k, 0.0, bind), ghi = gap(c, k, 1.0, bind);
+    int last = 0;
+    for (int it = 0; it < BISECT && hi - lo > 1e-9 && glo < -1e-9; it++) {
+        double f = 0.5 * (lo + hi);
+        if (isfinite(ghi)) {
+            f = lo + (hi - lo) * glo / (glo - ghi);
+            f = lo2(hi2(f, lo + 1e-3 * (hi - lo)), hi - 1e-3 * (hi - lo));
+        }
+        double gf = gap(c, k, f, bind);
+        if (gf <= 0.0) {
+            lo = f; glo = gf;
+            if (last < 0 && isfinite(ghi)) ghi *= 0.5;
+            last = -1;
+        } else {
+            hi = f; ghi = gf;
+            if (last > 0) glo *= 0.5;
+            last = 1;
+        }
+    }
+    gap(c, k, lo, bind);
+    return lo;
+}
+
+/* Cruise rates from the caps scaled by lam; corner rates lowered until each blend fits its
+ * radius, cruise rates until each segment's ramps fit in it; then the time law. */
+static int solve(plan_ctx *c, const double *lam, size_t *bad)
+{
+    size_t n = c->n;
+    int bind;
+    for (size_t k = 0; k < n; k++) {
+        dq_traj_seg *g = &c->seg[k];
+        g->sigma = lam[k] * g->cap;
+        g->bind = lam[k] < 1.0 ? DQ_BIND_TIME : g->cap_bind;
+        g->sig_in = blended(c, k) ? g->sigma : k == 0 ? c->sigma0 : 0.0;
+        g->sig_out = blended(c, k + 1) ? g->sigma : 0.0;
+    }
+    int settled = 0;
+    for (int sweep = 0; sweep < SWEEPS && !settled; sweep++) {
+        settled = 1;
+        for (size_t k = 1; k < n; k++) {
+            if (!blended(c, k) || corner_gap(c, k, 1.0, &bind) <= 0.0) continue;
+            double f = largest_factor(corner_gap, c, k, &bind);
+            c->seg[k - 1].sig_out *= f;   /* f = 0: no blend fits, a stop */
+            c->seg[k].sig_in *= f;
+            settled = 0;
+        }
+        for (size_t k = 0; k < n; k++) {
+            dq_traj_seg *g = &c->seg[k];
+            if (fit_gap(c, k, 1.0, &bind) <= 0.0) continue;
+            double f = largest_factor(fit_gap, c, k, &bind);
+            if (f <= 0.0) {
+                *bad = k;
+                return k == 0 && c->sigma0 > 0 ? DQ_TRAJ_E_START : DQ_TRAJ_E_STUCK;
+            }
+            g->sigma *= f;
+            if (blended(c, k)) g->sig_in = lo2(g->sig_in, g->sigma);
+            g->sig_out = lo2(g->sig_out, g->sigma);
+            g->bind = bind;
+            settled = 0;
+        }
+    }
+    if (!settled) { *bad = 0; return DQ_TRAJ_E_STUCK; }
+    double t = 0.0;
+    for (size_t k = 0; k < n; k++) {
+        dq_traj_seg *g = &c->seg[k];
+        double covered = phases(c, k, g->sigma, g->sig_in, g->sig_out, g->T, g->beta, g->rate, &bind);
+        g->T[2] = hi2(0.0, (1.0 - covered) / g->sigma);
+        g->t_at[0] = g->s_at[0] = 0.0;
+        for (int i = 0; i < 5; i++) {
+            g->t_at[i + 1] = g->t_at[i] + g->T[i];
+            g->s_at[i + 1] = g->s_at[i] + 0.5 * (g->rate[i] + g->rate[i + 1]) * g->T[i];
+        }
+        if (k > 0) {
+            const dq_traj_seg *p = &c->seg[k - 1];
+            t = p->start + (g->blend_in ? p->t_at[4] : p->t_at[5]); /* a blend overlaps phase 4 */
+        }
+        g->start = t;
+    }
+    return DQ_OK;
+}
+
+static double seg_duration(const dq_traj_seg *g) { return g->t_at[5]; }
+
+/* When waypoint m (>= 1) is reached: the end of a stop, the middle of a blend. */
+static double arrival(const plan_ctx *c, size_t m)
+{
+    if (m == c->n) return c->seg[m - 1].start + seg_duration(&c->seg[m - 1]);
+    const dq_traj_seg *g = &c->seg[m];
+    return g->blend_in ? g->start + 0.5 * g->T[0] : g->start;
+}
+
+static void geometry(const double *a, const double *b, int mode, dq_traj_seg *g)
+{
+    double ac[8], rel[8], l[6], wb[3];
+    memcpy(g->a, a, sizeof g->a);
+    memcpy(g->b, b, sizeof g->b);
+    dq_conj(a, ac);
+    dq_mul(ac, b, rel);
+    dq_log(rel, l);
+    for (int i = 0; i < 3; i++) { wb[i] = 2.0 * l[i]; g->vb[i] = 2.0 * l[3 + i]; }
+    g->theta = norm3(wb);
+    rotate(a, wb, g->w);
+    double qa[4], ta[3], qb[4], tb[3];
+    dq_to_pose(a, qa, ta);
+    dq_to_pose(b, qb, tb);
+    g->qa_conj[0] = a[0];
+    for (int i = 1; i < 4; i++) g->qa_conj[i] = -a[i];
+    for (int i = 0; i < 3; i++) { g->pa[i] = ta[i]; g->dp[i] = tb[i] - ta[i]; }
+    if (mode == DQ_TRAJ_SCREW) {
+        dq_sclerp_prepare(a, b, &g->pair);
+        rotate(a, g->vb, g->cv0);
+        rotate(b, g->vb, g->cv1);
+        g->len = norm3(g->vb);
+        g->nu = g->theta;
+    } else {
+        double ra[8] = {a[0], a[1], a[2], a[3], 0, 0, 0, 0}, rb[8] = {b[0], b[1], b[2], b[3], 0, 0, 0, 0};
+        dq_sclerp_prepare(ra, rb, &g->pair);
+        memcpy(g->cv0, g->dp, sizeof g->cv0);
+        memcpy(g->cv1, g->dp, sizeof g->cv1);
+        g->len = norm3(g->dp);
+        g->nu = 0.0;
+    }
+}
+
+/* The cruise alone: speed limits, and on a helix its centripetal acceleration and jerk. */
+static void cap_of(dq_traj_seg *g, const dq_traj_limits *L)
+{
+    double best = INFINITY;
+    int bind = DQ_BIND_LIN_VEL;
+#define CAP_(value, name) do { double v_ = (value); if (v_ < best) { best = v_; bind = (name); } } while (0)
+    if (g->len > 0) CAP_(L->vel[0] / g->len, DQ_BIND_LIN_VEL);
+    if (g->theta > 0) CAP_(L->vel[1] / g->theta, DQ_BIND_ANG_VEL);
+    if (g->nu * g->len > 0) {
+        CAP_(sqrt(L->acc[0] / (g->nu * g->len)), DQ_BIND_LIN_ACC);
+        if (L->jerk[0] > 0) CAP_(cbrt(L->jerk[0] / (g->nu * g->nu * g->len)), DQ_BIND_LIN_JERK);
+    }
+#undef CAP_
+    g->cap = best;
+    g->cap_bind = bind;
+}
+
+/* Timed waypoints: the cruise of the segments since the previous timed waypoint is slowed by one
+ * common factor lam until the waypoint is reached on time. A blended corner couples neighbouring
+ * intervals, so the sweep repeats until every time holds. */
+static int meet_times(plan_ctx *c, const double *times, double *lam, size_t *bad)
+{
+    size_t K = c->n + 1;
+    int rc = solve(c, lam, bad);
+    for (int sweep = 0; !rc && sweep < 20; sweep++) {
+        size_t p = 0;
+        for (size_t m = 1; m < K && !rc; m++) {
+            if (!(times[m] > 0)) continue;
+            for (size_t k = p; k < m; k++) lam[k] = 1.0;
+            if ((rc = solve(c, lam, bad))) break;
+            double tol = 1e-9 * hi2(1.0, times[m]);
+            if (arrival(c, m) > times[m] + tol) { *bad = m; return DQ_TRAJ_E_TIME; }
+            double lo = 0.0, hi = 1.0;
+            for (int it = 0; it < BISECT && !rc && fabs(arrival(c, m) - times[m]) > 0.1 * tol; it++) {
+                double f = 0.5 * (lo + hi);
+                for (size_t k = p; k < m; k++) lam[k] = f;
+                rc = solve(c, lam, bad);
+                if (arrival(c, m) > times[m]) lo = f; else hi = f;
+            }
+            p = m;
+        }
+        if (rc || (rc = solve(c, lam, bad))) break;
+        int met = 1;
+        for (size_t m = 1; m < K; m++)
+            if (times[m] > 0 && fabs(arrival(c, m) - times[m]) > 1e-9 * hi2(1.0, times[m])) met = 0;
+        if (met) return DQ_OK;
+    }
+    if (!rc) { *bad = 0; rc = DQ_TRAJ_E_STUCK; }
+    return rc;
+}
+
+int dq_traj_plan(const double *wp, size_t K, int mode, const double *radius, const double *times,
+                 const dq_traj_limits *lim, double sigma0, dq_traj_seg *seg, double *duration,
+                 size_t *bad)
+{
+    size_t n = K - 1;
+    plan_ctx c = {seg, n, radius, lim, sigma0};
+    double *lam = malloc(n * sizeof *lam);
+    if (!lam) return DQ_TRAJ_E_MEMORY;
+    int timed = 0;
+    for (size_t k = 0; k < n; k++) {
+        geometry(wp + 8 * k, wp + 8 * (k + 1), mode, &seg[k]);
+        cap_of(&seg[k], lim);
+        seg[k].blend_in = k > 0 && radius[k] > 0;
+        lam[k] = 1.0;
+        timed |= times[k + 1] > 0;
+    }
+    int rc = timed ? meet_times(&c, times, lam, bad) : solve(&c, lam, bad);
+    free(lam);
+    if (!rc) *duration = arrival(&c, n);
+    return rc;
+}
+
+/* ---- dense evaluation ------------------------------------------------------------------------ */
+
+/* s and ds/dt of segment g at time tl after its start: each phase takes the rate from rate[i]
+ * to rate[i+1] with the ramp shape (the cruise: equal rates, no shape to evaluate). */
+static void seg_s(const dq_traj_seg *g, double tl, double *s, double *sd)
+{
+    int i = 0;
+    while (i < 5 && tl >= g->t_at[i + 1]) i++;
+    if (i == 5) { *s = 1.0; *sd = 0.0; return; }
+    double T = g->T[i], x = g->rate[i], y = g->rate[i + 1], u = tl - g->t_at[i];
+    if (x == y) {
+        *s = g->s_at[i] + x * u;
+        *sd = x;
+    } else {
+        double tau = u / T, G = shape_G(tau, g->beta[i]), gg = shape_g(tau, g->beta[i]);
+        *s = g->s_at[i] + T * (x * (tau - G) + y * G);
+        *sd = x * (1.0 - gg) + y * gg;
+    }
+    *s = lo2(1.0, hi2(0.0, *s));
+}
+
+/* Rotation r, tool point p and their rates of segment g at s (rate sd). */
+static void seg_at(const dq_traj_seg *g, int mode, double s, double sd, double *r, double *p,
+                   double *v, double *w)
+{
+    if (mode == DQ_TRAJ_SCREW) {
+        double out[8];
+        dq_sclerp_eval(&g->pair, s, out);
+        memcpy(r, out, 4 * sizeof(double));
+        double rc[4] = {out[0], -out[1], -out[2], -out[3]}, t[4];
+        dq_qmul(out + 4, rc, t);
+        for (int i = 0; i < 3; i++) p[i] = 2.0 * t[1 + i];
+        rotate(r, g->vb, v);
+    } else {
+        /* the real part of the rotation pair's ScLERP: the slerp */
+        const dq_sclerp_pair *q = &g->pair;
+        double C = 1.0, S = 0.0;
+        if (!q->pure) { C = cos(s * q->phi); S = sin(s * q->phi); }
+        for (int i = 0; i < 4; i++) r[i] = C * q->p0[i] + S * q->p1[i];
+        for (int i = 0; i < 3; i++) { p[i] = g->pa[i] + s * g->dp[i]; v[i] = g->dp[i]; }
+    }
+    for (int i = 0; i < 3; i++) { v[i] *= sd; w[i] = sd * g->w[i]; }
+}
+
+static void from_rp(const double *r, const double *p, double *out)
+{
+    double tq[4] = {0.0, 0.5 * p[0], 0.5 * p[1], 0.5 * p[2]};
+    memcpy(out, r, 4 * sizeof(double));
+    dq_qmul(tq, r, out + 4);
+}
+
+void dq_traj_eval(const dq_traj_seg *seg, size_t nseg, int mode, double duration,
+                  const double *t, size_t n, double *pose, double *lin, double *ang)
+{
+    size_t k = 0;
+    for (size_t i = 0; i < n; i++) {
+        double ti = t[i], *o = pose + 8 * i, *v = lin + 3 * i, *w = ang + 3 * i;
+        if (ti <= 0.0 || ti >= duration) {
+            /* the ends exactly; the start moves at the start rate, the end is at rest */
+            const dq_traj_seg *g = ti <= 0.0 ? &seg[0] : &seg[nseg - 1];
+            memcpy(o, ti <= 0.0 ? g->a : g->b, 8 * sizeof(double));
+            double sd = ti <= 0.0 ? g->rate[1] : 0.0, r[4], p[3];
+            seg_at(g, mode, ti <= 0.0 ? 0.0 : 1.0, sd, r, p, v, w);
+            continue;
+        }
+        /* the last segment started by ti; sorted times keep the previous one as the guess */
+        if (!(seg[k].start <= ti && (k + 1 == nseg || seg[k + 1].start > ti))) {
+            size_t lo = 0, hi = nseg;
+            while (hi - lo > 1) {
+                size_t mid = (lo + hi) / 2;
+                if (seg[mid].start <= ti) lo = mid; else hi = mid;
+            }
+            k = lo;
+        }
+        const dq_traj_seg *g = &seg[k];
+        double s, sd, r[4], p[3];
+        seg_s(g, ti - g->start, &s, &sd);
+        const dq_traj_seg *q = k > 0 && g->blend_in ? &seg[k - 1] : NULL;
+        if (q && ti >= q->start + seg_duration(q)) q = NULL;
+        if (!q) {
+            if (mode == DQ_TRAJ_SCREW) {
+                dq_sclerp_eval(&g->pair, s, o); /* ScLERP itself, not a rebuilt pose */
+                rotate(o, g->vb, v);
+                for (int j = 0; j < 3; j++) { v[j] *= sd; w[j] = sd * g->w[j]; }
+            } else {
+                seg_at(g, mode, s, sd, r, p, v, w);
+                from_rp(r, p, o);
+            }
+            continue;
+        }
+        /* a blend: segment k's progress applied on top of segment k-1's */
+        double s0, sd0, r0[4], p0[3], v0[3], w0[3], e[4], rr[4], w0r[3];
+        seg_s(q, ti - q->start, &s0, &sd0);
+        seg_at(g, mode, s, sd, r, p, v, w);
+        seg_at(q, mode, s0, sd0, r0, p0, v0, w0);
+        dq_qmul(r, g->qa_conj, e);
+        dq_qmul(e, r0, rr);
+        rotate(e, w0, w0r);
+        double pp[3];
+        for (int j = 0; j < 3; j++) {
+            pp[j] = p0[j] + p[j] - g->pa[j];
+            v[j] += v0[j];
+            w[j] += w0r[j];
+        }
+        from_rp(rr, pp, o);
+    }
+}

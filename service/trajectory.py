@@ -1,0 +1,266 @@
+"""Trajectories on SE(3): waypoints in, a time-scaled pose stream out, every Cartesian limit kept.
+
+A path through waypoints is one segment per pair, in one of two modes (:data:`INTERPOLATIONS`):
+
+* ``"tool_linear"``: the tool point on the straight line, the orientation slerped (MoveIt/Pilz LIN);
+* ``"screw"``: ScLERP per segment, the tool point on a helix.
+
+Each segment's progress ``s`` in [0, 1] rises over a jerk-limited S-curve ramp, cruises and falls
+over another. A waypoint with a ``blend_radius`` is not stopped at: the next segment's ramp-up runs
+during this one's ramp-down with the same shape (time blending, as UR and Pilz blend), so the
+velocity there is a convex combination of the two cruise velocities and the tool point stays within
+the radius of the corner. The limits on the tool point's linear velocity, acceleration and jerk and
+on the tool's angular velocity, acceleration and jerk are met by construction: the C planner
+(``service/csrc/trajectory.c``, where the bounds are derived) sizes every ramp by upper bounds of
+these quantities, and ``tests/test_trajectory.py`` checks them on the samples themselves.
+
+Velocities (``Samples.linear_velocity``, ``angular_velocity``) are those of the tool point and of
+the tool, both in the base frame, as UR reports TCP speed.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import NamedTuple
+
+import numpy as np
+
+from service import _dqcore as _c
+from service import dq
+from service.errors import FieldError, rename
+
+__all__ = ["INTERPOLATIONS", "Limits", "Waypoint", "Segment", "Samples", "Trajectory",
+           "Infeasible", "plan"]
+
+INTERPOLATIONS = ("tool_linear", "screw")   # proto Interpolation: TOOL_LINEAR=1, SCREW=2
+MAX_SAMPLES = 100_000_000                   # at_rate's refusal: 2.4 GB of output
+_MODE = {"tool_linear": 1, "screw": 2}       # trajectory.h: DQ_TRAJ_LINEAR, DQ_TRAJ_SCREW
+# trajectory.h's DQ_BIND_* in order: what decided a segment's cruise
+_BINDINGS = ("max_linear_velocity", "max_angular_velocity", "max_linear_acceleration",
+             "max_angular_acceleration", "max_linear_jerk", "max_angular_jerk", "time")
+# codes of dq_traj_plan
+_E_TIME, _E_START, _E_STUCK = 20, 21, 22
+
+
+class Infeasible(FieldError):
+    """The limits cannot meet the request (a waypoint's time, the start velocity)."""
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Cartesian limits of the tool point (linear) and the tool (angular). Velocities and
+    accelerations are required (> 0); a jerk of 0 means no jerk limit."""
+    max_linear_velocity: float        # m/s
+    max_angular_velocity: float       # rad/s
+    max_linear_acceleration: float    # m/s^2
+    max_angular_acceleration: float   # rad/s^2
+    max_linear_jerk: float = 0.0      # m/s^3
+    max_angular_jerk: float = 0.0     # rad/s^3
+
+    def __post_init__(self):
+        for f in fields(self):
+            v = getattr(self, f.name)
+            try:
+                v = float(v)
+            except (TypeError, ValueError):
+                raise FieldError(f"limits.{f.name}: must be a number, got {v!r}") from None
+            jerk = f.name.endswith("jerk")
+            if not (math.isfinite(v) and (v >= 0 if jerk else v > 0)):
+                need = "finite and >= 0 (0: no limit)" if jerk else "finite and > 0"
+                raise FieldError(f"limits.{f.name}: must be {need}, got {v!r}")
+            object.__setattr__(self, f.name, v)
+
+    def as_array(self) -> np.ndarray:
+        """``[v, w, a, alpha, j, jerk_w]``: the order of the C core's dq_traj_limits."""
+        return np.array([getattr(self, f.name) for f in fields(self)])
+
+
+@dataclass(frozen=True)
+class Waypoint:
+    """A pose ``T_base_tool`` (8,) to pass through. ``time`` > 0: the time (s from the start) it
+    must be reached (at a blend: the middle of the blend); 0: as soon as the limits allow.
+    ``blend_radius`` > 0: pass the corner without stopping, the tool point within this distance
+    (m) of it (a radius too small for the turn, one that would slow the neighbouring segments
+    below a quarter of their speed, stops at the corner instead: that is faster)."""
+    pose: np.ndarray
+    time: float = 0.0
+    blend_radius: float = 0.0
+
+
+class Segment(NamedTuple):
+    """Segment k, from waypoint k to k+1: when it starts moving, how long it moves (a blended
+    segment overlaps its neighbours), and the Limits field (or ``"time"``) that decided its speed."""
+    start: float
+    duration: float
+    binding: str
+
+
+class Samples(NamedTuple):
+    """Poses and velocities at ``time`` (N,): ``pose`` (N, 8), ``linear_velocity`` (N, 3) of the
+    tool point and ``angular_velocity`` (N, 3) of the tool, both in the base frame."""
+    time: np.ndarray
+    pose: np.ndarray
+    linear_velocity: np.ndarray
+    angular_velocity: np.ndarray
+
+
+class Trajectory:
+    """A planned trajectory (see :func:`plan`); evaluating it costs one ScLERP/slerp per sample."""
+
+    def __init__(self, table: bytes, mode: int, duration: float, segments: tuple[Segment, ...]):
+        self._table, self._mode = table, mode
+        self.duration = duration
+        self.segments = segments
+
+    def sample(self, times) -> Samples:
+        """The trajectory at ``times`` (any order), each within ``[0, duration]``."""
+        t = np.ascontiguousarray(times, dtype=np.float64)
+        if t.ndim != 1:
+            raise FieldError(f"times: expected a 1-D array, got shape {t.shape}")
+        bad = np.flatnonzero(~((t >= 0) & (t <= self.duration)))
+        if bad.size:
+            raise FieldError(f"times[{bad[0]}]: {float(t[bad[0]])!r} is outside "
+                             f"[0, {self.duration!r}]")
+        return Samples(t, *_c.traj_eval(self._table, self._mode, self.duration, t))
+
+    def at_rate(self, rate_hz: float) -> Samples:
+        """Samples every ``1 / rate_hz`` s from 0, and the last one at ``duration`` exactly."""
+        r = float(rate_hz)
+        if not (math.isfinite(r) and r > 0):
+            raise FieldError(f"rate_hz: must be finite and > 0, got {rate_hz!r}")
+        n = math.ceil(self.duration * r)
+        if n > MAX_SAMPLES:
+            raise FieldError(f"rate_hz: {r!r} Hz over {self.duration!r} s is {n} samples, more "
+                             f"than {MAX_SAMPLES}")
+        t = np.arange(n) / r
+        t = np.append(t[t < self.duration], self.duration)
+        return Samples(t, *_c.traj_eval(self._table, self._mode, self.duration, t))
+
+
+def _waypoints(waypoints) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Poses (K, 8) (each in the previous one's hemisphere), times, radii; errors name the index."""
+    wps = list(waypoints)
+    if len(wps) < 2:
+        raise FieldError(f"waypoints: need at least 2, got {len(wps)}")
+    poses = np.empty((len(wps), 8))
+    times, radius = np.zeros(len(wps)), np.zeros(len(wps))
+    for i, w in enumerate(wps):
+        if not isinstance(w, Waypoint):
+            raise FieldError(f"waypoints[{i}]: expected a Waypoint, got {type(w).__name__}")
+        p = np.asarray(w.pose, dtype=np.float64)
+        if p.shape != (8,):
+            raise FieldError(f"waypoints[{i}].pose: expected shape (8,), got {p.shape}")
+        poses[i] = p
+        for name, out in (("time", times), ("blend_radius", radius)):
+            v = getattr(w, name)
+            try:
+                v = float(v)
+            except (TypeError, ValueError):
+                raise FieldError(f"waypoints[{i}].{name}: must be a number, got {v!r}") from None
+            if not (math.isfinite(v) and v >= 0):
+                raise FieldError(f"waypoints[{i}].{name}: must be finite and >= 0, got {v!r}")
+            out[i] = v
+    try:
+        dq.to_pose(poses)                 # checks each pose is a unit dual quaternion
+    except ValueError as e:
+        raise rename(e, {"a": "waypoints{}.pose"}) from None
+    poses = dq.normalize(poses)
+    # one hemisphere along the path, so the stream never flips sign
+    flip = np.cumprod(np.where(np.einsum("ij,ij->i", poses[1:, :4], poses[:-1, :4]) < 0, -1.0, 1.0))
+    poses[1:] *= flip[:, None]
+    if times[0] != 0:
+        raise FieldError(f"waypoints[0].time: the first waypoint is the start (time 0), "
+                         f"got {float(times[0])!r}")
+    timed = np.flatnonzero(times)
+    for a, b in zip(timed[:-1], timed[1:]):
+        if times[b] <= times[a]:
+            raise FieldError(f"waypoints[{b}].time: {float(times[b])!r} is not after waypoints[{a}].time "
+                             f"{float(times[a])!r} (times must increase)")
+    for i in (0, len(wps) - 1):
+        if radius[i] > 0:
+            raise FieldError(f"waypoints[{i}].blend_radius: the first and last waypoints are "
+                             f"not blended, got {float(radius[i])!r}")
+    return poses, times, radius
+
+
+def _path_lengths(poses: np.ndarray, mode: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per segment: the tool point's path length and the rotation angle."""
+    half = dq.log(dq.mul(dq.conj(poses[:-1]), poses[1:]))   # half the body twist of each segment
+    angle = 2 * np.linalg.norm(half[:, :3], axis=1)
+    if mode == _MODE["screw"]:
+        return 2 * np.linalg.norm(half[:, 3:], axis=1), angle
+    t = dq.to_pose(poses)[1]
+    return np.linalg.norm(np.diff(t, axis=0), axis=1), angle
+
+
+def _start_rate(v0, poses, mode, length, angle) -> float:
+    """The start velocity as a rate ds/dt of segment 0; it must point along the path."""
+    v0 = np.asarray(v0, dtype=np.float64)
+    if v0.shape != (6,) or not np.all(np.isfinite(v0)):
+        raise FieldError(f"start_velocity: expected 6 finite numbers [vx vy vz wx wy wz], got {v0!r}")
+    if not v0.any():
+        return 0.0
+    half = dq.log(dq.mul(dq.conj(poses[0]), poses[1]))
+    q0 = poses[0, :4]
+    # the path's own velocity per unit ds/dt at waypoint 0, in the base frame
+    rot = dq.transform(dq.from_pose(q0, np.zeros(3)), 2 * half[3:] if mode == _MODE["screw"]
+                       else np.zeros(3))
+    lin = rot if mode == _MODE["screw"] else np.diff(dq.to_pose(poses[:2])[1], axis=0)[0]
+    ang = dq.transform(dq.from_pose(q0, np.zeros(3)), 2 * half[:3])
+    u = np.concatenate([lin, ang])
+    rate = float(v0 @ u / (u @ u))
+    if rate < 0 or np.linalg.norm(v0 - rate * u) > 1e-9 * max(1.0, np.linalg.norm(v0)):
+        raise FieldError("start_velocity: must point along the first segment (a non-negative "
+                         "multiple of its velocity at waypoints[0])")
+    return rate
+
+
+def plan(waypoints, limits: Limits, interpolation: str = "tool_linear", *,
+         start_velocity=None) -> Trajectory:
+    """The fastest trajectory through ``waypoints`` (a sequence of :class:`Waypoint`) that this
+    planner's profile allows under ``limits``, at rest at the end and at rest (or moving at
+    ``start_velocity``, (6,) ``[vx vy vz wx wy wz]`` of the tool point and the tool, base frame,
+    along the first segment) at the start.
+
+    Errors: ``ValueError`` (:class:`~service.errors.FieldError`) naming the field, e.g.
+    ``waypoints[3].blend_radius: ...`` or ``limits.max_linear_velocity: ...``; :class:`Infeasible`
+    when a waypoint's time or the start velocity cannot be met under the limits.
+    """
+    if not isinstance(limits, Limits):
+        raise FieldError(f"limits: expected a Limits, got {type(limits).__name__}")
+    if interpolation not in _MODE:
+        raise FieldError(f"interpolation: unknown {interpolation!r}; expected one of "
+                         f"{', '.join(INTERPOLATIONS)}")
+    mode = _MODE[interpolation]
+    poses, times, radius = _waypoints(waypoints)
+    length, angle = _path_lengths(poses, mode)
+    still = np.flatnonzero((length == 0) & (angle == 0))
+    if still.size:
+        i = still[0] + 1
+        raise FieldError(f"waypoints[{i}].pose: the same pose as waypoints[{i - 1}] (no motion)")
+    # a blend uses at most `radius` of path on each side; more than half a segment would let the
+    # blends at its two ends overlap
+    half_len = np.minimum(np.append(np.inf, length), np.append(length, np.inf)) / 2
+    over = np.flatnonzero(radius > half_len)
+    if over.size:
+        i = over[0]
+        raise FieldError(f"waypoints[{i}].blend_radius: {float(radius[i])!r} m is more than half a "
+                         f"neighbouring segment ({float(half_len[i])!r} m)")
+    sigma0 = 0.0 if start_velocity is None else _start_rate(start_velocity, poses, mode,
+                                                            length, angle)
+    v0 = sigma0 * np.array([length[0], angle[0]])
+    for k, (v, name) in enumerate(zip(v0, ("max_linear_velocity", "max_angular_velocity"))):
+        if v > getattr(limits, name) * (1 + 1e-12):
+            raise Infeasible(f"start_velocity: {v!r} is over limits.{name}")
+    code, bad, table, duration, segs = _c.traj_plan(poses, mode, radius, times,
+                                                   limits.as_array(), sigma0)
+    if code == _E_TIME:
+        raise Infeasible(f"waypoints[{bad}].time: {float(times[bad])!r} s cannot be met under the "
+                         f"limits")
+    if code == _E_START:
+        raise Infeasible("start_velocity: cannot be brought to rest within the first segment "
+                         "under the limits")
+    if code:
+        raise Infeasible(f"waypoints[{bad}]: no speed satisfies the limits around this waypoint")
+    segments = tuple(Segment(float(s), float(d), _BINDINGS[int(b)]) for s, d, b in segs)
+    return Trajectory(table, mode, float(duration), segments)

@@ -1,0 +1,279 @@
+"""The executor against both real simulators: URArm through the real ur_rtde client against the
+simulated controller in its own process, PiperArm against PiperSim on a python-can virtual bus
+(the rigs of test_arm_limits.py, with the same Limits). What the arm did is read at the
+simulator: the set-points it received, when they arrived, whether it stands still."""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+
+from drivers.base import pose_delta, servo_step
+from drivers.executor import Executor, Feedback, Result
+from service import dq
+from service.interpolate import interpolate
+from service.profile import Trapezoid
+from _polling import wait_until
+from test_arm_limits import LIMITS, PiperRig, URRig, _same
+
+
+class URExec(URRig):
+    def __init__(self):
+        super().__init__()
+        self.arm.stale_after = 0.5      # the test machine is shared: a 0.1 s hiccup is no fault
+
+    def arrivals(self) -> list[tuple[float, np.ndarray]]:
+        """(CLOCK_MONOTONIC at the simulator, pose) of each servo set-point since ``reset``."""
+        from drivers.rotvec import pose_from_rotvec
+        return [(e["mono"], pose_from_rotvec(e["args"][:6]))
+                for e in self.sim.log(self._mark, cmd=self._ursim.SERVOL)["entries"]]
+
+    def stop_arrived(self) -> float:
+        """When the servo stop arrived (monotonic), inf if none did."""
+        stops = self.sim.log(self._mark, cmd=self._ursim.SERVO_STOP)["entries"]
+        return stops[0]["mono"] if stops else math.inf
+
+    def protective_stop(self, on: bool):
+        self.sim.protective_stop(on)
+        if not on:
+            assert wait_until(lambda: not self.arm.status().protective_stop)
+            self.arm.recover()
+
+
+class PiperExec(PiperRig):
+    def reset(self):
+        # a stop's hold may still be on the bus: let it land before the teleport, not after
+        n = -1
+        while n != len(self.sim.log):
+            n = len(self.sim.log)
+            time.sleep(0.02)
+        super().reset()
+        self._arrival_mark = len(self.sim.arrivals)
+
+    def arrivals(self) -> list[tuple[float, np.ndarray]]:
+        return list(zip(self.sim.arrivals[self._arrival_mark:], self.received()))
+
+    def stop_arrived(self) -> float:
+        return math.inf   # a PiPER stop is a set-point on the measured pose: see stopped()
+
+    def protective_stop(self, on: bool):
+        if on:
+            self.sim.collide()
+        else:
+            self.sim.clear_faults()
+            assert wait_until(lambda: self.arm.status().ok)
+
+
+@pytest.fixture(scope="module", params=["ur", "piper"])
+def rig(request):
+    r = URExec() if request.param == "ur" else PiperExec()
+    yield r
+    r.close()
+
+
+@pytest.fixture
+def arm(rig):
+    rig.reset()
+    return rig.arm
+
+
+def _plan(arm, rate: float, length: float = 0.03, speed: float = 0.1, accel: float = 1.0,
+          direction=(1.0, 0.5, -0.5)):
+    """A trapezoidal straight move from where the arm stands, turning 2 rad per metre about
+    base z (within LIMITS' angular rates), sampled at ``rate`` Hz (the last sample on the end)."""
+    turn = 2.0 * length
+    start = arm.tool_pose()[1]
+    q, t = dq.to_pose(start)
+    u = np.asarray(direction) / np.linalg.norm(direction)
+    rot = dq.from_pose([math.cos(turn / 2), 0, 0, math.sin(turn / 2)], [0, 0, 0])
+    end = dq.from_pose(dq.to_pose(dq.mul(rot, dq.from_pose(q, [0, 0, 0])))[0], t + length * u)
+    prof = Trapezoid(length, speed, accel)
+    times = np.append(np.arange(0.0, prof.duration, 1.0 / rate), prof.duration)
+    return times, interpolate([0.0, 1.0], np.stack([start, end]), prof.fraction(times),
+                              "tool_linear")
+
+
+def _drain(ex) -> list[Feedback]:
+    out = []
+    while (f := ex.feedback(timeout=0)) is not None:
+        out.append(f)
+    return out
+
+
+def test_a_plan_pushed_in_chunks_runs_to_the_end(rig, arm):
+    times, poses = _plan(arm, rate=1000.0)      # not the arm's rate: resampled
+    ex = Executor(arm)
+    for i in range(0, len(times), 40):
+        ex.push(times[i:i + 40], poses[i:i + 40])
+    ex.finish()
+    assert ex.wait(10) == Result.FINISHED and ex.message == ""
+    fb = _drain(ex)
+    assert [f.result for f in fb] == [Result.OK] * (len(fb) - 1) + [Result.FINISHED]
+    d, a = pose_delta(fb[-1].actual, poses[-1])
+    assert d <= ex.settle_tolerance[0] and a <= ex.settle_tolerance[1] and rig.stopped()
+    # one set-point per period on the plan's clock, each the plan at that time
+    t = np.array([f.time for f in fb[:-1]])
+    n = int(math.ceil(times[-1] / arm.period - 1e-9)) + 1
+    assert np.allclose(t[:n], arm.period * np.arange(n))
+    want = interpolate(times, poses, np.minimum(t[:n], times[-1]), "tool_linear")
+    got = [a[1] for a in rig.arrivals()]
+    assert len(got) >= n
+    assert all(_same(g, w) for g, w in zip(got[:n], want))
+    assert all(_same(g, poses[-1]) for g in got[n - 1:])       # then held until settled
+
+
+def test_samples_at_the_arm_rate_are_sent_unchanged(rig, arm):
+    times, poses = _plan(arm, rate=1.0 / arm.period, length=0.01)
+    ex = Executor(arm, feedback_every=5)
+    ex.push(times, poses)
+    ex.finish()
+    assert ex.wait(10) == Result.FINISHED
+    got = [a[1] for a in rig.arrivals()]
+    assert all(_same(g, p) for g, p in zip(got, poses)) and len(got) >= len(poses)
+    fb = _drain(ex)
+    assert len(fb) == ex.sent // 5 + 1
+
+
+def test_cancel_stops_within_one_period(rig, arm):
+    times, poses = _plan(arm, rate=1.0 / arm.period, length=0.08, speed=0.1)
+    seen = []
+    ex = Executor(arm, callback=seen.append)
+    ex.push(times, poses)                                      # no finish(): cancel ends it
+    assert wait_until(lambda: len(seen) >= 30)
+    cancelled = time.monotonic()
+    ex.cancel()
+    assert ex.wait(5) == Result.STOPPED
+    assert seen[-1].result == Result.STOPPED and "stopped" in seen[-1].message
+    assert wait_until(rig.stopped)
+    after = [t for t, _ in rig.arrivals() if t > cancelled]
+    if isinstance(rig, URExec):
+        # only the set-point already on its way may follow the cancel, and the stop comes next
+        assert len(after) <= 1
+        assert all(t < rig.stop_arrived() for t in after)
+        assert rig.stop_arrived() - cancelled < arm.period + 0.002 * 5   # slack: a busy machine
+    else:
+        # that one, then the stop's hold on the measured pose
+        assert len(after) <= 2
+    assert all(t - cancelled < arm.period + 0.01 for t in after)
+    assert pose_delta(arm.tool_pose()[1], poses[-1])[0] > 0.01  # stopped well short of the end
+
+
+def test_a_dry_buffer_brakes_within_the_limits_and_stalls(rig, arm):
+    times, poses = _plan(arm, rate=1.0 / arm.period, length=0.04, speed=0.15, accel=1.5)
+    half = len(times) // 2                                     # cruising by then
+    ex = Executor(arm)
+    ex.push(times[:half], poses[:half])
+    assert ex.wait(10) == Result.STALLED
+    assert "ran dry" in ex.message
+    assert wait_until(rig.stopped)
+    got = [p for _, p in rig.arrivals()]
+    assert len(got) >= ex.sent > half + 3                      # braked over several periods
+    got = got[:ex.sent]                                        # (a PiPER stop is one more)
+    assert all(_same(g, p) for g, p in zip(got, poses[:half]))
+    # the braking passed the arm's Limits (else LIMITED) and never reversed: the speed only falls
+    steps = [servo_step(b, a) for a, b in zip(got[half - 1:], got[half:])]
+    speeds = [np.linalg.norm(s[:3]) for s in steps]
+    assert all(b <= a + 1e-6 for a, b in zip(speeds, speeds[1:]))
+    v = np.linalg.norm(servo_step(poses[half - 1], poses[half - 2])[:3]) / arm.period
+    braking = v * v / (2 * 0.5 * LIMITS.max_linear_accel)
+    d = pose_delta(got[-1], poses[half - 1])[0]
+    assert 0 < d <= braking + v * arm.period
+
+
+def test_a_setpoint_over_the_limits_ends_limited_with_the_arm_stopped(rig, arm):
+    # cruising at 1.5 x max_linear_speed
+    times, poses = _plan(arm, rate=1.0 / arm.period, length=0.05,
+                         speed=1.5 * LIMITS.max_linear_speed, accel=1.0)
+    ex = Executor(arm)
+    ex.push(times, poses)
+    ex.finish()
+    assert ex.wait(10) == Result.LIMITED
+    assert "limits.max_linear_speed" in ex.message and ex.message.endswith("the arm was stopped")
+    assert wait_until(rig.stopped)
+    got = [p for _, p in rig.arrivals()]
+    assert len(got) >= ex.sent > 0
+    assert all(_same(g, p) for g, p in zip(got[:ex.sent], poses))  # the plan's, up to the refusal
+    bad = poses[ex.sent]
+    assert np.linalg.norm(servo_step(bad, poses[ex.sent - 1])[:3]) / arm.period > \
+        LIMITS.max_linear_speed
+    assert not any(_same(g, bad) for g in got)
+
+
+def test_a_protective_stop_aborts(rig, arm):
+    times, poses = _plan(arm, rate=1.0 / arm.period, length=0.08)
+    ex = Executor(arm)
+    ex.push(times, poses)
+    ex.finish()
+    assert wait_until(lambda: ex.sent >= 20)
+    rig.protective_stop(True)
+    try:
+        assert ex.wait(5) == Result.PROTECTIVE_STOP
+        assert ex.message
+        n = len(rig.arrivals())
+        time.sleep(10 * arm.period)
+        assert len(rig.arrivals()) == n                        # nothing more was sent
+    finally:
+        rig.protective_stop(False)
+
+
+def test_a_plan_that_does_not_start_at_the_arm_is_refused(rig, arm):
+    times, poses = _plan(arm, rate=1.0 / arm.period)
+    q, t = dq.to_pose(poses[0])
+    far = dq.from_pose(q, t + [0.005, 0, 0])
+    ex = Executor(arm)
+    with pytest.raises(ValueError, match=r"^poses\[0\]: the plan starts 0.005 m and 0 deg from "
+                                         r"the arm's actual pose; it must start within .* m and "
+                                         r".* deg of it \(start_tolerance\); the arm was not "
+                                         r"moved"):
+        ex.push([0.0, 0.1], np.stack([far, poses[1]]))
+    assert ex.wait(0) is None and ex.sent == 0
+    time.sleep(5 * arm.period)
+    assert rig.arrivals() == []
+    # a looser tolerance accepts it, and then the arm's Limits refuse the jump
+    ex = Executor(arm, start_tolerance=(0.01, 0.1))
+    ex.push([0.0], far[None])
+    ex.finish()
+    assert ex.wait(5) == Result.LIMITED
+    assert not any(_same(p, far) for _, p in rig.arrivals())
+
+
+def test_bad_input_is_refused_by_name(arm):
+    here = arm.tool_pose()[1]
+    ex = Executor(arm)
+    with pytest.raises(ValueError, match=r"^times\[2\]: 0.1 is not after the previous time 0.2"):
+        ex.push([0.0, 0.2, 0.1], np.stack([here] * 3))
+    with pytest.raises(ValueError, match=r"^poses: expected shape \(2, 8\)"):
+        ex.push([0.0, 0.1], np.stack([here] * 3))
+    bad = np.stack([here] * 2)
+    bad[1, 0] = np.nan
+    with pytest.raises(ValueError, match=r"^poses\[1\]: contains NaN"):
+        ex.push([0.0, 0.1], bad)
+    with pytest.raises(ValueError, match=r"^poses\[0\]: quaternion norm 2 is not unit"):
+        ex.push([0.0], 2 * here[None])
+    with pytest.raises(ValueError, match="^finish: no samples were pushed"):
+        ex.finish()
+    ex.push([0.0, 0.1], np.stack([here] * 2))
+    with pytest.raises(ValueError, match=r"^times\[0\]: 0.1 is not after the last pushed time 0.1"):
+        ex.push([0.1], here[None])
+    ex.finish()
+    with pytest.raises(ValueError, match="^push: the plan was already finished"):
+        ex.push([0.2], here[None])
+    assert ex.wait(5) == Result.FINISHED
+    for kw, msg in ((dict(interpolation="cubic"), "^interpolation: unknown 'cubic'"),
+                    (dict(feedback_every=0), "^feedback_every: must be a whole number"),
+                    (dict(stall_timeout=-1), "^stall_timeout: must be a positive"),
+                    (dict(start_tolerance=(0.1,)), r"^start_tolerance: expected \(metres")):
+        with pytest.raises(ValueError, match=msg):
+            Executor(arm, **kw)
+    with pytest.raises(ValueError, match="^arm: expected a drivers.base.Arm"):
+        Executor(object())
+
+
+def test_no_samples_in_time_stalls_without_moving(rig, arm):
+    here = arm.tool_pose()[1]
+    ex = Executor(arm, prefill=0.5, stall_timeout=0.05)
+    ex.push([0.0], here[None])
+    assert ex.wait(5) == Result.STALLED and "the arm was not moved" in ex.message
+    assert rig.arrivals() == []
