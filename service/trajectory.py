@@ -27,7 +27,7 @@ import numpy as np
 
 from service import _dqcore as _c
 from service import dq
-from service.errors import FieldError, rename
+from service.errors import FieldError, FieldInfeasible, rename
 
 __all__ = ["INTERPOLATIONS", "Limits", "Waypoint", "Segment", "Samples", "Trajectory",
            "Infeasible", "plan"]
@@ -42,8 +42,9 @@ _BINDINGS = ("max_linear_velocity", "max_angular_velocity", "max_linear_accelera
 _E_TIME, _E_START, _E_STUCK = 20, 21, 22
 
 
-class Infeasible(FieldError):
-    """The limits cannot meet the request (a waypoint's time, the start velocity)."""
+class Infeasible(FieldInfeasible):
+    """The limits cannot meet the request (a waypoint's time, the start velocity): gRPC's
+    FAILED_PRECONDITION."""
 
 
 @dataclass(frozen=True)
@@ -264,3 +265,43 @@ def plan(waypoints, limits: Limits, interpolation: str = "tool_linear", *,
         raise Infeasible(f"waypoints[{bad}]: no speed satisfies the limits around this waypoint")
     segments = tuple(Segment(float(s), float(d), _BINDINGS[int(b)]) for s, d, b in segs)
     return Trajectory(table, mode, float(duration), segments)
+
+
+class Derivatives(NamedTuple):
+    """The motion of sampled poses by finite differences (what an observer of the samples
+    sees, whatever produced them): positions and rotation vectors from the first orientation
+    (N, 3); velocities (N-1, 3), accelerations (N-2, 3) and jerks (N-3, 3) of the tool point and
+    of the tool, base frame, each at the centre of the samples it differences."""
+    position: np.ndarray
+    rotation: np.ndarray
+    velocity: np.ndarray
+    angular_velocity: np.ndarray
+    acceleration: np.ndarray
+    angular_acceleration: np.ndarray
+    jerk: np.ndarray
+    angular_jerk: np.ndarray
+
+
+def _rate(x: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Differences of ``x`` sampled at ``at`` over the time between, and their centres."""
+    return np.diff(x, axis=0) / np.diff(at)[:, None], (at[1:] + at[:-1]) / 2
+
+
+def derivatives(times, poses) -> Derivatives:
+    """:class:`Derivatives` of ``poses`` ``(N, 8)`` at strictly increasing ``times`` ``(N,)``.
+    The angular velocity between two samples is the rotation vector of ``R_{k+1} R_k^T`` over
+    the time step: the true one for a constant rate in between, not the derivative of some
+    orientation coordinates (which is not an angular velocity)."""
+    t = np.asarray(times, dtype=np.float64)
+    q, p = dq.to_pose(dq.normalize(np.asarray(poses, dtype=np.float64).reshape(-1, 8)))
+    r = np.concatenate([q, np.zeros_like(q)], axis=1)
+    # dq.log is half the twist; the relative rotations are taken in the base frame (left)
+    turn = 2.0 * dq.log(dq.mul(r[1:], dq.conj(r[:-1])))[:, :3]
+    rotation = 2.0 * dq.log(dq.mul(r, dq.conj(r[:1])))[:, :3]
+    v, m1 = _rate(p, t)
+    w = turn / np.diff(t)[:, None]
+    a, m2 = _rate(v, m1)
+    alpha, _ = _rate(w, m1)
+    j, _ = _rate(a, m2)
+    zeta, _ = _rate(alpha, m2)
+    return Derivatives(p, rotation, v, w, a, alpha, j, zeta)

@@ -142,20 +142,20 @@ def _plan(args) -> int:
 
 
 def _smooth(args) -> int:
-    from service import trajectory
+    from service import smoothing
     from service.cli.posefile import format_trajectory, read_stamped
 
     try:
         f = read_stamped(args.file)
         limits = _limits(args, f.limits)
-        smoothing = args.smoothing or f.smoothing or 1.0
+        weight = args.smoothing or f.smoothing or 1.0
         rate = args.rate or f.rate_hz or 0.0
         if args.local:
-            times, poses = trajectory.smooth(f.times, f.dqs, limits, smoothing=smoothing,
+            times, poses = smoothing.smooth(f.times, f.dqs, limits, smoothing=weight,
                                              rate_hz=rate)
         else:
             with client(args) as c:
-                times, poses = c.smooth(f.times, f.dqs, limits, smoothing, rate)
+                times, poses = c.smooth(f.times, f.dqs, limits, weight, rate)
         fmt = "json" if (args.output or "").lower().endswith(".json") else "csv"
         _write(args, format_trajectory(times, poses, None, fmt))
         if args.plot:

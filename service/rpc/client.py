@@ -479,7 +479,7 @@ class Client:
 
     def smooth(self, times, poses, limits, smoothing: float = 1.0,
                rate_hz: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-        """:func:`service.trajectory.smooth` on the server: ``(times (M,), poses (M, 8))``."""
+        """:func:`service.smoothing.smooth` on the server: ``(times (M,), poses (M, 8))``."""
         times = np.asarray(times, dtype=np.float64).ravel()
         a = _dq_rows(poses, "poses")
         if len(times) != len(a):

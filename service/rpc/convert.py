@@ -11,11 +11,12 @@ from typing import NamedTuple
 
 import numpy as np
 
-from service import _dqcore, dq, fusion
+from service import _dqcore, dq, fusion, trajectory
 from service.errors import FieldError, rename
 from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from service.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from service.rpc._proto.dqpose.v1 import geometry_pb2 as geo
+from service.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
 
 def poses_to_flat(poses) -> np.ndarray:
     """Repeated ``Pose`` to ``(n, 7)`` rows ``[qw, qx, qy, qz, x, y, z]``, unvalidated."""
@@ -710,15 +711,13 @@ PLAN_INTERPOLATIONS = {geo.INTERPOLATION_UNSPECIFIED: "tool_linear",
 
 def limits_from_msg(msg, field: str = "limits"):
     """A ``Limits`` message to :class:`service.trajectory.Limits`; errors name ``field``."""
-    from service import trajectory
     try:
         return trajectory.Limits(**{name: getattr(msg, name) for name in LIMIT_FIELDS})
     except ValueError as e:
         raise rename(e, {"limits": field}) from None
 
 
-def limits_msg(limits) -> "tpb.Limits":
-    from service.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
+def limits_msg(limits) -> tpb.Limits:
     return tpb.Limits(**{name: float(getattr(limits, name)) for name in LIMIT_FIELDS})
 
 
@@ -734,7 +733,6 @@ class PlanArgs(NamedTuple):
 def plan_from_msg(req, field: str = "", need_rate: bool = True) -> PlanArgs:
     """A ``PlanRequest`` to :class:`PlanArgs`; errors name the field under ``field`` (``"plan."``
     inside an ``ExecuteRequest``)."""
-    from service import trajectory
     mode = PLAN_INTERPOLATIONS.get(req.interpolation)
     if mode is None:
         raise FieldError(f"{field}interpolation: unknown Interpolation value {req.interpolation}")
@@ -760,8 +758,6 @@ def plan_msg(waypoints, limits, rate_hz: float = 0.0, interpolation: str = "tool
              start_velocity=None):
     """Client side: the ``PlanRequest`` of :func:`service.trajectory.plan`'s arguments
     (``waypoints``: :class:`~service.trajectory.Waypoint` or ``(8,)`` poses)."""
-    from service import trajectory
-    from service.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
     if interpolation not in trajectory.INTERPOLATIONS:
         raise ValueError(f"interpolation: unknown {interpolation!r}; expected one of "
                          f"{', '.join(trajectory.INTERPOLATIONS)}")
@@ -781,14 +777,12 @@ def plan_msg(waypoints, limits, rate_hz: float = 0.0, interpolation: str = "tool
 
 
 def plan_info_msg(traj):
-    from service.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
     return tpb.PlanInfo(duration=traj.duration, segments=[
         tpb.Segment(start=s.start, duration=s.duration, binding=s.binding) for s in traj.segments])
 
 
 def sample_msgs(samples) -> list:
     """:class:`service.trajectory.Samples` to ``TrajectorySample`` messages."""
-    from service.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
     q, t = pose_arrays(samples.pose)
     v = np.asarray(samples.linear_velocity).tolist()
     w = np.asarray(samples.angular_velocity).tolist()

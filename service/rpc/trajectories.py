@@ -1,5 +1,5 @@
 """The ``dqpose.v1.Trajectories`` service: Plan (:func:`service.trajectory.plan`, streamed as
-samples), Smooth (:func:`service.trajectory.smooth`) and Execute (a plan run on an arm the server
+samples), Smooth (:func:`service.smoothing.smooth`) and Execute (a plan run on an arm the server
 was started with, fed by the executor at the arm's own period, never paced by the network).
 
 The arms come from whoever starts the server (``ServerConfig.arms`` and ``.executor``; the
@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import asyncio
 import math
+from typing import NamedTuple
 
 import grpc
-import numpy as np
 
-from service import trajectory
+from service import smoothing, trajectory
 from service.errors import FieldError, Infeasible, rename
 from service.rpc.calls import INTERNAL_DETAILS, Calls, log, refusal
 from service.rpc.convert import (arrays_to_stamped, dq_to_pose, limits_from_msg, plan_from_msg,
@@ -24,6 +24,8 @@ from service.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
 SAMPLES_PER_MAX_POSES = 100
 #: samples converted and written per step of the Plan stream (bounds the memory of messages)
 CHUNK = 500
+#: an Execute feedback record every this many set-points (50 Hz at 500 Hz), and the last one
+FEEDBACK_EVERY = 10
 
 
 def _planned(args, field: str = ""):
@@ -66,15 +68,17 @@ class Trajectories:
             raise FieldError("limits: required (velocity and acceleration limits)")
         limits = limits_from_msg(request.limits)
         times, dqs = stamped_to_arrays(request.poses, "poses")
-        smoothing = request.smoothing or 1.0
+        limit = SAMPLES_PER_MAX_POSES * self.max_poses
+        if len(times) and request.rate_hz * (times.max() - times.min()) >= limit:
+            raise FieldError(f"rate_hz: {request.rate_hz:g} Hz over the poses' "
+                             f"{times.max() - times.min():.3f} s is over the server's limit of "
+                             f"{limit} samples")
         try:
-            t, out = trajectory.smooth(times, dqs, limits, smoothing=smoothing,
+            t, out = smoothing.smooth(times, dqs, limits, smoothing=request.smoothing or 1.0,
                                        rate_hz=request.rate_hz)
         except ValueError as e:
             raise rename(e, {"times": "poses{}.time", "poses": "poses{}.pose",
                              "limits": "limits"}) from None
-        if len(t) > SAMPLES_PER_MAX_POSES * self.max_poses:
-            raise FieldError(f"rate_hz: {len(t)} samples are over the server's limit")
         return pb.SmoothResponse(samples=arrays_to_stamped(t, out))
 
     def _check_count(self, field: str, n: int) -> None:
@@ -119,12 +123,9 @@ class Trajectories:
             except Exception as e:
                 code = (refusal(e) or grpc.StatusCode.INTERNAL).name
                 await self._refused("Plan", e, context)
-            n = math.floor(traj.duration * rate + 1e-9) + 1
-            times = np.arange(n) / rate
-            if times[-1] < traj.duration:      # the last sample is on the last waypoint
-                times = np.append(times, traj.duration)
-            for i in range(0, len(times), CHUNK):
-                msgs = sample_msgs(traj.sample(times[i:i + CHUNK]))
+            samples = traj.at_rate(rate)
+            for i in range(0, len(samples.time), CHUNK):
+                msgs = sample_msgs(trajectory.Samples(*(a[i:i + CHUNK] for a in samples)))
                 if i == 0:
                     msgs[0].plan.CopyFrom(plan_info_msg(traj))
                 for m in msgs:
@@ -139,27 +140,29 @@ class Trajectories:
     async def Execute(self, request, context):
         t0 = self.calls.begin()
         code, sent = "OK", 0
-        name = request.arm
         run = None
         try:
             try:
-                run = self._start_execution(request)
+                run = self._start_execution(request, asyncio.get_running_loop())
             except Exception as e:
                 code = (refusal(e) or grpc.StatusCode.INTERNAL).name
                 await self._refused("Execute", e, context)
-            async for fb in run.feedback():
+            while True:
+                fb = await run.queue.get()
                 await context.write(_feedback_msg(fb))
                 sent += 1
+                if fb.result != 0:         # the last record: how the run ended
+                    break
         except asyncio.CancelledError:
             code = "CANCELLED"
             raise
         finally:
             if run is not None:
-                run.cancel()             # a client that left stops the arm (no-op once done)
-                self._busy.discard(name)
+                run.executor.cancel()    # a client that left stops the arm (no-op once done)
+                self._busy.discard(request.arm)
             self.calls.done("Execute", code, t0, context, messages=sent)
 
-    def _start_execution(self, request):
+    def _start_execution(self, request, loop) -> "_Run":
         name = request.arm
         if name not in self.arms:
             known = ", ".join(sorted(self.arms)) or "none: start the server with --arm NAME=SPEC"
@@ -169,17 +172,40 @@ class Trajectories:
         args = plan_from_msg(request.plan, "plan.", need_rate=False)
         traj = _planned(args, "plan.")
         arm = self.arms[name]
-        run = self.executor(arm, traj)
+        samples = traj.at_rate(1.0 / arm.period)
+        queue: asyncio.Queue = asyncio.Queue()
+        # The executor's own thread paces the arm; its records come back through the loop.
+        executor = self.executor(
+            arm, interpolation=args.interpolation, feedback_every=FEEDBACK_EVERY,
+            callback=lambda fb: loop.call_soon_threadsafe(queue.put_nowait, fb))
+        try:
+            executor.push(samples.time, samples.pose)
+        except ValueError as e:        # the plan does not start where the arm is
+            raise _Busy(f"plan.waypoints[0].pose: {e}") from None
+        executor.finish()
         self._busy.add(name)
-        return run
+        return _Run(executor, queue)
+
+
+class _Run(NamedTuple):
+    executor: object
+    queue: asyncio.Queue
 
 
 class _Busy(FieldError, Infeasible):
-    """The arm is in use: FAILED_PRECONDITION."""
+    """The arm is in use, or not where the plan starts: FAILED_PRECONDITION."""
+
+
+# drivers.executor.Result by name -> ExecutionState
+_STATES = {"OK": pb.EXECUTION_WORKING, "FINISHED": pb.EXECUTION_FINISHED,
+           "STOPPED": pb.EXECUTION_STOPPED, "STALLED": pb.EXECUTION_STALLED,
+           "LIMITED": pb.EXECUTION_LIMITED, "PROTECTIVE_STOP": pb.EXECUTION_PROTECTIVE_STOP,
+           "ERROR": pb.EXECUTION_ERROR}
 
 
 def _feedback_msg(fb) -> pb.ExecutionFeedback:
-    msg = pb.ExecutionFeedback(time=fb.time, state=int(fb.state), message=fb.message or "")
+    msg = pb.ExecutionFeedback(time=fb.time, state=_STATES[fb.result.name],
+                               message=fb.message or "")
     if fb.commanded is not None:
         dq_to_pose(fb.commanded, msg.commanded)
     if fb.actual is not None:
