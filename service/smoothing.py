@@ -78,7 +78,7 @@ _BOX_ALONG = 0.995        # a of the inscribed box where the reference is at or 
 _SELECT = 0.9             # QP rows only where the reference exceeds this share of the limit
 _ROUNDS = 4               # QP solves per linearisation (rows added when the solution breaks one)
 _LINEARISATIONS = 3       # orientation QPs about successive solutions at most
-_CHECKS = 3               # solves with limits tightened by what the samples measured
+_CHECKS = 4               # solves with limits tightened by what the samples measured
 _TOL = 1e-9               # relative slack when checking limits (rounding)
 # PIQP's tolerances, in units of the limits (rows are scaled by them) and of the scaled cost;
 # the box is drawn that much inside the ball so a row met only to the tolerance stays inside.
@@ -159,7 +159,7 @@ def _check(times, poses, limits, smoothing, rate_hz):
         raise ValueError(f"times: expected a 1-D array, got shape {t.shape}")
     bad = np.flatnonzero(~np.isfinite(t))
     if bad.size:
-        raise ValueError(f"times[{bad[0]}]: {t[bad[0]]!r} is not finite")
+        raise ValueError(f"times[{bad[0]}]: {float(t[bad[0]])!r} is not finite")
     bad = np.flatnonzero(np.diff(t) <= 0)
     if bad.size:
         i = bad[0] + 1
@@ -544,7 +544,9 @@ def smooth(times, poses, limits: Limits, smoothing: float = 1.0, rate_hz: float 
         for held, given, seen in zip((lin, ang), _limit_rows(limits), measured):
             for i, (L, v) in enumerate(zip(given, seen)):
                 if L > 0 and v > L * (1 + _TOL):
-                    held[i] = min(held[i], held[i] * L / v * (1 - 1e-3))
+                    # squared: the angular jerk of the samples (base frame) exceeds that of the
+                    # increments (body frame) by w x alpha, which does not shrink with the limit
+                    held[i] = min(held[i], held[i] * (L / v) ** 2 * (1 - 1e-3))
                     ok = False
         if ok:
             return out_t, out
