@@ -45,12 +45,18 @@ The solver
    linearised about the unconstrained solution (not the noisy samples), solved by PIQP through
    ``casadi.conic``. The norm limits are written as an inner polyhedral approximation of the
    ball: per control-point difference a box aligned with the reference direction ``u`` and
-   inscribed in the ball (``|u.Q| <= a L``, ``|e_i.Q| <= b L``, ``a^2 + 2 b^2 = 1``; ``a`` up to
-   0.995, so at most 0.5 % of a limit is lost along the motion and the sideways freedom is
-   ``b L``, at least 7 % of it). Three rows per limited quantity and control point, the same count
-   as a per-axis box, and only where the reference exceeds half the limit; rows that the solution
-   then breaks are added and the QP solved again. The orientation is relinearised and solved once
-   more only if the exact increments still break a limit.
+   inscribed in the ball (``|u.Q| <= a L``, ``|e_i.Q| <= b L``, ``a^2 + 2 b^2 = 1``), with ``a``
+   halfway between the reference's share of the limit and 1 (at most 0.995: where a limit binds,
+   0.5 % of it is lost along the motion and the sideways freedom is ``b L``, 7 % of it). Three
+   rows per limited quantity and control point, the same count as a per-axis box, and only where
+   the reference exceeds 60 % of the limit; rows that the solution then breaks are added and the
+   QP solved again. The orientation's rows are held back by 0.5 % for the linearisation error of
+   the increments; it is relinearised and solved again only if the exact increments still break
+   a limit. The exact second-order cone (``|Q| <= L``) needs a conic solver: of casadi's bundled
+   plugins only SuperSCS (first order, like OSQP) takes cones (not tried); IPOPT on the exact
+   nonlinear problem takes seconds (tests/bench/bench_smoothing.py).
+3. The returned samples are measured (:func:`peaks`); a limit they break (the orientation's
+   first-order terms, or a base-frame angular jerk) is tightened by the ratio and solved again.
 
 The first and last control points of the QP are pinned where the unconstrained solution puts them
 (at rest), so a path whose ends are too far apart for its duration under the limits is reported
@@ -58,6 +64,7 @@ The first and last control points of the QP are pinned where the unconstrained s
 """
 from __future__ import annotations
 
+import functools
 import math
 from typing import NamedTuple
 
@@ -84,7 +91,9 @@ _TOL = 1e-9               # relative slack when checking limits (rounding)
 # PIQP's tolerances, in units of the limits (rows are scaled by them) and of the scaled cost;
 # the box is drawn that much inside the ball so a row met only to the tolerance stays inside.
 _EPS = 1e-6
-_PIQP = {"verbose": False, "eps_abs": _EPS, "eps_rel": _EPS}
+# No Ruiz preconditioning: the rows and the cost are scaled already (see _qp); it cost 15 % of
+# the solve and moved the optimum by 1e-9 of itself.
+_PIQP = {"verbose": False, "eps_abs": _EPS, "eps_rel": _EPS, "preconditioner_iter": 0}
 
 
 class Infeasible(ValueError):
@@ -210,9 +219,7 @@ class _Spline:
         self.t0, self.t1, self.spans = t0, t1, n - 1
         self.h = (t1 - t0) / (n - 1)
         self.m, self.z = n + 2, n - 2
-        j = np.arange(self.m)
-        self.E = sp.csr_matrix((np.ones(self.m), (j, np.clip(j - 2, 0, self.z - 1))),
-                               shape=(self.m, self.z))
+        self.E = _structure(n).E
 
     def basis(self, t: np.ndarray):
         """Span index ``i`` (control points ``i .. i+3``) and the four weights at each time."""
@@ -296,12 +303,53 @@ def _rotation_jacobian(s: _Spline, d: np.ndarray) -> sp.csr_matrix:
     return sp.csr_matrix((blocks.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * k, 3 * s.z))
 
 
+class _Structure(NamedTuple):
+    """What depends on the number of samples only (cached: a recording is smoothed at one length
+    again and again, and scipy.sparse costs ~0.1 ms an operation)."""
+    E: sp.csr_matrix          # control points from the free ones
+    D1E: sp.csr_matrix        # increments from the free control points
+    D1E3: sp.csr_matrix       # the same on interleaved 3-vectors
+    D2: sp.csr_matrix         # second differences of the increments (the jerk)
+    jerk_band: np.ndarray     # (D2 D1E)^T (D2 D1E) as a full band (7, z): [3 + i - j, j] = H[i, j]
+    h_sparsity: object        # casadi pattern of kron(H, I3), H of bandwidth 3
+    h_band_index: tuple       # where each of its non-zeros sits in the full band
+
+
+@functools.lru_cache(maxsize=8)
+def _structure(n: int) -> _Structure:
+    import casadi as ca
+
+    m, z = n + 2, n - 2
+    j = np.arange(m)
+    E = sp.csr_matrix((np.ones(m), (j, np.clip(j - 2, 0, z - 1))), shape=(m, z))
+    D1E = (_diff(m) @ E).tocsr()
+    D2 = _diff(m - 1, 2)
+    D3E = (D2 @ D1E).tocsr()
+    JJ = (D3E.T @ D3E).todia()
+    band = np.zeros((7, z))
+    for off, row in zip(JJ.offsets, JJ.data):       # dia: row[j] = H[j - off, j]
+        if abs(off) <= 3:
+            band[3 - off] += row
+    # kron(H, I3) in CSC, rows sorted: column 3j + a holds rows 3i + a, i within 3 of j.
+    cols = np.repeat(np.arange(z), 3)
+    lo, hi = np.maximum(cols - 3, 0), np.minimum(cols + 4, z)
+    count = hi - lo
+    i = np.concatenate([np.arange(a, b) for a, b in zip(lo, hi)])
+    jj = np.repeat(cols, count)
+    axis = np.repeat(np.tile(np.arange(3), z), count)
+    colptr = np.concatenate([[0], np.cumsum(count)])
+    sparsity = ca.Sparsity(3 * z, 3 * z, colptr.tolist(), (3 * i + axis).tolist())
+    return _Structure(E, D1E, _kron3(D1E), D2, band, sparsity, (3 + i - jj, jj))
+
+
 class _Problem:
     """What both channels share: the spline, the sample weights, the cost and its banded factor."""
 
     def __init__(self, t: np.ndarray, tau: float):
         n = t.shape[0]
         self.s = s = _Spline(float(t[0]), float(t[-1]), n)
+        st = self.st = _structure(n)
+        self.D1E, self.D2 = st.D1E, st.D2
         # Each sample stands for the time it covers (non-uniform stamps weigh fairly).
         w = np.empty(n)
         w[1:-1] = 0.5 * (t[2:] - t[:-2])
@@ -310,26 +358,23 @@ class _Problem:
         # The jerk weight tau^6 / h^6 after dividing the cost by h; a trace of it at tau = 0
         # keeps the spline determined where samples are sparse.
         self.lam = (tau / s.h) ** 6 + 1e-9
-        self.B = s.matrix(t)
-        self.BE = (self.B @ s.E).tocsr()
-        self.D1E = (_diff(s.m) @ s.E).tocsr()
-        self.D2 = _diff(s.m - 1, 2)
-        D3E = (self.D2 @ self.D1E).tocsr()
-        self.H = H = (self.BE.T @ sp.diags(self.w) @ self.BE + self.lam * (D3E.T @ D3E)).tocsr()
-        band = np.zeros((4, s.z))
-        for k in range(4):
-            band[3 - k, k:] = H.diagonal(k)
-        self.chol = cholesky_banded(band, check_finite=False)
+        i, b = s.basis(t)
+        zc = np.clip(i[:, None] + np.arange(4) - 2, 0, s.z - 1)
+        self.BE = sp.csr_matrix((b.ravel(), (np.repeat(np.arange(n), 4), zc.ravel())),
+                                shape=(n, s.z))
+        band = self.lam * st.jerk_band
+        wb = self.w[:, None] * b
+        for j1 in range(4):
+            for j2 in range(4):
+                np.add.at(band, (3 + zc[:, j1] - zc[:, j2], zc[:, j2]), wb[:, j1] * b[:, j2])
+        self.band = band
+        self.chol = cholesky_banded(band[:4], check_finite=False)
 
     def qp_hessian(self, factor: float):
-        """``factor * kron(H, I3)`` as a casadi DM; its pattern is built once for both channels."""
+        """``factor * kron(H, I3)`` as a casadi DM on the cached pattern."""
         import casadi as ca
 
-        if getattr(self, "_qp_h", None) is None:
-            H = sp.csc_matrix(_kron3(self.H))
-            H.sort_indices()
-            self._qp_h = (_sparsity(H), H.data)
-        return ca.DM(self._qp_h[0], (self._qp_h[1] * factor).tolist())
+        return ca.DM(self.st.h_sparsity, (self.band[self.st.h_band_index] * factor).tolist())
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         return cho_solve_banded((self.chol, False), rhs, check_finite=False)
@@ -344,8 +389,8 @@ class _Problem:
         g = self.BE.T @ (self.w[:, None] * r) + self.lam * (self.D1E.T @ (self.D2.T @ (self.D2 @ d)))
         return self.s.E @ -self.solve(g)
 
-    def position_model(self, c: np.ndarray, y: np.ndarray) -> _Model:
-        return _Model(self.B @ c - y, np.diff(c, axis=0), _kron3(self.D1E))
+    def position_model(self, c: np.ndarray, y: np.ndarray, t: np.ndarray) -> _Model:
+        return _Model(self.s.positions(c, t) - y, np.diff(c, axis=0), self.st.D1E3)
 
     def rotation_model(self, rc: np.ndarray, r_meas: np.ndarray, t: np.ndarray,
                        jacobian: bool = True) -> _Model:
@@ -544,7 +589,7 @@ def _smooth(t, q, p, limits: Limits, smoothing: float, rate_hz: float,
     out_t = _output_times(t, rate_hz)
     for _ in range(_CHECKS):
         if _breaks(np.diff(c, axis=0), h, lin):
-            c = c + _qp(prob, prob.position_model(c, p), lin, "poses", solver)
+            c = c + _qp(prob, prob.position_model(c, p, t), lin, "poses", solver)
         for _ in range(_LINEARISATIONS):
             if not _breaks(_increments(rc), h, ang):
                 break
