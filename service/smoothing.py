@@ -230,12 +230,6 @@ class _Spline:
         b = np.stack([(1 - u) ** 3, 3 * u3 - 6 * u2 + 4, -3 * u3 + 3 * u2 + 3 * u + 1, u3], -1) / 6
         return i, b
 
-    def matrix(self, t: np.ndarray) -> sp.csr_matrix:
-        i, b = self.basis(t)
-        rows = np.repeat(np.arange(t.shape[0]), 4)
-        return sp.csr_matrix((b.ravel(), (rows, (i[:, None] + np.arange(4)).ravel())),
-                             shape=(t.shape[0], self.m))
-
     def positions(self, c: np.ndarray, t: np.ndarray) -> np.ndarray:
         i, b = self.basis(t)
         return np.einsum("kj,kjx->kx", b, c[i[:, None] + np.arange(4)])

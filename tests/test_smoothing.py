@@ -143,11 +143,8 @@ def test_smoothing_sets_the_cutoff():
     # A 1 Hz sine is kept at smoothing 1 (cutoff 2 Hz: gain 1/(1+2^-6)) and halved at
     # smoothing 2 (cutoff 1 Hz), as the module docstring says.
     t = np.arange(1000) / 100.0
-    amp = 0.01 * np.sin(2 * np.pi * 1.0 * t) * (np.abs(t - 5) < 4)
-    x = np.where(np.abs(t - 5) < 4, amp, 0.0)
     window = np.sin(np.pi * t / t[-1]) ** 2
     p = np.stack([0.01 * window * np.sin(2 * np.pi * 1.0 * t), np.zeros_like(t), np.zeros_like(t)], 1)
-    del x
     poses = dq.from_pose(np.tile([1.0, 0, 0, 0], (t.size, 1)), p)
     limits = Limits(10, 10, 100, 100)
     mid = slice(400, 600)
@@ -217,6 +214,17 @@ def test_ends_too_far_apart_for_the_duration_are_infeasible():
     assert dist == pytest.approx(1.0, abs=0.03)
     assert float(m.group(2)) == pytest.approx(dist / 0.1 + 0.1, rel=1e-5)   # cruise + ramps
     assert issubclass(Infeasible, ValueError)
+
+
+def test_a_move_the_spline_cannot_make_on_this_clock_is_infeasible():
+    # 6 cm in 0.49 s passes the closed-form rest-to-rest bound (0.4899 s) but not on the spline's
+    # 49 spans with rest at both ends: the QP finds no point, reported, not returned.
+    t = np.arange(50) * 0.01
+    p = np.zeros((50, 3))
+    p[25:, 0] = 0.06
+    with pytest.raises(Infeasible, match=r"^poses: no path within the limits keeps this clock"):
+        smooth(t, dq.from_pose(np.tile([1.0, 0, 0, 0], (50, 1)), p), Limits(0.5, 1, 1, 1),
+               smoothing=0.0)
 
 
 GOOD_T = np.arange(6) * 0.01
