@@ -73,7 +73,7 @@ import scipy.sparse as sp
 from scipy.linalg import cho_solve_banded, cholesky_banded
 
 from service import dq, lie
-from service._limits_stub import Limits
+from service.trajectory import Limits
 from service.errors import rename
 
 __all__ = ["CUTOFF_HZ", "Infeasible", "Peaks", "peaks", "smooth"]
