@@ -4,6 +4,7 @@ when a client is made."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 
 EXIT_ERROR = 2
@@ -64,3 +65,24 @@ def failure(cmd: str, args, e: Exception) -> int:
     if isinstance(e, (OSError, ValueError)):
         return fail(cmd, str(e))
     raise e
+
+
+@contextlib.contextmanager
+def local_server(**config):
+    """A dqpose server in this process on a free loopback port, on its own event loop thread
+    (``config``: :class:`~service.rpc.server.ServerConfig` fields); yields its address."""
+    import asyncio
+    import threading
+
+    from service.rpc.server import ServerConfig, start
+    loop = asyncio.new_event_loop()
+    thread = threading.Thread(target=loop.run_forever, daemon=True)
+    thread.start()
+    cfg = ServerConfig(port=0, **config)
+    running = asyncio.run_coroutine_threadsafe(start(cfg), loop).result(30)
+    try:
+        yield f"127.0.0.1:{running.port}"
+    finally:
+        asyncio.run_coroutine_threadsafe(running.stop(0), loop).result(30)
+        loop.call_soon_threadsafe(loop.stop)
+        thread.join(10)

@@ -53,15 +53,22 @@ def configure(name: str, p) -> None:
                      "computes, printed as positions (m), quaternions and angles (deg). "
                      "`dqpose demo fusion`: two simulated cameras and a simulated UR holding a "
                      "board, fused live through the Fusion service; prints each source's error "
-                     "and the fused one's against the ground truth and plots them over time.")
-    p.add_argument("mode", nargs="?", choices=("blend", "fusion"), default="blend",
-                   help="blend (default): the blending methods; fusion: live pose fusion")
-    from service.cli import demo_fusion
+                     "and the fused one's against the ground truth and plots them over time. "
+                     "`dqpose demo trajectory`: a blended path planned by the Trajectories "
+                     "service and executed on the simulated UR through ur_rtde; prints the "
+                     "tracking error and the period jitter at the controller.")
+    p.add_argument("mode", nargs="?", choices=("blend", "fusion", "trajectory"), default="blend",
+                   help="blend (default): the blending methods; fusion: live pose fusion; "
+                        "trajectory: plan and execute on a simulated arm")
+    from service.cli import demo_fusion, demo_trajectory
     demo_fusion.add_arguments(p)
+    demo_trajectory.add_arguments(p)
 
     def run(args) -> int:
         if args.mode == "fusion":
             return demo_fusion.main(args)
+        if args.mode == "trajectory":
+            return demo_trajectory.main(args)
         main()
         return 0
     p.set_defaults(func=run)

@@ -1,0 +1,155 @@
+"""``dqpose demo trajectory``: plan a blended path with the Trajectories service and execute it
+on the simulated UR (the simulated controller in its own process, driven through the real
+``ur_rtde`` client by the server's executor at 500 Hz), then print the tracking error and the
+period jitter as the controller saw it, and plot the plan against its limits.
+
+The path: from where the arm stands, the tool point goes round a 10 cm square in the horizontal
+plane, turning the tool by 30 degrees about the vertical on the way, with 2 cm blends at the
+corners (no stop there).
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import math
+import sys
+from typing import NamedTuple
+
+import numpy as np
+
+from service import dq, trajectory
+
+LIMITS = trajectory.Limits(max_linear_velocity=0.2, max_angular_velocity=0.8,
+                           max_linear_acceleration=1.0, max_angular_acceleration=2.0,
+                           max_linear_jerk=10.0, max_angular_jerk=20.0)
+_HOME = (0.40, -0.10, 0.30, math.pi, 0.0, 0.0)     # UR rotation-vector pose: tool pointing down
+
+
+def _rz(deg: float) -> np.ndarray:
+    h = math.radians(deg) / 2
+    return np.array([math.cos(h), 0.0, 0.0, math.sin(h)])
+
+
+def waypoints(start: np.ndarray, side: float = 0.1, turn: float = 30.0, blend: float = 0.02):
+    """The square from ``start`` (T_base_tool), corners blended, back to ``start``."""
+    q0, t0 = dq.to_pose(start)
+    corners = [(0, 0), (side, 0), (side, side), (0, side), (0, 0)]
+    turns = [0, turn / 2, turn, turn / 2, 0]
+    out = []
+    for k, ((x, y), a) in enumerate(zip(corners, turns)):
+        pose = dq.mul(dq.from_pose(_rz(a), [0, 0, 0]), dq.from_pose(q0, [0, 0, 0]))
+        pose = dq.from_pose(dq.to_pose(pose)[0], t0 + [x, y, 0.0])
+        r = blend if 0 < k < len(corners) - 1 else 0.0
+        out.append(trajectory.Waypoint(pose, blend_radius=r))
+    return out
+
+
+class Result(NamedTuple):
+    state: str
+    message: str
+    duration: float
+    segments: tuple
+    plan: object                 # client.Planned at the arm's rate
+    tracking_mm: np.ndarray      # |actual - commanded| of the tool point, per feedback record
+    tracking_deg: np.ndarray
+    periods: np.ndarray          # time between set-points arriving at the controller, s
+    period: float
+
+
+def _angle(a: np.ndarray, b: np.ndarray) -> float:
+    qa, _ = dq.to_pose(a)
+    qb, _ = dq.to_pose(b)
+    return math.degrees(2 * math.acos(min(1.0, abs(float(qa @ qb)))))
+
+
+def run(target: str | None = None, progress: bool = False) -> Result:
+    import drivers
+    from drivers.executor import Executor
+    from drivers.rotvec import pose_from_rotvec
+    from drivers.sim import ursim
+    from service.cli.common import local_server
+    from service.rpc.client import Client
+
+    with contextlib.ExitStack() as stack:
+        sim = stack.enter_context(ursim.URSimProcess())
+        sim.set_pose(_HOME)
+        arm = stack.enter_context(drivers.open_arm(f"ur:{sim.host}", stale_after=0.5))
+        if target is None:
+            target = stack.enter_context(local_server(arms={"ur": arm}, executor=Executor))
+        client = stack.enter_context(Client(target))
+        wps = waypoints(pose_from_rotvec(np.array(_HOME)))
+        plan = client.plan(wps, LIMITS, 1.0 / arm.period)
+        mark = sim.log()["next"]
+        feedback = []
+        for fb in client.execute("ur", wps, LIMITS):
+            feedback.append(fb)
+            if progress:
+                print(f"\r  executing: {fb.time:6.3f} / {plan.duration:.3f} s", end="",
+                      file=sys.stderr, flush=True)
+        if progress:
+            print(file=sys.stderr)
+        arrivals = []
+        while True:        # read in pages: the simulator answers a bounded log per call
+            got = sim.log(mark, cmd=ursim.SERVOL, keys=["mono"])
+            if not got["entries"]:
+                break
+            arrivals += [e["mono"] for e in got["entries"]]
+            mark = got["next"]
+        period = arm.period
+    moving = [f for f in feedback if f.actual is not None and f.commanded is not None]
+    mm = np.array([1e3 * np.linalg.norm(dq.to_pose(f.actual)[1] - dq.to_pose(f.commanded)[1])
+                   for f in moving])
+    deg = np.array([_angle(f.actual, f.commanded) for f in moving])
+    last = feedback[-1]
+    return Result(last.state, last.message, plan.duration, plan.segments, plan, mm, deg,
+                  np.diff(np.asarray(arrivals)), period)
+
+
+def report(r: Result, out=None) -> None:
+    out = out or sys.stdout
+    print(f"plan: {r.duration:.3f} s through 5 waypoints, blends of 2 cm at the corners", file=out)
+    for i, s in enumerate(r.segments):
+        print(f"  segment {i}: {s.start:6.3f} .. {s.start + s.duration:6.3f} s, bound by "
+              f"{s.binding}", file=out)
+    print(f"execution on the simulated UR (ur_rtde, {1 / r.period:.0f} Hz): {r.state}"
+          + (f" ({r.message})" if r.message else ""), file=out)
+    if len(r.tracking_mm):
+        print(f"  tracking error, actual vs commanded: median {np.median(r.tracking_mm):.3f} mm "
+              f"/ {np.median(r.tracking_deg):.3f} deg, max {r.tracking_mm.max():.3f} mm / "
+              f"{r.tracking_deg.max():.3f} deg (the controller follows servoL with its lookahead)",
+              file=out)
+    if len(r.periods):
+        jitter = np.abs(r.periods - r.period) * 1e6
+        missed = int(np.clip(np.round(r.periods / r.period) - 1, 0, None).sum())
+        print(f"  set-points at the controller: {len(r.periods) + 1}, period jitter |dt - "
+              f"{r.period * 1e3:g} ms| p50 {np.percentile(jitter, 50):.0f} us, p99 "
+              f"{np.percentile(jitter, 99):.0f} us, max {jitter.max():.0f} us; missed cycles "
+              f"{missed}", file=out)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("trajectory mode")
+    g.add_argument("--trajectory-plot", default="trajectory_demo.png", metavar="PATH",
+                   help="where to write the PNG of the plan against its limits (default "
+                        "trajectory_demo.png; needs matplotlib)")
+
+
+def main(args: argparse.Namespace) -> int:
+    try:
+        result = run(getattr(args, "target", None), progress=sys.stderr.isatty())
+    except ImportError as e:
+        print(f"dqpose demo trajectory: needs the device extras ({e}); "
+              "pip install 'dqpose[devices]'", file=sys.stderr)
+        return 1
+    except (OSError, RuntimeError) as e:
+        print(f"dqpose demo trajectory: {e}", file=sys.stderr)
+        return 1
+    report(result)
+    try:
+        from service.cli.plots import plot_motion
+        plot_motion(args.trajectory_plot, result.plan.time, result.plan.pose, LIMITS,
+                    title="dqpose demo trajectory: the plan, measured from its samples")
+        print(f"plot: {args.trajectory_plot}")
+    except ImportError:
+        print("no plot: matplotlib is not installed (pip install matplotlib)")
+    return 0 if result.state == "FINISHED" else 1
