@@ -102,10 +102,11 @@ def _number(cell: str) -> bool:
 
 
 def _csv_rows(text: str, columns: tuple[str, ...], optional: tuple[str, ...] = (),
-              refused: dict[str, str] | None = None) -> np.ndarray:
+              refused: dict[str, str] | None = None, names_out: list | None = None) -> np.ndarray:
     """Rows of ``columns`` (+ any ``optional`` present). A first line with no number in it is a
     header: columns are then matched by name, and a missing one, an unknown one, or one named
-    in ``refused`` (name -> why) is an error. Without a header the columns are positional."""
+    in ``refused`` (name -> why) is an error. Without a header the columns are positional.
+    ``names_out``, a list, receives the names of the returned columns."""
     lines = [(n, row) for n, row in enumerate(csv.reader(io.StringIO(text)), 1)
              if row and not row[0].lstrip().startswith("#")]
     if not lines:
@@ -134,6 +135,8 @@ def _csv_rows(text: str, columns: tuple[str, ...], optional: tuple[str, ...] = (
                              f"values")
         names = list((columns + optional)[:width])
         order = list(range(width))
+    if names_out is not None:
+        names_out[:] = names
     out = np.empty((len(lines), len(order)))
     for i, (n, row) in enumerate(lines):
         if len(row) != width:
@@ -329,10 +332,13 @@ def read_plan(path: str) -> PlanFile:
                      ("screw", "tool_linear"))
         sub = ".pose"
     else:
-        rows = _csv_rows(text, POSE_COLUMNS, ("time", "blend_radius"))
+        names: list = []
+        rows = _csv_rows(text, POSE_COLUMNS, ("time", "blend_radius"), names_out=names)
         flat = np.concatenate([rows[:, 3:7], rows[:, :3]], axis=1)
         extra = np.zeros((len(rows), 2))
-        extra[:, :rows.shape[1] - 7] = rows[:, 7:]
+        for j, name in enumerate(("time", "blend_radius")):
+            if name in names:
+                extra[:, j] = rows[:, names.index(name)]
         limits, rate, mode, sub = {}, None, None, ""
     if flat.shape[0] == 0:
         raise ValueError(f"{path}: no waypoints")
