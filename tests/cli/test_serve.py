@@ -27,3 +27,71 @@ def test_an_option_out_of_range_is_one_line_naming_the_flag_and_exit_2(flags, me
                          capture_output=True, text=True, timeout=30, cwd=ROOT)
     assert (res.returncode, res.stderr) == (2, f"dqpose serve: error: {message}\n")
     assert res.stdout == ""
+
+
+@pytest.mark.parametrize("value, message", [
+    ("ur", "--arm: expected NAME=SPEC (e.g. ur=ur:192.168.1.10), got 'ur'"),
+    ("=ur:host", "--arm: expected NAME=SPEC (e.g. ur=ur:192.168.1.10), got '=ur:host'"),
+    ("my arm=ur:host", "--arm: the name 'my arm' must be a word (letters, digits, _)"),
+])
+def test_a_malformed_arm_is_named(value, message):
+    res = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--arm", value],
+                         capture_output=True, text=True, timeout=30, cwd=ROOT)
+    assert (res.returncode, res.stderr) == (2, f"dqpose serve: error: {message}\n")
+
+
+def test_an_arm_given_twice_or_unreachable_is_named():
+    res = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--arm", "a=ur:x",
+                          "--arm", "a=ur:y"], capture_output=True, text=True, timeout=30, cwd=ROOT)
+    assert (res.returncode, res.stderr) == (2, "dqpose serve: error: --arm: 'a' is given twice\n")
+    pytest.importorskip("rtde_control")
+    # nothing listens on 127.0.0.254's UR ports
+    res = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--port", "0", "--arm",
+                          "ur=ur:127.0.0.254"], capture_output=True, text=True, timeout=60,
+                         cwd=ROOT)
+    assert res.returncode == 2
+    assert res.stderr.startswith("dqpose serve: error: --arm ur=ur:127.0.0.254: host: cannot "
+                                 "reach a UR controller at 127.0.0.254"), res.stderr
+
+
+def test_serve_with_an_arm_executes_plans_on_it_and_stops_it_at_shutdown():
+    pytest.importorskip("rtde_control")
+    import json
+    import math
+    import signal
+
+    import numpy as np
+
+    from drivers.rotvec import pose_from_rotvec
+    from drivers.sim.ursim import URSimProcess
+    from service import dq, trajectory
+    from service.rpc.client import Client
+
+    limits = trajectory.Limits(0.2, 1.0, 1.0, 2.0, 10.0, 20.0)
+    home = np.array([0.4, -0.1, 0.3, math.pi, 0.0, 0.0])
+    with URSimProcess() as sim:
+        sim.set_pose(home)
+        proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", "0",
+                                 "--arm", f"ur=ur:{sim.host}"], cwd=ROOT,
+                                stderr=subprocess.PIPE, text=True)
+        try:
+            events = []
+            while not events or events[-1].get("event") != "serving":
+                line = proc.stderr.readline()
+                assert line, "the server ended before serving"
+                if line.startswith("{"):
+                    events.append(json.loads(line))
+            assert {"event": "arm", "name": "ur", "spec": f"ur:{sim.host}"} in events
+            start = pose_from_rotvec(home)
+            q, t = dq.to_pose(start)
+            goal = dq.from_pose(q, t + [0.03, 0.0, 0.02])
+            with Client(events[-1]["address"]) as c:
+                states = [f.state for f in c.execute("ur", [start, goal], limits)]
+            assert states[-1] == "FINISHED"
+            proc.send_signal(signal.SIGTERM)
+            assert proc.wait(timeout=30) == 0
+            st = sim.state()
+            assert not st["servoing"] and not st["moving"]
+        finally:
+            if proc.poll() is None:
+                proc.kill()
