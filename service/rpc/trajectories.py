@@ -181,7 +181,7 @@ class Trajectories:
         try:
             executor.push(samples.time, samples.pose)
         except ValueError as e:        # the plan does not start where the arm is
-            raise _Busy(f"plan.waypoints[0].pose: {e}") from None
+            raise _Busy(str(rename(e, {"poses": "plan.waypoints{}.pose"}))) from None
         executor.finish()
         self._busy.add(name)
         return _Run(executor, queue)
