@@ -137,29 +137,45 @@ class Trajectory:
         return Samples(t, *_c.traj_eval(self._table, self._mode, self.duration, t))
 
 
+def _numbers(wps, name: str) -> np.ndarray:
+    """The field `name` of every waypoint, each finite and >= 0."""
+    try:
+        v = np.array([getattr(w, name) for w in wps], dtype=np.float64)
+    except (TypeError, ValueError):
+        for i, w in enumerate(wps):
+            try:
+                float(getattr(w, name))
+            except (TypeError, ValueError):
+                raise FieldError(f"waypoints[{i}].{name}: must be a number, "
+                                 f"got {getattr(w, name)!r}") from None
+        raise
+    bad = np.flatnonzero(~(np.isfinite(v) & (v >= 0)))
+    if bad.size:
+        i = bad[0]
+        raise FieldError(f"waypoints[{i}].{name}: must be finite and >= 0, got {float(v[i])!r}")
+    return v
+
+
 def _waypoints(waypoints) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Poses (K, 8) (each in the previous one's hemisphere), times, radii; errors name the index."""
     wps = list(waypoints)
     if len(wps) < 2:
         raise FieldError(f"waypoints: need at least 2, got {len(wps)}")
-    poses = np.empty((len(wps), 8))
-    times, radius = np.zeros(len(wps)), np.zeros(len(wps))
-    for i, w in enumerate(wps):
-        if not isinstance(w, Waypoint):
-            raise FieldError(f"waypoints[{i}]: expected a Waypoint, got {type(w).__name__}")
-        p = np.asarray(w.pose, dtype=np.float64)
-        if p.shape != (8,):
-            raise FieldError(f"waypoints[{i}].pose: expected shape (8,), got {p.shape}")
-        poses[i] = p
-        for name, out in (("time", times), ("blend_radius", radius)):
-            v = getattr(w, name)
-            try:
-                v = float(v)
-            except (TypeError, ValueError):
-                raise FieldError(f"waypoints[{i}].{name}: must be a number, got {v!r}") from None
-            if not (math.isfinite(v) and v >= 0):
-                raise FieldError(f"waypoints[{i}].{name}: must be finite and >= 0, got {v!r}")
-            out[i] = v
+    bad = next((i for i, w in enumerate(wps) if not isinstance(w, Waypoint)), None)
+    if bad is not None:
+        raise FieldError(f"waypoints[{bad}]: expected a Waypoint, got {type(wps[bad]).__name__}")
+    # whole arrays first (the common case, one conversion each); a failure is then located
+    try:
+        poses = np.array([w.pose for w in wps], dtype=np.float64)
+    except (TypeError, ValueError):
+        poses = None
+    if poses is None or poses.shape != (len(wps), 8):
+        for i, w in enumerate(wps):
+            shape = np.shape(w.pose)
+            if shape != (8,):
+                raise FieldError(f"waypoints[{i}].pose: expected shape (8,), got {shape}")
+        raise FieldError("waypoints: poses are not arrays of 8 numbers")
+    times, radius = (_numbers(wps, name) for name in ("time", "blend_radius"))
     try:
         dq.to_pose(poses)                 # checks each pose is a unit dual quaternion
     except ValueError as e:

@@ -254,6 +254,36 @@ def test_waypoint_times_are_met():
         assert violation(peaks(t, poses), LIMITS, NOISE_1KHZ) <= TOL
 
 
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(paths(5), st.lists(st.floats(1.0, 3.0), min_size=5, max_size=5), st.sampled_from(INTERPOLATIONS))
+def test_random_waypoint_times_are_met(wps, stretch, mode):
+    """Times later than the free plan's arrivals (stretched, kept increasing) are met exactly."""
+    free = plan(wps, LIMITS, mode)
+    arrive = [0.0]
+    for k, seg in enumerate(free.segments[1:], start=1):
+        # a waypoint is reached at the middle of its blend (0 long at a stop)
+        prev = free.segments[k - 1]
+        arrive.append(0.5 * (seg.start + prev.start + prev.duration) if wps[k].blend_radius > 0
+                      else seg.start)
+    arrive.append(free.duration)
+    want = np.maximum.accumulate(np.array(arrive) * np.cumprod([1.0] + stretch[:len(arrive) - 1]))
+    timed = [Waypoint(w.pose, time=float(t) if i else 0.0, blend_radius=w.blend_radius)
+             for i, (w, t) in enumerate(zip(wps, want))]
+    tr = plan(timed, LIMITS, mode)
+    assert tr.duration == pytest.approx(want[-1], rel=1e-8)
+    t, poses, _ = uniform(tr)
+    assert violation(peaks(t, poses), LIMITS, NOISE_1KHZ) <= TOL
+
+
+def test_sample_takes_times_in_any_order():
+    wps = [Waypoint(A), Waypoint(B, blend_radius=0.1), Waypoint(pose([1, 0, 0, 1], [0.5, 0.5, 0]))]
+    tr = plan(wps, LIMITS)
+    t = np.random.default_rng(0).uniform(0, tr.duration, 500)
+    got, order = tr.sample(t), np.argsort(t)
+    ref = tr.sample(t[order])
+    assert np.array_equal(got.pose[order], ref.pose) and np.array_equal(got.angular_velocity[order], ref.angular_velocity)
+
+
 def test_unmeetable_time_is_infeasible_naming_the_waypoint():
     wps = [Waypoint(pose([1, 0, 0, 0], [0, 0, 0])), Waypoint(pose([1, 0, 0, 0], [0.3, 0, 0]), time=5.0),
            Waypoint(pose([1, 0, 0, 0], [1.3, 0, 0]), time=5.5)]
