@@ -93,14 +93,14 @@ def from_coordinates(x, ref) -> np.ndarray:
     return dq.from_pose(dq.mul(rot, q0)[:, :4], x[:, :3])
 
 
-def axis_limits(direction, scaled: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def axis_limits(direction, scaled: bool, limits: Limits = LIMITS) -> tuple[np.ndarray, ...]:
     """Per-axis [v, a, j] for the 6 coordinates: the norm limits split along the direction of the
     move (scaled) or each axis given the whole norm limit (naive)."""
     lin = np.abs(direction[:3]) / max(np.linalg.norm(direction[:3]), 1e-300)
     ang = np.abs(direction[3:]) / max(np.linalg.norm(direction[3:]), 1e-300)
     if not scaled:
         lin, ang = np.ones(3), np.ones(3)
-    L = LIMITS
+    L = limits
     out = []
     for lv, av in ((L.max_linear_velocity, L.max_angular_velocity),
                    (L.max_linear_acceleration, L.max_angular_acceleration),
@@ -118,13 +118,14 @@ def run_ours(poses, radius):
     return tr.duration, s.time[:-1], s.pose[:-1], lambda: plan(wps, LIMITS)
 
 
-def run_ruckig(poses, scaled: bool):
+def ruckig_moves(poses, scaled: bool, limits: Limits = LIMITS) -> list:
+    """One rest-to-rest Ruckig trajectory per segment."""
     import ruckig
 
     def segment(a, b):
         goal = coordinates(b, a)
         start = coordinates(a, a)
-        v, acc, j = axis_limits(goal - start, scaled)
+        v, acc, j = axis_limits(goal - start, scaled, limits)
         otg, inp, traj = ruckig.Ruckig(6), ruckig.InputParameter(6), ruckig.Trajectory(6)
         inp.current_position, inp.target_position = list(start), list(goal)
         inp.max_velocity, inp.max_acceleration, inp.max_jerk = list(v), list(acc), list(j)
@@ -133,8 +134,12 @@ def run_ruckig(poses, scaled: bool):
         assert res in (ruckig.Result.Working, ruckig.Result.Finished), res
         return traj
 
+    return [segment(a, b) for a, b in zip(poses[:-1], poses[1:])]
+
+
+def run_ruckig(poses, scaled: bool):
     def solve():
-        return [segment(a, b) for a, b in zip(poses[:-1], poses[1:])]
+        return ruckig_moves(poses, scaled)
 
     trajs = solve()
     total = sum(t.duration for t in trajs)
@@ -220,6 +225,23 @@ def planning_table(repeats: int) -> list[tuple]:
     return rows
 
 
+def random_straight_moves(n: int = 200) -> tuple[float, float, float, float]:
+    """ours / Ruckig (norm-scaled axes) duration - 1 over random straight moves under random
+    limits: median, 95th percentile, worst, and the share within 5 %."""
+    rng = np.random.default_rng(11)
+    ratios = []
+    for _ in range(n):
+        limits = Limits(*rng.uniform(0.1, 3, 4), rng.uniform(1, 50), rng.uniform(1, 100))
+        d, axis = rng.normal(size=3), rng.normal(size=3)
+        dist = 10 ** rng.uniform(-3, 0.5)
+        angle = rng.uniform(0, 3.1) if rng.random() < 0.7 else 0.0
+        poses = [pose([0, 0, 1], 0, [0, 0, 0]), pose(axis, angle, dist * d / np.linalg.norm(d))]
+        ours = plan(waypoints(poses, 0.0), limits).duration
+        ratios.append(ours / ruckig_moves(poses, True, limits)[0].duration - 1)
+    r = np.array(ratios) * 100
+    return float(np.median(r)), float(np.percentile(r, 95)), float(r.max()), float(np.mean(r <= 5) * 100)
+
+
 def evaluation_table(repeats: int) -> list[tuple]:
     rng = np.random.default_rng(3)
     k = 100
@@ -278,6 +300,10 @@ def main() -> None:
         note = f" ({row[7]})" if len(row) > 7 else ""
         print(f"| {name} | {label}{note} | {dur:.4f} | {rel:.3f} | {fmt_pct(va)} | {fmt_pct(vj)} | "
               f"{tp * 1e3:.3f} ms |")
+    med, p95, worst, share = random_straight_moves()
+    print()
+    print(f"Random straight moves (200, random limits), ours / Ruckig (norm-scaled axes) - 1: median "
+          f"{med:+.2f} %, 95th percentile {p95:+.2f} %, worst {worst:+.2f} %; within 5 %: {share:.0f} %")
     print()
     print("| dense evaluation | value | unit | target |")
     print("|---|---|---|---|")
