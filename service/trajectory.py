@@ -278,5 +278,5 @@ def plan(waypoints, limits: Limits, interpolation: str = "tool_linear", *,
                          "under the limits")
     if code:
         raise Infeasible(f"waypoints[{bad}]: no speed satisfies the limits around this waypoint")
-    segments = tuple(Segment(float(s), float(d), _BINDINGS[int(b)]) for s, d, b in segs)
+    segments = tuple(Segment(s, d, _BINDINGS[int(b)]) for s, d, b in segs.tolist())
     return Trajectory(table, mode, float(duration), segments)
