@@ -209,21 +209,21 @@ def _path_lengths(poses: np.ndarray, mode: int) -> tuple[np.ndarray, np.ndarray]
     return np.linalg.norm(np.diff(t, axis=0), axis=1), angle
 
 
-def _start_rate(v0, poses, mode, length, angle) -> float:
-    """The start velocity as a rate ds/dt of segment 0; it must point along the path."""
+def _start_rate(v0, poses, mode) -> float:
+    """The start velocity as a rate ds/dt of segment 0: the one-parameter profile can start
+    moving only along its path, so anything else is refused rather than silently projected."""
     v0 = np.asarray(v0, dtype=np.float64)
     if v0.shape != (6,) or not np.all(np.isfinite(v0)):
         raise FieldError(f"start_velocity: expected 6 finite numbers [vx vy vz wx wy wz], got {v0!r}")
     if not v0.any():
         return 0.0
-    half = dq.log(dq.mul(dq.conj(poses[0]), poses[1]))
-    q0 = poses[0, :4]
-    # the path's own velocity per unit ds/dt at waypoint 0, in the base frame
-    rot = dq.transform(dq.from_pose(q0, np.zeros(3)), 2 * half[3:] if mode == _MODE["screw"]
-                       else np.zeros(3))
-    lin = rot if mode == _MODE["screw"] else np.diff(dq.to_pose(poses[:2])[1], axis=0)[0]
-    ang = dq.transform(dq.from_pose(q0, np.zeros(3)), 2 * half[:3])
-    u = np.concatenate([lin, ang])
+    # the path's velocity per unit ds/dt at waypoint 0, base frame: the body twist of segment 0
+    # (2 log(T0* T1)) turned by T0's rotation; on a line the tool point moves along T1 - T0
+    twist = 2 * dq.log(dq.mul(dq.conj(poses[0]), poses[1]))
+    turn = dq.from_pose(poses[0, :4], np.zeros(3))
+    lin = (dq.transform(turn, twist[3:]) if mode == _MODE["screw"]
+           else np.diff(dq.to_pose(poses[:2])[1], axis=0)[0])
+    u = np.concatenate([lin, dq.transform(turn, twist[:3])])
     rate = float(v0 @ u / (u @ u))
     if rate < 0 or np.linalg.norm(v0 - rate * u) > 1e-9 * max(1.0, np.linalg.norm(v0)):
         raise FieldError("start_velocity: must point along the first segment (a non-negative "
@@ -262,10 +262,9 @@ def plan(waypoints, limits: Limits, interpolation: str = "tool_linear", *,
         i = over[0]
         raise FieldError(f"waypoints[{i}].blend_radius: {float(radius[i])!r} m is more than half a "
                          f"neighbouring segment ({float(half_len[i])!r} m)")
-    sigma0 = 0.0 if start_velocity is None else _start_rate(start_velocity, poses, mode,
-                                                            length, angle)
-    v0 = sigma0 * np.array([length[0], angle[0]])
-    for k, (v, name) in enumerate(zip(v0, ("max_linear_velocity", "max_angular_velocity"))):
+    sigma0 = 0.0 if start_velocity is None else _start_rate(start_velocity, poses, mode)
+    for v, name in zip(sigma0 * np.array([length[0], angle[0]]),
+                       ("max_linear_velocity", "max_angular_velocity")):
         if v > getattr(limits, name) * (1 + 1e-12):
             raise Infeasible(f"start_velocity: {v!r} is over limits.{name}")
     code, bad, table, duration, segs = _c.traj_plan(poses, mode, radius, times,

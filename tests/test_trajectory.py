@@ -103,21 +103,27 @@ def test_acceleration_is_continuous_without_a_jerk_limit():
     assert np.linalg.norm(j, axis=1).max() < 500 and np.linalg.norm(jw, axis=1).max() < 1000
 
 
-def test_start_velocity_along_the_first_segment():
+@pytest.mark.parametrize("mode", INTERPOLATIONS)
+def test_start_velocity_along_the_first_segment(mode):
     a, b = pose([1, 0, 0, 0], [0, 0, 0]), pose([1, 0, 0, 0.5], [0.8, 0.4, 0])
-    rate = 0.5            # ds/dt: a velocity along the segment
-    dp = translation(b) - translation(a)
+    # the path's own velocity at a, by a central difference of its first 1e-6 of s
+    eps, rate = 1e-6, 0.5
+    if mode == "screw":
+        ends = dq.sclerp(a, b, np.array([-eps, eps]))
+        dp = (translation(ends[1]) - translation(ends[0])) / (2 * eps)
+    else:
+        dp = translation(b) - translation(a)
     w = 2 * dq.log(dq.mul(b, dq.conj(a)))[:3]          # base-frame rotation vector of a -> b
     v0 = rate * np.concatenate([dp, w])
-    tr = plan([Waypoint(a), Waypoint(b)], LIMITS, start_velocity=v0)
+    tr = plan([Waypoint(a), Waypoint(b)], LIMITS, mode, start_velocity=v0)
     s = tr.sample([0.0])
-    assert np.allclose(np.concatenate([s.linear_velocity[0], s.angular_velocity[0]]), v0, atol=1e-12)
+    assert np.allclose(np.concatenate([s.linear_velocity[0], s.angular_velocity[0]]), v0, atol=1e-8)
     t, poses, _ = uniform(tr)
     assert violation(peaks(t, poses), LIMITS, NOISE_1KHZ) <= TOL
     # moving already, it arrives sooner than from rest
-    assert tr.duration < plan([Waypoint(a), Waypoint(b)], LIMITS).duration
+    assert tr.duration < plan([Waypoint(a), Waypoint(b)], LIMITS, mode).duration
     with pytest.raises(ValueError, match=r"^start_velocity: must point along the first segment"):
-        plan([Waypoint(a), Waypoint(b)], LIMITS, start_velocity=[0, 0, 0.1, 0, 0, 0])
+        plan([Waypoint(a), Waypoint(b)], LIMITS, mode, start_velocity=[0, 0, 0.1, 0, 0, 0])
 
 
 def test_start_velocity_too_fast_to_stop_is_infeasible():
