@@ -96,7 +96,6 @@ typedef struct {
     double nus, kappa;  /* rate at which v turns; centripetal acceleration = nus * speed */
 } side;
 
-
 static side side_of(const dq_traj_seg *g, double sigma, int at_end)
 {
     side s;
