@@ -138,29 +138,45 @@ class Trajectory:
         return Samples(t, *_c.traj_eval(self._table, self._mode, self.duration, t))
 
 
+def _numbers(wps, name: str) -> np.ndarray:
+    """The field `name` of every waypoint, each finite and >= 0."""
+    try:
+        v = np.array([getattr(w, name) for w in wps], dtype=np.float64)
+    except (TypeError, ValueError):
+        for i, w in enumerate(wps):
+            try:
+                float(getattr(w, name))
+            except (TypeError, ValueError):
+                raise FieldError(f"waypoints[{i}].{name}: must be a number, "
+                                 f"got {getattr(w, name)!r}") from None
+        raise
+    bad = np.flatnonzero(~(np.isfinite(v) & (v >= 0)))
+    if bad.size:
+        i = bad[0]
+        raise FieldError(f"waypoints[{i}].{name}: must be finite and >= 0, got {float(v[i])!r}")
+    return v
+
+
 def _waypoints(waypoints) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Poses (K, 8) (each in the previous one's hemisphere), times, radii; errors name the index."""
     wps = list(waypoints)
     if len(wps) < 2:
         raise FieldError(f"waypoints: need at least 2, got {len(wps)}")
-    poses = np.empty((len(wps), 8))
-    times, radius = np.zeros(len(wps)), np.zeros(len(wps))
-    for i, w in enumerate(wps):
-        if not isinstance(w, Waypoint):
-            raise FieldError(f"waypoints[{i}]: expected a Waypoint, got {type(w).__name__}")
-        p = np.asarray(w.pose, dtype=np.float64)
-        if p.shape != (8,):
-            raise FieldError(f"waypoints[{i}].pose: expected shape (8,), got {p.shape}")
-        poses[i] = p
-        for name, out in (("time", times), ("blend_radius", radius)):
-            v = getattr(w, name)
-            try:
-                v = float(v)
-            except (TypeError, ValueError):
-                raise FieldError(f"waypoints[{i}].{name}: must be a number, got {v!r}") from None
-            if not (math.isfinite(v) and v >= 0):
-                raise FieldError(f"waypoints[{i}].{name}: must be finite and >= 0, got {v!r}")
-            out[i] = v
+    bad = next((i for i, w in enumerate(wps) if not isinstance(w, Waypoint)), None)
+    if bad is not None:
+        raise FieldError(f"waypoints[{bad}]: expected a Waypoint, got {type(wps[bad]).__name__}")
+    # whole arrays first (the common case, one conversion each); a failure is then located
+    try:
+        poses = np.array([w.pose for w in wps], dtype=np.float64)
+    except (TypeError, ValueError):
+        poses = None
+    if poses is None or poses.shape != (len(wps), 8):
+        for i, w in enumerate(wps):
+            shape = np.shape(w.pose)
+            if shape != (8,):
+                raise FieldError(f"waypoints[{i}].pose: expected shape (8,), got {shape}")
+        raise FieldError("waypoints: poses are not arrays of 8 numbers")
+    times, radius = (_numbers(wps, name) for name in ("time", "blend_radius"))
     try:
         dq.to_pose(poses)                 # checks each pose is a unit dual quaternion
     except ValueError as e:
@@ -194,21 +210,21 @@ def _path_lengths(poses: np.ndarray, mode: int) -> tuple[np.ndarray, np.ndarray]
     return np.linalg.norm(np.diff(t, axis=0), axis=1), angle
 
 
-def _start_rate(v0, poses, mode, length, angle) -> float:
-    """The start velocity as a rate ds/dt of segment 0; it must point along the path."""
+def _start_rate(v0, poses, mode) -> float:
+    """The start velocity as a rate ds/dt of segment 0: the one-parameter profile can start
+    moving only along its path, so anything else is refused rather than silently projected."""
     v0 = np.asarray(v0, dtype=np.float64)
     if v0.shape != (6,) or not np.all(np.isfinite(v0)):
         raise FieldError(f"start_velocity: expected 6 finite numbers [vx vy vz wx wy wz], got {v0!r}")
     if not v0.any():
         return 0.0
-    half = dq.log(dq.mul(dq.conj(poses[0]), poses[1]))
-    q0 = poses[0, :4]
-    # the path's own velocity per unit ds/dt at waypoint 0, in the base frame
-    rot = dq.transform(dq.from_pose(q0, np.zeros(3)), 2 * half[3:] if mode == _MODE["screw"]
-                       else np.zeros(3))
-    lin = rot if mode == _MODE["screw"] else np.diff(dq.to_pose(poses[:2])[1], axis=0)[0]
-    ang = dq.transform(dq.from_pose(q0, np.zeros(3)), 2 * half[:3])
-    u = np.concatenate([lin, ang])
+    # the path's velocity per unit ds/dt at waypoint 0, base frame: the body twist of segment 0
+    # (2 log(T0* T1)) turned by T0's rotation; on a line the tool point moves along T1 - T0
+    twist = 2 * dq.log(dq.mul(dq.conj(poses[0]), poses[1]))
+    turn = dq.from_pose(poses[0, :4], np.zeros(3))
+    lin = (dq.transform(turn, twist[3:]) if mode == _MODE["screw"]
+           else np.diff(dq.to_pose(poses[:2])[1], axis=0)[0])
+    u = np.concatenate([lin, dq.transform(turn, twist[:3])])
     rate = float(v0 @ u / (u @ u))
     if rate < 0 or np.linalg.norm(v0 - rate * u) > 1e-9 * max(1.0, np.linalg.norm(v0)):
         raise FieldError("start_velocity: must point along the first segment (a non-negative "
@@ -247,10 +263,9 @@ def plan(waypoints, limits: Limits, interpolation: str = "tool_linear", *,
         i = over[0]
         raise FieldError(f"waypoints[{i}].blend_radius: {float(radius[i])!r} m is more than half a "
                          f"neighbouring segment ({float(half_len[i])!r} m)")
-    sigma0 = 0.0 if start_velocity is None else _start_rate(start_velocity, poses, mode,
-                                                            length, angle)
-    v0 = sigma0 * np.array([length[0], angle[0]])
-    for k, (v, name) in enumerate(zip(v0, ("max_linear_velocity", "max_angular_velocity"))):
+    sigma0 = 0.0 if start_velocity is None else _start_rate(start_velocity, poses, mode)
+    for v, name in zip(sigma0 * np.array([length[0], angle[0]]),
+                       ("max_linear_velocity", "max_angular_velocity")):
         if v > getattr(limits, name) * (1 + 1e-12):
             raise Infeasible(f"start_velocity: {v!r} is over limits.{name}")
     code, bad, table, duration, segs = _c.traj_plan(poses, mode, radius, times,
@@ -263,7 +278,7 @@ def plan(waypoints, limits: Limits, interpolation: str = "tool_linear", *,
                          "under the limits")
     if code:
         raise Infeasible(f"waypoints[{bad}]: no speed satisfies the limits around this waypoint")
-    segments = tuple(Segment(float(s), float(d), _BINDINGS[int(b)]) for s, d, b in segs)
+    segments = tuple(Segment(s, d, _BINDINGS[int(b)]) for s, d, b in segs.tolist())
     return Trajectory(table, mode, float(duration), segments)
 
 

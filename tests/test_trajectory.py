@@ -103,21 +103,27 @@ def test_acceleration_is_continuous_without_a_jerk_limit():
     assert np.linalg.norm(j, axis=1).max() < 500 and np.linalg.norm(jw, axis=1).max() < 1000
 
 
-def test_start_velocity_along_the_first_segment():
+@pytest.mark.parametrize("mode", INTERPOLATIONS)
+def test_start_velocity_along_the_first_segment(mode):
     a, b = pose([1, 0, 0, 0], [0, 0, 0]), pose([1, 0, 0, 0.5], [0.8, 0.4, 0])
-    rate = 0.5            # ds/dt: a velocity along the segment
-    dp = translation(b) - translation(a)
+    # the path's own velocity at a, by a central difference of its first 1e-6 of s
+    eps, rate = 1e-6, 0.5
+    if mode == "screw":
+        ends = dq.sclerp(a, b, np.array([-eps, eps]))
+        dp = (translation(ends[1]) - translation(ends[0])) / (2 * eps)
+    else:
+        dp = translation(b) - translation(a)
     w = 2 * dq.log(dq.mul(b, dq.conj(a)))[:3]          # base-frame rotation vector of a -> b
     v0 = rate * np.concatenate([dp, w])
-    tr = plan([Waypoint(a), Waypoint(b)], LIMITS, start_velocity=v0)
+    tr = plan([Waypoint(a), Waypoint(b)], LIMITS, mode, start_velocity=v0)
     s = tr.sample([0.0])
-    assert np.allclose(np.concatenate([s.linear_velocity[0], s.angular_velocity[0]]), v0, atol=1e-12)
+    assert np.allclose(np.concatenate([s.linear_velocity[0], s.angular_velocity[0]]), v0, atol=1e-8)
     t, poses, _ = uniform(tr)
     assert violation(peaks(t, poses), LIMITS, NOISE_1KHZ) <= TOL
     # moving already, it arrives sooner than from rest
-    assert tr.duration < plan([Waypoint(a), Waypoint(b)], LIMITS).duration
+    assert tr.duration < plan([Waypoint(a), Waypoint(b)], LIMITS, mode).duration
     with pytest.raises(ValueError, match=r"^start_velocity: must point along the first segment"):
-        plan([Waypoint(a), Waypoint(b)], LIMITS, start_velocity=[0, 0, 0.1, 0, 0, 0])
+        plan([Waypoint(a), Waypoint(b)], LIMITS, mode, start_velocity=[0, 0, 0.1, 0, 0, 0])
 
 
 def test_start_velocity_too_fast_to_stop_is_infeasible():
@@ -252,6 +258,36 @@ def test_waypoint_times_are_met():
             assert np.linalg.norm(translation(s.pose[0]) - pts[1]) < 1e-6
         t, poses, _ = uniform(tr)
         assert violation(peaks(t, poses), LIMITS, NOISE_1KHZ) <= TOL
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(paths(5), st.lists(st.floats(1.0, 3.0), min_size=5, max_size=5), st.sampled_from(INTERPOLATIONS))
+def test_random_waypoint_times_are_met(wps, stretch, mode):
+    """Times later than the free plan's arrivals (stretched, kept increasing) are met exactly."""
+    free = plan(wps, LIMITS, mode)
+    arrive = [0.0]
+    for k, seg in enumerate(free.segments[1:], start=1):
+        # a waypoint is reached at the middle of its blend (0 long at a stop)
+        prev = free.segments[k - 1]
+        arrive.append(0.5 * (seg.start + prev.start + prev.duration) if wps[k].blend_radius > 0
+                      else seg.start)
+    arrive.append(free.duration)
+    want = np.maximum.accumulate(np.array(arrive) * np.cumprod([1.0] + stretch[:len(arrive) - 1]))
+    timed = [Waypoint(w.pose, time=float(t) if i else 0.0, blend_radius=w.blend_radius)
+             for i, (w, t) in enumerate(zip(wps, want))]
+    tr = plan(timed, LIMITS, mode)
+    assert tr.duration == pytest.approx(want[-1], rel=1e-8)
+    t, poses, _ = uniform(tr)
+    assert violation(peaks(t, poses), LIMITS, NOISE_1KHZ) <= TOL
+
+
+def test_sample_takes_times_in_any_order():
+    wps = [Waypoint(A), Waypoint(B, blend_radius=0.1), Waypoint(pose([1, 0, 0, 1], [0.5, 0.5, 0]))]
+    tr = plan(wps, LIMITS)
+    t = np.random.default_rng(0).uniform(0, tr.duration, 500)
+    got, order = tr.sample(t), np.argsort(t)
+    ref = tr.sample(t[order])
+    assert np.array_equal(got.pose[order], ref.pose) and np.array_equal(got.angular_velocity[order], ref.angular_velocity)
 
 
 def test_unmeetable_time_is_infeasible_naming_the_waypoint():

@@ -96,7 +96,6 @@ typedef struct {
     double nus, kappa;  /* rate at which v turns; centripetal acceleration = nus * speed */
 } side;
 
-
 static side side_of(const dq_traj_seg *g, double sigma, int at_end)
 {
     side s;
@@ -170,6 +169,9 @@ typedef struct {
     const double *radius;
     const dq_traj_limits *L;
     double sigma0;
+    /* the last ramp solved at each corner (its rates, then T, beta, binding, result): the
+     * searches over one segment's cruise keep asking for the same corner ramps */
+    double (*memo)[6];
 } plan_ctx;
 
 static int blended(const plan_ctx *c, size_t k) { return k > 0 && k < c->n && c->seg[k].blend_in; }
@@ -178,8 +180,14 @@ static int blended(const plan_ctx *c, size_t k) { return k > 0 && k < c->n && c-
 static int corner_ramp(const plan_ctx *c, size_t k, double sa, double sb, double *T, double *beta,
                        int *bind)
 {
-    side A = side_of(&c->seg[k - 1], sa, 1), B = side_of(&c->seg[k], sb, 0);
-    return ramp(&A, &B, c->L, T, beta, bind);
+    double *m = c->memo[k];
+    if (m[0] != sa || m[1] != sb) {
+        side A = side_of(&c->seg[k - 1], sa, 1), B = side_of(&c->seg[k], sb, 0);
+        int bd = 0, rc = ramp(&A, &B, c->L, &m[2], &m[3], &bd);
+        m[0] = sa, m[1] = sb, m[4] = bd, m[5] = rc;
+    }
+    *T = m[2], *beta = m[3], *bind = (int)m[4];
+    return (int)m[5];
 }
 
 /* How far a blended corner k, its two corner rates scaled by f, misses its radius: the tool
@@ -418,9 +426,14 @@ int dq_traj_plan(const double *wp, size_t K, int mode, const double *radius, con
                  size_t *bad)
 {
     size_t n = K - 1;
-    plan_ctx c = {seg, n, radius, lim, sigma0};
+    plan_ctx c = {seg, n, radius, lim, sigma0, malloc((n + 1) * sizeof *c.memo)};
     double *lam = malloc(n * sizeof *lam);
-    if (!lam) return DQ_TRAJ_E_MEMORY;
+    if (!lam || !c.memo) {
+        free(lam);
+        free(c.memo);
+        return DQ_TRAJ_E_MEMORY;
+    }
+    for (size_t k = 0; k <= n; k++) c.memo[k][0] = -1.0; /* no rate is negative: nothing solved */
     int timed = 0;
     for (size_t k = 0; k < n; k++) {
         geometry(wp + 8 * k, wp + 8 * (k + 1), mode, &seg[k]);
@@ -431,6 +444,7 @@ int dq_traj_plan(const double *wp, size_t K, int mode, const double *radius, con
     }
     int rc = timed ? meet_times(&c, times, lam, bad) : solve(&c, lam, bad);
     free(lam);
+    free(c.memo);
     if (!rc) *duration = arrival(&c, n);
     return rc;
 }
