@@ -1,0 +1,192 @@
+"""Executor on the simulated UR at 500 Hz: period jitter and missed cycles measured at the
+simulator, the stop after a cancel, and tracking error; idle and while 8 client processes call
+`Blend` on a real server on this machine.
+
+    .venv/bin/python -m tests.bench.bench_executor                 # 60 s per row (~5 min)
+    .venv/bin/python -m tests.bench.bench_executor --seconds 10
+
+Rows: idle; 8 Blend clients on a server in its own process (`dqpose serve`); 8 Blend clients on
+a server in the executor's own process (what the Execute RPC does), with the interpreter's
+default GIL switch interval (5 ms) and with `sys.setswitchinterval(--switch)`.
+
+The motion: a smooth closed loop (x, y and a turn about z, zero velocity at both ends), sampled
+at 500 Hz and pushed 0.1 s at a time, at most 0.3 s ahead, from a feeder thread, as a network
+stream would. Jitter is |dt - 2 ms| between the arrivals of consecutive set-points at the
+simulator (stamped on its receive thread with CLOCK_MONOTONIC, the clock this process reads);
+missed cycles are the controller cycles of the run that got no set-point
+(round(span / 2 ms) + 1 - set-points). Tracking error is the distance between the commanded
+pose of a cycle and the actual pose read right after it (the simulated controller follows 2
+cycles late), and the same against the commanded pose of 2 cycles before.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import threading
+import time
+
+import numpy as np
+
+from drivers.executor import Executor, Result
+from drivers.sim import ursim
+from drivers.ur import URArm
+from service import dq
+
+LAG = 2     # the simulator's servo lag in cycles (SimConfig.servo_lag)
+
+
+def loop_plan(start: np.ndarray, seconds: float, rate: float, loop: float = 2.0):
+    """A closed loop from ``start`` and back, ``seconds`` long (whole loops of ``loop`` s):
+    3 cm in x, 1.5 cm in y, 0.1 rad about base z; at most 0.1 m/s, 0.3 m/s^2, 0.32 rad/s,
+    1 rad/s^2, all from rest to rest."""
+    n = max(1, round(seconds / loop))
+    t = np.arange(int(round(n * loop * rate)) + 1) / rate
+    w = 2 * math.pi / loop
+    q0, p0 = dq.to_pose(start)
+    d = np.stack([0.03 * (1 - np.cos(w * t)), 0.015 * (1 - np.cos(2 * w * t)) / 2,
+                  np.zeros_like(t)], axis=1)
+    a = 0.1 * (1 - np.cos(w * t))
+    rz = np.stack([np.cos(a / 2), 0 * a, 0 * a, np.sin(a / 2)], axis=1)
+    rot = dq.mul(dq.from_pose(rz, np.zeros_like(d)), dq.from_pose(q0, np.zeros(3)))
+    return t, dq.from_pose(dq.to_pose(rot)[0], p0 + d)
+
+
+def feed(ex: Executor, t, poses, chunk: float = 0.1, ahead: float = 0.3) -> None:
+    k = max(1, int(round(chunk / ex.period)))
+    for i in range(0, len(t), k):
+        while ex.buffered > ahead and not ex.done:
+            time.sleep(chunk / 4)
+        if ex.done:
+            return
+        ex.push(t[i:i + k], poses[i:i + k])
+    ex.finish()
+
+
+def run_once(sim, arm, seconds: float) -> dict:
+    start = arm.tool_pose()[1]
+    t, poses = loop_plan(start, seconds, 1.0 / arm.period)
+    mark = sim.log()["next"]
+    fb = []
+    ex = Executor(arm, callback=fb.append, stall_timeout=5.0)
+    feeder = threading.Thread(target=feed, args=(ex, t, poses), daemon=True)
+    feeder.start()
+    arrivals = []
+    while ex.wait(2.0) is None:     # fetch as it goes: the simulator keeps 50,000 log entries
+        got = sim.log(mark, cmd=ursim.SERVOL, keys=["mono"])
+        arrivals += [e["mono"] for e in got["entries"]]
+        mark = got["next"]
+    feeder.join()
+    arrivals += [e["mono"] for e in sim.log(mark, cmd=ursim.SERVOL, keys=["mono"])["entries"]]
+    a = np.asarray(arrivals)
+    # the plan's set-points only: the settle holds after the end are not paced by a plan
+    a = a[:len(t)]
+    dt = np.diff(a)
+    jitter = np.abs(dt - arm.period)
+    missed = int(round((a[-1] - a[0]) / arm.period)) + 1 - len(a)
+    ok = [f for f in fb if f.result == Result.OK and f.actual is not None]
+    err = np.array([dq.to_pose(f.actual)[1] - dq.to_pose(f.commanded)[1] for f in ok])
+    lagged = np.array([dq.to_pose(f.actual)[1] - dq.to_pose(g.commanded)[1]
+                       for f, g in zip(ok[LAG:], ok)])
+    return {"result": ex.result.name, "n": len(a), "jitter": jitter, "missed": missed,
+            "late": int(np.sum(dt > 1.5 * arm.period)), "track": np.linalg.norm(err, axis=1),
+            "track_lag": np.linalg.norm(lagged, axis=1)}
+
+
+def cancel_latency(sim, arm, reps: int) -> np.ndarray:
+    """cancel() to the servo stop's arrival at the simulator, on a moving arm."""
+    out = []
+    for _ in range(reps):
+        start = arm.tool_pose()[1]
+        t, poses = loop_plan(start, 2.0, 1.0 / arm.period)
+        ex = Executor(arm)
+        ex.push(t[:250], poses[:250])        # 0.5 s into a 2 s loop: moving
+        while ex.sent < 150:
+            time.sleep(0.005)
+        mark = sim.log()["next"]
+        t_cancel = time.monotonic()
+        ex.cancel()
+        ex.wait(5)
+        stops = sim.log(mark, cmd=ursim.SERVO_STOP, keys=["mono"])["entries"]
+        out.append(stops[0]["mono"] - t_cancel if stops else math.nan)
+        sim.set_pose(ursim.SimConfig().pose)
+        time.sleep(0.05)
+    return np.asarray(out)
+
+
+def _us(x, q):
+    return f"{np.percentile(x, q) * 1e6:.0f}"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seconds", type=float, default=60.0, help="length of each run (default 60)")
+    ap.add_argument("--clients", type=int, default=8)
+    ap.add_argument("--switch", type=float, default=0.0005,
+                    help="GIL switch interval (s) for the last row (default 0.0005)")
+    ap.add_argument("--cancels", type=int, default=5)
+    ap.add_argument("--rows", default="idle,server-process,in-process,in-process-switch",
+                    help="which rows to run (comma-separated)")
+    args = ap.parse_args(argv)
+    from tests.bench.bench_grpc import ServerProcess, python_clients
+    from tests.rpc._grpc_server import ServerThread
+
+    rows = []
+    with ursim.URSimProcess(args=("--max-linear-speed", "5")) as sim:
+        arm = URArm(sim.host, stale_after=0.5)
+        for name in args.rows.split(","):
+            server, load, calls = None, None, []
+            default_switch = sys.getswitchinterval()
+            if name == "server-process":
+                server = ServerProcess("aio", quiet_log=True)
+            elif name.startswith("in-process"):
+                server = ServerThread()
+                if name.endswith("switch"):
+                    sys.setswitchinterval(args.switch)
+            if server is not None:
+                load = threading.Thread(target=lambda: calls.append(python_clients(
+                    server.target, args.clients, args.seconds + args.cancels + 6)), daemon=True)
+                load.start()
+                time.sleep(3.0)             # clients spawned and calling
+            try:
+                r = run_once(sim, arm, args.seconds)
+                r["cancel"] = cancel_latency(sim, arm, args.cancels)
+            except Exception as e:      # a row that breaks is a result too: say how
+                r = {"result": f"failed: {e}"}
+                try:
+                    arm.close()
+                except Exception:
+                    pass
+                arm = URArm(sim.host, stale_after=0.5)
+            if load is not None:
+                load.join()
+                r["calls"] = calls[0][0] if calls else math.nan
+                server.stop()
+            sys.setswitchinterval(default_switch)
+            r["name"] = name
+            rows.append(r)
+            print(f"{name}: done ({r['result']}, {r.get('n')} set-points)", file=sys.stderr,
+                  flush=True)
+        arm.close()
+
+    print(f"\nExecutor on the simulated UR, 500 Hz, {args.seconds:g} s per row; "
+          f"{args.clients} Blend client processes where a server is named")
+    print("| row | result | set-points | missed cycles | dt > 3 ms | jitter p50 (µs) | p99 | max "
+          "| cancel → stop at sim, max (ms) | tracking p50 / p99 / max (mm) | at 2-cycle lag, "
+          "max (mm) | Blend calls/s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        if "jitter" not in r:
+            print(f"| {r['name']} | {r['result']} |" + " |" * 10)
+            continue
+        tr, tl = r["track"] * 1e3, r["track_lag"] * 1e3
+        print(f"| {r['name']} | {r['result']} | {r['n']} | {r['missed']} | {r['late']} "
+              f"| {_us(r['jitter'], 50)} | {_us(r['jitter'], 99)} | {r['jitter'].max() * 1e6:.0f} "
+              f"| {np.nanmax(r['cancel']) * 1e3:.2f} "
+              f"| {np.median(tr):.3f} / {np.percentile(tr, 99):.3f} / {tr.max():.3f} "
+              f"| {tl.max():.4f} | {r.get('calls', math.nan):.0f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
