@@ -8,8 +8,8 @@ linear velocity and acceleration and the tool's angular velocity and acceleratio
 
 The model
 ---------
-The path is a uniform cubic B-spline over ``[times[0], times[-1]]`` with one span per input
-interval (N poses, N + 2 control points): the tool point's position is a B-spline in R^3 and the
+The path is a cubic B-spline with uniform knots over ``[times[0], times[-1]]``, as many spans as
+input intervals (N poses, N + 2 control points; the stamps need not be uniform): the tool point's position is a B-spline in R^3 and the
 orientation a cumulative B-spline on SO(3) (``R(t) = Rc_i Exp(B1 d_i+1) Exp(B2 d_i+2) Exp(B3 d_i+3)``
 with the body increments ``d_j = Log(Rc_j-1^-1 Rc_j)``). Its first three and last three control
 points coincide, which is rest (zero velocity and acceleration) at both ends. The cost is
@@ -33,8 +33,10 @@ difference bounds the norm everywhere between samples (convex hull) and every fi
 of samples taken at any rate (a finite difference is a positive, unit-mass average of the
 derivative). For the position this is exact; for the orientation it holds to first order in the
 rotation per span (the neglected terms are at most ``|w| dt`` of the limit, ~1 % at 1 rad/s and
-100 Hz, and vanish while the rotation axis turns slowly). The returned samples are measured
-(:func:`peaks`) and a limit they break is tightened by the ratio and solved again.
+100 Hz, and vanish while the rotation axis turns slowly), and an angular jerk limit bounds the
+increments' (body-frame) jerk while the samples' base-frame jerk differs from it by ``w x alpha``.
+So the returned samples are measured (:func:`peaks`) and a limit they break is tightened and
+solved again.
 
 The solver
 ----------
@@ -565,8 +567,9 @@ def smooth(times, poses, limits: Limits, smoothing: float = 1.0, rate_hz: float 
     docstring); ``rate_hz`` 0 returns the path at ``times``, else at ``times[0] + k / rate_hz``
     and at ``times[-1]``. Returns ``(times (M,), poses (M, 8))``, starting and ending at rest.
 
-    Errors: ``ValueError`` naming the argument and index; :class:`Infeasible` (a ``ValueError``)
-    when the limits cannot be met on this clock.
+    ``limits``: issue 10's ``Limits`` (velocity and acceleration required; a jerk limit of 0 is
+    none). Errors: ``ValueError`` naming the argument and index; :class:`Infeasible` (a
+    ``ValueError``) when the limits cannot be met on this clock.
     """
     t, q, p, smoothing, rate_hz = _check(times, poses, limits, smoothing, rate_hz)
     return _smooth(t, q, p, limits, smoothing, rate_hz)
