@@ -189,6 +189,28 @@ def test_turns_past_pi_are_followed():
     assert er.max() < math.radians(0.5)
 
 
+def test_near_ipopts_optimum_of_the_nonlinear_problem():
+    # The benchmark's IPOPT peer solves the exact problem (increments and residuals on SO(3),
+    # |Q|^2 <= L^2); with limits that bind hard, ours stays near its optimum: a small share of
+    # what the limits move the path by.
+    casadi = pytest.importorskip("casadi")
+    if not casadi.has_nlpsol("ipopt"):
+        pytest.skip("casadi without IPOPT")
+    from tests.bench.bench_smoothing import Ipopt
+
+    t, truth = teleop_path(seed=3, n=80, rate_hz=50.0)
+    y = noisy(truth, seed=7)
+    limits = limits_from(peaks(t, truth), 0.8)
+    _, status, optimum = Ipopt(t, y, limits).solve()
+    assert status in ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+    _, ours = smooth(t, y, limits)
+    free = smooth(t, y, limits_from(peaks(t, y), 10.0))[1]        # limits far away
+    moved_t, moved_r = errors(optimum, free)
+    et, er = errors(ours, optimum)
+    assert moved_t.max() > 3e-3                                    # the limits do bind
+    assert et.max() < 0.1 * moved_t.max() and er.max() < 0.1 * moved_r.max()
+
+
 def test_peaks_of_a_constant_twist():
     t = np.arange(50) * 0.01
     w = np.outer(t, [0.0, 0.0, 2.0])
