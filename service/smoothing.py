@@ -9,10 +9,11 @@ linear velocity and acceleration and the tool's angular velocity and acceleratio
 The model
 ---------
 The path is a cubic B-spline with uniform knots over ``[times[0], times[-1]]``, as many spans as
-input intervals (N poses, N + 2 control points; the stamps need not be uniform): the tool point's position is a B-spline in R^3 and the
-orientation a cumulative B-spline on SO(3) (``R(t) = Rc_i Exp(B1 d_i+1) Exp(B2 d_i+2) Exp(B3 d_i+3)``
-with the body increments ``d_j = Log(Rc_j-1^-1 Rc_j)``). Its first three and last three control
-points coincide, which is rest (zero velocity and acceleration) at both ends. The cost is
+input intervals (N poses, N + 2 control points; the stamps need not be uniform): the tool point's
+position is a B-spline in R^3 and the orientation a cumulative B-spline on SO(3)
+(``R(t) = Rc_i Exp(B1 d_i+1) Exp(B2 d_i+2) Exp(B3 d_i+3)`` with the body increments
+``d_j = Log(Rc_j-1^-1 Rc_j)``). Its first three and last three control points coincide, which
+is rest (zero velocity and acceleration) at both ends. The cost is
 
     sum_k w_k |e_k|^2 + tau^6 * integral |jerk|^2 dt
 
@@ -75,6 +76,7 @@ import scipy.sparse as sp
 from scipy.linalg import cho_solve_banded, cholesky_banded
 
 from service import dq, lie
+# service.trajectory's Limits at the merge (the tests take it from here)
 from service._limits_stub import Limits
 from service.errors import rename
 
@@ -275,7 +277,8 @@ class _Model(NamedTuple):
 
     ``r`` (n, 3) residuals at the samples (their Jacobian in the corrections ``x`` is the spline's
     basis on each axis, ``kron(B E, I3)``); ``d`` (m - 1, 3) increments of the control points,
-    ``Jd`` their Jacobian (rows and columns interleaved, ``3 * index + axis``). Velocity, acceleration and jerk control points are
+    ``Jd`` their Jacobian (rows and columns interleaved, ``3 * index + axis``). Velocity,
+    acceleration and jerk control points are
     ``d / h``, ``diff(d) / h^2``, ``diff(d, 2) / h^3``; the jerk cost is ``|diff(d, 2)|^2``.
     """
     r: np.ndarray
@@ -382,7 +385,8 @@ class _Problem:
     def gauss_newton(self, r: np.ndarray, d: np.ndarray) -> np.ndarray:
         """Correction ``(m, 3)`` minimising the linearised cost, Jacobians taken as identity
         (exact for the position; first order in the rotation per span for the orientation)."""
-        g = self.BE.T @ (self.w[:, None] * r) + self.lam * (self.D1E.T @ (self.D2.T @ (self.D2 @ d)))
+        g = (self.BE.T @ (self.w[:, None] * r)
+             + self.lam * (self.D1E.T @ (self.D2.T @ (self.D2 @ d))))
         return self.s.E @ -self.solve(g)
 
     def position_model(self, c: np.ndarray, y: np.ndarray, t: np.ndarray) -> _Model:
@@ -477,7 +481,8 @@ def _qp(prob: _Problem, model: _Model, lims, name: str, solver=("piqp", _PIQP)) 
     turned = False
     for _ in range(_ROUNDS):
         parts = [_box_rows(Q, model.Jd, o + 1, h, c, L, al)
-                 for o, (Q, c, L, al) in enumerate(zip(Qs, chosen, lims, along)) if L > 0 and c.size]
+                 for o, (Q, c, L, al) in enumerate(zip(Qs, chosen, lims, along))
+                 if L > 0 and c.size]
         A = sp.vstack([p[0] for p in parts] or [sp.csr_matrix((0, nx))]).tocsc()
         lba = np.concatenate([p[1] for p in parts] or [np.zeros(0)])
         uba = np.concatenate([p[2] for p in parts] or [np.zeros(0)])
@@ -559,7 +564,7 @@ def _check_ends(duration: float, dist: float, angle: float, limits: Limits) -> N
                              f"rest under the limits ({v:g} {unit}/s, {a:g} {unit}/s^2)")
 
 
-# ---- the entry point -------------------------------------------------------------------------------
+# ---- the entry point ----------------------------------------------------------------------------
 def smooth(times, poses, limits: Limits, smoothing: float = 1.0, rate_hz: float = 0.0):
     """A smooth path through noisy time-stamped poses, within ``limits``.
 
@@ -648,7 +653,7 @@ def _limit_rows(limits: Limits):
 
 
 def _output_times(t: np.ndarray, rate_hz: float) -> np.ndarray:
-    """``times`` itself, or ``times[0] + k / rate_hz`` before ``times[-1]`` and then ``times[-1]``."""
+    """``times``, or ``times[0] + k / rate_hz`` before ``times[-1]`` and then ``times[-1]``."""
     if rate_hz <= 0:
         return t.copy()
     k = np.arange(int(math.floor((t[-1] - t[0]) * rate_hz * (1 + 1e-12))) + 1)
