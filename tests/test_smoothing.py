@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 
 from service import dq, smoothing
-from service._limits_stub import Limits
-from service.smoothing import Infeasible, peaks, smooth
+from service.smoothing import Infeasible, Limits, peaks, smooth
 
 
 # ---- the synthetic recording (the benchmark uses the same) ---------------------------------------
@@ -70,7 +69,7 @@ def assert_within(times, poses, limits: Limits):
             assert getattr(pk, name) <= limit * (1 + 1e-9), (name, getattr(pk, name), limit)
 
 
-# ---- what the result must do ------------------------------------------------------------------------
+# ---- what the result must do ---------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def recording():
     t, truth = teleop_path()
@@ -144,7 +143,8 @@ def test_smoothing_sets_the_cutoff():
     # smoothing 2 (cutoff 1 Hz), as the module docstring says.
     t = np.arange(1000) / 100.0
     window = np.sin(np.pi * t / t[-1]) ** 2
-    p = np.stack([0.01 * window * np.sin(2 * np.pi * 1.0 * t), np.zeros_like(t), np.zeros_like(t)], 1)
+    p = np.zeros((t.size, 3))
+    p[:, 0] = 0.01 * window * np.sin(2 * np.pi * 1.0 * t)
     poses = dq.from_pose(np.tile([1.0, 0, 0, 0], (t.size, 1)), p)
     limits = Limits(10, 10, 100, 100)
     mid = slice(400, 600)
@@ -189,6 +189,28 @@ def test_turns_past_pi_are_followed():
     assert er.max() < math.radians(0.5)
 
 
+def test_near_ipopts_optimum_of_the_nonlinear_problem():
+    # The benchmark's IPOPT peer solves the exact problem (increments and residuals on SO(3),
+    # |Q|^2 <= L^2); with limits that bind hard, ours stays near its optimum: a small share of
+    # what the limits move the path by.
+    casadi = pytest.importorskip("casadi")
+    if not casadi.has_nlpsol("ipopt"):
+        pytest.skip("casadi without IPOPT")
+    from tests.bench.bench_smoothing import Ipopt
+
+    t, truth = teleop_path(seed=3, n=80, rate_hz=50.0)
+    y = noisy(truth, seed=7)
+    limits = limits_from(peaks(t, truth), 0.8)
+    _, status, optimum = Ipopt(t, y, limits).solve()
+    assert status in ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+    _, ours = smooth(t, y, limits)
+    free = smooth(t, y, limits_from(peaks(t, y), 10.0))[1]        # limits far away
+    moved_t, moved_r = errors(optimum, free)
+    et, er = errors(ours, optimum)
+    assert moved_t.max() > 3e-3                                    # the limits do bind
+    assert et.max() < 0.1 * moved_t.max() and er.max() < 0.1 * moved_r.max()
+
+
 def test_peaks_of_a_constant_twist():
     t = np.arange(50) * 0.01
     w = np.outer(t, [0.0, 0.0, 2.0])
@@ -199,7 +221,7 @@ def test_peaks_of_a_constant_twist():
     assert pk.linear_acceleration < 1e-9 and pk.angular_acceleration < 1e-9
 
 
-# ---- what it refuses ------------------------------------------------------------------------------------
+# ---- what it refuses -----------------------------------------------------------------------------
 def test_ends_too_far_apart_for_the_duration_are_infeasible():
     t = np.arange(100) / 100.0
     s = np.clip((t - 0.1) / 0.8, 0, 1)
@@ -265,11 +287,13 @@ def test_bad_options_are_rejected_by_name(kwargs, message):
         smooth(GOOD_T, GOOD, **args)
 
 
+# Limits checks itself (issue 10's contract: a ValueError starting with the field's path); the
+# wording after the path is service.trajectory's.
 @pytest.mark.parametrize("field, value, message", [
-    ("max_linear_velocity", 0.0, r"^limits\.max_linear_velocity: 0\.0 must be > 0"),
-    ("max_angular_acceleration", -1.0, r"^limits\.max_angular_acceleration: -1\.0 must be > 0"),
-    ("max_angular_velocity", float("nan"), r"^limits\.max_angular_velocity: nan is not finite"),
-    ("max_linear_jerk", -1.0, r"^limits\.max_linear_jerk: -1\.0 must be >= 0 \(0 = no limit\)"),
+    ("max_linear_velocity", 0.0, r"^limits\.max_linear_velocity: "),
+    ("max_angular_acceleration", -1.0, r"^limits\.max_angular_acceleration: "),
+    ("max_angular_velocity", float("nan"), r"^limits\.max_angular_velocity: "),
+    ("max_linear_jerk", -1.0, r"^limits\.max_linear_jerk: "),
 ])
 def test_bad_limits_are_rejected_by_name(field, value, message):
     kw = dict(max_linear_velocity=1, max_angular_velocity=1, max_linear_acceleration=1,

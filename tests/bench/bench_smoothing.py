@@ -85,7 +85,7 @@ def savitzky_golay(t, y, limits, window=31, order=3):
     return t, dq.from_pose(qs / np.linalg.norm(qs, axis=1, keepdims=True), f(p))
 
 
-# ---- IPOPT on the nonlinear problem ---------------------------------------------------------------
+# ---- IPOPT on the nonlinear problem -------------------------------------------------------------
 class Ipopt:
     """The nonlinear problem of service.smoothing with casadi SX, solved by IPOPT."""
 
@@ -137,7 +137,8 @@ class Ipopt:
             ubg.append(np.ones(Q.shape[0]))
 
         x = ca.veccat(xp, xe)
-        self.solver = ca.nlpsol("smooth", "ipopt", {"x": x, "f": cost / w.max(), "g": ca.vertcat(*g)},
+        self.solver = ca.nlpsol("smooth", "ipopt",
+                                {"x": x, "f": cost / w.max(), "g": ca.vertcat(*g)},
                                 {"print_time": False, "ipopt.print_level": 0, "ipopt.sb": "yes"})
         # the ends pinned at rest where the banded start puts them, as in ours
         lbx, ubx = np.full((Z, 3, 2), -np.inf), np.full((Z, 3, 2), np.inf)
