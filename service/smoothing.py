@@ -76,8 +76,8 @@ import scipy.sparse as sp
 from scipy.linalg import cho_solve_banded, cholesky_banded
 
 from service import dq, lie
-from service.trajectory import Limits
-from service.errors import rename
+from service.trajectory import Limits, Peaks, peaks  # noqa: F401 (Peaks: part of the API)
+from service.errors import Infeasible, rename
 
 __all__ = ["CUTOFF_HZ", "Infeasible", "Peaks", "peaks", "smooth"]
 
@@ -97,20 +97,6 @@ _EPS = 1e-6
 # No Ruiz preconditioning: the rows and the cost are scaled already (see _qp); it cost 15 % of
 # the solve and moved the optimum by 1e-9 of itself.
 _PIQP = {"verbose": False, "eps_abs": _EPS, "eps_rel": _EPS, "preconditioner_iter": 0}
-
-
-class Infeasible(ValueError):
-    """The limits cannot be met on this path's clock (the reason is the message)."""
-
-
-class Peaks(NamedTuple):
-    """Largest norms measured from samples by finite differences (base frame, tool point)."""
-    linear_velocity: float
-    angular_velocity: float
-    linear_acceleration: float
-    angular_acceleration: float
-    linear_jerk: float
-    angular_jerk: float
 
 
 # ---- small SO(3) helpers on rotation-only dual quaternions (real part = quaternion) ------------
@@ -136,30 +122,6 @@ def _quat_rot(q: np.ndarray) -> np.ndarray:
     out = np.zeros(q.shape[:-1] + (8,))
     out[..., :4] = q / np.linalg.norm(q, axis=-1, keepdims=True)
     return out
-
-
-def peaks(times, poses) -> Peaks:
-    """Peak velocity, acceleration and jerk norms of sampled poses, by finite differences.
-
-    Velocities over each interval (``Log(R_k+1 R_k^T) / dt`` for the angular one, base frame),
-    accelerations and jerks as differences of those over the spacing of their mid-times: what an
-    arm's controller sees, and how the tests and benchmarks check :func:`smooth`.
-    """
-    t = np.asarray(times, dtype=np.float64)
-    q, p = dq.to_pose(np.asarray(poses, dtype=np.float64))
-    r = _quat_rot(q)
-    dt = np.diff(t)[:, None]
-    v = np.diff(p, axis=0) / dt
-    w = _rotvec(dq.mul(r[1:], dq.conj(r[:-1]))) / dt
-    out = []
-    mid = 0.5 * (t[1:] + t[:-1])
-    for order in range(3):
-        out.append((float(np.linalg.norm(v, axis=1).max(initial=0.0)),
-                    float(np.linalg.norm(w, axis=1).max(initial=0.0))))
-        span = np.diff(mid)[:, None]
-        v, w = np.diff(v, axis=0) / span, np.diff(w, axis=0) / span
-        mid = 0.5 * (mid[1:] + mid[:-1])
-    return Peaks(*out[0], *out[1], *out[2])
 
 
 # ---- argument checks ---------------------------------------------------------------------------

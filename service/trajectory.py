@@ -30,7 +30,7 @@ from service import dq
 from service.errors import FieldError, FieldInfeasible, rename
 
 __all__ = ["INTERPOLATIONS", "Limits", "Waypoint", "Segment", "Samples", "Trajectory",
-           "Infeasible", "plan"]
+           "Infeasible", "plan", "Derivatives", "derivatives", "Peaks", "peaks"]
 
 INTERPOLATIONS = ("tool_linear", "screw")   # proto Interpolation: TOOL_LINEAR=1, SCREW=2
 MAX_SAMPLES = 100_000_000                   # at_rate's refusal: 2.4 GB of output
@@ -320,3 +320,23 @@ def derivatives(times, poses) -> Derivatives:
     j, _ = _rate(a, m2)
     zeta, _ = _rate(alpha, m2)
     return Derivatives(p, rotation, v, w, a, alpha, j, zeta)
+
+
+class Peaks(NamedTuple):
+    """The largest norms over sampled poses (:func:`peaks`): m/s, rad/s, m/s^2, ..."""
+    linear_velocity: float
+    angular_velocity: float
+    linear_acceleration: float
+    angular_acceleration: float
+    linear_jerk: float
+    angular_jerk: float
+
+
+def peaks(times, poses) -> Peaks:
+    """The largest velocity, acceleration and jerk norms of sampled poses, by finite differences
+    (:func:`derivatives`): what a controller receiving them sees, whatever produced them; 0 where
+    there are too few samples for that order."""
+    d = derivatives(times, poses)
+    top = lambda x: float(np.linalg.norm(x, axis=1).max(initial=0.0))   # noqa: E731
+    return Peaks(top(d.velocity), top(d.angular_velocity), top(d.acceleration),
+                 top(d.angular_acceleration), top(d.jerk), top(d.angular_jerk))

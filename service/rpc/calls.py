@@ -131,14 +131,17 @@ class Calls:
             self.flush()
 
     async def unary(self, rpc: str, handle, request, context, counted: bool = False):
-        """One unary call: the response of ``handle(request)``, the :func:`refusal` status for a
-        FieldError or TooLarge, INTERNAL (logged) for anything else, and one record either way.
+        """One unary call: the response of ``handle(request)`` (awaited when it is a coroutine),
+        the :func:`refusal` status for a FieldError or TooLarge, INTERNAL (logged) for anything
+        else, and one record either way.
         With ``counted``, ``handle`` returns ``(response, messages)`` and the record counts them."""
         t0 = self.begin()
         code = "OK"
         messages = None
         try:
             response = handle(request)
+            if asyncio.iscoroutine(response):      # work handed to a thread
+                response = await response
             if counted:
                 response, messages = response
             return response

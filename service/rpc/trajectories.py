@@ -104,7 +104,10 @@ class Trajectories:
         server.add_registered_method_handlers(self.NAME, handlers)
 
     async def Smooth(self, request, context):
-        return await self.calls.unary("Smooth", self.smooth, request, context)
+        # tens of milliseconds of solver holding the GIL: off the event loop, so other calls'
+        # messages keep moving between its steps
+        return await self.calls.unary("Smooth", lambda r: asyncio.to_thread(self.smooth, r),
+                                      request, context)
 
     async def _refused(self, rpc: str, e: Exception, context) -> str:
         status = refusal(e)
