@@ -421,6 +421,7 @@ class URSim:
                 "output_int_register_0": self.values.get("output_int_register_0", 0),
                 "rtde_clients": sum(1 for s in self.sessions if s.alive),
                 "scripts": len(self.scripts), "version": list(self.cfg.version),
+                "pid": os.getpid(),
             }
 
     def hook(self, req: dict) -> dict:
@@ -793,9 +794,17 @@ class URSimProcess:
                 self._conn = socket.create_connection((self.host, HOOK_PORT), timeout=0.2)
                 self._conn.settimeout(timeout)
                 self._file = self._conn.makefile("rwb")
-                return None
             except OSError:
                 time.sleep(0.05)
+                continue
+            # Another process's simulator may have taken the address between the check that it
+            # was free and our simulator's bind (ours then exits): only ours will do.
+            if self.state().get("pid") == self.proc.pid:
+                return None
+            self._conn.close()
+            self.proc.kill()
+            self.proc.wait()
+            return f"{self.host} was taken by another simulator"
         self.proc.kill()
         self.proc.wait()
         return f"no answer on {self.host}:{HOOK_PORT} within {timeout} s"
