@@ -25,24 +25,24 @@ typedef void (*job_fn)(void *ctx);
 
 #define SAMPLES 21
 
-/* Calls of f to fill a sample of >= 2 ms, so the clock resolution does not matter; the
+/* Calls of f to fill a sample of >= min_s seconds (far above the clock resolution); the
  * calibration is the warm-up. */
-static int calibrate(job_fn f, void *ctx)
+static int calibrate(job_fn f, void *ctx, double min_s)
 {
     int reps = 1;
     for (;;) {
         double t0 = now();
         for (int r = 0; r < reps; r++) f(ctx);
         double dt = now() - t0;
-        if (dt >= 2e-3) return reps;
-        reps = dt > 0 ? (int)(reps * 2.2e-3 / dt) + 1 : reps * 10;
+        if (dt >= min_s) return reps;
+        reps = dt > 0 ? (int)(reps * 1.1 * min_s / dt) + 1 : reps * 10;
     }
 }
 
 /* Median over SAMPLES samples of the time of one call. */
 static double median_seconds(job_fn f, void *ctx)
 {
-    int reps = calibrate(f, ctx);
+    int reps = calibrate(f, ctx, 2e-3);
     double s[SAMPLES];
     for (int k = 0; k < SAMPLES; k++) {
         double t0 = now();
@@ -54,13 +54,15 @@ static double median_seconds(job_fn f, void *ctx)
     return s[SAMPLES / 2];
 }
 
-/* Median over SAMPLES of time(f) / time(g), the samples of f and g taken alternately, so a
- * change of load on a shared machine moves both sides of each ratio alike. */
+/* Median over RATIO_SAMPLES of time(f) / time(g), the samples of f and g taken alternately, so
+ * a change of load on a shared machine moves both sides of each ratio alike. Samples are short
+ * (>= 0.2 ms), so that most pairs of them run without being preempted by other jobs. */
+#define RATIO_SAMPLES 201
 static double median_ratio(job_fn f, job_fn g, void *ctx)
 {
-    int rf = calibrate(f, ctx), rg = calibrate(g, ctx);
-    double s[SAMPLES];
-    for (int k = 0; k < SAMPLES; k++) {
+    int rf = calibrate(f, ctx, 2e-4), rg = calibrate(g, ctx, 2e-4);
+    double s[RATIO_SAMPLES];
+    for (int k = 0; k < RATIO_SAMPLES; k++) {
         double t0 = now();
         for (int r = 0; r < rf; r++) f(ctx);
         double t1 = now();
@@ -68,8 +70,8 @@ static double median_ratio(job_fn f, job_fn g, void *ctx)
         double t2 = now();
         s[k] = ((t1 - t0) / rf) / ((t2 - t1) / rg);
     }
-    qsort(s, SAMPLES, sizeof(double), cmpd);
-    return s[SAMPLES / 2];
+    qsort(s, RATIO_SAMPLES, sizeof(double), cmpd);
+    return s[RATIO_SAMPLES / 2];
 }
 
 /* ---- jobs ---------------------------------------------------------------------------------- */
