@@ -1218,6 +1218,11 @@ class Tracker:
         """When ``body``'s newest measurement was taken."""
         return float(self._newest[self._code_of(body)])
 
+    def newest_of(self, bodies: Iterable[str]) -> list[float]:
+        """:meth:`newest` of each of ``bodies`` (which have measurements), in one go."""
+        codes = self._body_codes
+        return self._newest[[codes[b] for b in bodies]].tolist()
+
     def oldest(self, body: str) -> float:
         """When the oldest measurement in ``body``'s window was taken."""
         return float(self._store.taken[self._rows(body)].min())
@@ -1343,18 +1348,29 @@ class Tracker:
                all_or_none: bool):
         """Checked measurements (``ok``; ``errors`` those refused so far) into the windows: the
         window-floor check, then the store."""
-        use = ok.tolist()
-        codes = np.array([self._source_code(s) if u else 0 for u, s in zip(use, sources)],
-                         dtype=np.int64)
-        body = np.array([self._body_code(b) if u else 0 for u, b in zip(use, bodies)],
-                        dtype=np.int64)
+        every = bool(ok.all())
+        # known sources and bodies by plain look-ups (the common case), else coded on the way
+        codes = [self._codes.get(s) for s in sources] if every else [None]
+        if None in codes:
+            use = ok.tolist()
+            codes = [self._source_code(s) if u else 0 for u, s in zip(use, sources)]
+        body = [self._body_codes.get(b) for b in bodies] if every else [None]
+        if None in body:
+            use = ok.tolist()
+            body = [self._body_code(b) if u else 0 for u, b in zip(use, bodies)]
+        codes = np.array(codes, dtype=np.int64)
+        body = np.array(body, dtype=np.int64)
         taken = times - (self._latency[codes] if self._names else 0.0)
         # Taken no further back than the window before the body's newest, counting the earlier
         # measurements of the same call: checked at once against the newest of the whole call,
         # and only the rows that fail that (stricter) test one by one in order.
         newest = self._newest.copy()
-        np.maximum.at(newest, body[ok], taken[ok])
-        for k in np.flatnonzero(ok & (taken < newest[body] - self.window)).tolist():
+        if every:
+            np.maximum.at(newest, body, taken)
+        else:
+            np.maximum.at(newest, body[ok], taken[ok])
+        late = np.flatnonzero(ok & (taken < newest[body] - self.window)).tolist()
+        for k in late:
             floor = max([self._newest[body[k]]] + [
                 taken[j] for j in range(k) if ok[j] and body[j] == body[k]])
             if taken[k] < floor - self.window:
@@ -1367,7 +1383,13 @@ class Tracker:
         if all_or_none and errors:
             return [min(errors.items())]
         self._count += offered
-        if ok.all():
+        if every and not late:
+            self._newest = newest     # the maxima over these rows, taken above
+            self._store.append(self._newest, self.window, ids=ids, body=body, codes=codes,
+                               times=times, taken=taken, poses=poses, covs=covs)
+            for b in bodies:
+                self._active.setdefault(b, None)
+        elif ok.all():
             np.maximum.at(self._newest, body, taken)
             self._store.append(self._newest, self.window, ids=ids, body=body, codes=codes,
                                times=times, taken=taken, poses=poses, covs=covs)
@@ -1396,6 +1418,8 @@ def _check_rows(bodies, sources, times, poses, covs):
         elif not isinstance(s, str):
             errors[k] = ValueError(f"measurements[{k}].source: expected a string, "
                                    f"got {type(s).__name__}")
+    if len(errors) == len(times):       # every row refused by its names: nothing else to check
+        return np.zeros(len(times), bool), errors, np.array(covs)
     ok = np.isfinite(times)
     for k in np.flatnonzero(~ok).tolist():
         errors.setdefault(k, ValueError(f"measurements[{k}].time: must be finite, "

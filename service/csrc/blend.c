@@ -35,6 +35,13 @@
 #else
 #define DQ_CLONES
 #endif
+/* A loop body that a clone calls must be inlined into it to be compiled for the clone's ISA;
+ * GCC keeps a large body called from two clones out of line (baseline ISA for both) unless told. */
+#if defined(__GNUC__)
+#define DQ_INLINE static inline __attribute__((always_inline))
+#else
+#define DQ_INLINE static inline
+#endif
 
 #define DQ_PIO2 1.57079632679489661923
 #define DQ_PIO4 7.85398163397448309616E-1
@@ -189,7 +196,7 @@ static inline void scaled_log_of_product(const double *a, const double *b, doubl
 /* Independent pairs: a_i exp(tau_i log(a_i* b_i)), in blocks like log_sum. Here nothing is
  * shared between the poses, so the screw form of dq_sclerp_prepare would cost more than it
  * saves; exp and log are written out with both of their branches and a select. */
-static inline void sclerp_block(const double *restrict a, const double *restrict b,
+DQ_INLINE void sclerp_block(const double *restrict a, const double *restrict b,
                                 const double *restrict tau, size_t m, double *restrict out)
 {
     double L[6][DQ_BLK], E[8][DQ_BLK];

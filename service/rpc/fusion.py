@@ -94,7 +94,10 @@ class Stream:
         except ValueError as e:
             raise _options_error(e, field) from None
         self.next_tick: dict[str, int] = {}
+        # per body: the time of its next tick, and its phase
+        self.next_time: dict[str, float] = {}
         self.phase: dict[str, float] = {}
+        self.known = frozenset(s.name for s in options.sources) if options.sources else None
 
     def update(self, m: Measurements, ids: np.ndarray, field: str, codes=None):
         """Measurements ``m`` of one request (``ids``: their stream-wide numbers) into the
@@ -103,48 +106,65 @@ class Stream:
         ``(measurement index, FieldError)``. ``codes`` (from the C decoder, one a row): the
         rows are checked already by the tracker's rules, those with a code refused (and named by
         the tracker's own check of that row alone), the others taken in unchecked."""
-        errors = unknown_sources(m, self.options, field)
-        bad = {k for k, _ in errors}
-        errors = [(int(m.index[k]), e) for k, e in errors]
-        rows = [k for k in range(len(m.index)) if k not in bad]
+        n = len(m.index)
+        if self.known is None or self.known.issuperset(m.sources):
+            errors, rows = [], range(n)     # the common case: every source listed
+        else:
+            errors = unknown_sources(m, self.options, field)
+            bad = {k for k, _ in errors}
+            errors = [(int(m.index[k]), e) for k, e in errors]
+            rows = [k for k in range(n) if k not in bad]
+        tracker = self.tracker
         if codes is None:
-            refused = [(rows[j], e) for j, e in self.tracker.ingest(
+            rows = list(rows)
+            refused = [(rows[j], e) for j, e in tracker.ingest(
                 [m.bodies[k] for k in rows], [m.sources[k] for k in rows], m.times[rows],
                 m.poses[rows], m.covariances[rows], ids=ids[rows])]
         else:
+            coded = codes.tolist()
             refused = [(k, fusion.Tracker.refusals(
                 m.bodies[k:k + 1], m.sources[k:k + 1], m.times[k:k + 1], m.poses[k:k + 1],
-                m.covariances[k:k + 1])[0][1]) for k in rows if codes[k]]
-            good = rows if not refused else [k for k in rows if not codes[k]]
-            if len(good) == len(m.index):     # the common case: no row to leave out
-                refused += self.tracker._ingest_valid(m.bodies, m.sources, m.times, m.poses,
-                                                      m.covariances, ids, len(rows))
+                m.covariances[k:k + 1])[0][1]) for k in rows if coded[k]]
+            if len(rows) == n and not refused:     # the common case: every row taken in
+                refused = tracker._ingest_valid(m.bodies, m.sources, m.times, m.poses,
+                                                m.covariances, ids, n)
             else:
-                refused += [(good[j], e) for j, e in self.tracker._ingest_valid(
+                good = [k for k in rows if not coded[k]]
+                refused += [(good[j], e) for j, e in tracker._ingest_valid(
                     [m.bodies[k] for k in good], [m.sources[k] for k in good], m.times[good],
                     m.poses[good], m.covariances[good], ids[good], len(rows))]
         for k, e in refused:
             i = int(m.index[k])
             errors.append((i, rename(e, {"measurements": f"{field}[{i}]"})))
-        refused = {k for k, _ in refused}
+        if refused:
+            refused = {k for k, _ in refused}
+            bodies = dict.fromkeys(m.bodies[k] for k in rows if k not in refused)
+        else:
+            bodies = dict.fromkeys(m.bodies if len(rows) == n else [m.bodies[k] for k in rows])
         answers = []
-        for body in dict.fromkeys(m.bodies[k] for k in rows if k not in refused):
-            for t in self._due(body):
-                answers.append(self._answer(body, t, field))
+        if not self.rate:
+            for body in bodies:
+                answers.append(self._answer(body, None, field))
+            return answers, errors
+        newest = tracker.newest_of(bodies)
+        next_time = self.next_time
+        for body, t in zip(bodies, newest):
+            # most bodies of a request: their next tick not reached yet
+            if next_time.get(body, -math.inf) <= t:
+                for t in self._due(body):
+                    answers.append(self._answer(body, t, field))
         return answers, errors
 
     def _due(self, body: str) -> list:
-        """The fusion times due for ``body``: its newest with no output rate, else the ticks its
-        newest measurement has reached (not before the oldest one in its window)."""
-        if not self.rate:
-            return [None]
+        """The fusion times due for ``body`` (output rate > 0): the ticks its newest measurement
+        has reached (not before the oldest one in its window)."""
         newest = self.tracker.newest(body)
         k = self.next_tick.get(body)
         phase = self.phase.get(body)
         if phase is None:
             phase = self.phase[body] = tick_phase(body)
         if k is not None and tick_time(k, self.rate, phase) > newest:
-            return []           # most requests: the body's next tick not reached yet
+            return []
         first = first_tick(self.tracker.oldest(body), self.rate, phase)
         k = first if k is None else max(k, first)
         due = []
@@ -152,6 +172,7 @@ class Stream:
             due.append(t)
             k += 1
         self.next_tick[body] = k
+        self.next_time[body] = t
         return due
 
     def _answer(self, body: str, t, field: str):
@@ -263,8 +284,9 @@ class Fusion(pb_grpc.FusionServicer):
             return self.stream_step(state, request, r, first_id), len(request.measurements)
         field = f"requests[{r}].measurements"
         n = len(w.times)
-        convert = np.flatnonzero((w.codes > 0) & (w.codes <= w.CONVERT_LAST))
-        errors = [(i, wire_measurement_error(data, w.spans[i], field, i)) for i in convert.tolist()]
+        last = w.CONVERT_LAST
+        errors = [(i, wire_measurement_error(data, w.spans[i], field, i))
+                  for i, c in enumerate(w.codes.tolist()) if 0 < c <= last]
         if errors:
             index = np.flatnonzero((w.codes == 0) | (w.codes > w.CONVERT_LAST))
             m = Measurements(index, tuple(w.bodies[i] for i in index.tolist()),

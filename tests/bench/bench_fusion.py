@@ -601,14 +601,18 @@ def render_moving(methods, results) -> str:
         for m in methods:
             r = res[m]
             single_ = m in MOVING_CAMERAS or m == ARM
-            lines.append([when, f"{m} (ScLERP)" if single_ else m, f"{np.median(r.rot):.3f}",
-                          f"{np.median(r.trans):.3f}",
+            lines.append([when, f"{m} (ScLERP)" if single_ else m,
+                          f"{np.median(r.rot):.3f}" if r.rot else "—",
+                          f"{np.median(r.trans):.3f}" if r.trans else "—",
                           f"{np.mean(r.nees):.3g}" if r.nees else "—", _fmt_s(r.seconds)])
     return _markdown(head, lines)
 
 
 def summary_moving(methods, results, latencies, scene, Q) -> str:
     ok = lambda b: "PASS" if b else "FAIL"  # noqa: E731
+    if not len(scene.queries):
+        return (f"- no queries: the first is at {START:g} s, once a full window has arrived; "
+                f"give --moving-seconds more than that")
     w, v, alpha, acc = scene.path.motion(scene.queries)
     out = [f"- path: speed median {np.median(v):.2f} m/s (max {v.max():.2f}), turn rate median "
            f"{np.degrees(np.median(w)):.0f} °/s (max {np.degrees(w.max()):.0f}), acceleration "
@@ -676,7 +680,7 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--moving-seconds", type=float, default=MOVING_SECONDS,
                     help=f"length of the moving-body run (default {MOVING_SECONDS:g} s, "
-                         f"queries at {QUERY_RATE:g} Hz; 0 skips it)")
+                         f"queries at {QUERY_RATE:g} Hz from {START:g} s; 0 skips it)")
     ap.add_argument("--moving-plot", metavar="PATH", help="also save the moving body's errors "
                     "over time (PNG)")
     args = ap.parse_args(argv)

@@ -7,6 +7,8 @@ the start and the end; then the server's per-message cost in process, split into
     .venv/bin/python -m tests.bench.bench_fusion_stream                 # ~1 min
     .venv/bin/python -m tests.bench.bench_fusion_stream --minutes 10    # the memory run
     .venv/bin/python -m tests.bench.bench_fusion_stream --plot docs/bench_fusion_stream.png
+    valgrind --tool=callgrind --callgrind-out-file=/dev/null \
+        .venv/bin/python -m tests.bench.bench_fusion_stream --in-process 1000   # and 0: Ir/msg
 
 Scene: ``--bodies`` bodies on constant-twist screws, each measured in turn (round robin) by one
 of two sources with latencies, 10 measurements a message with full covariances; the server keeps
@@ -118,13 +120,10 @@ def run(target: str, scene: Scene, seconds: float, msg_rate: float | None, args,
                 missing=int(np.isnan(lat).sum()), rss=samples, n=n)
 
 
-def per_message_cost(scene: Scene, args, messages: int = 6000) -> str:
-    """The server's per-message path in process (no transport): request bytes to answers by
-    ``Fusion.stream_step_wire`` (what StreamFuse serves: the C decoder, then the tracker), and
-    for comparison the protobuf path (bytes parsed, then ``Fusion.stream_step``); cProfile of
-    the parts."""
-    from service.rpc.convert import measurement_msgs as msgs, options_msg
-    from service.rpc.fusion import Fusion
+def wire_messages(scene: Scene, messages: int) -> list[bytes]:
+    """Messages ``0 .. messages - 1`` of the stream as the server receives them (request bytes,
+    the options in none of them)."""
+    from service.rpc.convert import measurement_msgs as msgs
     from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 
     data = []
@@ -133,6 +132,37 @@ def per_message_cost(scene: Scene, args, messages: int = 6000) -> str:
         data.append(pb.FuseStreamRequest(measurements=msgs(
             b.poses, b.covariances, names=b.names, bodies=b.bodies,
             times=b.times)).SerializeToString())
+    return data
+
+
+def in_process(scene: Scene, args, messages: int, warm: int = 500) -> None:
+    """``warm`` messages, then ``messages`` more, through the server's per-message path in
+    process (``Fusion.stream_step_wire``, answers serialised), and nothing printed: under
+    callgrind the instructions per message are ``(Ir(N) - Ir(0)) / N``, which the load of a
+    shared machine does not move."""
+    from service.rpc.convert import options_msg
+    from service.rpc.fusion import Fusion
+    from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
+
+    data = wire_messages(scene, warm + max(messages, 1000))   # the same set-up for every N
+    f = Fusion()
+    state = f.stream_options(pb.FuseStreamRequest(
+        output_rate=args.output_rate, options=options_msg(sources=SOURCES, window=args.window)))
+    for r in range(warm + messages):
+        for a in f.stream_step_wire(state, data[r], r + 1, r * (PER_MESSAGE + 1))[0]:
+            a.SerializeToString()
+
+
+def per_message_cost(scene: Scene, args, messages: int = 6000) -> str:
+    """The server's per-message path in process (no transport): request bytes to answers by
+    ``Fusion.stream_step_wire`` (what StreamFuse serves: the C decoder, then the tracker), and
+    for comparison the protobuf path (bytes parsed, then ``Fusion.stream_step``); cProfile of
+    the parts."""
+    from service.rpc.convert import options_msg
+    from service.rpc.fusion import Fusion
+    from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
+
+    data = wire_messages(scene, messages)
     from service.rpc.convert import fuse_stream_from_wire, measurements_to_arrays
 
     f = Fusion()
@@ -223,9 +253,15 @@ def main(argv=None) -> int:
                                                   "unpaced row")
     ap.add_argument("--no-profile", action="store_true")
     ap.add_argument("--plot", metavar="PATH", help="RSS and latency over the paced run (PNG)")
+    ap.add_argument("--in-process", type=int, metavar="N", help="only run N messages (after "
+                    "500 to warm up) through the server's per-message path in process, print "
+                    "nothing: for callgrind, whose count does not depend on the machine's load")
     args = ap.parse_args(argv)
 
     scene = Scene(args.bodies, args.rate)
+    if args.in_process is not None:
+        in_process(scene, args, args.in_process)
+        return 0
     server = ServerProcess("aio", quiet_log=True)
     try:
         rows = []

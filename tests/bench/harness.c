@@ -23,19 +23,26 @@ int floor_dib(const double *q, const double *w, size_t n, double tol, int max_it
 typedef void (*job_fn)(void *ctx);
 
 
-/* Median over SAMPLES samples of the time of one call, each sample long enough (>= 2 ms) that
- * the clock resolution does not matter; one warm-up sample first. */
 #define SAMPLES 21
-static double median_seconds(job_fn f, void *ctx)
+
+/* Calls of f to fill a sample of >= min_s seconds (far above the clock resolution); the
+ * calibration is the warm-up. */
+static int calibrate(job_fn f, void *ctx, double min_s)
 {
     int reps = 1;
     for (;;) {
         double t0 = now();
         for (int r = 0; r < reps; r++) f(ctx);
         double dt = now() - t0;
-        if (dt >= 2e-3) break;
-        reps = dt > 0 ? (int)(reps * 2.2e-3 / dt) + 1 : reps * 10;
+        if (dt >= min_s) return reps;
+        reps = dt > 0 ? (int)(reps * 1.1 * min_s / dt) + 1 : reps * 10;
     }
+}
+
+/* Median over SAMPLES samples of the time of one call. */
+static double median_seconds(job_fn f, void *ctx)
+{
+    int reps = calibrate(f, ctx, 2e-3);
     double s[SAMPLES];
     for (int k = 0; k < SAMPLES; k++) {
         double t0 = now();
@@ -45,6 +52,26 @@ static double median_seconds(job_fn f, void *ctx)
     qsort(s, SAMPLES, sizeof(double), cmpd);
 
     return s[SAMPLES / 2];
+}
+
+/* Median over RATIO_SAMPLES of time(f) / time(g), the samples of f and g taken alternately, so
+ * a change of load on a shared machine moves both sides of each ratio alike. Samples are short
+ * (>= 0.2 ms), so that most pairs of them run without being preempted by other jobs. */
+#define RATIO_SAMPLES 201
+static double median_ratio(job_fn f, job_fn g, void *ctx)
+{
+    int rf = calibrate(f, ctx, 2e-4), rg = calibrate(g, ctx, 2e-4);
+    double s[RATIO_SAMPLES];
+    for (int k = 0; k < RATIO_SAMPLES; k++) {
+        double t0 = now();
+        for (int r = 0; r < rf; r++) f(ctx);
+        double t1 = now();
+        for (int r = 0; r < rg; r++) g(ctx);
+        double t2 = now();
+        s[k] = ((t1 - t0) / rf) / ((t2 - t1) / rg);
+    }
+    qsort(s, RATIO_SAMPLES, sizeof(double), cmpd);
+    return s[RATIO_SAMPLES / 2];
 }
 
 /* ---- jobs ---------------------------------------------------------------------------------- */
@@ -138,6 +165,8 @@ int main(int argc, char **argv)
     save("sclerp_pairs_core", out, 8 * np);
     report("sclerp_pairs", "floor", median_seconds(floor_sclerp_pairs, &jp), (double)np, 0);
     save("sclerp_pairs_floor", out, 8 * np);
+    printf("{\"op\": \"sclerp_pairs\", \"impl\": \"core/floor\", \"ratio\": %.6e}\n",
+           median_ratio(core_sclerp_pairs, floor_sclerp_pairs, &jp));
 
     /* means */
     const char *sets[] = {"set10", "set1000"};
