@@ -23,7 +23,6 @@ bench's single-source rows do the same). The truth there is interpolated between
 from __future__ import annotations
 
 import argparse
-import asyncio
 import bisect
 import contextlib
 import math
@@ -89,22 +88,6 @@ def _error(est: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     return math.degrees(float(np.linalg.norm(xi[:3]))), 1e3 * float(np.linalg.norm(t - tt))
 
 
-@contextlib.contextmanager
-def _server():
-    """A Fusion server in this process on a free loopback port (its own event loop thread)."""
-    from service.rpc.server import ServerConfig, start
-    loop = asyncio.new_event_loop()
-    thread = threading.Thread(target=loop.run_forever, daemon=True)
-    thread.start()
-    running = asyncio.run_coroutine_threadsafe(start(ServerConfig(port=0)), loop).result(30)
-    try:
-        yield f"127.0.0.1:{running.port}"
-    finally:
-        asyncio.run_coroutine_threadsafe(running.stop(0), loop).result(30)
-        loop.call_soon_threadsafe(loop.stop)
-        thread.join(10)
-
-
 def _cameras(T_world_board0: np.ndarray, board, intrinsics):
     """Two extrinsics ``T_world_camera`` looking at the board's start pose from either side."""
     from drivers.sim.camera import look_at
@@ -168,6 +151,7 @@ def run(steps: int = 60, *, seed: int = 0, arm_sigma=(2e-3, 1e-3), noise: float 
     from drivers.sim.camera import BoardRenderer
     from drivers.sim.ursim import URSimProcess
     from service.fusion import Source
+    from service.cli.common import local_server
     from service.rpc.client import Batch, Client
 
     rng = np.random.default_rng(seed)
@@ -262,7 +246,7 @@ def run(steps: int = 60, *, seed: int = 0, arm_sigma=(2e-3, 1e-3), noise: float 
                                                    watchdog_periods=100))
         arm.pose_sigma = tuple(arm_sigma)
         if target is None:
-            target = stack.enter_context(_server())
+            target = stack.enter_context(local_server())
         client = stack.enter_context(Client(target))
         for cam, E in zip(cams, extrinsics):    # the first detection is slow (set-up)
             cam.detect(renderer.render(dq.mul(dq.inv(E), T_world_board0), blur=blur,

@@ -13,20 +13,7 @@ from service import dq, fusion, lie
 from service.cli import main
 from service.fusion import Source
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(__file__)), "rpc"))
-from _grpc_server import ServerThread  # noqa: E402
-
-
-@pytest.fixture(scope="module")
-def server():
-    with ServerThread() as s:
-        yield s
-
-
-def run(capsys, *argv):
-    code = main(list(argv))
-    out, err = capsys.readouterr()
-    return code, out, err
+from _cli import run  # the `server` fixture: tests/cli/conftest.py
 
 
 def scene(seed, n):
