@@ -63,29 +63,26 @@ static void rotate(const double *q, const double *v, double *out)
 
 /* ---- the ramp shape ------------------------------------------------------------------------ */
 
-static inline double shape_g(double tau, double beta)
+static inline double shape_g(double tau, double beta, double h, double ib)
 {
-    double h = 1.0 / (1.0 - beta);
-    if (tau <= beta) return h * tau * tau / (2.0 * beta);
-    if (tau >= 1.0 - beta) return 1.0 - h * (1.0 - tau) * (1.0 - tau) / (2.0 * beta);
+    if (tau <= beta) return 0.5 * h * ib * tau * tau;
+    if (tau >= 1.0 - beta) return 1.0 - 0.5 * h * ib * (1.0 - tau) * (1.0 - tau);
     return h * (tau - 0.5 * beta);
 }
 
-static inline double G_left(double tau, double beta, double h)
+static inline double G_left(double tau, double beta, double h, double ib)
 {
-    if (tau <= beta) return h * tau * tau * tau / (6.0 * beta);
+    if (tau <= beta) return h * ib * tau * tau * tau / 6.0;
     double u = tau - beta;
-    return h * beta * beta / 6.0 + h * beta * u / 2.0 + h * u * u / 2.0;
+    return h * (beta * beta / 6.0 + 0.5 * beta * u + 0.5 * u * u);
 }
 
 /* g is point-symmetric about (1/2, 1/2), so G(tau) = tau - 1/2 + G(1 - tau). */
-static inline double shape_G(double tau, double beta)
+static inline double shape_G(double tau, double beta, double h, double ib)
 {
-    double h = 1.0 / (1.0 - beta);
-    if (tau <= 0.5) return G_left(tau, beta, h);
-    return tau - 0.5 + G_left(1.0 - tau, beta, h);
+    if (tau <= 0.5) return G_left(tau, beta, h, ib);
+    return tau - 0.5 + G_left(1.0 - tau, beta, h, ib);
 }
-
 
 /* ---- ramps ----------------------------------------------------------------------------------- */
 
@@ -315,6 +312,10 @@ static int solve(plan_ctx *c, const double *lam, size_t *bad)
         g->T[2] = hi2(0.0, (1.0 - covered) / g->sigma);
         g->t_at[0] = g->s_at[0] = 0.0;
         for (int i = 0; i < 5; i++) {
+            /* what evaluating the ramp shape would divide by */
+            g->h[i] = 1.0 / (1.0 - g->beta[i]);
+            g->inv_beta[i] = 1.0 / g->beta[i];
+            g->inv_T[i] = g->T[i] > 0 ? 1.0 / g->T[i] : 0.0;
             g->t_at[i + 1] = g->t_at[i] + g->T[i];
             g->s_at[i + 1] = g->s_at[i] + 0.5 * (g->rate[i] + g->rate[i + 1]) * g->T[i];
         }
@@ -340,6 +341,7 @@ static double arrival(const plan_ctx *c, size_t m)
 static void geometry(const double *a, const double *b, int mode, dq_traj_seg *g)
 {
     double ac[8], rel[8], l[6], wb[3];
+    memset(g, 0, sizeof *g); /* every field defined: the table is handed to Python as bytes */
     memcpy(g->a, a, sizeof g->a);
     memcpy(g->b, b, sizeof g->b);
     dq_conj(a, ac);
@@ -358,6 +360,9 @@ static void geometry(const double *a, const double *b, int mode, dq_traj_seg *g)
         dq_sclerp_prepare(a, b, &g->pair);
         rotate(a, g->vb, g->cv0);
         rotate(b, g->vb, g->cv1);
+        double wp[3];
+        cross3(g->w, g->pa, wp);
+        for (int i = 0; i < 3; i++) g->vs[i] = g->cv0[i] - wp[i];
         g->len = norm3(g->vb);
         g->nu = g->theta;
     } else {
@@ -463,7 +468,8 @@ static void seg_s(const dq_traj_seg *g, double tl, double *s, double *sd)
         *s = g->s_at[i] + x * u;
         *sd = x;
     } else {
-        double tau = u / T, G = shape_G(tau, g->beta[i]), gg = shape_g(tau, g->beta[i]);
+        double b = g->beta[i], h = g->h[i], ib = g->inv_beta[i], tau = u * g->inv_T[i];
+        double G = shape_G(tau, b, h, ib), gg = shape_g(tau, b, h, ib);
         *s = g->s_at[i] + T * (x * (tau - G) + y * G);
         *sd = x * (1.0 - gg) + y * gg;
     }
@@ -481,7 +487,9 @@ static void seg_at(const dq_traj_seg *g, int mode, double s, double sd, double *
         double rc[4] = {out[0], -out[1], -out[2], -out[3]}, t[4];
         dq_qmul(out + 4, rc, t);
         for (int i = 0; i < 3; i++) p[i] = 2.0 * t[1 + i];
-        rotate(r, g->vb, v);
+        /* the spatial twist is constant along a screw: v = w x p + vs */
+        cross3(g->w, p, v);
+        for (int i = 0; i < 3; i++) v[i] += g->vs[i];
     } else {
         /* the real part of the rotation pair's ScLERP: the slerp */
         const dq_sclerp_pair *q = &g->pair;

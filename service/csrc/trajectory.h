@@ -48,6 +48,7 @@ typedef struct {
     double qa_conj[4];     /* rotation of a, conjugated: the blend composes through it */
     double w[3];           /* angular velocity per unit ds/dt, base frame (theta * axis) */
     double vb[3];          /* SCREW: tool-point velocity per unit ds/dt, tool frame */
+    double vs[3];          /* SCREW: linear part of the spatial twist per unit ds/dt */
     double cv0[3], cv1[3]; /* tool-point velocity per unit ds/dt at s = 0 and 1, base frame */
     double len, theta, nu; /* |c'|, rotation angle, rate at which c' turns (SCREW: theta) */
     double cap;            /* the largest cruise rate the velocity limits and the cruise allow */
@@ -59,6 +60,7 @@ typedef struct {
     double start, sigma, sig_in, sig_out;
     double T[5], beta[5], rate[6];
     double t_at[6], s_at[6];         /* time since start and s at the start of each phase */
+    double inv_T[5], h[5], inv_beta[5];
     int blend_in;                    /* phase 0 is shared with the previous segment's phase 4 */
     int bind;
 } dq_traj_seg;
