@@ -33,9 +33,6 @@
  * position); this fraction of the ramp costs at most 5 % of its time. */
 #define BETA_FREE 0.05
 #define BISECT 60
-/* A blend that would need its two segments below this fraction of their speed is turned into a
- * stop, which is then faster. */
-#define BLEND_MIN_FACTOR 0.25
 #define SWEEPS 100
 
 /* fmin/fmax are library calls under -std=c99; nothing here is NaN (the input is checked). */
