@@ -394,17 +394,32 @@ static void cap_of(dq_traj_seg *g, const dq_traj_limits *L)
  * intervals, so the sweep repeats until every time holds. */
 static int meet_times(plan_ctx *c, const double *times, double *lam, size_t *bad)
 {
-    size_t K = c->n + 1;
+    size_t K = c->n + 1, late = 0;
     int rc = solve(c, lam, bad);
+    /* start every interval at the slowdown its free duration suggests, so each one is then
+     * solved beside neighbours already near their own (a slowed neighbour changes the blend
+     * into an interval, hence what that interval can reach) */
+    double t_prev = 0.0, a_prev = 0.0;
+    for (size_t m = 1, p = 0; !rc && m < K; m++) {
+        if (!(times[m] > 0)) continue;
+        double a = arrival(c, m), f = (a - a_prev) / (times[m] - t_prev);
+        for (size_t k = p; k < m; k++) lam[k] = lo2(1.0, hi2(f, 1e-9));
+        t_prev = times[m], a_prev = a, p = m;
+    }
     for (int sweep = 0; !rc && sweep < 20; sweep++) {
         size_t p = 0;
+        late = 0;
         for (size_t m = 1; m < K && !rc; m++) {
             if (!(times[m] > 0)) continue;
+            double tol = 1e-9 * hi2(1.0, times[m]), lo = 0.0, hi = 1.0;
             for (size_t k = p; k < m; k++) lam[k] = 1.0;
             if ((rc = solve(c, lam, bad))) break;
-            double tol = 1e-9 * hi2(1.0, times[m]);
-            if (arrival(c, m) > times[m] + tol) { *bad = m; return DQ_TRAJ_E_TIME; }
-            double lo = 0.0, hi = 1.0;
+            if (arrival(c, m) > times[m] + tol) {
+                /* too late even at full speed: the other intervals may still move */
+                if (!late) late = m;
+                p = m;
+                continue;
+            }
             for (int it = 0; it < BISECT && !rc && fabs(arrival(c, m) - times[m]) > 0.1 * tol; it++) {
                 double f = 0.5 * (lo + hi);
                 for (size_t k = p; k < m; k++) lam[k] = f;
@@ -418,8 +433,12 @@ static int meet_times(plan_ctx *c, const double *times, double *lam, size_t *bad
         for (size_t m = 1; m < K; m++)
             if (times[m] > 0 && fabs(arrival(c, m) - times[m]) > 1e-9 * hi2(1.0, times[m])) met = 0;
         if (met) return DQ_OK;
+        if (late && sweep > 0) { *bad = late; return DQ_TRAJ_E_TIME; }
     }
-    if (!rc) { *bad = 0; rc = DQ_TRAJ_E_STUCK; }
+    if (!rc) {
+        *bad = late;
+        rc = late ? DQ_TRAJ_E_TIME : DQ_TRAJ_E_STUCK;
+    }
     return rc;
 }
 
