@@ -194,6 +194,31 @@ static double corner_gap(const plan_ctx *c, size_t k, double f, int *bind)
     return 0.5 * T * hi2(sa * c->seg[k - 1].len, sb * c->seg[k].len) / c->radius[k] - 1.0;
 }
 
+/* A segment's speed at rate r, for comparing the two sides of a corner: the tool point's, or
+ * the tool's turning speed when the tool point stays put. */
+static double corner_speed(const dq_traj_seg *g, double r) { return r * (g->len > 0 ? g->len : g->theta); }
+
+/* The factor that brings the faster side of corner k down to the slower side's speed, and which
+ * side that is (1: the segment after the corner). */
+static double equalising(const plan_ctx *c, size_t k, int *after)
+{
+    double va = corner_speed(&c->seg[k - 1], c->seg[k - 1].sig_out);
+    double vb = corner_speed(&c->seg[k], c->seg[k].sig_in);
+    *after = vb > va;
+    return *after ? va / vb : (va > 0 ? vb / va : 1.0);
+}
+
+/* corner_gap with only the faster side lowered, from its own rate (f = 1) to the slower side's
+ * speed (f = 0). */
+static double faster_gap(const plan_ctx *c, size_t k, double f, int *bind)
+{
+    int after;
+    double e = equalising(c, k, &after), m = e + f * (1.0 - e), T, b;
+    double sa = c->seg[k - 1].sig_out * (after ? 1.0 : m), sb = c->seg[k].sig_in * (after ? m : 1.0);
+    if (corner_ramp(c, k, sa, sb, &T, &b, bind) < 0) return INFINITY;
+    return 0.5 * T * hi2(sa * c->seg[k - 1].len, sb * c->seg[k].len) / c->radius[k] - 1.0;
+}
+
 /* The five phases of segment k (trajectory.h) at cruise rate s and corner rates si, so (the
  * cruise's duration left 0). Returns the s it covers outside the cruise, or -1 when a ramp is
  * infeasible; *bind the limit of the longest ramp of its own. */
@@ -281,9 +306,19 @@ static int solve(plan_ctx *c, const double *lam, size_t *bad)
         settled = 1;
         for (size_t k = 1; k < n; k++) {
             if (!blended(c, k) || corner_gap(c, k, 1.0, &bind) <= 0.0) continue;
-            double f = largest_factor(corner_gap, c, k, &bind);
-            c->seg[k - 1].sig_out *= f;   /* f = 0: no blend fits, a stop */
-            c->seg[k].sig_in *= f;
+            /* unequal corner speeds make a longer blend: lower the faster side first, then both */
+            int after;
+            double e = equalising(c, k, &after);
+            double *fast = after ? &c->seg[k].sig_in : &c->seg[k - 1].sig_out;
+            if (faster_gap(c, k, 0.0, &bind) <= 0.0) {
+                double f = largest_factor(faster_gap, c, k, &bind);
+                *fast *= e + f * (1.0 - e);
+            } else {
+                *fast *= e;
+                double f = largest_factor(corner_gap, c, k, &bind);
+                c->seg[k - 1].sig_out *= f;   /* f = 0: no blend fits, a stop */
+                c->seg[k].sig_in *= f;
+            }
             settled = 0;
         }
         for (size_t k = 0; k < n; k++) {
