@@ -6,10 +6,14 @@ A path through waypoints is one segment per pair, in one of two modes (:data:`IN
 * ``"screw"``: ScLERP per segment, the tool point on a helix.
 
 Each segment's progress ``s`` in [0, 1] rises over a jerk-limited S-curve ramp, cruises and falls
-over another. A waypoint with a ``blend_radius`` is not stopped at: the next segment's ramp-up runs
-during this one's ramp-down with the same shape (time blending, as UR and Pilz blend), so the
-velocity there is a convex combination of the two cruise velocities and the tool point stays within
-the radius of the corner. The limits on the tool point's linear velocity, acceleration and jerk and
+over another. A waypoint with a ``blend_radius`` is not stopped at: each neighbouring segment slows
+to a corner speed (as much as the radius needs), then the next segment's ramp-up runs during this
+one's ramp-down with the same shape (time blending, as UR and Pilz blend), so the velocity there
+is a convex combination of the two corner velocities and the tool point stays within the radius
+of the corner. Both orientation and position follow the one parameter ``s`` of their segment
+(Pilz LIN semantics), so a straight move is time-optimal for that coupling; planners that let
+rotation and translation progress at different rates (Ruckig's time synchronisation) can be
+faster when different limits decide the two (BENCHMARKS.md, issue 10). The limits on the tool point's linear velocity, acceleration and jerk and
 on the tool's angular velocity, acceleration and jerk are met by construction: the C planner
 (``service/csrc/trajectory.c``, where the bounds are derived) sizes every ramp by upper bounds of
 these quantities, and ``tests/test_trajectory.py`` checks them on the samples themselves.
@@ -81,8 +85,8 @@ class Waypoint:
     """A pose ``T_base_tool`` (8,) to pass through. ``time`` > 0: the time (s from the start) it
     must be reached (at a blend: the middle of the blend); 0: as soon as the limits allow.
     ``blend_radius`` > 0: pass the corner without stopping, the tool point within this distance
-    (m) of it (a radius too small for the turn, one that would slow the neighbouring segments
-    below a quarter of their speed, stops at the corner instead: that is faster)."""
+    (m) of it; the segments slow down near the corner as much as the radius needs (a radius far
+    too small for the turn, as at a reversal, comes down to a stop)."""
     pose: np.ndarray
     time: float = 0.0
     blend_radius: float = 0.0

@@ -60,7 +60,7 @@ def paths(draw, max_points=6):
         r = 0.0
         if 0 < i < k - 1 and draw(st.booleans()):
             near = min(np.linalg.norm(translation(p) - translation(poses[j])) for j in (i - 1, i + 1))
-            r = draw(st.floats(0.0, 0.5)) * near
+            r = draw(st.floats(0.0, 0.49)) * near   # half a segment is the most allowed
         wps.append(Waypoint(p, blend_radius=r))
     return wps
 

@@ -33,9 +33,6 @@
  * position); this fraction of the ramp costs at most 5 % of its time. */
 #define BETA_FREE 0.05
 #define BISECT 60
-/* A blend that would need its two segments below this fraction of their speed is turned into a
- * stop, which is then faster. */
-#define BLEND_MIN_FACTOR 0.25
 #define SWEEPS 100
 
 /* fmin/fmax are library calls under -std=c99; nothing here is NaN (the input is checked). */
@@ -63,29 +60,26 @@ static void rotate(const double *q, const double *v, double *out)
 
 /* ---- the ramp shape ------------------------------------------------------------------------ */
 
-static inline double shape_g(double tau, double beta)
+static inline double shape_g(double tau, double beta, double h, double ib)
 {
-    double h = 1.0 / (1.0 - beta);
-    if (tau <= beta) return h * tau * tau / (2.0 * beta);
-    if (tau >= 1.0 - beta) return 1.0 - h * (1.0 - tau) * (1.0 - tau) / (2.0 * beta);
+    if (tau <= beta) return 0.5 * h * ib * tau * tau;
+    if (tau >= 1.0 - beta) return 1.0 - 0.5 * h * ib * (1.0 - tau) * (1.0 - tau);
     return h * (tau - 0.5 * beta);
 }
 
-static inline double G_left(double tau, double beta, double h)
+static inline double G_left(double tau, double beta, double h, double ib)
 {
-    if (tau <= beta) return h * tau * tau * tau / (6.0 * beta);
+    if (tau <= beta) return h * ib * tau * tau * tau / 6.0;
     double u = tau - beta;
-    return h * beta * beta / 6.0 + h * beta * u / 2.0 + h * u * u / 2.0;
+    return h * (beta * beta / 6.0 + 0.5 * beta * u + 0.5 * u * u);
 }
 
 /* g is point-symmetric about (1/2, 1/2), so G(tau) = tau - 1/2 + G(1 - tau). */
-static inline double shape_G(double tau, double beta)
+static inline double shape_G(double tau, double beta, double h, double ib)
 {
-    double h = 1.0 / (1.0 - beta);
-    if (tau <= 0.5) return G_left(tau, beta, h);
-    return tau - 0.5 + G_left(1.0 - tau, beta, h);
+    if (tau <= 0.5) return G_left(tau, beta, h, ib);
+    return tau - 0.5 + G_left(1.0 - tau, beta, h, ib);
 }
-
 
 /* ---- ramps ----------------------------------------------------------------------------------- */
 
@@ -200,6 +194,31 @@ static double corner_gap(const plan_ctx *c, size_t k, double f, int *bind)
     return 0.5 * T * hi2(sa * c->seg[k - 1].len, sb * c->seg[k].len) / c->radius[k] - 1.0;
 }
 
+/* A segment's speed at rate r, for comparing the two sides of a corner: the tool point's, or
+ * the tool's turning speed when the tool point stays put. */
+static double corner_speed(const dq_traj_seg *g, double r) { return r * (g->len > 0 ? g->len : g->theta); }
+
+/* The factor that brings the faster side of corner k down to the slower side's speed, and which
+ * side that is (1: the segment after the corner). */
+static double equalising(const plan_ctx *c, size_t k, int *after)
+{
+    double va = corner_speed(&c->seg[k - 1], c->seg[k - 1].sig_out);
+    double vb = corner_speed(&c->seg[k], c->seg[k].sig_in);
+    *after = vb > va;
+    return *after ? va / vb : (va > 0 ? vb / va : 1.0);
+}
+
+/* corner_gap with only the faster side lowered, from its own rate (f = 1) to the slower side's
+ * speed (f = 0). */
+static double faster_gap(const plan_ctx *c, size_t k, double f, int *bind)
+{
+    int after;
+    double e = equalising(c, k, &after), m = e + f * (1.0 - e), T, b;
+    double sa = c->seg[k - 1].sig_out * (after ? 1.0 : m), sb = c->seg[k].sig_in * (after ? m : 1.0);
+    if (corner_ramp(c, k, sa, sb, &T, &b, bind) < 0) return INFINITY;
+    return 0.5 * T * hi2(sa * c->seg[k - 1].len, sb * c->seg[k].len) / c->radius[k] - 1.0;
+}
+
 /* The five phases of segment k (trajectory.h) at cruise rate s and corner rates si, so (the
  * cruise's duration left 0). Returns the s it covers outside the cruise, or -1 when a ramp is
  * infeasible; *bind the limit of the longest ramp of its own. */
@@ -287,9 +306,19 @@ static int solve(plan_ctx *c, const double *lam, size_t *bad)
         settled = 1;
         for (size_t k = 1; k < n; k++) {
             if (!blended(c, k) || corner_gap(c, k, 1.0, &bind) <= 0.0) continue;
-            double f = largest_factor(corner_gap, c, k, &bind);
-            c->seg[k - 1].sig_out *= f;   /* f = 0: no blend fits, a stop */
-            c->seg[k].sig_in *= f;
+            /* unequal corner speeds make a longer blend: lower the faster side first, then both */
+            int after;
+            double e = equalising(c, k, &after);
+            double *fast = after ? &c->seg[k].sig_in : &c->seg[k - 1].sig_out;
+            if (faster_gap(c, k, 0.0, &bind) <= 0.0) {
+                double f = largest_factor(faster_gap, c, k, &bind);
+                *fast *= e + f * (1.0 - e);
+            } else {
+                *fast *= e;
+                double f = largest_factor(corner_gap, c, k, &bind);
+                c->seg[k - 1].sig_out *= f;   /* f = 0: no blend fits, a stop */
+                c->seg[k].sig_in *= f;
+            }
             settled = 0;
         }
         for (size_t k = 0; k < n; k++) {
@@ -315,6 +344,10 @@ static int solve(plan_ctx *c, const double *lam, size_t *bad)
         g->T[2] = hi2(0.0, (1.0 - covered) / g->sigma);
         g->t_at[0] = g->s_at[0] = 0.0;
         for (int i = 0; i < 5; i++) {
+            /* what evaluating the ramp shape would divide by */
+            g->h[i] = 1.0 / (1.0 - g->beta[i]);
+            g->inv_beta[i] = 1.0 / g->beta[i];
+            g->inv_T[i] = g->T[i] > 0 ? 1.0 / g->T[i] : 0.0;
             g->t_at[i + 1] = g->t_at[i] + g->T[i];
             g->s_at[i + 1] = g->s_at[i] + 0.5 * (g->rate[i] + g->rate[i + 1]) * g->T[i];
         }
@@ -340,6 +373,7 @@ static double arrival(const plan_ctx *c, size_t m)
 static void geometry(const double *a, const double *b, int mode, dq_traj_seg *g)
 {
     double ac[8], rel[8], l[6], wb[3];
+    memset(g, 0, sizeof *g); /* every field defined: the table is handed to Python as bytes */
     memcpy(g->a, a, sizeof g->a);
     memcpy(g->b, b, sizeof g->b);
     dq_conj(a, ac);
@@ -358,6 +392,9 @@ static void geometry(const double *a, const double *b, int mode, dq_traj_seg *g)
         dq_sclerp_prepare(a, b, &g->pair);
         rotate(a, g->vb, g->cv0);
         rotate(b, g->vb, g->cv1);
+        double wp[3];
+        cross3(g->w, g->pa, wp);
+        for (int i = 0; i < 3; i++) g->vs[i] = g->cv0[i] - wp[i];
         g->len = norm3(g->vb);
         g->nu = g->theta;
     } else {
@@ -392,17 +429,32 @@ static void cap_of(dq_traj_seg *g, const dq_traj_limits *L)
  * intervals, so the sweep repeats until every time holds. */
 static int meet_times(plan_ctx *c, const double *times, double *lam, size_t *bad)
 {
-    size_t K = c->n + 1;
+    size_t K = c->n + 1, late = 0;
     int rc = solve(c, lam, bad);
+    /* start every interval at the slowdown its free duration suggests, so each one is then
+     * solved beside neighbours already near their own (a slowed neighbour changes the blend
+     * into an interval, hence what that interval can reach) */
+    double t_prev = 0.0, a_prev = 0.0;
+    for (size_t m = 1, p = 0; !rc && m < K; m++) {
+        if (!(times[m] > 0)) continue;
+        double a = arrival(c, m), f = (a - a_prev) / (times[m] - t_prev);
+        for (size_t k = p; k < m; k++) lam[k] = lo2(1.0, hi2(f, 1e-9));
+        t_prev = times[m], a_prev = a, p = m;
+    }
     for (int sweep = 0; !rc && sweep < 20; sweep++) {
         size_t p = 0;
+        late = 0;
         for (size_t m = 1; m < K && !rc; m++) {
             if (!(times[m] > 0)) continue;
+            double tol = 1e-9 * hi2(1.0, times[m]), lo = 0.0, hi = 1.0;
             for (size_t k = p; k < m; k++) lam[k] = 1.0;
             if ((rc = solve(c, lam, bad))) break;
-            double tol = 1e-9 * hi2(1.0, times[m]);
-            if (arrival(c, m) > times[m] + tol) { *bad = m; return DQ_TRAJ_E_TIME; }
-            double lo = 0.0, hi = 1.0;
+            if (arrival(c, m) > times[m] + tol) {
+                /* too late even at full speed: the other intervals may still move */
+                if (!late) late = m;
+                p = m;
+                continue;
+            }
             for (int it = 0; it < BISECT && !rc && fabs(arrival(c, m) - times[m]) > 0.1 * tol; it++) {
                 double f = 0.5 * (lo + hi);
                 for (size_t k = p; k < m; k++) lam[k] = f;
@@ -416,8 +468,12 @@ static int meet_times(plan_ctx *c, const double *times, double *lam, size_t *bad
         for (size_t m = 1; m < K; m++)
             if (times[m] > 0 && fabs(arrival(c, m) - times[m]) > 1e-9 * hi2(1.0, times[m])) met = 0;
         if (met) return DQ_OK;
+        if (late && sweep > 0) { *bad = late; return DQ_TRAJ_E_TIME; }
     }
-    if (!rc) { *bad = 0; rc = DQ_TRAJ_E_STUCK; }
+    if (!rc) {
+        *bad = late;
+        rc = late ? DQ_TRAJ_E_TIME : DQ_TRAJ_E_STUCK;
+    }
     return rc;
 }
 
@@ -463,7 +519,8 @@ static void seg_s(const dq_traj_seg *g, double tl, double *s, double *sd)
         *s = g->s_at[i] + x * u;
         *sd = x;
     } else {
-        double tau = u / T, G = shape_G(tau, g->beta[i]), gg = shape_g(tau, g->beta[i]);
+        double b = g->beta[i], h = g->h[i], ib = g->inv_beta[i], tau = u * g->inv_T[i];
+        double G = shape_G(tau, b, h, ib), gg = shape_g(tau, b, h, ib);
         *s = g->s_at[i] + T * (x * (tau - G) + y * G);
         *sd = x * (1.0 - gg) + y * gg;
     }
@@ -481,7 +538,9 @@ static void seg_at(const dq_traj_seg *g, int mode, double s, double sd, double *
         double rc[4] = {out[0], -out[1], -out[2], -out[3]}, t[4];
         dq_qmul(out + 4, rc, t);
         for (int i = 0; i < 3; i++) p[i] = 2.0 * t[1 + i];
-        rotate(r, g->vb, v);
+        /* the spatial twist is constant along a screw: v = w x p + vs */
+        cross3(g->w, p, v);
+        for (int i = 0; i < 3; i++) v[i] += g->vs[i];
     } else {
         /* the real part of the rotation pair's ScLERP: the slerp */
         const dq_sclerp_pair *q = &g->pair;

@@ -4,15 +4,17 @@
  *
  * Each segment k moves a parameter s in [0, 1] from waypoint k to k+1: the pose is ScLERP
  * (DQ_TRAJ_SCREW) or the tool point on the straight line with the orientation slerped
- * (DQ_TRAJ_LINEAR). The rate ds/dt rises from its start value to a cruise rate sigma over a
- * ramp, cruises, and falls over another ramp. Every ramp has the shape g of a jerk-limited
- * S-curve (trapezoidal dg/dtau over tau in [0, 1], jerk phases of fraction beta). At a corner
- * with a blend radius the ramp-down of one segment and the ramp-up of the next run at the same
- * time with the same g ("time blending"): the position is c_k(s_k) + c_{k+1}(s_{k+1}) - corner
- * and the rotation the progress of segment k+1 applied to that of segment k, so the velocity is
- * the convex combination (1 - g) V_k + g V_{k+1} and its derivatives are g', g'' times known
- * differences plus terms that the planner bounds (trajectory.c). Every limit is checked on these
- * bounds, never on samples.
+ * (DQ_TRAJ_LINEAR). The rate ds/dt rises from its start value (0, or the rate at a blended
+ * corner) to a cruise rate sigma over a ramp, cruises, and falls over another ramp to 0 or to the
+ * next corner's rate. Every ramp has the shape g of a jerk-limited S-curve (trapezoidal dg/dtau
+ * over tau in [0, 1], jerk phases of fraction beta). At a corner with a blend radius the two
+ * segments' corner rates fall to 0 and rise from 0 at the same time with the same g ("time
+ * blending"): the position is c_k(s_k) + c_{k+1}(s_{k+1}) - corner and the rotation the progress
+ * of segment k+1 applied to that of segment k, so the velocity is the convex combination
+ * (1 - g) V_k + g V_{k+1} and its derivatives are g', g'' times known differences plus terms
+ * that the planner bounds (trajectory.c). Every limit is checked on these bounds, never on
+ * samples. A corner's rates are lowered (only there: the cruise keeps its speed) until its blend
+ * fits the radius; at rate 0 the corner is a stop.
  */
 #ifndef DQPOSE_TRAJECTORY_H
 #define DQPOSE_TRAJECTORY_H
@@ -48,6 +50,7 @@ typedef struct {
     double qa_conj[4];     /* rotation of a, conjugated: the blend composes through it */
     double w[3];           /* angular velocity per unit ds/dt, base frame (theta * axis) */
     double vb[3];          /* SCREW: tool-point velocity per unit ds/dt, tool frame */
+    double vs[3];          /* SCREW: linear part of the spatial twist per unit ds/dt */
     double cv0[3], cv1[3]; /* tool-point velocity per unit ds/dt at s = 0 and 1, base frame */
     double len, theta, nu; /* |c'|, rotation angle, rate at which c' turns (SCREW: theta) */
     double cap;            /* the largest cruise rate the velocity limits and the cruise allow */
@@ -59,6 +62,7 @@ typedef struct {
     double start, sigma, sig_in, sig_out;
     double T[5], beta[5], rate[6];
     double t_at[6], s_at[6];         /* time since start and s at the start of each phase */
+    double inv_T[5], h[5], inv_beta[5];
     int blend_in;                    /* phase 0 is shared with the previous segment's phase 4 */
     int bind;
 } dq_traj_seg;
@@ -66,8 +70,7 @@ typedef struct {
 /* Plans the path through K >= 2 unit waypoints wp (K x 8, each in the previous one's
  * hemisphere, no two consecutive equal). radius[k] > 0 blends the corner at waypoint k
  * (1 <= k <= K-2) and must be at most half of both neighbouring path lengths (the caller
- * checks; a blend that would slow its segments to under a quarter of their speed becomes a
- * stop); times[k] > 0 is the time waypoint k must be reached (0: free; increasing).
+ * checks); times[k] > 0 is the time waypoint k must be reached (0: free; increasing).
  * sigma0 is the start rate ds/dt of segment 0. Fills seg[0..K-2]; *duration the total. */
 int dq_traj_plan(const double *wp, size_t K, int mode, const double *radius, const double *times,
                  const dq_traj_limits *lim, double sigma0, dq_traj_seg *seg, double *duration,
