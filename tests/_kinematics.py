@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from service import dq
+from service import trajectory
 
 
 class Peaks(NamedTuple):
@@ -22,26 +22,12 @@ class Peaks(NamedTuple):
     angular: np.ndarray
 
 
-def rotation_rates(q: np.ndarray, dt: float) -> np.ndarray:
-    """Base-frame angular velocity between consecutive unit quaternions (N, 4) -> (N-1, 3)."""
-    r = np.zeros((len(q), 8))
-    r[:, :4] = q
-    rel = dq.mul(r[1:], dq.conj(r[:-1]))          # q_{i+1} q_i^*: the rotation in the base frame
-    rel[rel[:, 0] < 0] *= -1
-    return 2 * dq.log(rel)[:, :3] / dt
-
-
 def derivatives(times: np.ndarray, poses: np.ndarray):
-    """Linear and angular (velocity, acceleration, jerk) arrays from uniformly spaced samples."""
-    dt = float(times[1] - times[0])
-    q, p = dq.to_pose(poses)
-    v = np.diff(p, axis=0) / dt
-    w = rotation_rates(q, dt)
-    lin = [v, np.diff(v, axis=0) / dt]
-    ang = [w, np.diff(w, axis=0) / dt]
-    lin.append(np.diff(lin[1], axis=0) / dt)
-    ang.append(np.diff(ang[1], axis=0) / dt)
-    return lin, ang
+    """Linear and angular [velocity, acceleration, jerk] arrays (service.trajectory.derivatives,
+    the one finite-difference measure)."""
+    d = trajectory.derivatives(times, poses)
+    return ([d.velocity, d.acceleration, d.jerk],
+            [d.angular_velocity, d.angular_acceleration, d.angular_jerk])
 
 
 def peaks(times: np.ndarray, poses: np.ndarray) -> Peaks:
