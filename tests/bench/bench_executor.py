@@ -73,6 +73,8 @@ def run_once(sim, arm, seconds: float) -> dict:
     feeder.start()
     arrivals = []
     while ex.wait(2.0) is None:     # fetch as it goes: the simulator keeps 50,000 log entries
+        if not feeder.is_alive() and ex.sent == 0 and not ex.done:
+            raise RuntimeError("the first push failed (see the feeder's error above)")
         got = sim.log(mark, cmd=ursim.SERVOL, keys=["mono"])
         arrivals += [e["mono"] for e in got["entries"]]
         mark = got["next"]
