@@ -326,8 +326,8 @@ class Executor:
         fb = Feedback(t, stamp, pose, actual, result, message)
         with self._cond:
             self.result, self.message = result, message
+        self._emit(fb)      # before done: a reader that sees the end has the last record queued
         self._done.set()
-        self._emit(fb)
         with self._cond:
             self._cond.notify_all()
 
