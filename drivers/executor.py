@@ -306,10 +306,16 @@ class Executor:
     def _run(self) -> None:
         self._last: Optional[tuple[float, np.ndarray]] = None   # the last set-point sent
         self._step = np.zeros(6)
+        self._returned = self._called = 0.0     # monotonic: the last servo() returned, began
         try:
             result, message = self._execute()
         except LimitError as e:
             result, message = Result.LIMITED, str(e)
+            late = self._called - self._returned
+            if self._returned and late > 10 * self.period:
+                # a starved control thread, not the plan: the arm's watchdog stopped it meanwhile
+                message += (f" (this control thread was {late * 1e3:.0f} ms late for the "
+                            "set-point; a stream that pauses is stopped by the arm's watchdog)")
         except ArmError as e:
             result, message = self._fault(e)
         except Exception as e:  # the run must end with a result, whatever broke
@@ -320,8 +326,8 @@ class Executor:
         fb = Feedback(t, stamp, pose, actual, result, message)
         with self._cond:
             self.result, self.message = result, message
+        self._emit(fb)      # before done: a reader that sees the end has the last record queued
         self._done.set()
-        self._emit(fb)
         with self._cond:
             self._cond.notify_all()
 
@@ -351,7 +357,9 @@ class Executor:
             pass   # the arm is gone or faulted; it stops itself then
 
     def _send(self, t: float, pose: np.ndarray) -> None:
+        self._called = time.monotonic()
         self.arm.servo(pose)
+        self._returned = time.monotonic()
         if self._last is not None:
             self._step = servo_step(pose, self._last[1])
         self._last = (t, pose)
