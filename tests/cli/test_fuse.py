@@ -3,17 +3,14 @@ and --local; both answer what service.fusion.fuse computes."""
 from __future__ import annotations
 
 import json
-import os
-import sys
 
 import numpy as np
 import pytest
 
 from service import dq, fusion, lie
-from service.cli import main
 from service.fusion import Source
 
-from _cli import run  # the `server` fixture: tests/cli/conftest.py
+from _cli import run, server  # noqa: F401 (server: a fixture)
 
 
 def scene(seed, n):

@@ -6,34 +6,18 @@ from __future__ import annotations
 import io
 import json
 import math
-import os
-import sys
 
 import numpy as np
 import pytest
 
 from service import dq, smoothing, trajectory
-from service.cli import main
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(__file__)), "rpc"))
-from _grpc_server import ServerThread  # noqa: E402
+from _cli import run, server  # noqa: F401 (server: a fixture)
 
 LIMIT_FLAGS = ["--max-linear-velocity", "0.2", "--max-angular-velocity", "1",
                "--max-linear-acceleration", "1", "--max-angular-acceleration", "2",
                "--max-linear-jerk", "10", "--max-angular-jerk", "20"]
 LIMITS = trajectory.Limits(0.2, 1.0, 1.0, 2.0, 10.0, 20.0)
-
-
-@pytest.fixture(scope="module")
-def server():
-    with ServerThread() as s:
-        yield s
-
-
-def run(capsys, *argv):
-    code = main(list(argv))
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def _rz(deg):
