@@ -37,6 +37,7 @@ import collections
 import enum
 import math
 import numbers
+import os
 import threading
 import time
 from dataclasses import dataclass
@@ -102,6 +103,13 @@ class Executor:
     limits (90 % of ``max_*_accel * period**2``), since anything more would be refused by
     the Limits anyway. At the end the last pose is held until the arm is within
     ``settle_tolerance`` (m, rad) of it, for at most ``settle_timeout`` s, then ``arm.stop()``.
+
+    ``realtime``: the control thread asks the OS for real-time scheduling (Linux ``SCHED_FIFO``
+    at this priority, 1-99; None: no), so that other work on the machine cannot delay a
+    set-point by a scheduler slice; it needs ``CAP_SYS_NICE`` (root, or
+    ``setcap cap_sys_nice+ep`` on the interpreter, or a ``rtprio`` limit). Without it the thread
+    runs as before and :attr:`realtime` says so (BENCHMARKS.md "Issue 10: execution" measures
+    both).
     """
 
     def __init__(self, arm: Arm, *, interpolation: str = "tool_linear", prefill: float = 0.02,
@@ -110,7 +118,7 @@ class Executor:
                  start_tolerance: Optional[tuple[float, float]] = None,
                  settle_tolerance: tuple[float, float] = (1e-5, 1e-4),
                  settle_timeout: float = 1.0, stop_fraction: float = 0.5,
-                 max_feedback: int = 100_000):
+                 max_feedback: int = 100_000, realtime: Optional[int] = 20):
         if not isinstance(arm, Arm):
             raise ValueError(f"arm: expected a drivers.base.Arm, got {type(arm).__name__}")
         if interpolation not in MODES:
@@ -123,6 +131,12 @@ class Executor:
                 raise ValueError(f"{name}: must be a whole number >= 1, got {v!r}")
         if not (isinstance(stop_fraction, numbers.Real) and 0 < stop_fraction <= 1):
             raise ValueError(f"stop_fraction: must be within (0, 1], got {stop_fraction!r}")
+        if realtime is not None and (isinstance(realtime, bool) or not isinstance(
+                realtime, numbers.Integral) or not 1 <= realtime <= 99):
+            raise ValueError(f"realtime: must be a priority within 1..99 or None, got {realtime!r}")
+        self._realtime_priority = realtime
+        #: whether the control thread got real-time scheduling (set once it runs)
+        self.realtime = False
         self.arm = arm
         self.period = float(arm.period)
         L = arm.limits
@@ -304,6 +318,12 @@ class Executor:
             return time.time(), None
 
     def _run(self) -> None:
+        if self._realtime_priority is not None:
+            try:        # this thread only: the caller's threads keep their scheduling
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self._realtime_priority))
+                self.realtime = True
+            except (AttributeError, OSError):     # not Linux, or not permitted: as before
+                pass
         self._last: Optional[tuple[float, np.ndarray]] = None   # the last set-point sent
         self._step = np.zeros(6)
         self._returned = self._called = 0.0     # monotonic: the last servo() returned, began

@@ -239,6 +239,16 @@ def test_a_plan_that_does_not_start_at_the_arm_is_refused(rig, arm):
     assert not any(_same(p, far) for _, p in rig.arrivals())
 
 
+def _may_realtime() -> bool:
+    import os
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+    except (AttributeError, OSError):
+        return False
+    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    return True
+
+
 def test_bad_input_is_refused_by_name(arm):
     here = arm.tool_pose()[1]
     ex = Executor(arm)
@@ -261,10 +271,13 @@ def test_bad_input_is_refused_by_name(arm):
     with pytest.raises(ValueError, match="^push: the plan was already finished"):
         ex.push([0.2], here[None])
     assert ex.wait(5) == Result.FINISHED
+    # the control thread asked for real-time scheduling, and got it where it is permitted
+    assert ex.realtime == _may_realtime()
     for kw, msg in ((dict(interpolation="cubic"), "^interpolation: unknown 'cubic'"),
                     (dict(feedback_every=0), "^feedback_every: must be a whole number"),
                     (dict(stall_timeout=-1), "^stall_timeout: must be a positive"),
-                    (dict(start_tolerance=(0.1,)), r"^start_tolerance: expected \(metres")):
+                    (dict(start_tolerance=(0.1,)), r"^start_tolerance: expected \(metres"),
+                    (dict(realtime=100), r"^realtime: must be a priority within 1..99 or None")):
         with pytest.raises(ValueError, match=msg):
             Executor(arm, **kw)
     with pytest.raises(ValueError, match="^arm: expected a drivers.base.Arm"):
