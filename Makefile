@@ -47,6 +47,8 @@ bench: setup
 	$(BIN)/python -m tests.bench.bench_fusion_core
 	$(BIN)/python -m tests.bench.bench_fusion
 	$(BIN)/python -m tests.bench.bench_trajectory
+	$(BIN)/python -m tests.bench.bench_smoothing
+	$(BIN)/python -m tests.bench.bench_executor
 
 clean:
 	rm -rf $(VENV) build *.egg-info service/*.so service/rpc/_proto
