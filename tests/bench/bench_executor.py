@@ -118,10 +118,14 @@ def cancel_latency(sim, arm, reps: int) -> np.ndarray:
 
 
 def realtime(pid: int, priority: int) -> None:
-    """Every thread of ``pid`` to SCHED_FIFO at ``priority`` (threads it starts later inherit)."""
+    """Every thread of ``pid`` to SCHED_FIFO at ``priority`` (threads it starts later inherit);
+    where that is not permitted, says so and leaves them as they are."""
     import os
-    for tid in os.listdir(f"/proc/{pid}/task"):
-        os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(priority))
+    try:
+        for tid in os.listdir(f"/proc/{pid}/task"):
+            os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(priority))
+    except (AttributeError, OSError) as e:
+        print(f"the simulator runs with ordinary scheduling ({e})", file=sys.stderr)
 
 
 def renice(pid: int, nice: int) -> None:
