@@ -20,6 +20,13 @@
  * (1/T) terms — exactly the 1-D time-optimal S-curve on straight lines — and the cruise rates are
  * lowered (bisection on a common factor) wherever a ramp cannot meet its radius, a constant term
  * leaves no room, or the ramps do not fit in their segment.
+ *
+ * A split segment (LINEAR, at rest at both ends) needs none of these bounds: the tool point
+ * moves by dp s(t) and the tool turns about one fixed axis by theta s'(t), so each of the two
+ * 1-D laws within (limit / distance) is exactly within its limits. Each law is the 1-D
+ * time-optimal rest-to-rest S-curve (its cruise rate the velocity limit, or the largest whose
+ * ramps fit: closed form), and the faster is stretched to the slower one's duration by lowering
+ * its cruise rate (bisection, the duration falling as the rate rises), which lowers every peak.
  */
 #include "trajectory.h"
 

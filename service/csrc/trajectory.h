@@ -14,7 +14,10 @@
  * (1 - g) V_k + g V_{k+1} and its derivatives are g', g'' times known differences plus terms
  * that the planner bounds (trajectory.c). Every limit is checked on these bounds, never on
  * samples. A corner's rates are lowered (only there: the cruise keeps its speed) until its blend
- * fits the radius; at rate 0 the corner is a stop.
+ * fits the radius; at rate 0 the corner is a stop. A LINEAR segment at rest at both ends (a
+ * stop, not the first segment when it starts moving) is split: the tool point follows s(t) and
+ * the orientation its own s'(t), each time-optimal under its own limits, the faster stretched
+ * to the slower one's duration.
  */
 #ifndef DQPOSE_TRAJECTORY_H
 #define DQPOSE_TRAJECTORY_H
