@@ -613,7 +613,7 @@ int dq_traj_plan(const double *wp, size_t K, int mode, const double *radius, con
 
 /* s and ds/dt of a law at time tl after its segment's start: each phase takes the rate from
  * rate[i] to rate[i+1] with the ramp shape (the cruise: equal rates, no shape to evaluate). */
-static void law_s(const dq_traj_law *L, double tl, double *s, double *sd)
+static inline void law_s(const dq_traj_law *L, double tl, double *s, double *sd)
 {
     int i = 0;
     while (i < 5 && tl >= L->t_at[i + 1]) i++;
