@@ -384,11 +384,11 @@ static void split_laws(dq_traj_seg *g, const dq_traj_limits *L, double lam)
     dq_traj_law *out[2] = {&g->law, &g->turn};
     for (int m = 0; m < 2; m++)
         if (D[m] > 0.0) rest_law(V[m], L->acc[m] / D[m], L->jerk[m] / D[m], T, out[m]);
-    /* no distance to go: that part is still, its s is the other one's */
+    /* no distance to go: that part is still, the one law serves both (evaluated once) */
     if (!(D[0] > 0.0)) g->law = g->turn;
-    if (!(D[1] > 0.0)) g->turn = g->law;
+    g->split = D[0] > 0.0 && D[1] > 0.0;
     law_finish(&g->law);
-    law_finish(&g->turn);
+    if (g->split) law_finish(&g->turn);
     g->sigma = g->law.rate[2];
     g->bind = lam < 1.0 ? DQ_BIND_TIME : bind[slow];
 }

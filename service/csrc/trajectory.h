@@ -71,8 +71,9 @@ typedef struct {
     double start, sigma, sig_in, sig_out;
     dq_traj_law law;       /* s(t): the whole pose, or (split) the tool point only */
     dq_traj_law turn;      /* split: the orientation's own s(t), as long as law */
-    int split;             /* LINEAR, at rest at both ends: translation and rotation each
-                            * time-optimal under their own limits, synchronised to the slower */
+    int split;             /* LINEAR, at rest at both ends, translating and turning: translation
+                            * and rotation each time-optimal under their own limits,
+                            * synchronised to the slower (one moving part: law alone) */
     int blend_in;          /* phase 0 is shared with the previous segment's phase 4 */
     int bind;
 } dq_traj_seg;
