@@ -10,13 +10,16 @@ over another. A waypoint with a ``blend_radius`` is not stopped at: each neighbo
 to a corner speed (as much as the radius needs), then the next segment's ramp-up runs during this
 one's ramp-down with the same shape (time blending, as UR and Pilz blend), so the velocity there
 is a convex combination of the two corner velocities and the tool point stays within the radius
-of the corner. Both orientation and position follow the one parameter ``s`` of their segment
-(Pilz LIN semantics), so a straight move is time-optimal for that coupling; planners that let
-rotation and translation progress at different rates (Ruckig's time synchronisation) can be
-faster when different limits decide the two (BENCHMARKS.md, issue 10). The limits on the tool point's linear velocity, acceleration and jerk and
-on the tool's angular velocity, acceleration and jerk are met by construction: the C planner
-(``service/csrc/trajectory.c``, where the bounds are derived) sizes every ramp by upper bounds of
-these quantities, and ``tests/test_trajectory.py`` checks them on the samples themselves.
+of the corner. On a blended or SCREW segment (or the first one, moving at ``start_velocity``)
+orientation and position follow the one parameter ``s`` (Pilz LIN semantics). A TOOL_LINEAR
+segment at rest at both ends gives each its own: the tool point's progress along the line and
+the slerp's are each the time-optimal 1-D S-curve under their own limits, the faster one
+stretched to the slower one's duration (Ruckig's time synchronisation; equal durations on
+straight moves, BENCHMARKS.md, issue 10); the path is the same line and slerp. The limits on
+the tool point's linear velocity, acceleration and jerk and on the tool's angular velocity,
+acceleration and jerk are met by construction: the C planner (``service/csrc/trajectory.c``,
+where the bounds are derived) sizes every ramp by upper bounds of these quantities, and
+``tests/test_trajectory.py`` checks them on the samples themselves.
 
 Velocities (``Samples.linear_velocity``, ``angular_velocity``) are those of the tool point and of
 the tool, both in the base frame, as UR reports TCP speed.
@@ -94,7 +97,8 @@ class Waypoint:
 
 class Segment(NamedTuple):
     """Segment k, from waypoint k to k+1: when it starts moving, how long it moves (a blended
-    segment overlaps its neighbours), and the Limits field (or ``"time"``) that decided its speed."""
+    segment overlaps its neighbours), and the Limits field (or ``"time"``) that decided its speed
+    (with separate translation and rotation laws: that of the slower one)."""
     start: float
     duration: float
     binding: str

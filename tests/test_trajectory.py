@@ -241,6 +241,19 @@ def test_binding_limit_is_reported():
     assert short.segments[0].binding in ("max_linear_acceleration", "max_linear_jerk")
 
 
+def test_straight_move_is_as_long_as_its_slower_part():
+    """A stop-to-stop TOOL_LINEAR move takes as long as the slower of its translation alone and
+    its rotation alone, and reports that part's binding limit: each part has its own time law."""
+    for a, b, limits in random_straight_moves(60, seed=7):
+        qb, tb = dq.to_pose(b)
+        parts = [plan([Waypoint(a), Waypoint(p)], limits).segments[0]
+                 for p in (pose([1, 0, 0, 0], tb), pose(qb, translation(a))) if not same_pose(a, p)]
+        both = plan([Waypoint(a), Waypoint(b)], limits).segments[0]
+        slower = max(parts, key=lambda s: s.duration)
+        assert both.duration == pytest.approx(slower.duration, rel=1e-12)
+        assert both.binding == slower.binding
+
+
 def test_waypoint_times_are_met():
     pts = [[0, 0, 0], [0.3, 0, 0], [0.3, 0.3, 0]]
     free = plan([Waypoint(pose([1, 0, 0, 0], p)) for p in pts], LIMITS)
@@ -310,27 +323,46 @@ def ruckig_duration(a, b, limits: Limits) -> float:
     # time-optimal for the one coupled limit: each axis's share of its norm
     ul = np.abs(dp) / max(np.linalg.norm(dp), 1e-300)
     ua = np.abs(rv) / max(np.linalg.norm(rv), 1e-300)
-    scale = lambda u_l, u_a, ll, la: list(np.concatenate([u_l * ll, u_a * la]) + 1e-12)
+    # no jerk limit: Ruckig's infinite jerk on every axis of that group
+    scale = lambda u_l, u_a, ll, la: list(np.concatenate([u_l * ll if ll < math.inf else u_l + ll,
+                                                          u_a * la if la < math.inf else u_a + la]) + 1e-12)
     otg = ruckig.Ruckig(6)
     inp = ruckig.InputParameter(6)
     inp.current_position, inp.target_position = [0.0] * 6, list(goal)
     inp.max_velocity = scale(ul, ua, limits.max_linear_velocity, limits.max_angular_velocity)
     inp.max_acceleration = scale(ul, ua, limits.max_linear_acceleration, limits.max_angular_acceleration)
-    inp.max_jerk = scale(ul, ua, limits.max_linear_jerk, limits.max_angular_jerk)
+    inp.max_jerk = scale(ul, ua, limits.max_linear_jerk or math.inf, limits.max_angular_jerk or math.inf)
     inp.synchronization = ruckig.Synchronization.Phase
     traj = ruckig.Trajectory(6)
     assert otg.calculate(inp, traj) in (ruckig.Result.Working, ruckig.Result.Finished)
     return traj.duration
 
 
-@pytest.mark.parametrize("dist,angle", [(1.0, 0.0), (0.05, 0.0), (0.3, 0.4), (0.01, 2.5), (0.5, 3.0)])
-def test_straight_moves_within_5_percent_of_ruckig(dist, angle):
-    a = pose([1, 0, 0, 0], [0.1, -0.2, 0.3])
-    b = pose([math.cos(angle / 2), 0, math.sin(angle / 2) * 0.6, math.sin(angle / 2) * 0.8],
-             np.array([0.1, -0.2, 0.3]) + dist * np.array([0.48, 0.6, 0.64]))
-    ours = plan([Waypoint(a), Waypoint(b)], LIMITS).duration
-    theirs = ruckig_duration(a, b, LIMITS)
-    assert ours <= 1.05 * theirs
+def random_straight_moves(n: int, seed: int):
+    """n rest-to-rest moves: random direction, length (1 mm to 3 m), rotation (none in a third)
+    and limits (jerk none in a tenth), so that every pairing of deciding limits occurs."""
+    rng = np.random.default_rng(seed)
+    for _ in range(n):
+        jerk = [0.0 if rng.random() < 0.1 else rng.uniform(1, 100) for _ in range(2)]
+        limits = Limits(*rng.uniform(0.1, 3, 4), *jerk)
+        d, axis = rng.normal(size=3), rng.normal(size=3)
+        angle = rng.uniform(0, 3.1) if rng.random() < 2 / 3 else 0.0
+        a = pose([1, 0, 0, 0], rng.uniform(-0.5, 0.5, 3))
+        q = np.concatenate([[math.cos(angle / 2)], math.sin(angle / 2) * axis / np.linalg.norm(axis)])
+        b = pose(q, translation(a) + 10 ** rng.uniform(-3, 0.5) * d / np.linalg.norm(d))
+        yield a, b, limits
+
+
+def test_straight_moves_as_fast_as_ruckig():
+    """Ruckig is time-optimal on a straight rest-to-rest move; with jerk limits ours matches it
+    (translation and rotation each on its own 1-D time-optimal law, synchronised as Ruckig's
+    time synchronisation does); without one ours keeps short jerk phases (BETA_FREE), whose
+    ramps are 1/(1 - BETA_FREE) longer, a move at most sqrt of that (2.6 %)."""
+    for a, b, limits in random_straight_moves(150, seed=3):
+        ours = plan([Waypoint(a), Waypoint(b)], limits).duration
+        theirs = ruckig_duration(a, b, limits)
+        jerk = limits.max_linear_jerk > 0 and limits.max_angular_jerk > 0
+        assert ours <= theirs * (1 + 1e-6 if jerk else 1.026), (limits, a, b, ours, theirs)
 
 
 # ---- bad input ---------------------------------------------------------------------------------

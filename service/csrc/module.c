@@ -1297,7 +1297,7 @@ static PyObject *py_traj_plan(PyObject *self, PyObject *args)
     double *row = PyArray_DATA(info);
     for (npy_intp k = 0; !rc && k < n; k++, row += 3) {
         row[0] = seg[k].start;
-        row[1] = seg[k].t_at[5];
+        row[1] = seg[k].law.t_at[5];
         row[2] = seg[k].bind;
     }
     result = Py_BuildValue("inOdO", rc, (Py_ssize_t)bad, plan, duration, (PyObject *)info);

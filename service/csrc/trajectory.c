@@ -20,6 +20,13 @@
  * (1/T) terms — exactly the 1-D time-optimal S-curve on straight lines — and the cruise rates are
  * lowered (bisection on a common factor) wherever a ramp cannot meet its radius, a constant term
  * leaves no room, or the ramps do not fit in their segment.
+ *
+ * A split segment (LINEAR, at rest at both ends) needs none of these bounds: the tool point
+ * moves by dp s(t) and the tool turns about one fixed axis by theta s'(t), so each of the two
+ * 1-D laws within (limit / distance) is exactly within its limits. Each law is the 1-D
+ * time-optimal rest-to-rest S-curve (its cruise rate the velocity limit, or the largest whose
+ * ramps fit: closed form), and the faster is stretched to the slower one's duration by lowering
+ * its cruise rate (bisection, the duration falling as the rate rises), which lowers every peak.
  */
 #include "trajectory.h"
 
@@ -160,6 +167,7 @@ static int ramp(const side *A, const side *B, const dq_traj_limits *L, double *T
 typedef struct {
     dq_traj_seg *seg;
     size_t n;
+    int mode;
     const double *radius;
     const dq_traj_limits *L;
     double sigma0;
@@ -288,6 +296,103 @@ static double largest_factor(gap_fn gap, const plan_ctx *c, size_t k, int *bind)
     return lo;
 }
 
+/* ---- split segments: translation and rotation on their own time laws ----------------------- */
+
+/* The ramp of a rest-to-rest 1-D S-curve from rate 0 to V under acceleration a and jerk j
+ * (0: none; the ramp then keeps jerk phases of BETA_FREE): its duration T and jerk fraction
+ * beta, with peak acceleration h V / T <= a and jerk h V / (beta T^2) <= j, time-optimal. */
+static void rest_ramp(double V, double a, double j, double *T, double *beta)
+{
+    if (!(j > 0.0)) { *beta = BETA_FREE; *T = V / (a * (1.0 - BETA_FREE)); }
+    else if (V * j >= a * a) { *T = V / a + a / j; *beta = (a / j) / *T; }
+    else { *T = 2.0 * sqrt(V / j); *beta = 0.5; }
+}
+
+/* A rest-to-rest law over s in [0, 1] ramping to cruise rate V: its duration (ramp, cruise,
+ * ramp; the ramps cover V T_ramp of s). */
+static double rest_duration(double V, double a, double j)
+{
+    double T, b;
+    rest_ramp(V, a, j, &T, &b);
+    return T + 1.0 / V;
+}
+
+/* The 1-D time-optimal rest-to-rest law over s in [0, 1] under v, a, j (per unit s): its cruise
+ * rate (v, or the largest whose two ramps fit in s = 1) and the limit that decides it. */
+static double rest_top(double v, double a, double j, const int names[3], int *bind)
+{
+    double V;
+    if (!(j > 0.0)) V = sqrt(a * (1.0 - BETA_FREE));          /* V T_ramp(V) = 1 */
+    else if (cbrt(j / 4.0) * j <= a * a) V = cbrt(j / 4.0); /* triangular acceleration */
+    else { double q = a * a / j; V = 0.5 * (sqrt(q * q + 4.0 * a) - q); }
+    *bind = v <= V ? names[0] : (j > 0.0 && V * j < a * a) ? names[2] : names[1];
+    return lo2(v, V);
+}
+
+/* law: s from 0 to 1 at rest at both ends in exactly Tgoal (>= rest_duration(Vtop)), each
+ * ramp time-optimal for its cruise rate: the cruise rate is lowered (bisection; the duration
+ * falls as it rises) to the largest whose law is no longer than Tgoal, then the cruise is
+ * lengthened to Tgoal, so the rate, hence every peak, is at most that law's. */
+static void rest_law(double Vtop, double a, double j, double Tgoal, dq_traj_law *law)
+{
+    double V = Vtop;
+    if (rest_duration(V, a, j) < Tgoal) {
+        double lo = 1.0 / Tgoal; /* rest_duration(lo) >= Tgoal */
+        for (int it = 0; it < 2 * BISECT; it++) {
+            double mid = 0.5 * (lo + V);
+            if (rest_duration(mid, a, j) <= Tgoal) V = mid; else lo = mid;
+        }
+    }
+    double Tr, b;
+    rest_ramp(V, a, j, &Tr, &b);
+    double cruise = hi2(0.0, Tgoal - 2.0 * Tr), r = 1.0 / (Tr + cruise);
+    const double T[5] = {0.0, Tr, cruise, Tr, 0.0}, rate[6] = {0.0, 0.0, r, r, 0.0, 0.0};
+    for (int i = 0; i < 5; i++) { law->T[i] = T[i]; law->beta[i] = i == 1 || i == 3 ? b : 0.5; }
+    memcpy(law->rate, rate, sizeof rate);
+}
+
+/* What evaluating a law needs: phase starts in t and s, and what the ramp shape divides by. */
+static void law_finish(dq_traj_law *law)
+{
+    law->t_at[0] = law->s_at[0] = 0.0;
+    for (int i = 0; i < 5; i++) {
+        law->h[i] = 1.0 / (1.0 - law->beta[i]);
+        law->inv_beta[i] = 1.0 / law->beta[i];
+        law->inv_T[i] = law->T[i] > 0 ? 1.0 / law->T[i] : 0.0;
+        law->t_at[i + 1] = law->t_at[i] + law->T[i];
+        law->s_at[i + 1] = law->s_at[i] + 0.5 * (law->rate[i] + law->rate[i + 1]) * law->T[i];
+    }
+}
+
+/* A split segment's two laws, both as long as the slower one at full speed over lam (lam < 1:
+ * slowed for a waypoint time). On the line the tool point's velocity is dp ds/dt and the tool's
+ * theta axis ds'/dt, so each 1-D law within its own limits (per unit s: the limit over the
+ * distance) is exactly within them. */
+static void split_laws(dq_traj_seg *g, const dq_traj_limits *L, double lam)
+{
+    static const int lin[3] = {DQ_BIND_LIN_VEL, DQ_BIND_LIN_ACC, DQ_BIND_LIN_JERK};
+    static const int ang[3] = {DQ_BIND_ANG_VEL, DQ_BIND_ANG_ACC, DQ_BIND_ANG_JERK};
+    double D[2] = {g->len, g->theta}, V[2] = {0.0, 0.0}, Tmin[2] = {0.0, 0.0};
+    int bind[2] = {DQ_BIND_LIN_VEL, DQ_BIND_ANG_VEL};
+    for (int m = 0; m < 2; m++) {
+        if (!(D[m] > 0.0)) continue;
+        V[m] = rest_top(L->vel[m] / D[m], L->acc[m] / D[m], L->jerk[m] / D[m], m ? ang : lin, &bind[m]);
+        Tmin[m] = rest_duration(V[m], L->acc[m] / D[m], L->jerk[m] / D[m]);
+    }
+    int slow = Tmin[1] > Tmin[0];
+    double T = Tmin[slow] / lam;
+    dq_traj_law *out[2] = {&g->law, &g->turn};
+    for (int m = 0; m < 2; m++)
+        if (D[m] > 0.0) rest_law(V[m], L->acc[m] / D[m], L->jerk[m] / D[m], T, out[m]);
+    /* no distance to go: that part is still, the one law serves both (evaluated once) */
+    if (!(D[0] > 0.0)) g->law = g->turn;
+    g->split = D[0] > 0.0 && D[1] > 0.0;
+    law_finish(&g->law);
+    if (g->split) law_finish(&g->turn);
+    g->sigma = g->law.rate[2];
+    g->bind = lam < 1.0 ? DQ_BIND_TIME : bind[slow];
+}
+
 /* Cruise rates from the caps scaled by lam; corner rates lowered until each blend fits its
  * radius, cruise rates until each segment's ramps fit in it; then the time law. */
 static int solve(plan_ctx *c, const double *lam, size_t *bad)
@@ -300,6 +405,8 @@ static int solve(plan_ctx *c, const double *lam, size_t *bad)
         g->bind = lam[k] < 1.0 ? DQ_BIND_TIME : g->cap_bind;
         g->sig_in = blended(c, k) ? g->sigma : k == 0 ? c->sigma0 : 0.0;
         g->sig_out = blended(c, k + 1) ? g->sigma : 0.0;
+        g->split = c->mode == DQ_TRAJ_LINEAR && !blended(c, k) && !blended(c, k + 1)
+                   && g->sig_in == 0.0;
     }
     int settled = 0;
     for (int sweep = 0; sweep < SWEEPS && !settled; sweep++) {
@@ -323,7 +430,7 @@ static int solve(plan_ctx *c, const double *lam, size_t *bad)
         }
         for (size_t k = 0; k < n; k++) {
             dq_traj_seg *g = &c->seg[k];
-            if (fit_gap(c, k, 1.0, &bind) <= 0.0) continue;
+            if (g->split || fit_gap(c, k, 1.0, &bind) <= 0.0) continue;
             double f = largest_factor(fit_gap, c, k, &bind);
             if (f <= 0.0) {
                 *bad = k;
@@ -340,34 +447,31 @@ static int solve(plan_ctx *c, const double *lam, size_t *bad)
     double t = 0.0;
     for (size_t k = 0; k < n; k++) {
         dq_traj_seg *g = &c->seg[k];
-        double covered = phases(c, k, g->sigma, g->sig_in, g->sig_out, g->T, g->beta, g->rate, &bind);
-        g->T[2] = hi2(0.0, (1.0 - covered) / g->sigma);
-        g->t_at[0] = g->s_at[0] = 0.0;
-        for (int i = 0; i < 5; i++) {
-            /* what evaluating the ramp shape would divide by */
-            g->h[i] = 1.0 / (1.0 - g->beta[i]);
-            g->inv_beta[i] = 1.0 / g->beta[i];
-            g->inv_T[i] = g->T[i] > 0 ? 1.0 / g->T[i] : 0.0;
-            g->t_at[i + 1] = g->t_at[i] + g->T[i];
-            g->s_at[i + 1] = g->s_at[i] + 0.5 * (g->rate[i] + g->rate[i + 1]) * g->T[i];
+        if (g->split) {
+            split_laws(g, c->L, lam[k]);
+        } else {
+            double covered = phases(c, k, g->sigma, g->sig_in, g->sig_out, g->law.T, g->law.beta,
+                                    g->law.rate, &bind);
+            g->law.T[2] = hi2(0.0, (1.0 - covered) / g->sigma);
+            law_finish(&g->law);
         }
         if (k > 0) {
             const dq_traj_seg *p = &c->seg[k - 1];
-            t = p->start + (g->blend_in ? p->t_at[4] : p->t_at[5]); /* a blend overlaps phase 4 */
+            t = p->start + (g->blend_in ? p->law.t_at[4] : p->law.t_at[5]); /* a blend overlaps phase 4 */
         }
         g->start = t;
     }
     return DQ_OK;
 }
 
-static double seg_duration(const dq_traj_seg *g) { return g->t_at[5]; }
+static double seg_duration(const dq_traj_seg *g) { return g->law.t_at[5]; }
 
 /* When waypoint m (>= 1) is reached: the end of a stop, the middle of a blend. */
 static double arrival(const plan_ctx *c, size_t m)
 {
     if (m == c->n) return c->seg[m - 1].start + seg_duration(&c->seg[m - 1]);
     const dq_traj_seg *g = &c->seg[m];
-    return g->blend_in ? g->start + 0.5 * g->T[0] : g->start;
+    return g->blend_in ? g->start + 0.5 * g->law.T[0] : g->start;
 }
 
 static void geometry(const double *a, const double *b, int mode, dq_traj_seg *g)
@@ -482,7 +586,7 @@ int dq_traj_plan(const double *wp, size_t K, int mode, const double *radius, con
                  size_t *bad)
 {
     size_t n = K - 1;
-    plan_ctx c = {seg, n, radius, lim, sigma0, malloc((n + 1) * sizeof *c.memo)};
+    plan_ctx c = {seg, n, mode, radius, lim, sigma0, malloc((n + 1) * sizeof *c.memo)};
     double *lam = malloc(n * sizeof *lam);
     if (!lam || !c.memo) {
         free(lam);
@@ -507,24 +611,41 @@ int dq_traj_plan(const double *wp, size_t K, int mode, const double *radius, con
 
 /* ---- dense evaluation ------------------------------------------------------------------------ */
 
-/* s and ds/dt of segment g at time tl after its start: each phase takes the rate from rate[i]
- * to rate[i+1] with the ramp shape (the cruise: equal rates, no shape to evaluate). */
-static void seg_s(const dq_traj_seg *g, double tl, double *s, double *sd)
+/* s and ds/dt of a law at time tl after its segment's start: each phase takes the rate from
+ * rate[i] to rate[i+1] with the ramp shape (the cruise: equal rates, no shape to evaluate). */
+static inline void law_s(const dq_traj_law *L, double tl, double *s, double *sd)
 {
     int i = 0;
-    while (i < 5 && tl >= g->t_at[i + 1]) i++;
+    while (i < 5 && tl >= L->t_at[i + 1]) i++;
     if (i == 5) { *s = 1.0; *sd = 0.0; return; }
-    double T = g->T[i], x = g->rate[i], y = g->rate[i + 1], u = tl - g->t_at[i];
+    double T = L->T[i], x = L->rate[i], y = L->rate[i + 1], u = tl - L->t_at[i];
     if (x == y) {
-        *s = g->s_at[i] + x * u;
+        *s = L->s_at[i] + x * u;
         *sd = x;
     } else {
-        double b = g->beta[i], h = g->h[i], ib = g->inv_beta[i], tau = u * g->inv_T[i];
+        double b = L->beta[i], h = L->h[i], ib = L->inv_beta[i], tau = u * L->inv_T[i];
         double G = shape_G(tau, b, h, ib), gg = shape_g(tau, b, h, ib);
-        *s = g->s_at[i] + T * (x * (tau - G) + y * G);
+        *s = L->s_at[i] + T * (x * (tau - G) + y * G);
         *sd = x * (1.0 - gg) + y * gg;
     }
     *s = lo2(1.0, hi2(0.0, *s));
+}
+
+/* Rotation r, tool point p and their rates on a LINEAR segment g: the tool point at s (rate sd),
+ * the orientation at sr (rate sdr; a split segment's second law, else s). */
+static void line_at(const dq_traj_seg *g, double s, double sd, double sr, double sdr, double *r,
+                    double *p, double *v, double *w)
+{
+    /* the real part of the rotation pair's ScLERP: the slerp */
+    const dq_sclerp_pair *q = &g->pair;
+    double C = 1.0, S = 0.0;
+    if (!q->pure) { C = cos(sr * q->phi); S = sin(sr * q->phi); }
+    for (int i = 0; i < 4; i++) r[i] = C * q->p0[i] + S * q->p1[i];
+    for (int i = 0; i < 3; i++) {
+        p[i] = g->pa[i] + s * g->dp[i];
+        v[i] = sd * g->dp[i];
+        w[i] = sdr * g->w[i];
+    }
 }
 
 /* Rotation r, tool point p and their rates of segment g at s (rate sd). */
@@ -540,16 +661,10 @@ static void seg_at(const dq_traj_seg *g, int mode, double s, double sd, double *
         for (int i = 0; i < 3; i++) p[i] = 2.0 * t[1 + i];
         /* the spatial twist is constant along a screw: v = w x p + vs */
         cross3(g->w, p, v);
-        for (int i = 0; i < 3; i++) v[i] += g->vs[i];
+        for (int i = 0; i < 3; i++) { v[i] = sd * (v[i] + g->vs[i]); w[i] = sd * g->w[i]; }
     } else {
-        /* the real part of the rotation pair's ScLERP: the slerp */
-        const dq_sclerp_pair *q = &g->pair;
-        double C = 1.0, S = 0.0;
-        if (!q->pure) { C = cos(s * q->phi); S = sin(s * q->phi); }
-        for (int i = 0; i < 4; i++) r[i] = C * q->p0[i] + S * q->p1[i];
-        for (int i = 0; i < 3; i++) { p[i] = g->pa[i] + s * g->dp[i]; v[i] = g->dp[i]; }
+        line_at(g, s, sd, s, sd, r, p, v, w);
     }
-    for (int i = 0; i < 3; i++) { v[i] *= sd; w[i] = sd * g->w[i]; }
 }
 
 static void from_rp(const double *r, const double *p, double *out)
@@ -569,7 +684,7 @@ void dq_traj_eval(const dq_traj_seg *seg, size_t nseg, int mode, double duration
             /* the ends exactly; the start moves at the start rate, the end is at rest */
             const dq_traj_seg *g = ti <= 0.0 ? &seg[0] : &seg[nseg - 1];
             memcpy(o, ti <= 0.0 ? g->a : g->b, 8 * sizeof(double));
-            double sd = ti <= 0.0 ? g->rate[1] : 0.0, r[4], p[3];
+            double sd = ti <= 0.0 ? g->law.rate[1] : 0.0, r[4], p[3];
             seg_at(g, mode, ti <= 0.0 ? 0.0 : 1.0, sd, r, p, v, w);
             continue;
         }
@@ -584,7 +699,7 @@ void dq_traj_eval(const dq_traj_seg *seg, size_t nseg, int mode, double duration
         }
         const dq_traj_seg *g = &seg[k];
         double s, sd, r[4], p[3];
-        seg_s(g, ti - g->start, &s, &sd);
+        law_s(&g->law, ti - g->start, &s, &sd);
         const dq_traj_seg *q = k > 0 && g->blend_in ? &seg[k - 1] : NULL;
         if (q && ti >= q->start + seg_duration(q)) q = NULL;
         if (!q) {
@@ -593,14 +708,16 @@ void dq_traj_eval(const dq_traj_seg *seg, size_t nseg, int mode, double duration
                 rotate(o, g->vb, v);
                 for (int j = 0; j < 3; j++) { v[j] *= sd; w[j] = sd * g->w[j]; }
             } else {
-                seg_at(g, mode, s, sd, r, p, v, w);
+                double sr = s, sdr = sd;
+                if (g->split) law_s(&g->turn, ti - g->start, &sr, &sdr);
+                line_at(g, s, sd, sr, sdr, r, p, v, w);
                 from_rp(r, p, o);
             }
             continue;
         }
         /* a blend: segment k's progress applied on top of segment k-1's */
         double s0, sd0, r0[4], p0[3], v0[3], w0[3], e[4], rr[4], w0r[3];
-        seg_s(q, ti - q->start, &s0, &sd0);
+        law_s(&q->law, ti - q->start, &s0, &sd0);
         seg_at(g, mode, s, sd, r, p, v, w);
         seg_at(q, mode, s0, sd0, r0, p0, v0, w0);
         dq_qmul(r, g->qa_conj, e);

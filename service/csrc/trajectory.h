@@ -14,7 +14,10 @@
  * (1 - g) V_k + g V_{k+1} and its derivatives are g', g'' times known differences plus terms
  * that the planner bounds (trajectory.c). Every limit is checked on these bounds, never on
  * samples. A corner's rates are lowered (only there: the cruise keeps its speed) until its blend
- * fits the radius; at rate 0 the corner is a stop.
+ * fits the radius; at rate 0 the corner is a stop. A LINEAR segment at rest at both ends (a
+ * stop, not the first segment when it starts moving) is split: the tool point follows s(t) and
+ * the orientation its own s'(t), each time-optimal under its own limits, the faster stretched
+ * to the slower one's duration.
  */
 #ifndef DQPOSE_TRAJECTORY_H
 #define DQPOSE_TRAJECTORY_H
@@ -43,6 +46,16 @@ typedef struct {
     double vel[2], acc[2], jerk[2]; /* [linear, angular]; jerk 0 = no limit */
 } dq_traj_limits;
 
+/* A time law s(t): five phases, each taking ds/dt from rate[i] to rate[i+1] over T[i] with the
+ * ramp shape of fraction beta[i]: the blend from the previous segment (rates 0 -> sig_in; T 0
+ * when the corner is a stop), the ramp to the cruise, the cruise, the ramp to sig_out, the blend
+ * into the next segment (sig_out -> 0). */
+typedef struct {
+    double T[5], beta[5], rate[6];
+    double t_at[6], s_at[6];         /* time since start and s at the start of each phase */
+    double inv_T[5], h[5], inv_beta[5];
+} dq_traj_law;
+
 typedef struct {
     dq_sclerp_pair pair;   /* the whole pose (SCREW) or the rotation only (LINEAR) */
     double a[8], b[8];     /* the waypoints, b in a's hemisphere */
@@ -55,15 +68,13 @@ typedef struct {
     double len, theta, nu; /* |c'|, rotation angle, rate at which c' turns (SCREW: theta) */
     double cap;            /* the largest cruise rate the velocity limits and the cruise allow */
     int cap_bind;
-    /* time law: five phases, each taking ds/dt from rate[i] to rate[i+1] over T[i] with the ramp
-     * shape of fraction beta[i]: the blend from the previous segment (rates 0 -> sig_in; T 0 when
-     * the corner is a stop), the ramp to the cruise, the cruise, the ramp to sig_out, the blend
-     * into the next segment (sig_out -> 0). */
     double start, sigma, sig_in, sig_out;
-    double T[5], beta[5], rate[6];
-    double t_at[6], s_at[6];         /* time since start and s at the start of each phase */
-    double inv_T[5], h[5], inv_beta[5];
-    int blend_in;                    /* phase 0 is shared with the previous segment's phase 4 */
+    dq_traj_law law;       /* s(t): the whole pose, or (split) the tool point only */
+    dq_traj_law turn;      /* split: the orientation's own s(t), as long as law */
+    int split;             /* LINEAR, at rest at both ends, translating and turning: translation
+                            * and rotation each time-optimal under their own limits,
+                            * synchronised to the slower (one moving part: law alone) */
+    int blend_in;          /* phase 0 is shared with the previous segment's phase 4 */
     int bind;
 } dq_traj_seg;
 

@@ -305,7 +305,7 @@ def main() -> None:
     med, p95, worst, share = random_straight_moves()
     print()
     print(f"Random straight moves (200, random limits), ours / Ruckig (norm-scaled axes) - 1: median "
-          f"{med:+.2f} %, 95th percentile {p95:+.2f} %, worst {worst:+.2f} %; within 5 %: {share:.0f} %")
+          f"{med:+.2g} %, 95th percentile {p95:+.2g} %, worst {worst:+.2g} %; within 5 %: {share:.0f} %")
     print()
     # best of the repeats (the machine is shared); per pose also as a multiple of the same
     # run's one-pair ScLERP, which a load slows alike
