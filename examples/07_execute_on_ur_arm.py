@@ -21,7 +21,8 @@ limits = trajectory.Limits(max_linear_velocity=0.1, max_angular_velocity=0.5,
                            max_linear_acceleration=0.5, max_angular_acceleration=1.0,
                            max_linear_jerk=5.0, max_angular_jerk=10.0)
 
-with URSimProcess() as sim, drivers.open_arm(f"ur:{sim.host}") as arm, \
+# stale_after: the simulator shares this machine, so a 0.1 s pause in its data is not a lost arm
+with URSimProcess() as sim, drivers.open_arm(f"ur:{sim.host}", stale_after=0.5) as arm, \
         local_server(arms={"ur": arm}, executor=Executor) as target, Client(target) as client:
     start = arm.tool_pose()[1]
     q, t = dq.to_pose(start)
