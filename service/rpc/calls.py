@@ -55,6 +55,17 @@ def refusal(e: Exception) -> grpc.StatusCode | None:
     return None
 
 
+def refused(rpc: str, e: Exception) -> tuple[grpc.StatusCode, str]:
+    """The status and text a handler's exception ends its call with: the :func:`refusal` status
+    with the exception's text, else INTERNAL (logged with its traceback, the text kept out of
+    the answer)."""
+    status = refusal(e)
+    if status is None:
+        log.exception("%s failed", rpc)
+        return grpc.StatusCode.INTERNAL, INTERNAL_DETAILS
+    return status, str(e)
+
+
 class Calls:
     """Records calls: every call that :meth:`begin` counts in gets exactly one :meth:`done`, a
     Prometheus sample (``metrics.observe``) and a JSON log line on ``dqpose.calls``. One per
@@ -146,11 +157,7 @@ class Calls:
                 response, messages = response
             return response
         except Exception as e:
-            status = refusal(e)
-            details = str(e)
-            if status is None:
-                log.exception("%s failed", rpc)
-                status, details = grpc.StatusCode.INTERNAL, INTERNAL_DETAILS
+            status, details = refused(rpc, e)
             code = status.name
             await context.abort(status, details)
         finally:

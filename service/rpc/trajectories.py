@@ -15,13 +15,13 @@ import grpc
 
 from service import smoothing, trajectory
 from service.errors import FieldError, Infeasible, rename
-from service.rpc.calls import INTERNAL_DETAILS, Calls, log, refusal
+from service.rpc.calls import Calls, refused
 from service.rpc.convert import (arrays_to_stamped, dq_to_pose, limits_from_msg, plan_from_msg,
                                  plan_info_msg, sample_msgs, stamped_to_arrays)
 from service.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
 
 #: how many samples a plan may stream, as a multiple of the server's max poses per request
-SAMPLES_PER_MAX_POSES = 100
+SAMPLES_PER_MAX_POSES = 10
 #: samples converted and written per step of the Plan stream (bounds the memory of messages)
 CHUNK = 500
 #: an Execute feedback record every this many set-points (50 Hz at 500 Hz), and the last one
@@ -109,14 +109,6 @@ class Trajectories:
         return await self.calls.unary("Smooth", lambda r: asyncio.to_thread(self.smooth, r),
                                       request, context)
 
-    async def _refused(self, rpc: str, e: Exception, context) -> str:
-        status = refusal(e)
-        details = str(e)
-        if status is None:
-            log.exception("%s failed", rpc)
-            status, details = grpc.StatusCode.INTERNAL, INTERNAL_DETAILS
-        await context.abort(status, details)
-
     async def Plan(self, request, context):
         t0 = self.calls.begin()
         code, sent = "OK", 0
@@ -124,8 +116,9 @@ class Trajectories:
             try:
                 traj, rate = self.plan(request)
             except Exception as e:
-                code = (refusal(e) or grpc.StatusCode.INTERNAL).name
-                await self._refused("Plan", e, context)
+                status, details = refused("Plan", e)
+                code = status.name
+                await context.abort(status, details)
             samples = traj.at_rate(rate)
             for i in range(0, len(samples.time), CHUNK):
                 msgs = sample_msgs(trajectory.Samples(*(a[i:i + CHUNK] for a in samples)))
@@ -148,8 +141,9 @@ class Trajectories:
             try:
                 run = self._start_execution(request, asyncio.get_running_loop())
             except Exception as e:
-                code = (refusal(e) or grpc.StatusCode.INTERNAL).name
-                await self._refused("Execute", e, context)
+                status, details = refused("Execute", e)
+                code = status.name
+                await context.abort(status, details)
             while True:
                 fb = await run.queue.get()
                 await context.write(_feedback_msg(fb))
@@ -171,7 +165,7 @@ class Trajectories:
             known = ", ".join(sorted(self.arms)) or "none: start the server with --arm NAME=SPEC"
             raise FieldError(f"arm: unknown arm {name!r} (this server's arms: {known})")
         if name in self._busy:
-            raise _Busy(f"arm: {name!r} is executing another plan")
+            raise _Precondition(f"arm: {name!r} is executing another plan")
         args = plan_from_msg(request.plan, "plan.", need_rate=False)
         traj = _planned(args, "plan.")
         arm = self.arms[name]
@@ -184,7 +178,7 @@ class Trajectories:
         try:
             executor.push(samples.time, samples.pose)
         except ValueError as e:        # the plan does not start where the arm is
-            raise _Busy(str(rename(e, {"poses": "plan.waypoints{}.pose"}))) from None
+            raise _Precondition(str(rename(e, {"poses": "plan.waypoints{}.pose"}))) from None
         executor.finish()
         self._busy.add(name)
         return _Run(executor, queue)
@@ -195,7 +189,7 @@ class _Run(NamedTuple):
     queue: asyncio.Queue
 
 
-class _Busy(FieldError, Infeasible):
+class _Precondition(FieldError, Infeasible):
     """The arm is in use, or not where the plan starts: FAILED_PRECONDITION."""
 
 
