@@ -105,11 +105,13 @@ class Executor:
     ``settle_tolerance`` (m, rad) of it, for at most ``settle_timeout`` s, then ``arm.stop()``.
 
     ``realtime``: the control thread asks the OS for real-time scheduling (Linux ``SCHED_FIFO``
-    at this priority, 1-99; None: no), so that other work on the machine cannot delay a
-    set-point by a scheduler slice; it needs ``CAP_SYS_NICE`` (root, or
+    at this priority, 1-99; None, the default: no), so that other work on the machine cannot
+    delay a set-point by a scheduler slice; it needs ``CAP_SYS_NICE`` (root, or
     ``setcap cap_sys_nice+ep`` on the interpreter, or a ``rtprio`` limit). Without it the thread
-    runs as before and :attr:`realtime` says so (BENCHMARKS.md "Issue 10: execution" measures
-    both).
+    runs as before and :attr:`realtime` says so. Opt-in because ``ur_rtde``'s ``waitPeriod``
+    ends each period spinning, which at real-time priority takes its core from everything of
+    lower priority (on a 2-core machine, a controller simulator beside it). BENCHMARKS.md
+    "Issue 10: execution" measures both.
     """
 
     def __init__(self, arm: Arm, *, interpolation: str = "tool_linear", prefill: float = 0.02,
@@ -118,7 +120,7 @@ class Executor:
                  start_tolerance: Optional[tuple[float, float]] = None,
                  settle_tolerance: tuple[float, float] = (1e-5, 1e-4),
                  settle_timeout: float = 1.0, stop_fraction: float = 0.5,
-                 max_feedback: int = 100_000, realtime: Optional[int] = 20):
+                 max_feedback: int = 100_000, realtime: Optional[int] = None):
         if not isinstance(arm, Arm):
             raise ValueError(f"arm: expected a drivers.base.Arm, got {type(arm).__name__}")
         if interpolation not in MODES:

@@ -251,7 +251,7 @@ def _may_realtime() -> bool:
 
 def test_bad_input_is_refused_by_name(arm):
     here = arm.tool_pose()[1]
-    ex = Executor(arm)
+    ex = Executor(arm, realtime=1)
     with pytest.raises(ValueError, match=r"^times\[2\]: 0.1 is not after the previous time 0.2"):
         ex.push([0.0, 0.2, 0.1], np.stack([here] * 3))
     with pytest.raises(ValueError, match=r"^poses: expected shape \(2, 8\)"):
