@@ -46,6 +46,10 @@ def configure(name: str, p) -> None:
                             "ur=ur:192.168.1.10 or piper=piper:socketcan:can0 (see "
                             "drivers.open_arm); repeat for more arms. Each is connected at "
                             "start and stopped when the server stops.")
+        p.add_argument("--arm-realtime", type=int, metavar="PRIO",
+                       help="run each arm's control thread with real-time scheduling (Linux "
+                            "SCHED_FIFO at PRIO, 1..99; needs CAP_SYS_NICE): fewer late "
+                            "set-points on a busy machine (default: ordinary scheduling)")
         p.add_argument("--sims", action="store_true",
                        help="also start the simulated devices (a UR controller, camera views; see "
                             "drivers/sim/fleet.py) and log where they are")
@@ -61,6 +65,7 @@ def configure(name: str, p) -> None:
 def _serve(args) -> int:
     import asyncio
     import contextlib
+    import functools
     import logging
     import os
 
@@ -78,6 +83,8 @@ def _serve(args) -> int:
         if token_file and not token:
             return fail("serve", f"--token-file: {token_file} is empty")
         arm_specs = _arm_specs(args.arm)
+        if args.arm_realtime is not None and not 1 <= args.arm_realtime <= 99:
+            return fail("serve", f"--arm-realtime: must be within 1..99, got {args.arm_realtime}")
         cfg = ServerConfig(
             host=args.host, port=args.port,
             tls_cert=read(args.tls_cert) if args.tls_cert else None,
@@ -108,7 +115,7 @@ def _serve(args) -> int:
                         return fail("serve", f"--arm {name}={spec}: {e}")
                     logging.getLogger("dqpose").info(json.dumps(
                         {"event": "arm", "name": name, "spec": spec}))
-                cfg.executor = Executor
+                cfg.executor = functools.partial(Executor, realtime=args.arm_realtime)
             try:  # libuv's loop: ~8 % more calls/s with 8 clients, lower p99 (BENCHMARKS.md)
                 import uvloop
             except ImportError:

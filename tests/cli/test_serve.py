@@ -33,9 +33,11 @@ def test_an_option_out_of_range_is_one_line_naming_the_flag_and_exit_2(flags, me
     ("ur", "--arm: expected NAME=SPEC (e.g. ur=ur:192.168.1.10), got 'ur'"),
     ("=ur:host", "--arm: expected NAME=SPEC (e.g. ur=ur:192.168.1.10), got '=ur:host'"),
     ("my arm=ur:host", "--arm: the name 'my arm' must be a word (letters, digits, _)"),
+    (["ur=ur:host", "--arm-realtime", "0"], "--arm-realtime: must be within 1..99, got 0"),
 ])
 def test_a_malformed_arm_is_named(value, message):
-    res = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--arm", value],
+    flags = value if isinstance(value, list) else [value]
+    res = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--arm", *flags],
                          capture_output=True, text=True, timeout=30, cwd=ROOT)
     assert (res.returncode, res.stderr) == (2, f"dqpose serve: error: {message}\n")
 
