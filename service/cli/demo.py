@@ -2,6 +2,8 @@
 the results."""
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 
 from service import dq
@@ -65,10 +67,16 @@ def configure(name: str, p) -> None:
     demo_trajectory.add_arguments(p)
 
     def run(args) -> int:
-        if args.mode == "fusion":
-            return demo_fusion.main(args)
-        if args.mode == "trajectory":
-            return demo_trajectory.main(args)
-        main()
-        return 0
+        if args.mode == "blend":
+            main()
+            return 0
+        demo = demo_fusion if args.mode == "fusion" else demo_trajectory
+        try:        # the simulated devices' demos fail alike: a missing extra, a device gone
+            return demo.main(args)
+        except ImportError as e:
+            print(f"dqpose demo {args.mode}: needs the device extras ({e}); "
+                  "pip install 'dqpose[devices]'", file=sys.stderr)
+        except (OSError, RuntimeError) as e:
+            print(f"dqpose demo {args.mode}: {e}", file=sys.stderr)
+        return 1
     p.set_defaults(func=run)

@@ -135,15 +135,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    try:
-        result = run(getattr(args, "target", None), progress=sys.stderr.isatty())
-    except ImportError as e:
-        print(f"dqpose demo trajectory: needs the device extras ({e}); "
-              "pip install 'dqpose[devices]'", file=sys.stderr)
-        return 1
-    except (OSError, RuntimeError) as e:
-        print(f"dqpose demo trajectory: {e}", file=sys.stderr)
-        return 1
+    result = run(getattr(args, "target", None), progress=sys.stderr.isatty())
     report(result)
     try:
         from service.cli.plots import plot_motion
