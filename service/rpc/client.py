@@ -293,6 +293,17 @@ class Client:
         except grpc.RpcError as e:
             raise _rpc_error(e, field, first) from None
 
+    def _stamped(self, times, dqs, times_name: str, dqs_name: str, what: str):
+        """``(times (n,), poses (n, 8))`` of time-stamped poses to send, one time per pose and
+        within the server's count; ValueError naming the argument otherwise."""
+        t = np.asarray(times, dtype=np.float64).ravel()
+        a = _dq_rows(dqs, dqs_name)
+        if len(t) != len(a):
+            raise ValueError(f"{times_name}: length {len(t)} does not match the number of {what} "
+                             f"({len(a)})")
+        self._check_count(dqs_name, len(a), what)
+        return t, a
+
     def _check_count(self, field: str, n: int, what: str) -> None:
         if n > self.max_poses:
             raise RequestTooLarge(f"{field}: {n} {what} exceed the server limit of "
@@ -369,12 +380,7 @@ class Client:
         if mode not in INTERPOLATION_ENUMS:
             raise ValueError(f"mode: unknown interpolation {mode!r}; expected one of "
                              f"{', '.join(INTERPOLATION_ENUMS)}")
-        tk = np.asarray(times_k, dtype=np.float64).ravel()
-        a = _dq_rows(dqs_k, "dqs_k")
-        if len(tk) != len(a):
-            raise ValueError(f"times_k: length {len(tk)} does not match the number of keyframes "
-                             f"({len(a)})")
-        self._check_count("dqs_k", len(a), "keyframes")
+        tk, a = self._stamped(times_k, dqs_k, "times_k", "dqs_k", "keyframes")
         keyframes = stamped_poses_wire(tk, *pose_arrays(a))
         times = np.asarray(times, dtype=np.float64).ravel()
         room = self.max_message_bytes - len(keyframes) - 16     # 16: the times field's header
@@ -480,12 +486,7 @@ class Client:
     def smooth(self, times, poses, limits, smoothing: float = 1.0,
                rate_hz: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """:func:`service.smoothing.smooth` on the server: ``(times (M,), poses (M, 8))``."""
-        times = np.asarray(times, dtype=np.float64).ravel()
-        a = _dq_rows(poses, "poses")
-        if len(times) != len(a):
-            raise ValueError(f"times: length {len(times)} does not match the number of poses "
-                             f"({len(a)})")
-        self._check_count("poses", len(a), "poses")
+        times, a = self._stamped(times, poses, "times", "poses", "poses")
         request = tpb.SmoothRequest(poses=stamped_msgs(times, a), limits=limits_msg(limits),
                                     smoothing=smoothing, rate_hz=rate_hz)
         answer = tpb.SmoothResponse.FromString(self._call(self._smooth,
