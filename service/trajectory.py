@@ -42,9 +42,6 @@ __all__ = ["INTERPOLATIONS", "Limits", "Waypoint", "Segment", "Samples", "Trajec
 INTERPOLATIONS = ("tool_linear", "screw")   # proto Interpolation: TOOL_LINEAR=1, SCREW=2
 MAX_SAMPLES = 100_000_000                   # at_rate's refusal: 2.4 GB of output
 _MODE = {"tool_linear": 1, "screw": 2}       # trajectory.h: DQ_TRAJ_LINEAR, DQ_TRAJ_SCREW
-# trajectory.h's DQ_BIND_* in order: what decided a segment's cruise
-_BINDINGS = ("max_linear_velocity", "max_angular_velocity", "max_linear_acceleration",
-             "max_angular_acceleration", "max_linear_jerk", "max_angular_jerk", "time")
 # codes of dq_traj_plan
 _E_TIME, _E_START, _E_STUCK = 20, 21, 22
 
@@ -80,7 +77,13 @@ class Limits:
 
     def as_array(self) -> np.ndarray:
         """``[v, w, a, alpha, j, jerk_w]``: the order of the C core's dq_traj_limits."""
-        return np.array([getattr(self, f.name) for f in fields(self)])
+        return np.array([getattr(self, name) for name in LIMIT_FIELDS])
+
+
+#: the fields of :class:`Limits`, in the order of the proto's and the C core's
+LIMIT_FIELDS = tuple(f.name for f in fields(Limits))
+# trajectory.h's DQ_BIND_* in order: what decided a segment's cruise
+_BINDINGS = LIMIT_FIELDS + ("time",)
 
 
 @dataclass(frozen=True)

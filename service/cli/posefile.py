@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from service import dq
+from service import dq, trajectory
 from service.errors import rename
 
 POSE_COLUMNS = ("x", "y", "z", "qw", "qx", "qy", "qz")
@@ -265,15 +265,13 @@ def format_samples(times: np.ndarray, dqs: np.ndarray, fmt: str) -> str:
     return out.getvalue()
 
 
-LIMIT_KEYS = ("max_linear_velocity", "max_angular_velocity", "max_linear_acceleration",
-              "max_angular_acceleration", "max_linear_jerk", "max_angular_jerk")
 
 
 class PlanFile(NamedTuple):
     dqs: np.ndarray                 # (K, 8) waypoints
     times: np.ndarray               # (K,) 0: as fast as the limits allow
     blend_radii: np.ndarray         # (K,)
-    limits: dict                    # the file's limits (LIMIT_KEYS), possibly partial
+    limits: dict                    # the file's limits (trajectory.LIMIT_FIELDS), possibly partial
     rate_hz: float | None
     mode: str | None
     format: str
@@ -291,11 +289,12 @@ class StampedFile(NamedTuple):
 def _limits(doc: dict) -> dict:
     limits = doc.get("limits") or {}
     if not isinstance(limits, dict):
-        raise ValueError("limits: expected an object with " + ", ".join(LIMIT_KEYS))
-    unknown = set(limits) - set(LIMIT_KEYS)
+        raise ValueError("limits: expected an object with "
+                         + ", ".join(trajectory.LIMIT_FIELDS))
+    unknown = set(limits) - set(trajectory.LIMIT_FIELDS)
     if unknown:
         raise ValueError(f"limits: unknown key {sorted(unknown)[0]!r}; expected "
-                         f"{', '.join(LIMIT_KEYS)}")
+                         f"{', '.join(trajectory.LIMIT_FIELDS)}")
     out = {}
     for k, v in limits.items():
         try:

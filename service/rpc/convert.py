@@ -702,8 +702,6 @@ def fused_from_msg(msg, probability: float = DEFAULT_PROBABILITY,
 
 # ---- trajectories --------------------------------------------------------------------------------
 
-LIMIT_FIELDS = ("max_linear_velocity", "max_angular_velocity", "max_linear_acceleration",
-                "max_angular_acceleration", "max_linear_jerk", "max_angular_jerk")
 PLAN_INTERPOLATIONS = {geo.INTERPOLATION_UNSPECIFIED: "tool_linear",
                        geo.INTERPOLATION_SCREW: "screw",
                        geo.INTERPOLATION_TOOL_LINEAR: "tool_linear"}
@@ -712,13 +710,13 @@ PLAN_INTERPOLATIONS = {geo.INTERPOLATION_UNSPECIFIED: "tool_linear",
 def limits_from_msg(msg, field: str = "limits"):
     """A ``Limits`` message to :class:`service.trajectory.Limits`; errors name ``field``."""
     try:
-        return trajectory.Limits(**{name: getattr(msg, name) for name in LIMIT_FIELDS})
+        return trajectory.Limits(**{name: getattr(msg, name) for name in trajectory.LIMIT_FIELDS})
     except ValueError as e:
         raise rename(e, {"limits": field}) from None
 
 
 def limits_msg(limits) -> tpb.Limits:
-    return tpb.Limits(**{name: float(getattr(limits, name)) for name in LIMIT_FIELDS})
+    return tpb.Limits(**{name: float(getattr(limits, name)) for name in trajectory.LIMIT_FIELDS})
 
 
 class PlanArgs(NamedTuple):
