@@ -24,6 +24,8 @@ COMMANDS = {
              "plan a limit-respecting motion through waypoints from a JSON or CSV file"),
     "smooth": ("service.cli.trajectory",
                "smooth a noisy recorded path under limits from a JSON or CSV file"),
+    "handeye": ("service.cli.handeye",
+                "hand-eye calibration: capture views on an arm, solve from images and robot poses"),
     "demo": ("service.cli.demo", "blend and interpolate sample poses and print the results"),
     "properties": ("service.cli.properties", "measure Table 1 of Kavan et al. on this build"),
     "sim": ("service.cli.sim", "run a device simulator that speaks the real protocol"),

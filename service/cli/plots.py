@@ -1,6 +1,7 @@
-"""The PNG of ``dqpose plan --plot`` and ``dqpose smooth --plot``: the motion's position,
-velocity, acceleration and jerk, linear and angular, each against its limit. What is drawn is
-measured from the samples themselves (finite differences), not taken from the planner."""
+"""The PNGs of the commands: ``dqpose plan --plot`` and ``dqpose smooth --plot``, the motion's
+position, velocity, acceleration and jerk, linear and angular, each against its limit (measured
+from the samples themselves, by finite differences, not taken from the planner); and
+``dqpose handeye solve``'s, the residual of each view and the covariance ellipsoids of X and Z."""
 from __future__ import annotations
 
 import numpy as np
@@ -42,6 +43,53 @@ def plot_motion(path: str, times, poses, limits, title: str = "", raw=None) -> N
             a.set_ylabel(f"|{what}|, {unit}/s" + ("" if order == 1 else f"^{order}"))
         ax[0, c].set_title(name)
         ax[3, c].set_xlabel("time, s")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def plot_calibration(path: str, cal, names, title: str = "") -> None:
+    """Writes the PNG of a hand-eye calibration (:class:`service.handeye.Calibration`): the
+    residual of each view (rotation, translation; views the robust solve left out in red) and
+    the 3-sigma ellipsoids of X's and Z's covariances, rotation (deg) and translation (mm),
+    about the estimate in its own frame (the right perturbation). Needs matplotlib."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    res = np.asarray(cal.residuals, dtype=np.float64).reshape(-1, 2)
+    left_out = {int(i) for i, _ in getattr(cal, "rejected", ())}
+    colours = ["tab:red" if k in left_out else "tab:blue" for k in range(len(res))]
+    fig = plt.figure(figsize=(11, 10))
+    for c, (values, label) in enumerate(((np.degrees(res[:, 0]), "rotation residual, deg"),
+                                         (res[:, 1] * 1e3, "translation residual, mm"))):
+        a = fig.add_subplot(3, 2, c + 1)
+        a.bar(np.arange(len(values)), values, color=colours)
+        a.set_xticks(np.arange(len(values)))
+        a.set_xticklabels(names, rotation=90, fontsize=6)
+        a.set_ylabel(label)
+        if left_out:
+            a.set_title("red: left out by the robust solve", fontsize=8)
+    u, v = np.meshgrid(np.linspace(0, 2 * np.pi, 30), np.linspace(0, np.pi, 15))
+    sphere = np.stack([np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v)])
+    for r, (pose, cov) in enumerate((("X", cal.covariance_x), ("Z", cal.covariance_z))):
+        cov = np.asarray(cov, dtype=np.float64).reshape(6, 6)
+        for c, (block, scale, unit) in enumerate(((slice(0, 3), np.degrees(1.0), "deg"),
+                                                  (slice(3, 6), 1e3, "mm"))):
+            a = fig.add_subplot(3, 2, 3 + 2 * r + c, projection="3d")
+            w, V = np.linalg.eigh(cov[block, block] * scale ** 2)
+            axes = V * (3.0 * np.sqrt(np.clip(w, 0.0, None)))
+            e = np.einsum("ij,jkl->ikl", axes, sphere)
+            a.plot_wireframe(e[0], e[1], e[2], lw=0.4, color="tab:blue")
+            m = float(np.abs(e).max()) or 1.0
+            for setter in (a.set_xlim, a.set_ylim, a.set_zlim):
+                setter(-m, m)
+            a.set_xlabel(unit, fontsize=7)
+            a.tick_params(labelsize=6)
+            what = "rotation" if c == 0 else "translation"
+            a.set_title(f"{pose}: 3-sigma {what}, {unit} (largest {3 * np.sqrt(w.max()):.3g})",
+                        fontsize=9)
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=90)

@@ -245,6 +245,11 @@ def _pose_json(row) -> dict:
     return {"position": {"x": x, "y": y, "z": z}, "orientation": {"w": qw, "x": qx, "y": qy, "z": qz}}
 
 
+def pose_json(pose: np.ndarray) -> dict:
+    """One ``(8,)`` pose as the JSON of a proto ``Pose`` (``w >= 0``)."""
+    return _pose_json(_pose_rows(pose)[0])
+
+
 def format_blend(mean: np.ndarray, iterations: int, residual: float, fmt: str) -> str:
     row = _pose_rows(mean)[0]
     if fmt == "json":
@@ -387,3 +392,162 @@ def format_trajectory(times: np.ndarray, dqs: np.ndarray, velocities: np.ndarray
     np.savetxt(out, np.concatenate([np.asarray(times).reshape(-1, 1), rows, velocities], axis=1),
                fmt="%.12g", delimiter=",")
     return out.getvalue()
+
+
+# ---- robot poses of a hand-eye capture -------------------------------------------------------------
+
+#: a position coordinate beyond this many metres is no arm's: the file is in millimetres
+MAX_METRES = 3.0
+UNITS = ("auto", "m", "mm")
+_ROTVEC_COLUMNS = ("x", "y", "z", "rx", "ry", "rz")
+
+
+class RobotPoses(NamedTuple):
+    """The flange poses of a capture: ``images[i]`` (None when the file names none) was taken at
+    ``base_flange[i]``; ``notes`` say how the file was read (rotation vectors, millimetres)."""
+    images: list
+    base_flange: np.ndarray
+    notes: tuple
+    setup: str | None
+
+
+def _robot_row(field: str, value) -> tuple[str, list[float]]:
+    """One pose of a robot pose file: ``("quaternion", [qw, qx, qy, qz, x, y, z])`` or
+    ``("rotvec", [x, y, z, rx, ry, rz])``."""
+    if isinstance(value, dict):
+        return "quaternion", (_vec(f"{field}.orientation", value.get("orientation"),
+                                   ("w", "x", "y", "z"))
+                              + _vec(f"{field}.position", value.get("position"), ("x", "y", "z")))
+    if isinstance(value, (list, tuple)) and len(value) in (6, 7):
+        try:
+            v = [float(x) for x in value]
+        except (TypeError, ValueError):
+            raise ValueError(f"{field}: expected numbers, got {value!r}") from None
+        return ("rotvec", v) if len(v) == 6 else ("quaternion", v[3:] + v[:3])
+    raise ValueError(f"{field}: expected a pose: {{\"position\": ..., \"orientation\": ...}}, "
+                     f"[x, y, z, rx, ry, rz] (UR) or [x, y, z, qw, qx, qy, qz]")
+
+
+def _robot_json(path: str, text: str):
+    doc = _json_doc(path, text, "poses")
+    entries = doc.get("poses")
+    if not isinstance(entries, list):
+        raise ValueError(f"{path}: expected \"poses\": a list")
+    images, kinds, rows = [], [], []
+    for i, e in enumerate(entries):
+        field = f"poses[{i}]"
+        image = None
+        if isinstance(e, dict) and ("position" not in e):
+            image = e.get("image")
+            if image is not None and not isinstance(image, str):
+                raise ValueError(f"{field}.image: expected a file name, got {image!r}")
+            key = "base_to_flange" if "base_to_flange" in e else "pose"
+            e, field = e.get(key), f"{field}.{key}"
+        kind, row = _robot_row(field, e)
+        images.append(image)
+        kinds.append(kind)
+        rows.append(row)
+    return doc, images, kinds, rows
+
+
+def _robot_csv(text: str):
+    lines = [(n, [c.strip() for c in row]) for n, row in enumerate(csv.reader(io.StringIO(text)), 1)
+             if row and not row[0].lstrip().startswith("#")]
+    header = None
+    if lines and not any(_number(c) for c in lines[0][1][1:]):
+        n, header = lines.pop(0)
+        header = [c.lower() for c in header]
+        for columns in (("image",) + POSE_COLUMNS, ("image",) + _ROTVEC_COLUMNS, POSE_COLUMNS,
+                        _ROTVEC_COLUMNS):
+            if sorted(header) == sorted(columns):
+                break
+        else:
+            raise ValueError(f"line {n}: columns {','.join(header)}; expected [image,]"
+                             f"{','.join(POSE_COLUMNS)} or [image,]{','.join(_ROTVEC_COLUMNS)} "
+                             f"(UR rotation vectors)")
+    images, kinds, rows = [], [], []
+    for n, row in lines:
+        if header is not None:
+            if len(row) != len(header):
+                raise ValueError(f"line {n}: expected {len(header)} values, got {len(row)}")
+            cells = dict(zip(header, row))
+            image = cells.pop("image", None)
+            names = POSE_COLUMNS if "qw" in cells else _ROTVEC_COLUMNS
+            values = [cells[c] for c in names]
+        else:
+            image = None if _number(row[0]) else row[0]
+            values = row[1:] if image is not None else row
+            if len(values) not in (6, 7):
+                raise ValueError(f"line {n}: expected [image,]x,y,z,qw,qx,qy,qz or "
+                                 f"[image,]x,y,z,rx,ry,rz, got {len(row)} values")
+        try:
+            v = [float(c) for c in values]
+        except ValueError:
+            raise ValueError(f"line {n}: {','.join(values)!r} are not all numbers") from None
+        images.append(image)
+        kinds.append("rotvec" if len(v) == 6 else "quaternion")
+        rows.append(v if len(v) == 6 else v[3:] + v[:3])
+    return {}, images, kinds, rows
+
+
+def read_robot_poses(path: str, units: str = "auto") -> RobotPoses:
+    """The flange poses ``T_base_flange`` of a hand-eye capture, one per image: JSON
+    ``{"setup": ..., "units": "m"|"mm", "poses": [{"image": NAME, "base_to_flange": POSE}]}`` (a
+    bare list is the poses; POSE is ``{"position", "orientation"}``, ``[x, y, z, rx, ry, rz]`` (a
+    UR rotation vector) or ``[x, y, z, qw, qx, qy, qz]``), or CSV ``[image,]x,y,z,qw,qx,qy,qz``
+    or ``[image,]x,y,z,rx,ry,rz``. ``units`` ``auto`` reads positions as millimetres when a
+    coordinate is beyond :data:`MAX_METRES` (the file's ``"units"`` wins over ``auto``); the
+    returned notes say so, and that rotation vectors were read."""
+    if units not in UNITS:
+        raise ValueError(f"units: expected one of {', '.join(UNITS)}, got {units!r}")
+    text, fmt = _load(path)
+    doc, images, kinds, rows = _robot_json(path, text) if fmt == "json" else _robot_csv(text)
+    if not rows:
+        raise ValueError(f"{path}: no poses")
+    if len(set(kinds)) > 1:
+        i = kinds.index("rotvec" if kinds[0] == "quaternion" else "quaternion")
+        raise ValueError(f"poses[{i}]: a {kinds[i]} pose among {kinds[0]} ones; use one form")
+    named = [i for i, im in enumerate(images) if im is not None]
+    if named and len(named) != len(images):
+        i = next(i for i, im in enumerate(images) if im is None)
+        raise ValueError(f"poses[{i}]: no image named, while poses[{named[0]}] names one")
+    setup = doc.get("setup")
+    if setup is not None and setup not in ("eye_in_hand", "eye_to_hand"):
+        raise ValueError(f"setup: expected eye_in_hand or eye_to_hand, got {setup!r}")
+    a = np.array(rows, dtype=np.float64)
+    notes = []
+    if units == "auto":
+        units = doc.get("units", "auto")
+        if units not in UNITS:
+            raise ValueError(f"units: expected m or mm, got {units!r}")
+    positions = a[:, :3] if kinds[0] == "rotvec" else a[:, 4:7]
+    if not np.all(np.isfinite(a)):
+        i = int(np.flatnonzero(~np.all(np.isfinite(a), axis=1))[0])
+        raise ValueError(f"poses[{i}]: contains NaN or infinity")
+    biggest = float(np.abs(positions).max())
+    if units == "auto" and biggest > MAX_METRES:
+        units = "mm"
+        notes.append(f"positions read as millimetres: a coordinate of {biggest:g} is beyond any "
+                     f"arm's reach in metres (--units m to read metres)")
+    if units == "mm":
+        positions /= 1000.0
+    if kinds[0] == "rotvec":
+        norms = np.linalg.norm(a[:, 3:], axis=1)
+        if norms.max() > 2 * np.pi + 1e-9:
+            i = int(np.argmax(norms))
+            raise ValueError(f"poses[{i}]: rotation vector of {norms[i]:g}, beyond 2 pi: UR "
+                             f"rotation vectors [rx, ry, rz] are in radians (degrees given?)")
+        from drivers.rotvec import pose_from_rotvec
+        dqs = pose_from_rotvec(a)
+        notes.append("rotations read as UR rotation vectors [x, y, z, rx, ry, rz] (axis times "
+                     "angle, radians), not roll-pitch-yaw")
+    else:
+        dqs = _to_dqs("poses", a)
+    return RobotPoses(images, dqs, tuple(notes), setup)
+
+
+def robot_poses_json(images, base_flange: np.ndarray, setup: str) -> str:
+    """The poses file :func:`read_robot_poses` reads (metres, quaternions)."""
+    return json.dumps({"setup": setup, "units": "m", "poses": [
+        {"image": im, "base_to_flange": pose_json(p)} for im, p in zip(images, base_flange)]},
+        indent=1) + "\n"

@@ -16,6 +16,7 @@ from service.errors import FieldError, rename
 from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from service.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from service.rpc._proto.dqpose.v1 import geometry_pb2 as geo
+from service.rpc._proto.dqpose.v1 import handeye_pb2 as hpb
 from service.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
 
 def poses_to_flat(poses) -> np.ndarray:
@@ -808,3 +809,57 @@ def samples_from_msgs(msgs):
                     for m in msgs], dtype=np.float64).reshape(-1, 6)
     times = np.array([m.time for m in msgs], dtype=np.float64)
     return times, dq.from_pose(q, t) if len(msgs) else np.zeros((0, 8)), vel[:, :3], vel[:, 3:]
+
+
+# ---- hand-eye ------------------------------------------------------------------------------------
+
+SETUP_NAMES = {hpb.SETUP_EYE_IN_HAND: "eye_in_hand", hpb.SETUP_EYE_TO_HAND: "eye_to_hand"}
+SETUP_ENUMS = {name: code for code, name in SETUP_NAMES.items()}
+#: the domain's argument names -> the request's fields (``{}``: the pair's index)
+CALIBRATE_FIELDS = {"base_flange": "pairs{}.base_to_flange",
+                    "camera_target": "pairs{}.camera_to_target", "setup": "setup"}
+
+
+class CalibrateArgs(NamedTuple):
+    """A ``CalibrateRequest`` as the arguments of :func:`service.handeye.calibrate`."""
+    setup: str
+    base_flange: np.ndarray      # (n, 8) T_base_flange, unit
+    camera_target: np.ndarray    # (n, 8) T_camera_target, unit
+    robust: bool
+
+
+def calibrate_from_msg(req) -> CalibrateArgs:
+    """A ``CalibrateRequest`` to :class:`CalibrateArgs`; errors name the field."""
+    setup = SETUP_NAMES.get(req.setup)
+    if setup is None:
+        if req.setup == hpb.SETUP_UNSPECIFIED:
+            raise FieldError("setup: required: SETUP_EYE_IN_HAND (the camera on the flange) or "
+                             "SETUP_EYE_TO_HAND (the camera fixed, the target on the flange)")
+        raise FieldError(f"setup: unknown Setup value {req.setup}")
+    poses = {}
+    for name in ("base_to_flange", "camera_to_target"):
+        for i, p in enumerate(req.pairs):
+            if not p.HasField(name):
+                raise FieldError(f"pairs[{i}].{name}: required")
+        poses[name] = flat_to_dqs(poses_to_flat([getattr(p, name) for p in req.pairs]), "pairs",
+                                  f".{name}")
+    robust = req.robust if req.HasField("robust") else True
+    return CalibrateArgs(setup, poses["base_to_flange"], poses["camera_to_target"], robust)
+
+
+def calibrate_msg(base_flange, camera_target, setup: str = "eye_in_hand",
+                  robust: bool = True) -> "hpb.CalibrateRequest":
+    """Client side: the ``CalibrateRequest`` of :func:`service.handeye.calibrate`'s arguments,
+    poses as given (the server names what is wrong with them)."""
+    if setup not in SETUP_ENUMS:
+        raise ValueError(f"setup: unknown {setup!r}; expected one of {', '.join(SETUP_ENUMS)}")
+    a = np.asarray(base_flange, dtype=np.float64)
+    b = np.asarray(camera_target, dtype=np.float64)
+    for name, v in (("base_flange", a), ("camera_target", b)):
+        if v.ndim != 2 or v.shape[1] != 8:
+            raise ValueError(f"{name}: expected shape (n, 8), got {v.shape}")
+    if len(a) != len(b):
+        raise ValueError(f"camera_target: {len(b)} poses for {len(a)} base_flange poses")
+    pairs = [hpb.PosePair(base_to_flange=f, camera_to_target=c)
+             for f, c in zip(pose_msgs(*pose_arrays(a)), pose_msgs(*pose_arrays(b)))]
+    return hpb.CalibrateRequest(setup=SETUP_ENUMS[setup], pairs=pairs, robust=bool(robust))

@@ -31,11 +31,12 @@ from service.rpc import DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
 from service.rpc.blending import Blending
 from service.rpc.calls import Calls, log
 from service.rpc.fusion import Fusion
+from service.rpc.handeye import HandEye
 from service.rpc.trajectories import Trajectories
 
 # The services this server offers: each class takes (config, calls), has NAME (the full proto
 # service name) and register(server).
-SERVICERS = (Blending, Fusion, Trajectories)
+SERVICERS = (Blending, Fusion, Trajectories, HandEye)
 SERVICE_NAMES = tuple(s.NAME for s in SERVICERS) + (
     health_pb2.DESCRIPTOR.services_by_name["Health"].full_name, reflection.SERVICE_NAME)
 
