@@ -33,4 +33,17 @@ def rename(err: ValueError, names: dict[str, str]) -> FieldError:
     m = _INDEXED.match(msg)
     if m and m.group(1) in names:
         msg = names[m.group(1)].replace("{}", m.group(2) or "") + m.group(3)
+    return _same_kind(err, msg)
+
+
+def rename_all(err: ValueError, names: dict[str, str]) -> FieldError:
+    """:func:`rename` of every one of ``names`` wherever the message has it, not only the first
+    word: for messages about several arguments (``"a, b[2]: ..."``) or naming one in their
+    text."""
+    pattern = re.compile(r"\b(" + "|".join(map(re.escape, names)) + r")\b(\[\d+\])?")
+    msg = pattern.sub(lambda m: names[m.group(1)].replace("{}", m.group(2) or ""), str(err))
+    return _same_kind(err, msg)
+
+
+def _same_kind(err: ValueError, msg: str) -> FieldError:
     return FieldInfeasible(msg) if isinstance(err, Infeasible) else FieldError(msg)

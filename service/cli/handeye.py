@@ -310,17 +310,31 @@ def report(cal, views, names: list, skipped: list, truth=None) -> str:
     lines += _pose_lines(f"Z = {fz}", cal.z, cal.covariance_z)
     lines.append("(1 sigma per axis of the covariance: rotation first, right perturbation "
                  "T * Exp(xi), in the pose's own frame)")
-    rejected = {int(i): r for i, r in getattr(cal, "rejected", ())}
-    lines += ["", f"{'view':>4s}  {'image':24s} {'rotation (deg)':>15s} {'translation (mm)':>17s}"]
-    for k, (n, (r, t)) in enumerate(zip(names, np.asarray(cal.residuals).reshape(-1, 2))):
+    rejected = {r.index: r.reason for r in cal.rejected}
+    res = np.asarray(cal.residuals, dtype=np.float64).reshape(-1, 2)
+    loo = cal.leave_one_out if cal.leave_one_out is not None else np.full((len(res), 2), np.nan)
+    lines += ["", "per view: its residual, and how far X moves when it is left out",
+              f"{'view':>4s}  {'image':20s} {'residual deg':>12s} {'mm':>9s} "
+              f"{'X moves deg':>12s} {'mm':>9s}"]
+    for k, n in enumerate(names):
         tail = f"  left out: {rejected[k]}" if k in rejected else ""
-        lines.append(f"{k:4d}  {n:24s} {math.degrees(r):15.4f} {t * 1e3:17.3f}{tail}")
-    res = np.asarray(cal.residuals).reshape(-1, 2)
+        lines.append(f"{k:4d}  {n:20s} {math.degrees(res[k, 0]):12.4f} {res[k, 1] * 1e3:9.3f} "
+                     f"{math.degrees(loo[k, 0]):12.4f} {loo[k, 1] * 1e3:9.3f}{tail}")
     keep = [k for k in range(len(res)) if k not in rejected]
     if keep:
         rms = np.sqrt(np.mean(res[keep] ** 2, axis=0))
-        lines.append(f"RMS of the views used: {math.degrees(rms[0]):.4f} deg, "
+        lines.append(f"RMS over the views used: {math.degrees(rms[0]):.4f} deg, "
                      f"{rms[1] * 1e3:.3f} mm")
+    lines.append("")
+    if cal.closed_form_x is not None:
+        a = cal.agreement
+        lines.append(f"closed form (Daniilidis) against the refined X: {math.degrees(a[0]):.4f} "
+                     f"deg, {a[1] * 1e3:.3f} mm (NEES {a[2]:.2f})")
+    lines.append(f"rotation excitation {math.degrees(cal.excitation):.2f} deg (near 0: rotation "
+                 f"axes parallel), condition number {cal.rotation_condition:.3g}; noise "
+                 f"{cal.noise_model}, {cal.iterations} Gauss-Newton steps")
+    for r, a, d in cal.readings:
+        lines.append(f"reading {r}: median residual {math.degrees(a):.4f} deg, {d * 1e3:.3f} mm")
     lines += [""] + ([f"warning: {_named(w, names)}" for w in cal.warnings] or ["no warnings"])
     if truth is not None:
         lines.append("")

@@ -59,7 +59,7 @@ def plot_calibration(path: str, cal, names, title: str = "") -> None:
     import matplotlib.pyplot as plt
 
     res = np.asarray(cal.residuals, dtype=np.float64).reshape(-1, 2)
-    left_out = {int(i) for i, _ in getattr(cal, "rejected", ())}
+    left_out = {r.index for r in cal.rejected}
     colours = ["tab:red" if k in left_out else "tab:blue" for k in range(len(res))]
     fig = plt.figure(figsize=(11, 10))
     for c, (values, label) in enumerate(((np.degrees(res[:, 0]), "rotation residual, deg"),

@@ -4,6 +4,7 @@
 ...     mean = c.blend(dqs, weights=[1, 3])                   # (8,)
 ...     fused = c.fuse(dqs, covariances, names=["cam1", "arm"])  # service.fusion.Fused
 ...     path = c.interpolate([0, 1], dqs[:2], np.linspace(0, 1, 50), mode="tool_linear")
+...     cal = c.calibrate(base_flange, camera_target, "eye_in_hand")  # service.handeye.Calibration
 
 Every failed call raises :class:`RpcError` with the status ``code`` and the server's ``details``.
 ``INVALID_ARGUMENT`` is :class:`InvalidArgument`, also a ``ValueError`` whose text is the server's
@@ -25,24 +26,27 @@ from typing import Iterable, Iterator, NamedTuple, Optional, Sequence
 import grpc
 import numpy as np
 
-from service import dq, fusion
+from service import dq, fusion, handeye
 from service.rpc import BATCH_POSE_FACTOR, DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
 from service.rpc.convert import (DEFAULT_MAX_EXTRAPOLATION, DEFAULT_PROBABILITY,
                                  DEFAULT_WINDOW, INTERPOLATION_ENUMS, METHOD_ENUMS,
                                  blend_batch_items_wire, blend_request_wire,
-                                 blend_responses_from_wire, fused_from_msg,
+                                 blend_responses_from_wire, calibrate_msg, calibration_from_msg,
+                                 fused_from_msg,
                                  interpolate_request_wire, measurement_msgs, options_msg,
                                  limits_msg, plan_msg, pose_arrays, poses_to_arrays,
                                  poses_to_flat, samples_from_msgs, stamped_msgs,
                                  stamped_poses_wire)
 from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from service.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
+from service.rpc._proto.dqpose.v1 import handeye_pb2 as hpb
 from service.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
 
 DEFAULT_TARGET = "127.0.0.1:50051"
 SERVICE = pb.DESCRIPTOR.services_by_name["Blending"].full_name
 FUSION = fpb.DESCRIPTOR.services_by_name["Fusion"].full_name
 TRAJECTORIES = tpb.DESCRIPTOR.services_by_name["Trajectories"].full_name
+HANDEYE = hpb.DESCRIPTOR.services_by_name["HandEye"].full_name
 # Largest answer per item, to keep answers under the message limit too: BlendBatchResponse item
 # = tag, length, BlendResponse {pose (2 + 67), iterations (1 + up to 5), residual (1 + 8)};
 # InterpolateResponse item = tag, length, StampedPose {time (1 + 8), pose (2 + 67)}.
@@ -246,6 +250,7 @@ class Client:
         self._execute = self.channel.unary_stream(
             f"/{TRAJECTORIES}/Execute", request_serializer=tpb.ExecuteRequest.SerializeToString,
             response_deserializer=tpb.ExecutionFeedback.FromString)
+        self._calibrate = self.channel.unary_unary(f"/{HANDEYE}/Calibrate")
         self.timeout = timeout
         self.max_message_bytes = max_message_bytes
         self.max_poses = max_poses
@@ -512,6 +517,20 @@ class Client:
             raise _rpc_error(e) from None
         finally:
             call.cancel()
+
+    def calibrate(self, base_flange, camera_target, setup: str = "eye_in_hand", *,
+                  robust: bool = True, camera_covariance=None,
+                  robot_covariance=None) -> handeye.Calibration:
+        """:func:`service.handeye.calibrate` on the server (same arguments, same result but for
+        the noise model's matrices): ``base_flange`` ``(n, 8)`` ``T_base_flange``,
+        ``camera_target`` ``(n, 8)`` ``T_camera_target``. Unusable data is an :class:`RpcError`
+        with code ``FAILED_PRECONDITION`` and the solver's reason, naming the pairs."""
+        self._check_count("base_flange", len(np.asarray(base_flange)), "pose pairs")
+        request = calibrate_msg(base_flange, camera_target, setup, robust, camera_covariance,
+                                robot_covariance)
+        answer = hpb.CalibrateResponse.FromString(self._call(self._calibrate,
+                                                             request.SerializeToString()))
+        return calibration_from_msg(answer, setup)
 
     def health(self, service: str = "") -> str:
         """The health status name (``"SERVING"``, ``"NOT_SERVING"``, ...)."""

@@ -11,8 +11,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from service import _dqcore, dq, fusion, trajectory
-from service.errors import FieldError, rename
+from service import _dqcore, dq, fusion, handeye, trajectory
+from service.errors import FieldError, rename, rename_all
 from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from service.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from service.rpc._proto.dqpose.v1 import geometry_pb2 as geo
@@ -817,7 +817,9 @@ SETUP_NAMES = {hpb.SETUP_EYE_IN_HAND: "eye_in_hand", hpb.SETUP_EYE_TO_HAND: "eye
 SETUP_ENUMS = {name: code for code, name in SETUP_NAMES.items()}
 #: the domain's argument names -> the request's fields (``{}``: the pair's index)
 CALIBRATE_FIELDS = {"base_flange": "pairs{}.base_to_flange",
-                    "camera_target": "pairs{}.camera_to_target", "setup": "setup"}
+                    "camera_target": "pairs{}.camera_to_target",
+                    "camera_covariance": "pairs{}.camera_covariance",
+                    "robot_covariance": "pairs{}.robot_covariance"}
 
 
 class CalibrateArgs(NamedTuple):
@@ -826,6 +828,27 @@ class CalibrateArgs(NamedTuple):
     base_flange: np.ndarray      # (n, 8) T_base_flange, unit
     camera_target: np.ndarray    # (n, 8) T_camera_target, unit
     robust: bool
+    camera_covariance: np.ndarray | None    # (n, 6, 6)
+    robot_covariance: np.ndarray | None     # (n, 6, 6)
+
+
+def calibrate_error(e: ValueError) -> FieldError:
+    """A :func:`service.handeye.calibrate` error with the request's field names, wherever the
+    message has the domain's (``"base_flange, camera_target: ..."``); Infeasible stays so."""
+    return rename_all(e, CALIBRATE_FIELDS)
+
+
+def _pair_covariances(pairs, name: str) -> np.ndarray | None:
+    """The ``name`` covariances of every pair, ``(n, 6, 6)``, or None when no pair has one."""
+    counts = [len(getattr(p, name)) for p in pairs]
+    if not any(counts):
+        return None
+    for i, k in enumerate(counts):
+        if k != COVARIANCE_SIZE:
+            given = next(j for j, c in enumerate(counts) if c)
+            raise FieldError(f"pairs[{i}].{name}: {k} values; expected {COVARIANCE_SIZE} "
+                             f"(6x6, row-major) on every pair, as pairs[{given}] has, or on none")
+    return np.array([getattr(p, name) for p in pairs], dtype=np.float64).reshape(-1, 6, 6)
 
 
 def calibrate_from_msg(req) -> CalibrateArgs:
@@ -844,11 +867,25 @@ def calibrate_from_msg(req) -> CalibrateArgs:
         poses[name] = flat_to_dqs(poses_to_flat([getattr(p, name) for p in req.pairs]), "pairs",
                                   f".{name}")
     robust = req.robust if req.HasField("robust") else True
-    return CalibrateArgs(setup, poses["base_to_flange"], poses["camera_to_target"], robust)
+    return CalibrateArgs(setup, poses["base_to_flange"], poses["camera_to_target"], robust,
+                         _pair_covariances(req.pairs, "camera_covariance"),
+                         _pair_covariances(req.pairs, "robot_covariance"))
 
 
-def calibrate_msg(base_flange, camera_target, setup: str = "eye_in_hand",
-                  robust: bool = True) -> "hpb.CalibrateRequest":
+def _per_pair(cov, name: str, n: int) -> list | None:
+    """Client side: a ``(6, 6)`` or ``(n, 6, 6)`` covariance as n rows of 36 values."""
+    if cov is None:
+        return None
+    c = np.asarray(cov, dtype=np.float64)
+    if c.shape == (6, 6):
+        c = np.broadcast_to(c, (n, 6, 6))
+    if c.shape != (n, 6, 6):
+        raise ValueError(f"{name}: expected shape (6, 6) or ({n}, 6, 6), got {c.shape}")
+    return c.reshape(n, COVARIANCE_SIZE).tolist()
+
+
+def calibrate_msg(base_flange, camera_target, setup: str = "eye_in_hand", robust: bool = True,
+                  camera_covariance=None, robot_covariance=None) -> "hpb.CalibrateRequest":
     """Client side: the ``CalibrateRequest`` of :func:`service.handeye.calibrate`'s arguments,
     poses as given (the server names what is wrong with them)."""
     if setup not in SETUP_ENUMS:
@@ -862,4 +899,60 @@ def calibrate_msg(base_flange, camera_target, setup: str = "eye_in_hand",
         raise ValueError(f"camera_target: {len(b)} poses for {len(a)} base_flange poses")
     pairs = [hpb.PosePair(base_to_flange=f, camera_to_target=c)
              for f, c in zip(pose_msgs(*pose_arrays(a)), pose_msgs(*pose_arrays(b)))]
+    for name, cov in (("camera_covariance", camera_covariance),
+                      ("robot_covariance", robot_covariance)):
+        rows = _per_pair(cov, name, len(pairs))
+        for p, row in zip(pairs, rows or ()):
+            getattr(p, name).extend(row)
     return hpb.CalibrateRequest(setup=SETUP_ENUMS[setup], pairs=pairs, robust=bool(robust))
+
+
+def calibration_to_msg(c) -> "hpb.CalibrateResponse":
+    """A :class:`service.handeye.Calibration` into a ``CalibrateResponse``."""
+    msg = hpb.CalibrateResponse(
+        covariance_x=np.asarray(c.covariance_x).ravel().tolist(),
+        covariance_z=np.asarray(c.covariance_z).ravel().tolist(),
+        residuals=np.asarray(c.residuals).ravel().tolist(), warnings=list(c.warnings),
+        rejected=[hpb.RejectedPair(index=r.index, reason=r.reason) for r in c.rejected],
+        agreement=[float(v) for v in c.agreement], rotation_condition=c.rotation_condition,
+        excitation=c.excitation, iterations=c.iterations, noise_model=c.noise_model,
+        readings=[hpb.Reading(reading=r, rotation=a, translation=d) for r, a, d in c.readings])
+    for field, pose in (("x", c.x), ("z", c.z), ("closed_form_x", c.closed_form_x),
+                        ("closed_form_z", c.closed_form_z)):
+        if pose is not None:
+            dq_to_pose(pose, getattr(msg, field))
+    for field in ("leave_one_out", "nis", "covariance"):
+        value = getattr(c, field)
+        if value is not None:
+            getattr(msg, field).extend(np.asarray(value).ravel().tolist())
+    return msg
+
+
+def calibration_from_msg(msg, setup: str):
+    """Client side: a ``CalibrateResponse`` back into the :class:`service.handeye.Calibration`
+    it was made from (without the noise model's matrices, which stay on the server)."""
+    def pose(p):
+        return dq.from_pose((p.orientation.w, p.orientation.x, p.orientation.y,
+                             p.orientation.z), (p.position.x, p.position.y, p.position.z))
+
+    def rows(values, width):
+        return np.array(values, dtype=np.float64).reshape(-1, width)
+
+    n = len(msg.residuals) // 2
+    rejected = tuple(handeye.Rejection(r.index, r.reason) for r in msg.rejected)
+    inliers = np.ones(n, dtype=bool)
+    inliers[[r.index for r in rejected]] = False
+    covariance = rows(msg.covariance, 12) if msg.covariance else None
+    return handeye.Calibration(
+        setup=setup, x=pose(msg.x), z=pose(msg.z),
+        covariance_x=rows(msg.covariance_x, 6), covariance_z=rows(msg.covariance_z, 6),
+        residuals=rows(msg.residuals, 2), warnings=tuple(msg.warnings), inliers=inliers,
+        rejected=rejected, covariance=covariance,
+        information=None if covariance is None else np.linalg.inv(covariance),
+        noise_model=msg.noise_model, nis=np.array(msg.nis, dtype=np.float64),
+        leave_one_out=rows(msg.leave_one_out, 2),
+        closed_form_x=pose(msg.closed_form_x) if msg.HasField("closed_form_x") else None,
+        closed_form_z=pose(msg.closed_form_z) if msg.HasField("closed_form_z") else None,
+        agreement=tuple(msg.agreement), rotation_condition=msg.rotation_condition,
+        excitation=msg.excitation, iterations=msg.iterations,
+        readings=tuple((r.reading, r.rotation, r.translation) for r in msg.readings))

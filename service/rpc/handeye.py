@@ -12,9 +12,9 @@ import asyncio
 import grpc
 
 from service import handeye
-from service.errors import FieldError, rename
+from service.errors import FieldError
 from service.rpc.calls import Calls
-from service.rpc.convert import CALIBRATE_FIELDS, calibrate_from_msg, calibration_to_msg
+from service.rpc.convert import calibrate_error, calibrate_from_msg, calibration_to_msg
 from service.rpc._proto.dqpose.v1 import handeye_pb2 as pb
 
 
@@ -32,9 +32,11 @@ class HandEye:
         args = calibrate_from_msg(request)
         try:
             result = handeye.calibrate(args.base_flange, args.camera_target, args.setup,
-                                       robust=args.robust)
+                                       robust=args.robust,
+                                       camera_covariance=args.camera_covariance,
+                                       robot_covariance=args.robot_covariance)
         except ValueError as e:
-            raise rename(e, CALIBRATE_FIELDS) from None
+            raise calibrate_error(e) from None
         return calibration_to_msg(result)
 
     def register(self, server) -> None:
