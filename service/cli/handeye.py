@@ -74,31 +74,6 @@ def configure(name: str, p) -> None:
                      "solve for the camera's pose on the flange (eye-in-hand) or in the cell "
                      "(eye-to-hand) from a folder of images and robot poses.")
     sub = p.add_subparsers(dest="action", required=True, metavar="ACTION")
-    s = sub.add_parser("solve", help="solve from a folder of images and robot poses",
-                       description="Detect the board in every image of DIR, solve hand-eye "
-                                   "with the robot poses (on the server at --target, or "
-                                   "--local) and write a report.",
-                       formatter_class=argparse.RawDescriptionHelpFormatter,
-                       epilog=SOLVE_EPILOG)
-    s.add_argument("dir", metavar="DIR", help="the folder (see below)")
-    s.add_argument("--setup", choices=SETUPS,
-                   help="eye_in_hand: camera on the flange; eye_to_hand: camera fixed, board "
-                        "on the flange (default: the poses file's, else eye_in_hand)")
-    s.add_argument("--poses", metavar="FILE", help="robot poses (default: DIR/poses.json or .csv)")
-    s.add_argument("--intrinsics", metavar="FILE", help="default: DIR/intrinsics.json or .yaml")
-    s.add_argument("--board", metavar="FILE", help="default: DIR/board.json, else 7x5 ChArUco, "
-                                                   "40 mm squares, 30 mm markers, DICT_5X5_100")
-    s.add_argument("--units", choices=("auto", "m", "mm"), default="auto",
-                   help="of the robot positions (default: auto, millimetres beyond 3 m)")
-    s.add_argument("--keep-outliers", action="store_true",
-                   help="use every view (default: gross outliers are left out, with reasons)")
-    s.add_argument("--report", metavar="TXT", help="default: DIR/handeye_report.txt")
-    s.add_argument("--plot", metavar="PNG", help="default: DIR/handeye.png")
-    s.add_argument("-o", "--output", metavar="JSON", help="default: DIR/handeye.json")
-    s.add_argument("--local", action="store_true", help="solve in this process instead of on a server")
-    connection_args(s)
-    s.set_defaults(func=_solve)
-
     c = sub.add_parser("capture", help="drive an arm through informative views and save them",
                        description="Drive a UR through informative views of the board "
                                    "(the simulator, or --arm) and save images and robot poses "
@@ -128,6 +103,38 @@ def configure(name: str, p) -> None:
     c.add_argument("--blur", type=float, default=0.6,
                    help="simulated camera: Gaussian blur, pixels (default 0.6)")
     c.set_defaults(func=_capture)
+    s = sub.add_parser("solve", help="solve from a folder of images and robot poses",
+                       description="Detect the board in every image of DIR, solve hand-eye "
+                                   "with the robot poses (on the server at --target, or "
+                                   "--local) and write a report.",
+                       formatter_class=argparse.RawDescriptionHelpFormatter,
+                       epilog=SOLVE_EPILOG)
+    s.add_argument("dir", metavar="DIR", help="the folder (see below)")
+    s.add_argument("--setup", choices=SETUPS,
+                   help="eye_in_hand: camera on the flange; eye_to_hand: camera fixed, board "
+                        "on the flange (default: the poses file's, else eye_in_hand)")
+    s.add_argument("--poses", metavar="FILE", help="robot poses (default: DIR/poses.json or .csv)")
+    s.add_argument("--intrinsics", metavar="FILE", help="default: DIR/intrinsics.json or .yaml")
+    s.add_argument("--board", metavar="FILE", help="default: DIR/board.json, else 7x5 ChArUco, "
+                                                   "40 mm squares, 30 mm markers, DICT_5X5_100")
+    s.add_argument("--units", choices=("auto", "m", "mm"), default="auto",
+                   help="of the robot positions (default: auto, millimetres beyond 3 m)")
+    s.add_argument("--estimate-noise", action="store_true",
+                   help="estimate the camera's noise from the residuals (default: each view's "
+                        "covariance from the detector, which weighs each view and axis by what "
+                        "its corners say)")
+    s.add_argument("--robot-noise", nargs=2, type=float, metavar=("DEG", "MM"),
+                   help="the robot poses' noise, 1 sigma per axis (default: exact); with the "
+                        "detector's covariances only")
+    s.add_argument("--keep-outliers", action="store_true",
+                   help="use every view (default: gross outliers are left out, with reasons)")
+    s.add_argument("--report", metavar="TXT", help="default: DIR/handeye_report.txt")
+    s.add_argument("--plot", metavar="PNG", help="default: DIR/handeye.png")
+    s.add_argument("-o", "--output", metavar="JSON", help="default: DIR/handeye.json")
+    s.add_argument("--local", action="store_true", help="solve in this process instead of on a server")
+    connection_args(s)
+    s.set_defaults(func=_solve)
+
 
 
 # ---- solve ------------------------------------------------------------------------------------
@@ -196,6 +203,24 @@ def _detect(camera, images: list) -> list:
                           disable=None)]
 
 
+def _noise(args, detections: list) -> dict:
+    """The noise arguments of the solve: the detector's covariance of each view (unless
+    ``--estimate-noise``) and ``--robot-noise`` as a diagonal covariance."""
+    import numpy as np
+    if args.estimate_noise:
+        if args.robot_noise:
+            raise ValueError("--robot-noise: needs the detector's covariances (drop "
+                             "--estimate-noise)")
+        return {}
+    out = {"camera_covariance": np.array([d.covariance for d in detections]).reshape(-1, 6, 6)}
+    if args.robot_noise:
+        deg, mm = args.robot_noise
+        if not (deg > 0 and mm > 0 and math.isfinite(deg) and math.isfinite(mm)):
+            raise ValueError(f"--robot-noise: two positive numbers, got {deg:g} {mm:g}")
+        out["robot_covariance"] = np.diag([math.radians(deg) ** 2] * 3 + [(mm * 1e-3) ** 2] * 3)
+    return out
+
+
 def _named(text: str, names: list) -> str:
     """``pairs[3]`` in a message followed by the image it came from."""
     return re.sub(r"\b(pairs|base_flange|camera_target)\[(\d+)\]",
@@ -216,12 +241,15 @@ def _solve(args) -> int:
         names = [os.path.basename(views.images[i]) for i in used]
         base_flange = views.base_flange[used]
         camera_target = np.array([found[i].pose for i in used]).reshape(-1, 8)
+        noise = _noise(args, [found[i] for i in used])
         robust = not args.keep_outliers
         if args.local:
-            cal = handeye.calibrate(base_flange, camera_target, views.setup, robust=robust)
+            cal = handeye.calibrate(base_flange, camera_target, views.setup, robust=robust,
+                                    **noise)
         else:
             with client(args) as c:
-                cal = c.calibrate(base_flange, camera_target, views.setup, robust=robust)
+                cal = c.calibrate(base_flange, camera_target, views.setup, robust=robust,
+                                  **noise)
     except Exception as e:
         if isinstance(e, ValueError) and names:
             e = type(e)(_named(str(e), names)) if not hasattr(e, "code") else e
@@ -331,8 +359,10 @@ def report(cal, views, names: list, skipped: list, truth=None) -> str:
         lines.append(f"closed form (Daniilidis) against the refined X: {math.degrees(a[0]):.4f} "
                      f"deg, {a[1] * 1e3:.3f} mm (NEES {a[2]:.2f})")
     lines.append(f"rotation excitation {math.degrees(cal.excitation):.2f} deg (near 0: rotation "
-                 f"axes parallel), condition number {cal.rotation_condition:.3g}; noise "
-                 f"{cal.noise_model}, {cal.iterations} Gauss-Newton steps")
+                 f"axes parallel), condition number {cal.rotation_condition:.3g}; "
+                 + ("noise: each view's covariance as given" if cal.noise_model == "given" else
+                    "noise estimated from the residuals")
+                 + f", {cal.iterations} Gauss-Newton steps")
     for r, a, d in cal.readings:
         lines.append(f"reading {r}: median residual {math.degrees(a):.4f} deg, {d * 1e3:.3f} mm")
     lines += [""] + ([f"warning: {_named(w, names)}" for w in cal.warnings] or ["no warnings"])
@@ -425,13 +455,15 @@ def _rotation_distance(a, b) -> float:
 class _Capture:
     """The views taken so far and the choice of the next (spread first, then next-best)."""
 
-    def __init__(self, setup: str, start_flange, start_view, board, rng):
+    def __init__(self, setup: str, start_flange, start_detection, board, rng):
         import numpy as np
 
         from drivers.sim.camera import random_view
         from service import dq
         self.setup = setup
+        start_view = start_detection.pose
         self.flanges, self.views = [start_flange], [start_view]
+        self.covariances = [start_detection.covariance]
         # A first guess: the camera at the flange (eye-in-hand) or the board at the flange
         # (eye-to-hand); the solver's answer replaces it once there is one.
         ident = dq.from_pose(np.array([1.0, 0, 0, 0]), np.zeros(3))
@@ -448,15 +480,18 @@ class _Capture:
         self.calibration = None
         self.chose = []          # how each view was chosen
 
-    def add(self, flange, view) -> None:
+    def add(self, flange, detection) -> None:
+        import numpy as np
+
+        from service import handeye
         self.flanges.append(flange)
-        self.views.append(view)
+        self.views.append(detection.pose)
+        self.covariances.append(detection.covariance)
         if len(self.views) > _SPREAD_FIRST:
-            from service import handeye
-            import numpy as np
             try:
-                self.calibration = handeye.calibrate(np.array(self.flanges), np.array(self.views),
-                                                     self.setup)
+                self.calibration = handeye.calibrate(
+                    np.array(self.flanges), np.array(self.views), self.setup,
+                    camera_covariance=np.array(self.covariances))
                 self.x, self.z = self.calibration.x, self.calibration.z
             except ValueError:      # not yet determined: keep the guess and the spread rule
                 self.calibration = None
@@ -551,7 +586,7 @@ def _capture(args) -> int:
             if not first.ok:
                 raise ValueError(f"the camera does not see the board at the start pose "
                                  f"({first}); start with the board in view")
-            state = _Capture(args.setup, start, first.pose, board, rng)
+            state = _Capture(args.setup, start, first, board, rng)
             print(f"view 0: the start pose ({'simulated UR' if sim else args.arm})",
                   file=sys.stderr)
             while len(images) < args.views and state.candidates:
@@ -576,7 +611,7 @@ def _capture(args) -> int:
                 print(f"view {len(images) - 1}: {how}" + ("" if d.ok else f" (not detected: {d})"),
                       file=sys.stderr)
                 if d.ok:
-                    state.add(reached, d.pose)
+                    state.add(reached, d)
             with open(os.path.join(args.dir, "poses.json"), "w", encoding="utf-8") as f:
                 f.write(robot_poses_json(images, np.array(flanges), args.setup))
             with open(os.path.join(args.dir, "intrinsics.json"), "w", encoding="utf-8") as f:
