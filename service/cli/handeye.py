@@ -21,7 +21,7 @@ import os
 import re
 import sys
 
-from service.cli.common import EXIT_ERROR, client, connection_args, fail, failure
+from service.cli.common import client, connection_args, fail, failure, missing_devices
 
 SETUPS = ("eye_in_hand", "eye_to_hand")
 POSE_FILES = ("poses.json", "poses.csv")
@@ -102,7 +102,6 @@ def configure(name: str, p) -> None:
                    help="simulated camera: pixel noise, grey levels (default 2)")
     c.add_argument("--blur", type=float, default=0.6,
                    help="simulated camera: Gaussian blur, pixels (default 0.6)")
-    c.set_defaults(func=_capture)
     s = sub.add_parser("solve", help="solve from a folder of images and robot poses",
                        description="Detect the board in every image of DIR, solve hand-eye "
                                    "with the robot poses (on the server at --target, or "
@@ -133,7 +132,15 @@ def configure(name: str, p) -> None:
     s.add_argument("-o", "--output", metavar="JSON", help="default: DIR/handeye.json")
     s.add_argument("--local", action="store_true", help="solve in this process instead of on a server")
     connection_args(s)
-    s.set_defaults(func=_solve)
+    p.set_defaults(func=_run)
+
+
+def _run(args) -> int:
+    action = {"capture": _capture, "solve": _solve}[args.action]
+    try:
+        return action(args)
+    except ModuleNotFoundError as e:    # OpenCV, ur_rtde: the [devices] extra
+        return missing_devices(f"handeye {args.action}", e)
 
 
 
@@ -524,20 +531,16 @@ def _capture(args) -> int:
     if os.path.isdir(args.dir) and (_find(args.dir, POSE_FILES) or glob.glob(
             os.path.join(args.dir, "view_*"))):
         return fail("handeye capture", f"DIR: {args.dir!r} already holds a capture")
-    try:
-        import cv2
+    import cv2
 
-        import drivers
-        from drivers.base import Limits
-        from drivers.camera import BoardSpec, CharucoCamera, load_board, load_intrinsics
-        from drivers.sim.camera import DEFAULT_INTRINSICS, BoardRenderer
-        from drivers.sim.ursim import URSimProcess
-        from drivers.rotvec import rotvec_from_pose
-        from service import dq
-        from service.cli.posefile import robot_poses_json
-    except ImportError as e:
-        return fail("handeye capture", f"needs the device extras ({e}); "
-                                       f"pip install 'dqpose[devices]'")
+    import drivers
+    from drivers.base import Limits
+    from drivers.camera import BoardSpec, CharucoCamera, load_board, load_intrinsics
+    from drivers.rotvec import rotvec_from_pose
+    from drivers.sim.camera import DEFAULT_INTRINSICS, BoardRenderer
+    from drivers.sim.ursim import URSimProcess
+    from service import dq
+    from service.cli.posefile import robot_poses_json
     rng = np.random.default_rng(args.seed)
     sim = not args.arm
     speed = args.speed or (0.8 if sim else 0.25)

@@ -68,7 +68,9 @@ def test_server_and_health_run_without_device_libraries():
 def test_commands_needing_a_device_library_name_the_extra():
     # --sims starts several simulators: whichever needs a blocked library first is named
     for argv, missing in [(("sim", "piper", "--help"), ("can",)), (("sim", "camera", "--help"), ("cv2",)),
-                          (("serve", "--port", "0", "--sims"), ("can", "cv2"))]:
+                          (("serve", "--port", "0", "--sims"), ("can", "cv2")),
+                          (("handeye", "solve", ROOT, "--local"), ("cv2",)),
+                          (("handeye", "capture", os.path.join(ROOT, "no-such-dir")), ("cv2",))]:
         proc = _dqpose(*argv)
         out, err = proc.communicate(timeout=60)
         assert proc.returncode == 2, (out, err)
