@@ -433,21 +433,23 @@ def _robot_json(path: str, text: str):
     entries = doc.get("poses")
     if not isinstance(entries, list):
         raise ValueError(f"{path}: expected \"poses\": a list")
-    images, kinds, rows = [], [], []
+    images, kinds, rows, keys = [], [], [], set()
     for i, e in enumerate(entries):
         field = f"poses[{i}]"
-        image = None
+        image, key = None, ""
         if isinstance(e, dict) and ("position" not in e):
             image = e.get("image")
             if image is not None and not isinstance(image, str):
                 raise ValueError(f"{field}.image: expected a file name, got {image!r}")
             key = "base_to_flange" if "base_to_flange" in e else "pose"
             e, field = e.get(key), f"{field}.{key}"
+        keys.add(key)
         kind, row = _robot_row(field, e)
         images.append(image)
         kinds.append(kind)
         rows.append(row)
-    return doc, images, kinds, rows
+    sub = f".{keys.pop()}" if len(keys) == 1 and "" not in keys else ""
+    return doc, images, kinds, rows, sub
 
 
 def _robot_csv(text: str):
@@ -487,7 +489,7 @@ def _robot_csv(text: str):
         images.append(image)
         kinds.append("rotvec" if len(v) == 6 else "quaternion")
         rows.append(v if len(v) == 6 else v[3:] + v[:3])
-    return {}, images, kinds, rows
+    return {}, images, kinds, rows, ""
 
 
 def read_robot_poses(path: str, units: str = "auto") -> RobotPoses:
@@ -501,7 +503,8 @@ def read_robot_poses(path: str, units: str = "auto") -> RobotPoses:
     if units not in UNITS:
         raise ValueError(f"units: expected one of {', '.join(UNITS)}, got {units!r}")
     text, fmt = _load(path)
-    doc, images, kinds, rows = _robot_json(path, text) if fmt == "json" else _robot_csv(text)
+    doc, images, kinds, rows, sub = _robot_json(path, text) if fmt == "json" else \
+        _robot_csv(text)
     if not rows:
         raise ValueError(f"{path}: no poses")
     if len(set(kinds)) > 1:
@@ -542,7 +545,7 @@ def read_robot_poses(path: str, units: str = "auto") -> RobotPoses:
         notes.append("rotations read as UR rotation vectors [x, y, z, rx, ry, rz] (axis times "
                      "angle, radians), not roll-pitch-yaw")
     else:
-        dqs = _to_dqs("poses", a)
+        dqs = _to_dqs("poses", a, sub)
     return RobotPoses(images, dqs, tuple(notes), setup)
 
 

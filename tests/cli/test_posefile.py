@@ -152,3 +152,68 @@ def test_bad_keyframe_files_say_where(tmp_path, text, message):
     p.write_text(text)
     with pytest.raises(ValueError, match=message):
         read_interpolate(str(p))
+
+
+# ---- robot poses of a hand-eye capture
+
+def _ur_rows(dqs):
+    from drivers.rotvec import rotvec_from_pose
+    return rotvec_from_pose(dqs)
+
+
+def test_robot_poses_in_every_form_read_alike(tmp_path, poses):
+    from service.cli.posefile import read_robot_poses, robot_poses_json
+    names = [f"view_{i}.png" for i in range(len(poses))]
+    ur = _ur_rows(poses)                       # [x, y, z, rx, ry, rz]
+    rows = _rows(poses)                        # [x, y, z, qw, qx, qy, qz]
+    files = {
+        "ours.json": robot_poses_json(names, poses, "eye_to_hand"),
+        "ur.json": json.dumps({"poses": [{"image": n, "base_to_flange": r.tolist()}
+                                         for n, r in zip(names, ur)]}),
+        "seven.json": json.dumps([{"image": n, "pose": r.tolist()} for n, r in zip(names, rows)]),
+        "ur_mm.csv": "image,x,y,z,rx,ry,rz\n" + "".join(
+            f"{n},{','.join(repr(float(v)) for v in np.r_[1000 * r[:3], r[3:]])}\n"
+            for n, r in zip(names, ur)),
+        "plain.csv": "".join(",".join(repr(float(v)) for v in r) + "\n" for r in rows),
+        "named.csv": "".join(f"{n}," + ",".join(repr(float(v)) for v in r) + "\n"
+                             for n, r in zip(names, rows)),
+    }
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+        got = read_robot_poses(str(tmp_path / name))
+        _same(got.base_flange, poses, atol=1e-12)
+        assert got.images == (names if name != "plain.csv" else [None] * len(poses)), name
+        said = " ".join(got.notes)
+        assert ("rotation vectors" in said) == name.startswith("ur"), (name, said)
+        assert ("millimetres" in said) == name.endswith("mm.csv"), (name, said)
+    assert read_robot_poses(str(tmp_path / "ours.json")).setup == "eye_to_hand"
+    # told the units, the file is read so: metres in millimetres, or millimetres by the file's key
+    (tmp_path / "mm.json").write_text(json.dumps({"units": "mm", "poses": (
+        np.c_[_rows(poses)[:, :3] * 1000, _rows(poses)[:, 3:]]).tolist()}))
+    _same(read_robot_poses(str(tmp_path / "mm.json")).base_flange, poses, atol=1e-12)
+    small = read_robot_poses(str(tmp_path / "plain.csv"), units="mm").base_flange
+    np.testing.assert_allclose(dq.to_pose(small)[1], dq.to_pose(poses)[1] / 1000, atol=1e-15)
+
+
+@pytest.mark.parametrize("text, message", [
+    ('{"poses": [[0, 0, 0, 0, 0, 0], [0, 0, 0, 1, 0, 0, 0]]}',
+     "poses[1]: a quaternion pose among rotvec ones"),
+    ('{"poses": [{"image": "a.png", "pose": [0, 0, 0, 0, 0, 0]}, [0, 0, 0, 0, 0, 0]]}',
+     "poses[1]: no image named, while poses[0] names one"),
+    ('{"poses": [[0, 0, 0, 0, 0, 90]]}', "poses[0]: rotation vector of 90, beyond 2 pi"),
+    ('{"poses": [[0, 0, 0, 0, 0]]}', "poses[0]: expected a pose"),
+    ('{"poses": [{"image": "a.png", "base_to_flange": {"position": {"x": 1}, '
+     '"orientation": {"w": 2}}}]}', "poses[0].base_to_flange.orientation: quaternion norm 2"),
+    ('{"setup": "eye_on_hand", "poses": [[0, 0, 0, 0, 0, 0]]}', "setup: expected eye_in_hand"),
+    ('{"poses": []}', "no poses"),
+    ("image,x,y,z,roll,pitch,yaw\na.png,0,0,0,0,0,0\n", "line 1: columns image,x,y,z,roll"),
+    ("a.png,0,0,0,0,0\n", "line 1: expected [image,]x,y,z,qw,qx,qy,qz"),
+    ("x,y,z,rx,ry,rz\n0,0,zero,0,0,0\n", "line 2: '0,0,zero,0,0,0' are not all numbers"),
+])
+def test_bad_robot_pose_files_say_where(tmp_path, text, message):
+    from service.cli.posefile import read_robot_poses
+    path = tmp_path / ("p.csv" if not text.startswith("{") else "p.json")
+    path.write_text(text)
+    with pytest.raises(ValueError) as e:
+        read_robot_poses(str(path))
+    assert message in str(e.value)

@@ -1,0 +1,162 @@
+"""`dqpose handeye capture` and `dqpose handeye solve` on the simulators: the UR simulator driven
+through the real ur_rtde, the board rendered by the simulated camera and detected by
+drivers.camera, solved on a real server on 127.0.0.1 or --local; the answer checked against the
+simulation's truth with the covariance it comes with."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rtde_control")
+pytest.importorskip("cv2")
+
+from _cli import run, server  # noqa: E402,F401
+from service import dq, fusion, lie  # noqa: E402
+
+# NEES of a 6-dof estimate: below this in 99.9 % of the runs when the covariance is honest
+NEES_BOUND = fusion.chi2_quantile(0.999, 6)
+
+
+def _pose(doc) -> np.ndarray:
+    return dq.from_pose([doc["orientation"][c] for c in "wxyz"],
+                        [doc["position"][c] for c in "xyz"])
+
+
+def _capture(tmp_path_factory, setup: str, views: int) -> str:
+    folder = str(tmp_path_factory.mktemp(setup) / "capture")
+    from service.cli import main
+    assert main(["handeye", "capture", folder, "--setup", setup, "--views", str(views)]) == 0
+    return folder
+
+
+@pytest.fixture(scope="module")
+def eye_in_hand(tmp_path_factory):
+    return _capture(tmp_path_factory, "eye_in_hand", 8)
+
+
+def _check_against_truth(folder: str, result: str):
+    """The solved X and Z are within what their covariances allow of the simulation's truth."""
+    with open(os.path.join(folder, "truth.json")) as f:
+        truth = json.load(f)
+    with open(result) as f:
+        got = json.load(f)
+    assert got["setup"] == truth["setup"]
+    for key in ("x", "z"):
+        est, true = _pose(got[key]), _pose(truth[key])
+        cov = np.array(got[f"covariance_{key}"]).reshape(6, 6)
+        xi = lie.se3_log(dq.mul(dq.inv(est), true))         # true = est * Exp(xi)
+        nees = float(xi @ np.linalg.solve(cov, xi))
+        assert nees < NEES_BOUND, (key, nees, xi)
+        # and the covariance is a calibration's, not a shrug: well under a millimetre
+        assert np.sqrt(np.diag(cov))[3:].max() < 5e-4, cov
+
+
+def test_capture_writes_what_solve_reads(eye_in_hand):
+    names = sorted(os.listdir(eye_in_hand))
+    assert names == ["board.json", "intrinsics.json", "poses.json", "truth.json"] + \
+        [f"view_{i:03d}.png" for i in range(8)]
+    with open(os.path.join(eye_in_hand, "poses.json")) as f:
+        doc = json.load(f)
+    assert doc["setup"] == "eye_in_hand" and len(doc["poses"]) == 8
+    # the views were chosen to turn about different axes: no two alike
+    flanges = np.array([_pose(p["base_to_flange"]) for p in doc["poses"]])
+    for i in range(8):
+        for j in range(i):
+            angle = 2 * np.arccos(min(1.0, abs(float(flanges[i, :4] @ flanges[j, :4]))))
+            assert angle > np.radians(3), (i, j)
+
+
+def test_solve_on_the_server_recovers_the_truth(eye_in_hand, server, capsys, tmp_path):
+    out = {k: str(tmp_path / n) for k, n in (("report", "r.txt"), ("plot", "p.png"),
+                                             ("json", "r.json"))}
+    code, stdout, err = run(capsys, "handeye", "solve", eye_in_hand, "--target", server.target,
+                            "--report", out["report"], "--plot", out["plot"], "-o", out["json"])
+    assert code == 0, err
+    _check_against_truth(eye_in_hand, out["json"])
+    with open(out["report"]) as f:
+        assert f.read() == stdout
+    assert "X = T_flange_camera" in stdout and "Z = T_base_target" in stdout
+    for i in range(8):                    # a line per view, by its image
+        assert f"view_{i:03d}.png" in stdout
+    assert "against the simulation's truth: X off by" in stdout
+    with open(out["plot"], "rb") as f:
+        assert f.read(8) == b"\x89PNG\r\n\x1a\n"
+
+
+def test_solve_local_reads_ur_rotation_vectors_in_millimetres(eye_in_hand, capsys, tmp_path):
+    from drivers.rotvec import rotvec_from_pose
+    folder = str(tmp_path / "ur")
+    shutil.copytree(eye_in_hand, folder)
+    with open(os.path.join(folder, "poses.json")) as f:
+        doc = json.load(f)
+    os.remove(os.path.join(folder, "poses.json"))
+    with open(os.path.join(folder, "poses.csv"), "w") as f:   # what a UR script would log
+        for p in doc["poses"]:
+            x, y, z, rx, ry, rz = rotvec_from_pose(_pose(p["base_to_flange"])).tolist()
+            f.write(f"{p['image']},{1e3 * x!r},{1e3 * y!r},{1e3 * z!r},{rx!r},{ry!r},{rz!r}\n")
+    code, stdout, err = run(capsys, "handeye", "solve", folder, "--local")
+    assert code == 0, err
+    assert "note: positions read as millimetres" in stdout
+    assert "note: rotations read as UR rotation vectors" in stdout
+    assert "note: setup: eye_in_hand (the default" in stdout
+    _check_against_truth(folder, os.path.join(folder, "handeye.json"))
+    assert os.path.isfile(os.path.join(folder, "handeye.png"))
+    assert os.path.isfile(os.path.join(folder, "handeye_report.txt"))
+
+
+def test_eye_to_hand_capture_and_local_solve(tmp_path_factory, capsys):
+    folder = _capture(tmp_path_factory, "eye_to_hand", 7)
+    capsys.readouterr()
+    code, stdout, err = run(capsys, "handeye", "solve", folder, "--local", "--estimate-noise")
+    assert code == 0, err
+    assert "X = T_base_camera" in stdout and "noise estimated from the residuals" in stdout
+    _check_against_truth(folder, os.path.join(folder, "handeye.json"))
+
+
+def test_unusable_views_are_refused_naming_the_images(eye_in_hand, server, capsys, tmp_path):
+    folder = str(tmp_path / "few")
+    shutil.copytree(eye_in_hand, folder)
+    with open(os.path.join(folder, "poses.json")) as f:
+        doc = json.load(f)
+    doc["poses"] = doc["poses"][:2]
+    with open(os.path.join(folder, "poses.json"), "w") as f:
+        json.dump(doc, f)
+    code, _, err = run(capsys, "handeye", "solve", folder, "--target", server.target)
+    assert code == 2
+    assert "FAILED_PRECONDITION" in err and "at least 3" in err
+    assert "pairs[0] = view_000.png" in err            # the server's pairs, by image
+    code, _, err = run(capsys, "handeye", "solve", folder, "--local")
+    assert code == 2 and "dqpose handeye solve: error: base_flange: 2 poses" in err
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda d: os.remove(os.path.join(d, "poses.json")), "DIR: no poses.json or poses.csv"),
+    (lambda d: os.remove(os.path.join(d, "intrinsics.json")), "--intrinsics: required"),
+    (lambda d: os.remove(os.path.join(d, "view_003.png")),
+     "1 image(s) not in"),
+])
+def test_bad_folders_say_what_is_missing(eye_in_hand, capsys, tmp_path, edit, message):
+    folder = str(tmp_path / "bad")
+    shutil.copytree(eye_in_hand, folder)
+    edit(folder)
+    code, _, err = run(capsys, "handeye", "solve", folder, "--local")
+    assert code == 2 and message in err, err
+    assert "Traceback" not in err
+
+
+def test_refusals_before_any_work(capsys, tmp_path, eye_in_hand):
+    code, _, err = run(capsys, "handeye", "capture", str(tmp_path / "a"), "--views", "3")
+    assert code == 2 and "--views: at least 4" in err
+    code, _, err = run(capsys, "handeye", "capture", str(tmp_path / "b"), "--arm", "ur:10.0.0.1")
+    assert code == 2 and "--arm: a real arm needs --camera and --intrinsics" in err
+    code, _, err = run(capsys, "handeye", "capture", eye_in_hand)
+    assert code == 2 and "already holds a capture" in err
+    code, _, err = run(capsys, "handeye", "solve", str(tmp_path / "none"), "--local")
+    assert code == 2 and "DIR: no such folder" in err
+    code, _, err = run(capsys, "handeye", "solve", eye_in_hand, "--target", "127.0.0.1:1",
+                       "--timeout", "2")
+    assert code == 2 and "no answer from the server at 127.0.0.1:1" in err
