@@ -84,7 +84,7 @@ _MISMATCH_ANGLE = np.radians(3.0)      # median congruence errors beyond these: 
 _MISMATCH_PITCH = 0.02                 # correspond (time or pairing), for most samples (m)
 _READING_FACTOR = 5.0                  # another reading fits this many times better: refuse
 _FLOOR_ROT, _FLOOR_TRANS = 1e-9, 1e-9  # smallest estimated noise σ (rad, m): exact data
-_TOL = 1e-10                           # (rad, m) a step this short: converged
+_TOL = 1e-12                           # a step this short in its own σ (squared): converged
 _MAX_ITER = 30
 
 
@@ -312,14 +312,11 @@ def _evaluate(A, C, X, Z):
     return E, lie.se3_log(E)
 
 
-def _estimated_covariance(r: np.ndarray, robust: bool) -> np.ndarray:
-    """One diagonal residual covariance for all samples: per axis, the mean square with the 12
-    fitted degrees of freedom taken out (the median-based scale when ``robust``)."""
-    n = r.shape[0]
-    if robust:
-        var = (1.4826 * np.median(np.abs(r), axis=0)) ** 2
-    else:
-        var = np.sum(r * r, axis=0) / max(n - 2, 1)   # 6n residuals, 12 parameters: 2 per axis
+def _robust_covariance(r: np.ndarray) -> np.ndarray:
+    """The start of the estimated noise: isotropic rotation and translation variances from the
+    median absolute residuals, which a few outliers do not inflate."""
+    var = (1.4826 * np.median(np.abs(r), axis=0)) ** 2
+    var = np.repeat([var[:3].mean(), var[3:].mean()], 3)
     floor = np.array([_FLOOR_ROT ** 2] * 3 + [_FLOOR_TRANS ** 2] * 3)
     return np.diag(np.maximum(var, floor))
 
@@ -339,16 +336,30 @@ class _Fit:
 
 class _Noise:
     """The residual covariances: transported from the given pose noise, or one shared diagonal
-    re-estimated from the residuals at every iterate."""
+    estimated from the residuals (:meth:`update`, at every Gauss–Newton iterate)."""
 
     def __init__(self, SA, SC, estimate: bool):
         self.SA, self.SC, self.estimate = SA, SC, estimate
+        self.shared: Optional[np.ndarray] = None
 
     def __call__(self, X, C, r, Jri, use=None) -> np.ndarray:
         if self.estimate:
-            return np.broadcast_to(_estimated_covariance(r, False), (len(r), 6, 6))
+            if self.shared is None:
+                self.shared = _robust_covariance(r)
+            return np.broadcast_to(self.shared, (len(r), 6, 6))
         SA = None if self.SA is None else self.SA[use]
         return _transported(X, C, SA, self.SC[use], Jri)
+
+    def update(self, r: np.ndarray, J: np.ndarray, P: np.ndarray) -> None:
+        """``σ_k² = (Σ r_ik² + Σ (J_i P J_iᵀ)_kk) / n``: the fit absorbs ``J_i P J_iᵀ`` of each
+        residual's variance (P scales with σ², so this is iterated with the fit: REML-like, the
+        12 fitted degrees of freedom shared out by leverage rather than evenly)."""
+        if self.estimate:
+            absorbed = np.einsum("nij,jk,nik->i", J, P, J)
+            var = (np.sum(r * r, axis=0) + absorbed) / len(r)
+            var = np.repeat([var[:3].mean(), var[3:].mean()], 3)   # isotropic: see _Noise
+            floor = np.array([_FLOOR_ROT ** 2] * 3 + [_FLOOR_TRANS ** 2] * 3)
+            self.shared = np.diag(np.maximum(var, floor))
 
 
 def _linearise(A, C, AdCi, X, Z, noise: _Noise, use):
@@ -371,10 +382,24 @@ def _fit(A, C, X, Z, noise: _Noise, use) -> _Fit:
     it = 0
     for it in range(1, _MAX_ITER + 1):
         E, r, J, S = _linearise(Au, Cu, AdCi, X, Z, noise, use)
-        W = np.linalg.inv(S)
-        JtW = np.swapaxes(J, 1, 2) @ W
-        H = (JtW @ J).sum(axis=0)
-        g = np.einsum("nij,nj->i", JtW, r)
+        for _ in range(20 if noise.estimate else 1):
+            W = np.linalg.inv(S)
+            JtW = np.swapaxes(J, 1, 2) @ W
+            H = (JtW @ J).sum(axis=0)
+            g = np.einsum("nij,nj->i", JtW, r)
+            if not noise.estimate:
+                break
+            # The shared noise settled at this linearisation's optimum (the residuals after
+            # the step), so the outer iterations converge as fast as with known noise.
+            try:
+                Hi = np.linalg.inv(H)
+            except np.linalg.LinAlgError:
+                break
+            old = noise.shared
+            noise.update(r - J @ (Hi @ g), J, Hi)
+            S = noise(X, Cu, r, None)
+            if np.allclose(np.diag(old), np.diag(noise.shared), rtol=1e-6, atol=0.0):
+                break
         cost = float(np.einsum("ni,nij,nj->", r, W, r))
         try:
             step = -np.linalg.solve(H, g)
@@ -392,12 +417,20 @@ def _fit(A, C, X, Z, noise: _Noise, use) -> _Fit:
                 break
             t *= 0.5
         X, Z = Xn, Zn
-        if np.linalg.norm(t * step) < _TOL or t < 1e-8:
+        if (t * t) * float(step @ H @ step) < _TOL or t < 1e-8:
             break
     E, r, J, S = _linearise(Au, Cu, AdCi, X, Z, noise, use)
-    JtW = np.swapaxes(J, 1, 2) @ np.linalg.inv(S)
-    H = (JtW @ J).sum(axis=0)
-    H = 0.5 * (H + H.T)
+    for _ in range(20 if noise.estimate else 1):   # the shared noise settled at the optimum
+        JtW = np.swapaxes(J, 1, 2) @ np.linalg.inv(S)
+        H = (JtW @ J).sum(axis=0)
+        H = 0.5 * (H + H.T)
+        if not noise.estimate:
+            break
+        old = noise.shared
+        noise.update(r, J, np.linalg.inv(H))
+        S = noise(X, Cu, r, None)
+        if np.allclose(np.diag(old), np.diag(noise.shared), rtol=1e-6, atol=0.0):
+            break
     try:
         P = np.linalg.inv(H)
     except np.linalg.LinAlgError:
@@ -655,21 +688,25 @@ def calibrate(base_flange, camera_target, setup: str = "eye_in_hand", *, robust:
 
     inlier = p.use & ~p.suspect
     fit = _fit(p.A, p.C, X0, Z0, noise, inlier)
-    rejected: list[Rejection] = []
-    if robust:
-        for _ in range(5):
-            r_all, S_all, nis_all = _against(p, fit, noise, inlier)
-            new = p.use & (nis_all <= _GATE_6)
-            if np.count_nonzero(new) < _MIN_POSES or np.array_equal(new, inlier):
-                break
-            inlier = new
-            fit = _fit(p.A, p.C, fit.X, fit.Z, noise, inlier)
+    # The gate runs in both modes; without ``robust`` its outliers are named, not left out.
+    for _ in range(5):
         r_all, S_all, nis_all = _against(p, fit, noise, inlier)
-        rejected = [Rejection(int(k), _reason(k, fit, p, r_all[k], S_all[k], nis_all[k]))
-                    for k in np.flatnonzero(p.use & ~inlier)]
-        if rejected:
-            warnings.append(f"{_samples([r.index for r in rejected])}: rejected as outliers (" +
-                            "; ".join(f"{r.index}: {r.reason}" for r in rejected) + ")")
+        new = p.use & (nis_all <= _GATE_6)
+        if np.count_nonzero(new) < _MIN_POSES or np.array_equal(new, inlier):
+            break
+        inlier = new
+        fit = _fit(p.A, p.C, fit.X, fit.Z, noise, inlier)
+    r_all, S_all, nis_all = _against(p, fit, noise, inlier)
+    outliers = [Rejection(int(k), _reason(k, fit, p, r_all[k], S_all[k], nis_all[k]))
+                for k in np.flatnonzero(p.use & ~inlier)]
+    rejected: list[Rejection] = []
+    if outliers:
+        what = ("rejected as outliers" if robust else
+                "outliers (kept: robust mode is off)")
+        warnings.append(f"{_samples([r.index for r in outliers])}: {what} (" +
+                        "; ".join(f"{r.index}: {r.reason}" for r in outliers) + ")")
+    if robust:
+        rejected = outliers
     elif not np.array_equal(inlier, p.use):
         inlier = p.use.copy()
         fit = _fit(p.A, p.C, fit.X, fit.Z, noise, inlier)
@@ -677,11 +714,6 @@ def calibrate(base_flange, camera_target, setup: str = "eye_in_hand", *, robust:
     r_all, S_all, nis = _against(p, fit, noise, inlier)
     idx = np.flatnonzero(inlier)
     nis_in, y = _standardised(fit)
-    if not robust:
-        bad = idx[nis_in > _GATE_6]
-        if len(bad):
-            warnings.append(f"{_samples(bad)}: residuals beyond the {100 * _GATE:.1f} % χ² gate "
-                            f"(NIS " + ", ".join(f"{nis[k]:.3g}" for k in bad) + "); outliers?")
     # Leaving sample i out moves (X, Z) by H⁻¹ J_iᵀ S_i⁻¹ r_i (Sherman–Morrison, first order).
     loo = np.zeros((n, 2))
     shift = np.einsum("ij,nkj,nk->ni", fit.P, fit.J, y)
