@@ -258,12 +258,13 @@ def _solve(args) -> int:
                 cal = c.calibrate(base_flange, camera_target, views.setup, robust=robust,
                                   **noise)
     except Exception as e:
-        if isinstance(e, ValueError) and names:
-            e = type(e)(_named(str(e), names)) if not hasattr(e, "code") else e
+        from_server = hasattr(e, "code")
+        if names and isinstance(e, ValueError) and not from_server:
+            e = type(e)(_named(str(e), names))      # the solver's base_flange[3] -> its image
         code = failure("handeye solve", args, e)
-        if names and hasattr(e, "code"):     # a server's message names pairs by index
-            print(_named(f"dqpose handeye solve: views: " + ", ".join(
-                f"pairs[{k}] = {n}" for k, n in enumerate(names)), names), file=sys.stderr)
+        if names and from_server:                   # the server's pairs[k], by image
+            print("dqpose handeye solve: views: " + ", ".join(
+                f"pairs[{k}] = {n}" for k, n in enumerate(names)), file=sys.stderr)
         return code
     skipped = [(os.path.basename(views.images[i]), found[i]) for i in range(len(found))
                if not found[i].ok]
