@@ -24,6 +24,7 @@ import sys
 from service.cli.common import client, connection_args, fail, failure, missing_devices
 
 SETUPS = ("eye_in_hand", "eye_to_hand")
+CHOICES = ("next-best", "spread", "random")
 POSE_FILES = ("poses.json", "poses.csv")
 SOLVE_EPILOG = """\
 DIR holds:
@@ -85,6 +86,11 @@ def configure(name: str, p) -> None:
                    help="eye_in_hand (default): camera on the flange; eye_to_hand: camera "
                         "fixed, board on the flange")
     c.add_argument("--views", type=int, default=15, help="views to capture (default 15)")
+    c.add_argument("--choose", choices=CHOICES, default="next-best",
+                   help="how views are chosen: a spread of rotations, then, once the solver "
+                        "has an answer, the candidate that shrinks X's covariance most "
+                        "(next-best, the default); the spread rule throughout (spread); or "
+                        "the candidates in their random order (random, a baseline)")
     c.add_argument("--arm", metavar="SPEC", help="a real arm, ur:HOST (default: start the "
                                                  "UR simulator)")
     c.add_argument("--camera", metavar="SOURCE", help="with --arm: a device index, video or "
@@ -282,7 +288,8 @@ def _solve(args) -> int:
         try:
             from service.cli.plots import plot_calibration
             plot_calibration(out["plot"], cal, names,
-                             title=f"dqpose handeye solve {args.dir} ({views.setup})")
+                             title=f"dqpose handeye solve {args.dir} ({views.setup})",
+                             truth=truth)
             print(f"plot: {out['plot']}", file=sys.stderr)
         except ModuleNotFoundError as e:
             print(f"no plot: {e} (pip install matplotlib)", file=sys.stderr)
@@ -463,7 +470,8 @@ def _rotation_distance(a, b) -> float:
 class _Capture:
     """The views taken so far and the choice of the next (spread first, then next-best)."""
 
-    def __init__(self, setup: str, start_flange, start_detection, board, rng):
+    def __init__(self, setup: str, start_flange, start_detection, board, rng,
+                 choose: str = "next-best"):
         import numpy as np
 
         from drivers.sim.camera import random_view
@@ -486,7 +494,7 @@ class _Capture:
                                        max_tilt_deg=40.0, max_roll_deg=60.0)
                            for _ in range(_CANDIDATES)]
         self.calibration = None
-        self.chose = []          # how each view was chosen
+        self.choose = choose
 
     def add(self, flange, detection) -> None:
         import numpy as np
@@ -507,11 +515,23 @@ class _Capture:
     def drop(self, k: int) -> None:
         self.candidates.pop(k)
 
+    def rule(self) -> str:
+        """How the next view is chosen: the solver's next-best pose once it has an answer, the
+        view whose rotation is farthest from every view taken before (``choose`` "spread":
+        always), or the candidates as they come (``choose`` "random")."""
+        if self.choose == "random":
+            return "random"
+        if self.choose == "next-best" and self.calibration is not None:
+            return "next-best pose"
+        return "rotation spread"
+
     def order(self, flanges) -> list:
-        """Candidate indices, best first: the solver's next-best pose when it has an answer,
-        else the view whose rotation is farthest from every view taken."""
+        """Candidate indices, best first, by :meth:`rule`."""
         import numpy as np
-        if self.calibration is not None:
+        rule = self.rule()
+        if rule == "random":
+            return list(range(len(flanges)))
+        if rule == "next-best pose":
             from service import handeye
             return list(handeye.next_best_pose(self.calibration, np.array(self.flanges),
                                                np.array(self.views), np.array(flanges)))
@@ -590,7 +610,7 @@ def _capture(args) -> int:
             if not first.ok:
                 raise ValueError(f"the camera does not see the board at the start pose "
                                  f"({first}); start with the board in view")
-            state = _Capture(args.setup, start, first, board, rng)
+            state = _Capture(args.setup, start, first, board, rng, args.choose)
             print(f"view 0: the start pose ({'simulated UR' if sim else args.arm})",
                   file=sys.stderr)
             while len(images) < args.views and state.candidates:
@@ -604,7 +624,7 @@ def _capture(args) -> int:
                         continue
                 else:
                     break
-                how = "next-best pose" if state.calibration is not None else "rotation spread"
+                how = state.rule()
                 state.drop(k)
                 _move(arm, targets[k], speed)
                 if settle:

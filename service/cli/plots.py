@@ -49,11 +49,13 @@ def plot_motion(path: str, times, poses, limits, title: str = "", raw=None) -> N
     plt.close(fig)
 
 
-def plot_calibration(path: str, cal, names, title: str = "") -> None:
+def plot_calibration(path: str, cal, names, title: str = "", truth=None) -> None:
     """Writes the PNG of a hand-eye calibration (:class:`service.handeye.Calibration`): the
     residual of each view (rotation, translation; views the robust solve left out in red) and
     the 3-sigma ellipsoids of X's and Z's covariances, rotation (deg) and translation (mm),
-    about the estimate in its own frame (the right perturbation). Needs matplotlib."""
+    about the estimate in its own frame (the right perturbation); ``truth`` ``(x, z)``, when
+    known (a simulation), is drawn where it lies: ``truth = estimate * Exp(xi)``. Needs
+    matplotlib."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -73,6 +75,9 @@ def plot_calibration(path: str, cal, names, title: str = "") -> None:
             a.set_title("red: left out by the robust solve", fontsize=8)
     u, v = np.meshgrid(np.linspace(0, 2 * np.pi, 30), np.linspace(0, np.pi, 15))
     sphere = np.stack([np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v)])
+    from service import dq, lie
+    offsets = [None, None] if truth is None else \
+        [lie.se3_log(dq.mul(dq.inv(est), true)) for est, true in zip((cal.x, cal.z), truth)]
     for r, (pose, cov) in enumerate((("X", cal.covariance_x), ("Z", cal.covariance_z))):
         cov = np.asarray(cov, dtype=np.float64).reshape(6, 6)
         for c, (block, scale, unit) in enumerate(((slice(0, 3), np.degrees(1.0), "deg"),
@@ -83,6 +88,11 @@ def plot_calibration(path: str, cal, names, title: str = "") -> None:
             e = np.einsum("ij,jkl->ikl", axes, sphere)
             a.plot_wireframe(e[0], e[1], e[2], lw=0.4, color="tab:blue")
             m = float(np.abs(e).max()) or 1.0
+            if offsets[r] is not None:
+                p = offsets[r][block] * scale
+                a.scatter(*p, color="tab:red", s=20, label="truth")
+                a.legend(fontsize=7, loc="upper left")
+                m = max(m, float(np.abs(p).max()))
             for setter in (a.set_xlim, a.set_ylim, a.set_zlim):
                 setter(-m, m)
             a.set_xlabel(unit, fontsize=7)
