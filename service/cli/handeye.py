@@ -575,8 +575,10 @@ def _capture(args) -> int:
                 x_true, z_true, home = _sim_cell(args.setup, board)
                 ursim = stack.enter_context(URSimProcess())
                 ursim.set_pose(rotvec_from_pose(home))
+                # a simulator on a busy machine can pause longer than a controller would
                 arm = stack.enter_context(drivers.open_arm(f"ur:{ursim.host}",
-                                                           limits=Limits(**_SIM_SPEED)))
+                                                           limits=Limits(**_SIM_SPEED),
+                                                           stale_after=0.5))
                 renderer = BoardRenderer(board, intr)
 
                 def grab(flange):

@@ -160,3 +160,41 @@ def test_refusals_before_any_work(capsys, tmp_path, eye_in_hand):
     code, _, err = run(capsys, "handeye", "solve", eye_in_hand, "--target", "127.0.0.1:1",
                        "--timeout", "2")
     assert code == 2 and "no answer from the server at 127.0.0.1:1" in err
+
+
+def test_capture_on_an_arm_given_by_address_with_a_camera_source(eye_in_hand, capsys, tmp_path):
+    """The real-arm path (--arm, --camera, --intrinsics), on the UR simulator started here and
+    a folder of images as the camera: the arm moves under the default limits, each image is
+    taken where the arm is read to be, and no truth is written."""
+    from drivers.rotvec import rotvec_from_pose
+    from drivers.sim.ursim import URSimProcess
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i in range(4):
+        shutil.copy(os.path.join(eye_in_hand, f"view_{i:03d}.png"), frames)
+    with open(os.path.join(eye_in_hand, "poses.json")) as f:
+        start = _pose(json.load(f)["poses"][0]["base_to_flange"])
+    folder = str(tmp_path / "real")
+    with URSimProcess() as sim:
+        sim.set_pose(rotvec_from_pose(start))
+        code, out, err = run(capsys, "handeye", "capture", folder, "--arm", f"ur:{sim.host}",
+                             "--camera", str(frames), "--intrinsics",
+                             os.path.join(eye_in_hand, "intrinsics.json"), "--views", "4")
+        assert code == 0, err
+        with open(os.path.join(folder, "poses.json")) as f:
+            flanges = [_pose(p["base_to_flange"]) for p in json.load(f)["poses"]]
+        stands = sim.state()["pose"]
+    assert sorted(os.listdir(folder)) == ["board.json", "intrinsics.json", "poses.json"] + \
+        [f"view_{i:03d}.png" for i in range(4)]
+    assert "view 3: rotation spread" in err
+    # the poses saved are where the arm was read to be: the start, and the last where it stands
+    np.testing.assert_allclose(dq.to_matrix(flanges[0]), dq.to_matrix(start), atol=1e-6)
+    np.testing.assert_allclose(dq.to_matrix(flanges[-1]),
+                               dq.to_matrix(dq.from_pose(*_ur_to_pose(stands))), atol=1e-6)
+    for i in range(1, 4):        # and it moved between views
+        assert np.linalg.norm(dq.to_pose(flanges[i])[1] - dq.to_pose(flanges[i - 1])[1]) > 0.01
+
+
+def _ur_to_pose(p6):
+    from drivers.rotvec import pose_from_rotvec
+    return dq.to_pose(pose_from_rotvec(np.asarray(p6, dtype=float)))
