@@ -66,6 +66,9 @@ _SIM_Z = {"eye_in_hand": ((0.40, 0.10, 0.0), (math.pi, 0.0, 0.0)),
 #: the simulator's own tool speed limits (drivers/sim/ursim.py), faster than a bench arm's
 _SIM_SPEED = dict(max_linear_speed=1.0, max_angular_speed=3.0, max_linear_accel=4.0,
                   max_angular_accel=8.0)
+#: Capture sends whole moves, each run by the controller itself, never a servo stream: a pause
+#: of the data stream this short is no fault (and a simulator on a busy machine makes them)
+STALE_AFTER = 0.5
 _CANDIDATES = 200        # candidate views the next one is chosen from
 _SPREAD_FIRST = 3        # views chosen for their spread of rotations before the solver chooses
 
@@ -227,10 +230,13 @@ def _noise(args, detections: list) -> dict:
         return {}
     out = {"camera_covariance": np.array([d.covariance for d in detections]).reshape(-1, 6, 6)}
     if args.robot_noise:
+        from drivers.base import pose_covariance
         deg, mm = args.robot_noise
-        if not (deg > 0 and mm > 0 and math.isfinite(deg) and math.isfinite(mm)):
-            raise ValueError(f"--robot-noise: two positive numbers, got {deg:g} {mm:g}")
-        out["robot_covariance"] = np.diag([math.radians(deg) ** 2] * 3 + [(mm * 1e-3) ** 2] * 3)
+        try:
+            out["robot_covariance"] = pose_covariance(math.radians(deg), mm * 1e-3)
+        except ValueError:
+            raise ValueError(f"--robot-noise: two positive numbers, got {deg:g} {mm:g}") \
+                from None
     return out
 
 
@@ -274,7 +280,7 @@ def _solve(args) -> int:
         return code
     skipped = [(os.path.basename(views.images[i]), found[i]) for i in range(len(found))
                if not found[i].ok]
-    truth = _truth(args.dir, views.setup)
+    truth = read_truth(args.dir, views.setup)
     text = report(cal, views, names, skipped, truth)
     sys.stdout.write(text)
     out = {k: getattr(args, k) or os.path.join(args.dir, default) for k, default in
@@ -299,10 +305,8 @@ def _solve(args) -> int:
     return 0
 
 
-def _truth(folder: str, setup: str):
+def read_truth(folder: str, setup: str):
     """``(x, z)`` of a simulated capture (its truth.json), when it is one of this setup."""
-    import numpy as np
-
     from service import dq
     path = os.path.join(folder, "truth.json")
     if not os.path.isfile(path):
@@ -449,22 +453,10 @@ def _sim_cell(setup: str, board):
     z = _pose(*_SIM_Z[setup])
     if setup == "eye_in_hand":
         x = _pose(*_SIM_X[setup])
-    else:   # the camera on its post looks at where the board is at the start
+    else:   # the camera on its post looks at where the board is at the start, image up
         eye = np.array(_SIM_X[setup][0])
-        look = eye + [0.0, 0.45, -0.1]
-        M = np.eye(4)
-        zc = (look - eye) / np.linalg.norm(look - eye)
-        xc = np.cross(zc, [0.0, 0.0, 1.0])
-        xc /= np.linalg.norm(xc)
-        M[:3, :3] = np.column_stack([xc, np.cross(zc, xc), zc])
-        M[:3, 3] = eye
-        x = dq.from_matrix(M)
+        x = dq.inv(look_at(eye, eye + [0.0, 0.45, -0.1], (0.0, 0.0, 1.0)))   # T_base_camera
     return x, z, flange_of_view(home_view, x, z, setup)
-
-
-def _rotation_distance(a, b) -> float:
-    import numpy as np
-    return 2.0 * math.acos(min(1.0, abs(float(np.dot(a[:4], b[:4])))))
 
 
 class _Capture:
@@ -535,7 +527,8 @@ class _Capture:
             from service import handeye
             return list(handeye.next_best_pose(self.calibration, np.array(self.flanges),
                                                np.array(self.views), np.array(flanges)))
-        gaps = [min(_rotation_distance(c, v) for v in self.views) for c in self.candidates]
+        from drivers.base import pose_delta
+        gaps = [min(pose_delta(c, v)[1] for v in self.views) for c in self.candidates]
         return list(np.argsort(gaps)[::-1])
 
 
@@ -546,6 +539,8 @@ def _capture(args) -> int:
 
     if args.views < 4:
         return fail("handeye capture", f"--views: at least 4, got {args.views}")
+    if args.arm and not args.arm.startswith("ur:"):
+        return fail("handeye capture", f"--arm: ur:HOST (a UR arm), got {args.arm!r}")
     if args.arm and not (args.camera and args.intrinsics):
         return fail("handeye capture", "--arm: a real arm needs --camera and --intrinsics (the "
                                        "simulated camera sees only the simulated arm)")
@@ -575,10 +570,9 @@ def _capture(args) -> int:
                 x_true, z_true, home = _sim_cell(args.setup, board)
                 ursim = stack.enter_context(URSimProcess())
                 ursim.set_pose(rotvec_from_pose(home))
-                # a simulator on a busy machine can pause longer than a controller would
                 arm = stack.enter_context(drivers.open_arm(f"ur:{ursim.host}",
                                                            limits=Limits(**_SIM_SPEED),
-                                                           stale_after=0.5))
+                                                           stale_after=STALE_AFTER))
                 renderer = BoardRenderer(board, intr)
 
                 def grab(flange):
@@ -586,7 +580,7 @@ def _capture(args) -> int:
                                            blur=args.blur, noise=args.noise, rng=rng)
             else:
                 from drivers.camera import open_frames
-                arm = stack.enter_context(drivers.open_arm(args.arm))
+                arm = stack.enter_context(drivers.open_arm(args.arm, stale_after=STALE_AFTER))
                 frames = open_frames(args.camera)
                 stack.callback(frames.close)
 
@@ -662,13 +656,10 @@ def _capture(args) -> int:
 def _move(arm, target, speed: float) -> None:
     """A straight tool move to ``target`` at up to ``speed`` m/s, slowed so that the tool's turn
     stays within the arm's angular speed limit (UR turns the tool in step with the line)."""
-    import numpy as np
-
-    from service import dq
+    from drivers.base import pose_delta
     L = arm.limits
     _, here = arm.tool_pose()
-    dist = float(np.linalg.norm(dq.to_pose(target)[1] - dq.to_pose(here)[1]))
-    angle = _rotation_distance(target, here)
+    dist, angle = pose_delta(here, target)
     v = min(speed, L.max_linear_speed)
     if angle > 1e-9 and dist > 1e-9:
         v = min(v, 0.95 * L.max_angular_speed * dist / angle)

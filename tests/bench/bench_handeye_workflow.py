@@ -29,7 +29,7 @@ import numpy as np
 
 from service import dq, handeye, lie
 from service.cli import main
-from service.cli.handeye import CHOICES, _truth
+from service.cli.handeye import CHOICES, read_truth
 
 
 def _pose(doc) -> np.ndarray:
@@ -45,7 +45,7 @@ def _solve(folder: str, estimate: bool, setup: str):
         return None
     with open(os.path.join(folder, "handeye.json")) as f:
         got = json.load(f)
-    x_true, _ = _truth(folder, setup)
+    x_true, _ = read_truth(folder, setup)
     x, cov = _pose(got["x"]), np.array(got["covariance_x"]).reshape(6, 6)
     xi = lie.se3_log(dq.mul(dq.inv(x), x_true))
     d = dq.mul(dq.inv(x), x_true)
@@ -65,13 +65,14 @@ def main_(argv=None) -> int:
         for choose in CHOICES:
             for seed in range(args.seeds):
                 folder = os.path.join(tmp, f"{choose}_{seed}")
-                with contextlib.redirect_stdout(io.StringIO()), \
-                        contextlib.redirect_stderr(io.StringIO()):
+                said = io.StringIO()
+                with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(said):
                     code = main(["handeye", "capture", folder, "--setup", args.setup,
                                  "--views", str(args.views), "--choose", choose,
                                  "--seed", str(seed)])
                 if code != 0:
-                    print(f"capture {choose} seed {seed} failed", file=sys.stderr)
+                    print(f"capture {choose} seed {seed} failed: "
+                          f"{said.getvalue().strip().splitlines()[-1:]}", file=sys.stderr)
                     continue
                 for estimate in (False, True):
                     r = _solve(folder, estimate, args.setup)

@@ -153,6 +153,8 @@ def test_refusals_before_any_work(capsys, tmp_path, eye_in_hand):
     assert code == 2 and "--views: at least 4" in err
     code, _, err = run(capsys, "handeye", "capture", str(tmp_path / "b"), "--arm", "ur:10.0.0.1")
     assert code == 2 and "--arm: a real arm needs --camera and --intrinsics" in err
+    code, _, err = run(capsys, "handeye", "capture", str(tmp_path / "c"), "--arm", "piper:can0")
+    assert code == 2 and "--arm: ur:HOST (a UR arm), got 'piper:can0'" in err
     code, _, err = run(capsys, "handeye", "capture", eye_in_hand)
     assert code == 2 and "already holds a capture" in err
     code, _, err = run(capsys, "handeye", "solve", str(tmp_path / "none"), "--local")
