@@ -84,7 +84,7 @@ _MISMATCH_ANGLE = np.radians(3.0)      # median congruence errors beyond these: 
 _MISMATCH_PITCH = 0.02                 # correspond (time or pairing), for most samples (m)
 _READING_FACTOR = 5.0                  # another reading fits this many times better: refuse
 _FLOORS = np.array([1e-9, 1e-9, 1e-12]) ** 2   # smallest estimated variances: exact data
-_TOL = 1e-12                           # a step this short in its own σ (squared): converged
+_TOL = 1e-8                            # a step this short in its own σ (squared): converged
 _MAX_ITER = 30
 
 
@@ -344,6 +344,7 @@ class _Noise:
         self.SA, self.SC, self.estimate = SA, SC, estimate
         self.frames = robot_frames            # Ad(F_i) for eye_to_hand (A = F⁻¹), else None
         self.theta: Optional[np.ndarray] = None
+        self.step: Optional[np.ndarray] = None
         self.G: Optional[np.ndarray] = None   # (n, 3, 6, 6) at the last evaluation
 
     def components(self, X, C, Jri, use) -> np.ndarray:
@@ -407,16 +408,27 @@ class _Noise:
                 break
             free &= ~low
             theta = np.maximum(t, _FLOORS)
-        # Far from the answer scoring can overshoot: a component more than tripled, or one
-        # that still carries a share of the residuals cut below a third, takes the
-        # multiplicative (EM) step θ_k q_k / (F θ)_k instead, slower but never leaving the
-        # positive cone. A component that explains (almost) nothing may drop to its floor.
+        # Far from the answer scoring can overshoot: when a component carrying a share of the
+        # residuals more than triples or falls below a third (or a negligible one grows a
+        # hundredfold), the multiplicative (EM) step θ_k q_k / (F θ)_k is taken instead, slower
+        # but never leaving the positive cone. A negligible component may drop to its floor.
         share = self.theta * (F @ self.theta) / max(float(self.theta @ F @ self.theta), 1e-300)
-        jump = (theta > 3.0 * self.theta) | ((theta < self.theta / 3.0) & (share > 0.05))
-        if not np.all(np.isfinite(theta)) or np.any(jump & (self.theta > 10 * _FLOORS)):
+        jump = np.where(share > 0.05, (theta > 3.0 * self.theta) | (theta < self.theta / 3.0),
+                        theta > 100.0 * np.maximum(self.theta, 1e-4 * self.theta.max()))
+        if not np.all(np.isfinite(theta)) or np.any(jump):
             theta = self.theta * q / np.maximum(F @ self.theta, 1e-300)
         theta = np.maximum(theta, _FLOORS)
-        settled = np.all(np.abs(theta - self.theta) <= 1e-4 * theta + _FLOORS)
+        # Near the boundary scoring can cycle between two points: a component whose step
+        # reverses its last one moves half as far.
+        step = theta - self.theta
+        if self.step is not None:
+            step = np.where(step * self.step < 0.0, 0.5 * step, step)
+            theta = np.maximum(self.theta + step, _FLOORS)
+        self.step = step
+        # Settled when the residual degrees of freedom the components account for,
+        # θ_k tr(R G_k) = θ_k (F θ)_k (summing to 6n − 12), move by less than 1e-3 of them.
+        Ft = F @ self.theta
+        settled = (np.abs(theta - self.theta) @ Ft) <= 1e-3 * max(float(self.theta @ Ft), 1e-300)
         self.theta = theta
         return np.einsum("k,nkij->nij", self.theta, G), settled
 
