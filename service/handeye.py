@@ -121,7 +121,10 @@ class Calibration:
     excitation: float = 0.0             # its smallest eigenvalue as an RMS angle (rad)
     iterations: int = 0
     readings: tuple[tuple[str, float, float], ...] = ()  # (reading, median rad, median m)
-    reprojection: Optional[np.ndarray] = None
+    reprojection: Optional[np.ndarray] = None  # (n,) RMS px per view, when corners were given
+    focal_scale: float = 1.0            # the focal lengths' refined scale (refine_focal)
+    focal_sigma: float = 0.0            # its standard deviation
+    pixel_sigma: float = 0.0            # corner noise (px), given or estimated
 
 
 # ---- input -------------------------------------------------------------------------------------
@@ -708,6 +711,189 @@ def _units(cg: _Congruence, pu: np.ndarray, use: np.ndarray) -> None:
                          f"axes{unit}; give both in metres ({_samples(np.flatnonzero(use))})")
 
 
+# ---- corner level ------------------------------------------------------------------------------
+_MIN_CORNERS = 4
+
+
+@dataclass
+class _Views:
+    points: np.ndarray      # (N, 3) board points, all views stacked
+    pixels: np.ndarray      # (N, 2) their detections
+    view: np.ndarray        # (N,) the sample each belongs to
+    K: np.ndarray           # (n, 3, 3)
+
+
+def _views(corners, n: int) -> _Views:
+    """``corners``: one ``(board_points (k,3), image_points (k,2), K (3,3))`` per sample (a
+    mapping with those keys also does); undistorted pixels."""
+    try:
+        items = list(corners)
+    except TypeError:
+        raise FieldError(f"corners: expected one entry per sample, got "
+                         f"{type(corners).__name__}") from None
+    if len(items) != n:
+        raise FieldError(f"corners: {len(items)} views for {n} samples (one per sample)")
+    P, U, V, K = [], [], [], []
+    for i, item in enumerate(items):
+        if isinstance(item, dict):
+            item = (item.get("board_points"), item.get("image_points"), item.get("K"))
+        try:
+            b, u, k = item
+        except (TypeError, ValueError):
+            raise FieldError(f"corners[{i}]: expected (board_points, image_points, K)") from None
+        arrays = []
+        for name, x, shape in (("board_points", b, (None, 3)), ("image_points", u, (None, 2)),
+                               ("K", k, (3, 3))):
+            try:
+                a = np.asarray(x, dtype=np.float64)
+            except (TypeError, ValueError):
+                raise FieldError(f"corners[{i}].{name}: expected numbers") from None
+            if a.ndim != 2 or any(w is not None and d != w for d, w in zip(a.shape, shape)):
+                want = ", ".join("k" if w is None else str(w) for w in shape)
+                raise FieldError(f"corners[{i}].{name}: expected shape ({want}), got {a.shape}")
+            if not np.all(np.isfinite(a)):
+                raise FieldError(f"corners[{i}].{name}: contains NaN or infinity")
+            arrays.append(a)
+        b, u, k = arrays
+        if len(b) != len(u):
+            raise FieldError(f"corners[{i}].image_points: {len(u)} points for {len(b)} board "
+                             f"points")
+        if len(b) < _MIN_CORNERS:
+            raise FieldError(f"corners[{i}].board_points: {len(b)} corners; at least "
+                             f"{_MIN_CORNERS} are needed")
+        if not (k[0, 0] > 0 and k[1, 1] > 0 and np.allclose(k[2], [0, 0, 1])
+                and k[1, 0] == 0 and abs(k[0, 1]) < 1e-9 * k[0, 0]):
+            raise FieldError(f"corners[{i}].K: not a camera matrix [[fx, 0, cx], [0, fy, cy], "
+                             f"[0, 0, 1]] with fx, fy > 0")
+        P.append(b)
+        U.append(u)
+        V.append(np.full(len(b), i))
+        K.append(k)
+    return _Views(np.concatenate(P), np.concatenate(U), np.concatenate(V), np.stack(K))
+
+
+def _corner_cameras(A, X, Z, delta):
+    """``C_i = X⁻¹ (A_i Exp(δ_i))⁻¹ Z`` as 4×4 matrices."""
+    Ai = A if delta is None else dq.mul(A, lie.se3_exp(delta))
+    return dq.to_matrix(dq.mul(dq.mul(dq.inv(X), dq.inv(Ai)), Z))
+
+
+def _project(M, views: _Views, scale: float, use):
+    """Camera points, pixels and the projection's Jacobian for the views ``use``."""
+    R, t = M[:, :3, :3], M[:, :3, 3]
+    v = views.view
+    pc = (R[v] @ views.points[..., None])[..., 0] + t[v]
+    K = views.K[v]
+    fx, fy = K[:, 0, 0] * scale, K[:, 1, 1] * scale
+    x, y, z = pc[:, 0], pc[:, 1], pc[:, 2]
+    u = np.column_stack([fx * x / z + K[:, 0, 2], fy * y / z + K[:, 1, 2]])
+    Jp = np.zeros((len(pc), 2, 3))
+    Jp[:, 0, 0], Jp[:, 0, 2] = fx / z, -fx * x / z ** 2
+    Jp[:, 1, 1], Jp[:, 1, 2] = fy / z, -fy * y / z ** 2
+    ds = np.column_stack([K[:, 0, 0] * x / z, K[:, 1, 1] * y / z])   # d u / d scale
+    return pc, u, Jp, ds
+
+
+@dataclass
+class _CornerFit:
+    X: np.ndarray
+    Z: np.ndarray
+    P: np.ndarray            # (12, 12) marginal covariance of (X, Z)
+    reprojection: np.ndarray  # (n,) RMS pixels per view, all views
+    focal_scale: float
+    pixel_sigma: float
+    focal_sigma: float
+
+
+def _corner_fit(A, X, Z, views: _Views, inlier, SA, refine_focal: bool,
+                pixel_sigma: Optional[float]) -> _CornerFit:
+    """Maximum likelihood on the corners: pixels with isotropic noise σ (given, or estimated
+    from the reprojection errors with the fitted degrees of freedom taken out), unknowns
+    ``X``, ``Z`` (right perturbations), a focal-length scale when ``refine_focal``, and, when
+    robot noise ``SA`` is given, a correction ``δ_i`` of each robot pose with that prior (the
+    robot poses exact otherwise). Gauss–Newton from the pose-level answer."""
+    idx = np.flatnonzero(inlier)
+    n_in = len(idx)
+    sel = np.isin(views.view, idx)
+    sub = _Views(views.points[sel], views.pixels[sel],
+                 np.searchsorted(idx, views.view[sel]), views.K[idx])
+    Au = A[idx]
+    robot = SA is not None
+    nf = 1 if refine_focal else 0
+    npar = 12 + nf + (6 * n_in if robot else 0)
+    if robot:
+        # Prior rows L⁻¹ δ_i, Σ_A,i = L Lᵀ; directions without noise held by a stiff prior.
+        S = SA[idx]
+        e, Q = np.linalg.eigh(S)
+        e = np.maximum(e, 1e-12 * e.max(axis=1, keepdims=True) + 1e-30)
+        prior = np.swapaxes(Q / np.sqrt(e)[:, None, :], 1, 2)       # (n, 6, 6) Σ^-1/2
+    delta = np.zeros((n_in, 6)) if robot else None
+    scale = 1.0
+    sigma = pixel_sigma if pixel_sigma is not None else 1.0
+    N = len(sub.points)
+    dof = max(2 * N - 12 - nf, 1)
+    cost = np.inf
+    for it in range(50):
+        M = _corner_cameras(Au, X, Z, delta)
+        pc, u, Jp, ds = _project(M, sub, scale, None)
+        e = (u - sub.pixels).reshape(-1)
+        if pixel_sigma is None and it < 50:
+            sigma = max(float(np.sqrt(e @ e / dof)), 1e-9)
+        # Jacobian of the pixels.
+        R = M[sub.view, :3, :3]
+        dX = np.zeros((N, 3, 6))
+        dX[:, :, :3] = lie.so3_hat(pc)
+        dX[:, :, 3:] = -np.eye(3)
+        dZ = np.concatenate([-R @ lie.so3_hat(sub.points), R], axis=2)
+        J = np.zeros((2 * N + (6 * n_in if robot else 0), npar))
+        J[:2 * N, :6] = (Jp @ dX).reshape(2 * N, 6)
+        J[:2 * N, 6:12] = (Jp @ dZ).reshape(2 * N, 6)
+        if nf:
+            J[:2 * N, 12] = ds.reshape(-1)
+        r = e / sigma
+        J[:2 * N] /= sigma
+        if robot:
+            AdXi = lie.adjoint(dq.inv(X))
+            Jd = (Jp @ dX @ AdXi).reshape(N, 2, 6) / sigma
+            rows = np.arange(2 * N).reshape(N, 2)
+            cols = 12 + nf + 6 * sub.view[:, None] + np.arange(6)
+            J[rows[:, :, None], cols[:, None, :]] = Jd
+            for i in range(n_in):
+                J[2 * N + 6 * i:2 * N + 6 * i + 6, 12 + nf + 6 * i:12 + nf + 6 * i + 6] = prior[i]
+            r = np.concatenate([r, np.einsum("nij,nj->ni", prior, delta).reshape(-1)])
+        H = J.T @ J
+        g = J.T @ r
+        try:
+            step = -np.linalg.solve(H, g)
+        except np.linalg.LinAlgError:
+            raise Infeasible("corners: the corners do not determine X and Z (singular "
+                             "information)") from None
+        X = dq.mul(X, lie.se3_exp(step[:6]))
+        Z = dq.mul(Z, lie.se3_exp(step[6:12]))
+        if nf:
+            scale *= 1.0 + step[12]
+        if robot:
+            delta = delta + step[12 + nf:].reshape(n_in, 6)
+        new = float(r @ r)
+        if float(step @ H @ step) < _TOL and abs(cost - new) <= 1e-9 * new:
+            break
+        cost = new
+    P = np.linalg.inv(H)
+    # Reprojection of every view, rejected ones included, at the answer (robot as reported).
+    M = _corner_cameras(A, X, Z, None)
+    if robot:
+        full = np.zeros((len(A), 6))
+        full[idx] = delta
+        M = _corner_cameras(A, X, Z, full)
+    _, u, _, _ = _project(M, views, scale, None)
+    err = np.sum((u - views.pixels) ** 2, axis=1)
+    count = np.bincount(views.view, minlength=len(A))
+    rms = np.sqrt(np.bincount(views.view, err, minlength=len(A)) / np.maximum(count, 1))
+    P12 = 0.5 * (P[:12, :12] + P[:12, :12].T)
+    return _CornerFit(X, Z, P12, rms, scale, sigma,
+                      float(np.sqrt(P[12, 12])) if nf else 0.0)
+
+
 # ---- the API -----------------------------------------------------------------------------------
 def check(base_flange, camera_target, setup: str = "eye_in_hand") -> tuple[str, ...]:
     """The data checks of :func:`calibrate` without the refinement: raises what it would raise
@@ -723,19 +909,29 @@ def check(base_flange, camera_target, setup: str = "eye_in_hand") -> tuple[str, 
 
 
 def calibrate(base_flange, camera_target, setup: str = "eye_in_hand", *, robust: bool = True,
-              corners=None, camera_covariance=None, robot_covariance=None) -> Calibration:
+              corners=None, camera_covariance=None, robot_covariance=None,
+              refine_focal: bool = False, pixel_sigma: Optional[float] = None) -> Calibration:
     """Solve ``A_i X C_i = Z`` (see the module docstring) for ``x`` and ``z`` with covariances.
 
     ``camera_covariance`` / ``robot_covariance``: noise of ``camera_target`` / ``base_flange``
     ((6, 6) or (n, 6, 6), right perturbation, rotation first); with neither given the noise is
     estimated from the residuals; with only the camera's given the robot poses are taken as exact.
     ``robust`` rejects samples failing the χ² gate (named in ``rejected``); otherwise they are
-    kept and named in a warning. ``corners`` is not supported yet (``FieldError``).
+    kept and named in a warning.
+
+    ``corners`` (one ``(board_points (k,3), image_points (k,2), K)`` per sample, undistorted
+    pixels, board points in the target frame) adds a corner-level refinement after the pose-level
+    one (:func:`_corner_fit`): ``x``, ``z`` and their covariances then come from the corners,
+    ``reprojection`` holds each view's RMS error (px); ``refine_focal`` estimates one scale of
+    the focal lengths too (``focal_scale``); ``pixel_sigma`` (px) is the corner noise, estimated
+    from the reprojection errors when not given. The robot poses are exact there unless
+    ``robot_covariance`` is given.
     """
-    if corners is not None:
-        raise FieldError("corners: corner-level refinement is not implemented yet; pass poses")
     p = _prepare(base_flange, camera_target, setup)
     n = p.F.shape[0]
+    views = None if corners is None else _views(corners, n)
+    if pixel_sigma is not None and not (np.isfinite(pixel_sigma) and pixel_sigma > 0):
+        raise FieldError(f"pixel_sigma: must be a positive number of pixels, got {pixel_sigma!r}")
     SC = _noise(camera_covariance, "camera_covariance", n)
     SRob = _noise(robot_covariance, "robot_covariance", n)
     if SC is None and SRob is not None:
@@ -804,16 +1000,29 @@ def calibrate(base_flange, camera_target, setup: str = "eye_in_hand", *, robust:
         warnings.append(f"{_samples(idx)}: the closed form and the refined X differ by "
                         f"{np.degrees(agree[0]):.2f}° / {1e3 * agree[1]:.1f} mm "
                         f"(NEES {agree[2]:.3g}): the model may not fit the data")
+    X, Z, P, Hx = fit.X, fit.Z, fit.P, fit.H
+    corner = {}
+    if views is not None:
+        cf = _corner_fit(p.A, X, Z, views, inlier, SA if not estimate else None, refine_focal,
+                         pixel_sigma)
+        X, Z, P, Hx = cf.X, cf.Z, cf.P, np.linalg.inv(cf.P)
+        corner = dict(reprojection=cf.reprojection, focal_scale=cf.focal_scale,
+                      focal_sigma=cf.focal_sigma, pixel_sigma=cf.pixel_sigma)
+        bad = np.flatnonzero(inlier & (cf.reprojection > 5.0 * cf.pixel_sigma + 0.5))
+        if len(bad):
+            warnings.append(f"{_samples(bad)}: reprojection errors of " + ", ".join(
+                f"{cf.reprojection[k]:.2f}" for k in bad) + f" px, against {cf.pixel_sigma:.2f} "
+                f"px overall: corners misdetected, or the robot pose off?")
     return Calibration(
-        setup=p.setup, x=fit.X, z=fit.Z, covariance_x=fit.P[:6, :6].copy(),
-        covariance_z=fit.P[6:, 6:].copy(), residuals=residuals, warnings=tuple(warnings),
-        inliers=inlier, rejected=tuple(rejected), covariance=fit.P, information=fit.H,
+        setup=p.setup, x=X, z=Z, covariance_x=P[:6, :6].copy(),
+        covariance_z=P[6:, 6:].copy(), residuals=residuals, warnings=tuple(warnings),
+        inliers=inlier, rejected=tuple(rejected), covariance=P, information=Hx,
         noise_model="estimated" if estimate else "given",
         camera_covariance=noise.covariances()[0] if estimate else SC,
         robot_covariance=noise.covariances()[1] if estimate else SRob,
         residual_covariance=np.array(S_all), nis=nis, leave_one_out=loo, closed_form_x=X0,
         closed_form_z=Z0, agreement=agree, rotation_condition=p.condition,
-        excitation=p.excitation, iterations=fit.iterations, readings=p.readings)
+        excitation=p.excitation, iterations=fit.iterations, readings=p.readings, **corner)
 
 
 def _against(p: _Prepared, fit: _Fit, noise: _Noise, inlier):
