@@ -210,8 +210,8 @@ def scene(n: int, setup: str = "eye_in_hand", geometry: str = "wrist",
 
 # ---- broken data: what the checks must flag ----------------------------------------------------
 BROKEN = ("two_poses", "duplicates", "pure_translation", "parallel_axes", "small_rotations",
-          "time_shift", "millimetres", "inverted_camera", "inverted_robot", "swapped_setup",
-          "outliers", "marker_flips")
+          "time_shift", "millimetres", "inverted_camera", "inverted_robot", "inverted_both",
+          "swapped_setup", "outliers", "marker_flips")
 
 
 @dataclass(frozen=True)
@@ -268,6 +268,8 @@ def broken(kind: str, n: int = 20, setup: str = "eye_in_hand", seed: int = 0,
         C = dq.inv(C)
     elif kind == "inverted_robot":
         F = dq.inv(F)
+    elif kind == "inverted_both":     # fits as well as the truth, X and Z exchanged
+        F, C = dq.inv(F), dq.inv(C)
     elif kind == "swapped_setup":
         solve_as = "eye_to_hand" if setup == "eye_in_hand" else "eye_in_hand"
     elif kind == "outliers":
