@@ -134,6 +134,11 @@ def configure(name: str, p) -> None:
     s.add_argument("--robot-noise", nargs=2, type=float, metavar=("DEG", "MM"),
                    help="the robot poses' noise, 1 sigma per axis (default: exact); with the "
                         "detector's covariances only")
+    s.add_argument("--corners", action="store_true",
+                   help="refine on the detected corners' reprojection too (corner level; on "
+                        "the simulator's renders no better than the default, see BENCHMARKS.md)")
+    s.add_argument("--refine-focal", action="store_true",
+                   help="with --corners: estimate a scale of the focal lengths too")
     s.add_argument("--keep-outliers", action="store_true",
                    help="use every view (default: gross outliers are left out, with reasons)")
     s.add_argument("--report", metavar="TXT", help="default: DIR/handeye_report.txt")
@@ -240,6 +245,25 @@ def _noise(args, detections: list) -> dict:
     return out
 
 
+def _corners(args, camera, detections: list) -> dict:
+    """``--corners``: each view's detected corners for the corner-level refinement, the image
+    points undistorted (the solver's camera is a pinhole)."""
+    import numpy as np
+    if not args.corners:
+        if args.refine_focal:
+            raise ValueError("--refine-focal: needs --corners")
+        return {}
+    K, dist = camera.intrinsics.K, camera.intrinsics.dist
+    views = []
+    for d in detections:
+        u = d.image_points
+        if np.any(dist):
+            import cv2
+            u = cv2.undistortPoints(u.reshape(-1, 1, 2), K, dist, P=K).reshape(-1, 2)
+        views.append((d.object_points, u, K))
+    return {"corners": views, "refine_focal": args.refine_focal}
+
+
 def _named(text: str, names: list) -> str:
     """``pairs[3]`` in a message followed by the image it came from."""
     return re.sub(r"\b(pairs|base_flange|camera_target)\[(\d+)\]",
@@ -261,6 +285,7 @@ def _solve(args) -> int:
         base_flange = views.base_flange[used]
         camera_target = np.array([found[i].pose for i in used]).reshape(-1, 8)
         noise = _noise(args, [found[i] for i in used])
+        noise.update(_corners(args, camera, [found[i] for i in used]))
         robust = not args.keep_outliers
         if args.local:
             cal = handeye.calibrate(base_flange, camera_target, views.setup, robust=robust,
@@ -274,7 +299,8 @@ def _solve(args) -> int:
         if names and isinstance(e, ValueError) and not from_server:
             e = type(e)(_named(str(e), names))      # the solver's base_flange[3] -> its image
         code = failure("handeye solve", args, e)
-        if names and from_server:                   # the server's pairs[k], by image
+        if names and from_server and re.search(r"pairs\[|samples? \d", str(e)):
+            # the server's pairs[k] and samples k, by image
             print("dqpose handeye solve: views: " + ", ".join(
                 f"pairs[{k}] = {n}" for k, n in enumerate(names)), file=sys.stderr)
         return code
@@ -382,6 +408,11 @@ def report(cal, views, names: list, skipped: list, truth=None) -> str:
                  + ("noise: each view's covariance as given" if cal.noise_model == "given" else
                     "noise estimated from the residuals")
                  + f", {cal.iterations} Gauss-Newton steps")
+    if cal.reprojection is not None:
+        lines.append(f"corner level: reprojection RMS per view {np.min(cal.reprojection):.3f}.."
+                     f"{np.max(cal.reprojection):.3f} px, corner noise {cal.pixel_sigma:.3f} px"
+                     + (f", focal lengths x {cal.focal_scale:.6f} +- {cal.focal_sigma:.6f}"
+                        if cal.focal_sigma else ""))
     for r, a, d in cal.readings:
         lines.append(f"reading {r}: median residual {math.degrees(a):.4f} deg, {d * 1e3:.3f} mm")
     lines += [""] + ([f"warning: {_named(w, names)}" for w in cal.warnings] or ["no warnings"])

@@ -519,15 +519,17 @@ class Client:
             call.cancel()
 
     def calibrate(self, base_flange, camera_target, setup: str = "eye_in_hand", *,
-                  robust: bool = True, camera_covariance=None,
-                  robot_covariance=None) -> handeye.Calibration:
+                  robust: bool = True, camera_covariance=None, robot_covariance=None,
+                  corners=None, refine_focal: bool = False,
+                  pixel_sigma: Optional[float] = None) -> handeye.Calibration:
         """:func:`service.handeye.calibrate` on the server (same arguments, same result but for
         the noise model's matrices): ``base_flange`` ``(n, 8)`` ``T_base_flange``,
-        ``camera_target`` ``(n, 8)`` ``T_camera_target``. Unusable data is an :class:`RpcError`
-        with code ``FAILED_PRECONDITION`` and the solver's reason, naming the pairs."""
+        ``camera_target`` ``(n, 8)`` ``T_camera_target``; ``corners`` as the domain takes them,
+        with one camera matrix for all views. Unusable data is an :class:`RpcError` with code
+        ``FAILED_PRECONDITION`` and the solver's reason, naming the pairs."""
         self._check_count("base_flange", len(np.asarray(base_flange)), "pose pairs")
         request = calibrate_msg(base_flange, camera_target, setup, robust, camera_covariance,
-                                robot_covariance)
+                                robot_covariance, corners, refine_focal, pixel_sigma)
         answer = hpb.CalibrateResponse.FromString(self._call(self._calibrate,
                                                              request.SerializeToString()))
         return calibration_from_msg(answer, setup)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import re
 from typing import NamedTuple
 
 import numpy as np
@@ -819,7 +820,8 @@ SETUP_ENUMS = {name: code for code, name in SETUP_NAMES.items()}
 CALIBRATE_FIELDS = {"base_flange": "pairs{}.base_to_flange",
                     "camera_target": "pairs{}.camera_to_target",
                     "camera_covariance": "pairs{}.camera_covariance",
-                    "robot_covariance": "pairs{}.robot_covariance"}
+                    "robot_covariance": "pairs{}.robot_covariance",
+                    "corners": "pairs{}.corners", "board_points": "target_points"}
 
 
 class CalibrateArgs(NamedTuple):
@@ -830,12 +832,42 @@ class CalibrateArgs(NamedTuple):
     robust: bool
     camera_covariance: np.ndarray | None    # (n, 6, 6)
     robot_covariance: np.ndarray | None     # (n, 6, 6)
+    corners: list | None                    # per pair (target_points, image_points, K)
+    refine_focal: bool
+    pixel_sigma: float | None
 
 
 def calibrate_error(e: ValueError) -> FieldError:
     """A :func:`service.handeye.calibrate` error with the request's field names, wherever the
     message has the domain's (``"base_flange, camera_target: ..."``); Infeasible stays so."""
-    return rename_all(e, CALIBRATE_FIELDS)
+    renamed = rename_all(e, CALIBRATE_FIELDS)
+    # the domain takes a camera matrix per view; the request has one
+    return type(renamed)(re.sub(r"pairs\[\d+\]\.corners\.K\b", "camera_matrix", str(renamed)))
+
+
+def _corners(req) -> list | None:
+    """Every pair's corners as the domain takes them, or None when no pair has any."""
+    has = [p.HasField("corners") for p in req.pairs]
+    if not any(has):
+        return None
+    if not all(has):
+        i, given = has.index(False), has.index(True)
+        raise FieldError(f"pairs[{i}].corners: required, as pairs[{given}] has corners (on "
+                         f"every pair or on none)")
+    if len(req.camera_matrix) != 9:
+        raise FieldError(f"camera_matrix: {len(req.camera_matrix)} values; 9 (row-major) are "
+                         f"needed with corners")
+    K = np.array(req.camera_matrix, dtype=np.float64).reshape(3, 3)
+    out = []
+    for i, p in enumerate(req.pairs):
+        c = p.corners
+        if len(c.target_points) % 3 or len(c.image_points) % 2:
+            bad = "target_points" if len(c.target_points) % 3 else "image_points"
+            raise FieldError(f"pairs[{i}].corners.{bad}: {len(getattr(c, bad))} values, not "
+                             f"{'3' if bad == 'target_points' else '2'} per corner")
+        out.append((np.array(c.target_points, dtype=np.float64).reshape(-1, 3),
+                    np.array(c.image_points, dtype=np.float64).reshape(-1, 2), K))
+    return out
 
 
 def _pair_covariances(pairs, name: str) -> np.ndarray | None:
@@ -867,9 +899,18 @@ def calibrate_from_msg(req) -> CalibrateArgs:
         poses[name] = flat_to_dqs(poses_to_flat([getattr(p, name) for p in req.pairs]), "pairs",
                                   f".{name}")
     robust = req.robust if req.HasField("robust") else True
+    corners = _corners(req)
+    if corners is None and (req.refine_focal or req.pixel_sigma or req.camera_matrix):
+        field = "refine_focal" if req.refine_focal else \
+            "pixel_sigma" if req.pixel_sigma else "camera_matrix"
+        raise FieldError(f"{field}: only with corners (PosePair.corners)")
+    if req.pixel_sigma < 0 or not math.isfinite(req.pixel_sigma):
+        raise FieldError(f"pixel_sigma: must be a positive number of pixels (0: estimated), got "
+                         f"{req.pixel_sigma!r}")
     return CalibrateArgs(setup, poses["base_to_flange"], poses["camera_to_target"], robust,
                          _pair_covariances(req.pairs, "camera_covariance"),
-                         _pair_covariances(req.pairs, "robot_covariance"))
+                         _pair_covariances(req.pairs, "robot_covariance"), corners,
+                         req.refine_focal, req.pixel_sigma or None)
 
 
 def _per_pair(cov, name: str, n: int) -> list | None:
@@ -885,7 +926,9 @@ def _per_pair(cov, name: str, n: int) -> list | None:
 
 
 def calibrate_msg(base_flange, camera_target, setup: str = "eye_in_hand", robust: bool = True,
-                  camera_covariance=None, robot_covariance=None) -> "hpb.CalibrateRequest":
+                  camera_covariance=None, robot_covariance=None, corners=None,
+                  refine_focal: bool = False,
+                  pixel_sigma: float | None = None) -> "hpb.CalibrateRequest":
     """Client side: the ``CalibrateRequest`` of :func:`service.handeye.calibrate`'s arguments,
     poses as given (the server names what is wrong with them)."""
     if setup not in SETUP_ENUMS:
@@ -904,7 +947,28 @@ def calibrate_msg(base_flange, camera_target, setup: str = "eye_in_hand", robust
         rows = _per_pair(cov, name, len(pairs))
         for p, row in zip(pairs, rows or ()):
             getattr(p, name).extend(row)
-    return hpb.CalibrateRequest(setup=SETUP_ENUMS[setup], pairs=pairs, robust=bool(robust))
+    request = hpb.CalibrateRequest(setup=SETUP_ENUMS[setup], pairs=pairs, robust=bool(robust),
+                                   refine_focal=bool(refine_focal),
+                                   pixel_sigma=float(pixel_sigma or 0.0))
+    if corners is not None:
+        _corners_msgs(request, corners)
+    return request
+
+
+def _corners_msgs(request, corners) -> None:
+    """Client side: :func:`service.handeye.calibrate`'s ``corners`` (one ``(board_points,
+    image_points, K)`` per pair, one K for all) into the request."""
+    corners = list(corners)
+    if len(corners) != len(request.pairs):
+        raise ValueError(f"corners: {len(corners)} views for {len(request.pairs)} pairs")
+    Ks = [np.asarray(k, dtype=np.float64) for _, _, k in corners]
+    if any(k.shape != (3, 3) or not np.array_equal(k, Ks[0]) for k in Ks):
+        raise ValueError("corners: one camera matrix K (3, 3) for every view (the service "
+                         "takes one camera)")
+    request.camera_matrix.extend(Ks[0].ravel().tolist())
+    for p, (b, u, _) in zip(request.pairs, corners):
+        p.corners.target_points.extend(np.asarray(b, dtype=np.float64).ravel().tolist())
+        p.corners.image_points.extend(np.asarray(u, dtype=np.float64).ravel().tolist())
 
 
 def calibration_to_msg(c) -> "hpb.CalibrateResponse":
@@ -916,12 +980,13 @@ def calibration_to_msg(c) -> "hpb.CalibrateResponse":
         rejected=[hpb.RejectedPair(index=r.index, reason=r.reason) for r in c.rejected],
         agreement=[float(v) for v in c.agreement], rotation_condition=c.rotation_condition,
         excitation=c.excitation, iterations=c.iterations, noise_model=c.noise_model,
-        readings=[hpb.Reading(reading=r, rotation=a, translation=d) for r, a, d in c.readings])
+        readings=[hpb.Reading(reading=r, rotation=a, translation=d) for r, a, d in c.readings],
+        focal_scale=c.focal_scale, focal_sigma=c.focal_sigma, pixel_sigma=c.pixel_sigma)
     for field, pose in (("x", c.x), ("z", c.z), ("closed_form_x", c.closed_form_x),
                         ("closed_form_z", c.closed_form_z)):
         if pose is not None:
             dq_to_pose(pose, getattr(msg, field))
-    for field in ("leave_one_out", "nis", "covariance"):
+    for field in ("leave_one_out", "nis", "covariance", "reprojection"):
         value = getattr(c, field)
         if value is not None:
             getattr(msg, field).extend(np.asarray(value).ravel().tolist())
@@ -955,4 +1020,6 @@ def calibration_from_msg(msg, setup: str):
         closed_form_z=pose(msg.closed_form_z) if msg.HasField("closed_form_z") else None,
         agreement=tuple(msg.agreement), rotation_condition=msg.rotation_condition,
         excitation=msg.excitation, iterations=msg.iterations,
-        readings=tuple((r.reading, r.rotation, r.translation) for r in msg.readings))
+        readings=tuple((r.reading, r.rotation, r.translation) for r in msg.readings),
+        reprojection=np.array(msg.reprojection, dtype=np.float64) if msg.reprojection else None,
+        focal_scale=msg.focal_scale, focal_sigma=msg.focal_sigma, pixel_sigma=msg.pixel_sigma)

@@ -34,7 +34,9 @@ class HandEye:
             result = handeye.calibrate(args.base_flange, args.camera_target, args.setup,
                                        robust=args.robust,
                                        camera_covariance=args.camera_covariance,
-                                       robot_covariance=args.robot_covariance)
+                                       robot_covariance=args.robot_covariance,
+                                       corners=args.corners, refine_focal=args.refine_focal,
+                                       pixel_sigma=args.pixel_sigma)
         except ValueError as e:
             raise calibrate_error(e) from None
         return calibration_to_msg(result)

@@ -87,6 +87,18 @@ def test_solve_on_the_server_recovers_the_truth(eye_in_hand, server, capsys, tmp
         assert f.read(8) == b"\x89PNG\r\n\x1a\n"
 
 
+def test_corner_level_on_the_server(eye_in_hand, server, capsys, tmp_path):
+    result = str(tmp_path / "r.json")
+    code, stdout, err = run(capsys, "handeye", "solve", eye_in_hand, "--target", server.target,
+                            "--corners", "--refine-focal", "-o", result,
+                            "--report", str(tmp_path / "r.txt"), "--plot", str(tmp_path / "p.png"))
+    assert code == 0, err
+    assert "corner level: reprojection RMS per view" in stdout and "focal lengths x" in stdout
+    _check_against_truth(eye_in_hand, result)
+    code, _, err = run(capsys, "handeye", "solve", eye_in_hand, "--local", "--refine-focal")
+    assert code == 2 and "--refine-focal: needs --corners" in err
+
+
 def test_solve_local_reads_ur_rotation_vectors_in_millimetres(eye_in_hand, capsys, tmp_path):
     from drivers.rotvec import rotvec_from_pose
     folder = str(tmp_path / "ur")
@@ -128,9 +140,18 @@ def test_unusable_views_are_refused_naming_the_images(eye_in_hand, server, capsy
     code, _, err = run(capsys, "handeye", "solve", folder, "--target", server.target)
     assert code == 2
     assert "FAILED_PRECONDITION" in err and "at least 3" in err
-    assert "pairs[0] = view_000.png" in err            # the server's pairs, by image
     code, _, err = run(capsys, "handeye", "solve", folder, "--local")
     assert code == 2 and "dqpose handeye solve: error: base_flange: 2 poses" in err
+    # a robot that never turned (its pose logged once and copied): the samples, by image
+    with open(os.path.join(eye_in_hand, "poses.json")) as f:
+        doc = json.load(f)
+    for p in doc["poses"]:
+        p["base_to_flange"] = doc["poses"][0]["base_to_flange"]
+    with open(os.path.join(folder, "poses.json"), "w") as f:
+        json.dump(doc, f)
+    code, _, err = run(capsys, "handeye", "solve", folder, "--target", server.target)
+    assert code == 2 and "FAILED_PRECONDITION" in err and "samples 0, 1" in err, err
+    assert "pairs[0] = view_000.png, pairs[1] = view_001.png" in err
 
 
 @pytest.mark.parametrize("edit, message", [

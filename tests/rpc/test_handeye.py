@@ -91,6 +91,41 @@ def test_given_noise_travels_per_pair(client):
     _assert_same(remote, local)
 
 
+def test_corners_travel_with_one_camera_matrix(client, stub):
+    s = _handeye.scene(10, camera_noise=(0.1, 0.5), seed=11)
+    cs = _handeye.corners(s, 0.2, seed=3)
+    remote = client.calibrate(s.base_flange, s.camera_target, corners=cs, refine_focal=True)
+    local = handeye.calibrate(s.base_flange, s.camera_target, corners=cs, refine_focal=True)
+    _assert_same(remote, local)
+    np.testing.assert_allclose(remote.reprojection, local.reprojection, rtol=1e-8)
+    assert remote.focal_scale == pytest.approx(local.focal_scale, rel=1e-10)
+    assert remote.focal_sigma == pytest.approx(local.focal_sigma, rel=1e-8)
+    assert remote.pixel_sigma == pytest.approx(local.pixel_sigma, rel=1e-8)
+    # corners on some pairs only, a camera matrix missing or wrong, a stray corner coordinate
+    ok = calibrate_msg(s.base_flange, s.camera_target, corners=cs)
+
+    def case(edit):
+        r = pb.CalibrateRequest()
+        r.CopyFrom(ok)
+        edit(r)
+        return _details(stub, r)
+
+    for edit, expected in [
+        (lambda r: r.pairs[4].ClearField("corners"), "pairs[4].corners: required, as pairs[0]"),
+        (lambda r: r.ClearField("camera_matrix"), "camera_matrix: 0 values; 9"),
+        (lambda r: r.camera_matrix.__setitem__(3, 0.5), "camera_matrix: not a camera matrix"),
+        (lambda r: r.pairs[2].corners.image_points.append(1.0),
+         "pairs[2].corners.image_points: "),
+        (lambda r: r.pairs[2].corners.target_points.extend([0.0, 0.0, 0.0]),
+         "pairs[2].corners.image_points: "),
+        (lambda r: [p.ClearField("corners") for p in r.pairs], "camera_matrix: only with corners"),
+        (lambda r: setattr(r, "pixel_sigma", -1.0), "pixel_sigma: must be a positive number"),
+    ]:
+        code, details = case(edit)
+        assert code == grpc.StatusCode.INVALID_ARGUMENT, details
+        assert details.startswith(expected), details
+
+
 def test_outliers_are_rejected_with_reasons_and_robust_is_the_default(client, stub):
     s = _handeye.scene(15, camera_noise=(0.1, 0.5), seed=2)
     bad = s.camera_target.copy()
