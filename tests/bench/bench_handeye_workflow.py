@@ -8,9 +8,10 @@ answer against the simulation's truth.
 
 Rows: how the views were chosen (`capture --choose`: the solver's next-best pose after a spread
 of rotations, the spread rule throughout, or the random candidates as they come: a user's
-arbitrary poses), each solved two ways: every view weighed by its detector covariance (the
-`solve` default) and the noise estimated from the residuals (`--estimate-noise`, what a solver
-given poses alone can do). Columns: median and worst error of X over the seeds (the angle of
+arbitrary poses), each solved four ways: every view weighed by its detector covariance (the
+`solve` default), the noise estimated from the residuals (`--estimate-noise`, what a solver
+given poses alone can do), and on the corners' reprojection (`--corners`, with and without
+`--refine-focal`). Columns: median and worst error of X over the seeds (the angle of
 X̂⁻¹X; the distance between the positions), the mean NEES of X (6 for an honest covariance), and
 the median of X's largest 1-sigma position deviation.
 """
@@ -37,8 +38,12 @@ def _pose(doc) -> np.ndarray:
                         [doc["position"][c] for c in "xyz"])
 
 
-def _solve(folder: str, estimate: bool, setup: str):
-    argv = ["handeye", "solve", folder, "--local"] + (["--estimate-noise"] if estimate else [])
+SOLVES = {"detector covariances": [], "estimated": ["--estimate-noise"],
+          "corner level": ["--corners"], "corner level + focal": ["--corners", "--refine-focal"]}
+
+
+def _solve(folder: str, how: str, setup: str):
+    argv = ["handeye", "solve", folder, "--local"] + SOLVES[how]
     with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
         code = main(argv)
     if code != 0:
@@ -74,18 +79,16 @@ def main_(argv=None) -> int:
                     print(f"capture {choose} seed {seed} failed: "
                           f"{said.getvalue().strip().splitlines()[-1:]}", file=sys.stderr)
                     continue
-                for estimate in (False, True):
-                    r = _solve(folder, estimate, args.setup)
-                    rows.setdefault((choose, estimate), []).append(r)
+                for how in SOLVES:
+                    rows.setdefault((choose, how), []).append(_solve(folder, how, args.setup))
                 print(f"{choose} seed {seed}: done", file=sys.stderr, flush=True)
     print(f"\n{args.setup}, {args.views} views, {args.seeds} seeds (capture --seed 0..)\n")
     print("| views chosen by | noise | X error deg, median / worst | X error mm, median / worst "
           "| mean NEES of X | median largest 1-sigma, mm | refused |")
     print("|---|---|---|---|---|---|---|")
-    for (choose, estimate), results in rows.items():
+    for (choose, noise), results in rows.items():
         ok = np.array([r for r in results if r is not None]).reshape(-1, 4)
         refused = len(results) - len(ok)
-        noise = "estimated" if estimate else "detector covariances"
         if not len(ok):
             print(f"| {choose} | {noise} | — | — | — | — | {refused} |")
             continue
