@@ -1314,11 +1314,15 @@ class Tracker:
 
     def estimate(self, body: str, time: Optional[float] = None) -> Fused:
         """``body``'s pose at ``time`` (default: its newest measurement's) from its window."""
+        return self.estimate_ids(body, time)[0]
+
+    def estimate_ids(self, body: str, time: Optional[float] = None) -> tuple[Fused, np.ndarray]:
+        """:meth:`estimate`, and the ids of the measurements it fused (:meth:`window_of`'s)."""
         s, rows = self._store, self._rows(body)
         # the rows were checked by fuse's rules when they came in
         return _fuse_rows(s.poses[rows], s.covs[rows],
                           tuple(self._names[c] for c in s.codes[rows].tolist()), s.times[rows],
-                          time, self._checked)
+                          time, self._checked), s.ids[rows]
 
     def _code_of(self, body: str) -> int:
         if body not in self._active:
