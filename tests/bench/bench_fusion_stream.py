@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import gc
 import io
 import os
 import pstats
@@ -130,6 +131,9 @@ def run(target: str, scene: Scene, seconds: float, msg_rate: float | None, args,
 
     sampler = threading.Thread(target=sample_rss, daemon=True)
     sampler.start()
+    # as `dqpose serve` does: a full collection over this process's imports would stall the
+    # client ~25 ms, which the latencies would charge to the server
+    gc.freeze()
     cpu0 = (_cpu_seconds(server_pid) if server_pid else 0.0, _cpu_seconds(os.getpid()))
     with Client(target) as c:
         for a in c.stream_fuse(batches(), sources=SOURCES, output_rate=args.output_rate,
