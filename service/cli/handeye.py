@@ -68,7 +68,7 @@ _SIM_SPEED = dict(max_linear_speed=1.0, max_angular_speed=3.0, max_linear_accel=
                   max_angular_accel=8.0)
 #: Capture sends whole moves, each run by the controller itself, never a servo stream: a pause
 #: of the data stream this short is no fault (and a simulator on a busy machine makes them)
-STALE_AFTER = 0.5
+STALE_AFTER = 1.0
 _CANDIDATES = 200        # candidate views the next one is chosen from
 _SPREAD_FIRST = 3        # views chosen for their spread of rotations before the solver chooses
 
