@@ -1006,7 +1006,7 @@ def calibration_to_msg(c) -> "hpb.CalibrateResponse":
                         ("closed_form_z", c.closed_form_z)):
         if pose is not None:
             dq_to_pose(pose, getattr(msg, field))
-    for field in ("leave_one_out", "nis", "covariance", "reprojection"):
+    for field in ("leave_one_out", "nis", "covariance", "reprojection", "inliers"):
         value = getattr(c, field)
         if value is not None:
             getattr(msg, field).extend(np.asarray(value).ravel().tolist())
@@ -1023,15 +1023,13 @@ def calibration_from_msg(msg, setup: str):
     def rows(values, width):
         return np.array(values, dtype=np.float64).reshape(-1, width)
 
-    n = len(msg.residuals) // 2
     rejected = tuple(handeye.Rejection(r.index, r.reason) for r in msg.rejected)
-    inliers = np.ones(n, dtype=bool)
-    inliers[[r.index for r in rejected]] = False
     covariance = rows(msg.covariance, 12) if msg.covariance else None
     return handeye.Calibration(
         setup=setup, x=pose(msg.x), z=pose(msg.z),
         covariance_x=rows(msg.covariance_x, 6), covariance_z=rows(msg.covariance_z, 6),
-        residuals=rows(msg.residuals, 2), warnings=tuple(msg.warnings), inliers=inliers,
+        residuals=rows(msg.residuals, 2), warnings=tuple(msg.warnings),
+        inliers=np.array(msg.inliers, dtype=bool),
         rejected=rejected, covariance=covariance,
         information=None if covariance is None else np.linalg.inv(covariance),
         noise_model=msg.noise_model, nis=np.array(msg.nis, dtype=np.float64),

@@ -77,6 +77,15 @@ def test_calibrate_gives_what_the_domain_gives(client, setup):
     assert deg < 0.5 and mm < 5.0
 
 
+def test_duplicates_are_out_of_the_answer_on_both_sides(client):
+    s = _handeye.scene(8, camera_noise=(0.1, 0.5), seed=6)
+    F = np.concatenate([s.base_flange, s.base_flange[2:3]])      # pair 8: pair 2 again
+    C = np.concatenate([s.camera_target, s.camera_target[2:3]])
+    remote, local = client.calibrate(F, C), handeye.calibrate(F, C)
+    _assert_same(remote, local)
+    assert not remote.rejected and remote.inliers.sum() == 8 and remote.warnings
+
+
 def test_given_noise_travels_per_pair(client):
     s = _handeye.scene(10, camera_noise=(0.1, 0.5), robot_noise=(0.05, 0.2), seed=7)
     rng = np.random.default_rng(1)
