@@ -210,6 +210,9 @@ def test_every_broken_data_set_is_flagged(kind):
         assert H.pose_error(c.x, b.scene.x)[0] < 0.5
     if kind == "marker_flips":
         assert all("marker flip" in r.reason for r in c.rejected)
+    if kind == "board_scale":
+        assert any("scaled by" in w for w in c.warnings)
+        assert abs(c.camera_scale[0] * 1.02 - 1.0) < 5 * c.camera_scale[1]
     if kind == "inverted_both":
         assert any("both base_flange and camera_target inverted" in w for w in c.warnings)
 
