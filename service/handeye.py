@@ -68,8 +68,8 @@ from typing import Optional
 
 import numpy as np
 
-from service import dq, lie
-from service.errors import FieldError, Infeasible
+from service import dq, fusion, lie
+from service.errors import FieldError, Infeasible, rename
 
 __all__ = ["SETUPS", "Calibration", "Rejection", "calibrate", "check", "next_best_pose"]
 
@@ -142,19 +142,10 @@ class Calibration:
 # ---- input -------------------------------------------------------------------------------------
 def _poses(x, name: str) -> np.ndarray:
     try:
-        a = np.asarray(x, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise FieldError(f"{name}: expected numbers, got {type(x).__name__}") from None
-    if a.ndim != 2 or a.shape[1] != 8:
-        raise FieldError(f"{name}: expected shape (n, 8), got {a.shape}")
-    bad = ~np.isfinite(a).all(axis=1)
-    if np.any(bad):
-        raise FieldError(f"{name}[{int(np.flatnonzero(bad)[0])}]: contains NaN or infinity")
-    try:
-        dq.to_matrix(a)   # the core's unit and rigidity checks, with the index
+        a = fusion._finite(x, name, (8,), None)   # shape and finiteness, with the index
+        dq.to_matrix(a)                           # the core's unit and rigidity checks
     except ValueError as e:
-        msg = str(e)
-        raise FieldError(name + (msg[1:] if msg.startswith("a") else ": " + msg)) from None
+        raise rename(e, {"a": name + "{}"}) from None
     return dq.normalize(a)
 
 
