@@ -210,7 +210,7 @@ def scene(n: int, setup: str = "eye_in_hand", geometry: str = "wrist",
 
 # ---- broken data: what the checks must flag ----------------------------------------------------
 BROKEN = ("two_poses", "duplicates", "pure_translation", "parallel_axes", "small_rotations",
-          "time_shift", "millimetres", "inverted_camera", "inverted_robot", "inverted_both",
+          "time_shift", "millimetres", "board_scale", "inverted_camera", "inverted_robot", "inverted_both",
           "swapped_setup", "outliers", "marker_flips")
 
 
@@ -264,6 +264,9 @@ def broken(kind: str, n: int = 20, setup: str = "eye_in_hand", seed: int = 0,
     elif kind == "millimetres":
         C = C.copy()
         C[:, 4:] *= 1000.0            # the dual part carries the translation linearly
+    elif kind == "board_scale":       # the board's square size given 2 % wrong
+        C = C.copy()
+        C[:, 4:] *= 1.02
     elif kind == "inverted_camera":
         C = dq.inv(C)
     elif kind == "inverted_robot":
