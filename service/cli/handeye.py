@@ -518,6 +518,7 @@ class _Capture:
                            for _ in range(_CANDIDATES)]
         self.calibration = None
         self.choose = choose
+        self.taken = 1           # views taken, the start's included (detected or not)
 
     def add(self, flange, detection) -> None:
         import numpy as np
@@ -586,8 +587,6 @@ def _capture(args) -> int:
     from drivers.rotvec import rotvec_from_pose
     from drivers.sim.camera import DEFAULT_INTRINSICS, BoardRenderer
     from drivers.sim.ursim import URSimProcess
-    from service import dq
-    from service.cli.posefile import robot_poses_json
     rng = np.random.default_rng(args.seed)
     sim = not args.arm
     speed = args.speed or (0.8 if sim else 0.25)
@@ -635,53 +634,86 @@ def _capture(args) -> int:
             _, start = arm.tool_pose()
             first = shoot(start)
             if not first.ok:
+                os.remove(os.path.join(args.dir, images.pop()))
                 raise ValueError(f"the camera does not see the board at the start pose "
                                  f"({first}); start with the board in view")
             state = _Capture(args.setup, start, first, board, rng, args.choose)
             print(f"view 0: the start pose ({'simulated UR' if sim else args.arm})",
                   file=sys.stderr)
-            while len(images) < args.views and state.candidates:
-                targets = [flange_of_view(v, state.x, state.z, args.setup)
-                           for v in state.candidates]
-                for k in state.order(targets):
-                    try:
-                        arm.limits.check_workspace("pose", dq.to_pose(targets[k])[1], "")
-                        break
-                    except ValueError:
-                        continue
-                else:
-                    break
-                how = state.rule()
-                state.drop(k)
-                _move(arm, targets[k], speed)
-                if settle:
-                    import time
-                    time.sleep(settle)
-                _, reached = arm.tool_pose()
-                d = shoot(reached)
-                print(f"view {len(images) - 1}: {how}" + ("" if d.ok else f" (not detected: {d})"),
-                      file=sys.stderr)
-                if d.ok:
-                    state.add(reached, d)
-            with open(os.path.join(args.dir, "poses.json"), "w", encoding="utf-8") as f:
-                f.write(robot_poses_json(images, np.array(flanges), args.setup))
-            with open(os.path.join(args.dir, "intrinsics.json"), "w", encoding="utf-8") as f:
-                json.dump({"K": intr.K.tolist(), "dist": intr.dist.tolist(),
-                           "image_size": list(intr.size)}, f, indent=1)
-            with open(os.path.join(args.dir, "board.json"), "w", encoding="utf-8") as f:
-                json.dump({"kind": board.kind, "squares": list(board.squares),
-                           "square_length": board.square_length,
-                           "marker_length": board.marker_length,
-                           "dictionary_name": board.dictionary_name}, f, indent=1)
-            if sim:
-                from service.cli.posefile import pose_json
-                with open(os.path.join(args.dir, "truth.json"), "w", encoding="utf-8") as f:
-                    json.dump({"setup": args.setup, "x": pose_json(x_true),
-                               "z": pose_json(z_true)}, f, indent=1)
+            try:
+                stop = _views_loop(args, arm, state, shoot, speed, settle)
+            finally:    # what was taken is kept, also when the arm or camera failed midway
+                if images:
+                    _save(args, images, flanges, intr, board,
+                          (x_true, z_true) if sim else None)
     except (ValueError, OSError, RuntimeError) as e:
         return fail("handeye capture", str(e))
+    if stop:
+        return fail("handeye capture", f"{stop}; {len(images)} views saved in {args.dir}")
     print(f"{len(images)} views in {args.dir}; solve with: dqpose handeye solve {args.dir}")
     return 0
+
+
+#: a capture stops when the board was not detected in this many views in a row
+MAX_MISSES = 5
+
+
+def _views_loop(args, arm, state, shoot, speed: float, settle: float) -> str | None:
+    """Moves to the chosen views and shoots until ``args.views`` are taken; why it stopped
+    early, else None."""
+    from service import dq
+    misses = 0
+    while state.taken < args.views:
+        targets = [flange_of_view(v, state.x, state.z, args.setup) for v in state.candidates]
+        for k in state.order(targets):
+            try:
+                arm.limits.check_workspace("pose", dq.to_pose(targets[k])[1], "")
+                break
+            except ValueError:
+                continue
+        else:
+            return "no candidate view left within the arm's workspace"
+        how = state.rule()
+        state.drop(k)
+        _move(arm, targets[k], speed)
+        if settle:
+            import time
+            time.sleep(settle)
+        _, reached = arm.tool_pose()
+        d = shoot(reached)
+        print(f"view {state.taken}: {how}" + ("" if d.ok else f" (not detected: {d})"),
+              file=sys.stderr)
+        state.taken += 1
+        if d.ok:
+            state.add(reached, d)
+            misses = 0
+        else:
+            misses += 1
+            if misses >= MAX_MISSES:
+                return (f"the board was not detected in {misses} views in a row (the camera, "
+                        f"the board or the lighting?)")
+    return None
+
+
+def _save(args, images, flanges, intr, board, truth) -> None:
+    """The folder ``solve`` reads: ``poses.json``, the intrinsics, the board and, for a
+    simulation, the truth ``(x, z)``."""
+    import numpy as np
+
+    from service.cli.posefile import pose_json, robot_poses_json
+    with open(os.path.join(args.dir, "poses.json"), "w", encoding="utf-8") as f:
+        f.write(robot_poses_json(images, np.array(flanges), args.setup))
+    with open(os.path.join(args.dir, "intrinsics.json"), "w", encoding="utf-8") as f:
+        json.dump({"K": intr.K.tolist(), "dist": intr.dist.tolist(),
+                   "image_size": list(intr.size)}, f, indent=1)
+    with open(os.path.join(args.dir, "board.json"), "w", encoding="utf-8") as f:
+        json.dump({"kind": board.kind, "squares": list(board.squares),
+                   "square_length": board.square_length, "marker_length": board.marker_length,
+                   "dictionary_name": board.dictionary_name}, f, indent=1)
+    if truth is not None:
+        with open(os.path.join(args.dir, "truth.json"), "w", encoding="utf-8") as f:
+            json.dump({"setup": args.setup, "x": pose_json(truth[0]), "z": pose_json(truth[1])},
+                      f, indent=1)
 
 
 def _move(arm, target, speed: float) -> None:

@@ -221,3 +221,31 @@ def test_capture_on_an_arm_given_by_address_with_a_camera_source(eye_in_hand, ca
 def _ur_to_pose(p6):
     from drivers.rotvec import pose_from_rotvec
     return dq.to_pose(pose_from_rotvec(np.asarray(p6, dtype=float)))
+
+
+def test_a_capture_that_loses_the_board_stops_and_keeps_what_it_took(eye_in_hand, capsys,
+                                                                     tmp_path, monkeypatch):
+    import cv2
+
+    from drivers.rotvec import rotvec_from_pose
+    from drivers.sim.ursim import URSimProcess
+    from service.cli import handeye
+    monkeypatch.setattr(handeye, "MAX_MISSES", 2)
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    shutil.copy(os.path.join(eye_in_hand, "view_000.png"), frames / "a.png")
+    for name in ("b.png", "c.png", "d.png"):           # the board gone from the view
+        cv2.imwrite(str(frames / name), np.full((480, 640), 110, np.uint8))
+    with open(os.path.join(eye_in_hand, "poses.json")) as f:
+        start = _pose(json.load(f)["poses"][0]["base_to_flange"])
+    folder = str(tmp_path / "lost")
+    with URSimProcess() as sim:
+        sim.set_pose(rotvec_from_pose(start))
+        code, out, err = run(capsys, "handeye", "capture", folder, "--arm", f"ur:{sim.host}",
+                             "--camera", str(frames), "--intrinsics",
+                             os.path.join(eye_in_hand, "intrinsics.json"), "--views", "8")
+    assert code == 2
+    assert "the board was not detected in 2 views in a row" in err and "3 views saved" in err
+    with open(os.path.join(folder, "poses.json")) as f:
+        assert [p["image"] for p in json.load(f)["poses"]] == \
+            ["view_000.png", "view_001.png", "view_002.png"]
