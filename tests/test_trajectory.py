@@ -303,6 +303,25 @@ def test_sample_takes_times_in_any_order():
     assert np.array_equal(got.pose[order], ref.pose) and np.array_equal(got.angular_velocity[order], ref.angular_velocity)
 
 
+@slow
+@given(paths(), limits_st, st.sampled_from(INTERPOLATIONS), st.integers(0, 2**32 - 1))
+def test_batch_evaluation_equals_one_time_at_a_time(wps, limits, mode, seed):
+    """The evaluation groups sorted times into runs (one segment, blend state and phase of each
+    time law) evaluated side by side; a time put in the wrong run would take another phase's
+    law. Times alone cannot share a run, so each is its own reference, with the segment starts
+    and ends (phase boundaries) among them."""
+    tr = plan(wps, limits, mode)
+    edges = [x for s in tr.segments for x in (s.start, s.start + s.duration)]
+    t = np.sort(np.concatenate([np.random.default_rng(seed).uniform(0, tr.duration, 300), edges,
+                                np.nextafter(edges, -np.inf), np.nextafter(edges, np.inf), [0, tr.duration]]))
+    t = np.clip(t, 0.0, tr.duration)
+    got = tr.sample(t)
+    for i in range(len(t)):
+        one = tr.sample(t[i:i + 1])
+        for a, b in zip(got[1:], one[1:]):
+            assert np.abs(a[i] - b[0]).max() <= 1e-15, (i, t[i])
+
+
 def test_unmeetable_time_is_infeasible_naming_the_waypoint():
     wps = [Waypoint(pose([1, 0, 0, 0], [0, 0, 0])), Waypoint(pose([1, 0, 0, 0], [0.3, 0, 0]), time=5.0),
            Waypoint(pose([1, 0, 0, 0], [1.3, 0, 0]), time=5.5)]
