@@ -294,6 +294,32 @@ def test_random_waypoint_times_are_met(wps, stretch, mode):
     assert violation(peaks(t, poses), LIMITS, NOISE_1KHZ) <= TOL
 
 
+@pytest.mark.parametrize("mode", INTERPOLATIONS)
+def test_many_timed_waypoints_are_each_met(mode):
+    """30 waypoints, blends and stops mixed, every time 1.1-1.5x the free plan's arrival: each
+    interval is slowed by its own factor, found by a root search per interval over sweeps."""
+    rng = np.random.default_rng(5)
+    pts = np.cumsum(rng.uniform(-0.15, 0.15, (30, 3)), axis=0)
+    poses = [pose(rng.normal(size=4) * 0.1 + [1, 0, 0, 0], p) for p in pts]
+    near = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+    radius = [0.0] + [0.4 * min(near[i - 1], near[i]) if i % 3 else 0.0 for i in range(1, 29)] + [0.0]
+
+    def arrivals(tr):
+        s = tr.segments
+        return np.array([0.0] + [0.5 * (s[k].start + s[k - 1].start + s[k - 1].duration)
+                                 if radius[k] > 0 else s[k].start for k in range(1, 29)]
+                        + [tr.duration])
+
+    free = plan([Waypoint(p, blend_radius=r) for p, r in zip(poses, radius)], LIMITS, mode)
+    want = np.cumsum(np.r_[0.0, np.diff(arrivals(free)) * rng.uniform(1.1, 1.5, 29)])
+    tr = plan([Waypoint(p, time=float(t), blend_radius=r) for p, t, r in zip(poses, want, radius)],
+              LIMITS, mode)
+    assert np.allclose(arrivals(tr), want, rtol=1e-8, atol=0)
+    assert all(s.binding == "time" for s in tr.segments)
+    t, got, _ = uniform(tr)
+    assert violation(peaks(t, got), LIMITS, NOISE_1KHZ) <= TOL
+
+
 def test_sample_takes_times_in_any_order():
     wps = [Waypoint(A), Waypoint(B, blend_radius=0.1), Waypoint(pose([1, 0, 0, 1], [0.5, 0.5, 0]))]
     tr = plan(wps, LIMITS)

@@ -556,20 +556,42 @@ static int meet_times(plan_ctx *c, const double *times, double *lam, size_t *bad
         late = 0;
         for (size_t m = 1; m < K && !rc; m++) {
             if (!(times[m] > 0)) continue;
-            double tol = 1e-9 * hi2(1.0, times[m]), lo = 0.0, hi = 1.0;
+            double tol = 1e-9 * hi2(1.0, times[m]);
+            /* after the first sweep the plan is the last one solved: an interval still on time
+             * keeps its slowdown */
+            if (sweep > 0 && fabs(arrival(c, m) - times[m]) <= 0.1 * tol) { p = m; continue; }
             for (size_t k = p; k < m; k++) lam[k] = 1.0;
             if ((rc = solve(c, lam, bad))) break;
-            if (arrival(c, m) > times[m] + tol) {
+            double start = p > 0 ? arrival(c, p) : 0.0, al = arrival(c, m) - times[m];
+            if (al > tol) {
                 /* too late even at full speed: the other intervals may still move */
                 if (!late) late = m;
                 p = m;
                 continue;
             }
-            for (int it = 0; it < BISECT && !rc && fabs(arrival(c, m) - times[m]) > 0.1 * tol; it++) {
-                double f = 0.5 * (lo + hi);
-                for (size_t k = p; k < m; k++) lam[k] = f;
+            /* The arrival rises as the interval slows, nearly in proportion to x = 1 / lam (the
+             * time at each rate scales with it): secant steps in x from that proportion until
+             * the time is bracketed, then regula falsi with the Illinois weighting, every third
+             * step a bisection so a kink cannot stall it. */
+            double xl = 1.0, xh = INFINITY, ah = 0.0, last = al, slope = al + times[m] - start;
+            int kept = 0;
+            for (int it = 0; it < BISECT && !rc && fabs(last) > 0.1 * tol; it++) {
+                double x;
+                if (isinf(xh)) x = slope > 0.0 ? xl - al / slope : 2.0 * xl;
+                else if (it % 3 == 2) x = 0.5 * (xl + xh);
+                else x = xl - al * (xh - xl) / (ah - al);
+                if (!(x > xl && x < xh)) x = isinf(xh) ? 2.0 * xl : 0.5 * (xl + xh);
+                for (size_t k = p; k < m; k++) lam[k] = 1.0 / x;
                 rc = solve(c, lam, bad);
-                if (arrival(c, m) > times[m]) lo = f; else hi = f;
+                last = arrival(c, m) - times[m];
+                if (last > 0.0) {
+                    if (kept == 1) al *= 0.5;
+                    xh = x, ah = last, kept = 1;
+                } else {
+                    if (kept == -1) ah *= 0.5;
+                    if (isinf(xh)) slope = (last - al) / (x - xl);
+                    xl = x, al = last, kept = -1;
+                }
             }
             p = m;
         }
