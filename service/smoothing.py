@@ -12,7 +12,7 @@ The path is a cubic B-spline with uniform knots over ``[times[0], times[-1]]``, 
 input intervals (N poses, N + 2 control points; the stamps need not be uniform) or, when smoothing,
 spans of at most ``tau / 3`` (below: 19 spans per period of the cutoff, where a cubic spline
 follows the smoothed path to ~2e-4 of its amplitude; at 100 Hz and ``smoothing = 1`` a knot every
-third sample, a third of the unknowns of the QPs below): the tool point's
+2.6 samples, 0.38 of the unknowns of the QPs below): the tool point's
 position is a B-spline in R^3 and the orientation a cumulative B-spline on SO(3)
 (``R(t) = Rc_i Exp(B1 d_i+1) Exp(B2 d_i+2) Exp(B3 d_i+3)`` with the body increments
 ``d_j = Log(Rc_j-1^-1 Rc_j)``). Its first three and last three control points coincide, which
