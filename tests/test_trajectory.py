@@ -122,8 +122,32 @@ def test_start_velocity_along_the_first_segment(mode):
     assert violation(peaks(t, poses), LIMITS, NOISE_1KHZ) <= TOL
     # moving already, it arrives sooner than from rest
     assert tr.duration < plan([Waypoint(a), Waypoint(b)], LIMITS, mode).duration
-    with pytest.raises(ValueError, match=r"^start_velocity: must point along the first segment"):
-        plan([Waypoint(a), Waypoint(b)], LIMITS, mode, start_velocity=[0, 0, 0.1, 0, 0, 0])
+
+
+@slow
+@given(paths(4), limits_st, st.sampled_from(INTERPOLATIONS),
+       st.lists(st.floats(-1, 1), min_size=6, max_size=6), st.floats(0.05, 1.0))
+def test_start_velocity_in_any_direction(wps, limits, mode, direction, share):
+    """Replanning while moving: a start velocity off the first segment is followed from the
+    start (the samples begin at waypoint 0 moving at exactly that velocity), then blended into
+    the path, every limit held, the end exact, one segment per waypoint pair as before."""
+    u = np.array(direction)
+    if np.linalg.norm(u[:3]) < 1e-3 or np.linalg.norm(u[3:]) < 1e-3:
+        u[:3] += [0.3, 0, 0]
+    v0 = share * np.concatenate([u[:3] / np.linalg.norm(u[:3]) * limits.max_linear_velocity,
+                                 u[3:] / max(np.linalg.norm(u[3:]), 1e-3) * limits.max_angular_velocity])
+    try:
+        tr = plan(wps, limits, mode, start_velocity=v0)
+    except Infeasible as e:
+        # fast turns under small angular limits: more than half a turn to stop
+        assert "less than 180 are supported" in str(e), e
+        return
+    s = tr.sample([0.0, tr.duration])
+    assert np.allclose(np.concatenate([s.linear_velocity[0], s.angular_velocity[0]]), v0, atol=1e-9)
+    assert same_pose(s.pose[0], wps[0].pose) and same_pose(s.pose[1], wps[-1].pose)
+    assert len(tr.segments) == len(wps) - 1
+    t, poses, _ = uniform(tr)
+    assert violation(peaks(t, poses), limits, NOISE_1KHZ) <= TOL
 
 
 def test_start_velocity_too_fast_to_stop_is_infeasible():
