@@ -846,10 +846,14 @@ def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool
         return np.swapaxes(Q / np.sqrt(e)[:, None, :], 1, 2)     # Σ^-1/2 per view
 
     H = None
-    for em in range(_EM_ROUNDS if estimate else 1):
+    settled = not estimate
+    for em in range(_EM_ROUNDS + 1 if estimate else 1):
+        settled = settled or em == _EM_ROUNDS
         prior = prior_rows() if use_robot else None
         cost = np.inf
-        for it in range(50):
+        # While the robot's variances are still moving a couple of steps per round do; the
+        # round after they settle converges.
+        for it in range(50 if settled else 2):
             M = _corner_cameras(Fu, setup, X, Z, delta)
             pc, u, Jp, ds = _project(M, sub, scale)
             behind = pc[:, 2] <= 0.0
@@ -901,7 +905,7 @@ def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool
             if float(step @ H @ step) < _TOL and abs(cost - new) <= 1e-9 * new:
                 break
             cost = new
-        if not estimate:
+        if settled:
             break
         # MacKay's fixed point (the evidence's stationary point): θ = Σ δ̂² / γ with
         # γ = Σ (1 − P_kk / θ) the number of correction components the corners determine;
@@ -912,10 +916,8 @@ def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool
         gam = np.repeat([gam[:3].sum(), gam[3:].sum()], 3)
         num = np.repeat([d2[:3].sum(), d2[3:].sum()], 3)
         new_theta = np.maximum(num / np.maximum(gam, 1e-3), _ROBOT_FLOOR)
-        done = np.all(np.abs(new_theta - theta) <= 0.1 * theta + _ROBOT_FLOOR)
+        settled = bool(np.all(np.abs(new_theta - theta) <= 0.1 * theta + _ROBOT_FLOOR))
         theta = new_theta
-        if done:
-            break
     P = np.linalg.inv(H)
     full = None
     if use_robot:

@@ -20,8 +20,10 @@ the server's queue, the estimate and both transports. With ``--probe`` every mes
 carries an 11th measurement with no body, which the server answers at once with an error entry:
 then the table also has the round trip of every message (to its first answer), at the cost of
 one error entry a message more for the server and the client. The scene's messages are made
-ahead, 256 at a time, so the client's time is the shipped client's. Rows: paced at the target
-rate (20,000 measurements/s), and unpaced (as fast as the client sends), which shows the ceiling.
+ahead, 256 at a time, so the client's time is the shipped client's. Rows: the transport alone
+(the same client and messages against a server that answers as often and fuses nothing: the
+floor the added latency is measured against), paced at the target rate (20,000 measurements/s),
+and unpaced (as fast as the client sends), which shows the ceiling.
 """
 from __future__ import annotations
 
@@ -39,7 +41,7 @@ import numpy as np
 
 from service import dq, fusion, lie
 from service.rpc.client import Batch, Client
-from tests.bench.bench_grpc import ServerProcess
+from tests.bench.bench_grpc import FUSE_EVERY, ServerProcess
 
 PER_MESSAGE = 10
 COV = np.diag(np.r_[np.full(3, np.deg2rad(0.3)), np.full(3, 1e-3)] ** 2)
@@ -215,7 +217,8 @@ def per_message_cost(scene: Scene, args, messages: int = 6000) -> str:
         # r + 1: request 0 is the one with the options, which always takes the protobuf path
         for r in range(lo, hi):
             if wire:
-                answers = f.stream_step_wire(state, data[r], r + 1, r * (PER_MESSAGE + scene.probe))[0]
+                answers = f.stream_step_wire(state, data[r], r + 1,
+                                             r * (PER_MESSAGE + scene.probe))[0]
             else:
                 answers = f.stream_step(state, pb.FuseStreamRequest.FromString(data[r]), r + 1,
                                         r * (PER_MESSAGE + scene.probe))
@@ -262,7 +265,8 @@ def per_message_cost(scene: Scene, args, messages: int = 6000) -> str:
         f"({ticks:.3f} estimates a message on average)\n"
         f"  ingest only (no tick due): {ingest:.0f} us/message, of which the C decoder "
         f"(decode and every check) {decode:.1f} us; the rest is Python: "
-        f"{'the probe error entry, ' if scene.probe else ''}Tracker._ingest_valid (window floor, store), the service's bookkeeping\n"
+        f"{'the probe error entry, ' if scene.probe else ''}Tracker._ingest_valid (window "
+        f"floor, store), the service's bookkeeping\n"
         f"  the same through the protobuf path: {ingest_pb:.0f} us/message, of which protobuf "
         f"parse {parse:.1f} us and messages to arrays {convert:.0f} us; the rest "
         f"Tracker.ingest (batched checks, window arrays) and the bookkeeping\n"
@@ -295,16 +299,27 @@ def main(argv=None) -> int:
                     "500 to warm up) through the server's per-message path in process, print "
                     "nothing: for callgrind, whose count does not depend on the machine's load")
     ap.add_argument("--probe", action="store_true", help="an 11th measurement a message that "
-                    "the server refuses at once: the round trip of every message too")
+                    "the server refuses at once: the round trip of every message too (no transport "
+                    "row then)")
     args = ap.parse_args(argv)
 
     scene = Scene(args.bodies, args.rate, probe=args.probe)
     if args.in_process is not None:
         in_process(scene, args, args.in_process)
         return 0
+    rows = []
+    if not args.minutes and not args.probe:
+        # the peer: gRPC and the shipped client alone, a server that answers as often with a
+        # fused pose of the same size and fuses nothing; the latency fusion adds is above it
+        echo = ServerProcess("echo", quiet_log=True)
+        try:
+            rows.append(("transport only (no fusion)", run(
+                echo.target, scene, args.seconds, args.rate / PER_MESSAGE, args, echo.rss_mb,
+                echo.proc.pid)))
+        finally:
+            echo.stop()
     server = ServerProcess("aio", quiet_log=True)
     try:
-        rows = []
         if args.minutes:
             rows.append(("paced", run(server.target, scene, args.minutes * 60,
                                       args.rate / PER_MESSAGE, args, server.rss_mb,
@@ -322,7 +337,9 @@ def main(argv=None) -> int:
           f"{args.bodies} bodies, {PER_MESSAGE} measurements (full covariances)"
           f"{' + 1 probe' if args.probe else ''} a message, window {args.window:g} s, "
           f"output_rate {args.output_rate:g} Hz per body; latency of the answers (after the "
-          f"first second): from sending the message that made each due to its arrival")
+          f"first second): from sending the message that made each due to its arrival; the "
+          f"transport row's server answers every {FUSE_EVERY}th message with a fused pose of the "
+          f"same size and fuses nothing")
     head = ("row", "meas/s", "msgs/s", "answers/s", "p50 ms", "p99 ms", "max ms",
             *(("message p99 ms",) if args.probe else ()), "server CPU us/msg",
             "client CPU us/msg", "RSS start MB", "RSS end MB", "seconds")
