@@ -76,7 +76,8 @@ import numpy as np
 from service import dq, fusion, lie
 from service.errors import FieldError, Infeasible, rename
 
-__all__ = ["SETUPS", "Calibration", "Rejection", "calibrate", "check", "next_best_pose"]
+__all__ = ["SETUPS", "Calibration", "Rejection", "calibrate", "check", "flange_for", "next_best_pose",
+           "view_at"]
 
 SETUPS = ("eye_in_hand", "eye_to_hand")
 
@@ -1137,6 +1138,23 @@ def _reason(k, fit: _Fit, p: _Prepared, r, S, nis) -> str:
                 f"position agrees to {1e3 * np.linalg.norm(t):.2f} mm")
     return (f"NIS {nis:.3g} > {_GATE_6:.3g}: off by {np.degrees(ang):.2f}° / "
             f"{1e3 * np.linalg.norm(t):.2f} mm")
+
+
+def view_at(base_flange, x, z, setup: str = "eye_in_hand") -> np.ndarray:
+    """The ``T_camera_target`` a calibration ``(x, z)`` predicts at the robot poses
+    ``base_flange``: eye-in-hand ``x⁻¹ · base_flange⁻¹ · z``, eye-to-hand
+    ``x⁻¹ · base_flange · z``."""
+    if _setup(setup) == "eye_in_hand":
+        return dq.mul(dq.mul(dq.inv(x), dq.inv(base_flange)), z)
+    return dq.mul(dq.mul(dq.inv(x), base_flange), z)
+
+
+def flange_for(camera_target, x, z, setup: str = "eye_in_hand") -> np.ndarray:
+    """The ``T_base_flange`` at which a calibration ``(x, z)`` has the camera see the target at
+    ``camera_target`` (the inverse of :func:`view_at`)."""
+    if _setup(setup) == "eye_in_hand":
+        return dq.mul(dq.mul(z, dq.inv(camera_target)), dq.inv(x))
+    return dq.mul(dq.mul(x, camera_target), dq.inv(z))
 
 
 def next_best_pose(calibration: Calibration, base_flange, camera_target, candidates) -> np.ndarray:

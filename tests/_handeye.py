@@ -40,7 +40,7 @@ from typing import Optional
 
 import numpy as np
 
-from service import dq, lie
+from service import dq, handeye, lie
 
 SETUPS = ("eye_in_hand", "eye_to_hand")
 GEOMETRIES = ("wrist", "opencv")
@@ -182,13 +182,6 @@ def _opencv(n, setup, rng):
     return world, hand, base_flange
 
 
-def camera_target_of(base_flange, x, z, setup: str) -> np.ndarray:
-    """What the camera sees for robot poses ``base_flange`` given the truth ``x``, ``z``."""
-    if setup == "eye_in_hand":
-        return dq.mul(dq.mul(dq.inv(x), dq.inv(base_flange)), z)
-    return dq.mul(dq.mul(dq.inv(x), base_flange), z)
-
-
 def scene(n: int, setup: str = "eye_in_hand", geometry: str = "wrist",
           camera_noise: tuple[float, float] = (0.1, 0.5),
           robot_noise: Optional[tuple[float, float]] = None, seed: int = 0) -> Scene:
@@ -201,7 +194,7 @@ def scene(n: int, setup: str = "eye_in_hand", geometry: str = "wrist",
     rng = np.random.default_rng(seed)
     x, z, base_flange = (_wrist if geometry == "wrist" else _opencv)(n, setup, rng)
     base_flange = dq.normalize(base_flange)
-    camera_target = dq.normalize(camera_target_of(base_flange, x, z, setup))
+    camera_target = dq.normalize(handeye.view_at(base_flange, x, z, setup))
     noisy_camera = perturb(camera_target, camera_noise, rng)
     noisy_robot = base_flange if robot_noise is None else perturb(base_flange, robot_noise, rng)
     return Scene(setup, geometry, noisy_robot, noisy_camera, x, z, base_flange, camera_target,
@@ -229,7 +222,7 @@ def _motion_scene(n, setup, rng, twists, seed, camera_noise):
     base = scene(n, setup, "wrist", camera_noise=(0.0, 0.0), seed=seed)
     F0 = base.true_base_flange[0]
     F = dq.normalize(dq.mul(F0, lie.se3_exp(twists)))
-    C = dq.normalize(camera_target_of(F, base.x, base.z, setup))
+    C = dq.normalize(handeye.view_at(F, base.x, base.z, setup))
     Cn = perturb(C, camera_noise, rng)
     return Scene(setup, "wrist", F, Cn, base.x, base.z, F, C, tuple(camera_noise), None, seed)
 

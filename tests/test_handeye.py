@@ -175,7 +175,7 @@ def test_next_best_pose_prefers_the_informative_candidate():
     # Candidates: poses of another scene of the same mount, and copies of poses already taken.
     bf = np.concatenate([s.true_base_flange[:3], more.true_base_flange[:8]])
     x_truth, z_truth = s.x, s.z
-    cand = dq.mul(dq.mul(z_truth, dq.inv(H.camera_target_of(bf, x_truth, z_truth, "eye_in_hand"))),
+    cand = dq.mul(dq.mul(z_truth, dq.inv(handeye.view_at(bf, x_truth, z_truth, "eye_in_hand"))),
                   dq.inv(x_truth))   # T_base_flange for views of the same board
     c = handeye.calibrate(s.base_flange, s.camera_target, camera_covariance=s.camera_covariance)
     order = handeye.next_best_pose(c, s.base_flange, s.camera_target, cand)
@@ -183,7 +183,7 @@ def test_next_best_pose_prefers_the_informative_candidate():
 
     def det_with(k):
         F = np.concatenate([s.base_flange, cand[k:k + 1]])
-        C = np.concatenate([s.camera_target, H.camera_target_of(cand[k:k + 1], c.x, c.z, "eye_in_hand")])
+        C = np.concatenate([s.camera_target, handeye.view_at(cand[k:k + 1], c.x, c.z, "eye_in_hand")])
         return np.linalg.slogdet(handeye.calibrate(F, C, camera_covariance=s.camera_covariance)
                                  .covariance_x)[1]
 
@@ -378,3 +378,15 @@ def test_malformed_corners_named():
         handeye.calibrate(F, C, corners=bad)
     with pytest.raises(FieldError, match=r"^pixel_sigma: "):
         handeye.calibrate(F, C, corners=cs, pixel_sigma=0.0)
+
+
+@pytest.mark.parametrize("setup", handeye.SETUPS)
+def test_view_at_is_the_calibration_identity_and_flange_for_its_inverse(setup):
+    s = H.scene(6, setup, camera_noise=(0.0, 0.0), seed=3)
+    view = handeye.view_at(s.base_flange, s.x, s.z, setup)
+    # eye-in-hand A·X·C = Z with A = base_flange; eye-to-hand with A = base_flange⁻¹
+    A = s.base_flange if setup == "eye_in_hand" else dq.inv(s.base_flange)
+    for a, c in zip(A, view):
+        assert np.abs(lie.se3_log(dq.mul(dq.inv(s.z), dq.mul(dq.mul(a, s.x), c)))).max() < 1e-12
+    back = handeye.flange_for(view, s.x, s.z, setup)
+    assert np.abs(lie.se3_log(dq.mul(dq.inv(s.base_flange), back))).max() < 1e-12

@@ -453,31 +453,13 @@ def _pose(t, rotvec):
     return pose_from_rotvec(np.concatenate([t, rotvec]))
 
 
-def flange_of_view(view, x, z, setup: str):
-    """``T_base_flange`` at which the camera sees the target at ``view`` (``T_camera_target``)
-    when the calibration is ``(x, z)``: eye-in-hand ``z view^-1 x^-1``, eye-to-hand
-    ``x view z^-1``."""
-    from service import dq
-    if setup == "eye_in_hand":
-        return dq.mul(dq.mul(z, dq.inv(view)), dq.inv(x))
-    return dq.mul(dq.mul(x, view), dq.inv(z))
-
-
-def view_of_flange(base_flange, x, z, setup: str):
-    """``T_camera_target`` seen at ``base_flange`` (the inverse of :func:`flange_of_view`)."""
-    from service import dq
-    if setup == "eye_in_hand":
-        return dq.mul(dq.mul(dq.inv(x), dq.inv(base_flange)), z)
-    return dq.mul(dq.mul(dq.inv(x), base_flange), z)
-
-
 def _sim_cell(setup: str, board):
     """The simulated cell's truth ``(x, z)`` and the flange's start pose, from which the camera
     sees the board's centre from 0.45 m."""
     import numpy as np
 
     from drivers.sim.camera import look_at
-    from service import dq
+    from service import dq, handeye
     w, h = board.extent
     centre = np.array([w / 2, h / 2, 0.0])
     home_view = look_at(centre + [0.0, 0.0, -0.45], centre)
@@ -487,7 +469,7 @@ def _sim_cell(setup: str, board):
     else:   # the camera on its post looks at where the board is at the start, image up
         eye = np.array(_SIM_X[setup][0])
         x = dq.inv(look_at(eye, eye + [0.0, 0.45, -0.1], (0.0, 0.0, 1.0)))   # T_base_camera
-    return x, z, flange_of_view(home_view, x, z, setup)
+    return x, z, handeye.flange_for(home_view, x, z, setup)
 
 
 class _Capture:
@@ -569,6 +551,8 @@ def _capture(args) -> int:
 
     import numpy as np
 
+    from service import handeye
+
     if args.views < 4:
         return fail("handeye capture", f"--views: at least 4, got {args.views}")
     if args.arm and not args.arm.startswith("ur:"):
@@ -606,7 +590,7 @@ def _capture(args) -> int:
                 renderer = BoardRenderer(board, intr)
 
                 def grab(flange):
-                    return renderer.render(view_of_flange(flange, x_true, z_true, args.setup),
+                    return renderer.render(handeye.view_at(flange, x_true, z_true, args.setup),
                                            blur=args.blur, noise=args.noise, rng=rng)
             else:
                 from drivers.camera import open_frames
@@ -661,10 +645,10 @@ MAX_MISSES = 5
 def _views_loop(args, arm, state, shoot, speed: float, settle: float) -> str | None:
     """Moves to the chosen views and shoots until ``args.views`` are taken; why it stopped
     early, else None."""
-    from service import dq
+    from service import dq, handeye
     misses = 0
     while state.taken < args.views:
-        targets = [flange_of_view(v, state.x, state.z, args.setup) for v in state.candidates]
+        targets = [handeye.flange_for(v, state.x, state.z, args.setup) for v in state.candidates]
         for k in state.order(targets):
             try:
                 arm.limits.check_workspace("pose", dq.to_pose(targets[k])[1], "")

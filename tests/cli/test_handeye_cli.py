@@ -189,24 +189,16 @@ def test_capture_on_an_arm_given_by_address_with_a_camera_source(eye_in_hand, ca
     """The real-arm path (--arm, --camera, --intrinsics), on the UR simulator started here and
     a folder of images as the camera: the arm moves under the default limits, each image is
     taken where the arm is read to be, and no truth is written."""
-    from drivers.rotvec import rotvec_from_pose
-    from drivers.sim.ursim import URSimProcess
     frames = tmp_path / "frames"
     frames.mkdir()
     for i in range(4):
         shutil.copy(os.path.join(eye_in_hand, f"view_{i:03d}.png"), frames)
-    with open(os.path.join(eye_in_hand, "poses.json")) as f:
-        start = _pose(json.load(f)["poses"][0]["base_to_flange"])
     folder = str(tmp_path / "real")
-    with URSimProcess() as sim:
-        sim.set_pose(rotvec_from_pose(start))
-        code, out, err = run(capsys, "handeye", "capture", folder, "--arm", f"ur:{sim.host}",
-                             "--camera", str(frames), "--intrinsics",
-                             os.path.join(eye_in_hand, "intrinsics.json"), "--views", "4")
-        assert code == 0, err
-        with open(os.path.join(folder, "poses.json")) as f:
-            flanges = [_pose(p["base_to_flange"]) for p in json.load(f)["poses"]]
-        stands = sim.state()["pose"]
+    code, out, err, start, stands = _capture_on_the_sim_arm(eye_in_hand, capsys, frames,
+                                                            folder, 4)
+    assert code == 0, err
+    with open(os.path.join(folder, "poses.json")) as f:
+        flanges = [_pose(p["base_to_flange"]) for p in json.load(f)["poses"]]
     assert sorted(os.listdir(folder)) == ["board.json", "intrinsics.json", "poses.json"] + \
         [f"view_{i:03d}.png" for i in range(4)]
     assert "view 3: rotation spread" in err
@@ -218,6 +210,22 @@ def test_capture_on_an_arm_given_by_address_with_a_camera_source(eye_in_hand, ca
         assert np.linalg.norm(dq.to_pose(flanges[i])[1] - dq.to_pose(flanges[i - 1])[1]) > 0.01
 
 
+def _capture_on_the_sim_arm(eye_in_hand, capsys, frames, folder: str, views: int):
+    """``dqpose handeye capture`` of the real-arm path on a UR simulator started at the first
+    pose of the eye_in_hand capture, with the images in ``frames`` as the camera: ``(code, out,
+    err, the start pose, where the arm stands at the end)``."""
+    from drivers.rotvec import rotvec_from_pose
+    from drivers.sim.ursim import URSimProcess
+    with open(os.path.join(eye_in_hand, "poses.json")) as f:
+        start = _pose(json.load(f)["poses"][0]["base_to_flange"])
+    with URSimProcess() as sim:
+        sim.set_pose(rotvec_from_pose(start))
+        code, out, err = run(capsys, "handeye", "capture", folder, "--arm", f"ur:{sim.host}",
+                             "--camera", str(frames), "--intrinsics",
+                             os.path.join(eye_in_hand, "intrinsics.json"), "--views", str(views))
+        return code, out, err, start, sim.state()["pose"]
+
+
 def _ur_to_pose(p6):
     from drivers.rotvec import pose_from_rotvec
     return dq.to_pose(pose_from_rotvec(np.asarray(p6, dtype=float)))
@@ -227,8 +235,6 @@ def test_a_capture_that_loses_the_board_stops_and_keeps_what_it_took(eye_in_hand
                                                                      tmp_path, monkeypatch):
     import cv2
 
-    from drivers.rotvec import rotvec_from_pose
-    from drivers.sim.ursim import URSimProcess
     from service.cli import handeye
     monkeypatch.setattr(handeye, "MAX_MISSES", 2)
     frames = tmp_path / "frames"
@@ -236,14 +242,8 @@ def test_a_capture_that_loses_the_board_stops_and_keeps_what_it_took(eye_in_hand
     shutil.copy(os.path.join(eye_in_hand, "view_000.png"), frames / "a.png")
     for name in ("b.png", "c.png", "d.png"):           # the board gone from the view
         cv2.imwrite(str(frames / name), np.full((480, 640), 110, np.uint8))
-    with open(os.path.join(eye_in_hand, "poses.json")) as f:
-        start = _pose(json.load(f)["poses"][0]["base_to_flange"])
     folder = str(tmp_path / "lost")
-    with URSimProcess() as sim:
-        sim.set_pose(rotvec_from_pose(start))
-        code, out, err = run(capsys, "handeye", "capture", folder, "--arm", f"ur:{sim.host}",
-                             "--camera", str(frames), "--intrinsics",
-                             os.path.join(eye_in_hand, "intrinsics.json"), "--views", "8")
+    code, out, err, _, _ = _capture_on_the_sim_arm(eye_in_hand, capsys, frames, folder, 8)
     assert code == 2
     assert "the board was not detected in 2 views in a row" in err and "3 views saved" in err
     with open(os.path.join(folder, "poses.json")) as f:

@@ -212,13 +212,13 @@ def _degenerate():
     # pure translation: the flange moves but never turns
     qs, ts = dq.to_pose(s.base_flange)
     F = dq.from_pose(np.repeat(qs[:1], 10, 0), ts)
-    out["pure translation"] = (F, _handeye.camera_target_of(F, s.x, s.z, "eye_in_hand"),
+    out["pure translation"] = (F, handeye.view_at(F, s.x, s.z, "eye_in_hand"),
                                "eye_in_hand", "pure translation")
     # rotations about one axis only
     angles = np.radians(np.linspace(-40, 40, 10))
     R = np.array([_handeye.pose([0.0, 0.0, a], [0.4 + 0.01 * k, 0.1, 0.4])
                   for k, a in enumerate(angles)])
-    out["parallel axes"] = (R, _handeye.camera_target_of(R, s.x, s.z, "eye_in_hand"),
+    out["parallel axes"] = (R, handeye.view_at(R, s.x, s.z, "eye_in_hand"),
                             "eye_in_hand", "parallel")
     out["the same pose ten times"] = (still, np.repeat(s.camera_target[:1], 10, 0),
                                       "eye_in_hand", "duplicates")
