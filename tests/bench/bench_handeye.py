@@ -48,7 +48,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service import dq
+from service import dq, lie
 from tests import _handeye
 from tests.bench.bench_fusion import _fmt_s, _markdown, nees
 
@@ -332,10 +332,139 @@ def run_charuco(trials: int, seed: int, python: Path | None):
     return res, rejected
 
 
+# ---- broken data ---------------------------------------------------------------------------------
+BROKEN = ("2 poses", "pure translation", "parallel axes", "duplicated poses",
+          "inverted conventions", "swapped setup", "20 % outliers", "millimetres as metres")
+BROKEN_TRIALS = 10
+
+
+def broken(kind: str, seed: int):
+    """A broken version of the wrist scene (20 poses, 0.1°/0.5 mm, eye-in-hand) and what it
+    is given as: ``(base_flange, camera_target, setup, true X)``. The broken motions are the
+    scene's first pose moved, and the camera poses recomputed from the scene's truth and noise
+    (``tests/_handeye.py``)."""
+    sc = _handeye.scene(20, "eye_in_hand", "wrist", (0.1, 0.5), None, seed=seed)
+    rng = np.random.default_rng([seed, BROKEN.index(kind)])
+    B, A = sc.base_flange, sc.camera_target
+
+    def seen(B):
+        return _handeye.perturb(_handeye.camera_target_of(B, sc.x, sc.z, sc.setup),
+                                sc.camera_noise, rng)
+
+    if kind == "2 poses":
+        return B[:2], A[:2], sc.setup, sc.x
+    if kind == "pure translation":
+        B = dq.mul(B[0], _handeye.pose(np.zeros((20, 3)), rng.uniform(-0.1, 0.1, (20, 3))))
+        return B, seen(B), sc.setup, sc.x
+    if kind == "parallel axes":   # every rotation about the flange's z axis
+        turn = np.radians(rng.uniform(-60.0, 60.0, 20))[:, None] * [0.0, 0.0, 1.0]
+        B = dq.mul(B[0], _handeye.pose(turn, rng.uniform(-0.1, 0.1, (20, 3))))
+        return B, seen(B), sc.setup, sc.x
+    if kind == "duplicated poses":   # samples 10-19 stored again as 0-9
+        return np.r_[B[:10], B[:10]], np.r_[A[:10], A[:10]], sc.setup, sc.x
+    if kind == "inverted conventions":   # T_target_camera given for T_camera_target
+        return B, dq.inv(A), sc.setup, sc.x
+    if kind == "swapped setup":   # an eye-to-hand rig's data solved as eye-in-hand
+        other = _handeye.scene(20, "eye_to_hand", "wrist", (0.1, 0.5), None, seed=seed)
+        return other.base_flange, other.camera_target, "eye_in_hand", sc.x
+    if kind == "20 % outliers":   # 4 of 20: 2 flipped marker poses, 2 wrong by 10-30° / 3-10 cm
+        A = A.copy()
+        bad = rng.choice(20, 4, replace=False)
+        for j, i in enumerate(bad):
+            if j < 2:
+                phi = rng.uniform(0, 2 * np.pi)
+                xi = np.r_[np.pi * np.cos(phi), np.pi * np.sin(phi), 0.0, 0.0, 0.0, 0.0]
+            else:
+                axis, d = rng.normal(size=3), rng.normal(size=3)
+                xi = np.r_[np.radians(rng.uniform(10, 30)) * axis / np.linalg.norm(axis),
+                           rng.uniform(0.03, 0.10) * d / np.linalg.norm(d)]
+            A[i] = dq.mul(A[i], lie.se3_exp(xi))
+        return B, A, sc.setup, sc.x
+    if kind == "millimetres as metres":
+        q, t = dq.to_pose(B)
+        return dq.from_pose(q, t * 1e3), A, sc.setup, sc.x
+    raise ValueError(f"kind: unknown broken data set {kind!r}")
+
+
+def flagged(cal) -> bool:
+    """Whether ours said something is wrong: a warning, or samples it rejected."""
+    return bool(cal.warnings) or bool(getattr(cal, "rejected", ()))
+
+
+def run_broken(trials: int, seed: int, python: Path | None):
+    """Per kind: ours (refused / warned / silent, its error) and every OpenCV method's error."""
+    out = {}
+    for kind in BROKEN:
+        sets = [broken(kind, seed * 1000 + k) for k in range(trials)]
+        row = {}
+        if have_ours():
+            from service import handeye
+            from service.errors import Infeasible
+            s, refused, warned, silent, first = Series(), 0, 0, 0, ""
+            for B, A, setup, X in sets:
+                try:
+                    cal = handeye.calibrate(B, A, setup)
+                except Infeasible as e:
+                    refused += 1
+                    first = first or str(e)
+                    continue
+                X_hat, why = judge(dq.to_matrix(cal.x), X)
+                s.add(X_hat, X, bad=why)
+                if flagged(cal):
+                    warned += 1
+                    first = first or (cal.warnings[0] if cal.warnings else "samples rejected")
+                else:
+                    silent += 1
+            row[OURS] = dict(series=s, refused=refused, warned=warned, silent=silent,
+                             message=first)
+        if python is not None:   # one kind's sets share their shape and setup: one batch
+            B, A = np.stack([b[0] for b in sets]), np.stack([b[1] for b in sets])
+            add_opencv(row, opencv_solve(python, B, A, sets[0][2]), [b[3] for b in sets])
+        out[kind] = row
+    return out
+
+
+def _cell(s: Series) -> str:
+    if not s.rot:
+        return "—"
+    kinds = ", ".join(sorted(set(b.split(":")[0] for b in s.bad)))
+    if len(s.bad) == len(s.rot):
+        return f"all {kinds}"
+    text = f"{_med(s.rot)}° / {_med(s.trans)} mm"
+    return text + (f" ({len(s.bad)} {kinds})" if s.bad else "")
+
+
+def render_broken(results: dict, trials: int) -> str:
+    methods = [OURS] + [m for m in OPENCV if any(m in r for r in results.values())]
+    head = ["broken data", *methods]
+    lines = []
+    for kind, row in results.items():
+        line = [kind]
+        for m in methods:
+            if m not in row:
+                line.append("—")
+            elif m == OURS:
+                o = row[m]
+                parts = [f"refused {o['refused']}/{trials}"] if o["refused"] else []
+                if o["warned"]:
+                    parts.append(f"warned {o['warned']}/{trials}")
+                if o["silent"]:
+                    parts.append(f"SILENT {o['silent']}/{trials}")
+                if o["series"].rot:
+                    parts.append(_cell(o["series"]))
+                line.append(", ".join(parts))
+            else:
+                line.append(_cell(row[m]))
+        lines.append(line)
+    return _markdown(head, lines)
+
+
 # ---- the table and the targets ---------------------------------------------------------------
 def _med(x):
     m = float(np.median(x)) if len(x) else np.nan
-    return "inf" if np.isinf(m) else f"{m:.4f}" if m < 0.1 else f"{m:.3f}"
+    if np.isinf(m) or np.isnan(m):
+        return str(m)
+    return f"{m:.4f}" if m < 0.1 else f"{m:.3f}" if m < 1e4 else f"{m:.2e}"
 
 
 def render(results: dict) -> str:
@@ -364,7 +493,7 @@ def best_opencv(res):
     return float(np.median(res[r].rot)), r, float(np.median(res[t].trans)), t
 
 
-def targets(results: dict, charuco_label: str | None) -> str:
+def targets(results: dict, charuco_label: str | None, broken_results: dict | None = None) -> str:
     """Issue 11's targets, PASS/FAIL each, beside the best OpenCV method of the same run."""
     ok = lambda b: "PASS" if b else "FAIL"  # noqa: E731
     out = []
@@ -411,6 +540,14 @@ def targets(results: dict, charuco_label: str | None) -> str:
         out.append(f"- solving 20 poses ≤ 50 ms including the refinement: median "
                    f"{med * 1e3:.1f} ms, 95th percentile {np.percentile(t20, 95) * 1e3:.1f} ms over "
                    f"{len(t20)} solves: {ok(med <= 0.05)}")
+    if broken_results:
+        silent = {k: r[OURS]["silent"] for k, r in broken_results.items()
+                  if OURS in r and r[OURS]["silent"]}
+        nan = {k: len(r[OURS]["series"].bad) for k, r in broken_results.items()
+               if OURS in r and r[OURS]["series"].bad}
+        out.append(f"- every broken data set flagged ({', '.join(broken_results)}), refused or "
+                   f"warned: " + (f"PASS" if not silent else f"FAIL, silent on {silent}")
+                   + ("" if not nan else f"; bad answers {nan}: FAIL"))
     bad = {k: len(s.bad) for k, s in mine.items() if s.bad}
     out.append(f"- ours never NaN, never a reflection, never a silent identity: "
                + ("none bad: PASS" if not bad else
@@ -453,6 +590,8 @@ def main(argv=None):
     ap.add_argument("--charuco-trials", type=int, default=CHARUCO_TRIALS,
                     help=f"end-to-end trials of {CHARUCO_POSES} rendered views (default "
                          f"{CHARUCO_TRIALS}; 0 skips them)")
+    ap.add_argument("--broken-trials", type=int, default=BROKEN_TRIALS,
+                    help=f"seeded sets per broken kind (default {BROKEN_TRIALS}; 0 skips them)")
     ap.add_argument("--geometry", nargs="+", choices=GEOMETRIES, default=list(GEOMETRIES))
     ap.add_argument("--poses", nargs="+", type=int, default=list(POSES))
     ap.add_argument("--seed", type=int, default=1)
@@ -485,9 +624,19 @@ def main(argv=None):
           + f"; {args.trials} trials per synthetic row, {args.charuco_trials} end to end, "
             f"seed {args.seed}")
     print(render(results))
+    broken_results = None
+    if args.broken_trials > 0:
+        broken_results = run_broken(args.broken_trials, args.seed, python)
+        print()
+        print(f"Broken data ({args.broken_trials} seeded sets each, the wrist scene's 20 poses "
+              f"at 0.1°/0.5 mm broken as named; median error of X, bad answers counted):")
+        print(render_broken(broken_results, args.broken_trials))
+        for kind, row in broken_results.items():
+            if OURS in row and row[OURS]["message"]:
+                print(f"- {kind}: ours says: {row[OURS]['message'].splitlines()[0][:160]}")
     print()
     print("Issue 11 targets:")
-    print(targets(results, charuco_label))
+    print(targets(results, charuco_label, broken_results))
     print(f"({time.perf_counter() - t0:.0f} s)")
     if args.plot:
         main_rows = [Case("wrist", 20, (0.1, 0.5), None).label,
