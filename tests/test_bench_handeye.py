@@ -85,9 +85,17 @@ def test_bad_answers_count_as_infinite_errors():
     assert "2/3 (NaN, identity)" in bench.render({"scene": {"m": s}})
 
 
+def _rows(stdout, header):
+    """The rows of the Markdown table whose first column is ``header``."""
+    for block in stdout.split("\n\n"):
+        lines = [ln for ln in block.splitlines() if ln.startswith("|")]
+        if lines and lines[0].startswith(f"| {header} "):
+            return [[c.strip() for c in ln.strip("|").split("|")] for ln in lines[2:]]
+    raise AssertionError(f"no table headed {header!r} in:\n{stdout}")
+
+
 def _table(stdout):
-    rows = [[c.strip() for c in line.strip("|").split("|")] for line in stdout.splitlines()
-            if line.startswith("| ") and not line.startswith("| scene")]
+    rows = _rows(stdout, "scene")
     out = {}
     for scene, method, rot, trans, nees, seconds, bad in rows:
         out.setdefault(scene, {})[method] = dict(rot=float(rot), trans=float(trans), nees=nees,
@@ -99,7 +107,7 @@ def test_bench_small_run(opencv4):
     """A small run in CI: every method on every row, ours never bad, with a NEES; on the fixed
     seed ours at least matches the best OpenCV method where the issue says it beats them."""
     out = subprocess.run([sys.executable, "-m", "tests.bench.bench_handeye", "--trials", "10",
-                          "--poses", "20", "--charuco-trials", "2"],
+                          "--poses", "20", "--charuco-trials", "2", "--broken-trials", "2"],
                          cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-3000:]
     table = _table(out.stdout)
@@ -119,6 +127,12 @@ def test_bench_small_run(opencv4):
             if "ChArUco" not in scene:
                 assert float(res[bench.OURS]["nees"]) > 0
     assert "Issue 11 targets:" in out.stdout
+    broken = _rows(out.stdout, "broken data")
+    assert [r[0] for r in broken] == list(bench.BROKEN)
+    for r in broken:   # every OpenCV column filled: an answer, or what went wrong
+        assert all(c != "—" for c in r[2:]), r
+        if have_ours:
+            assert "SILENT" not in r[1] and ("refused" in r[1] or "warned" in r[1]), r
     if not have_ours:
         pytest.skip("service.handeye not there yet: OpenCV's rows only")
     for case in (bench.Case("wrist", 20, (0.1, 0.5), None),
