@@ -20,8 +20,8 @@ base2world our Z⁻¹, in both setups. ``method=`` is passed by keyword (#27625)
 
 Scenes: ``tests/_handeye.py`` (the one generator): the wrist geometry (a camera 0.3–0.6 m from the
 board) and OpenCV's own test geometry, eye-in-hand, {10, 20} poses × camera noise
-{0.1°/0.5 mm, 0.5°/2 mm} per axis × robot noise {none, ``ROBOT_NOISE``} per axis; seeds
-``seed·1000 + trial``, the same for every row. End to end: 15 wrist views of the 7×5 ChArUco
+{0.1°/0.5 mm, 0.5°/2 mm} per axis × robot noise {none, ``ROBOT_NOISE``} per axis, plus each
+geometry eye-to-hand (20 poses, 0.1°/0.5 mm); seeds ``seed·1000 + trial``, the same for every row. End to end: 15 wrist views of the 7×5 ChArUco
 board rendered without noise by ``drivers/sim/camera.py`` and detected by ``drivers/camera.py``
 (``CharucoCamera.detect``), every method on the detected poses; ours also with the detected corners
 when ``calibrate`` takes them.
@@ -32,6 +32,11 @@ only, OpenCV returns none), median wall time of one solve (ours from Python, ref
 OpenCV's the call inside its own process), and ``bad``: answers that are NaN, not a rotation (a
 reflection or non-orthogonal), or the identity when the truth is not, and for ours refusals
 (``Infeasible``). A bad answer counts as an infinite error in the medians.
+
+A second table: broken data sets (:func:`broken`: 2 poses, pure translation, rotations about
+parallel axes, duplicated samples, camera poses inverted, an eye-to-hand rig solved as eye-in-hand,
+20 % outliers, robot translations in millimetres read as metres), what each method answers, and
+whether ours refused or warned (issue 11: every one flagged, never NaN, never a silent identity).
 """
 from __future__ import annotations
 
@@ -211,18 +216,23 @@ class Case:
     n: int
     camera_noise: tuple[float, float]
     robot_noise: tuple[float, float] | None
+    setup: str = "eye_in_hand"
 
     @property
     def label(self) -> str:
         robot = "robot exact" if self.robot_noise is None else \
             f"robot {self.robot_noise[0]:g}°/{self.robot_noise[1]:g} mm"
-        return (f"{self.geometry}, {self.n} poses, camera {self.camera_noise[0]:g}°/"
+        setup = "" if self.setup == "eye_in_hand" else ", eye-to-hand"
+        return (f"{self.geometry}{setup}, {self.n} poses, camera {self.camera_noise[0]:g}°/"
                 f"{self.camera_noise[1]:g} mm, {robot}")
 
 
 def cases(geometries=GEOMETRIES, poses=POSES) -> list[Case]:
-    return [Case(g, n, c, r) for g in geometries for n in poses for c in CAMERA_NOISE
+    """The issue's grid, eye-in-hand; and eye-to-hand at its first noise level (the other
+    setup's conventions, on ours and OpenCV's, in the same run)."""
+    grid = [Case(g, n, c, r) for g in geometries for n in poses for c in CAMERA_NOISE
             for r in (None, ROBOT_NOISE)]
+    return grid + [Case(g, max(poses), CAMERA_NOISE[0], None, "eye_to_hand") for g in geometries]
 
 
 def have_ours() -> bool:
@@ -254,7 +264,8 @@ def add_ours(s: Series, truth, *args, **kwargs):
     s.add(X_hat, truth, seconds, P, bad=why)
 
 
-def run_case(case: Case, trials: int, seed: int, python: Path | None, setup="eye_in_hand"):
+def run_case(case: Case, trials: int, seed: int, python: Path | None):
+    setup = case.setup
     scenes = [_handeye.scene(case.n, setup, case.geometry, case.camera_noise, case.robot_noise,
                              seed=seed * 1000 + k) for k in range(trials)]
     res = {}
@@ -559,22 +570,25 @@ def plot(path: str, results: dict, labels: list[str]):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     labels = [lb for lb in labels if lb in results]
     fig, axes = plt.subplots(len(labels), 2, figsize=(11, 2.9 * len(labels)), squeeze=False)
     for row, label in enumerate(labels):
         res = results[label]
         methods = list(res)
-        for col, (attr, unit) in enumerate((("rot", "rotation error of X (deg)"),
-                                            ("trans", "translation error of X (mm)"))):
+        for col, (attr, unit) in enumerate((("rot", "rotation (deg)"),
+                                            ("trans", "translation (mm)"))):
             ax = axes[row, col]
             data = [np.clip(np.asarray(getattr(res[m], attr)), 1e-5, 1e3) for m in methods]
             ax.boxplot(data, orientation="horizontal", whis=(5, 95), showfliers=False)
             ax.set_xscale("log")
             ax.set_yticks(range(1, len(methods) + 1), methods, fontsize=8)
             ax.invert_yaxis()
+            ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
             ax.grid(True, axis="x", which="both", alpha=0.3)
-            ax.set_title(f"{label}: {unit}", fontsize=8)
+            ax.set_title(f"{label.split(' (')[0]}: {unit}" if col == 0 else unit, fontsize=8,
+                         loc="left" if col == 0 else "center")
     fig.suptitle("Hand-eye calibration error of X per method (box: quartiles, whiskers: 5–95 %)",
                  fontsize=10)
     fig.tight_layout()
