@@ -1,0 +1,780 @@
+"""Hand-eye calibration: robot and camera poses in, the camera's mount with an honest covariance out.
+
+Conventions (the rest of dqpose's, :mod:`service.dq` and :mod:`service.lie`):
+
+* ``base_flange`` are the robot's ``T_base_flange`` ``(n, 8)``; ``camera_target`` the detector's
+  ``T_camera_target`` ``(n, 8)``; sample i is the pair of row i of each.
+* **eye_in_hand** (camera on the flange): ``x = T_flange_camera``, ``z = T_base_target``, and every
+  sample satisfies ``base_flange_i · x · camera_target_i = z``.
+  **eye_to_hand** (camera fixed, target on the flange): ``x = T_base_camera``,
+  ``z = T_flange_target``, and ``base_flange_i⁻¹ · x · camera_target_i = z``. Eye-to-hand is solved
+  as eye-in-hand on the inverted flange poses ``A_i = base_flange_i⁻¹``; everything below is
+  written for ``A_i · X · C_i = Z`` (``C_i = camera_target_i``), the robot-world-hand-eye form on
+  absolute poses.
+* Covariances are 6×6, rotation first ``[ωx ωy ωz vx vy vz]``, of a right (body-frame)
+  perturbation ``T · Exp(ξ)`` with the SE(3) exponential: GTSAM's ``Pose3`` convention, the one
+  of :mod:`service.fusion`. A noise covariance given for the poses uses it too (robot: the
+  perturbation of ``T_base_flange``; camera: of ``T_camera_target``).
+
+The solution, in order:
+
+1. **Closed form** (Daniilidis 1999, dual quaternions): motions between all pairs ``i < j``
+   (not only consecutive ones), ``A_j⁻¹A_i · X = X · C_j C_i⁻¹``; each pair's dual quaternions put
+   in one hemisphere (scalar parts ≥ 0, the short screw both sides); pairs that rotate less than
+   ``_MIN_PAIR_ANGLE`` or nearly half a turn (sign ill-defined) left out, and samples whose pairs
+   are not screw-congruent (rotation angle and pitch of the two motions must agree) left out of
+   it; the 6 m × 8 system solved by SVD, then re-solved with Huber weights on each pair's
+   residual (robust averaging). ``Z`` is then the DIB mean (:func:`service.dq.dib`) of the
+   per-sample estimates ``A_i X C_i``.
+2. **Maximum likelihood** on ``(X, Z)``: Gauss–Newton on SE(3)×SE(3) with right perturbations
+   and exact Jacobians (:mod:`service.lie`) of the residuals ``r_i = Log(Z⁻¹ A_i X C_i)``. Noise on
+   both the robot and the camera poses enters through each residual's covariance
+   ``Σ_r,i = Jr⁻¹(r_i) (Ad(K_i⁻¹) Σ_A,i Ad(K_i⁻¹)ᵀ + Σ_C,i) Jr⁻ᵀ``, ``K_i = X C_i``
+   (the errors-in-variables problem with the true poses eliminated, to first order), re-evaluated
+   at each iterate. The noise covariances are the caller's when given (``noise_model == "given"``),
+   else **estimated from the residuals** (``"estimated"``): one diagonal 6×6 residual covariance
+   shared by all samples, the per-axis mean square of the residuals with the 12 fitted degrees
+   of freedom taken out, re-estimated until it settles (robot noise is then absorbed in it, not
+   separated from the camera's). The covariance of ``(X, Z)`` is the inverse of the information
+   ``Σ Jᵢᵀ Σ_r,i⁻¹ Jᵢ`` at the optimum; ``covariance_x``/``covariance_z`` are its marginals.
+3. **Robust mode**: every sample is gated on its standardised residual
+   ``r_iᵀ (Σ_r,i − J_i H⁻¹ J_iᵀ)⁻¹ r_i`` (the leave-one-out NIS to first order, χ² with 6 dof,
+   gate at probability ``_GATE``), from a fit on the samples that pass the screw-congruence test,
+   with the noise scale then taken robustly (median); rejected samples are named with a reason
+   (a marker flip when the rotation is off and the board's position is not).
+4. **After solving**: leave-one-out (how far X moves when each sample is left out, to first
+   order: ``H⁻¹ J_iᵀ S_i⁻¹ r_i``), the closed form's distance from the answer in its own
+   covariance, and :func:`next_best_pose`.
+
+Data checks (:func:`check` and :func:`calibrate`): malformed input is a
+:class:`~service.errors.FieldError` naming the argument and index; unusable data an
+:class:`~service.errors.Infeasible` naming the reason and the samples (fewer than 3 distinct
+poses, no rotation between samples, rotation axes all parallel, poses that do not correspond,
+millimetres given as metres, the data fitting another reading far better: setup swapped or a pose
+convention inverted); anything doubtful but solvable a warning naming the samples.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from service import dq, lie
+from service.errors import FieldError, Infeasible
+
+__all__ = ["SETUPS", "Calibration", "Rejection", "calibrate", "check", "next_best_pose"]
+
+SETUPS = ("eye_in_hand", "eye_to_hand")
+
+_MIN_POSES = 3
+_MIN_PAIR_ANGLE = np.radians(2.0)      # pairs rotating less say little about X's rotation
+_MAX_PAIR_ANGLE = np.radians(170.0)    # near half a turn the hemisphere of a pair is ambiguous
+_DUPLICATE_ANGLE = np.radians(1e-3)    # two samples this close in rotation and translation
+_DUPLICATE_DISTANCE = 1e-6             # (m) on both sides are one sample taken twice
+_PURE_TRANSLATION = np.radians(0.5)    # no pair rotates more: X's translation is not determined
+_SMALL_ROTATION = np.radians(10.0)     # warn when no pair rotates more than this
+_MIN_EXCITATION = np.radians(0.5)      # smallest rotation excitation: below it, axes parallel
+_LOW_EXCITATION = np.radians(3.0)      # warn below this (a healthy wrist set: ~15–30°)
+_GATE = 0.999                          # χ² probability of the robust gate
+_GATE_6 = 22.457744484825192           # χ²₆ quantile at _GATE (fusion.chi2_quantile(0.999, 6))
+_GATE_3 = 16.266236196238010           # χ²₃ quantile at _GATE
+_SUSPECT = 4.0                         # a sample whose median congruence error is this many σ off
+_MISMATCH_ANGLE = np.radians(3.0)      # median congruence errors beyond these: poses do not
+_MISMATCH_PITCH = 0.02                 # correspond (time or pairing), for most samples (m)
+_READING_FACTOR = 5.0                  # another reading fits this many times better: refuse
+_FLOOR_ROT, _FLOOR_TRANS = 1e-9, 1e-9  # smallest estimated noise σ (rad, m): exact data
+_TOL = 1e-10                           # (rad, m) a step this short: converged
+_MAX_ITER = 30
+
+
+@dataclass(frozen=True)
+class Rejection:
+    """A sample left out by the robust mode, and why."""
+    index: int
+    reason: str
+
+
+@dataclass(frozen=True)
+class Calibration:
+    setup: str
+    x: np.ndarray             # (8,) eye_in_hand: T_flange_camera; eye_to_hand: T_base_camera
+    z: np.ndarray             # (8,) eye_in_hand: T_base_target;  eye_to_hand: T_flange_target
+    covariance_x: np.ndarray  # (6,6) rotation first, right perturbation T·Exp(ξ) (GTSAM Pose3)
+    covariance_z: np.ndarray  # (6,6) same convention
+    residuals: np.ndarray     # (n,2) per sample: rotation (rad), then the target's position (m)
+    warnings: tuple[str, ...]
+    inliers: np.ndarray = field(default=None)            # (n,) bool: samples in the answer
+    rejected: tuple[Rejection, ...] = ()
+    covariance: np.ndarray = field(default=None)         # (12,12) joint, [X; Z]
+    information: np.ndarray = field(default=None)        # (12,12) its inverse, for next_best_pose
+    noise_model: str = "estimated"                       # "given" or "estimated"
+    camera_covariance: np.ndarray = field(default=None)  # (6,6) or (n,6,6) as used
+    robot_covariance: Optional[np.ndarray] = None        # (6,6), (n,6,6) or None (exact robot)
+    residual_covariance: np.ndarray = field(default=None)  # (n,6,6) Σ_r,i at the optimum
+    nis: np.ndarray = field(default=None)                # (n,) standardised residual, χ²₆
+    leave_one_out: np.ndarray = field(default=None)      # (n,2) X moves (rad, m) without each
+    closed_form_x: np.ndarray = field(default=None)      # (8,) the closed form's X
+    closed_form_z: np.ndarray = field(default=None)
+    agreement: tuple[float, float, float] = (0.0, 0.0, 0.0)  # closed form vs X: rad, m, NEES
+    rotation_condition: float = 0.0     # condition number of the rotation information
+    excitation: float = 0.0             # its smallest eigenvalue as an RMS angle (rad)
+    iterations: int = 0
+    readings: tuple[tuple[str, float, float], ...] = ()  # (reading, median rad, median m)
+    reprojection: Optional[np.ndarray] = None
+
+
+# ---- input -------------------------------------------------------------------------------------
+def _poses(x, name: str) -> np.ndarray:
+    try:
+        a = np.asarray(x, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise FieldError(f"{name}: expected numbers, got {type(x).__name__}") from None
+    if a.ndim != 2 or a.shape[1] != 8:
+        raise FieldError(f"{name}: expected shape (n, 8), got {a.shape}")
+    bad = ~np.isfinite(a).all(axis=1)
+    if np.any(bad):
+        raise FieldError(f"{name}[{int(np.flatnonzero(bad)[0])}]: contains NaN or infinity")
+    try:
+        dq.to_matrix(a)   # the core's unit and rigidity checks, with the index
+    except ValueError as e:
+        msg = str(e)
+        raise FieldError(name + (msg[1:] if msg.startswith("a") else ": " + msg)) from None
+    return dq.normalize(a)
+
+
+def _setup(setup) -> str:
+    if setup not in SETUPS:
+        raise FieldError(f"setup: expected one of {', '.join(SETUPS)}, got {setup!r}")
+    return setup
+
+
+def _noise(cov, name: str, n: int) -> Optional[np.ndarray]:
+    if cov is None:
+        return None
+    try:
+        S = np.asarray(cov, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise FieldError(f"{name}: expected numbers, got {type(cov).__name__}") from None
+    if S.shape not in ((6, 6), (n, 6, 6)):
+        raise FieldError(f"{name}: expected shape (6, 6) or ({n}, 6, 6), got {S.shape}")
+    S = np.broadcast_to(S, (n, 6, 6))
+    for i in range(n if S.ndim == 3 and np.shape(cov) != (6, 6) else 1):
+        s = S[i]
+        where = f"{name}[{i}]" if np.shape(cov) != (6, 6) else name
+        if not np.all(np.isfinite(s)):
+            raise FieldError(f"{where}: contains NaN or infinity")
+        if not np.allclose(s, s.T, rtol=1e-9, atol=0.0):
+            raise FieldError(f"{where}: not symmetric")
+        if np.linalg.eigvalsh(0.5 * (s + s.T))[0] < 0.0:
+            raise FieldError(f"{where}: not positive semi-definite")
+    return 0.5 * (S + np.swapaxes(S, -1, -2))
+
+
+def _samples(idx) -> str:
+    idx = [int(i) for i in idx]
+    return f"sample{'s' if len(idx) != 1 else ''} {', '.join(map(str, idx))}"
+
+
+# ---- closed form -------------------------------------------------------------------------------
+def _hemisphere(d: np.ndarray) -> np.ndarray:
+    return np.where(d[..., :1] < 0.0, -d, d)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return lie.so3_hat(v)
+
+
+def _motions(A, C, i, j):
+    """The pair motions ``A_j⁻¹ A_i`` and ``C_j C_i⁻¹`` in one hemisphere each."""
+    a = _hemisphere(dq.mul(dq.inv(A[j]), A[i]))
+    b = _hemisphere(dq.mul(C[j], dq.inv(C[i])))
+    return a, b
+
+
+def _rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Daniilidis' 6×8 block per pair: ``[[a−b, (a+b)^, 0, 0], [a'−b', (a'+b')^, a−b, (a+b)^]]``
+    on the vector parts; ``T · [q; q'] = 0`` for the true ``X = (q, q')``."""
+    m = a.shape[0]
+    av, bv, ad, bd = a[:, 1:4], b[:, 1:4], a[:, 5:8], b[:, 5:8]
+    T = np.zeros((m, 6, 8))
+    T[:, :3, 0] = av - bv
+    T[:, :3, 1:4] = _skew(av + bv)
+    T[:, 3:, 0] = ad - bd
+    T[:, 3:, 1:4] = _skew(ad + bd)
+    T[:, 3:, 4] = av - bv
+    T[:, 3:, 5:8] = _skew(av + bv)
+    return T
+
+
+def _null_dq(T: np.ndarray) -> np.ndarray:
+    """The unit dual quaternion in the two-dimensional near-null space of ``T`` (m·6, 8)."""
+    _, _, Vt = np.linalg.svd(T, full_matrices=False)
+    v1, v2 = Vt[-2], Vt[-1]
+    u1, d1, u2, d2 = v1[:4], v1[4:], v2[:4], v2[4:]
+    # (λ1, λ2) with q·q' = 0: a quadratic form M in (λ1, λ2); its null directions, the one with
+    # the larger |q| (the other is the pure-dual, translation-only solution).
+    M = np.array([[u1 @ d1, 0.5 * (u1 @ d2 + u2 @ d1)], [0.5 * (u1 @ d2 + u2 @ d1), u2 @ d2]])
+    N = np.array([[u1 @ u1, u1 @ u2], [u1 @ u2, u2 @ u2]])
+    e, R = np.linalg.eigh(M)
+    if e[0] * e[1] < 0.0:
+        c = np.sqrt(np.abs(e[::-1]))           # directions where e0 y0² + e1 y1² = 0
+        cands = [R @ np.array([c[0], c[1]]), R @ np.array([c[0], -c[1]])]
+    else:                                      # noise: the nearest direction to a root
+        cands = [R[:, int(np.argmin(np.abs(e)))]]
+    lam = max(cands, key=lambda l: l @ N @ l)
+    lam = lam / np.sqrt(lam @ N @ lam)
+    x = lam[0] * v1 + lam[1] * v2
+    return dq.normalize(_hemisphere(x))
+
+
+def _pairs(n: int):
+    i, j = np.triu_indices(n, k=1)
+    return i, j
+
+
+def _closed_form(A, C, use: np.ndarray, robust: bool = True):
+    """Daniilidis over all usable pairs, Huber-reweighted; ``Z`` the DIB mean of ``A_i X C_i``.
+    Returns ``(X, Z, number of pairs)``, or None when too few pairs rotate."""
+    idx = np.flatnonzero(use)
+    i, j = _pairs(len(idx))
+    i, j = idx[i], idx[j]
+    a, b = _motions(A, C, i, j)
+    ang = 2.0 * np.arccos(np.clip(a[:, 0], -1.0, 1.0))
+    keep = (ang > _MIN_PAIR_ANGLE) & (ang < _MAX_PAIR_ANGLE)
+    if np.count_nonzero(keep) < 2:
+        return None
+    a, b = a[keep], b[keep]
+    T = _rows(a, b)
+    w = np.ones(len(a))
+    X = None
+    for _ in range(3 if robust else 1):
+        X = _null_dq((T * np.sqrt(w)[:, None, None]).reshape(-1, 8))
+        if not robust:
+            break
+        e = np.linalg.norm(T @ X, axis=1)
+        s = 1.4826 * np.median(e) + 1e-15
+        k = 2.0 * s
+        w = np.where(e <= k, 1.0, k / np.maximum(e, 1e-300))
+    Zi = dq.mul(dq.mul(A[use], X), C[use])
+    Z = dq.dib(_align(Zi))
+    return X, Z, int(len(a))
+
+
+def _align(d: np.ndarray) -> np.ndarray:
+    """Put dual quaternions in the hemisphere of the first (DIB does too; explicit for the log)."""
+    s = np.sign(d[:, :4] @ d[0, :4])
+    s[s == 0] = 1.0
+    return d * s[:, None]
+
+
+# ---- screw congruence --------------------------------------------------------------------------
+@dataclass
+class _Congruence:
+    i: np.ndarray
+    j: np.ndarray
+    angle_a: np.ndarray
+    angle_b: np.ndarray
+    pitch_a: np.ndarray
+    pitch_b: np.ndarray
+
+
+def _congruence(A, C) -> _Congruence:
+    n = A.shape[0]
+    i, j = _pairs(n)
+    a, b = _motions(A, C, i, j)
+    sa, sb = dq.screw(a), dq.screw(b)
+    return _Congruence(i, j, sa.theta, sb.theta, sa.d, sb.d)
+
+
+def _per_sample_median(n, i, j, v) -> np.ndarray:
+    """Per sample, the median of ``v`` over the pairs it is in."""
+    M = np.full((n, n), np.nan)
+    M[i, j] = v
+    M[j, i] = v
+    out = np.zeros(n)
+    seen = ~np.all(np.isnan(M), axis=1)
+    out[seen] = np.nanmedian(M[seen], axis=1)
+    return out
+
+
+# ---- the model ---------------------------------------------------------------------------------
+def _transported(X, C, SA, SC, Jri):
+    """Σ_r,i = Jr⁻¹(r) (Ad(K⁻¹) Σ_A Ad(K⁻¹)ᵀ + Σ_C) Jr⁻ᵀ, K = X C_i (see the module docstring)."""
+    S = SC.copy() if SC is not None else np.zeros((C.shape[0], 6, 6))
+    if SA is not None:
+        S = S + lie.cov_left_to_right(dq.mul(X, C), SA)
+    return Jri @ S @ np.swapaxes(Jri, -1, -2)
+
+
+def _evaluate(A, C, X, Z):
+    E = dq.mul(dq.mul(dq.mul(dq.inv(Z), A), X), C)
+    return E, lie.se3_log(E)
+
+
+def _estimated_covariance(r: np.ndarray, robust: bool) -> np.ndarray:
+    """One diagonal residual covariance for all samples: per axis, the mean square with the 12
+    fitted degrees of freedom taken out (the median-based scale when ``robust``)."""
+    n = r.shape[0]
+    if robust:
+        var = (1.4826 * np.median(np.abs(r), axis=0)) ** 2
+    else:
+        var = np.sum(r * r, axis=0) / max(n - 2, 1)   # 6n residuals, 12 parameters: 2 per axis
+    floor = np.array([_FLOOR_ROT ** 2] * 3 + [_FLOOR_TRANS ** 2] * 3)
+    return np.diag(np.maximum(var, floor))
+
+
+@dataclass
+class _Fit:
+    X: np.ndarray
+    Z: np.ndarray
+    E: np.ndarray
+    r: np.ndarray
+    J: np.ndarray      # (n,6,12) d r_i / d(δx, δz)
+    S: np.ndarray      # (n,6,6) residual covariances
+    H: np.ndarray      # (12,12) information
+    P: np.ndarray      # (12,12) covariance
+    iterations: int
+
+
+class _Noise:
+    """The residual covariances: transported from the given pose noise, or one shared diagonal
+    re-estimated from the residuals at every iterate."""
+
+    def __init__(self, SA, SC, estimate: bool):
+        self.SA, self.SC, self.estimate = SA, SC, estimate
+
+    def __call__(self, X, C, r, Jri, use=None) -> np.ndarray:
+        if self.estimate:
+            return np.broadcast_to(_estimated_covariance(r, False), (len(r), 6, 6))
+        SA = None if self.SA is None else self.SA[use]
+        return _transported(X, C, SA, self.SC[use], Jri)
+
+
+def _linearise(A, C, AdCi, X, Z, noise: _Noise, use):
+    E, r = _evaluate(A, C, X, Z)
+    Jri = lie.se3_right_jacobian_inv(r)
+    S = noise(X, C, r, Jri, use)
+    J = np.empty((len(r), 6, 12))
+    # r_i = Log(Z⁻¹ A_i X C_i): X Exp(δx) moves it by Jr⁻¹ Ad(C_i⁻¹) δx, Z Exp(δz) by
+    # −Jl⁻¹(r) δz = −Jr⁻¹(r) Ad(E_i⁻¹) δz.
+    J[:, :, :6] = Jri @ AdCi
+    J[:, :, 6:] = -Jri @ lie.adjoint(dq.inv(E))
+    return E, r, J, S
+
+
+def _fit(A, C, X, Z, noise: _Noise, use) -> _Fit:
+    """Gauss–Newton on ``(X, Z)`` over the samples ``use``, minimising Σ r_iᵀ Σ_r,i⁻¹ r_i; steps
+    halved while the cost (at the step's weights) rises."""
+    Au, Cu = A[use], C[use]
+    AdCi = lie.adjoint(dq.inv(Cu))
+    it = 0
+    for it in range(1, _MAX_ITER + 1):
+        E, r, J, S = _linearise(Au, Cu, AdCi, X, Z, noise, use)
+        W = np.linalg.inv(S)
+        JtW = np.swapaxes(J, 1, 2) @ W
+        H = (JtW @ J).sum(axis=0)
+        g = np.einsum("nij,nj->i", JtW, r)
+        cost = float(np.einsum("ni,nij,nj->", r, W, r))
+        try:
+            step = -np.linalg.solve(H, g)
+        except np.linalg.LinAlgError:
+            step = None
+        if step is None or not np.all(np.isfinite(step)):
+            raise Infeasible("base_flange: the motions do not determine X and Z (singular "
+                             "information); add poses rotating about other axes")
+        t = 1.0
+        for _ in range(30):
+            Xn = dq.mul(X, lie.se3_exp(t * step[:6]))
+            Zn = dq.mul(Z, lie.se3_exp(t * step[6:]))
+            rn = _evaluate(Au, Cu, Xn, Zn)[1]
+            if float(np.einsum("ni,nij,nj->", rn, W, rn)) <= cost * (1 + 1e-12) + 1e-300:
+                break
+            t *= 0.5
+        X, Z = Xn, Zn
+        if np.linalg.norm(t * step) < _TOL or t < 1e-8:
+            break
+    E, r, J, S = _linearise(Au, Cu, AdCi, X, Z, noise, use)
+    JtW = np.swapaxes(J, 1, 2) @ np.linalg.inv(S)
+    H = (JtW @ J).sum(axis=0)
+    H = 0.5 * (H + H.T)
+    try:
+        P = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        P = np.full((12, 12), np.inf)
+    if not np.all(np.isfinite(P)):
+        raise Infeasible("base_flange: the motions do not determine X and Z (singular "
+                         "information); add poses rotating about other axes")
+    return _Fit(X, Z, E, r, J, np.array(S), H, 0.5 * (P + P.T), it)
+
+
+def _standardised(fit: _Fit) -> tuple[np.ndarray, np.ndarray]:
+    """``r_iᵀ S_i⁻¹ r_i`` with ``S_i = Σ_r,i − J_i H⁻¹ J_iᵀ``, and ``S_i⁻¹ r_i`` (for the
+    leave-one-out shift)."""
+    Si = fit.S - fit.J @ fit.P @ np.swapaxes(fit.J, 1, 2)
+    Si = 0.5 * (Si + np.swapaxes(Si, 1, 2))
+    # A sample that alone fixes a direction has S_i singular there: pseudo-inverse, not NaN.
+    y = np.einsum("nij,nj->ni", np.linalg.pinv(Si, rcond=1e-10, hermitian=True), fit.r)
+    return np.einsum("ni,ni->n", fit.r, y), y
+
+
+# ---- checks ------------------------------------------------------------------------------------
+@dataclass
+class _Prepared:
+    setup: str
+    F: np.ndarray
+    A: np.ndarray
+    C: np.ndarray
+    use: np.ndarray          # samples not duplicates
+    suspect: np.ndarray      # samples whose pairs are not screw-congruent
+    warnings: list
+    closed: tuple            # (X, Z, pairs) of the given reading
+    readings: tuple
+    condition: float
+    excitation: float
+
+
+def _reading(F, setup):
+    return F if setup == "eye_in_hand" else dq.inv(F)
+
+
+def _spread(A, C, X, Z, use):
+    """Median rotation (rad) and position (m) of the per-sample ``A_i X C_i`` about ``Z``."""
+    E = dq.mul(dq.mul(dq.mul(dq.inv(Z), A[use]), X), C[use])
+    ang = 2.0 * np.arctan2(np.linalg.norm(E[:, 1:4], axis=1), np.abs(E[:, 0]))
+    pos = np.linalg.norm(dq.to_pose(E)[1], axis=1)
+    return float(np.median(ang)), float(np.median(pos))
+
+
+def _rotation_information(cg: _Congruence, use_pairs: np.ndarray, A, i, j):
+    """``Σ θ² (I − k kᵀ)`` over the pairs' robot rotation axes ``k``: the rotation of X is seen
+    only across the axes; its condition number and the RMS angle of its smallest eigenvalue."""
+    a = _hemisphere(dq.mul(dq.inv(A[j]), A[i]))
+    v = a[:, 1:4]
+    s = np.linalg.norm(v, axis=1)
+    k = v / np.maximum(s, 1e-300)[:, None]
+    th = 2.0 * np.arctan2(s, a[:, 0])
+    M = np.einsum("p,pij->ij", th ** 2, np.eye(3) - k[:, :, None] * k[:, None, :])
+    e = np.linalg.eigvalsh(M)
+    m = max(len(th), 1)
+    cond = float(e[-1] / e[0]) if e[0] > 1e-300 else float("inf")
+    return cond, float(np.sqrt(max(e[0], 0.0) / m))
+
+
+def _prepare(base_flange, camera_target, setup) -> _Prepared:
+    setup = _setup(setup)
+    F = _poses(base_flange, "base_flange")
+    C = _poses(camera_target, "camera_target")
+    n = F.shape[0]
+    if C.shape[0] != n:
+        raise FieldError(f"camera_target: {C.shape[0]} poses for {n} in base_flange "
+                         f"(one per sample)")
+    if n < _MIN_POSES:
+        raise Infeasible(f"base_flange: {n} pose{'s' if n != 1 else ''}; at least {_MIN_POSES} "
+                         f"are needed (two motions about different axes)")
+    A = _reading(F, setup)
+    warnings: list[str] = []
+
+    cg = _congruence(A, C)
+    i, j = cg.i, cg.j
+    # Duplicates: the same sample twice (both sides unmoved); stale: the robot moved, the camera
+    # did not (or the other way round).
+    da = _pair_distance(A, i, j, left=True)
+    db = _pair_distance(C, i, j, left=False)
+    still_a = (cg.angle_a < _DUPLICATE_ANGLE) & (da < _DUPLICATE_DISTANCE)
+    still_b = (cg.angle_b < _DUPLICATE_ANGLE) & (db < _DUPLICATE_DISTANCE)
+    use = np.ones(n, bool)
+    dup = still_a & still_b
+    if np.any(dup):
+        for p in np.flatnonzero(dup):
+            use[j[p]] = False if use[i[p]] else use[j[p]]
+        groups = sorted({(int(i[p]), int(j[p])) for p in np.flatnonzero(dup)})
+        warnings.append(f"{_samples(sorted({k for g in groups for k in g}))}: duplicate poses "
+                        f"({', '.join(f'{a} = {b}' for a, b in groups)}); each kept once")
+    stale = still_a ^ still_b
+    if np.any(stale):
+        which = [(int(i[p]), int(j[p]), "robot" if still_a[p] else "camera")
+                 for p in np.flatnonzero(stale)]
+        warnings.append(f"{_samples(sorted({k for w in which for k in w[:2]}))}: stale poses ("
+                        + "; ".join(f"{a} and {b}: the {who} did not move while the other did"
+                                    for a, b, who in which[:5])
+                        + ("; …" if len(which) > 5 else "") + ")")
+    if np.count_nonzero(use) < _MIN_POSES:
+        raise Infeasible(f"base_flange: {np.count_nonzero(use)} distinct poses after removing "
+                         f"duplicates; at least {_MIN_POSES} are needed")
+    pu = use[i] & use[j]
+    largest = float(np.max(cg.angle_a[pu]))
+    if largest < _PURE_TRANSLATION:
+        raise Infeasible(f"base_flange: pure translation: no two samples differ in rotation by "
+                         f"more than {np.degrees(largest):.2f}°; the camera's position cannot be "
+                         f"found without rotations about at least two axes "
+                         f"({_samples(np.flatnonzero(use))})")
+    cond, excitation = _rotation_information(cg, pu, A, i[pu], j[pu])
+    if excitation < _MIN_EXCITATION:
+        raise Infeasible(f"base_flange: the rotation axes of all motions are parallel "
+                         f"(smallest rotation excitation {np.degrees(excitation):.2f}°, "
+                         f"condition number {cond:.3g} of the rotation information); rotate "
+                         f"about at least two different axes ({_samples(np.flatnonzero(use))})")
+    if largest < _SMALL_ROTATION:
+        warnings.append(f"{_samples(np.flatnonzero(use))}: small rotations (largest between "
+                        f"two samples {np.degrees(largest):.1f}°); X is poorly determined")
+    if excitation < _LOW_EXCITATION:
+        warnings.append(f"{_samples(np.flatnonzero(use))}: rotation axes nearly parallel or "
+                        f"coplanar (smallest excitation {np.degrees(excitation):.2f}°, condition "
+                        f"number {cond:.3g} of the rotation information)")
+
+    # Screw congruence: angle and pitch of A-motions and C-motions must agree.
+    dth = np.abs(cg.angle_a - cg.angle_b)[pu]
+    dd = np.abs(cg.pitch_a - cg.pitch_b)[pu]
+    ip, jp = i[pu], j[pu]
+    med_th, med_d = float(np.median(dth)), float(np.median(dd))
+    if med_th > _MISMATCH_ANGLE:
+        raise Infeasible(f"base_flange, camera_target: the robot and camera motions do not "
+                         f"correspond: their rotation angles differ by {np.degrees(med_th):.1f}° "
+                         f"(median over pairs; about the noise when they do); samples misaligned "
+                         f"in time or paired wrongly ({_samples(np.flatnonzero(use))})")
+    _units(cg, pu, use)
+    if med_d > _MISMATCH_PITCH:
+        raise Infeasible(f"base_flange, camera_target: the robot and camera motions do not "
+                         f"correspond: their translations along the screw axes differ by "
+                         f"{1e3 * med_d:.1f} mm (median over pairs) while the angles agree "
+                         f"({np.degrees(med_th):.2f}°); samples misaligned in time or paired "
+                         f"wrongly ({_samples(np.flatnonzero(use))})")
+    s_th = max(1.4826 * med_th, np.radians(0.01))
+    s_d = max(1.4826 * med_d, 1e-4)
+    score = np.maximum(_per_sample_median(n, ip, jp, dth / s_th),
+                       _per_sample_median(n, ip, jp, dd / s_d))
+    suspect = use & (score > _SUSPECT)
+    if np.count_nonzero(use & ~suspect) < _MIN_POSES:
+        suspect[:] = False
+
+    # The readings: the given one against the swapped setup and inverted camera poses. Both
+    # swapped is no alternative: F⁻¹ Z C⁻¹ = X is the same equation with X and Z exchanged.
+    base_use = use & ~suspect
+    closed = _closed_form(A, C, base_use)
+    if closed is None:
+        raise Infeasible(f"base_flange: fewer than two pairs of samples rotate by more than "
+                         f"{np.degrees(_MIN_PAIR_ANGLE):.0f}°; add poses rotating about "
+                         f"different axes")
+    readings = []
+    other = "eye_to_hand" if setup == "eye_in_hand" else "eye_in_hand"
+    for name, Ar, Cr in ((setup, A, C),
+                         (other, _reading(F, other), C),
+                         (f"{setup}, camera_target inverted", A, dq.inv(C))):
+        res = closed if Ar is A and Cr is C else _closed_form(Ar, Cr, base_use)
+        if res is None:
+            continue
+        readings.append((name,) + _spread(Ar, Cr, res[0], res[1], base_use))
+    given = readings[0]
+    best = min(readings[1:], key=lambda r: r[1] / s_th + r[2] / s_d, default=None)
+    if best is not None and (given[1] > _READING_FACTOR * best[1] + np.radians(0.05)
+                             and given[2] > _READING_FACTOR * best[2] + 1e-3):
+        hint = ("the setup is swapped, or base_flange holds T_flange_base"
+                if "inverted" not in best[0] else
+                "camera_target holds T_target_camera" if best[0].startswith(setup) else
+                "the setup is swapped and camera_target holds T_target_camera")
+        raise Infeasible(f"base_flange, camera_target: the data fit {best[0]} far better than "
+                         f"{setup} as given (median residual {np.degrees(best[1]):.3g}° / "
+                         f"{1e3 * best[2]:.3g} mm against {np.degrees(given[1]):.3g}° / "
+                         f"{1e3 * given[2]:.3g} mm): {hint}?")
+    return _Prepared(setup, F, A, C, use, suspect, warnings, closed, tuple(readings), cond,
+                     excitation)
+
+
+def _pair_distance(P, i, j, left: bool) -> np.ndarray:
+    M = dq.mul(dq.inv(P[j]), P[i]) if left else dq.mul(P[j], dq.inv(P[i]))
+    return np.linalg.norm(dq.to_pose(M)[1], axis=1)
+
+
+def _units(cg: _Congruence, pu: np.ndarray, use: np.ndarray) -> None:
+    """Pitch of the robot's motions against the camera's: a ratio near 1000 is millimetres."""
+    da, db = cg.pitch_a[pu], cg.pitch_b[pu]
+    if np.sum(db * db) <= 0.0 or np.sum(da * da) <= 0.0:
+        return
+    s = float(np.sum(da * db) / np.sum(db * db))     # da ≈ s db
+    resid = np.sqrt(np.mean((da - s * db) ** 2))
+    if resid > 0.3 * np.sqrt(np.mean(da * da)):
+        return                                         # no clean scale: not a unit problem
+    if s < 0.1 or s > 10.0:
+        big, small, f = (("camera_target", "base_flange", 1 / s) if s < 1 else
+                         ("base_flange", "camera_target", s))
+        unit = " (millimetres given as metres?)" if 300 < f < 3000 else ""
+        raise Infeasible(f"{big}: translations {f:.4g}× those of {small} along the same screw "
+                         f"axes{unit}; give both in metres ({_samples(np.flatnonzero(use))})")
+
+
+# ---- the API -----------------------------------------------------------------------------------
+def check(base_flange, camera_target, setup: str = "eye_in_hand") -> tuple[str, ...]:
+    """The data checks of :func:`calibrate` without the refinement: raises what it would raise
+    (``FieldError`` for malformed input, ``Infeasible`` for unusable data), returns its warnings
+    (each naming the samples), samples failing screw congruence among them."""
+    p = _prepare(base_flange, camera_target, setup)
+    w = list(p.warnings)
+    if np.any(p.suspect):
+        w.append(f"{_samples(np.flatnonzero(p.suspect))}: robot and camera motions not "
+                 f"screw-congruent with the other samples (outliers, a robot that had not "
+                 f"settled, or a marker flip)")
+    return tuple(w)
+
+
+def calibrate(base_flange, camera_target, setup: str = "eye_in_hand", *, robust: bool = True,
+              corners=None, camera_covariance=None, robot_covariance=None) -> Calibration:
+    """Solve ``A_i X C_i = Z`` (see the module docstring) for ``x`` and ``z`` with covariances.
+
+    ``camera_covariance`` / ``robot_covariance``: noise of ``camera_target`` / ``base_flange``
+    ((6, 6) or (n, 6, 6), right perturbation, rotation first); with neither given the noise is
+    estimated from the residuals; with only the camera's given the robot poses are taken as exact.
+    ``robust`` rejects samples failing the χ² gate (named in ``rejected``); otherwise they are
+    kept and named in a warning. ``corners`` is not supported yet (``FieldError``).
+    """
+    if corners is not None:
+        raise FieldError("corners: corner-level refinement is not implemented yet; pass poses")
+    p = _prepare(base_flange, camera_target, setup)
+    n = p.F.shape[0]
+    SC = _noise(camera_covariance, "camera_covariance", n)
+    SRob = _noise(robot_covariance, "robot_covariance", n)
+    if SC is None and SRob is not None:
+        raise FieldError("camera_covariance: needed when robot_covariance is given (or give "
+                         "neither to estimate the noise)")
+    estimate = SC is None
+    # Noise of A_i = base_flange_i⁻¹ (eye_to_hand) is the inverse's: Ad(F) Σ Ad(F)ᵀ.
+    SA = None
+    if SRob is not None:
+        SA = SRob if p.setup == "eye_in_hand" else lie.cov_inverse(p.F, SRob)
+        if not np.any(SA):
+            SA = None
+    noise = _Noise(SA, SC, estimate)
+    if not estimate:
+        S0 = noise(p.closed[0], p.C, np.zeros((n, 6)), np.broadcast_to(np.eye(6), (n, 6, 6)),
+                   np.ones(n, bool))
+        if not np.all(np.linalg.eigvalsh(S0)[:, 0] > 0.0):
+            raise FieldError("camera_covariance: the residual covariance is singular; give "
+                             "every pose some noise in every axis")
+    warnings = list(p.warnings)
+    X0, Z0 = p.closed[0], p.closed[1]
+
+    inlier = p.use & ~p.suspect
+    fit = _fit(p.A, p.C, X0, Z0, noise, inlier)
+    rejected: list[Rejection] = []
+    if robust:
+        for _ in range(5):
+            r_all, S_all, nis_all = _against(p, fit, noise, inlier)
+            new = p.use & (nis_all <= _GATE_6)
+            if np.count_nonzero(new) < _MIN_POSES or np.array_equal(new, inlier):
+                break
+            inlier = new
+            fit = _fit(p.A, p.C, fit.X, fit.Z, noise, inlier)
+        r_all, S_all, nis_all = _against(p, fit, noise, inlier)
+        rejected = [Rejection(int(k), _reason(k, fit, p, r_all[k], S_all[k], nis_all[k]))
+                    for k in np.flatnonzero(p.use & ~inlier)]
+        if rejected:
+            warnings.append(f"{_samples([r.index for r in rejected])}: rejected as outliers (" +
+                            "; ".join(f"{r.index}: {r.reason}" for r in rejected) + ")")
+    elif not np.array_equal(inlier, p.use):
+        inlier = p.use.copy()
+        fit = _fit(p.A, p.C, fit.X, fit.Z, noise, inlier)
+
+    r_all, S_all, nis = _against(p, fit, noise, inlier)
+    idx = np.flatnonzero(inlier)
+    nis_in, y = _standardised(fit)
+    if not robust:
+        bad = idx[nis_in > _GATE_6]
+        if len(bad):
+            warnings.append(f"{_samples(bad)}: residuals beyond the {100 * _GATE:.1f} % χ² gate "
+                            f"(NIS " + ", ".join(f"{nis[k]:.3g}" for k in bad) + "); outliers?")
+    # Leaving sample i out moves (X, Z) by H⁻¹ J_iᵀ S_i⁻¹ r_i (Sherman–Morrison, first order).
+    loo = np.zeros((n, 2))
+    shift = np.einsum("ij,nkj,nk->ni", fit.P, fit.J, y)
+    m = lie.se3_exp(shift[:, :6])
+    loo[idx, 0] = 2.0 * np.arctan2(np.linalg.norm(m[:, 1:4], axis=1), np.abs(m[:, 0]))
+    loo[idx, 1] = np.linalg.norm(dq.to_pose(m)[1], axis=1)
+    E_all = dq.mul(dq.mul(dq.mul(dq.inv(fit.Z), p.A), fit.X), p.C)
+    residuals = np.column_stack([np.linalg.norm(r_all[:, :3], axis=1),
+                                 np.linalg.norm(dq.to_pose(E_all)[1], axis=1)])
+    xi = lie.se3_log(dq.mul(dq.inv(fit.X), X0))
+    agree = (float(np.linalg.norm(xi[:3])),
+             float(np.linalg.norm(dq.to_pose(X0)[1] - dq.to_pose(fit.X)[1])),
+             float(xi @ np.linalg.solve(fit.P[:6, :6], xi)))
+    if agree[2] > 100.0 and (agree[0] > np.radians(1.0) or agree[1] > 0.01):
+        warnings.append(f"{_samples(idx)}: the closed form and the refined X differ by "
+                        f"{np.degrees(agree[0]):.2f}° / {1e3 * agree[1]:.1f} mm "
+                        f"(NEES {agree[2]:.3g}): the model may not fit the data")
+    return Calibration(
+        setup=p.setup, x=fit.X, z=fit.Z, covariance_x=fit.P[:6, :6].copy(),
+        covariance_z=fit.P[6:, 6:].copy(), residuals=residuals, warnings=tuple(warnings),
+        inliers=inlier, rejected=tuple(rejected), covariance=fit.P, information=fit.H,
+        noise_model="estimated" if estimate else "given",
+        camera_covariance=fit.S[0] if estimate else SC,
+        robot_covariance=None if estimate else SRob,
+        residual_covariance=np.array(S_all), nis=nis, leave_one_out=loo, closed_form_x=X0,
+        closed_form_z=Z0, agreement=agree, rotation_condition=p.condition,
+        excitation=p.excitation, iterations=fit.iterations, readings=p.readings)
+
+
+def _against(p: _Prepared, fit: _Fit, noise: _Noise, inlier):
+    """Residuals, their covariances and NIS of every sample against a fit: the inliers'
+    standardised (leave-one-out to first order, ``Σ_r − J P Jᵀ``), the others' against the
+    prediction (``Σ_r + J P Jᵀ``)."""
+    n = p.F.shape[0]
+    everyone = np.ones(n, bool)
+    E, r, J, S = _linearise(p.A, p.C, lie.adjoint(dq.inv(p.C)), fit.X, fit.Z, noise, everyone)
+    if noise.estimate:
+        S = np.broadcast_to(fit.S[0], (n, 6, 6))
+    sign = np.where(inlier, -1.0, 1.0)
+    V = S + sign[:, None, None] * (J @ fit.P @ np.swapaxes(J, 1, 2))
+    V = 0.5 * (V + np.swapaxes(V, 1, 2))
+    y = np.einsum("nij,nj->ni", np.linalg.pinv(V, rcond=1e-10, hermitian=True), r)
+    return r, np.array(S), np.einsum("ni,ni->n", r, y)
+
+
+def _reason(k, fit: _Fit, p: _Prepared, r, S, nis) -> str:
+    if not p.use[k]:
+        return "duplicate"
+    # The rotation off while the board's position (the translation of the residual) is not:
+    # the planar-target pose ambiguity.
+    E = dq.mul(dq.mul(dq.mul(dq.inv(fit.Z), p.A[k]), fit.X), p.C[k])
+    t = dq.to_pose(E)[1]
+    St = S[3:, 3:]
+    pos_nis = float(t @ np.linalg.solve(St, t))
+    ang = float(np.linalg.norm(r[:3]))
+    if ang > np.radians(3.0) and pos_nis <= _GATE_3:
+        return (f"marker flip? rotation off by {np.degrees(ang):.1f}° while the board's "
+                f"position agrees to {1e3 * np.linalg.norm(t):.2f} mm")
+    return (f"NIS {nis:.3g} > {_GATE_6:.3g}: off by {np.degrees(ang):.2f}° / "
+            f"{1e3 * np.linalg.norm(t):.2f} mm")
+
+
+def next_best_pose(calibration: Calibration, base_flange, camera_target, candidates) -> np.ndarray:
+    """Indices of the candidate robot poses ``T_base_flange`` (m, 8), most informative first:
+    the one whose sample, added to the information of ``calibration``, shrinks the covariance of
+    X most (smallest determinant of X's marginal). The candidate's camera pose is predicted from
+    the calibration; its noise is the calibration's noise model (``base_flange`` and
+    ``camera_target`` are the samples it was solved from, checked for shape only)."""
+    _poses(base_flange, "base_flange")
+    _poses(camera_target, "camera_target")
+    cand = _poses(candidates, "candidates")
+    if cand.shape[0] == 0:
+        raise FieldError("candidates: no candidate poses")
+    c = calibration
+    A = _reading(cand, c.setup)
+    X, Z = c.x, c.z
+    C = dq.mul(dq.mul(dq.inv(X), dq.inv(A)), Z)             # A X C = Z
+    m = cand.shape[0]
+    I6 = np.broadcast_to(np.eye(6), (m, 6, 6))
+    J = np.concatenate([lie.adjoint(dq.inv(C)), -I6], axis=2)   # at r = 0
+    if c.noise_model == "given":
+        # The candidate's noise: that of the calibration's last sample (one shared noise model).
+        SC = np.broadcast_to(np.asarray(c.camera_covariance).reshape(-1, 6, 6)[-1], (m, 6, 6))
+        SA = None
+        if c.robot_covariance is not None:
+            SA = np.broadcast_to(np.asarray(c.robot_covariance).reshape(-1, 6, 6)[-1], (m, 6, 6))
+            if c.setup == "eye_to_hand":
+                SA = lie.cov_inverse(cand, SA)
+        S = _transported(X, C, SA, SC, I6)
+    else:
+        S = np.broadcast_to(c.camera_covariance, (m, 6, 6))
+    W = np.linalg.inv(S)
+    H = c.information[None] + np.swapaxes(J, 1, 2) @ W @ J
+    P = np.linalg.inv(H)
+    score = np.linalg.slogdet(P[:, :6, :6])[1]
+    return np.argsort(score, kind="stable")
