@@ -70,6 +70,7 @@ POSES = (10, 20)
 CAMERA_NOISE = ((0.1, 0.5), (0.5, 2.0))   # (deg, mm) per axis
 ROBOT_NOISE = (0.05, 0.2)                 # (deg, mm) per axis: an arm's pose, not its repeatability
 OURS = "ours"
+OURS_COVARIANCE = "ours (detector covariances)"
 OURS_CORNERS = "ours (corners)"
 OPENCV_HAND_EYE = ("TSAI", "PARK", "HORAUD", "ANDREFF", "DANIILIDIS")   # as handeye_opencv4.py
 OPENCV_ROBOT_WORLD = ("SHAH", "LI")
@@ -291,8 +292,8 @@ def add_opencv(res, solved, truths):
 # ---- end to end on rendered ChArUco images --------------------------------------------------------
 def charuco_views(trials: int, seed: int, n: int = CHARUCO_POSES):
     """Per trial: the wrist scene (exact poses), every view rendered and detected. Returns
-    ``(scene, kept indices, detected T_camera_target, corners per kept view)``; a view the
-    detector rejects is left out, as a user would."""
+    ``(scene, kept indices, detected T_camera_target, corners per kept view, the detector's
+    covariances)``; a view the detector rejects is left out, as a user would."""
     from drivers.camera import CharucoCamera
     from drivers.sim.camera import DEFAULT_INTRINSICS, BoardRenderer
     renderer = BoardRenderer()
@@ -301,45 +302,62 @@ def charuco_views(trials: int, seed: int, n: int = CHARUCO_POSES):
     for k in range(trials):
         # the scene's target frame is the board's frame (tests/_handeye.py, drivers/camera.py)
         sc = _handeye.scene(n, "eye_in_hand", "wrist", (0.0, 0.0), None, seed=seed * 1000 + k)
-        kept, poses, corners = [], [], []
+        kept, poses, corners, covariances = [], [], [], []
         for i, T in enumerate(sc.true_camera_target):
             det = camera.detect(renderer.render(T))
             if det.ok:
                 kept.append(i)
                 poses.append(det.pose)
                 corners.append((det.object_points, det.image_points, DEFAULT_INTRINSICS.K))
-        out.append((sc, np.array(kept), np.array(poses), corners))
+                covariances.append(det.covariance)
+        out.append((sc, np.array(kept), np.array(poses), corners, np.array(covariances)))
     return out
 
 
-def _takes_corners() -> bool:
-    import inspect
+def _supported(kwargs) -> bool:
+    """Whether ``calibrate`` takes the options ``kwargs(scene)`` gives (a FieldError naming one,
+    or a TypeError, says it does not yet)."""
     from service import handeye
-    return "corners" in inspect.signature(handeye.calibrate).parameters
+    sc = _handeye.scene(5, seed=0)
+    try:
+        handeye.calibrate(sc.base_flange, sc.camera_target, **kwargs(sc))
+    except TypeError:
+        return False
+    except ValueError as e:
+        return not str(e).startswith(tuple(kwargs(sc)))
+    return True
 
 
 def run_charuco(trials: int, seed: int, python: Path | None):
+    """Rows: ours on the detected poses (noise estimated), ours given the detector's covariance
+    of each view (robot exact, as it is here), ours with the corners when it takes them, and
+    every OpenCV method on the detected poses."""
     views = charuco_views(trials, seed)
     res = {}
     if have_ours():
-        res[OURS] = Series()
-        corners_too = _takes_corners()
-        if corners_too:
-            res[OURS_CORNERS] = Series()
-        for sc, kept, A, corners in views:
-            add_ours(res[OURS], sc.x, sc.base_flange[kept], A, "eye_in_hand")
-            if corners_too:
-                add_ours(res[OURS_CORNERS], sc.x, sc.base_flange[kept], A, "eye_in_hand",
-                         corners=corners)
+        K = np.eye(3)
+        options = {OURS: lambda v: {},
+                   OURS_COVARIANCE: lambda v: dict(camera_covariance=v[4]),
+                   OURS_CORNERS: lambda v: dict(corners=v[3])}
+        probes = {OURS_COVARIANCE: lambda sc: dict(camera_covariance=np.eye(6) * 1e-6),
+                  OURS_CORNERS: lambda sc: dict(corners=[(np.zeros((4, 3)), np.zeros((4, 2)), K)]
+                                                * len(sc.base_flange))}
+        for m, opt in options.items():
+            if m in probes and not _supported(probes[m]):
+                continue
+            res[m] = Series()
+            for v in views:
+                sc, kept, A = v[:3]
+                add_ours(res[m], sc.x, sc.base_flange[kept], A, "eye_in_hand", **opt(v))
     if python is not None:
         # one runner call per number of detected views (a batch is (k, n, ...)); the order of
         # the trials within a method's series does not matter to its medians
-        for m in sorted({len(k) for _, k, _, _ in views}):
+        for m in sorted({len(v[1]) for v in views}):
             group = [v for v in views if len(v[1]) == m]
-            B = np.stack([sc.base_flange[k] for sc, k, _, _ in group])
-            A = np.stack([a for _, _, a, _ in group])
+            B = np.stack([v[0].base_flange[v[1]] for v in group])
+            A = np.stack([v[2] for v in group])
             add_opencv(res, opencv_solve(python, B, A, "eye_in_hand"), [v[0].x for v in group])
-    rejected = sum(CHARUCO_POSES - len(k) for _, k, _, _ in views)
+    rejected = sum(CHARUCO_POSES - len(v[1]) for v in views)
     return res, rejected
 
 
@@ -524,14 +542,16 @@ def targets(results: dict, charuco_label: str | None, broken_results: dict | Non
         if OURS not in res:
             out.append(f"- {label}: target ≤ {rot}° / ≤ {trans} mm: ours not run{peer}")
             continue
-        m = OURS_CORNERS if OURS_CORNERS in res else OURS
-        r, t = float(np.median(res[m].rot)), float(np.median(res[m].trans))
-        line = (f"- {label}: {m} {r:.4f}° / {t:.3f} mm, target ≤ {rot}° / ≤ {trans} mm "
-                f"(issue's best OpenCV: {figure}): {ok(r <= rot and t <= trans)}{peer}")
-        if best is not None:
-            line += (": ours " + ("better or equal" if r <= best[0] and t <= best[2] else
-                                  "NOT better"))
-        out.append(line)
+        for m in (OURS, OURS_COVARIANCE, OURS_CORNERS):
+            if m not in res:
+                continue
+            r, t = float(np.median(res[m].rot)), float(np.median(res[m].trans))
+            line = (f"- {label}: {m} {r:.4f}° / {t:.4f} mm, target ≤ {rot}° / ≤ {trans} mm "
+                    f"(issue's best OpenCV: {figure}): {ok(r <= rot and t <= trans)}{peer}")
+            if best is not None:
+                line += (": ours " + ("better or equal" if r <= best[0] and t <= best[2] else
+                                      "NOT better"))
+            out.append(line)
     mine = {k: v[OURS] for k, v in results.items() if OURS in v}
     if not mine:
         return "\n".join(out)
