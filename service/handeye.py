@@ -312,14 +312,11 @@ def _evaluate(A, C, X, Z):
     return E, lie.se3_log(E)
 
 
-def _estimated_covariance(r: np.ndarray, robust: bool) -> np.ndarray:
-    """One diagonal residual covariance for all samples: per axis, the mean square with the 12
-    fitted degrees of freedom taken out (the median-based scale when ``robust``)."""
-    n = r.shape[0]
-    if robust:
-        var = (1.4826 * np.median(np.abs(r), axis=0)) ** 2
-    else:
-        var = np.sum(r * r, axis=0) / max(n - 2, 1)   # 6n residuals, 12 parameters: 2 per axis
+def _robust_covariance(r: np.ndarray) -> np.ndarray:
+    """The start of the estimated noise: isotropic rotation and translation variances from the
+    median absolute residuals, which a few outliers do not inflate."""
+    var = (1.4826 * np.median(np.abs(r), axis=0)) ** 2
+    var = np.repeat([var[:3].mean(), var[3:].mean()], 3)
     floor = np.array([_FLOOR_ROT ** 2] * 3 + [_FLOOR_TRANS ** 2] * 3)
     return np.diag(np.maximum(var, floor))
 
@@ -339,16 +336,30 @@ class _Fit:
 
 class _Noise:
     """The residual covariances: transported from the given pose noise, or one shared diagonal
-    re-estimated from the residuals at every iterate."""
+    estimated from the residuals (:meth:`update`, at every Gauss–Newton iterate)."""
 
     def __init__(self, SA, SC, estimate: bool):
         self.SA, self.SC, self.estimate = SA, SC, estimate
+        self.shared: Optional[np.ndarray] = None
 
     def __call__(self, X, C, r, Jri, use=None) -> np.ndarray:
         if self.estimate:
-            return np.broadcast_to(_estimated_covariance(r, False), (len(r), 6, 6))
+            if self.shared is None:
+                self.shared = _robust_covariance(r)
+            return np.broadcast_to(self.shared, (len(r), 6, 6))
         SA = None if self.SA is None else self.SA[use]
         return _transported(X, C, SA, self.SC[use], Jri)
+
+    def update(self, r: np.ndarray, J: np.ndarray, P: np.ndarray) -> None:
+        """``σ_k² = (Σ r_ik² + Σ (J_i P J_iᵀ)_kk) / n``: the fit absorbs ``J_i P J_iᵀ`` of each
+        residual's variance (P scales with σ², so this is iterated with the fit: REML-like, the
+        12 fitted degrees of freedom shared out by leverage rather than evenly)."""
+        if self.estimate:
+            absorbed = np.einsum("nij,jk,nik->i", J, P, J)
+            var = (np.sum(r * r, axis=0) + absorbed) / len(r)
+            var = np.repeat([var[:3].mean(), var[3:].mean()], 3)   # isotropic: see _Noise
+            floor = np.array([_FLOOR_ROT ** 2] * 3 + [_FLOOR_TRANS ** 2] * 3)
+            self.shared = np.diag(np.maximum(var, floor))
 
 
 def _linearise(A, C, AdCi, X, Z, noise: _Noise, use):
@@ -375,6 +386,11 @@ def _fit(A, C, X, Z, noise: _Noise, use) -> _Fit:
         JtW = np.swapaxes(J, 1, 2) @ W
         H = (JtW @ J).sum(axis=0)
         g = np.einsum("nij,nj->i", JtW, r)
+        if noise.estimate:
+            try:
+                noise.update(r, J, np.linalg.inv(H))
+            except np.linalg.LinAlgError:
+                pass
         cost = float(np.einsum("ni,nij,nj->", r, W, r))
         try:
             step = -np.linalg.solve(H, g)
@@ -395,9 +411,17 @@ def _fit(A, C, X, Z, noise: _Noise, use) -> _Fit:
         if np.linalg.norm(t * step) < _TOL or t < 1e-8:
             break
     E, r, J, S = _linearise(Au, Cu, AdCi, X, Z, noise, use)
-    JtW = np.swapaxes(J, 1, 2) @ np.linalg.inv(S)
-    H = (JtW @ J).sum(axis=0)
-    H = 0.5 * (H + H.T)
+    for _ in range(20 if noise.estimate else 1):   # the shared noise settled at the optimum
+        JtW = np.swapaxes(J, 1, 2) @ np.linalg.inv(S)
+        H = (JtW @ J).sum(axis=0)
+        H = 0.5 * (H + H.T)
+        if not noise.estimate:
+            break
+        old = noise.shared
+        noise.update(r, J, np.linalg.inv(H))
+        S = noise(X, Cu, r, None)
+        if np.allclose(np.diag(old), np.diag(noise.shared), rtol=1e-6, atol=0.0):
+            break
     try:
         P = np.linalg.inv(H)
     except np.linalg.LinAlgError:

@@ -206,3 +206,88 @@ def scene(n: int, setup: str = "eye_in_hand", geometry: str = "wrist",
     noisy_robot = base_flange if robot_noise is None else perturb(base_flange, robot_noise, rng)
     return Scene(setup, geometry, noisy_robot, noisy_camera, x, z, base_flange, camera_target,
                  tuple(camera_noise), None if robot_noise is None else tuple(robot_noise), seed)
+
+
+# ---- broken data: what the checks must flag ----------------------------------------------------
+BROKEN = ("two_poses", "duplicates", "pure_translation", "parallel_axes", "small_rotations",
+          "time_shift", "millimetres", "inverted_camera", "inverted_robot", "swapped_setup",
+          "outliers", "marker_flips")
+
+
+@dataclass(frozen=True)
+class Broken:
+    kind: str
+    setup: str              # the setup to solve it as (swapped_setup: the wrong one)
+    base_flange: np.ndarray
+    camera_target: np.ndarray
+    bad: tuple[int, ...]    # the samples at fault (empty when the whole set is)
+    scene: Scene            # the healthy scene it was made from
+
+
+def _motion_scene(n, setup, rng, twists, seed, camera_noise):
+    """A scene whose robot poses are ``F0 · Exp(twist_i)`` (twists in the flange frame)."""
+    base = scene(n, setup, "wrist", camera_noise=(0.0, 0.0), seed=seed)
+    F0 = base.true_base_flange[0]
+    F = dq.normalize(dq.mul(F0, lie.se3_exp(twists)))
+    C = dq.normalize(camera_target_of(F, base.x, base.z, setup))
+    Cn = perturb(C, camera_noise, rng)
+    return Scene(setup, "wrist", F, Cn, base.x, base.z, F, C, tuple(camera_noise), None, seed)
+
+
+def broken(kind: str, n: int = 20, setup: str = "eye_in_hand", seed: int = 0,
+           camera_noise: tuple[float, float] = (0.1, 0.5)) -> Broken:
+    """A data set broken in one way (``BROKEN``), from a healthy wrist scene."""
+    rng = np.random.default_rng(10_000 + seed)
+    s = scene(n, setup, "wrist", camera_noise=camera_noise, seed=seed)
+    F, C, bad = s.base_flange.copy(), s.camera_target.copy(), ()
+    solve_as = setup
+    if kind == "two_poses":
+        s = scene(2, setup, "wrist", camera_noise=camera_noise, seed=seed)
+        F, C = s.base_flange, s.camera_target
+    elif kind == "duplicates":
+        k = n // 3
+        idx = np.concatenate([np.arange(n - k), rng.choice(n - k, k, replace=False)])
+        F, C = F[idx], C[idx]
+        bad = tuple(int(i) for i in range(n - k, n))
+    elif kind in ("pure_translation", "parallel_axes", "small_rotations"):
+        tw = np.zeros((n, 6))
+        tw[:, 3:] = rng.uniform(-0.1, 0.1, (n, 3))
+        if kind == "parallel_axes":
+            axis = rng.normal(size=3)
+            tw[:, :3] = np.outer(np.radians(rng.uniform(-40, 40, n)), axis / np.linalg.norm(axis))
+        elif kind == "small_rotations":
+            tw[:, :3] = np.radians(rng.uniform(-1.0, 1.0, (n, 3)))
+        s = _motion_scene(n, setup, rng, tw, seed, camera_noise)
+        F, C = s.base_flange, s.camera_target
+    elif kind == "time_shift":
+        C = np.roll(C, 1, axis=0)
+    elif kind == "millimetres":
+        C = C.copy()
+        C[:, 4:] *= 1000.0            # the dual part carries the translation linearly
+    elif kind == "inverted_camera":
+        C = dq.inv(C)
+    elif kind == "inverted_robot":
+        F = dq.inv(F)
+    elif kind == "swapped_setup":
+        solve_as = "eye_to_hand" if setup == "eye_in_hand" else "eye_in_hand"
+    elif kind == "outliers":
+        k = max(1, n // 5)
+        idx = np.sort(rng.choice(n, k, replace=False))
+        off = np.concatenate([rng.normal(size=(k, 3)), rng.normal(size=(k, 3))], axis=1)
+        off[:, :3] *= np.radians(rng.uniform(3, 20, k) / np.linalg.norm(off[:, :3], axis=1))[:, None]
+        off[:, 3:] *= (rng.uniform(0.01, 0.05, k) / np.linalg.norm(off[:, 3:], axis=1))[:, None]
+        C[idx] = dq.mul(C[idx], lie.se3_exp(off))
+        bad = tuple(int(i) for i in idx)
+    elif kind == "marker_flips":
+        # The planar-pose ambiguity: the board's rotation tipped about an in-plane axis, its
+        # position (the origin) unchanged.
+        k = max(1, n // 10)
+        idx = np.sort(rng.choice(n, k, replace=False))
+        a = rng.uniform(0, 2 * np.pi, k)
+        tip = np.radians(rng.uniform(20, 40, k))
+        rv = np.column_stack([np.cos(a), np.sin(a), np.zeros(k)]) * tip[:, None]
+        C[idx] = dq.mul(C[idx], rotation(rv))
+        bad = tuple(int(i) for i in idx)
+    else:
+        raise ValueError(f"kind: expected one of {BROKEN}, got {kind!r}")
+    return Broken(kind, solve_as, dq.normalize(F), dq.normalize(C), bad, s)
