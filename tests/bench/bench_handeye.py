@@ -33,10 +33,11 @@ OpenCV's the call inside its own process), and ``bad``: answers that are NaN, no
 reflection or non-orthogonal), or the identity when the truth is not, and for ours refusals
 (``Infeasible``). A bad answer counts as an infinite error in the medians.
 
-A second table: broken data sets (:func:`broken`: 2 poses, pure translation, rotations about
-parallel axes, duplicated samples, camera poses inverted, an eye-to-hand rig solved as eye-in-hand,
-20 % outliers, robot translations in millimetres read as metres), what each method answers, and
-whether ours refused or warned (issue 11: every one flagged, never NaN, never a silent identity).
+A second table: the broken data sets of ``tests/_handeye.py`` (``broken``: 2 poses, duplicates,
+pure translation, parallel axes, small rotations, a time shift, millimetres as metres, inverted
+camera or robot poses, the setup swapped, 20 % outliers, marker flips; from the wrist scene, 20
+poses, 0.1°/0.5 mm), what each method answers, and whether ours refused or warned (issue 11:
+every one flagged, never NaN, never a silent identity).
 """
 from __future__ import annotations
 
@@ -53,7 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service import dq, lie
+from service import dq
 from tests import _handeye
 from tests.bench.bench_fusion import _fmt_s, _markdown, nees
 
@@ -362,57 +363,7 @@ def run_charuco(trials: int, seed: int, python: Path | None):
 
 
 # ---- broken data ---------------------------------------------------------------------------------
-BROKEN = ("2 poses", "pure translation", "parallel axes", "duplicated poses",
-          "inverted conventions", "swapped setup", "20 % outliers", "millimetres as metres")
 BROKEN_TRIALS = 10
-
-
-def broken(kind: str, seed: int):
-    """A broken version of the wrist scene (20 poses, 0.1°/0.5 mm, eye-in-hand) and what it
-    is given as: ``(base_flange, camera_target, setup, true X)``. The broken motions are the
-    scene's first pose moved, and the camera poses recomputed from the scene's truth and noise
-    (``tests/_handeye.py``)."""
-    sc = _handeye.scene(20, "eye_in_hand", "wrist", (0.1, 0.5), None, seed=seed)
-    rng = np.random.default_rng([seed, BROKEN.index(kind)])
-    B, A = sc.base_flange, sc.camera_target
-
-    def seen(B):
-        return _handeye.perturb(_handeye.camera_target_of(B, sc.x, sc.z, sc.setup),
-                                sc.camera_noise, rng)
-
-    if kind == "2 poses":
-        return B[:2], A[:2], sc.setup, sc.x
-    if kind == "pure translation":
-        B = dq.mul(B[0], _handeye.pose(np.zeros((20, 3)), rng.uniform(-0.1, 0.1, (20, 3))))
-        return B, seen(B), sc.setup, sc.x
-    if kind == "parallel axes":   # every rotation about the flange's z axis
-        turn = np.radians(rng.uniform(-60.0, 60.0, 20))[:, None] * [0.0, 0.0, 1.0]
-        B = dq.mul(B[0], _handeye.pose(turn, rng.uniform(-0.1, 0.1, (20, 3))))
-        return B, seen(B), sc.setup, sc.x
-    if kind == "duplicated poses":   # samples 10-19 stored again as 0-9
-        return np.r_[B[:10], B[:10]], np.r_[A[:10], A[:10]], sc.setup, sc.x
-    if kind == "inverted conventions":   # T_target_camera given for T_camera_target
-        return B, dq.inv(A), sc.setup, sc.x
-    if kind == "swapped setup":   # an eye-to-hand rig's data solved as eye-in-hand
-        other = _handeye.scene(20, "eye_to_hand", "wrist", (0.1, 0.5), None, seed=seed)
-        return other.base_flange, other.camera_target, "eye_in_hand", sc.x
-    if kind == "20 % outliers":   # 4 of 20: 2 flipped marker poses, 2 wrong by 10-30° / 3-10 cm
-        A = A.copy()
-        bad = rng.choice(20, 4, replace=False)
-        for j, i in enumerate(bad):
-            if j < 2:
-                phi = rng.uniform(0, 2 * np.pi)
-                xi = np.r_[np.pi * np.cos(phi), np.pi * np.sin(phi), 0.0, 0.0, 0.0, 0.0]
-            else:
-                axis, d = rng.normal(size=3), rng.normal(size=3)
-                xi = np.r_[np.radians(rng.uniform(10, 30)) * axis / np.linalg.norm(axis),
-                           rng.uniform(0.03, 0.10) * d / np.linalg.norm(d)]
-            A[i] = dq.mul(A[i], lie.se3_exp(xi))
-        return B, A, sc.setup, sc.x
-    if kind == "millimetres as metres":
-        q, t = dq.to_pose(B)
-        return dq.from_pose(q, t * 1e3), A, sc.setup, sc.x
-    raise ValueError(f"kind: unknown broken data set {kind!r}")
 
 
 def flagged(cal) -> bool:
@@ -423,8 +374,9 @@ def flagged(cal) -> bool:
 def run_broken(trials: int, seed: int, python: Path | None):
     """Per kind: ours (refused / warned / silent, its error) and every OpenCV method's error."""
     out = {}
-    for kind in BROKEN:
-        sets = [broken(kind, seed * 1000 + k) for k in range(trials)]
+    for kind in _handeye.BROKEN:
+        sets = [_handeye.broken(kind, 20, "eye_in_hand", seed * 1000 + k) for k in range(trials)]
+        sets = [(b.base_flange, b.camera_target, b.setup, b.scene.x) for b in sets]
         row = {}
         if have_ours():
             from service import handeye
@@ -449,7 +401,7 @@ def run_broken(trials: int, seed: int, python: Path | None):
         if python is not None:   # one kind's sets share their shape and setup: one batch
             B, A = np.stack([b[0] for b in sets]), np.stack([b[1] for b in sets])
             add_opencv(row, opencv_solve(python, B, A, sets[0][2]), [b[3] for b in sets])
-        out[kind] = row
+        out[kind.replace("_", " ")] = row
     return out
 
 
@@ -662,8 +614,9 @@ def main(argv=None):
     if args.broken_trials > 0:
         broken_results = run_broken(args.broken_trials, args.seed, python)
         print()
-        print(f"Broken data ({args.broken_trials} seeded sets each, the wrist scene's 20 poses "
-              f"at 0.1°/0.5 mm broken as named; median error of X, bad answers counted):")
+        print(f"Broken data ({args.broken_trials} seeded sets each of tests/_handeye.py's broken(): "
+              f"the wrist scene's 20 poses at 0.1°/0.5 mm broken as named; median error of X, "
+              f"bad answers counted):")
         print(render_broken(broken_results, args.broken_trials))
         for kind, row in broken_results.items():
             if OURS in row and row[OURS]["message"]:
