@@ -84,7 +84,7 @@ _MISMATCH_ANGLE = np.radians(3.0)      # median congruence errors beyond these: 
 _MISMATCH_PITCH = 0.02                 # correspond (time or pairing), for most samples (m)
 _READING_FACTOR = 5.0                  # another reading fits this many times better: refuse
 _FLOOR_ROT, _FLOOR_TRANS = 1e-9, 1e-9  # smallest estimated noise σ (rad, m): exact data
-_TOL = 1e-10                           # (rad, m) a step this short: converged
+_TOL = 1e-12                           # a step this short in its own σ (squared): converged
 _MAX_ITER = 30
 
 
@@ -382,15 +382,24 @@ def _fit(A, C, X, Z, noise: _Noise, use) -> _Fit:
     it = 0
     for it in range(1, _MAX_ITER + 1):
         E, r, J, S = _linearise(Au, Cu, AdCi, X, Z, noise, use)
-        W = np.linalg.inv(S)
-        JtW = np.swapaxes(J, 1, 2) @ W
-        H = (JtW @ J).sum(axis=0)
-        g = np.einsum("nij,nj->i", JtW, r)
-        if noise.estimate:
+        for _ in range(20 if noise.estimate else 1):
+            W = np.linalg.inv(S)
+            JtW = np.swapaxes(J, 1, 2) @ W
+            H = (JtW @ J).sum(axis=0)
+            g = np.einsum("nij,nj->i", JtW, r)
+            if not noise.estimate:
+                break
+            # The shared noise settled at this linearisation's optimum (the residuals after
+            # the step), so the outer iterations converge as fast as with known noise.
             try:
-                noise.update(r, J, np.linalg.inv(H))
+                Hi = np.linalg.inv(H)
             except np.linalg.LinAlgError:
-                pass
+                break
+            old = noise.shared
+            noise.update(r - J @ (Hi @ g), J, Hi)
+            S = noise(X, Cu, r, None)
+            if np.allclose(np.diag(old), np.diag(noise.shared), rtol=1e-6, atol=0.0):
+                break
         cost = float(np.einsum("ni,nij,nj->", r, W, r))
         try:
             step = -np.linalg.solve(H, g)
@@ -408,7 +417,7 @@ def _fit(A, C, X, Z, noise: _Noise, use) -> _Fit:
                 break
             t *= 0.5
         X, Z = Xn, Zn
-        if np.linalg.norm(t * step) < _TOL or t < 1e-8:
+        if (t * t) * float(step @ H @ step) < _TOL or t < 1e-8:
             break
     E, r, J, S = _linearise(Au, Cu, AdCi, X, Z, noise, use)
     for _ in range(20 if noise.estimate else 1):   # the shared noise settled at the optimum
@@ -679,21 +688,25 @@ def calibrate(base_flange, camera_target, setup: str = "eye_in_hand", *, robust:
 
     inlier = p.use & ~p.suspect
     fit = _fit(p.A, p.C, X0, Z0, noise, inlier)
-    rejected: list[Rejection] = []
-    if robust:
-        for _ in range(5):
-            r_all, S_all, nis_all = _against(p, fit, noise, inlier)
-            new = p.use & (nis_all <= _GATE_6)
-            if np.count_nonzero(new) < _MIN_POSES or np.array_equal(new, inlier):
-                break
-            inlier = new
-            fit = _fit(p.A, p.C, fit.X, fit.Z, noise, inlier)
+    # The gate runs in both modes; without ``robust`` its outliers are named, not left out.
+    for _ in range(5):
         r_all, S_all, nis_all = _against(p, fit, noise, inlier)
-        rejected = [Rejection(int(k), _reason(k, fit, p, r_all[k], S_all[k], nis_all[k]))
-                    for k in np.flatnonzero(p.use & ~inlier)]
-        if rejected:
-            warnings.append(f"{_samples([r.index for r in rejected])}: rejected as outliers (" +
-                            "; ".join(f"{r.index}: {r.reason}" for r in rejected) + ")")
+        new = p.use & (nis_all <= _GATE_6)
+        if np.count_nonzero(new) < _MIN_POSES or np.array_equal(new, inlier):
+            break
+        inlier = new
+        fit = _fit(p.A, p.C, fit.X, fit.Z, noise, inlier)
+    r_all, S_all, nis_all = _against(p, fit, noise, inlier)
+    outliers = [Rejection(int(k), _reason(k, fit, p, r_all[k], S_all[k], nis_all[k]))
+                for k in np.flatnonzero(p.use & ~inlier)]
+    rejected: list[Rejection] = []
+    if outliers:
+        what = ("rejected as outliers" if robust else
+                "outliers (kept: robust mode is off)")
+        warnings.append(f"{_samples([r.index for r in outliers])}: {what} (" +
+                        "; ".join(f"{r.index}: {r.reason}" for r in outliers) + ")")
+    if robust:
+        rejected = outliers
     elif not np.array_equal(inlier, p.use):
         inlier = p.use.copy()
         fit = _fit(p.A, p.C, fit.X, fit.Z, noise, inlier)
@@ -701,11 +714,6 @@ def calibrate(base_flange, camera_target, setup: str = "eye_in_hand", *, robust:
     r_all, S_all, nis = _against(p, fit, noise, inlier)
     idx = np.flatnonzero(inlier)
     nis_in, y = _standardised(fit)
-    if not robust:
-        bad = idx[nis_in > _GATE_6]
-        if len(bad):
-            warnings.append(f"{_samples(bad)}: residuals beyond the {100 * _GATE:.1f} % χ² gate "
-                            f"(NIS " + ", ".join(f"{nis[k]:.3g}" for k in bad) + "); outliers?")
     # Leaving sample i out moves (X, Z) by H⁻¹ J_iᵀ S_i⁻¹ r_i (Sherman–Morrison, first order).
     loo = np.zeros((n, 2))
     shift = np.einsum("ij,nkj,nk->ni", fit.P, fit.J, y)

@@ -1,0 +1,299 @@
+"""service/handeye.py against the truth of the synthetic scenes (tests/_handeye.py): exact data
+solved exactly, noisy data solved with a consistent covariance, every broken data set flagged."""
+import numpy as np
+import pytest
+
+import _handeye as H
+from service import dq, handeye, lie
+from service.errors import FieldError, Infeasible
+
+CASES = [(setup, geometry) for setup in H.SETUPS for geometry in H.GEOMETRIES]
+
+
+def _close(a, b, tol):
+    """Poses equal up to sign, to ``tol`` in every component."""
+    a, b = np.asarray(a), np.asarray(b)
+    s = np.where((a[..., :4] * b[..., :4]).sum(-1, keepdims=True) < 0, -1.0, 1.0)
+    return np.max(np.abs(a - s * b)) < tol
+
+
+def _nees(estimate, truth, cov):
+    xi = lie.se3_log(dq.mul(dq.inv(estimate), truth))
+    return float(xi @ np.linalg.solve(cov, xi))
+
+
+def _reading(F, setup):
+    return F if setup == "eye_in_hand" else dq.inv(F)
+
+
+# ---- the scenes themselves ---------------------------------------------------------------------
+@pytest.mark.parametrize("setup,geometry", CASES)
+def test_scene_closes_the_loop(setup, geometry):
+    s = H.scene(12, setup, geometry, camera_noise=(0.0, 0.0), seed=3)
+    Z = dq.mul(dq.mul(_reading(s.base_flange, setup), s.x), s.camera_target)
+    assert all(_close(z, s.z, 1e-12) for z in Z)
+
+
+def test_scene_noise_has_the_asked_spread():
+    s = H.scene(4000, camera_noise=(0.2, 1.0), robot_noise=(0.05, 0.3), seed=1)
+    cam = lie.se3_log(dq.mul(dq.inv(s.true_camera_target), s.camera_target))
+    rob = lie.se3_log(dq.mul(dq.inv(s.true_base_flange), s.base_flange))
+    np.testing.assert_allclose(cam.std(axis=0), np.sqrt(np.diag(s.camera_covariance)), rtol=0.05)
+    np.testing.assert_allclose(rob.std(axis=0), np.sqrt(np.diag(s.robot_covariance)), rtol=0.05)
+
+
+def test_wrist_views_are_at_working_distance():
+    s = H.scene(50, seed=2, camera_noise=(0.0, 0.0))
+    d = np.linalg.norm(dq.to_pose(s.camera_target)[1], axis=1)
+    assert np.all((d > 0.25) & (d < 0.8))
+
+
+# ---- exact data --------------------------------------------------------------------------------
+@pytest.mark.parametrize("setup,geometry", CASES)
+def test_exact_data_solved_exactly(setup, geometry):
+    s = H.scene(15, setup, geometry, camera_noise=(0.0, 0.0), seed=5)
+    c = handeye.calibrate(s.base_flange, s.camera_target, setup)
+    assert c.setup == setup
+    assert _close(c.x, s.x, 1e-9) and _close(c.z, s.z, 1e-9)
+    assert _close(c.closed_form_x, s.x, 1e-9)
+    # A X = X B for every motion pair, with the answer.
+    A = _reading(s.base_flange, setup)
+    i, j = np.triu_indices(15, 1)
+    lhs = dq.mul(dq.mul(dq.inv(A[j]), A[i]), c.x)
+    rhs = dq.mul(c.x, dq.mul(s.camera_target[j], dq.inv(s.camera_target[i])))
+    assert _close(lhs, rhs, 1e-9)
+    assert np.all(c.residuals < 1e-9) and c.warnings == () and c.rejected == ()
+
+
+def test_eye_to_hand_is_eye_in_hand_on_inverted_flange_poses():
+    s = H.scene(15, "eye_to_hand", seed=8)
+    a = handeye.calibrate(s.base_flange, s.camera_target, "eye_to_hand")
+    b = handeye.calibrate(dq.inv(s.base_flange), s.camera_target, "eye_in_hand")
+    assert _close(a.x, b.x, 1e-9) and _close(a.z, b.z, 1e-9)
+    np.testing.assert_allclose(a.covariance, b.covariance, rtol=1e-6, atol=1e-15)
+
+
+# ---- the model's Jacobian ----------------------------------------------------------------------
+def test_jacobian_matches_finite_differences():
+    s = H.scene(6, camera_noise=(1.0, 5.0), seed=4)
+    A, C = s.base_flange, s.camera_target
+    noise = handeye._Noise(None, np.broadcast_to(s.camera_covariance, (6, 6, 6)), False)
+    use = np.ones(6, bool)
+    _, r, J, _ = handeye._linearise(A, C, lie.adjoint(dq.inv(C)), s.x, s.z, noise, use)
+    h = 1e-6
+    for k in range(12):
+        d = np.zeros(12)
+        d[k] = h
+        rp = handeye._evaluate(A, C, dq.mul(s.x, lie.se3_exp(d[:6])), dq.mul(s.z, lie.se3_exp(d[6:])))[1]
+        rm = handeye._evaluate(A, C, dq.mul(s.x, lie.se3_exp(-d[:6])), dq.mul(s.z, lie.se3_exp(-d[6:])))[1]
+        np.testing.assert_allclose((rp - rm) / (2 * h), J[:, :, k], atol=1e-7)
+
+
+# ---- noisy data: accuracy and consistency ------------------------------------------------------
+def _trials(count, n=20, setup="eye_in_hand", geometry="wrist", camera=(0.1, 0.5), robot=None,
+            given=True, seed0=0):
+    out = []
+    for seed in range(seed0, seed0 + count):
+        s = H.scene(n, setup, geometry, camera_noise=camera, robot_noise=robot, seed=seed)
+        kw = dict(camera_covariance=s.camera_covariance, robot_covariance=s.robot_covariance) \
+            if given else {}
+        out.append((s, handeye.calibrate(s.base_flange, s.camera_target, setup, **kw)))
+    return out
+
+
+@pytest.mark.parametrize("robot,given", [((0.05, 0.3), True), (None, False)],
+                         ids=["robot-and-camera-noise-given", "noise-estimated"])
+def test_covariance_of_x_is_consistent(robot, given):
+    """Mean NEES of X over 200 seeded trials: 6 for a consistent 6-DoF estimate."""
+    runs = _trials(200, robot=robot, given=given)
+    nees = [_nees(c.x, s.x, c.covariance_x) for s, c in runs]
+    nees_z = [_nees(c.z, s.z, c.covariance_z) for s, c in runs]
+    assert 5.0 <= np.mean(nees) <= 7.0, np.mean(nees)
+    assert 5.0 <= np.mean(nees_z) <= 7.0, np.mean(nees_z)
+
+
+def test_refinement_beats_the_closed_form():
+    runs = _trials(30, camera=(0.5, 2.0), robot=(0.1, 0.5))
+    ref = np.array([H.pose_error(c.x, s.x) for s, c in runs])
+    cf = np.array([H.pose_error(c.closed_form_x, s.x) for s, c in runs])
+    assert np.median(ref[:, 0]) < np.median(cf[:, 0])
+    assert np.median(ref[:, 1]) < np.median(cf[:, 1])
+
+
+def test_modelling_robot_noise_helps():
+    """Robot noise given beats robot poses taken as exact (camera noise alone)."""
+    both, cam_only = [], []
+    for seed in range(30):
+        s = H.scene(20, camera_noise=(0.05, 0.2), robot_noise=(0.1, 0.5), seed=seed)
+        a = handeye.calibrate(s.base_flange, s.camera_target, camera_covariance=s.camera_covariance,
+                              robot_covariance=s.robot_covariance)
+        b = handeye.calibrate(s.base_flange, s.camera_target, camera_covariance=s.camera_covariance)
+        both.append(_nees(a.x, s.x, a.covariance_x))
+        cam_only.append(_nees(b.x, s.x, b.covariance_x))
+    # Ignoring the robot's noise claims far more than it knows.
+    assert np.mean(cam_only) > 3 * np.mean(both)
+
+
+@pytest.mark.parametrize("setup,geometry", CASES)
+def test_noisy_answer_is_within_its_covariance(setup, geometry):
+    for s, c in _trials(5, setup=setup, geometry=geometry, given=False, seed0=100):
+        assert c.setup == setup
+        assert _nees(c.x, s.x, c.covariance_x) < 30.0   # χ²₆ beyond 0.99999 otherwise
+        assert np.all(np.isfinite(c.covariance)) and np.all(np.linalg.eigvalsh(c.covariance) > 0)
+        assert c.residuals.shape == (20, 2) and c.leave_one_out.shape == (20, 2)
+
+
+def test_leave_one_out_predicts_the_resolve():
+    s = H.scene(12, camera_noise=(0.3, 1.5), seed=9)
+    C0 = s.camera_covariance
+    c = handeye.calibrate(s.base_flange, s.camera_target, camera_covariance=C0)
+    for k in (0, 5, 11):
+        keep = np.arange(12) != k
+        d = handeye.calibrate(s.base_flange[keep], s.camera_target[keep], camera_covariance=C0)
+        m = dq.mul(dq.inv(c.x), d.x)
+        moved = (2 * np.arctan2(np.linalg.norm(m[1:4]), abs(m[0])),
+                 np.linalg.norm(dq.to_pose(d.x)[1] - dq.to_pose(c.x)[1]))
+        np.testing.assert_allclose(c.leave_one_out[k], moved, rtol=0.1, atol=1e-6)
+
+
+def test_closed_form_agreement_reported():
+    s, c = _trials(1, camera=(0.3, 1.0), given=False)[0]
+    rad, m, nees = c.agreement
+    expect = H.pose_error(c.closed_form_x, c.x)
+    assert rad == pytest.approx(np.radians(expect[0]), rel=1e-6)
+    assert m == pytest.approx(expect[1] * 1e-3, rel=1e-6)
+    assert nees == pytest.approx(_nees(c.x, c.closed_form_x, c.covariance_x), rel=1e-6)
+
+
+# ---- next best pose ----------------------------------------------------------------------------
+def test_next_best_pose_prefers_the_informative_candidate():
+    """Adding the top-ranked candidate shrinks X's covariance more than adding the last one."""
+    s = H.scene(8, camera_noise=(0.2, 1.0), seed=11)
+    more = H.scene(30, camera_noise=(0.2, 1.0), seed=12)
+    # Candidates: poses of another scene of the same mount, and copies of poses already taken.
+    bf = np.concatenate([s.true_base_flange[:3], more.true_base_flange[:8]])
+    x_truth, z_truth = s.x, s.z
+    cand = dq.mul(dq.mul(z_truth, dq.inv(H.camera_target_of(bf, x_truth, z_truth, "eye_in_hand"))),
+                  dq.inv(x_truth))   # T_base_flange for views of the same board
+    c = handeye.calibrate(s.base_flange, s.camera_target, camera_covariance=s.camera_covariance)
+    order = handeye.next_best_pose(c, s.base_flange, s.camera_target, cand)
+    assert sorted(order) == list(range(len(cand)))
+
+    def det_with(k):
+        F = np.concatenate([s.base_flange, cand[k:k + 1]])
+        C = np.concatenate([s.camera_target, H.camera_target_of(cand[k:k + 1], c.x, c.z, "eye_in_hand")])
+        return np.linalg.slogdet(handeye.calibrate(F, C, camera_covariance=s.camera_covariance)
+                                 .covariance_x)[1]
+
+    assert det_with(order[0]) < det_with(order[-1])
+    assert order[-1] < 3 or det_with(order[-1]) >= max(det_with(k) for k in range(3)) - 1e-9
+
+
+# ---- checks ------------------------------------------------------------------------------------
+@pytest.mark.parametrize("kind", H.BROKEN)
+def test_every_broken_data_set_is_flagged(kind):
+    b = H.broken(kind, seed=1)
+    try:
+        c = handeye.calibrate(b.base_flange, b.camera_target, b.setup)
+    except Infeasible as e:
+        assert not isinstance(e, FieldError)
+        assert str(e).split(":")[0] in ("base_flange", "camera_target", "base_flange, camera_target")
+        return
+    assert c.warnings, kind
+    named = " ".join(c.warnings)
+    for k in b.bad:
+        assert str(k) in named
+    if kind in ("outliers", "marker_flips"):
+        assert sorted(r.index for r in c.rejected) == list(b.bad)
+        assert H.pose_error(c.x, b.scene.x)[0] < 0.5
+    if kind == "marker_flips":
+        assert all("marker flip" in r.reason for r in c.rejected)
+
+
+@pytest.mark.parametrize("kind,says", [
+    ("two_poses", "at least 3"), ("pure_translation", "pure translation"),
+    ("parallel_axes", "parallel"), ("time_shift", "do not correspond"),
+    ("millimetres", "millimetres"), ("inverted_camera", "T_target_camera"),
+    ("inverted_robot", "T_flange_base"), ("swapped_setup", "swapped")])
+def test_unusable_data_says_why(kind, says):
+    b = H.broken(kind, seed=2)
+    with pytest.raises(Infeasible, match=says):
+        handeye.calibrate(b.base_flange, b.camera_target, b.setup)
+    with pytest.raises(Infeasible, match=says):
+        handeye.check(b.base_flange, b.camera_target, b.setup)
+
+
+def test_reading_that_fits_is_named_with_its_residuals():
+    b = H.broken("swapped_setup", seed=3)
+    with pytest.raises(Infeasible) as e:
+        handeye.calibrate(b.base_flange, b.camera_target, b.setup)
+    assert "the data fit eye_in_hand far better than eye_to_hand" in str(e.value)
+    c = handeye.calibrate(b.base_flange, b.camera_target, b.scene.setup)
+    assert c.readings[0][0] == "eye_in_hand"
+    assert all(c.readings[0][1] < r[1] / 10 for r in c.readings[1:])
+
+
+def test_outliers_kept_and_named_without_robust_mode():
+    b = H.broken("outliers", seed=4)
+    c = handeye.calibrate(b.base_flange, b.camera_target, robust=False)
+    assert c.rejected == () and c.inliers.all()
+    w = [w for w in c.warnings if "outliers (kept" in w]
+    assert w and all(str(k) in w[0] for k in b.bad)
+
+
+def test_check_of_healthy_data_is_silent():
+    s = H.scene(20, seed=6)
+    assert handeye.check(s.base_flange, s.camera_target) == ()
+
+
+def test_duplicates_are_counted_once():
+    b = H.broken("duplicates", seed=5)
+    c = handeye.calibrate(b.base_flange, b.camera_target)
+    assert not c.inliers[list(b.bad)].any()
+    first = len(b.base_flange) - len(b.bad)      # the copies were appended after these
+    d = handeye.calibrate(b.base_flange[:first], b.camera_target[:first])
+    assert _close(c.x, d.x, 1e-9)
+
+
+def test_random_poses_never_give_nan():
+    rng = np.random.default_rng(0)
+    for seed in range(5):
+        q = rng.normal(size=(2, 10, 4))
+        q /= np.linalg.norm(q, axis=-1, keepdims=True)
+        F, C = dq.from_pose(q, rng.normal(size=(2, 10, 3)))
+        try:
+            c = handeye.calibrate(F, C)
+        except Infeasible:
+            continue
+        for v in (c.x, c.z, c.covariance, c.residuals, c.leave_one_out):
+            assert np.all(np.isfinite(v))
+        assert c.warnings
+
+
+# ---- malformed input ---------------------------------------------------------------------------
+def test_malformed_input_named():
+    s = H.scene(5, seed=7)
+    F, C = s.base_flange.copy(), s.camera_target.copy()
+    bad = F.copy()
+    bad[3, 2] = np.nan
+    with pytest.raises(FieldError, match=r"^base_flange\[3\]: .*NaN"):
+        handeye.calibrate(bad, C)
+    bad = C.copy()
+    bad[2, :4] *= 1.5
+    with pytest.raises(FieldError, match=r"^camera_target\[2\]: .*unit"):
+        handeye.calibrate(F, bad)
+    with pytest.raises(FieldError, match=r"^camera_target: 4 poses for 5"):
+        handeye.calibrate(F, C[:4])
+    with pytest.raises(FieldError, match=r"^base_flange: expected shape"):
+        handeye.calibrate(F[:, :7], C)
+    with pytest.raises(FieldError, match=r"^setup: "):
+        handeye.calibrate(F, C, "eye_on_hand")
+    with pytest.raises(FieldError, match=r"^camera_covariance: not symmetric"):
+        handeye.calibrate(F, C, camera_covariance=np.triu(np.ones((6, 6))))
+    with pytest.raises(FieldError, match=r"^camera_covariance: expected shape"):
+        handeye.calibrate(F, C, camera_covariance=np.eye(5))
+    with pytest.raises(FieldError, match=r"^camera_covariance: needed"):
+        handeye.calibrate(F, C, robot_covariance=np.eye(6))
+    with pytest.raises(FieldError, match=r"^candidates: "):
+        c = handeye.calibrate(F, C)
+        handeye.next_best_pose(c, F, C, np.zeros((0, 8)))
