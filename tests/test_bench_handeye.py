@@ -104,10 +104,10 @@ def _table(stdout):
 
 
 def test_bench_small_run(opencv4):
-    """A small run in CI: every method on every row, ours never bad, with a NEES; on the fixed
-    seed ours at least matches the best OpenCV method where the issue says it beats them."""
-    out = subprocess.run([sys.executable, "-m", "tests.bench.bench_handeye", "--trials", "10",
-                          "--poses", "20", "--charuco-trials", "2", "--broken-trials", "2"],
+    """A small run in CI: every method on every row, ours never bad, with a NEES; the broken-data
+    table has every kind and ours flags each; the targets are stated."""
+    out = subprocess.run([sys.executable, "-m", "tests.bench.bench_handeye", "--trials", "3",
+                          "--poses", "20", "--charuco-trials", "1", "--broken-trials", "1"],
                          cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-3000:]
     table = _table(out.stdout)
@@ -119,13 +119,13 @@ def test_bench_small_run(opencv4):
     for scene, res in table.items():
         assert set(bench.OPENCV) <= set(res), scene
         for m, r in res.items():
-            assert r["bad"].startswith(("0/10", "0/2")) or m in bench.OPENCV, (scene, m, r)
             if m in bench.OPENCV:
                 assert r["nees"] == "—"
+            else:   # ours, in every variant: an answer every time, with its NEES
+                assert r["bad"].startswith(("0/3", "0/1")), (scene, m, r)
+                assert float(r["nees"]) > 0
         if have_ours:
             assert bench.OURS in res, scene
-            if "ChArUco" not in scene:
-                assert float(res[bench.OURS]["nees"]) > 0
     assert "Issue 11 targets:" in out.stdout
     broken = _rows(out.stdout, "broken data")
     assert [r[0] for r in broken] == [k.replace("_", " ") for k in _handeye.BROKEN]
@@ -133,12 +133,38 @@ def test_bench_small_run(opencv4):
         assert all(c != "—" for c in r[2:]), r
         if have_ours:
             assert "SILENT" not in r[1] and ("refused" in r[1] or "warned" in r[1]), r
-    if not have_ours:
-        pytest.skip("service.handeye not there yet: OpenCV's rows only")
-    for case in (bench.Case("wrist", 20, (0.1, 0.5), None),
-                 bench.Case("opencv", 20, (0.1, 0.5), None)):
-        res = table[case.label]
-        best_rot = min(res[m]["rot"] for m in bench.OPENCV)
-        best_trans = min(res[m]["trans"] for m in bench.OPENCV)
-        assert res[bench.OURS]["rot"] <= best_rot * 1.05, case.label
-        assert res[bench.OURS]["trans"] <= best_trans * 1.05, case.label
+
+
+def _best_opencv(res):
+    return (min(np.median(res[m].rot) for m in bench.OPENCV),
+            min(np.median(res[m].trans) for m in bench.OPENCV))
+
+
+@pytest.mark.parametrize("geometry", _handeye.GEOMETRIES)
+def test_ours_beats_opencv_on_the_issues_rows(opencv4, geometry):
+    """20 poses, 0.1°/0.5 mm, 40 seeded trials: ours at least matches the best OpenCV method in
+    rotation (within 10 %: they are within a few % at 200 trials) and beats it in translation
+    on the wrist geometry; on OpenCV's own geometry it is several times better in both."""
+    if not bench.have_ours():
+        pytest.skip("service.handeye not there yet")
+    res = bench.run_case(bench.Case(geometry, 20, (0.1, 0.5), None), 40, 1, opencv4)
+    rot, trans = np.median(res[bench.OURS].rot), np.median(res[bench.OURS].trans)
+    best_rot, best_trans = _best_opencv(res)
+    if geometry == "wrist":
+        assert rot <= 1.1 * best_rot and trans <= best_trans, (rot, trans, best_rot, best_trans)
+    else:
+        assert rot <= 0.5 * best_rot and trans <= 0.5 * best_trans, (rot, trans, best_rot,
+                                                                     best_trans)
+    assert not res[bench.OURS].bad
+
+
+def test_ours_beats_opencv_end_to_end(opencv4):
+    """Rendered ChArUco views, detected: ours given the detector's covariances beats every OpenCV
+    method on the same detections."""
+    if not bench.have_ours():
+        pytest.skip("service.handeye not there yet")
+    res, rejected = bench.run_charuco(3, 1, opencv4)
+    assert bench.OURS_COVARIANCE in res
+    best_rot, best_trans = _best_opencv(res)
+    s = res[bench.OURS_COVARIANCE]
+    assert np.median(s.rot) < best_rot and np.median(s.trans) < best_trans
