@@ -83,8 +83,8 @@ _SUSPECT = 4.0                         # a sample whose median congruence error 
 _MISMATCH_ANGLE = np.radians(3.0)      # median congruence errors beyond these: poses do not
 _MISMATCH_PITCH = 0.02                 # correspond (time or pairing), for most samples (m)
 _READING_FACTOR = 5.0                  # another reading fits this many times better: refuse
-_FLOOR_ROT, _FLOOR_TRANS = 1e-9, 1e-9  # smallest estimated noise σ (rad, m): exact data
-_TOL = 1e-12                           # a step this short in its own σ (squared): converged
+_FLOORS = np.array([1e-9, 1e-9, 1e-12]) ** 2   # smallest estimated variances: exact data
+_TOL = 1e-8                            # a step this short in its own σ (squared): converged
 _MAX_ITER = 30
 
 
@@ -312,15 +312,6 @@ def _evaluate(A, C, X, Z):
     return E, lie.se3_log(E)
 
 
-def _robust_covariance(r: np.ndarray) -> np.ndarray:
-    """The start of the estimated noise: isotropic rotation and translation variances from the
-    median absolute residuals, which a few outliers do not inflate."""
-    var = (1.4826 * np.median(np.abs(r), axis=0)) ** 2
-    var = np.repeat([var[:3].mean(), var[3:].mean()], 3)
-    floor = np.array([_FLOOR_ROT ** 2] * 3 + [_FLOOR_TRANS ** 2] * 3)
-    return np.diag(np.maximum(var, floor))
-
-
 @dataclass
 class _Fit:
     X: np.ndarray
@@ -334,32 +325,117 @@ class _Fit:
     iterations: int
 
 
-class _Noise:
-    """The residual covariances: transported from the given pose noise, or one shared diagonal
-    estimated from the residuals (:meth:`update`, at every Gauss–Newton iterate)."""
+_ROT, _TRANS = np.diag([1.0] * 3 + [0.0] * 3), np.diag([0.0] * 3 + [1.0] * 3)
 
-    def __init__(self, SA, SC, estimate: bool):
+
+class _Noise:
+    """The residual covariances ``Σ_r,i``: transported from the given pose noise, or estimated.
+
+    Estimated (no covariance given): three isotropic variance components, camera rotation
+    ``θ₁``, translation ``θ₂`` (the camera's and the robot's: isotropic translation noise on
+    either pose reaches the residual identically) and robot rotation ``θ₃``, transported like a
+    given robot noise (it reaches the residual's translation through the lever arm ``X C_i``,
+    which is what tells it from the camera's). ``Σ_r,i = Σ θ_k G_k,i``; the θ are re-estimated
+    at every Gauss–Newton iterate by the iterated variance-component (REML) update
+    ``θ_k ← θ_k · Σ rᵢᵀWᵢG_kWᵢrᵢ / (Σ tr(WᵢG_k) − tr(P Σ JᵢᵀWᵢG_kWᵢJᵢ))``, which keeps them
+    positive and takes the 12 fitted degrees of freedom out by leverage (:meth:`update`)."""
+
+    def __init__(self, SA, SC, estimate: bool, robot_frames: Optional[np.ndarray] = None):
         self.SA, self.SC, self.estimate = SA, SC, estimate
-        self.shared: Optional[np.ndarray] = None
+        self.frames = robot_frames            # Ad(F_i) for eye_to_hand (A = F⁻¹), else None
+        self.theta: Optional[np.ndarray] = None
+        self.step: Optional[np.ndarray] = None
+        self.G: Optional[np.ndarray] = None   # (n, 3, 6, 6) at the last evaluation
+
+    def components(self, X, C, Jri, use) -> np.ndarray:
+        n = len(C)
+        rot = _ROT if self.frames is None else self.frames[use] @ _ROT @ np.swapaxes(
+            self.frames[use], 1, 2)
+        G = np.empty((n, 3, 6, 6))
+        G[:, 0], G[:, 1] = _ROT, _TRANS
+        G[:, 2] = lie.cov_left_to_right(dq.mul(X, C), np.broadcast_to(rot, (n, 6, 6)))
+        if Jri is not None:
+            G = Jri[:, None] @ G @ np.swapaxes(Jri, 1, 2)[:, None]
+        return G
 
     def __call__(self, X, C, r, Jri, use=None) -> np.ndarray:
         if self.estimate:
-            if self.shared is None:
-                self.shared = _robust_covariance(r)
-            return np.broadcast_to(self.shared, (len(r), 6, 6))
+            self.G = self.components(X, C, Jri, use)
+            if self.theta is None:
+                v = (1.4826 * np.median(np.abs(r), axis=0)) ** 2   # outliers do not inflate it
+                self.theta = np.array([v[:3].mean(), v[3:].mean(), 0.1 * v[:3].mean()])
+                self.theta = np.maximum(self.theta, _FLOORS)
+            return np.einsum("k,nkij->nij", self.theta, self.G)
         SA = None if self.SA is None else self.SA[use]
         return _transported(X, C, SA, self.SC[use], Jri)
 
-    def update(self, r: np.ndarray, J: np.ndarray, P: np.ndarray) -> None:
-        """``σ_k² = (Σ r_ik² + Σ (J_i P J_iᵀ)_kk) / n``: the fit absorbs ``J_i P J_iᵀ`` of each
-        residual's variance (P scales with σ², so this is iterated with the fit: REML-like, the
-        12 fitted degrees of freedom shared out by leverage rather than evenly)."""
-        if self.estimate:
-            absorbed = np.einsum("nij,jk,nik->i", J, P, J)
-            var = (np.sum(r * r, axis=0) + absorbed) / len(r)
-            var = np.repeat([var[:3].mean(), var[3:].mean()], 3)   # isotropic: see _Noise
-            floor = np.array([_FLOOR_ROT ** 2] * 3 + [_FLOOR_TRANS ** 2] * 3)
-            self.shared = np.diag(np.maximum(var, floor))
+    def update(self, r: np.ndarray, J: np.ndarray, P: np.ndarray) -> np.ndarray:
+        """One REML (Fisher-scoring) step of the variance components at residuals ``r``
+        (Jacobian ``J``, covariance ``P`` of the fit): ``θ = F⁻¹ q`` with
+        ``F_kl = tr(R G_k R G_l)``, ``q_k = rᵀ R G_k R r``, ``R = W − W J P Jᵀ W`` (the residual
+        projector: the 12 fitted degrees of freedom taken out by leverage); a component that
+        comes out below its floor is held there and the others re-solved. Returns the new
+        residual covariances and whether the components settled."""
+        G = self.G
+        W = np.linalg.inv(np.einsum("k,nkij->nij", self.theta, G))
+        # R = D − U P Uᵀ with D = diag(W_i), U = [W_i J_i]: every trace below expanded over
+        # the blocks, so nothing 6n × 6n is formed.
+        B = W @ J                                                   # (n, 6, 12)
+        WG = W[:, None] @ G                                         # (n, 3, 6, 6)
+        GB = G @ B[:, None]                                         # (n, 3, 6, 12)
+        GBt = np.swapaxes(GB, 2, 3)
+        M = (np.swapaxes(B, 1, 2)[:, None] @ GB).sum(axis=0)        # (3, 12, 12) Uᵀ G_k U
+        WGB = W[:, None] @ GB                                       # (n, 3, 6, 12)
+        N = (GBt[:, :, None] @ WGB[:, None]).sum(axis=0)            # (3, 3, 12, 12) Uᵀ G_k D G_l U
+        PM = P @ M                                                  # (3, 12, 12)
+        F = ((WG[:, :, None] * np.swapaxes(WG, 2, 3)[:, None]).sum(axis=(0, 3, 4))
+             - 2.0 * (P * N).sum(axis=(2, 3))                       # N_lk = N_klᵀ, P symmetric
+             + (PM[:, None] * np.swapaxes(PM, 1, 2)[None]).sum(axis=(2, 3)))
+        u = (W @ r[..., None])[..., 0] - B @ (P @ (np.swapaxes(B, 1, 2) @ r[..., None]).sum(0))[..., 0]
+        q = (u[:, None, None, :] @ G @ u[:, None, :, None])[..., 0, 0].sum(axis=0)
+        free = np.ones(3, bool)
+        theta = self.theta
+        for _ in range(3):
+            t = np.array(_FLOORS)
+            try:
+                t[free] = np.linalg.solve(F[np.ix_(free, free)],
+                                          q[free] - F[np.ix_(free, ~free)] @ t[~free])
+            except np.linalg.LinAlgError:
+                t[:] = np.nan
+            low = free & (t < _FLOORS)
+            if not np.any(low):
+                theta = t
+                break
+            free &= ~low
+            theta = np.maximum(t, _FLOORS)
+        # Far from the answer scoring can overshoot: when a component carrying a share of the
+        # residuals more than triples or falls below a third (or a negligible one grows a
+        # hundredfold), the multiplicative (EM) step θ_k q_k / (F θ)_k is taken instead, slower
+        # but never leaving the positive cone. A negligible component may drop to its floor.
+        share = self.theta * (F @ self.theta) / max(float(self.theta @ F @ self.theta), 1e-300)
+        jump = np.where(share > 0.05, (theta > 3.0 * self.theta) | (theta < self.theta / 3.0),
+                        theta > 100.0 * np.maximum(self.theta, 1e-4 * self.theta.max()))
+        if not np.all(np.isfinite(theta)) or np.any(jump):
+            theta = self.theta * q / np.maximum(F @ self.theta, 1e-300)
+        theta = np.maximum(theta, _FLOORS)
+        # Near the boundary scoring can cycle between two points: a component whose step
+        # reverses its last one moves half as far.
+        step = theta - self.theta
+        if self.step is not None:
+            step = np.where(step * self.step < 0.0, 0.5 * step, step)
+            theta = np.maximum(self.theta + step, _FLOORS)
+        self.step = step
+        # Settled when the residual degrees of freedom the components account for,
+        # θ_k tr(R G_k) = θ_k (F θ)_k (summing to 6n − 12), move by less than 1e-3 of them.
+        Ft = F @ self.theta
+        settled = (np.abs(theta - self.theta) @ Ft) <= 1e-3 * max(float(self.theta @ Ft), 1e-300)
+        self.theta = theta
+        return np.einsum("k,nkij->nij", self.theta, G), settled
+
+    def covariances(self):
+        """The estimated (camera, robot) pose noise, in the module's convention."""
+        t = self.theta
+        return np.diag([t[0]] * 3 + [t[1]] * 3), np.diag([t[2]] * 3 + [0.0] * 3)
 
 
 def _linearise(A, C, AdCi, X, Z, noise: _Noise, use):
@@ -395,10 +471,8 @@ def _fit(A, C, X, Z, noise: _Noise, use) -> _Fit:
                 Hi = np.linalg.inv(H)
             except np.linalg.LinAlgError:
                 break
-            old = noise.shared
-            noise.update(r - J @ (Hi @ g), J, Hi)
-            S = noise(X, Cu, r, None)
-            if np.allclose(np.diag(old), np.diag(noise.shared), rtol=1e-6, atol=0.0):
+            S, settled = noise.update(r, J, Hi)
+            if settled:
                 break
         cost = float(np.einsum("ni,nij,nj->", r, W, r))
         try:
@@ -426,10 +500,8 @@ def _fit(A, C, X, Z, noise: _Noise, use) -> _Fit:
         H = 0.5 * (H + H.T)
         if not noise.estimate:
             break
-        old = noise.shared
-        noise.update(r, J, np.linalg.inv(H))
-        S = noise(X, Cu, r, None)
-        if np.allclose(np.diag(old), np.diag(noise.shared), rtol=1e-6, atol=0.0):
+        S, settled = noise.update(r, J, np.linalg.inv(H))
+        if settled:
             break
     try:
         P = np.linalg.inv(H)
@@ -676,7 +748,8 @@ def calibrate(base_flange, camera_target, setup: str = "eye_in_hand", *, robust:
         SA = SRob if p.setup == "eye_in_hand" else lie.cov_inverse(p.F, SRob)
         if not np.any(SA):
             SA = None
-    noise = _Noise(SA, SC, estimate)
+    noise = _Noise(SA, SC, estimate,
+                   lie.adjoint(p.F) if p.setup == "eye_to_hand" and estimate else None)
     if not estimate:
         S0 = noise(p.closed[0], p.C, np.zeros((n, 6)), np.broadcast_to(np.eye(6), (n, 6, 6)),
                    np.ones(n, bool))
@@ -736,8 +809,8 @@ def calibrate(base_flange, camera_target, setup: str = "eye_in_hand", *, robust:
         covariance_z=fit.P[6:, 6:].copy(), residuals=residuals, warnings=tuple(warnings),
         inliers=inlier, rejected=tuple(rejected), covariance=fit.P, information=fit.H,
         noise_model="estimated" if estimate else "given",
-        camera_covariance=fit.S[0] if estimate else SC,
-        robot_covariance=None if estimate else SRob,
+        camera_covariance=noise.covariances()[0] if estimate else SC,
+        robot_covariance=noise.covariances()[1] if estimate else SRob,
         residual_covariance=np.array(S_all), nis=nis, leave_one_out=loo, closed_form_x=X0,
         closed_form_z=Z0, agreement=agree, rotation_condition=p.condition,
         excitation=p.excitation, iterations=fit.iterations, readings=p.readings)
@@ -750,8 +823,6 @@ def _against(p: _Prepared, fit: _Fit, noise: _Noise, inlier):
     n = p.F.shape[0]
     everyone = np.ones(n, bool)
     E, r, J, S = _linearise(p.A, p.C, lie.adjoint(dq.inv(p.C)), fit.X, fit.Z, noise, everyone)
-    if noise.estimate:
-        S = np.broadcast_to(fit.S[0], (n, 6, 6))
     sign = np.where(inlier, -1.0, 1.0)
     V = S + sign[:, None, None] * (J @ fit.P @ np.swapaxes(J, 1, 2))
     V = 0.5 * (V + np.swapaxes(V, 1, 2))
@@ -794,17 +865,15 @@ def next_best_pose(calibration: Calibration, base_flange, camera_target, candida
     m = cand.shape[0]
     I6 = np.broadcast_to(np.eye(6), (m, 6, 6))
     J = np.concatenate([lie.adjoint(dq.inv(C)), -I6], axis=2)   # at r = 0
-    if c.noise_model == "given":
-        # The candidate's noise: that of the calibration's last sample (one shared noise model).
-        SC = np.broadcast_to(np.asarray(c.camera_covariance).reshape(-1, 6, 6)[-1], (m, 6, 6))
-        SA = None
-        if c.robot_covariance is not None:
-            SA = np.broadcast_to(np.asarray(c.robot_covariance).reshape(-1, 6, 6)[-1], (m, 6, 6))
-            if c.setup == "eye_to_hand":
-                SA = lie.cov_inverse(cand, SA)
-        S = _transported(X, C, SA, SC, I6)
-    else:
-        S = np.broadcast_to(c.camera_covariance, (m, 6, 6))
+    # The candidate's noise: the calibration's noise model (given or estimated), that of its
+    # last sample when given per sample.
+    SC = np.broadcast_to(np.asarray(c.camera_covariance).reshape(-1, 6, 6)[-1], (m, 6, 6))
+    SA = None
+    if c.robot_covariance is not None:
+        SA = np.broadcast_to(np.asarray(c.robot_covariance).reshape(-1, 6, 6)[-1], (m, 6, 6))
+        if c.setup == "eye_to_hand":
+            SA = lie.cov_inverse(cand, SA)
+    S = _transported(X, C, SA, SC, I6)
     W = np.linalg.inv(S)
     H = c.information[None] + np.swapaxes(J, 1, 2) @ W @ J
     P = np.linalg.inv(H)
