@@ -330,7 +330,7 @@ def run_ours(res: dict, label: str, jobs) -> None:
     """Row ``label``: ``calibrate`` on each ``(truth, base_flange, camera_target, setup, options)``
     of ``jobs``. A row whose options ``calibrate`` does not take yet (a TypeError, or a
     FieldError naming the option, on the first job) is left out with a note on stderr."""
-    from service.errors import FieldError
+    from service.errors import FieldError, Infeasible
     jobs = list(jobs)
     truth, B, A, setup, options = jobs[0]
     if options:
@@ -340,6 +340,8 @@ def run_ours(res: dict, label: str, jobs) -> None:
         except TypeError as e:
             print(f"({label}: not run, {e})", file=sys.stderr)
             return
+        except Infeasible:
+            pass   # the option is taken; the refusal is counted below
         except FieldError as e:
             if str(e).startswith(tuple(options)):
                 print(f"({label}: not run, {e})", file=sys.stderr)
