@@ -210,8 +210,8 @@ def scene(n: int, setup: str = "eye_in_hand", geometry: str = "wrist",
 
 # ---- broken data: what the checks must flag ----------------------------------------------------
 BROKEN = ("two_poses", "duplicates", "pure_translation", "parallel_axes", "small_rotations",
-          "time_shift", "millimetres", "inverted_camera", "inverted_robot", "swapped_setup",
-          "outliers", "marker_flips")
+          "time_shift", "millimetres", "board_scale", "inverted_camera", "inverted_robot", "inverted_both",
+          "swapped_setup", "outliers", "marker_flips")
 
 
 @dataclass(frozen=True)
@@ -264,10 +264,15 @@ def broken(kind: str, n: int = 20, setup: str = "eye_in_hand", seed: int = 0,
     elif kind == "millimetres":
         C = C.copy()
         C[:, 4:] *= 1000.0            # the dual part carries the translation linearly
+    elif kind == "board_scale":       # the board's square size given 2 % wrong
+        C = C.copy()
+        C[:, 4:] *= 1.02
     elif kind == "inverted_camera":
         C = dq.inv(C)
     elif kind == "inverted_robot":
         F = dq.inv(F)
+    elif kind == "inverted_both":     # fits as well as the truth, X and Z exchanged
+        F, C = dq.inv(F), dq.inv(C)
     elif kind == "swapped_setup":
         solve_as = "eye_to_hand" if setup == "eye_in_hand" else "eye_in_hand"
     elif kind == "outliers":
@@ -291,3 +296,26 @@ def broken(kind: str, n: int = 20, setup: str = "eye_in_hand", seed: int = 0,
     else:
         raise ValueError(f"kind: expected one of {BROKEN}, got {kind!r}")
     return Broken(kind, solve_as, dq.normalize(F), dq.normalize(C), bad, s)
+
+
+# ---- corners: what a detector would report of the board ----------------------------------------
+CAMERA_MATRIX = np.array([[900.0, 0.0, 640.0], [0.0, 900.0, 360.0], [0.0, 0.0, 1.0]])
+
+
+def board_points(squares=(7, 5), size: float = 0.04) -> np.ndarray:
+    """The inner chessboard corners of the ChArUco board, in its frame (z = 0)."""
+    gx, gy = np.meshgrid(np.arange(1, squares[0]), np.arange(1, squares[1]))
+    return np.column_stack([gx.ravel() * size, gy.ravel() * size, np.zeros(gx.size)])
+
+
+def corners(s: Scene, pixel_noise: float = 0.2, K: np.ndarray = CAMERA_MATRIX, seed: int = 0):
+    """One ``(board_points, image_points, K)`` per sample: the board's inner corners projected
+    through the true ``T_camera_target`` with Gaussian pixel noise (px per axis)."""
+    rng = np.random.default_rng(20_000 + seed)
+    P = board_points()
+    out = []
+    for C in s.true_camera_target:
+        pc = dq.transform(C, P)
+        u = (K[:2, :2] @ (pc[:, :2] / pc[:, 2:]).T).T + K[:2, 2]
+        out.append((P, u + rng.normal(scale=pixel_noise, size=u.shape), K))
+    return out
