@@ -10,7 +10,8 @@ NumPy from PyPI; reused afterwards), and runs ``tests/bench/handeye_opencv4.py``
 poses written to a temporary ``.npz``. ``--opencv-python PATH`` uses another interpreter that has
 OpenCV 4.x; ``--no-opencv`` runs ours alone.
 
-OpenCV's conventions (checked on exact data by tests/test_bench_handeye.py: every method ~1e-15):
+OpenCV's conventions (checked on exact data by tests/test_bench_handeye.py: every method's
+answer within 1e-8 of the truth; ~1e-15 measured):
 ``calibrateHandEye`` takes R/t_gripper2base (``T_base_flange``) and R/t_target2cam
 (``T_camera_target``) and returns cam2gripper (``T_flange_camera``, our X for eye-in-hand); for
 eye-to-hand the flange poses are passed inverted (``T_flange_base``) and it returns ``T_base_camera``.
@@ -21,10 +22,10 @@ base2world our Z⁻¹, in both setups. ``method=`` is passed by keyword (#27625)
 Scenes: ``tests/_handeye.py`` (the one generator): the wrist geometry (a camera 0.3–0.6 m from the
 board) and OpenCV's own test geometry, eye-in-hand, {10, 20} poses × camera noise
 {0.1°/0.5 mm, 0.5°/2 mm} per axis × robot noise {none, ``ROBOT_NOISE``} per axis, plus each
-geometry eye-to-hand (20 poses, 0.1°/0.5 mm); seeds ``seed·1000 + trial``, the same for every row. End to end: 15 wrist views of the 7×5 ChArUco
-board rendered without noise by ``drivers/sim/camera.py`` and detected by ``drivers/camera.py``
-(``CharucoCamera.detect``), every method on the detected poses; ours also with the detected corners
-when ``calibrate`` takes them.
+geometry eye-to-hand (20 poses, 0.1°/0.5 mm); seeds ``seed·1000 + trial``, the same for every
+row. End to end: 15 wrist views of the 7×5 ChArUco board rendered without noise by
+``drivers/sim/camera.py`` and detected by ``drivers/camera.py`` (``CharucoCamera.detect``), every
+method on the detected poses.
 
 Ours is run as a user runs it (noise estimated from the residuals) and, on the synthetic rows,
 also told the noise the scene was drawn with (``camera_covariance``/``robot_covariance``): the
@@ -39,11 +40,11 @@ OpenCV's the call inside its own process), and ``bad``: answers that are NaN, no
 reflection or non-orthogonal), or the identity when the truth is not, and for ours refusals
 (``Infeasible``). A bad answer counts as an infinite error in the medians.
 
-A second table: the broken data sets of ``tests/_handeye.py`` (``broken``: 2 poses, duplicates,
-pure translation, parallel axes, small rotations, a time shift, millimetres as metres, inverted
-camera or robot poses, the setup swapped, 20 % outliers, marker flips; from the wrist scene, 20
-poses, 0.1°/0.5 mm), what each method answers, and whether ours refused or warned (issue 11:
-every one flagged, never NaN, never a silent identity).
+A second table: every broken data set of ``tests/_handeye.py`` (``BROKEN``, ``broken()``: too
+few poses, duplicates, pure translation, parallel axes, small rotations, a time shift, millimetres
+as metres, inverted poses, the setup swapped, 20 % outliers, marker flips, ...; made from the
+wrist scene, 20 poses, 0.1°/0.5 mm), what each method answers, and whether ours refused or warned
+(issue 11: every one flagged, never NaN, never a silent identity).
 """
 from __future__ import annotations
 
