@@ -570,7 +570,12 @@ def plot(path: str, results: dict, labels: list[str]):
     import matplotlib.ticker
 
     labels = [lb for lb in labels if lb in results]
-    fig, axes = plt.subplots(len(labels), 2, figsize=(11, 2.9 * len(labels)), squeeze=False)
+    # log axes spanning less than a decade: label 2 and 5 between the powers of ten
+    plain = matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}")
+    twos_and_fives = matplotlib.ticker.FuncFormatter(
+        lambda v, _: f"{v:g}" if round(v / 10 ** np.floor(np.log10(v))) in (2, 5) else "")
+    fig, axes = plt.subplots(len(labels), 2, figsize=(11, 2.9 * len(labels)), squeeze=False,
+                             layout="constrained")
     for row, label in enumerate(labels):
         res = results[label]
         methods = list(res)
@@ -582,14 +587,15 @@ def plot(path: str, results: dict, labels: list[str]):
             ax.set_xscale("log")
             ax.set_yticks(range(1, len(methods) + 1), methods, fontsize=8)
             ax.invert_yaxis()
-            ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+            ax.xaxis.set_major_formatter(plain)
+            ax.xaxis.set_minor_formatter(twos_and_fives)
+            ax.tick_params(axis="x", which="both", labelsize=7)
             ax.grid(True, axis="x", which="both", alpha=0.3)
             ax.set_title(f"{label.split(' (')[0]}: {unit}" if col == 0 else unit, fontsize=8,
                          loc="left" if col == 0 else "center")
     fig.suptitle("Hand-eye calibration error of X per method (box: quartiles, whiskers: 5–95 %)",
                  fontsize=10)
-    fig.tight_layout()
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    Path(path).resolve().parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)
     print(f"plot saved to {path}")
 
