@@ -54,6 +54,21 @@ def test_opencv_conventions_on_exact_data(opencv4, setup, geometry):
     assert all(g is None or _handeye.pose_error(g, sc.x)[0] > 1.0 for g, sc in zip(got, scenes))
 
 
+def test_opencv_environment_offline_says_so(tmp_path, monkeypatch):
+    """No package index: a clear error naming the environment and the way around it, not a
+    traceback from pip."""
+    monkeypatch.setattr(bench, "OPENCV_ENV", tmp_path / "opencv4")
+    monkeypatch.setenv("PIP_INDEX_URL", "http://127.0.0.1:9/simple")   # nothing listens there
+    monkeypatch.setenv("PIP_FIND_LINKS", "")
+    with pytest.raises(bench.OpenCVUnavailable) as e:
+        bench.opencv4_python()
+    msg = str(e.value)
+    assert str(tmp_path / "opencv4") in msg and "offline" in msg
+    assert "--opencv-python" in msg and "--no-opencv" in msg
+    with pytest.raises(bench.OpenCVUnavailable, match="--opencv-python"):
+        bench.opencv4_python(str(tmp_path / "no-such-python"))
+
+
 def test_judge_names_bad_answers():
     truth = _handeye.pose([0.3, -0.2, 0.1], [0.05, 0.02, 0.1])
     M = dq.to_matrix(truth)
