@@ -415,20 +415,23 @@ def _robust(Z, S, gate2, tol, max_iter):
 # ---- consistency -------------------------------------------------------------------------------
 def _source_stats(names, nis, tested, inlier, probability) -> tuple[SourceStats, ...]:
     out = []
-    for name in dict.fromkeys(names):
-        mine = np.array([s == name for s in names])
-        use = mine & tested & inlier
-        count = int(np.count_nonzero(use))
-        rejected = int(np.count_nonzero(mine & ~inlier))
+    order = {name: k for k, name in enumerate(dict.fromkeys(names))}
+    code = np.array([order[s] for s in names], dtype=np.intp)
+    use = tested & inlier
+    counts = np.bincount(code[use], minlength=len(order)).tolist()
+    rejected = np.bincount(code[~inlier], minlength=len(order)).tolist()
+    sums = np.bincount(code[use], weights=nis[use], minlength=len(order)).tolist()
+    for name, k in order.items():
+        count = counts[k]
         if count == 0:
-            out.append(SourceStats(name, 0, rejected, 0.0, 0.0, 0.0, Verdict.UNTESTED))
+            out.append(SourceStats(name, 0, rejected[k], 0.0, 0.0, 0.0, Verdict.UNTESTED))
             continue
-        mean = float(nis[use].mean())
+        mean = sums[k] / count
         low = chi2_quantile(0.5 * (1.0 - probability), DOF * count) / count
         high = chi2_quantile(0.5 * (1.0 + probability), DOF * count) / count
         verdict = (Verdict.OPTIMISTIC if mean > high else
                    Verdict.PESSIMISTIC if mean < low else Verdict.CONSISTENT)
-        out.append(SourceStats(name, count, rejected, mean, low, high, verdict))
+        out.append(SourceStats(name, count, rejected[k], mean, low, high, verdict))
     return tuple(out)
 
 
@@ -484,9 +487,9 @@ def fuse(poses, covariances=None, *, weights=None, names: Optional[Sequence[str]
     Z, S = _to_world(Z, S, names, table)
     gate2 = chi2_quantile(probability, DOF)
     if times is not None:
-        return _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
-                             twist_covariance, acceleration_psd, robust, probability, gate2,
-                             tol, max_iter)
+        return _fuse_in_time(Z, S, names, table, _finite(times, "times", (), n), time, max_skew,
+                             max_extrapolation, twist_covariance, acceleration_psd, robust,
+                             probability, gate2, tol, max_iter)
     for key, value in (("time", time), ("max_skew", max_skew),
                        ("twist_covariance", twist_covariance),
                        ("acceleration_psd", acceleration_psd)):
@@ -494,6 +497,31 @@ def fuse(poses, covariances=None, *, weights=None, names: Optional[Sequence[str]
             raise ValueError(f"{key}: needs the measurements' times (times=...)")
 
     return _fuse_static(Z, S, names, robust, probability, gate2, tol, max_iter)
+
+
+class _Checked(NamedTuple):
+    """:func:`fuse`'s options as its checks leave them, for a caller that fuses many times
+    with the same options (:class:`Tracker`)."""
+    table: dict
+    robust: bool
+    probability: float
+    gate2: float
+    tol: float
+    max_iter: int
+    max_skew: Optional[float]
+    max_extrapolation: Optional[float]
+    twist_covariance: Optional[np.ndarray]
+    acceleration_psd: Optional[np.ndarray]
+
+
+def _fuse_rows(Z, S, names, times, time, o: _Checked) -> Fused:
+    """:func:`fuse` with times of rows already checked by its rules (finite stamps, unit rigid
+    poses, symmetric positive definite covariances symmetrised, names as strings) and checked
+    options: the same result, bit for bit, without checking them again."""
+    Z, S = _to_world(dq.normalize(Z), S, names, o.table)
+    return _fuse_in_time(Z, S, names, o.table, times, time, o.max_skew, o.max_extrapolation,
+                         o.twist_covariance, o.acceleration_psd, o.robust, o.probability,
+                         o.gate2, o.tol, o.max_iter)
 
 
 def _fuse_static(Z, S, names, robust, probability, gate2, tol, max_iter) -> Fused:
@@ -818,7 +846,7 @@ def _motion_start(Z, S, model: _Model, inlier: np.ndarray) -> np.ndarray:
     finds the motion), or with no twist (one instant) the static fit's start."""
     Zi = Z[inlier]
     if model.twist:
-        return Zi[int(np.argmin(np.abs(model.take(inlier).dt(model.prior))))]
+        return Zi[int(np.argmin(np.abs(model.dt(model.prior)[inlier])))]
     weights = np.exp(-np.linalg.slogdet(S[inlier])[1] / DOF)
     return dq.dib(Zi, weights / weights.max())
 
@@ -872,12 +900,13 @@ def _determined_without_each(model: _Model, inlier: np.ndarray) -> np.ndarray:
     others = np.count_nonzero(inlier) - inlier.astype(int)
     if not model.twist or model.twist_w is not None:
         return others >= 1
-    taken = model.stamp - model.latency
-    values, inverse, counts = np.unique(taken[inlier], return_inverse=True,
-                                        return_counts=True)
-    alone = np.zeros(inlier.shape, dtype=bool)
-    alone[inlier] = counts[inverse] == 1
-    return values.size - alone >= 2
+    t = (model.stamp - model.latency)[inlier]
+    ordered = np.sort(t)
+    instants = int(np.count_nonzero(ordered[1:] != ordered[:-1])) + (t.size > 0)
+    alone = np.zeros(inlier.shape, dtype=bool)     # the only inlier taken at its instant
+    alone[inlier] = (np.searchsorted(ordered, t, "right") -
+                     np.searchsorted(ordered, t, "left")) == 1
+    return instants - alone >= 2
 
 
 def _motion_nis(fit: _MotionFit, S, inlier: np.ndarray, model: _Model):
@@ -982,7 +1011,7 @@ def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
                   twist_covariance, acceleration_psd, robust, probability, gate2, tol,
                   max_iter) -> Fused:
     n = Z.shape[0]
-    stamps = _finite(times, "times", (), n)
+    stamps = times
     latency = np.array([table[s].latency if s in table else 0.0 for s in names])
     taken = stamps - latency
     time = float(taken.max()) if time is None else _seconds(time, "time")
@@ -1187,6 +1216,11 @@ class Tracker:
                              acceleration_psd=acceleration_psd, tol=tol, max_iter=max_iter)
         # the options' checks are fuse's: one fusion of a placeholder runs them now, not later
         fuse(np.array([[1.0, 0, 0, 0, 0, 0, 0, 0]]), times=[0.0], **self._options)
+        probability = float(probability)
+        self._checked = _Checked(self._table, robust, probability,
+                                 chi2_quantile(probability, DOF), dq._as_tol(tol),
+                                 dq._as_iter(max_iter), max_skew, max_extrapolation,
+                                 twist_covariance, acceleration_psd)
         self._store = _Store()
         # bodies and sources as small integers in the store: a body's newest taken time, a
         # source's configured latency
@@ -1280,9 +1314,15 @@ class Tracker:
 
     def estimate(self, body: str, time: Optional[float] = None) -> Fused:
         """``body``'s pose at ``time`` (default: its newest measurement's) from its window."""
+        return self.estimate_ids(body, time)[0]
+
+    def estimate_ids(self, body: str, time: Optional[float] = None) -> tuple[Fused, np.ndarray]:
+        """:meth:`estimate`, and the ids of the measurements it fused (:meth:`window_of`'s)."""
         s, rows = self._store, self._rows(body)
-        return fuse(s.poses[rows], s.covs[rows], names=[self._names[c] for c in s.codes[rows]],
-                    times=s.times[rows], time=time, **self._options)
+        # the rows were checked by fuse's rules when they came in
+        return _fuse_rows(s.poses[rows], s.covs[rows],
+                          tuple(self._names[c] for c in s.codes[rows].tolist()), s.times[rows],
+                          time, self._checked), s.ids[rows]
 
     def _code_of(self, body: str) -> int:
         if body not in self._active:

@@ -51,8 +51,9 @@ The solution, in order:
    covariance, and :func:`next_best_pose`.
 5. **Corner level** (``corners`` given): maximum likelihood on the reprojection of the board's
    corners through ``C_i = X⁻¹ A_i⁻¹ Z`` (:func:`_corner_fit`), from the pose-level answer, with
-   an optional focal-length scale and, when robot noise is given, a correction of each robot
-   pose under that prior.
+   an optional focal-length scale and a correction of each robot pose under the robot's noise,
+   given or estimated (taken as exact, 0.02° / 0.1 mm of robot noise made the covariance claim
+   ~20× too much; modelled, mean NEES 5.3–6.3).
 
 Data checks (:func:`check` and :func:`calibrate`): malformed input is a
 :class:`~service.errors.FieldError` naming the argument and index; unusable data an
@@ -769,10 +770,10 @@ def _views(corners, n: int) -> _Views:
     return _Views(np.concatenate(P), np.concatenate(U), np.concatenate(V), np.stack(K))
 
 
-def _corner_cameras(A, X, Z, delta):
-    """``C_i = X⁻¹ (A_i Exp(δ_i))⁻¹ Z`` as 4×4 matrices."""
-    Ai = A if delta is None else dq.mul(A, lie.se3_exp(delta))
-    return dq.to_matrix(dq.mul(dq.mul(dq.inv(X), dq.inv(Ai)), Z))
+def _corner_cameras(F, setup, X, Z, delta):
+    """``C_i = X⁻¹ A_i⁻¹ Z`` as 4×4 matrices, ``A_i`` the reading of ``F_i Exp(δ_i)``."""
+    Fi = F if delta is None else dq.mul(F, lie.se3_exp(delta))
+    return dq.to_matrix(dq.mul(dq.mul(dq.inv(X), dq.inv(_reading(Fi, setup))), Z))
 
 
 def _project(M, views: _Views, scale: float):
@@ -801,101 +802,135 @@ class _CornerFit:
     focal_scale: float
     pixel_sigma: float
     focal_sigma: float
+    robot_covariance: Optional[np.ndarray]   # (6, 6) estimated robot noise, when estimated
 
 
-def _corner_fit(A, X, Z, views: _Views, inlier, SA, refine_focal: bool,
+_ROBOT_START = np.array([np.radians(0.02)] * 3 + [1e-4] * 3) ** 2   # (rad², m²) the start
+_ROBOT_FLOOR = np.array([np.radians(1e-5)] * 3 + [1e-8] * 3) ** 2
+_EM_ROUNDS = 12
+
+
+def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool,
                 pixel_sigma: Optional[float]) -> _CornerFit:
     """Maximum likelihood on the corners: pixels with isotropic noise σ (given, or estimated
-    from the reprojection errors with the fitted degrees of freedom taken out), unknowns
-    ``X``, ``Z`` (right perturbations), a focal-length scale when ``refine_focal``, and, when
-    robot noise ``SA`` is given, a correction ``δ_i`` of each robot pose with that prior (the
-    robot poses exact otherwise). Gauss–Newton from the pose-level answer."""
+    from the reprojection errors, the fit's leverage taken out), unknowns ``X``, ``Z`` (right
+    perturbations), a focal-length scale when ``refine_focal``, and a correction ``δ_i`` of each
+    robot pose ``F_i Exp(δ_i)`` under the robot noise ``robot``: given ((n, 6, 6)), estimated
+    (``"estimate"``: isotropic rotation and translation variances, MacKay's evidence fixed
+    point on the corrections), or None (robot poses exact). Gauss–Newton from the pose-level answer."""
     idx = np.flatnonzero(inlier)
     n_in = len(idx)
     sel = np.isin(views.view, idx)
     sub = _Views(views.points[sel], views.pixels[sel],
                  np.searchsorted(idx, views.view[sel]), views.K[idx])
-    Au = A[idx]
-    robot = SA is not None
+    Fu = F[idx]
+    # δ of F moves A by δ (eye_in_hand) or −Ad(F) δ (eye_to_hand: A = F⁻¹).
+    toA = None if setup == "eye_in_hand" else -lie.adjoint(Fu)
+    estimate = isinstance(robot, str)
+    use_robot = robot is not None
     nf = 1 if refine_focal else 0
-    npar = 12 + nf + (6 * n_in if robot else 0)
-    if robot:
-        # Prior rows L⁻¹ δ_i, Σ_A,i = L Lᵀ; directions without noise held by a stiff prior.
-        S = SA[idx]
+    off = 12 + nf
+    npar = off + (6 * n_in if use_robot else 0)
+    N = len(sub.points)
+    theta = _ROBOT_START.copy()
+    delta = np.zeros((n_in, 6)) if use_robot else None
+    scale, sigma, leverage = 1.0, (pixel_sigma or 1.0), 12.0 + nf
+    rows = np.arange(2 * N).reshape(N, 2)
+    cols = off + 6 * sub.view[:, None] + np.arange(6)
+
+    def prior_rows():
+        S = (np.broadcast_to(np.diag(theta), (n_in, 6, 6)) if estimate else
+             np.asarray(robot)[idx])
         e, Q = np.linalg.eigh(S)
         e = np.maximum(e, 1e-12 * e.max(axis=1, keepdims=True) + 1e-30)
-        prior = np.swapaxes(Q / np.sqrt(e)[:, None, :], 1, 2)       # (n, 6, 6) Σ^-1/2
-    delta = np.zeros((n_in, 6)) if robot else None
-    scale = 1.0
-    sigma = pixel_sigma if pixel_sigma is not None else 1.0
-    N = len(sub.points)
-    dof = max(2 * N - 12 - nf, 1)
-    cost = np.inf
-    for it in range(50):
-        M = _corner_cameras(Au, X, Z, delta)
-        pc, u, Jp, ds = _project(M, sub, scale)
-        behind = pc[:, 2] <= 0.0
-        if np.any(behind):
-            k = int(idx[sub.view[np.flatnonzero(behind)[0]]])
-            raise Infeasible(f"corners[{k}]: the board lies behind the camera in the solution; "
-                             f"do the corners belong to the poses (same order, same board "
-                             f"frame)?")
-        e = (u - sub.pixels).reshape(-1)
-        if pixel_sigma is None:
-            sigma = max(float(np.sqrt(e @ e / dof)), 1e-9)
-        # Jacobian of the pixels.
-        R = M[sub.view, :3, :3]
-        dX = np.zeros((N, 3, 6))
-        dX[:, :, :3] = lie.so3_hat(pc)
-        dX[:, :, 3:] = -np.eye(3)
-        dZ = np.concatenate([-R @ lie.so3_hat(sub.points), R], axis=2)
-        J = np.zeros((2 * N + (6 * n_in if robot else 0), npar))
-        J[:2 * N, :6] = (Jp @ dX).reshape(2 * N, 6)
-        J[:2 * N, 6:12] = (Jp @ dZ).reshape(2 * N, 6)
-        if nf:
-            J[:2 * N, 12] = ds.reshape(-1)
-        r = e / sigma
-        J[:2 * N] /= sigma
-        if robot:
-            AdXi = lie.adjoint(dq.inv(X))
-            Jd = (Jp @ dX @ AdXi).reshape(N, 2, 6) / sigma
-            rows = np.arange(2 * N).reshape(N, 2)
-            cols = 12 + nf + 6 * sub.view[:, None] + np.arange(6)
-            J[rows[:, :, None], cols[:, None, :]] = Jd
-            for i in range(n_in):
-                J[2 * N + 6 * i:2 * N + 6 * i + 6, 12 + nf + 6 * i:12 + nf + 6 * i + 6] = prior[i]
-            r = np.concatenate([r, np.einsum("nij,nj->ni", prior, delta).reshape(-1)])
-        H = J.T @ J
-        g = J.T @ r
-        try:
-            step = -np.linalg.solve(H, g)
-        except np.linalg.LinAlgError:
-            raise Infeasible("corners: the corners do not determine X and Z (singular "
-                             "information)") from None
-        X = dq.mul(X, lie.se3_exp(step[:6]))
-        Z = dq.mul(Z, lie.se3_exp(step[6:12]))
-        if nf:
-            scale *= 1.0 + step[12]
-        if robot:
-            delta = delta + step[12 + nf:].reshape(n_in, 6)
-        new = float(r @ r)
-        if float(step @ H @ step) < _TOL and abs(cost - new) <= 1e-9 * new:
+        return np.swapaxes(Q / np.sqrt(e)[:, None, :], 1, 2)     # Σ^-1/2 per view
+
+    H = None
+    settled = not estimate
+    for em in range(_EM_ROUNDS + 1 if estimate else 1):
+        settled = settled or em == _EM_ROUNDS
+        prior = prior_rows() if use_robot else None
+        cost = np.inf
+        # While the robot's variances are still moving a couple of steps per round do; the
+        # round after they settle converges.
+        for it in range(50 if settled else 2):
+            M = _corner_cameras(Fu, setup, X, Z, delta)
+            pc, u, Jp, ds = _project(M, sub, scale)
+            behind = pc[:, 2] <= 0.0
+            if np.any(behind):
+                k = int(idx[sub.view[np.flatnonzero(behind)[0]]])
+                raise Infeasible(f"corners[{k}]: the board lies behind the camera in the "
+                                 f"solution; do the corners belong to the poses (same order, "
+                                 f"same board frame)?")
+            e = (u - sub.pixels).reshape(-1)
+            if pixel_sigma is None:
+                sigma = max(float(np.sqrt(e @ e / max(2 * N - leverage, 1.0))), 1e-9)
+            R = M[sub.view, :3, :3]
+            dX = np.zeros((N, 3, 6))
+            dX[:, :, :3] = lie.so3_hat(pc)
+            dX[:, :, 3:] = -np.eye(3)
+            dZ = np.concatenate([-R @ lie.so3_hat(sub.points), R], axis=2)
+            J = np.zeros((2 * N + (6 * n_in if use_robot else 0), npar))
+            J[:2 * N, :6] = (Jp @ dX).reshape(2 * N, 6) / sigma
+            J[:2 * N, 6:12] = (Jp @ dZ).reshape(2 * N, 6) / sigma
+            if nf:
+                J[:2 * N, 12] = ds.reshape(-1) / sigma
+            r = e / sigma
+            if use_robot:
+                # A ← A Exp(δ_A) moves C by Exp(−Ad(X⁻¹) δ_A) on the left: the X column's
+                # derivative times Ad(X⁻¹).
+                dA = dX @ lie.adjoint(dq.inv(X))
+                if toA is not None:
+                    dA = dA @ toA[sub.view]
+                J[rows[:, :, None], cols[:, None, :]] = (Jp @ dA) / sigma
+                for i in range(n_in):
+                    J[2 * N + 6 * i:2 * N + 6 * i + 6, off + 6 * i:off + 6 * i + 6] = prior[i]
+                r = np.concatenate([r, np.einsum("nij,nj->ni", prior, delta).reshape(-1)])
+            H = J.T @ J
+            g = J.T @ r
+            try:
+                step = -np.linalg.solve(H, g)
+            except np.linalg.LinAlgError:
+                raise Infeasible("corners: the corners do not determine X and Z (singular "
+                                 "information)") from None
+            X = dq.mul(X, lie.se3_exp(step[:6]))
+            Z = dq.mul(Z, lie.se3_exp(step[6:12]))
+            if nf:
+                scale *= 1.0 + step[12]
+            if use_robot:
+                delta = delta + step[off:].reshape(n_in, 6)
+            P = np.linalg.inv(H)
+            leverage = float(np.sum((J[:2 * N] @ P) * J[:2 * N]))   # pixel dof the fit takes
+            new = float(r @ r)
+            if float(step @ H @ step) < _TOL and abs(cost - new) <= 1e-9 * new:
+                break
+            cost = new
+        if settled:
             break
-        cost = new
+        # MacKay's fixed point (the evidence's stationary point): θ = Σ δ̂² / γ with
+        # γ = Σ (1 − P_kk / θ) the number of correction components the corners determine;
+        # unlike EM it drops to ~0 in a step when the robot is exact.
+        Pd = np.diagonal(P[off:, off:].reshape(n_in, 6, n_in, 6), axis1=0, axis2=2)  # (6,6,n)
+        d2 = (delta ** 2).sum(axis=0)
+        gam = np.einsum("iin->i", 1.0 - Pd / theta[:, None, None] * np.eye(6)[:, :, None])
+        gam = np.repeat([gam[:3].sum(), gam[3:].sum()], 3)
+        num = np.repeat([d2[:3].sum(), d2[3:].sum()], 3)
+        new_theta = np.maximum(num / np.maximum(gam, 1e-3), _ROBOT_FLOOR)
+        settled = bool(np.all(np.abs(new_theta - theta) <= 0.1 * theta + _ROBOT_FLOOR))
+        theta = new_theta
     P = np.linalg.inv(H)
-    # Reprojection of every view, rejected ones included, at the answer (robot as reported).
-    M = _corner_cameras(A, X, Z, None)
-    if robot:
-        full = np.zeros((len(A), 6))
+    full = None
+    if use_robot:
+        full = np.zeros((len(F), 6))
         full[idx] = delta
-        M = _corner_cameras(A, X, Z, full)
+    M = _corner_cameras(F, setup, X, Z, full)
     _, u, _, _ = _project(M, views, scale)
     err = np.sum((u - views.pixels) ** 2, axis=1)
-    count = np.bincount(views.view, minlength=len(A))
-    rms = np.sqrt(np.bincount(views.view, err, minlength=len(A)) / np.maximum(count, 1))
+    count = np.bincount(views.view, minlength=len(F))
+    rms = np.sqrt(np.bincount(views.view, err, minlength=len(F)) / np.maximum(count, 1))
     P12 = 0.5 * (P[:12, :12] + P[:12, :12].T)
-    return _CornerFit(X, Z, P12, rms, scale, sigma,
-                      float(np.sqrt(P[12, 12])) if nf else 0.0)
+    return _CornerFit(X, Z, P12, rms, scale, sigma, float(np.sqrt(P[12, 12])) if nf else 0.0,
+                      np.diag(theta) if estimate else None)
 
 
 # ---- the API -----------------------------------------------------------------------------------
@@ -928,8 +963,9 @@ def calibrate(base_flange, camera_target, setup: str = "eye_in_hand", *, robust:
     one (:func:`_corner_fit`): ``x``, ``z`` and their covariances then come from the corners,
     ``reprojection`` holds each view's RMS error (px); ``refine_focal`` estimates one scale of
     the focal lengths too (``focal_scale``); ``pixel_sigma`` (px) is the corner noise, estimated
-    from the reprojection errors when not given. The robot poses are exact there unless
-    ``robot_covariance`` is given.
+    from the reprojection errors when not given. The robot's noise there is
+    ``robot_covariance`` when given, estimated when neither covariance is given, and none (exact
+    robot poses) when only ``camera_covariance`` is.
     """
     p = _prepare(base_flange, camera_target, setup)
     n = p.F.shape[0]
@@ -1025,11 +1061,13 @@ def calibrate(base_flange, camera_target, setup: str = "eye_in_hand", *, robust:
     X, Z, P, Hx = fit.X, fit.Z, fit.P, fit.H
     corner = {}
     if views is not None:
-        cf = _corner_fit(p.A, X, Z, views, inlier, SA if not estimate else None, refine_focal,
-                         pixel_sigma)
+        robot = "estimate" if estimate else SRob
+        cf = _corner_fit(p.F, p.setup, X, Z, views, inlier, robot, refine_focal, pixel_sigma)
         X, Z, P, Hx = cf.X, cf.Z, cf.P, np.linalg.inv(cf.P)
         corner = dict(reprojection=cf.reprojection, focal_scale=cf.focal_scale,
                       focal_sigma=cf.focal_sigma, pixel_sigma=cf.pixel_sigma)
+        if cf.robot_covariance is not None:
+            corner["robot_covariance"] = cf.robot_covariance
         bad = np.flatnonzero(inlier & (cf.reprojection > 5.0 * cf.pixel_sigma + 0.5))
         if len(bad):
             warnings.append(f"{_samples(bad)}: reprojection errors of " + ", ".join(
@@ -1041,11 +1079,11 @@ def calibrate(base_flange, camera_target, setup: str = "eye_in_hand", *, robust:
         inliers=inlier, rejected=tuple(rejected), covariance=P, information=Hx,
         noise_model="estimated" if estimate else "given",
         camera_covariance=noise.covariances()[0] if estimate else SC,
-        robot_covariance=noise.covariances()[1] if estimate else SRob,
+        **({"robot_covariance": noise.covariances()[1] if estimate else SRob} | corner),
         residual_covariance=np.array(S_all), nis=nis, leave_one_out=loo, closed_form_x=X0,
         closed_form_z=Z0, agreement=agree, rotation_condition=p.condition,
         excitation=p.excitation, iterations=fit.iterations, readings=p.readings,
-        camera_scale=scale, **corner)
+        camera_scale=scale)
 
 
 def _camera_scale(fit: _Fit, C: np.ndarray) -> tuple[float, float]:

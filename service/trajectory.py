@@ -125,7 +125,8 @@ class Trajectory:
         self.segments = segments
 
     def sample(self, times) -> Samples:
-        """The trajectory at ``times`` (any order), each within ``[0, duration]``."""
+        """The trajectory at ``times`` (any order; sorted ones are evaluated side by side, several
+        times faster), each within ``[0, duration]``."""
         t = np.ascontiguousarray(times, dtype=np.float64)
         if t.ndim != 1:
             raise FieldError(f"times: expected a 1-D array, got shape {t.shape}")
@@ -221,12 +222,16 @@ def _path_lengths(poses: np.ndarray, mode: int) -> tuple[np.ndarray, np.ndarray]
     return np.linalg.norm(np.diff(t, axis=0), axis=1), angle
 
 
-def _start_rate(v0, poses, mode) -> float:
-    """The start velocity as a rate ds/dt of segment 0: the one-parameter profile can start
-    moving only along its path, so anything else is refused rather than silently projected."""
+def _start_vector(v0) -> np.ndarray:
     v0 = np.asarray(v0, dtype=np.float64)
     if v0.shape != (6,) or not np.all(np.isfinite(v0)):
         raise FieldError(f"start_velocity: expected 6 finite numbers [vx vy vz wx wy wz], got {v0!r}")
+    return v0
+
+
+def _start_rate(v0: np.ndarray, poses, mode) -> float | None:
+    """The start velocity as a rate ds/dt of segment 0, or None when it does not point along
+    it (the one-parameter profile can start moving only along its path)."""
     if not v0.any():
         return 0.0
     # the path's velocity per unit ds/dt at waypoint 0, base frame: the body twist of segment 0
@@ -238,17 +243,51 @@ def _start_rate(v0, poses, mode) -> float:
     u = np.concatenate([lin, dq.transform(turn, twist[:3])])
     rate = float(v0 @ u / (u @ u))
     if rate < 0 or np.linalg.norm(v0 - rate * u) > 1e-9 * max(1.0, np.linalg.norm(v0)):
-        raise FieldError("start_velocity: must point along the first segment (a non-negative "
-                         "multiple of its velocity at waypoints[0])")
+        return None
     return rate
+
+
+# How far past its braking point (in the braking's own time) the redirect segment reaches, and
+# how many times that reach may double when the planner's bounds need more room.
+_REDIRECT_REACH = 0.625
+_REDIRECT_TRIES = 6
+
+
+def _redirect(start: np.ndarray, v0: np.ndarray, limits: Limits, mode: int, reach: float):
+    """A pose on the motion the start velocity is on (the line and the turn about w in
+    TOOL_LINEAR, the screw of the twist in SCREW), as far as ``reach`` times the longest of the
+    linear and angular S-curve stops from that velocity (trajectory.c's ramps are at most that
+    long) would carry it at that velocity; and ds/dt at the start of the segment to it."""
+    stop = 0.0
+    for V, A, J in ((np.linalg.norm(v0[:3]), limits.max_linear_acceleration, limits.max_linear_jerk),
+                    (np.linalg.norm(v0[3:]), limits.max_angular_acceleration, limits.max_angular_jerk)):
+        if V > 0:
+            stop = max(stop, V / (A * 0.95) + (A / J if J > 0 else 0.0))
+    tau = reach * stop
+    if np.linalg.norm(v0[3:]) * tau >= math.pi:
+        # a slerp takes the short way: the segment cannot hold half a turn or more
+        raise Infeasible(f"start_velocity: the turn it is on needs {math.degrees(np.linalg.norm(v0[3:]) * tau):.0f} "
+                         f"degrees to be brought into the path under the limits (less than 180 "
+                         f"are supported)")
+    q0, p0 = dq.to_pose(start)
+    if mode == _MODE["screw"]:
+        # T0 Exp(tau xi) with the body twist xi of the start velocity (the tool point is the
+        # tool frame's origin); log is half the twist
+        back = dq.conj(dq.from_pose(q0, np.zeros(3)))
+        half = 0.5 * tau * np.concatenate([dq.transform(back, v0[3:]), dq.transform(back, v0[:3])])
+        return dq.mul(start, dq.exp(half)), 1.0 / tau
+    turn = dq.exp(np.concatenate([0.5 * tau * v0[3:], np.zeros(3)]))     # base frame
+    return dq.from_pose(dq.mul(turn, dq.from_pose(q0, np.zeros(3)))[:4], p0 + tau * v0[:3]), 1.0 / tau
 
 
 def plan(waypoints, limits: Limits, interpolation: str = "tool_linear", *,
          start_velocity=None) -> Trajectory:
     """The fastest trajectory through ``waypoints`` (a sequence of :class:`Waypoint`) that this
     planner's profile allows under ``limits``, at rest at the end and at rest (or moving at
-    ``start_velocity``, (6,) ``[vx vy vz wx wy wz]`` of the tool point and the tool, base frame,
-    along the first segment) at the start.
+    ``start_velocity``, (6,) ``[vx vy vz wx wy wz]`` of the tool point and the tool, base frame)
+    at the start. A start velocity along the first segment is taken up by its time law; any other
+    (replanning while moving) first follows the motion it is on, blended into the first segment
+    as at a corner (``_plan_redirected``), so the path leaves waypoint 0 the way the tool moves.
 
     Errors: ``ValueError`` (:class:`~service.errors.FieldError`) naming the field, e.g.
     ``waypoints[3].blend_radius: ...`` or ``limits.max_linear_velocity: ...``; :class:`Infeasible`
@@ -274,13 +313,19 @@ def plan(waypoints, limits: Limits, interpolation: str = "tool_linear", *,
         i = over[0]
         raise FieldError(f"waypoints[{i}].blend_radius: {float(radius[i])!r} m is more than half a "
                          f"neighbouring segment ({float(half_len[i])!r} m)")
-    sigma0 = 0.0 if start_velocity is None else _start_rate(start_velocity, poses, mode)
-    for v, name in zip(sigma0 * np.array([length[0], angle[0]]),
-                       ("max_linear_velocity", "max_angular_velocity")):
-        if v > getattr(limits, name) * (1 + 1e-12):
-            raise Infeasible(f"start_velocity: {v!r} is over limits.{name}")
-    code, bad, table, duration, segs = _c.traj_plan(poses, mode, radius, times,
-                                                   limits.as_array(), sigma0)
+    sigma0, v0 = 0.0, None
+    if start_velocity is not None:
+        v0 = _start_vector(start_velocity)
+        for v, name in ((np.linalg.norm(v0[:3]), "max_linear_velocity"),
+                        (np.linalg.norm(v0[3:]), "max_angular_velocity")):
+            if v > getattr(limits, name) * (1 + 1e-12):
+                raise Infeasible(f"start_velocity: {float(v)!r} is over limits.{name}")
+        sigma0 = _start_rate(v0, poses, mode)
+    if sigma0 is not None:
+        code, bad, table, duration, segs = _c.traj_plan(poses, mode, radius, times,
+                                                       limits.as_array(), sigma0)
+    else:
+        code, bad, table, duration, segs = _plan_redirected(poses, mode, radius, times, limits, v0)
     if code == _E_TIME:
         raise Infeasible(f"waypoints[{bad}].time: {float(times[bad])!r} s cannot be met under the "
                          f"limits")
@@ -291,6 +336,30 @@ def plan(waypoints, limits: Limits, interpolation: str = "tool_linear", *,
         raise Infeasible(f"waypoints[{bad}]: no speed satisfies the limits around this waypoint")
     segments = tuple(Segment(s, d, _BINDINGS[int(b)]) for s, d, b in segs.tolist())
     return Trajectory(table, mode, float(duration), segments)
+
+
+def _plan_redirected(poses, mode, radius, times, limits: Limits, v0: np.ndarray):
+    """A start velocity off the first segment (replanning while moving): a segment along the
+    motion it is on, to a pose somewhat past where that motion could stop, blended into the
+    first segment (the planner lowers that corner's speed as far as its radius and the limits
+    need: at worst a stop there). Waypoint indices and segments are reported as the caller's:
+    the redirect and the first segment are one segment 0."""
+    code = _E_START
+    for k in range(_REDIRECT_TRIES):
+        via, sigma0 = _redirect(poses[0], v0, limits, mode, _REDIRECT_REACH * 2 ** k)
+        path = np.insert(poses, 1, via, axis=0)
+        length, _ = _path_lengths(path, mode)
+        # blends at most half of each segment, the caller's at waypoint 1 too (its segment is new)
+        rad = np.insert(radius, 1, 0.5 * min(length[0], length[1]) * (1 - 1e-9))
+        rad[2] = min(rad[2], 0.5 * length[1] * (1 - 1e-9))
+        code, bad, table, duration, segs = _c.traj_plan(
+            path, mode, rad, np.insert(times, 1, 0.0), limits.as_array(), sigma0)
+        if code != _E_START:
+            break
+    if code:
+        return code, max(bad - 1, 0), None, 0.0, None
+    first = np.array([[0.0, segs[1, 0] + segs[1, 1], segs[1, 2]]])
+    return code, 0, table, duration, np.concatenate([first, segs[2:]])
 
 
 class Derivatives(NamedTuple):

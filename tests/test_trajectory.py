@@ -122,8 +122,32 @@ def test_start_velocity_along_the_first_segment(mode):
     assert violation(peaks(t, poses), LIMITS, NOISE_1KHZ) <= TOL
     # moving already, it arrives sooner than from rest
     assert tr.duration < plan([Waypoint(a), Waypoint(b)], LIMITS, mode).duration
-    with pytest.raises(ValueError, match=r"^start_velocity: must point along the first segment"):
-        plan([Waypoint(a), Waypoint(b)], LIMITS, mode, start_velocity=[0, 0, 0.1, 0, 0, 0])
+
+
+@slow
+@given(paths(4), limits_st, st.sampled_from(INTERPOLATIONS),
+       st.lists(st.floats(-1, 1), min_size=6, max_size=6), st.floats(0.05, 1.0))
+def test_start_velocity_in_any_direction(wps, limits, mode, direction, share):
+    """Replanning while moving: a start velocity off the first segment is followed from the
+    start (the samples begin at waypoint 0 moving at exactly that velocity), then blended into
+    the path, every limit held, the end exact, one segment per waypoint pair as before."""
+    u = np.array(direction)
+    if np.linalg.norm(u[:3]) < 1e-3 or np.linalg.norm(u[3:]) < 1e-3:
+        u[:3] += [0.3, 0, 0]
+    v0 = share * np.concatenate([u[:3] / np.linalg.norm(u[:3]) * limits.max_linear_velocity,
+                                 u[3:] / max(np.linalg.norm(u[3:]), 1e-3) * limits.max_angular_velocity])
+    try:
+        tr = plan(wps, limits, mode, start_velocity=v0)
+    except Infeasible as e:
+        # fast turns under small angular limits: more than half a turn to stop
+        assert "less than 180 are supported" in str(e), e
+        return
+    s = tr.sample([0.0, tr.duration])
+    assert np.allclose(np.concatenate([s.linear_velocity[0], s.angular_velocity[0]]), v0, atol=1e-9)
+    assert same_pose(s.pose[0], wps[0].pose) and same_pose(s.pose[1], wps[-1].pose)
+    assert len(tr.segments) == len(wps) - 1
+    t, poses, _ = uniform(tr)
+    assert violation(peaks(t, poses), limits, NOISE_1KHZ) <= TOL
 
 
 def test_start_velocity_too_fast_to_stop_is_infeasible():
@@ -294,6 +318,32 @@ def test_random_waypoint_times_are_met(wps, stretch, mode):
     assert violation(peaks(t, poses), LIMITS, NOISE_1KHZ) <= TOL
 
 
+@pytest.mark.parametrize("mode", INTERPOLATIONS)
+def test_many_timed_waypoints_are_each_met(mode):
+    """30 waypoints, blends and stops mixed, every time 1.1-1.5x the free plan's arrival: each
+    interval is slowed by its own factor, found by a root search per interval over sweeps."""
+    rng = np.random.default_rng(5)
+    pts = np.cumsum(rng.uniform(-0.15, 0.15, (30, 3)), axis=0)
+    poses = [pose(rng.normal(size=4) * 0.1 + [1, 0, 0, 0], p) for p in pts]
+    near = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+    radius = [0.0] + [0.4 * min(near[i - 1], near[i]) if i % 3 else 0.0 for i in range(1, 29)] + [0.0]
+
+    def arrivals(tr):
+        s = tr.segments
+        return np.array([0.0] + [0.5 * (s[k].start + s[k - 1].start + s[k - 1].duration)
+                                 if radius[k] > 0 else s[k].start for k in range(1, 29)]
+                        + [tr.duration])
+
+    free = plan([Waypoint(p, blend_radius=r) for p, r in zip(poses, radius)], LIMITS, mode)
+    want = np.cumsum(np.r_[0.0, np.diff(arrivals(free)) * rng.uniform(1.1, 1.5, 29)])
+    tr = plan([Waypoint(p, time=float(t), blend_radius=r) for p, t, r in zip(poses, want, radius)],
+              LIMITS, mode)
+    assert np.allclose(arrivals(tr), want, rtol=1e-8, atol=0)
+    assert all(s.binding == "time" for s in tr.segments)
+    t, got, _ = uniform(tr)
+    assert violation(peaks(t, got), LIMITS, NOISE_1KHZ) <= TOL
+
+
 def test_sample_takes_times_in_any_order():
     wps = [Waypoint(A), Waypoint(B, blend_radius=0.1), Waypoint(pose([1, 0, 0, 1], [0.5, 0.5, 0]))]
     tr = plan(wps, LIMITS)
@@ -301,6 +351,25 @@ def test_sample_takes_times_in_any_order():
     got, order = tr.sample(t), np.argsort(t)
     ref = tr.sample(t[order])
     assert np.array_equal(got.pose[order], ref.pose) and np.array_equal(got.angular_velocity[order], ref.angular_velocity)
+
+
+@slow
+@given(paths(), limits_st, st.sampled_from(INTERPOLATIONS), st.integers(0, 2**32 - 1))
+def test_batch_evaluation_equals_one_time_at_a_time(wps, limits, mode, seed):
+    """The evaluation groups sorted times into runs (one segment, blend state and phase of each
+    time law) evaluated side by side; a time put in the wrong run would take another phase's
+    law. Times alone cannot share a run, so each is its own reference, with the segment starts
+    and ends (phase boundaries) among them."""
+    tr = plan(wps, limits, mode)
+    edges = [x for s in tr.segments for x in (s.start, s.start + s.duration)]
+    t = np.sort(np.concatenate([np.random.default_rng(seed).uniform(0, tr.duration, 300), edges,
+                                np.nextafter(edges, -np.inf), np.nextafter(edges, np.inf), [0, tr.duration]]))
+    t = np.clip(t, 0.0, tr.duration)
+    got = tr.sample(t)
+    for i in range(len(t)):
+        one = tr.sample(t[i:i + 1])
+        for a, b in zip(got[1:], one[1:]):
+            assert np.abs(a[i] - b[0]).max() <= 1e-15, (i, t[i])
 
 
 def test_unmeetable_time_is_infeasible_naming_the_waypoint():

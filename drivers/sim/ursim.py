@@ -120,6 +120,51 @@ class _Move:
         return self.p0 + f * (self.p1 - self.p0), _qmul(self.q0, quat_from_rotvec(f * self.w)), False
 
 
+# Linux's per-packet receive stamps (CLOCK_REALTIME, nanoseconds); Python names neither constant.
+_SO_TIMESTAMPNS = 35
+
+
+class _StampedReader:
+    """RTDE messages off a session's socket, each with when its last byte reached this machine:
+    the kernel's receive stamp of the packet (SO_TIMESTAMPNS) moved to CLOCK_MONOTONIC, so
+    that what the reading thread was doing then (waiting for the GIL, descheduled) is not in
+    it, as a controller's network card would see the set-points. Without kernel stamps: when
+    this thread read the message."""
+
+    def __init__(self, sock: socket.socket):
+        self.sock, self.buf, self.stamp = sock, bytearray(), 0.0
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+        except OSError:
+            pass
+
+    def _fill(self) -> None:
+        data, ancillary, _, _ = self.sock.recvmsg(65536, 64)
+        if not data:
+            raise ConnectionError("the client closed the connection")
+        real, mono = time.time_ns(), time.monotonic_ns()
+        stamp = mono
+        for level, kind, payload in ancillary:
+            if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(payload) >= 16:
+                sec, nsec = struct.unpack("qq", payload[:16])
+                stamp = sec * 1_000_000_000 + nsec - (real - mono)
+        self.buf += data
+        self.stamp = stamp * 1e-9
+
+    def read(self) -> tuple[int, bytes, float]:
+        """The next message's ``(kind, body, arrival)``."""
+        while len(self.buf) < rp.HEADER.size:
+            self._fill()
+        size, kind = rp.HEADER.unpack_from(self.buf)
+        if size < rp.HEADER.size:
+            raise ConnectionError(f"malformed RTDE header: size {size}")
+        while len(self.buf) < size:
+            self._fill()
+        body = bytes(self.buf[rp.HEADER.size:size])
+        del self.buf[:size]
+        return kind, body, self.stamp
+
+
 class _Session:
     """One RTDE client connection."""
 
@@ -466,10 +511,9 @@ class URSim:
     # ---------------------------------------------------------------- RTDE server
     def _rtde_client(self, sess: _Session):
         try:
+            reader = _StampedReader(sess.sock)
             while sess.alive and not self.stopping.is_set():
-                kind, body = rp.read_message(sess.sock)
-                # stamped before any lock: when the set-point arrived, not when the cycle let go
-                self._rtde_message(sess, kind, body, time.monotonic())
+                self._rtde_message(sess, *reader.read())
         except (OSError, ConnectionError, struct.error):
             pass
         finally:
@@ -531,7 +575,7 @@ class URSim:
                         self.log_base += 1      # the oldest entry falls out
                     self.log.append({
                         "tick": self.tick, "time": self.tick * self.dt,
-                        "mono": arrived, "recipe": recipe.id,
+                        "mono": arrived, "read": time.monotonic(), "recipe": recipe.id,
                         "cmd": fields["input_int_register_0"],
                         "args": [fields[n] for n in recipe.names if n.startswith("input_double")],
                         "ints": [fields[n] for n in recipe.names[1:]
@@ -829,7 +873,8 @@ class URSimProcess:
     def log(self, since: int = 0, cmd: int | None = None, keys: list | None = None) -> dict:
         """Received commands from index ``since`` (``next`` is where the next call starts); each
         entry has the cycle ``tick``, ``mono`` (this machine's CLOCK_MONOTONIC when the package
-        arrived), ``cmd``, ``args``, ``ints``. ``cmd`` keeps one command, ``keys`` those fields."""
+        arrived: the kernel's receive stamp), ``read`` (when the simulator's thread had read and
+        decoded it), ``cmd``, ``args``, ``ints``. ``cmd`` keeps one command, ``keys`` those fields."""
         kw = {k: v for k, v in (("cmd", cmd), ("keys", keys)) if v is not None}
         return self.call("log", since=since, **kw)
 

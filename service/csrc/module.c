@@ -938,6 +938,98 @@ done:
     return result;
 }
 
+/* measurements_wire(q (n, 4), t (n, 3), covariances (n, 36) or None, weights (n,) or None,
+ * times (n,) or None, sources or None, bodies or None) -> bytes: the measurements as repeated
+ * FuseStreamRequest.measurements (dq_wire_measurement). The caller has checked the shapes;
+ * a name that is not a str is a ValueError naming it. */
+static PyObject *double_rows(PyObject *obj, npy_intp n, npy_intp width, const char *name)
+{
+    if (obj == Py_None) return NULL;
+    PyObject *a = PyArray_FROM_OTF(obj, NPY_DOUBLE, NPY_ARRAY_IN_ARRAY);
+    if (a && PyArray_SIZE((PyArrayObject *)a) != n * width) {
+        PyErr_Format(PyExc_ValueError, "%s: expected %zd values, got %zd", name,
+                     (Py_ssize_t)(n * width), (Py_ssize_t)PyArray_SIZE((PyArrayObject *)a));
+        Py_CLEAR(a);
+    }
+    return a;
+}
+
+static int name_at(PyObject *seq, npy_intp i, const char *field, const char **s, Py_ssize_t *n)
+{
+    *s = "";
+    *n = 0;
+    if (!seq) return 0;
+    PyObject *item = PySequence_Fast_GET_ITEM(seq, i);
+    if (!PyUnicode_Check(item)) {
+        PyErr_Format(PyExc_ValueError, "%s[%zd]: expected a string, got %s", field, (Py_ssize_t)i,
+                     Py_TYPE(item)->tp_name);
+        return -1;
+    }
+    *s = PyUnicode_AsUTF8AndSize(item, n);
+    return *s ? 0 : -1;
+}
+
+static PyObject *py_measurements_wire(PyObject *self, PyObject *args)
+{
+    PyObject *oq, *ot, *ocov, *ow, *otimes, *osrc, *obody;
+    if (!PyArg_ParseTuple(args, "OOOOOOO:measurements_wire", &oq, &ot, &ocov, &ow, &otimes, &osrc,
+                          &obody))
+        return NULL;
+    PyObject *q = NULL, *t = NULL, *cov = NULL, *w = NULL, *times = NULL, *src = NULL,
+             *body = NULL, *result = NULL;
+    uint8_t *buf = NULL;
+    Py_ssize_t n = PySequence_Size(oq);
+    if (n < 0) return NULL;
+    if (!(q = double_rows(oq, n, 4, "q")) || !(t = double_rows(ot, n, 3, "t"))) goto done;
+    if ((ocov != Py_None && !(cov = double_rows(ocov, n, 36, "covariances"))) ||
+        (ow != Py_None && !(w = double_rows(ow, n, 1, "weights"))) ||
+        (otimes != Py_None && !(times = double_rows(otimes, n, 1, "times"))))
+        goto done;
+    if (osrc != Py_None && !(src = PySequence_Fast(osrc, "sources: expected a sequence"))) goto done;
+    if (obody != Py_None && !(body = PySequence_Fast(obody, "bodies: expected a sequence"))) goto done;
+    if ((src && PySequence_Fast_GET_SIZE(src) != n) || (body && PySequence_Fast_GET_SIZE(body) != n)) {
+        PyErr_SetString(PyExc_ValueError, "sources, bodies: expected one name a measurement");
+        goto done;
+    }
+    size_t room = 0;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        const char *a, *b;
+        Py_ssize_t na, nb;
+        if (name_at(src, i, "names", &a, &na) || name_at(body, i, "bodies", &b, &nb)) goto done;
+        room += DQ_WIRE_MEASUREMENT_MAX + (size_t)na + (size_t)nb;
+    }
+    buf = PyMem_Malloc(room ? room : 1);
+    if (!buf) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    const double *pq = PyArray_DATA((PyArrayObject *)q), *pt = PyArray_DATA((PyArrayObject *)t);
+    const double *pc = cov ? PyArray_DATA((PyArrayObject *)cov) : NULL;
+    const double *pw = w ? PyArray_DATA((PyArrayObject *)w) : NULL;
+    const double *ptm = times ? PyArray_DATA((PyArrayObject *)times) : NULL;
+    size_t len = 0;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        const char *a, *b;
+        Py_ssize_t na, nb;
+        name_at(src, i, "names", &a, &na); /* checked above */
+        name_at(body, i, "bodies", &b, &nb);
+        len += dq_wire_measurement(buf + len, a, (size_t)na, b, (size_t)nb, ptm ? ptm[i] : 0.0,
+                                   pq + 4 * i, pt + 3 * i, pc ? pc + 36 * i : NULL,
+                                   pw ? pw[i] : 0.0);
+    }
+    result = PyBytes_FromStringAndSize((const char *)buf, (Py_ssize_t)len);
+done:
+    Py_XDECREF(q);
+    Py_XDECREF(t);
+    Py_XDECREF(cov);
+    Py_XDECREF(w);
+    Py_XDECREF(times);
+    Py_XDECREF(src);
+    Py_XDECREF(body);
+    PyMem_Free(buf);
+    return result;
+}
+
 /* fuse(poses (..., n, 8), covariances (..., n, 6, 6), inliers (..., n) bool or None, tol,
  * max_iter, nis) -> (mean, covariance, residuals, distances, nis, tested, status, iterations,
  * chi2), each with the leading shape; nis and tested are None when nis is false. The leading
@@ -1375,6 +1467,9 @@ static PyMethodDef methods[] = {
     {"fuse_stream_from_wire", py_fuse_stream_from_wire, METH_VARARGS,
      "fuse_stream_from_wire(bytes, sym_tol) -> (poses, covariances, times, codes, bodies, "
      "sources, spans) or None."},
+    {"measurements_wire", py_measurements_wire, METH_VARARGS,
+     "measurements_wire(q, t, covariances, weights, times, sources, bodies) -> bytes: repeated "
+     "FuseStreamRequest.measurements."},
     {"blend_batch_wire", py_blend_batch_wire, METH_VARARGS,
      "blend_batch_wire(bytes, max_requests, max_total_poses, max_poses, default_tol, "
      "default_max_iter, max_iter_limit) -> (bytes, n) or None."},

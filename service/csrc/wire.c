@@ -507,3 +507,56 @@ int dq_wire_fuse_stream(const uint8_t *buf, size_t len, double sym_tol, dq_fuse_
     if (each_measurement(buf, len, fill_measurement, &f) || f.i != r->n) return -1;
     return 0;
 }
+
+/* ---- the client's FuseStreamRequest ----------------------------------------------------------- */
+
+static uint8_t *put_varint(uint8_t *p, uint64_t v)
+{
+    for (; v >= 0x80; v >>= 7) *p++ = (uint8_t)(v | 0x80);
+    *p++ = (uint8_t)v;
+    return p;
+}
+
+static uint8_t *put_string(uint8_t *p, int field, const char *s, size_t n)
+{
+    if (!n) return p;
+    *p++ = (uint8_t)(field << 3 | WT_LEN);
+    p = put_varint(p, n);
+    memcpy(p, s, n);
+    return p + n;
+}
+
+size_t dq_wire_measurement(uint8_t *out, const char *source, size_t source_len, const char *body,
+                           size_t body_len, double time, const double q[4], const double t[3],
+                           const double *cov, double weight)
+{
+    /* the fields are written after room for the longest tag and length, then moved back */
+    uint8_t *start = out + 11, *p = start;
+    p = put_string(p, 1, source, source_len);
+    p = put_string(p, 2, body, body_len);
+    p = put_double(p, 3, time);
+    uint8_t *len = p + 1;
+    *p = (uint8_t)(4 << 3 | WT_LEN); /* pose: at most 67 bytes, a one-byte length */
+    p += 2;
+    p = put_doubles(p, 1, t, 3);
+    p = put_doubles(p, 2, q, 4);
+    *len = (uint8_t)(p - len - 1);
+    if (cov) {
+        *p++ = (uint8_t)(5 << 3 | WT_LEN); /* packed */
+        p = put_varint(p, 36 * 8);
+        for (int k = 0; k < 36; k++) {
+            uint64_t v;
+            memcpy(&v, cov + k, sizeof v);
+            for (int i = 0; i < 8; i++) *p++ = (uint8_t)(v >> (8 * i));
+        }
+    }
+    p = put_double(p, 6, weight);
+    size_t n = (size_t)(p - start);
+    uint8_t head[11], *h = head;
+    *h++ = (uint8_t)(3 << 3 | WT_LEN);
+    h = put_varint(h, n);
+    size_t hn = (size_t)(h - head);
+    memmove(out + hn, start, n);
+    memcpy(out, head, hn);
+    return hn + n;
+}

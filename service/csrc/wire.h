@@ -118,4 +118,15 @@ int dq_wire_fuse_count(const uint8_t *buf, size_t len, dq_fuse_stream *r);
  * case. sym_tol: the relative symmetry tolerance of a covariance (service/fusion.py's). */
 int dq_wire_fuse_stream(const uint8_t *buf, size_t len, double sym_tol, dq_fuse_stream *r);
 
+/* The client's side of the same: one Measurement as FuseStreamRequest.measurements (field 3),
+ * written to out, which has room for DQ_WIRE_MEASUREMENT_MAX + source_len + body_len bytes;
+ * returns the bytes written. Fields at their default (+0.0, an empty name, cov NULL) are left
+ * out and the pose's position and orientation are always present, as protobuf's serializer
+ * does for the client's messages, so the bytes are SerializeToString()'s. */
+/* tag and length, source's and body's tags and lengths, time, pose, covariance, weight */
+#define DQ_WIRE_MEASUREMENT_MAX (11 + 11 + 11 + 9 + 69 + 291 + 9)
+size_t dq_wire_measurement(uint8_t *out, const char *source, size_t source_len, const char *body,
+                           size_t body_len, double time, const double q[4], const double t[3],
+                           const double *cov, double weight);
+
 #endif

@@ -31,7 +31,8 @@ from service.rpc.convert import (DEFAULT_MAX_EXTRAPOLATION, DEFAULT_PROBABILITY,
                                  DEFAULT_WINDOW, INTERPOLATION_ENUMS, METHOD_ENUMS,
                                  blend_batch_items_wire, blend_request_wire,
                                  blend_responses_from_wire, fused_from_msg,
-                                 interpolate_request_wire, measurement_msgs, options_msg,
+                                 interpolate_request_wire, measurement_msgs,
+                                 measurements_wire, options_msg,
                                  limits_msg, plan_msg, pose_arrays, poses_to_arrays,
                                  poses_to_flat, samples_from_msgs, stamped_msgs,
                                  stamped_poses_wire)
@@ -444,12 +445,11 @@ class Client:
                 for i, b in enumerate(batches):
                     b = b if isinstance(b, Batch) else Batch(*b)
                     try:
-                        ms = measurement_msgs(*b)
+                        data = measurements_wire(*b)
                     except ValueError as e:
                         raise ValueError(f"batches[{i}].{e}") from None
-                    msg = first if i == 0 else fpb.FuseStreamRequest()
-                    msg.measurements.extend(ms)
-                    yield msg.SerializeToString()
+                    # a message's fields in any order parse as one: the options, then these
+                    yield first.SerializeToString() + data if i == 0 else data
             except Exception as e:   # raised to the caller below, not lost in grpc's thread
                 refused.append(e)
 

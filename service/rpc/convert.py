@@ -563,11 +563,9 @@ def options_msg(robust: bool = False, time: float = 0.0, sources=(), probability
     return msg
 
 
-def measurement_msgs(poses, covariances=None, weights=None, names=None, bodies=None,
-                     times=None) -> list:
-    """``Measurement`` messages from arrays (client side; values as given, the server checks
-    them): ``poses`` ``(n, 8)``, ``covariances`` ``(n, 6, 6)`` or ``weights`` ``(n,)`` or
-    neither, and per-measurement ``names`` (sources), ``bodies`` and ``times``."""
+def _measurement_columns(poses, covariances, weights, names, bodies, times):
+    """The client's measurement arrays checked for shape: ``(q, t, covariances, weights, names,
+    bodies, times)``, ``q``/``t`` the wire's (:func:`pose_arrays`), absent columns None."""
     a = np.asarray(poses, dtype=np.float64)
     if a.ndim != 2 or a.shape[1] != 8:
         raise ValueError(f"poses: expected shape (n, 8), got {a.shape}")
@@ -590,7 +588,16 @@ def measurement_msgs(poses, covariances=None, weights=None, names=None, bodies=N
     bodies, times = column(bodies, "bodies"), column(times, "times")
     if covariances is not None and weights is not None:
         raise ValueError("weights: give covariances or weights, not both")
-    q, t = pose_arrays(a)
+    return (*pose_arrays(a), covariances, weights, names, bodies, times)
+
+
+def measurement_msgs(poses, covariances=None, weights=None, names=None, bodies=None,
+                     times=None) -> list:
+    """``Measurement`` messages from arrays (client side; values as given, the server checks
+    them): ``poses`` ``(n, 8)``, ``covariances`` ``(n, 6, 6)`` or ``weights`` ``(n,)`` or
+    neither, and per-measurement ``names`` (sources), ``bodies`` and ``times``."""
+    q, t, covariances, weights, names, bodies, times = _measurement_columns(
+        poses, covariances, weights, names, bodies, times)
     out = []
     for i, m in enumerate(pose_msgs(q, t)):
         msg = fpb.Measurement(pose=m, source=names[i] if names else "",
@@ -602,6 +609,19 @@ def measurement_msgs(poses, covariances=None, weights=None, names=None, bodies=N
             msg.weight = float(weights[i])
         out.append(msg)
     return out
+
+
+def measurements_wire(poses, covariances=None, weights=None, names=None, bodies=None,
+                      times=None) -> bytes:
+    """:func:`measurement_msgs` as repeated ``FuseStreamRequest.measurements`` in wire bytes,
+    the bytes protobuf would write for them (``service/csrc/wire.c``), ~30x faster: what a
+    client streaming thousands of measurements a second spends per message."""
+    q, t, covariances, weights, names, bodies, times = _measurement_columns(
+        poses, covariances, weights, names, bodies, times)
+    return _dqcore.measurements_wire(
+        q, t, None if covariances is None else covariances.reshape(len(q), 36),
+        None if weights is None else np.asarray(weights, np.float64),
+        None if times is None else np.asarray(times, np.float64), names, bodies)
 
 
 def pose_arrays(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -176,10 +176,10 @@ class Stream:
         return due
 
     def _answer(self, body: str, t, field: str):
-        ids = self.tracker.window_of(body).ids
         try:
-            return body, self.tracker.estimate(body, t), ids
+            return body, *self.tracker.estimate_ids(body, t)
         except ValueError as e:
+            ids = self.tracker.window_of(body).ids
             at = f"{t!r} s" if t is not None else "its newest measurement"
             where = field.rsplit(".", 1)[0]
             return body, FieldError(f"{where}: body {body!r} at {at}: "

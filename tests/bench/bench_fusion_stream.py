@@ -1,8 +1,9 @@
-"""StreamFuse throughput: measurements of many moving bodies streamed in messages of 10 through the
-shipped ``Client.stream_fuse`` into one server (a separate ``dqpose serve`` process); one table:
-measurements/s and messages/s sustained, answers/s, p50/p99 latency per message, server RSS at
-the start and the end; then the server's per-message cost in process, split into its parts
-(the served path: C decoder then tracker; and the protobuf path it replaces), with cProfile.
+"""StreamFuse throughput and latency: measurements of many moving bodies streamed in messages of 10
+through the shipped ``Client.stream_fuse`` into one server (a separate ``dqpose serve`` process);
+one table: measurements/s and messages/s sustained, answers/s, the added latency of the answers
+(p50/p99/max), CPU per message of the server and of the client, server RSS at the start and the
+end; then the server's per-message cost in process, split into its parts (the served path: C
+decoder then tracker; and the protobuf path it replaces), with cProfile.
 
     .venv/bin/python -m tests.bench.bench_fusion_stream                 # ~1 min
     .venv/bin/python -m tests.bench.bench_fusion_stream --minutes 10    # the memory run
@@ -13,18 +14,24 @@ the start and the end; then the server's per-message cost in process, split into
 Scene: ``--bodies`` bodies on constant-twist screws, each measured in turn (round robin) by one
 of two sources with latencies, 10 measurements a message with full covariances; the server keeps
 a ``--window`` per body and answers each body at ``--output-rate`` (ticks on the measurements'
-time). Latency of a message: from the client handing it to gRPC to the arrival of its first
-answer. So that every message has one, each carries an 11th measurement with no body, which the
-server answers at once with an error entry (after it has taken in, and fused at the ticks due,
-the message's 10 others): the probe adds one error entry per message to the server's work.
-Rows: paced at the target rate (20,000 measurements/s), and unpaced (as fast as the client
-sends), which shows the ceiling.
+time). The added latency of an answer: from the client handing gRPC the message whose
+measurement made the answer due (the answer's ``request``) to the answer's arrival, so it holds
+the server's queue, the estimate and both transports. With ``--probe`` every message also
+carries an 11th measurement with no body, which the server answers at once with an error entry:
+then the table also has the round trip of every message (to its first answer), at the cost of
+one error entry a message more for the server and the client. The scene's messages are made
+ahead, 256 at a time, so the client's time is the shipped client's. Rows: the transport alone
+(the same client and messages against a server that answers as often and fuses nothing: the
+floor the added latency is measured against), paced at the target rate (20,000 measurements/s),
+and unpaced (as fast as the client sends), which shows the ceiling.
 """
 from __future__ import annotations
 
 import argparse
 import cProfile
+import gc
 import io
+import os
 import pstats
 import sys
 import threading
@@ -34,7 +41,7 @@ import numpy as np
 
 from service import dq, fusion, lie
 from service.rpc.client import Batch, Client
-from tests.bench.bench_grpc import ServerProcess
+from tests.bench.bench_grpc import FUSE_EVERY, ServerProcess
 
 PER_MESSAGE = 10
 COV = np.diag(np.r_[np.full(3, np.deg2rad(0.3)), np.full(3, 1e-3)] ** 2)
@@ -44,49 +51,74 @@ SOURCES = [fusion.Source("cam", latency=0.03), fusion.Source("arm", latency=0.00
 class Scene:
     """Message ``i`` holds measurements ``10 i .. 10 i + 9`` of the whole stream: measurement
     ``j`` is of body ``j % bodies`` stamped ``j / rate`` (``rate`` measurements/s in all), by
-    the camera or the arm in turn, plus the probe."""
+    the camera or the arm in turn; with ``probe``, plus the probe."""
 
-    def __init__(self, bodies: int, rate: float, seed: int = 0):
+    def __init__(self, bodies: int, rate: float, seed: int = 0, probe: bool = False):
         rng = np.random.default_rng(seed)
-        self.bodies, self.rate = bodies, rate
+        self.bodies, self.rate, self.probe = bodies, rate, probe
         self.X0 = lie.se3_exp(rng.normal(size=(bodies, 6)))
         self.V = rng.normal(size=(bodies, 6)) * 0.2
         self.names = [f"body{b}" for b in range(bodies)]
-        self.cov = np.broadcast_to(COV, (PER_MESSAGE + 1, 6, 6))
+        self.cov = np.broadcast_to(COV, (PER_MESSAGE + probe, 6, 6))
 
-    def batch(self, i: int) -> Batch:
-        j = np.arange(i * PER_MESSAGE, (i + 1) * PER_MESSAGE)
+    def batches(self, i: int, count: int) -> list[Batch]:
+        """Messages ``i .. i + count - 1``, computed together."""
+        j = np.arange(i * PER_MESSAGE, (i + count) * PER_MESSAGE)
         b = j % self.bodies
         src = np.where((j // self.bodies) % 2 == 0, 0, 1)
         stamps = j / self.rate
         taken = stamps - np.where(src == 0, 0.03, 0.004)
-        Z = dq.mul(self.X0[b], lie.se3_exp(taken[:, None] * self.V[b]))
-        return Batch(np.concatenate([Z, Z[:1]]), self.cov,
-                     names=[SOURCES[s].name for s in src] + ["cam"],
-                     bodies=[self.names[k] for k in b] + [""],
-                     times=np.concatenate([stamps, stamps[:1]]))
+        Z = dq.mul(self.X0[b], lie.se3_exp(taken[:, None] * self.V[b])).reshape(
+            count, PER_MESSAGE, 8)
+        stamps = stamps.reshape(count, PER_MESSAGE)
+        names = [SOURCES[s].name for s in src.tolist()]
+        bodies = [self.names[k] for k in b.tolist()]
+        out = []
+        for m in range(count):
+            rows = slice(m * PER_MESSAGE, (m + 1) * PER_MESSAGE)
+            if self.probe:
+                out.append(Batch(np.concatenate([Z[m], Z[m, :1]]), self.cov,
+                                 names=names[rows] + ["cam"], bodies=bodies[rows] + [""],
+                                 times=np.concatenate([stamps[m], stamps[m, :1]])))
+            else:
+                out.append(Batch(Z[m], self.cov, names=names[rows], bodies=bodies[rows],
+                                 times=stamps[m]))
+        return out
+
+    def batch(self, i: int) -> Batch:
+        return self.batches(i, 1)[0]
+
+
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU time of process ``pid`` (all its threads)."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def run(target: str, scene: Scene, seconds: float, msg_rate: float | None, args,
-        rss=None) -> dict:
-    """Stream for ``seconds``; ``msg_rate`` None: unpaced. Latencies of messages after the
-    first second (warm-up) only."""
+        rss=None, server_pid: int | None = None) -> dict:
+    """Stream for ``seconds``; ``msg_rate`` None: unpaced. Latencies after the first second
+    (warm-up) only."""
     n_max = int(seconds * (msg_rate or 20000)) + 1
     sent = np.full(n_max, np.nan)
     first_answer = np.full(n_max, np.nan)
-    answers = [0]
+    fused = []                  # (request, arrival) of every fused pose
     stop = [False]
     t_start = [0.0]
 
     def batches():
         t0 = time.perf_counter()
         t_start[0] = t0
+        ahead: list = []
         for i in range(n_max):
+            if not ahead:
+                ahead = scene.batches(i, 256)[::-1]
+            b = ahead.pop()
             if msg_rate:
                 due = t0 + i / msg_rate
                 while (now := time.perf_counter()) < due:
                     time.sleep(min(due - now, 0.0005))
-            b = scene.batch(i)
             if time.perf_counter() - t0 > seconds or stop[0]:
                 return
             sent[i] = time.perf_counter()
@@ -101,38 +133,46 @@ def run(target: str, scene: Scene, seconds: float, msg_rate: float | None, args,
 
     sampler = threading.Thread(target=sample_rss, daemon=True)
     sampler.start()
+    # as `dqpose serve` does: a full collection over this process's imports would stall the
+    # client ~25 ms, which the latencies would charge to the server
+    gc.freeze()
+    cpu0 = (_cpu_seconds(server_pid) if server_pid else 0.0, _cpu_seconds(os.getpid()))
     with Client(target) as c:
         for a in c.stream_fuse(batches(), sources=SOURCES, output_rate=args.output_rate,
                                window=args.window):
+            now = time.perf_counter()
             if np.isnan(first_answer[a.request]):
-                first_answer[a.request] = time.perf_counter()
-            answers[0] += a.error is None
+                first_answer[a.request] = now
+            if a.error is None:
+                fused.append((a.request, now))
+    cpu1 = (_cpu_seconds(server_pid) if server_pid else 0.0, _cpu_seconds(os.getpid()))
     stop[0] = True
     sampler.join()
     done = ~np.isnan(sent)
     n = int(done.sum())
     elapsed = np.nanmax(sent) - t_start[0]
-    warm = done & (sent > t_start[0] + 1.0)
-    lat = (first_answer - sent)[warm]
+    req, arrival = np.array(fused, dtype=float).reshape(-1, 2).T
+    req = req.astype(np.int64)
+    warm = sent[req] > t_start[0] + 1.0
+    lat = (arrival - sent[req])[warm]
+    msg = done & (sent > t_start[0] + 1.0)
+    msg_lat = (first_answer - sent)[msg]
     return dict(messages=n / elapsed, measurements=n * PER_MESSAGE / elapsed,
-                answers=answers[0] / elapsed, p50=np.nanpercentile(lat, 50) * 1e3,
-                p99=np.nanpercentile(lat, 99) * 1e3, max=np.nanmax(lat) * 1e3,
-                missing=int(np.isnan(lat).sum()), rss=samples, n=n)
+                answers=len(fused) / elapsed,
+                p50=np.percentile(lat, 50) * 1e3, p99=np.percentile(lat, 99) * 1e3,
+                max=lat.max() * 1e3, latencies=len(lat),
+                msg_p99=np.nanpercentile(msg_lat, 99) * 1e3 if scene.probe else None,
+                server_cpu=(cpu1[0] - cpu0[0]) / n * 1e6 if server_pid else float("nan"),
+                client_cpu=(cpu1[1] - cpu0[1]) / n * 1e6, rss=samples, n=n)
 
 
 def wire_messages(scene: Scene, messages: int) -> list[bytes]:
     """Messages ``0 .. messages - 1`` of the stream as the server receives them (request bytes,
     the options in none of them)."""
-    from service.rpc.convert import measurement_msgs as msgs
-    from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
+    from service.rpc.convert import measurements_wire
 
-    data = []
-    for i in range(messages):
-        b = scene.batch(i)
-        data.append(pb.FuseStreamRequest(measurements=msgs(
-            b.poses, b.covariances, names=b.names, bodies=b.bodies,
-            times=b.times)).SerializeToString())
-    return data
+    return [measurements_wire(*b) for i in range(0, messages, 256)
+            for b in scene.batches(i, min(256, messages - i))]
 
 
 def in_process(scene: Scene, args, messages: int, warm: int = 500) -> None:
@@ -149,7 +189,7 @@ def in_process(scene: Scene, args, messages: int, warm: int = 500) -> None:
     state = f.stream_options(pb.FuseStreamRequest(
         output_rate=args.output_rate, options=options_msg(sources=SOURCES, window=args.window)))
     for r in range(warm + messages):
-        for a in f.stream_step_wire(state, data[r], r + 1, r * (PER_MESSAGE + 1))[0]:
+        for a in f.stream_step_wire(state, data[r], r + 1, r * (PER_MESSAGE + scene.probe))[0]:
             a.SerializeToString()
 
 
@@ -177,10 +217,11 @@ def per_message_cost(scene: Scene, args, messages: int = 6000) -> str:
         # r + 1: request 0 is the one with the options, which always takes the protobuf path
         for r in range(lo, hi):
             if wire:
-                answers = f.stream_step_wire(state, data[r], r + 1, r * (PER_MESSAGE + 1))[0]
+                answers = f.stream_step_wire(state, data[r], r + 1,
+                                             r * (PER_MESSAGE + scene.probe))[0]
             else:
                 answers = f.stream_step(state, pb.FuseStreamRequest.FromString(data[r]), r + 1,
-                                        r * (PER_MESSAGE + 1))
+                                        r * (PER_MESSAGE + scene.probe))
             for a in answers:
                 a.SerializeToString()
 
@@ -219,12 +260,13 @@ def per_message_cost(scene: Scene, args, messages: int = 6000) -> str:
     out = io.StringIO()
     out.write(
         f"server per-message path in process (parse + stream_step + answers serialised), "
-        f"{PER_MESSAGE} measurements + probe a message:\n"
+        f"{PER_MESSAGE} measurements{' + probe' if scene.probe else ''} a message:\n"
         f"  all: {per:.0f} us/message at output_rate {args.output_rate:g} Hz "
         f"({ticks:.3f} estimates a message on average)\n"
         f"  ingest only (no tick due): {ingest:.0f} us/message, of which the C decoder "
-        f"(decode and every check) {decode:.1f} us; the rest is Python: the probe's error "
-        f"entry, Tracker._ingest_valid (window floor, store), the service's bookkeeping\n"
+        f"(decode and every check) {decode:.1f} us; the rest is Python: "
+        f"{'the probe error entry, ' if scene.probe else ''}Tracker._ingest_valid (window "
+        f"floor, store), the service's bookkeeping\n"
         f"  the same through the protobuf path: {ingest_pb:.0f} us/message, of which protobuf "
         f"parse {parse:.1f} us and messages to arrays {convert:.0f} us; the rest "
         f"Tracker.ingest (batched checks, window arrays) and the bookkeeping\n"
@@ -256,38 +298,60 @@ def main(argv=None) -> int:
     ap.add_argument("--in-process", type=int, metavar="N", help="only run N messages (after "
                     "500 to warm up) through the server's per-message path in process, print "
                     "nothing: for callgrind, whose count does not depend on the machine's load")
+    ap.add_argument("--probe", action="store_true", help="an 11th measurement a message that "
+                    "the server refuses at once: the round trip of every message too (no transport "
+                    "row then)")
     args = ap.parse_args(argv)
 
-    scene = Scene(args.bodies, args.rate)
+    scene = Scene(args.bodies, args.rate, probe=args.probe)
     if args.in_process is not None:
         in_process(scene, args, args.in_process)
         return 0
+    rows = []
+    if not args.minutes and not args.probe:
+        # the peer: gRPC and the shipped client alone, a server that answers as often with a
+        # fused pose of the same size and fuses nothing; the latency fusion adds is above it
+        echo = ServerProcess("echo", quiet_log=True)
+        try:
+            rows.append(("transport only (no fusion)", run(
+                echo.target, scene, args.seconds, args.rate / PER_MESSAGE, args, echo.rss_mb,
+                echo.proc.pid)))
+        finally:
+            echo.stop()
     server = ServerProcess("aio", quiet_log=True)
     try:
-        rows = []
         if args.minutes:
             rows.append(("paced", run(server.target, scene, args.minutes * 60,
-                                      args.rate / PER_MESSAGE, args, server.rss_mb)))
+                                      args.rate / PER_MESSAGE, args, server.rss_mb,
+                                      server.proc.pid)))
         else:
             rows.append(("paced", run(server.target, scene, args.seconds,
-                                      args.rate / PER_MESSAGE, args, server.rss_mb)))
+                                      args.rate / PER_MESSAGE, args, server.rss_mb,
+                                      server.proc.pid)))
             rows.append(("unpaced", run(server.target, scene, args.seconds, None, args,
-                                        server.rss_mb)))
+                                        server.rss_mb, server.proc.pid)))
     finally:
         server.stop()
 
     print(f"StreamFuse, one server (dqpose serve --no-call-log), Python Client.stream_fuse; "
-          f"{args.bodies} bodies, {PER_MESSAGE} measurements (full covariances) + 1 probe a "
-          f"message, window {args.window:g} s, output_rate {args.output_rate:g} Hz per body")
+          f"{args.bodies} bodies, {PER_MESSAGE} measurements (full covariances)"
+          f"{' + 1 probe' if args.probe else ''} a message, window {args.window:g} s, "
+          f"output_rate {args.output_rate:g} Hz per body; latency of the answers (after the "
+          f"first second): from sending the message that made each due to its arrival; the "
+          f"transport row's server answers every {FUSE_EVERY}th message with a fused pose of the "
+          f"same size and fuses nothing")
     head = ("row", "meas/s", "msgs/s", "answers/s", "p50 ms", "p99 ms", "max ms",
-            "RSS start MB", "RSS end MB", "seconds")
+            *(("message p99 ms",) if args.probe else ()), "server CPU us/msg",
+            "client CPU us/msg", "RSS start MB", "RSS end MB", "seconds")
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
     for name, r in rows:
         rss = [m for _, m in r["rss"]]
         start = rss[min(2, len(rss) - 1)] if rss else float("nan")   # after the warm-up
+        probe = f"{r['msg_p99']:.2f} | " if args.probe else ""
         print(f"| {name} | {r['measurements']:.0f} | {r['messages']:.0f} | {r['answers']:.1f} | "
-              f"{r['p50']:.2f} | {r['p99']:.2f} | {r['max']:.1f} | {start:.1f} | "
+              f"{r['p50']:.2f} | {r['p99']:.2f} | {r['max']:.1f} | {probe}"
+              f"{r['server_cpu']:.0f} | {r['client_cpu']:.0f} | {start:.1f} | "
               f"{rss[-1] if rss else float('nan'):.1f} | "
               f"{(r['rss'][-1][0] - r['rss'][0][0]) if r['rss'] else 0:.0f} |")
     if not args.no_profile:

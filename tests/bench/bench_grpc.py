@@ -102,6 +102,23 @@ def serve_sync(port: int) -> None:
     server.wait_for_termination()
 
 
+FUSE_EVERY = 20     # bench_fusion_stream's scene: 100 answers/s at 2,000 messages/s
+
+
+def fused_reply():
+    """A FusedPose of the size bench_fusion_stream's answers have: 18 measurements with times."""
+    from service import dq, fusion, lie
+    from service.rpc.convert import fused_to_msg
+
+    rng = np.random.default_rng(0)
+    t = np.arange(18) * 0.005
+    Z = dq.mul(lie.se3_exp(rng.normal(size=6)), lie.se3_exp(t[:, None] * rng.normal(size=6)))
+    f = fusion.fuse(Z, np.broadcast_to(np.eye(6) * 1e-6, (18, 6, 6)), times=t)
+    msg = fused_to_msg(f, "body0", f.time)
+    msg.measurements.extend(range(18))
+    return msg
+
+
 def serve_echo(port: int) -> None:
     """The transport ceiling: grpc.aio answering each BlendStream request with one fixed
     pre-serialized reply, with the server's read-ahead but none of its work."""
@@ -110,6 +127,7 @@ def serve_echo(port: int) -> None:
     import uvloop
 
     reply = pb.BlendResponse(pose=request10().poses[0], iterations=3).SerializeToString()
+    fused = fused_reply()
 
     async def stream(request_iterator, context):
         pending: asyncio.Queue = asyncio.Queue(maxsize=64)
@@ -127,11 +145,24 @@ def serve_echo(port: int) -> None:
         finally:
             reader.cancel()
 
+    async def fuse_stream(request_iterator, context):
+        # StreamFuse's transport alone (bench_fusion_stream): requests taken as bytes and not
+        # read, one fused pose of a typical size after every FUSE_EVERY-th, naming it
+        r = 0
+        async for _ in request_iterator:
+            if r % FUSE_EVERY == FUSE_EVERY - 1:
+                fused.request = r
+                await context.write(fused.SerializeToString())
+            r += 1
+
     async def run():
         server = grpc.aio.server(options=[("grpc.so_reuseport", 0)])
         handler = grpc.stream_stream_rpc_method_handler(stream)
         server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(
             "dqpose.v1.Blending", {"BlendStream": handler}),))
+        server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(
+            "dqpose.v1.Fusion", {"StreamFuse": grpc.stream_stream_rpc_method_handler(
+                fuse_stream)}),))
         bound = server.add_insecure_port(f"127.0.0.1:{port}")
         await server.start()
         print(json.dumps({"event": "serving", "address": f"127.0.0.1:{bound}"}),

@@ -196,6 +196,21 @@ def _qlog(qs):
     return (2 * ca.atan2(n, w) / n) * u
 
 
+def smooth_once(trials: int, factor: float) -> None:
+    """``smooth`` on each trial once after a warm-up call, for an instruction count that a load
+    does not move: under ``valgrind --tool=callgrind --toggle-collect=starmap_next`` only the
+    measured calls are counted (they run inside ``itertools.starmap``, nothing else here does)."""
+    import itertools
+
+    cases = []
+    for k in range(trials):
+        t, truth = teleop_path(seed=k)
+        cases.append((t, noisy(truth, seed=100 + k), limits_from(peaks(t, truth), factor)))
+    for c in cases:
+        smooth(*c)
+    list(itertools.starmap(smooth, cases))
+
+
 # ---- the table --------------------------------------------------------------------------------
 METHODS = [("ours (banded + PIQP QP)", ours), ("banded only (no limits)", banded),
            ("OSQP, default tolerance", osqp), ("moving average, 21", moving_average),
@@ -265,7 +280,13 @@ def main(argv=None):
     ap.add_argument("--trials", type=int, default=5)
     ap.add_argument("--ipopt-trials", type=int, default=1)
     ap.add_argument("--repeats", type=int, default=5, help="timed calls per trial")
+    ap.add_argument("--callgrind", type=float, metavar="FACTOR",
+                    help="smooth the trials once with limits FACTOR x the true peaks, for an "
+                         "instruction count, and exit (see smooth_once)")
     args = ap.parse_args(argv)
+    if args.callgrind:
+        smooth_once(args.trials, args.callgrind)
+        return
     for factor, what in ((1.0, "limits = the true path's peaks (the recording obeys them)"),
                          (0.8, "limits = 0.8 x the true path's peaks (the operator moved faster "
                                "than the arm may: the error is mostly what the limits take)")):

@@ -20,9 +20,11 @@ Columns: the duration, the worst limit violation measured on each planner's own 
 coordinates; the jerk is reported separately because TOPP-RA does not limit it), the planning
 time (median). Then ours against Ruckig on 200 random straight moves under random limits. A
 second table: dense evaluation cost per pose (best of the repeats, and as a multiple of the same
-run's one-pair ScLERP), and the issue's target of 100 blended waypoints -> a 5,000-pose stream.
+run's one-pair ScLERP), the issue's target of 100 blended waypoints -> a 5,000-pose stream, and
+the planning time of the same 100 waypoints each given a time (1.2x its free arrival).
 
-Options: ``--quick`` (fewer repeats).
+Options: ``--quick`` (fewer repeats); ``--callgrind CASE`` (one evaluation, for an instruction
+count: see ``evaluate_once``).
 """
 from __future__ import annotations
 
@@ -244,14 +246,36 @@ def random_straight_moves(n: int = 200) -> tuple[float, float, float, float]:
     return float(np.median(r)), float(np.percentile(r, 95)), float(r.max()), float(np.mean(r <= 5) * 100)
 
 
-def evaluation_table(repeats: int) -> list[tuple]:
-    rng = np.random.default_rng(3)
-    k = 100
+def evaluation_path(rng, k: int = 100):
+    """k random waypoints (steps of up to 10 cm, small rotations), blend radii 0.4x the shorter
+    neighbouring segment."""
     pts = np.cumsum(rng.uniform(-0.1, 0.1, (k, 3)), axis=0)
     qs = rng.normal(size=(k, 4)) * 0.1 + np.array([1, 0, 0, 0])
     poses = dq.from_pose(qs / np.linalg.norm(qs, axis=1, keepdims=True), pts)
     seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
-    radius = [0.0] + [0.4 * min(seg[i - 1], seg[i]) for i in range(1, k - 1)] + [0.0]
+    return poses, [0.0] + [0.4 * min(seg[i - 1], seg[i]) for i in range(1, k - 1)] + [0.0]
+
+
+def evaluate_once(case: str, n: int = 20_000) -> None:
+    """One dense evaluation of n sorted times, for an instruction count (repeatable under load):
+    ``valgrind --tool=callgrind python -m tests.bench.bench_trajectory --callgrind CASE``, then
+    ``callgrind_annotate --inclusive=yes`` gives the cost of ``py_traj_eval`` (CASE
+    ``tool_linear:blends`` ... ``screw:stops``) or of ``py_sclerp`` (``reference``: one pair)."""
+    rng = np.random.default_rng(3)
+    poses, radius = evaluation_path(rng)
+    if case == "reference":
+        dq.sclerp(poses[0], poses[1], rng.uniform(0, 1, n))
+        return
+    mode, corners = case.split(":")
+    tr = plan([Waypoint(p, blend_radius=r if corners == "blends" else 0.0)
+               for p, r in zip(poses, radius)], LIMITS, mode)
+    tr.sample(np.sort(rng.uniform(0, tr.duration, n)))
+
+
+def evaluation_table(repeats: int) -> list[tuple]:
+    rng = np.random.default_rng(3)
+    k = 100
+    poses, radius = evaluation_path(rng, k)
     wps = [Waypoint(p, blend_radius=r) for p, r in zip(poses, radius)]
     rows = []
     for mode in ("tool_linear", "screw"):
@@ -260,6 +284,13 @@ def evaluation_table(repeats: int) -> list[tuple]:
         stream = median_time(lambda: plan(wps, LIMITS, mode).at_rate(rate), repeats, True)
         rows.append((f"100 blended waypoints -> 5,000 poses ({mode}): plan + at_rate", stream * 1e3, "ms",
                      "<= 2 ms"))
+        # every waypoint timed at 1.2x its free arrival (a blended corner is reached mid-blend)
+        sg = tr.segments
+        arrive = [0.0] + [0.5 * (sg[j].start + sg[j - 1].start + sg[j - 1].duration) if radius[j] > 0
+                          else sg[j].start for j in range(1, k - 1)] + [tr.duration]
+        timed = [Waypoint(p, time=1.2 * a, blend_radius=r) for p, a, r in zip(poses, arrive, radius)]
+        took = median_time(lambda: plan(timed, LIMITS, mode), max(3, repeats // 10), True)
+        rows.append((f"100 blended waypoints, each timed ({mode}): plan", took * 1e3, "ms", ""))
         t = np.sort(rng.uniform(0, tr.duration, 200_000))
         per = median_time(lambda: tr.sample(t), repeats, True) / len(t)
         rows.append((f"dense evaluation, blended path ({mode})", per * 1e9, "ns/pose", "<= 35 ns"))
@@ -289,7 +320,13 @@ def evaluation_table(repeats: int) -> list[tuple]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--callgrind", metavar="CASE", choices=[f"{m}:{c}" for m in ("tool_linear", "screw")
+                                                             for c in ("blends", "stops")] + ["reference"],
+                    help="evaluate once for valgrind (see evaluate_once) and exit")
     args = ap.parse_args()
+    if args.callgrind:
+        evaluate_once(args.callgrind)
+        return
     repeats = 5 if args.quick else 30
     print(f"# Trajectory planning ({platform.processor() or platform.machine()}, Python "
           f"{platform.python_version()})\n")

@@ -10,9 +10,11 @@ from service import dq
 from service.rpc.convert import (METHOD_ENUMS, METHOD_NAMES, FieldError, arrays_to_stamped,
                                  blend_batch_items_wire, blend_request_wire,
                                  blend_responses_from_wire, dq_to_pose, dqs_to_poses,
-                                 interpolate_request_wire, pose_msgs, poses_to_dqs,
+                                 interpolate_request_wire, measurement_msgs,
+                                 measurements_wire, pose_msgs, poses_to_dqs,
                                  stamped_poses_wire, stamped_to_arrays)
 from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
+from service.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from service.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 
 
@@ -89,6 +91,35 @@ def test_blend_request_wire_is_what_protobuf_would_send(n, data):
     got = pb.BlendRequest.FromString(blend_request_wire(q, t, w, method, tol, max_iter))
     # bit for bit, NaN payloads and the sign of zero included
     assert got.SerializeToString() == want.SerializeToString()
+
+
+_names = st.text(st.characters(codec="utf-8"), max_size=3) | st.sampled_from(["", "x" * 200])
+
+
+@settings(max_examples=200)
+@given(n=st.integers(0, 4), kind=st.sampled_from(["covariances", "weights", None]),
+       data=st.data())
+def test_measurements_wire_is_what_protobuf_would_send(n, kind, data):
+    """StreamFuse's client encoder writes the bytes of measurement_msgs' messages serialised:
+    every field, zeros omitted as protobuf omits them, names of any length and alphabet."""
+    dqs = np.array(data.draw(st.lists(st.lists(_doubles, min_size=8, max_size=8), min_size=n,
+                                      max_size=n))).reshape(n, 8)
+    values = np.array(data.draw(st.lists(_doubles, min_size=36 * n, max_size=36 * n)))
+    kw = {"covariances": values.reshape(n, 6, 6)} if kind == "covariances" else (
+        {"weights": values[:n]} if kind == "weights" else {})
+    names = data.draw(st.none() | st.lists(_names, min_size=n, max_size=n))
+    bodies = data.draw(st.none() | st.lists(_names, min_size=n, max_size=n))
+    times = data.draw(st.none() | st.lists(_doubles, min_size=n, max_size=n))
+    with np.errstate(all="ignore"):
+        got = measurements_wire(dqs, names=names, bodies=bodies, times=times, **kw)
+        want = fpb.FuseStreamRequest(measurements=measurement_msgs(
+            dqs, names=names, bodies=bodies, times=times, **kw)).SerializeToString()
+    assert got == want
+
+
+def test_measurements_wire_names_a_name_that_is_not_a_string():
+    with pytest.raises(ValueError, match=r"^bodies\[1\]: expected a string, got int"):
+        measurements_wire(np.tile([1.0, 0, 0, 0, 0, 0, 0, 0], (2, 1)), bodies=["a", 7])
 
 
 def test_blend_request_wire_refuses_out_of_range_iterations():

@@ -68,6 +68,17 @@ def test_plan_streams_what_the_domain_plans(client, mode):
         assert lin < 1e-12 and ang < 1e-9
 
 
+def test_plan_while_moving_off_the_path(client):
+    """Replanning while moving: a start velocity across the first segment reaches the server's
+    planner and the stream starts at waypoint 0 with that velocity."""
+    v0 = np.array([0.0, -0.1, 0.05, 0.0, 0.3, 0.0])
+    got = client.plan(_waypoints(), LIMITS, 125.0, start_velocity=v0)
+    np.testing.assert_allclose(np.r_[got.linear_velocity[0], got.angular_velocity[0]], v0, atol=1e-10)
+    assert len(got.segments) == 3
+    local = trajectory.plan(_waypoints(), LIMITS, start_velocity=v0)
+    assert got.duration == pytest.approx(local.duration, rel=1e-12)
+
+
 def _delta(a, b):
     qa, ta = dq.to_pose(a)
     qb, tb = dq.to_pose(b)
