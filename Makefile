@@ -49,6 +49,7 @@ bench: setup
 	$(BIN)/python -m tests.bench.bench_trajectory
 	$(BIN)/python -m tests.bench.bench_smoothing
 	$(BIN)/python -m tests.bench.bench_executor
+	$(BIN)/python -m tests.bench.bench_handeye
 
 clean:
 	rm -rf $(VENV) build *.egg-info service/*.so service/rpc/_proto
