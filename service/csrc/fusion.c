@@ -776,6 +776,17 @@ static void motion_jacobian(const dq_motion_model *m, const double *V, size_t i,
 static void motion_add_information(const dq_motion_model *m, size_t i, const double *Gw, int dim,
                                    double *M)
 {
+    if (m->twist && m->slot[i] < 0) {
+        /* the common case, the pose's and the twist's columns as they are: fixed bounds the
+         * compiler unrolls (the same sums in the same order as below) */
+        for (int a = 0; a < 12; a++)
+            for (int b = a; b < 12; b++) {
+                double s = 0.0;
+                for (int k = 0; k < 6; k++) s += Gw[MC * k + a] * Gw[MC * k + b];
+                M[dim * a + b] += s;
+            }
+        return;
+    }
     int cols[MC], map[MC], nc = 0;
     for (int c = 0; c < MC; c++) {
         int col = motion_column(m, i, c);
