@@ -353,8 +353,11 @@ def _sources(sources: Optional[Iterable[Source]]) -> dict[str, Source]:
 def _to_world(Z: np.ndarray, S: np.ndarray, names: tuple[str, ...],
               table: dict[str, Source]) -> tuple[np.ndarray, np.ndarray]:
     """``T_world_frame · Z · T_flange_body`` and the exactly transported covariances."""
-    Z, S = Z.copy(), S.copy()
-    for name, src in table.items():
+    framed = [(name, src) for name, src in table.items()
+              if src.body_offset is not None or src.extrinsic is not None]
+    if framed:
+        Z, S = Z.copy(), S.copy()
+    for name, src in framed:
         idx = [i for i, s in enumerate(names) if s == name]
         if not idx:
             continue

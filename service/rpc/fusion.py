@@ -101,8 +101,9 @@ class Stream:
 
     def update(self, m: Measurements, ids: np.ndarray, field: str, codes=None):
         """Measurements ``m`` of one request (``ids``: their stream-wide numbers) into the
-        tracker: ``(answers, errors)``, answers ``(body, Fused or FieldError, ids of the fused
-        measurements)`` in order of the bodies' first appearance, then of time; errors
+        tracker: ``(answers, errors)``, answers (an iterator, each fused as it is taken) of
+        ``(body, Fused or FieldError, ids of the fused measurements)`` in order of the bodies'
+        first appearance, then of time; errors
         ``(measurement index, FieldError)``. ``codes`` (from the C decoder, one a row): the
         rows are checked already by the tracker's rules, those with a code refused (and named by
         the tracker's own check of that row alone), the others taken in unchecked."""
@@ -141,19 +142,17 @@ class Stream:
             bodies = dict.fromkeys(m.bodies[k] for k in rows if k not in refused)
         else:
             bodies = dict.fromkeys(m.bodies if len(rows) == n else [m.bodies[k] for k in rows])
-        answers = []
         if not self.rate:
-            for body in bodies:
-                answers.append(self._answer(body, None, field))
-            return answers, errors
-        newest = tracker.newest_of(bodies)
-        next_time = self.next_time
-        for body, t in zip(bodies, newest):
+            due = [(body, None) for body in bodies]
+        else:
+            newest = tracker.newest_of(bodies)
+            next_time = self.next_time
             # most bodies of a request: their next tick not reached yet
-            if next_time.get(body, -math.inf) <= t:
-                for t in self._due(body):
-                    answers.append(self._answer(body, t, field))
-        return answers, errors
+            due = [(body, t) for body, newest_t in zip(bodies, newest)
+                   if next_time.get(body, -math.inf) <= newest_t for t in self._due(body)]
+        # each estimated when it is asked for: an answer can be on its way while the next one
+        # of the same request is fused
+        return (self._answer(body, t, field) for body, t in due), errors
 
     def _due(self, body: str) -> list:
         """The fusion times due for ``body`` (output rate > 0): the ticks its newest measurement
@@ -265,11 +264,16 @@ class Fusion(pb_grpc.FusionServicer):
         m = measurements_to_arrays(request.measurements, field, errors)
         answers, more = state.update(m, first_id + m.index, field)
         bodies = [request.measurements[i].body for i, _ in errors + more]
-        return out + self._answers(r, errors + more, bodies, answers)
+        return out + list(self._answers(r, errors + more, bodies, answers))
 
     def stream_step_wire(self, state, data: bytes, r: int, first_id: int):
+        """:meth:`stream_answers_wire` with the answers made at once, as a list."""
+        answers, n = self.stream_answers_wire(state, data, r, first_id)
+        return list(answers), n
+
+    def stream_answers_wire(self, state, data: bytes, r: int, first_id: int):
         """:meth:`stream_step` of request ``r``'s bytes: ``(answers, its number of
-        measurements)``. A plain request (measurements only) is decoded and checked in C
+        measurements)``, the answers an iterator that fuses each as it is taken. A plain request (measurements only) is decoded and checked in C
         (:func:`convert.fuse_stream_from_wire`) and its valid measurements go to the tracker
         unchecked; any other takes the protobuf path. Both give the same answers. Bytes that are
         not a FuseStreamRequest are an error entry for the request."""
@@ -301,20 +305,20 @@ class Fusion(pb_grpc.FusionServicer):
         errors += more
         return self._answers(r, errors, [w.bodies[i] for i, _ in errors], answers), n
 
-    def _answers(self, r: int, errors: list, bodies: list, answers: list) -> list:
+    def _answers(self, r: int, errors: list, bodies: list, answers):
         """Request ``r``'s error entries (``errors`` ``(measurement, FieldError)``, of the
-        measurements of ``bodies``) in order of measurement, then its fused poses."""
-        out = [_error_entry(r, i, str(e), body)
-               for (i, e), body in sorted(zip(errors, bodies), key=lambda x: x[0][0])]
+        measurements of ``bodies``) in order of measurement, then its fused poses, one at a
+        time."""
+        for (i, e), body in sorted(zip(errors, bodies), key=lambda x: x[0][0]):
+            yield _error_entry(r, i, str(e), body)
         for body, fused, ids in answers:
             if isinstance(fused, FieldError):
-                out.append(_error_entry(r, -1, str(fused), body))
+                yield _error_entry(r, -1, str(fused), body)
                 continue
             msg = fused_to_msg(fused, body, fused.time)
             msg.request = r
             msg.measurements.extend(ids.tolist())
-            out.append(msg)
-        return out
+            yield msg
 
     # -- RPCs
 
@@ -358,7 +362,7 @@ class Fusion(pb_grpc.FusionServicer):
                     answers = self.stream_step(state, request, r, next_id)
                     n = len(request.measurements)
                 else:
-                    answers, n = self.stream_step_wire(state, data, r, next_id)
+                    answers, n = self.stream_answers_wire(state, data, r, next_id)
                 for answer in answers:
                     await context.write(answer)
                 next_id += n
