@@ -9,13 +9,12 @@ from __future__ import annotations
 
 import asyncio
 
-import grpc
-
 from service import handeye
 from service.errors import FieldError
 from service.rpc.calls import Calls
 from service.rpc.convert import calibrate_error, calibrate_from_msg, calibration_to_msg
 from service.rpc._proto.dqpose.v1 import handeye_pb2 as pb
+from service.rpc._proto.dqpose.v1 import handeye_pb2_grpc as pb_grpc
 
 
 class HandEye:
@@ -42,13 +41,8 @@ class HandEye:
         return calibration_to_msg(result)
 
     def register(self, server) -> None:
-        handlers = {
-            "Calibrate": grpc.unary_unary_rpc_method_handler(
-                self.Calibrate, request_deserializer=pb.CalibrateRequest.FromString,
-                response_serializer=pb.CalibrateResponse.SerializeToString),
-        }
-        server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(self.NAME, handlers),))
-        server.add_registered_method_handlers(self.NAME, handlers)
+        """The generated registration: every RPC with the proto's own (de)serializers."""
+        pb_grpc.add_HandEyeServicer_to_server(self, server)
 
     async def Calibrate(self, request, context):
         # a refinement of tens of milliseconds holding the GIL: off the event loop, so other

@@ -11,7 +11,6 @@ import asyncio
 import math
 from typing import NamedTuple
 
-import grpc
 
 from service import smoothing, trajectory
 from service.errors import FieldError, Infeasible, rename
@@ -19,6 +18,7 @@ from service.rpc.calls import Calls, refused
 from service.rpc.convert import (arrays_to_stamped, dq_to_pose, limits_from_msg, plan_from_msg,
                                  plan_info_msg, sample_msgs, stamped_to_arrays)
 from service.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
+from service.rpc._proto.dqpose.v1 import trajectories_pb2_grpc as pb_grpc
 
 #: how many samples a plan may stream, as a multiple of the server's max poses per request
 SAMPLES_PER_MAX_POSES = 10
@@ -89,19 +89,8 @@ class Trajectories:
     # -- RPCs
 
     def register(self, server) -> None:
-        handlers = {
-            "Plan": grpc.unary_stream_rpc_method_handler(
-                self.Plan, request_deserializer=pb.PlanRequest.FromString,
-                response_serializer=pb.TrajectorySample.SerializeToString),
-            "Smooth": grpc.unary_unary_rpc_method_handler(
-                self.Smooth, request_deserializer=pb.SmoothRequest.FromString,
-                response_serializer=pb.SmoothResponse.SerializeToString),
-            "Execute": grpc.unary_stream_rpc_method_handler(
-                self.Execute, request_deserializer=pb.ExecuteRequest.FromString,
-                response_serializer=pb.ExecutionFeedback.SerializeToString),
-        }
-        server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(self.NAME, handlers),))
-        server.add_registered_method_handlers(self.NAME, handlers)
+        """The generated registration: every RPC with the proto's own (de)serializers."""
+        pb_grpc.add_TrajectoriesServicer_to_server(self, server)
 
     async def Smooth(self, request, context):
         # tens of milliseconds of solver holding the GIL: off the event loop, so other calls'
