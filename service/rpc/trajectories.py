@@ -11,7 +11,6 @@ import asyncio
 import math
 from typing import NamedTuple
 
-
 from service import smoothing, trajectory
 from service.errors import FieldError, Infeasible, rename
 from service.rpc.calls import Calls, refused
