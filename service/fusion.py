@@ -1213,12 +1213,11 @@ class Tracker:
         self.window = _seconds(window, "window", "positive")
         self.sources = tuple(sources or ())
         self._table = _sources(self.sources)
-        self._options = dict(sources=self.sources, robust=robust, probability=probability,
-                             max_skew=max_skew, max_extrapolation=max_extrapolation,
-                             twist_covariance=twist_covariance,
-                             acceleration_psd=acceleration_psd, tol=tol, max_iter=max_iter)
         # the options' checks are fuse's: one fusion of a placeholder runs them now, not later
-        fuse(np.array([[1.0, 0, 0, 0, 0, 0, 0, 0]]), times=[0.0], **self._options)
+        fuse(np.array([[1.0, 0, 0, 0, 0, 0, 0, 0]]), times=[0.0], sources=self.sources,
+             robust=robust, probability=probability, max_skew=max_skew,
+             max_extrapolation=max_extrapolation, twist_covariance=twist_covariance,
+             acceleration_psd=acceleration_psd, tol=tol, max_iter=max_iter)
         probability = float(probability)
         self._checked = _Checked(self._table, robust, probability,
                                  chi2_quantile(probability, DOF), dq._as_tol(tol),
