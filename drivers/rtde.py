@@ -162,10 +162,17 @@ def read_exact(sock: socket.socket, n: int) -> bytes:
     return bytes(buf)
 
 
-def read_message(sock: socket.socket) -> tuple[int, bytes]:
-    size, kind = HEADER.unpack(read_exact(sock, HEADER.size))
+def header(data) -> tuple[int, int]:
+    """A message's ``(size, kind)`` from its first ``HEADER.size`` bytes; the size counts the
+    header."""
+    size, kind = HEADER.unpack_from(data)
     if size < HEADER.size:
         raise ConnectionError(f"malformed RTDE header: size {size}")
+    return size, kind
+
+
+def read_message(sock: socket.socket) -> tuple[int, bytes]:
+    size, kind = header(read_exact(sock, HEADER.size))
     return kind, read_exact(sock, size - HEADER.size)
 
 

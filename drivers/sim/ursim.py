@@ -155,9 +155,7 @@ class _StampedReader:
         """The next message's ``(kind, body, arrival)``."""
         while len(self.buf) < rp.HEADER.size:
             self._fill()
-        size, kind = rp.HEADER.unpack_from(self.buf)
-        if size < rp.HEADER.size:
-            raise ConnectionError(f"malformed RTDE header: size {size}")
+        size, kind = rp.header(self.buf)
         while len(self.buf) < size:
             self._fill()
         body = bytes(self.buf[rp.HEADER.size:size])
