@@ -938,10 +938,6 @@ done:
     return result;
 }
 
-/* measurements_wire(q (n, 4), t (n, 3), covariances (n, 36) or None, weights (n,) or None,
- * times (n,) or None, sources or None, bodies or None) -> bytes: the measurements as repeated
- * FuseStreamRequest.measurements (dq_wire_measurement). The caller has checked the shapes;
- * a name that is not a str is a ValueError naming it. */
 static PyObject *double_rows(PyObject *obj, npy_intp n, npy_intp width, const char *name)
 {
     if (obj == Py_None) return NULL;
@@ -969,6 +965,10 @@ static int name_at(PyObject *seq, npy_intp i, const char *field, const char **s,
     return *s ? 0 : -1;
 }
 
+/* measurements_wire(q (n, 4), t (n, 3), covariances (n, 36) or None, weights (n,) or None,
+ * times (n,) or None, sources or None, bodies or None) -> bytes: the measurements as repeated
+ * FuseStreamRequest.measurements (dq_wire_measurement). The caller has checked the shapes;
+ * a name that is not a str is a ValueError naming it. */
 static PyObject *py_measurements_wire(PyObject *self, PyObject *args)
 {
     PyObject *oq, *ot, *ocov, *ow, *otimes, *osrc, *obody;
