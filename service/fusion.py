@@ -416,15 +416,21 @@ def _robust(Z, S, gate2, tol, max_iter):
 
 
 # ---- consistency -------------------------------------------------------------------------------
-def _source_stats(names, nis, tested, inlier, probability) -> tuple[SourceStats, ...]:
-    out = []
+def _codes(names) -> tuple[tuple[str, ...], np.ndarray]:
+    """Each source once, in order of first appearance, and each measurement's index in that."""
     order = {name: k for k, name in enumerate(dict.fromkeys(names))}
-    code = np.array([order[s] for s in names], dtype=np.intp)
+    return tuple(order), np.array([order[s] for s in names], dtype=np.intp)
+
+
+def _source_stats(sources, code, nis, tested, inlier, probability) -> tuple[SourceStats, ...]:
+    """Per source (``sources``, measurement i's ``sources[code[i]]``)."""
+    out = []
     use = tested & inlier
-    counts = np.bincount(code[use], minlength=len(order)).tolist()
-    rejected = np.bincount(code[~inlier], minlength=len(order)).tolist()
-    sums = np.bincount(code[use], weights=nis[use], minlength=len(order)).tolist()
-    for name, k in order.items():
+    m = len(sources)
+    counts = np.bincount(code, use, m).astype(np.intp).tolist()
+    rejected = np.bincount(code, ~inlier, m).astype(np.intp).tolist()
+    sums = np.bincount(code, np.where(use, nis, 0.0), m).tolist()
+    for k, name in enumerate(sources):
         count = counts[k]
         if count == 0:
             out.append(SourceStats(name, 0, rejected[k], 0.0, 0.0, 0.0, Verdict.UNTESTED))
@@ -554,7 +560,7 @@ def _fuse_static(Z, S, names, robust, probability, gate2, tol, max_iter) -> Fuse
         chi2=fit.chi2,
         dof=DOF * (k - 1),
         iterations=fit.iterations,
-        sources=_source_stats(names, nis, tested, inlier, probability),
+        sources=_source_stats(*_codes(names), nis, tested, inlier, probability),
     )
 
 
@@ -714,6 +720,7 @@ class _MotionFit:
     V: np.ndarray          # the body twist (zeros when not estimated)
     ell: np.ndarray        # the estimated latencies
     H: np.ndarray          # joint information at the optimum, priors included
+    P: np.ndarray          # its inverse: the joint covariance
     dt: np.ndarray         # τ_i − time, all measurements
     r: np.ndarray          # residuals Log(P_i⁻¹ Z_i), all measurements
     G: Optional[np.ndarray]  # Jl⁻¹(r_i) B_i: minus the residuals' Jacobian, (n, 6, dim)
@@ -844,38 +851,37 @@ _LATENCY_SETTLED = 1e-9
 _PASSES = 4
 
 
-def _motion_start(Z, S, model: _Model, inlier: np.ndarray) -> np.ndarray:
-    """Where the motion fit starts: the inlier nearest the fusion time, at rest (Gauss-Newton
-    finds the motion), or with no twist (one instant) the static fit's start."""
-    Zi = Z[inlier]
+def _motion_start(Z, S, model: _Model, inlier: np.ndarray) -> Optional[np.ndarray]:
+    """Where the motion fit starts: with a twist None, for the C fit's own start (the inlier
+    nearest the fusion time, at rest: Gauss-Newton finds the motion); with none (one instant)
+    the static fit's start."""
     if model.twist:
-        return Zi[int(np.argmin(np.abs(model.dt(model.prior)[inlier])))]
+        return None
     weights = np.exp(-np.linalg.slogdet(S[inlier])[1] / DOF)
-    return dq.dib(Zi, weights / weights.max())
+    return dq.dib(Z[inlier], weights / weights.max())
 
 
-def _constant_twist(Z, S, model: _Model, inlier, X, tol, max_iter, tested=None):
-    """The C constant-twist fit (``dq_motion_fit``) from ``X``: the ``_dqcore.motion_fit``
-    tuple."""
-    return _c.motion_fit(Z, S, inlier, X, model.stamp, model.latency, model.slot, model.prior,
-                         model.prior_w, model.twist, model.twist_w, tested, tol, max_iter)
+def _constant_twist(Z, S, model: _Model, inlier, tol, max_iter, tested=None):
+    """The C constant-twist fit (``dq_motion_fit``): the ``_dqcore.motion_fit`` tuple;
+    ``tested`` True: the NIS of every measurement :func:`_determined_without_each` allows."""
+    return _c.motion_fit(Z, S, inlier, _motion_start(Z, S, model, inlier), model.stamp,
+                         model.latency, model.slot, model.prior, model.prior_w, model.twist,
+                         model.twist_w, tested, tol, max_iter)
 
 
 def _motion_fit(Z, S, model: _Model, inlier: np.ndarray, tol: float,
                 max_iter: int) -> _MotionFit:
     """Fit of the measurements ``inlier`` selects, evaluated at every measurement. The constant
-    twist is fitted in C, leave-one-out NIS included; the correlated model in NumPy from the
-    constant-twist fit."""
-    X = _motion_start(Z, S, model, inlier)
+    twist is fitted in C, leave-one-out NIS and covariance included; the correlated model in
+    NumPy from the constant-twist fit."""
     if model.accel is None:
-        tested = ~inlier | _determined_without_each(model, inlier)
-        (X, V, ell, H, chi2, status, iterations, dt, r, cost, _,
-         nis) = _constant_twist(Z, S, model, inlier, X, tol, max_iter, tested)
-        return _MotionFit(Status(int(status)), X, V, ell, H, dt, r, None, cost, float(chi2),
+        (X, V, ell, H, chi2, status, iterations, dt, r, cost, _, nis, tested,
+         P) = _constant_twist(Z, S, model, inlier, tol, max_iter, True)
+        return _MotionFit(Status(int(status)), X, V, ell, H, P, dt, r, None, cost, float(chi2),
                           int(iterations), nis=nis, tested=tested)
     Zi, Si, mi = Z[inlier], S[inlier], model.take(inlier)
     # the constant-twist fit starts it: cheap, and near when the model error is small
-    X, V, ell, *_, iterations = _constant_twist(Z, S, model, inlier, X, tol, max_iter)[:7]
+    X, V, ell, *_, iterations = _constant_twist(Z, S, model, inlier, tol, max_iter)[:7]
     iterations = int(iterations)
     at = ell
     Cinv = _information(Si, mi.dt(at), model.accel)
@@ -893,23 +899,18 @@ def _motion_fit(Z, S, model: _Model, inlier: np.ndarray, tol: float,
     Hp, _ = model.prior_terms(V, ell)
     Hd, _ = _normal(G[inlier], r[inlier], Cinv)
     H = Hd + Hp
+    P = np.linalg.inv(H)
     chi2 = _data_cost(r[inlier], Cinv) + model.prior_cost(V, ell)
-    return _MotionFit(status, X, V, ell, H, dt, r, G, cost, float(chi2), iterations, Cinv)
+    return _MotionFit(status, X, V, ell, H, 0.5 * (P + P.T), dt, r, G, cost, float(chi2),
+                      iterations, Cinv)
 
 
 def _determined_without_each(model: _Model, inlier: np.ndarray) -> np.ndarray:
     """For each measurement: do the inliers other than it determine the state? The twist needs
-    two instants unless it has a prior; the latencies always have theirs."""
-    others = np.count_nonzero(inlier) - inlier.astype(int)
-    if not model.twist or model.twist_w is not None:
-        return others >= 1
-    t = (model.stamp - model.latency)[inlier]
-    ordered = np.sort(t)
-    instants = int(np.count_nonzero(ordered[1:] != ordered[:-1])) + (t.size > 0)
-    alone = np.zeros(inlier.shape, dtype=bool)     # the only inlier taken at its instant
-    alone[inlier] = (np.searchsorted(ordered, t, "right") -
-                     np.searchsorted(ordered, t, "left")) == 1
-    return instants - alone >= 2
+    two instants unless it has a prior; the latencies always have theirs (in C,
+    ``dq_motion_determined``, which the constant-twist fit also runs)."""
+    return _c.motion_determined(model.stamp, model.latency, inlier,
+                                model.twist and model.twist_w is None)
 
 
 def _motion_nis(fit: _MotionFit, S, inlier: np.ndarray, model: _Model):
@@ -940,7 +941,7 @@ def _correlated_nis(fit: _MotionFit, S, inlier: np.ndarray, model: _Model):
     Ci = fit.Cinv
     A = Ci @ G[rows]
     u = Ci @ r[rows]
-    Hinv = np.linalg.inv(fit.H)
+    Hinv = fit.P
     _, gp = model.prior_terms(fit.V, fit.ell)
     w = u - A @ (Hinv @ (A.T @ r[rows] + gp))
     tested = ~inlier | _determined_without_each(model, inlier)
@@ -1015,23 +1016,25 @@ def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
                   max_iter) -> Fused:
     n = Z.shape[0]
     stamps = times
-    latency = np.array([table[s].latency if s in table else 0.0 for s in names])
+    sources, code = _codes(names)
+    latency = np.array([table[s].latency if s in table else 0.0 for s in sources])[code]
     taken = stamps - latency
     time = float(taken.max()) if time is None else _seconds(time, "time")
     twist_prior, Wp = (None, None) if twist_covariance is None else _twist_information(
         twist_covariance)
     accel = _acceleration(acceleration_psd)
     if max_skew is None:
-        drop = np.zeros(n, dtype=bool)
+        drop, keep, kept = None, None, taken
     else:
         max_skew = _seconds(max_skew, "max_skew", "nonnegative")
         drop = np.abs(time - taken) > max_skew
-    keep = ~drop
-    if not keep.any():
-        nearest = float(np.abs(time - taken).min())
-        raise ValueError(f"max_skew: every measurement was taken more than {max_skew:g} s from "
-                         f"the fusion time {time!r} (the nearest {nearest:.6g} s)")
-    lo, hi = float(taken[keep].min()), float(taken[keep].max())
+        keep = ~drop
+        if not keep.any():
+            nearest = float(np.abs(time - taken).min())
+            raise ValueError(f"max_skew: every measurement was taken more than {max_skew:g} s "
+                             f"from the fusion time {time!r} (the nearest {nearest:.6g} s)")
+        kept = taken[keep]
+    lo, hi = float(kept.min()), float(kept.max())
     extrapolation = max(0.0, time - hi, lo - time)
     if max_extrapolation is not None:
         max_extrapolation = _seconds(max_extrapolation, "max_extrapolation", "nonnegative")
@@ -1039,14 +1042,13 @@ def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
             raise ValueError(f"time: {time!r} is {extrapolation:.6g} s outside the span "
                              f"[{lo!r}, {hi!r}] of the measurements, beyond max_extrapolation "
                              f"{max_extrapolation:g} s")
-    one_instant = bool(taken[keep].min() == taken[keep].max())
+    estimated = [s for s in sources if s in table and table[s].latency_sigma is not None]
+    one_instant = lo == hi
     if one_instant and extrapolation == 0.0:
         # All taken at the fusion time: nothing moves, the answer is the static fit itself (its
         # C core), bit for bit; the twist keeps its prior, each latency its prior (one instant
         # shows neither).
         f = _fuse_static(Z, S, names, robust, probability, gate2, tol, max_iter)
-        estimated = [s for s in dict.fromkeys(names) if s in table
-                     and table[s].latency_sigma is not None]
         return replace(
             f, time=time, extrapolation=0.0,
             twist=None if Wp is None else _frozen(np.zeros(DOF)),
@@ -1059,38 +1061,40 @@ def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
         raise ValueError(f"time: the measurements were all taken at {lo!r}; bringing them to "
                          f"{time!r} needs the body's twist, which one instant does not show "
                          f"(give twist_covariance)")
-    estimated = [s for s in dict.fromkeys(names) if s in table
-                 and table[s].latency_sigma is not None]
+    slot = np.array([estimated.index(s) if s in estimated else -1 for s in sources])[code]
     model = _Model(
-        stamp=stamps - time, latency=latency,
-        slot=np.array([estimated.index(s) if s in estimated else -1 for s in names], dtype=int),
+        stamp=stamps - time, latency=latency, slot=slot,
         prior=np.array([table[s].latency for s in estimated], dtype=np.float64),
         prior_w=np.array([table[s].latency_sigma ** -2 for s in estimated], dtype=np.float64),
         twist=twist, twist_w=Wp, accel=accel)
 
-    if robust and np.count_nonzero(keep) > 1:
-        fit, nis, tested, inlier, gate_status = _robust_motion(Z, S, model, keep, gate2, tol,
+    allowed = np.ones(n, dtype=bool) if keep is None else keep
+    if robust and np.count_nonzero(allowed) > 1:
+        fit, nis, tested, inlier, gate_status = _robust_motion(Z, S, model, allowed, gate2, tol,
                                                                max_iter)
     else:
-        inlier = keep.copy()
+        inlier = allowed
         fit = _motion_fit(Z, S, model, inlier, tol, max_iter)
         nis, tested = _motion_nis(fit, S, inlier, model)
         gate_status = None
     gate = math.sqrt(gate2)
+    out = ~inlier if keep is None else ~inlier & keep
     rejected = tuple(Rejection(int(i), names[i], float(math.sqrt(nis[i])), gate, probability)
-                     for i in np.flatnonzero(~inlier & keep))
-    dropped = tuple(Dropped(int(i), names[i], float(time - taken[i]), max_skew)
-                    for i in np.flatnonzero(drop))
-    P = np.linalg.inv(fit.H)
-    P = 0.5 * (P + P.T)
+                     for i in np.flatnonzero(out)) if out.any() else ()
+    dropped = () if drop is None else tuple(
+        Dropped(int(i), names[i], float(time - taken[i]), max_skew) for i in np.flatnonzero(drop))
+    P = fit.P
     off = model.offset
     latencies = tuple(Latency(s, table[s].latency, table[s].latency_sigma, float(fit.ell[k]),
                               float(math.sqrt(P[off + k, off + k])))
                       for k, s in enumerate(estimated))
-    k = int(np.count_nonzero(inlier))
+    inliers = np.flatnonzero(inlier)
     # Each prior is as many residuals as the parameters it constrains: only the twist's
     # unconstrained 6 reduce the degrees of freedom beyond the pose's.
-    dof = DOF * (k - 1) - (DOF if twist and Wp is None else 0)
+    dof = DOF * (inliers.size - 1) - (DOF if twist and Wp is None else 0)
+    # a dropped measurement is neither tested nor counted as rejected by the gate
+    stats = _source_stats(sources, code, nis, tested if keep is None else tested & keep,
+                          inlier if drop is None else inlier | drop, probability)
     return Fused(
         status=gate_status if gate_status is not None else fit.status,
         mean=_frozen(fit.mean),
@@ -1099,13 +1103,12 @@ def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
         distances=_frozen(np.sqrt(fit.cost)),
         nis=_frozen(nis),
         tested=_frozen(tested),
-        inliers=_frozen(np.flatnonzero(inlier)),
+        inliers=_frozen(inliers),
         rejected=rejected,
         chi2=fit.chi2,
         dof=dof,
         iterations=fit.iterations,
-        # a dropped measurement is neither tested nor counted as rejected by the gate
-        sources=_source_stats(names, nis, tested & keep, inlier | drop, probability),
+        sources=stats,
         time=time,
         twist=_frozen(fit.V) if twist else None,
         twist_covariance=_frozen(P[6:12, 6:12]) if twist else None,

@@ -115,6 +115,26 @@ class MotionFit(NamedTuple):
     nis: np.ndarray
 
 
+def motion_start(Z, model, inlier) -> np.ndarray:
+    """Where the C fit of a moving body starts (``dq_motion_nearest``): the first inlier taken
+    nearest the fusion time, the estimated latencies at their priors."""
+    return Z[inlier][int(np.argmin(np.abs(model.dt(model.prior)[inlier])))]
+
+
+def determined_without_each(model, inlier) -> np.ndarray:
+    """``dq_motion_determined``: do the inliers other than each measurement determine the state?
+    The twist needs two instants (times taken, stamp minus configured latency) unless it has a
+    prior or is not estimated."""
+    others = np.count_nonzero(inlier) - inlier.astype(int)
+    if not model.twist or model.twist_w is not None:
+        return others >= 1
+    t = (model.stamp - model.latency)[inlier]
+    instants = np.unique(t)
+    alone = np.zeros(inlier.shape, dtype=bool)
+    alone[inlier] = [np.count_nonzero(t == v) == 1 for v in t]
+    return instants.size - alone >= 2
+
+
 def motion_fit(Z, S, model, inlier, start, tested, tol=1e-12, max_iter=100) -> MotionFit:
     """The constant-twist fit (``dq_motion_fit``) of the measurements ``inlier`` selects from
     ``start`` (``model`` a :class:`service.fusion._Model` without ``accel``): the Gauss-Newton

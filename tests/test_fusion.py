@@ -367,6 +367,8 @@ def test_a_source_claiming_ten_times_too_small_a_covariance_is_flagged():
         stats = {s.name: s for s in f.sources}
         assert [s.name for s in f.sources] == list("abcd")
         assert all(s.count == 5 and s.rejected == 0 for s in f.sources)
+        # counts are ints: a wire message's uint32 fields take nothing else
+        assert all(type(s.count) is int and type(s.rejected) is int for s in f.sources)
         for s in "abcd":
             flags[s] += stats[s].verdict != Verdict.CONSISTENT
         assert stats["c"].verdict == Verdict.OPTIMISTIC and stats["c"].nis_mean > stats["c"].high

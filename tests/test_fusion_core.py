@@ -183,7 +183,7 @@ def test_errors_name_the_argument_and_index():
 
 # ---- the constant-twist time-aligned fit (dq_motion_fit, bound as _dqcore.motion_fit) ---------
 MOTION = ("mean", "twist", "ell", "H", "chi2", "status", "iterations", "dt", "residuals", "cost",
-          "G", "nis")
+          "G", "nis", "tested", "P")
 
 
 def motion_scene(rng, n, estimate=(True, True), twist_prior=False, one_instant=False,
@@ -215,10 +215,12 @@ def motion_core(Z, S, model, inlier, start, tested, tol=1e-12, max_iter=100, jac
 def assert_motion_agrees(Z, S, model, inlier=None, tol=1e-12, max_iter=100, rel=1e-12):
     n = Z.shape[0]
     inlier = np.ones(n, bool) if inlier is None else inlier
-    tested = ~inlier | fusion._determined_without_each(model, inlier)
-    start = fusion._motion_start(Z, S, model, inlier)
-    a = ref.motion_fit(Z, S, model, inlier, start, tested, tol, max_iter)
-    b = motion_core(Z, S, model, inlier, start, tested, tol, max_iter)
+    tested = ~inlier | ref.determined_without_each(model, inlier)
+    a = ref.motion_fit(Z, S, model, inlier, ref.motion_start(Z, model, inlier), tested, tol,
+                       max_iter)
+    # the C fit picks its start and the tested measurements itself
+    b = motion_core(Z, S, model, inlier, None, True, tol, max_iter)
+    assert np.array_equal(b["tested"], tested)
     assert int(b["status"]) == a.status and int(b["iterations"]) == a.iterations
     assert np.abs(lie.se3_log(dq.mul(dq.conj(a.mean), b["mean"]))).max() < 1e3 * rel
     assert np.abs(b["twist"] - a.twist).max() <= 1e3 * rel * max(1.0, np.abs(a.twist).max())
@@ -235,6 +237,8 @@ def assert_motion_agrees(Z, S, model, inlier=None, tol=1e-12, max_iter=100, rel=
     assert b["chi2"] == pytest.approx(a.chi2, rel=1e3 * rel, abs=1e-20)
     assert np.abs(b["nis"] - a.nis).max() <= 1e4 * rel * max(1.0, a.nis.max())
     assert np.array_equal(b["nis"] == 0.0, ~tested | (a.nis == 0.0))
+    assert np.array_equal(b["P"], b["P"].T)
+    assert np.abs(b["P"] @ b["H"] - np.eye(model.dim)).max() < 1e-6
     return b
 
 
@@ -259,11 +263,10 @@ def test_motion_fit_agrees_on_inlier_subsets_and_ignores_the_outliers():
         b = assert_motion_agrees(Z, S, model, inlier)
         Zm = Z.copy()
         Zm[~inlier] = random_pose(rng)
-        start = fusion._motion_start(Z, S, model, inlier)
-        c = motion_core(Zm, S, model, inlier, start, None)
-        for k in ("mean", "twist", "ell", "H", "chi2"):
+        c = motion_core(Zm, S, model, inlier, None, None)
+        for k in ("mean", "twist", "ell", "H", "chi2", "P"):
             assert np.array_equal(c[k], b[k]), k
-        assert c["nis"] is None
+        assert c["nis"] is None and c["tested"] is None
 
 
 def test_motion_fit_agrees_near_pi():
@@ -296,7 +299,7 @@ def test_motion_fit_agrees_with_a_tiny_covariance():
         S[4] *= 1e-8
         Z[4] = measure(rng, Z[4], S[4:5])[0]
         inlier = tested = np.ones(10, bool)
-        start = fusion._motion_start(Z, S, model, inlier)
+        start = ref.motion_start(Z, model, inlier)
         a = ref.motion_fit(Z, S, model, inlier, start, tested, 0.0, 12)
         b = motion_core(Z, S, model, inlier, start, tested, 0.0, 12)
         d = np.concatenate([lie.se3_log(dq.mul(dq.conj(a.mean), b["mean"])),
@@ -363,3 +366,33 @@ def test_motion_fit_errors():
         call(twist_w=np.eye(5))
     with pytest.raises(ValueError, match=r"poses: expected shape \(n, 8\)"):
         call(Z=Z[:, :7])
+
+
+def test_determined_without_each_agrees_with_the_reference_on_shared_instants():
+    """Measurements taken at a few shared instants (times drawn from three values), random
+    inlier sets (none, one, all included): the C count of instants and of the inliers alone at
+    theirs against the NumPy one, with a twist to find, with a prior on it, and with none."""
+    rng = np.random.default_rng(417)
+    for trial in range(300):
+        n = int(rng.integers(1, 9))
+        stamp = rng.choice([-0.02, -0.01, 0.0], n) + rng.choice([0.0, 0.005], n)
+        latency = np.where(rng.random(n) < 0.5, 0.005, 0.0)
+        inlier = rng.random(n) < [0.0, 0.3, 0.7, 1.0][trial % 4]
+        for twist, prior in ((True, None), (True, np.eye(6)), (False, None)):
+            model = fusion._Model(stamp, latency, np.full(n, -1), np.zeros(0), np.zeros(0),
+                                  twist, prior)
+            got = fusion._determined_without_each(model, inlier)
+            assert got.dtype == bool
+            assert np.array_equal(got, ref.determined_without_each(model, inlier)), (
+                stamp - latency, inlier, twist, prior is not None)
+
+
+def test_motion_fit_picks_its_start_only_when_it_estimates_a_twist():
+    rng = np.random.default_rng(418)
+    Z, S, model = motion_scene(rng, 6)
+    with pytest.raises(ValueError, match="start: needed when no twist is estimated"):
+        _c.motion_fit(Z, S, None, None, model.stamp, model.latency, model.slot, model.prior,
+                      model.prior_w, False, None, None)
+    with pytest.raises(ValueError, match="inliers: selects no measurement"):
+        _c.motion_fit(Z, S, np.zeros(6, bool), None, model.stamp, model.latency, model.slot,
+                      model.prior, model.prior_w, True, None, True)

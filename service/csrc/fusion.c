@@ -1005,3 +1005,69 @@ int dq_motion_fit(const double *z, const double *cov, const unsigned char *inlie
     }
     return DQ_OK;
 }
+
+size_t dq_motion_nearest(const dq_motion_model *m, const unsigned char *inlier, size_t n)
+{
+    size_t best = n;
+    double nearest = INFINITY;
+    for (size_t i = 0; i < n; i++) {
+        if (!selected(inlier, i)) continue;
+        double lat = m->slot[i] >= 0 ? m->prior[m->slot[i]] : m->latency[i];
+        double d = fabs(m->stamp[i] - lat);
+        if (d < nearest) {
+            nearest = d;
+            best = i;
+        }
+    }
+    return best;
+}
+
+static int by_taken(const void *a, const void *b)
+{
+    double ta = ((const dq_taken *)a)->t, tb = ((const dq_taken *)b)->t;
+    return (ta > tb) - (ta < tb);
+}
+
+void dq_motion_determined(const dq_motion_model *m, const unsigned char *inlier, size_t n,
+                          dq_taken *work, unsigned char *det)
+{
+    size_t k = 0;
+    for (size_t i = 0; i < n; i++)
+        if (selected(inlier, i)) {
+            work[k].t = m->stamp[i] - m->latency[i];
+            work[k++].i = i;
+        }
+    if (!m->twist || m->twist_w) {
+        for (size_t i = 0; i < n; i++) det[i] = k - (selected(inlier, i) ? 1 : 0) >= 1;
+        return;
+    }
+    /* Sorted by the time taken, equal times are runs; an inlier alone in its run is the only
+     * one of its instant, and leaving it out loses that instant. */
+    qsort(work, k, sizeof *work, by_taken);
+    size_t instants = 0;
+    for (size_t a = 0, b; a < k; a = b) {
+        for (b = a + 1; b < k && work[b].t == work[a].t; b++) continue;
+        instants++;
+    }
+    for (size_t i = 0; i < n; i++) det[i] = instants >= 2;
+    for (size_t a = 0, b; a < k; a = b) {
+        for (b = a + 1; b < k && work[b].t == work[a].t; b++) continue;
+        if (b == a + 1) det[work[a].i] = instants - 1 >= 2;
+    }
+}
+
+int dq_spd_inverse(const double *H, int dim, double *work, double *P)
+{
+    double *L = work, *di = L + dim * dim, *e = di + dim;
+    if (!chol(H, L, di, dim)) return 0;
+    for (int c = 0; c < dim; c++) { /* column c of L^-T L^-1 */
+        for (int r = 0; r < dim; r++) e[r] = r == c ? 1.0 : 0.0;
+        lower_solve_m(L, di, e, e, dim);
+        upper_solve_m(L, di, e, e, dim);
+        for (int r = 0; r < dim; r++) P[dim * r + c] = e[r];
+    }
+    for (int a = 0; a < dim; a++) /* the two triangles' rounding differs: their mean */
+        for (int b = 0; b < a; b++)
+            P[dim * a + b] = P[dim * b + a] = 0.5 * (P[dim * a + b] + P[dim * b + a]);
+    return 1;
+}

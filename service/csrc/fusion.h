@@ -151,4 +151,23 @@ int dq_motion_fit(const double *z, const double *cov, const unsigned char *inlie
                   const dq_fuse_params *p, double *work, dq_motion_fitted *out,
                   const dq_motion_outputs *per, size_t *bad);
 
+/* The inlier taken nearest the fusion time, the estimated latencies at their priors (the
+ * first of equals; n when inlier selects none): where the fit of a moving body starts. */
+size_t dq_motion_nearest(const dq_motion_model *m, const unsigned char *inlier, size_t n);
+
+/* det[i] = do the inliers other than measurement i determine the state? With no twist to find,
+ * or a twist with a prior, any other inlier does; a twist without a prior needs inliers taken
+ * (stamp minus configured latency) at two instants. The latencies always have their priors.
+ * work: n entries. */
+typedef struct {
+    double t;
+    size_t i;
+} dq_taken;
+void dq_motion_determined(const dq_motion_model *m, const unsigned char *inlier, size_t n,
+                          dq_taken *work, unsigned char *det);
+
+/* P = H^-1 for a symmetric positive definite dim x dim H (its lower triangle read), from its
+ * Cholesky factor, exactly symmetric; 0 when H is not positive definite. work: dim^2 + 2 dim. */
+int dq_spd_inverse(const double *H, int dim, double *work, double *P);
+
 #endif

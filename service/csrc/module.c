@@ -1205,12 +1205,14 @@ static PyArrayObject *exact_array(PyObject *o, int type, const char *name, int n
     return a;
 }
 
-/* motion_fit(poses (n, 8), covariances (n, 6, 6), inliers (n,) bool or None, start (8,),
- * stamps (n,), latencies (n,), slots (n,) int, priors (k,), prior_information (k,), twist,
- * twist_information (6, 6) or None, tested (n,) bool or None, tol, max_iter, jacobians)
- * -> (mean, twist, ell, H, chi2, status, iterations, dt, residuals, cost, G, nis): the
- * constant-twist fit of fusion.h's dq_motion_fit, one problem a call; G is None unless
- * jacobians, nis None without tested. */
+/* motion_fit(poses (n, 8), covariances (n, 6, 6), inliers (n,) bool or None, start (8,) or
+ * None, stamps (n,), latencies (n,), slots (n,) int, priors (k,), prior_information (k,),
+ * twist, twist_information (6, 6) or None, tested (n,) bool, True or None, tol, max_iter,
+ * jacobians) -> (mean, twist, ell, H, chi2, status, iterations, dt, residuals, cost, G, nis,
+ * tested, P): the constant-twist fit of fusion.h's dq_motion_fit, one problem a call. start
+ * None: dq_motion_nearest's inlier (a twist is estimated). tested True: every measurement but
+ * an inlier whose leaving out would leave the state undetermined (dq_motion_determined). G is
+ * None unless jacobians, nis and tested None without tested; P = H^-1 (dq_spd_inverse). */
 static PyObject *py_motion_fit(PyObject *self, PyObject *args)
 {
     PyObject *o[12];
@@ -1221,7 +1223,13 @@ static PyObject *py_motion_fit(PyObject *self, PyObject *args)
                           &p.max_iter, &want_g))
         return NULL;
     if (check_iteration(p.tol, p.max_iter) < 0) return NULL;
-    PyArrayObject *a[12] = {NULL}, *outs[12] = {NULL};
+    const int pick_start = o[3] == Py_None, find_tested = o[11] == Py_True;
+    if (pick_start && !twist) {
+        PyErr_SetString(PyExc_ValueError, "start: needed when no twist is estimated");
+        return NULL;
+    }
+    PyArrayObject *a[12] = {NULL}, *outs[14] = {NULL};
+    dq_taken *taken = NULL;
     PyObject *result = NULL;
     double *work = NULL, *zu = NULL;
     a[0] = (PyArrayObject *)PyArray_FROM_OTF(o[0], NPY_DOUBLE, NPY_ARRAY_IN_ARRAY);
@@ -1249,7 +1257,9 @@ static PyObject *py_motion_fit(PyObject *self, PyObject *args)
         const npy_intp shapes[12][3] = {{0}, {n, 6, 6}, {n}, {8}, {n}, {n}, {n}, {0}, {k},
                                         {0}, {6, 6}, {n}};
         for (int j = 1; j < 12; j++) {
-            if (types[j] < 0 || ((j == 2 || j == 10 || j == 11) && o[j] == Py_None)) continue;
+            if (types[j] < 0 || ((j == 2 || j == 3 || j == 10 || j == 11) && o[j] == Py_None) ||
+                (j == 11 && find_tested))
+                continue;
             if (!(a[j] = exact_array(o[j], types[j], names[j], nds[j], shapes[j]))) goto done;
         }
     }
@@ -1265,22 +1275,26 @@ static PyObject *py_motion_fit(PyObject *self, PyObject *args)
         }
     npy_intp dim = (npy_intp)dq_motion_dim(&m);
     {
-        /* mean, twist, ell, H, chi2, status, iterations, dt, residuals, cost, G, nis */
-        const int types[12] = {NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE,
+        /* mean, twist, ell, H, chi2, status, iterations, dt, residuals, cost, G, nis, tested,
+         * P */
+        const int types[14] = {NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE,
                                NPY_INT64, NPY_INT64, NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE,
-                               NPY_DOUBLE, NPY_DOUBLE};
-        const int nds[12] = {1, 1, 1, 2, 0, 0, 0, 1, 2, 1, 3, 1};
-        const npy_intp shapes[12][3] = {{8}, {6}, {k}, {dim, dim}, {0}, {0}, {0}, {n}, {n, 6},
-                                        {n}, {n, 6, dim}, {n}};
-        for (int j = 0; j < 12; j++) {
-            if ((j == 10 && !want_g) || (j == 11 && !a[11])) continue;
+                               NPY_DOUBLE, NPY_DOUBLE, NPY_BOOL, NPY_DOUBLE};
+        const int nds[14] = {1, 1, 1, 2, 0, 0, 0, 1, 2, 1, 3, 1, 1, 2};
+        const npy_intp shapes[14][3] = {{8}, {6}, {k}, {dim, dim}, {0}, {0}, {0}, {n}, {n, 6},
+                                        {n}, {n, 6, dim}, {n}, {n}, {dim, dim}};
+        const int nis = a[11] || find_tested;
+        for (int j = 0; j < 14; j++) {
+            if ((j == 10 && !want_g) || ((j == 11 || j == 12) && !nis)) continue;
             if (!(outs[j] = (PyArrayObject *)PyArray_SimpleNew(nds[j], shapes[j], types[j])))
                 goto done;
         }
     }
+    /* (dq_spd_inverse's workspace fits in the fit's, spent by then) */
     work = (double *)malloc(sizeof(double) * dq_motion_workspace((size_t)n, &m));
     zu = (double *)malloc(sizeof(double) * 8 * (size_t)n);
-    if (!work || !zu) {
+    if (find_tested) taken = (dq_taken *)malloc(sizeof *taken * (size_t)n);
+    if (!work || !zu || (find_tested && !taken)) {
         PyErr_NoMemory();
         goto done;
     }
@@ -1294,6 +1308,8 @@ static PyObject *py_motion_fit(PyObject *self, PyObject *args)
                              outs[10] ? PyArray_DATA(outs[10]) : NULL,
                              outs[11] ? PyArray_DATA(outs[11]) : NULL};
     double start[8];
+    const unsigned char *inl = a[2] ? PyArray_DATA(a[2]) : NULL;
+    unsigned char *tested = outs[12] ? PyArray_DATA(outs[12]) : NULL;
     NPY_BEGIN_THREADS_DEF;
     NPY_BEGIN_THREADS;
     for (npy_intp i = 0; i < n && code == DQ_OK; i++) {
@@ -1302,12 +1318,29 @@ static PyObject *py_motion_fit(PyObject *self, PyObject *args)
             code = DQ_E_NONFINITE; bad = (size_t)i; bad_name = "covariances";
         }
     }
-    if (code == DQ_OK && (code = dq_unit(PyArray_DATA(a[3]), start))) bad_name = "start";
+    if (code == DQ_OK && pick_start) {
+        size_t j = dq_motion_nearest(&m, inl, (size_t)n);
+        if (j == (size_t)n) code = DQ_E_NO_INLIERS;
+        else memcpy(start, zu + 8 * j, sizeof start);
+    } else if (code == DQ_OK && (code = dq_unit(PyArray_DATA(a[3]), start))) {
+        bad_name = "start";
+    }
+    if (code == DQ_OK && tested) {
+        if (find_tested) {
+            dq_motion_determined(&m, inl, (size_t)n, taken, tested);
+            for (npy_intp i = 0; i < n; i++) tested[i] = tested[i] || (inl && !inl[i]);
+        } else {
+            memcpy(tested, PyArray_DATA(a[11]), (size_t)n);
+        }
+    }
     if (code == DQ_OK) {
-        code = dq_motion_fit(zu, sd, a[2] ? PyArray_DATA(a[2]) : NULL, (size_t)n, &m, start,
-                             a[11] ? PyArray_DATA(a[11]) : NULL, &p, work, &f, &per, &bad);
+        code = dq_motion_fit(zu, sd, inl, (size_t)n, &m, start, tested, &p, work, &f, &per,
+                             &bad);
         bad_name = "covariances";
     }
+    if (code == DQ_OK &&
+        !dq_spd_inverse(f.H, (int)dim, work, PyArray_DATA(outs[13])))
+        code = DQ_E_SINGULAR;
     NPY_END_THREADS;
     if (code != DQ_OK) {
         char what[256];
@@ -1334,14 +1367,51 @@ static PyObject *py_motion_fit(PyObject *self, PyObject *args)
     *(double *)PyArray_DATA(outs[4]) = f.chi2;
     *(npy_int64 *)PyArray_DATA(outs[5]) = f.status;
     *(npy_int64 *)PyArray_DATA(outs[6]) = f.iterations;
-    result = steal_tuple(outs, 12);
+    result = steal_tuple(outs, 14);
 done:
     free(work);
     free(zu);
-    for (int j = 0; j < 12; j++) {
-        Py_XDECREF(a[j]);
-        Py_XDECREF(outs[j]);
+    free(taken);
+    for (int j = 0; j < 12; j++) Py_XDECREF(a[j]);
+    for (int j = 0; j < 14; j++) Py_XDECREF(outs[j]);
+    return result;
+}
+
+/* motion_determined(stamps (n,), latencies (n,), inliers (n,) bool, two_instants) -> (n,) bool:
+ * fusion.h's dq_motion_determined; two_instants: a twist without a prior is estimated. */
+static PyObject *py_motion_determined(PyObject *self, PyObject *args)
+{
+    PyObject *o[3];
+    int two = 0;
+    if (!PyArg_ParseTuple(args, "OOOp:motion_determined", &o[0], &o[1], &o[2], &two)) return NULL;
+    PyArrayObject *a[3] = {NULL}, *out = NULL;
+    PyObject *result = NULL;
+    dq_taken *work = NULL;
+    if (!(a[0] = (PyArrayObject *)PyArray_FROM_OTF(o[0], NPY_DOUBLE, NPY_ARRAY_IN_ARRAY)))
+        goto done;
+    if (PyArray_NDIM(a[0]) != 1) {
+        PyErr_SetString(PyExc_ValueError, "stamps: expected shape (n,)");
+        goto done;
     }
+    npy_intp n = PyArray_DIMS(a[0])[0];
+    if (!(a[1] = exact_array(o[1], NPY_DOUBLE, "latencies", 1, &n)) ||
+        !(a[2] = exact_array(o[2], NPY_BOOL, "inliers", 1, &n)) ||
+        !(out = (PyArrayObject *)PyArray_SimpleNew(1, &n, NPY_BOOL)))
+        goto done;
+    if (!(work = (dq_taken *)malloc(sizeof *work * (size_t)(n ? n : 1)))) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    static const double no_prior[36]; /* any non-NULL: "the twist has a prior" */
+    dq_motion_model m = {PyArray_DATA(a[0]), PyArray_DATA(a[1]), NULL, 0, NULL, NULL, 1,
+                         two ? NULL : no_prior};
+    dq_motion_determined(&m, PyArray_DATA(a[2]), (size_t)n, work, PyArray_DATA(out));
+    result = (PyObject *)out;
+    out = NULL;
+done:
+    free(work);
+    for (int j = 0; j < 3; j++) Py_XDECREF(a[j]);
+    Py_XDECREF(out);
     return result;
 }
 
@@ -1458,6 +1528,9 @@ static PyMethodDef methods[] = {
      "fuse(poses, covariances, inliers, tol, max_iter, nis) -> (mean, covariance, residuals, "
      "distances, nis, tested, status, iterations, chi2)."},
     {"motion_fit", py_motion_fit, METH_VARARGS, "motion_fit(...): the constant-twist fit (fusion.h)."},
+    {"motion_determined", py_motion_determined, METH_VARARGS,
+     "motion_determined(stamps, latencies, inliers, two_instants): does the state stay determined "
+     "without each measurement (fusion.h)."},
     {"traj_plan", py_traj_plan, METH_VARARGS,
      "traj_plan(waypoints, mode, radius, times, limits, sigma0) -> (code, bad, plan, duration, segments)."},
     {"traj_eval", py_traj_eval, METH_VARARGS, "traj_eval(plan, mode, duration, times) -> (poses, linear, angular)."},
