@@ -317,8 +317,9 @@ class _Fit:
     J: np.ndarray      # (n,6,12) d r_i / d(δx, δz)
     S: np.ndarray      # (n,6,6) residual covariances
     H: np.ndarray      # (12,12) information
-    P: np.ndarray      # (12,12) covariance
+    P: np.ndarray      # (12,12) covariance at the noise as estimated or given
     iterations: int
+    reported: np.ndarray   # (12,12) P with the noise estimate's uncertainty (Kenward–Roger)
 
 
 _ROT, _TRANS = np.diag([1.0] * 3 + [0.0] * 3), np.diag([0.0] * 3 + [1.0] * 3)
@@ -365,6 +366,27 @@ class _Noise:
         SA = None if self.SA is None else self.SA[use]
         return _transported(X, C, SA, self.SC[use], Jri)
 
+    def _reml(self, J: np.ndarray, P: np.ndarray):
+        """The pieces of the REML score and information at the current ``θ``: ``W_i = Σ_r,i⁻¹``,
+        ``B_i = W_i J_i``, ``M_k = Σ B_iᵀ G_k,i B_i`` (12×12, ``−∂H/∂θ_k``),
+        ``Q_kl = Σ B_iᵀ G_k,i W_i G_l,i B_i`` and ``F_kl = tr(R G_k R G_l)`` (twice the REML
+        information), ``R = W − W J P Jᵀ W``: every trace expanded over the blocks, so nothing
+        6n × 6n is formed."""
+        G = self.G
+        W = np.linalg.inv(np.einsum("k,nkij->nij", self.theta, G))
+        B = W @ J                                                   # (n, 6, 12)
+        WG = W[:, None] @ G                                         # (n, 3, 6, 6)
+        GB = G @ B[:, None]                                         # (n, 3, 6, 12)
+        GBt = np.swapaxes(GB, 2, 3)
+        M = (np.swapaxes(B, 1, 2)[:, None] @ GB).sum(axis=0)        # (3, 12, 12) Uᵀ G_k U
+        WGB = W[:, None] @ GB                                       # (n, 3, 6, 12)
+        Q = (GBt[:, :, None] @ WGB[:, None]).sum(axis=0)            # (3, 3, 12, 12) Uᵀ G_k D G_l U
+        PM = P @ M                                                  # (3, 12, 12)
+        F = ((WG[:, :, None] * np.swapaxes(WG, 2, 3)[:, None]).sum(axis=(0, 3, 4))
+             - 2.0 * (P * Q).sum(axis=(2, 3))                       # Q_lk = Q_klᵀ, P symmetric
+             + (PM[:, None] * np.swapaxes(PM, 1, 2)[None]).sum(axis=(2, 3)))
+        return W, B, M, Q, F
+
     def update(self, r: np.ndarray, J: np.ndarray, P: np.ndarray) -> np.ndarray:
         """One REML (Fisher-scoring) step of the variance components at residuals ``r``
         (Jacobian ``J``, covariance ``P`` of the fit): ``θ = F⁻¹ q`` with
@@ -373,20 +395,7 @@ class _Noise:
         comes out below its floor is held there and the others re-solved. Returns the new
         residual covariances and whether the components settled."""
         G = self.G
-        W = np.linalg.inv(np.einsum("k,nkij->nij", self.theta, G))
-        # R = D − U P Uᵀ with D = diag(W_i), U = [W_i J_i]: every trace below expanded over
-        # the blocks, so nothing 6n × 6n is formed.
-        B = W @ J                                                   # (n, 6, 12)
-        WG = W[:, None] @ G                                         # (n, 3, 6, 6)
-        GB = G @ B[:, None]                                         # (n, 3, 6, 12)
-        GBt = np.swapaxes(GB, 2, 3)
-        M = (np.swapaxes(B, 1, 2)[:, None] @ GB).sum(axis=0)        # (3, 12, 12) Uᵀ G_k U
-        WGB = W[:, None] @ GB                                       # (n, 3, 6, 12)
-        N = (GBt[:, :, None] @ WGB[:, None]).sum(axis=0)            # (3, 3, 12, 12) Uᵀ G_k D G_l U
-        PM = P @ M                                                  # (3, 12, 12)
-        F = ((WG[:, :, None] * np.swapaxes(WG, 2, 3)[:, None]).sum(axis=(0, 3, 4))
-             - 2.0 * (P * N).sum(axis=(2, 3))                       # N_lk = N_klᵀ, P symmetric
-             + (PM[:, None] * np.swapaxes(PM, 1, 2)[None]).sum(axis=(2, 3)))
+        W, B, _, _, F = self._reml(J, P)
         u = (W @ r[..., None])[..., 0] - B @ (P @ (np.swapaxes(B, 1, 2) @ r[..., None]).sum(0))[..., 0]
         q = (u[:, None, None, :] @ G @ u[:, None, :, None])[..., 0, 0].sum(axis=0)
         free = np.ones(3, bool)
@@ -432,6 +441,52 @@ class _Noise:
         """The estimated (camera, robot) pose noise, in the module's convention."""
         t = self.theta
         return np.diag([t[0]] * 3 + [t[1]] * 3), np.diag([t[2]] * 3 + [0.0] * 3)
+
+    def kenward_roger(self, J: np.ndarray, P: np.ndarray) -> np.ndarray:
+        """The covariance of ``(X, Z)`` to report when ``θ`` is estimated: ``P = H(θ̂)⁻¹`` with
+        the uncertainty of ``θ̂`` propagated (Kenward & Roger 1997, Biometrics 53:983; the
+        small-sample inference for fixed effects under REML variance components).
+
+        ``H(θ̂)⁻¹`` is too small on average for two reasons, both of the order of
+        ``Var(θ̂)/θ²`` — about 2/(residual degrees of freedom per component): 10 poses leave
+        ``6n − 12 = 48`` shared by three components, some of them (the robot's rotation against
+        the camera's, through the lever arm) poorly separated. (1) ``(X̂, Ẑ)`` varies more than
+        ``H(θ)⁻¹`` says because ``θ̂`` varies, and ``H(θ̂)⁻¹`` is a biased estimate of ``H(θ)⁻¹``:
+        to second order in ``θ̂ − θ`` both together are
+        ``Φ_A = P + 2 P Λ P``, ``Λ = Σ_kl V_kl (Q_kl − M_k P M_l)``, ``V = Cov(θ̂) = 2 F⁻¹``
+        (the inverse REML information; see :meth:`_reml` for ``M``, ``Q``, ``F``; the
+        covariance is linear in ``θ``, so KR's second-derivative term is zero). (2) Even an
+        unbiased ``Φ_A`` is a random matrix, and ``E[ξᵀ Φ_A⁻¹ ξ] > 6`` by Jensen: KR match
+        the Wald statistic's first two moments to a scaled ``F(ℓ, m)``, whose mean gives
+        ``E[ξᵀ Φ_A⁻¹ ξ] ≈ ℓ E*``, ``E* = 1 / (1 − A₂/ℓ)``,
+        ``A₂ = Σ_kl V_kl tr(Θ P M_k P Θ P M_l P)``, ``Θ`` the inverse of the block's ``P``.
+        Reporting ``E* Φ_A`` per block is then the covariance of the Student-t-like predictive
+        distribution of the block (mean NEES ℓ). With one component this is exactly the
+        t factor ``ν / (ν − 2)``, ``ν = 6n − 12``, and ``Φ_A = P``. X and Z get their own ``E*``
+        (ℓ = 6 each); the joint covariance is ``D Φ_A D``, ``D = diag(√E*_X I₆, √E*_Z I₆)``.
+        A component held at its floor keeps its uncertainty: an estimate of zero robot noise
+        from 10 poses does not make the robot exact (taking it as known left the NEES of
+        OpenCV's geometry at 10 poses 0.5 higher). ``1 − A₂/ℓ`` is kept
+        above 0.05: so few residual degrees of freedom that it is not would be a t with about
+        two, whose variance is unbounded."""
+        _, _, M, Q, F = self._reml(J, P)
+        try:
+            V = 2.0 * np.linalg.inv(F)
+        except np.linalg.LinAlgError:
+            return P
+        MP = M @ P                                                  # (3, 12, 12)
+        MPM = MP[:, None] @ M[None]                                 # (3, 3, 12, 12)
+        Lam = np.einsum("kl,klij->ij", V, Q - MPM)
+        PA = P + 2.0 * P @ Lam @ P
+        d = np.empty(12)
+        for b in (slice(0, 6), slice(6, 12)):
+            T = np.zeros((12, 12))
+            T[b, b] = np.linalg.inv(P[b, b])
+            Y = T @ P @ MP                                          # (3, 12, 12): Θ P M_k P
+            A2 = float(np.einsum("kl,kij,lji->", V, Y, Y))
+            d[b] = np.sqrt(1.0 / max(1.0 - A2 / 6.0, 0.05))
+        PA = PA * d[:, None] * d[None, :]
+        return 0.5 * (PA + PA.T)
 
 
 def _linearise(A, C, AdCi, X, Z, noise: _Noise, use):
@@ -506,7 +561,9 @@ def _fit(A, C, X, Z, noise: _Noise, use) -> _Fit:
     if not np.all(np.isfinite(P)):
         raise Infeasible("base_flange: the motions do not determine X and Z (singular "
                          "information); add poses rotating about other axes")
-    return _Fit(X, Z, E, r, J, np.array(S), H, 0.5 * (P + P.T), it)
+    P = 0.5 * (P + P.T)
+    return _Fit(X, Z, E, r, J, np.array(S), H, P, it,
+                noise.kenward_roger(J, P) if noise.estimate else P)
 
 
 def _standardised(fit: _Fit) -> tuple[np.ndarray, np.ndarray]:
@@ -1036,7 +1093,7 @@ def calibrate(base_flange, camera_target, setup: str = "eye_in_hand", *, robust:
     xi = lie.se3_log(dq.mul(dq.inv(fit.X), X0))
     agree = (float(np.linalg.norm(xi[:3])),
              float(np.linalg.norm(dq.to_pose(X0)[1] - dq.to_pose(fit.X)[1])),
-             float(xi @ np.linalg.solve(fit.P[:6, :6], xi)))
+             float(xi @ np.linalg.solve(fit.reported[:6, :6], xi)))
     # The closed form weighs nothing and is far less precise than the refinement (on OpenCV's
     # geometry 10–20 mm off at 0.1° / 0.5 mm noise): only a gross disagreement is a sign.
     if agree[2] > 1e4 and (agree[0] > np.radians(3.0) or agree[1] > 0.05):
@@ -1059,7 +1116,8 @@ def calibrate(base_flange, camera_target, setup: str = "eye_in_hand", *, robust:
         warnings.append(f"{_samples(idx)}: the camera's translations fit best scaled by "
                         f"{scale[0]:.4f} ± {scale[1]:.4f} against the robot's: a wrong board "
                         f"size, or a camera scale error? X's translation is off by as much")
-    X, Z, P, Hx = fit.X, fit.Z, fit.P, fit.H
+    X, Z, P = fit.X, fit.Z, fit.reported
+    Hx = fit.H if fit.reported is fit.P else np.linalg.inv(fit.reported)
     corner = {}
     if views is not None:
         robot = "estimate" if estimate else SRob
