@@ -1024,7 +1024,21 @@ def calibrate(base_flange, camera_target, setup: str = "eye_in_hand", *, robust:
     from the reprojection errors when not given. The robot's noise there is
     ``robot_covariance`` when given, estimated when neither covariance is given, and none (exact
     robot poses) when only ``camera_covariance`` is.
+
+    Two readings of the data fit as well as the one given, and are caught by plausibility
+    instead (:func:`_plausible`, :func:`_camera_scale`): both poses inverted (``T_flange_base``
+    and ``T_target_camera``: X and Z exchange roles exactly) and the camera's translations at
+    another scale (a wrong board size). Where the data say which reading is right, the answer is
+    that reading's, with a warning saying what was corrected; where they cannot, ``Infeasible``.
     """
+    return _calibrate(base_flange, camera_target, setup, robust, corners, camera_covariance,
+                      robot_covariance, refine_focal, pixel_sigma)
+
+
+def _calibrate(base_flange, camera_target, setup, robust, corners, camera_covariance,
+               robot_covariance, refine_focal, pixel_sigma, rescaled=None) -> Calibration:
+    """:func:`calibrate`; ``rescaled``: ``(λ, σ)`` when this is the re-solve on camera
+    translations already scaled by ``λ`` (its uncertainty then enters the covariance)."""
     p = _prepare(base_flange, camera_target, setup)
     n = p.F.shape[0]
     views = None if corners is None else _views(corners, n)
@@ -1101,23 +1115,57 @@ def calibrate(base_flange, camera_target, setup: str = "eye_in_hand", *, robust:
                         f"{np.degrees(agree[0]):.2f}° / {1e3 * agree[1]:.1f} mm "
                         f"(NEES {agree[2]:.3g}): the model may not fit the data")
     # Robot and camera poses both inverted fit exactly as well as the truth (F⁻¹ Z C⁻¹ = X: X
-    # and Z exchange roles), so the data cannot tell; a mount far from the flange can.
-    mount, fixed = (fit.X, fit.Z) if p.setup == "eye_in_hand" else (fit.Z, fit.X)
-    reach = float(np.linalg.norm(dq.to_pose(mount)[1]))
-    base = float(np.linalg.norm(dq.to_pose(fixed)[1]))
-    if reach > _MAX_MOUNT or base < _MIN_FIXED:
-        what = ("camera", "target") if p.setup == "eye_in_hand" else ("target", "camera")
-        warnings.append(f"{_samples(idx)}: the {what[0]} comes out {reach:.2f} m from the "
-                        f"flange and the {what[1]} {base:.2f} m from the robot base: are both "
-                        f"base_flange and camera_target inverted (T_flange_base, "
-                        f"T_target_camera)?")
+    # and Z exchange roles), so the residuals cannot tell; plausibility can.
+    given, other = _plausible(p, fit.X, fit.Z, inlier), _plausible(p, fit.Z, fit.X, inlier, True)
+    if not given.mount_ok and rescaled is None:
+        if other.mount_ok and other.front and given.behind:
+            cal = _calibrate(dq.inv(p.F), dq.inv(p.C), p.setup, robust, corners,
+                             _inverse_noise(p.C, SC), _inverse_noise(p.F, SRob), refine_focal,
+                             pixel_sigma, ())
+            return _warned(cal, f"{_samples(idx)}: base_flange and camera_target look both "
+                                f"inverted (T_flange_base, T_target_camera): as given "
+                                f"{given.says}, and the target lies behind the camera in every "
+                                f"sample; inverted, {other.says} with the target in front. "
+                                f"Solved as inverted; give T_base_flange and T_camera_target")
+        if other.mount_ok and not (given.front and other.behind):
+            raise Infeasible(f"base_flange, camera_target: as given {given.says}; with both "
+                             f"inverted (T_flange_base, T_target_camera: an exact fit too) "
+                             f"{other.says}. The data cannot tell which; give T_base_flange and "
+                             f"T_camera_target ({_samples(idx)})")
+    if not given.mount_ok:
+        why = (f"though the target lies in front of the camera as given and behind it "
+               f"inverted" if given.front and other.behind else
+               f"and as inverted poses {other.says}")
+        warnings.append(f"{_samples(idx)}: {given.says}, {why}: check the mount and the pose "
+                        f"conventions (both poses inverted fit as well)")
     scale = _camera_scale(fit, p.C[inlier])
-    if abs(scale[0] - 1.0) > max(_SCALE_SIGMAS * scale[1], _MIN_SCALE):
+    P_scale = 0.0
+    if rescaled:
+        # The re-solve on scaled translations: λ's uncertainty widens the covariance.
+        P_scale = scale[2]
+        scale = (rescaled[0] * scale[0], rescaled[0] * scale[1], None)
+    elif abs(scale[0] - 1.0) > max(_SCALE_SIGMAS * scale[1], _MIN_SCALE) and rescaled is not None:
         warnings.append(f"{_samples(idx)}: the camera's translations fit best scaled by "
                         f"{scale[0]:.4f} ± {scale[1]:.4f} against the robot's: a wrong board "
                         f"size, or a camera scale error? X's translation is off by as much")
-    X, Z, P = fit.X, fit.Z, fit.reported
-    Hx = fit.H if fit.reported is fit.P else np.linalg.inv(fit.reported)
+    elif abs(scale[0] - 1.0) > max(_SCALE_SIGMAS * scale[1], _MIN_SCALE):
+        lam = scale[0]
+        Cs = p.C.copy()
+        Cs[:, 4:] *= lam            # the dual part carries the translation linearly
+        D = np.diag([1.0] * 3 + [lam] * 3)
+        cs = None if views is None else [
+            (views.points[views.view == k] * lam, views.pixels[views.view == k], views.K[k])
+            for k in range(n)]
+        cal = _calibrate(p.F, Cs, p.setup, robust, cs, None if SC is None else D @ SC @ D,
+                         SRob, refine_focal, pixel_sigma, scale[:2])
+        return _warned(cal, f"{_samples(idx)}: the camera's translations fit best scaled by "
+                            f"{lam:.4f} ± {scale[1]:.4f} against the robot's: a wrong board "
+                            f"size, or a camera scale error? Solved with camera_target's "
+                            f"translations (and the board's points) scaled by {lam:.4f}, its "
+                            f"uncertainty in the covariance; X's translation was off by "
+                            f"{1e3 * _moved(fit.X, cal.x):.2f} mm without")
+    X, Z, P = fit.X, fit.Z, fit.reported + P_scale
+    Hx = fit.H if P is fit.P else np.linalg.inv(P)
     corner = {}
     if views is not None:
         robot = "estimate" if estimate else SRob
@@ -1142,11 +1190,48 @@ def calibrate(base_flange, camera_target, setup: str = "eye_in_hand", *, robust:
         residual_covariance=np.array(S_all), nis=nis, leave_one_out=loo, closed_form_x=X0,
         closed_form_z=Z0, agreement=agree, rotation_condition=p.condition,
         excitation=p.excitation, iterations=fit.iterations, readings=p.readings,
-        camera_scale=scale)
+        camera_scale=scale[:2])
 
 
-def _camera_scale(fit: _Fit, C: np.ndarray) -> tuple[float, float]:
-    """The scale ``λ`` of the camera's translations that fits best, and its σ: one Gauss–Newton
+@dataclass(frozen=True)
+class _Reading:
+    mount_ok: bool    # the flange-mounted part near the flange, the fixed one off the base
+    front: bool       # the target in front of the camera (z > 0 in T_camera_target) in every sample
+    behind: bool      # ... behind it in every sample
+    says: str
+
+
+def _plausible(p: _Prepared, X, Z, inlier, inverted: bool = False) -> _Reading:
+    """How plausible the answer ``(X, Z)`` is as a mount (``inverted``: the reading of both poses
+    inverted, where ``(Z, X)`` of the given fit is the answer and ``C⁻¹`` the camera poses)."""
+    mount, fixed = (X, Z) if p.setup == "eye_in_hand" else (Z, X)
+    reach = float(np.linalg.norm(dq.to_pose(mount)[1]))
+    base = float(np.linalg.norm(dq.to_pose(fixed)[1]))
+    C = p.C[inlier]
+    depth = dq.to_pose(dq.inv(C) if inverted else C)[1][:, 2]
+    what = ("camera", "target") if p.setup == "eye_in_hand" else ("target", "camera")
+    return _Reading(reach <= _MAX_MOUNT and base >= _MIN_FIXED, bool(np.all(depth > 0.0)),
+                    bool(np.all(depth < 0.0)),
+                    f"the {what[0]} comes out {reach:.2f} m from the flange and the {what[1]} "
+                    f"{base:.2f} m from the robot base")
+
+
+def _inverse_noise(T, S):
+    return None if S is None else lie.cov_inverse(T, S)
+
+
+def _moved(a, b) -> float:
+    return float(np.linalg.norm(dq.to_pose(a)[1] - dq.to_pose(b)[1]))
+
+
+def _warned(cal: Calibration, warning: str) -> Calibration:
+    from dataclasses import replace
+    return replace(cal, warnings=(warning,) + cal.warnings)
+
+
+def _camera_scale(fit: _Fit, C: np.ndarray) -> tuple[float, float, np.ndarray]:
+    """The scale ``λ`` of the camera's translations that fits best, its σ, and what ``λ`` free
+    adds to the covariance of ``(X, Z)``: one Gauss–Newton
     step from λ = 1 at the optimum with ``λ`` joined to (X, Z). Scaling ``t`` of ``C_i`` moves
     ``C_i`` by ``Exp([0, R_iᵀ t_i dλ])`` on the right, so the residual by ``Jr⁻¹(r_i)`` of that."""
     R, t = (M := dq.to_matrix(C))[:, :3, :3], M[:, :3, 3]
@@ -1161,10 +1246,15 @@ def _camera_scale(fit: _Fit, C: np.ndarray) -> tuple[float, float]:
     try:
         Hi = np.linalg.inv(H)
     except np.linalg.LinAlgError:
-        return 1.0, float("inf")
+        return 1.0, float("inf"), np.zeros((12, 12))
     step = -Hi @ g
     sigma = float(np.sqrt(max(Hi[12, 12], 0.0)))
-    return 1.0 + float(step[12]), sigma if np.isfinite(sigma) else float("inf")
+    if not np.isfinite(sigma) or sigma == 0.0:
+        return 1.0 + float(step[12]), float("inf") if not np.isfinite(sigma) else 0.0, \
+            np.zeros((12, 12))
+    # λ free widens (X, Z)'s covariance from H₁₂⁻¹ to (H⁻¹)₁₂: by h hᵀ / (H⁻¹)_λλ, h = (H⁻¹)_:12,λ.
+    h = Hi[:12, 12]
+    return 1.0 + float(step[12]), sigma, np.outer(h, h) / Hi[12, 12]
 
 
 def _against(p: _Prepared, fit: _Fit, noise: _Noise, inlier):
