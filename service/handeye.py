@@ -66,14 +66,28 @@ Data checks (:func:`check` and :func:`calibrate`): malformed input is a
 poses, no rotation between samples, rotation axes all parallel, poses that do not correspond,
 millimetres given as metres, the data fitting another reading far better: setup swapped or a pose
 convention inverted); anything doubtful but solvable a warning naming the samples (duplicates,
-stale poses, small or nearly parallel rotations, samples not screw-congruent, outliers, the
-camera's translations fitting best at another scale: a wrong board size, and a mount implausibly
-far from the flange: both poses inverted, which fits exactly as well as the truth with X and Z
-exchanged). Healthy scenes (960 runs over tests/_handeye.py's grid) are never refused.
+stale poses, small or nearly parallel rotations, samples not screw-congruent, outliers).
+
+Two readings fit (nearly) as well as the right one, so the residuals cannot refuse them, and
+answering them as given would be silently wrong (:func:`_calibrate`):
+
+* **Both poses inverted** (``T_flange_base`` and ``T_target_camera``) fits exactly as well as
+  the truth, X and Z exchanged (``F⁻¹ Z C⁻¹ = X``). Plausibility tells: a flange-mounted part
+  within ``_MAX_MOUNT`` of the flange, a fixed one ``_MIN_FIXED`` off the base, and the target in
+  front of the camera (``z > 0`` in ``T_camera_target``; inverted, the camera's position in the
+  board's frame, whose sign depends on the board's convention). When the mount is implausible as
+  given and plausible inverted and the depths agree with the inverted reading, the answer is the
+  inverted reading's, with a warning; when the depths do not tell, ``Infeasible`` naming both.
+* **The camera's translations at another scale** (a wrong board size, :func:`_camera_scale`):
+  the data are re-solved with the camera's translations (and at corner level the board's points)
+  scaled by the best-fitting scale, whose uncertainty enters the covariance (at corner level the
+  board's scale is refined with the corners), with a warning naming the scale.
+
+Healthy scenes (960 runs over tests/_handeye.py's grid) are never refused.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Optional
 
 import numpy as np
@@ -866,6 +880,8 @@ class _CornerFit:
     pixel_sigma: float
     focal_sigma: float
     robot_covariance: Optional[np.ndarray]   # (6, 6) estimated robot noise, when estimated
+    board_scale: float = 1.0                 # the board points' refined scale (refine_board)
+    board_sigma: float = 0.0
 
 
 _ROBOT_START = np.array([np.radians(0.02)] * 3 + [1e-4] * 3) ** 2   # (rad², m²) the start
@@ -874,14 +890,16 @@ _EM_ROUNDS = 12
 
 
 def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool,
-                pixel_sigma: Optional[float]) -> _CornerFit:
+                pixel_sigma: Optional[float], refine_board: bool = False) -> _CornerFit:
     """Maximum likelihood on the corners: pixels with isotropic noise σ (given, or estimated
     per view from its reprojection errors, the fit's leverage in that view taken out: a view's
     blur, distance and obliquity set it), unknowns ``X``, ``Z`` (right perturbations), a
     focal-length scale when ``refine_focal``, and a correction ``δ_i`` of each
     robot pose ``F_i Exp(δ_i)`` under the robot noise ``robot``: given ((n, 6, 6)), estimated
     (``"estimate"``: isotropic rotation and translation variances, MacKay's evidence fixed
-    point on the corrections), or None (robot poses exact). Gauss–Newton from the pose-level answer."""
+    point on the corrections), or None (robot poses exact). Gauss–Newton from the pose-level answer.
+    ``refine_board`` frees a scale of the board's points too (after the pose level found the
+    camera's translations at another scale: its uncertainty then enters the covariance)."""
     idx = np.flatnonzero(inlier)
     n_in = len(idx)
     sel = np.isin(views.view, idx)
@@ -893,18 +911,19 @@ def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool
     estimate = isinstance(robot, str)
     use_robot = robot is not None
     nf = 1 if refine_focal else 0
-    off = 12 + nf
+    nb = 1 if refine_board else 0
+    off = 12 + nf + nb
     npar = off + (6 * n_in if use_robot else 0)
     N = len(sub.points)
     theta = _ROBOT_START.copy()
     delta = np.zeros((n_in, 6)) if use_robot else None
-    scale = 1.0
+    scale = board = 1.0
     corners_in = np.bincount(sub.view, minlength=n_in)
     # Corner noise per view: a view's blur, distance and obliquity set it (0.02–0.1 px among
     # clean renders of one scene), and one σ for all would weigh the noisy views as much as the
     # sharp ones and claim their errors average like the others'.
     sigma = np.full(n_in, pixel_sigma or 1.0)
-    leverage = (12.0 + nf) / n_in * np.ones(n_in)    # each view's share of the fitted dof
+    leverage = (12.0 + nf + nb) / n_in * np.ones(n_in)  # each view's share of the fitted dof
     rows = np.arange(2 * N).reshape(N, 2)
     cols = off + 6 * sub.view[:, None] + np.arange(6)
 
@@ -925,7 +944,8 @@ def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool
         # round after they settle converges.
         for it in range(50 if settled else 2):
             M = _corner_cameras(Fu, setup, X, Z, delta)
-            pc, u, Jp, ds = _project(M, sub, scale)
+            pts = sub.points * board
+            pc, u, Jp, ds = _project(M, _Views(pts, sub.pixels, sub.view, sub.K), scale)
             behind = pc[:, 2] <= 0.0
             if np.any(behind):
                 k = int(idx[sub.view[np.flatnonzero(behind)[0]]])
@@ -935,18 +955,21 @@ def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool
             e = (u - sub.pixels).reshape(-1)
             if pixel_sigma is None:
                 e2 = np.bincount(sub.view, (e.reshape(N, 2) ** 2).sum(axis=1), minlength=n_in)
-                sigma = np.sqrt(np.maximum(e2 / np.maximum(2 * corners_in - leverage, 1.0), 1e-18))
+                dof = np.maximum(2 * corners_in - leverage, 1.0)
+                sigma = np.sqrt(np.maximum(e2 / dof, 1e-18))
             s_row = np.repeat(sigma[sub.view], 2)
             R = M[sub.view, :3, :3]
             dX = np.zeros((N, 3, 6))
             dX[:, :, :3] = lie.so3_hat(pc)
             dX[:, :, 3:] = -np.eye(3)
-            dZ = np.concatenate([-R @ lie.so3_hat(sub.points), R], axis=2)
+            dZ = np.concatenate([-R @ lie.so3_hat(pts), R], axis=2)
             J = np.zeros((2 * N + (6 * n_in if use_robot else 0), npar))
             J[:2 * N, :6] = (Jp @ dX).reshape(2 * N, 6) / s_row[:, None]
             J[:2 * N, 6:12] = (Jp @ dZ).reshape(2 * N, 6) / s_row[:, None]
             if nf:
                 J[:2 * N, 12] = ds.reshape(-1) / s_row
+            if nb:       # the board's points scaled by (1 + ε): the camera's points by R p ε
+                J[:2 * N, 12 + nf] = (Jp @ (R @ pts[..., None]))[..., 0].reshape(-1) / s_row
             r = e / s_row
             if use_robot:
                 # A ← A Exp(δ_A) moves C by Exp(−Ad(X⁻¹) δ_A) on the left: the X column's
@@ -969,6 +992,8 @@ def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool
             Z = dq.mul(Z, lie.se3_exp(step[6:12]))
             if nf:
                 scale *= 1.0 + step[12]
+            if nb:
+                board *= 1.0 + step[12 + nf]
             if use_robot:
                 delta = delta + step[off:].reshape(n_in, 6)
             P = np.linalg.inv(H)
@@ -998,7 +1023,8 @@ def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool
         full = np.zeros((len(F), 6))
         full[idx] = delta
     M = _corner_cameras(F, setup, X, Z, full)
-    _, u, _, _ = _project(M, views, scale)
+    _, u, _, _ = _project(M, _Views(views.points * board, views.pixels, views.view, views.K),
+                          scale)
     err = np.sum((u - views.pixels) ** 2, axis=1)
     count = np.bincount(views.view, minlength=len(F))
     rms = np.sqrt(np.bincount(views.view, err, minlength=len(F)) / np.maximum(count, 1))
@@ -1006,7 +1032,8 @@ def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool
     dof = np.maximum(2 * corners_in - leverage, 1.0)
     pooled = float(pixel_sigma or np.sqrt(np.sum(sigma ** 2 * dof) / np.sum(dof)))
     return _CornerFit(X, Z, P12, rms, scale, pooled, float(np.sqrt(P[12, 12])) if nf else 0.0,
-                      np.diag(theta) if estimate else None)
+                      np.diag(theta) if estimate else None, board,
+                      float(np.sqrt(P[12 + nf, 12 + nf])) if nb else 0.0)
 
 
 # ---- the API -----------------------------------------------------------------------------------
@@ -1039,9 +1066,9 @@ def calibrate(base_flange, camera_target, setup: str = "eye_in_hand", *, robust:
     one (:func:`_corner_fit`): ``x``, ``z`` and their covariances then come from the corners,
     ``reprojection`` holds each view's RMS error (px); ``refine_focal`` estimates one scale of
     the focal lengths too (``focal_scale``); ``pixel_sigma`` (px) is the corner noise, estimated
-    per view from the reprojection errors when not given (the reported one their pooled RMS). The robot's noise there is
-    ``robot_covariance`` when given, estimated when neither covariance is given, and none (exact
-    robot poses) when only ``camera_covariance`` is.
+    per view from the reprojection errors when not given (the reported one their pooled RMS).
+    The robot's noise there is ``robot_covariance`` when given, estimated when neither
+    covariance is given, and none (exact robot poses) when only ``camera_covariance`` is.
 
     Two readings of the data fit as well as the one given, and are caught by plausibility
     instead (:func:`_plausible`, :func:`_camera_scale`): both poses inverted (``T_flange_base``
@@ -1054,9 +1081,11 @@ def calibrate(base_flange, camera_target, setup: str = "eye_in_hand", *, robust:
 
 
 def _calibrate(base_flange, camera_target, setup, robust, corners, camera_covariance,
-               robot_covariance, refine_focal, pixel_sigma, rescaled=None) -> Calibration:
-    """:func:`calibrate`; ``rescaled``: ``(λ, σ)`` when this is the re-solve on camera
-    translations already scaled by ``λ`` (its uncertainty then enters the covariance)."""
+               robot_covariance, refine_focal, pixel_sigma, inverted: bool = False,
+               rescaled: Optional[tuple[float, float]] = None) -> Calibration:
+    """:func:`calibrate`. ``inverted``: this is the re-solve on both poses inverted (not to be
+    turned back); ``rescaled``: ``(λ, σ)`` when it is the re-solve on camera translations
+    scaled by ``λ`` (whose uncertainty then enters the covariance)."""
     p = _prepare(base_flange, camera_target, setup)
     n = p.F.shape[0]
     views = None if corners is None else _views(corners, n)
@@ -1135,11 +1164,11 @@ def _calibrate(base_flange, camera_target, setup, robust, corners, camera_covari
     # Robot and camera poses both inverted fit exactly as well as the truth (F⁻¹ Z C⁻¹ = X: X
     # and Z exchange roles), so the residuals cannot tell; plausibility can.
     given, other = _plausible(p, fit.X, fit.Z, inlier), _plausible(p, fit.Z, fit.X, inlier, True)
-    if not given.mount_ok and rescaled is None:
+    if not given.mount_ok and not inverted and rescaled is None:
         if other.mount_ok and other.front and given.behind:
             cal = _calibrate(dq.inv(p.F), dq.inv(p.C), p.setup, robust, corners,
                              _inverse_noise(p.C, SC), _inverse_noise(p.F, SRob), refine_focal,
-                             pixel_sigma, ())
+                             pixel_sigma, inverted=True)
             return _warned(cal, f"{_samples(idx)}: base_flange and camera_target look both "
                                 f"inverted (T_flange_base, T_target_camera): as given "
                                 f"{given.says}, and the target lies behind the camera in every "
@@ -1158,14 +1187,10 @@ def _calibrate(base_flange, camera_target, setup, robust, corners, camera_covari
                         f"conventions (both poses inverted fit as well)")
     scale = _camera_scale(fit, p.C[inlier])
     P_scale = 0.0
-    if rescaled:
+    if rescaled is not None:
         # The re-solve on scaled translations: λ's uncertainty widens the covariance.
         P_scale = scale[2]
         scale = (rescaled[0] * scale[0], rescaled[0] * scale[1], None)
-    elif abs(scale[0] - 1.0) > max(_SCALE_SIGMAS * scale[1], _MIN_SCALE) and rescaled is not None:
-        warnings.append(f"{_samples(idx)}: the camera's translations fit best scaled by "
-                        f"{scale[0]:.4f} ± {scale[1]:.4f} against the robot's: a wrong board "
-                        f"size, or a camera scale error? X's translation is off by as much")
     elif abs(scale[0] - 1.0) > max(_SCALE_SIGMAS * scale[1], _MIN_SCALE):
         lam = scale[0]
         Cs = p.C.copy()
@@ -1175,7 +1200,7 @@ def _calibrate(base_flange, camera_target, setup, robust, corners, camera_covari
             (views.points[views.view == k] * lam, views.pixels[views.view == k], views.K[k])
             for k in range(n)]
         cal = _calibrate(p.F, Cs, p.setup, robust, cs, None if SC is None else D @ SC @ D,
-                         SRob, refine_focal, pixel_sigma, scale[:2])
+                         SRob, refine_focal, pixel_sigma, inverted, scale[:2])
         return _warned(cal, f"{_samples(idx)}: the camera's translations fit best scaled by "
                             f"{lam:.4f} ± {scale[1]:.4f} against the robot's: a wrong board "
                             f"size, or a camera scale error? Solved with camera_target's "
@@ -1183,11 +1208,14 @@ def _calibrate(base_flange, camera_target, setup, robust, corners, camera_covari
                             f"uncertainty in the covariance; X's translation was off by "
                             f"{1e3 * _moved(fit.X, cal.x):.2f} mm without")
     X, Z, P = fit.X, fit.Z, fit.reported + P_scale
-    Hx = fit.H if P is fit.P else np.linalg.inv(P)
+    Hx = np.linalg.inv(P)
     corner = {}
     if views is not None:
         robot = "estimate" if estimate else SRob
-        cf = _corner_fit(p.F, p.setup, X, Z, views, inlier, robot, refine_focal, pixel_sigma)
+        cf = _corner_fit(p.F, p.setup, X, Z, views, inlier, robot, refine_focal, pixel_sigma,
+                         refine_board=rescaled is not None)
+        if rescaled is not None:
+            scale = (rescaled[0] * cf.board_scale, rescaled[0] * cf.board_sigma, None)
         X, Z, P, Hx = cf.X, cf.Z, cf.P, np.linalg.inv(cf.P)
         corner = dict(reprojection=cf.reprojection, focal_scale=cf.focal_scale,
                       focal_sigma=cf.focal_sigma, pixel_sigma=cf.pixel_sigma)
@@ -1214,7 +1242,7 @@ def _calibrate(base_flange, camera_target, setup, robust, corners, camera_covari
 @dataclass(frozen=True)
 class _Reading:
     mount_ok: bool    # the flange-mounted part near the flange, the fixed one off the base
-    front: bool       # the target in front of the camera (z > 0 in T_camera_target) in every sample
+    front: bool       # the target in front of the camera (z > 0 in T_camera_target), every sample
     behind: bool      # ... behind it in every sample
     says: str
 
@@ -1243,14 +1271,13 @@ def _moved(a, b) -> float:
 
 
 def _warned(cal: Calibration, warning: str) -> Calibration:
-    from dataclasses import replace
     return replace(cal, warnings=(warning,) + cal.warnings)
 
 
 def _camera_scale(fit: _Fit, C: np.ndarray) -> tuple[float, float, np.ndarray]:
     """The scale ``λ`` of the camera's translations that fits best, its σ, and what ``λ`` free
-    adds to the covariance of ``(X, Z)``: one Gauss–Newton
-    step from λ = 1 at the optimum with ``λ`` joined to (X, Z). Scaling ``t`` of ``C_i`` moves
+    adds to the covariance of ``(X, Z)``: one Gauss–Newton step from λ = 1 at the optimum with
+    ``λ`` joined to (X, Z). Scaling ``t`` of ``C_i`` moves
     ``C_i`` by ``Exp([0, R_iᵀ t_i dλ])`` on the right, so the residual by ``Jr⁻¹(r_i)`` of that."""
     R, t = (M := dq.to_matrix(C))[:, :3, :3], M[:, :3, 3]
     d = np.zeros((len(C), 6))
@@ -1267,12 +1294,12 @@ def _camera_scale(fit: _Fit, C: np.ndarray) -> tuple[float, float, np.ndarray]:
         return 1.0, float("inf"), np.zeros((12, 12))
     step = -Hi @ g
     sigma = float(np.sqrt(max(Hi[12, 12], 0.0)))
-    if not np.isfinite(sigma) or sigma == 0.0:
-        return 1.0 + float(step[12]), float("inf") if not np.isfinite(sigma) else 0.0, \
-            np.zeros((12, 12))
+    if not np.isfinite(sigma):
+        return 1.0 + float(step[12]), float("inf"), np.zeros((12, 12))
     # λ free widens (X, Z)'s covariance from H₁₂⁻¹ to (H⁻¹)₁₂: by h hᵀ / (H⁻¹)_λλ, h = (H⁻¹)_:12,λ.
     h = Hi[:12, 12]
-    return 1.0 + float(step[12]), sigma, np.outer(h, h) / Hi[12, 12]
+    extra = np.outer(h, h) / Hi[12, 12] if Hi[12, 12] > 0.0 else np.zeros((12, 12))
+    return 1.0 + float(step[12]), sigma, extra
 
 
 def _against(p: _Prepared, fit: _Fit, noise: _Noise, inlier):

@@ -239,6 +239,23 @@ def test_readings_that_fit_as_well_are_answered_right(kind, setup):
     assert np.mean(nees) < 12.0, nees     # χ²₆: 6 on average; the wrong reading is ~1e4
 
 
+def test_wrong_board_size_at_corner_level():
+    """The board's square size 2 % off in the corners too (PnP then scales every translation):
+    the scale is refined with the corners, and X is right within its covariance."""
+    nees = []
+    for seed in range(10):
+        s = H.scene(15, camera_noise=(0.1, 0.5), seed=seed)
+        C = s.camera_target.copy()
+        C[:, 4:] *= 1.02
+        cs = [(b * 1.02, u, K) for b, u, K in H.corners(s, 0.2, seed=seed)]
+        c = handeye.calibrate(s.base_flange, C, corners=cs)
+        assert any("scaled by" in w for w in c.warnings)
+        assert abs(c.camera_scale[0] * 1.02 - 1.0) < 5 * c.camera_scale[1]
+        assert H.pose_error(c.x, s.x)[1] < 0.5
+        nees.append(_nees(c.x, s.x, c.covariance_x))
+    assert np.mean(nees) < 12.0, nees     # 6 on average; ~160–600 with the scale taken as exact
+
+
 def test_both_inverted_refused_when_the_data_cannot_tell():
     """Both inverted with a board frame whose z points out of the board: the camera then lies at
     positive z in the target's frame, so the inverted poses put the target in front too, and
