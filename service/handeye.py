@@ -1173,12 +1173,14 @@ def _calibrate(base_flange, camera_target, setup, robust, corners, camera_covari
                                 f"inverted (T_flange_base, T_target_camera): as given "
                                 f"{given.says}, and the target lies behind the camera in every "
                                 f"sample; inverted, {other.says} with the target in front. "
-                                f"Solved as inverted; give T_base_flange and T_camera_target")
+                                f"Solved as inverted; fix the conventions (the flange in the "
+                                f"robot's base frame, the target in the camera's)")
         if other.mount_ok and not (given.front and other.behind):
             raise Infeasible(f"base_flange, camera_target: as given {given.says}; with both "
                              f"inverted (T_flange_base, T_target_camera: an exact fit too) "
-                             f"{other.says}. The data cannot tell which; give T_base_flange and "
-                             f"T_camera_target ({_samples(idx)})")
+                             f"{other.says}. The data cannot tell which; check both pose "
+                             f"conventions (the flange in the robot's base frame, the target "
+                             f"in the camera's) ({_samples(idx)})")
     if not given.mount_ok:
         why = (f"though the target lies in front of the camera as given and behind it "
                f"inverted" if given.front and other.behind else
