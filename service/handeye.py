@@ -37,8 +37,11 @@ The solution, in order:
    (which reaches the residual's translation through the lever arm ``X C_i``), by REML Fisher
    scoring at every iterate, the 12 fitted degrees of freedom taken out by leverage. The
    covariance of ``(X, Z)`` is the inverse of the information ``Σ Jᵢᵀ Σ_r,i⁻¹ Jᵢ`` at the
-   optimum; ``covariance_x``/``covariance_z`` are its marginals (mean NEES over 200 seeded
-   trials 6.0–6.6, estimated noise included: tests/test_handeye.py).
+   optimum; ``covariance_x``/``covariance_z`` are its marginals. With the noise estimated, the
+   uncertainty of the estimate is propagated into them (Kenward–Roger,
+   :meth:`_Noise.kenward_roger`): from 10 poses the bare ``H(θ̂)⁻¹`` had mean NEES 6.7–9.3; with
+   it 5.6–6.8 over 200 seeded trials on every row of tests/bench/bench_handeye.py (5.7–6.3 at
+   20 poses).
 3. **Outliers**: every sample is gated on its NIS (χ² with 6 dof, probability ``_GATE``):
    the inliers' standardised residual ``r_iᵀ (Σ_r,i − J_i P J_iᵀ)⁻¹ r_i`` (the leave-one-out
    NIS to first order), the others' against the prediction ``Σ_r,i + J_i P J_iᵀ``, starting
@@ -53,7 +56,9 @@ The solution, in order:
    corners through ``C_i = X⁻¹ A_i⁻¹ Z`` (:func:`_corner_fit`), from the pose-level answer, with
    an optional focal-length scale and a correction of each robot pose under the robot's noise,
    given or estimated (taken as exact, 0.02° / 0.1 mm of robot noise made the covariance claim
-   ~20× too much; modelled, mean NEES 5.3–6.3).
+   ~20× too much; modelled, mean NEES 5.3–6.3). The corner noise is estimated per view: among
+   rendered views of one scene it ranges 0.02–0.1 px, and one σ for all had the covariance
+   of X claim too much end to end (mean NEES 9.6 over 50 trials; per view 7.6 over 200).
 
 Data checks (:func:`check` and :func:`calibrate`): malformed input is a
 :class:`~service.errors.FieldError` naming the argument and index; unusable data an
@@ -61,14 +66,28 @@ Data checks (:func:`check` and :func:`calibrate`): malformed input is a
 poses, no rotation between samples, rotation axes all parallel, poses that do not correspond,
 millimetres given as metres, the data fitting another reading far better: setup swapped or a pose
 convention inverted); anything doubtful but solvable a warning naming the samples (duplicates,
-stale poses, small or nearly parallel rotations, samples not screw-congruent, outliers, the
-camera's translations fitting best at another scale: a wrong board size, and a mount implausibly
-far from the flange: both poses inverted, which fits exactly as well as the truth with X and Z
-exchanged). Healthy scenes (960 runs over tests/_handeye.py's grid) are never refused.
+stale poses, small or nearly parallel rotations, samples not screw-congruent, outliers).
+
+Two readings fit (nearly) as well as the right one, so the residuals cannot refuse them, and
+answering them as given would be silently wrong (:func:`_calibrate`):
+
+* **Both poses inverted** (``T_flange_base`` and ``T_target_camera``) fits exactly as well as
+  the truth, X and Z exchanged (``F⁻¹ Z C⁻¹ = X``). Plausibility tells: a flange-mounted part
+  within ``_MAX_MOUNT`` of the flange, a fixed one ``_MIN_FIXED`` off the base, and the target in
+  front of the camera (``z > 0`` in ``T_camera_target``; inverted, the camera's position in the
+  board's frame, whose sign depends on the board's convention). When the mount is implausible as
+  given and plausible inverted and the depths agree with the inverted reading, the answer is the
+  inverted reading's, with a warning; when the depths do not tell, ``Infeasible`` naming both.
+* **The camera's translations at another scale** (a wrong board size, :func:`_camera_scale`):
+  the data are re-solved with the camera's translations (and at corner level the board's points)
+  scaled by the best-fitting scale, whose uncertainty enters the covariance (at corner level the
+  board's scale is refined with the corners), with a warning naming the scale.
+
+Healthy scenes (960 runs over tests/_handeye.py's grid) are never refused.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Optional
 
 import numpy as np
@@ -317,8 +336,9 @@ class _Fit:
     J: np.ndarray      # (n,6,12) d r_i / d(δx, δz)
     S: np.ndarray      # (n,6,6) residual covariances
     H: np.ndarray      # (12,12) information
-    P: np.ndarray      # (12,12) covariance
+    P: np.ndarray      # (12,12) covariance at the noise as estimated or given
     iterations: int
+    reported: np.ndarray   # (12,12) P with the noise estimate's uncertainty (Kenward–Roger)
 
 
 _ROT, _TRANS = np.diag([1.0] * 3 + [0.0] * 3), np.diag([0.0] * 3 + [1.0] * 3)
@@ -365,6 +385,27 @@ class _Noise:
         SA = None if self.SA is None else self.SA[use]
         return _transported(X, C, SA, self.SC[use], Jri)
 
+    def _reml(self, J: np.ndarray, P: np.ndarray):
+        """The pieces of the REML score and information at the current ``θ``: ``W_i = Σ_r,i⁻¹``,
+        ``B_i = W_i J_i``, ``M_k = Σ B_iᵀ G_k,i B_i`` (12×12, ``−∂H/∂θ_k``),
+        ``Q_kl = Σ B_iᵀ G_k,i W_i G_l,i B_i`` and ``F_kl = tr(R G_k R G_l)`` (twice the REML
+        information), ``R = W − W J P Jᵀ W``: every trace expanded over the blocks, so nothing
+        6n × 6n is formed."""
+        G = self.G
+        W = np.linalg.inv(np.einsum("k,nkij->nij", self.theta, G))
+        B = W @ J                                                   # (n, 6, 12)
+        WG = W[:, None] @ G                                         # (n, 3, 6, 6)
+        GB = G @ B[:, None]                                         # (n, 3, 6, 12)
+        GBt = np.swapaxes(GB, 2, 3)
+        M = (np.swapaxes(B, 1, 2)[:, None] @ GB).sum(axis=0)        # (3, 12, 12) Uᵀ G_k U
+        WGB = W[:, None] @ GB                                       # (n, 3, 6, 12)
+        Q = (GBt[:, :, None] @ WGB[:, None]).sum(axis=0)            # (3, 3, 12, 12) Uᵀ G_k D G_l U
+        PM = P @ M                                                  # (3, 12, 12)
+        F = ((WG[:, :, None] * np.swapaxes(WG, 2, 3)[:, None]).sum(axis=(0, 3, 4))
+             - 2.0 * (P * Q).sum(axis=(2, 3))                       # Q_lk = Q_klᵀ, P symmetric
+             + (PM[:, None] * np.swapaxes(PM, 1, 2)[None]).sum(axis=(2, 3)))
+        return W, B, M, Q, F
+
     def update(self, r: np.ndarray, J: np.ndarray, P: np.ndarray) -> np.ndarray:
         """One REML (Fisher-scoring) step of the variance components at residuals ``r``
         (Jacobian ``J``, covariance ``P`` of the fit): ``θ = F⁻¹ q`` with
@@ -373,20 +414,7 @@ class _Noise:
         comes out below its floor is held there and the others re-solved. Returns the new
         residual covariances and whether the components settled."""
         G = self.G
-        W = np.linalg.inv(np.einsum("k,nkij->nij", self.theta, G))
-        # R = D − U P Uᵀ with D = diag(W_i), U = [W_i J_i]: every trace below expanded over
-        # the blocks, so nothing 6n × 6n is formed.
-        B = W @ J                                                   # (n, 6, 12)
-        WG = W[:, None] @ G                                         # (n, 3, 6, 6)
-        GB = G @ B[:, None]                                         # (n, 3, 6, 12)
-        GBt = np.swapaxes(GB, 2, 3)
-        M = (np.swapaxes(B, 1, 2)[:, None] @ GB).sum(axis=0)        # (3, 12, 12) Uᵀ G_k U
-        WGB = W[:, None] @ GB                                       # (n, 3, 6, 12)
-        N = (GBt[:, :, None] @ WGB[:, None]).sum(axis=0)            # (3, 3, 12, 12) Uᵀ G_k D G_l U
-        PM = P @ M                                                  # (3, 12, 12)
-        F = ((WG[:, :, None] * np.swapaxes(WG, 2, 3)[:, None]).sum(axis=(0, 3, 4))
-             - 2.0 * (P * N).sum(axis=(2, 3))                       # N_lk = N_klᵀ, P symmetric
-             + (PM[:, None] * np.swapaxes(PM, 1, 2)[None]).sum(axis=(2, 3)))
+        W, B, _, _, F = self._reml(J, P)
         u = (W @ r[..., None])[..., 0] - B @ (P @ (np.swapaxes(B, 1, 2) @ r[..., None]).sum(0))[..., 0]
         q = (u[:, None, None, :] @ G @ u[:, None, :, None])[..., 0, 0].sum(axis=0)
         free = np.ones(3, bool)
@@ -432,6 +460,52 @@ class _Noise:
         """The estimated (camera, robot) pose noise, in the module's convention."""
         t = self.theta
         return np.diag([t[0]] * 3 + [t[1]] * 3), np.diag([t[2]] * 3 + [0.0] * 3)
+
+    def kenward_roger(self, J: np.ndarray, P: np.ndarray) -> np.ndarray:
+        """The covariance of ``(X, Z)`` to report when ``θ`` is estimated: ``P = H(θ̂)⁻¹`` with
+        the uncertainty of ``θ̂`` propagated (Kenward & Roger 1997, Biometrics 53:983; the
+        small-sample inference for fixed effects under REML variance components).
+
+        ``H(θ̂)⁻¹`` is too small on average for two reasons, both of the order of
+        ``Var(θ̂)/θ²`` — about 2/(residual degrees of freedom per component): 10 poses leave
+        ``6n − 12 = 48`` shared by three components, some of them (the robot's rotation against
+        the camera's, through the lever arm) poorly separated. (1) ``(X̂, Ẑ)`` varies more than
+        ``H(θ)⁻¹`` says because ``θ̂`` varies, and ``H(θ̂)⁻¹`` is a biased estimate of ``H(θ)⁻¹``:
+        to second order in ``θ̂ − θ`` both together are
+        ``Φ_A = P + 2 P Λ P``, ``Λ = Σ_kl V_kl (Q_kl − M_k P M_l)``, ``V = Cov(θ̂) = 2 F⁻¹``
+        (the inverse REML information; see :meth:`_reml` for ``M``, ``Q``, ``F``; the
+        covariance is linear in ``θ``, so KR's second-derivative term is zero). (2) Even an
+        unbiased ``Φ_A`` is a random matrix, and ``E[ξᵀ Φ_A⁻¹ ξ] > 6`` by Jensen: KR match
+        the Wald statistic's first two moments to a scaled ``F(ℓ, m)``, whose mean gives
+        ``E[ξᵀ Φ_A⁻¹ ξ] ≈ ℓ E*``, ``E* = 1 / (1 − A₂/ℓ)``,
+        ``A₂ = Σ_kl V_kl tr(Θ P M_k P Θ P M_l P)``, ``Θ`` the inverse of the block's ``P``.
+        Reporting ``E* Φ_A`` per block is then the covariance of the Student-t-like predictive
+        distribution of the block (mean NEES ℓ). With one component this is exactly the
+        t factor ``ν / (ν − 2)``, ``ν = 6n − 12``, and ``Φ_A = P``. X and Z get their own ``E*``
+        (ℓ = 6 each); the joint covariance is ``D Φ_A D``, ``D = diag(√E*_X I₆, √E*_Z I₆)``.
+        A component held at its floor keeps its uncertainty: an estimate of zero robot noise
+        from 10 poses does not make the robot exact (taking it as known left the NEES of
+        OpenCV's geometry at 10 poses 0.5 higher). ``1 − A₂/ℓ`` is kept
+        above 0.05: so few residual degrees of freedom that it is not would be a t with about
+        two, whose variance is unbounded."""
+        _, _, M, Q, F = self._reml(J, P)
+        try:
+            V = 2.0 * np.linalg.inv(F)
+        except np.linalg.LinAlgError:
+            return P
+        MP = M @ P                                                  # (3, 12, 12)
+        MPM = MP[:, None] @ M[None]                                 # (3, 3, 12, 12)
+        Lam = np.einsum("kl,klij->ij", V, Q - MPM)
+        PA = P + 2.0 * P @ Lam @ P
+        d = np.empty(12)
+        for b in (slice(0, 6), slice(6, 12)):
+            T = np.zeros((12, 12))
+            T[b, b] = np.linalg.inv(P[b, b])
+            Y = T @ P @ MP                                          # (3, 12, 12): Θ P M_k P
+            A2 = float(np.einsum("kl,kij,lji->", V, Y, Y))
+            d[b] = np.sqrt(1.0 / max(1.0 - A2 / 6.0, 0.05))
+        PA = PA * d[:, None] * d[None, :]
+        return 0.5 * (PA + PA.T)
 
 
 def _linearise(A, C, AdCi, X, Z, noise: _Noise, use):
@@ -506,7 +580,9 @@ def _fit(A, C, X, Z, noise: _Noise, use) -> _Fit:
     if not np.all(np.isfinite(P)):
         raise Infeasible("base_flange: the motions do not determine X and Z (singular "
                          "information); add poses rotating about other axes")
-    return _Fit(X, Z, E, r, J, np.array(S), H, 0.5 * (P + P.T), it)
+    P = 0.5 * (P + P.T)
+    return _Fit(X, Z, E, r, J, np.array(S), H, P, it,
+                noise.kenward_roger(J, P) if noise.estimate else P)
 
 
 def _standardised(fit: _Fit) -> tuple[np.ndarray, np.ndarray]:
@@ -804,6 +880,8 @@ class _CornerFit:
     pixel_sigma: float
     focal_sigma: float
     robot_covariance: Optional[np.ndarray]   # (6, 6) estimated robot noise, when estimated
+    board_scale: float = 1.0                 # the board points' refined scale (refine_board)
+    board_sigma: float = 0.0
 
 
 _ROBOT_START = np.array([np.radians(0.02)] * 3 + [1e-4] * 3) ** 2   # (rad², m²) the start
@@ -812,13 +890,16 @@ _EM_ROUNDS = 12
 
 
 def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool,
-                pixel_sigma: Optional[float]) -> _CornerFit:
+                pixel_sigma: Optional[float], refine_board: bool = False) -> _CornerFit:
     """Maximum likelihood on the corners: pixels with isotropic noise σ (given, or estimated
-    from the reprojection errors, the fit's leverage taken out), unknowns ``X``, ``Z`` (right
-    perturbations), a focal-length scale when ``refine_focal``, and a correction ``δ_i`` of each
+    per view from its reprojection errors, the fit's leverage in that view taken out: a view's
+    blur, distance and obliquity set it), unknowns ``X``, ``Z`` (right perturbations), a
+    focal-length scale when ``refine_focal``, and a correction ``δ_i`` of each
     robot pose ``F_i Exp(δ_i)`` under the robot noise ``robot``: given ((n, 6, 6)), estimated
     (``"estimate"``: isotropic rotation and translation variances, MacKay's evidence fixed
-    point on the corrections), or None (robot poses exact). Gauss–Newton from the pose-level answer."""
+    point on the corrections), or None (robot poses exact). Gauss–Newton from the pose-level answer.
+    ``refine_board`` frees a scale of the board's points too (after the pose level found the
+    camera's translations at another scale: its uncertainty then enters the covariance)."""
     idx = np.flatnonzero(inlier)
     n_in = len(idx)
     sel = np.isin(views.view, idx)
@@ -830,12 +911,19 @@ def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool
     estimate = isinstance(robot, str)
     use_robot = robot is not None
     nf = 1 if refine_focal else 0
-    off = 12 + nf
+    nb = 1 if refine_board else 0
+    off = 12 + nf + nb
     npar = off + (6 * n_in if use_robot else 0)
     N = len(sub.points)
     theta = _ROBOT_START.copy()
     delta = np.zeros((n_in, 6)) if use_robot else None
-    scale, sigma, leverage = 1.0, (pixel_sigma or 1.0), 12.0 + nf
+    scale = board = 1.0
+    corners_in = np.bincount(sub.view, minlength=n_in)
+    # Corner noise per view: a view's blur, distance and obliquity set it (0.02–0.1 px among
+    # clean renders of one scene), and one σ for all would weigh the noisy views as much as the
+    # sharp ones and claim their errors average like the others'.
+    sigma = np.full(n_in, pixel_sigma or 1.0)
+    leverage = (12.0 + nf + nb) / n_in * np.ones(n_in)  # each view's share of the fitted dof
     rows = np.arange(2 * N).reshape(N, 2)
     cols = off + 6 * sub.view[:, None] + np.arange(6)
 
@@ -856,7 +944,8 @@ def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool
         # round after they settle converges.
         for it in range(50 if settled else 2):
             M = _corner_cameras(Fu, setup, X, Z, delta)
-            pc, u, Jp, ds = _project(M, sub, scale)
+            pts = sub.points * board
+            pc, u, Jp, ds = _project(M, _Views(pts, sub.pixels, sub.view, sub.K), scale)
             behind = pc[:, 2] <= 0.0
             if np.any(behind):
                 k = int(idx[sub.view[np.flatnonzero(behind)[0]]])
@@ -865,25 +954,30 @@ def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool
                                  f"same board frame)?")
             e = (u - sub.pixels).reshape(-1)
             if pixel_sigma is None:
-                sigma = max(float(np.sqrt(e @ e / max(2 * N - leverage, 1.0))), 1e-9)
+                e2 = np.bincount(sub.view, (e.reshape(N, 2) ** 2).sum(axis=1), minlength=n_in)
+                dof = np.maximum(2 * corners_in - leverage, 1.0)
+                sigma = np.sqrt(np.maximum(e2 / dof, 1e-18))
+            s_row = np.repeat(sigma[sub.view], 2)
             R = M[sub.view, :3, :3]
             dX = np.zeros((N, 3, 6))
             dX[:, :, :3] = lie.so3_hat(pc)
             dX[:, :, 3:] = -np.eye(3)
-            dZ = np.concatenate([-R @ lie.so3_hat(sub.points), R], axis=2)
+            dZ = np.concatenate([-R @ lie.so3_hat(pts), R], axis=2)
             J = np.zeros((2 * N + (6 * n_in if use_robot else 0), npar))
-            J[:2 * N, :6] = (Jp @ dX).reshape(2 * N, 6) / sigma
-            J[:2 * N, 6:12] = (Jp @ dZ).reshape(2 * N, 6) / sigma
+            J[:2 * N, :6] = (Jp @ dX).reshape(2 * N, 6) / s_row[:, None]
+            J[:2 * N, 6:12] = (Jp @ dZ).reshape(2 * N, 6) / s_row[:, None]
             if nf:
-                J[:2 * N, 12] = ds.reshape(-1) / sigma
-            r = e / sigma
+                J[:2 * N, 12] = ds.reshape(-1) / s_row
+            if nb:       # the board's points scaled by (1 + ε): the camera's points by R p ε
+                J[:2 * N, 12 + nf] = (Jp @ (R @ pts[..., None]))[..., 0].reshape(-1) / s_row
+            r = e / s_row
             if use_robot:
                 # A ← A Exp(δ_A) moves C by Exp(−Ad(X⁻¹) δ_A) on the left: the X column's
                 # derivative times Ad(X⁻¹).
                 dA = dX @ lie.adjoint(dq.inv(X))
                 if toA is not None:
                     dA = dA @ toA[sub.view]
-                J[rows[:, :, None], cols[:, None, :]] = (Jp @ dA) / sigma
+                J[rows[:, :, None], cols[:, None, :]] = (Jp @ dA) / sigma[sub.view, None, None]
                 for i in range(n_in):
                     J[2 * N + 6 * i:2 * N + 6 * i + 6, off + 6 * i:off + 6 * i + 6] = prior[i]
                 r = np.concatenate([r, np.einsum("nij,nj->ni", prior, delta).reshape(-1)])
@@ -898,10 +992,14 @@ def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool
             Z = dq.mul(Z, lie.se3_exp(step[6:12]))
             if nf:
                 scale *= 1.0 + step[12]
+            if nb:
+                board *= 1.0 + step[12 + nf]
             if use_robot:
                 delta = delta + step[off:].reshape(n_in, 6)
             P = np.linalg.inv(H)
-            leverage = float(np.sum((J[:2 * N] @ P) * J[:2 * N]))   # pixel dof the fit takes
+            # the pixel dof the fit takes, per view (REML: each σ from what the fit leaves)
+            leverage = np.bincount(np.repeat(sub.view, 2),
+                                   np.sum((J[:2 * N] @ P) * J[:2 * N], axis=1), minlength=n_in)
             new = float(r @ r)
             if float(step @ H @ step) < _TOL and abs(cost - new) <= 1e-9 * new:
                 break
@@ -925,13 +1023,17 @@ def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool
         full = np.zeros((len(F), 6))
         full[idx] = delta
     M = _corner_cameras(F, setup, X, Z, full)
-    _, u, _, _ = _project(M, views, scale)
+    _, u, _, _ = _project(M, _Views(views.points * board, views.pixels, views.view, views.K),
+                          scale)
     err = np.sum((u - views.pixels) ** 2, axis=1)
     count = np.bincount(views.view, minlength=len(F))
     rms = np.sqrt(np.bincount(views.view, err, minlength=len(F)) / np.maximum(count, 1))
     P12 = 0.5 * (P[:12, :12] + P[:12, :12].T)
-    return _CornerFit(X, Z, P12, rms, scale, sigma, float(np.sqrt(P[12, 12])) if nf else 0.0,
-                      np.diag(theta) if estimate else None)
+    dof = np.maximum(2 * corners_in - leverage, 1.0)
+    pooled = float(pixel_sigma or np.sqrt(np.sum(sigma ** 2 * dof) / np.sum(dof)))
+    return _CornerFit(X, Z, P12, rms, scale, pooled, float(np.sqrt(P[12, 12])) if nf else 0.0,
+                      np.diag(theta) if estimate else None, board,
+                      float(np.sqrt(P[12 + nf, 12 + nf])) if nb else 0.0)
 
 
 # ---- the API -----------------------------------------------------------------------------------
@@ -964,10 +1066,26 @@ def calibrate(base_flange, camera_target, setup: str = "eye_in_hand", *, robust:
     one (:func:`_corner_fit`): ``x``, ``z`` and their covariances then come from the corners,
     ``reprojection`` holds each view's RMS error (px); ``refine_focal`` estimates one scale of
     the focal lengths too (``focal_scale``); ``pixel_sigma`` (px) is the corner noise, estimated
-    from the reprojection errors when not given. The robot's noise there is
-    ``robot_covariance`` when given, estimated when neither covariance is given, and none (exact
-    robot poses) when only ``camera_covariance`` is.
+    per view from the reprojection errors when not given (the reported one their pooled RMS).
+    The robot's noise there is ``robot_covariance`` when given, estimated when neither
+    covariance is given, and none (exact robot poses) when only ``camera_covariance`` is.
+
+    Two readings of the data fit as well as the one given, and are caught by plausibility
+    instead (:func:`_plausible`, :func:`_camera_scale`): both poses inverted (``T_flange_base``
+    and ``T_target_camera``: X and Z exchange roles exactly) and the camera's translations at
+    another scale (a wrong board size). Where the data say which reading is right, the answer is
+    that reading's, with a warning saying what was corrected; where they cannot, ``Infeasible``.
     """
+    return _calibrate(base_flange, camera_target, setup, robust, corners, camera_covariance,
+                      robot_covariance, refine_focal, pixel_sigma)
+
+
+def _calibrate(base_flange, camera_target, setup, robust, corners, camera_covariance,
+               robot_covariance, refine_focal, pixel_sigma, inverted: bool = False,
+               rescaled: Optional[tuple[float, float]] = None) -> Calibration:
+    """:func:`calibrate`. ``inverted``: this is the re-solve on both poses inverted (not to be
+    turned back); ``rescaled``: ``(λ, σ)`` when it is the re-solve on camera translations
+    scaled by ``λ`` (whose uncertainty then enters the covariance)."""
     p = _prepare(base_flange, camera_target, setup)
     n = p.F.shape[0]
     views = None if corners is None else _views(corners, n)
@@ -1036,7 +1154,7 @@ def calibrate(base_flange, camera_target, setup: str = "eye_in_hand", *, robust:
     xi = lie.se3_log(dq.mul(dq.inv(fit.X), X0))
     agree = (float(np.linalg.norm(xi[:3])),
              float(np.linalg.norm(dq.to_pose(X0)[1] - dq.to_pose(fit.X)[1])),
-             float(xi @ np.linalg.solve(fit.P[:6, :6], xi)))
+             float(xi @ np.linalg.solve(fit.reported[:6, :6], xi)))
     # The closed form weighs nothing and is far less precise than the refinement (on OpenCV's
     # geometry 10–20 mm off at 0.1° / 0.5 mm noise): only a gross disagreement is a sign.
     if agree[2] > 1e4 and (agree[0] > np.radians(3.0) or agree[1] > 0.05):
@@ -1044,26 +1162,62 @@ def calibrate(base_flange, camera_target, setup: str = "eye_in_hand", *, robust:
                         f"{np.degrees(agree[0]):.2f}° / {1e3 * agree[1]:.1f} mm "
                         f"(NEES {agree[2]:.3g}): the model may not fit the data")
     # Robot and camera poses both inverted fit exactly as well as the truth (F⁻¹ Z C⁻¹ = X: X
-    # and Z exchange roles), so the data cannot tell; a mount far from the flange can.
-    mount, fixed = (fit.X, fit.Z) if p.setup == "eye_in_hand" else (fit.Z, fit.X)
-    reach = float(np.linalg.norm(dq.to_pose(mount)[1]))
-    base = float(np.linalg.norm(dq.to_pose(fixed)[1]))
-    if reach > _MAX_MOUNT or base < _MIN_FIXED:
-        what = ("camera", "target") if p.setup == "eye_in_hand" else ("target", "camera")
-        warnings.append(f"{_samples(idx)}: the {what[0]} comes out {reach:.2f} m from the "
-                        f"flange and the {what[1]} {base:.2f} m from the robot base: are both "
-                        f"base_flange and camera_target inverted (T_flange_base, "
-                        f"T_target_camera)?")
+    # and Z exchange roles), so the residuals cannot tell; plausibility can.
+    given, other = _plausible(p, fit.X, fit.Z, inlier), _plausible(p, fit.Z, fit.X, inlier, True)
+    if not given.mount_ok and not inverted and rescaled is None:
+        if other.mount_ok and other.front and given.behind:
+            cal = _calibrate(dq.inv(p.F), dq.inv(p.C), p.setup, robust, corners,
+                             _inverse_noise(p.C, SC), _inverse_noise(p.F, SRob), refine_focal,
+                             pixel_sigma, inverted=True)
+            return _warned(cal, f"{_samples(idx)}: base_flange and camera_target look both "
+                                f"inverted (T_flange_base, T_target_camera): as given "
+                                f"{given.says}, and the target lies behind the camera in every "
+                                f"sample; inverted, {other.says} with the target in front. "
+                                f"Solved as inverted; fix the conventions (the flange in the "
+                                f"robot's base frame, the target in the camera's)")
+        if other.mount_ok and not (given.front and other.behind):
+            raise Infeasible(f"base_flange, camera_target: as given {given.says}; with both "
+                             f"inverted (T_flange_base, T_target_camera: an exact fit too) "
+                             f"{other.says}. The data cannot tell which; check both pose "
+                             f"conventions (the flange in the robot's base frame, the target "
+                             f"in the camera's) ({_samples(idx)})")
+    if not given.mount_ok:
+        why = (f"though the target lies in front of the camera as given and behind it "
+               f"inverted" if given.front and other.behind else
+               f"and as inverted poses {other.says}")
+        warnings.append(f"{_samples(idx)}: {given.says}, {why}: check the mount and the pose "
+                        f"conventions (both poses inverted fit as well)")
     scale = _camera_scale(fit, p.C[inlier])
-    if abs(scale[0] - 1.0) > max(_SCALE_SIGMAS * scale[1], _MIN_SCALE):
-        warnings.append(f"{_samples(idx)}: the camera's translations fit best scaled by "
-                        f"{scale[0]:.4f} ± {scale[1]:.4f} against the robot's: a wrong board "
-                        f"size, or a camera scale error? X's translation is off by as much")
-    X, Z, P, Hx = fit.X, fit.Z, fit.P, fit.H
+    P_scale = 0.0
+    if rescaled is not None:
+        # The re-solve on scaled translations: λ's uncertainty widens the covariance.
+        P_scale = scale[2]
+        scale = (rescaled[0] * scale[0], rescaled[0] * scale[1], None)
+    elif abs(scale[0] - 1.0) > max(_SCALE_SIGMAS * scale[1], _MIN_SCALE):
+        lam = scale[0]
+        Cs = p.C.copy()
+        Cs[:, 4:] *= lam            # the dual part carries the translation linearly
+        D = np.diag([1.0] * 3 + [lam] * 3)
+        cs = None if views is None else [
+            (views.points[views.view == k] * lam, views.pixels[views.view == k], views.K[k])
+            for k in range(n)]
+        cal = _calibrate(p.F, Cs, p.setup, robust, cs, None if SC is None else D @ SC @ D,
+                         SRob, refine_focal, pixel_sigma, inverted, scale[:2])
+        return _warned(cal, f"{_samples(idx)}: the camera's translations fit best scaled by "
+                            f"{lam:.4f} ± {scale[1]:.4f} against the robot's: a wrong board "
+                            f"size, or a camera scale error? Solved with camera_target's "
+                            f"translations (and the board's points) scaled by {lam:.4f}, its "
+                            f"uncertainty in the covariance; X's translation was off by "
+                            f"{1e3 * _moved(fit.X, cal.x):.2f} mm without")
+    X, Z, P = fit.X, fit.Z, fit.reported + P_scale
+    Hx = np.linalg.inv(P)
     corner = {}
     if views is not None:
         robot = "estimate" if estimate else SRob
-        cf = _corner_fit(p.F, p.setup, X, Z, views, inlier, robot, refine_focal, pixel_sigma)
+        cf = _corner_fit(p.F, p.setup, X, Z, views, inlier, robot, refine_focal, pixel_sigma,
+                         refine_board=rescaled is not None)
+        if rescaled is not None:
+            scale = (rescaled[0] * cf.board_scale, rescaled[0] * cf.board_sigma, None)
         X, Z, P, Hx = cf.X, cf.Z, cf.P, np.linalg.inv(cf.P)
         corner = dict(reprojection=cf.reprojection, focal_scale=cf.focal_scale,
                       focal_sigma=cf.focal_sigma, pixel_sigma=cf.pixel_sigma)
@@ -1084,12 +1238,48 @@ def calibrate(base_flange, camera_target, setup: str = "eye_in_hand", *, robust:
         residual_covariance=np.array(S_all), nis=nis, leave_one_out=loo, closed_form_x=X0,
         closed_form_z=Z0, agreement=agree, rotation_condition=p.condition,
         excitation=p.excitation, iterations=fit.iterations, readings=p.readings,
-        camera_scale=scale)
+        camera_scale=scale[:2])
 
 
-def _camera_scale(fit: _Fit, C: np.ndarray) -> tuple[float, float]:
-    """The scale ``λ`` of the camera's translations that fits best, and its σ: one Gauss–Newton
-    step from λ = 1 at the optimum with ``λ`` joined to (X, Z). Scaling ``t`` of ``C_i`` moves
+@dataclass(frozen=True)
+class _Reading:
+    mount_ok: bool    # the flange-mounted part near the flange, the fixed one off the base
+    front: bool       # the target in front of the camera (z > 0 in T_camera_target), every sample
+    behind: bool      # ... behind it in every sample
+    says: str
+
+
+def _plausible(p: _Prepared, X, Z, inlier, inverted: bool = False) -> _Reading:
+    """How plausible the answer ``(X, Z)`` is as a mount (``inverted``: the reading of both poses
+    inverted, where ``(Z, X)`` of the given fit is the answer and ``C⁻¹`` the camera poses)."""
+    mount, fixed = (X, Z) if p.setup == "eye_in_hand" else (Z, X)
+    reach = float(np.linalg.norm(dq.to_pose(mount)[1]))
+    base = float(np.linalg.norm(dq.to_pose(fixed)[1]))
+    C = p.C[inlier]
+    depth = dq.to_pose(dq.inv(C) if inverted else C)[1][:, 2]
+    what = ("camera", "target") if p.setup == "eye_in_hand" else ("target", "camera")
+    return _Reading(reach <= _MAX_MOUNT and base >= _MIN_FIXED, bool(np.all(depth > 0.0)),
+                    bool(np.all(depth < 0.0)),
+                    f"the {what[0]} comes out {reach:.2f} m from the flange and the {what[1]} "
+                    f"{base:.2f} m from the robot base")
+
+
+def _inverse_noise(T, S):
+    return None if S is None else lie.cov_inverse(T, S)
+
+
+def _moved(a, b) -> float:
+    return float(np.linalg.norm(dq.to_pose(a)[1] - dq.to_pose(b)[1]))
+
+
+def _warned(cal: Calibration, warning: str) -> Calibration:
+    return replace(cal, warnings=(warning,) + cal.warnings)
+
+
+def _camera_scale(fit: _Fit, C: np.ndarray) -> tuple[float, float, np.ndarray]:
+    """The scale ``λ`` of the camera's translations that fits best, its σ, and what ``λ`` free
+    adds to the covariance of ``(X, Z)``: one Gauss–Newton step from λ = 1 at the optimum with
+    ``λ`` joined to (X, Z). Scaling ``t`` of ``C_i`` moves
     ``C_i`` by ``Exp([0, R_iᵀ t_i dλ])`` on the right, so the residual by ``Jr⁻¹(r_i)`` of that."""
     R, t = (M := dq.to_matrix(C))[:, :3, :3], M[:, :3, 3]
     d = np.zeros((len(C), 6))
@@ -1103,10 +1293,15 @@ def _camera_scale(fit: _Fit, C: np.ndarray) -> tuple[float, float]:
     try:
         Hi = np.linalg.inv(H)
     except np.linalg.LinAlgError:
-        return 1.0, float("inf")
+        return 1.0, float("inf"), np.zeros((12, 12))
     step = -Hi @ g
     sigma = float(np.sqrt(max(Hi[12, 12], 0.0)))
-    return 1.0 + float(step[12]), sigma if np.isfinite(sigma) else float("inf")
+    if not np.isfinite(sigma):
+        return 1.0 + float(step[12]), float("inf"), np.zeros((12, 12))
+    # λ free widens (X, Z)'s covariance from H₁₂⁻¹ to (H⁻¹)₁₂: by h hᵀ / (H⁻¹)_λλ, h = (H⁻¹)_:12,λ.
+    h = Hi[:12, 12]
+    extra = np.outer(h, h) / Hi[12, 12] if Hi[12, 12] > 0.0 else np.zeros((12, 12))
+    return 1.0 + float(step[12]), sigma, extra
 
 
 def _against(p: _Prepared, fit: _Fit, noise: _Noise, inlier):

@@ -86,6 +86,15 @@ def test_duplicates_are_out_of_the_answer_on_both_sides(client):
     assert not remote.rejected and remote.inliers.sum() == 8 and remote.warnings
 
 
+def test_both_poses_inverted_are_answered_right_and_said(client):
+    b = _handeye.broken("inverted_both", seed=1)
+    remote = client.calibrate(b.base_flange, b.camera_target)
+    _assert_same(remote, handeye.calibrate(b.base_flange, b.camera_target))
+    assert any("Solved as inverted" in w for w in remote.warnings)
+    deg, mm = _handeye.pose_error(remote.x, b.scene.x)
+    assert deg < 0.3 and mm < 3.0
+
+
 def test_given_noise_travels_per_pair(client):
     s = _handeye.scene(10, camera_noise=(0.1, 0.5), robot_noise=(0.05, 0.2), seed=7)
     rng = np.random.default_rng(1)
@@ -222,6 +231,11 @@ def _degenerate():
                             "eye_in_hand", "parallel")
     out["the same pose ten times"] = (still, np.repeat(s.camera_target[:1], 10, 0),
                                       "eye_in_hand", "duplicates")
+    # both poses inverted, the board's z out of it: fits as well as the truth, and the target's
+    # depth does not tell the readings apart
+    out_of_board = dq.mul(s.camera_target, _handeye.rotation([np.pi, 0.0, 0.0]))
+    out["both poses inverted, undecidable"] = (dq.inv(s.base_flange), dq.inv(out_of_board),
+                                               "eye_in_hand", "cannot tell")
     out["swapped setup"] = (s.base_flange, s.camera_target, "eye_to_hand", "swapped")
     out["camera poses inverted"] = (s.base_flange, dq.inv(s.camera_target), "eye_in_hand",
                                     "inverted")
