@@ -73,7 +73,7 @@ class SimProcess(subprocess.Popen):
         for t in self._readers:
             t.join(timeout)
 
-    def errors(self) -> str:
+    def stderr_tail(self) -> str:
         """The last lines the simulator wrote to standard error, once it has ended."""
         self.join_output()
         return "\n".join(self._errors).strip()

@@ -332,7 +332,7 @@ class PiperSimProcess:
             if self.proc.poll() is None:
                 self.proc.kill()
             self.proc.wait()
-            err = self.proc.errors()
+            err = self.proc.stderr_tail()
             end_process(self.proc)
             raise RuntimeError(f"could not start the PiPER simulator on {interface}:{channel}: "
                                f"{err or f'no answer within {timeout:g} s'}")

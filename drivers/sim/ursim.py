@@ -831,7 +831,7 @@ class URSimProcess:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
-                return self.proc.errors() or f"exit code {self.proc.returncode}"
+                return self.proc.stderr_tail() or f"exit code {self.proc.returncode}"
             try:
                 self._conn = socket.create_connection((self.host, HOOK_PORT), timeout=0.2)
                 self._conn.settimeout(timeout)

@@ -24,3 +24,15 @@ def test_a_chatty_simulator_does_not_block_and_its_output_is_logged(caplog):
                        "pid": proc.pid, "stream": "stdout", "line": "chatty: done"}
     assert {r.levelno for r in caplog.records if r.name == "dqpose.sim"} == {logging.INFO,
                                                                               logging.WARNING}
+
+
+def test_a_simulator_that_dies_says_why():
+    """Its standard error's last lines, once it has ended (Popen's own ``errors`` attribute is
+    the text-mode setting: the method must not share its name)."""
+    proc = start_process("tests.drivers.sim._chatty", 1000)
+    try:
+        assert proc.wait(timeout=60) == 0
+    finally:
+        end_process(proc)
+    tail = proc.stderr_tail()
+    assert tail.splitlines() == ["x" * 99] * (1000 // 100 // 10)
