@@ -281,11 +281,12 @@ class _Control:
                 return self._cancelled()
             if buf.gone():
                 return self._decelerate("the process that fed the arm is gone")
+            finished = buf.finished()       # read first: once set, every slot is in
             slot = buf.pop()
             if slot is not None:
                 if not self._send(*slot):
                     return self._cancelled()
-            elif buf.finished():
+            elif finished:
                 return self._settle()
             else:
                 return self._decelerate()
