@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import atexit
 import itertools
+import mmap
 import multiprocessing as mp
 import os
 import pickle
@@ -35,7 +36,7 @@ import struct
 import threading
 import time
 import weakref
-from multiprocessing import resource_tracker, shared_memory
+from multiprocessing import shared_memory
 from typing import Optional
 
 import numpy as np
@@ -50,26 +51,43 @@ _WRITTEN, _READ, _FINISHED, _CANCEL, _SENT, _REALTIME = range(6)
 _HEADER = 8
 _SLOT = 9                   # plan time, then the pose
 _ID = struct.Struct("<q")   # a run's id on the wake pipe
-_SPIN = float(os.environ.get("DQ_SPIN", "0.0003"))              # s: how much of a period's end the loop spins rather than sleeps
+_SPIN = 0.0003              # s: how much of a period's end the loop spins rather than sleeps
 
 
 class _Ring:
-    """Set-points (plan time + pose) and the counters, in shared memory."""
+    """Set-points (plan time + pose) and the counters, in shared memory: made by the parent
+    (``name`` None), which alone unlinks it; mapped by name in the child, outside
+    ``multiprocessing``'s resource tracker (whose register from the child could come after the
+    parent's unregister and count the ring as leaked)."""
 
     def __init__(self, capacity: int, name: Optional[str] = None):
         self.capacity = int(capacity)
         size = 8 * (_HEADER + _SLOT * self.capacity)
-        self.shm = shared_memory.SharedMemory(name=name, create=name is None, size=size)
-        self.head = np.ndarray((_HEADER,), np.int64, self.shm.buf)
-        self.slots = np.ndarray((self.capacity, _SLOT), np.float64, self.shm.buf, offset=8 * _HEADER)
+        if name is None:
+            self.shm = shared_memory.SharedMemory(create=True, size=size)
+            self.name, buf = self.shm.name, self.shm.buf
+        else:
+            import _posixshmem
+            self.shm, self.name = None, name
+            fd = _posixshmem.shm_open("/" + name, os.O_RDWR, mode=0o600)
+            try:
+                self._map = mmap.mmap(fd, size)
+            finally:
+                os.close(fd)
+            buf = memoryview(self._map)
+        self.head = np.ndarray((_HEADER,), np.int64, buf)
+        self.slots = np.ndarray((self.capacity, _SLOT), np.float64, buf, offset=8 * _HEADER)
         if name is None:
             self.head[:] = 0
 
-    def close(self, unlink: bool = False) -> None:
+    def close(self) -> None:
+        """Unmap it; the parent also unlinks it."""
         del self.head, self.slots       # no view may outlive the mapping
+        if self.shm is None:
+            self._map.close()
+            return
         self.shm.close()
-        if unlink:
-            self.shm.unlink()
+        self.shm.unlink()
 
 
 class _RingBuffer(Buffer):
@@ -287,7 +305,7 @@ class _Run:
     def start(self) -> None:
         self.proc._runs[self.id] = self
         try:
-            self.proc._request("run", self.id, self.ex.settings, self.ring.shm.name,
+            self.proc._request("run", self.id, self.ex.settings, self.ring.name,
                                self.ring.capacity)
         except BaseException:
             self.proc._runs.pop(self.id, None)
@@ -335,7 +353,7 @@ class _Run:
                 return
             h = self.ring.head
             self._final = (int(h[_SENT]), int(h[_REALTIME]), 0)
-            self.ring.close(unlink=True)
+            self.ring.close()
             self.ring = None
 
     def close(self) -> None:
@@ -359,7 +377,6 @@ class ArmProcess(Arm):
     def __init__(self, spec: str, *, ring_seconds: float = 120.0, start_timeout: float = 60.0,
                  **kwargs):
         ctx = mp.get_context("spawn")   # a fork would copy this process's threads' state
-        resource_tracker.ensure_running()   # shared by the child: it does not unlink the rings
         self._conn, child_conn = ctx.Pipe()
         wake_r, self._wake = ctx.Pipe(duplex=False)
         self._fb, fb_w = ctx.Pipe(duplex=False)

@@ -16,7 +16,7 @@ would be); the clients, the server and this process keep ordinary scheduling. `-
 thread`: the loop in a thread of this process, as before (only that thread real-time).
 
 The motion: a smooth closed loop (x, y and a turn about z, zero velocity at both ends), sampled
-at 500 Hz and pushed 0.1 s at a time, at most 0.3 s ahead, from a feeder thread, as a network
+at 500 Hz and pushed 0.1 s at a time, at most `--ahead` (2 s) ahead, from a feeder thread, as a network
 stream would. Jitter is |dt - 2 ms| between the arrivals of consecutive set-points at the
 simulator (the kernel's receive stamps of their packets, on CLOCK_MONOTONIC, the clock this
 process reads; the column "read p99" is the same from when the simulator's Python thread had read
@@ -61,7 +61,11 @@ def loop_plan(start: np.ndarray, seconds: float, rate: float, loop: float = 2.0)
     return t, dq.from_pose(dq.to_pose(rot)[0], p0 + d)
 
 
-def feed(ex: Executor, t, poses, chunk: float = 0.1, ahead: float = 0.3) -> None:
+AHEAD = 2.0     # --ahead
+
+
+def feed(ex: Executor, t, poses, chunk: float = 0.1) -> None:
+    ahead = AHEAD
     k = max(1, int(round(chunk / ex.period)))
     for i in range(0, len(t), k):
         while ex.buffered > ahead and not ex.done:
@@ -126,8 +130,14 @@ def cancel_latency(sim, arm, reps: int) -> np.ndarray:
         t_cancel = time.monotonic()
         ex.cancel()
         ex.wait(5)
-        stops = sim.log(mark, cmd=ursim.SERVO_STOP, keys=["mono"])["entries"]
-        out.append(stops[0]["mono"] - t_cancel if stops else math.nan)
+        # this cancel's stop: the first the simulator read after it (an earlier stop read late,
+        # on a loaded machine, is not it); timed by its kernel stamp
+        deadline, stop = time.monotonic() + 1.0, None
+        while stop is None and time.monotonic() < deadline:
+            stops = sim.log(mark, cmd=ursim.SERVO_STOP, keys=["mono", "read"])["entries"]
+            stop = next((e for e in stops if e["read"] > t_cancel), None)
+            time.sleep(0.01)
+        out.append(stop["mono"] - t_cancel if stop else math.nan)
         sim.set_pose(ursim.SimConfig().pose)
         time.sleep(0.05)
     return np.asarray(out)
@@ -178,6 +188,9 @@ def main(argv=None) -> int:
                          "root); the executor asks for its own (Executor realtime=20)")
     ap.add_argument("--executor-realtime", type=int, default=20, metavar="PRIO",
                     help="Executor(realtime=PRIO); 0: ordinary scheduling")
+    ap.add_argument("--ahead", type=float, default=2.0,
+                    help="how far (s) the feeder keeps the buffer ahead of the arm (default 2; "
+                         "the Execute RPC pushes the whole plan at once)")
     ap.add_argument("--executor", choices=("process", "thread"), default="process",
                     help="where the control loop runs (default: the arm's own process)")
     ap.add_argument("--nice", type=int, default=None,
@@ -189,8 +202,9 @@ def main(argv=None) -> int:
     from tests.rpc._grpc_server import ServerThread
 
     rows = []
-    global EXECUTOR_REALTIME
+    global EXECUTOR_REALTIME, AHEAD
     EXECUTOR_REALTIME = args.executor_realtime or None
+    AHEAD = args.ahead
     with ursim.URSimProcess(args=("--max-linear-speed", "5")) as sim:
         if args.sim_realtime:
             realtime(sim.proc.pid, args.sim_realtime)
