@@ -111,7 +111,7 @@ def test_a_plan_pushed_in_chunks_runs_to_the_end(rig, arm):
     for i in range(0, len(times), 40):
         ex.push(times[i:i + 40], poses[i:i + 40])
     ex.finish()
-    assert ex.wait(10) == Result.FINISHED and ex.message == ""
+    assert (ex.wait(10), ex.message) == (Result.FINISHED, "")
     fb = _drain(ex)
     assert [f.result for f in fb] == [Result.OK] * (len(fb) - 1) + [Result.FINISHED]
     d, a = pose_delta(fb[-1].actual, poses[-1])
