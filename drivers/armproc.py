@@ -273,7 +273,9 @@ class _Run:
     """The parent's side of one run (what :class:`~drivers.executor.Executor` calls)."""
 
     def __init__(self, proc: "ArmProcess", ex, run_id: int):
-        self.proc, self.ex, self.id = proc, ex, run_id
+        # the executor holds this run; this run holds it weakly (no cycle: see _DequeBuffer),
+        # and the arm process strongly while the run goes
+        self.proc, self._ex, self.id = proc, weakref.ref(ex), run_id
         self.ring: Optional[_Ring] = None
         self._lock = threading.Lock()
         self._final = None          # (sent, realtime) once the ring is released
@@ -289,7 +291,7 @@ class _Run:
         while i < len(slots):
             with self._lock:
                 if self._final is not None:
-                    raise ValueError(f"push: the run has ended ({self.ex.result.name})")
+                    raise ValueError("push: the run has ended")
                 head, cap = self.ring.head, self.ring.capacity
                 w = int(head[_WRITTEN])
                 n = min(len(slots) - i, cap - (w - int(head[_READ])))
@@ -302,8 +304,12 @@ class _Run:
                     continue
             time.sleep(self.ex.period)       # full: the arm makes room, a period a slot
 
+    @property
+    def ex(self):
+        return self._ex()
+
     def start(self) -> None:
-        self.proc._runs[self.id] = self
+        self.proc._runs[self.id] = (self, self.ex)
         try:
             self.proc._request("run", self.id, self.ex.settings, self.ring.name,
                                self.ring.capacity)
@@ -444,21 +450,21 @@ class ArmProcess(Arm):
             except (EOFError, OSError):
                 break
             rid, t, stamp, cmd, act, res, msg = pickle.loads(data)
-            run = self._runs.get(rid)
+            run, ex = self._runs.get(rid, (None, None))
             if run is None:
                 continue
             fb = Feedback(t, stamp, None if cmd is None else np.asarray(cmd),
                           None if act is None else np.asarray(act), Result(res), msg)
             if fb.result == Result.OK:
-                run.ex._emit(fb)
+                ex._emit(fb)
                 continue
             self._runs.pop(rid, None)
             run.release()
-            run.ex._ended(fb)
+            ex._ended(fb)
         for rid in list(self._runs):     # the child died without a last word
-            run = self._runs.pop(rid)
+            run, ex = self._runs.pop(rid)
             run.release()
-            run.ex._ended(Feedback(float("nan"), time.time(), None, None, Result.ERROR,
+            ex._ended(Feedback(float("nan"), time.time(), None, None, Result.ERROR,
                                    f"the arm's process ended (exit code "
                                    f"{self.process.exitcode}) before the run did"))
 

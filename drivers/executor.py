@@ -354,10 +354,21 @@ def check_start(arm: Arm, first: np.ndarray, tolerance: tuple) -> None:
 
 
 class _DequeBuffer(Buffer):
-    """The buffer of a loop in the caller's process: the :class:`Executor`'s own deque."""
+    """The buffer of a loop in the caller's process: the :class:`Executor`'s own deque. Made by
+    the loop's thread and dropped with it: held by the executor it would make a reference
+    cycle, and an arm kept alive by a cycle is freed by the garbage collector whenever it runs
+    (``ur_rtde``'s destructors then sleep a second with the interpreter lock held)."""
 
     def __init__(self, ex: "Executor"):
         self.ex = ex
+
+    @property
+    def realtime(self):
+        return self.ex._realtime
+
+    @realtime.setter
+    def realtime(self, on):
+        self.ex._realtime = on
 
     def ready(self, need, timeout):
         ex = self.ex
@@ -470,7 +481,7 @@ class Executor:
         self._started = False
         # an arm in its own process runs the loop there, on a ring in shared memory
         self._remote = arm.start_run(self) if hasattr(arm, "start_run") else None
-        self._buffer = self._remote or _DequeBuffer(self)
+        self._realtime = False
 
     @property
     def prefill(self) -> float:
@@ -496,7 +507,7 @@ class Executor:
     @property
     def realtime(self) -> bool:
         """Whether the control loop got real-time scheduling (False until it runs)."""
-        return self._buffer.realtime
+        return self._remote.realtime if self._remote is not None else self._realtime
 
     # ------------------------------------------------------------------ caller side
     def push(self, times, poses) -> None:
@@ -663,4 +674,4 @@ class Executor:
             self._cond.notify_all()
 
     def _run(self) -> None:
-        self._ended(_Control(self.arm, self.settings, self._buffer).run())
+        self._ended(_Control(self.arm, self.settings, _DequeBuffer(self)).run())
