@@ -24,6 +24,12 @@ SOURCES = {
 
 
 def _open(kind: str, table: dict, spec: str, kwargs: dict):
+    module, cls, channel = _backend(kind, table, spec)
+    return getattr(importlib.import_module(module), cls).open(channel, **kwargs)
+
+
+def _backend(kind: str, table: dict, spec: str) -> tuple[str, str, str]:
+    """(module, class, channel) of ``spec``, else ``ValueError`` naming ``kind``."""
     if not isinstance(spec, str):
         raise ValueError(f"{kind}: expected '<backend>:<channel>', got {spec!r}")
     name, sep, channel = spec.partition(":")
@@ -33,12 +39,19 @@ def _open(kind: str, table: dict, spec: str, kwargs: dict):
     if not sep or not channel:
         raise ValueError(f"{kind}: {spec!r} has no channel; expected '{name}:<channel>'")
     module, cls = table[name].split(":")
-    return getattr(importlib.import_module(module), cls).open(channel, **kwargs)
+    return module, cls, channel
 
 
-def open_arm(spec: str, **kwargs):
+def open_arm(spec: str, process: bool = False, **kwargs):
     """An :class:`~drivers.base.Arm` by name: ``"ur:<host>"`` or
-    ``"piper:<python-can interface>:<channel>"``."""
+    ``"piper:<python-can interface>:<channel>"``. ``process=True``: the arm lives in a child
+    process of its own, where an :class:`~drivers.executor.Executor` on it runs its control loop
+    (:class:`drivers.armproc.ArmProcess`; its bus must reach across processes: not python-can's
+    ``virtual``)."""
+    if process:
+        _backend("arm", ARMS, spec)
+        from drivers.armproc import ArmProcess
+        return ArmProcess(spec, **kwargs)
     return _open("arm", ARMS, spec, kwargs)
 
 

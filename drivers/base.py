@@ -12,6 +12,7 @@ from __future__ import annotations
 import abc
 import math
 import numbers
+import time
 from dataclasses import dataclass, field
 from typing import Iterator, Optional
 
@@ -94,6 +95,9 @@ class LimitError(ArmError):
     def __init__(self, message: str, limit: str, value, bound):
         super().__init__(message)
         self.limit, self.value, self.bound = limit, value, bound
+
+    def __reduce__(self):       # whole across a process boundary (drivers.armproc)
+        return type(self), (str(self), self.limit, self.value, self.bound)
 
 
 def _positive(name: str, v) -> float:
@@ -263,7 +267,9 @@ class Arm(abc.ABC):
     to a controlled stop and raises :class:`LimitError`; a set-point is never changed to fit.
     ``move()`` arguments go through :meth:`Limits.check_move`. ``servo()`` returns at the end of
     its cycle on the :class:`Pacer` schedule, so a loop of ``servo()`` calls streams at
-    ``period`` without drifting."""
+    ``period`` without drifting; ``servo_nowait()`` sends the same set-point and returns that end
+    instead, for a caller that waits on something else meanwhile (the executor waits on a
+    cancel)."""
 
     #: controller period in seconds (servo commands are sent once per period)
     period: float = 0.008
@@ -294,9 +300,21 @@ class Arm(abc.ABC):
                                  f"{covariance.shape}")
         return Measurement(source=self.name, time=stamp, pose=pose, covariance=covariance)
 
-    @abc.abstractmethod
     def servo(self, pose: np.ndarray) -> None:
-        """Send one set-point; call once per ``period``."""
+        """Send one set-point and return at the end of its cycle; call once per ``period``."""
+        self.wait_cycle(self.servo_nowait(pose))
+
+    @abc.abstractmethod
+    def servo_nowait(self, pose: np.ndarray) -> float:
+        """Send one set-point (checked as :meth:`servo` checks it) and return, without waiting,
+        when its cycle ends on the :class:`Pacer` schedule (``time.monotonic()`` seconds): the
+        next set-point is due then."""
+
+    def wait_cycle(self, end: float) -> None:
+        """Wait until ``end`` (``time.monotonic()`` seconds), the end of a servo cycle."""
+        delay = end - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
 
     @abc.abstractmethod
     def move(self, pose: np.ndarray, speed: float, accel: float) -> None:

@@ -1,20 +1,31 @@
 """Execute a stream of time-stamped poses on any :class:`~drivers.base.Arm`.
 
-A dedicated thread feeds the arm one set-point per controller period from a buffer; the caller
+A control loop feeds the arm one set-point per controller period from a buffer; the caller
 (a gRPC stream, a planner) only fills the buffer, ahead of time, and never paces the arm: a late
-network costs a controlled stop, never a late or doubled set-point. The arm's own ``servo()``
-keeps the absolute cycle schedule (:class:`~drivers.base.Pacer`) and checks every set-point
-against its :class:`~drivers.base.Limits`.
+network costs a controlled stop, never a late or doubled set-point. The arm's own
+``servo_nowait()`` keeps the absolute cycle schedule (:class:`~drivers.base.Pacer`) and checks
+every set-point against its :class:`~drivers.base.Limits`; between two set-points the loop waits
+for the cycle's end or a cancel, whichever comes first, so a cancel stops the arm at once rather
+than at the end of the period.
+
+Where the loop runs follows the arm: in a thread of this process for an arm opened here, and in
+the arm's own process for one opened with ``drivers.open_arm(spec, process=True)``
+(:class:`drivers.armproc.ArmProcess`), where no thread of the caller's (gRPC, the feeder, the
+garbage collector of a large heap) can hold the interpreter lock when a set-point is due. Both
+run the same loop (:class:`_Control`) on the same checks; only the buffer differs (a deque here,
+a ring in shared memory there).
 
 The buffer holds samples on the plan's clock, pushed in chunks (``push(times, poses)``) at any
 rate; they are resampled at the arm's period when pushed (:func:`service.interpolate.interpolate`),
-so the control thread only pops. Each run ends in one :class:`Result`, in the style of ruckig's
+so the control loop only pops. Each run ends in one :class:`Result`, in the style of ruckig's
 result codes (positive: ended as controlled, negative: a fault):
 
 * ``FINISHED``: ``finish()`` was called, every sample was sent and the arm settled on the last;
-* ``STOPPED``: ``cancel()`` (a client gone, a user's stop): ``arm.stop()`` in the next period;
-* ``STALLED``: the buffer ran dry before ``finish()``: the arm decelerates along its last step
-  within ``stop_fraction`` of its acceleration limits, then stops;
+* ``STOPPED``: ``cancel()`` (a client gone, a user's stop): ``arm.stop()`` at once, within the
+  period under way;
+* ``STALLED``: the buffer ran dry before ``finish()``, or the process that fed an arm process
+  died: the arm decelerates along its last step within ``stop_fraction`` of its acceleration
+  limits, then stops;
 * ``LIMITED``: a set-point broke the arm's Limits; the arm stopped itself, the message is the
   :class:`~drivers.base.LimitError`'s;
 * ``PROTECTIVE_STOP``: the arm reports a protective or emergency stop; nothing more is sent
@@ -22,8 +33,9 @@ result codes (positive: ended as controlled, negative: a fault):
 * ``ERROR``: anything else (lost connection, the arm moved before the first set-point).
 
 A feedback record (:class:`Feedback`) per ``feedback_every`` set-points, and always one last with
-the final result, goes to ``callback`` (called on the control thread: hand it on, e.g. with
-``loop.call_soon_threadsafe``) or, without one, to a queue read with :meth:`Executor.feedback`.
+the final result, goes to ``callback`` (called on a thread of the executor's: hand it on, e.g.
+with ``loop.call_soon_threadsafe``) or, without one, to a queue read with
+:meth:`Executor.feedback`.
 
     ex = Executor(arm)
     traj = plan(...).at_rate(1 / arm.period)
@@ -91,8 +103,307 @@ def _tolerance(name: str, v) -> tuple[float, float]:
     return _positive(f"{name}[0]", lin), _positive(f"{name}[1]", ang)
 
 
+@dataclass(frozen=True)
+class Settings:
+    """What the control loop needs of an :class:`Executor`'s arguments (checked there), whole
+    and picklable, for a loop in another process."""
+    period: float
+    prefill: float
+    stall_timeout: float
+    settle_timeout: float
+    feedback_every: int
+    stop_fraction: float
+    start_tolerance: tuple
+    settle_tolerance: tuple
+    realtime: Optional[int]
+
+
+class Buffer:
+    """The set-points as the control loop sees them; one per kind of transport (a deque in this
+    process, :class:`drivers.armproc.RingBuffer` in shared memory)."""
+
+    #: set by the loop: whether it got real-time scheduling
+    realtime = False
+
+    def ready(self, need: int, timeout: float) -> bool:
+        """Wait until ``need`` set-points are buffered, the input finished, or a cancel; False
+        if none of these came within ``timeout`` seconds."""
+        raise NotImplementedError
+
+    def first(self) -> Optional[np.ndarray]:
+        """The first buffered pose, not taken."""
+        raise NotImplementedError
+
+    def pop(self) -> Optional[tuple[float, np.ndarray]]:
+        """The next (plan time, pose), or None when the buffer is empty."""
+        raise NotImplementedError
+
+    def finished(self) -> bool:
+        raise NotImplementedError
+
+    def cancelled(self) -> bool:
+        raise NotImplementedError
+
+    def gone(self) -> bool:
+        """Whoever fed the buffer is gone (a dead parent process): stop as on a dry buffer."""
+        return False
+
+    def wait(self, end: float) -> None:
+        """Until ``time.monotonic()`` reaches ``end``, or a cancel, whichever comes first."""
+        raise NotImplementedError
+
+    def sent(self, n: int) -> None:
+        """``n`` set-points have been sent."""
+
+    def emit(self, fb: Feedback, final: bool = False) -> None:
+        raise NotImplementedError
+
+
+def _realtime(priority: Optional[int]) -> bool:
+    """The calling thread to SCHED_FIFO at ``priority``; False where not permitted (or None)."""
+    if priority is None:
+        return False
+    try:        # this thread only: the caller's other threads keep their scheduling
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        return True
+    except (AttributeError, OSError):     # not Linux, or not permitted: as before
+        return False
+
+
+class _Control:
+    """One run: the arm fed from ``buffer`` until a :class:`Result`. The same code in a thread
+    (:class:`Executor`) and in an arm's own process (:mod:`drivers.armproc`)."""
+
+    def __init__(self, arm: Arm, settings: Settings, buffer: Buffer):
+        self.arm, self.s, self.buf = arm, settings, buffer
+        self.period = settings.period
+        self._last: Optional[tuple[float, np.ndarray]] = None   # the last set-point sent
+        self._step = np.zeros(6)
+        self._returned = self._called = 0.0     # monotonic: the last servo returned, began
+        self._end: Optional[float] = None       # when the cycle of the last set-point ends
+        self.sent = 0
+
+    def run(self) -> Feedback:
+        """Runs to the end; the last record (the result, its message)."""
+        self.buf.realtime = _realtime(self.s.realtime)
+        try:
+            result, message = self._execute()
+        except LimitError as e:
+            result, message = Result.LIMITED, str(e)
+            late = self._called - self._returned
+            if self._returned and late > 10 * self.period:
+                # a starved control loop, not the plan: the arm's watchdog stopped it meanwhile
+                message += (f" (this control loop was {late * 1e3:.0f} ms late for the "
+                            "set-point; a stream that pauses is stopped by the arm's watchdog)")
+        except ArmError as e:
+            result, message = self._fault(e)
+        except Exception as e:  # the run must end with a result, whatever broke
+            result, message = Result.ERROR, f"{type(e).__name__}: {e}"
+            self._stop_arm()
+        stamp, actual = self._actual()
+        t, pose = self._last if self._last is not None else (math.nan, None)
+        return Feedback(t, stamp, pose, actual, result, message)
+
+    def _actual(self) -> tuple[float, Optional[np.ndarray]]:
+        try:
+            return self.arm.tool_pose()
+        except ArmError:
+            return time.time(), None
+
+    def _fault(self, e: ArmError) -> tuple[Result, str]:
+        # A controller may refuse a command (a paused program) a cycle or two before its status
+        # data says why: give the report a few periods to arrive.
+        deadline = time.monotonic() + max(10 * self.period, 0.05)
+        while True:
+            try:
+                st = self.arm.status()
+            except ArmError:
+                return Result.ERROR, str(e)
+            if st.protective_stop or st.emergency_stop:
+                what = "emergency stop" if st.emergency_stop else "protective stop"
+                msg = str(e) if what in str(e) else f"{what}: {e}"
+                return Result.PROTECTIVE_STOP, msg
+            if time.monotonic() > deadline:
+                break
+            time.sleep(self.period)
+        self._stop_arm()
+        return Result.ERROR, str(e)
+
+    def _stop_arm(self) -> None:
+        try:
+            self.arm.stop()
+        except ArmError:
+            pass   # the arm is gone or faulted; it stops itself then
+
+    def _check_start(self, first: np.ndarray) -> None:
+        check_start(self.arm, first, self.s.start_tolerance)
+
+    def _send(self, t: float, pose: np.ndarray) -> bool:
+        """Waits out the cycle under way, then sends; False (nothing sent) if a cancel came
+        meanwhile."""
+        if self._end is not None:
+            self.buf.wait(self._end)
+            if self.buf.cancelled():
+                return False
+        self._called = time.monotonic()
+        self._end = self.arm.servo_nowait(pose)
+        self._returned = time.monotonic()
+        if self._last is not None:
+            self._step = servo_step(pose, self._last[1])
+        self._last = (t, pose)
+        self.sent += 1
+        self.buf.sent(self.sent)
+        if self.sent % self.s.feedback_every == 0:
+            stamp, actual = self._actual()
+            self.buf.emit(Feedback(t, stamp, pose, actual, Result.OK))
+        return True
+
+    def _cancelled(self, when: str = "") -> tuple[Result, str]:
+        self._stop_arm()
+        return Result.STOPPED, f"cancelled{when}; the arm was stopped"
+
+    def _execute(self) -> tuple[Result, str]:
+        s, buf = self.s, self.buf
+        need = int(math.ceil(s.prefill / self.period - 1e-9)) + 1
+        ready = buf.ready(need, s.stall_timeout)
+        if buf.cancelled():
+            return Result.STOPPED, "cancelled before the first set-point; the arm was not moved"
+        if not ready or buf.first() is None:
+            return Result.STALLED, (f"fewer than {s.prefill:g} s of the plan arrived within "
+                                    f"{s.stall_timeout:g} s; the arm was not moved")
+        # The arm may have moved since the first push.
+        try:
+            self._check_start(buf.first())
+        except ValueError as e:
+            return Result.ERROR, str(e)
+        while True:
+            if buf.cancelled():
+                return self._cancelled()
+            if buf.gone():
+                return self._decelerate("the process that fed the arm is gone")
+            finished = buf.finished()       # read first: once set, every slot is in
+            slot = buf.pop()
+            if slot is not None:
+                if not self._send(*slot):
+                    return self._cancelled()
+            elif finished:
+                return self._settle()
+            else:
+                return self._decelerate()
+
+    def _settle(self) -> tuple[Result, str]:
+        t, goal = self._last
+        tl, ta = self.s.settle_tolerance
+        deadline = time.monotonic() + self.s.settle_timeout
+        while True:
+            if self.buf.cancelled():
+                return self._cancelled(" while settling")
+            d, a = pose_delta(self.arm.tool_pose()[1], goal)
+            if d <= tl and a <= ta:
+                self._stop_arm()
+                return Result.FINISHED, ""
+            if time.monotonic() > deadline:
+                self._stop_arm()
+                return Result.ERROR, (f"the last pose was not reached within "
+                                      f"{self.s.settle_timeout:g} s ({d:.4g} m and "
+                                      f"{math.degrees(a):.4g} deg away); the arm was stopped")
+            if not self._send(t, goal):
+                return self._cancelled(" while settling")
+
+    def _decelerate(self, why: str = "") -> tuple[Result, str]:
+        """Brake along the last step, shortening it by ``stop_fraction`` of the acceleration
+        limits each period, so the stop passes the same Limits as the plan."""
+        L, P = self.arm.limits, self.period
+        dl = self.s.stop_fraction * L.max_linear_accel * P * P
+        da = self.s.stop_fraction * L.max_angular_accel * P * P
+        t, pose = self._last
+        lin, ang = self._step[:3].copy(), self._step[3:].copy()
+        n = 0
+        while True:
+            nl, na = float(np.linalg.norm(lin)), float(np.linalg.norm(ang))
+            if nl == 0 and na == 0:
+                break
+            if self.buf.cancelled():
+                return self._cancelled(" while stopping after a stall")
+            lin = lin * (max(nl - dl, 0.0) / nl) if nl > 0 else lin
+            ang = ang * (max(na - da, 0.0) / na) if na > 0 else ang
+            q, p = dq.to_pose(pose)
+            pose = dq.from_pose(dq.mul(dq.from_pose(quat_from_rotvec(ang), [0, 0, 0]),
+                                       dq.from_pose(q, [0, 0, 0]))[:4], p + lin)
+            t += P
+            if not self._send(t, pose):
+                return self._cancelled(" while stopping after a stall")
+            n += 1
+        if self._end is not None:
+            self.buf.wait(self._end)        # the last braking step's cycle
+        self._stop_arm()
+        what = why or f"the buffer ran dry at plan time {t - n * P:.4f} s before finish()"
+        return Result.STALLED, (f"{what}; the arm was brought to rest in {n} set-points and "
+                                "stopped")
+
+
+def check_start(arm: Arm, first: np.ndarray, tolerance: tuple) -> None:
+    """``ValueError`` unless ``first`` is within ``tolerance`` (m, rad) of the arm's pose."""
+    d, a = pose_delta(arm.tool_pose()[1], first)
+    tl, ta = tolerance
+    if d > tl or a > ta:
+        raise ValueError(f"poses[0]: the plan starts {d:.4g} m and {math.degrees(a):.4g} deg "
+                         f"from the arm's actual pose; it must start within {tl:.3g} m and "
+                         f"{math.degrees(ta):.3g} deg of it (start_tolerance); the arm was "
+                         "not moved")
+
+
+class _DequeBuffer(Buffer):
+    """The buffer of a loop in the caller's process: the :class:`Executor`'s own deque. Made by
+    the loop's thread and dropped with it: held by the executor it would make a reference
+    cycle, and an arm kept alive by a cycle is freed by the garbage collector whenever it runs
+    (``ur_rtde``'s destructors then sleep a second with the interpreter lock held)."""
+
+    def __init__(self, ex: "Executor"):
+        self.ex = ex
+
+    @property
+    def realtime(self):
+        return self.ex._realtime
+
+    @realtime.setter
+    def realtime(self, on):
+        self.ex._realtime = on
+
+    def ready(self, need, timeout):
+        ex = self.ex
+        with ex._cond:
+            return ex._cond.wait_for(lambda: len(ex._slots) >= need or ex._finished_input
+                                     or ex._cancel.is_set(), timeout)
+
+    def first(self):
+        with self.ex._cond:
+            return self.ex._slots[0][1] if self.ex._slots else None
+
+    def pop(self):
+        with self.ex._cond:
+            return self.ex._slots.popleft() if self.ex._slots else None
+
+    def finished(self):
+        return self.ex._finished_input
+
+    def cancelled(self):
+        return self.ex._cancel.is_set()
+
+    def wait(self, end):
+        self.ex._cancel.wait(max(0.0, end - time.monotonic()))
+
+    def sent(self, n):
+        self.ex._sent = n
+
+    def emit(self, fb, final=False):
+        self.ex._emit(fb)
+
+
 class Executor:
-    """Feeds ``arm`` from a buffer in its own thread, one set-point per ``arm.period``.
+    """Feeds ``arm`` from a buffer, one set-point per ``arm.period``: in a thread of this
+    process, or in the arm's own process for an arm opened with ``process=True``
+    (:func:`drivers.open_arm`).
 
     ``interpolation`` resamples pushed samples onto the arm's period (``"tool_linear"`` or
     ``"screw"``; samples already at the arm's rate come out unchanged). The first set-point goes
@@ -104,14 +415,14 @@ class Executor:
     the Limits anyway. At the end the last pose is held until the arm is within
     ``settle_tolerance`` (m, rad) of it, for at most ``settle_timeout`` s, then ``arm.stop()``.
 
-    ``realtime``: the control thread asks the OS for real-time scheduling (Linux ``SCHED_FIFO``
-    at this priority, 1-99; None, the default: no), so that other work on the machine cannot
-    delay a set-point by a scheduler slice; it needs ``CAP_SYS_NICE`` (root, or
-    ``setcap cap_sys_nice+ep`` on the interpreter, or a ``rtprio`` limit). Without it the thread
-    runs as before and :attr:`realtime` says so. Opt-in because ``ur_rtde``'s ``waitPeriod``
-    ends each period spinning, which at real-time priority takes its core from everything of
-    lower priority (on a 2-core machine, a controller simulator beside it). BENCHMARKS.md
-    "Issue 10: execution" measures both.
+    ``realtime``: the control loop's thread asks the OS for real-time scheduling (Linux
+    ``SCHED_FIFO`` at this priority, 1-99; None, the default: no), so that other work on the
+    machine cannot delay a set-point by a scheduler slice; it needs ``CAP_SYS_NICE`` (root, or
+    ``setcap cap_sys_nice+ep`` on the interpreter, or a ``rtprio`` limit). Without it the loop
+    runs as before and :attr:`realtime` says so once it runs. Opt-in: a real-time thread takes
+    its core from everything of lower priority (on a 2-core machine, a controller simulator
+    beside it). BENCHMARKS.md "Issue 10: execution" and "Issue 10: execution in its own
+    process" measure both, and both places of the loop.
     """
 
     def __init__(self, arm: Arm, *, interpolation: str = "tool_linear", prefill: float = 0.02,
@@ -136,23 +447,21 @@ class Executor:
         if realtime is not None and (isinstance(realtime, bool) or not isinstance(
                 realtime, numbers.Integral) or not 1 <= realtime <= 99):
             raise ValueError(f"realtime: must be a priority within 1..99 or None, got {realtime!r}")
-        self._realtime_priority = realtime
-        #: whether the control thread got real-time scheduling (set once it runs)
-        self.realtime = False
         self.arm = arm
         self.period = float(arm.period)
         L = arm.limits
         self.interpolation = interpolation
-        self.prefill = float(prefill)
-        self.stall_timeout = _positive("stall_timeout", stall_timeout)
-        self.settle_timeout = _positive("settle_timeout", settle_timeout)
-        self.feedback_every = int(feedback_every)
-        self.stop_fraction = float(stop_fraction)
-        self.start_tolerance = _tolerance("start_tolerance", start_tolerance) \
-            if start_tolerance is not None else \
+        self.settings = Settings(
+            period=self.period, prefill=float(prefill),
+            stall_timeout=_positive("stall_timeout", stall_timeout),
+            settle_timeout=_positive("settle_timeout", settle_timeout),
+            feedback_every=int(feedback_every), stop_fraction=float(stop_fraction),
+            start_tolerance=_tolerance("start_tolerance", start_tolerance)
+            if start_tolerance is not None else
             (0.9 * L.max_linear_accel * self.period ** 2,
-             0.9 * L.max_angular_accel * self.period ** 2)
-        self.settle_tolerance = _tolerance("settle_tolerance", settle_tolerance)
+             0.9 * L.max_angular_accel * self.period ** 2),
+            settle_tolerance=_tolerance("settle_tolerance", settle_tolerance),
+            realtime=None if realtime is None else int(realtime))
         self._callback = callback
 
         self._cond = threading.Condition()      # guards the buffer and the run state
@@ -167,16 +476,46 @@ class Executor:
         self.dropped = 0                        # feedback records that fell out of the queue
         self.result = Result.OK
         self.message = ""
-        self.sent = 0                           # set-points sent
+        self._sent = 0
         self._done = threading.Event()
-        self._thread: Optional[threading.Thread] = None
+        self._started = False
+        # an arm in its own process runs the loop there, on a ring in shared memory
+        self._remote = arm.start_run(self) if hasattr(arm, "start_run") else None
+        self._realtime = False
+
+    @property
+    def prefill(self) -> float:
+        return self.settings.prefill
+
+    @property
+    def stall_timeout(self) -> float:
+        return self.settings.stall_timeout
+
+    @property
+    def settle_tolerance(self) -> tuple:
+        return self.settings.settle_tolerance
+
+    @property
+    def start_tolerance(self) -> tuple:
+        return self.settings.start_tolerance
+
+    @property
+    def sent(self) -> int:
+        """Set-points sent so far."""
+        return self._remote.sent_count() if self._remote is not None else self._sent
+
+    @property
+    def realtime(self) -> bool:
+        """Whether the control loop got real-time scheduling (False until it runs)."""
+        return self._remote.realtime if self._remote is not None else self._realtime
 
     # ------------------------------------------------------------------ caller side
     def push(self, times, poses) -> None:
         """Append samples: ``times`` ``(N,)`` seconds on the plan's clock, strictly increasing
         and after every sample pushed before; ``poses`` ``(N, 8)`` unit dual quaternions
         ``T_base_tool``. The first push checks that the plan starts at the arm's actual pose
-        (``ValueError`` naming the distance and the tolerance) and starts the run."""
+        (``ValueError`` naming the distance and the tolerance) and starts the run. For an arm in
+        its own process, a push waits while the ring in shared memory is full."""
         t = np.asarray(times, dtype=np.float64)
         p = np.asarray(poses, dtype=np.float64)
         if t.ndim != 1 or t.size == 0:
@@ -210,18 +549,24 @@ class Executor:
                 raise ValueError(f"times[0]: {float(t[0])!r} is not after the last pushed time "
                                  f"{tail[0]!r}")
             if t0 is None:
-                self._check_start(p[0])
+                check_start(self.arm, p[0], self.start_tolerance)
                 t0 = float(t[0])
             slots = self._resample(t0, k0, tail, t, p)
+            if self._remote is not None:
+                self._remote.put(slots)
             with self._cond:
                 self._t0 = t0
                 self._tail = (float(t[-1]), p[-1])
                 self._next_slot = k0 + len(slots)
-                self._slots.extend(slots)
+                if self._remote is None:
+                    self._slots.extend(slots)
                 self._cond.notify_all()
-            if self._thread is None:
-                self._thread = threading.Thread(target=self._run, name="executor", daemon=True)
-                self._thread.start()
+            if not self._started:
+                self._started = True
+                if self._remote is not None:
+                    self._remote.start()
+                else:
+                    threading.Thread(target=self._run, name="executor", daemon=True).start()
 
     def _resample(self, t0, k0, tail, t, p) -> list[tuple[float, np.ndarray]]:
         """The period slots from index ``k0`` on that the samples (after ``tail``) cover."""
@@ -248,14 +593,23 @@ class Executor:
                 return
             last_slot = self._t0 + self.period * (self._next_slot - 1)
             if self._tail[0] - last_slot > 1e-9:
-                self._slots.append((self._t0 + self.period * self._next_slot, self._tail[1]))
+                slot = (self._t0 + self.period * self._next_slot, self._tail[1])
+                if self._remote is not None:
+                    self._remote.put([slot])
+                else:
+                    self._slots.append(slot)
                 self._next_slot += 1
             self._finished_input = True
+            if self._remote is not None:
+                self._remote.finish()
             self._cond.notify_all()
 
     def cancel(self) -> None:
-        """Stop the arm (``arm.stop()``) in the next period; the run ends ``STOPPED``."""
+        """Stop the arm (``arm.stop()``) at once, within the period under way; the run ends
+        ``STOPPED``."""
         self._cancel.set()
+        if self._remote is not None and not self._done.is_set():
+            self._remote.cancel()
         with self._cond:
             self._cond.notify_all()
 
@@ -270,6 +624,8 @@ class Executor:
     @property
     def buffered(self) -> float:
         """Seconds of the plan buffered and not yet sent."""
+        if self._remote is not None:
+            return self._remote.buffered() * self.period
         with self._cond:
             return len(self._slots) * self.period
 
@@ -283,9 +639,11 @@ class Executor:
 
     def close(self) -> None:
         """Cancel a run still going and wait for its end."""
-        if self._thread is not None and not self._done.is_set():
+        if self._started and not self._done.is_set():
             self.cancel()
             self._done.wait()
+        if self._remote is not None:
+            self._remote.close()
 
     def __enter__(self):
         return self
@@ -293,16 +651,7 @@ class Executor:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def _check_start(self, first: np.ndarray) -> None:
-        d, a = pose_delta(self.arm.tool_pose()[1], first)
-        tl, ta = self.start_tolerance
-        if d > tl or a > ta:
-            raise ValueError(f"poses[0]: the plan starts {d:.4g} m and {math.degrees(a):.4g} deg "
-                             f"from the arm's actual pose; it must start within {tl:.3g} m and "
-                             f"{math.degrees(ta):.3g} deg of it (start_tolerance); the arm was "
-                             "not moved")
-
-    # ------------------------------------------------------------------ control thread
+    # ------------------------------------------------------------------ results
     def _emit(self, fb: Feedback) -> None:
         if self._callback is not None:
             self._callback(fb)
@@ -313,156 +662,16 @@ class Executor:
             self._feedback.append(fb)
             self._cond.notify_all()
 
-    def _actual(self) -> tuple[float, Optional[np.ndarray]]:
-        try:
-            return self.arm.tool_pose()
-        except ArmError:
-            return time.time(), None
-
-    def _run(self) -> None:
-        if self._realtime_priority is not None:
-            try:        # this thread only: the caller's threads keep their scheduling
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self._realtime_priority))
-                self.realtime = True
-            except (AttributeError, OSError):     # not Linux, or not permitted: as before
-                pass
-        self._last: Optional[tuple[float, np.ndarray]] = None   # the last set-point sent
-        self._step = np.zeros(6)
-        self._returned = self._called = 0.0     # monotonic: the last servo() returned, began
-        try:
-            result, message = self._execute()
-        except LimitError as e:
-            result, message = Result.LIMITED, str(e)
-            late = self._called - self._returned
-            if self._returned and late > 10 * self.period:
-                # a starved control thread, not the plan: the arm's watchdog stopped it meanwhile
-                message += (f" (this control thread was {late * 1e3:.0f} ms late for the "
-                            "set-point; a stream that pauses is stopped by the arm's watchdog)")
-        except ArmError as e:
-            result, message = self._fault(e)
-        except Exception as e:  # the run must end with a result, whatever broke
-            result, message = Result.ERROR, f"{type(e).__name__}: {e}"
-            self._stop_arm()
-        stamp, actual = self._actual()
-        t, pose = self._last if self._last is not None else (self._t0, None)
-        fb = Feedback(t, stamp, pose, actual, result, message)
+    def _ended(self, last: Feedback) -> None:
+        """The run's last record: its result is the executor's."""
+        if last.commanded is None and self._t0 is not None:
+            last = Feedback(self._t0, last.stamp, None, last.actual, last.result, last.message)
         with self._cond:
-            self.result, self.message = result, message
-        self._emit(fb)      # before done: a reader that sees the end has the last record queued
+            self.result, self.message = last.result, last.message
+        self._emit(last)    # before done: a reader that sees the end has the last record queued
         self._done.set()
         with self._cond:
             self._cond.notify_all()
 
-    def _fault(self, e: ArmError) -> tuple[Result, str]:
-        # A controller may refuse a command (a paused program) a cycle or two before its status
-        # data says why: give the report a few periods to arrive.
-        deadline = time.monotonic() + max(10 * self.period, 0.05)
-        while True:
-            try:
-                st = self.arm.status()
-            except ArmError:
-                return Result.ERROR, str(e)
-            if st.protective_stop or st.emergency_stop:
-                what = "emergency stop" if st.emergency_stop else "protective stop"
-                msg = str(e) if what in str(e) else f"{what}: {e}"
-                return Result.PROTECTIVE_STOP, msg
-            if time.monotonic() > deadline:
-                break
-            time.sleep(self.period)
-        self._stop_arm()
-        return Result.ERROR, str(e)
-
-    def _stop_arm(self) -> None:
-        try:
-            self.arm.stop()
-        except ArmError:
-            pass   # the arm is gone or faulted; it stops itself then
-
-    def _send(self, t: float, pose: np.ndarray) -> None:
-        self._called = time.monotonic()
-        self.arm.servo(pose)
-        self._returned = time.monotonic()
-        if self._last is not None:
-            self._step = servo_step(pose, self._last[1])
-        self._last = (t, pose)
-        self.sent += 1
-        if self.sent % self.feedback_every == 0:
-            stamp, actual = self._actual()
-            self._emit(Feedback(t, stamp, pose, actual, Result.OK))
-
-    def _execute(self) -> tuple[Result, str]:
-        need = int(math.ceil(self.prefill / self.period - 1e-9)) + 1
-        with self._cond:
-            ready = self._cond.wait_for(lambda: len(self._slots) >= need or self._finished_input
-                                        or self._cancel.is_set(), self.stall_timeout)
-        if self._cancel.is_set():
-            return Result.STOPPED, "cancelled before the first set-point; the arm was not moved"
-        if not ready:
-            return Result.STALLED, (f"fewer than {self.prefill:g} s of the plan arrived within "
-                                    f"{self.stall_timeout:g} s; the arm was not moved")
-        # The arm may have moved since the first push.
-        try:
-            self._check_start(self._slots[0][1])
-        except ValueError as e:
-            return Result.ERROR, str(e)
-        while True:
-            if self._cancel.is_set():
-                self._stop_arm()
-                return Result.STOPPED, "cancelled; the arm was stopped"
-            with self._cond:
-                slot = self._slots.popleft() if self._slots else None
-                finished = self._finished_input
-            if slot is not None:
-                self._send(*slot)
-            elif finished:
-                return self._settle()
-            else:
-                return self._decelerate()
-
-    def _settle(self) -> tuple[Result, str]:
-        t, goal = self._last
-        tl, ta = self.settle_tolerance
-        deadline = time.monotonic() + self.settle_timeout
-        while True:
-            if self._cancel.is_set():
-                self._stop_arm()
-                return Result.STOPPED, "cancelled while settling; the arm was stopped"
-            d, a = pose_delta(self.arm.tool_pose()[1], goal)
-            if d <= tl and a <= ta:
-                self._stop_arm()
-                return Result.FINISHED, ""
-            if time.monotonic() > deadline:
-                self._stop_arm()
-                return Result.ERROR, (f"the last pose was not reached within "
-                                      f"{self.settle_timeout:g} s ({d:.4g} m and "
-                                      f"{math.degrees(a):.4g} deg away); the arm was stopped")
-            self._send(t, goal)
-
-    def _decelerate(self) -> tuple[Result, str]:
-        """Brake along the last step, shortening it by ``stop_fraction`` of the acceleration
-        limits each period, so the stop passes the same Limits as the plan."""
-        L, P = self.arm.limits, self.period
-        dl = self.stop_fraction * L.max_linear_accel * P * P
-        da = self.stop_fraction * L.max_angular_accel * P * P
-        t, pose = self._last
-        lin, ang = self._step[:3].copy(), self._step[3:].copy()
-        n = 0
-        while True:
-            nl, na = float(np.linalg.norm(lin)), float(np.linalg.norm(ang))
-            if nl == 0 and na == 0:
-                break
-            if self._cancel.is_set():
-                self._stop_arm()
-                return Result.STOPPED, "cancelled while stopping after a stall; the arm was stopped"
-            lin = lin * (max(nl - dl, 0.0) / nl) if nl > 0 else lin
-            ang = ang * (max(na - da, 0.0) / na) if na > 0 else ang
-            q, p = dq.to_pose(pose)
-            pose = dq.from_pose(dq.mul(dq.from_pose(quat_from_rotvec(ang), [0, 0, 0]),
-                                       dq.from_pose(q, [0, 0, 0]))[:4], p + lin)
-            t += P
-            self._send(t, pose)
-            n += 1
-        self._stop_arm()
-        return Result.STALLED, (f"the buffer ran dry at plan time {t - n * P:.4f} s before "
-                                f"finish(); the arm was brought to rest in {n} set-points and "
-                                "stopped")
+    def _run(self) -> None:
+        self._ended(_Control(self.arm, self.settings, _DequeBuffer(self)).run())

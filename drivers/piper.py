@@ -564,18 +564,16 @@ class PiperArm(Arm):
     def tool_pose(self) -> tuple[float, np.ndarray]:
         return self._fresh_pose()
 
-    def servo(self, pose) -> None:
-        """Send one set-point, then wait for the end of its cycle (:class:`~drivers.base.Pacer`
-        schedule). A set-point that
+    def servo_nowait(self, pose) -> float:
+        """Send one set-point and return the end of its cycle (:class:`~drivers.base.Pacer`
+        schedule), which ``servo()`` waits for. A set-point that
         breaks a limit is not sent: the arm holds its measured pose and :class:`LimitError` is
         raised. The first set-point of a stream is measured from the measured pose, at rest."""
         t0 = time.monotonic()
         target = unit_pose(pose)
         with self._cmd_lock:
             self._servo(target)
-        delay = self._pacer.cycle(t0) + self.period - time.monotonic()
-        if delay > 0:
-            time.sleep(delay)
+        return self._pacer.cycle(t0) + self.period
 
     def _servo(self, target: np.ndarray) -> None:
         self._check_commandable("servo")

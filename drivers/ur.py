@@ -212,9 +212,9 @@ class URArm(Arm):
         self._check()
         return time.time(), pose_from_rotvec(self._recv.getActualTCPPose())
 
-    def servo(self, pose: np.ndarray) -> None:
-        """Send one set-point and wait for the end of its cycle (``initPeriod``/``servoL``/
-        ``waitPeriod`` on the :class:`~drivers.base.Pacer` schedule).
+    def servo_nowait(self, pose: np.ndarray) -> float:
+        """Send one set-point (``servoL``) and return the end of its cycle on the
+        :class:`~drivers.base.Pacer` schedule; ``servo()`` then waits for it (``waitPeriod``).
 
         A set-point that breaks a limit (:meth:`Limits.check_servo`) stops the arm and raises
         :class:`LimitError`. The first set-point is measured from the actual pose, with the arm
@@ -249,10 +249,14 @@ class URArm(Arm):
         if not ok:
             self._check()
             raise ArmError("servoL was refused by the controller")
-        # ur_rtde's clock comes back as a timedelta (steady_clock); waitPeriod ends one period
-        # after the cycle start it is given, which is on the schedule rather than at t0.
-        start = self._pacer.cycle(t0.total_seconds())
-        self._ctrl.waitPeriod(datetime.timedelta(seconds=start))
+        # ur_rtde's clock comes back as a timedelta of steady_clock, which is CLOCK_MONOTONIC
+        # on Linux, as time.monotonic() is
+        return self._pacer.cycle(t0.total_seconds()) + self.period
+
+    def wait_cycle(self, end: float) -> None:
+        """``waitPeriod``: ends one period after the cycle start it is given (sleeping, then
+        spinning, in C++ without the GIL)."""
+        self._ctrl.waitPeriod(datetime.timedelta(seconds=end - self.period))
 
     def move(self, pose: np.ndarray, speed: float, accel: float) -> None:
         """Blocking straight-line move (``moveL``) at ``speed`` m/s and ``accel`` m/s^2

@@ -50,6 +50,10 @@ def configure(name: str, p) -> None:
                        help="run each arm's control thread with real-time scheduling (Linux "
                             "SCHED_FIFO at PRIO, 1..99; needs CAP_SYS_NICE): fewer late "
                             "set-points on a busy machine (default: ordinary scheduling)")
+        p.add_argument("--arm-process", action="store_true",
+                       help="open each arm in a process of its own, where Execute's control "
+                            "loop runs: no work of the server's can delay a set-point (the "
+                            "arm's bus must reach across processes: not python-can's virtual)")
         p.add_argument("--sims", action="store_true",
                        help="also start the simulated devices (a UR controller, camera views; see "
                             "drivers/sim/fleet.py) and log where they are")
@@ -110,7 +114,8 @@ def _serve(args) -> int:
                     return missing_devices("serve --arm", e)
                 for name, spec in arm_specs.items():
                     try:
-                        cfg.arms[name] = stack.enter_context(drivers.open_arm(spec))
+                        cfg.arms[name] = stack.enter_context(
+                            drivers.open_arm(spec, process=args.arm_process))
                     except (OSError, ValueError, RuntimeError) as e:
                         return fail("serve", f"--arm {name}={spec}: {e}")
                     logging.getLogger("dqpose").info(json.dumps(

@@ -2,15 +2,21 @@
 simulator, the stop after a cancel, and tracking error; idle and while 8 client processes call
 `Blend` on a real server on this machine.
 
-    .venv/bin/python -m tests.bench.bench_executor                 # 60 s per row (~5 min)
-    .venv/bin/python -m tests.bench.bench_executor --seconds 10
+    .venv/bin/python -m tests.bench.bench_executor                 # 60 s per row (~4 min)
+    .venv/bin/python -m tests.bench.bench_executor --seconds 10 --executor thread
 
 Rows: idle; 8 Blend clients on a server in its own process (`dqpose serve`); 8 Blend clients on
-a server in the executor's own process (what the Execute RPC does), with the interpreter's
-default GIL switch interval (5 ms) and with `sys.setswitchinterval(--switch)`.
+a server in this process, the one that feeds the executor (what the Execute RPC does); optionally
+(`--rows ...,in-process-switch`) the same with `sys.setswitchinterval(--switch)`.
+
+`--executor process` (the default): the arm is opened with `drivers.open_arm(..., process=True)`
+and the control loop runs in the arm's own process, every thread of which runs SCHED_FIFO at
+`--executor-realtime` (the simulator's at `--sim-realtime`, above it, as a controller's loop
+would be); the clients, the server and this process keep ordinary scheduling. `--executor
+thread`: the loop in a thread of this process, as before (only that thread real-time).
 
 The motion: a smooth closed loop (x, y and a turn about z, zero velocity at both ends), sampled
-at 500 Hz and pushed 0.1 s at a time, at most 0.3 s ahead, from a feeder thread, as a network
+at 500 Hz and pushed 0.1 s at a time, at most `--ahead` (2 s) ahead, from a feeder thread, as a network
 stream would. Jitter is |dt - 2 ms| between the arrivals of consecutive set-points at the
 simulator (the kernel's receive stamps of their packets, on CLOCK_MONOTONIC, the clock this
 process reads; the column "read p99" is the same from when the simulator's Python thread had read
@@ -30,9 +36,9 @@ import time
 
 import numpy as np
 
+import drivers
 from drivers.executor import Executor, Result
 from drivers.sim import ursim
-from drivers.ur import URArm
 from service import dq
 
 LAG = 2     # the simulator's servo lag in cycles (SimConfig.servo_lag)
@@ -55,7 +61,11 @@ def loop_plan(start: np.ndarray, seconds: float, rate: float, loop: float = 2.0)
     return t, dq.from_pose(dq.to_pose(rot)[0], p0 + d)
 
 
-def feed(ex: Executor, t, poses, chunk: float = 0.1, ahead: float = 0.3) -> None:
+AHEAD = 2.0     # --ahead
+
+
+def feed(ex: Executor, t, poses, chunk: float = 0.1) -> None:
+    ahead = AHEAD
     k = max(1, int(round(chunk / ex.period)))
     for i in range(0, len(t), k):
         while ex.buffered > ahead and not ex.done:
@@ -66,10 +76,16 @@ def feed(ex: Executor, t, poses, chunk: float = 0.1, ahead: float = 0.3) -> None
     ex.finish()
 
 
+def log_end(sim) -> int:
+    """Where the simulator's log ends, without fetching it (after a long run, all of it is tens
+    of thousands of entries: long enough for a 0.5 s test motion to run out meanwhile)."""
+    return sim.log(1 << 62)["next"]
+
+
 def run_once(sim, arm, seconds: float) -> dict:
     start = arm.tool_pose()[1]
     t, poses = loop_plan(start, seconds, 1.0 / arm.period)
-    mark = sim.log()["next"]
+    mark = log_end(sim)
     fb = []
     ex = Executor(arm, callback=fb.append, stall_timeout=5.0, realtime=EXECUTOR_REALTIME)
     feeder = threading.Thread(target=feed, args=(ex, t, poses), daemon=True)
@@ -113,15 +129,21 @@ def cancel_latency(sim, arm, reps: int) -> np.ndarray:
         start = arm.tool_pose()[1]
         t, poses = loop_plan(start, 2.0, 1.0 / arm.period)
         ex = Executor(arm, realtime=EXECUTOR_REALTIME)
+        mark = log_end(sim)
         ex.push(t[:250], poses[:250])        # 0.5 s into a 2 s loop: moving
         while ex.sent < 150:
             time.sleep(0.005)
-        mark = sim.log()["next"]
         t_cancel = time.monotonic()
         ex.cancel()
         ex.wait(5)
-        stops = sim.log(mark, cmd=ursim.SERVO_STOP, keys=["mono"])["entries"]
-        out.append(stops[0]["mono"] - t_cancel if stops else math.nan)
+        # this cancel's stop: the first the simulator read after it (an earlier stop read late,
+        # on a loaded machine, is not it); timed by its kernel stamp
+        deadline, stop = time.monotonic() + 1.0, None
+        while stop is None and time.monotonic() < deadline:
+            stops = sim.log(mark, cmd=ursim.SERVO_STOP, keys=["mono", "read"])["entries"]
+            stop = next((e for e in stops if e["read"] > t_cancel), None)
+            time.sleep(0.01)
+        out.append(stop["mono"] - t_cancel if stop else math.nan)
         sim.set_pose(ursim.SimConfig().pose)
         time.sleep(0.05)
     return np.asarray(out)
@@ -150,6 +172,13 @@ def _us(x, q):
     return f"{np.percentile(x, q) * 1e6:.0f}"
 
 
+def open_arm(sim, process: bool, priority: int):
+    arm = drivers.open_arm(f"ur:{sim.host}", process=process, stale_after=0.5)
+    if process and priority:
+        realtime(arm.pid, priority)     # the arm's own threads too: its data must keep coming
+    return arm
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seconds", type=float, default=60.0, help="length of each run (default 60)")
@@ -157,7 +186,7 @@ def main(argv=None) -> int:
     ap.add_argument("--switch", type=float, default=0.0005,
                     help="GIL switch interval (s) for the last row (default 0.0005)")
     ap.add_argument("--cancels", type=int, default=5)
-    ap.add_argument("--rows", default="idle,server-process,in-process,in-process-switch",
+    ap.add_argument("--rows", default="idle,server-process,in-process",
                     help="which rows to run (comma-separated)")
     ap.add_argument("--sim-realtime", type=int, default=30, metavar="PRIO",
                     help="SCHED_FIFO priority for the simulator's threads, as a real controller "
@@ -165,6 +194,11 @@ def main(argv=None) -> int:
                          "root); the executor asks for its own (Executor realtime=20)")
     ap.add_argument("--executor-realtime", type=int, default=20, metavar="PRIO",
                     help="Executor(realtime=PRIO); 0: ordinary scheduling")
+    ap.add_argument("--ahead", type=float, default=2.0,
+                    help="how far (s) the feeder keeps the buffer ahead of the arm (default 2; "
+                         "the Execute RPC pushes the whole plan at once)")
+    ap.add_argument("--executor", choices=("process", "thread"), default="process",
+                    help="where the control loop runs (default: the arm's own process)")
     ap.add_argument("--nice", type=int, default=None,
                     help="once the clients run, set the simulator and this process (every "
                          "thread) to this nice value, e.g. -10 (root): the control path ahead of "
@@ -174,12 +208,14 @@ def main(argv=None) -> int:
     from tests.rpc._grpc_server import ServerThread
 
     rows = []
-    global EXECUTOR_REALTIME
+    global EXECUTOR_REALTIME, AHEAD
     EXECUTOR_REALTIME = args.executor_realtime or None
+    AHEAD = args.ahead
     with ursim.URSimProcess(args=("--max-linear-speed", "5")) as sim:
         if args.sim_realtime:
             realtime(sim.proc.pid, args.sim_realtime)
-        arm = URArm(sim.host, stale_after=0.5)
+        process = args.executor == "process"
+        arm = open_arm(sim, process, args.executor_realtime)
         for name in args.rows.split(","):
             server, load, calls = None, None, []
             default_switch = sys.getswitchinterval()
@@ -198,6 +234,8 @@ def main(argv=None) -> int:
                 import os
                 renice(sim.proc.pid, args.nice)
                 renice(os.getpid(), args.nice)
+                if process:
+                    renice(arm.pid, args.nice)
             try:
                 r = run_once(sim, arm, args.seconds)
                 r["cancel"] = cancel_latency(sim, arm, args.cancels)
@@ -207,34 +245,39 @@ def main(argv=None) -> int:
                     arm.close()
                 except Exception:
                     pass
-                arm = URArm(sim.host, stale_after=0.5)
+                arm = open_arm(sim, process, args.executor_realtime)
             if load is not None:
                 load.join()
                 r["calls"] = calls[0][0] if calls else math.nan
                 server.stop()
             sys.setswitchinterval(default_switch)
             r["name"] = name
+            r["load"] = __import__("os").getloadavg()[0]
             rows.append(r)
             print(f"{name}: done ({r['result']}, {r.get('n')} set-points)", file=sys.stderr,
                   flush=True)
         arm.close()
 
-    print(f"\nExecutor on the simulated UR, 500 Hz, {args.seconds:g} s per row; "
-          f"{args.clients} Blend client processes where a server is named")
+    import os
+    print(f"\nExecutor ({args.executor}) on the simulated UR, 500 Hz, {args.seconds:g} s per row; "
+          f"{args.clients} Blend client processes where a server is named; simulator "
+          f"{'FIFO %d' % args.sim_realtime if args.sim_realtime else 'ordinary'}, executor "
+          f"{'FIFO %d' % args.executor_realtime if args.executor_realtime else 'ordinary'}; "
+          f"load average at the end {os.getloadavg()[0]:.2f}")
     print("| row | result | set-points | missed cycles | dt > 3 ms | jitter p50 (µs) | p99 | max "
           "| read p99 (µs) | cancel → stop at sim, max (ms) | tracking p50 / p99 / max (mm) | at 2-cycle lag, "
-          "max (mm) | Blend calls/s |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "max (mm) | Blend calls/s | load |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         if "jitter" not in r:
-            print(f"| {r['name']} | {r['result']} |" + " |" * 11)
+            print(f"| {r['name']} | {r['result']} |" + " |" * 11 + f" {r['load']:.1f} |")
             continue
         tr, tl = r["track"] * 1e3, r["track_lag"] * 1e3
         print(f"| {r['name']} | {r['result']} | {r['n']} | {r['missed']} | {r['late']} "
               f"| {_us(r['jitter'], 50)} | {_us(r['jitter'], 99)} | {r['jitter'].max() * 1e6:.0f} "
               f"| {_us(r['read_jitter'], 99)} | {np.nanmax(r['cancel']) * 1e3:.2f} "
               f"| {np.median(tr):.3f} / {np.percentile(tr, 99):.3f} / {tr.max():.3f} "
-              f"| {tl.max():.4f} | {r.get('calls', math.nan):.0f} |")
+              f"| {tl.max():.4f} | {r.get('calls', math.nan):.0f} | {r['load']:.1f} |")
     return 0
 
 

@@ -56,7 +56,8 @@ def test_an_arm_given_twice_or_unreachable_is_named():
                                  "reach a UR controller at 127.0.0.254"), res.stderr
 
 
-def test_serve_with_an_arm_executes_plans_on_it_and_stops_it_at_shutdown():
+@pytest.mark.parametrize("flags", [[], ["--arm-process"]], ids=["thread", "arm-process"])
+def test_serve_with_an_arm_executes_plans_on_it_and_stops_it_at_shutdown(flags):
     pytest.importorskip("rtde_control")
     import json
     import math
@@ -74,7 +75,7 @@ def test_serve_with_an_arm_executes_plans_on_it_and_stops_it_at_shutdown():
     with URSimProcess() as sim:
         sim.set_pose(home)
         proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", "0",
-                                 "--arm", f"ur=ur:{sim.host}"], cwd=ROOT,
+                                 "--arm", f"ur=ur:{sim.host}", *flags], cwd=ROOT,
                                 stderr=subprocess.PIPE, text=True)
         try:
             events = []
