@@ -17,6 +17,7 @@ from __future__ import annotations
 import datetime
 import math
 import numbers
+import os
 import socket
 import threading
 import time
@@ -40,6 +41,42 @@ def _probe(host: str, port: int, timeout: float) -> None:
     except OSError as e:
         raise ArmError(f"host: cannot reach a UR controller at {host}:{port} within "
                        f"{timeout:g} s ({e})") from None
+
+
+def _restore_nodelay(host: str) -> int:
+    """Turn Nagle's algorithm off again on this process's RTDE connections to ``host``; returns
+    how many sockets were set.
+
+    ur_rtde 1.6.5 sets ``TCP_NODELAY`` (and ``TCP_QUICKACK``) on each socket and then lets
+    ``boost::asio::connect`` close it and open a new one, which has neither. With Nagle on, a
+    command written while the previous one is not yet acknowledged waits for the controller's
+    acknowledgement, which rides on its next data package: measured on the simulator, a
+    ``servoStop`` issued mid-period left 0-2 ms later (one data cycle), and a set-point could
+    wait the same way. Socket options belong to the socket, so setting them through a
+    duplicate of the descriptor reaches ur_rtde's. Linux only (``/proc/self/fd``); elsewhere
+    nothing is changed."""
+    try:
+        fds = os.listdir("/proc/self/fd")
+        addresses = {a[4][0] for a in socket.getaddrinfo(host, RTDE_PORT, type=socket.SOCK_STREAM)}
+    except OSError:
+        return 0
+    done = 0
+    for fd in fds:
+        try:
+            s = socket.socket(fileno=os.dup(int(fd)))
+        except (OSError, ValueError):
+            continue                            # not a socket, or already closed
+        try:
+            if s.type == socket.SOCK_STREAM and s.family in (socket.AF_INET, socket.AF_INET6):
+                peer = s.getpeername()
+                if peer[1] == RTDE_PORT and peer[0] in addresses:
+                    s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                    done += 1
+        except OSError:
+            pass                                # not connected
+        finally:
+            s.close()
+    return done
 
 
 class URArm(Arm):
@@ -106,6 +143,7 @@ class URArm(Arm):
             if hasattr(self, "_recv"):
                 self._recv.disconnect()
             raise ArmError(f"host: ur_rtde could not connect to {host}: {e}") from None
+        self.nodelay_sockets = _restore_nodelay(host)
 
         self._lock = threading.Lock()           # one control call at a time
         self._state_lock = threading.Lock()
