@@ -20,7 +20,8 @@ The child dies with the parent, under control: when the parent's end of the comm
 treated as a dry buffer (decelerate within the Limits, then ``arm.stop()``, ``STALLED``) and the
 arm is closed. A parent that stalls without dying leaves the ring dry: the same stop. The ring
 is one writer (the parent), one reader (the child); a slot is written before the count that
-publishes it, which x86-64's store order keeps in order.
+publishes it, which x86-64's store order keeps in order. Other processors (aarch64) may make the
+count visible before the slot, so there the arm process is refused and the loop runs in a thread.
 """
 from __future__ import annotations
 
@@ -30,6 +31,7 @@ import mmap
 import multiprocessing as mp
 import os
 import pickle
+import platform
 import select
 import signal
 import struct
@@ -52,6 +54,17 @@ _HEADER = 8
 _SLOT = 9                   # plan time, then the pose
 _ID = struct.Struct("<q")   # a run's id on the wake pipe
 _SPIN = 0.0003              # s: how much of a period's end the loop spins rather than sleeps
+# processors whose store order keeps the ring's slot-then-count writes in order (TSO)
+_TSO = {"x86_64", "amd64", "i386", "i686"}
+
+
+def check_store_order(machine: Optional[str] = None) -> None:
+    """ArmError unless this processor keeps stores in order, as the ring needs."""
+    machine = (machine if machine is not None else platform.machine()).lower()
+    if machine not in _TSO:
+        raise ArmError(f"process: an arm in its own process needs x86-64's store order for its "
+                       f"set-point ring; this is {machine or 'an unknown processor'}: run the "
+                       f"control loop in a thread (open_arm(spec), without process=True)")
 
 
 class _Ring:
@@ -382,6 +395,7 @@ class ArmProcess(Arm):
 
     def __init__(self, spec: str, *, ring_seconds: float = 120.0, start_timeout: float = 60.0,
                  **kwargs):
+        check_store_order()
         ctx = mp.get_context("spawn")   # a fork would copy this process's threads' state
         self._conn, child_conn = ctx.Pipe()
         wake_r, self._wake = ctx.Pipe(duplex=False)

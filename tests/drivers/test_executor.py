@@ -359,3 +359,17 @@ def test_a_killed_parent_brakes_the_arm_to_a_stop_and_its_process_ends():
         steps = [servo_step(b, a) for a, b in zip(got, got[1:])]
         dv = [np.linalg.norm(b[:3] - a[:3]) / 0.002 ** 2 for a, b in zip(steps, steps[1:])]
         assert max(dv) <= LIMITS.max_linear_accel * (1 + 1e-6)
+
+
+@pytest.mark.parametrize("machine, ok", [("x86_64", True), ("AMD64", True), ("aarch64", False),
+                                         ("arm64", False), ("riscv64", False), ("", False)])
+def test_the_arm_process_is_refused_where_stores_may_be_reordered(machine, ok):
+    # The ring publishes a slot by the count written after it; only a TSO processor keeps that
+    # order without fences, so elsewhere the loop must stay in a thread.
+    from drivers.armproc import check_store_order
+    from drivers.base import ArmError
+    if ok:
+        check_store_order(machine)
+    else:
+        with pytest.raises(ArmError, match="process: .*store order.*in a thread"):
+            check_store_order(machine)
