@@ -9,8 +9,9 @@ modules are imported only when opened.
 from __future__ import annotations
 
 import importlib
+from typing import Optional
 
-__all__ = ["ARMS", "SOURCES", "open_arm", "open_source"]
+__all__ = ["ARMS", "SOURCES", "open_arm", "open_source", "process_problem"]
 
 #: arm backends: name -> "module:class"; the class's ``open(channel, **kwargs)`` makes one
 ARMS = {
@@ -40,6 +41,19 @@ def _backend(kind: str, table: dict, spec: str) -> tuple[str, str, str]:
         raise ValueError(f"{kind}: {spec!r} has no channel; expected '{name}:<channel>'")
     module, cls = table[name].split(":")
     return module, cls, channel
+
+
+def process_problem(spec: str) -> Optional[str]:
+    """Why the arm ``spec`` cannot live in a process of its own on this machine (the
+    processor's store order, or a connection that does not reach across processes), or None."""
+    from drivers.armproc import check_store_order
+    from drivers.base import ArmError
+    try:
+        check_store_order()
+    except ArmError as e:
+        return str(e)
+    module, cls, channel = _backend("arm", ARMS, spec)
+    return getattr(importlib.import_module(module), cls).process_problem(channel)
 
 
 def open_arm(spec: str, process: bool = False, **kwargs):

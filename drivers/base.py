@@ -282,6 +282,12 @@ class Arm(abc.ABC):
     #: far worse (millimetres): set ``pose_sigma`` to it when fusing with other sources.
     pose_sigma: tuple[float, float] = (1e-4, 1e-4)
 
+    @classmethod
+    def process_problem(cls, channel: str) -> Optional[str]:
+        """Why an arm on ``channel`` cannot be opened in a process of its own (its connection
+        does not reach across processes), or None."""
+        return None
+
     @abc.abstractmethod
     def tool_pose(self) -> tuple[float, np.ndarray]:
         """(``time.time()`` in seconds when the pose was read, T_base_tool as a dual

@@ -338,6 +338,12 @@ class PiperArm(Arm):
                             workspace_min=(-0.7, -0.7, -0.2), workspace_max=(0.7, 0.7, 0.8))
 
     @classmethod
+    def process_problem(cls, channel: str) -> Optional[str]:
+        if channel.partition(":")[0] == "virtual":
+            return "python-can's virtual bus does not reach across processes"
+        return None
+
+    @classmethod
     def open(cls, channel: str, **kwargs) -> "PiperArm":
         """``drivers.open_arm("piper:<interface>:<channel>")``: a python-can bus of that
         interface and channel (``virtual:can0``, ``socketcan:can0``,

@@ -73,7 +73,9 @@ def run(target: str | None = None, progress: bool = False) -> Result:
     with contextlib.ExitStack() as stack:
         sim = stack.enter_context(ursim.URSimProcess())
         sim.set_pose(_HOME)
-        arm = stack.enter_context(drivers.open_arm(f"ur:{sim.host}", stale_after=0.5))
+        spec = f"ur:{sim.host}"        # in its own process where it can, as `dqpose serve` opens it
+        arm = stack.enter_context(drivers.open_arm(spec, process=drivers.process_problem(spec) is None,
+                                                   stale_after=0.5))
         if target is None:
             target = stack.enter_context(local_server(arms={"ur": arm}, executor=Executor))
         client = stack.enter_context(Client(target))

@@ -50,10 +50,12 @@ def configure(name: str, p) -> None:
                        help="run each arm's control thread with real-time scheduling (Linux "
                             "SCHED_FIFO at PRIO, 1..99; needs CAP_SYS_NICE): fewer late "
                             "set-points on a busy machine (default: ordinary scheduling)")
-        p.add_argument("--arm-process", action="store_true",
-                       help="open each arm in a process of its own, where Execute's control "
-                            "loop runs: no work of the server's can delay a set-point (the "
-                            "arm's bus must reach across processes: not python-can's virtual)")
+        p.add_argument("--arm-loop", choices=["auto", "process", "thread"], default="auto",
+                       help="where each arm's Execute control loop runs: 'process', the arm "
+                            "opened in a process of its own, so no work of the server's delays "
+                            "a set-point (needs x86-64 and a bus that reaches across processes, "
+                            "not python-can's virtual); 'thread', in the server; 'auto' "
+                            "(default): the arm's process where it can, else a thread (logged)")
         p.add_argument("--sims", action="store_true",
                        help="also start the simulated devices (a UR controller, camera views; see "
                             "drivers/sim/fleet.py) and log where they are")
@@ -114,12 +116,21 @@ def _serve(args) -> int:
                     return missing_devices("serve --arm", e)
                 for name, spec in arm_specs.items():
                     try:
+                        # the server's own work delays a control thread's set-points
+                        # (BENCHMARKS.md "Cancel → stop explained": p99 1.8 ms against 0.1 ms)
+                        why_not = None if args.arm_loop == "process" else (
+                            "--arm-loop thread" if args.arm_loop == "thread"
+                            else drivers.process_problem(spec))
                         cfg.arms[name] = stack.enter_context(
-                            drivers.open_arm(spec, process=args.arm_process))
+                            drivers.open_arm(spec, process=why_not is None))
+                    except ModuleNotFoundError as e:
+                        return missing_devices("serve --arm", e)
                     except (OSError, ValueError, RuntimeError) as e:
                         return fail("serve", f"--arm {name}={spec}: {e}")
                     logging.getLogger("dqpose").info(json.dumps(
-                        {"event": "arm", "name": name, "spec": spec}))
+                        {"event": "arm", "name": name, "spec": spec,
+                         "loop": "thread" if why_not else "process",
+                         **({"why": why_not} if why_not else {})}))
                 cfg.executor = functools.partial(Executor, realtime=args.arm_realtime)
             try:  # libuv's loop: ~8 % more calls/s with 8 clients, lower p99 (BENCHMARKS.md)
                 import uvloop

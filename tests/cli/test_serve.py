@@ -56,8 +56,9 @@ def test_an_arm_given_twice_or_unreachable_is_named():
                                  "reach a UR controller at 127.0.0.254"), res.stderr
 
 
-@pytest.mark.parametrize("flags", [[], ["--arm-process"]], ids=["thread", "arm-process"])
-def test_serve_with_an_arm_executes_plans_on_it_and_stops_it_at_shutdown(flags):
+@pytest.mark.parametrize("flags, loop", [([], "process"), (["--arm-loop", "thread"], "thread")],
+                         ids=["auto", "thread"])
+def test_serve_with_an_arm_executes_plans_on_it_and_stops_it_at_shutdown(flags, loop):
     pytest.importorskip("rtde_control")
     import json
     import math
@@ -84,7 +85,8 @@ def test_serve_with_an_arm_executes_plans_on_it_and_stops_it_at_shutdown(flags):
                 assert line, "the server ended before serving"
                 if line.startswith("{"):
                     events.append(json.loads(line))
-            assert {"event": "arm", "name": "ur", "spec": f"ur:{sim.host}"} in events
+            arm = next(e for e in events if e.get("event") == "arm")
+            assert (arm["name"], arm["spec"], arm["loop"]) == ("ur", f"ur:{sim.host}", loop)
             start = pose_from_rotvec(home)
             q, t = dq.to_pose(start)
             goal = dq.from_pose(q, t + [0.03, 0.0, 0.02])

@@ -373,3 +373,14 @@ def test_the_arm_process_is_refused_where_stores_may_be_reordered(machine, ok):
     else:
         with pytest.raises(ArmError, match="process: .*store order.*in a thread"):
             check_store_order(machine)
+
+
+def test_process_problem_names_what_keeps_an_arm_in_a_thread():
+    import drivers
+    from drivers.armproc import check_store_order
+    check_store_order()             # (these machines: x86-64)
+    assert drivers.process_problem("ur:127.0.0.1") is None
+    assert drivers.process_problem("piper:udp_multicast:239.74.163.2") is None
+    assert "virtual bus" in drivers.process_problem("piper:virtual:can0")
+    with pytest.raises(ValueError, match="unknown backend"):
+        drivers.process_problem("kuka:1.2.3.4")
