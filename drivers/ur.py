@@ -43,6 +43,22 @@ def _probe(host: str, port: int, timeout: float) -> None:
                        f"{timeout:g} s ({e})") from None
 
 
+def _socket_copy(fd: str) -> Optional[socket.socket]:
+    """A socket on a duplicate of this process's descriptor ``fd`` (a name in /proc/self/fd),
+    None when it is not a socket or is gone."""
+    try:
+        if not os.readlink(f"/proc/self/fd/{fd}").startswith("socket:"):
+            return None
+        dup = os.dup(int(fd))
+    except (OSError, ValueError):
+        return None
+    try:
+        return socket.socket(fileno=dup)
+    except OSError:
+        os.close(dup)                           # closed and reused by something else meanwhile
+        return None
+
+
 def _restore_nodelay(host: str) -> int:
     """Turn Nagle's algorithm off again on this process's RTDE connections to ``host``; returns
     how many sockets were set.
@@ -62,10 +78,9 @@ def _restore_nodelay(host: str) -> int:
         return 0
     done = 0
     for fd in fds:
-        try:
-            s = socket.socket(fileno=os.dup(int(fd)))
-        except (OSError, ValueError):
-            continue                            # not a socket, or already closed
+        s = _socket_copy(fd)
+        if s is None:
+            continue
         try:
             if s.type == socket.SOCK_STREAM and s.family in (socket.AF_INET, socket.AF_INET6):
                 peer = s.getpeername()

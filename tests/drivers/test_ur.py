@@ -66,11 +66,11 @@ def test_connects_and_reports(arm):
 def _rtde_sockets(host):
     """This process's TCP connections to ``host``'s RTDE port, as duplicates."""
     import os
+    from drivers.ur import _socket_copy
     out = []
     for fd in os.listdir("/proc/self/fd"):
-        try:
-            s = socket.socket(fileno=os.dup(int(fd)))
-        except OSError:
+        s = _socket_copy(fd)
+        if s is None:
             continue
         try:
             if s.family == socket.AF_INET and s.getpeername() == (host, ursim.RTDE_PORT):
@@ -93,6 +93,16 @@ def test_rtde_commands_are_not_held_by_nagle(sim, arm):
     finally:
         for s in socks:
             s.close()
+
+
+def test_restoring_nodelay_leaves_no_descriptors_behind(sim, arm):
+    # it looks at every descriptor of the process; one kept per look doubled them per arm
+    import os
+    from drivers.ur import _restore_nodelay
+    before = sorted(os.listdir("/proc/self/fd"))
+    assert _restore_nodelay(sim.host) >= 2
+    assert _restore_nodelay(sim.host) >= 2
+    assert sorted(os.listdir("/proc/self/fd")) == before
 
 
 def test_tool_pose_is_the_simulated_pose(sim, arm):
