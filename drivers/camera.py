@@ -11,6 +11,14 @@ and always returns the newest frame rather than a queue of old ones.
 Board frame: origin at the outer top-left chessboard corner (for a single marker: its centre),
 x along the squares, y down the board, z into the board.
 
+ChArUco corners: OpenCV's detector finds them and refines each with ``cornerSubPix``; we refine
+them once more, each in the largest window that stays off the two markers beside the corner
+(:meth:`CharucoCamera._refine_corners`). OpenCV's window reaches into those markers, whose edges
+pull every corner of a view the same way under perspective (toward the far side of the board):
+an error shared by all of a view's corners, invisible in the residuals, that made each pose's
+covariance too confident and hand-eye calibration end to end claim too much (mean NEES of X 8.9
+instead of 6; BENCHMARKS.md, "Issue 11: the corners' shared error").
+
 Covariance convention: the fusion convention of :class:`drivers.base.Measurement`, a right
 (body-frame) perturbation with the SE(3) exponential, ``T_true = T_est * Exp(xi)``,
 ``xi = (omega, v)``, rotation first (radians), then translation (metres), both in the board
