@@ -303,21 +303,35 @@ def add_opencv(res, solved, truths):
 
 
 # ---- end to end on rendered ChArUco images --------------------------------------------------------
-def charuco_views(trials: int, seed: int, n: int = CHARUCO_POSES):
-    """Per trial: the wrist scene (exact poses), every view rendered and detected. Returns
-    ``(scene, kept indices, detected T_camera_target, corners per kept view, the detector's
-    covariances)``; a view the detector rejects is left out, as a user would."""
+def opencv_corners_camera(intrinsics):
+    """A ``CharucoCamera`` that keeps OpenCV's ChArUco corners as OpenCV refines them (before
+    drivers/camera.py refined them again off the markers): the detector as it was."""
+    from drivers.camera import CharucoCamera
+
+    class OpenCVCorners(CharucoCamera):
+        def _refine_corners(self, gray, obj, img, rvec, tvec):
+            return img
+    return OpenCVCorners(intrinsics)
+
+
+def charuco_views(trials: int, seed: int, n: int = CHARUCO_POSES, blur: float = 0.0,
+                  noise: float = 0.0, opencv_corners: bool = False):
+    """Per trial: the wrist scene (exact poses), every view rendered (clean unless ``blur`` px /
+    ``noise`` grey levels) and detected (``opencv_corners``: with OpenCV's corners as they come).
+    Returns ``(scene, kept indices, detected T_camera_target, corners per kept view, the
+    detector's covariances)``; a view the detector rejects is left out, as a user would."""
     from drivers.camera import CharucoCamera
     from drivers.sim.camera import DEFAULT_INTRINSICS, BoardRenderer
     renderer = BoardRenderer()
-    camera = CharucoCamera(DEFAULT_INTRINSICS)
+    camera = (opencv_corners_camera if opencv_corners else CharucoCamera)(DEFAULT_INTRINSICS)
+    rng = np.random.default_rng(seed)
     out = []
     for k in range(trials):
         # the scene's target frame is the board's frame (tests/_handeye.py, drivers/camera.py)
         sc = _handeye.scene(n, "eye_in_hand", "wrist", (0.0, 0.0), None, seed=seed * 1000 + k)
         kept, poses, corners, covariances = [], [], [], []
         for i, T in enumerate(sc.true_camera_target):
-            det = camera.detect(renderer.render(T))
+            det = camera.detect(renderer.render(T, blur=blur, noise=noise, rng=rng))
             if det.ok:
                 kept.append(i)
                 poses.append(det.pose)
@@ -353,11 +367,11 @@ def run_ours(res: dict, label: str, jobs) -> None:
         add_ours(res[label], truth, B, A, setup, **options)
 
 
-def run_charuco(trials: int, seed: int, python: Path | None):
+def run_charuco(trials: int, seed: int, python: Path | None, **images):
     """Rows: ours on the detected poses (noise estimated), ours given the detector's covariance
     of each view (robot exact, as it is here), ours with the corners when it takes them, and
-    every OpenCV method on the detected poses."""
-    views = charuco_views(trials, seed)
+    every OpenCV method on the detected poses. ``images``: :func:`charuco_views`' options."""
+    views = charuco_views(trials, seed, **images)
     res = {}
     if have_ours():
         options = {OURS: lambda v: {},
@@ -619,6 +633,13 @@ def main(argv=None):
                          f"{CHARUCO_TRIALS}; 0 skips them)")
     ap.add_argument("--broken-trials", type=int, default=BROKEN_TRIALS,
                     help=f"seeded sets per broken kind (default {BROKEN_TRIALS}; 0 skips them)")
+    ap.add_argument("--charuco-blur", type=float, default=0.0,
+                    help="end to end: Gaussian blur of the renders, px (default 0: clean)")
+    ap.add_argument("--charuco-noise", type=float, default=0.0,
+                    help="end to end: noise of the renders, grey levels (default 0: clean)")
+    ap.add_argument("--opencv-corners", action="store_true",
+                    help="end to end: OpenCV's ChArUco corners as they come, not refined again "
+                         "off the markers (the detector before wt-e2e)")
     ap.add_argument("--geometry", nargs="+", choices=GEOMETRIES, default=list(GEOMETRIES))
     ap.add_argument("--poses", nargs="+", type=int, default=list(POSES))
     ap.add_argument("--seed", type=int, default=1)
@@ -641,9 +662,14 @@ def main(argv=None):
         results[case.label] = run_case(case, args.trials, args.seed, python)
     charuco_label = None
     if args.charuco_trials > 0:
-        res, rejected = run_charuco(args.charuco_trials, args.seed, python)
-        charuco_label = (f"ChArUco rendered, {CHARUCO_POSES} views, clean, end to end "
-                         f"({rejected} of {CHARUCO_POSES * args.charuco_trials} views rejected)")
+        res, rejected = run_charuco(args.charuco_trials, args.seed, python,
+                                    blur=args.charuco_blur, noise=args.charuco_noise,
+                                    opencv_corners=args.opencv_corners)
+        images = ("clean" if not (args.charuco_blur or args.charuco_noise) else
+                  f"blur {args.charuco_blur:g} px, noise {args.charuco_noise:g}")
+        charuco_label = (f"ChArUco rendered, {CHARUCO_POSES} views, {images}, end to end "
+                         + ("(OpenCV's corners) " if args.opencv_corners else "")
+                         + f"({rejected} of {CHARUCO_POSES * args.charuco_trials} views rejected)")
         results[charuco_label] = res
     print(f"dqpose hand-eye benchmark — {platform.processor() or platform.machine()}, "
           f"{os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f}, NumPy {np.__version__}, "

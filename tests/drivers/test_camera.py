@@ -12,6 +12,7 @@ from drivers.camera import (BoardSpec, CharucoCamera, Detection, Intrinsics, Liv
 from drivers.sim import camera as simcam
 from drivers.sim.camera import DEFAULT_INTRINSICS, BoardRenderer, look_at, random_view
 from service import dq, lie
+from tests._handeye import near_side_pull
 
 
 def errors(T_est, T_true):
@@ -81,18 +82,6 @@ def test_covariance_matches_the_errors(renderer, cam):
     assert 2.0 < np.mean(m2) < 15.0
 
 
-def _pull_toward_the_near_side(errors, T, obj, K):
-    """The mean of a view's corner errors along the image direction in which the board's scale
-    grows (toward its near side), in pixels."""
-    M = dq.to_matrix(T)
-    p = obj @ M[:3, :3].T + M[:3, 3]
-    uv = p[:, :2] / p[:, 2:] * K[0, 0] + K[:2, 2]
-    scale = K[0, 0] / p[:, 2]
-    A = np.column_stack([np.ones(len(uv)), uv - uv.mean(axis=0)])
-    g = np.linalg.lstsq(A, scale, rcond=None)[0][1:]
-    return float(np.mean(errors @ (g / np.linalg.norm(g))))
-
-
 def test_corners_share_no_pull_toward_either_side_of_the_board(renderer, cam):
     """OpenCV refines a ChArUco corner in a window that reaches into the markers beside it; under
     perspective their edges pull every corner of a view toward the board's far side (an error
@@ -109,16 +98,9 @@ def test_corners_share_no_pull_toward_either_side_of_the_board(renderer, cam):
         img = renderer.render(T)
         d = cam.detect(img)
         assert d.ok, d
-        M = dq.to_matrix(T)
-
-        def truth(obj):
-            p = obj @ M[:3, :3].T + M[:3, 3]
-            return p[:, :2] / p[:, 2:] * K[0, 0] + K[:2, 2]
-
-        ours.append(_pull_toward_the_near_side(d.image_points - truth(d.object_points), T,
-                                               d.object_points, K))
+        ours.append(near_side_pull(T, d.object_points, d.image_points, K))
         obj, raw, _ = cam._points(img)          # OpenCV's corners, before ours
-        opencvs.append(_pull_toward_the_near_side(raw - truth(obj), T, obj, K))
+        opencvs.append(near_side_pull(T, obj, raw, K))
     ours, opencvs = np.array(ours), np.array(opencvs)
     se = ours.std(ddof=1) / np.sqrt(len(ours))
     se_cv = opencvs.std(ddof=1) / np.sqrt(len(opencvs))
