@@ -61,7 +61,7 @@ The solution, in order:
    of X claim too much end to end (mean NEES 9.6 over 50 trials; per view 7.6 over 200). The
    rest of that 7.6 was the detector's: OpenCV's ChArUco corners shared an error within each
    view, which independent corner noise cannot describe; drivers/camera.py now refines them
-   off the markers, and end to end the mean NEES is 5.7 (5.4–5.7 over three seeds of 200).
+   off the markers, and end to end the mean NEES is 5.5–5.7 (three seeds of 200 trials).
 
 Data checks (:func:`check` and :func:`calibrate`): malformed input is a
 :class:`~service.errors.FieldError` naming the argument and index; unusable data an

@@ -25,7 +25,9 @@ board) and OpenCV's own test geometry, eye-in-hand, {10, 20} poses × camera noi
 geometry eye-to-hand (20 poses, 0.1°/0.5 mm); seeds ``seed·1000 + trial``, the same for every
 row. End to end: 15 wrist views of the 7×5 ChArUco board rendered without noise by
 ``drivers/sim/camera.py`` and detected by ``drivers/camera.py`` (``CharucoCamera.detect``), every
-method on the detected poses.
+method on the detected poses (``--charuco-blur``/``--charuco-noise`` render them blurred and
+noisy; ``--opencv-corners`` keeps OpenCV's ChArUco corners as they come, the detector before it
+refined them off the markers).
 
 Ours is run as a user runs it (noise estimated from the residuals) and, on the synthetic rows,
 also told the noise the scene was drawn with (``camera_covariance``/``robot_covariance``): the
