@@ -58,7 +58,10 @@ The solution, in order:
    given or estimated (taken as exact, 0.02° / 0.1 mm of robot noise made the covariance claim
    ~20× too much; modelled, mean NEES 5.3–6.3). The corner noise is estimated per view: among
    rendered views of one scene it ranges 0.02–0.1 px, and one σ for all had the covariance
-   of X claim too much end to end (mean NEES 9.6 over 50 trials; per view 7.6 over 200).
+   of X claim too much end to end (mean NEES 9.6 over 50 trials; per view 7.6 over 200). The
+   rest of that 7.6 was the detector's: OpenCV's ChArUco corners shared an error within each
+   view, which independent corner noise cannot describe; drivers/camera.py now refines them
+   off the markers, and end to end the mean NEES is 5.5–5.7 (three seeds of 200 trials).
 
 Data checks (:func:`check` and :func:`calibrate`): malformed input is a
 :class:`~service.errors.FieldError` naming the argument and index; unusable data an

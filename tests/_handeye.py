@@ -301,6 +301,13 @@ def board_points(squares=(7, 5), size: float = 0.04) -> np.ndarray:
     return np.column_stack([gx.ravel() * size, gy.ravel() * size, np.zeros(gx.size)])
 
 
+def project(T_camera_target, points: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Board points seen through a pinhole ``K`` (no distortion) at ``T_camera_target``:
+    ``(n, 2)`` pixels, pixel centres at integers (OpenCV's and the renderer's convention)."""
+    pc = dq.transform(T_camera_target, points)
+    return (K[:2, :2] @ (pc[:, :2] / pc[:, 2:]).T).T + K[:2, 2]
+
+
 def corners(s: Scene, pixel_noise: float = 0.2, K: np.ndarray = CAMERA_MATRIX, seed: int = 0):
     """One ``(board_points, image_points, K)`` per sample: the board's inner corners projected
     through the true ``T_camera_target`` with Gaussian pixel noise (px per axis)."""
@@ -308,7 +315,19 @@ def corners(s: Scene, pixel_noise: float = 0.2, K: np.ndarray = CAMERA_MATRIX, s
     P = board_points()
     out = []
     for C in s.true_camera_target:
-        pc = dq.transform(C, P)
-        u = (K[:2, :2] @ (pc[:, :2] / pc[:, 2:]).T).T + K[:2, 2]
+        u = project(C, P, K)
         out.append((P, u + rng.normal(scale=pixel_noise, size=u.shape), K))
     return out
+
+
+def near_side_pull(T_camera_target, points: np.ndarray, image_points: np.ndarray,
+                   K: np.ndarray) -> float:
+    """The mean of one view's corner errors (detected minus true, px) along the image direction
+    in which the board's scale grows, i.e. toward its near side: what an error all of a view's
+    corners share under perspective shows as (drivers/camera.py, ``_refine_corners``). The
+    direction is the least-squares gradient over the image of the local scale ``f / depth``."""
+    truth = project(T_camera_target, points, K)
+    depth = dq.transform(T_camera_target, points)[:, 2]
+    A = np.column_stack([np.ones(len(truth)), truth - truth.mean(axis=0)])
+    g = np.linalg.lstsq(A, K[0, 0] / depth, rcond=None)[0][1:]
+    return float(np.mean((image_points - truth) @ (g / np.linalg.norm(g))))

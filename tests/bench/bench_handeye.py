@@ -25,7 +25,9 @@ board) and OpenCV's own test geometry, eye-in-hand, {10, 20} poses × camera noi
 geometry eye-to-hand (20 poses, 0.1°/0.5 mm); seeds ``seed·1000 + trial``, the same for every
 row. End to end: 15 wrist views of the 7×5 ChArUco board rendered without noise by
 ``drivers/sim/camera.py`` and detected by ``drivers/camera.py`` (``CharucoCamera.detect``), every
-method on the detected poses.
+method on the detected poses (``--charuco-blur``/``--charuco-noise`` render them blurred and
+noisy; ``--opencv-corners`` keeps OpenCV's ChArUco corners as they come, the detector before it
+refined them off the markers).
 
 Ours is run as a user runs it (noise estimated from the residuals) and, on the synthetic rows,
 also told the noise the scene was drawn with (``camera_covariance``/``robot_covariance``): the
@@ -303,21 +305,35 @@ def add_opencv(res, solved, truths):
 
 
 # ---- end to end on rendered ChArUco images --------------------------------------------------------
-def charuco_views(trials: int, seed: int, n: int = CHARUCO_POSES):
-    """Per trial: the wrist scene (exact poses), every view rendered and detected. Returns
-    ``(scene, kept indices, detected T_camera_target, corners per kept view, the detector's
-    covariances)``; a view the detector rejects is left out, as a user would."""
+def opencv_corners_camera(intrinsics):
+    """A ``CharucoCamera`` that keeps OpenCV's ChArUco corners as OpenCV refines them (before
+    drivers/camera.py refined them again off the markers): the detector as it was."""
+    from drivers.camera import CharucoCamera
+
+    class OpenCVCorners(CharucoCamera):
+        def _refine_corners(self, gray, obj, img, rvec, tvec):
+            return img
+    return OpenCVCorners(intrinsics)
+
+
+def charuco_views(trials: int, seed: int, n: int = CHARUCO_POSES, blur: float = 0.0,
+                  noise: float = 0.0, opencv_corners: bool = False):
+    """Per trial: the wrist scene (exact poses), every view rendered (clean unless ``blur`` px /
+    ``noise`` grey levels) and detected (``opencv_corners``: with OpenCV's corners as they come).
+    Returns ``(scene, kept indices, detected T_camera_target, corners per kept view, the
+    detector's covariances)``; a view the detector rejects is left out, as a user would."""
     from drivers.camera import CharucoCamera
     from drivers.sim.camera import DEFAULT_INTRINSICS, BoardRenderer
     renderer = BoardRenderer()
-    camera = CharucoCamera(DEFAULT_INTRINSICS)
+    camera = (opencv_corners_camera if opencv_corners else CharucoCamera)(DEFAULT_INTRINSICS)
+    rng = np.random.default_rng(seed)
     out = []
     for k in range(trials):
         # the scene's target frame is the board's frame (tests/_handeye.py, drivers/camera.py)
         sc = _handeye.scene(n, "eye_in_hand", "wrist", (0.0, 0.0), None, seed=seed * 1000 + k)
         kept, poses, corners, covariances = [], [], [], []
         for i, T in enumerate(sc.true_camera_target):
-            det = camera.detect(renderer.render(T))
+            det = camera.detect(renderer.render(T, blur=blur, noise=noise, rng=rng))
             if det.ok:
                 kept.append(i)
                 poses.append(det.pose)
@@ -353,11 +369,11 @@ def run_ours(res: dict, label: str, jobs) -> None:
         add_ours(res[label], truth, B, A, setup, **options)
 
 
-def run_charuco(trials: int, seed: int, python: Path | None):
+def run_charuco(trials: int, seed: int, python: Path | None, **images):
     """Rows: ours on the detected poses (noise estimated), ours given the detector's covariance
     of each view (robot exact, as it is here), ours with the corners when it takes them, and
-    every OpenCV method on the detected poses."""
-    views = charuco_views(trials, seed)
+    every OpenCV method on the detected poses. ``images``: :func:`charuco_views`' options."""
+    views = charuco_views(trials, seed, **images)
     res = {}
     if have_ours():
         options = {OURS: lambda v: {},
@@ -538,6 +554,15 @@ def targets(results: dict, charuco_label: str | None, broken_results: dict | Non
                      if results[k][OURS_GIVEN].nees}
             out.append(f"  ({OURS_GIVEN}: {min(given.values()):.2f} to "
                        f"{max(given.values()):.2f})")
+    if charuco_label in results:
+        e2e = {m: float(np.mean(results[charuco_label][m].nees))
+               for m in (OURS_COVARIANCE, OURS_CORNERS)
+               if m in results[charuco_label] and results[charuco_label][m].nees}
+        if e2e:
+            n = min(len(results[charuco_label][m].nees) for m in e2e)
+            out.append(f"- end to end, mean NEES of X within 6 ± 1 ({n} trials): "
+                       + ", ".join(f"{m} {v:.2f}" for m, v in e2e.items()) + ": "
+                       + ok(all(abs(v - 6.0) <= 1.0 for v in e2e.values())))
     t20 = [t for k, s in mine.items() if k != charuco_label and ", 20 poses," in k
            for t in s.seconds]
     if t20:
@@ -603,12 +628,20 @@ def plot(path: str, results: dict, labels: list[str]):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=TRIALS,
-                    help=f"per synthetic row (default {TRIALS}: the NEES target's count)")
+                    help=f"per synthetic row (default {TRIALS}: the NEES target's count; 0 skips "
+                         "them)")
     ap.add_argument("--charuco-trials", type=int, default=CHARUCO_TRIALS,
                     help=f"end-to-end trials of {CHARUCO_POSES} rendered views (default "
                          f"{CHARUCO_TRIALS}; 0 skips them)")
     ap.add_argument("--broken-trials", type=int, default=BROKEN_TRIALS,
                     help=f"seeded sets per broken kind (default {BROKEN_TRIALS}; 0 skips them)")
+    ap.add_argument("--charuco-blur", type=float, default=0.0,
+                    help="end to end: Gaussian blur of the renders, px (default 0: clean)")
+    ap.add_argument("--charuco-noise", type=float, default=0.0,
+                    help="end to end: noise of the renders, grey levels (default 0: clean)")
+    ap.add_argument("--opencv-corners", action="store_true",
+                    help="end to end: OpenCV's ChArUco corners as they come, not refined again "
+                         "off the markers (the detector before wt-e2e)")
     ap.add_argument("--geometry", nargs="+", choices=GEOMETRIES, default=list(GEOMETRIES))
     ap.add_argument("--poses", nargs="+", type=int, default=list(POSES))
     ap.add_argument("--seed", type=int, default=1)
@@ -627,13 +660,18 @@ def main(argv=None):
             sys.exit(f"bench_handeye: {e}")
     t0 = time.perf_counter()
     results = {}
-    for case in cases(args.geometry, args.poses):
+    for case in cases(args.geometry, args.poses) if args.trials > 0 else ():
         results[case.label] = run_case(case, args.trials, args.seed, python)
     charuco_label = None
     if args.charuco_trials > 0:
-        res, rejected = run_charuco(args.charuco_trials, args.seed, python)
-        charuco_label = (f"ChArUco rendered, {CHARUCO_POSES} views, clean, end to end "
-                         f"({rejected} of {CHARUCO_POSES * args.charuco_trials} views rejected)")
+        res, rejected = run_charuco(args.charuco_trials, args.seed, python,
+                                    blur=args.charuco_blur, noise=args.charuco_noise,
+                                    opencv_corners=args.opencv_corners)
+        images = ("clean" if not (args.charuco_blur or args.charuco_noise) else
+                  f"blur {args.charuco_blur:g} px, noise {args.charuco_noise:g}")
+        charuco_label = (f"ChArUco rendered, {CHARUCO_POSES} views, {images}, end to end "
+                         + ("(OpenCV's corners) " if args.opencv_corners else "")
+                         + f"({rejected} of {CHARUCO_POSES * args.charuco_trials} views rejected)")
         results[charuco_label] = res
     print(f"dqpose hand-eye benchmark — {platform.processor() or platform.machine()}, "
           f"{os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f}, NumPy {np.__version__}, "
