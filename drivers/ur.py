@@ -43,20 +43,37 @@ def _probe(host: str, port: int, timeout: float) -> None:
                        f"{timeout:g} s ({e})") from None
 
 
-def _socket_copy(fd: str) -> Optional[socket.socket]:
-    """A socket on a duplicate of this process's descriptor ``fd`` (a name in /proc/self/fd),
-    None when it is not a socket or is gone."""
+def _rtde_connections(host: str) -> list[socket.socket]:
+    """This process's TCP sockets connected to ``host``'s RTDE port, each on a duplicate of its
+    descriptor (the caller closes them); empty where /proc/self/fd does not exist (Linux only)."""
     try:
-        if not os.readlink(f"/proc/self/fd/{fd}").startswith("socket:"):
-            return None
-        dup = os.dup(int(fd))
-    except (OSError, ValueError):
-        return None
-    try:
-        return socket.socket(fileno=dup)
+        fds = os.listdir("/proc/self/fd")
+        addresses = {a[4][0] for a in socket.getaddrinfo(host, RTDE_PORT, type=socket.SOCK_STREAM)}
     except OSError:
-        os.close(dup)                           # closed and reused by something else meanwhile
-        return None
+        return []
+    out = []
+    for fd in fds:
+        try:
+            if not os.readlink(f"/proc/self/fd/{fd}").startswith("socket:"):
+                continue
+            dup = os.dup(int(fd))
+        except (OSError, ValueError):
+            continue                            # gone meanwhile
+        try:
+            s = socket.socket(fileno=dup)
+        except OSError:
+            os.close(dup)                       # closed and reused by something else meanwhile
+            continue
+        try:
+            if s.type == socket.SOCK_STREAM and s.family in (socket.AF_INET, socket.AF_INET6):
+                peer = s.getpeername()
+                if peer[1] == RTDE_PORT and peer[0] in addresses:
+                    out.append(s)
+                    continue
+        except OSError:
+            pass                                # not connected
+        s.close()
+    return out
 
 
 def _restore_nodelay(host: str) -> int:
@@ -69,29 +86,12 @@ def _restore_nodelay(host: str) -> int:
     acknowledgement, which rides on its next data package: measured on the simulator, a
     ``servoStop`` issued mid-period left 0-2 ms later (one data cycle), and a set-point could
     wait the same way. Socket options belong to the socket, so setting them through a
-    duplicate of the descriptor reaches ur_rtde's. Linux only (``/proc/self/fd``); elsewhere
-    nothing is changed."""
-    try:
-        fds = os.listdir("/proc/self/fd")
-        addresses = {a[4][0] for a in socket.getaddrinfo(host, RTDE_PORT, type=socket.SOCK_STREAM)}
-    except OSError:
-        return 0
-    done = 0
-    for fd in fds:
-        s = _socket_copy(fd)
-        if s is None:
-            continue
-        try:
-            if s.type == socket.SOCK_STREAM and s.family in (socket.AF_INET, socket.AF_INET6):
-                peer = s.getpeername()
-                if peer[1] == RTDE_PORT and peer[0] in addresses:
-                    s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-                    done += 1
-        except OSError:
-            pass                                # not connected
-        finally:
-            s.close()
-    return done
+    duplicate of the descriptor reaches ur_rtde's. Linux only; elsewhere nothing is changed."""
+    socks = _rtde_connections(host)
+    for s in socks:
+        with s:
+            s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    return len(socks)
 
 
 class URArm(Arm):

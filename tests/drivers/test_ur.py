@@ -63,29 +63,11 @@ def test_connects_and_reports(arm):
     assert arm.period == 0.002 and st.extra["frequency"] == 500.0   # e-series
 
 
-def _rtde_sockets(host):
-    """This process's TCP connections to ``host``'s RTDE port, as duplicates."""
-    import os
-    from drivers.ur import _socket_copy
-    out = []
-    for fd in os.listdir("/proc/self/fd"):
-        s = _socket_copy(fd)
-        if s is None:
-            continue
-        try:
-            if s.family == socket.AF_INET and s.getpeername() == (host, ursim.RTDE_PORT):
-                out.append(s)
-                continue
-        except OSError:
-            pass
-        s.close()
-    return out
-
-
 def test_rtde_commands_are_not_held_by_nagle(sim, arm):
     # ur_rtde 1.6.5 loses its TCP_NODELAY when boost reopens the socket at connect; without
     # it a servoStop waits up to a data cycle for the controller's acknowledgement.
-    socks = _rtde_sockets(sim.host)
+    from drivers.ur import _rtde_connections
+    socks = _rtde_connections(sim.host)
     try:
         assert len(socks) >= 2, "the receive and control connections"
         assert arm.nodelay_sockets >= 2
