@@ -2,7 +2,10 @@
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
-EXTRAS := devices,planning,test
+EXTRAS := devices,planning,plot,yaml,test
+# Extra arguments: `make run ARGS="--port 50052"` (dqpose serve's options; the last of a repeated
+# option wins), `make test ARGS="-k blend"` (pytest's).
+ARGS   ?=
 
 # The install is redone only when one of its inputs changed: Python sources are an editable
 # install, but the C core, the generated stubs and the dependency lists are built from these.
@@ -34,12 +37,14 @@ FORCE:
 setup: $(STAMP)
 
 # The gRPC server on 127.0.0.1:50051 with the simulated devices beside it, until Ctrl-C
-# (`dqpose serve --help` for TLS, tokens, ports; drop --sims for the server alone).
+# (`dqpose serve --help` for TLS, tokens, ports; ARGS after the defaults, so they override them).
 run: setup
-	$(BIN)/dqpose serve --host 127.0.0.1 --port 50051 --sims
+	$(BIN)/dqpose serve --host 127.0.0.1 --port 50051 --sims $(ARGS)
 
+# The suite without the fresh-venv installs (pytest's addopts: -m 'not install'); CI runs those
+# after it: make test ARGS="-m install".
 test: setup
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q $(ARGS)
 
 bench: setup
 	$(BIN)/python -m tests.bench.bench_core

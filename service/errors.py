@@ -1,7 +1,9 @@
-"""Errors named after the caller's fields.
+"""Errors named after the caller's fields, and the one error for a missing optional dependency.
 
 The core names its own arguments (``q[3]: zero quaternion``); a layer that knows where ``q[3]``
-came from (a proto field, a file's key) renames it with :func:`rename`.
+came from (a proto field, a file's key) renames it with :func:`rename`. What needs a module of an
+extra that is not installed raises :class:`MissingExtra` (:func:`require`), whose text says how to
+install it.
 """
 from __future__ import annotations
 
@@ -47,3 +49,73 @@ def rename_all(err: ValueError, names: dict[str, str]) -> FieldError:
 
 def _same_kind(err: ValueError, msg: str) -> FieldError:
     return FieldInfeasible(msg) if isinstance(err, Infeasible) else FieldError(msg)
+
+
+# ---- optional dependencies ------------------------------------------------------------------------
+
+#: The extra (pyproject.toml's optional-dependencies) that brings each module imported on demand;
+#: tests/test_errors.py checks it against the installed distribution's metadata.
+EXTRA_OF = {
+    "scipy": "planning", "casadi": "planning",
+    "matplotlib": "plot",
+    "yaml": "yaml",
+    "cv2": "devices", "can": "devices", "rtde_control": "devices", "rtde_receive": "devices",
+}
+
+
+class MissingExtra(Exception):
+    """What was asked needs a module of an extra that is not installed: gRPC's
+    ``FAILED_PRECONDITION`` and the command line's exit 2, with :func:`install_hint`'s text (not a
+    ValueError: the input is fine, the install is not)."""
+
+    def __init__(self, extra: str, module: str):
+        super().__init__(install_hint(extra))
+        self.extra, self.module = extra, module
+
+
+def install_hint(extra: str) -> str:
+    """``install dqpose with the [EXTRA] extra: pip install 'SPEC[EXTRA]'``, SPEC as pip names this
+    install: ``.`` when it was installed from the folder it runs in (a clone), that folder's path
+    from elsewhere, ``dqpose`` for a wheel or an index (pip keeps the installed version and adds
+    the extra's packages)."""
+    return f"install dqpose with the [{extra}] extra: pip install '{_install_spec()}[{extra}]'"
+
+
+def _install_spec() -> str:
+    import json
+    import os
+    from importlib import metadata
+    from urllib.parse import unquote, urlparse
+
+    try:
+        direct = metadata.distribution("dqpose").read_text("direct_url.json")
+    except metadata.PackageNotFoundError:      # run from a source tree that was never installed
+        return "."
+    info = json.loads(direct) if direct else {}
+    if "dir_info" not in info:
+        return "dqpose"
+    folder = unquote(urlparse(info["url"]).path)
+    try:
+        here = os.path.samefile(folder, os.getcwd())
+    except OSError:
+        here = False
+    return "." if here else folder
+
+
+def require(*modules: str) -> None:
+    """Imports ``modules`` (names of :data:`EXTRA_OF`), or raises :class:`MissingExtra` naming the
+    extra of the first one missing."""
+    import importlib
+
+    for name in modules:
+        try:
+            importlib.import_module(name)
+        except ModuleNotFoundError as e:
+            raise missing(e) from None
+
+
+def missing(e: ModuleNotFoundError) -> Exception:
+    """``e`` as :class:`MissingExtra` when the module it misses is one of an extra, else ``e``
+    itself (a broken install is not a missing extra)."""
+    top = (e.name or "").split(".")[0]
+    return MissingExtra(EXTRA_OF[top], top) if top in EXTRA_OF else e

@@ -75,12 +75,10 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.linalg import cho_solve_banded, cholesky_banded
 
 from service import dq, lie
 from service.trajectory import Limits, Peaks, peaks  # noqa: F401 (Peaks: part of the API)
-from service.errors import Infeasible, rename
+from service.errors import Infeasible, rename, require
 
 __all__ = ["CUTOFF_HZ", "Infeasible", "Peaks", "peaks", "smooth"]
 
@@ -101,6 +99,19 @@ _EPS = 1e-6
 # No Ruiz preconditioning: the rows and the cost are scaled already (see _qp); it cost 15 % of
 # the solve and moved the optimum by 1e-9 of itself.
 _PIQP = {"verbose": False, "eps_abs": _EPS, "eps_rel": _EPS, "preconditioner_iter": 0}
+
+
+# scipy and casadi are the [planning] extra: imported when a problem is built, not with this
+# module, which the server imports to serve everything else without them.
+sp = cho_solve_banded = cholesky_banded = None
+
+
+def _solvers() -> None:
+    """Imports the extra's modules (``MissingExtra`` when they are not installed)."""
+    global sp, cho_solve_banded, cholesky_banded
+    require("scipy", "casadi")
+    import scipy.sparse as sp
+    from scipy.linalg import cho_solve_banded, cholesky_banded
 
 
 # ---- small SO(3) helpers on rotation-only dual quaternions (real part = quaternion) ------------
@@ -320,6 +331,7 @@ class _Problem:
     """What both channels share: the spline, the sample weights, the cost and its banded factor."""
 
     def __init__(self, t: np.ndarray, tau: float):
+        _solvers()
         n = t.shape[0]
         knots = _knots(t, tau)
         self.s = s = _Spline(float(t[0]), float(t[-1]), knots)

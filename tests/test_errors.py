@@ -20,3 +20,42 @@ def test_rename_all_maps_every_argument_the_message_names():
     assert isinstance(e, Infeasible) and isinstance(e, FieldError)
     # whole words only: "ab" is not "a"
     assert str(rename_all(ValueError("ab[1]: x"), names)) == "ab[1]: x"
+
+
+def test_each_optional_module_is_in_the_extra_it_is_said_to_be_in():
+    """EXTRA_OF against the installed metadata (pyproject.toml's lists): a hint never names an
+    extra that does not bring the module."""
+    import re
+    from importlib import metadata
+
+    from service.errors import EXTRA_OF
+    extras: dict[str, set] = {}
+    for req in metadata.requires("dqpose"):
+        m = re.search(r"extra\s*==\s*['\"]([\w-]+)['\"]", req)
+        if m:
+            extras.setdefault(m.group(1), set()).add(re.match(r"[\w.-]+", req).group())
+
+    def top_level(dist: str) -> set:    # from the files (ur_rtde's modules are bare .so files)
+        return {f.parts[0].split(".")[0] for f in metadata.files(dist) or ()}
+
+    for module, extra in EXTRA_OF.items():   # make installs every extra
+        assert any(module in top_level(d) for d in extras[extra]), (module, extra)
+
+
+def test_the_install_hint_is_what_pip_takes_here(tmp_path, monkeypatch):
+    import os
+
+    from service.errors import MissingExtra, install_hint, require
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    monkeypatch.chdir(root)       # make's editable install, from its clone
+    assert install_hint("plot") == "install dqpose with the [plot] extra: pip install '.[plot]'"
+    monkeypatch.chdir(tmp_path)   # elsewhere: the clone's path
+    assert install_hint("plot") == f"install dqpose with the [plot] extra: pip install '{root}[plot]'"
+    require("numpy", "yaml")      # installed: nothing happens
+    monkeypatch.setitem(__import__("sys").modules, "yaml", None)   # as if not installed
+    try:
+        require("numpy", "yaml")
+    except MissingExtra as e:
+        assert (e.extra, e.module, str(e)) == ("yaml", "yaml", install_hint("yaml"))
+    else:
+        raise AssertionError("no MissingExtra")

@@ -15,10 +15,16 @@ def fail(cmd: str, msg: str) -> int:
     return EXIT_ERROR
 
 
-def missing_devices(cmd: str, e: ModuleNotFoundError) -> int:
-    """A device library that is not installed: the server and core install without them."""
-    return fail(cmd, f"{e} (the device libraries are the [devices] extra: "
-                     f"pip install 'dqpose[devices]')")
+def missing_extra(cmd: str, e: Exception) -> int:
+    """A module of an extra that is not installed (:class:`~service.errors.MissingExtra`, or the
+    ``ModuleNotFoundError`` of such a module): exit 2 saying which extra, and how to install it.
+    Any other missing module is a broken install, raised on."""
+    from service.errors import MissingExtra, missing
+
+    e = missing(e) if isinstance(e, ModuleNotFoundError) else e
+    if not isinstance(e, MissingExtra):
+        raise e
+    return fail(cmd, str(e))
 
 
 def read(path: str, mode: str = "rb") -> bytes:
@@ -51,6 +57,10 @@ def client(args):
 def failure(cmd: str, args, e: Exception) -> int:
     """The one-line message and exit code of a command that computes here (``--local``) or on a
     server; what is neither bad input nor a failed call is raised on."""
+    from service.errors import MissingExtra
+
+    if isinstance(e, (MissingExtra, ModuleNotFoundError)):
+        return missing_extra(cmd, e)
     if not getattr(args, "local", False):
         from service.rpc.client import RequestTooLarge, RpcError
 

@@ -73,9 +73,9 @@ def configure(name: str, p) -> None:
         demo = demo_fusion if args.mode == "fusion" else demo_trajectory
         try:        # the simulated devices' demos fail alike: a missing extra, a device gone
             return demo.main(args)
-        except ImportError as e:
-            print(f"dqpose demo {args.mode}: needs the device extras ({e}); "
-                  "pip install 'dqpose[devices]'", file=sys.stderr)
+        except ModuleNotFoundError as e:
+            from service.cli.common import missing_extra
+            return missing_extra(f"demo {args.mode}", e)
         except (OSError, RuntimeError) as e:
             print(f"dqpose demo {args.mode}: {e}", file=sys.stderr)
         return 1

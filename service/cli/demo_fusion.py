@@ -363,7 +363,8 @@ def main(args: argparse.Namespace) -> int:
     print()
     report(result)
     if matplotlib is None:
-        print("no plot: matplotlib is not installed (pip install matplotlib)")
+        from service.errors import install_hint
+        print(f"no plot: {install_hint('plot')}")
     else:
         plot(result, args.plot)
         print(f"plot: {args.plot}")

@@ -144,6 +144,7 @@ def main(args: argparse.Namespace) -> int:
         plot_motion(args.trajectory_plot, result.plan.time, result.plan.pose, LIMITS,
                     title="dqpose demo trajectory: the plan, measured from its samples")
         print(f"plot: {args.trajectory_plot}")
-    except ImportError:
-        print("no plot: matplotlib is not installed (pip install matplotlib)")
+    except ModuleNotFoundError as e:
+        from service.errors import missing
+        print(f"no plot: {missing(e)}")
     return 0 if result.state == "FINISHED" else 1

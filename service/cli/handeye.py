@@ -21,7 +21,7 @@ import os
 import re
 import sys
 
-from service.cli.common import client, connection_args, fail, failure, missing_devices
+from service.cli.common import client, connection_args, fail, failure, missing_extra
 
 SETUPS = ("eye_in_hand", "eye_to_hand")
 CHOICES = ("next-best", "spread", "random")
@@ -154,7 +154,7 @@ def _run(args) -> int:
     try:
         return action(args)
     except ModuleNotFoundError as e:    # OpenCV, ur_rtde: the [devices] extra
-        return missing_devices(f"handeye {args.action}", e)
+        return missing_extra(f"handeye {args.action}", e)
 
 
 
@@ -324,7 +324,8 @@ def _solve(args) -> int:
                              truth=truth)
             print(f"plot: {out['plot']}", file=sys.stderr)
         except ModuleNotFoundError as e:
-            print(f"no plot: {e} (pip install matplotlib)", file=sys.stderr)
+            from service.errors import missing
+            print(f"no plot: {missing(e)}", file=sys.stderr)
     except OSError as e:
         return fail("handeye solve", str(e))
     print(f"report: {out['report']}, result: {out['output']}", file=sys.stderr)

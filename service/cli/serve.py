@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import sys
 
-from service.cli.common import client, connection_args, fail, missing_devices, read
+from service.cli.common import client, connection_args, fail, missing_extra, read
 from service.rpc import DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
 
 
@@ -105,7 +105,7 @@ def _serve(args) -> int:
                 try:
                     fleet = stack.enter_context(Fleet())
                 except ModuleNotFoundError as e:
-                    return missing_devices("serve --sims", e)
+                    return missing_extra("serve --sims", e)
                 for info in fleet.info:
                     logging.getLogger("dqpose").info(json.dumps({"event": "simulator", **info}))
             if arm_specs:
@@ -113,7 +113,7 @@ def _serve(args) -> int:
                     import drivers
                     from drivers.executor import Executor
                 except ModuleNotFoundError as e:
-                    return missing_devices("serve --arm", e)
+                    return missing_extra("serve --arm", e)
                 for name, spec in arm_specs.items():
                     try:
                         # the server's own work delays a control thread's set-points (BENCHMARKS.md
@@ -124,7 +124,7 @@ def _serve(args) -> int:
                         cfg.arms[name] = stack.enter_context(
                             drivers.open_arm(spec, process=why_not is None))
                     except ModuleNotFoundError as e:
-                        return missing_devices("serve --arm", e)
+                        return missing_extra("serve --arm", e)
                     except (OSError, ValueError, RuntimeError) as e:
                         return fail("serve", f"--arm {name}={spec}: {e}")
                     logging.getLogger("dqpose").info(json.dumps(

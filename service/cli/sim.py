@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 
-from service.cli.common import missing_devices
+from service.cli.common import missing_extra
 
 SIMULATORS = {
     "ur": "drivers.sim.ursim:main",
@@ -31,5 +31,5 @@ def run(args: argparse.Namespace) -> int:
     try:
         simulator = getattr(importlib.import_module(module), function)
     except ModuleNotFoundError as e:
-        return missing_devices(f"sim {args.device}", e)
+        return missing_extra(f"sim {args.device}", e)
     return int(simulator(args.args) or 0)

@@ -8,6 +8,7 @@ import argparse
 import sys
 
 from service.cli.common import client, connection_args, failure
+from service.errors import require
 
 PLAN_EPILOG = """\
 input formats (FILE, or - for standard input; chosen by the extension, else sniffed):
@@ -109,6 +110,8 @@ def _plan(args) -> int:
     from service.cli.posefile import format_trajectory, read_plan
 
     try:
+        if args.plot:       # before the work, not after it
+            require("matplotlib")
         f = read_plan(args.file)
         limits = _limits(args, f.limits)
         rate = args.rate or f.rate_hz or 125.0
@@ -146,6 +149,8 @@ def _smooth(args) -> int:
     from service.cli.posefile import format_trajectory, read_stamped
 
     try:
+        if args.plot:       # before the work, not after it
+            require("matplotlib")
         f = read_stamped(args.file)
         limits = _limits(args, f.limits)
         weight = args.smoothing or f.smoothing or 1.0

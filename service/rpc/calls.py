@@ -14,7 +14,7 @@ import time
 
 import grpc
 
-from service.errors import FieldError, Infeasible
+from service.errors import FieldError, Infeasible, MissingExtra
 
 log = logging.getLogger("dqpose.server")
 call_log = logging.getLogger("dqpose.calls")
@@ -46,7 +46,7 @@ def fit(response: bytes, limit: int, field: str, count: int, noun: str) -> bytes
 
 def refusal(e: Exception) -> grpc.StatusCode | None:
     """The status a handler's deliberate refusal stands for; None for anything else (INTERNAL)."""
-    if isinstance(e, Infeasible):
+    if isinstance(e, (Infeasible, MissingExtra)):   # MissingExtra: an extra the server lacks
         return grpc.StatusCode.FAILED_PRECONDITION
     if isinstance(e, FieldError):
         return grpc.StatusCode.INVALID_ARGUMENT

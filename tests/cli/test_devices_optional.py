@@ -1,6 +1,7 @@
-"""`pip install dqpose` brings no device library (the server image has none): the server, its
-health check and the UR simulator run with cv2, can, rtde_* and yaml unimportable, and the
-commands that need one name the extra that brings it."""
+"""`pip install .` brings no device library and no extra (the server image has none): the server,
+its health check and the UR simulator run with every extra's modules unimportable, and the
+commands and calls that need one name the extra that brings it (tests/install/ installs for real,
+slower)."""
 from __future__ import annotations
 
 import json
@@ -10,13 +11,23 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
-from service import dq
-from service.rpc.client import Client
+from service import dq, trajectory
+from service.rpc.client import Client, RpcError
 
+LIMITS = trajectory.Limits(max_linear_velocity=1.0, max_angular_velocity=1.0,
+                           max_linear_acceleration=1.0, max_angular_acceleration=1.0)
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-DEVICE_MODULES = ("cv2", "can", "rtde_control", "rtde_receive", "yaml", "casadi", "piper_sdk")
+DEVICE_MODULES = ("cv2", "can", "rtde_control", "rtde_receive", "yaml", "casadi", "piper_sdk",
+                  "scipy", "matplotlib")
+
+
+def hint(extra: str) -> str:
+    """What a command or call that needs ``extra`` ends with, here (an editable install run from
+    its clone)."""
+    return f"install dqpose with the [{extra}] extra: pip install '.[{extra}]'"
 
 # Runs the dqpose command in a process where importing a device library fails as if it were not
 # installed, and reports every such attempt on standard error.
@@ -55,28 +66,35 @@ def test_server_and_health_run_without_device_libraries():
         with Client(target, timeout=20) as c:   # a blend and an interpolation served by it
             assert np.allclose(c.blend(dq.identity((3,))), dq.identity(), atol=1e-12)
             assert c.interpolate([0.0, 1.0], dq.identity((2,)), [0.5]).shape == (1, 8)
+            with pytest.raises(RpcError) as e:      # Smooth needs the [planning] extra
+                c.smooth(np.linspace(0, 1, 5), dq.identity((5,)), LIMITS)
+            assert (e.value.code.name, e.value.details) == ("FAILED_PRECONDITION", hint("planning"))
         server.send_signal(signal.SIGTERM)
         _, err = server.communicate(timeout=30)
         assert server.returncode == 0, err
-        assert "blocked import" not in first + err
+        blocked = {line for line in (first + err).splitlines() if line.startswith("blocked import")}
+        assert blocked == {"blocked import: scipy"}, err     # Smooth's, and only when called
     finally:
         if server.poll() is None:
             server.kill()
             server.communicate()
 
 
-def test_commands_needing_a_device_library_name_the_extra():
-    # --sims starts several simulators: whichever needs a blocked library first is named
-    for argv, missing in [(("sim", "piper", "--help"), ("can",)), (("sim", "camera", "--help"), ("cv2",)),
-                          (("serve", "--port", "0", "--sims"), ("can", "cv2")),
-                          (("handeye", "solve", ROOT, "--local"), ("cv2",)),
-                          (("handeye", "capture", os.path.join(ROOT, "no-such-dir")), ("cv2",))]:
+def test_commands_needing_an_extra_name_it(tmp_path):
+    recording = tmp_path / "recording.csv"
+    recording.write_text("t,x,y,z,qw,qx,qy,qz\n" + "".join(f"{i},{0.01 * i},0,0,1,0,0,0\n" for i in range(5)))
+    limits = [f"--{k.replace('_', '-')}=1" for k in LIMITS.__dataclass_fields__ if "jerk" not in k]
+    for argv, extra in [(("sim", "piper", "--help"), "devices"), (("sim", "camera", "--help"), "devices"),
+                        (("serve", "--port", "0", "--sims"), "devices"),
+                        (("handeye", "solve", ROOT, "--local"), "devices"),
+                        (("handeye", "capture", os.path.join(ROOT, "no-such-dir")), "devices"),
+                        (("smooth", str(recording), "--local", *limits), "planning"),
+                        (("plan", str(recording), "--local", "--plot", "x.png", *limits), "plot")]:
         proc = _dqpose(*argv)
         out, err = proc.communicate(timeout=60)
         assert proc.returncode == 2, (out, err)
-        cmd = "serve --sims" if argv[0] == "serve" else " ".join(argv[:2])
-        assert any(f"dqpose {cmd}: error: No module named '{m}'" in err for m in missing), err
-        assert "pip install 'dqpose[devices]'" in err
+        cmd = "serve --sims" if argv[0] == "serve" else " ".join(argv[:2 if argv[0] in ("sim", "handeye") else 1])
+        assert err.strip().splitlines()[-1] == f"dqpose {cmd}: error: {hint(extra)}", err
         assert "Traceback" not in err
     # the UR simulator speaks RTDE itself: it needs no device library
     proc = _dqpose("sim", "ur", "--help")
