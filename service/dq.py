@@ -8,8 +8,10 @@ Conventions (stated once, used everywhere in dqpose):
 * A pose named ``T_a_b`` maps points from frame b to frame a; ``mul(T_a_b, T_b_c) = T_a_c``.
 * ``log`` returns ``(..., 6)``: the real vector part, then the dual vector part. It is half the
   se(3) twist ``(omega, v)`` of the same motion, with the rotation taken the short way.
-* ``q`` and ``-q`` are the same pose. Quaternions within 1e-6 of unit norm are normalised;
-  anything further off, non-finite, or not rigid raises ``ValueError`` naming the argument.
+* ``q`` and ``-q`` are the same pose. Quaternions within :data:`UNIT_TOL` (1e-3) of unit norm
+  are normalised, so rounded input (``0.7071``) is taken; rotation matrices within it of
+  orthonormal are projected to the nearest rotation. Anything further off, non-finite, or not
+  rigid raises ``ValueError`` naming the argument and saying how far.
 
 Every function broadcasts over leading dimensions like a NumPy ufunc and releases the GIL on
 batches.
@@ -29,6 +31,7 @@ __all__ = [
     "sclerp", "dlb", "dib", "lin", "dec", "logblend", "blend",
 ]
 
+#: The input tolerance (``DQ_UNIT_TOL`` of the C core): norms, orthogonality, orthonormality.
 UNIT_TOL = _c.UNIT_TOL
 
 
@@ -113,7 +116,9 @@ def power(a, tau) -> np.ndarray:
 
 
 def from_matrix(T) -> np.ndarray:
-    """4x4 rigid transforms ``(..., 4, 4)`` to dual quaternions (scalar part >= 0)."""
+    """4x4 rigid transforms ``(..., 4, 4)`` to dual quaternions (scalar part >= 0). A rotation
+    block within :data:`UNIT_TOL` of orthonormal (max ``|R^T R - I|``, det > 0) is replaced by the
+    nearest rotation (Frobenius norm, as the SVD gives)."""
     return _c.from_matrix(T)
 
 

@@ -384,68 +384,6 @@ void dq_logblend(const double *q, const double *w, size_t n, double *out)
     dq_exp(x, out);
 }
 
-/* ---- Lin's projection ------------------------------------------------------------------- */
-
-/* The unit quaternion of the rotation nearest to the 3x3 block of the 4x4 row-major m in the
- * Frobenius norm (special orthogonal Procrustes, what the SVD with det correction gives).
- * |R - M|^2 = 3 + |M|^2 - 2 trace(R^T M), and trace(R(q)^T M) = q^T K q for the symmetric 4x4 K
- * of Bar-Itzhack ("New method for extracting the quaternion from a rotation matrix", 2000;
- * Horn's matrix), so q is the eigenvector of K's largest eigenvalue. A 4x4 symmetric eigenproblem
- * is what cyclic Jacobi does best: a few sweeps, accurate to rounding relative to |K|, no
- * iteration count to tune and no library. Scalar part made >= 0, as dq_from_matrix does. */
-static void nearest_rotation(const double *m, double *quat)
-{
-#define M(i, j) m[4 * (i) + (j)]
-    double a[4][4] = {
-        {M(0, 0) + M(1, 1) + M(2, 2), M(2, 1) - M(1, 2), M(0, 2) - M(2, 0), M(1, 0) - M(0, 1)},
-        {M(2, 1) - M(1, 2), M(0, 0) - M(1, 1) - M(2, 2), M(0, 1) + M(1, 0), M(0, 2) + M(2, 0)},
-        {M(0, 2) - M(2, 0), M(0, 1) + M(1, 0), M(1, 1) - M(0, 0) - M(2, 2), M(1, 2) + M(2, 1)},
-        {M(1, 0) - M(0, 1), M(0, 2) + M(2, 0), M(1, 2) + M(2, 1), M(2, 2) - M(0, 0) - M(1, 1)},
-    };
-#undef M
-    double v[4][4] = {{1, 0, 0, 0}, {0, 1, 0, 0}, {0, 0, 1, 0}, {0, 0, 0, 1}};
-    double norm = 0.0;
-    for (int i = 0; i < 4; i++)
-        for (int j = 0; j < 4; j++) norm += a[i][j] * a[i][j];
-    /* Off-diagonal entries below this move no eigenvector component above rounding. The rotations
-     * keep |K| and converge quadratically (three to five sweeps); the cap is a guard. */
-    double small = 1e-18 * sqrt(norm);
-    for (int sweep = 0; sweep < 32; sweep++) {
-        int rotated = 0;
-        for (int p = 0; p < 3; p++)
-            for (int q = p + 1; q < 4; q++) {
-                double apq = a[p][q];
-                if (!(fabs(apq) > small)) continue;
-                rotated = 1;
-                /* The rotation that zeroes a[p][q] (the smaller angle; Rutishauser's update). */
-                double theta = (a[q][q] - a[p][p]) / (2.0 * apq);
-                double t = fabs(theta) > 1e150 ? 0.5 / theta
-                                               : copysign(1.0, theta) /
-                                                     (fabs(theta) + sqrt(theta * theta + 1.0));
-                double c = 1.0 / sqrt(t * t + 1.0), s = t * c, tau = s / (1.0 + c);
-                a[p][p] -= t * apq;
-                a[q][q] += t * apq;
-                a[p][q] = a[q][p] = 0.0;
-                for (int r = 0; r < 4; r++) {
-                    if (r != p && r != q) {
-                        double arp = a[r][p], arq = a[r][q];
-                        a[r][p] = a[p][r] = arp - s * (arq + tau * arp);
-                        a[r][q] = a[q][r] = arq + s * (arp - tau * arq);
-                    }
-                    double vrp = v[r][p], vrq = v[r][q];
-                    v[r][p] = vrp - s * (vrq + tau * vrp);
-                    v[r][q] = vrq + s * (vrp - tau * vrq);
-                }
-            }
-        if (!rotated) break;
-    }
-    int k = 0;
-    for (int i = 1; i < 4; i++)
-        if (a[i][i] > a[k][k]) k = i;
-    double sg = v[0][k] < 0.0 ? -1.0 : 1.0;
-    for (int i = 0; i < 4; i++) quat[i] = sg * v[i][k];
-}
-
 /* ---- the dispatch ----------------------------------------------------------------------- */
 
 int dq_method_known(int method)
@@ -483,7 +421,7 @@ int dq_blend_set(const double *q, const double *w, size_t n, const dq_blend_para
         double m[16], quat[4];
         dq_lin(q, w, n, m);
         if (!dq_finite_n(m, 16)) return DQ_E_OVERFLOW;
-        nearest_rotation(m, quat);
+        dq_nearest_rotation(m, quat);
         double t[3] = {m[3], m[7], m[11]};
         rc = dq_from_pose(quat, t, out);
         if (rc) return DQ_E_OVERFLOW;

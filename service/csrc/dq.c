@@ -231,26 +231,104 @@ static void dual_from_rt(const double *r, const double *t, double *out)
     out[7] = 0.5 * (t[0] * r[2] - t[1] * r[1] + t[2] * r[0]);
 }
 
+/* The unit quaternion of the rotation nearest to the 3x3 block of the 4x4 row-major m in the
+ * Frobenius norm (special orthogonal Procrustes, what the SVD with det correction gives).
+ * |R - M|^2 = 3 + |M|^2 - 2 trace(R^T M), and trace(R(q)^T M) = q^T K q for the symmetric 4x4 K
+ * of Bar-Itzhack ("New method for extracting the quaternion from a rotation matrix", 2000;
+ * Horn's matrix), so q is the eigenvector of K's largest eigenvalue. A 4x4 symmetric eigenproblem
+ * is what cyclic Jacobi does best: a few sweeps, accurate to rounding relative to |K|, no
+ * iteration count to tune and no library. Scalar part made >= 0, as quat_from_rot does. */
+void dq_nearest_rotation(const double *m, double *quat)
+{
+#define M(i, j) m[4 * (i) + (j)]
+    double a[4][4] = {
+        {M(0, 0) + M(1, 1) + M(2, 2), M(2, 1) - M(1, 2), M(0, 2) - M(2, 0), M(1, 0) - M(0, 1)},
+        {M(2, 1) - M(1, 2), M(0, 0) - M(1, 1) - M(2, 2), M(0, 1) + M(1, 0), M(0, 2) + M(2, 0)},
+        {M(0, 2) - M(2, 0), M(0, 1) + M(1, 0), M(1, 1) - M(0, 0) - M(2, 2), M(1, 2) + M(2, 1)},
+        {M(1, 0) - M(0, 1), M(0, 2) + M(2, 0), M(1, 2) + M(2, 1), M(2, 2) - M(0, 0) - M(1, 1)},
+    };
+#undef M
+    double v[4][4] = {{1, 0, 0, 0}, {0, 1, 0, 0}, {0, 0, 1, 0}, {0, 0, 0, 1}};
+    double norm = 0.0;
+    for (int i = 0; i < 4; i++)
+        for (int j = 0; j < 4; j++) norm += a[i][j] * a[i][j];
+    /* Off-diagonal entries below this move no eigenvector component above rounding. The rotations
+     * keep |K| and converge quadratically (three to five sweeps); the cap is a guard. */
+    double small = 1e-18 * sqrt(norm);
+    for (int sweep = 0; sweep < 32; sweep++) {
+        int rotated = 0;
+        for (int p = 0; p < 3; p++)
+            for (int q = p + 1; q < 4; q++) {
+                double apq = a[p][q];
+                if (!(fabs(apq) > small)) continue;
+                rotated = 1;
+                /* The rotation that zeroes a[p][q] (the smaller angle; Rutishauser's update). */
+                double theta = (a[q][q] - a[p][p]) / (2.0 * apq);
+                double t = fabs(theta) > 1e150 ? 0.5 / theta
+                                               : copysign(1.0, theta) /
+                                                     (fabs(theta) + sqrt(theta * theta + 1.0));
+                double c = 1.0 / sqrt(t * t + 1.0), s = t * c, tau = s / (1.0 + c);
+                a[p][p] -= t * apq;
+                a[q][q] += t * apq;
+                a[p][q] = a[q][p] = 0.0;
+                for (int r = 0; r < 4; r++) {
+                    if (r != p && r != q) {
+                        double arp = a[r][p], arq = a[r][q];
+                        a[r][p] = a[p][r] = arp - s * (arq + tau * arp);
+                        a[r][q] = a[q][r] = arq + s * (arp - tau * arq);
+                    }
+                    double vrp = v[r][p], vrq = v[r][q];
+                    v[r][p] = vrp - s * (vrq + tau * vrp);
+                    v[r][q] = vrq + s * (vrp - tau * vrq);
+                }
+            }
+        if (!rotated) break;
+    }
+    int k = 0;
+    for (int i = 1; i < 4; i++)
+        if (a[i][i] > a[k][k]) k = i;
+    double sg = v[0][k] < 0.0 ? -1.0 : 1.0;
+    for (int i = 0; i < 4; i++) quat[i] = sg * v[i][k];
+}
+
+double dq_rotation_error(const double *m)
+{
+    double worst = 0.0;
+    for (int i = 0; i < 3; i++)
+        for (int j = i; j < 3; j++) {
+            double s = m[i] * m[j] + m[4 + i] * m[4 + j] + m[8 + i] * m[8 + j];
+            double e = fabs(s - (i == j ? 1.0 : 0.0));
+            if (e > worst) worst = e;
+        }
+    return worst;
+}
+
+double dq_det3(const double *m)
+{
+    return m[0] * (m[5] * m[10] - m[6] * m[9]) - m[1] * (m[4] * m[10] - m[6] * m[8]) +
+           m[2] * (m[4] * m[9] - m[5] * m[8]);
+}
+
 int dq_from_matrix(const double *m, double *out)
 {
     if (!dq_finite_n(m, 16)) return DQ_E_NONFINITE;
     if (fabs(m[12]) > DQ_UNIT_TOL || fabs(m[13]) > DQ_UNIT_TOL || fabs(m[14]) > DQ_UNIT_TOL ||
         fabs(m[15] - 1.0) > DQ_UNIT_TOL)
         return DQ_E_NOT_RIGID;
-    /* R^T R = I within tolerance, det = +1 within tolerance. */
-    for (int i = 0; i < 3; i++) {
-        for (int j = i; j < 3; j++) {
-            double s = m[i] * m[j] + m[4 + i] * m[4 + j] + m[8 + i] * m[8 + j];
-            if (fabs(s - (i == j ? 1.0 : 0.0)) > DQ_UNIT_TOL) return DQ_E_NOT_RIGID;
-        }
-    }
-    double det = m[0] * (m[5] * m[10] - m[6] * m[9]) - m[1] * (m[4] * m[10] - m[6] * m[8]) +
-                 m[2] * (m[4] * m[9] - m[5] * m[8]);
-    if (fabs(det - 1.0) > DQ_UNIT_TOL) return DQ_E_NOT_RIGID;
+    /* Orthonormal within the tolerance (so |det| is 1 within ~1.5 of it): the sign of det tells a
+     * rotation from a reflection. */
+    double worst = dq_rotation_error(m);
+    if (worst > DQ_UNIT_TOL || !(dq_det3(m) > 0.0)) return DQ_E_NOT_RIGID;
     double q[4], t[3] = {m[3], m[7], m[11]};
-    quat_from_rot(m, 4, q);
-    double inv = 1.0 / sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
-    for (int i = 0; i < 4; i++) q[i] *= inv;
+    if (worst <= DQ_ROTATION_EXACT) {
+        /* A rotation to rounding (any computed one): Shepperd's closed form gives the nearest
+         * rotation's quaternion to rounding at a tenth of the eigenproblem's cost. */
+        quat_from_rot(m, 4, q);
+        double inv = 1.0 / sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+        for (int i = 0; i < 4; i++) q[i] *= inv;
+    } else {
+        dq_nearest_rotation(m, q);
+    }
     dual_from_rt(q, t, out);
     if (!dq_finite8(out) || dual_too_large(out)) return DQ_E_OVERFLOW;
     return DQ_OK;

@@ -24,7 +24,7 @@ enum {
     DQ_E_ZERO = 2,        /* zero (or vanishing) quaternion */
     DQ_E_NOT_UNIT = 3,    /* real part norm off 1 by more than DQ_UNIT_TOL */
     DQ_E_DUAL = 4,        /* dual part not orthogonal to the real part */
-    DQ_E_NOT_RIGID = 5,   /* matrix not orthonormal, det != 1, or bottom row != [0 0 0 1] */
+    DQ_E_NOT_RIGID = 5,   /* matrix not orthonormal, det <= 0, or bottom row != [0 0 0 1] */
     DQ_E_WEIGHT_NEG = 6,  /* a negative weight */
     DQ_E_WEIGHT_SUM = 7,  /* weights sum to zero */
     DQ_E_OVERFLOW = 8,    /* the result is not finite (input too large) */
@@ -32,15 +32,24 @@ enum {
     DQ_E_SET_SIZE = 10    /* a blending method given a set size it cannot take (ScLERP: 2) */
 };
 
-/* Inputs within this distance of unit norm are normalised; further off is an error. */
-#define DQ_UNIT_TOL 1e-6
+/* Inputs within this distance of unit norm are normalised; further off is an error. Wide enough
+ * for rounded input (a quaternion written with four decimals, 0.7071 for cos 45 deg, is off by
+ * up to ~1e-4), narrow enough that what is not a rotation (a scaled or mistyped vector) is
+ * refused. The one tolerance of every input check: the real part's norm, the dual part's
+ * orthogonality to it (relative to its size), a rotation matrix's max |R^T R - I| (then
+ * projected to the nearest rotation). Python reads it as service.dq.UNIT_TOL. */
+#define DQ_UNIT_TOL 1e-3
+/* |R^T R - I| up to this is a rotation to rounding: dq_from_matrix takes its quaternion in closed
+ * form rather than by projection. */
+#define DQ_ROTATION_EXACT 1e-14
 
 /* Algebra (any dual quaternion). */
 void dq_mul(const double *a, const double *b, double *out);
 void dq_conj(const double *a, double *out);
 
-/* Checks that q is finite and unit within DQ_UNIT_TOL, then writes the exact unit version
- * (real part normalised, dual part made orthogonal to it). out may alias q. */
+/* Checks that q is finite and unit within DQ_UNIT_TOL (real part's norm; dual part orthogonal to
+ * it within DQ_UNIT_TOL of max(|d|, 1)), then writes the exact unit version (real part
+ * normalised, dual part made orthogonal to it). out may alias q. */
 int dq_unit(const double *q, double *out);
 /* Normalises any dual quaternion with a non-zero real part. */
 int dq_normalize(const double *q, double *out);
@@ -52,8 +61,14 @@ void dq_log(const double *q, double *out);
 #define DQ_LOG_SERIES_MAX 1e-2
 void dq_pow(const double *q, double tau, double *out);
 
-/* Conversions. Matrices are 4x4 row-major. */
+/* Conversions. Matrices are 4x4 row-major. dq_from_matrix takes a rotation block within
+ * DQ_UNIT_TOL of orthonormal (dq_rotation_error) with det > 0 and uses the nearest rotation. */
 int dq_from_matrix(const double *m, double *out);
+double dq_rotation_error(const double *m);   /* max |R^T R - I| of the 3x3 block */
+double dq_det3(const double *m);             /* det of the 3x3 block */
+/* The unit quaternion (scalar part >= 0) of the rotation nearest to the 3x3 block in the
+ * Frobenius norm, for any block (the SVD's answer with det +1). */
+void dq_nearest_rotation(const double *m, double *quat);
 void dq_to_matrix(const double *q, double *m);
 int dq_from_pose(const double *quat, const double *t, double *out);
 void dq_to_pose(const double *q, double *quat, double *t);

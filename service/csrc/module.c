@@ -100,36 +100,33 @@ static void problem_text(int code, const double *v, int kind, char *buf, size_t 
         return;
     case DQ_E_NOT_UNIT: {
         double n = sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2] + v[3] * v[3]);
-        snprintf(buf, len, "quaternion norm %.9g is not unit (tolerance %g)", n, DQ_UNIT_TOL);
+        snprintf(buf, len,
+                 "quaternion norm %.9g is not unit (off by %.6g, beyond the tolerance %g within "
+                 "which it is normalised); if it is a rotation, divide it by its norm",
+                 n, fabs(n - 1.0), DQ_UNIT_TOL);
         return;
     }
     case DQ_E_DUAL: {
         double rd = v[0] * v[4] + v[1] * v[5] + v[2] * v[6] + v[3] * v[7];
         snprintf(buf, len,
-                 "dual part is not orthogonal to the real part (<r, d> = %.3g): not a rigid motion",
-                 rd);
+                 "dual part is not orthogonal to the real part (<r, d> = %.3g, tolerance %g of "
+                 "max(|d|, 1)): not a rigid motion", rd, DQ_UNIT_TOL);
         return;
     }
     case DQ_E_NOT_RIGID: {
         if (kind == 16) {
-            double worst = 0.0;
-            for (int i = 0; i < 3; i++)
-                for (int j = 0; j < 3; j++) {
-                    double s = v[i] * v[j] + v[4 + i] * v[4 + j] + v[8 + i] * v[8 + j];
-                    double e = fabs(s - (i == j ? 1.0 : 0.0));
-                    if (e > worst) worst = e;
-                }
-            double det = v[0] * (v[5] * v[10] - v[6] * v[9]) - v[1] * (v[4] * v[10] - v[6] * v[8]) +
-                         v[2] * (v[4] * v[9] - v[5] * v[8]);
+            double worst = dq_rotation_error(v);
             if (fabs(v[12]) > DQ_UNIT_TOL || fabs(v[13]) > DQ_UNIT_TOL ||
                 fabs(v[14]) > DQ_UNIT_TOL || fabs(v[15] - 1.0) > DQ_UNIT_TOL)
                 snprintf(buf, len, "not a rigid transform: bottom row is not [0, 0, 0, 1]");
             else if (worst > DQ_UNIT_TOL)
                 snprintf(buf, len,
                          "not a rigid transform: rotation block is not orthonormal "
-                         "(|R^T R - I| = %.3g, tolerance %g)", worst, DQ_UNIT_TOL);
+                         "(|R^T R - I| = %.3g, beyond the tolerance %g within which it is "
+                         "projected to the nearest rotation)", worst, DQ_UNIT_TOL);
             else
-                snprintf(buf, len, "not a rigid transform: det(R) = %.9g, not 1", det);
+                snprintf(buf, len, "not a rigid transform: det(R) = %.6g, not 1 (a reflection)",
+                         dq_det3(v));
             return;
         }
         snprintf(buf, len, "not a rigid transform");

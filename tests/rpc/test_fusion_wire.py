@@ -43,13 +43,14 @@ def measurement(draw, t):
     rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
     q = rng.normal(size=4)
     q /= np.linalg.norm(q)
-    q *= 1 + draw(st.sampled_from([0.0] * 5 + [9e-7, -9e-7, 2e-6, -1.0, 1e300]))
+    tol = dq.UNIT_TOL
+    q *= 1 + draw(st.sampled_from([0.0] * 5 + [0.99 * tol, -0.99 * tol, 1.01 * tol, -1.0, 1e300]))
     T = np.array(draw(st.sampled_from([[1.0, 0, 0, 0]] + [q.tolist()] * 4 +
                                       [[0.0] * 4, [float("nan"), 0, 0, 0]])))
     pose = np.concatenate([T, [0.0] * 4])
     # math.hypot scales, so the 1e300 edge cannot overflow the norm
     p = dq.from_pose(T, [0.0, 0, 0]) if np.all(np.isfinite(T)) and abs(
-        math.hypot(*T) - 1) <= 1e-6 else None
+        math.hypot(*T) - 1) <= tol else None
     kind = draw(st.sampled_from(["cov", "cov", "cov", "none", "weight", "asym", "notpd", "nan",
                                  "count", "both", "edge_asym"]))
     cov, weight = spd(rng), None

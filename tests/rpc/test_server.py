@@ -232,7 +232,8 @@ BAD_INPUTS = [
      "poses[2].orientation: contains NaN or infinity"),
     ("Blend", blend_req(*_poses(4, {(3, "q"): [0, 0, 0, 0]})), "poses[3].orientation: zero quaternion"),
     ("Blend", blend_req(*_poses(2, {(0, "q"): [2, 0, 0, 0]})),
-     "poses[0].orientation: quaternion norm 2 is not unit (tolerance 1e-06)"),
+     "poses[0].orientation: quaternion norm 2 is not unit (off by 1, beyond the tolerance 0.001 "
+     "within which it is normalised); if it is a rotation, divide it by its norm"),
     ("Blend", blend_req(*_poses(3), weights=[1, -1, 1]), "weights[1]: negative weight -1"),
     ("Blend", blend_req(*_poses(3), weights=[0, 0, 0]),
      "weights: all weights are zero (the weights need a positive sum)"),

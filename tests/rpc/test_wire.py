@@ -125,14 +125,15 @@ def _fast_path(blending, data: bytes):
 @st.composite
 def near_unit_requests(draw, plain=None):
     """Requests close to valid ones, so most take the fast path and the rest sit on its edges:
-    norms at the 1e-6 tolerance, zero and negative weights, odd methods and limits. With
+    norms at the unit tolerance (just inside, just outside), zero and negative weights, odd methods and limits. With
     ``plain=True`` only valid ones, every method."""
     plain = draw(st.booleans()) if plain is None else plain
     n = draw(st.integers(1, 5) if plain else st.integers(0, 7))
     rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
     q = rng.normal(size=(n, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
-    off = [0.0, 1e-9, 9e-7, -9e-7] + ([] if plain else [2e-6, -2e-6])
+    tol = dq.UNIT_TOL
+    off = [0.0, 1e-9, 0.99 * tol, -0.99 * tol] + ([] if plain else [1.01 * tol, -1.01 * tol])
     q *= 1 + np.array(draw(st.lists(st.sampled_from(off), min_size=n, max_size=n)))[:, None]
     t = rng.uniform(-3, 3, (n, 3)) * draw(st.sampled_from([0.0, 1.0, 1e3]))
     if plain:
