@@ -1,4 +1,4 @@
-"""``dqpose blend`` and ``dqpose interpolate``: poses from a JSON or CSV file (read by
+"""``dqpose blend`` and ``dqpose interpolate``: poses from a JSON, YAML or CSV file (read by
 :mod:`service.cli.posefile`), computed on a server or ``--local``ly, printed as CSV or JSON."""
 from __future__ import annotations
 
@@ -19,14 +19,17 @@ INTERPOLATE_JSON = """\
            "times": [0, 0.5], "interpolation": "tool_linear"}"""
 
 POSE_FORMATS = """\
-input formats (FILE, or - for standard input; chosen by the extension, else sniffed):
+input formats (FILE, or - for standard input; chosen by the extension, else by the content):
   JSON  the request body grpcurl sends (enums as METHOD_DLB or just dlb), e.g.
 %s
         positions may also be [x, y, z] and orientations [w, x, y, z]; a bare list of
-        %s is accepted too. Missing fields are zero, as in protobuf.
-  CSV   one pose per line, columns %s
-        (a header line naming the columns is optional; columns are matched by name when present).
-units: metres; quaternions scalar first (w, x, y, z), unit norm.
+        %s is accepted too. A missing position or coordinate is zero, as in protobuf;
+        an orientation is required, and a key not shown here is an error.
+  YAML  the same document in YAML (.yaml, .yml; needs the [yaml] extra).
+  CSV   one pose per line, columns %s, separated by commas, semicolons,
+        tabs or spaces (a header line naming the columns is optional; columns are matched by
+        name when present).
+units: metres; quaternions scalar first (w, x, y, z), unit norm (within 1e-3: normalised).
 """
 
 
@@ -40,7 +43,7 @@ def configure(name: str, p) -> None:
         p.epilog = (POSE_FORMATS % (BLEND_JSON, "poses", BLEND_CSV)
                     + "\nmethods (--method):\n" + methods
                     + "\nexample: dqpose blend --method dlb poses.csv")
-        p.add_argument("file", metavar="FILE", help="poses (JSON or CSV; - reads standard input)")
+        p.add_argument("file", metavar="FILE", help="poses (JSON, YAML or CSV; - reads standard input)")
         p.add_argument("--method", choices=list(METHODS),
                        help="blending method, see below (default: the file's \"method\", "
                             "else dib)")
@@ -52,7 +55,7 @@ def configure(name: str, p) -> None:
                          "the motion is never extrapolated.")
         p.epilog = (POSE_FORMATS % (INTERPOLATE_JSON, "keyframes", INTERPOLATE_CSV)
                     + "\nexample: dqpose interpolate --step 0.002 --mode tool_linear keyframes.csv")
-        p.add_argument("file", metavar="FILE", help="keyframes (JSON or CSV; - reads standard input)")
+        p.add_argument("file", metavar="FILE", help="keyframes (JSON, YAML or CSV; - reads standard input)")
         p.add_argument("--mode", choices=["screw", "tool_linear"],
                        help="screw: piecewise ScLERP; tool_linear: straight tool path, slerped "
                             "orientation (default: the file's \"interpolation\", else screw)")

@@ -60,7 +60,7 @@ def configure(name: str, p) -> None:
     p.description = ("Fuse the measurements of one body in FILE into its maximum-likelihood pose "
                      "with a covariance (on the server at --target, or --local).")
     p.epilog = EPILOG
-    p.add_argument("file", metavar="FILE", help="measurements (JSON or CSV; - reads standard input)")
+    p.add_argument("file", metavar="FILE", help="measurements (JSON, YAML or CSV; - reads standard input)")
     p.add_argument("--robust", action="store_true",
                    help="reject gross outliers (default: the file's \"options\", else off)")
     p.add_argument("--probability", type=float,
@@ -86,21 +86,15 @@ def configure(name: str, p) -> None:
 
 
 def read_request(path: str):
-    """A ``FuseRequest`` from a JSON or CSV file (see the help)."""
-    from service.cli import posefile
+    """A ``FuseRequest`` from a JSON, YAML or CSV file (see the help)."""
+    from service.cli import inputs
     from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 
-    text, fmt = posefile._load(path)
-    if fmt == "json":
-        import json
-
+    text, fmt = inputs.load(path)
+    if fmt != "csv":
         from google.protobuf import json_format
 
-        try:
-            doc = json.loads(text)
-        except json.JSONDecodeError as e:
-            raise ValueError(f"{path}: not valid JSON ({e})") from None
-        doc = {"measurements": doc} if isinstance(doc, list) else doc
+        doc = inputs.document(path, text, fmt, "measurements")
         try:
             request = json_format.ParseDict(doc, pb.FuseRequest())
         except json_format.ParseError as e:
@@ -113,18 +107,14 @@ def read_request(path: str):
 
 
 def _csv_measurements(text: str) -> list:
-    import csv
-    import io
-
-    from service.cli import posefile
+    from service.cli import inputs, posefile
     from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 
     # The text columns (source, body) are taken out, the numbers read by posefile's reader.
-    lines = [row for row in csv.reader(io.StringIO(text))
-             if row and not row[0].lstrip().startswith("#")]
+    lines = [cells for _, cells in inputs.table(text)]
     if not lines:
         return []
-    header = None if any(posefile._number(c) for c in lines[0]) else [
+    header = None if any(inputs.is_number(c) for c in lines[0]) else [
         c.strip().lower() for c in lines[0]]
     cols = header or list(BASE_COLUMNS)
     texts = {c: cols.index(c) for c in ("source", "body") if c in cols}

@@ -1,18 +1,18 @@
-"""Pose files for the command line: JSON (the grpcurl request body) or CSV in, CSV or JSON out.
+"""Pose files for the command line: JSON or YAML (the grpcurl request body) or CSV in, CSV or JSON
+out; the files read through :mod:`service.cli.inputs` (every key checked, any CSV separator).
 
 No gRPC here; the same files work for ``--local`` and for calls to a server.
 """
 from __future__ import annotations
 
-import csv
 import io
 import json
-import sys
 from typing import NamedTuple
 
 import numpy as np
 
 from service import dq, trajectory
+from service.cli.inputs import document, fields, is_number, load, nearest, not_a_number, table
 from service.errors import rename
 
 POSE_COLUMNS = ("x", "y", "z", "qw", "qx", "qy", "qz")
@@ -33,22 +33,9 @@ class InterpolateFile(NamedTuple):
     format: str
 
 
-def _load(path: str) -> tuple[str, str]:
-    """File text and its format (``json`` or ``csv``: by extension, else by the first char)."""
-    if path == "-":
-        text = sys.stdin.read()
-    else:
-        try:
-            with open(path, encoding="utf-8") as f:
-                text = f.read()
-        except OSError as e:
-            raise OSError(f"{path}: {e.strerror}") from None
-    low = path.lower()
-    if low.endswith(".json"):
-        return text, "json"
-    if low.endswith((".csv", ".txt")):
-        return text, "csv"
-    return text, "json" if text.lstrip()[:1] in ("{", "[") else "csv"
+def _answer(fmt: str) -> str:
+    """The format of the answer to a file: CSV for CSV, JSON for JSON and YAML."""
+    return "csv" if fmt == "csv" else "json"
 
 
 def parse_floats(name: str, text: str) -> np.ndarray:
@@ -58,13 +45,16 @@ def parse_floats(name: str, text: str) -> np.ndarray:
         raise ValueError(f"{name}: expected comma-separated numbers, got {text!r}") from None
 
 
+QUATERNION, VECTOR = ("w", "x", "y", "z"), ("x", "y", "z")
+POSE_KEYS = ("position", "orientation")
+
+
 def _vec(field: str, value, names: tuple[str, ...]) -> list[float]:
+    """A vector given as an object (a key left out is 0, as protobuf's JSON has it) or a list."""
     if value is None:
         return [0.0] * len(names)
     if isinstance(value, dict):
-        unknown = set(value) - set(names)
-        if unknown:
-            raise ValueError(f"{field}: unknown key {sorted(unknown)[0]!r}; expected {', '.join(names)}")
+        value = fields(field, value, names)
         value = [value.get(k, 0.0) for k in names]
     if not isinstance(value, (list, tuple)) or len(value) != len(names):
         raise ValueError(f"{field}: expected [{', '.join(names)}] or an object with those keys")
@@ -74,31 +64,40 @@ def _vec(field: str, value, names: tuple[str, ...]) -> list[float]:
         raise ValueError(f"{field}: expected numbers, got {value!r}") from None
 
 
-def _json_poses(field: str, poses, stamped: bool) -> tuple[np.ndarray, np.ndarray]:
-    if not isinstance(poses, list):
+def _pose_row(where: str, value) -> list[float]:
+    """``[qw, qx, qy, qz, x, y, z]`` of a ``Pose`` object: an orientation is required (a missing
+    one is no rotation), a missing position is the origin."""
+    p = fields(where, value, POSE_KEYS, required=("orientation",))
+    return (_vec(f"{where}.orientation", p["orientation"], QUATERNION)
+            + _vec(f"{where}.position", p.get("position"), VECTOR))
+
+
+def _json_poses(field: str, entries, stamped: tuple[str, ...] = ()):
+    """The poses of a list, each a ``Pose`` or, with ``stamped`` (the entry's keys besides
+    ``pose``), ``{"time": ..., "pose": ...}``: ``(entries with checked keys, times, (n, 7)
+    rows)``."""
+    if not isinstance(entries, list):
         raise ValueError(f"{field}: expected a list")
-    times, rows = [], []
-    for i, p in enumerate(poses):
+    checked, times, rows = [], [], []
+    for i, e in enumerate(entries):
         where = f"{field}[{i}]"
-        if not isinstance(p, dict):
-            raise ValueError(f"{where}: expected an object")
         if stamped:
-            try:
-                times.append(float(p.get("time", 0.0)))
-            except (TypeError, ValueError):
-                raise ValueError(f"{where}.time: expected a number") from None
-            p, where = p.get("pose") or {}, where + ".pose"
-        rows.append(_vec(f"{where}.orientation", p.get("orientation"), ("w", "x", "y", "z"))
-                    + _vec(f"{where}.position", p.get("position"), ("x", "y", "z")))
-    return np.array(times), np.array(rows, dtype=np.float64).reshape(-1, 7)
+            e = fields(where, e, ("pose",) + stamped, required=("pose",))
+            times.append(_optional_number(e, "time", where) or 0.0)
+            rows.append(_pose_row(where + ".pose", e["pose"]))
+        else:
+            rows.append(_pose_row(where, e))
+        checked.append(e)
+    return checked, np.array(times), np.array(rows, dtype=np.float64).reshape(-1, 7)
 
 
-def _number(cell: str) -> bool:
+def _numbers(field: str, value) -> np.ndarray | None:
+    if value is None or (isinstance(value, list) and not value):
+        return None
     try:
-        float(cell)
-    except ValueError:
-        return False
-    return True
+        return np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise ValueError(f"{field}: expected a list of numbers, got {value!r}") from None
 
 
 def _csv_rows(text: str, columns: tuple[str, ...], optional: tuple[str, ...] = (),
@@ -107,19 +106,20 @@ def _csv_rows(text: str, columns: tuple[str, ...], optional: tuple[str, ...] = (
     header: columns are then matched by name, and a missing one, an unknown one, or one named
     in ``refused`` (name -> why) is an error. Without a header the columns are positional.
     ``names_out``, a list, receives the names of the returned columns."""
-    lines = [(n, row) for n, row in enumerate(csv.reader(io.StringIO(text)), 1)
-             if row and not row[0].lstrip().startswith("#")]
+    lines = table(text)
     if not lines:
         return np.empty((0, len(columns)))
     expected = ",".join(columns) + "".join(f"[,{o}]" for o in optional)
     first_line, first = lines[0]
-    if not any(_number(c) for c in first):
+    if not any(is_number(c) for c in first):
         header = [c.strip().lower() for c in first]
         for c in header:
             if c in (refused or {}):
                 raise ValueError(f"line {first_line}: column {c}: {refused[c]}")
             if c not in columns + optional:
-                raise ValueError(f"line {first_line}: unknown column {c!r}; expected {expected}")
+                guess = nearest(c, columns + optional)
+                raise ValueError(f"line {first_line}: unknown column {c!r}"
+                                 f"{guess if guess.startswith(' (') else '; expected ' + expected}")
         missing = [c for c in columns if c not in header]
         if missing:
             raise ValueError(f"line {first_line}: missing column {missing[0]}; expected "
@@ -146,7 +146,7 @@ def _csv_rows(text: str, columns: tuple[str, ...], optional: tuple[str, ...] = (
             try:
                 out[i, j] = float(row[k])
             except ValueError:
-                raise ValueError(f"line {n}, column {name}: {row[k]!r} is not a number") from None
+                raise ValueError(f"line {n}, column {name}: {not_a_number(row[k])}") from None
     return out
 
 
@@ -168,25 +168,13 @@ def _enum(field: str, value, prefix: str, names: tuple[str, ...]) -> str | None:
     return v
 
 
-def _json_doc(path: str, text: str, key: str) -> dict:
-    """The JSON object of a file; a bare list is taken as the list under ``key``."""
-    try:
-        doc = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{path}: not valid JSON ({e})") from None
-    doc = {key: doc} if isinstance(doc, list) else doc
-    if not isinstance(doc, dict):
-        raise ValueError(f"{path}: expected an object with \"{key}\" or a list of {key}")
-    return doc
-
-
 def read_blend(path: str) -> BlendFile:
-    text, fmt = _load(path)
-    if fmt == "json":
-        doc = _json_doc(path, text, "poses")
-        _, flat = _json_poses("poses", doc.get("poses", []), stamped=False)
-        w = doc.get("weights")
-        weights = None if not w else np.asarray(w, dtype=np.float64)
+    text, fmt = load(path)
+    if fmt != "csv":
+        doc = fields(path, document(path, text, fmt, "poses"), ("poses", "weights", "method"),
+                     required=("poses",))
+        _, _, flat = _json_poses("poses", doc["poses"])
+        weights = _numbers("weights", doc.get("weights"))
         method = _enum("method", doc.get("method"), "method", tuple(dq.METHODS))
     else:
         rows = _csv_rows(text, POSE_COLUMNS, ("weight",), refused={
@@ -197,17 +185,17 @@ def read_blend(path: str) -> BlendFile:
         method = None
     if flat.shape[0] == 0:
         raise ValueError(f"{path}: no poses")
-    return BlendFile(_to_dqs("poses", flat), weights, method, fmt)
+    return BlendFile(_to_dqs("poses", flat), weights, method, _answer(fmt))
 
 
 def read_interpolate(path: str) -> InterpolateFile:
-    text, fmt = _load(path)
+    text, fmt = load(path)
     times = mode = None
-    if fmt == "json":
-        doc = _json_doc(path, text, "keyframes")
-        times_k, flat = _json_poses("keyframes", doc.get("keyframes", []), stamped=True)
-        if doc.get("times"):
-            times = np.asarray(doc["times"], dtype=np.float64)
+    if fmt != "csv":
+        doc = fields(path, document(path, text, fmt, "keyframes"),
+                     ("keyframes", "times", "interpolation"), required=("keyframes",))
+        _, times_k, flat = _json_poses("keyframes", doc["keyframes"], stamped=("time",))
+        times = _numbers("times", doc.get("times"))
         mode = _enum("interpolation", doc.get("interpolation"), "interpolation",
                      ("screw", "tool_linear"))
         sub = ".pose"
@@ -219,7 +207,7 @@ def read_interpolate(path: str) -> InterpolateFile:
         sub = ""
     if flat.shape[0] == 0:
         raise ValueError(f"{path}: no keyframes")
-    return InterpolateFile(times_k, _to_dqs("keyframes", flat, sub), times, mode, fmt)
+    return InterpolateFile(times_k, _to_dqs("keyframes", flat, sub), times, mode, _answer(fmt))
 
 
 def sample_times(times_k: np.ndarray, step: float) -> np.ndarray:
@@ -292,44 +280,33 @@ class StampedFile(NamedTuple):
 
 
 def _limits(doc: dict) -> dict:
-    limits = doc.get("limits") or {}
-    if not isinstance(limits, dict):
-        raise ValueError("limits: expected an object with "
-                         + ", ".join(trajectory.LIMIT_FIELDS))
-    unknown = set(limits) - set(trajectory.LIMIT_FIELDS)
-    if unknown:
-        raise ValueError(f"limits: unknown key {sorted(unknown)[0]!r}; expected "
-                         f"{', '.join(trajectory.LIMIT_FIELDS)}")
-    out = {}
-    for k, v in limits.items():
-        try:
-            out[k] = float(v)
-        except (TypeError, ValueError):
-            raise ValueError(f"limits.{k}: expected a number, got {v!r}") from None
-    return out
+    limits = fields("limits", doc.get("limits") or {}, trajectory.LIMIT_FIELDS)
+    return {k: _optional_number(limits, k, "limits") for k in limits}
 
 
-def _optional_number(doc: dict, key: str) -> float | None:
+def _optional_number(doc: dict, key: str, where: str = "") -> float | None:
     v = doc.get(key)
     if v is None:
         return None
     try:
         return float(v)
     except (TypeError, ValueError):
-        raise ValueError(f"{key}: expected a number, got {v!r}") from None
+        raise ValueError(f"{where + '.' if where else ''}{key}: expected a number, "
+                         f"got {v!r}") from None
 
 
 def read_plan(path: str) -> PlanFile:
     """Waypoints: JSON as grpcurl sends a ``dqpose.v1.PlanRequest`` (a bare list is the
     waypoints), or CSV ``x,y,z,qw,qx,qy,qz`` with optional ``time`` and ``blend_radius``
     columns (by header)."""
-    text, fmt = _load(path)
-    if fmt == "json":
-        doc = _json_doc(path, text, "waypoints")
-        wps = doc.get("waypoints", [])
-        _, flat = _json_poses("waypoints", wps, stamped=True)
-        extra = np.array([[_optional_number(w, "time") or 0.0,
-                           _optional_number(w, "blend_radius") or 0.0] for w in wps],
+    text, fmt = load(path)
+    if fmt != "csv":
+        doc = fields(path, document(path, text, fmt, "waypoints"),
+                     ("waypoints", "limits", "rate_hz", "interpolation"), required=("waypoints",))
+        wps, times, flat = _json_poses("waypoints", doc["waypoints"],
+                                       stamped=("time", "blend_radius"))
+        extra = np.array([[t, _optional_number(w, "blend_radius", f"waypoints[{i}]") or 0.0]
+                          for i, (t, w) in enumerate(zip(times, wps))],
                          dtype=np.float64).reshape(-1, 2)
         limits, rate = _limits(doc), _optional_number(doc, "rate_hz")
         mode = _enum("interpolation", doc.get("interpolation"), "interpolation",
@@ -347,16 +324,17 @@ def read_plan(path: str) -> PlanFile:
     if flat.shape[0] == 0:
         raise ValueError(f"{path}: no waypoints")
     return PlanFile(_to_dqs("waypoints", flat, sub), extra[:, 0], extra[:, 1], limits, rate,
-                    mode, fmt)
+                    mode, _answer(fmt))
 
 
 def read_stamped(path: str) -> StampedFile:
     """Time-stamped poses: JSON as grpcurl sends a ``dqpose.v1.SmoothRequest`` (a bare list is
     the poses), or CSV ``t,x,y,z,qw,qx,qy,qz``."""
-    text, fmt = _load(path)
-    if fmt == "json":
-        doc = _json_doc(path, text, "poses")
-        times, flat = _json_poses("poses", doc.get("poses", []), stamped=True)
+    text, fmt = load(path)
+    if fmt != "csv":
+        doc = fields(path, document(path, text, fmt, "poses"),
+                     ("poses", "limits", "smoothing", "rate_hz"), required=("poses",))
+        _, times, flat = _json_poses("poses", doc["poses"], stamped=("time",))
         limits = _limits(doc)
         smoothing, rate = _optional_number(doc, "smoothing"), _optional_number(doc, "rate_hz")
         sub = ".pose"
@@ -367,7 +345,7 @@ def read_stamped(path: str) -> StampedFile:
         limits, smoothing, rate, sub = {}, None, None, ""
     if flat.shape[0] == 0:
         raise ValueError(f"{path}: no poses")
-    return StampedFile(times, _to_dqs("poses", flat, sub), limits, smoothing, rate, fmt)
+    return StampedFile(times, _to_dqs("poses", flat, sub), limits, smoothing, rate, _answer(fmt))
 
 
 VELOCITY_COLUMNS = ("vx", "vy", "vz", "wx", "wy", "wz")
@@ -415,9 +393,7 @@ def _robot_row(field: str, value) -> tuple[str, list[float]]:
     """One pose of a robot pose file: ``("quaternion", [qw, qx, qy, qz, x, y, z])`` or
     ``("rotvec", [x, y, z, rx, ry, rz])``."""
     if isinstance(value, dict):
-        return "quaternion", (_vec(f"{field}.orientation", value.get("orientation"),
-                                   ("w", "x", "y", "z"))
-                              + _vec(f"{field}.position", value.get("position"), ("x", "y", "z")))
+        return "quaternion", _pose_row(field, value)
     if isinstance(value, (list, tuple)) and len(value) in (6, 7):
         try:
             v = [float(x) for x in value]
@@ -428,21 +404,27 @@ def _robot_row(field: str, value) -> tuple[str, list[float]]:
                      f"[x, y, z, rx, ry, rz] (UR) or [x, y, z, qw, qx, qy, qz]")
 
 
-def _robot_json(path: str, text: str):
-    doc = _json_doc(path, text, "poses")
-    entries = doc.get("poses")
+_ROBOT_ENTRY = ("image", "base_to_flange", "pose")
+
+
+def _robot_json(path: str, text: str, fmt: str):
+    doc = fields(path, document(path, text, fmt, "poses"), ("setup", "units", "poses"),
+                 required=("poses",))
+    entries = doc["poses"]
     if not isinstance(entries, list):
         raise ValueError(f"{path}: expected \"poses\": a list")
     images, kinds, rows, keys = [], [], [], set()
     for i, e in enumerate(entries):
         field = f"poses[{i}]"
         image, key = None, ""
-        if isinstance(e, dict) and ("position" not in e):
+        # {"image": ..., "base_to_flange" | "pose": POSE}, else a POSE itself
+        if isinstance(e, dict) and not set(e) & set(POSE_KEYS) and set(e) & set(_ROBOT_ENTRY):
+            key = "base_to_flange" if "base_to_flange" in e else "pose"
+            e = fields(field, e, ("image", key), required=(key,))
             image = e.get("image")
             if image is not None and not isinstance(image, str):
                 raise ValueError(f"{field}.image: expected a file name, got {image!r}")
-            key = "base_to_flange" if "base_to_flange" in e else "pose"
-            e, field = e.get(key), f"{field}.{key}"
+            e, field = e[key], f"{field}.{key}"
         keys.add(key)
         kind, row = _robot_row(field, e)
         images.append(image)
@@ -453,10 +435,9 @@ def _robot_json(path: str, text: str):
 
 
 def _robot_csv(text: str):
-    lines = [(n, [c.strip() for c in row]) for n, row in enumerate(csv.reader(io.StringIO(text)), 1)
-             if row and not row[0].lstrip().startswith("#")]
+    lines = table(text)
     header = None
-    if lines and not any(_number(c) for c in lines[0][1][1:]):
+    if lines and not any(is_number(c) for c in lines[0][1][1:]):
         n, header = lines.pop(0)
         header = [c.lower() for c in header]
         for columns in (("image",) + POSE_COLUMNS, ("image",) + _ROTVEC_COLUMNS, POSE_COLUMNS,
@@ -477,7 +458,7 @@ def _robot_csv(text: str):
             names = POSE_COLUMNS if "qw" in cells else _ROTVEC_COLUMNS
             values = [cells[c] for c in names]
         else:
-            image = None if _number(row[0]) else row[0]
+            image = None if is_number(row[0]) else row[0]
             values = row[1:] if image is not None else row
             if len(values) not in (6, 7):
                 raise ValueError(f"line {n}: expected [image,]x,y,z,qw,qx,qy,qz or "
@@ -502,8 +483,8 @@ def read_robot_poses(path: str, units: str = "auto") -> RobotPoses:
     returned notes say so, and that rotation vectors were read."""
     if units not in UNITS:
         raise ValueError(f"units: expected one of {', '.join(UNITS)}, got {units!r}")
-    text, fmt = _load(path)
-    doc, images, kinds, rows, sub = _robot_json(path, text) if fmt == "json" else \
+    text, fmt = load(path)
+    doc, images, kinds, rows, sub = _robot_json(path, text, fmt) if fmt != "csv" else \
         _robot_csv(text)
     if not rows:
         raise ValueError(f"{path}: no poses")

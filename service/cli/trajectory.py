@@ -21,9 +21,11 @@ input formats (FILE, or - for standard input; chosen by the extension, else snif
                       "max_linear_acceleration": 1.0, "max_angular_acceleration": 2.0,
                       "max_linear_jerk": 10, "max_angular_jerk": 20},
            "rate_hz": 125, "interpolation": "TOOL_LINEAR"}
-        a bare list of waypoints is accepted too.
+        a bare list of waypoints is accepted too; a key not shown here is an error.
+  YAML  the same document in YAML (.yaml, .yml; needs the [yaml] extra).
   CSV   one waypoint per line: x,y,z,qw,qx,qy,qz and, by header name, time (s from the start
-        it must be reached; 0: as fast as the limits allow) and blend_radius (m).
+        it must be reached; 0: as fast as the limits allow) and blend_radius (m); separated
+        by commas, semicolons, tabs or spaces.
 poses are T_base_tool; limits are norms of the tool point's (linear) and the tool's (angular)
 motion in the base frame. Flags override the file's limits; velocity and acceleration limits are
 required, a jerk limit of 0 (the default) means none.
@@ -39,7 +41,8 @@ SMOOTH_EPILOG = """\
 input formats (FILE, or - for standard input):
   JSON  the SmoothRequest body of dqpose.v1.Trajectories/Smooth: {"poses": [{"time": 0.0,
         "pose": {...}}, ...], "limits": {...}, "smoothing": 1, "rate_hz": 0}
-  CSV   t,x,y,z,qw,qx,qy,qz, times strictly increasing.
+  YAML  the same document in YAML (.yaml, .yml; needs the [yaml] extra).
+  CSV   t,x,y,z,qw,qx,qy,qz (commas, semicolons, tabs or spaces), times strictly increasing.
 output: the smoothed poses as CSV t,x,y,z,qw,qx,qy,qz (or JSON with -o x.json).
 
 example: dqpose smooth --local demo.csv --max-linear-velocity 0.5 --max-angular-velocity 2 \\
@@ -59,7 +62,7 @@ def configure(name: str, p) -> None:
         p.description = ("Plan the fastest motion through the waypoints in FILE that the limits "
                          "allow (on the server at --target, or --local) and print its samples.")
         p.epilog = PLAN_EPILOG
-        p.add_argument("file", metavar="FILE", help="waypoints (JSON or CSV; - reads standard input)")
+        p.add_argument("file", metavar="FILE", help="waypoints (JSON, YAML or CSV; - reads standard input)")
         p.add_argument("--rate", type=float, help="samples per second (default: the file's, else 125)")
         p.add_argument("--interpolation", choices=("tool_linear", "screw"),
                        help="tool point on straight lines (default), or screw motions (ScLERP)")
@@ -68,7 +71,7 @@ def configure(name: str, p) -> None:
                          "velocity and acceleration limits (on the server at --target, or "
                          "--local) and print it.")
         p.epilog = SMOOTH_EPILOG
-        p.add_argument("file", metavar="FILE", help="time-stamped poses (JSON or CSV; - reads standard input)")
+        p.add_argument("file", metavar="FILE", help="time-stamped poses (JSON, YAML or CSV; - reads standard input)")
         p.add_argument("--smoothing", type=float, help="see service/smoothing.py (default: the file's, else 1)")
         p.add_argument("--rate", type=float, help="resample at this rate (default: the input times)")
     g = p.add_argument_group("limits (override the file's)")

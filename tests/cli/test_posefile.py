@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from service import dq
+from _cli import server  # noqa: F401,E402 (a fixture)
 from service.cli.posefile import (format_blend, format_samples, read_blend, read_interpolate,
                                   sample_times)
 
@@ -217,3 +218,153 @@ def test_bad_robot_pose_files_say_where(tmp_path, text, message):
     with pytest.raises(ValueError) as e:
         read_robot_poses(str(path))
     assert message in str(e.value)
+
+
+# ---- as a user meets them: `dqpose` in its own process ----------------------------------------
+
+ROOT = __import__("os").path.dirname(__import__("os").path.dirname(
+    __import__("os").path.dirname(__import__("os").path.abspath(__file__))))
+H = 0.7071067811865476
+POSES_JSON = {"poses": [{"position": {"x": 0.1}, "orientation": {"w": 1}},
+                        {"position": {"x": 0.3}, "orientation": {"w": H, "z": H}}],
+              "weights": [1, 3]}
+LIMITS = {"max_linear_velocity": 0.25, "max_angular_velocity": 1.0,
+          "max_linear_acceleration": 1.0, "max_angular_acceleration": 2.0}
+
+
+def dqpose(*argv, cwd):
+    """``dqpose ARGV`` as a user runs it: ``(exit code, stdout, stderr)``."""
+    import subprocess
+    import sys
+    p = subprocess.run([sys.executable, "-m", "service.cli", *argv], cwd=cwd, capture_output=True,
+                       text=True, timeout=120)
+    return p.returncode, p.stdout, p.stderr
+
+
+def _with(doc, path, value):
+    """``doc`` (deep-copied) with the key at ``path`` (a tuple of keys and indices, the last a
+    key) renamed to ``value``, or removed when ``value`` is None."""
+    doc = json.loads(json.dumps(doc))
+    *to, key = path
+    d = doc
+    for k in to:
+        d = d[k]
+    v = d.pop(key)
+    if value is not None:
+        d[value] = v
+    return doc
+
+
+@pytest.mark.parametrize("command, doc, path, renamed, error", [
+    ("blend", POSES_JSON, ("poses", 0, "position"), "positon",
+     "poses[0]: unknown key 'positon' (did you mean 'position'?)"),
+    ("blend", POSES_JSON, ("poses", 1, "orientation"), "rotation",
+     "poses[1]: unknown key 'rotation' (did you mean 'orientation'?)"),
+    ("blend", POSES_JSON, ("poses", 0, "position"), "translation",
+     "poses[0]: unknown key 'translation' (did you mean 'position'?)"),
+    ("blend", POSES_JSON, ("poses", 1, "orientation"), None, "poses[1]: missing key 'orientation'"),
+    ("blend", POSES_JSON, ("weights",), "weigths", "unknown key 'weigths' (did you mean 'weights'?)"),
+    ("blend", POSES_JSON, ("poses",), "pose", "unknown key 'pose' (did you mean 'poses'?)"),
+    ("interpolate", {"keyframes": [{"time": 0, "pose": POSES_JSON["poses"][0]},
+                                   {"time": 1, "pose": POSES_JSON["poses"][1]}]},
+     ("keyframes", 1, "time"), "tme", "keyframes[1]: unknown key 'tme' (did you mean 'time'?)"),
+    ("interpolate", {"keyframes": [{"time": 0, "pose": POSES_JSON["poses"][0]},
+                                   {"time": 1, "pose": POSES_JSON["poses"][1]}]},
+     ("keyframes", 1, "pose"), None, "keyframes[1]: missing key 'pose'"),
+    ("plan", {"waypoints": [{"pose": POSES_JSON["poses"][0]},
+                            {"pose": POSES_JSON["poses"][1], "blend_radius": 0.0}],
+              "limits": LIMITS},
+     ("waypoints", 1, "blend_radius"), "blend_raduis",
+     "waypoints[1]: unknown key 'blend_raduis' (did you mean 'blend_radius'?)"),
+    ("plan", {"waypoints": [{"pose": POSES_JSON["poses"][0]}, {"pose": POSES_JSON["poses"][1]}],
+              "limits": LIMITS},
+     ("limits", "max_linear_velocity"), "max_linear_velocty",
+     "limits: unknown key 'max_linear_velocty' (did you mean 'max_linear_velocity'?)"),
+])
+@pytest.mark.parametrize("fmt", ["json", "yaml"])
+def test_a_misspelt_or_missing_key_is_an_error_naming_it(tmp_path, command, doc, path, renamed,
+                                                          error, fmt):
+    import yaml
+    bad = _with(doc, path, renamed)
+    f = tmp_path / f"in.{fmt}"
+    f.write_text(json.dumps(bad) if fmt == "json" else yaml.safe_dump(bad))
+    code, out, err = dqpose(command, str(f), "--local", cwd=tmp_path)
+    assert code == 2 and out == "", (out, err)
+    assert err.strip().splitlines()[-1].endswith(error), err
+    # the file as it should be is read
+    f.write_text(json.dumps(doc) if fmt == "json" else yaml.safe_dump(doc))
+    code, out, err = dqpose(command, str(f), "--local", cwd=tmp_path)
+    assert code == 0, err
+
+
+def _blend_csv(sep: str, header: bool) -> str:
+    rows = [[0.1, 0, 0, 1, 0, 0, 0, 1], [0.3, 0, 0, 0.7071, 0, 0, 0.7071, 3]]
+    lines = ([sep.join(POSE_COLUMNS_W)] if header else []) + [sep.join(f"{v:g}" for v in r) for r in rows]
+    return "# two measurements\n" + "\n".join(lines) + "\n"
+
+
+POSE_COLUMNS_W = ("x", "y", "z", "qw", "qx", "qy", "qz", "weight")
+
+
+@pytest.mark.parametrize("sep", [", ", ";", "\t", " ", "   "], ids=["comma-space", "semicolon", "tab", "space", "spaces"])
+@pytest.mark.parametrize("header", [True, False])
+def test_csv_with_any_separator_reads_as_with_commas(tmp_path, sep, header):
+    (tmp_path / "commas.csv").write_text(_blend_csv(",", header))
+    (tmp_path / "other.csv").write_text(_blend_csv(sep, header))
+    want = dqpose("blend", "commas.csv", "--local", cwd=tmp_path)
+    got = dqpose("blend", "other.csv", "--local", cwd=tmp_path)
+    assert want[0] == 0 and got == want, (want, got)
+
+
+def test_csv_without_a_separator_is_refused_naming_those_tried(tmp_path):
+    (tmp_path / "p.csv").write_text("0.1|0|0|1|0|0|0\n0.3|0|0|1|0|0|0\n")
+    code, out, err = dqpose("blend", "p.csv", "--local", cwd=tmp_path)
+    assert code == 2
+    assert err.strip() == ("dqpose blend: error: line 1: no columns found in '0.1|0|0|1|0|0|0': "
+                           "tried ',', ';', tab and spaces as separators"), err
+
+
+def test_a_yaml_file_is_read_like_its_json(tmp_path):
+    import yaml
+    (tmp_path / "p.json").write_text(json.dumps(POSES_JSON))
+    (tmp_path / "p.yaml").write_text(yaml.safe_dump(POSES_JSON))
+    (tmp_path / "p").write_text("# no extension: told by its content\n" + yaml.safe_dump(POSES_JSON))
+    want = dqpose("blend", "p.json", "--local", cwd=tmp_path)
+    assert want[0] == 0, want
+    assert dqpose("blend", "p.yaml", "--local", cwd=tmp_path) == want
+    assert dqpose("blend", "p", "--local", cwd=tmp_path) == want
+
+
+@pytest.mark.parametrize("where", ["--local", "server"])
+def test_rounded_quaternions_are_taken_and_garbage_is_refused_saying_how_far(tmp_path, server, where):
+    from service.rpc.client import Client, InvalidArgument
+    exact = ("x,y,z,qw,qx,qy,qz\n0.1,0,0,1,0,0,0\n"
+             f"0.3,0,0,{H!r},0,0,{H!r}\n")
+    rounded = exact.replace(repr(H), "0.7071")              # norm 0.99999, 1e-5 off
+    (tmp_path / "exact.csv").write_text(exact)
+    (tmp_path / "rounded.csv").write_text(rounded)
+    (tmp_path / "bad.csv").write_text(exact.replace(repr(H), "0.7"))   # 0.0101 off
+    args = ["--local"] if where == "--local" else ["--target", server.target]
+    want = dqpose("blend", "exact.csv", *args, cwd=tmp_path)
+    assert want[0] == 0, want
+    got = dqpose("blend", "rounded.csv", *args, cwd=tmp_path)
+    assert got[0] == 0, got
+    np.testing.assert_allclose(np.loadtxt(io.StringIO(got[1]), delimiter=",", skiprows=1),
+                               np.loadtxt(io.StringIO(want[1]), delimiter=",", skiprows=1),
+                               atol=1e-12)
+    code, out, err = dqpose("blend", "bad.csv", *args, cwd=tmp_path)
+    assert code == 2 and err.strip() == (
+        "dqpose blend: error: poses[1].orientation: quaternion norm 0.989949494 is not unit "
+        "(off by 0.0100505, beyond the tolerance 0.001 within which it is normalised); if it is "
+        "a rotation, divide it by its norm"), err
+    if where == "server":       # the shipped client: the server sees the rounded quaternion
+        q = np.array([[1.0, 0, 0, 0], [0.7071, 0, 0, 0.7071]])
+        n = np.linalg.norm(q, axis=1, keepdims=True)
+        t = np.array([[0.1, 0, 0], [0.3, 0, 0]])
+        sent = dq.from_pose(q / n, t) * n          # orientation sent as written: q
+        with Client(server.target) as c:
+            np.testing.assert_allclose(c.blend(sent), dq.dib(dq.from_pose(*dq.to_pose(sent))),
+                                       atol=1e-12)
+            with pytest.raises(InvalidArgument, match=r"^poses\[1\]\.orientation: quaternion norm "
+                                                      r"0\.989949494 is not unit \(off by 0\.0100505"):
+                c.blend(sent * np.array([[1.0], [0.7 / 0.7071]]))
