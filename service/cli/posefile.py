@@ -419,8 +419,10 @@ def _robot_json(path: str, text: str, fmt: str):
         image, key = None, ""
         # {"image": ..., "base_to_flange" | "pose": POSE}, else a POSE itself
         if isinstance(e, dict) and not set(e) & set(POSE_KEYS) and set(e) & set(_ROBOT_ENTRY):
-            key = "base_to_flange" if "base_to_flange" in e else "pose"
-            e = fields(field, e, ("image", key), required=(key,))
+            e = fields(field, e, _ROBOT_ENTRY)
+            key = next((k for k in _ROBOT_ENTRY[1:] if k in e), None)
+            if key is None:
+                raise ValueError(f"{field}: missing key 'base_to_flange'")
             image = e.get("image")
             if image is not None and not isinstance(image, str):
                 raise ValueError(f"{field}.image: expected a file name, got {image!r}")
