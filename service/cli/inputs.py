@@ -79,7 +79,9 @@ def fields(where: str, value, known: tuple[str, ...], required: tuple[str, ...] 
     for k, v in value.items():
         name = k if k in known else re.sub(r"(?<=[a-z0-9])([A-Z])", r"_\1", str(k)).lower()
         if name not in known:
-            raise ValueError(f"{where}: unknown key {k!r}{nearest(str(k), known)}")
+            guess = nearest(str(k), known)
+            raise ValueError(f"{where}: unknown key {k!r}" + (f" (did you mean {guess!r}?)" if guess
+                                                              else f"; expected {', '.join(known)}"))
         out[name] = v
     for name in required:
         if name not in out:
@@ -87,13 +89,14 @@ def fields(where: str, value, known: tuple[str, ...], required: tuple[str, ...] 
     return out
 
 
-def nearest(key: str, known: tuple[str, ...]) -> str:
-    """`` (did you mean 'KEY'?)`` for the known key nearest to ``key``, else ``; expected ...``."""
+def nearest(key: str, known: tuple[str, ...]) -> str | None:
+    """The known key ``key`` most likely stands for (a synonym, else the closest spelling), or
+    None when none is close."""
     guess = next((g for g in SYNONYMS.get(key.lower(), ()) if g in known), None)
     if guess is None:
         close = difflib.get_close_matches(key.lower(), known, n=1, cutoff=0.6)
         guess = close[0] if close else None
-    return f" (did you mean {guess!r}?)" if guess else f"; expected {', '.join(known)}"
+    return guess
 
 
 def is_number(cell: str) -> bool:

@@ -118,8 +118,8 @@ def _csv_rows(text: str, columns: tuple[str, ...], optional: tuple[str, ...] = (
                 raise ValueError(f"line {first_line}: column {c}: {refused[c]}")
             if c not in columns + optional:
                 guess = nearest(c, columns + optional)
-                raise ValueError(f"line {first_line}: unknown column {c!r}"
-                                 f"{guess if guess.startswith(' (') else '; expected ' + expected}")
+                raise ValueError(f"line {first_line}: unknown column {c!r}" + (
+                    f" (did you mean {guess!r}?)" if guess else f"; expected {expected}"))
         missing = [c for c in columns if c not in header]
         if missing:
             raise ValueError(f"line {first_line}: missing column {missing[0]}; expected "

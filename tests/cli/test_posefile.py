@@ -83,7 +83,9 @@ def test_keyframes_and_times(tmp_path, poses):
     ("qw,qx,qy,qz,x,y,z,weight\n1,0,0,0,0,0,0,\n", r"^line 2, column weight: '' is not a number$"),
     ("x,y,z,qw,qx,qy,qz\n0,0,0,1,0,0\n", r"^line 2: expected 7 values \(x,y,z,qw,qx,qy,qz\), got 6$"),
     ("x,y,z,qw,qx,qy\n0,0,0,1,0,0\n", r"^line 1: missing column qz; expected x,y,z,qw,qx,qy,qz"),
-    ("x,y,z,qw,qx,qy,qz,colour\n0,0,0,1,0,0,0,red\n", r"^line 1: unknown column 'colour'"),
+    ("x,y,z,qw,qx,qy,qz,colour\n0,0,0,1,0,0,0,red\n", r"^line 1: unknown column 'colour'; expected x,y,z"),
+    ("x,y,z,qw,qx,qy,qz,weigth\n0,0,0,1,0,0,0,1\n",
+     r"^line 1: unknown column 'weigth' \(did you mean 'weight'\?\)$"),
     # a time column means keyframes: blending them would silently drop the times
     ("t,x,y,z,qw,qx,qy,qz\n0,0,0,0,1,0,0,0\n1,1,0,0,1,0,0,0\n",
      r"^line 1: column t: a time column means keyframes: .*`dqpose interpolate`$"),
