@@ -881,6 +881,116 @@ def test_nearly_rigid_matrices_are_projected_to_the_nearest_rotation(rng):
         dq.from_matrix(M)
 
 
+@pytest.mark.parametrize("f", [dq.dlb, dq.dib, dq.lin, dq.dec, dq.logblend,
+                               lambda q, w: dq.blend(q, w, method="log")])
+def test_bad_weights_are_rejected(f):
+    with pytest.raises(ValueError, match=r"^weights\[1\]: negative weight -2"):
+        f(SET, [1.0, -2.0, 1.0])
+    with pytest.raises(ValueError, match=r"^weights\[2\]: contains NaN or infinity"):
+        f(SET, [1.0, 1.0, np.nan])
+    with pytest.raises(ValueError, match=r"^weights: all weights are zero"):
+        f(SET, [0.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match=r"^weights\[1\]: all weights are zero"):
+        f(SET, [[1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    with pytest.raises(ValueError, match=r"^weights: length 2 does not match the number of poses \(3\)"):
+        f(SET, [1.0, 1.0])
+    with pytest.raises(ValueError, match=r"^weights: length 4 does not match the number of poses \(3\)"):
+        f(SET, [1.0, 1.0, 1.0, 1.0])
+    # finite weights stay valid at any magnitude: they are normalised to sum 1
+    for w in (W3 / 3 * 1e308, W3 * 1e-320):
+        np.testing.assert_allclose(f(SET, w), f(SET, W3), atol=1e-15)
+
+
+@pytest.mark.parametrize("f,args,pattern", [
+    (dq.mul, (np.zeros((3, 7)), GOOD), r"^a: expected shape \(\.\.\., 8\), got \(3, 7\)"),
+    (dq.mul, (GOOD, np.zeros(9)), r"^b: expected shape \(\.\.\., 8\), got \(9,\)"),
+    (dq.log, (np.float64(1.0),), r"^a: expected shape \(\.\.\., 8\), got \(\)"),
+    (dq.exp, (np.zeros(8),), r"^x: expected shape \(\.\.\., 6\), got \(8,\)"),
+    (dq.from_matrix, (np.eye(3),), r"^T: expected shape \(\.\.\., 4, 4\), got \(3, 3\)"),
+    (dq.from_matrix, (np.zeros(16),), r"^T: expected shape \(\.\.\., 4, 4\), got \(16,\)"),
+    (dq.from_pose, ([1, 0, 0], [0, 0, 0]), r"^q: expected shape \(\.\.\., 4\), got \(3,\)"),
+    (dq.from_pose, ([1, 0, 0, 0], [0, 0, 0, 0]), r"^t: expected shape \(\.\.\., 3\), got \(4,\)"),
+    (dq.transform, (GOOD, [0, 0]), r"^p: expected shape \(\.\.\., 3\), got \(2,\)"),
+    (dq.dlb, (GOOD,), r"^dqs: expected shape \(\.\.\., n, 8\), got \(8,\)"),
+    (dq.dib, (np.zeros((2, 6)),), r"^dqs: expected shape \(\.\.\., n, 8\), got \(2, 6\)"),
+    (dq.to_pose, ([[1, 2]],), r"^a: expected shape"),
+    (dq.mul, (np.zeros((3, 8)), np.zeros((4, 8))), r"^shape mismatch: b has leading shape \(4,\), which "
+                                                   r"does not broadcast with \(3,\)"),
+    (dq.sclerp, (np.tile(I8, (3, 1)), I8, np.zeros(5)), r"^shape mismatch: tau has leading shape \(5,\)"),
+    (dq.power, (np.tile(I8, (3, 1)), np.zeros((2, 1, 4))), r"^shape mismatch: tau"),
+    (dq.transform, (np.tile(I8, (2, 1)), np.zeros((3, 3))), r"^shape mismatch: p"),
+    (dq.dlb, (np.tile(I8, (3, 2, 1)), np.ones((4, 2))), r"^shape mismatch: weights has leading shape \(4,\)"),
+    (dq.dlb, (np.zeros((0, 8)),), r"^dqs: empty set of poses"),
+    (dq.dib, (np.zeros((3, 0, 8)), np.zeros(0)), r"^dqs: empty set of poses"),
+    (dq.mul, ("abc", GOOD), r"^a: not convertible to a float64 array"),
+    (dq.dlb, ([[1, 0, 0, 0], [1, 0]],), r"^dqs: not convertible to a float64 array"),
+])
+def test_bad_shapes_are_rejected(f, args, pattern):
+    with pytest.raises(ValueError, match=pattern):
+        f(*args)
+
+
+NOT_FLOAT = [SET[:2].astype(complex), SET[:2].astype(object), SET[:2].astype(str),
+             [[1, 0, 0, 0, 0, 0, 0, 0], [1j, 0, 0, 0, 0, 0, 0, 0]]]
+
+
+@pytest.mark.parametrize("method", list(dq.METHODS))
+def test_non_float_sets_get_one_message_for_every_method(method):
+    # one conversion in the core for every method (sclerp once converted twice, unnamed)
+    for bad in NOT_FLOAT:
+        with pytest.raises(ValueError, match=r"^dqs: not convertible to a float64 array"):
+            dq.blend(bad, method=method)
+        with pytest.raises(ValueError, match=r"^weights: not convertible to a float64 array"):
+            dq.blend(SET[:2], np.array(bad)[:, 0], method=method)
+    for bad in NOT_FLOAT[:3]:
+        with pytest.raises(ValueError, match=r"^a: not convertible to a float64 array"):
+            dq.sclerp(bad[0], SET[1], 0.5)
+
+
+def test_bad_methods_are_rejected():
+    for m in ("foo", "DIB", None, 3, ""):
+        with pytest.raises(ValueError, match=r"^method: unknown blending method .*expected one of lin, dec"):
+            dq.blend(SET, method=m)
+    for n in (1, 3):
+        with pytest.raises(ValueError, match=rf"^dqs: sclerp blends exactly 2 poses, got {n}"):
+            dq.blend(np.tile(I8, (n, 1)), method="sclerp")
+
+
+@pytest.mark.parametrize("f,args,pattern", [
+    (dq.exp, (np.full(6, 1e300),), r"^x: result is not finite"),
+    (dq.exp, (np.array([0.0, 0, 1e300, 0, 0, 0]),), r"^x: result is not finite"),
+    (dq.mul, (np.full(8, 1e300), np.full(8, 1e300)), r"^a: result is not finite"),
+    (dq.power, (GOOD, 1e300), r"^tau: result is not finite"),
+    (dq.sclerp, (I8, dq.exp([0.1, 0, 0, 10.0, 0, 0]), 1e308), r"^tau: result is not finite"),
+    (dq.sclerp, (I8, dq.exp([0.0, 0, 0, 10.0, 0, 0]), 1e308), r"^tau: result is not finite"),
+    (dq.from_matrix, (np.block([[dq.to_matrix(GOOD)[:3, :3], np.full((3, 1), 1.7e308)],
+                                [np.zeros((1, 3)), np.ones((1, 1))]]),), r"^T: result is not finite"),
+    (dq.to_matrix, (np.array([1.0, 0, 0, 0, 0, 1e308, 1e308, 0]),), r"^a: result is not finite"),
+    (dq.to_pose, (np.array([1.0, 0, 0, 0, 0, 1e200, 1e200, 0]),), r"^a: result is not finite"),
+    (dq.log, (np.array([1.0, 0, 0, 0, 0, 1e308, 1e308, 0]),), r"^a: result is not finite"),
+    (dq.screw, (np.array([0.5, 0.5, 0.5, 0.5, 0, 1e300, -1e300, 0]),), r"^a: result is not finite"),
+    (dq.transform, (dq.exp([0, 0, PI / 8, 0, 0, 0]), [1.7e308, 1.7e308, 0]), r"^p: result is not finite"),
+    (dq.lin, (np.stack([np.array([1.0, 0, 0, 0, 0, 1e150, 0, 0])] * 2),), None),
+])
+def test_overflow_raises_instead_of_returning_inf(f, args, pattern):
+    if pattern is None:
+        assert np.all(np.isfinite(f(*args)))
+        return
+    with pytest.raises(ValueError, match=pattern):
+        f(*args)
+
+
+def test_tiny_rotation_with_huge_translation_stays_finite():
+    # The moment |t_perp| / (theta/2) = 1e149 / 1e-160 overflows unless the rotation, far below
+    # rounding, is treated as zero.
+    q = dq.exp([1e-160, 0, 0, 0, 1e149, 0])
+    s = dq.screw(q)
+    assert np.all(np.isfinite(s.moment)) and s.theta < 1e-150
+    np.testing.assert_allclose(s.d * s.axis + s.theta * s.moment, [0, 2e149, 0], rtol=1e-12)
+    half = dq.sclerp(dq.identity(), q, 0.5)
+    np.testing.assert_allclose(half, [1, 0, 0, 0, 0, 0, 0.5e149, 0], rtol=1e-12, atol=1e-150)
+
+
 def dq_rotation_error(M):
     return np.abs(M[:3, :3].T @ M[:3, :3] - np.eye(3)).max()
 
