@@ -1,0 +1,361 @@
+"""The arms of the ``dqpose.v1.Trajectories`` service: Execute (a plan run on an arm the server
+was started with), GetArm and ListArms.
+
+The arms and the executor come from whoever starts the server (``ServerConfig.arms`` and
+``.executor``; ``dqpose serve --arm`` opens them): this module imports no driver, and does
+nothing an arm's control loop does. It hands the loop a whole plan (``push_plan``: the loop
+samples it at the arm's period, so nothing here grows with the plan's duration), beats the run's
+heartbeat from the event loop (a server whose loop hangs stops its arms), and turns how a run
+ended into the call's status.
+
+A run holds its arm from the call's start until the control loop's last record, not until the
+call ends: after a cancel the arm brakes, and a new Execute waits (up to :data:`FREE_WAIT`) for
+it rather than starting a second run beside the first.
+"""
+from __future__ import annotations
+
+import asyncio
+import re
+import time
+from typing import Optional
+
+import grpc
+
+from service import trajectory
+from service.errors import FieldError, Infeasible, rename
+from service.rpc.calls import Calls, TooLarge, refused
+from service.rpc.convert import dq_to_pose, plan_from_msg
+from service.rpc._proto.dqpose.v1 import geometry_pb2 as geo
+from service.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
+
+#: an Execute feedback record every this many set-points (50 Hz at 500 Hz), and the last one
+FEEDBACK_EVERY = 10
+#: how long a new Execute waits for its arm: a run braking after a cancel, an arm settling
+FREE_WAIT = 1.0
+#: the arm's heartbeat is beaten this many times per period it asks for (margin for a busy loop)
+BEATS_PER_PERIOD = 2
+#: the arm's Limits field (drivers.base.Limits) that bounds each field of the proto's Limits,
+#: with its unit
+ARM_LIMITS = {"max_linear_velocity": ("max_linear_speed", "m/s"),
+              "max_angular_velocity": ("max_angular_speed", "rad/s"),
+              "max_linear_acceleration": ("max_linear_accel", "m/s^2"),
+              "max_angular_acceleration": ("max_angular_accel", "rad/s^2")}
+
+_OK, _CANCELLED = grpc.StatusCode.OK, grpc.StatusCode.CANCELLED
+_ABORTED, _UNAVAILABLE = grpc.StatusCode.ABORTED, grpc.StatusCode.UNAVAILABLE
+# drivers.executor.Result by name -> (ExecutionState, the call's status when a run ends so)
+RESULTS = {"OK": (pb.EXECUTION_WORKING, None),
+           "FINISHED": (pb.EXECUTION_FINISHED, _OK),
+           "STOPPED": (pb.EXECUTION_STOPPED, _CANCELLED),
+           "STALLED": (pb.EXECUTION_STALLED, _ABORTED),
+           "LIMITED": (pb.EXECUTION_LIMITED, _ABORTED),
+           "PROTECTIVE_STOP": (pb.EXECUTION_PROTECTIVE_STOP, _ABORTED),
+           "TRACKING": (pb.EXECUTION_TRACKING_ERROR, _ABORTED),
+           "ERROR": (pb.EXECUTION_ERROR, _UNAVAILABLE)}
+#: why a run halted by the server's shutdown ended, and its status
+SHUTDOWN = "the server is shutting down"
+
+
+class Precondition(FieldError, Infeasible):
+    """The arm is busy, moving, faulted, not where the plan starts, or slower than the plan:
+    FAILED_PRECONDITION."""
+
+
+class _Run:
+    """One Execute's run, from the call's start to the control loop's last record."""
+
+    def __init__(self):
+        self.executor = None          # set once made (in a worker thread)
+        self.queue: asyncio.Queue = asyncio.Queue()
+        self.duration = 0.0
+        self.started: Optional[float] = None    # loop time the plan was handed over
+        self.halted: Optional[str] = None       # why the server brought it to a stop
+        self.abandoned = False        # the call ended before the run started
+        self.ended = False
+
+
+class _Arm:
+    """An arm as the service keeps it: its run, and how the last one ended."""
+
+    def __init__(self, name: str, arm):
+        self.name, self.arm = name, arm
+        self.run: Optional[_Run] = None
+        self.state = pb.EXECUTION_STATE_UNSPECIFIED
+        self.free = asyncio.Event()
+        self.free.set()
+
+
+class Arms:
+    """Execute, GetArm and ListArms over the arms of a :class:`~service.rpc.server.ServerConfig`;
+    :meth:`stopping` is the server's shutdown hook."""
+
+    def __init__(self, cfg, calls: Calls):
+        self.calls = calls
+        self.max_waypoints = cfg.max_poses
+        self.executor = cfg.executor
+        self._arms = {name: _Arm(name, arm) for name, arm in sorted(cfg.arms.items())}
+
+    def _slot(self, name: str) -> _Arm:
+        slot = self._arms.get(name)
+        if slot is None:
+            known = ", ".join(self._arms) or "none: start the server with --arm NAME=SPEC"
+            raise FieldError(f"arm: unknown arm {name!r} (this server's arms: {known})")
+        return slot
+
+    # ------------------------------------------------------------------ GetArm, ListArms
+
+    async def get_arm(self, request) -> pb.ArmState:
+        return await self._state(self._slot(request.arm))
+
+    async def list_arms(self, request) -> pb.ListArmsResponse:
+        states = await asyncio.gather(*(self._state(s) for s in self._arms.values()))
+        return pb.ListArmsResponse(arms=states)
+
+    async def _state(self, slot: _Arm) -> pb.ArmState:
+        msg = pb.ArmState(arm=slot.name, state=slot.state, busy=slot.run is not None)
+        for mine, (theirs, _) in ARM_LIMITS.items():
+            setattr(msg.limits, mine, float(getattr(slot.arm.limits, theirs)))
+        try:    # an arm in its own process answers through a pipe: not on the loop
+            st = await asyncio.to_thread(slot.arm.state)
+        except Exception as e:      # a dead arm is a fault to report, not a failed call
+            msg.faults.append(f"cannot read the arm: {e}")
+            return msg
+        dq_to_pose(st.pose, msg.pose)
+        msg.linear_velocity.CopyFrom(geo.Vector3(**_xyz(st.linear_velocity)))
+        msg.angular_velocity.CopyFrom(geo.Vector3(**_xyz(st.angular_velocity)))
+        msg.faults.extend(st.faults)
+        return msg
+
+    # ------------------------------------------------------------------ Execute
+
+    async def execute(self, request, context) -> None:
+        t0 = self.calls.begin()
+        code, sent = "OK", 0
+        run = beat = None
+        try:
+            try:
+                slot, args = await self._check(request)
+                run = await self._claim(slot, time.monotonic() + FREE_WAIT)
+                beat = asyncio.create_task(self._beat(run))
+                await self._start(slot, run, args, request)
+            except Exception as e:
+                status, details = refused("Execute", e)
+                code = status.name
+                await context.abort(status, details)
+            while True:
+                fb = await run.queue.get()
+                await context.write(_feedback_msg(fb))
+                sent += 1
+                if fb.result != 0:         # the last record: how the run ended
+                    break
+            status = RESULTS[fb.result.name][1]
+            if run.halted is not None:
+                status = _UNAVAILABLE
+            if status is not _OK:
+                code = status.name
+                context.set_code(status)
+                context.set_details(f"{fb.result.name}: {fb.message}")
+        except asyncio.CancelledError:
+            code = "CANCELLED"
+            raise
+        finally:
+            if beat is not None:
+                beat.cancel()
+            if run is not None and not run.ended:
+                run.abandoned = True
+                if run.executor is not None:
+                    run.executor.cancel()   # a client that left stops the arm
+            self.calls.done("Execute", code, t0, context, messages=sent)
+
+    async def _check(self, request):
+        """The request's own checks, before the arm is waited for: the arm, the waypoint count
+        (before anything is made of them), the plan's fields and its limits against the arm's."""
+        slot = self._slot(request.arm)
+        n = len(request.plan.waypoints)
+        if n > self.max_waypoints:
+            raise TooLarge(f"plan.waypoints: {n} waypoints, over the server's limit of "
+                           f"{self.max_waypoints} (dqpose serve --max-poses)")
+        # converting up to max_poses messages is work that grows with the request
+        args = await asyncio.to_thread(plan_from_msg, request.plan, "plan.", False)
+        for mine, (theirs, unit) in ARM_LIMITS.items():
+            want, bound = getattr(args.limits, mine), float(getattr(slot.arm.limits, theirs))
+            if want > bound:
+                raise Precondition(
+                    f"plan.limits.{mine}: {want:.6g} {unit} is above arm {slot.name!r}'s "
+                    f"limits.{theirs} of {bound:.6g} {unit}; plan within the arm's limits "
+                    f"(GetArm lists them)")
+        return slot, args
+
+    async def _claim(self, slot: _Arm, deadline: float) -> _Run:
+        """The arm for a new run, once its last run has ended; FAILED_PRECONDITION if that takes
+        past ``deadline`` (monotonic)."""
+        while slot.run is not None:
+            try:
+                await asyncio.wait_for(slot.free.wait(), max(deadline - time.monotonic(), 0))
+            except asyncio.TimeoutError:
+                raise Precondition(f"arm: {slot.name!r} is still running another plan after "
+                                   f"{FREE_WAIT:g} s") from None
+        run = slot.run = _Run()
+        slot.free.clear()
+        return run
+
+    async def _start(self, slot: _Arm, run: _Run, args, request) -> None:
+        """The plan handed to a new executor on the arm (in a worker thread: it plans, and an
+        arm in its own process answers through a pipe); the arm released if that fails. A call
+        cancelled meanwhile cancels the run it started."""
+        loop = asyncio.get_running_loop()
+
+        def record(fb):
+            try:
+                loop.call_soon_threadsafe(self._record, slot, run, fb)
+            except RuntimeError:    # the loop has closed: the server, and the call, are gone
+                pass
+
+        work = asyncio.ensure_future(asyncio.to_thread(
+            self._hand_over, slot, run, args, request.from_current, record,
+            time.monotonic() + FREE_WAIT))
+        try:
+            await asyncio.shield(work)
+        except asyncio.CancelledError:
+            work.add_done_callback(lambda w: self._abandoned(slot, run, w))
+            raise
+        except BaseException:
+            self._release(slot, run)
+            raise
+        run.started = loop.time()
+
+    def _abandoned(self, slot: _Arm, run: _Run, work) -> None:
+        if work.exception() is not None:
+            self._release(slot, run)
+        elif not run.ended:
+            run.executor.cancel()
+
+    def _hand_over(self, slot: _Arm, run: _Run, args, from_current: bool, record,
+                   deadline: float) -> None:
+        arm = slot.arm
+        waypoints = args.waypoints
+        if from_current:
+            waypoints = [trajectory.Waypoint(_at_rest(slot, deadline))] + list(waypoints)
+        try:
+            traj = trajectory.plan(waypoints, args.limits, args.interpolation,
+                                   start_velocity=args.start_velocity)
+        except ValueError as e:
+            raise _plan_error(e, from_current) from None
+        run.duration = traj.duration
+        heartbeat = arm.heartbeat      # the arm spec's key: how often _beat must beat
+        while True:
+            ex = run.executor = self.executor(
+                arm, interpolation=args.interpolation, feedback_every=FEEDBACK_EVERY,
+                callback=record, heartbeat=heartbeat)
+            try:
+                ex.push_plan(traj)
+                break
+            except ValueError as e:    # the plan does not start where the arm is
+                ex.close()
+                raise Precondition(str(rename(e, {"poses": "plan.waypoints{}.pose"}))) from None
+            except Exception as e:
+                ex.close()
+                if not (_busy(e) and time.monotonic() < deadline):
+                    if isinstance(e, RuntimeError):     # drivers.base.ArmError: faulted, busy
+                        raise Precondition(f"arm: {slot.name!r} cannot run a plan now: "
+                                           f"{e}") from None
+                    raise
+                time.sleep(0.005)  # the arm's process is ending the last run
+        if run.abandoned:
+            ex.cancel()
+
+    def _record(self, slot: _Arm, run: _Run, fb) -> None:
+        """A record of the run's control loop, on the event loop; the last frees the arm."""
+        run.queue.put_nowait(fb)
+        if fb.result != 0:
+            slot.state = RESULTS[fb.result.name][0]
+            self._release(slot, run)
+
+    def _release(self, slot: _Arm, run: _Run) -> None:
+        run.ended = True
+        if slot.run is run:
+            slot.run = None
+            slot.free.set()
+
+    async def _beat(self, run: _Run) -> None:
+        """The run's heartbeat, from the event loop: if the loop hangs, the beats stop and the
+        arm's control loop brings the arm to a stop by itself."""
+        period = None
+        while True:
+            ex = run.executor
+            if ex is not None:
+                ex.beat()
+                period = period or ex.heartbeat / BEATS_PER_PERIOD
+            await asyncio.sleep(period or 0.001)
+
+    # ------------------------------------------------------------------ shutdown
+
+    def stopping(self, seconds: float) -> None:
+        """The server stops in ``seconds``: a run that cannot end by then (its plan, plus the
+        time it may take to settle) is brought to a controlled stop now, so that its call
+        still ends with a last record and a status instead of being cut."""
+        now = asyncio.get_running_loop().time()
+        for slot in self._arms.values():
+            run = slot.run
+            if run is None or run.executor is None or run.started is None:
+                continue
+            settle = run.executor.settings.settle_timeout
+            if run.started + run.duration + settle > now + seconds:
+                run.halted = SHUTDOWN
+                run.executor.halt(f"{SHUTDOWN}: brought to a controlled stop")
+
+
+def _at_rest(slot: _Arm, deadline: float):
+    """The arm's actual pose once it is at rest; FAILED_PRECONDITION if it still moves at
+    ``deadline`` or is faulted."""
+    while True:
+        st = slot.arm.state()
+        if st.faults:
+            raise Precondition(f"from_current: arm {slot.name!r} is faulted: "
+                               f"{'; '.join(st.faults)}")
+        if st.at_rest:
+            return st.pose
+        if time.monotonic() >= deadline:
+            v = float(sum(x * x for x in st.linear_velocity) ** 0.5)
+            w = float(sum(x * x for x in st.angular_velocity) ** 0.5)
+            raise Precondition(f"from_current: arm {slot.name!r} is moving ({v:.6g} m/s, "
+                               f"{w:.6g} rad/s) after {FREE_WAIT:g} s; it must be at rest")
+        time.sleep(0.01)
+
+
+_WAYPOINT = re.compile(r"^waypoints\[(\d+)\]")
+
+
+def _plan_error(e: ValueError, from_current: bool) -> FieldError:
+    """The planner's error named by the request's field; with ``from_current`` the planner's
+    waypoint k is the request's k - 1, and its waypoint 0 the arm's pose."""
+    if from_current:
+        m = _WAYPOINT.match(str(e))
+        if m:
+            k = int(m.group(1))
+            where = "from_current (the arm's pose)" if k == 0 else f"plan.waypoints[{k - 1}]"
+            kind = Precondition if isinstance(e, Infeasible) else FieldError
+            return kind(where + str(e)[m.end():])
+    return rename(e, {"waypoints": "plan.waypoints{}", "limits": "plan.limits",
+                      "start_velocity": "plan.start_linear_velocity"})
+
+
+def _busy(e: Exception) -> bool:
+    """The arm's process is still ending the last run (drivers.armproc)."""
+    text = str(e)
+    return text.startswith("busy") or "already running" in text
+
+
+def _xyz(v) -> dict:
+    x, y, z = (float(c) for c in v)
+    return {"x": x, "y": y, "z": z}
+
+
+def _feedback_msg(fb) -> pb.ExecutionFeedback:
+    msg = pb.ExecutionFeedback(time=fb.time, state=RESULTS[fb.result.name][0],
+                               message=fb.message or "")
+    if fb.commanded is not None:
+        dq_to_pose(fb.commanded, msg.commanded)
+    if fb.actual is not None:
+        dq_to_pose(fb.actual, msg.actual)
+    return msg
