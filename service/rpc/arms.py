@@ -291,16 +291,15 @@ class Arms:
     # ------------------------------------------------------------------ shutdown
 
     def stopping(self, seconds: float) -> None:
-        """The server stops in ``seconds``: a run that cannot end by then (its plan, plus the
-        time it may take to settle) is brought to a controlled stop now, so that its call
-        still ends with a last record and a status instead of being cut."""
+        """The server stops in ``seconds``: a run whose plan cannot end by then is brought to a
+        controlled stop now, so that its call still ends with a last record and a status
+        instead of being cut (one that settles past the grace is cut, and its arm stopped)."""
         now = asyncio.get_running_loop().time()
         for slot in self._arms.values():
             run = slot.run
-            if run is None or run.executor is None or run.started is None:
+            if run is None or run.started is None or run.ended:
                 continue
-            settle = run.executor.settings.settle_timeout
-            if run.started + run.duration + settle > now + seconds:
+            if run.started + run.duration > now + seconds:
                 run.halted = SHUTDOWN
                 run.executor.halt(f"{SHUTDOWN}: brought to a controlled stop")
 

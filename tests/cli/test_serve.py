@@ -29,17 +29,46 @@ def test_an_option_out_of_range_is_one_line_naming_the_flag_and_exit_2(flags, me
     assert res.stdout == ""
 
 
+GRAMMAR = "NAME=KIND:TARGET[?key=value&key=value...]"
+
+
 @pytest.mark.parametrize("value, message", [
-    ("ur", "--arm: expected NAME=SPEC (e.g. ur=ur:192.168.1.10), got 'ur'"),
-    ("=ur:host", "--arm: expected NAME=SPEC (e.g. ur=ur:192.168.1.10), got '=ur:host'"),
+    ("ur", f"--arm: expected {GRAMMAR} (e.g. ur=ur:192.168.1.10), got 'ur'"),
+    ("=ur:host", f"--arm: expected {GRAMMAR} (e.g. ur=ur:192.168.1.10), got '=ur:host'"),
     ("my arm=ur:host", "--arm: the name 'my arm' must be a word (letters, digits, _)"),
     (["ur=ur:host", "--arm-realtime", "0"], "--arm-realtime: must be within 1..99, got 0"),
+    ("ur=ur:sim", "--arm ur=ur:sim: TARGET 'sim' is the simulator that --sims starts; add --sims"),
+    ("ur=ur:host?max_tracking=-1",
+     "--arm ur=ur:host?max_tracking=-1: max_tracking: must be a positive number of m, got -1.0"),
 ])
 def test_a_malformed_arm_is_named(value, message):
     flags = value if isinstance(value, list) else [value]
     res = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--arm", *flags],
                          capture_output=True, text=True, timeout=30, cwd=ROOT)
     assert (res.returncode, res.stderr) == (2, f"dqpose serve: error: {message}\n")
+
+
+def test_a_misspelt_arm_key_is_named_with_the_nearest_one():
+    res = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--arm",
+                          "piper=piper:sim?max_trackin=0.003"], capture_output=True, text=True,
+                         timeout=30, cwd=ROOT)
+    assert res.returncode == 2
+    assert res.stderr.startswith("dqpose serve: error: --arm piper=piper:sim?max_trackin=0.003: "
+                                 "max_trackin: unknown arm key"), res.stderr
+    assert "did you mean 'max_tracking'?" in res.stderr
+
+
+def test_serve_help_lists_every_service_and_every_arm_key():
+    from drivers import ARM_KEYS
+    from service.rpc.server import SERVICERS
+    res = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--help"],
+                         capture_output=True, text=True, timeout=30, cwd=ROOT)
+    assert res.returncode == 0
+    text = " ".join(res.stdout.split())
+    for servicer in SERVICERS:
+        assert servicer.NAME in text
+    for key in ARM_KEYS.values():
+        assert " ".join(key.describe().split()) in text
 
 
 def test_an_arm_given_twice_or_unreachable_is_named():
