@@ -43,7 +43,7 @@ from typing import Optional
 
 import numpy as np
 
-from drivers.base import Arm, ArmError, ArmStatus
+from drivers.base import Arm, ArmError, ArmState
 from drivers.executor import Buffer, Feedback, Result, _Control
 
 __all__ = ["ArmProcess"]
@@ -236,7 +236,7 @@ def _child(spec: str, kwargs: dict, conn, wake, feedback, parent: int) -> None:
         conn.send(("error", _picklable(e)))
         return
     conn.send(("ok", {"period": arm.period, "limits": arm.limits, "name": arm.name,
-                      "pose_sigma": arm.pose_sigma}))
+                      "pose_sigma": arm.pose_sigma, "options": arm.options}))
     os.set_blocking(feedback.fileno(), False)
     gone_r, gone_w = os.pipe()
     control: Optional[threading.Thread] = None
@@ -387,8 +387,8 @@ def _close_at_exit(ref) -> None:
 
 class ArmProcess(Arm):
     """``drivers.open_arm(spec, **kwargs)`` run in a child process; this object is the
-    :class:`~drivers.base.Arm` in the parent. ``period``, ``limits``, ``name`` and ``pose_sigma``
-    are the child arm's; other attributes are read from it, methods called in it. An
+    :class:`~drivers.base.Arm` in the parent. ``period``, ``limits``, ``name``, ``pose_sigma`` and
+    ``options`` (with an attribute per key) are the child arm's; other attributes are read from it, methods called in it. An
     :class:`~drivers.executor.Executor` on this arm runs its control loop in the child.
     ``ring_seconds``: the shared ring's size in seconds of set-points (a push beyond it waits for
     the arm; a first push longer than it sizes the ring). ``pid``: the child's."""
@@ -425,6 +425,9 @@ class ArmProcess(Arm):
             raise info
         self.period, self.limits = info["period"], info["limits"]
         self.name, self.pose_sigma = info["name"], info["pose_sigma"]
+        self.options = info["options"]
+        for key, value in self.options.items():
+            setattr(self, key, value)
         self.ring_slots = max(1, int(round(ring_seconds / self.period)))
         self._reader = threading.Thread(target=self._read_feedback, name=f"arm {spec} feedback",
                                         daemon=True)
@@ -502,11 +505,20 @@ class ArmProcess(Arm):
     def stop(self) -> None:
         self.call("stop")
 
-    def status(self) -> ArmStatus:
+    def status(self) -> ArmState:
         try:
             return self.call("status")
         except ArmError as e:
-            return ArmStatus(connected=False, error=str(e))
+            return ArmState(connected=False, faults=(str(e),))
+
+    def state(self) -> ArmState:
+        try:
+            return self.call("state")
+        except ArmError as e:
+            return ArmState(connected=False, faults=(str(e),))
+
+    def velocity(self):
+        return self.call("velocity")
 
     def close(self) -> None:
         """Close the arm in the child (a run still going brakes to a stop first) and end it."""

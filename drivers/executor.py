@@ -73,6 +73,7 @@ class Result(enum.IntEnum):
     LIMITED = -1
     PROTECTIVE_STOP = -2
     ERROR = -3
+    TRACKING = -4
 
 
 @dataclass(frozen=True)
@@ -431,7 +432,8 @@ class Executor:
                  start_tolerance: Optional[tuple[float, float]] = None,
                  settle_tolerance: tuple[float, float] = (1e-5, 1e-4),
                  settle_timeout: float = 1.0, stop_fraction: float = 0.5,
-                 max_feedback: int = 100_000, realtime: Optional[int] = None):
+                 max_feedback: int = 100_000, realtime: Optional[int] = None,
+                 heartbeat: Optional[float] = None):
         if not isinstance(arm, Arm):
             raise ValueError(f"arm: expected a drivers.base.Arm, got {type(arm).__name__}")
         if interpolation not in MODES:
@@ -463,6 +465,9 @@ class Executor:
             settle_tolerance=_tolerance("settle_tolerance", settle_tolerance),
             realtime=None if realtime is None else int(realtime))
         self._callback = callback
+        self.heartbeat = None if heartbeat is None else _positive("heartbeat", heartbeat)
+        self._beat = time.monotonic()
+        self._halt_reason: Optional[str] = None
 
         self._cond = threading.Condition()      # guards the buffer and the run state
         self._slots: collections.deque = collections.deque()   # (plan time, pose) per period
@@ -567,6 +572,28 @@ class Executor:
                     self._remote.start()
                 else:
                     threading.Thread(target=self._run, name="executor", daemon=True).start()
+
+    def push_plan(self, trajectory) -> None:
+        """The whole plan at once, sampled by the control loop at the arm's period as it goes:
+        ``trajectory`` is a :class:`service.trajectory.Trajectory` (anything with ``duration``
+        and ``sample(times)``). Its start is checked against the arm's actual pose
+        (``ValueError`` naming ``poses[0]``, as :meth:`push`), then the input is finished."""
+        start = trajectory.sample(np.zeros(1)).pose[0]
+        check_start(self.arm, start, self.start_tolerance)
+        samples = trajectory.sample(
+            np.append(np.arange(0.0, trajectory.duration, self.period), trajectory.duration))
+        self.push(samples.time, samples.pose)
+        self.finish()
+
+    def beat(self) -> None:
+        """The owner is alive: call at least every ``heartbeat`` seconds while the run goes."""
+        self._beat = time.monotonic()
+
+    def halt(self, reason: str) -> None:
+        """Bring the arm to a controlled stop; the run ends ``STOPPED`` with ``reason`` as its
+        message."""
+        self._halt_reason = str(reason)
+        self.cancel()
 
     def _resample(self, t0, k0, tail, t, p) -> list[tuple[float, np.ndarray]]:
         """The period slots from index ``k0`` on that the samples (after ``tail``) cover."""

@@ -25,13 +25,14 @@ from typing import Optional
 
 import numpy as np
 
-from drivers.base import Arm, ArmError, ArmStatus, LimitError, Limits, Pacer, unit_pose
+from drivers.base import Arm, ArmError, ArmState, LimitError, Limits, Pacer, unit_pose
 from drivers.rotvec import pose_from_rotvec, rotvec_from_pose, rotvec_from_quat
 from drivers.rtde import DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT, request_version
 from service import dq
 
 CB3_MAJOR = 3
-_RECEIVE_VARIABLES = ["timestamp", "actual_TCP_pose", "runtime_state", "robot_mode",
+_RECEIVE_VARIABLES = ["timestamp", "actual_TCP_pose", "actual_TCP_speed", "runtime_state",
+                      "robot_mode",
                       "safety_mode", "robot_status_bits", "safety_status_bits"]
 
 
@@ -97,11 +98,12 @@ def _restore_nodelay(host: str) -> int:
 class URArm(Arm):
     """A UR arm (CB3 or e-series) commanded in tool space through ``ur_rtde``.
 
-    ``frequency`` defaults to the controller's (500 Hz e-series, 125 Hz CB3). ``watchdog_periods``
-    is how many periods ``servo()`` may stall before the arm is stopped; ``stale_after`` is how
-    long (s) data timestamps may stand still before the controller counts as lost.
-    ``connect_timeout`` bounds the reachability probe; ``ur_rtde``'s own constructor has no
-    timeout, so the ports are probed first.
+    ``frequency`` defaults to the controller's (500 Hz e-series, 125 Hz CB3). The keys of
+    :data:`drivers.spec.ARM_KEYS` (``options``): ``watchdog`` is how long ``servo()`` may stall
+    before the arm is stopped (``watchdog_periods``, the older way, counts it in periods);
+    ``stale_after`` is how long (s) data timestamps may stand still before the controller counts
+    as lost; ``connect_timeout`` bounds the reachability probe (``ur_rtde``'s own constructor
+    has no timeout, so the ports are probed first) and the wait for the first data.
     """
 
     name = "ur"
@@ -115,10 +117,8 @@ class URArm(Arm):
         return cls(channel, **kwargs)
 
     def __init__(self, host: str, frequency: Optional[float] = None, *,
-                 limits: Optional[Limits] = None, watchdog_periods: int = 25,
-                 stale_after: float = 0.1,
-                 connect_timeout: float = 2.0, lookahead: float = 0.1, gain: float = 300.0,
-                 stop_decel: float = 10.0):
+                 limits: Optional[Limits] = None, lookahead: float = 0.1, gain: float = 300.0,
+                 stop_decel: float = 10.0, watchdog_periods: Optional[int] = None, **options):
         if not isinstance(host, str) or not host:
             raise ValueError(f"host: expected a host name or address, got {host!r}")
         if frequency is not None and not (math.isfinite(frequency) and 0 < frequency <= 500):
@@ -127,17 +127,18 @@ class URArm(Arm):
             raise ValueError(f"lookahead: must be within [0.03, 0.2] s, got {lookahead!r}")
         if not 100 <= gain <= 2000:
             raise ValueError(f"gain: must be within [100, 2000], got {gain!r}")
-        for name, v in (("stale_after", stale_after), ("connect_timeout", connect_timeout),
-                        ("stop_decel", stop_decel)):
-            if not (isinstance(v, numbers.Real) and math.isfinite(v) and v > 0):
-                raise ValueError(f"{name}: must be a positive number, got {v!r}")
-        if int(watchdog_periods) != watchdog_periods or watchdog_periods < 1:
+        if not (isinstance(stop_decel, numbers.Real) and math.isfinite(stop_decel)
+                and stop_decel > 0):
+            raise ValueError(f"stop_decel: must be a positive number, got {stop_decel!r}")
+        if watchdog_periods is not None and (int(watchdog_periods) != watchdog_periods
+                                             or watchdog_periods < 1):
             raise ValueError(f"watchdog_periods: must be a whole number >= 1, got {watchdog_periods!r}")
         if limits is not None and not isinstance(limits, Limits):
             raise ValueError(f"limits: expected a drivers.base.Limits, got {type(limits).__name__}")
+        self._set_options("ur", options)
+        connect_timeout = self.connect_timeout
         self.host, self.limits = host, limits or Limits()
         self.lookahead, self.gain, self.stop_decel = float(lookahead), float(gain), float(stop_decel)
-        self.watchdog_periods, self.stale_after = int(watchdog_periods), float(stale_after)
 
         for port in (RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT):
             _probe(host, port, connect_timeout)
@@ -147,6 +148,8 @@ class URArm(Arm):
             raise ArmError(f"host: {host}:{RTDE_PORT} does not answer as a UR controller ({e})") from None
         self.frequency = float(frequency or (500.0 if self.version[0] > CB3_MAJOR else 125.0))
         self.period = 1.0 / self.frequency
+        if watchdog_periods is not None:
+            self.watchdog = self.options["watchdog"] = watchdog_periods * self.period
         self._pacer = Pacer(self.period)
 
         import rtde_control
@@ -189,7 +192,7 @@ class URArm(Arm):
                     self._error = fault
                     self._servoing = False
                 stalled = (self._servoing and not self._error and
-                           now - self._last_servo_time > self.watchdog_periods * self.period)
+                           now - self._last_servo_time > self.watchdog)
                 if stalled:
                     self._servoing = False
             if stalled:
@@ -246,15 +249,16 @@ class URArm(Arm):
         if self._closed.is_set():
             raise ArmError("arm: closed")
 
-    def status(self) -> ArmStatus:
+    def status(self) -> ArmState:
         now = time.monotonic()
         connected = (self._recv.isConnected() and self._ctrl.isConnected() and
                      now - self._ts_changed <= self.stale_after and not self._closed.is_set())
-        return ArmStatus(
+        error = self._error or self._fault(now)
+        return ArmState(
             connected=connected,
             protective_stop=bool(self._recv.isProtectiveStopped()),
             emergency_stop=bool(self._recv.isEmergencyStopped()),
-            error=self._error or self._fault(now),
+            faults=(error,) if error else (),
             extra={"controller_time": self._ts, "data_age": now - self._ts_changed,
                    "runtime_state": self._recv.getRuntimeState(),
                    "version": ".".join(map(str, self.version)), "frequency": self.frequency,
@@ -264,6 +268,13 @@ class URArm(Arm):
     def tool_pose(self) -> tuple[float, np.ndarray]:
         self._check()
         return time.time(), pose_from_rotvec(self._recv.getActualTCPPose())
+
+    def velocity(self) -> tuple[np.ndarray, np.ndarray]:
+        """``actual_TCP_speed``: the tool point's velocity and the tool's angular velocity,
+        base frame."""
+        self._check()
+        v = np.asarray(self._recv.getActualTCPSpeed(), dtype=float)
+        return v[:3], v[3:]
 
     def servo_nowait(self, pose: np.ndarray) -> float:
         """Send one set-point (``servoL``) and return the end of its cycle on the

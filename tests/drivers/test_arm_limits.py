@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import random
+import time
 import uuid
 
 import can
@@ -37,8 +38,9 @@ class URRig:
         # a fast model: the simulator's own speed limit must not be what stops the arm
         self.sim = ursim.URSimProcess(args=("--max-linear-speed", "5"))
         self.home = np.array([0.4, -0.1, 0.3, 2.2, 2.2, 0.0])
+        self.process = process
         self.arm = drivers.open_arm(f"ur:{self.sim.host}", process=process, limits=LIMITS,
-                                    watchdog_periods=100, **arm_options)
+                                    watchdog=0.2, **arm_options)
 
     def reset(self):
         self.arm.stop()
@@ -78,8 +80,9 @@ class PiperRig:
         self.sim = PiperSim(self.bus).start()
         self.home = self.sim.pose
         # generous timeouts: the test machine is shared and Python threads get starved
-        self.arm = drivers.open_arm(f"piper:{interface}:{channel}", process=process,
-                                    limits=LIMITS, watchdog=0.2, stale_timeout=0.5)
+        self.process = process
+        self.arm = drivers.open_arm(f"piper:{interface}:{channel}?watchdog=0.2&stale_after=0.5",
+                                    process=process, limits=LIMITS)
         self.arm.wait_for_feedback(2.0)
 
     def reset(self):
@@ -270,3 +273,17 @@ def test_backends_by_name():
         drivers.open_source("charuco:/nowhere")
     with pytest.raises(ValueError, match="^limits: expected a drivers.base.Limits"):
         drivers.open_arm("piper:virtual:nobody", limits=(0.1, 0.2))
+
+
+def test_state_says_where_the_arm_is_and_that_it_rests(arm):
+    st = arm.state()
+    assert st.ok and st.faults == () and st.error == ""
+    assert st.at_rest and np.linalg.norm(st.linear_velocity) < 1e-3
+    assert _same(st.pose, arm.tool_pose()[1])
+    assert abs(st.stamp - time.time()) < 5
+
+
+def test_the_spec_keys_reach_the_arm(rig, arm):
+    assert arm.stale_after == (0.5 if isinstance(rig, PiperRig) or rig.process else 0.1)
+    assert arm.options["max_tracking"] == arm.max_tracking == 0.005
+    assert set(arm.options) == set(drivers.ARM_KEYS)

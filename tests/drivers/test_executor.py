@@ -309,7 +309,7 @@ import drivers
 from drivers.executor import Executor
 from test_arm_limits import LIMITS
 from test_executor import _plan
-arm = drivers.open_arm("ur:" + sys.argv[1], process=True, limits=LIMITS, watchdog_periods=100,
+arm = drivers.open_arm("ur:" + sys.argv[1], process=True, limits=LIMITS, watchdog=0.2,
                        stale_after=0.5)
 times, poses = _plan(arm, rate=1.0 / arm.period, length=0.08, speed=0.15, accel=1.5)
 ex = Executor(arm)
