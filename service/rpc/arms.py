@@ -120,9 +120,12 @@ class Arms:
         except Exception as e:      # a dead arm is a fault to report, not a failed call
             msg.faults.append(f"cannot read the arm: {e}")
             return msg
-        dq_to_pose(st.pose, msg.pose)
-        msg.linear_velocity.CopyFrom(geo.Vector3(**_xyz(st.linear_velocity)))
-        msg.angular_velocity.CopyFrom(geo.Vector3(**_xyz(st.angular_velocity)))
+        if st.pose is not None:             # None: unreadable, and the faults say why
+            dq_to_pose(st.pose, msg.pose)
+        if st.linear_velocity is not None:
+            msg.linear_velocity.CopyFrom(geo.Vector3(**_xyz(st.linear_velocity)))
+        if st.angular_velocity is not None:
+            msg.angular_velocity.CopyFrom(geo.Vector3(**_xyz(st.angular_velocity)))
         msg.faults.extend(st.faults)
         return msg
 
@@ -322,21 +325,26 @@ def _at_rest(slot: _Arm, deadline: float):
         time.sleep(0.01)
 
 
-_WAYPOINT = re.compile(r"^waypoints\[(\d+)\]")
+_WAYPOINT = re.compile(r"\bwaypoints\[(\d+)\]")
 
 
 def _plan_error(e: ValueError, from_current: bool) -> FieldError:
-    """The planner's error named by the request's field; with ``from_current`` the planner's
+    """The planner's error named by the request's fields; with ``from_current`` the planner's
     waypoint k is the request's k - 1, and its waypoint 0 the arm's pose."""
-    if from_current:
-        m = _WAYPOINT.match(str(e))
-        if m:
-            k = int(m.group(1))
-            where = "from_current (the arm's pose)" if k == 0 else f"plan.waypoints[{k - 1}]"
-            kind = Precondition if isinstance(e, Infeasible) else FieldError
-            return kind(where + str(e)[m.end():])
-    return rename(e, {"waypoints": "plan.waypoints{}", "limits": "plan.limits",
-                      "start_velocity": "plan.start_linear_velocity"})
+    if not from_current:
+        return rename(e, {"waypoints": "plan.waypoints{}", "limits": "plan.limits",
+                          "start_velocity": "plan.start_linear_velocity"})
+    text = str(e)
+    if not _WAYPOINT.match(text):       # about the limits or the start velocity
+        return rename(e, {"limits": "plan.limits",
+                          "start_velocity": "plan.start_linear_velocity"})
+
+    def name(m):
+        k = int(m.group(1))
+        return "the arm's pose (from_current)" if k == 0 else f"plan.waypoints[{k - 1}]"
+
+    text = _WAYPOINT.sub(name, text)
+    return (Precondition if isinstance(e, Infeasible) else FieldError)(text)
 
 
 def _busy(e: Exception) -> bool:

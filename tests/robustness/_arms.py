@@ -60,11 +60,24 @@ class URRig:
         """At home, at rest, faults cleared; what the controller receives from here on is the
         test's."""
         self.sim.protective_stop(False)
+        # a UR's protective stop latches until released and recovered (a person's decision on
+        # a real cell, the test's here)
+        assert wait_until(self._recovered, timeout=5, poll=0.05)
         self.arm.stop()
         self.sim.set_pose(self.home_rotvec)
         assert wait_until(lambda: distance(self.arm.tool_pose()[1], self.home) < 1e-9
                           and not self.arm.state().faults, timeout=5)
         self._mark = self.sim.log()["next"]
+
+    def _recovered(self) -> bool:
+        from drivers.base import ArmError
+        if not self.arm.state().faults:
+            return True
+        try:
+            self.arm.recover()
+        except ArmError:
+            return False
+        return not self.arm.state().faults
 
     def fault(self) -> None:
         self.sim.protective_stop(True)

@@ -72,7 +72,7 @@ def test_a_protective_stop_ends_the_call_aborted_after_a_record_that_says_so(rig
     r.fault()
     got, err = _run(it)
     assert err is not None and err.code.name == "ABORTED", got[-1:]
-    assert got[-1].state == "PROTECTIVE_STOP" and err.feedback == got[-1]
+    assert got[-1].state == "PROTECTIVE_STOP" and err.feedback is got[-1]
     assert err.details == f"PROTECTIVE_STOP: {got[-1].message}" and got[-1].message
     assert all(f.state == "WORKING" for f in got[:-1])
 
@@ -97,7 +97,8 @@ def test_lost_data_fails_that_call_unavailable_and_the_next_one_works(rig):
 def test_an_execute_right_after_a_cancel_waits_for_the_arm(rig):
     r, c, _ = rig
     for i in range(6):
-        it = c.execute(r.name, [offset(r.home, dy=0.03 * (i % 2))], SLOW, from_current=True)
+        it = c.execute(r.name, [offset(r.home, dy=0.03 if i % 2 else -0.03)], SLOW,
+                       from_current=True)
         assert next(it).state == "WORKING"
         it.close()              # cancels; the arm brakes
         # at once: the server waits for the arm to be free and at rest, then starts from there

@@ -57,7 +57,8 @@ def test_sigterm_during_an_execute(ur, dx, ends):
             got.append(next(it))
             proc.send_signal(signal.SIGTERM)
             try:
-                got += list(it)
+                for fb in it:
+                    got.append(fb)
             except RpcError as e:
                 err = e
         assert proc.wait(timeout=30) == 0
@@ -68,7 +69,7 @@ def test_sigterm_during_an_execute(ur, dx, ends):
     assert got[-1].state == ends, (got[-1], err)
     if ends == "STOPPED":
         assert err is not None and err.code.name == "UNAVAILABLE"
-        assert err.feedback == got[-1] and "shutting down" in got[-1].message
+        assert err.feedback is got[-1] and "shutting down" in got[-1].message
         assert distance(got[-1].actual, goal) > 0.05        # stopped, not run to the end
     else:
         assert err is None and distance(_here(ur), goal) < 1e-4
