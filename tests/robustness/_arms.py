@@ -22,6 +22,9 @@ from service import dq, trajectory  # noqa: E402
 LIMITS = trajectory.Limits(max_linear_velocity=0.1, max_angular_velocity=0.5,
                            max_linear_acceleration=0.5, max_angular_acceleration=1.0,
                            max_linear_jerk=5.0, max_angular_jerk=10.0)
+#: the arms' data watchdog: a shared, loaded test machine pauses a simulator for longer than a
+#: real controller's 0.1 s now and then
+STALE_AFTER = 0.5
 #: a plan of several seconds over a few centimetres: long enough to interfere with
 SLOW = trajectory.Limits(max_linear_velocity=0.02, max_angular_velocity=0.1,
                          max_linear_acceleration=0.2, max_angular_acceleration=0.5,
@@ -53,7 +56,8 @@ class URRig:
         self.sim = ursim.URSimProcess(args=sim_args)
         self.home_rotvec = np.array([0.4, -0.1, 0.3, 2.2, 2.2, 0.0])
         self.home = pose_from_rotvec(self.home_rotvec)
-        self.arm = drivers.open_arm(f"ur:{self.sim.host}", process=process, **arm_options)
+        self.arm = drivers.open_arm(f"ur:{self.sim.host}", process=process,
+                                    **{"stale_after": STALE_AFTER, **arm_options})
         self._mark = 0
 
     def reset(self) -> None:
@@ -120,7 +124,7 @@ class PiperRig:
         self.sim = PiperSim(self.bus).start()
         self.home = self.sim.pose
         self.arm = drivers.open_arm(f"piper:udp_multicast:{group}", process=process,
-                                    **arm_options)
+                                    **{"stale_after": STALE_AFTER, **arm_options})
         self._mark = 0
 
     def reset(self) -> None:

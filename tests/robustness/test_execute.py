@@ -17,7 +17,8 @@ import time
 
 import pytest
 
-from _arms import LIMITS, RIGS, SLOW, URRig, block, distance, offset, serve, wait_until
+from _arms import (LIMITS, RIGS, SLOW, STALE_AFTER, URRig, block, distance, offset, serve,
+                   wait_until)
 from service.rpc.client import Client, RpcError
 
 
@@ -81,7 +82,7 @@ def test_lost_data_fails_that_call_unavailable_and_the_next_one_works(rig):
     r, c, _ = rig
     it = c.execute(r.name, [r.home, offset(r.home, dx=0.06)], SLOW)
     assert next(it).state == "WORKING"
-    r.lose_data(0.6)            # beyond both arms' stale_after (UR 0.1 s, PiPER 0.2 s)
+    r.lose_data(2 * STALE_AFTER)
     got, err = _run(it)
     assert err is not None and err.code.name == "UNAVAILABLE", got[-1:]
     assert got[-1].state == "ERROR" and err.details == f"ERROR: {got[-1].message}"
@@ -181,3 +182,23 @@ def test_a_plan_that_leaves_the_workspace_ends_limited_aborted():
 def _workspace_below_x(x: float):
     from drivers.base import Limits
     return Limits(workspace_max=(x, 1.0, 1.2))
+
+
+def test_an_execute_right_after_a_cancel_is_never_internal(rig):
+    """The same without from_current, with the plan a client had ready: the arm brakes to a
+    stop near where the plan starts, so it runs, or is refused as not starting there; never
+    INTERNAL ("a plan is already running")."""
+    r, c, _ = rig
+    for i in range(20):
+        assert wait_until(lambda: not r.moving(), timeout=5)
+        here = r.arm.tool_pose()[1]
+        it = c.execute(r.name, [here, offset(here, dy=0.05 if i % 2 else -0.05)], SLOW)
+        first = next(it)
+        assert first.state == "WORKING", first.message
+        it.close()
+        got, err = _run(c.execute(r.name, [here, offset(here, dz=0.005)], LIMITS))
+        if err is None:
+            assert got[-1].state == "FINISHED"
+        else:
+            assert err.code.name == "FAILED_PRECONDITION", err
+            assert err.details.startswith("plan.waypoints[0].pose"), err.details
