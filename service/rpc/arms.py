@@ -94,6 +94,7 @@ class Arms:
         self.max_waypoints = cfg.max_poses
         self.executor = cfg.executor
         self._arms = {name: _Arm(name, arm) for name, arm in sorted(cfg.arms.items())}
+        self._stop_at: Optional[float] = None     # loop time the server stops, once known
 
     def _slot(self, name: str) -> _Arm:
         slot = self._arms.get(name)
@@ -151,8 +152,8 @@ class Arms:
                 sent += 1
                 if fb.result != 0:         # the last record: how the run ended
                     break
-            status = RESULTS[fb.result.name][1]
-            if run.halted is not None:
+            state, status = _result(fb)
+            if run.halted is not None and state == pb.EXECUTION_STOPPED:
                 status = _UNAVAILABLE
             if status is not _OK:
                 code = status.name
@@ -184,8 +185,8 @@ class Arms:
             want, bound = getattr(args.limits, mine), float(getattr(slot.arm.limits, theirs))
             if want > bound:
                 raise Precondition(
-                    f"plan.limits.{mine}: {want:.6g} {unit} is above arm {slot.name!r}'s "
-                    f"limits.{theirs} of {bound:.6g} {unit}; plan within the arm's limits "
+                    f"plan.limits.{mine}: {want:.6g} {unit} is above the limits.{theirs} of "
+                    f"arm {slot.name!r}, {bound:.6g} {unit}; plan within the arm's limits "
                     f"(GetArm lists them)")
         return slot, args
 
@@ -226,6 +227,7 @@ class Arms:
             self._release(slot, run)
             raise
         run.started = loop.time()
+        self._halt_if_late(run)
 
     def _abandoned(self, slot: _Arm, run: _Run, work) -> None:
         if work.exception() is not None:
@@ -271,7 +273,7 @@ class Arms:
         """A record of the run's control loop, on the event loop; the last frees the arm."""
         run.queue.put_nowait(fb)
         if fb.result != 0:
-            slot.state = RESULTS[fb.result.name][0]
+            slot.state = _result(fb)[0]
             self._release(slot, run)
 
     def _release(self, slot: _Arm, run: _Run) -> None:
@@ -285,26 +287,29 @@ class Arms:
         arm's control loop brings the arm to a stop by itself."""
         period = None
         while True:
-            ex = run.executor
+            ex = run.executor       # made in a worker thread: beaten from when it exists
             if ex is not None:
                 ex.beat()
                 period = period or ex.heartbeat / BEATS_PER_PERIOD
-            await asyncio.sleep(period or 0.001)
+            await asyncio.sleep(period or 0.005)
 
     # ------------------------------------------------------------------ shutdown
 
     def stopping(self, seconds: float) -> None:
         """The server stops in ``seconds``: a run whose plan cannot end by then is brought to a
-        controlled stop now, so that its call still ends with a last record and a status
-        instead of being cut (one that settles past the grace is cut, and its arm stopped)."""
-        now = asyncio.get_running_loop().time()
+        controlled stop now (and one still being handed over, once it is), so that its call
+        still ends with a last record and a status instead of being cut (one that settles past
+        the grace is cut, and its arm stopped)."""
+        self._stop_at = asyncio.get_running_loop().time() + seconds
         for slot in self._arms.values():
-            run = slot.run
-            if run is None or run.started is None or run.ended:
-                continue
-            if run.started + run.duration > now + seconds:
-                run.halted = SHUTDOWN
-                run.executor.halt(f"{SHUTDOWN}: brought to a controlled stop")
+            if slot.run is not None and slot.run.started is not None:
+                self._halt_if_late(slot.run)
+
+    def _halt_if_late(self, run: _Run) -> None:
+        if (self._stop_at is not None and not run.ended and run.halted is None
+                and run.started + run.duration > self._stop_at):
+            run.halted = SHUTDOWN
+            run.executor.halt(f"{SHUTDOWN}: brought to a controlled stop")
 
 
 def _at_rest(slot: _Arm, deadline: float):
@@ -347,6 +352,12 @@ def _plan_error(e: ValueError, from_current: bool) -> FieldError:
     return (Precondition if isinstance(e, Infeasible) else FieldError)(text)
 
 
+def _result(fb) -> tuple:
+    """(ExecutionState, status) of a record; a result this server does not know is an error
+    (the arm is still released)."""
+    return RESULTS.get(fb.result.name, (pb.EXECUTION_ERROR, _UNAVAILABLE))
+
+
 def _busy(e: Exception) -> bool:
     """The arm's process is still ending the last run (drivers.armproc)."""
     text = str(e)
@@ -359,7 +370,7 @@ def _xyz(v) -> dict:
 
 
 def _feedback_msg(fb) -> pb.ExecutionFeedback:
-    msg = pb.ExecutionFeedback(time=fb.time, state=RESULTS[fb.result.name][0],
+    msg = pb.ExecutionFeedback(time=fb.time, state=_result(fb)[0],
                                message=fb.message or "")
     if fb.commanded is not None:
         dq_to_pose(fb.commanded, msg.commanded)

@@ -61,8 +61,9 @@ def test_limits_above_the_arms_are_refused_before_it_moves(rig):
     with pytest.raises(RpcError) as e:
         list(c.execute(r.name, [r.home, offset(r.home, dx=0.05)], fast))
     assert e.value.code.name == "FAILED_PRECONDITION"
-    assert e.value.details.startswith("plan.limits.max_linear_velocity: 0.5 m/s is above arm ")
-    assert "limits.max_linear_speed of 0.25 m/s" in e.value.details
+    assert e.value.details == (
+        f"plan.limits.max_linear_velocity: 0.5 m/s is above the limits.max_linear_speed of arm "
+        f"{r.name!r}, 0.25 m/s; plan within the arm's limits (GetArm lists them)")
     assert r.setpoints() == 0 and not r.moving()
 
 
