@@ -6,19 +6,15 @@ ur_rtde and python-can against the simulators it started."""
 from __future__ import annotations
 
 import json
-import os
 import signal
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
-from _cli import run
+from _cli import run, serving
 from service import dq, trajectory
 from service.rpc.client import Client
 
-ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 LIMITS = trajectory.Limits(0.1, 0.5, 0.5, 1.0, 5.0, 10.0)
 
 
@@ -26,17 +22,9 @@ LIMITS = trajectory.Limits(0.1, 0.5, 0.5, 1.0, 5.0, 10.0)
 def served():
     pytest.importorskip("rtde_control")
     pytest.importorskip("msgpack")
-    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", "0",
-                             "--sims", "--arm", "ur=ur:sim",
-                             "--arm", "piper=piper:sim?max_tracking=0.003"],
-                            cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    proc, events = serving("--sims", "--arm", "ur=ur:sim",
+                           "--arm", "piper=piper:sim?max_tracking=0.003")
     try:
-        events = []
-        while not events or events[-1].get("event") != "serving":
-            line = proc.stderr.readline()
-            assert line, "the server ended before serving"
-            if line.startswith("{"):
-                events.append(json.loads(line))
         yield events, events[-1]["address"]
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=30) == 0

@@ -2,13 +2,12 @@
 range, exit code 2, and no server (the ranges themselves live in ``ServerConfig``)."""
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 
 import pytest
 
-ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from _cli import ROOT, serving
 
 
 @pytest.mark.parametrize("flags, message", [
@@ -89,7 +88,6 @@ def test_an_arm_given_twice_or_unreachable_is_named():
                          ids=["auto", "thread"])
 def test_serve_with_an_arm_executes_plans_on_it_and_stops_it_at_shutdown(flags, loop):
     pytest.importorskip("rtde_control")
-    import json
     import math
     import signal
 
@@ -104,16 +102,8 @@ def test_serve_with_an_arm_executes_plans_on_it_and_stops_it_at_shutdown(flags, 
     home = np.array([0.4, -0.1, 0.3, math.pi, 0.0, 0.0])
     with URSimProcess() as sim:
         sim.set_pose(home)
-        proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", "0",
-                                 "--arm", f"ur=ur:{sim.host}", *flags], cwd=ROOT,
-                                stderr=subprocess.PIPE, text=True)
+        proc, events = serving("--arm", f"ur=ur:{sim.host}", *flags)
         try:
-            events = []
-            while not events or events[-1].get("event") != "serving":
-                line = proc.stderr.readline()
-                assert line, "the server ended before serving"
-                if line.startswith("{"):
-                    events.append(json.loads(line))
             arm = next(e for e in events if e.get("event") == "arm")
             assert (arm["name"], arm["spec"], arm["loop"]) == ("ur", f"ur:{sim.host}", loop)
             start = pose_from_rotvec(home)

@@ -11,8 +11,8 @@ import threading
 import numpy as np
 import pytest
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(__file__)), "rpc"))
-sys.path.insert(0, os.path.dirname(os.path.dirname(__file__)))
+for _dir in ("rpc", "cli", ""):      # _grpc_server, _cli, _polling
+    sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(__file__)), _dir))
 from _grpc_server import ServerThread  # noqa: E402
 from _polling import wait_until  # noqa: E402
 

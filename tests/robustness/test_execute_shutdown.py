@@ -6,17 +6,13 @@ simulated UR through ur_rtde."""
 from __future__ import annotations
 
 import json
-import os
 import signal
-import subprocess
-import sys
 
 import pytest
 
 from _arms import SLOW, distance, offset
+from _cli import serving
 from service.rpc.client import Client, RpcError
-
-ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
 @pytest.fixture
@@ -26,17 +22,6 @@ def ur():
     with URSimProcess() as sim:
         sim.set_pose([0.4, -0.1, 0.3, 2.2, 2.2, 0.0])
         yield sim
-
-
-def _serve(sim, *flags):
-    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", "0",
-                             "--arm", f"ur=ur:{sim.host}", *flags], cwd=ROOT,
-                            stderr=subprocess.PIPE, text=True)
-    while True:
-        line = proc.stderr.readline()
-        assert line, "the server ended before serving"
-        if line.startswith("{") and json.loads(line).get("event") == "serving":
-            return proc, json.loads(line)["address"]
 
 
 def _here(sim):
@@ -49,7 +34,8 @@ def _here(sim):
 def test_sigterm_during_an_execute(ur, dx, ends):
     start = _here(ur)
     goal = offset(start, dx=dx)          # 0.1 m at SLOW: ~5 s, past drain + grace
-    proc, address = _serve(ur, "--drain", "0.2", "--grace", "1")
+    proc, events = serving("--arm", f"ur=ur:{ur.host}", "--drain", "0.2", "--grace", "1")
+    address = events[-1]["address"]
     try:
         got, err = [], None
         with Client(address) as c:
