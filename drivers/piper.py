@@ -519,10 +519,19 @@ class PiperArm(Arm):
     def _command(self, pose: np.ndarray, speed_percent: int = 100) -> None:
         mode = MotionMode(CTRL_MODE_CAN, MOVE_P, speed_percent)
         msgs = encode_end_pose(pose_to_units(pose), END_POSE_CTRL)
-        if mode != self._mode_sent:
+        if mode != self._mode_sent or not self._in_mode(mode):
+            # again with every command until the arm reports the mode: one lost 0x151 frame
+            # (or an arm that restarted in standby) must not leave it deaf to every target
             msgs = [encode_motion_mode(mode)] + msgs
             self._mode_sent = mode
         self._send(msgs)
+
+    def _in_mode(self, mode: MotionMode) -> bool:
+        """The arm's last status report says it is in ``mode`` (CAN command, that move mode)."""
+        with self._lock:
+            report = self._report
+        return report is not None and report.ctrl_mode == mode.ctrl_mode \
+            and report.mode_feed == mode.move_mode
 
     def _fresh_pose(self) -> tuple[float, np.ndarray]:
         with self._lock:

@@ -6,9 +6,13 @@ Poses cross the interface as dual quaternions ``T_base_tool``; the controller sp
 Safety, enforced here and not left to the caller: every set-point is checked against the
 :class:`~drivers.base.Limits` as every arm checks them and refused (the arm is stopped,
 :class:`~drivers.base.LimitError` raised) rather than jumped to; a watchdog stops servoing
-when ``servo()`` calls stall; a monitor notices a lost controller (``isConnected()`` false, or
-data timestamps that stopped advancing while the receive side keeps returning the last pose) and
-protective or emergency stops, and every later command raises :class:`~drivers.base.ArmError`.
+when ``servo()`` calls stall; a monitor notices a lost controller (``isConnected()`` false),
+stale data (timestamps that stopped advancing while the receive side keeps returning the last
+pose) and protective or emergency stops, and stops servoing. While one stands every command
+raises :class:`~drivers.base.ArmError` saying which. Lost connections and stale data clear by
+themselves: the monitor reconnects to a controller that comes back (a restart), and data that
+flows again is a healthy arm again; a safety stop needs :meth:`URArm.recover` once the operator
+has released it.
 
 By name: ``drivers.open_arm("ur:192.168.1.10", limits=...)``.
 """
@@ -31,6 +35,10 @@ from drivers.rtde import DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT, request_version
 from service import dq
 
 CB3_MAJOR = 3
+_SAFETY_STOPS = ("emergency stop", "protective stop")
+#: s between attempts to reconnect to a lost controller (and before the first)
+RECONNECT_INTERVAL = 0.5
+RUNTIME_PLAYING = 2             # runtime_state: the control script runs
 _RECEIVE_VARIABLES = ["timestamp", "actual_TCP_pose", "actual_TCP_speed", "runtime_state",
                       "robot_mode",
                       "safety_mode", "robot_status_bits", "safety_status_bits"]
@@ -164,8 +172,15 @@ class URArm(Arm):
         self.nodelay_sockets = _restore_nodelay(host)
 
         self._lock = threading.Lock()           # one control call at a time
+        self._recv_lock = threading.RLock()     # no read while the receive side reconnects
         self._state_lock = threading.Lock()
-        self._error = ""
+        self._error = ""                        # a safety stop, until recover()
+        self._reconnecting = False
+        self._was_lost = False                  # lost since the last healthy moment
+        self._next_heal = 0.0                   # monotonic: the next attempt to reconnect
+        self._interrupted = False               # a servo stream cut by a lost connection
+        self._stopping = threading.Event()      # a servoStop under way in its own thread
+        self.reconnects = 0
         self._last_setpoint = None              # the last servo set-point (dual quaternion)
         self._last_step = np.zeros(6)           # its displacement from the one before
         self._last_servo_time = 0.0
@@ -173,6 +188,17 @@ class URArm(Arm):
         self._moving = False
         self.watchdog_stops = 0
         self._ts, self._ts_changed = self._recv.getTimestamp(), time.monotonic()
+        deadline = time.monotonic() + connect_timeout
+        # the first data package (a state to report), with the control script playing
+        while self._recv.getTimestamp() <= 0 or self._recv.getRuntimeState() != RUNTIME_PLAYING:
+            if time.monotonic() > deadline:
+                self._ctrl.disconnect()
+                self._recv.disconnect()
+                what = "sent no data" if self._recv.getTimestamp() <= 0 else \
+                    "did not start the control script"
+                raise ArmError(f"host: the controller at {host} {what} within "
+                               f"{connect_timeout:g} s")
+            time.sleep(0.001)
         self._closed = threading.Event()
         self._monitor = threading.Thread(target=self._watch, name=f"URArm({host}) monitor",
                                          daemon=True)
@@ -183,61 +209,162 @@ class URArm(Arm):
         interval = min(0.01, self.stale_after / 4)
         while not self._closed.wait(interval):
             now = time.monotonic()
-            ts = self._recv.getTimestamp()
-            if ts != self._ts:
-                self._ts, self._ts_changed = ts, now
-            fault = self._fault(now)
+            with self._recv_lock:
+                fault = self._fault(now)
             with self._state_lock:
-                if fault and not self._error:
-                    self._error = fault
-                    self._servoing = False
-                stalled = (self._servoing and not self._error and
+                if fault in _SAFETY_STOPS:
+                    self._error = self._error or fault
+                # a faulted controller is not sent a stop (it would wait for data that does
+                # not come, or on a halted program): the next command raises instead
+                faulted = bool(fault or self._error)
+                stalled = (self._servoing and not faulted and
                            now - self._last_servo_time > self.watchdog)
-                if stalled:
+                if faulted or stalled:
                     self._servoing = False
             if stalled:
                 self._stop_servo()
                 self.watchdog_stops += 1
+            self._heal_when_due(fault, now)
+
+    def _lost(self) -> str:
+        return f"connection to the controller at {self.host} lost"
+
+    def _not_running(self) -> str:
+        return f"the control script is not running on the controller at {self.host}"
+
+    def _heal_when_due(self, fault: str, now: float) -> None:
+        """After a lost connection: reconnect to the controller once it is back, and restart
+        the control script if it did not come back with it. Not at once: ur_rtde's control
+        side first tries once by itself, and two reconnects at a time crash it."""
+        if fault == self._lost():
+            self._was_lost = True
+            if self._last_setpoint is not None:     # the stream under way is cut: say so
+                self._interrupted = True
+                self._last_setpoint = None
+        if not (self._was_lost and fault in (self._lost(), self._not_running())):
+            self._next_heal = 0.0
+            self._was_lost = self._was_lost and bool(fault)
+        elif not self._next_heal:
+            self._next_heal = now + RECONNECT_INTERVAL
+        elif now >= self._next_heal:
+            self._next_heal = now + RECONNECT_INTERVAL
+            if self._heal(fault):
+                self.reconnects += 1
+
+    def _heal(self, fault: str) -> bool:
+        """One attempt; False while the controller is still away."""
+        try:
+            for port in (DASHBOARD_PORT, SCRIPT_PORT):
+                _probe(self.host, port, 0.2)
+            # a controller that answers RTDE: a booting one may accept and close connections,
+            # and ur_rtde, connected to that, would wait for data that never comes
+            request_version(self.host, RTDE_PORT, 0.5)
+        except (ArmError, OSError):
+            return False
+        self._reconnecting = True
+        try:
+            if fault == self._lost():
+                with self._recv_lock:
+                    if not self._recv.isConnected():
+                        self._recv.reconnect()
+                with self._lock:
+                    if not self._ctrl.isConnected():    # its own attempt failed and ended
+                        self._ctrl.reconnect()
+            else:
+                with self._lock:
+                    self._ctrl.reuploadScript()
+            self.nodelay_sockets = _restore_nodelay(self.host)
+            return True
+        except RuntimeError:
+            return False
+        finally:
+            with self._recv_lock:
+                self._ts, self._ts_changed = self._recv.getTimestamp(), time.monotonic()
+                self._reconnecting = False
+
+    def _data_age(self, now: float) -> float:
+        """Seconds since the controller's data last changed (its timestamp advanced)."""
+        ts = self._recv.getTimestamp()
+        if ts != self._ts:
+            self._ts, self._ts_changed = ts, now
+        return now - self._ts_changed
 
     def _fault(self, now: float) -> str:
-        if not self._recv.isConnected() or not self._ctrl.isConnected():
-            return f"connection to the controller at {self.host} lost"
-        if now - self._ts_changed > self.stale_after:
+        """What is wrong now ("" if nothing); under ``_recv_lock``."""
+        if self._reconnecting or not self._recv.isConnected() or not self._ctrl.isConnected():
+            return self._lost()
+        age = self._data_age(now)
+        if age > self.stale_after:
             return (f"controller at {self.host} stopped sending data "
-                    f"({now - self._ts_changed:.2f} s without a new sample)")
+                    f"({age:.2f} s without a new sample, stale_after {self.stale_after:g} s)")
         if self._recv.isEmergencyStopped():
             return "emergency stop"
         if self._recv.isProtectiveStopped():
             return "protective stop"
+        if self._recv.getRuntimeState() != RUNTIME_PLAYING:
+            return self._not_running()
         return ""
 
+    def _call(self, name: str, *args):
+        """A control call; ur_rtde's own failure (its reconnect attempts to the dashboard
+        server of a controller that is gone) is the lost connection it is."""
+        try:
+            return getattr(self._ctrl, name)(*args)
+        except RuntimeError:
+            raise ArmError(self._lost()) from None
+
     def _stop_servo(self):
-        with self._lock:
-            if self._ctrl.isConnected():
-                self._ctrl.servoStop(self.stop_decel)
-            self._last_setpoint = None
+        """``servoStop``. ur_rtde waits for the controller to report it done, in its data: from
+        a controller whose data has stopped that wait lasts until the data comes back (or
+        minutes), so then the stop goes out from a thread of its own and this returns."""
+        with self._recv_lock:
+            age = self._data_age(time.monotonic())
+        if age > max(5 * self.period, 0.01):
+            if not self._stopping.is_set():
+                self._stopping.set()
+                threading.Thread(target=self._servo_stop, name=f"URArm({self.host}) stop",
+                                 daemon=True).start()
+            return
+        self._servo_stop()
+
+    def _servo_stop(self):
+        try:
+            with self._lock:
+                if self._ctrl.isConnected():
+                    try:
+                        self._ctrl.servoStop(self.stop_decel)
+                    except RuntimeError:
+                        pass    # gone meanwhile: a controller that loses its client stops
+                self._last_setpoint = None
+                self._interrupted = False
+        finally:
+            self._stopping.clear()
 
     def _check(self):
         if self._closed.is_set():
             raise ArmError("arm: closed")
-        fault = self._error or self._fault(time.monotonic())
+        with self._recv_lock:
+            fault = self._error or self._fault(time.monotonic())
         if fault:
-            with self._state_lock:
-                self._error = self._error or fault
+            if fault in _SAFETY_STOPS:
+                with self._state_lock:
+                    self._error = self._error or fault
             raise ArmError(fault)
 
     def recover(self) -> None:
         """After a protective stop was released on the controller: clear the error and restart
-        the control script. A lost controller cannot be recovered; make a new ``URArm``."""
+        the control script. (A lost connection or stale data need nothing: they clear once the
+        controller is back.)"""
         self._check_open()
-        fault = self._fault(time.monotonic())
-        if fault:
+        with self._recv_lock:
+            fault = self._fault(time.monotonic())
+        if fault and fault != self._not_running():
             raise ArmError(f"cannot recover: {fault}")
         with self._lock:
-            if not self._ctrl.isProgramRunning():
-                self._ctrl.reuploadScript()
+            if not self._call("isProgramRunning"):
+                self._call("reuploadScript")
                 deadline = time.monotonic() + 2.0
-                while not self._ctrl.isProgramRunning():
+                while not self._call("isProgramRunning"):
                     if time.monotonic() > deadline:
                         raise ArmError("cannot recover: the control script did not start within 2 s")
                     time.sleep(0.01)
@@ -250,30 +377,38 @@ class URArm(Arm):
             raise ArmError("arm: closed")
 
     def status(self) -> ArmState:
-        now = time.monotonic()
-        connected = (self._recv.isConnected() and self._ctrl.isConnected() and
-                     now - self._ts_changed <= self.stale_after and not self._closed.is_set())
-        error = self._error or self._fault(now)
-        return ArmState(
-            connected=connected,
-            protective_stop=bool(self._recv.isProtectiveStopped()),
-            emergency_stop=bool(self._recv.isEmergencyStopped()),
-            faults=(error,) if error else (),
-            extra={"controller_time": self._ts, "data_age": now - self._ts_changed,
-                   "runtime_state": self._recv.getRuntimeState(),
-                   "version": ".".join(map(str, self.version)), "frequency": self.frequency,
-                   "watchdog_stops": self.watchdog_stops})
+        with self._recv_lock:
+            now = time.monotonic()
+            fault = self._fault(now)
+            error = self._error or fault
+            lost = fault == self._lost()
+            return ArmState(
+                connected=not lost and now - self._ts_changed <= self.stale_after
+                and not self._closed.is_set(),
+                protective_stop=bool(self._recv.isProtectiveStopped()),
+                emergency_stop=bool(self._recv.isEmergencyStopped()),
+                faults=(error,) if error else (),
+                extra={"controller_time": self._ts, "data_age": now - self._ts_changed,
+                       "runtime_state": self._recv.getRuntimeState(),
+                       "version": ".".join(map(str, self.version)),
+                       "frequency": self.frequency, "watchdog_stops": self.watchdog_stops,
+                       "reconnects": self.reconnects})
 
     # ------------------------------------------------------------------ commands
     def tool_pose(self) -> tuple[float, np.ndarray]:
-        self._check()
-        return time.time(), pose_from_rotvec(self._recv.getActualTCPPose())
+        """The actual TCP pose, stamped with when its data arrived."""
+        with self._recv_lock:
+            self._check()
+            p6 = self._recv.getActualTCPPose()
+            age = time.monotonic() - self._ts_changed
+        return time.time() - age, pose_from_rotvec(p6)
 
     def velocity(self) -> tuple[np.ndarray, np.ndarray]:
         """``actual_TCP_speed``: the tool point's velocity and the tool's angular velocity,
         base frame."""
-        self._check()
-        v = np.asarray(self._recv.getActualTCPSpeed(), dtype=float)
+        with self._recv_lock:
+            self._check()
+            v = np.asarray(self._recv.getActualTCPSpeed(), dtype=float)
         return v[:3], v[3:]
 
     def servo_nowait(self, pose: np.ndarray) -> float:
@@ -288,8 +423,12 @@ class URArm(Arm):
         target = unit_pose(pose)
         p6 = rotvec_from_pose(target)
         self._check()
+        if self._interrupted:
+            self._interrupted = False
+            raise ArmError(f"{self._lost()} during this servo stream (and connected again); "
+                           "a new stream starts from rest")
         if self._last_setpoint is None:
-            prev, prev_step = pose_from_rotvec(self._recv.getActualTCPPose()), np.zeros(6)
+            prev, prev_step = self.tool_pose()[1], np.zeros(6)
         else:
             prev, prev_step = self._last_setpoint, self._last_step
         dt = self.period
@@ -304,7 +443,7 @@ class URArm(Arm):
             self._last_setpoint = None
             raise
         with self._lock:
-            ok = self._ctrl.servoL(p6.tolist(), 0.0, 0.0, dt, self.lookahead, self.gain)
+            ok = self._call("servoL", p6.tolist(), 0.0, 0.0, dt, self.lookahead, self.gain)
             if ok:
                 self._last_setpoint, self._last_step = target, step
             with self._state_lock:
@@ -335,8 +474,7 @@ class URArm(Arm):
         L = self.limits
         L.check_move(target, speed, accel)
         p6 = rotvec_from_pose(target)
-        self._check()
-        here = np.asarray(self._recv.getActualTCPPose())
+        here = rotvec_from_pose(self.tool_pose()[1])
         rel = dq.mul(pose_from_rotvec(p6), dq.conj(pose_from_rotvec(here)))
         angle = float(np.linalg.norm(rotvec_from_quat(rel[:4])))
         if angle > 1e-9 and np.linalg.norm(p6[:3] - here[:3]) > 1e-9:
@@ -354,8 +492,8 @@ class URArm(Arm):
         try:
             with self._lock:
                 self._last_setpoint = None
-                op = self._ctrl.getAsyncOperationProgressEx().operationId()
-                if not self._ctrl.moveL(p6.tolist(), float(speed), float(accel), True):
+                op = self._call("getAsyncOperationProgressEx").operationId()
+                if not self._call("moveL", p6.tolist(), float(speed), float(accel), True):
                     self._check()
                     raise ArmError("moveL was refused by the controller")
             started = False
@@ -364,7 +502,7 @@ class URArm(Arm):
                 self._check()
                 if not self._moving:
                     raise ArmError("move: stopped before reaching the target")
-                status = self._ctrl.getAsyncOperationProgressEx()
+                status = self._call("getAsyncOperationProgressEx")
                 started = started or status.operationId() != op
                 if started and not status.isAsyncOperationRunning():
                     return
@@ -384,7 +522,7 @@ class URArm(Arm):
             return
         if moving and not servoing:
             with self._lock:
-                self._ctrl.stopL(self.stop_decel)
+                self._call("stopL", self.stop_decel)
         else:
             self._stop_servo()
 
@@ -396,9 +534,12 @@ class URArm(Arm):
         self._closed.set()
         self._monitor.join()
         with self._lock:
-            if self._ctrl.isConnected() and not self._error:
-                self._ctrl.servoStop(self.stop_decel)
-                self._ctrl.stopScript()
+            try:
+                if self._ctrl.isConnected() and not self._error:
+                    self._ctrl.servoStop(self.stop_decel)
+                    self._ctrl.stopScript()
+            except RuntimeError:
+                pass        # gone meanwhile
             for iface in (self._ctrl, self._recv):
                 try:
                     iface.disconnect()

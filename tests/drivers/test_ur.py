@@ -282,7 +282,9 @@ def test_measure_is_the_tool_pose_with_its_time_and_covariance(arm, home):
     m = arm.measure()
     after = time.time()
     assert m.source == "ur"
-    assert before <= m.time <= after     # time.time(), the clock every driver stamps with
+    # time.time(), the clock every driver stamps with, of when the data arrived (never older
+    # than stale_after: that would be a fault)
+    assert before - arm.stale_after <= m.time <= after
     assert np.allclose(rotvec_from_pose(m.pose), home, atol=1e-12)
     rs, ts = URArm.pose_sigma
     assert np.allclose(m.covariance, np.diag([rs * rs] * 3 + [ts * ts] * 3))
