@@ -139,9 +139,10 @@ class Arms:
         try:
             try:
                 slot, args = await self._check(request)
-                run = await self._claim(slot, time.monotonic() + FREE_WAIT)
+                deadline = time.monotonic() + FREE_WAIT     # for the arm: free, at rest
+                run = await self._claim(slot, deadline)
                 beat = asyncio.create_task(self._beat(run))
-                await self._start(slot, run, args, request)
+                await self._start(slot, run, args, request, deadline)
             except Exception as e:
                 status, details = refused("Execute", e)
                 code = status.name
@@ -203,7 +204,7 @@ class Arms:
         slot.free.clear()
         return run
 
-    async def _start(self, slot: _Arm, run: _Run, args, request) -> None:
+    async def _start(self, slot: _Arm, run: _Run, args, request, deadline: float) -> None:
         """The plan handed to a new executor on the arm (in a worker thread: it plans, and an
         arm in its own process answers through a pipe); the arm released if that fails. A call
         cancelled meanwhile cancels the run it started."""
@@ -216,8 +217,7 @@ class Arms:
                 pass
 
         work = asyncio.ensure_future(asyncio.to_thread(
-            self._hand_over, slot, run, args, request.from_current, record,
-            time.monotonic() + FREE_WAIT))
+            self._hand_over, slot, run, args, request.from_current, record, deadline))
         try:
             await asyncio.shield(work)
         except asyncio.CancelledError:
@@ -247,25 +247,20 @@ class Arms:
         except ValueError as e:
             raise _plan_error(e, from_current) from None
         run.duration = traj.duration
-        heartbeat = arm.heartbeat      # the arm spec's key: how often _beat must beat
-        while True:
-            ex = run.executor = self.executor(
-                arm, interpolation=args.interpolation, feedback_every=FEEDBACK_EVERY,
-                callback=record, heartbeat=heartbeat)
-            try:
-                ex.push_plan(traj)
-                break
-            except ValueError as e:    # the plan does not start where the arm is
-                ex.close()
-                raise Precondition(str(rename(e, {"poses": "plan.waypoints{}.pose"}))) from None
-            except Exception as e:
-                ex.close()
-                if not (_busy(e) and time.monotonic() < deadline):
-                    if isinstance(e, RuntimeError):     # drivers.base.ArmError: faulted, busy
-                        raise Precondition(f"arm: {slot.name!r} cannot run a plan now: "
-                                           f"{e}") from None
-                    raise
-                time.sleep(0.005)  # the arm's process is ending the last run
+        # The arm is ours once its last run's final record came (_claim); its control loop may
+        # take a moment more to end, which the executor waits for, within the same second.
+        ex = run.executor = self.executor(
+            arm, interpolation=args.interpolation, feedback_every=FEEDBACK_EVERY,
+            callback=record, heartbeat=arm.heartbeat,
+            busy_timeout=max(deadline - time.monotonic(), 0.0))
+        try:
+            ex.push_plan(traj)
+        except ValueError as e:        # the plan does not start where the arm is
+            ex.close()
+            raise Precondition(str(rename(e, {"poses": "plan.waypoints{}.pose"}))) from None
+        except RuntimeError as e:      # drivers.base.ArmError: busy, faulted
+            ex.close()
+            raise Precondition(f"arm: {slot.name!r} cannot run a plan now: {e}") from None
         if run.abandoned:
             ex.cancel()
 
@@ -309,20 +304,26 @@ class Arms:
         if (self._stop_at is not None and not run.ended and run.halted is None
                 and run.started + run.duration > self._stop_at):
             run.halted = SHUTDOWN
-            run.executor.halt(f"{SHUTDOWN}: brought to a controlled stop")
+            run.executor.halt(SHUTDOWN)
 
 
 def _at_rest(slot: _Arm, deadline: float):
-    """The arm's actual pose once it is at rest; FAILED_PRECONDITION if it still moves at
-    ``deadline`` or is faulted."""
+    """The arm's actual pose once it is at rest and its reading is fresh (younger than the
+    arm's ``tracking_lag``: a pose that stopped updating reads as at rest); FAILED_PRECONDITION
+    if that is not so by ``deadline``, or the arm is faulted."""
+    fresh = slot.arm.tracking_lag
     while True:
         st = slot.arm.state()
         if st.faults:
             raise Precondition(f"from_current: arm {slot.name!r} is faulted: "
                                f"{'; '.join(st.faults)}")
-        if st.at_rest:
+        age = time.time() - st.stamp
+        if st.at_rest and age <= fresh:
             return st.pose
         if time.monotonic() >= deadline:
+            if age > fresh:
+                raise Precondition(f"from_current: arm {slot.name!r} reported no pose for "
+                                   f"{age:.6g} s (more than its tracking_lag, {fresh:.6g} s)")
             v = float(sum(x * x for x in st.linear_velocity) ** 0.5)
             w = float(sum(x * x for x in st.angular_velocity) ** 0.5)
             raise Precondition(f"from_current: arm {slot.name!r} is moving ({v:.6g} m/s, "
@@ -356,12 +357,6 @@ def _result(fb) -> tuple:
     """(ExecutionState, status) of a record; a result this server does not know is an error
     (the arm is still released)."""
     return RESULTS.get(fb.result.name, (pb.EXECUTION_ERROR, _UNAVAILABLE))
-
-
-def _busy(e: Exception) -> bool:
-    """The arm's process is still ending the last run (drivers.armproc)."""
-    text = str(e)
-    return text.startswith("busy") or "already running" in text
 
 
 def _xyz(v) -> dict:

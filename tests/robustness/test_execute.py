@@ -87,7 +87,15 @@ def test_lost_data_fails_that_call_unavailable_and_the_next_one_works(rig):
     got, err = _run(it)
     assert err is not None and err.code.name == "UNAVAILABLE", got[-1:]
     assert got[-1].state == "ERROR" and err.details == f"ERROR: {got[-1].message}"
-    # the fault clears once data flows again: no server restart
+    # at once, while the data is still stale: no plan from a pose that is not the arm's
+    assert _settled(r, quiet=0.1)       # the stop's own last command in
+    sent = r.setpoints()
+    _, err = _run(c.execute(r.name, [offset(r.home, dz=0.01)], LIMITS, from_current=True))
+    assert err is not None and err.code.name == "FAILED_PRECONDITION", err
+    assert err.details.startswith(f"from_current: arm {r.name!r} "), err.details
+    assert r.setpoints() == sent
+    # GetArm says so while it lasts, and the fault clears once data flows again: no restart
+    assert wait_until(lambda: c.get_arm(r.name).faults, timeout=5)
     assert wait_until(lambda: c.get_arm(r.name).faults == () and not r.moving(), timeout=5)
     assert c.health() == "SERVING"
     here = c.get_arm(r.name).pose

@@ -144,7 +144,8 @@ def ur():
     from drivers.executor import Executor
     from drivers.sim.ursim import URSimProcess
     sim = URSimProcess()
-    arm = drivers.open_arm(f"ur:{sim.host}", stale_after=0.5)
+    # generous watchdogs: the simulator, the server and its clients share a loaded machine
+    arm = drivers.open_arm(f"ur:{sim.host}", stale_after=0.5, heartbeat=0.1)
     server = ServerThread(ServerConfig(port=0, arms={"ur": arm}, executor=Executor))
     try:
         yield sim, arm, server
