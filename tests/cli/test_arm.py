@@ -28,6 +28,9 @@ def served():
         yield events, events[-1]["address"]
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=30) == 0
+        log = proc.stderr.read()
+        for bad in ("Traceback", "Event loop is closed", "leaked"):
+            assert bad not in log, log
     finally:
         if proc.poll() is None:
             proc.kill()
