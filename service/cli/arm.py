@@ -23,7 +23,7 @@ def configure(name: str, p) -> None:
                        help="table for people, or JSON: the pose as the pose files write it "
                             "(default: %(default)s)")
         connection_args(q)
-        q.set_defaults(func=_run)
+    p.set_defaults(func=_run)
 
 
 def _run(args) -> int:

@@ -81,7 +81,9 @@ class Trajectories:
     # -- RPCs
 
     def register(self, server) -> None:
-        """The generated registration: every RPC with the proto's own (de)serializers."""
+        """The generated registration: every RPC of the proto, with its own (de)serializers;
+        Execute, GetArm and ListArms are :attr:`arms`' (any other registration must keep all
+        three)."""
         pb_grpc.add_TrajectoriesServicer_to_server(self, server)
 
     async def Smooth(self, request, context):
