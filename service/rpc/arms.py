@@ -52,7 +52,7 @@ RESULTS = {"OK": (pb.EXECUTION_WORKING, None),
            "PROTECTIVE_STOP": (pb.EXECUTION_PROTECTIVE_STOP, _ABORTED),
            "TRACKING": (pb.EXECUTION_TRACKING_ERROR, _ABORTED),
            "ERROR": (pb.EXECUTION_ERROR, _UNAVAILABLE)}
-#: why a run halted by the server's shutdown ended, and its status
+#: why a run the server halted on shutdown ended (its call ends UNAVAILABLE, as calls refused then)
 SHUTDOWN = "the server is shutting down"
 
 
