@@ -162,7 +162,7 @@ class _RingBuffer(Buffer):
         deadline = time.monotonic() + timeout
         head = self.ring.head
         while not (head[_WRITTEN] - head[_READ] >= need or head[_FINISHED] or self.cancelled()
-                   or self._gone):
+                   or head[_HALT] or self._gone):
             left = deadline - time.monotonic()
             if left <= 0:
                 return False

@@ -171,10 +171,6 @@ def plan_start(trajectory) -> np.ndarray:
     return trajectory.sample(np.zeros(1)).pose[0]
 
 
-def _translation(pose: np.ndarray) -> np.ndarray:
-    return dq.to_pose(pose)[1]
-
-
 class Tracking:
     """How far the arm is from what it was sent: the distance (and angle) from its actual pose
     to the nearest of the set-points sent over the last ``tracking_lag`` seconds and the one
@@ -194,14 +190,14 @@ class Tracking:
 
     def add(self, pose: np.ndarray) -> None:
         i = self._n % len(self._t)
-        self._t[i], self._q[i] = _translation(pose), pose[:4]
+        self._t[i], self._q[i] = dq.to_pose(pose)[1], pose[:4]
         self._n += 1
 
     def error(self, actual: np.ndarray, candidate: np.ndarray) -> tuple[float, float]:
         """(m, rad) from ``actual`` to the nearest recent set-point or ``candidate``."""
         n = min(self._n, len(self._t))
-        t, q = _translation(actual), actual[:4]
-        lin = min(float(np.linalg.norm(_translation(candidate) - t)),
+        t, q = dq.to_pose(actual)[1], actual[:4]
+        lin = min(float(np.linalg.norm(dq.to_pose(candidate)[1] - t)),
                   float(np.min(np.linalg.norm(self._t[:n] - t, axis=1))) if n else math.inf)
         dots = np.abs(self._q[:n] @ q) if n else np.zeros(0)
         c = max(abs(float(np.dot(candidate[:4], q))), float(dots.max()) if n else 0.0)

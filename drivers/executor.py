@@ -114,7 +114,8 @@ class _DequeBuffer(Buffer):
         ex = self.ex
         with ex._cond:
             return ex._cond.wait_for(lambda: len(ex._slots) >= need or ex._finished_input
-                                     or ex._cancel.is_set(), timeout)
+                                     or ex._cancel.is_set() or ex._halt_reason is not None,
+                                     timeout)
 
     def first(self):
         ex = self.ex
@@ -324,9 +325,14 @@ class Executor:
             first = t0 is None
             if first:
                 t0 = float(t[0])
-            slots = self._resample(t0, k0, tail, t, p)
-            if first and self._remote is None:
-                self._claim(p[0])
+                if self._remote is None:    # (an arm's process claims it when it starts)
+                    self._claim(p[0])
+            try:
+                slots = self._resample(t0, k0, tail, t, p)
+            except BaseException:
+                if first and self._remote is None:
+                    self._run_lock.release()
+                raise
             if self._remote is not None:
                 self._remote.put(slots)
                 if first:
@@ -377,11 +383,11 @@ class Executor:
     def _claim(self, first: np.ndarray) -> None:
         """This arm for this run (waiting for a previous run to end), and the plan's start
         checked against where the arm is once it is ours."""
-        self._lock = claim(self.arm, self.busy_timeout)
+        self._run_lock = claim(self.arm, self.busy_timeout)
         try:
             check_start(self.arm, first, self.start_tolerance)
         except BaseException:
-            self._lock.release()
+            self._run_lock.release()
             raise
 
     def _start(self) -> None:
@@ -520,5 +526,5 @@ class Executor:
         try:
             last = Control(self.arm, self.settings, _DequeBuffer(self)).run()
         finally:
-            self._lock.release()        # the arm is free before the end is announced
+            self._run_lock.release()    # the arm is free before the end is announced
         self._ended(last)

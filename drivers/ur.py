@@ -103,6 +103,16 @@ def _restore_nodelay(host: str) -> int:
     return len(socks)
 
 
+class _Closed:
+    """What stands for ur_rtde's interfaces once the arm is closed."""
+
+    def isConnected(self) -> bool:
+        return False
+
+    def __getattr__(self, name):
+        raise ArmError("arm: closed")
+
+
 class URArm(Arm):
     """A UR arm (CB3 or e-series) commanded in tool space through ``ur_rtde``.
 
@@ -263,15 +273,14 @@ class URArm(Arm):
             return False
         self._reconnecting = True
         try:
-            if fault == self._lost():
-                with self._recv_lock:
+            # both locks: no other call may touch an interface while it is rebuilt
+            with self._lock, self._recv_lock:
+                if fault == self._lost():
                     if not self._recv.isConnected():
                         self._recv.reconnect()
-                with self._lock:
                     if not self._ctrl.isConnected():    # its own attempt failed and ended
                         self._ctrl.reconnect()
-            else:
-                with self._lock:
+                else:
                     self._ctrl.reuploadScript()
             self.nodelay_sockets = _restore_nodelay(self.host)
             return True
@@ -377,6 +386,8 @@ class URArm(Arm):
             raise ArmError("arm: closed")
 
     def status(self) -> ArmState:
+        if self._closed.is_set():
+            return ArmState(connected=False, faults=("arm: closed",))
         with self._recv_lock:
             now = time.monotonic()
             fault = self._fault(now)
@@ -502,7 +513,8 @@ class URArm(Arm):
                 self._check()
                 if not self._moving:
                     raise ArmError("move: stopped before reaching the target")
-                status = self._call("getAsyncOperationProgressEx")
+                with self._lock:
+                    status = self._call("getAsyncOperationProgressEx")
                 started = started or status.operationId() != op
                 if started and not status.isAsyncOperationRunning():
                     return
@@ -518,11 +530,10 @@ class URArm(Arm):
         with self._state_lock:
             servoing, moving = self._servoing, self._moving
             self._servoing = self._moving = False
-        if not self._ctrl.isConnected():
-            return
         if moving and not servoing:
             with self._lock:
-                self._call("stopL", self.stop_decel)
+                if self._ctrl.isConnected():
+                    self._call("stopL", self.stop_decel)
         else:
             self._stop_servo()
 
@@ -545,3 +556,8 @@ class URArm(Arm):
                     iface.disconnect()
                 except RuntimeError:
                     pass    # the controller is already gone
+            # ur_rtde's destructors sleep about a second holding the interpreter lock: here,
+            # in the close that is expected to take that long, not whenever a garbage
+            # collection finds this arm later (every thread of the process would stop then)
+            with self._recv_lock:
+                self._ctrl = self._recv = _Closed()
