@@ -29,6 +29,8 @@ STALE_AFTER = 0.5
 #: clients beside the server, and on the loaded shared machine its event loop now and then
 #: pauses past the default's three missed beats (60 ms); the hung-loop test holds it far longer
 HEARTBEAT = 0.1
+#: how far behind its set-points an arm may follow: a starved simulator trails further here
+TRACKING_LAG = 0.15
 #: a plan of several seconds over a few centimetres: long enough to interfere with
 SLOW = trajectory.Limits(max_linear_velocity=0.02, max_angular_velocity=0.1,
                          max_linear_acceleration=0.2, max_angular_acceleration=0.5,
@@ -62,7 +64,7 @@ class URRig:
         self.home = pose_from_rotvec(self.home_rotvec)
         self.arm = drivers.open_arm(f"ur:{self.sim.host}", process=process,
                                     **{"stale_after": STALE_AFTER, "heartbeat": HEARTBEAT,
-                                       **arm_options})
+                                       "tracking_lag": TRACKING_LAG, **arm_options})
         self._mark = 0
 
     def reset(self) -> None:
@@ -130,7 +132,7 @@ class PiperRig:
         self.home = self.sim.pose
         self.arm = drivers.open_arm(f"piper:udp_multicast:{group}", process=process,
                                     **{"stale_after": STALE_AFTER, "heartbeat": HEARTBEAT,
-                                       **arm_options})
+                                       "tracking_lag": TRACKING_LAG, **arm_options})
         self._mark = 0
 
     def reset(self) -> None:
