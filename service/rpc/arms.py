@@ -30,6 +30,9 @@ from service.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
 
 #: an Execute feedback record every this many set-points (50 Hz at 500 Hz), and the last one
 FEEDBACK_EVERY = 10
+#: records waiting for a slow client (20 s of them); WORKING ones beyond are dropped, so that a
+#: client that stops reading costs nothing that grows with the plan's duration
+MAX_PENDING = 1000
 #: how long a new Execute waits for its arm: a run braking after a cancel, an arm settling
 FREE_WAIT = 1.0
 #: the arm's heartbeat is beaten this many times per period it asks for (margin for a busy loop)
@@ -266,6 +269,8 @@ class Arms:
 
     def _record(self, slot: _Arm, run: _Run, fb) -> None:
         """A record of the run's control loop, on the event loop; the last frees the arm."""
+        if fb.result == 0 and run.queue.qsize() >= MAX_PENDING:
+            return
         run.queue.put_nowait(fb)
         if fb.result != 0:
             slot.state = _result(fb)[0]
