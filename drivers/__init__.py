@@ -3,15 +3,17 @@
 Backends are chosen by name, as python-can chooses a bus by ``interface``:
 ``open_arm("ur:192.168.1.10")``, ``open_arm("piper:socketcan:can0")``,
 ``open_source("charuco:/path/to/images", intrinsics="camera.yaml")``. The text after the first
-colon is the backend's channel; keyword arguments go to the backend (``limits=``, ...). Backend
-modules are imported only when opened.
+colon is the backend's channel; keyword arguments go to the backend (``limits=``, ...). An arm's
+name is an arm spec (:mod:`drivers.spec`): ``KIND:TARGET[?key=value&...]``, its keys those of
+:data:`ARM_KEYS`. Backend modules are imported only when opened.
 """
 from __future__ import annotations
 
 import importlib
 from typing import Optional
 
-__all__ = ["ARMS", "SOURCES", "open_arm", "open_source", "process_problem"]
+__all__ = ["ARMS", "SOURCES", "ARM_KEYS", "ArmSpec", "parse_arm_spec", "open_arm", "open_source",
+           "process_problem"]
 
 #: arm backends: name -> "module:class"; the class's ``open(channel, **kwargs)`` makes one
 ARMS = {
@@ -22,6 +24,8 @@ ARMS = {
 SOURCES = {
     "charuco": "drivers.camera:CharucoCamera",
 }
+
+from drivers.spec import ARM_KEYS, ArmSpec, parse_arm_spec  # noqa: E402  (needs ARMS)
 
 
 def _open(kind: str, table: dict, spec: str, kwargs: dict):
@@ -43,6 +47,11 @@ def _backend(kind: str, table: dict, spec: str) -> tuple[str, str, str]:
     return module, cls, channel
 
 
+def _arm_class(spec: ArmSpec):
+    module, cls = ARMS[spec.kind].split(":")
+    return getattr(importlib.import_module(module), cls)
+
+
 def process_problem(spec: str) -> Optional[str]:
     """Why the arm ``spec`` cannot live in a process of its own on this machine (the
     processor's store order, or a connection that does not reach across processes), or None."""
@@ -52,21 +61,27 @@ def process_problem(spec: str) -> Optional[str]:
         check_store_order()
     except ArmError as e:
         return str(e)
-    module, cls, channel = _backend("arm", ARMS, spec)
-    return getattr(importlib.import_module(module), cls).process_problem(channel)
+    s = parse_arm_spec(spec)
+    return _arm_class(s).process_problem(s.target)
 
 
-def open_arm(spec: str, process: bool = False, **kwargs):
-    """An :class:`~drivers.base.Arm` by name: ``"ur:<host>"`` or
-    ``"piper:<python-can interface>:<channel>"``. ``process=True``: the arm lives in a child
-    process of its own, where an :class:`~drivers.executor.Executor` on it runs its control loop
+def open_arm(spec, process: bool = False, **kwargs):
+    """An :class:`~drivers.base.Arm` by its spec (a string or an :class:`ArmSpec`):
+    ``"ur:<host>"`` or ``"piper:<python-can interface>:<channel>"``, with any
+    ``?key=value&...`` of :data:`ARM_KEYS`; those and ``kwargs`` (which win) are the backend's
+    keyword arguments. It returns once the arm's first state has arrived (``tool_pose()`` works
+    right away), else raises :class:`~drivers.base.ArmError` saying why.
+
+    ``process=True``: the arm lives in a child process of its own, where an
+    :class:`~drivers.executor.Executor` on it runs its control loop
     (:class:`drivers.armproc.ArmProcess`; its bus must reach across processes: not python-can's
     ``virtual``)."""
+    s = spec if isinstance(spec, ArmSpec) else parse_arm_spec(spec)
+    kw = {**s.options, **kwargs}
     if process:
-        _backend("arm", ARMS, spec)
         from drivers.armproc import ArmProcess
-        return ArmProcess(spec, **kwargs)
-    return _open("arm", ARMS, spec, kwargs)
+        return ArmProcess(s.channel, **kw)
+    return _arm_class(s).open(s.target, **kw)
 
 
 def open_source(spec: str, **kwargs):

@@ -43,14 +43,17 @@ from typing import Optional
 
 import numpy as np
 
-from drivers.base import Arm, ArmError, ArmStatus
-from drivers.executor import Buffer, Feedback, Result, _Control
+from drivers.base import Arm, ArmError, ArmState
+from drivers.control import Buffer, Control, Feedback, PlanSlots, Result, check_start, claim
 
 __all__ = ["ArmProcess"]
 
-# ring header, one int64 each
-_WRITTEN, _READ, _FINISHED, _CANCEL, _SENT, _REALTIME = range(6)
+# ring header, one int64 each: slots written and read (of a plan: its slots and those taken),
+# input finished, cancel, set-points sent, real-time, the last heartbeat (CLOCK_MONOTONIC ns),
+# halt (the reason's length + 1, the reason in the bytes after the header)
+_WRITTEN, _READ, _FINISHED, _CANCEL, _SENT, _REALTIME, _BEAT, _HALT = range(8)
 _HEADER = 8
+_REASON = 512               # bytes of a halt's reason
 _SLOT = 9                   # plan time, then the pose
 _ID = struct.Struct("<q")   # a run's id on the wake pipe
 _SPIN = 0.0003              # s: how much of a period's end the loop spins rather than sleeps
@@ -68,14 +71,15 @@ def check_store_order(machine: Optional[str] = None) -> None:
 
 
 class _Ring:
-    """Set-points (plan time + pose) and the counters, in shared memory: made by the parent
-    (``name`` None), which alone unlinks it; mapped by name in the child, outside
-    ``multiprocessing``'s resource tracker (whose register from the child could come after the
-    parent's unregister and count the ring as leaked)."""
+    """A run's counters and signals and its set-points (plan time + pose; none for a whole
+    plan, which the child samples itself), in shared memory: made by the parent (``name``
+    None), which alone unlinks it; mapped by name in the child, outside ``multiprocessing``'s
+    resource tracker (whose register from the child could come after the parent's unregister
+    and count the ring as leaked)."""
 
     def __init__(self, capacity: int, name: Optional[str] = None):
         self.capacity = int(capacity)
-        size = 8 * (_HEADER + _SLOT * self.capacity)
+        size = 8 * _HEADER + _REASON + 8 * _SLOT * self.capacity
         if name is None:
             self.shm = shared_memory.SharedMemory(create=True, size=size)
             self.name, buf = self.shm.name, self.shm.buf
@@ -89,13 +93,25 @@ class _Ring:
                 os.close(fd)
             buf = memoryview(self._map)
         self.head = np.ndarray((_HEADER,), np.int64, buf)
-        self.slots = np.ndarray((self.capacity, _SLOT), np.float64, buf, offset=8 * _HEADER)
+        self.reason = np.ndarray((_REASON,), np.uint8, buf, offset=8 * _HEADER)
+        self.slots = np.ndarray((self.capacity, _SLOT), np.float64, buf,
+                                offset=8 * _HEADER + _REASON)
         if name is None:
             self.head[:] = 0
 
+    def halt(self, reason: str) -> None:
+        """The reason, then the flag that publishes it (the parent's side)."""
+        data = reason.encode("utf-8")[:_REASON].decode("utf-8", "ignore").encode("utf-8")
+        self.reason[:len(data)] = np.frombuffer(data, np.uint8)
+        self.head[_HALT] = len(data) + 1
+
+    def halted(self) -> Optional[str]:
+        n = int(self.head[_HALT])
+        return self.reason[:n - 1].tobytes().decode("utf-8") if n else None
+
     def close(self) -> None:
         """Unmap it; the parent also unlinks it."""
-        del self.head, self.slots       # no view may outlive the mapping
+        del self.head, self.slots, self.reason      # no view may outlive the mapping
         if self.shm is None:
             self._map.close()
             return
@@ -104,15 +120,21 @@ class _Ring:
 
 
 class _RingBuffer(Buffer):
-    """The child's side of a run: pops the ring, waits on the wake pipe (a cancel carries the
-    run's id; end of file: the parent is gone) and on ``gone`` (the child's own pipe, written
-    when the child finds the parent gone)."""
+    """The child's side of a run: pops the ring (or samples the plan), waits on the wake pipe
+    (a cancel or a halt wakes it; end of file: the parent is gone) and on ``gone`` (the child's
+    own pipe, written when the child finds the parent gone); the signals themselves are in the
+    ring's header."""
 
-    def __init__(self, ring: _Ring, run_id: int, wake, feedback, gone: int):
+    def __init__(self, ring: _Ring, run_id: int, wake, feedback, gone: int,
+                 plan: Optional[PlanSlots] = None):
         self.ring, self.id, self.wake, self.fb = ring, run_id, wake, feedback
+        self.plan = plan
+        if plan is not None:
+            ring.head[_WRITTEN] = plan.count
+            ring.head[_FINISHED] = 1
         self._fds = [wake.fileno(), gone]
         self._gone_fd = gone
-        self._cancel = self._gone = False
+        self._gone = False
         self.dropped = 0
 
     @property
@@ -131,19 +153,16 @@ class _RingBuffer(Buffer):
                 self._fds.remove(fd)
                 continue
             try:
-                msg = self.wake.recv_bytes()
+                self.wake.recv_bytes()      # a wake-up: the header says what for
             except (EOFError, OSError):
                 self._gone = True
                 self._fds.remove(fd)
-                continue
-            if len(msg) == _ID.size and _ID.unpack(msg)[0] == self.id:
-                self._cancel = True     # (a late cancel of an earlier run is not ours)
 
     def ready(self, need, timeout):
         deadline = time.monotonic() + timeout
         head = self.ring.head
         while not (head[_WRITTEN] - head[_READ] >= need or head[_FINISHED] or self.cancelled()
-                   or self._gone):
+                   or head[_HALT] or self._gone):
             left = deadline - time.monotonic()
             if left <= 0:
                 return False
@@ -151,12 +170,18 @@ class _RingBuffer(Buffer):
         return True
 
     def first(self):
+        if self.plan is not None:
+            return self.plan.first()
         head = self.ring.head
         r = int(head[_READ])
         return self.ring.slots[r % self.ring.capacity, 1:].copy() if r < head[_WRITTEN] else None
 
     def pop(self):
         head = self.ring.head
+        if self.plan is not None:
+            slot = self.plan.pop()
+            head[_READ] = self.plan.taken
+            return slot
         r = int(head[_READ])
         if r >= head[_WRITTEN]:
             return None
@@ -168,7 +193,13 @@ class _RingBuffer(Buffer):
         return bool(self.ring.head[_FINISHED])
 
     def cancelled(self):
-        return self._cancel or bool(self.ring.head[_CANCEL])
+        return bool(self.ring.head[_CANCEL])
+
+    def halted(self):
+        return self.ring.halted()
+
+    def beat_age(self):
+        return time.monotonic() - int(self.ring.head[_BEAT]) * 1e-9
 
     def gone(self):
         return self._gone
@@ -218,11 +249,38 @@ def _picklable(e: BaseException) -> BaseException:
         return ArmError(f"{type(e).__name__}: {e}")
 
 
-def _control(arm, settings, buf: _RingBuffer) -> None:
+def _control(arm, settings, buf: _RingBuffer, lock: threading.Lock) -> None:
     try:
-        buf.emit(_Control(arm, settings, buf).run(), final=True)
+        try:
+            last = Control(arm, settings, buf).run()
+        finally:
+            lock.release()              # the arm is free before the end is announced
+        buf.emit(last, final=True)
     finally:
         buf.ring.close()
+
+
+def _start_control(arm, args, wake, feedback, gone: int) -> threading.Thread:
+    """A run's control loop on its own thread, once the arm is free (waiting for a run still
+    ending, else ``ArmError("busy ...")``) and the plan starts where the arm is (else the
+    ``ValueError``): both answered to the parent's request."""
+    run_id, settings, name, capacity, trajectory, busy_timeout = args
+    lock = claim(arm, busy_timeout)
+    ring = None
+    try:
+        ring = _Ring(capacity, name)
+        plan = None if trajectory is None else PlanSlots(trajectory, settings.period)
+        buf = _RingBuffer(ring, run_id, wake, feedback, gone, plan)
+        check_start(arm, buf.first(), settings.start_tolerance)
+    except BaseException:
+        if ring is not None:
+            ring.close()
+        lock.release()
+        raise
+    control = threading.Thread(target=_control, args=(arm, settings, buf, lock),
+                               name="control", daemon=True)
+    control.start()
+    return control
 
 
 def _child(spec: str, kwargs: dict, conn, wake, feedback, parent: int) -> None:
@@ -236,10 +294,10 @@ def _child(spec: str, kwargs: dict, conn, wake, feedback, parent: int) -> None:
         conn.send(("error", _picklable(e)))
         return
     conn.send(("ok", {"period": arm.period, "limits": arm.limits, "name": arm.name,
-                      "pose_sigma": arm.pose_sigma}))
+                      "pose_sigma": arm.pose_sigma, "options": arm.options}))
     os.set_blocking(feedback.fileno(), False)
     gone_r, gone_w = os.pipe()
-    control: Optional[threading.Thread] = None
+    controls: list[threading.Thread] = []
     try:
         while True:
             if not conn.poll(0.1):
@@ -258,13 +316,8 @@ def _child(spec: str, kwargs: dict, conn, wake, feedback, parent: int) -> None:
                     v = getattr(arm, args[0])
                     value = ("method", None) if callable(v) else ("value", v)
                 elif op == "run":
-                    if control is not None and control.is_alive():
-                        raise ArmError("arm: a plan is already running in this arm's process")
-                    run_id, settings, name, capacity = args
-                    buf = _RingBuffer(_Ring(capacity, name), run_id, wake, feedback, gone_r)
-                    control = threading.Thread(target=_control, args=(arm, settings, buf),
-                                               name="control", daemon=True)
-                    control.start()
+                    controls = [c for c in controls if c.is_alive()]
+                    controls.append(_start_control(arm, args, wake, feedback, gone_r))
                     value = None
                 elif op == "close":
                     conn.send(("ok", None))
@@ -277,8 +330,8 @@ def _child(spec: str, kwargs: dict, conn, wake, feedback, parent: int) -> None:
             conn.send(("ok", value))
     finally:
         os.write(gone_w, b"x")          # a run still going brakes to a stop
-        if control is not None:
-            control.join()
+        for c in controls:
+            c.join()
         arm.close()
 
 
@@ -291,15 +344,27 @@ class _Run:
         self.proc, self._ex, self.id = proc, weakref.ref(ex), run_id
         self.ring: Optional[_Ring] = None
         self._lock = threading.Lock()
-        self._final = None          # (sent, realtime) once the ring is released
+        self._final = None          # (sent, realtime, 0) once the ring is released
+        self._beat = time.monotonic()
+        self._halt: Optional[str] = None
+        self._cancel = False
+
+    def _make_ring(self, capacity: int) -> None:
+        """The ring, with the signals that came before it (under ``_lock``)."""
+        if self._final is not None:
+            raise ValueError("push: the run has ended")
+        if self.ring is None:
+            self.ring = _Ring(capacity)
+            self.ring.head[_BEAT] = int(self._beat * 1e9)
+            self.ring.head[_CANCEL] = int(self._cancel)
+            if self._halt is not None:
+                self.ring.halt(self._halt)
 
     def put(self, slots) -> None:
         if not slots:
             return
         with self._lock:
-            if self.ring is None:
-                cap = max(self.proc.ring_slots, 2 * len(slots))
-                self.ring = _Ring(cap)
+            self._make_ring(max(self.proc.ring_slots, 2 * len(slots)))
         i = 0
         while i < len(slots):
             with self._lock:
@@ -321,29 +386,65 @@ class _Run:
     def ex(self):
         return self._ex()
 
-    def start(self) -> None:
-        self.proc._runs[self.id] = (self, self.ex)
+    def start(self, trajectory=None) -> None:
+        """The run in the child (which waits for the arm and checks the start): on the ring's
+        slots, or on ``trajectory``, which the child samples itself (then the ring holds only
+        the counters and signals). A refused start frees the ring."""
+        ex = self.ex
+        with self._lock:
+            if trajectory is not None:
+                self._make_ring(0)
+            self._beat = time.monotonic()
+            self.ring.head[_BEAT] = int(self._beat * 1e9)
+        self.proc._runs[self.id] = (self, ex)
         try:
-            self.proc._request("run", self.id, self.ex.settings, self.ring.name,
-                               self.ring.capacity)
+            self.proc._request("run", self.id, ex.settings, self.ring.name, self.ring.capacity,
+                               trajectory, ex.busy_timeout)
         except BaseException:
             self.proc._runs.pop(self.id, None)
+            self.release()
             raise
+
+    def start_plan(self, trajectory) -> None:
+        self.start(trajectory)
 
     def finish(self) -> None:
         with self._lock:
             if self.ring is not None and self._final is None:
                 self.ring.head[_FINISHED] = 1
 
-    def cancel(self) -> None:
+    def beat(self, now: float) -> None:
         with self._lock:
-            if self.ring is None or self._final is not None:
+            self._beat = now
+            if self.ring is not None and self._final is None:
+                self.ring.head[_BEAT] = int(now * 1e9)
+
+    def _signal(self, set_flag) -> None:
+        with self._lock:
+            if self._final is not None:
                 return
-            self.ring.head[_CANCEL] = 1
+            set_flag()
+            if self.ring is None:
+                return
         try:
             self.proc._wake.send_bytes(_ID.pack(self.id))
         except OSError:
             pass    # the child is gone; the reader reports it
+
+    def halt(self, reason: str) -> None:
+        def flag():
+            if self._halt is None:
+                self._halt = reason
+                if self.ring is not None:
+                    self.ring.halt(reason)
+        self._signal(flag)
+
+    def cancel(self) -> None:
+        def flag():
+            self._cancel = True
+            if self.ring is not None:
+                self.ring.head[_CANCEL] = 1
+        self._signal(flag)
 
     def _count(self, k: int) -> int:
         with self._lock:
@@ -387,8 +488,8 @@ def _close_at_exit(ref) -> None:
 
 class ArmProcess(Arm):
     """``drivers.open_arm(spec, **kwargs)`` run in a child process; this object is the
-    :class:`~drivers.base.Arm` in the parent. ``period``, ``limits``, ``name`` and ``pose_sigma``
-    are the child arm's; other attributes are read from it, methods called in it. An
+    :class:`~drivers.base.Arm` in the parent. ``period``, ``limits``, ``name``, ``pose_sigma`` and
+    ``options`` (with an attribute per key) are the child arm's; other attributes are read from it, methods called in it. An
     :class:`~drivers.executor.Executor` on this arm runs its control loop in the child.
     ``ring_seconds``: the shared ring's size in seconds of set-points (a push beyond it waits for
     the arm; a first push longer than it sizes the ring). ``pid``: the child's."""
@@ -425,6 +526,9 @@ class ArmProcess(Arm):
             raise info
         self.period, self.limits = info["period"], info["limits"]
         self.name, self.pose_sigma = info["name"], info["pose_sigma"]
+        self.options = info["options"]
+        for key, value in self.options.items():
+            setattr(self, key, value)
         self.ring_slots = max(1, int(round(ring_seconds / self.period)))
         self._reader = threading.Thread(target=self._read_feedback, name=f"arm {spec} feedback",
                                         daemon=True)
@@ -502,11 +606,20 @@ class ArmProcess(Arm):
     def stop(self) -> None:
         self.call("stop")
 
-    def status(self) -> ArmStatus:
+    def status(self) -> ArmState:
         try:
             return self.call("status")
         except ArmError as e:
-            return ArmStatus(connected=False, error=str(e))
+            return ArmState(connected=False, faults=(str(e),))
+
+    def state(self) -> ArmState:
+        try:
+            return self.call("state")
+        except ArmError as e:
+            return ArmState(connected=False, faults=(str(e),))
+
+    def velocity(self):
+        return self.call("velocity")
 
     def close(self) -> None:
         """Close the arm in the child (a run still going brakes to a stop first) and end it."""

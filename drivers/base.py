@@ -10,6 +10,7 @@ project's convention (``[w, x, y, z, w', x', y', z']``, metres, seconds); a tool
 from __future__ import annotations
 
 import abc
+import dataclasses
 import math
 import numbers
 import time
@@ -69,17 +70,48 @@ class PoseSource(abc.ABC):
         self.close()
 
 
+#: an arm whose tool moves slower than these counts as at rest (:attr:`ArmState.at_rest`); above
+#: what a resting arm's feedback shows (a PiPER's 0.001 mm steps differenced over 5 ms: 2e-4 m/s)
+REST_LINEAR_SPEED = 1e-3     # m/s
+REST_ANGULAR_SPEED = 1e-2    # rad/s
+
+
 @dataclass
-class ArmStatus:
+class ArmState:
+    """What an arm says about itself. :meth:`Arm.status` fills the health (``connected``, the
+    stop flags, ``faults``: one text per fault, empty when healthy; ``extra``: the backend's
+    details); :meth:`Arm.state` adds the motion: ``stamp`` (``time.time()`` of the reading),
+    ``pose`` ``T_base_tool`` (8,), ``linear_velocity`` of the tool point and
+    ``angular_velocity`` of the tool (3,), m/s and rad/s in the base frame (None where the arm
+    could not be read)."""
     connected: bool = False
     protective_stop: bool = False
     emergency_stop: bool = False
-    error: str = ""
+    faults: tuple = ()
     extra: dict = field(default_factory=dict)
+    stamp: float = math.nan
+    pose: Optional[np.ndarray] = None
+    linear_velocity: Optional[np.ndarray] = None
+    angular_velocity: Optional[np.ndarray] = None
+
+    @property
+    def error(self) -> str:
+        """The faults in one text ("" when healthy)."""
+        return "; ".join(self.faults)
 
     @property
     def ok(self) -> bool:
-        return self.connected and not (self.protective_stop or self.emergency_stop) and not self.error
+        return self.connected and not (self.protective_stop or self.emergency_stop) \
+            and not self.faults
+
+    @property
+    def at_rest(self) -> bool:
+        """The tool moves slower than :data:`REST_LINEAR_SPEED` and :data:`REST_ANGULAR_SPEED`
+        (False when its velocity is unknown)."""
+        if self.linear_velocity is None or self.angular_velocity is None:
+            return False
+        return bool(np.linalg.norm(self.linear_velocity) < REST_LINEAR_SPEED
+                    and np.linalg.norm(self.angular_velocity) < REST_ANGULAR_SPEED)
 
 
 class ArmError(RuntimeError):
@@ -282,6 +314,18 @@ class Arm(abc.ABC):
     #: far worse (millimetres): set ``pose_sigma`` to it when fusing with other sources.
     pose_sigma: tuple[float, float] = (1e-4, 1e-4)
 
+    #: the arm-spec keys (:data:`drivers.spec.ARM_KEYS`) this arm runs with, each also an
+    #: attribute of the same name (``stale_after``, ``max_tracking``, ``heartbeat``, ...)
+    options: dict = {}
+
+    def _set_options(self, kind: str, given: dict) -> None:
+        """The keys of :data:`~drivers.spec.ARM_KEYS` from ``given`` (checked), the defaults of
+        ``kind`` for the rest, as :attr:`options` and attributes."""
+        from drivers.spec import resolve
+        self.options = resolve(kind, given)
+        for name, value in self.options.items():
+            setattr(self, name, value)
+
     @classmethod
     def process_problem(cls, channel: str) -> Optional[str]:
         """Why an arm on ``channel`` cannot be opened in a process of its own (its connection
@@ -331,8 +375,25 @@ class Arm(abc.ABC):
         """Stop any motion now."""
 
     @abc.abstractmethod
-    def status(self) -> ArmStatus:
-        """Connection and safety state."""
+    def status(self) -> ArmState:
+        """Connection and safety state (the health fields of :class:`ArmState`)."""
+
+    def velocity(self) -> tuple[np.ndarray, np.ndarray]:
+        """(linear m/s of the tool point, angular rad/s of the tool), both (3,) in the base
+        frame; :class:`ArmError` when the arm cannot be read."""
+        raise ArmError(f"{type(self).__name__}: no velocity feedback")
+
+    def state(self) -> ArmState:
+        """:meth:`status` with the pose and velocities (None where they cannot be read; the
+        fault says why)."""
+        st = self.status()
+        try:
+            stamp, pose = self.tool_pose()
+            lin, ang = self.velocity()
+        except ArmError:
+            return st
+        return dataclasses.replace(st, stamp=stamp, pose=pose, linear_velocity=lin,
+                                   angular_velocity=ang)
 
     def close(self) -> None:
         """Stop and disconnect."""

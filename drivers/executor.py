@@ -12,81 +12,66 @@ Where the loop runs follows the arm: in a thread of this process for an arm open
 the arm's own process for one opened with ``drivers.open_arm(spec, process=True)``
 (:class:`drivers.armproc.ArmProcess`), where no thread of the caller's (gRPC, the feeder, the
 garbage collector of a large heap) can hold the interpreter lock when a set-point is due. Both
-run the same loop (:class:`_Control`) on the same checks; only the buffer differs (a deque here,
-a ring in shared memory there).
+run the same loop (:class:`drivers.control.Control`) on the same checks; only the buffer
+differs (a deque here, a ring in shared memory there). One run at a time per arm: a run started
+while another is still ending waits for it (``busy_timeout``), else ``ArmError("busy ...")``.
 
-The buffer holds samples on the plan's clock, pushed in chunks (``push(times, poses)``) at any
-rate; they are resampled at the arm's period when pushed (:func:`service.interpolate.interpolate`),
-so the control loop only pops. Each run ends in one :class:`Result`, in the style of ruckig's
-result codes (positive: ended as controlled, negative: a fault):
+A plan comes whole (``push_plan(trajectory)``: the loop samples it at the arm's period as it
+goes, so its cost to the caller is its waypoints, whatever its duration) or as samples on the
+plan's clock, pushed in chunks (``push(times, poses)``) at any rate and resampled at the arm's
+period when pushed (:func:`service.interpolate.interpolate`). Every set-point is judged against
+the arm's actual pose before it goes (``max_tracking``, ``max_tracking_angle`` and
+``tracking_lag``, the arm's keys: :class:`drivers.control.Tracking`). Each run ends in one
+:class:`Result`, in the style of ruckig's result codes (positive: ended as controlled, negative:
+a fault):
 
-* ``FINISHED``: ``finish()`` was called, every sample was sent and the arm settled on the last;
+* ``FINISHED``: the input was finished, every set-point sent and the arm settled on the last;
 * ``STOPPED``: ``cancel()`` (a client gone, a user's stop): ``arm.stop()`` at once, within the
-  period under way;
-* ``STALLED``: the buffer ran dry before ``finish()``, or the process that fed an arm process
-  died: the arm decelerates along its last step within ``stop_fraction`` of its acceleration
-  limits, then stops;
+  period under way; or ``halt(reason)``: braked to rest as below, ``reason`` the message;
+* ``STALLED``: the buffer ran dry before ``finish()``, the owner missed three heartbeats
+  (``heartbeat``: a hung server), or the process that fed an arm process died: the arm
+  decelerates along its last step within ``stop_fraction`` of its acceleration limits, then
+  stops;
 * ``LIMITED``: a set-point broke the arm's Limits; the arm stopped itself, the message is the
   :class:`~drivers.base.LimitError`'s;
 * ``PROTECTIVE_STOP``: the arm reports a protective or emergency stop; nothing more is sent
   (the arm has stopped itself, and a stop command would wait on a halted controller);
-* ``ERROR``: anything else (lost connection, the arm moved before the first set-point).
+* ``ERROR``: anything else (lost connection, stale data, the arm moved before the first
+  set-point);
+* ``TRACKING``: the arm no longer follows its set-points (lost frames, an obstacle): the next
+  one is not sent and the arm is stopped where it is (``arm.stop()``), no catch-up.
 
 A feedback record (:class:`Feedback`) per ``feedback_every`` set-points, and always one last with
 the final result, goes to ``callback`` (called on a thread of the executor's: hand it on, e.g.
 with ``loop.call_soon_threadsafe``) or, without one, to a queue read with
 :meth:`Executor.feedback`.
 
-    ex = Executor(arm)
-    traj = plan(...).at_rate(1 / arm.period)
-    ex.push(traj.time, traj.pose)
-    ex.finish()
+    ex = Executor(arm, heartbeat=arm.heartbeat)
+    ex.push_plan(plan(...))
+    while not ex.done:          # the owner's heartbeat, e.g. a task on a server's event loop
+        ex.beat()
+        time.sleep(arm.heartbeat)
     assert ex.wait() == Result.FINISHED
 """
 from __future__ import annotations
 
 import collections
-import enum
 import math
 import numbers
-import os
 import threading
 import time
-from dataclasses import dataclass
 from typing import Callable, Optional
 
 import numpy as np
 
-from drivers.base import Arm, ArmError, LimitError, pose_delta, servo_step
-from drivers.rotvec import quat_from_rotvec
+from drivers.base import Arm
+from drivers.control import (Buffer, Control, Feedback, PlanSlots, Result, Settings, check_start,
+                             claim, plan_start)
+from drivers.spec import ARM_KEYS
 from service import dq
 from service.interpolate import MODES, interpolate
 
 __all__ = ["Result", "Feedback", "Executor"]
-
-
-class Result(enum.IntEnum):
-    OK = 0                  # working
-    FINISHED = 1
-    STOPPED = 2
-    STALLED = 3
-    LIMITED = -1
-    PROTECTIVE_STOP = -2
-    ERROR = -3
-
-
-@dataclass(frozen=True)
-class Feedback:
-    """One step: ``time`` the set-point's time on the plan's clock, ``stamp`` the ``time.time()``
-    the actual pose was read, ``commanded`` and ``actual`` ``T_base_tool`` (``actual`` None when
-    the arm could not be read), ``result`` ``OK`` while running, else how the run ended, with
-    ``message``."""
-    time: float
-    stamp: float
-    commanded: np.ndarray
-    actual: Optional[np.ndarray]
-    result: Result
-    message: str = ""
 
 
 def _positive(name: str, v) -> float:
@@ -103,261 +88,16 @@ def _tolerance(name: str, v) -> tuple[float, float]:
     return _positive(f"{name}[0]", lin), _positive(f"{name}[1]", ang)
 
 
-@dataclass(frozen=True)
-class Settings:
-    """What the control loop needs of an :class:`Executor`'s arguments (checked there), whole
-    and picklable, for a loop in another process."""
-    period: float
-    prefill: float
-    stall_timeout: float
-    settle_timeout: float
-    feedback_every: int
-    stop_fraction: float
-    start_tolerance: tuple
-    settle_tolerance: tuple
-    realtime: Optional[int]
-
-
-class Buffer:
-    """The set-points as the control loop sees them; one per kind of transport (a deque in this
-    process, :class:`drivers.armproc.RingBuffer` in shared memory)."""
-
-    #: set by the loop: whether it got real-time scheduling
-    realtime = False
-
-    def ready(self, need: int, timeout: float) -> bool:
-        """Wait until ``need`` set-points are buffered, the input finished, or a cancel; False
-        if none of these came within ``timeout`` seconds."""
-        raise NotImplementedError
-
-    def first(self) -> Optional[np.ndarray]:
-        """The first buffered pose, not taken."""
-        raise NotImplementedError
-
-    def pop(self) -> Optional[tuple[float, np.ndarray]]:
-        """The next (plan time, pose), or None when the buffer is empty."""
-        raise NotImplementedError
-
-    def finished(self) -> bool:
-        raise NotImplementedError
-
-    def cancelled(self) -> bool:
-        raise NotImplementedError
-
-    def gone(self) -> bool:
-        """Whoever fed the buffer is gone (a dead parent process): stop as on a dry buffer."""
-        return False
-
-    def wait(self, end: float) -> None:
-        """Until ``time.monotonic()`` reaches ``end``, or a cancel, whichever comes first."""
-        raise NotImplementedError
-
-    def sent(self, n: int) -> None:
-        """``n`` set-points have been sent."""
-
-    def emit(self, fb: Feedback, final: bool = False) -> None:
-        raise NotImplementedError
-
-
-def _realtime(priority: Optional[int]) -> bool:
-    """The calling thread to SCHED_FIFO at ``priority``; False where not permitted (or None)."""
-    if priority is None:
-        return False
-    try:        # this thread only: the caller's other threads keep their scheduling
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-        return True
-    except (AttributeError, OSError):     # not Linux, or not permitted: as before
-        return False
-
-
-class _Control:
-    """One run: the arm fed from ``buffer`` until a :class:`Result`. The same code in a thread
-    (:class:`Executor`) and in an arm's own process (:mod:`drivers.armproc`)."""
-
-    def __init__(self, arm: Arm, settings: Settings, buffer: Buffer):
-        self.arm, self.s, self.buf = arm, settings, buffer
-        self.period = settings.period
-        self._last: Optional[tuple[float, np.ndarray]] = None   # the last set-point sent
-        self._step = np.zeros(6)
-        self._returned = self._called = 0.0     # monotonic: the last servo returned, began
-        self._end: Optional[float] = None       # when the cycle of the last set-point ends
-        self.sent = 0
-
-    def run(self) -> Feedback:
-        """Runs to the end; the last record (the result, its message)."""
-        self.buf.realtime = _realtime(self.s.realtime)
-        try:
-            result, message = self._execute()
-        except LimitError as e:
-            result, message = Result.LIMITED, str(e)
-            late = self._called - self._returned
-            if self._returned and late > 10 * self.period:
-                # a starved control loop, not the plan: the arm's watchdog stopped it meanwhile
-                message += (f" (this control loop was {late * 1e3:.0f} ms late for the "
-                            "set-point; a stream that pauses is stopped by the arm's watchdog)")
-        except ArmError as e:
-            result, message = self._fault(e)
-        except Exception as e:  # the run must end with a result, whatever broke
-            result, message = Result.ERROR, f"{type(e).__name__}: {e}"
-            self._stop_arm()
-        stamp, actual = self._actual()
-        t, pose = self._last if self._last is not None else (math.nan, None)
-        return Feedback(t, stamp, pose, actual, result, message)
-
-    def _actual(self) -> tuple[float, Optional[np.ndarray]]:
-        try:
-            return self.arm.tool_pose()
-        except ArmError:
-            return time.time(), None
-
-    def _fault(self, e: ArmError) -> tuple[Result, str]:
-        # A controller may refuse a command (a paused program) a cycle or two before its status
-        # data says why: give the report a few periods to arrive.
-        deadline = time.monotonic() + max(10 * self.period, 0.05)
-        while True:
-            try:
-                st = self.arm.status()
-            except ArmError:
-                return Result.ERROR, str(e)
-            if st.protective_stop or st.emergency_stop:
-                what = "emergency stop" if st.emergency_stop else "protective stop"
-                msg = str(e) if what in str(e) else f"{what}: {e}"
-                return Result.PROTECTIVE_STOP, msg
-            if time.monotonic() > deadline:
-                break
-            time.sleep(self.period)
-        self._stop_arm()
-        return Result.ERROR, str(e)
-
-    def _stop_arm(self) -> None:
-        try:
-            self.arm.stop()
-        except ArmError:
-            pass   # the arm is gone or faulted; it stops itself then
-
-    def _check_start(self, first: np.ndarray) -> None:
-        check_start(self.arm, first, self.s.start_tolerance)
-
-    def _send(self, t: float, pose: np.ndarray) -> bool:
-        """Waits out the cycle under way, then sends; False (nothing sent) if a cancel came
-        meanwhile."""
-        if self._end is not None:
-            self.buf.wait(self._end)
-            if self.buf.cancelled():
-                return False
-        self._called = time.monotonic()
-        self._end = self.arm.servo_nowait(pose)
-        self._returned = time.monotonic()
-        if self._last is not None:
-            self._step = servo_step(pose, self._last[1])
-        self._last = (t, pose)
-        self.sent += 1
-        self.buf.sent(self.sent)
-        if self.sent % self.s.feedback_every == 0:
-            stamp, actual = self._actual()
-            self.buf.emit(Feedback(t, stamp, pose, actual, Result.OK))
-        return True
-
-    def _cancelled(self, when: str = "") -> tuple[Result, str]:
-        self._stop_arm()
-        return Result.STOPPED, f"cancelled{when}; the arm was stopped"
-
-    def _execute(self) -> tuple[Result, str]:
-        s, buf = self.s, self.buf
-        need = int(math.ceil(s.prefill / self.period - 1e-9)) + 1
-        ready = buf.ready(need, s.stall_timeout)
-        if buf.cancelled():
-            return Result.STOPPED, "cancelled before the first set-point; the arm was not moved"
-        if not ready or buf.first() is None:
-            return Result.STALLED, (f"fewer than {s.prefill:g} s of the plan arrived within "
-                                    f"{s.stall_timeout:g} s; the arm was not moved")
-        # The arm may have moved since the first push.
-        try:
-            self._check_start(buf.first())
-        except ValueError as e:
-            return Result.ERROR, str(e)
-        while True:
-            if buf.cancelled():
-                return self._cancelled()
-            if buf.gone():
-                return self._decelerate("the process that fed the arm is gone")
-            finished = buf.finished()       # read first: once set, every slot is in
-            slot = buf.pop()
-            if slot is not None:
-                if not self._send(*slot):
-                    return self._cancelled()
-            elif finished:
-                return self._settle()
-            else:
-                return self._decelerate()
-
-    def _settle(self) -> tuple[Result, str]:
-        t, goal = self._last
-        tl, ta = self.s.settle_tolerance
-        deadline = time.monotonic() + self.s.settle_timeout
-        while True:
-            if self.buf.cancelled():
-                return self._cancelled(" while settling")
-            d, a = pose_delta(self.arm.tool_pose()[1], goal)
-            if d <= tl and a <= ta:
-                self._stop_arm()
-                return Result.FINISHED, ""
-            if time.monotonic() > deadline:
-                self._stop_arm()
-                return Result.ERROR, (f"the last pose was not reached within "
-                                      f"{self.s.settle_timeout:g} s ({d:.4g} m and "
-                                      f"{math.degrees(a):.4g} deg away); the arm was stopped")
-            if not self._send(t, goal):
-                return self._cancelled(" while settling")
-
-    def _decelerate(self, why: str = "") -> tuple[Result, str]:
-        """Brake along the last step, shortening it by ``stop_fraction`` of the acceleration
-        limits each period, so the stop passes the same Limits as the plan."""
-        L, P = self.arm.limits, self.period
-        dl = self.s.stop_fraction * L.max_linear_accel * P * P
-        da = self.s.stop_fraction * L.max_angular_accel * P * P
-        t, pose = self._last
-        lin, ang = self._step[:3].copy(), self._step[3:].copy()
-        n = 0
-        while True:
-            nl, na = float(np.linalg.norm(lin)), float(np.linalg.norm(ang))
-            if nl == 0 and na == 0:
-                break
-            if self.buf.cancelled():
-                return self._cancelled(" while stopping after a stall")
-            lin = lin * (max(nl - dl, 0.0) / nl) if nl > 0 else lin
-            ang = ang * (max(na - da, 0.0) / na) if na > 0 else ang
-            q, p = dq.to_pose(pose)
-            pose = dq.from_pose(dq.mul(dq.from_pose(quat_from_rotvec(ang), [0, 0, 0]),
-                                       dq.from_pose(q, [0, 0, 0]))[:4], p + lin)
-            t += P
-            if not self._send(t, pose):
-                return self._cancelled(" while stopping after a stall")
-            n += 1
-        if self._end is not None:
-            self.buf.wait(self._end)        # the last braking step's cycle
-        self._stop_arm()
-        what = why or f"the buffer ran dry at plan time {t - n * P:.4f} s before finish()"
-        return Result.STALLED, (f"{what}; the arm was brought to rest in {n} set-points and "
-                                "stopped")
-
-
-def check_start(arm: Arm, first: np.ndarray, tolerance: tuple) -> None:
-    """``ValueError`` unless ``first`` is within ``tolerance`` (m, rad) of the arm's pose."""
-    d, a = pose_delta(arm.tool_pose()[1], first)
-    tl, ta = tolerance
-    if d > tl or a > ta:
-        raise ValueError(f"poses[0]: the plan starts {d:.4g} m and {math.degrees(a):.4g} deg "
-                         f"from the arm's actual pose; it must start within {tl:.3g} m and "
-                         f"{math.degrees(ta):.3g} deg of it (start_tolerance); the arm was "
-                         "not moved")
+def _key(arm: Arm, name: str) -> float:
+    """The arm's value of an arm-spec key (the table's default for an arm without keys)."""
+    return float(arm.options.get(name, ARM_KEYS[name].default_for(None)))
 
 
 class _DequeBuffer(Buffer):
-    """The buffer of a loop in the caller's process: the :class:`Executor`'s own deque. Made by
-    the loop's thread and dropped with it: held by the executor it would make a reference
-    cycle, and an arm kept alive by a cycle is freed by the garbage collector whenever it runs
-    (``ur_rtde``'s destructors then sleep a second with the interpreter lock held)."""
+    """The buffer of a loop in the caller's process: the :class:`Executor`'s own deque, or its
+    plan. Made by the loop's thread and dropped with it: held by the executor it would make a
+    reference cycle, and an arm kept alive by a cycle is freed by the garbage collector whenever
+    it runs (``ur_rtde``'s destructors then sleep a second with the interpreter lock held)."""
 
     def __init__(self, ex: "Executor"):
         self.ex = ex
@@ -374,21 +114,34 @@ class _DequeBuffer(Buffer):
         ex = self.ex
         with ex._cond:
             return ex._cond.wait_for(lambda: len(ex._slots) >= need or ex._finished_input
-                                     or ex._cancel.is_set(), timeout)
+                                     or ex._cancel.is_set() or ex._halt_reason is not None,
+                                     timeout)
 
     def first(self):
-        with self.ex._cond:
-            return self.ex._slots[0][1] if self.ex._slots else None
+        ex = self.ex
+        if ex._plan is not None:
+            return ex._plan.first()
+        with ex._cond:
+            return ex._slots[0][1] if ex._slots else None
 
     def pop(self):
-        with self.ex._cond:
-            return self.ex._slots.popleft() if self.ex._slots else None
+        ex = self.ex
+        if ex._plan is not None:
+            return ex._plan.pop()
+        with ex._cond:
+            return ex._slots.popleft() if ex._slots else None
 
     def finished(self):
         return self.ex._finished_input
 
     def cancelled(self):
         return self.ex._cancel.is_set()
+
+    def halted(self):
+        return self.ex._halt_reason
+
+    def beat_age(self):
+        return time.monotonic() - self.ex._beat
 
     def wait(self, end):
         self.ex._cancel.wait(max(0.0, end - time.monotonic()))
@@ -415,6 +168,12 @@ class Executor:
     the Limits anyway. At the end the last pose is held until the arm is within
     ``settle_tolerance`` (m, rad) of it, for at most ``settle_timeout`` s, then ``arm.stop()``.
 
+    ``heartbeat`` (s, None: no heartbeat; an arm's own is ``arm.heartbeat``): the owner calls
+    :meth:`beat` at least this often while the run goes, from the thread (or event loop) whose
+    health the arm's motion depends on; after three missed beats the loop brakes the arm to
+    rest and the run ends ``STALLED``. ``busy_timeout``: how long the start of a run waits for
+    the arm's previous run to end (a cancelled run stopping its arm).
+
     ``realtime``: the control loop's thread asks the OS for real-time scheduling (Linux
     ``SCHED_FIFO`` at this priority, 1-99; None, the default: no), so that other work on the
     machine cannot delay a set-point by a scheduler slice; it needs ``CAP_SYS_NICE`` (root, or
@@ -431,7 +190,8 @@ class Executor:
                  start_tolerance: Optional[tuple[float, float]] = None,
                  settle_tolerance: tuple[float, float] = (1e-5, 1e-4),
                  settle_timeout: float = 1.0, stop_fraction: float = 0.5,
-                 max_feedback: int = 100_000, realtime: Optional[int] = None):
+                 max_feedback: int = 100_000, realtime: Optional[int] = None,
+                 heartbeat: Optional[float] = None, busy_timeout: float = 1.0):
         if not isinstance(arm, Arm):
             raise ValueError(f"arm: expected a drivers.base.Arm, got {type(arm).__name__}")
         if interpolation not in MODES:
@@ -439,6 +199,9 @@ class Executor:
                              f"{', '.join(MODES)}")
         if not (isinstance(prefill, numbers.Real) and math.isfinite(prefill) and prefill >= 0):
             raise ValueError(f"prefill: must be a finite number >= 0, got {prefill!r}")
+        if not (isinstance(busy_timeout, numbers.Real) and math.isfinite(busy_timeout)
+                and busy_timeout >= 0):
+            raise ValueError(f"busy_timeout: must be a finite number >= 0, got {busy_timeout!r}")
         for name, v in (("feedback_every", feedback_every), ("max_feedback", max_feedback)):
             if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
                 raise ValueError(f"{name}: must be a whole number >= 1, got {v!r}")
@@ -451,6 +214,7 @@ class Executor:
         self.period = float(arm.period)
         L = arm.limits
         self.interpolation = interpolation
+        self.busy_timeout = float(busy_timeout)
         self.settings = Settings(
             period=self.period, prefill=float(prefill),
             stall_timeout=_positive("stall_timeout", stall_timeout),
@@ -461,16 +225,23 @@ class Executor:
             (0.9 * L.max_linear_accel * self.period ** 2,
              0.9 * L.max_angular_accel * self.period ** 2),
             settle_tolerance=_tolerance("settle_tolerance", settle_tolerance),
-            realtime=None if realtime is None else int(realtime))
+            realtime=None if realtime is None else int(realtime),
+            heartbeat=None if heartbeat is None else _positive("heartbeat", heartbeat),
+            max_tracking=_key(arm, "max_tracking"),
+            max_tracking_angle=_key(arm, "max_tracking_angle"),
+            tracking_lag=_key(arm, "tracking_lag"))
         self._callback = callback
 
         self._cond = threading.Condition()      # guards the buffer and the run state
         self._slots: collections.deque = collections.deque()   # (plan time, pose) per period
+        self._plan: Optional[PlanSlots] = None  # or the whole plan, sampled as the loop goes
         self._t0: Optional[float] = None        # plan time of the first set-point
         self._next_slot = 0                     # index of the next slot to resample
         self._tail: Optional[tuple[float, np.ndarray]] = None  # the last pushed sample
         self._finished_input = False
         self._cancel = threading.Event()
+        self._halt_reason: Optional[str] = None
+        self._beat = time.monotonic()
         self._push_lock = threading.Lock()      # one pusher resamples at a time
         self._feedback: collections.deque = collections.deque(maxlen=int(max_feedback))
         self.dropped = 0                        # feedback records that fell out of the queue
@@ -500,6 +271,10 @@ class Executor:
         return self.settings.start_tolerance
 
     @property
+    def heartbeat(self) -> Optional[float]:
+        return self.settings.heartbeat
+
+    @property
     def sent(self) -> int:
         """Set-points sent so far."""
         return self._remote.sent_count() if self._remote is not None else self._sent
@@ -513,9 +288,10 @@ class Executor:
     def push(self, times, poses) -> None:
         """Append samples: ``times`` ``(N,)`` seconds on the plan's clock, strictly increasing
         and after every sample pushed before; ``poses`` ``(N, 8)`` unit dual quaternions
-        ``T_base_tool``. The first push checks that the plan starts at the arm's actual pose
-        (``ValueError`` naming the distance and the tolerance) and starts the run. For an arm in
-        its own process, a push waits while the ring in shared memory is full."""
+        ``T_base_tool``. The first push starts the run: it waits for the arm's previous run to
+        end (``busy_timeout``, else ``ArmError("busy ...")``), then checks that the plan starts
+        at the arm's actual pose (``ValueError`` naming the distance and the tolerance). For an
+        arm in its own process, a push waits while the ring in shared memory is full."""
         t = np.asarray(times, dtype=np.float64)
         p = np.asarray(poses, dtype=np.float64)
         if t.ndim != 1 or t.size == 0:
@@ -541,19 +317,26 @@ class Executor:
                              f"{float(t[i - 1])!r}")
         with self._push_lock:
             with self._cond:
-                if self._finished_input or self._done.is_set():
-                    raise ValueError("push: the plan was already finished or the run has ended "
-                                     f"({self.result.name})")
+                self._check_open("push")
                 tail, t0, k0 = self._tail, self._t0, self._next_slot
             if tail is not None and t[0] <= tail[0]:
                 raise ValueError(f"times[0]: {float(t[0])!r} is not after the last pushed time "
                                  f"{tail[0]!r}")
-            if t0 is None:
-                check_start(self.arm, p[0], self.start_tolerance)
+            first = t0 is None
+            if first:
                 t0 = float(t[0])
-            slots = self._resample(t0, k0, tail, t, p)
+                if self._remote is None:    # (an arm's process claims it when it starts)
+                    self._claim(p[0])
+            try:
+                slots = self._resample(t0, k0, tail, t, p)
+            except BaseException:
+                if first and self._remote is None:
+                    self._run_lock.release()
+                raise
             if self._remote is not None:
                 self._remote.put(slots)
+                if first:
+                    self._remote.start()    # the arm's process claims it and checks the start
             with self._cond:
                 self._t0 = t0
                 self._tail = (float(t[-1]), p[-1])
@@ -561,12 +344,57 @@ class Executor:
                 if self._remote is None:
                     self._slots.extend(slots)
                 self._cond.notify_all()
-            if not self._started:
-                self._started = True
-                if self._remote is not None:
-                    self._remote.start()
-                else:
-                    threading.Thread(target=self._run, name="executor", daemon=True).start()
+            if first:
+                self._start()
+
+    def push_plan(self, trajectory) -> None:
+        """The whole plan at once: ``trajectory`` is a :class:`service.trajectory.Trajectory`
+        (anything with ``duration`` and ``sample(times)``), sampled by the control loop at the
+        arm's period as it goes, from its time 0 (never held whole, here or in an arm's
+        process, which gets the trajectory itself: its waypoints). Starts the run as the first
+        :meth:`push` does (its start checked against the arm's actual pose before anything else
+        is sampled: ``ValueError`` naming ``poses[0]``) and finishes the input."""
+        duration = getattr(trajectory, "duration", None)
+        if not (callable(getattr(trajectory, "sample", None)) and isinstance(
+                duration, numbers.Real) and math.isfinite(duration) and duration >= 0):
+            raise ValueError(f"trajectory: expected a service.trajectory.Trajectory, got "
+                             f"{type(trajectory).__name__}")
+        with self._push_lock:
+            with self._cond:
+                self._check_open("push_plan")
+                if self._tail is not None or self._plan is not None:
+                    raise ValueError("push_plan: samples were already pushed to this executor")
+            if self._remote is not None:
+                self._remote.start_plan(trajectory)
+            else:
+                self._claim(plan_start(trajectory))
+            with self._cond:
+                self._plan = PlanSlots(trajectory, self.period)
+                self._t0 = 0.0
+                self._finished_input = True
+                self._cond.notify_all()
+            self._start()
+
+    def _check_open(self, what: str) -> None:
+        if self._finished_input or self._done.is_set():
+            raise ValueError(f"{what}: the plan was already finished or the run has ended "
+                             f"({self.result.name})")
+
+    def _claim(self, first: np.ndarray) -> None:
+        """This arm for this run (waiting for a previous run to end), and the plan's start
+        checked against where the arm is once it is ours."""
+        self._run_lock = claim(self.arm, self.busy_timeout)
+        try:
+            check_start(self.arm, first, self.start_tolerance)
+        except BaseException:
+            self._run_lock.release()
+            raise
+
+    def _start(self) -> None:
+        self._started = True
+        self._beat = time.monotonic()
+        if self._remote is None:
+            threading.Thread(target=self._run, name="executor", daemon=True).start()
 
     def _resample(self, t0, k0, tail, t, p) -> list[tuple[float, np.ndarray]]:
         """The period slots from index ``k0`` on that the samples (after ``tail``) cover."""
@@ -587,7 +415,7 @@ class Executor:
         """No more samples: the run ends ``FINISHED`` after the last one. A plan whose end is
         not on the period grid gets one more set-point, on its last pose."""
         with self._push_lock, self._cond:
-            if self._tail is None:
+            if self._tail is None and self._plan is None:
                 raise ValueError("finish: no samples were pushed")
             if self._finished_input:
                 return
@@ -603,6 +431,25 @@ class Executor:
             if self._remote is not None:
                 self._remote.finish()
             self._cond.notify_all()
+
+    def beat(self) -> None:
+        """The owner is alive: call at least every ``heartbeat`` seconds while the run goes
+        (cheap: a clock reading, in an arm's process one shared-memory write)."""
+        self._beat = time.monotonic()
+        if self._remote is not None:
+            self._remote.beat(self._beat)
+
+    def halt(self, reason: str) -> None:
+        """Brake the arm to rest within its limits (as a stall does) and end the run ``STOPPED``,
+        its message ``reason`` and how the arm was stopped (a server shutting down). A run not
+        started yet ends without moving."""
+        reason = str(reason) or "halted"
+        with self._cond:
+            if self._halt_reason is None:
+                self._halt_reason = reason
+            self._cond.notify_all()
+        if self._remote is not None and not self._done.is_set():
+            self._remote.halt(self._halt_reason)
 
     def cancel(self) -> None:
         """Stop the arm (``arm.stop()``) at once, within the period under way; the run ends
@@ -623,9 +470,11 @@ class Executor:
 
     @property
     def buffered(self) -> float:
-        """Seconds of the plan buffered and not yet sent."""
+        """Seconds of the plan buffered (or, of a whole plan, left) and not yet sent."""
         if self._remote is not None:
             return self._remote.buffered() * self.period
+        if self._plan is not None:
+            return self._plan.left() * self.period
         with self._cond:
             return len(self._slots) * self.period
 
@@ -674,4 +523,8 @@ class Executor:
             self._cond.notify_all()
 
     def _run(self) -> None:
-        self._ended(_Control(self.arm, self.settings, _DequeBuffer(self)).run())
+        try:
+            last = Control(self.arm, self.settings, _DequeBuffer(self)).run()
+        finally:
+            self._run_lock.release()    # the arm is free before the end is announced
+        self._ended(last)

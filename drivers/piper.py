@@ -33,8 +33,8 @@ from typing import Optional, Sequence
 import can
 import numpy as np
 
-from drivers.base import (Arm, ArmError, ArmStatus, LimitError, Limits, Pacer, pose_delta,
-                          tool_line, unit_pose)
+from drivers.base import (Arm, ArmError, ArmState, LimitError, Limits, Pacer, pose_delta,
+                          servo_step, tool_line, unit_pose)
 from drivers.euler import quat_from_sxyz, sxyz_from_quat
 from service import dq
 from service.profile import Trapezoid
@@ -310,7 +310,9 @@ class PiperArm(Arm):
     ``move`` checks its arguments with :meth:`Limits.check_move`. If no servo set-point arrives
     for ``watchdog`` seconds the arm is told to hold its measured pose. The arm counts as
     connected while both end-pose feedback and arm status (0x2A1) are younger than
-    ``stale_timeout``. ``own_bus`` shuts the bus down on ``close()`` (``open_arm`` does).
+    ``stale_after``. ``watchdog``, ``stale_after`` and the other keys of
+    :data:`drivers.spec.ARM_KEYS` are ``options``. ``own_bus`` shuts the bus down on ``close()``
+    (``open_arm`` does, and waits up to ``connect_timeout`` for the arm's first feedback).
 
     Arm status: ``status()`` sets ``emergency_stop`` for arm_status 0x01 and ``protective_stop``
     for the states where the arm has stopped itself and an operator must clear the cause
@@ -358,30 +360,35 @@ class PiperArm(Arm):
             raise ArmError(f"channel: cannot open python-can {interface} channel {chan!r}: "
                            f"{e}") from None
         try:
-            return cls(bus, own_bus=True, **kwargs)
+            arm = cls(bus, own_bus=True, **kwargs)
         except BaseException:
             bus.shutdown()
             raise
+        try:
+            arm.wait_for_feedback(arm.connect_timeout)
+        except BaseException as e:
+            arm.close()
+            if isinstance(e, ArmError):
+                raise ArmError(f"{e} on python-can {interface} channel {chan!r}; is the arm "
+                               "powered and on this bus?") from None
+            raise
+        return arm
 
     def __init__(self, bus: can.BusABC, *, period: float = 0.005, limits: Optional[Limits] = None,
-                 watchdog: float = 0.1, stale_timeout: float = 0.2,
                  position_tolerance: float = 5e-4, angle_tolerance: float = math.radians(0.2),
-                 own_bus: bool = False):
-        for name, v in (("period", period), ("watchdog", watchdog),
-                        ("stale_timeout", stale_timeout),
-                        ("position_tolerance", position_tolerance),
+                 own_bus: bool = False, **options):
+        for name, v in (("period", period), ("position_tolerance", position_tolerance),
                         ("angle_tolerance", angle_tolerance)):
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name}: must be a positive number, got {v!r}")
         if limits is not None and not isinstance(limits, Limits):
             raise ValueError(f"limits: expected a drivers.base.Limits, got {type(limits).__name__}")
+        self._set_options("piper", options)
         self.bus = bus
         self._own_bus = bool(own_bus)
         self.period = float(period)
         self._pacer = Pacer(self.period)
         self.limits = limits or self.DEFAULT_LIMITS
-        self.watchdog = float(watchdog)
-        self.stale_timeout = float(stale_timeout)
         self.position_tolerance = float(position_tolerance)
         self.angle_tolerance = float(angle_tolerance)
 
@@ -394,6 +401,7 @@ class PiperArm(Arm):
         self._pose: Optional[np.ndarray] = None
         self._pose_time = 0.0        # bus timestamp of the last complete feedback
         self._pose_mono = -math.inf  # our monotonic clock at that moment
+        self._prev: tuple = (None, 0.0)  # the feedback before it (pose, stamp): velocity()
         self._first_mono = time.monotonic()
         self.frames = 0
         self.poses = 0
@@ -452,6 +460,7 @@ class PiperArm(Arm):
         pose = units_to_pose(ep)
         stamp = msg.timestamp if msg.timestamp else time.time()
         with self._lock:
+            self._prev = (self._pose, self._pose_time)
             self._pose, self._pose_time, self._pose_mono = pose, stamp, time.monotonic()
             self.poses += 1
 
@@ -510,10 +519,19 @@ class PiperArm(Arm):
     def _command(self, pose: np.ndarray, speed_percent: int = 100) -> None:
         mode = MotionMode(CTRL_MODE_CAN, MOVE_P, speed_percent)
         msgs = encode_end_pose(pose_to_units(pose), END_POSE_CTRL)
-        if mode != self._mode_sent:
+        if mode != self._mode_sent or not self._in_mode(mode):
+            # again with every command until the arm reports the mode: one lost 0x151 frame
+            # (or an arm that restarted in standby) must not leave it deaf to every target
             msgs = [encode_motion_mode(mode)] + msgs
             self._mode_sent = mode
         self._send(msgs)
+
+    def _in_mode(self, mode: MotionMode) -> bool:
+        """The arm's last status report says it is in ``mode`` (CAN command, that move mode)."""
+        with self._lock:
+            report = self._report
+        return report is not None and report.ctrl_mode == mode.ctrl_mode \
+            and report.mode_feed == mode.move_mode
 
     def _fresh_pose(self) -> tuple[float, np.ndarray]:
         with self._lock:
@@ -522,9 +540,9 @@ class PiperArm(Arm):
         if pose is None:
             raise ArmError(f"PiPER: no end-pose feedback received yet (waited "
                            f"{time.monotonic() - self._first_mono:.2f} s)")
-        if age > self.stale_timeout:
+        if age > self.stale_after:
             raise ArmError(f"PiPER: end-pose feedback is stale ({age:.2f} s old, limit "
-                           f"{self.stale_timeout:.2f} s)")
+                           f"{self.stale_after:.2f} s)")
         return stamp, pose.copy()
 
     def _fresh_status(self) -> tuple[StatusReport, tuple[bool, bool, str]]:
@@ -534,9 +552,9 @@ class PiperArm(Arm):
             raise ArmError(f"PiPER: no arm status feedback (0x2A1) received yet (waited "
                            f"{time.monotonic() - self._first_mono:.2f} s)")
         age = time.monotonic() - mono
-        if age > self.stale_timeout:
+        if age > self.stale_after:
             raise ArmError(f"PiPER: arm status feedback (0x2A1) is stale ({age:.2f} s old, limit "
-                           f"{self.stale_timeout:.2f} s)")
+                           f"{self.stale_after:.2f} s)")
         return report, fault
 
     def _check_commandable(self, what: str) -> None:
@@ -569,6 +587,18 @@ class PiperArm(Arm):
     # ---- Arm interface -----------------------------------------------------------------------
     def tool_pose(self) -> tuple[float, np.ndarray]:
         return self._fresh_pose()
+
+    def velocity(self) -> tuple[np.ndarray, np.ndarray]:
+        """The PiPER reports no velocity: the difference of its last two end-pose reports over
+        their bus time stamps."""
+        stamp, pose = self._fresh_pose()
+        with self._lock:
+            prev, prev_stamp = self._prev
+        dt = stamp - prev_stamp
+        if prev is None or not dt > 0:
+            return np.zeros(3), np.zeros(3)
+        step = servo_step(pose, prev) / dt
+        return step[:3], step[3:]
 
     def servo_nowait(self, pose) -> float:
         """Send one set-point and return the end of its cycle (:class:`~drivers.base.Pacer`
@@ -663,7 +693,7 @@ class PiperArm(Arm):
                 self._servo_active = False
             self._hold()
 
-    def status(self) -> ArmStatus:
+    def status(self) -> ArmState:
         """The stop flags are those of the last status report even when it is stale (then
         ``connected`` is False and ``error`` says so): the last thing the arm said."""
         with self._lock:
@@ -673,17 +703,17 @@ class PiperArm(Arm):
             malformed = dict(self.malformed)
         now = time.monotonic()
         age, report_age = now - mono, now - report_mono
-        connected = (age <= self.stale_timeout and report_age <= self.stale_timeout
+        connected = (age <= self.stale_after and report_age <= self.stale_after
                      and not self._closed.is_set())
         if self._closed.is_set():
             error = "closed"
         elif poses == 0:
             error = "no end-pose feedback received yet"
-        elif age > self.stale_timeout:
+        elif age > self.stale_after:
             error = f"end-pose feedback is stale ({age:.2f} s old)"
         elif reports == 0:
             error = "no arm status feedback (0x2A1) received yet"
-        elif report_age > self.stale_timeout:
+        elif report_age > self.stale_after:
             error = f"arm status feedback (0x2A1) is stale ({report_age:.2f} s old)"
         else:
             error = fault
@@ -695,8 +725,8 @@ class PiperArm(Arm):
                          mode_feed=report.mode_feed, teach_status=report.teach_status,
                          motion_status=report.motion_status,
                          trajectory_num=report.trajectory_num, err_code=report.err_code)
-        return ArmStatus(connected=connected, protective_stop=protective,
-                         emergency_stop=emergency, error=error, extra=extra)
+        return ArmState(connected=connected, protective_stop=protective,
+                        emergency_stop=emergency, faults=(error,) if error else (), extra=extra)
 
     def close(self) -> None:
         if self._closed.is_set():

@@ -6,9 +6,13 @@ Poses cross the interface as dual quaternions ``T_base_tool``; the controller sp
 Safety, enforced here and not left to the caller: every set-point is checked against the
 :class:`~drivers.base.Limits` as every arm checks them and refused (the arm is stopped,
 :class:`~drivers.base.LimitError` raised) rather than jumped to; a watchdog stops servoing
-when ``servo()`` calls stall; a monitor notices a lost controller (``isConnected()`` false, or
-data timestamps that stopped advancing while the receive side keeps returning the last pose) and
-protective or emergency stops, and every later command raises :class:`~drivers.base.ArmError`.
+when ``servo()`` calls stall; a monitor notices a lost controller (``isConnected()`` false),
+stale data (timestamps that stopped advancing while the receive side keeps returning the last
+pose) and protective or emergency stops, and stops servoing. While one stands every command
+raises :class:`~drivers.base.ArmError` saying which. Lost connections and stale data clear by
+themselves: the monitor reconnects to a controller that comes back (a restart), and data that
+flows again is a healthy arm again; a safety stop needs :meth:`URArm.recover` once the operator
+has released it.
 
 By name: ``drivers.open_arm("ur:192.168.1.10", limits=...)``.
 """
@@ -25,13 +29,18 @@ from typing import Optional
 
 import numpy as np
 
-from drivers.base import Arm, ArmError, ArmStatus, LimitError, Limits, Pacer, unit_pose
+from drivers.base import Arm, ArmError, ArmState, LimitError, Limits, Pacer, unit_pose
 from drivers.rotvec import pose_from_rotvec, rotvec_from_pose, rotvec_from_quat
 from drivers.rtde import DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT, request_version
 from service import dq
 
 CB3_MAJOR = 3
-_RECEIVE_VARIABLES = ["timestamp", "actual_TCP_pose", "runtime_state", "robot_mode",
+_SAFETY_STOPS = ("emergency stop", "protective stop")
+#: s between attempts to reconnect to a lost controller (and before the first)
+RECONNECT_INTERVAL = 0.5
+RUNTIME_PLAYING = 2             # runtime_state: the control script runs
+_RECEIVE_VARIABLES = ["timestamp", "actual_TCP_pose", "actual_TCP_speed", "runtime_state",
+                      "robot_mode",
                       "safety_mode", "robot_status_bits", "safety_status_bits"]
 
 
@@ -94,14 +103,25 @@ def _restore_nodelay(host: str) -> int:
     return len(socks)
 
 
+class _Closed:
+    """What stands for ur_rtde's interfaces once the arm is closed."""
+
+    def isConnected(self) -> bool:
+        return False
+
+    def __getattr__(self, name):
+        raise ArmError("arm: closed")
+
+
 class URArm(Arm):
     """A UR arm (CB3 or e-series) commanded in tool space through ``ur_rtde``.
 
-    ``frequency`` defaults to the controller's (500 Hz e-series, 125 Hz CB3). ``watchdog_periods``
-    is how many periods ``servo()`` may stall before the arm is stopped; ``stale_after`` is how
-    long (s) data timestamps may stand still before the controller counts as lost.
-    ``connect_timeout`` bounds the reachability probe; ``ur_rtde``'s own constructor has no
-    timeout, so the ports are probed first.
+    ``frequency`` defaults to the controller's (500 Hz e-series, 125 Hz CB3). The keys of
+    :data:`drivers.spec.ARM_KEYS` (``options``): ``watchdog`` is how long ``servo()`` may stall
+    before the arm is stopped (``watchdog_periods``, the older way, counts it in periods);
+    ``stale_after`` is how long (s) data timestamps may stand still before the controller counts
+    as lost; ``connect_timeout`` bounds the reachability probe (``ur_rtde``'s own constructor
+    has no timeout, so the ports are probed first) and the wait for the first data.
     """
 
     name = "ur"
@@ -115,10 +135,8 @@ class URArm(Arm):
         return cls(channel, **kwargs)
 
     def __init__(self, host: str, frequency: Optional[float] = None, *,
-                 limits: Optional[Limits] = None, watchdog_periods: int = 25,
-                 stale_after: float = 0.1,
-                 connect_timeout: float = 2.0, lookahead: float = 0.1, gain: float = 300.0,
-                 stop_decel: float = 10.0):
+                 limits: Optional[Limits] = None, lookahead: float = 0.1, gain: float = 300.0,
+                 stop_decel: float = 10.0, watchdog_periods: Optional[int] = None, **options):
         if not isinstance(host, str) or not host:
             raise ValueError(f"host: expected a host name or address, got {host!r}")
         if frequency is not None and not (math.isfinite(frequency) and 0 < frequency <= 500):
@@ -127,17 +145,18 @@ class URArm(Arm):
             raise ValueError(f"lookahead: must be within [0.03, 0.2] s, got {lookahead!r}")
         if not 100 <= gain <= 2000:
             raise ValueError(f"gain: must be within [100, 2000], got {gain!r}")
-        for name, v in (("stale_after", stale_after), ("connect_timeout", connect_timeout),
-                        ("stop_decel", stop_decel)):
-            if not (isinstance(v, numbers.Real) and math.isfinite(v) and v > 0):
-                raise ValueError(f"{name}: must be a positive number, got {v!r}")
-        if int(watchdog_periods) != watchdog_periods or watchdog_periods < 1:
+        if not (isinstance(stop_decel, numbers.Real) and math.isfinite(stop_decel)
+                and stop_decel > 0):
+            raise ValueError(f"stop_decel: must be a positive number, got {stop_decel!r}")
+        if watchdog_periods is not None and (int(watchdog_periods) != watchdog_periods
+                                             or watchdog_periods < 1):
             raise ValueError(f"watchdog_periods: must be a whole number >= 1, got {watchdog_periods!r}")
         if limits is not None and not isinstance(limits, Limits):
             raise ValueError(f"limits: expected a drivers.base.Limits, got {type(limits).__name__}")
+        self._set_options("ur", options)
+        connect_timeout = self.connect_timeout
         self.host, self.limits = host, limits or Limits()
         self.lookahead, self.gain, self.stop_decel = float(lookahead), float(gain), float(stop_decel)
-        self.watchdog_periods, self.stale_after = int(watchdog_periods), float(stale_after)
 
         for port in (RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT):
             _probe(host, port, connect_timeout)
@@ -147,6 +166,8 @@ class URArm(Arm):
             raise ArmError(f"host: {host}:{RTDE_PORT} does not answer as a UR controller ({e})") from None
         self.frequency = float(frequency or (500.0 if self.version[0] > CB3_MAJOR else 125.0))
         self.period = 1.0 / self.frequency
+        if watchdog_periods is not None:
+            self.watchdog = self.options["watchdog"] = watchdog_periods * self.period
         self._pacer = Pacer(self.period)
 
         import rtde_control
@@ -161,8 +182,15 @@ class URArm(Arm):
         self.nodelay_sockets = _restore_nodelay(host)
 
         self._lock = threading.Lock()           # one control call at a time
+        self._recv_lock = threading.RLock()     # no read while the receive side reconnects
         self._state_lock = threading.Lock()
-        self._error = ""
+        self._error = ""                        # a safety stop, until recover()
+        self._reconnecting = False
+        self._was_lost = False                  # lost since the last healthy moment
+        self._next_heal = 0.0                   # monotonic: the next attempt to reconnect
+        self._interrupted = False               # a servo stream cut by a lost connection
+        self._stopping = threading.Event()      # a servoStop under way in its own thread
+        self.reconnects = 0
         self._last_setpoint = None              # the last servo set-point (dual quaternion)
         self._last_step = np.zeros(6)           # its displacement from the one before
         self._last_servo_time = 0.0
@@ -170,6 +198,17 @@ class URArm(Arm):
         self._moving = False
         self.watchdog_stops = 0
         self._ts, self._ts_changed = self._recv.getTimestamp(), time.monotonic()
+        deadline = time.monotonic() + connect_timeout
+        # the first data package (a state to report), with the control script playing
+        while self._recv.getTimestamp() <= 0 or self._recv.getRuntimeState() != RUNTIME_PLAYING:
+            if time.monotonic() > deadline:
+                self._ctrl.disconnect()
+                self._recv.disconnect()
+                what = "sent no data" if self._recv.getTimestamp() <= 0 else \
+                    "did not start the control script"
+                raise ArmError(f"host: the controller at {host} {what} within "
+                               f"{connect_timeout:g} s")
+            time.sleep(0.001)
         self._closed = threading.Event()
         self._monitor = threading.Thread(target=self._watch, name=f"URArm({host}) monitor",
                                          daemon=True)
@@ -180,61 +219,161 @@ class URArm(Arm):
         interval = min(0.01, self.stale_after / 4)
         while not self._closed.wait(interval):
             now = time.monotonic()
-            ts = self._recv.getTimestamp()
-            if ts != self._ts:
-                self._ts, self._ts_changed = ts, now
-            fault = self._fault(now)
+            with self._recv_lock:
+                fault = self._fault(now)
             with self._state_lock:
-                if fault and not self._error:
-                    self._error = fault
-                    self._servoing = False
-                stalled = (self._servoing and not self._error and
-                           now - self._last_servo_time > self.watchdog_periods * self.period)
-                if stalled:
+                if fault in _SAFETY_STOPS:
+                    self._error = self._error or fault
+                # a faulted controller is not sent a stop (it would wait for data that does
+                # not come, or on a halted program): the next command raises instead
+                faulted = bool(fault or self._error)
+                stalled = (self._servoing and not faulted and
+                           now - self._last_servo_time > self.watchdog)
+                if faulted or stalled:
                     self._servoing = False
             if stalled:
                 self._stop_servo()
                 self.watchdog_stops += 1
+            self._heal_when_due(fault, now)
+
+    def _lost(self) -> str:
+        return f"connection to the controller at {self.host} lost"
+
+    def _not_running(self) -> str:
+        return f"the control script is not running on the controller at {self.host}"
+
+    def _heal_when_due(self, fault: str, now: float) -> None:
+        """After a lost connection: reconnect to the controller once it is back, and restart
+        the control script if it did not come back with it. Not at once: ur_rtde's control
+        side first tries once by itself, and two reconnects at a time crash it."""
+        if fault == self._lost():
+            self._was_lost = True
+            if self._last_setpoint is not None:     # the stream under way is cut: say so
+                self._interrupted = True
+                self._last_setpoint = None
+        if not (self._was_lost and fault in (self._lost(), self._not_running())):
+            self._next_heal = 0.0
+            self._was_lost = self._was_lost and bool(fault)
+        elif not self._next_heal:
+            self._next_heal = now + RECONNECT_INTERVAL
+        elif now >= self._next_heal:
+            self._next_heal = now + RECONNECT_INTERVAL
+            if self._heal(fault):
+                self.reconnects += 1
+
+    def _heal(self, fault: str) -> bool:
+        """One attempt; False while the controller is still away."""
+        try:
+            for port in (DASHBOARD_PORT, SCRIPT_PORT):
+                _probe(self.host, port, 0.2)
+            # a controller that answers RTDE: a booting one may accept and close connections,
+            # and ur_rtde, connected to that, would wait for data that never comes
+            request_version(self.host, RTDE_PORT, 0.5)
+        except (ArmError, OSError):
+            return False
+        self._reconnecting = True
+        try:
+            # both locks: no other call may touch an interface while it is rebuilt
+            with self._lock, self._recv_lock:
+                if fault == self._lost():
+                    if not self._recv.isConnected():
+                        self._recv.reconnect()
+                    if not self._ctrl.isConnected():    # its own attempt failed and ended
+                        self._ctrl.reconnect()
+                else:
+                    self._ctrl.reuploadScript()
+            self.nodelay_sockets = _restore_nodelay(self.host)
+            return True
+        except RuntimeError:
+            return False
+        finally:
+            with self._recv_lock:
+                self._ts, self._ts_changed = self._recv.getTimestamp(), time.monotonic()
+                self._reconnecting = False
+
+    def _data_age(self, now: float) -> float:
+        """Seconds since the controller's data last changed (its timestamp advanced)."""
+        ts = self._recv.getTimestamp()
+        if ts != self._ts:
+            self._ts, self._ts_changed = ts, now
+        return now - self._ts_changed
 
     def _fault(self, now: float) -> str:
-        if not self._recv.isConnected() or not self._ctrl.isConnected():
-            return f"connection to the controller at {self.host} lost"
-        if now - self._ts_changed > self.stale_after:
+        """What is wrong now ("" if nothing); under ``_recv_lock``."""
+        if self._reconnecting or not self._recv.isConnected() or not self._ctrl.isConnected():
+            return self._lost()
+        age = self._data_age(now)
+        if age > self.stale_after:
             return (f"controller at {self.host} stopped sending data "
-                    f"({now - self._ts_changed:.2f} s without a new sample)")
+                    f"({age:.2f} s without a new sample, stale_after {self.stale_after:g} s)")
         if self._recv.isEmergencyStopped():
             return "emergency stop"
         if self._recv.isProtectiveStopped():
             return "protective stop"
+        if self._recv.getRuntimeState() != RUNTIME_PLAYING:
+            return self._not_running()
         return ""
 
+    def _call(self, name: str, *args):
+        """A control call; ur_rtde's own failure (its reconnect attempts to the dashboard
+        server of a controller that is gone) is the lost connection it is."""
+        try:
+            return getattr(self._ctrl, name)(*args)
+        except RuntimeError:
+            raise ArmError(self._lost()) from None
+
     def _stop_servo(self):
-        with self._lock:
-            if self._ctrl.isConnected():
-                self._ctrl.servoStop(self.stop_decel)
-            self._last_setpoint = None
+        """``servoStop``. ur_rtde waits for the controller to report it done, in its data: from
+        a controller whose data has stopped that wait lasts until the data comes back (or
+        minutes), so then the stop goes out from a thread of its own and this returns."""
+        with self._recv_lock:
+            age = self._data_age(time.monotonic())
+        if age > max(5 * self.period, 0.01):
+            if not self._stopping.is_set():
+                self._stopping.set()
+                threading.Thread(target=self._servo_stop, name=f"URArm({self.host}) stop",
+                                 daemon=True).start()
+            return
+        self._servo_stop()
+
+    def _servo_stop(self):
+        try:
+            with self._lock:
+                if self._ctrl.isConnected():
+                    try:
+                        self._ctrl.servoStop(self.stop_decel)
+                    except RuntimeError:
+                        pass    # gone meanwhile: a controller that loses its client stops
+                self._last_setpoint = None
+                self._interrupted = False
+        finally:
+            self._stopping.clear()
 
     def _check(self):
         if self._closed.is_set():
             raise ArmError("arm: closed")
-        fault = self._error or self._fault(time.monotonic())
+        with self._recv_lock:
+            fault = self._error or self._fault(time.monotonic())
         if fault:
-            with self._state_lock:
-                self._error = self._error or fault
+            if fault in _SAFETY_STOPS:
+                with self._state_lock:
+                    self._error = self._error or fault
             raise ArmError(fault)
 
     def recover(self) -> None:
         """After a protective stop was released on the controller: clear the error and restart
-        the control script. A lost controller cannot be recovered; make a new ``URArm``."""
+        the control script. (A lost connection or stale data need nothing: they clear once the
+        controller is back.)"""
         self._check_open()
-        fault = self._fault(time.monotonic())
-        if fault:
+        with self._recv_lock:
+            fault = self._fault(time.monotonic())
+        if fault and fault != self._not_running():
             raise ArmError(f"cannot recover: {fault}")
         with self._lock:
-            if not self._ctrl.isProgramRunning():
-                self._ctrl.reuploadScript()
+            if not self._call("isProgramRunning"):
+                self._call("reuploadScript")
                 deadline = time.monotonic() + 2.0
-                while not self._ctrl.isProgramRunning():
+                while not self._call("isProgramRunning"):
                     if time.monotonic() > deadline:
                         raise ArmError("cannot recover: the control script did not start within 2 s")
                     time.sleep(0.01)
@@ -246,24 +385,42 @@ class URArm(Arm):
         if self._closed.is_set():
             raise ArmError("arm: closed")
 
-    def status(self) -> ArmStatus:
-        now = time.monotonic()
-        connected = (self._recv.isConnected() and self._ctrl.isConnected() and
-                     now - self._ts_changed <= self.stale_after and not self._closed.is_set())
-        return ArmStatus(
-            connected=connected,
-            protective_stop=bool(self._recv.isProtectiveStopped()),
-            emergency_stop=bool(self._recv.isEmergencyStopped()),
-            error=self._error or self._fault(now),
-            extra={"controller_time": self._ts, "data_age": now - self._ts_changed,
-                   "runtime_state": self._recv.getRuntimeState(),
-                   "version": ".".join(map(str, self.version)), "frequency": self.frequency,
-                   "watchdog_stops": self.watchdog_stops})
+    def status(self) -> ArmState:
+        if self._closed.is_set():
+            return ArmState(connected=False, faults=("arm: closed",))
+        with self._recv_lock:
+            now = time.monotonic()
+            fault = self._fault(now)
+            error = self._error or fault
+            lost = fault == self._lost()
+            return ArmState(
+                connected=not lost and now - self._ts_changed <= self.stale_after
+                and not self._closed.is_set(),
+                protective_stop=bool(self._recv.isProtectiveStopped()),
+                emergency_stop=bool(self._recv.isEmergencyStopped()),
+                faults=(error,) if error else (),
+                extra={"controller_time": self._ts, "data_age": now - self._ts_changed,
+                       "runtime_state": self._recv.getRuntimeState(),
+                       "version": ".".join(map(str, self.version)),
+                       "frequency": self.frequency, "watchdog_stops": self.watchdog_stops,
+                       "reconnects": self.reconnects})
 
     # ------------------------------------------------------------------ commands
     def tool_pose(self) -> tuple[float, np.ndarray]:
-        self._check()
-        return time.time(), pose_from_rotvec(self._recv.getActualTCPPose())
+        """The actual TCP pose, stamped with when its data arrived."""
+        with self._recv_lock:
+            self._check()
+            p6 = self._recv.getActualTCPPose()
+            age = time.monotonic() - self._ts_changed
+        return time.time() - age, pose_from_rotvec(p6)
+
+    def velocity(self) -> tuple[np.ndarray, np.ndarray]:
+        """``actual_TCP_speed``: the tool point's velocity and the tool's angular velocity,
+        base frame."""
+        with self._recv_lock:
+            self._check()
+            v = np.asarray(self._recv.getActualTCPSpeed(), dtype=float)
+        return v[:3], v[3:]
 
     def servo_nowait(self, pose: np.ndarray) -> float:
         """Send one set-point (``servoL``) and return the end of its cycle on the
@@ -277,8 +434,12 @@ class URArm(Arm):
         target = unit_pose(pose)
         p6 = rotvec_from_pose(target)
         self._check()
+        if self._interrupted:
+            self._interrupted = False
+            raise ArmError(f"{self._lost()} during this servo stream (and connected again); "
+                           "a new stream starts from rest")
         if self._last_setpoint is None:
-            prev, prev_step = pose_from_rotvec(self._recv.getActualTCPPose()), np.zeros(6)
+            prev, prev_step = self.tool_pose()[1], np.zeros(6)
         else:
             prev, prev_step = self._last_setpoint, self._last_step
         dt = self.period
@@ -293,7 +454,7 @@ class URArm(Arm):
             self._last_setpoint = None
             raise
         with self._lock:
-            ok = self._ctrl.servoL(p6.tolist(), 0.0, 0.0, dt, self.lookahead, self.gain)
+            ok = self._call("servoL", p6.tolist(), 0.0, 0.0, dt, self.lookahead, self.gain)
             if ok:
                 self._last_setpoint, self._last_step = target, step
             with self._state_lock:
@@ -324,8 +485,7 @@ class URArm(Arm):
         L = self.limits
         L.check_move(target, speed, accel)
         p6 = rotvec_from_pose(target)
-        self._check()
-        here = np.asarray(self._recv.getActualTCPPose())
+        here = rotvec_from_pose(self.tool_pose()[1])
         rel = dq.mul(pose_from_rotvec(p6), dq.conj(pose_from_rotvec(here)))
         angle = float(np.linalg.norm(rotvec_from_quat(rel[:4])))
         if angle > 1e-9 and np.linalg.norm(p6[:3] - here[:3]) > 1e-9:
@@ -343,8 +503,8 @@ class URArm(Arm):
         try:
             with self._lock:
                 self._last_setpoint = None
-                op = self._ctrl.getAsyncOperationProgressEx().operationId()
-                if not self._ctrl.moveL(p6.tolist(), float(speed), float(accel), True):
+                op = self._call("getAsyncOperationProgressEx").operationId()
+                if not self._call("moveL", p6.tolist(), float(speed), float(accel), True):
                     self._check()
                     raise ArmError("moveL was refused by the controller")
             started = False
@@ -353,7 +513,8 @@ class URArm(Arm):
                 self._check()
                 if not self._moving:
                     raise ArmError("move: stopped before reaching the target")
-                status = self._ctrl.getAsyncOperationProgressEx()
+                with self._lock:
+                    status = self._call("getAsyncOperationProgressEx")
                 started = started or status.operationId() != op
                 if started and not status.isAsyncOperationRunning():
                     return
@@ -369,11 +530,10 @@ class URArm(Arm):
         with self._state_lock:
             servoing, moving = self._servoing, self._moving
             self._servoing = self._moving = False
-        if not self._ctrl.isConnected():
-            return
         if moving and not servoing:
             with self._lock:
-                self._ctrl.stopL(self.stop_decel)
+                if self._ctrl.isConnected():
+                    self._call("stopL", self.stop_decel)
         else:
             self._stop_servo()
 
@@ -385,11 +545,19 @@ class URArm(Arm):
         self._closed.set()
         self._monitor.join()
         with self._lock:
-            if self._ctrl.isConnected() and not self._error:
-                self._ctrl.servoStop(self.stop_decel)
-                self._ctrl.stopScript()
+            try:
+                if self._ctrl.isConnected() and not self._error:
+                    self._ctrl.servoStop(self.stop_decel)
+                    self._ctrl.stopScript()
+            except RuntimeError:
+                pass        # gone meanwhile
             for iface in (self._ctrl, self._recv):
                 try:
                     iface.disconnect()
                 except RuntimeError:
                     pass    # the controller is already gone
+            # ur_rtde's destructors sleep about a second holding the interpreter lock: here,
+            # in the close that is expected to take that long, not whenever a garbage
+            # collection finds this arm later (every thread of the process would stop then)
+            with self._recv_lock:
+                self._ctrl = self._recv = _Closed()

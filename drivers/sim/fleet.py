@@ -12,8 +12,10 @@ fresh machine has something to point the drivers at.
   ``drivers.open_source("charuco:<folder>", intrinsics="<folder>/poses.json")``.
 
 Each ``info`` entry's ``use`` is that call (an ``error`` instead says why a device that needs a
-missing package was left out). The simulator processes end with the server, even
-when it is killed; the camera folder is removed on a clean exit only.
+missing package was left out). :meth:`Fleet.target` is what an arm spec's TARGET ``sim`` stands
+for (``dqpose serve --sims --arm piper=piper:sim``): the PiPER's group is random, so a user could
+not name it. The simulator processes end with the server, even when it is killed; the camera
+folder is removed on a clean exit only.
 """
 from __future__ import annotations
 
@@ -38,6 +40,7 @@ class Fleet(contextlib.ExitStack):
                              f"{', '.join(DEVICES)}")
         self.devices, self.camera_dir = tuple(devices), camera_dir
         self.info: list[dict] = []
+        self._targets: dict[str, str] = {}     # arm kind -> its simulator's target
 
     def __enter__(self) -> "Fleet":
         super().__enter__()
@@ -50,6 +53,7 @@ class Fleet(contextlib.ExitStack):
                     raise OSError(f"sims: {e}") from None
                 self.info.append({"device": "ur", "host": sim.host, "spec": f"ur:{sim.host}",
                                   "use": f"drivers.open_arm('ur:{sim.host}')"})
+                self._targets["ur"] = sim.host
             if "piper" in self.devices:
                 self.info.append(self._piper())
             if "camera" in self.devices:
@@ -58,6 +62,18 @@ class Fleet(contextlib.ExitStack):
             self.close()
             raise
         return self
+
+    def target(self, kind: str) -> str:
+        """The TARGET of the simulated arm of ``kind`` (``"ur"``: its host; ``"piper"``:
+        ``udp_multicast:<group>``); ``ValueError`` saying why there is none."""
+        if kind in self._targets:
+            return self._targets[kind]
+        why = next((i["error"] for i in self.info if i["device"] == kind and "error" in i),
+                   None)
+        if why:
+            raise ValueError(f"the simulated {kind} was {why}")
+        arms = ", ".join(self._targets) or "none"
+        raise ValueError(f"no simulated {kind} arm (the simulated arms: {arms})")
 
     def _piper(self) -> dict:
         import importlib.util
@@ -73,6 +89,7 @@ class Fleet(contextlib.ExitStack):
             sim = self.enter_context(PiperSimProcess("udp_multicast", group))
         except RuntimeError as e:
             raise OSError(f"sims: {e}") from None
+        self._targets["piper"] = f"udp_multicast:{group}"
         return {"device": "piper", "bus": "udp_multicast", "channel": group, "pid": sim.pid,
                 "spec": sim.spec, "use": f"drivers.open_arm('{sim.spec}')"}
 

@@ -59,7 +59,9 @@ class PiperSim:
 
     Test hooks: ``set_pose``, ``pose``, ``target``, ``mode``, ``pause_feedback``, ``log`` (the
     decoded commands, newest last), ``malformed`` (counts by reason), ``status_report`` (what the
-    next 0x2A1 will say), ``pause_status`` and the fault injectors ``emergency_stop``, ``collide``,
+    next 0x2A1 will say), ``pause_status``, ``drop`` (command frames lost on the way, counted in
+    ``dropped``), ``restart`` (the arm powered off and on), ``max_speed`` (slow it down: an arm
+    that falls behind) and the fault injectors ``emergency_stop``, ``collide``,
     ``set_joint_errors``, ``inject_status`` and ``clear_faults``.
     """
 
@@ -83,6 +85,8 @@ class PiperSim:
         #: CLOCK_MONOTONIC when each complete end-pose command arrived (its 0x154 frame), to
         #: measure a command stream's period at the arm's side
         self.arrivals: list[float] = []
+        self.dropped: Counter = Counter()      # command frames lost (drop), by id
+        self._drops: list[list] = []           # [ids, until (monotonic), frames left]
         self.feedback_enabled = threading.Event()
         self.feedback_enabled.set()
         self.status_enabled = threading.Event()
@@ -113,6 +117,42 @@ class PiperSim:
             self.feedback_enabled.clear()
         else:
             self.feedback_enabled.set()
+
+    def drop(self, ids=None, seconds: Optional[float] = None,
+             count: Optional[int] = None) -> None:
+        """Lose the command frames with these ids (default: every command frame) that arrive
+        within ``seconds`` from now, or the next ``count`` of them (either or both; neither:
+        until ``undrop()``), as a bus that corrupts or loses frames would."""
+        ids = frozenset(COMMAND_BLOCK if ids is None else
+                        ([ids] if isinstance(ids, int) else ids))
+        until = math.inf if seconds is None else time.monotonic() + float(seconds)
+        left = math.inf if count is None else int(count)
+        with self._lock:
+            self._drops = [r for r in self._drops if r[1] > time.monotonic() and r[2] > 0]
+            self._drops.append([ids, until, left])
+
+    def undrop(self) -> None:
+        """Frames arrive again."""
+        with self._lock:
+            self._drops = []
+
+    def _lost(self, i: int) -> bool:
+        with self._lock:
+            now = time.monotonic()
+            for rule in self._drops:
+                if i in rule[0] and now < rule[1] and rule[2] > 0:
+                    rule[2] -= 1
+                    self.dropped[i] += 1
+                    return True
+        return False
+
+    def restart(self) -> None:
+        """Power cycle: the arm forgets its motion mode (standby) and its target, and stays
+        where it is."""
+        with self._lock:
+            self.mode = None
+            self._target = None
+            self._assembler = EndPoseAssembler(END_POSE_CTRL)
 
     def pause_status(self, paused: bool = True) -> None:
         """Stop (or resume) publishing 0x2A1 only, the pose feedback going on."""
@@ -172,7 +212,7 @@ class PiperSim:
     def handle(self, msg: can.Message, arrived: Optional[float] = None) -> None:
         """Apply one frame; ``arrived`` is when it was received (monotonic; default now)."""
         i = msg.arbitration_id
-        if i not in COMMAND_BLOCK:
+        if i not in COMMAND_BLOCK or (self._drops and self._lost(i)):
             return
         try:
             if i == MOTION_CTRL_2:

@@ -17,7 +17,9 @@ rate. Joint-space commands are acknowledged and logged but do not move the model
 
 Test hooks are JSON lines on ``HOOK_PORT`` of the same address (see :class:`URSimProcess`):
 read the state, the log of received commands and the pose history; set the pose; inject a
-protective or emergency stop; drop every client connection; pause the data stream; exit.
+protective or emergency stop; drop every client connection; restart (a reboot as the clients
+see it); pause the data stream; change the model's speed limits (an arm that falls behind its
+set-points); exit.
 
 Run it with ``dqpose sim ur --host 127.0.0.2`` or ``python -m drivers.sim.ursim``.
 """
@@ -232,6 +234,7 @@ class URSim:
         self.servo_target = None
         self.servo_queue: collections.deque = collections.deque(maxlen=cfg.servo_lag + 1)
         self.stream_paused_until = 0.0
+        self.down_until = 0.0        # restart(): no connection taken until then
         self.scripts: list[str] = []
         self.log: collections.deque = collections.deque(maxlen=cfg.log)
         self.log_base = 0            # index of log[0] in the whole run
@@ -452,6 +455,25 @@ class URSim:
                 c.close()
             self.clients.clear()
 
+    def restart(self, down: float = 1.0):
+        """A controller reboot as its clients see it: every connection closed, none taken for
+        ``down`` seconds (each is closed at once: the ports stay bound, so a test's address is
+        never free for another simulator to take meanwhile), then the controller is back with
+        its program stopped, the registers cleared, the arm at rest where it stood."""
+        with self.lock:
+            self.down_until = time.monotonic() + float(down)
+            self.drop_connections()
+            self.values = {k: v for k, v in self.values.items()
+                           if not k.startswith(("input_", "output_"))}
+            self.runtime_state = STOPPED
+            self.safety_bits = NORMAL_MODE
+            self.executing = self.servoing = self.async_running = False
+            self.busy = self.background = self.servo_target = None
+            self.servo_queue.clear()
+            self.v, self.w = np.zeros(3), np.zeros(3)
+            self.stream_paused_until = 0.0
+            self._publish()
+
     def state(self) -> dict:
         with self.lock:
             return {
@@ -481,6 +503,18 @@ class URSim:
         if op == "drop":
             self.drop_connections()
             return {"dropped": True}
+        if op == "restart":
+            self.restart(float(req.get("down", 1.0)))
+            return {"restarted": True}
+        if op == "set_speed":
+            # the model's speed limits: an arm slowed down (or held back) that no longer
+            # keeps up with its set-points
+            with self.lock:
+                self.cfg.max_linear_speed = float(req.get("linear", self.cfg.max_linear_speed))
+                self.cfg.max_angular_speed = float(req.get("angular",
+                                                           self.cfg.max_angular_speed))
+            return {"max_linear_speed": self.cfg.max_linear_speed,
+                    "max_angular_speed": self.cfg.max_angular_speed}
         if op == "pause_stream":
             self.stream_paused_until = time.monotonic() + float(req.get("seconds", 1.0))
             return {"paused": True}
@@ -684,6 +718,9 @@ class URSim:
                 conn, peer = listener.accept()
             except OSError:
                 return
+            if kind != "hook" and time.monotonic() < self.down_until:
+                conn.close()            # rebooting
+                continue
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             # Reads block (idle clients are normal); a send blocked for 1 s means a client that
             # stopped reading, and the cycle must not wait for it.
@@ -864,6 +901,20 @@ class URSimProcess:
 
     def set_pose(self, p6) -> dict:
         return self.call("set_pose", pose=[float(x) for x in p6])
+
+    def set_speed(self, linear: float | None = None, angular: float | None = None) -> dict:
+        """The model's speed limits (m/s, rad/s) from now on."""
+        kw = {k: float(v) for k, v in (("linear", linear), ("angular", angular)) if v is not None}
+        return self.call("set_speed", **kw)
+
+    def restart(self, down: float = 1.0) -> dict:
+        """The controller reboots: its connections close, it takes none for ``down`` s, its
+        program stops (:meth:`URSim.restart`)."""
+        return self.call("restart", down=float(down))
+
+    def pause_stream(self, seconds: float) -> dict:
+        """No data packages for ``seconds`` (the connections stay open): a stalled controller."""
+        return self.call("pause_stream", seconds=float(seconds))
 
     def protective_stop(self, on: bool = True) -> dict:
         return self.call("protective_stop", on=on)

@@ -24,6 +24,8 @@ COMMANDS = {
              "plan a limit-respecting motion through waypoints from a JSON or CSV file"),
     "smooth": ("service.cli.trajectory",
                "smooth a noisy recorded path under limits from a JSON or CSV file"),
+    "arm": ("service.cli.arm", "the arms a server drives: where each is, its state, limits "
+                               "and faults"),
     "handeye": ("service.cli.handeye",
                 "hand-eye calibration: capture views on an arm, solve from images and robot poses"),
     "demo": ("service.cli.demo", "blend and interpolate sample poses and print the results"),

@@ -2,8 +2,10 @@
 ``dqpose health`` (ask a server's health service)."""
 from __future__ import annotations
 
+import argparse
 import json
 import sys
+import textwrap
 
 from service.cli.common import client, connection_args, fail, missing_extra, read
 from service.rpc import DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
@@ -11,11 +13,16 @@ from service.rpc import DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
 
 def configure(name: str, p) -> None:
     if name == "serve":
-        p.description = ("Serve dqpose.v1.Blending and dqpose.v1.Fusion with the gRPC health "
-                         "service and reflection. Stops gracefully on SIGTERM/SIGINT: health "
-                         "turns NOT_SERVING and new calls are UNAVAILABLE at once, the listener "
-                         "closes --drain seconds later, calls in flight get --grace seconds more "
-                         "to finish; exit code 0.")
+        from drivers.spec import GRAMMAR as ARM_GRAMMAR
+        from service.rpc.server import SERVICERS
+        p.formatter_class = argparse.RawDescriptionHelpFormatter
+        p.description = textwrap.fill(
+            f"Serve {', '.join(s.NAME for s in SERVICERS)} with the gRPC health service and "
+            "reflection. Stops gracefully on SIGTERM/SIGINT: health turns NOT_SERVING and new "
+            "calls are UNAVAILABLE at once, the listener closes --drain seconds later, calls in "
+            "flight get --grace seconds more to finish (an arm's plan that cannot end by then "
+            "is brought to a controlled stop at once); exit code 0.", 79)
+        p.epilog = _arm_keys_help()
         p.add_argument("--host", default="127.0.0.1", help="address to bind (default: %(default)s)")
         p.add_argument("--port", type=int, default=50051, help="port; 0 picks a free one (default: %(default)s)")
         p.add_argument("--tls-cert", metavar="PEM", help="server certificate chain (enables TLS)")
@@ -42,10 +49,12 @@ def configure(name: str, p) -> None:
         p.add_argument("--no-call-log", action="store_true",
                        help="skip the per-call line (method, status, duration) logged at info")
         p.add_argument("--arm", action="append", default=[], metavar="NAME=SPEC",
-                       help="an arm Trajectories.Execute may drive, by name: e.g. "
-                            "ur=ur:192.168.1.10 or piper=piper:socketcan:can0 (see "
-                            "drivers.open_arm); repeat for more arms. Each is connected at "
-                            "start and stopped when the server stops.")
+                       help="an arm Trajectories.Execute may drive, by name, as "
+                            f"NAME={ARM_GRAMMAR}: e.g. ur=ur:192.168.1.10?stale_after=0.3, "
+                            "piper=piper:socketcan:can0; TARGET 'sim' is that kind's simulator "
+                            "started by --sims (ur=ur:sim, piper=piper:sim?max_tracking=0.003); "
+                            "the keys are listed below. Repeat for more arms. Each is connected "
+                            "at start and stopped when the server stops.")
         p.add_argument("--arm-realtime", type=int, metavar="PRIO",
                        help="run each arm's control loop with real-time scheduling (Linux "
                             "SCHED_FIFO at PRIO, 1..99; needs CAP_SYS_NICE): fewer late "
@@ -57,8 +66,9 @@ def configure(name: str, p) -> None:
                             "not python-can's virtual); 'thread', in the server; 'auto' "
                             "(default): the arm's process where it can, else a thread (logged)")
         p.add_argument("--sims", action="store_true",
-                       help="also start the simulated devices (a UR controller, camera views; see "
-                            "drivers/sim/fleet.py) and log where they are")
+                       help="also start the simulated devices (a UR controller, a PiPER, camera "
+                            "views; see drivers/sim/fleet.py) and log where they are; --arm "
+                            "NAME=KIND:sim drives one of them")
         p.set_defaults(func=_serve)
     else:
         p.description = ("Ask the grpc.health.v1 service; prints the status and exits 0 when "
@@ -68,9 +78,22 @@ def configure(name: str, p) -> None:
         p.set_defaults(func=_health)
 
 
+#: the TARGET that stands for the simulator of the arm's kind (drivers.sim.fleet)
+SIM = "sim"
+
+
+def _arm_keys_help() -> str:
+    """drivers.ARM_KEYS, one wrapped line each."""
+    from drivers.spec import key_table
+    lines = [textwrap.fill(line, 79, initial_indent="  ", subsequent_indent="      ")
+             for line in key_table().splitlines()]
+    return "arm spec keys (--arm NAME=KIND:TARGET?key=value&key=value):\n" + "\n".join(lines)
+
+
 def _serve(args) -> int:
     import asyncio
     import contextlib
+    import dataclasses
     import functools
     import logging
     import os
@@ -99,7 +122,12 @@ def _serve(args) -> int:
             token=token, max_message_bytes=args.max_message_bytes, max_poses=args.max_poses,
             keepalive_s=args.keepalive, grace_s=args.grace, drain_s=args.drain,
             metrics_port=args.metrics_port)
+        simulated = [f"{n}={text}" for n, (text, spec) in arm_specs.items() if spec.target == SIM]
+        if simulated and not args.sims:
+            return fail("serve", f"--arm {simulated[0]}: TARGET '{SIM}' is the simulator that "
+                                 f"--sims starts; add --sims")
         with contextlib.ExitStack() as stack:
+            fleet = None
             if args.sims:
                 from drivers.sim.fleet import Fleet
                 try:
@@ -114,21 +142,23 @@ def _serve(args) -> int:
                     from drivers.executor import Executor
                 except ModuleNotFoundError as e:
                     return missing_extra("serve --arm", e)
-                for name, spec in arm_specs.items():
+                for name, (text, spec) in arm_specs.items():
                     try:
+                        if spec.target == SIM:
+                            spec = dataclasses.replace(spec, target=fleet.target(spec.kind))
                         # the server's own work delays a control thread's set-points (BENCHMARKS.md
                         # "Cancel → stop explained": 1,991 missed cycles in 30 s against 51)
                         why_not = None if args.arm_loop == "process" else (
                             "--arm-loop thread" if args.arm_loop == "thread"
-                            else drivers.process_problem(spec))
+                            else drivers.process_problem(str(spec)))
                         cfg.arms[name] = stack.enter_context(
                             drivers.open_arm(spec, process=why_not is None))
                     except ModuleNotFoundError as e:
                         return missing_extra("serve --arm", e)
                     except (OSError, ValueError, RuntimeError) as e:
-                        return fail("serve", f"--arm {name}={spec}: {e}")
+                        return fail("serve", f"--arm {name}={text}: {e}")
                     logging.getLogger("dqpose").info(json.dumps(
-                        {"event": "arm", "name": name, "spec": spec,
+                        {"event": "arm", "name": name, "spec": str(spec),
                          "loop": "thread" if why_not else "process",
                          **({"why": why_not} if why_not else {})}))
                 cfg.executor = functools.partial(Executor, realtime=args.arm_realtime)
@@ -146,19 +176,24 @@ def _serve(args) -> int:
         return fail("serve", f"{e}{hint}")
 
 
-def _arm_specs(values: list[str]) -> dict[str, str]:
-    """``--arm NAME=SPEC`` values by name; ValueError naming the flag for a malformed or
-    repeated one."""
-    out: dict[str, str] = {}
+def _arm_specs(values: list[str]) -> dict:
+    """``--arm NAME=SPEC`` values by name, each ``(the text, drivers.ArmSpec)``; ValueError
+    naming the flag for a malformed or repeated one."""
+    from drivers.spec import GRAMMAR, parse_arm_spec
+    out: dict = {}
     for v in values:
         name, sep, spec = v.partition("=")
         if not sep or not name or not spec:
-            raise ValueError(f"--arm: expected NAME=SPEC (e.g. ur=ur:192.168.1.10), got {v!r}")
+            raise ValueError(f"--arm: expected NAME={GRAMMAR} (e.g. ur=ur:192.168.1.10), "
+                             f"got {v!r}")
         if not name.isidentifier():
             raise ValueError(f"--arm: the name {name!r} must be a word (letters, digits, _)")
         if name in out:
             raise ValueError(f"--arm: {name!r} is given twice")
-        out[name] = spec
+        try:
+            out[name] = (spec, parse_arm_spec(spec))
+        except ValueError as e:
+            raise ValueError(f"--arm {v}: {e}") from None
     return out
 
 

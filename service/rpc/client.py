@@ -26,7 +26,7 @@ from typing import Iterable, Iterator, NamedTuple, Optional, Sequence
 import grpc
 import numpy as np
 
-from service import dq, fusion, handeye
+from service import dq, fusion, handeye, trajectory
 from service.rpc import BATCH_POSE_FACTOR, DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
 from service.rpc.convert import (DEFAULT_MAX_EXTRAPOLATION, DEFAULT_PROBABILITY,
                                  DEFAULT_WINDOW, INTERPOLATION_ENUMS, METHOD_ENUMS,
@@ -80,6 +80,31 @@ class Feedback(NamedTuple):
     message: str
 
 
+class ArmState(NamedTuple):
+    """What :meth:`Client.get_arm` and :meth:`Client.list_arms` return for one arm."""
+    arm: str
+    pose: Optional[np.ndarray]        # (8,) actual T_base_tool; None when it cannot be read
+    linear_velocity: np.ndarray       # (3,) tool point, base frame, m/s
+    angular_velocity: np.ndarray      # (3,) tool, base frame, rad/s
+    state: str          # of its current or last run ("WORKING", "FINISHED", ...); "" before any
+    limits: trajectory.Limits         # the arm's own, in the planner's names (jerk 0: none)
+    faults: tuple                     # why it cannot move now; empty when healthy
+    busy: bool                        # running a plan, or braking from one
+
+
+def _state_name(code: int) -> str:
+    return "" if code == 0 else tpb.ExecutionState.Name(code).removeprefix("EXECUTION_")
+
+
+def _arm_state(m) -> ArmState:
+    v, w = m.linear_velocity, m.angular_velocity
+    return ArmState(m.arm, _pose_or_none(m, "pose"), np.array([v.x, v.y, v.z]),
+                    np.array([w.x, w.y, w.z]), _state_name(m.state),
+                    trajectory.Limits(**{f: getattr(m.limits, f)
+                                         for f in trajectory.LIMIT_FIELDS}),
+                    tuple(m.faults), m.busy)
+
+
 def _pose_or_none(msg, field: str) -> Optional[np.ndarray]:
     if not msg.HasField(field):
         return None
@@ -90,7 +115,10 @@ def _pose_or_none(msg, field: str) -> Optional[np.ndarray]:
 
 class RpcError(Exception):
     """A call the server (or the channel) failed: ``code`` is the ``grpc.StatusCode``,
-    ``details`` the message."""
+    ``details`` the message; ``feedback``, for :meth:`Client.execute`, the run's last record
+    (how it ended), if one came."""
+
+    feedback: Optional["Feedback"] = None
 
     def __init__(self, code: grpc.StatusCode, details: str):
         super().__init__(f"{code.name}: {details}")
@@ -250,6 +278,8 @@ class Client:
         self._execute = self.channel.unary_stream(
             f"/{TRAJECTORIES}/Execute", request_serializer=tpb.ExecuteRequest.SerializeToString,
             response_deserializer=tpb.ExecutionFeedback.FromString)
+        self._get_arm = self.channel.unary_unary(f"/{TRAJECTORIES}/GetArm")
+        self._list_arms = self.channel.unary_unary(f"/{TRAJECTORIES}/ListArms")
         self._calibrate = self.channel.unary_unary(f"/{HANDEYE}/Calibrate")
         self.timeout = timeout
         self.max_message_bytes = max_message_bytes
@@ -499,23 +529,44 @@ class Client:
         out = dq.from_pose(q, t) if len(answer.samples) else np.zeros((0, 8))
         return np.array([p.time for p in answer.samples], dtype=np.float64), out
 
-    def execute(self, arm: str, waypoints, limits, interpolation: str = "tool_linear",
-                ) -> Iterator[Feedback]:
+    def execute(self, arm: str, waypoints, limits, interpolation: str = "tool_linear", *,
+                from_current: bool = False) -> Iterator[Feedback]:
         """Runs a plan on the server's arm ``arm`` (see ``dqpose serve --arm``), yielding
         :class:`Feedback` as the server streams it: the arm's state, commanded and actual poses.
-        Closing the iterator (or the client going away) stops the arm within one period."""
+        ``from_current``: the plan starts at the arm's actual pose (it must be at rest) and
+        ``waypoints`` follow it; else ``waypoints[0]`` must be where the arm is. A run that
+        ends in any state but FINISHED yields its last record, then raises :class:`RpcError`
+        (ABORTED, UNAVAILABLE, ...; see the proto) whose ``feedback`` is that record. Closing
+        the iterator (or the client going away) stops the arm within one period."""
         request = tpb.ExecuteRequest(arm=arm, plan=plan_msg(waypoints, limits, 0.0,
-                                                            interpolation))
+                                                            interpolation),
+                                     from_current=from_current)
         call = self._execute(request, metadata=self.metadata)
+        last = None
         try:
             for m in call:
-                yield Feedback(m.time, _pose_or_none(m, "commanded"), _pose_or_none(m, "actual"),
-                               tpb.ExecutionState.Name(m.state).removeprefix("EXECUTION_"),
-                               m.message)
+                last = Feedback(m.time, _pose_or_none(m, "commanded"), _pose_or_none(m, "actual"),
+                                _state_name(m.state), m.message)
+                yield last
         except grpc.RpcError as e:
-            raise _rpc_error(e) from None
+            err = _rpc_error(e)
+            err.feedback = last
+            raise err from None
         finally:
             call.cancel()
+
+    def get_arm(self, arm: str) -> ArmState:
+        """The server's arm ``arm`` now: where it is, how fast it moves, its run's state, its
+        limits and faults (:class:`ArmState`)."""
+        answer = tpb.ArmState.FromString(self._call(
+            self._get_arm, tpb.GetArmRequest(arm=arm).SerializeToString()))
+        return _arm_state(answer)
+
+    def list_arms(self) -> list[ArmState]:
+        """Every arm of the server, in name order."""
+        answer = tpb.ListArmsResponse.FromString(self._call(
+            self._list_arms, tpb.ListArmsRequest().SerializeToString()))
+        return [_arm_state(m) for m in answer.arms]
 
     def calibrate(self, base_flange, camera_target, setup: str = "eye_in_hand", *,
                   robust: bool = True, camera_covariance=None, robot_covariance=None,

@@ -356,8 +356,10 @@ class _Reflection(reflection_aio.ReflectionServicer):
 class Running:
     """A started server: its bound port, health servicer and a graceful ``stop``."""
 
-    def __init__(self, server, health_servicer: Health, gate: Gate, port: int, calls: Calls):
+    def __init__(self, server, health_servicer: Health, gate: Gate, port: int, calls: Calls,
+                 servicers: tuple = ()):
         self.server = server
+        self.servicers = servicers
         self.health = health_servicer
         self.gate = gate
         self.port = port
@@ -368,8 +370,13 @@ class Running:
         """Health NOT_SERVING and new calls UNAVAILABLE at once; after ``drain`` s (for load
         balancers that poll health) the listener closes and health watches end; calls in flight
         get ``grace`` s more to finish (None: none), then are cancelled. Returns once every call
-        is recorded: its log line flushed and its metric counted."""
+        is recorded: its log line flushed and its metric counted. A servicer with a
+        ``stopping(seconds)`` hook hears at once how long calls have left (an arm's run that
+        cannot finish by then is brought to a controlled stop)."""
         self.gate.closed = True
+        for servicer in self.servicers:
+            if hasattr(servicer, "stopping"):
+                servicer.stopping(drain + (grace or 0.0))
         await self.health.not_serving()
         if drain > 0:
             await asyncio.sleep(drain)
@@ -463,8 +470,9 @@ async def start(cfg: ServerConfig) -> Running:
     gate = Gate(calls)
     interceptors = [gate] + ([BearerTokenAuth(cfg.token, calls)] if cfg.token else [])
     server = grpc.aio.server(options=server_options(cfg), interceptors=interceptors)
-    for cls in SERVICERS:
-        cls(cfg, calls).register(server)
+    servicers = tuple(cls(cfg, calls) for cls in SERVICERS)
+    for servicer in servicers:
+        servicer.register(server)
     health_servicer = Health()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     reflection_pb2_grpc.add_ServerReflectionServicer_to_server(_Reflection(SERVICE_NAMES), server)
@@ -487,7 +495,7 @@ async def start(cfg: ServerConfig) -> Running:
     await health_servicer.set("", health_pb2.HealthCheckResponse.SERVING)
     for cls in SERVICERS:
         await health_servicer.set(cls.NAME, health_pb2.HealthCheckResponse.SERVING)
-    return Running(server, health_servicer, gate, port, calls)
+    return Running(server, health_servicer, gate, port, calls, servicers)
 
 
 async def serve(cfg: ServerConfig, ready=None) -> int:

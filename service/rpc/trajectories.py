@@ -1,20 +1,17 @@
 """The ``dqpose.v1.Trajectories`` service: Plan (:func:`service.trajectory.plan`, streamed as
-samples), Smooth (:func:`service.smoothing.smooth`) and Execute (a plan run on an arm the server
-was started with, fed by the executor at the arm's own period, never paced by the network).
-
-The arms come from whoever starts the server (``ServerConfig.arms`` and ``.executor``; the
-``dqpose serve --arm`` command opens them): this package imports no driver.
+samples), Smooth (:func:`service.smoothing.smooth`), and the arms' RPCs, Execute, GetArm and
+ListArms (:mod:`service.rpc.arms`).
 """
 from __future__ import annotations
 
 import asyncio
 import math
-from typing import NamedTuple
 
 from service import smoothing, trajectory
-from service.errors import FieldError, Infeasible, rename
+from service.errors import FieldError, rename
+from service.rpc.arms import Arms
 from service.rpc.calls import Calls, refused
-from service.rpc.convert import (arrays_to_stamped, dq_to_pose, limits_from_msg, plan_from_msg,
+from service.rpc.convert import (arrays_to_stamped, limits_from_msg, plan_from_msg,
                                  plan_info_msg, sample_msgs, stamped_to_arrays)
 from service.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
 from service.rpc._proto.dqpose.v1 import trajectories_pb2_grpc as pb_grpc
@@ -23,8 +20,6 @@ from service.rpc._proto.dqpose.v1 import trajectories_pb2_grpc as pb_grpc
 SAMPLES_PER_MAX_POSES = 10
 #: samples converted and written per step of the Plan stream (bounds the memory of messages)
 CHUNK = 500
-#: an Execute feedback record every this many set-points (50 Hz at 500 Hz), and the last one
-FEEDBACK_EVERY = 10
 
 
 def _planned(args, field: str = ""):
@@ -43,9 +38,7 @@ class Trajectories:
     def __init__(self, cfg, calls: Calls):
         self.calls = calls
         self.max_poses = cfg.max_poses
-        self.arms = dict(cfg.arms)
-        self.executor = cfg.executor
-        self._busy: set[str] = set()
+        self.arms = Arms(cfg, calls)
 
     # -- domain, message in, message(s) out
 
@@ -88,7 +81,9 @@ class Trajectories:
     # -- RPCs
 
     def register(self, server) -> None:
-        """The generated registration: every RPC with the proto's own (de)serializers."""
+        """The generated registration: every RPC of the proto, with its own (de)serializers;
+        Execute, GetArm and ListArms are :attr:`arms`' (any other registration must keep all
+        three)."""
         pb_grpc.add_TrajectoriesServicer_to_server(self, server)
 
     async def Smooth(self, request, context):
@@ -122,77 +117,14 @@ class Trajectories:
             self.calls.done("Plan", code, t0, context, messages=sent)
 
     async def Execute(self, request, context):
-        t0 = self.calls.begin()
-        code, sent = "OK", 0
-        run = None
-        try:
-            try:
-                run = self._start_execution(request, asyncio.get_running_loop())
-            except Exception as e:
-                status, details = refused("Execute", e)
-                code = status.name
-                await context.abort(status, details)
-            while True:
-                fb = await run.queue.get()
-                await context.write(_feedback_msg(fb))
-                sent += 1
-                if fb.result != 0:         # the last record: how the run ended
-                    break
-        except asyncio.CancelledError:
-            code = "CANCELLED"
-            raise
-        finally:
-            if run is not None:
-                run.executor.cancel()    # a client that left stops the arm (no-op once done)
-                self._busy.discard(request.arm)
-            self.calls.done("Execute", code, t0, context, messages=sent)
+        await self.arms.execute(request, context)
 
-    def _start_execution(self, request, loop) -> "_Run":
-        name = request.arm
-        if name not in self.arms:
-            known = ", ".join(sorted(self.arms)) or "none: start the server with --arm NAME=SPEC"
-            raise FieldError(f"arm: unknown arm {name!r} (this server's arms: {known})")
-        if name in self._busy:
-            raise _Precondition(f"arm: {name!r} is executing another plan")
-        args = plan_from_msg(request.plan, "plan.", need_rate=False)
-        traj = _planned(args, "plan.")
-        arm = self.arms[name]
-        samples = traj.at_rate(1.0 / arm.period)
-        queue: asyncio.Queue = asyncio.Queue()
-        # The executor's own thread paces the arm; its records come back through the loop.
-        executor = self.executor(
-            arm, interpolation=args.interpolation, feedback_every=FEEDBACK_EVERY,
-            callback=lambda fb: loop.call_soon_threadsafe(queue.put_nowait, fb))
-        try:
-            executor.push(samples.time, samples.pose)
-        except ValueError as e:        # the plan does not start where the arm is
-            raise _Precondition(str(rename(e, {"poses": "plan.waypoints{}.pose"}))) from None
-        executor.finish()
-        self._busy.add(name)
-        return _Run(executor, queue)
+    async def GetArm(self, request, context):
+        return await self.calls.unary("GetArm", self.arms.get_arm, request, context)
 
+    async def ListArms(self, request, context):
+        return await self.calls.unary("ListArms", self.arms.list_arms, request, context)
 
-class _Run(NamedTuple):
-    executor: object
-    queue: asyncio.Queue
-
-
-class _Precondition(FieldError, Infeasible):
-    """The arm is in use, or not where the plan starts: FAILED_PRECONDITION."""
-
-
-# drivers.executor.Result by name -> ExecutionState
-_STATES = {"OK": pb.EXECUTION_WORKING, "FINISHED": pb.EXECUTION_FINISHED,
-           "STOPPED": pb.EXECUTION_STOPPED, "STALLED": pb.EXECUTION_STALLED,
-           "LIMITED": pb.EXECUTION_LIMITED, "PROTECTIVE_STOP": pb.EXECUTION_PROTECTIVE_STOP,
-           "ERROR": pb.EXECUTION_ERROR}
-
-
-def _feedback_msg(fb) -> pb.ExecutionFeedback:
-    msg = pb.ExecutionFeedback(time=fb.time, state=_STATES[fb.result.name],
-                               message=fb.message or "")
-    if fb.commanded is not None:
-        dq_to_pose(fb.commanded, msg.commanded)
-    if fb.actual is not None:
-        dq_to_pose(fb.actual, msg.actual)
-    return msg
+    def stopping(self, seconds: float) -> None:
+        """The server's shutdown hook (:meth:`Arms.stopping`)."""
+        self.arms.stopping(seconds)

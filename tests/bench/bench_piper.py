@@ -30,7 +30,7 @@ def main() -> int:
     ch = f"bench-{uuid.uuid4().hex[:6]}"
     b1, b2 = can.Bus(interface="virtual", channel=ch), can.Bus(interface="virtual", channel=ch)
     sim = PiperSim(b1).start()
-    arm = PiperArm(b2, watchdog=0.2, stale_timeout=0.5)
+    arm = PiperArm(b2, watchdog=0.2, stale_after=0.5)
     flag, move = [], []
     try:
         arm.wait_for_feedback(2.0)

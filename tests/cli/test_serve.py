@@ -2,13 +2,12 @@
 range, exit code 2, and no server (the ranges themselves live in ``ServerConfig``)."""
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 
 import pytest
 
-ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from _cli import ROOT, serving
 
 
 @pytest.mark.parametrize("flags, message", [
@@ -29,17 +28,46 @@ def test_an_option_out_of_range_is_one_line_naming_the_flag_and_exit_2(flags, me
     assert res.stdout == ""
 
 
+GRAMMAR = "NAME=KIND:TARGET[?key=value&key=value...]"
+
+
 @pytest.mark.parametrize("value, message", [
-    ("ur", "--arm: expected NAME=SPEC (e.g. ur=ur:192.168.1.10), got 'ur'"),
-    ("=ur:host", "--arm: expected NAME=SPEC (e.g. ur=ur:192.168.1.10), got '=ur:host'"),
+    ("ur", f"--arm: expected {GRAMMAR} (e.g. ur=ur:192.168.1.10), got 'ur'"),
+    ("=ur:host", f"--arm: expected {GRAMMAR} (e.g. ur=ur:192.168.1.10), got '=ur:host'"),
     ("my arm=ur:host", "--arm: the name 'my arm' must be a word (letters, digits, _)"),
     (["ur=ur:host", "--arm-realtime", "0"], "--arm-realtime: must be within 1..99, got 0"),
+    ("ur=ur:sim", "--arm ur=ur:sim: TARGET 'sim' is the simulator that --sims starts; add --sims"),
+    ("ur=ur:host?max_tracking=-1",
+     "--arm ur=ur:host?max_tracking=-1: max_tracking: must be a positive number of m, got -1.0"),
 ])
 def test_a_malformed_arm_is_named(value, message):
     flags = value if isinstance(value, list) else [value]
     res = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--arm", *flags],
                          capture_output=True, text=True, timeout=30, cwd=ROOT)
     assert (res.returncode, res.stderr) == (2, f"dqpose serve: error: {message}\n")
+
+
+def test_a_misspelt_arm_key_is_named_with_the_nearest_one():
+    res = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--arm",
+                          "piper=piper:sim?max_trackin=0.003"], capture_output=True, text=True,
+                         timeout=30, cwd=ROOT)
+    assert res.returncode == 2
+    assert res.stderr.startswith("dqpose serve: error: --arm piper=piper:sim?max_trackin=0.003: "
+                                 "max_trackin: unknown arm key"), res.stderr
+    assert "did you mean 'max_tracking'?" in res.stderr
+
+
+def test_serve_help_lists_every_service_and_every_arm_key():
+    from drivers import ARM_KEYS
+    from service.rpc.server import SERVICERS
+    res = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--help"],
+                         capture_output=True, text=True, timeout=30, cwd=ROOT)
+    assert res.returncode == 0
+    text = " ".join(res.stdout.split())
+    for servicer in SERVICERS:
+        assert servicer.NAME in text
+    for key in ARM_KEYS.values():
+        assert " ".join(key.describe().split()) in text
 
 
 def test_an_arm_given_twice_or_unreachable_is_named():
@@ -60,7 +88,6 @@ def test_an_arm_given_twice_or_unreachable_is_named():
                          ids=["auto", "thread"])
 def test_serve_with_an_arm_executes_plans_on_it_and_stops_it_at_shutdown(flags, loop):
     pytest.importorskip("rtde_control")
-    import json
     import math
     import signal
 
@@ -75,16 +102,8 @@ def test_serve_with_an_arm_executes_plans_on_it_and_stops_it_at_shutdown(flags, 
     home = np.array([0.4, -0.1, 0.3, math.pi, 0.0, 0.0])
     with URSimProcess() as sim:
         sim.set_pose(home)
-        proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", "0",
-                                 "--arm", f"ur=ur:{sim.host}", *flags], cwd=ROOT,
-                                stderr=subprocess.PIPE, text=True)
+        proc, events = serving("--arm", f"ur=ur:{sim.host}", *flags)
         try:
-            events = []
-            while not events or events[-1].get("event") != "serving":
-                line = proc.stderr.readline()
-                assert line, "the server ended before serving"
-                if line.startswith("{"):
-                    events.append(json.loads(line))
             arm = next(e for e in events if e.get("event") == "arm")
             assert (arm["name"], arm["spec"], arm["loop"]) == ("ur", f"ur:{sim.host}", loop)
             start = pose_from_rotvec(home)

@@ -7,6 +7,7 @@ when they arrived, whether it stands still."""
 from __future__ import annotations
 
 import math
+import threading
 import time
 
 import numpy as np
@@ -50,6 +51,13 @@ class URExec(URRig):
             assert wait_until(lambda: not self.arm.status().protective_stop)
             self.arm.recover()
 
+    def slow(self, on: bool):
+        """The arm falls behind (held back, slowed): its model's speed limit 0.02 m/s."""
+        self.sim.set_speed(linear=0.02 if on else 5.0)
+
+    def stall_feedback(self, seconds: float):
+        self.sim.pause_stream(seconds)
+
 
 class PiperExec(PiperRig):
     def reset(self):
@@ -73,6 +81,13 @@ class PiperExec(PiperRig):
         else:
             self.sim.clear_faults()
             assert wait_until(lambda: self.arm.status().ok)
+
+    def slow(self, on: bool):
+        self.sim.max_speed = 0.02 if on else 0.5
+
+    def stall_feedback(self, seconds: float):
+        self.sim.pause_feedback(True)
+        threading.Timer(seconds, self.sim.pause_feedback, args=(False,)).start()
 
 
 @pytest.fixture(scope="module", params=["ur", "piper", "ur-process", "piper-process"])
@@ -231,9 +246,9 @@ def test_a_protective_stop_aborts(rig, arm):
 def test_a_plan_that_does_not_start_at_the_arm_is_refused(rig, arm):
     times, poses = _plan(arm, rate=1.0 / arm.period)
     q, t = dq.to_pose(poses[0])
-    far = dq.from_pose(q, t + [0.005, 0, 0])
+    far = dq.from_pose(q, t + [0.003, 0, 0])     # within max_tracking, above a step's reach
     ex = Executor(arm)
-    with pytest.raises(ValueError, match=r"^poses\[0\]: the plan starts 0.005 m and 0 deg from "
+    with pytest.raises(ValueError, match=r"^poses\[0\]: the plan starts 0.003 m and 0 deg from "
                                          r"the arm's actual pose; it must start within .* m and "
                                          r".* deg of it \(start_tolerance\); the arm was not "
                                          r"moved"):
@@ -309,7 +324,7 @@ import drivers
 from drivers.executor import Executor
 from test_arm_limits import LIMITS
 from test_executor import _plan
-arm = drivers.open_arm("ur:" + sys.argv[1], process=True, limits=LIMITS, watchdog_periods=100,
+arm = drivers.open_arm("ur:" + sys.argv[1], process=True, limits=LIMITS, watchdog=0.2,
                        stale_after=0.5)
 times, poses = _plan(arm, rate=1.0 / arm.period, length=0.08, speed=0.15, accel=1.5)
 ex = Executor(arm)
@@ -321,19 +336,26 @@ os.kill(os.getpid(), 9)
 """
 
 
-def test_a_killed_parent_brakes_the_arm_to_a_stop_and_its_process_ends():
-    pytest.importorskip("rtde_control")
+def run_parent(script: str, host: str, timeout: float = 60):
+    """``script`` in a Python process of its own, which imports these tests' modules; its
+    argument the controller's host."""
     import os
     import subprocess
     import sys
-    from drivers.rotvec import pose_from_rotvec
-    from drivers.sim import ursim
     here = os.path.dirname(os.path.abspath(__file__))
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(
         [here, os.path.dirname(here), os.path.dirname(os.path.dirname(here))]))
+    return subprocess.run([sys.executable, "-c", script, host], env=env, capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def test_a_killed_parent_brakes_the_arm_to_a_stop_and_its_process_ends():
+    pytest.importorskip("rtde_control")
+    import os
+    from drivers.rotvec import pose_from_rotvec
+    from drivers.sim import ursim
     with ursim.URSimProcess(args=("--max-linear-speed", "5")) as sim:
-        run = subprocess.run([sys.executable, "-c", _PARENT, sim.host], env=env,
-                             capture_output=True, text=True, timeout=60)
+        run = run_parent(_PARENT, sim.host)
         assert run.returncode == -9, run.stderr
         pid, planned = map(int, run.stdout.split())
 

@@ -95,7 +95,7 @@ def sim(bus_factory):
 @pytest.fixture
 def arm(sim, bus_factory):
     # generous timeouts: the test machine is shared and Python threads get starved
-    a = PiperArm(bus_factory(), watchdog=0.2, stale_timeout=0.5)
+    a = PiperArm(bus_factory(), watchdog=0.2, stale_after=0.5)
     a.wait_for_feedback(2.0)
     yield a
     a.close()

@@ -26,7 +26,7 @@ DETECT = 0.5        # seconds the issue allows for noticing a protective stop or
 def arm(sim):
     # A long watchdog here: a loaded CI machine may pause the test loop for tens of ms; the
     # watchdog test shortens it.
-    a = URArm(sim.host, watchdog_periods=100)
+    a = URArm(sim.host, watchdog=0.2)
     yield a
     a.close()
 
@@ -172,7 +172,7 @@ def test_jumps_and_limits_are_refused_and_the_arm_stopped(sim, arm, home):
 
 
 def test_watchdog_stops_a_stalled_stream(sim, arm, home):
-    arm.watchdog_periods = 10
+    arm.watchdog = 10 * arm.period
     try:
         start, stops = sim.log()["next"], arm.watchdog_stops
         for p in _ramp(home, [0, 0, 1.0], 200, 0.02)[:100]:   # stop at full speed (0.16 m/s)
@@ -183,7 +183,7 @@ def test_watchdog_stops_a_stalled_stream(sim, arm, home):
         assert cmds[-2:] == [ursim.SERVO_STOP, 0]      # servoStop, then the client's clear
         assert not sim.state()["servoing"]
     finally:
-        arm.watchdog_periods = 100
+        arm.watchdog = 100 * arm.period
 
 
 def test_protective_stop_is_reported_and_recovered(sim, arm, home):
@@ -282,7 +282,9 @@ def test_measure_is_the_tool_pose_with_its_time_and_covariance(arm, home):
     m = arm.measure()
     after = time.time()
     assert m.source == "ur"
-    assert before <= m.time <= after     # time.time(), the clock every driver stamps with
+    # time.time(), the clock every driver stamps with, of when the data arrived (never older
+    # than stale_after: that would be a fault)
+    assert before - arm.stale_after <= m.time <= after
     assert np.allclose(rotvec_from_pose(m.pose), home, atol=1e-12)
     rs, ts = URArm.pose_sigma
     assert np.allclose(m.covariance, np.diag([rs * rs] * 3 + [ts * ts] * 3))

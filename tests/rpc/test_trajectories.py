@@ -144,7 +144,8 @@ def ur():
     from drivers.executor import Executor
     from drivers.sim.ursim import URSimProcess
     sim = URSimProcess()
-    arm = drivers.open_arm(f"ur:{sim.host}", stale_after=0.5)
+    # generous watchdogs: the simulator, the server and its clients share a loaded machine
+    arm = drivers.open_arm(f"ur:{sim.host}", stale_after=0.5, heartbeat=0.1)
     server = ServerThread(ServerConfig(port=0, arms={"ur": arm}, executor=Executor))
     try:
         yield sim, arm, server
@@ -214,3 +215,82 @@ def test_execute_refuses_what_it_cannot_do(ur):
         with pytest.raises(InvalidArgument, match=r"arm: unknown arm 'piper'.*ur"):
             list(c.execute("piper", wps, LIMITS))
     assert not sim.state()["servoing"]
+
+
+# ---- where the arm is: GetArm, ListArms, Execute from_current ----------------------------------
+
+def test_get_arm_says_where_the_arm_is_and_what_it_may_do(ur):
+    from drivers.rotvec import pose_from_rotvec
+    sim, arm, server = ur
+    _ready(sim, arm)
+    with Client(server.target) as c:
+        got = c.get_arm("ur")
+        listed = c.list_arms()
+        with pytest.raises(InvalidArgument, match=r"^arm: unknown arm 'kuka' \(this server's "
+                                                  r"arms: ur\)$"):
+            c.get_arm("kuka")
+    lin, ang = _delta(got.pose, pose_from_rotvec(sim.state()["pose"]))
+    assert lin < 1e-9 and ang < 1e-9
+    assert got.arm == "ur" and not got.busy and got.faults == ()
+    assert np.linalg.norm(got.linear_velocity) < 1e-9
+    assert np.linalg.norm(got.angular_velocity) < 1e-9
+    assert (got.limits.max_linear_velocity, got.limits.max_angular_velocity,
+            got.limits.max_linear_acceleration, got.limits.max_angular_acceleration) == (
+        arm.limits.max_linear_speed, arm.limits.max_angular_speed,
+        arm.limits.max_linear_accel, arm.limits.max_angular_accel)
+    assert got.limits.max_linear_jerk == 0
+    assert [a.arm for a in listed] == ["ur"]
+    lin, _ = _delta(listed[0].pose, got.pose)
+    assert lin < 1e-9
+
+
+def test_execute_from_where_the_arm_is(ur):
+    sim, arm, server = ur
+    _ready(sim, arm)
+    start = arm.tool_pose()[1]
+    _, goal = _from_arm(arm)
+    with Client(server.target) as c:
+        feedback = list(c.execute("ur", [goal], LIMITS, from_current=True))
+        assert feedback[-1].state == "FINISHED", feedback[-1].message
+        # the plan the arm followed is the one from where it was
+        plan = trajectory.plan([trajectory.Waypoint(start), trajectory.Waypoint(goal)], LIMITS)
+        for f in feedback[:-1]:
+            lin, ang = _delta(f.commanded, plan.sample([f.time]).pose[0])
+            assert lin < 1e-9 and ang < 1e-9
+        lin, ang = _delta(arm.tool_pose()[1], goal)
+        assert lin < 1e-4 and ang < 1e-3
+        state = c.get_arm("ur")
+        assert state.state == "FINISHED" and not state.busy
+        # errors name the request's own waypoints, not the plan's with the arm's pose in front
+        late = [trajectory.Waypoint(start), trajectory.Waypoint(goal, time=0.01)]
+        with pytest.raises(RpcError) as e:
+            list(c.execute("ur", late, LIMITS, from_current=True))
+        assert e.value.code.name == "FAILED_PRECONDITION"
+        assert e.value.details.startswith("plan.waypoints[1]"), e.value.details
+
+
+def test_execute_from_current_needs_the_arm_at_rest(ur):
+    import threading
+    sim, arm, server = ur
+    _ready(sim, arm)
+    start = arm.tool_pose()[1]
+    q, t = dq.to_pose(start)
+    away = dq.from_pose(q, t + [0.1, 0.0, 0.0])
+    def move():
+        try:
+            arm.move(away, 0.02, 0.5)
+        except Exception:      # stopped below, as meant
+            pass
+
+    mover = threading.Thread(target=move, daemon=True)
+    mover.start()        # a moveL of the arm's own, ~5 s: not a plan of the server's
+    try:
+        assert wait_until(lambda: sim.state()["moving"], timeout=2)
+        with Client(server.target) as c, pytest.raises(RpcError) as e:
+            list(c.execute("ur", [start], LIMITS, from_current=True))
+        assert e.value.code.name == "FAILED_PRECONDITION"
+        assert e.value.details.startswith("from_current: arm 'ur' is moving (")
+        assert "it must be at rest" in e.value.details
+    finally:
+        arm.stop()
+        mover.join(10)
