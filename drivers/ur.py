@@ -328,7 +328,7 @@ class URArm(Arm):
         minutes), so then the stop goes out from a thread of its own and this returns."""
         with self._recv_lock:
             age = self._data_age(time.monotonic())
-        if age > max(5 * self.period, 0.01):
+        if age > self.tracking_lag:         # (what the control loop calls stale feedback)
             if not self._stopping.is_set():
                 self._stopping.set()
                 threading.Thread(target=self._servo_stop, name=f"URArm({self.host}) stop",

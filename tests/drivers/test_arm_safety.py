@@ -261,9 +261,17 @@ def test_a_busy_arm_is_refused_quickly_and_says_so(rig, arm):
         assert first.wait(5) == Result.STOPPED, first.message
 
 
+# ur_rtde 1.6.5 reconnects its control side by itself, in its own thread, when the controller
+# drops the connection; a servoL written at that moment can crash the process (SIGSEGV, seen here
+# about once in ten kills). In the arm's own process (serve's default) that ends the arm's process,
+# not the caller's: the arm's own rigs only, so a crash cannot take the test run down with it.
+UR_RTDE_RECONNECT_CRASH = "ur_rtde's own reconnect may crash the process that runs servoL"
+
+
 def test_a_restarted_controller_fails_its_run_and_is_reconnected(rig, arm):
-    if not isinstance(rig, URExec):
-        pytest.skip("a UR controller restart: the PiPER's is test_piper_resends_its_mode...")
+    if not (isinstance(rig, URExec) and rig.process):
+        pytest.skip("a UR controller restart (the PiPER's: test_piper_resends_its_mode...), "
+                    f"with the arm in its own process ({UR_RTDE_RECONNECT_CRASH})")
     ex, times, poses = _running(arm, length=0.08, speed=0.1)
     rig.sim.restart()
     assert (ex.wait(10), ex.message[:40]) == (Result.ERROR, ex.message[:40])
@@ -281,11 +289,15 @@ def test_a_killed_controller_is_reported_lost():
     import drivers
     from drivers.sim import ursim
     with ursim.URSimProcess(args=("--max-linear-speed", "5")) as sim:
-        with drivers.open_arm(f"ur:{sim.host}", limits=LIMITS, watchdog=0.2,
+        with drivers.open_arm(f"ur:{sim.host}", process=True, limits=LIMITS, watchdog=0.2,
                               stale_after=0.5) as arm:
             ex, times, poses = _running(arm, length=0.08, speed=0.1)
             sim.kill()
             assert ex.wait(10) == Result.ERROR, ex.message
+            if ex.message.startswith("the arm's process ended"):
+                arm.process.join(5)
+                if (arm.process.exitcode or 0) < 0:      # killed by a signal: the crash
+                    pytest.xfail(f"{UR_RTDE_RECONNECT_CRASH}: exit code {arm.process.exitcode}")
             assert ex.message.startswith(f"connection to the controller at {sim.host} lost")
             assert not arm.status().ok and "lost" in arm.status().error
 
