@@ -235,8 +235,8 @@ def test_a_capture_that_loses_the_board_stops_and_keeps_what_it_took(eye_in_hand
                                                                      tmp_path, monkeypatch):
     import cv2
 
-    from service.cli import handeye
-    monkeypatch.setattr(handeye, "MAX_MISSES", 2)
+    from service.cli import handeye_capture
+    monkeypatch.setattr(handeye_capture, "MAX_MISSES", 2)
     frames = tmp_path / "frames"
     frames.mkdir()
     shutil.copy(os.path.join(eye_in_hand, "view_000.png"), frames / "a.png")
