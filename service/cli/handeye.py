@@ -57,11 +57,20 @@ def configure(name: str, p) -> None:
                                    "into DIR for `dqpose handeye solve`.",
                        formatter_class=argparse.RawDescriptionHelpFormatter,
                        epilog=handeye_capture.CAPTURE_EPILOG)
-    c.add_argument("dir", metavar="DIR", help="folder to write (created; must hold no views)")
-    c.add_argument("--setup", choices=SETUPS, default="eye_in_hand",
+    c.add_argument("dir", metavar="DIR", help="folder to write (created; one that holds a "
+                                              "capture needs --resume or --force)")
+    c.add_argument("--setup", choices=SETUPS,
                    help="eye_in_hand (default): camera on the flange; eye_to_hand: camera "
-                        "fixed, board on the flange")
-    c.add_argument("--views", type=int, default=15, help="views to capture (default 15)")
+                        "fixed, board on the flange (with --resume: the capture's)")
+    c.add_argument("--views", type=int, default=15,
+                   help="views to capture (default 15; with --resume, in all)")
+    again = c.add_mutually_exclusive_group()
+    again.add_argument("--resume", action="store_true",
+                       help="continue the capture in DIR (an interrupted one) up to --views, "
+                            "with its board, intrinsics and setup")
+    again.add_argument("--force", action="store_true",
+                       help="start over: the capture's files in DIR (views, poses, intrinsics, "
+                            "board, truth, solve's outputs) are removed first")
     c.add_argument("--choose", choices=CHOICES, default="next-best",
                    help="how views are chosen: a spread of rotations, then, once the solver "
                         "has an answer, the candidate that shrinks X's covariance most "
@@ -340,15 +349,18 @@ def report(cal, views, names: list, skipped: list, truth=None) -> str:
 
     from service import dq, lie
     fx, fz = _FRAMES[cal.setup]
-    lines = [f"hand-eye calibration, {cal.setup}: {len(names)} views used of "
-             f"{len(views.images)} (poses: {views.poses_file})"]
+    rejected = {r.index: r.reason for r in cal.rejected}
+    out = [f"{len(rejected)} left out by the robust solve"] if rejected else []
+    out += [f"{len(skipped)} not detected"] if skipped else []
+    lines = [f"hand-eye calibration, {cal.setup}: {len(names) - len(rejected)} views used of "
+             f"{len(views.images)} images" + (f" ({'; '.join(out)})" if out else "")
+             + f"; poses: {views.poses_file}"]
     lines += [f"note: {n}" for n in views.notes]
     lines += [f"not detected: {n}: {d}" for n, d in skipped]
     lines += [""] + _pose_lines(f"X = {fx}", cal.x, cal.covariance_x)
     lines += _pose_lines(f"Z = {fz}", cal.z, cal.covariance_z)
     lines.append("(1 sigma per axis of the covariance: rotation first, right perturbation "
                  "T * Exp(xi), in the pose's own frame)")
-    rejected = {r.index: r.reason for r in cal.rejected}
     res = np.asarray(cal.residuals, dtype=np.float64).reshape(-1, 2)
     loo = cal.leave_one_out if cal.leave_one_out is not None else np.full((len(res), 2), np.nan)
     lines += ["", "per view: its residual, and how far X moves when it is left out",
