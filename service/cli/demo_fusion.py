@@ -7,16 +7,17 @@ The scene: the body is a ChArUco board held by a UR (the UR simulator, driven th
 ``ur_rtde`` by ``drivers.open_arm``), its base the world frame, the board ``BOARD_OFFSET`` from
 the flange. The arm follows a slow loop (small sinusoids in position and angle) through
 :class:`drivers.executor.Executor`, in the arm's own process where the platform allows (nothing
-in this one then delays a set-point); the simulator's tool pose is the ground truth. A thread
-reads the arm every 20 ms: its reading is the true pose with the arm's absolute accuracy drawn as
-noise, ``Z = T_true * Exp(-eps)``, ``eps ~ N(0, diag(pose_sigma^2))`` (the simulator itself is
-exact; a real arm's kinematic model is not), stamped with the time it was read. Each of two
+in this one then delays a set-point); the simulator's tool pose is the ground truth. The control
+loop reads the arm after every tenth set-point (every 20 ms) and hands the reading over with its
+time: the UR's measurement is the true pose with the arm's absolute accuracy drawn as noise,
+``Z = T_true * Exp(-eps)``, ``eps ~ N(0, diag(pose_sigma^2))`` (the simulator itself is exact; a
+real arm's kinematic model is not), stamped with the time it was read. Each of two
 cameras with known extrinsics captures at 10 Hz of the same clock (their frames half a period
 apart): a capture renders the board at the true pose of that instant (between two reads 20 ms
 apart, exact to well below a micrometre at the loop's few cm/s) with blur and pixel noise and
 detects it with :class:`drivers.camera.CharucoCamera` (covariance from PnP); the detection is
-stamped 40 ms after the capture, as a camera's frame is. Each arm read goes into the stream with
-the camera frames stamped since the read before it.
+stamped 40 ms after the capture, as a camera's frame is. The stream carries them in the order
+of their stamps, as the devices would deliver them.
 
 Rendering and detecting a frame takes ~45 ms of processor time, 20 frames a second. A machine
 that cannot spare that renders behind the arm: the stream then runs behind real time (the report
@@ -105,7 +106,7 @@ def _nees(est: np.ndarray, covariance: np.ndarray, truth: np.ndarray) -> float:
 def run(steps: int = 200, *, seed: int = 0, arm_sigma=(2e-3, 1e-3), noise: float = 6.0,
         blur: float = 0.8, target: str | None = None, out=None) -> Result:
     """The demo: ``steps`` of 0.1 s (five arm reads and one frame of each camera each; the
-    reads go on for one step more, to deliver the last frames); prints a line per fused answer
+    reads go on for two steps more, to deliver the last frames); prints a line per fused answer
     to ``out`` when given; returns the errors (see :class:`Result`)."""
     import drivers
     from drivers.camera import CharucoCamera, Intrinsics
@@ -136,9 +137,9 @@ def run(steps: int = 200, *, seed: int = 0, arm_sigma=(2e-3, 1e-3), noise: float
         # which faulted the arm as a lost controller); the demo's arm is that simulator
         arm = stack.enter_context(drivers.open_arm(
             spec, process=drivers.process_problem(spec) is None, stale_after=SIM_STALE_AFTER))
-        arm.pose_sigma = tuple(arm_sigma)
-        times, flange, board = loop_path(round(max(steps, MIN_PATH_STEPS) * STEP / arm.period),
-                                     arm.period)
+        # the loop outlasts the measurements (steps and two more), which the arm's reads end
+        times, flange, board = loop_path(round(max(steps + 3, MIN_PATH_STEPS) * STEP
+                                               / arm.period), arm.period)
         extrinsics = cameras(board[0], renderer.board, intr)
         sources = [Source("ur", body_offset=offset)] + [
             Source(c.name, extrinsic=E, latency=LATENCY_PRIOR[0], latency_sigma=LATENCY_PRIOR[1])
@@ -149,20 +150,21 @@ def run(steps: int = 200, *, seed: int = 0, arm_sigma=(2e-3, 1e-3), noise: float
         for cam, E in zip(cams, extrinsics):    # the first detection is slow (set-up)
             cam.detect(renderer.render(dq.mul(dq.inv(E), board[0]), blur=blur, noise=noise,
                                        rng=rng))
-        scene = Scene(arm, offset, cams, extrinsics, renderer, rng, arm_sigma,
-                       (steps + 1) * STEP, noise, blur)
+        scene = Scene(offset, cams, extrinsics, renderer, rng, arm_sigma, (steps + 2) * STEP,
+                      noise, blur)
         mark = sim.log()["next"]
-        executor = stack.enter_context(Executor(arm))    # cancelled (the arm stopped) on exit
+        # the arm read by its control loop after every tenth set-point (ARM_RATE)
+        executor = stack.enter_context(Executor(
+            arm, feedback_every=max(1, round(1.0 / (ARM_RATE * arm.period))),
+            callback=scene.read))           # cancelled (the arm stopped) on exit
         executor.push(times, flange)
         executor.finish()
         began = time.monotonic()
-        threads = [threading.Thread(target=scene.read, name="demo read", daemon=True),
-                   threading.Thread(target=scene.capture, args=(np.random.default_rng(seed + 1),),
-                                    name="demo capture", daemon=True)]
-        for th in threads:
-            th.start()
-            stack.callback(th.join, 10)
-        stack.callback(scene.stop.set)
+        capture = threading.Thread(target=scene.capture, args=(np.random.default_rng(seed + 1),),
+                                   name="demo capture", daemon=True)
+        capture.start()
+        stack.callback(capture.join, 10)
+        stack.callback(scene.end)
         if out is not None:
             print(f"{'t (s)':>7s}  " + "  ".join(f"{n + ' deg / mm':>14s}" for n in
                                                  names + ("fused",))
@@ -194,7 +196,7 @@ def run(steps: int = 200, *, seed: int = 0, arm_sigma=(2e-3, 1e-3), noise: float
         if scene.failed:
             raise scene.failed[0]
         seconds = time.monotonic() - began
-        scene.stop.set()
+        scene.end()
         executor.wait(30)            # the loop's end (it outlasts the measurements)
         missed = missed_cycles(sim, mark, arm.period)
 
@@ -266,8 +268,7 @@ def verdict(result: Result) -> list[str]:
                    f"its set-points reached the simulated controller late, which follows each "
                    f"exactly; the motion model assumes smooth motion")
     if n < MIN_ANSWERS:
-        why.append(f"only {n} answers (--steps {math.ceil(MIN_ANSWERS / OUTPUT_RATE / STEP)} "
-                   f"gives {MIN_ANSWERS})")
+        why.append(f"only {n} answers, fewer than {MIN_ANSWERS} (--steps {MIN_ANSWERS} or more)")
     if t["missed"]:
         why.append(f"{t['missed']} controller cycles got no set-point (a busy machine)")
     if t["read_gap"] > 3.0 / ARM_RATE:

@@ -94,13 +94,16 @@ class Track:
 
 
 class Scene:
-    """The threads that measure: ``read`` (the arm every 20 ms: the truth and the UR's
-    readings, onto ``reads``), ``capture`` (each camera frame at its instant, from the truth,
-    into ``frames`` in capture order), and the order of the stream (:meth:`batches`)."""
+    """What measures: :meth:`read` (the arm's pose, as the control loop read it after a
+    set-point: the truth and the UR's readings, onto ``reads``), :meth:`capture` (a thread: each
+    camera frame at its instant, from the truth, into ``frames`` in capture order), and the
+    order of the stream (:meth:`batches`)."""
 
-    def __init__(self, arm, offset, cams, extrinsics, renderer, rng, arm_sigma, duration,
-                 noise, blur):
-        self.arm, self.offset, self.rng = arm, offset, rng
+    def __init__(self, offset, cams, extrinsics, renderer, rng, arm_sigma, duration, noise,
+                 blur):
+        from drivers.base import pose_covariance
+        self.offset, self.rng = offset, rng
+        self.covariance = pose_covariance(*arm_sigma)
         self.cams, self.extrinsics, self.renderer = cams, extrinsics, renderer
         self.arm_sigma, self.duration, self.noise, self.blur = arm_sigma, duration, noise, blur
         self.truth = Track()
@@ -121,41 +124,51 @@ class Scene:
         """Capture ``j``: camera ``j % 2`` at ``start + j * STEP / 2``."""
         return self.start + j * STEP / len(self.cams)
 
-    def read(self) -> None:
-        period = 1.0 / ARM_RATE
+    def read(self, fb) -> None:
+        """An executor's feedback record (:class:`drivers.executor.Feedback`, on its thread):
+        the arm's pose as the control loop read it, in the arm's own process where it runs
+        there, so a busy interpreter here delays the record, not the read; the run's last
+        record ends the reads, and one that is not ``FINISHED`` fails the demo."""
+        from drivers.executor import Result
+        if self.stop.is_set():
+            return
         try:
-            due = time.monotonic()
-            last = None
-            while not self.stop.is_set():
-                now = time.monotonic()
-                if due > now:
-                    self.stop.wait(due - now)
-                else:                # late: go on from now rather than read in a burst
-                    due = now
-                due += period
-                m = self.arm.measure()
-                with self.cond:
-                    if self.start is None:
-                        self.start = m.time
-                    if last is not None:
-                        self.read_gap = max(self.read_gap, m.time - last)
-                    last = m.time
-                    T_true = dq.mul(m.pose, self.offset)
-                    self.truth.add(m.time, T_true)
-                    self.cond.notify_all()
-                eps = self.rng.normal(0.0, 1.0, 6) * np.repeat(self.arm_sigma, 3)
-                reading = dq.mul(m.pose, lie.se3_exp(-eps))
-                self.accuracy["ur"].append(pose_error(dq.mul(reading, self.offset), T_true))
-                self.reads.put((m.time, reading, m.covariance))
-                if m.time - self.start >= self.duration:
-                    break
-        except BaseException as e:      # raised to the caller by batches()
-            self.failed.append(e)
-        finally:
-            self.reads.put(None)
+            if fb.result != Result.OK:
+                if fb.result != Result.FINISHED:
+                    raise RuntimeError(f"the arm's loop ended {fb.result.name}: {fb.message}")
+                self.end()
+                return
+            if fb.actual is None:
+                return
             with self.cond:
-                self.stop.set()
+                if self.start is None:
+                    self.start = fb.stamp
+                elif fb.stamp <= self.truth.taken[-1]:
+                    return
+                else:
+                    self.read_gap = max(self.read_gap, fb.stamp - self.truth.taken[-1])
+                T_true = dq.mul(fb.actual, self.offset)
+                self.truth.add(fb.stamp, T_true)
                 self.cond.notify_all()
+            eps = self.rng.normal(0.0, 1.0, 6) * np.repeat(self.arm_sigma, 3)
+            reading = dq.mul(fb.actual, lie.se3_exp(-eps))
+            self.accuracy["ur"].append(pose_error(dq.mul(reading, self.offset), T_true))
+            self.reads.put((fb.stamp, reading, self.covariance))
+            if fb.stamp - self.start >= self.duration:
+                self.end()
+        except BaseException as e:      # raised to the caller by batches()
+            with self.cond:
+                self.failed.append(e)
+            self.end()
+
+    def end(self) -> None:
+        """No more reads: the stream ends after the last."""
+        with self.cond:
+            if self.stop.is_set():
+                return
+            self.stop.set()
+            self.cond.notify_all()
+        self.reads.put(None)
 
     def capture(self, rng) -> None:
         """Renders and detects each capture once the truth around its instant is read."""
@@ -191,9 +204,10 @@ class Scene:
                 self.cond.notify_all()
 
     def batches(self):
-        """Each arm read with the camera frames stamped since the read before it, once every
-        capture that could be stamped by then is rendered: the stream the devices would send,
-        however long the rendering takes."""
+        """The measurements in the order of their stamps, as the devices would send them,
+        however long the rendering takes: each arm read once every capture that could be
+        stamped by then is rendered, after the camera frames stamped since the read before it
+        (in a batch of their own)."""
         from service.rpc.client import Batch
         sent = 0                            # frames sent
         while True:
@@ -213,13 +227,14 @@ class Scene:
                 arrived = [f for f in self.frames[sent:] if f[0] <= stamp]
                 sent += len(arrived)
             self.behind = max(self.behind, time.time() - stamp)
-            self.alone["ur"].add(stamp, dq.mul(reading, self.offset))
             for f in arrived:
                 self.alone[f[1]].add(f[4], f[5], f[0])
-            batch = [(stamp, "ur", reading, covariance)] + [f[:4] for f in arrived]
-            yield Batch(np.array([b[2] for b in batch]), np.array([b[3] for b in batch]),
-                        names=[b[1] for b in batch], bodies=["board"] * len(batch),
-                        times=np.array([b[0] for b in batch]))
+            self.alone["ur"].add(stamp, dq.mul(reading, self.offset))
+            for batch in ([f[:4] for f in arrived], [(stamp, "ur", reading, covariance)]):
+                if batch:
+                    yield Batch(np.array([b[2] for b in batch]), np.array([b[3] for b in batch]),
+                                names=[b[1] for b in batch], bodies=["board"] * len(batch),
+                                times=np.array([b[0] for b in batch]))
 
 
 def missed_cycles(sim, mark: int, period: float) -> int:
