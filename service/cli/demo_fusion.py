@@ -171,6 +171,8 @@ def run(steps: int = 200, *, seed: int = 0, arm_sigma=(2e-3, 1e-3), noise: float
         capture.start()
         stack.callback(capture.join, 10)
         stack.callback(scene.end)
+        # first on the way out (a Ctrl-C): the arm stops before a render under way is waited for
+        stack.callback(executor.cancel)
         if out is not None:
             print(f"{'t (s)':>7s}  " + "  ".join(f"{n + ' deg / mm':>14s}" for n in
                                                  names + ("fused",))
