@@ -175,7 +175,7 @@ def run(steps: int = 200, *, seed: int = 0, arm_sigma=(2e-3, 1e-3), noise: float
                                    name="demo capture", daemon=True)
         capture.start()
         stack.callback(capture.join, 10)
-        stack.callback(scene.end)
+        stack.callback(scene.abort)         # a Ctrl-C: no render still due is waited for
         # first on the way out (a Ctrl-C): the arm stops before a render under way is waited for
         stack.callback(executor.cancel)
         if out is not None:

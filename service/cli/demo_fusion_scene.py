@@ -118,6 +118,7 @@ class Scene:
         self.behind = 0.0
         self.cond = threading.Condition()
         self.stop = threading.Event()
+        self.aborted = False
         self.failed: list[BaseException] = []
 
     def capture_time(self, j: int) -> float:
@@ -161,6 +162,13 @@ class Scene:
                 self.failed.append(e)
             self.end()
 
+    def abort(self) -> None:
+        """Stop rendering (a Ctrl-C, an error): the captures still due are not waited for."""
+        with self.cond:
+            self.aborted = True
+            self.cond.notify_all()
+        self.end()
+
     def end(self) -> None:
         """No more reads: the stream ends after the last."""
         with self.cond:
@@ -180,7 +188,7 @@ class Scene:
                     self.cond.wait_for(lambda: self.failed or self.stop.is_set() or (
                         len(self.truth.taken) > 1
                         and self.truth.taken[-1] >= self.capture_time(j)))
-                    if self.failed or len(self.truth.taken) < 2 or \
+                    if self.failed or self.aborted or len(self.truth.taken) < 2 or \
                             self.capture_time(j) > self.truth.taken[-1]:
                         return
                     t = self.capture_time(j)
@@ -219,10 +227,10 @@ class Scene:
                 # captures taken by stamp - latency are due with this read
                 due = int(math.floor((stamp - CAMERA_LATENCY - self.start)
                                      / (STEP / len(self.cams)) + 1e-9)) + 1
-                self.cond.wait_for(lambda: self.failed or self.rendered >= due or (
+                self.cond.wait_for(lambda: self.failed or self.aborted or self.rendered >= due or (
                     self.stop.is_set() and self.capture_time(self.rendered)
                     > self.truth.taken[-1]))
-                if self.failed:
+                if self.failed or self.aborted:
                     return
                 arrived = [f for f in self.frames[sent:] if f[0] <= stamp]
                 sent += len(arrived)
