@@ -1,8 +1,9 @@
 """Smoothing of noisy recorded pose paths under the tool's velocity and acceleration limits.
 
-``smooth(times, poses, limits, smoothing, rate_hz)`` takes a recorded path (teleoperation,
-demonstrations: poses ``T_base_tool`` at their time stamps, with noise) and returns a smooth path
-on the same clock that a controller can execute: it starts and ends at rest, and the tool point's
+``smooth(times, poses, limits, smoothing, rate_hz, free_ends)`` takes a recorded path
+(teleoperation, demonstrations: poses ``T_base_tool`` at their time stamps, with noise) and returns
+a smooth path on the same clock that a controller can execute: it starts and ends at rest (unless
+``free_ends``: a piece of a longer motion, whose ends keep the data's motion), and the tool point's
 linear velocity and acceleration and the tool's angular velocity and acceleration stay within
 ``limits`` as norms (jerk too where a jerk limit is given), measured from the returned samples.
 
@@ -16,7 +17,8 @@ follows the smoothed path to ~2e-4 of its amplitude; at 100 Hz and ``smoothing =
 position is a B-spline in R^3 and the orientation a cumulative B-spline on SO(3)
 (``R(t) = Rc_i Exp(B1 d_i+1) Exp(B2 d_i+2) Exp(B3 d_i+3)`` with the body increments
 ``d_j = Log(Rc_j-1^-1 Rc_j)``). Its first three and last three control points coincide, which
-is rest (zero velocity and acceleration) at both ends. The cost is
+is rest (zero velocity and acceleration) at both ends; with ``free_ends`` every control point is
+free and the ends follow the data. The cost is
 
     sum_k w_k |e_k|^2 + tau^6 * integral |jerk|^2 dt
 
@@ -64,9 +66,10 @@ The solver
 3. The returned samples are measured (:func:`peaks`); a limit they break (the orientation's
    first-order terms, or a base-frame angular jerk) is tightened by the ratio and solved again.
 
-The first and last control points of the QP are pinned where the unconstrained solution puts them
-(at rest), so a path whose ends are too far apart for its duration under the limits is reported
-(:class:`Infeasible`) instead of being cut short silently.
+With rest at the ends, the first and last control points of the QP are pinned where the
+unconstrained solution puts them, so a path whose ends are too far apart for its duration under the
+limits is reported (:class:`Infeasible`) instead of being cut short silently. With ``free_ends``
+nothing is pinned: the ends move as far from the data as the limits need.
 """
 from __future__ import annotations
 
@@ -188,18 +191,25 @@ def _diff(n: int, order: int = 1) -> sp.csr_matrix:
     return sp.diags(list(coef), list(range(order + 1)), shape=(n - order, n), format="csr")
 
 
-class _Spline:
-    """Uniform cubic B-spline on ``[t0, t1]`` with ``n - 1`` spans and rest at both ends.
+def _free_index(j: np.ndarray, n: int, rest: bool) -> np.ndarray:
+    """The free control point that control point ``j`` (of ``n + 2``) is: with ``rest`` the first
+    three are one and the last three are one (``n - 2`` free), else each is its own."""
+    return np.clip(j - 2, 0, n - 3) if rest else j
 
-    ``m = n + 2`` control points, of which the first three and the last three are one each:
-    ``c = E z`` with ``z`` the ``n - 2`` free ones.
+
+class _Spline:
+    """Uniform cubic B-spline on ``[t0, t1]`` with ``n - 1`` spans, at rest at both ends or not.
+
+    ``m = n + 2`` control points: with ``rest`` the first three and the last three are one each,
+    ``c = E z`` with ``z`` the ``n - 2`` free ones; without, all ``n + 2`` are free (``E = I``).
     """
 
-    def __init__(self, t0: float, t1: float, n: int):
+    def __init__(self, t0: float, t1: float, n: int, rest: bool = True):
         self.t0, self.t1, self.spans = t0, t1, n - 1
         self.h = (t1 - t0) / (n - 1)
-        self.m, self.z = n + 2, n - 2
-        self.E = _structure(n).E
+        self.m, self.z = n + 2, (n - 2 if rest else n + 2)
+        self.rest = rest
+        self.E = _structure(n, rest).E
 
     def basis(self, t: np.ndarray):
         """Span index ``i`` (control points ``i .. i+3``) and the four weights at each time."""
@@ -271,7 +281,7 @@ def _rotation_jacobian(s: _Spline, d: np.ndarray) -> sp.csr_matrix:
     blocks = np.concatenate([lie.so3_right_jacobian_inv(d), -lie.so3_left_jacobian_inv(d)])
     # Row r holds d_r+1 = Log(Rc_r^-1 Rc_r+1): +Jr^-1 on control point r + 1, -Jl^-1 on r,
     # each mapped to its free point (c = E z; duplicates summed).
-    zc = np.clip(np.concatenate([np.arange(1, k + 1), np.arange(k)]) - 2, 0, s.z - 1)
+    zc = _free_index(np.concatenate([np.arange(1, k + 1), np.arange(k)]), s.m - 2, s.rest)
     rr = np.concatenate([np.arange(k), np.arange(k)])
     rows = 3 * rr[:, None, None] + np.arange(3)[None, :, None] + np.zeros((1, 1, 3), int)
     cols = 3 * zc[:, None, None] + np.zeros((1, 3, 1), int) + np.arange(3)[None, None, :]
@@ -291,12 +301,13 @@ class _Structure(NamedTuple):
 
 
 @functools.lru_cache(maxsize=8)
-def _structure(n: int) -> _Structure:
+def _structure(n: int, rest: bool = True) -> _Structure:
     import casadi as ca
 
-    m, z = n + 2, n - 2
+    m = n + 2
+    z = n - 2 if rest else m
     j = np.arange(m)
-    E = sp.csr_matrix((np.ones(m), (j, np.clip(j - 2, 0, z - 1))), shape=(m, z))
+    E = sp.csr_matrix((np.ones(m), (j, _free_index(j, n, rest))), shape=(m, z))
     D1E = (_diff(m) @ E).tocsr()
     D2 = _diff(m - 1, 2)
     D3E = (D2 @ D1E).tocsr()
@@ -330,12 +341,12 @@ def _knots(t: np.ndarray, tau: float) -> int:
 class _Problem:
     """What both channels share: the spline, the sample weights, the cost and its banded factor."""
 
-    def __init__(self, t: np.ndarray, tau: float):
+    def __init__(self, t: np.ndarray, tau: float, rest: bool = True):
         _solvers()
         n = t.shape[0]
         knots = _knots(t, tau)
-        self.s = s = _Spline(float(t[0]), float(t[-1]), knots)
-        st = self.st = _structure(knots)
+        self.s = s = _Spline(float(t[0]), float(t[-1]), knots, rest)
+        st = self.st = _structure(knots, rest)
         self.D1E, self.D2 = st.D1E, st.D2
         # Each sample stands for the time it covers (non-uniform stamps weigh fairly).
         w = np.empty(n)
@@ -346,7 +357,7 @@ class _Problem:
         # keeps the spline determined where samples are sparse.
         self.lam = (tau / s.h) ** 6 + 1e-9
         i, b = s.basis(t)
-        zc = np.clip(i[:, None] + np.arange(4) - 2, 0, s.z - 1)
+        zc = _free_index(i[:, None] + np.arange(4), knots, rest)
         self.BE = sp.csr_matrix((b.ravel(), (np.repeat(np.arange(n), 4), zc.ravel())),
                                 shape=(n, s.z))
         band = self.lam * st.jerk_band
@@ -461,7 +472,8 @@ def _qp(prob: _Problem, model: _Model, lims, name: str, solver=("piqp", _PIQP)) 
     Hd = prob.qp_hessian(unit * scale)
     nx = 3 * s.z
     lbx, ubx = np.full(nx, -np.inf), np.full(nx, np.inf)
-    lbx[:3] = ubx[:3] = lbx[-3:] = ubx[-3:] = 0.0          # ends pinned at rest
+    if s.rest:
+        lbx[:3] = ubx[:3] = lbx[-3:] = ubx[-3:] = 0.0      # ends pinned at rest
     Qs = _quantities(model.d, h)
     chosen = [np.flatnonzero(np.linalg.norm(Q, axis=1) > _SELECT * L) if L > 0
               else np.zeros(0, int) for Q, L in zip(Qs, lims)]
@@ -482,9 +494,10 @@ def _qp(prob: _Problem, model: _Model, lims, name: str, solver=("piqp", _PIQP)) 
                      lbx=lbx.tolist(), ubx=ubx.tolist())
         stats = qp.stats()
         if not stats.get("success"):
-            raise Infeasible(f"{name}: no path within the limits keeps this clock with rest at "
-                             f"both ends (QP: {stats.get('return_status')}); allow more time or "
-                             f"raise the limits")
+            ends = " with rest at both ends" if s.rest else ""
+            raise Infeasible(f"{name}: no path within the limits keeps this clock{ends} (QP: "
+                             f"{stats.get('return_status')}); allow more time or raise the "
+                             f"limits")
         x = unit * np.asarray(sol["x"]).ravel()
         d = model.d + (model.Jd @ x).reshape(-1, 3)
         added = False
@@ -554,26 +567,32 @@ def _check_ends(duration: float, dist: float, angle: float, limits: Limits) -> N
 
 
 # ---- the entry point ----------------------------------------------------------------------------
-def smooth(times, poses, limits: Limits, smoothing: float = 1.0, rate_hz: float = 0.0):
+def smooth(times, poses, limits: Limits, smoothing: float = 1.0, rate_hz: float = 0.0,
+           free_ends: bool = False):
     """A smooth path through noisy time-stamped poses, within ``limits``.
 
     ``times`` (N,) strictly increasing seconds, ``poses`` (N, 8) unit dual quaternions
     ``T_base_tool``, N >= 4. ``smoothing`` >= 0 sets the cutoff ``2 / smoothing`` Hz (module
     docstring); ``rate_hz`` 0 returns the path at ``times``, else at ``times[0] + k / rate_hz``
-    and at ``times[-1]``. Returns ``(times (M,), poses (M, 8))``, starting and ending at rest.
+    and at ``times[-1]``. Returns ``(times (M,), poses (M, 8))``, starting and ending at rest
+    (velocity and acceleration zero, so the ends move off the data as far as the data moves
+    there), or, with ``free_ends``, following the data's motion at both ends.
 
     ``limits``: issue 10's ``Limits`` (velocity and acceleration required; a jerk limit of 0 is
     none). Errors: ``ValueError`` naming the argument and index; :class:`Infeasible` (a
     ``ValueError``) when the limits cannot be met on this clock.
     """
     t, q, p, smoothing, rate_hz = _check(times, poses, limits, smoothing, rate_hz)
-    return _smooth(t, q, p, limits, smoothing, rate_hz)
+    if not isinstance(free_ends, (bool, np.bool_)):
+        raise ValueError(f"free_ends: expected True or False, got {free_ends!r}")
+    return _smooth(t, q, p, limits, smoothing, rate_hz, rest=not free_ends)
 
 
-def _unconstrained(t: np.ndarray, q: np.ndarray, p: np.ndarray, smoothing: float):
+def _unconstrained(t: np.ndarray, q: np.ndarray, p: np.ndarray, smoothing: float,
+                   rest: bool = True):
     """The banded start: the problem, position and orientation control points, the samples'
     rotations."""
-    prob = _Problem(t, smoothing / (2 * math.pi * CUTOFF_HZ))
+    prob = _Problem(t, smoothing / (2 * math.pi * CUTOFF_HZ), rest)
     r_meas = _quat_rot(q)
     # Position: exact in one banded solve.
     c = prob.fit(p)
@@ -591,13 +610,14 @@ def _evaluate(prob: _Problem, c: np.ndarray, rc: np.ndarray, times: np.ndarray) 
 
 
 def _smooth(t, q, p, limits: Limits, smoothing: float, rate_hz: float,
-            solver=("piqp", _PIQP), verify: bool = True):
+            solver=("piqp", _PIQP), verify: bool = True, rest: bool = True):
     """:func:`smooth` after the checks; ``solver`` and ``verify=False`` (one pass, the samples
     not measured) are for the benchmark's peers."""
-    prob, c, rc, r_meas = _unconstrained(t, q, p, smoothing)
+    prob, c, rc, r_meas = _unconstrained(t, q, p, smoothing, rest)
     h = prob.s.h
-    _check_ends(t[-1] - t[0], float(np.linalg.norm(c[-1] - c[0])),
-                float(np.linalg.norm(_rotvec(dq.mul(dq.conj(rc[0]), rc[-1])))), limits)
+    if rest:
+        _check_ends(t[-1] - t[0], float(np.linalg.norm(c[-1] - c[0])),
+                    float(np.linalg.norm(_rotvec(dq.mul(dq.conj(rc[0]), rc[-1])))), limits)
 
     lin = [limits.max_linear_velocity, limits.max_linear_acceleration, limits.max_linear_jerk]
     ang = [limits.max_angular_velocity, limits.max_angular_acceleration, limits.max_angular_jerk]

@@ -81,10 +81,16 @@ class SimProcess(subprocess.Popen):
 
 def start_process(module: str, *args) -> SimProcess:
     """``python -m module args --exit-with-parent`` from the repository root, its output
-    logged (:class:`SimProcess`)."""
+    logged (:class:`SimProcess`).
+
+    In a session of its own: a Ctrl-C at the terminal goes to the whole foreground process
+    group, and a simulated controller that ended on it at once left its client (ur_rtde)
+    reconnecting for minutes while the parent was still stopping the arm. The parent, which
+    handles the Ctrl-C, stops the arm and then ends the simulator (:func:`end_process`); a
+    parent killed outright still takes it along (``--exit-with-parent``)."""
     root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     return SimProcess([sys.executable, "-m", module, *map(str, args), "--exit-with-parent"],
-                      module, cwd=root)
+                      module, cwd=root, start_new_session=True)
 
 
 def end_process(proc: SimProcess, timeout: float = 5.0) -> None:

@@ -8,6 +8,8 @@ import contextlib
 import sys
 
 EXIT_ERROR = 2
+#: a command ended by Ctrl-C (128 + SIGINT, as shells report it)
+INTERRUPTED = 130
 
 
 def fail(cmd: str, msg: str) -> int:

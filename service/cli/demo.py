@@ -63,6 +63,7 @@ def configure(name: str, p) -> None:
                    help="blend (default): the blending methods; fusion: live pose fusion; "
                         "trajectory: plan and execute on a simulated arm")
     from service.cli import demo_fusion, demo_trajectory
+    from service.cli.common import INTERRUPTED
     demo_fusion.add_arguments(p)
     demo_trajectory.add_arguments(p)
 
@@ -73,6 +74,10 @@ def configure(name: str, p) -> None:
         demo = demo_fusion if args.mode == "fusion" else demo_trajectory
         try:        # the simulated devices' demos fail alike: a missing extra, a device gone
             return demo.main(args)
+        except KeyboardInterrupt:   # raised through the demo's exits: the arm closed by now
+            print(f"dqpose demo {args.mode}: interrupted; the simulated arm was stopped and its "
+                  f"simulator ended", file=sys.stderr)
+            return INTERRUPTED
         except ModuleNotFoundError as e:
             from service.cli.common import missing_extra
             return missing_extra(f"demo {args.mode}", e)

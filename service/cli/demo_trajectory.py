@@ -90,13 +90,7 @@ def run(target: str | None = None, progress: bool = False) -> Result:
                       file=sys.stderr, flush=True)
         if progress:
             print(file=sys.stderr)
-        arrivals = []
-        while True:        # read in pages: the simulator answers a bounded log per call
-            got = sim.log(mark, cmd=ursim.SERVOL, keys=["mono"])
-            if not got["entries"]:
-                break
-            arrivals += [e["mono"] for e in got["entries"]]
-            mark = got["next"]
+        arrivals = servo_arrivals(sim, mark)
         period = arm.period
     moving = [f for f in feedback if f.actual is not None and f.commanded is not None]
     mm = np.array([1e3 * np.linalg.norm(dq.to_pose(f.actual)[1] - dq.to_pose(f.commanded)[1])
@@ -105,6 +99,24 @@ def run(target: str | None = None, progress: bool = False) -> Result:
     last = feedback[-1]
     return Result(last.state, last.message, plan.duration, plan.segments, plan, mm, deg,
                   np.diff(np.asarray(arrivals)), period)
+
+
+def servo_arrivals(sim, mark: int) -> np.ndarray:
+    """When each servoL set-point since the hook log's entry ``mark`` reached the simulated
+    controller (``time.monotonic()`` seconds)."""
+    from drivers.sim import ursim
+    arrivals = []
+    while True:        # read in pages: the simulator answers a bounded log per call
+        got = sim.log(mark, cmd=ursim.SERVOL, keys=["mono"])
+        if not got["entries"]:
+            return np.asarray(arrivals)
+        arrivals += [e["mono"] for e in got["entries"]]
+        mark = got["next"]
+
+
+def missed_cycles(periods: np.ndarray, period: float) -> int:
+    """Controller cycles that got no set-point, from the times between set-points."""
+    return int(np.clip(np.round(np.asarray(periods) / period) - 1, 0, None).sum())
 
 
 def report(r: Result, out=None) -> None:
@@ -122,7 +134,7 @@ def report(r: Result, out=None) -> None:
               file=out)
     if len(r.periods):
         jitter = np.abs(r.periods - r.period) * 1e6
-        missed = int(np.clip(np.round(r.periods / r.period) - 1, 0, None).sum())
+        missed = missed_cycles(r.periods, r.period)
         print(f"  set-points at the controller: {len(r.periods) + 1}, period jitter |dt - "
               f"{r.period * 1e3:g} ms| p50 {np.percentile(jitter, 50):.0f} us, p99 "
               f"{np.percentile(jitter, 99):.0f} us, max {jitter.max():.0f} us; missed cycles "

@@ -9,25 +9,54 @@ import numpy as np
 from service import trajectory
 
 
-def plot_motion(path: str, times, poses, limits, title: str = "", raw=None) -> None:
-    """Writes the PNG; ``raw`` ``(times, poses)``: the input of a smoothing, drawn under the
-    positions. Needs matplotlib (``ModuleNotFoundError`` otherwise)."""
+def plot_motion(path: str, times, poses, limits, title: str = "", raw=None,
+                note: str = "") -> None:
+    """Writes the PNG of :func:`motion_figure`. Needs matplotlib (``ModuleNotFoundError``
+    otherwise)."""
+    import matplotlib.pyplot as plt
+
+    fig = motion_figure(times, poses, limits, title, raw, note)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _rotation_from(poses, reference) -> np.ndarray:
+    """Rotation vectors ``Log(R_k R_ref^T)`` (base frame) of ``poses`` from ``reference``'s
+    orientation: one origin for every curve drawn together (the smoothed path need not start
+    where the recording does)."""
+    from service import dq
+
+    r = np.asarray(poses, dtype=np.float64).reshape(-1, 8).copy()
+    r[:, 4:] = 0.0
+    ref = np.zeros(8)
+    ref[:4] = np.asarray(reference, dtype=np.float64)[:4]
+    return 2.0 * dq.log(dq.mul(dq.normalize(r), dq.conj(dq.normalize(ref))))[:, :3]
+
+
+def motion_figure(times, poses, limits, title: str = "", raw=None, note: str = ""):
+    """The figure: position, velocity, acceleration and jerk, linear and angular, each against
+    its limit; ``raw`` ``(times, poses)``: the input of a smoothing, drawn under the positions,
+    both orientations as rotation vectors from the recording's first one; ``note`` under the
+    title."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     d = trajectory.derivatives(times, poses)
+    reference = np.asarray(poses if raw is None else raw[1], dtype=np.float64).reshape(-1, 8)[0]
     fig, ax = plt.subplots(4, 2, figsize=(11, 10), sharex=True)
     t = np.asarray(times)
     for c, (name, unit) in enumerate((("linear", "m"), ("angular", "rad"))):
-        pos = d.position if c == 0 else d.rotation
+        pos = d.position if c == 0 else _rotation_from(poses, reference)
         ax[0, c].plot(t, pos, lw=1)
         ax[0, c].legend(["x", "y", "z"], fontsize=7, loc="best")
         if raw is not None:
-            r = trajectory.derivatives(*raw)
-            ax[0, c].plot(raw[0], r.position if c == 0 else r.rotation, ".", ms=1.5,
-                          color="0.6")
-        ax[0, c].set_ylabel("position, m" if c == 0 else "rotation vector\nfrom the start, rad")
+            ax[0, c].plot(raw[0], (_positions(raw[1]) if c == 0
+                                   else _rotation_from(raw[1], reference)),
+                          ".", ms=1.5, color="0.6")
+        ax[0, c].set_ylabel("position, m" if c == 0 else
+                            "rotation vector from the\n" +
+                            ("recording's start, rad" if raw is not None else "start, rad"))
         rows = ((d.velocity, d.angular_velocity, "velocity", 1, "velocity"),
                 (d.acceleration, d.angular_acceleration, "acceleration", 2, "acceleration"),
                 (d.jerk, d.angular_jerk, "jerk", 3, "jerk"))
@@ -43,10 +72,16 @@ def plot_motion(path: str, times, poses, limits, title: str = "", raw=None) -> N
             a.set_ylabel(f"|{what}|, {unit}/s" + ("" if order == 1 else f"^{order}"))
         ax[0, c].set_title(name)
         ax[3, c].set_xlabel("time, s")
-    fig.suptitle(title)
+    fig.suptitle(title + (f"\n{note}" if note else ""), fontsize=10 if note else None)
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    return fig
+
+
+def _positions(poses) -> np.ndarray:
+    """Positions ``(N, 3)`` of dual quaternions ``(N, 8)``."""
+    from service import dq
+
+    return dq.to_pose(np.asarray(poses, dtype=np.float64).reshape(-1, 8))[1]
 
 
 def plot_calibration(path: str, cal, names, title: str = "", truth=None) -> None:

@@ -43,7 +43,12 @@ input formats (FILE, or - for standard input):
         "pose": {...}}, ...], "limits": {...}, "smoothing": 1, "rate_hz": 0}
   YAML  the same document in YAML (.yaml, .yml; needs the [yaml] extra).
   CSV   t,x,y,z,qw,qx,qy,qz (commas, semicolons, tabs or spaces), times strictly increasing.
-output: the smoothed poses as CSV t,x,y,z,qw,qx,qy,qz (or JSON with -o x.json).
+output: the smoothed poses as CSV t,x,y,z,qw,qx,qy,qz (or JSON with -o x.json), and on
+standard error how far its ends are from the recording's. By default the path starts and ends at
+rest (velocity and acceleration zero, as a controller starts and stops): where the recording is
+moving at its first or last sample, the smoothed ends lie off it by about as far as it moves in
+the smoothing's time scale. --free-ends keeps the recording's motion at both ends (a piece of a
+longer motion; the ends then follow the data).
 
 example: dqpose smooth --local demo.csv --max-linear-velocity 0.5 --max-angular-velocity 2 \\
            --max-linear-acceleration 2 --max-angular-acceleration 4 --plot smooth.png
@@ -74,6 +79,9 @@ def configure(name: str, p) -> None:
         p.add_argument("file", metavar="FILE", help="time-stamped poses (JSON, YAML or CSV; - reads standard input)")
         p.add_argument("--smoothing", type=float, help="see service/smoothing.py (default: the file's, else 1)")
         p.add_argument("--rate", type=float, help="resample at this rate (default: the input times)")
+        p.add_argument("--free-ends", action="store_true",
+                       help="keep the recording's motion at its first and last sample (default: "
+                            "start and end at rest)")
     g = p.add_argument_group("limits (override the file's)")
     for key, unit in _LIMIT_HELP.items():
         g.add_argument("--" + key.replace("_", "-"), type=float, dest=key, metavar="X",
@@ -160,17 +168,41 @@ def _smooth(args) -> int:
         rate = args.rate or f.rate_hz or 0.0
         if args.local:
             times, poses = smoothing.smooth(f.times, f.dqs, limits, smoothing=weight,
-                                             rate_hz=rate)
+                                             rate_hz=rate, free_ends=args.free_ends)
         else:
             with client(args) as c:
-                times, poses = c.smooth(f.times, f.dqs, limits, weight, rate)
+                times, poses = c.smooth(f.times, f.dqs, limits, weight, rate,
+                                        free_ends=args.free_ends)
         fmt = "json" if (args.output or "").lower().endswith(".json") else "csv"
         _write(args, format_trajectory(times, poses, None, fmt))
+        note = ends_note(f.dqs, poses, args.free_ends)
+        print(note, file=sys.stderr)
         if args.plot:
             from service.cli.plots import plot_motion
             plot_motion(args.plot, times, poses, limits, title=f"dqpose smooth {args.file}",
-                        raw=(f.times, f.dqs))
+                        raw=(f.times, f.dqs), note=note)
             print(f"plot: {args.plot}", file=sys.stderr)
     except Exception as e:
         return failure("smooth", args, e)
     return 0
+
+
+def ends_note(recorded, smoothed, free_ends: bool) -> str:
+    """What the smoothed path's ends are (at rest, or free) and how far each lies from the
+    recording's first and last pose (the output always starts and ends on those times)."""
+    import math
+
+    import numpy as np
+
+    from service import dq
+    off = []
+    for k in (0, -1):
+        qa, pa = dq.to_pose(recorded[k])
+        qb, pb = dq.to_pose(smoothed[k])
+        angle = 2.0 * math.acos(min(1.0, abs(float(np.dot(qa, qb)))))
+        off.append(f"{1e3 * float(np.linalg.norm(pa - pb)):.2f} mm / {math.degrees(angle):.2f} deg")
+    where = f"first pose {off[0]}, last {off[1]} from the recording's"
+    if free_ends:
+        return f"ends free (--free-ends), following the recording's motion: {where}"
+    return (f"ends held at rest (zero velocity and acceleration, as a controller starts and "
+            f"stops): {where}; --free-ends keeps the recording's motion there")

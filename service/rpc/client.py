@@ -518,11 +518,12 @@ class Client:
         return Planned(*samples_from_msgs(msgs), duration=info.duration, segments=segments)
 
     def smooth(self, times, poses, limits, smoothing: float = 1.0,
-               rate_hz: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+               rate_hz: float = 0.0, free_ends: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """:func:`service.smoothing.smooth` on the server: ``(times (M,), poses (M, 8))``."""
         times, a = self._stamped(times, poses, "times", "poses", "poses")
         request = tpb.SmoothRequest(poses=stamped_msgs(times, a), limits=limits_msg(limits),
-                                    smoothing=smoothing, rate_hz=rate_hz)
+                                    smoothing=smoothing, rate_hz=rate_hz,
+                                    free_ends=bool(free_ends))
         answer = tpb.SmoothResponse.FromString(self._call(self._smooth,
                                                           request.SerializeToString()))
         q, t = poses_to_arrays([p.pose for p in answer.samples])

@@ -67,7 +67,7 @@ class Trajectories:
                              f"{limit} samples")
         try:
             t, out = smoothing.smooth(times, dqs, limits, smoothing=request.smoothing or 1.0,
-                                       rate_hz=request.rate_hz)
+                                       rate_hz=request.rate_hz, free_ends=request.free_ends)
         except ValueError as e:
             raise rename(e, {"times": "poses{}.time", "poses": "poses{}.pose",
                              "limits": "limits"}) from None

@@ -235,8 +235,8 @@ def test_a_capture_that_loses_the_board_stops_and_keeps_what_it_took(eye_in_hand
                                                                      tmp_path, monkeypatch):
     import cv2
 
-    from service.cli import handeye
-    monkeypatch.setattr(handeye, "MAX_MISSES", 2)
+    from service.cli import handeye_capture
+    monkeypatch.setattr(handeye_capture, "MAX_MISSES", 2)
     frames = tmp_path / "frames"
     frames.mkdir()
     shutil.copy(os.path.join(eye_in_hand, "view_000.png"), frames / "a.png")
@@ -249,3 +249,30 @@ def test_a_capture_that_loses_the_board_stops_and_keeps_what_it_took(eye_in_hand
     with open(os.path.join(folder, "poses.json")) as f:
         assert [p["image"] for p in json.load(f)["poses"]] == \
             ["view_000.png", "view_001.png", "view_002.png"]
+
+
+def test_the_report_counts_the_views_it_used(eye_in_hand, capsys, tmp_path):
+    """A view whose robot pose is 5 mm off is left out by the robust solve: the report's first
+    line counts it out (it said "8 views used of 8"), and a clean capture leaves none out (the
+    first view, head-on to the board, was left out of every capture)."""
+    code, stdout, err = run(capsys, "handeye", "solve", eye_in_hand, "--local",
+                            "--report", str(tmp_path / "clean.txt"),
+                            "--plot", str(tmp_path / "clean.png"), "-o", str(tmp_path / "c.json"))
+    assert code == 0, err
+    assert stdout.splitlines()[0].startswith("hand-eye calibration, eye_in_hand: 8 views used "
+                                             "of 8 images"), stdout
+    assert "left out:" not in stdout and "warning:" not in stdout, stdout
+    folder = str(tmp_path / "moved")
+    shutil.copytree(eye_in_hand, folder)
+    with open(os.path.join(folder, "poses.json")) as f:
+        doc = json.load(f)
+    doc["poses"][3]["base_to_flange"]["position"]["x"] += 0.005
+    with open(os.path.join(folder, "poses.json"), "w") as f:
+        json.dump(doc, f)
+    code, stdout, err = run(capsys, "handeye", "solve", folder, "--local")
+    assert code == 0, err
+    left_out = [line for line in stdout.splitlines() if "left out:" in line]
+    assert any("view_003.png" in line for line in left_out), stdout
+    assert stdout.splitlines()[0].startswith(
+        f"hand-eye calibration, eye_in_hand: {8 - len(left_out)} views used of 8 images "
+        f"({len(left_out)} left out by the robust solve"), stdout

@@ -1,0 +1,425 @@
+"""``dqpose handeye capture DIR``: drives a UR (the simulator by default, or ``--arm ur:HOST``)
+through views of a ChArUco board chosen to be informative (a spread of rotation axes first, then
+the solver's next-best pose among candidate views), grabs an image at each (rendered by the
+simulated camera, or from ``--camera``) and saves the folder ``dqpose handeye solve`` reads: the
+images, the flange poses (``poses.json``), the intrinsics and the board, and for a simulation the
+truth (``truth.json``)."""
+from __future__ import annotations
+
+import glob
+import json
+import math
+import os
+import sys
+
+from service.cli.common import INTERRUPTED, fail
+
+POSE_FILES = ("poses.json", "poses.csv")
+CAPTURE_EPILOG = """\
+Without --arm the UR simulator is started and a simulated camera renders the board (the truth
+is saved as truth.json, and solve then reports its error against it). With --arm ur:HOST (a real
+arm) give --camera (a device index, video or folder) and --intrinsics: start with the camera
+looking at the board from about the working distance, 15-30 degrees off head-on (a head-on view
+of a flat board is where its pose is least certain); every move is a straight tool line
+(moveL) within the arm's limits, so keep the space around the board clear.
+
+An interrupted capture (Ctrl-C: the arm is stopped, the views taken are saved) is continued with
+--resume, up to --views in all, or replaced with --force.
+"""
+
+# The simulated cell. Eye-in-hand: a 7x5 board face up on the table, a camera on the flange
+# 6 cm off its axis and turned 80 deg about it; eye-to-hand: a camera on a post looking at a
+# board held 5 cm out along the tool z axis.
+_SIM_X = {"eye_in_hand": ((0.06, -0.02, 0.04), (0.08, -0.12, 1.40)),
+          "eye_to_hand": ((0.50, -0.85, 0.55), None)}
+_SIM_Z = {"eye_in_hand": ((0.40, 0.10, 0.0), (math.pi, 0.0, 0.0)),
+          "eye_to_hand": ((-0.14, -0.10, 0.05), (0.0, 0.0, 0.0))}
+#: the simulator's own tool speed limits (drivers/sim/ursim.py), faster than a bench arm's
+_SIM_SPEED = dict(max_linear_speed=1.0, max_angular_speed=3.0, max_linear_accel=4.0,
+                  max_angular_accel=8.0)
+#: Capture sends whole moves, each run by the controller itself, never a servo stream: a pause
+#: of the data stream this short is no fault (and a simulator on a busy machine makes them)
+STALE_AFTER = 1.0
+_CANDIDATES = 200        # candidate views the next one is chosen from
+_SPREAD_FIRST = 3        # views chosen for their spread of rotations before the solver chooses
+
+
+def _find(folder: str, names) -> str | None:
+    for n in names:
+        path = os.path.join(folder, n)
+        if os.path.isfile(path):
+            return path
+    return None
+
+
+def _pose(t, rotvec):
+    import numpy as np
+
+    from drivers.rotvec import pose_from_rotvec
+    return pose_from_rotvec(np.concatenate([t, rotvec]))
+
+
+#: How far the simulated camera's start view is from head-on to the board. Head-on, the rendered
+#: board's detected pose was off along the view by 0.26-0.38 mm with or without noise (the
+#: corners pushed outwards by 0.07 px), a NEES of 23.7 on average against its own covariance over
+#: 20 renders, and the solver left that view, view 0, out of every capture; 20 deg off, 5.4 (6
+#: expected), as for the candidate views (tilted up to 40 deg).
+_START_TILT_DEG = 20.0
+
+
+def _sim_cell(setup: str, board):
+    """The simulated cell's truth ``(x, z)`` and the flange's start pose, from which the camera
+    sees the board's centre from 0.45 m, :data:`_START_TILT_DEG` off its normal."""
+    import numpy as np
+
+    from drivers.sim.camera import look_at
+    from service import dq, handeye
+    w, h = board.extent
+    centre = np.array([w / 2, h / 2, 0.0])
+    tilt = math.radians(_START_TILT_DEG)
+    home_view = look_at(centre + 0.45 * np.array([0.0, math.sin(tilt), -math.cos(tilt)]),
+                        centre)
+    z = _pose(*_SIM_Z[setup])
+    if setup == "eye_in_hand":
+        x = _pose(*_SIM_X[setup])
+    else:   # the camera on its post looks at where the board is at the start, image up
+        eye = np.array(_SIM_X[setup][0])
+        x = dq.inv(look_at(eye, eye + [0.0, 0.45, -0.1], (0.0, 0.0, 1.0)))   # T_base_camera
+    return x, z, handeye.flange_for(home_view, x, z, setup)
+
+
+class _Capture:
+    """The views taken so far and the choice of the next (spread first, then next-best)."""
+
+    def __init__(self, setup: str, start_flange, start_detection, board, rng,
+                 choose: str = "next-best"):
+        import numpy as np
+
+        from drivers.sim.camera import random_view
+        from service import dq
+        self.setup = setup
+        start_view = start_detection.pose
+        self.flanges, self.views = [start_flange], [start_view]
+        self.covariances = [start_detection.covariance]
+        # A first guess: the camera at the flange (eye-in-hand) or the board at the flange
+        # (eye-to-hand); the solver's answer replaces it once there is one.
+        ident = dq.from_pose(np.array([1.0, 0, 0, 0]), np.zeros(3))
+        if setup == "eye_in_hand":
+            self.x = ident
+            self.z = dq.mul(dq.mul(start_flange, self.x), start_view)
+        else:
+            self.z = ident
+            self.x = dq.mul(dq.mul(start_flange, self.z), dq.inv(start_view))
+        d = float(np.linalg.norm(dq.to_pose(start_view)[1]))
+        self.candidates = [random_view(rng, board, distance=(0.8 * d, 1.25 * d),
+                                       max_tilt_deg=40.0, max_roll_deg=60.0)
+                           for _ in range(_CANDIDATES)]
+        self.calibration = None
+        self.choose = choose
+        self.taken = 1           # views taken, the start's included (detected or not)
+
+    def add(self, flange, detection) -> None:
+        import numpy as np
+
+        from service import handeye
+        self.flanges.append(flange)
+        self.views.append(detection.pose)
+        self.covariances.append(detection.covariance)
+        if len(self.views) > _SPREAD_FIRST:
+            try:
+                self.calibration = handeye.calibrate(
+                    np.array(self.flanges), np.array(self.views), self.setup,
+                    camera_covariance=np.array(self.covariances))
+                self.x, self.z = self.calibration.x, self.calibration.z
+            except ValueError:      # not yet determined: keep the guess and the spread rule
+                self.calibration = None
+
+    def drop(self, k: int) -> None:
+        self.candidates.pop(k)
+
+    def rule(self) -> str:
+        """How the next view is chosen: the solver's next-best pose once it has an answer, the
+        view whose rotation is farthest from every view taken before (``choose`` "spread":
+        always), or the candidates as they come (``choose`` "random")."""
+        if self.choose == "random":
+            return "random"
+        if self.choose == "next-best" and self.calibration is not None:
+            return "next-best pose"
+        return "rotation spread"
+
+    def order(self, flanges) -> list:
+        """Candidate indices, best first, by :meth:`rule`."""
+        import numpy as np
+        rule = self.rule()
+        if rule == "random":
+            return list(range(len(flanges)))
+        if rule == "next-best pose":
+            from service import handeye
+            return list(handeye.next_best_pose(self.calibration, np.array(self.flanges),
+                                               np.array(self.views), np.array(flanges)))
+        from drivers.base import pose_delta
+        gaps = [min(pose_delta(c, v)[1] for v in self.views) for c in self.candidates]
+        return list(np.argsort(gaps)[::-1])
+
+
+#: what a capture writes into DIR (and solve, next to it): what --force removes
+_CAPTURE_FILES = ("poses.json", "intrinsics.json", "board.json", "truth.json",
+                  "handeye_report.txt", "handeye.png", "handeye.json")
+
+
+def _views_in(folder: str) -> list[str]:
+    return sorted(glob.glob(os.path.join(folder, "view_*.png")))
+
+
+class _Previous:
+    """A capture in DIR to continue (``--resume``): its images, flange poses and setup, and the
+    intrinsics and board files it was taken with."""
+
+    def __init__(self, folder: str):
+        from service.cli.posefile import read_robot_poses
+        poses = os.path.join(folder, "poses.json")
+        if not os.path.isfile(poses):
+            raise ValueError(f"--resume: {folder!r} has views but no poses.json (the capture "
+                             f"was killed before it saved them); --force starts over")
+        robot = read_robot_poses(poses, "m")
+        missing = [im for im in robot.images if im is None or
+                   not os.path.isfile(os.path.join(folder, im))]
+        if missing:
+            raise ValueError(f"--resume: {poses} names images not in {folder!r}: "
+                             f"{', '.join(map(str, missing[:5]))}; --force starts over")
+        self.images = list(robot.images)
+        self.flanges = list(robot.base_flange)
+        self.setup = robot.setup
+        self.intrinsics = _find(folder, ("intrinsics.json",))
+        self.board = _find(folder, ("board.json",))
+
+
+def _prepare(args):
+    """DIR made ready: a capture already there is refused, continued (``--resume``: returns
+    :class:`_Previous`) or removed (``--force``); None for a new capture."""
+    held = os.path.isdir(args.dir) and (_find(args.dir, POSE_FILES) or _views_in(args.dir))
+    if not held:
+        if args.resume:
+            print(f"nothing to resume in {args.dir}: a new capture", file=sys.stderr)
+        return None
+    if args.force:
+        removed = _views_in(args.dir) + [p for p in (os.path.join(args.dir, n)
+                                                     for n in _CAPTURE_FILES)
+                                         if os.path.isfile(p)]
+        for path in removed:
+            os.remove(path)
+        print(f"--force: removed the previous capture's {len(removed)} files from {args.dir}",
+              file=sys.stderr)
+        return None
+    if not args.resume:
+        n = len(_views_in(args.dir))
+        raise ValueError(f"DIR: {args.dir!r} already holds a capture ({n} views): --resume "
+                         f"continues it up to --views, --force starts over (removes it)")
+    previous = _Previous(args.dir)
+    if args.setup and previous.setup and args.setup != previous.setup:
+        raise ValueError(f"--setup: {args.setup}, but the capture in {args.dir!r} is "
+                         f"{previous.setup}")
+    return previous
+
+
+def capture(args) -> int:
+    import contextlib
+
+    import numpy as np
+
+    from service import handeye
+
+    if args.views < 4:
+        return fail("handeye capture", f"--views: at least 4, got {args.views}")
+    if args.arm and not args.arm.startswith("ur:"):
+        return fail("handeye capture", f"--arm: ur:HOST (a UR arm), got {args.arm!r}")
+    if args.arm and not (args.camera and (args.intrinsics or args.resume)):
+        return fail("handeye capture", "--arm: a real arm needs --camera and --intrinsics (the "
+                                       "simulated camera sees only the simulated arm)")
+    try:
+        previous = _prepare(args)
+    except ValueError as e:
+        return fail("handeye capture", str(e))
+    args.setup = args.setup or (previous.setup if previous else None) or "eye_in_hand"
+    if previous and len(previous.images) >= args.views:
+        print(f"{len(previous.images)} views in {args.dir} already (--views {args.views}); "
+              f"solve with: dqpose handeye solve {args.dir}")
+        return 0
+    import cv2
+
+    import drivers
+    from drivers.base import Limits
+    from drivers.camera import BoardSpec, CharucoCamera, load_board, load_intrinsics, read_image
+    from drivers.rotvec import rotvec_from_pose
+    from drivers.sim.camera import DEFAULT_INTRINSICS, BoardRenderer
+    from drivers.sim.ursim import URSimProcess
+    # a resumed capture draws its own noise and candidate views, not the first run's again
+    rng = np.random.default_rng(args.seed + (len(previous.images) if previous else 0))
+    sim = not args.arm
+    speed = args.speed or (0.8 if sim else 0.25)
+    settle = args.settle if args.settle is not None else (0.0 if sim else 0.3)
+    images = list(previous.images) if previous else []
+    flanges = list(previous.flanges) if previous else []
+    try:
+        board_file = args.board or (previous.board if previous else None)
+        intr_file = args.intrinsics or (previous.intrinsics if previous else None)
+        board = load_board(board_file) if board_file else BoardSpec()
+        intr = load_intrinsics(intr_file) if intr_file else DEFAULT_INTRINSICS
+        detector = CharucoCamera(intr, board)
+        with contextlib.ExitStack() as stack:
+            if sim:
+                x_true, z_true, home = _sim_cell(args.setup, board)
+                ursim = stack.enter_context(URSimProcess())
+                # a capture resumed goes on from where the arm stood at its last view
+                ursim.set_pose(rotvec_from_pose(flanges[-1] if flanges else home))
+                arm = stack.enter_context(drivers.open_arm(f"ur:{ursim.host}",
+                                                           limits=Limits(**_SIM_SPEED),
+                                                           stale_after=STALE_AFTER))
+                renderer = BoardRenderer(board, intr)
+
+                def grab(flange):
+                    return renderer.render(handeye.view_at(flange, x_true, z_true, args.setup),
+                                           blur=args.blur, noise=args.noise, rng=rng)
+            else:
+                from drivers.camera import open_frames
+                arm = stack.enter_context(drivers.open_arm(args.arm, stale_after=STALE_AFTER))
+                frames = open_frames(args.camera)
+                stack.callback(frames.close)
+
+                def grab(flange):
+                    img = frames.read(5.0)
+                    if img is None:
+                        raise OSError(f"--camera: {args.camera} gave no image")
+                    return img
+            os.makedirs(args.dir, exist_ok=True)
+
+            def shoot(flange):
+                img = grab(flange)
+                name = f"view_{len(images):03d}.png"
+                if not cv2.imwrite(os.path.join(args.dir, name), img):
+                    raise OSError(f"DIR: cannot write {os.path.join(args.dir, name)}")
+                images.append(name)
+                flanges.append(flange)
+                return detector.detect(img)
+
+            try:
+                if previous:
+                    state = _resumed(args, previous, detector, read_image, board, rng)
+                    print(f"resuming: {len(images)} views in {args.dir}", file=sys.stderr)
+                else:
+                    _, start = arm.tool_pose()
+                    first = shoot(start)
+                    if not first.ok:
+                        os.remove(os.path.join(args.dir, images.pop()))
+                        flanges.pop()
+                        raise ValueError(f"the camera does not see the board at the start "
+                                         f"pose ({first}); start with the board in view")
+                    state = _Capture(args.setup, start, first, board, rng, args.choose)
+                    print(f"view 0: the start pose ({'simulated UR' if sim else args.arm})",
+                          file=sys.stderr)
+                stop = _views_loop(args, arm, state, shoot, speed, settle)
+            finally:    # what was taken is kept, also when the arm or camera failed midway
+                if images:
+                    _save(args, images, flanges, intr, board,
+                          (x_true, z_true) if sim else None)
+    except KeyboardInterrupt:       # the arm was stopped and closed on the way out
+        print(f"dqpose handeye capture: interrupted; {len(images)} views saved in {args.dir}: "
+              f"`dqpose handeye capture {args.dir} --resume` continues it (to --views "
+              f"{args.views}), --force starts over", file=sys.stderr)
+        return INTERRUPTED
+    except (ValueError, OSError, RuntimeError) as e:
+        return fail("handeye capture", str(e))
+    if stop:
+        return fail("handeye capture", f"{stop}; {len(images)} views saved in {args.dir}")
+    print(f"{len(images)} views in {args.dir}; solve with: dqpose handeye solve {args.dir}")
+    return 0
+
+
+def _resumed(args, previous: _Previous, detector, read_image, board, rng) -> "_Capture":
+    """The choice of views where the capture in DIR left it: its views detected again (the
+    first, the start, must show the board) and the solver's answer from them."""
+    found = [detector.detect(read_image(os.path.join(args.dir, im))) for im in previous.images]
+    if not found[0].ok:
+        raise ValueError(f"--resume: the board is not detected in {previous.images[0]}, the "
+                         f"capture's first view; --force starts over")
+    state = _Capture(args.setup, previous.flanges[0], found[0], board, rng, args.choose)
+    for flange, d in zip(previous.flanges[1:], found[1:]):
+        if d.ok:
+            state.add(flange, d)
+    state.taken = len(previous.images)
+    return state
+
+
+#: a capture stops when the board was not detected in this many views in a row
+MAX_MISSES = 5
+
+
+def _views_loop(args, arm, state, shoot, speed: float, settle: float) -> str | None:
+    """Moves to the chosen views and shoots until ``args.views`` are taken; why it stopped
+    early, else None."""
+    from service import dq, handeye
+    misses = 0
+    while state.taken < args.views:
+        targets = [handeye.flange_for(v, state.x, state.z, args.setup) for v in state.candidates]
+        for k in state.order(targets):
+            try:
+                arm.limits.check_workspace("pose", dq.to_pose(targets[k])[1], "")
+                break
+            except ValueError:
+                continue
+        else:
+            return "no candidate view left within the arm's workspace"
+        how = state.rule()
+        state.drop(k)
+        _move(arm, targets[k], speed)
+        if settle:
+            import time
+            time.sleep(settle)
+        _, reached = arm.tool_pose()
+        d = shoot(reached)
+        print(f"view {state.taken}: {how}" + ("" if d.ok else f" (not detected: {d})"),
+              file=sys.stderr)
+        state.taken += 1
+        if d.ok:
+            state.add(reached, d)
+            misses = 0
+        else:
+            misses += 1
+            if misses >= MAX_MISSES:
+                return (f"the board was not detected in {misses} views in a row (the camera, "
+                        f"the board or the lighting?)")
+    return None
+
+
+def _save(args, images, flanges, intr, board, truth) -> None:
+    """The folder ``solve`` reads: ``poses.json``, the intrinsics, the board and, for a
+    simulation, the truth ``(x, z)``."""
+    import numpy as np
+
+    from service.cli.posefile import pose_json, robot_poses_json
+    with open(os.path.join(args.dir, "poses.json"), "w", encoding="utf-8") as f:
+        f.write(robot_poses_json(images, np.array(flanges), args.setup))
+    with open(os.path.join(args.dir, "intrinsics.json"), "w", encoding="utf-8") as f:
+        json.dump({"K": intr.K.tolist(), "dist": intr.dist.tolist(),
+                   "image_size": list(intr.size)}, f, indent=1)
+    with open(os.path.join(args.dir, "board.json"), "w", encoding="utf-8") as f:
+        json.dump({"kind": board.kind, "squares": list(board.squares),
+                   "square_length": board.square_length, "marker_length": board.marker_length,
+                   "dictionary_name": board.dictionary_name}, f, indent=1)
+    if truth is not None:
+        with open(os.path.join(args.dir, "truth.json"), "w", encoding="utf-8") as f:
+            json.dump({"setup": args.setup, "x": pose_json(truth[0]), "z": pose_json(truth[1])},
+                      f, indent=1)
+
+
+def _move(arm, target, speed: float) -> None:
+    """A straight tool move to ``target`` at up to ``speed`` m/s, slowed so that the tool's turn
+    stays within the arm's angular speed limit (UR turns the tool in step with the line)."""
+    from drivers.base import pose_delta
+    L = arm.limits
+    _, here = arm.tool_pose()
+    dist, angle = pose_delta(here, target)
+    v = min(speed, L.max_linear_speed)
+    if angle > 1e-9 and dist > 1e-9:
+        v = min(v, 0.95 * L.max_angular_speed * dist / angle)
+    arm.move(target, v, min(1.0, L.max_linear_accel))
