@@ -1262,6 +1262,10 @@ class Tracker:
         codes = self._body_codes
         return self._newest[[codes[b] for b in bodies]].tolist()
 
+    def count(self, body: str) -> int:
+        """How many measurements ``body``'s window holds."""
+        return len(self._rows(body))
+
     def oldest(self, body: str) -> float:
         """When the oldest measurement in ``body``'s window was taken."""
         return float(self._store.taken[self._rows(body)].min())

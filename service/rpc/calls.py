@@ -1,8 +1,9 @@
 """What every servicer shares: one call in, one status out, one log line and one metric sample.
 
 A handler raises :class:`~service.errors.FieldError` for bad input (``INVALID_ARGUMENT`` with its
-text, which starts with the proto field path) and :class:`TooLarge` for an answer over the
-server's max message size (``RESOURCE_EXHAUSTED``, see :func:`fit`); anything else is
+text, which starts with the proto field path), :class:`~service.limits.OverLimit` for a request
+over one of the server's limits and :class:`TooLarge` for an answer over the server's max message
+size (both ``RESOURCE_EXHAUSTED``, see :func:`fit`); anything else is
 ``INTERNAL``, logged with its traceback, and the server keeps running.
 """
 from __future__ import annotations
@@ -15,6 +16,7 @@ import time
 import grpc
 
 from service.errors import FieldError, Infeasible
+from service.limits import OverLimit
 
 log = logging.getLogger("dqpose.server")
 call_log = logging.getLogger("dqpose.calls")
@@ -48,6 +50,8 @@ def refusal(e: Exception) -> grpc.StatusCode | None:
     """The status a handler's deliberate refusal stands for; None for anything else (INTERNAL)."""
     if isinstance(e, Infeasible):
         return grpc.StatusCode.FAILED_PRECONDITION
+    if isinstance(e, OverLimit):
+        return grpc.StatusCode.RESOURCE_EXHAUSTED
     if isinstance(e, FieldError):
         return grpc.StatusCode.INVALID_ARGUMENT
     if isinstance(e, TooLarge):

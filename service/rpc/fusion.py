@@ -11,10 +11,10 @@ import zlib
 import grpc
 import numpy as np
 
-from service import fusion
+from service import fusion, limits
 from service.errors import FieldError, rename
 from service.rpc import DEFAULT_MAX_POSES
-from service.rpc.calls import INTERNAL_DETAILS, Calls, log
+from service.rpc.calls import INTERNAL_DETAILS, Calls, log, refusal
 from google.protobuf.message import DecodeError
 
 from service.rpc.convert import (DEFAULT_WINDOW, Measurements, Options, fuse_stream_from_wire,
@@ -71,7 +71,8 @@ def tick_time(k: int, rate: float, phase: float) -> float:
 
 def first_tick(t: float, rate: float, phase: float = 0.0) -> int:
     """The first tick ``k`` (at :func:`tick_time`) at or after ``t``, exactly in floating
-    point."""
+    point (a step or two of correction while ``|t| * rate`` is within
+    :data:`limits.EXACT_TICKS`, which the stream's limits keep it)."""
     k = math.ceil(t * rate - phase)
     while tick_time(k - 1, rate, phase) >= t:
         k -= 1
@@ -85,9 +86,11 @@ class Stream:
     rate, each body's next tick. Nothing here reads a clock: the answers are a function of the
     requests alone, so a recorded stream replays to the same answers."""
 
-    def __init__(self, options: Options, rate: float, field: str = "requests[0].options"):
+    def __init__(self, options: Options, rate: float, field: str = "requests[0].options",
+                 bounds: limits.Limits = limits.DEFAULT):
         self.options = options
         self.rate = rate
+        self.limits = bounds
         try:
             self.tracker = fusion.Tracker(options.window or DEFAULT_WINDOW,
                                           **options.fuse_kwargs())
@@ -108,13 +111,21 @@ class Stream:
         rows are checked already by the tracker's rules, those with a code refused (and named by
         the tracker's own check of that row alone), the others taken in unchecked."""
         n = len(m.index)
-        if self.known is None or self.known.issuperset(m.sources):
-            errors, rows = [], range(n)     # the common case: every source listed
-        else:
+        errors = []
+        if self.known is not None and not self.known.issuperset(m.sources):
             errors = unknown_sources(m, self.options, field)
+        far = np.abs(m.times) > self.limits.max_time
+        if far.any():
+            errors += [(k, limits.over(
+                f"{field}[{int(m.index[k])}].time", f"{float(m.times[k]):.6g} s is beyond "
+                f"+-{self.limits.max_time:.6g} s", self.limits, "max_time"))
+                for k in np.flatnonzero(far).tolist()]
+        if errors:
             bad = {k for k, _ in errors}
             errors = [(int(m.index[k]), e) for k, e in errors]
             rows = [k for k in range(n) if k not in bad]
+        else:
+            rows = range(n)     # the common case: every source listed, every time in range
         tracker = self.tracker
         if codes is None:
             rows = list(rows)
@@ -143,36 +154,64 @@ class Stream:
         else:
             bodies = dict.fromkeys(m.bodies if len(rows) == n else [m.bodies[k] for k in rows])
         if not self.rate:
-            due = [(body, None) for body in bodies]
+            due = [(body, (None,)) for body in bodies]
         else:
             newest = tracker.newest_of(bodies)
             next_time = self.next_time
             # most bodies of a request: their next tick not reached yet
-            due = [(body, t) for body, newest_t in zip(bodies, newest)
-                   if next_time.get(body, -math.inf) <= newest_t for t in self._due(body)]
+            due = [(body, self._due(body)) for body, newest_t in zip(bodies, newest)
+                   if next_time.get(body, -math.inf) <= newest_t]
         # each estimated when it is asked for: an answer can be on its way while the next one
         # of the same request is fused
-        return (self._answer(body, t, field) for body, t in due), errors
+        return self._within_budget(due, field), errors
 
     def _due(self, body: str) -> list:
         """The fusion times due for ``body`` (output rate > 0): the ticks its newest measurement
-        has reached (not before the oldest one in its window)."""
+        has reached (not before the oldest one in its window), counted in closed form: a body
+        whose time leapt gives a range, not a loop over every tick in between."""
         newest = self.tracker.newest(body)
+        rate = self.rate
         k = self.next_tick.get(body)
         phase = self.phase.get(body)
         if phase is None:
             phase = self.phase[body] = tick_phase(body)
-        if k is not None and tick_time(k, self.rate, phase) > newest:
-            return []
-        first = first_tick(self.tracker.oldest(body), self.rate, phase)
+        first = first_tick(self.tracker.oldest(body), rate, phase)
         k = first if k is None else max(k, first)
-        due = []
-        while (t := tick_time(k, self.rate, phase)) <= newest:
-            due.append(t)
-            k += 1
-        self.next_tick[body] = k
-        self.next_time[body] = t
-        return due
+        end = first_tick(newest, rate, phase)
+        if tick_time(end, rate, phase) <= newest:
+            end += 1
+        self.next_tick[body] = max(k, end)
+        self.next_time[body] = tick_time(max(k, end), rate, phase)
+        return range(k, end)
+
+    def _within_budget(self, due: list, field: str):
+        """``(body, fused or FieldError, ids)`` of each due tick, in order, as long as the
+        message's answers fuse at most ``max_fused_per_request`` measurements: a body's ticks
+        beyond it are skipped, its latest kept, and one error entry says how many."""
+        budget = self.limits.max_fused_per_request
+        for body, ticks in due:
+            if not len(ticks):
+                continue
+            cost = self.tracker.count(body) + limits.ANSWER_ROWS
+            take = min(len(ticks), budget // cost)
+            budget -= take * cost
+            if take < len(ticks):
+                skipped = len(ticks) - take
+                at = (f"{skipped} ticks from {self._time(body, ticks[0]):.6g} s to "
+                      f"{self._time(body, ticks[skipped - 1]):.6g} s" if self.rate else
+                      "its newest measurement")
+                where = field.rsplit(".", 1)[0]
+                yield body, limits.over(
+                    where, f"body {body!r}: {at} not answered: this message's answers would "
+                           f"fuse more measurements ({cost} an answer)", self.limits,
+                    "max_fused_per_request"), np.empty(0, np.int64)
+            for k in ticks[len(ticks) - take:]:
+                yield self._answer(body, self._time(body, k), field)
+
+    def _time(self, body: str, k):
+        """The fusion time of ``body``'s tick ``k`` (None: its newest measurement's, output
+        rate 0)."""
+        return None if k is None else tick_time(k, self.rate, self.phase[body])
 
     def _answer(self, body: str, t, field: str):
         try:
@@ -201,6 +240,7 @@ class Fusion(pb_grpc.FusionServicer):
     def __init__(self, cfg=None, calls: Calls | None = None):
         """``cfg`` is the server's ``ServerConfig`` (its defaults when None)."""
         self.max_poses = cfg.max_poses if cfg is not None else DEFAULT_MAX_POSES
+        self.limits = cfg.limits if cfg is not None else limits.DEFAULT
         self.calls = calls or Calls()
 
     def _check_count(self, field: str, n: int) -> None:
@@ -240,10 +280,13 @@ class Fusion(pb_grpc.FusionServicer):
         if not (math.isfinite(rate) and rate >= 0.0):
             raise FieldError(f"requests[0].output_rate: must be finite and >= 0 (0: an answer "
                              f"after every request), got {rate!r}")
+        if rate > self.limits.max_output_rate:
+            raise limits.over("requests[0].output_rate", f"{rate:.6g} Hz", self.limits,
+                              "max_output_rate")
         if options.time:
             raise FieldError("requests[0].options.time: StreamFuse answers at its output ticks, "
                              "or at each body's newest measurement; leave it 0")
-        return Stream(options, rate)
+        return Stream(options, rate, bounds=self.limits)
 
     def stream_step(self, state, request: pb.FuseStreamRequest, r: int,
                     first_id: int) -> list[pb.FusedPose]:
@@ -357,8 +400,9 @@ class Fusion(pb_grpc.FusionServicer):
                                              "dqpose.v1.FuseStreamRequest message") from None
                         state = self.stream_options(request)
                     except FieldError as e:
-                        code = "INVALID_ARGUMENT"
-                        await context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
+                        status = refusal(e)
+                        code = status.name
+                        await context.abort(status, str(e))
                     answers = self.stream_step(state, request, r, next_id)
                     n = len(request.measurements)
                 else:

@@ -1,0 +1,116 @@
+"""The server's bounds on what one request or one stream may cost: the one table of them.
+
+Every field of :class:`Limits` is a limit: its default, unit and meaning are here and nowhere
+else; ``ServerConfig.limits`` holds the values a server runs with and ``dqpose serve`` has one
+flag per field (the field's name with dashes: ``max_output_rate`` is ``--max-output-rate``,
+:func:`add_flags`). A request over a limit is refused before anything of its size is allocated,
+with :class:`OverLimit` (gRPC ``RESOURCE_EXHAUSTED``, or an error entry in a stream) naming the
+request's field, the limit and its flag (:func:`over`).
+
+Cost model (one core of the 2-core test machine, BENCHMARKS.md "Bounded cost"); the defaults
+keep the costliest legal request near a second of one worker's time:
+
+* StreamFuse: ticks are computed in closed form (no loop over skipped ticks), so a message costs
+  its decoding (~7 µs a measurement) plus its answers. An answer fuses its body's window:
+  ~5 µs a measurement (constant twist, in C) and ~0.1 ms of Python around it, counted as
+  ``ANSWER_ROWS`` measurements. ``max_fused_per_request`` bounds the sum over one message's
+  answers (200,000: ~1 s); ticks beyond it are skipped, the latest kept, and said so.
+  A tick is exact in floating point while ``|time| * output_rate`` stays below 2^50
+  (``max_time * max_output_rate``, checked at start).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+from service.errors import FieldError
+
+#: what an answer costs besides its window's measurements, in measurements (~0.1 ms of Python)
+ANSWER_ROWS = 20
+#: ticks are exact while |time| * rate stays below this (a double's integers are exact to 2^53)
+EXACT_TICKS = 2.0**50
+
+
+class OverLimit(FieldError):
+    """A request over one of the server's :class:`Limits`: ``RESOURCE_EXHAUSTED``. The text
+    starts with the request's field, like any :class:`FieldError`, and names the limit and its
+    ``dqpose serve`` flag."""
+
+
+def _limit(default, unit: str, meaning: str, lo=0):
+    return field(default=default, metadata={"unit": unit, "meaning": meaning, "lo": lo})
+
+
+@dataclass(frozen=True)
+class Limits:
+    """The limits a server enforces (defaults: the cost model in the module docstring)."""
+
+    max_output_rate: float = _limit(
+        1000.0, "Hz", "StreamFuse output_rate, answers per second of measurement time per body",
+        lo=1e-9)
+    max_time: float = _limit(
+        1e10, "s", "largest |time| of a measurement or a fusion time (seconds on any clock; "
+                   "Unix time is 1.8e9), so that a time keeps microseconds", lo=1.0)
+    max_fused_per_request: int = _limit(
+        200_000, "measurements", "StreamFuse: measurements fused for one message's answers, "
+                                 f"each answer counting its window and {ANSWER_ROWS} more; "
+                                 "ticks beyond it are skipped (the latest kept)", lo=1)
+
+    def __post_init__(self):
+        self.check()
+
+    def check(self) -> None:
+        """``ValueError("name: problem")`` for the first value out of range."""
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            integral = f.type in ("int", int)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or (
+                    integral and not isinstance(v, int)):
+                raise LimitConfigError(f.name, f"must be {'an integer' if integral else 'a number'}"
+                                               f", got {v!r}")
+            if not (math.isfinite(v) and v >= f.metadata["lo"]):
+                raise LimitConfigError(f.name, f"must be finite and >= {f.metadata['lo']:g}, "
+                                               f"got {v!r}")
+        if self.max_time * self.max_output_rate > EXACT_TICKS:
+            raise LimitConfigError("max_time", f"max_time * max_output_rate must stay below "
+                                               f"2^50 (ticks exact), got {self.max_time:g} s * "
+                                               f"{self.max_output_rate:g} Hz")
+
+
+class LimitConfigError(ValueError):
+    """A limit the server cannot start with; ``setting`` names it (the ``ServerConfig`` field
+    convention: its flag is the name with dashes)."""
+
+    def __init__(self, setting: str, problem: str):
+        super().__init__(f"{setting}: {problem}")
+        self.setting, self.problem = setting, problem
+
+
+DEFAULT = Limits()
+
+
+def flag(name: str) -> str:
+    """The ``dqpose serve`` flag of limit ``name``."""
+    return "--" + name.replace("_", "-")
+
+
+def over(where: str, what: str, limits: Limits, name: str) -> OverLimit:
+    """``"{where}: {what}, over the server's limit max_x = v unit (dqpose serve --max-x)"``."""
+    f = Limits.__dataclass_fields__[name]
+    return OverLimit(f"{where}: {what}, over the server's limit {name} = "
+                     f"{getattr(limits, name):.6g} {f.metadata['unit']} "
+                     f"(dqpose serve {flag(name)})")
+
+
+def add_flags(parser) -> None:
+    """One ``dqpose serve`` flag per limit, with its default, unit and meaning."""
+    for f in dataclasses.fields(Limits):
+        parser.add_argument(flag(f.name), type=int if f.type in ("int", int) else float,
+                            default=f.default, metavar=f.metadata["unit"].split()[0].upper(),
+                            help=f"{f.metadata['meaning']} (default: %(default)s)")
+
+
+def from_args(args) -> Limits:
+    """The :class:`Limits` of parsed ``dqpose serve`` flags (:func:`add_flags`)."""
+    return Limits(**{f.name: getattr(args, f.name) for f in dataclasses.fields(Limits)})
