@@ -90,7 +90,8 @@ class Status(enum.IntEnum):
     """How the estimate was reached (ruckig-style result code)."""
     CONVERGED = 0        # the last Gauss-Newton step was shorter than tol
     MAX_ITERATIONS = 1   # max_iter steps taken, the last one still longer than tol
-    GATE_UNSTABLE = 2    # robust mode: the inlier set cycled; the fit of the last set is returned
+    GATE_UNSTABLE = 2    # robust mode: the inlier set cycled, or had not settled after _GATE_FITS
+                         # fits; the fit of the last set is returned
 
 
 class Verdict(enum.IntEnum):
@@ -393,18 +394,24 @@ def _fit(Z: np.ndarray, S: np.ndarray, inlier: np.ndarray, tol: float, max_iter:
 
 
 # ---- robust mode -------------------------------------------------------------------------------
+# The consensus compares every measurement with at most this many candidates for the group's
+# centre (all of them when there are no more): O(n) rather than every pair's O(n^2).
+_CANDIDATES = 64
+
+
 def _consensus(Z: np.ndarray, S: np.ndarray, gate2: float) -> np.ndarray:
     """The measurement agreeing with most others, and those: pairwise ``Log(Z_i⁻¹ Z_j)`` against
-    ``Σ_i + Σ_j`` (to first order ``Exp(ε_i) Exp(-ε_j)``, both in the body frame)."""
+    ``Σ_i + Σ_j`` (to first order ``Exp(ε_i) Exp(-ε_j)``, both in the body frame), in C. Beyond
+    ``_CANDIDATES`` measurements the centre is sought among that many spread over them (any
+    inlier finds the inliers' group; the gate that follows judges every measurement)."""
     n = Z.shape[0]
-    d = lie.se3_log(dq.mul(dq.conj(Z)[:, None], Z[None]))
-    D2 = np.einsum("ijk,ijk->ij", d,
-                   np.linalg.solve(S[:, None] + S[None], d[..., None])[..., 0])
+    cand = np.arange(n) if n <= _CANDIDATES else (np.arange(_CANDIDATES) * n) // _CANDIDATES
+    D2 = _c.pair_distances(Z, S, cand)
     agree = D2 <= gate2
-    np.fill_diagonal(agree, True)
+    agree[np.arange(len(cand)), cand] = True
     count = agree.sum(axis=1)
     spread = np.where(agree, D2, 0.0).sum(axis=1)
-    best = min(range(n), key=lambda i: (-count[i], spread[i], i))
+    best = min(range(len(cand)), key=lambda a: (-count[a], spread[a], a))
     return agree[best].copy()
 
 
@@ -984,17 +991,22 @@ def _robust_motion(Z, S, model: _Model, allowed: np.ndarray, gate2, tol, max_ite
                  lambda fit, m: _motion_nis(fit, S, m, model), gate2)
 
 
+# The gate refits at most this many times (each fit is linear in the measurements, or cubic with
+# an acceleration_psd): the bound of a robust fit's cost (service/limits.py).
+_GATE_FITS = 50
+
+
 def _gate(inlier, allowed, fit_of, nis_of, gate2):
     """From ``inlier``: remove the worst failing inlier, one at a time (an outlier inside pulls
     the others' innovations), then admit every ``allowed`` measurement that passes; until
-    nothing changes or a set repeats."""
+    nothing changes, a set repeats or ``_GATE_FITS`` fits were made."""
     seen = set()
     status = None
     while True:
         fit = fit_of(inlier)
         nis, tested = nis_of(fit, inlier)
         key = inlier.tobytes()
-        if key in seen:
+        if key in seen or len(seen) >= _GATE_FITS:
             status = Status.GATE_UNSTABLE
             break
         seen.add(key)

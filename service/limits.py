@@ -17,6 +17,14 @@ keep the costliest legal request near a second of one worker's time:
   answers (200,000: ~1 s); ticks beyond it are skipped, the latest kept, and said so.
   A tick is exact in floating point while ``|time| * output_rate`` stays below 2^50
   (``max_time * max_output_rate``, checked at start).
+* Robust fits: the consensus compares every measurement with at most 64 candidate centres
+  (C, ~0.8 µs a pair), then the gate refits (~4 µs a measurement, in C) at most 50 times:
+  ``max_robust`` 2,000 measurements is ~0.1 s typically, ~0.7 s at worst.
+* A fit with ``acceleration_psd`` solves a dense ``6n × 6n`` system (NumPy, O(n³)): 26 ms at
+  100 measurements, 0.16 s at 200, 1 s at 400; ``max_correlated`` 100, times the gate's 50 refits
+  at worst.
+* Everything else is linear in the request's size, bounded by ``max_poses`` and
+  ``max_message_bytes``; a request larger than ``INLINE_BYTES`` runs in the worker pool.
 """
 from __future__ import annotations
 
@@ -26,6 +34,11 @@ from dataclasses import dataclass, field
 
 from service.errors import FieldError
 
+#: a request of at most this many bytes is served on the event loop (its work, linear in its
+#: size, stays under ~1 ms); a larger one in the worker pool (``workers``)
+INLINE_BYTES = 4096
+#: a request after which the process holds this much more memory has it given back (malloc_trim)
+TRIM_BYTES = 32 << 20
 #: what an answer costs besides its window's measurements, in measurements (~0.1 ms of Python)
 ANSWER_ROWS = 20
 #: ticks are exact while |time| * rate stays below this (a double's integers are exact to 2^53)
@@ -46,6 +59,15 @@ def _limit(default, unit: str, meaning: str, lo=0):
 class Limits:
     """The limits a server enforces (defaults: the cost model in the module docstring)."""
 
+    workers: int = _limit(
+        2, "threads", "worker threads shared by every service: what grows with a request runs "
+                      "there, off the event loop (a request waits for a free one)", lo=1)
+    max_robust: int = _limit(
+        2000, "measurements", "measurements in one robust fit (Fuse with options.robust, a "
+                              "StreamFuse body's window in a robust stream)", lo=1)
+    max_correlated: int = _limit(
+        100, "measurements", "measurements in one fit with options.acceleration_psd (its "
+                             "cost grows with their cube)", lo=1)
     max_output_rate: float = _limit(
         1000.0, "Hz", "StreamFuse output_rate, answers per second of measurement time per body",
         lo=1e-9)

@@ -170,4 +170,13 @@ void dq_motion_determined(const dq_motion_model *m, const unsigned char *inlier,
  * Cholesky factor, exactly symmetric; 0 when H is not positive definite. work: dim^2 + 2 dim. */
 int dq_spd_inverse(const double *H, int dim, double *work, double *P);
 
+/*
+ * The squared Mahalanobis distances of the robust mode's consensus (service/fusion.py): between
+ * candidate c = cand[a] and every measurement j, d2[a n + j] = r^T (S_c + S_j)^-1 r with
+ * r = Log(Z_c^-1 Z_j) (first order: both errors in the body frame). O(m n) time, no memory of
+ * its own. Returns DQ_OK, or DQ_E_NOT_SPD with *bad = j when S_c + S_j does not factor.
+ */
+int dq_pair_distances(const double *z, const double *cov, size_t n, const long long *cand,
+                      size_t m, double *d2, size_t *bad);
+
 #endif

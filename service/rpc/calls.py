@@ -9,13 +9,18 @@ size (both ``RESOURCE_EXHAUSTED``, see :func:`fit`); anything else is
 from __future__ import annotations
 
 import asyncio
+import ctypes
+import ctypes.util
 import json
 import logging
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import grpc
 
 from service.errors import FieldError, Infeasible
+from service import limits
 from service.limits import OverLimit
 
 log = logging.getLogger("dqpose.server")
@@ -83,13 +88,30 @@ class Calls:
     over it sets ``cut``: a stream that then ends "OK" ended because gRPC cancelled it (a cancelled
     stream reads as a stream the client closed), and is recorded as CANCELLED, as its client saw."""
 
-    def __init__(self, metrics=None):
+    def __init__(self, metrics=None, workers: int = limits.DEFAULT.workers):
         self.metrics = metrics
+        self.workers = workers
+        self._pool: ThreadPoolExecutor | None = None
         self.logging = call_log.isEnabledFor(logging.INFO)
         self.cut = False
         self._pending: list[str] = []
         self._open = 0
         self._settled: asyncio.Event | None = None
+
+    async def work(self, fn, *args):
+        """``fn(*args)`` in the server's worker pool (``workers`` threads shared by every
+        servicer), so that the event loop goes on answering other calls, health and signals;
+        a request that sized more than ``limits.TRIM_BYTES`` of memory gives what it freed back
+        to the system afterwards (:func:`trim`)."""
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(self.workers, thread_name_prefix="dqpose-work")
+        return await asyncio.get_running_loop().run_in_executor(self._pool, _trimmed, fn, args)
+
+    def close(self) -> None:
+        """Lets the worker pool's threads end once their work is done."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
 
     @property
     def open(self) -> int:
@@ -174,3 +196,39 @@ class Calls:
             await context.abort(status, details)
         finally:
             self.done(rpc, status.name, t0, context)
+
+
+def _libc():
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        return libc.malloc_trim if hasattr(libc, "malloc_trim") else None
+    except OSError:
+        return None
+
+
+_MALLOC_TRIM = _libc()
+
+
+def _trimmed(fn, args):
+    """``fn(*args)``, then the heap trimmed when it grew by ``limits.TRIM_BYTES`` or more:
+    glibc keeps what a thread's arena freed (the probe's large requests left RSS at 6-7 GB)."""
+    if _MALLOC_TRIM is None:
+        return fn(*args)
+    before = _rss()
+    try:
+        return fn(*args)
+    finally:
+        if _rss() - before >= limits.TRIM_BYTES:
+            _MALLOC_TRIM(0)
+
+
+def _rss() -> int:
+    """This process's resident memory, bytes (the second field of /proc/self/statm, pages)."""
+    try:
+        with open("/proc/self/statm", "rb") as f:
+            return int(f.read().split()[1]) * _PAGE
+    except OSError:
+        return 0
+
+
+_PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096

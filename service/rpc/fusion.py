@@ -253,8 +253,10 @@ class Fusion(pb_grpc.FusionServicer):
     # -- request -> response, no transport
 
     def fuse(self, request: pb.FuseRequest) -> pb.FusedPose:
-        self._check_count("measurements", len(request.measurements))
+        n = len(request.measurements)
+        self._check_count("measurements", n)
         options = options_from_msg(request.options)
+        self._check_fit_size("measurements", n, options)
         m = measurements_to_arrays(request.measurements)
         for k, body in enumerate(m.bodies):
             if body != m.bodies[0]:
@@ -272,6 +274,25 @@ class Fusion(pb_grpc.FusionServicer):
         except ValueError as e:
             raise _domain_error(e, m.index, "measurements", "options") from None
         return fused_to_msg(fused, m.bodies[0], fused.time)
+
+    def fuse_bytes(self, data: bytes) -> bytes:
+        """What Fuse serves: ``FusedPose`` bytes for ``FuseRequest`` bytes."""
+        try:
+            request = pb.FuseRequest.FromString(data)
+        except DecodeError:
+            raise FieldError("request: not a valid dqpose.v1.FuseRequest message") from None
+        return self.fuse(request).SerializeToString()
+
+    def _check_fit_size(self, field: str, n: int, options: Options) -> None:
+        """``n`` measurements in one fit with ``options``: within the robust and the correlated
+        fits' limits, or :class:`limits.OverLimit` naming the one passed."""
+        if options.robust and n > self.limits.max_robust:
+            raise limits.over(field, f"{n} measurements in one robust fit (options.robust)",
+                              self.limits, "max_robust")
+        if (options.acceleration_psd is not None and options.acceleration_psd.any()
+                and n > self.limits.max_correlated):
+            raise limits.over(field, f"{n} measurements in one fit with "
+                                     f"options.acceleration_psd", self.limits, "max_correlated")
 
     def stream_options(self, request: pb.FuseStreamRequest):
         """The first request's options as the stream's state; a ``FieldError`` ends the stream."""
@@ -366,12 +387,12 @@ class Fusion(pb_grpc.FusionServicer):
     # -- RPCs
 
     def register(self, server) -> None:
-        """``add_FusionServicer_to_server`` except that StreamFuse takes its requests as bytes,
-        which :meth:`stream_step_wire` decodes (the C decoder for plain ones)."""
+        """``add_FusionServicer_to_server`` except that both RPCs take bytes: Fuse's are parsed
+        with the fit (:meth:`fuse_bytes`, off the event loop when large), StreamFuse's decoded by
+        :meth:`stream_step_wire` (the C decoder for plain ones)."""
         handlers = {
             "Fuse": grpc.unary_unary_rpc_method_handler(
-                self.Fuse, request_deserializer=pb.FuseRequest.FromString,
-                response_serializer=pb.FusedPose.SerializeToString),
+                self.Fuse, request_deserializer=None, response_serializer=None),
             "StreamFuse": grpc.stream_stream_rpc_method_handler(
                 self.StreamFuse, request_deserializer=None,
                 response_serializer=pb.FusedPose.SerializeToString),
@@ -379,8 +400,13 @@ class Fusion(pb_grpc.FusionServicer):
         server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(self.NAME, handlers),))
         server.add_registered_method_handlers(self.NAME, handlers)
 
-    async def Fuse(self, request, context):
-        return await self.calls.unary("Fuse", self.fuse, request, context)
+    async def Fuse(self, request: bytes, context):
+        # Registered without (de)serializers (register): bytes in and out, parsed and written
+        # with the fit, in the worker pool when the request is not small.
+        if len(request) <= limits.INLINE_BYTES:
+            return await self.calls.unary("Fuse", self.fuse_bytes, request, context)
+        return await self.calls.unary("Fuse", lambda r: self.calls.work(self.fuse_bytes, r),
+                                      request, context)
 
     async def StreamFuse(self, request_iterator, context):
         t0 = self.calls.begin()

@@ -398,6 +398,7 @@ class Running:
         if not await self.calls.settled(5.0):
             log.warning(json.dumps({"event": "calls_not_recorded", "open": self.calls.open}))
         self.calls.flush()
+        self.calls.close()
         if self.metrics is not None:
             self.metrics.close()
 
@@ -470,7 +471,7 @@ async def start(cfg: ServerConfig) -> Running:
         if e.errno == errno.EADDRINUSE:
             raise AddressInUse("serve metrics on", where, "metrics_port") from None
         raise OSError(f"cannot serve metrics on {where}: {(e.strerror or str(e)).lower()}") from None
-    calls = Calls(metrics)
+    calls = Calls(metrics, cfg.limits.workers)
     gate = Gate(calls)
     interceptors = [gate] + ([BearerTokenAuth(cfg.token, calls)] if cfg.token else [])
     server = grpc.aio.server(options=server_options(cfg), interceptors=interceptors)
