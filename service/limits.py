@@ -23,6 +23,10 @@ keep the costliest legal request near a second of one worker's time:
 * A fit with ``acceleration_psd`` solves a dense ``6n × 6n`` system (NumPy, O(n³)): 26 ms at
   100 measurements, 0.16 s at 200, 1 s at 400; ``max_correlated`` 100, times the gate's 50 refits
   at worst.
+* HandEye Calibrate compares every two pairs (the all-pairs closed form, the screw-congruence
+  and duplicate checks, per-sample medians over pairs: O(n²) by construction), then refines in
+  O(n): ``max_pairs`` 200 is ~0.7 s. The corner level is linear in the corners (its normal
+  equations solved view by view): ~0.1 ms a corner, ``max_corners`` 10,000 ~1 s.
 * Everything else is linear in the request's size, bounded by ``max_poses`` and
   ``max_message_bytes``; a request larger than ``INLINE_BYTES`` runs in the worker pool.
 """
@@ -68,6 +72,12 @@ class Limits:
     max_correlated: int = _limit(
         100, "measurements", "measurements in one fit with options.acceleration_psd (its "
                              "cost grows with their cube)", lo=1)
+    max_pairs: int = _limit(
+        200, "pairs", "HandEye Calibrate: pose pairs per request (its closed form and data "
+                      "checks compare every two)", lo=3)
+    max_corners: int = _limit(
+        10_000, "corners", "HandEye Calibrate: board corners per request, all pairs together",
+        lo=4)
     max_output_rate: float = _limit(
         1000.0, "Hz", "StreamFuse output_rate, answers per second of measurement time per body",
         lo=1e-9)
