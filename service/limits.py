@@ -17,6 +17,9 @@ keep the costliest legal request near a second of one worker's time:
   answers (200,000: ~1 s); ticks beyond it are skipped, the latest kept, and said so.
   A tick is exact in floating point while ``|time| * output_rate`` stays below 2^50
   (``max_time * max_output_rate``, checked at start).
+* A stream keeps at most ``max_stream_measurements`` (100,000: ~40 MB) in its windows, a body
+  at most ``max_window`` (1,000: an answer of ~80 kB, ~5 ms to fuse); finding a body's window
+  scans the stream's (~0.1 ms at 100,000), within ``ANSWER_ROWS``.
 * Robust fits: the consensus compares every measurement with at most 64 candidate centres
   (C, ~0.8 µs a pair), then the gate refits (~4 µs a measurement, in C) at most 50 times:
   ``max_robust`` 2,000 measurements is ~0.1 s typically, ~0.7 s at worst.
@@ -84,6 +87,16 @@ class Limits:
     max_time: float = _limit(
         1e10, "s", "largest |time| of a measurement or a fusion time (seconds on any clock; "
                    "Unix time is 1.8e9), so that a time keeps microseconds", lo=1.0)
+    max_time_jump: float = _limit(
+        60.0, "s", "StreamFuse: how far after its body's newest a measurement may be taken; "
+                   "one further is refused, unless the body's next one confirms the jump",
+        lo=1e-9)
+    max_window: int = _limit(
+        1000, "measurements", "StreamFuse: measurements in one body's window (the oldest are "
+                              "left out beyond it); each answer lists them", lo=1)
+    max_stream_measurements: int = _limit(
+        100_000, "measurements", "StreamFuse: measurements all of one stream's windows hold "
+                                 "(~0.4 kB each); more are refused", lo=1)
     max_fused_per_request: int = _limit(
         200_000, "measurements", "StreamFuse: measurements fused for one message's answers, "
                                  f"each answer counting its window and {ANSWER_ROWS} more; "

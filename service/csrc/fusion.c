@@ -102,6 +102,9 @@ int dq_covariance_check(const double *S, double sym_tol, double *sym)
         }
     }
     if (!(asym <= sym_tol * scale)) return DQ_E_ASYMMETRIC;
+    for (int j = 0; j < 6; j++)
+        if (S[7 * j] > 0.0 && !(S[7 * j] >= DQ_MIN_VARIANCE && S[7 * j] <= DQ_MAX_VARIANCE))
+            return DQ_E_SCALE; /* one not positive is not positive definite: said so below */
     if (extreme) return DQ_E_BORDERLINE;
     for (int i = 0; i < 6; i++)
         for (int j = 0; j < 6; j++) sym[6 * i + j] = 0.5 * (S[6 * i + j] + S[6 * j + i]);

@@ -1636,5 +1636,7 @@ PyMODINIT_FUNC PyInit__dqcore(void)
     /* fuse_stream_from_wire's codes up to this one are measurements_to_arrays's, the rest the
      * Tracker's (wire.h) */
     PyModule_AddIntConstant(m, "MEASUREMENT_CONVERT_LAST", DQ_MEAS_CONVERT_LAST);
+    PyModule_AddObject(m, "MIN_VARIANCE", PyFloat_FromDouble(DQ_MIN_VARIANCE));
+    PyModule_AddObject(m, "MAX_VARIANCE", PyFloat_FromDouble(DQ_MAX_VARIANCE));
     return m;
 }

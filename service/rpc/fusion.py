@@ -93,7 +93,7 @@ class Stream:
         self.limits = bounds
         try:
             self.tracker = fusion.Tracker(options.window or DEFAULT_WINDOW,
-                                          **options.fuse_kwargs())
+                                          **options.fuse_kwargs(), limits=bounds)
         except ValueError as e:
             raise _options_error(e, field) from None
         self.next_tick: dict[str, int] = {}
@@ -101,6 +101,7 @@ class Stream:
         self.next_time: dict[str, float] = {}
         self.phase: dict[str, float] = {}
         self.known = frozenset(s.name for s in options.sources) if options.sources else None
+        self.capped: set[str] = set()      # bodies whose window has been said to be full
 
     def update(self, m: Measurements, ids: np.ndarray, field: str, codes=None):
         """Measurements ``m`` of one request (``ids``: their stream-wide numbers) into the
@@ -195,12 +196,18 @@ class Stream:
             cost = self.tracker.count(body) + limits.ANSWER_ROWS
             take = min(len(ticks), budget // cost)
             budget -= take * cost
+            where = field.rsplit(".", 1)[0]
+            if body not in self.capped and self.tracker.capped(body):
+                self.capped.add(body)
+                yield body, limits.over(
+                    where, f"body {body!r}: its window holds more measurements than its fits "
+                           f"take ({self.tracker.cap}); the oldest are left out", self.limits,
+                    "max_window"), np.empty(0, np.int64)
             if take < len(ticks):
                 skipped = len(ticks) - take
                 at = (f"{skipped} ticks from {self._time(body, ticks[0]):.6g} s to "
                       f"{self._time(body, ticks[skipped - 1]):.6g} s" if self.rate else
                       "its newest measurement")
-                where = field.rsplit(".", 1)[0]
                 yield body, limits.over(
                     where, f"body {body!r}: {at} not answered: this message's answers would "
                            f"fuse more measurements ({cost} an answer)", self.limits,

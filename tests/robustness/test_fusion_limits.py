@@ -70,7 +70,8 @@ def test_a_time_beyond_the_limit_is_an_error_entry_and_the_stream_goes_on(server
 
 def test_the_answers_of_one_message_are_bounded_the_latest_kept():
     # a 1e6 s window at 1000 Hz, reached by one message: 1e9 ticks due at once
-    bounds = limits.Limits(max_fused_per_request=10 * (2 + limits.ANSWER_ROWS))
+    bounds = limits.Limits(max_fused_per_request=10 * (2 + limits.ANSWER_ROWS),
+                           max_time_jump=2e6)
     fusion = Fusion(ServerConfig(limits=bounds))
     first = pb.FuseStreamRequest(output_rate=1000.0, measurements=[measurement(0.0)])
     first.options.window = 1e6
@@ -136,3 +137,97 @@ def test_a_fit_over_its_limit_is_refused_before_it_starts(server, option, name, 
     assert code == grpc.StatusCode.RESOURCE_EXHAUSTED, (code, details)
     assert details.startswith(f"measurements: {n} measurements in one "), details
     assert name in details and flag in details, details
+
+
+# ---- D5: no poisoned body; R4: bounded windows
+
+def in_process(**bounds):
+    """A Fusion servicer with these limits (the others the defaults), and a stream opened on
+    it at ``output_rate`` 0 (an answer per body after every request) with a 1e3 s window."""
+    fusion = Fusion(ServerConfig(limits=limits.Limits(**bounds)))
+    first = pb.FuseStreamRequest()
+    first.options.window = 1e3
+    state = fusion.stream_options(first)
+    fusion.stream_step(state, first, 0, 0)
+    count = [0]
+
+    def step(measurements):
+        count[0] += 1
+        out = fusion.stream_step(state, pb.FuseStreamRequest(measurements=measurements),
+                                 count[0], 1000 * count[0])
+        return [a for a in out if not a.HasField("error")], errors(out)
+    return step
+
+
+@pytest.mark.parametrize("t", [1e9, 3600.0])
+def test_a_measurement_far_ahead_is_refused_and_does_not_poison_its_body(server, t):
+    requests = [pb.FuseStreamRequest(measurements=[measurement(0.0)]),
+                pb.FuseStreamRequest(measurements=[measurement(t)])] + [
+        pb.FuseStreamRequest(measurements=[measurement(0.01 * k)]) for k in range(1, 4)]
+    answers = stream(server, requests)
+    (e,) = [a.error for a in answers if a.request == 1]
+    assert e.measurement == 0 and e.details.startswith("requests[1].measurements[0]: "), e
+    assert "max_time_jump" in e.details and "--max-time-jump" in e.details, e.details
+    later = [a for a in answers if a.request >= 2]
+    assert len(later) == 3 and not errors(later)       # each fused, none refused as too old
+    assert [a.time for a in later] == [0.01, 0.02, 0.03]
+
+
+def test_a_jump_confirmed_by_the_next_measurement_moves_the_body():
+    step = in_process()
+    step([measurement(0.0)])
+    fused, errs = step([measurement(2000.0)])
+    assert not fused and len(errs) == 1 and "max_time_jump" in errs[0]
+    fused, errs = step([measurement(2000.01)])
+    assert not errs and [a.time for a in fused] == [2000.01]
+    assert list(fused[0].measurements) == [3000]       # the old window (1e3 s) left behind
+
+
+@pytest.mark.parametrize("scale", [1e-300, 1e-30, 1e30])
+def test_a_covariance_whose_information_is_unusable_is_an_error_for_that_measurement(server,
+                                                                                    scale):
+    bad = measurement(0.01)
+    bad.covariance.extend((np.eye(6) * scale).ravel().tolist())
+    answers = stream(server, [pb.FuseStreamRequest(measurements=[measurement(0.0)]),
+                              pb.FuseStreamRequest(measurements=[bad]),
+                              pb.FuseStreamRequest(measurements=[measurement(0.02)])])
+    (e,) = [a.error for a in answers if a.request == 1]
+    assert e.details.startswith("requests[1].measurements[0].covariance: variance "), e.details
+    later = [a for a in answers if a.request == 2]
+    assert len(later) == 1 and not errors(later)       # the body goes on
+
+
+def test_a_window_holds_at_most_its_limit_and_says_so_once():
+    step = in_process(max_window=50)
+    said = []
+    for k in range(4):
+        fused, errs = step([measurement(0.001 * (30 * k + j)) for j in range(30)])
+        (answer,) = fused
+        assert len(answer.measurements) == min(30 * (k + 1), 50)
+        said += errs
+    assert list(answer.measurements)[-1] == 4029 and len(said) == 1
+    assert "max_window" in said[0] and "--max-window" in said[0], said
+
+
+def test_a_stream_holds_at_most_its_limit_of_measurements():
+    step = in_process(max_stream_measurements=40)
+    fused, errs = step([measurement(0.0, body=f"b{k}") for k in range(30)])
+    assert len(fused) == 30 and not errs
+    fused, errs = step([measurement(0.0, body=f"c{k}") for k in range(30)])
+    assert len(fused) == 10 and len(errs) == 20
+    assert all("max_stream_measurements" in e and "--max-stream-measurements" in e for e in errs)
+
+
+@pytest.mark.heavy
+@pytest.mark.parametrize("robust", [False, True])
+def test_the_probes_fifty_thousand_measurement_window_stays_within_one_message(server, robust):
+    first = pb.FuseStreamRequest()
+    first.options.window = 1e4
+    first.options.robust = robust
+    requests = [first] + [pb.FuseStreamRequest(measurements=[
+        measurement(1e-3 * (1000 * k + j)) for j in range(1000)]) for k in range(50)]
+    answers = stream(server, requests, timeout=600)
+    fused = [a for a in answers if not a.HasField("error")]
+    assert len(fused) == 50
+    assert max(len(a.measurements) for a in fused) == limits.DEFAULT.max_window
+    assert server.health() == "SERVING"
