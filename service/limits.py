@@ -12,9 +12,9 @@ keep the costliest legal request near a second of one worker's time:
 
 * StreamFuse: ticks are computed in closed form (no loop over skipped ticks), so a message costs
   its decoding (~7 µs a measurement) plus its answers. An answer fuses its body's window:
-  ~5 µs a measurement (constant twist, in C) and ~0.1 ms of Python around it, counted as
-  ``ANSWER_ROWS`` measurements. ``max_fused_per_request`` bounds the sum over one message's
-  answers (200,000: ~1 s); ticks beyond it are skipped, the latest kept, and said so.
+  ~13 µs a measurement (constant twist; its message included) and ~0.17 ms around it
+  (:func:`answer_cost`). ``max_fused_per_request`` bounds the sum over one message's answers
+  (75,000: ~1 s); ticks beyond it are skipped, the latest kept, and said so.
   A tick is exact in floating point while ``|time| * output_rate`` stays below 2^50
   (``max_time * max_output_rate``, checked at start).
 * A stream keeps at most ``max_stream_measurements`` (100,000: ~40 MB) in its windows, a body
@@ -46,8 +46,22 @@ from service.errors import FieldError
 INLINE_BYTES = 4096
 #: a request after which the process holds this much more memory has it given back (malloc_trim)
 TRIM_BYTES = 32 << 20
-#: what an answer costs besides its window's measurements, in measurements (~0.1 ms of Python)
-ANSWER_ROWS = 20
+#: StreamFuse answers costing at most this many measurements (:func:`answer_cost`: ~1 ms) are
+#: fused on the event loop, costlier ones in the worker pool
+INLINE_ROWS = 75
+
+
+def answer_cost(rows: int, robust: bool = False, correlated: bool = False) -> int:
+    """What fusing a window of ``rows`` measurements into one StreamFuse answer costs, in
+    measurements of a plain fit (~13 µs each on the test machine, the answer's message
+    included): ~0.17 ms for any answer, 4x the rows for a robust fit, and the dense solve of an
+    ``acceleration_psd`` fit (26 ms at 100 rows)."""
+    cost = ANSWER_ROWS + rows * (4 if robust else 1)
+    return cost + (rows ** 3 // 500 if correlated else 0)
+
+
+#: what an answer costs besides its window's measurements, in measurements (~0.17 ms)
+ANSWER_ROWS = 13
 #: ticks are exact while |time| * rate stays below this (a double's integers are exact to 2^53)
 EXACT_TICKS = 2.0**50
 
@@ -98,9 +112,10 @@ class Limits:
         100_000, "measurements", "StreamFuse: measurements all of one stream's windows hold "
                                  "(~0.4 kB each); more are refused", lo=1)
     max_fused_per_request: int = _limit(
-        200_000, "measurements", "StreamFuse: measurements fused for one message's answers, "
-                                 f"each answer counting its window and {ANSWER_ROWS} more; "
-                                 "ticks beyond it are skipped (the latest kept)", lo=1)
+        75_000, "measurements", "StreamFuse: the cost of one message's answers, in "
+                                "measurements fused (an answer counts its window and "
+                                f"{ANSWER_ROWS} more, a robust one 4x its window); "
+                                "ticks beyond it are skipped (the latest kept)", lo=1)
 
     def __post_init__(self):
         self.check()

@@ -10,7 +10,7 @@ import grpc
 import numpy as np
 from google.protobuf.message import DecodeError
 
-from service import dq
+from service import dq, limits
 from service.errors import FieldError, rename
 from service.interpolate import interpolate
 from service.rpc import BATCH_POSE_FACTOR, DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
@@ -159,24 +159,36 @@ class Blending(pb_grpc.BlendingServicer):
             raise FieldError("keyframes: interpolation produced non-finite poses")
         return pb.InterpolateResponse(samples=arrays_to_stamped(times, out))
 
-    def interpolate_wire(self, request: pb.InterpolateRequest) -> bytes:
-        """What Interpolate serves: ``InterpolateResponse`` bytes."""
+    def interpolate_wire(self, data: bytes) -> bytes:
+        """What Interpolate serves: ``InterpolateResponse`` bytes for request bytes."""
+        try:
+            request = pb.InterpolateRequest.FromString(data)
+        except DecodeError:
+            raise FieldError("request: not a valid dqpose.v1.InterpolateRequest message") from None
         return fit(self.interpolate_request(request).SerializeToString(), self.max_message_bytes,
                    "times", len(request.times), "times")
+
+    def _served(self, handle):
+        """``handle`` (bytes in) as a call's handler: on the event loop for a request of at
+        most ``limits.INLINE_BYTES`` (work linear in its size, under ~1 ms), else in the
+        server's worker pool."""
+        def serve(request: bytes):
+            if len(request) <= limits.INLINE_BYTES:
+                return handle(request)
+            return self.calls.work(handle, request)
+        return serve
 
     # -- RPCs
 
     def register(self, server) -> None:
-        """``add_BlendingServicer_to_server`` with two differences: Blend, BlendStream and
-        BlendBatch take and return bytes, which the ``*_wire`` methods turn into each other
-        without protobuf objects; every RPC returns bytes, so the ``*_wire`` methods can check
-        their size."""
+        """``add_BlendingServicer_to_server`` except that every RPC takes and returns bytes:
+        Blend, BlendStream and BlendBatch turned into each other by the ``*_wire`` methods
+        without protobuf objects, Interpolate parsed there; so each can check its answer's size
+        and do its work off the event loop when it is large."""
         raw = dict(request_deserializer=None, response_serializer=None)
         handlers = {
             "Blend": grpc.unary_unary_rpc_method_handler(self.Blend, **raw),
-            "Interpolate": grpc.unary_unary_rpc_method_handler(
-                self.Interpolate, request_deserializer=pb.InterpolateRequest.FromString,
-                response_serializer=None),
+            "Interpolate": grpc.unary_unary_rpc_method_handler(self.Interpolate, **raw),
             "BlendStream": grpc.stream_stream_rpc_method_handler(self.BlendStream, **raw),
             "BlendBatch": grpc.unary_unary_rpc_method_handler(self.BlendBatch, **raw),
         }
@@ -185,15 +197,16 @@ class Blending(pb_grpc.BlendingServicer):
 
     async def Blend(self, request: bytes, context):
         # Registered without a deserializer (register): the request arrives as bytes.
-        return await self.calls.unary("Blend", self.blend_wire, request, context)
+        return await self.calls.unary("Blend", self._served(self.blend_wire), request, context)
 
     async def BlendBatch(self, request: bytes, context):
         # Registered without a deserializer, like Blend.
-        return await self.calls.unary("BlendBatch", self.blend_batch_wire, request, context,
-                                      counted=True)
+        return await self.calls.unary("BlendBatch", self._served(self.blend_batch_wire), request,
+                                      context, counted=True)
 
-    async def Interpolate(self, request, context):
-        return await self.calls.unary("Interpolate", self.interpolate_wire, request, context)
+    async def Interpolate(self, request: bytes, context):
+        return await self.calls.unary("Interpolate", self._served(self.interpolate_wire),
+                                      request, context)
 
     async def BlendStream(self, request_iterator, context):
         # Reading runs ahead of writing (a reader task feeding a queue of STREAM_READ_AHEAD):
@@ -214,7 +227,8 @@ class Blending(pb_grpc.BlendingServicer):
                 if isinstance(request, Exception):
                     raise request
                 try:
-                    response = self.blend_wire(request)
+                    response = (self.blend_wire(request) if len(request) <= limits.INLINE_BYTES
+                                else await self.calls.work(self.blend_wire, request))
                 except Exception as e:
                     status = refusal(e)
                     if status is None:

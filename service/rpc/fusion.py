@@ -4,6 +4,7 @@ output ticks paced on the measurements' time), errors named by proto field.
 """
 from __future__ import annotations
 
+import itertools
 import math
 import re
 import zlib
@@ -102,6 +103,8 @@ class Stream:
         self.phase: dict[str, float] = {}
         self.known = frozenset(s.name for s in options.sources) if options.sources else None
         self.capped: set[str] = set()      # bodies whose window has been said to be full
+        self.cost = 0       # what the answers of the last update will cost (answer_cost)
+        self.correlated = options.acceleration_psd is not None and options.acceleration_psd.any()
 
     def update(self, m: Measurements, ids: np.ndarray, field: str, codes=None):
         """Measurements ``m`` of one request (``ids``: their stream-wide numbers) into the
@@ -188,32 +191,39 @@ class Stream:
     def _within_budget(self, due: list, field: str):
         """``(body, fused or FieldError, ids)`` of each due tick, in order, as long as the
         message's answers fuse at most ``max_fused_per_request`` measurements: a body's ticks
-        beyond it are skipped, its latest kept, and one error entry says how many."""
+        beyond it are skipped, its latest kept, and one error entry says how many. Which ticks
+        are answered is decided here, at once, and what they will cost is left in
+        :attr:`cost` (measurements to fuse, :data:`limits.ANSWER_ROWS` an answer included);
+        each answer is fused as it is taken."""
         budget = self.limits.max_fused_per_request
+        items = []
         for body, ticks in due:
             if not len(ticks):
                 continue
-            cost = self.tracker.count(body) + limits.ANSWER_ROWS
+            cost = limits.answer_cost(self.tracker.count(body), self.options.robust,
+                                      self.correlated)
             take = min(len(ticks), budget // cost)
             budget -= take * cost
             where = field.rsplit(".", 1)[0]
             if body not in self.capped and self.tracker.capped(body):
                 self.capped.add(body)
-                yield body, limits.over(
+                items.append((body, limits.over(
                     where, f"body {body!r}: its window holds more measurements than its fits "
                            f"take ({self.tracker.cap}); the oldest are left out", self.limits,
-                    "max_window"), np.empty(0, np.int64)
+                    "max_window")))
             if take < len(ticks):
                 skipped = len(ticks) - take
                 at = (f"{skipped} ticks from {self._time(body, ticks[0]):.6g} s to "
                       f"{self._time(body, ticks[skipped - 1]):.6g} s" if self.rate else
                       "its newest measurement")
-                yield body, limits.over(
+                items.append((body, limits.over(
                     where, f"body {body!r}: {at} not answered: this message's answers would "
-                           f"fuse more measurements ({cost} an answer)", self.limits,
-                    "max_fused_per_request"), np.empty(0, np.int64)
-            for k in ticks[len(ticks) - take:]:
-                yield self._answer(body, self._time(body, k), field)
+                           f"cost more ({cost} measurements fused an answer)", self.limits,
+                    "max_fused_per_request")))
+            items += [(body, self._time(body, k)) for k in ticks[len(ticks) - take:]]
+        self.cost = self.limits.max_fused_per_request - budget
+        return (self._answer(body, t, field) if not isinstance(t, FieldError)
+                else (body, t, np.empty(0, np.int64)) for body, t in items)
 
     def _time(self, body: str, k):
         """The fusion time of ``body``'s tick ``k`` (None: its newest measurement's, output
@@ -320,6 +330,12 @@ class Fusion(pb_grpc.FusionServicer):
                     first_id: int) -> list[pb.FusedPose]:
         """The answers to request ``r`` of a stream (its measurements numbered from
         ``first_id``): fused poses and error entries, never an exception for bad input."""
+        return list(self._stream_answers(state, request, r, first_id))
+
+    def _stream_answers(self, state, request: pb.FuseStreamRequest, r: int, first_id: int):
+        """:meth:`stream_step`'s answers, the error entries made at once, each fused pose
+        when it is taken (what they will cost: ``state.cost``)."""
+        state.cost = 0
         out = []
         if r and (request.HasField("options") or request.output_rate):
             out.append(_error_entry(r, -1, f"requests[{r}].options: only the first request "
@@ -335,7 +351,7 @@ class Fusion(pb_grpc.FusionServicer):
         m = measurements_to_arrays(request.measurements, field, errors)
         answers, more = state.update(m, first_id + m.index, field)
         bodies = [request.measurements[i].body for i, _ in errors + more]
-        return out + list(self._answers(r, errors + more, bodies, answers))
+        return itertools.chain(out, self._answers(r, errors + more, bodies, answers))
 
     def stream_step_wire(self, state, data: bytes, r: int, first_id: int):
         """:meth:`stream_answers_wire` with the answers made at once, as a list."""
@@ -348,6 +364,7 @@ class Fusion(pb_grpc.FusionServicer):
         (:func:`convert.fuse_stream_from_wire`) and its valid measurements go to the tracker
         unchecked; any other takes the protobuf path. Both give the same answers. Bytes that are
         not a FuseStreamRequest are an error entry for the request."""
+        state.cost = 0
         w = fuse_stream_from_wire(data) if r else None
         if w is None or len(w.times) > self.max_poses:
             try:
@@ -356,7 +373,8 @@ class Fusion(pb_grpc.FusionServicer):
                 return [_error_entry(r, -1, f"requests[{r}]: not a valid "
                                             f"dqpose.v1.FuseStreamRequest message; none of it "
                                             f"was used")], 0
-            return self.stream_step(state, request, r, first_id), len(request.measurements)
+            return (self._stream_answers(state, request, r, first_id),
+                    len(request.measurements))
         field = f"requests[{r}].measurements"
         n = len(w.times)
         last = w.CONVERT_LAST
@@ -415,6 +433,30 @@ class Fusion(pb_grpc.FusionServicer):
         return await self.calls.unary("Fuse", lambda r: self.calls.work(self.fuse_bytes, r),
                                       request, context)
 
+    def _open_stream(self, data: bytes):
+        """The first request of a stream: ``(state, its answers, its number of measurements)``;
+        a FieldError (or OverLimit) for options the stream cannot start with."""
+        try:
+            request = pb.FuseStreamRequest.FromString(data)
+        except DecodeError:
+            raise FieldError("requests[0]: not a valid dqpose.v1.FuseStreamRequest "
+                             "message") from None
+        state = self.stream_options(request)
+        return state, self._stream_answers(state, request, 0, 0), len(request.measurements)
+
+    async def _write(self, answers, cost: int, context) -> None:
+        """Writes a request's answers: fused on the event loop when they cost little
+        (``limits.INLINE_ROWS``), else in the worker pool, ``ANSWERS_PER_WORK`` at a time so
+        that the first ones are on their way while the next are fused."""
+        if cost <= limits.INLINE_ROWS:
+            for answer in answers:
+                await context.write(answer)
+            return
+        answers = iter(answers)
+        while chunk := await self.calls.work(_take, answers, ANSWERS_PER_WORK):
+            for answer in chunk:
+                await context.write(answer)
+
     async def StreamFuse(self, request_iterator, context):
         t0 = self.calls.begin()
         code = "OK"
@@ -423,25 +465,22 @@ class Fusion(pb_grpc.FusionServicer):
         state = None
         try:
             # Registered without a deserializer (register): each request arrives as bytes.
+            # Decoded on the event loop when small (most of a live stream's messages), else in
+            # the worker pool, like the answers (_write).
             async for data in request_iterator:
                 if state is None:
                     try:
-                        try:
-                            request = pb.FuseStreamRequest.FromString(data)
-                        except DecodeError:
-                            raise FieldError("requests[0]: not a valid "
-                                             "dqpose.v1.FuseStreamRequest message") from None
-                        state = self.stream_options(request)
+                        state, answers, n = await self.calls.work(self._open_stream, data)
                     except FieldError as e:
                         status = refusal(e)
                         code = status.name
                         await context.abort(status, str(e))
-                    answers = self.stream_step(state, request, r, next_id)
-                    n = len(request.measurements)
-                else:
+                elif len(data) <= limits.INLINE_BYTES:
                     answers, n = self.stream_answers_wire(state, data, r, next_id)
-                for answer in answers:
-                    await context.write(answer)
+                else:
+                    answers, n = await self.calls.work(self.stream_answers_wire, state, data, r,
+                                                       next_id)
+                await self._write(answers, state.cost, context)
                 next_id += n
                 r += 1
         except Exception as e:
@@ -455,3 +494,12 @@ class Fusion(pb_grpc.FusionServicer):
             raise
         finally:
             self.calls.done("StreamFuse", code, t0, context, messages=r)
+
+
+#: StreamFuse answers fused per turn of the worker pool (when fused there)
+ANSWERS_PER_WORK = 16
+
+
+def _take(answers, k: int) -> list:
+    """The next ``k`` of ``answers`` (fewer at its end)."""
+    return list(itertools.islice(answers, k))

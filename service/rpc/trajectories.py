@@ -11,13 +11,15 @@ import asyncio
 import math
 from typing import NamedTuple
 
+import grpc
+from google.protobuf.message import DecodeError
+
 from service import smoothing, trajectory
 from service.errors import FieldError, Infeasible, rename
 from service.rpc.calls import Calls, refused
 from service.rpc.convert import (arrays_to_stamped, dq_to_pose, limits_from_msg, plan_from_msg,
                                  plan_info_msg, sample_msgs, stamped_to_arrays)
 from service.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
-from service.rpc._proto.dqpose.v1 import trajectories_pb2_grpc as pb_grpc
 
 #: how many samples a plan may stream, as a multiple of the server's max poses per request
 SAMPLES_PER_MAX_POSES = 10
@@ -85,33 +87,59 @@ class Trajectories:
             raise FieldError(f"{field}: {n} exceed the server limit of {self.max_poses} per "
                              f"request")
 
+    def smooth_bytes(self, data: bytes) -> bytes:
+        """What Smooth serves: ``SmoothResponse`` bytes for request bytes."""
+        return self.smooth(_parsed(pb.SmoothRequest, data)).SerializeToString()
+
+    def planned(self, data: bytes):
+        """What Plan serves, for request bytes: ``(trajectory, its samples at the rate)``."""
+        traj, rate = self.plan(_parsed(pb.PlanRequest, data))
+        return traj, traj.at_rate(rate)
+
+    @staticmethod
+    def sample_chunk(traj, samples, i: int) -> list[bytes]:
+        """Samples ``i`` to ``i + CHUNK`` as ``TrajectorySample`` bytes (the plan's segments on
+        the first)."""
+        msgs = sample_msgs(trajectory.Samples(*(a[i:i + CHUNK] for a in samples)))
+        if i == 0:
+            msgs[0].plan.CopyFrom(plan_info_msg(traj))
+        return [m.SerializeToString() for m in msgs]
+
     # -- RPCs
 
     def register(self, server) -> None:
-        """The generated registration: every RPC with the proto's own (de)serializers."""
-        pb_grpc.add_TrajectoriesServicer_to_server(self, server)
+        """Plan and Smooth take (and Smooth returns) bytes, parsed and written in the worker
+        pool; Execute has the proto's own (de)serializers."""
+        raw = dict(request_deserializer=None, response_serializer=None)
+        handlers = {
+            "Plan": grpc.unary_stream_rpc_method_handler(self.Plan, **raw),
+            "Smooth": grpc.unary_unary_rpc_method_handler(self.Smooth, **raw),
+            "Execute": grpc.unary_stream_rpc_method_handler(
+                self.Execute, request_deserializer=pb.ExecuteRequest.FromString,
+                response_serializer=pb.ExecutionFeedback.SerializeToString),
+        }
+        server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(self.NAME, handlers),))
+        server.add_registered_method_handlers(self.NAME, handlers)
 
-    async def Smooth(self, request, context):
-        # tens of milliseconds of solver holding the GIL: off the event loop, so other calls'
-        # messages keep moving between its steps
-        return await self.calls.unary("Smooth", lambda r: asyncio.to_thread(self.smooth, r),
+    async def Smooth(self, request: bytes, context):
+        # tens of milliseconds to seconds of solver: off the event loop (the worker pool), so
+        # other calls, health and signals are answered meanwhile
+        return await self.calls.unary("Smooth", lambda r: self.calls.work(self.smooth_bytes, r),
                                       request, context)
 
-    async def Plan(self, request, context):
+    async def Plan(self, request: bytes, context):
         t0 = self.calls.begin()
         code, sent = "OK", 0
         try:
             try:
-                traj, rate = self.plan(request)
+                traj, samples = await self.calls.work(self.planned, request)
             except Exception as e:
                 status, details = refused("Plan", e)
                 code = status.name
                 await context.abort(status, details)
-            samples = traj.at_rate(rate)
+            # the samples' messages made in the worker pool too, CHUNK at a time
             for i in range(0, len(samples.time), CHUNK):
-                msgs = sample_msgs(trajectory.Samples(*(a[i:i + CHUNK] for a in samples)))
-                if i == 0:
-                    msgs[0].plan.CopyFrom(plan_info_msg(traj))
+                msgs = await self.calls.work(self.sample_chunk, traj, samples, i)
                 for m in msgs:
                     await context.write(m)
                 sent += len(msgs)
@@ -170,6 +198,14 @@ class Trajectories:
         executor.finish()
         self._busy.add(name)
         return _Run(executor, queue)
+
+
+def _parsed(message, data: bytes):
+    """``data`` parsed as a ``message``; a FieldError when they are not one."""
+    try:
+        return message.FromString(data)
+    except DecodeError:
+        raise FieldError(f"request: not a valid {message.DESCRIPTOR.full_name} message") from None
 
 
 class _Run(NamedTuple):

@@ -70,7 +70,7 @@ def test_a_time_beyond_the_limit_is_an_error_entry_and_the_stream_goes_on(server
 
 def test_the_answers_of_one_message_are_bounded_the_latest_kept():
     # a 1e6 s window at 1000 Hz, reached by one message: 1e9 ticks due at once
-    bounds = limits.Limits(max_fused_per_request=10 * (2 + limits.ANSWER_ROWS),
+    bounds = limits.Limits(max_fused_per_request=10 * limits.answer_cost(2),
                            max_time_jump=2e6)
     fusion = Fusion(ServerConfig(limits=bounds))
     first = pb.FuseStreamRequest(output_rate=1000.0, measurements=[measurement(0.0)])
