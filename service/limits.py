@@ -44,8 +44,6 @@ from service.errors import FieldError
 #: a request of at most this many bytes is served on the event loop (its work, linear in its
 #: size, stays under ~1 ms); a larger one in the worker pool (``workers``)
 INLINE_BYTES = 4096
-#: a request after which the process holds this much more memory has it given back (malloc_trim)
-TRIM_BYTES = 32 << 20
 #: StreamFuse answers costing at most this many measurements (:func:`answer_cost`: ~1 ms) are
 #: fused on the event loop, costlier ones in the worker pool
 INLINE_ROWS = 75

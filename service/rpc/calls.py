@@ -11,9 +11,10 @@ from __future__ import annotations
 import asyncio
 import ctypes
 import ctypes.util
+import functools
 import json
 import logging
-import os
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -92,6 +93,7 @@ class Calls:
         self.metrics = metrics
         self.workers = workers
         self._pool: ThreadPoolExecutor | None = None
+        self._trim_due = False
         self.logging = call_log.isEnabledFor(logging.INFO)
         self.cut = False
         self._pending: list[str] = []
@@ -101,11 +103,22 @@ class Calls:
     async def work(self, fn, *args):
         """``fn(*args)`` in the server's worker pool (``workers`` threads shared by every
         servicer), so that the event loop goes on answering other calls, health and signals;
-        a request that sized more than ``limits.TRIM_BYTES`` of memory gives what it freed back
-        to the system afterwards (:func:`trim`)."""
+        once the pool has been idle for ``TRIM_DELAY`` what the process freed is given back to
+        the system (:func:`_trim_if_idle`)."""
         if self._pool is None:
             self._pool = ThreadPoolExecutor(self.workers, thread_name_prefix="dqpose-work")
-        return await asyncio.get_running_loop().run_in_executor(self._pool, _trimmed, fn, args)
+        loop = asyncio.get_running_loop()
+        try:
+            return await loop.run_in_executor(self._pool, functools.partial(_counted, fn), *args)
+        finally:
+            if _MALLOC_TRIM is not None and not _active and not self._trim_due:
+                self._trim_due = True
+                loop.call_later(TRIM_DELAY, self._trim)
+
+    def _trim(self) -> None:
+        self._trim_due = False
+        if self._pool is not None and not _active:
+            self._pool.submit(_trim_if_idle)
 
     def close(self) -> None:
         """Lets the worker pool's threads end once their work is done."""
@@ -209,26 +222,29 @@ def _libc():
 _MALLOC_TRIM = _libc()
 
 
-def _trimmed(fn, args):
-    """``fn(*args)``, then the heap trimmed when it grew by ``limits.TRIM_BYTES`` or more:
-    glibc keeps what a thread's arena freed (the probe's large requests left RSS at 6-7 GB)."""
-    if _MALLOC_TRIM is None:
-        return fn(*args)
-    before = _rss()
+def _counted(fn, *args):
+    """``fn(*args)``, counted in ``_active`` while it runs."""
+    global _active
+    with _lock:
+        _active += 1
     try:
         return fn(*args)
     finally:
-        if _rss() - before >= limits.TRIM_BYTES:
+        with _lock:
+            _active -= 1
+
+
+def _trim_if_idle() -> None:
+    """What the process freed given back to the system (malloc_trim), when no job runs: glibc
+    keeps what its arenas freed (the probe's large requests left RSS at 6-7 GB). Microseconds
+    when there is nothing to give back."""
+    with _lock:
+        if not _active:
             _MALLOC_TRIM(0)
 
 
-def _rss() -> int:
-    """This process's resident memory, bytes (the second field of /proc/self/statm, pages)."""
-    try:
-        with open("/proc/self/statm", "rb") as f:
-            return int(f.read().split()[1]) * _PAGE
-    except OSError:
-        return 0
-
-
-_PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
+_lock = threading.Lock()
+_active = 0          # jobs running in any server's pool
+# seconds after the pool fell idle that the heap is looked at: by then the calls' requests and
+# answers, which gRPC holds until they are sent, are freed too
+TRIM_DELAY = 0.5
