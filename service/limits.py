@@ -30,6 +30,9 @@ keep the costliest legal request near a second of one worker's time:
   and duplicate checks, per-sample medians over pairs: O(n²) by construction), then refines in
   O(n): ``max_pairs`` 200 is ~0.7 s. The corner level is linear in the corners (its normal
   equations solved view by view): ~0.1 ms a corner, ``max_corners`` 10,000 ~1 s.
+* Trajectories: a plan costs ~16 µs a waypoint (10,000: 0.16 s) and ~20 µs a streamed sample
+  (``max_plan_samples`` 100,000: ~2 s of the worker pool, the writes on the event loop ~50 µs
+  each); Execute's ``max_execute_waypoints`` is Plan's bound on waypoints.
 * Everything else is linear in the request's size, bounded by ``max_poses`` and
   ``max_message_bytes``; a request larger than ``INLINE_BYTES`` runs in the worker pool.
 """
@@ -93,6 +96,16 @@ class Limits:
     max_corners: int = _limit(
         10_000, "corners", "HandEye Calibrate: board corners per request, all pairs together",
         lo=4)
+    max_iterations: int = _limit(
+        1000, "iterations", "Blend: max_iterations of an iterative blend (DIB: ~20 ns a pose an "
+                            "iteration)", lo=1)
+    max_plan_samples: int = _limit(
+        100_000, "samples", "Plan: samples one plan streams (duration x rate_hz); Smooth: "
+                            "samples of its output", lo=2)
+    max_execute_waypoints: int = _limit(
+        10_000, "waypoints", "Execute: waypoints of one plan (planned in ~16 us each; the arm "
+                             "samples the plan as it goes, so its duration is not limited)",
+        lo=2)
     max_output_rate: float = _limit(
         1000.0, "Hz", "StreamFuse output_rate, answers per second of measurement time per body",
         lo=1e-9)

@@ -24,9 +24,6 @@ from service.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
 DEFAULT_TOLERANCE = 1e-12
 DEFAULT_MAX_ITERATIONS = 100
 STREAM_READ_AHEAD = 64         # requests a BlendStream reads ahead of its replies
-# DIB converges in a handful of steps; the cap keeps one request from holding the event loop
-# (10k poses x 1000 steps is ~0.2 s of core time).
-MAX_ITERATIONS_LIMIT = 1000
 
 
 class Blending(pb_grpc.BlendingServicer):
@@ -42,6 +39,7 @@ class Blending(pb_grpc.BlendingServicer):
         self.max_message_bytes = (cfg.max_message_bytes if cfg is not None
                                   else DEFAULT_MAX_MESSAGE_BYTES)
         self.calls = calls or Calls()
+        self.limits = cfg.limits if cfg is not None else limits.DEFAULT
 
     # -- request -> response, no transport
 
@@ -71,7 +69,7 @@ class Blending(pb_grpc.BlendingServicer):
         C fast path when the request is plain and valid, else from :meth:`blend_bytes` (which
         raises the FieldError naming the problem). Both give identical bytes."""
         out = blend_wire(data, self.max_poses, DEFAULT_TOLERANCE, DEFAULT_MAX_ITERATIONS,
-                         MAX_ITERATIONS_LIMIT)
+                         self.limits.max_iterations)
         if out is None:
             out = self.blend_bytes(data).SerializeToString()
         return fit(out, self.max_message_bytes, "request", 1, "request")
@@ -89,9 +87,8 @@ class Blending(pb_grpc.BlendingServicer):
             raise FieldError(f"tolerance: must be finite and >= 0 (0 means {DEFAULT_TOLERANCE}), "
                              f"got {tolerance!r}")
         max_iter = max_iterations or DEFAULT_MAX_ITERATIONS
-        if max_iter > MAX_ITERATIONS_LIMIT:
-            raise FieldError(f"max_iterations: {max_iter} exceeds the limit of "
-                             f"{MAX_ITERATIONS_LIMIT}")
+        if max_iter > self.limits.max_iterations:
+            raise limits.over("max_iterations", f"{max_iter}", self.limits, "max_iterations")
         iterations, residual = 0, 0.0
         try:
             if method == "dib":
@@ -115,7 +112,7 @@ class Blending(pb_grpc.BlendingServicer):
         FieldError naming the request and the problem)."""
         out = blend_batch_wire(data, self.max_poses, BATCH_POSE_FACTOR * self.max_poses,
                                self.max_poses, DEFAULT_TOLERANCE, DEFAULT_MAX_ITERATIONS,
-                               MAX_ITERATIONS_LIMIT)
+                               self.limits.max_iterations)
         if out is None:
             try:
                 request = pb.BlendBatchRequest.FromString(data)
@@ -136,7 +133,7 @@ class Blending(pb_grpc.BlendingServicer):
             try:
                 responses.append(self.blend_bytes(r.SerializeToString()))
             except FieldError as e:
-                raise FieldError(f"requests[{i}].{e}") from None
+                raise type(e)(f"requests[{i}].{e}") from None
         return pb.BlendBatchResponse(responses=responses)
 
     def interpolate_request(self, request: pb.InterpolateRequest) -> pb.InterpolateResponse:

@@ -14,15 +14,13 @@ from typing import NamedTuple
 import grpc
 from google.protobuf.message import DecodeError
 
-from service import smoothing, trajectory
+from service import limits, smoothing, trajectory
 from service.errors import FieldError, Infeasible, rename
 from service.rpc.calls import Calls, refused
 from service.rpc.convert import (arrays_to_stamped, dq_to_pose, limits_from_msg, plan_from_msg,
                                  plan_info_msg, sample_msgs, stamped_to_arrays)
 from service.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
 
-#: how many samples a plan may stream, as a multiple of the server's max poses per request
-SAMPLES_PER_MAX_POSES = 10
 #: samples converted and written per step of the Plan stream (bounds the memory of messages)
 CHUNK = 500
 #: an Execute feedback record every this many set-points (50 Hz at 500 Hz), and the last one
@@ -45,6 +43,7 @@ class Trajectories:
     def __init__(self, cfg, calls: Calls):
         self.calls = calls
         self.max_poses = cfg.max_poses
+        self.limits = cfg.limits
         self.arms = dict(cfg.arms)
         self.executor = cfg.executor
         self._busy: set[str] = set()
@@ -57,25 +56,24 @@ class Trajectories:
         args = plan_from_msg(request)
         traj = _planned(args)
         n = math.floor(traj.duration * args.rate_hz) + 2
-        if n > SAMPLES_PER_MAX_POSES * self.max_poses:
-            raise FieldError(f"rate_hz: {args.rate_hz:g} Hz over {traj.duration:.3f} s is {n} "
-                             f"samples, over the server's limit of "
-                             f"{SAMPLES_PER_MAX_POSES * self.max_poses}")
+        if n > self.limits.max_plan_samples:
+            raise limits.over("rate_hz", f"{args.rate_hz:.6g} Hz over the plan's "
+                                         f"{traj.duration:.6g} s is {n} samples", self.limits,
+                              "max_plan_samples")
         return traj, args.rate_hz
 
     def smooth(self, request: pb.SmoothRequest) -> pb.SmoothResponse:
         self._check_count("poses", len(request.poses))
         if not request.HasField("limits"):
             raise FieldError("limits: required (velocity and acceleration limits)")
-        limits = limits_from_msg(request.limits)
+        bounds = limits_from_msg(request.limits)
         times, dqs = stamped_to_arrays(request.poses, "poses")
-        limit = SAMPLES_PER_MAX_POSES * self.max_poses
-        if len(times) and request.rate_hz * (times.max() - times.min()) >= limit:
-            raise FieldError(f"rate_hz: {request.rate_hz:g} Hz over the poses' "
-                             f"{times.max() - times.min():.3f} s is over the server's limit of "
-                             f"{limit} samples")
+        span = times.max() - times.min() if len(times) else 0.0
+        if request.rate_hz * span >= self.limits.max_plan_samples:
+            raise limits.over("rate_hz", f"{request.rate_hz:.6g} Hz over the poses' {span:.6g} "
+                                         f"s", self.limits, "max_plan_samples")
         try:
-            t, out = smoothing.smooth(times, dqs, limits, smoothing=request.smoothing or 1.0,
+            t, out = smoothing.smooth(times, dqs, bounds, smoothing=request.smoothing or 1.0,
                                        rate_hz=request.rate_hz)
         except ValueError as e:
             raise rename(e, {"times": "poses{}.time", "poses": "poses{}.pose",
