@@ -625,11 +625,24 @@ def _seconds(x, name: str, least: Optional[str] = None) -> float:
     return v
 
 
+# What a latency and its prior's standard deviation may be (seconds): a prior of 5e-324 s has an
+# information (sigma^-2) no double holds.
+_MAX_LATENCY = 1e6
+_LATENCY_SIGMA = (1e-9, 1e6)
+
+
 def _latency(s: Source, k: int) -> tuple[float, Optional[float]]:
     latency = _seconds(s.latency, f"sources[{k}].latency")
+    if abs(latency) > _MAX_LATENCY:
+        raise ValueError(f"sources[{k}].latency: {latency:.6g} s is beyond +-{_MAX_LATENCY:g} s")
     if s.latency_sigma is None:
         return latency, None
-    return latency, _seconds(s.latency_sigma, f"sources[{k}].latency_sigma", "positive")
+    sigma = _seconds(s.latency_sigma, f"sources[{k}].latency_sigma", "positive")
+    lo, hi = _LATENCY_SIGMA
+    if not lo <= sigma <= hi:
+        raise ValueError(f"sources[{k}].latency_sigma: {sigma:.6g} s is outside [{lo:g}, "
+                         f"{hi:g}] s")
+    return latency, sigma
 
 
 def _shape(x):

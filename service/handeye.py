@@ -202,6 +202,12 @@ def _noise(cov, name: str, n: int) -> Optional[np.ndarray]:
             raise FieldError(f"{where}: not symmetric")
         if np.linalg.eigvalsh(0.5 * (s + s.T))[0] < 0.0:
             raise FieldError(f"{where}: not positive semi-definite")
+        var = np.diagonal(s)
+        bad = (var > 0.0) & ~((var >= fusion._MIN_VARIANCE) & (var <= fusion._MAX_VARIANCE))
+        if bad.any():
+            raise FieldError(f"{where}: variance {var[bad][0]:.6g} outside "
+                             f"[{fusion._MIN_VARIANCE:g}, {fusion._MAX_VARIANCE:g}] (0 is "
+                             f"exact): its information cannot be used")
     return 0.5 * (S + np.swapaxes(S, -1, -2))
 
 
@@ -1165,9 +1171,14 @@ def _calibrate(base_flange, camera_target, setup, robust, corners, camera_covari
     if not estimate:
         S0 = noise(p.closed[0], p.C, np.zeros((n, 6)), np.broadcast_to(np.eye(6), (n, 6, 6)),
                    np.ones(n, bool))
-        if not np.all(np.linalg.eigvalsh(S0)[:, 0] > 0.0):
-            raise FieldError("camera_covariance: the residual covariance is singular; give "
-                             "every pose some noise in every axis")
+        singular = np.flatnonzero(~(np.linalg.eigvalsh(S0)[:, 0] > 0.0))
+        if len(singular):
+            i = int(singular[0])
+            given = f"camera_covariance[{i}]" + (
+                f", robot_covariance[{i}]" if SRob is not None else "")
+            raise FieldError(f"{given}: the residual covariance of this sample (its camera and "
+                             f"robot noise together) is singular; give every pose some noise "
+                             f"in every axis")
     warnings = list(p.warnings)
     X0, Z0 = p.closed[0], p.closed[1]
 

@@ -14,10 +14,10 @@ from service import dq, limits
 from service.errors import FieldError, rename
 from service.interpolate import interpolate
 from service.rpc import BATCH_POSE_FACTOR, DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
-from service.rpc.calls import INTERNAL_DETAILS, Calls, fit, log, refusal
+from service.rpc.calls import INTERNAL_DETAILS, Calls, fit, log, readable, refusal
 from service.rpc.convert import (INTERPOLATION_NAMES, METHOD_NAMES, arrays_to_stamped,
                                  blend_batch_wire, blend_wire, decode_blend_request, dq_to_pose,
-                                 flat_to_dqs, poses_to_flat, stamped_to_arrays)
+                                 field_named, flat_to_dqs, poses_to_flat, stamped_to_arrays)
 from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from service.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
 
@@ -97,7 +97,9 @@ class Blending(pb_grpc.BlendingServicer):
             else:
                 mean = dq.blend(dqs, weights, method, tol, max_iter)
         except ValueError as e:
-            raise rename(e, {"dqs": "poses{}", "weights": "weights{}"}) from None
+            raise field_named(rename(e, {"dqs": "poses{}", "weights": "weights{}"}),
+                              ("poses", "weights", "method", "tolerance", "max_iterations"),
+                              "poses") from None
         if not (np.isfinite(mean).all() and math.isfinite(residual)):
             # Never hand a NaN to a robot: say which input made the mean undefined.
             raise FieldError(f"poses: the {method} blend of these poses is undefined "
@@ -150,8 +152,9 @@ class Blending(pb_grpc.BlendingServicer):
         try:
             out = interpolate(times_k, dqs_k, times, mode)
         except ValueError as e:
-            raise rename(e, {"times_k": "keyframes{}.time", "dqs_k": "keyframes{}.pose",
-                             "times": "times{}"}) from None
+            raise field_named(rename(e, {"times_k": "keyframes{}.time", "dqs_k": "keyframes{}.pose",
+                                         "times": "times{}"}),
+                              ("keyframes", "times", "interpolation"), "keyframes") from None
         if not np.isfinite(out).all():
             raise FieldError("keyframes: interpolation produced non-finite poses")
         return pb.InterpolateResponse(samples=arrays_to_stamped(times, out))
@@ -231,7 +234,7 @@ class Blending(pb_grpc.BlendingServicer):
                     if status is None:
                         raise
                     code = status.name
-                    await context.abort(status, f"requests[{i}].{e}")
+                    await context.abort(status, readable(f"requests[{i}].{e}"))
                 await context.write(response)
                 i += 1
         except asyncio.CancelledError:

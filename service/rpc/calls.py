@@ -14,6 +14,7 @@ import ctypes.util
 import functools
 import json
 import logging
+import re
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -67,13 +68,25 @@ def refusal(e: Exception) -> grpc.StatusCode | None:
 
 def refused(rpc: str, e: Exception) -> tuple[grpc.StatusCode, str]:
     """The status and text a handler's exception ends its call with: the :func:`refusal` status
-    with the exception's text, else INTERNAL (logged with its traceback, the text kept out of
-    the answer)."""
+    with the exception's text (:func:`readable`), else INTERNAL (logged with its traceback, the
+    text kept out of the answer)."""
     status = refusal(e)
     if status is None:
         log.exception("%s failed", rpc)
         return grpc.StatusCode.INTERNAL, INTERNAL_DETAILS
-    return status, str(e)
+    return status, readable(str(e))
+
+
+# a number of more than 7 significant digits standing alone (not part of a name, not an index)
+_LONG_NUMBER = re.compile(r"(?<![\w.\[])-?(?:\d{8,}(?:\.\d*)?|\d*\.\d{7,})(?:e[+-]?\d+)?"
+                          r"(?![\w.\]])")
+
+
+def readable(text: str) -> str:
+    """``text`` with every number of more than 7 significant digits written ``%.6g``: what the
+    domain's texts hold as ``repr`` (``0.041694716291423795``, a 300-digit count) reads as
+    ``0.0416947`` and ``5e+299``. Every refusal's text goes through here, so none can leak one."""
+    return _LONG_NUMBER.sub(lambda m: f"{float(m[0]):.6g}", text)
 
 
 class Calls:

@@ -15,12 +15,12 @@ import numpy as np
 from service import fusion, limits
 from service.errors import FieldError, rename
 from service.rpc import DEFAULT_MAX_POSES
-from service.rpc.calls import INTERNAL_DETAILS, Calls, log, refusal
+from service.rpc.calls import INTERNAL_DETAILS, Calls, log, readable, refusal
 from google.protobuf.message import DecodeError
 
-from service.rpc.convert import (DEFAULT_WINDOW, Measurements, Options, fuse_stream_from_wire,
-                                 fused_to_msg, measurements_to_arrays, options_from_msg,
-                                 wire_measurement_error)
+from service.rpc.convert import (DEFAULT_WINDOW, Measurements, Options, field_named,
+                                 fuse_stream_from_wire, fused_to_msg, measurements_to_arrays,
+                                 options_from_msg, wire_measurement_error)
 from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 from service.rpc._proto.dqpose.v1 import fusion_pb2_grpc as pb_grpc
 
@@ -38,12 +38,18 @@ def _options_error(e: ValueError, field: str) -> FieldError:
 
 def _domain_error(e: ValueError, index: np.ndarray, field: str, options: str) -> FieldError:
     """The domain's ``ValueError`` about row ``k`` of the arrays it was given, naming the
-    message's measurement ``index[k]``; one about the options, naming the option."""
+    message's measurement ``index[k]``; one about all of them (the fit's information), naming
+    ``field``; one about the options, naming the option."""
     hit = _INDEXED.match(str(e))
-    if hit is None or hit[1] not in _MEASUREMENT_FIELDS:
-        return _options_error(e, options)
-    k = int(hit[2])
-    return rename(e, {hit[1]: f"{field}[{int(index[k])}].{_MEASUREMENT_FIELDS[hit[1]]}"})
+    if hit is not None and hit[1] in _MEASUREMENT_FIELDS:
+        k = int(hit[2])
+        return rename(e, {hit[1]: f"{field}[{int(index[k])}].{_MEASUREMENT_FIELDS[hit[1]]}"})
+    text = str(e)
+    if text.startswith("covariances: "):     # the fit of them all, not one covariance
+        return FieldError(f"{field}: {text[len('covariances: '):]} (the measurements' "
+                          f"covariances and times, with the options' priors, leave the pose, "
+                          f"twist or latencies undetermined)")
+    return _options_error(e, options)
 
 
 def unknown_sources(m: Measurements, options: Options, field: str) -> list:
@@ -245,7 +251,7 @@ def _error_entry(r: int, measurement: int, details: str, body: str = "") -> pb.F
     """A StreamFuse answer saying what request ``r`` (its ``measurement``, -1: all of it) had
     wrong."""
     return pb.FusedPose(body=body, request=r, error=pb.FuseError(
-        request=r, measurement=measurement, details=details))
+        request=r, measurement=measurement, details=readable(details)))
 
 
 class Fusion(pb_grpc.FusionServicer):
@@ -282,6 +288,7 @@ class Fusion(pb_grpc.FusionServicer):
                                  f"StreamFuse takes many)")
         if options.window:
             raise FieldError("options.window: Fuse keeps no window (StreamFuse does); leave it 0")
+        self._check_times(m.times, m.index, "measurements", options)
         unknown = unknown_sources(m, options, "measurements")
         if unknown:
             raise unknown[0][1]
@@ -289,7 +296,8 @@ class Fusion(pb_grpc.FusionServicer):
             fused = fusion.fuse(m.poses, m.covariances, names=m.sources, times=m.times,
                                 time=options.time or None, **options.fuse_kwargs())
         except ValueError as e:
-            raise _domain_error(e, m.index, "measurements", "options") from None
+            raise field_named(_domain_error(e, m.index, "measurements", "options"),
+                              ("measurements", "options"), "measurements") from None
         return fused_to_msg(fused, m.bodies[0], fused.time)
 
     def fuse_bytes(self, data: bytes) -> bytes:
@@ -299,6 +307,20 @@ class Fusion(pb_grpc.FusionServicer):
         except DecodeError:
             raise FieldError("request: not a valid dqpose.v1.FuseRequest message") from None
         return self.fuse(request).SerializeToString()
+
+    def _check_times(self, times: np.ndarray, index: np.ndarray, field: str,
+                     options: Options) -> None:
+        """Every time within ``+-max_time``: beyond it a time has no microseconds left, and the
+        fit's differences of times lose all meaning (1e308 made its information singular)."""
+        bound = self.limits.max_time
+        far = np.flatnonzero(np.abs(times) > bound)
+        if len(far):
+            k = int(far[0])
+            raise limits.over(f"{field}[{int(index[k])}].time", f"{float(times[k]):.6g} s is "
+                              f"beyond +-{bound:.6g} s", self.limits, "max_time")
+        if abs(options.time) > bound:
+            raise limits.over("options.time", f"{options.time:.6g} s is beyond +-{bound:.6g} s",
+                              self.limits, "max_time")
 
     def _check_fit_size(self, field: str, n: int, options: Options) -> None:
         """``n`` measurements in one fit with ``options``: within the robust and the correlated
@@ -474,7 +496,7 @@ class Fusion(pb_grpc.FusionServicer):
                     except FieldError as e:
                         status = refusal(e)
                         code = status.name
-                        await context.abort(status, str(e))
+                        await context.abort(status, readable(str(e)))
                 elif len(data) <= limits.INLINE_BYTES:
                     answers, n = self.stream_answers_wire(state, data, r, next_id)
                 else:

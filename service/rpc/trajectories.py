@@ -12,15 +12,21 @@ import math
 from typing import NamedTuple
 
 import grpc
+import numpy as np
 from google.protobuf.message import DecodeError
 
 from service import limits, smoothing, trajectory
 from service.errors import FieldError, Infeasible, rename
 from service.rpc.calls import Calls, refused
-from service.rpc.convert import (arrays_to_stamped, dq_to_pose, limits_from_msg, plan_from_msg,
-                                 plan_info_msg, sample_msgs, stamped_to_arrays)
+from service.rpc.convert import (arrays_to_stamped, dq_to_pose, field_named, limits_from_msg,
+                                 plan_from_msg, plan_info_msg, sample_msgs, stamped_to_arrays)
 from service.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
 
+#: the fields of a PlanRequest an error may start with
+PLAN_FIELDS = ("waypoints", "limits", "rate_hz", "interpolation", "start_linear_velocity",
+               "start_angular_velocity")
+#: the largest Smooth.smoothing (a cutoff of 2 mHz): at 1e4 the spline's equations were singular
+MAX_SMOOTHING = 1e3
 #: samples converted and written per step of the Plan stream (bounds the memory of messages)
 CHUNK = 500
 #: an Execute feedback record every this many set-points (50 Hz at 500 Hz), and the last one
@@ -28,13 +34,18 @@ FEEDBACK_EVERY = 10
 
 
 def _planned(args, field: str = ""):
-    """:func:`trajectory.plan` of :class:`PlanArgs`, its errors named by proto field."""
+    """:func:`trajectory.plan` of :class:`PlanArgs`, its errors named by proto field (the
+    domain's start velocity is both vectors: the one its text is about)."""
     try:
         return trajectory.plan(args.waypoints, args.limits, args.interpolation,
                                start_velocity=args.start_velocity)
     except ValueError as e:
-        raise rename(e, {"waypoints": f"{field}waypoints{{}}", "limits": f"{field}limits",
-                         "start_velocity": f"{field}start_linear_velocity"}) from None
+        start = "start_angular_velocity" if "angular" in str(e) or "turn" in str(e) \
+            else "start_linear_velocity"
+        named = rename(e, {"waypoints": f"{field}waypoints{{}}", "limits": f"{field}limits",
+                           "start_velocity": f"{field}{start}"})
+        raise field_named(named, tuple(field + f for f in PLAN_FIELDS),
+                          f"{field}waypoints") from None
 
 
 class Trajectories:
@@ -55,11 +66,16 @@ class Trajectories:
         self._check_count("waypoints", len(request.waypoints))
         args = plan_from_msg(request)
         traj = _planned(args)
-        n = math.floor(traj.duration * args.rate_hz) + 2
-        if n > self.limits.max_plan_samples:
-            raise limits.over("rate_hz", f"{args.rate_hz:.6g} Hz over the plan's "
-                                         f"{traj.duration:.6g} s is {n} samples", self.limits,
-                              "max_plan_samples")
+        n = traj.duration * args.rate_hz + 2
+        if not n <= self.limits.max_plan_samples:
+            # the waypoint the longest segment ends at, and the limit that sets its pace
+            k = max(range(len(traj.segments)), key=lambda i: traj.segments[i].duration)
+            seg = traj.segments[k]
+            pace = "its time" if seg.binding == "time" else f"limits.{seg.binding}"
+            raise limits.over(f"waypoints[{k + 1}]", f"the plan lasts {traj.duration:.6g} s, "
+                              f"{seg.duration:.6g} s of it to this waypoint (at {pace}); at "
+                              f"rate_hz {args.rate_hz:.6g} that is {n:.6g} samples",
+                              self.limits, "max_plan_samples")
         return traj, args.rate_hz
 
     def smooth(self, request: pb.SmoothRequest) -> pb.SmoothResponse:
@@ -72,12 +88,20 @@ class Trajectories:
         if request.rate_hz * span >= self.limits.max_plan_samples:
             raise limits.over("rate_hz", f"{request.rate_hz:.6g} Hz over the poses' {span:.6g} "
                                          f"s", self.limits, "max_plan_samples")
+        strength = request.smoothing or 1.0
+        if strength > MAX_SMOOTHING:
+            raise FieldError(f"smoothing: {strength:.6g} is over {MAX_SMOOTHING:g} (the cutoff is "
+                             f"2 / smoothing Hz; beyond it the spline's equations are singular)")
         try:
-            t, out = smoothing.smooth(times, dqs, bounds, smoothing=request.smoothing or 1.0,
+            t, out = smoothing.smooth(times, dqs, bounds, smoothing=strength,
                                        rate_hz=request.rate_hz)
+        except np.linalg.LinAlgError as e:     # SciPy's too: the equations of this path
+            raise FieldError(f"smoothing: {strength:.6g} leaves the spline's equations for these "
+                             f"poses singular ({e}); use a smaller one") from None
         except ValueError as e:
-            raise rename(e, {"times": "poses{}.time", "poses": "poses{}.pose",
-                             "limits": "limits"}) from None
+            raise field_named(rename(e, {"times": "poses{}.time", "poses": "poses{}.pose",
+                                         "limits": "limits"}),
+                              ("poses", "limits", "smoothing", "rate_hz"), "poses") from None
         return pb.SmoothResponse(samples=arrays_to_stamped(t, out))
 
     def _check_count(self, field: str, n: int) -> None:

@@ -101,10 +101,11 @@ def scene(n, outliers=0, seed=0):
     return Z, np.broadcast_to(np.eye(6) * 1e-4, (n, 6, 6))
 
 
-def fuse_request(n, outliers=0, **options):
+def fuse_request(n, outliers=0, times=False, **options):
     Z, S = scene(n, outliers)
-    return pb.FuseRequest(measurements=convert.measurement_msgs(Z, S),
-                          options=convert.options_msg(**options))
+    return pb.FuseRequest(measurements=convert.measurement_msgs(
+        Z, S, times=np.linspace(0, 0.01 * n, n) if times else None),
+        options=convert.options_msg(**options))
 
 
 def test_a_robust_fuse_at_its_limit_leaves_the_server_answering_and_memory_returns(server):
@@ -231,3 +232,27 @@ def test_the_probes_fifty_thousand_measurement_window_stays_within_one_message(s
     assert len(fused) == 50
     assert max(len(a.measurements) for a in fused) == limits.DEFAULT.max_window
     assert server.health() == "SERVING"
+
+
+# ---- D2/D4: finite input never INTERNAL, every refusal naming its own field
+
+def test_a_time_of_1e308_is_named_as_the_time_not_the_covariances(server):
+    request = fuse_request(4, times=True)
+    request.measurements[1].time = 1e308
+    code, details = code_of(lambda: pb_grpc.FusionStub(server.channel).Fuse(request, timeout=30))
+    assert code == grpc.StatusCode.RESOURCE_EXHAUSTED, (code, details)
+    assert details.startswith("measurements[1].time: 1e+308 s is beyond +-1e+10 s"), details
+
+
+@pytest.mark.parametrize("field, value, text", [
+    ("latency_sigma", 5e-324, "options.sources[0].latency_sigma: 4.94066e-324 s is outside"),
+    ("latency_sigma", 1e300, "options.sources[0].latency_sigma: 1e+300 s is outside"),
+    ("latency", 1e300, "options.sources[0].latency: 1e+300 s is beyond")])
+def test_a_source_latency_beyond_what_a_fit_can_use_is_named(server, field, value, text):
+    request = fuse_request(4, times=True)
+    for m in request.measurements:
+        m.source = "a"
+    setattr(request.options.sources.add(name="a"), field, value)
+    code, details = code_of(lambda: pb_grpc.FusionStub(server.channel).Fuse(request, timeout=30))
+    assert code == grpc.StatusCode.INVALID_ARGUMENT, (code, details)
+    assert details.startswith(text), details

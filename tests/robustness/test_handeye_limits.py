@@ -75,3 +75,27 @@ def test_the_largest_calibration_leaves_the_server_answering_and_memory_returns(
         x = convert.calibration_from_msg(a, "eye_in_hand").x
         assert H.pose_error(x, truth.x)[1] < 1.0      # mm: solved, not refused
     assert server.rss_mb() < baseline + 150, (baseline, server.rss_mb())
+
+
+# ---- D4: a covariance's error names that covariance
+
+def test_a_robot_covariance_of_1e30_is_named_as_the_robot_covariance(server):
+    s = H.scene(10, seed=1)
+    req = convert.calibrate_msg(s.base_flange, s.camera_target, s.setup,
+                                camera_covariance=s.camera_covariance,
+                                robot_covariance=np.diag([1e30, 0, 0, 0, 0, 0]))
+    code, details = code_of(lambda: calibrate(server, req))
+    assert code == grpc.StatusCode.INVALID_ARGUMENT, (code, details)
+    assert details.startswith("pairs[0].robot_covariance: variance 1e+30 outside"), details
+
+
+def test_a_singular_residual_covariance_names_the_sample_and_both_covariances(server):
+    s = H.scene(10, seed=1)
+    camera = np.broadcast_to(s.camera_covariance, (10, 6, 6)).copy()
+    camera[4] = np.diag([1e-6, 0, 1e-6, 1e-6, 1e-6, 1e-6])
+    req = convert.calibrate_msg(s.base_flange, s.camera_target, s.setup,
+                                camera_covariance=camera, robot_covariance=np.zeros((6, 6)))
+    code, details = code_of(lambda: calibrate(server, req))
+    assert code == grpc.StatusCode.INVALID_ARGUMENT, (code, details)
+    assert details.startswith("pairs[4].camera_covariance, pairs[4].robot_covariance: the "
+                              "residual covariance of this sample"), details
