@@ -85,8 +85,16 @@ _LONG_NUMBER = re.compile(r"(?<![\w.\[])-?(?:\d{8,}(?:\.\d*)?|\d*\.\d{7,})(?:e[+
 def readable(text: str) -> str:
     """``text`` with every number of more than 7 significant digits written ``%.6g``: what the
     domain's texts hold as ``repr`` (``0.041694716291423795``, a 300-digit count) reads as
-    ``0.0416947`` and ``5e+299``. Every refusal's text goes through here, so none can leak one."""
-    return _LONG_NUMBER.sub(lambda m: f"{float(m[0]):.6g}", text)
+    ``0.0416947`` and ``5e+299``; a whole count of up to 15 digits is kept (``999999990 ticks``
+    reads better exact). Every refusal's text goes through here, so none can leak one."""
+    return _LONG_NUMBER.sub(_short, text)
+
+
+def _short(match: re.Match) -> str:
+    number = match[0]
+    if number.lstrip("-").isdigit() and len(number.lstrip("-")) <= 15:
+        return number
+    return f"{float(number):.6g}"
 
 
 class Calls:

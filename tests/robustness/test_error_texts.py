@@ -19,6 +19,9 @@ def test_long_numbers_are_written_with_six_digits_names_and_indices_kept():
     assert readable("requests[123456789].x: body 'b12345678901': 2.2250738585072014e-308") == (
         "requests[123456789].x: body 'b12345678901': 2.22507e-308")
     assert readable("time: 0.5 or 1e+300 or nan") == "time: 0.5 or 1e+300 or nan"
+    # a whole count stays exact up to 15 digits; one longer is no count a person reads
+    assert readable("999999990 ticks, 1234567890123456 rows") == (
+        "999999990 ticks, 1.23457e+15 rows")
 
 
 def test_an_error_from_inside_numpy_is_put_under_a_field():
