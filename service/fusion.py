@@ -71,6 +71,7 @@ import numpy as np
 
 from service import _dqcore as _c
 from service import dq, lie
+from service import limits as _limits
 from service.errors import rename
 
 __all__ = ["DOF", "Status", "Verdict", "Source", "Rejection", "SourceStats", "Fused",
@@ -80,6 +81,9 @@ DOF = 6
 # Relative asymmetry a covariance may have and still be taken as symmetric (its mean with its
 # transpose is used): a product J Σ Jᵀ computed in float64 is asymmetric at ~1e-16.
 _SYMMETRY_TOL = 1e-9
+# The variances a covariance may have (standard deviations 1e-12 to 1e12 rad or m): beyond them
+# its information cannot be used (service/csrc/fusion.h, which checks the same for StreamFuse).
+_MIN_VARIANCE, _MAX_VARIANCE = _c.MIN_VARIANCE, _c.MAX_VARIANCE
 # The motion model's Gauss-Newton halves a step that raises the cost by more than _COST_SLACK
 # (relative), at most _MAX_HALVINGS times: the rule of the static fit in service/csrc/fusion.c.
 _COST_SLACK = 1e-12
@@ -90,7 +94,8 @@ class Status(enum.IntEnum):
     """How the estimate was reached (ruckig-style result code)."""
     CONVERGED = 0        # the last Gauss-Newton step was shorter than tol
     MAX_ITERATIONS = 1   # max_iter steps taken, the last one still longer than tol
-    GATE_UNSTABLE = 2    # robust mode: the inlier set cycled; the fit of the last set is returned
+    GATE_UNSTABLE = 2    # robust mode: the inlier set cycled, or had not settled after _GATE_FITS
+                         # fits; the fit of the last set is returned
 
 
 class Verdict(enum.IntEnum):
@@ -307,6 +312,15 @@ def _covariances(covariances, weights, n: int) -> np.ndarray:
     if np.any(bad):
         i = int(np.flatnonzero(bad)[0])
         raise ValueError(f"covariances[{i}]: not symmetric (largest asymmetry {asym[i]:.3g})")
+    var = np.diagonal(S, axis1=1, axis2=2)
+    out = (var > 0.0) & ~((var >= _MIN_VARIANCE) & (var <= _MAX_VARIANCE))   # <= 0: not SPD
+    bad = out.any(axis=1)
+    if np.any(bad):
+        i = int(np.flatnonzero(bad)[0])
+        v = var[i][out[i]][0]
+        raise ValueError(f"covariances[{i}]: variance {v:.6g} outside [{_MIN_VARIANCE:g}, "
+                         f"{_MAX_VARIANCE:g}] (standard deviations 1e-12 to 1e+12 rad or m): "
+                         f"its information cannot be used")
     S = 0.5 * (S + np.swapaxes(S, 1, 2))
     try:
         np.linalg.cholesky(S)
@@ -393,18 +407,24 @@ def _fit(Z: np.ndarray, S: np.ndarray, inlier: np.ndarray, tol: float, max_iter:
 
 
 # ---- robust mode -------------------------------------------------------------------------------
+# The consensus compares every measurement with at most this many candidates for the group's
+# centre (all of them when there are no more): O(n) rather than every pair's O(n^2).
+_CANDIDATES = 64
+
+
 def _consensus(Z: np.ndarray, S: np.ndarray, gate2: float) -> np.ndarray:
     """The measurement agreeing with most others, and those: pairwise ``Log(Z_i⁻¹ Z_j)`` against
-    ``Σ_i + Σ_j`` (to first order ``Exp(ε_i) Exp(-ε_j)``, both in the body frame)."""
+    ``Σ_i + Σ_j`` (to first order ``Exp(ε_i) Exp(-ε_j)``, both in the body frame), in C. Beyond
+    ``_CANDIDATES`` measurements the centre is sought among that many spread over them (any
+    inlier finds the inliers' group; the gate that follows judges every measurement)."""
     n = Z.shape[0]
-    d = lie.se3_log(dq.mul(dq.conj(Z)[:, None], Z[None]))
-    D2 = np.einsum("ijk,ijk->ij", d,
-                   np.linalg.solve(S[:, None] + S[None], d[..., None])[..., 0])
+    cand = np.arange(n) if n <= _CANDIDATES else (np.arange(_CANDIDATES) * n) // _CANDIDATES
+    D2 = _c.pair_distances(Z, S, cand)
     agree = D2 <= gate2
-    np.fill_diagonal(agree, True)
+    agree[np.arange(len(cand)), cand] = True
     count = agree.sum(axis=1)
     spread = np.where(agree, D2, 0.0).sum(axis=1)
-    best = min(range(n), key=lambda i: (-count[i], spread[i], i))
+    best = min(range(len(cand)), key=lambda a: (-count[a], spread[a], a))
     return agree[best].copy()
 
 
@@ -605,11 +625,24 @@ def _seconds(x, name: str, least: Optional[str] = None) -> float:
     return v
 
 
+# What a latency and its prior's standard deviation may be (seconds): a prior of 5e-324 s has an
+# information (sigma^-2) no double holds.
+_MAX_LATENCY = 1e6
+_LATENCY_SIGMA = (1e-9, 1e6)
+
+
 def _latency(s: Source, k: int) -> tuple[float, Optional[float]]:
     latency = _seconds(s.latency, f"sources[{k}].latency")
+    if abs(latency) > _MAX_LATENCY:
+        raise ValueError(f"sources[{k}].latency: {latency:.6g} s is beyond +-{_MAX_LATENCY:g} s")
     if s.latency_sigma is None:
         return latency, None
-    return latency, _seconds(s.latency_sigma, f"sources[{k}].latency_sigma", "positive")
+    sigma = _seconds(s.latency_sigma, f"sources[{k}].latency_sigma", "positive")
+    lo, hi = _LATENCY_SIGMA
+    if not lo <= sigma <= hi:
+        raise ValueError(f"sources[{k}].latency_sigma: {sigma:.6g} s is outside [{lo:g}, "
+                         f"{hi:g}] s")
+    return latency, sigma
 
 
 def _shape(x):
@@ -984,17 +1017,22 @@ def _robust_motion(Z, S, model: _Model, allowed: np.ndarray, gate2, tol, max_ite
                  lambda fit, m: _motion_nis(fit, S, m, model), gate2)
 
 
+# The gate refits at most this many times (each fit is linear in the measurements, or cubic with
+# an acceleration_psd): the bound of a robust fit's cost (service/limits.py).
+_GATE_FITS = 50
+
+
 def _gate(inlier, allowed, fit_of, nis_of, gate2):
     """From ``inlier``: remove the worst failing inlier, one at a time (an outlier inside pulls
     the others' innovations), then admit every ``allowed`` measurement that passes; until
-    nothing changes or a set repeats."""
+    nothing changes, a set repeats or ``_GATE_FITS`` fits were made."""
     seen = set()
     status = None
     while True:
         fit = fit_of(inlier)
         nis, tested = nis_of(fit, inlier)
         key = inlier.tobytes()
-        if key in seen:
+        if key in seen or len(seen) >= _GATE_FITS:
             status = Status.GATE_UNSTABLE
             break
         seen.add(key)
@@ -1164,14 +1202,26 @@ class _Store:
         self.poses = np.empty((capacity, 8))
         self.covs = np.empty((capacity, DOF, DOF))
 
-    def live(self, newest: np.ndarray, window: float) -> np.ndarray:
+    def live(self, newest: np.ndarray, window: float, cap: Optional[int] = None) -> np.ndarray:
+        """The rows in their body's window: taken within ``window`` of its newest, and among
+        the last ``cap`` of those (arrival order) when a cap is given."""
         body = self.body[:self.n]
-        return self.taken[:self.n] >= newest[body] - window
+        live = self.taken[:self.n] >= newest[body] - window
+        if cap is not None:
+            idx = np.flatnonzero(live)
+            b = body[idx]
+            order = np.lexsort((-idx, b))              # by body, newest arrival first
+            start = np.flatnonzero(np.r_[True, b[order][1:] != b[order][:-1]])
+            rank = np.arange(len(order)) - np.repeat(start, np.diff(np.r_[start, len(order)]))
+            live[idx[order[rank >= cap]]] = False
+        return live
 
-    def rows(self, b: int, newest: np.ndarray, window: float) -> np.ndarray:
-        """Body ``b``'s rows in its window, in arrival order."""
+    def rows(self, b: int, newest: np.ndarray, window: float,
+             cap: Optional[int] = None) -> np.ndarray:
+        """Body ``b``'s rows in its window, in arrival order (the last ``cap`` of them)."""
         body = self.body[:self.n]
-        return np.flatnonzero((body == b) & (self.taken[:self.n] >= newest[b] - window))
+        rows = np.flatnonzero((body == b) & (self.taken[:self.n] >= newest[b] - window))
+        return rows if cap is None or len(rows) <= cap else rows[len(rows) - cap:]
 
     def keep(self, mask: np.ndarray) -> None:
         k = int(np.count_nonzero(mask))
@@ -1180,10 +1230,11 @@ class _Store:
             arr[:k] = arr[:self.n][mask]
         self.n = k
 
-    def append(self, newest: np.ndarray, window: float, **rows) -> None:
+    def append(self, newest: np.ndarray, window: float, cap: Optional[int] = None,
+               **rows) -> None:
         m = len(rows["ids"])
         if self.n + m > len(self.ids):
-            self.keep(self.live(newest, window))
+            self.keep(self.live(newest, window, cap))
             if 2 * (self.n + m) > len(self.ids):
                 size = max(2 * len(self.ids), 2 * (self.n + m))
                 for a in self._ARRAYS:
@@ -1206,14 +1257,23 @@ class Tracker:
     measurement); :meth:`add` takes :class:`Measurement` s, all or none. :meth:`estimate` fuses a
     body's window at a time with :func:`fuse` (its keyword options are those given here).
     Bodies are independent: nothing of one enters another's estimate.
+
+    ``limits`` (a server's :class:`service.limits.Limits`; None: unbounded) bounds what a stream
+    keeps: a body's window holds its last ``max_window`` measurements (``max_robust`` when
+    robust, ``max_correlated`` with an ``acceleration_psd``), the stream
+    ``max_stream_measurements`` in all (more are refused), and a measurement taken more than
+    ``max_time_jump`` after its body's newest is refused without moving the body, unless the
+    body's next such measurement confirms the jump (a clock that really moved, a body seen
+    again after a pause): one stray stamp never poisons a body.
     """
 
     def __init__(self, window: float, *, sources: Optional[Iterable[Source]] = None,
                  robust: bool = False, probability: float = 0.999,
                  max_skew: Optional[float] = None, max_extrapolation: Optional[float] = 0.1,
                  twist_covariance=None, acceleration_psd=None, tol: float = 1e-12,
-                 max_iter: int = 100):
+                 max_iter: int = 100, limits: Optional[_limits.Limits] = None):
         self.window = _seconds(window, "window", "positive")
+        self.limits = limits
         self.sources = tuple(sources or ())
         self._table = _sources(self.sources)
         # the options' checks are fuse's: one fusion of a placeholder runs them now, not later
@@ -1236,6 +1296,13 @@ class Tracker:
         self._names: list[str] = []
         self._latency = np.empty(0)
         self._count = 0            # measurements offered so far: the default ids
+        # per body code: the time of its last refused jump, which a second one near it confirms
+        self._jumps: dict[int, float] = {}
+        self.cap = None            # measurements a body's window holds (None: all)
+        if limits is not None:
+            correlated = acceleration_psd is not None and np.any(acceleration_psd)
+            self.cap = min(limits.max_window, limits.max_robust if robust else limits.max_window,
+                           limits.max_correlated if correlated else limits.max_window)
 
     @property
     def bodies(self) -> tuple[str, ...]:
@@ -1261,6 +1328,17 @@ class Tracker:
         """:meth:`newest` of each of ``bodies`` (which have measurements), in one go."""
         codes = self._body_codes
         return self._newest[[codes[b] for b in bodies]].tolist()
+
+    def count(self, body: str) -> int:
+        """How many measurements ``body``'s window holds."""
+        return len(self._rows(body))
+
+    def capped(self, body: str) -> bool:
+        """Whether ``body``'s window leaves measurements out for its ``cap``."""
+        if self.cap is None:
+            return False
+        s = self._store
+        return len(s.rows(self._code_of(body), self._newest, self.window)) > self.cap
 
     def oldest(self, body: str) -> float:
         """When the oldest measurement in ``body``'s window was taken."""
@@ -1335,7 +1413,7 @@ class Tracker:
         return self._body_codes[body]
 
     def _rows(self, body: str) -> np.ndarray:
-        return self._store.rows(self._code_of(body), self._newest, self.window)
+        return self._store.rows(self._code_of(body), self._newest, self.window, self.cap)
 
     def _source_code(self, source: str) -> int:
         code = self._codes.get(source)
@@ -1406,6 +1484,9 @@ class Tracker:
         codes = np.array(codes, dtype=np.int64)
         body = np.array(body, dtype=np.int64)
         taken = times - (self._latency[codes] if self._names else 0.0)
+        if self.limits is not None:
+            self._jump_check(bodies, sources, times, body, taken, ok, errors)
+            every = bool(ok.all())
         # Taken no further back than the window before the body's newest, counting the earlier
         # measurements of the same call: checked at once against the newest of the whole call,
         # and only the rows that fail that (stricter) test one by one in order.
@@ -1425,29 +1506,89 @@ class Tracker:
                     f"{float(times[k])!r}): taken at {float(taken[k])!r}, "
                     f"{floor - taken[k]:.6g} s before the newest measurement of the body, "
                     f"beyond the window {self.window:g} s")
+        if self.limits is not None:
+            self._room(ok, errors)
+            every = every and bool(ok.all())
         if all_or_none and errors:
             return [min(errors.items())]
         self._count += offered
         if every and not late:
             self._newest = newest     # the maxima over these rows, taken above
-            self._store.append(self._newest, self.window, ids=ids, body=body, codes=codes,
-                               times=times, taken=taken, poses=poses, covs=covs)
+            self._store.append(self._newest, self.window, self.cap, ids=ids, body=body,
+                               codes=codes, times=times, taken=taken, poses=poses, covs=covs)
             for b in bodies:
                 self._active.setdefault(b, None)
         elif ok.all():
             np.maximum.at(self._newest, body, taken)
-            self._store.append(self._newest, self.window, ids=ids, body=body, codes=codes,
-                               times=times, taken=taken, poses=poses, covs=covs)
+            self._store.append(self._newest, self.window, self.cap, ids=ids, body=body,
+                               codes=codes, times=times, taken=taken, poses=poses, covs=covs)
             for b in bodies:
                 self._active.setdefault(b, None)
         elif ok.any():
             np.maximum.at(self._newest, body[ok], taken[ok])
-            self._store.append(self._newest, self.window, ids=ids[ok], body=body[ok],
+            self._store.append(self._newest, self.window, self.cap, ids=ids[ok], body=body[ok],
                                codes=codes[ok], times=times[ok], taken=taken[ok],
                                poses=poses[ok], covs=covs[ok])
             for k in np.flatnonzero(ok).tolist():
                 self._active.setdefault(bodies[k], None)
         return sorted(errors.items())
+
+
+    def _jump_check(self, bodies, sources, times, body, taken, ok, errors) -> None:
+        """Refuses (in ``ok`` and ``errors``) the rows taken more than ``max_time_jump`` after
+        their body's newest measurement, the earlier rows of the call counted (for a body new
+        to the stream, its earliest row of the call is the reference), unless the row confirms
+        the body's last refused jump by lying within ``max_time_jump`` of it."""
+        jump = self.limits.max_time_jump
+        ref = self._newest[body]
+        fresh = ~np.isfinite(ref)
+        if fresh.any():
+            first = np.full(len(self._newest), np.inf)
+            np.minimum.at(first, body[ok], taken[ok])
+            ref = np.where(fresh, first[body], ref)
+        ahead = np.flatnonzero(ok & (taken > ref + jump))
+        if not len(ahead):
+            return
+        suspects = set(body[ahead].tolist())
+        current = {}
+        for k in range(len(body)):
+            b = int(body[k])
+            if not ok[k] or b not in suspects:
+                continue
+            cur = current.get(b, float(ref[k]))
+            t = float(taken[k])
+            if t <= cur + jump:
+                current[b] = max(cur, t)
+                continue
+            pending = self._jumps.get(b)
+            if pending is not None and abs(t - pending) <= jump:
+                del self._jumps[b]       # a second measurement confirms it: the body moves on
+                current[b] = t
+                continue
+            self._jumps[b] = t
+            ok[k] = False
+            errors[k] = _limits.over(
+                f"measurements[{k}]", f"body {bodies[k]!r}, source {sources[k]!r}, time "
+                f"{float(times[k])!r}: taken {t - cur:.6g} s after the newest measurement of "
+                f"the body, so not used (a second measurement near it would confirm the jump)",
+                self.limits, "max_time_jump")
+
+    def _room(self, ok, errors) -> None:
+        """Refuses the rows that would take the stream past ``max_stream_measurements`` live
+        measurements (those out of their window dropped first)."""
+        s, cap = self._store, self.limits.max_stream_measurements
+        k = int(np.count_nonzero(ok))
+        if s.n + k <= cap:
+            return
+        s.keep(s.live(self._newest, self.window, self.cap))
+        over = s.n + k - cap
+        if over <= 0:
+            return
+        for j in np.flatnonzero(ok)[k - over:].tolist():
+            ok[j] = False
+            errors[j] = _limits.over(
+                f"measurements[{j}]", f"the stream's windows hold {s.n} measurements", self.limits,
+                "max_stream_measurements")
 
 
 def _check_rows(bodies, sources, times, poses, covs):

@@ -91,7 +91,7 @@ Healthy scenes (960 runs over tests/_handeye.py's grid) are never refused.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import numpy as np
 
@@ -202,6 +202,12 @@ def _noise(cov, name: str, n: int) -> Optional[np.ndarray]:
             raise FieldError(f"{where}: not symmetric")
         if np.linalg.eigvalsh(0.5 * (s + s.T))[0] < 0.0:
             raise FieldError(f"{where}: not positive semi-definite")
+        var = np.diagonal(s)
+        bad = (var > 0.0) & ~((var >= fusion._MIN_VARIANCE) & (var <= fusion._MAX_VARIANCE))
+        if bad.any():
+            raise FieldError(f"{where}: variance {var[bad][0]:.6g} outside "
+                             f"[{fusion._MIN_VARIANCE:g}, {fusion._MAX_VARIANCE:g}] (0 is "
+                             f"exact): its information cannot be used")
     return 0.5 * (S + np.swapaxes(S, -1, -2))
 
 
@@ -892,6 +898,71 @@ _ROBOT_FLOOR = np.array([np.radians(1e-5)] * 3 + [1e-8] * 3) ** 2
 _EM_ROUNDS = 12
 
 
+class _Arrow(NamedTuple):
+    """The corner fit's normal equations solved by their arrow structure: ``Pgg`` the global
+    parameters' covariance, ``Pdd`` each view's correction's ``(n, 6, 6)``; ``cost`` the
+    squared residual at the linearisation; ``moved(step)`` is ``stepᵀ H step``."""
+    Pgg: np.ndarray
+    Pdd: Optional[np.ndarray]
+    cost: float
+    moved: object
+
+
+def _arrow_step(Jg, Jd, r, prior, delta, starts):
+    """The Gauss–Newton step of the corner fit, ``-H⁻¹ Jᵀ r``, and the leverage ``J_k H⁻¹ J_kᵀ``
+    of each pixel row, in O(views): the rows of view i depend on the global parameters (columns
+    ``Jg``) and on view i's robot correction alone (``Jd``, with the prior rows ``prior[i]`` on
+    it), so ``H`` is an arrow: a small global block, one 6 × 6 block per view, and their
+    coupling, eliminated view by view (Schur complement). ``Jd`` None: no corrections.
+    Returns ``(step, _Arrow, leverage)``."""
+    Hgg = Jg.T @ Jg
+    gg = Jg.T @ r
+    cost = float(r @ r)
+    if Jd is None:
+        try:
+            Pgg = np.linalg.inv(Hgg)
+        except np.linalg.LinAlgError:
+            raise Infeasible("corners: the corners do not determine X and Z (singular "
+                             "information)") from None
+        step = -Pgg @ gg
+        lev = np.einsum("ki,ij,kj->k", Jg, Pgg, Jg)
+        return step, _Arrow(Pgg, None, cost, lambda s: float(s @ Hgg @ s)), lev
+    m = Jg.shape[1]
+
+    def per_view(a):       # sums over each view's pixel rows (two a corner, views in order)
+        return np.add.reduceat(a, 2 * starts, axis=0)
+
+    pd = np.einsum("nij,nj->ni", prior, delta)
+    Hgd = per_view(Jg[:, :, None] * Jd[:, None, :])                      # (n, m, 6)
+    D = per_view(Jd[:, :, None] * Jd[:, None, :]) + np.swapaxes(prior, 1, 2) @ prior
+    gd = per_view(Jd * r[:, None]) + np.einsum("nji,nj->ni", prior, pd)
+    cost += float((pd ** 2).sum())
+    try:
+        Di = np.linalg.inv(D)
+        HDi = Hgd @ Di                                                   # (n, m, 6)
+        S = Hgg - np.einsum("nij,nkj->ik", HDi, Hgd)
+        Pgg = np.linalg.inv(0.5 * (S + S.T))
+    except np.linalg.LinAlgError:
+        raise Infeasible("corners: the corners do not determine X and Z (singular "
+                         "information)") from None
+    step_g = -Pgg @ (gg - np.einsum("nij,nj->i", HDi, gd))
+    step_d = -np.einsum("nij,nj->ni", Di, gd + np.einsum("nji,j->ni", Hgd, step_g))
+    # P_gi = -Pgg HDi_i; P_ii = Di + HDi_iᵀ Pgg HDi_i
+    Pgd = -np.einsum("ij,njk->nik", Pgg, HDi)                            # (n, m, 6)
+    Pdd = Di + np.einsum("nji,jk,nkl->nil", HDi, Pgg, HDi)
+    view = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(Jg) // 2]) * 2)
+    lev = (np.einsum("ki,ij,kj->k", Jg, Pgg, Jg)
+           + 2.0 * np.einsum("ki,kij,kj->k", Jg, Pgd[view], Jd)
+           + np.einsum("ki,kij,kj->k", Jd, Pdd[view], Jd))
+
+    def moved(s):
+        sg, sd = s[:m], s[m:].reshape(-1, 6)
+        return float(sg @ Hgg @ sg + 2.0 * np.einsum("i,nij,nj->", sg, Hgd, sd)
+                     + np.einsum("ni,nij,nj->", sd, D, sd))
+
+    return np.concatenate([step_g, step_d.ravel()]), _Arrow(Pgg, Pdd, cost, moved), lev
+
+
 def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool,
                 pixel_sigma: Optional[float], refine_board: bool = False) -> _CornerFit:
     """Maximum likelihood on the corners: pixels with isotropic noise σ (given, or estimated
@@ -927,8 +998,7 @@ def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool
     # sharp ones and claim their errors average like the others'.
     sigma = np.full(n_in, pixel_sigma or 1.0)
     leverage = (12.0 + nf + nb) / n_in * np.ones(n_in)  # each view's share of the fitted dof
-    rows = np.arange(2 * N).reshape(N, 2)
-    cols = off + 6 * sub.view[:, None] + np.arange(6)
+    starts = np.flatnonzero(np.r_[True, sub.view[1:] != sub.view[:-1]])   # views in order
 
     def prior_rows():
         S = (np.broadcast_to(np.diag(theta), (n_in, 6, 6)) if estimate else
@@ -966,31 +1036,24 @@ def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool
             dX[:, :, :3] = lie.so3_hat(pc)
             dX[:, :, 3:] = -np.eye(3)
             dZ = np.concatenate([-R @ lie.so3_hat(pts), R], axis=2)
-            J = np.zeros((2 * N + (6 * n_in if use_robot else 0), npar))
-            J[:2 * N, :6] = (Jp @ dX).reshape(2 * N, 6) / s_row[:, None]
-            J[:2 * N, 6:12] = (Jp @ dZ).reshape(2 * N, 6) / s_row[:, None]
+            # The global columns (X, Z, the focal and board scales) of every pixel row...
+            Jg = np.empty((2 * N, off))
+            Jg[:, :6] = (Jp @ dX).reshape(2 * N, 6) / s_row[:, None]
+            Jg[:, 6:12] = (Jp @ dZ).reshape(2 * N, 6) / s_row[:, None]
             if nf:
-                J[:2 * N, 12] = ds.reshape(-1) / s_row
+                Jg[:, 12] = ds.reshape(-1) / s_row
             if nb:       # the board's points scaled by (1 + ε): the camera's points by R p ε
-                J[:2 * N, 12 + nf] = (Jp @ (R @ pts[..., None]))[..., 0].reshape(-1) / s_row
+                Jg[:, 12 + nf] = (Jp @ (R @ pts[..., None]))[..., 0].reshape(-1) / s_row
             r = e / s_row
+            Jd = None
             if use_robot:
-                # A ← A Exp(δ_A) moves C by Exp(−Ad(X⁻¹) δ_A) on the left: the X column's
-                # derivative times Ad(X⁻¹).
+                # ... and its view's robot correction: A ← A Exp(δ_A) moves C by
+                # Exp(−Ad(X⁻¹) δ_A) on the left, the X column's derivative times Ad(X⁻¹).
                 dA = dX @ lie.adjoint(dq.inv(X))
                 if toA is not None:
                     dA = dA @ toA[sub.view]
-                J[rows[:, :, None], cols[:, None, :]] = (Jp @ dA) / sigma[sub.view, None, None]
-                for i in range(n_in):
-                    J[2 * N + 6 * i:2 * N + 6 * i + 6, off + 6 * i:off + 6 * i + 6] = prior[i]
-                r = np.concatenate([r, np.einsum("nij,nj->ni", prior, delta).reshape(-1)])
-            H = J.T @ J
-            g = J.T @ r
-            try:
-                step = -np.linalg.solve(H, g)
-            except np.linalg.LinAlgError:
-                raise Infeasible("corners: the corners do not determine X and Z (singular "
-                                 "information)") from None
+                Jd = ((Jp @ dA) / sigma[sub.view, None, None]).reshape(2 * N, 6)
+            step, H, lev = _arrow_step(Jg, Jd, r, prior, delta, starts)
             X = dq.mul(X, lie.se3_exp(step[:6]))
             Z = dq.mul(Z, lie.se3_exp(step[6:12]))
             if nf:
@@ -999,12 +1062,10 @@ def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool
                 board *= 1.0 + step[12 + nf]
             if use_robot:
                 delta = delta + step[off:].reshape(n_in, 6)
-            P = np.linalg.inv(H)
             # the pixel dof the fit takes, per view (REML: each σ from what the fit leaves)
-            leverage = np.bincount(np.repeat(sub.view, 2),
-                                   np.sum((J[:2 * N] @ P) * J[:2 * N], axis=1), minlength=n_in)
-            new = float(r @ r)
-            if float(step @ H @ step) < _TOL and abs(cost - new) <= 1e-9 * new:
+            leverage = np.add.reduceat(lev.reshape(N, 2).sum(axis=1), starts)
+            new = H.cost
+            if H.moved(step) < _TOL and abs(cost - new) <= 1e-9 * new:
                 break
             cost = new
         if settled:
@@ -1012,15 +1073,14 @@ def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool
         # MacKay's fixed point (the evidence's stationary point): θ = Σ δ̂² / γ with
         # γ = Σ (1 − P_kk / θ) the number of correction components the corners determine;
         # unlike EM it drops to ~0 in a step when the robot is exact.
-        Pd = np.diagonal(P[off:, off:].reshape(n_in, 6, n_in, 6), axis1=0, axis2=2)  # (6,6,n)
         d2 = (delta ** 2).sum(axis=0)
-        gam = np.einsum("iin->i", 1.0 - Pd / theta[:, None, None] * np.eye(6)[:, :, None])
+        gam = (1.0 - np.diagonal(H.Pdd, axis1=1, axis2=2) / theta).sum(axis=0)
         gam = np.repeat([gam[:3].sum(), gam[3:].sum()], 3)
         num = np.repeat([d2[:3].sum(), d2[3:].sum()], 3)
         new_theta = np.maximum(num / np.maximum(gam, 1e-3), _ROBOT_FLOOR)
         settled = bool(np.all(np.abs(new_theta - theta) <= 0.1 * theta + _ROBOT_FLOOR))
         theta = new_theta
-    P = np.linalg.inv(H)
+    P = H.Pgg
     full = None
     if use_robot:
         full = np.zeros((len(F), 6))
@@ -1111,9 +1171,14 @@ def _calibrate(base_flange, camera_target, setup, robust, corners, camera_covari
     if not estimate:
         S0 = noise(p.closed[0], p.C, np.zeros((n, 6)), np.broadcast_to(np.eye(6), (n, 6, 6)),
                    np.ones(n, bool))
-        if not np.all(np.linalg.eigvalsh(S0)[:, 0] > 0.0):
-            raise FieldError("camera_covariance: the residual covariance is singular; give "
-                             "every pose some noise in every axis")
+        singular = np.flatnonzero(~(np.linalg.eigvalsh(S0)[:, 0] > 0.0))
+        if len(singular):
+            i = int(singular[0])
+            given = f"camera_covariance[{i}]" + (
+                f", robot_covariance[{i}]" if SRob is not None else "")
+            raise FieldError(f"{given}: the residual covariance of this sample (its camera and "
+                             f"robot noise together) is singular; give every pose some noise "
+                             f"in every axis")
     warnings = list(p.warnings)
     X0, Z0 = p.closed[0], p.closed[1]
 

@@ -51,10 +51,14 @@ class Infeasible(FieldInfeasible):
     FAILED_PRECONDITION."""
 
 
+#: what a limit may be (m, rad, s): a plan at 5e-324 m/s lasts longer than a double holds
+LIMIT_RANGE = (1e-9, 1e9)
+
+
 @dataclass(frozen=True)
 class Limits:
     """Cartesian limits of the tool point (linear) and the tool (angular). Velocities and
-    accelerations are required (> 0); a jerk of 0 means no jerk limit."""
+    accelerations are required, within ``LIMIT_RANGE``; a jerk of 0 means no jerk limit."""
     max_linear_velocity: float        # m/s
     max_angular_velocity: float       # rad/s
     max_linear_acceleration: float    # m/s^2
@@ -73,6 +77,11 @@ class Limits:
             if not (math.isfinite(v) and (v >= 0 if jerk else v > 0)):
                 need = "finite and >= 0 (0: no limit)" if jerk else "finite and > 0"
                 raise FieldError(f"limits.{f.name}: must be {need}, got {v!r}")
+            lo, hi = LIMIT_RANGE
+            if (v or not jerk) and not lo <= v <= hi:
+                raise FieldError(f"limits.{f.name}: {v:.6g} is outside [{lo:g}, {hi:g}] (SI "
+                                 f"units): the times and samples of a motion at such a limit "
+                                 f"do not fit a double")
             object.__setattr__(self, f.name, v)
 
     def as_array(self) -> np.ndarray:
@@ -247,6 +256,10 @@ def _start_rate(v0: np.ndarray, poses, mode) -> float | None:
     return rate
 
 
+# A start velocity slower than this (m/s, rad/s) is rest to the planner: braking from it would
+# take a time that underflows.
+_AT_REST = 1e-12
+
 # How far past its braking point (in the braking's own time) the redirect segment reaches, and
 # how many times that reach may double when the planner's bounds need more room.
 _REDIRECT_REACH = 0.625
@@ -316,10 +329,13 @@ def plan(waypoints, limits: Limits, interpolation: str = "tool_linear", *,
     sigma0, v0 = 0.0, None
     if start_velocity is not None:
         v0 = _start_vector(start_velocity)
-        for v, name in ((np.linalg.norm(v0[:3]), "max_linear_velocity"),
-                        (np.linalg.norm(v0[3:]), "max_angular_velocity")):
+        if math.hypot(*v0) < _AT_REST:
+            v0 = np.zeros(6)
+        for v, name in ((math.hypot(*v0[:3]), "max_linear_velocity"),
+                        (math.hypot(*v0[3:]), "max_angular_velocity")):
             if v > getattr(limits, name) * (1 + 1e-12):
-                raise Infeasible(f"start_velocity: {float(v)!r} is over limits.{name}")
+                raise Infeasible(f"start_velocity: {v:.6g} is over limits.{name} "
+                                 f"{getattr(limits, name):.6g}")
         sigma0 = _start_rate(v0, poses, mode)
     if sigma0 is not None:
         code, bad, table, duration, segs = _c.traj_plan(poses, mode, radius, times,

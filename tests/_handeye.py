@@ -320,6 +320,14 @@ def corners(s: Scene, pixel_noise: float = 0.2, K: np.ndarray = CAMERA_MATRIX, s
     return out
 
 
+def exact_corners(s: Scene, squares, size: float = 0.015, K: np.ndarray = CAMERA_MATRIX):
+    """One ``(board_points, image_points, K)`` per sample of a ``squares`` board: its corners
+    projected through the measured ``T_camera_target`` without noise (a request's largest legal
+    corner count, cheaply)."""
+    P = board_points(squares, size)
+    return [(P, project(C, P, K), K) for C in s.camera_target]
+
+
 def near_side_pull(T_camera_target, points: np.ndarray, image_points: np.ndarray,
                    K: np.ndarray) -> float:
     """The mean of one view's corner errors (detected minus true, px) along the image direction

@@ -1,4 +1,4 @@
-"""``dqpose fuse``: measurements of one body from a JSON or CSV file, fused on a server (the
+"""``dqpose fuse``: measurements of one body from a JSON, YAML or CSV file, fused on a server (the
 ``dqpose.v1.Fusion`` service) or ``--local``ly by the same code, printed as text or JSON."""
 from __future__ import annotations
 
@@ -95,6 +95,7 @@ def read_request(path: str):
         from google.protobuf import json_format
 
         doc = inputs.document(path, text, fmt, "measurements")
+        inputs.message("", doc, pb.FuseRequest.DESCRIPTOR)
         try:
             request = json_format.ParseDict(doc, pb.FuseRequest())
         except json_format.ParseError as e:

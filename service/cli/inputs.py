@@ -89,6 +89,28 @@ def fields(where: str, value, known: tuple[str, ...], required: tuple[str, ...] 
     return out
 
 
+def message(where: str, value, descriptor) -> None:
+    """Checks ``value``, a document for the protobuf message of ``descriptor``, key by key at
+    every depth with :func:`fields`' rules (protobuf's own parser names only the message type
+    and lists every field): ``measurements[0]: unknown key 'positon' (did you mean 'pose'?)``."""
+    if not isinstance(value, dict):
+        return                  # protobuf's parser says what it expected there
+    known = tuple(f.name for f in descriptor.fields)
+    named = fields(where, value, known)
+    for f in descriptor.fields:
+        if f.message_type is None or f.name not in named or f.message_type.GetOptions().map_entry:
+            continue
+        if f.message_type.full_name.startswith("google.protobuf."):
+            continue            # well-known types have JSON forms of their own
+        v = named[f.name]
+        at = f"{where}.{f.name}" if where else f.name
+        if f.is_repeated and isinstance(v, list):
+            for k, item in enumerate(v):
+                message(f"{at}[{k}]", item, f.message_type)
+        elif not f.is_repeated:
+            message(at, v, f.message_type)
+
+
 def nearest(key: str, known: tuple[str, ...]) -> str | None:
     """The known key ``key`` most likely stands for (a synonym, else the closest spelling), or
     None when none is close."""

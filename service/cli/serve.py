@@ -7,6 +7,7 @@ import json
 import sys
 import textwrap
 
+from service import limits
 from service.cli.common import client, connection_args, fail, missing_extra, read
 from service.rpc import DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
 
@@ -34,6 +35,9 @@ def configure(name: str, p) -> None:
                        help="largest request/response; larger is RESOURCE_EXHAUSTED (default: %(default)s)")
         p.add_argument("--max-poses", type=int, default=DEFAULT_MAX_POSES,
                        help="most poses, keyframes or times per request (default: %(default)s)")
+        limits.add_flags(p.add_argument_group(
+            "limits", "what one request or stream may cost (the cost model: service/limits.py); "
+                      "a request over one is refused RESOURCE_EXHAUSTED naming it"))
         p.add_argument("--keepalive", type=float, default=60.0, help="keepalive ping period, s (default: %(default)s)")
         p.add_argument("--drain", type=float, default=0.5,
                        help="after SIGTERM, how long health answers NOT_SERVING (and new calls "
@@ -121,7 +125,7 @@ def _serve(args) -> int:
             client_ca=read(args.client_ca) if args.client_ca else None,
             token=token, max_message_bytes=args.max_message_bytes, max_poses=args.max_poses,
             keepalive_s=args.keepalive, grace_s=args.grace, drain_s=args.drain,
-            metrics_port=args.metrics_port)
+            metrics_port=args.metrics_port, limits=limits.from_args(args))
         simulated = [f"{n}={text}" for n, (text, spec) in arm_specs.items() if spec.target == SIM]
         if simulated and not args.sims:
             return fail("serve", f"--arm {simulated[0]}: TARGET '{SIM}' is the simulator that "

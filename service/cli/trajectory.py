@@ -1,6 +1,6 @@
 """``dqpose plan`` and ``dqpose smooth``: a time-scaled path through waypoints, and a noisy
-recorded path smoothed, both under linear and angular limits, from a JSON or CSV file; on a server
-(the ``dqpose.v1.Trajectories`` service) or ``--local``ly by the same code. CSV or JSON out,
+recorded path smoothed, both under linear and angular limits, from a JSON, YAML or CSV file; on a
+server (the ``dqpose.v1.Trajectories`` service) or ``--local``ly by the same code. CSV or JSON out,
 and ``--plot`` draws position, velocity, acceleration and jerk against the limits."""
 from __future__ import annotations
 

@@ -102,6 +102,9 @@ int dq_covariance_check(const double *S, double sym_tol, double *sym)
         }
     }
     if (!(asym <= sym_tol * scale)) return DQ_E_ASYMMETRIC;
+    for (int j = 0; j < 6; j++)
+        if (S[7 * j] > 0.0 && !(S[7 * j] >= DQ_MIN_VARIANCE && S[7 * j] <= DQ_MAX_VARIANCE))
+            return DQ_E_SCALE; /* one not positive is not positive definite: said so below */
     if (extreme) return DQ_E_BORDERLINE;
     for (int i = 0; i < 6; i++)
         for (int j = 0; j < 6; j++) sym[6 * i + j] = 0.5 * (S[6 * i + j] + S[6 * j + i]);
@@ -1070,4 +1073,26 @@ int dq_spd_inverse(const double *H, int dim, double *work, double *P)
         for (int b = 0; b < a; b++)
             P[dim * a + b] = P[dim * b + a] = 0.5 * (P[dim * a + b] + P[dim * b + a]);
     return 1;
+}
+
+int dq_pair_distances(const double *z, const double *cov, size_t n, const long long *cand,
+                      size_t m, double *d2, size_t *bad)
+{
+    for (size_t a = 0; a < m; a++) {
+        size_t c = (size_t)cand[a];
+        double zc[8], r[6], sc[2], A[36], L[36], di[6], e[6];
+        dq_conj(z + 8 * c, zc);
+        for (size_t j = 0; j < n; j++) {
+            residual(zc, z + 8 * j, r, sc);
+            for (int k = 0; k < 36; k++) A[k] = cov[36 * c + k] + cov[36 * j + k];
+            if (!chol6(A, L, di)) {
+                *bad = j;
+                return DQ_E_NOT_SPD;
+            }
+            lower_solve(L, di, r, e);
+            d2[a * n + j] = e[0] * e[0] + e[1] * e[1] + e[2] * e[2] + e[3] * e[3] + e[4] * e[4] +
+                            e[5] * e[5];
+        }
+    }
+    return DQ_OK;
 }

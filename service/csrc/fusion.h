@@ -34,13 +34,21 @@ enum {
     DQ_E_SINGULAR = 12,    /* the information at the optimum is not positive definite */
     DQ_E_NO_INLIERS = 13,  /* the inlier mask selects no measurement */
     DQ_E_ASYMMETRIC = 14,  /* a covariance is not symmetric within the tolerance */
-    DQ_E_BORDERLINE = 15   /* too close to the edge of positive definite to be sure */
+    DQ_E_BORDERLINE = 15,  /* too close to the edge of positive definite to be sure */
+    DQ_E_SCALE = 16        /* a variance outside [DQ_MIN_VARIANCE, DQ_MAX_VARIANCE] */
 };
+
+/* The variances (diagonal entries) a covariance may have: standard deviations from 1e-12 to
+ * 1e12 (rad or m). Beyond them the information matrix cannot be used: its products with the
+ * others' overflow, or leave the fit's normal equations singular (1e-300 I did both). */
+#define DQ_MIN_VARIANCE 1e-24
+#define DQ_MAX_VARIANCE 1e24
 
 /*
  * Checks one covariance (36 values, row-major) by the rules of service/fusion.py's _covariances:
  * finite; symmetric, max |S - S^T| <= sym_tol * max |S| (the tolerance is the caller's, so the
- * rule has one source); positive definite, by Cholesky of its symmetric part, which it writes
+ * rule has one source); every positive variance within [DQ_MIN_VARIANCE, DQ_MAX_VARIANCE] (DQ_E_SCALE);
+ * positive definite, by Cholesky of its symmetric part, which it writes
  * to sym (0.5 (S + S^T), the same operations as NumPy's, so the same bits). Returns DQ_OK,
  * DQ_E_NONFINITE, DQ_E_ASYMMETRIC, DQ_E_NOT_SPD, or DQ_E_BORDERLINE where LAPACK's factorisation
  * could decide otherwise than ours (the caller then asks LAPACK, through NumPy).
@@ -169,5 +177,14 @@ void dq_motion_determined(const dq_motion_model *m, const unsigned char *inlier,
 /* P = H^-1 for a symmetric positive definite dim x dim H (its lower triangle read), from its
  * Cholesky factor, exactly symmetric; 0 when H is not positive definite. work: dim^2 + 2 dim. */
 int dq_spd_inverse(const double *H, int dim, double *work, double *P);
+
+/*
+ * The squared Mahalanobis distances of the robust mode's consensus (service/fusion.py): between
+ * candidate c = cand[a] and every measurement j, d2[a n + j] = r^T (S_c + S_j)^-1 r with
+ * r = Log(Z_c^-1 Z_j) (first order: both errors in the body frame). O(m n) time, no memory of
+ * its own. Returns DQ_OK, or DQ_E_NOT_SPD with *bad = j when S_c + S_j does not factor.
+ */
+int dq_pair_distances(const double *z, const double *cov, size_t n, const long long *cand,
+                      size_t m, double *d2, size_t *bad);
 
 #endif

@@ -1412,6 +1412,54 @@ done:
     return result;
 }
 
+/* pair_distances(poses (n, 8), covariances (n, 6, 6), candidates (m,) int) -> (m, n): fusion.h's
+ * dq_pair_distances, the GIL released. */
+static PyObject *py_pair_distances(PyObject *self, PyObject *args)
+{
+    PyObject *o[3];
+    if (!PyArg_ParseTuple(args, "OOO:pair_distances", &o[0], &o[1], &o[2])) return NULL;
+    PyArrayObject *a[3] = {NULL}, *out = NULL;
+    PyObject *result = NULL;
+    if (!(a[0] = (PyArrayObject *)PyArray_FROM_OTF(o[0], NPY_DOUBLE, NPY_ARRAY_IN_ARRAY)))
+        goto done;
+    if (PyArray_NDIM(a[0]) != 2 || PyArray_DIMS(a[0])[1] != 8) {
+        PyErr_SetString(PyExc_ValueError, "poses: expected shape (n, 8)");
+        goto done;
+    }
+    npy_intp n = PyArray_DIMS(a[0])[0], s3[3] = {n, 6, 6};
+    if (!(a[1] = exact_array(o[1], NPY_DOUBLE, "covariances", 3, s3)) ||
+        !(a[2] = (PyArrayObject *)PyArray_FROM_OTF(o[2], NPY_LONGLONG, NPY_ARRAY_IN_ARRAY)))
+        goto done;
+    if (PyArray_NDIM(a[2]) != 1) {
+        PyErr_SetString(PyExc_ValueError, "candidates: expected shape (m,)");
+        goto done;
+    }
+    npy_intp m = PyArray_DIMS(a[2])[0], s2[2] = {m, n};
+    const long long *cand = PyArray_DATA(a[2]);
+    for (npy_intp k = 0; k < m; k++)
+        if (cand[k] < 0 || cand[k] >= n) {
+            PyErr_Format(PyExc_ValueError, "candidates[%zd]: not a measurement", (Py_ssize_t)k);
+            goto done;
+        }
+    if (!(out = (PyArrayObject *)PyArray_SimpleNew(2, s2, NPY_DOUBLE))) goto done;
+    size_t bad = 0;
+    int code;
+    Py_BEGIN_ALLOW_THREADS
+    code = dq_pair_distances(PyArray_DATA(a[0]), PyArray_DATA(a[1]), (size_t)n, cand, (size_t)m,
+                             PyArray_DATA(out), &bad);
+    Py_END_ALLOW_THREADS
+    if (code != DQ_OK) {
+        PyErr_Format(PyExc_ValueError, "covariances[%zu]: not positive definite", bad);
+        goto done;
+    }
+    result = (PyObject *)out;
+    out = NULL;
+done:
+    for (int j = 0; j < 3; j++) Py_XDECREF(a[j]);
+    Py_XDECREF(out);
+    return result;
+}
+
 /* traj_plan(waypoints (K, 8), mode, radius (K,), times (K,), limits (6,), sigma0)
  * -> (code, bad, plan, duration, segments (K-1, 3) [start, duration, binding]): dq_traj_plan on
  * waypoints service/trajectory.py has checked. plan is the opaque segment table traj_eval reads;
@@ -1528,6 +1576,9 @@ static PyMethodDef methods[] = {
     {"motion_determined", py_motion_determined, METH_VARARGS,
      "motion_determined(stamps, latencies, inliers, two_instants): does the state stay determined "
      "without each measurement (fusion.h)."},
+    {"pair_distances", py_pair_distances, METH_VARARGS,
+     "pair_distances(poses, covariances, candidates) -> (m, n) squared Mahalanobis distances of "
+     "the consensus (fusion.h)."},
     {"traj_plan", py_traj_plan, METH_VARARGS,
      "traj_plan(waypoints, mode, radius, times, limits, sigma0) -> (code, bad, plan, duration, segments)."},
     {"traj_eval", py_traj_eval, METH_VARARGS, "traj_eval(plan, mode, duration, times) -> (poses, linear, angular)."},
@@ -1582,5 +1633,7 @@ PyMODINIT_FUNC PyInit__dqcore(void)
     /* fuse_stream_from_wire's codes up to this one are measurements_to_arrays's, the rest the
      * Tracker's (wire.h) */
     PyModule_AddIntConstant(m, "MEASUREMENT_CONVERT_LAST", DQ_MEAS_CONVERT_LAST);
+    PyModule_AddObject(m, "MIN_VARIANCE", PyFloat_FromDouble(DQ_MIN_VARIANCE));
+    PyModule_AddObject(m, "MAX_VARIANCE", PyFloat_FromDouble(DQ_MAX_VARIANCE));
     return m;
 }

@@ -442,6 +442,7 @@ static int check_measurement(measurement *m, double sym_tol, double *pose_out, d
     case DQ_E_NONFINITE: *code = DQ_MEAS_COV_NONFINITE; break;
     case DQ_E_ASYMMETRIC: *code = DQ_MEAS_COV_ASYMMETRIC; break;
     case DQ_E_NOT_SPD: *code = DQ_MEAS_COV_NOT_SPD; break;
+    case DQ_E_SCALE: *code = DQ_MEAS_COV_SCALE; break;
     default: return -1;
     }
     memcpy(cov_out, S, 36 * sizeof(double)); /* as given: the Python check names the problem */

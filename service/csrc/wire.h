@@ -99,7 +99,8 @@ enum {
     DQ_MEAS_BODY = 6,            /* no body */
     DQ_MEAS_COV_NONFINITE = 7,
     DQ_MEAS_COV_ASYMMETRIC = 8,
-    DQ_MEAS_COV_NOT_SPD = 9
+    DQ_MEAS_COV_NOT_SPD = 9,
+    DQ_MEAS_COV_SCALE = 10       /* a variance outside fusion.h's bounds */
 };
 
 typedef struct {

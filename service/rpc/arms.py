@@ -21,9 +21,9 @@ from typing import Optional
 
 import grpc
 
-from service import trajectory
+from service import limits, trajectory
 from service.errors import FieldError, Infeasible, rename
-from service.rpc.calls import Calls, TooLarge, refused
+from service.rpc.calls import Calls, refused
 from service.rpc.convert import dq_to_pose, plan_from_msg
 from service.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 from service.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
@@ -94,7 +94,7 @@ class Arms:
 
     def __init__(self, cfg, calls: Calls):
         self.calls = calls
-        self.max_waypoints = cfg.max_poses
+        self.limits = cfg.limits
         self.executor = cfg.executor
         self._arms = {name: _Arm(name, arm) for name, arm in sorted(cfg.arms.items())}
         self._stop_at: Optional[float] = None     # loop time the server stops, once known
@@ -180,10 +180,10 @@ class Arms:
         (before anything is made of them), the plan's fields and its limits against the arm's."""
         slot = self._slot(request.arm)
         n = len(request.plan.waypoints)
-        if n > self.max_waypoints:
-            raise TooLarge(f"plan.waypoints: {n} waypoints, over the server's limit of "
-                           f"{self.max_waypoints} (dqpose serve --max-poses)")
-        # converting up to max_poses messages is work that grows with the request
+        if n > self.limits.max_execute_waypoints:
+            raise limits.over("plan.waypoints", f"{n} waypoints", self.limits,
+                              "max_execute_waypoints")
+        # converting up to max_execute_waypoints messages is work that grows with the request
         args = await asyncio.to_thread(plan_from_msg, request.plan, "plan.", False)
         for mine, (theirs, unit) in ARM_LIMITS.items():
             want, bound = getattr(args.limits, mine), float(getattr(slot.arm.limits, theirs))

@@ -10,23 +10,20 @@ import grpc
 import numpy as np
 from google.protobuf.message import DecodeError
 
-from service import dq
+from service import dq, limits
 from service.errors import FieldError, rename
 from service.interpolate import interpolate
 from service.rpc import BATCH_POSE_FACTOR, DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
-from service.rpc.calls import INTERNAL_DETAILS, Calls, fit, log, refusal
+from service.rpc.calls import INTERNAL_DETAILS, Calls, fit, log, readable, refusal
 from service.rpc.convert import (INTERPOLATION_NAMES, METHOD_NAMES, arrays_to_stamped,
                                  blend_batch_wire, blend_wire, decode_blend_request, dq_to_pose,
-                                 flat_to_dqs, poses_to_flat, stamped_to_arrays)
+                                 field_named, flat_to_dqs, poses_to_flat, stamped_to_arrays)
 from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from service.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
 
 DEFAULT_TOLERANCE = 1e-12
 DEFAULT_MAX_ITERATIONS = 100
 STREAM_READ_AHEAD = 64         # requests a BlendStream reads ahead of its replies
-# DIB converges in a handful of steps; the cap keeps one request from holding the event loop
-# (10k poses x 1000 steps is ~0.2 s of core time).
-MAX_ITERATIONS_LIMIT = 1000
 
 
 class Blending(pb_grpc.BlendingServicer):
@@ -42,6 +39,7 @@ class Blending(pb_grpc.BlendingServicer):
         self.max_message_bytes = (cfg.max_message_bytes if cfg is not None
                                   else DEFAULT_MAX_MESSAGE_BYTES)
         self.calls = calls or Calls()
+        self.limits = cfg.limits if cfg is not None else limits.DEFAULT
 
     # -- request -> response, no transport
 
@@ -71,7 +69,7 @@ class Blending(pb_grpc.BlendingServicer):
         C fast path when the request is plain and valid, else from :meth:`blend_bytes` (which
         raises the FieldError naming the problem). Both give identical bytes."""
         out = blend_wire(data, self.max_poses, DEFAULT_TOLERANCE, DEFAULT_MAX_ITERATIONS,
-                         MAX_ITERATIONS_LIMIT)
+                         self.limits.max_iterations)
         if out is None:
             out = self.blend_bytes(data).SerializeToString()
         return fit(out, self.max_message_bytes, "request", 1, "request")
@@ -89,9 +87,8 @@ class Blending(pb_grpc.BlendingServicer):
             raise FieldError(f"tolerance: must be finite and >= 0 (0 means {DEFAULT_TOLERANCE}), "
                              f"got {tolerance!r}")
         max_iter = max_iterations or DEFAULT_MAX_ITERATIONS
-        if max_iter > MAX_ITERATIONS_LIMIT:
-            raise FieldError(f"max_iterations: {max_iter} exceeds the limit of "
-                             f"{MAX_ITERATIONS_LIMIT}")
+        if max_iter > self.limits.max_iterations:
+            raise limits.over("max_iterations", f"{max_iter}", self.limits, "max_iterations")
         iterations, residual = 0, 0.0
         try:
             if method == "dib":
@@ -100,7 +97,9 @@ class Blending(pb_grpc.BlendingServicer):
             else:
                 mean = dq.blend(dqs, weights, method, tol, max_iter)
         except ValueError as e:
-            raise rename(e, {"dqs": "poses{}", "weights": "weights{}"}) from None
+            raise field_named(rename(e, {"dqs": "poses{}", "weights": "weights{}"}),
+                              ("poses", "weights", "method", "tolerance", "max_iterations"),
+                              "poses") from None
         if not (np.isfinite(mean).all() and math.isfinite(residual)):
             # Never hand a NaN to a robot: say which input made the mean undefined.
             raise FieldError(f"poses: the {method} blend of these poses is undefined "
@@ -115,7 +114,7 @@ class Blending(pb_grpc.BlendingServicer):
         FieldError naming the request and the problem)."""
         out = blend_batch_wire(data, self.max_poses, BATCH_POSE_FACTOR * self.max_poses,
                                self.max_poses, DEFAULT_TOLERANCE, DEFAULT_MAX_ITERATIONS,
-                               MAX_ITERATIONS_LIMIT)
+                               self.limits.max_iterations)
         if out is None:
             try:
                 request = pb.BlendBatchRequest.FromString(data)
@@ -136,7 +135,7 @@ class Blending(pb_grpc.BlendingServicer):
             try:
                 responses.append(self.blend_bytes(r.SerializeToString()))
             except FieldError as e:
-                raise FieldError(f"requests[{i}].{e}") from None
+                raise type(e)(f"requests[{i}].{e}") from None
         return pb.BlendBatchResponse(responses=responses)
 
     def interpolate_request(self, request: pb.InterpolateRequest) -> pb.InterpolateResponse:
@@ -153,30 +152,43 @@ class Blending(pb_grpc.BlendingServicer):
         try:
             out = interpolate(times_k, dqs_k, times, mode)
         except ValueError as e:
-            raise rename(e, {"times_k": "keyframes{}.time", "dqs_k": "keyframes{}.pose",
-                             "times": "times{}"}) from None
+            raise field_named(rename(e, {"times_k": "keyframes{}.time", "dqs_k": "keyframes{}.pose",
+                                         "times": "times{}"}),
+                              ("keyframes", "times", "interpolation"), "keyframes") from None
         if not np.isfinite(out).all():
             raise FieldError("keyframes: interpolation produced non-finite poses")
         return pb.InterpolateResponse(samples=arrays_to_stamped(times, out))
 
-    def interpolate_wire(self, request: pb.InterpolateRequest) -> bytes:
-        """What Interpolate serves: ``InterpolateResponse`` bytes."""
+    def interpolate_wire(self, data: bytes) -> bytes:
+        """What Interpolate serves: ``InterpolateResponse`` bytes for request bytes."""
+        try:
+            request = pb.InterpolateRequest.FromString(data)
+        except DecodeError:
+            raise FieldError("request: not a valid dqpose.v1.InterpolateRequest message") from None
         return fit(self.interpolate_request(request).SerializeToString(), self.max_message_bytes,
                    "times", len(request.times), "times")
+
+    def _served(self, handle):
+        """``handle`` (bytes in) as a call's handler: on the event loop for a request of at
+        most ``limits.INLINE_BYTES`` (work linear in its size, under ~1 ms), else in the
+        server's worker pool."""
+        def serve(request: bytes):
+            if len(request) <= limits.INLINE_BYTES:
+                return handle(request)
+            return self.calls.work(handle, request)
+        return serve
 
     # -- RPCs
 
     def register(self, server) -> None:
-        """``add_BlendingServicer_to_server`` with two differences: Blend, BlendStream and
-        BlendBatch take and return bytes, which the ``*_wire`` methods turn into each other
-        without protobuf objects; every RPC returns bytes, so the ``*_wire`` methods can check
-        their size."""
+        """``add_BlendingServicer_to_server`` except that every RPC takes and returns bytes:
+        Blend, BlendStream and BlendBatch turned into each other by the ``*_wire`` methods
+        without protobuf objects, Interpolate parsed there; so each can check its answer's size
+        and do its work off the event loop when it is large."""
         raw = dict(request_deserializer=None, response_serializer=None)
         handlers = {
             "Blend": grpc.unary_unary_rpc_method_handler(self.Blend, **raw),
-            "Interpolate": grpc.unary_unary_rpc_method_handler(
-                self.Interpolate, request_deserializer=pb.InterpolateRequest.FromString,
-                response_serializer=None),
+            "Interpolate": grpc.unary_unary_rpc_method_handler(self.Interpolate, **raw),
             "BlendStream": grpc.stream_stream_rpc_method_handler(self.BlendStream, **raw),
             "BlendBatch": grpc.unary_unary_rpc_method_handler(self.BlendBatch, **raw),
         }
@@ -185,15 +197,16 @@ class Blending(pb_grpc.BlendingServicer):
 
     async def Blend(self, request: bytes, context):
         # Registered without a deserializer (register): the request arrives as bytes.
-        return await self.calls.unary("Blend", self.blend_wire, request, context)
+        return await self.calls.unary("Blend", self._served(self.blend_wire), request, context)
 
     async def BlendBatch(self, request: bytes, context):
         # Registered without a deserializer, like Blend.
-        return await self.calls.unary("BlendBatch", self.blend_batch_wire, request, context,
-                                      counted=True)
+        return await self.calls.unary("BlendBatch", self._served(self.blend_batch_wire), request,
+                                      context, counted=True)
 
-    async def Interpolate(self, request, context):
-        return await self.calls.unary("Interpolate", self.interpolate_wire, request, context)
+    async def Interpolate(self, request: bytes, context):
+        return await self.calls.unary("Interpolate", self._served(self.interpolate_wire),
+                                      request, context)
 
     async def BlendStream(self, request_iterator, context):
         # Reading runs ahead of writing (a reader task feeding a queue of STREAM_READ_AHEAD):
@@ -214,13 +227,14 @@ class Blending(pb_grpc.BlendingServicer):
                 if isinstance(request, Exception):
                     raise request
                 try:
-                    response = self.blend_wire(request)
+                    response = (self.blend_wire(request) if len(request) <= limits.INLINE_BYTES
+                                else await self.calls.work(self.blend_wire, request))
                 except Exception as e:
                     status = refusal(e)
                     if status is None:
                         raise
                     code = status.name
-                    await context.abort(status, f"requests[{i}].{e}")
+                    await context.abort(status, readable(f"requests[{i}].{e}"))
                 await context.write(response)
                 i += 1
         except asyncio.CancelledError:

@@ -1,20 +1,29 @@
 """What every servicer shares: one call in, one status out, one log line and one metric sample.
 
 A handler raises :class:`~service.errors.FieldError` for bad input (``INVALID_ARGUMENT`` with its
-text, which starts with the proto field path) and :class:`TooLarge` for an answer over the
-server's max message size (``RESOURCE_EXHAUSTED``, see :func:`fit`); anything else is
+text, which starts with the proto field path), :class:`~service.limits.OverLimit` for a request
+over one of the server's limits and :class:`TooLarge` for an answer over the server's max message
+size (both ``RESOURCE_EXHAUSTED``, see :func:`fit`); anything else is
 ``INTERNAL``, logged with its traceback, and the server keeps running.
 """
 from __future__ import annotations
 
 import asyncio
+import ctypes
+import ctypes.util
+import functools
 import json
 import logging
+import re
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import grpc
 
 from service.errors import FieldError, Infeasible, MissingExtra
+from service import limits
+from service.limits import OverLimit
 
 log = logging.getLogger("dqpose.server")
 call_log = logging.getLogger("dqpose.calls")
@@ -48,6 +57,8 @@ def refusal(e: Exception) -> grpc.StatusCode | None:
     """The status a handler's deliberate refusal stands for; None for anything else (INTERNAL)."""
     if isinstance(e, (Infeasible, MissingExtra)):   # MissingExtra: an extra the server lacks
         return grpc.StatusCode.FAILED_PRECONDITION
+    if isinstance(e, OverLimit):
+        return grpc.StatusCode.RESOURCE_EXHAUSTED
     if isinstance(e, FieldError):
         return grpc.StatusCode.INVALID_ARGUMENT
     if isinstance(e, TooLarge):
@@ -57,13 +68,34 @@ def refusal(e: Exception) -> grpc.StatusCode | None:
 
 def refused(rpc: str, e: Exception) -> tuple[grpc.StatusCode, str]:
     """The status and text a handler's exception ends its call with: the :func:`refusal` status
-    with the exception's text, else INTERNAL (logged with its traceback, the text kept out of
-    the answer)."""
+    with the exception's text (:func:`readable`), else INTERNAL (logged with its traceback, the
+    text kept out of the answer)."""
     status = refusal(e)
     if status is None:
         log.exception("%s failed", rpc)
         return grpc.StatusCode.INTERNAL, INTERNAL_DETAILS
-    return status, str(e)
+    return status, readable(str(e))
+
+
+# a number of more than 7 significant digits standing alone (not part of a name, not an index:
+# a whole number in brackets; a fraction may be in them, as an interval's bound)
+_LONG_NUMBER = re.compile(r"(?<![\w.\[])-?\d{8,}(?:\.\d*)?(?:e[+-]?\d+)?(?![\w.\]])"
+                          r"|(?<![\w.])-?\d*\.\d{7,}(?:e[+-]?\d+)?(?![\w.])")
+
+
+def readable(text: str) -> str:
+    """``text`` with every number of more than 7 significant digits written ``%.6g``: what the
+    domain's texts hold as ``repr`` (``0.041694716291423795``, a 300-digit count) reads as
+    ``0.0416947`` and ``5e+299``; a whole count of up to 15 digits is kept (``999999990 ticks``
+    reads better exact). Every refusal's text goes through here, so none can leak one."""
+    return _LONG_NUMBER.sub(_short, text)
+
+
+def _short(match: re.Match) -> str:
+    number = match[0]
+    if number.lstrip("-").isdigit() and len(number.lstrip("-")) <= 15:
+        return number
+    return f"{float(number):.6g}"
 
 
 class Calls:
@@ -79,13 +111,42 @@ class Calls:
     over it sets ``cut``: a stream that then ends "OK" ended because gRPC cancelled it (a cancelled
     stream reads as a stream the client closed), and is recorded as CANCELLED, as its client saw."""
 
-    def __init__(self, metrics=None):
+    def __init__(self, metrics=None, workers: int = limits.DEFAULT.workers):
         self.metrics = metrics
+        self.workers = workers
+        self._pool: ThreadPoolExecutor | None = None
+        self._trim_due = False
         self.logging = call_log.isEnabledFor(logging.INFO)
         self.cut = False
         self._pending: list[str] = []
         self._open = 0
         self._settled: asyncio.Event | None = None
+
+    async def work(self, fn, *args):
+        """``fn(*args)`` in the server's worker pool (``workers`` threads shared by every
+        servicer), so that the event loop goes on answering other calls, health and signals;
+        once the pool has been idle for ``TRIM_DELAY`` what the process freed is given back to
+        the system (:func:`_trim_if_idle`)."""
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(self.workers, thread_name_prefix="dqpose-work")
+        loop = asyncio.get_running_loop()
+        try:
+            return await loop.run_in_executor(self._pool, functools.partial(_counted, fn), *args)
+        finally:
+            if _MALLOC_TRIM is not None and not _active and not self._trim_due:
+                self._trim_due = True
+                loop.call_later(TRIM_DELAY, self._trim)
+
+    def _trim(self) -> None:
+        self._trim_due = False
+        if self._pool is not None and not _active:
+            self._pool.submit(_trim_if_idle)
+
+    def close(self) -> None:
+        """Lets the worker pool's threads end once their work is done."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
 
     @property
     def open(self) -> int:
@@ -170,3 +231,42 @@ class Calls:
             await context.abort(status, details)
         finally:
             self.done(rpc, status.name, t0, context)
+
+
+def _libc():
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        return libc.malloc_trim if hasattr(libc, "malloc_trim") else None
+    except OSError:
+        return None
+
+
+_MALLOC_TRIM = _libc()
+
+
+def _counted(fn, *args):
+    """``fn(*args)``, counted in ``_active`` while it runs."""
+    global _active
+    with _lock:
+        _active += 1
+    try:
+        return fn(*args)
+    finally:
+        with _lock:
+            _active -= 1
+
+
+def _trim_if_idle() -> None:
+    """What the process freed given back to the system (malloc_trim), when no job runs: glibc
+    keeps what its arenas freed (the probe's large requests left RSS at 6-7 GB). Microseconds
+    when there is nothing to give back."""
+    with _lock:
+        if not _active:
+            _MALLOC_TRIM(0)
+
+
+_lock = threading.Lock()
+_active = 0          # jobs running in any server's pool
+# seconds after the pool fell idle that the heap is looked at: by then the calls' requests and
+# answers, which gRPC holds until they are sent, are freed too
+TRIM_DELAY = 0.5

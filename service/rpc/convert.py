@@ -20,6 +20,17 @@ from service.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 from service.rpc._proto.dqpose.v1 import handeye_pb2 as hpb
 from service.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
 
+def field_named(e: ValueError, fields: tuple[str, ...], default: str) -> FieldError:
+    """``e`` as a :class:`FieldError` (an Infeasible stays one) whose text starts with a field
+    path of the request, one of ``fields`` (``pairs`` covers ``pairs[3].robot_covariance``):
+    as it is when it does, else after ``default``: what NumPy, SciPy or casadi raised from
+    inside the domain (``Singular matrix``) then says which input it was about."""
+    out = rename(e, {})
+    if re.match(r"^(%s)\b" % "|".join(map(re.escape, fields)), str(out)):
+        return out
+    return type(out)(f"{default}: {out}")
+
+
 def poses_to_flat(poses) -> np.ndarray:
     """Repeated ``Pose`` to ``(n, 7)`` rows ``[qw, qx, qy, qz, x, y, z]``, unvalidated."""
     # One flat list through np.array is the cheapest path out of upb messages (no per-pose
@@ -769,8 +780,10 @@ def plan_from_msg(req, field: str = "", need_rate: bool = True) -> PlanArgs:
     if req.HasField("start_linear_velocity") or req.HasField("start_angular_velocity"):
         v, w = req.start_linear_velocity, req.start_angular_velocity
         start = np.array([v.x, v.y, v.z, w.x, w.y, w.z], dtype=np.float64)
-        if not np.isfinite(start).all():
-            raise FieldError(f"{field}start_linear_velocity: contains NaN or infinity")
+        for name, part in (("start_linear_velocity", start[:3]),
+                           ("start_angular_velocity", start[3:])):
+            if not np.isfinite(part).all():
+                raise FieldError(f"{field}{name}: contains NaN or infinity")
     return PlanArgs(waypoints, limits, mode, start, rate)
 
 
@@ -857,12 +870,19 @@ class CalibrateArgs(NamedTuple):
     pixel_sigma: float | None
 
 
+#: the fields of a CalibrateRequest an error may start with
+CALIBRATE_REQUEST = ("setup", "pairs", "robust", "camera_matrix", "refine_focal", "pixel_sigma")
+
+
 def calibrate_error(e: ValueError) -> FieldError:
     """A :func:`service.handeye.calibrate` error with the request's field names, wherever the
-    message has the domain's (``"base_flange, camera_target: ..."``); Infeasible stays so."""
+    message has the domain's (``"base_flange, camera_target: ..."``); Infeasible stays so; one
+    from inside NumPy about none of them named ``pairs``."""
     renamed = rename_all(e, CALIBRATE_FIELDS)
     # the domain takes a camera matrix per view; the request has one
-    return type(renamed)(re.sub(r"pairs\[\d+\]\.corners\.K\b", "camera_matrix", str(renamed)))
+    renamed = type(renamed)(re.sub(r"pairs\[\d+\]\.corners\.K\b", "camera_matrix",
+                                   str(renamed)))
+    return field_named(renamed, CALIBRATE_REQUEST, "pairs")
 
 
 def _corners(req) -> list | None:

@@ -4,6 +4,7 @@ output ticks paced on the measurements' time), errors named by proto field.
 """
 from __future__ import annotations
 
+import itertools
 import math
 import re
 import zlib
@@ -11,15 +12,15 @@ import zlib
 import grpc
 import numpy as np
 
-from service import fusion
+from service import fusion, limits
 from service.errors import FieldError, rename
 from service.rpc import DEFAULT_MAX_POSES
-from service.rpc.calls import INTERNAL_DETAILS, Calls, log
+from service.rpc.calls import INTERNAL_DETAILS, Calls, log, readable, refusal
 from google.protobuf.message import DecodeError
 
-from service.rpc.convert import (DEFAULT_WINDOW, Measurements, Options, fuse_stream_from_wire,
-                                 fused_to_msg, measurements_to_arrays, options_from_msg,
-                                 wire_measurement_error)
+from service.rpc.convert import (DEFAULT_WINDOW, Measurements, Options, field_named,
+                                 fuse_stream_from_wire, fused_to_msg, measurements_to_arrays,
+                                 options_from_msg, wire_measurement_error)
 from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 from service.rpc._proto.dqpose.v1 import fusion_pb2_grpc as pb_grpc
 
@@ -37,12 +38,18 @@ def _options_error(e: ValueError, field: str) -> FieldError:
 
 def _domain_error(e: ValueError, index: np.ndarray, field: str, options: str) -> FieldError:
     """The domain's ``ValueError`` about row ``k`` of the arrays it was given, naming the
-    message's measurement ``index[k]``; one about the options, naming the option."""
+    message's measurement ``index[k]``; one about all of them (the fit's information), naming
+    ``field``; one about the options, naming the option."""
     hit = _INDEXED.match(str(e))
-    if hit is None or hit[1] not in _MEASUREMENT_FIELDS:
-        return _options_error(e, options)
-    k = int(hit[2])
-    return rename(e, {hit[1]: f"{field}[{int(index[k])}].{_MEASUREMENT_FIELDS[hit[1]]}"})
+    if hit is not None and hit[1] in _MEASUREMENT_FIELDS:
+        k = int(hit[2])
+        return rename(e, {hit[1]: f"{field}[{int(index[k])}].{_MEASUREMENT_FIELDS[hit[1]]}"})
+    text = str(e)
+    if text.startswith("covariances: "):     # the fit of them all, not one covariance
+        return FieldError(f"{field}: {text[len('covariances: '):]} (the measurements' "
+                          f"covariances and times, with the options' priors, leave the pose, "
+                          f"twist or latencies undetermined)")
+    return _options_error(e, options)
 
 
 def unknown_sources(m: Measurements, options: Options, field: str) -> list:
@@ -71,7 +78,8 @@ def tick_time(k: int, rate: float, phase: float) -> float:
 
 def first_tick(t: float, rate: float, phase: float = 0.0) -> int:
     """The first tick ``k`` (at :func:`tick_time`) at or after ``t``, exactly in floating
-    point."""
+    point (a step or two of correction while ``|t| * rate`` is within
+    :data:`limits.EXACT_TICKS`, which the stream's limits keep it)."""
     k = math.ceil(t * rate - phase)
     while tick_time(k - 1, rate, phase) >= t:
         k -= 1
@@ -85,12 +93,14 @@ class Stream:
     rate, each body's next tick. Nothing here reads a clock: the answers are a function of the
     requests alone, so a recorded stream replays to the same answers."""
 
-    def __init__(self, options: Options, rate: float, field: str = "requests[0].options"):
+    def __init__(self, options: Options, rate: float, field: str = "requests[0].options",
+                 bounds: limits.Limits = limits.DEFAULT):
         self.options = options
         self.rate = rate
+        self.limits = bounds
         try:
             self.tracker = fusion.Tracker(options.window or DEFAULT_WINDOW,
-                                          **options.fuse_kwargs())
+                                          **options.fuse_kwargs(), limits=bounds)
         except ValueError as e:
             raise _options_error(e, field) from None
         self.next_tick: dict[str, int] = {}
@@ -98,6 +108,9 @@ class Stream:
         self.next_time: dict[str, float] = {}
         self.phase: dict[str, float] = {}
         self.known = frozenset(s.name for s in options.sources) if options.sources else None
+        self.capped: set[str] = set()      # bodies whose window has been said to be full
+        self.cost = 0       # what the answers of the last update will cost (answer_cost)
+        self.correlated = options.acceleration_psd is not None and options.acceleration_psd.any()
 
     def update(self, m: Measurements, ids: np.ndarray, field: str, codes=None):
         """Measurements ``m`` of one request (``ids``: their stream-wide numbers) into the
@@ -108,13 +121,21 @@ class Stream:
         rows are checked already by the tracker's rules, those with a code refused (and named by
         the tracker's own check of that row alone), the others taken in unchecked."""
         n = len(m.index)
-        if self.known is None or self.known.issuperset(m.sources):
-            errors, rows = [], range(n)     # the common case: every source listed
-        else:
+        errors = []
+        if self.known is not None and not self.known.issuperset(m.sources):
             errors = unknown_sources(m, self.options, field)
+        far = np.abs(m.times) > self.limits.max_time
+        if far.any():
+            errors += [(k, limits.over(
+                f"{field}[{int(m.index[k])}].time", f"{float(m.times[k]):.6g} s is beyond "
+                f"+-{self.limits.max_time:.6g} s", self.limits, "max_time"))
+                for k in np.flatnonzero(far).tolist()]
+        if errors:
             bad = {k for k, _ in errors}
             errors = [(int(m.index[k]), e) for k, e in errors]
             rows = [k for k in range(n) if k not in bad]
+        else:
+            rows = range(n)     # the common case: every source listed, every time in range
         tracker = self.tracker
         if codes is None:
             rows = list(rows)
@@ -143,36 +164,77 @@ class Stream:
         else:
             bodies = dict.fromkeys(m.bodies if len(rows) == n else [m.bodies[k] for k in rows])
         if not self.rate:
-            due = [(body, None) for body in bodies]
+            due = [(body, (None,)) for body in bodies]
         else:
             newest = tracker.newest_of(bodies)
             next_time = self.next_time
             # most bodies of a request: their next tick not reached yet
-            due = [(body, t) for body, newest_t in zip(bodies, newest)
-                   if next_time.get(body, -math.inf) <= newest_t for t in self._due(body)]
+            due = [(body, self._due(body)) for body, newest_t in zip(bodies, newest)
+                   if next_time.get(body, -math.inf) <= newest_t]
         # each estimated when it is asked for: an answer can be on its way while the next one
         # of the same request is fused
-        return (self._answer(body, t, field) for body, t in due), errors
+        return self._within_budget(due, field), errors
 
     def _due(self, body: str) -> list:
         """The fusion times due for ``body`` (output rate > 0): the ticks its newest measurement
-        has reached (not before the oldest one in its window)."""
+        has reached (not before the oldest one in its window), counted in closed form: a body
+        whose time leapt gives a range, not a loop over every tick in between."""
         newest = self.tracker.newest(body)
+        rate = self.rate
         k = self.next_tick.get(body)
         phase = self.phase.get(body)
         if phase is None:
             phase = self.phase[body] = tick_phase(body)
-        if k is not None and tick_time(k, self.rate, phase) > newest:
-            return []
-        first = first_tick(self.tracker.oldest(body), self.rate, phase)
+        first = first_tick(self.tracker.oldest(body), rate, phase)
         k = first if k is None else max(k, first)
-        due = []
-        while (t := tick_time(k, self.rate, phase)) <= newest:
-            due.append(t)
-            k += 1
-        self.next_tick[body] = k
-        self.next_time[body] = t
-        return due
+        end = first_tick(newest, rate, phase)
+        if tick_time(end, rate, phase) <= newest:
+            end += 1
+        self.next_tick[body] = max(k, end)
+        self.next_time[body] = tick_time(max(k, end), rate, phase)
+        return range(k, end)
+
+    def _within_budget(self, due: list, field: str):
+        """``(body, fused or FieldError, ids)`` of each due tick, in order, as long as the
+        message's answers fuse at most ``max_fused_per_request`` measurements: a body's ticks
+        beyond it are skipped, its latest kept, and one error entry says how many. Which ticks
+        are answered is decided here, at once, and what they will cost is left in
+        :attr:`cost` (measurements to fuse, :data:`limits.ANSWER_ROWS` an answer included);
+        each answer is fused as it is taken."""
+        budget = self.limits.max_fused_per_request
+        items = []
+        for body, ticks in due:
+            if not len(ticks):
+                continue
+            cost = limits.answer_cost(self.tracker.count(body), self.options.robust,
+                                      self.correlated)
+            take = min(len(ticks), budget // cost)
+            budget -= take * cost
+            where = field.rsplit(".", 1)[0]
+            if body not in self.capped and self.tracker.capped(body):
+                self.capped.add(body)
+                items.append((body, limits.over(
+                    where, f"body {body!r}: its window holds more measurements than its fits "
+                           f"take ({self.tracker.cap}); the oldest are left out", self.limits,
+                    "max_window")))
+            if take < len(ticks):
+                skipped = len(ticks) - take
+                at = (f"{skipped} ticks from {self._time(body, ticks[0]):.6g} s to "
+                      f"{self._time(body, ticks[skipped - 1]):.6g} s" if self.rate else
+                      "its newest measurement")
+                items.append((body, limits.over(
+                    where, f"body {body!r}: {at} not answered: this message's answers would "
+                           f"cost more ({cost} measurements fused an answer)", self.limits,
+                    "max_fused_per_request")))
+            items += [(body, self._time(body, k)) for k in ticks[len(ticks) - take:]]
+        self.cost = self.limits.max_fused_per_request - budget
+        return (self._answer(body, t, field) if not isinstance(t, FieldError)
+                else (body, t, np.empty(0, np.int64)) for body, t in items)
+
+    def _time(self, body: str, k):
+        """The fusion time of ``body``'s tick ``k`` (None: its newest measurement's, output
+        rate 0)."""
+        return None if k is None else tick_time(k, self.rate, self.phase[body])
 
     def _answer(self, body: str, t, field: str):
         try:
@@ -189,7 +251,7 @@ def _error_entry(r: int, measurement: int, details: str, body: str = "") -> pb.F
     """A StreamFuse answer saying what request ``r`` (its ``measurement``, -1: all of it) had
     wrong."""
     return pb.FusedPose(body=body, request=r, error=pb.FuseError(
-        request=r, measurement=measurement, details=details))
+        request=r, measurement=measurement, details=readable(details)))
 
 
 class Fusion(pb_grpc.FusionServicer):
@@ -201,6 +263,7 @@ class Fusion(pb_grpc.FusionServicer):
     def __init__(self, cfg=None, calls: Calls | None = None):
         """``cfg`` is the server's ``ServerConfig`` (its defaults when None)."""
         self.max_poses = cfg.max_poses if cfg is not None else DEFAULT_MAX_POSES
+        self.limits = cfg.limits if cfg is not None else limits.DEFAULT
         self.calls = calls or Calls()
 
     def _check_count(self, field: str, n: int) -> None:
@@ -213,8 +276,10 @@ class Fusion(pb_grpc.FusionServicer):
     # -- request -> response, no transport
 
     def fuse(self, request: pb.FuseRequest) -> pb.FusedPose:
-        self._check_count("measurements", len(request.measurements))
+        n = len(request.measurements)
+        self._check_count("measurements", n)
         options = options_from_msg(request.options)
+        self._check_fit_size("measurements", n, options)
         m = measurements_to_arrays(request.measurements)
         for k, body in enumerate(m.bodies):
             if body != m.bodies[0]:
@@ -223,6 +288,7 @@ class Fusion(pb_grpc.FusionServicer):
                                  f"StreamFuse takes many)")
         if options.window:
             raise FieldError("options.window: Fuse keeps no window (StreamFuse does); leave it 0")
+        self._check_times(m.times, m.index, "measurements", options)
         unknown = unknown_sources(m, options, "measurements")
         if unknown:
             raise unknown[0][1]
@@ -230,8 +296,42 @@ class Fusion(pb_grpc.FusionServicer):
             fused = fusion.fuse(m.poses, m.covariances, names=m.sources, times=m.times,
                                 time=options.time or None, **options.fuse_kwargs())
         except ValueError as e:
-            raise _domain_error(e, m.index, "measurements", "options") from None
+            raise field_named(_domain_error(e, m.index, "measurements", "options"),
+                              ("measurements", "options"), "measurements") from None
         return fused_to_msg(fused, m.bodies[0], fused.time)
+
+    def fuse_bytes(self, data: bytes) -> bytes:
+        """What Fuse serves: ``FusedPose`` bytes for ``FuseRequest`` bytes."""
+        try:
+            request = pb.FuseRequest.FromString(data)
+        except DecodeError:
+            raise FieldError("request: not a valid dqpose.v1.FuseRequest message") from None
+        return self.fuse(request).SerializeToString()
+
+    def _check_times(self, times: np.ndarray, index: np.ndarray, field: str,
+                     options: Options) -> None:
+        """Every time within ``+-max_time``: beyond it a time has no microseconds left, and the
+        fit's differences of times lose all meaning (1e308 made its information singular)."""
+        bound = self.limits.max_time
+        far = np.flatnonzero(np.abs(times) > bound)
+        if len(far):
+            k = int(far[0])
+            raise limits.over(f"{field}[{int(index[k])}].time", f"{float(times[k]):.6g} s is "
+                              f"beyond +-{bound:.6g} s", self.limits, "max_time")
+        if abs(options.time) > bound:
+            raise limits.over("options.time", f"{options.time:.6g} s is beyond +-{bound:.6g} s",
+                              self.limits, "max_time")
+
+    def _check_fit_size(self, field: str, n: int, options: Options) -> None:
+        """``n`` measurements in one fit with ``options``: within the robust and the correlated
+        fits' limits, or :class:`limits.OverLimit` naming the one passed."""
+        if options.robust and n > self.limits.max_robust:
+            raise limits.over(field, f"{n} measurements in one robust fit (options.robust)",
+                              self.limits, "max_robust")
+        if (options.acceleration_psd is not None and options.acceleration_psd.any()
+                and n > self.limits.max_correlated):
+            raise limits.over(field, f"{n} measurements in one fit with "
+                                     f"options.acceleration_psd", self.limits, "max_correlated")
 
     def stream_options(self, request: pb.FuseStreamRequest):
         """The first request's options as the stream's state; a ``FieldError`` ends the stream."""
@@ -240,15 +340,24 @@ class Fusion(pb_grpc.FusionServicer):
         if not (math.isfinite(rate) and rate >= 0.0):
             raise FieldError(f"requests[0].output_rate: must be finite and >= 0 (0: an answer "
                              f"after every request), got {rate!r}")
+        if rate > self.limits.max_output_rate:
+            raise limits.over("requests[0].output_rate", f"{rate:.6g} Hz", self.limits,
+                              "max_output_rate")
         if options.time:
             raise FieldError("requests[0].options.time: StreamFuse answers at its output ticks, "
                              "or at each body's newest measurement; leave it 0")
-        return Stream(options, rate)
+        return Stream(options, rate, bounds=self.limits)
 
     def stream_step(self, state, request: pb.FuseStreamRequest, r: int,
                     first_id: int) -> list[pb.FusedPose]:
         """The answers to request ``r`` of a stream (its measurements numbered from
         ``first_id``): fused poses and error entries, never an exception for bad input."""
+        return list(self._stream_answers(state, request, r, first_id))
+
+    def _stream_answers(self, state, request: pb.FuseStreamRequest, r: int, first_id: int):
+        """:meth:`stream_step`'s answers, the error entries made at once, each fused pose
+        when it is taken (what they will cost: ``state.cost``)."""
+        state.cost = 0
         out = []
         if r and (request.HasField("options") or request.output_rate):
             out.append(_error_entry(r, -1, f"requests[{r}].options: only the first request "
@@ -264,7 +373,7 @@ class Fusion(pb_grpc.FusionServicer):
         m = measurements_to_arrays(request.measurements, field, errors)
         answers, more = state.update(m, first_id + m.index, field)
         bodies = [request.measurements[i].body for i, _ in errors + more]
-        return out + list(self._answers(r, errors + more, bodies, answers))
+        return itertools.chain(out, self._answers(r, errors + more, bodies, answers))
 
     def stream_step_wire(self, state, data: bytes, r: int, first_id: int):
         """:meth:`stream_answers_wire` with the answers made at once, as a list."""
@@ -277,6 +386,7 @@ class Fusion(pb_grpc.FusionServicer):
         (:func:`convert.fuse_stream_from_wire`) and its valid measurements go to the tracker
         unchecked; any other takes the protobuf path. Both give the same answers. Bytes that are
         not a FuseStreamRequest are an error entry for the request."""
+        state.cost = 0
         w = fuse_stream_from_wire(data) if r else None
         if w is None or len(w.times) > self.max_poses:
             try:
@@ -285,7 +395,8 @@ class Fusion(pb_grpc.FusionServicer):
                 return [_error_entry(r, -1, f"requests[{r}]: not a valid "
                                             f"dqpose.v1.FuseStreamRequest message; none of it "
                                             f"was used")], 0
-            return self.stream_step(state, request, r, first_id), len(request.measurements)
+            return (self._stream_answers(state, request, r, first_id),
+                    len(request.measurements))
         field = f"requests[{r}].measurements"
         n = len(w.times)
         last = w.CONVERT_LAST
@@ -323,12 +434,12 @@ class Fusion(pb_grpc.FusionServicer):
     # -- RPCs
 
     def register(self, server) -> None:
-        """``add_FusionServicer_to_server`` except that StreamFuse takes its requests as bytes,
-        which :meth:`stream_step_wire` decodes (the C decoder for plain ones)."""
+        """``add_FusionServicer_to_server`` except that both RPCs take bytes: Fuse's are parsed
+        with the fit (:meth:`fuse_bytes`, off the event loop when large), StreamFuse's decoded by
+        :meth:`stream_step_wire` (the C decoder for plain ones)."""
         handlers = {
             "Fuse": grpc.unary_unary_rpc_method_handler(
-                self.Fuse, request_deserializer=pb.FuseRequest.FromString,
-                response_serializer=pb.FusedPose.SerializeToString),
+                self.Fuse, request_deserializer=None, response_serializer=None),
             "StreamFuse": grpc.stream_stream_rpc_method_handler(
                 self.StreamFuse, request_deserializer=None,
                 response_serializer=pb.FusedPose.SerializeToString),
@@ -336,8 +447,37 @@ class Fusion(pb_grpc.FusionServicer):
         server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(self.NAME, handlers),))
         server.add_registered_method_handlers(self.NAME, handlers)
 
-    async def Fuse(self, request, context):
-        return await self.calls.unary("Fuse", self.fuse, request, context)
+    async def Fuse(self, request: bytes, context):
+        # Registered without (de)serializers (register): bytes in and out, parsed and written
+        # with the fit, in the worker pool when the request is not small.
+        if len(request) <= limits.INLINE_BYTES:
+            return await self.calls.unary("Fuse", self.fuse_bytes, request, context)
+        return await self.calls.unary("Fuse", lambda r: self.calls.work(self.fuse_bytes, r),
+                                      request, context)
+
+    def _open_stream(self, data: bytes):
+        """The first request of a stream: ``(state, its answers, its number of measurements)``;
+        a FieldError (or OverLimit) for options the stream cannot start with."""
+        try:
+            request = pb.FuseStreamRequest.FromString(data)
+        except DecodeError:
+            raise FieldError("requests[0]: not a valid dqpose.v1.FuseStreamRequest "
+                             "message") from None
+        state = self.stream_options(request)
+        return state, self._stream_answers(state, request, 0, 0), len(request.measurements)
+
+    async def _write(self, answers, cost: int, context) -> None:
+        """Writes a request's answers: fused on the event loop when they cost little
+        (``limits.INLINE_ROWS``), else in the worker pool, ``ANSWERS_PER_WORK`` at a time so
+        that the first ones are on their way while the next are fused."""
+        if cost <= limits.INLINE_ROWS:
+            for answer in answers:
+                await context.write(answer)
+            return
+        answers = iter(answers)
+        while chunk := await self.calls.work(_take, answers, ANSWERS_PER_WORK):
+            for answer in chunk:
+                await context.write(answer)
 
     async def StreamFuse(self, request_iterator, context):
         t0 = self.calls.begin()
@@ -347,24 +487,22 @@ class Fusion(pb_grpc.FusionServicer):
         state = None
         try:
             # Registered without a deserializer (register): each request arrives as bytes.
+            # Decoded on the event loop when small (most of a live stream's messages), else in
+            # the worker pool, like the answers (_write).
             async for data in request_iterator:
                 if state is None:
                     try:
-                        try:
-                            request = pb.FuseStreamRequest.FromString(data)
-                        except DecodeError:
-                            raise FieldError("requests[0]: not a valid "
-                                             "dqpose.v1.FuseStreamRequest message") from None
-                        state = self.stream_options(request)
+                        state, answers, n = await self.calls.work(self._open_stream, data)
                     except FieldError as e:
-                        code = "INVALID_ARGUMENT"
-                        await context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
-                    answers = self.stream_step(state, request, r, next_id)
-                    n = len(request.measurements)
-                else:
+                        status = refusal(e)
+                        code = status.name
+                        await context.abort(status, readable(str(e)))
+                elif len(data) <= limits.INLINE_BYTES:
                     answers, n = self.stream_answers_wire(state, data, r, next_id)
-                for answer in answers:
-                    await context.write(answer)
+                else:
+                    answers, n = await self.calls.work(self.stream_answers_wire, state, data, r,
+                                                       next_id)
+                await self._write(answers, state.cost, context)
                 next_id += n
                 r += 1
         except Exception as e:
@@ -378,3 +516,12 @@ class Fusion(pb_grpc.FusionServicer):
             raise
         finally:
             self.calls.done("StreamFuse", code, t0, context, messages=r)
+
+
+#: StreamFuse answers fused per turn of the worker pool (when fused there)
+ANSWERS_PER_WORK = 16
+
+
+def _take(answers, k: int) -> list:
+    """The next ``k`` of ``answers`` (fewer at its end)."""
+    return list(itertools.islice(answers, k))

@@ -1,5 +1,5 @@
 """The ``dqpose.v1.HandEye`` service: Calibrate (:func:`service.handeye.calibrate`), solved off the
-event loop.
+event loop (the server's worker pool), within the limits ``max_pairs`` and ``max_corners``.
 
 Malformed pairs are ``INVALID_ARGUMENT`` naming the field (``pairs[3].camera_to_target...``);
 data the calibration cannot be determined from (:class:`~service.errors.Infeasible`: too few
@@ -7,14 +7,14 @@ pairs, degenerate motion) is ``FAILED_PRECONDITION`` with the domain's reason an
 """
 from __future__ import annotations
 
-import asyncio
+import grpc
+from google.protobuf.message import DecodeError
 
-from service import handeye
+from service import handeye, limits
 from service.errors import FieldError
 from service.rpc.calls import Calls
 from service.rpc.convert import calibrate_error, calibrate_from_msg, calibration_to_msg
 from service.rpc._proto.dqpose.v1 import handeye_pb2 as pb
-from service.rpc._proto.dqpose.v1 import handeye_pb2_grpc as pb_grpc
 
 
 class HandEye:
@@ -23,11 +23,19 @@ class HandEye:
     def __init__(self, cfg, calls: Calls):
         self.calls = calls
         self.max_poses = cfg.max_poses
+        self.limits = cfg.limits
 
     def calibrate(self, request: pb.CalibrateRequest) -> pb.CalibrateResponse:
-        if len(request.pairs) > self.max_poses:
-            raise FieldError(f"pairs: {len(request.pairs)} exceed the server limit of "
-                             f"{self.max_poses} per request")
+        n = len(request.pairs)
+        if n > self.max_poses:
+            raise FieldError(f"pairs: {n} exceed the server limit of {self.max_poses} per "
+                             f"request")
+        if n > self.limits.max_pairs:
+            raise limits.over("pairs", f"{n} pairs", self.limits, "max_pairs")
+        corners = sum(len(p.corners.image_points) for p in request.pairs) // 2
+        if corners > self.limits.max_corners:
+            raise limits.over("pairs", f"{corners} corners in all (PosePair.corners)",
+                              self.limits, "max_corners")
         args = calibrate_from_msg(request)
         try:
             result = handeye.calibrate(args.base_flange, args.camera_target, args.setup,
@@ -40,13 +48,24 @@ class HandEye:
             raise calibrate_error(e) from None
         return calibration_to_msg(result)
 
-    def register(self, server) -> None:
-        """The generated registration: every RPC with the proto's own (de)serializers."""
-        pb_grpc.add_HandEyeServicer_to_server(self, server)
+    def calibrate_bytes(self, data: bytes) -> bytes:
+        """What Calibrate serves: ``CalibrateResponse`` bytes for ``CalibrateRequest`` bytes."""
+        try:
+            request = pb.CalibrateRequest.FromString(data)
+        except DecodeError:
+            raise FieldError("request: not a valid dqpose.v1.CalibrateRequest message") from None
+        return self.calibrate(request).SerializeToString()
 
-    async def Calibrate(self, request, context):
-        # a refinement of tens of milliseconds holding the GIL: off the event loop, so other
-        # calls' messages keep moving
+    def register(self, server) -> None:
+        """Calibrate takes and returns bytes: parsed, solved and written in the worker pool."""
+        handlers = {"Calibrate": grpc.unary_unary_rpc_method_handler(
+            self.Calibrate, request_deserializer=None, response_serializer=None)}
+        server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(self.NAME, handlers),))
+        server.add_registered_method_handlers(self.NAME, handlers)
+
+    async def Calibrate(self, request: bytes, context):
+        # tens of milliseconds to seconds of solver: off the event loop, so other calls,
+        # health and signals are answered meanwhile
         return await self.calls.unary("Calibrate",
-                                      lambda r: asyncio.to_thread(self.calibrate, r),
+                                      lambda r: self.calls.work(self.calibrate_bytes, r),
                                       request, context)

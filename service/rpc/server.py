@@ -28,6 +28,7 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import _async as reflection_aio
 from grpc_reflection.v1alpha import reflection, reflection_pb2_grpc
 
+from service import limits as limits_table
 from service.rpc import DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
 from service.rpc.blending import Blending
 from service.rpc.calls import Calls, log
@@ -77,6 +78,9 @@ class ServerConfig:
     # which starts running a plan on one (drivers.executor; this package imports no driver).
     arms: dict = dataclasses.field(default_factory=dict)
     executor: object = None
+    # what one request or stream may cost (service/limits.py: the table, its cost model and
+    # the `dqpose serve` flag of each)
+    limits: limits_table.Limits = limits_table.DEFAULT
 
     def __post_init__(self):
         self.check()
@@ -101,6 +105,13 @@ class ServerConfig:
                                           f"got {name!r}")
         if self.arms and not callable(self.executor):
             raise ConfigError("executor", "arms need an executor to run plans on them")
+        if not isinstance(self.limits, limits_table.Limits):
+            raise ConfigError("limits", f"must be a service.limits.Limits, got "
+                                        f"{type(self.limits).__name__}")
+        try:
+            self.limits.check()
+        except limits_table.LimitConfigError as e:
+            raise ConfigError(e.setting, e.problem) from None
 
 
 def _integer(cfg, name: str, lo: int, hi: int) -> None:
@@ -394,6 +405,7 @@ class Running:
         if not await self.calls.settled(5.0):
             log.warning(json.dumps({"event": "calls_not_recorded", "open": self.calls.open}))
         self.calls.flush()
+        self.calls.close()
         if self.metrics is not None:
             self.metrics.close()
 
@@ -466,7 +478,7 @@ async def start(cfg: ServerConfig) -> Running:
         if e.errno == errno.EADDRINUSE:
             raise AddressInUse("serve metrics on", where, "metrics_port") from None
         raise OSError(f"cannot serve metrics on {where}: {(e.strerror or str(e)).lower()}") from None
-    calls = Calls(metrics)
+    calls = Calls(metrics, cfg.limits.workers)
     gate = Gate(calls)
     interceptors = [gate] + ([BearerTokenAuth(cfg.token, calls)] if cfg.token else [])
     server = grpc.aio.server(options=server_options(cfg), interceptors=interceptors)

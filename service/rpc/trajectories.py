@@ -7,29 +7,40 @@ from __future__ import annotations
 import asyncio
 import math
 
-from service import smoothing, trajectory
+import grpc
+import numpy as np
+from google.protobuf.message import DecodeError
+
+from service import limits, smoothing, trajectory
 from service.errors import FieldError, rename
 from service.rpc.arms import Arms
 from service.rpc.calls import Calls, refused
-from service.rpc.convert import (arrays_to_stamped, limits_from_msg, plan_from_msg,
-                                 plan_info_msg, sample_msgs, stamped_to_arrays)
+from service.rpc.convert import (arrays_to_stamped, field_named, limits_from_msg,
+                                 plan_from_msg, plan_info_msg, sample_msgs, stamped_to_arrays)
 from service.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
-from service.rpc._proto.dqpose.v1 import trajectories_pb2_grpc as pb_grpc
 
-#: how many samples a plan may stream, as a multiple of the server's max poses per request
-SAMPLES_PER_MAX_POSES = 10
+#: the fields of a PlanRequest an error may start with
+PLAN_FIELDS = ("waypoints", "limits", "rate_hz", "interpolation", "start_linear_velocity",
+               "start_angular_velocity")
+#: the largest Smooth.smoothing (a cutoff of 2 mHz): at 1e4 the spline's equations were singular
+MAX_SMOOTHING = 1e3
 #: samples converted and written per step of the Plan stream (bounds the memory of messages)
 CHUNK = 500
 
 
 def _planned(args, field: str = ""):
-    """:func:`trajectory.plan` of :class:`PlanArgs`, its errors named by proto field."""
+    """:func:`trajectory.plan` of :class:`PlanArgs`, its errors named by proto field (the
+    domain's start velocity is both vectors: the one its text is about)."""
     try:
         return trajectory.plan(args.waypoints, args.limits, args.interpolation,
                                start_velocity=args.start_velocity)
     except ValueError as e:
-        raise rename(e, {"waypoints": f"{field}waypoints{{}}", "limits": f"{field}limits",
-                         "start_velocity": f"{field}start_linear_velocity"}) from None
+        start = "start_angular_velocity" if "angular" in str(e) or "turn" in str(e) \
+            else "start_linear_velocity"
+        named = rename(e, {"waypoints": f"{field}waypoints{{}}", "limits": f"{field}limits",
+                           "start_velocity": f"{field}{start}"})
+        raise field_named(named, tuple(field + f for f in PLAN_FIELDS),
+                          f"{field}waypoints") from None
 
 
 class Trajectories:
@@ -38,6 +49,7 @@ class Trajectories:
     def __init__(self, cfg, calls: Calls):
         self.calls = calls
         self.max_poses = cfg.max_poses
+        self.limits = cfg.limits
         self.arms = Arms(cfg, calls)
 
     # -- domain, message in, message(s) out
@@ -47,30 +59,42 @@ class Trajectories:
         self._check_count("waypoints", len(request.waypoints))
         args = plan_from_msg(request)
         traj = _planned(args)
-        n = math.floor(traj.duration * args.rate_hz) + 2
-        if n > SAMPLES_PER_MAX_POSES * self.max_poses:
-            raise FieldError(f"rate_hz: {args.rate_hz:g} Hz over {traj.duration:.3f} s is {n} "
-                             f"samples, over the server's limit of "
-                             f"{SAMPLES_PER_MAX_POSES * self.max_poses}")
+        n = traj.duration * args.rate_hz + 2
+        if not n <= self.limits.max_plan_samples:
+            # the waypoint the longest segment ends at, and the limit that sets its pace
+            k = max(range(len(traj.segments)), key=lambda i: traj.segments[i].duration)
+            seg = traj.segments[k]
+            pace = "its time" if seg.binding == "time" else f"limits.{seg.binding}"
+            raise limits.over(f"waypoints[{k + 1}]", f"the plan lasts {traj.duration:.6g} s, "
+                              f"{seg.duration:.6g} s of it to this waypoint (at {pace}); at "
+                              f"rate_hz {args.rate_hz:.6g} that is {n:.6g} samples",
+                              self.limits, "max_plan_samples")
         return traj, args.rate_hz
 
     def smooth(self, request: pb.SmoothRequest) -> pb.SmoothResponse:
         self._check_count("poses", len(request.poses))
         if not request.HasField("limits"):
             raise FieldError("limits: required (velocity and acceleration limits)")
-        limits = limits_from_msg(request.limits)
+        bounds = limits_from_msg(request.limits)
         times, dqs = stamped_to_arrays(request.poses, "poses")
-        limit = SAMPLES_PER_MAX_POSES * self.max_poses
-        if len(times) and request.rate_hz * (times.max() - times.min()) >= limit:
-            raise FieldError(f"rate_hz: {request.rate_hz:g} Hz over the poses' "
-                             f"{times.max() - times.min():.3f} s is over the server's limit of "
-                             f"{limit} samples")
+        span = times.max() - times.min() if len(times) else 0.0
+        if request.rate_hz * span >= self.limits.max_plan_samples:
+            raise limits.over("rate_hz", f"{request.rate_hz:.6g} Hz over the poses' {span:.6g} "
+                                         f"s", self.limits, "max_plan_samples")
+        strength = request.smoothing or 1.0
+        if strength > MAX_SMOOTHING:
+            raise FieldError(f"smoothing: {strength:.6g} is over {MAX_SMOOTHING:g} (the cutoff is "
+                             f"2 / smoothing Hz; beyond it the spline's equations are singular)")
         try:
-            t, out = smoothing.smooth(times, dqs, limits, smoothing=request.smoothing or 1.0,
+            t, out = smoothing.smooth(times, dqs, bounds, smoothing=strength,
                                        rate_hz=request.rate_hz, free_ends=request.free_ends)
+        except np.linalg.LinAlgError as e:     # SciPy's too: the equations of this path
+            raise FieldError(f"smoothing: {strength:.6g} leaves the spline's equations for these "
+                             f"poses singular ({e}); use a smaller one") from None
         except ValueError as e:
-            raise rename(e, {"times": "poses{}.time", "poses": "poses{}.pose",
-                             "limits": "limits"}) from None
+            raise field_named(rename(e, {"times": "poses{}.time", "poses": "poses{}.pose",
+                                         "limits": "limits"}),
+                              ("poses", "limits", "smoothing", "rate_hz"), "poses") from None
         return pb.SmoothResponse(samples=arrays_to_stamped(t, out))
 
     def _check_count(self, field: str, n: int) -> None:
@@ -78,35 +102,66 @@ class Trajectories:
             raise FieldError(f"{field}: {n} exceed the server limit of {self.max_poses} per "
                              f"request")
 
+    def smooth_bytes(self, data: bytes) -> bytes:
+        """What Smooth serves: ``SmoothResponse`` bytes for request bytes."""
+        return self.smooth(_parsed(pb.SmoothRequest, data)).SerializeToString()
+
+    def planned(self, data: bytes):
+        """What Plan serves, for request bytes: ``(trajectory, its samples at the rate)``."""
+        traj, rate = self.plan(_parsed(pb.PlanRequest, data))
+        return traj, traj.at_rate(rate)
+
+    @staticmethod
+    def sample_chunk(traj, samples, i: int) -> list[bytes]:
+        """Samples ``i`` to ``i + CHUNK`` as ``TrajectorySample`` bytes (the plan's segments on
+        the first)."""
+        msgs = sample_msgs(trajectory.Samples(*(a[i:i + CHUNK] for a in samples)))
+        if i == 0:
+            msgs[0].plan.CopyFrom(plan_info_msg(traj))
+        return [m.SerializeToString() for m in msgs]
+
     # -- RPCs
 
     def register(self, server) -> None:
-        """The generated registration: every RPC of the proto, with its own (de)serializers;
-        Execute, GetArm and ListArms are :attr:`arms`' (any other registration must keep all
-        three)."""
-        pb_grpc.add_TrajectoriesServicer_to_server(self, server)
+        """Plan and Smooth take (and Smooth returns) bytes, parsed and written in the worker
+        pool; Execute, GetArm and ListArms are :attr:`arms`' with the proto's own
+        (de)serializers. Every RPC of the proto is in ``handlers`` (tests/rpc check it)."""
+        raw = dict(request_deserializer=None, response_serializer=None)
+        handlers = {
+            "Plan": grpc.unary_stream_rpc_method_handler(self.Plan, **raw),
+            "Smooth": grpc.unary_unary_rpc_method_handler(self.Smooth, **raw),
+            "Execute": grpc.unary_stream_rpc_method_handler(
+                self.Execute, request_deserializer=pb.ExecuteRequest.FromString,
+                response_serializer=pb.ExecutionFeedback.SerializeToString),
+            "GetArm": grpc.unary_unary_rpc_method_handler(
+                self.GetArm, request_deserializer=pb.GetArmRequest.FromString,
+                response_serializer=pb.ArmState.SerializeToString),
+            "ListArms": grpc.unary_unary_rpc_method_handler(
+                self.ListArms, request_deserializer=pb.ListArmsRequest.FromString,
+                response_serializer=pb.ListArmsResponse.SerializeToString),
+        }
+        server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(self.NAME, handlers),))
+        server.add_registered_method_handlers(self.NAME, handlers)
 
-    async def Smooth(self, request, context):
-        # tens of milliseconds of solver holding the GIL: off the event loop, so other calls'
-        # messages keep moving between its steps
-        return await self.calls.unary("Smooth", lambda r: asyncio.to_thread(self.smooth, r),
+    async def Smooth(self, request: bytes, context):
+        # tens of milliseconds to seconds of solver: off the event loop (the worker pool), so
+        # other calls, health and signals are answered meanwhile
+        return await self.calls.unary("Smooth", lambda r: self.calls.work(self.smooth_bytes, r),
                                       request, context)
 
-    async def Plan(self, request, context):
+    async def Plan(self, request: bytes, context):
         t0 = self.calls.begin()
         code, sent = "OK", 0
         try:
             try:
-                traj, rate = self.plan(request)
+                traj, samples = await self.calls.work(self.planned, request)
             except Exception as e:
                 status, details = refused("Plan", e)
                 code = status.name
                 await context.abort(status, details)
-            samples = traj.at_rate(rate)
+            # the samples' messages made in the worker pool too, CHUNK at a time
             for i in range(0, len(samples.time), CHUNK):
-                msgs = sample_msgs(trajectory.Samples(*(a[i:i + CHUNK] for a in samples)))
-                if i == 0:
-                    msgs[0].plan.CopyFrom(plan_info_msg(traj))
+                msgs = await self.calls.work(self.sample_chunk, traj, samples, i)
                 for m in msgs:
                     await context.write(m)
                 sent += len(msgs)
@@ -128,3 +183,11 @@ class Trajectories:
     def stopping(self, seconds: float) -> None:
         """The server's shutdown hook (:meth:`Arms.stopping`)."""
         self.arms.stopping(seconds)
+
+
+def _parsed(message, data: bytes):
+    """``data`` parsed as a ``message``; a FieldError when they are not one."""
+    try:
+        return message.FromString(data)
+    except DecodeError:
+        raise FieldError(f"request: not a valid {message.DESCRIPTOR.full_name} message") from None

@@ -116,11 +116,30 @@ def test_bad_input_names_the_measurement(server, capsys, tmp_path, csv, message)
         assert err.startswith(f"dqpose fuse: error: {message}"), err
 
 
+@pytest.mark.parametrize("body, message", [
+    ('{"measurements": [{"pose": {"position": {"q": 1}}}]}',
+     "measurements[0].pose.position: unknown key 'q'; expected x, y, z"),
+    ('{"measurements": [{"source": "a", "pose": {"rotation": {"w": 1}}}]}',
+     "measurements[0].pose: unknown key 'rotation' (did you mean 'orientation'?)"),
+    ('{"measurements": [{"source": "a", "pose": {"orientation": {"w": 1}}}], '
+     '"options": {"robustt": true}}', "options: unknown key 'robustt' (did you mean 'robust'?)"),
+    ('{"measurements": [{"source": "a", "pose": {"orientation": {"w": 1}}}], '
+     '"options": {"sources": [{"name": "a", "latencey": 0.1}]}}',
+     "options.sources[0]: unknown key 'latencey' (did you mean 'latency'?)"),
+    ('measurements:\n  - source: a\n    pose: {orientation: {w: 1}, positon: {x: 1}}\n',
+     "measurements[0].pose: unknown key 'positon' (did you mean 'position'?)"),
+])
+def test_a_misspelt_key_is_named_with_the_nearest(capsys, tmp_path, body, message):
+    # read as zeros, a misspelt key would fuse to a wrong answer with exit code 0
+    path = tmp_path / ("bad.yaml" if body.startswith("measurements:") else "bad.json")
+    path.write_text(body)
+    code, out, err = run(capsys, "fuse", "--local", str(path))
+    assert (code, out) == (2, "")
+    assert err == f"dqpose fuse: error: {message}\n"
+
+
 def test_bad_json_is_named(capsys, tmp_path):
     path = tmp_path / "bad.json"
-    path.write_text('{"measurements": [{"pose": {"position": {"q": 1}}}]}')
-    code, _, err = run(capsys, "fuse", "--local", str(path))
-    assert code == 2 and "not a dqpose.v1.FuseRequest" in err and '"q"' in err
     path.write_text('{"measurements": [{"pose": {"orientation": {"w": 1}}, "covariance": [1]}]}')
     code, _, err = run(capsys, "fuse", "--local", str(path))
     assert code == 2 and "measurements[0].covariance: expected 36 values" in err

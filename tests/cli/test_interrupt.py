@@ -103,10 +103,6 @@ def test_ctrl_c_ends_serve_with_its_simulators(tmp_path):
     assert not any(alive(p) for p in sims), "a simulator outlived the server"
 
 
-@pytest.mark.xfail(reason="the arm stops, but the server's Execute hands the executor's last "
-                          "record to an event loop already closed (RuntimeError traceback from "
-                          "service/rpc/trajectories.py's feedback callback at shutdown)",
-                   strict=False)
 def test_ctrl_c_ends_serve_while_an_arm_executes(tmp_path):
     """A server with an arm (a simulator of the test's own, so it can be asked afterwards) and a
     client's Execute under way: one Ctrl-C ends the server, the run is cut and the arm stands."""

@@ -174,8 +174,10 @@ def test_cancel_stops_within_one_period(rig, arm):
     assert wait_until(rig.stopped)
     after = [t for t, _ in rig.arrivals() if t > cancelled]
     if isinstance(rig, URExec):
-        # only the set-point already on its way may follow the cancel, and the stop comes next
-        assert len(after) <= 1
+        # the test's clock is read before cancel() reaches the loop: a set-point may go out in
+        # between, and one more already on its way past the loop's own check; the stop comes
+        # next, and nothing after it
+        assert len(after) <= 2
         assert rig.setpoints_after_stop() == 0
         assert rig.stop_arrived() - cancelled < arm.period + 0.002 * 5   # slack: a busy machine
     else:

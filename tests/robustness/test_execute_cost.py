@@ -11,10 +11,10 @@ import tracemalloc
 import pytest
 
 from _arms import URRig, offset, serve
-from service import trajectory
+from service import limits, trajectory
 from service.rpc.client import Client, RpcError
 
-MAX_POSES = 100
+MAX_WAYPOINTS = 100
 #: a crawl: 0.06 m at 50 um/s is a 20-minute plan
 CRAWL = trajectory.Limits(max_linear_velocity=5e-5, max_angular_velocity=0.1,
                           max_linear_acceleration=0.5, max_angular_acceleration=1.0)
@@ -27,7 +27,7 @@ BUDGET = 8 * 1024 * 1024
 def ur():
     r = URRig(process=False)
     try:
-        with serve([r], max_poses=MAX_POSES) as server:
+        with serve([r], limits=limits.Limits(max_execute_waypoints=MAX_WAYPOINTS)) as server:
             yield r, server
     finally:
         r.close()
@@ -36,12 +36,13 @@ def ur():
 def test_too_many_waypoints_are_refused_naming_the_limit(ur):
     r, server = ur
     r.reset()
-    wps = [offset(r.home, dz=0.0005 * k) for k in range(MAX_POSES + 1)]
+    wps = [offset(r.home, dz=0.0005 * k) for k in range(MAX_WAYPOINTS + 1)]
     with Client(server.target) as c, pytest.raises(RpcError) as e:
         list(c.execute("ur", wps, CRAWL))
     assert e.value.code.name == "RESOURCE_EXHAUSTED"
-    assert e.value.details == (f"plan.waypoints: {MAX_POSES + 1} waypoints, over the server's "
-                               f"limit of {MAX_POSES} (dqpose serve --max-poses)")
+    assert e.value.details == (f"plan.waypoints: {MAX_WAYPOINTS + 1} waypoints, over the "
+                               f"server's limit max_execute_waypoints = {MAX_WAYPOINTS} waypoints "
+                               f"(dqpose serve --max-execute-waypoints)")
     assert r.setpoints() == 0
 
 

@@ -96,7 +96,7 @@ int main(int argc, char **argv)
                     const uint32_t *sp = fs.spans + 6 * j;
                     for (int k = 0; k < 6; k += 2)
                         if ((size_t)sp[k] + sp[k + 1] > len) abort();
-                    if (fs.codes[j] > DQ_MEAS_COV_NOT_SPD) abort();
+                    if (fs.codes[j] > DQ_MEAS_COV_SCALE) abort();
                 }
                 streams++;
             }

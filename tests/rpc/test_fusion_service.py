@@ -407,7 +407,7 @@ def test_stream_survives_bad_measurements_and_uses_the_rest_of_their_message(cli
     assert errors[2].error == ("requests[2].measurements[5].source: 'cma' is not among "
                                "options.sources (cam, arm)")
     assert errors[3].error.startswith(f"requests[2].measurements[7] (body 'box', source "
-                                      f"'{srcs[7]}', time {float(times[7])!r}): taken at ")
+                                      f"'{srcs[7]}', time {float(times[7]):.6g}): taken at ")
     assert errors[3].error.endswith("beyond the window 0.2 s")
     assert errors[4].error == "requests[2].measurements[8].covariance: contains NaN or infinity"
     poses_after = [a for a in answers if a.fused is not None]

@@ -247,8 +247,6 @@ BAD_INPUTS = [
     ("Blend", blend_req(*_poses(2), method=42), "method: unknown Method value 42"),
     ("Blend", blend_req(*_poses(2), tolerance=-1.0), "tolerance: must be finite and >= 0"),
     ("Blend", blend_req(*_poses(2), tolerance=NAN), "tolerance: must be finite and >= 0"),
-    ("Blend", blend_req(*_poses(2), max_iterations=2_000_000),
-     "max_iterations: 2000000 exceeds the limit of 1000"),
     ("Interpolate", _interp_req(times_k=(0.0, 1.0, 0.5)),
      "keyframes[2].time: 0.5 is not after the previous keyframe time 1.0"),
     ("Interpolate", _interp_req(times_k=(0.0, 1.0, 1.0)),
@@ -362,7 +360,9 @@ def _answer_or_field_error(call, check):
     try:
         check(call())
     except grpc.RpcError as e:
-        assert e.code() == grpc.StatusCode.INVALID_ARGUMENT, (e.code(), e.details())
+        # RESOURCE_EXHAUSTED: over one of the server's limits (service/limits.py), named too
+        assert e.code() in (grpc.StatusCode.INVALID_ARGUMENT,
+                            grpc.StatusCode.RESOURCE_EXHAUSTED), (e.code(), e.details())
         assert FIELD_PATH.match(e.details()), e.details()
 
 

@@ -13,11 +13,10 @@ from hypothesis import strategies as st
 
 from _mutate import damaged
 
-from service import dq
+from service import dq, limits
 from service.errors import FieldError
 from service.rpc.convert import blend_batch_wire, blend_wire, decode_blend_request, pose_msgs
-from service.rpc.blending import (DEFAULT_MAX_ITERATIONS, DEFAULT_TOLERANCE, MAX_ITERATIONS_LIMIT,
-                                  Blending)
+from service.rpc.blending import (DEFAULT_MAX_ITERATIONS, DEFAULT_TOLERANCE, Blending)
 from service.rpc.server import ServerConfig
 from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from service.rpc._proto.dqpose.v1 import geometry_pb2 as geo
@@ -119,7 +118,7 @@ def _full_path(blending, data: bytes):
 
 def _fast_path(blending, data: bytes):
     return blend_wire(data, blending.max_poses, DEFAULT_TOLERANCE, DEFAULT_MAX_ITERATIONS,
-                      MAX_ITERATIONS_LIMIT)
+                      limits.DEFAULT.max_iterations)
 
 
 @st.composite
@@ -239,7 +238,7 @@ def _batch_full_path(blending, data: bytes):
 
 def _batch_fast_path(blending, data: bytes):
     return blend_batch_wire(data, blending.max_poses, 10 * blending.max_poses, blending.max_poses,
-                            DEFAULT_TOLERANCE, DEFAULT_MAX_ITERATIONS, MAX_ITERATIONS_LIMIT)
+                            DEFAULT_TOLERANCE, DEFAULT_MAX_ITERATIONS, limits.DEFAULT.max_iterations)
 
 
 @given(st.lists(near_unit_requests(), max_size=6))

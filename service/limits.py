@@ -1,0 +1,187 @@
+"""The server's bounds on what one request or one stream may cost: the one table of them.
+
+Every field of :class:`Limits` is a limit: its default, unit and meaning are here and nowhere
+else; ``ServerConfig.limits`` holds the values a server runs with and ``dqpose serve`` has one
+flag per field (the field's name with dashes: ``max_output_rate`` is ``--max-output-rate``,
+:func:`add_flags`). A request over a limit is refused before anything of its size is allocated,
+with :class:`OverLimit` (gRPC ``RESOURCE_EXHAUSTED``, or an error entry in a stream) naming the
+request's field, the limit and its flag (:func:`over`).
+
+Cost model (one core of the 2-core test machine, BENCHMARKS.md "Bounded cost"); the defaults
+keep the costliest legal request near a second of one worker's time:
+
+* StreamFuse: ticks are computed in closed form (no loop over skipped ticks), so a message costs
+  its decoding (~7 µs a measurement) plus its answers. An answer fuses its body's window:
+  ~13 µs a measurement (constant twist; its message included) and ~0.17 ms around it
+  (:func:`answer_cost`). ``max_fused_per_request`` bounds the sum over one message's answers
+  (75,000: ~1 s); ticks beyond it are skipped, the latest kept, and said so.
+  A tick is exact in floating point while ``|time| * output_rate`` stays below 2^50
+  (``max_time * max_output_rate``, checked at start).
+* A stream keeps at most ``max_stream_measurements`` (100,000: ~40 MB) in its windows, a body
+  at most ``max_window`` (1,000: an answer of ~80 kB, ~5 ms to fuse); finding a body's window
+  scans the stream's (~0.1 ms at 100,000), within ``ANSWER_ROWS``.
+* Robust fits: the consensus compares every measurement with at most 64 candidate centres
+  (C, ~0.8 µs a pair), then the gate refits (~4 µs a measurement, in C) at most 50 times:
+  ``max_robust`` 2,000 measurements is ~0.1 s typically, ~0.7 s at worst.
+* A fit with ``acceleration_psd`` solves a dense ``6n × 6n`` system (NumPy, O(n³)): 26 ms at
+  100 measurements, 0.16 s at 200, 1 s at 400; ``max_correlated`` 100, times the gate's 50 refits
+  at worst.
+* HandEye Calibrate compares every two pairs (the all-pairs closed form, the screw-congruence
+  and duplicate checks, per-sample medians over pairs: O(n²) by construction), then refines in
+  O(n): ``max_pairs`` 200 is ~0.7 s. The corner level is linear in the corners (its normal
+  equations solved view by view): ~0.1 ms a corner, ``max_corners`` 10,000 ~1 s.
+* Trajectories: a plan costs ~16 µs a waypoint (10,000: 0.16 s) and ~20 µs a streamed sample
+  (``max_plan_samples`` 100,000: ~2 s of the worker pool, the writes on the event loop ~50 µs
+  each); Execute's ``max_execute_waypoints`` is Plan's bound on waypoints.
+* Everything else is linear in the request's size, bounded by ``max_poses`` and
+  ``max_message_bytes``; a request larger than ``INLINE_BYTES`` runs in the worker pool.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+from service.errors import FieldError
+
+#: a request of at most this many bytes is served on the event loop (its work, linear in its
+#: size, stays under ~1 ms); a larger one in the worker pool (``workers``)
+INLINE_BYTES = 4096
+#: StreamFuse answers costing at most this many measurements (:func:`answer_cost`: ~1 ms) are
+#: fused on the event loop, costlier ones in the worker pool
+INLINE_ROWS = 75
+
+
+def answer_cost(rows: int, robust: bool = False, correlated: bool = False) -> int:
+    """What fusing a window of ``rows`` measurements into one StreamFuse answer costs, in
+    measurements of a plain fit (~13 µs each on the test machine, the answer's message
+    included): ~0.17 ms for any answer, 4x the rows for a robust fit, and the dense solve of an
+    ``acceleration_psd`` fit (26 ms at 100 rows)."""
+    cost = ANSWER_ROWS + rows * (4 if robust else 1)
+    return cost + (rows ** 3 // 500 if correlated else 0)
+
+
+#: what an answer costs besides its window's measurements, in measurements (~0.17 ms)
+ANSWER_ROWS = 13
+#: ticks are exact while |time| * rate stays below this (a double's integers are exact to 2^53)
+EXACT_TICKS = 2.0**50
+
+
+class OverLimit(FieldError):
+    """A request over one of the server's :class:`Limits`: ``RESOURCE_EXHAUSTED``. The text
+    starts with the request's field, like any :class:`FieldError`, and names the limit and its
+    ``dqpose serve`` flag."""
+
+
+def _limit(default, unit: str, meaning: str, lo=0):
+    return field(default=default, metadata={"unit": unit, "meaning": meaning, "lo": lo})
+
+
+@dataclass(frozen=True)
+class Limits:
+    """The limits a server enforces (defaults: the cost model in the module docstring)."""
+
+    workers: int = _limit(
+        2, "threads", "worker threads shared by every service: what grows with a request runs "
+                      "there, off the event loop (a request waits for a free one)", lo=1)
+    max_robust: int = _limit(
+        2000, "measurements", "measurements in one robust fit (Fuse with options.robust, a "
+                              "StreamFuse body's window in a robust stream)", lo=1)
+    max_correlated: int = _limit(
+        100, "measurements", "measurements in one fit with options.acceleration_psd (its "
+                             "cost grows with their cube)", lo=1)
+    max_pairs: int = _limit(
+        200, "pairs", "HandEye Calibrate: pose pairs per request (its closed form and data "
+                      "checks compare every two)", lo=3)
+    max_corners: int = _limit(
+        10_000, "corners", "HandEye Calibrate: board corners per request, all pairs together",
+        lo=4)
+    max_iterations: int = _limit(
+        1000, "iterations", "Blend: max_iterations of an iterative blend (DIB: ~20 ns a pose an "
+                            "iteration)", lo=1)
+    max_plan_samples: int = _limit(
+        100_000, "samples", "Plan: samples one plan streams (duration x rate_hz); Smooth: "
+                            "samples of its output", lo=2)
+    max_execute_waypoints: int = _limit(
+        10_000, "waypoints", "Execute: waypoints of one plan (planned in ~16 us each; the arm "
+                             "samples the plan as it goes, so its duration is not limited)",
+        lo=2)
+    max_output_rate: float = _limit(
+        1000.0, "Hz", "StreamFuse output_rate, answers per second of measurement time per body",
+        lo=1e-9)
+    max_time: float = _limit(
+        1e10, "s", "largest |time| of a measurement or a fusion time (seconds on any clock; "
+                   "Unix time is 1.8e9), so that a time keeps microseconds", lo=1.0)
+    max_time_jump: float = _limit(
+        60.0, "s", "StreamFuse: how far after its body's newest a measurement may be taken; "
+                   "one further is refused, unless the body's next one confirms the jump",
+        lo=1e-9)
+    max_window: int = _limit(
+        1000, "measurements", "StreamFuse: measurements in one body's window (the oldest are "
+                              "left out beyond it); each answer lists them", lo=1)
+    max_stream_measurements: int = _limit(
+        100_000, "measurements", "StreamFuse: measurements all of one stream's windows hold "
+                                 "(~0.4 kB each); more are refused", lo=1)
+    max_fused_per_request: int = _limit(
+        75_000, "measurements", "StreamFuse: the cost of one message's answers, in "
+                                "measurements fused (an answer counts its window and "
+                                f"{ANSWER_ROWS} more, a robust one 4x its window); "
+                                "ticks beyond it are skipped (the latest kept)", lo=1)
+
+    def __post_init__(self):
+        self.check()
+
+    def check(self) -> None:
+        """``ValueError("name: problem")`` for the first value out of range."""
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            integral = f.type in ("int", int)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or (
+                    integral and not isinstance(v, int)):
+                raise LimitConfigError(f.name, f"must be {'an integer' if integral else 'a number'}"
+                                               f", got {v!r}")
+            if not (math.isfinite(v) and v >= f.metadata["lo"]):
+                raise LimitConfigError(f.name, f"must be finite and >= {f.metadata['lo']:g}, "
+                                               f"got {v!r}")
+        if self.max_time * self.max_output_rate > EXACT_TICKS:
+            raise LimitConfigError("max_time", f"max_time * max_output_rate must stay below "
+                                               f"2^50 (ticks exact), got {self.max_time:g} s * "
+                                               f"{self.max_output_rate:g} Hz")
+
+
+class LimitConfigError(ValueError):
+    """A limit the server cannot start with; ``setting`` names it (the ``ServerConfig`` field
+    convention: its flag is the name with dashes)."""
+
+    def __init__(self, setting: str, problem: str):
+        super().__init__(f"{setting}: {problem}")
+        self.setting, self.problem = setting, problem
+
+
+DEFAULT = Limits()
+
+
+def flag(name: str) -> str:
+    """The ``dqpose serve`` flag of limit ``name``."""
+    return "--" + name.replace("_", "-")
+
+
+def over(where: str, what: str, limits: Limits, name: str) -> OverLimit:
+    """``"{where}: {what}, over the server's limit max_x = v unit (dqpose serve --max-x)"``."""
+    f = Limits.__dataclass_fields__[name]
+    return OverLimit(f"{where}: {what}, over the server's limit {name} = "
+                     f"{getattr(limits, name):.6g} {f.metadata['unit']} "
+                     f"(dqpose serve {flag(name)})")
+
+
+def add_flags(parser) -> None:
+    """One ``dqpose serve`` flag per limit, with its default, unit and meaning."""
+    for f in dataclasses.fields(Limits):
+        parser.add_argument(flag(f.name), type=int if f.type in ("int", int) else float,
+                            default=f.default, metavar=f.metadata["unit"].split()[0].upper(),
+                            help=f"{f.metadata['meaning']} (default: %(default)s)")
+
+
+def from_args(args) -> Limits:
+    """The :class:`Limits` of parsed ``dqpose serve`` flags (:func:`add_flags`)."""
+    return Limits(**{f.name: getattr(args, f.name) for f in dataclasses.fields(Limits)})

@@ -1,0 +1,317 @@
+"""A bystander beside the heaviest requests: each of the reliability probe's heavy requests, and
+each request at the largest size the server's limits allow (``service/limits.py``), sent to one
+``dqpose serve`` process (its own process, default flags) while a bystander client sends a
+10-pose ``Blend`` every 5 ms and a health check goes out every 100 ms; one table.
+
+    .venv/bin/python -m tests.bench.bench_bystander                 # ~2 min
+    .venv/bin/python -m tests.bench.bench_bystander --seconds 5     # longer rows
+    .venv/bin/python -m tests.bench.bench_bystander --only fuse     # rows whose name has it
+
+A row: the heavy request sent by two client threads back to back for ``--seconds`` (at least two
+calls each, so that both workers are busy), its status and median time; the bystander's Blend
+latency (p50, p99, max) and the slowest health answer over that time; the server's resident
+memory before the row, at its peak (sampled every 10 ms) and 2 s after the row. Targets (issue
+18): bystander p99 <= 100 ms, health <= 1 s, memory back at its baseline.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+import time
+from pathlib import Path
+
+import grpc
+import numpy as np
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+from service import dq, lie, limits, trajectory
+from service.rpc import BATCH_POSE_FACTOR, DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES, convert
+from service.rpc._proto.dqpose.v1 import blending_pb2 as bpb
+from service.rpc._proto.dqpose.v1 import blending_pb2_grpc as bpb_grpc
+from service.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
+from service.rpc._proto.dqpose.v1 import fusion_pb2_grpc as fpb_grpc
+from service.rpc._proto.dqpose.v1 import handeye_pb2_grpc as hpb_grpc
+from service.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
+from service.rpc._proto.dqpose.v1 import trajectories_pb2_grpc as tpb_grpc
+from tests.bench.bench_grpc import ServerProcess, request10
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import _handeye as H  # noqa: E402
+
+L = limits.DEFAULT
+BIG = [("grpc.max_receive_message_length", 64 << 20), ("grpc.max_send_message_length", 64 << 20)]
+
+
+# ---- the heavy requests: name -> (what it is, a function of a channel making one call)
+
+def _fuse_request(n, outliers=0, times=False, **options):
+    rng = np.random.default_rng(n)
+    X = lie.se3_exp(rng.normal(size=6))
+    Z = dq.mul(X, lie.se3_exp(0.01 * rng.normal(size=(n, 6))))
+    Z[:outliers] = dq.mul(Z[:outliers], lie.se3_exp(np.tile([2.0, 0, 0, 0.3, 0, 0], (outliers, 1))))
+    S = np.broadcast_to(np.eye(6) * 1e-4, (n, 6, 6))
+    return fpb.FuseRequest(
+        measurements=convert.measurement_msgs(Z, S, times=np.linspace(0, 0.1, n) if times else None),
+        options=convert.options_msg(**options))
+
+
+def _fuse(request):
+    return lambda ch: fpb_grpc.FusionStub(ch).Fuse(request, timeout=600)
+
+
+def _stream(requests):
+    return lambda ch: list(fpb_grpc.FusionStub(ch).StreamFuse(iter(requests), timeout=600))
+
+
+def _measurement(t, body="b"):
+    return fpb.Measurement(body=body, source="s", time=t,
+                           pose=convert.dq_to_pose(np.array([1.0, 0, 0, 0, 0, 0, 0, 0])))
+
+
+def _tick_flood():
+    """Two measurements a body's max_time_jump apart in a window that holds both, at the
+    largest output rate: ~60,000 ticks due at once, max_fused_per_request answers them."""
+    first = fpb.FuseStreamRequest(output_rate=L.max_output_rate,
+                                  measurements=[_measurement(0.0)])
+    first.options.window = 2 * L.max_time_jump
+    return [first, fpb.FuseStreamRequest(measurements=[_measurement(0.999 * L.max_time_jump)])]
+
+
+def _window_flood(robust):
+    """The probe's 50,000 measurements of one body in one window (50 messages of 1,000)."""
+    first = fpb.FuseStreamRequest()
+    first.options.window = 1e4
+    first.options.robust = robust
+    return [first] + [fpb.FuseStreamRequest(measurements=[
+        _measurement(1e-3 * (1000 * k + j)) for j in range(1000)]) for k in range(50)]
+
+
+def _calibrate(n, squares=None, corners=False):
+    s = H.scene(n, seed=1)
+    cs = None
+    if squares:
+        cs = H.exact_corners(s, squares)
+    elif corners:
+        cs = H.corners(s)
+    request = convert.calibrate_msg(s.base_flange, s.camera_target, s.setup, corners=cs)
+    return lambda ch: hpb_grpc.HandEyeStub(ch).Calibrate(request, timeout=600)
+
+
+def _path(n, seed=0):
+    t = np.linspace(0.0, n / 100.0, n)
+    rng = np.random.default_rng(seed)
+    xi = np.column_stack([np.outer(0.1 * np.sin(t), np.ones(3)), np.outer(0.2 * np.cos(t), np.ones(3))])
+    return t, lie.se3_exp(xi + 1e-4 * rng.normal(size=(n, 6)))
+
+
+LIMITS = trajectory.Limits(max_linear_velocity=0.5, max_angular_velocity=1.0,
+                           max_linear_acceleration=2.0, max_angular_acceleration=4.0)
+
+
+def _plan():
+    """max_poses waypoints at the rate that makes the most samples a plan may stream."""
+    _, poses = _path(DEFAULT_MAX_POSES)
+    duration = trajectory.plan([trajectory.Waypoint(p) for p in poses], LIMITS).duration
+    rate = min(10_000.0, 0.99 * 10 * DEFAULT_MAX_POSES / duration)
+    request = convert.plan_msg(poses, LIMITS, rate)
+    return lambda ch: list(tpb_grpc.TrajectoriesStub(ch).Plan(request, timeout=600))
+
+
+def _smooth():
+    t, poses = _path(DEFAULT_MAX_POSES)
+    request = tpb.SmoothRequest(poses=convert.stamped_msgs(t, poses),
+                                limits=convert.limits_msg(LIMITS), smoothing=1.0, rate_hz=100.0)
+    return lambda ch: tpb_grpc.TrajectoriesStub(ch).Smooth(request, timeout=600)
+
+
+def _blend_batch():
+    """As many 10-pose requests as one message of max_message_bytes holds (~57,000 poses; the
+    batch's own limit, 100,000, is beyond it)."""
+    rng = np.random.default_rng(0)
+    n = min(BATCH_POSE_FACTOR * DEFAULT_MAX_POSES, DEFAULT_MAX_MESSAGE_BYTES // 73) // 10
+    q = rng.normal(size=(n * 10, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    buf, _ = convert.blend_batch_items_wire(q, rng.normal(size=(n * 10, 3)), np.full(n, 10),
+                                            np.empty(0), np.zeros(n, np.int64))
+    data = buf.tobytes()
+    call = None
+
+    def run(ch):
+        nonlocal call
+        call = call or ch.unary_unary("/dqpose.v1.Blending/BlendBatch")
+        return call(data, timeout=600)
+    return run
+
+
+def _blend_dib():
+    """max_poses random poses, DIB to 1e-300 (never reached) for the most iterations allowed."""
+    rng = np.random.default_rng(0)
+    q = rng.normal(size=(DEFAULT_MAX_POSES, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    request = bpb.BlendRequest(poses=convert.pose_msgs(q, rng.normal(size=(DEFAULT_MAX_POSES, 3))),
+                               tolerance=1e-300, max_iterations=1000)
+    return lambda ch: bpb_grpc.BlendingStub(ch).Blend(request, timeout=600)
+
+
+def _interpolate():
+    t, poses = _path(DEFAULT_MAX_POSES)
+    request = bpb.InterpolateRequest(keyframes=convert.stamped_msgs(t, poses),
+                                     times=np.linspace(0, t[-1], DEFAULT_MAX_POSES).tolist())
+    return lambda ch: bpb_grpc.BlendingStub(ch).Interpolate(request, timeout=600)
+
+
+def cases() -> dict:
+    """name -> (description, call maker); made lazily, the requests are large."""
+    return {
+        "probe: robust Fuse, 3,000": lambda: _fuse(_fuse_request(3000, 1000, robust=True)),
+        "probe: robust Fuse, 10,000": lambda: _fuse(_fuse_request(10_000, robust=True)),
+        "probe: Calibrate, 1,000 pairs": lambda: _calibrate(1000),
+        "probe: Calibrate, 10,000 pairs": lambda: _calibrate(10_000),
+        "probe: StreamFuse time=1e300": lambda: _stream([
+            fpb.FuseStreamRequest(output_rate=10.0, measurements=[_measurement(0.0)]),
+            fpb.FuseStreamRequest(measurements=[_measurement(1e300)])]),
+        "probe: StreamFuse output_rate=1e8": lambda: _stream([
+            fpb.FuseStreamRequest(output_rate=1e8, measurements=[_measurement(0.0)]),
+            fpb.FuseStreamRequest(measurements=[_measurement(0.01 * k) for k in range(1, 3)])]),
+        "probe: StreamFuse 50k window": lambda: _stream(_window_flood(False)),
+        "probe: StreamFuse 50k window, robust": lambda: _stream(_window_flood(True)),
+        f"Fuse robust, max_robust {L.max_robust}": lambda: _fuse(
+            _fuse_request(L.max_robust, L.max_robust // 3, robust=True)),
+        f"Fuse robust + acceleration_psd, max_correlated {L.max_correlated}": lambda: _fuse(
+            _fuse_request(L.max_correlated, L.max_correlated // 5, times=True, robust=True,
+                          acceleration_psd=np.eye(6) * 1e-3)),
+        f"Fuse in time, max_poses {DEFAULT_MAX_POSES}": lambda: _fuse(
+            _fuse_request(DEFAULT_MAX_POSES, times=True)),
+        "StreamFuse ticks, max_fused_per_request": lambda: _stream(_tick_flood()),
+        f"Calibrate, max_pairs {L.max_pairs} with corners": lambda: _calibrate(
+            L.max_pairs, corners=True),
+        f"Calibrate, max_corners {L.max_corners}": lambda: _calibrate(
+            L.max_corners // 99, squares=(12, 10)),
+        f"Plan, {DEFAULT_MAX_POSES} waypoints, {10 * DEFAULT_MAX_POSES} samples": _plan,
+        f"Smooth, {DEFAULT_MAX_POSES} poses": _smooth,
+        "BlendBatch, one full message of 10-pose requests": _blend_batch,
+        f"Blend DIB, {DEFAULT_MAX_POSES} poses x 1000 iterations": _blend_dib,
+        f"Interpolate, {DEFAULT_MAX_POSES} keyframes and times": _interpolate,
+    }
+
+
+# ---- the measurement
+
+class Sampler(threading.Thread):
+    """Calls ``fn`` every ``period`` s until stopped; keeps what it returns."""
+
+    def __init__(self, fn, period: float):
+        super().__init__(daemon=True)
+        self.fn, self.period, self.values = fn, period, []
+        self.stop = threading.Event()
+
+    def run(self):
+        while not self.stop.is_set():
+            t0 = time.perf_counter()
+            self.values.append(self.fn())
+            self.stop.wait(max(0.0, self.period - (time.perf_counter() - t0)))
+
+
+def timed(fn):
+    def run():
+        t0 = time.perf_counter()
+        try:
+            fn()
+        except grpc.RpcError:
+            return float("inf")
+        return time.perf_counter() - t0
+    return run
+
+
+def row(server, name: str, make, seconds: float) -> dict:
+    call = make()
+    ch = grpc.insecure_channel(server.target, options=BIG)
+    by = grpc.insecure_channel(server.target)
+    blend = bpb_grpc.BlendingStub(by).Blend
+    req = request10()
+    health = health_pb2_grpc.HealthStub(by).Check
+
+    def check():
+        health(health_pb2.HealthCheckRequest(), timeout=5.0)
+
+    def bystander():
+        blend(req, timeout=5.0)
+
+    time.sleep(1.0)
+    before = server.rss_mb()
+    samplers = [Sampler(timed(bystander), 0.005), Sampler(timed(check), 0.1),
+                Sampler(server.rss_mb, 0.01)]
+    for s in samplers:
+        s.start()
+    durations, codes = [], []
+
+    def heavy():
+        end = time.perf_counter() + seconds
+        k = 0
+        while k < 2 or time.perf_counter() < end:
+            t0 = time.perf_counter()
+            try:
+                call(ch)
+                codes.append("OK")
+            except grpc.RpcError as e:
+                codes.append(e.code().name)
+            durations.append(time.perf_counter() - t0)
+            k += 1
+
+    workers = [threading.Thread(target=heavy) for _ in range(2)]
+    for w in workers:
+        w.start()
+    for w in workers:
+        w.join()
+    for s in samplers:
+        s.stop.set()
+        s.join()
+    time.sleep(2.0)
+    after = server.rss_mb()
+    ch.close()
+    by.close()
+    lat = np.array(samplers[0].values) * 1e3
+    return dict(name=name, code="/".join(sorted(set(codes))), calls=len(durations),
+                call_s=float(np.median(durations)), p50=float(np.percentile(lat, 50)),
+                p99=float(np.percentile(lat, 99)), max=float(lat.max()),
+                health=float(max(samplers[1].values)) * 1e3, before=before,
+                peak=max(samplers[2].values), after=after)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seconds", type=float, default=2.0, help="heavy calls per row, at least")
+    ap.add_argument("--only", default="", help="rows whose name contains this")
+    args = ap.parse_args(argv)
+    server = ServerProcess("aio", quiet_log=True)
+    rows = []
+    try:
+        baseline = server.rss_mb()
+        for name, make in cases().items():
+            if args.only.lower() in name.lower():
+                rows.append(row(server, name, make, args.seconds))
+                r = rows[-1]
+                print(f"  {name}: {r['code']} x{r['calls']}, p99 {r['p99']:.1f} ms, health "
+                      f"{r['health']:.0f} ms, RSS {r['before']:.0f}/{r['peak']:.0f}/"
+                      f"{r['after']:.0f} MB", file=sys.stderr, flush=True)
+    finally:
+        server.stop()
+    print(f"\nServer RSS at start {baseline:.0f} MB; workers {L.workers}; limits "
+          f"{service_limits()}\n")
+    print("| request | status x calls | call s (median) | bystander Blend p50 / p99 / max ms "
+          "| health max ms | RSS before / peak / after MB |")
+    print("|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['name']} | {r['code']} x{r['calls']} | {r['call_s']:.3f} | "
+              f"{r['p50']:.1f} / {r['p99']:.1f} / {r['max']:.1f} | {r['health']:.0f} | "
+              f"{r['before']:.0f} / {r['peak']:.0f} / {r['after']:.0f} |")
+    return 0
+
+
+def service_limits() -> str:
+    return ", ".join(f"{k} {v:g}" for k, v in vars(L).items() if k != "workers")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
