@@ -77,14 +77,15 @@ def refused(rpc: str, e: Exception) -> tuple[grpc.StatusCode, str]:
     return status, readable(str(e))
 
 
-# a number of more than 7 significant digits standing alone (not part of a name, not an index:
-# a whole number in brackets; a fraction may be in them, as an interval's bound)
-_LONG_NUMBER = re.compile(r"(?<![\w.\[])-?\d{8,}(?:\.\d*)?(?:e[+-]?\d+)?(?![\w.\]])"
-                          r"|(?<![\w.])-?\d*\.\d{7,}(?:e[+-]?\d+)?(?![\w.])")
+# a number of more than 9 significant digits standing alone (not part of a name, not an index:
+# a whole number in brackets; a fraction may be in them, as an interval's bound). Nine digits
+# are the domain's own deliberate precision (a norm of 0.989949494 says how far from 1 it is).
+_LONG_NUMBER = re.compile(r"(?<![\w.\[])-?\d{10,}(?:\.\d*)?(?:e[+-]?\d+)?(?![\w.\]])"
+                          r"|(?<![\w.])-?\d*\.\d{10,}(?:e[+-]?\d+)?(?![\w.])")
 
 
 def readable(text: str) -> str:
-    """``text`` with every number of more than 7 significant digits written ``%.6g``: what the
+    """``text`` with every number of more than 9 significant digits written ``%.6g``: what the
     domain's texts hold as ``repr`` (``0.041694716291423795``, a 300-digit count) reads as
     ``0.0416947`` and ``5e+299``; a whole count of up to 15 digits is kept (``999999990 ticks``
     reads better exact). Every refusal's text goes through here, so none can leak one."""

@@ -18,13 +18,19 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 EXIT_TIMEOUT = 120.0
 
 
+def _as_a_terminal_starts():
+    # a shell's background job (nohup, &) starts with SIGINT ignored, and a child inherits that:
+    # the command would never see the Ctrl-C the test sends
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 class Command:
     """``python -m service.cli ARGV`` in a new session; output collected as it comes."""
 
     def __init__(self, *argv: str):
         self.proc = subprocess.Popen([sys.executable, "-m", "service.cli", *argv], cwd=ROOT,
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                     start_new_session=True)
+                                     start_new_session=True, preexec_fn=_as_a_terminal_starts)
         self.out: list[str] = []
         self.err: list[str] = []
         self._readers = [threading.Thread(target=self._read, args=(f, into), daemon=True)

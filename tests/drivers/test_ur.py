@@ -228,10 +228,17 @@ def test_lost_controller_is_detected(doomed_sim):
             arm.tool_pose()
         assert wait_until(lambda: arm.status().connected)      # the stream resumed
         arm.recover()
-        # a controller that dies in the middle of a move (ur_rtde's own blocking moveL would
-        # wait for it for minutes)
+    finally:
+        arm.close()
+    # a controller that dies in the middle of a move (ur_rtde's own blocking moveL would wait
+    # for it for minutes), on a new connection: after the pause above ur_rtde's control
+    # interface may still be reconnecting by itself ("Reconnecting..."), which failed the move
+    # before the kill
+    arm = URArm(sim.host, stale_after=0.3)
+    try:
         killed = []
-        timer = threading.Timer(0.2, lambda: (sim.kill(), killed.append(time.monotonic())))
+        # the time noted before the kill: the move may fail before sim.kill() has returned
+        timer = threading.Timer(0.2, lambda: (killed.append(time.monotonic()), sim.kill()))
         target = HOME.copy()
         target[0] += 0.1
         timer.start()
