@@ -12,6 +12,7 @@ import asyncio
 import ctypes
 import ctypes.util
 import functools
+import gc
 import json
 import logging
 import re
@@ -73,8 +74,24 @@ def refused(rpc: str, e: Exception) -> tuple[grpc.StatusCode, str]:
     status = refusal(e)
     if status is None:
         log.exception("%s failed", rpc)
+        _forget_frames(e)
         return grpc.StatusCode.INTERNAL, INTERNAL_DETAILS
+    _forget_frames(e)
     return status, readable(str(e))
+
+
+def _forget_frames(e: BaseException) -> None:
+    """Drops the tracebacks of ``e`` and of the exceptions it chains: their frames hold the
+    request (its bytes, its messages, its arrays), and an exception caught in a coroutine is
+    freed only by the cyclic collector, which a few calls do not wake. 60 refused 3.6 MB Fuse
+    requests left the server 140 MB larger until a collection ran."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        e.__traceback__ = None
+        if e.__cause__ is not None:
+            _forget_frames(e.__cause__)
+        e = e.__context__
 
 
 # a number of more than 9 significant digits standing alone (not part of a name, not an index:
@@ -263,6 +280,11 @@ def _trim_if_idle() -> None:
     when there is nothing to give back."""
     with _lock:
         if not _active:
+            # a refused call's gRPC state (its received message with it) is in a reference
+            # cycle with the AbortError that ended it, freed by a collection only (60 refused
+            # 3.6 MB Fuse requests: 144 -> 67 MB); ~2 ms once dqpose serve has frozen the
+            # server's own objects (gc.freeze), ~30 ms of the interpreter lock without
+            gc.collect()
             _MALLOC_TRIM(0)
 
 

@@ -1,7 +1,8 @@
 """A bystander beside the heaviest requests: each of the reliability probe's heavy requests, and
 each request at the largest size the server's limits allow (``service/limits.py``), sent to one
 ``dqpose serve`` process (its own process, default flags) while a bystander client sends a
-10-pose ``Blend`` every 5 ms and a health check goes out every 100 ms; one table.
+10-pose ``Blend`` every 5 ms and a health check goes out every 100 ms (both from a process of
+their own, as another client's would be); one table.
 
     .venv/bin/python -m tests.bench.bench_bystander                 # ~2 min
     .venv/bin/python -m tests.bench.bench_bystander --seconds 5     # longer rows
@@ -16,6 +17,7 @@ memory before the row, at its peak (sampled every 10 ms) and 2 s after the row. 
 from __future__ import annotations
 
 import argparse
+import multiprocessing as mp
 import sys
 import threading
 import time
@@ -224,10 +226,12 @@ def timed(fn):
     return run
 
 
-def row(server, name: str, make, seconds: float) -> dict:
-    call = make()
-    ch = grpc.insecure_channel(server.target, options=BIG)
-    by = grpc.insecure_channel(server.target)
+def _bystander(target: str, stop, out) -> None:
+    """The bystander and the health checks, in a process of their own (as another client of the
+    server would be): the heavy calls' answers, parsed in the bench's process, must not hold
+    the bystander's interpreter lock and show up as server latency. Sends both lists of
+    latencies (s) on ``out`` once ``stop`` is set."""
+    by = grpc.insecure_channel(target)
     blend = bpb_grpc.BlendingStub(by).Blend
     req = request10()
     health = health_pb2_grpc.HealthStub(by).Check
@@ -238,12 +242,30 @@ def row(server, name: str, make, seconds: float) -> dict:
     def bystander():
         blend(req, timeout=5.0)
 
-    time.sleep(1.0)
-    before = server.rss_mb()
-    samplers = [Sampler(timed(bystander), 0.005), Sampler(timed(check), 0.1),
-                Sampler(server.rss_mb, 0.01)]
+    samplers = [Sampler(timed(bystander), 0.005), Sampler(timed(check), 0.1)]
     for s in samplers:
         s.start()
+    out.send("started")
+    stop.wait()
+    for s in samplers:
+        s.stop.set()
+        s.join()
+    out.send([s.values for s in samplers])
+    by.close()
+
+
+def row(server, name: str, make, seconds: float) -> dict:
+    call = make()
+    ch = grpc.insecure_channel(server.target, options=BIG)
+    ctx = mp.get_context("spawn")
+    stop, (got, out) = ctx.Event(), ctx.Pipe(duplex=False)
+    others = ctx.Process(target=_bystander, args=(server.target, stop, out), daemon=True)
+    others.start()
+    assert got.recv() == "started"
+    time.sleep(1.0)
+    before = server.rss_mb()
+    rss = Sampler(server.rss_mb, 0.01)
+    rss.start()
     durations, codes = [], []
 
     def heavy():
@@ -264,19 +286,20 @@ def row(server, name: str, make, seconds: float) -> dict:
         w.start()
     for w in workers:
         w.join()
-    for s in samplers:
-        s.stop.set()
-        s.join()
+    stop.set()
+    blends, checks = got.recv()
+    others.join()
+    rss.stop.set()
+    rss.join()
     time.sleep(2.0)
     after = server.rss_mb()
     ch.close()
-    by.close()
-    lat = np.array(samplers[0].values) * 1e3
+    lat = np.array(blends) * 1e3
     return dict(name=name, code="/".join(sorted(set(codes))), calls=len(durations),
                 call_s=float(np.median(durations)), p50=float(np.percentile(lat, 50)),
                 p99=float(np.percentile(lat, 99)), max=float(lat.max()),
-                health=float(max(samplers[1].values)) * 1e3, before=before,
-                peak=max(samplers[2].values), after=after)
+                health=float(max(checks)) * 1e3, before=before,
+                peak=max(rss.values), after=after)
 
 
 def main(argv=None) -> int:

@@ -17,6 +17,7 @@ from service.rpc.server import ServerConfig
 from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 from service.rpc._proto.dqpose.v1 import fusion_pb2_grpc as pb_grpc
 
+from _polling import wait_until
 from _served import code_of, pose, served
 
 
@@ -138,6 +139,21 @@ def test_a_fit_over_its_limit_is_refused_before_it_starts(server, option, name, 
     assert code == grpc.StatusCode.RESOURCE_EXHAUSTED, (code, details)
     assert details.startswith(f"measurements: {n} measurements in one "), details
     assert name in details and flag in details, details
+
+
+def test_refused_large_requests_leave_no_memory_behind(server):
+    # the probe's n = 10,000 robust Fuse (3.6 MB), refused: each refusal's gRPC state and the
+    # message in it sat in a reference cycle until a collection ran (60 of them: +140 MB)
+    stub = pb_grpc.FusionStub(server.channel)
+    request = fuse_request(10_000, robust=True)
+    refuse = lambda: code_of(lambda: stub.Fuse(request, timeout=60))     # noqa: E731
+    assert refuse()[0] == grpc.StatusCode.RESOURCE_EXHAUSTED
+    baseline = server.rss_mb()
+    for _ in range(40):
+        refuse()
+    # the heap is given back once the worker pool has been idle 0.5 s: polled, not timed
+    assert wait_until(lambda: server.rss_mb() < baseline + 60, timeout=30), (
+        baseline, server.rss_mb())
 
 
 # ---- D5: no poisoned body; R4: bounded windows
