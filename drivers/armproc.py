@@ -22,6 +22,12 @@ arm is closed. A parent that stalls without dying leaves the ring dry: the same 
 is one writer (the parent), one reader (the child); a slot is written before the count that
 publishes it, which x86-64's store order keeps in order. Other processors (aarch64) may make the
 count visible before the slot, so there the arm process is refused and the loop runs in a thread.
+
+A child that dies unasked (a crash in the backend's library: ur_rtde's own reconnect can take the
+process that writes servoL down) is replaced rather than leaving the arm dead until a restart:
+the run it had ends ``ERROR`` saying how the process ended (``killed by SIGSEGV``; the
+controller is left with the last set-point it got), its ring is unlinked and its pipes closed,
+and the arm's next use opens the arm again in a new child (:class:`ArmProcess`).
 """
 from __future__ import annotations
 

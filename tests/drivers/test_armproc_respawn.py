@@ -182,3 +182,29 @@ def test_dead_arm_processes_leave_no_shared_memory_pipes_or_threads():
     counts = eval(run.stdout)
     assert len(counts) == 4 and len(set(counts)) == 1, counts     # as many after four as one
     assert "leaked shared_memory" not in run.stderr, run.stderr
+
+
+def test_an_arm_that_comes_back_with_another_period_is_refused():
+    # the controller at the address is now a CB3 (125 Hz, not the e-series' 500): plans made for
+    # this arm's period, limits and name would not be its own
+    pytest.importorskip("rtde_control")
+    import drivers
+    from drivers.sim import ursim
+    from test_arm_limits import LIMITS
+    sim = ursim.URSimProcess()
+    arm = drivers.open_arm(f"ur:{sim.host}", process=True, limits=LIMITS, reopen_every=0)
+    try:
+        assert arm.period == 0.002
+        killed = _kill(arm)
+        sim.close()
+        sim = ursim.URSimProcess(sim.host, args=("--version", "3.15.7.106331"))
+        with pytest.raises(ArmError) as e:
+            arm.tool_pose()
+        assert str(e.value) == (f"arm: the process of {arm.spec!r} ended (killed by SIGKILL); "
+                                f"opening it again failed: it opened with period 0.008 (was "
+                                f"0.002); an arm in use keeps these")
+        assert arm.period == 0.002 and arm.process is killed
+        assert "opening it again failed: it opened with period 0.008" in arm.state().error
+    finally:
+        arm.close()
+        sim.close()
