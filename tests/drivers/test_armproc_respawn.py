@@ -148,7 +148,7 @@ from multiprocessing.connection import wait
 import drivers
 from drivers.executor import Executor, Result
 from test_arm_limits import LIMITS
-from test_arm_safety import _runs_again, _standing
+from test_arm_safety import _standing
 arm = drivers.open_arm("ur:" + sys.argv[1], process=True, limits=LIMITS, watchdog=0.2,
                        stale_after=0.5, reopen_every=0)
 def kill():
@@ -166,7 +166,10 @@ for during in (True, False, True, False):
     kill()
     if ex is not None:
         assert ex.wait(10) == Result.ERROR, ex.message
-    _runs_again(arm)
+    ex = Executor(arm)                  # a plan that holds the arm still: what load cannot fail
+    ex.push(*_standing(arm, 0.2))
+    ex.finish()
+    assert (ex.wait(10), ex.message) == (Result.FINISHED, ""), (ex.result, ex.message)
     counts.append((len(os.listdir("/proc/self/fd")), threading.active_count()))
 arm.close()
 print(counts, flush=True)

@@ -12,7 +12,7 @@ from multiprocessing.connection import wait
 
 import pytest
 
-from _arms import LIMITS, RIGS, SLOW, distance, offset, serve
+from _arms import RIGS, SLOW, distance, offset, serve
 from service.rpc.client import Client, RpcError
 
 
@@ -75,11 +75,12 @@ def test_an_execute_whose_arm_process_dies_ends_unavailable_and_the_arm_serves_o
     assert got[-1].state == "ERROR" and err.details == f"ERROR: {got[-1].message}"
     assert got[-1].message.startswith("the arm's process ended (killed by SIGKILL) before the "
                                       "run did"), got[-1].message
-    # the next GetArm opens the arm again and reports it, then an Execute runs to its end
+    # the next GetArm opens the arm again and reports it, then an Execute runs to its end (slow
+    # plans here: a simulator starved on a loaded machine trails them by less than max_tracking)
     state = c.get_arm(r.name)
     _reports(state, r)
     assert state.state == "ERROR" and not state.busy and r.arm.pid != pid
-    got, err = _run(c.execute(r.name, [offset(state.pose, dz=0.01)], LIMITS, from_current=True))
+    got, err = _run(c.execute(r.name, [offset(state.pose, dz=0.005)], SLOW, from_current=True))
     assert err is None and got[-1].state == "FINISHED", got[-1:]
 
 
@@ -87,7 +88,7 @@ def test_an_arm_whose_process_died_at_rest_takes_the_next_execute(rig):
     r, c = rig
     pid = _kill(r.arm)
     # the next Execute opens the arm again and runs to its end; GetArm reports the arm
-    got, err = _run(c.execute(r.name, [r.home, offset(r.home, dz=0.01)], LIMITS))
+    got, err = _run(c.execute(r.name, [r.home, offset(r.home, dz=0.005)], SLOW))
     assert err is None and got[-1].state == "FINISHED", (got[-1:], err)
     assert r.arm.pid != pid
     state = c.get_arm(r.name)
