@@ -409,8 +409,6 @@ class _Run:
         with self._lock:
             if trajectory is not None:
                 self._make_ring(0)
-            self._beat = time.monotonic()
-            self.ring.head[_BEAT] = int(self._beat * 1e9)
         try:
             self.proc._request("run", self.id, ex.settings, self.ring.name, self.ring.capacity,
                                trajectory, ex.busy_timeout, run=(self, ex))
@@ -612,9 +610,12 @@ class _Child:
         return self._how
 
     def adopt(self, run: _Run, ex) -> None:
+        """A run about to be handed over; it starts with a fresh heartbeat (the owner may beat
+        from the thread that hands it over, which opening the arm again may have held)."""
         with self.lock:
             self.runs[run.id] = [run, ex, False]
         run.child = self
+        run.beat(time.monotonic())
 
     def take(self, rid: int) -> Optional[list]:
         with self.lock:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import signal
+import time
 from multiprocessing.connection import wait
 
 import pytest
@@ -14,7 +15,7 @@ import pytest
 from drivers.base import ArmError
 from drivers.executor import Executor, Result
 from _polling import wait_until
-from test_arm_safety import _runs_again
+from test_arm_safety import _runs_again, _trajectory
 from test_executor import PiperExec, URExec, _plan, run_parent
 
 
@@ -87,6 +88,19 @@ def test_an_arm_process_killed_at_rest_is_reopened_by_its_next_use(rig, arm, use
         assert pose.shape == (8,)
     assert arm.pid != old.pid
     _runs_again(arm)
+
+
+def test_a_run_that_opens_the_arm_again_starts_with_a_fresh_heartbeat(rig, arm):
+    # The owner beats from the thread that hands the plan over, as a script does: the time the
+    # hand-over spends opening the arm again (most of a second for a UR) is no missed beat.
+    plan = _trajectory(arm, length=0.01)
+    _kill(arm)
+    ex = Executor(arm, heartbeat=0.1)
+    ex.push_plan(plan)                  # opens the arm again
+    while not ex.done:
+        ex.beat()
+        time.sleep(0.01)
+    assert (ex.result, ex.message) == (Result.FINISHED, "")
 
 
 def _controller_away(rig, away: bool) -> None:
