@@ -5,6 +5,8 @@ clients and our simulators (URArm through ur_rtde, PiperArm through python-can),
 process of its own (the rigs of test_executor.py)."""
 from __future__ import annotations
 
+import json
+import logging
 import os
 import signal
 import time
@@ -76,7 +78,8 @@ def test_a_run_whose_arm_process_dies_ends_error_once_and_the_arm_is_reopened(ri
 
 
 @pytest.mark.parametrize("use", ["run", "state", "call"])
-def test_an_arm_process_killed_at_rest_is_reopened_by_its_next_use(rig, arm, use):
+def test_an_arm_process_killed_at_rest_is_reopened_by_its_next_use(rig, arm, use, caplog):
+    caplog.set_level(logging.WARNING, logger="dqpose.drivers")
     old = _kill(arm)
     if use == "run":
         _runs_again(arm)
@@ -88,6 +91,10 @@ def test_an_arm_process_killed_at_rest_is_reopened_by_its_next_use(rig, arm, use
         assert pose.shape == (8,)
     assert arm.pid != old.pid
     _runs_again(arm)
+    # one line in the log for the one reopen
+    logged = [json.loads(r.getMessage()) for r in caplog.records if r.name == "dqpose.drivers"]
+    assert logged == [{"event": "arm_reopened", "arm": arm.spec, "ended": "killed by SIGKILL",
+                       "pid": arm.pid}]
 
 
 def test_a_run_that_opens_the_arm_again_starts_with_a_fresh_heartbeat(rig, arm):
