@@ -22,13 +22,23 @@ arm is closed. A parent that stalls without dying leaves the ring dry: the same 
 is one writer (the parent), one reader (the child); a slot is written before the count that
 publishes it, which x86-64's store order keeps in order. Other processors (aarch64) may make the
 count visible before the slot, so there the arm process is refused and the loop runs in a thread.
+
+A child that dies unasked (a crash in the backend's library: ur_rtde's own reconnect can take the
+process that writes servoL down) is replaced rather than leaving the arm dead until a restart:
+the run it had ends ``ERROR`` saying how the process ended (``killed by SIGSEGV``; the
+controller is left with the last set-point it got), its ring is unlinked and its pipes closed,
+and the arm's next use opens the arm again in a new child (:class:`ArmProcess`).
 """
 from __future__ import annotations
 
 import atexit
 import itertools
+import json
+import logging
+import math
 import mmap
 import multiprocessing as mp
+import numbers
 import os
 import pickle
 import platform
@@ -39,6 +49,7 @@ import threading
 import time
 import weakref
 from multiprocessing import shared_memory
+from multiprocessing.connection import wait
 from typing import Optional
 
 import numpy as np
@@ -47,6 +58,8 @@ from drivers.base import Arm, ArmError, ArmState
 from drivers.control import Buffer, Control, Feedback, PlanSlots, Result, check_start, claim
 
 __all__ = ["ArmProcess"]
+
+log = logging.getLogger("dqpose.drivers")
 
 # ring header, one int64 each: slots written and read (of a plan: its slots and those taken),
 # input finished, cancel, set-points sent, real-time, the last heartbeat (CLOCK_MONOTONIC ns),
@@ -343,6 +356,8 @@ class _Run:
         # and the arm process strongly while the run goes
         self.proc, self._ex, self.id = proc, weakref.ref(ex), run_id
         self.ring: Optional[_Ring] = None
+        self.child: Optional[_Child] = None     # the process it was handed to
+        self.last: Optional[Feedback] = None    # its last record from there
         self._lock = threading.Lock()
         self._final = None          # (sent, realtime, 0) once the ring is released
         self._beat = time.monotonic()
@@ -394,14 +409,10 @@ class _Run:
         with self._lock:
             if trajectory is not None:
                 self._make_ring(0)
-            self._beat = time.monotonic()
-            self.ring.head[_BEAT] = int(self._beat * 1e9)
-        self.proc._runs[self.id] = (self, ex)
         try:
             self.proc._request("run", self.id, ex.settings, self.ring.name, self.ring.capacity,
-                               trajectory, ex.busy_timeout)
+                               trajectory, ex.busy_timeout, run=(self, ex))
         except BaseException:
-            self.proc._runs.pop(self.id, None)
             self.release()
             raise
 
@@ -424,12 +435,13 @@ class _Run:
             if self._final is not None:
                 return
             set_flag()
-            if self.ring is None:
-                return
+            child = self.child
+            if self.ring is None or child is None:
+                return      # (the process reads the flags when it starts the run)
         try:
-            self.proc._wake.send_bytes(_ID.pack(self.id))
+            child.wake.send_bytes(_ID.pack(self.id))
         except OSError:
-            pass    # the child is gone; the reader reports it
+            pass    # the process is gone; its reader ends the run
 
     def halt(self, reason: str) -> None:
         def flag():
@@ -466,8 +478,9 @@ class _Run:
         return self._count(2)
 
     def release(self) -> None:
-        """The run has ended: keep the counters, free the ring."""
+        """The run has ended: keep the counters, free the ring (and let go of the process)."""
         with self._lock:
+            self.child = None
             if self._final is not None or self.ring is None:
                 self._final = self._final or (0, 0, 0)
                 return
@@ -486,65 +499,325 @@ def _close_at_exit(ref) -> None:
         proc.close()
 
 
-class ArmProcess(Arm):
-    """``drivers.open_arm(spec, **kwargs)`` run in a child process; this object is the
-    :class:`~drivers.base.Arm` in the parent. ``period``, ``limits``, ``name``, ``pose_sigma`` and
-    ``options`` (with an attribute per key) are the child arm's; other attributes are read from it, methods called in it. An
-    :class:`~drivers.executor.Executor` on this arm runs its control loop in the child.
-    ``ring_seconds``: the shared ring's size in seconds of set-points (a push beyond it waits for
-    the arm; a first push longer than it sizes the ring). ``pid``: the child's."""
+def _how(exitcode: Optional[int]) -> str:
+    """How a process ended, from its exit code (negative: the signal that killed it)."""
+    if exitcode is None:
+        return "exit code unknown"
+    if exitcode < 0:
+        try:
+            return f"killed by {signal.Signals(-exitcode).name}"
+        except ValueError:
+            return f"killed by signal {-exitcode}"
+    return f"exit code {exitcode}"
 
-    def __init__(self, spec: str, *, ring_seconds: float = 120.0, start_timeout: float = 60.0,
-                 **kwargs):
-        check_store_order()
-        ctx = mp.get_context("spawn")   # a fork would copy this process's threads' state
-        self._conn, child_conn = ctx.Pipe()
-        wake_r, self._wake = ctx.Pipe(duplex=False)
-        self._fb, fb_w = ctx.Pipe(duplex=False)
+
+def _end(run: _Run, ex, how: str) -> None:
+    """A run whose process ended under it: ``ERROR``, where its last record had it."""
+    run.release()
+    last = run.last
+    ex._ended(Feedback(0.0 if last is None else last.time, time.time(),
+                       None if last is None else last.commanded,
+                       None if last is None else last.actual, Result.ERROR,
+                       f"the arm's process ended ({how}) before the run did; it is opened again "
+                       f"on the arm's next use"))
+
+
+#: what an arm's process reports once it has opened the arm: the same again when it is reopened
+_FIXED = ("period", "limits", "name", "pose_sigma", "options")
+
+
+def _same(a, b) -> bool:
+    try:
+        return bool(a == b)
+    except ValueError:      # arrays inside (a Limits' box given as arrays): compared as data
+        return pickle.dumps(a) == pickle.dumps(b)
+
+
+class _Child:
+    """One process of an :class:`ArmProcess`'s arm: the process, its pipes, the thread that reads
+    its feedback, and the runs handed to it (run id -> [run, executor, accepted]). A run is
+    accepted once the process has answered its start; until then the request that hands it
+    over ends it if the process ends, from then on this reader does (with the process's final
+    record, or ``ERROR`` when the process ends first)."""
+
+    def __init__(self, ctx, spec: str, kwargs: dict, start_timeout: float):
         self.spec = spec
+        self.conn, child_conn = ctx.Pipe()
+        wake_r, self.wake = ctx.Pipe(duplex=False)
+        self.fb, fb_w = ctx.Pipe(duplex=False)
         self.process = ctx.Process(target=_child, name=f"arm {spec}", daemon=False,
                                    args=(spec, kwargs, child_conn, wake_r, fb_w, os.getpid()))
         self.process.start()
         for c in (child_conn, wake_r, fb_w):
             c.close()
         self.pid = self.process.pid
-        self._lock = threading.Lock()
-        self._closed = False
-        self._runs: dict[int, _Run] = {}
-        self._ids = itertools.count(1)
-        if not self._conn.poll(start_timeout):
-            self.process.kill()
-            raise ArmError(f"arm: {spec!r} did not open within {start_timeout:g} s in its process")
+        self.lock = threading.Lock()        # runs, dead
+        self.runs: dict[int, list] = {}
+        self.dead = False       # its feedback pipe closed: the process ended, and its runs
+        self.lost = False       # a request found it gone (perhaps before the reader did)
+        self._how: Optional[str] = None
+        self._retired = False
         try:
-            status, info = self._conn.recv()
-        except EOFError:
+            self.info = self._opened(start_timeout)
+        except BaseException:
+            for c in (self.conn, self.wake, self.fb):
+                c.close()
+            raise
+        self._reader = threading.Thread(target=self._read, name=f"arm {spec} feedback",
+                                        daemon=True)
+        self._reader.start()
+
+    def _opened(self, timeout: float) -> dict:
+        """What the process reports once it has opened the arm, else the error saying why not."""
+        if not self.conn.poll(timeout):
+            self.process.kill()
             self.process.join()
-            raise ArmError(f"arm: the process for {spec!r} ended while opening it (exit code "
-                           f"{self.process.exitcode})") from None
+            raise ArmError(f"arm: {self.spec!r} did not open within {timeout:g} s in its process")
+        try:
+            status, info = self.conn.recv()
+        except EOFError:
+            raise ArmError(f"arm: the process for {self.spec!r} ended while opening it "
+                           f"({self.how()})") from None
         if status == "error":
             self.process.join()
             raise info
+        return info
+
+    @property
+    def gone(self) -> bool:
+        """Whether the process has ended (found so, or its sentinel says so: a request written
+        to it now would be lost, yet might not fail while its pipes are being closed)."""
+        if not (self.dead or self.lost) and wait([self.process.sentinel], 0):
+            self.lost = True
+        return self.dead or self.lost
+
+    def how(self, timeout: float = 5.0) -> str:
+        """How the process ended, once it has (one that has not within ``timeout`` s of being
+        found gone answers no more: it is killed)."""
+        if self._how is None:
+            p = self.process
+            if not wait([p.sentinel], timeout):
+                p.kill()
+                wait([p.sentinel])
+            # another thread's waitpid (the reader's, multiprocessing's cleanup of finished
+            # children) may be the one that reaps it: the exit code is set a moment later
+            deadline = time.monotonic() + 1.0
+            while p.exitcode is None and time.monotonic() < deadline:
+                time.sleep(0.005)
+            if p.exitcode is None:
+                return _how(None)
+            self._how = _how(p.exitcode)
+        return self._how
+
+    def adopt(self, run: _Run, ex) -> None:
+        """A run about to be handed over; it starts with a fresh heartbeat (the owner may beat
+        from the thread that hands it over, which opening the arm again may have held)."""
+        with self.lock:
+            self.runs[run.id] = [run, ex, False]
+        run.child = self
+        run.beat(time.monotonic())
+
+    def take(self, rid: int) -> Optional[list]:
+        with self.lock:
+            return self.runs.pop(rid, None)
+
+    def answered(self, rid: int, ok: bool) -> Optional[list]:
+        """The process answered a run's start (``ok``, or refused it: no run, no records);
+        the run if it is the caller's to end (the process ended before the reader owned it)."""
+        with self.lock:
+            entry = self.runs.get(rid)
+            if entry is None:           # already ended: its final record came first
+                return None
+            if not ok or self.dead:
+                del self.runs[rid]
+                return entry if ok else None
+            entry[2] = True
+            return None
+
+    def _read(self) -> None:
+        """Feedback records to their runs' executors; once the process has ended, each run
+        it had accepted and not ended ends ``ERROR`` saying how the process ended."""
+        while True:
+            try:
+                data = self.fb.recv_bytes()
+            except (EOFError, OSError):
+                break
+            rid, t, stamp, cmd, act, res, msg = pickle.loads(data)
+            entry = self.runs.get(rid)
+            if entry is None:
+                continue
+            run, ex = entry[0], entry[1]
+            fb = Feedback(t, stamp, None if cmd is None else np.asarray(cmd),
+                          None if act is None else np.asarray(act), Result(res), msg)
+            if fb.result == Result.OK:
+                run.last = fb
+                ex._emit(fb)
+            elif self.take(rid) is not None:
+                run.release()
+                ex._ended(fb)
+        how = self.how()
+        with self.lock:
+            self.dead = True
+            ended = [e for e in self.runs.values() if e[2]]
+            for run, _, _ in ended:
+                del self.runs[run.id]
+        for run, ex, _ in ended:
+            _end(run, ex, how)
+        # the runs are released: no signal goes to this process's wake pipe any more
+        self.wake.close()
+        self.fb.close()
+
+    def retire(self, timeout: float = 5.0) -> None:
+        """Once the process has ended (killed if it has not within ``timeout`` s), its
+        request pipe closed (the reader closes the others after ending its runs)."""
+        if not self._retired:
+            self._retired = True
+            self.how(timeout)
+            self.conn.close()
+
+    def close(self) -> None:
+        """The arm closed in the process (a run still going brakes to a stop first), and the
+        process ended."""
+        if not self.gone:
+            try:
+                self.conn.send(("close",))
+                if self.conn.poll(10.0):
+                    self.conn.recv()
+            except (EOFError, OSError):
+                pass
+        self.retire(10.0)
+        self._reader.join(2.0)
+
+
+class ArmProcess(Arm):
+    """``drivers.open_arm(spec, **kwargs)`` run in a child process; this object is the
+    :class:`~drivers.base.Arm` in the parent. ``period``, ``limits``, ``name``, ``pose_sigma`` and
+    ``options`` (with an attribute per key) are the child arm's; other attributes are read from
+    it, methods called in it. An :class:`~drivers.executor.Executor` on this arm runs its control
+    loop in the child. ``ring_seconds``: the shared ring's size in seconds of set-points (a push
+    beyond it waits for the arm; a first push longer than it sizes the ring). ``process``,
+    ``pid``: the child's.
+
+    A child that ends unasked (a crash) is replaced: the run it had ends ``ERROR``, saying how
+    the process ended, and the arm's next use (a call, :meth:`state`, a run) opens the arm again
+    in a new child, with the same spec and keywords, at most once every ``reopen_every`` s (an
+    attribute; a use before then, or after a reopen that failed, raises ``ArmError`` saying so
+    and why). The new child must report the same ``period``, ``limits``, ``name``,
+    ``pose_sigma`` and ``options`` (else it is closed and the reopen fails). Each reopen is
+    logged on ``dqpose.drivers``."""
+
+    def __init__(self, spec: str, *, ring_seconds: float = 120.0, start_timeout: float = 60.0,
+                 reopen_every: float = 5.0, **kwargs):
+        check_store_order()
+        if isinstance(reopen_every, bool) or not (isinstance(reopen_every, numbers.Real)
+                                                  and math.isfinite(reopen_every)
+                                                  and reopen_every >= 0):
+            raise ValueError(f"reopen_every: must be a finite number of seconds >= 0, got "
+                             f"{reopen_every!r}")
+        self.spec, self._kwargs = spec, kwargs
+        self.start_timeout, self.reopen_every = float(start_timeout), float(reopen_every)
+        self._ctx = mp.get_context("spawn")     # a fork would copy this process's threads' state
+        self._lock = threading.Lock()           # one request at a time (a reopen within one)
+        self._closed = False
+        self._ids = itertools.count(1)
+        self._reopened: Optional[float] = None  # when the last reopen was tried (monotonic)
+        self._reopen_error: Optional[str] = None
+        self._child = _Child(self._ctx, spec, kwargs, self.start_timeout)
+        self._info = info = self._child.info
         self.period, self.limits = info["period"], info["limits"]
         self.name, self.pose_sigma = info["name"], info["pose_sigma"]
         self.options = info["options"]
         for key, value in self.options.items():
             setattr(self, key, value)
         self.ring_slots = max(1, int(round(ring_seconds / self.period)))
-        self._reader = threading.Thread(target=self._read_feedback, name=f"arm {spec} feedback",
-                                        daemon=True)
-        self._reader.start()
         atexit.register(_close_at_exit, weakref.ref(self))
 
-    def _request(self, op: str, *args):
+    @property
+    def process(self):
+        """The arm's process (a ``multiprocessing`` process; a new one after a reopen)."""
+        return self._child.process
+
+    @property
+    def pid(self) -> int:
+        return self._child.pid
+
+    def _live(self) -> _Child:
+        """The arm's process, opened again if it has ended (see the class); under ``_lock``."""
+        old = self._child
+        if not old.gone:
+            return old
+        old.retire()
+        ended = f"arm: the process of {self.spec!r} ended ({old.how()})"
+        if self._reopened is not None:
+            left = self._reopened + self.reopen_every - time.monotonic()
+            if left > 0:
+                failed = (f"; the last attempt failed: {self._reopen_error}"
+                          if self._reopen_error else "")
+                raise ArmError(f"{ended}; it is opened again at most once every "
+                               f"{self.reopen_every:g} s, next in {left:.3g} s{failed}")
+        new = error = None
+        try:
+            new = _Child(self._ctx, self.spec, self._kwargs, self.start_timeout)
+        except Exception as e:
+            error = str(e) or type(e).__name__
+        if new is not None:
+            changed = [f"{k} {new.info[k]!r} (was {self._info[k]!r})" for k in _FIXED
+                       if not _same(new.info[k], self._info[k])]
+            if changed:
+                new.close()
+                new, error = None, (f"it opened with {', '.join(changed)}; an arm in use keeps "
+                                    f"these")
+        self._reopened, self._reopen_error = time.monotonic(), error
+        if new is None:
+            log.warning(json.dumps({"event": "arm_reopen_failed", "arm": self.spec,
+                                    "ended": old.how(), "error": error}))
+            raise ArmError(f"{ended}; opening it again failed: {error}")
+        self._child = new
+        log.warning(json.dumps({"event": "arm_reopened", "arm": self.spec, "ended": old.how(),
+                                "pid": new.pid}))
+        return new
+
+    def _request(self, op: str, *args, run: Optional[tuple] = None):
+        """The arm process's answer to a request (its error raised here). A request the process
+        never got goes to a new one (:meth:`_live`); one it got and did not answer raises
+        ``ArmError``, except a run's start (``run``: the _Run and its executor), which from then
+        on ends with a final record, not an error."""
+        what = f"{args[0]}()" if op in ("call", "attr") else op
         with self._lock:
             if self._closed:
                 raise ArmError("arm: closed")
-            try:
-                self._conn.send((op, *args))
-                status, value = self._conn.recv()
-            except (EOFError, OSError):
-                raise ArmError(f"arm: the process of {self.spec!r} is gone (exit code "
-                               f"{self.process.exitcode})") from None
+            end = None
+            for _ in range(2):
+                child = self._live()
+                if run is not None:
+                    child.adopt(*run)
+                try:
+                    child.conn.send((op, *args))
+                except BaseException as e:
+                    if run is not None:
+                        child.take(run[0].id)
+                    if not isinstance(e, OSError):
+                        raise
+                    child.lost = True           # not delivered: to a new process
+                    continue
+                try:
+                    status, value = child.conn.recv()
+                except (EOFError, OSError):
+                    child.lost = True
+                    if run is None:
+                        raise ArmError(f"arm: the process of {self.spec!r} ended "
+                                       f"({child.how()}) during {what}; its next use opens it "
+                                       f"again") from None
+                    status, value, end = "ok", None, child.take(run[0].id)
+                    break
+                if run is not None:
+                    end = child.answered(run[0].id, status == "ok")
+                break
+            else:
+                raise ArmError(f"arm: the process of {self.spec!r} ended ({child.how()}) "
+                               f"before it took {what}")
+        if end is not None:
+            _end(end[0], end[1], child.how())
         if status == "error":
             raise value
         return value
@@ -560,31 +833,6 @@ class ArmProcess(Arm):
         if kind == "value":
             return value
         return lambda *a, **kw: self.call(name, *a, **kw)
-
-    def _read_feedback(self) -> None:
-        while True:
-            try:
-                data = self._fb.recv_bytes()
-            except (EOFError, OSError):
-                break
-            rid, t, stamp, cmd, act, res, msg = pickle.loads(data)
-            run, ex = self._runs.get(rid, (None, None))
-            if run is None:
-                continue
-            fb = Feedback(t, stamp, None if cmd is None else np.asarray(cmd),
-                          None if act is None else np.asarray(act), Result(res), msg)
-            if fb.result == Result.OK:
-                ex._emit(fb)
-                continue
-            self._runs.pop(rid, None)
-            run.release()
-            ex._ended(fb)
-        for rid in list(self._runs):     # the child died without a last word
-            run, ex = self._runs.pop(rid)
-            run.release()
-            ex._ended(Feedback(float("nan"), time.time(), None, None, Result.ERROR,
-                                   f"the arm's process ended (exit code "
-                                   f"{self.process.exitcode}) before the run did"))
 
     def start_run(self, ex) -> _Run:
         """What an :class:`~drivers.executor.Executor` calls: its run in the child."""
@@ -623,19 +871,8 @@ class ArmProcess(Arm):
 
     def close(self) -> None:
         """Close the arm in the child (a run still going brakes to a stop first) and end it."""
-        if self._closed:
-            return
-        try:
-            self._request("close")
-        except ArmError:
-            pass
         with self._lock:
+            if self._closed:
+                return
             self._closed = True
-        self.process.join(10.0)
-        if self.process.is_alive():
-            self.process.kill()
-            self.process.join()
-        for c in (self._conn, self._wake):
-            c.close()
-        self._reader.join(2.0)
-        self._fb.close()
+            self._child.close()

@@ -264,7 +264,8 @@ def test_a_busy_arm_is_refused_quickly_and_says_so(rig, arm):
 # ur_rtde 1.6.5 reconnects its control side by itself, in its own thread, when the controller
 # drops the connection; a servoL written at that moment can crash the process (SIGSEGV, seen here
 # about once in ten kills). In the arm's own process (serve's default) that ends the arm's process,
-# not the caller's: the arm's own rigs only, so a crash cannot take the test run down with it.
+# not the caller's (which opens it again on its next use: test_armproc_respawn.py): the arm's own
+# rigs only, so a crash cannot take the test run down with it.
 UR_RTDE_RECONNECT_CRASH = "ur_rtde's own reconnect may crash the process that runs servoL"
 
 
