@@ -79,6 +79,19 @@ def failure(cmd: str, args, e: Exception) -> int:
     raise e
 
 
+def open_arm(spec, process: bool, **kwargs):
+    """``drivers.open_arm(spec, process=process, **kwargs)`` for a command that drives an arm. An
+    arm in a process of its own is closed only as that process ends, so a UR there is opened
+    with ``disconnect=False``: its close stops the arm and ends the control script, and leaves
+    the connections to the process's end instead of ur_rtde's disconnect (2 s with its
+    destructors), which kept a command ended by Ctrl-C alive for 2 s after its arm had stopped."""
+    import drivers
+    s = spec if isinstance(spec, drivers.ArmSpec) else drivers.parse_arm_spec(spec)
+    if process and s.kind == "ur":
+        kwargs.setdefault("disconnect", False)
+    return drivers.open_arm(s, process=process, **kwargs)
+
+
 @contextlib.contextmanager
 def local_server(**config):
     """A dqpose server in this process on a free loopback port, on its own event loop thread

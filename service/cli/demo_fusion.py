@@ -122,7 +122,7 @@ def run(steps: int = 200, *, seed: int = 0, arm_sigma=(2e-3, 1e-3), noise: float
     from drivers.executor import Executor
     from drivers.sim.camera import BoardRenderer
     from drivers.sim.ursim import URSimProcess
-    from service.cli.common import local_server
+    from service.cli.common import local_server, open_arm
     from service.fusion import Source
     from service.rpc.client import Client
 
@@ -145,7 +145,7 @@ def run(steps: int = 200, *, seed: int = 0, arm_sigma=(2e-3, 1e-3), noise: float
         # A busy machine pauses the simulator's data stream (0.5 s at a load of 12, 3.2 s at 14:
         # the arm faulted as a lost controller) and the control loop (135 ms at a load of 14,
         # 215 ms at 11: the watchdog stopped servoing, the next set-point then a jump).
-        arm = stack.enter_context(drivers.open_arm(
+        arm = stack.enter_context(open_arm(
             spec, process=drivers.process_problem(spec) is None, stale_after=SIM_STALE_AFTER,
             watchdog_periods=SIM_WATCHDOG_PERIODS))
         # the loop outlasts the measurements (steps and two more), which the arm's reads end

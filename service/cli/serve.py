@@ -8,7 +8,7 @@ import sys
 import textwrap
 
 from service import limits
-from service.cli.common import client, connection_args, fail, missing_extra, read
+from service.cli.common import client, connection_args, fail, missing_extra, open_arm, read
 from service.rpc import DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
 
 
@@ -156,7 +156,7 @@ def _serve(args) -> int:
                             "--arm-loop thread" if args.arm_loop == "thread"
                             else drivers.process_problem(str(spec)))
                         cfg.arms[name] = stack.enter_context(
-                            drivers.open_arm(spec, process=why_not is None))
+                            open_arm(spec, process=why_not is None))
                     except ModuleNotFoundError as e:
                         return missing_extra("serve --arm", e)
                     except (OSError, ValueError, RuntimeError) as e:
