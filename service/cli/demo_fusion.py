@@ -146,8 +146,8 @@ def run(steps: int = 200, *, seed: int = 0, arm_sigma=(2e-3, 1e-3), noise: float
         # the arm faulted as a lost controller) and the control loop (135 ms at a load of 14,
         # 215 ms at 11: the watchdog stopped servoing, the next set-point then a jump).
         arm = stack.enter_context(open_arm(
-            spec, process=drivers.process_problem(spec) is None, stale_after=SIM_STALE_AFTER,
-            watchdog_periods=SIM_WATCHDOG_PERIODS))
+            spec, process=drivers.process_problem(spec) is None, simulated=True,
+            stale_after=SIM_STALE_AFTER, watchdog_periods=SIM_WATCHDOG_PERIODS))
         # the loop outlasts the measurements (steps and two more), which the arm's reads end
         times, flange, board = loop_path(round(max(steps + 3, MIN_PATH_STEPS) * STEP
                                                / arm.period), arm.period)

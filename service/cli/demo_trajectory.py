@@ -75,7 +75,7 @@ def run(target: str | None = None, progress: bool = False) -> Result:
         sim.set_pose(_HOME)
         spec = f"ur:{sim.host}"        # in its own process where it can, as `dqpose serve` opens it
         arm = stack.enter_context(open_arm(spec, process=drivers.process_problem(spec) is None,
-                                           stale_after=0.5))
+                                           simulated=True, stale_after=0.5))
         if target is None:
             target = stack.enter_context(local_server(arms={"ur": arm}, executor=Executor))
         client = stack.enter_context(Client(target))

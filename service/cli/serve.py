@@ -148,7 +148,8 @@ def _serve(args) -> int:
                     return missing_extra("serve --arm", e)
                 for name, (text, spec) in arm_specs.items():
                     try:
-                        if spec.target == SIM:
+                        simulated = spec.target == SIM
+                        if simulated:
                             spec = dataclasses.replace(spec, target=fleet.target(spec.kind))
                         # the server's own work delays a control thread's set-points (BENCHMARKS.md
                         # "Cancel → stop explained": 1,991 missed cycles in 30 s against 51)
@@ -156,7 +157,7 @@ def _serve(args) -> int:
                             "--arm-loop thread" if args.arm_loop == "thread"
                             else drivers.process_problem(str(spec)))
                         cfg.arms[name] = stack.enter_context(
-                            open_arm(spec, process=why_not is None))
+                            open_arm(spec, process=why_not is None, simulated=simulated))
                     except ModuleNotFoundError as e:
                         return missing_extra("serve --arm", e)
                     except (OSError, ValueError, RuntimeError) as e:
