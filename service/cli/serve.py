@@ -15,14 +15,16 @@ from service.rpc import DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
 def configure(name: str, p) -> None:
     if name == "serve":
         from drivers.spec import GRAMMAR as ARM_GRAMMAR
-        from service.rpc.server import SERVICERS
+        from service.rpc.server import INTERRUPT_GRACE, SERVICERS
         p.formatter_class = argparse.RawDescriptionHelpFormatter
         p.description = textwrap.fill(
             f"Serve {', '.join(s.NAME for s in SERVICERS)} with the gRPC health service and "
-            "reflection. Stops gracefully on SIGTERM/SIGINT: health turns NOT_SERVING and new "
+            "reflection. Stops gracefully on SIGTERM: health turns NOT_SERVING and new "
             "calls are UNAVAILABLE at once, the listener closes --drain seconds later, calls in "
             "flight get --grace seconds more to finish (an arm's plan that cannot end by then "
-            "is brought to a controlled stop at once); exit code 0.", 79)
+            "is brought to a controlled stop at once); exit code 0. On SIGINT (Ctrl-C) the "
+            f"same without the drain and with a grace of {INTERRUPT_GRACE:g} s at most; a "
+            "second Ctrl-C ends it at once (exit code 130).", 79)
         p.epilog = _arm_keys_help()
         p.add_argument("--host", default="127.0.0.1", help="address to bind (default: %(default)s)")
         p.add_argument("--port", type=int, default=50051, help="port; 0 picks a free one (default: %(default)s)")

@@ -26,22 +26,27 @@ ARM_PROCESS = "--multiprocessing-fork"
 
 
 class Slowdown:
-    """How much slower than on an idle core CPU-bound work runs on this machine now: a thread
-    spins from :meth:`start` to :meth:`stop`, which returns its wall time over its own CPU time
-    (at least 1). Work that needs an idle core for a second needs about this many seconds now."""
+    """How much slower than on an idle core CPU-bound work runs on this machine now: from
+    :meth:`start` to :meth:`stop` a thread alternates ``BURST`` s of its own CPU time spinning
+    with ``REST`` s asleep (so that it measures the machine without taking a core from what it
+    measures), and :meth:`stop` returns the wall time of its bursts over their CPU time (at
+    least 1). Work that needs an idle core for a second needs about this many seconds now."""
+
+    BURST, REST = 0.002, 0.008
 
     def __init__(self):
         self._stop = threading.Event()
-        self._factor = 1.0
+        self._wall = self._cpu = 0.0
         self._thread = threading.Thread(target=self._spin, daemon=True)
 
     def _spin(self):
-        wall, cpu = time.monotonic(), time.thread_time()
         while not self._stop.is_set():
-            for _ in range(2000):
+            wall, cpu = time.monotonic(), time.thread_time()
+            while time.thread_time() - cpu < self.BURST:
                 pass
-        wall, cpu = time.monotonic() - wall, time.thread_time() - cpu
-        self._factor = max(1.0, wall / max(cpu, 1e-6))
+            self._wall += time.monotonic() - wall
+            self._cpu += time.thread_time() - cpu
+            self._stop.wait(self.REST)
 
     def start(self) -> "Slowdown":
         self._thread.start()
@@ -50,7 +55,7 @@ class Slowdown:
     def stop(self) -> float:
         self._stop.set()
         self._thread.join()
-        return self._factor
+        return max(1.0, self._wall / max(self._cpu, 1e-9))
 
 
 class Command:
