@@ -166,15 +166,28 @@ def children(pid: int, module: str) -> list[tuple[int, list[str]]]:
 
 
 def sim_host(cmd: Command, timeout: float = 120.0) -> tuple[int, str]:
-    """The pid and address of the UR simulator ``cmd`` started."""
+    """The pid and address of the UR simulator ``cmd`` started, once it serves there (its hooks
+    answer with its pid: a simulator that could not have its address, or was too slow to start,
+    is replaced by one on the next address)."""
+    from drivers.sim.ursim import HOOK_PORT
     found: list = []
 
-    def started():
-        found[:] = children(cmd.proc.pid, "drivers.sim.ursim")
-        return bool(found)
-    cmd.wait_for(started, "a UR simulator", timeout)
-    pid, argv = found[0]
-    return pid, argv[argv.index("--host") + 1]
+    def serving():
+        for pid, argv in children(cmd.proc.pid, "drivers.sim.ursim"):
+            host = argv[argv.index("--host") + 1]
+            try:
+                with socket.create_connection((host, HOOK_PORT), timeout=1.0) as s, \
+                        s.makefile("rwb") as f:
+                    f.write(b'{"op": "state"}\n')
+                    f.flush()
+                    if json.loads(f.readline()).get("pid") == pid:
+                        found[:] = [pid, host]
+                        return True
+            except (OSError, ValueError):
+                continue
+        return False
+    cmd.wait_for(serving, "a UR simulator serving", timeout)
+    return found[0], found[1]
 
 
 def alive(pid: int) -> bool:

@@ -36,10 +36,16 @@ def _clean(cmd: Command) -> None:
     assert "RTDEReceiveInterface" not in out and "RTDEControlInterface" not in out, out[-3000:]
 
 
-def _no_disconnect_wait(watch: SimWatch, cmd: Command) -> None:
+def _arm_stopped_and_gone(cmd: Command, watch: SimWatch, code: int, expected: int) -> None:
+    """The command exited with ``expected``, cleanly and promptly; its arm was told to stop and
+    got no motion command after that; its arm's process did not wait on ur_rtde's disconnect."""
+    assert code == expected, cmd.stderr
+    _clean(cmd)
+    assert_stopped_after(watch.entries, cmd.interrupted_at, MOTION, STOPS)
     linger = watch.linger(cmd.interrupted_at)
     assert linger < LINGER, (f"the arm's process lived on {linger:.3f} s after its simulator "
                              f"had lost its RTDE clients (ur_rtde's disconnect)")
+    cmd.assert_prompt()
 
 
 def _interrupt_while_servoing(cmd: Command, servo_points: int = 200):
@@ -65,12 +71,8 @@ def _interrupt_while_servoing(cmd: Command, servo_points: int = 200):
 def test_ctrl_c_ends_a_demo_with_the_arm_stopped(tmp_path, mode, plot):
     cmd = Command("demo", mode, plot, str(tmp_path / "demo.png"))
     code, watch = _interrupt_while_servoing(cmd)
-    assert code == 130, cmd.stderr
-    _clean(cmd)
-    assert_stopped_after(watch.entries, cmd.interrupted_at, MOTION, STOPS)
+    _arm_stopped_and_gone(cmd, watch, code, 130)
     assert f"dqpose demo {mode}: interrupted" in cmd.stderr
-    _no_disconnect_wait(watch, cmd)
-    cmd.assert_prompt()
 
 
 def test_ctrl_c_ends_handeye_capture_with_the_arm_stopped(tmp_path):
@@ -86,11 +88,7 @@ def test_ctrl_c_ends_handeye_capture_with_the_arm_stopped(tmp_path):
         watch.wait_gone()               # the simulator ends with the command
     finally:
         cmd.kill()
-    assert code == 130, cmd.stderr
-    _clean(cmd)
-    assert_stopped_after(watch.entries, cmd.interrupted_at, MOTION, STOPS)
-    _no_disconnect_wait(watch, cmd)
-    cmd.assert_prompt()
+    _arm_stopped_and_gone(cmd, watch, code, 130)
     # what was taken is kept, and the rerun is said
     assert (folder / "poses.json").is_file()
     assert "--resume" in cmd.stderr and "--force" in cmd.stderr, cmd.stderr
@@ -146,11 +144,7 @@ def test_ctrl_c_ends_serve_with_an_arm_of_its_simulators():
         assert not alive(pid)
     finally:
         cmd.kill()
-    assert code == 0, cmd.stderr
-    _clean(cmd)
-    assert_stopped_after(watch.entries, cmd.interrupted_at, MOTION, STOPS)
-    _no_disconnect_wait(watch, cmd)
-    cmd.assert_prompt()
+    _arm_stopped_and_gone(cmd, watch, code, 0)
 
 
 def test_ctrl_c_ends_serve_while_an_arm_executes(tmp_path):
@@ -198,14 +192,10 @@ def test_ctrl_c_ends_serve_while_an_arm_executes(tmp_path):
             runner.join(EXIT_TIMEOUT)
         finally:
             cmd.kill()
-        assert code == 0, cmd.stderr
-        assert_stopped_after(watch.entries, cmd.interrupted_at, MOTION, STOPS)
+        _arm_stopped_and_gone(cmd, watch, code, 0)
         state = sim.state()
         assert not state["moving"] and not state["servoing"], state
         assert states and states[-1] != "FINISHED", states      # cut, not run to the end
-        _clean(cmd)
-        _no_disconnect_wait(watch, cmd)
-        cmd.assert_prompt()
 
 
 def _address(log: str) -> str:
