@@ -9,6 +9,7 @@ ended), seen as the arm's process living on once the simulator had lost its RTDE
 The UR simulators the commands start are watched through their test hooks."""
 from __future__ import annotations
 
+import os
 import time
 
 import pytest
@@ -145,6 +146,37 @@ def test_ctrl_c_ends_serve_with_an_arm_of_its_simulators():
     finally:
         cmd.kill()
     _arm_stopped_and_gone(cmd, watch, code, 0)
+
+
+def test_a_second_ctrl_c_ends_serve_at_once():
+    """A server in a slow shutdown (SIGTERM with a drain of 60 s): the first Ctrl-C hands SIGINT
+    back to Python, the next ends the server at once (130, not 0 after the drain), its arm
+    stopped and its simulators ended all the same. Ctrl-C is pressed until it exits (two
+    signals close together may reach the server as one)."""
+    import signal
+    cmd = Command("serve", "--sims", "--port", "0", "--drain", "60", "--arm", "ur=ur:sim")
+    try:
+        pid, host = sim_host(cmd)
+        watch = SimWatch(host)
+        cmd.wait_for(lambda: '"event": "serving"' in cmd.stderr, "the server serving")
+        sims = [p for p, _ in children(cmd.proc.pid, "drivers.sim.ursim")
+                + children(cmd.proc.pid, "drivers.sim.piper")]
+        os.kill(cmd.proc.pid, signal.SIGTERM)           # to the server, as `kill` sends it
+        cmd.wait_for(lambda: '"event": "shutting_down"' in cmd.stderr, "the shutdown")
+        for _ in range(20):
+            cmd.interrupt()
+            cmd._waiter.join(1.0)
+            if not cmd._waiter.is_alive():
+                break
+        code = cmd.wait()
+        watch.wait_gone()
+    finally:
+        cmd.kill()
+    assert code == 130, cmd.stderr
+    _clean(cmd)
+    assert '"event": "stopped"' not in cmd.stderr       # the drain was not waited for
+    assert watch.count(STOP_SCRIPT) >= 1                # the arm's close ended its script
+    assert not any(alive(p) for p in sims), "a simulator outlived the server"
 
 
 def test_ctrl_c_ends_serve_while_an_arm_executes(tmp_path):
