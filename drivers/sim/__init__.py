@@ -88,8 +88,8 @@ def start_process(module: str, *args) -> SimProcess:
     reconnecting for minutes while the parent was still stopping the arm. The parent, which
     handles the Ctrl-C, stops the arm and then ends the simulator (:func:`end_process`); a
     parent killed outright, or one that leaves its arm's connections for its own end to close
-    (``dqpose handeye capture`` interrupted), still takes it along: the simulator ends within
-    0.2 s of its parent (``--exit-with-parent``)."""
+    (``dqpose handeye capture`` interrupted), still takes it along: the simulator, which looks
+    every 0.2 s, ends by itself once its parent has (``--exit-with-parent``)."""
     root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     return SimProcess([sys.executable, "-m", module, *map(str, args), "--exit-with-parent"],
                       module, cwd=root, start_new_session=True)
