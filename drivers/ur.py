@@ -122,6 +122,13 @@ class URArm(Arm):
     ``stale_after`` is how long (s) data timestamps may stand still before the controller counts
     as lost; ``connect_timeout`` bounds the reachability probe (``ur_rtde``'s own constructor
     has no timeout, so the ports are probed first) and the wait for the first data.
+
+    ``disconnect`` (:attr:`disconnect_on_close`): whether :meth:`close` ends ur_rtde's
+    connections, which takes it 0.5 s (both at once) and its destructors 0.5 s more each, holding
+    the interpreter lock. False is for an arm closed only as its process ends (the arm's own
+    process, a command on its way out, with a controller that outlives it): :meth:`close` then
+    stops the arm and ends the control script as ever, and leaves the connections to the
+    process's end, which closes them.
     """
 
     name = "ur"
@@ -136,7 +143,8 @@ class URArm(Arm):
 
     def __init__(self, host: str, frequency: Optional[float] = None, *,
                  limits: Optional[Limits] = None, lookahead: float = 0.1, gain: float = 300.0,
-                 stop_decel: float = 10.0, watchdog_periods: Optional[int] = None, **options):
+                 stop_decel: float = 10.0, watchdog_periods: Optional[int] = None,
+                 disconnect: bool = True, **options):
         if not isinstance(host, str) or not host:
             raise ValueError(f"host: expected a host name or address, got {host!r}")
         if frequency is not None and not (math.isfinite(frequency) and 0 < frequency <= 500):
@@ -157,6 +165,7 @@ class URArm(Arm):
         connect_timeout = self.connect_timeout
         self.host, self.limits = host, limits or Limits()
         self.lookahead, self.gain, self.stop_decel = float(lookahead), float(gain), float(stop_decel)
+        self.disconnect_on_close = bool(disconnect)
 
         for port in (RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT):
             _probe(host, port, connect_timeout)
@@ -538,8 +547,9 @@ class URArm(Arm):
             self._stop_servo()
 
     def close(self) -> None:
-        """Stop, end the control script and disconnect (about a second: ur_rtde waits 0.5 s per
-        interface)."""
+        """Stop, end the control script and, unless :attr:`disconnect_on_close` is False,
+        disconnect (about 1.5 s: ur_rtde waits 0.5 s in its disconnects, run at once, and as long
+        in each destructor)."""
         if self._closed.is_set():
             return
         self._closed.set()
@@ -551,13 +561,36 @@ class URArm(Arm):
                     self._ctrl.stopScript()
             except RuntimeError:
                 pass        # gone meanwhile
-            for iface in (self._ctrl, self._recv):
-                try:
-                    iface.disconnect()
-                except RuntimeError:
-                    pass    # the controller is already gone
-            # ur_rtde's destructors sleep about a second holding the interpreter lock: here,
-            # in the close that is expected to take that long, not whenever a garbage
-            # collection finds this arm later (every thread of the process would stop then)
+            interfaces = (self._ctrl, self._recv)
             with self._recv_lock:
                 self._ctrl = self._recv = _Closed()
+            if not self.disconnect_on_close:
+                _keep_to_exit(interfaces)
+                return
+            # each disconnect sleeps 0.5 s without the interpreter lock: both at once
+            ends = [threading.Thread(target=_disconnect, args=(i,), daemon=True)
+                    for i in interfaces]
+            for t in ends:
+                t.start()
+            for t in ends:
+                t.join()
+            # ur_rtde's destructors sleep 0.5 s each holding the interpreter lock: here, in the
+            # close that is expected to take that long, not whenever a garbage collection finds
+            # this arm later (every thread of the process would stop then)
+            del interfaces
+
+
+def _disconnect(interface) -> None:
+    try:
+        interface.disconnect()
+    except RuntimeError:
+        pass    # the controller is already gone
+
+
+def _keep_to_exit(interfaces) -> None:
+    """Never destroy these ur_rtde interfaces: their destructors disconnect (0.5 s, holding the
+    interpreter lock), also in the interpreter's own teardown at exit. Their connections and
+    threads last until the process ends."""
+    import ctypes
+    for i in interfaces:
+        ctypes.pythonapi.Py_IncRef(ctypes.py_object(i))

@@ -87,19 +87,26 @@ def start_process(module: str, *args) -> SimProcess:
     group, and a simulated controller that ended on it at once left its client (ur_rtde)
     reconnecting for minutes while the parent was still stopping the arm. The parent, which
     handles the Ctrl-C, stops the arm and then ends the simulator (:func:`end_process`); a
-    parent killed outright still takes it along (``--exit-with-parent``)."""
+    parent killed outright, or one that leaves its arm's connections for its own end to close
+    (``dqpose handeye capture`` interrupted), still takes it along: the simulator, which looks
+    every 0.2 s, ends by itself once its parent has (``--exit-with-parent``)."""
     root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     return SimProcess([sys.executable, "-m", module, *map(str, args), "--exit-with-parent"],
                       module, cwd=root, start_new_session=True)
 
 
+#: s a simulator gets to end after SIGTERM before SIGKILL: they end within 0.1 s of it on an
+#: idle machine, and keep nothing worth a longer wait (a command's Ctrl-C waits for it)
+KILL_AFTER = 1.0
+
+
 def end_process(proc: SimProcess, timeout: float = 5.0) -> None:
-    """SIGTERM, SIGKILL after ``timeout`` s, reap it, log the rest of its output and close its
-    pipes."""
+    """SIGTERM, SIGKILL after :data:`KILL_AFTER` s, reap it, log the rest of its output (for up
+    to ``timeout`` s) and close its pipes."""
     if proc.poll() is None:
         proc.terminate()
         try:
-            proc.wait(timeout)
+            proc.wait(KILL_AFTER)
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()

@@ -79,6 +79,22 @@ def failure(cmd: str, args, e: Exception) -> int:
     raise e
 
 
+def open_arm(spec, process: bool, simulated: bool, **kwargs):
+    """``drivers.open_arm(spec, process=process, **kwargs)`` for a command that drives an arm
+    and ends with it. A UR is opened with ``disconnect=False`` (its close stops the arm and ends
+    the control script, and leaves ur_rtde's connections to the process's end: their disconnect
+    kept a command ended by Ctrl-C alive for 2 s after its arm had stopped) wherever its
+    connections close before its controller goes: in a process of its own, which the command
+    ends before its simulators, or in the command's process with a controller it does not end
+    (not ``simulated`` by it). On a simulator the command ends while the connections are open,
+    ur_rtde's threads would print their complaints."""
+    import drivers
+    s = spec if isinstance(spec, drivers.ArmSpec) else drivers.parse_arm_spec(spec)
+    if s.kind == "ur" and (process or not simulated):
+        kwargs.setdefault("disconnect", False)
+    return drivers.open_arm(s, process=process, **kwargs)
+
+
 @contextlib.contextmanager
 def local_server(**config):
     """A dqpose server in this process on a free loopback port, on its own event loop thread

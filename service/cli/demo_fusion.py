@@ -122,7 +122,7 @@ def run(steps: int = 200, *, seed: int = 0, arm_sigma=(2e-3, 1e-3), noise: float
     from drivers.executor import Executor
     from drivers.sim.camera import BoardRenderer
     from drivers.sim.ursim import URSimProcess
-    from service.cli.common import local_server
+    from service.cli.common import local_server, open_arm
     from service.fusion import Source
     from service.rpc.client import Client
 
@@ -139,15 +139,20 @@ def run(steps: int = 200, *, seed: int = 0, arm_sigma=(2e-3, 1e-3), noise: float
     latencies: dict = {}
 
     with contextlib.ExitStack() as stack:
+        # left last on the way out: what waits for work under way in this process (a render,
+        # the in-process server's answer), while the arm's process and the simulator end
+        late = stack.enter_context(contextlib.ExitStack())
+        if target is None:
+            target = late.enter_context(local_server())
         sim = stack.enter_context(URSimProcess())
         sim.set_pose(home)
         spec = f"ur:{sim.host}"
         # A busy machine pauses the simulator's data stream (0.5 s at a load of 12, 3.2 s at 14:
         # the arm faulted as a lost controller) and the control loop (135 ms at a load of 14,
         # 215 ms at 11: the watchdog stopped servoing, the next set-point then a jump).
-        arm = stack.enter_context(drivers.open_arm(
-            spec, process=drivers.process_problem(spec) is None, stale_after=SIM_STALE_AFTER,
-            watchdog_periods=SIM_WATCHDOG_PERIODS))
+        arm = stack.enter_context(open_arm(
+            spec, process=drivers.process_problem(spec) is None, simulated=True,
+            stale_after=SIM_STALE_AFTER, watchdog_periods=SIM_WATCHDOG_PERIODS))
         # the loop outlasts the measurements (steps and two more), which the arm's reads end
         times, flange, board = loop_path(round(max(steps + 3, MIN_PATH_STEPS) * STEP
                                                / arm.period), arm.period)
@@ -155,8 +160,6 @@ def run(steps: int = 200, *, seed: int = 0, arm_sigma=(2e-3, 1e-3), noise: float
         sources = [Source("ur", body_offset=offset)] + [
             Source(c.name, extrinsic=E, latency=LATENCY_PRIOR[0], latency_sigma=LATENCY_PRIOR[1])
             for c, E in zip(cams, extrinsics)]
-        if target is None:
-            target = stack.enter_context(local_server())
         client = stack.enter_context(Client(target))
         for cam, E in zip(cams, extrinsics):    # the first detection is slow (set-up)
             cam.detect(renderer.render(dq.mul(dq.inv(E), board[0]), blur=blur, noise=noise,
@@ -174,7 +177,7 @@ def run(steps: int = 200, *, seed: int = 0, arm_sigma=(2e-3, 1e-3), noise: float
         capture = threading.Thread(target=scene.capture, args=(np.random.default_rng(seed + 1),),
                                    name="demo capture", daemon=True)
         capture.start()
-        stack.callback(capture.join, 10)
+        late.callback(capture.join, 10)
         stack.callback(scene.abort)         # a Ctrl-C: no render still due is waited for
         # first on the way out (a Ctrl-C): the arm stops before a render under way is waited for
         stack.callback(executor.cancel)

@@ -67,15 +67,15 @@ def run(target: str | None = None, progress: bool = False) -> Result:
     from drivers.executor import Executor
     from drivers.rotvec import pose_from_rotvec
     from drivers.sim import ursim
-    from service.cli.common import local_server
+    from service.cli.common import local_server, open_arm
     from service.rpc.client import Client
 
     with contextlib.ExitStack() as stack:
         sim = stack.enter_context(ursim.URSimProcess())
         sim.set_pose(_HOME)
         spec = f"ur:{sim.host}"        # in its own process where it can, as `dqpose serve` opens it
-        arm = stack.enter_context(drivers.open_arm(spec, process=drivers.process_problem(spec) is None,
-                                                   stale_after=0.5))
+        arm = stack.enter_context(open_arm(spec, process=drivers.process_problem(spec) is None,
+                                           simulated=True, stale_after=0.5))
         if target is None:
             target = stack.enter_context(local_server(arms={"ur": arm}, executor=Executor))
         client = stack.enter_context(Client(target))

@@ -6,6 +6,7 @@ images, the flange poses (``poses.json``), the intrinsics and the board, and for
 truth (``truth.json``)."""
 from __future__ import annotations
 
+import functools
 import glob
 import json
 import math
@@ -269,7 +270,8 @@ def capture(args) -> int:
         with contextlib.ExitStack() as stack:
             if sim:
                 x_true, z_true, home = _sim_cell(args.setup, board)
-                ursim = stack.enter_context(URSimProcess())
+                ursim = URSimProcess()
+                stack.push(functools.partial(_end_simulator, ursim))
                 # a capture resumed goes on from where the arm stood at its last view
                 ursim.set_pose(rotvec_from_pose(flanges[-1] if flanges else home))
                 arm = stack.enter_context(drivers.open_arm(f"ur:{ursim.host}",
@@ -318,6 +320,9 @@ def capture(args) -> int:
                     print(f"view 0: the start pose ({'simulated UR' if sim else args.arm})",
                           file=sys.stderr)
                 stop = _views_loop(args, arm, state, shoot, speed, settle)
+            except KeyboardInterrupt:
+                _stop_at_once(arm)
+                raise
             finally:    # what was taken is kept, also when the arm or camera failed midway
                 if images:
                     _save(args, images, flanges, intr, board,
@@ -333,6 +338,28 @@ def capture(args) -> int:
         return fail("handeye capture", f"{stop}; {len(images)} views saved in {args.dir}")
     print(f"{len(images)} views in {args.dir}; solve with: dqpose handeye solve {args.dir}")
     return 0
+
+
+def _stop_at_once(arm) -> None:
+    """A Ctrl-C: the arm stopped before anything else (the views taken are saved after it), and
+    closed without ur_rtde's disconnect (2 s with its destructors; the connections close as this
+    process ends, which it does next)."""
+    from drivers.base import ArmError
+    try:
+        arm.stop()
+    except ArmError:
+        pass            # closed or faulted: its close still sends the stop
+    arm.disconnect_on_close = False
+
+
+def _end_simulator(sim, exc_type, exc, tb) -> None:
+    """The simulator's end as the capture ends (an exit callback): at once, unless the capture was
+    interrupted. Then the arm's connections are left open for this process's end to close (as
+    :func:`_stop_at_once` says), and a controller that closed them first would have ur_rtde's
+    threads print their complaints after the capture's last words; the simulator ends by itself
+    once this process has (``--exit-with-parent``)."""
+    if exc_type is not KeyboardInterrupt:
+        sim.close()
 
 
 def _resumed(args, previous: _Previous, detector, read_image, board, rng) -> "_Capture":

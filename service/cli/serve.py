@@ -9,21 +9,23 @@ import sys
 import textwrap
 
 from service import limits
-from service.cli.common import client, connection_args, fail, missing_extra, read
+from service.cli.common import client, connection_args, fail, missing_extra, open_arm, read
 from service.rpc import DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
 
 
 def configure(name: str, p) -> None:
     if name == "serve":
         from drivers.spec import GRAMMAR as ARM_GRAMMAR
-        from service.rpc.server import SERVICERS
+        from service.rpc.server import INTERRUPT_GRACE, SERVICERS
         p.formatter_class = argparse.RawDescriptionHelpFormatter
         p.description = textwrap.fill(
             f"Serve {', '.join(s.NAME for s in SERVICERS)} with the gRPC health service and "
-            "reflection. Stops gracefully on SIGTERM/SIGINT: health turns NOT_SERVING and new "
+            "reflection. Stops gracefully on SIGTERM: health turns NOT_SERVING and new "
             "calls are UNAVAILABLE at once, the listener closes --drain seconds later, calls in "
             "flight get --grace seconds more to finish (an arm's plan that cannot end by then "
-            "is brought to a controlled stop at once); exit code 0.", 79)
+            "is brought to a controlled stop at once); exit code 0. On SIGINT (Ctrl-C) the "
+            f"same without the drain and with a grace of {INTERRUPT_GRACE:g} s at most; a "
+            "second Ctrl-C ends it at once (exit code 130).", 79)
         p.epilog = _arm_keys_help()
         p.add_argument("--host", default="127.0.0.1", help="address to bind (default: %(default)s)")
         p.add_argument("--port", type=int, default=50051, help="port; 0 picks a free one (default: %(default)s)")
@@ -149,7 +151,8 @@ def _serve(args) -> int:
                     return missing_extra("serve --arm", e)
                 for name, (text, spec) in arm_specs.items():
                     try:
-                        if spec.target == SIM:
+                        simulated = spec.target == SIM
+                        if simulated:
                             spec = dataclasses.replace(spec, target=fleet.target(spec.kind))
                         # the server's own work delays a control thread's set-points (BENCHMARKS.md
                         # "Cancel → stop explained": 1,991 missed cycles in 30 s against 51)
@@ -157,7 +160,7 @@ def _serve(args) -> int:
                             "--arm-loop thread" if args.arm_loop == "thread"
                             else drivers.process_problem(str(spec)))
                         cfg.arms[name] = stack.enter_context(
-                            drivers.open_arm(spec, process=why_not is None))
+                            open_arm(spec, process=why_not is None, simulated=simulated))
                     except ModuleNotFoundError as e:
                         return missing_extra("serve --arm", e)
                     except (OSError, ValueError, RuntimeError) as e:

@@ -510,9 +510,15 @@ async def start(cfg: ServerConfig) -> Running:
     return Running(server, health_servicer, gate, port, calls, servicers)
 
 
+#: s calls in flight get to finish after a Ctrl-C (SIGINT), at most (``grace_s`` if shorter)
+INTERRUPT_GRACE = 0.25
+
+
 async def serve(cfg: ServerConfig, ready=None) -> int:
-    """Run until SIGTERM/SIGINT, then shut down gracefully (:meth:`Running.stop`, with the
-    config's drain and grace); returns the exit code (0)."""
+    """Run until SIGTERM/SIGINT, then shut down gracefully (:meth:`Running.stop`): after SIGTERM
+    with the config's drain and grace; after SIGINT (a Ctrl-C at a terminal, where no load
+    balancer polls health) without the drain and with a grace of :data:`INTERRUPT_GRACE` at most,
+    and a second SIGINT raises ``KeyboardInterrupt`` at once. Returns the exit code (0)."""
     running = await start(cfg)
     # What the imports and the start made lives as long as the process: kept out of the garbage
     # collector's reach, a full collection scans only what came since. Else one (~50k objects,
@@ -520,15 +526,20 @@ async def serve(cfg: ServerConfig, ready=None) -> int:
     gc.freeze()
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
+    interrupted = False
 
-    def closing():
+    def closing(sig):
+        nonlocal interrupted
         # At once, in the signal's own callback: a call that gRPC hands over after this one is
         # refused, whatever else the loop has queued.
         running.gate.closed = True
+        if sig == signal.SIGINT:
+            interrupted = interrupted or not stop.is_set()
+            loop.remove_signal_handler(signal.SIGINT)   # the next one is Python's own
         stop.set()
 
     for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, closing)
+        loop.add_signal_handler(sig, closing, sig)
     log.info(json.dumps({"event": "serving", "address": f"{cfg.host}:{running.port}",
                          "tls": bool(cfg.tls_cert), "mtls": bool(cfg.client_ca),
                          "auth": "bearer" if cfg.token else "none",
@@ -538,9 +549,10 @@ async def serve(cfg: ServerConfig, ready=None) -> int:
     flusher = asyncio.create_task(running.calls.flush_periodically(0.25))
     await stop.wait()
     running.calls.flush()
-    log.info(json.dumps({"event": "shutting_down", "drain_s": cfg.drain_s,
-                         "grace_s": cfg.grace_s}))
-    await running.stop(cfg.grace_s, cfg.drain_s)
+    drain, grace = (0.0, min(cfg.grace_s, INTERRUPT_GRACE)) if interrupted else \
+        (cfg.drain_s, cfg.grace_s)
+    log.info(json.dumps({"event": "shutting_down", "drain_s": drain, "grace_s": grace}))
+    await running.stop(grace, drain)
     flusher.cancel()
     log.info(json.dumps({"event": "stopped"}))
     return 0

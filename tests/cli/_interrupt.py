@@ -1,7 +1,9 @@
 """What the Ctrl-C tests share: a ``dqpose`` command run as a terminal runs it (its own process
-group, so a Ctrl-C is SIGINT to the whole group), the UR simulators it started (found by their
-command line among its children), and a watcher of a simulator's received commands through its
-test hooks (drivers/sim/ursim.py), read until the simulator goes away."""
+group, so a Ctrl-C is SIGINT to the whole group), when it exited after the Ctrl-C and how much
+slower than on an idle core CPU-bound work ran meanwhile (:class:`Slowdown`), the UR simulators
+and arm processes it started (found by their command line among its children), and a watcher of
+a simulator's received commands and RTDE clients through its test hooks
+(drivers/sim/ursim.py), read until the simulator goes away."""
 from __future__ import annotations
 
 import json
@@ -14,8 +16,46 @@ import threading
 import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-#: generous: a loaded machine may take this long; the tests do not time anything
+#: generous: a loaded machine may take this long before the tests give up waiting
 EXIT_TIMEOUT = 120.0
+#: how soon after one Ctrl-C a command has exited, in seconds of an idle core (a loaded machine
+#: stretches it by the :class:`Slowdown` measured meanwhile)
+PROMPT = 1.0
+#: the ``python -m`` argument of an arm's own process (drivers.armproc: multiprocessing's spawn)
+ARM_PROCESS = "--multiprocessing-fork"
+
+
+class Slowdown:
+    """How much slower than on an idle core CPU-bound work runs on this machine now: from
+    :meth:`start` to :meth:`stop` a thread alternates ``BURST`` s of its own CPU time spinning
+    with ``REST`` s asleep (so that it measures the machine without taking a core from what it
+    measures), and :meth:`stop` returns the wall time of its bursts over their CPU time (at
+    least 1). Work that needs an idle core for a second needs about this many seconds now."""
+
+    BURST, REST = 0.002, 0.008
+
+    def __init__(self):
+        self._stop = threading.Event()
+        self._wall = self._cpu = 0.0
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+
+    def _spin(self):
+        while not self._stop.is_set():
+            wall, cpu = time.monotonic(), time.thread_time()
+            while time.thread_time() - cpu < self.BURST:
+                pass
+            self._wall += time.monotonic() - wall
+            self._cpu += time.thread_time() - cpu
+            self._stop.wait(self.REST)
+
+    def start(self) -> "Slowdown":
+        self._thread.start()
+        return self
+
+    def stop(self) -> float:
+        self._stop.set()
+        self._thread.join()
+        return max(1.0, self._wall / max(self._cpu, 1e-9))
 
 
 def _as_a_terminal_starts():
@@ -39,6 +79,15 @@ class Command:
         for t in self._readers:
             t.start()
         self.interrupted_at = None
+        self.ended_at = None
+        self.slowdown = 1.0
+        self._probe = None
+        self._waiter = threading.Thread(target=self._wait, daemon=True)
+        self._waiter.start()
+
+    def _wait(self):
+        self.proc.wait()
+        self.ended_at = time.monotonic()
 
     @staticmethod
     def _read(f, into):
@@ -65,26 +114,41 @@ class Command:
             time.sleep(0.05)
 
     def interrupt(self) -> None:
-        """One Ctrl-C: SIGINT to the process group, as a terminal sends it."""
+        """One Ctrl-C: SIGINT to the process group, as a terminal sends it; the machine's
+        :class:`Slowdown` is measured from now until the command has exited."""
+        self._probe = Slowdown().start()
         self.interrupted_at = time.monotonic()
         os.killpg(self.proc.pid, signal.SIGINT)
 
     def wait(self, timeout: float = EXIT_TIMEOUT) -> int:
-        try:
-            code = self.proc.wait(timeout)
-        except subprocess.TimeoutExpired:
+        self._waiter.join(timeout)
+        if self._probe is not None:
+            self.slowdown = self._probe.stop()
+        if self._waiter.is_alive():
             os.killpg(self.proc.pid, signal.SIGKILL)
-            self.proc.wait()
+            self._waiter.join()
             raise AssertionError(f"dqpose still running {timeout} s after one Ctrl-C:\n"
                                  f"{self.stdout}\n{self.stderr}") from None
         for t in self._readers:
             t.join(10)
-        return code
+        return self.proc.returncode
+
+    @property
+    def exit_after(self) -> float:
+        """Seconds from the Ctrl-C to the command's exit."""
+        return self.ended_at - self.interrupted_at
+
+    def assert_prompt(self) -> None:
+        """The command exited within :data:`PROMPT` seconds of an idle core after the Ctrl-C,
+        stretched by the slowdown measured meanwhile."""
+        assert self.exit_after < PROMPT * self.slowdown, (
+            f"exited {self.exit_after:.3f} s after the Ctrl-C, CPU-bound work {self.slowdown:.2f} "
+            f"times slower than on an idle core meanwhile:\n{self.stderr[-3000:]}")
 
     def kill(self) -> None:
         if self.proc.poll() is None:
             os.killpg(self.proc.pid, signal.SIGKILL)
-            self.proc.wait()
+            self._waiter.join()
 
 
 def children(pid: int, module: str) -> list[tuple[int, list[str]]]:
@@ -108,15 +172,28 @@ def children(pid: int, module: str) -> list[tuple[int, list[str]]]:
 
 
 def sim_host(cmd: Command, timeout: float = 120.0) -> tuple[int, str]:
-    """The pid and address of the UR simulator ``cmd`` started."""
+    """The pid and address of the UR simulator ``cmd`` started, once it serves there (its hooks
+    answer with its pid: a simulator that could not have its address, or was too slow to start,
+    is replaced by one on the next address)."""
+    from drivers.sim.ursim import HOOK_PORT
     found: list = []
 
-    def started():
-        found[:] = children(cmd.proc.pid, "drivers.sim.ursim")
-        return bool(found)
-    cmd.wait_for(started, "a UR simulator", timeout)
-    pid, argv = found[0]
-    return pid, argv[argv.index("--host") + 1]
+    def serving():
+        for pid, argv in children(cmd.proc.pid, "drivers.sim.ursim"):
+            host = argv[argv.index("--host") + 1]
+            try:
+                with socket.create_connection((host, HOOK_PORT), timeout=1.0) as s, \
+                        s.makefile("rwb") as f:
+                    f.write(b'{"op": "state"}\n')
+                    f.flush()
+                    if json.loads(f.readline()).get("pid") == pid:
+                        found[:] = [pid, host]
+                        return True
+            except (OSError, ValueError):
+                continue
+        return False
+    cmd.wait_for(serving, "a UR simulator serving", timeout)
+    return found[0], found[1]
 
 
 def alive(pid: int) -> bool:
@@ -127,9 +204,22 @@ def alive(pid: int) -> bool:
         return False
 
 
+def arm_process(cmd: Command, timeout: float = 120.0) -> int:
+    """The pid of the arm process (drivers.armproc) ``cmd`` started."""
+    found: list = []
+
+    def started():
+        found[:] = children(cmd.proc.pid, ARM_PROCESS)
+        return bool(found)
+    cmd.wait_for(started, "an arm process", timeout)
+    return found[0][0]
+
+
 class SimWatch:
     """Every command a UR simulator receives (``cmd``, ``mono``: when it arrived, this machine's
-    CLOCK_MONOTONIC, as ``time.monotonic()``), polled through its hooks until it goes away."""
+    CLOCK_MONOTONIC, as ``time.monotonic()``), and how many RTDE clients it has, polled through
+    its hooks until it goes away; with each count, whether the process holding the arm's
+    connections (:meth:`hold`) was still alive once the count was in."""
 
     def __init__(self, host: str):
         from drivers.sim.ursim import HOOK_PORT
@@ -144,23 +234,33 @@ class SimWatch:
                 time.sleep(0.05)
         self.file = self.sock.makefile("rwb")
         self.entries: list[dict] = []
+        self.clients: list[tuple[float, int, bool]] = []    # (when, RTDE clients, holder alive)
+        self.holder: int | None = None
         self.gone = threading.Event()
         self.thread = threading.Thread(target=self._poll, daemon=True)
         self.thread.start()
+
+    def _ask(self, request: dict) -> dict | None:
+        self.file.write((json.dumps(request) + "\n").encode())
+        self.file.flush()
+        line = self.file.readline()
+        return json.loads(line) if line else None
 
     def _poll(self):
         since = 0
         try:
             while True:
-                self.file.write((json.dumps({"op": "log", "since": since,
-                                             "keys": ["cmd", "mono"]}) + "\n").encode())
-                self.file.flush()
-                line = self.file.readline()
-                if not line:
+                reply = self._ask({"op": "log", "since": since, "keys": ["cmd", "mono"]})
+                if reply is None:
                     break
-                reply = json.loads(line)
                 self.entries += reply["entries"]
                 since = reply["next"]
+                state = self._ask({"op": "state"})
+                if state is None:
+                    break
+                holder = self.holder
+                self.clients.append((time.monotonic(), state["rtde_clients"],
+                                     holder is not None and alive(holder)))
                 time.sleep(0.01)
         except (OSError, ValueError):
             pass
@@ -170,6 +270,23 @@ class SimWatch:
 
     def count(self, cmd: int) -> int:
         return sum(1 for e in self.entries if e["cmd"] == cmd)
+
+    def hold(self, pid: int) -> None:
+        """The process that holds the arm's RTDE connections (the command, or its arm
+        process)."""
+        self.holder = pid
+
+    def linger(self, since: float) -> float:
+        """How long the holder lived on once the simulator had no RTDE client left after
+        ``since`` (the Ctrl-C): from the first count of none to the last that found the holder
+        still alive (0 if none did).
+        ur_rtde's disconnect ends a connection and then sleeps 0.5 s, and each destructor as
+        long again: a process that disconnects its arm on its way out lingers a second or more;
+        one whose end closes the connections, not at all."""
+        t0 = next((t for t, n, _ in self.clients if t >= since and n == 0), None)
+        if t0 is None:
+            return 0.0
+        return max((t for t, n, held in self.clients if t >= t0 and held), default=t0) - t0
 
     def wait_gone(self, timeout: float = EXIT_TIMEOUT) -> None:
         assert self.gone.wait(timeout), "the simulator outlived the command"

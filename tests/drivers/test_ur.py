@@ -252,6 +252,38 @@ def test_lost_controller_is_detected(doomed_sim):
         arm.close()
 
 
+def test_a_close_without_disconnect_stops_and_leaves_the_connections_to_the_process(doomed_sim):
+    """``disconnect=False``, for an arm closed only as its process ends: close() sends the stop
+    and ends the control script, and leaves ur_rtde's connections open (no disconnect: 0.5 s an
+    interface, and as long in each destructor) for the process's end, which closes them. The
+    ordinary close ends them itself."""
+    import os
+    import subprocess
+    import sys
+    sim = doomed_sim
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    code = ("import sys; from drivers.ur import URArm; a = URArm(sys.argv[1], disconnect=False); "
+            "a.close(); print('closed', flush=True); sys.stdin.readline()")
+    proc = subprocess.Popen([sys.executable, "-c", code, sim.host], cwd=root, text=True,
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        assert proc.stdout.readline() == "closed\n", proc.stderr.read()
+        assert sim.state()["rtde_clients"] == 2              # both connections still open
+        sent = [e["cmd"] for e in sim.log(keys=["cmd"])["entries"] if e["cmd"]]
+        assert sent[-2:] == [ursim.SERVO_STOP, ursim.STOP_SCRIPT], sent
+        out, err = proc.communicate("\n", timeout=60)        # the process ends
+        assert proc.returncode == 0 and "RTDE" not in out + err, err
+        assert wait_until(lambda: sim.state()["rtde_clients"] == 0)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    arm = URArm(sim.host)
+    assert arm.disconnect_on_close and sim.state()["rtde_clients"] == 2
+    arm.close()
+    assert sim.state()["rtde_clients"] == 0
+
+
 def test_unreachable_host_fails_fast():
     host = next(h for h in (f"127.0.0.{i}" for i in range(250, 20, -1)) if ursim._address_free(h))
     t0 = time.monotonic()
