@@ -299,7 +299,12 @@ def _start_control(arm, args, wake, feedback, gone: int) -> threading.Thread:
 def _child(spec: str, kwargs: dict, conn, wake, feedback, parent: int) -> None:
     """The arm's process: opens the arm, answers calls, runs control loops; ends (braking a run
     still going, closing the arm) when the parent closes the pipe, dies or asks."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)   # a Ctrl-C is the parent's to handle
+    # A Ctrl-C, and a SIGTERM sent to the whole process group (systemd's stop, a terminal's
+    # hang-up aside), are the parent's to handle: it brings a run to a controlled stop and then
+    # closes this process. Killed by it first, the arm would get no stop at all. A parent that
+    # is gone is noticed here all the same (a dry ring, a closed pipe, re-parenting).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     from drivers import open_arm
     try:
         arm = open_arm(spec, **kwargs)

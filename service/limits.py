@@ -23,9 +23,10 @@ keep the costliest legal request near a second of one worker's time:
 * Robust fits: the consensus compares every measurement with at most 64 candidate centres
   (C, ~0.8 µs a pair), then the gate refits (~4 µs a measurement, in C) at most 50 times:
   ``max_robust`` 2,000 measurements is ~0.1 s typically, ~0.7 s at worst.
-* A fit with ``acceleration_psd`` solves a dense ``6n × 6n`` system (NumPy, O(n³)): 26 ms at
-  100 measurements, 0.16 s at 200, 1 s at 400; ``max_correlated`` 100, times the gate's 50 refits
-  at worst.
+* A fit with ``acceleration_psd`` solves a dense ``6n × 6n`` system (NumPy, O(n³)) around a
+  motion fit of its own: ~4 ms at 5 measurements, ~70 ms at 50, ~120 ms at 100 (load 4);
+  ``max_correlated`` 100, times the gate's 50 refits at worst. It always runs in the worker
+  pool (a Fuse that asks for it, and :data:`CORRELATED_ROWS` in a StreamFuse answer's cost).
 * HandEye Calibrate compares every two pairs (the all-pairs closed form, the screw-congruence
   and duplicate checks, per-sample medians over pairs: O(n²) by construction), then refines in
   O(n): ``max_pairs`` 200 is ~0.7 s. The corner level is linear in the corners (its normal
@@ -56,13 +57,17 @@ def answer_cost(rows: int, robust: bool = False, correlated: bool = False) -> in
     """What fusing a window of ``rows`` measurements into one StreamFuse answer costs, in
     measurements of a plain fit (~13 µs each on the test machine, the answer's message
     included): ~0.17 ms for any answer, 4x the rows for a robust fit, and the dense solve of an
-    ``acceleration_psd`` fit (26 ms at 100 rows)."""
+    ``acceleration_psd`` fit (:data:`CORRELATED_ROWS` and ~40 a row around its dense solve)."""
     cost = ANSWER_ROWS + rows * (4 if robust else 1)
-    return cost + (rows ** 3 // 500 if correlated else 0)
+    return cost + (CORRELATED_ROWS + 40 * rows + rows ** 3 // 500 if correlated else 0)
 
 
 #: what an answer costs besides its window's measurements, in measurements (~0.17 ms)
 ANSWER_ROWS = 13
+#: what an ``acceleration_psd`` fit costs besides its rows, in measurements (~4 ms): measured
+#: 4.4 / 4.8 / 17 / 71 / 119 ms at 5 / 10 / 20 / 50 / 100 rows at a load of 4, so even a small
+#: one is fused in the worker pool, never on the event loop
+CORRELATED_ROWS = 300
 #: ticks are exact while |time| * rate stays below this (a double's integers are exact to 2^53)
 EXACT_TICKS = 2.0**50
 

@@ -450,7 +450,7 @@ class Fusion(pb_grpc.FusionServicer):
     async def Fuse(self, request: bytes, context):
         # Registered without (de)serializers (register): bytes in and out, parsed and written
         # with the fit, in the worker pool when the request is not small.
-        if len(request) <= limits.INLINE_BYTES:
+        if len(request) <= limits.INLINE_BYTES and not _dear(request):
             return await self.calls.unary("Fuse", self.fuse_bytes, request, context)
         return await self.calls.unary("Fuse", lambda r: self.calls.work(self.fuse_bytes, r),
                                       request, context)
@@ -525,3 +525,14 @@ ANSWERS_PER_WORK = 16
 def _take(answers, k: int) -> list:
     """The next ``k`` of ``answers`` (fewer at its end)."""
     return list(itertools.islice(answers, k))
+
+
+def _dear(data: bytes) -> bool:
+    """Whether a small Fuse request asks for a fit whose cost is not its size: the
+    acceleration model's dense solve or a latency estimate (milliseconds at a few
+    measurements; limits.CORRELATED_ROWS). One that does not parse is refused inline."""
+    try:
+        options = pb.FuseRequest.FromString(data).options
+    except DecodeError:
+        return False
+    return any(options.acceleration_psd) or any(s.latency_sigma for s in options.sources)

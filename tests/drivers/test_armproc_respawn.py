@@ -232,3 +232,17 @@ def test_an_arm_that_comes_back_with_another_period_is_refused():
     finally:
         arm.close()
         sim.close()
+
+
+def test_a_sigterm_to_the_arm_process_leaves_the_run_to_its_owner(rig, arm):
+    # systemd's stop sends SIGTERM to every process of the service at once: the arm's process
+    # must not die before the server, which owns the run, has brought the arm to a stop
+    times, poses = _plan(arm, rate=1.0 / arm.period, length=0.04, speed=0.1)
+    ex = Executor(arm)
+    ex.push(times, poses)
+    ex.finish()
+    assert wait_until(lambda: ex.sent >= 20)
+    pid = arm.pid
+    os.kill(pid, signal.SIGTERM)
+    assert ex.wait(10) == Result.FINISHED, ex.message
+    assert arm.pid == pid and arm.process.is_alive()
