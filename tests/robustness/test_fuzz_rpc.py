@@ -40,8 +40,9 @@ import _handeye  # noqa: E402
 ROOT = os.path.dirname(_TESTS)
 
 #: a call that takes longer than this is a server that stopped answering (the heaviest legal
-#: request of these sizes takes well under a second)
-CALL_DEADLINE = 20.0
+#: request of these sizes takes ~2 s on a quiet machine: a StreamFuse with the acceleration model
+#: and a latency estimate; one took over 20 s in a suite run at a load of 5-7, and passed again)
+CALL_DEADLINE = 60.0
 #: health is answered within this while anything else runs (generous for a loaded machine)
 HEALTH_DEADLINE = 2.0
 #: answers read from a server stream before the call is closed
