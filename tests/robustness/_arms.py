@@ -3,6 +3,7 @@ process of its own, as ``dqpose serve`` opens them where it can), what their sim
 real server on 127.0.0.1 owning them, and plans that start where an arm is."""
 from __future__ import annotations
 
+import contextlib
 import os
 import random
 import sys
@@ -179,6 +180,21 @@ def serve(rigs, **config):
     from service.rpc.server import ServerConfig
     return ServerThread(ServerConfig(port=0, arms={r.name: r.arm for r in rigs},
                                      executor=Executor, **config))
+
+
+@contextlib.contextmanager
+def served_rigs(**rig_options):
+    """One rig of each kind (``rig_options`` passed to each) and a server owning their arms:
+    ``({name: rig}, server)``; the rigs closed afterwards."""
+    made = []
+    try:
+        for cls in RIGS.values():
+            made.append(cls(**rig_options))
+        with serve(made) as server:
+            yield {r.name: r for r in made}, server
+    finally:
+        for r in made:
+            r.close()
 
 
 def block(server) -> threading.Event:

@@ -18,21 +18,14 @@ import time
 import pytest
 
 from _arms import (LIMITS, RIGS, SLOW, STALE_AFTER, URRig, block, distance, offset, serve,
-                   wait_until)
+                   served_rigs, wait_until)
 from service.rpc.client import Client, RpcError
 
 
 @pytest.fixture(scope="module")
 def rigs():
-    made = []
-    try:
-        for cls in RIGS.values():
-            made.append(cls())
-        with serve(made) as server:
-            yield {r.name: r for r in made}, server
-    finally:
-        for r in made:
-            r.close()
+    with served_rigs() as made:
+        yield made
 
 
 @pytest.fixture(params=list(RIGS))

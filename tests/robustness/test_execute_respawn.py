@@ -12,22 +12,15 @@ from multiprocessing.connection import wait
 
 import pytest
 
-from _arms import RIGS, SLOW, distance, offset, serve
+from _arms import RIGS, SLOW, distance, offset, served_rigs
 from service.rpc.client import Client, RpcError
 
 
 @pytest.fixture(scope="module")
 def rigs():
-    made = []
-    try:
-        for cls in RIGS.values():
-            # each test kills an arm's process: it is opened again at once (not once per 5 s)
-            made.append(cls(reopen_every=0.0))
-        with serve(made) as server:
-            yield {r.name: r for r in made}, server
-    finally:
-        for r in made:
-            r.close()
+    # each test kills an arm's process: it is opened again at once (not once per 5 s)
+    with served_rigs(reopen_every=0.0) as made:
+        yield made
 
 
 @pytest.fixture(params=list(RIGS))
