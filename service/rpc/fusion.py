@@ -302,10 +302,14 @@ class Fusion(pb_grpc.FusionServicer):
 
     def fuse_bytes(self, data: bytes) -> bytes:
         """What Fuse serves: ``FusedPose`` bytes for ``FuseRequest`` bytes."""
-        try:
-            request = pb.FuseRequest.FromString(data)
-        except DecodeError:
-            raise FieldError("request: not a valid dqpose.v1.FuseRequest message") from None
+        return self.fuse(_fuse_request(data)).SerializeToString()
+
+    def _fuse_small(self, data: bytes):
+        """A small request's answer: on the event loop, unless it asks for a fit whose cost is
+        not its size (:func:`_dear`), which goes to the worker pool, parsed once either way."""
+        request = _fuse_request(data)
+        if _dear(request.options):
+            return self.calls.work(lambda: self.fuse(request).SerializeToString())
         return self.fuse(request).SerializeToString()
 
     def _check_times(self, times: np.ndarray, index: np.ndarray, field: str,
@@ -450,8 +454,8 @@ class Fusion(pb_grpc.FusionServicer):
     async def Fuse(self, request: bytes, context):
         # Registered without (de)serializers (register): bytes in and out, parsed and written
         # with the fit, in the worker pool when the request is not small.
-        if len(request) <= limits.INLINE_BYTES and not _dear(request):
-            return await self.calls.unary("Fuse", self.fuse_bytes, request, context)
+        if len(request) <= limits.INLINE_BYTES:
+            return await self.calls.unary("Fuse", self._fuse_small, request, context)
         return await self.calls.unary("Fuse", lambda r: self.calls.work(self.fuse_bytes, r),
                                       request, context)
 
@@ -527,12 +531,15 @@ def _take(answers, k: int) -> list:
     return list(itertools.islice(answers, k))
 
 
-def _dear(data: bytes) -> bool:
-    """Whether a small Fuse request asks for a fit whose cost is not its size: the
-    acceleration model's dense solve or a latency estimate (milliseconds at a few
-    measurements; limits.CORRELATED_ROWS). One that does not parse is refused inline."""
+def _fuse_request(data: bytes) -> pb.FuseRequest:
     try:
-        options = pb.FuseRequest.FromString(data).options
+        return pb.FuseRequest.FromString(data)
     except DecodeError:
-        return False
+        raise FieldError("request: not a valid dqpose.v1.FuseRequest message") from None
+
+
+def _dear(options) -> bool:
+    """Whether Fuse ``options`` ask for a fit whose cost is not its size: the acceleration
+    model's dense solve or a latency estimate (milliseconds at a few measurements;
+    limits.CORRELATED_ROWS)."""
     return any(options.acceleration_psd) or any(s.latency_sigma for s in options.sources)

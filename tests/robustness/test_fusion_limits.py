@@ -281,8 +281,8 @@ def test_an_acceleration_model_is_never_fitted_on_the_event_loop():
     assert all(limits.answer_cost(r, correlated=True) > limits.INLINE_ROWS for r in range(1, 200))
     assert limits.answer_cost(20) <= limits.INLINE_ROWS
     small = fuse_request(5)
-    assert not _dear(small.SerializeToString())
+    assert not _dear(small.options)
     dear = fuse_request(5, times=True, acceleration_psd=np.eye(6) * 1e-3)
-    assert len(dear.SerializeToString()) <= limits.INLINE_BYTES and _dear(dear.SerializeToString())
+    assert len(dear.SerializeToString()) <= limits.INLINE_BYTES and _dear(dear.options)
     latency = fuse_request(5, times=True, sources=[fusion.Source("a", latency_sigma=0.01)])
-    assert _dear(latency.SerializeToString())
+    assert _dear(latency.options)
