@@ -70,7 +70,9 @@ ARM_KEYS: dict[str, ArmKey] = {k.name: k for k in (
     ArmKey("tracking_lag", "s", "how far behind its set-points the arm may follow: tracking is "
            "measured against every set-point sent this long before the reading", {"*": 0.05}),
     ArmKey("heartbeat", "s", "a running plan's owner beats this often (Executor.beat); three "
-           "missed beats bring the arm to a controlled stop: STALLED", {"*": 0.02}),
+           "missed beats bring the arm to a controlled stop: STALLED (0.3 s by default: a "
+           "server's event loop on a loaded machine pauses 0.1 s, and the plan it leaves "
+           "running is already checked against the Limits)", {"*": 0.1}),
     ArmKey("connect_timeout", "s", "how long opening waits for the arm to answer and for its "
            "first state", {"*": 2.0}),
 )}

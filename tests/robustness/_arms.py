@@ -26,10 +26,6 @@ LIMITS = trajectory.Limits(max_linear_velocity=0.1, max_angular_velocity=0.5,
 #: the arms' data watchdog: a shared, loaded test machine pauses a simulator for longer than a
 #: real controller's 0.1 s now and then
 STALE_AFTER = 0.5
-#: the server's heartbeat to the arms: this test process also runs the PiPER simulator and the
-#: clients beside the server, and on the loaded shared machine its event loop now and then
-#: pauses past the default's three missed beats (60 ms); the hung-loop test holds it far longer
-HEARTBEAT = 0.1
 #: how far behind its set-points an arm may follow: a starved simulator trails further here
 TRACKING_LAG = 0.15
 #: a plan of several seconds over a few centimetres: long enough to interfere with
@@ -64,8 +60,8 @@ class URRig:
         self.home_rotvec = np.array([0.4, -0.1, 0.3, 2.2, 2.2, 0.0])
         self.home = pose_from_rotvec(self.home_rotvec)
         self.arm = drivers.open_arm(f"ur:{self.sim.host}", process=process,
-                                    **{"stale_after": STALE_AFTER, "heartbeat": HEARTBEAT,
-                                       "tracking_lag": TRACKING_LAG, **arm_options})
+                                    stale_after=STALE_AFTER, tracking_lag=TRACKING_LAG,
+                                    **arm_options)
         self._mark = 0
 
     def reset(self) -> None:
@@ -132,8 +128,8 @@ class PiperRig:
         self.sim = PiperSim(self.bus).start()
         self.home = self.sim.pose
         self.arm = drivers.open_arm(f"piper:udp_multicast:{group}", process=process,
-                                    **{"stale_after": STALE_AFTER, "heartbeat": HEARTBEAT,
-                                       "tracking_lag": TRACKING_LAG, **arm_options})
+                                    stale_after=STALE_AFTER, tracking_lag=TRACKING_LAG,
+                                    **arm_options)
         self._mark = 0
 
     def reset(self) -> None:
