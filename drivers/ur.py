@@ -587,10 +587,24 @@ def _disconnect(interface) -> None:
         pass    # the controller is already gone
 
 
+#: ur_rtde interfaces left to the process's end (:func:`_keep_to_exit`)
+_kept = 0
+
+
 def _keep_to_exit(interfaces) -> None:
     """Never destroy these ur_rtde interfaces: their destructors disconnect (0.5 s, holding the
     interpreter lock), also in the interpreter's own teardown at exit. Their connections and
-    threads last until the process ends."""
+    threads last until the process ends (:func:`kept_to_exit`)."""
     import ctypes
+    global _kept
     for i in interfaces:
         ctypes.pythonapi.Py_IncRef(ctypes.py_object(i))
+        _kept += 1
+
+
+def kept_to_exit() -> bool:
+    """Whether ur_rtde connections were left to the process's end: its threads then still run
+    while the interpreter tears itself down, and crash it now and then (SIGSEGV, an exit code of
+    -11 after a clean stop); a program that knows it is done ends with ``os._exit`` instead
+    (``dqpose``'s commands do)."""
+    return _kept > 0

@@ -64,3 +64,19 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         return 130
+
+
+def run() -> None:
+    """The ``dqpose`` program: :func:`main`, then the process's end. Where a UR's ur_rtde
+    connections were left to that end (``drivers.ur.kept_to_exit``), the process ends without
+    the interpreter's teardown, which their threads can crash (SIGSEGV after a clean stop)."""
+    code = main()
+    ur = sys.modules.get("drivers.ur")
+    if ur is not None and ur.kept_to_exit():
+        import logging
+        import os
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
