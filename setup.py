@@ -15,7 +15,7 @@ if os.environ.get("DQPOSE_NATIVE") == "1":
     extra.append("-march=native")
 
 core = Extension(
-    "service._dqcore",
+    "dqpose._dqcore",
     sources=[os.path.join(CSRC, f) for f in ("dq.c", "blend.c", "fusion.c", "wire.c", "trajectory.c", "module.c")],
     include_dirs=[numpy.get_include(), CSRC],
     define_macros=[("NPY_NO_DEPRECATED_API", "NPY_2_0_API_VERSION")],
@@ -31,7 +31,8 @@ def generate_stubs() -> None:
     """proto/dqpose/v1/*.proto -> service/rpc/_proto/dqpose/v1/*_pb2*.py (never committed).
 
     protoc names imports after the proto path (``from dqpose.v1 import ...``); they are rewritten
-    to live under ``service.rpc._proto`` so the stubs do not claim a top-level ``dqpose`` package.
+    to resolve under ``dqpose.rpc._proto`` (the proto package ``dqpose.v1`` is not the import
+    package ``dqpose``).
     """
     from grpc_tools import protoc  # a build requirement (pyproject.toml)
     import grpc_tools
@@ -53,8 +54,8 @@ def generate_stubs() -> None:
                 path = os.path.join(dirpath, name)
                 with open(path) as f:
                     src = f.read()
-                fixed = re.sub(r"^from dqpose(\.[\w.]+)? import", r"from service.rpc._proto.dqpose\1 import",
-                               src, flags=re.M)
+                fixed = re.sub(r"^from dqpose\.(v\d+\w*(?:\.\w+)*) import",
+                               r"from dqpose.rpc._proto.dqpose.\1 import", src, flags=re.M)
                 if fixed != src:
                     with open(path, "w") as f:
                         f.write(fixed)

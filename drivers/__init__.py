@@ -4,7 +4,7 @@ Backends are chosen by name, as python-can chooses a bus by ``interface``:
 ``open_arm("ur:192.168.1.10")``, ``open_arm("piper:socketcan:can0")``,
 ``open_source("charuco:/path/to/images", intrinsics="camera.yaml")``. The text after the first
 colon is the backend's channel; keyword arguments go to the backend (``limits=``, ...). An arm's
-name is an arm spec (:mod:`drivers.spec`): ``KIND:TARGET[?key=value&...]``, its keys those of
+name is an arm spec (:mod:`dqpose.drivers.spec`): ``KIND:TARGET[?key=value&...]``, its keys those of
 :data:`ARM_KEYS`. Backend modules are imported only when opened.
 """
 from __future__ import annotations
@@ -17,15 +17,15 @@ __all__ = ["ARMS", "SOURCES", "ARM_KEYS", "ArmSpec", "parse_arm_spec", "open_arm
 
 #: arm backends: name -> "module:class"; the class's ``open(channel, **kwargs)`` makes one
 ARMS = {
-    "ur": "drivers.ur:URArm",
-    "piper": "drivers.piper:PiperArm",
+    "ur": "dqpose.drivers.ur:URArm",
+    "piper": "dqpose.drivers.piper:PiperArm",
 }
 #: pose source backends, the same way
 SOURCES = {
-    "charuco": "drivers.camera:CharucoCamera",
+    "charuco": "dqpose.drivers.camera:CharucoCamera",
 }
 
-from drivers.spec import ARM_KEYS, ArmSpec, parse_arm_spec  # noqa: E402  (needs ARMS)
+from dqpose.drivers.spec import ARM_KEYS, ArmSpec, parse_arm_spec  # noqa: E402  (needs ARMS)
 
 
 def _open(kind: str, table: dict, spec: str, kwargs: dict):
@@ -55,8 +55,8 @@ def _arm_class(spec: ArmSpec):
 def process_problem(spec: str) -> Optional[str]:
     """Why the arm ``spec`` cannot live in a process of its own on this machine (the
     processor's store order, or a connection that does not reach across processes), or None."""
-    from drivers.armproc import check_store_order
-    from drivers.base import ArmError
+    from dqpose.drivers.armproc import check_store_order
+    from dqpose.drivers.base import ArmError
     try:
         check_store_order()
     except ArmError as e:
@@ -74,12 +74,12 @@ def open_arm(spec, process: bool = False, **kwargs):
 
     ``process=True``: the arm lives in a child process of its own, where an
     :class:`~drivers.executor.Executor` on it runs its control loop
-    (:class:`drivers.armproc.ArmProcess`; its bus must reach across processes: not python-can's
+    (:class:`dqpose.drivers.armproc.ArmProcess`; its bus must reach across processes: not python-can's
     ``virtual``)."""
     s = spec if isinstance(spec, ArmSpec) else parse_arm_spec(spec)
     kw = {**s.options, **kwargs}
     if process:
-        from drivers.armproc import ArmProcess
+        from dqpose.drivers.armproc import ArmProcess
         return ArmProcess(s.channel, **kw)
     return _arm_class(s).open(s.target, **kw)
 

@@ -54,8 +54,8 @@ from typing import Optional
 
 import numpy as np
 
-from drivers.base import Arm, ArmError, ArmState
-from drivers.control import Buffer, Control, Feedback, PlanSlots, Result, check_start, claim
+from dqpose.drivers.base import Arm, ArmError, ArmState
+from dqpose.drivers.control import Buffer, Control, Feedback, PlanSlots, Result, check_start, claim
 
 __all__ = ["ArmProcess"]
 
@@ -305,7 +305,7 @@ def _child(spec: str, kwargs: dict, conn, wake, feedback, parent: int) -> None:
     # is gone is noticed here all the same (a dry ring, a closed pipe, re-parenting).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    from drivers import open_arm
+    from dqpose.drivers import open_arm
     try:
         arm = open_arm(spec, **kwargs)
     except BaseException as e:

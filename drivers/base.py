@@ -1,8 +1,8 @@
 """The two driver interfaces: ``PoseSource`` (cameras, trackers, arms reporting where they are)
 and ``Arm`` (anything we command).
 
-Like python-can's ``BusABC``, each backend is one module (``drivers.ur``, ``drivers.piper``,
-``drivers.camera``) with a real implementation, and ``drivers.sim`` holds simulators that speak
+Like python-can's ``BusABC``, each backend is one module (``dqpose.drivers.ur``, ``dqpose.drivers.piper``,
+``dqpose.drivers.camera``) with a real implementation, and ``dqpose.drivers.sim`` holds simulators that speak
 the same protocol. Poses cross this boundary as unit dual quaternions, NumPy ``(8,)``, in the
 project's convention (``[w, x, y, z, w', x', y', z']``, metres, seconds); a tool pose is
 ``T_base_tool``.
@@ -19,13 +19,13 @@ from typing import Iterator, Optional
 
 import numpy as np
 
-from drivers.rotvec import rotvec_from_quat
-from service import dq
+from dqpose.drivers.rotvec import rotvec_from_quat
+from dqpose import dq
 
 
 @dataclass(frozen=True)
 class Measurement:
-    """One pose measurement, in the convention :func:`service.fusion.fuse` and the Fusion service
+    """One pose measurement, in the convention :func:`dqpose.fusion.fuse` and the Fusion service
     take.
 
     ``pose`` is ``T_frame_body`` as a unit dual quaternion (a camera's ``T_camera_board``, an
@@ -33,7 +33,7 @@ class Measurement:
     time), the one clock every driver stamps with. ``covariance`` is 6x6, row-major, **rotation
     first** ``[wx wy wz vx vy vz]`` (radians, then metres), of a **right (body-frame)
     perturbation** with the SE(3) exponential: the true pose is ``pose * Exp(xi)``,
-    ``xi ~ N(0, covariance)``, ``Exp`` = :func:`service.lie.se3_exp` (GTSAM's ``Pose3``
+    ``xi ~ N(0, covariance)``, ``Exp`` = :func:`dqpose.lie.se3_exp` (GTSAM's ``Pose3``
     convention, ``retract`` = compose with ``Expmap``). When it is unknown (None), ``weight``
     says how much to trust the pose: the covariance is then ``I / weight``."""
     source: str
@@ -258,7 +258,7 @@ def pose_delta(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
 def tool_line(a: np.ndarray, b: np.ndarray, f: float) -> np.ndarray:
     """The pose a fraction ``f`` of the way from ``a`` to ``b`` on the path of a tool-space
     linear move (straight line in translation, slerp in rotation)."""
-    from service.interpolate import interpolate
+    from dqpose.interpolate import interpolate
     return interpolate([0.0, 1.0], np.stack([a, b]), [float(f)], "tool_linear")[0]
 
 
@@ -314,14 +314,14 @@ class Arm(abc.ABC):
     #: far worse (millimetres): set ``pose_sigma`` to it when fusing with other sources.
     pose_sigma: tuple[float, float] = (1e-4, 1e-4)
 
-    #: the arm-spec keys (:data:`drivers.spec.ARM_KEYS`) this arm runs with, each also an
+    #: the arm-spec keys (:data:`dqpose.drivers.spec.ARM_KEYS`) this arm runs with, each also an
     #: attribute of the same name (``stale_after``, ``max_tracking``, ``heartbeat``, ...)
     options: dict = {}
 
     def _set_options(self, kind: str, given: dict) -> None:
         """The keys of :data:`~drivers.spec.ARM_KEYS` from ``given`` (checked), the defaults of
         ``kind`` for the rest, as :attr:`options` and attributes."""
-        from drivers.spec import resolve
+        from dqpose.drivers.spec import resolve
         self.options = resolve(kind, given)
         for name, value in self.options.items():
             setattr(self, name, value)

@@ -19,7 +19,7 @@ an error shared by all of a view's corners, invisible in the residuals, that mad
 covariance too confident and hand-eye calibration end to end claim too much (mean NEES of X 8.9
 instead of 6; BENCHMARKS.md, "Issue 11: the corners' shared error").
 
-Covariance convention: the fusion convention of :class:`drivers.base.Measurement`, a right
+Covariance convention: the fusion convention of :class:`dqpose.drivers.base.Measurement`, a right
 (body-frame) perturbation with the SE(3) exponential, ``T_true = T_est * Exp(xi)``,
 ``xi = (omega, v)``, rotation first (radians), then translation (metres), both in the board
 frame (GTSAM's ``Pose3``). It is ``s^2 (J^T J)^-1`` with ``J`` the Jacobian of the reprojected
@@ -42,8 +42,8 @@ from typing import Iterator, Optional, Union
 import cv2
 import numpy as np
 
-from drivers.base import Measurement, PoseSource
-from service import dq, lie
+from dqpose.drivers.base import Measurement, PoseSource
+from dqpose import dq, lie
 
 __all__ = ["Intrinsics", "BoardSpec", "Detection", "Rejection", "CharucoCamera", "pnp_chart",
            "marker_free_reach", "load_intrinsics", "load_board", "open_frames", "FolderFrames",

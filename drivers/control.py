@@ -1,5 +1,5 @@
 """The control loop of an :class:`~drivers.executor.Executor` run, the same code in a thread of
-the caller's process and in an arm's own process (:mod:`drivers.armproc`); only the
+the caller's process and in an arm's own process (:mod:`dqpose.drivers.armproc`); only the
 :class:`Buffer` differs (a deque there, a ring in shared memory here, or a plan sampled as it
 goes, :class:`PlanSlots`).
 
@@ -21,9 +21,9 @@ from typing import Optional
 
 import numpy as np
 
-from drivers.base import Arm, ArmError, LimitError, pose_delta, servo_step
-from drivers.rotvec import quat_from_rotvec
-from service import dq
+from dqpose.drivers.base import Arm, ArmError, LimitError, pose_delta, servo_step
+from dqpose.drivers.rotvec import quat_from_rotvec
+from dqpose import dq
 
 __all__ = ["Result", "Feedback", "Settings", "Buffer", "PlanSlots", "Tracking", "Control",
            "check_start", "claim", "plan_start", "MISSED_BEATS"]
@@ -78,7 +78,7 @@ class Settings:
 
 class Buffer:
     """The set-points as the control loop sees them, and the owner's signals; one per kind of
-    transport (:class:`drivers.executor._DequeBuffer`, :class:`drivers.armproc._RingBuffer`)."""
+    transport (:class:`dqpose.drivers.executor._DequeBuffer`, :class:`dqpose.drivers.armproc._RingBuffer`)."""
 
     #: set by the loop: whether it got real-time scheduling
     realtime = False
@@ -131,7 +131,7 @@ class PlanSlots:
     them, so a long plan is never held whole: slot ``k`` is the plan at ``k * period``, and a
     plan whose end is off the grid gets one more slot, on its last pose (as ``push`` and
     ``finish`` of the same samples would give). ``trajectory``: a
-    :class:`service.trajectory.Trajectory` (``duration``, ``sample(times)``)."""
+    :class:`dqpose.trajectory.Trajectory` (``duration``, ``sample(times)``)."""
 
     CHUNK = 64
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service import dq
+from dqpose import dq
 
 __all__ = ["quat_from_sxyz", "sxyz_from_quat", "matrix_from_sxyz", "dq_from_xyz_sxyz",
            "xyz_sxyz_from_dq"]

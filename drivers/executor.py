@@ -10,18 +10,18 @@ than at the end of the period.
 
 Where the loop runs follows the arm: in a thread of this process for an arm opened here, and in
 the arm's own process for one opened with ``drivers.open_arm(spec, process=True)``
-(:class:`drivers.armproc.ArmProcess`), where no thread of the caller's (gRPC, the feeder, the
+(:class:`dqpose.drivers.armproc.ArmProcess`), where no thread of the caller's (gRPC, the feeder, the
 garbage collector of a large heap) can hold the interpreter lock when a set-point is due. Both
-run the same loop (:class:`drivers.control.Control`) on the same checks; only the buffer
+run the same loop (:class:`dqpose.drivers.control.Control`) on the same checks; only the buffer
 differs (a deque here, a ring in shared memory there). One run at a time per arm: a run started
 while another is still ending waits for it (``busy_timeout``), else ``ArmError("busy ...")``.
 
 A plan comes whole (``push_plan(trajectory)``: the loop samples it at the arm's period as it
 goes, so its cost to the caller is its waypoints, whatever its duration) or as samples on the
 plan's clock, pushed in chunks (``push(times, poses)``) at any rate and resampled at the arm's
-period when pushed (:func:`service.interpolate.interpolate`). Every set-point is judged against
+period when pushed (:func:`dqpose.interpolate.interpolate`). Every set-point is judged against
 the arm's actual pose before it goes (``max_tracking``, ``max_tracking_angle`` and
-``tracking_lag``, the arm's keys: :class:`drivers.control.Tracking`). Each run ends in one
+``tracking_lag``, the arm's keys: :class:`dqpose.drivers.control.Tracking`). Each run ends in one
 :class:`Result`, in the style of ruckig's result codes (positive: ended as controlled, negative:
 a fault):
 
@@ -64,12 +64,12 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from drivers.base import Arm
-from drivers.control import (Buffer, Control, Feedback, PlanSlots, Result, Settings, check_start,
+from dqpose.drivers.base import Arm
+from dqpose.drivers.control import (Buffer, Control, Feedback, PlanSlots, Result, Settings, check_start,
                              claim, plan_start)
-from drivers.spec import ARM_KEYS
-from service import dq
-from service.interpolate import MODES, interpolate
+from dqpose.drivers.spec import ARM_KEYS
+from dqpose import dq
+from dqpose.interpolate import MODES, interpolate
 
 __all__ = ["Result", "Feedback", "Executor"]
 
@@ -348,7 +348,7 @@ class Executor:
                 self._start()
 
     def push_plan(self, trajectory) -> None:
-        """The whole plan at once: ``trajectory`` is a :class:`service.trajectory.Trajectory`
+        """The whole plan at once: ``trajectory`` is a :class:`dqpose.trajectory.Trajectory`
         (anything with ``duration`` and ``sample(times)``), sampled by the control loop at the
         arm's period as it goes, from its time 0 (never held whole, here or in an arm's
         process, which gets the trajectory itself: its waypoints). Starts the run as the first
@@ -357,7 +357,7 @@ class Executor:
         duration = getattr(trajectory, "duration", None)
         if not (callable(getattr(trajectory, "sample", None)) and isinstance(
                 duration, numbers.Real) and math.isfinite(duration) and duration >= 0):
-            raise ValueError(f"trajectory: expected a service.trajectory.Trajectory, got "
+            raise ValueError(f"trajectory: expected a dqpose.trajectory.Trajectory, got "
                              f"{type(trajectory).__name__}")
         with self._push_lock:
             with self._cond:

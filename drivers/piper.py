@@ -33,11 +33,11 @@ from typing import Optional, Sequence
 import can
 import numpy as np
 
-from drivers.base import (Arm, ArmError, ArmState, LimitError, Limits, Pacer, pose_delta,
+from dqpose.drivers.base import (Arm, ArmError, ArmState, LimitError, Limits, Pacer, pose_delta,
                           servo_step, tool_line, unit_pose)
-from drivers.euler import quat_from_sxyz, sxyz_from_quat
-from service import dq
-from service.profile import Trapezoid
+from dqpose.drivers.euler import quat_from_sxyz, sxyz_from_quat
+from dqpose import dq
+from dqpose.profile import Trapezoid
 
 __all__ = [
     "MOTION_CTRL_2", "END_POSE_CTRL", "END_POSE_FEEDBACK", "CTRL_MODE_CAN", "MOVE_P", "MOVE_J",
@@ -311,7 +311,7 @@ class PiperArm(Arm):
     for ``watchdog`` seconds the arm is told to hold its measured pose. The arm counts as
     connected while both end-pose feedback and arm status (0x2A1) are younger than
     ``stale_after``. ``watchdog``, ``stale_after`` and the other keys of
-    :data:`drivers.spec.ARM_KEYS` are ``options``. ``own_bus`` shuts the bus down on ``close()``
+    :data:`dqpose.drivers.spec.ARM_KEYS` are ``options``. ``own_bus`` shuts the bus down on ``close()``
     (``open_arm`` does, and waits up to ``connect_timeout`` for the arm's first feedback).
 
     Arm status: ``status()`` sets ``emergency_stop`` for arm_status 0x01 and ``protective_stop``

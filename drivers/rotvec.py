@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from service import dq
-from service.errors import rename
+from dqpose import dq
+from dqpose.errors import rename
 
 __all__ = ["quat_from_rotvec", "rotvec_from_quat", "pose_from_rotvec", "rotvec_from_pose"]
 

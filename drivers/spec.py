@@ -121,7 +121,7 @@ def _nearest(name: str) -> str:
 def parse_arm_spec(text: str) -> ArmSpec:
     """``KIND:TARGET[?key=value&...]`` to an :class:`ArmSpec`; ``ValueError`` for an unknown kind
     or key (naming the nearest known key) or a bad value (naming the key and the value)."""
-    from drivers import ARMS
+    from dqpose.drivers import ARMS
     if not isinstance(text, str):
         raise ValueError(f"arm: expected '{GRAMMAR}', got {text!r}")
     body, question, query = text.partition("?")

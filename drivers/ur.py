@@ -1,7 +1,7 @@
 """Universal Robots arms through ``ur_rtde`` (pinned to 1.6.5): :class:`URArm`.
 
 Poses cross the interface as dual quaternions ``T_base_tool``; the controller speaks
-``[x, y, z, rx, ry, rz]`` (metres, rotation vector), converted by :mod:`drivers.rotvec`.
+``[x, y, z, rx, ry, rz]`` (metres, rotation vector), converted by :mod:`dqpose.drivers.rotvec`.
 
 Safety, enforced here and not left to the caller: every set-point is checked against the
 :class:`~drivers.base.Limits` as every arm checks them and refused (the arm is stopped,
@@ -29,10 +29,10 @@ from typing import Optional
 
 import numpy as np
 
-from drivers.base import Arm, ArmError, ArmState, LimitError, Limits, Pacer, unit_pose
-from drivers.rotvec import pose_from_rotvec, rotvec_from_pose, rotvec_from_quat
-from drivers.rtde import DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT, request_version
-from service import dq
+from dqpose.drivers.base import Arm, ArmError, ArmState, LimitError, Limits, Pacer, unit_pose
+from dqpose.drivers.rotvec import pose_from_rotvec, rotvec_from_pose, rotvec_from_quat
+from dqpose.drivers.rtde import DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT, request_version
+from dqpose import dq
 
 CB3_MAJOR = 3
 _SAFETY_STOPS = ("emergency stop", "protective stop")
@@ -117,7 +117,7 @@ class URArm(Arm):
     """A UR arm (CB3 or e-series) commanded in tool space through ``ur_rtde``.
 
     ``frequency`` defaults to the controller's (500 Hz e-series, 125 Hz CB3). The keys of
-    :data:`drivers.spec.ARM_KEYS` (``options``): ``watchdog`` is how long ``servo()`` may stall
+    :data:`dqpose.drivers.spec.ARM_KEYS` (``options``): ``watchdog`` is how long ``servo()`` may stall
     before the arm is stopped (``watchdog_periods``, the older way, counts it in periods);
     ``stale_after`` is how long (s) data timestamps may stand still before the controller counts
     as lost; ``connect_timeout`` bounds the reachability probe (``ur_rtde``'s own constructor

@@ -7,7 +7,7 @@ them differently. DIB gives the exact bi-invariant weighted mean; DLB is its fas
 """
 import numpy as np
 
-from service import dq
+from dqpose import dq
 
 
 def angle_deg(a, b):

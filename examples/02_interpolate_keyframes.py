@@ -8,8 +8,8 @@ point on the line and slerps the orientation, which is what most arm users expec
 """
 import numpy as np
 
-from service import dq
-from service.interpolate import interpolate
+from dqpose import dq
+from dqpose.interpolate import interpolate
 
 times_k = np.array([0.0, 2.0])
 keyframes = dq.from_pose(np.array([[1.0, 0, 0, 0], [np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)]]),

@@ -1,7 +1,7 @@
 """03 — Start the gRPC server and call it from Python.
 
 Starts `dqpose serve` on a free port (as `make run` does on 50051), blends and interpolates
-through `service.rpc.client.Client`, shows the error a bad request gets, then stops the server with
+through `dqpose.rpc.client.Client`, shows the error a bad request gets, then stops the server with
 SIGTERM, which drains calls in flight and exits 0.
 
     .venv/bin/python examples/03_server_and_client.py
@@ -13,10 +13,10 @@ import sys
 
 import numpy as np
 
-from service import dq
-from service.rpc.client import Client
+from dqpose import dq
+from dqpose.rpc.client import Client
 
-server = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", "0"],
+server = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "serve", "--port", "0"],
                           stderr=subprocess.PIPE, text=True)
 address = json.loads(server.stderr.readline())["address"]   # the first log line says where
 print("server on", address)

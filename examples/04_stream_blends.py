@@ -14,8 +14,8 @@ import time
 
 import numpy as np
 
-from service import dq
-from service.rpc.client import Client
+from dqpose import dq
+from dqpose.rpc.client import Client
 
 rng = np.random.default_rng(4)
 true = dq.from_pose([1.0, 0, 0, 0], [0.5, 0.0, 0.2])
@@ -29,7 +29,7 @@ def measurements(n=6):
 
 
 sets = [measurements() for _ in range(2000)]
-server = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", "0",
+server = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "serve", "--port", "0",
                            "--no-call-log"], stderr=subprocess.PIPE, text=True)
 address = json.loads(server.stderr.readline())["address"]
 try:

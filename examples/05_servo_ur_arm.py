@@ -9,12 +9,12 @@ workspace limits. Against a real arm, drop the simulator and pass the robot's ad
 """
 import numpy as np
 
-from drivers.sim.ursim import URSimProcess
-from drivers.base import LimitError
-from drivers.ur import URArm
-from service import dq
-from service.interpolate import interpolate
-from service.profile import smoothstep
+from dqpose.drivers.sim.ursim import URSimProcess
+from dqpose.drivers.base import LimitError
+from dqpose.drivers.ur import URArm
+from dqpose import dq
+from dqpose.interpolate import interpolate
+from dqpose.profile import smoothstep
 
 with URSimProcess() as sim, URArm(sim.host) as arm:
     print(f"connected to {sim.host}, controller period {arm.period * 1e3:.0f} ms")

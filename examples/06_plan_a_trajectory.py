@@ -9,7 +9,7 @@ and the planner says which limit decided each segment.
 """
 import numpy as np
 
-from service import dq, trajectory
+from dqpose import dq, trajectory
 
 limits = trajectory.Limits(max_linear_velocity=0.25, max_angular_velocity=1.0,
                            max_linear_acceleration=1.0, max_angular_acceleration=2.0,

@@ -10,12 +10,12 @@ stops. A plan that does not start where the arm is gets refused, never jumped to
 """
 import numpy as np
 
-import drivers
-from drivers.executor import Executor
-from drivers.sim.ursim import URSimProcess
-from service import dq, trajectory
-from service.cli.common import local_server
-from service.rpc.client import Client, RpcError
+from dqpose import drivers
+from dqpose.drivers.executor import Executor
+from dqpose.drivers.sim.ursim import URSimProcess
+from dqpose import dq, trajectory
+from dqpose.cli.common import local_server
+from dqpose.rpc.client import Client, RpcError
 
 limits = trajectory.Limits(max_linear_velocity=0.1, max_angular_velocity=0.5,
                            max_linear_acceleration=0.5, max_angular_acceleration=1.0,

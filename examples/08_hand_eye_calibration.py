@@ -2,7 +2,7 @@
 
 A camera on a robot's flange (eye-in-hand) looks at a ChArUco board on the table from 12 robot
 poses. Each view is rendered by the simulated camera and detected by the real detector
-(`drivers.camera.CharucoCamera`), and the flange poses and detections go to the HandEye service,
+(`dqpose.drivers.camera.CharucoCamera`), and the flange poses and detections go to the HandEye service,
 each view weighed by its detector covariance. The answer comes with a covariance: the true camera
 mount lies within it. Then the same service refuses a data set it cannot solve (every rotation
 about one axis) and says why, rather than answering. `dqpose handeye capture|solve` is the same
@@ -18,11 +18,11 @@ import sys
 
 import numpy as np
 
-from drivers.camera import BoardSpec, CharucoCamera
-from drivers.rotvec import pose_from_rotvec
-from drivers.sim.camera import DEFAULT_INTRINSICS, BoardRenderer, random_view
-from service import dq, lie
-from service.rpc.client import Client, RpcError
+from dqpose.drivers.camera import BoardSpec, CharucoCamera
+from dqpose.drivers.rotvec import pose_from_rotvec
+from dqpose.drivers.sim.camera import DEFAULT_INTRINSICS, BoardRenderer, random_view
+from dqpose import dq, lie
+from dqpose.rpc.client import Client, RpcError
 
 board = BoardSpec()                                             # 7x5, 40 mm squares
 X = pose_from_rotvec([0.06, -0.02, 0.04, 0.08, -0.12, 1.4])     # T_flange_camera: the unknown
@@ -42,7 +42,7 @@ base_flange = np.array(flanges)
 camera_target = np.array([d.pose for d in detections])
 print(f"{len(detections)} views detected")
 
-server = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", "0"],
+server = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "serve", "--port", "0"],
                           stderr=subprocess.PIPE, text=True)
 address = json.loads(server.stderr.readline())["address"]
 try:

@@ -1,6 +1,6 @@
 """Pose fusion: n measurements of one rigid body in, one estimate with an honest covariance out.
 
-Conventions (stated once; :mod:`service.lie` holds the tangent-space tools used here):
+Conventions (stated once; :mod:`dqpose.lie` holds the tangent-space tools used here):
 
 * A covariance is 6×6, row-major, **rotation first** (``[ωx ωy ωz vx vy vz]``, radians then
   metres), for a **right (body-frame) perturbation**: the true pose is ``T · Exp(ξ)``,
@@ -11,14 +11,14 @@ Conventions (stated once; :mod:`service.lie` holds the tangent-space tools used 
   frame ``T_flange_body``; the fused pose is ``T_world_body``. A measurement enters the fusion as
   ``T_world_frame · T_frame_body · T_flange_body``; the constant extrinsic on the left leaves its
   covariance as it is, the constant offset on the right maps it exactly to
-  ``Ad(O⁻¹) Σ Ad(O⁻¹)ᵀ`` (:func:`service.lie.cov_compose`).
+  ``Ad(O⁻¹) Σ Ad(O⁻¹)ᵀ`` (:func:`dqpose.lie.cov_compose`).
 * The residual of measurement ``Z_i`` at the estimate ``X`` is ``r_i = Log(X⁻¹ Z_i)``; its
   negative is GTSAM's ``PriorFactorPose3`` error ``Log(Z_i⁻¹ X)``, so both minimise the same cost
   ``Σ r_iᵀ Σ_i⁻¹ r_i``. Its exact Jacobian for ``X · Exp(δ)`` is ``-Jl⁻¹(r_i) = -Jr⁻¹(-r_i)``.
 * Scalar weights are the isotropic special case: ``Σ_i = I / w_i``.
 
 The maximum-likelihood estimate is found by Gauss–Newton on SE(3) from the DIB mean
-(:func:`service.dq.dib`) until a step is shorter than ``tol``, in the C core (``fusion.c``); its covariance is the inverse of the
+(:func:`dqpose.dq.dib`) until a step is shorter than ``tol``, in the C core (``fusion.c``); its covariance is the inverse of the
 information ``Σ Jᵢᵀ Σᵢ⁻¹ Jᵢ`` at the optimum (GTSAM's marginal). The robust mode starts from the
 largest pairwise-consistent group and gates every measurement on its leave-one-out normalised
 innovation squared (NIS: the measurement against the fit of the other inliers, ``χ²`` with 6 degrees
@@ -69,10 +69,10 @@ from typing import Iterable, NamedTuple, Optional, Sequence
 
 import numpy as np
 
-from service import _dqcore as _c
-from service import dq, lie
-from service import limits as _limits
-from service.errors import rename
+from dqpose import _dqcore as _c
+from dqpose import dq, lie
+from dqpose import limits as _limits
+from dqpose.errors import rename
 
 __all__ = ["DOF", "Status", "Verdict", "Source", "Rejection", "SourceStats", "Fused",
            "fuse", "chi2_quantile", "Dropped", "Latency", "Measurement", "Window", "Tracker"]
@@ -1258,7 +1258,7 @@ class Tracker:
     body's window at a time with :func:`fuse` (its keyword options are those given here).
     Bodies are independent: nothing of one enters another's estimate.
 
-    ``limits`` (a server's :class:`service.limits.Limits`; None: unbounded) bounds what a stream
+    ``limits`` (a server's :class:`dqpose.limits.Limits`; None: unbounded) bounds what a stream
     keeps: a body's window holds its last ``max_window`` measurements (``max_robust`` when
     robust, ``max_correlated`` with an ``acceleration_psd``), the stream
     ``max_stream_measurements`` in all (more are refused), and a measurement taken more than

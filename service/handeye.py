@@ -1,6 +1,6 @@
 """Hand-eye calibration: robot and camera poses in, the camera's mount with an honest covariance out.
 
-Conventions (the rest of dqpose's, :mod:`service.dq` and :mod:`service.lie`):
+Conventions (the rest of dqpose's, :mod:`dqpose.dq` and :mod:`dqpose.lie`):
 
 * ``base_flange`` are the robot's ``T_base_flange`` ``(n, 8)``; ``camera_target`` the detector's
   ``T_camera_target`` ``(n, 8)``; sample i is the pair of row i of each.
@@ -13,7 +13,7 @@ Conventions (the rest of dqpose's, :mod:`service.dq` and :mod:`service.lie`):
   absolute poses.
 * Covariances are 6×6, rotation first ``[ωx ωy ωz vx vy vz]``, of a right (body-frame)
   perturbation ``T · Exp(ξ)`` with the SE(3) exponential: GTSAM's ``Pose3`` convention, the one
-  of :mod:`service.fusion`. A noise covariance given for the poses uses it too (robot: the
+  of :mod:`dqpose.fusion`. A noise covariance given for the poses uses it too (robot: the
   perturbation of ``T_base_flange``; camera: of ``T_camera_target``).
 
 The solution, in order:
@@ -24,10 +24,10 @@ The solution, in order:
    ``_MIN_PAIR_ANGLE`` or nearly half a turn (sign ill-defined) left out, and samples whose pairs
    are not screw-congruent (rotation angle and pitch of the two motions must agree) left out of
    it; the 6 m × 8 system solved by SVD, then re-solved with Huber weights on each pair's
-   residual (robust averaging). ``Z`` is then the DIB mean (:func:`service.dq.dib`) of the
+   residual (robust averaging). ``Z`` is then the DIB mean (:func:`dqpose.dq.dib`) of the
    per-sample estimates ``A_i X C_i``.
 2. **Maximum likelihood** on ``(X, Z)``: Gauss–Newton on SE(3)×SE(3) with right perturbations
-   and exact Jacobians (:mod:`service.lie`) of the residuals ``r_i = Log(Z⁻¹ A_i X C_i)``. Noise on
+   and exact Jacobians (:mod:`dqpose.lie`) of the residuals ``r_i = Log(Z⁻¹ A_i X C_i)``. Noise on
    both the robot and the camera poses enters through each residual's covariance
    ``Σ_r,i = Jr⁻¹(r_i) (Ad(K_i⁻¹) Σ_A,i Ad(K_i⁻¹)ᵀ + Σ_C,i) Jr⁻ᵀ``, ``K_i = X C_i``
    (the errors-in-variables problem with the true poses eliminated, to first order), re-evaluated
@@ -64,8 +64,8 @@ The solution, in order:
    off the markers, and end to end the mean NEES is 5.5–5.7 (three seeds of 200 trials).
 
 Data checks (:func:`check` and :func:`calibrate`): malformed input is a
-:class:`~service.errors.FieldError` naming the argument and index; unusable data an
-:class:`~service.errors.Infeasible` naming the reason and the samples (fewer than 3 distinct
+:class:`~dqpose.errors.FieldError` naming the argument and index; unusable data an
+:class:`~dqpose.errors.Infeasible` naming the reason and the samples (fewer than 3 distinct
 poses, no rotation between samples, rotation axes all parallel, poses that do not correspond,
 millimetres given as metres, the data fitting another reading far better: setup swapped or a pose
 convention inverted); anything doubtful but solvable a warning naming the samples (duplicates,
@@ -95,8 +95,8 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
-from service import dq, fusion, lie
-from service.errors import FieldError, Infeasible, rename
+from dqpose import dq, fusion, lie
+from dqpose.errors import FieldError, Infeasible, rename
 
 __all__ = ["SETUPS", "Calibration", "Rejection", "calibrate", "check", "flange_for", "next_best_pose",
            "view_at"]

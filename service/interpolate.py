@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from service import dq
-from service.errors import rename
+from dqpose import dq
+from dqpose.errors import rename
 
 MODES = ("screw", "tool_linear")
 

@@ -3,10 +3,10 @@
 Conventions (stated once; they are GTSAM's Pose3 conventions):
 
 * A twist is ``xi = [wx, wy, wz, vx, vy, vz]``, rotation first, ``(..., 6)``; a rotation vector
-  is ``w``, ``(..., 3)``. Poses are unit dual quaternions ``(..., 8)`` as in :mod:`service.dq`.
+  is ``w``, ``(..., 3)``. Poses are unit dual quaternions ``(..., 8)`` as in :mod:`dqpose.dq`.
 * ``se3_exp(xi)`` is the full SE(3) exponential (rotation ``Exp(w)``, translation ``Jl(w) v``),
   GTSAM's ``Pose3.Expmap``; ``se3_log`` its inverse with the rotation angle in ``[0, pi]``.
-  :func:`service.dq.log` is half of this twist: ``se3_exp(xi) == dq.exp(xi / 2)``.
+  :func:`dqpose.dq.log` is half of this twist: ``se3_exp(xi) == dq.exp(xi / 2)``.
 * A covariance is 6x6 row-major, rotation first ``[wx wy wz vx vy vz]``, of a right (body-frame)
   perturbation ``T * Exp(xi)``: GTSAM's Pose3 convention (``Pose3.retract``).
   A left (world-frame) perturbation is ``Exp(xi) * T``.
@@ -27,8 +27,8 @@ from typing import Optional
 
 import numpy as np
 
-from service import dq
-from service.errors import rename
+from dqpose import dq
+from dqpose.errors import rename
 
 __all__ = [
     "so3_hat", "so3_vee", "se3_hat", "se3_vee", "se3_exp", "se3_log", "adjoint",

@@ -43,7 +43,7 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 
-from service.errors import FieldError
+from dqpose.errors import FieldError
 
 #: a request of at most this many bytes is served on the event loop (its work, linear in its
 #: size, stays under ~1 ms); a larger one in the worker pool (``workers``)

@@ -40,7 +40,7 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-from service import dq
+from dqpose import dq
 
 __all__ = [
     "Method", "Cell", "Table", "METHODS", "PROPERTIES", "PAPER", "DEFAULT_TOL",

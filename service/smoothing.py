@@ -79,9 +79,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from service import dq, lie
-from service.trajectory import Limits, Peaks, peaks  # noqa: F401 (Peaks: part of the API)
-from service.errors import Infeasible, rename, require
+from dqpose import dq, lie
+from dqpose.trajectory import Limits, Peaks, peaks  # noqa: F401 (Peaks: part of the API)
+from dqpose.errors import Infeasible, rename, require
 
 __all__ = ["CUTOFF_HZ", "Infeasible", "Peaks", "peaks", "smooth"]
 

@@ -32,9 +32,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from service import _dqcore as _c
-from service import dq
-from service.errors import FieldError, FieldInfeasible, rename
+from dqpose import _dqcore as _c
+from dqpose import dq
+from dqpose.errors import FieldError, FieldInfeasible, rename
 
 __all__ = ["INTERPOLATIONS", "Limits", "Waypoint", "Segment", "Samples", "Trajectory",
            "Infeasible", "plan", "Derivatives", "derivatives", "Peaks", "peaks"]
@@ -302,7 +302,7 @@ def plan(waypoints, limits: Limits, interpolation: str = "tool_linear", *,
     (replanning while moving) first follows the motion it is on, blended into the first segment
     as at a corner (``_plan_redirected``), so the path leaves waypoint 0 the way the tool moves.
 
-    Errors: ``ValueError`` (:class:`~service.errors.FieldError`) naming the field, e.g.
+    Errors: ``ValueError`` (:class:`~dqpose.errors.FieldError`) naming the field, e.g.
     ``waypoints[3].blend_radius: ...`` or ``limits.max_linear_velocity: ...``; :class:`Infeasible`
     when a waypoint's time or the start velocity cannot be met under the limits.
     """

@@ -3,7 +3,7 @@ measurement, Levenberg-Marquardt, the marginal. Import only where ``gtsam`` is i
 import gtsam
 import numpy as np
 
-from service import dq
+from dqpose import dq
 
 
 def priors(Z, S, start=None):

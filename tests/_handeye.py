@@ -40,7 +40,7 @@ from typing import Optional
 
 import numpy as np
 
-from service import dq, handeye, lie
+from dqpose import dq, handeye, lie
 
 SETUPS = ("eye_in_hand", "eye_to_hand")
 GEOMETRIES = ("wrist", "opencv")

@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from service import trajectory
+from dqpose import trajectory
 
 
 class Peaks(NamedTuple):
@@ -23,7 +23,7 @@ class Peaks(NamedTuple):
 
 
 def derivatives(times: np.ndarray, poses: np.ndarray):
-    """Linear and angular [velocity, acceleration, jerk] arrays (service.trajectory.derivatives,
+    """Linear and angular [velocity, acceleration, jerk] arrays (dqpose.trajectory.derivatives,
     the one finite-difference measure)."""
     d = trajectory.derivatives(times, poses)
     return ([d.velocity, d.acceleration, d.jerk],

@@ -1,5 +1,5 @@
 """The maximum-likelihood fusion in NumPy: the reference the C core (``service/csrc/fusion.c``)
-is tested against. The same math, written with :mod:`service.lie`'s vectorised Jacobians.
+is tested against. The same math, written with :mod:`dqpose.lie`'s vectorised Jacobians.
 
 The static fit (:func:`fit`, ``dq_fuse``):
 
@@ -17,7 +17,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from service import dq, fusion, lie
+from dqpose import dq, fusion, lie
 
 COST_SLACK = 1e-12
 MAX_HALVINGS = 30
@@ -137,8 +137,8 @@ def determined_without_each(model, inlier) -> np.ndarray:
 
 def motion_fit(Z, S, model, inlier, start, tested, tol=1e-12, max_iter=100) -> MotionFit:
     """The constant-twist fit (``dq_motion_fit``) of the measurements ``inlier`` selects from
-    ``start`` (``model`` a :class:`service.fusion._Model` without ``accel``): the Gauss-Newton
-    loop of :func:`service.fusion._motion_solve` with the measurements' own (block-diagonal)
+    ``start`` (``model`` a :class:`dqpose.fusion._Model` without ``accel``): the Gauss-Newton
+    loop of :func:`dqpose.fusion._motion_solve` with the measurements' own (block-diagonal)
     information; then at the estimate the information ``H = Σ G_iᵀ W_i G_i`` of the inliers
     plus the priors' and, where ``tested``, the leave-one-out NIS ``νᵀ (S + K)⁻¹ ν`` with
     ``K = G Hj⁻¹ Gᵀ``, ``Hj`` the priors' and the other inliers' information (summed, so a

@@ -3,7 +3,7 @@ measurements' covariances say and on the injected outliers being the gross error
 import numpy as np
 import pytest
 
-from service import dq, lie
+from dqpose import dq, lie
 from tests.bench import bench_fusion as bench
 
 

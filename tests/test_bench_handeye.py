@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service import dq, lie
+from dqpose import dq, lie
 from tests import _handeye
 from tests.bench import bench_handeye as bench
 
@@ -161,7 +161,7 @@ def test_ours_beats_opencv_on_the_issues_rows(opencv4, geometry):
     rotation (within 10 %: they are within a few % at 200 trials) and beats it in translation
     on the wrist geometry; on OpenCV's own geometry it is several times better in both."""
     if not bench.have_ours():
-        pytest.skip("service.handeye not there yet")
+        pytest.skip("dqpose.handeye not there yet")
     res = bench.run_case(bench.Case(geometry, 20, (0.1, 0.5), None), 40, 1, opencv4)
     rot, trans = np.median(res[bench.OURS].rot), np.median(res[bench.OURS].trans)
     best_rot, best_trans = _best_opencv(res)
@@ -177,7 +177,7 @@ def test_ours_beats_opencv_end_to_end(opencv4):
     """Rendered ChArUco views, detected: ours given the detector's covariances beats every OpenCV
     method on the same detections."""
     if not bench.have_ours():
-        pytest.skip("service.handeye not there yet")
+        pytest.skip("dqpose.handeye not there yet")
     res, rejected = bench.run_charuco(3, 1, opencv4)
     assert bench.OURS_COVARIANCE in res
     best_rot, best_trans = _best_opencv(res)

@@ -11,7 +11,7 @@ import subprocess
 
 import pytest
 
-from service import _dqcore
+from dqpose import _dqcore
 
 # The batch loops built as clones; each AVX2 clone must use the 256-bit registers throughout.
 CLONED = ("dq_sclerp_pairs", "log_sum")

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 import reference as ref
 from conftest import random_dqs, random_quaternions
-from service import dq
+from dqpose import dq
 
 TOL = 1e-12
 N = 5000
@@ -523,7 +523,7 @@ def test_lin_projection_near_ties(rng, gap):
 
 
 def test_the_method_table_is_the_c_enum():
-    from service import _dqcore
+    from dqpose import _dqcore
     assert _dqcore.METHODS == {name.upper(): m.code for name, m in dq.METHODS.items()}
     assert all(m.description and m.label.lower() == name for name, m in dq.METHODS.items())
 

@@ -1,5 +1,5 @@
-"""service.errors: the core's argument names replaced by the caller's field paths."""
-from service.errors import FieldError, rename
+"""dqpose.errors: the core's argument names replaced by the caller's field paths."""
+from dqpose.errors import FieldError, rename
 
 
 def test_rename_maps_the_core_argument_to_the_field_path():
@@ -13,7 +13,7 @@ def test_rename_maps_the_core_argument_to_the_field_path():
 
 
 def test_rename_all_maps_every_argument_the_message_names():
-    from service.errors import Infeasible, rename_all
+    from dqpose.errors import Infeasible, rename_all
     names = {"a": "pairs{}.first", "b": "pairs{}.second"}
     e = rename_all(Infeasible("a, b[2]: apart; b[2] against a[0]"), names)
     assert str(e) == "pairs.first, pairs[2].second: apart; pairs[2].second against pairs[0].first"
@@ -28,7 +28,7 @@ def test_each_optional_module_is_in_the_extra_it_is_said_to_be_in():
     import re
     from importlib import metadata
 
-    from service.errors import EXTRA_OF
+    from dqpose.errors import EXTRA_OF
     extras: dict[str, set] = {}
     for req in metadata.requires("dqpose"):
         m = re.search(r"extra\s*==\s*['\"]([\w-]+)['\"]", req)
@@ -45,7 +45,7 @@ def test_each_optional_module_is_in_the_extra_it_is_said_to_be_in():
 def test_the_install_hint_is_what_pip_takes_here(tmp_path, monkeypatch):
     import os
 
-    from service.errors import MissingExtra, install_hint, require
+    from dqpose.errors import MissingExtra, install_hint, require
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     monkeypatch.chdir(root)       # make's editable install, from its clone
     assert install_hint("plot") == "install dqpose with the [plot] extra: pip install '.[plot]'"

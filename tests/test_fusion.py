@@ -1,10 +1,10 @@
-"""service.fusion: exact ML fusion against GTSAM (prior factors, LM, marginals), NEES over seeded
+"""dqpose.fusion: exact ML fusion against GTSAM (prior factors, LM, marginals), NEES over seeded
 trials, the robust gate against gross outliers, per-source NIS and frames transport."""
 import numpy as np
 import pytest
 
-from service import dq, fusion, lie
-from service.fusion import Source, Status, Verdict
+from dqpose import dq, fusion, lie
+from dqpose.fusion import Source, Status, Verdict
 
 gtsam = pytest.importorskip("gtsam")
 from tests import _gtsam  # noqa: E402  (needs gtsam)

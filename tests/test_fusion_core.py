@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from service import _dqcore as _c
-from service import dq, fusion, lie
+from dqpose import _dqcore as _c
+from dqpose import dq, fusion, lie
 
 import fusion_reference as ref
 from test_fusion import measure, random_cov, random_pose
@@ -190,7 +190,7 @@ def motion_scene(rng, n, estimate=(True, True), twist_prior=False, one_instant=F
                  cov=random_cov):
     """n measurements of a body on a screw by three sources (latencies 20, 5, 0 ms; the first two
     estimated from 30 ± 10 and 0 ± 10 ms where ``estimate`` says), stamped over 0.1 s before the
-    fusion time 0: the poses, covariances and the model of service.fusion."""
+    fusion time 0: the poses, covariances and the model of dqpose.fusion."""
     X0, V0 = random_pose(rng), rng.normal(size=6) * np.array([1, 1, 1, 0.3, 0.3, 0.3])
     source = np.arange(n) % 3
     truth = np.array([0.02, 0.005, 0.0])[source]

@@ -1,12 +1,12 @@
-"""service.fusion over time: a moving body seen by 30 Hz cameras with 40 ms latency and a 500 Hz
+"""dqpose.fusion over time: a moving body seen by 30 Hz cameras with 40 ms latency and a 500 Hz
 arm, fused at the query time under the constant-twist model (accuracy against each source alone,
 NEES, latency compensation and its online estimate, skew, extrapolation), the exact Jacobians, and
-the per-body sliding window (:class:`service.fusion.Tracker`)."""
+the per-body sliding window (:class:`dqpose.fusion.Tracker`)."""
 import numpy as np
 import pytest
 
-from service import dq, fusion, lie
-from service.fusion import Measurement, Source, Status, Tracker
+from dqpose import dq, fusion, lie
+from dqpose.fusion import Measurement, Source, Status, Tracker
 
 CAMERA_RATE, ARM_RATE = 30.0, 500.0
 LATENCY = 0.04          # the cameras'; the arm's is 4 ms

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 import _handeye as H
-from service import dq, handeye, lie
-from service.errors import FieldError, Infeasible
+from dqpose import dq, handeye, lie
+from dqpose.errors import FieldError, Infeasible
 
 CASES = [(setup, geometry) for setup in H.SETUPS for geometry in H.GEOMETRIES]
 

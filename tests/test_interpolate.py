@@ -6,8 +6,8 @@ import pytest
 from pytransform3d import rotations as pr
 from pytransform3d import transformations as pt
 
-from service import dq
-from service.interpolate import interpolate
+from dqpose import dq
+from dqpose.interpolate import interpolate
 
 
 def _keyframes(rng, k=4):

@@ -1,10 +1,10 @@
-"""service.lie against finite differences, closed-form identities, an independent SE(3) reference
+"""dqpose.lie against finite differences, closed-form identities, an independent SE(3) reference
 (tests/reference.py, 4x4 matrices), Monte-Carlo covariance transport and, where installed, GTSAM."""
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from service import dq, lie
+from dqpose import dq, lie
 from tests import reference as ref
 
 RNG = np.random.default_rng(20240607)

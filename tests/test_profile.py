@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from service.profile import Trapezoid, smoothstep
+from dqpose.profile import Trapezoid, smoothstep
 
 
 @pytest.mark.parametrize("length, speed, accel", [(1.0, 0.5, 2.0),     # trapezoid

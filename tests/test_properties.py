@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service import dq
-from service import properties as props
+from dqpose import dq
+from dqpose import properties as props
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -163,7 +163,7 @@ def test_bad_arguments_name_the_argument():
 
 def _dqpose() -> list[str]:
     script = Path(sys.executable).with_name("dqpose")
-    return [str(script)] if script.exists() else [sys.executable, "-m", "service.cli"]
+    return [str(script)] if script.exists() else [sys.executable, "-m", "dqpose.cli"]
 
 
 def _run(*args: str) -> subprocess.CompletedProcess:

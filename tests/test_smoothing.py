@@ -8,8 +8,8 @@ import re
 import numpy as np
 import pytest
 
-from service import dq, smoothing
-from service.smoothing import Infeasible, Limits, peaks, smooth
+from dqpose import dq, smoothing
+from dqpose.smoothing import Infeasible, Limits, peaks, smooth
 
 
 # ---- the synthetic recording (the benchmark uses the same) ---------------------------------------
@@ -288,7 +288,7 @@ def test_bad_options_are_rejected_by_name(kwargs, message):
 
 
 # Limits checks itself (issue 10's contract: a ValueError starting with the field's path); the
-# wording after the path is service.trajectory's.
+# wording after the path is dqpose.trajectory's.
 @pytest.mark.parametrize("field, value, message", [
     ("max_linear_velocity", 0.0, r"^limits\.max_linear_velocity: "),
     ("max_angular_acceleration", -1.0, r"^limits\.max_angular_acceleration: "),

@@ -10,8 +10,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from service import dq
-from service.trajectory import (INTERPOLATIONS, Infeasible, Limits, Waypoint, plan)
+from dqpose import dq
+from dqpose.trajectory import (INTERPOLATIONS, Infeasible, Limits, Waypoint, plan)
 from tests._kinematics import NOISE_1KHZ, derivatives, peaks, violation
 
 LIMITS = Limits(max_linear_velocity=1.0, max_angular_velocity=2.0, max_linear_acceleration=2.0,

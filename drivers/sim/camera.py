@@ -4,7 +4,7 @@ given pinhole intrinsics, so the real detector runs on real pixels.
 The board texture is warped into the image with the homography ``K [r1 r2 t] S`` (``S`` maps
 texture pixels to board metres), at 4x supersampling, then downsampled with ``INTER_AREA``
 (which averages, like a sensor pixel integrates light); optional Gaussian blur and noise follow.
-Board frame as in :mod:`drivers.camera`: origin at the outer top-left chessboard corner, x along
+Board frame as in :mod:`dqpose.drivers.camera`: origin at the outer top-left chessboard corner, x along
 the squares, y down the board, z into the board.
 
 From the shell: ``dqpose sim camera --out DIR --count 20`` writes rendered views and their true
@@ -22,8 +22,8 @@ from typing import Optional, Sequence
 import cv2
 import numpy as np
 
-from drivers.camera import BoardSpec, Intrinsics
-from service import dq
+from dqpose.drivers.camera import BoardSpec, Intrinsics
+from dqpose import dq
 
 __all__ = ["BoardRenderer", "look_at", "random_view", "main", "add_arguments", "run",
            "DEFAULT_INTRINSICS"]
@@ -37,7 +37,7 @@ _SS = 4  # supersampling factor
 
 
 class BoardRenderer:
-    """Renders ``board`` (a :class:`drivers.camera.BoardSpec`) into ``intrinsics``' images.
+    """Renders ``board`` (a :class:`dqpose.drivers.camera.BoardSpec`) into ``intrinsics``' images.
 
     ``pixels_per_metre`` sets the texture resolution; it should exceed the image's pixels per
     metre on the board times the supersampling factor, or the render gets soft.
@@ -161,7 +161,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from drivers.camera import load_board, load_intrinsics
+    from dqpose.drivers.camera import load_board, load_intrinsics
     if args.count < 1:
         print("dqpose sim camera: --count must be at least 1")
         return 2

@@ -46,7 +46,7 @@ class Fleet(contextlib.ExitStack):
         super().__enter__()
         try:
             if "ur" in self.devices:
-                from drivers.sim.ursim import URSimProcess
+                from dqpose.drivers.sim.ursim import URSimProcess
                 try:
                     sim = self.enter_context(URSimProcess())
                 except RuntimeError as e:   # as OSError: the CLI reports it in one line
@@ -78,7 +78,7 @@ class Fleet(contextlib.ExitStack):
     def _piper(self) -> dict:
         import importlib.util
 
-        from drivers.sim.piper import PiperSimProcess
+        from dqpose.drivers.sim.piper import PiperSimProcess
         if importlib.util.find_spec("msgpack") is None:
             # python-can's udp_multicast encodes frames with msgpack (python-can[multicast])
             return {"device": "piper", "error": "not started: python-can's udp_multicast bus "
@@ -96,7 +96,7 @@ class Fleet(contextlib.ExitStack):
     def _camera(self) -> dict:
         import argparse
 
-        from drivers.sim import camera
+        from dqpose.drivers.sim import camera
         folder = self.camera_dir
         if folder is None:
             folder = self.enter_context(tempfile.TemporaryDirectory(prefix="dqpose-camera-"))

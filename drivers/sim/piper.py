@@ -14,7 +14,7 @@ fault a test injected (``emergency_stop``, ``collide``, ``set_joint_errors``, ``
 While a stop or fault stands the arm halts where it is, drops its target and ignores end-pose
 commands; ``clear_faults`` ends it, and the arm then waits for a new target.
 
-From the shell: ``dqpose sim piper`` (or ``python -m drivers.sim.piper``) serves on python-can's
+From the shell: ``dqpose sim piper`` (or ``python -m dqpose.drivers.sim.piper``) serves on python-can's
 ``udp_multicast`` interface, group ``239.74.163.2``: a bus that crosses processes on one machine
 without root or a CAN adapter (hop limit 1, so frames stay on the local link), reached with
 ``drivers.open_arm("piper:udp_multicast:239.74.163.2")``. On a CAN adapter or a ``vcan``
@@ -34,15 +34,15 @@ from typing import Optional, Sequence
 import can
 import numpy as np
 
-from drivers.base import pose_delta, tool_line
-from drivers.sim import end_process, start_process, stop_when_orphaned
-from drivers.euler import dq_from_xyz_sxyz
-from drivers.piper import (ARM_COLLISION, ARM_EMERGENCY_STOP, ARM_NORMAL, COMMAND_BLOCK,
+from dqpose.drivers.base import pose_delta, tool_line
+from dqpose.drivers.sim import end_process, start_process, stop_when_orphaned
+from dqpose.drivers.euler import dq_from_xyz_sxyz
+from dqpose.drivers.piper import (ARM_COLLISION, ARM_EMERGENCY_STOP, ARM_NORMAL, COMMAND_BLOCK,
                            CTRL_MODE_CAN, END_POSE_CTRL, END_POSE_FEEDBACK, MOTION_CTRL_2, MOVE_L,
                            MOVE_P, EndPoseAssembler, FrameError, MotionMode, StatusReport,
                            decode_motion_mode, encode_arm_status, encode_end_pose, pose_to_units,
                            units_to_pose)
-from service import dq
+from dqpose import dq
 
 __all__ = ["PiperSim", "PiperSimProcess", "HOME", "DEFAULT_INTERFACE", "DEFAULT_CHANNEL", "main",
            "add_arguments", "run"]
@@ -364,7 +364,7 @@ class PiperSimProcess:
                  args: tuple = (), timeout: float = 10.0):
         self.interface, self.channel = interface, channel
         self.spec = f"piper:{interface}:{channel}"
-        self.proc = start_process("drivers.sim.piper", "--interface", interface, "--channel",
+        self.proc = start_process("dqpose.drivers.sim.piper", "--interface", interface, "--channel",
                                   channel, *args)
         self.pid = self.proc.pid
         # The first line is printed once the bus is open; a failure ends the process instead.

@@ -21,7 +21,7 @@ protective or emergency stop; drop every client connection; restart (a reboot as
 see it); pause the data stream; change the model's speed limits (an arm that falls behind its
 set-points); exit.
 
-Run it with ``dqpose sim ur --host 127.0.0.2`` or ``python -m drivers.sim.ursim``.
+Run it with ``dqpose sim ur --host 127.0.0.2`` or ``python -m dqpose.drivers.sim.ursim``.
 """
 from __future__ import annotations
 
@@ -40,10 +40,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers import rtde as rp
-from drivers.rotvec import quat_from_rotvec, rotvec_from_quat
-from drivers.sim import end_process, start_process, stop_when_orphaned
-from service.profile import Trapezoid
+from dqpose.drivers import rtde as rp
+from dqpose.drivers.rotvec import quat_from_rotvec, rotvec_from_quat
+from dqpose.drivers.sim import end_process, start_process, stop_when_orphaned
+from dqpose.profile import Trapezoid
 
 RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT = rp.RTDE_PORT, rp.DASHBOARD_PORT, rp.SCRIPT_PORT
 HOOK_PORT = 30010
@@ -857,7 +857,7 @@ class URSimProcess:
             if host is None and not _address_free(addr):
                 continue
             self.host = addr
-            self.proc = start_process("drivers.sim.ursim", "--host", addr, *args)
+            self.proc = start_process("dqpose.drivers.sim.ursim", "--host", addr, *args)
             err = self._wait_ready(timeout)
             if err is None:
                 return

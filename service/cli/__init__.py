@@ -14,23 +14,23 @@ import sys
 
 # command -> (module, help); in the order the help lists them
 COMMANDS = {
-    "serve": ("service.cli.serve", "run the gRPC server"),
-    "health": ("service.cli.serve", "check a server's gRPC health (exit 0 when SERVING)"),
-    "blend": ("service.cli.blend", "blend poses from a JSON, YAML or CSV file"),
-    "interpolate": ("service.cli.blend",
+    "serve": ("dqpose.cli.serve", "run the gRPC server"),
+    "health": ("dqpose.cli.serve", "check a server's gRPC health (exit 0 when SERVING)"),
+    "blend": ("dqpose.cli.blend", "blend poses from a JSON, YAML or CSV file"),
+    "interpolate": ("dqpose.cli.blend",
                     "interpolate between time-stamped keyframes from a JSON, YAML or CSV file"),
-    "fuse": ("service.cli.fuse", "fuse measurements of one body from a JSON, YAML or CSV file"),
-    "plan": ("service.cli.trajectory",
+    "fuse": ("dqpose.cli.fuse", "fuse measurements of one body from a JSON, YAML or CSV file"),
+    "plan": ("dqpose.cli.trajectory",
              "plan a limit-respecting motion through waypoints from a JSON, YAML or CSV file"),
-    "smooth": ("service.cli.trajectory",
+    "smooth": ("dqpose.cli.trajectory",
                "smooth a noisy recorded path under limits from a JSON, YAML or CSV file"),
-    "arm": ("service.cli.arm", "the arms a server drives: where each is, its state, limits "
+    "arm": ("dqpose.cli.arm", "the arms a server drives: where each is, its state, limits "
                                "and faults"),
-    "handeye": ("service.cli.handeye",
+    "handeye": ("dqpose.cli.handeye",
                 "hand-eye calibration: capture views on an arm, solve from images and robot poses"),
-    "demo": ("service.cli.demo", "blend and interpolate sample poses and print the results"),
-    "properties": ("service.cli.properties", "measure Table 1 of Kavan et al. on this build"),
-    "sim": ("service.cli.sim", "run a device simulator that speaks the real protocol"),
+    "demo": ("dqpose.cli.demo", "blend and interpolate sample poses and print the results"),
+    "properties": ("dqpose.cli.properties", "measure Table 1 of Kavan et al. on this build"),
+    "sim": ("dqpose.cli.sim", "run a device simulator that speaks the real protocol"),
 }
 
 
@@ -68,10 +68,10 @@ def main(argv: list[str] | None = None) -> int:
 
 def run() -> None:
     """The ``dqpose`` program: :func:`main`, then the process's end. Where a UR's ur_rtde
-    connections were left to that end (``drivers.ur.kept_to_exit``), the process ends without
+    connections were left to that end (``dqpose.drivers.ur.kept_to_exit``), the process ends without
     the interpreter's teardown, which their threads can crash (SIGSEGV after a clean stop)."""
     code = main()
-    ur = sys.modules.get("drivers.ur")
+    ur = sys.modules.get("dqpose.drivers.ur")
     if ur is not None and ur.kept_to_exit():
         import logging
         import os

@@ -1,3 +1,3 @@
-from service.cli import run
+from dqpose.cli import run
 
 run()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import sys
 
-from service.cli.common import client, connection_args, failure
+from dqpose.cli.common import client, connection_args, failure
 
 
 def configure(name: str, p) -> None:
@@ -46,7 +46,7 @@ def _pose(a):
     """``(x, y, z), (qw, qx, qy, qz)`` of the arm's pose with ``qw >= 0``, or None."""
     if a.pose is None:
         return None
-    from service import dq
+    from dqpose import dq
     q, t = dq.to_pose(a.pose)
     return [float(v) for v in t], [float(v) for v in (q if q[0] >= 0 else -q)]
 
@@ -67,7 +67,7 @@ def as_json(a) -> dict:
 
 def _limits() -> dict:
     """The arms' limits the server reports, by the proto's name: their units."""
-    from service.rpc.arms import ARM_LIMITS
+    from dqpose.rpc.arms import ARM_LIMITS
     return {name: unit for name, (_, unit) in ARM_LIMITS.items()}
 
 

@@ -1,11 +1,11 @@
 """``dqpose blend`` and ``dqpose interpolate``: poses from a JSON, YAML or CSV file (read by
-:mod:`service.cli.posefile`), computed on a server or ``--local``ly, printed as CSV or JSON."""
+:mod:`dqpose.cli.posefile`), computed on a server or ``--local``ly, printed as CSV or JSON."""
 from __future__ import annotations
 
 import argparse
 import sys
 
-from service.cli.common import client, connection_args, failure
+from dqpose.cli.common import client, connection_args, failure
 
 BLEND_CSV = "x,y,z,qw,qx,qy,qz[,weight]"
 INTERPOLATE_CSV = "t,x,y,z,qw,qx,qy,qz"
@@ -36,7 +36,7 @@ units: metres; quaternions scalar first (w, x, y, z), unit norm (within 1e-3: no
 def configure(name: str, p) -> None:
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     if name == "blend":
-        from service.dq import METHODS  # NumPy and the C core: only for this command's help
+        from dqpose.dq import METHODS  # NumPy and the C core: only for this command's help
 
         methods = "".join(f"  {m:8s}{spec.description}\n" for m, spec in METHODS.items())
         p.description = "Blend the poses in FILE into one (on the server at --target, or --local)."
@@ -73,8 +73,8 @@ def configure(name: str, p) -> None:
 
 
 def _blend(args) -> int:
-    from service import dq
-    from service.cli import posefile as io
+    from dqpose import dq
+    from dqpose.cli import posefile as io
 
     try:
         req = io.read_blend(args.file)
@@ -95,8 +95,8 @@ def _blend(args) -> int:
 
 
 def _interpolate(args) -> int:
-    from service.cli import posefile as io
-    from service.interpolate import interpolate
+    from dqpose.cli import posefile as io
+    from dqpose.interpolate import interpolate
 
     try:
         req = io.read_interpolate(args.file)

@@ -18,10 +18,10 @@ def fail(cmd: str, msg: str) -> int:
 
 
 def missing_extra(cmd: str, e: Exception) -> int:
-    """A module of an extra that is not installed (:class:`~service.errors.MissingExtra`, or the
+    """A module of an extra that is not installed (:class:`~dqpose.errors.MissingExtra`, or the
     ``ModuleNotFoundError`` of such a module): exit 2 saying which extra, and how to install it.
     Any other missing module is a broken install, raised on."""
-    from service.errors import MissingExtra, missing
+    from dqpose.errors import MissingExtra, missing
 
     e = missing(e) if isinstance(e, ModuleNotFoundError) else e
     if not isinstance(e, MissingExtra):
@@ -46,8 +46,8 @@ def connection_args(p: argparse.ArgumentParser) -> None:
 
 
 def client(args):
-    """The :class:`service.rpc.client.Client` the connection options describe."""
-    from service.rpc.client import Client
+    """The :class:`dqpose.rpc.client.Client` the connection options describe."""
+    from dqpose.rpc.client import Client
 
     token = read(args.token_file, "r").strip() if args.token_file else None
     return Client(args.target, token=token, tls=args.tls,
@@ -59,12 +59,12 @@ def client(args):
 def failure(cmd: str, args, e: Exception) -> int:
     """The one-line message and exit code of a command that computes here (``--local``) or on a
     server; what is neither bad input nor a failed call is raised on."""
-    from service.errors import MissingExtra
+    from dqpose.errors import MissingExtra
 
     if isinstance(e, (MissingExtra, ModuleNotFoundError)):
         return missing_extra(cmd, e)
     if not getattr(args, "local", False):
-        from service.rpc.client import RequestTooLarge, RpcError
+        from dqpose.rpc.client import RequestTooLarge, RpcError
 
         code = e.code.name if isinstance(e, RpcError) else None
         if isinstance(e, RequestTooLarge) or code == "RESOURCE_EXHAUSTED":
@@ -88,7 +88,7 @@ def open_arm(spec, process: bool, simulated: bool, **kwargs):
     ends before its simulators, or in the command's process with a controller it does not end
     (not ``simulated`` by it). On a simulator the command ends while the connections are open,
     ur_rtde's threads would print their complaints."""
-    import drivers
+    from dqpose import drivers
     s = spec if isinstance(spec, drivers.ArmSpec) else drivers.parse_arm_spec(spec)
     if s.kind == "ur" and (process or not simulated):
         kwargs.setdefault("disconnect", False)
@@ -98,11 +98,11 @@ def open_arm(spec, process: bool, simulated: bool, **kwargs):
 @contextlib.contextmanager
 def local_server(**config):
     """A dqpose server in this process on a free loopback port, on its own event loop thread
-    (``config``: :class:`~service.rpc.server.ServerConfig` fields); yields its address."""
+    (``config``: :class:`~dqpose.rpc.server.ServerConfig` fields); yields its address."""
     import asyncio
     import threading
 
-    from service.rpc.server import ServerConfig, start
+    from dqpose.rpc.server import ServerConfig, start
     loop = asyncio.new_event_loop()
     thread = threading.Thread(target=loop.run_forever, daemon=True)
     thread.start()

@@ -6,7 +6,7 @@ import sys
 
 import numpy as np
 
-from service import dq
+from dqpose import dq
 
 
 def _fmt(pose: np.ndarray) -> str:
@@ -62,8 +62,8 @@ def configure(name: str, p) -> None:
     p.add_argument("mode", nargs="?", choices=("blend", "fusion", "trajectory"), default="blend",
                    help="blend (default): the blending methods; fusion: live pose fusion; "
                         "trajectory: plan and execute on a simulated arm")
-    from service.cli import demo_fusion, demo_trajectory
-    from service.cli.common import INTERRUPTED
+    from dqpose.cli import demo_fusion, demo_trajectory
+    from dqpose.cli.common import INTERRUPTED
     demo_fusion.add_arguments(p)
     demo_trajectory.add_arguments(p)
 
@@ -79,7 +79,7 @@ def configure(name: str, p) -> None:
                   f"simulator ended", file=sys.stderr)
             return INTERRUPTED
         except ModuleNotFoundError as e:
-            from service.cli.common import missing_extra
+            from dqpose.cli.common import missing_extra
             return missing_extra(f"demo {args.mode}", e)
         except (OSError, RuntimeError) as e:
             print(f"dqpose demo {args.mode}: {e}", file=sys.stderr)

@@ -6,7 +6,7 @@ answers arrive, summed up with the fused pose's NEES, and plotted over time.
 The scene: the body is a ChArUco board held by a UR (the UR simulator, driven through the real
 ``ur_rtde`` by ``drivers.open_arm``), its base the world frame, the board ``BOARD_OFFSET`` from
 the flange. The arm follows a slow loop (small sinusoids in position and angle) through
-:class:`drivers.executor.Executor`, in the arm's own process where the platform allows (nothing
+:class:`dqpose.drivers.executor.Executor`, in the arm's own process where the platform allows (nothing
 in this one then delays a set-point); the simulator's tool pose is the ground truth. The control
 loop reads the arm after every tenth set-point (every 20 ms) and hands the reading over with its
 time: the UR's measurement is the true pose with the arm's absolute accuracy drawn as noise,
@@ -15,7 +15,7 @@ real arm's kinematic model is not), stamped with the time it was read. Each of t
 cameras with known extrinsics captures at 10 Hz of the same clock (their frames half a period
 apart): a capture renders the board at the true pose of that instant (between two reads 20 ms
 apart, exact to well below a micrometre at the loop's few cm/s) with blur and pixel noise and
-detects it with :class:`drivers.camera.CharucoCamera` (covariance from PnP); the detection is
+detects it with :class:`dqpose.drivers.camera.CharucoCamera` (covariance from PnP); the detection is
 stamped 40 ms after the capture, as a camera's frame is. The stream carries them in the order
 of their stamps, as the devices would deliver them.
 
@@ -26,7 +26,7 @@ reading loop had made the reads and frames late, the windows sparse and the fuse
 a camera alone.
 
 The server is told each camera's latency only as a prior, 30 +- 20 ms, and estimates it online
-(:class:`service.fusion.Source` ``latency_sigma``); the UR's stamps are taken as exact. It fuses
+(:class:`dqpose.fusion.Source` ``latency_sigma``); the UR's stamps are taken as exact. It fuses
 a sliding window of 0.2 s and answers at 10 Hz of the measurements' time with the fused pose at
 that instant. The peers at the same instant: each source alone as its user would have it then
 (ScLERP of its two newest measurements delivered by then, latency known; the bench's
@@ -56,8 +56,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service import dq, lie
-from service.cli.demo_fusion_scene import (ARM_RATE, BOARD_OFFSET, CAMERA_LATENCY, HOME,
+from dqpose import dq, lie
+from dqpose.cli.demo_fusion_scene import (ARM_RATE, BOARD_OFFSET, CAMERA_LATENCY, HOME,
                                            MIN_PATH_STEPS, STEP, Scene, cameras, loop_path,
                                            missed_cycles, pose_error, roughness)
 
@@ -117,14 +117,14 @@ def run(steps: int = 200, *, seed: int = 0, arm_sigma=(2e-3, 1e-3), noise: float
     """The demo: ``steps`` of 0.1 s (five arm reads and one frame of each camera each; the
     reads go on for two steps more, to deliver the last frames); prints a line per fused answer
     to ``out`` when given; returns the errors (see :class:`Result`)."""
-    import drivers
-    from drivers.camera import CharucoCamera, Intrinsics
-    from drivers.executor import Executor
-    from drivers.sim.camera import BoardRenderer
-    from drivers.sim.ursim import URSimProcess
-    from service.cli.common import local_server, open_arm
-    from service.fusion import Source
-    from service.rpc.client import Client
+    from dqpose import drivers
+    from dqpose.drivers.camera import CharucoCamera, Intrinsics
+    from dqpose.drivers.executor import Executor
+    from dqpose.drivers.sim.camera import BoardRenderer
+    from dqpose.drivers.sim.ursim import URSimProcess
+    from dqpose.cli.common import local_server, open_arm
+    from dqpose.fusion import Source
+    from dqpose.rpc.client import Client
 
     rng = np.random.default_rng(seed)
     intr = Intrinsics(K=np.array([[400.0, 0, 199.5], [0, 400.0, 149.5], [0, 0, 1]]),
@@ -233,7 +233,7 @@ def run(steps: int = 200, *, seed: int = 0, arm_sigma=(2e-3, 1e-3), noise: float
 def nees_band(count: int, probability: float = NEES_PROBABILITY) -> tuple[float, float]:
     """The two-sided ``probability`` band of the mean NEES of ``count`` independent 6-dof
     estimates of a consistent estimator: ``chi2(6 count)`` quantiles over ``count``."""
-    from service.fusion import chi2_quantile
+    from dqpose.fusion import chi2_quantile
     lo = chi2_quantile((1 - probability) / 2, 6 * count) / count
     hi = chi2_quantile((1 + probability) / 2, 6 * count) / count
     return lo, hi
@@ -382,7 +382,7 @@ def main(args: argparse.Namespace) -> int:
     print()
     report(result)
     if matplotlib is None:
-        from service.errors import install_hint
+        from dqpose.errors import install_hint
         print(f"no plot: {install_hint('plot')}")
     else:
         plot(result, args.plot)

@@ -1,4 +1,4 @@
-"""The scene of ``dqpose demo fusion`` (:mod:`service.cli.demo_fusion` describes it): the arm's
+"""The scene of ``dqpose demo fusion`` (:mod:`dqpose.cli.demo_fusion` describes it): the arm's
 loop, the threads that read the arm and render and detect the cameras' frames, the order the
 stream carries them in, and the measures of how the run went (late set-points, the path's
 roughness)."""
@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from service import dq, lie
+from dqpose import dq, lie
 
 # flange -> board: the board 5 cm out along the tool z axis (its centre near the axis)
 BOARD_OFFSET = ((1.0, 0.0, 0.0, 0.0), (-0.14, -0.10, 0.05))
@@ -39,7 +39,7 @@ def wobble(k, n: int) -> np.ndarray:
 
 def loop_path(n: int, period: float):
     """The loop's set-points ``(times, T_base_flange)`` and the board's poses along it."""
-    from drivers.rotvec import pose_from_rotvec
+    from dqpose.drivers.rotvec import pose_from_rotvec
     k = np.arange(n + 1)
     flange = pose_from_rotvec(np.array(HOME) + wobble(k, n))
     board = dq.mul(flange, dq.from_pose(np.array(BOARD_OFFSET[0]), np.array(BOARD_OFFSET[1])))
@@ -55,7 +55,7 @@ def pose_error(est: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
 
 def cameras(T_world_board0: np.ndarray, board, intrinsics):
     """Two extrinsics ``T_world_camera`` looking at the board's start pose from either side."""
-    from drivers.sim.camera import look_at
+    from dqpose.drivers.sim.camera import look_at
     w, h = board.extent
     centre = np.array([w / 2, h / 2, 0.0])
     out = []
@@ -101,7 +101,7 @@ class Scene:
 
     def __init__(self, offset, cams, extrinsics, renderer, rng, arm_sigma, duration, noise,
                  blur):
-        from drivers.base import pose_covariance
+        from dqpose.drivers.base import pose_covariance
         self.offset, self.rng = offset, rng
         self.covariance = pose_covariance(*arm_sigma)
         self.cams, self.extrinsics, self.renderer = cams, extrinsics, renderer
@@ -126,11 +126,11 @@ class Scene:
         return self.start + j * STEP / len(self.cams)
 
     def read(self, fb) -> None:
-        """An executor's feedback record (:class:`drivers.executor.Feedback`, on its thread):
+        """An executor's feedback record (:class:`dqpose.drivers.executor.Feedback`, on its thread):
         the arm's pose as the control loop read it, in the arm's own process where it runs
         there, so a busy interpreter here delays the record, not the read; the run's last
         record ends the reads, and one that is not ``FINISHED`` fails the demo."""
-        from drivers.executor import Result
+        from dqpose.drivers.executor import Result
         if self.stop.is_set():
             return
         try:
@@ -216,7 +216,7 @@ class Scene:
         however long the rendering takes: each arm read once every capture that could be
         stamped by then is rendered, after the camera frames stamped since the read before it
         (in a batch of their own)."""
-        from service.rpc.client import Batch
+        from dqpose.rpc.client import Batch
         sent = 0                            # frames sent
         while True:
             item = self.reads.get()
@@ -247,7 +247,7 @@ class Scene:
 
 def missed_cycles(sim, mark: int, period: float) -> int:
     """Controller cycles without a set-point since the hook log's entry ``mark``."""
-    from service.cli.demo_trajectory import missed_cycles, servo_arrivals
+    from dqpose.cli.demo_trajectory import missed_cycles, servo_arrivals
     return missed_cycles(np.diff(servo_arrivals(sim, mark)), period)
 
 

@@ -17,7 +17,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from service import dq, trajectory
+from dqpose import dq, trajectory
 
 LIMITS = trajectory.Limits(max_linear_velocity=0.2, max_angular_velocity=0.8,
                            max_linear_acceleration=1.0, max_angular_acceleration=2.0,
@@ -63,12 +63,12 @@ def _angle(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def run(target: str | None = None, progress: bool = False) -> Result:
-    import drivers
-    from drivers.executor import Executor
-    from drivers.rotvec import pose_from_rotvec
-    from drivers.sim import ursim
-    from service.cli.common import local_server, open_arm
-    from service.rpc.client import Client
+    from dqpose import drivers
+    from dqpose.drivers.executor import Executor
+    from dqpose.drivers.rotvec import pose_from_rotvec
+    from dqpose.drivers.sim import ursim
+    from dqpose.cli.common import local_server, open_arm
+    from dqpose.rpc.client import Client
 
     with contextlib.ExitStack() as stack:
         sim = stack.enter_context(ursim.URSimProcess())
@@ -104,7 +104,7 @@ def run(target: str | None = None, progress: bool = False) -> Result:
 def servo_arrivals(sim, mark: int) -> np.ndarray:
     """When each servoL set-point since the hook log's entry ``mark`` reached the simulated
     controller (``time.monotonic()`` seconds)."""
-    from drivers.sim import ursim
+    from dqpose.drivers.sim import ursim
     arrivals = []
     while True:        # read in pages: the simulator answers a bounded log per call
         got = sim.log(mark, cmd=ursim.SERVOL, keys=["mono"])
@@ -152,11 +152,11 @@ def main(args: argparse.Namespace) -> int:
     result = run(getattr(args, "target", None), progress=sys.stderr.isatty())
     report(result)
     try:
-        from service.cli.plots import plot_motion
+        from dqpose.cli.plots import plot_motion
         plot_motion(args.trajectory_plot, result.plan.time, result.plan.pose, LIMITS,
                     title="dqpose demo trajectory: the plan, measured from its samples")
         print(f"plot: {args.trajectory_plot}")
     except ModuleNotFoundError as e:
-        from service.errors import missing
+        from dqpose.errors import missing
         print(f"no plot: {missing(e)}")
     return 0 if result.state == "FINISHED" else 1

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from service.cli.common import client, connection_args, failure
+from dqpose.cli.common import client, connection_args, failure
 
 AXES = ("wx", "wy", "wz", "vx", "vy", "vz")
 BASE_COLUMNS = ("source", "time", "x", "y", "z", "qw", "qx", "qy", "qz")
@@ -87,8 +87,8 @@ def configure(name: str, p) -> None:
 
 def read_request(path: str):
     """A ``FuseRequest`` from a JSON, YAML or CSV file (see the help)."""
-    from service.cli import inputs
-    from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
+    from dqpose.cli import inputs
+    from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 
     text, fmt = inputs.load(path)
     if fmt != "csv":
@@ -108,8 +108,8 @@ def read_request(path: str):
 
 
 def _csv_measurements(text: str) -> list:
-    from service.cli import inputs, posefile
-    from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
+    from dqpose.cli import inputs, posefile
+    from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 
     # The text columns (source, body) are taken out, the numbers read by posefile's reader.
     lines = [cells for _, cells in inputs.table(text)]
@@ -181,7 +181,7 @@ def _fuse(args) -> int:
             request.options.acceleration_psd.extend(
                 (rot if i < 3 else trans) if i == j else 0.0 for i in range(6) for j in range(6))
         if args.local:
-            from service.rpc.fusion import Fusion
+            from dqpose.rpc.fusion import Fusion
 
             fused = Fusion().fuse(request)
         else:
@@ -199,7 +199,7 @@ def format_fused(msg, fmt: str) -> str:
 
     if fmt == "json":
         return json_format.MessageToJson(msg, preserving_proto_field_name=True) + "\n"
-    from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
+    from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 
     p, o = msg.pose.position, msg.pose.orientation
     sign = -1.0 if o.w < 0 else 1.0          # q and -q are one rotation; print w >= 0

@@ -1,9 +1,9 @@
 """``dqpose handeye capture`` and ``dqpose handeye solve``: hand-eye calibration from the shell.
 
-``capture DIR`` (:mod:`service.cli.handeye_capture`) drives an arm through informative views of
+``capture DIR`` (:mod:`dqpose.cli.handeye_capture`) drives an arm through informative views of
 a ChArUco board and saves the folder ``solve`` reads.
 
-``solve DIR`` detects the board in each image with :class:`drivers.camera.CharucoCamera`, solves
+``solve DIR`` detects the board in each image with :class:`dqpose.drivers.camera.CharucoCamera`, solves
 on a server (the ``dqpose.v1.HandEye`` service) or ``--local``ly by the same code, and writes a
 report: text (also printed), a PNG (residuals per view, covariance ellipsoids) and the result as
 JSON.
@@ -18,9 +18,9 @@ import os
 import re
 import sys
 
-from service.cli import handeye_capture
-from service.cli.handeye_capture import POSE_FILES, _find
-from service.cli.common import client, connection_args, fail, failure, missing_extra
+from dqpose.cli import handeye_capture
+from dqpose.cli.handeye_capture import POSE_FILES, _find
+from dqpose.cli.common import client, connection_args, fail, failure, missing_extra
 
 SETUPS = ("eye_in_hand", "eye_to_hand")
 CHOICES = ("next-best", "spread", "random")
@@ -146,8 +146,8 @@ class _Views:
     """The folder's views: image paths, flange poses, how the poses were read."""
 
     def __init__(self, args):
-        from drivers.camera import IMAGE_EXTENSIONS
-        from service.cli.posefile import read_robot_poses
+        from dqpose.drivers.camera import IMAGE_EXTENSIONS
+        from dqpose.cli.posefile import read_robot_poses
         if not os.path.isdir(args.dir):
             raise ValueError(f"DIR: no such folder: {args.dir!r}")
         path = args.poses or _find(args.dir, POSE_FILES)
@@ -179,7 +179,7 @@ class _Views:
 
 
 def _camera(args):
-    from drivers.camera import BoardSpec, CharucoCamera, load_board, load_intrinsics
+    from dqpose.drivers.camera import BoardSpec, CharucoCamera, load_board, load_intrinsics
     intr = args.intrinsics or _find(args.dir, ("intrinsics.json", "intrinsics.yaml",
                                                "intrinsics.yml"))
     if intr is None:
@@ -192,7 +192,7 @@ def _detect(camera, images: list) -> list:
     """The detection (or rejection) of each image, with a progress bar on a terminal."""
     from tqdm import tqdm
 
-    from drivers.camera import read_image
+    from dqpose.drivers.camera import read_image
     return [camera.detect(read_image(p))
             for p in tqdm(images, desc="detecting", unit="image", leave=False, file=sys.stderr,
                           disable=None)]
@@ -209,7 +209,7 @@ def _noise(args, detections: list) -> dict:
         return {}
     out = {"camera_covariance": np.array([d.covariance for d in detections]).reshape(-1, 6, 6)}
     if args.robot_noise:
-        from drivers.base import pose_covariance
+        from dqpose.drivers.base import pose_covariance
         deg, mm = args.robot_noise
         try:
             out["robot_covariance"] = pose_covariance(math.radians(deg), mm * 1e-3)
@@ -248,7 +248,7 @@ def _named(text: str, names: list) -> str:
 def _solve(args) -> int:
     import numpy as np
 
-    from service import handeye
+    from dqpose import handeye
     names: list = []
     try:
         views = _Views(args)
@@ -292,13 +292,13 @@ def _solve(args) -> int:
         with open(out["output"], "w", encoding="utf-8") as f:
             json.dump(result_json(cal, names), f, indent=1)
         try:
-            from service.cli.plots import plot_calibration
+            from dqpose.cli.plots import plot_calibration
             plot_calibration(out["plot"], cal, names,
                              title=f"dqpose handeye solve {args.dir} ({views.setup})",
                              truth=truth)
             print(f"plot: {out['plot']}", file=sys.stderr)
         except ModuleNotFoundError as e:
-            from service.errors import missing
+            from dqpose.errors import missing
             print(f"no plot: {missing(e)}", file=sys.stderr)
     except OSError as e:
         return fail("handeye solve", str(e))
@@ -308,7 +308,7 @@ def _solve(args) -> int:
 
 def read_truth(folder: str, setup: str):
     """``(x, z)`` of a simulated capture (its truth.json), when it is one of this setup."""
-    from service import dq
+    from dqpose import dq
     path = os.path.join(folder, "truth.json")
     if not os.path.isfile(path):
         return None
@@ -327,8 +327,8 @@ _FRAMES = {"eye_in_hand": ("T_flange_camera", "T_base_target"),
 def _pose_lines(label: str, pose, cov) -> list[str]:
     import numpy as np
 
-    from drivers.rotvec import rotvec_from_quat
-    from service import dq
+    from dqpose.drivers.rotvec import rotvec_from_quat
+    from dqpose import dq
     q, t = dq.to_pose(pose)
     q = -q if q[0] < 0 else q
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
@@ -348,7 +348,7 @@ def report(cal, views, names: list, skipped: list, truth=None) -> str:
     error against the truth of a simulated capture."""
     import numpy as np
 
-    from service import dq, lie
+    from dqpose import dq, lie
     fx, fz = _FRAMES[cal.setup]
     rejected = {r.index: r.reason for r in cal.rejected}
     out = [f"{len(rejected)} left out by the robust solve"] if rejected else []
@@ -411,7 +411,7 @@ def result_json(cal, names: list) -> dict:
     """The calibration as JSON: the poses as the proto's Pose, covariances as 36 numbers."""
     import numpy as np
 
-    from service.cli.posefile import pose_json
+    from dqpose.cli.posefile import pose_json
     return {"setup": cal.setup, "x": pose_json(cal.x), "z": pose_json(cal.z),
             "covariance_x": np.asarray(cal.covariance_x).ravel().tolist(),
             "covariance_z": np.asarray(cal.covariance_z).ravel().tolist(),

@@ -13,7 +13,7 @@ import math
 import os
 import sys
 
-from service.cli.common import INTERRUPTED, fail
+from dqpose.cli.common import INTERRUPTED, fail
 
 POSE_FILES = ("poses.json", "poses.csv")
 CAPTURE_EPILOG = """\
@@ -56,7 +56,7 @@ def _find(folder: str, names) -> str | None:
 def _pose(t, rotvec):
     import numpy as np
 
-    from drivers.rotvec import pose_from_rotvec
+    from dqpose.drivers.rotvec import pose_from_rotvec
     return pose_from_rotvec(np.concatenate([t, rotvec]))
 
 
@@ -73,8 +73,8 @@ def _sim_cell(setup: str, board):
     sees the board's centre from 0.45 m, :data:`_START_TILT_DEG` off its normal."""
     import numpy as np
 
-    from drivers.sim.camera import look_at
-    from service import dq, handeye
+    from dqpose.drivers.sim.camera import look_at
+    from dqpose import dq, handeye
     w, h = board.extent
     centre = np.array([w / 2, h / 2, 0.0])
     tilt = math.radians(_START_TILT_DEG)
@@ -96,8 +96,8 @@ class _Capture:
                  choose: str = "next-best"):
         import numpy as np
 
-        from drivers.sim.camera import random_view
-        from service import dq
+        from dqpose.drivers.sim.camera import random_view
+        from dqpose import dq
         self.setup = setup
         start_view = start_detection.pose
         self.flanges, self.views = [start_flange], [start_view]
@@ -122,7 +122,7 @@ class _Capture:
     def add(self, flange, detection) -> None:
         import numpy as np
 
-        from service import handeye
+        from dqpose import handeye
         self.flanges.append(flange)
         self.views.append(detection.pose)
         self.covariances.append(detection.covariance)
@@ -155,10 +155,10 @@ class _Capture:
         if rule == "random":
             return list(range(len(flanges)))
         if rule == "next-best pose":
-            from service import handeye
+            from dqpose import handeye
             return list(handeye.next_best_pose(self.calibration, np.array(self.flanges),
                                                np.array(self.views), np.array(flanges)))
-        from drivers.base import pose_delta
+        from dqpose.drivers.base import pose_delta
         gaps = [min(pose_delta(c, v)[1] for v in self.views) for c in self.candidates]
         return list(np.argsort(gaps)[::-1])
 
@@ -177,7 +177,7 @@ class _Previous:
     intrinsics and board files it was taken with."""
 
     def __init__(self, folder: str):
-        from service.cli.posefile import read_robot_poses
+        from dqpose.cli.posefile import read_robot_poses
         poses = os.path.join(folder, "poses.json")
         if not os.path.isfile(poses):
             raise ValueError(f"--resume: {folder!r} has views but no poses.json (the capture "
@@ -228,7 +228,7 @@ def capture(args) -> int:
 
     import numpy as np
 
-    from service import handeye
+    from dqpose import handeye
 
     if args.views < 4:
         return fail("handeye capture", f"--views: at least 4, got {args.views}")
@@ -248,12 +248,12 @@ def capture(args) -> int:
         return 0
     import cv2
 
-    import drivers
-    from drivers.base import Limits
-    from drivers.camera import BoardSpec, CharucoCamera, load_board, load_intrinsics, read_image
-    from drivers.rotvec import rotvec_from_pose
-    from drivers.sim.camera import DEFAULT_INTRINSICS, BoardRenderer
-    from drivers.sim.ursim import URSimProcess
+    from dqpose import drivers
+    from dqpose.drivers.base import Limits
+    from dqpose.drivers.camera import BoardSpec, CharucoCamera, load_board, load_intrinsics, read_image
+    from dqpose.drivers.rotvec import rotvec_from_pose
+    from dqpose.drivers.sim.camera import DEFAULT_INTRINSICS, BoardRenderer
+    from dqpose.drivers.sim.ursim import URSimProcess
     # a resumed capture draws its own noise and candidate views, not the first run's again
     rng = np.random.default_rng(args.seed + (len(previous.images) if previous else 0))
     sim = not args.arm
@@ -283,7 +283,7 @@ def capture(args) -> int:
                     return renderer.render(handeye.view_at(flange, x_true, z_true, args.setup),
                                            blur=args.blur, noise=args.noise, rng=rng)
             else:
-                from drivers.camera import open_frames
+                from dqpose.drivers.camera import open_frames
                 arm = stack.enter_context(drivers.open_arm(args.arm, stale_after=STALE_AFTER))
                 frames = open_frames(args.camera)
                 stack.callback(frames.close)
@@ -344,7 +344,7 @@ def _stop_at_once(arm) -> None:
     """A Ctrl-C: the arm stopped before anything else (the views taken are saved after it), and
     closed without ur_rtde's disconnect (2 s with its destructors; the connections close as this
     process ends, which it does next)."""
-    from drivers.base import ArmError
+    from dqpose.drivers.base import ArmError
     try:
         arm.stop()
     except ArmError:
@@ -384,7 +384,7 @@ MAX_MISSES = 5
 def _views_loop(args, arm, state, shoot, speed: float, settle: float) -> str | None:
     """Moves to the chosen views and shoots until ``args.views`` are taken; why it stopped
     early, else None."""
-    from service import dq, handeye
+    from dqpose import dq, handeye
     misses = 0
     while state.taken < args.views:
         targets = [handeye.flange_for(v, state.x, state.z, args.setup) for v in state.candidates]
@@ -423,7 +423,7 @@ def _save(args, images, flanges, intr, board, truth) -> None:
     simulation, the truth ``(x, z)``."""
     import numpy as np
 
-    from service.cli.posefile import pose_json, robot_poses_json
+    from dqpose.cli.posefile import pose_json, robot_poses_json
     with open(os.path.join(args.dir, "poses.json"), "w", encoding="utf-8") as f:
         f.write(robot_poses_json(images, np.array(flanges), args.setup))
     with open(os.path.join(args.dir, "intrinsics.json"), "w", encoding="utf-8") as f:
@@ -442,7 +442,7 @@ def _save(args, images, flanges, intr, board, truth) -> None:
 def _move(arm, target, speed: float) -> None:
     """A straight tool move to ``target`` at up to ``speed`` m/s, slowed so that the tool's turn
     stays within the arm's angular speed limit (UR turns the tool in step with the line)."""
-    from drivers.base import pose_delta
+    from dqpose.drivers.base import pose_delta
     L = arm.limits
     _, here = arm.tool_pose()
     dist, angle = pose_delta(here, target)

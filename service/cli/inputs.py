@@ -49,7 +49,7 @@ def load(path: str) -> tuple[str, str]:
 def document(path: str, text: str, fmt: str, key: str) -> dict:
     """The object a JSON or YAML file holds; a bare list is taken as the list under ``key``."""
     if fmt == "yaml":
-        from service.errors import missing
+        from dqpose.errors import missing
         try:
             import yaml
         except ModuleNotFoundError as e:

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service import trajectory
+from dqpose import trajectory
 
 
 def plot_motion(path: str, times, poses, limits, title: str = "", raw=None,
@@ -24,7 +24,7 @@ def _rotation_from(poses, reference) -> np.ndarray:
     """Rotation vectors ``Log(R_k R_ref^T)`` (base frame) of ``poses`` from ``reference``'s
     orientation: one origin for every curve drawn together (the smoothed path need not start
     where the recording does)."""
-    from service import dq
+    from dqpose import dq
 
     r = np.asarray(poses, dtype=np.float64).reshape(-1, 8).copy()
     r[:, 4:] = 0.0
@@ -79,13 +79,13 @@ def motion_figure(times, poses, limits, title: str = "", raw=None, note: str = "
 
 def _positions(poses) -> np.ndarray:
     """Positions ``(N, 3)`` of dual quaternions ``(N, 8)``."""
-    from service import dq
+    from dqpose import dq
 
     return dq.to_pose(np.asarray(poses, dtype=np.float64).reshape(-1, 8))[1]
 
 
 def plot_calibration(path: str, cal, names, title: str = "", truth=None) -> None:
-    """Writes the PNG of a hand-eye calibration (:class:`service.handeye.Calibration`): the
+    """Writes the PNG of a hand-eye calibration (:class:`dqpose.handeye.Calibration`): the
     residual of each view (rotation, translation; views the robust solve left out in red) and
     the 3-sigma ellipsoids of X's and Z's covariances, rotation (deg) and translation (mm),
     about the estimate in its own frame (the right perturbation); ``truth`` ``(x, z)``, when
@@ -110,7 +110,7 @@ def plot_calibration(path: str, cal, names, title: str = "", truth=None) -> None
             a.set_title("red: left out by the robust solve", fontsize=8)
     u, v = np.meshgrid(np.linspace(0, 2 * np.pi, 30), np.linspace(0, np.pi, 15))
     sphere = np.stack([np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v)])
-    from service import dq, lie
+    from dqpose import dq, lie
     offsets = [None, None] if truth is None else \
         [lie.se3_log(dq.mul(dq.inv(est), true)) for est, true in zip((cal.x, cal.z), truth)]
     for r, (pose, cov) in enumerate((("X", cal.covariance_x), ("Z", cal.covariance_z))):

@@ -1,5 +1,5 @@
 """Pose files for the command line: JSON or YAML (the grpcurl request body) or CSV in, CSV or JSON
-out; the files read through :mod:`service.cli.inputs` (every key checked, any CSV separator).
+out; the files read through :mod:`dqpose.cli.inputs` (every key checked, any CSV separator).
 
 No gRPC here; the same files work for ``--local`` and for calls to a server.
 """
@@ -11,9 +11,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from service import dq, trajectory
-from service.cli.inputs import document, fields, is_number, load, nearest, not_a_number, table
-from service.errors import rename
+from dqpose import dq, trajectory
+from dqpose.cli.inputs import document, fields, is_number, load, nearest, not_a_number, table
+from dqpose.errors import rename
 
 POSE_COLUMNS = ("x", "y", "z", "qw", "qx", "qy", "qz")
 
@@ -523,7 +523,7 @@ def read_robot_poses(path: str, units: str = "auto") -> RobotPoses:
             i = int(np.argmax(norms))
             raise ValueError(f"poses[{i}]: rotation vector of {norms[i]:g}, beyond 2 pi: UR "
                              f"rotation vectors [rx, ry, rz] are in radians (degrees given?)")
-        from drivers.rotvec import pose_from_rotvec
+        from dqpose.drivers.rotvec import pose_from_rotvec
         dqs = pose_from_rotvec(a)
         notes.append("rotations read as UR rotation vectors [x, y, z, rx, ry, rz] (axis times "
                      "angle, radians), not roll-pitch-yaw")

@@ -1,4 +1,4 @@
-"""``dqpose properties``: Table 1 of Kavan et al. measured on this build (:mod:`service.properties`)."""
+"""``dqpose properties``: Table 1 of Kavan et al. measured on this build (:mod:`dqpose.properties`)."""
 from __future__ import annotations
 
 import argparse
@@ -6,7 +6,7 @@ import sys
 
 
 def _main(args: argparse.Namespace) -> int:
-    from service.properties import format_table, measure
+    from dqpose.properties import format_table, measure
 
     # ~0.5 ms per trial: a bar only where the wait becomes noticeable, and only for a person
     table = measure(trials=args.trials, seed=args.seed, tol=args.tol,
@@ -23,7 +23,7 @@ def _positive_int(text: str) -> int:
 
 
 def configure(name: str, p) -> None:
-    from service.properties import DEFAULT_TOL
+    from dqpose.properties import DEFAULT_TOL
 
     p.description = ("Measure rigidity, bi-invariance, coordinate invariance, n > 2, "
                      "constant speed and shortest path of every blending method, "

@@ -8,15 +8,15 @@ import json
 import sys
 import textwrap
 
-from service import limits
-from service.cli.common import client, connection_args, fail, missing_extra, open_arm, read
-from service.rpc import DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
+from dqpose import limits
+from dqpose.cli.common import client, connection_args, fail, missing_extra, open_arm, read
+from dqpose.rpc import DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
 
 
 def configure(name: str, p) -> None:
     if name == "serve":
-        from drivers.spec import GRAMMAR as ARM_GRAMMAR
-        from service.rpc.server import INTERRUPT_GRACE, SERVICERS
+        from dqpose.drivers.spec import GRAMMAR as ARM_GRAMMAR
+        from dqpose.rpc.server import INTERRUPT_GRACE, SERVICERS
         p.formatter_class = argparse.RawDescriptionHelpFormatter
         p.description = textwrap.fill(
             f"Serve {', '.join(s.NAME for s in SERVICERS)} with the gRPC health service and "
@@ -91,7 +91,7 @@ SIM = "sim"
 
 def _arm_keys_help() -> str:
     """drivers.ARM_KEYS, one wrapped line each."""
-    from drivers.spec import key_table
+    from dqpose.drivers.spec import key_table
     lines = [textwrap.fill(line, 79, initial_indent="  ", subsequent_indent="      ")
              for line in key_table().splitlines()]
     return "arm spec keys (--arm NAME=KIND:TARGET?key=value&key=value):\n" + "\n".join(lines)
@@ -105,7 +105,7 @@ def _serve(args) -> int:
     import logging
     import os
 
-    from service.rpc.server import ConfigError, ServerConfig, serve
+    from dqpose.rpc.server import ConfigError, ServerConfig, serve
 
     logging.basicConfig(level=args.log_level.upper(), format="%(message)s", stream=sys.stderr)
     calls = logging.getLogger("dqpose.calls")
@@ -136,7 +136,7 @@ def _serve(args) -> int:
         with contextlib.ExitStack() as stack:
             fleet = None
             if args.sims:
-                from drivers.sim.fleet import Fleet
+                from dqpose.drivers.sim.fleet import Fleet
                 try:
                     fleet = stack.enter_context(Fleet())
                 except ModuleNotFoundError as e:
@@ -145,8 +145,8 @@ def _serve(args) -> int:
                     logging.getLogger("dqpose").info(json.dumps({"event": "simulator", **info}))
             if arm_specs:
                 try:
-                    import drivers
-                    from drivers.executor import Executor
+                    from dqpose import drivers
+                    from dqpose.drivers.executor import Executor
                 except ModuleNotFoundError as e:
                     return missing_extra("serve --arm", e)
                 for name, (text, spec) in arm_specs.items():
@@ -190,7 +190,7 @@ def _serve(args) -> int:
 def _arm_specs(values: list[str]) -> dict:
     """``--arm NAME=SPEC`` values by name, each ``(the text, drivers.ArmSpec)``; ValueError
     naming the flag for a malformed or repeated one."""
-    from drivers.spec import GRAMMAR, parse_arm_spec
+    from dqpose.drivers.spec import GRAMMAR, parse_arm_spec
     out: dict = {}
     for v in values:
         name, sep, spec = v.partition("=")
@@ -220,7 +220,7 @@ def _flag(setting: str) -> str:
 
 
 def _health(args) -> int:
-    from service.rpc.client import RpcError
+    from dqpose.rpc.client import RpcError
 
     try:
         with client(args) as c:

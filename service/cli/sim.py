@@ -10,12 +10,12 @@ from __future__ import annotations
 import argparse
 import importlib
 
-from service.cli.common import missing_extra
+from dqpose.cli.common import missing_extra
 
 SIMULATORS = {
-    "ur": "drivers.sim.ursim:main",
-    "piper": "drivers.sim.piper:main",
-    "camera": "drivers.sim.camera:main",
+    "ur": "dqpose.drivers.sim.ursim:main",
+    "piper": "dqpose.drivers.sim.piper:main",
+    "camera": "dqpose.drivers.sim.camera:main",
 }
 
 

@@ -7,8 +7,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from service.cli.common import client, connection_args, failure
-from service.errors import require
+from dqpose.cli.common import client, connection_args, failure
+from dqpose.errors import require
 
 PLAN_EPILOG = """\
 input formats (FILE, or - for standard input; chosen by the extension, else sniffed):
@@ -94,7 +94,7 @@ def configure(name: str, p) -> None:
 
 
 def _limits(args, from_file: dict):
-    from service import trajectory
+    from dqpose import trajectory
     values = dict(from_file)
     for key in _LIMIT_HELP:
         if getattr(args, key) is not None:
@@ -117,8 +117,8 @@ def _write(args, text: str) -> None:
 def _plan(args) -> int:
     import numpy as np
 
-    from service import trajectory
-    from service.cli.posefile import format_trajectory, read_plan
+    from dqpose import trajectory
+    from dqpose.cli.posefile import format_trajectory, read_plan
 
     try:
         if args.plot:       # before the work, not after it
@@ -147,7 +147,7 @@ def _plan(args) -> int:
             print(f"  segment {i}: {seg.start:.4f} .. {seg.start + seg.duration:.4f} s, "
                   f"bound by {seg.binding}", file=sys.stderr)
         if args.plot:
-            from service.cli.plots import plot_motion
+            from dqpose.cli.plots import plot_motion
             plot_motion(args.plot, times, poses, limits, title=f"dqpose plan {args.file}")
             print(f"plot: {args.plot}", file=sys.stderr)
     except Exception as e:
@@ -156,8 +156,8 @@ def _plan(args) -> int:
 
 
 def _smooth(args) -> int:
-    from service import smoothing
-    from service.cli.posefile import format_trajectory, read_stamped
+    from dqpose import smoothing
+    from dqpose.cli.posefile import format_trajectory, read_stamped
 
     try:
         if args.plot:       # before the work, not after it
@@ -178,7 +178,7 @@ def _smooth(args) -> int:
         note = ends_note(f.dqs, poses, args.free_ends)
         print(note, file=sys.stderr)
         if args.plot:
-            from service.cli.plots import plot_motion
+            from dqpose.cli.plots import plot_motion
             plot_motion(args.plot, times, poses, limits, title=f"dqpose smooth {args.file}",
                         raw=(f.times, f.dqs), note=note)
             print(f"plot: {args.plot}", file=sys.stderr)
@@ -194,7 +194,7 @@ def ends_note(recorded, smoothed, free_ends: bool) -> str:
 
     import numpy as np
 
-    from service import dq
+    from dqpose import dq
     off = []
     for k in (0, -1):
         qa, pa = dq.to_pose(recorded[k])

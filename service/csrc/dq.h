@@ -37,7 +37,7 @@ enum {
  * up to ~1e-4), narrow enough that what is not a rotation (a scaled or mistyped vector) is
  * refused. The one tolerance of every input check: the real part's norm, the dual part's
  * orthogonality to it (relative to its size), a rotation matrix's max |R^T R - I| (then
- * projected to the nearest rotation). Python reads it as service.dq.UNIT_TOL. */
+ * projected to the nearest rotation). Python reads it as dqpose.dq.UNIT_TOL. */
 #define DQ_UNIT_TOL 1e-3
 /* |R^T R - I| up to this is a rotation to rounding: dq_from_matrix takes its quaternion in closed
  * form rather than by projection. */

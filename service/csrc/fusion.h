@@ -22,7 +22,7 @@
 
 #include <stddef.h>
 
-/* How the estimate was reached; the values are service.fusion.Status's. */
+/* How the estimate was reached; the values are dqpose.fusion.Status's. */
 typedef enum {
     DQ_FUSE_CONVERGED = 0,      /* the last step was shorter than tol */
     DQ_FUSE_MAX_ITERATIONS = 1  /* max_iter steps taken, the last one still longer than tol */

@@ -1601,7 +1601,7 @@ static PyMethodDef methods[] = {
 
 static struct PyModuleDef moddef = {
     PyModuleDef_HEAD_INIT, "_dqcore",
-    "C core of dqpose: dual-quaternion algebra and blending. Use service.dq instead.", -1, methods,
+    "C core of dqpose: dual-quaternion algebra and blending. Use dqpose.dq instead.", -1, methods,
     NULL, NULL, NULL, NULL,
 };
 

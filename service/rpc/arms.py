@@ -21,12 +21,12 @@ from typing import Optional
 
 import grpc
 
-from service import limits, trajectory
-from service.errors import FieldError, Infeasible, rename
-from service.rpc.calls import Calls, refused
-from service.rpc.convert import dq_to_pose, plan_from_msg
-from service.rpc._proto.dqpose.v1 import geometry_pb2 as geo
-from service.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
+from dqpose import limits, trajectory
+from dqpose.errors import FieldError, Infeasible, rename
+from dqpose.rpc.calls import Calls, refused
+from dqpose.rpc.convert import dq_to_pose, plan_from_msg
+from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
+from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
 
 #: an Execute feedback record every this many set-points (50 Hz at 500 Hz), and the last one
 FEEDBACK_EVERY = 10
@@ -89,7 +89,7 @@ class _Arm:
 
 
 class Arms:
-    """Execute, GetArm and ListArms over the arms of a :class:`~service.rpc.server.ServerConfig`;
+    """Execute, GetArm and ListArms over the arms of a :class:`~dqpose.rpc.server.ServerConfig`;
     :meth:`stopping` is the server's shutdown hook."""
 
     def __init__(self, cfg, calls: Calls):

@@ -1,6 +1,6 @@
 """The ``dqpose.v1.Blending`` service: Blend, BlendStream and BlendBatch answered bytes to bytes
 by the C fast path (``service/csrc/wire.c``) when a request is plain and valid, else through
-protobuf and :mod:`service.dq`, whose errors name the proto field; and Interpolate."""
+protobuf and :mod:`dqpose.dq`, whose errors name the proto field; and Interpolate."""
 from __future__ import annotations
 
 import asyncio
@@ -10,16 +10,16 @@ import grpc
 import numpy as np
 from google.protobuf.message import DecodeError
 
-from service import dq, limits
-from service.errors import FieldError, rename
-from service.interpolate import interpolate
-from service.rpc import BATCH_POSE_FACTOR, DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
-from service.rpc.calls import INTERNAL_DETAILS, Calls, fit, log, readable, refusal
-from service.rpc.convert import (INTERPOLATION_NAMES, METHOD_NAMES, arrays_to_stamped,
+from dqpose import dq, limits
+from dqpose.errors import FieldError, rename
+from dqpose.interpolate import interpolate
+from dqpose.rpc import BATCH_POSE_FACTOR, DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
+from dqpose.rpc.calls import INTERNAL_DETAILS, Calls, fit, log, readable, refusal
+from dqpose.rpc.convert import (INTERPOLATION_NAMES, METHOD_NAMES, arrays_to_stamped,
                                  blend_batch_wire, blend_wire, decode_blend_request, dq_to_pose,
                                  field_named, flat_to_dqs, poses_to_flat, stamped_to_arrays)
-from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
-from service.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
+from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
+from dqpose.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
 
 DEFAULT_TOLERANCE = 1e-12
 DEFAULT_MAX_ITERATIONS = 100

@@ -1,7 +1,7 @@
 """What every servicer shares: one call in, one status out, one log line and one metric sample.
 
-A handler raises :class:`~service.errors.FieldError` for bad input (``INVALID_ARGUMENT`` with its
-text, which starts with the proto field path), :class:`~service.limits.OverLimit` for a request
+A handler raises :class:`~dqpose.errors.FieldError` for bad input (``INVALID_ARGUMENT`` with its
+text, which starts with the proto field path), :class:`~dqpose.limits.OverLimit` for a request
 over one of the server's limits and :class:`TooLarge` for an answer over the server's max message
 size (both ``RESOURCE_EXHAUSTED``, see :func:`fit`); anything else is
 ``INTERNAL``, logged with its traceback, and the server keeps running.
@@ -22,9 +22,9 @@ from concurrent.futures import ThreadPoolExecutor
 
 import grpc
 
-from service.errors import FieldError, Infeasible, MissingExtra
-from service import limits
-from service.limits import OverLimit
+from dqpose.errors import FieldError, Infeasible, MissingExtra
+from dqpose import limits
+from dqpose.limits import OverLimit
 
 log = logging.getLogger("dqpose.server")
 call_log = logging.getLogger("dqpose.calls")

@@ -1,10 +1,10 @@
-"""Python client for the dqpose gRPC server: NumPy in, NumPy out, like :mod:`service.dq`.
+"""Python client for the dqpose gRPC server: NumPy in, NumPy out, like :mod:`dqpose.dq`.
 
 >>> with Client("127.0.0.1:50051") as c:                      # doctest: +SKIP
 ...     mean = c.blend(dqs, weights=[1, 3])                   # (8,)
-...     fused = c.fuse(dqs, covariances, names=["cam1", "arm"])  # service.fusion.Fused
+...     fused = c.fuse(dqs, covariances, names=["cam1", "arm"])  # dqpose.fusion.Fused
 ...     path = c.interpolate([0, 1], dqs[:2], np.linspace(0, 1, 50), mode="tool_linear")
-...     cal = c.calibrate(base_flange, camera_target, "eye_in_hand")  # service.handeye.Calibration
+...     cal = c.calibrate(base_flange, camera_target, "eye_in_hand")  # dqpose.handeye.Calibration
 
 Every failed call raises :class:`RpcError` with the status ``code`` and the server's ``details``.
 ``INVALID_ARGUMENT`` is :class:`InvalidArgument`, also a ``ValueError`` whose text is the server's
@@ -12,7 +12,7 @@ message alone (it names the proto field, e.g. ``poses[3].orientation: zero quate
 the ``ValueError`` of the same input computed locally.
 
 Requests are written as protobuf wire bytes straight from the arrays and sent through the channel
-as bytes; BlendBatch answers are read back the same way (:mod:`service.rpc.convert`), so no
+as bytes; BlendBatch answers are read back the same way (:mod:`dqpose.rpc.convert`), so no
 message object is made per pose. ``blend_batch`` and ``interpolate`` split what is larger than
 the server takes in one message (``max_message_bytes``, ``max_poses``: the server's
 ``--max-message-bytes`` and ``--max-poses``) into several calls, two in flight at a time.
@@ -26,9 +26,9 @@ from typing import Iterable, Iterator, NamedTuple, Optional, Sequence
 import grpc
 import numpy as np
 
-from service import dq, fusion, handeye, trajectory
-from service.rpc import BATCH_POSE_FACTOR, DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
-from service.rpc.convert import (DEFAULT_MAX_EXTRAPOLATION, DEFAULT_PROBABILITY,
+from dqpose import dq, fusion, handeye, trajectory
+from dqpose.rpc import BATCH_POSE_FACTOR, DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
+from dqpose.rpc.convert import (DEFAULT_MAX_EXTRAPOLATION, DEFAULT_PROBABILITY,
                                  DEFAULT_WINDOW, INTERPOLATION_ENUMS, METHOD_ENUMS,
                                  blend_batch_items_wire, blend_request_wire,
                                  blend_responses_from_wire, calibrate_msg, calibration_from_msg,
@@ -37,10 +37,10 @@ from service.rpc.convert import (DEFAULT_MAX_EXTRAPOLATION, DEFAULT_PROBABILITY,
                                  limits_msg, plan_msg, pose_arrays, poses_to_arrays,
                                  poses_to_flat, samples_from_msgs, stamped_msgs,
                                  stamped_poses_wire)
-from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
-from service.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
-from service.rpc._proto.dqpose.v1 import handeye_pb2 as hpb
-from service.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
+from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
+from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
+from dqpose.rpc._proto.dqpose.v1 import handeye_pb2 as hpb
+from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
 
 DEFAULT_TARGET = "127.0.0.1:50051"
 SERVICE = pb.DESCRIPTOR.services_by_name["Blending"].full_name
@@ -410,7 +410,7 @@ class Client:
 
     def interpolate(self, times_k, dqs_k, times, mode: str = "screw") -> np.ndarray:
         """Poses ``(N, 8)`` at ``times`` between keyframes ``dqs_k`` ``(K, 8)`` at ``times_k``;
-        ``mode`` is ``"screw"`` or ``"tool_linear"`` (see :mod:`service.interpolate`). Any number
+        ``mode`` is ``"screw"`` or ``"tool_linear"`` (see :mod:`dqpose.interpolate`). Any number
         of times: they go in as many calls as the server's limits need, each with the keyframes."""
         if mode not in INTERPOLATION_ENUMS:
             raise ValueError(f"mode: unknown interpolation {mode!r}; expected one of "
@@ -436,7 +436,7 @@ class Client:
              time: Optional[float] = None, max_skew: Optional[float] = None,
              max_extrapolation: Optional[float] = DEFAULT_MAX_EXTRAPOLATION,
              twist_covariance=None, acceleration_psd=None) -> fusion.Fused:
-        """:func:`service.fusion.fuse` on the server (same arguments, same result), for one
+        """:func:`dqpose.fusion.fuse` on the server (same arguments, same result), for one
         ``body``. The server always fuses with times (``times`` None: all 0): measurements
         taken at one instant give the static fusion, exactly; ``time`` None (or 0) is the
         newest instant a measurement was taken."""
@@ -504,9 +504,9 @@ class Client:
 
     def plan(self, waypoints, limits, rate_hz: float, interpolation: str = "tool_linear", *,
              start_velocity=None) -> Planned:
-        """:func:`service.trajectory.plan` on the server, sampled at ``rate_hz``: the samples
+        """:func:`dqpose.trajectory.plan` on the server, sampled at ``rate_hz``: the samples
         (first at 0 on the first waypoint, last on the last one) with the plan's duration and
-        segments. ``waypoints``: :class:`~service.trajectory.Waypoint` s or ``(8,)`` poses. The
+        segments. ``waypoints``: :class:`~dqpose.trajectory.Waypoint` s or ``(8,)`` poses. The
         stream has no deadline (a long plan is many samples)."""
         request = plan_msg(waypoints, limits, rate_hz, interpolation, start_velocity)
         try:
@@ -519,7 +519,7 @@ class Client:
 
     def smooth(self, times, poses, limits, smoothing: float = 1.0,
                rate_hz: float = 0.0, free_ends: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """:func:`service.smoothing.smooth` on the server: ``(times (M,), poses (M, 8))``."""
+        """:func:`dqpose.smoothing.smooth` on the server: ``(times (M,), poses (M, 8))``."""
         times, a = self._stamped(times, poses, "times", "poses", "poses")
         request = tpb.SmoothRequest(poses=stamped_msgs(times, a), limits=limits_msg(limits),
                                     smoothing=smoothing, rate_hz=rate_hz,
@@ -573,7 +573,7 @@ class Client:
                   robust: bool = True, camera_covariance=None, robot_covariance=None,
                   corners=None, refine_focal: bool = False,
                   pixel_sigma: Optional[float] = None) -> handeye.Calibration:
-        """:func:`service.handeye.calibrate` on the server (same arguments, same result but for
+        """:func:`dqpose.handeye.calibrate` on the server (same arguments, same result but for
         the noise model's matrices): ``base_flange`` ``(n, 8)`` ``T_base_flange``,
         ``camera_target`` ``(n, 8)`` ``T_camera_target``; ``corners`` as the domain takes them,
         with one camera matrix for all views. Unusable data is an :class:`RpcError` with code

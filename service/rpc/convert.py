@@ -12,13 +12,13 @@ from typing import NamedTuple
 
 import numpy as np
 
-from service import _dqcore, dq, fusion, handeye, trajectory
-from service.errors import FieldError, rename, rename_all
-from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
-from service.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
-from service.rpc._proto.dqpose.v1 import geometry_pb2 as geo
-from service.rpc._proto.dqpose.v1 import handeye_pb2 as hpb
-from service.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
+from dqpose import _dqcore, dq, fusion, handeye, trajectory
+from dqpose.errors import FieldError, rename, rename_all
+from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
+from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
+from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
+from dqpose.rpc._proto.dqpose.v1 import handeye_pb2 as hpb
+from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
 
 def field_named(e: ValueError, fields: tuple[str, ...], default: str) -> FieldError:
     """``e`` as a :class:`FieldError` (an Infeasible stays one) whose text starts with a field
@@ -741,7 +741,7 @@ PLAN_INTERPOLATIONS = {geo.INTERPOLATION_UNSPECIFIED: "tool_linear",
 
 
 def limits_from_msg(msg, field: str = "limits"):
-    """A ``Limits`` message to :class:`service.trajectory.Limits`; errors name ``field``."""
+    """A ``Limits`` message to :class:`dqpose.trajectory.Limits`; errors name ``field``."""
     try:
         return trajectory.Limits(**{name: getattr(msg, name) for name in trajectory.LIMIT_FIELDS})
     except ValueError as e:
@@ -753,7 +753,7 @@ def limits_msg(limits) -> tpb.Limits:
 
 
 class PlanArgs(NamedTuple):
-    """A ``PlanRequest`` as the arguments of :func:`service.trajectory.plan`."""
+    """A ``PlanRequest`` as the arguments of :func:`dqpose.trajectory.plan`."""
     waypoints: list
     limits: object
     interpolation: str
@@ -789,8 +789,8 @@ def plan_from_msg(req, field: str = "", need_rate: bool = True) -> PlanArgs:
 
 def plan_msg(waypoints, limits, rate_hz: float = 0.0, interpolation: str = "tool_linear",
              start_velocity=None):
-    """Client side: the ``PlanRequest`` of :func:`service.trajectory.plan`'s arguments
-    (``waypoints``: :class:`~service.trajectory.Waypoint` or ``(8,)`` poses)."""
+    """Client side: the ``PlanRequest`` of :func:`dqpose.trajectory.plan`'s arguments
+    (``waypoints``: :class:`~dqpose.trajectory.Waypoint` or ``(8,)`` poses)."""
     if interpolation not in trajectory.INTERPOLATIONS:
         raise ValueError(f"interpolation: unknown {interpolation!r}; expected one of "
                          f"{', '.join(trajectory.INTERPOLATIONS)}")
@@ -815,7 +815,7 @@ def plan_info_msg(traj):
 
 
 def sample_msgs(samples) -> list:
-    """:class:`service.trajectory.Samples` to ``TrajectorySample`` messages."""
+    """:class:`dqpose.trajectory.Samples` to ``TrajectorySample`` messages."""
     q, t = pose_arrays(samples.pose)
     v = np.asarray(samples.linear_velocity).tolist()
     w = np.asarray(samples.angular_velocity).tolist()
@@ -858,7 +858,7 @@ CALIBRATE_FIELDS = {"base_flange": "pairs{}.base_to_flange",
 
 
 class CalibrateArgs(NamedTuple):
-    """A ``CalibrateRequest`` as the arguments of :func:`service.handeye.calibrate`."""
+    """A ``CalibrateRequest`` as the arguments of :func:`dqpose.handeye.calibrate`."""
     setup: str
     base_flange: np.ndarray      # (n, 8) T_base_flange, unit
     camera_target: np.ndarray    # (n, 8) T_camera_target, unit
@@ -875,7 +875,7 @@ CALIBRATE_REQUEST = ("setup", "pairs", "robust", "camera_matrix", "refine_focal"
 
 
 def calibrate_error(e: ValueError) -> FieldError:
-    """A :func:`service.handeye.calibrate` error with the request's field names, wherever the
+    """A :func:`dqpose.handeye.calibrate` error with the request's field names, wherever the
     message has the domain's (``"base_flange, camera_target: ..."``); Infeasible stays so; one
     from inside NumPy about none of them named ``pairs``."""
     renamed = rename_all(e, CALIBRATE_FIELDS)
@@ -969,7 +969,7 @@ def calibrate_msg(base_flange, camera_target, setup: str = "eye_in_hand", robust
                   camera_covariance=None, robot_covariance=None, corners=None,
                   refine_focal: bool = False,
                   pixel_sigma: float | None = None) -> "hpb.CalibrateRequest":
-    """Client side: the ``CalibrateRequest`` of :func:`service.handeye.calibrate`'s arguments,
+    """Client side: the ``CalibrateRequest`` of :func:`dqpose.handeye.calibrate`'s arguments,
     poses as given (the server names what is wrong with them)."""
     if setup not in SETUP_ENUMS:
         raise ValueError(f"setup: unknown {setup!r}; expected one of {', '.join(SETUP_ENUMS)}")
@@ -996,7 +996,7 @@ def calibrate_msg(base_flange, camera_target, setup: str = "eye_in_hand", robust
 
 
 def _corners_msgs(request, corners) -> None:
-    """Client side: :func:`service.handeye.calibrate`'s ``corners`` (one ``(board_points,
+    """Client side: :func:`dqpose.handeye.calibrate`'s ``corners`` (one ``(board_points,
     image_points, K)`` per pair, one K for all) into the request."""
     corners = list(corners)
     if len(corners) != len(request.pairs):
@@ -1012,7 +1012,7 @@ def _corners_msgs(request, corners) -> None:
 
 
 def calibration_to_msg(c) -> "hpb.CalibrateResponse":
-    """A :class:`service.handeye.Calibration` into a ``CalibrateResponse``."""
+    """A :class:`dqpose.handeye.Calibration` into a ``CalibrateResponse``."""
     msg = hpb.CalibrateResponse(
         covariance_x=np.asarray(c.covariance_x).ravel().tolist(),
         covariance_z=np.asarray(c.covariance_z).ravel().tolist(),
@@ -1034,7 +1034,7 @@ def calibration_to_msg(c) -> "hpb.CalibrateResponse":
 
 
 def calibration_from_msg(msg, setup: str):
-    """Client side: a ``CalibrateResponse`` back into the :class:`service.handeye.Calibration`
+    """Client side: a ``CalibrateResponse`` back into the :class:`dqpose.handeye.Calibration`
     it was made from (without the noise model's matrices, which stay on the server)."""
     def pose(p):
         return dq.from_pose((p.orientation.w, p.orientation.x, p.orientation.y,

@@ -1,5 +1,5 @@
-"""The ``dqpose.v1.Fusion`` service: Fuse (one body, one answer, :func:`service.fusion.fuse`) and
-StreamFuse (many bodies, a live stream: a :class:`service.fusion.Tracker` per stream, answered at
+"""The ``dqpose.v1.Fusion`` service: Fuse (one body, one answer, :func:`dqpose.fusion.fuse`) and
+StreamFuse (many bodies, a live stream: a :class:`dqpose.fusion.Tracker` per stream, answered at
 output ticks paced on the measurements' time), errors named by proto field.
 """
 from __future__ import annotations
@@ -12,17 +12,17 @@ import zlib
 import grpc
 import numpy as np
 
-from service import fusion, limits
-from service.errors import FieldError, rename
-from service.rpc import DEFAULT_MAX_POSES
-from service.rpc.calls import INTERNAL_DETAILS, Calls, log, readable, refusal
+from dqpose import fusion, limits
+from dqpose.errors import FieldError, rename
+from dqpose.rpc import DEFAULT_MAX_POSES
+from dqpose.rpc.calls import INTERNAL_DETAILS, Calls, log, readable, refusal
 from google.protobuf.message import DecodeError
 
-from service.rpc.convert import (DEFAULT_WINDOW, Measurements, Options, field_named,
+from dqpose.rpc.convert import (DEFAULT_WINDOW, Measurements, Options, field_named,
                                  fuse_stream_from_wire, fused_to_msg, measurements_to_arrays,
                                  options_from_msg, wire_measurement_error)
-from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
-from service.rpc._proto.dqpose.v1 import fusion_pb2_grpc as pb_grpc
+from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
+from dqpose.rpc._proto.dqpose.v1 import fusion_pb2_grpc as pb_grpc
 
 # The domain's per-measurement arguments, as fields of a Measurement.
 _MEASUREMENT_FIELDS = {"poses": "pose", "covariances": "covariance", "times": "time"}

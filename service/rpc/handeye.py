@@ -1,8 +1,8 @@
-"""The ``dqpose.v1.HandEye`` service: Calibrate (:func:`service.handeye.calibrate`), solved off the
+"""The ``dqpose.v1.HandEye`` service: Calibrate (:func:`dqpose.handeye.calibrate`), solved off the
 event loop (the server's worker pool), within the limits ``max_pairs`` and ``max_corners``.
 
 Malformed pairs are ``INVALID_ARGUMENT`` naming the field (``pairs[3].camera_to_target...``);
-data the calibration cannot be determined from (:class:`~service.errors.Infeasible`: too few
+data the calibration cannot be determined from (:class:`~dqpose.errors.Infeasible`: too few
 pairs, degenerate motion) is ``FAILED_PRECONDITION`` with the domain's reason and samples.
 """
 from __future__ import annotations
@@ -10,11 +10,11 @@ from __future__ import annotations
 import grpc
 from google.protobuf.message import DecodeError
 
-from service import handeye, limits
-from service.errors import FieldError
-from service.rpc.calls import Calls
-from service.rpc.convert import calibrate_error, calibrate_from_msg, calibration_to_msg
-from service.rpc._proto.dqpose.v1 import handeye_pb2 as pb
+from dqpose import handeye, limits
+from dqpose.errors import FieldError
+from dqpose.rpc.calls import Calls
+from dqpose.rpc.convert import calibrate_error, calibrate_from_msg, calibration_to_msg
+from dqpose.rpc._proto.dqpose.v1 import handeye_pb2 as pb
 
 
 class HandEye:

@@ -1,10 +1,10 @@
 """The dqpose gRPC server (``dqpose serve``): what is server-wide.
 
 Config, start and graceful stop, bearer-token auth, TLS and mTLS, Prometheus metrics, the health
-service, reflection and the call log (:mod:`service.rpc.calls`). The services themselves are the
-servicers of ``SERVICERS``, one module each (:mod:`service.rpc.blending`,
-:mod:`service.rpc.fusion`); each turns messages into NumPy arrays for the domain
-(:mod:`service.dq`, :mod:`service.fusion`, ...) and names bad input by its proto field.
+service, reflection and the call log (:mod:`dqpose.rpc.calls`). The services themselves are the
+servicers of ``SERVICERS``, one module each (:mod:`dqpose.rpc.blending`,
+:mod:`dqpose.rpc.fusion`); each turns messages into NumPy arrays for the domain
+(:mod:`dqpose.dq`, :mod:`dqpose.fusion`, ...) and names bad input by its proto field.
 """
 from __future__ import annotations
 
@@ -28,13 +28,13 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import _async as reflection_aio
 from grpc_reflection.v1alpha import reflection, reflection_pb2_grpc
 
-from service import limits as limits_table
-from service.rpc import DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
-from service.rpc.blending import Blending
-from service.rpc.calls import Calls, log
-from service.rpc.fusion import Fusion
-from service.rpc.handeye import HandEye
-from service.rpc.trajectories import Trajectories
+from dqpose import limits as limits_table
+from dqpose.rpc import DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
+from dqpose.rpc.blending import Blending
+from dqpose.rpc.calls import Calls, log
+from dqpose.rpc.fusion import Fusion
+from dqpose.rpc.handeye import HandEye
+from dqpose.rpc.trajectories import Trajectories
 
 # The services this server offers: each class takes (config, calls), has NAME (the full proto
 # service name) and register(server).
@@ -106,7 +106,7 @@ class ServerConfig:
         if self.arms and not callable(self.executor):
             raise ConfigError("executor", "arms need an executor to run plans on them")
         if not isinstance(self.limits, limits_table.Limits):
-            raise ConfigError("limits", f"must be a service.limits.Limits, got "
+            raise ConfigError("limits", f"must be a dqpose.limits.Limits, got "
                                         f"{type(self.limits).__name__}")
         try:
             self.limits.check()

@@ -1,6 +1,6 @@
-"""The ``dqpose.v1.Trajectories`` service: Plan (:func:`service.trajectory.plan`, streamed as
-samples), Smooth (:func:`service.smoothing.smooth`), and the arms' RPCs, Execute, GetArm and
-ListArms (:mod:`service.rpc.arms`).
+"""The ``dqpose.v1.Trajectories`` service: Plan (:func:`dqpose.trajectory.plan`, streamed as
+samples), Smooth (:func:`dqpose.smoothing.smooth`), and the arms' RPCs, Execute, GetArm and
+ListArms (:mod:`dqpose.rpc.arms`).
 """
 from __future__ import annotations
 
@@ -11,13 +11,13 @@ import grpc
 import numpy as np
 from google.protobuf.message import DecodeError
 
-from service import limits, smoothing, trajectory
-from service.errors import FieldError, rename
-from service.rpc.arms import Arms
-from service.rpc.calls import Calls, refused
-from service.rpc.convert import (arrays_to_stamped, field_named, limits_from_msg,
+from dqpose import limits, smoothing, trajectory
+from dqpose.errors import FieldError, rename
+from dqpose.rpc.arms import Arms
+from dqpose.rpc.calls import Calls, refused
+from dqpose.rpc.convert import (arrays_to_stamped, field_named, limits_from_msg,
                                  plan_from_msg, plan_info_msg, sample_msgs, stamped_to_arrays)
-from service.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
+from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
 
 #: the fields of a PlanRequest an error may start with
 PLAN_FIELDS = ("waypoints", "limits", "rate_hz", "interpolation", "start_linear_velocity",

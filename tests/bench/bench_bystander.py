@@ -27,15 +27,15 @@ import grpc
 import numpy as np
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
-from service import dq, lie, limits, trajectory
-from service.rpc import BATCH_POSE_FACTOR, DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES, convert
-from service.rpc._proto.dqpose.v1 import blending_pb2 as bpb
-from service.rpc._proto.dqpose.v1 import blending_pb2_grpc as bpb_grpc
-from service.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
-from service.rpc._proto.dqpose.v1 import fusion_pb2_grpc as fpb_grpc
-from service.rpc._proto.dqpose.v1 import handeye_pb2_grpc as hpb_grpc
-from service.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
-from service.rpc._proto.dqpose.v1 import trajectories_pb2_grpc as tpb_grpc
+from dqpose import dq, lie, limits, trajectory
+from dqpose.rpc import BATCH_POSE_FACTOR, DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES, convert
+from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as bpb
+from dqpose.rpc._proto.dqpose.v1 import blending_pb2_grpc as bpb_grpc
+from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
+from dqpose.rpc._proto.dqpose.v1 import fusion_pb2_grpc as fpb_grpc
+from dqpose.rpc._proto.dqpose.v1 import handeye_pb2_grpc as hpb_grpc
+from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
+from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2_grpc as tpb_grpc
 from tests.bench.bench_grpc import ServerProcess, request10
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))

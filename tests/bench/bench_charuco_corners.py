@@ -26,7 +26,7 @@ import time
 
 import numpy as np
 
-from service import dq, lie
+from dqpose import dq, lie
 from tests import _handeye
 from tests.bench.bench_fusion import _markdown
 from tests.bench.bench_handeye import CHARUCO_POSES, opencv_corners_camera
@@ -36,8 +36,8 @@ TILTS = ((0, 25), (25, 35), (35, 90))   # degrees: thirds of the wrist scene's v
 
 def views(trials: int, seed: int, blur: float, noise: float):
     """Per detected view and row: (errors (n, 2), true projections, tilt in deg, pull, NEES)."""
-    from drivers.camera import CharucoCamera
-    from drivers.sim.camera import DEFAULT_INTRINSICS, BoardRenderer
+    from dqpose.drivers.camera import CharucoCamera
+    from dqpose.drivers.sim.camera import DEFAULT_INTRINSICS, BoardRenderer
 
     K = DEFAULT_INTRINSICS.K
     renderer = BoardRenderer()

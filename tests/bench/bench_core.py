@@ -6,7 +6,7 @@ Prints one table. For each operation it times, in one run on the same inputs:
   ``service/csrc/dq.c`` and ``blend.c``, the flags of ``setup.py``);
 * the floor: the same math as a plain scalar C loop (``floor.c``: atan2/sqrt/sin/cos per pose,
   nothing precomputed), compiled in the same run;
-* our Python API (``service.dq``);
+* our Python API (``dqpose.dq``);
 * the Python-level peers pytransform3d and scipy.
 
 Times are medians of repeated samples after a warm-up. Ratios are to *ours at the same level*
@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service import dq
+from dqpose import dq
 
 ROOT = Path(__file__).resolve().parents[2]
 HERE = Path(__file__).resolve().parent

@@ -21,10 +21,10 @@ import tracemalloc
 
 import numpy as np
 
-import drivers
-from drivers.executor import Executor
-from drivers.sim import ursim
-from service import dq, trajectory
+from dqpose import drivers
+from dqpose.drivers.executor import Executor
+from dqpose.drivers.sim import ursim
+from dqpose import dq, trajectory
 
 
 def ten_minutes(start: np.ndarray, minutes: float, offset=(0.0, 0.0, 0.0)):

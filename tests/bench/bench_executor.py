@@ -36,10 +36,10 @@ import time
 
 import numpy as np
 
-import drivers
-from drivers.executor import Executor, Result
-from drivers.sim import ursim
-from service import dq
+from dqpose import drivers
+from dqpose.drivers.executor import Executor, Result
+from dqpose.drivers.sim import ursim
+from dqpose import dq
 
 LAG = 2     # the simulator's servo lag in cycles (SimConfig.servo_lag)
 EXECUTOR_REALTIME = 20      # --executor-realtime

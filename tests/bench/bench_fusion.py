@@ -11,7 +11,7 @@ seen by 2–4 cameras (2, 3, 4 in turn) and held by an arm; each source has its 
 * the arm's covariance is small, nearly isotropic, fixed in the body frame.
 
 A measurement is ``Z = X · Exp(-ξ)``, ``ξ ~ N(0, Σ)``, so ``X = Z · Exp(ξ)``: the convention of
-:mod:`service.fusion`. Measurements are in the world frame (extrinsics applied: a constant pose
+:mod:`dqpose.fusion`. Measurements are in the world frame (extrinsics applied: a constant pose
 on the left does not change a covariance, so frames would only add the same cost to every row).
 
 Gross outliers replace a fraction (0 %, 10 %, 20 % of all measurements; per trial ``⌊p·n + u⌋``
@@ -20,8 +20,8 @@ of them, so never a majority) by: a **wrong marker** (a random pose within 0.2 m
 **stale arm** (the pose 5–30° and 2–10 cm away the body had before) for the arm.
 
 Rows, all on the same trials in the same run: each single source (its one measurement); DLB and
-DIB (``service.dq``, scalar weights ``1/trace Σ``); our ML fusion and robust mode
-(``service.fusion.fuse``); GTSAM (``PriorFactorPose3`` per measurement, Levenberg–Marquardt
+DIB (``dqpose.dq``, scalar weights ``1/trace Σ``); our ML fusion and robust mode
+(``dqpose.fusion.fuse``); GTSAM (``PriorFactorPose3`` per measurement, Levenberg–Marquardt
 started at the first measurement, ``Marginals``: what a user of GTSAM from Python runs); a naive
 average (mean translation + SciPy ``Rotation.mean``). Errors: rotation angle of ``R̂ᵀR`` (deg) and
 ``|t̂ − t|`` (mm); NEES ``ξᵀ P⁻¹ ξ`` with ``ξ = Log(X̂⁻¹ X)`` (6 for a consistent estimate); time
@@ -55,7 +55,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service import dq, fusion, lie
+from dqpose import dq, fusion, lie
 
 TRIALS = 1000
 FRACTIONS = (0.0, 0.1, 0.2)
@@ -533,7 +533,7 @@ def single(stream: Stream, t_q: float, time: float) -> np.ndarray:
 
 
 def acceleration_rule(path: Path, seconds: float) -> np.ndarray:
-    """``acceleration_psd`` by service.fusion's rule of thumb ``Q ≈ a² L``: the path's rms angular
+    """``acceleration_psd`` by dqpose.fusion's rule of thumb ``Q ≈ a² L``: the path's rms angular
     and linear accelerations over the fusion window, isotropic within each."""
     _, _, alpha, acc = path.motion(np.arange(0.0, seconds, 0.01))
     a_w, a_v = np.sqrt(np.mean(alpha ** 2)), np.sqrt(np.mean(acc ** 2))

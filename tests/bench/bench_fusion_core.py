@@ -6,7 +6,7 @@ correlated) covariances per call, on the same problems (the scenes of tests/test
 * our C core ``dq_fuse`` called from C (``fusion_harness.c`` compiled here with the flags of
   setup.py), without and with the leave-one-out NIS;
 * the binding ``_dqcore.fuse``, one problem per call and a batch of all problems in one call;
-* ``service.fusion.fuse`` (validation, frames, consistency report: the whole Python API);
+* ``dqpose.fusion.fuse`` (validation, frames, consistency report: the whole Python API);
 * GTSAM from Python: ``PriorFactorPose3`` per measurement, Levenberg–Marquardt and
   ``Marginals``, with its default parameters and with tight ones (relative and absolute error
   tolerance 1e-16, as tests/test_fusion.py uses before it finishes with Gauss–Newton steps).
@@ -15,7 +15,7 @@ A second table: the time-aligned estimate (constant twist, one latency estimated
 configured; the scenes of tests/test_fusion_core.py) of 20 and 90 measurements by the C kernel
 ``_dqcore.motion_fit`` (fit, information and leave-one-out NIS), the NumPy reference
 (tests/fusion_reference.py, the block-diagonal fit the service ran before the kernel) and
-``service.fusion.fuse(..., times=...)`` end to end.
+``dqpose.fusion.fuse(..., times=...)`` end to end.
 
 Times are medians of repeated samples after a warm-up (the C rows: the median pass over all
 problems, and the best pass). ``max dev`` is the largest over the problems of
@@ -35,7 +35,7 @@ import timeit
 
 import numpy as np
 
-from service import _dqcore, dq, fusion, lie
+from dqpose import _dqcore, dq, fusion, lie
 from tests.bench.bench_core import BUILD, CFLAGS, CSRC, HERE, fmt_time
 
 N = 10
@@ -134,7 +134,7 @@ def motion_table(samples: int, count: int = 20):
                      f"{steps:.1f} Gauss-Newton steps, NIS included"))
         rows.append((n, "NumPy reference (tests/fusion_reference.py)",
                      per_call(numpy, max(3, samples // 3)), base, "—", "the pre-kernel path"))
-        rows.append((n, "service.fusion.fuse(..., times=...)", per_call(api, samples), base, "—",
+        rows.append((n, "dqpose.fusion.fuse(..., times=...)", per_call(api, samples), base, "—",
                      f"validation, frames, report; {np.mean([x.iterations for x in f]):.1f} steps"))
     head = ["n", "implementation", "per estimate", "× C kernel", "max dev pose", "note"]
     lines = [[str(n), label, fmt_time(t), f"{t / b:.1f}", d, note]
@@ -179,7 +179,7 @@ def main(argv=None):
     rows.append((f"_dqcore.fuse, batch of {P} in one call",
                  per_call(lambda: _dqcore.fuse(Z, S, None), samples) / P, "per problem",
                  deviation(batch[0], batch[1], mean, cov)))
-    rows.append(("service.fusion.fuse", per_call(lambda: fusion.fuse(Z[next(k) % P],
+    rows.append(("dqpose.fusion.fuse", per_call(lambda: fusion.fuse(Z[next(k) % P],
                                                                      S[next(k) % P]), samples),
                  "validation, NIS, report", None))
 

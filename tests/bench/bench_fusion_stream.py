@@ -39,8 +39,8 @@ import time
 
 import numpy as np
 
-from service import dq, fusion, lie
-from service.rpc.client import Batch, Client
+from dqpose import dq, fusion, lie
+from dqpose.rpc.client import Batch, Client
 from tests.bench.bench_grpc import FUSE_EVERY, ServerProcess
 
 PER_MESSAGE = 10
@@ -169,7 +169,7 @@ def run(target: str, scene: Scene, seconds: float, msg_rate: float | None, args,
 def wire_messages(scene: Scene, messages: int) -> list[bytes]:
     """Messages ``0 .. messages - 1`` of the stream as the server receives them (request bytes,
     the options in none of them)."""
-    from service.rpc.convert import measurements_wire
+    from dqpose.rpc.convert import measurements_wire
 
     return [measurements_wire(*b) for i in range(0, messages, 256)
             for b in scene.batches(i, min(256, messages - i))]
@@ -180,9 +180,9 @@ def in_process(scene: Scene, args, messages: int, warm: int = 500) -> None:
     process (``Fusion.stream_step_wire``, answers serialised), and nothing printed: under
     callgrind the instructions per message are ``(Ir(N) - Ir(0)) / N``, which the load of a
     shared machine does not move."""
-    from service.rpc.convert import options_msg
-    from service.rpc.fusion import Fusion
-    from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
+    from dqpose.rpc.convert import options_msg
+    from dqpose.rpc.fusion import Fusion
+    from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 
     data = wire_messages(scene, warm + max(messages, 1000))   # the same set-up for every N
     f = Fusion()
@@ -198,12 +198,12 @@ def per_message_cost(scene: Scene, args, messages: int = 6000) -> str:
     ``Fusion.stream_step_wire`` (what StreamFuse serves: the C decoder, then the tracker), and
     for comparison the protobuf path (bytes parsed, then ``Fusion.stream_step``); cProfile of
     the parts."""
-    from service.rpc.convert import options_msg
-    from service.rpc.fusion import Fusion
-    from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
+    from dqpose.rpc.convert import options_msg
+    from dqpose.rpc.fusion import Fusion
+    from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 
     data = wire_messages(scene, messages)
-    from service.rpc.convert import fuse_stream_from_wire, measurements_to_arrays
+    from dqpose.rpc.convert import fuse_stream_from_wire, measurements_to_arrays
 
     f = Fusion()
 

@@ -28,12 +28,12 @@ from concurrent import futures
 import grpc
 import numpy as np
 
-from service import dq
-from service.rpc.convert import decode_blend_request, pose_msgs, poses_to_dqs
-from service.rpc.blending import Blending
-from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
-from service.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
-from service.rpc._proto.dqpose.v1 import geometry_pb2 as geo
+from dqpose import dq
+from dqpose.rpc.convert import decode_blend_request, pose_msgs, poses_to_dqs
+from dqpose.rpc.blending import Blending
+from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
+from dqpose.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
+from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 PROTO = os.path.join(ROOT, "proto")
@@ -107,8 +107,8 @@ FUSE_EVERY = 20     # bench_fusion_stream's scene: 100 answers/s at 2,000 messag
 
 def fused_reply():
     """A FusedPose of the size bench_fusion_stream's answers have: 18 measurements with times."""
-    from service import dq, fusion, lie
-    from service.rpc.convert import fused_to_msg
+    from dqpose import dq, fusion, lie
+    from dqpose.rpc.convert import fused_to_msg
 
     rng = np.random.default_rng(0)
     t = np.arange(18) * 0.005
@@ -177,7 +177,7 @@ class ServerProcess:
         if kind == "echo":
             cmd = [sys.executable, "-m", "tests.bench.bench_grpc", "--serve-echo"]
         elif kind == "aio":
-            cmd = [sys.executable, "-m", "service.cli", "serve", "--port", "0", "--grace", "2",
+            cmd = [sys.executable, "-m", "dqpose.cli", "serve", "--port", "0", "--grace", "2",
                    *(["--no-call-log"] if quiet_log else [])]
         else:
             cmd = [sys.executable, "-m", "tests.bench.bench_grpc", "--serve-sync"]
@@ -288,7 +288,7 @@ def dqs10(seed: int = 0) -> np.ndarray:
 
 def client_unary(target: str, n: int) -> np.ndarray:
     """Latencies of ``Client.blend`` (the shipped client: arrays in, array out)."""
-    from service.rpc.client import Client
+    from dqpose.rpc.client import Client
 
     dqs = dqs10()
     with Client(target) as c:
@@ -304,7 +304,7 @@ def client_unary(target: str, n: int) -> np.ndarray:
 
 def client_stream(target: str, n: int) -> float:
     """Blends per second through ``Client.blend_stream`` of ``n`` ``(dqs, None)`` pairs."""
-    from service.rpc.client import Client
+    from dqpose.rpc.client import Client
 
     sets = [(dqs10(i % 16), None) for i in range(n)]
     with Client(target) as c:
@@ -320,7 +320,7 @@ def client_stream(target: str, n: int) -> float:
 def client_batch(target: str, m: int = 20_000, repeat: int = 3) -> float:
     """Blends per second through ``Client.blend_batch`` of an ``(m, 10, 8)`` array (split by
     the client under the server's 4 MiB and 10,000-request limits)."""
-    from service.rpc.client import Client
+    from dqpose.rpc.client import Client
 
     sets = np.stack([dqs10(i % 16) for i in range(m)])
     with Client(target, timeout=60) as c:

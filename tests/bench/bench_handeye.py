@@ -1,6 +1,6 @@
 """Benchmark of hand-eye calibration: `.venv/bin/python -m tests.bench.bench_handeye [--plot PATH]`.
 
-Issue 11's comparison: ours (``service.handeye.calibrate``) against OpenCV 4.x's five
+Issue 11's comparison: ours (``dqpose.handeye.calibrate``) against OpenCV 4.x's five
 ``calibrateHandEye`` methods (Tsai, Park, Horaud, Andreff, Daniilidis) and its two
 ``calibrateRobotWorldHandEye`` methods (Shah, Li), on the same data in the same run.
 
@@ -63,7 +63,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service import dq
+from dqpose import dq
 from tests import _handeye
 from tests.bench.bench_fusion import _fmt_s, _markdown, nees
 
@@ -249,7 +249,7 @@ def cases(geometries=GEOMETRIES, poses=POSES) -> list[Case]:
 
 def have_ours() -> bool:
     try:
-        from service import handeye  # noqa: F401
+        from dqpose import handeye  # noqa: F401
     except ImportError:
         return False
     return True
@@ -258,8 +258,8 @@ def have_ours() -> bool:
 def ours(base_flange, camera_target, setup, **kwargs):
     """``(X, covariance, seconds, why)`` of ``calibrate``; X None and ``why`` the reason when it
     refuses (``Infeasible``) or answers NaN."""
-    from service import handeye
-    from service.errors import Infeasible
+    from dqpose import handeye
+    from dqpose.errors import Infeasible
     t0 = time.perf_counter()
     try:
         cal = handeye.calibrate(base_flange, camera_target, setup, **kwargs)
@@ -308,7 +308,7 @@ def add_opencv(res, solved, truths):
 def opencv_corners_camera(intrinsics):
     """A ``CharucoCamera`` that keeps OpenCV's ChArUco corners as OpenCV refines them (before
     drivers/camera.py refined them again off the markers): the detector as it was."""
-    from drivers.camera import CharucoCamera
+    from dqpose.drivers.camera import CharucoCamera
 
     class OpenCVCorners(CharucoCamera):
         def _refine_corners(self, gray, obj, img, rvec, tvec):
@@ -322,8 +322,8 @@ def charuco_views(trials: int, seed: int, n: int = CHARUCO_POSES, blur: float = 
     ``noise`` grey levels) and detected (``opencv_corners``: with OpenCV's corners as they come).
     Returns ``(scene, kept indices, detected T_camera_target, corners per kept view, the
     detector's covariances)``; a view the detector rejects is left out, as a user would."""
-    from drivers.camera import CharucoCamera
-    from drivers.sim.camera import DEFAULT_INTRINSICS, BoardRenderer
+    from dqpose.drivers.camera import CharucoCamera
+    from dqpose.drivers.sim.camera import DEFAULT_INTRINSICS, BoardRenderer
     renderer = BoardRenderer()
     camera = (opencv_corners_camera if opencv_corners else CharucoCamera)(DEFAULT_INTRINSICS)
     rng = np.random.default_rng(seed)
@@ -347,11 +347,11 @@ def run_ours(res: dict, label: str, jobs) -> None:
     """Row ``label``: ``calibrate`` on each ``(truth, base_flange, camera_target, setup, options)``
     of ``jobs``. A row whose options ``calibrate`` does not take yet (a TypeError, or a
     FieldError naming the option, on the first job) is left out with a note on stderr."""
-    from service.errors import FieldError, Infeasible
+    from dqpose.errors import FieldError, Infeasible
     jobs = list(jobs)
     truth, B, A, setup, options = jobs[0]
     if options:
-        from service import handeye
+        from dqpose import handeye
         try:
             handeye.calibrate(B, A, setup, **options)
         except TypeError as e:
@@ -411,8 +411,8 @@ def run_broken(trials: int, seed: int, python: Path | None):
         sets = [(b.base_flange, b.camera_target, b.setup, b.scene.x) for b in sets]
         row = {}
         if have_ours():
-            from service import handeye
-            from service.errors import Infeasible
+            from dqpose import handeye
+            from dqpose.errors import Infeasible
             s, refused, warned, silent, first = Series(), 0, 0, 0, ""
             for B, A, setup, X in sets:
                 try:

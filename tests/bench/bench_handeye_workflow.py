@@ -1,6 +1,6 @@
 """Hand-eye calibration end to end on the simulators, as `dqpose handeye capture` and `solve` run
 it: the UR simulator driven through ur_rtde, the board rendered by the simulated camera (2 grey
-levels of noise, 0.6 px blur) and detected by drivers.camera, solved by service.handeye; the
+levels of noise, 0.6 px blur) and detected by drivers.camera, solved by dqpose.handeye; the
 answer against the simulation's truth.
 
     .venv/bin/python -m tests.bench.bench_handeye_workflow               # 5 seeds (~8 min)
@@ -28,9 +28,9 @@ import tempfile
 
 import numpy as np
 
-from service import dq, handeye, lie
-from service.cli import main
-from service.cli.handeye import CHOICES, read_truth
+from dqpose import dq, handeye, lie
+from dqpose.cli import main
+from dqpose.cli.handeye import CHOICES, read_truth
 
 
 def _pose(doc) -> np.ndarray:

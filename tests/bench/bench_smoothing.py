@@ -8,7 +8,7 @@ far and the unconstrained smoothing by a little: the limits bind.
 
 Rows, on the same trials (``--trials`` seeds), all at smoothing 1 (cutoff 2 Hz) where it applies:
 
-* **ours**: ``service.smoothing.smooth`` (banded start, then one PIQP QP per channel that needs
+* **ours**: ``dqpose.smoothing.smooth`` (banded start, then one PIQP QP per channel that needs
   one, through ``casadi.conic``; the returned samples measured and a broken limit tightened);
 * **banded only**: the unconstrained banded solve that ours starts from;
 * **OSQP**: ours with OSQP (casadi's plugin, its default tolerances 1e-3) in place of PIQP, one
@@ -24,7 +24,7 @@ Time: median wall time of a call from Python (first call excluded: it loads casa
 Errors: translation ``|t - t_true|`` (mm) and rotation angle of ``R_true^-1 R`` (deg), median
 and max over every pose of every trial. Worst violation: the largest ``measured / limit - 1`` of
 the four limits over the trials, measured from the samples by finite differences
-(``service.smoothing.peaks``); 0 means every limit held.
+(``dqpose.smoothing.peaks``); 0 means every limit held.
 """
 from __future__ import annotations
 
@@ -35,8 +35,8 @@ import time
 
 import numpy as np
 
-from service import dq, smoothing
-from service.smoothing import peaks, smooth
+from dqpose import dq, smoothing
+from dqpose.smoothing import peaks, smooth
 from tests.test_smoothing import errors, limits_from, noisy, teleop_path
 
 FIELDS = ("linear_velocity", "angular_velocity", "linear_acceleration", "angular_acceleration")
@@ -87,7 +87,7 @@ def savitzky_golay(t, y, limits, window=31, order=3):
 
 # ---- IPOPT on the nonlinear problem -------------------------------------------------------------
 class Ipopt:
-    """The nonlinear problem of service.smoothing with casadi SX, solved by IPOPT."""
+    """The nonlinear problem of dqpose.smoothing with casadi SX, solved by IPOPT."""
 
     def __init__(self, t, y, limits):
         import casadi as ca

@@ -4,7 +4,7 @@ One table. On the same SE(3) paths and the same limits (tool-point velocity 0.5 
 acceleration 2 m/s^2, jerk 20 m/s^3; tool 1 rad/s, 4 rad/s^2, 40 rad/s^3), measured in the same
 run:
 
-* **ours** — ``service.trajectory.plan`` (TOOL_LINEAR), its samples from ``at_rate``;
+* **ours** — ``dqpose.trajectory.plan`` (TOOL_LINEAR), its samples from ``at_rate``;
 * **Ruckig** (community version) on [xyz, rotation vector], the rotation vector relative to the
   segment's start pose (so a straight move is a straight line in these coordinates), phase
   synchronised; with the limits per axis scaled by the direction of the move (|d_k| * limit, so
@@ -35,8 +35,8 @@ import time
 
 import numpy as np
 
-from service import dq, interpolate
-from service.trajectory import Limits, Waypoint, plan
+from dqpose import dq, interpolate
+from dqpose.trajectory import Limits, Waypoint, plan
 from tests._kinematics import NOISE_1KHZ, peaks
 
 LIMITS = Limits(max_linear_velocity=0.5, max_angular_velocity=1.0, max_linear_acceleration=2.0,

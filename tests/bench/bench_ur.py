@@ -15,9 +15,9 @@ import time
 
 import numpy as np
 
-from drivers.rotvec import pose_from_rotvec, rotvec_from_pose
-from drivers.sim import ursim
-from drivers.ur import URArm
+from dqpose.drivers.rotvec import pose_from_rotvec, rotvec_from_pose
+from dqpose.drivers.sim import ursim
+from dqpose.drivers.ur import URArm
 
 
 def _ramp(p0, n, distance):

@@ -11,7 +11,7 @@ import sys
 
 import pytest
 
-from service.cli import main
+from dqpose.cli import main
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(__file__)), "rpc"))
 from _grpc_server import ServerThread  # noqa: E402
@@ -36,7 +36,7 @@ def serving(*flags):
     """``dqpose serve --port 0 FLAGS`` in its own process, once it serves: ``(process, its JSON
     log events so far)``, the last one ``serving`` with the ``address``; its standard error
     stays a pipe for the rest."""
-    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", "0",
+    proc = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "serve", "--port", "0",
                              *flags], cwd=ROOT, stderr=subprocess.PIPE, text=True)
     events: list = []
     try:

@@ -65,10 +65,10 @@ def _as_a_terminal_starts():
 
 
 class Command:
-    """``python -m service.cli ARGV`` in a new session; output collected as it comes."""
+    """``python -m dqpose.cli ARGV`` in a new session; output collected as it comes."""
 
     def __init__(self, *argv: str):
-        self.proc = subprocess.Popen([sys.executable, "-m", "service.cli", *argv], cwd=ROOT,
+        self.proc = subprocess.Popen([sys.executable, "-m", "dqpose.cli", *argv], cwd=ROOT,
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                      start_new_session=True, preexec_fn=_as_a_terminal_starts)
         self.out: list[str] = []
@@ -175,11 +175,11 @@ def sim_host(cmd: Command, timeout: float = 120.0) -> tuple[int, str]:
     """The pid and address of the UR simulator ``cmd`` started, once it serves there (its hooks
     answer with its pid: a simulator that could not have its address, or was too slow to start,
     is replaced by one on the next address)."""
-    from drivers.sim.ursim import HOOK_PORT
+    from dqpose.drivers.sim.ursim import HOOK_PORT
     found: list = []
 
     def serving():
-        for pid, argv in children(cmd.proc.pid, "drivers.sim.ursim"):
+        for pid, argv in children(cmd.proc.pid, "dqpose.drivers.sim.ursim"):
             host = argv[argv.index("--host") + 1]
             try:
                 with socket.create_connection((host, HOOK_PORT), timeout=1.0) as s, \
@@ -222,7 +222,7 @@ class SimWatch:
     connections (:meth:`hold`) was still alive once the count was in."""
 
     def __init__(self, host: str):
-        from drivers.sim.ursim import HOOK_PORT
+        from dqpose.drivers.sim.ursim import HOOK_PORT
         deadline = time.monotonic() + 60
         while True:
             try:

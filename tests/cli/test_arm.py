@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from _cli import run, serving
-from service import dq, trajectory
-from service.rpc.client import Client
+from dqpose import dq, trajectory
+from dqpose.rpc.client import Client
 
 LIMITS = trajectory.Limits(0.1, 0.5, 0.5, 1.0, 5.0, 10.0)
 

@@ -1,4 +1,4 @@
-"""service.cli: the `dqpose` entry point. The top-level help imports no command module (so no
+"""dqpose.cli: the `dqpose` entry point. The top-level help imports no command module (so no
 NumPy, C core or grpc), and every command's own parser builds and describes itself."""
 from __future__ import annotations
 
@@ -7,13 +7,13 @@ import sys
 
 import pytest
 
-from service.cli import COMMANDS, build_parser
+from dqpose.cli import COMMANDS, build_parser
 
-HEAVY = ("numpy", "grpc", "service._dqcore", "service.rpc", "drivers")
+HEAVY = ("numpy", "grpc", "dqpose._dqcore", "dqpose.rpc", "dqpose.drivers")
 
 
 def _modules_after(argv: list[str]) -> set[str]:
-    code = ("import sys\nfrom service.cli import main\n"
+    code = ("import sys\nfrom dqpose.cli import main\n"
             f"try:\n    main({argv!r})\nexcept SystemExit:\n    pass\n"
             "print(' '.join(sorted(sys.modules)))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
@@ -23,7 +23,7 @@ def _modules_after(argv: list[str]) -> set[str]:
 
 def test_top_level_help_imports_nothing_heavy():
     loaded = _modules_after(["--help"])
-    assert "service.cli" in loaded
+    assert "dqpose.cli" in loaded
     heavy = sorted(m for m in loaded if m.split(".")[0] in HEAVY or m in HEAVY
                    or any(m.startswith(h + ".") for h in HEAVY))
     assert heavy == []
@@ -33,8 +33,8 @@ def test_top_level_help_imports_nothing_heavy():
 
 def test_a_command_imports_only_its_own_module():
     loaded = _modules_after(["health", "--help"])
-    assert "service.cli.serve" in loaded
-    assert {"service.cli.blend", "service.cli.properties", "service.cli.sim"}.isdisjoint(loaded)
+    assert "dqpose.cli.serve" in loaded
+    assert {"dqpose.cli.blend", "dqpose.cli.properties", "dqpose.cli.sim"}.isdisjoint(loaded)
 
 
 @pytest.mark.parametrize("name", sorted(COMMANDS))
@@ -53,7 +53,7 @@ def test_help_of_every_command_renders():
 
 
 def test_blend_help_explains_every_method():
-    from service import dq
+    from dqpose import dq
     parser = build_parser(["blend"])
     sub = next(a for a in parser._actions if a.dest == "command").choices["blend"]
     text = sub.format_help()

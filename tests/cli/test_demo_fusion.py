@@ -16,7 +16,7 @@ import pytest
 pytest.importorskip("rtde_control")
 pytest.importorskip("matplotlib")
 
-from service.cli import main  # noqa: E402
+from dqpose.cli import main  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -35,7 +35,7 @@ def test_the_demo_as_a_user_runs_it_says_whether_its_claims_hold(tmp_path):
     is at most every source alone's and whether the NEES is in its band, and, when either is
     not, why; the figures it states are the table's."""
     png = tmp_path / "fusion.png"
-    r = subprocess.run([sys.executable, "-m", "service.cli", "demo", "fusion", "--plot",
+    r = subprocess.run([sys.executable, "-m", "dqpose.cli", "demo", "fusion", "--plot",
                         str(png)], cwd=ROOT, capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stderr
     out = r.stdout
@@ -67,8 +67,8 @@ def test_a_machine_too_slow_to_render_delays_the_stream_not_what_it_carries(monk
     and the fused pose stays the most accurate (or the summary says why not); the stream runs
     behind real time instead.
     Rendering in the reading loop stretched that clock, and with it the windows."""
-    from drivers.sim.camera import BoardRenderer
-    from service.cli import demo_fusion
+    from dqpose.drivers.sim.camera import BoardRenderer
+    from dqpose.cli import demo_fusion
 
     render = BoardRenderer.render
 
@@ -96,7 +96,7 @@ def test_a_machine_too_slow_to_render_delays_the_stream_not_what_it_carries(monk
 
 
 def test_run_returns_the_errors_and_the_nees_at_every_answer():
-    from service.cli import demo_fusion
+    from dqpose.cli import demo_fusion
     r = demo_fusion.run(5)
     assert r.names == ("ur", "camera1", "camera2", "fused")
     fused = r.series["fused"]
@@ -113,7 +113,7 @@ def test_run_returns_the_errors_and_the_nees_at_every_answer():
 
 
 def test_the_nees_band_is_the_chi_square_band_of_the_mean():
-    from service.cli import demo_fusion
+    from dqpose.cli import demo_fusion
     lo, hi = demo_fusion.nees_band(100)
     assert 5.0 < lo < 6.0 < hi < 7.0
     rng = np.random.default_rng(0)              # a consistent estimator's NEES: chi2(6)
@@ -123,8 +123,8 @@ def test_the_nees_band_is_the_chi_square_band_of_the_mean():
 
 
 def test_roughness_is_zero_on_a_quadratic_and_measures_jitter():
-    from service import dq
-    from service.cli import demo_fusion
+    from dqpose import dq
+    from dqpose.cli import demo_fusion
     t = np.arange(500) * 0.02
     q = np.tile([1.0, 0, 0, 0], (500, 1))
     p = np.stack([0.01 * t + 0.002 * t ** 2, 0 * t, 0 * t], axis=1)

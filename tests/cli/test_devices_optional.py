@@ -13,8 +13,8 @@ import sys
 import numpy as np
 import pytest
 
-from service import dq, trajectory
-from service.rpc.client import Client, RpcError
+from dqpose import dq, trajectory
+from dqpose.rpc.client import Client, RpcError
 
 LIMITS = trajectory.Limits(max_linear_velocity=1.0, max_angular_velocity=1.0,
                            max_linear_acceleration=1.0, max_angular_acceleration=1.0)
@@ -43,7 +43,7 @@ class Blocker(MetaPathFinder):
         return None
 
 sys.meta_path.insert(0, Blocker())
-from service.cli import main
+from dqpose.cli import main
 sys.exit(main(sys.argv[1:]))
 """
 

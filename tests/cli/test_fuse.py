@@ -1,5 +1,5 @@
 """`dqpose fuse`: JSON (the grpcurl FuseRequest body) and CSV files, on a real server on 127.0.0.1
-and --local; both answer what service.fusion.fuse computes."""
+and --local; both answer what dqpose.fusion.fuse computes."""
 from __future__ import annotations
 
 import json
@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from service import dq, fusion, lie
-from service.fusion import Source
+from dqpose import dq, fusion, lie
+from dqpose.fusion import Source
 
 from _cli import run, server  # noqa: F401 (server: a fixture)
 

@@ -15,7 +15,7 @@ pytest.importorskip("rtde_control")
 pytest.importorskip("cv2")
 
 from _cli import run, server  # noqa: E402,F401
-from service import dq, fusion, lie  # noqa: E402
+from dqpose import dq, fusion, lie  # noqa: E402
 
 # NEES of a 6-dof estimate: below this in 99.9 % of the runs when the covariance is honest
 NEES_BOUND = fusion.chi2_quantile(0.999, 6)
@@ -28,7 +28,7 @@ def _pose(doc) -> np.ndarray:
 
 def _capture(tmp_path_factory, setup: str, views: int) -> str:
     folder = str(tmp_path_factory.mktemp(setup) / "capture")
-    from service.cli import main
+    from dqpose.cli import main
     assert main(["handeye", "capture", folder, "--setup", setup, "--views", str(views)]) == 0
     return folder
 
@@ -100,7 +100,7 @@ def test_corner_level_on_the_server(eye_in_hand, server, capsys, tmp_path):
 
 
 def test_solve_local_reads_ur_rotation_vectors_in_millimetres(eye_in_hand, capsys, tmp_path):
-    from drivers.rotvec import rotvec_from_pose
+    from dqpose.drivers.rotvec import rotvec_from_pose
     folder = str(tmp_path / "ur")
     shutil.copytree(eye_in_hand, folder)
     with open(os.path.join(folder, "poses.json")) as f:
@@ -214,8 +214,8 @@ def _capture_on_the_sim_arm(eye_in_hand, capsys, frames, folder: str, views: int
     """``dqpose handeye capture`` of the real-arm path on a UR simulator started at the first
     pose of the eye_in_hand capture, with the images in ``frames`` as the camera: ``(code, out,
     err, the start pose, where the arm stands at the end)``."""
-    from drivers.rotvec import rotvec_from_pose
-    from drivers.sim.ursim import URSimProcess
+    from dqpose.drivers.rotvec import rotvec_from_pose
+    from dqpose.drivers.sim.ursim import URSimProcess
     with open(os.path.join(eye_in_hand, "poses.json")) as f:
         start = _pose(json.load(f)["poses"][0]["base_to_flange"])
     with URSimProcess() as sim:
@@ -227,7 +227,7 @@ def _capture_on_the_sim_arm(eye_in_hand, capsys, frames, folder: str, views: int
 
 
 def _ur_to_pose(p6):
-    from drivers.rotvec import pose_from_rotvec
+    from dqpose.drivers.rotvec import pose_from_rotvec
     return dq.to_pose(pose_from_rotvec(np.asarray(p6, dtype=float)))
 
 
@@ -235,7 +235,7 @@ def test_a_capture_that_loses_the_board_stops_and_keeps_what_it_took(eye_in_hand
                                                                      tmp_path, monkeypatch):
     import cv2
 
-    from service.cli import handeye_capture
+    from dqpose.cli import handeye_capture
     monkeypatch.setattr(handeye_capture, "MAX_MISSES", 2)
     frames = tmp_path / "frames"
     frames.mkdir()

@@ -19,7 +19,7 @@ pytest.importorskip("rtde_control")
 from _interrupt import (EXIT_TIMEOUT, Command, SimWatch, alive, arm_process,  # noqa: E402
                         assert_stopped_after, children, sim_host)
 
-from drivers.sim.ursim import (MOVEL, SERVO_STOP, SERVOL, SPEED_STOP, STOP_SCRIPT,  # noqa: E402
+from dqpose.drivers.sim.ursim import (MOVEL, SERVO_STOP, SERVOL, SPEED_STOP, STOP_SCRIPT,  # noqa: E402
                                STOPJ, STOPL)
 
 MOTION = (SERVOL, MOVEL)
@@ -112,8 +112,8 @@ def test_ctrl_c_ends_serve_with_its_simulators(tmp_path):
     cmd = Command("serve", "--sims", "--port", "0")
     try:
         cmd.wait_for(lambda: '"event": "serving"' in cmd.stderr, "the server serving")
-        sims = [pid for pid, _ in children(cmd.proc.pid, "drivers.sim.ursim")
-                + children(cmd.proc.pid, "drivers.sim.piper")]
+        sims = [pid for pid, _ in children(cmd.proc.pid, "dqpose.drivers.sim.ursim")
+                + children(cmd.proc.pid, "dqpose.drivers.sim.piper")]
         cmd.interrupt()
         code = cmd.wait()
     finally:
@@ -159,8 +159,8 @@ def test_a_second_ctrl_c_ends_serve_at_once():
         pid, host = sim_host(cmd)
         watch = SimWatch(host)
         cmd.wait_for(lambda: '"event": "serving"' in cmd.stderr, "the server serving")
-        sims = [p for p, _ in children(cmd.proc.pid, "drivers.sim.ursim")
-                + children(cmd.proc.pid, "drivers.sim.piper")]
+        sims = [p for p, _ in children(cmd.proc.pid, "dqpose.drivers.sim.ursim")
+                + children(cmd.proc.pid, "dqpose.drivers.sim.piper")]
         os.kill(cmd.proc.pid, signal.SIGTERM)           # to the server, as `kill` sends it
         cmd.wait_for(lambda: '"event": "shutting_down"' in cmd.stderr, "the shutdown")
         for _ in range(20):
@@ -186,10 +186,10 @@ def test_ctrl_c_ends_serve_while_an_arm_executes(tmp_path):
 
     import numpy as np
 
-    from drivers.rotvec import pose_from_rotvec
-    from drivers.sim.ursim import URSimProcess
-    from service import dq, trajectory
-    from service.rpc.client import Client
+    from dqpose.drivers.rotvec import pose_from_rotvec
+    from dqpose.drivers.sim.ursim import URSimProcess
+    from dqpose import dq, trajectory
+    from dqpose.rpc.client import Client
 
     home = np.array([0.40, -0.10, 0.30, np.pi, 0.0, 0.0])
     with URSimProcess() as sim:

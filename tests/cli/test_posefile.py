@@ -1,4 +1,4 @@
-"""service.cli.posefile: the JSON and CSV pose files of `dqpose blend` / `dqpose interpolate`."""
+"""dqpose.cli.posefile: the JSON and CSV pose files of `dqpose blend` / `dqpose interpolate`."""
 from __future__ import annotations
 
 import csv
@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from service import dq
+from dqpose import dq
 from _cli import server  # noqa: F401,E402 (a fixture)
-from service.cli.posefile import (format_blend, format_samples, read_blend, read_interpolate,
+from dqpose.cli.posefile import (format_blend, format_samples, read_blend, read_interpolate,
                                   sample_times)
 
 
@@ -160,12 +160,12 @@ def test_bad_keyframe_files_say_where(tmp_path, text, message):
 # ---- robot poses of a hand-eye capture
 
 def _ur_rows(dqs):
-    from drivers.rotvec import rotvec_from_pose
+    from dqpose.drivers.rotvec import rotvec_from_pose
     return rotvec_from_pose(dqs)
 
 
 def test_robot_poses_in_every_form_read_alike(tmp_path, poses):
-    from service.cli.posefile import read_robot_poses, robot_poses_json
+    from dqpose.cli.posefile import read_robot_poses, robot_poses_json
     names = [f"view_{i}.png" for i in range(len(poses))]
     ur = _ur_rows(poses)                       # [x, y, z, rx, ry, rz]
     rows = _rows(poses)                        # [x, y, z, qw, qx, qy, qz]
@@ -222,7 +222,7 @@ def test_robot_poses_in_every_form_read_alike(tmp_path, poses):
     ("x,y,z,rx,ry,rz\n0,0,zero,0,0,0\n", "line 2: '0,0,zero,0,0,0' are not all numbers"),
 ])
 def test_bad_robot_pose_files_say_where(tmp_path, text, message):
-    from service.cli.posefile import read_robot_poses
+    from dqpose.cli.posefile import read_robot_poses
     path = tmp_path / ("p.csv" if not text.startswith("{") else "p.json")
     path.write_text(text)
     with pytest.raises(ValueError) as e:
@@ -246,7 +246,7 @@ def dqpose(*argv, cwd):
     """``dqpose ARGV`` as a user runs it: ``(exit code, stdout, stderr)``."""
     import subprocess
     import sys
-    p = subprocess.run([sys.executable, "-m", "service.cli", *argv], cwd=cwd, capture_output=True,
+    p = subprocess.run([sys.executable, "-m", "dqpose.cli", *argv], cwd=cwd, capture_output=True,
                        text=True, timeout=120)
     return p.returncode, p.stdout, p.stderr
 
@@ -347,7 +347,7 @@ def test_a_yaml_file_is_read_like_its_json(tmp_path):
 
 @pytest.mark.parametrize("where", ["--local", "server"])
 def test_rounded_quaternions_are_taken_and_garbage_is_refused_saying_how_far(tmp_path, server, where):
-    from service.rpc.client import Client, InvalidArgument
+    from dqpose.rpc.client import Client, InvalidArgument
     exact = ("x,y,z,qw,qx,qy,qz\n0.1,0,0,1,0,0,0\n"
              f"0.3,0,0,{H!r},0,0,{H!r}\n")
     rounded = exact.replace(repr(H), "0.7071")              # norm 0.99999, 1e-5 off

@@ -22,7 +22,7 @@ from _cli import ROOT, serving
     (["--keepalive", "0"], "--keepalive: must be within 0.001..2147483 seconds, got 0"),
 ])
 def test_an_option_out_of_range_is_one_line_naming_the_flag_and_exit_2(flags, message):
-    res = subprocess.run([sys.executable, "-m", "service.cli", "serve", *flags],
+    res = subprocess.run([sys.executable, "-m", "dqpose.cli", "serve", *flags],
                          capture_output=True, text=True, timeout=30, cwd=ROOT)
     assert (res.returncode, res.stderr) == (2, f"dqpose serve: error: {message}\n")
     assert res.stdout == ""
@@ -42,13 +42,13 @@ GRAMMAR = "NAME=KIND:TARGET[?key=value&key=value...]"
 ])
 def test_a_malformed_arm_is_named(value, message):
     flags = value if isinstance(value, list) else [value]
-    res = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--arm", *flags],
+    res = subprocess.run([sys.executable, "-m", "dqpose.cli", "serve", "--arm", *flags],
                          capture_output=True, text=True, timeout=30, cwd=ROOT)
     assert (res.returncode, res.stderr) == (2, f"dqpose serve: error: {message}\n")
 
 
 def test_a_misspelt_arm_key_is_named_with_the_nearest_one():
-    res = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--arm",
+    res = subprocess.run([sys.executable, "-m", "dqpose.cli", "serve", "--arm",
                           "piper=piper:sim?max_trackin=0.003"], capture_output=True, text=True,
                          timeout=30, cwd=ROOT)
     assert res.returncode == 2
@@ -58,9 +58,9 @@ def test_a_misspelt_arm_key_is_named_with_the_nearest_one():
 
 
 def test_serve_help_lists_every_service_and_every_arm_key():
-    from drivers import ARM_KEYS
-    from service.rpc.server import SERVICERS
-    res = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--help"],
+    from dqpose.drivers import ARM_KEYS
+    from dqpose.rpc.server import SERVICERS
+    res = subprocess.run([sys.executable, "-m", "dqpose.cli", "serve", "--help"],
                          capture_output=True, text=True, timeout=30, cwd=ROOT)
     assert res.returncode == 0
     text = " ".join(res.stdout.split())
@@ -71,12 +71,12 @@ def test_serve_help_lists_every_service_and_every_arm_key():
 
 
 def test_an_arm_given_twice_or_unreachable_is_named():
-    res = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--arm", "a=ur:x",
+    res = subprocess.run([sys.executable, "-m", "dqpose.cli", "serve", "--arm", "a=ur:x",
                           "--arm", "a=ur:y"], capture_output=True, text=True, timeout=30, cwd=ROOT)
     assert (res.returncode, res.stderr) == (2, "dqpose serve: error: --arm: 'a' is given twice\n")
     pytest.importorskip("rtde_control")
     # nothing listens on 127.0.0.254's UR ports
-    res = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--port", "0", "--arm",
+    res = subprocess.run([sys.executable, "-m", "dqpose.cli", "serve", "--port", "0", "--arm",
                           "ur=ur:127.0.0.254"], capture_output=True, text=True, timeout=60,
                          cwd=ROOT)
     assert res.returncode == 2
@@ -93,10 +93,10 @@ def test_serve_with_an_arm_executes_plans_on_it_and_stops_it_at_shutdown(flags, 
 
     import numpy as np
 
-    from drivers.rotvec import pose_from_rotvec
-    from drivers.sim.ursim import URSimProcess
-    from service import dq, trajectory
-    from service.rpc.client import Client
+    from dqpose.drivers.rotvec import pose_from_rotvec
+    from dqpose.drivers.sim.ursim import URSimProcess
+    from dqpose import dq, trajectory
+    from dqpose.rpc.client import Client
 
     limits = trajectory.Limits(0.2, 1.0, 1.0, 2.0, 10.0, 20.0)
     home = np.array([0.4, -0.1, 0.3, math.pi, 0.0, 0.0])

@@ -13,7 +13,7 @@ import sys
 import numpy as np
 import pytest
 
-from service import dq
+from dqpose import dq
 
 from _cli import server  # noqa: F401 (a fixture)
 
@@ -40,7 +40,7 @@ def _recording(path, n: int = 151, rate: float = 100.0):
 
 
 def _dqpose(*argv, timeout: float = 300.0):
-    return subprocess.run([sys.executable, "-m", "service.cli", *argv], cwd=ROOT,
+    return subprocess.run([sys.executable, "-m", "dqpose.cli", *argv], cwd=ROOT,
                           capture_output=True, text=True, timeout=timeout)
 
 
@@ -81,8 +81,8 @@ def test_smooth_says_the_ends_are_held_at_rest_and_free_ends_follows_the_data(tm
 
 
 def test_free_ends_through_the_client_and_the_domain_agree(server):
-    from service import smoothing, trajectory
-    from service.rpc.client import Client
+    from dqpose import smoothing, trajectory
+    from dqpose.rpc.client import Client
 
     n = 80
     t = np.arange(n) / 100.0
@@ -101,7 +101,7 @@ def test_free_ends_through_the_client_and_the_domain_agree(server):
 
 
 def test_free_ends_must_be_a_bool():
-    from service import smoothing, trajectory
+    from dqpose import smoothing, trajectory
     t = np.arange(5) / 10
     poses = dq.from_pose(np.tile([1.0, 0, 0, 0], (5, 1)), np.zeros((5, 3)))
     with pytest.raises(ValueError, match="free_ends"):
@@ -110,8 +110,8 @@ def test_free_ends_must_be_a_bool():
 
 def test_the_plot_draws_the_recording_and_the_smoothed_path_from_one_origin(tmp_path):
     pytest.importorskip("matplotlib")
-    from service import smoothing, trajectory
-    from service.cli.plots import motion_figure
+    from dqpose import smoothing, trajectory
+    from dqpose.cli.plots import motion_figure
 
     path = tmp_path / "moving.csv"
     t, truth = _recording(path)

@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from service import dq, smoothing, trajectory
+from dqpose import dq, smoothing, trajectory
 
 from _cli import run, server  # noqa: F401 (server: a fixture)
 
@@ -124,7 +124,7 @@ def test_smooth_csv_local_and_server_agree_with_the_domain(tmp_path, capsys, ser
 
 def test_demo_trajectory_runs_on_the_simulated_ur(tmp_path, capsys):
     pytest.importorskip("rtde_control")
-    from service.cli import demo_trajectory
+    from dqpose.cli import demo_trajectory
     r = demo_trajectory.run()
     assert r.state == "FINISHED", r.message
     # the arm follows the plan: within a few millimetres of the set-points (servoL lookahead)

@@ -12,10 +12,10 @@ import can
 import numpy as np
 import pytest
 
-import drivers
-from drivers.base import LimitError, Limits, pose_delta
-from service import dq
-from service.profile import Trapezoid
+from dqpose import drivers
+from dqpose.drivers.base import LimitError, Limits, pose_delta
+from dqpose import dq
+from dqpose.profile import Trapezoid
 from _polling import wait_until
 
 LIMITS = Limits(max_linear_speed=0.2, max_angular_speed=1.0, max_linear_accel=2.0,
@@ -35,8 +35,8 @@ class URRig:
 
     def __init__(self, process: bool = False, **arm_options):
         pytest.importorskip("rtde_control")
-        from drivers.rotvec import pose_from_rotvec
-        from drivers.sim import ursim
+        from dqpose.drivers.rotvec import pose_from_rotvec
+        from dqpose.drivers.sim import ursim
         self._ursim, self._pose_from_rotvec = ursim, pose_from_rotvec
         # a fast model: the simulator's own speed limit must not be what stops the arm
         self.sim = ursim.URSimProcess(args=("--max-linear-speed", "5"))
@@ -72,7 +72,7 @@ class PiperRig:
     on a bus that crosses processes (python-can's udp_multicast), the simulator in this one."""
 
     def __init__(self, process: bool = False):
-        from drivers.sim.piper import PiperSim
+        from dqpose.drivers.sim.piper import PiperSim
         if process:
             pytest.importorskip("msgpack")       # python-can's udp_multicast needs it
             interface = "udp_multicast"
@@ -99,7 +99,7 @@ class PiperRig:
         self._mark = len(self.sim.log)
 
     def received(self) -> list[np.ndarray]:
-        from drivers.piper import units_to_pose
+        from dqpose.drivers.piper import units_to_pose
         return [units_to_pose(v) for _, k, v in self.sim.log[self._mark:] if k == "end_pose"]
 
     def stopped(self) -> bool:

@@ -13,9 +13,9 @@ import time
 import numpy as np
 import pytest
 
-from drivers.base import ArmError, pose_delta, servo_step
-from drivers.executor import Executor, Result
-from service import dq, trajectory
+from dqpose.drivers.base import ArmError, pose_delta, servo_step
+from dqpose.drivers.executor import Executor, Result
+from dqpose import dq, trajectory
 from _polling import wait_until
 from test_arm_limits import LIMITS
 from test_executor import (PiperExec, URExec, _plan, arm, rig,  # noqa: F401 (fixtures)
@@ -298,8 +298,8 @@ def test_a_killed_controller_is_reported_lost():
     # ur_rtde's own answer to a controller gone mid-stream is "Timeout connecting to UR
     # dashboard server", from its attempt to reconnect
     pytest.importorskip("rtde_control")
-    import drivers
-    from drivers.sim import ursim
+    from dqpose import drivers
+    from dqpose.drivers.sim import ursim
     with ursim.URSimProcess(args=("--max-linear-speed", "5")) as sim:
         with drivers.open_arm(f"ur:{sim.host}", process=True, limits=LIMITS, watchdog=0.2,
                               stale_after=0.5) as arm:
@@ -340,7 +340,7 @@ def test_piper_resends_its_mode_until_the_arm_follows(rig, arm):
     # frame that does it may be lost
     if not isinstance(rig, PiperExec):
         pytest.skip("the PiPER's motion mode (0x151)")
-    from drivers.piper import MOTION_CTRL_2
+    from dqpose.drivers.piper import MOTION_CTRL_2
     rig.sim.drop(ids=MOTION_CTRL_2, count=1)
     rig.sim.restart()
     try:
@@ -360,9 +360,9 @@ def test_piper_resends_its_mode_until_the_arm_follows(rig, arm):
 # at once does), then exits: every ring in shared memory must be gone by then.
 _RETRY = """
 import sys, time
-import drivers
-from drivers.base import ArmError
-from drivers.executor import Executor, Result
+from dqpose import drivers
+from dqpose.drivers.base import ArmError
+from dqpose.drivers.executor import Executor, Result
 from test_arm_limits import LIMITS
 from test_arm_safety import _standing
 arm = drivers.open_arm("ur:" + sys.argv[1], process=True, limits=LIMITS, watchdog=0.2,
@@ -394,7 +394,7 @@ print(" ".join(outcomes), flush=True)
 
 def test_runs_started_right_after_a_cancel_leak_no_shared_memory():
     pytest.importorskip("rtde_control")
-    from drivers.sim import ursim
+    from dqpose.drivers.sim import ursim
     with ursim.URSimProcess(args=("--max-linear-speed", "5")) as sim:
         run = run_parent(_RETRY, sim.host, timeout=120)
     assert run.returncode == 0, run.stderr
@@ -406,8 +406,8 @@ def test_runs_started_right_after_a_cancel_leak_no_shared_memory():
 def test_an_opened_arm_has_its_first_state_or_says_why_not():
     import uuid
     import can
-    import drivers
-    from drivers.sim.piper import HOME, PiperSim
+    from dqpose import drivers
+    from dqpose.drivers.sim.piper import HOME, PiperSim
     channel = f"first-{uuid.uuid4().hex[:8]}"
     bus = can.Bus(interface="virtual", channel=channel)
     try:

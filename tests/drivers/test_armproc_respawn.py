@@ -14,8 +14,8 @@ from multiprocessing.connection import wait
 
 import pytest
 
-from drivers.base import ArmError
-from drivers.executor import Executor, Result
+from dqpose.drivers.base import ArmError
+from dqpose.drivers.executor import Executor, Result
 from _polling import wait_until
 from test_arm_safety import _runs_again, _trajectory
 from test_executor import PiperExec, URExec, _plan, run_parent
@@ -166,8 +166,8 @@ def test_reopening_is_bounded_says_why_it_failed_and_is_tried_again(rig, arm):
 _KILLS = """
 import os, signal, sys, threading
 from multiprocessing.connection import wait
-import drivers
-from drivers.executor import Executor, Result
+from dqpose import drivers
+from dqpose.drivers.executor import Executor, Result
 from test_arm_limits import LIMITS
 from test_arm_safety import _standing
 arm = drivers.open_arm("ur:" + sys.argv[1], process=True, limits=LIMITS, watchdog=0.2,
@@ -199,7 +199,7 @@ print(counts, flush=True)
 
 def test_dead_arm_processes_leave_no_shared_memory_pipes_or_threads():
     pytest.importorskip("rtde_control")
-    from drivers.sim import ursim
+    from dqpose.drivers.sim import ursim
     with ursim.URSimProcess(args=("--max-linear-speed", "5")) as sim:
         run = run_parent(_KILLS, sim.host, timeout=180)
     assert run.returncode == 0, run.stderr
@@ -212,8 +212,8 @@ def test_an_arm_that_comes_back_with_another_period_is_refused():
     # the controller at the address is now a CB3 (125 Hz, not the e-series' 500): plans made for
     # this arm's period, limits and name would not be its own
     pytest.importorskip("rtde_control")
-    import drivers
-    from drivers.sim import ursim
+    from dqpose import drivers
+    from dqpose.drivers.sim import ursim
     from test_arm_limits import LIMITS
     sim = ursim.URSimProcess()
     arm = drivers.open_arm(f"ur:{sim.host}", process=True, limits=LIMITS, reopen_every=0)

@@ -13,11 +13,11 @@ import time
 import numpy as np
 import pytest
 
-from drivers.base import pose_delta, servo_step
-from drivers.executor import Executor, Feedback, Result
-from service import dq
-from service.interpolate import interpolate
-from service.profile import Trapezoid
+from dqpose.drivers.base import pose_delta, servo_step
+from dqpose.drivers.executor import Executor, Feedback, Result
+from dqpose import dq
+from dqpose.interpolate import interpolate
+from dqpose.profile import Trapezoid
 from _polling import wait_until
 from test_arm_limits import LIMITS, PiperRig, URRig, _same
 
@@ -29,7 +29,7 @@ class URExec(URRig):
 
     def arrivals(self) -> list[tuple[float, np.ndarray]]:
         """(CLOCK_MONOTONIC at the simulator, pose) of each servo set-point since ``reset``."""
-        from drivers.rotvec import pose_from_rotvec
+        from dqpose.drivers.rotvec import pose_from_rotvec
         return [(e["mono"], pose_from_rotvec(e["args"][:6]))
                 for e in self.sim.log(self._mark, cmd=self._ursim.SERVOL)["entries"]]
 
@@ -322,8 +322,8 @@ def test_no_samples_in_time_stalls_without_moving(rig, arm):
 # The parent of an arm's process, killed halfway through a plan it had pushed whole.
 _PARENT = """
 import os, sys, time
-import drivers
-from drivers.executor import Executor
+from dqpose import drivers
+from dqpose.drivers.executor import Executor
 from test_arm_limits import LIMITS
 from test_executor import _plan
 arm = drivers.open_arm("ur:" + sys.argv[1], process=True, limits=LIMITS, watchdog=0.2,
@@ -354,8 +354,8 @@ def run_parent(script: str, host: str, timeout: float = 60):
 def test_a_killed_parent_brakes_the_arm_to_a_stop_and_its_process_ends():
     pytest.importorskip("rtde_control")
     import os
-    from drivers.rotvec import pose_from_rotvec
-    from drivers.sim import ursim
+    from dqpose.drivers.rotvec import pose_from_rotvec
+    from dqpose.drivers.sim import ursim
     with ursim.URSimProcess(args=("--max-linear-speed", "5")) as sim:
         run = run_parent(_PARENT, sim.host)
         assert run.returncode == -9, run.stderr
@@ -390,8 +390,8 @@ def test_a_killed_parent_brakes_the_arm_to_a_stop_and_its_process_ends():
 def test_the_arm_process_is_refused_where_stores_may_be_reordered(machine, ok):
     # The ring publishes a slot by the count written after it; only a TSO processor keeps that
     # order without fences, so elsewhere the loop must stay in a thread.
-    from drivers.armproc import check_store_order
-    from drivers.base import ArmError
+    from dqpose.drivers.armproc import check_store_order
+    from dqpose.drivers.base import ArmError
     if ok:
         check_store_order(machine)
     else:
@@ -400,8 +400,8 @@ def test_the_arm_process_is_refused_where_stores_may_be_reordered(machine, ok):
 
 
 def test_process_problem_names_what_keeps_an_arm_in_a_thread():
-    import drivers
-    from drivers.armproc import check_store_order
+    from dqpose import drivers
+    from dqpose.drivers.armproc import check_store_order
     check_store_order()             # (these machines: x86-64)
     assert drivers.process_problem("ur:127.0.0.1") is None
     assert drivers.process_problem("piper:udp_multicast:239.74.163.2") is None

@@ -10,19 +10,19 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from drivers.base import ArmError, LimitError
-from drivers.base import pose_delta as _delta
-from drivers.euler import dq_from_xyz_sxyz
-from drivers.piper import (ARM_STATUS_FEEDBACK, ARM_STATUS_NAMES, EMERGENCY_STATES,
+from dqpose.drivers.base import ArmError, LimitError
+from dqpose.drivers.base import pose_delta as _delta
+from dqpose.drivers.euler import dq_from_xyz_sxyz
+from dqpose.drivers.piper import (ARM_STATUS_FEEDBACK, ARM_STATUS_NAMES, EMERGENCY_STATES,
                            END_POSE_CTRL, END_POSE_FEEDBACK, MOVE_L, MOVE_P, PROTECTIVE_STATES,
                            REJECTION_STATES, TEACH_STATES, EndPose, EndPoseAssembler,
                            FrameError, MotionMode, PiperArm, StatusReport,
                            decode_arm_status, decode_motion_mode, describe_status,
                            encode_arm_status, encode_end_pose, encode_motion_mode,
                            pose_to_units, units_to_pose)
-from drivers.sim.piper import PiperSim
-from service import dq
-from service.profile import Trapezoid
+from dqpose.drivers.sim.piper import PiperSim
+from dqpose import dq
+from dqpose.profile import Trapezoid
 from _polling import wait_until
 
 # piper_sdk 0.6.2 still passes python-can's deprecated ``bustype``.

@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import pytest
 
-import drivers
-from drivers.spec import ARM_KEYS, ArmSpec, key_table, parse_arm_spec, resolve
+from dqpose import drivers
+from dqpose.drivers.spec import ARM_KEYS, ArmSpec, key_table, parse_arm_spec, resolve
 
 
 def test_a_spec_with_keys_parses_to_kind_target_and_options():

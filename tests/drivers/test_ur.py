@@ -10,11 +10,11 @@ import pytest
 
 pytest.importorskip("rtde_control")
 
-from drivers.base import ArmError, LimitError, Limits  # noqa: E402
-from drivers.rotvec import pose_from_rotvec, rotvec_from_pose  # noqa: E402
-from drivers.sim import ursim  # noqa: E402
-from drivers.ur import URArm  # noqa: E402
-from service import dq  # noqa: E402
+from dqpose.drivers.base import ArmError, LimitError, Limits  # noqa: E402
+from dqpose.drivers.rotvec import pose_from_rotvec, rotvec_from_pose  # noqa: E402
+from dqpose.drivers.sim import ursim  # noqa: E402
+from dqpose.drivers.ur import URArm  # noqa: E402
+from dqpose import dq  # noqa: E402
 from _polling import wait_until
 
 HOME = np.array([0.4, -0.1, 0.3, 2.2, 2.2, 0.0])
@@ -66,7 +66,7 @@ def test_connects_and_reports(arm):
 def test_rtde_commands_are_not_held_by_nagle(sim, arm):
     # ur_rtde 1.6.5 loses its TCP_NODELAY when boost reopens the socket at connect; without
     # it a servoStop waits up to a data cycle for the controller's acknowledgement.
-    from drivers.ur import _rtde_connections
+    from dqpose.drivers.ur import _rtde_connections
     socks = _rtde_connections(sim.host)
     try:
         assert len(socks) >= 2, "the receive and control connections"
@@ -80,7 +80,7 @@ def test_rtde_commands_are_not_held_by_nagle(sim, arm):
 def test_restoring_nodelay_leaves_no_descriptors_behind(sim, arm):
     # it looks at every descriptor of the process; one kept per look doubled them per arm
     import os
-    from drivers.ur import _restore_nodelay
+    from dqpose.drivers.ur import _restore_nodelay
     before = sorted(os.listdir("/proc/self/fd"))
     assert _restore_nodelay(sim.host) >= 2
     assert _restore_nodelay(sim.host) >= 2
@@ -262,7 +262,7 @@ def test_a_close_without_disconnect_stops_and_leaves_the_connections_to_the_proc
     import sys
     sim = doomed_sim
     root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    code = ("import sys; from drivers.ur import URArm; a = URArm(sys.argv[1], disconnect=False); "
+    code = ("import sys; from dqpose.drivers.ur import URArm; a = URArm(sys.argv[1], disconnect=False); "
             "a.close(); print('closed', flush=True); sys.stdin.readline()")
     proc = subprocess.Popen([sys.executable, "-c", code, sim.host], cwd=root, text=True,
                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE)

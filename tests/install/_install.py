@@ -122,15 +122,15 @@ LIMITS = dict(max_linear_velocity=0.25, max_angular_velocity=1.0, max_linear_acc
 
 def check_bare_server(address: str, smooth_hint: str) -> None:
     """Every service of a server installed without extras answers through the shipped
-    :class:`~service.rpc.client.Client` as the same code does in this process; Smooth, which
+    :class:`~dqpose.rpc.client.Client` as the same code does in this process; Smooth, which
     needs the [planning] extra, is FAILED_PRECONDITION with ``smooth_hint``."""
     import math
 
     import numpy as np
 
     from _handeye import scene
-    from service import dq, handeye, trajectory
-    from service.rpc.client import Client, RpcError
+    from dqpose import dq, handeye, trajectory
+    from dqpose.rpc.client import Client, RpcError
 
     poses = dq.from_pose([[1, 0, 0, 0], [math.cos(0.5), 0, 0, math.sin(0.5)]],
                          [[0.1, 0.0, 0.0], [0.3, 0.1, 0.0]])

@@ -22,7 +22,7 @@ def _free_port() -> int:
 
 
 def test_make_run_serves_on_the_port_given_in_args():
-    from service.rpc.client import Client
+    from dqpose.rpc.client import Client
 
     port = _free_port()
     proc = subprocess.Popen(["make", "--no-print-directory", "run", f"ARGS=--port {port}"],

@@ -62,3 +62,20 @@ def test_a_command_that_needs_an_extra_exits_2_naming_it(clone, argv, extra):
     assert "Traceback" not in proc.stderr
     last = proc.stderr.strip().splitlines()[-1]
     assert last.startswith(f"dqpose {argv[0]}") and last.endswith(hint(extra, ".")), proc.stderr
+
+
+def test_only_dqpose_is_installed_at_the_top_level(clone):
+    """The wheel's top-level names (its RECORD): the package dqpose, its console script and its
+    metadata; nothing called service or drivers that a robotics workspace would collide with."""
+    venv, src = clone
+    code = ("import importlib.metadata as m, sys\n"
+            "files = m.distribution('dqpose').files\n"
+            "print('\\n'.join(sorted({f.parts[0] for f in files if f.parts[0] not in ('..',)})))\n")
+    tops = venv.run(venv.python, "-c", code, cwd="/").stdout.split()
+    assert [t for t in tops if not t.startswith("dqpose-")] == ["dqpose"], tops
+    out = venv.run(venv.python, "-c", "import dqpose.drivers, dqpose.rpc.client, dqpose.cli; "
+                   "print(dqpose.drivers.__file__)", cwd="/").stdout
+    assert "site-packages/dqpose/drivers/__init__.py" in out, out
+    for name in ("service", "drivers"):
+        gone = venv.run(venv.python, "-c", f"import {name}", cwd="/", check=False)
+        assert gone.returncode != 0 and "ModuleNotFoundError" in gone.stderr, (name, gone)

@@ -17,7 +17,7 @@ for _dir in ("rpc", "cli", ""):      # _grpc_server, _cli, _polling
 from _grpc_server import ServerThread  # noqa: E402
 from _polling import wait_until  # noqa: E402
 
-from service import dq, trajectory  # noqa: E402
+from dqpose import dq, trajectory  # noqa: E402
 
 #: within every arm's own limits (the UR's and the PiPER's: 0.25 m/s, 1 rad/s, 2 m/s^2, 4 rad/s^2)
 LIMITS = trajectory.Limits(max_linear_velocity=0.1, max_angular_velocity=0.5,
@@ -52,9 +52,9 @@ class URRig:
 
     def __init__(self, process: bool = True, sim_args: tuple = (), **arm_options):
         pytest.importorskip("rtde_control")
-        import drivers
-        from drivers.rotvec import pose_from_rotvec
-        from drivers.sim import ursim
+        from dqpose import drivers
+        from dqpose.drivers.rotvec import pose_from_rotvec
+        from dqpose.drivers.sim import ursim
         self._ursim = ursim
         self.sim = ursim.URSimProcess(args=sim_args)
         self.home_rotvec = np.array([0.4, -0.1, 0.3, 2.2, 2.2, 0.0])
@@ -78,7 +78,7 @@ class URRig:
         self._mark = self.sim.log()["next"]
 
     def _recovered(self) -> bool:
-        from drivers.base import ArmError
+        from dqpose.drivers.base import ArmError
         if not self.arm.state().faults:
             return True
         try:
@@ -103,7 +103,7 @@ class URRig:
         return st["moving"] or st["servoing"]
 
     def pose(self) -> np.ndarray:
-        from drivers.rotvec import pose_from_rotvec
+        from dqpose.drivers.rotvec import pose_from_rotvec
         return pose_from_rotvec(self.sim.state()["pose"])
 
     def close(self) -> None:
@@ -121,8 +121,8 @@ class PiperRig:
         pytest.importorskip("msgpack")      # python-can's udp_multicast encodes with it
         import can
 
-        import drivers
-        from drivers.sim.piper import PiperSim
+        from dqpose import drivers
+        from dqpose.drivers.sim.piper import PiperSim
         group = f"239.74.{random.randrange(256)}.{random.randrange(1, 255)}"
         self.bus = can.Bus(interface="udp_multicast", channel=group)
         self.sim = PiperSim(self.bus).start()
@@ -172,8 +172,8 @@ RIGS = {"ur": URRig, "piper": PiperRig}
 def serve(rigs, **config):
     """A server on 127.0.0.1 owning ``rigs``' arms by their names (the executor as ``dqpose
     serve`` makes it)."""
-    from drivers.executor import Executor
-    from service.rpc.server import ServerConfig
+    from dqpose.drivers.executor import Executor
+    from dqpose.rpc.server import ServerConfig
     return ServerThread(ServerConfig(port=0, arms={r.name: r.arm for r in rigs},
                                      executor=Executor, **config))
 

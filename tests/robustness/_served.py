@@ -15,7 +15,7 @@ import grpc
 import numpy as np
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
-from service.rpc import convert
+from dqpose.rpc import convert
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 # Long enough for a loaded 2-core machine to answer a health check; far shorter than any of
@@ -29,7 +29,7 @@ class Served:
 
     def __init__(self, *flags: str):
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "service.cli", "serve", "--port", "0", "--no-call-log",
+            [sys.executable, "-m", "dqpose.cli", "serve", "--port", "0", "--no-call-log",
              *flags],
             cwd=ROOT, stderr=subprocess.PIPE, text=True)
         line = self.proc.stderr.readline()

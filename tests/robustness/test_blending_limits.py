@@ -6,9 +6,9 @@ import grpc
 import numpy as np
 import pytest
 
-from service.rpc import convert
-from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
-from service.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
+from dqpose.rpc import convert
+from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
+from dqpose.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
 
 from _served import code_of, served
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.errors import FieldError, FieldInfeasible, Infeasible
-from service.rpc.calls import readable
-from service.rpc.convert import calibrate_error, field_named
+from dqpose.errors import FieldError, FieldInfeasible, Infeasible
+from dqpose.rpc.calls import readable
+from dqpose.rpc.convert import calibrate_error, field_named
 
 
 def test_long_numbers_are_written_with_six_digits_names_and_indices_kept():

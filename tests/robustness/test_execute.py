@@ -19,7 +19,7 @@ import pytest
 
 from _arms import (LIMITS, RIGS, SLOW, STALE_AFTER, URRig, block, distance, offset, serve,
                    served_rigs, wait_until)
-from service.rpc.client import Client, RpcError
+from dqpose.rpc.client import Client, RpcError
 
 
 @pytest.fixture(scope="module")
@@ -183,7 +183,7 @@ def test_a_plan_that_leaves_the_workspace_ends_limited_aborted():
 
 
 def _workspace_below_x(x: float):
-    from drivers.base import Limits
+    from dqpose.drivers.base import Limits
     return Limits(workspace_max=(x, 1.0, 1.2))
 
 

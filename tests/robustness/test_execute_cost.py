@@ -11,8 +11,8 @@ import tracemalloc
 import pytest
 
 from _arms import URRig, offset, serve
-from service import limits, trajectory
-from service.rpc.client import Client, RpcError
+from dqpose import limits, trajectory
+from dqpose.rpc.client import Client, RpcError
 
 MAX_WAYPOINTS = 100
 #: a crawl: 0.06 m at 50 um/s is a 20-minute plan

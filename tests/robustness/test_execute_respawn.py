@@ -13,7 +13,7 @@ from multiprocessing.connection import wait
 import pytest
 
 from _arms import RIGS, SLOW, distance, offset, served_rigs
-from service.rpc.client import Client, RpcError
+from dqpose.rpc.client import Client, RpcError
 
 
 @pytest.fixture(scope="module")

@@ -12,20 +12,20 @@ import pytest
 
 from _arms import SLOW, distance, offset
 from _cli import serving
-from service.rpc.client import Client, RpcError
+from dqpose.rpc.client import Client, RpcError
 
 
 @pytest.fixture
 def ur():
     pytest.importorskip("rtde_control")
-    from drivers.sim.ursim import URSimProcess
+    from dqpose.drivers.sim.ursim import URSimProcess
     with URSimProcess() as sim:
         sim.set_pose([0.4, -0.1, 0.3, 2.2, 2.2, 0.0])
         yield sim
 
 
 def _here(sim):
-    from drivers.rotvec import pose_from_rotvec
+    from dqpose.drivers.rotvec import pose_from_rotvec
     return pose_from_rotvec(sim.state()["pose"])
 
 

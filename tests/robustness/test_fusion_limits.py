@@ -10,12 +10,12 @@ import grpc
 import numpy as np
 import pytest
 
-from service import dq, fusion, lie, limits
-from service.rpc import convert
-from service.rpc.fusion import Fusion
-from service.rpc.server import ServerConfig
-from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
-from service.rpc._proto.dqpose.v1 import fusion_pb2_grpc as pb_grpc
+from dqpose import dq, fusion, lie, limits
+from dqpose.rpc import convert
+from dqpose.rpc.fusion import Fusion
+from dqpose.rpc.server import ServerConfig
+from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
+from dqpose.rpc._proto.dqpose.v1 import fusion_pb2_grpc as pb_grpc
 
 from _polling import wait_until
 from _served import code_of, pose, served
@@ -277,7 +277,7 @@ def test_a_source_latency_beyond_what_a_fit_can_use_is_named(server, field, valu
 def test_an_acceleration_model_is_never_fitted_on_the_event_loop():
     # ~4 ms at 5 measurements, ~70 ms at 50: its cost is not its size (it was fused on the
     # event loop for small windows and small Fuse requests, holding every other call)
-    from service.rpc.fusion import _dear
+    from dqpose.rpc.fusion import _dear
     assert all(limits.answer_cost(r, correlated=True) > limits.INLINE_ROWS for r in range(1, 200))
     assert limits.answer_cost(20) <= limits.INLINE_ROWS
     small = fuse_request(5)

@@ -27,11 +27,11 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from service.rpc.convert import calibrate_msg
-from service.rpc._proto.dqpose.v1 import blending_pb2 as bpb
-from service.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
-from service.rpc._proto.dqpose.v1 import handeye_pb2 as hpb
-from service.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
+from dqpose.rpc.convert import calibrate_msg
+from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as bpb
+from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
+from dqpose.rpc._proto.dqpose.v1 import handeye_pb2 as hpb
+from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
 
 _TESTS = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, _TESTS)
@@ -219,7 +219,7 @@ class ServedProcess:
     (``log``) for the failure messages."""
 
     def __init__(self):
-        self.proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", "0"],
+        self.proc = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "serve", "--port", "0"],
                                      cwd=ROOT, stderr=subprocess.PIPE, text=True)
         self.log: list[str] = []
         for line in self.proc.stderr:

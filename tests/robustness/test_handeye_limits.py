@@ -11,9 +11,9 @@ import grpc
 import numpy as np
 import pytest
 
-from service import limits
-from service.rpc import convert
-from service.rpc._proto.dqpose.v1 import handeye_pb2_grpc as pb_grpc
+from dqpose import limits
+from dqpose.rpc import convert
+from dqpose.rpc._proto.dqpose.v1 import handeye_pb2_grpc as pb_grpc
 
 from _served import code_of, served
 

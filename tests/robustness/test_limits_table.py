@@ -8,8 +8,8 @@ import dataclasses
 
 import pytest
 
-from service import limits
-from service.rpc.server import ConfigError, ServerConfig
+from dqpose import limits
+from dqpose.rpc.server import ConfigError, ServerConfig
 
 
 def test_every_limit_has_a_unit_a_meaning_and_its_own_flag():

@@ -7,11 +7,11 @@ import grpc
 import numpy as np
 import pytest
 
-from service import dq, lie, trajectory
-from service.rpc import convert
-from service.rpc._proto.dqpose.v1 import geometry_pb2 as geo
-from service.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
-from service.rpc._proto.dqpose.v1 import trajectories_pb2_grpc as pb_grpc
+from dqpose import dq, lie, trajectory
+from dqpose.rpc import convert
+from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
+from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
+from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2_grpc as pb_grpc
 
 from _served import code_of, served
 

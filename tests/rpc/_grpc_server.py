@@ -7,11 +7,11 @@ import datetime
 import ipaddress
 import threading
 
-from service.rpc.server import ServerConfig, start
+from dqpose.rpc.server import ServerConfig, start
 
 
 class ServerThread:
-    """``service.rpc.server.start`` on its own event loop; ``.port``, ``.target``, ``.stop()``."""
+    """``dqpose.rpc.server.start`` on its own event loop; ``.port``, ``.target``, ``.stop()``."""
 
     def __init__(self, cfg: ServerConfig | None = None, **kw):
         cfg = cfg or ServerConfig(port=0, **kw)

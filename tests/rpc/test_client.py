@@ -1,4 +1,4 @@
-"""service.rpc.client (NumPy in/out) and the `dqpose blend | interpolate | health` commands, against a
+"""dqpose.rpc.client (NumPy in/out) and the `dqpose blend | interpolate | health` commands, against a
 real server on 127.0.0.1."""
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ import grpc
 import numpy as np
 import pytest
 
-from service import dq
-from service.rpc.client import Client, InvalidArgument, RequestTooLarge, RpcError
-from service.interpolate import interpolate
+from dqpose import dq
+from dqpose.rpc.client import Client, InvalidArgument, RequestTooLarge, RpcError
+from dqpose.interpolate import interpolate
 
 from _grpc_server import ServerThread
 
@@ -197,7 +197,7 @@ def test_a_stream_item_of_the_wrong_shape_raises_after_the_answers_before_it(cli
 # --------------------------------------------------------------------------- the CLI
 
 def dqpose(*args, stdin=None):
-    return subprocess.run([sys.executable, "-m", "service.cli", *args], input=stdin,
+    return subprocess.run([sys.executable, "-m", "dqpose.cli", *args], input=stdin,
                           capture_output=True, text=True, timeout=60, cwd=ROOT)
 
 

@@ -1,4 +1,4 @@
-"""service.rpc.convert: protobuf messages <-> arrays, and errors renamed to proto field paths."""
+"""dqpose.rpc.convert: protobuf messages <-> arrays, and errors renamed to proto field paths."""
 from __future__ import annotations
 
 import numpy as np
@@ -6,16 +6,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from service import dq
-from service.rpc.convert import (METHOD_ENUMS, METHOD_NAMES, FieldError, arrays_to_stamped,
+from dqpose import dq
+from dqpose.rpc.convert import (METHOD_ENUMS, METHOD_NAMES, FieldError, arrays_to_stamped,
                                  blend_batch_items_wire, blend_request_wire,
                                  blend_responses_from_wire, dq_to_pose, dqs_to_poses,
                                  interpolate_request_wire, measurement_msgs,
                                  measurements_wire, pose_msgs, poses_to_dqs,
                                  stamped_poses_wire, stamped_to_arrays)
-from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
-from service.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
-from service.rpc._proto.dqpose.v1 import geometry_pb2 as geo
+from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
+from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
+from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 
 
 def _pose(q, t) -> geo.Pose:

@@ -1,5 +1,5 @@
 """The dqpose.v1.Fusion service against a real server on 127.0.0.1: Fuse equals
-service.fusion.fuse in process; bad input is INVALID_ARGUMENT naming the measurement; StreamFuse
+dqpose.fusion.fuse in process; bad input is INVALID_ARGUMENT naming the measurement; StreamFuse
 answers per body, and survives a bad measurement with an error entry for it."""
 from __future__ import annotations
 
@@ -8,12 +8,12 @@ import zlib
 import numpy as np
 import pytest
 
-from service import dq, fusion, lie
-from service.fusion import Source, Status, Verdict
-from service.rpc import convert
-from service.rpc.client import Batch, Client, InvalidArgument
-from service.rpc.fusion import Fusion, tick_phase
-from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
+from dqpose import dq, fusion, lie
+from dqpose.fusion import Source, Status, Verdict
+from dqpose.rpc import convert
+from dqpose.rpc.client import Batch, Client, InvalidArgument
+from dqpose.rpc.fusion import Fusion, tick_phase
+from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 
 from _grpc_server import ServerThread
 
@@ -54,7 +54,7 @@ def wire(Z):
 
 
 def local(Z, *args, **kw):
-    """service.fusion.fuse in process, of the poses the server received."""
+    """dqpose.fusion.fuse in process, of the poses the server received."""
     return fusion.fuse(wire(Z), *args, **kw)
 
 

@@ -1,5 +1,5 @@
 """StreamFuse's C path (service/csrc/wire.c dq_wire_fuse_stream through
-service.rpc.convert.fuse_stream_from_wire and Fusion.stream_step_wire) against the protobuf path
+dqpose.rpc.convert.fuse_stream_from_wire and Fusion.stream_step_wire) against the protobuf path
 it replaces: on generated, damaged and re-encoded requests a stream fed bytes answers exactly
 what a stream fed parsed messages answers (fused poses, error entries and their texts, the
 measurements in each window); the decoder reads what protobuf reads and refuses (None) what it
@@ -17,12 +17,12 @@ from hypothesis import strategies as st
 
 from _mutate import damaged
 
-from service import dq, fusion
-from service.rpc import convert
-from service.rpc.convert import fuse_stream_from_wire, measurement_msgs, options_msg
-from service.rpc.fusion import Fusion
-from service.rpc.server import ServerConfig
-from service.rpc._proto.dqpose.v1 import fusion_pb2 as pb
+from dqpose import dq, fusion
+from dqpose.rpc import convert
+from dqpose.rpc.convert import fuse_stream_from_wire, measurement_msgs, options_msg
+from dqpose.rpc.fusion import Fusion
+from dqpose.rpc.server import ServerConfig
+from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 
 from test_wire import PADS, _key, reencode
 

@@ -1,4 +1,4 @@
-"""The HandEye service on a real server on 127.0.0.1: Calibrate gives what service.handeye gives in
+"""The HandEye service on a real server on 127.0.0.1: Calibrate gives what dqpose.handeye gives in
 process (both setups, estimated or given noise, outliers rejected), malformed requests are
 INVALID_ARGUMENT naming the field, unusable data FAILED_PRECONDITION with the solver's reason
 and samples, and the server goes on serving after each."""
@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 
 from _grpc_server import ServerThread
-from service import handeye
-from service.errors import Infeasible
-from service.rpc.client import Client, InvalidArgument, RpcError
-from service.rpc.convert import calibrate_error, calibrate_msg
-from service.rpc._proto.dqpose.v1 import handeye_pb2 as pb
-from service.rpc._proto.dqpose.v1 import handeye_pb2_grpc
+from dqpose import handeye
+from dqpose.errors import Infeasible
+from dqpose.rpc.client import Client, InvalidArgument, RpcError
+from dqpose.rpc.convert import calibrate_error, calibrate_msg
+from dqpose.rpc._proto.dqpose.v1 import handeye_pb2 as pb
+from dqpose.rpc._proto.dqpose.v1 import handeye_pb2_grpc
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import _handeye  # noqa: E402
@@ -214,7 +214,7 @@ def test_malformed_requests_are_named_by_field(stub, client):
 
 def _degenerate():
     """Unusable data sets: ``(base_flange, camera_target, setup, a word of the reason)``."""
-    from service import dq
+    from dqpose import dq
     s = _handeye.scene(10, seed=5)
     still = np.repeat(s.base_flange[:1], 10, axis=0)
     out = {"two poses": (s.base_flange[:2], s.camera_target[:2], "eye_in_hand", "at least 3")}

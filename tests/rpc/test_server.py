@@ -24,12 +24,12 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha.proto_reflection_descriptor_database import (
     ProtoReflectionDescriptorDatabase)
 
-from service import dq
-from service.interpolate import interpolate
-from service.rpc.server import ServerConfig, start
-from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
-from service.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
-from service.rpc._proto.dqpose.v1 import geometry_pb2 as geo
+from dqpose import dq
+from dqpose.interpolate import interpolate
+from dqpose.rpc.server import ServerConfig, start
+from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
+from dqpose.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
+from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 from _grpc_server import ServerThread, make_pki
 
 MAX_POSES = 200
@@ -646,13 +646,13 @@ def test_mtls_needs_a_client_certificate_from_the_client_ca(pki):
 def test_second_server_on_the_same_port_fails(server):
     import asyncio
 
-    from service.rpc.server import AddressInUse
+    from dqpose.rpc.server import AddressInUse
 
     with pytest.raises(AddressInUse, match=f"^cannot listen on 127.0.0.1:{server.port}: address "
                                            f"already in use$") as e:
         asyncio.run(start(ServerConfig(port=server.port)))
     assert e.value.setting == "port"
-    res = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--port", str(server.port)],
+    res = subprocess.run([sys.executable, "-m", "dqpose.cli", "serve", "--port", str(server.port)],
                          capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert res.returncode == 2
     # one line, ours (not gRPC core's bind log), naming the flag to change
@@ -667,7 +667,7 @@ def test_metrics_port_in_use_names_the_metrics_flag(server):
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         port = taken.getsockname()[1]
-        res = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--port", "0",
+        res = subprocess.run([sys.executable, "-m", "dqpose.cli", "serve", "--port", "0",
                               "--metrics-port", str(port)],
                              capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert res.returncode == 2
@@ -722,7 +722,7 @@ class socket_free_port:
 
 
 def test_sigterm_drains_in_flight_calls_and_exits_zero():
-    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", "0",
+    proc = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "serve", "--port", "0",
                              "--grace", "20"], cwd=ROOT, stderr=subprocess.PIPE, text=True)
     try:
         first = json.loads(proc.stderr.readline())
@@ -770,9 +770,9 @@ def test_calls_cut_when_the_grace_period_ends_are_logged_and_counted(caplog):
     # Streams still open when the grace period runs out are cancelled by gRPC; their handlers
     # record them as they unwind, which must happen before the last flush and before the
     # metrics close: every call that started gets exactly one line and one sample.
-    from service.fusion import Source
-    from service.rpc import convert
-    from service.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
+    from dqpose.fusion import Source
+    from dqpose.rpc import convert
+    from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 
     caplog.set_level(logging.INFO, logger="dqpose.calls")
     first = fpb.FuseStreamRequest(options=convert.options_msg(sources=[Source("cam")]))
@@ -828,7 +828,7 @@ def test_blend_stream_cancelled_mid_way_leaves_the_server_serving(stub):
 
 def _serve(*flags) -> tuple[subprocess.Popen, str]:
     """``dqpose serve --port 0 FLAGS`` in its own process; (process, address) once it serves."""
-    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", "0", *flags],
+    proc = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "serve", "--port", "0", *flags],
                             cwd=ROOT, stderr=subprocess.PIPE, text=True)
     line = proc.stderr.readline()
     try:
@@ -991,7 +991,7 @@ def test_serve_names_the_bad_pem_file_and_the_problem(pki, tmp_path):
             args += ["--" + field.replace("_", "-"), str(path)]
         setting, problem = message.split(": ", 1)
         flag = "--" + setting.replace("_", "-")
-        res = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--port", "0", *args],
+        res = subprocess.run([sys.executable, "-m", "dqpose.cli", "serve", "--port", "0", *args],
                              capture_output=True, text=True, timeout=30, cwd=ROOT)
         assert res.returncode == 2, res.stderr
         assert res.stderr == (f"dqpose serve: error: {flag} {tmp_path}/{i}-{setting}.pem: "

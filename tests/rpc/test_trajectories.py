@@ -13,9 +13,9 @@ import pytest
 
 from _grpc_server import ServerThread
 from _polling import wait_until
-from service import dq, smoothing, trajectory
-from service.rpc.client import Client, InvalidArgument, RpcError
-from service.rpc.server import ServerConfig
+from dqpose import dq, smoothing, trajectory
+from dqpose.rpc.client import Client, InvalidArgument, RpcError
+from dqpose.rpc.server import ServerConfig
 
 LIMITS = trajectory.Limits(max_linear_velocity=0.2, max_angular_velocity=1.0,
                            max_linear_acceleration=1.0, max_angular_acceleration=2.0,
@@ -115,9 +115,9 @@ def _limits(**change):
     (lambda r: setattr(r.waypoints[1], "time", 0.01), "FAILED_PRECONDITION", "waypoints[1]"),
 ])
 def test_plan_names_the_bad_field(server, edit, code, text):
-    from service.rpc.convert import plan_msg
-    from service.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
-    from service.rpc._proto.dqpose.v1 import trajectories_pb2_grpc as tgrpc
+    from dqpose.rpc.convert import plan_msg
+    from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
+    from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2_grpc as tgrpc
     request = plan_msg(_waypoints(), LIMITS, 125.0)
     edit(request)
     with grpc.insecure_channel(server.target) as ch:
@@ -140,9 +140,9 @@ def test_client_raises_the_servers_error(client):
 @pytest.fixture(scope="module")
 def ur():
     pytest.importorskip("rtde_control")
-    import drivers
-    from drivers.executor import Executor
-    from drivers.sim.ursim import URSimProcess
+    from dqpose import drivers
+    from dqpose.drivers.executor import Executor
+    from dqpose.drivers.sim.ursim import URSimProcess
     sim = URSimProcess()
     # generous watchdogs: the simulator, the server and its clients share a loaded machine
     arm = drivers.open_arm(f"ur:{sim.host}", stale_after=0.5, heartbeat=0.1)
@@ -220,7 +220,7 @@ def test_execute_refuses_what_it_cannot_do(ur):
 # ---- where the arm is: GetArm, ListArms, Execute from_current ----------------------------------
 
 def test_get_arm_says_where_the_arm_is_and_what_it_may_do(ur):
-    from drivers.rotvec import pose_from_rotvec
+    from dqpose.drivers.rotvec import pose_from_rotvec
     sim, arm, server = ur
     _ready(sim, arm)
     with Client(server.target) as c:

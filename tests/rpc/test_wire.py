@@ -1,4 +1,4 @@
-"""service/csrc/wire.c (through service.rpc.convert): the C decoder of BlendRequest bytes must
+"""service/csrc/wire.c (through dqpose.rpc.convert): the C decoder of BlendRequest bytes must
 agree with the protobuf parser on every message, and refuse (None) what the parser refuses; the
 C served Blend (bytes to bytes) must answer exactly what the full Python path answers, and leave
 every error to it."""
@@ -13,13 +13,13 @@ from hypothesis import strategies as st
 
 from _mutate import damaged
 
-from service import dq, limits
-from service.errors import FieldError
-from service.rpc.convert import blend_batch_wire, blend_wire, decode_blend_request, pose_msgs
-from service.rpc.blending import (DEFAULT_MAX_ITERATIONS, DEFAULT_TOLERANCE, Blending)
-from service.rpc.server import ServerConfig
-from service.rpc._proto.dqpose.v1 import blending_pb2 as pb
-from service.rpc._proto.dqpose.v1 import geometry_pb2 as geo
+from dqpose import dq, limits
+from dqpose.errors import FieldError
+from dqpose.rpc.convert import blend_batch_wire, blend_wire, decode_blend_request, pose_msgs
+from dqpose.rpc.blending import (DEFAULT_MAX_ITERATIONS, DEFAULT_TOLERANCE, Blending)
+from dqpose.rpc.server import ServerConfig
+from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
+from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 from google.protobuf.message import DecodeError
 
 # Zeros matter: proto3 leaves zero fields off the wire, which is what a fixed-layout reader
@@ -106,7 +106,7 @@ def test_damaged_bytes_are_refused_or_read_as_protobuf_reads_them(req, data):
         assert_same(got, want)
 
 
-# ---- the served Blend: dq_wire_blend (service.rpc.convert.blend_wire) against the full path
+# ---- the served Blend: dq_wire_blend (dqpose.rpc.convert.blend_wire) against the full path
 
 def _full_path(blending, data: bytes):
     """What the server answers without the C fast path: response bytes, or None for an error."""
@@ -506,8 +506,8 @@ def test_wire_paths_survive_mutated_input_under_sanitizers(tmp_path):
 
 def _fuse_stream_seed(rng):
     """A StreamFuse request of 8 measurements: covariances, weights, names, one of each error."""
-    from service.rpc.convert import measurement_msgs
-    from service.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
+    from dqpose.rpc.convert import measurement_msgs
+    from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
     q = rng.normal(size=(8, 4))
     Z = dq.from_pose(q / np.linalg.norm(q, axis=1, keepdims=True), rng.normal(size=(8, 3)))
     A = rng.normal(size=(8, 6, 6))

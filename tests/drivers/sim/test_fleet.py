@@ -14,7 +14,7 @@ import time
 import numpy as np
 import pytest
 
-from drivers.sim.fleet import Fleet
+from dqpose.drivers.sim.fleet import Fleet
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 
@@ -31,13 +31,13 @@ def _gone(pid: int) -> bool:
 def test_serve_with_sims_brings_up_reachable_devices_and_takes_them_down():
     pytest.importorskip("rtde_control")
     pytest.importorskip("msgpack")                    # the PiPER simulator's udp_multicast bus
-    import drivers
-    from drivers.camera import read_image
-    from drivers.sim.ursim import _address_free
-    from service import dq
-    from service.rpc.client import Client
+    from dqpose import drivers
+    from dqpose.drivers.camera import read_image
+    from dqpose.drivers.sim.ursim import _address_free
+    from dqpose import dq
+    from dqpose.rpc.client import Client
 
-    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", "0",
+    proc = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "serve", "--port", "0",
                              "--sims", "--no-call-log"], cwd=ROOT, stderr=subprocess.PIPE,
                             text=True)
     try:
@@ -92,10 +92,10 @@ def test_unknown_device_is_named():
 def test_simulators_do_not_outlive_a_killed_server():
     pytest.importorskip("rtde_control")
     pytest.importorskip("msgpack")
-    from drivers.sim.ursim import _address_free
+    from dqpose.drivers.sim.ursim import _address_free
     # A killed server cannot remove its camera views: give it a temporary directory of ours.
     with tempfile.TemporaryDirectory(prefix="dqpose-test-fleet-") as tmp:
-        proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", "0",
+        proc = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "serve", "--port", "0",
                                  "--sims"], cwd=ROOT, stderr=subprocess.PIPE, text=True,
                                 env={**os.environ, "TMPDIR": tmp})
         try:

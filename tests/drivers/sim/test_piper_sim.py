@@ -10,16 +10,16 @@ import sys
 import numpy as np
 import pytest
 
-import drivers
-from drivers.base import pose_delta
-from service import dq
+from dqpose import drivers
+from dqpose.drivers.base import pose_delta
+from dqpose import dq
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 
 
 def test_arm_in_another_process_moves_the_simulated_piper():
     pytest.importorskip("msgpack")               # python-can's udp_multicast needs it
-    from drivers.sim.piper import PiperSimProcess
+    from dqpose.drivers.sim.piper import PiperSimProcess
     group = f"239.74.{random.randrange(256)}.{random.randrange(1, 255)}"
     with PiperSimProcess("udp_multicast", group) as sim, drivers.open_arm(sim.spec) as arm:
         assert sim.spec == f"piper:udp_multicast:{group}"
@@ -32,14 +32,14 @@ def test_arm_in_another_process_moves_the_simulated_piper():
 
 
 def test_default_bus_crosses_processes_and_a_bus_that_cannot_open_gets_a_hint():
-    from drivers.sim.piper import DEFAULT_CHANNEL, DEFAULT_INTERFACE, add_arguments
+    from dqpose.drivers.sim.piper import DEFAULT_CHANNEL, DEFAULT_INTERFACE, add_arguments
     import argparse
     p = argparse.ArgumentParser()
     add_arguments(p)
     args = p.parse_args([])
     assert (args.interface, args.channel) == (DEFAULT_INTERFACE, DEFAULT_CHANNEL) \
         == ("udp_multicast", "239.74.163.2")
-    r = subprocess.run([sys.executable, "-m", "service.cli", "sim", "piper", "--interface",
+    r = subprocess.run([sys.executable, "-m", "dqpose.cli", "sim", "piper", "--interface",
                         "socketcan", "--channel", "no-such-can9"], cwd=ROOT, capture_output=True,
                        text=True, timeout=30)
     assert r.returncode == 2

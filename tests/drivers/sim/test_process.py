@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import logging
 
-from drivers.sim import end_process, start_process
+from dqpose.drivers.sim import end_process, start_process
 
 
 def test_a_chatty_simulator_does_not_block_and_its_output_is_logged(caplog):

@@ -17,7 +17,7 @@ import pytest
 rtde_control = pytest.importorskip("rtde_control")
 rtde_receive = pytest.importorskip("rtde_receive")
 
-from drivers.sim import ursim  # noqa: E402
+from dqpose.drivers.sim import ursim  # noqa: E402
 from _polling import wait_until
 
 HOME = [0.4, -0.1, 0.3, 2.2, 2.2, 0.0]
@@ -213,7 +213,7 @@ def test_stopScript_ends_the_program(sim, rtde):
 
 def test_cli_starts_the_simulator():
     host = next(h for h in (f"127.0.0.{i}" for i in range(250, 20, -1)) if ursim._address_free(h))
-    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "sim", "ur", "--host", host,
+    proc = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "sim", "ur", "--host", host,
                              "--version", "3.15.7.106331"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
