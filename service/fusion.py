@@ -74,10 +74,14 @@ from dqpose import dq, lie
 from dqpose import limits as _limits
 from dqpose.errors import rename
 
-__all__ = ["DOF", "Status", "Verdict", "Source", "Rejection", "SourceStats", "Fused",
+__all__ = ["DOF", "DEFAULT_PROBABILITY", "DEFAULT_MAX_EXTRAPOLATION", "Status", "Verdict", "Source", "Rejection", "SourceStats", "Fused",
            "fuse", "chi2_quantile", "Dropped", "Latency", "Measurement", "Window", "Tracker"]
 
 DOF = 6
+#: the χ² probability of the robust gate and of a fused pose's consistency verdict
+DEFAULT_PROBABILITY = 0.999
+#: seconds a fused pose's time may lie past its newest measurement (extrapolated on the twist)
+DEFAULT_MAX_EXTRAPOLATION = 0.1
 # Relative asymmetry a covariance may have and still be taken as symmetric (its mean with its
 # transpose is used): a product J Σ Jᵀ computed in float64 is asymmetric at ~1e-16.
 _SYMMETRY_TOL = 1e-9
@@ -473,9 +477,9 @@ def _frozen(a: np.ndarray) -> np.ndarray:
 # ---- the API -----------------------------------------------------------------------------------
 def fuse(poses, covariances=None, *, weights=None, names: Optional[Sequence[str]] = None,
          sources: Optional[Iterable[Source]] = None, robust: bool = False,
-         probability: float = 0.999, tol: float = 1e-12, max_iter: int = 100,
+         probability: float = DEFAULT_PROBABILITY, tol: float = 1e-12, max_iter: int = 100,
          times=None, time: Optional[float] = None, max_skew: Optional[float] = None,
-         max_extrapolation: Optional[float] = 0.1, twist_covariance=None,
+         max_extrapolation: Optional[float] = DEFAULT_MAX_EXTRAPOLATION, twist_covariance=None,
          acceleration_psd=None) -> Fused:
     """Fuse ``poses`` ``(n, 8)`` (``T_frame_body`` each) with ``covariances`` ``(n, 6, 6)`` (or
     scalar ``weights`` ``(n,)``, covariance ``I / w``; neither: identity) into ``T_world_body``.
@@ -1268,8 +1272,8 @@ class Tracker:
     """
 
     def __init__(self, window: float, *, sources: Optional[Iterable[Source]] = None,
-                 robust: bool = False, probability: float = 0.999,
-                 max_skew: Optional[float] = None, max_extrapolation: Optional[float] = 0.1,
+                 robust: bool = False, probability: float = DEFAULT_PROBABILITY,
+                 max_skew: Optional[float] = None, max_extrapolation: Optional[float] = DEFAULT_MAX_EXTRAPOLATION,
                  twist_covariance=None, acceleration_psd=None, tol: float = 1e-12,
                  max_iter: int = 100, limits: Optional[_limits.Limits] = None):
         self.window = _seconds(window, "window", "positive")

@@ -360,7 +360,7 @@ INTERPOLATION_ENUMS = {"screw": geo.INTERPOLATION_SCREW, "tool_linear": geo.INTE
 
 # ---- fusion --------------------------------------------------------------------------------------
 COVARIANCE_SIZE = fusion.DOF * fusion.DOF
-DEFAULT_PROBABILITY = 0.999
+DEFAULT_PROBABILITY = fusion.DEFAULT_PROBABILITY
 
 
 class Measurements(NamedTuple):
@@ -491,7 +491,7 @@ def _optional_pose(msg, name: str, where: str) -> np.ndarray | None:
                           f"{where}.{name}")
 
 
-DEFAULT_MAX_EXTRAPOLATION = 0.1
+DEFAULT_MAX_EXTRAPOLATION = fusion.DEFAULT_MAX_EXTRAPOLATION
 DEFAULT_WINDOW = 0.2
 
 
