@@ -285,7 +285,8 @@ def test_execute_from_current_needs_the_arm_at_rest(ur):
     mover = threading.Thread(target=move, daemon=True)
     mover.start()        # a moveL of the arm's own, ~5 s: not a plan of the server's
     try:
-        assert wait_until(lambda: sim.state()["moving"], timeout=2)
+        # the arm's own reading, which the server judges: the simulator's state runs ahead of it
+        assert wait_until(lambda: sim.state()["moving"] and not arm.state().at_rest, timeout=5)
         with Client(server.target) as c, pytest.raises(RpcError) as e:
             list(c.execute("ur", [start], LIMITS, from_current=True))
         assert e.value.code.name == "FAILED_PRECONDITION"
