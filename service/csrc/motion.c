@@ -291,29 +291,17 @@ static int motion_leave_one_out(const dq_motion_model *m, const double *V, const
     return DQ_OK;
 }
 
-int dq_motion_fit(const double *z, const double *cov, const unsigned char *inlier, size_t n,
-                  const dq_motion_model *m, const double *start, const unsigned char *tested,
-                  const dq_fuse_params *p, double *work, dq_motion_fitted *out,
-                  const dq_motion_outputs *per, size_t *bad)
+/* Gauss-Newton from out's X, V, ell over the selected measurements (motion.h), updated in place;
+ * *slot is the workspace slot left holding the inliers' r, e at the estimate. The solver's
+ * dim-sized arrays follow the measurements' blocks in work. */
+static int motion_solve(const double *z, const unsigned char *inlier, size_t n,
+                        const dq_motion_model *m, const dq_fuse_params *p, double *work,
+                        size_t stride, int dim, dq_motion_fitted *out, int *slot)
 {
-    const int dim = (int)dq_motion_dim(m), off = m->twist ? 12 : 6, k = (int)m->k;
-    const size_t stride = M_PER + (size_t)dim * dim;
-    size_t n_in = 0;
-    for (size_t i = 0; i < n; i++) {
-        double *blk = work + stride * i;
-        if (!dq_chol6(cov + 36 * i, blk + M_L, blk + M_DI)) {
-            *bad = i;
-            return DQ_E_NOT_SPD;
-        }
-        if (dq_selected(inlier, i)) n_in++;
-    }
-    if (n_in == 0) return DQ_E_NO_INLIERS;
+    const int off = m->twist ? 12 : 6, k = (int)m->k;
     double *H = work + stride * n, *Lh = H + dim * dim, *g = Lh + dim * dim, *delta = g + dim;
-    double *dh = delta + dim, *elln = dh + dim, *scratch = elln + dim;
+    double *dh = delta + dim, *elln = dh + dim;
     double *X = out->mean, *V = out->twist, *ell = out->ell;
-    for (int j = 0; j < 8; j++) X[j] = start[j];
-    for (int j = 0; j < 6; j++) V[j] = 0.0;
-    for (int j = 0; j < k; j++) ell[j] = m->prior[j];
     /* The current point's slot and a trial point's swap. */
     int ro = M_S0, rt = M_S1;
     double total = motion_evaluate(X, V, ell, z, m, work, stride, n, inlier, 1, ro) +
@@ -356,6 +344,34 @@ int dq_motion_fit(const double *z, const double *cov, const unsigned char *inlie
             break;
         }
     }
+    *slot = ro;
+    return DQ_OK;
+}
+
+int dq_motion_fit(const double *z, const double *cov, const unsigned char *inlier, size_t n,
+                  const dq_motion_model *m, const double *start, const unsigned char *tested,
+                  const dq_fuse_params *p, double *work, dq_motion_fitted *out,
+                  const dq_motion_outputs *per, size_t *bad)
+{
+    const int dim = (int)dq_motion_dim(m), k = (int)m->k;
+    const size_t stride = M_PER + (size_t)dim * dim;
+    size_t n_in = 0;
+    for (size_t i = 0; i < n; i++) {
+        double *blk = work + stride * i;
+        if (!dq_chol6(cov + 36 * i, blk + M_L, blk + M_DI)) {
+            *bad = i;
+            return DQ_E_NOT_SPD;
+        }
+        if (dq_selected(inlier, i)) n_in++;
+    }
+    if (n_in == 0) return DQ_E_NO_INLIERS;
+    double *H = work + stride * n, *g = H + 2 * dim * dim, *scratch = g + 4 * dim;
+    double *X = out->mean, *V = out->twist, *ell = out->ell;
+    for (int j = 0; j < 8; j++) X[j] = start[j];
+    for (int j = 0; j < 6; j++) V[j] = 0.0;
+    for (int j = 0; j < k; j++) ell[j] = m->prior[j];
+    int ro, rc = motion_solve(z, inlier, n, m, p, work, stride, dim, out, &ro);
+    if (rc) return rc;
     /* Everything at the estimate: the others' residuals (the inliers' are in slot ro), every
      * Jacobian, the inliers' information with the priors'. */
     motion_evaluate(X, V, ell, z, m, work, stride, n, inlier, 0, ro);
@@ -378,8 +394,8 @@ int dq_motion_fit(const double *z, const double *cov, const unsigned char *inlie
         !dq_finite_n(H, (size_t)dim * dim) || !(chi2 * 0.0 == 0.0))
         return DQ_E_OVERFLOW;
     if (per->nis && tested) {
-        int rc = motion_leave_one_out(m, V, ell, work, stride, n, inlier, tested, ro, dim, H,
-                                      scratch, per->nis);
+        rc = motion_leave_one_out(m, V, ell, work, stride, n, inlier, tested, ro, dim, H,
+                                  scratch, per->nis);
         if (rc) return rc;
         if (!dq_finite_n(per->nis, n)) return DQ_E_OVERFLOW;
     }
