@@ -40,18 +40,6 @@
  * position); this fraction of the ramp costs at most 5 % of its time. */
 #define BETA_FREE 0.05
 
-dq_traj_side dq_traj_side_of(const dq_traj_seg *g, double sigma, int at_end)
-{
-    dq_traj_side s;
-    const double *cv = at_end ? g->cv1 : g->cv0;
-    for (int i = 0; i < 3; i++) { s.v[i] = sigma * cv[i]; s.w[i] = sigma * g->w[i]; }
-    s.speed = sigma * g->len;
-    s.spin = sigma * g->theta;
-    s.nus = sigma * g->nu;
-    s.kappa = s.nus * s.speed;
-    return s;
-}
-
 /* Largest x = 1/T with c2 x^2 + c1 x + c0 <= lim; -1 when c0 leaves no room, INFINITY when
  * nothing depends on x. */
 static double x_max(double c2, double c1, double c0, double lim)

@@ -19,8 +19,19 @@ typedef struct {
     double nus, kappa;  /* rate at which v turns; centripetal acceleration = nus * speed */
 } dq_traj_side;
 
-/* Segment g at rate sigma, at its start (at_end 0) or its end. */
-dq_traj_side dq_traj_side_of(const dq_traj_seg *g, double sigma, int at_end);
+/* Segment g at rate sigma, at its start (at_end 0) or its end. Inline: the planner's searches
+ * build four a step. */
+static inline dq_traj_side dq_traj_side_of(const dq_traj_seg *g, double sigma, int at_end)
+{
+    dq_traj_side s;
+    const double *cv = at_end ? g->cv1 : g->cv0;
+    for (int i = 0; i < 3; i++) { s.v[i] = sigma * cv[i]; s.w[i] = sigma * g->w[i]; }
+    s.speed = sigma * g->len;
+    s.spin = sigma * g->theta;
+    s.nus = sigma * g->nu;
+    s.kappa = s.nus * s.speed;
+    return s;
+}
 
 /* The shortest ramp from A to B within the limits: its duration, beta and the limit that
  * decides it. Returns 0, or -1 when no duration will do (a constant term is over its limit). */
