@@ -11,10 +11,11 @@
  * Gauss-Newton steps X <- X Exp(d), halving a step that raises the cost, until a step is shorter
  * than tol (that step is not taken: X is the optimum to within tol, and the information the step
  * was solved with is the one at X). The covariance is the inverse of the information
- * sum_i Jl^-T S_i^-1 Jl^-1 at the optimum (GTSAM's marginal). Every measurement, inlier or not, gets its residual, Mahalanobis
- * distance and leave-one-out NIS at the optimum (see dq_fuse).
+ * sum_i Jl^-T S_i^-1 Jl^-1 at the optimum (GTSAM's marginal). Every measurement, inlier or not,
+ * gets its residual, Mahalanobis distance and leave-one-out NIS at the optimum (see dq_fuse).
+ * The constant-twist fit of a moving body is motion.h's.
  *
- * The constant-twist fit of a moving body is motion.h's. Nothing here allocates or touches Python; the caller validates the poses (unit) and passes
+ * Nothing here allocates or touches Python; the caller validates the poses (unit) and passes
  * symmetric covariances.
  */
 #ifndef DQPOSE_FUSION_H
