@@ -474,7 +474,8 @@ def test_wire_paths_survive_mutated_input_under_sanitizers(tmp_path):
     build = subprocess.run(
         [cc, "-std=c99", "-O1", "-g", "-fsanitize=address,undefined", "-fno-sanitize-recover=all",
          "-fno-omit-frame-pointer", f"-I{csrc}", str(root / "tests" / "rpc" / "fuzz_wire.c"),
-         *(str(csrc / f) for f in ("wire.c", "blend.c", "dq.c", "fusion.c")), "-lm", "-o",
+         *(str(csrc / f) for f in ("wire.c", "blend.c", "dq.c", "fusion.c", "linalg6.c", "se3.c")),
+         "-lm", "-o",
          str(exe)],
         capture_output=True, text=True)
     if build.returncode:
