@@ -56,6 +56,7 @@ def test_plan_streams_what_the_domain_plans(client, mode):
     # the wire carries waypoints as (q, t): back to dual quaternions costs a rounding or two
     assert got.duration == pytest.approx(local.duration, rel=1e-12)
     assert [s.binding for s in got.segments] == [s.binding for s in local.segments]
+    assert all(type(s) is trajectory.Segment for s in got.segments)     # the domain's type
     assert len(got.time) == len(want.time)
     np.testing.assert_allclose(got.time, want.time, atol=1e-12, rtol=0)
     np.testing.assert_allclose(got.pose, want.pose * np.sign(got.pose[:, :1] * want.pose[:, :1]),
@@ -115,7 +116,7 @@ def _limits(**change):
     (lambda r: setattr(r.waypoints[1], "time", 0.01), "FAILED_PRECONDITION", "waypoints[1]"),
 ])
 def test_plan_names_the_bad_field(server, edit, code, text):
-    from dqpose.rpc.convert import plan_msg
+    from dqpose.rpc.trajectories_convert import plan_msg
     from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
     from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2_grpc as tgrpc
     request = plan_msg(_waypoints(), LIMITS, 125.0)
