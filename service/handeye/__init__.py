@@ -103,7 +103,7 @@ from dqpose.handeye.likelihood import _evaluate, _linearise  # tests check the J
 from dqpose.handeye.next_best import next_best_pose
 from dqpose.handeye.noise import _Noise  # tests check the Jacobians
 from dqpose.handeye.result import Calibration, Rejection
-from dqpose.handeye.setups import SETUPS, flange_for, view_at
+from dqpose.handeye.setups import EYE_IN_HAND, EYE_TO_HAND, SETUPS, flange_for, view_at
 
-__all__ = ["SETUPS", "Calibration", "Rejection", "calibrate", "check", "flange_for", "next_best_pose",
-           "view_at"]
+__all__ = ["SETUPS", "EYE_IN_HAND", "EYE_TO_HAND", "Calibration", "Rejection", "calibrate", "check",
+           "flange_for", "next_best_pose", "view_at"]

@@ -565,7 +565,7 @@ class Client:
             self._list_arms, tpb.ListArmsRequest().SerializeToString()))
         return [_arm_state(m) for m in answer.arms]
 
-    def calibrate(self, base_flange, camera_target, setup: str = "eye_in_hand", *,
+    def calibrate(self, base_flange, camera_target, setup: str = handeye.EYE_IN_HAND, *,
                   robust: bool = True, camera_covariance=None, robot_covariance=None,
                   corners=None, refine_focal: bool = False,
                   pixel_sigma: Optional[float] = None) -> handeye.Calibration:

@@ -137,7 +137,8 @@ def _per_pair(cov, name: str, n: int) -> list | None:
     return c.reshape(n, COVARIANCE_SIZE).tolist()
 
 
-def calibrate_msg(base_flange, camera_target, setup: str = "eye_in_hand", robust: bool = True,
+def calibrate_msg(base_flange, camera_target, setup: str = handeye.EYE_IN_HAND,
+                  robust: bool = True,
                   camera_covariance=None, robot_covariance=None, corners=None,
                   refine_focal: bool = False,
                   pixel_sigma: float | None = None) -> "hpb.CalibrateRequest":
