@@ -13,7 +13,7 @@ parent that stops reading loses records, never a set-point).
 
 Why a process: a set-point is due every 2 ms at 500 Hz, and a control thread that shares its
 interpreter with gRPC, a feeder or a large heap's garbage collector waits for the interpreter
-lock after each wait (BENCHMARKS.md "Issue 10: execution in its own process").
+lock after each wait (docs/benchmarks/arms.md#where-a-500-hz-loop-loses-its-cycles).
 
 The child dies with the parent, under control: when the parent's end of the command pipe closes
 (the parent exited or was killed) or the child finds itself re-parented, a run still going is

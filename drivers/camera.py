@@ -17,7 +17,7 @@ them once more, each in the largest window that stays off the two markers beside
 pull every corner of a view the same way under perspective (toward the far side of the board):
 an error shared by all of a view's corners, invisible in the residuals, that made each pose's
 covariance too confident and hand-eye calibration end to end claim too much (mean NEES of X 8.9
-instead of 6; BENCHMARKS.md, "Issue 11: the corners' shared error").
+instead of 6; docs/benchmarks/handeye.md#corner-detection).
 
 Covariance convention: the fusion convention of :class:`dqpose.drivers.base.Measurement`, a right
 (body-frame) perturbation with the SE(3) exponential, ``T_true = T_est * Exp(xi)``,

@@ -180,8 +180,8 @@ class Executor:
     ``setcap cap_sys_nice+ep`` on the interpreter, or a ``rtprio`` limit). Without it the loop
     runs as before and :attr:`realtime` says so once it runs. Opt-in: a real-time thread takes
     its core from everything of lower priority (on a 2-core machine, a controller simulator
-    beside it). BENCHMARKS.md "Issue 10: execution" and "Issue 10: execution in its own
-    process" measure both, and both places of the loop.
+    beside it). docs/benchmarks/arms.md#control-loop and
+    docs/benchmarks/arms.md#thread-or-process-for-the-loop measure both, and both places of the loop.
     """
 
     def __init__(self, arm: Arm, *, interpolation: str = "tool_linear", prefill: float = 0.02,

@@ -7,7 +7,7 @@ flag per field (the field's name with dashes: ``max_output_rate`` is ``--max-out
 with :class:`OverLimit` (gRPC ``RESOURCE_EXHAUSTED``, or an error entry in a stream) naming the
 request's field, the limit and its flag (:func:`over`).
 
-Cost model (one core of the 2-core test machine, BENCHMARKS.md "Bounded cost"); the defaults
+Cost model (one core of the 2-core test machine, docs/benchmarks/server-load.md#limits); defaults
 keep the costliest legal request near a second of one worker's time:
 
 * StreamFuse: ticks are computed in closed form (no loop over skipped ticks), so a message costs

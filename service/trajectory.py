@@ -15,7 +15,7 @@ orientation and position follow the one parameter ``s`` (Pilz LIN semantics). A 
 segment at rest at both ends gives each its own: the tool point's progress along the line and
 the slerp's are each the time-optimal 1-D S-curve under their own limits, the faster one
 stretched to the slower one's duration (Ruckig's time synchronisation; equal durations on
-straight moves, BENCHMARKS.md, issue 10); the path is the same line and slerp. The limits on
+straight moves, docs/benchmarks/trajectories.md#planning); the path is the same line and slerp. The limits on
 the tool point's linear velocity, acceleration and jerk and on the tool's angular velocity,
 acceleration and jerk are met by construction: the C planner (``service/csrc/trajectory.c``,
 where the bounds are derived) sizes every ramp by upper bounds of these quantities, and

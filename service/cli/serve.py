@@ -154,8 +154,8 @@ def _serve(args) -> int:
                         simulated = spec.target == SIM
                         if simulated:
                             spec = dataclasses.replace(spec, target=fleet.target(spec.kind))
-                        # the server's own work delays a control thread's set-points (BENCHMARKS.md
-                        # "Cancel → stop explained": 1,991 missed cycles in 30 s against 51)
+                        # the server's own work delays a control thread's set-points (1,991 missed
+                        # cycles in 30 s against 51: docs/benchmarks/arms.md#thread-or-process-for-the-loop)
                         why_not = None if args.arm_loop == "process" else (
                             "--arm-loop thread" if args.arm_loop == "thread"
                             else drivers.process_problem(str(spec)))
@@ -170,7 +170,7 @@ def _serve(args) -> int:
                          "loop": "thread" if why_not else "process",
                          **({"why": why_not} if why_not else {})}))
                 cfg.executor = functools.partial(Executor, realtime=args.arm_realtime)
-            try:  # libuv's loop: ~8 % more calls/s with 8 clients, lower p99 (BENCHMARKS.md)
+            try:  # libuv's loop: ~8 % more calls/s with 8 clients (docs/benchmarks/grpc.md#server-choices-measured)
                 import uvloop
             except ImportError:
                 uvloop = None

@@ -207,7 +207,8 @@ class Blending(pb_grpc.BlendingServicer):
     async def BlendStream(self, request_iterator, context):
         # Reading runs ahead of writing (a reader task feeding a queue of STREAM_READ_AHEAD):
         # in grpc.aio every read and every write is a round trip through gRPC's poller thread,
-        # and overlapping the two is worth ~1.5x in blends/s (BENCHMARKS.md). The bound keeps
+        # and overlapping the two is worth ~1.5x in blends/s
+        # (docs/benchmarks/grpc.md#server-choices-measured). The bound keeps
         # HTTP/2 flow control as the client's backpressure. request_iterator stays unused: the
         # reader takes the messages with context.read().
         code = "OK"
