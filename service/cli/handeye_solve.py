@@ -67,7 +67,7 @@ def add_parser(sub) -> None:
                         "detector's covariances only")
     s.add_argument("--corners", action="store_true",
                    help="refine on the detected corners' reprojection too (corner level; on "
-                        "the simulator's renders no better than the default, see BENCHMARKS.md)")
+                        "the simulator's renders no better than the default, see docs/benchmarks/handeye.md)")
     s.add_argument("--refine-focal", action="store_true",
                    help="with --corners: estimate a scale of the focal lengths too")
     s.add_argument("--keep-outliers", action="store_true",
