@@ -54,6 +54,11 @@ lint: setup
 	ln -s $(CURDIR)/service/* build/mypy/dqpose/ && ln -s $(CURDIR)/drivers build/mypy/dqpose/drivers
 	cd build/mypy && $(CURDIR)/$(BIN)/mypy --config-file $(CURDIR)/pyproject.toml
 
+# The inner loop: the suite without the slow modules (tests/conftest.py), the heaviest requests
+# and the installs; a few minutes. `make test` still runs everything.
+test-fast: setup
+	$(BIN)/python -m pytest -q -m "not slow and not heavy and not install" $(ARGS)
+
 bench: setup
 	$(BIN)/python -m tests.bench.bench_core
 	$(BIN)/python -m tests.bench.bench_grpc

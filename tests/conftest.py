@@ -63,3 +63,19 @@ def sim():
     from dqpose.drivers.sim import ursim
     with ursim.URSimProcess(args=("--max-linear-speed", "5")) as s:
         yield s
+
+
+#: the modules whose tests take the most time (arms, servers and simulators on the clock, the
+#: hand-eye solves, the fuzz): ``make test-fast`` leaves them out, ``make test`` (CI) runs all
+SLOW_MODULES = {
+    "test_fuzz_rpc.py", "test_demo_fusion.py", "test_fusion_time.py", "test_handeye_cli.py",
+    "test_handeye.py", "test_execute.py", "test_bench_handeye.py", "test_handeye_capture.py",
+    "test_server.py", "test_armproc_respawn.py", "test_arm_safety.py", "test_examples.py",
+    "test_interrupt.py", "test_camera.py",
+}
+
+
+def pytest_collection_modifyitems(items):
+    for item in items:
+        if item.path.name in SLOW_MODULES:
+            item.add_marker(pytest.mark.slow)
