@@ -253,7 +253,7 @@ def capture(args) -> int:
     from dqpose.drivers.camera import BoardSpec, CharucoCamera, load_board, load_intrinsics, read_image
     from dqpose.drivers.rotvec import rotvec_from_pose
     from dqpose.drivers.sim.camera import DEFAULT_INTRINSICS, BoardRenderer
-    from dqpose.drivers.sim.ursim import URSimProcess
+    from dqpose.drivers.sim.ur import URSimProcess
     # a resumed capture draws its own noise and candidate views, not the first run's again
     rng = np.random.default_rng(args.seed + (len(previous.images) if previous else 0))
     sim = not args.arm
