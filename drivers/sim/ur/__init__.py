@@ -24,7 +24,8 @@ from dqpose.drivers.sim.ur.model import (DASHBOARD_PORT, EMERGENCY_STOP_BIT, HOO
                                          SERVO_STOP, SERVOL, SPEED_STOP, STOP_SCRIPT, STOPJ, STOPL,
                                          STOPPED, STOPPING, Controller, SimConfig)
 # _address_free: the tests pick a free loopback address with it too
-from dqpose.drivers.sim.ur.process import URSimProcess, _address_free, servo_lag_cycles  # noqa: F401
+from dqpose.drivers.sim.ur.process import (URSimProcess, _address_free,  # noqa: F401
+                                           servo_lag_cycles)
 from dqpose.drivers.sim.ur.server import URSim
 
 __all__ = ["main", "URSim", "URSimProcess", "SimConfig", "Controller", "servo_lag_cycles",
