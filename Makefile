@@ -2,7 +2,7 @@
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
-EXTRAS := devices,planning,plot,yaml,test
+EXTRAS := devices,planning,plot,yaml,test,lint
 # Extra arguments: `make run ARGS="--port 50052"` (dqpose serve's options; the last of a repeated
 # option wins), `make test ARGS="-k blend"` (pytest's).
 ARGS   ?=
@@ -16,7 +16,7 @@ INPUTS := Makefile pyproject.toml setup.py $(wildcard service/csrc/*.c service/c
 MISSING := $(if $(wildcard service/_dqcore*.so),,FORCE) \
            $(if $(wildcard service/rpc/_proto/dqpose/v1/*_pb2.py),,FORCE)
 
-.PHONY: setup run test bench clean FORCE
+.PHONY: setup run test test-fast lint bench clean FORCE
 
 $(BIN)/python:
 	@echo "make: creating the virtual environment $(VENV) (a few seconds)"
@@ -45,6 +45,14 @@ run: setup
 # after it: make test ARGS="-m install".
 test: setup
 	$(BIN)/python -m pytest -q $(ARGS)
+
+# ruff over the tree; mypy over the package, read through a tree of links named as it imports
+# (dqpose/ = service/, dqpose/drivers/ = drivers/), since the folders keep the layout's names
+lint: setup
+	$(BIN)/ruff check .
+	rm -rf build/mypy && mkdir -p build/mypy/dqpose
+	ln -s $(CURDIR)/service/* build/mypy/dqpose/ && ln -s $(CURDIR)/drivers build/mypy/dqpose/drivers
+	cd build/mypy && $(CURDIR)/$(BIN)/mypy --config-file $(CURDIR)/pyproject.toml
 
 bench: setup
 	$(BIN)/python -m tests.bench.bench_core

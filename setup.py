@@ -10,13 +10,24 @@ from setuptools import Extension, setup
 CSRC = os.path.join("service", "csrc")
 # -O3 lets GCC vectorise the per-pose loops; no -ffast-math, because the core relies on
 # IEEE semantics to detect NaN/Inf input and on exact rounding for 1e-12 agreement.
+# -Wno-unused-parameter: every Python function takes CPython's `self` (and METH_O / METH_VARARGS
+# fix the signature), which the module functions never use.
 extra = ["-O3", "-std=c99", "-Wall", "-Wextra", "-Wno-unused-parameter", "-fno-math-errno"]
 if os.environ.get("DQPOSE_NATIVE") == "1":
     extra.append("-march=native")
+# CI builds with DQPOSE_WERROR=1 (.ci/run): a warning fails the build there.
+if os.environ.get("DQPOSE_WERROR") == "1":
+    extra.append("-Werror")
+
+# The pure C99 core, then the CPython/NumPy bindings (py_*.c) and the module's table (module.c).
+CORE_SOURCES = ("dq.c", "blend.c", "wire.c", "linalg6.c", "se3.c", "fusion.c", "motion.c",
+                "traj_law.c", "traj_plan.c", "traj_eval.c")
+BINDING_SOURCES = ("py_args.c", "py_dq.c", "py_wire.c", "py_fusion.c", "py_trajectory.c",
+                   "module.c")
 
 core = Extension(
     "dqpose._dqcore",
-    sources=[os.path.join(CSRC, f) for f in ("dq.c", "blend.c", "fusion.c", "wire.c", "trajectory.c", "module.c")],
+    sources=[os.path.join(CSRC, f) for f in CORE_SOURCES + BINDING_SOURCES],
     include_dirs=[numpy.get_include(), CSRC],
     define_macros=[("NPY_NO_DEPRECATED_API", "NPY_2_0_API_VERSION")],
     extra_compile_args=extra,

@@ -549,22 +549,22 @@ class URArm(Arm):
     def close(self) -> None:
         """Stop, end the control script and, unless :attr:`disconnect_on_close` is False,
         disconnect (about 1.5 s: ur_rtde waits 0.5 s in its disconnects, run at once, and as long
-        in each destructor)."""
+        in each destructor). Each step waits at most :data:`CLOSE_WAIT`: ur_rtde's stopScript
+        waits for the controller to report its program ended, for minutes when the controller
+        has stopped answering; interfaces that did not finish are left to the process's end."""
         if self._closed.is_set():
             return
         self._closed.set()
         self._monitor.join()
         with self._lock:
-            try:
-                if self._ctrl.isConnected() and not self._error:
-                    self._ctrl.servoStop(self.stop_decel)
-                    self._ctrl.stopScript()
-            except RuntimeError:
-                pass        # gone meanwhile
+            ctrl = self._ctrl
+            ended = True
+            if ctrl.isConnected() and not self._error:
+                ended = _within(CLOSE_WAIT, _end_script, ctrl, self.stop_decel)
             interfaces = (self._ctrl, self._recv)
             with self._recv_lock:
                 self._ctrl = self._recv = _Closed()
-            if not self.disconnect_on_close:
+            if not (self.disconnect_on_close and ended):
                 _keep_to_exit(interfaces)
                 return
             # each disconnect sleeps 0.5 s without the interpreter lock: both at once
@@ -572,12 +572,37 @@ class URArm(Arm):
                     for i in interfaces]
             for t in ends:
                 t.start()
+            deadline = time.monotonic() + CLOSE_WAIT
             for t in ends:
-                t.join()
+                t.join(max(0.0, deadline - time.monotonic()))
+            if any(t.is_alive() for t in ends):
+                _keep_to_exit(interfaces)   # their destructors would wait as long
+                return
             # ur_rtde's destructors sleep 0.5 s each holding the interpreter lock: here, in the
             # close that is expected to take that long, not whenever a garbage collection finds
             # this arm later (every thread of the process would stop then)
             del interfaces
+
+
+#: how long each step of :meth:`URArm.close` may take (s)
+CLOSE_WAIT = 3.0
+
+
+def _end_script(ctrl, decel: float) -> None:
+    try:
+        ctrl.servoStop(decel)
+        ctrl.stopScript()
+    except RuntimeError:
+        pass        # gone meanwhile
+
+
+def _within(seconds: float, fn, *args) -> bool:
+    """``fn(*args)`` in a thread of its own (ur_rtde's calls leave the interpreter lock); True
+    when it returned within ``seconds``."""
+    t = threading.Thread(target=fn, args=args, daemon=True)
+    t.start()
+    t.join(seconds)
+    return not t.is_alive()
 
 
 def _disconnect(interface) -> None:

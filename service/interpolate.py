@@ -1,6 +1,7 @@
 """Piecewise interpolation between time-stamped keyframe poses (no gRPC here).
 
-Two modes, because robotics users want different paths between the same keyframes:
+Two modes (:data:`dqpose.trajectory.INTERPOLATIONS`, the planner's too), because robotics users
+want different paths between the same keyframes:
 
 * ``"screw"``: ScLERP per segment, a constant-rate screw motion (the geodesic of SE(3) under the
   dual-quaternion metric). The tool point follows a helix, which may leave the straight line.
@@ -17,8 +18,10 @@ import numpy as np
 
 from dqpose import dq
 from dqpose.errors import rename
+from dqpose.trajectory import INTERPOLATIONS
 
-MODES = ("screw", "tool_linear")
+#: the modes, under the name the executor (dqpose.drivers.executor) imports
+MODES = INTERPOLATIONS
 
 
 def _times(name: str, t, ndim_msg: str) -> np.ndarray:
@@ -39,8 +42,9 @@ def interpolate(times_k, dqs_k, times, mode: str = "screw") -> np.ndarray:
     keyframes are returned exactly at their own times. Errors are ``ValueError`` naming the
     argument and index, e.g. ``times_k[3]: 1.5 is not after the previous keyframe time 1.5 ...``.
     """
-    if mode not in MODES:
-        raise ValueError(f"mode: unknown interpolation {mode!r}; expected one of {', '.join(MODES)}")
+    if mode not in INTERPOLATIONS:
+        raise ValueError(f"mode: unknown interpolation {mode!r}; expected one of "
+                         f"{', '.join(INTERPOLATIONS)}")
     tk = _times("times_k", times_k, "a 1-D array of keyframe times")
     t = _times("times", times, "a 1-D array of times")
     dqs_k = np.asarray(dqs_k, dtype=np.float64)

@@ -1,4 +1,4 @@
-"""service/handeye.py against the truth of the synthetic scenes (tests/_handeye.py): exact data
+"""dqpose.handeye (service/handeye/) against the truth of the synthetic scenes (tests/_handeye.py): exact data
 solved exactly, noisy data solved with a consistent covariance, every broken data set flagged."""
 import numpy as np
 import pytest

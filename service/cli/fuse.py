@@ -1,5 +1,6 @@
 """``dqpose fuse``: measurements of one body from a JSON, YAML or CSV file, fused on a server (the
-``dqpose.v1.Fusion`` service) or ``--local``ly by the same code, printed as text or JSON."""
+``dqpose.v1.Fusion`` service) or ``--local``ly by :func:`dqpose.fusion.fuse` with the server's
+checks of the request (no grpc imported), printed as text or JSON."""
 from __future__ import annotations
 
 import argparse
@@ -181,9 +182,10 @@ def _fuse(args) -> int:
             request.options.acceleration_psd.extend(
                 (rot if i < 3 else trans) if i == j else 0.0 for i in range(6) for j in range(6))
         if args.local:
-            from dqpose.rpc.fusion import Fusion
+            # dqpose.fusion.fuse with the checks and field names of the server's Fuse
+            from dqpose.rpc.fusion_convert import fused_pose
 
-            fused = Fusion().fuse(request)
+            fused = fused_pose(request)
         else:
             with client(args) as c:
                 fused = c.fuse_request(request)

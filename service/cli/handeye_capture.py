@@ -6,16 +6,16 @@ images, the flange poses (``poses.json``), the intrinsics and the board, and for
 truth (``truth.json``)."""
 from __future__ import annotations
 
+import argparse
 import functools
-import glob
-import json
 import math
 import os
 import sys
 
 from dqpose.cli.common import INTERRUPTED, fail
+from dqpose.cli.handeye_folder import CAPTURE_FILES, POSE_FILES, Previous, find, save, view_files
+from dqpose.cli.handeye_views import CHOICES, ViewPlan
 
-POSE_FILES = ("poses.json", "poses.csv")
 CAPTURE_EPILOG = """\
 Without --arm the UR simulator is started and a simulated camera renders the board (the truth
 is saved as truth.json, and solve then reports its error against it). With --arm ur:HOST (a real
@@ -30,7 +30,8 @@ An interrupted capture (Ctrl-C: the arm is stopped, the views taken are saved) i
 
 # The simulated cell. Eye-in-hand: a 7x5 board face up on the table, a camera on the flange
 # 6 cm off its axis and turned 80 deg about it; eye-to-hand: a camera on a post looking at a
-# board held 5 cm out along the tool z axis.
+# board held 5 cm out along the tool z axis. (Keyed by the setups' names: this module's top level
+# imports nothing heavy, dqpose.handeye included.)
 _SIM_X = {"eye_in_hand": ((0.06, -0.02, 0.04), (0.08, -0.12, 1.40)),
           "eye_to_hand": ((0.50, -0.85, 0.55), None)}
 _SIM_Z = {"eye_in_hand": ((0.40, 0.10, 0.0), (math.pi, 0.0, 0.0)),
@@ -41,16 +42,6 @@ _SIM_SPEED = dict(max_linear_speed=1.0, max_angular_speed=3.0, max_linear_accel=
 #: Capture sends whole moves, each run by the controller itself, never a servo stream: a pause
 #: of the data stream this short is no fault (and a simulator on a busy machine makes them)
 STALE_AFTER = 1.0
-_CANDIDATES = 200        # candidate views the next one is chosen from
-_SPREAD_FIRST = 3        # views chosen for their spread of rotations before the solver chooses
-
-
-def _find(folder: str, names) -> str | None:
-    for n in names:
-        path = os.path.join(folder, n)
-        if os.path.isfile(path):
-            return path
-    return None
 
 
 def _pose(t, rotvec):
@@ -73,15 +64,16 @@ def _sim_cell(setup: str, board):
     sees the board's centre from 0.45 m, :data:`_START_TILT_DEG` off its normal."""
     import numpy as np
 
-    from dqpose.drivers.sim.camera import look_at
     from dqpose import dq, handeye
+    from dqpose.drivers.sim.camera import look_at
+    from dqpose.handeye.setups import EYE_IN_HAND
     w, h = board.extent
     centre = np.array([w / 2, h / 2, 0.0])
     tilt = math.radians(_START_TILT_DEG)
     home_view = look_at(centre + 0.45 * np.array([0.0, math.sin(tilt), -math.cos(tilt)]),
                         centre)
     z = _pose(*_SIM_Z[setup])
-    if setup == "eye_in_hand":
+    if setup == EYE_IN_HAND:
         x = _pose(*_SIM_X[setup])
     else:   # the camera on its post looks at where the board is at the start, image up
         eye = np.array(_SIM_X[setup][0])
@@ -89,123 +81,65 @@ def _sim_cell(setup: str, board):
     return x, z, handeye.flange_for(home_view, x, z, setup)
 
 
-class _Capture:
-    """The views taken so far and the choice of the next (spread first, then next-best)."""
 
-    def __init__(self, setup: str, start_flange, start_detection, board, rng,
-                 choose: str = "next-best"):
-        import numpy as np
-
-        from dqpose.drivers.sim.camera import random_view
-        from dqpose import dq
-        self.setup = setup
-        start_view = start_detection.pose
-        self.flanges, self.views = [start_flange], [start_view]
-        self.covariances = [start_detection.covariance]
-        # A first guess: the camera at the flange (eye-in-hand) or the board at the flange
-        # (eye-to-hand); the solver's answer replaces it once there is one.
-        ident = dq.from_pose(np.array([1.0, 0, 0, 0]), np.zeros(3))
-        if setup == "eye_in_hand":
-            self.x = ident
-            self.z = dq.mul(dq.mul(start_flange, self.x), start_view)
-        else:
-            self.z = ident
-            self.x = dq.mul(dq.mul(start_flange, self.z), dq.inv(start_view))
-        d = float(np.linalg.norm(dq.to_pose(start_view)[1]))
-        self.candidates = [random_view(rng, board, distance=(0.8 * d, 1.25 * d),
-                                       max_tilt_deg=40.0, max_roll_deg=60.0)
-                           for _ in range(_CANDIDATES)]
-        self.calibration = None
-        self.choose = choose
-        self.taken = 1           # views taken, the start's included (detected or not)
-
-    def add(self, flange, detection) -> None:
-        import numpy as np
-
-        from dqpose import handeye
-        self.flanges.append(flange)
-        self.views.append(detection.pose)
-        self.covariances.append(detection.covariance)
-        if len(self.views) > _SPREAD_FIRST:
-            try:
-                self.calibration = handeye.calibrate(
-                    np.array(self.flanges), np.array(self.views), self.setup,
-                    camera_covariance=np.array(self.covariances))
-                self.x, self.z = self.calibration.x, self.calibration.z
-            except ValueError:      # not yet determined: keep the guess and the spread rule
-                self.calibration = None
-
-    def drop(self, k: int) -> None:
-        self.candidates.pop(k)
-
-    def rule(self) -> str:
-        """How the next view is chosen: the solver's next-best pose once it has an answer, the
-        view whose rotation is farthest from every view taken before (``choose`` "spread":
-        always), or the candidates as they come (``choose`` "random")."""
-        if self.choose == "random":
-            return "random"
-        if self.choose == "next-best" and self.calibration is not None:
-            return "next-best pose"
-        return "rotation spread"
-
-    def order(self, flanges) -> list:
-        """Candidate indices, best first, by :meth:`rule`."""
-        import numpy as np
-        rule = self.rule()
-        if rule == "random":
-            return list(range(len(flanges)))
-        if rule == "next-best pose":
-            from dqpose import handeye
-            return list(handeye.next_best_pose(self.calibration, np.array(self.flanges),
-                                               np.array(self.views), np.array(flanges)))
-        from dqpose.drivers.base import pose_delta
-        gaps = [min(pose_delta(c, v)[1] for v in self.views) for c in self.candidates]
-        return list(np.argsort(gaps)[::-1])
-
-
-#: what a capture writes into DIR (and solve, next to it): what --force removes
-_CAPTURE_FILES = ("poses.json", "intrinsics.json", "board.json", "truth.json",
-                  "handeye_report.txt", "handeye.png", "handeye.json")
-
-
-def _views_in(folder: str) -> list[str]:
-    return sorted(glob.glob(os.path.join(folder, "view_*.png")))
-
-
-class _Previous:
-    """A capture in DIR to continue (``--resume``): its images, flange poses and setup, and the
-    intrinsics and board files it was taken with."""
-
-    def __init__(self, folder: str):
-        from dqpose.cli.posefile import read_robot_poses
-        poses = os.path.join(folder, "poses.json")
-        if not os.path.isfile(poses):
-            raise ValueError(f"--resume: {folder!r} has views but no poses.json (the capture "
-                             f"was killed before it saved them); --force starts over")
-        robot = read_robot_poses(poses, "m")
-        missing = [im for im in robot.images if im is None or
-                   not os.path.isfile(os.path.join(folder, im))]
-        if missing:
-            raise ValueError(f"--resume: {poses} names images not in {folder!r}: "
-                             f"{', '.join(map(str, missing[:5]))}; --force starts over")
-        self.images = list(robot.images)
-        self.flanges = list(robot.base_flange)
-        self.setup = robot.setup
-        self.intrinsics = _find(folder, ("intrinsics.json",))
-        self.board = _find(folder, ("board.json",))
+def add_parser(sub) -> None:
+    """The ``capture`` action and its options."""
+    from dqpose.handeye import SETUPS  # NumPy and the C core: only for this command's help
+    c = sub.add_parser("capture", help="drive an arm through informative views and save them",
+                       description="Drive a UR through informative views of the board "
+                                   "(the simulator, or --arm) and save images and robot poses "
+                                   "into DIR for `dqpose handeye solve`.",
+                       formatter_class=argparse.RawDescriptionHelpFormatter,
+                       epilog=CAPTURE_EPILOG)
+    c.add_argument("dir", metavar="DIR", help="folder to write (created; one that holds a "
+                                              "capture needs --resume or --force)")
+    c.add_argument("--setup", choices=SETUPS,
+                   help="eye_in_hand (default): camera on the flange; eye_to_hand: camera "
+                        "fixed, board on the flange (with --resume: the capture's)")
+    c.add_argument("--views", type=int, default=15,
+                   help="views to capture (default 15; with --resume, in all)")
+    again = c.add_mutually_exclusive_group()
+    again.add_argument("--resume", action="store_true",
+                       help="continue the capture in DIR (an interrupted one) up to --views, "
+                            "with its board, intrinsics and setup")
+    again.add_argument("--force", action="store_true",
+                       help="start over: the capture's files in DIR (views, poses, intrinsics, "
+                            "board, truth, solve's outputs) are removed first")
+    c.add_argument("--choose", choices=CHOICES, default="next-best",
+                   help="how views are chosen: a spread of rotations, then, once the solver "
+                        "has an answer, the candidate that shrinks X's covariance most "
+                        "(next-best, the default); the spread rule throughout (spread); or "
+                        "the candidates in their random order (random, a baseline)")
+    c.add_argument("--arm", metavar="SPEC", help="a real arm, ur:HOST (default: start the "
+                                                 "UR simulator)")
+    c.add_argument("--camera", metavar="SOURCE", help="with --arm: a device index, video or "
+                                                      "folder (drivers.camera.open_frames)")
+    c.add_argument("--intrinsics", metavar="FILE", help="with --camera (YAML/JSON)")
+    c.add_argument("--board", metavar="FILE", help="YAML/JSON board (default: 7x5 ChArUco)")
+    c.add_argument("--speed", type=float, help="tool speed of the moves, m/s (default: 0.25 on "
+                                               "an arm, 0.8 on the simulator)")
+    c.add_argument("--settle", type=float, default=None,
+                   help="seconds to wait after each move before the image (default 0.3 on an "
+                        "arm, 0 on the simulator)")
+    c.add_argument("--seed", type=int, default=0, help="of the candidate views and the "
+                                                       "simulated camera's noise")
+    c.add_argument("--noise", type=float, default=2.0,
+                   help="simulated camera: pixel noise, grey levels (default 2)")
+    c.add_argument("--blur", type=float, default=0.6,
+                   help="simulated camera: Gaussian blur, pixels (default 0.6)")
 
 
 def _prepare(args):
     """DIR made ready: a capture already there is refused, continued (``--resume``: returns
-    :class:`_Previous`) or removed (``--force``); None for a new capture."""
-    held = os.path.isdir(args.dir) and (_find(args.dir, POSE_FILES) or _views_in(args.dir))
+    :class:`Previous`) or removed (``--force``); None for a new capture."""
+    held = os.path.isdir(args.dir) and (find(args.dir, POSE_FILES) or view_files(args.dir))
     if not held:
         if args.resume:
             print(f"nothing to resume in {args.dir}: a new capture", file=sys.stderr)
         return None
     if args.force:
-        removed = _views_in(args.dir) + [p for p in (os.path.join(args.dir, n)
-                                                     for n in _CAPTURE_FILES)
+        removed = view_files(args.dir) + [p for p in (os.path.join(args.dir, n)
+                                                     for n in CAPTURE_FILES)
                                          if os.path.isfile(p)]
         for path in removed:
             os.remove(path)
@@ -213,10 +147,10 @@ def _prepare(args):
               file=sys.stderr)
         return None
     if not args.resume:
-        n = len(_views_in(args.dir))
+        n = len(view_files(args.dir))
         raise ValueError(f"DIR: {args.dir!r} already holds a capture ({n} views): --resume "
                          f"continues it up to --views, --force starts over (removes it)")
-    previous = _Previous(args.dir)
+    previous = Previous(args.dir)
     if args.setup and previous.setup and args.setup != previous.setup:
         raise ValueError(f"--setup: {args.setup}, but the capture in {args.dir!r} is "
                          f"{previous.setup}")
@@ -228,32 +162,24 @@ def capture(args) -> int:
 
     import numpy as np
 
-    from dqpose import handeye
+    from dqpose.handeye.setups import EYE_IN_HAND
 
-    if args.views < 4:
-        return fail("handeye capture", f"--views: at least 4, got {args.views}")
-    if args.arm and not args.arm.startswith("ur:"):
-        return fail("handeye capture", f"--arm: ur:HOST (a UR arm), got {args.arm!r}")
-    if args.arm and not (args.camera and (args.intrinsics or args.resume)):
-        return fail("handeye capture", "--arm: a real arm needs --camera and --intrinsics (the "
-                                       "simulated camera sees only the simulated arm)")
+    refused = _refused(args)
+    if refused:
+        return fail("handeye capture", refused)
     try:
         previous = _prepare(args)
     except ValueError as e:
         return fail("handeye capture", str(e))
-    args.setup = args.setup or (previous.setup if previous else None) or "eye_in_hand"
+    args.setup = args.setup or (previous.setup if previous else None) or EYE_IN_HAND
     if previous and len(previous.images) >= args.views:
         print(f"{len(previous.images)} views in {args.dir} already (--views {args.views}); "
               f"solve with: dqpose handeye solve {args.dir}")
         return 0
     import cv2
 
-    from dqpose import drivers
-    from dqpose.drivers.base import Limits
     from dqpose.drivers.camera import BoardSpec, CharucoCamera, load_board, load_intrinsics, read_image
-    from dqpose.drivers.rotvec import rotvec_from_pose
-    from dqpose.drivers.sim.camera import DEFAULT_INTRINSICS, BoardRenderer
-    from dqpose.drivers.sim.ur import URSimProcess
+    from dqpose.drivers.sim.camera import DEFAULT_INTRINSICS
     # a resumed capture draws its own noise and candidate views, not the first run's again
     rng = np.random.default_rng(args.seed + (len(previous.images) if previous else 0))
     sim = not args.arm
@@ -268,31 +194,7 @@ def capture(args) -> int:
         intr = load_intrinsics(intr_file) if intr_file else DEFAULT_INTRINSICS
         detector = CharucoCamera(intr, board)
         with contextlib.ExitStack() as stack:
-            if sim:
-                x_true, z_true, home = _sim_cell(args.setup, board)
-                ursim = URSimProcess()
-                stack.push(functools.partial(_end_simulator, ursim))
-                # a capture resumed goes on from where the arm stood at its last view
-                ursim.set_pose(rotvec_from_pose(flanges[-1] if flanges else home))
-                arm = stack.enter_context(drivers.open_arm(f"ur:{ursim.host}",
-                                                           limits=Limits(**_SIM_SPEED),
-                                                           stale_after=STALE_AFTER))
-                renderer = BoardRenderer(board, intr)
-
-                def grab(flange):
-                    return renderer.render(handeye.view_at(flange, x_true, z_true, args.setup),
-                                           blur=args.blur, noise=args.noise, rng=rng)
-            else:
-                from dqpose.drivers.camera import open_frames
-                arm = stack.enter_context(drivers.open_arm(args.arm, stale_after=STALE_AFTER))
-                frames = open_frames(args.camera)
-                stack.callback(frames.close)
-
-                def grab(flange):
-                    img = frames.read(5.0)
-                    if img is None:
-                        raise OSError(f"--camera: {args.camera} gave no image")
-                    return img
+            arm, grab, truth = _open_cell(args, stack, board, intr, flanges, rng)
             os.makedirs(args.dir, exist_ok=True)
 
             def shoot(flange):
@@ -309,24 +211,14 @@ def capture(args) -> int:
                     state = _resumed(args, previous, detector, read_image, board, rng)
                     print(f"resuming: {len(images)} views in {args.dir}", file=sys.stderr)
                 else:
-                    _, start = arm.tool_pose()
-                    first = shoot(start)
-                    if not first.ok:
-                        os.remove(os.path.join(args.dir, images.pop()))
-                        flanges.pop()
-                        raise ValueError(f"the camera does not see the board at the start "
-                                         f"pose ({first}); start with the board in view")
-                    state = _Capture(args.setup, start, first, board, rng, args.choose)
-                    print(f"view 0: the start pose ({'simulated UR' if sim else args.arm})",
-                          file=sys.stderr)
+                    state = _first_view(args, arm, shoot, images, flanges, board, rng)
                 stop = _views_loop(args, arm, state, shoot, speed, settle)
             except KeyboardInterrupt:
                 _stop_at_once(arm)
                 raise
             finally:    # what was taken is kept, also when the arm or camera failed midway
                 if images:
-                    _save(args, images, flanges, intr, board,
-                          (x_true, z_true) if sim else None)
+                    save(args, images, flanges, intr, board, truth)
     except KeyboardInterrupt:       # the arm was stopped and closed on the way out
         print(f"dqpose handeye capture: interrupted; {len(images)} views saved in {args.dir}: "
               f"`dqpose handeye capture {args.dir} --resume` continues it (to --views "
@@ -338,6 +230,70 @@ def capture(args) -> int:
         return fail("handeye capture", f"{stop}; {len(images)} views saved in {args.dir}")
     print(f"{len(images)} views in {args.dir}; solve with: dqpose handeye solve {args.dir}")
     return 0
+
+
+def _refused(args) -> str | None:
+    """Why the options cannot make a capture, or None."""
+    if args.views < 4:
+        return f"--views: at least 4, got {args.views}"
+    if args.arm and not args.arm.startswith("ur:"):
+        return f"--arm: ur:HOST (a UR arm), got {args.arm!r}"
+    if args.arm and not (args.camera and (args.intrinsics or args.resume)):
+        return ("--arm: a real arm needs --camera and --intrinsics (the simulated camera sees "
+                "only the simulated arm)")
+    return None
+
+
+def _open_cell(args, stack, board, intr, flanges, rng):
+    """The arm and the camera, closed with ``stack``: ``(arm, grab(flange) -> image, truth)``.
+    Without ``--arm`` the UR simulator (at the last view's flange pose when resumed, else at
+    the start) and a camera rendering the board from the simulated cell, whose ``(x, z)`` is
+    the truth; with it the arm and ``--camera``, and no truth."""
+    from dqpose import drivers, handeye
+    if args.arm:
+        from dqpose.drivers.camera import open_frames
+        arm = stack.enter_context(drivers.open_arm(args.arm, stale_after=STALE_AFTER))
+        frames = open_frames(args.camera)
+        stack.callback(frames.close)
+
+        def grab(flange):
+            img = frames.read(5.0)
+            if img is None:
+                raise OSError(f"--camera: {args.camera} gave no image")
+            return img
+        return arm, grab, None
+    from dqpose.drivers.base import Limits
+    from dqpose.drivers.rotvec import rotvec_from_pose
+    from dqpose.drivers.sim.camera import BoardRenderer
+    from dqpose.drivers.sim.ur import URSimProcess
+    x_true, z_true, home = _sim_cell(args.setup, board)
+    ursim = URSimProcess()
+    stack.push(functools.partial(_end_simulator, ursim))
+    # a capture resumed goes on from where the arm stood at its last view
+    ursim.set_pose(rotvec_from_pose(flanges[-1] if flanges else home))
+    arm = stack.enter_context(drivers.open_arm(f"ur:{ursim.host}", limits=Limits(**_SIM_SPEED),
+                                               stale_after=STALE_AFTER))
+    renderer = BoardRenderer(board, intr)
+
+    def grab(flange):
+        return renderer.render(handeye.view_at(flange, x_true, z_true, args.setup),
+                               blur=args.blur, noise=args.noise, rng=rng)
+    return arm, grab, (x_true, z_true)
+
+
+def _first_view(args, arm, shoot, images, flanges, board, rng) -> ViewPlan:
+    """The view at the arm's start pose, which must show the board (else it is not kept), and
+    the choice of views from it."""
+    _, start = arm.tool_pose()
+    first = shoot(start)
+    if not first.ok:
+        os.remove(os.path.join(args.dir, images.pop()))
+        flanges.pop()
+        raise ValueError(f"the camera does not see the board at the start "
+                         f"pose ({first}); start with the board in view")
+    state = ViewPlan(args.setup, start, first, board, rng, args.choose)
+    print(f"view 0: the start pose ({args.arm or 'simulated UR'})", file=sys.stderr)
+    return state
 
 
 def _stop_at_once(arm) -> None:
@@ -362,14 +318,14 @@ def _end_simulator(sim, exc_type, exc, tb) -> None:
         sim.close()
 
 
-def _resumed(args, previous: _Previous, detector, read_image, board, rng) -> "_Capture":
+def _resumed(args, previous: Previous, detector, read_image, board, rng) -> ViewPlan:
     """The choice of views where the capture in DIR left it: its views detected again (the
     first, the start, must show the board) and the solver's answer from them."""
     found = [detector.detect(read_image(os.path.join(args.dir, im))) for im in previous.images]
     if not found[0].ok:
         raise ValueError(f"--resume: the board is not detected in {previous.images[0]}, the "
                          f"capture's first view; --force starts over")
-    state = _Capture(args.setup, previous.flanges[0], found[0], board, rng, args.choose)
+    state = ViewPlan(args.setup, previous.flanges[0], found[0], board, rng, args.choose)
     for flange, d in zip(previous.flanges[1:], found[1:]):
         if d.ok:
             state.add(flange, d)
@@ -417,26 +373,6 @@ def _views_loop(args, arm, state, shoot, speed: float, settle: float) -> str | N
                         f"the board or the lighting?)")
     return None
 
-
-def _save(args, images, flanges, intr, board, truth) -> None:
-    """The folder ``solve`` reads: ``poses.json``, the intrinsics, the board and, for a
-    simulation, the truth ``(x, z)``."""
-    import numpy as np
-
-    from dqpose.cli.posefile import pose_json, robot_poses_json
-    with open(os.path.join(args.dir, "poses.json"), "w", encoding="utf-8") as f:
-        f.write(robot_poses_json(images, np.array(flanges), args.setup))
-    with open(os.path.join(args.dir, "intrinsics.json"), "w", encoding="utf-8") as f:
-        json.dump({"K": intr.K.tolist(), "dist": intr.dist.tolist(),
-                   "image_size": list(intr.size)}, f, indent=1)
-    with open(os.path.join(args.dir, "board.json"), "w", encoding="utf-8") as f:
-        json.dump({"kind": board.kind, "squares": list(board.squares),
-                   "square_length": board.square_length, "marker_length": board.marker_length,
-                   "dictionary_name": board.dictionary_name}, f, indent=1)
-    if truth is not None:
-        with open(os.path.join(args.dir, "truth.json"), "w", encoding="utf-8") as f:
-            json.dump({"setup": args.setup, "x": pose_json(truth[0]), "z": pose_json(truth[1])},
-                      f, indent=1)
 
 
 def _move(arm, target, speed: float) -> None:

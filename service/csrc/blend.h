@@ -3,7 +3,7 @@
  * Blending"): ScLERP, DLB, DIB and the paper's baselines Lin, Dec and Log.
  *
  * Every function here takes unit dual quaternions (see dq_unit) and weights that are
- * non-negative and sum to 1 (see dq_weights); the callers (module.c, wire.c) validate first.
+ * non-negative and sum to 1 (see dq_weights); the callers (py_dq.c, wire.c) validate first.
  * Conventions are those of dq.h.
  */
 #ifndef DQPOSE_BLEND_H

@@ -11,8 +11,9 @@
  * Gauss-Newton steps X <- X Exp(d), halving a step that raises the cost, until a step is shorter
  * than tol (that step is not taken: X is the optimum to within tol, and the information the step
  * was solved with is the one at X). The covariance is the inverse of the information
- * sum_i Jl^-T S_i^-1 Jl^-1 at the optimum (GTSAM's marginal). Every measurement, inlier or not, gets its residual, Mahalanobis
- * distance and leave-one-out NIS at the optimum (see dq_fuse).
+ * sum_i Jl^-T S_i^-1 Jl^-1 at the optimum (GTSAM's marginal). Every measurement, inlier or not,
+ * gets its residual, Mahalanobis distance and leave-one-out NIS at the optimum (see dq_fuse).
+ * The constant-twist fit of a moving body is motion.h's.
  *
  * Nothing here allocates or touches Python; the caller validates the poses (unit) and passes
  * symmetric covariances.
@@ -97,88 +98,6 @@ int dq_fuse(const double *z, const double *cov, const unsigned char *inlier, siz
             size_t *bad);
 
 /*
- * Time alignment with the constant-twist model (service/fusion.py's module docstring): the
- * prediction of measurement i is P_i = X Exp(dt_i V), dt_i = stamp_i - latency_i (stamps relative
- * to the fusion time), its residual r_i = Log(P_i^-1 Z_i). For X Exp(d), V + e and the estimated
- * latencies ell + l the prediction moves by Exp(eta) on the right,
- * eta = Ad(Exp(-dt V)) d + dt Jr(dt V) e - V l, and r_i by -Jl^-1(r_i) eta =: -G_i [d e l]. The
- * measurements are independent (block-diagonal covariances S_i); the state is the pose (6), the
- * twist (6, when estimated) and k latencies: dim = 6 [+ 6] + k, in that order.
- */
-typedef struct {
-    const double *stamp;     /* n: a measurement's stamp minus the fusion time */
-    const double *latency;   /* n: its configured latency (used where slot < 0) */
-    const long long *slot;   /* n: its estimated latency's index, or -1 */
-    size_t k;                /* estimated latencies */
-    const double *prior;     /* k: their prior means */
-    const double *prior_w;   /* k: their prior information (1 / sigma^2) */
-    int twist;               /* the twist is estimated (else it is zero) */
-    const double *twist_w;   /* 36: the twist's zero-mean prior information, or NULL (none) */
-} dq_motion_model;
-
-typedef struct {
-    double mean[8];   /* the pose X at the fusion time */
-    double twist[6];  /* V (zeros when not estimated) */
-    double *ell;      /* k: the estimated latencies (caller's memory) */
-    double *H;        /* dim x dim: the inliers' information at X with the priors' (caller's) */
-    double chi2;      /* the inliers' cost and the priors' */
-    int status;       /* a dq_fuse_status */
-    int iterations;
-} dq_motion_fitted;
-
-/* Per-measurement outputs at the estimate, for every measurement; any may be NULL. */
-typedef struct {
-    double *dt;         /* n */
-    double *residuals;  /* n x 6 */
-    double *cost;       /* n: r_i^T S_i^-1 r_i */
-    double *G;          /* n x 6 x dim */
-    double *nis;        /* n: leave-one-out NIS where tested, else 0 (needs tested) */
-} dq_motion_outputs;
-
-/* The model's state dimension, and the doubles of workspace dq_motion_fit needs. */
-size_t dq_motion_dim(const dq_motion_model *m);
-size_t dq_motion_workspace(size_t n, const dq_motion_model *m);
-
-/*
- * Gauss-Newton over pose, twist and latencies for the measurements inlier selects (NULL: all)
- * from X = start, V = 0, ell = the priors: the step solved from the whitened normal equations
- * with the priors' information (twist_w on the twist, prior_w on the latencies), halved while it
- * raises the cost by more than 1e-12 (relative), at most 30 times; taken, and the loop ended
- * when it is shorter than tol. Then everything at the estimate: the information H (inliers and
- * priors), and per measurement its dt, residual, cost, G_i and, where tested[i], its
- * leave-one-out NIS: an inlier's nu^T (S + K)^-1 nu with K = G Hj^-1 G^T, Hj the information of
- * the priors and the other inliers (summed, not subtracted), nu = r + K S^-1 r; any other
- * measurement's r^T (S + G H^-1 G^T)^-1 r. The caller validates the poses (unit) and the
- * model (finite; twist_w symmetric positive definite).
- *
- * Returns DQ_OK; DQ_E_NOT_SPD with *bad the measurement; DQ_E_NO_INLIERS; DQ_E_SINGULAR (the
- * normal equations, or a tested measurement's Hj, are not positive definite); DQ_E_OVERFLOW.
- */
-int dq_motion_fit(const double *z, const double *cov, const unsigned char *inlier, size_t n,
-                  const dq_motion_model *m, const double *start, const unsigned char *tested,
-                  const dq_fuse_params *p, double *work, dq_motion_fitted *out,
-                  const dq_motion_outputs *per, size_t *bad);
-
-/* The inlier taken nearest the fusion time, the estimated latencies at their priors (the
- * first of equals; n when inlier selects none): where the fit of a moving body starts. */
-size_t dq_motion_nearest(const dq_motion_model *m, const unsigned char *inlier, size_t n);
-
-/* det[i] = do the inliers other than measurement i determine the state? With no twist to find,
- * or a twist with a prior, any other inlier does; a twist without a prior needs inliers taken
- * (stamp minus configured latency) at two instants. The latencies always have their priors.
- * work: n entries. */
-typedef struct {
-    double t;
-    size_t i;
-} dq_taken;
-void dq_motion_determined(const dq_motion_model *m, const unsigned char *inlier, size_t n,
-                          dq_taken *work, unsigned char *det);
-
-/* P = H^-1 for a symmetric positive definite dim x dim H (its lower triangle read), from its
- * Cholesky factor, exactly symmetric; 0 when H is not positive definite. work: dim^2 + 2 dim. */
-int dq_spd_inverse(const double *H, int dim, double *work, double *P);
-
-/*
  * The squared Mahalanobis distances of the robust mode's consensus (service/fusion.py): between
  * candidate c = cand[a] and every measurement j, d2[a n + j] = r^T (S_c + S_j)^-1 r with
  * r = Log(Z_c^-1 Z_j) (first order: both errors in the body frame). O(m n) time, no memory of
@@ -186,5 +105,14 @@ int dq_spd_inverse(const double *H, int dim, double *work, double *P);
  */
 int dq_pair_distances(const double *z, const double *cov, size_t n, const long long *cand,
                       size_t m, double *d2, size_t *bad);
+
+/* The step rule dq_fuse and dq_motion_fit (motion.h) share: a Gauss-Newton step that raises the
+ * cost by more than DQ_FUSE_COST_SLACK (relative) is halved, at most DQ_FUSE_MAX_HALVINGS times
+ * (service/fusion.py's reference uses the same values). */
+#define DQ_FUSE_COST_SLACK 1e-12
+#define DQ_FUSE_MAX_HALVINGS 30
+
+/* Whether the inlier mask (NULL: all) selects measurement i. */
+static inline int dq_selected(const unsigned char *inlier, size_t i) { return !inlier || inlier[i]; }
 
 #endif

@@ -12,7 +12,7 @@
  * blending"): the position is c_k(s_k) + c_{k+1}(s_{k+1}) - corner and the rotation the progress
  * of segment k+1 applied to that of segment k, so the velocity is the convex combination
  * (1 - g) V_k + g V_{k+1} and its derivatives are g', g'' times known differences plus terms
- * that the planner bounds (trajectory.c). Every limit is checked on these bounds, never on
+ * that the planner bounds (traj_law.c). Every limit is checked on these bounds, never on
  * samples. A corner's rates are lowered (only there: the cruise keeps its speed) until its blend
  * fits the radius; at rate 0 the corner is a stop. A LINEAR segment at rest at both ends (a
  * stop, not the first segment when it starts moving) is split: the tool point follows s(t) and
@@ -87,8 +87,11 @@ int dq_traj_plan(const double *wp, size_t K, int mode, const double *radius, con
                  const dq_traj_limits *lim, double sigma0, dq_traj_seg *seg, double *duration,
                  size_t *bad);
 
+/* A planned segment's duration (its law's end; a blend into the next overlaps the last phase). */
+static inline double dq_traj_seg_duration(const dq_traj_seg *g) { return g->law.t_at[5]; }
+
 /* Pose (n x 8), tool-point velocity and angular velocity (n x 3, base frame) at times t, in
- * any order; sorted times are evaluated in runs side by side (trajectory.c), several times
+ * any order; sorted times are evaluated in runs side by side (traj_eval.c), several times
  * faster. */
 void dq_traj_eval(const dq_traj_seg *seg, size_t nseg, int mode, double duration,
                   const double *t, size_t n, double *pose, double *lin, double *ang);

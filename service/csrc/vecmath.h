@@ -1,7 +1,7 @@
 /*
  * vecmath.h — what the core's vectorised batch loops share (blend.c: ScLERP pairs and the DIB
- * log-sum; trajectory.c: dense evaluation): branch-free elementary functions, and the AVX2 /
- * baseline clones.
+ * log-sum; traj_eval.c: dense evaluation): branch-free elementary functions, 3-vector helpers,
+ * and the AVX2 / baseline clones.
  */
 #ifndef DQPOSE_VECMATH_H
 #define DQPOSE_VECMATH_H
@@ -85,6 +85,31 @@ static inline void sincos_v(double x, double *s_out, double *c_out)
     double so = fabs(qd) == 1.0 ? c : s, co = fabs(qd) == 1.0 ? s : c;
     *s_out = fabs(qd - 0.5) > 1.0 ? -so : so; /* negated in quadrants 2 and 3 (-1) */
     *c_out = fabs(qd + 0.5) > 1.0 ? -co : co; /* negated in quadrants 1 and 2 */
+}
+
+/* ---- 3-vectors and selects ------------------------------------------------------------------ */
+
+/* fmin/fmax are library calls under -std=c99; nothing here is NaN (the input is checked). */
+static inline double lo2(double a, double b) { return a < b ? a : b; }
+static inline double hi2(double a, double b) { return a > b ? a : b; }
+
+static inline double norm3(const double *v) { return sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]); }
+
+DQ_INLINE void cross3(const double *a, const double *b, double *c)
+{
+    c[0] = a[1] * b[2] - a[2] * b[1];
+    c[1] = a[2] * b[0] - a[0] * b[2];
+    c[2] = a[0] * b[1] - a[1] * b[0];
+}
+
+/* R(q) v for a unit quaternion q = (w, u): v + 2w (u x v) + 2 u x (u x v) */
+DQ_INLINE void rotate(const double *q, const double *v, double *out)
+{
+    double t[3], tt[3];
+    cross3(q + 1, v, t);
+    for (int i = 0; i < 3; i++) t[i] *= 2.0;
+    cross3(q + 1, t, tt);
+    for (int i = 0; i < 3; i++) out[i] = v[i] + q[0] * t[i] + tt[i];
 }
 
 #endif

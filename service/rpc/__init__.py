@@ -1,8 +1,12 @@
 """The gRPC layer: the only package that imports grpc or the generated stubs (``_proto``).
 
 ``server`` (the server: config, auth, TLS, health, reflection, metrics, lifecycle), ``calls`` (what
-every servicer shares: status mapping, call log, metrics), one module per service (``blending``),
-``convert`` (messages <-> arrays, errors named by field path) and ``client`` (the NumPy client).
+every servicer shares: status mapping, call log, metrics), ``checks`` (request counts, errors named
+by field path), one module per service (``blending``, ``fusion``, ``trajectories`` with ``arms``,
+``handeye``) with its messages <-> arrays beside it (``<service>_convert``), ``geometry`` (the
+shared Pose, StampedPose, covariance and Interpolation messages), ``wire`` (wire bytes built and
+read without message objects, the C fast paths) and ``client`` (the NumPy client). ``convert``
+re-exports the conversions under their former address.
 """
 
 # The server's default limits, which the client must know to split what it sends under them.

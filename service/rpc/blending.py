@@ -14,16 +14,20 @@ from dqpose import dq, limits
 from dqpose.errors import FieldError, rename
 from dqpose.interpolate import interpolate
 from dqpose.rpc import BATCH_POSE_FACTOR, DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
+from dqpose.rpc.blending_convert import METHOD_NAMES
 from dqpose.rpc.calls import INTERNAL_DETAILS, Calls, fit, log, readable, refusal
-from dqpose.rpc.convert import (INTERPOLATION_NAMES, METHOD_NAMES, arrays_to_stamped,
-                                 blend_batch_wire, blend_wire, decode_blend_request, dq_to_pose,
-                                 field_named, flat_to_dqs, poses_to_flat, stamped_to_arrays)
+from dqpose.rpc.checks import check_count, field_named
+from dqpose.rpc.geometry import (arrays_to_stamped, dq_to_pose, flat_to_dqs, interpolation_named,
+                                 poses_to_flat, stamped_to_arrays)
+from dqpose.rpc.wire import blend_batch_wire, blend_wire, decode_blend_request
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
 
 DEFAULT_TOLERANCE = 1e-12
 DEFAULT_MAX_ITERATIONS = 100
 STREAM_READ_AHEAD = 64         # requests a BlendStream reads ahead of its replies
+#: Interpolate's mode for INTERPOLATION_UNSPECIFIED (blending.proto says so)
+INTERPOLATE_INTERPOLATION = "screw"
 
 
 class Blending(pb_grpc.BlendingServicer):
@@ -42,12 +46,6 @@ class Blending(pb_grpc.BlendingServicer):
         self.limits = cfg.limits if cfg is not None else limits.DEFAULT
 
     # -- request -> response, no transport
-
-    def _check_count(self, field: str, n: int, what: str) -> None:
-        if n == 0:
-            raise FieldError(f"{field}: empty request: no {what}")
-        if n > self.max_poses:
-            raise FieldError(f"{field}: {n} {what} exceed the server limit of {self.max_poses}")
 
     def blend(self, request: pb.BlendRequest) -> pb.BlendResponse:
         return self._blend(poses_to_flat(request.poses), request.weights, request.method,
@@ -76,7 +74,7 @@ class Blending(pb_grpc.BlendingServicer):
 
     def _blend(self, flat, weights, method_code: int, tolerance: float,
                max_iterations: int) -> pb.BlendResponse:
-        self._check_count("poses", len(flat), "poses")
+        check_count("poses", len(flat), self.max_poses, "poses", empty=True)
         dqs = flat_to_dqs(flat, "poses")
         weights = np.asarray(weights, dtype=np.float64) if len(weights) else None
         method = METHOD_NAMES.get(method_code)
@@ -125,7 +123,7 @@ class Blending(pb_grpc.BlendingServicer):
 
     def blend_batch(self, request: pb.BlendBatchRequest) -> pb.BlendBatchResponse:
         requests = request.requests
-        self._check_count("requests", len(requests), "requests")
+        check_count("requests", len(requests), self.max_poses, "requests", empty=True)
         total = sum(len(r.poses) for r in requests)
         if total > BATCH_POSE_FACTOR * self.max_poses:
             raise FieldError(f"requests: {total} poses in all exceed the server limit of "
@@ -140,13 +138,11 @@ class Blending(pb_grpc.BlendingServicer):
 
     def interpolate_request(self, request: pb.InterpolateRequest) -> pb.InterpolateResponse:
         k, n = len(request.keyframes), len(request.times)
-        self._check_count("keyframes", k, "keyframes")
+        check_count("keyframes", k, self.max_poses, "keyframes", empty=True)
         if k < 2:
             raise FieldError(f"keyframes: need at least 2 keyframes, got {k}")
-        self._check_count("times", n, "times")
-        mode = INTERPOLATION_NAMES.get(request.interpolation)
-        if mode is None:
-            raise FieldError(f"interpolation: unknown Interpolation value {request.interpolation}")
+        check_count("times", n, self.max_poses, "times", empty=True)
+        mode = interpolation_named(request.interpolation, INTERPOLATE_INTERPOLATION)
         times_k, dqs_k = stamped_to_arrays(request.keyframes, "keyframes")
         times = np.array(request.times, dtype=np.float64)
         try:

@@ -12,7 +12,7 @@ message alone (it names the proto field, e.g. ``poses[3].orientation: zero quate
 the ``ValueError`` of the same input computed locally.
 
 Requests are written as protobuf wire bytes straight from the arrays and sent through the channel
-as bytes; BlendBatch answers are read back the same way (:mod:`dqpose.rpc.convert`), so no
+as bytes; BlendBatch answers are read back the same way (:mod:`dqpose.rpc.wire`), so no
 message object is made per pose. ``blend_batch`` and ``interpolate`` split what is larger than
 the server takes in one message (``max_message_bytes``, ``max_poses``: the server's
 ``--max-message-bytes`` and ``--max-poses``) into several calls, two in flight at a time.
@@ -28,15 +28,19 @@ import numpy as np
 
 from dqpose import dq, fusion, handeye, trajectory
 from dqpose.rpc import BATCH_POSE_FACTOR, DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
-from dqpose.rpc.convert import (DEFAULT_MAX_EXTRAPOLATION, DEFAULT_PROBABILITY,
-                                 DEFAULT_WINDOW, INTERPOLATION_ENUMS, METHOD_ENUMS,
-                                 blend_batch_items_wire, blend_request_wire,
-                                 blend_responses_from_wire, calibrate_msg, calibration_from_msg,
-                                 fused_from_msg, interpolate_request_wire, measurement_msgs,
-                                 measurements_wire, options_msg,
-                                 limits_msg, plan_msg, pose_arrays, poses_to_arrays,
-                                 poses_to_flat, samples_from_msgs, stamped_msgs,
-                                 stamped_poses_wire)
+from dqpose.rpc.blending_convert import METHOD_ENUMS
+from dqpose.rpc.checks import over_count
+from dqpose.rpc.fusion_convert import (DEFAULT_MAX_EXTRAPOLATION, DEFAULT_PROBABILITY,
+                                       DEFAULT_WINDOW, fused_from_msg, measurement_msgs,
+                                       options_msg)
+from dqpose.rpc.geometry import (INTERPOLATION_ENUMS, pose_arrays, pose_to_dq, poses_to_arrays,
+                                 poses_to_flat, stamped_msgs)
+from dqpose.rpc.handeye_convert import calibrate_msg, calibration_from_msg
+from dqpose.rpc.trajectories_convert import (PLAN_INTERPOLATION, limits_msg, plan_msg,
+                                             samples_from_msgs)
+from dqpose.rpc.wire import (blend_batch_items_wire, blend_request_wire,
+                             blend_responses_from_wire, interpolate_request_wire,
+                             measurements_wire, stamped_poses_wire)
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from dqpose.rpc._proto.dqpose.v1 import handeye_pb2 as hpb
@@ -55,12 +59,6 @@ _SAMPLE_ANSWER_MAX = 2 + 9 + 69
 _IN_FLIGHT = 2          # calls of one split request outstanding: the next is sent while one is read
 
 
-class Segment(NamedTuple):
-    start: float
-    duration: float
-    binding: str        # the Limits field that decides the segment's speed, or "time"
-
-
 class Planned(NamedTuple):
     """What :meth:`Client.plan` returns: the samples and the plan's duration and segments."""
     time: np.ndarray              # (N,)
@@ -68,7 +66,7 @@ class Planned(NamedTuple):
     linear_velocity: np.ndarray   # (N, 3) tool point, base frame, m/s
     angular_velocity: np.ndarray  # (N, 3) tool, base frame, rad/s
     duration: float
-    segments: tuple
+    segments: tuple[trajectory.Segment, ...]
 
 
 class Feedback(NamedTuple):
@@ -108,9 +106,7 @@ def _arm_state(m) -> ArmState:
 def _pose_or_none(msg, field: str) -> Optional[np.ndarray]:
     if not msg.HasField(field):
         return None
-    p = getattr(msg, field)
-    return dq.from_pose([p.orientation.w, p.orientation.x, p.orientation.y, p.orientation.z],
-                        [p.position.x, p.position.y, p.position.z])
+    return pose_to_dq(getattr(msg, field))
 
 
 class RpcError(Exception):
@@ -196,8 +192,7 @@ def _flat_to_dqs(flat: np.ndarray) -> np.ndarray:
 
 def _blend_answer(data: bytes) -> tuple[np.ndarray, int, float]:
     r = pb.BlendResponse.FromString(data)
-    p, o = r.pose.position, r.pose.orientation
-    return dq.from_pose((o.w, o.x, o.y, o.z), (p.x, p.y, p.z)), r.iterations, r.residual
+    return pose_to_dq(r.pose), r.iterations, r.residual
 
 
 def _blend_batch_answer(data: bytes) -> np.ndarray:
@@ -263,7 +258,7 @@ class Client:
             self.channel = grpc.secure_channel(target, creds, options=opts)
         else:
             self.channel = grpc.insecure_channel(target, options=opts)
-        # No (de)serializers: requests go out as the bytes convert.py writes, answers come back
+        # No (de)serializers: requests go out as the bytes wire.py writes, answers come back
         # as bytes for the readers above.
         self._blend = self.channel.unary_unary(f"/{SERVICE}/Blend")
         self._blend_batch = self.channel.unary_unary(f"/{SERVICE}/BlendBatch")
@@ -340,10 +335,10 @@ class Client:
         return t, a
 
     def _check_count(self, field: str, n: int, what: str) -> None:
-        if n > self.max_poses:
-            raise RequestTooLarge(f"{field}: {n} {what} exceed the server limit of "
-                                  f"{self.max_poses} per request (Client max_poses, the "
-                                  f"server's --max-poses)")
+        """The server's count check (:func:`~dqpose.rpc.checks.over_count`) before sending."""
+        text = over_count(field, n, self.max_poses, what)
+        if text is not None:
+            raise RequestTooLarge(f"{text} (Client max_poses, the server's --max-poses)")
 
     def blend(self, dqs, weights=None, method: str = "dib", tolerance: float = 0.0,
               max_iterations: int = 0, *, return_info: bool = False):
@@ -502,7 +497,7 @@ class Client:
         if refused:
             raise refused[0]
 
-    def plan(self, waypoints, limits, rate_hz: float, interpolation: str = "tool_linear", *,
+    def plan(self, waypoints, limits, rate_hz: float, interpolation: str = PLAN_INTERPOLATION, *,
              start_velocity=None) -> Planned:
         """:func:`dqpose.trajectory.plan` on the server, sampled at ``rate_hz``: the samples
         (first at 0 on the first waypoint, last on the last one) with the plan's duration and
@@ -514,7 +509,8 @@ class Client:
         except grpc.RpcError as e:
             raise _rpc_error(e) from None
         info = msgs[0].plan
-        segments = tuple(Segment(s.start, s.duration, s.binding) for s in info.segments)
+        segments = tuple(trajectory.Segment(s.start, s.duration, s.binding)
+                         for s in info.segments)
         return Planned(*samples_from_msgs(msgs), duration=info.duration, segments=segments)
 
     def smooth(self, times, poses, limits, smoothing: float = 1.0,
@@ -530,7 +526,7 @@ class Client:
         out = dq.from_pose(q, t) if len(answer.samples) else np.zeros((0, 8))
         return np.array([p.time for p in answer.samples], dtype=np.float64), out
 
-    def execute(self, arm: str, waypoints, limits, interpolation: str = "tool_linear", *,
+    def execute(self, arm: str, waypoints, limits, interpolation: str = PLAN_INTERPOLATION, *,
                 from_current: bool = False) -> Iterator[Feedback]:
         """Runs a plan on the server's arm ``arm`` (see ``dqpose serve --arm``), yielding
         :class:`Feedback` as the server streams it: the arm's state, commanded and actual poses.
@@ -569,7 +565,7 @@ class Client:
             self._list_arms, tpb.ListArmsRequest().SerializeToString()))
         return [_arm_state(m) for m in answer.arms]
 
-    def calibrate(self, base_flange, camera_target, setup: str = "eye_in_hand", *,
+    def calibrate(self, base_flange, camera_target, setup: str = handeye.EYE_IN_HAND, *,
                   robust: bool = True, camera_covariance=None, robot_covariance=None,
                   corners=None, refine_focal: bool = False,
                   pixel_sigma: Optional[float] = None) -> handeye.Calibration:

@@ -6,62 +6,24 @@ from __future__ import annotations
 
 import itertools
 import math
-import re
 import zlib
 
 import grpc
 import numpy as np
+from google.protobuf.message import DecodeError
 
 from dqpose import fusion, limits
 from dqpose.errors import FieldError, rename
 from dqpose.rpc import DEFAULT_MAX_POSES
 from dqpose.rpc.calls import INTERNAL_DETAILS, Calls, log, readable, refusal
-from google.protobuf.message import DecodeError
-
-from dqpose.rpc.convert import (DEFAULT_WINDOW, Measurements, Options, field_named,
-                                 fuse_stream_from_wire, fused_to_msg, measurements_to_arrays,
-                                 options_from_msg, wire_measurement_error)
+from dqpose.rpc.checks import over_count
+from dqpose.rpc.fusion_convert import (DEFAULT_WINDOW, Measurements, Options, fused_pose,
+                                       fused_to_msg, measurements_to_arrays, options_error,
+                                       options_from_msg, unknown_sources,
+                                       wire_measurement_error)
+from dqpose.rpc.wire import fuse_stream_from_wire
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2_grpc as pb_grpc
-
-# The domain's per-measurement arguments, as fields of a Measurement.
-_MEASUREMENT_FIELDS = {"poses": "pose", "covariances": "covariance", "times": "time"}
-_OPTION_FIELDS = ("probability", "time", "max_skew", "max_extrapolation", "window",
-                  "twist_covariance", "acceleration_psd")
-_INDEXED = re.compile(r"^(\w+)\[(\d+)\]")
-
-
-def _options_error(e: ValueError, field: str) -> FieldError:
-    return rename(e, {"sources": f"{field}.sources{{}}",
-                      **{name: f"{field}.{name}" for name in _OPTION_FIELDS}})
-
-
-def _domain_error(e: ValueError, index: np.ndarray, field: str, options: str) -> FieldError:
-    """The domain's ``ValueError`` about row ``k`` of the arrays it was given, naming the
-    message's measurement ``index[k]``; one about all of them (the fit's information), naming
-    ``field``; one about the options, naming the option."""
-    hit = _INDEXED.match(str(e))
-    if hit is not None and hit[1] in _MEASUREMENT_FIELDS:
-        k = int(hit[2])
-        return rename(e, {hit[1]: f"{field}[{int(index[k])}].{_MEASUREMENT_FIELDS[hit[1]]}"})
-    text = str(e)
-    if text.startswith("covariances: "):     # the fit of them all, not one covariance
-        return FieldError(f"{field}: {text[len('covariances: '):]} (the measurements' "
-                          f"covariances and times, with the options' priors, leave the pose, "
-                          f"twist or latencies undetermined)")
-    return _options_error(e, options)
-
-
-def unknown_sources(m: Measurements, options: Options, field: str) -> list:
-    """Rows of ``m`` whose source the options do not list (when they list any), each with the
-    error naming it: a misspelt name would otherwise silently lose its frames."""
-    if not options.sources:
-        return []
-    known = {s.name for s in options.sources}
-    listed = ", ".join(s.name for s in options.sources)
-    return [(k, FieldError(f"{field}[{int(m.index[k])}].source: {m.sources[k]!r} is not among "
-                           f"options.sources ({listed})"))
-            for k in range(len(m.index)) if m.sources[k] not in known]
 
 
 def tick_phase(body: str) -> float:
@@ -102,7 +64,7 @@ class Stream:
             self.tracker = fusion.Tracker(options.window or DEFAULT_WINDOW,
                                           **options.fuse_kwargs(), limits=bounds)
         except ValueError as e:
-            raise _options_error(e, field) from None
+            raise options_error(e, field) from None
         self.next_tick: dict[str, int] = {}
         # per body: the time of its next tick, and its phase
         self.next_time: dict[str, float] = {}
@@ -244,7 +206,7 @@ class Stream:
             at = f"{t!r} s" if t is not None else "its newest measurement"
             where = field.rsplit(".", 1)[0]
             return body, FieldError(f"{where}: body {body!r} at {at}: "
-                                    f"{_options_error(e, 'options')}"), ids
+                                    f"{options_error(e, 'options')}"), ids
 
 
 def _error_entry(r: int, measurement: int, details: str, body: str = "") -> pb.FusedPose:
@@ -256,7 +218,7 @@ def _error_entry(r: int, measurement: int, details: str, body: str = "") -> pb.F
 
 class Fusion(pb_grpc.FusionServicer):
     """The ``dqpose.v1.Fusion`` service. ``fuse`` is a plain function of a request (no gRPC
-    context): ``dqpose fuse --local`` answers with it."""
+    context): :func:`~dqpose.rpc.fusion_convert.fused_pose` within the server's limits."""
 
     NAME = pb.DESCRIPTOR.services_by_name["Fusion"].full_name
 
@@ -266,39 +228,10 @@ class Fusion(pb_grpc.FusionServicer):
         self.limits = cfg.limits if cfg is not None else limits.DEFAULT
         self.calls = calls or Calls()
 
-    def _check_count(self, field: str, n: int) -> None:
-        if n == 0:
-            raise FieldError(f"{field}: empty request: no measurements")
-        if n > self.max_poses:
-            raise FieldError(f"{field}: {n} measurements exceed the server limit of "
-                             f"{self.max_poses}")
-
     # -- request -> response, no transport
 
     def fuse(self, request: pb.FuseRequest) -> pb.FusedPose:
-        n = len(request.measurements)
-        self._check_count("measurements", n)
-        options = options_from_msg(request.options)
-        self._check_fit_size("measurements", n, options)
-        m = measurements_to_arrays(request.measurements)
-        for k, body in enumerate(m.bodies):
-            if body != m.bodies[0]:
-                raise FieldError(f"measurements[{k}].body: {body!r} differs from "
-                                 f"measurements[0].body {m.bodies[0]!r} (Fuse fuses one body; "
-                                 f"StreamFuse takes many)")
-        if options.window:
-            raise FieldError("options.window: Fuse keeps no window (StreamFuse does); leave it 0")
-        self._check_times(m.times, m.index, "measurements", options)
-        unknown = unknown_sources(m, options, "measurements")
-        if unknown:
-            raise unknown[0][1]
-        try:
-            fused = fusion.fuse(m.poses, m.covariances, names=m.sources, times=m.times,
-                                time=options.time or None, **options.fuse_kwargs())
-        except ValueError as e:
-            raise field_named(_domain_error(e, m.index, "measurements", "options"),
-                              ("measurements", "options"), "measurements") from None
-        return fused_to_msg(fused, m.bodies[0], fused.time)
+        return fused_pose(request, self.limits, self.max_poses)
 
     def fuse_bytes(self, data: bytes) -> bytes:
         """What Fuse serves: ``FusedPose`` bytes for ``FuseRequest`` bytes."""
@@ -311,31 +244,6 @@ class Fusion(pb_grpc.FusionServicer):
         if _dear(request.options):
             return self.calls.work(lambda: self.fuse(request).SerializeToString())
         return self.fuse(request).SerializeToString()
-
-    def _check_times(self, times: np.ndarray, index: np.ndarray, field: str,
-                     options: Options) -> None:
-        """Every time within ``+-max_time``: beyond it a time has no microseconds left, and the
-        fit's differences of times lose all meaning (1e308 made its information singular)."""
-        bound = self.limits.max_time
-        far = np.flatnonzero(np.abs(times) > bound)
-        if len(far):
-            k = int(far[0])
-            raise limits.over(f"{field}[{int(index[k])}].time", f"{float(times[k]):.6g} s is "
-                              f"beyond +-{bound:.6g} s", self.limits, "max_time")
-        if abs(options.time) > bound:
-            raise limits.over("options.time", f"{options.time:.6g} s is beyond +-{bound:.6g} s",
-                              self.limits, "max_time")
-
-    def _check_fit_size(self, field: str, n: int, options: Options) -> None:
-        """``n`` measurements in one fit with ``options``: within the robust and the correlated
-        fits' limits, or :class:`limits.OverLimit` naming the one passed."""
-        if options.robust and n > self.limits.max_robust:
-            raise limits.over(field, f"{n} measurements in one robust fit (options.robust)",
-                              self.limits, "max_robust")
-        if (options.acceleration_psd is not None and options.acceleration_psd.any()
-                and n > self.limits.max_correlated):
-            raise limits.over(field, f"{n} measurements in one fit with "
-                                     f"options.acceleration_psd", self.limits, "max_correlated")
 
     def stream_options(self, request: pb.FuseStreamRequest):
         """The first request's options as the stream's state; a ``FieldError`` ends the stream."""
@@ -366,11 +274,10 @@ class Fusion(pb_grpc.FusionServicer):
         if r and (request.HasField("options") or request.output_rate):
             out.append(_error_entry(r, -1, f"requests[{r}].options: only the first request "
                                            f"carries options and output_rate; these are ignored"))
-        n = len(request.measurements)
-        if n > self.max_poses:
-            out.append(_error_entry(r, -1, f"requests[{r}].measurements: {n} measurements "
-                                           f"exceed the server limit of {self.max_poses}; none "
-                                           f"was used"))
+        too_many = over_count(f"requests[{r}].measurements", len(request.measurements),
+                              self.max_poses, "measurements")
+        if too_many is not None:
+            out.append(_error_entry(r, -1, f"{too_many}; none was used"))
             return out
         errors: list = []
         field = f"requests[{r}].measurements"
@@ -387,7 +294,7 @@ class Fusion(pb_grpc.FusionServicer):
     def stream_answers_wire(self, state, data: bytes, r: int, first_id: int):
         """:meth:`stream_step` of request ``r``'s bytes: ``(answers, its number of
         measurements)``, the answers an iterator that fuses each as it is taken. A plain request (measurements only) is decoded and checked in C
-        (:func:`convert.fuse_stream_from_wire`) and its valid measurements go to the tracker
+        (:func:`dqpose.rpc.wire.fuse_stream_from_wire`) and its valid measurements go to the tracker
         unchecked; any other takes the protobuf path. Both give the same answers. Bytes that are
         not a FuseStreamRequest are an error entry for the request."""
         state.cost = 0

@@ -13,7 +13,8 @@ from google.protobuf.message import DecodeError
 from dqpose import handeye, limits
 from dqpose.errors import FieldError
 from dqpose.rpc.calls import Calls
-from dqpose.rpc.convert import calibrate_error, calibrate_from_msg, calibration_to_msg
+from dqpose.rpc.checks import check_count
+from dqpose.rpc.handeye_convert import calibrate_error, calibrate_from_msg, calibration_to_msg
 from dqpose.rpc._proto.dqpose.v1 import handeye_pb2 as pb
 
 
@@ -27,9 +28,7 @@ class HandEye:
 
     def calibrate(self, request: pb.CalibrateRequest) -> pb.CalibrateResponse:
         n = len(request.pairs)
-        if n > self.max_poses:
-            raise FieldError(f"pairs: {n} exceed the server limit of {self.max_poses} per "
-                             f"request")
+        check_count("pairs", n, self.max_poses)
         if n > self.limits.max_pairs:
             raise limits.over("pairs", f"{n} pairs", self.limits, "max_pairs")
         corners = sum(len(p.corners.image_points) for p in request.pairs) // 2

@@ -5,7 +5,6 @@ ListArms (:mod:`dqpose.rpc.arms`).
 from __future__ import annotations
 
 import asyncio
-import math
 
 import grpc
 import numpy as np
@@ -15,8 +14,10 @@ from dqpose import limits, smoothing, trajectory
 from dqpose.errors import FieldError, rename
 from dqpose.rpc.arms import Arms
 from dqpose.rpc.calls import Calls, refused
-from dqpose.rpc.convert import (arrays_to_stamped, field_named, limits_from_msg,
-                                 plan_from_msg, plan_info_msg, sample_msgs, stamped_to_arrays)
+from dqpose.rpc.checks import check_count, field_named
+from dqpose.rpc.geometry import arrays_to_stamped, stamped_to_arrays
+from dqpose.rpc.trajectories_convert import (limits_from_msg, plan_from_msg, plan_info_msg,
+                                             sample_msgs)
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
 
 #: the fields of a PlanRequest an error may start with
@@ -56,7 +57,7 @@ class Trajectories:
 
     def plan(self, request: pb.PlanRequest):
         """``(trajectory, rate)`` for a PlanRequest; FieldError / Infeasible naming the field."""
-        self._check_count("waypoints", len(request.waypoints))
+        check_count("waypoints", len(request.waypoints), self.max_poses)
         args = plan_from_msg(request)
         traj = _planned(args)
         n = traj.duration * args.rate_hz + 2
@@ -72,7 +73,7 @@ class Trajectories:
         return traj, args.rate_hz
 
     def smooth(self, request: pb.SmoothRequest) -> pb.SmoothResponse:
-        self._check_count("poses", len(request.poses))
+        check_count("poses", len(request.poses), self.max_poses)
         if not request.HasField("limits"):
             raise FieldError("limits: required (velocity and acceleration limits)")
         bounds = limits_from_msg(request.limits)
@@ -96,11 +97,6 @@ class Trajectories:
                                          "limits": "limits"}),
                               ("poses", "limits", "smoothing", "rate_hz"), "poses") from None
         return pb.SmoothResponse(samples=arrays_to_stamped(t, out))
-
-    def _check_count(self, field: str, n: int) -> None:
-        if n > self.max_poses:
-            raise FieldError(f"{field}: {n} exceed the server limit of {self.max_poses} per "
-                             f"request")
 
     def smooth_bytes(self, data: bytes) -> bytes:
         """What Smooth serves: ``SmoothResponse`` bytes for request bytes."""

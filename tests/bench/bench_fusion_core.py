@@ -65,8 +65,8 @@ def c_core(Z, S, samples: int):
     exe, data = BUILD / "fusion_harness", BUILD / "fusion_data"
     data.mkdir(exist_ok=True)
     subprocess.run([cc, *CFLAGS, f"-I{CSRC}", str(HERE / "fusion_harness.c"),
-                    *(str(CSRC / f) for f in ("fusion.c", "dq.c", "blend.c")), "-lm", "-o",
-                    str(exe)], check=True)
+                    *(str(CSRC / f) for f in ("fusion.c", "linalg6.c", "se3.c", "dq.c", "blend.c")),
+                    "-lm", "-o", str(exe)], check=True)
     Z.tofile(data / "poses.bin")
     S.tofile(data / "covariances.bin")
     out = subprocess.run([str(exe), str(data), str(len(Z)), str(N), str(samples)], check=True,

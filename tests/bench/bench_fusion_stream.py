@@ -169,7 +169,7 @@ def run(target: str, scene: Scene, seconds: float, msg_rate: float | None, args,
 def wire_messages(scene: Scene, messages: int) -> list[bytes]:
     """Messages ``0 .. messages - 1`` of the stream as the server receives them (request bytes,
     the options in none of them)."""
-    from dqpose.rpc.convert import measurements_wire
+    from dqpose.rpc.wire import measurements_wire
 
     return [measurements_wire(*b) for i in range(0, messages, 256)
             for b in scene.batches(i, min(256, messages - i))]
@@ -180,7 +180,7 @@ def in_process(scene: Scene, args, messages: int, warm: int = 500) -> None:
     process (``Fusion.stream_step_wire``, answers serialised), and nothing printed: under
     callgrind the instructions per message are ``(Ir(N) - Ir(0)) / N``, which the load of a
     shared machine does not move."""
-    from dqpose.rpc.convert import options_msg
+    from dqpose.rpc.fusion_convert import options_msg
     from dqpose.rpc.fusion import Fusion
     from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 
@@ -198,12 +198,13 @@ def per_message_cost(scene: Scene, args, messages: int = 6000) -> str:
     ``Fusion.stream_step_wire`` (what StreamFuse serves: the C decoder, then the tracker), and
     for comparison the protobuf path (bytes parsed, then ``Fusion.stream_step``); cProfile of
     the parts."""
-    from dqpose.rpc.convert import options_msg
+    from dqpose.rpc.fusion_convert import options_msg
     from dqpose.rpc.fusion import Fusion
     from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 
     data = wire_messages(scene, messages)
-    from dqpose.rpc.convert import fuse_stream_from_wire, measurements_to_arrays
+    from dqpose.rpc.fusion_convert import measurements_to_arrays
+    from dqpose.rpc.wire import fuse_stream_from_wire
 
     f = Fusion()
 

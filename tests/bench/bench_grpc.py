@@ -29,7 +29,8 @@ import grpc
 import numpy as np
 
 from dqpose import dq
-from dqpose.rpc.convert import decode_blend_request, pose_msgs, poses_to_dqs
+from dqpose.rpc.geometry import pose_msgs, poses_to_dqs
+from dqpose.rpc.wire import decode_blend_request
 from dqpose.rpc.blending import Blending
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
@@ -108,7 +109,7 @@ FUSE_EVERY = 20     # bench_fusion_stream's scene: 100 answers/s at 2,000 messag
 def fused_reply():
     """A FusedPose of the size bench_fusion_stream's answers have: 18 measurements with times."""
     from dqpose import dq, fusion, lie
-    from dqpose.rpc.convert import fused_to_msg
+    from dqpose.rpc.fusion_convert import fused_to_msg
 
     rng = np.random.default_rng(0)
     t = np.arange(18) * 0.005

@@ -181,8 +181,9 @@ def test_cancel_stops_within_one_period(rig, arm):
         assert rig.setpoints_after_stop() == 0
         assert rig.stop_arrived() - cancelled < arm.period + 0.002 * 5   # slack: a busy machine
     else:
-        # that one, then the stop's hold on the measured pose
-        assert len(after) <= 2
+        # as above, a set-point between the clock read and the loop's check, one already past
+        # it, then the stop's hold on the measured pose
+        assert len(after) <= 3
     assert all(t - cancelled < arm.period + 0.01 for t in after)
     assert pose_delta(arm.tool_pose()[1], poses[-1])[0] > 0.01  # stopped well short of the end
 

@@ -7,7 +7,8 @@ import numpy as np
 
 from dqpose.errors import FieldError, FieldInfeasible, Infeasible
 from dqpose.rpc.calls import readable
-from dqpose.rpc.convert import calibrate_error, field_named
+from dqpose.rpc.checks import field_named
+from dqpose.rpc.handeye_convert import calibrate_error
 
 
 def test_long_numbers_are_written_with_six_digits_names_and_indices_kept():

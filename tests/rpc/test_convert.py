@@ -1,4 +1,5 @@
-"""dqpose.rpc.convert: protobuf messages <-> arrays, and errors renamed to proto field paths."""
+"""The rpc layer's conversions (dqpose.rpc.geometry, wire, blending_convert): protobuf messages
+<-> arrays, wire bytes protobuf would write, and errors renamed to proto field paths."""
 from __future__ import annotations
 
 import numpy as np
@@ -6,16 +7,23 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dqpose import dq
-from dqpose.rpc.convert import (METHOD_ENUMS, METHOD_NAMES, FieldError, arrays_to_stamped,
-                                 blend_batch_items_wire, blend_request_wire,
-                                 blend_responses_from_wire, dq_to_pose, dqs_to_poses,
-                                 interpolate_request_wire, measurement_msgs,
-                                 measurements_wire, pose_msgs, poses_to_dqs,
-                                 stamped_poses_wire, stamped_to_arrays)
+from dqpose import dq, handeye, trajectory
+from dqpose.errors import FieldError
+from dqpose.rpc.blending import INTERPOLATE_INTERPOLATION
+from dqpose.rpc.blending_convert import METHOD_ENUMS, METHOD_NAMES
+from dqpose.rpc.checks import check_count, over_count
+from dqpose.rpc.fusion_convert import measurement_msgs
+from dqpose.rpc.geometry import (INTERPOLATION_ENUMS, arrays_to_stamped, dq_to_pose, dqs_to_poses,
+                                 interpolation_named, pose_msgs, poses_to_dqs, stamped_to_arrays)
+from dqpose.rpc.handeye_convert import SETUP_ENUMS, SETUP_NAMES
+from dqpose.rpc.trajectories_convert import PLAN_INTERPOLATION, plan_from_msg, plan_msg
+from dqpose.rpc.wire import (blend_batch_items_wire, blend_request_wire,
+                             blend_responses_from_wire, interpolate_request_wire,
+                             measurements_wire, stamped_poses_wire)
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
+from dqpose.rpc._proto.dqpose.v1 import handeye_pb2 as hpb
 
 
 def _pose(q, t) -> geo.Pose:
@@ -135,6 +143,40 @@ def test_the_method_table_is_the_proto_enum():
     assert proto == {f"METHOD_{name.upper()}": m.code for name, m in dq.METHODS.items()}
     assert METHOD_NAMES == {pb.METHOD_UNSPECIFIED: "dib", **{m.code: n for n, m in dq.METHODS.items()}}
     assert METHOD_ENUMS == {n: m.code for n, m in dq.METHODS.items()}
+
+
+def test_the_interpolation_and_setup_tables_are_the_domains_names_and_the_proto_enums():
+    # one vocabulary: the domain's names, each a value of the proto's enum, and every value
+    assert list(INTERPOLATION_ENUMS) == list(trajectory.INTERPOLATIONS)
+    assert set(INTERPOLATION_ENUMS.values()) == set(geo.Interpolation.values()) - {0}
+    assert list(SETUP_ENUMS) == list(handeye.SETUPS)
+    assert set(SETUP_NAMES) == set(hpb.Setup.values()) - {hpb.SETUP_UNSPECIFIED}
+    for name, code in INTERPOLATION_ENUMS.items():
+        assert geo.Interpolation.Name(code) == f"INTERPOLATION_{name.upper()}"
+        assert interpolation_named(code, "unused") == name
+    with pytest.raises(FieldError, match=r"^plan\.interpolation: unknown Interpolation value 9$"):
+        interpolation_named(9, "screw", "plan.interpolation")
+
+
+def test_each_rpc_has_its_own_default_for_unspecified_interpolation():
+    # the proto's comments: SCREW for Interpolate, TOOL_LINEAR for Plan (and Execute's plan)
+    assert interpolation_named(geo.INTERPOLATION_UNSPECIFIED, INTERPOLATE_INTERPOLATION) == "screw"
+    req = plan_msg([np.r_[1.0, np.zeros(7)], np.r_[1.0, np.zeros(6), 0.1]],
+                   trajectory.Limits(1.0, 1.0, 1.0, 1.0), 100.0)
+    req.interpolation = geo.INTERPOLATION_UNSPECIFIED
+    assert plan_from_msg(req).interpolation == PLAN_INTERPOLATION == "tool_linear"
+
+
+def test_a_count_over_the_limit_reads_the_same_wherever_it_is_refused():
+    assert over_count("poses", 10, 10, "poses") is None
+    assert over_count("poses", 11, 10, "poses") == \
+        "poses: 11 poses exceed the server limit of 10 per request"
+    assert over_count("pairs", 41, 40) == "pairs: 41 exceed the server limit of 40 per request"
+    with pytest.raises(FieldError, match=r"^times: empty request: no times$"):
+        check_count("times", 0, 10, "times", empty=True)
+    check_count("times", 0, 10, "times")
+    with pytest.raises(FieldError, match=r"^times: 11 times exceed the server limit of 10 per"):
+        check_count("times", 11, 10, "times")
 
 
 def _rows(data, n, width):

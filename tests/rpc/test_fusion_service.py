@@ -10,7 +10,7 @@ import pytest
 
 from dqpose import dq, fusion, lie
 from dqpose.fusion import Source, Status, Verdict
-from dqpose.rpc import convert
+from dqpose.rpc import fusion_convert, geometry
 from dqpose.rpc.client import Batch, Client, InvalidArgument
 from dqpose.rpc.fusion import Fusion, tick_phase
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
@@ -50,7 +50,7 @@ def scene(seed, n=6, outliers=0):
 def wire(Z):
     """The poses as the server receives them: a Pose (quaternion, translation) per measurement,
     as the client writes it."""
-    return dq.from_pose(*convert.pose_arrays(np.asarray(Z)))
+    return dq.from_pose(*geometry.pose_arrays(np.asarray(Z)))
 
 
 def local(Z, *args, **kw):
@@ -100,7 +100,7 @@ def test_fuse_weights_and_the_isotropic_default(client):
 
 def test_fuse_message_fields(client):
     _, Z, S = scene(3, n=3)
-    ms = convert.measurement_msgs(Z, S, names=["a", "b", "a"], bodies=["box"] * 3,
+    ms = fusion_convert.measurement_msgs(Z, S, names=["a", "b", "a"], bodies=["box"] * 3,
                                   times=[2.5, 2.5, 2.5])
     r = client.fuse_request(pb.FuseRequest(measurements=ms))
     # one instant: the static fusion, no twist
@@ -137,7 +137,7 @@ def test_one_instant_is_the_static_fusion_exactly(client):
 
 
 def _request(Z, S, **kw):
-    return pb.FuseRequest(measurements=convert.measurement_msgs(Z, S, **kw))
+    return pb.FuseRequest(measurements=fusion_convert.measurement_msgs(Z, S, **kw))
 
 
 @pytest.mark.parametrize("edit, message", [
@@ -191,7 +191,7 @@ def _request(Z, S, **kw):
 def test_fuse_bad_input_is_invalid_argument_naming_it(client, edit, message):
     _, Z, S = scene(4)
     r = _request(Z, S, names=NAMES, bodies=["box"] * 6)
-    r.options.sources.add(name="cam1", extrinsic=convert.dq_to_pose(Z[0]))
+    r.options.sources.add(name="cam1", extrinsic=geometry.dq_to_pose(Z[0]))
     r.options.sources.add(name="cam2")
     if "arm" not in message:
         r.options.sources.add(name="arm")
@@ -306,8 +306,8 @@ def test_fuse_max_skew_drops_with_a_reason(client):
     np.testing.assert_allclose(got.mean * np.sign(got.mean[0] * want.mean[0]), want.mean,
                                rtol=0, atol=1e-12)
     msg = client.fuse_request(pb.FuseRequest(
-        measurements=convert.measurement_msgs(Z, S, names=names, times=stamps),
-        options=convert.options_msg(sources=SOURCES, max_skew=0.1)))
+        measurements=fusion_convert.measurement_msgs(Z, S, names=names, times=stamps),
+        options=fusion_convert.options_msg(sources=SOURCES, max_skew=0.1)))
     assert [d.index for d in msg.dropped] == old.tolist()
     assert msg.dropped[0].reason == want.dropped[0].reason
     assert msg.dropped[0].source == names[old[0]]
@@ -434,10 +434,10 @@ def test_stream_tick_that_cannot_be_fused_is_an_error_entry(client):
 def test_stream_unknown_source_and_late_options_are_error_entries(server):
     _, Z, S = scene(13, n=3)
     first = pb.FuseStreamRequest(options=pb.FusionOptions(sources=[pb.Source(name="cam")]))
-    first.measurements.extend(convert.measurement_msgs(Z, S, names=["cam", "cma", "cam"],
+    first.measurements.extend(fusion_convert.measurement_msgs(Z, S, names=["cam", "cma", "cam"],
                                                        bodies=["box"] * 3))
     late = pb.FuseStreamRequest(options=pb.FusionOptions(robust=True))
-    late.measurements.extend(convert.measurement_msgs(Z, S, names=["cam"] * 3,
+    late.measurements.extend(fusion_convert.measurement_msgs(Z, S, names=["cam"] * 3,
                                                       bodies=["box"] * 3))
     import grpc
     with grpc.insecure_channel(server.target) as ch:

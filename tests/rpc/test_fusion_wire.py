@@ -1,5 +1,5 @@
 """StreamFuse's C path (service/csrc/wire.c dq_wire_fuse_stream through
-dqpose.rpc.convert.fuse_stream_from_wire and Fusion.stream_step_wire) against the protobuf path
+dqpose.rpc.wire.fuse_stream_from_wire and Fusion.stream_step_wire) against the protobuf path
 it replaces: on generated, damaged and re-encoded requests a stream fed bytes answers exactly
 what a stream fed parsed messages answers (fused poses, error entries and their texts, the
 measurements in each window); the decoder reads what protobuf reads and refuses (None) what it
@@ -18,8 +18,9 @@ from hypothesis import strategies as st
 from _mutate import damaged
 
 from dqpose import dq, fusion
-from dqpose.rpc import convert
-from dqpose.rpc.convert import fuse_stream_from_wire, measurement_msgs, options_msg
+from dqpose.rpc import wire
+from dqpose.rpc.fusion_convert import measurement_msgs, measurements_to_arrays, options_msg
+from dqpose.rpc.wire import fuse_stream_from_wire
 from dqpose.rpc.fusion import Fusion
 from dqpose.rpc.server import ServerConfig
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
@@ -175,7 +176,7 @@ def test_plain_requests_take_the_c_path_and_agree():
     assert decoded == [True] * 5
     w = fuse_stream_from_wire(datas[0])
     req = pb.FuseStreamRequest.FromString(datas[0])
-    m = convert.measurements_to_arrays(req.measurements)
+    m = measurements_to_arrays(req.measurements)
     np.testing.assert_array_equal(w.poses, m.poses)
     np.testing.assert_array_equal(w.times, m.times)
     np.testing.assert_array_equal(w.covariances, 0.5 * (m.covariances +
@@ -192,7 +193,7 @@ def test_what_the_c_path_leaves_to_protobuf():
     datas = [o.SerializeToString() for o in others]
     # an unknown field in a measurement, and at the request's level
     m = good(1)[0].SerializeToString() + _key(9, 1) + struct.pack("<d", 1.0)
-    datas += [_key(3, 2) + convert._varint(len(m)) + m,
+    datas += [_key(3, 2) + wire._varint(len(m)) + m,
               plain.SerializeToString() + _key(7, 0) + b"\x01"]
     # a covariance on the edge of positive definite: LAPACK decides, not the margin
     c = np.diag([1.0, 1, 1, 1, 1, 1e-12]) * 1e-4

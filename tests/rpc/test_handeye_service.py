@@ -15,7 +15,7 @@ from _grpc_server import ServerThread
 from dqpose import handeye
 from dqpose.errors import Infeasible
 from dqpose.rpc.client import Client, InvalidArgument, RpcError
-from dqpose.rpc.convert import calibrate_error, calibrate_msg
+from dqpose.rpc.handeye_convert import calibrate_error, calibrate_msg
 from dqpose.rpc._proto.dqpose.v1 import handeye_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import handeye_pb2_grpc
 

@@ -771,12 +771,12 @@ def test_calls_cut_when_the_grace_period_ends_are_logged_and_counted(caplog):
     # record them as they unwind, which must happen before the last flush and before the
     # metrics close: every call that started gets exactly one line and one sample.
     from dqpose.fusion import Source
-    from dqpose.rpc import convert
+    from dqpose.rpc import fusion_convert
     from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 
     caplog.set_level(logging.INFO, logger="dqpose.calls")
-    first = fpb.FuseStreamRequest(options=convert.options_msg(sources=[Source("cam")]))
-    first.measurements.extend(convert.measurement_msgs(
+    first = fpb.FuseStreamRequest(options=fusion_convert.options_msg(sources=[Source("cam")]))
+    first.measurements.extend(fusion_convert.measurement_msgs(
         dq.from_pose([1.0, 0, 0, 0], [0.1, 0.2, 0.3])[None], np.eye(6)[None] * 1e-4,
         names=["cam"], bodies=["box"]))
     with socket_free_port() as port:

@@ -56,6 +56,7 @@ def test_plan_streams_what_the_domain_plans(client, mode):
     # the wire carries waypoints as (q, t): back to dual quaternions costs a rounding or two
     assert got.duration == pytest.approx(local.duration, rel=1e-12)
     assert [s.binding for s in got.segments] == [s.binding for s in local.segments]
+    assert all(type(s) is trajectory.Segment for s in got.segments)     # the domain's type
     assert len(got.time) == len(want.time)
     np.testing.assert_allclose(got.time, want.time, atol=1e-12, rtol=0)
     np.testing.assert_allclose(got.pose, want.pose * np.sign(got.pose[:, :1] * want.pose[:, :1]),
@@ -115,7 +116,7 @@ def _limits(**change):
     (lambda r: setattr(r.waypoints[1], "time", 0.01), "FAILED_PRECONDITION", "waypoints[1]"),
 ])
 def test_plan_names_the_bad_field(server, edit, code, text):
-    from dqpose.rpc.convert import plan_msg
+    from dqpose.rpc.trajectories_convert import plan_msg
     from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
     from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2_grpc as tgrpc
     request = plan_msg(_waypoints(), LIMITS, 125.0)
@@ -285,7 +286,8 @@ def test_execute_from_current_needs_the_arm_at_rest(ur):
     mover = threading.Thread(target=move, daemon=True)
     mover.start()        # a moveL of the arm's own, ~5 s: not a plan of the server's
     try:
-        assert wait_until(lambda: sim.state()["moving"], timeout=2)
+        # the arm's own reading, which the server judges: the simulator's state runs ahead of it
+        assert wait_until(lambda: sim.state()["moving"] and not arm.state().at_rest, timeout=5)
         with Client(server.target) as c, pytest.raises(RpcError) as e:
             list(c.execute("ur", [start], LIMITS, from_current=True))
         assert e.value.code.name == "FAILED_PRECONDITION"

@@ -1,4 +1,4 @@
-"""service/csrc/wire.c (through dqpose.rpc.convert): the C decoder of BlendRequest bytes must
+"""service/csrc/wire.c (through dqpose.rpc.wire): the C decoder of BlendRequest bytes must
 agree with the protobuf parser on every message, and refuse (None) what the parser refuses; the
 C served Blend (bytes to bytes) must answer exactly what the full Python path answers, and leave
 every error to it."""
@@ -15,7 +15,8 @@ from _mutate import damaged
 
 from dqpose import dq, limits
 from dqpose.errors import FieldError
-from dqpose.rpc.convert import blend_batch_wire, blend_wire, decode_blend_request, pose_msgs
+from dqpose.rpc.geometry import pose_msgs
+from dqpose.rpc.wire import blend_batch_wire, blend_wire, decode_blend_request
 from dqpose.rpc.blending import (DEFAULT_MAX_ITERATIONS, DEFAULT_TOLERANCE, Blending)
 from dqpose.rpc.server import ServerConfig
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
@@ -106,7 +107,7 @@ def test_damaged_bytes_are_refused_or_read_as_protobuf_reads_them(req, data):
         assert_same(got, want)
 
 
-# ---- the served Blend: dq_wire_blend (dqpose.rpc.convert.blend_wire) against the full path
+# ---- the served Blend: dq_wire_blend (dqpose.rpc.wire.blend_wire) against the full path
 
 def _full_path(blending, data: bytes):
     """What the server answers without the C fast path: response bytes, or None for an error."""
@@ -474,7 +475,8 @@ def test_wire_paths_survive_mutated_input_under_sanitizers(tmp_path):
     build = subprocess.run(
         [cc, "-std=c99", "-O1", "-g", "-fsanitize=address,undefined", "-fno-sanitize-recover=all",
          "-fno-omit-frame-pointer", f"-I{csrc}", str(root / "tests" / "rpc" / "fuzz_wire.c"),
-         *(str(csrc / f) for f in ("wire.c", "blend.c", "dq.c", "fusion.c")), "-lm", "-o",
+         *(str(csrc / f) for f in ("wire.c", "blend.c", "dq.c", "fusion.c", "linalg6.c", "se3.c")),
+         "-lm", "-o",
          str(exe)],
         capture_output=True, text=True)
     if build.returncode:
@@ -506,7 +508,7 @@ def test_wire_paths_survive_mutated_input_under_sanitizers(tmp_path):
 
 def _fuse_stream_seed(rng):
     """A StreamFuse request of 8 measurements: covariances, weights, names, one of each error."""
-    from dqpose.rpc.convert import measurement_msgs
+    from dqpose.rpc.fusion_convert import measurement_msgs
     from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
     q = rng.normal(size=(8, 4))
     Z = dq.from_pose(q / np.linalg.norm(q, axis=1, keepdims=True), rng.normal(size=(8, 3)))

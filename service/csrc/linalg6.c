@@ -1,0 +1,172 @@
+/*
+ * linalg6.c — the Cholesky factors, triangular solves and Gram sums of linalg6.h.
+ *
+ * The general-size loops are static inline and called with a constant m = 6 by the 6 x 6 entry
+ * points, so the compiler unrolls them there.
+ */
+#include "linalg6.h"
+
+#include <math.h>
+
+static inline int chol_m(const double *A, double *L, double *di, int m)
+{
+    for (int j = 0; j < m; j++) {
+        double d = A[m * j + j];
+        for (int k = 0; k < j; k++) d -= L[m * j + k] * L[m * j + k];
+        if (!(d > 0.0)) return 0; /* also NaN; an infinite pivot makes the result non-finite */
+        double ljj = sqrt(d), inv = 1.0 / ljj;
+        L[m * j + j] = ljj;
+        di[j] = inv;
+        for (int i = j + 1; i < m; i++) {
+            double s = A[m * i + j];
+            for (int k = 0; k < j; k++) s -= L[m * i + k] * L[m * j + k];
+            L[m * i + j] = s * inv;
+        }
+    }
+    return 1;
+}
+
+static inline void lower_solve_m(const double *L, const double *di, const double *b, double *x,
+                                 int m)
+{
+    for (int i = 0; i < m; i++) {
+        double s = b[i];
+        for (int k = 0; k < i; k++) s -= L[m * i + k] * x[k];
+        x[i] = s * di[i];
+    }
+}
+
+static inline void upper_solve_m(const double *L, const double *di, const double *b, double *x,
+                                 int m)
+{
+    for (int i = m - 1; i >= 0; i--) {
+        double s = b[i];
+        for (int k = i + 1; k < m; k++) s -= L[m * k + i] * x[k];
+        x[i] = s * di[i];
+    }
+}
+
+int dq_chol(const double *A, double *L, double *di, int m) { return chol_m(A, L, di, m); }
+int dq_chol6(const double *A, double *L, double *di) { return chol_m(A, L, di, 6); }
+
+void dq_lower_solve(const double *L, const double *di, const double *b, double *x, int m)
+{
+    lower_solve_m(L, di, b, x, m);
+}
+
+void dq_upper_solve(const double *L, const double *di, const double *b, double *x, int m)
+{
+    upper_solve_m(L, di, b, x, m);
+}
+
+void dq_lower_solve6(const double *L, const double *di, const double *b, double *x)
+{
+    lower_solve_m(L, di, b, x, 6);
+}
+
+void dq_upper_solve6(const double *L, const double *di, const double *b, double *x)
+{
+    upper_solve_m(L, di, b, x, 6);
+}
+
+/* Row by row, each row a whole 6-vector, which vectorises. */
+void dq_lower_solve_matrix6(const double *L, const double *di, const double *M,
+                            double *restrict B)
+{
+    for (int i = 0; i < 6; i++) {
+        double row[6];
+        for (int c = 0; c < 6; c++) row[c] = M[6 * i + c];
+        for (int k = 0; k < i; k++) {
+            double l = L[6 * i + k];
+            for (int c = 0; c < 6; c++) row[c] -= l * B[6 * k + c];
+        }
+        for (int c = 0; c < 6; c++) B[6 * i + c] = row[c] * di[i];
+    }
+}
+
+void dq_whiten_jacobian6(const double *L, const double *di, const double *A, double *restrict B)
+{
+    for (int i = 0; i < 3; i++) {
+        double row[3] = {A[6 * i], A[6 * i + 1], A[6 * i + 2]};
+        for (int k = 0; k < i; k++) {
+            double l = L[6 * i + k];
+            for (int c = 0; c < 3; c++) row[c] -= l * B[6 * k + c];
+        }
+        for (int c = 0; c < 3; c++) B[6 * i + c] = row[c] * di[i];
+        B[6 * i + 3] = B[6 * i + 4] = B[6 * i + 5] = 0.0;
+    }
+    for (int i = 3; i < 6; i++) {
+        double row[6];
+        for (int c = 0; c < 6; c++) row[c] = A[6 * i + c];
+        for (int k = 0; k < i; k++) {
+            double l = L[6 * i + k];
+            for (int c = 0; c < 6; c++) row[c] -= l * B[6 * k + c];
+        }
+        for (int c = 0; c < 6; c++) B[6 * i + c] = row[c] * di[i];
+    }
+}
+
+void dq_add_gram_whitened6(const double *restrict B, double *restrict G)
+{
+    for (int k = 0; k < 3; k++)
+        for (int i = 0; i < 3; i++) {
+            double b = B[6 * k + i];
+            for (int j = i; j < 3; j++) G[6 * i + j] += b * B[6 * k + j];
+        }
+    for (int k = 3; k < 6; k++)
+        for (int i = 0; i < 6; i++) {
+            double b = B[6 * k + i];
+            for (int j = i; j < 6; j++) G[6 * i + j] += b * B[6 * k + j];
+        }
+}
+
+void dq_add_gram6(const double *restrict B, double *restrict G)
+{
+    for (int k = 0; k < 6; k++)
+        for (int i = 0; i < 6; i++) {
+            double b = B[6 * k + i];
+            for (int j = i; j < 6; j++) G[6 * i + j] += b * B[6 * k + j];
+        }
+}
+
+void dq_mirror6(double *G)
+{
+    for (int i = 0; i < 6; i++)
+        for (int j = 0; j < i; j++) G[6 * i + j] = G[6 * j + i];
+}
+
+void dq_mirror(double *M, int dim)
+{
+    for (int i = 0; i < dim; i++)
+        for (int j = 0; j < i; j++) M[dim * i + j] = M[dim * j + i];
+}
+
+void dq_chol6_inverse(const double *L, const double *di, double *P)
+{
+    double Li[36];
+    for (int c = 0; c < 6; c++) {
+        double e[6] = {0, 0, 0, 0, 0, 0};
+        e[c] = 1.0;
+        lower_solve_m(L, di, e, e, 6);
+        for (int r = 0; r < 6; r++) Li[6 * r + c] = e[r];
+    }
+    for (int i = 0; i < 36; i++) P[i] = 0.0;
+    dq_add_gram6(Li, P);
+    dq_mirror6(P);
+}
+
+int dq_spd_inverse(const double *H, int dim, double *work, double *P)
+{
+    double *L = work, *di = L + dim * dim, *e = di + dim;
+    if (!chol_m(H, L, di, dim)) return 0;
+    for (int c = 0; c < dim; c++) { /* column c of L^-T L^-1 */
+        for (int r = 0; r < dim; r++) e[r] = r == c ? 1.0 : 0.0;
+        lower_solve_m(L, di, e, e, dim);
+        upper_solve_m(L, di, e, e, dim);
+        for (int r = 0; r < dim; r++) P[dim * r + c] = e[r];
+    }
+    for (int a = 0; a < dim; a++) /* the two triangles' rounding differs: their mean */
+        for (int b = 0; b < a; b++)
+            P[dim * a + b] = P[dim * b + a] = 0.5 * (P[dim * a + b] + P[dim * b + a]);
+    return 1;
+}

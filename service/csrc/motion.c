@@ -1,0 +1,453 @@
+/*
+ * motion.c — the constant-twist fit of motion.h: Gauss-Newton over pose, twist and latencies
+ * with the priors' information, each measurement whitened by its covariance's Cholesky factor as
+ * in fusion.c, its Jacobian G_i kept compact (the columns it touches) and scattered into the
+ * state's.
+ */
+#include "motion.h"
+
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "dq.h"
+#include "linalg6.h"
+#include "se3.h"
+
+/* A measurement's Jacobian is kept compact: MC columns, the pose's 6, the twist's 6 and its own
+ * latency's 1 (zero columns when the twist or the latency is not estimated). */
+#define MC 13
+
+/* The motion workspace: a block per measurement (its covariance factor L and DI, its whitened
+ * compact Jacobian L^-1 G, two slots of r, e = L^-1 r, sin^2 and cos of half r's angle,
+ * Exp(dt V) and dt, for the current and a trial estimate; then the prefix sum of the earlier
+ * inliers' information, dim x dim), then the solver's dim-sized arrays. */
+enum { M_L = 0, M_DI = 36, M_G = 42, M_S0 = 120, M_S1 = 143, M_PER = 166 };
+enum { S_R = 0, S_E = 6, S_SC = 12, S_EXP = 14, S_DT = 22 };
+
+size_t dq_motion_dim(const dq_motion_model *m) { return (m->twist ? 12 : 6) + m->k; }
+
+size_t dq_motion_workspace(size_t n, const dq_motion_model *m)
+{
+    size_t dim = dq_motion_dim(m);
+    return (M_PER + dim * dim) * n + 5 * dim * dim + 7 * dim;
+}
+
+/* The state index of compact column c of measurement i (-1: not in the state). */
+static inline int motion_column(const dq_motion_model *m, size_t i, int c)
+{
+    if (c < 6) return c;
+    if (c < 12) return m->twist ? c : -1;
+    return m->slot[i] >= 0 ? (m->twist ? 12 : 6) + (int)m->slot[i] : -1;
+}
+
+static double motion_prior_cost(const dq_motion_model *m, const double *V, const double *ell)
+{
+    double c = 0.0;
+    for (size_t j = 0; j < m->k; j++) c += m->prior_w[j] * (ell[j] - m->prior[j]) * (ell[j] - m->prior[j]);
+    if (m->twist && m->twist_w) {
+        double q = 0.0;
+        for (int a = 0; a < 6; a++) {
+            double s = 0.0;
+            for (int b = 0; b < 6; b++) s += m->twist_w[6 * a + b] * V[b];
+            q += V[a] * s;
+        }
+        c += q;
+    }
+    return c;
+}
+
+/* H += the priors' information, g += their part of the descent direction. */
+static void motion_prior_terms(const dq_motion_model *m, const double *V, const double *ell,
+                               int dim, double *H, double *g)
+{
+    if (m->twist && m->twist_w)
+        for (int a = 0; a < 6; a++) {
+            double s = 0.0;
+            for (int b = 0; b < 6; b++) {
+                H[dim * (6 + a) + 6 + b] += m->twist_w[6 * a + b];
+                s += m->twist_w[6 * a + b] * V[b];
+            }
+            g[6 + a] -= s;
+        }
+    int off = m->twist ? 12 : 6;
+    for (size_t j = 0; j < m->k; j++) {
+        H[dim * (off + (int)j) + off + (int)j] += m->prior_w[j];
+        g[off + (int)j] -= m->prior_w[j] * (ell[j] - m->prior[j]);
+    }
+}
+
+/* Residuals and whitened residuals at (X, V, ell) of the measurements `use` selects (want = 1)
+ * or the others (want = 0), into slot so of their blocks; returns their cost. */
+static double motion_evaluate(const double *X, const double *V, const double *ell,
+                              const double *z, const dq_motion_model *m, double *work,
+                              size_t stride, size_t n, const unsigned char *use, int want, int so)
+{
+    double total = 0.0;
+    for (size_t i = 0; i < n; i++) {
+        if (dq_selected(use, i) != want) continue;
+        double *blk = work + stride * i, *s = blk + so;
+        double dt = m->stamp[i] - (m->slot[i] >= 0 ? ell[m->slot[i]] : m->latency[i]);
+        double h[6], P[8], Pc[8];
+        for (int k = 0; k < 6; k++) h[k] = 0.5 * (dt * V[k]);
+        dq_exp(h, s + S_EXP);
+        dq_mul(X, s + S_EXP, P);
+        dq_conj(P, Pc);
+        dq_se3_residual(Pc, z + 8 * i, s + S_R, s + S_SC);
+        dq_lower_solve6(blk + M_L, blk + M_DI, s + S_R, s + S_E);
+        const double *e = s + S_E;
+        total += e[0] * e[0] + e[1] * e[1] + e[2] * e[2] + e[3] * e[3] + e[4] * e[4] + e[5] * e[5];
+        s[S_DT] = dt;
+    }
+    return total;
+}
+
+/* Measurement i's Jacobian from slot so: L^-1 G_i compact into its block, and G_i itself
+ * (6 x dim) into Gout when not NULL. */
+static void motion_jacobian(const dq_motion_model *m, const double *V, size_t i, double *blk,
+                            int so, int dim, double *Gout)
+{
+    const double *s = blk + so, *E = s + S_EXP;
+    double dt = s[S_DT];
+    double A[36], Aw[36], Bc[6 * MC], Ei[8], T[16];
+    dq_jl_inv(s + S_R, s[S_SC], s[S_SC + 1], A);
+    dq_whiten_jacobian6(blk + M_L, blk + M_DI, A, Aw);
+    /* Ad(Exp(-dt V)) = [[R, 0], [t^ R, R]] of the inverse of Exp(dt V) */
+    dq_conj(E, Ei);
+    dq_to_matrix(Ei, T);
+    double t[3] = {T[3], T[7], T[11]};
+    for (int a = 0; a < 3; a++)
+        for (int b = 0; b < 3; b++) {
+            double R = T[4 * a + b];
+            double tR = (a == 0 ? -t[2] * T[4 + b] + t[1] * T[8 + b]
+                         : a == 1 ? t[2] * T[b] - t[0] * T[8 + b]
+                                  : -t[1] * T[b] + t[0] * T[4 + b]);
+            Bc[MC * a + b] = R;
+            Bc[MC * a + 3 + b] = 0.0;
+            Bc[MC * (a + 3) + b] = tR;
+            Bc[MC * (a + 3) + 3 + b] = R;
+        }
+    if (m->twist) {
+        double x[6];
+        for (int k = 0; k < 6; k++) x[k] = dt * V[k];
+        dq_jr_scaled(x, E[1] * E[1] + E[2] * E[2] + E[3] * E[3], E[0], dt, Bc + 6, MC);
+    } else {
+        for (int a = 0; a < 6; a++)
+            for (int b = 6; b < 12; b++) Bc[MC * a + b] = 0.0;
+    }
+    for (int a = 0; a < 6; a++) Bc[MC * a + 12] = m->slot[i] >= 0 ? -V[a] : 0.0;
+    double *Gw = blk + M_G;
+    for (int a = 0; a < 6; a++)
+        for (int c = 0; c < MC; c++) {
+            double sw = 0.0;
+            for (int k = 0; k < 6; k++) sw += Aw[6 * a + k] * Bc[MC * k + c];
+            Gw[MC * a + c] = sw;
+        }
+    if (Gout) {
+        for (int a = 0; a < 6 * dim; a++) Gout[a] = 0.0;
+        for (int c = 0; c < MC; c++) {
+            int col = motion_column(m, i, c);
+            if (col < 0) continue;
+            for (int a = 0; a < 6; a++) {
+                double sg = 0.0;
+                for (int k = 0; k < 6; k++) sg += A[6 * a + k] * Bc[MC * k + c];
+                Gout[dim * a + col] = sg;
+            }
+        }
+    }
+}
+
+/* M += (L^-1 G_i)^T (L^-1 G_i) of measurement i into the upper triangle of the dim x dim M. */
+static void motion_add_information(const dq_motion_model *m, size_t i, const double *Gw, int dim,
+                                   double *M)
+{
+    if (m->twist && m->slot[i] < 0) {
+        /* the common case, the pose's and the twist's columns as they are: fixed bounds the
+         * compiler unrolls (the same sums in the same order as below) */
+        for (int a = 0; a < 12; a++)
+            for (int b = a; b < 12; b++) {
+                double s = 0.0;
+                for (int k = 0; k < 6; k++) s += Gw[MC * k + a] * Gw[MC * k + b];
+                M[dim * a + b] += s;
+            }
+        return;
+    }
+    int cols[MC], map[MC], nc = 0;
+    for (int c = 0; c < MC; c++) {
+        int col = motion_column(m, i, c);
+        if (col >= 0) { cols[nc] = c; map[nc++] = col; }
+    }
+    for (int a = 0; a < nc; a++)
+        for (int b = a; b < nc; b++) {
+            double s = 0.0;
+            for (int k = 0; k < 6; k++) s += Gw[MC * k + cols[a]] * Gw[MC * k + cols[b]];
+            M[dim * map[a] + map[b]] += s;
+        }
+}
+
+
+/* The data's information H (upper triangle) and gradient g = sum (L^-1 G)^T e over `use`, from
+ * slot so; every measurement's compact Jacobian is kept in its block (with all = 1 the others'
+ * too, not added), G_i written to G when not NULL. */
+static void motion_linearize(const dq_motion_model *m, const double *V, double *work,
+                             size_t stride, size_t n, const unsigned char *use, int all, int so,
+                             int dim, double *H, double *g, double *G)
+{
+    for (int k = 0; k < dim * dim; k++) H[k] = 0.0;
+    for (int k = 0; k < dim; k++) g[k] = 0.0;
+    for (size_t i = 0; i < n; i++) {
+        int in = dq_selected(use, i);
+        if (!in && !all) continue;
+        double *blk = work + stride * i;
+        motion_jacobian(m, V, i, blk, so, dim, G ? G + 6 * dim * i : NULL);
+        if (!in) continue;
+        const double *Gw = blk + M_G, *e = blk + so + S_E;
+        for (int c = 0; c < MC; c++) {
+            int col = motion_column(m, i, c);
+            if (col < 0) continue;
+            double s = 0.0;
+            for (int k = 0; k < 6; k++) s += Gw[MC * k + c] * e[k];
+            g[col] += s;
+        }
+        motion_add_information(m, i, Gw, dim, H);
+    }
+}
+
+/* Leave-one-out NIS (fusion.h) from the compact Jacobians and whitened residuals in slot so:
+ * whitened, K_i = L G Hj^-1 G^T L^T, so an inlier's NIS is |e|^2 + |Lh^-1 (L^-1 G)^T e|^2 and an
+ * outlier's e^T (I + (L^-1 G) H^-1 (L^-1 G)^T)^-1 e. Hj sums the priors and the other inliers'
+ * information (earlier ones kept as prefix sums, later ones accumulated backwards), so a
+ * dominant measurement does not cancel the others away. */
+static int motion_leave_one_out(const dq_motion_model *m, const double *V, const double *ell,
+                                double *work, size_t stride, size_t n, const unsigned char *use,
+                                const unsigned char *tested, int so, int dim, const double *H,
+                                double *scratch, double *nis)
+{
+    double *acc = scratch, *Hj = acc + dim * dim, *Lh = Hj + dim * dim, *dh = Lh + dim * dim;
+    double *y = dh + dim, *gz = y + dim;
+    for (int k = 0; k < dim * dim; k++) acc[k] = 0.0;
+    for (int k = 0; k < dim; k++) gz[k] = 0.0;
+    motion_prior_terms(m, V, ell, dim, acc, gz);
+    for (size_t i = 0; i < n; i++) {
+        double *blk = work + stride * i;
+        for (int k = 0; k < dim * dim; k++) blk[M_PER + k] = acc[k];
+        if (dq_selected(use, i)) motion_add_information(m, i, blk + M_G, dim, acc);
+    }
+    for (int k = 0; k < dim * dim; k++) acc[k] = 0.0; /* now the later inliers' */
+    for (size_t jj = n; jj-- > 0;) {
+        double *blk = work + stride * jj;
+        int in = dq_selected(use, jj);
+        const double *Gw = blk + M_G, *e = blk + so + S_E;
+        double ee = e[0] * e[0] + e[1] * e[1] + e[2] * e[2] + e[3] * e[3] + e[4] * e[4] + e[5] * e[5];
+        if (!tested[jj]) {
+            nis[jj] = 0.0;
+        } else {
+            if (in) {
+                for (int k = 0; k < dim * dim; k++) Hj[k] = blk[M_PER + k] + acc[k];
+            } else {
+                for (int k = 0; k < dim * dim; k++) Hj[k] = H[k];
+            }
+            dq_mirror(Hj, dim);
+            if (!dq_chol(Hj, Lh, dh, dim)) return DQ_E_SINGULAR;
+            if (in) {
+                for (int k = 0; k < dim; k++) y[k] = 0.0;
+                for (int c = 0; c < MC; c++) {
+                    int col = motion_column(m, jj, c);
+                    if (col < 0) continue;
+                    double s = 0.0;
+                    for (int k = 0; k < 6; k++) s += Gw[MC * k + c] * e[k];
+                    y[col] = s;
+                }
+                dq_lower_solve(Lh, dh, y, y, dim);
+                double yy = 0.0;
+                for (int k = 0; k < dim; k++) yy += y[k] * y[k];
+                nis[jj] = ee + yy;
+            } else {
+                double K[36], N[36], dn[6], u[6];
+                double *Yc = Hj; /* Y = Lh^-1 (L^-1 G)^T, 6 columns: Hj is spent */
+                for (int a = 0; a < 6; a++) {
+                    double *col = Yc + dim * a;
+                    for (int k = 0; k < dim; k++) col[k] = 0.0;
+                    for (int c = 0; c < MC; c++) {
+                        int s = motion_column(m, jj, c);
+                        if (s >= 0) col[s] = Gw[MC * a + c];
+                    }
+                    dq_lower_solve(Lh, dh, col, col, dim);
+                }
+                for (int a = 0; a < 6; a++)
+                    for (int b = 0; b < 6; b++) {
+                        double s = 0.0;
+                        for (int k = 0; k < dim; k++) s += Yc[dim * a + k] * Yc[dim * b + k];
+                        K[6 * a + b] = s + (a == b ? 1.0 : 0.0);
+                    }
+                if (!dq_chol6(K, N, dn)) return DQ_E_SINGULAR;
+                dq_lower_solve6(N, dn, e, u);
+                nis[jj] = u[0] * u[0] + u[1] * u[1] + u[2] * u[2] + u[3] * u[3] + u[4] * u[4] +
+                          u[5] * u[5];
+            }
+        }
+        if (in) motion_add_information(m, jj, Gw, dim, acc);
+    }
+    return DQ_OK;
+}
+
+/* Gauss-Newton from out's X, V, ell over the selected measurements (motion.h), updated in place;
+ * *slot is the workspace slot left holding the inliers' r, e at the estimate. The solver's
+ * dim-sized arrays follow the measurements' blocks in work. */
+static int motion_solve(const double *z, const unsigned char *inlier, size_t n,
+                        const dq_motion_model *m, const dq_fuse_params *p, double *work,
+                        size_t stride, int dim, dq_motion_fitted *out, int *slot)
+{
+    const int off = m->twist ? 12 : 6, k = (int)m->k;
+    double *H = work + stride * n, *Lh = H + dim * dim, *g = Lh + dim * dim, *delta = g + dim;
+    double *dh = delta + dim, *elln = dh + dim;
+    double *X = out->mean, *V = out->twist, *ell = out->ell;
+    /* The current point's slot and a trial point's swap. */
+    int ro = M_S0, rt = M_S1;
+    double total = motion_evaluate(X, V, ell, z, m, work, stride, n, inlier, 1, ro) +
+                   motion_prior_cost(m, V, ell);
+    out->status = DQ_FUSE_MAX_ITERATIONS;
+    out->iterations = p->max_iter;
+    for (int it = 1; it <= p->max_iter; it++) {
+        motion_linearize(m, V, work, stride, n, inlier, 0, ro, dim, H, g, NULL);
+        motion_prior_terms(m, V, ell, dim, H, g);
+        dq_mirror(H, dim);
+        if (!dq_chol(H, Lh, dh, dim)) return DQ_E_SINGULAR;
+        dq_lower_solve(Lh, dh, g, delta, dim);
+        dq_upper_solve(Lh, dh, delta, delta, dim);
+        double step = 0.0;
+        for (int j = 0; j < dim; j++) step += delta[j] * delta[j];
+        step = sqrt(step);
+        double Xn[8], Vn[6], total_new = total;
+        for (int h = 0; h < DQ_FUSE_MAX_HALVINGS; h++) {
+            double half[6], E[8], P[8];
+            for (int j = 0; j < 6; j++) half[j] = 0.5 * delta[j];
+            dq_exp(half, E);
+            dq_mul(X, E, P);
+            if (dq_normalize(P, Xn)) return DQ_E_OVERFLOW;
+            for (int j = 0; j < 6; j++) Vn[j] = m->twist ? V[j] + delta[6 + j] : V[j];
+            for (int j = 0; j < k; j++) elln[j] = ell[j] + delta[off + j];
+            total_new = motion_evaluate(Xn, Vn, elln, z, m, work, stride, n, inlier, 1, rt) +
+                        motion_prior_cost(m, Vn, elln);
+            if (total_new <= total * (1.0 + DQ_FUSE_COST_SLACK) || step < p->tol) break;
+            for (int j = 0; j < dim; j++) delta[j] *= 0.5;
+            step *= 0.5;
+        }
+        for (int j = 0; j < 8; j++) X[j] = Xn[j];
+        for (int j = 0; j < 6; j++) V[j] = Vn[j];
+        for (int j = 0; j < k; j++) ell[j] = elln[j];
+        int t = ro; ro = rt; rt = t;
+        total = total_new;
+        if (step < p->tol) {
+            out->status = DQ_FUSE_CONVERGED;
+            out->iterations = it;
+            break;
+        }
+    }
+    *slot = ro;
+    return DQ_OK;
+}
+
+int dq_motion_fit(const double *z, const double *cov, const unsigned char *inlier, size_t n,
+                  const dq_motion_model *m, const double *start, const unsigned char *tested,
+                  const dq_fuse_params *p, double *work, dq_motion_fitted *out,
+                  const dq_motion_outputs *per, size_t *bad)
+{
+    const int dim = (int)dq_motion_dim(m), k = (int)m->k;
+    const size_t stride = M_PER + (size_t)dim * dim;
+    size_t n_in = 0;
+    for (size_t i = 0; i < n; i++) {
+        double *blk = work + stride * i;
+        if (!dq_chol6(cov + 36 * i, blk + M_L, blk + M_DI)) {
+            *bad = i;
+            return DQ_E_NOT_SPD;
+        }
+        if (dq_selected(inlier, i)) n_in++;
+    }
+    if (n_in == 0) return DQ_E_NO_INLIERS;
+    double *H = work + stride * n, *g = H + 2 * dim * dim, *scratch = g + 4 * dim;
+    double *X = out->mean, *V = out->twist, *ell = out->ell;
+    for (int j = 0; j < 8; j++) X[j] = start[j];
+    for (int j = 0; j < 6; j++) V[j] = 0.0;
+    for (int j = 0; j < k; j++) ell[j] = m->prior[j];
+    int ro, rc = motion_solve(z, inlier, n, m, p, work, stride, dim, out, &ro);
+    if (rc) return rc;
+    /* Everything at the estimate: the others' residuals (the inliers' are in slot ro), every
+     * Jacobian, the inliers' information with the priors'. */
+    motion_evaluate(X, V, ell, z, m, work, stride, n, inlier, 0, ro);
+    motion_linearize(m, V, work, stride, n, inlier, 1, ro, dim, H, g, per->G);
+    motion_prior_terms(m, V, ell, dim, H, g);
+    dq_mirror(H, dim);
+    double chi2 = motion_prior_cost(m, V, ell);
+    for (size_t i = 0; i < n; i++) {
+        const double *s = work + stride * i + ro, *e = s + S_E;
+        double c = e[0] * e[0] + e[1] * e[1] + e[2] * e[2] + e[3] * e[3] + e[4] * e[4] + e[5] * e[5];
+        if (dq_selected(inlier, i)) chi2 += c;
+        if (per->cost) per->cost[i] = c;
+        if (per->dt) per->dt[i] = s[S_DT];
+        if (per->residuals)
+            for (int j = 0; j < 6; j++) per->residuals[6 * i + j] = s[S_R + j];
+    }
+    out->chi2 = chi2;
+    for (int j = 0; j < dim * dim; j++) out->H[j] = H[j];
+    if (!dq_finite8(X) || !dq_finite_n(V, 6) || !dq_finite_n(ell, (size_t)k) ||
+        !dq_finite_n(H, (size_t)dim * dim) || !(chi2 * 0.0 == 0.0))
+        return DQ_E_OVERFLOW;
+    if (per->nis && tested) {
+        rc = motion_leave_one_out(m, V, ell, work, stride, n, inlier, tested, ro, dim, H,
+                                  scratch, per->nis);
+        if (rc) return rc;
+        if (!dq_finite_n(per->nis, n)) return DQ_E_OVERFLOW;
+    }
+    return DQ_OK;
+}
+
+size_t dq_motion_nearest(const dq_motion_model *m, const unsigned char *inlier, size_t n)
+{
+    size_t best = n;
+    double nearest = INFINITY;
+    for (size_t i = 0; i < n; i++) {
+        if (!dq_selected(inlier, i)) continue;
+        double lat = m->slot[i] >= 0 ? m->prior[m->slot[i]] : m->latency[i];
+        double d = fabs(m->stamp[i] - lat);
+        if (d < nearest) {
+            nearest = d;
+            best = i;
+        }
+    }
+    return best;
+}
+
+static int by_taken(const void *a, const void *b)
+{
+    double ta = ((const dq_taken *)a)->t, tb = ((const dq_taken *)b)->t;
+    return (ta > tb) - (ta < tb);
+}
+
+void dq_motion_determined(const dq_motion_model *m, const unsigned char *inlier, size_t n,
+                          dq_taken *work, unsigned char *det)
+{
+    size_t k = 0;
+    for (size_t i = 0; i < n; i++)
+        if (dq_selected(inlier, i)) {
+            work[k].t = m->stamp[i] - m->latency[i];
+            work[k++].i = i;
+        }
+    if (!m->twist || m->twist_w) {
+        for (size_t i = 0; i < n; i++) det[i] = k - (dq_selected(inlier, i) ? 1 : 0) >= 1;
+        return;
+    }
+    /* Sorted by the time taken, equal times are runs; an inlier alone in its run is the only
+     * one of its instant, and leaving it out loses that instant. */
+    qsort(work, k, sizeof *work, by_taken);
+    size_t instants = 0;
+    for (size_t a = 0, b; a < k; a = b) {
+        for (b = a + 1; b < k && work[b].t == work[a].t; b++) continue;
+        instants++;
+    }
+    for (size_t i = 0; i < n; i++) det[i] = instants >= 2;
+    for (size_t a = 0, b; a < k; a = b) {
+        for (b = a + 1; b < k && work[b].t == work[a].t; b++) continue;
+        if (b == a + 1) det[work[a].i] = instants - 1 >= 2;
+    }
+}

@@ -1,0 +1,498 @@
+/*
+ * py_fusion.c — the Python functions of the fusion (fusion.h: fuse, pair_distances) and of the
+ * constant-twist fit (motion.h: motion_fit, motion_determined), on arrays service/fusion.py has
+ * prepared. Poses are checked unit and covariances finite here, the GIL released meanwhile.
+ */
+#include "py_args.h"
+
+#include <stdlib.h>
+#include <string.h>
+
+#include "dq.h"
+#include "fusion.h"
+#include "linalg6.h"
+#include "motion.h"
+#include "py_functions.h"
+
+/* ---- fuse ----------------------------------------------------------------------------------- */
+
+/* fuse's poses (..., n, 8), covariances (..., n, 6, 6) and inliers (..., n) bool or None,
+ * converted and their shapes checked (*M stays NULL for None): 0, or -1 with a ValueError. */
+static int fuse_arrays(PyObject *zo, PyObject *so, PyObject *io, PyArrayObject **Z,
+                       PyArrayObject **S, PyArrayObject **M)
+{
+    *Z = (PyArrayObject *)PyArray_FROM_OTF(zo, NPY_DOUBLE, NPY_ARRAY_IN_ARRAY);
+    if (!*Z) return -1;
+    *S = (PyArrayObject *)PyArray_FROM_OTF(so, NPY_DOUBLE, NPY_ARRAY_IN_ARRAY);
+    if (!*S) return -1;
+    int nd = PyArray_NDIM(*Z);
+    npy_intp *zs = PyArray_DIMS(*Z), *ss = PyArray_DIMS(*S);
+    char sh[160];
+    if (nd < 2 || zs[nd - 1] != 8) {
+        format_shape(sh, sizeof sh, nd, zs);
+        PyErr_Format(PyExc_ValueError, "poses: expected shape (..., n, 8), got %s", sh);
+        return -1;
+    }
+    int lead = nd - 2;
+    if (PyArray_NDIM(*S) != nd + 1 || !PyArray_CompareLists(ss, zs, lead + 1) || ss[nd - 1] != 6 ||
+        ss[nd] != 6) {
+        format_shape(sh, sizeof sh, PyArray_NDIM(*S), ss);
+        PyErr_Format(PyExc_ValueError,
+                     "covariances: expected shape (..., n, 6, 6) matching poses, got %s", sh);
+        return -1;
+    }
+    if (io != Py_None) {
+        *M = (PyArrayObject *)PyArray_FROM_OTF(io, NPY_BOOL, NPY_ARRAY_IN_ARRAY);
+        if (!*M) return -1;
+        if (PyArray_NDIM(*M) != lead + 1 || !PyArray_CompareLists(PyArray_DIMS(*M), zs, lead + 1)) {
+            format_shape(sh, sizeof sh, PyArray_NDIM(*M), PyArray_DIMS(*M));
+            PyErr_Format(PyExc_ValueError, "inliers: expected shape (..., n) matching poses, got %s",
+                         sh);
+            return -1;
+        }
+    }
+    if (zs[lead] == 0) {
+        PyErr_SetString(PyExc_ValueError, "poses: no measurements");
+        return -1;
+    }
+    return 0;
+}
+
+/* fuse's outputs with the leading shape zs[0 .. lead): mean, covariance, residuals, distances,
+ * nis, tested, status, iterations, chi2 (nis and tested NULL without want_nis). 0, or -1. */
+static int fuse_outputs(int lead, const npy_intp *zs, npy_intp n, int want_nis,
+                        PyArrayObject **outs)
+{
+    npy_intp d[NPY_MAXDIMS + 2];
+    for (int k = 0; k < lead; k++) d[k] = zs[k];
+    int types[9] = {NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE, NPY_BOOL,
+                    NPY_INT64, NPY_INT64, NPY_DOUBLE};
+    int core[9] = {1, 2, 2, 1, 1, 1, 0, 0, 0};
+    npy_intp cd[9][2] = {{8, 0}, {6, 6}, {n, 6}, {n, 0}, {n, 0}, {n, 0}, {0, 0}, {0, 0}, {0, 0}};
+    for (int j = 0; j < 9; j++) {
+        if ((j == 4 || j == 5) && !want_nis) continue;
+        for (int k = 0; k < core[j]; k++) d[lead + k] = cd[j][k];
+        outs[j] = (PyArrayObject *)PyArray_SimpleNew(lead + core[j], d, types[j]);
+        if (!outs[j]) return -1;
+    }
+    return 0;
+}
+
+/* The first failure of a batch: its code, problem b, measurement i and argument. */
+typedef struct {
+    int code;
+    npy_intp b;
+    size_t i;
+    const char *name;
+} fuse_failure;
+
+/* dq_fuse over each of the batch's problems (each checked first: poses unit, covariances
+ * finite), the GIL released for a batch, into outs; stops at the first failure. */
+static void fuse_batch(const double *zd, const double *sd, const unsigned char *id, npy_intp batch,
+                       npy_intp n, const dq_fuse_params *p, int want_nis, double *work,
+                       double *zu, PyArrayObject **outs, fuse_failure *bad)
+{
+    int code = DQ_OK;
+    NPY_BEGIN_THREADS_DEF;
+    if (batch * n >= GIL_RELEASE_MIN) NPY_BEGIN_THREADS;
+    for (npy_intp b = 0; b < batch && code == DQ_OK; b++) {
+        const double *zb = zd + 8 * n * b, *sb = sd + 36 * n * b;
+        for (npy_intp i = 0; i < n && code == DQ_OK; i++) {
+            code = dq_unit(zb + 8 * i, zu + 8 * i);
+            if (code) { bad->i = (size_t)i; bad->name = "poses"; }
+            else if (!dq_finite_n(sb + 36 * i, 36)) {
+                code = DQ_E_NONFINITE; bad->i = (size_t)i; bad->name = "covariances";
+            }
+        }
+        if (code) { bad->b = b; break; }
+        dq_fused f;
+        dq_fuse_outputs per = {
+            (double *)PyArray_DATA(outs[2]) + 6 * n * b, (double *)PyArray_DATA(outs[3]) + n * b,
+            want_nis ? (double *)PyArray_DATA(outs[4]) + n * b : NULL,
+            want_nis ? (unsigned char *)PyArray_DATA(outs[5]) + n * b : NULL};
+        code = dq_fuse(zu, sb, id ? id + n * b : NULL, (size_t)n, p, work, &f, &per, &bad->i);
+        if (code) { bad->b = b; bad->name = "covariances"; break; }
+        memcpy((double *)PyArray_DATA(outs[0]) + 8 * b, f.mean, sizeof f.mean);
+        memcpy((double *)PyArray_DATA(outs[1]) + 36 * b, f.covariance, sizeof f.covariance);
+        ((npy_int64 *)PyArray_DATA(outs[6]))[b] = f.status;
+        ((npy_int64 *)PyArray_DATA(outs[7]))[b] = f.iterations;
+        ((double *)PyArray_DATA(outs[8]))[b] = f.chi2;
+    }
+    NPY_END_THREADS;
+    bad->code = code;
+}
+
+/* The ValueError of a batch's failure, indexed within the batch's leading shape. */
+static void fuse_error(const fuse_failure *bad, int lead, const npy_intp *zs, npy_intp n,
+                       const double *zd)
+{
+    char where[256], what[256];
+    npy_intp shape[NPY_MAXDIMS + 1];
+    for (int k = 0; k < lead; k++) shape[k] = zs[k];
+    shape[lead] = n;
+    if (bad->code == DQ_E_NO_INLIERS) {
+        format_index(where, sizeof where, "inliers", lead, shape, bad->b);
+        PyErr_Format(PyExc_ValueError, "%s: selects no measurement", where);
+    } else if (bad->code == DQ_E_SINGULAR || bad->code == DQ_E_OVERFLOW) {
+        format_index(where, sizeof where, "covariances", lead, shape, bad->b);
+        PyErr_Format(PyExc_ValueError, "%s: %s", where,
+                     bad->code == DQ_E_SINGULAR ? "the information is not positive definite"
+                                                : "the result is not finite (input too large)");
+    } else {
+        format_index(where, sizeof where, bad->name, lead + 1, shape,
+                     bad->b * n + (npy_intp)bad->i);
+        if (bad->code == DQ_E_NOT_SPD)
+            snprintf(what, sizeof what, "not positive definite");
+        else
+            problem_text(bad->code, zd + 8 * (n * bad->b + (npy_intp)bad->i), 8, what, sizeof what);
+        PyErr_Format(PyExc_ValueError, "%s: %s", where, what);
+    }
+}
+
+/* fuse(poses (..., n, 8), covariances (..., n, 6, 6), inliers (..., n) bool or None, tol,
+ * max_iter, nis) -> (mean, covariance, residuals, distances, nis, tested, status, iterations,
+ * chi2), each with the leading shape; nis and tested are None when nis is false. The leading
+ * shapes of the arguments must be equal (a batch of independent problems, no broadcasting). */
+PyObject *py_fuse(PyObject *self, PyObject *args)
+{
+    PyObject *zo, *so, *io;
+    dq_fuse_params p = {1e-12, 100};
+    int want_nis = 1;
+    if (!PyArg_ParseTuple(args, "OOO|dip:fuse", &zo, &so, &io, &p.tol, &p.max_iter, &want_nis))
+        return NULL;
+    if (check_iteration(p.tol, p.max_iter) < 0) return NULL;
+    PyArrayObject *Z = NULL, *S = NULL, *M = NULL, *outs[9] = {NULL};
+    PyObject *result = NULL;
+    double *work = NULL, *zu = NULL;
+    if (fuse_arrays(zo, so, io, &Z, &S, &M) < 0) goto done;
+    npy_intp *zs = PyArray_DIMS(Z);
+    int lead = PyArray_NDIM(Z) - 2;
+    npy_intp n = zs[lead], batch = 1;
+    for (int k = 0; k < lead; k++) batch *= zs[k];
+    if (fuse_outputs(lead, zs, n, want_nis, outs) < 0) goto done;
+    work = (double *)malloc(sizeof(double) * dq_fuse_workspace((size_t)n));
+    zu = (double *)malloc(sizeof(double) * 8 * (size_t)n);
+    if (!work || !zu) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    const double *zd = PyArray_DATA(Z);
+    fuse_failure bad = {DQ_OK, 0, 0, "poses"};
+    fuse_batch(zd, PyArray_DATA(S), M ? (const unsigned char *)PyArray_DATA(M) : NULL, batch, n,
+               &p, want_nis, work, zu, outs, &bad);
+    if (bad.code != DQ_OK) {
+        fuse_error(&bad, lead, zs, n, zd);
+        goto done;
+    }
+    result = steal_tuple(outs, 9);
+done:
+    free(work);
+    free(zu);
+    Py_XDECREF(Z);
+    Py_XDECREF(S);
+    Py_XDECREF(M);
+    for (int j = 0; j < 9; j++) Py_XDECREF(outs[j]);
+    return result;
+}
+
+/* ---- the constant-twist fit ----------------------------------------------------------------- */
+
+/* motion_fit's array arguments o[0..12) into a[] (twist, o[9], is a flag), their shapes checked
+ * against n poses and k priors: 0, or -1 with a ValueError. */
+static int motion_arrays(PyObject **o, PyArrayObject **a, int find_tested, npy_intp *n_out,
+                         npy_intp *k_out)
+{
+    a[0] = (PyArrayObject *)PyArray_FROM_OTF(o[0], NPY_DOUBLE, NPY_ARRAY_IN_ARRAY);
+    if (!a[0]) return -1;
+    if (PyArray_NDIM(a[0]) != 2 || PyArray_DIMS(a[0])[1] != 8 || PyArray_DIMS(a[0])[0] == 0) {
+        PyErr_SetString(PyExc_ValueError, "poses: expected shape (n, 8), n >= 1");
+        return -1;
+    }
+    npy_intp n = PyArray_DIMS(a[0])[0];
+    a[7] = (PyArrayObject *)PyArray_FROM_OTF(o[7], NPY_DOUBLE, NPY_ARRAY_IN_ARRAY);
+    if (!a[7]) return -1;
+    if (PyArray_NDIM(a[7]) != 1) {
+        PyErr_SetString(PyExc_ValueError, "priors: expected shape (k,)");
+        return -1;
+    }
+    npy_intp k = PyArray_DIMS(a[7])[0];
+    static const char *names[12] = {"poses", "covariances", "inliers", "start", "stamps",
+                                    "latencies", "slots", "priors", "prior_information",
+                                    "twist", "twist_information", "tested"};
+    /* poses and priors are converted above, twist is a flag (-1: none of these) */
+    const int types[12] = {-1, NPY_DOUBLE, NPY_BOOL, NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE,
+                           NPY_INT64, -1, NPY_DOUBLE, -1, NPY_DOUBLE, NPY_BOOL};
+    const int nds[12] = {0, 3, 1, 1, 1, 1, 1, 0, 1, 0, 2, 1};
+    const npy_intp shapes[12][3] = {{0}, {n, 6, 6}, {n}, {8}, {n}, {n}, {n}, {0}, {k},
+                                    {0}, {6, 6}, {n}};
+    for (int j = 1; j < 12; j++) {
+        if (types[j] < 0 || ((j == 2 || j == 3 || j == 10 || j == 11) && o[j] == Py_None) ||
+            (j == 11 && find_tested))
+            continue;
+        if (!(a[j] = exact_array(o[j], types[j], names[j], nds[j], shapes[j]))) return -1;
+    }
+    *n_out = n;
+    *k_out = k;
+    return 0;
+}
+
+/* motion_fit's outputs: mean, twist, ell, H, chi2, status, iterations, dt, residuals, cost, G,
+ * nis, tested, P (G NULL without want_g, nis and tested without nis). 0, or -1. */
+static int motion_outputs(PyArrayObject **outs, npy_intp n, npy_intp k, npy_intp dim, int want_g,
+                          int nis)
+{
+    const int types[14] = {NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE,
+                           NPY_INT64, NPY_INT64, NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE,
+                           NPY_DOUBLE, NPY_DOUBLE, NPY_BOOL, NPY_DOUBLE};
+    const int nds[14] = {1, 1, 1, 2, 0, 0, 0, 1, 2, 1, 3, 1, 1, 2};
+    const npy_intp shapes[14][3] = {{8}, {6}, {k}, {dim, dim}, {0}, {0}, {0}, {n}, {n, 6},
+                                    {n}, {n, 6, dim}, {n}, {n}, {dim, dim}};
+    for (int j = 0; j < 14; j++) {
+        if ((j == 10 && !want_g) || ((j == 11 || j == 12) && !nis)) continue;
+        if (!(outs[j] = (PyArrayObject *)PyArray_SimpleNew(nds[j], shapes[j], types[j])))
+            return -1;
+    }
+    return 0;
+}
+
+/* What one motion_fit call computes with, besides the model. */
+typedef struct {
+    PyArrayObject **a, **outs;
+    npy_intp n;
+    int dim, pick_start, find_tested;
+    const dq_fuse_params *p;
+    double *work, *zu;
+    dq_taken *taken;
+} motion_call;
+
+/* The fit with the GIL released: poses checked unit and covariances finite, the start picked
+ * (or checked), the measurements to test found (or copied), dq_motion_fit, then P = H^-1.
+ * Returns a DQ_E* code with *bad and *bad_name the measurement and argument it concerns. */
+static int motion_run(const motion_call *c, const dq_motion_model *m, dq_motion_fitted *f,
+                      size_t *bad, const char **bad_name)
+{
+    PyArrayObject **a = c->a, **outs = c->outs;
+    const npy_intp n = c->n;
+    const double *zd = PyArray_DATA(a[0]), *sd = PyArray_DATA(a[1]);
+    int code = DQ_OK;
+    f->ell = PyArray_DATA(outs[2]);
+    f->H = PyArray_DATA(outs[3]);
+    dq_motion_outputs per = {PyArray_DATA(outs[7]), PyArray_DATA(outs[8]), PyArray_DATA(outs[9]),
+                             outs[10] ? PyArray_DATA(outs[10]) : NULL,
+                             outs[11] ? PyArray_DATA(outs[11]) : NULL};
+    double start[8];
+    const unsigned char *inl = a[2] ? PyArray_DATA(a[2]) : NULL;
+    unsigned char *tested = outs[12] ? PyArray_DATA(outs[12]) : NULL;
+    NPY_BEGIN_THREADS_DEF;
+    NPY_BEGIN_THREADS;
+    for (npy_intp i = 0; i < n && code == DQ_OK; i++) {
+        if ((code = dq_unit(zd + 8 * i, c->zu + 8 * i))) *bad = (size_t)i;
+        else if (!dq_finite_n(sd + 36 * i, 36)) {
+            code = DQ_E_NONFINITE; *bad = (size_t)i; *bad_name = "covariances";
+        }
+    }
+    if (code == DQ_OK && c->pick_start) {
+        size_t j = dq_motion_nearest(m, inl, (size_t)n);
+        if (j == (size_t)n) code = DQ_E_NO_INLIERS;
+        else memcpy(start, c->zu + 8 * j, sizeof start);
+    } else if (code == DQ_OK && (code = dq_unit(PyArray_DATA(a[3]), start))) {
+        *bad_name = "start";
+    }
+    if (code == DQ_OK && tested) {
+        if (c->find_tested) {
+            dq_motion_determined(m, inl, (size_t)n, c->taken, tested);
+            for (npy_intp i = 0; i < n; i++) tested[i] = tested[i] || (inl && !inl[i]);
+        } else {
+            memcpy(tested, PyArray_DATA(a[11]), (size_t)n);
+        }
+    }
+    if (code == DQ_OK) {
+        code = dq_motion_fit(c->zu, sd, inl, (size_t)n, m, start, tested, c->p, c->work, f, &per,
+                             bad);
+        *bad_name = "covariances";
+    }
+    /* (dq_spd_inverse's workspace fits in the fit's, spent by then) */
+    if (code == DQ_OK && !dq_spd_inverse(f->H, c->dim, c->work, PyArray_DATA(outs[13])))
+        code = DQ_E_SINGULAR;
+    NPY_END_THREADS;
+    return code;
+}
+
+/* The ValueError of motion_run's failure. */
+static void motion_error(int code, const char *bad_name, size_t bad, PyArrayObject **a)
+{
+    char what[256];
+    if (code == DQ_E_NO_INLIERS)
+        PyErr_SetString(PyExc_ValueError, "inliers: selects no measurement");
+    else if (code == DQ_E_SINGULAR)
+        PyErr_SetString(PyExc_ValueError, "covariances: the information is not positive definite");
+    else if (code == DQ_E_OVERFLOW)
+        PyErr_SetString(PyExc_ValueError, "covariances: the result is not finite (input too large)");
+    else if (strcmp(bad_name, "start") == 0) {
+        problem_text(code, PyArray_DATA(a[3]), 8, what, sizeof what);
+        PyErr_Format(PyExc_ValueError, "start: %s", what);
+    } else {
+        if (code == DQ_E_NOT_SPD)
+            snprintf(what, sizeof what, "not positive definite");
+        else
+            problem_text(code, (const double *)PyArray_DATA(a[0]) + 8 * bad, 8, what, sizeof what);
+        PyErr_Format(PyExc_ValueError, "%s[%zu]: %s", bad_name, bad, what);
+    }
+}
+
+/* motion_fit(poses (n, 8), covariances (n, 6, 6), inliers (n,) bool or None, start (8,) or
+ * None, stamps (n,), latencies (n,), slots (n,) int, priors (k,), prior_information (k,),
+ * twist, twist_information (6, 6) or None, tested (n,) bool, True or None, tol, max_iter,
+ * jacobians) -> (mean, twist, ell, H, chi2, status, iterations, dt, residuals, cost, G, nis,
+ * tested, P): the constant-twist fit of motion.h's dq_motion_fit, one problem a call. start
+ * None: dq_motion_nearest's inlier (a twist is estimated). tested True: every measurement but
+ * an inlier whose leaving out would leave the state undetermined (dq_motion_determined). G is
+ * None unless jacobians, nis and tested None without tested; P = H^-1 (dq_spd_inverse). */
+PyObject *py_motion_fit(PyObject *self, PyObject *args)
+{
+    PyObject *o[12];
+    int twist = 0, want_g = 0;
+    dq_fuse_params p = {1e-12, 100};
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOpOO|dip:motion_fit", &o[0], &o[1], &o[2], &o[3], &o[4],
+                          &o[5], &o[6], &o[7], &o[8], &twist, &o[10], &o[11], &p.tol,
+                          &p.max_iter, &want_g))
+        return NULL;
+    if (check_iteration(p.tol, p.max_iter) < 0) return NULL;
+    const int pick_start = o[3] == Py_None, find_tested = o[11] == Py_True;
+    if (pick_start && !twist) {
+        PyErr_SetString(PyExc_ValueError, "start: needed when no twist is estimated");
+        return NULL;
+    }
+    PyArrayObject *a[12] = {NULL}, *outs[14] = {NULL};
+    dq_taken *taken = NULL;
+    PyObject *result = NULL;
+    double *work = NULL, *zu = NULL;
+    npy_intp n = 0, k = 0;
+    if (motion_arrays(o, a, find_tested, &n, &k) < 0) goto done;
+    dq_motion_model m = {PyArray_DATA(a[4]), PyArray_DATA(a[5]), PyArray_DATA(a[6]), (size_t)k,
+                         PyArray_DATA(a[7]), PyArray_DATA(a[8]), twist,
+                         a[10] ? PyArray_DATA(a[10]) : NULL};
+    for (npy_intp i = 0; i < n; i++)
+        if (m.slot[i] < -1 || m.slot[i] >= k) {
+            PyErr_Format(PyExc_ValueError, "slots[%ld]: %lld is not -1 or a latency index < %ld",
+                         (long)i, (long long)m.slot[i], (long)k);
+            goto done;
+        }
+    npy_intp dim = (npy_intp)dq_motion_dim(&m);
+    if (motion_outputs(outs, n, k, dim, want_g, a[11] || find_tested) < 0) goto done;
+    work = (double *)malloc(sizeof(double) * dq_motion_workspace((size_t)n, &m));
+    zu = (double *)malloc(sizeof(double) * 8 * (size_t)n);
+    if (find_tested) taken = (dq_taken *)malloc(sizeof *taken * (size_t)n);
+    if (!work || !zu || (find_tested && !taken)) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    size_t bad = 0;
+    const char *bad_name = "poses";
+    dq_motion_fitted f;
+    motion_call c = {a, outs, n, (int)dim, pick_start, find_tested, &p, work, zu, taken};
+    int code = motion_run(&c, &m, &f, &bad, &bad_name);
+    if (code != DQ_OK) {
+        motion_error(code, bad_name, bad, a);
+        goto done;
+    }
+    memcpy(PyArray_DATA(outs[0]), f.mean, sizeof f.mean);
+    memcpy(PyArray_DATA(outs[1]), f.twist, sizeof f.twist);
+    *(double *)PyArray_DATA(outs[4]) = f.chi2;
+    *(npy_int64 *)PyArray_DATA(outs[5]) = f.status;
+    *(npy_int64 *)PyArray_DATA(outs[6]) = f.iterations;
+    result = steal_tuple(outs, 14);
+done:
+    free(work);
+    free(zu);
+    free(taken);
+    for (int j = 0; j < 12; j++) Py_XDECREF(a[j]);
+    for (int j = 0; j < 14; j++) Py_XDECREF(outs[j]);
+    return result;
+}
+
+/* motion_determined(stamps (n,), latencies (n,), inliers (n,) bool, two_instants) -> (n,) bool:
+ * motion.h's dq_motion_determined; two_instants: a twist without a prior is estimated. */
+PyObject *py_motion_determined(PyObject *self, PyObject *args)
+{
+    PyObject *o[3];
+    int two = 0;
+    if (!PyArg_ParseTuple(args, "OOOp:motion_determined", &o[0], &o[1], &o[2], &two)) return NULL;
+    PyArrayObject *a[3] = {NULL}, *out = NULL;
+    PyObject *result = NULL;
+    dq_taken *work = NULL;
+    if (!(a[0] = (PyArrayObject *)PyArray_FROM_OTF(o[0], NPY_DOUBLE, NPY_ARRAY_IN_ARRAY)))
+        goto done;
+    if (PyArray_NDIM(a[0]) != 1) {
+        PyErr_SetString(PyExc_ValueError, "stamps: expected shape (n,)");
+        goto done;
+    }
+    npy_intp n = PyArray_DIMS(a[0])[0];
+    if (!(a[1] = exact_array(o[1], NPY_DOUBLE, "latencies", 1, &n)) ||
+        !(a[2] = exact_array(o[2], NPY_BOOL, "inliers", 1, &n)) ||
+        !(out = (PyArrayObject *)PyArray_SimpleNew(1, &n, NPY_BOOL)))
+        goto done;
+    if (!(work = (dq_taken *)malloc(sizeof *work * (size_t)(n ? n : 1)))) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    static const double no_prior[36]; /* any non-NULL: "the twist has a prior" */
+    dq_motion_model m = {PyArray_DATA(a[0]), PyArray_DATA(a[1]), NULL, 0, NULL, NULL, 1,
+                         two ? NULL : no_prior};
+    dq_motion_determined(&m, PyArray_DATA(a[2]), (size_t)n, work, PyArray_DATA(out));
+    result = (PyObject *)out;
+    out = NULL;
+done:
+    free(work);
+    for (int j = 0; j < 3; j++) Py_XDECREF(a[j]);
+    Py_XDECREF(out);
+    return result;
+}
+
+/* pair_distances(poses (n, 8), covariances (n, 6, 6), candidates (m,) int) -> (m, n): fusion.h's
+ * dq_pair_distances, the GIL released. */
+PyObject *py_pair_distances(PyObject *self, PyObject *args)
+{
+    PyObject *o[3];
+    if (!PyArg_ParseTuple(args, "OOO:pair_distances", &o[0], &o[1], &o[2])) return NULL;
+    PyArrayObject *a[3] = {NULL}, *out = NULL;
+    PyObject *result = NULL;
+    if (!(a[0] = (PyArrayObject *)PyArray_FROM_OTF(o[0], NPY_DOUBLE, NPY_ARRAY_IN_ARRAY)))
+        goto done;
+    if (PyArray_NDIM(a[0]) != 2 || PyArray_DIMS(a[0])[1] != 8) {
+        PyErr_SetString(PyExc_ValueError, "poses: expected shape (n, 8)");
+        goto done;
+    }
+    npy_intp n = PyArray_DIMS(a[0])[0], s3[3] = {n, 6, 6};
+    if (!(a[1] = exact_array(o[1], NPY_DOUBLE, "covariances", 3, s3)) ||
+        !(a[2] = (PyArrayObject *)PyArray_FROM_OTF(o[2], NPY_LONGLONG, NPY_ARRAY_IN_ARRAY)))
+        goto done;
+    if (PyArray_NDIM(a[2]) != 1) {
+        PyErr_SetString(PyExc_ValueError, "candidates: expected shape (m,)");
+        goto done;
+    }
+    npy_intp m = PyArray_DIMS(a[2])[0], s2[2] = {m, n};
+    const long long *cand = PyArray_DATA(a[2]);
+    for (npy_intp k = 0; k < m; k++)
+        if (cand[k] < 0 || cand[k] >= n) {
+            PyErr_Format(PyExc_ValueError, "candidates[%zd]: not a measurement", (Py_ssize_t)k);
+            goto done;
+        }
+    if (!(out = (PyArrayObject *)PyArray_SimpleNew(2, s2, NPY_DOUBLE))) goto done;
+    size_t bad = 0;
+    int code;
+    Py_BEGIN_ALLOW_THREADS
+    code = dq_pair_distances(PyArray_DATA(a[0]), PyArray_DATA(a[1]), (size_t)n, cand, (size_t)m,
+                             PyArray_DATA(out), &bad);
+    Py_END_ALLOW_THREADS
+    if (code != DQ_OK) {
+        PyErr_Format(PyExc_ValueError, "covariances[%zu]: not positive definite", bad);
+        goto done;
+    }
+    result = (PyObject *)out;
+    out = NULL;
+done:
+    for (int j = 0; j < 3; j++) Py_XDECREF(a[j]);
+    Py_XDECREF(out);
+    return result;
+}

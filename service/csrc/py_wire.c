@@ -1,0 +1,279 @@
+/*
+ * py_wire.c — the Python functions of the wire codecs (wire.h): request bytes to arrays, the
+ * served Blend and BlendBatch from bytes to bytes, StreamFuse's requests decoded and checked, and
+ * the client's measurements encoded. Each returns None outside the decoder's plain case, and the
+ * caller (service/rpc) then takes its protobuf path, which names the problem.
+ */
+#include "py_args.h"
+
+#include <string.h>
+
+#include "wire.h"
+#include "py_functions.h"
+
+/* blend_request_from_wire(bytes) -> (poses (n, 7) [qw qx qy qz x y z], weights (m,), method,
+ * tolerance, max_iterations), or None when the bytes are not a BlendRequest this decoder
+ * understands (the caller then uses the protobuf parser, which says what is wrong). */
+PyObject *py_blend_request_from_wire(PyObject *self, PyObject *arg)
+{
+    Py_buffer view;
+    if (PyObject_GetBuffer(arg, &view, PyBUF_SIMPLE) < 0) return NULL;
+    dq_blend_request r;
+    memset(&r, 0, sizeof r);
+    PyObject *result = NULL;
+    PyArrayObject *poses = NULL, *weights = NULL;
+    if (dq_wire_blend_request((const uint8_t *)view.buf, (size_t)view.len, &r) < 0) {
+        result = Py_None;
+        Py_INCREF(result);
+        goto done;
+    }
+    npy_intp pd[2] = {(npy_intp)r.n_poses, 7}, wd[1] = {(npy_intp)r.n_weights};
+    poses = (PyArrayObject *)PyArray_SimpleNew(2, pd, NPY_DOUBLE);
+    weights = (PyArrayObject *)PyArray_SimpleNew(1, wd, NPY_DOUBLE);
+    if (!poses || !weights) goto done;
+    r.poses = r.n_poses ? (double *)PyArray_DATA(poses) : NULL;
+    r.weights = r.n_weights ? (double *)PyArray_DATA(weights) : NULL;
+    if (dq_wire_blend_request((const uint8_t *)view.buf, (size_t)view.len, &r) < 0) {
+        result = Py_None;
+        Py_INCREF(result);
+        goto done;
+    }
+    result = Py_BuildValue("(OOLdK)", poses, weights, (long long)r.method, r.tolerance,
+                           (unsigned long long)r.max_iterations);
+done:
+    Py_XDECREF(poses);
+    Py_XDECREF(weights);
+    PyBuffer_Release(&view);
+    return result;
+}
+
+/* blend_wire(bytes, max_poses, default_tol, default_max_iter, max_iter_limit) -> BlendResponse
+ * bytes, or None outside the plain case (see dq_wire_blend); the caller then takes the full path. */
+PyObject *py_blend_wire(PyObject *self, PyObject *args)
+{
+    Py_buffer view;
+    Py_ssize_t max_poses;
+    dq_wire_config cfg;
+    unsigned int dmi, lim;
+    if (!PyArg_ParseTuple(args, "y*ndII:blend_wire", &view, &max_poses, &cfg.default_tol, &dmi,
+                          &lim))
+        return NULL;
+    cfg.max_poses = max_poses > 0 ? (size_t)max_poses : 0;
+    cfg.default_max_iter = dmi;
+    cfg.max_iter_limit = lim;
+    uint8_t out[DQ_WIRE_RESPONSE_MAX];
+    size_t n = 0;
+    int rc;
+    if (view.len > 65536) { /* thousands of poses: let other threads run meanwhile */
+        Py_BEGIN_ALLOW_THREADS
+        rc = dq_wire_blend((const uint8_t *)view.buf, (size_t)view.len, &cfg, out, &n);
+        Py_END_ALLOW_THREADS
+    } else {
+        rc = dq_wire_blend((const uint8_t *)view.buf, (size_t)view.len, &cfg, out, &n);
+    }
+    PyBuffer_Release(&view);
+    if (rc) Py_RETURN_NONE;
+    return PyBytes_FromStringAndSize((const char *)out, (Py_ssize_t)n);
+}
+
+/* blend_batch_wire(bytes, max_requests, max_total_poses, max_poses, default_tol,
+ * default_max_iter, max_iter_limit) -> (BlendBatchResponse bytes, number of requests), or None
+ * outside the plain case (an empty batch, limits exceeded, any request not plain). */
+PyObject *py_blend_batch_wire(PyObject *self, PyObject *args)
+{
+    Py_buffer view;
+    Py_ssize_t max_requests, max_total, max_poses;
+    dq_wire_config cfg;
+    unsigned int dmi, lim;
+    if (!PyArg_ParseTuple(args, "y*nnndII:blend_batch_wire", &view, &max_requests, &max_total,
+                          &max_poses, &cfg.default_tol, &dmi, &lim))
+        return NULL;
+    cfg.max_poses = max_poses > 0 ? (size_t)max_poses : 0;
+    cfg.default_max_iter = dmi;
+    cfg.max_iter_limit = lim;
+    PyObject *result = NULL;
+    size_t n_req = 0, n_poses = 0, n = 0;
+    if (dq_wire_batch_count((const uint8_t *)view.buf, (size_t)view.len, &n_req, &n_poses) ||
+        n_req == 0 || n_req > (size_t)max_requests || n_poses > (size_t)max_total) {
+        result = Py_None;
+        Py_INCREF(result);
+        goto done;
+    }
+    uint8_t *out = PyMem_Malloc(n_req * DQ_WIRE_BATCH_ITEM_MAX);
+    if (!out) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    int rc;
+    Py_BEGIN_ALLOW_THREADS
+    rc = dq_wire_blend_batch((const uint8_t *)view.buf, (size_t)view.len, &cfg, out, &n);
+    Py_END_ALLOW_THREADS
+    if (rc) {
+        result = Py_None;
+        Py_INCREF(result);
+    } else {
+        result = Py_BuildValue("(y#n)", (const char *)out, (Py_ssize_t)n, (Py_ssize_t)n_req);
+    }
+    PyMem_Free(out);
+done:
+    PyBuffer_Release(&view);
+    return result;
+}
+
+/* fuse_stream_from_wire(bytes, sym_tol) -> (poses (n, 8), covariances (n, 6, 6), times (n,),
+ * codes (n,) uint8, bodies, sources (tuples of str), spans (n, 2): each measurement's offset and
+ * length in the bytes), or None outside the plain case (see dq_wire_fuse_stream). */
+PyObject *py_fuse_stream_from_wire(PyObject *self, PyObject *args)
+{
+    Py_buffer view;
+    double sym_tol;
+    if (!PyArg_ParseTuple(args, "y*d:fuse_stream_from_wire", &view, &sym_tol)) return NULL;
+    const uint8_t *buf = (const uint8_t *)view.buf;
+    PyObject *result = NULL, *bodies = NULL, *sources = NULL;
+    PyArrayObject *poses = NULL, *covs = NULL, *times = NULL, *codes = NULL, *spans = NULL;
+    uint32_t *sp = NULL;
+    dq_fuse_stream r;
+    memset(&r, 0, sizeof r);
+    if (dq_wire_fuse_count(buf, (size_t)view.len, &r)) goto none;
+    npy_intp n = (npy_intp)r.n;
+    npy_intp d8[2] = {n, 8}, d36[3] = {n, 6, 6}, d1[1] = {n}, d2[2] = {n, 2};
+    poses = (PyArrayObject *)PyArray_ZEROS(2, d8, NPY_DOUBLE, 0);
+    covs = (PyArrayObject *)PyArray_ZEROS(3, d36, NPY_DOUBLE, 0);
+    times = (PyArrayObject *)PyArray_ZEROS(1, d1, NPY_DOUBLE, 0);
+    codes = (PyArrayObject *)PyArray_ZEROS(1, d1, NPY_UINT8, 0);
+    spans = (PyArrayObject *)PyArray_ZEROS(2, d2, NPY_INT64, 0);
+    sp = PyMem_Malloc((size_t)(6 * n + 1) * sizeof *sp);
+    if (!poses || !covs || !times || !codes || !spans || !sp) {
+        if (!PyErr_Occurred()) PyErr_NoMemory();
+        goto done;
+    }
+    r.poses = (double *)PyArray_DATA(poses);
+    r.covs = (double *)PyArray_DATA(covs);
+    r.times = (double *)PyArray_DATA(times);
+    r.codes = (uint8_t *)PyArray_DATA(codes);
+    r.spans = sp;
+    if (dq_wire_fuse_stream(buf, (size_t)view.len, sym_tol, &r)) goto none;
+    bodies = PyTuple_New(n);
+    sources = PyTuple_New(n);
+    if (!bodies || !sources) goto done;
+    int64_t *out = (int64_t *)PyArray_DATA(spans);
+    for (npy_intp i = 0; i < n; i++) {
+        const uint32_t *s = sp + 6 * i;
+        PyObject *src = PyUnicode_DecodeASCII((const char *)buf + s[2], s[3], NULL);
+        if (!src) goto done;
+        PyTuple_SET_ITEM(sources, i, src);
+        PyObject *body = PyUnicode_DecodeASCII((const char *)buf + s[4], s[5], NULL);
+        if (!body) goto done;
+        PyTuple_SET_ITEM(bodies, i, body);
+        out[2 * i] = s[0];
+        out[2 * i + 1] = s[1];
+    }
+    result = PyTuple_Pack(7, poses, covs, times, codes, bodies, sources, spans);
+    goto done;
+none:
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    Py_XDECREF(poses);
+    Py_XDECREF(covs);
+    Py_XDECREF(times);
+    Py_XDECREF(codes);
+    Py_XDECREF(spans);
+    Py_XDECREF(bodies);
+    Py_XDECREF(sources);
+    PyMem_Free(sp);
+    PyBuffer_Release(&view);
+    return result;
+}
+
+static PyObject *double_rows(PyObject *obj, npy_intp n, npy_intp width, const char *name)
+{
+    if (obj == Py_None) return NULL;
+    PyObject *a = PyArray_FROM_OTF(obj, NPY_DOUBLE, NPY_ARRAY_IN_ARRAY);
+    if (a && PyArray_SIZE((PyArrayObject *)a) != n * width) {
+        PyErr_Format(PyExc_ValueError, "%s: expected %zd values, got %zd", name,
+                     (Py_ssize_t)(n * width), (Py_ssize_t)PyArray_SIZE((PyArrayObject *)a));
+        Py_CLEAR(a);
+    }
+    return a;
+}
+
+static int name_at(PyObject *seq, npy_intp i, const char *field, const char **s, Py_ssize_t *n)
+{
+    *s = "";
+    *n = 0;
+    if (!seq) return 0;
+    PyObject *item = PySequence_Fast_GET_ITEM(seq, i);
+    if (!PyUnicode_Check(item)) {
+        PyErr_Format(PyExc_ValueError, "%s[%zd]: expected a string, got %s", field, (Py_ssize_t)i,
+                     Py_TYPE(item)->tp_name);
+        return -1;
+    }
+    *s = PyUnicode_AsUTF8AndSize(item, n);
+    return *s ? 0 : -1;
+}
+
+/* measurements_wire(q (n, 4), t (n, 3), covariances (n, 36) or None, weights (n,) or None,
+ * times (n,) or None, sources or None, bodies or None) -> bytes: the measurements as repeated
+ * FuseStreamRequest.measurements (dq_wire_measurement). The caller has checked the shapes;
+ * a name that is not a str is a ValueError naming it. */
+PyObject *py_measurements_wire(PyObject *self, PyObject *args)
+{
+    PyObject *oq, *ot, *ocov, *ow, *otimes, *osrc, *obody;
+    if (!PyArg_ParseTuple(args, "OOOOOOO:measurements_wire", &oq, &ot, &ocov, &ow, &otimes, &osrc,
+                          &obody))
+        return NULL;
+    PyObject *q = NULL, *t = NULL, *cov = NULL, *w = NULL, *times = NULL, *src = NULL,
+             *body = NULL, *result = NULL;
+    uint8_t *buf = NULL;
+    Py_ssize_t n = PySequence_Size(oq);
+    if (n < 0) return NULL;
+    if (!(q = double_rows(oq, n, 4, "q")) || !(t = double_rows(ot, n, 3, "t"))) goto done;
+    if ((ocov != Py_None && !(cov = double_rows(ocov, n, 36, "covariances"))) ||
+        (ow != Py_None && !(w = double_rows(ow, n, 1, "weights"))) ||
+        (otimes != Py_None && !(times = double_rows(otimes, n, 1, "times"))))
+        goto done;
+    if (osrc != Py_None && !(src = PySequence_Fast(osrc, "sources: expected a sequence"))) goto done;
+    if (obody != Py_None && !(body = PySequence_Fast(obody, "bodies: expected a sequence"))) goto done;
+    if ((src && PySequence_Fast_GET_SIZE(src) != n) || (body && PySequence_Fast_GET_SIZE(body) != n)) {
+        PyErr_SetString(PyExc_ValueError, "sources, bodies: expected one name a measurement");
+        goto done;
+    }
+    size_t room = 0;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        const char *a, *b;
+        Py_ssize_t na, nb;
+        if (name_at(src, i, "names", &a, &na) || name_at(body, i, "bodies", &b, &nb)) goto done;
+        room += DQ_WIRE_MEASUREMENT_MAX + (size_t)na + (size_t)nb;
+    }
+    buf = PyMem_Malloc(room ? room : 1);
+    if (!buf) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    const double *pq = PyArray_DATA((PyArrayObject *)q), *pt = PyArray_DATA((PyArrayObject *)t);
+    const double *pc = cov ? PyArray_DATA((PyArrayObject *)cov) : NULL;
+    const double *pw = w ? PyArray_DATA((PyArrayObject *)w) : NULL;
+    const double *ptm = times ? PyArray_DATA((PyArrayObject *)times) : NULL;
+    size_t len = 0;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        const char *a, *b;
+        Py_ssize_t na, nb;
+        name_at(src, i, "names", &a, &na); /* checked above */
+        name_at(body, i, "bodies", &b, &nb);
+        len += dq_wire_measurement(buf + len, a, (size_t)na, b, (size_t)nb, ptm ? ptm[i] : 0.0,
+                                   pq + 4 * i, pt + 3 * i, pc ? pc + 36 * i : NULL,
+                                   pw ? pw[i] : 0.0);
+    }
+    result = PyBytes_FromStringAndSize((const char *)buf, (Py_ssize_t)len);
+done:
+    Py_XDECREF(q);
+    Py_XDECREF(t);
+    Py_XDECREF(cov);
+    Py_XDECREF(w);
+    Py_XDECREF(times);
+    Py_XDECREF(src);
+    Py_XDECREF(body);
+    PyMem_Free(buf);
+    return result;
+}

@@ -1,0 +1,118 @@
+"""The ``dqpose.v1.Trajectories`` messages <-> :mod:`dqpose.trajectory`: ``Limits``, a
+``PlanRequest`` as :func:`dqpose.trajectory.plan`'s arguments (Plan's and, inside an
+``ExecuteRequest``, Execute's), and the planned samples as ``TrajectorySample`` s and back (the
+client's).
+"""
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from dqpose import dq, trajectory
+from dqpose.errors import FieldError, rename
+from dqpose.rpc.geometry import (INTERPOLATION_ENUMS, interpolation_named, pose_arrays,
+                                 pose_msgs, poses_to_arrays, poses_to_dqs)
+from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
+from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
+
+#: Plan's (and Execute's) mode for INTERPOLATION_UNSPECIFIED (trajectories.proto says so)
+PLAN_INTERPOLATION = "tool_linear"
+
+
+def limits_from_msg(msg, field: str = "limits"):
+    """A ``Limits`` message to :class:`dqpose.trajectory.Limits`; errors name ``field``."""
+    try:
+        return trajectory.Limits(**{name: getattr(msg, name) for name in trajectory.LIMIT_FIELDS})
+    except ValueError as e:
+        raise rename(e, {"limits": field}) from None
+
+
+def limits_msg(limits) -> tpb.Limits:
+    """:class:`dqpose.trajectory.Limits` as a ``Limits`` message."""
+    return tpb.Limits(**{name: float(getattr(limits, name)) for name in trajectory.LIMIT_FIELDS})
+
+
+class PlanArgs(NamedTuple):
+    """A ``PlanRequest`` as the arguments of :func:`dqpose.trajectory.plan`."""
+    waypoints: list
+    limits: object
+    interpolation: str
+    start_velocity: np.ndarray | None
+    rate_hz: float
+
+
+def plan_from_msg(req, field: str = "", need_rate: bool = True) -> PlanArgs:
+    """A ``PlanRequest`` to :class:`PlanArgs`; errors name the field under ``field`` (``"plan."``
+    inside an ``ExecuteRequest``)."""
+    mode = interpolation_named(req.interpolation, PLAN_INTERPOLATION, f"{field}interpolation")
+    rate = float(req.rate_hz)
+    if need_rate and not (math.isfinite(rate) and 0 < rate <= 10_000):
+        raise FieldError(f"{field}rate_hz: must be within (0, 10000] samples per second, got {rate:g}")
+    if not req.HasField("limits"):
+        raise FieldError(f"{field}limits: required (velocity and acceleration limits)")
+    limits = limits_from_msg(req.limits, f"{field}limits")
+    dqs = poses_to_dqs(req.waypoints, f"{field}waypoints", ".pose")
+    waypoints = [trajectory.Waypoint(pose=dqs[i], time=w.time, blend_radius=w.blend_radius)
+                 for i, w in enumerate(req.waypoints)]
+    start = None
+    if req.HasField("start_linear_velocity") or req.HasField("start_angular_velocity"):
+        v, w = req.start_linear_velocity, req.start_angular_velocity
+        start = np.array([v.x, v.y, v.z, w.x, w.y, w.z], dtype=np.float64)
+        for name, part in (("start_linear_velocity", start[:3]),
+                           ("start_angular_velocity", start[3:])):
+            if not np.isfinite(part).all():
+                raise FieldError(f"{field}{name}: contains NaN or infinity")
+    return PlanArgs(waypoints, limits, mode, start, rate)
+
+
+def plan_msg(waypoints, limits, rate_hz: float = 0.0, interpolation: str = PLAN_INTERPOLATION,
+             start_velocity=None):
+    """Client side: the ``PlanRequest`` of :func:`dqpose.trajectory.plan`'s arguments
+    (``waypoints``: :class:`~dqpose.trajectory.Waypoint` or ``(8,)`` poses)."""
+    if interpolation not in trajectory.INTERPOLATIONS:
+        raise ValueError(f"interpolation: unknown {interpolation!r}; expected one of "
+                         f"{', '.join(trajectory.INTERPOLATIONS)}")
+    wps = [w if isinstance(w, trajectory.Waypoint) else trajectory.Waypoint(pose=np.asarray(w))
+           for w in waypoints]
+    poses = pose_msgs(*pose_arrays(np.array([w.pose for w in wps], dtype=np.float64).reshape(-1, 8)))
+    req = tpb.PlanRequest(
+        waypoints=[tpb.Waypoint(pose=p, time=w.time, blend_radius=w.blend_radius)
+                   for p, w in zip(poses, wps)],
+        limits=limits_msg(limits), rate_hz=rate_hz,
+        interpolation=INTERPOLATION_ENUMS[interpolation])
+    if start_velocity is not None:
+        s = np.asarray(start_velocity, dtype=np.float64).reshape(6).tolist()
+        req.start_linear_velocity.CopyFrom(geo.Vector3(x=s[0], y=s[1], z=s[2]))
+        req.start_angular_velocity.CopyFrom(geo.Vector3(x=s[3], y=s[4], z=s[5]))
+    return req
+
+
+def plan_info_msg(traj):
+    """A :class:`dqpose.trajectory.Trajectory`'s duration and segments as ``PlanInfo``."""
+    return tpb.PlanInfo(duration=traj.duration, segments=[
+        tpb.Segment(start=s.start, duration=s.duration, binding=s.binding) for s in traj.segments])
+
+
+def sample_msgs(samples) -> list:
+    """:class:`dqpose.trajectory.Samples` to ``TrajectorySample`` messages."""
+    q, t = pose_arrays(samples.pose)
+    v = np.asarray(samples.linear_velocity).tolist()
+    w = np.asarray(samples.angular_velocity).tolist()
+    return [tpb.TrajectorySample(time=time, pose=pose, linear_velocity=geo.Vector3(x=a, y=b, z=c),
+                                 angular_velocity=geo.Vector3(x=d, y=e, z=f))
+            for time, pose, (a, b, c), (d, e, f)
+            in zip(np.asarray(samples.time).tolist(), pose_msgs(q, t), v, w)]
+
+
+def samples_from_msgs(msgs):
+    """``TrajectorySample`` messages to ``(time (N,), pose (N, 8), linear_velocity (N, 3),
+    angular_velocity (N, 3))`` (client side, unvalidated)."""
+    msgs = list(msgs)
+    q, t = poses_to_arrays([m.pose for m in msgs])
+    vel = np.array([(m.linear_velocity.x, m.linear_velocity.y, m.linear_velocity.z,
+                     m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z)
+                    for m in msgs], dtype=np.float64).reshape(-1, 6)
+    times = np.array([m.time for m in msgs], dtype=np.float64)
+    return times, dq.from_pose(q, t) if len(msgs) else np.zeros((0, 8)), vel[:, :3], vel[:, 3:]
