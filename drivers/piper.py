@@ -44,8 +44,9 @@ class PiperArm(Arm):
     for ``watchdog`` seconds the arm is told to hold its measured pose. The arm counts as
     connected while both end-pose feedback and arm status (0x2A1) are younger than
     ``stale_after``. ``watchdog``, ``stale_after`` and the other keys of
-    :data:`dqpose.drivers.spec.ARM_KEYS` are ``options``. ``own_bus`` shuts the bus down on ``close()``
-    (``open_arm`` does, and waits up to ``connect_timeout`` for the arm's first feedback).
+    :data:`dqpose.drivers.spec.ARM_KEYS` are ``options``. ``own_bus`` shuts the bus down on
+    ``close()`` (``open_arm`` does, and waits up to ``connect_timeout`` for the arm's first
+    feedback).
 
     Arm status: ``status()`` sets ``emergency_stop`` for arm_status 0x01 and ``protective_stop``
     for the states where the arm has stopped itself and an operator must clear the cause

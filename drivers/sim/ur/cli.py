@@ -32,7 +32,9 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="dqpose sim ur",
                                  # the package docstring's first line says what it is
                                  description=sys.modules[__package__].__doc__.split("\n\n")[0])
-    ap.add_argument("--host", default=d.host, help="address to serve on (default %(default)s; one simulator per address, 0.0.0.0 only inside a container)")
+    ap.add_argument("--host", default=d.host,
+                    help="address to serve on (default %(default)s; one simulator per address, "
+                         "0.0.0.0 only inside a container)")
     ap.add_argument("--hook-port", type=int, default=d.hook_port, help="JSON-lines test hooks port")
     ap.add_argument("--pose", type=_parse_pose, default=d.pose,
                     help="initial TCP pose 'x y z rx ry rz' (metres, rotation vector in radians)")

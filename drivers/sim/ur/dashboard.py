@@ -16,7 +16,8 @@ class TextPorts:
 
     def _dashboard_client(self, conn: socket.socket):
         answers = {
-            "polyscopeversion": lambda: "URSoftware {}.{}.{}.{} (Jun 13 2023)".format(*self.cfg.version),
+            "polyscopeversion":
+                lambda: "URSoftware {}.{}.{}.{} (Jun 13 2023)".format(*self.cfg.version),
             "version": lambda: "{}.{}.{}.{}".format(*self.cfg.version),
             "get serial number": lambda: self.cfg.serial,
             "get robot model": lambda: "UR5",

@@ -97,7 +97,8 @@ class _Move:
         if self.t >= self.profile.duration:
             return self.p1.copy(), self.q1.copy(), True
         f = self.profile.fraction(self.t)
-        return self.p0 + f * (self.p1 - self.p0), _qmul(self.q0, quat_from_rotvec(f * self.w)), False
+        return (self.p0 + f * (self.p1 - self.p0), _qmul(self.q0, quat_from_rotvec(f * self.w)),
+                False)
 
 
 class Controller:

@@ -91,7 +91,8 @@ class URSimProcess:
         """Received commands from index ``since`` (``next`` is where the next call starts); each
         entry has the cycle ``tick``, ``mono`` (this machine's CLOCK_MONOTONIC when the package
         arrived: the kernel's receive stamp), ``read`` (when the simulator's thread had read and
-        decoded it), ``cmd``, ``args``, ``ints``. ``cmd`` keeps one command, ``keys`` those fields."""
+        decoded it), ``cmd``, ``args``, ``ints``. ``cmd`` keeps one command, ``keys`` those
+        fields."""
         kw = {k: v for k, v in (("cmd", cmd), ("keys", keys)) if v is not None}
         return self.call("log", since=since, **kw)
 

@@ -97,7 +97,8 @@ class URSim(Controller, RTDEServer, TextPorts, Hooks):
 
     def serve_forever(self):
         for listener, handler, kind in self._servers:
-            threading.Thread(target=self._accept, args=(listener, handler, kind), daemon=True).start()
+            threading.Thread(target=self._accept, args=(listener, handler, kind),
+                             daemon=True).start()
         next_t = time.monotonic()
         while not self.stopping.is_set():
             next_t += self.dt
