@@ -13,7 +13,7 @@ x along the squares, y down the board, z into the board.
 
 ChArUco corners: OpenCV's detector finds them and refines each with ``cornerSubPix``; we refine
 them once more, each in the largest window that stays off the two markers beside the corner
-(:meth:`CharucoCamera._refine_corners`). OpenCV's window reaches into those markers, whose edges
+(:mod:`dqpose.drivers.charuco_corners`). OpenCV's window reaches into those markers, whose edges
 pull every corner of a view the same way under perspective (toward the far side of the board):
 an error shared by all of a view's corners, invisible in the residuals, that made each pose's
 covariance too confident and hand-eye calibration end to end claim too much (mean NEES of X 8.9
@@ -30,187 +30,26 @@ is the exact chain-rule factor from ``xi`` to them.
 """
 from __future__ import annotations
 
-import glob
-import json
 import math
-import os
-import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Iterator, Optional, Union
 
 import cv2
 import numpy as np
 
 from dqpose.drivers.base import Measurement, PoseSource
+from dqpose.drivers.camera_config import BoardSpec, Intrinsics, load_board, load_intrinsics
+from dqpose.drivers.camera_frames import (IMAGE_EXTENSIONS, FolderFrames, LiveFrames, VideoFrames,
+                                          open_frames, read_image)
+from dqpose.drivers.charuco_corners import marker_free_reach, refine_off_markers
 from dqpose import dq, lie
 
+# The configuration, the frame sources and the corner windows live in their own modules
+# (camera_config, camera_frames, charuco_corners); their names stay importable from here.
 __all__ = ["Intrinsics", "BoardSpec", "Detection", "Rejection", "CharucoCamera", "pnp_chart",
            "marker_free_reach", "load_intrinsics", "load_board", "open_frames", "FolderFrames",
-           "VideoFrames", "IMAGE_EXTENSIONS"]
-
-IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
-
-
-# ---- configuration -----------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Intrinsics:
-    """Pinhole intrinsics: ``K`` 3x3, OpenCV distortion coefficients, image ``size`` (w, h)."""
-    K: np.ndarray
-    dist: np.ndarray = field(default_factory=lambda: np.zeros(5))
-    size: tuple[int, int] = (640, 480)
-
-    def __post_init__(self):
-        K = np.asarray(self.K, dtype=float)
-        if K.shape != (3, 3) or not np.all(np.isfinite(K)):
-            raise ValueError(f"K: expected a finite 3x3 matrix, got shape {K.shape}")
-        if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1 or np.any(K[[1, 2, 2], [0, 0, 1]] != 0):
-            raise ValueError("K: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
-        dist = np.asarray(self.dist, dtype=float).ravel()
-        if dist.size not in (0, 4, 5, 8, 12, 14) or not np.all(np.isfinite(dist)):
-            raise ValueError(f"dist: expected 4, 5, 8, 12 or 14 finite coefficients, got "
-                             f"{dist.size}")
-        size = tuple(int(v) for v in self.size)
-        if len(size) != 2 or min(size) <= 0:
-            raise ValueError(f"size: expected (width, height) > 0, got {self.size!r}")
-        object.__setattr__(self, "K", K)
-        object.__setattr__(self, "dist", dist if dist.size else np.zeros(5))
-        object.__setattr__(self, "size", size)
-
-
-def _read_mapping(path: str, what: str) -> dict:
-    if not os.path.isfile(path):
-        raise ValueError(f"{what}: no such file: {path!r}")
-    with open(path, "r", encoding="utf-8") as f:
-        text = f.read()
-    try:
-        if path.lower().endswith(".json"):
-            data = json.loads(text)
-        else:
-            import yaml
-            # OpenCV FileStorage YAML starts with a %YAML directive and tags matrices.
-            if text.startswith("%YAML"):
-                text = text.split("\n", 1)[1].replace("!!opencv-matrix", "")
-            data = yaml.safe_load(text)
-    except Exception as e:  # json and yaml raise different types; the message is what matters
-        raise ValueError(f"{what}: cannot parse {path!r}: {e}") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{what}: {path!r} does not hold a mapping")
-    return data
-
-
-def _matrix(value, key: str, shape=None) -> np.ndarray:
-    # OpenCV / ROS style {rows, cols, data}
-    if isinstance(value, dict) and "data" in value:
-        a = np.asarray(value["data"], dtype=float)
-        if "rows" in value and "cols" in value:
-            a = a.reshape(int(value["rows"]), int(value["cols"]))
-    else:
-        try:
-            a = np.asarray(value, dtype=float)
-        except (TypeError, ValueError):
-            raise ValueError(f"{key}: not a numeric array") from None
-    if shape is not None:
-        if a.size != int(np.prod(shape)):
-            raise ValueError(f"{key}: expected {int(np.prod(shape))} numbers, got {a.size}")
-        a = a.reshape(shape)
-    return a
-
-
-def load_intrinsics(path: str) -> Intrinsics:
-    """Read intrinsics from YAML or JSON. Accepted keys: ``K`` / ``camera_matrix`` (3x3 nested
-    list, 9 numbers, or ``{rows, cols, data}``), ``dist`` / ``distortion`` /
-    ``distortion_coefficients`` / ``D``, and ``image_size`` / ``size`` ``[w, h]`` or
-    ``image_width`` + ``image_height`` (ROS ``camera_info`` and OpenCV files both work)."""
-    data = _read_mapping(path, "intrinsics")
-
-    def pick(*keys):
-        for k in keys:
-            if k in data:
-                return k, data[k]
-        return None, None
-    k, K = pick("K", "camera_matrix", "cameraMatrix")
-    if K is None:
-        raise ValueError(f"intrinsics: {path!r} has no K (or camera_matrix)")
-    K = _matrix(K, f"intrinsics.{k}", (3, 3))
-    kd, dist = pick("dist", "distortion", "distortion_coefficients", "dist_coeffs", "D")
-    dist = np.zeros(5) if dist is None else _matrix(dist, f"intrinsics.{kd}").ravel()
-    ks, size = pick("image_size", "size")
-    if size is None:
-        if "image_width" in data and "image_height" in data:
-            size = (data["image_width"], data["image_height"])
-        else:
-            raise ValueError(f"intrinsics: {path!r} has no image_size (or image_width and "
-                             "image_height)")
-    try:
-        size = tuple(int(v) for v in _matrix(size, "intrinsics.image_size").ravel())
-    except ValueError:
-        raise ValueError(f"intrinsics.image_size: expected [width, height], got {size!r}") \
-            from None
-    return Intrinsics(K=K, dist=dist, size=size)
-
-
-@dataclass(frozen=True)
-class BoardSpec:
-    """A ChArUco board (``kind="charuco"``: ``squares`` (x, y), ``square_length`` and
-    ``marker_length`` in metres) or one ArUco marker (``kind="marker"``: ``marker_length``,
-    ``marker_id``; None accepts the only marker in view)."""
-    kind: str = "charuco"
-    squares: tuple[int, int] = (7, 5)
-    square_length: float = 0.04
-    marker_length: float = 0.03
-    dictionary_name: str = "DICT_5X5_100"
-    marker_id: Optional[int] = None
-
-    def __post_init__(self):
-        if self.kind not in ("charuco", "marker"):
-            raise ValueError(f"board.kind: expected 'charuco' or 'marker', got {self.kind!r}")
-        if not hasattr(cv2.aruco, self.dictionary_name) or \
-                not self.dictionary_name.startswith("DICT_"):
-            raise ValueError(f"board.dictionary_name: unknown ArUco dictionary "
-                             f"{self.dictionary_name!r}")
-        if not (self.marker_length > 0 and math.isfinite(self.marker_length)):
-            raise ValueError(f"board.marker_length: must be positive, got {self.marker_length}")
-        if self.kind == "charuco":
-            sx, sy = (int(v) for v in self.squares)
-            if sx < 2 or sy < 2:
-                raise ValueError(f"board.squares: need at least 2x2 squares, got {self.squares}")
-            if not self.square_length > self.marker_length:
-                raise ValueError("board.marker_length: must be smaller than square_length")
-            object.__setattr__(self, "squares", (sx, sy))
-
-    @property
-    def dictionary(self):
-        return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary_name))
-
-    @property
-    def cv_board(self) -> "cv2.aruco.CharucoBoard":
-        return cv2.aruco.CharucoBoard(self.squares, self.square_length, self.marker_length,
-                                      self.dictionary)
-
-    @property
-    def extent(self) -> tuple[float, float]:
-        """Width and height of the pattern in metres."""
-        if self.kind == "charuco":
-            return self.squares[0] * self.square_length, self.squares[1] * self.square_length
-        return self.marker_length, self.marker_length
-
-    @property
-    def n_corners(self) -> int:
-        return (self.squares[0] - 1) * (self.squares[1] - 1) if self.kind == "charuco" else 4
-
-
-def load_board(path: str) -> BoardSpec:
-    """A :class:`BoardSpec` from YAML/JSON with the same field names."""
-    data = _read_mapping(path, "board")
-    allowed = {"kind", "squares", "square_length", "marker_length", "dictionary_name",
-               "marker_id"}
-    extra = set(data) - allowed
-    if extra:
-        raise ValueError(f"board: unknown keys {sorted(extra)} in {path!r}")
-    if "squares" in data:
-        data["squares"] = tuple(data["squares"])
-    return BoardSpec(**data)
+           "VideoFrames", "LiveFrames", "read_image", "IMAGE_EXTENSIONS"]
 
 
 # ---- results -----------------------------------------------------------------------------------
@@ -250,134 +89,6 @@ class Rejection:
         return self.message
 
 
-# ---- frame sources -----------------------------------------------------------------------------
-class FolderFrames:
-    """Images of a folder in name order. An unreadable image raises ``ValueError``."""
-
-    def __init__(self, folder: str):
-        if not os.path.isdir(folder):
-            raise ValueError(f"source: no such folder: {folder!r}")
-        self.paths = sorted(p for p in glob.glob(os.path.join(folder, "*"))
-                            if p.lower().endswith(IMAGE_EXTENSIONS))
-        if not self.paths:
-            raise ValueError(f"source: no images ({', '.join(IMAGE_EXTENSIONS)}) in {folder!r}")
-        self._next = 0
-        self.current: Optional[str] = None
-
-    def read(self, timeout: Optional[float] = None) -> Optional[np.ndarray]:
-        if self._next >= len(self.paths):
-            return None
-        path = self.paths[self._next]
-        self._next += 1
-        self.current = path
-        return read_image(path)
-
-    def close(self) -> None:
-        pass
-
-
-class VideoFrames:
-    """A ``cv2.VideoCapture`` device index or video file."""
-
-    def __init__(self, source: Union[int, str]):
-        self.cap = cv2.VideoCapture(source)
-        if not self.cap.isOpened():
-            self.cap.release()
-            what = f"camera device {source}" if isinstance(source, int) else f"video {source!r}"
-            raise ValueError(f"source: cannot open {what}")
-        self.current = source
-
-    def read(self, timeout: Optional[float] = None) -> Optional[np.ndarray]:
-        ok, frame = self.cap.read()
-        return frame if ok else None
-
-    def close(self) -> None:
-        self.cap.release()
-
-
-class LiveFrames:
-    """A live frame source (a camera device) read by a background thread that keeps only the
-    newest frame: ``read(timeout)`` returns a frame not returned before, waits at most
-    ``timeout`` seconds for one (then raises ``TimeoutError``: a stalled or unplugged camera must
-    not hang a fusion loop), and returns None once the source has ended. A consumer slower than
-    the camera skips frames instead of falling behind; ``dropped`` counts them."""
-
-    def __init__(self, frames):
-        self._frames = frames
-        self.current = getattr(frames, "current", None)
-        self._cond = threading.Condition()
-        self._frame: Optional[np.ndarray] = None
-        self._fresh = False
-        self._ended = False
-        self._error: Optional[BaseException] = None
-        self._closing = False
-        self.dropped = 0
-        self._thread = threading.Thread(target=self._run, name="camera-frames", daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        try:
-            while not self._closing:
-                frame = self._frames.read()
-                with self._cond:
-                    if frame is None:
-                        break
-                    self.dropped += self._fresh
-                    self._frame, self._fresh = frame, True
-                    self._cond.notify_all()
-        except Exception as e:   # handed to the reader, which raises it
-            self._error = e
-        with self._cond:
-            self._ended = True
-            self._cond.notify_all()
-
-    def read(self, timeout: Optional[float] = None) -> Optional[np.ndarray]:
-        with self._cond:
-            if not self._cond.wait_for(lambda: self._fresh or self._ended, timeout):
-                raise TimeoutError(f"no frame within {timeout:g} s")
-            if self._fresh:
-                self._fresh = False
-                return self._frame
-            if self._error is not None:
-                raise self._error
-            return None
-
-    def close(self) -> None:
-        self._closing = True
-        self._frames.close()        # also unblocks a read() in progress on most backends
-        self._thread.join(timeout=2.0)
-
-
-def read_image(path: str) -> np.ndarray:
-    if not os.path.isfile(path):
-        raise ValueError(f"image: no such file: {path!r}")
-    img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise ValueError(f"image: cannot decode {path!r} (not an image, or corrupt)")
-    return img
-
-
-def open_frames(source: Union[int, str]):
-    """A device index (int or digit string), a folder of images, one image, a video file, or a
-    frame source object (``read(timeout=None)`` and ``close()``), used as it is."""
-    if isinstance(source, (int, np.integer)) or (isinstance(source, str) and source.isdigit()):
-        return LiveFrames(VideoFrames(int(source)))
-    if callable(getattr(source, "read", None)) and callable(getattr(source, "close", None)):
-        return source
-    if not isinstance(source, (str, os.PathLike)):
-        raise ValueError(f"source: expected a device index or a path, got {source!r}")
-    source = os.fspath(source)
-    if os.path.isdir(source):
-        return FolderFrames(source)
-    if not os.path.exists(source):
-        raise ValueError(f"source: no such file or folder: {source!r}")
-    if source.lower().endswith(IMAGE_EXTENSIONS):
-        frames = FolderFrames.__new__(FolderFrames)
-        frames.paths, frames._next, frames.current = [source], 0, None
-        return frames
-    return VideoFrames(source)
-
-
 # ---- the detector ------------------------------------------------------------------------------
 def pnp_chart(rvec) -> np.ndarray:
     """``d(rvec, tvec) / d xi`` at ``xi = 0`` for ``T(rvec, tvec) * Exp(xi)``, 6x6.
@@ -395,58 +106,6 @@ def pnp_chart(rvec) -> np.ndarray:
     J[:3, :3] = lie.so3_right_jacobian_inv(w)
     J[3:, 3:] = cv2.Rodrigues(w)[0]
     return J
-
-
-#: What ``cornerSubPix`` reads beyond its window, in pixels: the gradient at the window's edge
-#: is a central difference of bilinear samples, so it reaches 2 px farther, and the last pixel
-#: it reads integrates light from half a pixel beyond its centre.
-_SUBPIX_REACH = 2.5
-#: window half-sizes: at most OpenCV's own cap for ChArUco corners; at least 3, as smaller
-#: windows hold too few edge pixels to fix a corner (on 21,000 clean rendered corners, RMS
-#: error 0.18-0.53 px with 3x3 windows, 0.06-0.11 px with 5x5 and 0.05-0.10 px with 7x7, where
-#: OpenCV's windows give 0.05-0.09 px); a corner whose markers are nearer than that keeps a 7x7
-#: window, which there reaches only the markers' outer rim (pull toward the near side over
-#: the 1,230 such corners of 900 views: -0.0005 px)
-_MIN_SUBPIX_WINDOW, _MAX_SUBPIX_WINDOW = 3, 10
-#: refined to convergence: the refinement starts within ~0.1 px of its answer, and OpenCV's
-#: default (stop once a step is under 0.1 px) would keep the start
-_SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-3)
-
-
-def marker_free_reach(J, gap: float) -> np.ndarray:
-    """For each ChArUco corner, how far (in pixels, as a square's half-size around the corner)
-    the image can be read before reaching a marker.
-
-    ``J`` ``(n, 2, 2)``: the board's local scale in the image at each corner, image pixels per
-    board metre along the board's x and y. ``gap``: the white gap between a chessboard corner
-    and the markers beside it, ``(square_length − marker_length) / 2``; the markers lie where
-    both board offsets from the corner are at least ``gap``. The image square ``|u|∞ ≤ r`` maps
-    to the board parallelogram ``J⁻¹ u``; the answer is the ``r`` at which it first touches the
-    region ``|dx| ≥ gap and |dy| ≥ gap``, i.e. ``gap / max over |u|∞ ≤ 1 of min(|a·u|, |b·u|)``
-    (``a``, ``b`` the rows of ``J⁻¹``). For each sign pattern that maximum of the smaller of
-    two linear functions over a square lies at a vertex or where the two are equal on an
-    edge: six candidates, evaluated exactly.
-    """
-    Ji = np.linalg.inv(np.asarray(J, dtype=np.float64))
-    n = len(Ji)
-    best = np.zeros(n)
-    for sa, sb in ((1, 1), (1, -1), (-1, 1), (-1, -1)):   # the four markers' quadrants
-        a, b = sa * Ji[:, 0, :], sb * Ji[:, 1, :]
-        c = a - b
-        points = [np.broadcast_to(v, (n, 2))
-                  for v in ((1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0))]
-        for k in (0, 1):                # on the edge u_k = ±1, where a·u = b·u
-            o = 1 - k
-            for s in (1.0, -1.0):
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    uo = -s * c[:, k] / c[:, o]
-                u = np.zeros((n, 2))
-                u[:, k] = s
-                u[:, o] = np.where(np.abs(uo) <= 1, uo, np.nan)
-                points.append(u)
-        for u in points:
-            best = np.fmax(best, np.minimum(np.sum(a * u, axis=1), np.sum(b * u, axis=1)))
-    return gap / best
 
 
 def _to_gray(image: np.ndarray) -> np.ndarray:
@@ -594,37 +253,10 @@ class CharucoCamera(PoseSource):
 
     def _refine_corners(self, gray: np.ndarray, obj: np.ndarray, img: np.ndarray, rvec,
                         tvec) -> np.ndarray:
-        """The ChArUco corners refined again with windows that keep off the markers.
-
-        OpenCV refines each corner with ``cornerSubPix`` in a window of half-size "distance to
-        the nearest marker corner − 2 px" (up to 10): a square that reaches into the two
-        markers beside the corner, whose edges pull the corner off. Under perspective the pull
-        of the nearer marker and the farther one do not cancel, so every corner of a view moves
-        the same way (toward the far side of the board: 0.0067 ± 0.0002 px on average over
-        3000 rendered views, more at larger tilts): an error the corners share, which no
-        residual shows and which made the pose's covariance 1.3–1.5× too confident along the
-        directions the corners fix best. Here each window is the largest whose pixels stay out
-        of the markers (:func:`marker_free_reach`, from ``(rvec, tvec)``'s local scale of the
-        board in the image, lens distortion included), less what ``cornerSubPix`` reads beyond
-        its window (``_SUBPIX_REACH``), within ``_MIN_SUBPIX_WINDOW`` .. ``_MAX_SUBPIX_WINDOW``:
-        pull −0.0001 ± 0.0002 px (tests/bench/bench_charuco_corners.py)."""
-        K, dist = self.intrinsics.K, self.intrinsics.dist
-        h = 1e-3 * self.board.square_length
-        n = len(obj)
-        moved = np.concatenate([obj, obj + [h, 0.0, 0.0], obj + [0.0, h, 0.0]])
-        p, _ = cv2.projectPoints(moved, rvec, tvec, K, dist)
-        p = p.reshape(3, n, 2)
-        J = np.stack([p[1] - p[0], p[2] - p[0]], axis=-1) / h   # image px per board metre
-        gap = (self.board.square_length - self.board.marker_length) / 2
-        half = np.clip(np.floor(marker_free_reach(J, gap) - _SUBPIX_REACH), _MIN_SUBPIX_WINDOW,
-                       _MAX_SUBPIX_WINDOW)
-        out = img.copy()
-        for w in np.unique(half).astype(int):
-            sel = half == w
-            q = cv2.cornerSubPix(gray, img[sel].astype(np.float32).reshape(-1, 1, 2), (w, w),
-                                 (-1, -1), _SUBPIX_CRITERIA)
-            out[sel] = q.reshape(-1, 2)
-        return out
+        """The ChArUco corners refined again with windows that keep off the markers
+        (:func:`~dqpose.drivers.charuco_corners.refine_off_markers`); a subclass can keep
+        OpenCV's corners instead (tests/bench/bench_handeye.py compares the two)."""
+        return refine_off_markers(gray, obj, img, rvec, tvec, self.intrinsics, self.board)
 
     def _detect(self, gray: np.ndarray) -> Union[Detection, Rejection]:
         pts = self._points(gray)

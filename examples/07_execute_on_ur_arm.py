@@ -12,7 +12,7 @@ import numpy as np
 
 from dqpose import drivers
 from dqpose.drivers.executor import Executor
-from dqpose.drivers.sim.ursim import URSimProcess
+from dqpose.drivers.sim.ur import URSimProcess
 from dqpose import dq, trajectory
 from dqpose.cli.common import local_server
 from dqpose.rpc.client import Client, RpcError

@@ -60,7 +60,7 @@ def sim():
     may be descheduled and then read a burst of set-points at once; a generous speed limit keeps
     such bursts from being clipped (the speed limit has its own test)."""
     pytest.importorskip("rtde_control")
-    from dqpose.drivers.sim import ursim
+    from dqpose.drivers.sim import ur as ursim
     with ursim.URSimProcess(args=("--max-linear-speed", "5")) as s:
         yield s
 

@@ -22,7 +22,7 @@ from typing import Optional, Sequence
 import cv2
 import numpy as np
 
-from dqpose.drivers.camera import BoardSpec, Intrinsics
+from dqpose.drivers.camera_config import BoardSpec, Intrinsics
 from dqpose import dq
 
 __all__ = ["BoardRenderer", "look_at", "random_view", "main", "add_arguments", "run",
@@ -161,7 +161,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dqpose.drivers.camera import load_board, load_intrinsics
+    from dqpose.drivers.camera_config import load_board, load_intrinsics
     if args.count < 1:
         print("dqpose sim camera: --count must be at least 1")
         return 2

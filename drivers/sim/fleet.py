@@ -46,7 +46,7 @@ class Fleet(contextlib.ExitStack):
         super().__enter__()
         try:
             if "ur" in self.devices:
-                from dqpose.drivers.sim.ursim import URSimProcess
+                from dqpose.drivers.sim.ur import URSimProcess
                 try:
                     sim = self.enter_context(URSimProcess())
                 except RuntimeError as e:   # as OSError: the CLI reports it in one line

@@ -37,11 +37,12 @@ import numpy as np
 from dqpose.drivers.base import pose_delta, tool_line
 from dqpose.drivers.sim import end_process, start_process, stop_when_orphaned
 from dqpose.drivers.euler import dq_from_xyz_sxyz
-from dqpose.drivers.piper import (ARM_COLLISION, ARM_EMERGENCY_STOP, ARM_NORMAL, COMMAND_BLOCK,
-                           CTRL_MODE_CAN, END_POSE_CTRL, END_POSE_FEEDBACK, MOTION_CTRL_2, MOVE_L,
-                           MOVE_P, EndPoseAssembler, FrameError, MotionMode, StatusReport,
-                           decode_motion_mode, encode_arm_status, encode_end_pose, pose_to_units,
-                           units_to_pose)
+from dqpose.drivers.piper_can import (ARM_COLLISION, ARM_EMERGENCY_STOP, ARM_NORMAL,
+                                      COMMAND_BLOCK, CTRL_MODE_CAN, END_POSE_CTRL,
+                                      END_POSE_FEEDBACK, MOTION_CTRL_2, MOVE_L, MOVE_P,
+                                      EndPoseAssembler, FrameError, MotionMode, StatusReport,
+                                      decode_motion_mode, encode_arm_status, encode_end_pose,
+                                      pose_to_units, units_to_pose)
 from dqpose import dq
 
 __all__ = ["PiperSim", "PiperSimProcess", "HOME", "DEFAULT_INTERFACE", "DEFAULT_CHANNEL", "main",

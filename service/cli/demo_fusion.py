@@ -121,7 +121,7 @@ def run(steps: int = 200, *, seed: int = 0, arm_sigma=(2e-3, 1e-3), noise: float
     from dqpose.drivers.camera import CharucoCamera, Intrinsics
     from dqpose.drivers.executor import Executor
     from dqpose.drivers.sim.camera import BoardRenderer
-    from dqpose.drivers.sim.ursim import URSimProcess
+    from dqpose.drivers.sim.ur import URSimProcess
     from dqpose.cli.common import local_server, open_arm
     from dqpose.fusion import Source
     from dqpose.rpc.client import Client

@@ -66,7 +66,7 @@ def run(target: str | None = None, progress: bool = False) -> Result:
     from dqpose import drivers
     from dqpose.drivers.executor import Executor
     from dqpose.drivers.rotvec import pose_from_rotvec
-    from dqpose.drivers.sim import ursim
+    from dqpose.drivers.sim import ur as ursim
     from dqpose.cli.common import local_server, open_arm
     from dqpose.rpc.client import Client
 
@@ -104,7 +104,7 @@ def run(target: str | None = None, progress: bool = False) -> Result:
 def servo_arrivals(sim, mark: int) -> np.ndarray:
     """When each servoL set-point since the hook log's entry ``mark`` reached the simulated
     controller (``time.monotonic()`` seconds)."""
-    from dqpose.drivers.sim import ursim
+    from dqpose.drivers.sim import ur as ursim
     arrivals = []
     while True:        # read in pages: the simulator answers a bounded log per call
         got = sim.log(mark, cmd=ursim.SERVOL, keys=["mono"])

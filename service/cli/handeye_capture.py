@@ -265,7 +265,7 @@ def _open_cell(args, stack, board, intr, flanges, rng):
     from dqpose.drivers.base import Limits
     from dqpose.drivers.rotvec import rotvec_from_pose
     from dqpose.drivers.sim.camera import BoardRenderer
-    from dqpose.drivers.sim.ursim import URSimProcess
+    from dqpose.drivers.sim.ur import URSimProcess
     x_true, z_true, home = _sim_cell(args.setup, board)
     ursim = URSimProcess()
     stack.push(functools.partial(_end_simulator, ursim))

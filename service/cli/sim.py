@@ -13,7 +13,7 @@ import importlib
 from dqpose.cli.common import missing_extra
 
 SIMULATORS = {
-    "ur": "dqpose.drivers.sim.ursim:main",
+    "ur": "dqpose.drivers.sim.ur:main",
     "piper": "dqpose.drivers.sim.piper:main",
     "camera": "dqpose.drivers.sim.camera:main",
 }

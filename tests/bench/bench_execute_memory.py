@@ -23,7 +23,7 @@ import numpy as np
 
 from dqpose import drivers
 from dqpose.drivers.executor import Executor
-from dqpose.drivers.sim import ursim
+from dqpose.drivers.sim import ur as ursim
 from dqpose import dq, trajectory
 
 

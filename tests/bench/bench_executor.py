@@ -38,7 +38,7 @@ import numpy as np
 
 from dqpose import drivers
 from dqpose.drivers.executor import Executor, Result
-from dqpose.drivers.sim import ursim
+from dqpose.drivers.sim import ur as ursim
 from dqpose import dq
 
 LAG = 2     # the simulator's servo lag in cycles (SimConfig.servo_lag)

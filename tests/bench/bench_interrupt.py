@@ -30,7 +30,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "cli"))
 from _interrupt import Command, SimWatch, sim_host  # noqa: E402
 
-from dqpose.drivers.sim.ursim import (MOVEL, SERVO_STOP, SERVOL, SPEED_STOP, STOP_SCRIPT,  # noqa: E402
+from dqpose.drivers.sim.ur import (MOVEL, SERVO_STOP, SERVOL, SPEED_STOP, STOP_SCRIPT,  # noqa: E402
                                STOPJ, STOPL)
 
 STOPS = (SERVO_STOP, SPEED_STOP, STOPL, STOPJ, STOP_SCRIPT)

@@ -16,7 +16,7 @@ import time
 import numpy as np
 
 from dqpose.drivers.rotvec import pose_from_rotvec, rotvec_from_pose
-from dqpose.drivers.sim import ursim
+from dqpose.drivers.sim import ur as ursim
 from dqpose.drivers.ur import URArm
 
 

@@ -175,11 +175,11 @@ def sim_host(cmd: Command, timeout: float = 120.0) -> tuple[int, str]:
     """The pid and address of the UR simulator ``cmd`` started, once it serves there (its hooks
     answer with its pid: a simulator that could not have its address, or was too slow to start,
     is replaced by one on the next address)."""
-    from dqpose.drivers.sim.ursim import HOOK_PORT
+    from dqpose.drivers.sim.ur import HOOK_PORT
     found: list = []
 
     def serving():
-        for pid, argv in children(cmd.proc.pid, "dqpose.drivers.sim.ursim"):
+        for pid, argv in children(cmd.proc.pid, "dqpose.drivers.sim.ur"):
             host = argv[argv.index("--host") + 1]
             try:
                 with socket.create_connection((host, HOOK_PORT), timeout=1.0) as s, \
@@ -222,7 +222,7 @@ class SimWatch:
     connections (:meth:`hold`) was still alive once the count was in."""
 
     def __init__(self, host: str):
-        from dqpose.drivers.sim.ursim import HOOK_PORT
+        from dqpose.drivers.sim.ur import HOOK_PORT
         deadline = time.monotonic() + 60
         while True:
             try:

@@ -215,7 +215,7 @@ def _capture_on_the_sim_arm(eye_in_hand, capsys, frames, folder: str, views: int
     pose of the eye_in_hand capture, with the images in ``frames`` as the camera: ``(code, out,
     err, the start pose, where the arm stands at the end)``."""
     from dqpose.drivers.rotvec import rotvec_from_pose
-    from dqpose.drivers.sim.ursim import URSimProcess
+    from dqpose.drivers.sim.ur import URSimProcess
     with open(os.path.join(eye_in_hand, "poses.json")) as f:
         start = _pose(json.load(f)["poses"][0]["base_to_flange"])
     with URSimProcess() as sim:

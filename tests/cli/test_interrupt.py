@@ -19,7 +19,7 @@ pytest.importorskip("rtde_control")
 from _interrupt import (EXIT_TIMEOUT, Command, SimWatch, alive, arm_process,  # noqa: E402
                         assert_stopped_after, children, sim_host)
 
-from dqpose.drivers.sim.ursim import (MOVEL, SERVO_STOP, SERVOL, SPEED_STOP, STOP_SCRIPT,  # noqa: E402
+from dqpose.drivers.sim.ur import (MOVEL, SERVO_STOP, SERVOL, SPEED_STOP, STOP_SCRIPT,  # noqa: E402
                                STOPJ, STOPL)
 
 MOTION = (SERVOL, MOVEL)
@@ -112,7 +112,7 @@ def test_ctrl_c_ends_serve_with_its_simulators(tmp_path):
     cmd = Command("serve", "--sims", "--port", "0")
     try:
         cmd.wait_for(lambda: '"event": "serving"' in cmd.stderr, "the server serving")
-        sims = [pid for pid, _ in children(cmd.proc.pid, "dqpose.drivers.sim.ursim")
+        sims = [pid for pid, _ in children(cmd.proc.pid, "dqpose.drivers.sim.ur")
                 + children(cmd.proc.pid, "dqpose.drivers.sim.piper")]
         cmd.interrupt()
         code = cmd.wait()
@@ -159,7 +159,7 @@ def test_a_second_ctrl_c_ends_serve_at_once():
         pid, host = sim_host(cmd)
         watch = SimWatch(host)
         cmd.wait_for(lambda: '"event": "serving"' in cmd.stderr, "the server serving")
-        sims = [p for p, _ in children(cmd.proc.pid, "dqpose.drivers.sim.ursim")
+        sims = [p for p, _ in children(cmd.proc.pid, "dqpose.drivers.sim.ur")
                 + children(cmd.proc.pid, "dqpose.drivers.sim.piper")]
         os.kill(cmd.proc.pid, signal.SIGTERM)           # to the server, as `kill` sends it
         cmd.wait_for(lambda: '"event": "shutting_down"' in cmd.stderr, "the shutdown")
@@ -187,7 +187,7 @@ def test_ctrl_c_ends_serve_while_an_arm_executes(tmp_path):
     import numpy as np
 
     from dqpose.drivers.rotvec import pose_from_rotvec
-    from dqpose.drivers.sim.ursim import URSimProcess
+    from dqpose.drivers.sim.ur import URSimProcess
     from dqpose import dq, trajectory
     from dqpose.rpc.client import Client
 

@@ -94,7 +94,7 @@ def test_serve_with_an_arm_executes_plans_on_it_and_stops_it_at_shutdown(flags, 
     import numpy as np
 
     from dqpose.drivers.rotvec import pose_from_rotvec
-    from dqpose.drivers.sim.ursim import URSimProcess
+    from dqpose.drivers.sim.ur import URSimProcess
     from dqpose import dq, trajectory
     from dqpose.rpc.client import Client
 

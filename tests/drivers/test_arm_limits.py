@@ -36,7 +36,7 @@ class URRig:
     def __init__(self, process: bool = False, **arm_options):
         pytest.importorskip("rtde_control")
         from dqpose.drivers.rotvec import pose_from_rotvec
-        from dqpose.drivers.sim import ursim
+        from dqpose.drivers.sim import ur as ursim
         self._ursim, self._pose_from_rotvec = ursim, pose_from_rotvec
         # a fast model: the simulator's own speed limit must not be what stops the arm
         self.sim = ursim.URSimProcess(args=("--max-linear-speed", "5"))

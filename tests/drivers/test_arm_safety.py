@@ -299,7 +299,7 @@ def test_a_killed_controller_is_reported_lost():
     # dashboard server", from its attempt to reconnect
     pytest.importorskip("rtde_control")
     from dqpose import drivers
-    from dqpose.drivers.sim import ursim
+    from dqpose.drivers.sim import ur as ursim
     with ursim.URSimProcess(args=("--max-linear-speed", "5")) as sim:
         with drivers.open_arm(f"ur:{sim.host}", process=True, limits=LIMITS, watchdog=0.2,
                               stale_after=0.5) as arm:
@@ -394,7 +394,7 @@ print(" ".join(outcomes), flush=True)
 
 def test_runs_started_right_after_a_cancel_leak_no_shared_memory():
     pytest.importorskip("rtde_control")
-    from dqpose.drivers.sim import ursim
+    from dqpose.drivers.sim import ur as ursim
     with ursim.URSimProcess(args=("--max-linear-speed", "5")) as sim:
         run = run_parent(_RETRY, sim.host, timeout=120)
     assert run.returncode == 0, run.stderr

@@ -199,7 +199,7 @@ print(counts, flush=True)
 
 def test_dead_arm_processes_leave_no_shared_memory_pipes_or_threads():
     pytest.importorskip("rtde_control")
-    from dqpose.drivers.sim import ursim
+    from dqpose.drivers.sim import ur as ursim
     with ursim.URSimProcess(args=("--max-linear-speed", "5")) as sim:
         run = run_parent(_KILLS, sim.host, timeout=180)
     assert run.returncode == 0, run.stderr
@@ -213,7 +213,7 @@ def test_an_arm_that_comes_back_with_another_period_is_refused():
     # this arm's period, limits and name would not be its own
     pytest.importorskip("rtde_control")
     from dqpose import drivers
-    from dqpose.drivers.sim import ursim
+    from dqpose.drivers.sim import ur as ursim
     from test_arm_limits import LIMITS
     sim = ursim.URSimProcess()
     arm = drivers.open_arm(f"ur:{sim.host}", process=True, limits=LIMITS, reopen_every=0)

@@ -356,7 +356,7 @@ def test_a_killed_parent_brakes_the_arm_to_a_stop_and_its_process_ends():
     pytest.importorskip("rtde_control")
     import os
     from dqpose.drivers.rotvec import pose_from_rotvec
-    from dqpose.drivers.sim import ursim
+    from dqpose.drivers.sim import ur as ursim
     with ursim.URSimProcess(args=("--max-linear-speed", "5")) as sim:
         run = run_parent(_PARENT, sim.host)
         assert run.returncode == -9, run.stderr

@@ -12,7 +12,7 @@ pytest.importorskip("rtde_control")
 
 from dqpose.drivers.base import ArmError, LimitError, Limits  # noqa: E402
 from dqpose.drivers.rotvec import pose_from_rotvec, rotvec_from_pose  # noqa: E402
-from dqpose.drivers.sim import ursim  # noqa: E402
+from dqpose.drivers.sim import ur as ursim  # noqa: E402
 from dqpose.drivers.ur import URArm  # noqa: E402
 from dqpose import dq  # noqa: E402
 from _polling import wait_until

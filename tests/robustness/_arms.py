@@ -54,7 +54,7 @@ class URRig:
         pytest.importorskip("rtde_control")
         from dqpose import drivers
         from dqpose.drivers.rotvec import pose_from_rotvec
-        from dqpose.drivers.sim import ursim
+        from dqpose.drivers.sim import ur as ursim
         self._ursim = ursim
         self.sim = ursim.URSimProcess(args=sim_args)
         self.home_rotvec = np.array([0.4, -0.1, 0.3, 2.2, 2.2, 0.0])

@@ -18,7 +18,7 @@ from dqpose.rpc.client import Client, RpcError
 @pytest.fixture
 def ur():
     pytest.importorskip("rtde_control")
-    from dqpose.drivers.sim.ursim import URSimProcess
+    from dqpose.drivers.sim.ur import URSimProcess
     with URSimProcess() as sim:
         sim.set_pose([0.4, -0.1, 0.3, 2.2, 2.2, 0.0])
         yield sim

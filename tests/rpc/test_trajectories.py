@@ -143,7 +143,7 @@ def ur():
     pytest.importorskip("rtde_control")
     from dqpose import drivers
     from dqpose.drivers.executor import Executor
-    from dqpose.drivers.sim.ursim import URSimProcess
+    from dqpose.drivers.sim.ur import URSimProcess
     sim = URSimProcess()
     # generous watchdogs: the simulator, the server and its clients share a loaded machine
     arm = drivers.open_arm(f"ur:{sim.host}", stale_after=0.5, heartbeat=0.1)

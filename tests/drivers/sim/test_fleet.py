@@ -33,7 +33,7 @@ def test_serve_with_sims_brings_up_reachable_devices_and_takes_them_down():
     pytest.importorskip("msgpack")                    # the PiPER simulator's udp_multicast bus
     from dqpose import drivers
     from dqpose.drivers.camera import read_image
-    from dqpose.drivers.sim.ursim import _address_free
+    from dqpose.drivers.sim.ur import _address_free
     from dqpose import dq
     from dqpose.rpc.client import Client
 
@@ -92,7 +92,7 @@ def test_unknown_device_is_named():
 def test_simulators_do_not_outlive_a_killed_server():
     pytest.importorskip("rtde_control")
     pytest.importorskip("msgpack")
-    from dqpose.drivers.sim.ursim import _address_free
+    from dqpose.drivers.sim.ur import _address_free
     # A killed server cannot remove its camera views: give it a temporary directory of ours.
     with tempfile.TemporaryDirectory(prefix="dqpose-test-fleet-") as tmp:
         proc = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "serve", "--port", "0",

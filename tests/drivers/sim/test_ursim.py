@@ -1,4 +1,4 @@
-"""The unmodified ur_rtde 1.6.5 client against our simulated UR controller (drivers.sim.ursim).
+"""The unmodified ur_rtde 1.6.5 client against our simulated UR controller (drivers.sim.ur).
 
 One simulator process and one pair of interfaces serve the whole module: ur_rtde's
 ``disconnect()`` sleeps half a second and its constructor holds the GIL, so the simulator runs in
@@ -17,7 +17,7 @@ import pytest
 rtde_control = pytest.importorskip("rtde_control")
 rtde_receive = pytest.importorskip("rtde_receive")
 
-from dqpose.drivers.sim import ursim  # noqa: E402
+from dqpose.drivers.sim import ur  # noqa: E402
 from _polling import wait_until
 
 HOME = [0.4, -0.1, 0.3, 2.2, 2.2, 0.0]
@@ -65,13 +65,13 @@ def test_servoL_at_500_hz_follows_the_path_with_little_lag(sim, rtde):
         assert ctrl.servoL(p.tolist(), 0.0, 0.0, 0.002, 0.1, 300)
         ctrl.waitPeriod(t)
     time.sleep(0.05)
-    entries = [e for e in sim.log(start)["entries"] if e["cmd"] == ursim.SERVOL]
+    entries = [e for e in sim.log(start)["entries"] if e["cmd"] == ur.SERVOL]
     hist = sim.history(tick0)
     # every set-point arrived intact, in order
     got = np.array([e["args"][:6] for e in entries])
     assert len(got) == n and np.array_equal(got, path)
     assert all(e["args"][8] == 0.002 and e["args"][10] == 300 for e in entries)
-    lags = ursim.servo_lag_cycles(entries, hist)
+    lags = ur.servo_lag_cycles(entries, hist)
     assert lags.min() >= 1 and lags.max() <= 3, f"lag (cycles) {np.bincount(lags + 1)}"
     # the arm moved along the commanded line, never off it, and ended at its end
     moving = hist[(hist[:, 0] > entries[0]["tick"])]
@@ -141,7 +141,7 @@ def test_moveL_blocks_until_the_move_ends(sim, rtde):
     hist = sim.history(tick0)
     arrived = hist[np.all(np.abs(hist[:, 2:8] - target) < 1e-12, axis=1), 0].min()
     log = sim.log(start)["entries"]
-    move = next(e for e in log if e["cmd"] == ursim.MOVEL)
+    move = next(e for e in log if e["cmd"] == ur.MOVEL)
     assert move["args"][:8] == pytest.approx(target + [0.2, 1.0])
     # the client cleared the command (its next step after moveL returned) only after arrival
     clear = next(e for e in log if e["cmd"] == 0 and e["tick"] > move["tick"])
@@ -180,7 +180,7 @@ def test_second_control_interface_is_refused(sim, rtde):
 
 
 def test_dashboard_answers_like_a_robot(sim):
-    with socket.create_connection((sim.host, ursim.DASHBOARD_PORT), timeout=2) as s:
+    with socket.create_connection((sim.host, ur.DASHBOARD_PORT), timeout=2) as s:
         f = s.makefile("rw")
         assert "Dashboard Server" in f.readline()
         for cmd, pattern in [("PolyscopeVersion", r"\d+\.\d+\.\d+\.\d+"),
@@ -207,12 +207,12 @@ def test_stopScript_ends_the_program(sim, rtde):
     assert ctrl.isProgramRunning()
     ctrl.stopScript()
     assert not ctrl.isProgramRunning()
-    assert sim.state()["runtime_state"] == ursim.STOPPED
+    assert sim.state()["runtime_state"] == ur.STOPPED
     assert not ctrl.servoL(HOME, 0.0, 0.0, 0.002, 0.1, 300)   # nothing runs the commands now
 
 
 def test_cli_starts_the_simulator():
-    host = next(h for h in (f"127.0.0.{i}" for i in range(250, 20, -1)) if ursim._address_free(h))
+    host = next(h for h in (f"127.0.0.{i}" for i in range(250, 20, -1)) if ur._address_free(h))
     proc = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "sim", "ur", "--host", host,
                              "--version", "3.15.7.106331"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
