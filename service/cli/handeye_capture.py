@@ -36,7 +36,7 @@ _SIM_X = {"eye_in_hand": ((0.06, -0.02, 0.04), (0.08, -0.12, 1.40)),
           "eye_to_hand": ((0.50, -0.85, 0.55), None)}
 _SIM_Z = {"eye_in_hand": ((0.40, 0.10, 0.0), (math.pi, 0.0, 0.0)),
           "eye_to_hand": ((-0.14, -0.10, 0.05), (0.0, 0.0, 0.0))}
-#: the simulator's own tool speed limits (drivers/sim/ursim.py), faster than a bench arm's
+#: the simulator's own tool speed limits (drivers/sim/ur/), faster than a bench arm's
 _SIM_SPEED = dict(max_linear_speed=1.0, max_angular_speed=3.0, max_linear_accel=4.0,
                   max_angular_accel=8.0)
 #: Capture sends whole moves, each run by the controller itself, never a servo stream: a pause

@@ -3,7 +3,7 @@ group, so a Ctrl-C is SIGINT to the whole group), when it exited after the Ctrl-
 slower than on an idle core CPU-bound work ran meanwhile (:class:`Slowdown`), the UR simulators
 and arm processes it started (found by their command line among its children), and a watcher of
 a simulator's received commands and RTDE clients through its test hooks
-(drivers/sim/ursim.py), read until the simulator goes away."""
+(drivers/sim/ur/), read until the simulator goes away."""
 from __future__ import annotations
 
 import json
