@@ -86,8 +86,8 @@ def smooth(times, poses, limits: Limits, smoothing: float = 1.0, rate_hz: float 
     """A smooth path through noisy time-stamped poses, within ``limits``.
 
     ``times`` (N,) strictly increasing seconds, ``poses`` (N, 8) unit dual quaternions
-    ``T_base_tool``, N >= 4. ``smoothing`` >= 0 sets the cutoff ``2 / smoothing`` Hz (module
-    docstring); ``rate_hz`` 0 returns the path at ``times``, else at ``times[0] + k / rate_hz``
+    ``T_base_tool``, N >= 4. ``smoothing`` >= 0 sets the cutoff ``2 / smoothing`` Hz
+    (:mod:`dqpose.smoothing`); ``rate_hz`` 0 returns the path at ``times``, else at ``times[0] + k / rate_hz``
     and at ``times[-1]``. Returns ``(times (M,), poses (M, 8))``, starting and ending at rest
     (velocity and acceleration zero, so the ends move off the data as far as the data moves
     there), or, with ``free_ends``, following the data's motion at both ends.
