@@ -1,0 +1,195 @@
+"""Fusion over time (:func:`dqpose.fusion.fuse` with ``times``): the fusion time (by default the
+newest time a measurement was taken, its stamp minus its source's latency), the measurements
+dropped for skew, the bound on extrapolation, the one-instant case (the static fit itself, bit for
+bit), the motion model built from the sources' latencies and the twist's prior, its fit (robust or
+not) and the result. The model is :mod:`dqpose.fusion.motion`'s, with an ``acceleration_psd``
+:mod:`dqpose.fusion.process_noise`'s.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import NamedTuple, Optional
+
+import numpy as np
+
+from dqpose import dq, lie
+from dqpose.fusion.consistency import _codes, _source_stats
+from dqpose.fusion.motion import _constant_twist_fit, _determined_without_each, _Model, _MotionFit
+from dqpose.fusion.process_noise import _correlated_fit, _correlated_nis, _marginal_information
+from dqpose.fusion.results import DOF, Dropped, Fused, Latency, _frozen
+from dqpose.fusion.robust import _consensus, _gate, _rejections
+from dqpose.fusion.static import _fuse_static
+from dqpose.fusion.validation import _acceleration, _seconds, _twist_information
+
+#: seconds a fused pose's time may lie past its newest measurement (extrapolated on the twist)
+DEFAULT_MAX_EXTRAPOLATION = 0.1
+
+
+def _motion_fit(Z, S, model: _Model, inlier: np.ndarray, tol: float,
+                max_iter: int) -> _MotionFit:
+    """Fit of the measurements ``inlier`` selects, evaluated at every measurement. The constant
+    twist is fitted in C, leave-one-out NIS and covariance included; the correlated model in
+    NumPy from the constant-twist fit."""
+    if model.accel is None:
+        return _constant_twist_fit(Z, S, model, inlier, tol, max_iter)
+    return _correlated_fit(Z, S, model, inlier, tol, max_iter)
+
+
+def _motion_nis(fit: _MotionFit, S, inlier: np.ndarray, model: _Model):
+    """Each measurement's leave-one-out NIS against the fit of the other inliers
+    (:func:`_correlated_nis` for the joint state; the constant-twist fit computed them with the
+    fit)."""
+    if fit.nis is not None:
+        return fit.nis, fit.tested
+    return _correlated_nis(fit, S, inlier, model)
+
+
+def _robust_motion(Z, S, model: _Model, allowed: np.ndarray, gate2, tol, max_iter):
+    """:func:`_robust` over time: the consensus start compares the measurements brought to the
+    fusion time with the twist of a first fit of all of them (an outlier biases that twist; the
+    gate that follows judges every measurement against the fit of the others)."""
+    first = _motion_fit(Z, S, model, allowed, tol, max_iter)
+    back = lie.se3_exp(-first.dt[:, None] * first.V)
+    Wm = _marginal_information(S, first.dt, model.accel)
+    Sm = S if Wm is None else np.linalg.inv(Wm)
+    Zt, St = dq.normalize(dq.mul(Z, back)), lie.cov_compose(Sm, back, None)
+    inlier = np.zeros_like(allowed)
+    inlier[allowed] = _consensus(Zt[allowed], St[allowed], gate2)
+    if not _determined_without_each(model, inlier)[~inlier].all():
+        inlier = allowed.copy()  # the consensus is of one instant: the twist needs more
+    return _gate(inlier, allowed, lambda m: _motion_fit(Z, S, model, m, tol, max_iter),
+                 lambda fit, m: _motion_nis(fit, S, m, model), gate2)
+
+
+class _Span(NamedTuple):
+    """Which measurements a fusion at a time uses, and how far that time lies outside them."""
+    drop: Optional[np.ndarray]   # taken further than max_skew from it (None: no max_skew)
+    keep: Optional[np.ndarray]   # the others
+    lo: float                    # the span of the times the kept measurements were taken
+    hi: float
+    extrapolation: float         # how far the fusion time lies outside [lo, hi]
+    max_skew: Optional[float]    # as checked
+
+
+def _span(taken: np.ndarray, time: float, max_skew, max_extrapolation) -> _Span:
+    """The measurements taken within ``max_skew`` of the fusion time, and their span; a fusion
+    time further than ``max_extrapolation`` outside it is refused."""
+    if max_skew is None:
+        drop, keep, kept = None, None, taken
+    else:
+        max_skew = _seconds(max_skew, "max_skew", "nonnegative")
+        drop = np.abs(time - taken) > max_skew
+        keep = ~drop
+        if not keep.any():
+            nearest = float(np.abs(time - taken).min())
+            raise ValueError(f"max_skew: every measurement was taken more than {max_skew:g} s "
+                             f"from the fusion time {time!r} (the nearest {nearest:.6g} s)")
+        kept = taken[keep]
+    lo, hi = float(kept.min()), float(kept.max())
+    extrapolation = max(0.0, time - hi, lo - time)
+    if max_extrapolation is not None:
+        max_extrapolation = _seconds(max_extrapolation, "max_extrapolation", "nonnegative")
+        if extrapolation > max_extrapolation:
+            raise ValueError(f"time: {time!r} is {extrapolation:.6g} s outside the span "
+                             f"[{lo!r}, {hi!r}] of the measurements, beyond max_extrapolation "
+                             f"{max_extrapolation:g} s")
+    return _Span(drop, keep, lo, hi, extrapolation, max_skew)
+
+
+def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
+                  twist_covariance, acceleration_psd, robust, probability, gate2, tol,
+                  max_iter) -> Fused:
+    """:func:`dqpose.fusion.fuse` with times, after its checks: the fusion time and the
+    measurements' span, then the fit of one instant or of the motion model over the window."""
+    n = Z.shape[0]
+    stamps = times
+    sources, code = _codes(names)
+    latency = np.array([table[s].latency if s in table else 0.0 for s in sources])[code]
+    taken = stamps - latency
+    time = float(taken.max()) if time is None else _seconds(time, "time")
+    twist_prior, Wp = (None, None) if twist_covariance is None else _twist_information(
+        twist_covariance)
+    accel = _acceleration(acceleration_psd)
+    span = _span(taken, time, max_skew, max_extrapolation)
+    estimated = [s for s in sources if s in table and table[s].latency_sigma is not None]
+    one_instant = span.lo == span.hi
+    if one_instant and span.extrapolation == 0.0:
+        # All taken at the fusion time: nothing moves, the answer is the static fit itself (its
+        # C core), bit for bit; the twist keeps its prior, each latency its prior (one instant
+        # shows neither).
+        f = _fuse_static(Z, S, names, robust, probability, gate2, tol, max_iter)
+        return replace(
+            f, time=time, extrapolation=0.0,
+            twist=None if Wp is None else _frozen(np.zeros(DOF)),
+            twist_covariance=None if Wp is None else _frozen(twist_prior),
+            latencies=tuple(Latency(s, table[s].latency, table[s].latency_sigma,
+                                    table[s].latency, table[s].latency_sigma)
+                            for s in estimated))
+    twist = Wp is not None or not one_instant
+    if not twist and span.extrapolation > 0.0:
+        raise ValueError(f"time: the measurements were all taken at {span.lo!r}; bringing them "
+                         f"to {time!r} needs the body's twist, which one instant does not show "
+                         f"(give twist_covariance)")
+    slot = np.array([estimated.index(s) if s in estimated else -1 for s in sources])[code]
+    model = _Model(
+        stamp=stamps - time, latency=latency, slot=slot,
+        prior=np.array([table[s].latency for s in estimated], dtype=np.float64),
+        prior_w=np.array([table[s].latency_sigma ** -2 for s in estimated], dtype=np.float64),
+        twist=twist, twist_w=Wp, accel=accel)
+
+    allowed = np.ones(n, dtype=bool) if span.keep is None else span.keep
+    if robust and np.count_nonzero(allowed) > 1:
+        gated = _robust_motion(Z, S, model, allowed, gate2, tol, max_iter)
+    else:
+        fit = _motion_fit(Z, S, model, allowed, tol, max_iter)
+        gated = (fit, *_motion_nis(fit, S, allowed, model), allowed, None)
+    return _result(gated, span, model, names, sources, code, table, estimated, time, taken, gate2,
+                   probability)
+
+
+def _result(gated, span: _Span, model: _Model, names, sources, code, table, estimated,
+            time: float, taken: np.ndarray, gate2: float, probability: float) -> Fused:
+    """The fit over time as a :class:`~dqpose.fusion.Fused`: ``gated`` is the gate's ``(fit,
+    nis, tested, inlier, status)``; the pose's, twist's and latencies' blocks of the joint
+    covariance, the measurements rejected and dropped, the sources' verdicts."""
+    fit, nis, tested, inlier, gate_status = gated
+    drop, keep, twist = span.drop, span.keep, model.twist
+    out = ~inlier if keep is None else ~inlier & keep
+    rejected = _rejections(names, nis, out, gate2, probability)
+    dropped = () if drop is None else tuple(
+        Dropped(int(i), names[i], float(time - taken[i]), span.max_skew)
+        for i in np.flatnonzero(drop))
+    P = fit.P
+    off = model.offset
+    latencies = tuple(Latency(s, table[s].latency, table[s].latency_sigma, float(fit.ell[k]),
+                              float(math.sqrt(P[off + k, off + k])))
+                      for k, s in enumerate(estimated))
+    inliers = np.flatnonzero(inlier)
+    # Each prior is as many residuals as the parameters it constrains: only the twist's
+    # unconstrained 6 reduce the degrees of freedom beyond the pose's.
+    dof = DOF * (inliers.size - 1) - (DOF if twist and model.twist_w is None else 0)
+    # a dropped measurement is neither tested nor counted as rejected by the gate
+    stats = _source_stats(sources, code, nis, tested if keep is None else tested & keep,
+                          inlier if drop is None else inlier | drop, probability)
+    return Fused(
+        status=gate_status if gate_status is not None else fit.status,
+        mean=_frozen(fit.mean),
+        covariance=_frozen(P[:6, :6]),
+        residuals=_frozen(fit.r),
+        distances=_frozen(np.sqrt(fit.cost)),
+        nis=_frozen(nis),
+        tested=_frozen(tested),
+        inliers=_frozen(inliers),
+        rejected=rejected,
+        chi2=fit.chi2,
+        dof=dof,
+        iterations=fit.iterations,
+        sources=stats,
+        time=time,
+        twist=_frozen(fit.V) if twist else None,
+        twist_covariance=_frozen(P[6:12, 6:12]) if twist else None,
+        extrapolation=float(span.extrapolation),
+        dropped=dropped,
+        latencies=latencies,
+    )

@@ -1,0 +1,38 @@
+"""Each source's covariance judged against its innovations: the mean leave-one-out NIS of its
+tested inliers against the two-sided χ² interval of the gate's probability
+(:class:`~dqpose.fusion.results.SourceStats`: consistent, optimistic or pessimistic).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from dqpose.fusion.chi2 import chi2_quantile
+from dqpose.fusion.results import DOF, SourceStats, Verdict
+
+
+def _codes(names) -> tuple[tuple[str, ...], np.ndarray]:
+    """Each source once, in order of first appearance, and each measurement's index in that."""
+    order = {name: k for k, name in enumerate(dict.fromkeys(names))}
+    return tuple(order), np.array([order[s] for s in names], dtype=np.intp)
+
+
+def _source_stats(sources, code, nis, tested, inlier, probability) -> tuple[SourceStats, ...]:
+    """Per source (``sources``, measurement i's ``sources[code[i]]``)."""
+    out = []
+    use = tested & inlier
+    m = len(sources)
+    counts = np.bincount(code, use, m).astype(np.intp).tolist()
+    rejected = np.bincount(code, ~inlier, m).astype(np.intp).tolist()
+    sums = np.bincount(code, np.where(use, nis, 0.0), m).tolist()
+    for k, name in enumerate(sources):
+        count = counts[k]
+        if count == 0:
+            out.append(SourceStats(name, 0, rejected[k], 0.0, 0.0, 0.0, Verdict.UNTESTED))
+            continue
+        mean = sums[k] / count
+        low = chi2_quantile(0.5 * (1.0 - probability), DOF * count) / count
+        high = chi2_quantile(0.5 * (1.0 + probability), DOF * count) / count
+        verdict = (Verdict.OPTIMISTIC if mean > high else
+                   Verdict.PESSIMISTIC if mean < low else Verdict.CONSISTENT)
+        out.append(SourceStats(name, count, rejected[k], mean, low, high, verdict))
+    return tuple(out)

@@ -1,0 +1,85 @@
+"""A measurement's source: its frames and latency (:class:`Source`), checked into a table by name,
+and the measurements brought into the world frame, ``T_world_frame · Z · T_flange_body``, their
+covariances transported exactly (the convention of :mod:`dqpose.fusion`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterable, Optional
+
+import numpy as np
+
+from dqpose import dq, lie
+from dqpose.fusion.validation import _pose, _seconds
+
+
+@dataclass(frozen=True)
+class Source:
+    """A source's frames: ``extrinsic`` is ``T_world_frame`` and ``body_offset`` the body in the
+    frame the source measures (``T_flange_body`` for an arm); ``None`` is the identity.
+
+    ``latency`` (seconds): a measurement stamped ``t`` was taken at ``t - latency`` (used when
+    :func:`fuse` is given times). ``latency_sigma``: ``None`` takes the latency as exact; a
+    positive value makes it a prior ``N(latency, latency_sigma²)`` and estimates it from the data
+    jointly with the motion (reported in :attr:`Fused.latencies`)."""
+    name: str
+    extrinsic: Optional[np.ndarray] = None
+    body_offset: Optional[np.ndarray] = None
+    latency: float = 0.0
+    latency_sigma: Optional[float] = None
+
+
+# What a latency and its prior's standard deviation may be (seconds): a prior of 5e-324 s has an
+# information (sigma^-2) no double holds.
+_MAX_LATENCY = 1e6
+_LATENCY_SIGMA = (1e-9, 1e6)
+
+
+def _latency(s: Source, k: int) -> tuple[float, Optional[float]]:
+    latency = _seconds(s.latency, f"sources[{k}].latency")
+    if abs(latency) > _MAX_LATENCY:
+        raise ValueError(f"sources[{k}].latency: {latency:.6g} s is beyond +-{_MAX_LATENCY:g} s")
+    if s.latency_sigma is None:
+        return latency, None
+    sigma = _seconds(s.latency_sigma, f"sources[{k}].latency_sigma", "positive")
+    lo, hi = _LATENCY_SIGMA
+    if not lo <= sigma <= hi:
+        raise ValueError(f"sources[{k}].latency_sigma: {sigma:.6g} s is outside [{lo:g}, "
+                         f"{hi:g}] s")
+    return latency, sigma
+
+
+def _sources(sources: Optional[Iterable[Source]]) -> dict[str, Source]:
+    table: dict[str, Source] = {}
+    for k, s in enumerate(sources or ()):
+        if not isinstance(s, Source):
+            raise ValueError(f"sources[{k}]: expected a Source, got {type(s).__name__}")
+        if not s.name:
+            raise ValueError(f"sources[{k}]: a source needs a name")
+        if s.name in table:
+            raise ValueError(f"sources[{k}]: source {s.name!r} given twice")
+        table[s.name] = Source(
+            s.name,
+            None if s.extrinsic is None else _pose(s.extrinsic, f"sources[{k}].extrinsic"),
+            None if s.body_offset is None else _pose(s.body_offset, f"sources[{k}].body_offset"),
+            *_latency(s, k))
+    return table
+
+
+def _to_world(Z: np.ndarray, S: np.ndarray, names: tuple[str, ...],
+              table: dict[str, Source]) -> tuple[np.ndarray, np.ndarray]:
+    """``T_world_frame · Z · T_flange_body`` and the exactly transported covariances."""
+    framed = [(name, src) for name, src in table.items()
+              if src.body_offset is not None or src.extrinsic is not None]
+    if framed:
+        Z, S = Z.copy(), S.copy()
+    for name, src in framed:
+        idx = [i for i, s in enumerate(names) if s == name]
+        if not idx:
+            continue
+        if src.body_offset is not None:
+            Z[idx] = dq.mul(Z[idx], src.body_offset)
+            S[idx] = lie.cov_compose(S[idx], src.body_offset, None)
+        if src.extrinsic is not None:
+            Z[idx] = dq.mul(src.extrinsic, Z[idx])
+    return dq.normalize(Z), S

@@ -1,0 +1,73 @@
+"""The fit of one instant: the maximum-likelihood pose of n measurements and its covariance (the
+inverse information at the optimum, GTSAM's marginal) by Gauss–Newton on SE(3) from the DIB mean,
+in the C core (service/csrc/fusion.c; tests/fusion_reference.py in NumPy), each measurement's
+leave-one-out NIS with it; robust or not.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dqpose import _dqcore as _c
+from dqpose.fusion.consistency import _codes, _source_stats
+from dqpose.fusion.results import DOF, Fused, Status, _frozen
+from dqpose.fusion.robust import _consensus, _gate, _rejections
+
+
+@dataclass(frozen=True)
+class _Fit:
+    status: Status
+    mean: np.ndarray
+    covariance: np.ndarray  # inverse information at the optimum
+    r: np.ndarray           # residuals Log(mean⁻¹ Z_i), all measurements
+    distances: np.ndarray   # sqrt(r_iᵀ Σ_i⁻¹ r_i), all measurements
+    nis: np.ndarray         # leave-one-out NIS against the fit of the other inliers
+    tested: np.ndarray
+    chi2: float             # the inliers' squared distances summed (the cost at the optimum)
+    iterations: int
+
+
+def _fit(Z: np.ndarray, S: np.ndarray, inlier: np.ndarray, tol: float, max_iter: int) -> _Fit:
+    """ML fit of the measurements ``inlier`` selects, evaluated at every measurement, with the
+    leave-one-out NIS of each: measurement j against the fit of the other inliers (one
+    Gauss-Newton step from the optimum; an outlier against all inliers; untested without
+    another inlier)."""
+    mean, P, r, d, nis, tested, status, iterations, chi2 = _c.fuse(Z, S, inlier, tol, max_iter)
+    return _Fit(Status(int(status)), mean, P, r, d, nis, tested, float(chi2), int(iterations))
+
+
+def _robust(Z, S, gate2, tol, max_iter):
+    # the C fit computes each measurement's leave-one-out NIS with the fit itself
+    return _gate(_consensus(Z, S, gate2), np.ones(Z.shape[0], dtype=bool),
+                 lambda inlier: _fit(Z, S, inlier, tol, max_iter),
+                 lambda fit, inlier: (fit.nis, fit.tested), gate2)
+
+
+def _fuse_static(Z, S, names, robust, probability, gate2, tol, max_iter) -> Fused:
+    """The fit of one instant: the C core's, robust or not."""
+    n = Z.shape[0]
+    if robust and n > 1:
+        fit, nis, tested, inlier, gate_status = _robust(Z, S, gate2, tol, max_iter)
+    else:
+        inlier = np.ones(n, dtype=bool)
+        fit = _fit(Z, S, inlier, tol, max_iter)
+        nis, tested = fit.nis, fit.tested
+        gate_status = None
+    rejected = _rejections(names, nis, ~inlier, gate2, probability)
+    k = int(np.count_nonzero(inlier))
+    return Fused(
+        status=gate_status if gate_status is not None else fit.status,
+        mean=_frozen(fit.mean),
+        covariance=_frozen(fit.covariance),
+        residuals=_frozen(fit.r),
+        distances=_frozen(fit.distances),
+        nis=_frozen(nis),
+        tested=_frozen(tested),
+        inliers=_frozen(np.flatnonzero(inlier)),
+        rejected=rejected,
+        chi2=fit.chi2,
+        dof=DOF * (k - 1),
+        iterations=fit.iterations,
+        sources=_source_stats(*_codes(names), nis, tested, inlier, probability),
+    )

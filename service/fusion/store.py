@@ -1,0 +1,75 @@
+"""The measurements of every body of a live stream in one set of preallocated arrays (the storage
+of :class:`~dqpose.fusion.Tracker`): rows in arrival order tagged with their body, each body's
+window selected from them, memory bounded by the largest live window.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+from dqpose.fusion.results import DOF
+
+
+class _Store:
+    """Every body's measurements in one set of preallocated arrays, in arrival order, each row
+    tagged with its body. A message costs a few NumPy operations whatever the number of bodies
+    in it; rows that fell out of their body's window are dropped when the arrays are full
+    (compacted in place, grown only when the live rows fill half), so memory follows the largest
+    live window, flat over a long stream."""
+
+    _ARRAYS = ("ids", "body", "codes", "times", "taken", "poses", "covs")
+
+    def __init__(self, capacity: int = 256):
+        self.n = 0
+        self.ids = np.empty(capacity, np.int64)
+        self.body = np.empty(capacity, np.int64)
+        self.codes = np.empty(capacity, np.int64)
+        self.times = np.empty(capacity)
+        self.taken = np.empty(capacity)
+        self.poses = np.empty((capacity, 8))
+        self.covs = np.empty((capacity, DOF, DOF))
+
+    def live(self, newest: np.ndarray, window: float, cap: Optional[int] = None) -> np.ndarray:
+        """The rows in their body's window: taken within ``window`` of its newest, and among
+        the last ``cap`` of those (arrival order) when a cap is given."""
+        body = self.body[:self.n]
+        live = self.taken[:self.n] >= newest[body] - window
+        if cap is not None:
+            idx = np.flatnonzero(live)
+            b = body[idx]
+            order = np.lexsort((-idx, b))              # by body, newest arrival first
+            start = np.flatnonzero(np.r_[True, b[order][1:] != b[order][:-1]])
+            rank = np.arange(len(order)) - np.repeat(start, np.diff(np.r_[start, len(order)]))
+            live[idx[order[rank >= cap]]] = False
+        return live
+
+    def rows(self, b: int, newest: np.ndarray, window: float,
+             cap: Optional[int] = None) -> np.ndarray:
+        """Body ``b``'s rows in its window, in arrival order (the last ``cap`` of them)."""
+        body = self.body[:self.n]
+        rows = np.flatnonzero((body == b) & (self.taken[:self.n] >= newest[b] - window))
+        return rows if cap is None or len(rows) <= cap else rows[len(rows) - cap:]
+
+    def keep(self, mask: np.ndarray) -> None:
+        k = int(np.count_nonzero(mask))
+        for a in self._ARRAYS:
+            arr = getattr(self, a)
+            arr[:k] = arr[:self.n][mask]
+        self.n = k
+
+    def append(self, newest: np.ndarray, window: float, cap: Optional[int] = None,
+               **rows) -> None:
+        m = len(rows["ids"])
+        if self.n + m > len(self.ids):
+            self.keep(self.live(newest, window, cap))
+            if 2 * (self.n + m) > len(self.ids):
+                size = max(2 * len(self.ids), 2 * (self.n + m))
+                for a in self._ARRAYS:
+                    old = getattr(self, a)
+                    new = np.empty((size,) + old.shape[1:], old.dtype)
+                    new[:self.n] = old[:self.n]
+                    setattr(self, a, new)
+        for a in self._ARRAYS:
+            getattr(self, a)[self.n:self.n + m] = rows[a]
+        self.n += m

@@ -1,0 +1,393 @@
+"""Live streams: :class:`Tracker` keeps a sliding window of measurements per body (many bodies,
+keyed by name) and fuses a body's window at a time with :func:`~dqpose.fusion.fuse`; the stream's
+bounds come from a server's :class:`dqpose.limits.Limits`.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Iterable, NamedTuple, Optional, Sequence
+
+import numpy as np
+
+from dqpose import dq
+from dqpose import limits as _limits
+from dqpose.errors import rename
+from dqpose.fusion.alignment import DEFAULT_MAX_EXTRAPOLATION
+from dqpose.fusion.api import _Checked, _fuse_rows, fuse
+from dqpose.fusion.chi2 import DEFAULT_PROBABILITY, chi2_quantile
+from dqpose.fusion.results import DOF, Fused
+from dqpose.fusion.sources import Source, _sources
+from dqpose.fusion.store import _Store
+from dqpose.fusion.validation import _check_rows, _covariances, _finite_shape, _seconds, _shape
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """One pose of ``body`` from ``source`` stamped ``time`` (the proto's ``Measurement``):
+    ``pose`` ``T_frame_body`` ``(8,)``, ``covariance`` ``(6, 6)``, or (``None``) isotropic
+    ``I / weight`` (no weight: 1)."""
+    source: str
+    body: str
+    time: float
+    pose: np.ndarray
+    covariance: Optional[np.ndarray] = None
+    weight: Optional[float] = None
+
+
+class Window(NamedTuple):
+    """A body's sliding window as arrays, in arrival order (the order of the indices of its
+    :meth:`Tracker.estimate`): per measurement the caller's number (``ids``), source, stamp,
+    the time it was taken (stamp minus the source's latency), pose (as given: checked to be a
+    unit rigid motion, normalised by :func:`fuse`) and covariance (symmetrised)."""
+    ids: np.ndarray
+    sources: tuple[str, ...]
+    times: np.ndarray
+    taken: np.ndarray
+    poses: np.ndarray
+    covariances: np.ndarray
+
+
+class Tracker:
+    """Sliding-window state of many bodies, keyed by name, for a live stream of measurements.
+
+    Each body keeps its measurements taken (stamp minus the source's latency) within ``window``
+    seconds of its newest; one taken further back than that is refused, naming it.
+    :meth:`ingest` takes arrays of measurements of any bodies, checks them together in NumPy and
+    keeps every valid one, returning the errors of the others (a live stream goes on past a bad
+    measurement); :meth:`add` takes :class:`Measurement` s, all or none. :meth:`estimate` fuses a
+    body's window at a time with :func:`fuse` (its keyword options are those given here).
+    Bodies are independent: nothing of one enters another's estimate.
+
+    ``limits`` (a server's :class:`dqpose.limits.Limits`; None: unbounded) bounds what a stream
+    keeps: a body's window holds its last ``max_window`` measurements (``max_robust`` when
+    robust, ``max_correlated`` with an ``acceleration_psd``), the stream
+    ``max_stream_measurements`` in all (more are refused), and a measurement taken more than
+    ``max_time_jump`` after its body's newest is refused without moving the body, unless the
+    body's next such measurement confirms the jump (a clock that really moved, a body seen
+    again after a pause): one stray stamp never poisons a body.
+    """
+
+    def __init__(self, window: float, *, sources: Optional[Iterable[Source]] = None,
+                 robust: bool = False, probability: float = DEFAULT_PROBABILITY,
+                 max_skew: Optional[float] = None,
+                 max_extrapolation: Optional[float] = DEFAULT_MAX_EXTRAPOLATION,
+                 twist_covariance=None, acceleration_psd=None, tol: float = 1e-12,
+                 max_iter: int = 100, limits: Optional[_limits.Limits] = None):
+        self.window = _seconds(window, "window", "positive")
+        self.limits = limits
+        self.sources = tuple(sources or ())
+        self._table = _sources(self.sources)
+        # the options' checks are fuse's: one fusion of a placeholder runs them now, not later
+        fuse(np.array([[1.0, 0, 0, 0, 0, 0, 0, 0]]), times=[0.0], sources=self.sources,
+             robust=robust, probability=probability, max_skew=max_skew,
+             max_extrapolation=max_extrapolation, twist_covariance=twist_covariance,
+             acceleration_psd=acceleration_psd, tol=tol, max_iter=max_iter)
+        probability = float(probability)
+        self._checked = _Checked(self._table, robust, probability,
+                                 chi2_quantile(probability, DOF), dq._as_tol(tol),
+                                 dq._as_iter(max_iter), max_skew, max_extrapolation,
+                                 twist_covariance, acceleration_psd)
+        self._store = _Store()
+        # bodies and sources as small integers in the store: a body's newest taken time, a
+        # source's configured latency
+        self._body_codes: dict[str, int] = {}
+        self._active: dict[str, None] = {}        # bodies with measurements, in order
+        self._newest = np.full(16, -math.inf)
+        self._codes: dict[str, int] = {}
+        self._names: list[str] = []
+        self._latency = np.empty(0)
+        self._count = 0            # measurements offered so far: the default ids
+        # per body code: the time of its last refused jump, which a second one near it confirms
+        self._jumps: dict[int, float] = {}
+        self.cap = None            # measurements a body's window holds (None: all)
+        if limits is not None:
+            correlated = acceleration_psd is not None and np.any(acceleration_psd)
+            self.cap = min(limits.max_window, limits.max_robust if robust else limits.max_window,
+                           limits.max_correlated if correlated else limits.max_window)
+
+    @property
+    def bodies(self) -> tuple[str, ...]:
+        return tuple(self._active)
+
+    def window_of(self, body: str) -> Window:
+        """``body``'s window as arrays, in the order of its :meth:`estimate`'s indices."""
+        s, rows = self._store, self._rows(body)
+        return Window(s.ids[rows], tuple(self._names[c] for c in s.codes[rows]), s.times[rows],
+                      s.taken[rows], s.poses[rows], s.covs[rows])
+
+    def measurements(self, body: str) -> tuple[Measurement, ...]:
+        """``body``'s window, in the order of the indices in its :meth:`estimate`."""
+        w = self.window_of(body)
+        return tuple(Measurement(s, body, float(t), p, c)
+                     for s, t, p, c in zip(w.sources, w.times, w.poses, w.covariances))
+
+    def newest(self, body: str) -> float:
+        """When ``body``'s newest measurement was taken."""
+        return float(self._newest[self._code_of(body)])
+
+    def newest_of(self, bodies: Iterable[str]) -> list[float]:
+        """:meth:`newest` of each of ``bodies`` (which have measurements), in one go."""
+        codes = self._body_codes
+        return self._newest[[codes[b] for b in bodies]].tolist()
+
+    def count(self, body: str) -> int:
+        """How many measurements ``body``'s window holds."""
+        return len(self._rows(body))
+
+    def capped(self, body: str) -> bool:
+        """Whether ``body``'s window leaves measurements out for its ``cap``."""
+        if self.cap is None:
+            return False
+        s = self._store
+        return len(s.rows(self._code_of(body), self._newest, self.window)) > self.cap
+
+    def oldest(self, body: str) -> float:
+        """When the oldest measurement in ``body``'s window was taken."""
+        return float(self._store.taken[self._rows(body)].min())
+
+    def remove(self, body: str) -> None:
+        b = self._code_of(body)
+        s = self._store
+        s.keep(s.body[:s.n] != b)
+        self._newest[b] = -math.inf
+        del self._active[body]
+
+    def add(self, *measurements: Measurement) -> None:
+        """Add measurements of any bodies; all or none (the first bad one is a ``ValueError``
+        naming ``measurements[k]``, its body, source and time)."""
+        n = len(measurements)
+        poses, covs, times = np.empty((n, 8)), np.empty((n, DOF, DOF)), np.empty(n)
+        for k, m in enumerate(measurements):
+            name = f"measurements[{k}]"
+            if not isinstance(m, Measurement):
+                raise ValueError(f"{name}: expected a Measurement, got {type(m).__name__}")
+            times[k] = _seconds(m.time, f"{name}.time")
+            if _shape(m.pose) != (8,):
+                raise ValueError(f"{name}.pose: expected shape (8,), got {_shape(m.pose)}")
+            try:
+                poses[k] = m.pose
+            except (TypeError, ValueError):
+                raise ValueError(f"{name}.pose: expected numbers, got "
+                                 f"{type(m.pose).__name__}") from None
+            if m.covariance is not None and _shape(m.covariance) != (DOF, DOF):
+                raise ValueError(f"{name}.covariance: expected shape (6, 6), "
+                                 f"got {_shape(m.covariance)}")
+            try:
+                covs[k] = _covariances(None if m.covariance is None else [m.covariance],
+                                       None if m.weight is None else [m.weight], 1)[0]
+            except ValueError as e:
+                raise rename(e, {"covariances": f"{name}.covariance",
+                                 "weights": f"{name}.weight"}) from None
+        errors = self._ingest([m.body for m in measurements], [m.source for m in measurements],
+                              times, poses, covs, None, all_or_none=True)
+        if errors:
+            raise errors[0][1]
+
+    def ingest(self, bodies: Sequence[str], sources: Sequence[str], times, poses,
+               covariances=None, *, ids=None) -> list[tuple[int, ValueError]]:
+        """Add measurements given as arrays: ``bodies`` and ``sources`` (one name each),
+        ``times`` ``(n,)`` (stamps), ``poses`` ``(n, 8)`` (``T_frame_body``), ``covariances``
+        ``(n, 6, 6)`` (``None``: identity), and the caller's numbers ``ids`` ``(n,)`` (default:
+        counting every measurement offered to this tracker), which :meth:`window_of` returns.
+        Every valid measurement is kept; returned are ``(k, ValueError)`` for the others, each
+        naming ``measurements[k]`` and the problem (a time that is not finite, a pose that is not
+        a unit rigid motion, a covariance that is not symmetric positive definite, a time taken
+        further back than the window). Arrays of the wrong shape are a ``ValueError`` for the
+        call."""
+        return self._ingest(bodies, sources, times, poses, covariances, ids, all_or_none=False)
+
+    def estimate(self, body: str, time: Optional[float] = None) -> Fused:
+        """``body``'s pose at ``time`` (default: its newest measurement's) from its window."""
+        return self.estimate_ids(body, time)[0]
+
+    def estimate_ids(self, body: str, time: Optional[float] = None) -> tuple[Fused, np.ndarray]:
+        """:meth:`estimate`, and the ids of the measurements it fused (:meth:`window_of`'s)."""
+        s, rows = self._store, self._rows(body)
+        # the rows were checked by fuse's rules when they came in
+        return _fuse_rows(s.poses[rows], s.covs[rows],
+                          tuple(self._names[c] for c in s.codes[rows].tolist()), s.times[rows],
+                          time, self._checked), s.ids[rows]
+
+    def _code_of(self, body: str) -> int:
+        if body not in self._active:
+            raise ValueError(f"body: no measurements of {body!r}")
+        return self._body_codes[body]
+
+    def _rows(self, body: str) -> np.ndarray:
+        return self._store.rows(self._code_of(body), self._newest, self.window, self.cap)
+
+    def _source_code(self, source: str) -> int:
+        code = self._codes.get(source)
+        if code is None:
+            code = self._codes[source] = len(self._names)
+            self._names.append(source)
+            src = self._table.get(source)
+            self._latency = np.append(self._latency, src.latency if src is not None else 0.0)
+        return code
+
+    def _body_code(self, body: str) -> int:
+        code = self._body_codes.get(body)
+        if code is None:
+            code = self._body_codes[body] = len(self._body_codes)
+            if code >= len(self._newest):
+                self._newest = np.concatenate([self._newest, np.full(len(self._newest),
+                                                                     -math.inf)])
+        return code
+
+    def _ingest(self, bodies, sources, times, poses, covariances, ids, all_or_none: bool):
+        n = len(bodies)
+        if len(sources) != n:
+            raise ValueError(f"sources: expected {n} names, got {len(sources)}")
+        times = _finite_shape(times, "times", (n,))
+        poses = _finite_shape(poses, "poses", (n, 8))
+        covs = (np.broadcast_to(np.eye(DOF), (n, DOF, DOF)) if covariances is None
+                else _finite_shape(covariances, "covariances", (n, DOF, DOF)))
+        ids = np.arange(self._count, self._count + n) if ids is None else np.asarray(ids, np.int64)
+        if ids.shape != (n,):
+            raise ValueError(f"ids: expected shape {(n,)}, got {ids.shape}")
+        ok, errors, covs = _check_rows(bodies, sources, times, poses, covs)
+        return self._admit(bodies, sources, times, poses, covs, ids, ok, errors, n, all_or_none)
+
+    @staticmethod
+    def refusals(bodies, sources, times, poses, covariances) -> list[tuple[int, ValueError]]:
+        """What :meth:`ingest` would refuse of these measurements (arrays as it takes them) by
+        the checks that need no state (all but the window), each ``(k, ValueError)`` naming
+        ``measurements[k]``."""
+        return sorted(_check_rows(bodies, sources, np.asarray(times, np.float64),
+                                  np.asarray(poses, np.float64),
+                                  np.asarray(covariances, np.float64))[1].items())
+
+    def _ingest_valid(self, bodies, sources, times, poses, covariances, ids,
+                      offered: int) -> list[tuple[int, ValueError]]:
+        """:meth:`ingest` of measurements already checked by its rules, with nothing checked
+        again but the window: ``times`` finite, ``poses`` unit (as ``dq.from_pose`` makes them),
+        ``covariances`` the symmetric part of symmetric positive definite ones, every body named.
+        service/csrc/wire.c checks them so for StreamFuse. ``offered``: how many measurements
+        the caller had, these and those it refused (they count, as in :meth:`ingest`)."""
+        n = len(bodies)
+        return self._admit(bodies, sources, times, poses, covariances, ids, np.ones(n, bool), {},
+                           offered, False)
+
+    def _admit(self, bodies, sources, times, poses, covs, ids, ok, errors, offered: int,
+               all_or_none: bool):
+        """Checked measurements (``ok``; ``errors`` those refused so far) into the windows: the
+        window-floor check, then the store."""
+        every = bool(ok.all())
+        # known sources and bodies by plain look-ups (the common case), else coded on the way
+        codes = [self._codes.get(s) for s in sources] if every else [None]
+        if None in codes:
+            use = ok.tolist()
+            codes = [self._source_code(s) if u else 0 for u, s in zip(use, sources)]
+        body = [self._body_codes.get(b) for b in bodies] if every else [None]
+        if None in body:
+            use = ok.tolist()
+            body = [self._body_code(b) if u else 0 for u, b in zip(use, bodies)]
+        codes = np.array(codes, dtype=np.int64)
+        body = np.array(body, dtype=np.int64)
+        taken = times - (self._latency[codes] if self._names else 0.0)
+        if self.limits is not None:
+            self._jump_check(bodies, sources, times, body, taken, ok, errors)
+            every = bool(ok.all())
+        # Taken no further back than the window before the body's newest, counting the earlier
+        # measurements of the same call: checked at once against the newest of the whole call,
+        # and only the rows that fail that (stricter) test one by one in order.
+        newest = self._newest.copy()
+        if every:
+            np.maximum.at(newest, body, taken)
+        else:
+            np.maximum.at(newest, body[ok], taken[ok])
+        late = np.flatnonzero(ok & (taken < newest[body] - self.window)).tolist()
+        for k in late:
+            floor = max([self._newest[body[k]]] + [
+                taken[j] for j in range(k) if ok[j] and body[j] == body[k]])
+            if taken[k] < floor - self.window:
+                ok[k] = False
+                errors[k] = ValueError(
+                    f"measurements[{k}] (body {bodies[k]!r}, source {sources[k]!r}, time "
+                    f"{float(times[k])!r}): taken at {float(taken[k])!r}, "
+                    f"{floor - taken[k]:.6g} s before the newest measurement of the body, "
+                    f"beyond the window {self.window:g} s")
+        if self.limits is not None:
+            self._room(ok, errors)
+            every = every and bool(ok.all())
+        if all_or_none and errors:
+            return [min(errors.items())]
+        self._count += offered
+        if every and not late:
+            self._newest = newest     # the maxima over these rows, taken above
+            self._store.append(self._newest, self.window, self.cap, ids=ids, body=body,
+                               codes=codes, times=times, taken=taken, poses=poses, covs=covs)
+            for b in bodies:
+                self._active.setdefault(b, None)
+        elif ok.all():
+            np.maximum.at(self._newest, body, taken)
+            self._store.append(self._newest, self.window, self.cap, ids=ids, body=body,
+                               codes=codes, times=times, taken=taken, poses=poses, covs=covs)
+            for b in bodies:
+                self._active.setdefault(b, None)
+        elif ok.any():
+            np.maximum.at(self._newest, body[ok], taken[ok])
+            self._store.append(self._newest, self.window, self.cap, ids=ids[ok], body=body[ok],
+                               codes=codes[ok], times=times[ok], taken=taken[ok],
+                               poses=poses[ok], covs=covs[ok])
+            for k in np.flatnonzero(ok).tolist():
+                self._active.setdefault(bodies[k], None)
+        return sorted(errors.items())
+
+
+    def _jump_check(self, bodies, sources, times, body, taken, ok, errors) -> None:
+        """Refuses (in ``ok`` and ``errors``) the rows taken more than ``max_time_jump`` after
+        their body's newest measurement, the earlier rows of the call counted (for a body new
+        to the stream, its earliest row of the call is the reference), unless the row confirms
+        the body's last refused jump by lying within ``max_time_jump`` of it."""
+        jump = self.limits.max_time_jump
+        ref = self._newest[body]
+        fresh = ~np.isfinite(ref)
+        if fresh.any():
+            first = np.full(len(self._newest), np.inf)
+            np.minimum.at(first, body[ok], taken[ok])
+            ref = np.where(fresh, first[body], ref)
+        ahead = np.flatnonzero(ok & (taken > ref + jump))
+        if not len(ahead):
+            return
+        suspects = set(body[ahead].tolist())
+        current = {}
+        for k in range(len(body)):
+            b = int(body[k])
+            if not ok[k] or b not in suspects:
+                continue
+            cur = current.get(b, float(ref[k]))
+            t = float(taken[k])
+            if t <= cur + jump:
+                current[b] = max(cur, t)
+                continue
+            pending = self._jumps.get(b)
+            if pending is not None and abs(t - pending) <= jump:
+                del self._jumps[b]       # a second measurement confirms it: the body moves on
+                current[b] = t
+                continue
+            self._jumps[b] = t
+            ok[k] = False
+            errors[k] = _limits.over(
+                f"measurements[{k}]", f"body {bodies[k]!r}, source {sources[k]!r}, time "
+                f"{float(times[k])!r}: taken {t - cur:.6g} s after the newest measurement of "
+                f"the body, so not used (a second measurement near it would confirm the jump)",
+                self.limits, "max_time_jump")
+
+    def _room(self, ok, errors) -> None:
+        """Refuses the rows that would take the stream past ``max_stream_measurements`` live
+        measurements (those out of their window dropped first)."""
+        s, cap = self._store, self.limits.max_stream_measurements
+        k = int(np.count_nonzero(ok))
+        if s.n + k <= cap:
+            return
+        s.keep(s.live(self._newest, self.window, self.cap))
+        over = s.n + k - cap
+        if over <= 0:
+            return
+        for j in np.flatnonzero(ok)[k - over:].tolist():
+            ok[j] = False
+            errors[j] = _limits.over(
+                f"measurements[{j}]", f"the stream's windows hold {s.n} measurements", self.limits,
+                "max_stream_measurements")

@@ -1,0 +1,230 @@
+"""The checks of fusion's input, each a ``ValueError`` naming the argument and the index: poses
+(finite, unit rigid motions), covariances (the rule of the convention in :mod:`dqpose.fusion`:
+symmetric, variances within bounds, positive definite; service/csrc/fusion.h applies the same rule
+for StreamFuse) or scalar weights, source names, seconds, the twist's prior and the acceleration's
+spectral density, and the rows of a live stream (:meth:`dqpose.fusion.Tracker.ingest`), each
+refused alone.
+"""
+from __future__ import annotations
+
+import math
+from typing import Optional
+
+import numpy as np
+
+from dqpose import _dqcore as _c
+from dqpose import dq
+from dqpose.errors import rename
+from dqpose.fusion.results import DOF
+
+# Relative asymmetry a covariance may have and still be taken as symmetric (its mean with its
+# transpose is used): a product J Σ Jᵀ computed in float64 is asymmetric at ~1e-16.
+_SYMMETRY_TOL = 1e-9
+# The variances a covariance may have (standard deviations 1e-12 to 1e12 rad or m): beyond them
+# its information cannot be used (service/csrc/fusion.h, which checks the same for StreamFuse).
+_MIN_VARIANCE, _MAX_VARIANCE = _c.MIN_VARIANCE, _c.MAX_VARIANCE
+
+
+def _finite(x, name: str, tail: tuple[int, ...], n: Optional[int]) -> np.ndarray:
+    try:
+        a = np.asarray(x, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected numbers, got {type(x).__name__}") from None
+    want = ((n,) if n is not None else (None,)) + tail
+    if a.ndim != len(want) or any(w is not None and s != w for s, w in zip(a.shape, want)):
+        shape = ", ".join("n" if w is None else str(w) for w in want)
+        got = f"{a.shape}" + (f" for {n} poses" if n is not None else "")
+        raise ValueError(f"{name}: expected shape ({shape}), got {got}")
+    if a.size == 0:
+        return a
+    bad = ~np.isfinite(a).reshape(a.shape[0], -1).all(axis=1)
+    if np.any(bad):
+        raise ValueError(f"{name}[{int(np.flatnonzero(bad)[0])}]: contains NaN or infinity")
+    return a
+
+
+def _poses(poses) -> np.ndarray:
+    Z = _finite(poses, "poses", (8,), None)
+    if Z.shape[0] == 0:
+        raise ValueError("poses: no measurements (expected at least one pose)")
+    try:
+        dq.to_matrix(Z)  # the core's unit and rigidity checks, with the index
+    except ValueError as e:
+        raise rename(e, {"a": "poses{}"}) from None
+    return dq.normalize(Z)
+
+
+def _pose(T, name: str) -> np.ndarray:
+    a = _finite(np.asarray(T, dtype=np.float64)[None] if np.ndim(T) == 1 else T, name, (8,), 1)
+    try:
+        dq.to_matrix(a)
+    except ValueError as e:
+        raise ValueError(f"{name}: {str(e).split(': ', 1)[-1]}") from None
+    return dq.normalize(a[0])
+
+
+def _covariances(covariances, weights, n: int) -> np.ndarray:
+    if covariances is not None and weights is not None:
+        raise ValueError("weights: give covariances or weights, not both")
+    if weights is not None:
+        w = _finite(weights, "weights", (), n)
+        bad = ~(w > 0.0)
+        if np.any(bad):
+            i = int(np.flatnonzero(bad)[0])
+            raise ValueError(f"weights[{i}]: must be positive, got {w[i]!r}")
+        return np.eye(DOF) / w[:, None, None]
+    if covariances is None:
+        return np.broadcast_to(np.eye(DOF), (n, DOF, DOF)).copy()
+    S = _finite(covariances, "covariances", (DOF, DOF), n)
+    scale = np.abs(S).reshape(n, -1).max(axis=1)
+    asym = np.abs(S - np.swapaxes(S, 1, 2)).reshape(n, -1).max(axis=1)
+    bad = ~(asym <= _SYMMETRY_TOL * scale)
+    if np.any(bad):
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"covariances[{i}]: not symmetric (largest asymmetry {asym[i]:.3g})")
+    var = np.diagonal(S, axis1=1, axis2=2)
+    out = (var > 0.0) & ~((var >= _MIN_VARIANCE) & (var <= _MAX_VARIANCE))   # <= 0: not SPD
+    bad = out.any(axis=1)
+    if np.any(bad):
+        i = int(np.flatnonzero(bad)[0])
+        v = var[i][out[i]][0]
+        raise ValueError(f"covariances[{i}]: variance {v:.6g} outside [{_MIN_VARIANCE:g}, "
+                         f"{_MAX_VARIANCE:g}] (standard deviations 1e-12 to 1e+12 rad or m): "
+                         f"its information cannot be used")
+    S = 0.5 * (S + np.swapaxes(S, 1, 2))
+    try:
+        np.linalg.cholesky(S)
+    except np.linalg.LinAlgError:
+        for i in range(n):  # one matrix at a time, so the message can name the index
+            try:
+                np.linalg.cholesky(S[i])
+            except np.linalg.LinAlgError:
+                raise ValueError(f"covariances[{i}]: not positive definite") from None
+    return S
+
+
+def _names(names, n: int) -> tuple[str, ...]:
+    if names is None:
+        return ("",) * n
+    if isinstance(names, str):
+        raise ValueError("names: expected one source name per measurement, got a string")
+    out = tuple(names)
+    if len(out) != n:
+        raise ValueError(f"names: expected {n} source names, got {len(out)}")
+    for i, s in enumerate(out):
+        if not isinstance(s, str):
+            raise ValueError(f"names[{i}]: expected a string, got {type(s).__name__}")
+    return out
+
+
+def _seconds(x, name: str, least: Optional[str] = None) -> float:
+    """A finite number of seconds; ``least`` ``"positive"`` or ``"nonnegative"`` bounds it."""
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected seconds, got {type(x).__name__}") from None
+    if not math.isfinite(v):
+        raise ValueError(f"{name}: must be finite, got {v!r}")
+    if (least == "positive" and not v > 0.0) or (least == "nonnegative" and v < 0.0):
+        raise ValueError(f"{name}: must be {least}, got {v!r}")
+    return v
+
+
+def _shape(x):
+    """``np.shape`` that names a ragged sequence rather than raising NumPy's error."""
+    try:
+        return np.shape(x)
+    except ValueError:
+        return "a ragged sequence"
+
+
+def _twist_information(twist_covariance) -> tuple[np.ndarray, np.ndarray]:
+    """The twist's zero-mean prior checked like a measurement's covariance, and its
+    information."""
+    shape = _shape(twist_covariance)
+    if shape != (DOF, DOF):
+        raise ValueError(f"twist_covariance: expected shape (6, 6), got {shape}")
+    try:
+        C = _covariances([twist_covariance], None, 1)[0]
+    except ValueError as e:
+        raise rename(e, {"covariances": "twist_covariance"}) from None
+    Wp = np.linalg.inv(C)
+    return C, 0.5 * (Wp + Wp.T)
+
+
+def _acceleration(acceleration_psd) -> Optional[np.ndarray]:
+    """The acceleration's power spectral density, symmetric positive semidefinite; None when
+    not given or zero (the constant-twist model, computed as without it)."""
+    if acceleration_psd is None:
+        return None
+    shape = _shape(acceleration_psd)
+    if shape != (DOF, DOF):
+        raise ValueError(f"acceleration_psd: expected shape (6, 6), got {shape}")
+    try:
+        Q = np.asarray(acceleration_psd, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError("acceleration_psd: expected numbers") from None
+    if not np.isfinite(Q).all():
+        raise ValueError("acceleration_psd: contains NaN or infinity")
+    scale = float(np.abs(Q).max())
+    if scale == 0.0:
+        return None
+    if np.abs(Q - Q.T).max() > _SYMMETRY_TOL * scale:
+        raise ValueError(f"acceleration_psd: not symmetric (largest asymmetry "
+                         f"{np.abs(Q - Q.T).max():.3g})")
+    Q = 0.5 * (Q + Q.T)
+    low = float(np.linalg.eigvalsh(Q).min())
+    if low < -_SYMMETRY_TOL * scale:
+        raise ValueError(f"acceleration_psd: not positive semidefinite (eigenvalue {low:.3g})")
+    return Q
+
+
+def _check_rows(bodies, sources, times, poses, covs):
+    """The checks of :meth:`Tracker.ingest` that need no state: ``(ok, errors, covs)``, ``ok``
+    the rows that pass, ``errors`` ``{k: ValueError}`` of the others, ``covs`` a copy with the
+    rows that pass symmetrised."""
+    errors: dict[int, ValueError] = {}
+    for k, (b, s) in enumerate(zip(bodies, sources)):
+        if not isinstance(b, str) or not b:
+            errors[k] = ValueError(f"measurements[{k}].body: " + (
+                "empty (every measurement names its body)" if isinstance(b, str) else
+                f"expected a string, got {type(b).__name__}"))
+        elif not isinstance(s, str):
+            errors[k] = ValueError(f"measurements[{k}].source: expected a string, "
+                                   f"got {type(s).__name__}")
+    if len(errors) == len(times):       # every row refused by its names: nothing else to check
+        return np.zeros(len(times), bool), errors, np.array(covs)
+    ok = np.isfinite(times)
+    for k in np.flatnonzero(~ok).tolist():
+        errors.setdefault(k, ValueError(f"measurements[{k}].time: must be finite, "
+                                        f"got {float(times[k])!r}"))
+    ok[list(errors)] = False
+    # The batch is checked at once; only a batch with a bad one is checked row by row. The
+    # poses are kept as given (fuse normalises them), so that an estimate is exactly fuse of
+    # what was given; the covariances symmetrised (which fuse leaves as they are).
+    covs = np.array(covs)
+    for arrays, check in ((poses.copy(), lambda a: _poses(a)),
+                          (covs, lambda a: _covariances(a, None, len(a)))):
+        rows = np.flatnonzero(ok)
+        if not len(rows):
+            break
+        try:
+            arrays[rows] = check(arrays[rows])
+        except ValueError:
+            for k in rows.tolist():
+                try:
+                    arrays[k] = check(arrays[k:k + 1])[0]
+                except ValueError as e:
+                    ok[k] = False
+                    errors.setdefault(k, rename(e, {
+                        "poses": f"measurements[{k}].pose",
+                        "covariances": f"measurements[{k}].covariance"}))
+    return ok, errors, covs
+
+
+def _finite_shape(x, name: str, shape: tuple) -> np.ndarray:
+    """``x`` as float64 of ``shape`` (values unchecked: the rows are checked one by one)."""
+    a = np.asarray(x, dtype=np.float64)
+    if a.shape != shape:
+        raise ValueError(f"{name}: expected shape {shape}, got {a.shape}")
+    return a
