@@ -1,4 +1,4 @@
-"""service/smoothing.py: limits measured from the returned samples, accuracy against a known path,
+"""service/smoothing/: limits measured from the returned samples, accuracy against a known path,
 fidelity when asked for it, and bad input rejected with the argument named."""
 from __future__ import annotations
 

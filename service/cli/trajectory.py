@@ -77,7 +77,7 @@ def configure(name: str, p) -> None:
                          "--local) and print it.")
         p.epilog = SMOOTH_EPILOG
         p.add_argument("file", metavar="FILE", help="time-stamped poses (JSON, YAML or CSV; - reads standard input)")
-        p.add_argument("--smoothing", type=float, help="see service/smoothing.py (default: the file's, else 1)")
+        p.add_argument("--smoothing", type=float, help="see service/smoothing/ (default: the file's, else 1)")
         p.add_argument("--rate", type=float, help="resample at this rate (default: the input times)")
         p.add_argument("--free-ends", action="store_true",
                        help="keep the recording's motion at its first and last sample (default: "

@@ -1,7 +1,7 @@
 /*
  * fusion.h — exact maximum-likelihood fusion of n poses with full 6x6 covariances, in pure C99.
  *
- * Conventions (those of service/fusion.py, GTSAM's Pose3):
+ * Conventions (those of service/fusion/, GTSAM's Pose3):
  *   - A covariance is 6x6 row-major, rotation first [wx wy wz vx vy vz], of a right (body-frame)
  *     perturbation T Exp(xi) with the SE(3) exponential (Exp(xi) = dq_exp(xi / 2)).
  *   - The residual of measurement Z_i at the estimate X is r_i = Log(X^-1 Z_i); its Jacobian for
@@ -46,7 +46,7 @@ enum {
 #define DQ_MAX_VARIANCE 1e24
 
 /*
- * Checks one covariance (36 values, row-major) by the rules of service/fusion.py's _covariances:
+ * Checks one covariance (36 values, row-major) by the rules of service/fusion/validation.py:
  * finite; symmetric, max |S - S^T| <= sym_tol * max |S| (the tolerance is the caller's, so the
  * rule has one source); every positive variance within [DQ_MIN_VARIANCE, DQ_MAX_VARIANCE] (DQ_E_SCALE);
  * positive definite, by Cholesky of its symmetric part, which it writes
@@ -98,7 +98,7 @@ int dq_fuse(const double *z, const double *cov, const unsigned char *inlier, siz
             size_t *bad);
 
 /*
- * The squared Mahalanobis distances of the robust mode's consensus (service/fusion.py): between
+ * The squared Mahalanobis distances of the robust mode's consensus (service/fusion/): between
  * candidate c = cand[a] and every measurement j, d2[a n + j] = r^T (S_c + S_j)^-1 r with
  * r = Log(Z_c^-1 Z_j) (first order: both errors in the body frame). O(m n) time, no memory of
  * its own. Returns DQ_OK, or DQ_E_NOT_SPD with *bad = j when S_c + S_j does not factor.
@@ -108,7 +108,7 @@ int dq_pair_distances(const double *z, const double *cov, size_t n, const long l
 
 /* The step rule dq_fuse and dq_motion_fit (motion.h) share: a Gauss-Newton step that raises the
  * cost by more than DQ_FUSE_COST_SLACK (relative) is halved, at most DQ_FUSE_MAX_HALVINGS times
- * (service/fusion.py's reference uses the same values). */
+ * (service/fusion/'s reference uses the same values). */
 #define DQ_FUSE_COST_SLACK 1e-12
 #define DQ_FUSE_MAX_HALVINGS 30
 

@@ -1,6 +1,6 @@
 /*
  * motion.h — fusion with time alignment, in pure C99: the constant-twist motion model
- * (service/fusion.py's module docstring), its Gauss-Newton fit over pose, twist and latencies,
+ * (service/fusion/__init__.py), its Gauss-Newton fit over pose, twist and latencies,
  * and the checks around it. Conventions, result codes and dq_fuse_params are fusion.h's.
  *
  * The prediction of measurement i is P_i = X Exp(dt_i V), dt_i = stamp_i - latency_i (stamps

@@ -1,6 +1,6 @@
 /*
  * py_fusion.c — the Python functions of the fusion (fusion.h: fuse, pair_distances) and of the
- * constant-twist fit (motion.h: motion_fit, motion_determined), on arrays service/fusion.py has
+ * constant-twist fit (motion.h: motion_fit, motion_determined), on arrays service/fusion/ has
  * prepared. Poses are checked unit and covariances finite here, the GIL released meanwhile.
  */
 #include "py_args.h"

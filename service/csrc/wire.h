@@ -83,7 +83,7 @@ int dq_wire_blend_batch(const uint8_t *buf, size_t len, const dq_wire_config *cf
  *
  * Each measurement gets a code: which check refused it, in the order the Python path checks
  * (first what service/rpc/convert.py measurements_to_arrays checks, then what
- * service/fusion.py Tracker checks). The texts are the Python path's, in one place: the caller
+ * service/fusion/ Tracker checks). The texts are the Python path's, in one place: the caller
  * runs that path's check on a refused measurement alone to name it.
  */
 enum {
@@ -116,7 +116,7 @@ typedef struct {
 /* Counts the measurements (r->n); -1 outside the plain case at the request's level. */
 int dq_wire_fuse_count(const uint8_t *buf, size_t len, dq_fuse_stream *r);
 /* Fills r's arrays (r->n rows, as counted) and checks every measurement; -1 outside the plain
- * case. sym_tol: the relative symmetry tolerance of a covariance (service/fusion.py's). */
+ * case. sym_tol: the relative symmetry tolerance of a covariance (service/fusion/'s). */
 int dq_wire_fuse_stream(const uint8_t *buf, size_t len, double sym_tol, dq_fuse_stream *r);
 
 /* The client's side of the same: one Measurement as FuseStreamRequest.measurements (field 3),
