@@ -431,8 +431,8 @@ class Control:
         if self._last is None:
             return result, f"{why}; the arm was not moved"
         L, P = self.arm.limits, self.period
-        dl = self.s.stop_fraction * L.max_linear_accel * P * P
-        da = self.s.stop_fraction * L.max_angular_accel * P * P
+        dl = self.s.stop_fraction * L.max_linear_acceleration * P * P
+        da = self.s.stop_fraction * L.max_angular_acceleration * P * P
         t, pose = self._last
         lin, ang = self._step[:3].copy(), self._step[3:].copy()
         n = 0
