@@ -1,11 +1,11 @@
 """The two driver interfaces: ``PoseSource`` (cameras, trackers, arms reporting where they are)
 and ``Arm`` (anything we command).
 
-Like python-can's ``BusABC``, each backend is one module (``dqpose.drivers.ur``, ``dqpose.drivers.piper``,
-``dqpose.drivers.camera``) with a real implementation, and ``dqpose.drivers.sim`` holds simulators that speak
-the same protocol. Poses cross this boundary as unit dual quaternions, NumPy ``(8,)``, in the
-project's convention (``[w, x, y, z, w', x', y', z']``, metres, seconds); a tool pose is
-``T_base_tool``.
+Like python-can's ``BusABC``, each backend is one module (``dqpose.drivers.ur``,
+``dqpose.drivers.piper``, ``dqpose.drivers.camera``) with a real implementation, and
+``dqpose.drivers.sim`` holds simulators that speak the same protocol. Poses cross this boundary
+as unit dual quaternions, NumPy ``(8,)``, in the project's convention (``[w, x, y, z, w', x',
+y', z']``, metres, seconds); a tool pose is ``T_base_tool``.
 """
 from __future__ import annotations
 

@@ -78,7 +78,8 @@ class Settings:
 
 class Buffer:
     """The set-points as the control loop sees them, and the owner's signals; one per kind of
-    transport (:class:`dqpose.drivers.executor._DequeBuffer`, :class:`dqpose.drivers.armproc._RingBuffer`)."""
+    transport (:class:`dqpose.drivers.executor._DequeBuffer`,
+    :class:`dqpose.drivers.armchild.RingBuffer`)."""
 
     #: set by the loop: whether it got real-time scheduling
     realtime = False

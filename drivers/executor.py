@@ -65,8 +65,8 @@ from typing import Callable, Optional
 import numpy as np
 
 from dqpose.drivers.base import Arm
-from dqpose.drivers.control import (Buffer, Control, Feedback, PlanSlots, Result, Settings, check_start,
-                             claim, plan_start)
+from dqpose.drivers.control import (Buffer, Control, Feedback, PlanSlots, Result, Settings,
+                                    check_start, claim, plan_start)
 from dqpose.drivers.spec import ARM_KEYS
 from dqpose import dq
 from dqpose.interpolate import MODES, interpolate
