@@ -1,11 +1,11 @@
 """The two driver interfaces: ``PoseSource`` (cameras, trackers, arms reporting where they are)
 and ``Arm`` (anything we command).
 
-Like python-can's ``BusABC``, each backend is one module (``dqpose.drivers.ur``, ``dqpose.drivers.piper``,
-``dqpose.drivers.camera``) with a real implementation, and ``dqpose.drivers.sim`` holds simulators that speak
-the same protocol. Poses cross this boundary as unit dual quaternions, NumPy ``(8,)``, in the
-project's convention (``[w, x, y, z, w', x', y', z']``, metres, seconds); a tool pose is
-``T_base_tool``.
+Like python-can's ``BusABC``, each backend is one module (``dqpose.drivers.ur``,
+``dqpose.drivers.piper``, ``dqpose.drivers.camera``) with a real implementation, and
+``dqpose.drivers.sim`` holds simulators that speak the same protocol. Poses cross this boundary
+as unit dual quaternions, NumPy ``(8,)``, in the project's convention (``[w, x, y, z, w', x',
+y', z']``, metres, seconds); a tool pose is ``T_base_tool``.
 """
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from typing import Iterator, Optional
 import numpy as np
 
 from dqpose.drivers.rotvec import rotvec_from_quat
-from dqpose import dq
+from dqpose import dq, trajectory
 
 
 @dataclass(frozen=True)
@@ -120,7 +120,7 @@ class ArmError(RuntimeError):
 
 class LimitError(ArmError):
     """A command was refused because it breaks a safety limit. ``limit`` names the field of
-    :class:`Limits` (``"max_linear_speed"``, ``"workspace"``, ...), ``value`` is what the command
+    :class:`Limits` (``"max_linear_velocity"``, ``"workspace"``, ...), ``value`` is what the command
     asked for and ``bound`` the limit, both in the units of that field. A refused ``servo()``
     set-point has also brought the arm to a controlled stop; a refused ``move()`` sent nothing."""
 
@@ -139,27 +139,38 @@ def _positive(name: str, v) -> float:
 
 
 @dataclass(frozen=True)
-class Limits:
-    """What a command may ask of any arm, in the tool frame's motion relative to the base.
+class Limits(trajectory.Limits):
+    """What a command may ask of any arm, in the tool frame's motion relative to the base: the
+    planner's :class:`dqpose.trajectory.Limits` (the proto's names, checked by its rules), with
+    defaults, and the arm's own bounds.
 
     ``servo()`` set-points are one ``period`` apart: the step between two of them is checked
     against ``max_linear_step``/``max_angular_step`` and, divided by the period, against the
-    speeds; the change of step against the accelerations. Every target lies in the box
-    ``workspace_min``..``workspace_max`` (base frame). The defaults suit a UR5e on an open bench;
-    each backend may have its own defaults (``PiperArm.DEFAULT_LIMITS``); set the box to your
-    cell."""
-    max_linear_speed: float = 0.25      # m/s
-    max_angular_speed: float = 1.0      # rad/s
-    max_linear_accel: float = 2.0       # m/s^2
-    max_angular_accel: float = 4.0      # rad/s^2
+    velocities; the change of step against the accelerations. Every target lies in the box
+    ``workspace_min``..``workspace_max`` (base frame). An arm bounds no jerk: its jerk limits
+    stay 0 (the planner's "no limit"), as the Trajectories service reports them. The defaults
+    suit a UR5e on an open bench; each backend may have its own defaults
+    (``PiperArm.DEFAULT_LIMITS``); set the box to your cell."""
+    max_linear_velocity: float = 0.25       # m/s
+    max_angular_velocity: float = 1.0       # rad/s
+    max_linear_acceleration: float = 2.0    # m/s^2
+    max_angular_acceleration: float = 4.0   # rad/s^2
     workspace_min: tuple = (-1.0, -1.0, -0.2)   # m, base frame
     workspace_max: tuple = (1.0, 1.0, 1.2)
     max_linear_step: float = 0.02       # m per set-point
     max_angular_step: float = math.radians(5)   # rad per set-point
 
     def __post_init__(self):
-        for name in ("max_linear_speed", "max_angular_speed", "max_linear_accel",
-                     "max_angular_accel", "max_linear_step", "max_angular_step"):
+        # The shared fields by the planner's rules (one home for them): its own check, on its
+        # own fields only (its __post_init__ would take this class's box for a number).
+        motion = trajectory.Limits(**{n: getattr(self, n) for n in trajectory.LIMIT_FIELDS})
+        for name in trajectory.LIMIT_FIELDS:
+            object.__setattr__(self, name, getattr(motion, name))
+        for name in ("max_linear_jerk", "max_angular_jerk"):
+            if getattr(self, name):
+                raise ValueError(f"limits.{name}: an arm bounds no jerk (its servo check does "
+                                 f"not measure it): must be 0, got {getattr(self, name)!r}")
+        for name in ("max_linear_step", "max_angular_step"):
             object.__setattr__(self, name, _positive(f"limits.{name}", getattr(self, name)))
         try:
             lo, hi = np.asarray(self.workspace_min, float), np.asarray(self.workspace_max, float)
@@ -185,8 +196,8 @@ class Limits:
     def check_move(self, pose: np.ndarray, speed, accel) -> None:
         """The arguments of ``Arm.move``: speed and acceleration within (0, limit] (else
         ``ValueError``), the target in the workspace (else :class:`LimitError`)."""
-        for name, v, hi in (("speed", speed, self.max_linear_speed),
-                            ("accel", accel, self.max_linear_accel)):
+        for name, v, hi in (("speed", speed, self.max_linear_velocity),
+                            ("accel", accel, self.max_linear_acceleration)):
             if isinstance(v, bool) or not (isinstance(v, numbers.Real) and math.isfinite(v)
                                            and 0 < v <= hi):
                 raise ValueError(f"{name}: must be within (0, {hi:g}], got {v!r}")
@@ -212,11 +223,12 @@ class Limits:
         checks = (
             ("max_linear_step", lin, 1e-9, "m", "step"),
             ("max_angular_step", ang, 1e-9, "rad", "turn"),
-            ("max_linear_speed", lin / period, 1e-9, "m/s", f"speed over one {ms:g} ms period"),
-            ("max_angular_speed", ang / period, 1e-9, "rad/s",
+            ("max_linear_velocity", lin / period, 1e-9, "m/s",
+             f"speed over one {ms:g} ms period"),
+            ("max_angular_velocity", ang / period, 1e-9, "rad/s",
              f"angular speed over one {ms:g} ms period"),
-            ("max_linear_accel", dv, 1e-6, "m/s^2", "acceleration"),
-            ("max_angular_accel", dw, 1e-6, "rad/s^2", "angular acceleration"),
+            ("max_linear_acceleration", dv, 1e-6, "m/s^2", "acceleration"),
+            ("max_angular_acceleration", dw, 1e-6, "rad/s^2", "angular acceleration"),
         )
         for limit, value, tol, unit, what in checks:
             bound = getattr(self, limit)

@@ -78,7 +78,8 @@ class Settings:
 
 class Buffer:
     """The set-points as the control loop sees them, and the owner's signals; one per kind of
-    transport (:class:`dqpose.drivers.executor._DequeBuffer`, :class:`dqpose.drivers.armproc._RingBuffer`)."""
+    transport (:class:`dqpose.drivers.executor._DequeBuffer`,
+    :class:`dqpose.drivers.armchild.RingBuffer`)."""
 
     #: set by the loop: whether it got real-time scheduling
     realtime = False
@@ -431,8 +432,8 @@ class Control:
         if self._last is None:
             return result, f"{why}; the arm was not moved"
         L, P = self.arm.limits, self.period
-        dl = self.s.stop_fraction * L.max_linear_accel * P * P
-        da = self.s.stop_fraction * L.max_angular_accel * P * P
+        dl = self.s.stop_fraction * L.max_linear_acceleration * P * P
+        da = self.s.stop_fraction * L.max_angular_acceleration * P * P
         t, pose = self._last
         lin, ang = self._step[:3].copy(), self._step[3:].copy()
         n = 0

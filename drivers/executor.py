@@ -65,8 +65,8 @@ from typing import Callable, Optional
 import numpy as np
 
 from dqpose.drivers.base import Arm
-from dqpose.drivers.control import (Buffer, Control, Feedback, PlanSlots, Result, Settings, check_start,
-                             claim, plan_start)
+from dqpose.drivers.control import (Buffer, Control, Feedback, PlanSlots, Result, Settings,
+                                    check_start, claim, plan_start)
 from dqpose.drivers.spec import ARM_KEYS
 from dqpose import dq
 from dqpose.interpolate import MODES, interpolate
@@ -222,8 +222,8 @@ class Executor:
             feedback_every=int(feedback_every), stop_fraction=float(stop_fraction),
             start_tolerance=_tolerance("start_tolerance", start_tolerance)
             if start_tolerance is not None else
-            (0.9 * L.max_linear_accel * self.period ** 2,
-             0.9 * L.max_angular_accel * self.period ** 2),
+            (0.9 * L.max_linear_acceleration * self.period ** 2,
+             0.9 * L.max_angular_acceleration * self.period ** 2),
             settle_tolerance=_tolerance("settle_tolerance", settle_tolerance),
             realtime=None if realtime is None else int(realtime),
             heartbeat=None if heartbeat is None else _positive("heartbeat", heartbeat),

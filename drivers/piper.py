@@ -70,7 +70,7 @@ class PiperArm(Arm):
     pose_sigma = (3.3e-4, 3.3e-5)
 
     #: the PiPER reaches about 0.63 m
-    DEFAULT_LIMITS = Limits(max_angular_speed=math.radians(90),
+    DEFAULT_LIMITS = Limits(max_angular_velocity=math.radians(90),
                             workspace_min=(-0.7, -0.7, -0.2), workspace_max=(0.7, 0.7, 0.8))
 
     @classmethod
@@ -386,8 +386,8 @@ class PiperArm(Arm):
         self._check_commandable("move")
         dist, ang = pose_delta(start, target)
         # radians per translation-equivalent metre, within both angular limits
-        scale = min(L.max_angular_speed / L.max_linear_speed,
-                    L.max_angular_accel / L.max_linear_accel)
+        scale = min(L.max_angular_velocity / L.max_linear_velocity,
+                    L.max_angular_acceleration / L.max_linear_acceleration)
         profile = Trapezoid(max(dist, ang / scale), speed, accel)
         if timeout is None:
             timeout = profile.duration + 2.0

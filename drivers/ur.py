@@ -500,10 +500,10 @@ class URArm(Arm):
         if angle > 1e-9 and np.linalg.norm(p6[:3] - here[:3]) > 1e-9:
             # UR turns the tool in step with the translation: keep that turn within the limit
             dist = float(np.linalg.norm(p6[:3] - here[:3]))
-            if angle / dist * speed > L.max_angular_speed:
+            if angle / dist * speed > L.max_angular_velocity:
                 raise ValueError(f"speed: {speed} m/s over {dist:.4f} m turns the tool at "
                                  f"{angle / dist * speed:.3f} rad/s, above the "
-                                 f"{L.max_angular_speed} rad/s limit")
+                                 f"{L.max_angular_velocity} rad/s limit")
         length = max(float(np.linalg.norm(p6[:3] - here[:3])), angle)
         timeout = 2.0 * (length / speed + speed / accel) + 2.0
         with self._state_lock:

@@ -68,7 +68,7 @@ def as_json(a) -> dict:
 def _limits() -> dict:
     """The arms' limits the server reports, by the proto's name: their units."""
     from dqpose.rpc.arms import ARM_LIMITS
-    return {name: unit for name, (_, unit) in ARM_LIMITS.items()}
+    return ARM_LIMITS
 
 
 def _speeds(a) -> tuple[float, float]:

@@ -37,8 +37,8 @@ _SIM_X = {"eye_in_hand": ((0.06, -0.02, 0.04), (0.08, -0.12, 1.40)),
 _SIM_Z = {"eye_in_hand": ((0.40, 0.10, 0.0), (math.pi, 0.0, 0.0)),
           "eye_to_hand": ((-0.14, -0.10, 0.05), (0.0, 0.0, 0.0))}
 #: the simulator's own tool speed limits (drivers/sim/ur/), faster than a bench arm's
-_SIM_SPEED = dict(max_linear_speed=1.0, max_angular_speed=3.0, max_linear_accel=4.0,
-                  max_angular_accel=8.0)
+_SIM_SPEED = dict(max_linear_velocity=1.0, max_angular_velocity=3.0, max_linear_acceleration=4.0,
+                  max_angular_acceleration=8.0)
 #: Capture sends whole moves, each run by the controller itself, never a servo stream: a pause
 #: of the data stream this short is no fault (and a simulator on a busy machine makes them)
 STALE_AFTER = 1.0
@@ -382,7 +382,7 @@ def _move(arm, target, speed: float) -> None:
     L = arm.limits
     _, here = arm.tool_pose()
     dist, angle = pose_delta(here, target)
-    v = min(speed, L.max_linear_speed)
+    v = min(speed, L.max_linear_velocity)
     if angle > 1e-9 and dist > 1e-9:
-        v = min(v, 0.95 * L.max_angular_speed * dist / angle)
-    arm.move(target, v, min(1.0, L.max_linear_accel))
+        v = min(v, 0.95 * L.max_angular_velocity * dist / angle)
+    arm.move(target, v, min(1.0, L.max_linear_acceleration))

@@ -37,12 +37,10 @@ MAX_PENDING = 1000
 FREE_WAIT = 1.0
 #: the arm's heartbeat is beaten this many times per period it asks for (margin for a busy loop)
 BEATS_PER_PERIOD = 2
-#: the arm's Limits field (drivers.base.Limits) that bounds each field of the proto's Limits,
-#: with its unit
-ARM_LIMITS = {"max_linear_velocity": ("max_linear_speed", "m/s"),
-              "max_angular_velocity": ("max_angular_speed", "rad/s"),
-              "max_linear_acceleration": ("max_linear_accel", "m/s^2"),
-              "max_angular_acceleration": ("max_angular_accel", "rad/s^2")}
+#: the fields of the proto's Limits an arm bounds, with their units: an arm's Limits
+#: (drivers.base.Limits) has them by the same names; its jerk limits are 0 (it bounds none)
+ARM_LIMITS = {"max_linear_velocity": "m/s", "max_angular_velocity": "rad/s",
+              "max_linear_acceleration": "m/s^2", "max_angular_acceleration": "rad/s^2"}
 
 _OK, _CANCELLED = grpc.StatusCode.OK, grpc.StatusCode.CANCELLED
 _ABORTED, _UNAVAILABLE = grpc.StatusCode.ABORTED, grpc.StatusCode.UNAVAILABLE
@@ -117,8 +115,8 @@ class Arms:
 
     async def _state(self, slot: _Arm) -> pb.ArmState:
         msg = pb.ArmState(arm=slot.name, state=slot.state, busy=slot.run is not None)
-        for mine, (theirs, _) in ARM_LIMITS.items():
-            setattr(msg.limits, mine, float(getattr(slot.arm.limits, theirs)))
+        for name in ARM_LIMITS:
+            setattr(msg.limits, name, float(getattr(slot.arm.limits, name)))
         try:    # an arm in its own process answers through a pipe: not on the loop
             st = await asyncio.to_thread(slot.arm.state)
         except Exception as e:      # a dead arm is a fault to report, not a failed call
@@ -185,11 +183,11 @@ class Arms:
                               "max_execute_waypoints")
         # converting up to max_execute_waypoints messages is work that grows with the request
         args = await asyncio.to_thread(plan_from_msg, request.plan, "plan.", False)
-        for mine, (theirs, unit) in ARM_LIMITS.items():
-            want, bound = getattr(args.limits, mine), float(getattr(slot.arm.limits, theirs))
+        for name, unit in ARM_LIMITS.items():
+            want, bound = getattr(args.limits, name), float(getattr(slot.arm.limits, name))
             if want > bound:
                 raise Precondition(
-                    f"plan.limits.{mine}: {want:.6g} {unit} is above the limits.{theirs} of "
+                    f"plan.limits.{name}: {want:.6g} {unit} is above the limits.{name} of "
                     f"arm {slot.name!r}, {bound:.6g} {unit}; plan within the arm's limits "
                     f"(GetArm lists them)")
         return slot, args

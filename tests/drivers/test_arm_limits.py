@@ -18,8 +18,8 @@ from dqpose import dq
 from dqpose.profile import Trapezoid
 from _polling import wait_until
 
-LIMITS = Limits(max_linear_speed=0.2, max_angular_speed=1.0, max_linear_accel=2.0,
-                max_angular_accel=4.0, workspace_min=(-0.7, -0.7, -0.2),
+LIMITS = Limits(max_linear_velocity=0.2, max_angular_velocity=1.0, max_linear_acceleration=2.0,
+                max_angular_acceleration=4.0, workspace_min=(-0.7, -0.7, -0.2),
                 workspace_max=(0.7, 0.7, 0.8), max_linear_step=0.02,
                 max_angular_step=math.radians(5))
 # The simulators share two cores with other jobs: one that is not scheduled for a while falls
@@ -176,14 +176,14 @@ def _offending(arm, sent, limit):
         return dq.to_pose(dq.mul(r, dq.from_pose(q, [0, 0, 0])))[0]
     # keep turning at the stream's rate (its rotation stays within the limits)
     w = pose_delta(before, last)[1]
-    if limit == "max_linear_speed":
-        return dq.from_pose(turned(w), t + 1.5 * L.max_linear_speed * dt * u)
-    if limit == "max_linear_accel":
-        return dq.from_pose(turned(w), t + step + 1.5 * L.max_linear_accel * dt * dt * u)
-    if limit == "max_angular_speed":
-        return dq.from_pose(turned(1.5 * L.max_angular_speed * dt), t + step)
-    if limit == "max_angular_accel":
-        return dq.from_pose(turned(w + 1.5 * L.max_angular_accel * dt * dt), t + step)
+    if limit == "max_linear_velocity":
+        return dq.from_pose(turned(w), t + 1.5 * L.max_linear_velocity * dt * u)
+    if limit == "max_linear_acceleration":
+        return dq.from_pose(turned(w), t + step + 1.5 * L.max_linear_acceleration * dt * dt * u)
+    if limit == "max_angular_velocity":
+        return dq.from_pose(turned(1.5 * L.max_angular_velocity * dt), t + step)
+    if limit == "max_angular_acceleration":
+        return dq.from_pose(turned(w + 1.5 * L.max_angular_acceleration * dt * dt), t + step)
     if limit == "max_linear_step":
         return dq.from_pose(q, t + 0.03 * u)
     if limit == "max_angular_step":
@@ -193,9 +193,9 @@ def _offending(arm, sent, limit):
     raise AssertionError(limit)
 
 
-@pytest.mark.parametrize("limit", ["max_linear_speed", "max_angular_speed", "max_linear_accel",
-                                   "max_angular_accel", "max_linear_step", "max_angular_step",
-                                   "workspace"])
+@pytest.mark.parametrize("limit", ["max_linear_velocity", "max_angular_velocity",
+                                   "max_linear_acceleration", "max_angular_acceleration",
+                                   "max_linear_step", "max_angular_step", "workspace"])
 def test_over_limit_setpoint_is_refused_and_the_arm_stopped(rig, arm, limit):
     sent = _stream(arm, fraction=0.5)            # cruising at 0.1 m/s
     bad = _offending(arm, sent, limit)
@@ -222,9 +222,9 @@ def test_a_first_setpoint_is_measured_from_rest(arm):
     here = arm.tool_pose()[1]
     q, t = dq.to_pose(here)
     # one period at full speed from rest: an acceleration of v / period
-    with pytest.raises(LimitError, match="limits.max_linear_accel") as info:
-        arm.servo(dq.from_pose(q, t + [0.9 * LIMITS.max_linear_speed * arm.period, 0, 0]))
-    assert info.value.value == pytest.approx(0.9 * LIMITS.max_linear_speed / arm.period)
+    with pytest.raises(LimitError, match="limits.max_linear_acceleration") as info:
+        arm.servo(dq.from_pose(q, t + [0.9 * LIMITS.max_linear_velocity * arm.period, 0, 0]))
+    assert info.value.value == pytest.approx(0.9 * LIMITS.max_linear_velocity / arm.period)
 
 
 def test_move_and_servo_arguments_are_checked_the_same(arm):
@@ -253,14 +253,33 @@ def test_both_arms_expose_what_an_executor_needs(arm):
 
 
 def test_limits_are_validated():
-    with pytest.raises(ValueError, match="^limits.max_linear_speed:"):
-        Limits(max_linear_speed=-1)
+    with pytest.raises(ValueError, match="^limits.max_linear_velocity:"):
+        Limits(max_linear_velocity=-1)
     with pytest.raises(ValueError, match="^limits.max_angular_step:"):
         Limits(max_angular_step=math.inf)
     with pytest.raises(ValueError, match="^limits.workspace_min:"):
         Limits(workspace_min=(0, 0, 2), workspace_max=(1, 1, 1))
     with pytest.raises(ValueError, match="^limits.workspace_min/max: expected three"):
         Limits(workspace_min=(0, 0))
+
+
+def test_an_arms_limits_are_the_planners_by_the_same_names_and_rules():
+    """One Limits: an arm's are a trajectory.Limits (the proto's names), checked by the planner's
+    rules, with no jerk bound (the arm does not measure jerk); a plan can be made with them."""
+    from dqpose import trajectory
+    assert isinstance(LIMITS, trajectory.Limits)
+    assert LIMITS.max_linear_jerk == 0 and LIMITS.max_angular_jerk == 0
+    assert set(trajectory.LIMIT_FIELDS) <= {f for f in vars(LIMITS)}
+    with pytest.raises(ValueError, match=r"^limits.max_linear_velocity: 1e\+12 is outside "):
+        Limits(max_linear_velocity=1e12)
+    with pytest.raises(ValueError, match="^limits.max_angular_jerk: an arm bounds no jerk"):
+        Limits(max_angular_jerk=10.0)
+    a = dq.from_pose(np.array([1.0, 0, 0, 0]), np.array([0.3, 0, 0.3]))
+    b = dq.from_pose(np.array([1.0, 0, 0, 0]), np.array([0.4, 0, 0.3]))
+    traj = trajectory.plan([trajectory.Waypoint(a), trajectory.Waypoint(b)], LIMITS)
+    assert traj.segments[0].binding in trajectory.LIMIT_FIELDS
+    speed = np.linalg.norm(traj.sample(np.linspace(0, traj.duration, 200)).linear_velocity, axis=1)
+    assert speed.max() <= LIMITS.max_linear_velocity * (1 + 1e-9)
 
 
 def test_backends_by_name():

@@ -51,7 +51,7 @@ def _braked_within_the_limits(arm, got):
     assert speeds[-1] < 0.1 * speeds[peak]
     steps = [servo_step(b, a)[:3] for a, b in zip(got, got[1:])]
     dv = [np.linalg.norm(b - a) / arm.period ** 2 for a, b in zip(steps, steps[1:])]
-    assert max(dv) <= LIMITS.max_linear_accel * (1 + 1e-6)
+    assert max(dv) <= LIMITS.max_linear_acceleration * (1 + 1e-6)
 
 
 def test_a_stalled_heartbeat_brings_the_arm_to_rest(rig, arm):
@@ -82,7 +82,7 @@ def test_a_stalled_heartbeat_brings_the_arm_to_rest(rig, arm):
     assert pose_delta(arm.tool_pose()[1], poses[-1])[0] > 0.02     # well short of the end
     # after the last beat: at most three heartbeats of the plan, then the braking
     v = 0.15
-    braking = v / (0.5 * LIMITS.max_linear_accel * arm.period) + 2
+    braking = v / (0.5 * LIMITS.max_linear_acceleration * arm.period) + 2
     assert ex.sent - at_last_beat <= 3 * hb / arm.period + 1 + braking
 
 
@@ -135,7 +135,7 @@ def test_a_halt_brakes_the_arm_to_rest_within_its_limits(rig, arm):
     got = [p for _, p in rig.arrivals()][:ex.sent]
     _braked_within_the_limits(arm, got)
     n = int(ex.message.split(" in ")[1].split()[0])
-    assert n >= 0.15 / (0.5 * LIMITS.max_linear_accel * arm.period) - 1   # braked, not cut
+    assert n >= 0.15 / (0.5 * LIMITS.max_linear_acceleration * arm.period) - 1   # braked, not cut
     assert pose_delta(arm.tool_pose()[1], poses[-1])[0] > 0.02
 
 

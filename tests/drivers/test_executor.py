@@ -205,27 +205,27 @@ def test_a_dry_buffer_brakes_within_the_limits_and_stalls(rig, arm):
     speeds = [np.linalg.norm(s[:3]) for s in steps]
     assert all(b <= a + 1e-6 for a, b in zip(speeds, speeds[1:]))
     v = np.linalg.norm(servo_step(poses[half - 1], poses[half - 2])[:3]) / arm.period
-    braking = v * v / (2 * 0.5 * LIMITS.max_linear_accel)
+    braking = v * v / (2 * 0.5 * LIMITS.max_linear_acceleration)
     d = pose_delta(got[-1], poses[half - 1])[0]
     assert 0 < d <= braking + v * arm.period
 
 
 def test_a_setpoint_over_the_limits_ends_limited_with_the_arm_stopped(rig, arm):
-    # cruising at 1.5 x max_linear_speed
+    # cruising at 1.5 x max_linear_velocity
     times, poses = _plan(arm, rate=1.0 / arm.period, length=0.05,
-                         speed=1.5 * LIMITS.max_linear_speed, accel=1.0)
+                         speed=1.5 * LIMITS.max_linear_velocity, accel=1.0)
     ex = Executor(arm)
     ex.push(times, poses)
     ex.finish()
     assert ex.wait(10) == Result.LIMITED
-    assert "limits.max_linear_speed" in ex.message and ex.message.endswith("the arm was stopped")
+    assert "limits.max_linear_velocity" in ex.message and ex.message.endswith("the arm was stopped")
     assert wait_until(rig.stopped)
     got = [p for _, p in rig.arrivals()]
     assert len(got) >= ex.sent > 0
     assert all(_same(g, p) for g, p in zip(got[:ex.sent], poses))  # the plan's, up to the refusal
     bad = poses[ex.sent]
     assert np.linalg.norm(servo_step(bad, poses[ex.sent - 1])[:3]) / arm.period > \
-        LIMITS.max_linear_speed
+        LIMITS.max_linear_velocity
     assert not any(_same(g, bad) for g in got)
 
 
@@ -383,7 +383,7 @@ def test_a_killed_parent_brakes_the_arm_to_a_stop_and_its_process_ends():
         assert speeds[-1] < 0.1 * speeds[peak]
         steps = [servo_step(b, a) for a, b in zip(got, got[1:])]
         dv = [np.linalg.norm(b[:3] - a[:3]) / 0.002 ** 2 for a, b in zip(steps, steps[1:])]
-        assert max(dv) <= LIMITS.max_linear_accel * (1 + 1e-6)
+        assert max(dv) <= LIMITS.max_linear_acceleration * (1 + 1e-6)
 
 
 @pytest.mark.parametrize("machine, ok", [("x86_64", True), ("AMD64", True), ("aarch64", False),

@@ -137,7 +137,7 @@ def test_jumps_and_limits_are_refused_and_the_arm_stopped(sim, arm, home):
         arm.servo(pose_from_rotvec(p))
     jump = path[49].copy()
     jump[1] += 0.01                                     # 10 mm in one 2 ms period: 5 m/s
-    with pytest.raises(LimitError, match="above limits.max_linear_speed = 0.25 m/s"):
+    with pytest.raises(LimitError, match="above limits.max_linear_velocity = 0.25 m/s"):
         arm.servo(pose_from_rotvec(jump))
     cmds = [e["cmd"] for e in sim.log(start)["entries"]]
     assert cmds.count(ursim.SERVOL) == 50 and ursim.SERVO_STOP in cmds[50:]
@@ -147,10 +147,11 @@ def test_jumps_and_limits_are_refused_and_the_arm_stopped(sim, arm, home):
     # from rest, a full-speed step is an acceleration of v / period = 125 m/s^2
     step = at.copy()
     step[0] += 0.25 * arm.period
-    with pytest.raises(LimitError, match="m/s\\^2, above limits.max_linear_accel = 2 m/s\\^2"):
+    with pytest.raises(LimitError,
+                       match="m/s\\^2, above limits.max_linear_acceleration = 2 m/s\\^2"):
         arm.servo(pose_from_rotvec(step))
     turned = dq.mul(pose_from_rotvec(at), dq.exp([0.0, 0.0, 0.5 * 1.5 * arm.period, 0, 0, 0]))
-    with pytest.raises(LimitError, match="limits.max_angular_speed = 1 rad/s"):
+    with pytest.raises(LimitError, match="limits.max_angular_velocity = 1 rad/s"):
         arm.servo(turned)                               # 1.5 rad/s > 1 rad/s
     far = at.copy()
     far[2] = 1.5
@@ -312,8 +313,8 @@ def test_bad_arguments():
         URArm("127.0.0.1", frequency=1000)
     with pytest.raises(ValueError, match="^stale_after:"):
         URArm("127.0.0.1", stale_after=0)
-    with pytest.raises(ValueError, match="^limits.max_linear_speed:"):
-        Limits(max_linear_speed=-1)
+    with pytest.raises(ValueError, match="^limits.max_linear_velocity:"):
+        Limits(max_linear_velocity=-1)
     with pytest.raises(ValueError, match="^limits.workspace_min:"):
         Limits(workspace_min=(0, 0, 2), workspace_max=(1, 1, 1))
 

@@ -55,7 +55,7 @@ def test_limits_above_the_arms_are_refused_before_it_moves(rig):
         list(c.execute(r.name, [r.home, offset(r.home, dx=0.05)], fast))
     assert e.value.code.name == "FAILED_PRECONDITION"
     assert e.value.details == (
-        f"plan.limits.max_linear_velocity: 0.5 m/s is above the limits.max_linear_speed of arm "
+        f"plan.limits.max_linear_velocity: 0.5 m/s is above the limits.max_linear_velocity of arm "
         f"{r.name!r}, 0.25 m/s; plan within the arm's limits (GetArm lists them)")
     assert r.setpoints() == 0 and not r.moving()
 

@@ -54,7 +54,7 @@ def _reports(state, r) -> None:
     """GetArm's answer is the arm's: where it stands, no fault, its own limits."""
     assert state.faults == (), state.faults
     assert state.pose is not None and distance(state.pose, r.pose()) < 1e-3
-    assert state.limits.max_linear_velocity == r.arm.limits.max_linear_speed
+    assert state.limits.max_linear_velocity == r.arm.limits.max_linear_velocity
 
 
 def test_an_execute_whose_arm_process_dies_ends_unavailable_and_the_arm_serves_on(rig):

@@ -237,8 +237,8 @@ def test_get_arm_says_where_the_arm_is_and_what_it_may_do(ur):
     assert np.linalg.norm(got.angular_velocity) < 1e-9
     assert (got.limits.max_linear_velocity, got.limits.max_angular_velocity,
             got.limits.max_linear_acceleration, got.limits.max_angular_acceleration) == (
-        arm.limits.max_linear_speed, arm.limits.max_angular_speed,
-        arm.limits.max_linear_accel, arm.limits.max_angular_accel)
+        arm.limits.max_linear_velocity, arm.limits.max_angular_velocity,
+        arm.limits.max_linear_acceleration, arm.limits.max_angular_acceleration)
     assert got.limits.max_linear_jerk == 0
     assert [a.arm for a in listed] == ["ur"]
     lin, _ = _delta(listed[0].pose, got.pose)
