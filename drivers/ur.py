@@ -21,8 +21,6 @@ from __future__ import annotations
 import datetime
 import math
 import numbers
-import os
-import socket
 import threading
 import time
 from typing import Optional
@@ -32,6 +30,9 @@ import numpy as np
 from dqpose.drivers.base import Arm, ArmError, ArmState, LimitError, Limits, Pacer, unit_pose
 from dqpose.drivers.rotvec import pose_from_rotvec, rotvec_from_pose, rotvec_from_quat
 from dqpose.drivers.rtde import DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT, request_version
+from dqpose.drivers.ur_connection import (CLOSE_WAIT, Closed, disconnect, end_script,
+                                         keep_to_exit, probe,
+                                         restore_nodelay, within)
 from dqpose import dq
 
 CB3_MAJOR = 3
@@ -42,75 +43,6 @@ RUNTIME_PLAYING = 2             # runtime_state: the control script runs
 _RECEIVE_VARIABLES = ["timestamp", "actual_TCP_pose", "actual_TCP_speed", "runtime_state",
                       "robot_mode",
                       "safety_mode", "robot_status_bits", "safety_status_bits"]
-
-
-def _probe(host: str, port: int, timeout: float) -> None:
-    try:
-        socket.create_connection((host, port), timeout=timeout).close()
-    except OSError as e:
-        raise ArmError(f"host: cannot reach a UR controller at {host}:{port} within "
-                       f"{timeout:g} s ({e})") from None
-
-
-def _rtde_connections(host: str) -> list[socket.socket]:
-    """This process's TCP sockets connected to ``host``'s RTDE port, each on a duplicate of its
-    descriptor (the caller closes them); empty where /proc/self/fd does not exist (Linux only)."""
-    try:
-        fds = os.listdir("/proc/self/fd")
-        addresses = {a[4][0] for a in socket.getaddrinfo(host, RTDE_PORT, type=socket.SOCK_STREAM)}
-    except OSError:
-        return []
-    out = []
-    for fd in fds:
-        try:
-            if not os.readlink(f"/proc/self/fd/{fd}").startswith("socket:"):
-                continue
-            dup = os.dup(int(fd))
-        except (OSError, ValueError):
-            continue                            # gone meanwhile
-        try:
-            s = socket.socket(fileno=dup)
-        except OSError:
-            os.close(dup)                       # closed and reused by something else meanwhile
-            continue
-        try:
-            if s.type == socket.SOCK_STREAM and s.family in (socket.AF_INET, socket.AF_INET6):
-                peer = s.getpeername()
-                if peer[1] == RTDE_PORT and peer[0] in addresses:
-                    out.append(s)
-                    continue
-        except OSError:
-            pass                                # not connected
-        s.close()
-    return out
-
-
-def _restore_nodelay(host: str) -> int:
-    """Turn Nagle's algorithm off again on this process's RTDE connections to ``host``; returns
-    how many sockets were set.
-
-    ur_rtde 1.6.5 sets ``TCP_NODELAY`` (and ``TCP_QUICKACK``) on each socket and then lets
-    ``boost::asio::connect`` close it and open a new one, which has neither. With Nagle on, a
-    command written while the previous one is not yet acknowledged waits for the controller's
-    acknowledgement, which rides on its next data package: measured on the simulator, a
-    ``servoStop`` issued mid-period left 0-2 ms later (one data cycle), and a set-point could
-    wait the same way. Socket options belong to the socket, so setting them through a
-    duplicate of the descriptor reaches ur_rtde's. Linux only; elsewhere nothing is changed."""
-    socks = _rtde_connections(host)
-    for s in socks:
-        with s:
-            s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-    return len(socks)
-
-
-class _Closed:
-    """What stands for ur_rtde's interfaces once the arm is closed."""
-
-    def isConnected(self) -> bool:
-        return False
-
-    def __getattr__(self, name):
-        raise ArmError("arm: closed")
 
 
 class URArm(Arm):
@@ -168,7 +100,7 @@ class URArm(Arm):
         self.disconnect_on_close = bool(disconnect)
 
         for port in (RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT):
-            _probe(host, port, connect_timeout)
+            probe(host, port, connect_timeout)
         try:
             self.version = tuple(request_version(host, RTDE_PORT, connect_timeout))
         except OSError as e:
@@ -188,7 +120,7 @@ class URArm(Arm):
             if hasattr(self, "_recv"):
                 self._recv.disconnect()
             raise ArmError(f"host: ur_rtde could not connect to {host}: {e}") from None
-        self.nodelay_sockets = _restore_nodelay(host)
+        self.nodelay_sockets = restore_nodelay(host)
 
         self._lock = threading.Lock()           # one control call at a time
         self._recv_lock = threading.RLock()     # no read while the receive side reconnects
@@ -274,7 +206,7 @@ class URArm(Arm):
         """One attempt; False while the controller is still away."""
         try:
             for port in (DASHBOARD_PORT, SCRIPT_PORT):
-                _probe(self.host, port, 0.2)
+                probe(self.host, port, 0.2)
             # a controller that answers RTDE: a booting one may accept and close connections,
             # and ur_rtde, connected to that, would wait for data that never comes
             request_version(self.host, RTDE_PORT, 0.5)
@@ -291,7 +223,7 @@ class URArm(Arm):
                         self._ctrl.reconnect()
                 else:
                     self._ctrl.reuploadScript()
-            self.nodelay_sockets = _restore_nodelay(self.host)
+            self.nodelay_sockets = restore_nodelay(self.host)
             return True
         except RuntimeError:
             return False
@@ -560,15 +492,15 @@ class URArm(Arm):
             ctrl = self._ctrl
             ended = True
             if ctrl.isConnected() and not self._error:
-                ended = _within(CLOSE_WAIT, _end_script, ctrl, self.stop_decel)
+                ended = within(CLOSE_WAIT, end_script, ctrl, self.stop_decel)
             interfaces = (self._ctrl, self._recv)
             with self._recv_lock:
-                self._ctrl = self._recv = _Closed()
+                self._ctrl = self._recv = Closed()
             if not (self.disconnect_on_close and ended):
-                _keep_to_exit(interfaces)
+                keep_to_exit(interfaces)
                 return
             # each disconnect sleeps 0.5 s without the interpreter lock: both at once
-            ends = [threading.Thread(target=_disconnect, args=(i,), daemon=True)
+            ends = [threading.Thread(target=disconnect, args=(i,), daemon=True)
                     for i in interfaces]
             for t in ends:
                 t.start()
@@ -576,60 +508,9 @@ class URArm(Arm):
             for t in ends:
                 t.join(max(0.0, deadline - time.monotonic()))
             if any(t.is_alive() for t in ends):
-                _keep_to_exit(interfaces)   # their destructors would wait as long
+                keep_to_exit(interfaces)   # their destructors would wait as long
                 return
             # ur_rtde's destructors sleep 0.5 s each holding the interpreter lock: here, in the
             # close that is expected to take that long, not whenever a garbage collection finds
             # this arm later (every thread of the process would stop then)
             del interfaces
-
-
-#: how long each step of :meth:`URArm.close` may take (s)
-CLOSE_WAIT = 3.0
-
-
-def _end_script(ctrl, decel: float) -> None:
-    try:
-        ctrl.servoStop(decel)
-        ctrl.stopScript()
-    except RuntimeError:
-        pass        # gone meanwhile
-
-
-def _within(seconds: float, fn, *args) -> bool:
-    """``fn(*args)`` in a thread of its own (ur_rtde's calls leave the interpreter lock); True
-    when it returned within ``seconds``."""
-    t = threading.Thread(target=fn, args=args, daemon=True)
-    t.start()
-    t.join(seconds)
-    return not t.is_alive()
-
-
-def _disconnect(interface) -> None:
-    try:
-        interface.disconnect()
-    except RuntimeError:
-        pass    # the controller is already gone
-
-
-#: ur_rtde interfaces left to the process's end (:func:`_keep_to_exit`)
-_kept = 0
-
-
-def _keep_to_exit(interfaces) -> None:
-    """Never destroy these ur_rtde interfaces: their destructors disconnect (0.5 s, holding the
-    interpreter lock), also in the interpreter's own teardown at exit. Their connections and
-    threads last until the process ends (:func:`kept_to_exit`)."""
-    import ctypes
-    global _kept
-    for i in interfaces:
-        ctypes.pythonapi.Py_IncRef(ctypes.py_object(i))
-        _kept += 1
-
-
-def kept_to_exit() -> bool:
-    """Whether ur_rtde connections were left to the process's end: its threads then still run
-    while the interpreter tears itself down, and crash it now and then (SIGSEGV, an exit code of
-    -11 after a clean stop); a program that knows it is done ends with ``os._exit`` instead
-    (``dqpose``'s commands do)."""
-    return _kept > 0

@@ -68,10 +68,11 @@ def main(argv: list[str] | None = None) -> int:
 
 def run() -> None:
     """The ``dqpose`` program: :func:`main`, then the process's end. Where a UR's ur_rtde
-    connections were left to that end (``dqpose.drivers.ur.kept_to_exit``), the process ends without
-    the interpreter's teardown, which their threads can crash (SIGSEGV after a clean stop)."""
+    connections were left to that end (``drivers.ur_connection.kept_to_exit``), the process
+    ends without the interpreter's teardown, which their threads can crash (SIGSEGV after a
+    clean stop)."""
     code = main()
-    ur = sys.modules.get("dqpose.drivers.ur")
+    ur = sys.modules.get("dqpose.drivers.ur_connection")
     if ur is not None and ur.kept_to_exit():
         import logging
         import os

@@ -66,7 +66,7 @@ def test_connects_and_reports(arm):
 def test_rtde_commands_are_not_held_by_nagle(sim, arm):
     # ur_rtde 1.6.5 loses its TCP_NODELAY when boost reopens the socket at connect; without
     # it a servoStop waits up to a data cycle for the controller's acknowledgement.
-    from dqpose.drivers.ur import _rtde_connections
+    from dqpose.drivers.ur_connection import _rtde_connections
     socks = _rtde_connections(sim.host)
     try:
         assert len(socks) >= 2, "the receive and control connections"
@@ -80,7 +80,7 @@ def test_rtde_commands_are_not_held_by_nagle(sim, arm):
 def test_restoring_nodelay_leaves_no_descriptors_behind(sim, arm):
     # it looks at every descriptor of the process; one kept per look doubled them per arm
     import os
-    from dqpose.drivers.ur import _restore_nodelay
+    from dqpose.drivers.ur_connection import restore_nodelay as _restore_nodelay
     before = sorted(os.listdir("/proc/self/fd"))
     assert _restore_nodelay(sim.host) >= 2
     assert _restore_nodelay(sim.host) >= 2
