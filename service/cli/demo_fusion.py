@@ -112,6 +112,41 @@ def _nees(est: np.ndarray, covariance: np.ndarray, truth: np.ndarray) -> float:
     return float(xi @ np.linalg.solve(covariance, xi))
 
 
+def _follow(answers, scene, names, cams, errors, nees, latencies, out) -> list:
+    """Each fused answer of the stream against the scene's truth: every source's own error and
+    the fused one appended to ``errors``, the fused pose's NEES to ``nees``, the latest latency
+    estimates in ``latencies``, a line per answer to ``out`` when given; returns the fused
+    position sigma of each answer."""
+    if out is not None:
+        print(f"{'t (s)':>7s}  " + "  ".join(f"{n + ' deg / mm':>14s}" for n in
+                                             names + ("fused",))
+              + "  latency " + " / ".join(c.name for c in cams) + " (ms)", file=out)
+    sigma = []
+    for a in answers:
+        if a.fused is None:     # the stream goes on past a measurement it could not use
+            print(f"server: {a.error}", file=sys.stderr)
+            continue
+        for lat in a.fused.latencies:
+            latencies[lat.name] = (lat.value, lat.sigma)
+        T_true = scene.truth.at(a.time)
+        cells = [f"{a.time - scene.start:7.2f}"]
+        for n in names + ("fused",):
+            pose = a.fused.mean if n == "fused" else scene.alone[n].at(a.time,
+                                                                       known_by=a.time)
+            if pose is None:
+                cells.append(f"{'—':>7s} {'—':>6s}")
+                continue
+            errors[n].append((a.time, *pose_error(pose, T_true)))
+            cells.append(f"{errors[n][-1][1]:7.3f} {errors[n][-1][2]:6.2f}")
+        nees.append(_nees(a.fused.mean, a.fused.covariance, T_true))
+        sigma.append(math.sqrt(np.trace(a.fused.covariance[3:, 3:]) / 3))
+        cells.append("  ".join(f"{1e3 * latencies[c.name][0]:5.1f}" for c in cams
+                               if c.name in latencies))
+        if out is not None:
+            print("  ".join(cells), file=out, flush=True)
+    return sigma
+
+
 def run(steps: int = 200, *, seed: int = 0, arm_sigma=(2e-3, 1e-3), noise: float = 6.0,
         blur: float = 0.8, target: str | None = None, out=None) -> Result:
     """The demo: ``steps`` of 0.1 s (five arm reads and one frame of each camera each; the
@@ -181,34 +216,9 @@ def run(steps: int = 200, *, seed: int = 0, arm_sigma=(2e-3, 1e-3), noise: float
         stack.callback(scene.abort)         # a Ctrl-C: no render still due is waited for
         # first on the way out (a Ctrl-C): the arm stops before a render under way is waited for
         stack.callback(executor.cancel)
-        if out is not None:
-            print(f"{'t (s)':>7s}  " + "  ".join(f"{n + ' deg / mm':>14s}" for n in
-                                                 names + ("fused",))
-                  + "  latency " + " / ".join(c.name for c in cams) + " (ms)", file=out)
-        sigma = []
-        for a in client.stream_fuse(scene.batches(), sources=sources, output_rate=OUTPUT_RATE,
-                                    window=WINDOW, acceleration_psd=ACCELERATION_PSD):
-            if a.fused is None:     # the stream goes on past a measurement it could not use
-                print(f"server: {a.error}", file=sys.stderr)
-                continue
-            for lat in a.fused.latencies:
-                latencies[lat.name] = (lat.value, lat.sigma)
-            T_true = scene.truth.at(a.time)
-            cells = [f"{a.time - scene.start:7.2f}"]
-            for n in names + ("fused",):
-                pose = a.fused.mean if n == "fused" else scene.alone[n].at(a.time,
-                                                                           known_by=a.time)
-                if pose is None:
-                    cells.append(f"{'—':>7s} {'—':>6s}")
-                    continue
-                errors[n].append((a.time, *pose_error(pose, T_true)))
-                cells.append(f"{errors[n][-1][1]:7.3f} {errors[n][-1][2]:6.2f}")
-            nees.append(_nees(a.fused.mean, a.fused.covariance, T_true))
-            sigma.append(math.sqrt(np.trace(a.fused.covariance[3:, 3:]) / 3))
-            cells.append("  ".join(f"{1e3 * latencies[c.name][0]:5.1f}" for c in cams
-                                   if c.name in latencies))
-            if out is not None:
-                print("  ".join(cells), file=out, flush=True)
+        answers = client.stream_fuse(scene.batches(), sources=sources, output_rate=OUTPUT_RATE,
+                                     window=WINDOW, acceleration_psd=ACCELERATION_PSD)
+        sigma = _follow(answers, scene, names, cams, errors, nees, latencies, out)
         if scene.failed:
             raise scene.failed[0]
         seconds = time.monotonic() - began
