@@ -205,7 +205,7 @@ class Blending(pb_grpc.BlendingServicer):
         return await self.calls.unary("Interpolate", self._served(self.interpolate_wire),
                                       request, context)
 
-    async def BlendStream(self, request_iterator, context):
+    async def BlendStream(self, request_iterator, context) -> None:
         # Reading runs ahead of writing (a reader task feeding a queue of STREAM_READ_AHEAD):
         # in grpc.aio every read and every write is a round trip through gRPC's poller thread,
         # and overlapping the two is worth ~1.5x in blends/s

@@ -275,7 +275,7 @@ class Health(health_pb2_grpc.HealthServicer):
     Watch streams end (after their last status) once the server closes: an open watch would
     otherwise hold the shutdown for the whole grace period."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self._status: dict[str, int] = {}
         self._changed = asyncio.Condition()
         self._closed = False
