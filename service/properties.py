@@ -36,7 +36,7 @@ import sys
 import time
 import zlib
 from dataclasses import dataclass, field
-from typing import Callable, Mapping
+from typing import Callable, Iterable, Mapping
 
 import numpy as np
 
@@ -418,7 +418,7 @@ def measure(trials: int = 200, seed: int = 0, tol: float = DEFAULT_TOL,
     methods = METHODS if methods is None else methods
     start = time.perf_counter()
     cells = {}
-    items = methods.items()
+    items: Iterable[tuple[str, Method]] = methods.items()
     if progress:
         from tqdm import tqdm  # only here: the default run takes a fraction of a second
         items = tqdm(items, desc="measuring", unit="method", leave=False)

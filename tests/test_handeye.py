@@ -1,5 +1,7 @@
 """dqpose.handeye (service/handeye/) against the truth of the synthetic scenes (tests/_handeye.py): exact data
 solved exactly, noisy data solved with a consistent covariance, every broken data set flagged."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -355,6 +357,9 @@ def test_malformed_input_named():
     with pytest.raises(FieldError, match=r"^candidates: "):
         c = handeye.calibrate(F, C)
         handeye.next_best_pose(c, F, C, np.zeros((0, 8)))
+    # a Calibration without its information matrix (as a client may build one)
+    with pytest.raises(FieldError, match=r"^calibration: "):
+        handeye.next_best_pose(replace(c, information=None), F, C, F[:1])
 
 
 # ---- corner level ------------------------------------------------------------------------------

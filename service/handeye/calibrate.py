@@ -107,12 +107,13 @@ def _calibrate(q: _Request) -> Calibration:
     cal = _both_inverted(q, p, fit, inlier, SC, SRob, warnings)
     if cal is not None:
         return cal
-    scale = _camera_scale(fit, p.C[inlier])
-    P_scale = 0.0
+    found = _camera_scale(fit, p.C[inlier])
+    scale: tuple[float, float, Optional[np.ndarray]] = found
+    P_scale: float | np.ndarray = 0.0
     if q.rescaled is not None:
         # The re-solve on scaled translations: λ's uncertainty widens the covariance.
-        P_scale = scale[2]
-        scale = (q.rescaled[0] * scale[0], q.rescaled[0] * scale[1], None)
+        P_scale = found[2]
+        scale = (q.rescaled[0] * found[0], q.rescaled[0] * found[1], None)
     elif abs(scale[0] - 1.0) > max(_SCALE_SIGMAS * scale[1], _MIN_SCALE):
         return _rescale(q, p, views, SC, SRob, fit, idx, scale)
     # 6. the corner level

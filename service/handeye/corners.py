@@ -254,9 +254,11 @@ def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool
             if H.moved(step) < _TOL and abs(cost - new) <= 1e-9 * new:
                 break
             cost = new
+        assert H is not None                # the step loop runs at least once
         if settled:
             break
         theta, settled = _mackay(delta, H.Pdd, theta)
+    assert H is not None
     P = H.Pgg
     full = None
     if use_robot:

@@ -24,6 +24,9 @@ def next_best_pose(calibration: Calibration, base_flange, camera_target, candida
     if cand.shape[0] == 0:
         raise FieldError("candidates: no candidate poses")
     c = calibration
+    if c.information is None:
+        raise FieldError("calibration: has no information matrix (one calibrate() returned "
+                         "with a covariance is needed)")
     A = _reading(cand, c.setup)
     X, Z = c.x, c.z
     C = dq.mul(dq.mul(dq.inv(X), dq.inv(A)), Z)             # A X C = Z

@@ -78,8 +78,9 @@ class _Noise:
         ``Q_kl = Σ B_iᵀ G_k,i W_i G_l,i B_i`` and ``F_kl = tr(R G_k R G_l)`` (twice the REML
         information), ``R = W − W J P Jᵀ W``: every trace expanded over the blocks, so nothing
         6n × 6n is formed."""
-        G = self.G
-        W = np.linalg.inv(np.einsum("k,nkij->nij", self.theta, G))
+        G, theta = self.G, self.theta
+        assert G is not None and theta is not None, "set by __call__ (estimated)"
+        W = np.linalg.inv(np.einsum("k,nkij->nij", theta, G))
         B = W @ J                                                   # (n, 6, 12)
         WG = W[:, None] @ G                                         # (n, 3, 6, 6)
         GB = G @ B[:, None]                                         # (n, 3, 6, 12)
@@ -93,19 +94,20 @@ class _Noise:
              + (PM[:, None] * np.swapaxes(PM, 1, 2)[None]).sum(axis=(2, 3)))
         return W, B, M, Q, F
 
-    def update(self, r: np.ndarray, J: np.ndarray, P: np.ndarray) -> np.ndarray:
+    def update(self, r: np.ndarray, J: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, bool]:
         """One REML (Fisher-scoring) step of the variance components at residuals ``r``
         (Jacobian ``J``, covariance ``P`` of the fit): ``θ = F⁻¹ q`` with
         ``F_kl = tr(R G_k R G_l)``, ``q_k = rᵀ R G_k R r``, ``R = W − W J P Jᵀ W`` (the residual
         projector: the 12 fitted degrees of freedom taken out by leverage); a component that
         comes out below its floor is held there and the others re-solved. Returns the new
         residual covariances and whether the components settled."""
-        G = self.G
+        G, last = self.G, self.theta
+        assert G is not None and last is not None, "set by __call__ (estimated)"
         W, B, _, _, F = self._reml(J, P)
         u = (W @ r[..., None])[..., 0] - B @ (P @ (np.swapaxes(B, 1, 2) @ r[..., None]).sum(0))[..., 0]
         q = (u[:, None, None, :] @ G @ u[:, None, :, None])[..., 0, 0].sum(axis=0)
         free = np.ones(3, bool)
-        theta = self.theta
+        theta = last
         for _ in range(3):
             t = np.array(_FLOORS)
             try:
@@ -123,23 +125,23 @@ class _Noise:
         # residuals more than triples or falls below a third (or a negligible one grows a
         # hundredfold), the multiplicative (EM) step θ_k q_k / (F θ)_k is taken instead, slower
         # but never leaving the positive cone. A negligible component may drop to its floor.
-        share = self.theta * (F @ self.theta) / max(float(self.theta @ F @ self.theta), 1e-300)
-        jump = np.where(share > 0.05, (theta > 3.0 * self.theta) | (theta < self.theta / 3.0),
-                        theta > 100.0 * np.maximum(self.theta, 1e-4 * self.theta.max()))
+        share = last * (F @ last) / max(float(last @ F @ last), 1e-300)
+        jump = np.where(share > 0.05, (theta > 3.0 * last) | (theta < last / 3.0),
+                        theta > 100.0 * np.maximum(last, 1e-4 * last.max()))
         if not np.all(np.isfinite(theta)) or np.any(jump):
-            theta = self.theta * q / np.maximum(F @ self.theta, 1e-300)
+            theta = last * q / np.maximum(F @ last, 1e-300)
         theta = np.maximum(theta, _FLOORS)
         # Near the boundary scoring can cycle between two points: a component whose step
         # reverses its last one moves half as far.
-        step = theta - self.theta
+        step = theta - last
         if self.step is not None:
             step = np.where(step * self.step < 0.0, 0.5 * step, step)
-            theta = np.maximum(self.theta + step, _FLOORS)
+            theta = np.maximum(last + step, _FLOORS)
         self.step = step
         # Settled when the residual degrees of freedom the components account for,
         # θ_k tr(R G_k) = θ_k (F θ)_k (summing to 6n − 12), move by less than 1e-3 of them.
-        Ft = F @ self.theta
-        settled = (np.abs(theta - self.theta) @ Ft) <= 1e-3 * max(float(self.theta @ Ft), 1e-300)
+        Ft = F @ last
+        settled = bool((np.abs(theta - last) @ Ft) <= 1e-3 * max(float(last @ Ft), 1e-300))
         self.theta = theta
         return np.einsum("k,nkij->nij", self.theta, G), settled
 

@@ -2,7 +2,7 @@
 :class:`Rejection` s (conventions in :mod:`dqpose.handeye`)."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
@@ -24,18 +24,18 @@ class Calibration:
     covariance_z: np.ndarray  # (6,6) same convention
     residuals: np.ndarray     # (n,2) per sample: rotation (rad), then the target's position (m)
     warnings: tuple[str, ...]
-    inliers: np.ndarray = field(default=None)            # (n,) bool: samples in the answer
+    inliers: Optional[np.ndarray] = None                 # (n,) bool: samples in the answer
     rejected: tuple[Rejection, ...] = ()
-    covariance: np.ndarray = field(default=None)         # (12,12) joint, [X; Z]
-    information: np.ndarray = field(default=None)        # (12,12) its inverse, for next_best_pose
+    covariance: Optional[np.ndarray] = None              # (12,12) joint, [X; Z]
+    information: Optional[np.ndarray] = None             # (12,12) its inverse, for next_best_pose
     noise_model: str = "estimated"                       # "given" or "estimated"
-    camera_covariance: np.ndarray = field(default=None)  # (6,6) or (n,6,6) as used
+    camera_covariance: Optional[np.ndarray] = None       # (6,6) or (n,6,6) as used
     robot_covariance: Optional[np.ndarray] = None        # (6,6), (n,6,6) or None (exact robot)
-    residual_covariance: np.ndarray = field(default=None)  # (n,6,6) Σ_r,i at the optimum
-    nis: np.ndarray = field(default=None)                # (n,) standardised residual, χ²₆
-    leave_one_out: np.ndarray = field(default=None)      # (n,2) X moves (rad, m) without each
-    closed_form_x: np.ndarray = field(default=None)      # (8,) the closed form's X
-    closed_form_z: np.ndarray = field(default=None)
+    residual_covariance: Optional[np.ndarray] = None     # (n,6,6) Σ_r,i at the optimum
+    nis: Optional[np.ndarray] = None                     # (n,) standardised residual, χ²₆
+    leave_one_out: Optional[np.ndarray] = None           # (n,2) X moves (rad, m) without each
+    closed_form_x: Optional[np.ndarray] = None           # (8,) the closed form's X
+    closed_form_z: Optional[np.ndarray] = None
     agreement: tuple[float, float, float] = (0.0, 0.0, 0.0)  # closed form vs X: rad, m, NEES
     rotation_condition: float = 0.0     # condition number of the rotation information
     excitation: float = 0.0             # its smallest eigenvalue as an RMS angle (rad)

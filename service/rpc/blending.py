@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+from typing import Any
 
 import grpc
 import numpy as np
@@ -182,7 +183,7 @@ class Blending(pb_grpc.BlendingServicer):
         without protobuf objects, Interpolate parsed there; so each can check its answer's size
         and do its work off the event loop when it is large."""
         raw = dict(request_deserializer=None, response_serializer=None)
-        handlers = {
+        handlers: dict[str, grpc.RpcMethodHandler[Any, Any]] = {
             "Blend": grpc.unary_unary_rpc_method_handler(self.Blend, **raw),
             "Interpolate": grpc.unary_unary_rpc_method_handler(self.Interpolate, **raw),
             "BlendStream": grpc.stream_stream_rpc_method_handler(self.BlendStream, **raw),
@@ -204,7 +205,7 @@ class Blending(pb_grpc.BlendingServicer):
         return await self.calls.unary("Interpolate", self._served(self.interpolate_wire),
                                       request, context)
 
-    async def BlendStream(self, request_iterator, context):
+    async def BlendStream(self, request_iterator, context) -> None:
         # Reading runs ahead of writing (a reader task feeding a queue of STREAM_READ_AHEAD):
         # in grpc.aio every read and every write is a round trip through gRPC's poller thread,
         # and overlapping the two is worth ~1.5x in blends/s

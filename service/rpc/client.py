@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import re
 from collections import deque
-from typing import Iterable, Iterator, NamedTuple, Optional, Sequence
+from typing import TYPE_CHECKING, Iterable, Iterator, NamedTuple, Optional, Sequence
 
 import grpc
 import numpy as np
@@ -51,6 +51,9 @@ SERVICE = pb.DESCRIPTOR.services_by_name["Blending"].full_name
 FUSION = fpb.DESCRIPTOR.services_by_name["Fusion"].full_name
 TRAJECTORIES = tpb.DESCRIPTOR.services_by_name["Trajectories"].full_name
 HANDEYE = hpb.DESCRIPTOR.services_by_name["HandEye"].full_name
+if TYPE_CHECKING:   # the stubs' generics: grpc's own classes take no parameters at run time
+    _Unary = grpc.UnaryUnaryMultiCallable[bytes, bytes]
+    _Streams = grpc.StreamStreamMultiCallable[bytes, bytes]
 # Largest answer per item, to keep answers under the message limit too: BlendBatchResponse item
 # = tag, length, BlendResponse {pose (2 + 67), iterations (1 + up to 5), residual (1 + 8)};
 # InterpolateResponse item = tag, length, StampedPose {time (1 + 8), pose (2 + 67)}.
@@ -260,22 +263,22 @@ class Client:
             self.channel = grpc.insecure_channel(target, options=opts)
         # No (de)serializers: requests go out as the bytes wire.py writes, answers come back
         # as bytes for the readers above.
-        self._blend = self.channel.unary_unary(f"/{SERVICE}/Blend")
-        self._blend_batch = self.channel.unary_unary(f"/{SERVICE}/BlendBatch")
-        self._blend_stream = self.channel.stream_stream(f"/{SERVICE}/BlendStream")
-        self._interpolate = self.channel.unary_unary(f"/{SERVICE}/Interpolate")
-        self._fuse = self.channel.unary_unary(f"/{FUSION}/Fuse")
-        self._stream_fuse = self.channel.stream_stream(f"/{FUSION}/StreamFuse")
+        self._blend: _Unary = self.channel.unary_unary(f"/{SERVICE}/Blend")
+        self._blend_batch: _Unary = self.channel.unary_unary(f"/{SERVICE}/BlendBatch")
+        self._blend_stream: _Streams = self.channel.stream_stream(f"/{SERVICE}/BlendStream")
+        self._interpolate: _Unary = self.channel.unary_unary(f"/{SERVICE}/Interpolate")
+        self._fuse: _Unary = self.channel.unary_unary(f"/{FUSION}/Fuse")
+        self._stream_fuse: _Streams = self.channel.stream_stream(f"/{FUSION}/StreamFuse")
         self._plan = self.channel.unary_stream(
             f"/{TRAJECTORIES}/Plan", request_serializer=tpb.PlanRequest.SerializeToString,
             response_deserializer=tpb.TrajectorySample.FromString)
-        self._smooth = self.channel.unary_unary(f"/{TRAJECTORIES}/Smooth")
+        self._smooth: _Unary = self.channel.unary_unary(f"/{TRAJECTORIES}/Smooth")
         self._execute = self.channel.unary_stream(
             f"/{TRAJECTORIES}/Execute", request_serializer=tpb.ExecuteRequest.SerializeToString,
             response_deserializer=tpb.ExecutionFeedback.FromString)
-        self._get_arm = self.channel.unary_unary(f"/{TRAJECTORIES}/GetArm")
-        self._list_arms = self.channel.unary_unary(f"/{TRAJECTORIES}/ListArms")
-        self._calibrate = self.channel.unary_unary(f"/{HANDEYE}/Calibrate")
+        self._get_arm: _Unary = self.channel.unary_unary(f"/{TRAJECTORIES}/GetArm")
+        self._list_arms: _Unary = self.channel.unary_unary(f"/{TRAJECTORIES}/ListArms")
+        self._calibrate: _Unary = self.channel.unary_unary(f"/{HANDEYE}/Calibrate")
         self.timeout = timeout
         self.max_message_bytes = max_message_bytes
         self.max_poses = max_poses

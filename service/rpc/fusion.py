@@ -7,6 +7,7 @@ from __future__ import annotations
 import itertools
 import math
 import zlib
+from typing import Any, Optional, Sequence
 
 import grpc
 import numpy as np
@@ -21,7 +22,7 @@ from dqpose.rpc.fusion_convert import (DEFAULT_WINDOW, Measurements, Options, fu
                                        fused_to_msg, measurements_to_arrays, options_error,
                                        options_from_msg, unknown_sources,
                                        wire_measurement_error)
-from dqpose.rpc.wire import fuse_stream_from_wire
+from dqpose.rpc.wire import CONVERT_LAST, fuse_stream_from_wire
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2_grpc as pb_grpc
 
@@ -72,7 +73,8 @@ class Stream:
         self.known = frozenset(s.name for s in options.sources) if options.sources else None
         self.capped: set[str] = set()      # bodies whose window has been said to be full
         self.cost = 0       # what the answers of the last update will cost (answer_cost)
-        self.correlated = options.acceleration_psd is not None and options.acceleration_psd.any()
+        self.correlated = bool(options.acceleration_psd is not None
+                               and options.acceleration_psd.any())
 
     def update(self, m: Measurements, ids: np.ndarray, field: str, codes=None):
         """Measurements ``m`` of one request (``ids``: their stream-wide numbers) into the
@@ -95,7 +97,7 @@ class Stream:
         if errors:
             bad = {k for k, _ in errors}
             errors = [(int(m.index[k]), e) for k, e in errors]
-            rows = [k for k in range(n) if k not in bad]
+            rows: Sequence[int] = [k for k in range(n) if k not in bad]
         else:
             rows = range(n)     # the common case: every source listed, every time in range
         tracker = self.tracker
@@ -121,10 +123,11 @@ class Stream:
             i = int(m.index[k])
             errors.append((i, rename(e, {"measurements": f"{field}[{i}]"})))
         if refused:
-            refused = {k for k, _ in refused}
-            bodies = dict.fromkeys(m.bodies[k] for k in rows if k not in refused)
+            out = {k for k, _ in refused}
+            bodies = dict.fromkeys(m.bodies[k] for k in rows if k not in out)
         else:
             bodies = dict.fromkeys(m.bodies if len(rows) == n else [m.bodies[k] for k in rows])
+        due: list[tuple[str, Sequence[Optional[int]]]]
         if not self.rate:
             due = [(body, (None,)) for body in bodies]
         else:
@@ -137,7 +140,7 @@ class Stream:
         # of the same request is fused
         return self._within_budget(due, field), errors
 
-    def _due(self, body: str) -> list:
+    def _due(self, body: str) -> range:
         """The fusion times due for ``body`` (output rate > 0): the ticks its newest measurement
         has reached (not before the oldest one in its window), counted in closed form: a body
         whose time leapt gives a range, not a loop over every tick in between."""
@@ -310,11 +313,10 @@ class Fusion(pb_grpc.FusionServicer):
                     len(request.measurements))
         field = f"requests[{r}].measurements"
         n = len(w.times)
-        last = w.CONVERT_LAST
         errors = [(i, wire_measurement_error(data, w.spans[i], field, i))
-                  for i, c in enumerate(w.codes.tolist()) if 0 < c <= last]
+                  for i, c in enumerate(w.codes.tolist()) if 0 < c <= CONVERT_LAST]
         if errors:
-            index = np.flatnonzero((w.codes == 0) | (w.codes > w.CONVERT_LAST))
+            index = np.flatnonzero((w.codes == 0) | (w.codes > CONVERT_LAST))
             m = Measurements(index, tuple(w.bodies[i] for i in index.tolist()),
                              tuple(w.sources[i] for i in index.tolist()), w.times[index],
                              w.poses[index], w.covariances[index])
@@ -348,7 +350,7 @@ class Fusion(pb_grpc.FusionServicer):
         """``add_FusionServicer_to_server`` except that both RPCs take bytes: Fuse's are parsed
         with the fit (:meth:`fuse_bytes`, off the event loop when large), StreamFuse's decoded by
         :meth:`stream_step_wire` (the C decoder for plain ones)."""
-        handlers = {
+        handlers: dict[str, grpc.RpcMethodHandler[Any, Any]] = {
             "Fuse": grpc.unary_unary_rpc_method_handler(
                 self.Fuse, request_deserializer=None, response_serializer=None),
             "StreamFuse": grpc.stream_stream_rpc_method_handler(

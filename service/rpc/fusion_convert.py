@@ -10,7 +10,7 @@ from __future__ import annotations
 import itertools
 import math
 import re
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -29,7 +29,8 @@ DEFAULT_WINDOW = 0.2
 
 class Measurements(NamedTuple):
     """Repeated ``Measurement`` as arrays; ``index[k]`` is the message's measurement of row k."""
-    index: np.ndarray          # (n,) int
+    # (n,) int; shadows tuple.index(), which no caller uses, for the name the fields go by
+    index: np.ndarray  # type: ignore[assignment]
     bodies: tuple[str, ...]
     sources: tuple[str, ...]
     times: np.ndarray          # (n,)
@@ -54,7 +55,8 @@ def measurements_to_arrays(ms, field: str = "measurements",
                      ((m.pose.orientation, m.pose.position) for m in ms)],
                     dtype=np.float64).reshape(-1, 7)
     full = counts == COVARIANCE_SIZE
-    bad = {}
+    bad: dict[int, FieldError] = {}
+    problems: tuple[tuple[np.ndarray, Callable[[int], str]], ...]
     if full.all() and not weights.any() and np.isfinite(times).all():
         # the common case, every measurement with its 36 values: one pass, no checks to name
         covs = np.fromiter(itertools.chain.from_iterable(m.covariance for m in ms),
@@ -269,6 +271,7 @@ def fused_to_msg(f: fusion.Fused, body: str, time: float, out=None):
     for d in f.dropped:
         msg.dropped.add(index=d.index, source=d.source, age=d.age, reason=d.reason)
     if f.twist is not None:
+        assert f.twist_covariance is not None      # fusion sets the two together
         msg.twist.extend(f.twist.tolist())
         msg.twist_covariance.extend(f.twist_covariance.ravel().tolist())
     msg.extrapolation = f.extrapolation
@@ -416,6 +419,7 @@ def fused_pose(request, bounds: limits.Limits = limits.DEFAULT,
         fused = fusion.fuse(**args.kwargs())
     except ValueError as e:
         raise args.error(e) from None
+    assert fused.time is not None       # the measurements have times (kwargs)
     return fused_to_msg(fused, args.body, fused.time)
 
 

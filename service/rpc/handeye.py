@@ -7,6 +7,8 @@ pairs, degenerate motion) is ``FAILED_PRECONDITION`` with the domain's reason an
 """
 from __future__ import annotations
 
+from typing import Any
+
 import grpc
 from google.protobuf.message import DecodeError
 
@@ -57,8 +59,9 @@ class HandEye:
 
     def register(self, server) -> None:
         """Calibrate takes and returns bytes: parsed, solved and written in the worker pool."""
-        handlers = {"Calibrate": grpc.unary_unary_rpc_method_handler(
-            self.Calibrate, request_deserializer=None, response_serializer=None)}
+        handlers: dict[str, grpc.RpcMethodHandler[Any, Any]] = {
+            "Calibrate": grpc.unary_unary_rpc_method_handler(
+                self.Calibrate, request_deserializer=None, response_serializer=None)}
         server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(self.NAME, handlers),))
         server.add_registered_method_handlers(self.NAME, handlers)
 

@@ -160,7 +160,9 @@ def calibrate_msg(base_flange, camera_target, setup: str = handeye.EYE_IN_HAND,
         rows = _per_pair(cov, name, len(pairs))
         for p, row in zip(pairs, rows or ()):
             getattr(p, name).extend(row)
-    request = hpb.CalibrateRequest(setup=SETUP_ENUMS[setup], pairs=pairs, robust=bool(robust),
+    # protoc's .pyi types Enum.Value() as int, the field as the enum class
+    request = hpb.CalibrateRequest(setup=SETUP_ENUMS[setup],  # type: ignore[arg-type]
+                                   pairs=pairs, robust=bool(robust),
                                    refine_focal=bool(refine_focal),
                                    pixel_sigma=float(pixel_sigma or 0.0))
     if corners is not None:

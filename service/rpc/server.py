@@ -118,7 +118,7 @@ def _integer(cfg, name: str, lo: int, hi: int) -> None:
     v = getattr(cfg, name)
     if isinstance(v, bool) or not isinstance(v, numbers.Integral):
         raise ConfigError(name, f"must be an integer, got {v!r}")
-    if not lo <= v <= hi:
+    if not lo <= int(v) <= hi:      # int(): the numbers ABCs declare no comparisons
         raise ConfigError(name, f"must be within {lo}..{hi}, got {v}")
 
 
@@ -127,9 +127,9 @@ def _seconds(cfg, name: str, lo: float = 0.0, hi: float | None = None) -> None:
     if isinstance(v, bool) or not isinstance(v, numbers.Real):
         raise ConfigError(name, f"must be a number of seconds, got {v!r}")
     if hi is None:
-        if not (math.isfinite(v) and v >= lo):
+        if not (math.isfinite(v) and float(v) >= lo):
             raise ConfigError(name, f"must be a finite number of seconds >= {lo:g}, got {v:g}")
-    elif not lo <= v <= hi:
+    elif not lo <= float(v) <= hi:
         raise ConfigError(name, f"must be within {lo:g}..{hi} seconds, got {v:g}")
 
 
@@ -275,7 +275,7 @@ class Health(health_pb2_grpc.HealthServicer):
     Watch streams end (after their last status) once the server closes: an open watch would
     otherwise hold the shutdown for the whole grace period."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self._status: dict[str, int] = {}
         self._changed = asyncio.Condition()
         self._closed = False
@@ -490,6 +490,7 @@ async def start(cfg: ServerConfig) -> Running:
     reflection_pb2_grpc.add_ServerReflectionServicer_to_server(_Reflection(SERVICE_NAMES), server)
     try:
         if cfg.tls_cert:            # cfg.check(): with its key, and both load
+            assert cfg.tls_key is not None
             creds = grpc.ssl_server_credentials(
                 [(cfg.tls_key, cfg.tls_cert)], root_certificates=cfg.client_ca or None,
                 require_client_auth=bool(cfg.client_ca))

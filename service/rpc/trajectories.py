@@ -5,6 +5,7 @@ ListArms (:mod:`dqpose.rpc.arms`).
 from __future__ import annotations
 
 import asyncio
+from typing import Any
 
 import grpc
 import numpy as np
@@ -123,7 +124,7 @@ class Trajectories:
         pool; Execute, GetArm and ListArms are :attr:`arms`' with the proto's own
         (de)serializers. Every RPC of the proto is in ``handlers`` (tests/rpc check it)."""
         raw = dict(request_deserializer=None, response_serializer=None)
-        handlers = {
+        handlers: dict[str, grpc.RpcMethodHandler[Any, Any]] = {
             "Plan": grpc.unary_stream_rpc_method_handler(self.Plan, **raw),
             "Smooth": grpc.unary_unary_rpc_method_handler(self.Smooth, **raw),
             "Execute": grpc.unary_stream_rpc_method_handler(

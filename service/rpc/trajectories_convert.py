@@ -81,7 +81,8 @@ def plan_msg(waypoints, limits, rate_hz: float = 0.0, interpolation: str = PLAN_
         waypoints=[tpb.Waypoint(pose=p, time=w.time, blend_radius=w.blend_radius)
                    for p, w in zip(poses, wps)],
         limits=limits_msg(limits), rate_hz=rate_hz,
-        interpolation=INTERPOLATION_ENUMS[interpolation])
+        # protoc's .pyi types Enum.Value() as int, the field as the enum class
+        interpolation=INTERPOLATION_ENUMS[interpolation])  # type: ignore[arg-type]
     if start_velocity is not None:
         s = np.asarray(start_velocity, dtype=np.float64).reshape(6).tolist()
         req.start_linear_velocity.CopyFrom(geo.Vector3(x=s[0], y=s[1], z=s[2]))
@@ -106,7 +107,7 @@ def sample_msgs(samples) -> list:
             in zip(np.asarray(samples.time).tolist(), pose_msgs(q, t), v, w)]
 
 
-def samples_from_msgs(msgs):
+def samples_from_msgs(msgs) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``TrajectorySample`` messages to ``(time (N,), pose (N, 8), linear_velocity (N, 3),
     angular_velocity (N, 3))`` (client side, unvalidated)."""
     msgs = list(msgs)

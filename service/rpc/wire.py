@@ -12,7 +12,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from dqpose import _dqcore, fusion
+from dqpose import _dqcore  # type: ignore[attr-defined]  # C extension: no stub
+from dqpose import fusion
 from dqpose.rpc.fusion_convert import measurement_columns
 
 
@@ -290,10 +291,14 @@ def blend_responses_from_wire(data: bytes) -> tuple[np.ndarray, np.ndarray, np.n
 
 # ---- StreamFuse: measurements in C ---------------------------------------------------------------
 
+#: The last of :attr:`WireMeasurements.codes` that ``measurements_to_arrays``'s checks give.
+CONVERT_LAST: int = _dqcore.MEASUREMENT_CONVERT_LAST
+
+
 class WireMeasurements(NamedTuple):
     """A ``FuseStreamRequest``'s measurements decoded and checked in C
     (:func:`fuse_stream_from_wire`): every row, refused or not, with ``codes`` saying which check
-    refused it (0: none; up to ``CONVERT_LAST`` those of :func:`~dqpose.rpc.fusion_convert.measurements_to_arrays`, the
+    refused it (0: none; up to :data:`CONVERT_LAST` those of :func:`~dqpose.rpc.fusion_convert.measurements_to_arrays`, the
     rest :class:`fusion.Tracker`'s) and ``spans`` where its bytes are."""
     poses: np.ndarray          # (n, 8), as dq.from_pose makes them
     covariances: np.ndarray    # (n, 6, 6) symmetrised (as given where the Tracker refuses it)
@@ -302,8 +307,6 @@ class WireMeasurements(NamedTuple):
     bodies: tuple[str, ...]
     sources: tuple[str, ...]
     spans: np.ndarray          # (n, 2): offset and length of the Measurement in the bytes
-
-    CONVERT_LAST = _dqcore.MEASUREMENT_CONVERT_LAST
 
 
 def fuse_stream_from_wire(data: bytes) -> WireMeasurements | None:
