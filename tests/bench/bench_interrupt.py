@@ -29,7 +29,15 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "cli"))
 from _interrupt import Command, SimWatch, sim_host  # noqa: E402
 
-from dqpose.drivers.sim.ur import MOVEL, SERVO_STOP, SERVOL, SPEED_STOP, STOP_SCRIPT, STOPJ, STOPL  # noqa: E402
+from dqpose.drivers.sim.ur import (  # noqa: E402
+    MOVEL,
+    SERVO_STOP,
+    SERVOL,
+    SPEED_STOP,
+    STOP_SCRIPT,
+    STOPJ,
+    STOPL,
+)
 
 STOPS = (SERVO_STOP, SPEED_STOP, STOPL, STOPJ, STOP_SCRIPT)
 MOTION = (SERVOL, MOVEL)

@@ -27,7 +27,15 @@ from _interrupt import (  # noqa: E402
     sim_host,
 )
 
-from dqpose.drivers.sim.ur import MOVEL, SERVO_STOP, SERVOL, SPEED_STOP, STOP_SCRIPT, STOPJ, STOPL  # noqa: E402
+from dqpose.drivers.sim.ur import (  # noqa: E402
+    MOVEL,
+    SERVO_STOP,
+    SERVOL,
+    SPEED_STOP,
+    STOP_SCRIPT,
+    STOPJ,
+    STOPL,
+)
 
 MOTION = (SERVOL, MOVEL)
 STOPS = (SERVO_STOP, SPEED_STOP, STOPL, STOPJ, STOP_SCRIPT)
