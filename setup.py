@@ -45,8 +45,8 @@ def generate_stubs() -> None:
     to resolve under ``dqpose.rpc._proto`` (the proto package ``dqpose.v1`` is not the import
     package ``dqpose``).
     """
-    from grpc_tools import protoc  # a build requirement (pyproject.toml)
     import grpc_tools
+    from grpc_tools import protoc  # a build requirement (pyproject.toml)
 
     protos = sorted(glob.glob(os.path.join(PROTO_ROOT, "dqpose", "**", "*.proto"), recursive=True))
     wkt = os.path.join(os.path.dirname(grpc_tools.__file__), "_proto")

@@ -74,8 +74,8 @@ def open_arm(spec, process: bool = False, **kwargs):
 
     ``process=True``: the arm lives in a child process of its own, where an
     :class:`~drivers.executor.Executor` on it runs its control loop
-    (:class:`dqpose.drivers.armproc.ArmProcess`; its bus must reach across processes: not python-can's
-    ``virtual``)."""
+    (:class:`dqpose.drivers.armproc.ArmProcess`; its bus must reach across processes: not
+    python-can's ``virtual``)."""
     s = spec if isinstance(spec, ArmSpec) else parse_arm_spec(spec)
     kw = {**s.options, **kwargs}
     if process:

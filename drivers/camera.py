@@ -38,12 +38,18 @@ from typing import Iterator, Optional, Union
 import cv2
 import numpy as np
 
+from dqpose import dq, lie
 from dqpose.drivers.base import Measurement, PoseSource
 from dqpose.drivers.camera_config import BoardSpec, Intrinsics, load_board, load_intrinsics
-from dqpose.drivers.camera_frames import (IMAGE_EXTENSIONS, FolderFrames, LiveFrames, VideoFrames,
-                                          open_frames, read_image)
+from dqpose.drivers.camera_frames import (
+    IMAGE_EXTENSIONS,
+    FolderFrames,
+    LiveFrames,
+    VideoFrames,
+    open_frames,
+    read_image,
+)
 from dqpose.drivers.charuco_corners import marker_free_reach, refine_off_markers
-from dqpose import dq, lie
 
 # The configuration, the frame sources and the corner windows live in their own modules
 # (camera_config, camera_frames, charuco_corners); their names stay importable from here.

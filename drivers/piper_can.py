@@ -27,8 +27,8 @@ from typing import Optional, Sequence
 import can
 import numpy as np
 
-from dqpose.drivers.euler import quat_from_sxyz, sxyz_from_quat
 from dqpose import dq
+from dqpose.drivers.euler import quat_from_sxyz, sxyz_from_quat
 
 __all__ = [
     "MOTION_CTRL_2", "END_POSE_CTRL", "END_POSE_FEEDBACK", "CTRL_MODE_CAN", "MOVE_P", "MOVE_J",

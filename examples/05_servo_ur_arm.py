@@ -9,10 +9,10 @@ workspace limits. Against a real arm, drop the simulator and pass the robot's ad
 """
 import numpy as np
 
-from dqpose.drivers.sim.ur import URSimProcess
-from dqpose.drivers.base import LimitError
-from dqpose.drivers.ur import URArm
 from dqpose import dq
+from dqpose.drivers.base import LimitError
+from dqpose.drivers.sim.ur import URSimProcess
+from dqpose.drivers.ur import URArm
 from dqpose.interpolate import interpolate
 from dqpose.profile import smoothstep
 

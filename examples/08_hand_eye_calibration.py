@@ -2,11 +2,11 @@
 
 A camera on a robot's flange (eye-in-hand) looks at a ChArUco board on the table from 12 robot
 poses. Each view is rendered by the simulated camera and detected by the real detector
-(`dqpose.drivers.camera.CharucoCamera`), and the flange poses and detections go to the HandEye service,
-each view weighed by its detector covariance. The answer comes with a covariance: the true camera
-mount lies within it. Then the same service refuses a data set it cannot solve (every rotation
-about one axis) and says why, rather than answering. `dqpose handeye capture|solve` is the same
-on the UR simulator, from the shell.
+(`dqpose.drivers.camera.CharucoCamera`), and the flange poses and detections go to the HandEye
+service, each view weighed by its detector covariance. The answer comes with a covariance: the
+true camera mount lies within it. Then the same service refuses a data set it cannot solve (every
+rotation about one axis) and says why, rather than answering. `dqpose handeye capture|solve` is
+the same on the UR simulator, from the shell.
 
     .venv/bin/python examples/08_hand_eye_calibration.py
 """
@@ -18,10 +18,10 @@ import sys
 
 import numpy as np
 
+from dqpose import dq, lie
 from dqpose.drivers.camera import BoardSpec, CharucoCamera
 from dqpose.drivers.rotvec import pose_from_rotvec
 from dqpose.drivers.sim.camera import DEFAULT_INTRINSICS, BoardRenderer, random_view
-from dqpose import dq, lie
 from dqpose.rpc.client import Client, RpcError
 
 board = BoardSpec()                                             # 7x5, 40 mm squares

@@ -51,7 +51,8 @@ METHODS: dict[str, Method] = {
     "lin": Method(4, "Lin", "weighted mean of the 4x4 matrices, projected to the nearest rotation"),
     "dec": Method(5, "Dec", "rotation (spherical mean) and translation (mean) blended separately"),
     "log": Method(6, "Log", "exp of the weighted sum of the principal logs (Alexa)"),
-    "sclerp": Method(3, "ScLERP", "screw motion between exactly two poses, at tau = w1 / (w0 + w1)"),
+    "sclerp": Method(3, "ScLERP",
+                     "screw motion between exactly two poses, at tau = w1 / (w0 + w1)"),
     "dlb": Method(2, "DLB", "normalised weighted sum of the dual quaternions (closed form)"),
     "dib": Method(1, "DIB", "iterative bi-invariant weighted mean (exact; Kavan et al.)"),
 }

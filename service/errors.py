@@ -51,7 +51,7 @@ def _same_kind(err: ValueError, msg: str) -> FieldError:
     return FieldInfeasible(msg) if isinstance(err, Infeasible) else FieldError(msg)
 
 
-# ---- optional dependencies ------------------------------------------------------------------------
+# ---- optional dependencies -----------------------------------------------------------------------
 
 #: The extra (pyproject.toml's optional-dependencies) that brings each module imported on demand;
 #: tests/test_errors.py checks it against the installed distribution's metadata.

@@ -35,7 +35,8 @@ def _times(name: str, t, ndim_msg: str) -> np.ndarray:
 
 
 def interpolate(times_k, dqs_k, times, mode: str = "screw") -> np.ndarray:
-    """Poses at ``times`` ``(N,)`` between keyframes ``dqs_k`` ``(K, 8)`` stamped ``times_k`` ``(K,)``.
+    """Poses at ``times`` ``(N,)`` between keyframes ``dqs_k`` ``(K, 8)`` stamped ``times_k``
+    ``(K,)``.
 
     ``times_k`` must be strictly increasing with ``K >= 2``; ``times`` may come in any order and
     each must lie in ``[times_k[0], times_k[-1]]``. Returns ``(N, 8)`` unit dual quaternions; the

@@ -1,4 +1,5 @@
-"""Table 1 of Kavan et al. (*Dual Quaternions for Rigid Transformation Blending*) measured on dqpose.
+"""Table 1 of Kavan et al. (*Dual Quaternions for Rigid Transformation Blending*) measured on
+dqpose.
 
 Every cell is computed from the code: each blending method is run on many seeded random inputs
 plus adversarial ones, the deviation from the property is measured, and the cell is ``+`` when the
@@ -32,7 +33,6 @@ paper.
 """
 from __future__ import annotations
 
-import sys
 import time
 import zlib
 from dataclasses import dataclass, field
@@ -148,7 +148,8 @@ def _blend_sets(rng: np.random.Generator, n: int, trials: int) -> tuple[np.ndarr
                            rng.normal(size=(k, n, 3)))
     dqs.append(near_pi)
     w.append(_random_weights(rng, (k, n)))
-    pure_t = dq.from_pose(np.broadcast_to([1.0, 0.0, 0.0, 0.0], (k, n, 4)), rng.normal(size=(k, n, 3)))
+    pure_t = dq.from_pose(np.broadcast_to([1.0, 0.0, 0.0, 0.0], (k, n, 4)),
+                          rng.normal(size=(k, n, 3)))
     dqs.append(pure_t)
     w.append(_random_weights(rng, (k, n)))
     dqs.append(np.repeat(_random_poses(rng, (k, 1)), n, axis=1))
@@ -266,7 +267,8 @@ def _sets_for(method: Method, many: bool, rng: np.random.Generator, trials: int)
 
 def _measure_rigidity(method, sets, tol) -> Cell:
     worst = max(_max(_rigidity_dev(method(dqs, w))) for dqs, w in sets)
-    return Cell(worst <= tol, worst, f"worst |R^T R - I|, |det R - 1| over random blends: {worst:.1e}")
+    return Cell(worst <= tol, worst,
+                f"worst |R^T R - I|, |det R - 1| over random blends: {worst:.1e}")
 
 
 def _measure_bi_invariance(method, sets, rng, tol) -> Cell:
@@ -386,7 +388,8 @@ def _measure_shortest(paths: _Paths, tol: float) -> Cell:
     worst = _max(dev)
     return Cell(worst <= tol, worst,
                 f"axis moves {_max(paths.axis_dev):.1e} rad, translation direction "
-                f"{_max(paths.dir_dev):.1e} rad, swept up to {np.degrees(_max(paths.swept)):.1f} deg"
+                f"{_max(paths.dir_dev):.1e} rad, swept up to "
+                f"{np.degrees(_max(paths.swept)):.1f} deg"
                 f" (per input kind: {_worst_by_label(dev, paths.labels)})")
 
 
@@ -460,7 +463,8 @@ def format_table(table: Table, verbose: bool = False) -> str:
     lines.append("")
     if compared:
         lines.append(f"{compared - len(bad)}/{compared} cells agree with the paper"
-                     + ("." if not bad else ": disagree at " + ", ".join(f"{m} {p}" for m, p in bad)))
+                     + ("." if not bad
+                        else ": disagree at " + ", ".join(f"{m} {p}" for m, p in bad)))
     else:
         lines.append("The paper has no column for these methods.")
     if verbose:

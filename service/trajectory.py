@@ -15,11 +15,11 @@ orientation and position follow the one parameter ``s`` (Pilz LIN semantics). A 
 segment at rest at both ends gives each its own: the tool point's progress along the line and
 the slerp's are each the time-optimal 1-D S-curve under their own limits, the faster one
 stretched to the slower one's duration (Ruckig's time synchronisation; equal durations on
-straight moves, docs/benchmarks/trajectories.md#planning); the path is the same line and slerp. The limits on
-the tool point's linear velocity, acceleration and jerk and on the tool's angular velocity,
-acceleration and jerk are met by construction: the C planner (``service/csrc/trajectory.c``,
-where the bounds are derived) sizes every ramp by upper bounds of these quantities, and
-``tests/test_trajectory.py`` checks them on the samples themselves.
+straight moves, docs/benchmarks/trajectories.md#planning); the path is the same line and slerp. The
+limits on the tool point's linear velocity, acceleration and jerk and on the tool's angular
+velocity, acceleration and jerk are met by construction: the C planner
+(``service/csrc/trajectory.c``, where the bounds are derived) sizes every ramp by upper bounds of
+these quantities, and ``tests/test_trajectory.py`` checks them on the samples themselves.
 
 Velocities (``Samples.linear_velocity``, ``angular_velocity``) are those of the tool point and of
 the tool, both in the base frame, as UR reports TCP speed.
@@ -212,8 +212,8 @@ def _waypoints(waypoints) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     timed = np.flatnonzero(times)
     for a, b in zip(timed[:-1], timed[1:]):
         if times[b] <= times[a]:
-            raise FieldError(f"waypoints[{b}].time: {float(times[b])!r} is not after waypoints[{a}].time "
-                             f"{float(times[a])!r} (times must increase)")
+            raise FieldError(f"waypoints[{b}].time: {float(times[b])!r} is not after "
+                             f"waypoints[{a}].time {float(times[a])!r} (times must increase)")
     for i in (0, len(wps) - 1):
         if radius[i] > 0:
             raise FieldError(f"waypoints[{i}].blend_radius: the first and last waypoints are "
@@ -234,7 +234,8 @@ def _path_lengths(poses: np.ndarray, mode: int) -> tuple[np.ndarray, np.ndarray]
 def _start_vector(v0) -> np.ndarray:
     v0 = np.asarray(v0, dtype=np.float64)
     if v0.shape != (6,) or not np.all(np.isfinite(v0)):
-        raise FieldError(f"start_velocity: expected 6 finite numbers [vx vy vz wx wy wz], got {v0!r}")
+        raise FieldError(f"start_velocity: expected 6 finite numbers [vx vy vz wx wy wz], "
+                         f"got {v0!r}")
     return v0
 
 
@@ -272,16 +273,18 @@ def _redirect(start: np.ndarray, v0: np.ndarray, limits: Limits, mode: int, reac
     linear and angular S-curve stops from that velocity (trajectory.c's ramps are at most that
     long) would carry it at that velocity; and ds/dt at the start of the segment to it."""
     stop = 0.0
-    for V, A, J in ((np.linalg.norm(v0[:3]), limits.max_linear_acceleration, limits.max_linear_jerk),
-                    (np.linalg.norm(v0[3:]), limits.max_angular_acceleration, limits.max_angular_jerk)):
+    for V, A, J in ((np.linalg.norm(v0[:3]), limits.max_linear_acceleration,
+                     limits.max_linear_jerk),
+                    (np.linalg.norm(v0[3:]), limits.max_angular_acceleration,
+                     limits.max_angular_jerk)):
         if V > 0:
             stop = max(stop, V / (A * 0.95) + (A / J if J > 0 else 0.0))
     tau = reach * stop
     if np.linalg.norm(v0[3:]) * tau >= math.pi:
         # a slerp takes the short way: the segment cannot hold half a turn or more
-        raise Infeasible(f"start_velocity: the turn it is on needs {math.degrees(np.linalg.norm(v0[3:]) * tau):.0f} "
-                         f"degrees to be brought into the path under the limits (less than 180 "
-                         f"are supported)")
+        raise Infeasible(f"start_velocity: the turn it is on needs "
+                         f"{math.degrees(np.linalg.norm(v0[3:]) * tau):.0f} degrees to be "
+                         f"brought into the path under the limits (less than 180 are supported)")
     q0, p0 = dq.to_pose(start)
     if mode == _MODE["screw"]:
         # T0 Exp(tau xi) with the body twist xi of the start velocity (the tool point is the
@@ -290,7 +293,8 @@ def _redirect(start: np.ndarray, v0: np.ndarray, limits: Limits, mode: int, reac
         half = 0.5 * tau * np.concatenate([dq.transform(back, v0[3:]), dq.transform(back, v0[:3])])
         return dq.mul(start, dq.exp(half)), 1.0 / tau
     turn = dq.exp(np.concatenate([0.5 * tau * v0[3:], np.zeros(3)]))     # base frame
-    return dq.from_pose(dq.mul(turn, dq.from_pose(q0, np.zeros(3)))[:4], p0 + tau * v0[:3]), 1.0 / tau
+    return (dq.from_pose(dq.mul(turn, dq.from_pose(q0, np.zeros(3)))[:4], p0 + tau * v0[:3]),
+            1.0 / tau)
 
 
 def plan(waypoints, limits: Limits, interpolation: str = "tool_linear", *,

@@ -151,7 +151,8 @@ def _wrist(n, setup, rng):
         down = dq.mul(rotation([0.0, 0.0, rng.uniform(-np.pi, np.pi)]), rotation([np.pi, 0, 0]))
         z = dq.mul(pose([0, 0, 0], [rng.uniform(0.4, 0.6), rng.uniform(-0.2, 0.2),
                                     rng.uniform(0.0, 0.1)]), down)
-        base_flange = dq.mul(dq.mul(z, views), dq.inv(x))  # T_base_target T_target_camera T_camera_flange
+        # T_base_target T_target_camera T_camera_flange
+        base_flange = dq.mul(dq.mul(z, views), dq.inv(x))
     else:
         # The camera 1 m off the base, looking back at the workspace.
         eye = np.array([rng.uniform(0.8, 1.1), rng.uniform(-0.3, 0.3), rng.uniform(0.5, 0.8)])
@@ -203,8 +204,8 @@ def scene(n: int, setup: str = "eye_in_hand", geometry: str = "wrist",
 
 # ---- broken data: what the checks must flag ----------------------------------------------------
 BROKEN = ("two_poses", "duplicates", "pure_translation", "parallel_axes", "small_rotations",
-          "time_shift", "millimetres", "board_scale", "inverted_camera", "inverted_robot", "inverted_both",
-          "swapped_setup", "outliers", "marker_flips")
+          "time_shift", "millimetres", "board_scale", "inverted_camera", "inverted_robot",
+          "inverted_both", "swapped_setup", "outliers", "marker_flips")
 
 
 @dataclass(frozen=True)
@@ -272,7 +273,8 @@ def broken(kind: str, n: int = 20, setup: str = "eye_in_hand", seed: int = 0,
         k = max(1, n // 5)
         idx = np.sort(rng.choice(n, k, replace=False))
         off = np.concatenate([rng.normal(size=(k, 3)), rng.normal(size=(k, 3))], axis=1)
-        off[:, :3] *= np.radians(rng.uniform(3, 20, k) / np.linalg.norm(off[:, :3], axis=1))[:, None]
+        off[:, :3] *= np.radians(rng.uniform(3, 20, k)
+                                 / np.linalg.norm(off[:, :3], axis=1))[:, None]
         off[:, 3:] *= (rng.uniform(0.01, 0.05, k) / np.linalg.norm(off[:, 3:], axis=1))[:, None]
         C[idx] = dq.mul(C[idx], lie.se3_exp(off))
         bad = tuple(int(i) for i in idx)

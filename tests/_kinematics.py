@@ -32,7 +32,10 @@ def derivatives(times: np.ndarray, poses: np.ndarray):
 
 def peaks(times: np.ndarray, poses: np.ndarray) -> Peaks:
     lin, ang = derivatives(times, poses)
-    top = lambda xs: np.array([np.linalg.norm(x, axis=1).max(initial=0.0) for x in xs])
+
+    def top(xs):
+        return np.array([np.linalg.norm(x, axis=1).max(initial=0.0) for x in xs])
+
     return Peaks(top(lin), top(ang))
 
 
@@ -48,7 +51,8 @@ def violation(p: Peaks, limits, noise=(0.0, 0.0, 0.0)) -> float:
     lim_ang = (limits.max_angular_velocity, limits.max_angular_acceleration,
                limits.max_angular_jerk)
     worst = -1.0
-    for peak, lim, eps in zip(np.concatenate([p.linear, p.angular]), lim_lin + lim_ang, 2 * tuple(noise)):
+    for peak, lim, eps in zip(np.concatenate([p.linear, p.angular]), lim_lin + lim_ang,
+                              2 * tuple(noise)):
         if lim > 0:
             worst = max(worst, (peak - eps) / lim - 1.0)
     return worst

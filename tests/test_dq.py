@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import reference as ref
+from conftest import random_dqs, random_quaternions
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
-import reference as ref
-from conftest import random_dqs, random_quaternions
 from dqpose import dq
 
 TOL = 1e-12
@@ -103,7 +103,7 @@ def dlb_definition(Q: np.ndarray, w: np.ndarray) -> np.ndarray:
 SCALES = [1.0, 1e3]
 
 
-# ---- agreement with the reference on random poses -------------------------------------------------
+# ---- agreement with the reference on random poses ------------------------------------------
 
 @pytest.mark.parametrize("scale", SCALES)
 def test_to_matrix_matches_reference(rng, scale):
@@ -280,7 +280,8 @@ def test_dib_info_reports_its_residual(rng):
         # The residual is the norm of the weighted mean half-twist at the returned mean.
         Tm = ref.matrix_from_dq(mean)
         wn = w / w.sum(axis=-1, keepdims=True)
-        xi = 0.5 * np.einsum("bn,bnk->bk", wn, ref.log(ref.inv(Tm)[:, None] @ ref.matrix_from_dq(Q)))
+        xi = 0.5 * np.einsum("bn,bnk->bk", wn,
+                             ref.log(ref.inv(Tm)[:, None] @ ref.matrix_from_dq(Q)))
         np.testing.assert_allclose(res, np.linalg.norm(xi, axis=-1), rtol=1e-6, atol=1e-14)
         if max_iter == 0:
             assert_dq_close(mean, dq.dlb(Q, w))
@@ -290,7 +291,8 @@ def test_dib_info_reports_its_residual(rng):
 @pytest.mark.parametrize("scale", SCALES)
 def test_screw_matches_matrix_log(rng, scale):
     theta = rng.uniform(0.05, PI - 0.05, N)
-    r = np.concatenate([np.cos(theta / 2)[:, None], unit_axes(rng, N) * np.sin(theta / 2)[:, None]], -1)
+    r = np.concatenate([np.cos(theta / 2)[:, None],
+                        unit_axes(rng, N) * np.sin(theta / 2)[:, None]], -1)
     q = ref.dq_from_rt(r * random_signs(rng, N), scale * rng.normal(size=(N, 3)))
     T = ref.matrix_from_dq(q)
     tw = ref.log(T)
@@ -324,10 +326,11 @@ def test_pytransform3d_cross_check(rng):
         tau = rng.uniform(0, 1)
         theirs = pt.dual_quaternion_sclerp(a, b, tau)
         assert dq_error(dq.sclerp(a, b, tau), theirs) <= 1e-9
-        np.testing.assert_allclose(dq.to_matrix(a), pt.transform_from_dual_quaternion(a), atol=1e-12)
+        np.testing.assert_allclose(dq.to_matrix(a), pt.transform_from_dual_quaternion(a),
+                                   atol=1e-12)
 
 
-# ---- hard cases ------------------------------------------------------------------------------------
+# ---- hard cases -----------------------------------------------------------------------------
 
 @pytest.mark.parametrize("theta", HARD_ANGLES)
 @pytest.mark.parametrize("scale", [0.0, 1.0, 1e3])
@@ -344,7 +347,8 @@ def test_hard_angles(rng, theta, scale):
     # log: the angle is theta, and exp(log) is the pose again from either sign
     for sign in (1, -1):
         lq = dq.log(sign * q)
-        np.testing.assert_allclose(2 * np.linalg.norm(lq[:, :3], axis=-1), theta, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(2 * np.linalg.norm(lq[:, :3], axis=-1), theta, rtol=0,
+                                   atol=1e-15)
         assert_matrices_close(ref.exp(2 * lq), T, s)
         assert_poses_close(dq.exp(lq), T, s)
     tau = np.concatenate([[0.0, 1.0, 0.5, -1.0, 2.0], rng.uniform(-2, 3, n - 5)])
@@ -395,7 +399,8 @@ def test_screw_of_pure_and_nearly_pure_translations(rng, theta):
 
 @pytest.mark.parametrize("gap", [1e-3, 1e-6, 1e-9, 1e-12])
 def test_sclerp_antipodal_pairs(rng, gap):
-    """Relative rotation just short of pi: the short way is unique and the sign of b is irrelevant."""
+    """Relative rotation just short of pi: the short way is unique and the sign of b is
+    irrelevant."""
     n = 500
     a = random_dqs(rng, n, 1e3)
     rel = ref.dq_from_rt(quats_at_angle(rng, PI - gap, n), rng.normal(size=(n, 3)))
@@ -472,7 +477,8 @@ def test_lin_blend_is_the_nearest_rigid_motion(rng, n):
     R, want = T[..., :3, :3], svd_nearest_rotation(M[..., :3, :3])
     np.testing.assert_allclose(np.linalg.det(R), 1.0, rtol=0, atol=1e-14)
     assert_matrices_close(T[..., :3, 3:], M[..., :3, 3:], tscale(M))
-    np.testing.assert_allclose(fit(R, M[..., :3, :3]), fit(want, M[..., :3, :3]), rtol=0, atol=1e-13)
+    np.testing.assert_allclose(fit(R, M[..., :3, :3]), fit(want, M[..., :3, :3]), rtol=0,
+                               atol=1e-13)
     # where the answer is unique enough: the eigengap of K is 2 (s2 + sign(det M) s3)
     s = np.linalg.svd(M[..., :3, :3], compute_uv=False)
     gap = 2 * (s[:, 1] + np.sign(np.linalg.det(M[..., :3, :3])) * s[:, 2])
@@ -501,7 +507,8 @@ def test_lin_projection_near_ties(rng, gap):
     u = rng.uniform(0, 1, m)
     beta = np.stack([x + gap, x, u * rest, (1 - u) * rest], axis=-1)
     perm = rng.permuted(np.tile(np.arange(4), (m, 1)), axis=1)
-    beta = np.take_along_axis(beta, np.argsort(perm, axis=1), axis=1)    # slot perm[i] holds beta[i]
+    # slot perm[i] holds beta[i]
+    beta = np.take_along_axis(beta, np.argsort(perm, axis=1), axis=1)
     first = perm[:, 0]
     Q = ref.dq_from_matrix(ref.make(Rk, rng.normal(size=(m, 4, 3))))
     M = dq.lin(Q, beta)[..., :3, :3]
@@ -549,7 +556,8 @@ def test_broadcasting_of_leading_dimensions(rng):
     assert dq.from_pose(random_quaternions(rng, (2, 1)), rng.normal(size=(5, 3))).shape == (2, 5, 8)
     r, t = dq.to_pose(a)
     assert r.shape == (3, 1, 4) and t.shape == (3, 1, 3)
-    assert dq.to_matrix(a).shape == (3, 1, 4, 4) and dq.from_matrix(dq.to_matrix(a)).shape == (3, 1, 8)
+    assert dq.to_matrix(a).shape == (3, 1, 4, 4)
+    assert dq.from_matrix(dq.to_matrix(a)).shape == (3, 1, 8)
     assert dq.log(a).shape == (3, 1, 6) and dq.exp(dq.log(a)).shape == (3, 1, 8)
     sc = dq.screw(a)
     assert sc.theta.shape == (3, 1) and sc.axis.shape == (3, 1, 3)
@@ -612,8 +620,10 @@ def test_log_of_exp_is_the_vector(r, d):
 
 @given(poses)
 def test_pose_times_its_conjugate_is_identity(q):
-    np.testing.assert_allclose(dq.mul(q, dq.conj(q)), dq.identity(), rtol=0, atol=pose_tol(q, tol=TOL))
-    np.testing.assert_allclose(dq.mul(dq.conj(q), q), dq.identity(), rtol=0, atol=pose_tol(q, tol=TOL))
+    np.testing.assert_allclose(dq.mul(q, dq.conj(q)), dq.identity(), rtol=0,
+                               atol=pose_tol(q, tol=TOL))
+    np.testing.assert_allclose(dq.mul(dq.conj(q), q), dq.identity(), rtol=0,
+                               atol=pose_tol(q, tol=TOL))
 
 
 def _well_separated(qs, margin=1e-3):
@@ -637,8 +647,9 @@ def test_blends_are_bi_invariant(qs, data, r):
 def test_sclerp_is_bi_invariant(a, b, r, tau):
     assume(_well_separated([a, b]))
     s = dq.sclerp(a, b, tau)
-    assert dq_error(dq.sclerp(dq.mul(r, a), dq.mul(r, b), tau), dq.mul(r, s)) <= pose_tol(r, a, b, s)
-    assert dq_error(dq.sclerp(dq.mul(a, r), dq.mul(b, r), tau), dq.mul(s, r)) <= pose_tol(r, a, b, s)
+    tol = pose_tol(r, a, b, s)
+    assert dq_error(dq.sclerp(dq.mul(r, a), dq.mul(r, b), tau), dq.mul(r, s)) <= tol
+    assert dq_error(dq.sclerp(dq.mul(a, r), dq.mul(b, r), tau), dq.mul(s, r)) <= tol
 
 
 @given(st.lists(poses, min_size=2, max_size=5), st.data(), poses)
@@ -760,14 +771,15 @@ def test_the_unit_tolerance_takes_rounded_input():
     """1e-3: a rotation written with four decimals (0.7071 for cos 45 deg) is within it."""
     assert TOL == 1e-3
     q = np.array([0.7071, 0.0, 0.0, 0.7071])
-    np.testing.assert_allclose(dq.from_pose(q, [0.1, 0, 0]), dq.from_pose(q / np.linalg.norm(q), [0.1, 0, 0]),
-                               atol=1e-15)
+    np.testing.assert_allclose(dq.from_pose(q, [0.1, 0, 0]),
+                               dq.from_pose(q / np.linalg.norm(q), [0.1, 0, 0]), atol=1e-15)
 
 
 @pytest.mark.parametrize("scale,problem", [
-    (1.1, rf"quaternion norm 1.1 is not unit \(off by 0.1, beyond the tolerance 0.001 within which it "
-          rf"is normalised\); {SUGGESTION}$"),
-    (1 + 1.01 * TOL, r"quaternion norm 1.00101 is not unit \(off by 0.00101, beyond"),   # just outside
+    (1.1, rf"quaternion norm 1.1 is not unit \(off by 0.1, beyond the tolerance 0.001 "
+          rf"within which it is normalised\); {SUGGESTION}$"),
+    # just outside
+    (1 + 1.01 * TOL, r"quaternion norm 1.00101 is not unit \(off by 0.00101, beyond"),
     (1 - 1.01 * TOL, r"quaternion norm 0.99899 is not unit \(off by 0.00101, beyond"),
     (0.9, "quaternion norm 0.9 is not unit"),
     (0.0, "zero quaternion")])
@@ -788,7 +800,8 @@ def test_poses_within_the_tolerance_are_normalised(name, f, kw, arg, scale):
     exact = call(f, kw, **{arg: x})
     x[1, :4 if arg == "q" else 8] *= scale     # a dual quaternion scaled as a whole stays rigid
     out = call(f, kw, **{arg: x})
-    for o, e in zip(out if isinstance(out, tuple) else (out,), exact if isinstance(exact, tuple) else (exact,)):
+    for o, e in zip(out if isinstance(out, tuple) else (out,),
+                    exact if isinstance(exact, tuple) else (exact,)):
         np.testing.assert_allclose(o, e, rtol=1e-9, atol=1e-9)
 
 
@@ -799,8 +812,9 @@ def test_dual_part_must_be_orthogonal(name, f, kw, arg):
     x = v.copy() if arg == "dqs" else np.stack([v] * 3)
     size = max(1.0, np.linalg.norm(x[1, 4:]))     # the tolerance is relative to the dual part
     x[1, 4:] += 1.01 * TOL * size * x[1, :4]       # just outside
-    with pytest.raises(ValueError, match=rf"^{arg}\[1\]: dual part is not orthogonal to the real part "
-                                         rf"\(<r, d> = .*, tolerance 0.001 of max\(\|d\|, 1\)\)"):
+    with pytest.raises(ValueError, match=rf"^{arg}\[1\]: dual part is not orthogonal to the "
+                                         rf"real part \(<r, d> = .*, tolerance 0.001 of "
+                                         rf"max\(\|d\|, 1\)\)"):
         call(f, kw, **{arg: x})
     x[1, 4:] -= 0.02 * TOL * size * x[1, :4]       # just inside: made rigid
     out = call(f, kw, **{arg: x})
@@ -892,9 +906,11 @@ def test_bad_weights_are_rejected(f):
         f(SET, [0.0, 0.0, 0.0])
     with pytest.raises(ValueError, match=r"^weights\[1\]: all weights are zero"):
         f(SET, [[1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
-    with pytest.raises(ValueError, match=r"^weights: length 2 does not match the number of poses \(3\)"):
+    with pytest.raises(ValueError,
+                       match=r"^weights: length 2 does not match the number of poses \(3\)"):
         f(SET, [1.0, 1.0])
-    with pytest.raises(ValueError, match=r"^weights: length 4 does not match the number of poses \(3\)"):
+    with pytest.raises(ValueError,
+                       match=r"^weights: length 4 does not match the number of poses \(3\)"):
         f(SET, [1.0, 1.0, 1.0, 1.0])
     # finite weights stay valid at any magnitude: they are normalised to sum 1
     for w in (W3 / 3 * 1e308, W3 * 1e-320):
@@ -914,12 +930,14 @@ def test_bad_weights_are_rejected(f):
     (dq.dlb, (GOOD,), r"^dqs: expected shape \(\.\.\., n, 8\), got \(8,\)"),
     (dq.dib, (np.zeros((2, 6)),), r"^dqs: expected shape \(\.\.\., n, 8\), got \(2, 6\)"),
     (dq.to_pose, ([[1, 2]],), r"^a: expected shape"),
-    (dq.mul, (np.zeros((3, 8)), np.zeros((4, 8))), r"^shape mismatch: b has leading shape \(4,\), which "
-                                                   r"does not broadcast with \(3,\)"),
-    (dq.sclerp, (np.tile(I8, (3, 1)), I8, np.zeros(5)), r"^shape mismatch: tau has leading shape \(5,\)"),
+    (dq.mul, (np.zeros((3, 8)), np.zeros((4, 8))),
+     r"^shape mismatch: b has leading shape \(4,\), which does not broadcast with \(3,\)"),
+    (dq.sclerp, (np.tile(I8, (3, 1)), I8, np.zeros(5)),
+     r"^shape mismatch: tau has leading shape \(5,\)"),
     (dq.power, (np.tile(I8, (3, 1)), np.zeros((2, 1, 4))), r"^shape mismatch: tau"),
     (dq.transform, (np.tile(I8, (2, 1)), np.zeros((3, 3))), r"^shape mismatch: p"),
-    (dq.dlb, (np.tile(I8, (3, 2, 1)), np.ones((4, 2))), r"^shape mismatch: weights has leading shape \(4,\)"),
+    (dq.dlb, (np.tile(I8, (3, 2, 1)), np.ones((4, 2))),
+     r"^shape mismatch: weights has leading shape \(4,\)"),
     (dq.dlb, (np.zeros((0, 8)),), r"^dqs: empty set of poses"),
     (dq.dib, (np.zeros((3, 0, 8)), np.zeros(0)), r"^dqs: empty set of poses"),
     (dq.mul, ("abc", GOOD), r"^a: not convertible to a float64 array"),
@@ -949,7 +967,8 @@ def test_non_float_sets_get_one_message_for_every_method(method):
 
 def test_bad_methods_are_rejected():
     for m in ("foo", "DIB", None, 3, ""):
-        with pytest.raises(ValueError, match=r"^method: unknown blending method .*expected one of lin, dec"):
+        with pytest.raises(ValueError,
+                           match=r"^method: unknown blending method .*expected one of lin, dec"):
             dq.blend(SET, method=m)
     for n in (1, 3):
         with pytest.raises(ValueError, match=rf"^dqs: sclerp blends exactly 2 poses, got {n}"):
@@ -964,12 +983,14 @@ def test_bad_methods_are_rejected():
     (dq.sclerp, (I8, dq.exp([0.1, 0, 0, 10.0, 0, 0]), 1e308), r"^tau: result is not finite"),
     (dq.sclerp, (I8, dq.exp([0.0, 0, 0, 10.0, 0, 0]), 1e308), r"^tau: result is not finite"),
     (dq.from_matrix, (np.block([[dq.to_matrix(GOOD)[:3, :3], np.full((3, 1), 1.7e308)],
-                                [np.zeros((1, 3)), np.ones((1, 1))]]),), r"^T: result is not finite"),
+                                [np.zeros((1, 3)), np.ones((1, 1))]]),),
+     r"^T: result is not finite"),
     (dq.to_matrix, (np.array([1.0, 0, 0, 0, 0, 1e308, 1e308, 0]),), r"^a: result is not finite"),
     (dq.to_pose, (np.array([1.0, 0, 0, 0, 0, 1e200, 1e200, 0]),), r"^a: result is not finite"),
     (dq.log, (np.array([1.0, 0, 0, 0, 0, 1e308, 1e308, 0]),), r"^a: result is not finite"),
     (dq.screw, (np.array([0.5, 0.5, 0.5, 0.5, 0, 1e300, -1e300, 0]),), r"^a: result is not finite"),
-    (dq.transform, (dq.exp([0, 0, PI / 8, 0, 0, 0]), [1.7e308, 1.7e308, 0]), r"^p: result is not finite"),
+    (dq.transform, (dq.exp([0, 0, PI / 8, 0, 0, 0]), [1.7e308, 1.7e308, 0]),
+     r"^p: result is not finite"),
     (dq.lin, (np.stack([np.array([1.0, 0, 0, 0, 0, 1e150, 0, 0])] * 2),), None),
 ])
 def test_overflow_raises_instead_of_returning_inf(f, args, pattern):
@@ -1019,7 +1040,8 @@ def _garbage(rng, core, lead):
     if core == (8,) or core == (None, 8):
         x = random_dqs(rng, shape[:-1], 10.0 ** rng.integers(-3, 4))
     elif core == (4, 4):
-        x = dq.to_matrix(random_dqs(rng, lead, 10.0 ** rng.integers(-3, 4))) if kind else rng.normal(size=shape)
+        x = (dq.to_matrix(random_dqs(rng, lead, 10.0 ** rng.integers(-3, 4))) if kind
+             else rng.normal(size=shape))
     elif core == (4,):
         x = random_quaternions(rng, lead)
     else:
@@ -1031,7 +1053,8 @@ def _garbage(rng, core, lead):
         flat = x.reshape(-1)
         idx = rng.integers(0, flat.size, rng.integers(1, 4))
         with np.errstate(invalid="ignore", over="ignore"):
-            flat[idx] = rng.choice(SPECIAL, idx.size) if kind == 1 else flat[idx] * rng.choice(SPECIAL, idx.size)
+            flat[idx] = (rng.choice(SPECIAL, idx.size) if kind == 1
+                         else flat[idx] * rng.choice(SPECIAL, idx.size))
     return x
 
 
@@ -1068,7 +1091,8 @@ def test_fuzz_returns_finite_or_raises_value_error(rng, f, cores):
             out = f(*args)
         except ValueError as e:
             assert str(e).split(":")[0].split("[")[0] in (
-                "a", "b", "x", "tau", "T", "q", "t", "p", "dqs", "weights", "shape mismatch"), str(e)
+                "a", "b", "x", "tau", "T", "q", "t", "p", "dqs", "weights",
+                "shape mismatch"), str(e)
             continue
         outs = out if isinstance(out, tuple) else (out,)
         for o in outs:

@@ -50,7 +50,8 @@ def test_the_install_hint_is_what_pip_takes_here(tmp_path, monkeypatch):
     monkeypatch.chdir(root)       # make's editable install, from its clone
     assert install_hint("plot") == "install dqpose with the [plot] extra: pip install '.[plot]'"
     monkeypatch.chdir(tmp_path)   # elsewhere: the clone's path
-    assert install_hint("plot") == f"install dqpose with the [plot] extra: pip install '{root}[plot]'"
+    assert install_hint("plot") == ("install dqpose with the [plot] extra: "
+                                    f"pip install '{root}[plot]'")
     require("numpy", "yaml")      # installed: nothing happens
     monkeypatch.setitem(__import__("sys").modules, "yaml", None)   # as if not installed
     try:

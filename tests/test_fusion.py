@@ -197,16 +197,19 @@ def test_fusion_beats_the_best_source_with_fixed_sources():
 # ---- bad input ---------------------------------------------------------------------------------
 def _ok(n=3):
     rng = np.random.default_rng(0)
-    return np.array([random_pose(rng) for _ in range(n)]), np.array([random_cov(rng) for _ in range(n)])
+    return (np.array([random_pose(rng) for _ in range(n)]),
+            np.array([random_cov(rng) for _ in range(n)]))
 
 
 @pytest.mark.parametrize("mutate, message", [
     (lambda Z, S: (Z[:0], S[:0]), "poses: no measurements"),
     (lambda Z, S: (Z[:, :7], S), r"poses: expected shape \(n, 8\)"),
-    (lambda Z, S: (np.where(np.arange(3)[:, None] == 1, np.nan, Z), S), r"poses\[1\]: contains NaN"),
+    (lambda Z, S: (np.where(np.arange(3)[:, None] == 1, np.nan, Z), S),
+     r"poses\[1\]: contains NaN"),
     (lambda Z, S: (Z * np.array([1, 1, 1.1])[:, None], S), r"poses\[2\]: quaternion norm"),
     (lambda Z, S: (Z, S[:2]), r"covariances: expected shape \(3, 6, 6\)"),
-    (lambda Z, S: (Z, S * np.array([1, 1, np.inf])[:, None, None]), r"covariances\[2\]: contains NaN"),
+    (lambda Z, S: (Z, S * np.array([1, 1, np.inf])[:, None, None]),
+     r"covariances\[2\]: contains NaN"),
     (lambda Z, S: (Z, S - 1.01 * np.eye(6) * np.max(S) * (np.arange(3) == 2)[:, None, None]),
      r"covariances\[2\]: not positive definite"),
     (lambda Z, S: (Z, S + np.triu(np.ones((6, 6)), 1) * 1e-6 * (np.arange(3) == 1)[:, None, None]),
@@ -404,30 +407,31 @@ def frames_scene(rng):
     flange frame) of one body X = T_world_body; each source's own covariance in its frame."""
     X = random_pose(rng)
     E = {name: random_pose(rng) for name in ("cam0", "cam1", "arm")}
-    O = random_pose(rng, 0.3)
+    offset = random_pose(rng, 0.3)
     sources = [Source("cam0", extrinsic=E["cam0"]), Source("cam1", extrinsic=E["cam1"]),
-               Source("arm", extrinsic=E["arm"], body_offset=O)]
+               Source("arm", extrinsic=E["arm"], body_offset=offset)]
     names = ["cam0", "cam0", "cam1", "arm"]
     S = np.array([random_cov(rng) for _ in names])
     S[3] = random_cov(rng, (0.05, 0.2), (0.1e-3, 0.5e-3))
     truth = [dq.mul(dq.conj(E[s]), X) for s in names[:3]]
-    truth.append(dq.mul(dq.mul(dq.conj(E["arm"]), X), dq.conj(O)))
+    truth.append(dq.mul(dq.mul(dq.conj(E["arm"]), X), dq.conj(offset)))
     Z = np.array([measure(rng, t, s[None])[0] for t, s in zip(truth, S)])
-    return X, Z, S, names, sources, E, O
+    return X, Z, S, names, sources, E, offset
 
 
 def test_frames_fuse_to_the_world_pose_and_match_gtsam_on_transported_factors():
     rng = np.random.default_rng(51)
     for _ in range(10):
-        X, Z, S, names, sources, E, O = frames_scene(rng)
+        X, Z, S, names, sources, E, offset = frames_scene(rng)
         f = fusion.fuse(Z, S, names=names, sources=sources)
-        # the same factors built with GTSAM's own algebra: Z_world = E Z O, Ad(O^-1) S Ad(O^-1)^T
+        # the same factors built with GTSAM's own algebra: Z_world = E Z offset,
+        # Ad(offset^-1) S Ad(offset^-1)^T
         Zw, Sw = [], []
         for z, s, name in zip(Z, S, names):
             P = gtsam.Pose3(dq.to_matrix(E[name])).compose(gtsam.Pose3(dq.to_matrix(z)))
             if name == "arm":
-                A = gtsam.Pose3(dq.to_matrix(O)).inverse().AdjointMap()
-                P, s = P.compose(gtsam.Pose3(dq.to_matrix(O))), A @ s @ A.T
+                A = gtsam.Pose3(dq.to_matrix(offset)).inverse().AdjointMap()
+                P, s = P.compose(gtsam.Pose3(dq.to_matrix(offset))), A @ s @ A.T
             Zw.append(dq.from_matrix(P.matrix()))
             Sw.append(s)
         Xg, Pg, chi2 = gtsam_fuse(np.array(Zw), np.array(Sw))
@@ -447,15 +451,15 @@ def test_frames_nees_is_six():
 
 
 def test_frames_transport_a_covariance_exactly_monte_carlo():
-    """One arm measurement: the fused pose is E Z O and its covariance the flange covariance
+    """One arm measurement: the fused pose is E Z offset and its covariance the flange covariance
     carried to the body; samples of the true flange pose carried through agree."""
     rng = np.random.default_rng(53)
-    E, O, Z = random_pose(rng), random_pose(rng, 0.5), random_pose(rng)
+    E, offset, Z = random_pose(rng), random_pose(rng, 0.5), random_pose(rng)
     S = random_cov(rng, (2, 10), (5e-3, 2e-2))
-    f = fusion.fuse(Z[None], S[None], names=["arm"], sources=[Source("arm", E, O)])
-    assert np.linalg.norm(error(f.mean, dq.mul(dq.mul(E, Z), O))) < 1e-14
+    f = fusion.fuse(Z[None], S[None], names=["arm"], sources=[Source("arm", E, offset)])
+    assert np.linalg.norm(error(f.mean, dq.mul(dq.mul(E, Z), offset))) < 1e-14
     xi = rng.multivariate_normal(np.zeros(6), S, size=20000)
-    body = dq.mul(dq.mul(E, dq.mul(Z, lie.se3_exp(xi))), O)  # the true body pose, sampled
+    body = dq.mul(dq.mul(E, dq.mul(Z, lie.se3_exp(xi))), offset)  # the true body pose, sampled
     d = error(f.mean, body)
     empirical = d.T @ d / len(d)
     sd = np.sqrt(np.diag(f.covariance))

@@ -535,7 +535,8 @@ def test_tracker_time_going_back_beyond_the_window_is_an_error_naming_the_measur
     assert len(tracker.measurements("box")) == 2  # out of order within the window is fine
     late = Measurement("cam_a", "box", 0.83, X)  # taken at 0.79, 0.216 s before 1.006
     with pytest.raises(ValueError, match=r"^measurements\[1\] \(body 'box', source 'cam_a', "
-                                         r"time 0.83\): taken at 0.7[89].* beyond the window 0.2 s"):
+                                         r"time 0.83\): taken at 0.7[89].* "
+                                         r"beyond the window 0.2 s"):
         tracker.add(Measurement("arm", "box", 1.01, X), late)
     assert len(tracker.measurements("box")) == 2  # all or none
     tracker.add(Measurement("arm", "other", 0.0, X))  # another body has its own clock

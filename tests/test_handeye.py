@@ -1,11 +1,12 @@
-"""dqpose.handeye (service/handeye/) against the truth of the synthetic scenes (tests/_handeye.py): exact data
-solved exactly, noisy data solved with a consistent covariance, every broken data set flagged."""
+"""dqpose.handeye (service/handeye/) against the truth of the synthetic scenes (tests/_handeye.py):
+exact data solved exactly, noisy data solved with a consistent covariance, every broken data set
+flagged."""
 from dataclasses import replace
 
+import _handeye as H
 import numpy as np
 import pytest
 
-import _handeye as H
 from dqpose import dq, handeye, lie
 from dqpose.errors import FieldError, Infeasible
 
@@ -72,7 +73,8 @@ def test_eye_to_hand_is_eye_in_hand_on_inverted_flange_poses():
     s = H.scene(15, "eye_to_hand", seed=8)
     S = s.camera_covariance
     a = handeye.calibrate(s.base_flange, s.camera_target, "eye_to_hand", camera_covariance=S)
-    b = handeye.calibrate(dq.inv(s.base_flange), s.camera_target, "eye_in_hand", camera_covariance=S)
+    b = handeye.calibrate(dq.inv(s.base_flange), s.camera_target, "eye_in_hand",
+                          camera_covariance=S)
     assert _close(a.x, b.x, 1e-9) and _close(a.z, b.z, 1e-9)
     np.testing.assert_allclose(a.covariance, b.covariance, rtol=1e-6, atol=1e-15)
 
@@ -88,8 +90,10 @@ def test_jacobian_matches_finite_differences():
     for k in range(12):
         d = np.zeros(12)
         d[k] = h
-        rp = handeye._evaluate(A, C, dq.mul(s.x, lie.se3_exp(d[:6])), dq.mul(s.z, lie.se3_exp(d[6:])))[1]
-        rm = handeye._evaluate(A, C, dq.mul(s.x, lie.se3_exp(-d[:6])), dq.mul(s.z, lie.se3_exp(-d[6:])))[1]
+        rp = handeye._evaluate(A, C, dq.mul(s.x, lie.se3_exp(d[:6])),
+                               dq.mul(s.z, lie.se3_exp(d[6:])))[1]
+        rm = handeye._evaluate(A, C, dq.mul(s.x, lie.se3_exp(-d[:6])),
+                               dq.mul(s.z, lie.se3_exp(-d[6:])))[1]
         np.testing.assert_allclose((rp - rm) / (2 * h), J[:, :, k], atol=1e-7)
 
 
@@ -190,7 +194,8 @@ def test_next_best_pose_prefers_the_informative_candidate():
 
     def det_with(k):
         F = np.concatenate([s.base_flange, cand[k:k + 1]])
-        C = np.concatenate([s.camera_target, handeye.view_at(cand[k:k + 1], c.x, c.z, "eye_in_hand")])
+        C = np.concatenate([s.camera_target,
+                            handeye.view_at(cand[k:k + 1], c.x, c.z, "eye_in_hand")])
         return np.linalg.slogdet(handeye.calibrate(F, C, camera_covariance=s.camera_covariance)
                                  .covariance_x)[1]
 
@@ -206,7 +211,8 @@ def test_every_broken_data_set_is_flagged(kind):
         c = handeye.calibrate(b.base_flange, b.camera_target, b.setup)
     except Infeasible as e:
         assert not isinstance(e, FieldError)
-        assert str(e).split(":")[0] in ("base_flange", "camera_target", "base_flange, camera_target")
+        assert str(e).split(":")[0] in ("base_flange", "camera_target",
+                                        "base_flange, camera_target")
         return
     assert c.warnings, kind
     named = " ".join(c.warnings)
@@ -317,7 +323,7 @@ def test_duplicates_are_counted_once():
 
 def test_random_poses_never_give_nan():
     rng = np.random.default_rng(0)
-    for seed in range(5):
+    for _seed in range(5):
         q = rng.normal(size=(2, 10, 4))
         q /= np.linalg.norm(q, axis=-1, keepdims=True)
         F, C = dq.from_pose(q, rng.normal(size=(2, 10, 3)))
@@ -376,7 +382,8 @@ def test_corner_level_is_consistent_and_beats_poses(setup):
     for seed in range(60):
         s = H.scene(15, setup, camera_noise=(0.1, 0.5), seed=seed)
         a = handeye.calibrate(s.base_flange, s.camera_target, setup)
-        c = handeye.calibrate(s.base_flange, s.camera_target, setup, corners=H.corners(s, 0.2, seed=seed))
+        c = handeye.calibrate(s.base_flange, s.camera_target, setup,
+                              corners=H.corners(s, 0.2, seed=seed))
         nees.append(_nees(c.x, s.x, c.covariance_x))
         pose.append(H.pose_error(a.x, s.x))
         corner.append(H.pose_error(c.x, s.x))

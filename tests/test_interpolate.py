@@ -75,7 +75,8 @@ def test_antipodal_keyframe_gives_the_same_motion():
     flipped[1] *= -1
     times = np.linspace(times_k[0], times_k[-1], 50)
     for mode in ("screw", "tool_linear"):
-        _same_pose(interpolate(times_k, flipped, times, mode), interpolate(times_k, dqs_k, times, mode))
+        _same_pose(interpolate(times_k, flipped, times, mode),
+                   interpolate(times_k, dqs_k, times, mode))
 
 
 @pytest.mark.parametrize("times_k, times, message", [
@@ -97,7 +98,8 @@ def test_other_bad_input():
     k = dq.identity((2,))
     with pytest.raises(ValueError, match=r"^times_k: need at least 2 keyframes, got 1"):
         interpolate([0.0], k[:1], [0.0])
-    with pytest.raises(ValueError, match=r"^times_k: length 3 does not match the number of keyframes \(2\)"):
+    with pytest.raises(ValueError,
+                       match=r"^times_k: length 3 does not match the number of keyframes \(2\)"):
         interpolate([0.0, 1.0, 2.0], k, [0.0])
     with pytest.raises(ValueError, match=r"^mode: unknown interpolation 'cubic'"):
         interpolate([0.0, 1.0], k, [0.5], "cubic")

@@ -59,9 +59,12 @@ def _matrix_unchecked(q):
     conj = q[..., :4] * [1.0, -1.0, -1.0, -1.0]
     t = 2.0 * _qmul(q[..., 4:], conj)[..., 1:]
     M = np.zeros(q.shape[:-1] + (4, 4))
-    M[..., 0, :3] = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1)
-    M[..., 1, :3] = np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1)
-    M[..., 2, :3] = np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)
+    M[..., 0, :3] = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z),
+                              2 * (x * z + w * y)], -1)
+    M[..., 1, :3] = np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z),
+                              2 * (y * z - w * x)], -1)
+    M[..., 2, :3] = np.stack([2 * (x * z - w * y), 2 * (y * z + w * x),
+                              1 - 2 * (x * x + y * y)], -1)
     M[..., :3, 3] = t
     M[..., 3, 3] = 1.0
     return M

@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from dqpose import dq
-from dqpose.trajectory import (INTERPOLATIONS, Infeasible, Limits, Waypoint, plan)
+from dqpose.trajectory import INTERPOLATIONS, Infeasible, Limits, Waypoint, plan
 from tests._kinematics import NOISE_1KHZ, derivatives, peaks, violation
 
 LIMITS = Limits(max_linear_velocity=1.0, max_angular_velocity=2.0, max_linear_acceleration=2.0,
@@ -59,7 +59,8 @@ def paths(draw, max_points=6):
     for i, p in enumerate(poses):
         r = 0.0
         if 0 < i < k - 1 and draw(st.booleans()):
-            near = min(np.linalg.norm(translation(p) - translation(poses[j])) for j in (i - 1, i + 1))
+            near = min(np.linalg.norm(translation(p) - translation(poses[j]))
+                       for j in (i - 1, i + 1))
             r = draw(st.floats(0.0, 0.49)) * near   # half a segment is the most allowed
         wps.append(Waypoint(p, blend_radius=r))
     return wps
@@ -81,13 +82,18 @@ def test_limits_hold_on_every_sample(wps, limits, mode):
     t, poses, s = uniform(tr)
     assert violation(peaks(t, poses), limits, NOISE_1KHZ) <= TOL
     # the reported velocities too, and they are the derivatives of the poses
-    assert np.linalg.norm(s.linear_velocity, axis=1).max() <= limits.max_linear_velocity * (1 + 1e-12)
-    assert np.linalg.norm(s.angular_velocity, axis=1).max() <= limits.max_angular_velocity * (1 + 1e-12)
+    assert (np.linalg.norm(s.linear_velocity, axis=1).max()
+            <= limits.max_linear_velocity * (1 + 1e-12))
+    assert (np.linalg.norm(s.angular_velocity, axis=1).max()
+            <= limits.max_angular_velocity * (1 + 1e-12))
     (v, _, j), (w, _, jw) = derivatives(t, poses)
     mid_v = 0.5 * (s.linear_velocity[:-2] + s.linear_velocity[1:-1])
     mid_w = 0.5 * (s.angular_velocity[:-2] + s.angular_velocity[1:-1])
+
     # the mean over a step differs from the trapezoid rule by at most dt^2/12 max |jerk|
-    bound = lambda jerk: 2 * np.linalg.norm(jerk, axis=1).max() / RATE**2 / 12 + 1e-9
+    def bound(jerk):
+        return 2 * np.linalg.norm(jerk, axis=1).max() / RATE**2 / 12 + 1e-9
+
     assert np.abs(v - mid_v).max() <= bound(j)
     assert np.abs(w - mid_w).max() <= bound(jw)
 
@@ -95,7 +101,8 @@ def test_limits_hold_on_every_sample(wps, limits, mode):
 def test_acceleration_is_continuous_without_a_jerk_limit():
     """Jerk 0 means no jerk limit, yet the ramps keep the acceleration continuous (C2 poses)."""
     lim = Limits(1.0, 2.0, 2.0, 4.0)
-    wps = [Waypoint(pose([1, 0, 0, 0], [0, 0, 0])), Waypoint(pose([1, 0, 0, 0.3], [0.6, 0, 0]), blend_radius=0.1),
+    wps = [Waypoint(pose([1, 0, 0, 0], [0, 0, 0])),
+           Waypoint(pose([1, 0, 0, 0.3], [0.6, 0, 0]), blend_radius=0.1),
            Waypoint(pose([1, 0.2, 0, 0.3], [0.6, 0.6, 0]))]
     t, poses, _ = uniform(plan(wps, lim))
     (_, _, j), (_, _, jw) = derivatives(t, poses)
@@ -134,8 +141,9 @@ def test_start_velocity_in_any_direction(wps, limits, mode, direction, share):
     u = np.array(direction)
     if np.linalg.norm(u[:3]) < 1e-3 or np.linalg.norm(u[3:]) < 1e-3:
         u[:3] += [0.3, 0, 0]
-    v0 = share * np.concatenate([u[:3] / np.linalg.norm(u[:3]) * limits.max_linear_velocity,
-                                 u[3:] / max(np.linalg.norm(u[3:]), 1e-3) * limits.max_angular_velocity])
+    v0 = share * np.concatenate([
+        u[:3] / np.linalg.norm(u[:3]) * limits.max_linear_velocity,
+        u[3:] / max(np.linalg.norm(u[3:]), 1e-3) * limits.max_angular_velocity])
     try:
         tr = plan(wps, limits, mode, start_velocity=v0)
     except Infeasible as e:
@@ -298,7 +306,8 @@ def test_waypoint_times_are_met():
 
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(paths(5), st.lists(st.floats(1.0, 3.0), min_size=5, max_size=5), st.sampled_from(INTERPOLATIONS))
+@given(paths(5), st.lists(st.floats(1.0, 3.0), min_size=5, max_size=5),
+       st.sampled_from(INTERPOLATIONS))
 def test_random_waypoint_times_are_met(wps, stretch, mode):
     """Times later than the free plan's arrivals (stretched, kept increasing) are met exactly."""
     free = plan(wps, LIMITS, mode)
@@ -326,7 +335,8 @@ def test_many_timed_waypoints_are_each_met(mode):
     pts = np.cumsum(rng.uniform(-0.15, 0.15, (30, 3)), axis=0)
     poses = [pose(rng.normal(size=4) * 0.1 + [1, 0, 0, 0], p) for p in pts]
     near = np.linalg.norm(np.diff(pts, axis=0), axis=1)
-    radius = [0.0] + [0.4 * min(near[i - 1], near[i]) if i % 3 else 0.0 for i in range(1, 29)] + [0.0]
+    radius = ([0.0] + [0.4 * min(near[i - 1], near[i]) if i % 3 else 0.0 for i in range(1, 29)]
+              + [0.0])
 
     def arrivals(tr):
         s = tr.segments
@@ -350,7 +360,8 @@ def test_sample_takes_times_in_any_order():
     t = np.random.default_rng(0).uniform(0, tr.duration, 500)
     got, order = tr.sample(t), np.argsort(t)
     ref = tr.sample(t[order])
-    assert np.array_equal(got.pose[order], ref.pose) and np.array_equal(got.angular_velocity[order], ref.angular_velocity)
+    assert np.array_equal(got.pose[order], ref.pose)
+    assert np.array_equal(got.angular_velocity[order], ref.angular_velocity)
 
 
 @slow
@@ -363,7 +374,8 @@ def test_batch_evaluation_equals_one_time_at_a_time(wps, limits, mode, seed):
     tr = plan(wps, limits, mode)
     edges = [x for s in tr.segments for x in (s.start, s.start + s.duration)]
     t = np.sort(np.concatenate([np.random.default_rng(seed).uniform(0, tr.duration, 300), edges,
-                                np.nextafter(edges, -np.inf), np.nextafter(edges, np.inf), [0, tr.duration]]))
+                                np.nextafter(edges, -np.inf), np.nextafter(edges, np.inf),
+                                [0, tr.duration]]))
     t = np.clip(t, 0.0, tr.duration)
     got = tr.sample(t)
     for i in range(len(t)):
@@ -373,7 +385,8 @@ def test_batch_evaluation_equals_one_time_at_a_time(wps, limits, mode, seed):
 
 
 def test_unmeetable_time_is_infeasible_naming_the_waypoint():
-    wps = [Waypoint(pose([1, 0, 0, 0], [0, 0, 0])), Waypoint(pose([1, 0, 0, 0], [0.3, 0, 0]), time=5.0),
+    wps = [Waypoint(pose([1, 0, 0, 0], [0, 0, 0])),
+           Waypoint(pose([1, 0, 0, 0], [0.3, 0, 0]), time=5.0),
            Waypoint(pose([1, 0, 0, 0], [1.3, 0, 0]), time=5.5)]
     with pytest.raises(Infeasible, match=r"^waypoints\[2\]\.time: 5\.5 s cannot be met"):
         plan(wps, LIMITS)
@@ -392,15 +405,20 @@ def ruckig_duration(a, b, limits: Limits) -> float:
     # time-optimal for the one coupled limit: each axis's share of its norm
     ul = np.abs(dp) / max(np.linalg.norm(dp), 1e-300)
     ua = np.abs(rv) / max(np.linalg.norm(rv), 1e-300)
+
     # no jerk limit: Ruckig's infinite jerk on every axis of that group
-    scale = lambda u_l, u_a, ll, la: list(np.concatenate([u_l * ll if ll < math.inf else u_l + ll,
-                                                          u_a * la if la < math.inf else u_a + la]) + 1e-12)
+    def scale(u_l, u_a, ll, la):
+        return list(np.concatenate([u_l * ll if ll < math.inf else u_l + ll,
+                                    u_a * la if la < math.inf else u_a + la]) + 1e-12)
+
     otg = ruckig.Ruckig(6)
     inp = ruckig.InputParameter(6)
     inp.current_position, inp.target_position = [0.0] * 6, list(goal)
     inp.max_velocity = scale(ul, ua, limits.max_linear_velocity, limits.max_angular_velocity)
-    inp.max_acceleration = scale(ul, ua, limits.max_linear_acceleration, limits.max_angular_acceleration)
-    inp.max_jerk = scale(ul, ua, limits.max_linear_jerk or math.inf, limits.max_angular_jerk or math.inf)
+    inp.max_acceleration = scale(ul, ua, limits.max_linear_acceleration,
+                                 limits.max_angular_acceleration)
+    inp.max_jerk = scale(ul, ua, limits.max_linear_jerk or math.inf,
+                         limits.max_angular_jerk or math.inf)
     inp.synchronization = ruckig.Synchronization.Phase
     traj = ruckig.Trajectory(6)
     assert otg.calculate(inp, traj) in (ruckig.Result.Working, ruckig.Result.Finished)
@@ -417,7 +435,8 @@ def random_straight_moves(n: int, seed: int):
         d, axis = rng.normal(size=3), rng.normal(size=3)
         angle = rng.uniform(0, 3.1) if rng.random() < 2 / 3 else 0.0
         a = pose([1, 0, 0, 0], rng.uniform(-0.5, 0.5, 3))
-        q = np.concatenate([[math.cos(angle / 2)], math.sin(angle / 2) * axis / np.linalg.norm(axis)])
+        q = np.concatenate([[math.cos(angle / 2)],
+                            math.sin(angle / 2) * axis / np.linalg.norm(axis)])
         b = pose(q, translation(a) + 10 ** rng.uniform(-3, 0.5) * d / np.linalg.norm(d))
         yield a, b, limits
 
@@ -471,7 +490,8 @@ def test_bad_jerk_is_refused(value):
      r"^waypoints\[1\]\.blend_radius: 0\.3 m is more than half a neighbouring segment"),
     ([Waypoint(A), Waypoint(B, blend_radius=float("nan")), Waypoint(A)],
      r"^waypoints\[1\]\.blend_radius: must be finite"),
-    ([Waypoint(A), Waypoint(B, blend_radius=0.1)], r"^waypoints\[1\]\.blend_radius: the first and last"),
+    ([Waypoint(A), Waypoint(B, blend_radius=0.1)],
+     r"^waypoints\[1\]\.blend_radius: the first and last"),
     (["nope", Waypoint(B)], r"^waypoints\[0\]: expected a Waypoint"),
 ])
 def test_bad_waypoints_are_refused(wps, message):

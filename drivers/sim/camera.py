@@ -4,8 +4,8 @@ given pinhole intrinsics, so the real detector runs on real pixels.
 The board texture is warped into the image with the homography ``K [r1 r2 t] S`` (``S`` maps
 texture pixels to board metres), at 4x supersampling, then downsampled with ``INTER_AREA``
 (which averages, like a sensor pixel integrates light); optional Gaussian blur and noise follow.
-Board frame as in :mod:`dqpose.drivers.camera`: origin at the outer top-left chessboard corner, x along
-the squares, y down the board, z into the board.
+Board frame as in :mod:`dqpose.drivers.camera`: origin at the outer top-left chessboard corner, x
+along the squares, y down the board, z into the board.
 
 From the shell: ``dqpose sim camera --out DIR --count 20`` writes rendered views and their true
 poses (``poses.json``).
@@ -22,8 +22,8 @@ from typing import Optional, Sequence
 import cv2
 import numpy as np
 
-from dqpose.drivers.camera_config import BoardSpec, Intrinsics
 from dqpose import dq
+from dqpose.drivers.camera_config import BoardSpec, Intrinsics
 
 __all__ = ["BoardRenderer", "look_at", "random_view", "main", "add_arguments", "run",
            "DEFAULT_INTRINSICS"]

@@ -14,10 +14,10 @@ fault a test injected (``emergency_stop``, ``collide``, ``set_joint_errors``, ``
 While a stop or fault stands the arm halts where it is, drops its target and ignores end-pose
 commands; ``clear_faults`` ends it, and the arm then waits for a new target.
 
-From the shell: ``dqpose sim piper`` (or ``python -m dqpose.drivers.sim.piper``) serves on python-can's
-``udp_multicast`` interface, group ``239.74.163.2``: a bus that crosses processes on one machine
-without root or a CAN adapter (hop limit 1, so frames stay on the local link), reached with
-``drivers.open_arm("piper:udp_multicast:239.74.163.2")``. On a CAN adapter or a ``vcan``
+From the shell: ``dqpose sim piper`` (or ``python -m dqpose.drivers.sim.piper``) serves on
+python-can's ``udp_multicast`` interface, group ``239.74.163.2``: a bus that crosses processes on
+one machine without root or a CAN adapter (hop limit 1, so frames stay on the local link), reached
+with ``drivers.open_arm("piper:udp_multicast:239.74.163.2")``. On a CAN adapter or a ``vcan``
 device: ``--interface socketcan --channel can0``. :class:`PiperSimProcess` runs it from Python.
 """
 from __future__ import annotations
@@ -34,16 +34,31 @@ from typing import Optional, Sequence
 import can
 import numpy as np
 
-from dqpose.drivers.base import pose_delta, tool_line
-from dqpose.drivers.sim import end_process, start_process, stop_when_orphaned
-from dqpose.drivers.euler import dq_from_xyz_sxyz
-from dqpose.drivers.piper_can import (ARM_COLLISION, ARM_EMERGENCY_STOP, ARM_NORMAL,
-                                      COMMAND_BLOCK, CTRL_MODE_CAN, END_POSE_CTRL,
-                                      END_POSE_FEEDBACK, MOTION_CTRL_2, MOVE_L, MOVE_P,
-                                      EndPoseAssembler, FrameError, MotionMode, StatusReport,
-                                      decode_motion_mode, encode_arm_status, encode_end_pose,
-                                      pose_to_units, units_to_pose)
 from dqpose import dq
+from dqpose.drivers.base import pose_delta, tool_line
+from dqpose.drivers.euler import dq_from_xyz_sxyz
+from dqpose.drivers.piper_can import (
+    ARM_COLLISION,
+    ARM_EMERGENCY_STOP,
+    ARM_NORMAL,
+    COMMAND_BLOCK,
+    CTRL_MODE_CAN,
+    END_POSE_CTRL,
+    END_POSE_FEEDBACK,
+    MOTION_CTRL_2,
+    MOVE_L,
+    MOVE_P,
+    EndPoseAssembler,
+    FrameError,
+    MotionMode,
+    StatusReport,
+    decode_motion_mode,
+    encode_arm_status,
+    encode_end_pose,
+    pose_to_units,
+    units_to_pose,
+)
+from dqpose.drivers.sim import end_process, start_process, stop_when_orphaned
 
 __all__ = ["PiperSim", "PiperSimProcess", "HOME", "DEFAULT_INTERFACE", "DEFAULT_CHANNEL", "main",
            "add_arguments", "run"]

@@ -43,11 +43,13 @@ def configure(name: str, p) -> None:
         p.epilog = (POSE_FORMATS % (BLEND_JSON, "poses", BLEND_CSV)
                     + "\nmethods (--method):\n" + methods
                     + "\nexample: dqpose blend --method dlb poses.csv")
-        p.add_argument("file", metavar="FILE", help="poses (JSON, YAML or CSV; - reads standard input)")
+        p.add_argument("file", metavar="FILE",
+                       help="poses (JSON, YAML or CSV; - reads standard input)")
         p.add_argument("--method", choices=list(METHODS),
                        help="blending method, see below (default: the file's \"method\", "
                             "else dib)")
-        p.add_argument("--weights", help="comma-separated weights (default: the file's, else equal)")
+        p.add_argument("--weights",
+                       help="comma-separated weights (default: the file's, else equal)")
         func = _blend
     else:
         p.description = ("Sample the motion through the keyframes in FILE (on the server at "
@@ -55,15 +57,17 @@ def configure(name: str, p) -> None:
                          "the motion is never extrapolated.")
         p.epilog = (POSE_FORMATS % (INTERPOLATE_JSON, "keyframes", INTERPOLATE_CSV)
                     + "\nexample: dqpose interpolate --step 0.002 --mode tool_linear keyframes.csv")
-        p.add_argument("file", metavar="FILE", help="keyframes (JSON, YAML or CSV; - reads standard input)")
+        p.add_argument("file", metavar="FILE",
+                       help="keyframes (JSON, YAML or CSV; - reads standard input)")
         p.add_argument("--mode", choices=["screw", "tool_linear"],
                        help="screw: piecewise ScLERP; tool_linear: straight tool path, slerped "
                             "orientation (default: the file's \"interpolation\", else screw)")
         g = p.add_mutually_exclusive_group()
         g.add_argument("--times", help="comma-separated sample times, s (default: the file's "
                                        "\"times\", else every --step)")
-        g.add_argument("--step", type=float, help="sample period over the whole keyframe range, s "
-                                                  "(default 0.01); the last keyframe time is included")
+        g.add_argument("--step", type=float,
+                       help="sample period over the whole keyframe range, s "
+                            "(default 0.01); the last keyframe time is included")
         func = _interpolate
     p.add_argument("--format", choices=["auto", "csv", "json"], default="auto",
                    help="output format; auto = the input's (default: %(default)s)")
@@ -84,7 +88,8 @@ def _blend(args) -> int:
         if args.local:
             info = dq.dib(req.dqs, weights, return_info=True) if method == "dib" else None
             mean = info.mean if info else dq.blend(req.dqs, weights, method)
-            iterations, residual = (int(info.iterations), float(info.residual)) if info else (0, 0.0)
+            iterations, residual = ((int(info.iterations), float(info.residual)) if info
+                                    else (0, 0.0))
         else:
             with client(args) as c:
                 mean, iterations, residual = c.blend(req.dqs, weights, method, return_info=True)

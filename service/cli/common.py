@@ -36,13 +36,16 @@ def read(path: str, mode: str = "rb") -> bytes:
 
 def connection_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("server connection")
-    g.add_argument("--target", default="127.0.0.1:50051", help="server address (default: %(default)s)")
+    g.add_argument("--target", default="127.0.0.1:50051",
+                   help="server address (default: %(default)s)")
     g.add_argument("--token-file", help="file holding the bearer token")
-    g.add_argument("--tls-ca", metavar="PEM", help="CA certificate to verify the server (enables TLS)")
+    g.add_argument("--tls-ca", metavar="PEM",
+                   help="CA certificate to verify the server (enables TLS)")
     g.add_argument("--tls", action="store_true", help="TLS with the system's root certificates")
     g.add_argument("--cert", metavar="PEM", help="client certificate for mTLS")
     g.add_argument("--key", metavar="PEM", help="client private key for mTLS")
-    g.add_argument("--timeout", type=float, default=10.0, help="deadline in seconds (default: %(default)s)")
+    g.add_argument("--timeout", type=float, default=10.0,
+                   help="deadline in seconds (default: %(default)s)")
 
 
 def client(args):

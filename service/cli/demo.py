@@ -25,7 +25,8 @@ def main() -> None:
         return [np.cos(h), 0.0, 0.0, np.sin(h)]
 
     poses = dq.from_pose(np.array([rz(29.0), rz(31.5), rz(30.2)]),
-                         np.array([[0.500, 0.101, 0.300], [0.503, 0.099, 0.298], [0.499, 0.100, 0.301]]))
+                         np.array([[0.500, 0.101, 0.300], [0.503, 0.099, 0.298],
+                                   [0.499, 0.100, 0.301]]))
     weights = np.array([1.0, 0.5, 2.0])
     print("Three measured poses (weights 1, 0.5, 2):")
     for p in poses:

@@ -6,18 +6,18 @@ answers arrive, summed up with the fused pose's NEES, and plotted over time.
 The scene: the body is a ChArUco board held by a UR (the UR simulator, driven through the real
 ``ur_rtde`` by ``drivers.open_arm``), its base the world frame, the board ``BOARD_OFFSET`` from
 the flange. The arm follows a slow loop (small sinusoids in position and angle) through
-:class:`dqpose.drivers.executor.Executor`, in the arm's own process where the platform allows (nothing
-in this one then delays a set-point); the simulator's tool pose is the ground truth. The control
-loop reads the arm after every tenth set-point (every 20 ms) and hands the reading over with its
-time: the UR's measurement is the true pose with the arm's absolute accuracy drawn as noise,
+:class:`dqpose.drivers.executor.Executor`, in the arm's own process where the platform allows
+(nothing in this one then delays a set-point); the simulator's tool pose is the ground truth. The
+control loop reads the arm after every tenth set-point (every 20 ms) and hands the reading over with
+its time: the UR's measurement is the true pose with the arm's absolute accuracy drawn as noise,
 ``Z = T_true * Exp(-eps)``, ``eps ~ N(0, diag(pose_sigma^2))`` (the simulator itself is exact; a
-real arm's kinematic model is not), stamped with the time it was read. Each of two
-cameras with known extrinsics captures at 10 Hz of the same clock (their frames half a period
-apart): a capture renders the board at the true pose of that instant (between two reads 20 ms
-apart, exact to well below a micrometre at the loop's few cm/s) with blur and pixel noise and
-detects it with :class:`dqpose.drivers.camera.CharucoCamera` (covariance from PnP); the detection is
-stamped 40 ms after the capture, as a camera's frame is. The stream carries them in the order
-of their stamps, as the devices would deliver them.
+real arm's kinematic model is not), stamped with the time it was read. Each of two cameras with
+known extrinsics captures at 10 Hz of the same clock (their frames half a period apart): a capture
+renders the board at the true pose of that instant (between two reads 20 ms apart, exact to well
+below a micrometre at the loop's few cm/s) with blur and pixel noise and detects it with
+:class:`dqpose.drivers.camera.CharucoCamera` (covariance from PnP); the detection is stamped 40 ms
+after the capture, as a camera's frame is. The stream carries them in the order of their stamps, as
+the devices would deliver them.
 
 Rendering and detecting a frame takes ~45 ms of processor time, 20 frames a second. A machine
 that cannot spare that renders behind the arm: the stream then runs behind real time (the report
@@ -57,9 +57,20 @@ from dataclasses import dataclass
 import numpy as np
 
 from dqpose import dq, lie
-from dqpose.cli.demo_fusion_scene import (ARM_RATE, BOARD_OFFSET, CAMERA_LATENCY, HOME,
-                                           MIN_PATH_STEPS, STEP, Scene, cameras, loop_path,
-                                           missed_cycles, pose_error, roughness)
+from dqpose.cli.demo_fusion_scene import (
+    ARM_RATE,
+    BOARD_OFFSET,
+    CAMERA_LATENCY,
+    HOME,
+    MIN_PATH_STEPS,
+    STEP,
+    Scene,
+    cameras,
+    loop_path,
+    missed_cycles,
+    pose_error,
+    roughness,
+)
 
 LATENCY_PRIOR = (0.030, 0.020)   # what the server is told of it (a data sheet): estimated online
 OUTPUT_RATE = 10.0         # fused answers per second of the measurements' time
@@ -153,11 +164,11 @@ def run(steps: int = 200, *, seed: int = 0, arm_sigma=(2e-3, 1e-3), noise: float
     reads go on for two steps more, to deliver the last frames); prints a line per fused answer
     to ``out`` when given; returns the errors (see :class:`Result`)."""
     from dqpose import drivers
+    from dqpose.cli.common import local_server, open_arm
     from dqpose.drivers.camera import CharucoCamera, Intrinsics
     from dqpose.drivers.executor import Executor
     from dqpose.drivers.sim.camera import BoardRenderer
     from dqpose.drivers.sim.ur import URSimProcess
-    from dqpose.cli.common import local_server, open_arm
     from dqpose.fusion import Source
     from dqpose.rpc.client import Client
 

@@ -185,7 +185,8 @@ class Scene:
             while True:
                 with self.cond:
                     # the truth around the instant: two reads, one of them at or after it
-                    self.cond.wait_for(lambda: self.failed or self.stop.is_set() or (
+                    # (j bound as a default: wait_for calls the predicate within this iteration)
+                    self.cond.wait_for(lambda j=j: self.failed or self.stop.is_set() or (
                         len(self.truth.taken) > 1
                         and self.truth.taken[-1] >= self.capture_time(j)))
                     if self.failed or self.aborted or len(self.truth.taken) < 2 or \
@@ -227,9 +228,10 @@ class Scene:
                 # captures taken by stamp - latency are due with this read
                 due = int(math.floor((stamp - CAMERA_LATENCY - self.start)
                                      / (STEP / len(self.cams)) + 1e-9)) + 1
-                self.cond.wait_for(lambda: self.failed or self.aborted or self.rendered >= due or (
-                    self.stop.is_set() and self.capture_time(self.rendered)
-                    > self.truth.taken[-1]))
+                self.cond.wait_for(lambda due=due: (
+                    self.failed or self.aborted or self.rendered >= due
+                    or (self.stop.is_set()
+                        and self.capture_time(self.rendered) > self.truth.taken[-1])))
                 if self.failed or self.aborted:
                     return
                 arrived = [f for f in self.frames[sent:] if f[0] <= stamp]

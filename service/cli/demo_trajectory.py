@@ -64,10 +64,10 @@ def _angle(a: np.ndarray, b: np.ndarray) -> float:
 
 def run(target: str | None = None, progress: bool = False) -> Result:
     from dqpose import drivers
+    from dqpose.cli.common import local_server, open_arm
     from dqpose.drivers.executor import Executor
     from dqpose.drivers.rotvec import pose_from_rotvec
     from dqpose.drivers.sim import ur as ursim
-    from dqpose.cli.common import local_server, open_arm
     from dqpose.rpc.client import Client
 
     with contextlib.ExitStack() as stack:

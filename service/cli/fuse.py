@@ -49,8 +49,9 @@ fusion exactly.
 
 output: the fused pose, its covariance, chi2 and dof, the measurements the robust mode rejected
 and those dropped for --max-skew with the reason, the body twist and the latencies estimated
-online (with time alignment), and per source its mean normalised innovation squared (NIS, 6 expected) and
-verdict (consistent, optimistic: claims too small a covariance, pessimistic, untested).
+online (with time alignment), and per source its mean normalised innovation squared (NIS, 6
+expected) and verdict (consistent, optimistic: claims too small a covariance, pessimistic,
+untested).
 
 example: dqpose fuse --robust --local measurements.csv
 """
@@ -61,7 +62,8 @@ def configure(name: str, p) -> None:
     p.description = ("Fuse the measurements of one body in FILE into its maximum-likelihood pose "
                      "with a covariance (on the server at --target, or --local).")
     p.epilog = EPILOG
-    p.add_argument("file", metavar="FILE", help="measurements (JSON, YAML or CSV; - reads standard input)")
+    p.add_argument("file", metavar="FILE",
+                   help="measurements (JSON, YAML or CSV; - reads standard input)")
     p.add_argument("--robust", action="store_true",
                    help="reject gross outliers (default: the file's \"options\", else off)")
     p.add_argument("--probability", type=float,
@@ -133,7 +135,8 @@ def _csv_measurements(text: str) -> list:
                          f"sigma_wx..sigma_vz or c00..c55 (see --help)")
     rows = posefile._csv_rows(table, BASE_COLUMNS[1:], NUMBER_COLUMNS)
     have = [c for c in NUMBER_COLUMNS if c in cols]
-    groups = {"weight": [c for c in have if c == "weight"], "sigma": [c for c in have if c in SIGMA_COLUMNS],
+    groups = {"weight": [c for c in have if c == "weight"],
+              "sigma": [c for c in have if c in SIGMA_COLUMNS],
               "covariance": [c for c in have if c in COVARIANCE_COLUMNS]}
     for name, want in (("sigma", SIGMA_COLUMNS), ("covariance", COVARIANCE_COLUMNS)):
         if groups[name] and len(groups[name]) != len(want):

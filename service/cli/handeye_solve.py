@@ -67,7 +67,8 @@ def add_parser(sub) -> None:
                         "detector's covariances only")
     s.add_argument("--corners", action="store_true",
                    help="refine on the detected corners' reprojection too (corner level; on "
-                        "the simulator's renders no better than the default, see docs/benchmarks/handeye.md)")
+                        "the simulator's renders no better than the default, see "
+                        "docs/benchmarks/handeye.md)")
     s.add_argument("--refine-focal", action="store_true",
                    help="with --corners: estimate a scale of the focal lengths too")
     s.add_argument("--keep-outliers", action="store_true",
@@ -75,7 +76,8 @@ def add_parser(sub) -> None:
     s.add_argument("--report", metavar="TXT", help="default: DIR/handeye_report.txt")
     s.add_argument("--plot", metavar="PNG", help="default: DIR/handeye.png")
     s.add_argument("-o", "--output", metavar="JSON", help="default: DIR/handeye.json")
-    s.add_argument("--local", action="store_true", help="solve in this process instead of on a server")
+    s.add_argument("--local", action="store_true",
+                   help="solve in this process instead of on a server")
     connection_args(s)
 
 
@@ -83,8 +85,8 @@ class _Views:
     """The folder's views: image paths, flange poses, how the poses were read."""
 
     def __init__(self, args):
-        from dqpose.drivers.camera import IMAGE_EXTENSIONS
         from dqpose.cli.posefile import read_robot_poses
+        from dqpose.drivers.camera import IMAGE_EXTENSIONS
         from dqpose.handeye.setups import EYE_IN_HAND
         if not os.path.isdir(args.dir):
             raise ValueError(f"DIR: no such folder: {args.dir!r}")
@@ -203,7 +205,8 @@ def solve(args) -> int:
     except Exception as e:
         from_server = hasattr(e, "code")
         if names and isinstance(e, ValueError) and not from_server:
-            e = type(e)(handeye_report._named(str(e), names))      # the solver's base_flange[3] -> its image
+            # the solver's base_flange[3] -> its image
+            e = type(e)(handeye_report._named(str(e), names))
         code = failure("handeye solve", args, e)
         if names and from_server and re.search(r"pairs\[|samples? \d", str(e)):
             # the server's pairs[k] and samples k, by image

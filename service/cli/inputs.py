@@ -80,8 +80,9 @@ def fields(where: str, value, known: tuple[str, ...], required: tuple[str, ...] 
         name = k if k in known else re.sub(r"(?<=[a-z0-9])([A-Z])", r"_\1", str(k)).lower()
         if name not in known:
             guess = nearest(str(k), known)
-            raise ValueError(f"{where}: unknown key {k!r}" + (f" (did you mean {guess!r}?)" if guess
-                                                              else f"; expected {', '.join(known)}"))
+            raise ValueError(f"{where}: unknown key {k!r}"
+                             + (f" (did you mean {guess!r}?)" if guess
+                                else f"; expected {', '.join(known)}"))
         out[name] = v
     for name in required:
         if name not in out:

@@ -230,7 +230,8 @@ def _pose_rows(dqs: np.ndarray) -> np.ndarray:
 
 def _pose_json(row) -> dict:
     x, y, z, qw, qx, qy, qz = (float(v) for v in row)
-    return {"position": {"x": x, "y": y, "z": z}, "orientation": {"w": qw, "x": qx, "y": qy, "z": qz}}
+    return {"position": {"x": x, "y": y, "z": z},
+            "orientation": {"w": qw, "x": qx, "y": qy, "z": qz}}
 
 
 def pose_json(pose: np.ndarray) -> dict:
@@ -372,7 +373,7 @@ def format_trajectory(times: np.ndarray, dqs: np.ndarray, velocities: np.ndarray
     return out.getvalue()
 
 
-# ---- robot poses of a hand-eye capture -------------------------------------------------------------
+# ---- robot poses of a hand-eye capture -----------------------------------------------------------
 
 #: a position coordinate beyond this many metres is no arm's: the file is in millimetres
 MAX_METRES = 3.0

@@ -1,4 +1,5 @@
-"""``dqpose properties``: Table 1 of Kavan et al. measured on this build (:mod:`dqpose.properties`)."""
+"""``dqpose properties``: Table 1 of Kavan et al. measured on this build
+(:mod:`dqpose.properties`)."""
 from __future__ import annotations
 
 import argparse

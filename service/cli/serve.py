@@ -27,21 +27,26 @@ def configure(name: str, p) -> None:
             f"same without the drain and with a grace of {INTERRUPT_GRACE:g} s at most; a "
             "second Ctrl-C ends it at once (exit code 130).", 79)
         p.epilog = _arm_keys_help()
-        p.add_argument("--host", default="127.0.0.1", help="address to bind (default: %(default)s)")
-        p.add_argument("--port", type=int, default=50051, help="port; 0 picks a free one (default: %(default)s)")
+        p.add_argument("--host", default="127.0.0.1",
+                       help="address to bind (default: %(default)s)")
+        p.add_argument("--port", type=int, default=50051,
+                       help="port; 0 picks a free one (default: %(default)s)")
         p.add_argument("--tls-cert", metavar="PEM", help="server certificate chain (enables TLS)")
         p.add_argument("--tls-key", metavar="PEM", help="server private key")
-        p.add_argument("--client-ca", metavar="PEM", help="CA for client certificates (requires mTLS)")
+        p.add_argument("--client-ca", metavar="PEM",
+                       help="CA for client certificates (requires mTLS)")
         p.add_argument("--token-file", help="file holding a bearer token every call must carry "
                                             "(health stays open); env DQPOSE_TOKEN_FILE also works")
         p.add_argument("--max-message-bytes", type=int, default=DEFAULT_MAX_MESSAGE_BYTES,
-                       help="largest request/response; larger is RESOURCE_EXHAUSTED (default: %(default)s)")
+                       help="largest request/response; larger is RESOURCE_EXHAUSTED "
+                            "(default: %(default)s)")
         p.add_argument("--max-poses", type=int, default=DEFAULT_MAX_POSES,
                        help="most poses, keyframes or times per request (default: %(default)s)")
         limits.add_flags(p.add_argument_group(
             "limits", "what one request or stream may cost (the cost model: service/limits.py); "
                       "a request over one is refused RESOURCE_EXHAUSTED naming it"))
-        p.add_argument("--keepalive", type=float, default=60.0, help="keepalive ping period, s (default: %(default)s)")
+        p.add_argument("--keepalive", type=float, default=60.0,
+                       help="keepalive ping period, s (default: %(default)s)")
         p.add_argument("--drain", type=float, default=0.5,
                        help="after SIGTERM, how long health answers NOT_SERVING (and new calls "
                             "UNAVAILABLE) before the listener closes, so that load balancers "
@@ -155,7 +160,8 @@ def _serve(args) -> int:
                         if simulated:
                             spec = dataclasses.replace(spec, target=fleet.target(spec.kind))
                         # the server's own work delays a control thread's set-points (1,991 missed
-                        # cycles in 30 s against 51: docs/benchmarks/arms.md#thread-or-process-for-the-loop)
+                        # cycles in 30 s against 51:
+                        # docs/benchmarks/arms.md#thread-or-process-for-the-loop)
                         why_not = None if args.arm_loop == "process" else (
                             "--arm-loop thread" if args.arm_loop == "thread"
                             else drivers.process_problem(str(spec)))
@@ -170,7 +176,9 @@ def _serve(args) -> int:
                          "loop": "thread" if why_not else "process",
                          **({"why": why_not} if why_not else {})}))
                 cfg.executor = functools.partial(Executor, realtime=args.arm_realtime)
-            try:  # libuv's loop: ~8 % more calls/s with 8 clients (docs/benchmarks/grpc.md#server-choices-measured)
+            # libuv's loop: ~8 % more calls/s with 8 clients
+            # (docs/benchmarks/grpc.md#server-choices-measured)
+            try:
                 import uvloop
             except ImportError:
                 uvloop = None

@@ -67,8 +67,10 @@ def configure(name: str, p) -> None:
         p.description = ("Plan the fastest motion through the waypoints in FILE that the limits "
                          "allow (on the server at --target, or --local) and print its samples.")
         p.epilog = PLAN_EPILOG
-        p.add_argument("file", metavar="FILE", help="waypoints (JSON, YAML or CSV; - reads standard input)")
-        p.add_argument("--rate", type=float, help="samples per second (default: the file's, else 125)")
+        p.add_argument("file", metavar="FILE",
+                       help="waypoints (JSON, YAML or CSV; - reads standard input)")
+        p.add_argument("--rate", type=float,
+                       help="samples per second (default: the file's, else 125)")
         p.add_argument("--interpolation", choices=("tool_linear", "screw"),
                        help="tool point on straight lines (default), or screw motions (ScLERP)")
     else:
@@ -76,9 +78,12 @@ def configure(name: str, p) -> None:
                          "velocity and acceleration limits (on the server at --target, or "
                          "--local) and print it.")
         p.epilog = SMOOTH_EPILOG
-        p.add_argument("file", metavar="FILE", help="time-stamped poses (JSON, YAML or CSV; - reads standard input)")
-        p.add_argument("--smoothing", type=float, help="see service/smoothing/ (default: the file's, else 1)")
-        p.add_argument("--rate", type=float, help="resample at this rate (default: the input times)")
+        p.add_argument("file", metavar="FILE",
+                       help="time-stamped poses (JSON, YAML or CSV; - reads standard input)")
+        p.add_argument("--smoothing", type=float,
+                       help="see service/smoothing/ (default: the file's, else 1)")
+        p.add_argument("--rate", type=float,
+                       help="resample at this rate (default: the input times)")
         p.add_argument("--free-ends", action="store_true",
                        help="keep the recording's motion at its first and last sample (default: "
                             "start and end at rest)")
@@ -86,9 +91,13 @@ def configure(name: str, p) -> None:
     for key, unit in _LIMIT_HELP.items():
         g.add_argument("--" + key.replace("_", "-"), type=float, dest=key, metavar="X",
                        help=unit)
-    p.add_argument("-o", "--output", help="write the samples here (.json: JSON, else CSV; default: standard output as CSV)")
-    p.add_argument("--plot", metavar="PNG", help="draw position, velocity, acceleration and jerk against the limits")
-    p.add_argument("--local", action="store_true", help="compute in this process instead of on a server")
+    p.add_argument("-o", "--output",
+                   help="write the samples here (.json: JSON, else CSV; default: standard output "
+                        "as CSV)")
+    p.add_argument("--plot", metavar="PNG",
+                   help="draw position, velocity, acceleration and jerk against the limits")
+    p.add_argument("--local", action="store_true",
+                   help="compute in this process instead of on a server")
     connection_args(p)
     p.set_defaults(func=_plan if name == "plan" else _smooth)
 

@@ -39,17 +39,36 @@ verdicts), :mod:`~dqpose.fusion.motion` (the constant-twist model over time: tim
 from dqpose.fusion.alignment import DEFAULT_MAX_EXTRAPOLATION
 from dqpose.fusion.api import fuse
 from dqpose.fusion.chi2 import DEFAULT_PROBABILITY, chi2_quantile
-from dqpose.fusion.results import (DOF, Dropped, Fused, Latency, Rejection, SourceStats, Status,
-                                   Verdict)
+from dqpose.fusion.results import (
+    DOF,
+    Dropped,
+    Fused,
+    Latency,
+    Rejection,
+    SourceStats,
+    Status,
+    Verdict,
+)
 from dqpose.fusion.sources import Source
 from dqpose.fusion.tracker import Measurement, Tracker, Window
+
+# isort: split
 # Private names other modules and the tests use (the rpc layer's wire decoder, hand-eye's
 # checks, the NumPy reference and the benchmarks).
-from dqpose.fusion.motion import (_determined_without_each, _Model, _motion_evaluate,  # noqa: F401
-                                  _motion_jacobian, _motion_start)
+from dqpose.fusion.motion import (  # noqa: F401
+    _determined_without_each,
+    _Model,
+    _motion_evaluate,
+    _motion_jacobian,
+    _motion_start,
+)
 from dqpose.fusion.process_noise import _kernel, _motion_solve  # noqa: F401
-from dqpose.fusion.validation import (_finite, _MAX_VARIANCE, _MIN_VARIANCE,  # noqa: F401
-                                      _SYMMETRY_TOL)
+from dqpose.fusion.validation import (  # noqa: F401
+    _MAX_VARIANCE,
+    _MIN_VARIANCE,
+    _SYMMETRY_TOL,
+    _finite,
+)
 
 __all__ = ["DOF", "DEFAULT_PROBABILITY", "DEFAULT_MAX_EXTRAPOLATION", "Status", "Verdict", "Source",
            "Rejection", "SourceStats", "Fused", "fuse", "chi2_quantile", "Dropped", "Latency",

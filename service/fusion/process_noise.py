@@ -30,8 +30,14 @@ from typing import Optional
 import numpy as np
 
 from dqpose import dq, lie
-from dqpose.fusion.motion import (_constant_twist, _determined_without_each, _Model,
-                                  _motion_evaluate, _motion_jacobian, _MotionFit)
+from dqpose.fusion.motion import (
+    _constant_twist,
+    _determined_without_each,
+    _Model,
+    _motion_evaluate,
+    _motion_jacobian,
+    _MotionFit,
+)
 from dqpose.fusion.results import DOF, Status
 
 # The motion model's Gauss-Newton halves a step that raises the cost by more than _COST_SLACK

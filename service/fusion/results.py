@@ -73,10 +73,10 @@ class Fused:
 
     ``mean`` ``(8,)`` is ``T_world_body``; ``covariance`` ``(6, 6)`` its covariance in the
     convention of :mod:`dqpose.fusion`. ``residuals[i] = Log(mean⁻¹ Z_i)`` of the measurement in
-    the world frame, ``distances[i] = sqrt(r_iᵀ Σ_i⁻¹ r_i)``; ``nis[i]`` is the leave-one-out normalised innovation
-    squared (0 for a measurement with no other inlier to check it against, flagged in
-    ``tested``). ``chi2`` is the sum of the inliers' squared distances (the cost at the optimum,
-    twice GTSAM's graph error) with ``dof = 6 (len(inliers) - 1)`` degrees of freedom.
+    the world frame, ``distances[i] = sqrt(r_iᵀ Σ_i⁻¹ r_i)``; ``nis[i]`` is the leave-one-out
+    normalised innovation squared (0 for a measurement with no other inlier to check it against,
+    flagged in ``tested``). ``chi2`` is the sum of the inliers' squared distances (the cost at the
+    optimum, twice GTSAM's graph error) with ``dof = 6 (len(inliers) - 1)`` degrees of freedom.
 
     With times, ``mean`` is the pose at ``time`` and ``covariance`` its marginal (the twist's and
     the estimated latencies' uncertainty included); residuals, distances and NIS are against the

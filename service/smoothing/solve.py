@@ -11,8 +11,7 @@ import numpy as np
 from dqpose import dq
 from dqpose.errors import Infeasible, rename
 from dqpose.smoothing.qp import _PIQP, _TOL, _breaks, _qp
-from dqpose.smoothing.spline import (MIN_POSES, _increments, _Problem, _quat_rot, _rot,
-                                     _rotvec)
+from dqpose.smoothing.spline import MIN_POSES, _increments, _Problem, _quat_rot, _rot, _rotvec
 from dqpose.trajectory import Limits, peaks
 
 CUTOFF_HZ = 2.0
@@ -87,10 +86,11 @@ def smooth(times, poses, limits: Limits, smoothing: float = 1.0, rate_hz: float 
 
     ``times`` (N,) strictly increasing seconds, ``poses`` (N, 8) unit dual quaternions
     ``T_base_tool``, N >= 4. ``smoothing`` >= 0 sets the cutoff ``2 / smoothing`` Hz
-    (:mod:`dqpose.smoothing`); ``rate_hz`` 0 returns the path at ``times``, else at ``times[0] + k / rate_hz``
-    and at ``times[-1]``. Returns ``(times (M,), poses (M, 8))``, starting and ending at rest
-    (velocity and acceleration zero, so the ends move off the data as far as the data moves
-    there), or, with ``free_ends``, following the data's motion at both ends.
+    (:mod:`dqpose.smoothing`); ``rate_hz`` 0 returns the path at ``times``, else at
+    ``times[0] + k / rate_hz`` and at ``times[-1]``. Returns ``(times (M,), poses (M, 8))``,
+    starting and ending at rest (velocity and acceleration zero, so the ends move off the data as
+    far as the data moves there), or, with ``free_ends``, following the data's motion at both
+    ends.
 
     ``limits``: issue 10's ``Limits`` (velocity and acceleration required; a jerk limit of 0 is
     none). Errors: ``ValueError`` naming the argument and index; :class:`Infeasible` (a

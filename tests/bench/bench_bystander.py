@@ -54,7 +54,8 @@ def _fuse_request(n, outliers=0, times=False, **options):
     Z[:outliers] = dq.mul(Z[:outliers], lie.se3_exp(np.tile([2.0, 0, 0, 0.3, 0, 0], (outliers, 1))))
     S = np.broadcast_to(np.eye(6) * 1e-4, (n, 6, 6))
     return fpb.FuseRequest(
-        measurements=convert.measurement_msgs(Z, S, times=np.linspace(0, 0.1, n) if times else None),
+        measurements=convert.measurement_msgs(Z, S,
+                                              times=np.linspace(0, 0.1, n) if times else None),
         options=convert.options_msg(**options))
 
 
@@ -103,7 +104,8 @@ def _calibrate(n, squares=None, corners=False):
 def _path(n, seed=0):
     t = np.linspace(0.0, n / 100.0, n)
     rng = np.random.default_rng(seed)
-    xi = np.column_stack([np.outer(0.1 * np.sin(t), np.ones(3)), np.outer(0.2 * np.cos(t), np.ones(3))])
+    xi = np.column_stack([np.outer(0.1 * np.sin(t), np.ones(3)),
+                          np.outer(0.2 * np.cos(t), np.ones(3))])
     return t, lie.se3_exp(xi + 1e-4 * rng.normal(size=(n, 6)))
 
 

@@ -230,11 +230,11 @@ def render(rows) -> str:
     head = ["operation", "implementation", "median", "per", "× ours", "max dev vs ours",
             "target", "pass"]
     lines = [r.cells() for r in rows]
-    w = [max(len(h), *(len(l[i]) for l in lines)) for i, h in enumerate(head)]
+    w = [max(len(h), *(len(line[i]) for line in lines)) for i, h in enumerate(head)]
     out = ["| " + " | ".join(h.ljust(w[i]) for i, h in enumerate(head)) + " |",
            "|" + "|".join("-" * (x + 2) for x in w) + "|"]
-    for l in lines:
-        out.append("| " + " | ".join(c.ljust(w[i]) for i, c in enumerate(l)) + " |")
+    for line in lines:
+        out.append("| " + " | ".join(c.ljust(w[i]) for i, c in enumerate(line)) + " |")
     return "\n".join(out)
 
 

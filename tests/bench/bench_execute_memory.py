@@ -21,10 +21,9 @@ import tracemalloc
 
 import numpy as np
 
-from dqpose import drivers
+from dqpose import dq, drivers, trajectory
 from dqpose.drivers.executor import Executor
 from dqpose.drivers.sim import ur as ursim
-from dqpose import dq, trajectory
 
 
 def ten_minutes(start: np.ndarray, minutes: float, offset=(0.0, 0.0, 0.0)):

@@ -16,8 +16,8 @@ would be); the clients, the server and this process keep ordinary scheduling. `-
 thread`: the loop in a thread of this process, as before (only that thread real-time).
 
 The motion: a smooth closed loop (x, y and a turn about z, zero velocity at both ends), sampled
-at 500 Hz and pushed 0.1 s at a time, at most `--ahead` (2 s) ahead, from a feeder thread, as a network
-stream would. Jitter is |dt - 2 ms| between the arrivals of consecutive set-points at the
+at 500 Hz and pushed 0.1 s at a time, at most `--ahead` (2 s) ahead, from a feeder thread, as a
+network stream would. Jitter is |dt - 2 ms| between the arrivals of consecutive set-points at the
 simulator (the kernel's receive stamps of their packets, on CLOCK_MONOTONIC, the clock this
 process reads; the column "read p99" is the same from when the simulator's Python thread had read
 each one, which adds that thread's own delays);
@@ -36,10 +36,9 @@ import time
 
 import numpy as np
 
-from dqpose import drivers
+from dqpose import dq, drivers
 from dqpose.drivers.executor import Executor, Result
 from dqpose.drivers.sim import ur as ursim
-from dqpose import dq
 
 LAG = 2     # the simulator's servo lag in cycles (SimConfig.servo_lag)
 EXECUTOR_REALTIME = 20      # --executor-realtime
@@ -116,7 +115,8 @@ def run_once(sim, arm, seconds: float) -> dict:
     err = np.array([dq.to_pose(f.actual)[1] - dq.to_pose(f.commanded)[1] for f in ok])
     lagged = np.array([dq.to_pose(f.actual)[1] - dq.to_pose(g.commanded)[1]
                        for f, g in zip(ok[LAG:], ok)])
-    return {"result": ex.result.name + (" (realtime)" if ex.realtime else ""), "n": len(a), "jitter": jitter,
+    return {"result": ex.result.name + (" (realtime)" if ex.realtime else ""), "n": len(a),
+            "jitter": jitter,
             "read_jitter": np.abs(np.diff(read) - arm.period), "missed": missed,
             "late": int(np.sum(dt > 1.5 * arm.period)), "track": np.linalg.norm(err, axis=1),
             "track_lag": np.linalg.norm(lagged, axis=1)}
@@ -265,8 +265,8 @@ def main(argv=None) -> int:
           f"{'FIFO %d' % args.executor_realtime if args.executor_realtime else 'ordinary'}; "
           f"load average at the end {os.getloadavg()[0]:.2f}")
     print("| row | result | set-points | missed cycles | dt > 3 ms | jitter p50 (µs) | p99 | max "
-          "| read p99 (µs) | cancel → stop at sim, max (ms) | tracking p50 / p99 / max (mm) | at 2-cycle lag, "
-          "max (mm) | Blend calls/s | load |")
+          "| read p99 (µs) | cancel → stop at sim, max (ms) | tracking p50 / p99 / max (mm) "
+          "| at 2-cycle lag, max (mm) | Blend calls/s | load |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         if "jitter" not in r:

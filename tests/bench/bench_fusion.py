@@ -325,10 +325,11 @@ def _fmt_s(s):
 
 def _markdown(head: list[str], lines: list[list[str]]) -> str:
     """A Markdown table with columns padded to their widest cell."""
-    w = [max(len(h), *(len(l[i]) for l in lines)) for i, h in enumerate(head)]
+    w = [max(len(h), *(len(line[i]) for line in lines)) for i, h in enumerate(head)]
     out = ["| " + " | ".join(h.ljust(w[i]) for i, h in enumerate(head)) + " |",
            "|" + "|".join("-" * (x + 2) for x in w) + "|"]
-    out += ["| " + " | ".join(c.ljust(w[i]) for i, c in enumerate(l)) + " |" for l in lines]
+    out += ["| " + " | ".join(c.ljust(w[i]) for i, c in enumerate(line)) + " |"
+            for line in lines]
     return "\n".join(out)
 
 
@@ -639,7 +640,8 @@ def summary_moving(methods, results, latencies, scene, Q) -> str:
                    f"± {LATENCY_PRIOR[1] * 1e3:.0f} ms (truth {CAMERA_LATENCY * 1e3:.0f} ms): "
                    f"{vals.mean():.2f} ms mean, {vals.std():.2f} ms spread over queries and "
                    f"cameras, reported σ {np.median(est[..., 1]) * 1e3:.2f} ms (median); "
-                   f"|error| / σ median {np.median(np.abs(vals / 1e3 - CAMERA_LATENCY) / est[..., 1].ravel()):.2f}")
+                   f"|error| / σ median "
+                   f"{np.median(np.abs(vals / 1e3 - CAMERA_LATENCY) / est[..., 1].ravel()):.2f}")
     return "\n".join(out)
 
 

@@ -95,6 +95,7 @@ def deviation(mean, cov, ref_mean, ref_cov):
 def motion_table(samples: int, count: int = 20):
     sys.path.insert(0, str(HERE.parent))  # the tests' own imports (fusion_reference)
     import fusion_reference as ref
+
     from tests.test_fusion_core import motion_scene
 
     rng = np.random.default_rng(11)
@@ -139,13 +140,13 @@ def motion_table(samples: int, count: int = 20):
     head = ["n", "implementation", "per estimate", "× C kernel", "max dev pose", "note"]
     lines = [[str(n), label, fmt_time(t), f"{t / b:.1f}", d, note]
              for n, label, t, b, d, note in rows]
-    w = [max(len(h), *(len(l[i]) for l in lines)) for i, h in enumerate(head)]
+    w = [max(len(h), *(len(line[i]) for line in lines)) for i, h in enumerate(head)]
     print("Time-aligned estimate (constant twist; pose, twist and one latency estimated, one "
           "configured), 20 scenes each; target: well under 0.2 ms from Python")
     print("| " + " | ".join(h.ljust(w[i]) for i, h in enumerate(head)) + " |")
     print("|" + "|".join("-" * (x + 2) for x in w) + "|")
-    for l in lines:
-        print("| " + " | ".join(c.ljust(w[i]) for i, c in enumerate(l)) + " |")
+    for line in lines:
+        print("| " + " | ".join(c.ljust(w[i]) for i, c in enumerate(line)) + " |")
 
 
 def main(argv=None):
@@ -199,7 +200,7 @@ def main(argv=None):
             g_cov = np.array([c for _, c in res])
             t = per_call(lambda: gtsam_fuse(gtsam, Z[next(k) % P], S[next(k) % P], params),
                          max(3, samples // 3))
-            rows.append((f"GTSAM LM + marginals, from Python", t, label,
+            rows.append(("GTSAM LM + marginals, from Python", t, label,
                          deviation(g_mean, g_cov, mean, cov)))
 
     base = rows[0][1]
@@ -207,13 +208,13 @@ def main(argv=None):
     lines = [[label, fmt_time(t), f"{t / base:.1f}",
               "—" if d is None else f"{d[0]:.1e}", "—" if d is None else f"{d[1]:.1e}", note]
              for label, t, note, d in rows]
-    w = [max(len(h), *(len(l[i]) for l in lines)) for i, h in enumerate(head)]
+    w = [max(len(h), *(len(line[i]) for line in lines)) for i, h in enumerate(head)]
     print(f"Fusion of {N} measurements with full covariances, {P} problems "
           f"(Gauss-Newton steps: {iterations:.2f} on average); target: C core <= 10 µs")
     print("| " + " | ".join(h.ljust(w[i]) for i, h in enumerate(head)) + " |")
     print("|" + "|".join("-" * (x + 2) for x in w) + "|")
-    for l in lines:
-        print("| " + " | ".join(c.ljust(w[i]) for i, c in enumerate(l)) + " |")
+    for line in lines:
+        print("| " + " | ".join(c.ljust(w[i]) for i, c in enumerate(line)) + " |")
     print()
     motion_table(samples)
 

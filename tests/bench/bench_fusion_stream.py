@@ -180,9 +180,9 @@ def in_process(scene: Scene, args, messages: int, warm: int = 500) -> None:
     process (``Fusion.stream_step_wire``, answers serialised), and nothing printed: under
     callgrind the instructions per message are ``(Ir(N) - Ir(0)) / N``, which the load of a
     shared machine does not move."""
-    from dqpose.rpc.fusion_convert import options_msg
-    from dqpose.rpc.fusion import Fusion
     from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
+    from dqpose.rpc.fusion import Fusion
+    from dqpose.rpc.fusion_convert import options_msg
 
     data = wire_messages(scene, warm + max(messages, 1000))   # the same set-up for every N
     f = Fusion()
@@ -198,9 +198,9 @@ def per_message_cost(scene: Scene, args, messages: int = 6000) -> str:
     ``Fusion.stream_step_wire`` (what StreamFuse serves: the C decoder, then the tracker), and
     for comparison the protobuf path (bytes parsed, then ``Fusion.stream_step``); cProfile of
     the parts."""
-    from dqpose.rpc.fusion_convert import options_msg
-    from dqpose.rpc.fusion import Fusion
     from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
+    from dqpose.rpc.fusion import Fusion
+    from dqpose.rpc.fusion_convert import options_msg
 
     data = wire_messages(scene, messages)
     from dqpose.rpc.fusion_convert import measurements_to_arrays

@@ -29,12 +29,12 @@ import grpc
 import numpy as np
 
 from dqpose import dq
-from dqpose.rpc.geometry import pose_msgs, poses_to_dqs
-from dqpose.rpc.wire import decode_blend_request
-from dqpose.rpc.blending import Blending
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
 from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
+from dqpose.rpc.blending import Blending
+from dqpose.rpc.geometry import pose_msgs, poses_to_dqs
+from dqpose.rpc.wire import decode_blend_request
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 PROTO = os.path.join(ROOT, "proto")
@@ -341,7 +341,8 @@ def find_tool(name: str) -> str | None:
         return found
     go = shutil.which("go")
     if go:
-        gopath = subprocess.run([go, "env", "GOPATH"], capture_output=True, text=True).stdout.strip()
+        gopath = subprocess.run([go, "env", "GOPATH"], capture_output=True,
+                                text=True).stdout.strip()
         exe = os.path.join(gopath, "bin", name)
         if os.path.exists(exe):
             return exe

@@ -14,7 +14,8 @@ OpenCV's conventions (checked on exact data by tests/test_bench_handeye.py: ever
 answer within 1e-8 of the truth; ~1e-15 measured):
 ``calibrateHandEye`` takes R/t_gripper2base (``T_base_flange``) and R/t_target2cam
 (``T_camera_target``) and returns cam2gripper (``T_flange_camera``, our X for eye-in-hand); for
-eye-to-hand the flange poses are passed inverted (``T_flange_base``) and it returns ``T_base_camera``.
+eye-to-hand the flange poses are passed inverted (``T_flange_base``) and it returns
+``T_base_camera``.
 ``calibrateRobotWorldHandEye`` solves A·X = Z·B with world2cam = ``T_camera_target`` and
 base2gripper = the inverse of what calibrateHandEye got; its gripper2cam is then our X⁻¹ and its
 base2world our Z⁻¹, in both setups. ``method=`` is passed by keyword (#27625).
@@ -304,7 +305,7 @@ def add_opencv(res, solved, truths):
             s.add(X_hat, truth, float(seconds[k]), bad=why)
 
 
-# ---- end to end on rendered ChArUco images --------------------------------------------------------
+# ---- end to end on rendered ChArUco images ------------------------------------------------
 def opencv_corners_camera(intrinsics):
     """A ``CharucoCamera`` that keeps OpenCV's ChArUco corners as OpenCV refines them (before
     drivers/camera.py refined them again off the markers): the detector as it was."""
@@ -568,7 +569,8 @@ def targets(results: dict, charuco_label: str | None, broken_results: dict | Non
     if t20:
         med = float(np.median(t20))
         out.append(f"- solving 20 poses ≤ 50 ms including the refinement: median "
-                   f"{med * 1e3:.1f} ms, 95th percentile {np.percentile(t20, 95) * 1e3:.1f} ms over "
+                   f"{med * 1e3:.1f} ms, 95th percentile "
+                   f"{np.percentile(t20, 95) * 1e3:.1f} ms over "
                    f"{len(t20)} solves: {ok(med <= 0.05)}")
     if broken_results:
         silent = {k: r[OURS]["silent"] for k, r in broken_results.items()
@@ -576,7 +578,7 @@ def targets(results: dict, charuco_label: str | None, broken_results: dict | Non
         nan = {k: len(r[OURS]["series"].bad) for k, r in broken_results.items()
                if OURS in r and r[OURS]["series"].bad}
         out.append(f"- every broken data set flagged ({', '.join(broken_results)}), refused or "
-                   f"warned: " + (f"PASS" if not silent else f"FAIL, silent on {silent}")
+                   f"warned: " + ("PASS" if not silent else f"FAIL, silent on {silent}")
                    + ("" if not nan else f"; bad answers {nan}: FAIL"))
     wrong = {k: sum(not b.startswith("refused") for b in s.bad) for k, s in mine.items()}
     wrong = {k: v for k, v in wrong.items() if v}
@@ -683,7 +685,8 @@ def main(argv=None):
     if args.broken_trials > 0:
         broken_results = run_broken(args.broken_trials, args.seed, python)
         print()
-        print(f"Broken data ({args.broken_trials} seeded sets each of tests/_handeye.py's broken(): "
+        print(f"Broken data ({args.broken_trials} seeded sets each of "
+              f"tests/_handeye.py's broken(): "
               f"the wrist scene's 20 poses at 0.1°/0.5 mm broken as named; median error of X, "
               f"bad answers counted):")
         print(render_broken(broken_results, args.broken_trials))

@@ -13,8 +13,8 @@ median / max); the slowdown of CPU-bound work meanwhile (tests/cli/_interrupt.Sl
 idle core). ``--breakdown``: every process of the command (itself, its arm's process, its
 simulators) runs with a profile hook, and after the table come, per process, the calls that took
 15 ms or more, ended after the signal and began at most 0.5 s before it (start and end in
-seconds from the signal), and when the process had run its last exit handler; the hook slows Python code down, so the table of a
-``--breakdown`` run is not the command's own.
+seconds from the signal), and when the process had run its last exit handler; the hook slows
+Python code down, so the table of a ``--breakdown`` run is not the command's own.
 """
 from __future__ import annotations
 
@@ -24,14 +24,20 @@ import statistics
 import sys
 import tempfile
 import threading
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "cli"))
 from _interrupt import Command, SimWatch, sim_host  # noqa: E402
 
-from dqpose.drivers.sim.ur import (MOVEL, SERVO_STOP, SERVOL, SPEED_STOP, STOP_SCRIPT,  # noqa: E402
-                               STOPJ, STOPL)
+from dqpose.drivers.sim.ur import (  # noqa: E402
+    MOVEL,
+    SERVO_STOP,
+    SERVOL,
+    SPEED_STOP,
+    STOP_SCRIPT,
+    STOPJ,
+    STOPL,
+)
 
 STOPS = (SERVO_STOP, SPEED_STOP, STOPL, STOPJ, STOP_SCRIPT)
 MOTION = (SERVOL, MOVEL)

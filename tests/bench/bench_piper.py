@@ -12,10 +12,10 @@ import uuid
 import can
 import numpy as np
 
+from dqpose import dq
 from dqpose.drivers.base import ArmError
 from dqpose.drivers.piper import PiperArm
 from dqpose.drivers.sim.piper import PiperSim
-from dqpose import dq
 
 
 def _wait_ok(arm: PiperArm) -> None:

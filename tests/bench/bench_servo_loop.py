@@ -29,9 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
+from dqpose import dq
 from dqpose.drivers.sim import ur as ursim
 from dqpose.drivers.ur import URArm
-from dqpose import dq
 from tests.bench.bench_executor import realtime
 
 

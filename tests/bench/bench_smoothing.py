@@ -29,7 +29,6 @@ the four limits over the trials, measured from the samples by finite differences
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import time
 

@@ -55,13 +55,16 @@ def paths() -> dict[str, tuple[list[np.ndarray], float]]:
     z = [0, 0, 1]
     out = {
         "straight 1 m": ([pose(z, 0, [0, 0, 0]), pose(z, 0, [0.6, 0.64, 0.48])], 0.0),
-        "straight 0.3 m + 90 deg": ([pose(z, 0, [0, 0, 0]), pose(z, math.pi / 2, [0.3, 0, 0])], 0.0),
-        "short 2 cm + 10 deg": ([pose(z, 0, [0, 0, 0]), pose([1, 1, 0], 0.17, [0.01, 0.01, 0.01])], 0.0),
-        "rotation 5 mm + 150 deg": ([pose(z, 0, [0, 0, 0]), pose([0, 1, 1], 2.6, [0.005, 0, 0])], 0.0),
+        "straight 0.3 m + 90 deg": ([pose(z, 0, [0, 0, 0]),
+                                     pose(z, math.pi / 2, [0.3, 0, 0])], 0.0),
+        "short 2 cm + 10 deg": ([pose(z, 0, [0, 0, 0]),
+                                 pose([1, 1, 0], 0.17, [0.01, 0.01, 0.01])], 0.0),
+        "rotation 5 mm + 150 deg": ([pose(z, 0, [0, 0, 0]),
+                                     pose([0, 1, 1], 2.6, [0.005, 0, 0])], 0.0),
     }
     rng = np.random.default_rng(7)
-    corners = [[0, 0, 0], [0.3, 0, 0], [0.3, 0.3, 0.05], [0, 0.3, 0.1], [0, 0, 0.2], [0.3, 0.05, 0.2],
-               [0.35, 0.3, 0.05], [0.05, 0.25, 0]]
+    corners = [[0, 0, 0], [0.3, 0, 0], [0.3, 0.3, 0.05], [0, 0.3, 0.1], [0, 0, 0.2],
+               [0.3, 0.05, 0.2], [0.35, 0.3, 0.05], [0.05, 0.25, 0]]
     wps = [pose(rng.normal(size=3), rng.uniform(0, 0.6), c) for c in corners]
     out["8 waypoints, blends 5 cm"] = (wps, 0.05)
     out["8 waypoints, stops"] = (wps, 0.0)
@@ -87,7 +90,8 @@ def median_time(fn, repeats: int, best: bool = False) -> float:
 def coordinates(poses, ref) -> np.ndarray:
     """[xyz, rotation vector of R R_ref^T] of each pose: straight moves are straight lines here."""
     q, t = dq.to_pose(poses)
-    rel = dq.mul(dq.from_pose(q, np.zeros_like(t)), dq.conj(dq.from_pose(dq.to_pose(ref)[0], np.zeros(3))))
+    rel = dq.mul(dq.from_pose(q, np.zeros_like(t)),
+                 dq.conj(dq.from_pose(dq.to_pose(ref)[0], np.zeros(3))))
     return np.concatenate([t, 2 * dq.log(rel)[..., :3]], axis=-1)
 
 
@@ -179,7 +183,8 @@ def run_toppra(poses):
         # linear constraints cannot express a norm; a straight move is exact)
         acc = constraint.JointAccelerationConstraint(
             np.stack([-axis_limits(x[-1] - x[0] if len(x) == 2 else np.ones(6), len(x) == 2)[1],
-                      axis_limits(x[-1] - x[0] if len(x) == 2 else np.ones(6), len(x) == 2)[1]], axis=1),
+                      axis_limits(x[-1] - x[0] if len(x) == 2 else np.ones(6), len(x) == 2)[1]],
+                     axis=1),
             discretization_scheme=constraint.DiscretizationType.Interpolation)
         inst = algo.TOPPRA([vel, acc], path, parametrizer="ParametrizeConstAccel")
         return inst.compute_trajectory()
@@ -243,7 +248,8 @@ def random_straight_moves(n: int = 200) -> tuple[float, float, float, float]:
         ours = plan(waypoints(poses, 0.0), limits).duration
         ratios.append(ours / ruckig_moves(poses, True, limits)[0].duration - 1)
     r = np.array(ratios) * 100
-    return float(np.median(r)), float(np.percentile(r, 95)), float(r.max()), float(np.mean(r <= 5) * 100)
+    return (float(np.median(r)), float(np.percentile(r, 95)), float(r.max()),
+            float(np.mean(r <= 5) * 100))
 
 
 def evaluation_path(rng, k: int = 100):
@@ -282,13 +288,15 @@ def evaluation_table(repeats: int) -> list[tuple]:
         tr = plan(wps, LIMITS, mode)
         rate = 5000 / tr.duration
         stream = median_time(lambda: plan(wps, LIMITS, mode).at_rate(rate), repeats, True)
-        rows.append((f"100 blended waypoints -> 5,000 poses ({mode}): plan + at_rate", stream * 1e3, "ms",
-                     "<= 2 ms"))
+        rows.append((f"100 blended waypoints -> 5,000 poses ({mode}): plan + at_rate",
+                     stream * 1e3, "ms", "<= 2 ms"))
         # every waypoint timed at 1.2x its free arrival (a blended corner is reached mid-blend)
         sg = tr.segments
-        arrive = [0.0] + [0.5 * (sg[j].start + sg[j - 1].start + sg[j - 1].duration) if radius[j] > 0
-                          else sg[j].start for j in range(1, k - 1)] + [tr.duration]
-        timed = [Waypoint(p, time=1.2 * a, blend_radius=r) for p, a, r in zip(poses, arrive, radius)]
+        arrive = ([0.0] + [0.5 * (sg[j].start + sg[j - 1].start + sg[j - 1].duration)
+                           if radius[j] > 0 else sg[j].start for j in range(1, k - 1)]
+                  + [tr.duration])
+        timed = [Waypoint(p, time=1.2 * a, blend_radius=r)
+                 for p, a, r in zip(poses, arrive, radius)]
         took = median_time(lambda: plan(timed, LIMITS, mode), max(3, repeats // 10), True)
         rows.append((f"100 blended waypoints, each timed ({mode}): plan", took * 1e3, "ms", ""))
         t = np.sort(rng.uniform(0, tr.duration, 200_000))
@@ -301,8 +309,10 @@ def evaluation_table(repeats: int) -> list[tuple]:
     # peers: the same piecewise-ScLERP path at the same times, by NumPy and by a Python loop
     tk = np.linspace(0, 1, k)
     tau = rng.uniform(0, 1, 200_000)
-    per = median_time(lambda: interpolate.interpolate(tk, poses, tau, "screw"), repeats, True) / len(tau)
-    rows.append(("NumPy: searchsorted + dq.sclerp per-sample pairs (interpolate.py)", per * 1e9, "ns/pose", ""))
+    per = median_time(lambda: interpolate.interpolate(tk, poses, tau, "screw"), repeats,
+                      True) / len(tau)
+    rows.append(("NumPy: searchsorted + dq.sclerp per-sample pairs (interpolate.py)", per * 1e9,
+                 "ns/pose", ""))
     few = tau[:5000]
     seg_i = np.minimum((few * (k - 1)).astype(int), k - 2)
 
@@ -313,15 +323,17 @@ def evaluation_table(repeats: int) -> list[tuple]:
     rows.append(("Python loop: one dq.sclerp call per pose", per * 1e9, "ns/pose", ""))
     a, b = poses[0], poses[1]
     per = median_time(lambda: dq.sclerp(a, b, tau), repeats, True) / len(tau)
-    rows.append(("reference: dq.sclerp, one pair x 200k tau (no time law)", per * 1e9, "ns/pose", ""))
+    rows.append(("reference: dq.sclerp, one pair x 200k tau (no time law)", per * 1e9, "ns/pose",
+                 ""))
     return rows
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--callgrind", metavar="CASE", choices=[f"{m}:{c}" for m in ("tool_linear", "screw")
-                                                             for c in ("blends", "stops")] + ["reference"],
+    ap.add_argument("--callgrind", metavar="CASE",
+                    choices=[f"{m}:{c}" for m in ("tool_linear", "screw")
+                             for c in ("blends", "stops")] + ["reference"],
                     help="evaluate once for valgrind (see evaluate_once) and exit")
     args = ap.parse_args()
     if args.callgrind:
@@ -330,9 +342,11 @@ def main() -> None:
     repeats = 5 if args.quick else 30
     print(f"# Trajectory planning ({platform.processor() or platform.machine()}, Python "
           f"{platform.python_version()})\n")
-    print("Limits: " + ", ".join(f"{f}={getattr(LIMITS, f):g}" for f in LIMITS.__dataclass_fields__))
+    print("Limits: " + ", ".join(f"{f}={getattr(LIMITS, f):g}"
+                                 for f in LIMITS.__dataclass_fields__))
     print()
-    print("| path | planner | duration (s) | vs ours | worst v/a violation | worst jerk violation | plan time |")
+    print("| path | planner | duration (s) | vs ours | worst v/a violation | worst jerk violation "
+          "| plan time |")
     print("|---|---|---|---|---|---|---|")
     for row in planning_table(repeats):
         name, label, dur, rel, va, vj, tp = row[:7]
@@ -341,8 +355,9 @@ def main() -> None:
               f"{tp * 1e3:.3f} ms |")
     med, p95, worst, share = random_straight_moves()
     print()
-    print(f"Random straight moves (200, random limits), ours / Ruckig (norm-scaled axes) - 1: median "
-          f"{med:+.2g} %, 95th percentile {p95:+.2g} %, worst {worst:+.2g} %; within 5 %: {share:.0f} %")
+    print(f"Random straight moves (200, random limits), ours / Ruckig (norm-scaled axes) - 1: "
+          f"median {med:+.2g} %, 95th percentile {p95:+.2g} %, worst {worst:+.2g} %; "
+          f"within 5 %: {share:.0f} %")
     print()
     # best of the repeats (the machine is shared); per pose also as a multiple of the same
     # run's one-pair ScLERP, which a load slows alike

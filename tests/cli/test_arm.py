@@ -10,8 +10,8 @@ import signal
 
 import numpy as np
 import pytest
-
 from _cli import run, serving
+
 from dqpose import dq, trajectory
 from dqpose.rpc.client import Client
 

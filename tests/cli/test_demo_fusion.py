@@ -67,8 +67,8 @@ def test_a_machine_too_slow_to_render_delays_the_stream_not_what_it_carries(monk
     and the fused pose stays the most accurate (or the summary says why not); the stream runs
     behind real time instead.
     Rendering in the reading loop stretched that clock, and with it the windows."""
-    from dqpose.drivers.sim.camera import BoardRenderer
     from dqpose.cli import demo_fusion
+    from dqpose.drivers.sim.camera import BoardRenderer
 
     render = BoardRenderer.render
 

@@ -82,11 +82,13 @@ def test_server_and_health_run_without_device_libraries():
 
 def test_commands_needing_an_extra_name_it(tmp_path):
     recording = tmp_path / "recording.csv"
-    recording.write_text("t,x,y,z,qw,qx,qy,qz\n" + "".join(f"{i},{0.01 * i},0,0,1,0,0,0\n" for i in range(5)))
+    recording.write_text("t,x,y,z,qw,qx,qy,qz\n"
+                         + "".join(f"{i},{0.01 * i},0,0,1,0,0,0\n" for i in range(5)))
     limits = [f"--{k.replace('_', '-')}=1" for k in LIMITS.__dataclass_fields__ if "jerk" not in k]
     poses = tmp_path / "poses.yaml"
     poses.write_text("poses:\n  - {orientation: {w: 1}}\n")
-    for argv, extra in [(("sim", "piper", "--help"), "devices"), (("sim", "camera", "--help"), "devices"),
+    for argv, extra in [(("sim", "piper", "--help"), "devices"),
+                        (("sim", "camera", "--help"), "devices"),
                         (("serve", "--port", "0", "--sims"), "devices"),
                         (("handeye", "solve", ROOT, "--local"), "devices"),
                         (("handeye", "capture", os.path.join(ROOT, "no-such-dir")), "devices"),
@@ -96,7 +98,8 @@ def test_commands_needing_an_extra_name_it(tmp_path):
         proc = _dqpose(*argv)
         out, err = proc.communicate(timeout=60)
         assert proc.returncode == 2, (out, err)
-        cmd = "serve --sims" if argv[0] == "serve" else " ".join(argv[:2 if argv[0] in ("sim", "handeye") else 1])
+        words = 2 if argv[0] in ("sim", "handeye") else 1
+        cmd = "serve --sims" if argv[0] == "serve" else " ".join(argv[:words])
         assert err.strip().splitlines()[-1] == f"dqpose {cmd}: error: {hint(extra)}", err
         assert "Traceback" not in err
     # the UR simulator speaks RTDE itself: it needs no device library

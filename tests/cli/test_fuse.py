@@ -6,11 +6,10 @@ import json
 
 import numpy as np
 import pytest
+from _cli import run, server  # noqa: F401 (server: a fixture)
 
 from dqpose import dq, fusion, lie
 from dqpose.fusion import Source
-
-from _cli import run, server  # noqa: F401 (server: a fixture)
 
 
 def scene(seed, n):
@@ -76,7 +75,8 @@ def test_json_grpcurl_body_with_frames(server, capsys, tmp_path):
 
     def pose(a):
         q, t = dq.to_pose(a)
-        return {"position": dict(zip("xyz", t.tolist())), "orientation": dict(zip("wxyz", q.tolist()))}
+        return {"position": dict(zip("xyz", t.tolist())),
+                "orientation": dict(zip("wxyz", q.tolist()))}
 
     doc = {"measurements": [{"source": "cam", "body": "box", "pose": pose(Z[i]),
                              "covariance": S[i].ravel().tolist()} for i in range(3)],

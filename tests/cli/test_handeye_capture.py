@@ -17,6 +17,7 @@ pytest.importorskip("rtde_control")
 pytest.importorskip("cv2")
 
 from _interrupt import ROOT, Command  # noqa: E402
+
 from dqpose import dq, fusion, lie  # noqa: E402
 
 NEES_BOUND = fusion.chi2_quantile(0.999, 6)
@@ -128,9 +129,9 @@ def test_the_first_view_is_measured_as_its_covariance_says(interrupted):
     was off along the view by 0.26-0.38 mm (NEES ~25 against its own covariance, noise or not),
     so the solver left view 0 out of every capture; the start view is tilted as every other
     view is."""
-    from dqpose.drivers.camera import CharucoCamera, load_board, load_intrinsics, read_image
     from dqpose import handeye
     from dqpose.cli.handeye import read_truth
+    from dqpose.drivers.camera import CharucoCamera, load_board, load_intrinsics, read_image
     folder = interrupted[0]
     x, z = read_truth(folder, "eye_in_hand")
     cam = CharucoCamera(load_intrinsics(os.path.join(folder, "intrinsics.json")),

@@ -15,6 +15,7 @@ pytest.importorskip("rtde_control")
 pytest.importorskip("cv2")
 
 from _cli import run, server  # noqa: E402,F401
+
 from dqpose import dq, fusion, lie  # noqa: E402
 
 # NEES of a 6-dof estimate: below this in 99.9 % of the runs when the covariance is honest

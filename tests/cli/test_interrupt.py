@@ -16,11 +16,26 @@ import pytest
 
 pytest.importorskip("rtde_control")
 
-from _interrupt import (EXIT_TIMEOUT, Command, SimWatch, alive, arm_process,  # noqa: E402
-                        assert_stopped_after, children, sim_host)
+from _interrupt import (  # noqa: E402
+    EXIT_TIMEOUT,
+    Command,
+    SimWatch,
+    alive,
+    arm_process,
+    assert_stopped_after,
+    children,
+    sim_host,
+)
 
-from dqpose.drivers.sim.ur import (MOVEL, SERVO_STOP, SERVOL, SPEED_STOP, STOP_SCRIPT,  # noqa: E402
-                               STOPJ, STOPL)
+from dqpose.drivers.sim.ur import (  # noqa: E402
+    MOVEL,
+    SERVO_STOP,
+    SERVOL,
+    SPEED_STOP,
+    STOP_SCRIPT,
+    STOPJ,
+    STOPL,
+)
 
 MOTION = (SERVOL, MOVEL)
 STOPS = (SERVO_STOP, SPEED_STOP, STOPL, STOPJ, STOP_SCRIPT)
@@ -186,9 +201,9 @@ def test_ctrl_c_ends_serve_while_an_arm_executes(tmp_path):
 
     import numpy as np
 
+    from dqpose import dq, trajectory
     from dqpose.drivers.rotvec import pose_from_rotvec
     from dqpose.drivers.sim.ur import URSimProcess
-    from dqpose import dq, trajectory
     from dqpose.rpc.client import Client
 
     home = np.array([0.40, -0.10, 0.30, np.pi, 0.0, 0.0])

@@ -7,11 +7,16 @@ import json
 
 import numpy as np
 import pytest
+from _cli import server  # noqa: F401,E402 (a fixture)
 
 from dqpose import dq
-from _cli import server  # noqa: F401,E402 (a fixture)
-from dqpose.cli.posefile import (format_blend, format_samples, read_blend, read_interpolate,
-                                  sample_times)
+from dqpose.cli.posefile import (
+    format_blend,
+    format_samples,
+    read_blend,
+    read_interpolate,
+    sample_times,
+)
 
 
 def _same(a, b, atol=1e-12):
@@ -81,17 +86,21 @@ def test_keyframes_and_times(tmp_path, poses):
     ("# measured\nx,y,z,qw,qx,qy,qz\n0,0,0,1,0,0,0\n0,0,0,1,abc,0,0\n",
      r"^line 4, column qx: 'abc' is not a number$"),
     ("qw,qx,qy,qz,x,y,z,weight\n1,0,0,0,0,0,0,\n", r"^line 2, column weight: '' is not a number$"),
-    ("x,y,z,qw,qx,qy,qz\n0,0,0,1,0,0\n", r"^line 2: expected 7 values \(x,y,z,qw,qx,qy,qz\), got 6$"),
+    ("x,y,z,qw,qx,qy,qz\n0,0,0,1,0,0\n",
+     r"^line 2: expected 7 values \(x,y,z,qw,qx,qy,qz\), got 6$"),
     ("x,y,z,qw,qx,qy\n0,0,0,1,0,0\n", r"^line 1: missing column qz; expected x,y,z,qw,qx,qy,qz"),
-    ("x,y,z,qw,qx,qy,qz,colour\n0,0,0,1,0,0,0,red\n", r"^line 1: unknown column 'colour'; expected x,y,z"),
+    ("x,y,z,qw,qx,qy,qz,colour\n0,0,0,1,0,0,0,red\n",
+     r"^line 1: unknown column 'colour'; expected x,y,z"),
     ("x,y,z,qw,qx,qy,qz,weigth\n0,0,0,1,0,0,0,1\n",
      r"^line 1: unknown column 'weigth' \(did you mean 'weight'\?\)$"),
     # a time column means keyframes: blending them would silently drop the times
     ("t,x,y,z,qw,qx,qy,qz\n0,0,0,0,1,0,0,0\n1,1,0,0,1,0,0,0\n",
      r"^line 1: column t: a time column means keyframes: .*`dqpose interpolate`$"),
-    ('{"poses": [{"orientation": {"w": 1, "q": 2}}]}', r"^poses\[0\]\.orientation: unknown key 'q'"),
+    ('{"poses": [{"orientation": {"w": 1, "q": 2}}]}',
+     r"^poses\[0\]\.orientation: unknown key 'q'"),
     ('{"poses": [1]}', r"^poses\[0\]: expected an object"),
-    ('{"poses": [{"orientation": {"w": 1}}], "method": "fancy"}', r"^method: unknown value 'fancy'"),
+    ('{"poses": [{"orientation": {"w": 1}}], "method": "fancy"}',
+     r"^method: unknown value 'fancy'"),
     ("{not json", r"not valid JSON"),
     ('"a string"', r'expected an object with "poses"'),
     ("", r"no poses"),
@@ -125,7 +134,7 @@ def test_output_round_trips(poses):
     times = np.array([0.0, 0.25, 0.5, 0.75])
     lines = format_samples(times, poses, "csv").splitlines()
     assert lines[0] == "t,x,y,z,qw,qx,qy,qz" and len(lines) == 5
-    back = np.array([list(map(float, l.split(","))) for l in lines[1:]])
+    back = np.array([list(map(float, line.split(","))) for line in lines[1:]])
     np.testing.assert_allclose(back[:, 0], times)
     _same(dq.from_pose(back[:, 4:], back[:, 1:4]), poses, atol=1e-11)
 
@@ -273,7 +282,8 @@ def _with(doc, path, value):
     ("blend", POSES_JSON, ("poses", 0, "position"), "translation",
      "poses[0]: unknown key 'translation' (did you mean 'position'?)"),
     ("blend", POSES_JSON, ("poses", 1, "orientation"), None, "poses[1]: missing key 'orientation'"),
-    ("blend", POSES_JSON, ("weights",), "weigths", "unknown key 'weigths' (did you mean 'weights'?)"),
+    ("blend", POSES_JSON, ("weights",), "weigths",
+     "unknown key 'weigths' (did you mean 'weights'?)"),
     ("blend", POSES_JSON, ("poses",), "pose", "unknown key 'pose' (did you mean 'poses'?)"),
     ("interpolate", {"keyframes": [{"time": 0, "pose": POSES_JSON["poses"][0]},
                                    {"time": 1, "pose": POSES_JSON["poses"][1]}]},
@@ -309,14 +319,16 @@ def test_a_misspelt_or_missing_key_is_an_error_naming_it(tmp_path, command, doc,
 
 def _blend_csv(sep: str, header: bool) -> str:
     rows = [[0.1, 0, 0, 1, 0, 0, 0, 1], [0.3, 0, 0, 0.7071, 0, 0, 0.7071, 3]]
-    lines = ([sep.join(POSE_COLUMNS_W)] if header else []) + [sep.join(f"{v:g}" for v in r) for r in rows]
+    lines = (([sep.join(POSE_COLUMNS_W)] if header else [])
+             + [sep.join(f"{v:g}" for v in r) for r in rows])
     return "# two measurements\n" + "\n".join(lines) + "\n"
 
 
 POSE_COLUMNS_W = ("x", "y", "z", "qw", "qx", "qy", "qz", "weight")
 
 
-@pytest.mark.parametrize("sep", [", ", ";", "\t", " ", "   "], ids=["comma-space", "semicolon", "tab", "space", "spaces"])
+@pytest.mark.parametrize("sep", [", ", ";", "\t", " ", "   "],
+                         ids=["comma-space", "semicolon", "tab", "space", "spaces"])
 @pytest.mark.parametrize("header", [True, False])
 def test_csv_with_any_separator_reads_as_with_commas(tmp_path, sep, header):
     (tmp_path / "commas.csv").write_text(_blend_csv(",", header))
@@ -338,7 +350,8 @@ def test_a_yaml_file_is_read_like_its_json(tmp_path):
     import yaml
     (tmp_path / "p.json").write_text(json.dumps(POSES_JSON))
     (tmp_path / "p.yaml").write_text(yaml.safe_dump(POSES_JSON))
-    (tmp_path / "p").write_text("# no extension: told by its content\n" + yaml.safe_dump(POSES_JSON))
+    (tmp_path / "p").write_text("# no extension: told by its content\n"
+                                + yaml.safe_dump(POSES_JSON))
     want = dqpose("blend", "p.json", "--local", cwd=tmp_path)
     assert want[0] == 0, want
     assert dqpose("blend", "p.yaml", "--local", cwd=tmp_path) == want
@@ -346,7 +359,8 @@ def test_a_yaml_file_is_read_like_its_json(tmp_path):
 
 
 @pytest.mark.parametrize("where", ["--local", "server"])
-def test_rounded_quaternions_are_taken_and_garbage_is_refused_saying_how_far(tmp_path, server, where):
+def test_rounded_quaternions_are_taken_and_garbage_is_refused_saying_how_far(tmp_path, server,
+                                                                              where):
     from dqpose.rpc.client import Client, InvalidArgument
     exact = ("x,y,z,qw,qx,qy,qz\n0.1,0,0,1,0,0,0\n"
              f"0.3,0,0,{H!r},0,0,{H!r}\n")
@@ -375,6 +389,7 @@ def test_rounded_quaternions_are_taken_and_garbage_is_refused_saying_how_far(tmp
         with Client(server.target) as c:
             np.testing.assert_allclose(c.blend(sent), dq.dib(dq.from_pose(*dq.to_pose(sent))),
                                        atol=1e-12)
-            with pytest.raises(InvalidArgument, match=r"^poses\[1\]\.orientation: quaternion norm "
-                                                      r"0\.989949494 is not unit \(off by 0\.0100505"):
+            with pytest.raises(InvalidArgument,
+                               match=r"^poses\[1\]\.orientation: quaternion norm "
+                                     r"0\.989949494 is not unit \(off by 0\.0100505"):
                 c.blend(sent * np.array([[1.0], [0.7 / 0.7071]]))

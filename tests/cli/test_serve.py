@@ -6,7 +6,6 @@ import subprocess
 import sys
 
 import pytest
-
 from _cli import ROOT, serving
 
 
@@ -93,9 +92,9 @@ def test_serve_with_an_arm_executes_plans_on_it_and_stops_it_at_shutdown(flags, 
 
     import numpy as np
 
+    from dqpose import dq, trajectory
     from dqpose.drivers.rotvec import pose_from_rotvec
     from dqpose.drivers.sim.ur import URSimProcess
-    from dqpose import dq, trajectory
     from dqpose.rpc.client import Client
 
     limits = trajectory.Limits(0.2, 1.0, 1.0, 2.0, 10.0, 20.0)

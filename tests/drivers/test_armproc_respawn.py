@@ -13,12 +13,12 @@ import time
 from multiprocessing.connection import wait
 
 import pytest
-
-from dqpose.drivers.base import ArmError
-from dqpose.drivers.executor import Executor, Result
 from _polling import wait_until
 from test_arm_safety import _runs_again, _trajectory
 from test_executor import PiperExec, URExec, _plan, run_parent
+
+from dqpose.drivers.base import ArmError
+from dqpose.drivers.executor import Executor, Result
 
 
 @pytest.fixture(scope="module", params=["ur-process", "piper-process"])
@@ -146,7 +146,7 @@ def test_reopening_is_bounded_says_why_it_failed_and_is_tried_again(rig, arm):
         why = text.split("opening it again failed: ", 1)[1]
         assert why and "did not open within" not in why, why     # the backend's own reason
         arm.reopen_every = 3600.0       # a failed reopen counts: the next is after the bound
-        with pytest.raises(ArmError, match=f"next in .*; the last attempt failed: "):
+        with pytest.raises(ArmError, match="next in .*; the last attempt failed: "):
             arm.tool_pose()
         # the controller back and the bound passed: a later use opens it
         _controller_away(rig, False)
@@ -212,9 +212,10 @@ def test_an_arm_that_comes_back_with_another_period_is_refused():
     # the controller at the address is now a CB3 (125 Hz, not the e-series' 500): plans made for
     # this arm's period, limits and name would not be its own
     pytest.importorskip("rtde_control")
+    from test_arm_limits import LIMITS
+
     from dqpose import drivers
     from dqpose.drivers.sim import ur as ursim
-    from test_arm_limits import LIMITS
     sim = ursim.URSimProcess()
     arm = drivers.open_arm(f"ur:{sim.host}", process=True, limits=LIMITS, reopen_every=0)
     try:

@@ -6,12 +6,22 @@ import cv2
 import numpy as np
 import pytest
 
-from dqpose.drivers.camera import (BoardSpec, CharucoCamera, Detection, Intrinsics, LiveFrames,
-                            Rejection, load_board, load_intrinsics, marker_free_reach,
-                            open_frames, pnp_chart)
+from dqpose import dq, lie
+from dqpose.drivers.camera import (
+    BoardSpec,
+    CharucoCamera,
+    Detection,
+    Intrinsics,
+    LiveFrames,
+    Rejection,
+    load_board,
+    load_intrinsics,
+    marker_free_reach,
+    open_frames,
+    pnp_chart,
+)
 from dqpose.drivers.sim import camera as simcam
 from dqpose.drivers.sim.camera import DEFAULT_INTRINSICS, BoardRenderer, look_at, random_view
-from dqpose import dq, lie
 from tests._handeye import near_side_pull
 
 

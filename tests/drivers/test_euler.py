@@ -6,9 +6,14 @@ import pytest
 from pytransform3d import rotations as pr
 from scipy.spatial.transform import Rotation
 
-from dqpose.drivers.euler import (dq_from_xyz_sxyz, matrix_from_sxyz, quat_from_sxyz, sxyz_from_quat,
-                           xyz_sxyz_from_dq)
 from dqpose import dq
+from dqpose.drivers.euler import (
+    dq_from_xyz_sxyz,
+    matrix_from_sxyz,
+    quat_from_sxyz,
+    sxyz_from_quat,
+    xyz_sxyz_from_dq,
+)
 
 RNG = np.random.default_rng(7)
 

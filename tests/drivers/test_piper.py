@@ -8,21 +8,32 @@ import uuid
 import can
 import numpy as np
 import pytest
+from _piper import ANG_Q, POS_Q, random_poses
+from _polling import wait_until
 from scipy.spatial.transform import Rotation
 
+from dqpose import dq
 from dqpose.drivers.base import ArmError, LimitError
 from dqpose.drivers.base import pose_delta as _delta
 from dqpose.drivers.euler import dq_from_xyz_sxyz
 from dqpose.drivers.piper import PiperArm
-from dqpose.drivers.piper_can import (END_POSE_CTRL, MOVE_L, MOVE_P, EndPose, EndPoseAssembler,
-                                      MotionMode, decode_arm_status, decode_motion_mode,
-                                      encode_arm_status, encode_end_pose, encode_motion_mode,
-                                      pose_to_units, units_to_pose)
+from dqpose.drivers.piper_can import (
+    END_POSE_CTRL,
+    MOVE_L,
+    MOVE_P,
+    EndPose,
+    EndPoseAssembler,
+    MotionMode,
+    decode_arm_status,
+    decode_motion_mode,
+    encode_arm_status,
+    encode_end_pose,
+    encode_motion_mode,
+    pose_to_units,
+    units_to_pose,
+)
 from dqpose.drivers.sim.piper import PiperSim
-from dqpose import dq
 from dqpose.profile import Trapezoid
-from _polling import wait_until
-from _piper import ANG_Q, POS_Q, random_poses
 
 # piper_sdk 0.6.2 still passes python-can's deprecated ``bustype``.
 pytestmark = pytest.mark.filterwarnings("ignore:The 'bustype' argument is deprecated")

@@ -5,17 +5,32 @@ import struct
 import can
 import numpy as np
 import pytest
+from _piper import ANG_Q, POS_Q, random_poses
 
 from dqpose.drivers.base import pose_delta as _delta
 from dqpose.drivers.euler import dq_from_xyz_sxyz
-from dqpose.drivers.piper_can import (ARM_STATUS_FEEDBACK, ARM_STATUS_NAMES, EMERGENCY_STATES,
-                                      END_POSE_FEEDBACK, PROTECTIVE_STATES, REJECTION_STATES,
-                                      TEACH_STATES, EndPose, EndPoseAssembler, FrameError,
-                                      MotionMode, StatusReport, decode_arm_status,
-                                      decode_motion_mode, describe_status, encode_arm_status,
-                                      encode_end_pose, encode_motion_mode, pose_to_units,
-                                      units_to_pose)
-from _piper import ANG_Q, POS_Q, random_poses
+from dqpose.drivers.piper_can import (
+    ARM_STATUS_FEEDBACK,
+    ARM_STATUS_NAMES,
+    EMERGENCY_STATES,
+    END_POSE_FEEDBACK,
+    PROTECTIVE_STATES,
+    REJECTION_STATES,
+    TEACH_STATES,
+    EndPose,
+    EndPoseAssembler,
+    FrameError,
+    MotionMode,
+    StatusReport,
+    decode_arm_status,
+    decode_motion_mode,
+    describe_status,
+    encode_arm_status,
+    encode_end_pose,
+    encode_motion_mode,
+    pose_to_units,
+    units_to_pose,
+)
 
 
 def test_units_round_trip_within_quantisation():

@@ -1,13 +1,18 @@
-"""dqpose.drivers.rotvec: rotation vectors <-> quaternions <-> dual quaternions, checked against SciPy
-and against closed forms that are exact where the tested code uses series."""
+"""dqpose.drivers.rotvec: rotation vectors <-> quaternions <-> dual quaternions, checked against
+SciPy and against closed forms that are exact where the tested code uses series."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from dqpose.drivers.rotvec import pose_from_rotvec, quat_from_rotvec, rotvec_from_pose, rotvec_from_quat
 from dqpose import dq
+from dqpose.drivers.rotvec import (
+    pose_from_rotvec,
+    quat_from_rotvec,
+    rotvec_from_pose,
+    rotvec_from_quat,
+)
 
 
 def _random_rotvecs(rng, n, max_angle=np.pi):

@@ -67,7 +67,8 @@ class Venv:
         return proc
 
     def site_packages(self) -> str:
-        out = self.run(self.python, "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])")
+        out = self.run(self.python, "-c",
+                       "import sysconfig; print(sysconfig.get_paths()['purelib'])")
         return out.stdout.strip()
 
 
@@ -107,7 +108,8 @@ def build_requirements() -> list[str]:
     with open(os.path.join(ROOT, "pyproject.toml")) as f:   # no tomllib before Python 3.11
         text = f.read()
     table = re.search(r"^\[build-system\]$(.*?)^\[", text, re.M | re.S).group(1)
-    return re.findall(r'"([^"]+)"', re.search(r"^requires\s*=\s*\[(.*?)\]", table, re.M | re.S).group(1))
+    requires = re.search(r"^requires\s*=\s*\[(.*?)\]", table, re.M | re.S).group(1)
+    return re.findall(r'"([^"]+)"', requires)
 
 
 def hint(extra: str, spec: str) -> str:
@@ -127,8 +129,8 @@ def check_bare_server(address: str, smooth_hint: str) -> None:
     import math
 
     import numpy as np
-
     from _handeye import scene
+
     from dqpose import dq, handeye, trajectory
     from dqpose.rpc.client import Client, RpcError
 

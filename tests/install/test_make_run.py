@@ -9,7 +9,6 @@ import subprocess
 import threading
 
 import pytest
-
 from _install import ROOT
 
 pytestmark = pytest.mark.install

@@ -6,8 +6,15 @@ from __future__ import annotations
 import os
 
 import pytest
-
-from _install import LIMITS, Venv, build_requirements, check_bare_server, copy_sources, hint, serving
+from _install import (
+    LIMITS,
+    Venv,
+    build_requirements,
+    check_bare_server,
+    copy_sources,
+    hint,
+    serving,
+)
 
 pytestmark = pytest.mark.install
 

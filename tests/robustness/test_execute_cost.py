@@ -9,8 +9,8 @@ from __future__ import annotations
 import tracemalloc
 
 import pytest
-
 from _arms import URRig, offset, serve
+
 from dqpose import limits, trajectory
 from dqpose.rpc.client import Client, RpcError
 

@@ -9,9 +9,9 @@ import json
 import signal
 
 import pytest
-
 from _arms import SLOW, distance, offset
 from _cli import serving
+
 from dqpose.rpc.client import Client, RpcError
 
 

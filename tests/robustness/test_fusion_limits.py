@@ -9,16 +9,15 @@ from concurrent.futures import ThreadPoolExecutor
 import grpc
 import numpy as np
 import pytest
+from _polling import wait_until
+from _served import code_of, pose, served
 
 from dqpose import dq, fusion, lie, limits
 from dqpose.rpc import convert
-from dqpose.rpc.fusion import Fusion
-from dqpose.rpc.server import ServerConfig
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2_grpc as pb_grpc
-
-from _polling import wait_until
-from _served import code_of, pose, served
+from dqpose.rpc.fusion import Fusion
+from dqpose.rpc.server import ServerConfig
 
 
 @pytest.fixture(scope="module")
@@ -133,7 +132,8 @@ def test_a_fit_over_its_limit_is_refused_before_it_starts(server, option, name, 
     Z, S = scene(n)
     timed = option.pop("times", False)
     request = pb.FuseRequest(
-        measurements=convert.measurement_msgs(Z, S, times=np.linspace(0, 0.1, n) if timed else None),
+        measurements=convert.measurement_msgs(Z, S,
+                                              times=np.linspace(0, 0.1, n) if timed else None),
         options=convert.options_msg(**option))
     code, details = code_of(lambda: pb_grpc.FusionStub(server.channel).Fuse(request, timeout=30))
     assert code == grpc.StatusCode.RESOURCE_EXHAUSTED, (code, details)

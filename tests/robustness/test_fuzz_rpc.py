@@ -27,11 +27,11 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from dqpose.rpc.handeye_convert import calibrate_msg
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as bpb
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from dqpose.rpc._proto.dqpose.v1 import handeye_pb2 as hpb
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
+from dqpose.rpc.handeye_convert import calibrate_msg
 
 _TESTS = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, _TESTS)

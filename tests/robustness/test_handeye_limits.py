@@ -10,12 +10,11 @@ from pathlib import Path
 import grpc
 import numpy as np
 import pytest
+from _served import code_of, served
 
 from dqpose import limits
 from dqpose.rpc import convert
 from dqpose.rpc._proto.dqpose.v1 import handeye_pb2_grpc as pb_grpc
-
-from _served import code_of, served
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import _handeye as H  # noqa: E402

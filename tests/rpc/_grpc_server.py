@@ -71,7 +71,8 @@ def make_pki() -> dict[str, bytes]:
         ca = cert(prefix + "dqpose test CA", ca_key, prefix + "dqpose test CA", ca_key, ca=True)
         cl_key = ec.generate_private_key(ec.SECP256R1())
         out[prefix + "ca"] = pem(ca)
-        out[prefix + "client_cert"] = pem(cert(prefix + "client", cl_key, prefix + "dqpose test CA", ca_key))
+        out[prefix + "client_cert"] = pem(cert(prefix + "client", cl_key,
+                                               prefix + "dqpose test CA", ca_key))
         out[prefix + "client_key"] = pem_key(cl_key)
         if not prefix:
             sv_key = ec.generate_private_key(ec.SECP256R1())

@@ -1,5 +1,5 @@
-"""dqpose.rpc.client (NumPy in/out) and the `dqpose blend | interpolate | health` commands, against a
-real server on 127.0.0.1."""
+"""dqpose.rpc.client (NumPy in/out) and the `dqpose blend | interpolate | health` commands, against
+a real server on 127.0.0.1."""
 from __future__ import annotations
 
 import json
@@ -10,12 +10,11 @@ import sys
 import grpc
 import numpy as np
 import pytest
+from _grpc_server import ServerThread
 
 from dqpose import dq
-from dqpose.rpc.client import Client, InvalidArgument, RequestTooLarge, RpcError
 from dqpose.interpolate import interpolate
-
-from _grpc_server import ServerThread
+from dqpose.rpc.client import Client, InvalidArgument, RequestTooLarge, RpcError
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -115,7 +114,8 @@ def test_every_failed_call_is_our_rpc_error_naming_status_and_message(server):
     with Client("127.0.0.1:1", timeout=2) as c:
         with pytest.raises(RpcError) as e:
             c.blend(dqs)
-        assert e.value.code == grpc.StatusCode.UNAVAILABLE and str(e.value).startswith("UNAVAILABLE: ")
+        assert e.value.code == grpc.StatusCode.UNAVAILABLE
+        assert str(e.value).startswith("UNAVAILABLE: ")
         with pytest.raises(RpcError):
             c.health()
 
@@ -126,7 +126,8 @@ def test_invalid_argument_is_both_our_rpc_error_and_a_value_error(client):
     assert isinstance(e.value, ValueError) and isinstance(e.value, RpcError)
     assert e.value.code == grpc.StatusCode.INVALID_ARGUMENT
     bad = [(_poses(1, 3), None), (np.zeros((2, 8)), None), (_poses(2, 3), None)]
-    with pytest.raises(InvalidArgument, match=r"^requests\[1\]\.poses\[0\]\.orientation: zero quaternion"):
+    with pytest.raises(InvalidArgument,
+                       match=r"^requests\[1\]\.poses\[0\]\.orientation: zero quaternion"):
         list(client.blend_stream(bad))
 
 
@@ -173,21 +174,25 @@ def test_interpolate_of_more_times_than_the_server_takes_is_split(client):
     assert got.shape == (25_001, 8)
     _same(got, interpolate([0, 1, 2], dqs_k, times, "tool_linear"))
     times[17_500] = 3.0                  # in the second call: named by its place in the whole
-    with pytest.raises(InvalidArgument, match=r"^times\[17500\]: 3\.0 is outside the keyframe range"):
+    with pytest.raises(InvalidArgument,
+                       match=r"^times\[17500\]: 3\.0 is outside the keyframe range"):
         client.interpolate([0, 1, 2], dqs_k, times)
 
 
 def test_what_cannot_be_split_is_refused_before_sending(client):
-    with pytest.raises(RequestTooLarge, match=r"^dqs_k: 10001 keyframes exceed the server limit of 10000"):
+    with pytest.raises(RequestTooLarge,
+                       match=r"^dqs_k: 10001 keyframes exceed the server limit of 10000"):
         client.interpolate(np.arange(10_001.0), _poses(10, 10_001), [0.5])
-    with pytest.raises(RequestTooLarge, match=r"^dqs: 10001 poses exceed the server limit of 10000"):
+    with pytest.raises(RequestTooLarge,
+                       match=r"^dqs: 10001 poses exceed the server limit of 10000"):
         client.blend(_poses(10, 10_001))
 
 
 def test_a_stream_item_of_the_wrong_shape_raises_after_the_answers_before_it(client):
     batches = [(_poses(11, 3), None), (_poses(12, 2), None), (np.zeros((2, 7)), None)]
     got = []
-    with pytest.raises(ValueError, match=r"^batches\[2\] dqs: expected shape \(n, 8\), got \(2, 7\)$"):
+    with pytest.raises(ValueError,
+                       match=r"^batches\[2\] dqs: expected shape \(n, 8\), got \(2, 7\)$"):
         for mean in client.blend_stream(batches):
             got.append(mean)
     assert len(got) == 2
@@ -214,7 +219,8 @@ def pose_files(tmp_path):
     q, t = dq.to_pose(dqs)
     csv_path = tmp_path / "poses.csv"
     csv_path.write_text("x,y,z,qw,qx,qy,qz,weight\n" + "".join(
-        ",".join(map(repr, [*ti.tolist(), *qi.tolist(), w])) + "\n" for qi, ti, w in zip(q, t, [1.0, 2.0, 3.0])))
+        ",".join(map(repr, [*ti.tolist(), *qi.tolist(), w])) + "\n"
+        for qi, ti, w in zip(q, t, [1.0, 2.0, 3.0])))
     json_path = tmp_path / "poses.json"
     json_path.write_text(json.dumps({
         "poses": [{"position": dict(zip("xyz", ti)), "orientation": dict(zip("wxyz", qi))}
@@ -252,7 +258,8 @@ def test_cli_blend_json_uses_the_files_method_and_prints_json(pose_files):
 
 
 def test_cli_interpolate_from_stdin_csv(server, token_file):
-    keys = "t,x,y,z,qw,qx,qy,qz\n0,0,0,0,1,0,0,0\n1,0.3,0,0,0.7071067811865476,0,0,0.7071067811865476\n"
+    keys = ("t,x,y,z,qw,qx,qy,qz\n0,0,0,0,1,0,0,0\n"
+            "1,0.3,0,0,0.7071067811865476,0,0,0.7071067811865476\n")
     res = dqpose("interpolate", "-", "--step", "0.25", "--mode", "tool_linear",
                  "--target", server.target, "--token-file", token_file, stdin=keys)
     assert res.returncode == 0, res.stderr
@@ -309,7 +316,8 @@ def test_cli_health(server):
 
 
 def test_cli_interpolate_at_a_fine_step_is_split_and_matches_local(server, token_file):
-    keys = "t,x,y,z,qw,qx,qy,qz\n0,0,0,0,1,0,0,0\n2,0.3,0,0,0.7071067811865476,0,0,0.7071067811865476\n"
+    keys = ("t,x,y,z,qw,qx,qy,qz\n0,0,0,0,1,0,0,0\n"
+            "2,0.3,0,0,0.7071067811865476,0,0,0.7071067811865476\n")
     args = ("interpolate", "-", "--step", "0.0001", "--format", "csv")
     remote = dqpose(*args, "--target", server.target, "--token-file", token_file, stdin=keys)
     local = dqpose(*args, "--local", stdin=keys)
@@ -323,7 +331,8 @@ def test_cli_interpolate_at_a_fine_step_is_split_and_matches_local(server, token
 
 def test_cli_oversize_input_names_local(server, token_file, tmp_path):
     keys = tmp_path / "many.csv"
-    keys.write_text("t,x,y,z,qw,qx,qy,qz\n" + "".join(f"{i},0,0,0,1,0,0,0\n" for i in range(10_001)))
+    keys.write_text("t,x,y,z,qw,qx,qy,qz\n"
+                    + "".join(f"{i},0,0,0,1,0,0,0\n" for i in range(10_001)))
     res = dqpose("interpolate", str(keys), "--times", "0.5", "--target", server.target,
                  "--token-file", token_file)
     assert res.returncode == 2

@@ -9,21 +9,34 @@ from hypothesis import strategies as st
 
 from dqpose import dq, handeye, trajectory
 from dqpose.errors import FieldError
-from dqpose.rpc.blending import INTERPOLATE_INTERPOLATION
-from dqpose.rpc.blending_convert import METHOD_ENUMS, METHOD_NAMES
-from dqpose.rpc.checks import check_count, over_count
-from dqpose.rpc.fusion_convert import measurement_msgs
-from dqpose.rpc.geometry import (INTERPOLATION_ENUMS, arrays_to_stamped, dq_to_pose, dqs_to_poses,
-                                 interpolation_named, pose_msgs, poses_to_dqs, stamped_to_arrays)
-from dqpose.rpc.handeye_convert import SETUP_ENUMS, SETUP_NAMES
-from dqpose.rpc.trajectories_convert import PLAN_INTERPOLATION, plan_from_msg, plan_msg
-from dqpose.rpc.wire import (blend_batch_items_wire, blend_request_wire,
-                             blend_responses_from_wire, interpolate_request_wire,
-                             measurements_wire, stamped_poses_wire)
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 from dqpose.rpc._proto.dqpose.v1 import handeye_pb2 as hpb
+from dqpose.rpc.blending import INTERPOLATE_INTERPOLATION
+from dqpose.rpc.blending_convert import METHOD_ENUMS, METHOD_NAMES
+from dqpose.rpc.checks import check_count, over_count
+from dqpose.rpc.fusion_convert import measurement_msgs
+from dqpose.rpc.geometry import (
+    INTERPOLATION_ENUMS,
+    arrays_to_stamped,
+    dq_to_pose,
+    dqs_to_poses,
+    interpolation_named,
+    pose_msgs,
+    poses_to_dqs,
+    stamped_to_arrays,
+)
+from dqpose.rpc.handeye_convert import SETUP_ENUMS, SETUP_NAMES
+from dqpose.rpc.trajectories_convert import PLAN_INTERPOLATION, plan_from_msg, plan_msg
+from dqpose.rpc.wire import (
+    blend_batch_items_wire,
+    blend_request_wire,
+    blend_responses_from_wire,
+    interpolate_request_wire,
+    measurements_wire,
+    stamped_poses_wire,
+)
 
 
 def _pose(q, t) -> geo.Pose:
@@ -141,7 +154,8 @@ def test_the_method_table_is_the_proto_enum():
     # by name and by value: the C fast path passes a request's Method value to the core as is
     proto = {name: value for name, value in pb.Method.items() if name != "METHOD_UNSPECIFIED"}
     assert proto == {f"METHOD_{name.upper()}": m.code for name, m in dq.METHODS.items()}
-    assert METHOD_NAMES == {pb.METHOD_UNSPECIFIED: "dib", **{m.code: n for n, m in dq.METHODS.items()}}
+    assert METHOD_NAMES == {pb.METHOD_UNSPECIFIED: "dib",
+                            **{m.code: n for n, m in dq.METHODS.items()}}
     assert METHOD_ENUMS == {n: m.code for n, m in dq.METHODS.items()}
 
 

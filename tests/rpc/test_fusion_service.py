@@ -7,15 +7,14 @@ import zlib
 
 import numpy as np
 import pytest
+from _grpc_server import ServerThread
 
 from dqpose import dq, fusion, lie
-from dqpose.fusion import Source, Status, Verdict
+from dqpose.fusion import Source
 from dqpose.rpc import fusion_convert, geometry
+from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 from dqpose.rpc.client import Batch, Client, InvalidArgument
 from dqpose.rpc.fusion import Fusion, tick_phase
-from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
-
-from _grpc_server import ServerThread
 
 
 @pytest.fixture(scope="module")
@@ -75,16 +74,16 @@ NAMES = ["cam1", "cam1", "cam2", "cam2", "arm", "cam2"]
 @pytest.mark.parametrize("robust", [False, True])
 def test_fuse_equals_the_domain_in_process(client, robust):
     E = lie.se3_exp(np.array([0.1, -0.2, 0.3, 0.5, 0.1, -0.4]))
-    O = lie.se3_exp(np.array([0.0, 0.0, 0.2, 0.0, 0.0, 0.1]))
-    E, O = wire(E), wire(O)
-    sources = [Source("cam1", extrinsic=E), Source("cam2"), Source("arm", E, O)]
+    offset = lie.se3_exp(np.array([0.0, 0.0, 0.2, 0.0, 0.0, 0.1]))
+    E, offset = wire(E), wire(offset)
+    sources = [Source("cam1", extrinsic=E), Source("cam2"), Source("arm", E, offset)]
     _, Z, S = scene(1, outliers=2 if robust else 0)
     # each measurement in its source's frame: cam1 and the arm's flange seen from E
     Z[:2] = dq.mul(dq.conj(E), Z[:2])
-    Z[4] = dq.mul(dq.mul(dq.conj(E), Z[4]), dq.conj(O))
-    S[4] = lie.adjoint(O) @ S[4] @ lie.adjoint(O).T
+    Z[4] = dq.mul(dq.mul(dq.conj(E), Z[4]), dq.conj(offset))
+    S[4] = lie.adjoint(offset) @ S[4] @ lie.adjoint(offset).T
     want = local(Z, S, names=NAMES, robust=robust,
-                 sources=[Source("cam1", extrinsic=E), Source("cam2"), Source("arm", E, O)])
+                 sources=[Source("cam1", extrinsic=E), Source("cam2"), Source("arm", E, offset)])
     got = client.fuse(Z, S, names=NAMES, sources=sources, robust=robust, body="box")
     assert_same(got, want)
     if robust:   # the flipped ones are out, with the domain's reasons
@@ -337,7 +336,7 @@ def test_stream_answers_each_body_at_its_output_ticks(client):
     batches = messages(*scenes.values())
     answers = list(client.stream_fuse(batches, sources=SOURCES, output_rate=rate, window=window))
     assert not [a.error for a in answers if a.error]
-    for body, (Z, S, names, _, stamps, T) in scenes.items():
+    for body, (_Z, _S, names, _, stamps, T) in scenes.items():
         taken = stamps - np.array([LATENCY[n] for n in names])
         # each body on its own grid: (k + phase) / rate, the phase from its name
         phase = tick_phase(body)

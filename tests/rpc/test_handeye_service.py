@@ -10,14 +10,14 @@ import sys
 import grpc
 import numpy as np
 import pytest
-
 from _grpc_server import ServerThread
+
 from dqpose import handeye
 from dqpose.errors import Infeasible
-from dqpose.rpc.client import Client, InvalidArgument, RpcError
-from dqpose.rpc.handeye_convert import calibrate_error, calibrate_msg
 from dqpose.rpc._proto.dqpose.v1 import handeye_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import handeye_pb2_grpc
+from dqpose.rpc.client import Client, InvalidArgument, RpcError
+from dqpose.rpc.handeye_convert import calibrate_error, calibrate_msg
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import _handeye  # noqa: E402

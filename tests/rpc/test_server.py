@@ -12,25 +12,25 @@ import signal
 import subprocess
 import sys
 import threading
-import time
 import urllib.request
 
 import grpc
 import numpy as np
 import pytest
-from hypothesis import given
-from hypothesis import strategies as st
+from _grpc_server import ServerThread, make_pki
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha.proto_reflection_descriptor_database import (
-    ProtoReflectionDescriptorDatabase)
+    ProtoReflectionDescriptorDatabase,
+)
+from hypothesis import given
+from hypothesis import strategies as st
 
 from dqpose import dq
 from dqpose.interpolate import interpolate
-from dqpose.rpc.server import ServerConfig, start
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
 from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
-from _grpc_server import ServerThread, make_pki
+from dqpose.rpc.server import ServerConfig, start
 
 MAX_POSES = 200
 MAX_BYTES = 64 * 1024
@@ -202,7 +202,8 @@ def test_bytes_that_are_not_a_blend_request_are_invalid_argument(server):
             for r in stream(iter([good, b"\x0a\xff\xff\xff", good]), timeout=10):
                 got.append(r)
         assert len(got) == 1 and e.value.code() == grpc.StatusCode.INVALID_ARGUMENT
-        assert e.value.details() == "requests[1].request: not a valid dqpose.v1.BlendRequest message"
+        assert e.value.details() == ("requests[1].request: not a valid dqpose.v1.BlendRequest "
+                                     "message")
         assert len(batch(pb.BlendBatchRequest(requests=[blend_req(q, t)] * 3).SerializeToString(),
                          timeout=10).responses) == 3
 
@@ -230,7 +231,8 @@ BAD_INPUTS = [
      "poses[1].position: contains NaN or infinity"),
     ("Blend", blend_req(*_poses(3, {(2, "q"): [NAN, 0, 0, 0]})),
      "poses[2].orientation: contains NaN or infinity"),
-    ("Blend", blend_req(*_poses(4, {(3, "q"): [0, 0, 0, 0]})), "poses[3].orientation: zero quaternion"),
+    ("Blend", blend_req(*_poses(4, {(3, "q"): [0, 0, 0, 0]})),
+     "poses[3].orientation: zero quaternion"),
     ("Blend", blend_req(*_poses(2, {(0, "q"): [2, 0, 0, 0]})),
      "poses[0].orientation: quaternion norm 2 is not unit (off by 1, beyond the tolerance 0.001 "
      "within which it is normalised); if it is a rotation, divide it by its norm"),
@@ -243,7 +245,8 @@ BAD_INPUTS = [
     ("Blend", pb.BlendRequest(), "poses: empty request: no poses"),
     ("Blend", blend_req(*_poses(MAX_POSES + 1)),
      f"poses: {MAX_POSES + 1} poses exceed the server limit of {MAX_POSES}"),
-    ("Blend", blend_req(*_poses(3), method=pb.METHOD_SCLERP), "poses: sclerp blends exactly 2 poses, got 3"),
+    ("Blend", blend_req(*_poses(3), method=pb.METHOD_SCLERP),
+     "poses: sclerp blends exactly 2 poses, got 3"),
     ("Blend", blend_req(*_poses(2), method=42), "method: unknown Method value 42"),
     ("Blend", blend_req(*_poses(2), tolerance=-1.0), "tolerance: must be finite and >= 0"),
     ("Blend", blend_req(*_poses(2), tolerance=NAN), "tolerance: must be finite and >= 0"),
@@ -267,7 +270,8 @@ BAD_INPUTS = [
 
 
 @pytest.mark.parametrize("rpc, request_, message", BAD_INPUTS,
-                         ids=[m.split(":")[0] + "-" + str(i) for i, (_, _, m) in enumerate(BAD_INPUTS)])
+                         ids=[m.split(":")[0] + "-" + str(i)
+                              for i, (_, _, m) in enumerate(BAD_INPUTS)])
 def test_bad_input_is_invalid_argument_naming_the_field(stub, rpc, request_, message):
     with pytest.raises(grpc.RpcError) as e:
         getattr(stub, rpc)(request_, timeout=10)
@@ -459,8 +463,8 @@ def test_an_answer_over_the_message_limit_is_resource_exhausted_logged_and_count
         s.stop()
         s.running.calls.flush()
     for rpc in ("Interpolate", "BlendBatch"):
-        assert re.search(rf'dqpose_grpc_calls_total\{{code="RESOURCE_EXHAUSTED",rpc="{rpc}"\}} 1\.0',
-                         text), text
+        assert re.search(rf'dqpose_grpc_calls_total\{{code="RESOURCE_EXHAUSTED",'
+                         rf'rpc="{rpc}"\}} 1\.0', text), text
         assert re.search(rf'dqpose_grpc_calls_total\{{code="OK",rpc="{rpc}"\}} 1\.0', text), text
     calls = [json.loads(line) for r in caplog.records if r.name == "dqpose.calls"
              for line in r.getMessage().splitlines()]
@@ -604,7 +608,8 @@ def test_bearer_token_accepted_and_rejected():
         code, details = _code(lambda: _blend_ok(ch))
         assert code == grpc.StatusCode.UNAUTHENTICATED and "missing bearer token" in details
         code, details = _code(lambda: _blend_ok(ch, [("authorization", "Bearer s3cret-tokeX")]))
-        assert code == grpc.StatusCode.UNAUTHENTICATED and details == "authorization: invalid bearer token"
+        assert code == grpc.StatusCode.UNAUTHENTICATED
+        assert details == "authorization: invalid bearer token"
         stream = pb_grpc.BlendingStub(ch).BlendStream(iter([blend_req(*_poses(2))]), timeout=5)
         assert _code(lambda: list(stream))[0] == grpc.StatusCode.UNAUTHENTICATED
         # health stays open for load balancers and HEALTHCHECK
@@ -734,7 +739,8 @@ def test_sigterm_drains_in_flight_calls_and_exits_zero():
             stream = stub.BlendStream(iter(requests.get, None), timeout=60)
             requests.put(blend_req(*_poses(2)))
             next(stream)
-            watch = health_pb2_grpc.HealthStub(ch).Watch(health_pb2.HealthCheckRequest(), timeout=60)
+            watch = health_pb2_grpc.HealthStub(ch).Watch(health_pb2.HealthCheckRequest(),
+                                                         timeout=60)
             assert next(watch).status == health_pb2.HealthCheckResponse.SERVING
 
             proc.send_signal(signal.SIGTERM)
@@ -786,7 +792,8 @@ def test_calls_cut_when_the_grace_period_ends_are_logged_and_counted(caplog):
             blend = pb_grpc.BlendingStub(ch).BlendStream(iter(blends.get, None), timeout=60)
             fuses: queue.Queue = queue.Queue()
             fuse = ch.stream_stream(
-                "/dqpose.v1.Fusion/StreamFuse", request_serializer=fpb.FuseStreamRequest.SerializeToString,
+                "/dqpose.v1.Fusion/StreamFuse",
+                request_serializer=fpb.FuseStreamRequest.SerializeToString,
                 response_deserializer=fpb.FusedPose.FromString)(iter(fuses.get, None), timeout=60)
             for _ in range(3):
                 blends.put(blend_req(*_poses(2)))
@@ -802,7 +809,8 @@ def test_calls_cut_when_the_grace_period_ends_are_logged_and_counted(caplog):
     from prometheus_client import generate_latest
     text = generate_latest(metrics._registry).decode()
     for rpc in ("BlendStream", "StreamFuse"):
-        assert re.search(rf'dqpose_grpc_calls_total\{{code="CANCELLED",rpc="{rpc}"\}} 1\.0', text), text
+        assert re.search(rf'dqpose_grpc_calls_total\{{code="CANCELLED",rpc="{rpc}"\}} 1\.0',
+                         text), text
 
 
 def test_blend_stream_cancelled_mid_way_leaves_the_server_serving(stub):
@@ -880,7 +888,10 @@ def test_health_says_not_serving_for_the_drain_delay_before_the_listener_closes(
     try:
         with grpc.insecure_channel(target) as ch:
             health = health_pb2_grpc.HealthStub(ch)
-            check = lambda: health.Check(health_pb2.HealthCheckRequest(), timeout=5).status
+
+            def check():
+                return health.Check(health_pb2.HealthCheckRequest(), timeout=5).status
+
             assert check() == health_pb2.HealthCheckResponse.SERVING
             proc.send_signal(signal.SIGTERM)
             status = check()
@@ -965,7 +976,8 @@ def _bad_pem(pki) -> list[tuple[dict, str]]:
         (dict(tls_cert=cert, tls_key=pki["client_key"]),
          "tls_key: the private key does not match the certificate"),
         # gRPC cannot use it; OpenSSL would ask for the password on the terminal
-        (dict(tls_cert=cert, tls_key=encrypted), "tls_key: encrypted private keys are not supported"),
+        (dict(tls_cert=cert, tls_key=encrypted),
+         "tls_key: encrypted private keys are not supported"),
         (dict(tls_cert=cert, tls_key=key, client_ca=b"garbage"),
          "client_ca: no PEM certificate in it"),
         (dict(tls_cert=cert, tls_key=key, client_ca="\u00e9t\u00e9".encode()),

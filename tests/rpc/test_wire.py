@@ -8,20 +8,19 @@ import struct
 
 import numpy as np
 import pytest
+from _mutate import damaged
+from google.protobuf.message import DecodeError
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from _mutate import damaged
-
 from dqpose import dq, limits
 from dqpose.errors import FieldError
-from dqpose.rpc.geometry import pose_msgs
-from dqpose.rpc.wire import blend_batch_wire, blend_wire, decode_blend_request
-from dqpose.rpc.blending import (DEFAULT_MAX_ITERATIONS, DEFAULT_TOLERANCE, Blending)
-from dqpose.rpc.server import ServerConfig
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
-from google.protobuf.message import DecodeError
+from dqpose.rpc.blending import DEFAULT_MAX_ITERATIONS, DEFAULT_TOLERANCE, Blending
+from dqpose.rpc.geometry import pose_msgs
+from dqpose.rpc.server import ServerConfig
+from dqpose.rpc.wire import blend_batch_wire, blend_wire, decode_blend_request
 
 # Zeros matter: proto3 leaves zero fields off the wire, which is what a fixed-layout reader
 # would get wrong.
@@ -125,8 +124,8 @@ def _fast_path(blending, data: bytes):
 @st.composite
 def near_unit_requests(draw, plain=None):
     """Requests close to valid ones, so most take the fast path and the rest sit on its edges:
-    norms at the unit tolerance (just inside, just outside), zero and negative weights, odd methods and limits. With
-    ``plain=True`` only valid ones, every method."""
+    norms at the unit tolerance (just inside, just outside), zero and negative weights, odd methods
+    and limits. With ``plain=True`` only valid ones, every method."""
     plain = draw(st.booleans()) if plain is None else plain
     n = draw(st.integers(1, 5) if plain else st.integers(0, 7))
     rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
@@ -239,7 +238,8 @@ def _batch_full_path(blending, data: bytes):
 
 def _batch_fast_path(blending, data: bytes):
     return blend_batch_wire(data, blending.max_poses, 10 * blending.max_poses, blending.max_poses,
-                            DEFAULT_TOLERANCE, DEFAULT_MAX_ITERATIONS, limits.DEFAULT.max_iterations)
+                            DEFAULT_TOLERANCE, DEFAULT_MAX_ITERATIONS,
+                            limits.DEFAULT.max_iterations)
 
 
 @given(st.lists(near_unit_requests(), max_size=6))
@@ -508,8 +508,8 @@ def test_wire_paths_survive_mutated_input_under_sanitizers(tmp_path):
 
 def _fuse_stream_seed(rng):
     """A StreamFuse request of 8 measurements: covariances, weights, names, one of each error."""
-    from dqpose.rpc.fusion_convert import measurement_msgs
     from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
+    from dqpose.rpc.fusion_convert import measurement_msgs
     q = rng.normal(size=(8, 4))
     Z = dq.from_pose(q / np.linalg.norm(q, axis=1, keepdims=True), rng.normal(size=(8, 3)))
     A = rng.normal(size=(8, 6, 6))

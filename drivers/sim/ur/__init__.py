@@ -18,14 +18,37 @@ same address (:mod:`.hooks`; their client is :class:`URSimProcess`, :mod:`.proce
 Run it with ``dqpose sim ur --host 127.0.0.2`` or ``python -m dqpose.drivers.sim.ur``.
 """
 from dqpose.drivers.sim.ur.cli import main
-from dqpose.drivers.sim.ur.model import (DASHBOARD_PORT, EMERGENCY_STOP_BIT, HOOK_PORT, MOVEL,
-                                         NORMAL_MODE, PAUSED, PAUSING, PLAYING,
-                                         PROTECTIVE_STOP_BIT, REALTIME, RTDE_PORT, SCRIPT_PORT,
-                                         SERVO_STOP, SERVOL, SPEED_STOP, STOP_SCRIPT, STOPJ, STOPL,
-                                         STOPPED, STOPPING, Controller, SimConfig)
+from dqpose.drivers.sim.ur.model import (
+    DASHBOARD_PORT,
+    EMERGENCY_STOP_BIT,
+    HOOK_PORT,
+    MOVEL,
+    NORMAL_MODE,
+    PAUSED,
+    PAUSING,
+    PLAYING,
+    PROTECTIVE_STOP_BIT,
+    REALTIME,
+    RTDE_PORT,
+    SCRIPT_PORT,
+    SERVO_STOP,
+    SERVOL,
+    SPEED_STOP,
+    STOP_SCRIPT,
+    STOPJ,
+    STOPL,
+    STOPPED,
+    STOPPING,
+    Controller,
+    SimConfig,
+)
+
 # _address_free: the tests pick a free loopback address with it too
-from dqpose.drivers.sim.ur.process import (URSimProcess, _address_free,  # noqa: F401
-                                           servo_lag_cycles)
+from dqpose.drivers.sim.ur.process import (  # noqa: F401
+    URSimProcess,
+    _address_free,
+    servo_lag_cycles,
+)
 from dqpose.drivers.sim.ur.server import URSim
 
 __all__ = ["main", "URSim", "URSimProcess", "SimConfig", "Controller", "servo_lag_cycles",

@@ -13,7 +13,6 @@ import time
 
 from dqpose.drivers import rtde as rp
 
-
 # Linux's per-packet receive stamps (CLOCK_REALTIME, nanoseconds); Python names neither constant.
 _SO_TIMESTAMPNS = 35
 

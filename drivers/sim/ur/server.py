@@ -12,8 +12,13 @@ import time
 
 from dqpose.drivers.sim.ur.dashboard import TextPorts
 from dqpose.drivers.sim.ur.hooks import Hooks
-from dqpose.drivers.sim.ur.model import (DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT, Controller,
-                                         SimConfig)
+from dqpose.drivers.sim.ur.model import (
+    DASHBOARD_PORT,
+    RTDE_PORT,
+    SCRIPT_PORT,
+    Controller,
+    SimConfig,
+)
 from dqpose.drivers.sim.ur.rtde_server import RTDEServer, _Session
 
 

@@ -1,5 +1,6 @@
 """A simulator that talks a lot: writes ``argv[1]`` bytes in lines to standard output and a tenth
-of that to standard error, then its last line, and exits 0 (``tests/drivers/sim/test_process.py``)."""
+of that to standard error, then its last line, and exits 0
+(``tests/drivers/sim/test_process.py``)."""
 import sys
 
 size = int(sys.argv[1])

@@ -31,10 +31,9 @@ def _gone(pid: int) -> bool:
 def test_serve_with_sims_brings_up_reachable_devices_and_takes_them_down():
     pytest.importorskip("rtde_control")
     pytest.importorskip("msgpack")                    # the PiPER simulator's udp_multicast bus
-    from dqpose import drivers
+    from dqpose import dq, drivers
     from dqpose.drivers.camera import read_image
     from dqpose.drivers.sim.ur import _address_free
-    from dqpose import dq
     from dqpose.rpc.client import Client
 
     proc = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "serve", "--port", "0",

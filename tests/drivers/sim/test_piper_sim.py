@@ -10,9 +10,8 @@ import sys
 import numpy as np
 import pytest
 
-from dqpose import drivers
+from dqpose import dq, drivers
 from dqpose.drivers.base import pose_delta
-from dqpose import dq
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 
@@ -32,8 +31,9 @@ def test_arm_in_another_process_moves_the_simulated_piper():
 
 
 def test_default_bus_crosses_processes_and_a_bus_that_cannot_open_gets_a_hint():
-    from dqpose.drivers.sim.piper import DEFAULT_CHANNEL, DEFAULT_INTERFACE, add_arguments
     import argparse
+
+    from dqpose.drivers.sim.piper import DEFAULT_CHANNEL, DEFAULT_INTERFACE, add_arguments
     p = argparse.ArgumentParser()
     add_arguments(p)
     args = p.parse_args([])

@@ -13,12 +13,12 @@ import time
 
 import numpy as np
 import pytest
+from _polling import wait_until
 
 rtde_control = pytest.importorskip("rtde_control")
 rtde_receive = pytest.importorskip("rtde_receive")
 
 from dqpose.drivers.sim import ur  # noqa: E402
-from _polling import wait_until
 
 HOME = [0.4, -0.1, 0.3, 2.2, 2.2, 0.0]
 
