@@ -18,8 +18,7 @@ import threading
 import time
 from typing import Optional
 
-from dqpose.drivers.armring import (BEAT, CANCEL, FINISHED, HALT, READ, REALTIME, SENT,
-                                    WRITTEN, Ring)
+from dqpose.drivers.armring import BEAT, CANCEL, FINISHED, HALT, READ, REALTIME, SENT, WRITTEN, Ring
 from dqpose.drivers.base import ArmError
 from dqpose.drivers.control import Buffer, Control, PlanSlots, check_start, claim
 

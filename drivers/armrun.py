@@ -20,8 +20,17 @@ from typing import TYPE_CHECKING, Optional
 import numpy as np
 
 from dqpose.drivers.armchild import child_main
-from dqpose.drivers.armring import (BEAT, CANCEL, FINISHED, READ, REALTIME, RUN_ID, SENT,
-                                    WRITTEN, Ring)
+from dqpose.drivers.armring import (
+    BEAT,
+    CANCEL,
+    FINISHED,
+    READ,
+    REALTIME,
+    RUN_ID,
+    SENT,
+    WRITTEN,
+    Ring,
+)
 from dqpose.drivers.base import ArmError
 from dqpose.drivers.control import Feedback, Result
 

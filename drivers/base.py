@@ -19,8 +19,8 @@ from typing import Iterator, Optional
 
 import numpy as np
 
-from dqpose.drivers.rotvec import rotvec_from_quat
 from dqpose import dq, trajectory
+from dqpose.drivers.rotvec import rotvec_from_quat
 
 
 @dataclass(frozen=True)
@@ -60,7 +60,7 @@ class PoseSource(abc.ABC):
                 return
             yield m
 
-    def close(self) -> None:
+    def close(self) -> None:  # noqa: B027 (a source with nothing to release keeps it)
         """Release the device."""
 
     def __enter__(self):
@@ -407,7 +407,7 @@ class Arm(abc.ABC):
         return dataclasses.replace(st, stamp=stamp, pose=pose, linear_velocity=lin,
                                    angular_velocity=ang)
 
-    def close(self) -> None:
+    def close(self) -> None:  # noqa: B027 (an arm with nothing to release keeps it)
         """Stop and disconnect."""
 
     def __enter__(self):

@@ -21,9 +21,9 @@ from typing import Optional
 
 import numpy as np
 
+from dqpose import dq
 from dqpose.drivers.base import Arm, ArmError, LimitError, pose_delta, servo_step
 from dqpose.drivers.rotvec import quat_from_rotvec
-from dqpose import dq
 
 __all__ = ["Result", "Feedback", "Settings", "Buffer", "PlanSlots", "Tracking", "Control",
            "check_start", "claim", "plan_start", "MISSED_BEATS"]

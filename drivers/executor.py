@@ -64,11 +64,20 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from dqpose.drivers.base import Arm
-from dqpose.drivers.control import (Buffer, Control, Feedback, PlanSlots, Result, Settings,
-                                    check_start, claim, plan_start)
-from dqpose.drivers.spec import ARM_KEYS
 from dqpose import dq
+from dqpose.drivers.base import Arm
+from dqpose.drivers.control import (
+    Buffer,
+    Control,
+    Feedback,
+    PlanSlots,
+    Result,
+    Settings,
+    check_start,
+    claim,
+    plan_start,
+)
+from dqpose.drivers.spec import ARM_KEYS
 from dqpose.interpolate import MODES, interpolate
 
 __all__ = ["Result", "Feedback", "Executor"]
@@ -181,7 +190,8 @@ class Executor:
     runs as before and :attr:`realtime` says so once it runs. Opt-in: a real-time thread takes
     its core from everything of lower priority (on a 2-core machine, a controller simulator
     beside it). docs/benchmarks/arms.md#control-loop and
-    docs/benchmarks/arms.md#thread-or-process-for-the-loop measure both, and both places of the loop.
+    docs/benchmarks/arms.md#thread-or-process-for-the-loop measure both, and both places of the
+    loop.
     """
 
     def __init__(self, arm: Arm, *, interpolation: str = "tool_linear", prefill: float = 0.02,

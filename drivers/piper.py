@@ -20,15 +20,39 @@ from typing import Optional, Sequence
 import can
 import numpy as np
 
-from dqpose.drivers.base import (Arm, ArmError, ArmState, LimitError, Limits, Pacer, pose_delta,
-                          servo_step, tool_line, unit_pose)
 from dqpose.drivers import piper_can
+from dqpose.drivers.base import (
+    Arm,
+    ArmError,
+    ArmState,
+    LimitError,
+    Limits,
+    Pacer,
+    pose_delta,
+    servo_step,
+    tool_line,
+    unit_pose,
+)
 from dqpose.drivers.piper_can import *  # noqa: F401,F403 (re-exported)
-from dqpose.drivers.piper_can import (ARM_STATUS_FEEDBACK, CTRL_MODE_CAN, END_POSE_CTRL,
-                                      END_POSE_FEEDBACK, FEEDBACK_BLOCK, KNOWN_FEEDBACK, MOVE_P,
-                                      EndPoseAssembler, FrameError, MotionMode, StatusReport,
-                                      decode_arm_status, describe_status, encode_end_pose,
-                                      encode_motion_mode, pose_to_units, units_to_pose)
+from dqpose.drivers.piper_can import (
+    ARM_STATUS_FEEDBACK,
+    CTRL_MODE_CAN,
+    END_POSE_CTRL,
+    END_POSE_FEEDBACK,
+    FEEDBACK_BLOCK,
+    KNOWN_FEEDBACK,
+    MOVE_P,
+    EndPoseAssembler,
+    FrameError,
+    MotionMode,
+    StatusReport,
+    decode_arm_status,
+    describe_status,
+    encode_end_pose,
+    encode_motion_mode,
+    pose_to_units,
+    units_to_pose,
+)
 from dqpose.profile import Trapezoid
 
 __all__ = [*piper_can.__all__, "PiperArm"]

@@ -27,13 +27,20 @@ from typing import Optional
 
 import numpy as np
 
+from dqpose import dq
 from dqpose.drivers.base import Arm, ArmError, ArmState, LimitError, Limits, Pacer, unit_pose
 from dqpose.drivers.rotvec import pose_from_rotvec, rotvec_from_pose, rotvec_from_quat
 from dqpose.drivers.rtde import DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT, request_version
-from dqpose.drivers.ur_connection import (CLOSE_WAIT, Closed, disconnect, end_script,
-                                         keep_to_exit, probe,
-                                         restore_nodelay, within)
-from dqpose import dq
+from dqpose.drivers.ur_connection import (
+    CLOSE_WAIT,
+    Closed,
+    disconnect,
+    end_script,
+    keep_to_exit,
+    probe,
+    restore_nodelay,
+    within,
+)
 
 CB3_MAJOR = 3
 _SAFETY_STOPS = ("emergency stop", "protective stop")
@@ -49,7 +56,8 @@ class URArm(Arm):
     """A UR arm (CB3 or e-series) commanded in tool space through ``ur_rtde``.
 
     ``frequency`` defaults to the controller's (500 Hz e-series, 125 Hz CB3). The keys of
-    :data:`dqpose.drivers.spec.ARM_KEYS` (``options``): ``watchdog`` is how long ``servo()`` may stall
+    :data:`dqpose.drivers.spec.ARM_KEYS` (``options``): ``watchdog`` is how long ``servo()`` may
+    stall
     before the arm is stopped (``watchdog_periods``, the older way, counts it in periods);
     ``stale_after`` is how long (s) data timestamps may stand still before the controller counts
     as lost; ``connect_timeout`` bounds the reachability probe (``ur_rtde``'s own constructor
@@ -90,13 +98,15 @@ class URArm(Arm):
             raise ValueError(f"stop_decel: must be a positive number, got {stop_decel!r}")
         if watchdog_periods is not None and (int(watchdog_periods) != watchdog_periods
                                              or watchdog_periods < 1):
-            raise ValueError(f"watchdog_periods: must be a whole number >= 1, got {watchdog_periods!r}")
+            raise ValueError("watchdog_periods: must be a whole number >= 1, "
+                             f"got {watchdog_periods!r}")
         if limits is not None and not isinstance(limits, Limits):
             raise ValueError(f"limits: expected a drivers.base.Limits, got {type(limits).__name__}")
         self._set_options("ur", options)
         connect_timeout = self.connect_timeout
         self.host, self.limits = host, limits or Limits()
-        self.lookahead, self.gain, self.stop_decel = float(lookahead), float(gain), float(stop_decel)
+        self.lookahead, self.gain = float(lookahead), float(gain)
+        self.stop_decel = float(stop_decel)
         self.disconnect_on_close = bool(disconnect)
 
         for port in (RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT):
@@ -104,7 +114,8 @@ class URArm(Arm):
         try:
             self.version = tuple(request_version(host, RTDE_PORT, connect_timeout))
         except OSError as e:
-            raise ArmError(f"host: {host}:{RTDE_PORT} does not answer as a UR controller ({e})") from None
+            raise ArmError(f"host: {host}:{RTDE_PORT} does not answer as a UR controller "
+                           f"({e})") from None
         self.frequency = float(frequency or (500.0 if self.version[0] > CB3_MAJOR else 125.0))
         self.period = 1.0 / self.frequency
         if watchdog_periods is not None:
@@ -316,7 +327,8 @@ class URArm(Arm):
                 deadline = time.monotonic() + 2.0
                 while not self._call("isProgramRunning"):
                     if time.monotonic() > deadline:
-                        raise ArmError("cannot recover: the control script did not start within 2 s")
+                        raise ArmError("cannot recover: the control script did not start "
+                                       "within 2 s")
                     time.sleep(0.01)
             self._last_setpoint = None
             with self._state_lock:
@@ -461,7 +473,8 @@ class URArm(Arm):
                     return
                 if time.monotonic() > deadline:
                     self.stop()
-                    raise ArmError(f"move: not finished within {timeout:.1f} s; the arm was stopped")
+                    raise ArmError(f"move: not finished within {timeout:.1f} s; "
+                                   "the arm was stopped")
                 time.sleep(min(0.005, self.period))
         finally:
             self._moving = False

@@ -10,11 +10,10 @@ stops. A plan that does not start where the arm is gets refused, never jumped to
 """
 import numpy as np
 
-from dqpose import drivers
+from dqpose import dq, drivers, trajectory
+from dqpose.cli.common import local_server
 from dqpose.drivers.executor import Executor
 from dqpose.drivers.sim.ur import URSimProcess
-from dqpose import dq, trajectory
-from dqpose.cli.common import local_server
 from dqpose.rpc.client import Client, RpcError
 
 limits = trajectory.Limits(max_linear_velocity=0.1, max_angular_velocity=0.5,

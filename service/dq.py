@@ -22,7 +22,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from dqpose import _dqcore as _c  # type: ignore[attr-defined]  # C extension: no stub
+from dqpose import _dqcore as _c
 
 __all__ = [
     "METHODS", "Method", "UNIT_TOL", "DIBResult", "Screw",

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
-from typing import NamedTuple
+from typing import NamedTuple, Optional
 
 import numpy as np
 
@@ -252,7 +252,7 @@ def _start_rate(v0: np.ndarray, poses, mode) -> float | None:
            else np.diff(dq.to_pose(poses[:2])[1], axis=0)[0])
     u = np.concatenate([lin, dq.transform(turn, twist[:3])])
     rate = float(v0 @ u / (u @ u))
-    if rate < 0 or np.linalg.norm(v0 - rate * u) > 1e-9 * max(1.0, np.linalg.norm(v0)):
+    if rate < 0 or np.linalg.norm(v0 - rate * u) > 1e-9 * max(1.0, float(np.linalg.norm(v0))):
         return None
     return rate
 
@@ -330,7 +330,8 @@ def plan(waypoints, limits: Limits, interpolation: str = "tool_linear", *,
         i = over[0]
         raise FieldError(f"waypoints[{i}].blend_radius: {float(radius[i])!r} m is more than half a "
                          f"neighbouring segment ({float(half_len[i])!r} m)")
-    sigma0, v0 = 0.0, None
+    sigma0: Optional[float] = 0.0
+    v0 = None
     if start_velocity is not None:
         v0 = _start_vector(start_velocity)
         if math.hypot(*v0) < _AT_REST:
@@ -345,6 +346,7 @@ def plan(waypoints, limits: Limits, interpolation: str = "tool_linear", *,
         code, bad, table, duration, segs = _c.traj_plan(poses, mode, radius, times,
                                                        limits.as_array(), sigma0)
     else:
+        assert v0 is not None           # only a start velocity has no rate along the path
         code, bad, table, duration, segs = _plan_redirected(poses, mode, radius, times, limits, v0)
     if code == _E_TIME:
         raise Infeasible(f"waypoints[{bad}].time: {float(times[bad])!r} s cannot be met under the "

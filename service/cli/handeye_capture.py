@@ -178,7 +178,13 @@ def capture(args) -> int:
         return 0
     import cv2
 
-    from dqpose.drivers.camera import BoardSpec, CharucoCamera, load_board, load_intrinsics, read_image
+    from dqpose.drivers.camera import (
+        BoardSpec,
+        CharucoCamera,
+        load_board,
+        load_intrinsics,
+        read_image,
+    )
     from dqpose.drivers.sim.camera import DEFAULT_INTRINSICS
     # a resumed capture draws its own noise and candidate views, not the first run's again
     rng = np.random.default_rng(args.seed + (len(previous.images) if previous else 0))

@@ -122,7 +122,7 @@ def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
         return replace(
             f, time=time, extrapolation=0.0,
             twist=None if Wp is None else _frozen(np.zeros(DOF)),
-            twist_covariance=None if Wp is None else _frozen(twist_prior),
+            twist_covariance=None if Wp is None or twist_prior is None else _frozen(twist_prior),
             latencies=tuple(Latency(s, table[s].latency, table[s].latency_sigma,
                                     table[s].latency, table[s].latency_sigma)
                             for s in estimated))
@@ -157,9 +157,11 @@ def _result(gated, span: _Span, model: _Model, names, sources, code, table, esti
     drop, keep, twist = span.drop, span.keep, model.twist
     out = ~inlier if keep is None else ~inlier & keep
     rejected = _rejections(names, nis, out, gate2, probability)
-    dropped = () if drop is None else tuple(
-        Dropped(int(i), names[i], float(time - taken[i]), span.max_skew)
-        for i in np.flatnonzero(drop))
+    dropped: tuple = ()
+    if drop is not None:
+        assert span.max_skew is not None    # measurements are dropped by the skew bound only
+        dropped = tuple(Dropped(int(i), names[i], float(time - taken[i]), span.max_skew)
+                        for i in np.flatnonzero(drop))
     P = fit.P
     off = model.offset
     latencies = tuple(Latency(s, table[s].latency, table[s].latency_sigma, float(fit.ell[k]),

@@ -145,18 +145,20 @@ def _correlated_fit(Z, S, model: _Model, inlier: np.ndarray, tol: float,
     """Fit of the measurements ``inlier`` selects under the model error, evaluated at every
     measurement, started from the constant-twist fit."""
     Zi, Si, mi = Z[inlier], S[inlier], model.take(inlier)
+    accel = model.accel
+    assert accel is not None        # this fit is the model error's
     # the constant-twist fit starts it: cheap, and near when the model error is small
     X, V, ell, *_, iterations = _constant_twist(Z, S, model, inlier, tol, max_iter)[:7]
     iterations = int(iterations)
     at = ell
-    Cinv = _information(Si, mi.dt(at), model.accel)
+    Cinv = _information(Si, mi.dt(at), accel)
     for _ in range(_PASSES if ell.size else 1):
         X, V, ell, status, it = _motion_solve(Zi, mi, X, V, ell, tol, max_iter, Cinv)
         iterations += it
         if np.all(np.abs(ell - at) < _LATENCY_SETTLED):
             break
         at = ell
-        Cinv = _information(Si, mi.dt(at), model.accel)
+        Cinv = _information(Si, mi.dt(at), accel)
     dt, r, _ = _motion_evaluate(X, V, ell, Z, None, model)
     Wm = _marginal_information(S, dt, model.accel)
     cost = np.einsum("ni,nij,nj->n", r, Wm, r)
@@ -185,6 +187,7 @@ def _correlated_nis(fit: _MotionFit, S, inlier: np.ndarray, model: _Model):
     conditional mean given the inliers', against that covariance plus the fit's."""
     n, dim = S.shape[0], model.dim
     rows = np.repeat(inlier, DOF)
+    assert fit.G is not None and fit.Cinv is not None and model.accel is not None  # correlated
     G = fit.G.reshape(n * DOF, dim)
     r = fit.r.ravel()
     Ci = fit.Cinv

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Iterable, NamedTuple, Optional, Sequence
+from typing import Any, Iterable, NamedTuple, Optional, Sequence
 
 import numpy as np
 
@@ -275,11 +275,11 @@ class Tracker:
         window-floor check, then the store."""
         every = bool(ok.all())
         # known sources and bodies by plain look-ups (the common case), else coded on the way
-        codes = [self._codes.get(s) for s in sources] if every else [None]
+        codes: Any = [self._codes.get(s) for s in sources] if every else [None]
         if None in codes:
             use = ok.tolist()
             codes = [self._source_code(s) if u else 0 for u, s in zip(use, sources)]
-        body = [self._body_codes.get(b) for b in bodies] if every else [None]
+        body: Any = [self._body_codes.get(b) for b in bodies] if every else [None]
         if None in body:
             use = ok.tolist()
             body = [self._body_code(b) if u else 0 for u, b in zip(use, bodies)]
@@ -341,7 +341,9 @@ class Tracker:
         their body's newest measurement, the earlier rows of the call counted (for a body new
         to the stream, its earliest row of the call is the reference), unless the row confirms
         the body's last refused jump by lying within ``max_time_jump`` of it."""
-        jump = self.limits.max_time_jump
+        limits = self.limits
+        assert limits is not None       # called only for a tracker with limits
+        jump = limits.max_time_jump
         ref = self._newest[body]
         fresh = ~np.isfinite(ref)
         if fresh.any():
@@ -352,7 +354,7 @@ class Tracker:
         if not len(ahead):
             return
         suspects = set(body[ahead].tolist())
-        current = {}
+        current: dict[int, float] = {}
         for k in range(len(body)):
             b = int(body[k])
             if not ok[k] or b not in suspects:
@@ -373,12 +375,14 @@ class Tracker:
                 f"measurements[{k}]", f"body {bodies[k]!r}, source {sources[k]!r}, time "
                 f"{float(times[k])!r}: taken {t - cur:.6g} s after the newest measurement of "
                 f"the body, so not used (a second measurement near it would confirm the jump)",
-                self.limits, "max_time_jump")
+                limits, "max_time_jump")
 
     def _room(self, ok, errors) -> None:
         """Refuses the rows that would take the stream past ``max_stream_measurements`` live
         measurements (those out of their window dropped first)."""
-        s, cap = self._store, self.limits.max_stream_measurements
+        limits = self.limits
+        assert limits is not None       # called only for a tracker with limits
+        s, cap = self._store, limits.max_stream_measurements
         k = int(np.count_nonzero(ok))
         if s.n + k <= cap:
             return
@@ -389,5 +393,5 @@ class Tracker:
         for j in np.flatnonzero(ok)[k - over:].tolist():
             ok[j] = False
             errors[j] = _limits.over(
-                f"measurements[{j}]", f"the stream's windows hold {s.n} measurements", self.limits,
+                f"measurements[{j}]", f"the stream's windows hold {s.n} measurements", limits,
                 "max_stream_measurements")

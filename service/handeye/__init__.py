@@ -1,4 +1,5 @@
-"""Hand-eye calibration: robot and camera poses in, the camera's mount with an honest covariance out.
+"""Hand-eye calibration: robot and camera poses in, the camera's mount with an honest covariance
+out.
 
 Conventions (the rest of dqpose's, :mod:`dqpose.dq` and :mod:`dqpose.lie`):
 
@@ -21,7 +22,8 @@ The solution, in order:
 1. **Closed form** (Daniilidis 1999, dual quaternions): motions between all pairs ``i < j``
    (not only consecutive ones), ``A_j⁻¹A_i · X = X · C_j C_i⁻¹``; each pair's dual quaternions put
    in one hemisphere (scalar parts ≥ 0, the short screw both sides); pairs that rotate less than
-   ``closed_form._MIN_PAIR_ANGLE`` or nearly half a turn (sign ill-defined) left out, and samples whose pairs
+   ``closed_form._MIN_PAIR_ANGLE`` or nearly half a turn (sign ill-defined) left out, and samples
+   whose pairs
    are not screw-congruent (rotation angle and pitch of the two motions must agree) left out of
    it; the 6 m × 8 system solved by SVD, then re-solved with Huber weights on each pair's
    residual (robust averaging). ``Z`` is then the DIB mean (:func:`dqpose.dq.dib`) of the
@@ -32,14 +34,16 @@ The solution, in order:
    ``Σ_r,i = Jr⁻¹(r_i) (Ad(K_i⁻¹) Σ_A,i Ad(K_i⁻¹)ᵀ + Σ_C,i) Jr⁻ᵀ``, ``K_i = X C_i``
    (the errors-in-variables problem with the true poses eliminated, to first order), re-evaluated
    at each iterate. The noise covariances are the caller's when given (``noise_model == "given"``),
-   else **estimated from the residuals** (``"estimated"``, :class:`~dqpose.handeye.noise._Noise`): three isotropic
+   else **estimated from the residuals** (``"estimated"``, :class:`~dqpose.handeye.noise._Noise`):
+   three isotropic
    variance components, camera rotation, translation (camera and robot alike) and robot rotation
    (which reaches the residual's translation through the lever arm ``X C_i``), by REML Fisher
    scoring at every iterate, the 12 fitted degrees of freedom taken out by leverage. The
    covariance of ``(X, Z)`` is the inverse of the information ``Σ Jᵢᵀ Σ_r,i⁻¹ Jᵢ`` at the
    optimum; ``covariance_x``/``covariance_z`` are its marginals. With the noise estimated, the
    uncertainty of the estimate is propagated into them (Kenward–Roger,
-   :meth:`~dqpose.handeye.noise._Noise.kenward_roger`): from 10 poses the bare ``H(θ̂)⁻¹`` had mean NEES 6.7–9.3; with
+   :meth:`~dqpose.handeye.noise._Noise.kenward_roger`): from 10 poses the bare ``H(θ̂)⁻¹`` had mean
+   NEES 6.7–9.3; with
    it 5.6–6.8 over 200 seeded trials on every row of tests/bench/bench_handeye.py (5.7–6.3 at
    20 poses).
 3. **Outliers**: every sample is gated on its NIS (χ² with 6 dof, probability ``outliers._GATE``):
@@ -53,7 +57,8 @@ The solution, in order:
    order: ``P J_iᵀ S_i⁻¹ r_i``), the closed form's distance from the answer in its own
    covariance, and :func:`next_best_pose`.
 5. **Corner level** (``corners`` given): maximum likelihood on the reprojection of the board's
-   corners through ``C_i = X⁻¹ A_i⁻¹ Z`` (:func:`~dqpose.handeye.corners._corner_fit`), from the pose-level answer, with
+   corners through ``C_i = X⁻¹ A_i⁻¹ Z`` (:func:`~dqpose.handeye.corners._corner_fit`), from the
+   pose-level answer, with
    an optional focal-length scale and a correction of each robot pose under the robot's noise,
    given or estimated (taken as exact, 0.02° / 0.1 mm of robot noise made the covariance claim
    ~20× too much; modelled, mean NEES 5.3–6.3). The corner noise is estimated per view: among
@@ -76,12 +81,14 @@ answering them as given would be silently wrong (:mod:`~dqpose.handeye.readings`
 
 * **Both poses inverted** (``T_flange_base`` and ``T_target_camera``) fits exactly as well as
   the truth, X and Z exchanged (``F⁻¹ Z C⁻¹ = X``). Plausibility tells: a flange-mounted part
-  within ``readings._MAX_MOUNT`` of the flange, a fixed one ``readings._MIN_FIXED`` off the base, and the target in
+  within ``readings._MAX_MOUNT`` of the flange, a fixed one ``readings._MIN_FIXED`` off the base,
+  and the target in
   front of the camera (``z > 0`` in ``T_camera_target``; inverted, the camera's position in the
   board's frame, whose sign depends on the board's convention). When the mount is implausible as
   given and plausible inverted and the depths agree with the inverted reading, the answer is the
   inverted reading's, with a warning; when the depths do not tell, ``Infeasible`` naming both.
-* **The camera's translations at another scale** (a wrong board size, :func:`~dqpose.handeye.readings._camera_scale`):
+* **The camera's translations at another scale** (a wrong board size,
+  :func:`~dqpose.handeye.readings._camera_scale`):
   the data are re-solved with the camera's translations (and at corner level the board's points)
   scaled by the best-fitting scale, whose uncertainty enters the covariance (at corner level the
   board's scale is refined with the corners), with a warning naming the scale.
@@ -99,11 +106,11 @@ what it returns.
 """
 from dqpose.handeye.calibrate import calibrate
 from dqpose.handeye.checks import check
-from dqpose.handeye.likelihood import _evaluate, _linearise  # tests check the Jacobians
+from dqpose.handeye.likelihood import _evaluate, _linearise  # noqa: F401 (tests check the Jacobians)
 from dqpose.handeye.next_best import next_best_pose
-from dqpose.handeye.noise import _Noise  # tests check the Jacobians
+from dqpose.handeye.noise import _Noise  # noqa: F401 (tests check the Jacobians)
 from dqpose.handeye.result import Calibration, Rejection
 from dqpose.handeye.setups import EYE_IN_HAND, EYE_TO_HAND, SETUPS, flange_for, view_at
 
-__all__ = ["SETUPS", "EYE_IN_HAND", "EYE_TO_HAND", "Calibration", "Rejection", "calibrate", "check",
-           "flange_for", "next_best_pose", "view_at"]
+__all__ = ["SETUPS", "EYE_IN_HAND", "EYE_TO_HAND", "Calibration", "Rejection", "calibrate",
+           "check", "flange_for", "next_best_pose", "view_at"]

@@ -11,13 +11,19 @@ import numpy as np
 
 from dqpose import dq, lie
 from dqpose.errors import FieldError, Infeasible
-from dqpose.handeye.checks import _Prepared, _prepare, _samples
+from dqpose.handeye.checks import _prepare, _Prepared, _samples
 from dqpose.handeye.corners import _corner_fit, _views
 from dqpose.handeye.likelihood import _Fit
 from dqpose.handeye.noise import _noise_model
 from dqpose.handeye.outliers import _against, _gated, _leave_one_out
-from dqpose.handeye.readings import (_MIN_SCALE, _SCALE_SIGMAS, _camera_scale, _inverse_noise,
-                                     _moved, _plausible)
+from dqpose.handeye.readings import (
+    _MIN_SCALE,
+    _SCALE_SIGMAS,
+    _camera_scale,
+    _inverse_noise,
+    _moved,
+    _plausible,
+)
 from dqpose.handeye.result import Calibration
 from dqpose.handeye.setups import EYE_IN_HAND
 
@@ -186,8 +192,8 @@ def _both_inverted(q: _Request, p: _Prepared, fit: _Fit, inlier, SC, SRob,
                              f"conventions (the flange in the robot's base frame, the target "
                              f"in the camera's) ({_samples(idx)})")
     if not given.mount_ok:
-        why = (f"though the target lies in front of the camera as given and behind it "
-               f"inverted" if given.front and other.behind else
+        why = ("though the target lies in front of the camera as given and behind it "
+               "inverted" if given.front and other.behind else
                f"and as inverted poses {other.says}")
         warnings.append(f"{_samples(idx)}: {given.says}, {why}: check the mount and the pose "
                         f"conventions (both poses inverted fit as well)")

@@ -58,7 +58,7 @@ def _null_dq(T: np.ndarray) -> np.ndarray:
         cands = [R @ np.array([c[0], c[1]]), R @ np.array([c[0], -c[1]])]
     else:                                      # noise: the nearest direction to a root
         cands = [R[:, int(np.argmin(np.abs(e)))]]
-    lam = max(cands, key=lambda l: l @ N @ l)
+    lam = max(cands, key=lambda c: c @ N @ c)
     lam = lam / np.sqrt(lam @ N @ lam)
     x = lam[0] * v1 + lam[1] * v2
     return dq.normalize(_hemisphere(x))

@@ -229,7 +229,7 @@ def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool
         cost = np.inf
         # While the robot's variances are still moving a couple of steps per round do; the
         # round after they settle converges.
-        for it in range(50 if settled else 2):
+        for _ in range(50 if settled else 2):
             M = _corner_cameras(Fu, setup, X, Z, delta)
             pts = sub.points * board
             pc, u, Jp, ds = _project(M, _Views(pts, sub.pixels, sub.view, sub.K), scale)

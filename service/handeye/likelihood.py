@@ -55,7 +55,7 @@ def _fit(A, C, X, Z, noise: _Noise, use) -> _Fit:
     Au, Cu = A[use], C[use]
     AdCi = lie.adjoint(dq.inv(Cu))
     it = 0
-    for it in range(1, _MAX_ITER + 1):
+    for it in range(1, _MAX_ITER + 1):  # noqa: B007 (the count is read after the loop)
         E, r, J, S = _linearise(Au, Cu, AdCi, X, Z, noise, use)
         for _ in range(20 if noise.estimate else 1):
             W = np.linalg.inv(S)

@@ -104,7 +104,8 @@ class _Noise:
         G, last = self.G, self.theta
         assert G is not None and last is not None, "set by __call__ (estimated)"
         W, B, _, _, F = self._reml(J, P)
-        u = (W @ r[..., None])[..., 0] - B @ (P @ (np.swapaxes(B, 1, 2) @ r[..., None]).sum(0))[..., 0]
+        Btr = (np.swapaxes(B, 1, 2) @ r[..., None]).sum(0)
+        u = (W @ r[..., None])[..., 0] - B @ (P @ Btr)[..., 0]
         q = (u[:, None, None, :] @ G @ u[:, None, :, None])[..., 0, 0].sum(axis=0)
         free = np.ones(3, bool)
         theta = last

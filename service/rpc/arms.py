@@ -23,10 +23,10 @@ import grpc
 
 from dqpose import limits, trajectory
 from dqpose.errors import FieldError, Infeasible, rename
-from dqpose.rpc.calls import Calls, refused
-from dqpose.rpc.convert import dq_to_pose, plan_from_msg
 from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
+from dqpose.rpc.calls import Calls, refused
+from dqpose.rpc.convert import dq_to_pose, plan_from_msg
 
 #: an Execute feedback record every this many set-points (50 Hz at 500 Hz), and the last one
 FEEDBACK_EVERY = 10
@@ -148,6 +148,7 @@ class Arms:
                 status, details = refused("Execute", e)
                 code = status.name
                 await context.abort(status, details)
+            assert run is not None          # claimed above, or the call was aborted
             while True:
                 fb = await run.queue.get()
                 await context.write(_feedback_msg(fb))

@@ -15,14 +15,20 @@ from dqpose import dq, limits
 from dqpose.errors import FieldError, rename
 from dqpose.interpolate import interpolate
 from dqpose.rpc import BATCH_POSE_FACTOR, DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
+from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
+from dqpose.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
 from dqpose.rpc.blending_convert import METHOD_NAMES
 from dqpose.rpc.calls import INTERNAL_DETAILS, Calls, fit, log, readable, refusal
 from dqpose.rpc.checks import check_count, field_named
-from dqpose.rpc.geometry import (arrays_to_stamped, dq_to_pose, flat_to_dqs, interpolation_named,
-                                 poses_to_flat, stamped_to_arrays)
+from dqpose.rpc.geometry import (
+    arrays_to_stamped,
+    dq_to_pose,
+    flat_to_dqs,
+    interpolation_named,
+    poses_to_flat,
+    stamped_to_arrays,
+)
 from dqpose.rpc.wire import blend_batch_wire, blend_wire, decode_blend_request
-from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
-from dqpose.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
 
 DEFAULT_TOLERANCE = 1e-12
 DEFAULT_MAX_ITERATIONS = 100
@@ -118,7 +124,8 @@ class Blending(pb_grpc.BlendingServicer):
             try:
                 request = pb.BlendBatchRequest.FromString(data)
             except DecodeError:
-                raise FieldError("request: not a valid dqpose.v1.BlendBatchRequest message") from None
+                raise FieldError("request: not a valid dqpose.v1.BlendBatchRequest "
+                                 "message") from None
             out = self.blend_batch(request).SerializeToString(), len(request.requests)
         return fit(out[0], self.max_message_bytes, "requests", out[1], "requests"), out[1]
 
@@ -189,7 +196,8 @@ class Blending(pb_grpc.BlendingServicer):
             "BlendStream": grpc.stream_stream_rpc_method_handler(self.BlendStream, **raw),
             "BlendBatch": grpc.unary_unary_rpc_method_handler(self.BlendBatch, **raw),
         }
-        server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(self.NAME, handlers),))
+        generic = grpc.method_handlers_generic_handler(self.NAME, handlers)
+        server.add_generic_rpc_handlers((generic,))
         server.add_registered_method_handlers(self.NAME, handlers)
 
     async def Blend(self, request: bytes, context):

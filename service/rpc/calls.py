@@ -22,8 +22,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import grpc
 
-from dqpose.errors import FieldError, Infeasible, MissingExtra
 from dqpose import limits
+from dqpose.errors import FieldError, Infeasible, MissingExtra
 from dqpose.limits import OverLimit
 
 log = logging.getLogger("dqpose.server")

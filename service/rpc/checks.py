@@ -15,7 +15,8 @@ def over_count(field: str, n: int, limit: int, what: str = "") -> str | None:
     """The text refusing ``n`` items (``what``) of ``field`` over ``limit``; None within it."""
     if n <= limit:
         return None
-    return f"{field}: {n}{' ' + what if what else ''} exceed the server limit of {limit} per request"
+    counted = f"{n} {what}" if what else f"{n}"
+    return f"{field}: {counted} exceed the server limit of {limit} per request"
 
 
 def check_count(field: str, n: int, limit: int, what: str = "", *, empty: bool = False) -> None:

@@ -28,23 +28,43 @@ import numpy as np
 
 from dqpose import dq, fusion, handeye, trajectory
 from dqpose.rpc import BATCH_POSE_FACTOR, DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
-from dqpose.rpc.blending_convert import METHOD_ENUMS
-from dqpose.rpc.checks import over_count
-from dqpose.rpc.fusion_convert import (DEFAULT_MAX_EXTRAPOLATION, DEFAULT_PROBABILITY,
-                                       DEFAULT_WINDOW, fused_from_msg, measurement_msgs,
-                                       options_msg)
-from dqpose.rpc.geometry import (INTERPOLATION_ENUMS, pose_arrays, pose_to_dq, poses_to_arrays,
-                                 poses_to_flat, stamped_msgs)
-from dqpose.rpc.handeye_convert import calibrate_msg, calibration_from_msg
-from dqpose.rpc.trajectories_convert import (PLAN_INTERPOLATION, limits_msg, plan_msg,
-                                             samples_from_msgs)
-from dqpose.rpc.wire import (blend_batch_items_wire, blend_request_wire,
-                             blend_responses_from_wire, interpolate_request_wire,
-                             measurements_wire, stamped_poses_wire)
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from dqpose.rpc._proto.dqpose.v1 import handeye_pb2 as hpb
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
+from dqpose.rpc.blending_convert import METHOD_ENUMS
+from dqpose.rpc.checks import over_count
+from dqpose.rpc.fusion_convert import (
+    DEFAULT_MAX_EXTRAPOLATION,
+    DEFAULT_PROBABILITY,
+    DEFAULT_WINDOW,
+    fused_from_msg,
+    measurement_msgs,
+    options_msg,
+)
+from dqpose.rpc.geometry import (
+    INTERPOLATION_ENUMS,
+    pose_arrays,
+    pose_to_dq,
+    poses_to_arrays,
+    poses_to_flat,
+    stamped_msgs,
+)
+from dqpose.rpc.handeye_convert import calibrate_msg, calibration_from_msg
+from dqpose.rpc.trajectories_convert import (
+    PLAN_INTERPOLATION,
+    limits_msg,
+    plan_msg,
+    samples_from_msgs,
+)
+from dqpose.rpc.wire import (
+    blend_batch_items_wire,
+    blend_request_wire,
+    blend_responses_from_wire,
+    interpolate_request_wire,
+    measurements_wire,
+    stamped_poses_wire,
+)
 
 DEFAULT_TARGET = "127.0.0.1:50051"
 SERVICE = pb.DESCRIPTOR.services_by_name["Blending"].full_name

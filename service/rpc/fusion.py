@@ -16,15 +16,23 @@ from google.protobuf.message import DecodeError
 from dqpose import fusion, limits
 from dqpose.errors import FieldError, rename
 from dqpose.rpc import DEFAULT_MAX_POSES
-from dqpose.rpc.calls import INTERNAL_DETAILS, Calls, log, readable, refusal
-from dqpose.rpc.checks import over_count
-from dqpose.rpc.fusion_convert import (DEFAULT_WINDOW, Measurements, Options, fused_pose,
-                                       fused_to_msg, measurements_to_arrays, options_error,
-                                       options_from_msg, unknown_sources,
-                                       wire_measurement_error)
-from dqpose.rpc.wire import CONVERT_LAST, fuse_stream_from_wire
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2_grpc as pb_grpc
+from dqpose.rpc.calls import INTERNAL_DETAILS, Calls, log, readable, refusal
+from dqpose.rpc.checks import over_count
+from dqpose.rpc.fusion_convert import (
+    DEFAULT_WINDOW,
+    Measurements,
+    Options,
+    fused_pose,
+    fused_to_msg,
+    measurements_to_arrays,
+    options_error,
+    options_from_msg,
+    unknown_sources,
+    wire_measurement_error,
+)
+from dqpose.rpc.wire import CONVERT_LAST, fuse_stream_from_wire
 
 
 def tick_phase(body: str) -> float:
@@ -296,7 +304,8 @@ class Fusion(pb_grpc.FusionServicer):
 
     def stream_answers_wire(self, state, data: bytes, r: int, first_id: int):
         """:meth:`stream_step` of request ``r``'s bytes: ``(answers, its number of
-        measurements)``, the answers an iterator that fuses each as it is taken. A plain request (measurements only) is decoded and checked in C
+        measurements)``, the answers an iterator that fuses each as it is taken. A plain request
+        (measurements only) is decoded and checked in C
         (:func:`dqpose.rpc.wire.fuse_stream_from_wire`) and its valid measurements go to the tracker
         unchecked; any other takes the protobuf path. Both give the same answers. Bytes that are
         not a FuseStreamRequest are an error entry for the request."""
@@ -357,7 +366,8 @@ class Fusion(pb_grpc.FusionServicer):
                 self.StreamFuse, request_deserializer=None,
                 response_serializer=pb.FusedPose.SerializeToString),
         }
-        server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(self.NAME, handlers),))
+        generic = grpc.method_handlers_generic_handler(self.NAME, handlers)
+        server.add_generic_rpc_handlers((generic,))
         server.add_registered_method_handlers(self.NAME, handlers)
 
     async def Fuse(self, request: bytes, context):

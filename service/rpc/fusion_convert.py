@@ -17,10 +17,17 @@ import numpy as np
 from dqpose import dq, fusion, limits
 from dqpose.errors import FieldError, rename
 from dqpose.rpc import DEFAULT_MAX_POSES
-from dqpose.rpc.checks import check_count, field_named
-from dqpose.rpc.geometry import (COVARIANCE_SIZE, dq_to_pose, optional_pose, pose_arrays,
-                                 pose_from_row, pose_msgs, pose_to_dq)
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
+from dqpose.rpc.checks import check_count, field_named
+from dqpose.rpc.geometry import (
+    COVARIANCE_SIZE,
+    dq_to_pose,
+    optional_pose,
+    pose_arrays,
+    pose_from_row,
+    pose_msgs,
+    pose_to_dq,
+)
 
 DEFAULT_PROBABILITY = fusion.DEFAULT_PROBABILITY
 DEFAULT_MAX_EXTRAPOLATION = fusion.DEFAULT_MAX_EXTRAPOLATION
@@ -320,7 +327,7 @@ def fused_from_msg(msg, probability: float = DEFAULT_PROBABILITY,
                         for a in msg.latencies))
 
 
-# ---- a FuseRequest as fusion.fuse's arguments, errors named by field ------------------------------
+# ---- a FuseRequest as fusion.fuse's arguments, errors named by field ---------------------------
 
 # The domain's per-measurement arguments, as fields of a Measurement.
 _MEASUREMENT_FIELDS = {"poses": "pose", "covariances": "covariance", "times": "time"}

@@ -14,10 +14,10 @@ from google.protobuf.message import DecodeError
 
 from dqpose import handeye, limits
 from dqpose.errors import FieldError
+from dqpose.rpc._proto.dqpose.v1 import handeye_pb2 as pb
 from dqpose.rpc.calls import Calls
 from dqpose.rpc.checks import check_count
 from dqpose.rpc.handeye_convert import calibrate_error, calibrate_from_msg, calibration_to_msg
-from dqpose.rpc._proto.dqpose.v1 import handeye_pb2 as pb
 
 
 class HandEye:
@@ -62,7 +62,8 @@ class HandEye:
         handlers: dict[str, grpc.RpcMethodHandler[Any, Any]] = {
             "Calibrate": grpc.unary_unary_rpc_method_handler(
                 self.Calibrate, request_deserializer=None, response_serializer=None)}
-        server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(self.NAME, handlers),))
+        generic = grpc.method_handlers_generic_handler(self.NAME, handlers)
+        server.add_generic_rpc_handlers((generic,))
         server.add_registered_method_handlers(self.NAME, handlers)
 
     async def Calibrate(self, request: bytes, context):

@@ -13,10 +13,17 @@ import numpy as np
 
 from dqpose import handeye
 from dqpose.errors import FieldError, rename_all
-from dqpose.rpc.checks import field_named
-from dqpose.rpc.geometry import (COVARIANCE_SIZE, dq_to_pose, flat_to_dqs, pose_arrays,
-                                 pose_msgs, pose_to_dq, poses_to_flat)
 from dqpose.rpc._proto.dqpose.v1 import handeye_pb2 as hpb
+from dqpose.rpc.checks import field_named
+from dqpose.rpc.geometry import (
+    COVARIANCE_SIZE,
+    dq_to_pose,
+    flat_to_dqs,
+    pose_arrays,
+    pose_msgs,
+    pose_to_dq,
+    poses_to_flat,
+)
 
 #: the domain's setups (:data:`dqpose.handeye.SETUPS`) as the proto's Setup values
 SETUP_ENUMS = {name: hpb.Setup.Value(f"SETUP_{name.upper()}") for name in handeye.SETUPS}

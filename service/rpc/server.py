@@ -199,7 +199,7 @@ def _check_tls(cert: bytes | None, key: bytes | None, client_ca: bytes | None) -
         _certificates("client_ca", client_ca)
 
 
-# --------------------------------------------------------------------------- gate, auth, health, metrics
+# ------------------------------------------------------------------ gate, auth, health, metrics
 
 OPEN_PREFIXES = ("/grpc.health.v1.Health/",)   # what no interceptor refuses
 
@@ -310,8 +310,10 @@ class Health(health_pb2_grpc.HealthServicer):
         sent = None
         while True:
             async with self._changed:
+                # the predicate runs within this pass of the loop, on this pass's `sent`
                 await self._changed.wait_for(
-                    lambda: self._closed or self._status.get(request.service, unknown) != sent)
+                    lambda sent=sent: (self._closed
+                                       or self._status.get(request.service, unknown) != sent))
                 status, closed = self._status.get(request.service, unknown), self._closed
             if status != sent:     # written without the lock: a slow watcher holds up no one
                 await context.write(health_pb2.HealthCheckResponse(status=status))
@@ -477,7 +479,8 @@ async def start(cfg: ServerConfig) -> Running:
         where = f"{cfg.host}:{cfg.metrics_port}"
         if e.errno == errno.EADDRINUSE:
             raise AddressInUse("serve metrics on", where, "metrics_port") from None
-        raise OSError(f"cannot serve metrics on {where}: {(e.strerror or str(e)).lower()}") from None
+        why = (e.strerror or str(e)).lower()
+        raise OSError(f"cannot serve metrics on {where}: {why}") from None
     calls = Calls(metrics, cfg.limits.workers)
     gate = Gate(calls)
     interceptors = [gate] + ([BearerTokenAuth(cfg.token, calls)] if cfg.token else [])

@@ -13,13 +13,17 @@ from google.protobuf.message import DecodeError
 
 from dqpose import limits, smoothing, trajectory
 from dqpose.errors import FieldError, rename
+from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
 from dqpose.rpc.arms import Arms
 from dqpose.rpc.calls import Calls, refused
 from dqpose.rpc.checks import check_count, field_named
 from dqpose.rpc.geometry import arrays_to_stamped, stamped_to_arrays
-from dqpose.rpc.trajectories_convert import (limits_from_msg, plan_from_msg, plan_info_msg,
-                                             sample_msgs)
-from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
+from dqpose.rpc.trajectories_convert import (
+    limits_from_msg,
+    plan_from_msg,
+    plan_info_msg,
+    sample_msgs,
+)
 
 #: the fields of a PlanRequest an error may start with
 PLAN_FIELDS = ("waypoints", "limits", "rate_hz", "interpolation", "start_linear_velocity",
@@ -137,7 +141,8 @@ class Trajectories:
                 self.ListArms, request_deserializer=pb.ListArmsRequest.FromString,
                 response_serializer=pb.ListArmsResponse.SerializeToString),
         }
-        server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(self.NAME, handlers),))
+        generic = grpc.method_handlers_generic_handler(self.NAME, handlers)
+        server.add_generic_rpc_handlers((generic,))
         server.add_registered_method_handlers(self.NAME, handlers)
 
     async def Smooth(self, request: bytes, context):

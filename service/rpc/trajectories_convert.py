@@ -12,10 +12,16 @@ import numpy as np
 
 from dqpose import dq, trajectory
 from dqpose.errors import FieldError, rename
-from dqpose.rpc.geometry import (INTERPOLATION_ENUMS, interpolation_named, pose_arrays,
-                                 pose_msgs, poses_to_arrays, poses_to_dqs)
 from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
+from dqpose.rpc.geometry import (
+    INTERPOLATION_ENUMS,
+    interpolation_named,
+    pose_arrays,
+    pose_msgs,
+    poses_to_arrays,
+    poses_to_dqs,
+)
 
 #: Plan's (and Execute's) mode for INTERPOLATION_UNSPECIFIED (trajectories.proto says so)
 PLAN_INTERPOLATION = "tool_linear"
@@ -49,7 +55,8 @@ def plan_from_msg(req, field: str = "", need_rate: bool = True) -> PlanArgs:
     mode = interpolation_named(req.interpolation, PLAN_INTERPOLATION, f"{field}interpolation")
     rate = float(req.rate_hz)
     if need_rate and not (math.isfinite(rate) and 0 < rate <= 10_000):
-        raise FieldError(f"{field}rate_hz: must be within (0, 10000] samples per second, got {rate:g}")
+        raise FieldError(f"{field}rate_hz: must be within (0, 10000] samples per second, "
+                         f"got {rate:g}")
     if not req.HasField("limits"):
         raise FieldError(f"{field}limits: required (velocity and acceleration limits)")
     limits = limits_from_msg(req.limits, f"{field}limits")
@@ -76,7 +83,8 @@ def plan_msg(waypoints, limits, rate_hz: float = 0.0, interpolation: str = PLAN_
                          f"{', '.join(trajectory.INTERPOLATIONS)}")
     wps = [w if isinstance(w, trajectory.Waypoint) else trajectory.Waypoint(pose=np.asarray(w))
            for w in waypoints]
-    poses = pose_msgs(*pose_arrays(np.array([w.pose for w in wps], dtype=np.float64).reshape(-1, 8)))
+    flat = np.array([w.pose for w in wps], dtype=np.float64).reshape(-1, 8)
+    poses = pose_msgs(*pose_arrays(flat))
     req = tpb.PlanRequest(
         waypoints=[tpb.Waypoint(pose=p, time=w.time, blend_radius=w.blend_radius)
                    for p, w in zip(poses, wps)],

@@ -12,10 +12,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from dqpose import _dqcore  # type: ignore[attr-defined]  # C extension: no stub
-from dqpose import fusion
+from dqpose import _dqcore, fusion
 from dqpose.rpc.fusion_convert import measurement_columns
-
 
 # ---- the servers' C fast paths -------------------------------------------------------------------
 
@@ -111,7 +109,7 @@ def blend_request_wire(q: np.ndarray, t: np.ndarray, weights=None, method: int =
     if method:
         parts += [b"\x18", _varint(method & 0xFFFFFFFFFFFFFFFF)]      # enum: int32 as varint
     tol = np.float64(tolerance).astype("<f8").tobytes()
-    if tol != bytes(8):                                               # -0.0 is sent, as protobuf does
+    if tol != bytes(8):                                         # -0.0 is sent, as protobuf does
         parts += [b"\x21", tol]
     if max_iterations:
         parts += [b"\x28", _varint(int(max_iterations))]
@@ -201,7 +199,8 @@ def stamped_poses_wire(times: np.ndarray, q: np.ndarray, t: np.ndarray, field: i
 
 def measurements_wire(poses, covariances=None, weights=None, names=None, bodies=None,
                       times=None) -> bytes:
-    """:func:`~dqpose.rpc.fusion_convert.measurement_msgs` as repeated ``FuseStreamRequest.measurements`` in wire bytes,
+    """:func:`~dqpose.rpc.fusion_convert.measurement_msgs` as repeated
+    ``FuseStreamRequest.measurements`` in wire bytes,
     the bytes protobuf would write for them (``service/csrc/wire.c``), ~30x faster: what a
     client streaming thousands of measurements a second spends per message."""
     q, t, covariances, weights, names, bodies, times = measurement_columns(
@@ -298,7 +297,8 @@ CONVERT_LAST: int = _dqcore.MEASUREMENT_CONVERT_LAST
 class WireMeasurements(NamedTuple):
     """A ``FuseStreamRequest``'s measurements decoded and checked in C
     (:func:`fuse_stream_from_wire`): every row, refused or not, with ``codes`` saying which check
-    refused it (0: none; up to :data:`CONVERT_LAST` those of :func:`~dqpose.rpc.fusion_convert.measurements_to_arrays`, the
+    refused it (0: none; up to :data:`CONVERT_LAST` those of
+    :func:`~dqpose.rpc.fusion_convert.measurements_to_arrays`, the
     rest :class:`fusion.Tracker`'s) and ``spans`` where its bytes are."""
     poses: np.ndarray          # (n, 8), as dq.from_pose makes them
     covariances: np.ndarray    # (n, 6, 6) symmetrised (as given where the Tracker refuses it)
@@ -312,7 +312,8 @@ class WireMeasurements(NamedTuple):
 def fuse_stream_from_wire(data: bytes) -> WireMeasurements | None:
     """A serialized ``FuseStreamRequest`` of measurements only, decoded and checked by the C
     core (service/csrc/wire.h ``dq_wire_fuse_stream``) by the rules of
-    :func:`~dqpose.rpc.fusion_convert.measurements_to_arrays` and :meth:`fusion.Tracker.ingest`; ``None`` for anything
+    :func:`~dqpose.rpc.fusion_convert.measurements_to_arrays` and :meth:`fusion.Tracker.ingest`;
+    ``None`` for anything
     else (options, unknown fields, bytes protobuf would refuse, a measurement on the edge of a
     rule), which the protobuf path then takes."""
     out = _dqcore.fuse_stream_from_wire(data, fusion._SYMMETRY_TOL)

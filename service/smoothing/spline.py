@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
@@ -19,7 +19,11 @@ _SPANS_PER_TAU = 3         # the spline's span is at most tau / this (dqpose.smo
 
 # scipy and casadi are the [planning] extra: imported when a problem is built, not with this
 # module, which the server imports to serve everything else without them.
-sp = cho_solve_banded = cholesky_banded = None
+if TYPE_CHECKING:
+    import scipy.sparse as sp
+    from scipy.linalg import cho_solve_banded, cholesky_banded
+else:
+    sp = cho_solve_banded = cholesky_banded = None
 
 
 def _solvers() -> None:
@@ -166,7 +170,7 @@ class _Structure(NamedTuple):
     D1E3: sp.csr_matrix       # the same on interleaved 3-vectors
     D2: sp.csr_matrix         # second differences of the increments (the jerk)
     jerk_band: np.ndarray     # (D2 D1E)^T (D2 D1E) as a full band (7, z): [3 + i - j, j] = H[i, j]
-    h_sparsity: object        # casadi pattern of kron(H, I3), H of bandwidth 3
+    h_sparsity: Any           # casadi pattern of kron(H, I3), H of bandwidth 3
     h_band_index: tuple       # where each of its non-zeros sits in the full band
 
 

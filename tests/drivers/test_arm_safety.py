@@ -12,14 +12,13 @@ import time
 
 import numpy as np
 import pytest
-
-from dqpose.drivers.base import ArmError, pose_delta, servo_step
-from dqpose.drivers.executor import Executor, Result
-from dqpose import dq, trajectory
 from _polling import wait_until
 from test_arm_limits import LIMITS
-from test_executor import (PiperExec, URExec, _plan, arm, rig,  # noqa: F401 (fixtures)
-                           run_parent)
+from test_executor import PiperExec, URExec, _plan, arm, rig, run_parent  # noqa: F401 (fixtures)
+
+from dqpose import dq, trajectory
+from dqpose.drivers.base import ArmError, pose_delta, servo_step
+from dqpose.drivers.executor import Executor, Result
 
 
 def _running(arm, **plan):
@@ -405,7 +404,9 @@ def test_runs_started_right_after_a_cancel_leak_no_shared_memory():
 
 def test_an_opened_arm_has_its_first_state_or_says_why_not():
     import uuid
+
     import can
+
     from dqpose import drivers
     from dqpose.drivers.sim.piper import HOME, PiperSim
     channel = f"first-{uuid.uuid4().hex[:8]}"

@@ -12,14 +12,14 @@ import time
 
 import numpy as np
 import pytest
-
-from dqpose.drivers.base import pose_delta, servo_step
-from dqpose.drivers.executor import Executor, Feedback, Result
-from dqpose import dq
-from dqpose.interpolate import interpolate
-from dqpose.profile import Trapezoid
 from _polling import wait_until
 from test_arm_limits import LIMITS, PiperRig, URRig, _same
+
+from dqpose import dq
+from dqpose.drivers.base import pose_delta, servo_step
+from dqpose.drivers.executor import Executor, Feedback, Result
+from dqpose.interpolate import interpolate
+from dqpose.profile import Trapezoid
 
 
 class URExec(URRig):
@@ -355,6 +355,7 @@ def run_parent(script: str, host: str, timeout: float = 60):
 def test_a_killed_parent_brakes_the_arm_to_a_stop_and_its_process_ends():
     pytest.importorskip("rtde_control")
     import os
+
     from dqpose.drivers.rotvec import pose_from_rotvec
     from dqpose.drivers.sim import ur as ursim
     with ursim.URSimProcess(args=("--max-linear-speed", "5")) as sim:

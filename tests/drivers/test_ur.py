@@ -10,12 +10,13 @@ import pytest
 
 pytest.importorskip("rtde_control")
 
+from _polling import wait_until
+
+from dqpose import dq  # noqa: E402
 from dqpose.drivers.base import ArmError, LimitError, Limits  # noqa: E402
 from dqpose.drivers.rotvec import pose_from_rotvec, rotvec_from_pose  # noqa: E402
 from dqpose.drivers.sim import ur as ursim  # noqa: E402
 from dqpose.drivers.ur import URArm  # noqa: E402
-from dqpose import dq  # noqa: E402
-from _polling import wait_until
 
 HOME = np.array([0.4, -0.1, 0.3, 2.2, 2.2, 0.0])
 DETECT = 0.5        # seconds the issue allows for noticing a protective stop or a lost controller
@@ -80,6 +81,7 @@ def test_rtde_commands_are_not_held_by_nagle(sim, arm):
 def test_restoring_nodelay_leaves_no_descriptors_behind(sim, arm):
     # it looks at every descriptor of the process; one kept per look doubled them per arm
     import os
+
     from dqpose.drivers.ur_connection import restore_nodelay as _restore_nodelay
     before = sorted(os.listdir("/proc/self/fd"))
     assert _restore_nodelay(sim.host) >= 2
@@ -263,7 +265,8 @@ def test_a_close_without_disconnect_stops_and_leaves_the_connections_to_the_proc
     import sys
     sim = doomed_sim
     root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    code = ("import sys; from dqpose.drivers.ur import URArm; a = URArm(sys.argv[1], disconnect=False); "
+    code = ("import sys; from dqpose.drivers.ur import URArm; "
+            "a = URArm(sys.argv[1], disconnect=False); "
             "a.close(); print('closed', flush=True); sys.stdin.readline()")
     proc = subprocess.Popen([sys.executable, "-c", code, sim.host], cwd=root, text=True,
                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE)

@@ -16,9 +16,20 @@ import dataclasses
 import time
 
 import pytest
+from _arms import (
+    LIMITS,
+    RIGS,
+    SLOW,
+    STALE_AFTER,
+    URRig,
+    block,
+    distance,
+    offset,
+    serve,
+    served_rigs,
+    wait_until,
+)
 
-from _arms import (LIMITS, RIGS, SLOW, STALE_AFTER, URRig, block, distance, offset, serve,
-                   served_rigs, wait_until)
 from dqpose.rpc.client import Client, RpcError
 
 

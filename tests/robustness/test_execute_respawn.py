@@ -11,8 +11,8 @@ import signal
 from multiprocessing.connection import wait
 
 import pytest
-
 from _arms import RIGS, SLOW, distance, offset, served_rigs
+
 from dqpose.rpc.client import Client, RpcError
 
 

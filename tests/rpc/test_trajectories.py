@@ -10,9 +10,9 @@ import time
 import grpc
 import numpy as np
 import pytest
-
 from _grpc_server import ServerThread
 from _polling import wait_until
+
 from dqpose import dq, smoothing, trajectory
 from dqpose.rpc.client import Client, InvalidArgument, RpcError
 from dqpose.rpc.server import ServerConfig
@@ -74,7 +74,8 @@ def test_plan_while_moving_off_the_path(client):
     planner and the stream starts at waypoint 0 with that velocity."""
     v0 = np.array([0.0, -0.1, 0.05, 0.0, 0.3, 0.0])
     got = client.plan(_waypoints(), LIMITS, 125.0, start_velocity=v0)
-    np.testing.assert_allclose(np.r_[got.linear_velocity[0], got.angular_velocity[0]], v0, atol=1e-10)
+    np.testing.assert_allclose(np.r_[got.linear_velocity[0], got.angular_velocity[0]], v0,
+                               atol=1e-10)
     assert len(got.segments) == 3
     local = trajectory.plan(_waypoints(), LIMITS, start_velocity=v0)
     assert got.duration == pytest.approx(local.duration, rel=1e-12)
@@ -116,9 +117,9 @@ def _limits(**change):
     (lambda r: setattr(r.waypoints[1], "time", 0.01), "FAILED_PRECONDITION", "waypoints[1]"),
 ])
 def test_plan_names_the_bad_field(server, edit, code, text):
-    from dqpose.rpc.trajectories_convert import plan_msg
     from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
     from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2_grpc as tgrpc
+    from dqpose.rpc.trajectories_convert import plan_msg
     request = plan_msg(_waypoints(), LIMITS, 125.0)
     edit(request)
     with grpc.insecure_channel(server.target) as ch:
