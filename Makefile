@@ -27,7 +27,7 @@ $(BIN)/python:
 # asterisks about editable installs on every run).
 $(STAMP): $(INPUTS) $(MISSING) | $(BIN)/python
 	@echo "make: installing the build tools into $(VENV): pip, setuptools, wheel, numpy, grpcio-tools (~15 s the first time)"
-	$(BIN)/python -m pip install -q --upgrade pip "setuptools>=77" wheel "numpy>=2.0" "grpcio-tools>=1.60"
+	$(BIN)/python -m pip install -q --upgrade pip "setuptools>=77" wheel "numpy>=2.0" "grpcio-tools==1.85.1"
 	@echo "make: installing dqpose[$(EXTRAS)] and its dependencies, building the C core, generating the gRPC stubs (~1-2 min and ~300 MB of downloads the first time, ~5 s after a change)"
 	PYTHONWARNINGS=ignore $(BIN)/python -m pip install -q --no-build-isolation -e '.[$(EXTRAS)]'
 	@touch $@
