@@ -26,7 +26,8 @@ from dqpose.errors import FieldError, Infeasible, rename
 from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
 from dqpose.rpc.calls import Calls, refused
-from dqpose.rpc.convert import dq_to_pose, plan_from_msg
+from dqpose.rpc.geometry import dq_to_pose
+from dqpose.rpc.trajectories_convert import plan_from_msg
 
 #: an Execute feedback record every this many set-points (50 Hz at 500 Hz), and the last one
 FEEDBACK_EVERY = 10

@@ -28,7 +28,16 @@ import numpy as np
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from dqpose import dq, lie, limits, trajectory
-from dqpose.rpc import BATCH_POSE_FACTOR, DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES, convert
+from dqpose.rpc import (
+    BATCH_POSE_FACTOR,
+    DEFAULT_MAX_MESSAGE_BYTES,
+    DEFAULT_MAX_POSES,
+    fusion_convert,
+    geometry,
+    handeye_convert,
+    trajectories_convert,
+    wire,
+)
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as bpb
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2_grpc as bpb_grpc
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
@@ -54,9 +63,9 @@ def _fuse_request(n, outliers=0, times=False, **options):
     Z[:outliers] = dq.mul(Z[:outliers], lie.se3_exp(np.tile([2.0, 0, 0, 0.3, 0, 0], (outliers, 1))))
     S = np.broadcast_to(np.eye(6) * 1e-4, (n, 6, 6))
     return fpb.FuseRequest(
-        measurements=convert.measurement_msgs(Z, S,
+        measurements=fusion_convert.measurement_msgs(Z, S,
                                               times=np.linspace(0, 0.1, n) if times else None),
-        options=convert.options_msg(**options))
+        options=fusion_convert.options_msg(**options))
 
 
 def _fuse(request):
@@ -69,7 +78,7 @@ def _stream(requests):
 
 def _measurement(t, body="b"):
     return fpb.Measurement(body=body, source="s", time=t,
-                           pose=convert.dq_to_pose(np.array([1.0, 0, 0, 0, 0, 0, 0, 0])))
+                           pose=geometry.dq_to_pose(np.array([1.0, 0, 0, 0, 0, 0, 0, 0])))
 
 
 def _tick_flood():
@@ -97,7 +106,7 @@ def _calibrate(n, squares=None, corners=False):
         cs = H.exact_corners(s, squares)
     elif corners:
         cs = H.corners(s)
-    request = convert.calibrate_msg(s.base_flange, s.camera_target, s.setup, corners=cs)
+    request = handeye_convert.calibrate_msg(s.base_flange, s.camera_target, s.setup, corners=cs)
     return lambda ch: hpb_grpc.HandEyeStub(ch).Calibrate(request, timeout=600)
 
 
@@ -118,14 +127,15 @@ def _plan():
     _, poses = _path(DEFAULT_MAX_POSES)
     duration = trajectory.plan([trajectory.Waypoint(p) for p in poses], LIMITS).duration
     rate = min(10_000.0, 0.99 * 10 * DEFAULT_MAX_POSES / duration)
-    request = convert.plan_msg(poses, LIMITS, rate)
+    request = trajectories_convert.plan_msg(poses, LIMITS, rate)
     return lambda ch: list(tpb_grpc.TrajectoriesStub(ch).Plan(request, timeout=600))
 
 
 def _smooth():
     t, poses = _path(DEFAULT_MAX_POSES)
-    request = tpb.SmoothRequest(poses=convert.stamped_msgs(t, poses),
-                                limits=convert.limits_msg(LIMITS), smoothing=1.0, rate_hz=100.0)
+    request = tpb.SmoothRequest(poses=geometry.stamped_msgs(t, poses),
+                                limits=trajectories_convert.limits_msg(LIMITS), smoothing=1.0,
+                                rate_hz=100.0)
     return lambda ch: tpb_grpc.TrajectoriesStub(ch).Smooth(request, timeout=600)
 
 
@@ -136,7 +146,7 @@ def _blend_batch():
     n = min(BATCH_POSE_FACTOR * DEFAULT_MAX_POSES, DEFAULT_MAX_MESSAGE_BYTES // 73) // 10
     q = rng.normal(size=(n * 10, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
-    buf, _ = convert.blend_batch_items_wire(q, rng.normal(size=(n * 10, 3)), np.full(n, 10),
+    buf, _ = wire.blend_batch_items_wire(q, rng.normal(size=(n * 10, 3)), np.full(n, 10),
                                             np.empty(0), np.zeros(n, np.int64))
     data = buf.tobytes()
     call = None
@@ -153,14 +163,14 @@ def _blend_dib():
     rng = np.random.default_rng(0)
     q = rng.normal(size=(DEFAULT_MAX_POSES, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
-    request = bpb.BlendRequest(poses=convert.pose_msgs(q, rng.normal(size=(DEFAULT_MAX_POSES, 3))),
+    request = bpb.BlendRequest(poses=geometry.pose_msgs(q, rng.normal(size=(DEFAULT_MAX_POSES, 3))),
                                tolerance=1e-300, max_iterations=1000)
     return lambda ch: bpb_grpc.BlendingStub(ch).Blend(request, timeout=600)
 
 
 def _interpolate():
     t, poses = _path(DEFAULT_MAX_POSES)
-    request = bpb.InterpolateRequest(keyframes=convert.stamped_msgs(t, poses),
+    request = bpb.InterpolateRequest(keyframes=geometry.stamped_msgs(t, poses),
                                      times=np.linspace(0, t[-1], DEFAULT_MAX_POSES).tolist())
     return lambda ch: bpb_grpc.BlendingStub(ch).Interpolate(request, timeout=600)
 

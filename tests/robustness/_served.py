@@ -15,7 +15,7 @@ import grpc
 import numpy as np
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
-from dqpose.rpc import convert
+from dqpose.rpc import geometry
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 # Long enough for a loaded 2-core machine to answer a health check; far shorter than any of
@@ -96,4 +96,4 @@ def code_of(call) -> tuple[grpc.StatusCode, str]:
 
 
 def pose(dq=IDENTITY):
-    return convert.dq_to_pose(np.asarray(dq, dtype=np.float64))
+    return geometry.dq_to_pose(np.asarray(dq, dtype=np.float64))

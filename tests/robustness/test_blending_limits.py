@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from _served import code_of, served
 
-from dqpose.rpc import convert
+from dqpose.rpc import geometry
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
 
@@ -21,7 +21,7 @@ def server():
 def poses(n, seed=0):
     rng = np.random.default_rng(seed)
     q = rng.normal(size=(n, 4))
-    return convert.pose_msgs(q / np.linalg.norm(q, axis=1, keepdims=True), rng.normal(size=(n, 3)))
+    return geometry.pose_msgs(q / np.linalg.norm(q, axis=1, keepdims=True), rng.normal(size=(n, 3)))
 
 
 def test_max_iterations_over_the_limit_is_refused_naming_it(server):

@@ -13,7 +13,7 @@ from _polling import wait_until
 from _served import code_of, pose, served
 
 from dqpose import dq, fusion, lie, limits
-from dqpose.rpc import convert
+from dqpose.rpc import fusion_convert
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2_grpc as pb_grpc
 from dqpose.rpc.fusion import Fusion
@@ -103,9 +103,9 @@ def scene(n, outliers=0, seed=0):
 
 def fuse_request(n, outliers=0, times=False, **options):
     Z, S = scene(n, outliers)
-    return pb.FuseRequest(measurements=convert.measurement_msgs(
+    return pb.FuseRequest(measurements=fusion_convert.measurement_msgs(
         Z, S, times=np.linspace(0, 0.01 * n, n) if times else None),
-        options=convert.options_msg(**options))
+        options=fusion_convert.options_msg(**options))
 
 
 def test_a_robust_fuse_at_its_limit_leaves_the_server_answering_and_memory_returns(server):
@@ -132,9 +132,9 @@ def test_a_fit_over_its_limit_is_refused_before_it_starts(server, option, name, 
     Z, S = scene(n)
     timed = option.pop("times", False)
     request = pb.FuseRequest(
-        measurements=convert.measurement_msgs(Z, S,
+        measurements=fusion_convert.measurement_msgs(Z, S,
                                               times=np.linspace(0, 0.1, n) if timed else None),
-        options=convert.options_msg(**option))
+        options=fusion_convert.options_msg(**option))
     code, details = code_of(lambda: pb_grpc.FusionStub(server.channel).Fuse(request, timeout=30))
     assert code == grpc.StatusCode.RESOURCE_EXHAUSTED, (code, details)
     assert details.startswith(f"measurements: {n} measurements in one "), details

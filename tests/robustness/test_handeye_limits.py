@@ -13,7 +13,7 @@ import pytest
 from _served import code_of, served
 
 from dqpose import limits
-from dqpose.rpc import convert
+from dqpose.rpc import handeye_convert
 from dqpose.rpc._proto.dqpose.v1 import handeye_pb2_grpc as pb_grpc
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -35,7 +35,7 @@ def request(n, corners=False, seed=1, squares=None):
         cs = H.exact_corners(s, squares)
     elif corners:
         cs = H.corners(s)
-    return convert.calibrate_msg(s.base_flange, s.camera_target, s.setup, corners=cs)
+    return handeye_convert.calibrate_msg(s.base_flange, s.camera_target, s.setup, corners=cs)
 
 
 def calibrate(server, req, timeout=120.0):
@@ -70,7 +70,7 @@ def test_the_largest_calibration_leaves_the_server_answering_and_memory_returns(
         answers = [c.result() for c in calls]
     truth = H.scene(n, seed=1)
     for a in answers:
-        x = convert.calibration_from_msg(a, "eye_in_hand").x
+        x = handeye_convert.calibration_from_msg(a, "eye_in_hand").x
         assert H.pose_error(x, truth.x)[1] < 1.0      # mm: solved, not refused
     assert server.rss_mb() < baseline + 150, (baseline, server.rss_mb())
 
@@ -79,7 +79,7 @@ def test_the_largest_calibration_leaves_the_server_answering_and_memory_returns(
 
 def test_a_robot_covariance_of_1e30_is_named_as_the_robot_covariance(server):
     s = H.scene(10, seed=1)
-    req = convert.calibrate_msg(s.base_flange, s.camera_target, s.setup,
+    req = handeye_convert.calibrate_msg(s.base_flange, s.camera_target, s.setup,
                                 camera_covariance=s.camera_covariance,
                                 robot_covariance=np.diag([1e30, 0, 0, 0, 0, 0]))
     code, details = code_of(lambda: calibrate(server, req))
@@ -91,7 +91,7 @@ def test_a_singular_residual_covariance_names_the_sample_and_both_covariances(se
     s = H.scene(10, seed=1)
     camera = np.broadcast_to(s.camera_covariance, (10, 6, 6)).copy()
     camera[4] = np.diag([1e-6, 0, 1e-6, 1e-6, 1e-6, 1e-6])
-    req = convert.calibrate_msg(s.base_flange, s.camera_target, s.setup,
+    req = handeye_convert.calibrate_msg(s.base_flange, s.camera_target, s.setup,
                                 camera_covariance=camera, robot_covariance=np.zeros((6, 6)))
     code, details = code_of(lambda: calibrate(server, req))
     assert code == grpc.StatusCode.INVALID_ARGUMENT, (code, details)

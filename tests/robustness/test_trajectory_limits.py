@@ -9,7 +9,7 @@ import pytest
 from _served import code_of, served
 
 from dqpose import dq, lie, trajectory
-from dqpose.rpc import convert
+from dqpose.rpc import geometry, trajectories_convert
 from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2_grpc as pb_grpc
@@ -27,10 +27,10 @@ _T = np.linspace(0.0, 2.0, 40)
 _PATH = lie.se3_exp(np.column_stack([np.outer(0.1 * np.sin(_T), np.ones(3)),
                                      np.outer(0.1 * np.cos(_T), np.ones(3))]))
 #: a legal plan: three waypoints, the middle one blended, a start velocity
-PLAN = convert.plan_msg([trajectory.Waypoint(_PATH[0]), trajectory.Waypoint(_PATH[20], 0.0, 0.01),
-                         trajectory.Waypoint(_PATH[39])], trajectory.Limits(0.2, 1.0, 1.0, 2.0,
-                                                                             10.0, 20.0),
-                        100.0, start_velocity=np.zeros(6))
+PLAN = trajectories_convert.plan_msg(
+    [trajectory.Waypoint(_PATH[0]), trajectory.Waypoint(_PATH[20], 0.0, 0.01),
+     trajectory.Waypoint(_PATH[39])],
+    trajectory.Limits(0.2, 1.0, 1.0, 2.0, 10.0, 20.0), 100.0, start_velocity=np.zeros(6))
 
 
 def plan(server, request):
@@ -42,7 +42,7 @@ def smooth(server, request):
 
 
 def plan_request(waypoints=(A, B), **limits):
-    request = convert.plan_msg(list(waypoints), LIMITS, 100.0)
+    request = trajectories_convert.plan_msg(list(waypoints), LIMITS, 100.0)
     for name, value in limits.items():
         setattr(request.limits, name, value)
     return request
@@ -52,8 +52,8 @@ def smooth_request(smoothing=1.0, **limits):
     t = np.linspace(0, 2, 50)
     P = lie.se3_exp(np.column_stack([np.outer(0.1 * np.sin(t), np.ones(3)),
                                      np.outer(0.1 * np.cos(t), np.ones(3))]))
-    request = pb.SmoothRequest(poses=convert.stamped_msgs(t, P),
-                               limits=convert.limits_msg(LIMITS), smoothing=smoothing)
+    request = pb.SmoothRequest(poses=geometry.stamped_msgs(t, P),
+                               limits=trajectories_convert.limits_msg(LIMITS), smoothing=smoothing)
     for name, value in limits.items():
         setattr(request.limits, name, value)
     return request
