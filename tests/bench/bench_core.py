@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from dqpose import dq
+from tests.bench._table import markdown
 
 ROOT = Path(__file__).resolve().parents[2]
 HERE = Path(__file__).resolve().parent
@@ -229,13 +230,7 @@ def fmt_time(s):
 def render(rows) -> str:
     head = ["operation", "implementation", "median", "per", "× ours", "max dev vs ours",
             "target", "pass"]
-    lines = [r.cells() for r in rows]
-    w = [max(len(h), *(len(line[i]) for line in lines)) for i, h in enumerate(head)]
-    out = ["| " + " | ".join(h.ljust(w[i]) for i, h in enumerate(head)) + " |",
-           "|" + "|".join("-" * (x + 2) for x in w) + "|"]
-    for line in lines:
-        out.append("| " + " | ".join(c.ljust(w[i]) for i, c in enumerate(line)) + " |")
-    return "\n".join(out)
+    return markdown(head, [r.cells() for r in rows])
 
 
 

@@ -56,6 +56,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dqpose import dq, fusion, lie
+from tests.bench._table import markdown
 
 TRIALS = 1000
 FRACTIONS = (0.0, 0.1, 0.2)
@@ -323,16 +324,6 @@ def _fmt_s(s):
     return f"{m * 1e6:.0f} µs" if m < 1e-3 else f"{m * 1e3:.2f} ms"
 
 
-def _markdown(head: list[str], lines: list[list[str]]) -> str:
-    """A Markdown table with columns padded to their widest cell."""
-    w = [max(len(h), *(len(line[i]) for line in lines)) for i, h in enumerate(head)]
-    out = ["| " + " | ".join(h.ljust(w[i]) for i, h in enumerate(head)) + " |",
-           "|" + "|".join("-" * (x + 2) for x in w) + "|"]
-    out += ["| " + " | ".join(c.ljust(w[i]) for i, c in enumerate(line)) + " |"
-            for line in lines]
-    return "\n".join(out)
-
-
 def render(methods, results) -> str:
     head = ["outliers", "method", "median rot (deg)", "median trans (mm)", "mean NEES",
             "time / fusion"]
@@ -345,7 +336,7 @@ def render(methods, results) -> str:
             lines.append([f"{fraction:.0%}", m, f"{np.median(r.rot):.3f}",
                           f"{np.median(r.trans):.3f}",
                           f"{np.mean(r.nees):.3g}" if r.nees else "—", _fmt_s(r.seconds)])
-    return _markdown(head, lines)
+    return markdown(head, lines)
 
 
 def summary(methods, results, checks, robust_info, have_gtsam, n) -> str:
@@ -606,7 +597,7 @@ def render_moving(methods, results) -> str:
                           f"{np.median(r.rot):.3f}" if r.rot else "—",
                           f"{np.median(r.trans):.3f}" if r.trans else "—",
                           f"{np.mean(r.nees):.3g}" if r.nees else "—", _fmt_s(r.seconds)])
-    return _markdown(head, lines)
+    return markdown(head, lines)
 
 
 def summary_moving(methods, results, latencies, scene, Q) -> str:
