@@ -16,6 +16,9 @@ import threading
 import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.join(ROOT, "tests"))     # _polling, when a benchmark imports this
+from _polling import Slowdown  # noqa: E402 (after the path insert)
+
 #: generous: a loaded machine may take this long before the tests give up waiting
 EXIT_TIMEOUT = 120.0
 #: how soon after one Ctrl-C a command has exited, in seconds of an idle core (a loaded machine
@@ -23,39 +26,6 @@ EXIT_TIMEOUT = 120.0
 PROMPT = 1.0
 #: the ``python -m`` argument of an arm's own process (drivers.armproc: multiprocessing's spawn)
 ARM_PROCESS = "--multiprocessing-fork"
-
-
-class Slowdown:
-    """How much slower than on an idle core CPU-bound work runs on this machine now: from
-    :meth:`start` to :meth:`stop` a thread alternates ``BURST`` s of its own CPU time spinning
-    with ``REST`` s asleep (so that it measures the machine without taking a core from what it
-    measures), and :meth:`stop` returns the wall time of its bursts over their CPU time (at
-    least 1). Work that needs an idle core for a second needs about this many seconds now."""
-
-    BURST, REST = 0.002, 0.008
-
-    def __init__(self):
-        self._stop = threading.Event()
-        self._wall = self._cpu = 0.0
-        self._thread = threading.Thread(target=self._spin, daemon=True)
-
-    def _spin(self):
-        while not self._stop.is_set():
-            wall, cpu = time.monotonic(), time.thread_time()
-            while time.thread_time() - cpu < self.BURST:
-                pass
-            self._wall += time.monotonic() - wall
-            self._cpu += time.thread_time() - cpu
-            self._stop.wait(self.REST)
-
-    def start(self) -> "Slowdown":
-        self._thread.start()
-        return self
-
-    def stop(self) -> float:
-        self._stop.set()
-        self._thread.join()
-        return max(1.0, self._wall / max(self._cpu, 1e-9))
 
 
 def _as_a_terminal_starts():

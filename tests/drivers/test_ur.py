@@ -10,7 +10,7 @@ import pytest
 
 pytest.importorskip("rtde_control")
 
-from _polling import wait_until
+from _polling import Slowdown, wait_until
 
 from dqpose import dq  # noqa: E402
 from dqpose.drivers.base import ArmError, LimitError, Limits  # noqa: E402
@@ -41,9 +41,16 @@ def home(sim, arm):
 
 
 def _latency(pred, timeout=2.0):
+    """Seconds until ``pred`` holds, and how much slower than an idle core work ran meanwhile
+    (:class:`_polling.Slowdown`): a deadline of the driver's own work stretches by that much on a
+    loaded machine, its fixed waits (``stale_after``) do not."""
+    slow = Slowdown().start()
     t0 = time.monotonic()
-    assert wait_until(pred, timeout), "not detected"
-    return time.monotonic() - t0
+    try:
+        assert wait_until(pred, timeout), "not detected"
+        return time.monotonic() - t0, slow.stop()
+    finally:
+        slow.stop()
 
 
 def _same_pose(a, b, atol=1e-12):
@@ -191,8 +198,8 @@ def test_watchdog_stops_a_stalled_stream(sim, arm, home):
 
 def test_protective_stop_is_reported_and_recovered(sim, arm, home):
     sim.protective_stop(True)
-    latency = _latency(lambda: arm.status().protective_stop)
-    assert latency < DETECT
+    latency, slower = _latency(lambda: arm.status().protective_stop)
+    assert latency < DETECT * slower
     st = arm.status()
     assert not st.ok and st.error == "protective stop"
     with pytest.raises(ArmError, match="protective stop"):
@@ -223,8 +230,8 @@ def test_lost_controller_is_detected(doomed_sim):
         # a controller that stops sending while its sockets stay open: the pose goes stale
         sim.call("pause_stream", seconds=0.6)
         stale_pose = arm._recv.getActualTCPPose()
-        latency = _latency(lambda: not arm.status().connected)
-        assert latency < DETECT
+        latency, slower = _latency(lambda: not arm.status().connected)
+        assert latency < 0.3 + (DETECT - 0.3) * slower      # stale_after, then the monitor
         assert "stopped sending data" in arm.status().error
         assert arm._recv.getActualTCPPose() == stale_pose    # ur_rtde alone would not notice
         with pytest.raises(ArmError, match="stopped sending data"):
@@ -244,10 +251,12 @@ def test_lost_controller_is_detected(doomed_sim):
         timer = threading.Timer(0.2, lambda: (killed.append(time.monotonic()), sim.kill()))
         target = HOME.copy()
         target[0] += 0.1
+        slow = Slowdown().start()
         timer.start()
         with pytest.raises(ArmError, match="lost|stopped sending"):
             arm.move(pose_from_rotvec(target), 0.05, 0.5)     # 2 s
-        assert time.monotonic() - killed[0] < DETECT
+        noticed = time.monotonic() - killed[0]
+        assert noticed < DETECT * slow.stop()
         assert not arm.status().connected
         with pytest.raises(ArmError, match="lost|stopped sending"):
             arm.servo(pose_from_rotvec(target))
