@@ -28,7 +28,7 @@ import numpy as np
 
 from dqpose import dq, lie
 from tests import _handeye
-from tests.bench.bench_fusion import _markdown
+from tests.bench._table import markdown
 from tests.bench.bench_handeye import CHARUCO_POSES, opencv_corners_camera
 
 TILTS = ((0, 25), (25, 35), (35, 90))   # degrees: thirds of the wrist scene's views
@@ -91,7 +91,7 @@ def render(rows: dict, size=(640, 480)) -> str:
                       _pm(pull), *[_pm(pull[(tilt >= a) & (tilt < b)]) for a, b in TILTS],
                       " / ".join(f"{v:.2f}" for v in ratio),
                       f"{np.mean([r[4] for r in rs]):.2f}"])
-    return _markdown(head, lines)
+    return markdown(head, lines)
 
 
 def main(argv=None):

@@ -66,7 +66,8 @@ import numpy as np
 
 from dqpose import dq
 from tests import _handeye
-from tests.bench.bench_fusion import _fmt_s, _markdown, nees
+from tests.bench._table import markdown
+from tests.bench.bench_fusion import _fmt_s, nees
 
 HERE = Path(__file__).resolve().parent
 RUNNER = HERE / "handeye_opencv4.py"
@@ -470,7 +471,7 @@ def render_broken(results: dict, trials: int) -> str:
             else:
                 line.append(_cell(row[m]))
         lines.append(line)
-    return _markdown(head, lines)
+    return markdown(head, lines)
 
 
 # ---- the table and the targets ---------------------------------------------------------------
@@ -493,7 +494,7 @@ def render(results: dict) -> str:
                 bad += f" ({', '.join(kinds)})"
             lines.append([label, m, _med(s.rot), _med(s.trans),
                           f"{np.mean(s.nees):.2f}" if s.nees else "—", _fmt_s(s.seconds), bad])
-    return _markdown(head, lines)
+    return markdown(head, lines)
 
 
 def best_opencv(res):
