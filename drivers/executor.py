@@ -78,7 +78,8 @@ from dqpose.drivers.control import (
     plan_start,
 )
 from dqpose.drivers.spec import ARM_KEYS
-from dqpose.interpolate import MODES, interpolate
+from dqpose.interpolate import interpolate
+from dqpose.trajectory import INTERPOLATIONS
 
 __all__ = ["Result", "Feedback", "Executor"]
 
@@ -204,9 +205,9 @@ class Executor:
                  heartbeat: Optional[float] = None, busy_timeout: float = 1.0):
         if not isinstance(arm, Arm):
             raise ValueError(f"arm: expected a drivers.base.Arm, got {type(arm).__name__}")
-        if interpolation not in MODES:
+        if interpolation not in INTERPOLATIONS:
             raise ValueError(f"interpolation: unknown {interpolation!r}; expected one of "
-                             f"{', '.join(MODES)}")
+                             f"{', '.join(INTERPOLATIONS)}")
         if not (isinstance(prefill, numbers.Real) and math.isfinite(prefill) and prefill >= 0):
             raise ValueError(f"prefill: must be a finite number >= 0, got {prefill!r}")
         if not (isinstance(busy_timeout, numbers.Real) and math.isfinite(busy_timeout)

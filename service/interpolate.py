@@ -20,9 +20,6 @@ from dqpose import dq
 from dqpose.errors import rename
 from dqpose.trajectory import INTERPOLATIONS
 
-#: the modes, under the name the executor (dqpose.drivers.executor) imports
-MODES = INTERPOLATIONS
-
 
 def _times(name: str, t, ndim_msg: str) -> np.ndarray:
     t = np.asarray(t, dtype=np.float64)

@@ -42,7 +42,7 @@ import numpy as np
 
 from dqpose import dq, handeye, lie
 
-SETUPS = ("eye_in_hand", "eye_to_hand")
+SETUPS = handeye.SETUPS
 GEOMETRIES = ("wrist", "opencv")
 
 BOARD_SIZE = (0.28, 0.20)   # 7 × 5 squares of 0.04 m: the board of the ChArUco notes

@@ -63,12 +63,6 @@ from dqpose.fusion.motion import (  # noqa: F401
     _motion_start,
 )
 from dqpose.fusion.process_noise import _kernel, _motion_solve  # noqa: F401
-from dqpose.fusion.validation import (  # noqa: F401
-    _MAX_VARIANCE,
-    _MIN_VARIANCE,
-    _SYMMETRY_TOL,
-    _finite,
-)
 
 __all__ = ["DOF", "DEFAULT_PROBABILITY", "DEFAULT_MAX_EXTRAPOLATION", "Status", "Verdict", "Source",
            "Rejection", "SourceStats", "Fused", "fuse", "chi2_quantile", "Dropped", "Latency",

@@ -14,8 +14,9 @@ from typing import Optional
 
 import numpy as np
 
-from dqpose import dq, fusion
+from dqpose import dq
 from dqpose.errors import FieldError, Infeasible, rename
+from dqpose.fusion.validation import _MAX_VARIANCE, _MIN_VARIANCE, _finite
 from dqpose.handeye.closed_form import _MIN_PAIR_ANGLE, _closed_form, _hemisphere, _motions
 from dqpose.handeye.readings import _compare_readings
 from dqpose.handeye.setups import EYE_IN_HAND, _reading, _setup
@@ -34,7 +35,7 @@ _MISMATCH_PITCH = 0.02                 # correspond (time or pairing), for most 
 
 def _poses(x, name: str) -> np.ndarray:
     try:
-        a = fusion._finite(x, name, (8,), None)   # shape and finiteness, with the index
+        a = _finite(x, name, (8,), None)   # shape and finiteness, with the index
         dq.to_matrix(a)                           # the core's unit and rigidity checks
     except ValueError as e:
         raise rename(e, {"a": name + "{}"}) from None
@@ -61,10 +62,10 @@ def _covariances(cov, name: str, n: int) -> Optional[np.ndarray]:
         if np.linalg.eigvalsh(0.5 * (s + s.T))[0] < 0.0:
             raise FieldError(f"{where}: not positive semi-definite")
         var = np.diagonal(s)
-        bad = (var > 0.0) & ~((var >= fusion._MIN_VARIANCE) & (var <= fusion._MAX_VARIANCE))
+        bad = (var > 0.0) & ~((var >= _MIN_VARIANCE) & (var <= _MAX_VARIANCE))
         if bad.any():
             raise FieldError(f"{where}: variance {var[bad][0]:.6g} outside "
-                             f"[{fusion._MIN_VARIANCE:g}, {fusion._MAX_VARIANCE:g}] (0 is "
+                             f"[{_MIN_VARIANCE:g}, {_MAX_VARIANCE:g}] (0 is "
                              f"exact): its information cannot be used")
     return 0.5 * (S + np.swapaxes(S, -1, -2))
 

@@ -12,7 +12,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from dqpose import _dqcore, fusion
+from dqpose import _dqcore
+from dqpose.fusion.validation import _SYMMETRY_TOL
 from dqpose.rpc.fusion_convert import measurement_columns
 
 # ---- the servers' C fast paths -------------------------------------------------------------------
@@ -316,5 +317,5 @@ def fuse_stream_from_wire(data: bytes) -> WireMeasurements | None:
     ``None`` for anything
     else (options, unknown fields, bytes protobuf would refuse, a measurement on the edge of a
     rule), which the protobuf path then takes."""
-    out = _dqcore.fuse_stream_from_wire(data, fusion._SYMMETRY_TOL)
+    out = _dqcore.fuse_stream_from_wire(data, _SYMMETRY_TOL)
     return None if out is None else WireMeasurements(*out)
