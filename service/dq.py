@@ -45,8 +45,8 @@ class Method(NamedTuple):
 
 # The blending methods, written once, in the order of the paper's Table 1. Every other list
 # derives from this one: the proto enum maps by name (METHOD_<NAME>), the CLI takes the names
-# and descriptions. Tests check the C enum (blend.h; tests/test_dq.py) and the proto enum
-# (tests/rpc/test_convert.py) against it.
+# and descriptions. Tests check the C enum (blend.h; tests/dq/test_hard_cases.py) and the proto enum
+# (tests/rpc/test_geometry.py) against it.
 METHODS: dict[str, Method] = {
     "lin": Method(4, "Lin", "weighted mean of the 4x4 matrices, projected to the nearest rotation"),
     "dec": Method(5, "Dec", "rotation (spherical mean) and translation (mean) blended separately"),

@@ -2,17 +2,14 @@
 from __future__ import annotations
 
 import os
-import sys
+import pathlib
 import zlib
 
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, settings
 
-# reference.py sits next to the tests; make it importable however pytest was started.
-sys.path.insert(0, os.path.dirname(__file__))
-
-import reference  # noqa: E402
+from tests import reference
 
 # Deterministic by default so CI failures reproduce; HYPOTHESIS_PROFILE=dev explores more.
 settings.register_profile("ci", max_examples=200, deadline=None, derandomize=True,
@@ -65,17 +62,20 @@ def sim():
         yield s
 
 
-#: the modules whose tests take the most time (arms, servers and simulators on the clock, the
-#: hand-eye solves, the fuzz): ``make test-fast`` leaves them out, ``make test`` (CI) runs all
+#: the modules (paths under tests/) whose tests take the most time (arms, servers and simulators
+#: on the clock, the hand-eye solves, the fuzz): ``make test-fast`` leaves them out, ``make test``
+#: (CI) runs all
 SLOW_MODULES = {
-    "test_fuzz_rpc.py", "test_demo_fusion.py", "test_fusion_time.py", "test_handeye_cli.py",
-    "test_handeye.py", "test_execute.py", "test_bench_handeye.py", "test_handeye_capture.py",
-    "test_server.py", "test_armproc_respawn.py", "test_arm_safety.py", "test_examples.py",
-    "test_interrupt.py", "test_camera.py",
+    "bench/test_bench_handeye.py", "cli/test_demo_fusion.py", "cli/test_handeye_capture.py",
+    "cli/test_handeye_cli.py", "cli/test_interrupt.py", "drivers/test_arm_safety.py",
+    "drivers/test_armproc_respawn.py", "drivers/test_camera.py", "fusion/test_process_noise.py",
+    "robustness/test_execute.py", "robustness/test_fuzz_rpc.py", "rpc/server/test_shutdown.py",
+    "test_examples.py", "test_handeye.py",
 }
+_TESTS = pathlib.Path(__file__).parent
 
 
 def pytest_collection_modifyitems(items):
     for item in items:
-        if item.path.name in SLOW_MODULES:
+        if item.path.relative_to(_TESTS).as_posix() in SLOW_MODULES:
             item.add_marker(pytest.mark.slow)

@@ -3,12 +3,12 @@ exact data solved exactly, noisy data solved with a consistent covariance, every
 flagged."""
 from dataclasses import replace
 
-import _handeye as H
 import numpy as np
 import pytest
 
 from dqpose import dq, handeye, lie
 from dqpose.errors import FieldError, Infeasible
+from tests import _handeye as H
 
 CASES = [(setup, geometry) for setup in H.SETUPS for geometry in H.GEOMETRIES]
 

@@ -4,10 +4,8 @@ from __future__ import annotations
 
 import pathlib
 import re
-import sys
 
-sys.path.insert(0, str(pathlib.Path(__file__).parent / "rpc"))
-from _grpc_server import ServerThread  # noqa: E402
+from tests.rpc._grpc_server import ServerThread
 
 README = pathlib.Path(__file__).resolve().parents[1] / "README.md"
 

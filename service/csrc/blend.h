@@ -13,8 +13,8 @@
 
 /* The blending methods, X(NAME, value). The values are those of dqpose.v1.Method, so the wire
  * decoder passes a request's method through unchanged. service/dq.py's METHODS table is the one
- * list of names; tests check this enum (tests/test_dq.py) and the proto enum
- * (tests/rpc/test_convert.py) against it. */
+ * list of names; tests check this enum (tests/dq/test_hard_cases.py) and the proto enum
+ * (tests/rpc/test_geometry.py) against it. */
 #define DQ_METHODS(X) X(DIB, 1) X(DLB, 2) X(SCLERP, 3) X(LIN, 4) X(DEC, 5) X(LOG, 6)
 
 #define DQ_METHOD_ENUM_(name, value) DQ_##name = value,

@@ -3,8 +3,8 @@ accelerates, with residuals correlated by the model's error (NumPy).
 
 A body that accelerates leaves the constant-twist model, and without process noise the fit then
 claims more than it knows (mean NEES 7.4–8.3 instead of 6 for the accelerating body of
-tests/test_fusion_time.py). ``acceleration_psd`` ``Q`` (6 × 6, rotation first, rad²/s³ and m²/s³)
-models exactly this, and nothing more: the true pose at ``τ`` is
+tests/fusion/test_process_noise.py). ``acceleration_psd`` ``Q`` (6 × 6, rotation first, rad²/s³
+and m²/s³) models exactly this, and nothing more: the true pose at ``τ`` is
 ``T(τ) = X · Exp(dt V) · Exp(ε(τ))`` with ``ε`` the twice-integrated white noise of power
 spectral density ``Q`` started at the fusion time (``ε(τ) = ∫ (τ − s) w(s) ds`` from the fusion
 time to ``τ``: the twist a random walk whose covariance grows by ``Q`` per second, the

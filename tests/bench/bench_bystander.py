@@ -21,7 +21,6 @@ import multiprocessing as mp
 import sys
 import threading
 import time
-from pathlib import Path
 
 import grpc
 import numpy as np
@@ -45,10 +44,8 @@ from dqpose.rpc._proto.dqpose.v1 import fusion_pb2_grpc as fpb_grpc
 from dqpose.rpc._proto.dqpose.v1 import handeye_pb2_grpc as hpb_grpc
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2_grpc as tpb_grpc
+from tests import _handeye as H
 from tests.bench.bench_grpc import ServerProcess, request10
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-import _handeye as H  # noqa: E402
 
 L = limits.DEFAULT
 BIG = [("grpc.max_receive_message_length", 64 << 20), ("grpc.max_send_message_length", 64 << 20)]

@@ -1,7 +1,7 @@
 """Benchmark of the fusion core: ``python -m tests.bench.bench_fusion_core``.
 
 Prints one table: the maximum-likelihood fusion of 10 measurements with full (anisotropic,
-correlated) covariances per call, on the same problems (the scenes of tests/test_fusion.py), by
+correlated) covariances per call, on the same problems (the scenes of tests/fusion/_scenes.py), by
 
 * our C core ``dq_fuse`` called from C (``fusion_harness.c`` compiled here with the flags of
   setup.py), without and with the leave-one-out NIS;
@@ -9,10 +9,10 @@ correlated) covariances per call, on the same problems (the scenes of tests/test
 * ``dqpose.fusion.fuse`` (validation, frames, consistency report: the whole Python API);
 * GTSAM from Python: ``PriorFactorPose3`` per measurement, Levenberg–Marquardt and
   ``Marginals``, with its default parameters and with tight ones (relative and absolute error
-  tolerance 1e-16, as tests/test_fusion.py uses before it finishes with Gauss–Newton steps).
+  tolerance 1e-16, as tests/fusion/test_static.py uses before it finishes with Gauss–Newton steps).
 
 A second table: the time-aligned estimate (constant twist, one latency estimated, one
-configured; the scenes of tests/test_fusion_core.py) of 20 and 90 measurements by the C kernel
+configured; the scenes of tests/csrc/test_fusion.py) of 20 and 90 measurements by the C kernel
 ``_dqcore.motion_fit`` (fit, information and leave-one-out NIS), the NumPy reference
 (tests/fusion_reference.py, the block-diagonal fit the service ran before the kernel) and
 ``dqpose.fusion.fuse(..., times=...)`` end to end.
@@ -43,7 +43,7 @@ N = 10
 
 
 def problems(count: int, seed: int = 7):
-    from tests.test_fusion import measure, random_cov, random_pose
+    from tests.fusion._scenes import measure, random_cov, random_pose
     rng = np.random.default_rng(seed)
     S = np.array([[random_cov(rng) for _ in range(N)] for _ in range(count)])
     Z = np.array([measure(rng, random_pose(rng), s) for s in S])
@@ -94,10 +94,8 @@ def deviation(mean, cov, ref_mean, ref_cov):
 
 
 def motion_table(samples: int, count: int = 20):
-    sys.path.insert(0, str(HERE.parent))  # the tests' own imports (fusion_reference)
-    import fusion_reference as ref
-
-    from tests.test_fusion_core import motion_scene
+    from tests import fusion_reference as ref
+    from tests.csrc.test_fusion import motion_scene
 
     rng = np.random.default_rng(11)
     sources = [fusion.Source("a", latency=0.03, latency_sigma=0.01),

@@ -10,7 +10,7 @@ NumPy from PyPI; reused afterwards), and runs ``tests/bench/handeye_opencv4.py``
 poses written to a temporary ``.npz``. ``--opencv-python PATH`` uses another interpreter that has
 OpenCV 4.x; ``--no-opencv`` runs ours alone.
 
-OpenCV's conventions (checked on exact data by tests/test_bench_handeye.py: every method's
+OpenCV's conventions (checked on exact data by tests/bench/test_bench_handeye.py: every method's
 answer within 1e-8 of the truth; ~1e-15 measured):
 ``calibrateHandEye`` takes R/t_gripper2base (``T_base_flange``) and R/t_target2cam
 (``T_camera_target``) and returns cam2gripper (``T_flange_camera``, our X for eye-in-hand); for

@@ -21,15 +21,11 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
-import sys
 import tempfile
 import threading
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "cli"))
-from _interrupt import Command, SimWatch, sim_host  # noqa: E402
-
-from dqpose.drivers.sim.ur import (  # noqa: E402
+from dqpose.drivers.sim.ur import (
     MOVEL,
     SERVO_STOP,
     SERVOL,
@@ -38,6 +34,7 @@ from dqpose.drivers.sim.ur import (  # noqa: E402
     STOPJ,
     STOPL,
 )
+from tests.cli._interrupt import Command, SimWatch, sim_host
 
 STOPS = (SERVO_STOP, SPEED_STOP, STOPL, STOPJ, STOP_SCRIPT)
 MOTION = (SERVOL, MOVEL)

@@ -1,8 +1,8 @@
 """Benchmark of path smoothing under limits: `.venv/bin/python -m tests.bench.bench_smoothing`.
 
 Issue 10's case: 500 poses of a teleoperation-like path at 100 Hz (``teleop_path`` of
-tests/test_smoothing.py: at rest at both ends, sines of 0.2-0.7 Hz, 5-15 cm and 0.2-0.6 rad per
-axis) with isotropic Gaussian noise of rms norm 1 mm and 0.5 deg, and limits equal to the true
+tests/smoothing/test_solve.py: at rest at both ends, sines of 0.2-0.7 Hz, 5-15 cm and 0.2-0.6 rad
+per axis) with isotropic Gaussian noise of rms norm 1 mm and 0.5 deg, and limits equal to the true
 path's own peak linear and angular velocity and acceleration, so the noisy samples break them by
 far and the unconstrained smoothing by a little: the limits bind.
 
@@ -36,7 +36,7 @@ import numpy as np
 
 from dqpose import dq, smoothing
 from dqpose.smoothing import peaks, smooth
-from tests.test_smoothing import errors, limits_from, noisy, teleop_path
+from tests.smoothing.test_solve import errors, limits_from, noisy, teleop_path
 
 FIELDS = ("linear_velocity", "angular_velocity", "linear_acceleration", "angular_acceleration")
 

@@ -12,9 +12,7 @@ import sys
 import pytest
 
 from dqpose.cli import main
-
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(__file__)), "rpc"))
-from _grpc_server import ServerThread  # noqa: E402
+from tests.rpc._grpc_server import ServerThread
 
 
 @pytest.fixture(scope="module")

@@ -16,8 +16,7 @@ import threading
 import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-sys.path.insert(0, os.path.join(ROOT, "tests"))     # _polling, when a benchmark imports this
-from _polling import Slowdown  # noqa: E402 (after the path insert)
+from tests._polling import Slowdown  # noqa: E402 (after ROOT)
 
 #: generous: a loaded machine may take this long before the tests give up waiting
 EXIT_TIMEOUT = 120.0

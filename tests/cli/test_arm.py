@@ -10,10 +10,10 @@ import signal
 
 import numpy as np
 import pytest
-from _cli import run, serving
 
 from dqpose import dq, trajectory
 from dqpose.rpc.client import Client
+from tests.cli._cli import run, serving
 
 LIMITS = trajectory.Limits(0.1, 0.5, 0.5, 1.0, 5.0, 10.0)
 

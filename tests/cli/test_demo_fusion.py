@@ -16,7 +16,7 @@ import pytest
 pytest.importorskip("rtde_control")
 pytest.importorskip("matplotlib")
 
-from dqpose.cli import main  # noqa: E402
+from dqpose.cli import main
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 

@@ -6,10 +6,10 @@ import json
 
 import numpy as np
 import pytest
-from _cli import run, server  # noqa: F401 (server: a fixture)
 
 from dqpose import dq, fusion, lie
 from dqpose.fusion import Source
+from tests.cli._cli import run, server  # noqa: F401 (server: a fixture)
 
 
 def scene(seed, n):

@@ -16,9 +16,8 @@ import pytest
 pytest.importorskip("rtde_control")
 pytest.importorskip("cv2")
 
-from _interrupt import ROOT, Command  # noqa: E402
-
-from dqpose import dq, fusion, lie  # noqa: E402
+from dqpose import dq, fusion, lie
+from tests.cli._interrupt import ROOT, Command
 
 NEES_BOUND = fusion.chi2_quantile(0.999, 6)
 

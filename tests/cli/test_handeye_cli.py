@@ -14,9 +14,8 @@ import pytest
 pytest.importorskip("rtde_control")
 pytest.importorskip("cv2")
 
-from _cli import run, server  # noqa: E402,F401
-
-from dqpose import dq, fusion, lie  # noqa: E402
+from dqpose import dq, fusion, lie
+from tests.cli._cli import run, server  # noqa: F401
 
 # NEES of a 6-dof estimate: below this in 99.9 % of the runs when the covariance is honest
 NEES_BOUND = fusion.chi2_quantile(0.999, 6)

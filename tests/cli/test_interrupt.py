@@ -16,7 +16,16 @@ import pytest
 
 pytest.importorskip("rtde_control")
 
-from _interrupt import (  # noqa: E402
+from dqpose.drivers.sim.ur import (
+    MOVEL,
+    SERVO_STOP,
+    SERVOL,
+    SPEED_STOP,
+    STOP_SCRIPT,
+    STOPJ,
+    STOPL,
+)
+from tests.cli._interrupt import (
     EXIT_TIMEOUT,
     Command,
     SimWatch,
@@ -25,16 +34,6 @@ from _interrupt import (  # noqa: E402
     assert_stopped_after,
     children,
     sim_host,
-)
-
-from dqpose.drivers.sim.ur import (  # noqa: E402
-    MOVEL,
-    SERVO_STOP,
-    SERVOL,
-    SPEED_STOP,
-    STOP_SCRIPT,
-    STOPJ,
-    STOPL,
 )
 
 MOTION = (SERVOL, MOVEL)

@@ -7,7 +7,6 @@ import json
 
 import numpy as np
 import pytest
-from _cli import server  # noqa: F401,E402 (a fixture)
 
 from dqpose import dq
 from dqpose.cli.posefile import (
@@ -17,6 +16,7 @@ from dqpose.cli.posefile import (
     read_interpolate,
     sample_times,
 )
+from tests.cli._cli import server  # noqa: F401 (a fixture)
 
 
 def _same(a, b, atol=1e-12):

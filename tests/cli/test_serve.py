@@ -6,7 +6,8 @@ import subprocess
 import sys
 
 import pytest
-from _cli import ROOT, serving
+
+from tests.cli._cli import ROOT, serving
 
 
 @pytest.mark.parametrize("flags, message", [

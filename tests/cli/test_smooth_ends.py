@@ -12,9 +12,9 @@ import sys
 
 import numpy as np
 import pytest
-from _cli import server  # noqa: F401 (a fixture)
 
 from dqpose import dq
+from tests.cli._cli import server  # noqa: F401 (a fixture)
 
 pytest.importorskip("casadi")
 

@@ -9,9 +9,9 @@ import math
 
 import numpy as np
 import pytest
-from _cli import run, server  # noqa: F401 (server: a fixture)
 
 from dqpose import dq, smoothing, trajectory
+from tests.cli._cli import run, server  # noqa: F401 (server: a fixture)
 
 LIMIT_FLAGS = ["--max-linear-velocity", "0.2", "--max-angular-velocity", "1",
                "--max-linear-acceleration", "1", "--max-angular-acceleration", "2",

@@ -11,11 +11,11 @@ import uuid
 import can
 import numpy as np
 import pytest
-from _polling import wait_until
 
 from dqpose import dq, drivers
 from dqpose.drivers.base import LimitError, Limits, pose_delta
 from dqpose.profile import Trapezoid
+from tests._polling import wait_until
 
 LIMITS = Limits(max_linear_velocity=0.2, max_angular_velocity=1.0, max_linear_acceleration=2.0,
                 max_angular_acceleration=4.0, workspace_min=(-0.7, -0.7, -0.2),

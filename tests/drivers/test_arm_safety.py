@@ -12,13 +12,13 @@ import time
 
 import numpy as np
 import pytest
-from _polling import wait_until
-from test_arm_limits import LIMITS
-from test_executor import PiperExec, URExec, _plan, arm, rig, run_parent  # noqa: F401 (fixtures)
 
 from dqpose import dq, trajectory
 from dqpose.drivers.base import ArmError, pose_delta, servo_step
 from dqpose.drivers.executor import Executor, Result
+from tests._polling import wait_until
+from tests.drivers.test_arm_limits import LIMITS
+from tests.drivers.test_executor import PiperExec, URExec, _plan, arm, rig, run_parent  # noqa: F401 (fixtures)
 
 
 def _running(arm, **plan):
@@ -362,8 +362,8 @@ import sys, time
 from dqpose import drivers
 from dqpose.drivers.base import ArmError
 from dqpose.drivers.executor import Executor, Result
-from test_arm_limits import LIMITS
-from test_arm_safety import _standing
+from tests.drivers.test_arm_limits import LIMITS
+from tests.drivers.test_arm_safety import _standing
 arm = drivers.open_arm("ur:" + sys.argv[1], process=True, limits=LIMITS, watchdog=0.2,
                        stale_after=0.5)
 outcomes = []

@@ -13,12 +13,12 @@ import time
 from multiprocessing.connection import wait
 
 import pytest
-from _polling import wait_until
-from test_arm_safety import _runs_again, _trajectory
-from test_executor import PiperExec, URExec, _plan, run_parent
 
 from dqpose.drivers.base import ArmError
 from dqpose.drivers.executor import Executor, Result
+from tests._polling import wait_until
+from tests.drivers.test_arm_safety import _runs_again, _trajectory
+from tests.drivers.test_executor import PiperExec, URExec, _plan, run_parent
 
 
 @pytest.fixture(scope="module", params=["ur-process", "piper-process"])
@@ -168,8 +168,8 @@ import os, signal, sys, threading
 from multiprocessing.connection import wait
 from dqpose import drivers
 from dqpose.drivers.executor import Executor, Result
-from test_arm_limits import LIMITS
-from test_arm_safety import _standing
+from tests.drivers.test_arm_limits import LIMITS
+from tests.drivers.test_arm_safety import _standing
 arm = drivers.open_arm("ur:" + sys.argv[1], process=True, limits=LIMITS, watchdog=0.2,
                        stale_after=0.5, reopen_every=0)
 def kill():
@@ -212,10 +212,9 @@ def test_an_arm_that_comes_back_with_another_period_is_refused():
     # the controller at the address is now a CB3 (125 Hz, not the e-series' 500): plans made for
     # this arm's period, limits and name would not be its own
     pytest.importorskip("rtde_control")
-    from test_arm_limits import LIMITS
-
     from dqpose import drivers
     from dqpose.drivers.sim import ur as ursim
+    from tests.drivers.test_arm_limits import LIMITS
     sim = ursim.URSimProcess()
     arm = drivers.open_arm(f"ur:{sim.host}", process=True, limits=LIMITS, reopen_every=0)
     try:

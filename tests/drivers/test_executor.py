@@ -12,14 +12,14 @@ import time
 
 import numpy as np
 import pytest
-from _polling import wait_until
-from test_arm_limits import LIMITS, PiperRig, URRig, _same
 
 from dqpose import dq
 from dqpose.drivers.base import pose_delta, servo_step
 from dqpose.drivers.executor import Executor, Feedback, Result
 from dqpose.interpolate import interpolate
 from dqpose.profile import Trapezoid
+from tests._polling import wait_until
+from tests.drivers.test_arm_limits import LIMITS, PiperRig, URRig, _same
 
 
 class URExec(URRig):
@@ -325,8 +325,8 @@ _PARENT = """
 import os, sys, time
 from dqpose import drivers
 from dqpose.drivers.executor import Executor
-from test_arm_limits import LIMITS
-from test_executor import _plan
+from tests.drivers.test_arm_limits import LIMITS
+from tests.drivers.test_executor import _plan
 arm = drivers.open_arm("ur:" + sys.argv[1], process=True, limits=LIMITS, watchdog=0.2,
                        stale_after=0.5)
 times, poses = _plan(arm, rate=1.0 / arm.period, length=0.08, speed=0.15, accel=1.5)

@@ -8,8 +8,6 @@ import uuid
 import can
 import numpy as np
 import pytest
-from _piper import ANG_Q, POS_Q, random_poses
-from _polling import wait_until
 from scipy.spatial.transform import Rotation
 
 from dqpose import dq
@@ -34,6 +32,8 @@ from dqpose.drivers.piper_can import (
 )
 from dqpose.drivers.sim.piper import PiperSim
 from dqpose.profile import Trapezoid
+from tests._polling import wait_until
+from tests.drivers._piper import ANG_Q, POS_Q, random_poses
 
 # piper_sdk 0.6.2 still passes python-can's deprecated ``bustype``.
 pytestmark = pytest.mark.filterwarnings("ignore:The 'bustype' argument is deprecated")

@@ -5,7 +5,6 @@ import struct
 import can
 import numpy as np
 import pytest
-from _piper import ANG_Q, POS_Q, random_poses
 
 from dqpose.drivers.base import pose_delta as _delta
 from dqpose.drivers.euler import dq_from_xyz_sxyz
@@ -31,6 +30,7 @@ from dqpose.drivers.piper_can import (
     pose_to_units,
     units_to_pose,
 )
+from tests.drivers._piper import ANG_Q, POS_Q, random_poses
 
 
 def test_units_round_trip_within_quantisation():

@@ -10,13 +10,12 @@ import pytest
 
 pytest.importorskip("rtde_control")
 
-from _polling import Slowdown, wait_until
-
-from dqpose import dq  # noqa: E402
-from dqpose.drivers.base import ArmError, LimitError, Limits  # noqa: E402
-from dqpose.drivers.rotvec import pose_from_rotvec, rotvec_from_pose  # noqa: E402
-from dqpose.drivers.sim import ur as ursim  # noqa: E402
-from dqpose.drivers.ur import URArm  # noqa: E402
+from dqpose import dq
+from dqpose.drivers.base import ArmError, LimitError, Limits
+from dqpose.drivers.rotvec import pose_from_rotvec, rotvec_from_pose
+from dqpose.drivers.sim import ur as ursim
+from dqpose.drivers.ur import URArm
+from tests._polling import Slowdown, wait_until
 
 HOME = np.array([0.4, -0.1, 0.3, 2.2, 2.2, 0.0])
 DETECT = 0.5        # seconds the issue allows for noticing a protective stop or a lost controller

@@ -129,10 +129,10 @@ def check_bare_server(address: str, smooth_hint: str) -> None:
     import math
 
     import numpy as np
-    from _handeye import scene
 
     from dqpose import dq, handeye, trajectory
     from dqpose.rpc.client import Client, RpcError
+    from tests._handeye import scene
 
     poses = dq.from_pose([[1, 0, 0, 0], [math.cos(0.5), 0, 0, math.sin(0.5)]],
                          [[0.1, 0.0, 0.0], [0.3, 0.1, 0.0]])

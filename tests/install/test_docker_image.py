@@ -10,7 +10,8 @@ import shlex
 import shutil
 
 import pytest
-from _install import ROOT, Venv, check_bare_server, copy_sources, hint, serving
+
+from tests.install._install import ROOT, Venv, check_bare_server, copy_sources, hint, serving
 
 pytestmark = pytest.mark.install
 

@@ -9,7 +9,8 @@ import subprocess
 import threading
 
 import pytest
-from _install import ROOT
+
+from tests.install._install import ROOT
 
 pytestmark = pytest.mark.install
 

@@ -6,7 +6,8 @@ from __future__ import annotations
 import os
 
 import pytest
-from _install import (
+
+from tests.install._install import (
     LIMITS,
     Venv,
     build_requirements,

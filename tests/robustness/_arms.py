@@ -4,20 +4,15 @@ real server on 127.0.0.1 owning them, and plans that start where an arm is."""
 from __future__ import annotations
 
 import contextlib
-import os
 import random
-import sys
 import threading
 
 import numpy as np
 import pytest
 
-for _dir in ("rpc", "cli", ""):      # _grpc_server, _cli, _polling
-    sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(__file__)), _dir))
-from _grpc_server import ServerThread  # noqa: E402
-from _polling import wait_until  # noqa: E402
-
-from dqpose import dq, trajectory  # noqa: E402
+from dqpose import dq, trajectory
+from tests._polling import wait_until
+from tests.rpc._grpc_server import ServerThread
 
 #: within every arm's own limits (the UR's and the PiPER's: 0.25 m/s, 1 rad/s, 2 m/s^2, 4 rad/s^2)
 LIMITS = trajectory.Limits(max_linear_velocity=0.1, max_angular_velocity=0.5,

@@ -5,11 +5,11 @@ from __future__ import annotations
 import grpc
 import numpy as np
 import pytest
-from _served import code_of, served
 
 from dqpose.rpc import geometry
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
+from tests.robustness._served import code_of, served
 
 
 @pytest.fixture(scope="module")

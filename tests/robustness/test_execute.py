@@ -16,7 +16,9 @@ import dataclasses
 import time
 
 import pytest
-from _arms import (
+
+from dqpose.rpc.client import Client, RpcError
+from tests.robustness._arms import (
     LIMITS,
     RIGS,
     SLOW,
@@ -29,8 +31,6 @@ from _arms import (
     served_rigs,
     wait_until,
 )
-
-from dqpose.rpc.client import Client, RpcError
 
 
 @pytest.fixture(scope="module")

@@ -9,10 +9,10 @@ from __future__ import annotations
 import tracemalloc
 
 import pytest
-from _arms import URRig, offset, serve
 
 from dqpose import limits, trajectory
 from dqpose.rpc.client import Client, RpcError
+from tests.robustness._arms import URRig, offset, serve
 
 MAX_WAYPOINTS = 100
 #: a crawl: 0.06 m at 50 um/s is a 20-minute plan

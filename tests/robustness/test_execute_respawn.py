@@ -11,9 +11,9 @@ import signal
 from multiprocessing.connection import wait
 
 import pytest
-from _arms import RIGS, SLOW, distance, offset, served_rigs
 
 from dqpose.rpc.client import Client, RpcError
+from tests.robustness._arms import RIGS, SLOW, distance, offset, served_rigs
 
 
 @pytest.fixture(scope="module")

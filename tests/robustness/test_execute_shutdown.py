@@ -9,10 +9,10 @@ import json
 import signal
 
 import pytest
-from _arms import SLOW, distance, offset
-from _cli import serving
 
 from dqpose.rpc.client import Client, RpcError
+from tests.cli._cli import serving
+from tests.robustness._arms import SLOW, distance, offset
 
 
 @pytest.fixture

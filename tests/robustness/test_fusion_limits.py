@@ -9,8 +9,6 @@ from concurrent.futures import ThreadPoolExecutor
 import grpc
 import numpy as np
 import pytest
-from _polling import wait_until
-from _served import code_of, pose, served
 
 from dqpose import dq, fusion, lie, limits
 from dqpose.rpc import fusion_convert
@@ -18,6 +16,8 @@ from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2_grpc as pb_grpc
 from dqpose.rpc.fusion import Fusion
 from dqpose.rpc.server import ServerConfig
+from tests._polling import wait_until
+from tests.robustness._served import code_of, pose, served
 
 
 @pytest.fixture(scope="module")

@@ -34,8 +34,7 @@ from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
 from dqpose.rpc.handeye_convert import calibrate_msg
 
 _TESTS = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, _TESTS)
-import _handeye  # noqa: E402
+from tests import _handeye  # noqa: E402
 
 ROOT = os.path.dirname(_TESTS)
 

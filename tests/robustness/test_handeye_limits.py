@@ -3,21 +3,17 @@ refused before any work beyond them, the heaviest legal request solved off the e
 the server answering meanwhile and its memory given back."""
 from __future__ import annotations
 
-import sys
 from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
 
 import grpc
 import numpy as np
 import pytest
-from _served import code_of, served
 
 from dqpose import limits
 from dqpose.rpc import handeye_convert
 from dqpose.rpc._proto.dqpose.v1 import handeye_pb2_grpc as pb_grpc
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-import _handeye as H  # noqa: E402
+from tests import _handeye as H
+from tests.robustness._served import code_of, served
 
 
 @pytest.fixture(scope="module")

@@ -8,15 +8,15 @@ import threading
 
 import grpc
 import pytest
-from _served import HEALTH_DEADLINE, Served, pose
-from test_fusion_limits import fuse_request
-from test_handeye_limits import request as calibrate_request
 
 from dqpose import limits
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as bpb
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2_grpc as bpb_grpc
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2_grpc as fpb_grpc
 from dqpose.rpc._proto.dqpose.v1 import handeye_pb2_grpc as hpb_grpc
+from tests.robustness._served import HEALTH_DEADLINE, Served, pose
+from tests.robustness.test_fusion_limits import fuse_request
+from tests.robustness.test_handeye_limits import request as calibrate_request
 
 
 @pytest.mark.heavy

@@ -6,13 +6,13 @@ from __future__ import annotations
 import grpc
 import numpy as np
 import pytest
-from _served import code_of, served
 
 from dqpose import dq, lie, trajectory
 from dqpose.rpc import geometry, trajectories_convert
 from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2_grpc as pb_grpc
+from tests.robustness._served import code_of, served
 
 
 @pytest.fixture(scope="module")

@@ -10,11 +10,11 @@ import sys
 import grpc
 import numpy as np
 import pytest
-from _grpc_server import ServerThread
 
 from dqpose import dq
 from dqpose.interpolate import interpolate
 from dqpose.rpc.client import Client, InvalidArgument, RequestTooLarge, RpcError
+from tests.rpc._grpc_server import ServerThread
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 

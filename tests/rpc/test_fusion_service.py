@@ -7,7 +7,6 @@ import zlib
 
 import numpy as np
 import pytest
-from _grpc_server import ServerThread
 
 from dqpose import dq, fusion, lie
 from dqpose.fusion import Source
@@ -15,6 +14,7 @@ from dqpose.rpc import fusion_convert, geometry
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 from dqpose.rpc.client import Batch, Client, InvalidArgument
 from dqpose.rpc.fusion import Fusion, tick_phase
+from tests.rpc._grpc_server import ServerThread
 
 
 @pytest.fixture(scope="module")

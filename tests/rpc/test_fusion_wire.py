@@ -11,11 +11,9 @@ import struct
 
 import numpy as np
 import pytest
-from _mutate import damaged
 from google.protobuf.message import DecodeError
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_wire import PADS, _key, reencode
 
 from dqpose import dq, fusion
 from dqpose.rpc import wire
@@ -24,6 +22,8 @@ from dqpose.rpc.fusion import Fusion
 from dqpose.rpc.fusion_convert import measurement_msgs, measurements_to_arrays, options_msg
 from dqpose.rpc.server import ServerConfig
 from dqpose.rpc.wire import fuse_stream_from_wire
+from tests.rpc._mutate import damaged
+from tests.rpc.test_wire import PADS, _key, reencode
 
 SOURCES = [fusion.Source("cam", latency=0.03), fusion.Source("arm", latency=0.004)]
 NESTED = {"stream": {3: "measurement"}, "measurement": {4: "pose"},

@@ -4,13 +4,9 @@ INVALID_ARGUMENT naming the field, unusable data FAILED_PRECONDITION with the so
 and samples, and the server goes on serving after each."""
 from __future__ import annotations
 
-import os
-import sys
-
 import grpc
 import numpy as np
 import pytest
-from _grpc_server import ServerThread
 
 from dqpose import handeye
 from dqpose.errors import Infeasible
@@ -18,9 +14,8 @@ from dqpose.rpc._proto.dqpose.v1 import handeye_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import handeye_pb2_grpc
 from dqpose.rpc.client import Client, InvalidArgument, RpcError
 from dqpose.rpc.handeye_convert import calibrate_error, calibrate_msg
-
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-import _handeye  # noqa: E402
+from tests import _handeye
+from tests.rpc._grpc_server import ServerThread
 
 
 @pytest.fixture(scope="module")

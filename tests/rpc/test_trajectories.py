@@ -10,12 +10,12 @@ import time
 import grpc
 import numpy as np
 import pytest
-from _grpc_server import ServerThread
-from _polling import wait_until
 
 from dqpose import dq, smoothing, trajectory
 from dqpose.rpc.client import Client, InvalidArgument, RpcError
 from dqpose.rpc.server import ServerConfig
+from tests._polling import wait_until
+from tests.rpc._grpc_server import ServerThread
 
 LIMITS = trajectory.Limits(max_linear_velocity=0.2, max_angular_velocity=1.0,
                            max_linear_acceleration=1.0, max_angular_acceleration=2.0,

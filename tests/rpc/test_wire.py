@@ -8,7 +8,6 @@ import struct
 
 import numpy as np
 import pytest
-from _mutate import damaged
 from google.protobuf.message import DecodeError
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -21,6 +20,7 @@ from dqpose.rpc.blending import DEFAULT_MAX_ITERATIONS, DEFAULT_TOLERANCE, Blend
 from dqpose.rpc.geometry import pose_msgs
 from dqpose.rpc.server import ServerConfig
 from dqpose.rpc.wire import blend_batch_wire, blend_wire, decode_blend_request
+from tests.rpc._mutate import damaged
 
 # Zeros matter: proto3 leaves zero fields off the wire, which is what a fixed-layout reader
 # would get wrong.

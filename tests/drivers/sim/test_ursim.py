@@ -13,7 +13,8 @@ import time
 
 import numpy as np
 import pytest
-from _polling import wait_until
+
+from tests._polling import wait_until
 
 rtde_control = pytest.importorskip("rtde_control")
 rtde_receive = pytest.importorskip("rtde_receive")

@@ -1,12 +1,12 @@
 """The C fusion core (service/csrc/fusion.c, bound as ``_dqcore.fuse``) against the NumPy reference
 (tests/fusion_reference.py) on random and hard problems, its batch axis, and its errors."""
-import fusion_reference as ref
 import numpy as np
 import pytest
-from test_fusion import measure, random_cov, random_pose
 
 from dqpose import _dqcore as _c
 from dqpose import dq, fusion, lie
+from tests import fusion_reference as ref
+from tests.fusion._scenes import measure, random_cov, random_pose
 
 FIELDS = ("mean", "covariance", "residuals", "distances", "nis", "tested", "status",
           "iterations", "chi2")

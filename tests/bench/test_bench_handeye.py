@@ -15,7 +15,7 @@ from dqpose import dq, lie
 from tests import _handeye
 from tests.bench import bench_handeye as bench
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")

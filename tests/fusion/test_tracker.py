@@ -1,0 +1,167 @@
+"""dqpose.fusion.tracker: the per-body sliding window of a live stream."""
+import numpy as np
+import pytest
+
+from dqpose import dq, fusion, lie
+from dqpose.fusion import Measurement, Source, Tracker
+from tests.fusion._moving import (
+    ARM,
+    ARM_RATE,
+    CAM_A,
+    CAM_B,
+    CAMERA_RATE,
+    SOURCES,
+    WINDOW,
+    error,
+    sample,
+    sizes,
+    stream,
+    trajectory,
+)
+
+
+def test_tracker_window_estimates_like_fuse_and_stays_bounded():
+    rng = np.random.default_rng(72)
+    T = trajectory(lie.se3_exp(rng.normal(size=6)), False)
+    tracker = Tracker(WINDOW, sources=SOURCES)
+    errors, sizes_seen = [], []
+    for k, m in enumerate(stream(rng, T)):
+        tracker.add(m)
+        sizes_seen.append(len(tracker.measurements("box")))
+        if k % 50 == 49:
+            f = tracker.estimate("box")
+            errors.append(sizes(error(f.mean, T(f.time)[0]))[1])
+    assert max(sizes_seen) <= WINDOW * (ARM_RATE + 2 * CAMERA_RATE) + 4
+    assert np.median(errors) < 1e-3
+    window = tracker.measurements("box")
+    f = tracker.estimate("box", time=0.98)
+    g = fusion.fuse(np.array([m.pose for m in window]), np.array([m.covariance for m in window]),
+                    names=[m.source for m in window], sources=SOURCES,
+                    times=[m.time for m in window], time=0.98)
+    assert np.array_equal(f.mean, g.mean) and np.array_equal(f.covariance, g.covariance)
+    assert tracker.bodies == ("box",)
+
+
+def test_tracker_time_going_back_beyond_the_window_is_an_error_naming_the_measurement():
+    tracker = Tracker(WINDOW, sources=SOURCES)
+    X = lie.se3_exp(np.full(6, 0.1))
+    tracker.add(Measurement("arm", "box", 1.0, X), Measurement("arm", "box", 0.9, X))
+    assert len(tracker.measurements("box")) == 2  # out of order within the window is fine
+    late = Measurement("cam_a", "box", 0.83, X)  # taken at 0.79, 0.216 s before 1.006
+    with pytest.raises(ValueError, match=r"^measurements\[1\] \(body 'box', source 'cam_a', "
+                                         r"time 0.83\): taken at 0.7[89].* "
+                                         r"beyond the window 0.2 s"):
+        tracker.add(Measurement("arm", "box", 1.01, X), late)
+    assert len(tracker.measurements("box")) == 2  # all or none
+    tracker.add(Measurement("arm", "other", 0.0, X))  # another body has its own clock
+
+
+def test_tracker_bodies_are_independent():
+    rng = np.random.default_rng(73)
+    Ta = trajectory(lie.se3_exp(rng.normal(size=6)), False)
+    Tb = trajectory(lie.se3_exp(rng.normal(size=6)), True)
+    a = stream(rng, Ta, body="a")
+    b = stream(rng, Tb, body="b", end=1.3)
+    both, alone = Tracker(WINDOW, sources=SOURCES), Tracker(WINDOW, sources=SOURCES)
+    for m in sorted(a + b, key=lambda m: m.time):
+        both.add(m)
+    alone.add(*a)
+    assert set(both.bodies) == {"a", "b"}
+    fa, ga = both.estimate("a"), alone.estimate("a")
+    assert fa.time == ga.time and np.array_equal(fa.mean, ga.mean)
+    assert np.array_equal(fa.covariance, ga.covariance)
+    fb = both.estimate("b")
+    assert fb.time > fa.time + 0.25
+    assert sizes(error(fb.mean, Tb(fb.time)[0]))[1] < 3e-3
+    both.remove("b")
+    with pytest.raises(ValueError, match=r"^body: no measurements of 'b'"):
+        both.estimate("b")
+
+
+@pytest.mark.parametrize("measurement, message", [
+    (Measurement("arm", "box", np.nan, np.eye(1, 8)[0]), r"^measurements\[0\]\.time: must be "
+                                                          r"finite"),
+    (Measurement("arm", "box", 0.0, np.ones(8)), r"^measurements\[0\]\.pose: "),
+    (Measurement("arm", "", 0.0, np.eye(1, 8)[0]), r"^measurements\[0\]\.body: empty"),
+    (Measurement("arm", "box", 0.0, np.eye(1, 8)[0], np.eye(3)),
+     r"^measurements\[0\]\.covariance: expected shape \(6, 6\)"),
+    (Measurement("arm", "box", 0.0, np.eye(1, 8)[0], -np.eye(6)),
+     r"^measurements\[0\]\.covariance: not positive definite"),
+    (Measurement("arm", "box", 0.0, np.eye(1, 8)[0], weight=0.0),
+     r"^measurements\[0\]\.weight: must be positive"),
+    (Measurement("arm", "box", 0.0, [[1, 0], [0]]),
+     r"^measurements\[0\]\.pose: expected shape \(8,\), got a ragged sequence"),
+    ("pose", r"^measurements\[0\]: expected a Measurement, got str"),
+])
+def test_tracker_bad_measurement_names_it(measurement, message):
+    tracker = Tracker(WINDOW)
+    with pytest.raises(ValueError, match=message):
+        tracker.add(measurement)
+    assert tracker.bodies == ()
+
+
+def test_tracker_bad_options_fail_at_construction():
+    with pytest.raises(ValueError, match=r"^window: must be positive"):
+        Tracker(0.0)
+    with pytest.raises(ValueError, match=r"^max_skew: must be nonnegative"):
+        Tracker(0.2, max_skew=-1.0)
+    with pytest.raises(ValueError, match=r"^acceleration_psd: not positive semidefinite"):
+        Tracker(0.2, acceleration_psd=-np.eye(6))
+    with pytest.raises(ValueError, match=r"^sources\[0\]: a source needs a name"):
+        Tracker(0.2, sources=[Source("")])
+
+
+def test_tracker_ingest_keeps_the_valid_measurements_and_names_the_others():
+    rng = np.random.default_rng(74)
+    T = trajectory(lie.se3_exp(rng.normal(size=6)), False)
+    ms = stream(rng, T, end=0.3)
+    tracker, alone = Tracker(WINDOW, sources=SOURCES), Tracker(WINDOW, sources=SOURCES)
+    head, batch = ms[:-10], ms[-10:]
+    tracker.add(*head)
+    alone.add(*head)
+    poses = np.array([m.pose for m in batch])
+    covs = np.array([m.covariance for m in batch])
+    times = np.array([m.time for m in batch])
+    names = [m.source for m in batch]
+    bodies = ["box"] * 10
+    poses[1, 0] = np.nan
+    covs[4, 1, 1] = -1.0
+    times[6] = np.inf
+    times[8] -= 0.5
+    bodies[9] = ""
+    errors = tracker.ingest(bodies, names, times, poses, covs, ids=np.arange(100, 110))
+    assert [k for k, _ in errors] == [1, 4, 6, 8, 9]
+    text = [str(e) for _, e in errors]
+    assert text[0] == "measurements[1].pose: contains NaN or infinity"
+    assert text[1] == "measurements[4].covariance: not positive definite"
+    assert text[2] == "measurements[6].time: must be finite, got inf"
+    assert text[3].startswith("measurements[8] (body 'box'") and "beyond the window" in text[3]
+    assert text[4] == "measurements[9].body: empty (every measurement names its body)"
+    good = [0, 2, 3, 5, 7]
+    alone.add(*[batch[k] for k in good])
+    w = tracker.window_of("box")
+    assert w.ids[-5:].tolist() == [100 + k for k in good]
+    f, g = tracker.estimate("box"), alone.estimate("box")
+    assert np.array_equal(f.mean, g.mean) and np.array_equal(f.covariance, g.covariance)
+
+
+def test_one_instant_at_its_time_is_the_static_fusion_bit_for_bit():
+    rng = np.random.default_rng(75)
+    X = lie.se3_exp(rng.normal(size=6))
+    S = np.array([CAM_A, CAM_B, ARM, ARM])
+    Z = np.concatenate([sample(rng, lambda t: X[None], C, np.zeros(1)) for C in S])
+    Z[3] = dq.mul(Z[3], lie.se3_exp(np.array([0, 2.5, 0, 0.2, 0, 0])))   # a flipped one
+    names = ["cam_a", "cam_b", "arm", "arm"]
+    for robust in (False, True):
+        static = fusion.fuse(Z, S, names=names, robust=robust)
+        f = fusion.fuse(Z, S, names=names, robust=robust, times=[1.5] * 4, time=1.5,
+                        max_skew=0.01, sources=[Source("arm", latency_sigma=0.01)])
+        assert np.array_equal(f.mean, static.mean)
+        assert np.array_equal(f.covariance, static.covariance)
+        assert np.array_equal(f.nis, static.nis) and f.rejected == static.rejected
+        assert f.time == 1.5 and f.dropped == () and f.twist is None
+        assert f.latencies == (fusion.Latency("arm", 0.0, 0.01, 0.0, 0.01),)
+    prior = np.diag([0.5 ** 2] * 3 + [0.2 ** 2] * 3)
+    f = fusion.fuse(Z[:3], S[:3], times=[1.5] * 3, twist_covariance=prior)
+    assert np.array_equal(f.mean, fusion.fuse(Z[:3], S[:3]).mean)
+    assert np.array_equal(f.twist, np.zeros(6)) and np.array_equal(f.twist_covariance, prior)
