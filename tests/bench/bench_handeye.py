@@ -67,7 +67,7 @@ import numpy as np
 from dqpose import dq
 from tests import _handeye
 from tests.bench._table import markdown
-from tests.bench.bench_fusion import _fmt_s, nees
+from tests.bench.fusion_scenes import _fmt_s, nees
 
 HERE = Path(__file__).resolve().parent
 RUNNER = HERE / "handeye_opencv4.py"
