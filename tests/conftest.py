@@ -70,7 +70,8 @@ SLOW_MODULES = {
     "cli/test_handeye_cli.py", "cli/test_interrupt.py", "drivers/test_arm_safety.py",
     "drivers/test_armproc_respawn.py", "drivers/test_camera.py", "fusion/test_process_noise.py",
     "robustness/test_execute.py", "robustness/test_fuzz_rpc.py", "rpc/server/test_shutdown.py",
-    "test_examples.py", "test_handeye.py",
+    "test_examples.py", "handeye/test_calibrate.py", "handeye/test_checks.py",
+    "handeye/test_corners.py",
 }
 _TESTS = pathlib.Path(__file__).parent
 
