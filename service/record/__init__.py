@@ -23,7 +23,7 @@ class _NullCall:
     def fused(self, answer) -> None:
         pass
 
-    def end(self, code: str) -> None:
+    def end(self, code: str, details: str = "") -> None:
         pass
 
 

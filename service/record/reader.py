@@ -23,6 +23,7 @@ class Call:
     answer_type: str
     continued: bool              # began in an earlier file: its start is not in this one
     code: str | None = None      # its status when it ended in this file, else None
+    details: str = ""            # a refusal's text
 
 
 @dataclasses.dataclass
@@ -90,3 +91,4 @@ def _call_event(calls: dict[int, Call], d: dict) -> None:
                                 d.get("continued", False))
     elif d["event"] == "end" and d["call"] in calls:
         calls[d["call"]].code = d["code"]
+        calls[d["call"]].details = d.get("details", "")

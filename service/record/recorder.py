@@ -51,7 +51,7 @@ def plan_topic(name: str) -> str:
 
 _CALL_FIELDS = {"call": "integer", "rpc": "string", "event": "string",
                 "request_type": "string", "answer_type": "string", "code": "string",
-                "continued": "boolean"}
+                "details": "string", "continued": "boolean"}
 _DROPPED_FIELDS = {"first_dropped": "integer", "count": "integer", "resumed": "integer"}
 _STATS_FIELDS = {"body": "string", "time": "number", "chi2": "number", "dof": "integer",
                  "sigma_position": "number", "sigma_rotation": "number"}
@@ -73,8 +73,10 @@ class CallRecord:
     def fused(self, answer) -> None:
         self.recorder._put(self, ("answer", self.id, time.time_ns(), answer))
 
-    def end(self, code: str) -> None:
-        self.recorder._put(self, ("end", self.id, time.time_ns(), code))
+    def end(self, code: str, details: str = "") -> None:
+        """The call ended with status ``code`` (``"OK"``, ``"INVALID_ARGUMENT"``, ...) and, for
+        a refusal, its ``details``."""
+        self.recorder._put(self, ("end", self.id, time.time_ns(), (code, details)))
 
 
 class Recorder:
@@ -217,7 +219,8 @@ class Recorder:
             self._open_calls.pop(call, None)
             self._seq.pop(call, None)
             f.write_json(f.json_channel(CALLS_TOPIC, "dqpose.record.Call", _CALL_FIELDS), ns,
-                         {"call": call, "event": "end", "code": payload})
+                         {"call": call, "event": "end", "code": payload[0],
+                          "details": payload[1]})
         elif kind == "gap":
             first, count = payload
             f = self._open()
