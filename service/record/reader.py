@@ -78,6 +78,8 @@ def read(path: str | os.PathLike) -> Recording:
                         kind = ch.topic.rsplit("/", 1)[1][:-1]     # requests -> request
                         events.append(Event(kind, int(ch.metadata["call"]), rec.log_time,
                                             rec.data))
+    except OSError:
+        raise
     except Exception as e:   # mcap's own exceptions: EndOfFile, CRC and record errors
         raise ValueError(f"{path}: not a complete MCAP recording ({type(e).__name__}: "
                          f"{e})") from None

@@ -91,6 +91,7 @@ def test_commands_needing_an_extra_name_it(tmp_path):
                         (("sim", "camera", "--help"), "devices"),
                         (("serve", "--port", "0", "--sims"), "devices"),
                         (("serve", "--port", "0", "--record", str(tmp_path / "rec")), "record"),
+                        (("replay", str(tmp_path / "x.mcap")), "record"),
                         (("handeye", "solve", ROOT, "--local"), "devices"),
                         (("handeye", "capture", os.path.join(ROOT, "no-such-dir")), "devices"),
                         (("smooth", str(recording), "--local", *limits), "planning"),
