@@ -12,7 +12,9 @@ import os
 from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 
-from dqpose.record.recorder import CALLS_TOPIC, DROPPED_TOPIC
+from dqpose.record.recorder import CALLS_TOPIC, DROPPED_TOPIC, plan_topic
+
+PLANS = plan_topic("")
 
 
 @dataclasses.dataclass
@@ -49,6 +51,17 @@ class Recording:
     events: list[Event]
     dropped: list[Dropped]
     schemas: dict[str, bytes]    # message type -> its FileDescriptorSet, from the file itself
+    plans: list[tuple[str, int, bytes]]   # (name, ns, foxglove.PosesInFrame bytes)
+
+    def message_class(self, name: str):
+        """The protobuf class of message type ``name`` built from the schema the file embeds
+        alone (its own descriptor pool): no generated code needed."""
+        from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+        pool = descriptor_pool.DescriptorPool()
+        for fd in descriptor_pb2.FileDescriptorSet.FromString(self.schemas[name]).file:
+            pool.Add(fd)
+        return message_factory.GetMessageClass(pool.FindMessageTypeByName(name))
 
 
 def read(path: str | os.PathLike) -> Recording:
@@ -60,6 +73,7 @@ def read(path: str | os.PathLike) -> Recording:
     calls: dict[int, Call] = {}
     events: list[Event] = []
     dropped: list[Dropped] = []
+    plans: list[tuple[str, int, bytes]] = []
     try:
         with open(path, "rb") as f:
             for rec in StreamReader(f, validate_crcs=True).records:
@@ -74,6 +88,8 @@ def read(path: str | os.PathLike) -> Recording:
                     elif ch.topic == DROPPED_TOPIC:
                         d = json.loads(rec.data)
                         dropped.append(Dropped(d["first_dropped"], d["count"], len(events)))
+                    elif ch.topic.startswith(PLANS):
+                        plans.append((ch.topic[len(PLANS):], rec.log_time, rec.data))
                     elif "call" in ch.metadata:
                         kind = ch.topic.rsplit("/", 1)[1][:-1]     # requests -> request
                         events.append(Event(kind, int(ch.metadata["call"]), rec.log_time,
@@ -84,7 +100,7 @@ def read(path: str | os.PathLike) -> Recording:
         raise ValueError(f"{path}: not a complete MCAP recording ({type(e).__name__}: "
                          f"{e})") from None
     by_name = {s.name: s.data for s in schemas.values() if s.encoding == "protobuf"}
-    return Recording(path, calls, events, dropped, by_name)
+    return Recording(path, calls, events, dropped, by_name, plans)
 
 
 def _call_event(calls: dict[int, Call], d: dict) -> None:

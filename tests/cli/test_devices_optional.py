@@ -21,7 +21,7 @@ LIMITS = trajectory.Limits(max_linear_velocity=1.0, max_angular_velocity=1.0,
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 DEVICE_MODULES = ("cv2", "can", "rtde_control", "rtde_receive", "yaml", "casadi", "piper_sdk",
-                  "scipy", "matplotlib", "mcap", "foxglove_schemas_protobuf")
+                  "scipy", "matplotlib", "mcap", "foxglove_schemas_protobuf", "rosbags")
 
 
 def hint(extra: str) -> str:
@@ -92,6 +92,8 @@ def test_commands_needing_an_extra_name_it(tmp_path):
                         (("serve", "--port", "0", "--sims"), "devices"),
                         (("serve", "--port", "0", "--record", str(tmp_path / "rec")), "record"),
                         (("replay", str(tmp_path / "x.mcap")), "record"),
+                        (("export", str(tmp_path / "x.mcap"), "--ros2", str(tmp_path / "b")),
+                         "record"),
                         (("handeye", "solve", ROOT, "--local"), "devices"),
                         (("handeye", "capture", os.path.join(ROOT, "no-such-dir")), "devices"),
                         (("smooth", str(recording), "--local", *limits), "planning"),
