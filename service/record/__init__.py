@@ -6,7 +6,8 @@ nothing, unless ``dqpose serve --record DIR`` opened a :class:`~dqpose.record.re
 (:func:`open_recorder`). A servicer records a call as ``rec = recorder.call(rpc, RequestType,
 AnswerType)``, then ``rec.measurements(request)`` for each request as it arrived,
 ``rec.fused(answer)`` for each answer, ``rec.end(code)``. This module imports nothing beyond
-dqpose; the recorder needs the ``[record]`` extra (``mcap``, ``foxglove-schemas-protobuf``).
+dqpose; the recorder needs the ``[record]`` extra (``foxglove-sdk`` writes, ``mcap`` reads,
+``foxglove-schemas-protobuf`` has Foxglove's schemas, ``rosbags`` writes ROS 2 bags).
 """
 from __future__ import annotations
 
@@ -47,7 +48,7 @@ _NULL_CALL = _NullCall()
 NULL = NullRecorder()
 
 #: the modules of the [record] extra
-MODULES = ("mcap", "foxglove_schemas_protobuf")
+MODULES = ("foxglove", "mcap", "foxglove_schemas_protobuf")
 
 
 def open_recorder(directory, **kw):

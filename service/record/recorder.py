@@ -9,13 +9,14 @@ An RPC never waits for the disk.
 from __future__ import annotations
 
 import collections
+import json
 import logging
 import os
 import threading
 import time
 
 from dqpose.record import views
-from dqpose.record.mcapfile import McapFile
+from dqpose.record.mcapfile import CHUNK_BYTES, McapFile
 
 log = logging.getLogger("dqpose.record")
 
@@ -111,7 +112,6 @@ class Recorder:
         self._opened = 0.0
         self._open_calls: dict[int, tuple] = {}
         self._view_bodies: set[str] = set()
-        self._seq: dict[int, int] = {}
         self._thread = threading.Thread(target=self._run, name="dqpose-record", daemon=True)
         self._thread.start()
 
@@ -166,7 +166,7 @@ class Recorder:
             try:
                 self._write(item)
             except Exception:
-                log.exception("recording: a %s message could not be written", item[0])
+                log.exception(json.dumps({"event": "recording_failed", "message": item[0]}))
         if self._file is not None:
             self._file.close()
             self._file = None
@@ -176,11 +176,11 @@ class Recorder:
             name = time.strftime("dqpose-%Y%m%dT%H%M%SZ", time.gmtime())
             path = os.path.join(self.directory, f"{name}-{len(self.files):04d}.mcap")
             # a file is at most a chunk over max_bytes (a chunk is written when full)
-            self._file = McapFile(path, chunk_size=min(1 << 20, max(self.max_bytes // 8, 1024)))
+            self._file = McapFile(path, chunk_size=min(CHUNK_BYTES, max(self.max_bytes // 8, 1024)))
             self._opened = time.monotonic()
             self._view_bodies.clear()
             self.files.append(path)
-            log.info("recording to %s", path)
+            log.info(json.dumps({"event": "recording", "file": path}))
             for call, (rpc, req, ans) in self._open_calls.items():
                 self._log_call(call, time.time_ns(), rpc, req, ans, continued=True)
         return self._file
@@ -209,15 +209,17 @@ class Recorder:
             topic = requests_topic(rpc) if kind == "request" else answers_topic(rpc)
             data = payload if isinstance(payload, bytes) else payload.SerializeToString()
             f = self._open()
-            seq = self._seq[call] = self._seq.get(call, 0) + 1
-            f.write(f.channel(topic, cls, (("call", str(call)),)), ns, data, seq)
+            f.write(f.channel(topic, cls, (("call", str(call)),)), ns, data)
             if kind == "answer":
                 msg = cls.FromString(payload) if isinstance(payload, bytes) else payload
                 self._views(f, ns, msg)
         elif kind == "end":
             f = self._open()    # first: a file opened now says the call began earlier
-            self._open_calls.pop(call, None)
-            self._seq.pop(call, None)
+            began = self._open_calls.pop(call, None)
+            if began is not None:
+                rpc, req, ans = began
+                f.forget(requests_topic(rpc), req, (("call", str(call)),))
+                f.forget(answers_topic(rpc), ans, (("call", str(call)),))
             f.write_json(f.json_channel(CALLS_TOPIC, "dqpose.record.Call", _CALL_FIELDS), ns,
                          {"call": call, "event": "end", "code": payload[0],
                           "details": payload[1]})
@@ -227,8 +229,9 @@ class Recorder:
             f.write_json(f.json_channel(DROPPED_TOPIC, "dqpose.record.Dropped",
                                         _DROPPED_FIELDS), ns,
                          {"first_dropped": first, "count": count, "resumed": ns})
-            log.warning("recording fell behind: %d messages dropped from %.6f s (a replay of "
-                        "%s stops there)", count, first / 1e9, f.path)
+            log.warning(json.dumps({"event": "recording_dropped", "count": count,
+                                    "first_dropped": first / 1e9, "resumed": ns / 1e9,
+                                    "file": f.path, "replay": "stops there"}))
         elif kind == "plan":
             name, dqs = payload
             f = self._open()
@@ -267,4 +270,4 @@ class Recorder:
         self._closing = True
         self._thread.join(timeout)
         if self._thread.is_alive():
-            log.warning("recording: the writer did not finish within %.3g s", timeout)
+            log.warning(json.dumps({"event": "recording_unfinished", "timeout_s": timeout}))

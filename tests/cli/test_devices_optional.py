@@ -21,7 +21,7 @@ LIMITS = trajectory.Limits(max_linear_velocity=1.0, max_angular_velocity=1.0,
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 DEVICE_MODULES = ("cv2", "can", "rtde_control", "rtde_receive", "yaml", "casadi", "piper_sdk",
-                  "scipy", "matplotlib", "mcap", "foxglove_schemas_protobuf", "rosbags")
+                  "scipy", "matplotlib", "mcap", "foxglove_schemas_protobuf", "rosbags", "foxglove")
 
 
 def hint(extra: str) -> str:

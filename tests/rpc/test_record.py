@@ -3,6 +3,7 @@ StreamFuse and Fuse calls read back from the file byte for byte; a writer that s
 messages, counts them on the metrics port and marks the file, while every RPC is answered."""
 from __future__ import annotations
 
+import json
 import re
 import urllib.request
 
@@ -64,7 +65,7 @@ def test_a_stream_and_a_fuse_are_recorded_as_sent_and_answered(tmp_path):
     assert rec.dropped == []
 
 
-def test_a_stalled_recording_drops_says_so_and_every_rpc_is_answered(tmp_path):
+def test_a_stalled_recording_drops_says_so_and_every_rpc_is_answered(tmp_path, caplog):
     data = _stream.requests(40)
     want = _stream.answers(data)
     recorder = Recorder(tmp_path, queue=8)
@@ -83,6 +84,10 @@ def test_a_stalled_recording_drops_says_so_and_every_rpc_is_answered(tmp_path):
         wait_until(lambda: recorder.written == 8, 10)       # the queue drained
         again = stream_bytes(s.target, data[:3])
     rec = read(recorder.files[0])
+    (line,) = [json.loads(r.getMessage()) for r in caplog.records if r.name == "dqpose.record"
+               and r.levelname == "WARNING"]
+    assert (line["event"], line["count"], line["file"]) == \
+        ("recording_dropped", rec.dropped[0].count, recorder.files[0])
     first, second = sorted(rec.calls)
     kept = [e for e in rec.events if e.call == first]      # the queue's 8, less the beginning
     assert len(kept) == 7 and [e.data for e in kept if e.kind == "request"] == \
