@@ -41,16 +41,20 @@ class McapFile:
         self.messages = 0
 
     def channel(self, topic: str, cls, metadata: tuple = ()):
-        """The channel of ``topic`` for protobuf messages of class ``cls`` (``metadata``: pairs
-        that tell channels of one topic apart, e.g. the call they record)."""
-        key = (topic, cls, metadata)
+        """The channel of ``topic`` for protobuf messages of class ``cls``."""
+        return self.proto_channel(topic, cls.DESCRIPTOR.full_name, descriptor_set(cls),
+                                  metadata)
+
+    def proto_channel(self, topic: str, name: str, schema: bytes, metadata: tuple = ()):
+        """The channel of ``topic`` for protobuf messages of type ``name`` (``schema``: its
+        ``FileDescriptorSet``; ``metadata``: pairs that tell channels of one topic apart, e.g.
+        the call they record)."""
+        key = (topic, name, metadata)
         ch = self._channels.get(key)
         if ch is None:
-            schema = foxglove.Schema(name=cls.DESCRIPTOR.full_name, encoding="protobuf",
-                                     data=descriptor_set(cls))
             ch = self._channels[key] = foxglove.Channel(
-                topic, schema=schema, message_encoding="protobuf", context=self._context,
-                metadata=dict(metadata))
+                topic, schema=foxglove.Schema(name=name, encoding="protobuf", data=schema),
+                message_encoding="protobuf", context=self._context, metadata=dict(metadata))
         return ch
 
     def json_channel(self, topic: str, title: str, properties: dict):
@@ -65,9 +69,9 @@ class McapFile:
                 topic, schema=schema, message_encoding="json", context=self._context)
         return ch
 
-    def forget(self, topic: str, cls, metadata: tuple) -> None:
+    def forget(self, topic: str, name: str, metadata: tuple) -> None:
         """Closes a channel no more messages will come on (a call that ended)."""
-        ch = self._channels.pop((topic, cls, metadata), None)
+        ch = self._channels.pop((topic, name, metadata), None)
         if ch is not None:
             ch.close()
 

@@ -12,7 +12,8 @@ import os
 from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 
-from dqpose.record.recorder import CALLS_TOPIC, DROPPED_TOPIC, plan_topic
+from dqpose.record.schemas import message_class
+from dqpose.record.topics import CALLS_TOPIC, DROPPED_TOPIC, plan_topic
 
 PLANS = plan_topic("")
 
@@ -56,12 +57,7 @@ class Recording:
     def message_class(self, name: str):
         """The protobuf class of message type ``name`` built from the schema the file embeds
         alone (its own descriptor pool): no generated code needed."""
-        from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
-
-        pool = descriptor_pool.DescriptorPool()
-        for fd in descriptor_pb2.FileDescriptorSet.FromString(self.schemas[name]).file:
-            pool.Add(fd)
-        return message_factory.GetMessageClass(pool.FindMessageTypeByName(name))
+        return message_class(self.schemas[name], name)
 
 
 def read(path: str | os.PathLike) -> Recording:

@@ -37,3 +37,14 @@ def json_schema(title: str, properties: dict) -> bytes:
     ``properties`` (name -> JSON type)."""
     return json.dumps({"title": title, "type": "object",
                        "properties": {k: {"type": v} for k, v in properties.items()}}).encode()
+
+
+def message_class(data: bytes, name: str):
+    """The protobuf class of message type ``name`` built from a ``FileDescriptorSet`` alone (a
+    descriptor pool of its own): what a recording embeds is enough to read it."""
+    from google.protobuf import descriptor_pool, message_factory
+
+    pool = descriptor_pool.DescriptorPool()
+    for fd in descriptor_pb2.FileDescriptorSet.FromString(data).file:
+        pool.Add(fd)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(name))

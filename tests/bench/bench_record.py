@@ -25,8 +25,17 @@ import time
 
 import numpy as np
 
-from tests.bench.bench_fusion_stream import PER_MESSAGE, Scene, run
+from tests.bench.bench_fusion_stream import PER_MESSAGE, Scene, _cpu_seconds, run
 from tests.bench.bench_grpc import ServerProcess
+
+
+def _children(pid: int) -> list[int]:
+    """The processes ``pid`` started (``dqpose serve --record``'s writer)."""
+    try:
+        with open(f"/proc/{pid}/task/{pid}/children") as f:
+            return [int(c) for c in f.read().split()]
+    except OSError:
+        return []
 
 
 def main(argv=None) -> int:
@@ -53,9 +62,12 @@ def main(argv=None) -> int:
                 extra = ("--record", folder) if mode == "on" else ()
                 server = ServerProcess("aio", quiet_log=True, extra=extra)
                 try:
-                    rows[mode].append(run(server.target, scene, args.seconds,
-                                          args.rate / PER_MESSAGE, args, server.rss_mb,
-                                          server.proc.pid))
+                    writer = _children(server.proc.pid)
+                    cpu0 = sum(map(_cpu_seconds, writer))
+                    r = run(server.target, scene, args.seconds, args.rate / PER_MESSAGE, args,
+                            server.rss_mb, server.proc.pid)
+                    r["writer_cpu"] = (sum(map(_cpu_seconds, writer)) - cpu0) / r["n"] * 1e6
+                    rows[mode].append(r)
                 finally:
                     server.stop()      # SIGTERM: the recording is finished
                 if mode == "on":
@@ -79,17 +91,18 @@ def main(argv=None) -> int:
           f"{args.rounds} x {args.seconds:g} s each in turn; latency of the answers after each "
           f"stream's first second (bench_fusion_stream's measure), the mean over the rounds")
     head = ("server", "meas/s", "answers/s", "p50 ms", "p99 ms", "max ms", "server CPU us/msg",
-            "MB/min recorded", "dropped")
+            "writer process CPU us/msg", "MB/min recorded", "dropped")
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
     for mode in ("off", "on"):
         mb = f"{sum(sizes) / 1e6 / minutes:.1f}" if mode == "on" else "-"
+        writer = f"{pooled(mode, 'writer_cpu'):.0f}" if mode == "on" else "-"
         drops = str(dropped) if mode == "on" else "-"
         print(f"| {'--record' if mode == 'on' else 'no recording'} | "
               f"{pooled(mode, 'measurements'):.0f} | {pooled(mode, 'answers'):.1f} | "
               f"{pooled(mode, 'p50'):.2f} | {pooled(mode, 'p99'):.2f} | "
               f"{max(r['max'] for r in rows[mode]):.1f} | {pooled(mode, 'server_cpu'):.0f} | "
-              f"{mb} | {drops} |")
+              f"{writer} | {mb} | {drops} |")
     added = pooled("on", "p99") - pooled("off", "p99")
     print(f"added p99: {added:+.2f} ms; per round (off, on): " + ", ".join(
         f"({a['p99']:.2f}, {b['p99']:.2f})" for a, b in zip(rows["off"], rows["on"])))
