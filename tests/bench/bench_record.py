@@ -38,6 +38,38 @@ def _children(pid: int) -> list[int]:
         return []
 
 
+def put_cost(messages: int, rate: float) -> dict:
+    """What a recorded request costs the servicer that records it: ``CallRecord.measurements``
+    timed one by one, ``messages`` of the scene's requests at ``rate`` messages/s, with the writer
+    process draining the pipe (the flushes included: they happen inside the puts)."""
+    from dqpose.record.recorder import Recorder
+    from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
+    from tests.bench.bench_fusion_stream import wire_messages
+
+    data = wire_messages(Scene(100, 20000.0), messages)
+    folder = tempfile.mkdtemp(prefix="bench_record_put_")
+    try:
+        r = Recorder(folder)
+        call = r.call("dqpose.v1.Fusion/StreamFuse", pb.FuseStreamRequest, pb.FusedPose)
+        took = np.empty(messages)
+        t0 = time.perf_counter()
+        for i, d in enumerate(data):
+            due = t0 + i / rate
+            while time.perf_counter() < due:
+                time.sleep(0.0002)
+            t = time.perf_counter()
+            call.measurements(d)
+            took[i] = time.perf_counter() - t
+        call.end("OK")
+        r.close()
+        dropped = r.dropped
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+    return dict(p50=np.percentile(took, 50) * 1e6, p99=np.percentile(took, 99) * 1e6,
+                max=took.max() * 1e6, mean=took.mean() * 1e6, dropped=dropped,
+                size=np.mean([len(d) for d in data]))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rate", type=float, default=20000.0, help="measurements/s")
@@ -109,6 +141,15 @@ def main(argv=None) -> int:
     requests = sum(r.requests for r in reports)
     seconds = sum(r.seconds for r in reports)
     same = all(r.difference is None for r in reports)
+    put = put_cost(20000, args.rate / PER_MESSAGE)
+    print()
+    print(f"| a request recorded by its servicer ({put['size']:.0f} bytes, "
+          f"{args.rate / PER_MESSAGE:.0f}/s, 20,000) | mean us | p50 us | p99 us | max us | "
+          f"dropped |")
+    print("|---|---|---|---|---|---|")
+    print(f"| CallRecord.measurements (frame, buffer, non-blocking pipe write) | "
+          f"{put['mean']:.1f} | {put['p50']:.1f} | {put['p99']:.1f} | {put['max']:.0f} | "
+          f"{put['dropped']} |")
     print()
     print("| replay (in process, --speed max) | requests | measurements | answers | read s | "
           "replay s | measurements/s | every answer identical |")
