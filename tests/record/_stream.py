@@ -3,7 +3,6 @@ requests as wire bytes and the answers the Fusion servicer gives them in process
 from __future__ import annotations
 
 import numpy as np
-from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
 from dqpose import dq, lie
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
@@ -65,12 +64,3 @@ def answers(data: list[bytes]) -> list[list[pb.FusedPose]]:
         out.append(got)
         next_id += n
     return out
-
-
-def message_class(descriptor_set: bytes, name: str):
-    """The message class ``name`` built from a FileDescriptorSet alone (what a file embeds),
-    in a pool of its own: nothing of dqpose's or Foxglove's generated code."""
-    pool = descriptor_pool.DescriptorPool()
-    for fd in descriptor_pb2.FileDescriptorSet.FromString(descriptor_set).file:
-        pool.Add(fd)
-    return message_factory.GetMessageClass(pool.FindMessageTypeByName(name))

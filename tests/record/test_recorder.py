@@ -13,10 +13,10 @@ from mcap.records import Message
 from mcap.stream_reader import StreamReader
 
 from dqpose import dq, lie
-from dqpose.record import topics as rec_mod
-from dqpose.record import views
+from dqpose.record import topics, views
 from dqpose.record.reader import read
 from dqpose.record.recorder import Recorder
+from dqpose.record.schemas import message_class
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 from tests._polling import wait_until
 from tests.record import _stream
@@ -60,24 +60,24 @@ def test_a_call_reads_back_with_the_schemas_in_the_file(tmp_path, scene):
     by_topic: dict = {}
     for topic, name, enc, schema, msg, _ in got:
         by_topic.setdefault(topic, []).append((name, enc, schema, msg))
-    reqs = by_topic[rec_mod.requests_topic(RPC)]
+    reqs = by_topic[topics.requests_topic(RPC)]
     assert [m for *_, m in reqs] == data      # every request, byte for byte, in order
     name, enc, schema, _ = reqs[0]
     assert (name, enc) == ("dqpose.v1.FuseStreamRequest", "protobuf")
-    Request = _stream.message_class(schema, name)
+    Request = message_class(schema, name)
     first = Request.FromString(reqs[0][3])
     assert first.output_rate == _stream.RATE and len(first.measurements) == 4
     assert [s.name for s in first.options.sources] == ["cam", "arm"]
-    ans = by_topic[rec_mod.answers_topic(RPC)]
+    ans = by_topic[topics.answers_topic(RPC)]
     flat = [a for got in answers for a in got]
     assert len(ans) == len(flat) > 0
-    Fused = _stream.message_class(ans[0][2], "dqpose.v1.FusedPose")
+    Fused = message_class(ans[0][2], "dqpose.v1.FusedPose")
     for (_, _, _, m), a in zip(ans, flat):
         assert m == a.SerializeToString()
         back = Fused.FromString(m)
         assert list(back.covariance) == list(a.covariance) and back.body == a.body
     # the call's beginning and end, in JSON
-    calls = [json.loads(m) for *_, m in by_topic[rec_mod.CALLS_TOPIC]]
+    calls = [json.loads(m) for *_, m in by_topic[topics.CALLS_TOPIC]]
     assert [c["event"] for c in calls] == ["begin", "end"]
     assert calls[0]["rpc"] == RPC and calls[1]["code"] == "OK"
 
@@ -90,21 +90,21 @@ def test_fused_poses_are_drawn_with_foxglove_schemas(tmp_path, scene):
     got = messages(r.files[0])
     flat = [a for a_s in answers for a in a_s if not a.HasField("error")]
     last = {a.body: a for a in flat}
-    poses = [g for g in got if g[0] == rec_mod.pose_topic("box")]
+    poses = [g for g in got if g[0] == topics.pose_topic("box")]
     assert len(poses) == sum(a.body == "box" for a in flat)
-    PoseInFrame = _stream.message_class(poses[-1][3], "foxglove.PoseInFrame")
+    PoseInFrame = message_class(poses[-1][3], "foxglove.PoseInFrame")
     p = PoseInFrame.FromString(poses[-1][4])
     want = last["box"].pose
     assert p.frame_id == "world"
     assert (p.pose.position.x, p.pose.orientation.w, p.pose.orientation.z) == \
         (want.position.x, want.orientation.w, want.orientation.z)
     assert p.timestamp.seconds * 10**9 + p.timestamp.nanos == poses[-1][5]
-    tf = [g for g in got if g[0] == rec_mod.TF_TOPIC]
-    FrameTransforms = _stream.message_class(tf[-1][3], "foxglove.FrameTransforms")
+    tf = [g for g in got if g[0] == topics.TF_TOPIC]
+    FrameTransforms = message_class(tf[-1][3], "foxglove.FrameTransforms")
     t = FrameTransforms.FromString(tf[-1][4]).transforms[0]
     assert t.parent_frame_id == "world" and t.child_frame_id == flat[-1].body
-    scene_msgs = [g for g in got if g[0] == rec_mod.ELLIPSOIDS_TOPIC]
-    SceneUpdate = _stream.message_class(scene_msgs[-1][3], "foxglove.SceneUpdate")
+    scene_msgs = [g for g in got if g[0] == topics.ELLIPSOIDS_TOPIC]
+    SceneUpdate = message_class(scene_msgs[-1][3], "foxglove.SceneUpdate")
     entity = SceneUpdate.FromString(scene_msgs[-1][4]).entities[0]
     assert entity.frame_id == entity.id == flat[-1].body
     # the sphere's axes and diameters give back the position block of the covariance
@@ -114,7 +114,7 @@ def test_fused_poses_are_drawn_with_foxglove_schemas(tmp_path, scene):
     d = np.array([s.size.x, s.size.y, s.size.z]) / (2 * views.ELLIPSOID_SIGMAS)
     cov = np.asarray(flat[-1].covariance).reshape(6, 6)[3:, 3:]
     assert np.allclose(R @ np.diag(d**2) @ R.T, cov, rtol=1e-9, atol=1e-18)
-    stats = [json.loads(g[4]) for g in got if g[0] == rec_mod.stats_topic("cup")]
+    stats = [json.loads(g[4]) for g in got if g[0] == topics.stats_topic("cup")]
     assert stats[-1]["time"] == last["cup"].time and stats[-1]["dof"] == last["cup"].dof
     c = np.asarray(last["cup"].covariance).reshape(6, 6)
     assert stats[-1]["sigma_position"] == pytest.approx(np.sqrt(np.linalg.eigvalsh(c[3:, 3:])[-1]))
@@ -225,9 +225,25 @@ def test_a_plan_is_a_path_of_poses(tmp_path):
     r.plan("ur", path)
     r.close()
     (topic, name, _, schema, data, _), = messages(r.files[0])
-    assert (topic, name) == (rec_mod.plan_topic("ur"), "foxglove.PosesInFrame")
-    msg = _stream.message_class(schema, name).FromString(data)
+    assert (topic, name) == (topics.plan_topic("ur"), "foxglove.PosesInFrame")
+    msg = message_class(schema, name).FromString(data)
     q, t = dq.to_pose(path)
     assert msg.frame_id == "world" and len(msg.poses) == 5
     assert [p.position.x for p in msg.poses] == t[:, 0].tolist()
     assert [p.orientation.z for p in msg.poses] == q[:, 3].tolist()
+
+
+def test_a_writer_that_dies_is_logged_and_what_follows_dropped(tmp_path, scene, caplog):
+    data, _ = scene
+    r = Recorder(tmp_path)
+    call = r.call(RPC, pb.FuseStreamRequest, pb.FusedPose)
+    r._proc.kill()
+    r._proc.wait()
+    for d in data:      # none waits: the pipe's end is gone
+        call.measurements(d)
+    wait_until(lambda: (call.measurements(data[0]) or True) and r._closed, 10)
+    before = r.dropped
+    call.measurements(data[1])
+    assert r.dropped == before + 1
+    r.close()
+    assert any('"event": "recording_failed"' in rec.getMessage() for rec in caplog.records)
