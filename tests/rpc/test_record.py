@@ -97,3 +97,24 @@ def test_a_stalled_recording_drops_says_so_and_every_rpc_is_answered(tmp_path, c
     # the next call is whole, after the marker
     assert [e.data for e in rec.events if e.call == second and e.kind == "request"] == data[:3]
     assert len([e for e in rec.events if e.call == second and e.kind == "answer"]) == len(again)
+
+
+def test_a_plan_is_recorded_as_a_path_to_view(tmp_path):
+    from dqpose.rpc.trajectories import PLAN_VIEW_POSES
+    from tests.rpc.test_trajectories import LIMITS, _waypoints
+
+    recorder = Recorder(tmp_path)
+    with ServerThread(ServerConfig(port=0, recorder=recorder)) as s:
+        few = Client(s.target).plan(_waypoints(), LIMITS, 10.0)
+        many = Client(s.target).plan(_waypoints(), LIMITS, 1000.0)
+    rec = read(recorder.files[0])
+    assert [name for name, _, _ in rec.plans] == ["Plan", "Plan"]
+    Poses = rec.message_class("foxglove.PosesInFrame")
+    for (_, _, data), planned in zip(rec.plans, (few, many)):
+        path = Poses.FromString(data).poses
+        assert len(path) <= PLAN_VIEW_POSES + 1
+        assert path[0].position.y == dq.to_pose(planned.pose[0])[1][1]
+        q, t = dq.to_pose(planned.pose[-1])
+        assert (path[-1].position.x, path[-1].orientation.z) == (t[0], q[3])
+    assert len(Poses.FromString(rec.plans[0][2]).poses) == len(few.time) + 1
+    assert len(many.time) > PLAN_VIEW_POSES
