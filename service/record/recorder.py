@@ -101,7 +101,10 @@ class Recorder:
         self._proc = subprocess.Popen(
             [sys.executable, "-m", "dqpose.record.writer", self.directory, str(max_bytes),
              repr(float(max_seconds))], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-            bufsize=0)
+            bufsize=0,
+            # out of the server's process group: a Ctrl-C at its terminal (SIGINT to the group)
+            # must not end the writer, even while it starts; it ends when its input does
+            start_new_session=True)
         assert self._proc.stdin is not None
         self._fd = self._proc.stdin.fileno()
         os.set_blocking(self._fd, False)

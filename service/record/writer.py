@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import select
+import signal
 import sys
 import time
 
@@ -164,6 +165,10 @@ class Writer:
 
 
 def main(argv: list[str]) -> int:
+    # It ends when its input does (the server closes it after its last call, or dies), so that
+    # the file is finished: a signal meant for the server is not for it.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     directory, max_bytes, max_seconds = argv[0], int(argv[1]), float(argv[2])
     w = Writer(directory, max_bytes, max_seconds)
     fd = sys.stdin.fileno()

@@ -156,3 +156,28 @@ def test_a_recording_bound_out_of_range_is_named(tmp_path, flags, message):
                           str(tmp_path), *flags], capture_output=True, text=True, timeout=30,
                          cwd=ROOT)
     assert (res.returncode, res.stderr) == (2, f"dqpose serve: error: {message}\n")
+
+
+def test_a_ctrl_c_to_the_servers_process_group_leaves_a_finished_recording(tmp_path):
+    import os
+    import signal
+
+    from dqpose.record.reader import read
+    from dqpose.rpc.client import Client
+    from tests.record import _stream
+
+    proc = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "serve", "--port", "0",
+                             "--record", str(tmp_path)], cwd=ROOT, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    try:
+        line = json.loads(proc.stderr.readline())
+        answers = list(Client(line["address"]).stream_fuse(_stream.batches(10),
+                                                           output_rate=_stream.RATE))
+    finally:
+        os.killpg(proc.pid, signal.SIGINT)      # what a terminal's Ctrl-C does
+        _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    (name,) = list(tmp_path.iterdir())
+    rec = read(name)        # complete: footer, summary, every CRC
+    assert sum(e.kind == "answer" for e in rec.events) == len(answers) > 0
+    assert list(rec.calls.values())[0].code == "OK"
