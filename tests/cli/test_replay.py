@@ -33,7 +33,7 @@ def test_replay_in_process_and_at_recorded_speed_finds_every_answer_identical(fi
         res = dqpose(files[0], *flags)
         assert res.returncode == 0, res.stderr
         lines = res.stdout.splitlines()
-        assert lines[0].startswith(f"replayed 3 calls, 32 requests, {answers} answers in ")
+        assert lines[0].startswith(f"replayed 4 calls, 33 requests, {answers} answers in ")
         assert lines[-1] == "every answer identical"
 
 

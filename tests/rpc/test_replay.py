@@ -28,6 +28,9 @@ def record_run(directory, data, **recorder):
         stream_bytes(s.target, data)
         poses = dq.normalize(np.array([[1, 0, 0, 0, 0, 0.1, 0, 0], [1, 0.02, 0, 0, 0, 0.1, 0, 0]]))
         Client(s.target).fuse(poses, weights=[1.0, 3.0])
+        with grpc.insecure_channel(s.target) as ch, pytest.raises(grpc.RpcError):
+            ch.unary_unary("/dqpose.v1.Fusion/Fuse")(pb.FuseRequest(measurements=[
+                pb.Measurement(weight=-1.0)]).SerializeToString(), timeout=10)
         with pytest.raises(grpc.RpcError):
             stream_bytes(s.target, [pb.FuseStreamRequest(output_rate=-1).SerializeToString()])
     return read(r.files[0])
@@ -41,14 +44,17 @@ def recording(tmp_path_factory):
 def test_replay_in_process_reproduces_every_answer(recording):
     report = replay.replay(recording, replay.InProcess())
     assert report.difference is None and report.cut is None and report.skipped == []
-    assert report.calls == 3 and report.requests == 40 + 1 + 1
+    assert report.calls == 4 and report.requests == 40 + 1 + 1 + 1
+    refused = [c for c in recording.calls.values() if c.code == "INVALID_ARGUMENT"]
+    assert [c.rpc for c in refused] == ["dqpose.v1.Fusion/Fuse", "dqpose.v1.Fusion/StreamFuse"]
+    assert refused[0].details.startswith("measurements[0]")
     assert report.answers == sum(e.kind == "answer" for e in recording.events) > 16
 
 
 def test_replay_against_a_server_reproduces_every_answer(recording):
     with ServerThread() as s, grpc.insecure_channel(s.target) as ch:
         report = replay.replay(recording, replay.Remote(ch))
-    assert report.difference is None and report.calls == 3
+    assert report.difference is None and report.calls == 4
     assert report.answers == sum(e.kind == "answer" for e in recording.events)
 
 
