@@ -59,6 +59,8 @@ EXTRA_OF = {
     "scipy": "planning", "casadi": "planning",
     "matplotlib": "plot",
     "yaml": "yaml",
+    "foxglove": "record", "mcap": "record", "foxglove_schemas_protobuf": "record",
+    "rosbags": "record",
     "cv2": "devices", "can": "devices", "rtde_control": "devices", "rtde_receive": "devices",
 }
 

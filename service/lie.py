@@ -35,6 +35,7 @@ __all__ = [
     "so3_left_jacobian", "so3_right_jacobian", "so3_left_jacobian_inv", "so3_right_jacobian_inv",
     "se3_left_jacobian", "se3_right_jacobian", "se3_left_jacobian_inv", "se3_right_jacobian_inv",
     "cov_right_to_left", "cov_left_to_right", "cov_inverse", "cov_compose",
+    "cov_to_ros", "cov_from_ros",
 ]
 
 # Below this angle the coefficients come from their Taylor series: the closed forms divide
@@ -310,3 +311,31 @@ def cov_compose(cov_a: Optional[np.ndarray], T_b, cov_b: Optional[np.ndarray]) -
     if cov_b is not None:
         out = out + _array(cov_b, "cov_b", (6, 6))
     return out
+
+
+# ---- ROS's pose covariance -------------------------------------------------------------------
+def _ros_jacobian(M: np.ndarray) -> np.ndarray:
+    """``d(dt, dtheta) / d(w, v)`` at the 4x4 ``M``: ``[[0, R], [R, 0]]``."""
+    R = M[..., :3, :3]
+    J = np.zeros(M.shape[:-2] + (6, 6))
+    J[..., :3, 3:] = R
+    J[..., 3:, :3] = R
+    return J
+
+
+def cov_to_ros(T, cov) -> np.ndarray:
+    """Our covariance of ``T`` (rotation first, right perturbation ``T Exp([w, v])``) as ROS's
+    ``PoseWithCovariance.covariance`` (and Foxglove's ``pose_covariance``): translation first,
+    the pose perturbed as ``(t + dt, Exp(dtheta) R)``, ``dt`` and the rotation vector ``dtheta``
+    both along the parent frame's axes. To first order ``dt = R v`` and ``dtheta = R w`` (the
+    rotation's adjoint; the translation's coupling to ``w`` in SE(3)'s adjoint belongs to a left
+    perturbation of the whole pose, which ROS's separate translation is not), so the result is
+    ``J cov J^T`` with ``J = [[0, R], [R, 0]]``. ``T`` ``(..., 8)``, ``cov`` ``(..., 6, 6)``."""
+    return _sandwich(_ros_jacobian(_matrix(T, "T")), _array(cov, "cov", (6, 6)))
+
+
+def cov_from_ros(T, cov) -> np.ndarray:
+    """The inverse of :func:`cov_to_ros`: ROS's translation-first, parent-axes covariance of
+    ``T`` as ours. ``J`` is orthogonal, so its inverse is ``J^T``."""
+    J = _ros_jacobian(_matrix(T, "T"))
+    return _sandwich(np.swapaxes(J, -1, -2), _array(cov, "cov", (6, 6)))

@@ -20,6 +20,10 @@ COMMANDS = {
     "interpolate": ("dqpose.cli.blend",
                     "interpolate between time-stamped keyframes from a JSON, YAML or CSV file"),
     "fuse": ("dqpose.cli.fuse", "fuse measurements of one body from a JSON, YAML or CSV file"),
+    "replay": ("dqpose.cli.replay", "feed a recording (serve --record) again and compare every "
+                                    "answer with the recorded one"),
+    "export": ("dqpose.cli.export", "a recording as a ROS 2 bag (PoseWithCovarianceStamped, /tf, "
+                                    "Path)"),
     "plan": ("dqpose.cli.trajectory",
              "plan a limit-respecting motion through waypoints from a JSON, YAML or CSV file"),
     "smooth": ("dqpose.cli.trajectory",

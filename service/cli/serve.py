@@ -77,6 +77,20 @@ def configure(name: str, p) -> None:
                             "a set-point (needs x86-64 and a bus that reaches across processes, "
                             "not python-can's virtual); 'thread', in the server; 'auto' "
                             "(default): the arm's process where it can, else a thread (logged)")
+        rec = p.add_argument_group(
+            "recording", "every Fuse and StreamFuse call into MCAP files (docs/recording.md; "
+                         "the [record] extra); `dqpose replay FILE` replays one")
+        rec.add_argument("--record", metavar="DIR",
+                         help="record into DIR (created if missing), a new file at either bound "
+                              "below")
+        rec.add_argument("--record-max-mb", type=float, default=256.0,
+                         help="a new file after this many MB (default: %(default)s)")
+        rec.add_argument("--record-max-s", type=float, default=3600.0,
+                         help="a new file after this many seconds (default: %(default)s)")
+        rec.add_argument("--record-queue", type=int, default=100_000,
+                         help="messages waiting for the disk at most; beyond, they are dropped "
+                              "(counted, logged, marked in the file), never an RPC delayed "
+                              "(default: %(default)s)")
         p.add_argument("--sims", action="store_true",
                        help="also start the simulated devices (a UR controller, a PiPER, camera "
                             "views; see drivers/sim/fleet.py) and log where they are; --arm "
@@ -139,6 +153,23 @@ def _serve(args) -> int:
             return fail("serve", f"--arm {simulated[0]}: TARGET '{SIM}' is the simulator that "
                                  f"--sims starts; add --sims")
         with contextlib.ExitStack() as stack:
+            if args.record is not None:
+                from dqpose.errors import MissingExtra
+                from dqpose.record import open_recorder
+                for flag, value in (("--record-max-mb", args.record_max_mb),
+                                    ("--record-max-s", args.record_max_s),
+                                    ("--record-queue", args.record_queue)):
+                    if not value > 0:
+                        return fail("serve", f"{flag}: must be > 0, got {value:g}")
+                try:
+                    cfg.recorder = open_recorder(
+                        args.record, max_bytes=max(1, int(args.record_max_mb * 1e6)),
+                        max_seconds=args.record_max_s, queue=args.record_queue)
+                except MissingExtra as e:
+                    return missing_extra("serve --record", e)
+                except OSError as e:
+                    return fail("serve", f"--record {args.record}: {e.strerror or e}")
+                stack.callback(cfg.recorder.close)
             fleet = None
             if args.sims:
                 from dqpose.drivers.sim.fleet import Fleet

@@ -22,7 +22,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import grpc
 
-from dqpose import limits
+from dqpose import limits, record
 from dqpose.errors import FieldError, Infeasible, MissingExtra
 from dqpose.limits import OverLimit
 
@@ -129,8 +129,11 @@ class Calls:
     over it sets ``cut``: a stream that then ends "OK" ended because gRPC cancelled it (a cancelled
     stream reads as a stream the client closed), and is recorded as CANCELLED, as its client saw."""
 
-    def __init__(self, metrics=None, workers: int = limits.DEFAULT.workers):
+    def __init__(self, metrics=None, workers: int = limits.DEFAULT.workers,
+                 recorder=record.NULL):
         self.metrics = metrics
+        # where the servicers record their calls (dqpose.record: ``recorder.call(...)``)
+        self.recorder = recorder
         self.workers = workers
         self._pool: ThreadPoolExecutor | None = None
         self._trim_due = False

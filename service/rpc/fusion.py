@@ -373,10 +373,20 @@ class Fusion(pb_grpc.FusionServicer):
     async def Fuse(self, request: bytes, context):
         # Registered without (de)serializers (register): bytes in and out, parsed and written
         # with the fit, in the worker pool when the request is not small.
-        if len(request) <= limits.INLINE_BYTES:
-            return await self.calls.unary("Fuse", self._fuse_small, request, context)
-        return await self.calls.unary("Fuse", lambda r: self.calls.work(self.fuse_bytes, r),
-                                      request, context)
+        rec = self.calls.recorder.call(FUSE, pb.FuseRequest, pb.FusedPose)
+        rec.measurements(request)
+        try:
+            if len(request) <= limits.INLINE_BYTES:
+                answer = await self.calls.unary("Fuse", self._fuse_small, request, context)
+            else:
+                answer = await self.calls.unary(
+                    "Fuse", lambda r: self.calls.work(self.fuse_bytes, r), request, context)
+        except BaseException:
+            rec.end(_code(context), _details(context))
+            raise
+        rec.fused(answer)
+        rec.end("OK")
+        return answer
 
     def _open_stream(self, data: bytes):
         """The first request of a stream: ``(state, its answers, its number of measurements)``;
@@ -389,17 +399,20 @@ class Fusion(pb_grpc.FusionServicer):
         state = self.stream_options(request)
         return state, self._stream_answers(state, request, 0, 0), len(request.measurements)
 
-    async def _write(self, answers, cost: int, context) -> None:
-        """Writes a request's answers: fused on the event loop when they cost little
-        (``limits.INLINE_ROWS``), else in the worker pool, ``ANSWERS_PER_WORK`` at a time so
-        that the first ones are on their way while the next are fused."""
+    async def _write(self, answers, cost: int, context, rec) -> None:
+        """Writes a request's answers (each recorded to ``rec`` as it goes): fused on the event
+        loop when they cost little (``limits.INLINE_ROWS``), else in the worker pool,
+        ``ANSWERS_PER_WORK`` at a time so that the first ones are on their way while the next
+        are fused."""
         if cost <= limits.INLINE_ROWS:
             for answer in answers:
+                rec.fused(answer)
                 await context.write(answer)
             return
         answers = iter(answers)
         while chunk := await self.calls.work(_take, answers, ANSWERS_PER_WORK):
             for answer in chunk:
+                rec.fused(answer)
                 await context.write(answer)
 
     async def StreamFuse(self, request_iterator, context):
@@ -408,24 +421,27 @@ class Fusion(pb_grpc.FusionServicer):
         r = 0
         next_id = 0
         state = None
+        details = ""
+        rec = self.calls.recorder.call(STREAM_FUSE, pb.FuseStreamRequest, pb.FusedPose)
         try:
             # Registered without a deserializer (register): each request arrives as bytes.
             # Decoded on the event loop when small (most of a live stream's messages), else in
             # the worker pool, like the answers (_write).
             async for data in request_iterator:
+                rec.measurements(data)
                 if state is None:
                     try:
                         state, answers, n = await self.calls.work(self._open_stream, data)
                     except FieldError as e:
                         status = refusal(e)
-                        code = status.name
-                        await context.abort(status, readable(str(e)))
+                        code, details = status.name, readable(str(e))
+                        await context.abort(status, details)
                 elif len(data) <= limits.INLINE_BYTES:
                     answers, n = self.stream_answers_wire(state, data, r, next_id)
                 else:
                     answers, n = await self.calls.work(self.stream_answers_wire, state, data, r,
                                                        next_id)
-                await self._write(answers, state.cost, context)
+                await self._write(answers, state.cost, context, rec)
                 next_id += n
                 r += 1
         except Exception as e:
@@ -438,7 +454,23 @@ class Fusion(pb_grpc.FusionServicer):
             code = "CANCELLED"
             raise
         finally:
+            rec.end(code, details)
             self.calls.done("StreamFuse", code, t0, context, messages=r)
+
+
+#: the full names recordings know the calls by (dqpose.record)
+FUSE = f"{Fusion.NAME}/Fuse"
+STREAM_FUSE = f"{Fusion.NAME}/StreamFuse"
+
+
+def _code(context) -> str:
+    """The status a refused unary call ended with (grpc.aio keeps it on the context)."""
+    code = context.code()
+    return code.name if isinstance(code, grpc.StatusCode) else "UNKNOWN"
+
+
+def _details(context) -> str:
+    return context.details() or ""
 
 
 #: StreamFuse answers fused per turn of the worker pool (when fused there)

@@ -29,6 +29,7 @@ from grpc_reflection.v1alpha import _async as reflection_aio
 from grpc_reflection.v1alpha import reflection, reflection_pb2_grpc
 
 from dqpose import limits as limits_table
+from dqpose import record
 from dqpose.rpc import DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
 from dqpose.rpc.blending import Blending
 from dqpose.rpc.calls import Calls, log
@@ -78,6 +79,9 @@ class ServerConfig:
     # which starts running a plan on one (drivers.executor; this package imports no driver).
     arms: dict = dataclasses.field(default_factory=dict)
     executor: object = None
+    # a dqpose.record Recorder every servicer records its calls to (`dqpose serve --record`),
+    # made by whoever starts the server, which closes it when it stops; None records nothing
+    recorder: object = None
     # what one request or stream may cost (service/limits.py: the table, its cost model and
     # the `dqpose serve` flag of each)
     limits: limits_table.Limits = limits_table.DEFAULT
@@ -347,6 +351,22 @@ class _Metrics:
         child[0].inc()
         child[1].observe(seconds)
 
+    def watch(self, recorder) -> None:
+        """``dqpose_record_messages_total{outcome="written"|"dropped"}``, read from
+        ``recorder`` when scraped."""
+        from prometheus_client.core import CounterMetricFamily
+
+        class Collector:
+            def collect(self):
+                c = CounterMetricFamily("dqpose_record_messages", "Messages recorded or "
+                                        "dropped because the recording fell behind",
+                                        labels=["outcome"])
+                c.add_metric(["written"], recorder.written)
+                c.add_metric(["dropped"], recorder.dropped)
+                yield c
+
+        self._registry.register(Collector())
+
     def close(self) -> None:
         self.server.shutdown()
 
@@ -408,6 +428,7 @@ class Running:
             log.warning(json.dumps({"event": "calls_not_recorded", "open": self.calls.open}))
         self.calls.flush()
         self.calls.close()
+        self.calls.recorder.close()     # what it holds written, its file finished
         if self.metrics is not None:
             self.metrics.close()
 
@@ -481,7 +502,10 @@ async def start(cfg: ServerConfig) -> Running:
             raise AddressInUse("serve metrics on", where, "metrics_port") from None
         why = (e.strerror or str(e)).lower()
         raise OSError(f"cannot serve metrics on {where}: {why}") from None
-    calls = Calls(metrics, cfg.limits.workers)
+    calls = Calls(metrics, cfg.limits.workers,
+                  record.NULL if cfg.recorder is None else cfg.recorder)
+    if metrics is not None and cfg.recorder is not None:
+        metrics.watch(cfg.recorder)
     gate = Gate(calls)
     interceptors = [gate] + ([BearerTokenAuth(cfg.token, calls)] if cfg.token else [])
     server = grpc.aio.server(options=server_options(cfg), interceptors=interceptors)

@@ -49,6 +49,10 @@ def _planned(args, field: str = ""):
                           f"{field}waypoints") from None
 
 
+#: a recorded plan's poses at most (its samples thinned evenly, the last kept)
+PLAN_VIEW_POSES = 1000
+
+
 class Trajectories:
     NAME = "dqpose.v1.Trajectories"
 
@@ -110,7 +114,12 @@ class Trajectories:
     def planned(self, data: bytes):
         """What Plan serves, for request bytes: ``(trajectory, its samples at the rate)``."""
         traj, rate = self.plan(_parsed(pb.PlanRequest, data))
-        return traj, traj.at_rate(rate)
+        samples = traj.at_rate(rate)
+        # for viewing (dqpose.record): at most PLAN_VIEW_POSES of the path, evenly
+        step = max(1, -(-len(samples.pose) // PLAN_VIEW_POSES))
+        self.calls.recorder.plan("Plan", np.concatenate([samples.pose[::step],
+                                                          samples.pose[-1:]]))
+        return traj, samples
 
     @staticmethod
     def sample_chunk(traj, samples, i: int) -> list[bytes]:

@@ -174,12 +174,12 @@ def serve_echo(port: int) -> None:
 
 
 class ServerProcess:
-    def __init__(self, kind: str, quiet_log: bool):
+    def __init__(self, kind: str, quiet_log: bool, extra: tuple = ()):
         if kind == "echo":
             cmd = [sys.executable, "-m", "tests.bench.bench_grpc", "--serve-echo"]
         elif kind == "aio":
             cmd = [sys.executable, "-m", "dqpose.cli", "serve", "--port", "0", "--grace", "2",
-                   *(["--no-call-log"] if quiet_log else [])]
+                   *(["--no-call-log"] if quiet_log else []), *extra]
         else:
             cmd = [sys.executable, "-m", "tests.bench.bench_grpc", "--serve-sync"]
         self.log = tempfile.TemporaryFile("w+")

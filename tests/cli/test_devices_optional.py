@@ -21,7 +21,7 @@ LIMITS = trajectory.Limits(max_linear_velocity=1.0, max_angular_velocity=1.0,
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 DEVICE_MODULES = ("cv2", "can", "rtde_control", "rtde_receive", "yaml", "casadi", "piper_sdk",
-                  "scipy", "matplotlib")
+                  "scipy", "matplotlib", "mcap", "foxglove_schemas_protobuf", "rosbags", "foxglove")
 
 
 def hint(extra: str) -> str:
@@ -90,6 +90,10 @@ def test_commands_needing_an_extra_name_it(tmp_path):
     for argv, extra in [(("sim", "piper", "--help"), "devices"),
                         (("sim", "camera", "--help"), "devices"),
                         (("serve", "--port", "0", "--sims"), "devices"),
+                        (("serve", "--port", "0", "--record", str(tmp_path / "rec")), "record"),
+                        (("replay", str(tmp_path / "x.mcap")), "record"),
+                        (("export", str(tmp_path / "x.mcap"), "--ros2", str(tmp_path / "b")),
+                         "record"),
                         (("handeye", "solve", ROOT, "--local"), "devices"),
                         (("handeye", "capture", os.path.join(ROOT, "no-such-dir")), "devices"),
                         (("smooth", str(recording), "--local", *limits), "planning"),
@@ -99,7 +103,7 @@ def test_commands_needing_an_extra_name_it(tmp_path):
         out, err = proc.communicate(timeout=60)
         assert proc.returncode == 2, (out, err)
         words = 2 if argv[0] in ("sim", "handeye") else 1
-        cmd = "serve --sims" if argv[0] == "serve" else " ".join(argv[:words])
+        cmd = f"serve {argv[3]}" if argv[0] == "serve" else " ".join(argv[:words])
         assert err.strip().splitlines()[-1] == f"dqpose {cmd}: error: {hint(extra)}", err
         assert "Traceback" not in err
     # the UR simulator speaks RTDE itself: it needs no device library

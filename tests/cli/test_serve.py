@@ -2,6 +2,7 @@
 range, exit code 2, and no server (the ranges themselves live in ``ServerConfig``)."""
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -119,3 +120,64 @@ def test_serve_with_an_arm_executes_plans_on_it_and_stops_it_at_shutdown(flags, 
         finally:
             if proc.poll() is None:
                 proc.kill()
+
+
+def test_serve_records_every_stream_into_a_file_finished_at_sigterm(tmp_path):
+    import signal
+
+    from dqpose.record.reader import read
+    from dqpose.rpc.client import Client
+    from tests.record import _stream
+
+    proc, events = serving("--record", str(tmp_path / "rec"), "--record-max-mb", "100")
+    try:
+        answers = list(Client(events[-1]["address"]).stream_fuse(
+            _stream.batches(20), output_rate=_stream.RATE))
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    (name,) = list((tmp_path / "rec").iterdir())
+    rec = read(name)
+    (call,) = rec.calls.values()
+    assert call.rpc == "dqpose.v1.Fusion/StreamFuse" and call.code == "OK"
+    assert sum(e.kind == "request" for e in rec.events) == 20
+    assert sum(e.kind == "answer" for e in rec.events) == len(answers) > 0
+    assert json.dumps({"event": "recording", "file": str(name)}) in err.splitlines()
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--record-max-mb", "0"], "--record-max-mb: must be > 0, got 0"),
+    (["--record-max-s", "-1"], "--record-max-s: must be > 0, got -1"),
+    (["--record-queue", "0"], "--record-queue: must be > 0, got 0"),
+])
+def test_a_recording_bound_out_of_range_is_named(tmp_path, flags, message):
+    res = subprocess.run([sys.executable, "-m", "dqpose.cli", "serve", "--record",
+                          str(tmp_path), *flags], capture_output=True, text=True, timeout=30,
+                         cwd=ROOT)
+    assert (res.returncode, res.stderr) == (2, f"dqpose serve: error: {message}\n")
+
+
+def test_a_ctrl_c_to_the_servers_process_group_leaves_a_finished_recording(tmp_path):
+    import os
+    import signal
+
+    from dqpose.record.reader import read
+    from dqpose.rpc.client import Client
+    from tests.record import _stream
+
+    proc = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "serve", "--port", "0",
+                             "--record", str(tmp_path)], cwd=ROOT, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    try:
+        line = json.loads(proc.stderr.readline())
+        answers = list(Client(line["address"]).stream_fuse(_stream.batches(10),
+                                                           output_rate=_stream.RATE))
+    finally:
+        os.killpg(proc.pid, signal.SIGINT)      # what a terminal's Ctrl-C does
+        _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    (name,) = list(tmp_path.iterdir())
+    rec = read(name)        # complete: footer, summary, every CRC
+    assert sum(e.kind == "answer" for e in rec.events) == len(answers) > 0
+    assert list(rec.calls.values())[0].code == "OK"

@@ -1,0 +1,88 @@
+"""A recording as a ROS 2 bag (rosbag2, MCAP storage, CDR messages) through ``rosbags``, no ROS
+installation: each fused pose as ``geometry_msgs/PoseWithCovarianceStamped`` on
+``/fused/<body>/pose`` (its covariance converted once, by :func:`dqpose.lie.cov_to_ros`), the
+bodies' frames on ``/tf`` (``tf2_msgs/TFMessage``), each body's fused path and each plan as
+``nav_msgs/Path`` (``/fused/<body>/path``, ``/plans/<name>``). Stamps are the arrival times of
+the recording, like its Foxglove views; the fused poses are decoded with the schema the
+recording embeds.
+"""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+
+from dqpose import dq, lie
+from dqpose.record.reader import Recording
+from dqpose.record.views import WORLD
+
+STORE = Stores.ROS2_HUMBLE
+POSE = "geometry_msgs/msg/PoseWithCovarianceStamped"
+TF = "tf2_msgs/msg/TFMessage"
+PATH = "nav_msgs/msg/Path"
+
+
+def export(rec: Recording, out_dir: str | os.PathLike) -> dict[str, int]:
+    """Writes the bag into ``out_dir`` (which must not exist: rosbag2's rule); returns the
+    messages written per topic."""
+    ts = get_typestore(STORE)
+    T = ts.types
+    counts: dict[str, int] = {}
+    paths: dict[str, list] = {}
+    Fused = rec.message_class("dqpose.v1.FusedPose") if "dqpose.v1.FusedPose" in rec.schemas \
+        else None
+
+    def header(ns: int):
+        return T["std_msgs/msg/Header"](
+            stamp=T["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9),
+            frame_id=WORLD)
+
+    def pose(p, o):
+        return T["geometry_msgs/msg/Pose"](
+            position=T["geometry_msgs/msg/Point"](x=p.x, y=p.y, z=p.z),
+            orientation=T["geometry_msgs/msg/Quaternion"](x=o.x, y=o.y, z=o.z, w=o.w))
+
+    with Writer(os.fspath(out_dir), version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        connections: dict = {}
+
+        def write(topic: str, msgtype: str, ns: int, msg) -> None:
+            c = connections.get(topic)
+            if c is None:
+                c = connections[topic] = w.add_connection(topic, msgtype, typestore=ts)
+            w.write(c, ns, ts.serialize_cdr(msg, msgtype))
+            counts[topic] = counts.get(topic, 0) + 1
+
+        for e in rec.events:
+            if e.kind != "answer" or Fused is None or \
+                    rec.calls[e.call].answer_type != "dqpose.v1.FusedPose":
+                continue
+            f = Fused.FromString(e.data)
+            if f.HasField("error") or not f.HasField("pose") or len(f.covariance) != 36:
+                continue
+            p, o = f.pose.position, f.pose.orientation
+            cov = lie.cov_to_ros(dq.from_pose([o.w, o.x, o.y, o.z], [p.x, p.y, p.z]),
+                                 np.asarray(f.covariance).reshape(6, 6))
+            write(f"/fused/{f.body}/pose", POSE, e.ns, T[POSE](
+                header=header(e.ns), pose=T["geometry_msgs/msg/PoseWithCovariance"](
+                    pose=pose(p, o), covariance=cov.ravel())))
+            h = header(e.ns)
+            write("/tf", TF, e.ns, T[TF](transforms=[T["geometry_msgs/msg/TransformStamped"](
+                header=h, child_frame_id=f.body, transform=T["geometry_msgs/msg/Transform"](
+                    translation=T["geometry_msgs/msg/Vector3"](x=p.x, y=p.y, z=p.z),
+                    rotation=T["geometry_msgs/msg/Quaternion"](x=o.x, y=o.y, z=o.z, w=o.w)))]))
+            paths.setdefault(f.body, []).append((e.ns, pose(p, o)))
+        for body, poses in paths.items():
+            ns = poses[-1][0]
+            write(f"/fused/{body}/path", PATH, ns, T[PATH](header=header(ns), poses=[
+                T["geometry_msgs/msg/PoseStamped"](header=header(t), pose=q) for t, q in poses]))
+        if rec.plans:
+            Poses = rec.message_class("foxglove.PosesInFrame")
+            for name, ns, data in rec.plans:
+                m = Poses.FromString(data)
+                write(f"/plans/{name}", PATH, ns, T[PATH](header=header(ns), poses=[
+                    T["geometry_msgs/msg/PoseStamped"](header=header(ns),
+                                                       pose=pose(q.position, q.orientation))
+                    for q in m.poses]))
+    return counts

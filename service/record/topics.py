@@ -1,0 +1,39 @@
+"""The topics of a recording and the fields of its JSON channels (docs/recording.md)."""
+from __future__ import annotations
+
+#: the call log: one JSON object a call's beginning (with what it records) and end
+CALLS_TOPIC = "/dqpose/calls"
+#: where messages are missing (the recorder fell behind)
+DROPPED_TOPIC = "/dqpose/record/dropped"
+TF_TOPIC = "/tf"
+ELLIPSOIDS_TOPIC = "/fused/ellipsoids"
+#: views are drawn for this many bodies a file at most (each has its channels)
+MAX_VIEW_BODIES = 1000
+
+
+def requests_topic(rpc: str) -> str:
+    return f"/dqpose/{rpc}/requests"
+
+
+def answers_topic(rpc: str) -> str:
+    return f"/dqpose/{rpc}/answers"
+
+
+def pose_topic(body: str) -> str:
+    return f"/fused/{body}"
+
+
+def stats_topic(body: str) -> str:
+    return f"/fused/{body}/stats"
+
+
+def plan_topic(name: str) -> str:
+    return f"/plans/{name}"
+
+
+CALL_FIELDS = {"call": "integer", "rpc": "string", "event": "string",
+               "request_type": "string", "answer_type": "string", "code": "string",
+               "details": "string", "continued": "boolean"}
+DROPPED_FIELDS = {"first_dropped": "integer", "count": "integer", "resumed": "integer"}
+STATS_FIELDS = {"body": "string", "time": "number", "chi2": "number", "dof": "integer",
+                "sigma_position": "number", "sigma_rotation": "number"}

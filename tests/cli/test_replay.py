@@ -1,0 +1,72 @@
+"""``dqpose replay``: exit 0 when a recording replays to every answer, 1 with the first
+difference, 2 naming a file that is not a recording or a bad --speed."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from dqpose.record.reader import read
+from tests.cli._cli import ROOT, serving
+from tests.record import _stream
+from tests.rpc.test_replay import record_run
+
+
+def dqpose(*argv):
+    return subprocess.run([sys.executable, "-m", "dqpose.cli", "replay", *argv],
+                          capture_output=True, text=True, timeout=120, cwd=ROOT)
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("rec")
+    a = record_run(d / "a", _stream.requests(30))
+    b = record_run(d / "b", _stream.requests(30, window=0.05))
+    return a.path, b.path
+
+
+def test_replay_in_process_and_at_recorded_speed_finds_every_answer_identical(files):
+    rec = read(files[0])
+    answers = sum(e.kind == "answer" for e in rec.events)
+    for flags in ([], ["--speed", "1"]):
+        res = dqpose(files[0], *flags)
+        assert res.returncode == 0, res.stderr
+        lines = res.stdout.splitlines()
+        assert lines[0].startswith(f"replayed 4 calls, 33 requests, {answers} answers in ")
+        assert lines[-1] == "every answer identical"
+
+
+def test_replay_against_a_server(files):
+    proc, events = serving()
+    try:
+        res = dqpose(files[0], "--server", events[-1]["address"])
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=30)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.splitlines()[-1] == "every answer identical"
+
+
+def test_compare_names_the_first_difference(files):
+    res = dqpose(files[0], "--compare", files[1])
+    assert res.returncode == 1
+    assert res.stdout.splitlines()[-1] == (
+        f"first difference: call 1 (dqpose.v1.Fusion/StreamFuse), its status: not the same "
+        f"requests: {files[1]} call 1 (dqpose.v1.Fusion/StreamFuse) was sent others")
+    same = dqpose(files[0], "--compare", files[0])
+    assert same.returncode == 0 and same.stdout.splitlines()[-1] == "every answer identical"
+
+
+def test_what_cannot_be_replayed_is_named(tmp_path, files):
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"not mcap at all")
+    res = dqpose(str(junk))
+    assert res.returncode == 2
+    assert res.stderr.startswith(f"dqpose replay: error: {junk}: not a complete MCAP recording")
+    res = dqpose(str(tmp_path / "missing.mcap"))
+    assert (res.returncode, res.stderr) == (
+        2, f"dqpose replay: error: {tmp_path / 'missing.mcap'}: No such file or directory\n")
+    res = dqpose(files[0], "--speed", "0")
+    assert (res.returncode, res.stderr) == (
+        2, "dqpose replay: error: --speed: 'max' or a number > 0, got '0'\n")
