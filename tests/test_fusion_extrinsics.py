@@ -24,14 +24,14 @@ def scene(rng, with_cov=(True, False, True, False), per_source=(2, 3, 1, 2), off
     sources, names, Z, S = [], [], [], []
     for k, (uncertain, m) in enumerate(zip(with_cov, per_source)):
         E = random_pose(rng, 0.7)
-        O = random_pose(rng, 0.1) if k in offset else None
+        off = random_pose(rng, 0.1) if k in offset else None
         SE = ext_cov(rng) if uncertain else None
         E_true = dq.mul(E, lie.se3_exp(rng.multivariate_normal(np.zeros(6), SE))) if uncertain \
             else E
-        sources.append(Source(f"s{k}", E, O, extrinsic_covariance=SE))
+        sources.append(Source(f"s{k}", E, off, extrinsic_covariance=SE))
         Zt = dq.mul(dq.conj(E_true), X)
-        if O is not None:
-            Zt = dq.mul(Zt, dq.conj(O))
+        if off is not None:
+            Zt = dq.mul(Zt, dq.conj(off))
         for _ in range(m):
             c = random_cov(rng)
             Z.append(dq.mul(Zt, lie.se3_exp(-rng.multivariate_normal(np.zeros(6), c))))

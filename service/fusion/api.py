@@ -12,8 +12,8 @@ import numpy as np
 
 from dqpose import dq
 from dqpose.fusion.alignment import DEFAULT_MAX_EXTRAPOLATION, _fuse_in_time
-from dqpose.fusion.extrinsics import _extrinsics
 from dqpose.fusion.chi2 import DEFAULT_PROBABILITY, chi2_quantile
+from dqpose.fusion.extrinsics import _extrinsics
 from dqpose.fusion.results import DOF, Fused
 from dqpose.fusion.sources import Source, _sources, _to_world
 from dqpose.fusion.static import _fuse_static
