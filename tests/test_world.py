@@ -82,6 +82,14 @@ def test_pose_equals_fuse_with_producers_on_threads():
                 f.covariance).max()
             assert p.fused is not None and len(p.fused.inliers) == len(f.inliers)
     assert sorted(world.sources_of("box")) == ["cam0", "cam1", "cam2"]
+    # an answer kept for repeated lookups gives way to new measurements
+    before = world.pose("box", 0.58)
+    more, _ = stream(rng, sources, ["box"], [0.57])
+    world.publish(more)
+    after = world.pose("box", 0.58)
+    f = fuse_of(ms + more, "box", 0.58, 0.2, sources)
+    assert np.abs(after.pose - f.mean).max() <= 1e-12
+    assert np.abs(after.pose - before.pose).max() > 1e-9
     assert world.newest("box", "cam2") == pytest.approx(0.58)
 
 
