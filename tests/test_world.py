@@ -267,3 +267,51 @@ def test_handeye_covariance_flows_into_a_fused_pose():
     base = mount.arm_base("ur")
     assert base.body == "arm:ur"
     np.testing.assert_allclose(base.covariance, cal.covariance_x, rtol=1e-12)
+
+
+def test_relative_equals_gtsam_joint_marginal():
+    """The shared-camera scene as GTSAM's graph (a prior on the camera's extrinsic, a
+    BetweenFactorPose3 per measurement): its optimum and the joint marginal of both bodies,
+    carried to T_a_b, are World.relative's."""
+    gtsam = pytest.importorskip("gtsam")
+    from tests import _gtsam
+    rng = np.random.default_rng(9)
+    sources = [Source("top", random_pose(rng), extrinsic_covariance=EXTRINSIC),
+               Source("side", random_pose(rng))]
+    world = World(sources=sources)
+    shared_scene(rng, world, sources, EXTRINSIC)
+    # "side" measures "b" too, with an exact extrinsic
+    Xb = world.pose("b").pose
+    z = dq.mul(dq.conj(sources[1].extrinsic), Xb)
+    world.publish([Measurement("side", "b", 1.0, z, NOISE * 4)])
+    r = world.relative("a", "b")
+
+    P3, noise = gtsam.Pose3, lambda c: gtsam.noiseModel.Gaussian.Covariance(c, False)
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    E = sources[0].extrinsic
+    graph.add(gtsam.PriorFactorPose3(2, P3(dq.to_matrix(E)), noise(EXTRINSIC)))
+    values.insert(2, P3(dq.to_matrix(E)))
+    for key, body in ((0, "a"), (1, "b")):
+        for m in world._t.measurements(body):
+            if m.source == "top":
+                graph.add(gtsam.BetweenFactorPose3(2, key, P3(dq.to_matrix(m.pose)),
+                                                   noise(m.covariance)))
+            else:
+                graph.add(gtsam.PriorFactorPose3(key, P3(dq.to_matrix(dq.mul(
+                    sources[1].extrinsic, m.pose))), noise(m.covariance)))
+        values.insert(key, P3(dq.to_matrix(world.pose(body).pose)))
+    result = _gtsam.lm(graph, values)
+    for _ in range(100):
+        delta = graph.linearize(result).optimize()
+        result = result.retract(delta)
+        if max(np.linalg.norm(delta.at(k)) for k in (0, 1, 2)) < 1e-13:
+            break
+    Xa = dq.from_matrix(result.atPose3(0).matrix())
+    Xb = dq.from_matrix(result.atPose3(1).matrix())
+    keys = gtsam.KeyVector([0, 1])
+    P = gtsam.Marginals(graph, result).jointMarginalCovariance(keys).fullMatrix()
+    T = dq.mul(dq.conj(Xa), Xb)
+    assert np.linalg.norm(lie.se3_log(dq.mul(dq.conj(r.pose), T))) < 1e-10
+    J = np.hstack([-lie.adjoint(dq.conj(T)), np.eye(6)])
+    expected = J @ P @ J.T
+    assert np.abs(r.covariance - expected).max() <= 1e-8 * np.abs(expected).max()

@@ -96,6 +96,14 @@ class _Prepared(NamedTuple):
     A: np.ndarray
 
 
+def _carried(p: _Part, ext: _Extrinsics) -> np.ndarray:
+    """``A_i = Ad(W_i⁻¹ E_s)`` of the measurements with an uncertain extrinsic."""
+    has = p.slot >= 0
+    if not has.any():
+        return np.zeros((0, DOF, DOF))
+    return lie.adjoint(dq.mul(dq.conj(p.Z[has]), ext.E[p.slot[has]]))
+
+
 def _inv(S: np.ndarray) -> np.ndarray:
     W = np.linalg.inv(S)
     return 0.5 * (W + np.swapaxes(W, 1, 2))
@@ -187,12 +195,11 @@ def _state(parts, ext, X, V, ell, Ehat):
     return rs, Gs, dts, H, g, cost, offsets
 
 
-def _joint_fit(parts: Sequence[_Part], ext: _Extrinsics, tol: float, max_iter: int) -> _Joint:
+def _joint_fit(given: Sequence[_Part], ext: _Extrinsics, tol: float, max_iter: int) -> _Joint:
     """Gauss-Newton over every part's state and the ε's (the module's docstring), from the
     parts' starts and the configured extrinsics; a step that raises the cost is halved (the
     C fits' rule)."""
-    parts = [_Prepared(*p, W=_inv(p.S), A=lie.adjoint(dq.mul(
-        dq.conj(p.Z[p.slot >= 0]), ext.E[p.slot[p.slot >= 0]]))) for p in parts]
+    parts = [_Prepared(*p, W=_inv(p.S), A=_carried(p, ext)) for p in given]
     X = [p.start for p in parts]
     V = [p.V for p in parts]
     ell = [p.ell for p in parts]
