@@ -109,6 +109,11 @@ def _over(field: str, value, bound: str, limit, unit: str = "") -> WorldError:
     return WorldError(f"{field}: {value:.6g}{u} is above the world's {bound} {limit:.6g}{u}")
 
 
+def _s(t: float) -> str:
+    """A time to the microsecond, without trailing zeros (Unix times keep their digits)."""
+    return f"{t:.6f}".rstrip("0").rstrip(".")
+
+
 def _body_name(body) -> str:
     if not isinstance(body, str):
         raise WorldError(f"body: expected a string, got {type(body).__name__}")
@@ -309,13 +314,13 @@ class World:
                 at = _seconds(time, "time")
             except ValueError as e:
                 raise WorldError(str(e)) from None
-        known = f"{body!r} is known from {oldest!r} to {newest!r}"
+        known = f"{body!r} is known from {_s(oldest)} to {_s(newest)}"
         if at < oldest:
-            raise OutOfRange(f"time: {at!r} is before the oldest measurement kept; {known} "
+            raise OutOfRange(f"time: {_s(at)} is before the oldest measurement kept; {known} "
                              f"(buffer {self.options.buffer:g} s)")
         limit = self.options.max_extrapolation
         if limit is not None and at > newest + limit:
-            raise OutOfRange(f"time: {at!r} is {at - newest:.6g} s past the newest "
+            raise OutOfRange(f"time: {_s(at)} is {at - newest:.6g} s past the newest "
                              f"measurement, beyond max_extrapolation {limit:g} s; {known}")
         key = (body, at)
         hit = self._fits.get(key)
@@ -325,7 +330,7 @@ class World:
         window = self.options.window
         if not t.near(body, at, window):
             raise OutOfRange(f"time: no measurement of {body!r} within the window "
-                             f"{window:g} s of {at!r}; {known}")
+                             f"{window:g} s of {_s(at)}; {known}")
         try:
             f = t.estimate_ids(body, at, window)[0]
         except ValueError as e:

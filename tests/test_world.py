@@ -315,3 +315,18 @@ def test_relative_equals_gtsam_joint_marginal():
     J = np.hstack([-lie.adjoint(dq.conj(T)), np.eye(6)])
     expected = J @ P @ J.T
     assert np.abs(r.covariance - expected).max() <= 1e-8 * np.abs(expected).max()
+
+
+def test_measurements_per_body_bound_keeps_the_newest():
+    rng = np.random.default_rng(10)
+    sources = [Source("cam", random_pose(rng))]
+    ms, _ = stream(rng, sources, ["box"], np.arange(10) * 0.1)
+    world = World(sources=sources, options=WorldOptions(window=1.0),
+                  bounds=WorldBounds(max_measurements_per_body=4))
+    assert world.publish(ms).accepted == 10
+    p = world.pose("box")
+    assert p.fused is not None and len(p.fused.inliers) == 4
+    f = fuse_of(ms[6:], "box", 0.9, 1.0, sources)
+    assert np.abs(p.pose - f.mean).max() <= 1e-12
+    with pytest.raises(OutOfRange, match=r"'box' is known from 0\.6 to 0\.9"):
+        world.pose("box", 0.3)
