@@ -364,7 +364,8 @@ class World:
                 ident = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
                 return BodyPose(source, 0.0, ident, np.zeros((DOF, DOF)), None)
             if target == source:
-                self._fit(target, at)       # known at that time
+                if target:
+                    self._fit(target, at)   # known at that time
                 return BodyPose(source, at, np.array([1.0, 0, 0, 0, 0, 0, 0, 0]),
                                 np.zeros((DOF, DOF)), None)
             key = (target, source, at)

@@ -237,6 +237,9 @@ def test_relative_is_the_inverse_and_world_frame_composition():
     pa = world.pose("a")
     assert wa.pose.tobytes() == pa.pose.tobytes()
     np.testing.assert_allclose(wa.covariance, pa.covariance, rtol=1e-12)
+    for t, s in (("", ""), ("a", "a")):
+        same = world.relative(t, s, 1.0)
+        assert same.pose.tolist() == [1, 0, 0, 0, 0, 0, 0, 0] and not same.covariance.any()
     aw = world.relative("a", "")
     np.testing.assert_allclose(aw.covariance, lie.cov_inverse(pa.pose, pa.covariance),
                                rtol=0, atol=1e-9 * np.abs(aw.covariance).max())
