@@ -333,3 +333,29 @@ def test_measurements_per_body_bound_keeps_the_newest():
     assert np.abs(p.pose - f.mean).max() <= 1e-12
     with pytest.raises(OutOfRange, match=r"'box' is known from 0\.6 to 0\.9"):
         world.pose("box", 0.3)
+
+
+def test_robust_relative_leaves_the_outlier_out_of_the_joint_fit():
+    rng = np.random.default_rng(11)
+    sources = [Source("top", random_pose(rng), extrinsic_covariance=EXTRINSIC),
+               Source("side", random_pose(rng))]
+    robust = World(sources=sources, options=WorldOptions(robust=True))
+    clean = World(sources=sources)
+    state = rng.bit_generator.state
+    shared_scene(rng, robust, sources, EXTRINSIC)
+    rng.bit_generator.state = state
+    shared_scene(rng, clean, sources, EXTRINSIC)
+    # one more view of "a" by the top camera, 20 deg and 10 cm off
+    z = dq.mul(dq.mul(dq.conj(sources[0].extrinsic), clean.pose("a").pose),
+               lie.se3_exp(np.array([0.35, 0, 0, 0.1, 0, 0])))
+    for w in (robust, clean):
+        w.publish([Measurement("top", "a", 1.0, z, NOISE)])
+    assert [r.index for r in robust.pose("a").fused.rejected] == [2]
+    a = robust.relative("a", "b")
+    clean_world = World(sources=sources)
+    rng.bit_generator.state = state
+    shared_scene(rng, clean_world, sources, EXTRINSIC)
+    b = clean_world.relative("a", "b")
+    assert np.abs(a.pose - b.pose).max() < 1e-12
+    np.testing.assert_allclose(a.covariance, b.covariance, rtol=1e-9,
+                               atol=1e-12 * np.abs(b.covariance).max())
