@@ -135,6 +135,7 @@ class World:
         # answers kept until their bodies change: per body a version bumped by every
         # measurement taken into it; fits by (body, time), relatives by (target, source, time)
         self._version: dict[str, int] = {}
+        self._named: set = set()          # the configured sources and those that fed a body
         self._fits: dict = {}
         self._relatives: dict = {}
         self.configure(sources=sources, arms=arms, options=options)
@@ -187,6 +188,8 @@ class World:
             self._tracker = tracker
             self._fits.clear()
             self._relatives.clear()
+            self._version = {}
+            self._named = {s.name for s in sources}
             self.sources, self.arms, self.options = sources, arms, options
             if old is None:
                 return
@@ -231,25 +234,28 @@ class World:
         """Rows into the tracker under the world's bounds (the lock held)."""
         errors: dict[int, ValueError] = dict(bad or {})
         b = self.bounds
-        known = set(self._t.bodies)
-        named = set(self._fed_sources())
+        known, named = self._version, self._named
+        new_bodies: set = set()
+        new_sources: set = set()
         for k, (body, src) in enumerate(zip(bodies, sources)):
             if k in errors or not isinstance(body, str) or not isinstance(src, str):
                 continue
-            if body and body not in known:
-                if len(known) >= b.max_bodies:
+            if body and body not in known and body not in new_bodies:
+                if len(known) + len(new_bodies) >= b.max_bodies:
                     errors[k] = WorldError(
-                        f"measurements[{k}].body: {body!r} would be body {len(known) + 1}, "
-                        f"above the world's max_bodies {b.max_bodies}")
+                        f"measurements[{k}].body: {body!r} would be body "
+                        f"{len(known) + len(new_bodies) + 1}, above the world's max_bodies "
+                        f"{b.max_bodies}")
                     continue
-                known.add(body)
-            if src not in named:
-                if len(named) >= b.max_sources:
+                new_bodies.add(body)
+            if src not in named and src not in new_sources:
+                if len(named) + len(new_sources) >= b.max_sources:
                     errors[k] = WorldError(
-                        f"measurements[{k}].source: {src!r} would be source {len(named) + 1}, "
-                        f"above the world's max_sources {b.max_sources}")
+                        f"measurements[{k}].source: {src!r} would be source "
+                        f"{len(named) + len(new_sources) + 1}, above the world's max_sources "
+                        f"{b.max_sources}")
                     continue
-                named.add(src)
+                new_sources.add(src)
         use = [k for k in range(len(bodies)) if k not in errors]
         if use:
             idx = np.array(use)
@@ -263,17 +269,12 @@ class World:
                 if k in errors:
                     continue
                 self._version[bodies[k]] = self._version.get(bodies[k], 0) + 1
+                named.add(sources[k])
                 src = self._t._table.get(sources[k])
                 t = float(times[k]) - (src.latency if src is not None else 0.0)
                 seen = self._fed.setdefault(bodies[k], {})
                 seen[sources[k]] = max(seen.get(sources[k], -math.inf), t)
         return errors
-
-    def _fed_sources(self) -> set:
-        names = {s.name for s in self.sources}
-        for seen in self._fed.values():
-            names.update(seen)
-        return names
 
     def sources_of(self, body: str) -> tuple[str, ...]:
         """The sources that ever fed ``body``."""

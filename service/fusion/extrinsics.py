@@ -43,24 +43,16 @@ class _Extrinsics:
     cov: np.ndarray
     info: np.ndarray
 
-    def take(self, mask: np.ndarray) -> "_Extrinsics":
-        return _Extrinsics(self.slot[mask], self.names, self.E, self.cov, self.info)
 
-
-def _extrinsics(names: Sequence[str], table: dict, sources: Optional[Sequence[str]] = None
-                ) -> Optional[_Extrinsics]:
-    """The uncertain extrinsics of the measurements ``names`` (their sources' in ``table``), the
-    slots in the order of ``sources`` (default: first appearance); None when none has one."""
-    order = [s for s in (sources if sources is not None else dict.fromkeys(names))
+def _extrinsics(names: Sequence[str], table: dict) -> Optional[_Extrinsics]:
+    """The uncertain extrinsics of the measurements ``names`` (their sources' in ``table``), in
+    order of first appearance; None when none has one."""
+    order = [s for s in dict.fromkeys(names)
              if s in table and table[s].extrinsic_covariance is not None]
-    used = set(names)
-    order = [s for s in order if s in used] if sources is None else order
     if not order:
         return None
     index = {s: k for k, s in enumerate(order)}
     slot = np.array([index.get(s, -1) for s in names], dtype=np.intp)
-    if sources is None and not (slot >= 0).any():
-        return None
     ident = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
     E = np.array([ident if table[s].extrinsic is None else table[s].extrinsic for s in order])
     cov = np.array([table[s].extrinsic_covariance for s in order])
