@@ -1,0 +1,429 @@
+"""The shared world: named bodies fed by many producers, each body's pose at any time within the
+buffer, the pose of any body relative to any other, and an arm's base, all with covariances.
+
+A :class:`World` holds one :class:`dqpose.fusion.Tracker` whose window is the ``buffer`` (the
+history kept for lookups at past times); a body's pose at a time is :func:`dqpose.fusion.fuse`
+over the measurements taken within ``window`` of that time (the tracker's rows, so the answer is
+``fuse``'s to the last bit). Producers call :meth:`World.publish` from any thread (one lock).
+
+Correlations: two bodies measured by the same source share its extrinsic error ``ε`` (the
+source's ``extrinsic_covariance``). :meth:`World.relative` fits both bodies jointly, with one ``ε``
+per source, so the relative pose's covariance carries their cross-covariance. Not modelled: a
+latency error two bodies share (each body's fit estimates a source's latency on its own), errors
+of a source's ``body_offset``, and correlations between measurement noises of one image.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import threading
+from dataclasses import dataclass
+from typing import Mapping, Optional, Sequence
+
+import numpy as np
+
+from dqpose import dq
+from dqpose import limits as _limits
+from dqpose.fusion import (
+    DEFAULT_MAX_EXTRAPOLATION,
+    DEFAULT_PROBABILITY,
+    Fused,
+    Measurement,
+    Source,
+    Tracker,
+)
+from dqpose.fusion.extrinsics import _relative_covariance
+from dqpose.fusion.results import DOF, _frozen
+from dqpose.fusion.tracker import _arrays
+from dqpose.fusion.validation import _seconds
+
+__all__ = ["WorldOptions", "WorldBounds", "WorldError", "NotFound", "OutOfRange", "Published",
+           "BodyPose", "World", "Measurement", "Source", "Fused"]
+
+
+@dataclass(frozen=True)
+class WorldOptions:
+    """What the world's fusion runs with besides its sources and arms (the options of
+    :func:`dqpose.fusion.fuse`), and how much time it keeps: ``window`` seconds of measurements
+    in one body's fit, ``buffer`` seconds of history for lookups at past times, ``max_delay``
+    seconds of measurement time a tick waits for slower sources."""
+    robust: bool = False
+    probability: float = DEFAULT_PROBABILITY
+    max_skew: Optional[float] = None
+    max_extrapolation: Optional[float] = DEFAULT_MAX_EXTRAPOLATION
+    twist_covariance: Optional[np.ndarray] = None
+    acceleration_psd: Optional[np.ndarray] = None
+    window: float = 1.0
+    buffer: float = 10.0
+    max_delay: float = 0.1
+
+
+@dataclass(frozen=True)
+class WorldBounds:
+    """What a world holds at most; a refusal names the bound ("bodies: 1001 is above the
+    world's 1000"). ``max_measurements_per_body``: measurements a body's buffer keeps (the
+    server's ``Limits.max_window`` when the world has limits)."""
+    max_bodies: int = 1000
+    max_sources: int = 64
+    max_measurements_per_body: int = _limits.Limits().max_window
+    max_buffer: float = 60.0
+
+
+class WorldError(ValueError):
+    """Bad input: the message starts with the field path."""
+
+
+class NotFound(LookupError):
+    """An unknown body or arm."""
+
+
+class OutOfRange(LookupError):
+    """A time outside the buffer, or beyond ``max_extrapolation`` past what is known; the
+    message names what is known."""
+
+
+@dataclass(frozen=True)
+class Published:
+    """What one :meth:`World.publish` did: ``accepted`` measurements fused into the world,
+    ``errors`` ``(index in the request's measurements, message)`` of the others, the
+    ``bodies`` the request touched."""
+    accepted: int
+    errors: tuple[tuple[int, str], ...]
+    bodies: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class BodyPose:
+    """A pose at ``time``: ``pose`` ``(8,)`` (``T_world_body``, or ``T_target_source``),
+    ``covariance`` ``(6, 6)`` in the convention of :mod:`dqpose.fusion`; ``fused`` the full
+    fusion result when the answer is one body's own fit, ``None`` for a composed pose."""
+    body: str
+    time: float
+    pose: np.ndarray
+    covariance: np.ndarray
+    fused: Optional[Fused]
+
+
+def _over(field: str, value, bound: str, limit, unit: str = "") -> WorldError:
+    u = f" {unit}" if unit else ""
+    return WorldError(f"{field}: {value:.6g}{u} is above the world's {bound} {limit:.6g}{u}")
+
+
+def _s(t: float) -> str:
+    """A time to the microsecond, without trailing zeros (Unix times keep their digits)."""
+    return f"{t:.6f}".rstrip("0").rstrip(".")
+
+
+def _body_name(body) -> str:
+    if not isinstance(body, str):
+        raise WorldError(f"body: expected a string, got {type(body).__name__}")
+    return body
+
+
+class World:
+    """Named bodies and sources; see the module's docstring. Every public method takes the one
+    lock, so producers and readers may call from any thread."""
+
+    def __init__(self, *, sources: Sequence[Source] = (), arms: Mapping[str, str] = {},
+                 options: WorldOptions = WorldOptions(), bounds: WorldBounds = WorldBounds(),
+                 limits: Optional[_limits.Limits] = None):
+        self.bounds = bounds
+        self.limits = limits
+        self._lock = threading.Lock()
+        self._fed: dict[str, dict[str, float]] = {}     # body -> source -> newest taken
+        self._tracker: Optional[Tracker] = None
+        # answers kept until their bodies change: per body a version bumped by every
+        # measurement taken into it; fits by (body, time), relatives by (target, source, time)
+        self._version: dict[str, int] = {}
+        self._named: set = set()          # the configured sources and those that fed a body
+        self._fits: dict = {}
+        self._relatives: dict = {}
+        self.configure(sources=sources, arms=arms, options=options)
+
+    def configure(self, *, sources: Sequence[Source], arms: Mapping[str, str],
+                  options: WorldOptions) -> None:
+        """Replace the sources, arms and options (all checked first: a ``WorldError`` naming the
+        field leaves the world as it was); the measurements kept that still fit the new
+        buffer and bounds stay, re-fused under the new sources."""
+        sources = tuple(sources)
+        b = self.bounds
+        if len(sources) > b.max_sources:
+            raise _over("sources", len(sources), "max_sources", b.max_sources)
+        if not isinstance(options, WorldOptions):
+            raise WorldError(f"options: expected WorldOptions, got {type(options).__name__}")
+        try:
+            buffer = _seconds(options.buffer, "options.buffer", "positive")
+            window = _seconds(options.window, "options.window", "positive")
+            _seconds(options.max_delay, "options.max_delay", "nonnegative")
+        except ValueError as e:
+            raise WorldError(str(e)) from None
+        if buffer > b.max_buffer:
+            raise _over("options.buffer", buffer, "max_buffer", b.max_buffer, "s")
+        if window > buffer:
+            raise WorldError(f"options.window: {window:.6g} s is longer than options.buffer "
+                             f"{buffer:.6g} s (a fit uses measurements the buffer keeps)")
+        names = {s.name for s in sources if isinstance(s, Source)}
+        arms = dict(arms)
+        for arm, src in arms.items():
+            if not isinstance(arm, str) or not arm:
+                raise WorldError(f"arms: an arm needs a name, got {arm!r}")
+            if src not in names:
+                raise WorldError(f"arms[{arm!r}]: source {src!r} is not among the world's "
+                                 f"sources")
+        base = self.limits if self.limits is not None else _limits.Limits()
+        limits = dataclasses.replace(
+            base, max_window=b.max_measurements_per_body,
+            max_stream_measurements=b.max_bodies * b.max_measurements_per_body)
+        try:
+            tracker = Tracker(buffer, sources=sources, robust=options.robust,
+                              probability=options.probability, max_skew=options.max_skew,
+                              max_extrapolation=options.max_extrapolation,
+                              twist_covariance=options.twist_covariance,
+                              acceleration_psd=options.acceleration_psd, limits=limits)
+        except ValueError as e:
+            raise WorldError(str(e) if str(e).startswith("sources") else f"options.{e}") \
+                from None
+        with self._lock:
+            old = self._tracker
+            self._tracker = tracker
+            self._fits.clear()
+            self._relatives.clear()
+            self._version = {}
+            self._named = {s.name for s in sources}
+            self.sources, self.arms, self.options = sources, arms, options
+            if old is None:
+                return
+            fed, self._fed = self._fed, {}
+            for body in old.bodies:
+                w = old.window_of(body)
+                n = len(w.ids)
+                self._admit([body] * n, list(w.sources), w.times, w.poses, w.covariances)
+            # a body's sources are those that ever fed it, across configurations
+            for body, seen in fed.items():
+                mine = self._fed.setdefault(body, {})
+                for src, t in seen.items():
+                    mine.setdefault(src, t)
+
+    @property
+    def bodies(self) -> tuple[str, ...]:
+        with self._lock:
+            return self._t.bodies
+
+    @property
+    def _t(self) -> Tracker:
+        assert self._tracker is not None    # set by __init__'s configure
+        return self._tracker
+
+    def publish(self, measurements: Sequence[Measurement]) -> Published:
+        """Add measurements (thread-safe); a bad one is answered in ``errors`` as
+        ``(index, message)``, the message naming ``measurements[k]``; never raised."""
+        measurements = list(measurements)
+        poses, covs, times, bad = _arrays(measurements)
+        bodies = [getattr(m, "body", "") for m in measurements]
+        sources = [getattr(m, "source", "") for m in measurements]
+        for k in bad:
+            bodies[k] = ""          # refused already: the tracker refuses it again, unnamed
+        with self._lock:
+            errors = self._admit(bodies, sources, times, poses, covs, bad)
+        accepted = len(measurements) - len(errors)
+        touched = dict.fromkeys(b for k, b in enumerate(bodies) if k not in errors)
+        return Published(accepted, tuple((k, str(e)) for k, e in sorted(errors.items())),
+                         tuple(touched))
+
+    def _admit(self, bodies, sources, times, poses, covs, bad=None) -> dict[int, ValueError]:
+        """Rows into the tracker under the world's bounds (the lock held)."""
+        errors: dict[int, ValueError] = dict(bad or {})
+        b = self.bounds
+        known, named = self._version, self._named
+        new_bodies: set = set()
+        new_sources: set = set()
+        for k, (body, src) in enumerate(zip(bodies, sources)):
+            if k in errors or not isinstance(body, str) or not isinstance(src, str):
+                continue
+            if body and body not in known and body not in new_bodies:
+                if len(known) + len(new_bodies) >= b.max_bodies:
+                    errors[k] = WorldError(
+                        f"measurements[{k}].body: {body!r} would be body "
+                        f"{len(known) + len(new_bodies) + 1}, above the world's max_bodies "
+                        f"{b.max_bodies}")
+                    continue
+                new_bodies.add(body)
+            if src not in named and src not in new_sources:
+                if len(named) + len(new_sources) >= b.max_sources:
+                    errors[k] = WorldError(
+                        f"measurements[{k}].source: {src!r} would be source "
+                        f"{len(named) + len(new_sources) + 1}, above the world's max_sources "
+                        f"{b.max_sources}")
+                    continue
+                new_sources.add(src)
+        use = [k for k in range(len(bodies)) if k not in errors]
+        if use:
+            idx = np.array(use)
+            refused = self._t.ingest([bodies[k] for k in use], [sources[k] for k in use],
+                                     times[idx], poses[idx], covs[idx], ids=idx)
+            for j, e in refused:
+                k = use[j]
+                errors[k] = type(e)(str(e).replace(f"measurements[{j}]", f"measurements[{k}]",
+                                                   1))
+            for k in use:
+                if k in errors:
+                    continue
+                self._version[bodies[k]] = self._version.get(bodies[k], 0) + 1
+                named.add(sources[k])
+                src = self._t._table.get(sources[k])
+                t = float(times[k]) - (src.latency if src is not None else 0.0)
+                seen = self._fed.setdefault(bodies[k], {})
+                seen[sources[k]] = max(seen.get(sources[k], -math.inf), t)
+        return errors
+
+    def sources_of(self, body: str) -> tuple[str, ...]:
+        """The sources that ever fed ``body``."""
+        with self._lock:
+            self._known(body)
+            return tuple(self._fed.get(body, {}))
+
+    def newest(self, body: str, source: Optional[str] = None) -> float:
+        """When ``body``'s newest measurement (of ``source``) was taken."""
+        with self._lock:
+            self._known(body)
+            if source is None:
+                return self._t.newest(body)
+            seen = self._fed.get(body, {})
+            if source not in seen:
+                raise NotFound(f"source: {source!r} never fed body {body!r} (its sources: "
+                               f"{', '.join(map(repr, seen)) or 'none'})")
+            return seen[source]
+
+    def _known(self, body) -> None:
+        body = _body_name(body)
+        if body not in self._t.bodies:
+            some = list(self._t.bodies)[:5]
+            raise NotFound(f"body: {body!r} is not in the world (" + (
+                f"{len(self._t.bodies)} bodies: {', '.join(map(repr, some))}"
+                + (", ..." if len(self._t.bodies) > 5 else "") if some else "no bodies yet")
+                + ")")
+
+    def _fit(self, body: str, time: Optional[float]) -> Fused:
+        """``body``'s fit at ``time`` from the measurements taken within ``window`` of it (the
+        lock held), or ``OutOfRange`` naming what is known."""
+        self._known(body)
+        t = self._t
+        newest, oldest = t.newest(body), t.oldest(body)
+        at = newest if time is None else time
+        if time is not None:
+            try:
+                at = _seconds(time, "time")
+            except ValueError as e:
+                raise WorldError(str(e)) from None
+        known = f"{body!r} is known from {_s(oldest)} to {_s(newest)}"
+        if at < oldest:
+            raise OutOfRange(f"time: {_s(at)} is before the oldest measurement kept; {known} "
+                             f"(buffer {self.options.buffer:g} s)")
+        limit = self.options.max_extrapolation
+        if limit is not None and at > newest + limit:
+            raise OutOfRange(f"time: {_s(at)} is {at - newest:.6g} s past the newest "
+                             f"measurement, beyond max_extrapolation {limit:g} s; {known}")
+        key = (body, at)
+        hit = self._fits.get(key)
+        version = self._version.get(body, 0)
+        if hit is not None and hit[0] == version:
+            return hit[1]
+        window = self.options.window
+        if not t.near(body, at, window):
+            raise OutOfRange(f"time: no measurement of {body!r} within the window "
+                             f"{window:g} s of {_s(at)}; {known}")
+        try:
+            f = t.estimate_ids(body, at, window)[0]
+        except ValueError as e:
+            raise OutOfRange(f"{e}; {known}") from None
+        _keep(self._fits, key, (version, f))
+        return f
+
+    def pose(self, body: str, time: Optional[float] = None) -> BodyPose:
+        """``T_world_body`` at ``time`` (None: the body's newest): :func:`dqpose.fusion.fuse`
+        over its measurements taken within ``window`` of ``time``."""
+        with self._lock:
+            f = self._fit(body, time)
+        assert f.time is not None            # a fit over time
+        return BodyPose(body, f.time, f.mean, f.covariance, f)
+
+    def relative(self, target: str, source: str, time: float = 0.0) -> BodyPose:
+        """``T_target_source`` at ``time`` (0: the newest time both are known at); "" is the
+        world frame. Bodies that share a source with an ``extrinsic_covariance`` are fitted
+        together (one error per such source), so the covariance has their cross-covariance."""
+        target, source = _body_name(target), _body_name(source)
+        with self._lock:
+            for b in (target, source):
+                if b:
+                    self._known(b)
+            if time == 0.0:
+                times = [self._t.newest(b) for b in (target, source) if b]
+                at: Optional[float] = min(times) if times else None
+            else:
+                at = time
+            if at is None:      # world to world
+                ident = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
+                return BodyPose(source, 0.0, ident, np.zeros((DOF, DOF)), None)
+            if target == source:
+                if target:
+                    self._fit(target, at)   # known at that time
+                return BodyPose(source, at, np.array([1.0, 0, 0, 0, 0, 0, 0, 0]),
+                                np.zeros((DOF, DOF)), None)
+            key = (target, source, at)
+            versions = (self._version.get(target, 0), self._version.get(source, 0))
+            hit = self._relatives.get(key)
+            if hit is not None and hit[0] == versions:
+                return hit[1]
+            fits = {b: self._fit(b, at) for b in (target, source) if b}
+            if target and source and self._share(fits[target], fits[source]):
+                (Xa, Xb), P = self._t.joint([target, source], [fits[target], fits[source]],
+                                            at, self.options.window)
+                answer = BodyPose(source, at, _frozen(dq.mul(dq.conj(Xa), Xb)),
+                                  _frozen(_relative_covariance(Xa, Xb, P)), None)
+            else:
+                answer = _composed(target, source, at, fits)
+            _keep(self._relatives, key, (versions, answer))
+            return answer
+
+    def _share(self, a: Fused, b: Fused) -> bool:
+        """Whether two fits used a source whose extrinsic is uncertain in common."""
+        table = self._t._table
+        common = {s.name for s in a.sources} & {s.name for s in b.sources}
+        return any(table[s].extrinsic_covariance is not None for s in common if s in table)
+
+    def arm_base(self, arm: str) -> BodyPose:
+        """``T_world_base`` of ``arm``: the extrinsic of the source ``arms`` names, with its
+        ``extrinsic_covariance`` (zeros when exact); it does not move, so ``time`` is 0."""
+        with self._lock:
+            if arm not in self.arms:
+                raise NotFound(f"arm: {arm!r} has no source in the world's arms (" + (
+                    ", ".join(map(repr, self.arms)) or "none configured") + ")")
+            src = self._t._table[self.arms[arm]]
+        pose = np.array([1.0, 0, 0, 0, 0, 0, 0, 0]) if src.extrinsic is None else src.extrinsic
+        cov = (np.zeros((DOF, DOF)) if src.extrinsic_covariance is None
+               else src.extrinsic_covariance)
+        return BodyPose(f"arm:{arm}", 0.0, pose, cov, None)
+
+
+# answers kept at most (each a few kB); beyond, the cache starts over
+_CACHED = 4096
+
+
+def _keep(cache: dict, key, value) -> None:
+    if len(cache) >= _CACHED:
+        cache.clear()
+    cache[key] = value
+
+
+def _composed(target: str, source: str, at: float, fits: Mapping[str, Fused]) -> BodyPose:
+    """``T_target_source`` composed of the two bodies' own fits, as if their errors were
+    independent (the world frame "" is exact): the answer when they share no uncertain
+    extrinsic, and the comparison the benchmark shows when they do."""
+    ident = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
+    zero = np.zeros((DOF, DOF))
+    Xa, Pa = (fits[target].mean, fits[target].covariance) if target else (ident, zero)
+    Xb, Pb = (fits[source].mean, fits[source].covariance) if source else (ident, zero)
+    P = np.zeros((2 * DOF, 2 * DOF))
+    P[:DOF, :DOF], P[DOF:, DOF:] = Pa, Pb
+    return BodyPose(source, at, _frozen(dq.mul(dq.conj(Xa), Xb)),
+                    _frozen(_relative_covariance(Xa, Xb, P)), None)
