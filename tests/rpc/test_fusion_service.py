@@ -14,7 +14,8 @@ from dqpose.fusion import Source
 from dqpose.rpc import fusion_convert, geometry
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 from dqpose.rpc.client import Batch, Client, InvalidArgument
-from dqpose.rpc.fusion import Fusion, tick_phase
+from dqpose.rpc.fusion import Fusion
+from dqpose.world_ticks import tick_phase
 
 
 @pytest.fixture(scope="module")
