@@ -20,6 +20,8 @@ COMMANDS = {
     "interpolate": ("dqpose.cli.blend",
                     "interpolate between time-stamped keyframes from a JSON, YAML or CSV file"),
     "fuse": ("dqpose.cli.fuse", "fuse measurements of one body from a JSON, YAML or CSV file"),
+    "world": ("dqpose.cli.world", "a server's shared world: publish measurements, watch fused "
+                                  "poses, look up one body relative to another"),
     "plan": ("dqpose.cli.trajectory",
              "plan a limit-respecting motion through waypoints from a JSON, YAML or CSV file"),
     "smooth": ("dqpose.cli.trajectory",

@@ -27,7 +27,7 @@ from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
 from dqpose.rpc.calls import Calls, refused
 from dqpose.rpc.geometry import dq_to_pose
-from dqpose.rpc.trajectories_convert import plan_from_msg
+from dqpose.rpc.trajectories_convert import plan_from_msg, resolve_frames
 
 #: an Execute feedback record every this many set-points (50 Hz at 500 Hz), and the last one
 FEEDBACK_EVERY = 10
@@ -97,6 +97,7 @@ class Arms:
         self.executor = cfg.executor
         self._arms = {name: _Arm(name, arm) for name, arm in sorted(cfg.arms.items())}
         self._stop_at: Optional[float] = None     # loop time the server stops, once known
+        self.world = None      # the server's dqpose.world.World: Waypoint.frame resolves there
 
     def _slot(self, name: str) -> _Arm:
         slot = self._arms.get(name)
@@ -185,6 +186,8 @@ class Arms:
                               "max_execute_waypoints")
         # converting up to max_execute_waypoints messages is work that grows with the request
         args = await asyncio.to_thread(plan_from_msg, request.plan, "plan.", False)
+        args, _ = await asyncio.to_thread(resolve_frames, args, request.plan, self.world,
+                                          "plan.", request.arm)
         for name, unit in ARM_LIMITS.items():
             want, bound = getattr(args.limits, name), float(getattr(slot.arm.limits, name))
             if want > bound:

@@ -35,10 +35,12 @@ from dqpose.rpc.calls import Calls, log
 from dqpose.rpc.fusion import Fusion
 from dqpose.rpc.handeye import HandEye
 from dqpose.rpc.trajectories import Trajectories
+from dqpose.rpc.world import World
 
 # The services this server offers: each class takes (config, calls), has NAME (the full proto
-# service name) and register(server).
-SERVICERS = (Blending, Fusion, Trajectories, HandEye)
+# service name) and register(server). World comes first: Trajectories resolves Waypoint.frame
+# through its world (one per server), handed over in start().
+SERVICERS = (World, Blending, Fusion, Trajectories, HandEye)
 SERVICE_NAMES = tuple(s.NAME for s in SERVICERS) + (
     health_pb2.DESCRIPTOR.services_by_name["Health"].full_name, reflection.SERVICE_NAME)
 
@@ -486,6 +488,8 @@ async def start(cfg: ServerConfig) -> Running:
     interceptors = [gate] + ([BearerTokenAuth(cfg.token, calls)] if cfg.token else [])
     server = grpc.aio.server(options=server_options(cfg), interceptors=interceptors)
     servicers = tuple(cls(cfg, calls) for cls in SERVICERS)
+    by_class = {type(s): s for s in servicers}
+    by_class[Trajectories].world = by_class[World].world
     for servicer in servicers:
         servicer.register(server)
     health_servicer = Health()
