@@ -45,8 +45,9 @@ def configure(name: str, p) -> None:
     watch.add_argument("--count", type=int, default=0,
                        help="stop after this many answers (0: until Ctrl-C)")
     look = sub.add_parser("lookup", help="the pose of SOURCE in TARGET's frame")
-    look.add_argument("target", metavar="TARGET")
-    look.add_argument("source", metavar="SOURCE")
+    # dests of their own: --target is the server's address
+    look.add_argument("frame_target", metavar="TARGET", help="a body, or world")
+    look.add_argument("frame_source", metavar="SOURCE", help="a body, or world")
     look.add_argument("--time", type=float, default=0.0,
                       help="measurement time, s (0: the newest both are known at)")
     for q in (pub, watch, look):
@@ -147,11 +148,11 @@ def _lookup(args) -> int:
     from dqpose import dq
 
     with client(args) as c:
-        r = c.lookup(_frame(args.target), _frame(args.source), args.time)
+        r = c.lookup(_frame(args.frame_target), _frame(args.frame_source), args.time)
     q, t = dq.to_pose(r.pose)
     if q[0] < 0:
         q = -q
-    print(f"T_{args.target}_{args.source} at {r.time:.9g} s (x,y,z,qw,qx,qy,qz):")
+    print(f"T_{args.frame_target}_{args.frame_source} at {r.time:.9g} s (x,y,z,qw,qx,qy,qz):")
     print("  " + ",".join(f"{v:.9g}" for v in (*t, *q)))
     print("covariance (rotation first [wx wy wz vx vy vz], right perturbation):")
     for row in np.asarray(r.covariance):
