@@ -21,12 +21,19 @@ class Source:
     ``latency`` (seconds): a measurement stamped ``t`` was taken at ``t - latency`` (used when
     :func:`fuse` is given times). ``latency_sigma``: ``None`` takes the latency as exact; a
     positive value makes it a prior ``N(latency, latency_sigma²)`` and estimates it from the data
-    jointly with the motion (reported in :attr:`Fused.latencies`)."""
+    jointly with the motion (reported in :attr:`Fused.latencies`).
+
+    ``extrinsic_covariance`` ``(6, 6)`` (rotation first): the extrinsic's own uncertainty, a right
+    perturbation of ``T_world_frame`` (the true extrinsic is ``extrinsic · Exp(ε)``,
+    ``ε ~ N(0, Σ)``), e.g. a hand-eye calibration's covariance. Every measurement of the source
+    shares the one ``ε``; :mod:`dqpose.fusion.extrinsics` estimates it jointly with the body.
+    ``None``: the extrinsic is exact."""
     name: str
     extrinsic: Optional[np.ndarray] = None
     body_offset: Optional[np.ndarray] = None
     latency: float = 0.0
     latency_sigma: Optional[float] = None
+    extrinsic_covariance: Optional[np.ndarray] = None
 
 
 # What a latency and its prior's standard deviation may be (seconds): a prior of 5e-324 s has an
