@@ -218,7 +218,7 @@ class Client:
             f"/{WORLD}/Configure", request_serializer=wpb.WorldConfig.SerializeToString,
             response_deserializer=wpb.WorldConfig.FromString)
         self._publish: _Streams = self.channel.stream_stream(f"/{WORLD}/Publish")
-        self._subscribe = self.channel.unary_stream(
+        self._subscribe: grpc.UnaryStreamMultiCallable = self.channel.unary_stream(
             f"/{WORLD}/Subscribe", request_serializer=wpb.SubscribeRequest.SerializeToString)
         self._lookup = self.channel.unary_unary(
             f"/{WORLD}/Lookup", request_serializer=wpb.LookupRequest.SerializeToString,

@@ -487,9 +487,11 @@ async def start(cfg: ServerConfig) -> Running:
     gate = Gate(calls)
     interceptors = [gate] + ([BearerTokenAuth(cfg.token, calls)] if cfg.token else [])
     server = grpc.aio.server(options=server_options(cfg), interceptors=interceptors)
-    servicers = tuple(cls(cfg, calls) for cls in SERVICERS)
-    by_class = {type(s): s for s in servicers}
-    by_class[Trajectories].world = by_class[World].world
+    world = World(cfg, calls)
+    servicers = tuple(world if cls is World else cls(cfg, calls) for cls in SERVICERS)
+    for s in servicers:
+        if isinstance(s, Trajectories):
+            s.world = world.world
     for servicer in servicers:
         servicer.register(server)
     health_servicer = Health()

@@ -171,6 +171,21 @@ class World:
                     del self.acked[min(self.acked, key=self.acked.__getitem__)]
         return ack
 
+    def publish_bytes(self, data: bytes, r: int, anonymous: str) -> pb.PublishAck:
+        """:meth:`publish` of request ``r``'s bytes (``anonymous``: the producer key of a
+        request that names none); bytes that are not a PublishRequest are an ack error."""
+        try:
+            request = pb.PublishRequest.FromString(data)
+        except DecodeError:
+            with self.lock:
+                self.requests += 1
+            ack = pb.PublishAck()
+            ack.errors.add(request=r, measurement=-1, details=(
+                f"requests[{r}]: not a valid dqpose.v1.PublishRequest message; none of it was "
+                f"used"))
+            return ack
+        return self.publish(request, r, request.producer or anonymous)
+
     def _apply(self, request: pb.PublishRequest, field: str, error) -> None:
         """Under the lock: the request's measurements into the world, then the answers they
         make due."""
@@ -268,23 +283,11 @@ class World:
         code, r = "OK", 0
         anonymous = f"\0call{id(context)}"
         try:
-            # Registered without a deserializer: bytes that are not a PublishRequest are an ack
-            # error for that request, and the stream goes on.
+            # Registered without a deserializer: each request is parsed with its work in the
+            # worker pool (publish_bytes), never on the event loop.
             async for data in request_iterator:
-                try:
-                    request = pb.PublishRequest.FromString(data)
-                except DecodeError:
-                    with self.lock:
-                        self.requests += 1
-                    ack = pb.PublishAck()
-                    ack.errors.add(request=r, measurement=-1, details=(
-                        f"requests[{r}]: not a valid dqpose.v1.PublishRequest message; none of "
-                        f"it was used"))
-                    await context.write(ack)
-                    r += 1
-                    continue
-                producer = request.producer or anonymous
-                await context.write(await self.calls.work(self.publish, request, r, producer))
+                await context.write(await self.calls.work(self.publish_bytes, data, r,
+                                                          anonymous))
                 r += 1
         except Exception:
             code = "INTERNAL"
