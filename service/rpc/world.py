@@ -43,6 +43,10 @@ MAX_SUBSCRIBERS = 64
 #: answers queued for one subscriber; a subscriber that falls further behind is ended with
 #: RESOURCE_EXHAUSTED (its answers would otherwise grow without bound)
 MAX_QUEUED = 4096
+#: fits one Publish request may make due, for all subscriptions together; the oldest ticks beyond
+#: are skipped (an error entry per body says how many): a source's time jumping ahead would
+#: otherwise make every tick in between due at once, under the world's lock
+MAX_FITS_PER_REQUEST = 1024
 #: producer names remembered (each one's acked_through); the oldest-acked is forgotten beyond
 MAX_PRODUCERS = 4096
 
@@ -207,18 +211,33 @@ class World:
         latency = {s.name: s.latency for s in self.world.sources}
         cache: dict[tuple[str, float, str], Any] = {}
         for sub in list(self.subscriptions):
-            answers = []
+            due: list[tuple[str, float, int]] = []
             for k in range(len(m.index)):
                 body = m.bodies[k]
                 if int(m.index[k]) in refused_rows or not sub.wants(body):
                     continue
                 source = m.sources[k]
                 taken = float(m.times[k]) - latency.get(source, 0.0)
-                for t in sub.due(body, source, taken):
-                    key = (body, t, sub.relative_to)
-                    if key not in cache:
-                        cache[key] = self._answer(body, t, sub.relative_to, int(ids[k]))
-                    answers.append(cache[key])
+                due += [(body, t, int(ids[k])) for t in sub.due(body, source, taken)]
+            fits = sum((b, t, sub.relative_to) not in cache for b, t, _ in due)
+            budget = MAX_FITS_PER_REQUEST - len(cache)
+            answers = []
+            if fits > budget:
+                skipped: dict[str, int] = {}
+                for b, _t, _ in due[:fits - max(budget, 0)]:
+                    skipped[b] = skipped.get(b, 0) + 1
+                due = due[fits - max(budget, 0):]
+                r = self.requests
+                answers += [fpb.FusedPose(body=b, request=r, error=fpb.FuseError(
+                    request=r, measurement=-1, details=(
+                        f"body {b!r}: {n} ticks skipped: request {r} made more than "
+                        f"{MAX_FITS_PER_REQUEST} fits due (a source's time jumped ahead)")))
+                    for b, n in skipped.items()]
+            for body, t, last in due:
+                key = (body, t, sub.relative_to)
+                if key not in cache:
+                    cache[key] = self._answer(body, t, sub.relative_to, last)
+                answers.append(cache[key])
             if answers:
                 sub.loop.call_soon_threadsafe(sub.deliver, answers)
 

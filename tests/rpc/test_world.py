@@ -5,6 +5,7 @@ status codes, replay determinism and Waypoint.frame."""
 from __future__ import annotations
 
 import multiprocessing
+import re
 import threading
 
 import grpc
@@ -296,3 +297,21 @@ def test_fusion_source_extrinsic_covariance_round_trips():
     [back] = sources_from_msg(msg.sources)
     np.testing.assert_array_equal(back.extrinsic_covariance, c)
     assert fusion.Source("x").latency == 0.0
+
+
+def test_a_time_jump_makes_at_most_max_fits_due_and_says_what_it_skipped(server, client):
+    from dqpose.rpc.world import MAX_FITS_PER_REQUEST
+    client.configure_world(SOURCES, twist_covariance=TWIST, window=100.0, buffer=60.0,
+                           max_extrapolation=None)
+    sub = Collector(server.target, bodies=["box"], rate_hz=30.0)
+    assert wait_until(lambda: server.running.servicers[0].subscriptions, timeout=10)
+    list(client.publish([measurements("cam1", [0.0], 1), measurements("cam1", [60.0], 2)],
+                        producer="p"))
+    assert wait_until(lambda: len(sub.answers) > MAX_FITS_PER_REQUEST, timeout=60)   # + error
+    answers = sub.stop()
+    [skip] = [a for a in answers if a.error is not None]
+    n = int(re.search(r"(\d+) ticks skipped", skip.error)[1])
+    fused = [a for a in answers if a.error is None]
+    assert len(fused) == MAX_FITS_PER_REQUEST     # "box"'s first tick is after 0 (its phase)
+    assert n + MAX_FITS_PER_REQUEST == round(60.0 * 30.0)
+    assert fused[-1].time == pytest.approx(60.0, abs=1 / 30)   # the newest ticks were kept
