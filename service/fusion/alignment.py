@@ -15,6 +15,7 @@ import numpy as np
 
 from dqpose import dq, lie
 from dqpose.fusion.consistency import _codes, _source_stats
+from dqpose.fusion.extrinsics import _extrinsics, _motion_fit_ext
 from dqpose.fusion.motion import _constant_twist_fit, _determined_without_each, _Model, _MotionFit
 from dqpose.fusion.process_noise import _correlated_fit, _correlated_nis, _marginal_information
 from dqpose.fusion.results import DOF, Dropped, Fused, Latency, _frozen
@@ -31,6 +32,11 @@ def _motion_fit(Z, S, model: _Model, inlier: np.ndarray, tol: float,
     """Fit of the measurements ``inlier`` selects, evaluated at every measurement. The constant
     twist is fitted in C, leave-one-out NIS and covariance included; the correlated model in
     NumPy from the constant-twist fit."""
+    if model.extrinsics is not None:
+        # the joint fit with the uncertain extrinsics, from the C fit without them
+        first = _constant_twist_fit(Z, S, model, inlier, tol, max_iter)
+        return _motion_fit_ext(Z, S, model, model.extrinsics, inlier, first.mean, first.V,
+                               first.ell, tol, max_iter)
     if model.accel is None:
         return _constant_twist_fit(Z, S, model, inlier, tol, max_iter)
     return _correlated_fit(Z, S, model, inlier, tol, max_iter)
@@ -111,6 +117,10 @@ def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
     twist_prior, Wp = (None, None) if twist_covariance is None else _twist_information(
         twist_covariance)
     accel = _acceleration(acceleration_psd)
+    ext = _extrinsics(names, table)
+    if ext is not None and accel is not None:
+        raise ValueError(f"acceleration_psd: not supported with a source's extrinsic_covariance "
+                         f"(source {ext.names[0]!r})")
     span = _span(taken, time, max_skew, max_extrapolation)
     estimated = [s for s in sources if s in table and table[s].latency_sigma is not None]
     one_instant = span.lo == span.hi
@@ -118,7 +128,7 @@ def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
         # All taken at the fusion time: nothing moves, the answer is the static fit itself (its
         # C core), bit for bit; the twist keeps its prior, each latency its prior (one instant
         # shows neither).
-        f = _fuse_static(Z, S, names, robust, probability, gate2, tol, max_iter)
+        f = _fuse_static(Z, S, names, robust, probability, gate2, tol, max_iter, ext)
         return replace(
             f, time=time, extrapolation=0.0,
             twist=None if Wp is None else _frozen(np.zeros(DOF)),
@@ -136,7 +146,7 @@ def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
         stamp=stamps - time, latency=latency, slot=slot,
         prior=np.array([table[s].latency for s in estimated], dtype=np.float64),
         prior_w=np.array([table[s].latency_sigma ** -2 for s in estimated], dtype=np.float64),
-        twist=twist, twist_w=Wp, accel=accel)
+        twist=twist, twist_w=Wp, accel=accel, extrinsics=ext)
 
     allowed = np.ones(n, dtype=bool) if span.keep is None else span.keep
     if robust and np.count_nonzero(allowed) > 1:

@@ -13,6 +13,7 @@ import numpy as np
 from dqpose import dq
 from dqpose.fusion.alignment import DEFAULT_MAX_EXTRAPOLATION, _fuse_in_time
 from dqpose.fusion.chi2 import DEFAULT_PROBABILITY, chi2_quantile
+from dqpose.fusion.extrinsics import _extrinsics
 from dqpose.fusion.results import DOF, Fused
 from dqpose.fusion.sources import Source, _sources, _to_world
 from dqpose.fusion.static import _fuse_static
@@ -74,7 +75,8 @@ def fuse(poses, covariances=None, *, weights=None, names: Optional[Sequence[str]
         if value is not None:
             raise ValueError(f"{key}: needs the measurements' times (times=...)")
 
-    return _fuse_static(Z, S, names, robust, probability, gate2, tol, max_iter)
+    return _fuse_static(Z, S, names, robust, probability, gate2, tol, max_iter,
+                        _extrinsics(names, table))
 
 
 class _Checked(NamedTuple):

@@ -14,7 +14,7 @@ block is the marginal at the fusion time, so it carries the twist's (and latenci
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import Any, Optional
 
 import numpy as np
 
@@ -37,6 +37,9 @@ class _Model:
     twist_w: Optional[np.ndarray]
     # the power spectral density of the white-noise acceleration (None: the twist is constant)
     accel: Optional[np.ndarray] = None
+    # the uncertain extrinsics of the measurements (dqpose.fusion.extrinsics._Extrinsics; None:
+    # every extrinsic exact)
+    extrinsics: Optional[Any] = None
 
     @property
     def offset(self) -> int:  # where the latencies start in the state vector

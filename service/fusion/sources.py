@@ -10,7 +10,9 @@ from typing import Iterable, Optional
 import numpy as np
 
 from dqpose import dq, lie
-from dqpose.fusion.validation import _pose, _seconds
+from dqpose.errors import rename
+from dqpose.fusion.results import DOF
+from dqpose.fusion.validation import _covariances, _pose, _seconds, _shape
 
 
 @dataclass(frozen=True)
@@ -56,6 +58,21 @@ def _latency(s: Source, k: int) -> tuple[float, Optional[float]]:
     return latency, sigma
 
 
+def _extrinsic_covariance(s: Source, k: int) -> Optional[np.ndarray]:
+    """The source's extrinsic covariance by the measurements' rule (symmetric, variances within
+    bounds, positive definite), symmetrised."""
+    if s.extrinsic_covariance is None:
+        return None
+    name = f"sources[{k}].extrinsic_covariance"
+    shape = _shape(s.extrinsic_covariance)
+    if shape != (DOF, DOF):
+        raise ValueError(f"{name}: expected shape (6, 6), got {shape}")
+    try:
+        return _covariances([s.extrinsic_covariance], None, 1)[0]
+    except ValueError as e:
+        raise rename(e, {"covariances": name}) from None
+
+
 def _sources(sources: Optional[Iterable[Source]]) -> dict[str, Source]:
     table: dict[str, Source] = {}
     for k, s in enumerate(sources or ()):
@@ -69,7 +86,7 @@ def _sources(sources: Optional[Iterable[Source]]) -> dict[str, Source]:
             s.name,
             None if s.extrinsic is None else _pose(s.extrinsic, f"sources[{k}].extrinsic"),
             None if s.body_offset is None else _pose(s.body_offset, f"sources[{k}].body_offset"),
-            *_latency(s, k))
+            *_latency(s, k), _extrinsic_covariance(s, k))
     return table
 
 

@@ -6,11 +6,13 @@ leave-one-out NIS with it; robust or not.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
 from dqpose import _dqcore as _c
 from dqpose.fusion.consistency import _codes, _source_stats
+from dqpose.fusion.extrinsics import _Extrinsics, _motion_fit_ext, _static_model
 from dqpose.fusion.results import DOF, Fused, Status, _frozen
 from dqpose.fusion.robust import _consensus, _gate, _rejections
 
@@ -28,30 +30,41 @@ class _Fit:
     iterations: int
 
 
-def _fit(Z: np.ndarray, S: np.ndarray, inlier: np.ndarray, tol: float, max_iter: int) -> _Fit:
+def _fit(Z: np.ndarray, S: np.ndarray, inlier: np.ndarray, tol: float, max_iter: int,
+         ext: Optional[_Extrinsics] = None) -> _Fit:
     """ML fit of the measurements ``inlier`` selects, evaluated at every measurement, with the
     leave-one-out NIS of each: measurement j against the fit of the other inliers (one
     Gauss-Newton step from the optimum; an outlier against all inliers; untested without
-    another inlier)."""
+    another inlier). With uncertain extrinsics (``ext``) the joint fit of
+    :mod:`dqpose.fusion.extrinsics`, started from the C fit."""
     mean, P, r, d, nis, tested, status, iterations, chi2 = _c.fuse(Z, S, inlier, tol, max_iter)
-    return _Fit(Status(int(status)), mean, P, r, d, nis, tested, float(chi2), int(iterations))
+    if ext is None:
+        return _Fit(Status(int(status)), mean, P, r, d, nis, tested, float(chi2),
+                    int(iterations))
+    m = _motion_fit_ext(Z, S, _static_model(Z.shape[0]), ext, inlier, mean, np.zeros(DOF),
+                        np.zeros(0), tol, max_iter)
+    assert m.nis is not None and m.tested is not None     # the joint fit computes them
+    return _Fit(m.status, m.mean, m.P[:DOF, :DOF], m.r, np.sqrt(m.cost), m.nis, m.tested,
+                m.chi2, int(iterations) + m.iterations)
 
 
-def _robust(Z, S, gate2, tol, max_iter):
+def _robust(Z, S, gate2, tol, max_iter, ext=None):
     # the C fit computes each measurement's leave-one-out NIS with the fit itself
     return _gate(_consensus(Z, S, gate2), np.ones(Z.shape[0], dtype=bool),
-                 lambda inlier: _fit(Z, S, inlier, tol, max_iter),
+                 lambda inlier: _fit(Z, S, inlier, tol, max_iter, ext),
                  lambda fit, inlier: (fit.nis, fit.tested), gate2)
 
 
-def _fuse_static(Z, S, names, robust, probability, gate2, tol, max_iter) -> Fused:
-    """The fit of one instant: the C core's, robust or not."""
+def _fuse_static(Z, S, names, robust, probability, gate2, tol, max_iter,
+                 ext: Optional[_Extrinsics] = None) -> Fused:
+    """The fit of one instant: the C core's, robust or not; jointly with the uncertain
+    extrinsics ``ext`` when there are any."""
     n = Z.shape[0]
     if robust and n > 1:
-        fit, nis, tested, inlier, gate_status = _robust(Z, S, gate2, tol, max_iter)
+        fit, nis, tested, inlier, gate_status = _robust(Z, S, gate2, tol, max_iter, ext)
     else:
         inlier = np.ones(n, dtype=bool)
-        fit = _fit(Z, S, inlier, tol, max_iter)
+        fit = _fit(Z, S, inlier, tol, max_iter, ext)
         nis, tested = fit.nis, fit.tested
         gate_status = None
     rejected = _rejections(names, nis, ~inlier, gate2, probability)

@@ -1,0 +1,242 @@
+"""Uncertain extrinsics: a source's ``extrinsic_covariance`` honoured exactly.
+
+The true extrinsic of source s is ``E_s · Exp(ε_s)``, ``ε_s ~ N(0, Σ_E,s)``, and every measurement
+of the source shares that one ``ε_s``, so its measurements are correlated. Measurement i of s in
+the world frame, ``W_i = E_s Z_i O_s``, is then ``W_i · Exp(A_i ε_s)`` with
+``A_i = Ad((Z_i O_s)⁻¹) = Ad(W_i⁻¹ E_s)`` (exact: ``Exp(ε) M = M Exp(Ad(M⁻¹) ε)``). The
+maximum-likelihood answer estimates the body's state (pose; twist and latencies over time)
+jointly with one extrinsic ``Ê_s = E_s Exp(Δ)`` per uncertain source under its prior: the cost is
+``Σ r_iᵀ Σ_i⁻¹ r_i + Σ_s p_sᵀ Σ_E,s⁻¹ p_s`` with ``r_i = Log(P_i⁻¹ Ê_s E_s⁻¹ W_i)`` (``P_i`` the
+prediction of :mod:`dqpose.fusion.motion`) and ``p_s = Log(E_s⁻¹ Ê_s)``: GTSAM's graph of a
+``PriorFactorPose3`` on each extrinsic and a ``BetweenFactorPose3(E_s, X, Z_i O_s)`` per
+measurement. Gauss–Newton on that joint state (NumPy) with exact Jacobians: ``r_i`` moves by
+``Jr⁻¹(r_i) A_i Δ`` for ``Ê_s Exp(Δ)`` and ``p_s`` by ``Jr⁻¹(p_s) Δ``; the covariance is the inverse
+joint information, so the body's block is the marginal with every ``ε`` integrated out (GLS with
+the shared errors). Several bodies fitted together (:func:`_joint_fit` with several parts) share
+the ``ε`` of a common source: their joint covariance has the cross-covariance it causes.
+
+Sources without ``extrinsic_covariance`` never come here: their fusion is the C core's, unchanged.
+The leave-one-out NIS is that of :mod:`dqpose.fusion.process_noise` for independent residuals
+(the priors stay in). Not supported together with ``acceleration_psd`` (a ``ValueError``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple, Optional, Sequence
+
+import numpy as np
+
+from dqpose import dq, lie
+from dqpose.fusion.motion import _determined_without_each, _Model, _motion_jacobian, _MotionFit
+from dqpose.fusion.process_noise import _COST_SLACK, _MAX_HALVINGS
+from dqpose.fusion.results import DOF, Status
+
+
+@dataclass(frozen=True)
+class _Extrinsics:
+    """The uncertain extrinsics a set of measurements uses: per measurement the slot of its
+    source's ``ε`` (-1: an exact extrinsic); per slot the source, its configured extrinsic and
+    the prior's covariance and information."""
+    slot: np.ndarray
+    names: tuple[str, ...]
+    E: np.ndarray
+    cov: np.ndarray
+    info: np.ndarray
+
+    def take(self, mask: np.ndarray) -> "_Extrinsics":
+        return _Extrinsics(self.slot[mask], self.names, self.E, self.cov, self.info)
+
+
+def _extrinsics(names: Sequence[str], table: dict, sources: Optional[Sequence[str]] = None
+                ) -> Optional[_Extrinsics]:
+    """The uncertain extrinsics of the measurements ``names`` (their sources' in ``table``), the
+    slots in the order of ``sources`` (default: first appearance); None when none has one."""
+    order = [s for s in (sources if sources is not None else dict.fromkeys(names))
+             if s in table and table[s].extrinsic_covariance is not None]
+    used = set(names)
+    order = [s for s in order if s in used] if sources is None else order
+    if not order:
+        return None
+    index = {s: k for k, s in enumerate(order)}
+    slot = np.array([index.get(s, -1) for s in names], dtype=np.intp)
+    if sources is None and not (slot >= 0).any():
+        return None
+    ident = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
+    E = np.array([ident if table[s].extrinsic is None else table[s].extrinsic for s in order])
+    cov = np.array([table[s].extrinsic_covariance for s in order])
+    info = np.linalg.inv(cov)
+    return _Extrinsics(slot, tuple(order), E, cov, 0.5 * (info + np.swapaxes(info, 1, 2)))
+
+
+class _Part(NamedTuple):
+    """One body in a joint fit: its world-frame measurements, their covariances and model, the
+    inliers, and the slots of its measurements' extrinsics (:class:`_Extrinsics`)."""
+    Z: np.ndarray
+    S: np.ndarray
+    model: _Model
+    inlier: np.ndarray
+    slot: np.ndarray
+    start: np.ndarray   # (8,) the pose the fit starts from
+    V: np.ndarray       # (6,) its twist
+    ell: np.ndarray     # its latencies
+
+
+def _static_model(n: int) -> _Model:
+    """The one-instant fit as a motion model: no twist, no latencies, every stamp at zero."""
+    return _Model(stamp=np.zeros(n), latency=np.zeros(n), slot=np.full(n, -1, np.intp),
+                  prior=np.zeros(0), prior_w=np.zeros(0), twist=False, twist_w=None)
+
+
+class _Joint(NamedTuple):
+    status: Status
+    X: list            # per part: pose, twist, latencies
+    V: list
+    ell: list
+    Ehat: np.ndarray   # the extrinsics estimated
+    P: np.ndarray      # the joint covariance (parts' states in order, then the ε's)
+    H: np.ndarray
+    g: np.ndarray      # the gradient at the answer (the step's right-hand side)
+    r: list            # per part: residuals, their Jacobians (r moves by -G Δ), dt
+    G: list
+    dt: list
+    chi2: float
+    iterations: int
+    offsets: list      # where each part's state starts in the joint state
+
+
+def _state(parts, ext, X, V, ell, Ehat):
+    """Residuals, Jacobians and the cost of every part at the current state."""
+    dims = [p.model.dim for p in parts]
+    offsets = np.cumsum([0] + dims).tolist()
+    n_ext = DOF * len(ext.names)
+    total = offsets[-1] + n_ext
+    shift = dq.mul(Ehat, dq.conj(ext.E))       # Ê E⁻¹ per slot
+    rs, Gs, dts = [], [], []
+    H = np.zeros((total, total))
+    g = np.zeros(total)
+    cost = 0.0
+    for k, p in enumerate(parts):
+        dt = p.model.dt(ell[k])
+        W = p.Z.copy()
+        has = p.slot >= 0
+        if has.any():
+            W[has] = dq.mul(shift[p.slot[has]], p.Z[has])
+        pred = dq.mul(X[k], lie.se3_exp(dt[:, None] * V[k]))
+        r = lie.se3_log(dq.mul(dq.conj(pred), dq.normalize(W)))
+        Gm = _motion_jacobian(V[k], dt, r, p.model)
+        G = np.zeros((len(r), DOF, total))
+        G[:, :, offsets[k]:offsets[k + 1]] = Gm
+        if has.any():
+            # A_i = Ad(W_i⁻¹ E_s) with the configured W_i and E_s (a constant of the data)
+            A = lie.adjoint(dq.mul(dq.conj(p.Z[has]), ext.E[p.slot[has]]))
+            Ge = -lie.se3_right_jacobian_inv(r[has]) @ A
+            rows = np.flatnonzero(has)
+            for j, i in enumerate(rows.tolist()):
+                c = offsets[-1] + DOF * int(p.slot[i])
+                G[i, :, c:c + DOF] = Ge[j]
+        Wi = np.linalg.inv(p.S)
+        m = p.inlier
+        GtW = np.swapaxes(G[m], 1, 2) @ Wi[m]
+        H += np.tensordot(GtW, G[m], axes=([0, 2], [0, 1]))
+        g += (GtW @ r[m][..., None]).sum(axis=0)[:, 0]
+        cost += float(np.einsum("ni,nij,nj->", r[m], Wi[m], r[m]))
+        Hp, gp = p.model.prior_terms(V[k], ell[k])
+        sl = slice(offsets[k], offsets[k + 1])
+        H[sl, sl] += Hp
+        g[sl] += gp
+        cost += p.model.prior_cost(V[k], ell[k])
+        rs.append(r)
+        Gs.append(G)
+        dts.append(dt)
+    pr = lie.se3_log(dq.mul(dq.conj(ext.E), Ehat))
+    Jp = lie.se3_right_jacobian_inv(pr)
+    for s in range(len(ext.names)):
+        c = slice(offsets[-1] + DOF * s, offsets[-1] + DOF * (s + 1))
+        JtI = Jp[s].T @ ext.info[s]
+        H[c, c] += JtI @ Jp[s]
+        g[c] -= JtI @ pr[s]
+        cost += float(pr[s] @ ext.info[s] @ pr[s])
+    return rs, Gs, dts, H, g, cost, offsets
+
+
+def _joint_fit(parts: Sequence[_Part], ext: _Extrinsics, tol: float, max_iter: int) -> _Joint:
+    """Gauss-Newton over every part's state and the ε's (the module's docstring), from the
+    parts' starts and the configured extrinsics; a step that raises the cost is halved (the
+    C fits' rule)."""
+    X = [p.start for p in parts]
+    V = [p.V for p in parts]
+    ell = [p.ell for p in parts]
+    Ehat = ext.E.copy()
+    rs, Gs, dts, H, g, cost, offsets = _state(parts, ext, X, V, ell, Ehat)
+    status, iterations = Status.MAX_ITERATIONS, max_iter
+    for it in range(1, max_iter + 1):
+        delta = np.linalg.solve(H, g)
+        step = float(np.linalg.norm(delta))
+        for _ in range(_MAX_HALVINGS):
+            X2, V2, ell2 = [], [], []
+            for k, p in enumerate(parts):
+                d = delta[offsets[k]:offsets[k + 1]]
+                X2.append(dq.normalize(dq.mul(X[k], lie.se3_exp(d[:6]))))
+                V2.append(V[k] + d[6:12] if p.model.twist else V[k])
+                ell2.append(ell[k] + d[p.model.offset:])
+            de = delta[offsets[-1]:].reshape(-1, DOF)
+            E2 = dq.normalize(dq.mul(Ehat, lie.se3_exp(de)))
+            new = _state(parts, ext, X2, V2, ell2, E2)
+            if new[5] <= cost * (1.0 + _COST_SLACK) or step < tol:
+                break
+            delta = 0.5 * delta
+            step *= 0.5
+        X, V, ell, Ehat = X2, V2, ell2, E2
+        rs, Gs, dts, H, g, cost, offsets = new
+        if step < tol:
+            status, iterations = Status.CONVERGED, it
+            break
+    P = np.linalg.inv(H)
+    return _Joint(status, X, V, ell, Ehat, 0.5 * (P + P.T), H, g, rs, Gs, dts, cost,
+                  iterations, offsets)
+
+
+def _nis(fit: _Joint, k: int, part: _Part):
+    """Each measurement of part ``k``'s leave-one-out NIS against the fit of all the other
+    inliers and priors (independent residuals: :func:`dqpose.fusion.process_noise.
+    _correlated_nis` with a block-diagonal ``C``)."""
+    r, G, S, inlier = fit.r[k], fit.G[k], part.S, part.inlier
+    Wi = np.linalg.inv(S)
+    P = fit.P
+    # the gradient at the answer (0 at an exact optimum) kept, as in _correlated_nis
+    w = np.einsum("nij,nj->ni", Wi, r) - np.einsum("nij,njk,k->ni", Wi, G, P @ fit.g)
+    WG = Wi @ G
+    Om = Wi - WG @ P @ np.swapaxes(WG, 1, 2)
+    nis = np.zeros(len(r))
+    tested = ~inlier | _determined_without_each(part.model, inlier)
+    ok = inlier & tested
+    if ok.any():
+        nis[ok] = np.einsum("ni,ni->n", w[ok], np.linalg.solve(Om[ok], w[ok][..., None])[..., 0])
+    out = ~inlier
+    if out.any():
+        cov = S[out] + G[out] @ P @ np.swapaxes(G[out], 1, 2)
+        nis[out] = np.einsum("ni,ni->n", r[out], np.linalg.solve(cov, r[out][..., None])[..., 0])
+    return np.where(tested, nis, 0.0), tested
+
+
+def _motion_fit_ext(Z, S, model: _Model, ext: _Extrinsics, inlier: np.ndarray, start, V,
+                    ell, tol: float, max_iter: int) -> _MotionFit:
+    """One body's joint fit as a :class:`~dqpose.fusion.motion._MotionFit` (its state's block of
+    the covariance first, the ε's after), leave-one-out NIS included."""
+    part = _Part(Z, S, model, inlier, ext.slot, start, V, ell)
+    fit = _joint_fit([part], ext, tol, max_iter)
+    nis, tested = _nis(fit, 0, part)
+    r = fit.r[0]
+    cost = np.einsum("ni,nij,nj->n", r, np.linalg.inv(S), r)
+    return _MotionFit(fit.status, fit.X[0], fit.V[0], fit.ell[0], fit.H, fit.P, fit.dt[0], r,
+                      fit.G[0], cost, fit.chi2, fit.iterations, nis=nis, tested=tested)
+
+
+def _relative_covariance(T_a: np.ndarray, T_b: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """The covariance of ``T_a⁻¹ T_b`` from the joint covariance ``P`` ``(12, 12)`` of
+    ``(δ_a, δ_b)`` (both right perturbations): ``T_a Exp(δ_a)`` and ``T_b Exp(δ_b)`` give
+    ``T_ab Exp(δ_b − Ad(T_ab⁻¹) δ_a)`` to first order."""
+    T_ab = dq.mul(dq.conj(T_a), T_b)
+    J = np.hstack([-lie.adjoint(dq.conj(T_ab)), np.eye(DOF)])
+    C = J @ P @ J.T
+    return 0.5 * (C + C.T)
