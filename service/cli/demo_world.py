@@ -31,11 +31,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="demo world: seconds the producers publish (default: %(default)s)")
 
 
-def camera_process(target: str, name: str, E: np.ndarray, T_true: np.ndarray, start: float,
-                   seconds: float, seed: int) -> None:
+def camera_process(target: str, name: str, E: np.ndarray, T_true: np.ndarray, ready, go,
+                   start, seconds: float, seed: int) -> None:
     """A camera in a process of its own: renders the board at ``T_true`` (world frame) from its
-    extrinsic ``E`` every 1/CAMERA_RATE s, detects it and publishes each detection, stamped with
-    the clock, as a measurement of "box" from source ``name``."""
+    extrinsic ``E`` every 1/CAMERA_RATE s from ``start.value`` (set once every producer is
+    ``ready``; ``go`` says it is), detects it and publishes each detection, stamped with the
+    clock, as a measurement of "box" from source ``name``."""
     from dqpose.drivers.camera import CharucoCamera
     from dqpose.drivers.sim.camera import BoardRenderer
     from dqpose.rpc.client import Batch, Client
@@ -45,10 +46,14 @@ def camera_process(target: str, name: str, E: np.ndarray, T_true: np.ndarray, st
     cam = CharucoCamera(intr, renderer.board, name=name)
     rng = np.random.default_rng(seed)
     T_cam_box = dq.mul(dq.inv(E), T_true)
+    cam.detect(renderer.render(T_cam_box, blur=0.8, noise=6.0, rng=rng))   # the slow first one
+    ready.set()
+    go.wait(120)
+    t0 = start.value
 
     def frames():
         k = 0
-        while (t := start + k / CAMERA_RATE) < start + seconds:
+        while (t := t0 + k / CAMERA_RATE) < t0 + seconds:
             time.sleep(max(0.0, t - time.time()))
             d = cam.detect(renderer.render(T_cam_box, blur=0.8, noise=6.0, rng=rng))
             k += 1
@@ -100,14 +105,21 @@ def main(args: argparse.Namespace, out=None) -> int:
             + [Source(n, extrinsic=E) for n, E in zip(names, extrinsics)],
             arms={"ur": "ur_flange"}, window=0.5, max_delay=0.15,
             twist_covariance=np.diag([0.05] * 3 + [0.02] * 3) ** 2)
-        start = time.time() + 1.0        # the camera processes' start-up
         ctx = multiprocessing.get_context("spawn")
-        procs = [ctx.Process(target=camera_process, args=(target, n, E, T_true, start, seconds,
-                                                         k + 1), daemon=True)
-                 for k, (n, E) in enumerate(zip(names, extrinsics))]
+        go, shared_start = ctx.Event(), ctx.Value("d", 0.0)
+        ready = [ctx.Event() for _ in names]
+        procs = [ctx.Process(target=camera_process, args=(target, n, E, T_true, r, go,
+                                                         shared_start, seconds, k + 1),
+                             daemon=True)
+                 for k, (n, E, r) in enumerate(zip(names, extrinsics, ready))]
         for p in procs:
             p.start()
             stack.callback(p.join, 10)
+        for r, p in zip(ready, procs):      # each camera's start-up (imports, first detection)
+            if not r.wait(120):
+                raise RuntimeError(f"the camera process {p.pid} did not start in 120 s")
+        start = shared_start.value = time.time() + 0.2
+        go.set()
 
         def arm_reads():
             k = 0

@@ -97,7 +97,7 @@ class Arms:
         self.executor = cfg.executor
         self._arms = {name: _Arm(name, arm) for name, arm in sorted(cfg.arms.items())}
         self._stop_at: Optional[float] = None     # loop time the server stops, once known
-        self.world = None      # the server's dqpose.world.World: Waypoint.frame resolves there
+        self.world = None      # () -> the server's dqpose.world.World, for Waypoint.frame
 
     def _slot(self, name: str) -> _Arm:
         slot = self._arms.get(name)

@@ -58,7 +58,8 @@ class Trajectories:
         self.max_poses = cfg.max_poses
         self.limits = cfg.limits
         self.arms = Arms(cfg, calls)
-        self.world = None        # the server's dqpose.world.World (server.start hands it over)
+        # () -> the server's dqpose.world.World (server.start hands it over)
+        self.world = None
 
     @property
     def world(self):

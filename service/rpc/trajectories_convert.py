@@ -135,7 +135,7 @@ def samples_from_msgs(msgs) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndar
 
 def resolve_frames(args: PlanArgs, req, world, field: str = "", arm: str | None = None):
     """``(args, resolved)``: ``args`` with every waypoint given in a body's frame
-    (``Waypoint.frame``) resolved through ``world`` (:func:`dqpose.world_waypoints.resolve`),
+    (``Waypoint.frame``) resolved through ``world()`` (:func:`dqpose.world_waypoints.resolve`),
     and one ``ResolvedWaypoint`` each for ``PlanInfo.resolved``. The base is ``arm``'s in the
     world when the world's arms name it, else the world frame."""
     framed = [i for i, w in enumerate(req.waypoints) if w.frame]
@@ -144,6 +144,7 @@ def resolve_frames(args: PlanArgs, req, world, field: str = "", arm: str | None 
     from dqpose.world_waypoints import resolve  # the domain World only when frames are used
     if world is None:
         raise FieldError(f"{field}waypoints[{framed[0]}].frame: this server has no world")
+    world = world()
     base = world.arm_base(arm).pose if arm is not None and arm in world.arms else None
     waypoints = list(args.waypoints)
     resolved = []

@@ -114,13 +114,23 @@ class World:
         self.max_poses = cfg.max_poses if cfg is not None else DEFAULT_MAX_POSES
         self.limits = cfg.limits if cfg is not None else None
         self.calls = calls or Calls()
-        kw: dict[str, Any] = {} if self.limits is None else {"limits": self.limits}
-        self.world = domain.World(**kw)
+        self._world: domain.World | None = None
+        self._making = threading.Lock()      # not self.lock: first used while it is held
         self.lock = threading.Lock()
         self.acked: dict[str, int] = {}      # producer -> acked_through
         self.subscriptions: set[Subscription] = set()
         self.requests = 0                    # Publish requests, per world, in arrival order
         self.measurements = 0                # measurements numbered per world, arrival order
+
+    @property
+    def world(self) -> domain.World:
+        """The server's world, made on first use (a server that never uses it pays nothing)."""
+        if self._world is None:
+            with self._making:
+                if self._world is None:
+                    kw: dict[str, Any] = {} if self.limits is None else {"limits": self.limits}
+                    self._world = domain.World(**kw)
+        return self._world
 
     # -- request -> response, no transport
 
