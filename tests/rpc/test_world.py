@@ -315,3 +315,23 @@ def test_a_time_jump_makes_at_most_max_fits_due_and_says_what_it_skipped(server,
     assert len(fused) == MAX_FITS_PER_REQUEST     # "box"'s first tick is after 0 (its phase)
     assert n + MAX_FITS_PER_REQUEST == round(60.0 * 30.0)
     assert fused[-1].time == pytest.approx(60.0, abs=1 / 30)   # the newest ticks were kept
+
+
+def test_subscribe_relative_to_answers_what_lookup_does(server, client):
+    sub = Collector(server.target, bodies=["box"], relative_to="cup")
+    assert wait_until(lambda: server.running.servicers[0].subscriptions, timeout=10)
+    # the cup first, so that it is known at the box's ticks
+    for k in range(3):
+        list(client.publish([measurements("cam1", [0.01 * k], 10 + k, body="cup"),
+                             measurements("cam1", [0.01 * k], 20 + k)], producer="p",
+                            first_sequence=2 * k + 1))
+    assert wait_until(lambda: len(sub.answers) >= 3, timeout=30)
+    answers = sub.stop()
+    last = answers[-1]
+    assert last.error is None and last.time == pytest.approx(0.02)
+    want = client.lookup("cup", "box", 0.02)
+    got = last.fused
+    np.testing.assert_allclose(got.mean * np.sign(got.mean[0] * want.pose[0]), want.pose,
+                               atol=1e-12)
+    np.testing.assert_allclose(got.covariance, want.covariance, rtol=1e-9, atol=1e-18)
+    assert got.sources and got.sources[0].name == "cam1"     # the box's own fit's diagnostics
