@@ -52,7 +52,7 @@ def configure(name: str, p) -> None:
                       help="measurement time, s (0: the newest both are known at)")
     for q in (pub, watch, look):
         connection_args(q)
-        q.set_defaults(func=_run)
+    p.set_defaults(func=_run)
 
 
 def _frame(name: str) -> str:
