@@ -14,11 +14,15 @@ of a source's ``body_offset``, and correlations between measurement noises of on
 """
 from __future__ import annotations
 
+import dataclasses
+import math
+import threading
 from dataclasses import dataclass
 from typing import Mapping, Optional, Sequence
 
 import numpy as np
 
+from dqpose import dq
 from dqpose import limits as _limits
 from dqpose.fusion import (
     DEFAULT_MAX_EXTRAPOLATION,
@@ -26,7 +30,12 @@ from dqpose.fusion import (
     Fused,
     Measurement,
     Source,
+    Tracker,
 )
+from dqpose.fusion.extrinsics import _relative_covariance
+from dqpose.fusion.results import DOF
+from dqpose.fusion.tracker import _arrays
+from dqpose.fusion.validation import _seconds
 
 __all__ = ["WorldOptions", "WorldBounds", "WorldError", "NotFound", "OutOfRange", "Published",
            "BodyPose", "World", "Measurement", "Source", "Fused"]
@@ -95,44 +104,289 @@ class BodyPose:
     fused: Optional[Fused]
 
 
+def _over(field: str, value, bound: str, limit, unit: str = "") -> WorldError:
+    u = f" {unit}" if unit else ""
+    return WorldError(f"{field}: {value:.6g}{u} is above the world's {bound} {limit:.6g}{u}")
+
+
+def _body_name(body) -> str:
+    if not isinstance(body, str):
+        raise WorldError(f"body: expected a string, got {type(body).__name__}")
+    return body
+
+
 class World:
-    """Named bodies and sources; see the module's docstring."""
+    """Named bodies and sources; see the module's docstring. Every public method takes the one
+    lock, so producers and readers may call from any thread."""
 
     def __init__(self, *, sources: Sequence[Source] = (), arms: Mapping[str, str] = {},
                  options: WorldOptions = WorldOptions(), bounds: WorldBounds = WorldBounds(),
                  limits: Optional[_limits.Limits] = None):
-        raise NotImplementedError
+        self.bounds = bounds
+        self.limits = limits
+        self._lock = threading.Lock()
+        self._fed: dict[str, dict[str, float]] = {}     # body -> source -> newest taken
+        self._tracker: Optional[Tracker] = None
+        self.configure(sources=sources, arms=arms, options=options)
 
     def configure(self, *, sources: Sequence[Source], arms: Mapping[str, str],
                   options: WorldOptions) -> None:
-        """Replace the sources, arms and options; the measurements kept that still fit stay."""
-        raise NotImplementedError
+        """Replace the sources, arms and options (all checked first: a ``WorldError`` naming the
+        field leaves the world as it was); the measurements kept that still fit the new
+        buffer and bounds stay, re-fused under the new sources."""
+        sources = tuple(sources)
+        b = self.bounds
+        if len(sources) > b.max_sources:
+            raise _over("sources", len(sources), "max_sources", b.max_sources)
+        if not isinstance(options, WorldOptions):
+            raise WorldError(f"options: expected WorldOptions, got {type(options).__name__}")
+        try:
+            buffer = _seconds(options.buffer, "options.buffer", "positive")
+            window = _seconds(options.window, "options.window", "positive")
+            _seconds(options.max_delay, "options.max_delay", "nonnegative")
+        except ValueError as e:
+            raise WorldError(str(e)) from None
+        if buffer > b.max_buffer:
+            raise _over("options.buffer", buffer, "max_buffer", b.max_buffer, "s")
+        if window > buffer:
+            raise WorldError(f"options.window: {window:.6g} s is longer than options.buffer "
+                             f"{buffer:.6g} s (a fit uses measurements the buffer keeps)")
+        names = {s.name for s in sources if isinstance(s, Source)}
+        arms = dict(arms)
+        for arm, src in arms.items():
+            if not isinstance(arm, str) or not arm:
+                raise WorldError(f"arms: an arm needs a name, got {arm!r}")
+            if src not in names:
+                raise WorldError(f"arms[{arm!r}]: source {src!r} is not among the world's "
+                                 f"sources")
+        base = self.limits if self.limits is not None else _limits.Limits()
+        limits = dataclasses.replace(
+            base, max_window=b.max_measurements_per_body,
+            max_stream_measurements=b.max_bodies * b.max_measurements_per_body)
+        try:
+            tracker = Tracker(buffer, sources=sources, robust=options.robust,
+                              probability=options.probability, max_skew=options.max_skew,
+                              max_extrapolation=options.max_extrapolation,
+                              twist_covariance=options.twist_covariance,
+                              acceleration_psd=options.acceleration_psd, limits=limits)
+        except ValueError as e:
+            raise WorldError(str(e) if str(e).startswith("sources") else f"options.{e}") \
+                from None
+        with self._lock:
+            old = self._tracker
+            self._tracker = tracker
+            self.sources, self.arms, self.options = sources, arms, options
+            if old is None:
+                return
+            fed, self._fed = self._fed, {}
+            for body in old.bodies:
+                w = old.window_of(body)
+                n = len(w.ids)
+                self._admit([body] * n, list(w.sources), w.times, w.poses, w.covariances)
+            # a body's sources are those that ever fed it, across configurations
+            for body, seen in fed.items():
+                mine = self._fed.setdefault(body, {})
+                for src, t in seen.items():
+                    mine.setdefault(src, t)
 
     @property
     def bodies(self) -> tuple[str, ...]:
-        raise NotImplementedError
+        with self._lock:
+            return self._t.bodies
+
+    @property
+    def _t(self) -> Tracker:
+        assert self._tracker is not None    # set by __init__'s configure
+        return self._tracker
 
     def publish(self, measurements: Sequence[Measurement]) -> Published:
-        """Add measurements (thread-safe); a bad one is answered in ``errors``, never raised."""
-        raise NotImplementedError
+        """Add measurements (thread-safe); a bad one is answered in ``errors`` as
+        ``(index, message)``, the message naming ``measurements[k]``; never raised."""
+        measurements = list(measurements)
+        poses, covs, times, bad = _arrays(measurements)
+        bodies = [getattr(m, "body", "") for m in measurements]
+        sources = [getattr(m, "source", "") for m in measurements]
+        for k in bad:
+            bodies[k] = ""          # refused already: the tracker refuses it again, unnamed
+        with self._lock:
+            errors = self._admit(bodies, sources, times, poses, covs, bad)
+        accepted = len(measurements) - len(errors)
+        touched = dict.fromkeys(b for k, b in enumerate(bodies) if k not in errors)
+        return Published(accepted, tuple((k, str(e)) for k, e in sorted(errors.items())),
+                         tuple(touched))
+
+    def _admit(self, bodies, sources, times, poses, covs, bad=None) -> dict[int, ValueError]:
+        """Rows into the tracker under the world's bounds (the lock held)."""
+        errors: dict[int, ValueError] = dict(bad or {})
+        b = self.bounds
+        known = set(self._t.bodies)
+        named = set(self._fed_sources())
+        for k, (body, src) in enumerate(zip(bodies, sources)):
+            if k in errors or not isinstance(body, str) or not isinstance(src, str):
+                continue
+            if body and body not in known:
+                if len(known) >= b.max_bodies:
+                    errors[k] = WorldError(
+                        f"measurements[{k}].body: {body!r} would be body {len(known) + 1}, "
+                        f"above the world's max_bodies {b.max_bodies}")
+                    continue
+                known.add(body)
+            if src not in named:
+                if len(named) >= b.max_sources:
+                    errors[k] = WorldError(
+                        f"measurements[{k}].source: {src!r} would be source {len(named) + 1}, "
+                        f"above the world's max_sources {b.max_sources}")
+                    continue
+                named.add(src)
+        use = [k for k in range(len(bodies)) if k not in errors]
+        if use:
+            idx = np.array(use)
+            refused = self._t.ingest([bodies[k] for k in use], [sources[k] for k in use],
+                                     times[idx], poses[idx], covs[idx], ids=idx)
+            for j, e in refused:
+                k = use[j]
+                errors[k] = type(e)(str(e).replace(f"measurements[{j}]", f"measurements[{k}]",
+                                                   1))
+            for k in use:
+                if k in errors:
+                    continue
+                src = self._t._table.get(sources[k])
+                t = float(times[k]) - (src.latency if src is not None else 0.0)
+                seen = self._fed.setdefault(bodies[k], {})
+                seen[sources[k]] = max(seen.get(sources[k], -math.inf), t)
+        return errors
+
+    def _fed_sources(self) -> set:
+        names = {s.name for s in self.sources}
+        for seen in self._fed.values():
+            names.update(seen)
+        return names
 
     def sources_of(self, body: str) -> tuple[str, ...]:
         """The sources that ever fed ``body``."""
-        raise NotImplementedError
+        with self._lock:
+            self._known(body)
+            return tuple(self._fed.get(body, {}))
 
     def newest(self, body: str, source: Optional[str] = None) -> float:
         """When ``body``'s newest measurement (of ``source``) was taken."""
-        raise NotImplementedError
+        with self._lock:
+            self._known(body)
+            if source is None:
+                return self._t.newest(body)
+            seen = self._fed.get(body, {})
+            if source not in seen:
+                raise NotFound(f"source: {source!r} never fed body {body!r} (its sources: "
+                               f"{', '.join(map(repr, seen)) or 'none'})")
+            return seen[source]
+
+    def _known(self, body) -> None:
+        body = _body_name(body)
+        if body not in self._t.bodies:
+            some = list(self._t.bodies)[:5]
+            raise NotFound(f"body: {body!r} is not in the world (" + (
+                f"{len(self._t.bodies)} bodies: {', '.join(map(repr, some))}"
+                + (", ..." if len(self._t.bodies) > 5 else "") if some else "no bodies yet")
+                + ")")
+
+    def _fit(self, body: str, time: Optional[float]) -> Fused:
+        """``body``'s fit at ``time`` from the measurements taken within ``window`` of it (the
+        lock held), or ``OutOfRange`` naming what is known."""
+        self._known(body)
+        t = self._t
+        newest, oldest = t.newest(body), t.oldest(body)
+        at = newest if time is None else time
+        if time is not None:
+            try:
+                at = _seconds(time, "time")
+            except ValueError as e:
+                raise WorldError(str(e)) from None
+        known = f"{body!r} is known from {oldest!r} to {newest!r}"
+        if at < oldest:
+            raise OutOfRange(f"time: {at!r} is before the oldest measurement kept; {known} "
+                             f"(buffer {self.options.buffer:g} s)")
+        limit = self.options.max_extrapolation
+        if limit is not None and at > newest + limit:
+            raise OutOfRange(f"time: {at!r} is {at - newest:.6g} s past the newest "
+                             f"measurement, beyond max_extrapolation {limit:g} s; {known}")
+        window = self.options.window
+        if not t.near(body, at, window):
+            raise OutOfRange(f"time: no measurement of {body!r} within the window "
+                             f"{window:g} s of {at!r}; {known}")
+        try:
+            return t.estimate_ids(body, at, window)[0]
+        except ValueError as e:
+            raise OutOfRange(f"{e}; {known}") from None
 
     def pose(self, body: str, time: Optional[float] = None) -> BodyPose:
-        """``T_world_body`` at ``time`` (None: the body's newest)."""
-        raise NotImplementedError
+        """``T_world_body`` at ``time`` (None: the body's newest): :func:`dqpose.fusion.fuse`
+        over its measurements taken within ``window`` of ``time``."""
+        with self._lock:
+            f = self._fit(body, time)
+        assert f.time is not None            # a fit over time
+        return BodyPose(body, f.time, f.mean, f.covariance, f)
 
     def relative(self, target: str, source: str, time: float = 0.0) -> BodyPose:
         """``T_target_source`` at ``time`` (0: the newest time both are known at); "" is the
-        world frame."""
-        raise NotImplementedError
+        world frame. Bodies that share a source with an ``extrinsic_covariance`` are fitted
+        together (one error per such source), so the covariance has their cross-covariance."""
+        target, source = _body_name(target), _body_name(source)
+        with self._lock:
+            for b in (target, source):
+                if b:
+                    self._known(b)
+            if time == 0.0:
+                times = [self._t.newest(b) for b in (target, source) if b]
+                at: Optional[float] = min(times) if times else None
+            else:
+                at = time
+            if at is None:      # world to world
+                ident = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
+                return BodyPose(source, 0.0, ident, np.zeros((DOF, DOF)), None)
+            fits = {b: self._fit(b, at) for b in (target, source) if b}
+            if target == source:
+                return BodyPose(source, at, np.array([1.0, 0, 0, 0, 0, 0, 0, 0]),
+                                np.zeros((DOF, DOF)), None)
+            if target and source and self._share(target, source, at):
+                (Xa, Xb), P = self._t.joint([target, source], [fits[target], fits[source]],
+                                            at, self.options.window)
+                return BodyPose(source, at, dq.mul(dq.conj(Xa), Xb),
+                                _relative_covariance(Xa, Xb, P), None)
+        return _composed(target, source, at, fits)
+
+    def _share(self, a: str, b: str, at: float) -> bool:
+        """Whether bodies ``a`` and ``b`` have, near ``at``, a source whose extrinsic is
+        uncertain in common (the lock held)."""
+        table, window = self._t._table, self.options.window
+        mine = []
+        for x in (a, b):
+            w = self._t.window_of(x)
+            mine.append({s for s, t in zip(w.sources, w.taken) if abs(t - at) <= window})
+        return any(table[s].extrinsic_covariance is not None
+                   for s in mine[0] & mine[1] if s in table)
 
     def arm_base(self, arm: str) -> BodyPose:
-        """``T_world_base`` of ``arm``: the extrinsic of the source ``arms`` names."""
-        raise NotImplementedError
+        """``T_world_base`` of ``arm``: the extrinsic of the source ``arms`` names, with its
+        ``extrinsic_covariance`` (zeros when exact); it does not move, so ``time`` is 0."""
+        with self._lock:
+            if arm not in self.arms:
+                raise NotFound(f"arm: {arm!r} has no source in the world's arms (" + (
+                    ", ".join(map(repr, self.arms)) or "none configured") + ")")
+            src = self._t._table[self.arms[arm]]
+        pose = np.array([1.0, 0, 0, 0, 0, 0, 0, 0]) if src.extrinsic is None else src.extrinsic
+        cov = (np.zeros((DOF, DOF)) if src.extrinsic_covariance is None
+               else src.extrinsic_covariance)
+        return BodyPose(f"arm:{arm}", 0.0, pose, cov, None)
+
+
+def _composed(target: str, source: str, at: float, fits: Mapping[str, Fused]) -> BodyPose:
+    """``T_target_source`` composed of the two bodies' own fits, as if their errors were
+    independent (the world frame "" is exact): the answer when they share no uncertain
+    extrinsic, and the comparison the benchmark shows when they do."""
+    ident = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
+    zero = np.zeros((DOF, DOF))
+    Xa, Pa = (fits[target].mean, fits[target].covariance) if target else (ident, zero)
+    Xb, Pb = (fits[source].mean, fits[source].covariance) if source else (ident, zero)
+    P = np.zeros((2 * DOF, 2 * DOF))
+    P[:DOF, :DOF], P[DOF:, DOF:] = Pa, Pb
+    return BodyPose(source, at, dq.mul(dq.conj(Xa), Xb), _relative_covariance(Xa, Xb, P), None)

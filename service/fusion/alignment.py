@@ -103,12 +103,34 @@ def _span(taken: np.ndarray, time: float, max_skew, max_extrapolation) -> _Span:
     return _Span(drop, keep, lo, hi, extrapolation, max_skew)
 
 
-def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
-                  twist_covariance, acceleration_psd, robust, probability, gate2, tol,
-                  max_iter) -> Fused:
-    """:func:`dqpose.fusion.fuse` with times, after its checks: the fusion time and the
-    measurements' span, then the fit of one instant or of the motion model over the window."""
-    n = Z.shape[0]
+class _Setup(NamedTuple):
+    """A fusion over time before its fit: the fusion time, when each measurement was taken, the
+    span, the sources (each once, and each measurement's index), the estimated latencies, the
+    twist's prior (covariance and information) and the motion model."""
+    time: float
+    taken: np.ndarray
+    span: _Span
+    sources: tuple
+    code: np.ndarray
+    estimated: list
+    twist_prior: Optional[np.ndarray]
+    Wp: Optional[np.ndarray]
+    model: _Model
+
+    @property
+    def one_instant(self) -> bool:
+        """All taken at the fusion time: nothing moves (the static fit)."""
+        return self.span.lo == self.span.hi and self.span.extrapolation == 0.0
+
+    @property
+    def allowed(self) -> np.ndarray:
+        n = self.taken.shape[0]
+        return np.ones(n, dtype=bool) if self.span.keep is None else self.span.keep
+
+
+def _setup(Z, names, table, times, time, max_skew, max_extrapolation, twist_covariance,
+           acceleration_psd) -> _Setup:
+    """The fusion time, the measurements' span and the motion model of :func:`_fuse_in_time`."""
     stamps = times
     sources, code = _codes(names)
     latency = np.array([table[s].latency if s in table else 0.0 for s in sources])[code]
@@ -124,18 +146,6 @@ def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
     span = _span(taken, time, max_skew, max_extrapolation)
     estimated = [s for s in sources if s in table and table[s].latency_sigma is not None]
     one_instant = span.lo == span.hi
-    if one_instant and span.extrapolation == 0.0:
-        # All taken at the fusion time: nothing moves, the answer is the static fit itself (its
-        # C core), bit for bit; the twist keeps its prior, each latency its prior (one instant
-        # shows neither).
-        f = _fuse_static(Z, S, names, robust, probability, gate2, tol, max_iter, ext)
-        return replace(
-            f, time=time, extrapolation=0.0,
-            twist=None if Wp is None else _frozen(np.zeros(DOF)),
-            twist_covariance=None if Wp is None or twist_prior is None else _frozen(twist_prior),
-            latencies=tuple(Latency(s, table[s].latency, table[s].latency_sigma,
-                                    table[s].latency, table[s].latency_sigma)
-                            for s in estimated))
     twist = Wp is not None or not one_instant
     if not twist and span.extrapolation > 0.0:
         raise ValueError(f"time: the measurements were all taken at {span.lo!r}; bringing them "
@@ -147,15 +157,39 @@ def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
         prior=np.array([table[s].latency for s in estimated], dtype=np.float64),
         prior_w=np.array([table[s].latency_sigma ** -2 for s in estimated], dtype=np.float64),
         twist=twist, twist_w=Wp, accel=accel, extrinsics=ext)
+    return _Setup(time, taken, span, sources, code, estimated, twist_prior, Wp, model)
 
-    allowed = np.ones(n, dtype=bool) if span.keep is None else span.keep
+
+def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
+                  twist_covariance, acceleration_psd, robust, probability, gate2, tol,
+                  max_iter) -> Fused:
+    """:func:`dqpose.fusion.fuse` with times, after its checks: the fusion time and the
+    measurements' span, then the fit of one instant or of the motion model over the window."""
+    u = _setup(Z, names, table, times, time, max_skew, max_extrapolation, twist_covariance,
+               acceleration_psd)
+    time, model, Wp, estimated = u.time, u.model, u.Wp, u.estimated
+    if u.one_instant:
+        # All taken at the fusion time: nothing moves, the answer is the static fit itself (its
+        # C core), bit for bit; the twist keeps its prior, each latency its prior (one instant
+        # shows neither).
+        f = _fuse_static(Z, S, names, robust, probability, gate2, tol, max_iter,
+                         model.extrinsics)
+        return replace(
+            f, time=time, extrapolation=0.0,
+            twist=None if Wp is None else _frozen(np.zeros(DOF)),
+            twist_covariance=None if Wp is None or u.twist_prior is None
+            else _frozen(u.twist_prior),
+            latencies=tuple(Latency(s, table[s].latency, table[s].latency_sigma,
+                                    table[s].latency, table[s].latency_sigma)
+                            for s in estimated))
+    allowed = u.allowed
     if robust and np.count_nonzero(allowed) > 1:
         gated = _robust_motion(Z, S, model, allowed, gate2, tol, max_iter)
     else:
         fit = _motion_fit(Z, S, model, allowed, tol, max_iter)
         gated = (fit, *_motion_nis(fit, S, allowed, model), allowed, None)
-    return _result(gated, span, model, names, sources, code, table, estimated, time, taken, gate2,
-                   probability)
+    return _result(gated, u.span, model, names, u.sources, u.code, table, estimated, time,
+                   u.taken, gate2, probability)
 
 
 def _result(gated, span: _Span, model: _Model, names, sources, code, table, estimated,

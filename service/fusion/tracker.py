@@ -14,7 +14,7 @@ from dqpose import dq
 from dqpose import limits as _limits
 from dqpose.errors import rename
 from dqpose.fusion.alignment import DEFAULT_MAX_EXTRAPOLATION
-from dqpose.fusion.api import _Checked, _fuse_rows, fuse
+from dqpose.fusion.api import _Checked, _fuse_joint_rows, _fuse_rows, fuse
 from dqpose.fusion.chi2 import DEFAULT_PROBABILITY, chi2_quantile
 from dqpose.fusion.results import DOF, Fused
 from dqpose.fusion.sources import Source, _sources
@@ -33,6 +33,44 @@ class Measurement:
     pose: np.ndarray
     covariance: Optional[np.ndarray] = None
     weight: Optional[float] = None
+
+
+def _arrays(measurements: Sequence[Measurement]):
+    """:class:`Measurement` s as the arrays :meth:`Tracker.ingest` takes (poses, covariances,
+    times; a bad row's left as zeros and identity) and ``{k: ValueError}`` naming
+    ``measurements[k]`` for the rows whose shapes or types are wrong."""
+    n = len(measurements)
+    poses, covs, times = np.zeros((n, 8)), np.empty((n, DOF, DOF)), np.zeros(n)
+    covs[:] = np.eye(DOF)
+    errors: dict[int, ValueError] = {}
+    for k, m in enumerate(measurements):
+        name = f"measurements[{k}]"
+        try:
+            if not isinstance(m, Measurement):
+                raise ValueError(f"{name}: expected a Measurement, got {type(m).__name__}")
+            times[k] = _seconds(m.time, f"{name}.time")
+            if _shape(m.pose) != (8,):
+                raise ValueError(f"{name}.pose: expected shape (8,), got {_shape(m.pose)}")
+            try:
+                poses[k] = m.pose
+            except (TypeError, ValueError):
+                raise ValueError(f"{name}.pose: expected numbers, got "
+                                 f"{type(m.pose).__name__}") from None
+            if m.covariance is not None and _shape(m.covariance) != (DOF, DOF):
+                raise ValueError(f"{name}.covariance: expected shape (6, 6), "
+                                 f"got {_shape(m.covariance)}")
+            try:
+                covs[k] = _covariances(None if m.covariance is None else [m.covariance],
+                                       None if m.weight is None else [m.weight], 1)[0]
+            except ValueError as e:
+                raise rename(e, {"covariances": f"{name}.covariance",
+                                 "weights": f"{name}.weight"}) from None
+        except ValueError as e:
+            errors[k] = e
+            poses[k] = (1.0, 0, 0, 0, 0, 0, 0, 0)
+            covs[k] = np.eye(DOF)
+            times[k] = 0.0
+    return poses, covs, times, errors
 
 
 class Window(NamedTuple):
@@ -156,29 +194,9 @@ class Tracker:
     def add(self, *measurements: Measurement) -> None:
         """Add measurements of any bodies; all or none (the first bad one is a ``ValueError``
         naming ``measurements[k]``, its body, source and time)."""
-        n = len(measurements)
-        poses, covs, times = np.empty((n, 8)), np.empty((n, DOF, DOF)), np.empty(n)
-        for k, m in enumerate(measurements):
-            name = f"measurements[{k}]"
-            if not isinstance(m, Measurement):
-                raise ValueError(f"{name}: expected a Measurement, got {type(m).__name__}")
-            times[k] = _seconds(m.time, f"{name}.time")
-            if _shape(m.pose) != (8,):
-                raise ValueError(f"{name}.pose: expected shape (8,), got {_shape(m.pose)}")
-            try:
-                poses[k] = m.pose
-            except (TypeError, ValueError):
-                raise ValueError(f"{name}.pose: expected numbers, got "
-                                 f"{type(m.pose).__name__}") from None
-            if m.covariance is not None and _shape(m.covariance) != (DOF, DOF):
-                raise ValueError(f"{name}.covariance: expected shape (6, 6), "
-                                 f"got {_shape(m.covariance)}")
-            try:
-                covs[k] = _covariances(None if m.covariance is None else [m.covariance],
-                                       None if m.weight is None else [m.weight], 1)[0]
-            except ValueError as e:
-                raise rename(e, {"covariances": f"{name}.covariance",
-                                 "weights": f"{name}.weight"}) from None
+        poses, covs, times, bad = _arrays(measurements)
+        if bad:
+            raise min(bad.items())[1]
         errors = self._ingest([m.body for m in measurements], [m.source for m in measurements],
                               times, poses, covs, None, all_or_none=True)
         if errors:
@@ -201,13 +219,41 @@ class Tracker:
         """``body``'s pose at ``time`` (default: its newest measurement's) from its window."""
         return self.estimate_ids(body, time)[0]
 
-    def estimate_ids(self, body: str, time: Optional[float] = None) -> tuple[Fused, np.ndarray]:
-        """:meth:`estimate`, and the ids of the measurements it fused (:meth:`window_of`'s)."""
-        s, rows = self._store, self._rows(body)
+    def estimate_ids(self, body: str, time: Optional[float] = None,
+                     within: Optional[float] = None) -> tuple[Fused, np.ndarray]:
+        """:meth:`estimate`, and the ids of the measurements it fused (:meth:`window_of`'s);
+        ``within``: only the measurements taken within that many seconds of ``time`` (of the
+        newest when ``time`` is None)."""
+        s, rows = self._store, self._rows_near(body, time, within)
         # the rows were checked by fuse's rules when they came in
         return _fuse_rows(s.poses[rows], s.covs[rows],
                           tuple(self._names[c] for c in s.codes[rows].tolist()), s.times[rows],
                           time, self._checked), s.ids[rows]
+
+    def near(self, body: str, time: Optional[float], within: Optional[float]) -> int:
+        """How many of ``body``'s measurements were taken within ``within`` s of ``time``."""
+        return len(self._rows_near(body, time, within))
+
+    def joint(self, bodies: Sequence[str], fits: Sequence[Fused], time: Optional[float] = None,
+              within: Optional[float] = None) -> tuple[list, np.ndarray]:
+        """``bodies`` fitted together with one error per uncertain extrinsic their sources share
+        (:mod:`dqpose.fusion.extrinsics`), each from its own :meth:`estimate` ``fits`` (their
+        inliers, their start): the poses and the joint covariance ``(6k, 6k)`` of their right
+        perturbations, cross-covariances included."""
+        s = self._store
+        rows = []
+        for b in bodies:
+            r = self._rows_near(b, time, within)
+            rows.append((s.poses[r], s.covs[r], tuple(self._names[c] for c in s.codes[r].tolist()),
+                         s.times[r]))
+        return _fuse_joint_rows(rows, fits, time, self._checked)
+
+    def _rows_near(self, body: str, time: Optional[float], within: Optional[float]):
+        rows = self._rows(body)
+        if within is None:
+            return rows
+        t = self.newest(body) if time is None else time
+        return rows[np.abs(self._store.taken[rows] - t) <= within]
 
     def _code_of(self, body: str) -> int:
         if body not in self._active:

@@ -1,0 +1,261 @@
+"""dqpose.world: the world's fused pose is fuse's over the same measurements, many producers at
+once, lookups at past times and their refusals, the bounds, the relative pose's covariance
+through shared extrinsics against Monte Carlo, the hand-eye covariance flowing into a pose, arm
+bases."""
+import threading
+
+import numpy as np
+import pytest
+
+from dqpose import dq, fusion, handeye, lie
+from dqpose.fusion import Measurement, Source
+from dqpose.world import (
+    NotFound,
+    OutOfRange,
+    World,
+    WorldBounds,
+    WorldError,
+    WorldOptions,
+    _composed,
+)
+from tests import _handeye
+from tests.test_fusion import random_cov, random_pose
+
+V = np.array([0.1, -0.2, 0.05, 0.1, 0.02, -0.05])
+
+
+def stream(rng, sources, bodies, times, truth_extrinsic=None):
+    """Each source measures each body at each time; bodies move with twist V from random
+    poses. Returns (measurements, truth poses at t=0 per body)."""
+    X0 = {b: random_pose(rng, 0.5) for b in bodies}
+    E = truth_extrinsic or {s.name: s.extrinsic for s in sources}
+    out = []
+    for t in times:
+        for s in sources:
+            for b in bodies:
+                Xt = dq.mul(X0[b], lie.se3_exp(t * V))
+                c = random_cov(rng)
+                z = dq.mul(dq.mul(dq.conj(E[s.name]), Xt),
+                           lie.se3_exp(-rng.multivariate_normal(np.zeros(6), c)))
+                out.append(Measurement(s.name, b, float(t), z, c))
+    return out, X0
+
+
+def fuse_of(ms, body, time, window, sources, **kw):
+    mine = [m for m in ms if m.body == body and abs(m.time - time) <= window]
+    return fusion.fuse(np.array([m.pose for m in mine]), np.array([m.covariance for m in mine]),
+                       names=[m.source for m in mine], times=[m.time for m in mine],
+                       time=time, sources=sources, **kw)
+
+
+def test_pose_equals_fuse_with_producers_on_threads():
+    rng = np.random.default_rng(1)
+    sources = [Source(f"cam{k}", random_pose(rng), latency=0.0) for k in range(3)]
+    sources[1] = Source("cam1", sources[1].extrinsic, extrinsic_covariance=random_cov(rng) / 4)
+    ms, _ = stream(rng, sources, ["box", "cup"], np.arange(30) * 0.02)
+    world = World(sources=sources, options=WorldOptions(window=0.2))
+    # one producer per source, each on its own thread, publishing in chunks
+    chunks = {s.name: [m for m in ms if m.source == s.name] for s in sources}
+    results = []
+
+    def produce(name):
+        mine = chunks[name]
+        for k in range(0, len(mine), 7):
+            results.append(world.publish(mine[k:k + 7]))
+
+    threads = [threading.Thread(target=produce, args=(s.name,)) for s in sources]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert sum(r.accepted for r in results) == len(ms)
+    assert not any(r.errors for r in results)
+    assert set(world.bodies) == {"box", "cup"}
+    for body in ("box", "cup"):
+        for time in (None, 0.3, 0.41):
+            p = world.pose(body, time)
+            at = 0.58 if time is None else time
+            f = fuse_of(ms, body, at, 0.2, sources)
+            assert p.time == at
+            assert np.abs(p.pose - f.mean).max() <= 1e-12
+            assert np.abs(p.covariance - f.covariance).max() <= 1e-12 * np.abs(
+                f.covariance).max()
+            assert p.fused is not None and len(p.fused.inliers) == len(f.inliers)
+    assert sorted(world.sources_of("box")) == ["cam0", "cam1", "cam2"]
+    assert world.newest("box", "cam2") == pytest.approx(0.58)
+
+
+def test_lookups_out_of_range_and_not_found():
+    rng = np.random.default_rng(2)
+    sources = [Source("cam", random_pose(rng))]
+    ms, _ = stream(rng, sources, ["box"], np.arange(10) * 0.1 + 100.0)
+    world = World(sources=sources, options=WorldOptions(window=0.5, buffer=0.5,
+                                                        max_extrapolation=0.1))
+    assert world.publish(ms).accepted == len(ms)
+    # the buffer keeps 0.5 s: 100.4 .. 100.9
+    with pytest.raises(OutOfRange, match=r"before the oldest measurement kept; 'box' is known "
+                                         r"from 100\.4 to 100\.9"):
+        world.pose("box", 100.2)
+    with pytest.raises(OutOfRange, match=r"0\.3 s past the newest measurement, beyond "
+                                         r"max_extrapolation 0\.1 s"):
+        world.pose("box", 101.2)
+    with pytest.raises(NotFound, match=r"^body: 'cup' is not in the world \(1 bodies: 'box'\)"):
+        world.pose("cup")
+    with pytest.raises(NotFound, match=r"^arm: 'ur' has no source"):
+        world.arm_base("ur")
+    assert world.pose("box", 100.95).time == 100.95
+
+
+def test_publish_answers_each_bad_measurement_and_keeps_the_others():
+    rng = np.random.default_rng(3)
+    sources = [Source("cam", random_pose(rng))]
+    ms, _ = stream(rng, sources, ["box"], [0.0, 0.1, 0.2])
+    bad = list(ms)
+    bad[1] = Measurement("cam", "box", 0.1, ms[1].pose, -np.eye(6))
+    bad.insert(2, Measurement("cam", "box", float("nan"), ms[1].pose))
+    bad.append(Measurement("cam", "box", 0.3, np.zeros(7)))
+    world = World(sources=sources)
+    r = world.publish(bad)
+    assert r.accepted == 2
+    assert [k for k, _ in r.errors] == [1, 2, 4]
+    assert r.errors[0][1].startswith("measurements[1].covariance: not positive definite")
+    assert r.errors[1][1].startswith("measurements[2].time: must be finite")
+    assert r.errors[2][1].startswith("measurements[4].pose: expected shape (8,)")
+    assert r.bodies == ("box",)
+
+
+def test_bounds_refused_naming_the_limit():
+    rng = np.random.default_rng(4)
+    world = World(bounds=WorldBounds(max_bodies=2, max_sources=2))
+    p = random_pose(rng)
+    r = world.publish([Measurement("a", f"b{k}", 0.0, p) for k in range(3)])
+    assert r.accepted == 2
+    assert r.errors == ((2, "measurements[2].body: 'b2' would be body 3, above the world's "
+                            "max_bodies 2"),)
+    r = world.publish([Measurement(s, "b0", 0.0, p) for s in ("b", "c")])
+    assert r.errors == ((1, "measurements[1].source: 'c' would be source 3, above the world's "
+                            "max_sources 2"),)
+    with pytest.raises(WorldError, match=r"^sources: 3 is above the world's max_sources 2"):
+        world.configure(sources=[Source(n) for n in "xyz"], arms={}, options=WorldOptions())
+    with pytest.raises(WorldError, match=r"^options.buffer: 90 s is above the world's "
+                                         r"max_buffer 60 s"):
+        world.configure(sources=[], arms={}, options=WorldOptions(buffer=90.0))
+    with pytest.raises(WorldError, match=r"^sources\[0\]\.extrinsic_covariance: not positive"):
+        world.configure(sources=[Source("x", extrinsic_covariance=-np.eye(6))], arms={},
+                        options=WorldOptions())
+    with pytest.raises(WorldError, match=r"^arms\['ur'\]: source 'q' is not among"):
+        world.configure(sources=[Source("x")], arms={"ur": "q"}, options=WorldOptions())
+    assert world.bodies == ("b0", "b1")     # refused configurations changed nothing
+
+
+def test_configure_keeps_the_measurements_and_refits_with_the_new_sources():
+    rng = np.random.default_rng(5)
+    sources = [Source("cam", random_pose(rng))]
+    ms, _ = stream(rng, sources, ["box"], np.arange(5) * 0.05)
+    world = World(sources=sources)
+    world.publish(ms)
+    SE = random_cov(rng)
+    new = [Source("cam", sources[0].extrinsic, extrinsic_covariance=SE)]
+    world.configure(sources=new, arms={"ur": "cam"}, options=WorldOptions())
+    p = world.pose("box")
+    f = fuse_of(ms, "box", 0.2, 1.0, new)
+    assert np.abs(p.covariance - f.covariance).max() <= 1e-12 * np.abs(f.covariance).max()
+    base = world.arm_base("ur")
+    assert base.pose.tobytes() == new[0].extrinsic.tobytes()
+    np.testing.assert_array_equal(base.covariance, 0.5 * (SE + SE.T))
+
+
+def shared_scene(rng, world, sources, SE):
+    """One camera ("top", extrinsic uncertain) sees both bodies twice, a second ("side", exact)
+    sees a third body "c"; the true extrinsic of "top" drawn once per trial. Returns the true
+    T_a_b."""
+    E_true = dq.mul(sources[0].extrinsic, lie.se3_exp(rng.multivariate_normal(np.zeros(6), SE)))
+    truth = {"top": E_true, "side": sources[1].extrinsic}
+    Xa, Xb, Xc = random_pose(rng, 0.3), random_pose(rng, 0.3), random_pose(rng, 0.3)
+    ms = []
+    for src, body, X in (("top", "a", Xa), ("top", "b", Xb), ("side", "c", Xc)):
+        for _ in range(2):
+            c = NOISE
+            z = dq.mul(dq.mul(dq.conj(truth[src]), X),
+                       lie.se3_exp(-rng.multivariate_normal(np.zeros(6), c)))
+            ms.append(Measurement(src, body, 1.0, z, c))
+    assert world.publish(ms).accepted == len(ms)
+    return dq.mul(dq.conj(Xa), Xb)
+
+
+NOISE = np.diag([np.deg2rad(0.1)] * 3 + [0.5e-3] * 3) ** 2
+EXTRINSIC = np.diag([np.deg2rad(1.0)] * 3 + [5e-3] * 3) ** 2
+
+
+def relative_nees(trials: int, seed: int = 0):
+    """Mean NEES of World.relative("a", "b") and of the composition of the two marginals over
+    ``trials`` draws of the shared extrinsic's error and the measurements' noise."""
+    rng = np.random.default_rng(seed)
+    sources = [Source("top", random_pose(rng), extrinsic_covariance=EXTRINSIC),
+               Source("side", random_pose(rng))]
+    joint, composed = [], []
+    for _ in range(trials):
+        world = World(sources=sources)
+        T = shared_scene(rng, world, sources, EXTRINSIC)
+        r = world.relative("a", "b")
+        c = _composed("a", "b", r.time, {b: world.pose(b, r.time).fused for b in "ab"})
+        for est, out in ((r, joint), (c, composed)):
+            e = lie.se3_log(dq.mul(dq.conj(est.pose), T))
+            out.append(float(e @ np.linalg.solve(est.covariance, e)))
+    return float(np.mean(joint)), float(np.mean(composed))
+
+
+def test_relative_nees_with_a_shared_extrinsic():
+    """A camera with a 1 deg / 5 mm mount uncertainty sees both bodies: the relative pose is
+    far better known than either absolute pose. The joint fit's covariance says so (mean NEES
+    6 over 500 trials); composing the two marginals ignores the shared error (NEES far below
+    6: it claims much less than it knows)."""
+    joint, composed = relative_nees(500)
+    assert 5.3 <= joint <= 6.7
+    assert composed < 1.0
+
+
+def test_relative_is_the_inverse_and_world_frame_composition():
+    rng = np.random.default_rng(6)
+    sources = [Source("top", random_pose(rng), extrinsic_covariance=EXTRINSIC),
+               Source("side", random_pose(rng))]
+    world = World(sources=sources)
+    shared_scene(rng, world, sources, EXTRINSIC)
+    ab, ba = world.relative("a", "b"), world.relative("b", "a")
+    assert np.abs(dq.mul(ab.pose, ba.pose) - [1, 0, 0, 0, 0, 0, 0, 0]).max() < 1e-12
+    np.testing.assert_allclose(lie.cov_inverse(ab.pose, ab.covariance), ba.covariance,
+                               rtol=0, atol=1e-9 * np.abs(ba.covariance).max())
+    wa = world.relative("", "a")
+    pa = world.pose("a")
+    assert wa.pose.tobytes() == pa.pose.tobytes()
+    np.testing.assert_allclose(wa.covariance, pa.covariance, rtol=1e-12)
+    aw = world.relative("a", "")
+    np.testing.assert_allclose(aw.covariance, lie.cov_inverse(pa.pose, pa.covariance),
+                               rtol=0, atol=1e-9 * np.abs(aw.covariance).max())
+
+
+def test_handeye_covariance_flows_into_a_fused_pose():
+    """An eye-to-hand camera's mount from HandEye calibrate (T_base_camera and its covariance)
+    as the source's extrinsic: one measurement's fused covariance is the measurement's plus the
+    mount's carried to the body, Ad(Z⁻¹) Σ_X Ad(Z⁻¹)ᵀ."""
+    s = _handeye.scene(12, "eye_to_hand", seed=3)
+    cal = handeye.calibrate(s.base_flange, s.camera_target, "eye_to_hand",
+                            camera_covariance=_handeye.covariance((0.1, 0.5)))
+    assert np.linalg.eigvalsh(cal.covariance_x).min() > 0
+    rng = np.random.default_rng(7)
+    z = dq.mul(random_pose(rng, 0.2), lie.se3_exp(np.array([0, 0, 0, 0, 0, 0.8])))
+    c = random_cov(rng)
+    plain = World(sources=[Source("cam", cal.x)])
+    mount = World(sources=[Source("cam", cal.x, extrinsic_covariance=cal.covariance_x)],
+                  arms={"ur": "cam"})
+    for w in (plain, mount):
+        w.publish([Measurement("cam", "box", 0.0, z, c)])
+    a, b = plain.pose("box"), mount.pose("box")
+    A = lie.adjoint(dq.conj(z))
+    np.testing.assert_allclose(a.covariance, c, rtol=1e-12)
+    np.testing.assert_allclose(b.covariance - a.covariance, A @ cal.covariance_x @ A.T,
+                               rtol=1e-9, atol=1e-18)
+    assert a.pose.tobytes() == b.pose.tobytes() or np.abs(a.pose - b.pose).max() < 1e-15
+    base = mount.arm_base("ur")
+    assert base.body == "arm:ur"
+    np.testing.assert_allclose(base.covariance, cal.covariance_x, rtol=1e-12)
