@@ -301,7 +301,7 @@ def test_fusion_source_extrinsic_covariance_round_trips():
 
 def test_a_time_jump_makes_at_most_max_fits_due_and_says_what_it_skipped(server, client):
     from dqpose.rpc.world import MAX_FITS_PER_REQUEST
-    client.configure_world(SOURCES, twist_covariance=TWIST, window=100.0, buffer=60.0,
+    client.configure_world(SOURCES, twist_covariance=TWIST, window=60.0, buffer=60.0,
                            max_extrapolation=None)
     sub = Collector(server.target, bodies=["box"], rate_hz=30.0)
     assert wait_until(lambda: server.running.servicers[0].subscriptions, timeout=10)
