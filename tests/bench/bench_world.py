@@ -102,6 +102,7 @@ def subscribe(target: str, k: int, seconds: float, start: float, out) -> None:
     from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
     from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
     rows, sizes = [], []
+    ended = ""
     with grpc.insecure_channel(target) as ch:
         call = ch.unary_stream("/dqpose.v1.World/Subscribe",
                                request_serializer=wpb.SubscribeRequest.SerializeToString)(
@@ -115,8 +116,8 @@ def subscribe(target: str, k: int, seconds: float, start: float, out) -> None:
                 sizes.append(len(data))
         except grpc.RpcError as e:
             if e.code() != grpc.StatusCode.DEADLINE_EXCEEDED:
-                raise
-    out.put(("subscriber", k, np.array(rows).reshape(-1, 3), np.array(sizes)))
+                ended = e.code().name       # e.g. RESOURCE_EXHAUSTED: it fell too far behind
+    out.put(("subscriber", k, np.array(rows).reshape(-1, 3), np.array(sizes), ended))
 
 
 def run(target: str, producers: int, subscribers: int, bodies: int, rate: float | None,
@@ -139,7 +140,7 @@ def run(target: str, producers: int, subscribers: int, bodies: int, rate: float 
         p.join(30)
     sent: dict[int, np.ndarray] = {}
     measured, span = 0, 0.0
-    answers, sizes = [], []
+    answers, sizes, ended = [], [], set()
     for r in results:
         if r[0] == "producer":
             sent.update(r[2])
@@ -148,6 +149,8 @@ def run(target: str, producers: int, subscribers: int, bodies: int, rate: float 
         else:
             answers.append(r[2])
             sizes.append(r[3])
+            if r[4]:
+                ended.add(r[4])
     lat = []
     for rows in answers:
         for body, t, arrival in rows:
@@ -163,7 +166,7 @@ def run(target: str, producers: int, subscribers: int, bodies: int, rate: float 
                 p50=float(np.percentile(lat_ms, 50)) if len(lat_ms) else float("nan"),
                 p99=float(np.percentile(lat_ms, 99)) if len(lat_ms) else float("nan"),
                 size=float(np.mean(np.concatenate(sizes))) if sizes and sum(map(len, sizes))
-                else 0.0, rss0=rss0, rss1=rss1)
+                else 0.0, rss0=rss0, rss1=rss1, ended=",".join(sorted(ended)))
 
 
 def serve_relay(answer_bytes: int) -> None:
@@ -285,11 +288,12 @@ def main(argv=None) -> int:
           f"transport row's p99")
     head = ["row", "producers", "subscribers", "bodies", "offered meas/s", "sustained meas/s",
             "answers/s", "p50 ms", "p99 ms", "added p99 ms", "answer bytes", "RSS MB start",
-            "RSS MB end"]
+            "RSS MB end", "subscriber streams"]
     lines = [[name, str(p), str(s), str(b), "unpaced" if rate is None else f"{rate:.0f}",
               f"{r['rate']:.0f}", f"{r['answers']:.0f}", f"{r['p50']:.2f}", f"{r['p99']:.2f}",
               "" if name.startswith("transport") else f"{r['p99'] - floor:.2f}",
-              f"{r['size']:.0f}", f"{r['rss0']:.1f}", f"{r['rss1']:.1f}"]
+              f"{r['size']:.0f}", f"{r['rss0']:.1f}", f"{r['rss1']:.1f}",
+              f"ended {r['ended']}" if r["ended"] else "ran to the end"]
              for name, p, s, b, rate, r in rows]
     print(markdown(head, lines))
     return 0
