@@ -33,7 +33,7 @@ from dqpose.fusion import (
     Tracker,
 )
 from dqpose.fusion.extrinsics import _relative_covariance
-from dqpose.fusion.results import DOF
+from dqpose.fusion.results import DOF, _frozen
 from dqpose.fusion.tracker import _arrays
 from dqpose.fusion.validation import _seconds
 
@@ -109,6 +109,11 @@ def _over(field: str, value, bound: str, limit, unit: str = "") -> WorldError:
     return WorldError(f"{field}: {value:.6g}{u} is above the world's {bound} {limit:.6g}{u}")
 
 
+def _s(t: float) -> str:
+    """A time to the microsecond, without trailing zeros (Unix times keep their digits)."""
+    return f"{t:.6f}".rstrip("0").rstrip(".")
+
+
 def _body_name(body) -> str:
     if not isinstance(body, str):
         raise WorldError(f"body: expected a string, got {type(body).__name__}")
@@ -127,6 +132,11 @@ class World:
         self._lock = threading.Lock()
         self._fed: dict[str, dict[str, float]] = {}     # body -> source -> newest taken
         self._tracker: Optional[Tracker] = None
+        # answers kept until their bodies change: per body a version bumped by every
+        # measurement taken into it; fits by (body, time), relatives by (target, source, time)
+        self._version: dict[str, int] = {}
+        self._fits: dict = {}
+        self._relatives: dict = {}
         self.configure(sources=sources, arms=arms, options=options)
 
     def configure(self, *, sources: Sequence[Source], arms: Mapping[str, str],
@@ -175,6 +185,8 @@ class World:
         with self._lock:
             old = self._tracker
             self._tracker = tracker
+            self._fits.clear()
+            self._relatives.clear()
             self.sources, self.arms, self.options = sources, arms, options
             if old is None:
                 return
@@ -250,6 +262,7 @@ class World:
             for k in use:
                 if k in errors:
                     continue
+                self._version[bodies[k]] = self._version.get(bodies[k], 0) + 1
                 src = self._t._table.get(sources[k])
                 t = float(times[k]) - (src.latency if src is not None else 0.0)
                 seen = self._fed.setdefault(bodies[k], {})
@@ -301,22 +314,29 @@ class World:
                 at = _seconds(time, "time")
             except ValueError as e:
                 raise WorldError(str(e)) from None
-        known = f"{body!r} is known from {oldest!r} to {newest!r}"
+        known = f"{body!r} is known from {_s(oldest)} to {_s(newest)}"
         if at < oldest:
-            raise OutOfRange(f"time: {at!r} is before the oldest measurement kept; {known} "
+            raise OutOfRange(f"time: {_s(at)} is before the oldest measurement kept; {known} "
                              f"(buffer {self.options.buffer:g} s)")
         limit = self.options.max_extrapolation
         if limit is not None and at > newest + limit:
-            raise OutOfRange(f"time: {at!r} is {at - newest:.6g} s past the newest "
+            raise OutOfRange(f"time: {_s(at)} is {at - newest:.6g} s past the newest "
                              f"measurement, beyond max_extrapolation {limit:g} s; {known}")
+        key = (body, at)
+        hit = self._fits.get(key)
+        version = self._version.get(body, 0)
+        if hit is not None and hit[0] == version:
+            return hit[1]
         window = self.options.window
         if not t.near(body, at, window):
             raise OutOfRange(f"time: no measurement of {body!r} within the window "
-                             f"{window:g} s of {at!r}; {known}")
+                             f"{window:g} s of {_s(at)}; {known}")
         try:
-            return t.estimate_ids(body, at, window)[0]
+            f = t.estimate_ids(body, at, window)[0]
         except ValueError as e:
             raise OutOfRange(f"{e}; {known}") from None
+        _keep(self._fits, key, (version, f))
+        return f
 
     def pose(self, body: str, time: Optional[float] = None) -> BodyPose:
         """``T_world_body`` at ``time`` (None: the body's newest): :func:`dqpose.fusion.fuse`
@@ -343,27 +363,32 @@ class World:
             if at is None:      # world to world
                 ident = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
                 return BodyPose(source, 0.0, ident, np.zeros((DOF, DOF)), None)
-            fits = {b: self._fit(b, at) for b in (target, source) if b}
             if target == source:
+                if target:
+                    self._fit(target, at)   # known at that time
                 return BodyPose(source, at, np.array([1.0, 0, 0, 0, 0, 0, 0, 0]),
                                 np.zeros((DOF, DOF)), None)
-            if target and source and self._share(target, source, at):
+            key = (target, source, at)
+            versions = (self._version.get(target, 0), self._version.get(source, 0))
+            hit = self._relatives.get(key)
+            if hit is not None and hit[0] == versions:
+                return hit[1]
+            fits = {b: self._fit(b, at) for b in (target, source) if b}
+            if target and source and self._share(fits[target], fits[source]):
                 (Xa, Xb), P = self._t.joint([target, source], [fits[target], fits[source]],
                                             at, self.options.window)
-                return BodyPose(source, at, dq.mul(dq.conj(Xa), Xb),
-                                _relative_covariance(Xa, Xb, P), None)
-        return _composed(target, source, at, fits)
+                answer = BodyPose(source, at, _frozen(dq.mul(dq.conj(Xa), Xb)),
+                                  _frozen(_relative_covariance(Xa, Xb, P)), None)
+            else:
+                answer = _composed(target, source, at, fits)
+            _keep(self._relatives, key, (versions, answer))
+            return answer
 
-    def _share(self, a: str, b: str, at: float) -> bool:
-        """Whether bodies ``a`` and ``b`` have, near ``at``, a source whose extrinsic is
-        uncertain in common (the lock held)."""
-        table, window = self._t._table, self.options.window
-        mine = []
-        for x in (a, b):
-            w = self._t.window_of(x)
-            mine.append({s for s, t in zip(w.sources, w.taken) if abs(t - at) <= window})
-        return any(table[s].extrinsic_covariance is not None
-                   for s in mine[0] & mine[1] if s in table)
+    def _share(self, a: Fused, b: Fused) -> bool:
+        """Whether two fits used a source whose extrinsic is uncertain in common."""
+        table = self._t._table
+        common = {s.name for s in a.sources} & {s.name for s in b.sources}
+        return any(table[s].extrinsic_covariance is not None for s in common if s in table)
 
     def arm_base(self, arm: str) -> BodyPose:
         """``T_world_base`` of ``arm``: the extrinsic of the source ``arms`` names, with its
@@ -379,6 +404,16 @@ class World:
         return BodyPose(f"arm:{arm}", 0.0, pose, cov, None)
 
 
+# answers kept at most (each a few kB); beyond, the cache starts over
+_CACHED = 4096
+
+
+def _keep(cache: dict, key, value) -> None:
+    if len(cache) >= _CACHED:
+        cache.clear()
+    cache[key] = value
+
+
 def _composed(target: str, source: str, at: float, fits: Mapping[str, Fused]) -> BodyPose:
     """``T_target_source`` composed of the two bodies' own fits, as if their errors were
     independent (the world frame "" is exact): the answer when they share no uncertain
@@ -389,4 +424,5 @@ def _composed(target: str, source: str, at: float, fits: Mapping[str, Fused]) ->
     Xb, Pb = (fits[source].mean, fits[source].covariance) if source else (ident, zero)
     P = np.zeros((2 * DOF, 2 * DOF))
     P[:DOF, :DOF], P[DOF:, DOF:] = Pa, Pb
-    return BodyPose(source, at, dq.mul(dq.conj(Xa), Xb), _relative_covariance(Xa, Xb, P), None)
+    return BodyPose(source, at, _frozen(dq.mul(dq.conj(Xa), Xb)),
+                    _frozen(_relative_covariance(Xa, Xb, P)), None)

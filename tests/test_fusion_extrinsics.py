@@ -227,3 +227,16 @@ def test_acceleration_psd_with_extrinsic_covariance_refused():
     Z, S, N, T = moving(rng, src, None)
     with pytest.raises(ValueError, match="^acceleration_psd: not supported"):
         fusion.fuse(Z, S, names=N, sources=src, times=T, acceleration_psd=np.eye(6) * 1e-4)
+
+
+def test_leave_one_out_nis_is_chi2_6_with_shared_errors():
+    """Each measurement against the joint fit of the others (the extrinsics' priors kept): its
+    NIS has mean 6 when the extrinsics' errors are drawn as their covariances say."""
+    rng = np.random.default_rng(15)
+    vals = []
+    for _ in range(300):
+        X, sources, names, Z, S = scene(rng)
+        f = fusion.fuse(Z, S, names=names, sources=sources)
+        vals.extend(f.nis[f.tested].tolist())
+    assert len(vals) == 2400
+    assert 5.6 <= np.mean(vals) <= 6.4

@@ -82,6 +82,14 @@ def test_pose_equals_fuse_with_producers_on_threads():
                 f.covariance).max()
             assert p.fused is not None and len(p.fused.inliers) == len(f.inliers)
     assert sorted(world.sources_of("box")) == ["cam0", "cam1", "cam2"]
+    # an answer kept for repeated lookups gives way to new measurements
+    before = world.pose("box", 0.58)
+    more, _ = stream(rng, sources, ["box"], [0.57])
+    world.publish(more)
+    after = world.pose("box", 0.58)
+    f = fuse_of(ms + more, "box", 0.58, 0.2, sources)
+    assert np.abs(after.pose - f.mean).max() <= 1e-12
+    assert np.abs(after.pose - before.pose).max() > 1e-9
     assert world.newest("box", "cam2") == pytest.approx(0.58)
 
 
@@ -229,6 +237,9 @@ def test_relative_is_the_inverse_and_world_frame_composition():
     pa = world.pose("a")
     assert wa.pose.tobytes() == pa.pose.tobytes()
     np.testing.assert_allclose(wa.covariance, pa.covariance, rtol=1e-12)
+    for t, s in (("", ""), ("a", "a")):
+        same = world.relative(t, s, 1.0)
+        assert same.pose.tolist() == [1, 0, 0, 0, 0, 0, 0, 0] and not same.covariance.any()
     aw = world.relative("a", "")
     np.testing.assert_allclose(aw.covariance, lie.cov_inverse(pa.pose, pa.covariance),
                                rtol=0, atol=1e-9 * np.abs(aw.covariance).max())
@@ -259,3 +270,92 @@ def test_handeye_covariance_flows_into_a_fused_pose():
     base = mount.arm_base("ur")
     assert base.body == "arm:ur"
     np.testing.assert_allclose(base.covariance, cal.covariance_x, rtol=1e-12)
+
+
+def test_relative_equals_gtsam_joint_marginal():
+    """The shared-camera scene as GTSAM's graph (a prior on the camera's extrinsic, a
+    BetweenFactorPose3 per measurement): its optimum and the joint marginal of both bodies,
+    carried to T_a_b, are World.relative's."""
+    gtsam = pytest.importorskip("gtsam")
+    from tests import _gtsam
+    rng = np.random.default_rng(9)
+    sources = [Source("top", random_pose(rng), extrinsic_covariance=EXTRINSIC),
+               Source("side", random_pose(rng))]
+    world = World(sources=sources)
+    shared_scene(rng, world, sources, EXTRINSIC)
+    # "side" measures "b" too, with an exact extrinsic
+    Xb = world.pose("b").pose
+    z = dq.mul(dq.conj(sources[1].extrinsic), Xb)
+    world.publish([Measurement("side", "b", 1.0, z, NOISE * 4)])
+    r = world.relative("a", "b")
+
+    P3, noise = gtsam.Pose3, lambda c: gtsam.noiseModel.Gaussian.Covariance(c, False)
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    E = sources[0].extrinsic
+    graph.add(gtsam.PriorFactorPose3(2, P3(dq.to_matrix(E)), noise(EXTRINSIC)))
+    values.insert(2, P3(dq.to_matrix(E)))
+    for key, body in ((0, "a"), (1, "b")):
+        for m in world._t.measurements(body):
+            if m.source == "top":
+                graph.add(gtsam.BetweenFactorPose3(2, key, P3(dq.to_matrix(m.pose)),
+                                                   noise(m.covariance)))
+            else:
+                graph.add(gtsam.PriorFactorPose3(key, P3(dq.to_matrix(dq.mul(
+                    sources[1].extrinsic, m.pose))), noise(m.covariance)))
+        values.insert(key, P3(dq.to_matrix(world.pose(body).pose)))
+    result = _gtsam.lm(graph, values)
+    for _ in range(100):
+        delta = graph.linearize(result).optimize()
+        result = result.retract(delta)
+        if max(np.linalg.norm(delta.at(k)) for k in (0, 1, 2)) < 1e-13:
+            break
+    Xa = dq.from_matrix(result.atPose3(0).matrix())
+    Xb = dq.from_matrix(result.atPose3(1).matrix())
+    keys = gtsam.KeyVector([0, 1])
+    P = gtsam.Marginals(graph, result).jointMarginalCovariance(keys).fullMatrix()
+    T = dq.mul(dq.conj(Xa), Xb)
+    assert np.linalg.norm(lie.se3_log(dq.mul(dq.conj(r.pose), T))) < 1e-10
+    J = np.hstack([-lie.adjoint(dq.conj(T)), np.eye(6)])
+    expected = J @ P @ J.T
+    assert np.abs(r.covariance - expected).max() <= 1e-8 * np.abs(expected).max()
+
+
+def test_measurements_per_body_bound_keeps_the_newest():
+    rng = np.random.default_rng(10)
+    sources = [Source("cam", random_pose(rng))]
+    ms, _ = stream(rng, sources, ["box"], np.arange(10) * 0.1)
+    world = World(sources=sources, options=WorldOptions(window=1.0),
+                  bounds=WorldBounds(max_measurements_per_body=4))
+    assert world.publish(ms).accepted == 10
+    p = world.pose("box")
+    assert p.fused is not None and len(p.fused.inliers) == 4
+    f = fuse_of(ms[6:], "box", 0.9, 1.0, sources)
+    assert np.abs(p.pose - f.mean).max() <= 1e-12
+    with pytest.raises(OutOfRange, match=r"'box' is known from 0\.6 to 0\.9"):
+        world.pose("box", 0.3)
+
+
+def test_robust_relative_leaves_the_outlier_out_of_the_joint_fit():
+    rng = np.random.default_rng(11)
+    sources = [Source("top", random_pose(rng), extrinsic_covariance=EXTRINSIC),
+               Source("side", random_pose(rng))]
+    robust = World(sources=sources, options=WorldOptions(robust=True))
+    clean = World(sources=sources)
+    state = rng.bit_generator.state
+    shared_scene(rng, robust, sources, EXTRINSIC)
+    rng.bit_generator.state = state
+    shared_scene(rng, clean, sources, EXTRINSIC)
+    # one more view of "a" by the top camera, 20 deg and 10 cm off
+    z = dq.mul(dq.mul(dq.conj(sources[0].extrinsic), clean.pose("a").pose),
+               lie.se3_exp(np.array([0.35, 0, 0, 0.1, 0, 0])))
+    for w in (robust, clean):
+        w.publish([Measurement("top", "a", 1.0, z, NOISE)])
+    assert [r.index for r in robust.pose("a").fused.rejected] == [2]
+    a = robust.relative("a", "b")
+    clean_world = World(sources=sources)
+    rng.bit_generator.state = state
+    shared_scene(rng, clean_world, sources, EXTRINSIC)
+    b = clean_world.relative("a", "b")
+    assert np.abs(a.pose - b.pose).max() < 1e-12
+    np.testing.assert_allclose(a.covariance, b.covariance, rtol=1e-9,
+                               atol=1e-12 * np.abs(b.covariance).max())

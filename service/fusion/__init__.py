@@ -11,7 +11,9 @@ Conventions (stated once for the package; :mod:`dqpose.lie` holds the tangent-sp
   frame ``T_flange_body``; the fused pose is ``T_world_body``. A measurement enters the fusion as
   ``T_world_frame · T_frame_body · T_flange_body``; the constant extrinsic on the left leaves its
   covariance as it is, the constant offset on the right maps it exactly to
-  ``Ad(O⁻¹) Σ Ad(O⁻¹)ᵀ`` (:func:`dqpose.lie.cov_compose`).
+  ``Ad(O⁻¹) Σ Ad(O⁻¹)ᵀ`` (:func:`dqpose.lie.cov_compose`). A source's ``extrinsic_covariance``
+  (the extrinsic itself uncertain, ``T_world_frame · Exp(ε)``) makes its measurements share
+  ``ε``: they are then fitted jointly with it (:mod:`~dqpose.fusion.extrinsics`).
 * The residual of measurement ``Z_i`` at the estimate ``X`` is ``r_i = Log(X⁻¹ Z_i)``; its
   negative is GTSAM's ``PriorFactorPose3`` error ``Log(Z_i⁻¹ X)``, so both minimise the same cost
   ``Σ r_iᵀ Σ_i⁻¹ r_i``. Its exact Jacobian for ``X · Exp(δ)`` is ``-Jl⁻¹(r_i) = -Jr⁻¹(-r_i)``.
@@ -29,7 +31,8 @@ maximum-likelihood fit of the inliers, so a rejected measurement never moves it.
 
 The parts, each a module: :mod:`~dqpose.fusion.results` (what a fusion returns),
 :mod:`~dqpose.fusion.chi2` (quantiles), :mod:`~dqpose.fusion.validation` (input checks),
-:mod:`~dqpose.fusion.sources` (frames and latencies), :mod:`~dqpose.fusion.static` (the fit of one
+:mod:`~dqpose.fusion.sources` (frames and latencies), :mod:`~dqpose.fusion.extrinsics`
+(uncertain extrinsics, jointly), :mod:`~dqpose.fusion.static` (the fit of one
 instant), :mod:`~dqpose.fusion.robust` (the gate), :mod:`~dqpose.fusion.consistency` (per-source
 verdicts), :mod:`~dqpose.fusion.motion` (the constant-twist model over time: time alignment),
 :mod:`~dqpose.fusion.process_noise` (acceleration as process noise),

@@ -81,6 +81,34 @@ class _Part(NamedTuple):
     ell: np.ndarray     # its latencies
 
 
+class _Prepared(NamedTuple):
+    """A :class:`_Part` with what every iteration uses: the measurements' information and, for
+    those with an uncertain extrinsic, ``A_i = Ad(W_i⁻¹ E_s)`` (a constant of the data)."""
+    Z: np.ndarray
+    S: np.ndarray
+    model: _Model
+    inlier: np.ndarray
+    slot: np.ndarray
+    start: np.ndarray
+    V: np.ndarray
+    ell: np.ndarray
+    W: np.ndarray
+    A: np.ndarray
+
+
+def _carried(p: _Part, ext: _Extrinsics) -> np.ndarray:
+    """``A_i = Ad(W_i⁻¹ E_s)`` of the measurements with an uncertain extrinsic."""
+    has = p.slot >= 0
+    if not has.any():
+        return np.zeros((0, DOF, DOF))
+    return lie.adjoint(dq.mul(dq.conj(p.Z[has]), ext.E[p.slot[has]]))
+
+
+def _inv(S: np.ndarray) -> np.ndarray:
+    W = np.linalg.inv(S)
+    return 0.5 * (W + np.swapaxes(W, 1, 2))
+
+
 def _static_model(n: int) -> _Model:
     """The one-instant fit as a motion model: no twist, no latencies, every stamp at zero."""
     return _Model(stamp=np.zeros(n), latency=np.zeros(n), slot=np.full(n, -1, np.intp),
@@ -104,16 +132,10 @@ class _Joint(NamedTuple):
     offsets: list      # where each part's state starts in the joint state
 
 
-def _state(parts, ext, X, V, ell, Ehat):
-    """Residuals, Jacobians and the cost of every part at the current state."""
-    dims = [p.model.dim for p in parts]
-    offsets = np.cumsum([0] + dims).tolist()
-    n_ext = DOF * len(ext.names)
-    total = offsets[-1] + n_ext
+def _residuals(parts, ext, X, V, ell, Ehat):
+    """Every part's ``dt`` and residuals at the current state, and the total cost."""
     shift = dq.mul(Ehat, dq.conj(ext.E))       # Ê E⁻¹ per slot
-    rs, Gs, dts = [], [], []
-    H = np.zeros((total, total))
-    g = np.zeros(total)
+    dts, rs = [], []
     cost = 0.0
     for k, p in enumerate(parts):
         dt = p.model.dt(ell[k])
@@ -123,46 +145,61 @@ def _state(parts, ext, X, V, ell, Ehat):
             W[has] = dq.mul(shift[p.slot[has]], p.Z[has])
         pred = dq.mul(X[k], lie.se3_exp(dt[:, None] * V[k]))
         r = lie.se3_log(dq.mul(dq.conj(pred), dq.normalize(W)))
-        Gm = _motion_jacobian(V[k], dt, r, p.model)
-        G = np.zeros((len(r), DOF, total))
-        G[:, :, offsets[k]:offsets[k + 1]] = Gm
-        if has.any():
-            # A_i = Ad(W_i⁻¹ E_s) with the configured W_i and E_s (a constant of the data)
-            A = lie.adjoint(dq.mul(dq.conj(p.Z[has]), ext.E[p.slot[has]]))
-            Ge = -lie.se3_right_jacobian_inv(r[has]) @ A
-            rows = np.flatnonzero(has)
-            for j, i in enumerate(rows.tolist()):
-                c = offsets[-1] + DOF * int(p.slot[i])
-                G[i, :, c:c + DOF] = Ge[j]
-        Wi = np.linalg.inv(p.S)
         m = p.inlier
-        GtW = np.swapaxes(G[m], 1, 2) @ Wi[m]
+        cost += float(np.einsum("ni,nij,nj->", r[m], p.W[m], r[m]))
+        cost += p.model.prior_cost(V[k], ell[k])
+        dts.append(dt)
+        rs.append(r)
+    pr = lie.se3_log(dq.mul(dq.conj(ext.E), Ehat))
+    cost += float(np.einsum("si,sij,sj->", pr, ext.info, pr))
+    return dts, rs, pr, cost
+
+
+def _state(parts, ext, X, V, ell, Ehat):
+    """Residuals, Jacobians, the normal equations and the cost of every part at the current
+    state."""
+    dims = [p.model.dim for p in parts]
+    offsets = np.cumsum([0] + dims).tolist()
+    total = offsets[-1] + DOF * len(ext.names)
+    dts, rs, pr, cost = _residuals(parts, ext, X, V, ell, Ehat)
+    Gs = []
+    H = np.zeros((total, total))
+    g = np.zeros(total)
+    for k, p in enumerate(parts):
+        r, dt = rs[k], dts[k]
+        G = np.zeros((len(r), DOF, total))
+        G[:, :, offsets[k]:offsets[k + 1]] = _motion_jacobian(V[k], dt, r, p.model)
+        has = p.slot >= 0
+        if has.any():
+            Ge = -lie.se3_right_jacobian_inv(r[has]) @ p.A
+            slots = p.slot[has]
+            rows = np.flatnonzero(has)
+            for s in np.unique(slots).tolist():
+                c = offsets[-1] + DOF * s
+                G[rows[slots == s], :, c:c + DOF] = Ge[slots == s]
+        m = p.inlier
+        GtW = np.swapaxes(G[m], 1, 2) @ p.W[m]
         H += np.tensordot(GtW, G[m], axes=([0, 2], [0, 1]))
         g += (GtW @ r[m][..., None]).sum(axis=0)[:, 0]
-        cost += float(np.einsum("ni,nij,nj->", r[m], Wi[m], r[m]))
         Hp, gp = p.model.prior_terms(V[k], ell[k])
         sl = slice(offsets[k], offsets[k + 1])
         H[sl, sl] += Hp
         g[sl] += gp
-        cost += p.model.prior_cost(V[k], ell[k])
-        rs.append(r)
         Gs.append(G)
-        dts.append(dt)
-    pr = lie.se3_log(dq.mul(dq.conj(ext.E), Ehat))
     Jp = lie.se3_right_jacobian_inv(pr)
     for s in range(len(ext.names)):
         c = slice(offsets[-1] + DOF * s, offsets[-1] + DOF * (s + 1))
         JtI = Jp[s].T @ ext.info[s]
         H[c, c] += JtI @ Jp[s]
         g[c] -= JtI @ pr[s]
-        cost += float(pr[s] @ ext.info[s] @ pr[s])
     return rs, Gs, dts, H, g, cost, offsets
 
 
-def _joint_fit(parts: Sequence[_Part], ext: _Extrinsics, tol: float, max_iter: int) -> _Joint:
+def _joint_fit(given: Sequence[_Part], ext: _Extrinsics, tol: float, max_iter: int) -> _Joint:
     """Gauss-Newton over every part's state and the ε's (the module's docstring), from the
     parts' starts and the configured extrinsics; a step that raises the cost is halved (the
     C fits' rule)."""
+    parts = [_Prepared(*p, W=_inv(p.S), A=_carried(p, ext)) for p in given]
     X = [p.start for p in parts]
     V = [p.V for p in parts]
     ell = [p.ell for p in parts]
@@ -181,13 +218,13 @@ def _joint_fit(parts: Sequence[_Part], ext: _Extrinsics, tol: float, max_iter: i
                 ell2.append(ell[k] + d[p.model.offset:])
             de = delta[offsets[-1]:].reshape(-1, DOF)
             E2 = dq.normalize(dq.mul(Ehat, lie.se3_exp(de)))
-            new = _state(parts, ext, X2, V2, ell2, E2)
-            if new[5] <= cost * (1.0 + _COST_SLACK) or step < tol:
+            if _residuals(parts, ext, X2, V2, ell2, E2)[3] <= cost * (1.0 + _COST_SLACK) \
+                    or step < tol:
                 break
             delta = 0.5 * delta
             step *= 0.5
         X, V, ell, Ehat = X2, V2, ell2, E2
-        rs, Gs, dts, H, g, cost, offsets = new
+        rs, Gs, dts, H, g, cost, offsets = _state(parts, ext, X, V, ell, Ehat)
         if step < tol:
             status, iterations = Status.CONVERGED, it
             break

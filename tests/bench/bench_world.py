@@ -1,12 +1,29 @@
-"""The shared world under load: producers (processes) publishing measurements of many bodies
-into one server (a ``dqpose serve`` process) while subscribers (processes) read the fused
-poses at 30 Hz per body; one table: measurements/s sustained, the added latency from a
-measurement's arrival to the subscriber's answer that it made due (p50/p99), answers/s, the
-server's RSS at the start and the end.
+"""The shared world (``dqpose.world``): one table (``--publish``: the other one).
 
-    .venv/bin/python -m tests.bench.bench_world                       # the target row + sweep
-    .venv/bin/python -m tests.bench.bench_world --sweep none          # the target row only
-    .venv/bin/python -m tests.bench.bench_world --seconds 600 --sweep none   # the memory soak
+    .venv/bin/python -m tests.bench.bench_world            # ~1 min
+    .venv/bin/python -m tests.bench.bench_world --trials 500 --lookups 2000
+    .venv/bin/python -m tests.bench.bench_world --publish          # Publish -> Subscribe, ~4 min
+    .venv/bin/python -m tests.bench.bench_world --publish --sweep none --seconds 600   # soak
+
+Sections (each a function returning rows of the one table, so that more can be added):
+
+* :func:`lookup_rows` — ``World.relative`` (Lookup's server time, in process): the latency of a
+  lookup between two moving bodies, each seen at 30 Hz by two cameras with latencies over a 1 s
+  window (60 measurements a body's fit, the constant-twist fit over time), p50/p99 over
+  ``--lookups`` calls: bodies that share no uncertain extrinsic (two fits composed), and bodies
+  seen by the same camera with an ``extrinsic_covariance`` (the joint fit with its error), and
+  ``World.pose`` alone. Target: ≤ 200 µs.
+* :func:`nees_rows` — the mean NEES of ``World.relative`` against the truth over ``--trials``
+  draws, on the scene of tests/test_world.py: one camera whose mount is uncertain (1° / 5 mm)
+  sees both bodies twice (0.1° / 0.5 mm each); beside it the composition of the two bodies'
+  marginals, which ignores the error they share. 6 is consistent; the 95 % band of the mean of
+  500 χ²₆ draws is about 6 ± 0.3.
+
+With ``--publish``, the other table (:func:`publish_rows`): the shared world under load,
+producers (processes) publishing measurements of many bodies into one server (a ``dqpose serve``
+process) while subscribers (processes) read the fused poses at 30 Hz per body: measurements/s
+sustained, the added latency from a measurement's arrival to the subscriber's answer that it
+made due (p50/p99), answers/s, the server's RSS at the start and the end.
 
 Scene: body ``b{i}`` is measured by producer ``i % producers`` only (its own source), a static
 pose with a full covariance; each producer sends messages of 10 measurements (10 bodies each),
@@ -36,8 +53,102 @@ import time
 
 import numpy as np
 
+from dqpose import dq, lie
+from dqpose.fusion import Measurement, Source
+from dqpose.world import World, WorldOptions
 from tests.bench._table import markdown
 from tests.bench.bench_grpc import ServerProcess
+
+HEAD = ["section", "case", "value", "unit", "detail"]
+COV = np.diag(np.r_[np.full(3, np.deg2rad(0.3)), np.full(3, 1e-3)] ** 2)
+MOUNT = np.diag(np.r_[np.full(3, np.deg2rad(1.0)), np.full(3, 5e-3)] ** 2)
+
+
+def _moving_world(shared: bool, seed: int = 0):
+    """Bodies "a" and "b" on screws, each seen at 30 Hz by two cameras over 2 s (window 1 s):
+    with ``shared`` camera "top" (extrinsic uncertain) sees both, else each body has its own
+    pair of exact cameras. Returns the world and a function that publishes the next 30 Hz
+    tick."""
+    rng = np.random.default_rng(seed)
+    names = ["top", "side"] if shared else ["a1", "a2", "b1", "b2"]
+    sources = [Source(n, lie.se3_exp(rng.normal(size=6) * 0.5), latency=0.02 + 0.01 * k,
+                      extrinsic_covariance=MOUNT if n == "top" else None)
+               for k, n in enumerate(names)]
+    world = World(sources=sources, options=WorldOptions(window=1.0, buffer=10.0))
+    seen = {"a": names[:2], "b": names[:2]} if shared else {"a": names[:2], "b": names[2:]}
+    X0 = {b: lie.se3_exp(rng.normal(size=6) * 0.3) for b in "ab"}
+    V = {b: rng.normal(size=6) * 0.2 for b in "ab"}
+    by = {s.name: s for s in sources}
+    tick = [0]
+
+    def more():
+        t = tick[0] / 30.0
+        tick[0] += 1
+        batch = []
+        for b in "ab":
+            for n in seen[b]:
+                s = by[n]
+                X = dq.mul(X0[b], lie.se3_exp((t - s.latency) * V[b]))
+                z = dq.mul(dq.mul(dq.conj(s.extrinsic), X),
+                           lie.se3_exp(rng.multivariate_normal(np.zeros(6), COV)))
+                batch.append(Measurement(n, b, t, z, COV))
+        world.publish(batch)
+
+    for _ in range(60):
+        more()
+    return world, more
+
+
+def _timed(call, n: int, before=None) -> np.ndarray:
+    """``call``'s duration (µs) ``n`` times, ``before`` run untimed ahead of each."""
+    call()
+    out = np.empty(n)
+    for i in range(n):
+        if before is not None:
+            before()
+        t0 = time.perf_counter()
+        call()
+        out[i] = time.perf_counter() - t0
+    return out * 1e6
+
+
+def lookup_rows(lookups: int = 1000) -> list[list[str]]:
+    """Per case: a call after a new 30 Hz tick of measurements (the fits run) and a call
+    repeated without new data (the answer the world keeps)."""
+    rows = []
+    for shared in (False, True):
+        world, more = _moving_world(shared)
+        n = len(world.pose("a").fused.inliers)
+        cases = [("pose", "pose of a body" + (", seen by the uncertain camera" if shared else ""),
+                  lambda: world.pose("a")),
+                 ("relative", "relative, " + ("one camera with extrinsic_covariance sees both"
+                                              if shared else "no shared uncertain extrinsic"),
+                  lambda: world.relative("a", "b"))]
+        for _, label, call in cases:
+            for fresh in (True, False):
+                us = _timed(call, lookups, more if fresh else None)
+                rows.append(["Lookup (in process)",
+                             label + ("; after new data" if fresh else "; repeated"),
+                             f"{np.percentile(us, 50):.1f}", "µs p50",
+                             f"p99 {np.percentile(us, 99):.1f} µs; {n} measurements a body, "
+                             f"{lookups} calls"])
+    return rows
+
+
+def _nees(trials: int, seed: int = 0) -> tuple[float, float]:
+    from tests.test_world import relative_nees
+    return relative_nees(trials, seed)
+
+
+def nees_rows(trials: int = 500) -> list[list[str]]:
+    joint, composed = _nees(trials)
+    scene = "one camera (mount 1° / 5 mm) sees both bodies"
+    return [["NEES of relative", "World.relative (joint fit)", f"{joint:.2f}", "mean NEES",
+             f"{scene}; {trials} trials; 6 expected"],
+            ["NEES of relative", "composition of the marginals", f"{composed:.2f}", "mean NEES",
+             f"{scene}; {trials} trials; ignores the shared error"]]
+
+
 
 PER_MESSAGE = 10
 IN_FLIGHT = 8
@@ -236,7 +347,7 @@ class RelayProcess(ServerProcess):
         self._drain.start()
 
 
-def world_rows(args) -> list:
+def publish_rows(args) -> list:
     """The Publish -> Subscribe rows: target, its transport floor, the sweep."""
     from dqpose.rpc.client import Client
     rows = []
@@ -269,33 +380,26 @@ def world_rows(args) -> list:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--seconds", type=float, default=10.0, help="per row (default %(default)s)")
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--trials", type=int, default=500)
+    ap.add_argument("--lookups", type=int, default=1000)
+    ap.add_argument("--publish", action="store_true",
+                    help="the Publish -> Subscribe table instead of Lookup and NEES")
+    ap.add_argument("--seconds", type=float, default=10.0,
+                    help="--publish: per row (default %(default)s)")
     ap.add_argument("--rate", type=float, default=20_000.0,
-                    help="target row: measurements/s in total (default %(default)s)")
-    ap.add_argument("--window", type=float, default=0.2, help="the world's window, s")
+                    help="--publish: the target row's measurements/s in total (default "
+                         "%(default)s)")
+    ap.add_argument("--window", type=float, default=0.2, help="--publish: the world's window, s")
     ap.add_argument("--sweep", choices=("full", "none"), default="full")
     ap.add_argument("--serve-relay", type=int, metavar="BYTES", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.serve_relay is not None:
         serve_relay(args.serve_relay)
         return 0
-    rows = world_rows(args)
-    floor = rows[0][-1]["p99"]
-    print(f"World Publish -> Subscribe, one server (dqpose serve --no-call-log), producers and "
-          f"subscribers in processes of their own, window {args.window:g} s, subscribers at "
-          f"{SUBSCRIBE_RATE:g} Hz per body, {args.seconds:g} s per row; added p99 = p99 - the "
-          f"transport row's p99")
-    head = ["row", "producers", "subscribers", "bodies", "offered meas/s", "sustained meas/s",
-            "answers/s", "p50 ms", "p99 ms", "added p99 ms", "answer bytes", "RSS MB start",
-            "RSS MB end", "subscriber streams"]
-    lines = [[name, str(p), str(s), str(b), "unpaced" if rate is None else f"{rate:.0f}",
-              f"{r['rate']:.0f}", f"{r['answers']:.0f}", f"{r['p50']:.2f}", f"{r['p99']:.2f}",
-              "" if name.startswith("transport") else f"{r['p99'] - floor:.2f}",
-              f"{r['size']:.0f}", f"{r['rss0']:.1f}", f"{r['rss1']:.1f}",
-              f"ended {r['ended']}" if r["ended"] else "ran to the end"]
-             for name, p, s, b, rate, r in rows]
-    print(markdown(head, lines))
+    if not args.publish:
+        print(markdown(HEAD, lookup_rows(args.lookups) + nees_rows(args.trials)))
+        return 0
     return 0
 
 
