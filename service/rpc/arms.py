@@ -185,9 +185,7 @@ class Arms:
             raise limits.over("plan.waypoints", f"{n} waypoints", self.limits,
                               "max_execute_waypoints")
         # converting up to max_execute_waypoints messages is work that grows with the request
-        args = await asyncio.to_thread(plan_from_msg, request.plan, "plan.", False)
-        args, _ = await asyncio.to_thread(resolve_frames, args, request.plan, self.world,
-                                          "plan.", request.arm)
+        args = await asyncio.to_thread(self._plan_args, request.plan, request.arm)
         for name, unit in ARM_LIMITS.items():
             want, bound = getattr(args.limits, name), float(getattr(slot.arm.limits, name))
             if want > bound:
@@ -196,6 +194,13 @@ class Arms:
                     f"arm {slot.name!r}, {bound:.6g} {unit}; plan within the arm's limits "
                     f"(GetArm lists them)")
         return slot, args
+
+    def _plan_args(self, plan, arm: str):
+        """The plan's arguments with its waypoints in bodies' frames resolved through the
+        server's world (one hop to a thread for both: a second one made a cancel's next
+        Execute lose its race against the run's end)."""
+        return resolve_frames(plan_from_msg(plan, "plan.", False), plan, self.world, "plan.",
+                              arm)[0]
 
     async def _claim(self, slot: _Arm, deadline: float) -> _Run:
         """The arm for a new run, once its last run has ended; FAILED_PRECONDITION if that takes
