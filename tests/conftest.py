@@ -71,7 +71,7 @@ SLOW_MODULES = {
     "drivers/test_armproc_respawn.py", "drivers/test_camera.py", "fusion/test_process_noise.py",
     "robustness/test_execute.py", "robustness/test_fuzz_rpc.py", "rpc/server/test_shutdown.py",
     "test_examples.py", "handeye/test_calibrate.py", "handeye/test_checks.py",
-    "handeye/test_corners.py",
+    "handeye/test_corners.py", "cli/test_world_cli.py",
 }
 _TESTS = pathlib.Path(__file__).parent
 

@@ -24,6 +24,8 @@ COMMANDS = {
                                     "answer with the recorded one"),
     "export": ("dqpose.cli.export", "a recording as a ROS 2 bag (PoseWithCovarianceStamped, /tf, "
                                     "Path)"),
+    "world": ("dqpose.cli.world", "a server's shared world: publish measurements, watch fused "
+                                  "poses, look up one body relative to another"),
     "plan": ("dqpose.cli.trajectory",
              "plan a limit-respecting motion through waypoints from a JSON, YAML or CSV file"),
     "smooth": ("dqpose.cli.trajectory",

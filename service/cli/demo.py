@@ -59,20 +59,27 @@ def configure(name: str, p) -> None:
                      "and the fused one's against the ground truth and plots them over time. "
                      "`dqpose demo trajectory`: a blended path planned by the Trajectories "
                      "service and executed on the simulated UR through ur_rtde; prints the "
-                     "tracking error and the period jitter at the controller.")
-    p.add_argument("mode", nargs="?", choices=("blend", "fusion", "trajectory"), default="blend",
+                     "tracking error and the period jitter at the controller. "
+                     "`dqpose demo world`: two simulated cameras in two processes and the "
+                     "simulated UR publish into one server's World; prints the fused box pose "
+                     "against the truth and looks the box up in the tool frame.")
+    p.add_argument("mode", nargs="?", choices=("blend", "fusion", "trajectory", "world"),
+                   default="blend",
                    help="blend (default): the blending methods; fusion: live pose fusion; "
-                        "trajectory: plan and execute on a simulated arm")
-    from dqpose.cli import demo_fusion, demo_trajectory
+                        "trajectory: plan and execute on a simulated arm; world: producers in "
+                        "three processes feeding one shared world")
+    from dqpose.cli import demo_fusion, demo_trajectory, demo_world
     from dqpose.cli.common import INTERRUPTED
     demo_fusion.add_arguments(p)
     demo_trajectory.add_arguments(p)
+    demo_world.add_arguments(p)
 
     def run(args) -> int:
         if args.mode == "blend":
             main()
             return 0
-        demo = demo_fusion if args.mode == "fusion" else demo_trajectory
+        demo = {"fusion": demo_fusion, "trajectory": demo_trajectory,
+                "world": demo_world}[args.mode]
         try:        # the simulated devices' demos fail alike: a missing extra, a device gone
             return demo.main(args)
         except KeyboardInterrupt:   # raised through the demo's exits: the arm closed by now

@@ -27,7 +27,7 @@ from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
 from dqpose.rpc.calls import Calls, refused
 from dqpose.rpc.geometry import dq_to_pose
-from dqpose.rpc.trajectories_convert import plan_from_msg
+from dqpose.rpc.trajectories_convert import plan_from_msg, resolve_frames
 
 #: an Execute feedback record every this many set-points (50 Hz at 500 Hz), and the last one
 FEEDBACK_EVERY = 10
@@ -97,6 +97,7 @@ class Arms:
         self.executor = cfg.executor
         self._arms = {name: _Arm(name, arm) for name, arm in sorted(cfg.arms.items())}
         self._stop_at: Optional[float] = None     # loop time the server stops, once known
+        self.world = None      # () -> the server's dqpose.world.World, for Waypoint.frame
 
     def _slot(self, name: str) -> _Arm:
         slot = self._arms.get(name)
@@ -184,7 +185,7 @@ class Arms:
             raise limits.over("plan.waypoints", f"{n} waypoints", self.limits,
                               "max_execute_waypoints")
         # converting up to max_execute_waypoints messages is work that grows with the request
-        args = await asyncio.to_thread(plan_from_msg, request.plan, "plan.", False)
+        args = await asyncio.to_thread(self._plan_args, request.plan, request.arm)
         for name, unit in ARM_LIMITS.items():
             want, bound = getattr(args.limits, name), float(getattr(slot.arm.limits, name))
             if want > bound:
@@ -193,6 +194,13 @@ class Arms:
                     f"arm {slot.name!r}, {bound:.6g} {unit}; plan within the arm's limits "
                     f"(GetArm lists them)")
         return slot, args
+
+    def _plan_args(self, plan, arm: str):
+        """The plan's arguments with its waypoints in bodies' frames resolved through the
+        server's world (one hop to a thread for both: a second one made a cancel's next
+        Execute lose its race against the run's end)."""
+        return resolve_frames(plan_from_msg(plan, "plan.", False), plan, self.world, "plan.",
+                              arm)[0]
 
     async def _claim(self, slot: _Arm, deadline: float) -> _Run:
         """The arm for a new run, once its last run has ended; FAILED_PRECONDITION if that takes

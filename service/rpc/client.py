@@ -31,14 +31,17 @@ from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from dqpose.rpc._proto.dqpose.v1 import handeye_pb2 as hpb
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
+from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
 from dqpose.rpc.blending_convert import METHOD_ENUMS
 from dqpose.rpc.checks import over_count
 from dqpose.rpc.client_types import (  # noqa: F401 (Batch, Planned, RequestTooLarge: the API)
+    Ack,
     ArmState,
     Batch,
     Feedback,
     InvalidArgument,
     Planned,
+    Relative,
     RequestTooLarge,
     RpcError,
     StreamAnswer,
@@ -84,6 +87,7 @@ SERVICE = pb.DESCRIPTOR.services_by_name["Blending"].full_name
 FUSION = fpb.DESCRIPTOR.services_by_name["Fusion"].full_name
 TRAJECTORIES = tpb.DESCRIPTOR.services_by_name["Trajectories"].full_name
 HANDEYE = hpb.DESCRIPTOR.services_by_name["HandEye"].full_name
+WORLD = wpb.DESCRIPTOR.services_by_name["World"].full_name
 if TYPE_CHECKING:   # the stubs' generics: grpc's own classes take no parameters at run time
     _Unary = grpc.UnaryUnaryMultiCallable[bytes, bytes]
     _Streams = grpc.StreamStreamMultiCallable[bytes, bytes]
@@ -129,6 +133,17 @@ def _blend_batch_answer(data: bytes) -> np.ndarray:
 def _interpolate_answer(data: bytes) -> np.ndarray:
     r = pb.InterpolateResponse.FromString(data)
     return _flat_to_dqs(poses_to_flat([s.pose for s in r.samples]))
+
+
+def _stream_answer(data: bytes, probability: float = DEFAULT_PROBABILITY,
+                   max_skew: Optional[float] = None) -> StreamAnswer:
+    """A ``FusedPose`` of a stream (StreamFuse's, Subscribe's) as a :class:`StreamAnswer`."""
+    a = fpb.FusedPose.FromString(data)
+    if a.HasField("error"):
+        return StreamAnswer(a.request, a.body, a.time, None, np.empty(0, np.int64),
+                            a.error.details, a.error.measurement)
+    return StreamAnswer(a.request, a.body, a.time, fused_from_msg(a, probability, max_skew),
+                        np.array(a.measurements, dtype=np.int64))
 
 
 def _sets(dqs, weights):
@@ -199,6 +214,15 @@ class Client:
         self._get_arm: _Unary = self.channel.unary_unary(f"/{TRAJECTORIES}/GetArm")
         self._list_arms: _Unary = self.channel.unary_unary(f"/{TRAJECTORIES}/ListArms")
         self._calibrate: _Unary = self.channel.unary_unary(f"/{HANDEYE}/Calibrate")
+        self._configure_world = self.channel.unary_unary(
+            f"/{WORLD}/Configure", request_serializer=wpb.WorldConfig.SerializeToString,
+            response_deserializer=wpb.WorldConfig.FromString)
+        self._publish: _Streams = self.channel.stream_stream(f"/{WORLD}/Publish")
+        self._subscribe: grpc.UnaryStreamMultiCallable = self.channel.unary_stream(
+            f"/{WORLD}/Subscribe", request_serializer=wpb.SubscribeRequest.SerializeToString)
+        self._lookup = self.channel.unary_unary(
+            f"/{WORLD}/Lookup", request_serializer=wpb.LookupRequest.SerializeToString,
+            response_deserializer=wpb.RelativePose.FromString)
         self.timeout = timeout
         self.max_message_bytes = max_message_bytes
         self.max_poses = max_poses
@@ -407,26 +431,20 @@ class Client:
 
         try:
             for data in self._stream_fuse(requests(), metadata=self.metadata):
-                a = fpb.FusedPose.FromString(data)
-                if a.HasField("error"):
-                    yield StreamAnswer(a.request, a.body, a.time, None, np.empty(0, np.int64),
-                                       a.error.details, a.error.measurement)
-                else:
-                    yield StreamAnswer(a.request, a.body, a.time,
-                                       fused_from_msg(a, probability, max_skew),
-                                       np.array(a.measurements, dtype=np.int64))
+                yield _stream_answer(data, probability, max_skew)
         except grpc.RpcError as e:
             raise _rpc_error(e) from None
         if refused:
             raise refused[0]
 
     def plan(self, waypoints, limits, rate_hz: float, interpolation: str = PLAN_INTERPOLATION, *,
-             start_velocity=None) -> Planned:
+             start_velocity=None, frames: Optional[Sequence[str]] = None) -> Planned:
         """:func:`dqpose.trajectory.plan` on the server, sampled at ``rate_hz``: the samples
         (first at 0 on the first waypoint, last on the last one) with the plan's duration and
         segments. ``waypoints``: :class:`~dqpose.trajectory.Waypoint` s or ``(8,)`` poses. The
-        stream has no deadline (a long plan is many samples)."""
-        request = plan_msg(waypoints, limits, rate_hz, interpolation, start_velocity)
+        stream has no deadline (a long plan is many samples). ``frames``: per waypoint the body
+        of the server's world its pose is given in ("" the base; see ``Waypoint.frame``)."""
+        request = plan_msg(waypoints, limits, rate_hz, interpolation, start_velocity, frames)
         try:
             msgs = list(self._plan(request, metadata=self.metadata))
         except grpc.RpcError as e:
@@ -434,7 +452,11 @@ class Client:
         info = msgs[0].plan
         segments = tuple(trajectory.Segment(s.start, s.duration, s.binding)
                          for s in info.segments)
-        return Planned(*samples_from_msgs(msgs), duration=info.duration, segments=segments)
+        resolved = tuple((r.index, r.frame, r.time, pose_to_dq(r.pose),
+                          np.array(r.covariance, dtype=np.float64).reshape(6, 6))
+                         for r in info.resolved)
+        return Planned(*samples_from_msgs(msgs), duration=info.duration, segments=segments,
+                       resolved=resolved)
 
     def smooth(self, times, poses, limits, smoothing: float = 1.0,
                rate_hz: float = 0.0, free_ends: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -503,6 +525,92 @@ class Client:
         answer = hpb.CalibrateResponse.FromString(self._call(self._calibrate,
                                                              request.SerializeToString()))
         return calibration_from_msg(answer, setup)
+
+    # -- the shared world (world.proto)
+
+    def configure_world(self, sources: Iterable[fusion.Source] = (), arms=None,
+                        **options) -> wpb.WorldConfig:
+        """Sets the server's world: its sources (:class:`dqpose.fusion.Source`, with
+        ``extrinsic_covariance``), ``arms`` (arm name -> source name) and ``options``
+        (:func:`dqpose.rpc.world_convert.world_config`'s: robust, probability, max_skew,
+        max_extrapolation, window, twist_covariance, acceleration_psd, buffer, max_delay).
+        Returns the ``WorldConfig`` in force."""
+        from dqpose.rpc.world_convert import world_config
+        try:
+            return self._configure_world(world_config(sources, arms, **options),
+                                         timeout=self.timeout, metadata=self.metadata)
+        except grpc.RpcError as e:
+            raise _rpc_error(e) from None
+
+    def publish(self, batches: Iterable, producer: str = "",
+                first_sequence: int = 1) -> Iterator[Ack]:
+        """Publishes :class:`Batch` es (each measurement naming its body) into the world as one
+        ``Publish`` stream, numbered ``first_sequence``, ``first_sequence + 1``, ... under
+        ``producer`` (0: unnumbered); yields one :class:`Ack` per batch, in order. A batch that
+        cannot be sent (wrong shape) ends the stream and raises its ``ValueError`` after the
+        acks before it."""
+        def requests():
+            for i, b in enumerate(batches):
+                b = b if isinstance(b, Batch) else Batch(*b)
+                try:
+                    ms = measurement_msgs(*b)
+                except ValueError as e:
+                    raise ValueError(f"batches[{i}].{e}") from None
+                seq = first_sequence + i if first_sequence else 0
+                yield wpb.PublishRequest(measurements=ms, producer=producer, sequence=seq)
+
+        return self.publish_requests(requests())
+
+    def publish_requests(self, requests: Iterable[wpb.PublishRequest]) -> Iterator[Ack]:
+        """:meth:`publish` of ready ``PublishRequest`` messages (``dqpose world publish``)."""
+        refused: list[Exception] = []
+
+        def wire():
+            try:
+                for r in requests:
+                    yield r.SerializeToString()
+            except Exception as e:   # raised to the caller below, not lost in grpc's thread
+                refused.append(e)
+
+        try:
+            for data in self._publish(wire(), metadata=self.metadata):
+                a = wpb.PublishAck.FromString(data)
+                yield Ack(a.acked_through, tuple((e.request, e.measurement, e.details)
+                                                 for e in a.errors))
+        except grpc.RpcError as e:
+            raise _rpc_error(e) from None
+        if refused:
+            raise refused[0]
+
+    def subscribe(self, bodies: Sequence[str] = (), rate_hz: float = 0.0,
+                  relative_to: str = "", *, timeout: Optional[float] = None,
+                  probability: float = DEFAULT_PROBABILITY) -> Iterator[StreamAnswer]:
+        """The world's fused poses of ``bodies`` (empty: all) as they fall due (see
+        world.proto: paced on measurement time), as :class:`StreamAnswer` s; with
+        ``relative_to`` a body, ``fused.mean``/``covariance`` are ``T_relative_to_body``. The
+        stream has no deadline unless ``timeout``; close the iterator (or cancel) to end it."""
+        call = self._subscribe(wpb.SubscribeRequest(bodies=list(bodies), rate_hz=rate_hz,
+                                                    relative_to=relative_to),
+                               timeout=timeout, metadata=self.metadata)
+        try:
+            for data in call:
+                yield _stream_answer(data, probability)
+        except grpc.RpcError as e:
+            raise _rpc_error(e) from None
+        finally:
+            call.cancel()
+
+    def lookup(self, target: str, source: str, time: float = 0.0) -> Relative:
+        """``T_target_source`` at ``time`` (0: the newest both are known at; "" is the world
+        frame) with its covariance, tf2's lookupTransform order. An unknown body raises
+        :class:`RpcError` NOT_FOUND, a time the world does not know FAILED_PRECONDITION."""
+        try:
+            r = self._lookup(wpb.LookupRequest(target=target, source=source, time=time),
+                             timeout=self.timeout, metadata=self.metadata)
+        except grpc.RpcError as e:
+            raise _rpc_error(e) from None
+        return Relative(pose_to_dq(r.pose),
+                        np.array(r.covariance, dtype=np.float64).reshape(6, 6), r.time)
 
     def health(self, service: str = "") -> str:
         """The health status name (``"SERVING"``, ``"NOT_SERVING"``, ...)."""

@@ -21,6 +21,9 @@ class Planned(NamedTuple):
     angular_velocity: np.ndarray  # (N, 3) tool, base frame, rad/s
     duration: float
     segments: tuple[trajectory.Segment, ...]
+    # per waypoint given in a body's frame: (index, frame, time, T_base_tool (8,), covariance
+    # (6, 6)) as the server resolved it
+    resolved: tuple = ()
 
 
 class Feedback(NamedTuple):
@@ -107,6 +110,22 @@ class StreamAnswer(NamedTuple):
     measurements: np.ndarray
     error: Optional[str] = None
     measurement: int = -1
+
+
+class Ack(NamedTuple):
+    """One ``PublishAck``: every request of the producer up to sequence ``acked_through`` is in
+    the world; ``errors`` ``(request, measurement, details)`` name what was not used
+    (``measurement`` -1: the request itself, e.g. a repeated sequence)."""
+    acked_through: int
+    errors: tuple[tuple[int, int, str], ...] = ()
+
+
+class Relative(NamedTuple):
+    """``Lookup``'s answer: ``pose`` ``T_target_source`` ``(8,)`` at ``time``, its ``covariance``
+    ``(6, 6)`` (rotation first, right perturbation)."""
+    pose: np.ndarray
+    covariance: np.ndarray
+    time: float
 
 
 class RequestTooLarge(ValueError):

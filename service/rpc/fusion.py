@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import zlib
 from typing import Any, Optional, Sequence
 
 import grpc
@@ -33,30 +32,7 @@ from dqpose.rpc.fusion_convert import (
     wire_measurement_error,
 )
 from dqpose.rpc.wire import CONVERT_LAST, fuse_stream_from_wire
-
-
-def tick_phase(body: str) -> float:
-    """Where ``body``'s ticks sit in the output period, as a fraction of it in [0, 1): from the
-    CRC-32 of its name, so that many bodies' ticks spread over the period instead of falling due
-    together (one burst of estimates), and a recorded stream replays to the same ticks."""
-    return zlib.crc32(body.encode()) / 2.0**32
-
-
-def tick_time(k: int, rate: float, phase: float) -> float:
-    """Tick ``k`` of a body whose ticks have ``phase`` (:func:`tick_phase`)."""
-    return (k + phase) / rate
-
-
-def first_tick(t: float, rate: float, phase: float = 0.0) -> int:
-    """The first tick ``k`` (at :func:`tick_time`) at or after ``t``, exactly in floating
-    point (a step or two of correction while ``|t| * rate`` is within
-    :data:`limits.EXACT_TICKS`, which the stream's limits keep it)."""
-    k = math.ceil(t * rate - phase)
-    while tick_time(k - 1, rate, phase) >= t:
-        k -= 1
-    while tick_time(k, rate, phase) < t:
-        k += 1
-    return k
+from dqpose.world_ticks import first_tick, tick_phase, tick_time
 
 
 class Stream:

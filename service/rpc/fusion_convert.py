@@ -143,16 +143,45 @@ class Options(NamedTuple):
                     acceleration_psd=self.acceleration_psd)
 
 
+def sources_from_msg(msgs, field: str = "options.sources") -> tuple[fusion.Source, ...]:
+    """Repeated ``Source`` to :class:`fusion.Source` s: frames converted, an
+    ``extrinsic_covariance`` of 36 values made 6x6 (the domain checks it is SPD)."""
+    sources = []
+    for k, s in enumerate(msgs):
+        where = f"{field}[{k}]"
+        extra = {}
+        n = len(s.extrinsic_covariance)
+        if n not in (0, COVARIANCE_SIZE):
+            raise FieldError(f"{where}.extrinsic_covariance: expected {COVARIANCE_SIZE} values "
+                             f"(6x6, row-major, rotation first) or none, got {n}")
+        if n:
+            extra["extrinsic_covariance"] = np.array(
+                s.extrinsic_covariance, dtype=np.float64).reshape(fusion.DOF, fusion.DOF)
+        sources.append(fusion.Source(s.name, optional_pose(s, "extrinsic", where),
+                                     optional_pose(s, "body_offset", where), s.latency,
+                                     s.latency_sigma or None, **extra))
+    return tuple(sources)
+
+
+def source_msgs(sources, out) -> None:
+    """:class:`fusion.Source` s appended to the repeated ``Source`` field ``out``."""
+    for s in sources or ():
+        msg = out.add(name=s.name, latency=float(s.latency),
+                      latency_sigma=float(s.latency_sigma or 0.0))
+        if s.extrinsic is not None:
+            dq_to_pose(np.asarray(s.extrinsic, dtype=np.float64), msg.extrinsic)
+        if s.body_offset is not None:
+            dq_to_pose(np.asarray(s.body_offset, dtype=np.float64), msg.body_offset)
+        c = getattr(s, "extrinsic_covariance", None)
+        if c is not None:
+            msg.extrinsic_covariance.extend(np.asarray(c, dtype=np.float64).ravel().tolist())
+
+
 def options_from_msg(options, field: str = "options") -> Options:
     """``FusionOptions`` to :class:`Options`: frames converted and the proto's zeros turned into
     the domain's defaults here; the domain checks the rest (names, duplicates, signs, the twist
     prior) and its errors are renamed to these fields."""
-    sources = []
-    for k, s in enumerate(options.sources):
-        where = f"{field}.sources[{k}]"
-        sources.append(fusion.Source(s.name, optional_pose(s, "extrinsic", where),
-                                     optional_pose(s, "body_offset", where), s.latency,
-                                     s.latency_sigma or None))
+    sources = sources_from_msg(options.sources, f"{field}.sources")
     if not math.isfinite(options.time):
         raise FieldError(f"{field}.time: must be finite, got {options.time!r}")
     p = options.probability or DEFAULT_PROBABILITY
@@ -194,13 +223,7 @@ def options_msg(robust: bool = False, time: float = 0.0, sources=(), probability
             if c.shape != (fusion.DOF, fusion.DOF):
                 raise ValueError(f"{name}: expected shape (6, 6), got {c.shape}")
             getattr(msg, name).extend(c.ravel().tolist())
-    for s in sources or ():
-        out = msg.sources.add(name=s.name, latency=float(s.latency),
-                              latency_sigma=float(s.latency_sigma or 0.0))
-        if s.extrinsic is not None:
-            dq_to_pose(np.asarray(s.extrinsic, dtype=np.float64), out.extrinsic)
-        if s.body_offset is not None:
-            dq_to_pose(np.asarray(s.body_offset, dtype=np.float64), out.body_offset)
+    source_msgs(sources, msg.sources)
     return msg
 
 

@@ -36,10 +36,12 @@ from dqpose.rpc.calls import Calls, log
 from dqpose.rpc.fusion import Fusion
 from dqpose.rpc.handeye import HandEye
 from dqpose.rpc.trajectories import Trajectories
+from dqpose.rpc.world import World
 
 # The services this server offers: each class takes (config, calls), has NAME (the full proto
-# service name) and register(server).
-SERVICERS = (Blending, Fusion, Trajectories, HandEye)
+# service name) and register(server). World comes first: Trajectories resolves Waypoint.frame
+# through its world (one per server), handed over in start().
+SERVICERS = (World, Blending, Fusion, Trajectories, HandEye)
 SERVICE_NAMES = tuple(s.NAME for s in SERVICERS) + (
     health_pb2.DESCRIPTOR.services_by_name["Health"].full_name, reflection.SERVICE_NAME)
 
@@ -509,7 +511,11 @@ async def start(cfg: ServerConfig) -> Running:
     gate = Gate(calls)
     interceptors = [gate] + ([BearerTokenAuth(cfg.token, calls)] if cfg.token else [])
     server = grpc.aio.server(options=server_options(cfg), interceptors=interceptors)
-    servicers = tuple(cls(cfg, calls) for cls in SERVICERS)
+    world = World(cfg, calls)
+    servicers = tuple(world if cls is World else cls(cfg, calls) for cls in SERVICERS)
+    for s in servicers:
+        if isinstance(s, Trajectories):
+            s.world = lambda: world.world      # made when a waypoint first names a frame
     for servicer in servicers:
         servicer.register(server)
     health_servicer = Health()

@@ -22,6 +22,7 @@ from dqpose.rpc.trajectories_convert import (
     limits_from_msg,
     plan_from_msg,
     plan_info_msg,
+    resolve_frames,
     sample_msgs,
 )
 
@@ -61,13 +62,25 @@ class Trajectories:
         self.max_poses = cfg.max_poses
         self.limits = cfg.limits
         self.arms = Arms(cfg, calls)
+        # () -> the server's dqpose.world.World (server.start hands it over)
+        self.world = None
+
+    @property
+    def world(self):
+        return self.arms.world
+
+    @world.setter
+    def world(self, world) -> None:
+        self.arms.world = world
 
     # -- domain, message in, message(s) out
 
     def plan(self, request: pb.PlanRequest):
-        """``(trajectory, rate)`` for a PlanRequest; FieldError / Infeasible naming the field."""
+        """``(trajectory, rate, resolved)`` for a PlanRequest (``resolved``: the waypoints given
+        in a body's frame, as ``ResolvedWaypoint`` s); FieldError / Infeasible naming the
+        field."""
         check_count("waypoints", len(request.waypoints), self.max_poses)
-        args = plan_from_msg(request)
+        args, resolved = resolve_frames(plan_from_msg(request), request, self.world)
         traj = _planned(args)
         n = traj.duration * args.rate_hz + 2
         if not n <= self.limits.max_plan_samples:
@@ -79,7 +92,7 @@ class Trajectories:
                               f"{seg.duration:.6g} s of it to this waypoint (at {pace}); at "
                               f"rate_hz {args.rate_hz:.6g} that is {n:.6g} samples",
                               self.limits, "max_plan_samples")
-        return traj, args.rate_hz
+        return traj, args.rate_hz, resolved
 
     def smooth(self, request: pb.SmoothRequest) -> pb.SmoothResponse:
         check_count("poses", len(request.poses), self.max_poses)
@@ -112,22 +125,23 @@ class Trajectories:
         return self.smooth(_parsed(pb.SmoothRequest, data)).SerializeToString()
 
     def planned(self, data: bytes):
-        """What Plan serves, for request bytes: ``(trajectory, its samples at the rate)``."""
-        traj, rate = self.plan(_parsed(pb.PlanRequest, data))
+        """What Plan serves, for request bytes: ``(trajectory, its samples at the rate, the
+        resolved waypoints)``."""
+        traj, rate, resolved = self.plan(_parsed(pb.PlanRequest, data))
         samples = traj.at_rate(rate)
         # for viewing (dqpose.record): at most PLAN_VIEW_POSES of the path, evenly
         step = max(1, -(-len(samples.pose) // PLAN_VIEW_POSES))
         self.calls.recorder.plan("Plan", np.concatenate([samples.pose[::step],
                                                           samples.pose[-1:]]))
-        return traj, samples
+        return traj, samples, resolved
 
     @staticmethod
-    def sample_chunk(traj, samples, i: int) -> list[bytes]:
-        """Samples ``i`` to ``i + CHUNK`` as ``TrajectorySample`` bytes (the plan's segments on
-        the first)."""
+    def sample_chunk(traj, samples, i: int, resolved=()) -> list[bytes]:
+        """Samples ``i`` to ``i + CHUNK`` as ``TrajectorySample`` bytes (the plan's segments and
+        resolved waypoints on the first)."""
         msgs = sample_msgs(trajectory.Samples(*(a[i:i + CHUNK] for a in samples)))
         if i == 0:
-            msgs[0].plan.CopyFrom(plan_info_msg(traj))
+            msgs[0].plan.CopyFrom(plan_info_msg(traj, resolved))
         return [m.SerializeToString() for m in msgs]
 
     # -- RPCs
@@ -165,14 +179,14 @@ class Trajectories:
         code, sent = "OK", 0
         try:
             try:
-                traj, samples = await self.calls.work(self.planned, request)
+                traj, samples, resolved = await self.calls.work(self.planned, request)
             except Exception as e:
                 status, details = refused("Plan", e)
                 code = status.name
                 await context.abort(status, details)
             # the samples' messages made in the worker pool too, CHUNK at a time
             for i in range(0, len(samples.time), CHUNK):
-                msgs = await self.calls.work(self.sample_chunk, traj, samples, i)
+                msgs = await self.calls.work(self.sample_chunk, traj, samples, i, resolved)
                 for m in msgs:
                     await context.write(m)
                 sent += len(msgs)

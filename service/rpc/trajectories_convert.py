@@ -75,9 +75,13 @@ def plan_from_msg(req, field: str = "", need_rate: bool = True) -> PlanArgs:
 
 
 def plan_msg(waypoints, limits, rate_hz: float = 0.0, interpolation: str = PLAN_INTERPOLATION,
-             start_velocity=None):
+             start_velocity=None, frames=None):
     """Client side: the ``PlanRequest`` of :func:`dqpose.trajectory.plan`'s arguments
-    (``waypoints``: :class:`~dqpose.trajectory.Waypoint` or ``(8,)`` poses)."""
+    (``waypoints``: :class:`~dqpose.trajectory.Waypoint` or ``(8,)`` poses; ``frames``: per
+    waypoint a body of the server's world it is given in, "" the base)."""
+    if frames is not None and (isinstance(frames, str) or len(frames) != len(waypoints)):
+        raise ValueError(f"frames: expected one per waypoint ({len(waypoints)}), got "
+                         f"{frames!r}")
     if interpolation not in trajectory.INTERPOLATIONS:
         raise ValueError(f"interpolation: unknown {interpolation!r}; expected one of "
                          f"{', '.join(trajectory.INTERPOLATIONS)}")
@@ -86,8 +90,8 @@ def plan_msg(waypoints, limits, rate_hz: float = 0.0, interpolation: str = PLAN_
     flat = np.array([w.pose for w in wps], dtype=np.float64).reshape(-1, 8)
     poses = pose_msgs(*pose_arrays(flat))
     req = tpb.PlanRequest(
-        waypoints=[tpb.Waypoint(pose=p, time=w.time, blend_radius=w.blend_radius)
-                   for p, w in zip(poses, wps)],
+        waypoints=[tpb.Waypoint(pose=p, time=w.time, blend_radius=w.blend_radius, frame=f)
+                   for p, w, f in zip(poses, wps, frames or [""] * len(wps))],
         limits=limits_msg(limits), rate_hz=rate_hz,
         # protoc's .pyi types Enum.Value() as int, the field as the enum class
         interpolation=INTERPOLATION_ENUMS[interpolation])  # type: ignore[arg-type]
@@ -98,10 +102,12 @@ def plan_msg(waypoints, limits, rate_hz: float = 0.0, interpolation: str = PLAN_
     return req
 
 
-def plan_info_msg(traj):
-    """A :class:`dqpose.trajectory.Trajectory`'s duration and segments as ``PlanInfo``."""
+def plan_info_msg(traj, resolved=()):
+    """A :class:`dqpose.trajectory.Trajectory`'s duration and segments as ``PlanInfo`` (with
+    the waypoints :func:`resolve_frames` resolved)."""
     return tpb.PlanInfo(duration=traj.duration, segments=[
-        tpb.Segment(start=s.start, duration=s.duration, binding=s.binding) for s in traj.segments])
+        tpb.Segment(start=s.start, duration=s.duration, binding=s.binding)
+        for s in traj.segments], resolved=list(resolved))
 
 
 def sample_msgs(samples) -> list:
@@ -125,3 +131,31 @@ def samples_from_msgs(msgs) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndar
                     for m in msgs], dtype=np.float64).reshape(-1, 6)
     times = np.array([m.time for m in msgs], dtype=np.float64)
     return times, dq.from_pose(q, t) if len(msgs) else np.zeros((0, 8)), vel[:, :3], vel[:, 3:]
+
+
+def resolve_frames(args: PlanArgs, req, world, field: str = "", arm: str | None = None):
+    """``(args, resolved)``: ``args`` with every waypoint given in a body's frame
+    (``Waypoint.frame``) resolved through ``world()`` (:func:`dqpose.world_waypoints.resolve`),
+    and one ``ResolvedWaypoint`` each for ``PlanInfo.resolved``. The base is ``arm``'s in the
+    world when the world's arms name it, else the world frame."""
+    framed = [i for i, w in enumerate(req.waypoints) if w.frame]
+    if not framed:
+        return args, []
+    from dqpose.world_waypoints import resolve  # the domain World only when frames are used
+    if world is None:
+        raise FieldError(f"{field}waypoints[{framed[0]}].frame: this server has no world")
+    world = world()
+    base = world.arm_base(arm).pose if arm is not None and arm in world.arms else None
+    waypoints = list(args.waypoints)
+    resolved = []
+    for i in framed:
+        w = req.waypoints[i]
+        r = resolve(world, w.frame, waypoints[i].pose, f"{field}waypoints[{i}].frame", base)
+        waypoints[i] = trajectory.Waypoint(pose=r.pose, time=waypoints[i].time,
+                                           blend_radius=waypoints[i].blend_radius)
+        q, t = pose_arrays(r.pose[None])
+        msg = tpb.ResolvedWaypoint(index=i, frame=w.frame, time=r.time,
+                                   pose=pose_msgs(q, t)[0])
+        msg.covariance.extend(np.asarray(r.covariance).ravel().tolist())
+        resolved.append(msg)
+    return args._replace(waypoints=waypoints), resolved

@@ -1,7 +1,9 @@
-"""The shared world (``dqpose.world``): one table.
+"""The shared world (``dqpose.world``): one table (``--publish``: the other one).
 
     .venv/bin/python -m tests.bench.bench_world            # ~1 min
     .venv/bin/python -m tests.bench.bench_world --trials 500 --lookups 2000
+    .venv/bin/python -m tests.bench.bench_world --publish          # Publish -> Subscribe, ~4 min
+    .venv/bin/python -m tests.bench.bench_world --publish --sweep none --seconds 600   # soak
 
 Sections (each a function returning rows of the one table, so that more can be added):
 
@@ -16,10 +18,37 @@ Sections (each a function returning rows of the one table, so that more can be a
   sees both bodies twice (0.1° / 0.5 mm each); beside it the composition of the two bodies'
   marginals, which ignores the error they share. 6 is consistent; the 95 % band of the mean of
   500 χ²₆ draws is about 6 ± 0.3.
+
+With ``--publish``, the other table (:func:`publish_rows`): the shared world under load,
+producers (processes) publishing measurements of many bodies into one server (a ``dqpose serve``
+process) while subscribers (processes) read the fused poses at 30 Hz per body: measurements/s
+sustained, the added latency from a measurement's arrival to the subscriber's answer that it
+made due (p50/p99), answers/s, the server's RSS at the start and the end.
+
+Scene: body ``b{i}`` is measured by producer ``i % producers`` only (its own source), a static
+pose with a full covariance; each producer sends messages of 10 measurements (10 bodies each),
+stamped with the host's clock when made (``time.time()``, which every process here shares), so
+a measurement's time is its send time. Each body is fed by one source, so its tick at t falls
+due with its first measurement at or after t: the answer's latency is its arrival time minus
+that measurement's time (client serialisation, both transports, the server's queue, the fit).
+The world fuses over a window of 0.2 s (``--window``).
+
+Rows: "transport" is the same producers and subscribers against a relay server (this module's
+``--serve-relay``) that parses each request, paces ticks with the same
+:class:`dqpose.world_ticks.Ticks` and sends an answer of the size the world's answers had in the
+target row, fusing nothing: the floor the added latency is measured against. "target" is 4
+producers and 4 subscribers at 20,000 measurements/s into 100 bodies; the sweep rows are one
+subscriber and unpaced producers (as fast as the acks come back, 8 requests in flight each).
 """
 from __future__ import annotations
 
 import argparse
+import asyncio
+import bisect
+import json
+import multiprocessing
+import sys
+import threading
 import time
 
 import numpy as np
@@ -28,6 +57,7 @@ from dqpose import dq, lie
 from dqpose.fusion import Measurement, Source
 from dqpose.world import World, WorldOptions
 from tests.bench._table import markdown
+from tests.bench.bench_grpc import ServerProcess
 
 HEAD = ["section", "case", "value", "unit", "detail"]
 COV = np.diag(np.r_[np.full(3, np.deg2rad(0.3)), np.full(3, 1e-3)] ** 2)
@@ -119,13 +149,259 @@ def nees_rows(trials: int = 500) -> list[list[str]]:
              f"{scene}; {trials} trials; ignores the shared error"]]
 
 
-def main(argv=None) -> None:
+
+PER_MESSAGE = 10
+IN_FLIGHT = 8
+SUBSCRIBE_RATE = 30.0
+
+
+def _scene_poses(bodies: int):
+    from dqpose import lie
+    rng = np.random.default_rng(0)
+    poses = lie.se3_exp(rng.normal(size=(bodies, 6)) * 0.3)
+    cov = np.diag([1e-4] * 3 + [1e-6] * 3)
+    return poses, cov
+
+
+def produce(target: str, k: int, producers: int, bodies: int, rate: float | None,
+            seconds: float, start: float, out) -> None:
+    """Producer ``k``: its bodies' measurements in messages of PER_MESSAGE from ``start`` (host
+    clock) for ``seconds``, ``rate`` measurements/s (None: as fast as the acks allow); puts
+    ``(k, {body: times}, measurements acked, seconds)``."""
+    from dqpose.rpc.client import Batch, Client
+    mine = list(range(k, bodies, producers))
+    poses, cov = _scene_poses(bodies)
+    sent: dict[int, list] = {b: [] for b in mine}
+    slots = threading.Semaphore(IN_FLIGHT)
+    per = min(PER_MESSAGE, len(mine))
+    covs = np.repeat(cov[None], per, 0)
+    names = [f"p{k}"] * per
+
+    def batches():
+        i = 0
+        while time.time() < start:
+            time.sleep(0.001)
+        end = start + seconds
+        while True:
+            if rate is not None:
+                due = start + i * per / rate
+                time.sleep(max(0.0, due - time.time()))
+            slots.acquire()
+            t = time.time()
+            if t >= end:
+                return
+            chosen = [mine[(i * per + j) % len(mine)] for j in range(per)]
+            for b in chosen:
+                sent[b].append(t)
+            i += 1
+            yield Batch(poses[chosen], covs, None, names, [f"b{b}" for b in chosen],
+                        np.full(per, t))
+
+    acked = 0
+    with Client(target) as c:
+        for ack in c.publish(batches(), producer=f"p{k}"):
+            slots.release()
+            acked = ack.acked_through
+    out.put(("producer", k, {b: np.array(v) for b, v in sent.items()}, acked * per,
+             time.time() - start))
+
+
+def subscribe(target: str, k: int, seconds: float, start: float, out) -> None:
+    """Subscriber ``k``: every answer's ``(body, time, arrival)`` and its size in bytes."""
+    import grpc
+
+    from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
+    from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
+    rows, sizes = [], []
+    ended = ""
+    with grpc.insecure_channel(target) as ch:
+        call = ch.unary_stream("/dqpose.v1.World/Subscribe",
+                               request_serializer=wpb.SubscribeRequest.SerializeToString)(
+            wpb.SubscribeRequest(rate_hz=SUBSCRIBE_RATE), timeout=seconds + (start - time.time())
+            + 5.0)
+        try:
+            for data in call:
+                now = time.time()
+                a = fpb.FusedPose.FromString(data)
+                rows.append((int(a.body[1:]) if a.body else -1, a.time, now))
+                sizes.append(len(data))
+        except grpc.RpcError as e:
+            if e.code() != grpc.StatusCode.DEADLINE_EXCEEDED:
+                ended = e.code().name       # e.g. RESOURCE_EXHAUSTED: it fell too far behind
+    out.put(("subscriber", k, np.array(rows).reshape(-1, 3), np.array(sizes), ended))
+
+
+def run(target: str, producers: int, subscribers: int, bodies: int, rate: float | None,
+        seconds: float, rss=None) -> dict:
+    ctx = multiprocessing.get_context("spawn")
+    out = ctx.Queue()
+    start = time.time() + 3.0 + 0.3 * (producers + subscribers)   # the processes' start-up
+    procs = [ctx.Process(target=subscribe, args=(target, k, seconds, start, out))
+             for k in range(subscribers)]
+    procs += [ctx.Process(target=produce, args=(target, k, producers, bodies,
+                                                None if rate is None else rate / producers,
+                                                seconds, start, out))
+              for k in range(producers)]
+    for p in procs:
+        p.start()
+    rss0 = rss() if rss else float("nan")
+    results = [out.get(timeout=seconds + 120) for _ in procs]
+    rss1 = rss() if rss else float("nan")
+    for p in procs:
+        p.join(30)
+    sent: dict[int, np.ndarray] = {}
+    measured, span = 0, 0.0
+    answers, sizes, ended = [], [], set()
+    for r in results:
+        if r[0] == "producer":
+            sent.update(r[2])
+            measured += r[3]
+            span = max(span, r[4])
+        else:
+            answers.append(r[2])
+            sizes.append(r[3])
+            if r[4]:
+                ended.add(r[4])
+    lat = []
+    for rows in answers:
+        for body, t, arrival in rows:
+            times = sent.get(int(body))
+            if times is None or not len(times):
+                continue
+            i = bisect.bisect_left(times, t - 1e-9)
+            if i < len(times):
+                lat.append(arrival - times[i])
+    lat_ms = np.array(lat) * 1e3
+    n_answers = sum(len(a) for a in answers)
+    return dict(rate=measured / span if span else 0.0, answers=n_answers / span if span else 0.0,
+                p50=float(np.percentile(lat_ms, 50)) if len(lat_ms) else float("nan"),
+                p99=float(np.percentile(lat_ms, 99)) if len(lat_ms) else float("nan"),
+                size=float(np.mean(np.concatenate(sizes))) if sizes and sum(map(len, sizes))
+                else 0.0, rss0=rss0, rss1=rss1, ended=",".join(sorted(ended)))
+
+
+def serve_relay(answer_bytes: int) -> None:
+    """The transport alone: World's Publish and Subscribe with the same pacing and answers of
+    ``answer_bytes``, fusing nothing."""
+    import grpc
+
+    from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
+    from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
+    from dqpose.world_ticks import Ticks, tick_phase
+    subs: list = []
+    template = fpb.FusedPose()
+    template.residuals.extend([0.0] * max(0, (answer_bytes - 40) // 8))
+
+    async def publish(request_iterator, context):
+        async for data in request_iterator:
+            req = wpb.PublishRequest.FromString(data)
+            for queue, ticks in subs:
+                for m in req.measurements:
+                    t = ticks.get(m.body)
+                    if t is None:
+                        t = ticks[m.body] = Ticks(SUBSCRIBE_RATE, 0.1, tick_phase(m.body), 0.2)
+                    for due in t.arrive(m.source, m.time):
+                        template.body, template.time = m.body, due
+                        queue.put_nowait(template.SerializeToString())
+            yield wpb.PublishAck(acked_through=req.sequence).SerializeToString()
+
+    async def subscribe_(request, context):
+        queue: asyncio.Queue = asyncio.Queue()
+        entry = (queue, {})
+        subs.append(entry)
+        try:
+            while True:
+                yield await queue.get()
+        finally:
+            subs.remove(entry)
+
+    async def main():
+        server = grpc.aio.server()
+        server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(
+            "dqpose.v1.World", {
+                "Publish": grpc.stream_stream_rpc_method_handler(publish),
+                "Subscribe": grpc.unary_stream_rpc_method_handler(subscribe_)}),))
+        port = server.add_insecure_port("127.0.0.1:0")
+        await server.start()
+        print(json.dumps({"event": "serving", "address": f"127.0.0.1:{port}"}),
+              file=sys.stderr, flush=True)
+        await server.wait_for_termination()
+
+    asyncio.run(main())
+
+
+class RelayProcess(ServerProcess):
+    def __init__(self, answer_bytes: int):
+        import shutil
+        import subprocess
+        import tempfile
+
+        from tests.bench.bench_grpc import ROOT
+        self.log = tempfile.TemporaryFile("w+")
+        self.proc = subprocess.Popen([sys.executable, "-m", "tests.bench.bench_world",
+                                      "--serve-relay", str(answer_bytes)], cwd=ROOT,
+                                     stderr=subprocess.PIPE, text=True)
+        self.target = json.loads(self.proc.stderr.readline())["address"]
+        self._drain = threading.Thread(target=shutil.copyfileobj,
+                                       args=(self.proc.stderr, self.log), daemon=True)
+        self._drain.start()
+
+
+def publish_rows(args) -> list:
+    """The Publish -> Subscribe rows: target, its transport floor, the sweep."""
+    from dqpose.rpc.client import Client
+    rows = []
+
+    def on_world(name, producers, subscribers, bodies, rate):
+        server = ServerProcess("aio", quiet_log=True)
+        try:
+            with Client(server.target) as c:
+                c.configure_world(window=args.window)
+            r = run(server.target, producers, subscribers, bodies, rate, args.seconds,
+                    server.rss_mb)
+        finally:
+            server.stop()
+        rows.append((name, producers, subscribers, bodies, rate, r))
+        return r
+
+    target = on_world("target", 4, 4, 100, args.rate)
+    relay = RelayProcess(int(target["size"]) or 1000)
+    try:
+        floor = run(relay.target, 4, 4, 100, args.rate, args.seconds, relay.rss_mb)
+    finally:
+        relay.stop()
+    rows.insert(0, ("transport (relay)", 4, 4, 100, args.rate, floor))
+    if args.sweep == "full":
+        for producers in (1, 2, 4, 8):
+            for bodies in (1, 10, 100, 1000):
+                if bodies >= producers:
+                    on_world("sweep", producers, 1, bodies, None)
+    return rows
+
+
+def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=500)
     ap.add_argument("--lookups", type=int, default=1000)
+    ap.add_argument("--publish", action="store_true",
+                    help="the Publish -> Subscribe table instead of Lookup and NEES")
+    ap.add_argument("--seconds", type=float, default=10.0,
+                    help="--publish: per row (default %(default)s)")
+    ap.add_argument("--rate", type=float, default=20_000.0,
+                    help="--publish: the target row's measurements/s in total (default "
+                         "%(default)s)")
+    ap.add_argument("--window", type=float, default=0.2, help="--publish: the world's window, s")
+    ap.add_argument("--sweep", choices=("full", "none"), default="full")
+    ap.add_argument("--serve-relay", type=int, metavar="BYTES", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
-    print(markdown(HEAD, lookup_rows(args.lookups) + nees_rows(args.trials)))
+    if args.serve_relay is not None:
+        serve_relay(args.serve_relay)
+        return 0
+    if not args.publish:
+        print(markdown(HEAD, lookup_rows(args.lookups) + nees_rows(args.trials)))
+        return 0
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

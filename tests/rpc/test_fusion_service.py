@@ -13,7 +13,8 @@ from dqpose.fusion import Source
 from dqpose.rpc import fusion_convert, geometry
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 from dqpose.rpc.client import Batch, Client, InvalidArgument
-from dqpose.rpc.fusion import Fusion, tick_phase
+from dqpose.rpc.fusion import Fusion
+from dqpose.world_ticks import tick_phase
 from tests.rpc._grpc_server import ServerThread
 
 
@@ -485,3 +486,21 @@ def test_stream_batch_that_cannot_be_sent_raises_after_the_answers(client):
 
 def test_server_offers_fusion_health_and_reflection(server, client):
     assert client.health("dqpose.v1.Fusion") == "SERVING"
+
+
+def test_fuse_and_stream_fuse_pass_the_extrinsic_covariance(client):
+    """Source.extrinsic_covariance (field 6) reaches dqpose.fusion: Fuse and StreamFuse answer
+    what fusion.fuse computes with it, which differs from the fit without it."""
+    _, Z, S = scene(11, n=4)
+    mount = np.diag([1e-4] * 3 + [4e-6] * 3)
+    E = lie.se3_exp(np.array([0.1, 0.2, -0.1, 0.3, 0.0, 1.0]))
+    with_cov = [Source("cam", extrinsic=E, extrinsic_covariance=mount)]
+    names = ["cam"] * len(Z)
+    want = fusion.fuse(Z, S, names=names, sources=with_cov)
+    without = fusion.fuse(Z, S, names=names, sources=[Source("cam", extrinsic=E)])
+    assert not np.allclose(want.covariance, without.covariance, rtol=0.1)
+    got = client.fuse(Z, S, names=names, sources=with_cov)
+    np.testing.assert_allclose(got.covariance, want.covariance, rtol=1e-9)
+    [answer] = list(client.stream_fuse([Batch(Z, S, None, names, ["box"] * len(Z),
+                                              np.zeros(len(Z)))], sources=with_cov))
+    np.testing.assert_allclose(answer.fused.covariance, want.covariance, rtol=1e-9)

@@ -1,0 +1,164 @@
+"""``dqpose demo world``: one shared world fed by three producers in three processes: two
+simulated ChArUco cameras (each in a process of its own, rendering and detecting the board the
+simulated UR holds) and the simulated UR (its controller read through ur_rtde here), all
+publishing into one server's ``World``; a subscriber prints the fused board ("box") pose against
+the truth, and a ``Lookup`` gives the box in the tool frame (against the known mount).
+
+Measurement time is the host's clock (``time.time()``), which every producer here shares; the
+arm holds still at its home pose, the cameras see it from either side (the scene of ``dqpose
+demo fusion``)."""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import multiprocessing
+import threading
+import time
+
+import numpy as np
+
+from dqpose import dq, lie
+
+ARM_RATE = 50.0            # arm reads published per second
+CAMERA_RATE = 10.0         # frames per second per camera
+ANSWER_RATE = 10.0         # fused answers per second of measurement time
+ARM_SIGMA = (2e-3, 1e-3)   # rad, m: the arm's reading noise (one sigma per axis)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("demo world")
+    g.add_argument("--seconds", type=float, default=4.0,
+                   help="demo world: seconds the producers publish (default: %(default)s)")
+
+
+def camera_process(target: str, name: str, E: np.ndarray, T_true: np.ndarray, ready, go,
+                   start, seconds: float, seed: int) -> None:
+    """A camera in a process of its own: renders the board at ``T_true`` (world frame) from its
+    extrinsic ``E`` every 1/CAMERA_RATE s from ``start.value`` (set once every producer is
+    ``ready``; ``go`` says it is), detects it and publishes each detection, stamped with the
+    clock, as a measurement of "box" from source ``name``."""
+    from dqpose.drivers.camera import CharucoCamera
+    from dqpose.drivers.sim.camera import BoardRenderer
+    from dqpose.rpc.client import Batch, Client
+
+    intr = _intrinsics()
+    renderer = BoardRenderer(intrinsics=intr, pixels_per_metre=5000.0)
+    cam = CharucoCamera(intr, renderer.board, name=name)
+    rng = np.random.default_rng(seed)
+    T_cam_box = dq.mul(dq.inv(E), T_true)
+    cam.detect(renderer.render(T_cam_box, blur=0.8, noise=6.0, rng=rng))   # the slow first one
+    ready.set()
+    go.wait(120)
+    t0 = start.value
+
+    def frames():
+        k = 0
+        while (t := t0 + k / CAMERA_RATE) < t0 + seconds:
+            time.sleep(max(0.0, t - time.time()))
+            d = cam.detect(renderer.render(T_cam_box, blur=0.8, noise=6.0, rng=rng))
+            k += 1
+            if hasattr(d, "covariance"):
+                yield Batch(d.pose[None], d.covariance[None], None, [name], ["box"],
+                            np.array([t]))
+
+    with Client(target) as c:
+        for ack in c.publish(frames(), producer=name):
+            for _, _, details in ack.errors:
+                print(f"{name}: {details}", flush=True)
+
+
+def _intrinsics():
+    from dqpose.drivers.camera import Intrinsics
+    return Intrinsics(K=np.array([[400.0, 0, 199.5], [0, 400.0, 149.5], [0, 0, 1]]),
+                      size=(400, 300))
+
+
+def main(args: argparse.Namespace, out=None) -> int:
+    from dqpose import drivers
+    from dqpose.cli.common import local_server, open_arm
+    from dqpose.cli.demo_fusion_scene import BOARD_OFFSET, HOME, cameras, pose_error
+    from dqpose.cli.world import HEADER, format_row
+    from dqpose.drivers.sim.camera import BoardRenderer
+    from dqpose.drivers.sim.ur import URSimProcess
+    from dqpose.fusion import Source
+    from dqpose.rpc.client import Batch, Client
+
+    seconds = args.seconds
+    offset = dq.from_pose(np.array(BOARD_OFFSET[0]), np.array(BOARD_OFFSET[1]))
+    rng = np.random.default_rng(0)
+    cov = np.diag(np.repeat(np.square(ARM_SIGMA), 3))
+    with contextlib.ExitStack() as stack:
+        target = getattr(args, "target", None) or stack.enter_context(local_server())
+        sim = stack.enter_context(URSimProcess())
+        sim.set_pose(np.array(HOME))
+        spec = f"ur:{sim.host}"
+        arm = stack.enter_context(open_arm(spec, process=drivers.process_problem(spec) is None,
+                                           simulated=True))
+        _, T_flange = arm.tool_pose()
+        T_true = dq.mul(T_flange, offset)
+        board = BoardRenderer(intrinsics=_intrinsics(), pixels_per_metre=5000.0).board
+        extrinsics = cameras(T_true, board, _intrinsics())
+        client = stack.enter_context(Client(target))
+        names = ("camera1", "camera2")
+        client.configure_world(
+            [Source("ur", body_offset=offset), Source("ur_flange")]
+            + [Source(n, extrinsic=E) for n, E in zip(names, extrinsics)],
+            arms={"ur": "ur_flange"}, window=0.5, max_delay=0.15,
+            twist_covariance=np.diag([0.05] * 3 + [0.02] * 3) ** 2)
+        ctx = multiprocessing.get_context("spawn")
+        go, shared_start = ctx.Event(), ctx.Value("d", 0.0)
+        ready = [ctx.Event() for _ in names]
+        procs = [ctx.Process(target=camera_process, args=(target, n, E, T_true, r, go,
+                                                         shared_start, seconds, k + 1),
+                             daemon=True)
+                 for k, (n, E, r) in enumerate(zip(names, extrinsics, ready))]
+        for p in procs:
+            p.start()
+            stack.callback(p.join, 10)
+        for r, p in zip(ready, procs):      # each camera's start-up (imports, first detection)
+            if not r.wait(120):
+                raise RuntimeError(f"the camera process {p.pid} did not start in 120 s")
+        start = shared_start.value = time.time() + 0.2
+        go.set()
+
+        def arm_reads():
+            k = 0
+            while (t := start + k / ARM_RATE) < start + seconds:
+                time.sleep(max(0.0, t - time.time()))
+                _, T = arm.tool_pose()
+                reading = dq.mul(T, lie.se3_exp(rng.normal(0.0, 1.0, 6)
+                                                * np.repeat(ARM_SIGMA, 3)))
+                k += 1
+                yield Batch(np.array([reading, reading]), np.array([cov, cov]), None,
+                            ["ur", "ur_flange"], ["box", "tool"], np.array([t, t]))
+
+        publisher = threading.Thread(
+            target=lambda: [None for _ in Client(target).publish(arm_reads(), producer="ur")],
+            daemon=True)
+        publisher.start()
+        print(HEADER + "   error vs truth", file=out, flush=True)
+        errors = []
+        for a in client.subscribe(["box"], ANSWER_RATE, timeout=seconds + 15.0):
+            line = format_row(a)
+            if a.fused is not None:
+                deg, mm = pose_error(a.fused.mean, T_true)
+                errors.append((mm, deg))
+                line += f"   {mm:.2f} mm {deg:.3f} deg"
+            print(line, file=out, flush=True)
+            if a.time >= start + seconds - 2.0 / CAMERA_RATE:
+                break
+        publisher.join(seconds + 10)
+        r = client.lookup("tool", "box")
+        deg, mm = pose_error(r.pose, offset)
+        sd = np.sqrt(np.diag(r.covariance))
+        print(f"\nLookup box in the tool frame at {r.time - start:.2f} s: "
+              f"{mm:.2f} mm, {deg:.3f} deg from the mount (sigma "
+              f"{np.linalg.norm(sd[3:]) * 1e3:.2f} mm, "
+              f"{np.degrees(np.linalg.norm(sd[:3])):.3f} deg)", file=out, flush=True)
+    if not errors:
+        print("dqpose demo world: no fused answer arrived", file=out)
+        return 1
+    e = np.array(errors)
+    print(f"fused box: {len(e)} answers, median error {np.median(e[:, 0]):.2f} mm "
+          f"{np.median(e[:, 1]):.3f} deg", file=out)
+    return 0

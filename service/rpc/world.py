@@ -1,0 +1,383 @@
+"""The ``dqpose.v1.World`` service: one :class:`dqpose.world.World` per server, fed by any number
+of ``Publish`` streams and read by ``Subscribe`` streams and ``Lookup``.
+
+Arrival order is the world's one order: each Publish request is applied under one lock in the
+worker pool, and the Subscribe answers it makes due (:mod:`dqpose.world_ticks`) are fused there
+and then, under the same lock, and queued to their subscribers in that order. So the answers
+depend on the sequence of requests the world received, never on when a subscriber reads, and a
+recording of the arrivals replays to the same answers.
+"""
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import threading
+from typing import Any
+
+import grpc
+from google.protobuf.message import DecodeError
+
+from dqpose import world as domain
+from dqpose.errors import FieldError
+from dqpose.rpc import DEFAULT_MAX_POSES
+from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
+from dqpose.rpc._proto.dqpose.v1 import world_pb2 as pb
+from dqpose.rpc.calls import Calls, readable, refused
+from dqpose.rpc.checks import over_count
+from dqpose.rpc.fusion_convert import measurements_to_arrays
+from dqpose.rpc.world_convert import (
+    body_pose_msg,
+    config_from_msg,
+    config_msg,
+    domain_measurements,
+    published_errors,
+    relative_msg,
+)
+from dqpose.world_ticks import Ticks, tick_phase
+
+log = logging.getLogger("dqpose.server")
+
+#: Subscribe streams open at once on one server
+MAX_SUBSCRIBERS = 64
+#: answers queued for one subscriber; a subscriber that falls further behind is ended with
+#: RESOURCE_EXHAUSTED (its answers would otherwise grow without bound)
+MAX_QUEUED = 4096
+#: fits one Publish request may make due, for all subscriptions together; the oldest ticks beyond
+#: are skipped (an error entry per body says how many): a source's time jumping ahead would
+#: otherwise make every tick in between due at once, under the world's lock
+MAX_FITS_PER_REQUEST = 1024
+#: producer names remembered (each one's acked_through); the oldest-acked is forgotten beyond
+MAX_PRODUCERS = 4096
+
+
+class NotFoundError(LookupError):
+    """An unknown body named by a request: NOT_FOUND."""
+
+
+def status_of(e: Exception) -> tuple[grpc.StatusCode, str]:
+    """The status a World call ends with for ``e``: the domain's NotFound is NOT_FOUND, its
+    OutOfRange FAILED_PRECONDITION, WorldError INVALID_ARGUMENT, anything else as every
+    servicer (:func:`refused`)."""
+    if isinstance(e, (domain.NotFound, NotFoundError)):
+        return grpc.StatusCode.NOT_FOUND, readable(str(e).strip("'\""))
+    if isinstance(e, domain.OutOfRange):
+        return grpc.StatusCode.FAILED_PRECONDITION, readable(str(e).strip("'\""))
+    if isinstance(e, domain.WorldError) and not isinstance(e, FieldError):
+        e = FieldError(str(e))
+    return refused("World", e)
+
+
+class Subscription:
+    """One Subscribe stream: its bodies (None: all), pacing per body, and the queue of its
+    answers (filled by the publishing thread through the event loop, in arrival order)."""
+
+    def __init__(self, bodies, rate: float, relative_to: str, loop, max_delay: float,
+                 window: float):
+        self.bodies = set(bodies) if bodies else None
+        self.rate, self.relative_to = rate, relative_to
+        self.loop = loop
+        self.max_delay, self.window = max_delay, window
+        self.ticks: dict[str, Ticks] = {}
+        self.queue: asyncio.Queue = asyncio.Queue()
+        self.overflow = False
+
+    def wants(self, body: str) -> bool:
+        return self.bodies is None or body in self.bodies
+
+    def due(self, body: str, source: str, taken: float) -> list[float]:
+        t = self.ticks.get(body)
+        if t is None:
+            t = self.ticks[body] = Ticks(self.rate, self.max_delay,
+                                         tick_phase(body) if self.rate else 0.0, self.window)
+        return t.arrive(source, taken)
+
+    def deliver(self, answers: list) -> None:
+        """On the event loop: queue ``answers``; past MAX_QUEUED the stream is ended."""
+        if self.overflow:
+            return
+        if self.queue.qsize() + len(answers) > MAX_QUEUED:
+            self.overflow = True
+            self.queue.put_nowait(None)
+            return
+        for a in answers:
+            self.queue.put_nowait(a)
+
+
+class World:
+    """The ``dqpose.v1.World`` service (one :class:`dqpose.world.World` per server, which the
+    Trajectories service resolves ``Waypoint.frame`` through)."""
+
+    NAME = pb.DESCRIPTOR.services_by_name["World"].full_name
+
+    def __init__(self, cfg=None, calls: Calls | None = None):
+        self.max_poses = cfg.max_poses if cfg is not None else DEFAULT_MAX_POSES
+        self.limits = cfg.limits if cfg is not None else None
+        self.calls = calls or Calls()
+        self._world: domain.World | None = None
+        self._making = threading.Lock()      # not self.lock: first used while it is held
+        self.lock = threading.Lock()
+        self.acked: dict[str, int] = {}      # producer -> acked_through
+        self.subscriptions: set[Subscription] = set()
+        self.requests = 0                    # Publish requests, per world, in arrival order
+        self.measurements = 0                # measurements numbered per world, arrival order
+
+    @property
+    def world(self) -> domain.World:
+        """The server's world, made on first use (a server that never uses it pays nothing)."""
+        if self._world is None:
+            with self._making:
+                if self._world is None:
+                    kw: dict[str, Any] = {} if self.limits is None else {"limits": self.limits}
+                    self._world = domain.World(**kw)
+        return self._world
+
+    # -- request -> response, no transport
+
+    def configure(self, request: pb.WorldConfig) -> pb.WorldConfig:
+        sources, arms, options = config_from_msg(request)
+        with self.lock:
+            try:
+                self.world.configure(sources=sources, arms=arms, options=options)
+            except domain.WorldError as e:
+                msg = str(e)
+                raise FieldError(msg if msg.startswith("config") else f"config.{msg}") from None
+            return config_msg(self.world.sources, self.world.arms, self.world.options)
+
+    def lookup(self, request: pb.LookupRequest) -> pb.RelativePose:
+        if not math.isfinite(request.time):
+            raise FieldError(f"time: must be finite (0: the newest both are known at), got "
+                             f"{request.time!r}")
+        with self.lock:
+            return relative_msg(self.world.relative(request.target, request.source,
+                                                    request.time))
+
+    def publish(self, request: pb.PublishRequest, r: int, producer: str) -> pb.PublishAck:
+        """Request ``r`` of a Publish call (``producer``: its key for acks): applied to the world,
+        its Subscribe answers made and queued, its ack returned; never raises for bad input."""
+        ack = pb.PublishAck()
+        field = f"requests[{r}].measurements"
+
+        def error(i: int, text: str) -> None:
+            ack.errors.add(request=r, measurement=i, details=readable(text))
+
+        with self.lock:
+            seq = request.sequence
+            last = self.acked.get(producer, 0)
+            ack.acked_through = last
+            if seq and seq <= last:
+                error(-1, f"requests[{r}]: sequence {seq} already in the world (acked through "
+                          f"{last}); not fused again")
+                return ack
+            if seq > last + 1:
+                error(-1, f"requests[{r}]: sequences {last + 1}..{seq - 1} of producer "
+                          f"{producer!r} never arrived")
+            too_many = over_count(field, len(request.measurements), self.max_poses,
+                                  "measurements")
+            if too_many is None:
+                self._apply(request, field, error)
+            else:
+                error(-1, f"{too_many}; none was used")
+            self.requests += 1
+            if seq:
+                self.acked[producer] = ack.acked_through = seq
+                if len(self.acked) > MAX_PRODUCERS:
+                    del self.acked[min(self.acked, key=self.acked.__getitem__)]
+        return ack
+
+    def publish_bytes(self, data: bytes, r: int, anonymous: str) -> pb.PublishAck:
+        """:meth:`publish` of request ``r``'s bytes (``anonymous``: the producer key of a
+        request that names none); bytes that are not a PublishRequest are an ack error."""
+        try:
+            request = pb.PublishRequest.FromString(data)
+        except DecodeError:
+            with self.lock:
+                self.requests += 1
+            ack = pb.PublishAck()
+            ack.errors.add(request=r, measurement=-1, details=(
+                f"requests[{r}]: not a valid dqpose.v1.PublishRequest message; none of it was "
+                f"used"))
+            return ack
+        return self.publish(request, r, request.producer or anonymous)
+
+    def _apply(self, request: pb.PublishRequest, field: str, error) -> None:
+        """Under the lock: the request's measurements into the world, then the answers they
+        make due."""
+        errors: list = []
+        m = measurements_to_arrays(request.measurements, field, errors)
+        for i, e in errors:
+            error(i, str(e))
+        ids = self.measurements + m.index
+        self.measurements += len(request.measurements)
+        if not len(m.index):
+            return
+        published = self.world.publish(domain_measurements(m))
+        bad = published_errors(published, m.index, field)
+        for i, text in bad:
+            error(i, text)
+        if not self.subscriptions:
+            return
+        refused_rows = {i for i, _ in bad}
+        latency = {s.name: s.latency for s in self.world.sources}
+        cache: dict[tuple[str, float, str], Any] = {}
+        for sub in list(self.subscriptions):
+            due: list[tuple[str, float, int]] = []
+            for k in range(len(m.index)):
+                body = m.bodies[k]
+                if int(m.index[k]) in refused_rows or not sub.wants(body):
+                    continue
+                source = m.sources[k]
+                taken = float(m.times[k]) - latency.get(source, 0.0)
+                due += [(body, t, int(ids[k])) for t in sub.due(body, source, taken)]
+            fits = sum((b, t, sub.relative_to) not in cache for b, t, _ in due)
+            budget = MAX_FITS_PER_REQUEST - len(cache)
+            answers = []
+            if fits > budget:
+                skipped: dict[str, int] = {}
+                for b, _t, _ in due[:fits - max(budget, 0)]:
+                    skipped[b] = skipped.get(b, 0) + 1
+                due = due[fits - max(budget, 0):]
+                r = self.requests
+                answers += [fpb.FusedPose(body=b, request=r, error=fpb.FuseError(
+                    request=r, measurement=-1, details=(
+                        f"body {b!r}: {n} ticks skipped: request {r} made more than "
+                        f"{MAX_FITS_PER_REQUEST} fits due (a source's time jumped ahead)")))
+                    for b, n in skipped.items()]
+            for body, t, last in due:
+                key = (body, t, sub.relative_to)
+                if key not in cache:
+                    cache[key] = self._answer(body, t, sub.relative_to, last)
+                answers.append(cache[key])
+            if answers:
+                sub.loop.call_soon_threadsafe(sub.deliver, answers)
+
+    def _answer(self, body: str, t: float, relative_to: str, last_id: int) -> fpb.FusedPose:
+        """Body ``body`` at tick ``t`` (relative to ``relative_to`` when set), or an error
+        entry naming why it cannot be answered."""
+        r = self.requests
+        try:
+            p = self.world.pose(body, t)
+            if relative_to:
+                rel = self.world.relative(relative_to, body, t)
+                p = domain.BodyPose(body, rel.time, rel.pose, rel.covariance, p.fused)
+        except (ValueError, LookupError) as e:
+            return fpb.FusedPose(body=body, time=t, request=r, error=fpb.FuseError(
+                request=r, measurement=-1, details=readable(f"body {body!r} at {t:.6g} s: {e}")))
+        msg = body_pose_msg(p)
+        msg.request = r
+        msg.measurements.append(last_id)
+        return msg
+
+    # -- RPCs
+
+    def register(self, server) -> None:
+        handlers: dict[str, grpc.RpcMethodHandler[Any, Any]] = {
+            "Configure": grpc.unary_unary_rpc_method_handler(
+                self.Configure, request_deserializer=pb.WorldConfig.FromString,
+                response_serializer=pb.WorldConfig.SerializeToString),
+            "Publish": grpc.stream_stream_rpc_method_handler(
+                self.Publish, request_deserializer=None,
+                response_serializer=pb.PublishAck.SerializeToString),
+            "Subscribe": grpc.unary_stream_rpc_method_handler(
+                self.Subscribe, request_deserializer=pb.SubscribeRequest.FromString,
+                response_serializer=fpb.FusedPose.SerializeToString),
+            "Lookup": grpc.unary_unary_rpc_method_handler(
+                self.Lookup, request_deserializer=pb.LookupRequest.FromString,
+                response_serializer=pb.RelativePose.SerializeToString),
+        }
+        generic = grpc.method_handlers_generic_handler(self.NAME, handlers)
+        server.add_generic_rpc_handlers((generic,))
+        server.add_registered_method_handlers(self.NAME, handlers)
+
+    async def _unary(self, rpc: str, fn, request, context):
+        t0 = self.calls.begin()
+        code = "OK"
+        try:
+            return await self.calls.work(fn, request)
+        except Exception as e:
+            status, details = status_of(e)
+            code = status.name
+            await context.abort(status, details)
+        finally:
+            self.calls.done(rpc, code, t0, context)
+
+    async def Configure(self, request, context):
+        return await self._unary("Configure", self.configure, request, context)
+
+    async def Lookup(self, request, context):
+        return await self._unary("Lookup", self.lookup, request, context)
+
+    async def Publish(self, request_iterator, context):
+        t0 = self.calls.begin()
+        code, r = "OK", 0
+        anonymous = f"\0call{id(context)}"
+        try:
+            # Registered without a deserializer: each request is parsed with its work in the
+            # worker pool (publish_bytes), never on the event loop.
+            async for data in request_iterator:
+                await context.write(await self.calls.work(self.publish_bytes, data, r,
+                                                          anonymous))
+                r += 1
+        except Exception:
+            code = "INTERNAL"
+            log.exception("Publish failed")
+            raise
+        except BaseException:
+            code = "CANCELLED"
+            raise
+        finally:
+            if anonymous in self.acked:
+                with self.lock:
+                    self.acked.pop(anonymous, None)
+            self.calls.done("Publish", code, t0, context, messages=r)
+
+    async def Subscribe(self, request, context):
+        t0 = self.calls.begin()
+        code, sent = "OK", 0
+        sub = None
+        try:
+            problem = None
+            if not (math.isfinite(request.rate_hz) and request.rate_hz >= 0.0):
+                problem = (grpc.StatusCode.INVALID_ARGUMENT,
+                           f"rate_hz: must be finite and >= 0 (0: every update), got "
+                           f"{request.rate_hz!r}")
+            elif self.limits is not None and request.rate_hz > self.limits.max_output_rate:
+                problem = (grpc.StatusCode.RESOURCE_EXHAUSTED,
+                           f"rate_hz: {request.rate_hz:.6g} Hz, over the server's limit "
+                           f"max_output_rate = {self.limits.max_output_rate:.6g} Hz")
+            elif (too_many := over_count("bodies", len(request.bodies),
+                                         self.world_bounds().max_bodies, "bodies")) is not None:
+                problem = (grpc.StatusCode.RESOURCE_EXHAUSTED, too_many)
+            elif len(self.subscriptions) >= MAX_SUBSCRIBERS:
+                problem = (grpc.StatusCode.RESOURCE_EXHAUSTED,
+                           f"Subscribe: {MAX_SUBSCRIBERS} subscriptions are open, the server's "
+                           f"most")
+            if problem is not None:
+                code = problem[0].name
+                await context.abort(problem[0], problem[1])
+            options = self.world.options
+            sub = Subscription(request.bodies, request.rate_hz, request.relative_to,
+                               asyncio.get_running_loop(), options.max_delay, options.window)
+            with self.lock:
+                self.subscriptions.add(sub)
+            while True:
+                answer = await sub.queue.get()
+                if answer is None:
+                    code = "RESOURCE_EXHAUSTED"
+                    await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, (
+                        f"Subscribe: this subscriber fell {MAX_QUEUED} answers behind the "
+                        f"world; subscribe to fewer bodies or a lower rate_hz"))
+                await context.write(answer)
+                sent += 1
+        except asyncio.CancelledError:
+            code = "CANCELLED"
+            raise
+        finally:
+            if sub is not None:
+                with self.lock:
+                    self.subscriptions.discard(sub)
+            self.calls.done("Subscribe", code, t0, context, messages=sent)
+
+    def world_bounds(self):
+        return getattr(self.world, "bounds", domain.WorldBounds())
+

@@ -1,0 +1,136 @@
+"""The ``dqpose.v1.World`` messages <-> :mod:`dqpose.world`: a ``WorldConfig`` as the World's
+sources, arms and options (the proto's zeros made the domain's defaults here) and back, a
+``PublishRequest``'s measurements as the domain's (each bad one named
+``requests[4].measurements[2]...``), and a :class:`dqpose.world.BodyPose` as a ``FusedPose`` or
+a ``RelativePose``. Measurements, sources and fused poses convert as Fusion's do
+(:mod:`dqpose.rpc.fusion_convert`)."""
+from __future__ import annotations
+
+import math
+import re
+
+import numpy as np
+
+from dqpose import fusion, world
+from dqpose.errors import FieldError
+from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
+from dqpose.rpc._proto.dqpose.v1 import world_pb2 as pb
+from dqpose.rpc.fusion_convert import (
+    DEFAULT_MAX_EXTRAPOLATION,
+    Measurements,
+    fused_to_msg,
+    options_from_msg,
+    options_msg,
+    source_msgs,
+    sources_from_msg,
+)
+from dqpose.rpc.geometry import dq_to_pose
+
+#: a domain error's leading ``measurements[i]`` (renamed to the request's field path)
+_MEASUREMENT = re.compile(r"^measurements\[(\d+)\](.*)$", re.DOTALL)
+
+
+def config_from_msg(msg: pb.WorldConfig, field: str = "config"):
+    """``(sources, arms, WorldOptions)`` of a ``WorldConfig``; FieldError naming the field."""
+    o = msg.options
+    if o.sources:
+        raise FieldError(f"{field}.options.sources: give the sources in {field}.sources")
+    if o.time:
+        raise FieldError(f"{field}.options.time: the world answers at its ticks and lookups; "
+                         f"leave it 0")
+    options = options_from_msg(o, f"{field}.options")
+    sources = sources_from_msg(msg.sources, f"{field}.sources")
+    arms: dict[str, str] = {}
+    for k, a in enumerate(msg.arms):
+        if a.arm in arms:
+            raise FieldError(f"{field}.arms[{k}].arm: {a.arm!r} is given twice")
+        arms[a.arm] = a.source
+    kw = {}
+    for name in ("buffer", "max_delay"):
+        v = getattr(msg, name)
+        if not (math.isfinite(v) and v >= 0.0):
+            raise FieldError(f"{field}.{name}: must be finite and >= 0 (0: the default), got "
+                             f"{v!r}")
+        if v:
+            kw[name] = float(v)
+    if options.window:
+        kw["window"] = float(options.window)
+    wo = world.WorldOptions(robust=options.robust, probability=options.probability,
+                            max_skew=options.max_skew,
+                            max_extrapolation=options.max_extrapolation,
+                            twist_covariance=options.twist_covariance,
+                            acceleration_psd=options.acceleration_psd, **kw)
+    return sources, arms, wo
+
+
+def config_msg(sources, arms, options) -> pb.WorldConfig:
+    """The ``WorldConfig`` of a world's sources, arms and :class:`dqpose.world.WorldOptions`
+    (the configuration in force, defaults filled in)."""
+    o = options_msg(robust=options.robust, probability=options.probability,
+                    max_skew=options.max_skew, max_extrapolation=options.max_extrapolation,
+                    window=options.window, twist_covariance=options.twist_covariance,
+                    acceleration_psd=options.acceleration_psd)
+    msg = pb.WorldConfig(options=o, buffer=float(options.buffer),
+                         max_delay=float(options.max_delay))
+    source_msgs(sources, msg.sources)
+    for arm, source in sorted(arms.items()):
+        msg.arms.add(arm=arm, source=source)
+    return msg
+
+
+def world_config(sources=(), arms=None, *, robust: bool = False, probability: float = 0.0,
+                 max_skew: float | None = None,
+                 max_extrapolation: float | None = DEFAULT_MAX_EXTRAPOLATION,
+                 window: float = 0.0, twist_covariance=None, acceleration_psd=None,
+                 buffer: float = 0.0, max_delay: float = 0.0) -> pb.WorldConfig:
+    """Client side: a ``WorldConfig`` from the domain's arguments (``sources``:
+    :class:`dqpose.fusion.Source`, ``arms`` arm name -> source name; 0: the server's
+    default)."""
+    o = options_msg(robust=robust, probability=probability, max_skew=max_skew,
+                    max_extrapolation=max_extrapolation, window=window,
+                    twist_covariance=twist_covariance, acceleration_psd=acceleration_psd)
+    msg = pb.WorldConfig(options=o, buffer=float(buffer), max_delay=float(max_delay))
+    source_msgs(sources, msg.sources)
+    for arm, source in (arms or {}).items():
+        msg.arms.add(arm=arm, source=source)
+    return msg
+
+
+def domain_measurements(m: Measurements) -> list:
+    """:class:`Measurements` (checked arrays) as the domain's :class:`fusion.Measurement` s."""
+    return [fusion.Measurement(m.sources[k], m.bodies[k], float(m.times[k]), m.poses[k],
+                               m.covariances[k]) for k in range(len(m.index))]
+
+
+def published_errors(published, index: np.ndarray, field: str) -> list:
+    """The domain's ``(k, message)`` errors of measurement ``k`` of those it was given, as
+    ``(i, text)`` naming the request's measurement ``i = index[k]`` under ``field``."""
+    out = []
+    for k, text in published.errors:
+        i = int(index[k])
+        hit = _MEASUREMENT.match(text)
+        rest = hit[2] if hit else (": " + text if not text.startswith((".", ":")) else text)
+        out.append((i, f"{field}[{i}]{rest}"))
+    return out
+
+
+def body_pose_msg(p, out=None):
+    """A :class:`dqpose.world.BodyPose` as a ``FusedPose``: every field of its fit when it has
+    one, its pose and covariance (a relative one's) either way."""
+    msg = fpb.FusedPose() if out is None else out
+    if p.fused is not None:
+        fused_to_msg(p.fused, p.body, p.time, msg)
+        msg.ClearField("pose")
+        del msg.covariance[:]
+    msg.body, msg.time = p.body, float(p.time)
+    dq_to_pose(np.asarray(p.pose, dtype=np.float64), msg.pose)
+    msg.covariance.extend(np.asarray(p.covariance, dtype=np.float64).ravel().tolist())
+    return msg
+
+
+def relative_msg(p) -> pb.RelativePose:
+    """A :class:`dqpose.world.BodyPose` (``relative``'s) as a ``RelativePose``."""
+    msg = pb.RelativePose(time=float(p.time))
+    dq_to_pose(np.asarray(p.pose, dtype=np.float64), msg.pose)
+    msg.covariance.extend(np.asarray(p.covariance, dtype=np.float64).ravel().tolist())
+    return msg
