@@ -23,6 +23,7 @@ if TYPE_CHECKING:
 _READING_FACTOR = 5.0                  # another reading fits this many times better: refuse
 _MAX_MOUNT = 1.0                       # (m) a flange-mounted camera or target farther, or
 _MIN_FIXED = 0.25                      # (m) a fixed one nearer the base's origin: warn
+                                       # (only when both poses inverted would be plausible)
 _SCALE_SIGMAS, _MIN_SCALE = 5.0, 2e-3  # camera translations scaled beyond both: warn
 
 
@@ -66,10 +67,15 @@ def _compare_readings(F, A, C, setup, use, closed, s_th, s_d) -> tuple:
 
 @dataclass(frozen=True)
 class _Reading:
-    mount_ok: bool    # the flange-mounted part near the flange, the fixed one off the base
+    reach_ok: bool    # the flange-mounted part near the flange
+    base_ok: bool     # the fixed part off the base
     front: bool       # the target in front of the camera (z > 0 in T_camera_target), every sample
     behind: bool      # ... behind it in every sample
     says: str
+
+    @property
+    def mount_ok(self) -> bool:
+        return self.reach_ok and self.base_ok
 
 
 def _plausible(p: _Prepared, X, Z, inlier, inverted: bool = False) -> _Reading:
@@ -81,7 +87,7 @@ def _plausible(p: _Prepared, X, Z, inlier, inverted: bool = False) -> _Reading:
     C = p.C[inlier]
     depth = dq.to_pose(dq.inv(C) if inverted else C)[1][:, 2]
     what = ("camera", "target") if p.setup == EYE_IN_HAND else ("target", "camera")
-    return _Reading(reach <= _MAX_MOUNT and base >= _MIN_FIXED, bool(np.all(depth > 0.0)),
+    return _Reading(reach <= _MAX_MOUNT, base >= _MIN_FIXED, bool(np.all(depth > 0.0)),
                     bool(np.all(depth < 0.0)),
                     f"the {what[0]} comes out {reach:.2f} m from the flange and the {what[1]} "
                     f"{base:.2f} m from the robot base")
