@@ -70,7 +70,7 @@ def sim():
 SLOW_MODULES = {
     "test_fuzz_rpc.py", "test_demo_fusion.py", "test_fusion_time.py", "test_handeye_cli.py",
     "test_handeye.py", "test_execute.py", "test_bench_handeye.py", "test_handeye_capture.py",
-    "test_bench_handeye_kinhec.py",
+    "test_bench_handeye_kinhec.py", "test_readings.py",
     "test_server.py", "test_armproc_respawn.py", "test_arm_safety.py", "test_examples.py",
     "test_interrupt.py", "test_camera.py",
 }
