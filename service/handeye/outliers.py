@@ -35,7 +35,16 @@ def _gated(p: _Prepared, noise: _Noise, robust: bool, warnings: list):
     for _ in range(5):
         r_all, S_all, nis_all = _against(p, fit, noise, inlier)
         new = p.use & (nis_all <= _GATE_6)
-        if np.count_nonzero(new) < _MIN_POSES or np.array_equal(new, inlier):
+        if np.count_nonzero(new) < _MIN_POSES:
+            # Too few would pass to solve on: the answer stands on samples the gate doubts, so
+            # it says which (never silently; a given noise far too small does this too).
+            doubt = np.flatnonzero(p.use & ~new)
+            warnings.append(f"{_samples(doubt)}: fail the χ² gate (NIS up to "
+                            f"{float(np.max(nis_all[doubt])):.3g} > {_GATE_6:.3g}), leaving "
+                            f"fewer than {_MIN_POSES} samples; kept, so the answer is doubtful: "
+                            f"outliers, or a given noise too small?")
+            break
+        if np.array_equal(new, inlier):
             break
         inlier = new
         fit = _fit(p.A, p.C, fit.X, fit.Z, noise, inlier)
