@@ -5,6 +5,10 @@ The inliers' NIS is their standardised residual ``r_iᵀ (Σ_r,i − J_i P J_i�
 leave-one-out NIS to first order), the others' against the prediction ``Σ_r,i + J_i P J_iᵀ``;
 the gate starts from a fit on the samples that pass the screw-congruence test and re-fits until
 the set settles. Robust solves leave the outliers out; otherwise they stay in, named in a warning.
+
+False alarms on healthy data (tests/bench/bench_handeye_false_alarms.py, 4000 genuine samples a
+row): 0.05–0.1 % of genuine samples rejected with the noise estimated, 0.2–0.28 % with it given
+(nominal ``1 − _GATE`` = 0.1 %).
 """
 from __future__ import annotations
 
