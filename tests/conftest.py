@@ -72,6 +72,7 @@ SLOW_MODULES = {
     "robustness/test_execute.py", "robustness/test_fuzz_rpc.py", "rpc/server/test_shutdown.py",
     "test_examples.py", "handeye/test_calibrate.py", "handeye/test_checks.py",
     "handeye/test_corners.py", "cli/test_world_cli.py",
+    "bench/test_bench_handeye_kinhec.py", "handeye/test_readings.py",
 }
 _TESTS = pathlib.Path(__file__).parent
 

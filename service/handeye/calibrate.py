@@ -191,7 +191,9 @@ def _both_inverted(q: _Request, p: _Prepared, fit: _Fit, inlier, SC, SRob,
                              f"{other.says}. The data cannot tell which; check both pose "
                              f"conventions (the flange in the robot's base frame, the target "
                              f"in the camera's) ({_samples(idx)})")
-    if not given.mount_ok:
+    # A fixed part near the base is only a sign of inverted poses when the inverted reading is
+    # plausible; alone it is a real mount (a target 0.21 m from the base is legitimate).
+    if not given.reach_ok or (not given.base_ok and other.mount_ok):
         why = ("though the target lies in front of the camera as given and behind it "
                "inverted" if given.front and other.behind else
                f"and as inverted poses {other.says}")

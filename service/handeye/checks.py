@@ -232,7 +232,13 @@ def _correspondence(cg: _Congruence, use, pu, moved, warnings: list):
     dth = np.abs(cg.angle_a - cg.angle_b)[pu]
     dd = np.abs(cg.pitch_a - cg.pitch_b)[pu]
     ip, jp = cg.i[pu], cg.j[pu]
-    med_th, med_d = float(np.median(dth)), float(np.median(dd))
+    # The median over samples of each sample's median over its pairs: a pair is off when either
+    # sample is, so with 30 % outlier samples half the pairs are, and the median over pairs
+    # refused data the consensus solves; per sample, a genuine one's pairs are mostly genuine.
+    # Misaligned or mispaired data (every sample off) are still refused.
+    per_th = _per_sample_median(n, ip, jp, dth)[use]
+    per_d = _per_sample_median(n, ip, jp, dd)[use]
+    med_th, med_d = float(np.median(per_th)), float(np.median(per_d))
     if med_th > _MISMATCH_ANGLE:
         raise Infeasible(f"base_flange, camera_target: the robot and camera motions do not "
                          f"correspond: their rotation angles differ by {np.degrees(med_th):.1f}° "

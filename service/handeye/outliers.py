@@ -5,6 +5,10 @@ The inliers' NIS is their standardised residual ``r_iᵀ (Σ_r,i − J_i P J_i�
 leave-one-out NIS to first order), the others' against the prediction ``Σ_r,i + J_i P J_iᵀ``;
 the gate starts from a fit on the samples that pass the screw-congruence test and re-fits until
 the set settles. Robust solves leave the outliers out; otherwise they stay in, named in a warning.
+
+False alarms on healthy data (tests/bench/bench_handeye_false_alarms.py, 4000 genuine samples a
+row): 0.05–0.1 % of genuine samples rejected with the noise estimated, 0.2–0.28 % with it given
+(nominal ``1 − _GATE`` = 0.1 %).
 """
 from __future__ import annotations
 
@@ -35,7 +39,16 @@ def _gated(p: _Prepared, noise: _Noise, robust: bool, warnings: list):
     for _ in range(5):
         r_all, S_all, nis_all = _against(p, fit, noise, inlier)
         new = p.use & (nis_all <= _GATE_6)
-        if np.count_nonzero(new) < _MIN_POSES or np.array_equal(new, inlier):
+        if np.count_nonzero(new) < _MIN_POSES:
+            # Too few would pass to solve on: the answer stands on samples the gate doubts, so
+            # it says which (never silently; a given noise far too small does this too).
+            doubt = np.flatnonzero(p.use & ~new)
+            warnings.append(f"{_samples(doubt)}: fail the χ² gate (NIS up to "
+                            f"{float(np.max(nis_all[doubt])):.3g} > {_GATE_6:.3g}), leaving "
+                            f"fewer than {_MIN_POSES} samples; kept, so the answer is doubtful: "
+                            f"outliers, or a given noise too small?")
+            break
+        if np.array_equal(new, inlier):
             break
         inlier = new
         fit = _fit(p.A, p.C, fit.X, fit.Z, noise, inlier)

@@ -203,7 +203,8 @@ def calibration_to_msg(c) -> "hpb.CalibrateResponse":
         agreement=[float(v) for v in c.agreement], rotation_condition=c.rotation_condition,
         excitation=c.excitation, iterations=c.iterations, noise_model=c.noise_model,
         readings=[hpb.Reading(reading=r, rotation=a, translation=d) for r, a, d in c.readings],
-        focal_scale=c.focal_scale, focal_sigma=c.focal_sigma, pixel_sigma=c.pixel_sigma)
+        focal_scale=c.focal_scale, focal_sigma=c.focal_sigma, pixel_sigma=c.pixel_sigma,
+        camera_scale=c.camera_scale[0], camera_scale_sigma=c.camera_scale[1])
     for field, pose in (("x", c.x), ("z", c.z), ("closed_form_x", c.closed_form_x),
                         ("closed_form_z", c.closed_form_z)):
         if pose is not None:
@@ -238,4 +239,5 @@ def calibration_from_msg(msg, setup: str):
         excitation=msg.excitation, iterations=msg.iterations,
         readings=tuple((r.reading, r.rotation, r.translation) for r in msg.readings),
         reprojection=np.array(msg.reprojection, dtype=np.float64) if msg.reprojection else None,
-        focal_scale=msg.focal_scale, focal_sigma=msg.focal_sigma, pixel_sigma=msg.pixel_sigma)
+        focal_scale=msg.focal_scale, focal_sigma=msg.focal_sigma, pixel_sigma=msg.pixel_sigma,
+        camera_scale=(msg.camera_scale, msg.camera_scale_sigma))

@@ -58,6 +58,7 @@ def _assert_same(remote: handeye.Calibration, local: handeye.Calibration):
     assert remote.agreement == pytest.approx(local.agreement, rel=1e-8)
     assert [r[0] for r in remote.readings] == [r[0] for r in local.readings]
     np.testing.assert_allclose(np.linalg.inv(remote.information), remote.covariance, rtol=1e-8)
+    assert remote.camera_scale == pytest.approx(local.camera_scale, rel=1e-8)
 
 
 @pytest.mark.parametrize("setup", handeye.SETUPS)
@@ -88,6 +89,16 @@ def test_both_poses_inverted_are_answered_right_and_said(client):
     assert any("Solved as inverted" in w for w in remote.warnings)
     deg, mm = _handeye.pose_error(remote.x, b.scene.x)
     assert deg < 0.3 and mm < 3.0
+
+
+def test_camera_scale_travels_with_its_sigma(client):
+    """A board 2 % too large: the scale the camera's translations were solved at (1 / 1.02) and
+    its σ reach the client."""
+    b = _handeye.broken("board_scale", seed=1)
+    remote = client.calibrate(b.base_flange, b.camera_target)
+    _assert_same(remote, handeye.calibrate(b.base_flange, b.camera_target))
+    lam, sigma = remote.camera_scale
+    assert 0.0 < sigma < 0.005 and abs(lam - 1.0 / 1.02) < 4.0 * sigma
 
 
 def test_given_noise_travels_per_pair(client):
