@@ -19,7 +19,7 @@ from dqpose.world import (
     _composed,
 )
 from tests import _handeye
-from tests.test_fusion import random_cov, random_pose
+from tests.fusion._scenes import random_cov, random_pose
 
 V = np.array([0.1, -0.2, 0.05, 0.1, 0.02, -0.05])
 

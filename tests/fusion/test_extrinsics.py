@@ -9,7 +9,7 @@ from dqpose.fusion import Measurement, Source, Status, Tracker
 
 gtsam = pytest.importorskip("gtsam")
 from tests import _gtsam  # noqa: E402  (needs gtsam)
-from tests.test_fusion import error, random_cov, random_pose  # noqa: E402
+from tests.fusion._scenes import error, random_cov, random_pose  # noqa: E402
 
 
 def ext_cov(rng, scale=1.0):
