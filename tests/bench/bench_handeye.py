@@ -52,7 +52,6 @@ wrist scene, 20 poses, 0.1°/0.5 mm), what each method answers, and whether ours
 from __future__ import annotations
 
 import argparse
-import fcntl
 import os
 import platform
 import subprocess
@@ -67,6 +66,7 @@ import numpy as np
 from dqpose import dq
 from tests import _handeye
 from tests.bench._table import markdown
+from tests.bench._venv import BenchEnvUnavailable, bench_python, probe
 from tests.bench.fusion_scenes import _fmt_s, nees
 
 HERE = Path(__file__).resolve().parent
@@ -91,58 +91,23 @@ OPENCV = tuple(f"OpenCV {m.title()}" for m in OPENCV_HAND_EYE + OPENCV_ROBOT_WOR
 
 
 # ---- the OpenCV 4.x environment -----------------------------------------------------------------
-class OpenCVUnavailable(RuntimeError):
-    pass
-
-
-def _probe(python: Path) -> str | None:
-    """OpenCV's version if ``python`` has an OpenCV with both hand-eye functions, else None."""
-    if not python.exists():
-        return None
-    r = subprocess.run([str(python), "-c", "import cv2; cv2.calibrateHandEye; "
-                        "cv2.calibrateRobotWorldHandEye; print(cv2.__version__)"],
-                       capture_output=True, text=True)
-    return r.stdout.strip() if r.returncode == 0 else None
+OpenCVUnavailable = BenchEnvUnavailable
+_PROBE = "import cv2; cv2.calibrateHandEye; cv2.calibrateRobotWorldHandEye; print(cv2.__version__)"
 
 
 def opencv4_python(python: str | None = None) -> tuple[Path, str]:
     """The interpreter with OpenCV 4.x and its version: ``python`` if given, else the benchmark's
-    own environment, created on first use (a lock keeps concurrent runs from building it twice)."""
+    own environment, created on first use (:func:`tests.bench._venv.bench_python`)."""
     if python:
-        version = _probe(Path(python))
+        version = probe(Path(python), _PROBE)
         if version is None:
             raise OpenCVUnavailable(f"--opencv-python {python}: no OpenCV with calibrateHandEye "
                                     f"and calibrateRobotWorldHandEye there")
         return Path(python), version
-    py = OPENCV_ENV / "bin" / "python"
-    OPENCV_ENV.parent.mkdir(parents=True, exist_ok=True)
-    with open(OPENCV_ENV.parent / "opencv4.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        version = _probe(py)
-        if version is not None:
-            return py, version
-        print(f"creating the OpenCV 4.x environment {OPENCV_ENV} (once; OpenCV 5.0 has no "
-              f"calibrateHandEye): pip install {' '.join(OPENCV_REQUIREMENTS)}", file=sys.stderr)
-        # The base interpreter, not this venv's: a venv of a venv still works, but needs no link
-        # to ours.
-        base = getattr(sys, "_base_executable", None) or sys.executable
-        steps = ([base, "-m", "venv", "--clear", str(OPENCV_ENV)],
-                 [str(py), "-m", "pip", "install", "-q", "--disable-pip-version-check",
-                  "--timeout", "20", "--retries", "2", *OPENCV_REQUIREMENTS])
-        for cmd in steps:
-            r = subprocess.run(cmd, capture_output=True, text=True)
-            if r.returncode != 0:
-                tail = "\n".join((r.stderr or r.stdout).strip().splitlines()[-5:])
-                raise OpenCVUnavailable(
-                    f"cannot create the OpenCV 4.x environment in {OPENCV_ENV} (offline, or no "
-                    f"access to PyPI?): `{' '.join(cmd)}` failed:\n{tail}\nOpenCV's rows need it; "
-                    f"--opencv-python PATH uses an interpreter that has OpenCV 4.x, --no-opencv "
-                    f"runs ours alone.")
-        version = _probe(py)
-        if version is None:
-            raise OpenCVUnavailable(f"{OPENCV_ENV}: installed, but its OpenCV lacks "
-                                    f"calibrateHandEye")
-        return py, version
+    return bench_python(OPENCV_ENV, OPENCV_REQUIREMENTS, _PROBE,
+                        "OpenCV 5.0 has no calibrateHandEye",
+                        "OpenCV's rows need it; --opencv-python PATH uses an interpreter that has "
+                        "OpenCV 4.x, --no-opencv runs ours alone.")
 
 
 def opencv_inputs(base_flange, camera_target, setup):
