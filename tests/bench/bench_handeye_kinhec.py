@@ -51,7 +51,7 @@ import sys
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -79,7 +79,7 @@ REPEATS, FULL_REPEATS = 3, 20
 SILENT_NEES = 50.0
 BOOTSTRAP = 2000
 # the degenerate settings, where the right answer is a refusal: the error targets do not apply
-DEGENERATE = ("cone=0|", "subset=parallel")
+DEGENERATE = ("cone=0,", "subset=parallel")
 _NAMES_SAMPLES = re.compile(r"\bsamples? \d")
 
 KinhecUnavailable = BenchEnvUnavailable
@@ -207,6 +207,7 @@ class Answer:
     status: str = "ok"           # "ok", "refused: ...", "crashed: ...", "n/a"
     named: bool = False          # a warning names samples
     warnings: tuple = ()
+    sequence: str = ""           # KinHEC's sequence id
 
     @property
     def silent(self) -> bool:
@@ -257,14 +258,22 @@ def evaluate(seq: dict) -> dict:
 
 def _chunk(args) -> list[tuple[str, dict]]:
     python, repeats, ids = args
-    return [(s["id"], evaluate(s)) for s in generate(python, repeats, ids)]
+    out = []
+    for seq in generate(python, repeats, ids):
+        answers = evaluate(seq)
+        for a in answers.values():
+            a.sequence = seq["id"]
+        out.append((seq["id"], answers))
+    return out
 
 
 def run(python: Path, repeats: int, select: str | None = None, jobs: int = 1,
-        progress=None) -> dict[str, dict[str, list[Answer]]]:
+        progress=None, ids=None) -> dict[str, dict[str, list[Answer]]]:
     """``{setting: {method: [Answer per sequence]}}`` over the planned settings matching the
-    regular expression ``select`` (all by default)."""
-    planned = [p for p in plan(python, repeats) if not select or re.search(select, setting_of(p))]
+    regular expression ``select`` (all by default), and of those only the sequences ``ids`` when
+    given."""
+    planned = [p for p in plan(python, repeats) if (not select or re.search(select, setting_of(p)))
+               and (ids is None or p["id"] in ids)]
     by_setting: dict[str, list[str]] = {}
     for p in planned:
         by_setting.setdefault(setting_of(p), []).append(p["id"])
@@ -304,9 +313,11 @@ def paired_median_ci(ours: np.ndarray, best: np.ndarray, seed: int = 0,
         d = np.asarray(ours, float) - np.asarray(best, float)
     d = np.where(np.isnan(d), np.inf, d)      # both failed: not better than the baseline
     rng = np.random.default_rng(seed)
-    boots = np.median(d[rng.integers(0, len(d), (n, len(d)))], axis=1)
-    lo, hi = np.percentile(boots, [2.5, 97.5])
-    return float(np.median(d)), float(lo), float(hi)
+    # order statistics, never an average of two: a refusal (inf) next to a baseline's failure
+    # (-inf) must not make a NaN
+    boots = np.quantile(d[rng.integers(0, len(d), (n, len(d)))], 0.5, axis=1, method="lower")
+    lo, hi = np.quantile(boots, [0.025, 0.975], method="lower")
+    return float(np.quantile(d, 0.5, method="lower")), float(lo), float(hi)
 
 
 @dataclass
@@ -460,6 +471,7 @@ def main(argv=None) -> None:
     ap.add_argument("--jobs", type=int, default=1, help="processes (default 1)")
     ap.add_argument("--kinhec-python", help="an interpreter that has kinhec 1.1.0")
     ap.add_argument("--plot", help="save the plot of the medians here (PNG)")
+    ap.add_argument("--save", help="pickle every answer here ({setting: {method: [Answer as a dict]}})")
     args = ap.parse_args(argv)
     repeats = args.repeats or (FULL_REPEATS if args.full else REPEATS)
     try:
@@ -469,6 +481,11 @@ def main(argv=None) -> None:
     t0 = time.perf_counter()
     results = run(python, repeats, args.select, args.jobs, progress=sys.stderr)
     wall = time.perf_counter() - t0
+    if args.save:
+        with open(args.save, "wb") as f:
+            # plain dicts: Answer is __main__'s class when run with -m
+            pickle.dump({s: {m: [asdict(a) for a in v] for m, v in r.items()}
+                         for s, r in results.items()}, f)
     summary = summarise(results)
     n = sum(len(next(iter(r.values())).answers) for r in summary.values())
     print(f"dqpose hand-eye on KinHEC {version} — {platform.processor() or platform.machine()}, "

@@ -1,0 +1,121 @@
+"""The KinHEC benchmark: its statistics and the noise it gives ours (without KinHEC), and a small
+subset of its sequences on which ours is held to issue 24's targets (with KinHEC, from the
+benchmark's own environment, created from PyPI on first use in tests/bench/_build/kinhec; without
+network those tests are skipped with the reason).
+
+The subset: sequences of the full run (``--full``, so the same ids and seeds) on which main's
+solver showed each failure mode of issue 24, and a healthy setting. What fails today is marked
+``xfail(strict=True)`` with the failure mode, so that the mark has to go when the solver meets
+the target."""
+import numpy as np
+import pytest
+
+from dqpose import dq
+from tests import _handeye
+from tests.bench import bench_handeye_kinhec as bench
+
+# ---- without KinHEC ------------------------------------------------------------------------------
+
+
+def test_paired_median_ci_sides_and_refusals():
+    rng = np.random.default_rng(1)
+    best = rng.uniform(1.0, 2.0, 40)
+    med, lo, hi = bench.paired_median_ci(best - 0.5, best)
+    assert med == pytest.approx(-0.5) and lo <= -0.5 <= hi < 0
+    med, lo, hi = bench.paired_median_ci(best + rng.normal(0, 0.3, 40), best)
+    assert lo < 0 < hi
+    # refused (inf) on most sequences: the difference is infinite, never better
+    ours = np.where(np.arange(40) < 35, np.inf, best)
+    assert bench.paired_median_ci(ours, best) == (np.inf, np.inf, np.inf)
+    med, lo, hi = bench.paired_median_ci(np.where(np.arange(40) < 25, np.inf, best), best)
+    assert med == hi == np.inf
+    # ours refused where the baseline failed too: not a NaN, not a win
+    both = np.full(40, np.inf)
+    assert bench.paired_median_ci(both, both)[1] == np.inf
+
+
+def _seq(camera_model="se3_gaussian", dof=None, scale=1.0, robot=("se3_gaussian",)):
+    return {"camera_noise": {"model": camera_model, "rot_std_rad": [0.002] * 3,
+                             "trans_std_m": [0.001, 0.001, 0.003], "student_t_dof": dof},
+            "robot_noise": {"models": list(robot), "rot_std_rad": 0.0005,
+                            "trans_std_m": 0.0003},
+            "scale": scale}
+
+
+def test_given_noise_is_the_generators():
+    """Translation noise added in the camera frame is, as a right perturbation of
+    ``T_camera_target``, ``Rᵀ diag(σt²) R``; Student-t with ν dof has ν/(ν−2) times the
+    variance; a monocular camera's translations carry the scale."""
+    T = np.stack([_handeye.pose([0.3, -0.2, 1.1], [0.05, 0.02, 0.4]),
+                  _handeye.pose([0.0, 0.0, 0.0], [0.0, 0.0, 0.5])])
+    C, robot = bench.given_noise(_seq(), T)
+    R = dq.to_matrix(T)[0, :3, :3]
+    assert C.shape == (2, 6, 6)
+    assert np.allclose(C[0, 3:, 3:], R.T @ np.diag([1e-6, 1e-6, 9e-6]) @ R)
+    assert np.allclose(C[1, 3:, 3:], np.diag([1e-6, 1e-6, 9e-6]))
+    assert np.allclose(np.diag(C[0, :3, :3]), 4e-6) and not C[0, :3, 3:].any()
+    assert np.allclose(robot, np.diag([0.0005 ** 2] * 3 + [0.0003 ** 2] * 3))
+    C3 = bench.given_noise(_seq(dof=3.0), T)[0]
+    assert np.allclose(C3, 3 * C, rtol=1e-9, atol=1e-15)
+    C2 = bench.given_noise(_seq(scale=2.0), T)[0]
+    assert np.allclose(C2[:, 3:, 3:], 4 * C[:, 3:, 3:]) and np.allclose(C2[:, :3, :3],
+                                                                       C[:, :3, :3])
+    assert bench.given_noise(_seq(robot=("none",)), T)[1] is None
+    assert bench.given_noise(_seq(camera_model="vo_drift"), T) is None
+
+
+def test_a_silent_contamination_is_a_confident_wrong_answer_naming_nothing():
+    assert bench.Answer(1.0, 10.0, nees=3123.0).silent
+    assert not bench.Answer(1.0, 10.0, nees=3123.0, named=True).silent
+    assert not bench.Answer(1.0, 10.0, nees=12.0).silent
+    assert not bench.Answer(status="refused: motions do not correspond").silent
+    assert bench._NAMES_SAMPLES.search("possible outliers: samples 3, 17 (NIS 82218)")
+    assert not bench._NAMES_SAMPLES.search("target 0.21 m from the robot base")
+
+
+def _rows(ours, best, ransac=None):
+    rows = {m: bench.Row.of([bench.Answer(0.1, t) for t in best]) for m in bench.BASELINES}
+    if ransac is not None:
+        rows[bench.RANSAC] = bench.Row.of([bench.Answer(0.05, t) for t in ransac])
+    rows[bench.OURS[0]] = bench.Row.of(ours)
+    rows[bench.OURS[1]] = bench.Row.of([bench.Answer(status="n/a")] * len(ours))
+    return rows
+
+
+def test_targets_name_what_is_missed():
+    best = list(np.linspace(1.0, 2.0, 20))
+    good = [bench.Answer(0.1, t - 0.1, nees=6.0) for t in best]
+    noise = "noise: robot=r2, camera=c5; ur5e eye_in_hand lookat"
+    assert bench.targets(noise, _rows(good, best), bench.OURS[0]) == {}
+    assert bench.targets(noise, _rows(good, best), bench.OURS[1]) == {}   # not run: no target
+    worse = [bench.Answer(0.1, 3 * t, nees=6.0) for t in best]
+    assert {"median trans", "p90"} <= set(bench.targets(noise, _rows(worse, best),
+                                                        bench.OURS[0]))
+    silent = good[:-1] + [bench.Answer(2.0, 50.0, nees=3000.0)]
+    assert set(bench.targets(noise, _rows(silent, best), bench.OURS[0])) == {"silent"}
+    # refusing 11 of 20 with outliers: not solved, and not below RANSAC
+    outl = "outliers: fraction=0.3, model=random_pose, tails=gaussian; ur5e eye_in_hand lookat"
+    refused = good[:9] + [bench.Answer(status="refused: motions do not correspond")] * 11
+    missed = bench.targets(outl, _rows(refused, best, ransac=best), bench.OURS[0])
+    assert {"solved", "vs RANSAC"} <= set(missed)
+    # degenerate motion: refusing is the right answer
+    cone = "motion: cone=0, rot=15-30, n=20; free6d eye_in_hand cartesian_cone"
+    refused_all = [bench.Answer(status="refused: rotation axes all parallel")] * 20
+    assert bench.targets(cone, _rows(refused_all, best), bench.OURS[0]) == {}
+
+
+def test_kinhec_environment_offline_says_so(tmp_path, monkeypatch):
+    """No package index: a clear error naming the environment and the way around it."""
+    monkeypatch.setattr(bench, "KINHEC_ENV", tmp_path / "kinhec")
+    monkeypatch.setattr(bench, "_PROBE", "import kinhec_is_not_here")  # not even in this venv
+    monkeypatch.setenv("PIP_INDEX_URL", "http://127.0.0.1:9/simple")   # nothing listens there
+    monkeypatch.setenv("PIP_FIND_LINKS", "")
+    with pytest.raises(bench.KinhecUnavailable) as e:
+        bench.kinhec_python()
+    msg = str(e.value)
+    assert str(tmp_path / "kinhec") in msg and "offline" in msg and "--kinhec-python" in msg
+    with pytest.raises(bench.KinhecUnavailable, match="--kinhec-python"):
+        bench.kinhec_python(str(tmp_path / "no-such-python"))
+
+
+# ---- the subset, with KinHEC ---------------------------------------------------------------------
