@@ -101,7 +101,7 @@ def kinhec_python(python: str | None = None) -> tuple[Path, str]:
                         "--kinhec-python PATH uses an interpreter that has kinhec 1.1.0.")
 
 
-# ---- the settings ---------------------------------------------------------------------------------
+# ---- the settings --------------------------------------------------------------------------------
 def spec(repeats: int) -> dict:
     """The tier KinHEC plans (its ``configs/*.yaml`` structure), ``repeats`` sequences a setting;
     the noise levels are KinHEC's own (rotation rad, translation m per axis)."""
@@ -174,7 +174,7 @@ def generate(python: Path, repeats: int, ids: list[str]) -> list[dict]:
             return pickle.load(f)
 
 
-# ---- ours -------------------------------------------------------------------------------------------
+# ---- ours ----------------------------------------------------------------------------------------
 def given_noise(seq: dict, camera_target: np.ndarray):
     """The generator's true noise as ``calibrate``'s covariances (camera per sample, robot), or
     None when the camera's noise has no Gaussian equivalent (VO drift)."""
@@ -304,7 +304,7 @@ def _progress(it, n, progress):
         yield x
 
 
-# ---- statistics and targets -----------------------------------------------------------------------
+# ---- statistics and targets ----------------------------------------------------------------------
 def paired_median_ci(ours: np.ndarray, best: np.ndarray, seed: int = 0,
                      n: int = BOOTSTRAP) -> tuple[float, float, float]:
     """The median of ``ours − best`` and its percentile-bootstrap 95 % interval (pairs resampled
@@ -471,7 +471,8 @@ def main(argv=None) -> None:
     ap.add_argument("--jobs", type=int, default=1, help="processes (default 1)")
     ap.add_argument("--kinhec-python", help="an interpreter that has kinhec 1.1.0")
     ap.add_argument("--plot", help="save the plot of the medians here (PNG)")
-    ap.add_argument("--save", help="pickle every answer here ({setting: {method: [Answer as a dict]}})")
+    ap.add_argument("--save", help="pickle every answer here "
+                                   "({setting: {method: [Answer as a dict]}})")
     args = ap.parse_args(argv)
     repeats = args.repeats or (FULL_REPEATS if args.full else REPEATS)
     try:
