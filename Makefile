@@ -68,6 +68,7 @@ bench: setup
 	$(BIN)/python -m tests.bench.bench_smoothing
 	$(BIN)/python -m tests.bench.bench_executor
 	$(BIN)/python -m tests.bench.bench_handeye
+	$(BIN)/python -m tests.bench.bench_handeye_kinhec
 
 clean:
 	rm -rf $(VENV) build *.egg-info service/*.so service/rpc/_proto

@@ -431,6 +431,38 @@ def render(summary: dict[str, dict[str, Row]]) -> str:
     return markdown(head, lines)
 
 
+def _cell(r: Row) -> str:
+    return f"{_err(r, 50)} ({r.p(90):.3g} mm)" if r.ran else "—"
+
+
+def _delta(r: Row, best: Row) -> str:
+    if not r.ran:
+        return "—"
+    med, lo, hi = paired_median_ci(r.trans, best.trans)
+    return f"{med:+.3g} [{lo:+.3g}, {hi:+.3g}]"
+
+
+def _pair(rows: dict[str, Row], f) -> str:
+    return " / ".join(f(rows[m]) if rows[m].ran else "—" for m in OURS)
+
+
+def render_brief(summary: dict[str, dict[str, Row]]) -> str:
+    """One line a setting: ours in both modes beside the best baseline."""
+    head = ["setting", "n", "best baseline: median (p90)", *(f"{m}: median (p90)" for m in OURS),
+            "fail est / given", "mean NEES est / given", "silent est / given",
+            *(f"Δ trans {m} [95 % CI]" for m in MODES), "misses"]
+    lines = []
+    for s, rows in summary.items():
+        best = best_baseline(rows)
+        misses = [f"{m.split()[1][1:-1]}: {k}" for m in OURS for k in targets(s, rows, m)]
+        lines.append([s, str(len(rows[OURS[0]].answers)), f"{best}: {_cell(rows[best])}",
+                      *(_cell(rows[m]) for m in OURS), _pair(rows, lambda r: str(r.failed)),
+                      _pair(rows, lambda r: f"{r.mean_nees():.3g}"),
+                      _pair(rows, lambda r: str(r.silent)),
+                      *(_delta(rows[m], rows[best]) for m in OURS), "; ".join(misses)])
+    return markdown(head, lines)
+
+
 def plot(summary: dict[str, dict[str, Row]], path: str) -> None:
     import matplotlib
     matplotlib.use("Agg")
@@ -473,8 +505,23 @@ def main(argv=None) -> None:
     ap.add_argument("--plot", help="save the plot of the medians here (PNG)")
     ap.add_argument("--save", help="pickle every answer here "
                                    "({setting: {method: [Answer as a dict]}})")
+    ap.add_argument("--load", help="no run: the table (and plot) of answers saved by --save")
+    ap.add_argument("--brief", action="store_true",
+                    help="one line a setting (ours and the best baseline) instead of every method")
     args = ap.parse_args(argv)
     repeats = args.repeats or (FULL_REPEATS if args.full else REPEATS)
+    table = render_brief if args.brief else render
+    if args.load:
+        with open(args.load, "rb") as f:
+            saved = pickle.load(f)
+        summary = summarise({s: {m: [Answer(**a) for a in v] for m, v in r.items()}
+                             for s, r in saved.items()})
+        print(f"dqpose hand-eye on KinHEC: the answers saved in {args.load} (★: the best "
+              f"baseline)\n")
+        print(table(summary))
+        if args.plot:
+            plot(summary, args.plot)
+        return
     try:
         python, version = kinhec_python(args.kinhec_python)
     except KinhecUnavailable as e:
@@ -492,7 +539,7 @@ def main(argv=None) -> None:
     print(f"dqpose hand-eye on KinHEC {version} — {platform.processor() or platform.machine()}, "
           f"{os.cpu_count()} cores, {args.jobs} job(s): {n} sequences in {len(summary)} "
           f"settings, {wall:.0f} s (★: the best baseline)\n")
-    print(render(summary))
+    print(table(summary))
     if args.plot:
         plot(summary, args.plot)
         print(f"\nplot: {args.plot}")
