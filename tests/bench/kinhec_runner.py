@@ -35,7 +35,7 @@ def _plan(spec):
 def _keyframes(seq: Sequence):
     """The keyframe pairs and their outlier labels, selected exactly as the protocol's
     ``_keyframe_data`` selects them (which does not return the indices)."""
-    T_be, T_ct, valid = seq.paired_measurements(None)
+    valid = seq.paired_measurements(None)[2]
     A_abs, B_abs = seq.axyb_poses(None)
     outlier = np.asarray(seq.camera.outlier, bool)[valid]
     idx = motions.select_keyframes(A_abs, benchmark.KEYFRAME_MIN_ROT_DEG,
