@@ -71,6 +71,7 @@ class Resuming:
         self._open, self._items, self._first = open_call, items, first
         self._acked, self._metadata, self._reconnect = acked, metadata, reconnect
         self._lock = threading.Lock()
+        self._source = threading.Lock()
         self._generation = 0
         self._taken = 0
         self._unacked: deque[tuple[int, bytes]] = deque()
@@ -82,29 +83,45 @@ class Resuming:
     def _requests(self, generation: int, indices: list[int]):
         k = 0
         while True:
-            # under the lock, so that a stream being replaced takes nothing more: what it took is
-            # in _unacked, which the reopening copies under the same lock
+            taken = self._take(generation)
+            if taken is None:
+                return
+            index, data = taken
+            indices.append(index)
+            yield self._first + data if k == 0 else data
+            k += 1
+
+    def _take(self, generation: int) -> Optional[tuple[int, bytes]]:
+        """The next request for the stream of ``generation``: one not acknowledged by a stream
+        before it, else the caller's next; None when the caller's are done or the stream was
+        replaced. The caller's iterator is read outside ``_lock``: it may wait for an answer
+        (a producer in lockstep), and answers take ``_lock`` to acknowledge."""
+        with self._source:           # one stream's thread at a time reads the caller's iterator
             with self._lock:
                 if generation != self._generation:
-                    return
+                    return None
                 if self._resend:
-                    index, data = self._resend.popleft()
-                else:
-                    try:
-                        data = next(self._items)
-                    except StopIteration:
-                        return
-                    except Exception as e:    # raised to the caller, not lost in grpc's thread
-                        self.failed.append(e)
-                        return
-                    index, self._taken = self._taken, self._taken + 1
-                indices.append(index)
+                    taken = self._resend.popleft()
+                    self._unacked.append(taken)
+                    return taken
+            try:
+                data = next(self._items)
+            except StopIteration:
+                return None
+            except Exception as e:    # raised to the caller, not lost in grpc's thread
+                self.failed.append(e)
+                return None
+            with self._lock:
+                index, self._taken = self._taken, self._taken + 1
+                if generation != self._generation:
+                    # replaced while the caller's iterator ran: the stream after it sends it
+                    self._resend.append((index, data))
+                    return None
                 if len(self._unacked) >= MAX_UNACKED:
                     lost = self._unacked.popleft()[0]
                     log.warning(json.dumps({"event": "stream_unacked_dropped", "request": lost}))
                 self._unacked.append((index, data))
-            yield self._first + data if k == 0 else data
-            k += 1
+                return index, data
 
     def _ack(self, index: int) -> None:
         with self._lock:
