@@ -94,34 +94,48 @@ class Resuming:
     def _take(self, generation: int) -> Optional[tuple[int, bytes]]:
         """The next request for the stream of ``generation``: one not acknowledged by a stream
         before it, else the caller's next; None when the caller's are done or the stream was
-        replaced. The caller's iterator is read outside ``_lock``: it may wait for an answer
-        (a producer in lockstep), and answers take ``_lock`` to acknowledge."""
-        with self._source:           # one stream's thread at a time reads the caller's iterator
-            with self._lock:
-                if generation != self._generation:
+        replaced. The caller's iterator is read outside ``_lock`` (it may wait for an answer, a
+        producer in lockstep, and answers take ``_lock`` to acknowledge), and a request to
+        resend is taken without waiting for it (a replaced stream's thread may still be inside
+        it, waiting for the answer to what is resent)."""
+        while True:
+            resent = self._resent(generation)
+            if resent is not False:
+                return resent
+            with self._source:       # one stream's thread at a time reads the caller's iterator
+                resent = self._resent(generation)    # again: came while this one waited
+                if resent is not False:
+                    return resent
+                try:
+                    data = next(self._items)
+                except StopIteration:
                     return None
-                if self._resend:
-                    taken = self._resend.popleft()
-                    self._unacked.append(taken)
-                    return taken
-            try:
-                data = next(self._items)
-            except StopIteration:
-                return None
-            except Exception as e:    # raised to the caller, not lost in grpc's thread
-                self.failed.append(e)
-                return None
-            with self._lock:
-                index, self._taken = self._taken, self._taken + 1
-                if generation != self._generation:
-                    # replaced while the caller's iterator ran: the stream after it sends it
-                    self._resend.append((index, data))
+                except Exception as e:    # raised to the caller, not lost in grpc's thread
+                    self.failed.append(e)
                     return None
-                if len(self._unacked) >= MAX_UNACKED:
-                    lost = self._unacked.popleft()[0]
-                    log.warning(json.dumps({"event": "stream_unacked_dropped", "request": lost}))
-                self._unacked.append((index, data))
-                return index, data
+                with self._lock:
+                    index, self._taken = self._taken, self._taken + 1
+                    if generation != self._generation:
+                        # replaced while the caller's iterator ran: the next stream sends it
+                        self._resend.append((index, data))
+                        return None
+                    if len(self._unacked) >= MAX_UNACKED:
+                        lost = self._unacked.popleft()[0]
+                        log.warning(json.dumps({"event": "stream_unacked_dropped",
+                                                "request": lost}))
+                    self._unacked.append((index, data))
+                    return index, data
+
+    def _resent(self, generation: int):
+        """None when the stream was replaced, a request to send again, or False (none)."""
+        with self._lock:
+            if generation != self._generation:
+                return None
+            if self._resend:
+                taken = self._resend.popleft()
+                self._unacked.append(taken)
+                return taken
+        return False
 
     def _ack(self, index: int) -> None:
         with self._lock:

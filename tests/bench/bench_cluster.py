@@ -63,7 +63,7 @@ class World(threading.Thread):
                     now = time.perf_counter()
                     self.answers.append((now, now - sent[0]))
                     answered.set()
-        except Exception as e:      # noqa: BLE001: reported in the table
+        except Exception as e:      # noqa: BLE001 (reported in the table)
             self.error = e
 
 

@@ -93,3 +93,4 @@ def test_without_reconnect_a_broken_stream_raises():
 def test_reconnect_is_checked():
     with pytest.raises(ValueError, match="^reconnect: must be a finite number of seconds"):
         Client("127.0.0.1:1", reconnect=-1)
+
