@@ -186,7 +186,9 @@ class Client:
     to stay within them. ``world`` names the world every call belongs to (``x-dqpose-world``:
     a load balancer sends all of one world's calls to one replica, docs/deploy.md).
     ``reconnect`` (s): how long a broken stream (its replica gone) keeps being reopened with
-    backoff, its unanswered requests sent again (:mod:`dqpose.rpc.resume`); 0 raises at once."""
+    backoff, its unanswered requests sent again (:mod:`dqpose.rpc.resume`); with it, a unary call
+    refused before any answer (UNAVAILABLE, CANCELLED) is retried by gRPC's retry policy
+    (:func:`_retry_config`). 0: neither, the error is raised at once."""
 
     def __init__(self, target: str = DEFAULT_TARGET, *, token: str | None = None,
                  tls: bool = False, root_certificates: bytes | None = None,

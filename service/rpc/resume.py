@@ -98,33 +98,32 @@ class Resuming:
         producer in lockstep, and answers take ``_lock`` to acknowledge), and a request to
         resend is taken without waiting for it (a replaced stream's thread may still be inside
         it, waiting for the answer to what is resent)."""
-        while True:
-            resent = self._resent(generation)
+        resent = self._resent(generation)
+        if resent is not False:
+            return resent
+        with self._source:       # one stream's thread at a time reads the caller's iterator
+            resent = self._resent(generation)    # again: came while this one waited
             if resent is not False:
                 return resent
-            with self._source:       # one stream's thread at a time reads the caller's iterator
-                resent = self._resent(generation)    # again: came while this one waited
-                if resent is not False:
-                    return resent
-                try:
-                    data = next(self._items)
-                except StopIteration:
+            try:
+                data = next(self._items)
+            except StopIteration:
+                return None
+            except Exception as e:    # raised to the caller, not lost in grpc's thread
+                self.failed.append(e)
+                return None
+            with self._lock:
+                index, self._taken = self._taken, self._taken + 1
+                if generation != self._generation:
+                    # replaced while the caller's iterator ran: the next stream sends it
+                    self._resend.append((index, data))
                     return None
-                except Exception as e:    # raised to the caller, not lost in grpc's thread
-                    self.failed.append(e)
-                    return None
-                with self._lock:
-                    index, self._taken = self._taken, self._taken + 1
-                    if generation != self._generation:
-                        # replaced while the caller's iterator ran: the next stream sends it
-                        self._resend.append((index, data))
-                        return None
-                    if len(self._unacked) >= MAX_UNACKED:
-                        lost = self._unacked.popleft()[0]
-                        log.warning(json.dumps({"event": "stream_unacked_dropped",
-                                                "request": lost}))
-                    self._unacked.append((index, data))
-                    return index, data
+                if len(self._unacked) >= MAX_UNACKED:
+                    lost = self._unacked.popleft()[0]
+                    log.warning(json.dumps({"event": "stream_unacked_dropped",
+                                            "request": lost}))
+                self._unacked.append((index, data))
+                return index, data
 
     def _resent(self, generation: int):
         """None when the stream was replaced, a request to send again, or False (none)."""

@@ -80,10 +80,11 @@ def test_without_reconnect_a_broken_stream_raises():
     s = ServerThread(ServerConfig(port=port))
 
     def batches():
-        for i in range(100):
-            if i == 5:
-                s.stop(grace=0)
+        for i in range(2000):
+            if i == 5:      # from a thread of its own: grpc's thread reads this iterator
+                threading.Thread(target=s.stop, kwargs={"grace": 0}, daemon=True).start()
             yield _batch(i)
+            wait_until(lambda: False, timeout=0.002)
 
     with Client(f"127.0.0.1:{port}") as c, pytest.raises(RpcError):
         list(c.stream_fuse(batches()))
