@@ -68,7 +68,7 @@ def sim():
 SLOW_MODULES = {
     "bench/test_bench_handeye.py", "bench/test_bench_handeye_kinhec.py",
     "cli/test_demo_fusion.py", "cli/test_handeye_capture.py",
-    "cli/test_handeye_cli.py", "cli/test_interrupt.py", "drivers/test_arm_safety.py",
+    "cli/test_handeye_cli.py", "cli/test_interrupt.py", "cluster/test_proxies.py", "drivers/test_arm_safety.py",
     "drivers/test_armproc_respawn.py", "drivers/test_camera.py", "fusion/test_process_noise.py",
     "robustness/test_execute.py", "robustness/test_fuzz_rpc.py", "rpc/server/test_shutdown.py",
     "test_examples.py", "handeye/test_calibrate.py", "handeye/test_checks.py",

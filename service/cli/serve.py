@@ -56,6 +56,9 @@ def configure(name: str, p) -> None:
                        help="once the listener closed, how long calls in flight get to finish "
                             "before they are cancelled, s (default: %(default)s)")
         p.add_argument("--metrics-port", type=int, help="serve Prometheus metrics on this port")
+        p.add_argument("--replica-name", metavar="NAME",
+                       help="the name every answer carries in its x-dqpose-replica metadata, "
+                            "for clients behind a load balancer (default: the host name)")
         p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"],
                        help="JSON log lines on standard error (default: %(default)s)")
         p.add_argument("--no-call-log", action="store_true",
@@ -147,7 +150,8 @@ def _serve(args) -> int:
             client_ca=read(args.client_ca) if args.client_ca else None,
             token=token, max_message_bytes=args.max_message_bytes, max_poses=args.max_poses,
             keepalive_s=args.keepalive, grace_s=args.grace, drain_s=args.drain,
-            metrics_port=args.metrics_port, limits=limits.from_args(args))
+            metrics_port=args.metrics_port, limits=limits.from_args(args),
+            **({"replica_name": args.replica_name} if args.replica_name is not None else {}))
         simulated = [f"{n}={text}" for n, (text, spec) in arm_specs.items() if spec.target == SIM]
         if simulated and not args.sims:
             return fail("serve", f"--arm {simulated[0]}: TARGET '{SIM}' is the simulator that "

@@ -19,6 +19,8 @@ the server takes in one message (``max_message_bytes``, ``max_poses``: the serve
 """
 from __future__ import annotations
 
+import json
+import math
 from collections import deque
 from typing import TYPE_CHECKING, Iterable, Iterator, Optional, Sequence
 
@@ -67,6 +69,8 @@ from dqpose.rpc.geometry import (
     stamped_msgs,
 )
 from dqpose.rpc.handeye_convert import calibrate_msg, calibration_from_msg
+from dqpose.rpc.resume import Resuming
+from dqpose.rpc.routing import MAX_WORLD_NAME, WORLD_HEADER, check_name
 from dqpose.rpc.trajectories_convert import (
     PLAN_INTERPOLATION,
     limits_msg,
@@ -136,13 +140,17 @@ def _interpolate_answer(data: bytes) -> np.ndarray:
 
 
 def _stream_answer(data: bytes, probability: float = DEFAULT_PROBABILITY,
-                   max_skew: Optional[float] = None) -> StreamAnswer:
-    """A ``FusedPose`` of a stream (StreamFuse's, Subscribe's) as a :class:`StreamAnswer`."""
+                   max_skew: Optional[float] = None,
+                   request: Optional[int] = None) -> StreamAnswer:
+    """A ``FusedPose`` of a stream (StreamFuse's, Subscribe's) as a :class:`StreamAnswer`;
+    ``request``: the caller's number of the request it answers (a resumed stream renumbers
+    them), else the message's own."""
     a = fpb.FusedPose.FromString(data)
+    index = a.request if request is None else request
     if a.HasField("error"):
-        return StreamAnswer(a.request, a.body, a.time, None, np.empty(0, np.int64),
+        return StreamAnswer(index, a.body, a.time, None, np.empty(0, np.int64),
                             a.error.details, a.error.measurement)
-    return StreamAnswer(a.request, a.body, a.time, fused_from_msg(a, probability, max_skew),
+    return StreamAnswer(index, a.body, a.time, fused_from_msg(a, probability, max_skew),
                         np.array(a.measurements, dtype=np.int64))
 
 
@@ -174,23 +182,48 @@ def _sets(dqs, weights):
     return flat, counts, (np.concatenate(ws) if ws else np.empty(0)), w_counts
 
 
+def _retry_config(seconds: float) -> str:
+    """gRPC's service config that retries a call refused before any answer with backoff, within
+    about ``seconds``; the balancer sends the retry to another replica. UNAVAILABLE: the
+    replica is gone or draining. CANCELLED: a proxy cut the call as its replica closed (nginx).
+    Both are safe to retry: gRPC retries only calls without response headers, and every dqpose
+    handler sends its headers (x-dqpose-replica) before it does anything, so a call retried
+    never ran."""
+    attempts = max(2, min(5, 1 + int(math.log2(1 + seconds / 0.2))))   # gRPC caps it at 5
+    policy = {"maxAttempts": attempts, "initialBackoff": "0.2s", "maxBackoff": "1s",
+              "backoffMultiplier": 2, "retryableStatusCodes": ["UNAVAILABLE", "CANCELLED"]}
+    names = [{"service": s} for s in (SERVICE, FUSION, TRAJECTORIES, HANDEYE)]
+    return json.dumps({"methodConfig": [{"name": names, "retryPolicy": policy}]})
+
+
 class Client:
     """A channel to one server. ``tls=True`` uses the system roots; pass ``root_certificates``
     (PEM bytes) for a private CA and ``certificate_chain``/``private_key`` for mTLS. ``token`` is
     sent as ``authorization: Bearer <token>``. ``timeout`` (seconds) is the deadline of every
     call. ``max_message_bytes`` and ``max_poses`` are the server's limits (its
     ``--max-message-bytes`` and ``--max-poses``; the defaults are the server's): calls are split
-    to stay within them."""
+    to stay within them. ``world`` names the world every call belongs to (``x-dqpose-world``:
+    a load balancer sends all of one world's calls to one replica, docs/deploy.md).
+    ``reconnect`` (s): how long a broken stream (its replica gone) keeps being reopened with
+    backoff, its unanswered requests sent again (:mod:`dqpose.rpc.resume`); with it, a unary call
+    refused before any answer (UNAVAILABLE, CANCELLED) is retried by gRPC's retry policy
+    (:func:`_retry_config`). 0: neither, the error is raised at once."""
 
     def __init__(self, target: str = DEFAULT_TARGET, *, token: str | None = None,
                  tls: bool = False, root_certificates: bytes | None = None,
                  certificate_chain: bytes | None = None, private_key: bytes | None = None,
                  timeout: float = 10.0, max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
-                 max_poses: int = DEFAULT_MAX_POSES, options: list | None = None):
+                 max_poses: int = DEFAULT_MAX_POSES, options: list | None = None,
+                 world: str | None = None, reconnect: float = 0.0):
         if max_message_bytes < 1024 or max_poses < 1:
             raise ValueError(f"max_message_bytes, max_poses: must be at least 1024 and 1, got "
                              f"{max_message_bytes} and {max_poses}")
+        if not (isinstance(reconnect, (int, float)) and 0 <= reconnect < float("inf")):
+            raise ValueError(f"reconnect: must be a finite number of seconds >= 0, got "
+                             f"{reconnect!r}")
         opts = [("grpc.max_receive_message_length", 64 * 1024 * 1024)] + list(options or [])
+        if reconnect > 0:
+            opts.append(("grpc.service_config", _retry_config(reconnect)))
         if tls or root_certificates or certificate_chain:
             creds = grpc.ssl_channel_credentials(root_certificates, private_key, certificate_chain)
             self.channel = grpc.secure_channel(target, creds, options=opts)
@@ -226,7 +259,11 @@ class Client:
         self.timeout = timeout
         self.max_message_bytes = max_message_bytes
         self.max_poses = max_poses
-        self.metadata = (("authorization", f"Bearer {token}"),) if token else None
+        metadata = [("authorization", f"Bearer {token}")] if token else []
+        if world is not None:
+            metadata.append((WORLD_HEADER, check_name("world", world, MAX_WORLD_NAME)))
+        self.metadata = tuple(metadata) or None
+        self.reconnect = reconnect
 
     def close(self) -> None:
         self.channel.close()
@@ -410,32 +447,30 @@ class Client:
         deadline; options the server refuses end it with :class:`InvalidArgument`. A batch that
         cannot be sent (wrong shape) ends the stream and raises its ``ValueError`` after the
         answers before it."""
-        refused: list[Exception] = []
         first = fpb.FuseStreamRequest(
             options=options_msg(robust, 0.0, sources, probability, max_skew, max_extrapolation,
                                 window, twist_covariance, acceleration_psd),
             output_rate=output_rate)
 
         def requests():
-            try:
-                for i, b in enumerate(batches):
-                    b = b if isinstance(b, Batch) else Batch(*b)
-                    try:
-                        data = measurements_wire(*b)
-                    except ValueError as e:
-                        raise ValueError(f"batches[{i}].{e}") from None
-                    # a message's fields in any order parse as one: the options, then these
-                    yield first.SerializeToString() + data if i == 0 else data
-            except Exception as e:   # raised to the caller below, not lost in grpc's thread
-                refused.append(e)
+            for i, b in enumerate(batches):
+                b = b if isinstance(b, Batch) else Batch(*b)
+                try:
+                    yield measurements_wire(*b)
+                except ValueError as e:
+                    raise ValueError(f"batches[{i}].{e}") from None
 
+        # a message's fields in any order parse as one: the options, then a batch
+        stream = Resuming(self._stream_fuse, requests(), first.SerializeToString(),
+                          lambda data: fpb.FusedPose.FromString(data).request,
+                          metadata=self.metadata, reconnect=self.reconnect)
         try:
-            for data in self._stream_fuse(requests(), metadata=self.metadata):
-                yield _stream_answer(data, probability, max_skew)
+            for index, data in stream.answers():
+                yield _stream_answer(data, probability, max_skew, index)
         except grpc.RpcError as e:
             raise _rpc_error(e) from None
-        if refused:
-            raise refused[0]
+        if stream.failed:
+            raise stream.failed[0]
 
     def plan(self, waypoints, limits, rate_hz: float, interpolation: str = PLAN_INTERPOLATION, *,
              start_velocity=None, frames: Optional[Sequence[str]] = None) -> Planned:

@@ -30,7 +30,7 @@ from grpc_reflection.v1alpha import reflection, reflection_pb2_grpc
 
 from dqpose import limits as limits_table
 from dqpose import record
-from dqpose.rpc import DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
+from dqpose.rpc import DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES, routing
 from dqpose.rpc.blending import Blending
 from dqpose.rpc.calls import Calls, log
 from dqpose.rpc.fusion import Fusion
@@ -87,6 +87,9 @@ class ServerConfig:
     # what one request or stream may cost (service/limits.py: the table, its cost model and
     # the `dqpose serve` flag of each)
     limits: limits_table.Limits = limits_table.DEFAULT
+    # the name every answer carries in x-dqpose-replica (dqpose.rpc.routing), for a client behind
+    # a load balancer to see which replica holds its world
+    replica_name: str = dataclasses.field(default_factory=socket.gethostname)
 
     def __post_init__(self):
         self.check()
@@ -105,6 +108,12 @@ class ServerConfig:
         _seconds(self, "grace_s")
         _seconds(self, "drain_s")
         _check_tls(self.tls_cert, self.tls_key, self.client_ca)
+        try:
+            routing.check_name("replica_name", self.replica_name, routing.MAX_REPLICA_NAME)
+        except ValueError as e:
+            raise ConfigError("replica_name", str(e).split(": ", 1)[1]) from None
+        if not self.replica_name:
+            raise ConfigError("replica_name", "must not be empty")
         for name in self.arms:
             if not (isinstance(name, str) and name.isidentifier()):
                 raise ConfigError("arms", f"an arm's name must be a word (letters, digits, _), "
@@ -260,6 +269,7 @@ class BearerTokenAuth(grpc.aio.ServerInterceptor):
 
 def _refusing_handler(handler, calls: Calls, rpc: str, code: grpc.StatusCode, details: str):
     """A handler of the same shape as ``handler`` that fails every call with ``code``."""
+    @routing.trailers_only
     async def refuse(request_or_iterator, context):
         await calls.refuse(rpc, context, code, details)
 
@@ -509,7 +519,9 @@ async def start(cfg: ServerConfig) -> Running:
     if metrics is not None and cfg.recorder is not None:
         metrics.watch(cfg.recorder)
     gate = Gate(calls)
-    interceptors = [gate] + ([BearerTokenAuth(cfg.token, calls)] if cfg.token else [])
+    # ReplicaHeaders first (outermost): refused calls carry the replica's name too
+    interceptors = [routing.ReplicaHeaders(cfg.replica_name), gate] + (
+        [BearerTokenAuth(cfg.token, calls)] if cfg.token else [])
     server = grpc.aio.server(options=server_options(cfg), interceptors=interceptors)
     world = World(cfg, calls)
     servicers = tuple(world if cls is World else cls(cfg, calls) for cls in SERVICERS)
@@ -577,7 +589,7 @@ async def serve(cfg: ServerConfig, ready=None) -> int:
     log.info(json.dumps({"event": "serving", "address": f"{cfg.host}:{running.port}",
                          "tls": bool(cfg.tls_cert), "mtls": bool(cfg.client_ca),
                          "auth": "bearer" if cfg.token else "none",
-                         "metrics_port": cfg.metrics_port}))
+                         "metrics_port": cfg.metrics_port, "replica": cfg.replica_name}))
     if ready is not None:
         ready(running)
     flusher = asyncio.create_task(running.calls.flush_periodically(0.25))

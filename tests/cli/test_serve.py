@@ -21,6 +21,9 @@ from tests.cli._cli import ROOT, serving
     (["--grace", "-1"], "--grace: must be a finite number of seconds >= 0, got -1"),
     (["--drain", "nan"], "--drain: must be a finite number of seconds >= 0, got nan"),
     (["--keepalive", "0"], "--keepalive: must be within 0.001..2147483 seconds, got 0"),
+    (["--replica-name", "cell a"],
+     "--replica-name: only printable ASCII without spaces, got 'cell a'"),
+    (["--replica-name", ""], "--replica-name: must not be empty"),
 ])
 def test_an_option_out_of_range_is_one_line_naming_the_flag_and_exit_2(flags, message):
     res = subprocess.run([sys.executable, "-m", "dqpose.cli", "serve", *flags],
@@ -181,3 +184,19 @@ def test_a_ctrl_c_to_the_servers_process_group_leaves_a_finished_recording(tmp_p
     rec = read(name)        # complete: footer, summary, every CRC
     assert sum(e.kind == "answer" for e in rec.events) == len(answers) > 0
     assert list(rec.calls.values())[0].code == "OK"
+
+
+def test_replica_name_is_logged_and_answered():
+    import grpc
+    from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+    proc, events = serving("--replica-name", "east-2")
+    try:
+        assert events[-1]["replica"] == "east-2"
+        with grpc.insecure_channel(events[-1]["address"]) as ch:
+            _, call = health_pb2_grpc.HealthStub(ch).Check.with_call(
+                health_pb2.HealthCheckRequest(), timeout=10)
+        assert ("x-dqpose-replica", "east-2") in call.initial_metadata()
+    finally:
+        proc.kill()
+        proc.wait(10)

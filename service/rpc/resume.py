@@ -1,0 +1,187 @@
+"""A client stream that survives its replica: reopened with backoff, its unanswered requests sent
+again, its first request's settings sent again on every new stream.
+
+gRPC retries no stream once it has started, so a stream whose replica died (or drained) ends
+UNAVAILABLE. Behind a load balancer that hashes ``x-dqpose-world`` the reopened stream reaches
+the replica the hash now picks; that replica holds none of the world's soft state (windows,
+latency estimates) and rebuilds it from what the stream sends, beginning with the requests the
+old replica never acknowledged.
+
+The stream's requests are numbered for the caller across reopenings (the index of the item the
+caller's iterator gave); an answer acknowledges every request up to the one it names
+(``acked(answer)``: StreamFuse's ``FusedPose.request``, World.Publish's
+``PublishAck.acked_through``), and only unacknowledged ones are sent again.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import random
+import threading
+import time
+from collections import deque
+from typing import Callable, Iterator, Optional
+
+import grpc
+
+from dqpose.rpc.routing import REPLICA_HEADER
+
+log = logging.getLogger("dqpose.client")
+
+#: requests kept for resending at most: a stream further ahead of its answers than this loses the
+#: oldest (said in a log line), so memory stays bounded
+MAX_UNACKED = 4096
+#: the first wait before reopening, doubled after each failed attempt up to BACKOFF_MAX (s)
+BACKOFF_FIRST = 0.05
+BACKOFF_MAX = 1.0
+
+
+def resumable(e: grpc.RpcError) -> bool:
+    """Whether a broken stream is worth reopening: its server went away (UNAVAILABLE: refused,
+    reset, shutting down) or the proxy in front of it reset the stream when its replica died
+    (HAProxy: RST_STREAM CANCEL, which gRPC reports as CANCELLED, unlike a cancel of our own:
+    "Locally cancelled")."""
+    code = e.code()
+    if code == grpc.StatusCode.UNAVAILABLE:
+        return True
+    return (code in (grpc.StatusCode.INTERNAL, grpc.StatusCode.CANCELLED)
+            and "RST_STREAM" in (e.details() or ""))
+
+
+def _replica(call) -> Optional[str]:
+    try:
+        for key, value in call.initial_metadata() or ():
+            if key == REPLICA_HEADER:
+                return value
+    except grpc.RpcError:
+        pass
+    return None
+
+
+class Resuming:
+    """``answers()`` yields ``(index, answer bytes)`` of a stream opened by ``open_call(requests,
+    metadata=...)``: ``index`` is the caller's index of the request the answer acknowledges. The
+    requests are ``items`` (bytes each; an exception raised by it ends the stream and is raised
+    after the answers before it), ``first`` prefixed to the first request of every stream. A
+    stream that breaks :func:`resumable`-ly is reopened with backoff for up to ``reconnect`` s
+    without an answer (0: never; the error is raised)."""
+
+    def __init__(self, open_call: Callable, items: Iterator[bytes], first: bytes,
+                 acked: Callable[[bytes], int], *, metadata=None, reconnect: float = 0.0):
+        self._open, self._items, self._first = open_call, items, first
+        self._acked, self._metadata, self._reconnect = acked, metadata, reconnect
+        self._lock = threading.Lock()
+        self._source = threading.Lock()
+        self._generation = 0
+        self._taken = 0
+        self._unacked: deque[tuple[int, bytes]] = deque()
+        self._resend: deque[tuple[int, bytes]] = deque()
+        self.failed: list[Exception] = []
+        self.replica: Optional[str] = None     # the replica of the stream open now
+        self.reopened = 0
+
+    def _requests(self, generation: int, indices: list[int]):
+        k = 0
+        while True:
+            taken = self._take(generation)
+            if taken is None:
+                return
+            index, data = taken
+            indices.append(index)
+            yield self._first + data if k == 0 else data
+            k += 1
+
+    def _take(self, generation: int) -> Optional[tuple[int, bytes]]:
+        """The next request for the stream of ``generation``: one not acknowledged by a stream
+        before it, else the caller's next; None when the caller's are done or the stream was
+        replaced. The caller's iterator is read outside ``_lock`` (it may wait for an answer, a
+        producer in lockstep, and answers take ``_lock`` to acknowledge), and a request to
+        resend is taken without waiting for it (a replaced stream's thread may still be inside
+        it, waiting for the answer to what is resent)."""
+        resent = self._resent(generation)
+        if resent is not False:
+            return resent
+        with self._source:       # one stream's thread at a time reads the caller's iterator
+            resent = self._resent(generation)    # again: came while this one waited
+            if resent is not False:
+                return resent
+            try:
+                data = next(self._items)
+            except StopIteration:
+                return None
+            except Exception as e:    # raised to the caller, not lost in grpc's thread
+                self.failed.append(e)
+                return None
+            with self._lock:
+                index, self._taken = self._taken, self._taken + 1
+                if generation != self._generation:
+                    # replaced while the caller's iterator ran: the next stream sends it
+                    self._resend.append((index, data))
+                    return None
+                if len(self._unacked) >= MAX_UNACKED:
+                    lost = self._unacked.popleft()[0]
+                    log.warning(json.dumps({"event": "stream_unacked_dropped",
+                                            "request": lost}))
+                self._unacked.append((index, data))
+                return index, data
+
+    def _resent(self, generation: int):
+        """None when the stream was replaced, a request to send again, or False (none)."""
+        with self._lock:
+            if generation != self._generation:
+                return None
+            if self._resend:
+                taken = self._resend.popleft()
+                self._unacked.append(taken)
+                return taken
+        return False
+
+    def _ack(self, index: int) -> None:
+        with self._lock:
+            while self._unacked and self._unacked[0][0] <= index:
+                self._unacked.popleft()
+
+    def _reopen(self) -> None:
+        with self._lock:
+            self._generation += 1
+            self._resend = deque(self._unacked)
+            self._unacked.clear()
+
+    def answers(self) -> Iterator[tuple[int, bytes]]:
+        broken_at: Optional[float] = None
+        wait = BACKOFF_FIRST
+        while True:
+            indices: list[int] = []
+            call = self._open(self._requests(self._generation, indices), metadata=self._metadata)
+            try:
+                for data in call:
+                    if broken_at is not None:
+                        self._moved(_replica(call), time.monotonic() - broken_at)
+                        broken_at, wait = None, BACKOFF_FIRST
+                    elif self.replica is None:
+                        self.replica = _replica(call)
+                    index = indices[self._acked(data)]
+                    self._ack(index)
+                    yield index, data
+                return
+            except grpc.RpcError as e:
+                now = time.monotonic()
+                broken_at = broken_at if broken_at is not None else now
+                if (self.failed or not resumable(e)
+                        or now - broken_at + wait > self._reconnect):
+                    raise
+                log.info(json.dumps({"event": "stream_broken", "replica": self.replica,
+                                     "code": e.code().name, "retry_in_s": round(wait, 3)}))
+            finally:
+                call.cancel()
+            time.sleep(wait * random.uniform(0.5, 1.0))   # jitter: reopenings spread out
+            wait = min(2 * wait, BACKOFF_MAX)
+            self._reopen()
+
+    def _moved(self, replica: Optional[str], gap: float) -> None:
+        """A log line when the stream came back, naming the replica it left and the one it
+        reached (its world moved when they differ)."""
+        self.reopened += 1
+        log.info(json.dumps({"event": "stream_resumed", "from": self.replica, "to": replica,
+                             "moved": replica != self.replica, "gap_s": round(gap, 3)}))
+        self.replica = replica
