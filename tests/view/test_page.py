@@ -110,3 +110,30 @@ def test_the_page_draws_the_bodies_ellipsoids(tmp_path):
     assert ellipsoid_pixels(empty) < 50 and plan_pixels(empty) < 20
     assert ellipsoid_pixels(scene) > 2000, ellipsoid_pixels(scene)
     assert plan_pixels(scene) > 100, plan_pixels(scene)
+
+
+def test_the_slider_shows_the_scene_as_it_was(tmp_path):
+    from dqpose.record.reader import read
+    from dqpose.view.page import Page
+    from dqpose.view.timeline import timeline
+
+    tl = timeline(read(record(tmp_path)))
+    page = Page(tl, port=0)
+    try:
+        box, cup = tl.tracks["box"].ns[0], tl.tracks["cup"].ns[0]
+        (_, planned, _), = tl.plans
+        assert box < cup < planned
+        seen = []
+        for ns in (box - 1, box, cup, planned):
+            page.slider.value = (ns - tl.start) * 1e-9
+            page.show(page.ns(page.slider.value))
+            seen.append((page.frames["box"].visible, page.ellipsoids["box"].visible,
+                         page.frames["cup"].visible, "Plan" in page.plans
+                         and page.plans["Plan"].visible))
+        assert seen == [(False, False, False, False), (True, True, False, False),
+                        (True, True, True, False), (True, True, True, True)]
+        # the ellipsoid's half axes: 3 sigma of the fused position (sigmas / sqrt 2)
+        assert sorted(page.ellipsoids["box"].scale) == pytest.approx(
+            sorted(3 * np.array([0.08, 0.05, 0.03]) / np.sqrt(2)), rel=1e-6)
+    finally:
+        page.close()
