@@ -19,33 +19,84 @@ AXES = 0.1      # m, a body frame's axes
 CAMERA = np.array([1.2, -1.2, 0.9])
 
 
-class Page:
-    """Serves ``tl`` on ``host:port`` (viser takes the next free port when that one is taken:
-    :attr:`port` is the one it serves on)."""
+class Scene:
+    """The page's drawing: the grid, the world frame, a frame and an ellipsoid per body (made
+    when a body first comes), a line per plan."""
 
-    def __init__(self, tl: Timeline, host: str = "127.0.0.1", port: int = 8080):
-        self.tl = tl
+    def __init__(self, host: str = "127.0.0.1", port: int = 8080):
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.port = self.server.get_port()
-        scene = self.server.scene
-        scene.add_grid("/grid", width=4.0, height=4.0, cell_size=0.1, section_size=1.0)
-        scene.add_frame("/world", axes_length=0.3, axes_radius=0.008)
-        self.frames = {b: scene.add_frame(f"/world/{b}", axes_length=AXES, axes_radius=0.004,
-                                          visible=False) for b in tl.tracks}
-        self.ellipsoids = {b: scene.add_icosphere(
-            f"/world/{b}/ellipsoid", radius=1.0, color=ELLIPSOID_RGB, subdivisions=3,
-            opacity=ELLIPSOID_OPACITY, visible=False) for b in tl.tracks}
-        self.plan_names = sorted({name for name, _, _ in tl.plans})
+        self.server.scene.add_grid("/grid", width=4.0, height=4.0, cell_size=0.1,
+                                   section_size=1.0)
+        self.server.scene.add_frame("/world", axes_length=0.3, axes_radius=0.008)
+        self.frames: dict = {}
+        self.ellipsoids: dict = {}
         self.plans: dict = {}
+
+    def body(self, body: str):
+        """The frame and the ellipsoid of ``body`` (hidden until drawn)."""
+        if body not in self.frames:
+            scene = self.server.scene
+            self.frames[body] = scene.add_frame(f"/world/{body}", axes_length=AXES,
+                                                axes_radius=0.004, visible=False)
+            self.ellipsoids[body] = scene.add_icosphere(
+                f"/world/{body}/ellipsoid", radius=1.0, color=ELLIPSOID_RGB, subdivisions=3,
+                opacity=ELLIPSOID_OPACITY, visible=False)
+        return self.frames[body], self.ellipsoids[body]
+
+    def draw_body(self, body: str, t, q, half_axes=None, axes_q=None) -> None:
+        """``body`` at ``t``, ``q``, its ellipsoid's half axes along the rotation ``axes_q``
+        (in the body's frame; ``None``: no ellipsoid)."""
+        frame, ell = self.body(body)
+        frame.position, frame.wxyz, frame.visible = tuple(t), tuple(q), True
+        if half_axes is None:
+            ell.visible = False
+        else:
+            ell.wxyz = tuple(axes_q)
+            ell.scale = tuple(np.maximum(np.asarray(half_axes, dtype=float), 1e-6).tolist())
+            ell.visible = True
+
+    def hide_body(self, body: str) -> None:
+        frame, ell = self.body(body)
+        frame.visible = ell.visible = False
+
+    def draw_plan(self, name: str, positions) -> None:
+        """The path through ``positions (n, 3)`` (``None`` or fewer than 2: hidden)."""
+        p = None if positions is None else np.asarray(positions, dtype=float)
+        if p is not None and len(p) > 1:      # the same name: the line is replaced
+            self.plans[name] = self.server.scene.add_line_segments(
+                f"/plans/{name}", np.stack([p[:-1], p[1:]], axis=1), PLAN_RGB,
+                thickness=0.01)
+        elif name in self.plans:
+            self.plans[name].visible = False
+
+    def look_at(self, points) -> None:
+        """The camera on ``points``' centre, from above one side."""
+        if len(points):
+            centre = np.mean(np.asarray(points, dtype=float), axis=0)
+            self.server.initial_camera.look_at = tuple(centre.tolist())
+            self.server.initial_camera.position = tuple((centre + CAMERA).tolist())
+
+    def close(self) -> None:
+        self.server.stop()
+
+
+class Page(Scene):
+    """Serves ``tl`` on ``host:port`` (viser takes the next free port when that one is taken:
+    :attr:`port` is the one it serves on), with a time slider."""
+
+    def __init__(self, tl: Timeline, host: str = "127.0.0.1", port: int = 8080):
+        super().__init__(host, port)
+        self.tl = tl
+        for b in tl.tracks:
+            self.body(b)
+        self.plan_names = sorted({name for name, _, _ in tl.plans})
         duration = max((tl.end - tl.start) * 1e-9, 1e-3)
         self.slider = self.server.gui.add_slider(
             "time (s)", min=0.0, max=duration, step=min(1e-3, duration / 100),
             initial_value=duration)
-        ends = [t.t[-1] for t in tl.tracks.values()] + [p[-1] for _, _, p in tl.plans if len(p)]
-        if ends:     # the camera on what the file holds, from above one side
-            centre = np.mean(ends, axis=0)
-            self.server.initial_camera.look_at = tuple(centre.tolist())
-            self.server.initial_camera.position = tuple((centre + CAMERA).tolist())
+        self.look_at([t.t[-1] for t in tl.tracks.values()]
+                     + [p[-1] for _, _, p in tl.plans if len(p)])
         self.slider.on_update(lambda _: self.show(self.ns(self.slider.value)))
         self.show(tl.end)
 
@@ -56,28 +107,14 @@ class Page:
         """The scene as it was at ``ns``."""
         for body, track in self.tl.tracks.items():
             i = track.at(ns)
-            frame, ell = self.frames[body], self.ellipsoids[body]
-            frame.visible = i is not None
             if i is None:
-                ell.visible = False
+                self.hide_body(body)
                 continue
-            frame.position, frame.wxyz = track.t[i], track.q[i]
             cov = track.cov[i]
             if np.all(np.isfinite(cov)):
                 sigmas, q = ellipsoid_axes(cov[3:, 3:])
-                ell.wxyz = q
-                ell.scale = tuple(np.maximum(ELLIPSOID_SIGMAS * sigmas, 1e-6).tolist())
-                ell.visible = True
+                self.draw_body(body, track.t[i], track.q[i], ELLIPSOID_SIGMAS * sigmas, q)
             else:
-                ell.visible = False
+                self.draw_body(body, track.t[i], track.q[i])
         for name in self.plan_names:
-            p = self.tl.plan_at(name, ns)
-            if p is not None and len(p) > 1:      # the same name: the line is replaced
-                self.plans[name] = self.server.scene.add_line_segments(
-                    f"/plans/{name}", np.stack([p[:-1], p[1:]], axis=1), PLAN_RGB,
-                    thickness=0.01)
-            elif name in self.plans:
-                self.plans[name].visible = False
-
-    def close(self) -> None:
-        self.server.stop()
+            self.draw_plan(name, self.tl.plan_at(name, ns))
