@@ -2,7 +2,7 @@
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
-EXTRAS := devices,planning,plot,record,yaml,test,lint
+EXTRAS := devices,planning,plot,record,view,yaml,test,lint
 # Extra arguments: `make run ARGS="--port 50052"` (dqpose serve's options; the last of a repeated
 # option wins), `make test ARGS="-k blend"` (pytest's).
 ARGS   ?=

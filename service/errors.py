@@ -61,6 +61,7 @@ EXTRA_OF = {
     "yaml": "yaml",
     "foxglove": "record", "mcap": "record", "foxglove_schemas_protobuf": "record",
     "rosbags": "record",
+    "viser": "view", "websockets": "view",
     "cv2": "devices", "can": "devices", "rtde_control": "devices", "rtde_receive": "devices",
 }
 

@@ -22,6 +22,8 @@ COMMANDS = {
     "fuse": ("dqpose.cli.fuse", "fuse measurements of one body from a JSON, YAML or CSV file"),
     "replay": ("dqpose.cli.replay", "feed a recording (serve --record) again and compare every "
                                     "answer with the recorded one"),
+    "view": ("dqpose.cli.view", "a recording on a local web page: frames, covariance "
+                                "ellipsoids, plans, a time slider (the [view] extra)"),
     "export": ("dqpose.cli.export", "a recording as a ROS 2 bag (PoseWithCovarianceStamped, /tf, "
                                     "Path)"),
     "world": ("dqpose.cli.world", "a server's shared world: publish measurements, watch fused "

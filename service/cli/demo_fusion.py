@@ -159,10 +159,11 @@ def _follow(answers, scene, names, cams, errors, nees, latencies, out) -> list:
 
 
 def run(steps: int = 200, *, seed: int = 0, arm_sigma=(2e-3, 1e-3), noise: float = 6.0,
-        blur: float = 0.8, target: str | None = None, out=None) -> Result:
+        blur: float = 0.8, target: str | None = None, out=None, recorder=None) -> Result:
     """The demo: ``steps`` of 0.1 s (five arm reads and one frame of each camera each; the
     reads go on for two steps more, to deliver the last frames); prints a line per fused answer
-    to ``out`` when given; returns the errors (see :class:`Result`)."""
+    to ``out`` when given; returns the errors (see :class:`Result`). ``recorder``: what the
+    in-process server records into (``--record``)."""
     from dqpose import drivers
     from dqpose.cli.common import local_server, open_arm
     from dqpose.drivers.camera import CharucoCamera, Intrinsics
@@ -189,7 +190,8 @@ def run(steps: int = 200, *, seed: int = 0, arm_sigma=(2e-3, 1e-3), noise: float
         # the in-process server's answer), while the arm's process and the simulator end
         late = stack.enter_context(contextlib.ExitStack())
         if target is None:
-            target = late.enter_context(local_server())
+            target = late.enter_context(
+                local_server(**({} if recorder is None else {"recorder": recorder})))
         sim = stack.enter_context(URSimProcess())
         sim.set_pose(home)
         spec = f"ur:{sim.host}"
@@ -383,6 +385,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="where to write the PNG plot (default fusion_demo.png; needs matplotlib)")
     g.add_argument("--target", default=None,
                    help="a running dqpose server (host:port); default: start one in process")
+    g.add_argument("--record", default=None, metavar="FILE.mcap",
+                   help="record the in-process server's calls into FILE.mcap (the [record] "
+                        "extra), which `dqpose view` and `dqpose replay` open")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -399,7 +404,17 @@ def main(args: argparse.Namespace) -> int:
           "each fused answer's instant, the error against the ground truth of each source alone "
           "(ScLERP of what it had delivered by then, its latency known) and of the fused pose:",
           flush=True)
-    result = run(args.steps, seed=args.seed, target=args.target, out=sys.stdout)
+    recorder = None
+    if args.record is not None:
+        from dqpose.cli.demo_record import open_file_recorder
+        recorder, code = open_file_recorder("demo fusion", args.record, args.target)
+        if recorder is None:
+            return code
+    result = run(args.steps, seed=args.seed, target=args.target, out=sys.stdout,
+                 recorder=recorder)
+    if recorder is not None:
+        from dqpose.cli.demo_record import finish
+        print(finish(recorder, args.record))
     print()
     report(result)
     if matplotlib is None:

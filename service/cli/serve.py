@@ -86,6 +86,11 @@ def configure(name: str, p) -> None:
         rec.add_argument("--record", metavar="DIR",
                          help="record into DIR (created if missing), a new file at either bound "
                               "below")
+        rec.add_argument("--live", metavar="HOST:PORT", nargs="?", const="",
+                         help="serve the recording's channels live on a Foxglove WebSocket "
+                              "(Foxglove or Lichtblick: open connection, Foxglove WebSocket, "
+                              "ws://HOST:PORT; default 127.0.0.1:8765; README), with or without "
+                              "--record")
         rec.add_argument("--record-max-mb", type=float, default=256.0,
                          help="a new file after this many MB (default: %(default)s)")
         rec.add_argument("--record-max-s", type=float, default=3600.0,
@@ -157,9 +162,14 @@ def _serve(args) -> int:
             return fail("serve", f"--arm {simulated[0]}: TARGET '{SIM}' is the simulator that "
                                  f"--sims starts; add --sims")
         with contextlib.ExitStack() as stack:
-            if args.record is not None:
+            if args.record is not None or args.live is not None:
                 from dqpose.errors import MissingExtra
-                from dqpose.record import open_recorder
+                from dqpose.record import LiveFailed, open_recorder, parse_address
+                try:
+                    live = None if args.live is None else parse_address(args.live)
+                except ValueError as e:
+                    return fail("serve", str(e))
+                cmd = "serve --record" if args.record is not None else "serve --live"
                 for flag, value in (("--record-max-mb", args.record_max_mb),
                                     ("--record-max-s", args.record_max_s),
                                     ("--record-queue", args.record_queue)):
@@ -168,9 +178,11 @@ def _serve(args) -> int:
                 try:
                     cfg.recorder = open_recorder(
                         args.record, max_bytes=max(1, int(args.record_max_mb * 1e6)),
-                        max_seconds=args.record_max_s, queue=args.record_queue)
+                        max_seconds=args.record_max_s, queue=args.record_queue, live=live)
                 except MissingExtra as e:
-                    return missing_extra("serve --record", e)
+                    return missing_extra(cmd, e)
+                except LiveFailed as e:
+                    return fail("serve", str(e))
                 except OSError as e:
                     return fail("serve", f"--record {args.record}: {e.strerror or e}")
                 stack.callback(cfg.recorder.close)

@@ -6,8 +6,10 @@ nothing, unless ``dqpose serve --record DIR`` opened a :class:`~dqpose.record.re
 (:func:`open_recorder`). A servicer records a call as ``rec = recorder.call(rpc, RequestType,
 AnswerType)``, then ``rec.measurements(request)`` for each request as it arrived,
 ``rec.fused(answer)`` for each answer, ``rec.end(code)``. This module imports nothing beyond
-dqpose; the recorder needs the ``[record]`` extra (``foxglove-sdk`` writes, ``mcap`` reads,
-``foxglove-schemas-protobuf`` has Foxglove's schemas, ``rosbags`` writes ROS 2 bags).
+dqpose; ``dqpose serve --live`` serves the same channels on foxglove-sdk's WebSocket server
+(:mod:`dqpose.record.live`). The recorder needs the ``[record]`` extra (``foxglove-sdk`` writes
+and serves, ``mcap`` reads, ``foxglove-schemas-protobuf`` has Foxglove's schemas, ``rosbags``
+writes ROS 2 bags).
 """
 from __future__ import annotations
 
@@ -50,10 +52,32 @@ NULL = NullRecorder()
 #: the modules of the [record] extra
 MODULES = ("foxglove", "mcap", "foxglove_schemas_protobuf")
 
+#: where ``--live`` without a value listens (Foxglove's default for a WebSocket connection)
+DEFAULT_HOST, DEFAULT_PORT = "127.0.0.1", 8765
+
+
+def parse_address(text: str | None) -> tuple[str, int]:
+    """``HOST:PORT``, ``:PORT`` or ``HOST`` (``None``: the default) as ``(host, port)``;
+    ``ValueError`` naming ``--live`` for anything else."""
+    if not text:
+        return DEFAULT_HOST, DEFAULT_PORT
+    host, sep, port = text.rpartition(":")
+    if not sep:
+        host, port = text, str(DEFAULT_PORT)
+    host = host.strip("[]") or DEFAULT_HOST
+    if not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise ValueError(f"--live: expected HOST:PORT with a port within 0..65535, got {text!r}")
+    return host, int(port)
+
+
+class LiveFailed(Exception):
+    """The live server did not start (the address is taken, ...): the message says why."""
+
 
 def open_recorder(directory, **kw):
-    """A :class:`~dqpose.record.recorder.Recorder` writing into ``directory``; ``MissingExtra``
-    naming ``[record]`` when its modules are not installed."""
+    """A :class:`~dqpose.record.recorder.Recorder` writing into ``directory`` (and serving
+    ``live=(host, port)``, else :class:`LiveFailed`); ``MissingExtra`` naming ``[record]``
+    when its modules are not installed."""
     require(*MODULES)
     from dqpose.record.recorder import Recorder
 

@@ -22,7 +22,7 @@ import sys
 import threading
 import time
 
-from dqpose.record import frames
+from dqpose.record import LiveFailed, frames
 from dqpose.record.schemas import descriptor_set
 
 log = logging.getLogger("dqpose.record")
@@ -63,25 +63,35 @@ class CallRecord:
 
 
 class Recorder:
-    """Records calls into MCAP files in ``directory`` (``dqpose-<UTC time>-<n>.mcap``), a new
-    file once one holds ``max_bytes`` or is ``max_seconds`` old. ``queue`` messages (and
+    """Records calls into MCAP files in ``directory`` (``dqpose-<UTC time>-<n>.mcap``; ``None``:
+    no files), a new file once one holds ``max_bytes`` or is ``max_seconds`` old, and serves
+    the same channels live on ``live`` (``(host, port)``, port 0 a free one; ``None``: no live
+    view), :attr:`live_port` its port; :class:`~dqpose.record.LiveFailed` when it cannot
+    listen. ``queue`` messages (and
     ``max_buffer`` bytes) wait for the writer at most; beyond, they are dropped. :meth:`close`
     hands over what is waiting and waits for the file to be finished.
 
     ``stall`` is a test hook: while it is set nothing is handed to the writer (a disk that
     hangs)."""
 
-    def __init__(self, directory: str | os.PathLike, max_bytes: int = 256 << 20,
+    def __init__(self, directory: str | os.PathLike | None, max_bytes: int = 256 << 20,
                  max_seconds: float = 3600.0, queue: int = 100_000,
-                 max_buffer: int = 64 << 20):
+                 max_buffer: int = 64 << 20, live: tuple[str, int] | None = None):
         if not (isinstance(max_bytes, int) and max_bytes > 0):
             raise ValueError(f"max_bytes: must be a positive integer, got {max_bytes!r}")
         if not (max_seconds > 0):
             raise ValueError(f"max_seconds: must be > 0, got {max_seconds!r}")
         if not (isinstance(queue, int) and queue > 0):
             raise ValueError(f"queue: must be a positive integer, got {queue!r}")
-        self.directory = os.fspath(directory)
-        os.makedirs(self.directory, exist_ok=True)
+        if directory is None and live is None:
+            raise ValueError("directory: None needs a live address")
+        self.directory = None if directory is None else os.fspath(directory)
+        if self.directory is not None:
+            os.makedirs(self.directory, exist_ok=True)
+        #: the live server's port once it listens
+        self.live_port: int | None = None
+        self._live_said = threading.Event()
+        self._live_error = ""
         self.capacity, self.max_buffer = queue, max_buffer
         self.stall = threading.Event()
         self.files: list[str] = []
@@ -99,9 +109,9 @@ class Recorder:
         self._flushed = 0.0
         self._closed = False
         self._proc = subprocess.Popen(
-            [sys.executable, "-m", "dqpose.record.writer", self.directory, str(max_bytes),
-             repr(float(max_seconds))], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-            bufsize=0,
+            [sys.executable, "-m", "dqpose.record.writer", self.directory or "", str(max_bytes),
+             repr(float(max_seconds)), *([f"{live[0]}:{live[1]}"] if live else [])],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, bufsize=0,
             # out of the server's process group: a Ctrl-C at its terminal (SIGINT to the group)
             # must not end the writer, even while it starts; it ends when its input does
             start_new_session=True)
@@ -118,6 +128,15 @@ class Recorder:
         self._flusher = threading.Thread(target=self._flush_periodically,
                                          name="dqpose-record-flush", daemon=True)
         self._flusher.start()
+        if live is not None:
+            self._wait_for_live(live)
+
+    def _wait_for_live(self, live: tuple[str, int], timeout: float = 30.0) -> None:
+        """Until the writer says its live server listens (or cannot)."""
+        if not self._live_said.wait(timeout) or self.live_port is None:
+            why = self._live_error or f"the writer process did not start it in {timeout:g} s"
+            self.close(timeout=5.0)
+            raise LiveFailed(f"--live {live[0]}:{live[1]}: {why}")
 
     # -- the servicers' side: no waiting
 
@@ -228,8 +247,17 @@ class Recorder:
                 log.info(text)
             elif event.get("event") == "recording_dropped":
                 log.warning(text)
+            elif event.get("event") == "live":
+                self.live_port = event["port"]
+                log.info(text)
+                self._live_said.set()
+            elif event.get("event") == "live_failed":
+                self._live_error = event["error"]
+                log.error(text)
+                self._live_said.set()
             else:
                 log.error(text)
+        self._live_said.set()       # the writer ended
 
     def close(self, timeout: float = 30.0) -> None:
         """Hands over what is waiting (unless stalled), then waits for the writer to finish

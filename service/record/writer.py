@@ -1,9 +1,12 @@
-"""The recorder's writer process (``python -m dqpose.record.writer DIR MAX_BYTES MAX_SECONDS``):
-frames (:mod:`dqpose.record.frames`) on standard input, MCAP files in DIR, rotated by size and
-age; JSON lines on standard output for the server to log (``recording``: a file opened,
-``recording_dropped``: a drop marker written). Its own process, so that neither the writing nor
-the views nor the compression take the server's interpreter lock. Ends, the file finished, when
-its input does.
+"""The recorder's writer process (``python -m dqpose.record.writer DIR MAX_BYTES MAX_SECONDS
+[HOST:PORT]``): frames (:mod:`dqpose.record.frames`) on standard input, MCAP files in DIR (an
+empty DIR: none), rotated by size and age, and the same channels on the live WebSocket server at
+HOST:PORT when given (:mod:`dqpose.record.live`); JSON lines on standard output for the server
+to log (``recording``: a file opened, ``recording_dropped``: a drop marker written, ``live``:
+the live server listens, with its port, or ``live_failed``, after which the process ends). Its
+own process, so that neither the writing nor the views nor the compression nor the live
+server's clients take the server's interpreter lock. Ends, the file finished, when its input
+does.
 """
 from __future__ import annotations
 
@@ -14,9 +17,11 @@ import signal
 import sys
 import time
 
-from dqpose.record import frames, views
+from dqpose.record import frames, parse_address, views
+from dqpose.record.live import LiveServer
 from dqpose.record.mcapfile import CHUNK_BYTES, McapFile
 from dqpose.record.schemas import message_class
+from dqpose.record.sink import Sink
 from dqpose.record.topics import (
     CALL_FIELDS,
     CALLS_TOPIC,
@@ -39,8 +44,13 @@ def say(**event) -> None:
 
 
 class Writer:
-    def __init__(self, directory: str, max_bytes: int, max_seconds: float):
+    """Writes what comes into the MCAP files of ``directory`` (``None``: no files) and the live
+    server ``live`` (``None``: none): the same channels, built here once for both."""
+
+    def __init__(self, directory: str | None, max_bytes: int, max_seconds: float,
+                 live: LiveServer | None = None):
         self.directory, self.max_bytes, self.max_seconds = directory, max_bytes, max_seconds
+        self.live = live
         self.file: McapFile | None = None
         self.opened = 0.0
         self.count = 0
@@ -48,21 +58,29 @@ class Writer:
         self.schemas: dict[str, bytes] = {}
         self.classes: dict[str, object] = {}
         self.calls: dict[int, tuple[str, str, str]] = {}
-        self.view_bodies: set[str] = set()
 
     def open(self) -> McapFile:
         if self.file is None:
+            assert self.directory is not None
             name = time.strftime("dqpose-%Y%m%dT%H%M%SZ", time.gmtime())
             path = os.path.join(self.directory, f"{name}-{self.count:04d}.mcap")
             self.count += 1
             self.file = McapFile(path, chunk_size=min(CHUNK_BYTES,
                                                       max(self.max_bytes // 8, 1024)))
             self.opened = time.monotonic()
-            self.view_bodies.clear()
             say(event="recording", file=path)
             for call, began in self.calls.items():
-                self.log_call(call, time.time_ns(), *began, continued=True)
+                self.log_call((self.file,), call, time.time_ns(), *began, continued=True)
         return self.file
+
+    def sinks(self) -> list[Sink]:
+        """Where a message goes: the file (opened when there is none) and the live server."""
+        out: list[Sink] = []
+        if self.directory is not None:
+            out.append(self.open())
+        if self.live is not None:
+            out.append(self.live)
+        return out
 
     def rotate_if_due(self, every: int = 1) -> None:
         """A new file next when this one is too large or too old, looked at once ``every``
@@ -75,14 +93,15 @@ class Writer:
             f.close()
             self.file = None
 
-    def log_call(self, call, ns, rpc, req, ans, continued=False) -> None:
-        f = self.open()
-        f.write_json(f.json_channel(CALLS_TOPIC, "dqpose.record.Call", CALL_FIELDS), ns,
-                     {"call": call, "rpc": rpc, "event": "begin", "request_type": req,
-                      "answer_type": ans, "continued": continued})
+    @staticmethod
+    def log_call(sinks, call, ns, rpc, req, ans, continued=False) -> None:
+        for s in sinks:
+            s.write_json(s.json_channel(CALLS_TOPIC, "dqpose.record.Call", CALL_FIELDS), ns,
+                         {"call": call, "rpc": rpc, "event": "begin", "request_type": req,
+                          "answer_type": ans, "continued": continued})
 
-    def channel(self, f: McapFile, topic: str, name: str, call: int):
-        return f.proto_channel(topic, name, self.schemas[name], (("call", str(call)),))
+    def channel(self, s: Sink, topic: str, name: str, call: int):
+        return s.proto_channel(topic, name, self.schemas[name], (("call", str(call)),))
 
     def message(self, name: str, data: bytes):
         cls = self.classes.get(name)
@@ -96,72 +115,81 @@ class Writer:
             self.schemas[name] = data
         elif kind == frames.BEGIN:
             d = json.loads(payload)
-            self.open()      # first: a file opened now repeats the calls open before it
+            sinks = self.sinks()    # first: a file opened now repeats the calls open before it
             self.calls[call] = (d["rpc"], d["request_type"], d["answer_type"])
-            self.log_call(call, ns, *self.calls[call])
+            self.log_call(sinks, call, ns, *self.calls[call])
         elif kind in (frames.REQUEST, frames.ANSWER):
             began = self.calls.get(call)
             if began is None:
                 return
             rpc, req, ans = began
-            f = self.open()
+            sinks = self.sinks()
             if kind == frames.REQUEST:
-                f.write(self.channel(f, requests_topic(rpc), req, call), ns, payload)
+                for s in sinks:
+                    s.write(self.channel(s, requests_topic(rpc), req, call), ns, payload)
             else:
-                f.write(self.channel(f, answers_topic(rpc), ans, call), ns, payload)
+                for s in sinks:
+                    s.write(self.channel(s, answers_topic(rpc), ans, call), ns, payload)
                 if ans == "dqpose.v1.FusedPose":
-                    self.views(f, ns, self.message(ans, payload))
+                    msg = self.message(ans, payload)
+                    for s in sinks:
+                        self.views(s, ns, msg)
         elif kind == frames.END:
             d = json.loads(payload)
-            f = self.open()      # first: a file opened now says the call began earlier
+            sinks = self.sinks()    # first: a file opened now says the call began earlier
             began = self.calls.pop(call, None)
-            if began is not None:
-                rpc, req, ans = began
-                f.forget(requests_topic(rpc), req, (("call", str(call)),))
-                f.forget(answers_topic(rpc), ans, (("call", str(call)),))
-            f.write_json(f.json_channel(CALLS_TOPIC, "dqpose.record.Call", CALL_FIELDS), ns,
-                         {"call": call, "event": "end", "code": d["code"],
-                          "details": d["details"]})
+            for s in sinks:
+                if began is not None:
+                    rpc, req, ans = began
+                    s.forget(requests_topic(rpc), req, (("call", str(call)),))
+                    s.forget(answers_topic(rpc), ans, (("call", str(call)),))
+                s.write_json(s.json_channel(CALLS_TOPIC, "dqpose.record.Call", CALL_FIELDS),
+                             ns, {"call": call, "event": "end", "code": d["code"],
+                                  "details": d["details"]})
         elif kind == frames.GAP:
             d = json.loads(payload)
-            f = self.open()
-            f.write_json(f.json_channel(DROPPED_TOPIC, "dqpose.record.Dropped",
-                                        DROPPED_FIELDS), ns,
-                         {"first_dropped": d["first_dropped"], "count": d["count"],
-                          "resumed": ns})
+            for s in self.sinks():
+                s.write_json(s.json_channel(DROPPED_TOPIC, "dqpose.record.Dropped",
+                                            DROPPED_FIELDS), ns,
+                             {"first_dropped": d["first_dropped"], "count": d["count"],
+                              "resumed": ns})
             say(event="recording_dropped", count=d["count"], first_dropped=d["first_dropped"],
-                resumed=ns, file=f.path)
+                resumed=ns, file=self.file.path if self.file is not None else None)
         elif kind == frames.PLAN:
             name, data = frames.unnamed(payload)
-            f = self.open()
-            f.write(f.channel(plan_topic(name), views.PosesInFrame), ns, data)
+            for s in self.sinks():
+                s.write(s.channel(plan_topic(name), views.PosesInFrame), ns, data)
         self.rotate_if_due(16 if self.max_bytes >= 1 << 20 else 1)
 
-    def views(self, f: McapFile, ns: int, msg) -> None:
+    @staticmethod
+    def views(s: Sink, ns: int, msg) -> None:
         """The Foxglove views of a fused pose (not of an error entry)."""
         if msg.HasField("error") or not msg.HasField("pose"):
             return
         body = msg.body
-        if body not in self.view_bodies:
-            if len(self.view_bodies) >= MAX_VIEW_BODIES:
+        if body not in s.view_bodies:
+            if len(s.view_bodies) >= MAX_VIEW_BODIES:
                 return
-            self.view_bodies.add(body)
+            s.view_bodies.add(body)
         p, o = msg.pose.position, msg.pose.orientation
         t, q = (p.x, p.y, p.z), (o.w, o.x, o.y, o.z)
-        f.write(f.channel(pose_topic(body), views.PoseInFrame), ns,
+        s.write(s.channel(pose_topic(body), views.PoseInFrame), ns,
                 views.pose_in_frame(ns, t, q).SerializeToString())
-        f.write(f.channel(TF_TOPIC, views.FrameTransforms), ns,
+        s.write(s.channel(TF_TOPIC, views.FrameTransforms), ns,
                 views.frame_transforms(ns, [(views.WORLD, body, t, q)]).SerializeToString())
         if len(msg.covariance) == 36:
-            f.write(f.channel(ELLIPSOIDS_TOPIC, views.SceneUpdate), ns, views.scene_update(
+            s.write(s.channel(ELLIPSOIDS_TOPIC, views.SceneUpdate), ns, views.scene_update(
                 [views.ellipsoid(ns, body, msg.covariance)]).SerializeToString())
-        f.write_json(f.json_channel(stats_topic(body), "dqpose.record.FusedStats",
+        s.write_json(s.json_channel(stats_topic(body), "dqpose.record.FusedStats",
                                     STATS_FIELDS), ns, views.scalars(msg))
 
     def close(self) -> None:
         if self.file is not None:
             self.file.close()
             self.file = None
+        if self.live is not None:
+            self.live.close()
+            self.live = None
 
 
 def main(argv: list[str]) -> int:
@@ -169,8 +197,17 @@ def main(argv: list[str]) -> int:
     # the file is finished: a signal meant for the server is not for it.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    directory, max_bytes, max_seconds = argv[0], int(argv[1]), float(argv[2])
-    w = Writer(directory, max_bytes, max_seconds)
+    directory, max_bytes, max_seconds = argv[0] or None, int(argv[1]), float(argv[2])
+    live = None
+    if len(argv) > 3:
+        host, port = parse_address(argv[3])
+        try:
+            live = LiveServer(host, port)
+        except RuntimeError as e:
+            say(event="live_failed", host=host, port=port, error=str(e))
+            return 1
+        say(event="live", host=host, port=live.port)
+    w = Writer(directory, max_bytes, max_seconds, live)
     fd = sys.stdin.fileno()
     buffer = bytearray()
     try:

@@ -142,3 +142,22 @@ def test_bad_steps_is_refused(capsys):
 def test_plain_demo_still_blends(capsys):
     assert main(["demo"]) == 0
     assert "Blended with each method" in capsys.readouterr().out
+
+
+def test_the_demo_records_one_file_that_replays_and_views(tmp_path, capsys):
+    pytest.importorskip("foxglove", reason="the [record] extra")
+    from dqpose.record.reader import read
+    from dqpose.view.timeline import timeline
+
+    path = str(tmp_path / "demo.mcap")
+    assert main(["demo", "fusion", "--steps", "3", "--plot", str(tmp_path / "d.png"),
+                 "--record", path]) == 0
+    assert f"recording: {path}" in capsys.readouterr().out
+    assert not os.path.exists(path + ".parts")
+    rec = read(path)
+    (call,) = rec.calls.values()
+    assert (call.rpc, call.code) == ("dqpose.v1.Fusion/StreamFuse", "OK")
+    assert sum(e.kind == "answer" for e in rec.events) >= 3
+    assert timeline(rec).tracks      # what dqpose view draws
+    assert main(["replay", path]) == 0, capsys.readouterr()
+    assert main(["demo", "fusion", "--steps", "3", "--record", path]) == 2    # exists

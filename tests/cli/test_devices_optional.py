@@ -21,7 +21,8 @@ LIMITS = trajectory.Limits(max_linear_velocity=1.0, max_angular_velocity=1.0,
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 DEVICE_MODULES = ("cv2", "can", "rtde_control", "rtde_receive", "yaml", "casadi", "piper_sdk",
-                  "scipy", "matplotlib", "mcap", "foxglove_schemas_protobuf", "rosbags", "foxglove")
+                  "scipy", "matplotlib", "mcap", "foxglove_schemas_protobuf", "rosbags", "foxglove",
+                  "viser")
 
 
 def hint(extra: str) -> str:
@@ -91,7 +92,9 @@ def test_commands_needing_an_extra_name_it(tmp_path):
                         (("sim", "camera", "--help"), "devices"),
                         (("serve", "--port", "0", "--sims"), "devices"),
                         (("serve", "--port", "0", "--record", str(tmp_path / "rec")), "record"),
+                        (("serve", "--port", "0", "--live", "127.0.0.1:0"), "record"),
                         (("replay", str(tmp_path / "x.mcap")), "record"),
+                        (("view", str(tmp_path / "x.mcap")), "view"),
                         (("export", str(tmp_path / "x.mcap"), "--ros2", str(tmp_path / "b")),
                          "record"),
                         (("handeye", "solve", ROOT, "--local"), "devices"),

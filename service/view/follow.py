@@ -1,0 +1,96 @@
+"""``dqpose view --server HOST:PORT``: the page following a server live, as a client of its
+``serve --live`` WebSocket (Foxglove's protocol, ``foxglove.sdk.v1``): it subscribes to ``/tf``
+(the bodies' frames), ``/fused/ellipsoids`` (each body's 3-sigma ellipsoid, drawn as the
+recording draws it) and ``/plans/*``, and draws each message as it comes. A channel's messages
+logged before the subscription reached the server are not sent (the protocol keeps none)."""
+from __future__ import annotations
+
+import json
+import struct
+import sys
+
+from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+from websockets.sync.client import connect
+from websockets.typing import Subprotocol
+
+from dqpose.record.topics import ELLIPSOIDS_TOPIC, TF_TOPIC, plan_topic
+from dqpose.view.page import Scene
+
+SUBPROTOCOL = "foxglove.sdk.v1"
+MESSAGE_DATA = 0x01
+PLANS = plan_topic("")
+
+
+def _q(r) -> tuple:
+    return (r.w, r.x, r.y, r.z)
+
+
+class Follower:
+    """Draws what the live server at ``url`` sends on ``scene`` until the connection ends."""
+
+    def __init__(self, url: str, scene: Scene):
+        self.url, self.scene = url, scene
+        self.subscriptions: dict[int, str] = {}      # subscription id -> topic
+        self.ellipsoids: dict[str, tuple] = {}       # body -> (half axes, their rotation)
+        self.poses: dict[str, tuple] = {}            # body -> (t, q), the last
+        self.announced: set[tuple[str, bool]] = set()
+
+    def run(self) -> None:
+        with connect(self.url, subprotocols=[Subprotocol(SUBPROTOCOL)], open_timeout=30,
+                     max_size=None) as ws:
+            for m in ws:
+                if isinstance(m, str):
+                    self.operation(ws, json.loads(m))
+                elif m[0] == MESSAGE_DATA:
+                    sub, _ = struct.unpack_from("<IQ", m, 1)
+                    topic = self.subscriptions.get(sub)
+                    if topic is not None:
+                        self.draw(topic, bytes(m[13:]))
+
+    def operation(self, ws, op: dict) -> None:
+        if op.get("op") != "advertise":
+            return
+        subs = []
+        for ch in op["channels"]:
+            topic = ch["topic"]
+            if topic in (TF_TOPIC, ELLIPSOIDS_TOPIC) or topic.startswith(PLANS):
+                sub = len(self.subscriptions) + 1
+                self.subscriptions[sub] = topic
+                subs.append({"id": sub, "channelId": ch["id"]})
+        if subs:
+            ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+            print(json.dumps({"event": "following", "topics": [self.subscriptions[s["id"]]
+                                                               for s in subs]}),
+                  file=sys.stderr, flush=True)
+
+    def draw_body(self, body: str) -> None:
+        """``body`` where ``/tf`` last put it, with the last ellipsoid it came with (a pose's
+        ``/tf`` comes before its ellipsoid: both redraw)."""
+        if body in self.poses:
+            self.scene.draw_body(body, *self.poses[body],
+                                 *self.ellipsoids.get(body, (None, None)))
+            first = (body, body in self.ellipsoids)
+            if first not in self.announced:     # a body's first drawing (with an ellipsoid)
+                self.announced.add(first)
+                print(json.dumps({"event": "drawn", "body": body, "ellipsoid": first[1]}),
+                      file=sys.stderr, flush=True)
+
+    def draw(self, topic: str, data: bytes) -> None:
+        if topic == ELLIPSOIDS_TOPIC:
+            for e in SceneUpdate.FromString(data).entities:
+                if e.spheres:
+                    s = e.spheres[0]
+                    self.ellipsoids[e.frame_id] = ((s.size.x / 2, s.size.y / 2, s.size.z / 2),
+                                                   _q(s.pose.orientation))
+                    self.draw_body(e.frame_id)
+        elif topic == TF_TOPIC:
+            for tf in FrameTransforms.FromString(data).transforms:
+                t = tf.translation
+                self.poses[tf.child_frame_id] = ((t.x, t.y, t.z), _q(tf.rotation))
+                self.draw_body(tf.child_frame_id)
+        else:
+            msg = PosesInFrame.FromString(data)
+            self.scene.draw_plan(topic[len(PLANS):], [(p.position.x, p.position.y,
+                                                       p.position.z) for p in msg.poses])

@@ -1,0 +1,163 @@
+"""``dqpose serve --live``: a real server process, an independent WebSocket client (the
+``websockets`` package) speaking Foxglove's protocol (``foxglove.sdk.v1``): the channels are
+advertised with their schemas as the calls log them, and a subscriber receives the fused pose a
+StreamFuse call answers, decoded with the advertised schema alone."""
+from __future__ import annotations
+
+import base64
+import json
+import queue
+import struct
+import subprocess
+import sys
+
+import grpc
+import pytest
+
+from dqpose.record.schemas import message_class
+from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
+from dqpose.rpc.fusion import STREAM_FUSE
+from tests.cli._cli import ROOT, serving
+from tests.record import _stream
+
+websockets_sync = pytest.importorskip("websockets.sync.client", reason="the [test] extra's "
+                                      "websockets (pip install -e '.[test]')")
+pytest.importorskip("foxglove", reason="the [record] extra")
+
+SUBPROTOCOL = "foxglove.sdk.v1"
+#: a server-to-client binary message: a message on a subscription
+MESSAGE_DATA = 0x01
+
+
+def event(events, name):
+    return next(e for e in events if e.get("event") == name)
+
+
+class Viewer:
+    """A WebSocket client of the live server: advertised channels by topic, messages by
+    subscription."""
+
+    def __init__(self, ws):
+        self.ws = ws
+        self.channels: dict[str, list[dict]] = {}
+        self.server_info: dict = {}
+
+    def receive(self, timeout: float = 30.0):
+        """The next message: a JSON operation (advertisements kept) or a binary one."""
+        m = self.ws.recv(timeout=timeout)
+        if isinstance(m, str):
+            op = json.loads(m)
+            if op["op"] == "serverInfo":
+                self.server_info = op
+            elif op["op"] == "advertise":
+                for ch in op["channels"]:
+                    self.channels.setdefault(ch["topic"], []).append(ch)
+            return op
+        return m
+
+    def wait_for_topic(self, topic: str) -> dict:
+        while topic not in self.channels:
+            self.receive()
+        return self.channels[topic][0]
+
+    def subscribe(self, subscription: int, channel: dict) -> None:
+        self.ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+            {"id": subscription, "channelId": channel["id"]}]}))
+
+    def next_message(self, subscription: int) -> tuple[int, bytes]:
+        """``(log time ns, payload)`` of the next message on ``subscription``."""
+        while True:
+            m = self.receive()
+            if isinstance(m, bytes) and m[0] == MESSAGE_DATA:
+                sub, ns = struct.unpack_from("<IQ", m, 1)
+                if sub == subscription:
+                    return ns, m[13:]
+
+
+def test_a_viewer_sees_the_channels_and_receives_the_fused_pose(tmp_path):
+    data = _stream.requests(40)
+    expected = _stream.answers(data)     # the answers each request brings (in process)
+    first = next(i for i, a in enumerate(expected) if a)
+    body = expected[first][0].body
+    # the first request after ``first`` that brings an answer for the body
+    later = next(i for i in range(first + 1, len(data))
+                 if any(a.body == body for a in expected[i]))
+    proc, events = serving("--live", "127.0.0.1:0", "--record", str(tmp_path))
+    requests: queue.Queue = queue.Queue()
+    try:
+        live = event(events, "live")
+        target = event(events, "serving")["address"]
+        with websockets_sync.connect(f"ws://127.0.0.1:{live['port']}",
+                                     subprotocols=[SUBPROTOCOL], open_timeout=30) as ws, \
+                grpc.insecure_channel(target) as ch:
+            viewer = Viewer(ws)
+            assert ws.subprotocol == SUBPROTOCOL
+            assert viewer.receive()["op"] == "serverInfo"
+            call = ch.stream_stream(f"/{STREAM_FUSE}")(iter(requests.get, None), timeout=60)
+
+            def send(upto: int) -> list[pb.FusedPose]:
+                """Requests up to index ``upto`` sent, their answers received."""
+                n = 0
+                while data:
+                    i = len(expected) - len(data)
+                    if i > upto:
+                        break
+                    requests.put(data.pop(0))
+                    n += len(expected[i])
+                return [pb.FusedPose.FromString(next(call)) for _ in range(n)]
+
+            send(first)
+            channel = viewer.wait_for_topic(f"/fused/{body}")
+            assert (channel["schemaName"], channel["encoding"]) == \
+                ("foxglove.PoseInFrame", "protobuf")
+            for topic, schema in (("/tf", "foxglove.FrameTransforms"),
+                                  ("/fused/ellipsoids", "foxglove.SceneUpdate"),
+                                  (f"/dqpose/{STREAM_FUSE}/requests",
+                                   "dqpose.v1.FuseStreamRequest"),
+                                  (f"/dqpose/{STREAM_FUSE}/answers", "dqpose.v1.FusedPose")):
+                assert viewer.wait_for_topic(topic)["schemaName"] == schema
+            viewer.subscribe(7, channel)
+            # a message round trip: the subscription has reached the server before more answers
+            ws.ping().wait(30)
+            sent = [a for a in send(later) if a.body == body]
+            assert sent
+            ns, payload = viewer.next_message(7)
+            cls = message_class(base64.b64decode(channel["schema"]), channel["schemaName"])
+            pose = cls.FromString(payload)      # type: ignore[attr-defined]
+            assert pose.frame_id == "world"
+            p, q = pose.pose.position, pose.pose.orientation
+            a = sent[0].pose
+            assert (p.x, p.y, p.z, q.w, q.x, q.y, q.z) == (
+                a.position.x, a.position.y, a.position.z, a.orientation.w, a.orientation.x,
+                a.orientation.y, a.orientation.z)
+            requests.put(None)
+            list(call)
+    finally:
+        requests.put(None)
+        proc.terminate()
+        proc.wait(30)
+
+
+def test_live_on_a_taken_port_is_one_line_and_exit_2():
+    proc, events = serving("--live", "127.0.0.1:0")
+    try:
+        port = event(events, "live")["port"]
+        res = subprocess.run([sys.executable, "-m", "dqpose.cli", "serve", "--port", "0",
+                              "--live", f"127.0.0.1:{port}"], capture_output=True, text=True,
+                             timeout=60, cwd=ROOT)
+        assert res.returncode == 2
+        last = res.stderr.strip().splitlines()[-1]
+        assert last.startswith(f"dqpose serve: error: --live 127.0.0.1:{port}: "), res.stderr
+        assert "in use" in last
+    finally:
+        proc.terminate()
+        proc.wait(30)
+
+
+@pytest.mark.parametrize("value", ["127.0.0.1:x", "host:70000"])
+def test_a_malformed_live_address_is_named(value):
+    res = subprocess.run([sys.executable, "-m", "dqpose.cli", "serve", "--live", value],
+                         capture_output=True, text=True, timeout=30, cwd=ROOT)
+    assert (res.returncode, res.stderr) == (
+        2, f"dqpose serve: error: --live: expected HOST:PORT with a port within 0..65535, "
+           f"got {value!r}\n")

@@ -1,0 +1,139 @@
+"""``dqpose view FILE.mcap`` in a real headless browser (Chromium from Debian's packages, software
+WebGL): a recording of two fused bodies with large covariances and a plan, served by a real
+``dqpose view`` process, rendered to a PNG; the ellipsoids' and the plan's colours cover enough
+pixels, where the same page without bodies (rendered the same way) has none of them and is not
+blank either."""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from dqpose import dq
+from tests.cli._cli import ROOT
+
+pytest.importorskip("viser", reason="the [view] extra (pip install -e '.[view]')")
+pytest.importorskip("foxglove", reason="the [record] extra")
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="no Chromium: apt-get install -y "
+                                                         "chromium (.ci/run installs it)")
+
+
+def record(directory) -> str:
+    """A recording: two Fuse calls (bodies ``box`` and ``cup``, position sigmas of centimetres)
+    and a plan, through a real server."""
+    from dqpose.record.recorder import Recorder
+    from dqpose.rpc.client import Client
+    from dqpose.rpc.server import ServerConfig
+    from tests.rpc._grpc_server import ServerThread
+
+    recorder = Recorder(directory)
+    cov = np.diag([1e-3, 1e-3, 1e-3, 0.08 ** 2, 0.05 ** 2, 0.03 ** 2])
+    with ServerThread(ServerConfig(port=0, recorder=recorder)) as s:
+        c = Client(s.target)
+        for body, x in (("box", 0.0), ("cup", 0.6)):
+            poses = dq.from_pose(np.array([[1.0, 0, 0, 0]] * 2),
+                                 np.array([[x, 0.0, 0.3], [x + 0.01, 0.0, 0.3]]))
+            c.fuse(poses, np.array([cov, cov]), body=body)
+        path = dq.from_pose(np.array([[1.0, 0, 0, 0]] * 20),
+                            np.stack([np.linspace(0, 0.6, 20), np.full(20, -0.3),
+                                      np.full(20, 0.3)], axis=1))
+        recorder.plan("Plan", path)
+    (f,) = recorder.files
+    return f
+
+
+def screenshot(url: str, out) -> np.ndarray:
+    """The page at ``url`` as headless Chromium draws it (1280x800, RGB 0..255)."""
+    import matplotlib.image
+
+    subprocess.run([CHROMIUM, "--headless=new", "--use-angle=swiftshader", "--no-sandbox",
+                    "--disable-gpu-sandbox", "--hide-scrollbars",
+                    "--virtual-time-budget=15000", f"--screenshot={out}",
+                    "--window-size=1280,800", url], check=True, capture_output=True,
+                   timeout=180)
+    return (matplotlib.image.imread(str(out))[..., :3] * 255).astype(int)
+
+
+#: the rows below the page's overlays (the controls, a notice of software WebGL with an orange
+#: bar): the 3D view alone
+SCENE_ROWS = slice(200, None)
+
+
+def ellipsoid_pixels(img: np.ndarray) -> int:
+    """Pixels of the ellipsoids' hue (red and blue well above green), shaded or blended."""
+    img = img[SCENE_ROWS]
+    r, g, b = img[..., 0], img[..., 1], img[..., 2]
+    return int(np.sum((r - g > 60) & (b - g > 50)))
+
+
+def plan_pixels(img: np.ndarray) -> int:
+    """Pixels of the plans' orange."""
+    img = img[SCENE_ROWS]
+    r, g, b = img[..., 0], img[..., 1], img[..., 2]
+    return int(np.sum((r > 200) & (g > 100) & (g < 190) & (b < 90)))
+
+
+def view(path):
+    proc = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "view", path, "--port",
+                             "0"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True)
+    while True:
+        line = proc.stderr.readline()
+        assert line, "dqpose view ended before serving"
+        if line.startswith("{"):
+            return proc, json.loads(line)
+
+
+def test_the_page_draws_the_bodies_ellipsoids(tmp_path):
+    from dqpose.view.page import Page
+    from dqpose.view.timeline import Timeline
+
+    path = record(tmp_path / "rec")
+    proc, info = view(path)
+    try:
+        assert (info["bodies"], info["plans"]) == (["box", "cup"], ["Plan"])
+        scene = screenshot(info["url"], tmp_path / "scene.png")
+    finally:
+        proc.terminate()
+        proc.wait(30)
+    empty_page = Page(Timeline(0, 0, {}, []), port=0)
+    try:
+        empty = screenshot(f"http://127.0.0.1:{empty_page.port}", tmp_path / "empty.png")
+    finally:
+        empty_page.close()
+    assert empty.std() > 1.0, "the empty page rendered blank"
+    assert ellipsoid_pixels(empty) < 50 and plan_pixels(empty) < 20
+    assert ellipsoid_pixels(scene) > 2000, ellipsoid_pixels(scene)
+    assert plan_pixels(scene) > 100, plan_pixels(scene)
+
+
+def test_the_slider_shows_the_scene_as_it_was(tmp_path):
+    from dqpose.record.reader import read
+    from dqpose.view.page import Page
+    from dqpose.view.timeline import timeline
+
+    tl = timeline(read(record(tmp_path)))
+    page = Page(tl, port=0)
+    try:
+        box, cup = tl.tracks["box"].ns[0], tl.tracks["cup"].ns[0]
+        (_, planned, _), = tl.plans
+        assert box < cup < planned
+        seen = []
+        for ns in (box - 1, box, cup, planned):
+            page.slider.value = (ns - tl.start) * 1e-9
+            page.show(page.ns(page.slider.value))
+            seen.append((page.frames["box"].visible, page.ellipsoids["box"].visible,
+                         page.frames["cup"].visible, "Plan" in page.plans
+                         and page.plans["Plan"].visible))
+        assert seen == [(False, False, False, False), (True, True, False, False),
+                        (True, True, True, False), (True, True, True, True)]
+        # the ellipsoid's half axes: 3 sigma of the fused position (sigmas / sqrt 2)
+        assert sorted(page.ellipsoids["box"].scale) == pytest.approx(
+            sorted(3 * np.array([0.08, 0.05, 0.03]) / np.sqrt(2)), rel=1e-6)
+    finally:
+        page.close()
