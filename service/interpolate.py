@@ -78,7 +78,13 @@ def interpolate(times_k, dqs_k, times, mode: str = "screw") -> np.ndarray:
     seg = np.clip(np.searchsorted(tk, t, side="right") - 1, 0, tk.shape[0] - 2)
     tau = (t - tk[seg]) / step[seg]
     if mode == "screw":
-        return dq.sclerp(dqs_k[seg], dqs_k[seg + 1], tau)
+        # ScLERP's dual part is a difference of the two keyframes': near a keyframe far from the
+        # origin (1e13 m) it cancels to a result that is no longer rigid; projecting it back
+        # (the dual-number norm) makes it one, and the last keyframe is returned as given
+        out = dq.normalize(dq.sclerp(dqs_k[seg], dqs_k[seg + 1], tau))
+        end = tau == 1.0
+        out[end] = dqs_k[seg[end] + 1]
+        return out
     # Rotation-only dual quaternions: their ScLERP is exactly the slerp of the orientations.
     r_k = np.zeros_like(dqs_k)
     r_k[:, :4] = q_k

@@ -107,3 +107,16 @@ def test_other_bad_input():
     bad[1, :4] = 0
     with pytest.raises(ValueError, match=r"^dqs_k\[1\]: zero quaternion"):
         interpolate([0.0, 1.0], bad, [0.5])
+
+
+def test_a_keyframe_far_from_the_origin_still_gives_rigid_poses_and_the_last_keyframe_exactly():
+    """Found by the fuzz (Interpolate with a keyframe at z = 3.6e13 m): ScLERP from that keyframe
+    back to one near the origin cancelled to a dual part 1e-3 off orthogonal, which the server's
+    answer encoding refused as not a rigid motion (INTERNAL)."""
+    q = np.array([0.98877108, 0.0, 0.0, -0.14943813])
+    k = np.stack([dq.from_pose([1.0, 0, 0, 0], [0.1, 0, 0]),
+                  dq.from_pose(q / np.linalg.norm(q), [0.2, 0.04, 3.6472413570864e13]),
+                  dq.from_pose(q / np.linalg.norm(q), [0.2, 0.2, 0.1])])
+    out = interpolate([0.0, 0.1, 0.2], k, [0.0, 0.05, 0.15, 0.2, 0.2 - 1e-15])
+    dq.to_pose(out)                                  # rigid: raises otherwise
+    assert np.array_equal(out[3], k[2]) and np.array_equal(out[0], k[0])
