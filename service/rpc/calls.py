@@ -223,11 +223,13 @@ class Calls:
             await asyncio.sleep(period)
             self.flush()
 
-    async def unary(self, rpc: str, handle, request, context, counted: bool = False):
+    async def unary(self, rpc: str, handle, request, context, counted: bool = False,
+                    status=None):
         """One unary call: the response of ``handle(request)`` (awaited when it is a coroutine),
         the :func:`refusal` status for a FieldError or TooLarge, INTERNAL (logged) for anything
         else, and one record either way.
-        With ``counted``, ``handle`` returns ``(response, messages)`` and the record counts them."""
+        With ``counted``, ``handle`` returns ``(response, messages)`` and the record counts them.
+        ``status(rpc, e)``: a service's own mapping of exceptions (default :func:`refused`)."""
         t0 = self.begin()
         code = "OK"
         messages = None
@@ -239,9 +241,9 @@ class Calls:
                 response, messages = response
             return response
         except Exception as e:
-            status, details = refused(rpc, e)
-            code = status.name
-            await context.abort(status, details)
+            code_, details = (status or refused)(rpc, e)
+            code = code_.name
+            await context.abort(code_, details)
         finally:
             self.done(rpc, code, t0, context, messages)
 

@@ -290,16 +290,8 @@ class World:
         server.add_registered_method_handlers(self.NAME, handlers)
 
     async def _unary(self, rpc: str, fn, request, context):
-        t0 = self.calls.begin()
-        code = "OK"
-        try:
-            return await self.calls.work(fn, request)
-        except Exception as e:
-            status, details = status_of(e)
-            code = status.name
-            await context.abort(status, details)
-        finally:
-            self.calls.done(rpc, code, t0, context)
+        return await self.calls.unary(rpc, lambda r: self.calls.work(fn, r), request, context,
+                                      status=lambda _, e: status_of(e))
 
     async def Configure(self, request, context):
         return await self._unary("Configure", self.configure, request, context)
@@ -379,5 +371,5 @@ class World:
             self.calls.done("Subscribe", code, t0, context, messages=sent)
 
     def world_bounds(self):
-        return getattr(self.world, "bounds", domain.WorldBounds())
+        return self.world.bounds
 
