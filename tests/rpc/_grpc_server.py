@@ -21,12 +21,14 @@ class ServerThread:
         self.running = asyncio.run_coroutine_threadsafe(start(cfg), self.loop).result(30)
         self.port = self.running.port
         self.target = f"127.0.0.1:{self.port}"
+        self._stop_lock = threading.Lock()    # a test may stop it from a thread and again after
 
     def stop(self, grace: float | None = 0) -> None:
-        if self.loop.is_running():
-            asyncio.run_coroutine_threadsafe(self.running.stop(grace), self.loop).result(30)
-            self.loop.call_soon_threadsafe(self.loop.stop)
-            self.thread.join(10)
+        with self._stop_lock:
+            if self.loop.is_running():
+                asyncio.run_coroutine_threadsafe(self.running.stop(grace), self.loop).result(30)
+                self.loop.call_soon_threadsafe(self.loop.stop)
+                self.thread.join(10)
 
     def __enter__(self):
         return self
