@@ -60,6 +60,9 @@ from tests.bench._table import markdown
 from tests.bench.bench_grpc import ServerProcess
 
 HEAD = ["section", "case", "value", "unit", "detail"]
+PUBLISH_HEAD = ["row", "producers", "subscribers", "bodies", "offered meas/s", "sustained meas/s",
+                "answers/s", "p50 ms", "p99 ms", "added p99 ms", "answer bytes", "RSS MB start",
+                "RSS MB end", "subscriber streams"]
 COV = np.diag(np.r_[np.full(3, np.deg2rad(0.3)), np.full(3, 1e-3)] ** 2)
 MOUNT = np.diag(np.r_[np.full(3, np.deg2rad(1.0)), np.full(3, 5e-3)] ** 2)
 
@@ -400,6 +403,17 @@ def main(argv=None) -> int:
     if not args.publish:
         print(markdown(HEAD, lookup_rows(args.lookups) + nees_rows(args.trials)))
         return 0
+    rows = publish_rows(args)
+    floor = rows[0][-1]["p99"]
+    print(f"World Publish -> Subscribe, one server (dqpose serve), producers and subscribers in "
+          f"processes of their own, window {args.window:g} s, subscribers at {SUBSCRIBE_RATE:g} Hz "
+          f"per body, {args.seconds:g} s per row; added p99 = p99 - the transport row's p99")
+    print(markdown(PUBLISH_HEAD, [
+        [name, str(p), str(s), str(b), "unpaced" if rate is None else f"{rate:.0f}",
+         f"{r['rate']:.0f}", f"{r['answers']:.0f}", f"{r['p50']:.2f}", f"{r['p99']:.2f}",
+         "" if name.startswith("transport") else f"{r['p99'] - floor:.2f}", f"{r['size']:.0f}",
+         f"{r['rss0']:.1f}", f"{r['rss1']:.1f}", r["ended"] or "ran to the end"]
+        for name, p, s, b, rate, r in rows]))
     return 0
 
 
