@@ -35,7 +35,7 @@ from dqpose.fusion import (
 from dqpose.fusion.extrinsics import _relative_covariance
 from dqpose.fusion.results import DOF, _frozen
 from dqpose.fusion.tracker import _arrays
-from dqpose.fusion.validation import _seconds
+from dqpose.fusion.validation import _finite_shape, _seconds
 
 __all__ = ["WorldOptions", "WorldBounds", "WorldError", "NotFound", "OutOfRange", "Published",
            "BodyPose", "World", "Measurement", "Source", "Fused"]
@@ -225,10 +225,28 @@ class World:
             bodies[k] = ""          # refused already: the tracker refuses it again, unnamed
         with self._lock:
             errors = self._admit(bodies, sources, times, poses, covs, bad)
-        accepted = len(measurements) - len(errors)
-        touched = dict.fromkeys(b for k, b in enumerate(bodies) if k not in errors)
-        return Published(accepted, tuple((k, str(e)) for k, e in sorted(errors.items())),
-                         tuple(touched))
+        return _published(bodies, errors)
+
+    def ingest(self, bodies: Sequence[str], sources: Sequence[str], times, poses,
+               covariances) -> Published:
+        """:meth:`publish` of measurements given as arrays (a server's parsed request):
+        ``bodies`` and ``sources`` one name each, ``times`` ``(n,)``, ``poses`` ``(n, 8)``,
+        ``covariances`` ``(n, 6, 6)``; checked together in NumPy, the same checks and answers
+        as :meth:`publish` without a :class:`Measurement` per row. Arrays of the wrong shape are
+        a ``WorldError`` for the call."""
+        n = len(bodies)
+        if len(sources) != n:
+            raise WorldError(f"sources: expected {n} names, got {len(sources)}")
+        try:
+            times = _finite_shape(times, "times", (n,))
+            poses = _finite_shape(poses, "poses", (n, 8))
+            covs = _finite_shape(covariances, "covariances", (n, DOF, DOF))
+        except ValueError as e:
+            raise WorldError(str(e)) from None
+        bodies = list(bodies)
+        with self._lock:
+            errors = self._admit(bodies, list(sources), times, poses, covs)
+        return _published(bodies, errors)
 
     def _admit(self, bodies, sources, times, poses, covs, bad=None) -> dict[int, ValueError]:
         """Rows into the tracker under the world's bounds (the lock held)."""
@@ -403,6 +421,12 @@ class World:
         cov = (np.zeros((DOF, DOF)) if src.extrinsic_covariance is None
                else src.extrinsic_covariance)
         return BodyPose(f"arm:{arm}", 0.0, pose, cov, None)
+
+
+def _published(bodies, errors: Mapping[int, ValueError]) -> Published:
+    touched = dict.fromkeys(b for k, b in enumerate(bodies) if k not in errors)
+    return Published(len(bodies) - len(errors),
+                     tuple((k, str(e)) for k, e in sorted(errors.items())), tuple(touched))
 
 
 # answers kept at most (each a few kB); beyond, the cache starts over

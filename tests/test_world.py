@@ -132,6 +132,28 @@ def test_publish_answers_each_bad_measurement_and_keeps_the_others():
     assert r.bodies == ("box",)
 
 
+def test_ingest_of_arrays_answers_as_publish_does():
+    # The server's path (arrays parsed from the request) and the objects' path: the same
+    # errors, the same fused pose to the last bit.
+    rng = np.random.default_rng(4)
+    sources = [Source("cam", random_pose(rng)), Source("arm", random_pose(rng))]
+    ms, _ = stream(rng, sources, ["box", "cup"], [0.0, 0.05, 0.1, 0.15])
+    ms[3] = Measurement("cam", "box", ms[3].time, ms[3].pose, -np.eye(6))
+    ms[5] = Measurement("arm", "cup", float("inf"), ms[5].pose, ms[5].covariance)
+    ms[6] = Measurement("arm", "", ms[6].time, ms[6].pose, ms[6].covariance)
+    by_objects, by_arrays = World(sources=sources), World(sources=sources)
+    a = by_objects.publish(ms)
+    b = by_arrays.ingest([m.body for m in ms], [m.source for m in ms], [m.time for m in ms],
+                         np.array([m.pose for m in ms]), np.array([m.covariance for m in ms]))
+    assert a == b and [k for k, _ in b.errors] == [3, 5, 6]
+    for body in ("box", "cup"):
+        pa, pb = by_objects.pose(body, 0.1), by_arrays.pose(body, 0.1)
+        assert np.array_equal(pa.pose, pb.pose) and np.array_equal(pa.covariance, pb.covariance)
+    with pytest.raises(WorldError, match=r"^poses: expected shape \(16, 8\), got \(16, 7\)"):
+        by_arrays.ingest(["box"] * 16, ["cam"] * 16, np.zeros(16), np.zeros((16, 7)),
+                         np.zeros((16, 6, 6)))
+
+
 def test_bounds_refused_naming_the_limit():
     rng = np.random.default_rng(4)
     world = World(bounds=WorldBounds(max_bodies=2, max_sources=2))

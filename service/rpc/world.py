@@ -30,7 +30,6 @@ from dqpose.rpc.world_convert import (
     body_pose_msg,
     config_from_msg,
     config_msg,
-    domain_measurements,
     published_errors,
     relative_msg,
 )
@@ -211,7 +210,7 @@ class World:
         self.measurements += len(request.measurements)
         if not len(m.index):
             return
-        published = self.world.publish(domain_measurements(m))
+        published = self.world.ingest(m.bodies, m.sources, m.times, m.poses, m.covariances)
         bad = published_errors(published, m.index, field)
         for i, text in bad:
             error(i, text)

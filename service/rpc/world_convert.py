@@ -1,7 +1,7 @@
 """The ``dqpose.v1.World`` messages <-> :mod:`dqpose.world`: a ``WorldConfig`` as the World's
 sources, arms and options (the proto's zeros made the domain's defaults here) and back, a
-``PublishRequest``'s measurements as the domain's (each bad one named
-``requests[4].measurements[2]...``), and a :class:`dqpose.world.BodyPose` as a ``FusedPose`` or
+``PublishRequest``'s measurement errors named by their field path
+(``requests[4].measurements[2]...``), and a :class:`dqpose.world.BodyPose` as a ``FusedPose`` or
 a ``RelativePose``. Measurements, sources and fused poses convert as Fusion's do
 (:mod:`dqpose.rpc.fusion_convert`)."""
 from __future__ import annotations
@@ -11,13 +11,12 @@ import re
 
 import numpy as np
 
-from dqpose import fusion, world
+from dqpose import world
 from dqpose.errors import FieldError
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from dqpose.rpc._proto.dqpose.v1 import world_pb2 as pb
 from dqpose.rpc.fusion_convert import (
     DEFAULT_MAX_EXTRAPOLATION,
-    Measurements,
     fused_to_msg,
     options_from_msg,
     options_msg,
@@ -94,12 +93,6 @@ def world_config(sources=(), arms=None, *, robust: bool = False, probability: fl
     for arm, source in (arms or {}).items():
         msg.arms.add(arm=arm, source=source)
     return msg
-
-
-def domain_measurements(m: Measurements) -> list:
-    """:class:`Measurements` (checked arrays) as the domain's :class:`fusion.Measurement` s."""
-    return [fusion.Measurement(m.sources[k], m.bodies[k], float(m.times[k]), m.poses[k],
-                               m.covariances[k]) for k in range(len(m.index))]
 
 
 def published_errors(published, index: np.ndarray, field: str) -> list:
