@@ -326,13 +326,19 @@ class World:
         lock held), or ``OutOfRange`` naming what is known."""
         self._known(body)
         t = self._t
-        newest, oldest = t.newest(body), t.oldest(body)
+        newest = t.newest(body)
         at = newest if time is None else time
         if time is not None:
             try:
                 at = _seconds(time, "time")
             except ValueError as e:
                 raise WorldError(str(e)) from None
+        key = (body, at)
+        hit = self._fits.get(key)
+        version = self._version.get(body, 0)
+        if hit is not None and hit[0] == version:      # no new data: it was in range then
+            return hit[1]
+        oldest = t.oldest(body)
         known = f"{body!r} is known from {_s(oldest)} to {_s(newest)}"
         if at < oldest:
             raise OutOfRange(f"time: {_s(at)} is before the oldest measurement kept; {known} "
@@ -341,11 +347,6 @@ class World:
         if limit is not None and at > newest + limit:
             raise OutOfRange(f"time: {_s(at)} is {at - newest:.6g} s past the newest "
                              f"measurement, beyond max_extrapolation {limit:g} s; {known}")
-        key = (body, at)
-        hit = self._fits.get(key)
-        version = self._version.get(body, 0)
-        if hit is not None and hit[0] == version:
-            return hit[1]
         window = self.options.window
         if not t.near(body, at, window):
             raise OutOfRange(f"time: no measurement of {body!r} within the window "

@@ -69,7 +69,8 @@ def status_of(e: Exception) -> tuple[grpc.StatusCode, str]:
 
 class Subscription:
     """One Subscribe stream: its bodies (None: all), pacing per body, and the queue of its
-    answers (filled by the publishing thread through the event loop, in arrival order)."""
+    answers (serialized ``FusedPose`` messages, filled by the publishing thread through the
+    event loop, in arrival order)."""
 
     def __init__(self, bodies, rate: float, relative_to: str, loop, max_delay: float,
                  window: float):
@@ -241,11 +242,12 @@ class World:
                     request=r, measurement=-1, details=(
                         f"body {b!r}: {n} ticks skipped: request {r} made more than "
                         f"{MAX_FITS_PER_REQUEST} fits due (a source's time jumped ahead)")))
-                    for b, n in skipped.items()]
+                    .SerializeToString() for b, n in skipped.items()]
             for body, t, last in due:
                 key = (body, t, sub.relative_to)
                 if key not in cache:
-                    cache[key] = self._answer(body, t, sub.relative_to, last)
+                    # serialized once here for every subscriber it goes to
+                    cache[key] = self._answer(body, t, sub.relative_to, last).SerializeToString()
                 answers.append(cache[key])
             if answers:
                 sub.loop.call_soon_threadsafe(sub.deliver, answers)
@@ -277,9 +279,10 @@ class World:
             "Publish": grpc.stream_stream_rpc_method_handler(
                 self.Publish, request_deserializer=None,
                 response_serializer=pb.PublishAck.SerializeToString),
+            # answers are FusedPose messages serialized when made (_apply)
             "Subscribe": grpc.unary_stream_rpc_method_handler(
                 self.Subscribe, request_deserializer=pb.SubscribeRequest.FromString,
-                response_serializer=fpb.FusedPose.SerializeToString),
+                response_serializer=None),
             "Lookup": grpc.unary_unary_rpc_method_handler(
                 self.Lookup, request_deserializer=pb.LookupRequest.FromString,
                 response_serializer=pb.RelativePose.SerializeToString),

@@ -3,7 +3,7 @@
     .venv/bin/python -m tests.bench.bench_world            # ~1 min
     .venv/bin/python -m tests.bench.bench_world --trials 500 --lookups 2000
     .venv/bin/python -m tests.bench.bench_world --publish          # Publish -> Subscribe, ~4 min
-    .venv/bin/python -m tests.bench.bench_world --publish --sweep none --seconds 600   # soak
+    .venv/bin/python -m tests.bench.bench_world --publish --soak 600   # RSS over 10 min
 
 Sections (each a function returning rows of the one table, so that more can be added):
 
@@ -248,7 +248,17 @@ def run(target: str, producers: int, subscribers: int, bodies: int, rate: float 
     for p in procs:
         p.start()
     rss0 = rss() if rss else float("nan")
+    samples: list[tuple[float, float]] = []       # (seconds since start, RSS MB), every 5 s
+    done = threading.Event()
+
+    def sample():
+        while rss and not done.wait(5.0):
+            samples.append((time.time() - start, rss()))
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
     results = [out.get(timeout=seconds + 120) for _ in procs]
+    done.set()
     rss1 = rss() if rss else float("nan")
     for p in procs:
         p.join(30)
@@ -280,7 +290,7 @@ def run(target: str, producers: int, subscribers: int, bodies: int, rate: float 
                 p50=float(np.percentile(lat_ms, 50)) if len(lat_ms) else float("nan"),
                 p99=float(np.percentile(lat_ms, 99)) if len(lat_ms) else float("nan"),
                 size=float(np.mean(np.concatenate(sizes))) if sizes and sum(map(len, sizes))
-                else 0.0, rss0=rss0, rss1=rss1, ended=",".join(sorted(ended)))
+                else 0.0, rss0=rss0, rss1=rss1, ended=",".join(sorted(ended)), samples=samples)
 
 
 def serve_relay(answer_bytes: int) -> None:
@@ -367,19 +377,45 @@ def publish_rows(args) -> list:
         rows.append((name, producers, subscribers, bodies, rate, r))
         return r
 
-    target = on_world("target", 4, 4, 100, args.rate)
-    relay = RelayProcess(int(target["size"]) or 1000)
-    try:
-        floor = run(relay.target, 4, 4, 100, args.rate, args.seconds, relay.rss_mb)
-    finally:
-        relay.stop()
-    rows.insert(0, ("transport (relay)", 4, 4, 100, args.rate, floor))
+    # The target row, then a row this machine can carry (fits are made per body and tick, so
+    # fewer bodies), each beside the transport alone at the same load.
+    for name, bodies, rate in (("target", 100, args.rate),
+                               ("within 2 cores", args.fit_bodies, args.fit_rate)):
+        world = on_world(name, 4, 4, bodies, rate)
+        relay = RelayProcess(int(world["size"]) or 1000)
+        try:
+            floor = run(relay.target, 4, 4, bodies, rate, args.seconds, relay.rss_mb)
+        finally:
+            relay.stop()
+        rows.insert(len(rows) - 1, ("transport (relay)", 4, 4, bodies, rate, floor))
     if args.sweep == "full":
         for producers in (1, 2, 4, 8):
             for bodies in (1, 10, 100, 1000):
                 if bodies >= producers:
                     on_world("sweep", producers, 1, bodies, None)
     return rows
+
+
+def soak(args) -> int:
+    """The soak: RSS growth of one server from minute 2 to the end (target <= 5 %)."""
+    from dqpose.rpc.client import Client
+    server = ServerProcess("aio", quiet_log=True)
+    try:
+        with Client(server.target) as c:
+            c.configure_world(window=args.window)
+        r = run(server.target, 4, 4, args.fit_bodies, args.fit_rate, args.soak, server.rss_mb)
+    finally:
+        server.stop()
+    after2 = [mb for t, mb in r["samples"] if t >= 120.0]
+    base = after2[0] if after2 else float("nan")
+    print(f"World soak: 4 producers, 4 subscribers, {args.fit_bodies} bodies, "
+          f"{args.fit_rate:g} measurements/s offered, {args.soak:g} s")
+    print(markdown(["sustained meas/s", "answers/s", "p50 ms", "p99 ms", "RSS MB at 2 min",
+                    "RSS MB end", "growth %", "RSS MB max after 2 min", "subscriber streams"], [[
+        f"{r['rate']:.0f}", f"{r['answers']:.0f}", f"{r['p50']:.2f}", f"{r['p99']:.2f}",
+        f"{base:.1f}", f"{r['rss1']:.1f}", f"{100 * (r['rss1'] / base - 1):.2f}",
+        f"{max(after2, default=float('nan')):.1f}", r["ended"] or "ran to the end"]]))
+    return 0
 
 
 def main(argv=None) -> int:
@@ -394,7 +430,15 @@ def main(argv=None) -> int:
                     help="--publish: the target row's measurements/s in total (default "
                          "%(default)s)")
     ap.add_argument("--window", type=float, default=0.2, help="--publish: the world's window, s")
+    ap.add_argument("--fit-bodies", type=int, default=20,
+                    help="--publish: bodies of the row sized to this machine (default "
+                         "%(default)s)")
+    ap.add_argument("--fit-rate", type=float, default=4_000.0,
+                    help="--publish: its measurements/s in total (default %(default)s)")
     ap.add_argument("--sweep", choices=("full", "none"), default="full")
+    ap.add_argument("--soak", type=float, metavar="SECONDS",
+                    help="--publish: instead of the table, one world row (--fit-bodies, "
+                         "--fit-rate) for SECONDS, its RSS from minute 2 to the end")
     ap.add_argument("--serve-relay", type=int, metavar="BYTES", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.serve_relay is not None:
@@ -403,17 +447,27 @@ def main(argv=None) -> int:
     if not args.publish:
         print(markdown(HEAD, lookup_rows(args.lookups) + nees_rows(args.trials)))
         return 0
+    if args.soak:
+        return soak(args)
     rows = publish_rows(args)
-    floor = rows[0][-1]["p99"]
     print(f"World Publish -> Subscribe, one server (dqpose serve), producers and subscribers in "
           f"processes of their own, window {args.window:g} s, subscribers at {SUBSCRIBE_RATE:g} Hz "
-          f"per body, {args.seconds:g} s per row; added p99 = p99 - the transport row's p99")
-    print(markdown(PUBLISH_HEAD, [
-        [name, str(p), str(s), str(b), "unpaced" if rate is None else f"{rate:.0f}",
-         f"{r['rate']:.0f}", f"{r['answers']:.0f}", f"{r['p50']:.2f}", f"{r['p99']:.2f}",
-         "" if name.startswith("transport") else f"{r['p99'] - floor:.2f}", f"{r['size']:.0f}",
-         f"{r['rss0']:.1f}", f"{r['rss1']:.1f}", r["ended"] or "ran to the end"]
-        for name, p, s, b, rate, r in rows]))
+          f"per body, {args.seconds:g} s per row; added p99 = p99 - the p99 of the transport row "
+          f"just above it")
+    lines, floor = [], float("nan")
+    for name, p, s_, b, rate, r in rows:
+        relay = name.startswith("transport")
+        if relay:
+            floor = r["p99"]
+        lines.append([name, str(p), str(s_), str(b), "unpaced" if rate is None else f"{rate:.0f}",
+                      f"{r['rate']:.0f}", f"{r['answers']:.0f}", f"{r['p50']:.2f}",
+                      f"{r['p99']:.2f}",
+                      "" if relay or floor != floor else f"{r['p99'] - floor:.2f}",
+                      f"{r['size']:.0f}", f"{r['rss0']:.1f}", f"{r['rss1']:.1f}",
+                      r["ended"] or "ran to the end"])
+        if not relay:
+            floor = float("nan")        # the sweep's rows have no transport row of their own
+    print(markdown(PUBLISH_HEAD, lines))
     return 0
 
 
