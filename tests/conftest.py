@@ -66,7 +66,8 @@ def sim():
 #: on the clock, the hand-eye solves, the fuzz): ``make test-fast`` leaves them out, ``make test``
 #: (CI) runs all
 SLOW_MODULES = {
-    "bench/test_bench_handeye.py", "bench/test_bench_handeye_kinhec.py", "cli/test_demo_fusion.py",
+    "bench/test_bench_handeye.py", "bench/test_bench_handeye_kinhec.py",
+    "bench/test_bench_world.py", "cli/test_demo_fusion.py",
     "cli/test_handeye_capture.py", "cli/test_handeye_cli.py", "cli/test_interrupt.py",
     "cli/test_world_cli.py", "cluster/test_proxies.py", "drivers/test_arm_safety.py",
     "drivers/test_armproc_respawn.py", "drivers/test_camera.py", "fusion/test_process_noise.py",

@@ -1,0 +1,48 @@
+"""The world benchmark's harness, small: its producers' measurements reach the world and its
+subscribers' answers are matched to the measurement that made each due, against a real
+``dqpose serve`` process and the relay; and its Lookup rows time real answers."""
+import numpy as np
+
+from dqpose.rpc.client import Client
+from tests.bench import bench_world as bw
+from tests.bench.bench_grpc import ServerProcess
+
+
+def test_publish_row_acks_every_measurement_and_answers_every_body_at_its_ticks():
+    server = ServerProcess("aio", quiet_log=True)
+    try:
+        with Client(server.target) as c:
+            c.configure_world(window=0.2)
+        r = bw.run(server.target, 2, 1, 6, 300.0, 2.0, server.rss_mb)
+        with Client(server.target) as c:
+            poses = {b: c.lookup("", f"b{b}") for b in range(6)}
+    finally:
+        server.stop()
+    # every measurement sent was acked (the rate counts acked ones): ~300/s over 2 s
+    assert 150 < r["rate"] < 450, r
+    assert r["ended"] == ""
+    # each body answered at 30 Hz for ~2 s, and each answer matched to a measurement sent
+    # before it arrived (a latency is an arrival minus a send time: positive)
+    assert 6 * 30 * 2 * 0.5 < r["answers"] * 2.0 < 6 * 30 * 2 * 1.5, r
+    assert 0.0 < r["p50"] <= r["p99"] < 10_000.0, r
+    truth, _ = bw._scene_poses(6)
+    for b, p in poses.items():     # the world fused the static poses the producers sent
+        assert np.allclose(p.pose, truth[b], atol=1e-9) or np.allclose(p.pose, -truth[b],
+                                                                        atol=1e-9), b
+
+
+def test_relay_row_answers_like_the_world_without_fusing():
+    relay = bw.RelayProcess(700)
+    try:
+        r = bw.run(relay.target, 1, 1, 4, 200.0, 2.0, relay.rss_mb)
+    finally:
+        relay.stop()
+    assert r["ended"] == "" and 4 * 30 * 2 * 0.5 < r["answers"] * 2.0 < 4 * 30 * 2 * 1.5, r
+    assert 650 < r["size"] < 800, r         # answers of the size it was asked for
+
+
+def test_lookup_rows_time_real_answers():
+    rows = bw.lookup_rows(5)
+    assert len(rows) == 8
+    for row in rows:
+        assert np.isfinite(float(row[2])) and float(row[2]) > 0.0, row
