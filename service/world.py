@@ -7,10 +7,12 @@ over the measurements taken within ``window`` of that time (the tracker's rows, 
 ``fuse``'s to the last bit). Producers call :meth:`World.publish` from any thread (one lock).
 
 Correlations: two bodies measured by the same source share its extrinsic error ``ε`` (the
-source's ``extrinsic_covariance``). :meth:`World.relative` fits both bodies jointly, with one ``ε``
-per source, so the relative pose's covariance carries their cross-covariance. Not modelled: a
-latency error two bodies share (each body's fit estimates a source's latency on its own), errors
-of a source's ``body_offset``, and correlations between measurement noises of one image.
+source's ``extrinsic_covariance``) and, when its latency is estimated (``latency_sigma``), its
+latency error. :meth:`World.relative` fits both bodies jointly, with one ``ε`` and one latency
+per such source, so the relative pose's covariance carries their cross-covariance (a body's own
+pose, :meth:`World.pose`, is its own fit, which estimates the latency from its measurements
+alone). Not modelled: errors of a source's ``body_offset``, and correlations between the
+measurement noises of one image.
 """
 from __future__ import annotations
 
@@ -368,8 +370,9 @@ class World:
 
     def relative(self, target: str, source: str, time: float = 0.0) -> BodyPose:
         """``T_target_source`` at ``time`` (0: the newest time both are known at); "" is the
-        world frame. Bodies that share a source with an ``extrinsic_covariance`` are fitted
-        together (one error per such source), so the covariance has their cross-covariance."""
+        world frame. Bodies that share a source with an ``extrinsic_covariance`` or an estimated
+        latency are fitted together (one error per such source), so the covariance has their
+        cross-covariance."""
         target, source = _body_name(target), _body_name(source)
         with self._lock:
             for b in (target, source):
@@ -405,10 +408,12 @@ class World:
             return answer
 
     def _share(self, a: Fused, b: Fused) -> bool:
-        """Whether two fits used a source whose extrinsic is uncertain in common."""
+        """Whether two fits used in common a source whose extrinsic is uncertain or whose
+        latency is estimated (errors the two poses then share)."""
         table = self._t._table
         common = {s.name for s in a.sources} & {s.name for s in b.sources}
-        return any(table[s].extrinsic_covariance is not None for s in common if s in table)
+        return any(table[s].extrinsic_covariance is not None or table[s].latency_sigma is not None
+                   for s in common if s in table)
 
     def arm_base(self, arm: str) -> BodyPose:
         """``T_world_base`` of ``arm``: the extrinsic of the source ``arms`` names, with its

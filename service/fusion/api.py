@@ -13,7 +13,7 @@ import numpy as np
 from dqpose import dq
 from dqpose.fusion.alignment import DEFAULT_MAX_EXTRAPOLATION, _fuse_in_time, _setup
 from dqpose.fusion.chi2 import DEFAULT_PROBABILITY, chi2_quantile
-from dqpose.fusion.extrinsics import _extrinsics, _joint_fit, _Part
+from dqpose.fusion.extrinsics import _extrinsics, _joint_fit, _no_extrinsics, _Part
 from dqpose.fusion.results import DOF, Fused
 from dqpose.fusion.sources import Source, _sources, _to_world
 from dqpose.fusion.static import _fuse_static
@@ -106,10 +106,10 @@ def _fuse_rows(Z, S, names, times, time, o: _Checked) -> Fused:
 
 def _fuse_joint_rows(rows, fits: Sequence[Fused], time, o: _Checked):
     """Several bodies' rows ``(poses, covariances, names, times)`` (checked as for
-    :func:`_fuse_rows`) fitted together, with one error per uncertain extrinsic
-    (:func:`dqpose.fusion.extrinsics._joint_fit`), each body started from its own fit in
-    ``fits`` and keeping its inliers: the poses and the joint covariance of their right
-    perturbations ``(6k, 6k)``."""
+    :func:`_fuse_rows`) fitted together, with one error per uncertain extrinsic and one latency
+    per source whose latency is estimated (:func:`dqpose.fusion.extrinsics._joint_fit`), each
+    body started from its own fit in ``fits`` and keeping its inliers: the poses and the joint
+    covariance of their right perturbations ``(6k, 6k)``."""
     parts, names_all, setups = [], [], []
     for (Z, S, names, times), f in zip(rows, fits):
         Z, S = _to_world(dq.normalize(Z), S, names, o.table)
@@ -118,8 +118,12 @@ def _fuse_joint_rows(rows, fits: Sequence[Fused], time, o: _Checked):
         setups.append((Z, S, u, f))
         names_all.extend(names)
     ext = _extrinsics(names_all, o.table)
+    latencies = list(dict.fromkeys(s for _, _, u, _ in setups for s in u.estimated))
+    if ext is None and not latencies:
+        raise ValueError("bodies: no uncertain extrinsic or estimated latency to fit them "
+                         "jointly over")
     if ext is None:
-        raise ValueError("bodies: no uncertain extrinsic to fit them jointly over")
+        ext = _no_extrinsics(len(names_all))
     start = 0
     for Z, S, u, f in setups:
         n = Z.shape[0]
@@ -127,8 +131,10 @@ def _fuse_joint_rows(rows, fits: Sequence[Fused], time, o: _Checked):
         inlier[f.inliers] = True
         V = np.zeros(DOF) if f.twist is None else np.array(f.twist)
         ell = np.array([lat.value for lat in f.latencies], dtype=np.float64)
-        parts.append(_Part(Z, S, u.model, inlier, ext.slot[start:start + n], f.mean, V, ell))
+        shared = np.array([latencies.index(s) for s in u.estimated], dtype=np.intp)
+        parts.append(_Part(Z, S, u.model, inlier, ext.slot[start:start + n], f.mean, V, ell,
+                           shared))
         start += n
     fit = _joint_fit(parts, ext, o.tol, o.max_iter)
-    idx = np.concatenate([np.arange(off, off + DOF) for off in fit.offsets[:len(parts)]])
+    idx = np.concatenate([np.arange(off, off + DOF) for off in fit.offsets])
     return fit.X, fit.P[np.ix_(idx, idx)]

@@ -13,7 +13,9 @@ measurement. Gauss–Newton on that joint state (NumPy) with exact Jacobians: ``
 ``Jr⁻¹(r_i) A_i Δ`` for ``Ê_s Exp(Δ)`` and ``p_s`` by ``Jr⁻¹(p_s) Δ``; the covariance is the inverse
 joint information, so the body's block is the marginal with every ``ε`` integrated out (GLS with
 the shared errors). Several bodies fitted together (:func:`_joint_fit` with several parts) share
-the ``ε`` of a common source: their joint covariance has the cross-covariance it causes.
+the ``ε`` of a common source, and one latency per source whose latency is estimated (a camera's
+clock offset is the same whichever body it sees): their joint covariance has the
+cross-covariance both cause.
 
 Sources without ``extrinsic_covariance`` never come here: their fusion is the C core's, unchanged.
 The leave-one-out NIS is that of :mod:`dqpose.fusion.process_noise` for independent residuals
@@ -60,6 +62,13 @@ def _extrinsics(names: Sequence[str], table: dict) -> Optional[_Extrinsics]:
     return _Extrinsics(slot, tuple(order), E, cov, 0.5 * (info + np.swapaxes(info, 1, 2)))
 
 
+def _no_extrinsics(n: int) -> _Extrinsics:
+    """No uncertain extrinsic among ``n`` measurements (a joint fit that shares latencies
+    only)."""
+    return _Extrinsics(np.full(n, -1, np.intp), (), np.zeros((0, 8)), np.zeros((0, DOF, DOF)),
+                       np.zeros((0, DOF, DOF)))
+
+
 class _Part(NamedTuple):
     """One body in a joint fit: its world-frame measurements, their covariances and model, the
     inliers, and the slots of its measurements' extrinsics (:class:`_Extrinsics`)."""
@@ -71,6 +80,9 @@ class _Part(NamedTuple):
     start: np.ndarray   # (8,) the pose the fit starts from
     V: np.ndarray       # (6,) its twist
     ell: np.ndarray     # its latencies
+    # where each of its latencies is in the fit's latencies, which parts share by source
+    # (None: latencies of its own)
+    shared: Optional[np.ndarray] = None
 
 
 class _Prepared(NamedTuple):
@@ -84,6 +96,7 @@ class _Prepared(NamedTuple):
     start: np.ndarray
     V: np.ndarray
     ell: np.ndarray
+    shared: Optional[np.ndarray]
     W: np.ndarray
     A: np.ndarray
 
@@ -121,14 +134,54 @@ class _Joint(NamedTuple):
     dt: list
     chi2: float
     iterations: int
-    offsets: list      # where each part's state starts in the joint state
+    offsets: list      # where each part's pose and twist start in the joint state (then the
+    #                    latencies, then the ε's)
 
 
-def _residuals(parts, ext, X, V, ell, Ehat):
+class _Layout(NamedTuple):
+    """Where things are in the joint state: each part's pose and twist (``offsets[k]``), then
+    the latencies (one per estimated source, shared by the parts), then one ``ε`` per uncertain
+    extrinsic; ``maps[k]`` the latencies of part k among them, ``prior``/``prior_w`` theirs."""
+    offsets: list
+    latencies: int          # where the latencies start
+    maps: list
+    prior: np.ndarray
+    prior_w: np.ndarray
+    total: int
+
+    def columns(self, k: int, model: _Model) -> np.ndarray:
+        """The joint state's columns of part k's own state vector (pose, twist, latencies)."""
+        return np.r_[np.arange(self.offsets[k], self.offsets[k] + model.offset),
+                     self.latencies + self.maps[k]].astype(np.intp)
+
+
+def _layout(parts, ext) -> _Layout:
+    maps, count = [], 0
+    for p in parts:
+        if p.shared is None:
+            maps.append(np.arange(count, count + p.ell.size, dtype=np.intp))
+            count += p.ell.size
+        else:
+            maps.append(np.asarray(p.shared, np.intp))
+            count = max(count, int(maps[-1].max()) + 1 if maps[-1].size else 0)
+    prior, prior_w = np.zeros(count), np.zeros(count)
+    for p, m in zip(parts, maps):       # a source's prior is the same in every part
+        prior[m], prior_w[m] = p.model.prior, p.model.prior_w
+    offsets = np.cumsum([0] + [p.model.offset for p in parts]).tolist()
+    return _Layout(offsets[:-1], offsets[-1], maps, prior, prior_w,
+                   offsets[-1] + count + DOF * len(ext.names))
+
+
+def _latencies(lay: _Layout, L: np.ndarray) -> list:
+    return [L[m] for m in lay.maps]
+
+
+def _residuals(parts, ext, lay: _Layout, X, V, L, Ehat):
     """Every part's ``dt`` and residuals at the current state, and the total cost."""
-    shift = dq.mul(Ehat, dq.conj(ext.E))       # Ê E⁻¹ per slot
+    shift = dq.mul(Ehat, dq.conj(ext.E)) if len(ext.names) else ext.E   # Ê E⁻¹ per slot
+    ell = _latencies(lay, L)
     dts, rs = [], []
-    cost = 0.0
+    cost = float(np.sum(lay.prior_w * (L - lay.prior) ** 2))
     for k, p in enumerate(parts):
         dt = p.model.dt(ell[k])
         W = p.Z.copy()
@@ -139,52 +192,54 @@ def _residuals(parts, ext, X, V, ell, Ehat):
         r = lie.se3_log(dq.mul(dq.conj(pred), dq.normalize(W)))
         m = p.inlier
         cost += float(np.einsum("ni,nij,nj->", r[m], p.W[m], r[m]))
-        cost += p.model.prior_cost(V[k], ell[k])
+        if p.model.twist and p.model.twist_w is not None:
+            cost += float(V[k] @ p.model.twist_w @ V[k])
         dts.append(dt)
         rs.append(r)
-    pr = lie.se3_log(dq.mul(dq.conj(ext.E), Ehat))
+    pr = lie.se3_log(dq.mul(dq.conj(ext.E), Ehat)) if len(ext.names) else np.zeros((0, DOF))
     cost += float(np.einsum("si,sij,sj->", pr, ext.info, pr))
     return dts, rs, pr, cost
 
 
-def _state(parts, ext, X, V, ell, Ehat):
+def _state(parts, ext, lay: _Layout, X, V, L, Ehat):
     """Residuals, Jacobians, the normal equations and the cost of every part at the current
     state."""
-    dims = [p.model.dim for p in parts]
-    offsets = np.cumsum([0] + dims).tolist()
-    total = offsets[-1] + DOF * len(ext.names)
-    dts, rs, pr, cost = _residuals(parts, ext, X, V, ell, Ehat)
+    total, first_e = lay.total, lay.total - DOF * len(ext.names)
+    dts, rs, pr, cost = _residuals(parts, ext, lay, X, V, L, Ehat)
     Gs = []
     H = np.zeros((total, total))
     g = np.zeros(total)
+    lat = lay.latencies + np.arange(L.size)
+    H[lat, lat] = lay.prior_w
+    g[lat] = -lay.prior_w * (L - lay.prior)
     for k, p in enumerate(parts):
         r, dt = rs[k], dts[k]
         G = np.zeros((len(r), DOF, total))
-        G[:, :, offsets[k]:offsets[k + 1]] = _motion_jacobian(V[k], dt, r, p.model)
+        G[:, :, lay.columns(k, p.model)] = _motion_jacobian(V[k], dt, r, p.model)
         has = p.slot >= 0
         if has.any():
             Ge = -lie.se3_right_jacobian_inv(r[has]) @ p.A
             slots = p.slot[has]
             rows = np.flatnonzero(has)
             for s in np.unique(slots).tolist():
-                c = offsets[-1] + DOF * s
+                c = first_e + DOF * s
                 G[rows[slots == s], :, c:c + DOF] = Ge[slots == s]
         m = p.inlier
         GtW = np.swapaxes(G[m], 1, 2) @ p.W[m]
         H += np.tensordot(GtW, G[m], axes=([0, 2], [0, 1]))
         g += (GtW @ r[m][..., None]).sum(axis=0)[:, 0]
-        Hp, gp = p.model.prior_terms(V[k], ell[k])
-        sl = slice(offsets[k], offsets[k + 1])
-        H[sl, sl] += Hp
-        g[sl] += gp
+        if p.model.twist and p.model.twist_w is not None:
+            sl = slice(lay.offsets[k] + 6, lay.offsets[k] + 12)
+            H[sl, sl] += p.model.twist_w
+            g[sl] -= p.model.twist_w @ V[k]
         Gs.append(G)
     Jp = lie.se3_right_jacobian_inv(pr)
     for s in range(len(ext.names)):
-        c = slice(offsets[-1] + DOF * s, offsets[-1] + DOF * (s + 1))
+        c = slice(first_e + DOF * s, first_e + DOF * (s + 1))
         JtI = Jp[s].T @ ext.info[s]
         H[c, c] += JtI @ Jp[s]
         g[c] -= JtI @ pr[s]
-    return rs, Gs, dts, H, g, cost, offsets
+    return rs, Gs, dts, H, g, cost
 
 
 def _joint_fit(given: Sequence[_Part], ext: _Extrinsics, tol: float, max_iter: int) -> _Joint:
@@ -192,37 +247,44 @@ def _joint_fit(given: Sequence[_Part], ext: _Extrinsics, tol: float, max_iter: i
     parts' starts and the configured extrinsics; a step that raises the cost is halved (the
     C fits' rule)."""
     parts = [_Prepared(*p, W=_inv(p.S), A=_carried(p, ext)) for p in given]
+    lay = _layout(parts, ext)
     X = [p.start for p in parts]
     V = [p.V for p in parts]
-    ell = [p.ell for p in parts]
+    # a shared latency starts from the mean of the parts' own estimates of it
+    L, seen = np.zeros(lay.prior.size), np.zeros(lay.prior.size)
+    for p, m in zip(parts, lay.maps):
+        np.add.at(L, m, p.ell)
+        np.add.at(seen, m, 1.0)
+    L = np.where(seen > 0, L / np.maximum(seen, 1.0), lay.prior)
     Ehat = ext.E.copy()
-    rs, Gs, dts, H, g, cost, offsets = _state(parts, ext, X, V, ell, Ehat)
+    first_e = lay.total - DOF * len(ext.names)
+    rs, Gs, dts, H, g, cost = _state(parts, ext, lay, X, V, L, Ehat)
     status, iterations = Status.MAX_ITERATIONS, max_iter
     for it in range(1, max_iter + 1):
         delta = np.linalg.solve(H, g)
         step = float(np.linalg.norm(delta))
         for _ in range(_MAX_HALVINGS):
-            X2, V2, ell2 = [], [], []
+            X2, V2 = [], []
             for k, p in enumerate(parts):
-                d = delta[offsets[k]:offsets[k + 1]]
+                d = delta[lay.offsets[k]:lay.offsets[k] + p.model.offset]
                 X2.append(dq.normalize(dq.mul(X[k], lie.se3_exp(d[:6]))))
                 V2.append(V[k] + d[6:12] if p.model.twist else V[k])
-                ell2.append(ell[k] + d[p.model.offset:])
-            de = delta[offsets[-1]:].reshape(-1, DOF)
-            E2 = dq.normalize(dq.mul(Ehat, lie.se3_exp(de)))
-            if _residuals(parts, ext, X2, V2, ell2, E2)[3] <= cost * (1.0 + _COST_SLACK) \
+            L2 = L + delta[lay.latencies:first_e]
+            de = delta[first_e:].reshape(-1, DOF)
+            E2 = dq.normalize(dq.mul(Ehat, lie.se3_exp(de))) if len(de) else Ehat
+            if _residuals(parts, ext, lay, X2, V2, L2, E2)[3] <= cost * (1.0 + _COST_SLACK) \
                     or step < tol:
                 break
             delta = 0.5 * delta
             step *= 0.5
-        X, V, ell, Ehat = X2, V2, ell2, E2
-        rs, Gs, dts, H, g, cost, offsets = _state(parts, ext, X, V, ell, Ehat)
+        X, V, L, Ehat = X2, V2, L2, E2
+        rs, Gs, dts, H, g, cost = _state(parts, ext, lay, X, V, L, Ehat)
         if step < tol:
             status, iterations = Status.CONVERGED, it
             break
     P = np.linalg.inv(H)
-    return _Joint(status, X, V, ell, Ehat, 0.5 * (P + P.T), H, g, rs, Gs, dts, cost,
-                  iterations, offsets)
+    return _Joint(status, X, V, _latencies(lay, L), Ehat, 0.5 * (P + P.T), H, g, rs, Gs, dts,
+                  cost, iterations, lay.offsets)
 
 
 def _nis(fit: _Joint, k: int, part: _Part):
@@ -252,7 +314,7 @@ def _motion_fit_ext(Z, S, model: _Model, ext: _Extrinsics, inlier: np.ndarray, s
                     ell, tol: float, max_iter: int) -> _MotionFit:
     """One body's joint fit as a :class:`~dqpose.fusion.motion._MotionFit` (its state's block of
     the covariance first, the ε's after), leave-one-out NIS included."""
-    part = _Part(Z, S, model, inlier, ext.slot, start, V, ell)
+    part = _Part(Z, S, model, inlier, ext.slot, start, V, ell, None)
     fit = _joint_fit([part], ext, tol, max_iter)
     nis, tested = _nis(fit, 0, part)
     r = fit.r[0]
