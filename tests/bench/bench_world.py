@@ -166,8 +166,17 @@ def _scene_poses(bodies: int):
     return poses, cov
 
 
+def _start_time(ready, go) -> float:
+    """Says this process is ready, then waits for the start time every process shares (set
+    once all are ready: a loaded machine may take seconds to start them)."""
+    ready.put(1)
+    while go.value == 0.0:
+        time.sleep(0.005)
+    return go.value
+
+
 def produce(target: str, k: int, producers: int, bodies: int, rate: float | None,
-            seconds: float, start: float, out) -> None:
+            seconds: float, ready, go, out) -> None:
     """Producer ``k``: its bodies' measurements in messages of PER_MESSAGE from ``start`` (host
     clock) for ``seconds``, ``rate`` measurements/s (None: as fast as the acks allow); puts
     ``(k, {body: times}, measurements acked, seconds)``."""
@@ -179,6 +188,7 @@ def produce(target: str, k: int, producers: int, bodies: int, rate: float | None
     per = min(PER_MESSAGE, len(mine))
     covs = np.repeat(cov[None], per, 0)
     names = [f"p{k}"] * per
+    start = _start_time(ready, go)
 
     def batches():
         i = 0
@@ -209,7 +219,7 @@ def produce(target: str, k: int, producers: int, bodies: int, rate: float | None
              time.time() - start))
 
 
-def subscribe(target: str, k: int, seconds: float, start: float, out) -> None:
+def subscribe(target: str, k: int, seconds: float, ready, go, out) -> None:
     """Subscriber ``k``: every answer's ``(body, time, arrival)`` and its size in bytes."""
     import grpc
 
@@ -217,6 +227,7 @@ def subscribe(target: str, k: int, seconds: float, start: float, out) -> None:
     from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
     rows, sizes = [], []
     ended = ""
+    start = _start_time(ready, go)
     with grpc.insecure_channel(target) as ch:
         call = ch.unary_stream("/dqpose.v1.World/Subscribe",
                                request_serializer=wpb.SubscribeRequest.SerializeToString)(
@@ -238,15 +249,18 @@ def run(target: str, producers: int, subscribers: int, bodies: int, rate: float 
         seconds: float, rss=None) -> dict:
     ctx = multiprocessing.get_context("spawn")
     out = ctx.Queue()
-    start = time.time() + 3.0 + 0.3 * (producers + subscribers)   # the processes' start-up
-    procs = [ctx.Process(target=subscribe, args=(target, k, seconds, start, out))
+    ready, go = ctx.Queue(), ctx.Value("d", 0.0)
+    procs = [ctx.Process(target=subscribe, args=(target, k, seconds, ready, go, out))
              for k in range(subscribers)]
     procs += [ctx.Process(target=produce, args=(target, k, producers, bodies,
                                                 None if rate is None else rate / producers,
-                                                seconds, start, out))
+                                                seconds, ready, go, out))
               for k in range(producers)]
     for p in procs:
         p.start()
+    for _ in procs:
+        ready.get(timeout=300)
+    start = go.value = time.time() + 1.0      # the subscriptions open before the first data
     rss0 = rss() if rss else float("nan")
     samples: list[tuple[float, float]] = []       # (seconds since start, RSS MB), every 5 s
     done = threading.Event()
