@@ -46,3 +46,11 @@ def test_lookup_rows_time_real_answers():
     assert len(rows) == 8
     for row in rows:
         assert np.isfinite(float(row[2])) and float(row[2]) > 0.0, row
+
+
+def test_ingest_row_fits_the_ticks_it_made_due():
+    (row,) = bw.ingest_rows(300)
+    # 300 messages span 0.15 s of stamps: 100 bodies at 30 Hz make ~450 ticks due
+    fits_per_s = float(row[4].split(" fits/s")[0])
+    meas_per_s = float(row[2])
+    assert 300 < fits_per_s / meas_per_s * 3000 < 600, row
