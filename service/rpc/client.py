@@ -262,6 +262,7 @@ class Client:
         metadata = [("authorization", f"Bearer {token}")] if token else []
         if world is not None:
             metadata.append((WORLD_HEADER, check_name("world", world, MAX_WORLD_NAME)))
+        self.world = world
         self.metadata = tuple(metadata) or None
         self.reconnect = reconnect
         # the last WorldConfig this client's world accepted: sent again before a World stream
@@ -649,7 +650,7 @@ class Client:
                                        relative_to=relative_to)
         answers = reopened(lambda: self._subscribe(request, timeout=timeout,
                                                    metadata=self.metadata),
-                           self.reconnect, self._configure_again)
+                           self.reconnect, self._configure_again, self.world)
         try:
             for data in answers:
                 yield _stream_answer(data, probability)

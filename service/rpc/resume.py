@@ -27,7 +27,7 @@ from typing import Callable, Generator, Iterator, Optional
 
 import grpc
 
-from dqpose.rpc.routing import REPLICA_HEADER
+from dqpose.rpc.routing import REPLICA_HEADER, WORLD_HEADER
 
 log = logging.getLogger("dqpose.client")
 
@@ -41,14 +41,22 @@ BACKOFF_MAX = 1.0
 
 def resumable(e: grpc.RpcError) -> bool:
     """Whether a broken stream is worth reopening: its server went away (UNAVAILABLE: refused,
-    reset, shutting down) or the proxy in front of it reset the stream when its replica died
-    (HAProxy: RST_STREAM CANCEL, which gRPC reports as CANCELLED, unlike a cancel of our own:
-    "Locally cancelled")."""
-    code = e.code()
+    reset, shutting down) or the proxy in front of it cut the stream when its replica died:
+    HAProxy resets a stream the client still sends on (RST_STREAM CANCEL, which gRPC reports as
+    CANCELLED, unlike a cancel of our own: "Locally cancelled") and ends one the client has
+    half-closed (a Subscribe) with END_STREAM and no status, which gRPC reports as UNKNOWN
+    "Stream removed" (a server's own UNKNOWN comes with its status and its text)."""
+    code, details = e.code(), e.details() or ""
     if code == grpc.StatusCode.UNAVAILABLE:
         return True
+    if code == grpc.StatusCode.UNKNOWN:
+        return details.startswith("Stream removed")
     return (code in (grpc.StatusCode.INTERNAL, grpc.StatusCode.CANCELLED)
-            and "RST_STREAM" in (e.details() or ""))
+            and "RST_STREAM" in details)
+
+
+def _world(metadata) -> Optional[str]:
+    return next((v for k, v in metadata or () if k == WORLD_HEADER), None)
 
 
 def _replica(call) -> Optional[str]:
@@ -76,7 +84,7 @@ class Resuming:
                  reconnect: float = 0.0, before: Optional[Callable[[], object]] = None):
         self._open, self._items, self._first = open_call, items, first
         self._acked, self._metadata = acked, metadata
-        self.link = Reconnecting(reconnect, before)
+        self.link = Reconnecting(reconnect, before, _world(metadata))
         self._lock = threading.Lock()
         self._source = threading.Lock()
         self._generation = 0
@@ -178,11 +186,13 @@ class Resuming:
 
 
 class Reconnecting:
-    """What every reopened stream does between its streams: the backoff, the log lines, the
-    replica it is on, and ``before`` (a call made before each reopening: Configure again)."""
+    """What every reopened stream does between its streams: the backoff, the log lines (naming
+    the stream's ``world``, None without one), the replica it is on, and ``before`` (a call made
+    before each reopening: Configure again)."""
 
-    def __init__(self, reconnect: float, before: Optional[Callable[[], object]] = None):
-        self.reconnect, self.before = reconnect, before
+    def __init__(self, reconnect: float, before: Optional[Callable[[], object]] = None,
+                 world: Optional[str] = None):
+        self.reconnect, self.before, self.world = reconnect, before, world
         self.replica: Optional[str] = None     # the replica of the stream open now
         self.reopened = 0
         self._broken_at: Optional[float] = None
@@ -208,7 +218,8 @@ class Reconnecting:
         self._broken_at = self._broken_at if self._broken_at is not None else now
         if not resumable(e) or now - self._broken_at + self._wait > self.reconnect:
             return False
-        log.info(json.dumps({"event": "stream_broken", "replica": self.replica,
+        log.info(json.dumps({"event": "stream_broken", "world": self.world,
+                             "replica": self.replica,
                              "code": e.code().name, "retry_in_s": round(self._wait, 3)}))
         return True
 
@@ -220,18 +231,20 @@ class Reconnecting:
         """A log line when the stream came back, naming the replica it left and the one it
         reached (its world moved when they differ)."""
         self.reopened += 1
-        log.info(json.dumps({"event": "stream_resumed", "from": self.replica, "to": replica,
-                             "moved": replica != self.replica, "gap_s": round(gap, 3)}))
+        log.info(json.dumps({"event": "stream_resumed", "world": self.world,
+                             "from": self.replica, "to": replica, "moved": replica != self.replica,
+                             "gap_s": round(gap, 3)}))
         self.replica = replica
 
 
 def reopened(open_call: Callable, reconnect: float,
-             before: Optional[Callable[[], object]] = None) -> Generator[bytes, None, None]:
+             before: Optional[Callable[[], object]] = None,
+             world: Optional[str] = None) -> Generator[bytes, None, None]:
     """The answers of a server-streaming call ``open_call()`` (World.Subscribe), opened again
     after a :func:`resumable` break with backoff for up to ``reconnect`` s without an answer
     (``before()`` first each time); the answers of each stream as they come (none is resent:
     the request is the call's one message)."""
-    link = Reconnecting(reconnect, before)
+    link = Reconnecting(reconnect, before, world)
     while True:
         call = None
         try:

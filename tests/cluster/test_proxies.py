@@ -7,6 +7,7 @@ import json
 import logging
 import signal
 import threading
+import time
 
 import grpc
 import numpy as np
@@ -179,3 +180,127 @@ def test_sigkill_mid_stream_resumes_where_the_hash_now_points(own_cluster, caplo
     assert resumed and resumed[0]["from"] == victim.name and resumed[0]["moved"]
     # the stream's new replica is the one the proxy now sends the world's calls to
     assert resumed[-1]["to"] == _owner(target, world) != victim.name
+
+
+PERIOD = 0.1     # s between one producer's batches (measurement time is the clock's)
+
+
+class _World:
+    """One world through the proxy: its client (configured, ``reconnect``), two producers
+    (cam1, cam2) publishing the box at the clock's time, a subscriber; every ack and answer kept
+    with its arrival time, every error raised kept."""
+
+    def __init__(self, target: str, name: str, t0: float, stop: threading.Event):
+        from tests.rpc.test_world_service import SOURCES
+        self.name, self.t0, self.stop = name, t0, stop
+        self.client = Client(target, world=name, reconnect=10.0)
+        self.client.configure_world(SOURCES, window=1.0)
+        self.sent: dict[str, list[float]] = {"cam1": [], "cam2": []}
+        self.acks: dict[str, list] = {"cam1": [], "cam2": []}
+        self.answers: list = []
+        self.errors: list[str] = []
+        self.closing = False
+        self.producers = [threading.Thread(target=self._produce, args=(s, k), daemon=True)
+                          for k, s in enumerate(self.sent)]
+        self.watcher = threading.Thread(target=self._watch, daemon=True)
+        for t in [self.watcher, *self.producers]:
+            t.start()
+
+    def _produce(self, source: str, seed: int) -> None:
+        from tests.rpc.test_world_service import measurements
+
+        def batches():
+            k = 0
+            while not self.stop.is_set():
+                t = round(time.monotonic() - self.t0, 3)
+                self.sent[source].append(t)
+                yield measurements(source, [t], 1000 * seed + k)
+                k += 1
+                self.stop.wait(PERIOD)
+
+        try:
+            for a in self.client.publish(batches(), producer=source):
+                self.acks[source].append((time.monotonic(), a))
+        except Exception as e:          # noqa: BLE001 (every failure is the finding)
+            self.errors.append(f"{self.name} {source}: {e}")
+
+    def _watch(self) -> None:
+        try:
+            for a in self.client.subscribe(["box"], rate_hz=1 / PERIOD):
+                self.answers.append((time.monotonic(), a))
+        except Exception as e:          # noqa: BLE001
+            if not self.closing:
+                self.errors.append(f"{self.name} subscriber: {e}")
+
+    def answered_after(self, t: float) -> bool:
+        return (any(at > t for at, _ in self.answers)
+                and all(any(at > t for at, _ in acks) for acks in self.acks.values()))
+
+    def missing(self, t: float) -> str:
+        """What has not answered since ``t``."""
+        late = [f"{s} acks" for s, acks in self.acks.items() if not any(at > t for at, _ in acks)]
+        late += [] if any(at > t for at, _ in self.answers) else ["subscriber"]
+        return f"{self.name}: {', '.join(late)} {self.errors}"
+
+    def end(self) -> None:
+        """Producers finish (every batch acked), then the subscriber is closed."""
+        for p in self.producers:
+            p.join(30)
+        self.closing = True
+        self.client.close()
+        self.watcher.join(30)
+
+
+def test_thirty_worlds_move_after_a_sigkill_and_resume_by_themselves(own_cluster, caplog):
+    """30 worlds, each 2 producers and a subscriber on one client through the proxy; the replica
+    holding the first world is SIGKILLed mid-stream. Its worlds move: their streams reopen on
+    the replica the hash now picks, the world configured again first, and every batch sent is
+    acked once (fused there, or its ack says why not); the other worlds never notice."""
+    c = own_cluster
+    target = c.proxy.target
+    owners = {w: _owner(target, w) for w in WORLDS}
+    victim = c.replica(owners[WORLDS[0]])
+    moved = [w for w in WORLDS if owners[w] == victim.name]
+    caplog.set_level(logging.INFO, logger="dqpose.client")
+    stop = threading.Event()
+    t0 = time.monotonic()
+    worlds = [_World(target, w, t0, stop) for w in WORLDS]
+    try:
+        assert wait_until(lambda: all(w.answered_after(t0) for w in worlds), timeout=60,
+                          poll=0.05), [w.missing(t0) for w in worlds if not w.answered_after(t0)]
+        killed = time.monotonic()
+        victim.signal(signal.SIGKILL)
+        victim.proc.wait(10)
+        # every moved world's producers and subscriber answered again, by themselves
+        assert wait_until(lambda: all(w.answered_after(killed) for w in worlds), timeout=60,
+                          poll=0.05), [w.missing(killed) for w in worlds
+                                       if not w.answered_after(killed)]
+        stop.set()
+    finally:
+        stop.set()
+        for w in worlds:
+            w.end()
+    assert [e for w in worlds for e in w.errors] == []
+    after = {w: _owner(target, w) for w in WORLDS}
+    events = [json.loads(r.getMessage()) for r in caplog.records
+              if r.getMessage().startswith('{"event": "stream_')]
+    for w in worlds:
+        # each batch acked once, in order, none refused: all of them are in the world
+        for source, acks in w.acks.items():
+            assert [a.acked_through for _, a in acks] == list(range(1, len(w.sent[source]) + 1))
+            assert [a.errors for _, a in acks if a.errors] == [], (w.name, source)
+        # the replica the world is on now has every measurement, both producers' in one fit
+        newest = max(max(times) for times in w.sent.values())
+        with Client(target, world=w.name) as look:
+            assert look.lookup("", "box").time == newest, w.name
+        last = w.answers[-1][1]
+        assert last.error is None and {s.name for s in last.fused.sources} == {"cam1", "cam2"}
+        resumed = [e for e in events if e["world"] == w.name and e["event"] == "stream_resumed"]
+        if w.name in moved:
+            # its three streams (two Publish, one Subscribe) left the victim for the new owner
+            assert len(resumed) == 3, (w.name, resumed)
+            assert {(e["from"], e["to"]) for e in resumed} == {(victim.name, after[w.name])}
+            assert after[w.name] != victim.name
+        else:
+            assert resumed == [] and after[w.name] == owners[w.name], w.name
+    assert moved and len(moved) < len(WORLDS)
