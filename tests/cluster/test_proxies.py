@@ -1,6 +1,7 @@
 """Three ``dqpose serve`` replicas behind the shipped HAProxy and nginx configs: a world's calls
-stay on one replica, stateless calls spread, a SIGTERMed replica drains without a failed call,
-and a StreamFuse whose replica is SIGKILLed resumes on the replica the hash now picks."""
+stay on one replica, stateless calls spread, a SIGTERMed replica drains without a failed call, a
+StreamFuse whose replica is SIGKILLed resumes on the replica the hash now picks, and 30 worlds'
+producers and subscribers resume by themselves after a SIGKILL, every batch acked once."""
 from __future__ import annotations
 
 import json
@@ -18,7 +19,7 @@ from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from dqpose.rpc.client import Client
 from dqpose.rpc.geometry import dqs_to_poses
 from tests._polling import wait_until
-from tests.cluster._cluster import Cluster, missing
+from tests.cluster._cluster import Cluster, WorldLoad, missing
 
 IDENTITY = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
 BLEND = pb.BlendRequest(poses=dqs_to_poses(np.stack([IDENTITY, IDENTITY]))).SerializeToString()
@@ -182,75 +183,6 @@ def test_sigkill_mid_stream_resumes_where_the_hash_now_points(own_cluster, caplo
     assert resumed[-1]["to"] == _owner(target, world) != victim.name
 
 
-PERIOD = 0.1     # s between one producer's batches (measurement time is the clock's)
-
-
-class _World:
-    """One world through the proxy: its client (configured, ``reconnect``), two producers
-    (cam1, cam2) publishing the box at the clock's time, a subscriber; every ack and answer kept
-    with its arrival time, every error raised kept."""
-
-    def __init__(self, target: str, name: str, t0: float, stop: threading.Event):
-        from tests.rpc.test_world_service import SOURCES
-        self.name, self.t0, self.stop = name, t0, stop
-        self.client = Client(target, world=name, reconnect=10.0)
-        self.client.configure_world(SOURCES, window=1.0)
-        self.sent: dict[str, list[float]] = {"cam1": [], "cam2": []}
-        self.acks: dict[str, list] = {"cam1": [], "cam2": []}
-        self.answers: list = []
-        self.errors: list[str] = []
-        self.closing = False
-        self.producers = [threading.Thread(target=self._produce, args=(s, k), daemon=True)
-                          for k, s in enumerate(self.sent)]
-        self.watcher = threading.Thread(target=self._watch, daemon=True)
-        for t in [self.watcher, *self.producers]:
-            t.start()
-
-    def _produce(self, source: str, seed: int) -> None:
-        from tests.rpc.test_world_service import measurements
-
-        def batches():
-            k = 0
-            while not self.stop.is_set():
-                t = round(time.monotonic() - self.t0, 3)
-                self.sent[source].append(t)
-                yield measurements(source, [t], 1000 * seed + k)
-                k += 1
-                self.stop.wait(PERIOD)
-
-        try:
-            for a in self.client.publish(batches(), producer=source):
-                self.acks[source].append((time.monotonic(), a))
-        except Exception as e:          # noqa: BLE001 (every failure is the finding)
-            self.errors.append(f"{self.name} {source}: {e}")
-
-    def _watch(self) -> None:
-        try:
-            for a in self.client.subscribe(["box"], rate_hz=1 / PERIOD):
-                self.answers.append((time.monotonic(), a))
-        except Exception as e:          # noqa: BLE001
-            if not self.closing:
-                self.errors.append(f"{self.name} subscriber: {e}")
-
-    def answered_after(self, t: float) -> bool:
-        return (any(at > t for at, _ in self.answers)
-                and all(any(at > t for at, _ in acks) for acks in self.acks.values()))
-
-    def missing(self, t: float) -> str:
-        """What has not answered since ``t``."""
-        late = [f"{s} acks" for s, acks in self.acks.items() if not any(at > t for at, _ in acks)]
-        late += [] if any(at > t for at, _ in self.answers) else ["subscriber"]
-        return f"{self.name}: {', '.join(late)} {self.errors}"
-
-    def end(self) -> None:
-        """Producers finish (every batch acked), then the subscriber is closed."""
-        for p in self.producers:
-            p.join(30)
-        self.closing = True
-        self.client.close()
-        self.watcher.join(30)
-
-
 def test_thirty_worlds_move_after_a_sigkill_and_resume_by_themselves(own_cluster, caplog):
     """30 worlds, each 2 producers and a subscriber on one client through the proxy; the replica
     holding the first world is SIGKILLed mid-stream. Its worlds move: their streams reopen on
@@ -264,7 +196,7 @@ def test_thirty_worlds_move_after_a_sigkill_and_resume_by_themselves(own_cluster
     caplog.set_level(logging.INFO, logger="dqpose.client")
     stop = threading.Event()
     t0 = time.monotonic()
-    worlds = [_World(target, w, t0, stop) for w in WORLDS]
+    worlds = [WorldLoad(target, w, t0, stop) for w in WORLDS]
     try:
         assert wait_until(lambda: all(w.answered_after(t0) for w in worlds), timeout=60,
                           poll=0.05), [w.missing(t0) for w in worlds if not w.answered_after(t0)]
