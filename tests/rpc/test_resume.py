@@ -196,3 +196,34 @@ def test_subscribe_reopens_on_the_replica_its_world_moved_to(caplog):
     assert failed == [] or failed[0].code.name == "CANCELLED"   # the watcher closed at the end
     assert answers[-1].time >= 1.0 and answers[-1].error is None
     assert ("before", "after", True) in _resumed(caplog)
+
+
+def test_a_configuration_the_new_server_refuses_ends_the_stream_with_its_error(monkeypatch):
+    """Nothing is published into a world the new server could not configure: the producer
+    hears why."""
+    from dqpose.rpc import world as world_service
+    from tests.rpc.test_world_service import SOURCES, measurements
+    swap = _Swap()
+    swapping = threading.Event()
+
+    def batches():
+        for i in range(40):
+            if i == 10:
+                monkeypatch.setattr(world_service, "MAX_WORLDS", 0)   # the new server is full
+                swapping.set()
+                assert wait_until(lambda: swap.second, timeout=30, poll=0.01)
+            yield measurements("cam1", [0.01 * i], i)
+
+    threading.Thread(target=lambda: swapping.wait(30) and swap.now(), daemon=True).start()
+    acks = []
+    try:
+        with Client(swap.target, world="cell-3", reconnect=10.0) as c:
+            c.configure_world(SOURCES)
+            with pytest.raises(RpcError) as e:
+                for a in c.publish(batches(), producer="cam1"):
+                    acks.append(a)
+    finally:
+        swap.stop()
+    assert e.value.code.name == "RESOURCE_EXHAUSTED" and "MAX_WORLDS" in e.value.details
+    assert [a.acked_through for a in acks] == list(range(1, len(acks) + 1)) and len(acks) <= 10
+    assert swap.cell("cell-3") is None
