@@ -27,7 +27,8 @@ from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
 from dqpose.rpc.calls import Calls, refused
 from dqpose.rpc.geometry import dq_to_pose
-from dqpose.rpc.trajectories_convert import plan_from_msg, resolve_frames
+from dqpose.rpc.routing import world_of
+from dqpose.rpc.trajectories_convert import plan_from_msg, resolve_frames, world_named
 
 #: an Execute feedback record every this many set-points (50 Hz at 500 Hz), and the last one
 FEEDBACK_EVERY = 10
@@ -97,7 +98,7 @@ class Arms:
         self.executor = cfg.executor
         self._arms = {name: _Arm(name, arm) for name, arm in sorted(cfg.arms.items())}
         self._stop_at: Optional[float] = None     # loop time the server stops, once known
-        self.world = None      # () -> the server's dqpose.world.World, for Waypoint.frame
+        self.world = None      # name -> the server's dqpose.world.World, for Waypoint.frame
 
     def _slot(self, name: str) -> _Arm:
         slot = self._arms.get(name)
@@ -141,7 +142,7 @@ class Arms:
         run = beat = None
         try:
             try:
-                slot, args = await self._check(request)
+                slot, args = await self._check(request, world_of(context))
                 deadline = time.monotonic() + FREE_WAIT     # for the arm: free, at rest
                 run = await self._claim(slot, deadline)
                 beat = asyncio.create_task(self._beat(run))
@@ -176,7 +177,7 @@ class Arms:
                     run.executor.cancel()   # a client that left stops the arm
             self.calls.done("Execute", code, t0, context, messages=sent)
 
-    async def _check(self, request):
+    async def _check(self, request, world: str = ""):
         """The request's own checks, before the arm is waited for: the arm, the waypoint count
         (before anything is made of them), the plan's fields and its limits against the arm's."""
         slot = self._slot(request.arm)
@@ -185,7 +186,7 @@ class Arms:
             raise limits.over("plan.waypoints", f"{n} waypoints", self.limits,
                               "max_execute_waypoints")
         # converting up to max_execute_waypoints messages is work that grows with the request
-        args = await asyncio.to_thread(self._plan_args, request.plan, request.arm)
+        args = await asyncio.to_thread(self._plan_args, request.plan, request.arm, world)
         for name, unit in ARM_LIMITS.items():
             want, bound = getattr(args.limits, name), float(getattr(slot.arm.limits, name))
             if want > bound:
@@ -195,12 +196,12 @@ class Arms:
                     f"(GetArm lists them)")
         return slot, args
 
-    def _plan_args(self, plan, arm: str):
+    def _plan_args(self, plan, arm: str, world: str = ""):
         """The plan's arguments with its waypoints in bodies' frames resolved through the
-        server's world (one hop to a thread for both: a second one made a cancel's next
-        Execute lose its race against the run's end)."""
-        return resolve_frames(plan_from_msg(plan, "plan.", False), plan, self.world, "plan.",
-                              arm)[0]
+        server's world ``world`` (one hop to a thread for both: a second one made a cancel's
+        next Execute lose its race against the run's end)."""
+        return resolve_frames(plan_from_msg(plan, "plan.", False), plan,
+                              world_named(self.world, world), "plan.", arm)[0]
 
     async def _claim(self, slot: _Arm, deadline: float) -> _Run:
         """The arm for a new run, once its last run has ended; FAILED_PRECONDITION if that takes

@@ -69,7 +69,7 @@ from dqpose.rpc.geometry import (
     stamped_msgs,
 )
 from dqpose.rpc.handeye_convert import calibrate_msg, calibration_from_msg
-from dqpose.rpc.resume import Resuming
+from dqpose.rpc.resume import Resuming, reopened
 from dqpose.rpc.routing import MAX_WORLD_NAME, WORLD_HEADER, check_name
 from dqpose.rpc.trajectories_convert import (
     PLAN_INTERPOLATION,
@@ -192,7 +192,7 @@ def _retry_config(seconds: float) -> str:
     attempts = max(2, min(5, 1 + int(math.log2(1 + seconds / 0.2))))   # gRPC caps it at 5
     policy = {"maxAttempts": attempts, "initialBackoff": "0.2s", "maxBackoff": "1s",
               "backoffMultiplier": 2, "retryableStatusCodes": ["UNAVAILABLE", "CANCELLED"]}
-    names = [{"service": s} for s in (SERVICE, FUSION, TRAJECTORIES, HANDEYE)]
+    names = [{"service": s} for s in (SERVICE, FUSION, TRAJECTORIES, HANDEYE, WORLD)]
     return json.dumps({"methodConfig": [{"name": names, "retryPolicy": policy}]})
 
 
@@ -262,8 +262,12 @@ class Client:
         metadata = [("authorization", f"Bearer {token}")] if token else []
         if world is not None:
             metadata.append((WORLD_HEADER, check_name("world", world, MAX_WORLD_NAME)))
+        self.world = world
         self.metadata = tuple(metadata) or None
         self.reconnect = reconnect
+        # the last WorldConfig this client's world accepted: sent again before a World stream
+        # reopens (its world may have moved to a replica that never had it)
+        self.world_config: Optional[wpb.WorldConfig] = None
 
     def close(self) -> None:
         self.channel.close()
@@ -571,11 +575,24 @@ class Client:
         max_extrapolation, window, twist_covariance, acceleration_psd, buffer, max_delay).
         Returns the ``WorldConfig`` in force."""
         from dqpose.rpc.world_convert import world_config
+        return self.configure_world_msg(world_config(sources, arms, **options))
+
+    def configure_world_msg(self, config: wpb.WorldConfig) -> wpb.WorldConfig:
+        """:meth:`configure_world` of a ready ``WorldConfig``; the client keeps it to send again
+        when a World stream reopens."""
         try:
-            return self._configure_world(world_config(sources, arms, **options),
-                                         timeout=self.timeout, metadata=self.metadata)
+            answer = self._configure_world(config, timeout=self.timeout, metadata=self.metadata)
         except grpc.RpcError as e:
             raise _rpc_error(e) from None
+        self.world_config = config
+        return answer
+
+    def _configure_again(self) -> None:
+        """Before a World stream reopens: the last configuration sent again (grpc's errors
+        raised as they are: the stream's reopening decides)."""
+        if self.world_config is not None:
+            self._configure_world(self.world_config, timeout=self.timeout,
+                                  metadata=self.metadata)
 
     def publish(self, batches: Iterable, producer: str = "",
                 first_sequence: int = 1) -> Iterator[Ack]:
@@ -583,7 +600,10 @@ class Client:
         ``Publish`` stream, numbered ``first_sequence``, ``first_sequence + 1``, ... under
         ``producer`` (0: unnumbered); yields one :class:`Ack` per batch, in order. A batch that
         cannot be sent (wrong shape) ends the stream and raises its ``ValueError`` after the
-        acks before it."""
+        acks before it. With ``reconnect``, a stream whose replica went away is reopened (the
+        world's last configuration sent first) and the batches after the last ``acked_through``
+        are sent again (numbered, a batch the world already had is acked with an error, never
+        fused twice); every batch gets its one ack."""
         def requests():
             for i, b in enumerate(batches):
                 b = b if isinstance(b, Batch) else Batch(*b)
@@ -598,24 +618,23 @@ class Client:
 
     def publish_requests(self, requests: Iterable[wpb.PublishRequest]) -> Iterator[Ack]:
         """:meth:`publish` of ready ``PublishRequest`` messages (``dqpose world publish``)."""
-        refused: list[Exception] = []
-
-        def wire():
-            try:
-                for r in requests:
-                    yield r.SerializeToString()
-            except Exception as e:   # raised to the caller below, not lost in grpc's thread
-                refused.append(e)
-
+        # one ack per request, in order: an ack's place acknowledges its request, as its
+        # acked_through does the sequences up to it
+        stream = Resuming(self._publish, (r.SerializeToString() for r in requests), b"", None,
+                          metadata=self.metadata, reconnect=self.reconnect,
+                          before=self._configure_again)
+        acks = stream.answers()
         try:
-            for data in self._publish(wire(), metadata=self.metadata):
+            for _, data in acks:
                 a = wpb.PublishAck.FromString(data)
                 yield Ack(a.acked_through, tuple((e.request, e.measurement, e.details)
                                                  for e in a.errors))
         except grpc.RpcError as e:
             raise _rpc_error(e) from None
-        if refused:
-            raise refused[0]
+        finally:
+            acks.close()
+        if stream.failed:
+            raise stream.failed[0]
 
     def subscribe(self, bodies: Sequence[str] = (), rate_hz: float = 0.0,
                   relative_to: str = "", *, timeout: Optional[float] = None,
@@ -623,17 +642,22 @@ class Client:
         """The world's fused poses of ``bodies`` (empty: all) as they fall due (see
         world.proto: paced on measurement time), as :class:`StreamAnswer` s; with
         ``relative_to`` a body, ``fused.mean``/``covariance`` are ``T_relative_to_body``. The
-        stream has no deadline unless ``timeout``; close the iterator (or cancel) to end it."""
-        call = self._subscribe(wpb.SubscribeRequest(bodies=list(bodies), rate_hz=rate_hz,
-                                                    relative_to=relative_to),
-                               timeout=timeout, metadata=self.metadata)
+        stream has no deadline unless ``timeout``; close the iterator (or cancel) to end it.
+        With ``reconnect``, a stream whose replica went away is opened again (the world's last
+        configuration sent first): answers go on from what the world's new replica receives
+        (its ``request`` numbers restart there)."""
+        request = wpb.SubscribeRequest(bodies=list(bodies), rate_hz=rate_hz,
+                                       relative_to=relative_to)
+        answers = reopened(lambda: self._subscribe(request, timeout=timeout,
+                                                   metadata=self.metadata),
+                           self.reconnect, self._configure_again, self.world)
         try:
-            for data in call:
+            for data in answers:
                 yield _stream_answer(data, probability)
         except grpc.RpcError as e:
             raise _rpc_error(e) from None
         finally:
-            call.cancel()
+            answers.close()     # the call cancelled when the caller closes this iterator
 
     def lookup(self, target: str, source: str, time: float = 0.0) -> Relative:
         """``T_target_source`` at ``time`` (0: the newest both are known at; "" is the world

@@ -4,13 +4,16 @@ again, its first request's settings sent again on every new stream.
 gRPC retries no stream once it has started, so a stream whose replica died (or drained) ends
 UNAVAILABLE. Behind a load balancer that hashes ``x-dqpose-world`` the reopened stream reaches
 the replica the hash now picks; that replica holds none of the world's soft state (windows,
-latency estimates) and rebuilds it from what the stream sends, beginning with the requests the
+latency estimates, the world's configuration) and rebuilds it from what the client sends: a call
+made before each reopening (``before``: the client's last World.Configure), then the requests the
 old replica never acknowledged.
 
 The stream's requests are numbered for the caller across reopenings (the index of the item the
 caller's iterator gave); an answer acknowledges every request up to the one it names
-(``acked(answer)``: StreamFuse's ``FusedPose.request``, World.Publish's
-``PublishAck.acked_through``), and only unacknowledged ones are sent again.
+(``acked(answer)``: StreamFuse's ``FusedPose.request``; World.Publish answers each request with
+one ack, in order, whose ``acked_through`` is that request's sequence), and only unacknowledged
+ones are sent again. A server-streaming call (World.Subscribe) is reopened the same way by
+:func:`reopened`, its one request sent again.
 """
 from __future__ import annotations
 
@@ -20,11 +23,11 @@ import random
 import threading
 import time
 from collections import deque
-from typing import Callable, Iterator, Optional
+from typing import Callable, Generator, Iterator, Optional
 
 import grpc
 
-from dqpose.rpc.routing import REPLICA_HEADER
+from dqpose.rpc.routing import REPLICA_HEADER, WORLD_HEADER
 
 log = logging.getLogger("dqpose.client")
 
@@ -38,14 +41,22 @@ BACKOFF_MAX = 1.0
 
 def resumable(e: grpc.RpcError) -> bool:
     """Whether a broken stream is worth reopening: its server went away (UNAVAILABLE: refused,
-    reset, shutting down) or the proxy in front of it reset the stream when its replica died
-    (HAProxy: RST_STREAM CANCEL, which gRPC reports as CANCELLED, unlike a cancel of our own:
-    "Locally cancelled")."""
-    code = e.code()
+    reset, shutting down) or the proxy in front of it cut the stream when its replica died:
+    HAProxy resets a stream the client still sends on (RST_STREAM CANCEL, which gRPC reports as
+    CANCELLED, unlike a cancel of our own: "Locally cancelled") and ends one the client has
+    half-closed (a Subscribe) with END_STREAM and no status, which gRPC reports as UNKNOWN
+    "Stream removed" (a server's own UNKNOWN comes with its status and its text)."""
+    code, details = e.code(), e.details() or ""
     if code == grpc.StatusCode.UNAVAILABLE:
         return True
+    if code == grpc.StatusCode.UNKNOWN:
+        return details.startswith("Stream removed")
     return (code in (grpc.StatusCode.INTERNAL, grpc.StatusCode.CANCELLED)
-            and "RST_STREAM" in (e.details() or ""))
+            and "RST_STREAM" in details)
+
+
+def _world(metadata) -> Optional[str]:
+    return next((v for k, v in metadata or () if k == WORLD_HEADER), None)
 
 
 def _replica(call) -> Optional[str]:
@@ -62,14 +73,18 @@ class Resuming:
     """``answers()`` yields ``(index, answer bytes)`` of a stream opened by ``open_call(requests,
     metadata=...)``: ``index`` is the caller's index of the request the answer acknowledges. The
     requests are ``items`` (bytes each; an exception raised by it ends the stream and is raised
-    after the answers before it), ``first`` prefixed to the first request of every stream. A
-    stream that breaks :func:`resumable`-ly is reopened with backoff for up to ``reconnect`` s
-    without an answer (0: never; the error is raised)."""
+    after the answers before it), ``first`` prefixed to the first request of every stream;
+    ``acked(answer)`` the index in its stream of the last request an answer acknowledges (None:
+    each request has one answer, in order, World.Publish's). A stream that breaks
+    :func:`resumable`-ly is reopened with backoff for up to ``reconnect`` s without an answer
+    (0: never; the error is raised), ``before()`` called first (:class:`Reconnecting`)."""
 
     def __init__(self, open_call: Callable, items: Iterator[bytes], first: bytes,
-                 acked: Callable[[bytes], int], *, metadata=None, reconnect: float = 0.0):
+                 acked: Optional[Callable[[bytes], int]], *, metadata=None,
+                 reconnect: float = 0.0, before: Optional[Callable[[], object]] = None):
         self._open, self._items, self._first = open_call, items, first
-        self._acked, self._metadata, self._reconnect = acked, metadata, reconnect
+        self._acked, self._metadata = acked, metadata
+        self.link = Reconnecting(reconnect, before, _world(metadata))
         self._lock = threading.Lock()
         self._source = threading.Lock()
         self._generation = 0
@@ -77,8 +92,6 @@ class Resuming:
         self._unacked: deque[tuple[int, bytes]] = deque()
         self._resend: deque[tuple[int, bytes]] = deque()
         self.failed: list[Exception] = []
-        self.replica: Optional[str] = None     # the replica of the stream open now
-        self.reopened = 0
 
     def _requests(self, generation: int, indices: list[int]):
         k = 0
@@ -147,41 +160,104 @@ class Resuming:
             self._resend = deque(self._unacked)
             self._unacked.clear()
 
-    def answers(self) -> Iterator[tuple[int, bytes]]:
-        broken_at: Optional[float] = None
-        wait = BACKOFF_FIRST
+    def answers(self) -> Generator[tuple[int, bytes], None, None]:
+        link = self.link
         while True:
             indices: list[int] = []
-            call = self._open(self._requests(self._generation, indices), metadata=self._metadata)
+            call = None
             try:
-                for data in call:
-                    if broken_at is not None:
-                        self._moved(_replica(call), time.monotonic() - broken_at)
-                        broken_at, wait = None, BACKOFF_FIRST
-                    elif self.replica is None:
-                        self.replica = _replica(call)
-                    index = indices[self._acked(data)]
+                link.reopening()
+                call = self._open(self._requests(self._generation, indices),
+                                  metadata=self._metadata)
+                for k, data in enumerate(call):
+                    link.answered(call)
+                    index = indices[k if self._acked is None else self._acked(data)]
                     self._ack(index)
                     yield index, data
                 return
             except grpc.RpcError as e:
-                now = time.monotonic()
-                broken_at = broken_at if broken_at is not None else now
-                if (self.failed or not resumable(e)
-                        or now - broken_at + wait > self._reconnect):
+                if self.failed or not link.broke(e):
                     raise
-                log.info(json.dumps({"event": "stream_broken", "replica": self.replica,
-                                     "code": e.code().name, "retry_in_s": round(wait, 3)}))
             finally:
-                call.cancel()
-            time.sleep(wait * random.uniform(0.5, 1.0))   # jitter: reopenings spread out
-            wait = min(2 * wait, BACKOFF_MAX)
+                if call is not None:
+                    call.cancel()
+            link.back_off()
             self._reopen()
+
+
+class Reconnecting:
+    """What every reopened stream does between its streams: the backoff, the log lines (naming
+    the stream's ``world``, None without one), the replica it is on, and ``before`` (a call made
+    before each reopening: Configure again)."""
+
+    def __init__(self, reconnect: float, before: Optional[Callable[[], object]] = None,
+                 world: Optional[str] = None):
+        self.reconnect, self.before, self.world = reconnect, before, world
+        self.replica: Optional[str] = None     # the replica of the stream open now
+        self.reopened = 0
+        self._broken_at: Optional[float] = None
+        self._wait = BACKOFF_FIRST
+
+    def reopening(self) -> None:
+        """Before a stream opens: after a break, ``before``; its errors are a break too."""
+        if self._broken_at is not None and self.before is not None:
+            self.before()
+
+    def answered(self, call) -> None:
+        """On each answer: the first after a break logs the move."""
+        if self._broken_at is not None:
+            self._moved(_replica(call), time.monotonic() - self._broken_at)
+            self._broken_at, self._wait = None, BACKOFF_FIRST
+        elif self.replica is None:
+            self.replica = _replica(call)
+
+    def broke(self, e: grpc.RpcError) -> bool:
+        """Whether to reopen after ``e`` (:func:`resumable`, and the next try within
+        ``reconnect`` s of the break)."""
+        now = time.monotonic()
+        self._broken_at = self._broken_at if self._broken_at is not None else now
+        if not resumable(e) or now - self._broken_at + self._wait > self.reconnect:
+            return False
+        log.info(json.dumps({"event": "stream_broken", "world": self.world,
+                             "replica": self.replica,
+                             "code": e.code().name, "retry_in_s": round(self._wait, 3)}))
+        return True
+
+    def back_off(self) -> None:
+        time.sleep(self._wait * random.uniform(0.5, 1.0))   # jitter: reopenings spread out
+        self._wait = min(2 * self._wait, BACKOFF_MAX)
 
     def _moved(self, replica: Optional[str], gap: float) -> None:
         """A log line when the stream came back, naming the replica it left and the one it
         reached (its world moved when they differ)."""
         self.reopened += 1
-        log.info(json.dumps({"event": "stream_resumed", "from": self.replica, "to": replica,
-                             "moved": replica != self.replica, "gap_s": round(gap, 3)}))
+        log.info(json.dumps({"event": "stream_resumed", "world": self.world,
+                             "from": self.replica, "to": replica, "moved": replica != self.replica,
+                             "gap_s": round(gap, 3)}))
         self.replica = replica
+
+
+def reopened(open_call: Callable, reconnect: float,
+             before: Optional[Callable[[], object]] = None,
+             world: Optional[str] = None) -> Generator[bytes, None, None]:
+    """The answers of a server-streaming call ``open_call()`` (World.Subscribe), opened again
+    after a :func:`resumable` break with backoff for up to ``reconnect`` s without an answer
+    (``before()`` first each time); the answers of each stream as they come (none is resent:
+    the request is the call's one message)."""
+    link = Reconnecting(reconnect, before, world)
+    while True:
+        call = None
+        try:
+            link.reopening()
+            call = open_call()
+            for data in call:
+                link.answered(call)
+                yield data
+            return
+        except grpc.RpcError as e:
+            if not link.broke(e):
+                raise
+        finally:
+            if call is not None:
+                call.cancel()
+        link.back_off()

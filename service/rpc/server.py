@@ -527,7 +527,7 @@ async def start(cfg: ServerConfig) -> Running:
     servicers = tuple(world if cls is World else cls(cfg, calls) for cls in SERVICERS)
     for s in servicers:
         if isinstance(s, Trajectories):
-            s.world = lambda: world.world      # made when a waypoint first names a frame
+            s.world = world.domain_world       # made when a waypoint first names a frame
     for servicer in servicers:
         servicer.register(server)
     health_servicer = Health()

@@ -18,12 +18,14 @@ from dqpose.rpc.arms import Arms
 from dqpose.rpc.calls import Calls, refused
 from dqpose.rpc.checks import check_count, field_named
 from dqpose.rpc.geometry import arrays_to_stamped, stamped_to_arrays
+from dqpose.rpc.routing import world_of
 from dqpose.rpc.trajectories_convert import (
     limits_from_msg,
     plan_from_msg,
     plan_info_msg,
     resolve_frames,
     sample_msgs,
+    world_named,
 )
 
 #: the fields of a PlanRequest an error may start with
@@ -62,7 +64,7 @@ class Trajectories:
         self.max_poses = cfg.max_poses
         self.limits = cfg.limits
         self.arms = Arms(cfg, calls)
-        # () -> the server's dqpose.world.World (server.start hands it over)
+        # name -> the server's dqpose.world.World of that name (server.start hands it over)
         self.world = None
 
     @property
@@ -75,12 +77,13 @@ class Trajectories:
 
     # -- domain, message in, message(s) out
 
-    def plan(self, request: pb.PlanRequest):
+    def plan(self, request: pb.PlanRequest, world: str = ""):
         """``(trajectory, rate, resolved)`` for a PlanRequest (``resolved``: the waypoints given
-        in a body's frame, as ``ResolvedWaypoint`` s); FieldError / Infeasible naming the
-        field."""
+        in a body's frame of world ``world``, as ``ResolvedWaypoint`` s); FieldError /
+        Infeasible naming the field."""
         check_count("waypoints", len(request.waypoints), self.max_poses)
-        args, resolved = resolve_frames(plan_from_msg(request), request, self.world)
+        args, resolved = resolve_frames(plan_from_msg(request), request,
+                                        world_named(self.world, world))
         traj = _planned(args)
         n = traj.duration * args.rate_hz + 2
         if not n <= self.limits.max_plan_samples:
@@ -124,10 +127,10 @@ class Trajectories:
         """What Smooth serves: ``SmoothResponse`` bytes for request bytes."""
         return self.smooth(_parsed(pb.SmoothRequest, data)).SerializeToString()
 
-    def planned(self, data: bytes):
-        """What Plan serves, for request bytes: ``(trajectory, its samples at the rate, the
-        resolved waypoints)``."""
-        traj, rate, resolved = self.plan(_parsed(pb.PlanRequest, data))
+    def planned(self, data: bytes, world: str = ""):
+        """What Plan serves, for request bytes (of a call naming ``world``): ``(trajectory, its
+        samples at the rate, the resolved waypoints)``."""
+        traj, rate, resolved = self.plan(_parsed(pb.PlanRequest, data), world)
         samples = traj.at_rate(rate)
         # for viewing (dqpose.record): at most PLAN_VIEW_POSES of the path, evenly
         step = max(1, -(-len(samples.pose) // PLAN_VIEW_POSES))
@@ -179,7 +182,8 @@ class Trajectories:
         code, sent = "OK", 0
         try:
             try:
-                traj, samples, resolved = await self.calls.work(self.planned, request)
+                traj, samples, resolved = await self.calls.work(self.planned, request,
+                                                                world_of(context))
             except Exception as e:
                 status, details = refused("Plan", e)
                 code = status.name

@@ -11,7 +11,7 @@ from typing import NamedTuple
 import numpy as np
 
 from dqpose import dq, trajectory
-from dqpose.errors import FieldError, rename
+from dqpose.errors import FieldError, Infeasible, rename
 from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
 from dqpose.rpc.geometry import (
@@ -133,6 +133,12 @@ def samples_from_msgs(msgs) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndar
     return times, dq.from_pose(q, t) if len(msgs) else np.zeros((0, 8)), vel[:, :3], vel[:, 3:]
 
 
+def world_named(worlds, name: str):
+    """``() -> worlds(name)`` (the world a call's ``x-dqpose-world`` names), or None when the
+    server has no worlds (``worlds`` None)."""
+    return None if worlds is None else (lambda: worlds(name))
+
+
 def resolve_frames(args: PlanArgs, req, world, field: str = "", arm: str | None = None):
     """``(args, resolved)``: ``args`` with every waypoint given in a body's frame
     (``Waypoint.frame``) resolved through ``world()`` (:func:`dqpose.world_waypoints.resolve`),
@@ -144,7 +150,10 @@ def resolve_frames(args: PlanArgs, req, world, field: str = "", arm: str | None 
     from dqpose.world_waypoints import resolve  # the domain World only when frames are used
     if world is None:
         raise FieldError(f"{field}waypoints[{framed[0]}].frame: this server has no world")
-    world = world()
+    try:
+        world = world()
+    except LookupError as e:      # a world the server does not hold
+        raise Infeasible(f"{field}waypoints[{framed[0]}].frame: {e}") from None
     base = world.arm_base(arm).pose if arm is not None and arm in world.arms else None
     waypoints = list(args.waypoints)
     resolved = []

@@ -1,11 +1,19 @@
-"""The ``dqpose.v1.World`` service: one :class:`dqpose.world.World` per server, fed by any number
-of ``Publish`` streams and read by ``Subscribe`` streams and ``Lookup``.
+"""The ``dqpose.v1.World`` service: named worlds (``x-dqpose-world``, the default world ""), each a
+:class:`dqpose.world.World` fed by any number of ``Publish`` streams and read by ``Subscribe``
+streams and ``Lookup``.
 
-Arrival order is the world's one order: each Publish request is applied under one lock in the
-worker pool, and the Subscribe answers it makes due (:mod:`dqpose.world_ticks`) are fused there
-and then, under the same lock, and queued to their subscribers in that order. So the answers
-depend on the sequence of requests the world received, never on when a subscriber reads, and a
-recording of the arrivals replays to the same answers.
+A world is made by the first Configure, Publish or Subscribe that names it, at most
+:data:`MAX_WORLDS` named ones a server; a Lookup (or a Plan's waypoint frame) naming a world this
+server does not hold is NOT_FOUND. Streams make their world because behind a load balancer a
+world moves to another replica when its replica leaves: its producers and subscribers reopen
+there in any order (:mod:`dqpose.rpc.resume`) and must find it, as a Subscribe finds a body that
+has no measurement yet; a point query has nothing to answer from an empty world.
+
+Arrival order is each world's one order: each Publish request is applied under its world's lock
+in the worker pool, and the Subscribe answers it makes due (:mod:`dqpose.world_ticks`) are fused
+there and then, under the same lock, and queued to their subscribers in that order. So the
+answers depend on the sequence of requests the world received, never on when a subscriber
+reads, and a recording of the arrivals replays to the same answers.
 """
 from __future__ import annotations
 
@@ -26,6 +34,7 @@ from dqpose.rpc._proto.dqpose.v1 import world_pb2 as pb
 from dqpose.rpc.calls import Calls, readable, refused
 from dqpose.rpc.checks import over_count
 from dqpose.rpc.fusion_convert import measurements_to_arrays
+from dqpose.rpc.routing import WORLD_HEADER, world_of
 from dqpose.rpc.world_convert import (
     body_pose_msg,
     config_from_msg,
@@ -46,20 +55,33 @@ MAX_QUEUED = 4096
 #: are skipped (an error entry per body says how many): a source's time jumping ahead would
 #: otherwise make every tick in between due at once, under the world's lock
 MAX_FITS_PER_REQUEST = 1024
-#: producer names remembered (each one's acked_through); the oldest-acked is forgotten beyond
+#: producer names a world remembers (each one's acked_through); the oldest-acked is forgotten
+#: beyond
 MAX_PRODUCERS = 4096
+#: named worlds one server holds (the default world "" besides them): each has its own tables
+#: (bodies within its bounds, MAX_PRODUCERS acks), so their number is what bounds a server's
+#: memory; a call that would make one more is RESOURCE_EXHAUSTED before anything is made. A
+#: cluster's worlds spread over its replicas, and a replica keeps a world it held until it
+#: restarts (a moved world's state is soft), so size it to the worlds of the whole cluster.
+MAX_WORLDS = 256
 
 
-class NotFoundError(LookupError):
-    """An unknown body named by a request: NOT_FOUND."""
+class UnknownWorld(LookupError):
+    """A Lookup (or a Plan's frame) naming a world the server does not hold: NOT_FOUND."""
+
+
+class TooManyWorlds(Exception):
+    """A call that would make a world past :data:`MAX_WORLDS`: RESOURCE_EXHAUSTED."""
 
 
 def status_of(e: Exception) -> tuple[grpc.StatusCode, str]:
     """The status a World call ends with for ``e``: the domain's NotFound is NOT_FOUND, its
     OutOfRange FAILED_PRECONDITION, WorldError INVALID_ARGUMENT, anything else as every
     servicer (:func:`refused`)."""
-    if isinstance(e, (domain.NotFound, NotFoundError)):
+    if isinstance(e, (domain.NotFound, UnknownWorld)):
         return grpc.StatusCode.NOT_FOUND, readable(str(e).strip("'\""))
+    if isinstance(e, TooManyWorlds):
+        return grpc.StatusCode.RESOURCE_EXHAUSTED, str(e)
     if isinstance(e, domain.OutOfRange):
         return grpc.StatusCode.FAILED_PRECONDITION, readable(str(e).strip("'\""))
     if isinstance(e, domain.WorldError) and not isinstance(e, FieldError):
@@ -104,27 +126,25 @@ class Subscription:
             self.queue.put_nowait(a)
 
 
-class World:
-    """The ``dqpose.v1.World`` service (one :class:`dqpose.world.World` per server, which the
-    Trajectories service resolves ``Waypoint.frame`` through)."""
+class Cell:
+    """One world of the server: its :class:`dqpose.world.World` (made at first use), its
+    producers' acks, its subscriptions and its counters, all under its one lock; the World RPCs'
+    work, request in, response out, no transport."""
 
-    NAME = pb.DESCRIPTOR.services_by_name["World"].full_name
-
-    def __init__(self, cfg=None, calls: Calls | None = None):
-        self.max_poses = cfg.max_poses if cfg is not None else DEFAULT_MAX_POSES
-        self.limits = cfg.limits if cfg is not None else None
-        self.calls = calls or Calls()
+    def __init__(self, name: str, limits=None, max_poses: int = DEFAULT_MAX_POSES):
+        self.name = name
+        self.limits, self.max_poses = limits, max_poses
         self._world: domain.World | None = None
         self._making = threading.Lock()      # not self.lock: first used while it is held
         self.lock = threading.Lock()
         self.acked: dict[str, int] = {}      # producer -> acked_through
         self.subscriptions: set[Subscription] = set()
-        self.requests = 0                    # Publish requests, per world, in arrival order
-        self.measurements = 0                # measurements numbered per world, arrival order
+        self.requests = 0                    # Publish requests, in arrival order
+        self.measurements = 0                # measurements numbered in arrival order
 
     @property
     def world(self) -> domain.World:
-        """The server's world, made on first use (a server that never uses it pays nothing)."""
+        """The domain world, made on first use (a server that never uses it pays nothing)."""
         if self._world is None:
             with self._making:
                 if self._world is None:
@@ -163,13 +183,16 @@ class World:
 
         with self.lock:
             seq = request.sequence
-            last = self.acked.get(producer, 0)
+            known = self.acked.get(producer)
+            last = known or 0
             ack.acked_through = last
             if seq and seq <= last:
                 error(-1, f"requests[{r}]: sequence {seq} already in the world (acked through "
                           f"{last}); not fused again")
                 return ack
-            if seq > last + 1:
+            # a producer's first request names no gap: the world may have moved here from a
+            # replica that holds the producer's earlier requests (docs/deploy.md)
+            if known is not None and seq > last + 1:
                 error(-1, f"requests[{r}]: sequences {last + 1}..{seq - 1} of producer "
                           f"{producer!r} never arrived")
             too_many = over_count(field, len(request.measurements), self.max_poses,
@@ -269,6 +292,51 @@ class World:
         msg.measurements.append(last_id)
         return msg
 
+class World:
+    """The ``dqpose.v1.World`` service: the server's worlds by name (:class:`Cell` each; the
+    Trajectories service resolves ``Waypoint.frame`` through the one its call names)."""
+
+    NAME = pb.DESCRIPTOR.services_by_name["World"].full_name
+
+    def __init__(self, cfg=None, calls: Calls | None = None):
+        self.max_poses = cfg.max_poses if cfg is not None else DEFAULT_MAX_POSES
+        self.limits = cfg.limits if cfg is not None else None
+        self.replica = getattr(cfg, "replica_name", "")
+        self.calls = calls or Calls()
+        self.cells: dict[str, Cell] = {}
+        self._making = threading.Lock()
+        self.subscribers = 0                 # Subscribe streams open, all worlds (event loop)
+
+    def cell(self, name: str, make: bool = False) -> Cell:
+        """World ``name`` ("" the default, made at first use): made when ``make`` (Configure,
+        Publish, Subscribe), else :class:`UnknownWorld`; past :data:`MAX_WORLDS` named ones,
+        :class:`TooManyWorlds` before anything is made."""
+        cell = self.cells.get(name)
+        if cell is not None:
+            return cell
+        if name and not make:
+            raise UnknownWorld(f"{WORLD_HEADER}: no world {name!r} on replica {self.replica!r} "
+                               f"(a world is made by the first Configure, Publish or Subscribe "
+                               f"naming it)")
+        with self._making:
+            cell = self.cells.get(name)
+            if cell is None:
+                named = len(self.cells) - ("" in self.cells)
+                if name and named >= MAX_WORLDS:
+                    raise TooManyWorlds(f"{WORLD_HEADER}: world {name!r} would be named world "
+                                        f"{named + 1} on replica {self.replica!r}, above its "
+                                        f"{MAX_WORLDS} (MAX_WORLDS)")
+                cell = self.cells[name] = Cell(name, self.limits, self.max_poses)
+        return cell
+
+    def called(self, context, make: bool = False) -> Cell:
+        """The world a call names (:func:`routing.world_of`)."""
+        return self.cell(world_of(context), make)
+
+    def domain_world(self, name: str) -> domain.World:
+        """World ``name``'s :class:`dqpose.world.World`, for a Plan's waypoint frames."""
+        return self.cell(name).world
+
     # -- RPCs
 
     def register(self, server) -> None:
@@ -291,27 +359,37 @@ class World:
         server.add_generic_rpc_handlers((generic,))
         server.add_registered_method_handlers(self.NAME, handlers)
 
-    async def _unary(self, rpc: str, fn, request, context):
-        return await self.calls.unary(rpc, lambda r: self.calls.work(fn, r), request, context,
-                                      status=lambda _, e: status_of(e))
+    async def _unary(self, rpc: str, fn, request, context, make: bool = False):
+        return await self.calls.unary(
+            rpc, lambda r: self.calls.work(fn, self.called(context, make), r), request, context,
+            status=lambda _, e: status_of(e))
 
     async def Configure(self, request, context):
-        return await self._unary("Configure", self.configure, request, context)
+        return await self._unary("Configure", Cell.configure, request, context, make=True)
 
     async def Lookup(self, request, context):
-        return await self._unary("Lookup", self.lookup, request, context)
+        return await self._unary("Lookup", Cell.lookup, request, context)
 
     async def Publish(self, request_iterator, context):
         t0 = self.calls.begin()
         code, r = "OK", 0
         anonymous = f"\0call{id(context)}"
+        cell = None
         try:
+            try:
+                cell = self.called(context, make=True)
+            except Exception as e:
+                status, details = status_of(e)
+                code = status.name
+                await context.abort(status, details)
             # Registered without a deserializer: each request is parsed with its work in the
             # worker pool (publish_bytes), never on the event loop.
             async for data in request_iterator:
-                await context.write(await self.calls.work(self.publish_bytes, data, r,
+                await context.write(await self.calls.work(cell.publish_bytes, data, r,
                                                           anonymous))
                 r += 1
+        except grpc.aio.AbortError:
+            raise
         except Exception:
             code = "INTERNAL"
             log.exception("Publish failed")
@@ -320,15 +398,15 @@ class World:
             code = "CANCELLED"
             raise
         finally:
-            if anonymous in self.acked:
-                with self.lock:
-                    self.acked.pop(anonymous, None)
+            if cell is not None and anonymous in cell.acked:
+                with cell.lock:
+                    cell.acked.pop(anonymous, None)
             self.calls.done("Publish", code, t0, context, messages=r)
 
     async def Subscribe(self, request, context):
         t0 = self.calls.begin()
         code, sent = "OK", 0
-        sub = None
+        sub = cell = None
         try:
             problem = None
             if not (math.isfinite(request.rate_hz) and request.rate_hz >= 0.0):
@@ -339,21 +417,29 @@ class World:
                 problem = (grpc.StatusCode.RESOURCE_EXHAUSTED,
                            f"rate_hz: {request.rate_hz:.6g} Hz, over the server's limit "
                            f"max_output_rate = {self.limits.max_output_rate:.6g} Hz")
-            elif (too_many := over_count("bodies", len(request.bodies),
-                                         self.world_bounds().max_bodies, "bodies")) is not None:
-                problem = (grpc.StatusCode.RESOURCE_EXHAUSTED, too_many)
-            elif len(self.subscriptions) >= MAX_SUBSCRIBERS:
+            elif self.subscribers >= MAX_SUBSCRIBERS:
                 problem = (grpc.StatusCode.RESOURCE_EXHAUSTED,
                            f"Subscribe: {MAX_SUBSCRIBERS} subscriptions are open, the server's "
                            f"most")
+            else:
+                try:
+                    cell = self.called(context, make=True)
+                except Exception as e:
+                    problem = status_of(e)
+            if cell is not None and (too_many := over_count(
+                    "bodies", len(request.bodies), cell.world.bounds.max_bodies,
+                    "bodies")) is not None:
+                problem = (grpc.StatusCode.RESOURCE_EXHAUSTED, too_many)
             if problem is not None:
                 code = problem[0].name
                 await context.abort(problem[0], problem[1])
-            options = self.world.options
+            assert cell is not None
+            options = cell.world.options
             sub = Subscription(request.bodies, request.rate_hz, request.relative_to,
                                asyncio.get_running_loop(), options.max_delay, options.window)
-            with self.lock:
-                self.subscriptions.add(sub)
+            self.subscribers += 1
+            with cell.lock:
+                cell.subscriptions.add(sub)
             while True:
                 answer = await sub.queue.get()
                 if answer is None:
@@ -367,11 +453,8 @@ class World:
             code = "CANCELLED"
             raise
         finally:
-            if sub is not None:
-                with self.lock:
-                    self.subscriptions.discard(sub)
+            if sub is not None and cell is not None:
+                self.subscribers -= 1
+                with cell.lock:
+                    cell.subscriptions.discard(sub)
             self.calls.done("Subscribe", code, t0, context, messages=sent)
-
-    def world_bounds(self):
-        return self.world.bounds
-

@@ -1,6 +1,7 @@
 """A cluster on 127.0.0.1: ``dqpose serve`` replicas (processes) behind a real HAProxy or nginx
 running the shipped config (docker/haproxy.cfg, docker/nginx.conf) with the replicas' and the
-front end's addresses put in place of the compose names."""
+front end's addresses put in place of the compose names; ``WorldLoad``, one world's producers and
+subscriber through it (the cluster test's and bench_cluster's)."""
 from __future__ import annotations
 
 import json
@@ -15,7 +16,9 @@ import tempfile
 import threading
 import time
 
+from dqpose.rpc.client import Client
 from tests._polling import wait_until
+from tests.rpc.test_world_service import SOURCES, measurements
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 DOCKER = os.path.join(ROOT, "docker")
@@ -159,3 +162,69 @@ class Cluster:
 def wait(seconds: float) -> None:
     """A pause the proxies' timers need (a health check's interval), not a bound on anything."""
     time.sleep(seconds)
+
+
+PERIOD = 0.1     # s between one producer's batches (measurement time is the clock's)
+
+
+class WorldLoad:
+    """One world through the proxy: its client (configured, ``reconnect``), two producers
+    (cam1, cam2) publishing the box at the clock's time, a subscriber; every ack and answer kept
+    with its arrival time, every error raised kept."""
+
+    def __init__(self, target: str, name: str, t0: float, stop: threading.Event):
+        self.name, self.t0, self.stop = name, t0, stop
+        self.client = Client(target, world=name, reconnect=10.0)
+        self.client.configure_world(SOURCES, window=1.0)
+        self.sent: dict[str, list[float]] = {"cam1": [], "cam2": []}
+        self.acks: dict[str, list] = {"cam1": [], "cam2": []}
+        self.answers: list = []
+        self.errors: list[str] = []
+        self.closing = False
+        self.producers = [threading.Thread(target=self._produce, args=(s, k), daemon=True)
+                          for k, s in enumerate(self.sent)]
+        self.watcher = threading.Thread(target=self._watch, daemon=True)
+        for t in [self.watcher, *self.producers]:
+            t.start()
+
+    def _produce(self, source: str, seed: int) -> None:
+        def batches():
+            k = 0
+            while not self.stop.is_set():
+                t = round(time.monotonic() - self.t0, 3)
+                self.sent[source].append(t)
+                yield measurements(source, [t], 1000 * seed + k)
+                k += 1
+                self.stop.wait(PERIOD)
+
+        try:
+            for a in self.client.publish(batches(), producer=source):
+                self.acks[source].append((time.monotonic(), a))
+        except Exception as e:          # noqa: BLE001 (every failure is the finding)
+            self.errors.append(f"{self.name} {source}: {e}")
+
+    def _watch(self) -> None:
+        try:
+            for a in self.client.subscribe(["box"], rate_hz=1 / PERIOD):
+                self.answers.append((time.monotonic(), a))
+        except Exception as e:          # noqa: BLE001
+            if not self.closing:
+                self.errors.append(f"{self.name} subscriber: {e}")
+
+    def answered_after(self, t: float) -> bool:
+        return (any(at > t for at, _ in self.answers)
+                and all(any(at > t for at, _ in acks) for acks in self.acks.values()))
+
+    def missing(self, t: float) -> str:
+        """What has not answered since ``t``."""
+        late = [f"{s} acks" for s, acks in self.acks.items() if not any(at > t for at, _ in acks)]
+        late += [] if any(at > t for at, _ in self.answers) else ["subscriber"]
+        return f"{self.name}: {', '.join(late)} {self.errors}"
+
+    def end(self) -> None:
+        """Producers finish (every batch acked), then the subscriber is closed."""
+        for p in self.producers:
+            p.join(30)
+        self.closing = True
+        self.client.close()
+        self.watcher.join(30)

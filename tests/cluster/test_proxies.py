@@ -1,12 +1,14 @@
 """Three ``dqpose serve`` replicas behind the shipped HAProxy and nginx configs: a world's calls
-stay on one replica, stateless calls spread, a SIGTERMed replica drains without a failed call,
-and a StreamFuse whose replica is SIGKILLed resumes on the replica the hash now picks."""
+stay on one replica, stateless calls spread, a SIGTERMed replica drains without a failed call, a
+StreamFuse whose replica is SIGKILLed resumes on the replica the hash now picks, and 30 worlds'
+producers and subscribers resume by themselves after a SIGKILL, every batch acked once."""
 from __future__ import annotations
 
 import json
 import logging
 import signal
 import threading
+import time
 
 import grpc
 import numpy as np
@@ -17,7 +19,7 @@ from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from dqpose.rpc.client import Client
 from dqpose.rpc.geometry import dqs_to_poses
 from tests._polling import wait_until
-from tests.cluster._cluster import Cluster, missing
+from tests.cluster._cluster import Cluster, WorldLoad, missing
 
 IDENTITY = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
 BLEND = pb.BlendRequest(poses=dqs_to_poses(np.stack([IDENTITY, IDENTITY]))).SerializeToString()
@@ -179,3 +181,58 @@ def test_sigkill_mid_stream_resumes_where_the_hash_now_points(own_cluster, caplo
     assert resumed and resumed[0]["from"] == victim.name and resumed[0]["moved"]
     # the stream's new replica is the one the proxy now sends the world's calls to
     assert resumed[-1]["to"] == _owner(target, world) != victim.name
+
+
+def test_thirty_worlds_move_after_a_sigkill_and_resume_by_themselves(own_cluster, caplog):
+    """30 worlds, each 2 producers and a subscriber on one client through the proxy; the replica
+    holding the first world is SIGKILLed mid-stream. Its worlds move: their streams reopen on
+    the replica the hash now picks, the world configured again first, and every batch sent is
+    acked once (fused there, or its ack says why not); the other worlds never notice."""
+    c = own_cluster
+    target = c.proxy.target
+    owners = {w: _owner(target, w) for w in WORLDS}
+    victim = c.replica(owners[WORLDS[0]])
+    moved = [w for w in WORLDS if owners[w] == victim.name]
+    caplog.set_level(logging.INFO, logger="dqpose.client")
+    stop = threading.Event()
+    t0 = time.monotonic()
+    worlds = [WorldLoad(target, w, t0, stop) for w in WORLDS]
+    try:
+        assert wait_until(lambda: all(w.answered_after(t0) for w in worlds), timeout=60,
+                          poll=0.05), [w.missing(t0) for w in worlds if not w.answered_after(t0)]
+        killed = time.monotonic()
+        victim.signal(signal.SIGKILL)
+        victim.proc.wait(10)
+        # every moved world's producers and subscriber answered again, by themselves
+        assert wait_until(lambda: all(w.answered_after(killed) for w in worlds), timeout=60,
+                          poll=0.05), [w.missing(killed) for w in worlds
+                                       if not w.answered_after(killed)]
+        stop.set()
+    finally:
+        stop.set()
+        for w in worlds:
+            w.end()
+    assert [e for w in worlds for e in w.errors] == []
+    after = {w: _owner(target, w) for w in WORLDS}
+    events = [json.loads(r.getMessage()) for r in caplog.records
+              if r.getMessage().startswith('{"event": "stream_')]
+    for w in worlds:
+        # each batch acked once, in order, none refused: all of them are in the world
+        for source, acks in w.acks.items():
+            assert [a.acked_through for _, a in acks] == list(range(1, len(w.sent[source]) + 1))
+            assert [a.errors for _, a in acks if a.errors] == [], (w.name, source)
+        # the replica the world is on now has every measurement, both producers' in one fit
+        newest = max(max(times) for times in w.sent.values())
+        with Client(target, world=w.name) as look:
+            assert look.lookup("", "box").time == newest, w.name
+        last = w.answers[-1][1]
+        assert last.error is None and {s.name for s in last.fused.sources} == {"cam1", "cam2"}
+        resumed = [e for e in events if e["world"] == w.name and e["event"] == "stream_resumed"]
+        if w.name in moved:
+            # its three streams (two Publish, one Subscribe) left the victim for the new owner
+            assert len(resumed) == 3, (w.name, resumed)
+            assert {(e["from"], e["to"]) for e in resumed} == {(victim.name, after[w.name])}
+            assert after[w.name] != victim.name
+        else:
+            assert resumed == [] and after[w.name] == owners[w.name], w.name
+    assert moved and len(moved) < len(WORLDS)

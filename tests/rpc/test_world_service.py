@@ -74,10 +74,10 @@ def client(server):
 
 
 class Collector:
-    """A subscriber in a thread: every answer it gets, until :meth:`stop`."""
+    """A subscriber (of ``world``) in a thread: every answer it gets, until :meth:`stop`."""
 
-    def __init__(self, target: str, **kw):
-        self.client = Client(target)
+    def __init__(self, target: str, world: str | None = None, **kw):
+        self.client = Client(target, world=world)
         self.answers: list = []
         self.error: Exception | None = None
         self.stream = self.client.subscribe(**kw)
@@ -248,7 +248,7 @@ def replay(rate_hz: float) -> list:
     with ServerThread() as s, Client(s.target) as c:
         c.configure_world(SOURCES, twist_covariance=TWIST, window=10.0, max_delay=0.02)
         sub = Collector(s.target, bodies=["box"], rate_hz=rate_hz)
-        wait_until(lambda: s.running.servicers[0].subscriptions, timeout=10)
+        wait_until(lambda: s.running.servicers[0].cell("").subscriptions, timeout=10)
         seq = {"cam1": 0, "cam2": 0}
         for source, batch in arrivals():
             seq[source] += 1
@@ -304,7 +304,7 @@ def test_a_time_jump_makes_at_most_max_fits_due_and_says_what_it_skipped(server,
     client.configure_world(SOURCES, twist_covariance=TWIST, window=60.0, buffer=60.0,
                            max_extrapolation=None)
     sub = Collector(server.target, bodies=["box"], rate_hz=30.0)
-    assert wait_until(lambda: server.running.servicers[0].subscriptions, timeout=10)
+    assert wait_until(lambda: server.running.servicers[0].cell("").subscriptions, timeout=10)
     list(client.publish([measurements("cam1", [0.0], 1), measurements("cam1", [60.0], 2)],
                         producer="p"))
     assert wait_until(lambda: len(sub.answers) > MAX_FITS_PER_REQUEST, timeout=60)   # + error
@@ -319,7 +319,7 @@ def test_a_time_jump_makes_at_most_max_fits_due_and_says_what_it_skipped(server,
 
 def test_subscribe_relative_to_answers_what_lookup_does(server, client):
     sub = Collector(server.target, bodies=["box"], relative_to="cup")
-    assert wait_until(lambda: server.running.servicers[0].subscriptions, timeout=10)
+    assert wait_until(lambda: server.running.servicers[0].cell("").subscriptions, timeout=10)
     # the cup first, so that it is known at the box's ticks
     for k in range(3):
         list(client.publish([measurements("cam1", [0.01 * k], 10 + k, body="cup"),
