@@ -52,6 +52,7 @@ def _view(args) -> int:
     page = Page(tl, host=args.host, port=args.port)
     print(json.dumps({"event": "viewing", "url": f"http://{args.host}:{page.port}",
                       "bodies": sorted(tl.tracks), "plans": page.plan_names,
+                      "arms": sorted(tl.arms),
                       "seconds": (tl.end - tl.start) * 1e-9}), file=sys.stderr, flush=True)
     done = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):

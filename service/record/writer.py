@@ -23,15 +23,18 @@ from dqpose.record.mcapfile import CHUNK_BYTES, McapFile
 from dqpose.record.schemas import message_class
 from dqpose.record.sink import Sink
 from dqpose.record.topics import (
+    ARM_STATE_FIELDS,
     CALL_FIELDS,
     CALLS_TOPIC,
     DROPPED_FIELDS,
     DROPPED_TOPIC,
     ELLIPSOIDS_TOPIC,
+    FEEDBACK_FIELDS,
     MAX_VIEW_BODIES,
     STATS_FIELDS,
     TF_TOPIC,
     answers_topic,
+    arm_topic,
     plan_topic,
     pose_topic,
     requests_topic,
@@ -58,6 +61,7 @@ class Writer:
         self.schemas: dict[str, bytes] = {}
         self.classes: dict[str, object] = {}
         self.calls: dict[int, tuple[str, str, str]] = {}
+        self.arms: dict[int, str] = {}      # an Execute call's arm (its feedback names none)
 
     def open(self) -> McapFile:
         if self.file is None:
@@ -127,6 +131,8 @@ class Writer:
             if kind == frames.REQUEST:
                 for s in sinks:
                     s.write(self.channel(s, requests_topic(rpc), req, call), ns, payload)
+                if req == views.EXECUTE_REQUEST:
+                    self.arms[call] = self.message(req, payload).arm
             else:
                 for s in sinks:
                     s.write(self.channel(s, answers_topic(rpc), ans, call), ns, payload)
@@ -134,10 +140,19 @@ class Writer:
                     msg = self.message(ans, payload)
                     for s in sinks:
                         self.views(s, ns, msg)
+                elif ans == views.EXECUTION_FEEDBACK and call in self.arms:
+                    msg = self.message(ans, payload)
+                    for s in sinks:
+                        self.feedback_views(s, ns, self.arms[call], msg)
+                elif ans == views.ARM_STATE:
+                    msg = self.message(ans, payload)
+                    for s in sinks:
+                        self.arm_views(s, ns, msg)
         elif kind == frames.END:
             d = json.loads(payload)
             sinks = self.sinks()    # first: a file opened now says the call began earlier
             began = self.calls.pop(call, None)
+            self.arms.pop(call, None)
             for s in sinks:
                 if began is not None:
                     rpc, req, ans = began
@@ -155,6 +170,11 @@ class Writer:
                               "resumed": ns})
             say(event="recording_dropped", count=d["count"], first_dropped=d["first_dropped"],
                 resumed=ns, file=self.file.path if self.file is not None else None)
+        elif kind == frames.NOTE:
+            d = json.loads(payload)
+            fields = {k: views.json_type(v) for k, v in d["data"].items()}
+            for s in self.sinks():
+                s.write_json(s.json_channel(d["topic"], d["title"], fields), ns, d["data"])
         elif kind == frames.PLAN:
             name, data = frames.unnamed(payload)
             for s in self.sinks():
@@ -182,6 +202,38 @@ class Writer:
                 [views.ellipsoid(ns, body, msg.covariance)]).SerializeToString())
         s.write_json(s.json_channel(stats_topic(body), "dqpose.record.FusedStats",
                                     STATS_FIELDS), ns, views.scalars(msg))
+
+    @staticmethod
+    def feedback_views(s: Sink, ns: int, arm: str, msg) -> None:
+        """An Execute feedback's views: the commanded and the actual pose, the arm's tool on
+        ``/tf``, the state and the tracking error as scalars."""
+        for what in ("commanded", "actual"):
+            if msg.HasField(what):
+                t, q = views.pose_of(getattr(msg, what))
+                s.write(s.channel(arm_topic(arm, what), views.PoseInFrame), ns,
+                        views.pose_in_frame(ns, t, q).SerializeToString())
+        if msg.HasField("actual"):
+            Writer.tool_tf(s, ns, arm, msg.actual)
+        s.write_json(s.json_channel(arm_topic(arm, "feedback"), "dqpose.record.ArmFeedback",
+                                    FEEDBACK_FIELDS), ns, views.feedback_scalars(msg))
+
+    @staticmethod
+    def arm_views(s: Sink, ns: int, msg) -> None:
+        """A watched arm's views (WatchArm): its actual pose, its tool on ``/tf``, its state,
+        speeds and limits as scalars."""
+        if msg.HasField("pose"):
+            t, q = views.pose_of(msg.pose)
+            s.write(s.channel(arm_topic(msg.arm, "actual"), views.PoseInFrame), ns,
+                    views.pose_in_frame(ns, t, q).SerializeToString())
+            Writer.tool_tf(s, ns, msg.arm, msg.pose)
+        s.write_json(s.json_channel(arm_topic(msg.arm, "state"), "dqpose.record.ArmState",
+                                    ARM_STATE_FIELDS), ns, views.arm_scalars(msg))
+
+    @staticmethod
+    def tool_tf(s: Sink, ns: int, arm: str, pose) -> None:
+        t, q = views.pose_of(pose)
+        s.write(s.channel(TF_TOPIC, views.FrameTransforms), ns, views.frame_transforms(
+            ns, [(views.WORLD, views.tool_frame(arm), t, q)]).SerializeToString())
 
     def close(self) -> None:
         if self.file is not None:
