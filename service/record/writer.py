@@ -16,8 +16,9 @@ import select
 import signal
 import sys
 import time
+from typing import Any
 
-from dqpose.record import frames, parse_address, views
+from dqpose.record import frames, handeye, parse_address, views
 from dqpose.record.live import LiveServer
 from dqpose.record.mcapfile import CHUNK_BYTES, McapFile
 from dqpose.record.schemas import message_class
@@ -61,7 +62,9 @@ class Writer:
         self.schemas: dict[str, bytes] = {}
         self.classes: dict[str, object] = {}
         self.calls: dict[int, tuple[str, str, str]] = {}
-        self.arms: dict[int, str] = {}      # an Execute call's arm (its feedback names none)
+        # the request of a call whose answers' views need it (an Execute's arm, a Calibrate's
+        # views and setup)
+        self.requests: dict[int, Any] = {}
 
     def open(self) -> McapFile:
         if self.file is None:
@@ -131,8 +134,8 @@ class Writer:
             if kind == frames.REQUEST:
                 for s in sinks:
                     s.write(self.channel(s, requests_topic(rpc), req, call), ns, payload)
-                if req == views.EXECUTE_REQUEST:
-                    self.arms[call] = self.message(req, payload).arm
+                if req in (views.EXECUTE_REQUEST, handeye.CALIBRATE_REQUEST):
+                    self.requests[call] = self.message(req, payload)
             else:
                 for s in sinks:
                     s.write(self.channel(s, answers_topic(rpc), ans, call), ns, payload)
@@ -140,10 +143,14 @@ class Writer:
                     msg = self.message(ans, payload)
                     for s in sinks:
                         self.views(s, ns, msg)
-                elif ans == views.EXECUTION_FEEDBACK and call in self.arms:
+                elif ans == views.EXECUTION_FEEDBACK and call in self.requests:
                     msg = self.message(ans, payload)
                     for s in sinks:
-                        self.feedback_views(s, ns, self.arms[call], msg)
+                        self.feedback_views(s, ns, self.requests[call].arm, msg)
+                elif ans == handeye.CALIBRATE_RESPONSE and call in self.requests:
+                    msg = self.message(ans, payload)
+                    for s in sinks:
+                        self.handeye_views(s, ns, self.requests[call], msg)
                 elif ans == views.ARM_STATE:
                     msg = self.message(ans, payload)
                     for s in sinks:
@@ -152,7 +159,7 @@ class Writer:
             d = json.loads(payload)
             sinks = self.sinks()    # first: a file opened now says the call began earlier
             began = self.calls.pop(call, None)
-            self.arms.pop(call, None)
+            self.requests.pop(call, None)
             for s in sinks:
                 if began is not None:
                     rpc, req, ans = began
@@ -228,6 +235,26 @@ class Writer:
             Writer.tool_tf(s, ns, msg.arm, msg.pose)
         s.write_json(s.json_channel(arm_topic(msg.arm, "state"), "dqpose.record.ArmState",
                                     ARM_STATE_FIELDS), ns, views.arm_scalars(msg))
+
+    @staticmethod
+    def handeye_views(s: Sink, ns: int, request, answer) -> None:
+        """A hand-eye calibration's views (:mod:`dqpose.record.handeye`)."""
+        if not answer.HasField("x") or not request.pairs:
+            return
+        s.write(s.channel(TF_TOPIC, views.FrameTransforms), ns, views.frame_transforms(
+            ns, handeye.transforms(request, answer)).SerializeToString())
+        _, x, z = handeye.TF
+        s.write(s.channel(handeye.ELLIPSOIDS_TOPIC, views.SceneUpdate), ns, views.scene_update(
+            [views.ellipsoid(ns, x, answer.covariance_x),
+             views.ellipsoid(ns, z, answer.covariance_z)]).SerializeToString())
+        for topic, path in zip((handeye.FLANGES_TOPIC, handeye.TARGETS_TOPIC),
+                               handeye.paths(request, answer)):
+            s.write(s.channel(topic, views.PosesInFrame), ns,
+                    views.poses_in_frame(ns, path).SerializeToString())
+        channel = s.json_channel(handeye.RESIDUALS_TOPIC, "dqpose.record.HandEyeResidual",
+                                 handeye.RESIDUAL_FIELDS)
+        for row in handeye.residuals(answer, len(request.pairs)):
+            s.write_json(channel, ns, row)
 
     @staticmethod
     def tool_tf(s: Sink, ns: int, arm: str, pose) -> None:

@@ -12,6 +12,7 @@ import pytest
 from dqpose import dq, trajectory
 from dqpose.record import topics, views
 from dqpose.rpc.client import Client
+from tests._polling import wait_until
 from tests.record.test_recorder import messages
 from tests.robustness._arms import SLOW, URRig, offset, serve
 
@@ -34,6 +35,10 @@ def recorded(tmp_path_factory):
             it = c.watch_arm("ur", rate_hz=20.0)
             states = [next(it) for _ in range(3)]
             it.close()
+            # the cancel reached the server before it stops (which would end the watch itself)
+            (traj,) = [s for s in server.running.servicers
+                       if s.NAME == "dqpose.v1.Trajectories"]
+            assert wait_until(lambda: traj.arms.watchers == 0, timeout=10)
         recorder.close()
         yield recorder.files[0], feedback, states, rig, goal
     finally:
