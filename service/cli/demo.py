@@ -70,6 +70,10 @@ def configure(name: str, p) -> None:
                         "three processes feeding one shared world")
     from dqpose.cli import demo_fusion, demo_trajectory, demo_world
     from dqpose.cli.common import INTERRUPTED
+    p.add_argument("--record", default=None, metavar="FILE.mcap",
+                   help="fusion, trajectory: record the in-process server's calls into "
+                        "FILE.mcap (the [record] extra), which `dqpose view` and `dqpose "
+                        "replay` open")
     demo_fusion.add_arguments(p)
     demo_trajectory.add_arguments(p)
     demo_world.add_arguments(p)

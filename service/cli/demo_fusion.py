@@ -385,9 +385,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="where to write the PNG plot (default fusion_demo.png; needs matplotlib)")
     g.add_argument("--target", default=None,
                    help="a running dqpose server (host:port); default: start one in process")
-    g.add_argument("--record", default=None, metavar="FILE.mcap",
-                   help="record the in-process server's calls into FILE.mcap (the [record] "
-                        "extra), which `dqpose view` and `dqpose replay` open")
 
 
 def main(args: argparse.Namespace) -> int:

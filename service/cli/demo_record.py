@@ -1,5 +1,6 @@
-"""``dqpose demo ... --record FILE.mcap``: the demo's in-process server records into one file
-(the recorder writes into a folder beside it, one file there, renamed to FILE at the end)."""
+"""``--record FILE.mcap`` of ``dqpose demo`` (the demo's in-process server records) and of
+``dqpose handeye capture`` (its solves): one file (the recorder writes into a folder beside it,
+one file there, renamed to FILE at the end)."""
 from __future__ import annotations
 
 import os
@@ -29,9 +30,13 @@ def open_file_recorder(cmd: str, path: str, target: str | None):
 
 
 def finish(recorder, path: str) -> str:
-    """After the server stopped (which closed the recorder): the file moved to ``path``."""
+    """After the server stopped (which closed the recorder): the file moved to ``path`` (none
+    when nothing was recorded)."""
     recorder.close()
-    (part,) = recorder.files
-    os.replace(part, path)
+    parts = recorder.files
+    if parts:
+        os.replace(parts[0], path)
     shutil.rmtree(recorder.directory, ignore_errors=True)
+    if not parts:
+        return f"recording: nothing was recorded, no {path}"
     return f"recording: {path} (dqpose view {path}; dqpose replay {path})"

@@ -5,7 +5,9 @@ period jitter as the controller saw it, and plot the plan against its limits.
 
 The path: from where the arm stands, the tool point goes round a 10 cm square in the horizontal
 plane, turning the tool by 30 degrees about the vertical on the way, with 2 cm blends at the
-corners (no stop there).
+corners (no stop there). With ``--record FILE.mcap`` the in-process server records the plan and
+its execution (the feedback, the planned path, the limits), which ``dqpose view`` draws: the
+arm's actual path beside the planned one.
 """
 from __future__ import annotations
 
@@ -62,7 +64,9 @@ def _angle(a: np.ndarray, b: np.ndarray) -> float:
     return math.degrees(2 * math.acos(min(1.0, abs(float(qa @ qb)))))
 
 
-def run(target: str | None = None, progress: bool = False) -> Result:
+def run(target: str | None = None, progress: bool = False, recorder=None) -> Result:
+    """The demo on the simulated UR, through ``target`` or a server of its own (recording into
+    ``recorder`` when given)."""
     from dqpose import drivers
     from dqpose.cli.common import local_server, open_arm
     from dqpose.drivers.executor import Executor
@@ -77,7 +81,9 @@ def run(target: str | None = None, progress: bool = False) -> Result:
         arm = stack.enter_context(open_arm(spec, process=drivers.process_problem(spec) is None,
                                            simulated=True, stale_after=0.5))
         if target is None:
-            target = stack.enter_context(local_server(arms={"ur": arm}, executor=Executor))
+            target = stack.enter_context(local_server(
+                arms={"ur": arm}, executor=Executor,
+                **({} if recorder is None else {"recorder": recorder})))
         client = stack.enter_context(Client(target))
         wps = waypoints(pose_from_rotvec(np.array(_HOME)))
         plan = client.plan(wps, LIMITS, 1.0 / arm.period)
@@ -149,7 +155,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    result = run(getattr(args, "target", None), progress=sys.stderr.isatty())
+    target = getattr(args, "target", None)
+    path, recorder = getattr(args, "record", None), None
+    if path is not None:
+        from dqpose.cli.demo_record import finish, open_file_recorder
+        recorder, code = open_file_recorder("demo trajectory", path, target)
+        if recorder is None:
+            return code
+    result = run(target, progress=sys.stderr.isatty(), recorder=recorder)
+    if recorder is not None:
+        print(finish(recorder, path))
     report(result)
     try:
         from dqpose.cli.plots import plot_motion

@@ -3,7 +3,9 @@ through views of a ChArUco board chosen to be informative (a spread of rotation 
 the solver's next-best pose among candidate views), grabs an image at each (rendered by the
 simulated camera, or from ``--camera``) and saves the folder ``dqpose handeye solve`` reads: the
 images, the flange poses (``poses.json``), the intrinsics and the board, and for a simulation the
-truth (``truth.json``)."""
+truth (``truth.json``). ``--record FILE.mcap`` records each solve of the views taken so far (a
+``dqpose.v1.HandEye/Calibrate`` call: the views, the solved X and Z with their covariances, the
+per-view residuals), which Foxglove draws (docs/recording.md)."""
 from __future__ import annotations
 
 import argparse
@@ -127,6 +129,9 @@ def add_parser(sub) -> None:
                    help="simulated camera: pixel noise, grey levels (default 2)")
     c.add_argument("--blur", type=float, default=0.6,
                    help="simulated camera: Gaussian blur, pixels (default 0.6)")
+    c.add_argument("--record", metavar="FILE.mcap",
+                   help="record each solve of the views into FILE.mcap (the [record] extra): "
+                        "the views, X and Z with their ellipsoids, the residuals per view")
 
 
 def _prepare(args):
@@ -158,12 +163,6 @@ def _prepare(args):
 
 
 def capture(args) -> int:
-    import contextlib
-
-    import numpy as np
-
-    from dqpose.handeye.setups import EYE_IN_HAND
-
     refused = _refused(args)
     if refused:
         return fail("handeye capture", refused)
@@ -171,6 +170,25 @@ def capture(args) -> int:
         previous = _prepare(args)
     except ValueError as e:
         return fail("handeye capture", str(e))
+    recorder = None
+    if args.record:
+        from dqpose.cli.demo_record import finish, open_file_recorder
+        recorder, code = open_file_recorder("handeye capture", args.record, None)
+        if recorder is None:
+            return code
+    try:
+        return _capture(args, previous, recorder)
+    finally:
+        if recorder is not None:
+            print(finish(recorder, args.record), file=sys.stderr)
+
+
+def _capture(args, previous, recorder) -> int:
+    import contextlib
+
+    import numpy as np
+
+    from dqpose.handeye.setups import EYE_IN_HAND
     args.setup = args.setup or (previous.setup if previous else None) or EYE_IN_HAND
     if previous and len(previous.images) >= args.views:
         print(f"{len(previous.images)} views in {args.dir} already (--views {args.views}); "
@@ -218,7 +236,8 @@ def capture(args) -> int:
                     print(f"resuming: {len(images)} views in {args.dir}", file=sys.stderr)
                 else:
                     state = _first_view(args, arm, shoot, images, flanges, board, rng)
-                stop = _views_loop(args, arm, state, shoot, speed, settle)
+                stop = _views_loop(args, arm, state, shoot, speed, settle,
+                                   None if recorder is None else _solves_recorded(recorder))
             except KeyboardInterrupt:
                 _stop_at_once(arm)
                 raise
@@ -343,9 +362,31 @@ def _resumed(args, previous: Previous, detector, read_image, board, rng) -> View
 MAX_MISSES = 5
 
 
-def _views_loop(args, arm, state, shoot, speed: float, settle: float) -> str | None:
-    """Moves to the chosen views and shoots until ``args.views`` are taken; why it stopped
-    early, else None."""
+def _solves_recorded(recorder):
+    """``record(state)``: the solver's answer from the views so far, when it has one, recorded
+    as the ``HandEye/Calibrate`` call that gives it (the same arguments, the same answer)."""
+    import numpy as np
+
+    from dqpose.rpc._proto.dqpose.v1 import handeye_pb2 as hpb
+    from dqpose.rpc.handeye_convert import calibrate_msg, calibration_to_msg
+
+    def record(state) -> None:
+        if state.calibration is None:
+            return
+        call = recorder.call("dqpose.v1.HandEye/Calibrate", hpb.CalibrateRequest,
+                             hpb.CalibrateResponse)
+        call.measurements(calibrate_msg(np.array(state.flanges), np.array(state.views),
+                                        state.setup,
+                                        camera_covariance=np.array(state.covariances)))
+        call.fused(calibration_to_msg(state.calibration))
+        call.end("OK")
+    return record
+
+
+def _views_loop(args, arm, state, shoot, speed: float, settle: float,
+                record=None) -> str | None:
+    """Moves to the chosen views and shoots until ``args.views`` are taken (``record(state)``
+    after each view detected); why it stopped early, else None."""
     from dqpose import dq, handeye
     misses = 0
     while state.taken < args.views:
@@ -372,6 +413,8 @@ def _views_loop(args, arm, state, shoot, speed: float, settle: float) -> str | N
         if d.ok:
             state.add(reached, d)
             misses = 0
+            if record is not None:
+                record(state)
         else:
             misses += 1
             if misses >= MAX_MISSES:

@@ -1,7 +1,9 @@
 """``dqpose view FILE.mcap``: a recording on a local web page (viser, the ``[view]`` extra): the
-bodies' frames where they were fused, their position's 3-sigma ellipsoids, the plans, and a time
-slider over the file. Serves until Ctrl-C; says where on standard error (JSON: ``viewing``, its
-``url``, the bodies and plans)."""
+bodies' frames where they were fused, their position's 3-sigma ellipsoids, the plans, the arms'
+actual paths, and a time slider over the file. ``--server HOST:PORT`` follows a server live
+instead (its World's bodies through Subscribe, its arms through WatchArm), ``--live HOST:PORT``
+a ``serve --live`` WebSocket. Serves until Ctrl-C; says where on standard error (JSON:
+``viewing``, its ``url``, the bodies, plans and arms)."""
 from __future__ import annotations
 
 import json
@@ -16,9 +18,14 @@ def configure(name: str, p) -> None:
     p.description = __doc__.split("\n\n")[0].replace("``", "")
     p.add_argument("file", metavar="FILE.mcap", nargs="?",
                    help="a recording (dqpose serve --record)")
-    p.add_argument("--server", metavar="HOST:PORT",
-                   help="follow a server live instead: the address of its `serve --live` "
-                        "WebSocket (the [view] extra's websockets client)")
+    live = p.add_mutually_exclusive_group()
+    live.add_argument("--server", metavar="HOST:PORT",
+                      help="follow a dqpose server live instead (its gRPC address): the "
+                           "World's bodies as they are fused, its arms as they move")
+    live.add_argument("--live", metavar="HOST:PORT",
+                      help="follow a `serve --live` WebSocket instead (the [view] extra's "
+                           "websockets client)")
+    p.add_argument("--token-file", help="with --server: file holding its bearer token")
     p.add_argument("--host", default="127.0.0.1",
                    help="the page's address (default: %(default)s; 0.0.0.0 for other machines)")
     p.add_argument("--port", type=int, default=8080,
@@ -30,10 +37,12 @@ def _view(args) -> int:
     from dqpose.errors import MissingExtra, require
     from dqpose.view import MODULES
 
-    if (args.file is None) == (args.server is None):
-        return fail("view", "give a recording FILE.mcap or --server HOST:PORT (one of them)")
+    following = args.server or args.live
+    if (args.file is None) == (following is None):
+        return fail("view", "give a recording FILE.mcap, --server HOST:PORT or --live "
+                            "HOST:PORT (one of them)")
     try:
-        require(*MODULES, *(("websockets",) if args.server else ()))
+        require(*MODULES, *(("websockets",) if args.live else ()))
         from dqpose.record.reader import read
         from dqpose.view.page import Page, Scene
         from dqpose.view.timeline import timeline
@@ -42,6 +51,8 @@ def _view(args) -> int:
     if not 0 <= args.port <= 65535:
         return fail("view", f"--port: must be within 0..65535, got {args.port}")
     if args.server is not None:
+        return _watch(args, Scene)
+    if args.live is not None:
         return _follow(args, Scene)
     try:
         tl = timeline(read(args.file))
@@ -52,13 +63,40 @@ def _view(args) -> int:
     page = Page(tl, host=args.host, port=args.port)
     print(json.dumps({"event": "viewing", "url": f"http://{args.host}:{page.port}",
                       "bodies": sorted(tl.tracks), "plans": page.plan_names,
+                      "arms": sorted(tl.arms),
                       "seconds": (tl.end - tl.start) * 1e-9}), file=sys.stderr, flush=True)
-    done = threading.Event()
+    _serve_until_done(threading.Event())
+    page.close()
+    return 0
+
+
+def _serve_until_done(done: threading.Event) -> None:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: done.set())
     done.wait()
-    page.close()
-    return 0
+
+
+def _watch(args, Scene) -> int:
+    from dqpose.cli.common import read
+    from dqpose.rpc.client import RpcError
+    from dqpose.view.watch import Watcher
+
+    token = read(args.token_file, "r").strip() if args.token_file else None
+    scene = Scene(host=args.host, port=args.port)
+    watcher = Watcher(args.server, scene, token=token)
+    print(json.dumps({"event": "viewing", "url": f"http://{args.host}:{scene.port}",
+                      "server": args.server}), file=sys.stderr, flush=True)
+    try:
+        watcher.start()
+    except RpcError as e:
+        watcher.why = f"--server {args.server}: {e}"
+        watcher.failed.set()
+    done = threading.Event()
+    threading.Thread(target=lambda: (watcher.failed.wait(), done.set()), daemon=True).start()
+    _serve_until_done(done)
+    scene.close()
+    watcher.close()
+    return fail("view", watcher.why) if watcher.failed.is_set() else 0
 
 
 def _follow(args, Scene) -> int:
@@ -66,9 +104,9 @@ def _follow(args, Scene) -> int:
     from dqpose.view.follow import Follower
 
     try:
-        host, port = parse_address(args.server)
+        host, port = parse_address(args.live)
     except ValueError as e:
-        return fail("view", str(e).replace("--live", "--server"))
+        return fail("view", str(e))
     scene = Scene(host=args.host, port=args.port)
     follower = Follower(f"ws://{host}:{port}", scene)
     done = threading.Event()
@@ -77,16 +115,14 @@ def _follow(args, Scene) -> int:
     def follow() -> None:
         try:
             follower.run()
-            why.append(f"--server {host}:{port}: the server closed the connection")
+            why.append(f"--live {host}:{port}: the server closed the connection")
         except Exception as e:      # refused, reset, a handshake refused: said, then exit 1
-            why.append(f"--server {host}:{port}: {e}")
+            why.append(f"--live {host}:{port}: {e}")
         done.set()
 
     print(json.dumps({"event": "viewing", "url": f"http://{args.host}:{scene.port}",
                       "server": f"ws://{host}:{port}"}), file=sys.stderr, flush=True)
     threading.Thread(target=follow, name="dqpose-view-follow", daemon=True).start()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: done.set())
-    done.wait()
+    _serve_until_done(done)
     scene.close()
     return fail("view", why[0]) if why else 0

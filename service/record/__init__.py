@@ -35,11 +35,16 @@ class NullRecorder:
 
     dropped = written = 0
     files: list = []
+    #: whether anything is recorded (a caller skips work only a recording needs)
+    recording = False
 
     def call(self, rpc: str, request_type, answer_type) -> _NullCall:
         return _NULL_CALL
 
     def plan(self, name: str, dqs) -> None:
+        pass
+
+    def note(self, topic: str, title: str, data: dict) -> None:
         pass
 
     def close(self, timeout: float = 0.0) -> None:
@@ -48,6 +53,9 @@ class NullRecorder:
 
 _NULL_CALL = _NullCall()
 NULL = NullRecorder()
+
+#: a recorded plan's poses at most (its samples thinned evenly, the last kept)
+PLAN_VIEW_POSES = 1000
 
 #: the modules of the [record] extra
 MODULES = ("foxglove", "mcap", "foxglove_schemas_protobuf")

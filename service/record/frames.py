@@ -17,6 +17,7 @@ ANSWER = 4      # the answer's wire bytes
 END = 5         # JSON {code, details}
 GAP = 6         # JSON {first_dropped, count}
 PLAN = 7        # payload: name, NUL, foxglove.PosesInFrame bytes
+NOTE = 8        # JSON {topic, title, data}: one object on a JSON channel of its own
 
 
 def frame(kind: int, call: int, ns: int, payload: bytes) -> bytes:

@@ -74,6 +74,8 @@ class Recorder:
     ``stall`` is a test hook: while it is set nothing is handed to the writer (a disk that
     hangs)."""
 
+    recording = True
+
     def __init__(self, directory: str | os.PathLike | None, max_bytes: int = 256 << 20,
                  max_seconds: float = 3600.0, queue: int = 100_000,
                  max_buffer: int = 64 << 20, live: tuple[str, int] | None = None):
@@ -168,6 +170,13 @@ class Recorder:
         data = views.poses_in_frame(ns, dqs).SerializeToString()
         with self._lock:
             self._put_locked(None, frames.PLAN, 0, ns, frames.named(name, data))
+
+    def note(self, topic: str, title: str, data: dict) -> None:
+        """One JSON object ``data`` on ``topic`` (its schema titled ``title``, its properties'
+        types from the values): what a call knows beside its messages (an arm's limits)."""
+        payload = frames.as_json({"topic": topic, "title": title, "data": data})
+        with self._lock:
+            self._put_locked(None, frames.NOTE, 0, time.time_ns(), payload)
 
     def _put(self, rec, kind: int, call: int, payload: bytes) -> bool:
         with self._lock:

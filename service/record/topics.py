@@ -31,9 +31,19 @@ def plan_topic(name: str) -> str:
     return f"/plans/{name}"
 
 
+def arm_topic(arm: str, what: str) -> str:
+    """An arm's channels: ``commanded`` and ``actual`` poses, ``feedback`` and ``state``
+    scalars, ``limits``."""
+    return f"/arms/{arm}/{what}"
+
+
 CALL_FIELDS = {"call": "integer", "rpc": "string", "event": "string",
                "request_type": "string", "answer_type": "string", "code": "string",
                "details": "string", "continued": "boolean"}
 DROPPED_FIELDS = {"first_dropped": "integer", "count": "integer", "resumed": "integer"}
 STATS_FIELDS = {"body": "string", "time": "number", "chi2": "number", "dof": "integer",
                 "sigma_position": "number", "sigma_rotation": "number"}
+FEEDBACK_FIELDS = {"time": "number", "state": "string", "message": "string",
+                   "error_position": "number", "error_rotation": "number"}
+ARM_STATE_FIELDS = {"arm": "string", "state": "string", "busy": "boolean", "faults": "string",
+                    "linear_speed": "number", "angular_speed": "number"}

@@ -28,8 +28,12 @@ from google.protobuf.timestamp_pb2 import Timestamp
 
 from dqpose import dq
 
-#: the frame every fused pose is in
+#: the frame every fused pose is in (and an arm's base frame, which plans stand it for)
 WORLD = "world"
+#: the dqpose.v1 messages an arm's views are drawn from
+EXECUTE_REQUEST = "dqpose.v1.ExecuteRequest"
+EXECUTION_FEEDBACK = "dqpose.v1.ExecutionFeedback"
+ARM_STATE = "dqpose.v1.ArmState"
 #: the ellipsoids' size: the position's n-sigma surface
 ELLIPSOID_SIGMAS = 3.0
 
@@ -110,3 +114,58 @@ def scalars(fused) -> dict:
     for lat in fused.latencies:
         out[f"latency_{lat.source}"] = lat.value
     return out
+
+
+def tool_frame(arm: str) -> str:
+    """The frame of an arm's tool on ``/tf``."""
+    return f"{arm}/tool"
+
+
+def pose_of(msg) -> tuple[tuple, tuple]:
+    """``(t, q)`` (q scalar first) of a ``dqpose.v1.Pose``."""
+    p, o = msg.position, msg.orientation
+    return (p.x, p.y, p.z), (o.w, o.x, o.y, o.z)
+
+
+def _state_name(msg, code: int) -> str:
+    """An ExecutionState's name without its prefix ("" for UNSPECIFIED)."""
+    if code == 0:
+        return ""
+    enum = msg.DESCRIPTOR.fields_by_name["state"].enum_type
+    return enum.values_by_number[code].name.removeprefix("EXECUTION_")
+
+
+def feedback_scalars(fb) -> dict:
+    """An ExecutionFeedback's scalars (JSON): its plan time, state and message, and how far the
+    actual pose is from the commanded one (m, rad) when it has both."""
+    out = {"time": fb.time, "state": _state_name(fb, fb.state), "message": fb.message}
+    if fb.HasField("commanded") and fb.HasField("actual"):
+        tc, qc = pose_of(fb.commanded)
+        ta, qa = pose_of(fb.actual)
+        out["error_position"] = float(np.linalg.norm(np.subtract(ta, tc)))
+        dot = abs(float(np.dot(qa, qc)) / (np.linalg.norm(qa) * np.linalg.norm(qc)))
+        out["error_rotation"] = 2.0 * float(np.arccos(min(dot, 1.0)))
+    return out
+
+
+def arm_scalars(st) -> dict:
+    """An ArmState's scalars (JSON): its run's state, busy, faults, speeds and limits."""
+    v, w = st.linear_velocity, st.angular_velocity
+    out = {"arm": st.arm, "state": _state_name(st, st.state), "busy": st.busy,
+           "faults": "; ".join(st.faults),
+           "linear_speed": float(np.linalg.norm([v.x, v.y, v.z])),
+           "angular_speed": float(np.linalg.norm([w.x, w.y, w.z]))}
+    for f in st.limits.DESCRIPTOR.fields:
+        out[f.name] = getattr(st.limits, f.name)
+    return out
+
+
+def json_type(value) -> str:
+    """The JSON schema type of a note's value."""
+    if isinstance(value, bool):
+        return "boolean"
+    if isinstance(value, int):
+        return "integer"
+    if isinstance(value, float):
+        return "number"
+    return "string"

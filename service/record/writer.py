@@ -16,22 +16,26 @@ import select
 import signal
 import sys
 import time
+from typing import Any
 
-from dqpose.record import frames, parse_address, views
+from dqpose.record import frames, handeye, parse_address, views
 from dqpose.record.live import LiveServer
 from dqpose.record.mcapfile import CHUNK_BYTES, McapFile
 from dqpose.record.schemas import message_class
 from dqpose.record.sink import Sink
 from dqpose.record.topics import (
+    ARM_STATE_FIELDS,
     CALL_FIELDS,
     CALLS_TOPIC,
     DROPPED_FIELDS,
     DROPPED_TOPIC,
     ELLIPSOIDS_TOPIC,
+    FEEDBACK_FIELDS,
     MAX_VIEW_BODIES,
     STATS_FIELDS,
     TF_TOPIC,
     answers_topic,
+    arm_topic,
     plan_topic,
     pose_topic,
     requests_topic,
@@ -58,6 +62,9 @@ class Writer:
         self.schemas: dict[str, bytes] = {}
         self.classes: dict[str, object] = {}
         self.calls: dict[int, tuple[str, str, str]] = {}
+        # the request of a call whose answers' views need it (an Execute's arm, a Calibrate's
+        # views and setup)
+        self.requests: dict[int, Any] = {}
 
     def open(self) -> McapFile:
         if self.file is None:
@@ -127,6 +134,8 @@ class Writer:
             if kind == frames.REQUEST:
                 for s in sinks:
                     s.write(self.channel(s, requests_topic(rpc), req, call), ns, payload)
+                if req in (views.EXECUTE_REQUEST, handeye.CALIBRATE_REQUEST):
+                    self.requests[call] = self.message(req, payload)
             else:
                 for s in sinks:
                     s.write(self.channel(s, answers_topic(rpc), ans, call), ns, payload)
@@ -134,10 +143,23 @@ class Writer:
                     msg = self.message(ans, payload)
                     for s in sinks:
                         self.views(s, ns, msg)
+                elif ans == views.EXECUTION_FEEDBACK and call in self.requests:
+                    msg = self.message(ans, payload)
+                    for s in sinks:
+                        self.feedback_views(s, ns, self.requests[call].arm, msg)
+                elif ans == handeye.CALIBRATE_RESPONSE and call in self.requests:
+                    msg = self.message(ans, payload)
+                    for s in sinks:
+                        self.handeye_views(s, ns, self.requests[call], msg)
+                elif ans == views.ARM_STATE:
+                    msg = self.message(ans, payload)
+                    for s in sinks:
+                        self.arm_views(s, ns, msg)
         elif kind == frames.END:
             d = json.loads(payload)
             sinks = self.sinks()    # first: a file opened now says the call began earlier
             began = self.calls.pop(call, None)
+            self.requests.pop(call, None)
             for s in sinks:
                 if began is not None:
                     rpc, req, ans = began
@@ -155,6 +177,11 @@ class Writer:
                               "resumed": ns})
             say(event="recording_dropped", count=d["count"], first_dropped=d["first_dropped"],
                 resumed=ns, file=self.file.path if self.file is not None else None)
+        elif kind == frames.NOTE:
+            d = json.loads(payload)
+            fields = {k: views.json_type(v) for k, v in d["data"].items()}
+            for s in self.sinks():
+                s.write_json(s.json_channel(d["topic"], d["title"], fields), ns, d["data"])
         elif kind == frames.PLAN:
             name, data = frames.unnamed(payload)
             for s in self.sinks():
@@ -182,6 +209,58 @@ class Writer:
                 [views.ellipsoid(ns, body, msg.covariance)]).SerializeToString())
         s.write_json(s.json_channel(stats_topic(body), "dqpose.record.FusedStats",
                                     STATS_FIELDS), ns, views.scalars(msg))
+
+    @staticmethod
+    def feedback_views(s: Sink, ns: int, arm: str, msg) -> None:
+        """An Execute feedback's views: the commanded and the actual pose, the arm's tool on
+        ``/tf``, the state and the tracking error as scalars."""
+        for what in ("commanded", "actual"):
+            if msg.HasField(what):
+                t, q = views.pose_of(getattr(msg, what))
+                s.write(s.channel(arm_topic(arm, what), views.PoseInFrame), ns,
+                        views.pose_in_frame(ns, t, q).SerializeToString())
+        if msg.HasField("actual"):
+            Writer.tool_tf(s, ns, arm, msg.actual)
+        s.write_json(s.json_channel(arm_topic(arm, "feedback"), "dqpose.record.ArmFeedback",
+                                    FEEDBACK_FIELDS), ns, views.feedback_scalars(msg))
+
+    @staticmethod
+    def arm_views(s: Sink, ns: int, msg) -> None:
+        """A watched arm's views (WatchArm): its actual pose, its tool on ``/tf``, its state,
+        speeds and limits as scalars."""
+        if msg.HasField("pose"):
+            t, q = views.pose_of(msg.pose)
+            s.write(s.channel(arm_topic(msg.arm, "actual"), views.PoseInFrame), ns,
+                    views.pose_in_frame(ns, t, q).SerializeToString())
+            Writer.tool_tf(s, ns, msg.arm, msg.pose)
+        s.write_json(s.json_channel(arm_topic(msg.arm, "state"), "dqpose.record.ArmState",
+                                    ARM_STATE_FIELDS), ns, views.arm_scalars(msg))
+
+    @staticmethod
+    def handeye_views(s: Sink, ns: int, request, answer) -> None:
+        """A hand-eye calibration's views (:mod:`dqpose.record.handeye`)."""
+        if not answer.HasField("x") or not request.pairs:
+            return
+        s.write(s.channel(TF_TOPIC, views.FrameTransforms), ns, views.frame_transforms(
+            ns, handeye.transforms(request, answer)).SerializeToString())
+        _, x, z = handeye.TF
+        s.write(s.channel(handeye.ELLIPSOIDS_TOPIC, views.SceneUpdate), ns, views.scene_update(
+            [views.ellipsoid(ns, x, answer.covariance_x),
+             views.ellipsoid(ns, z, answer.covariance_z)]).SerializeToString())
+        for topic, path in zip((handeye.FLANGES_TOPIC, handeye.TARGETS_TOPIC),
+                               handeye.paths(request, answer)):
+            s.write(s.channel(topic, views.PosesInFrame), ns,
+                    views.poses_in_frame(ns, path).SerializeToString())
+        channel = s.json_channel(handeye.RESIDUALS_TOPIC, "dqpose.record.HandEyeResidual",
+                                 handeye.RESIDUAL_FIELDS)
+        for row in handeye.residuals(answer, len(request.pairs)):
+            s.write_json(channel, ns, row)
+
+    @staticmethod
+    def tool_tf(s: Sink, ns: int, arm: str, pose) -> None:
+        t, q = views.pose_of(pose)
+        s.write(s.channel(TF_TOPIC, views.FrameTransforms), ns, views.frame_transforms(
+            ns, [(views.WORLD, views.tool_frame(arm), t, q)]).SerializeToString())
 
     def close(self) -> None:
         if self.file is not None:

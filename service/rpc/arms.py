@@ -1,5 +1,5 @@
 """The arms of the ``dqpose.v1.Trajectories`` service: Execute (a plan run on an arm the server
-was started with), GetArm and ListArms.
+was started with), GetArm, WatchArm and ListArms.
 
 The arms and the executor come from whoever starts the server (``ServerConfig.arms`` and
 ``.executor``; ``dqpose serve --arm`` opens them): this module imports no driver, and does
@@ -15,14 +15,18 @@ it rather than starting a second run beside the first.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import math
 import re
 import time
 from typing import Optional
 
 import grpc
+import numpy as np
 
-from dqpose import limits, trajectory
+from dqpose import limits, record, trajectory
 from dqpose.errors import FieldError, Infeasible, rename
+from dqpose.record.topics import arm_topic
 from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
 from dqpose.rpc.calls import Calls, refused
@@ -55,6 +59,11 @@ RESULTS = {"OK": (pb.EXECUTION_WORKING, None),
            "PROTECTIVE_STOP": (pb.EXECUTION_PROTECTIVE_STOP, _ABORTED),
            "TRACKING": (pb.EXECUTION_TRACKING_ERROR, _ABORTED),
            "ERROR": (pb.EXECUTION_ERROR, _UNAVAILABLE)}
+#: WatchArm: states a second when the request says 0, and at most (an arm is read at most this
+#: often however many watch it: they share a reading)
+WATCH_HZ, MAX_WATCH_HZ = 50.0, 100.0
+#: WatchArm streams open at once on one server
+MAX_WATCHERS = 64
 #: why a run the server halted on shutdown ended (its call ends UNAVAILABLE, as calls refused then)
 SHUTDOWN = "the server is shutting down"
 
@@ -86,11 +95,15 @@ class _Arm:
         self.state = pb.EXECUTION_STATE_UNSPECIFIED
         self.free = asyncio.Event()
         self.free.set()
+        self.reading: Optional[asyncio.Future] = None    # the watchers' shared reading
+        self.read_at = 0.0                               # loop time it began
 
 
 class Arms:
     """Execute, GetArm and ListArms over the arms of a :class:`~dqpose.rpc.server.ServerConfig`;
     :meth:`stopping` is the server's shutdown hook."""
+
+    NAME = "dqpose.v1.Trajectories"
 
     def __init__(self, cfg, calls: Calls):
         self.calls = calls
@@ -98,6 +111,8 @@ class Arms:
         self.executor = cfg.executor
         self._arms = {name: _Arm(name, arm) for name, arm in sorted(cfg.arms.items())}
         self._stop_at: Optional[float] = None     # loop time the server stops, once known
+        self._stopping: Optional[asyncio.Event] = None    # set once the server stops
+        self.watchers = 0
         self.world = None      # name -> the server's dqpose.world.World, for Waypoint.frame
 
     def _slot(self, name: str) -> _Arm:
@@ -117,7 +132,10 @@ class Arms:
         return pb.ListArmsResponse(arms=states)
 
     async def _state(self, slot: _Arm) -> pb.ArmState:
-        msg = pb.ArmState(arm=slot.name, state=slot.state, busy=slot.run is not None)
+        # a run holds its arm until its last record, which sets how it ended: until then WORKING
+        running = slot.run is not None
+        msg = pb.ArmState(arm=slot.name, state=pb.EXECUTION_WORKING if running else slot.state,
+                          busy=running)
         for name in ARM_LIMITS:
             setattr(msg.limits, name, float(getattr(slot.arm.limits, name)))
         try:    # an arm in its own process answers through a pipe: not on the loop
@@ -134,12 +152,83 @@ class Arms:
         msg.faults.extend(st.faults)
         return msg
 
+    # ------------------------------------------------------------------ WatchArm
+
+    async def watch_arm(self, request, context) -> None:
+        t0 = self.calls.begin()
+        code, sent = "OK", 0
+        rec = self.calls.recorder.call(f"{self.NAME}/WatchArm", pb.GetArmRequest, pb.ArmState)
+        rec.measurements(request)
+        loop = asyncio.get_running_loop()
+        if self._stopping is None:
+            self._stopping = asyncio.Event()
+        counted = False
+        try:
+            try:
+                slot = self._slot(request.arm)
+                period = 1.0 / self._watch_rate(request.rate_hz)
+                if self.watchers >= MAX_WATCHERS:
+                    raise limits.OverLimit(f"WatchArm: {MAX_WATCHERS} watches are open, the "
+                                           f"server's most")
+            except Exception as e:
+                status, details = refused("WatchArm", e)
+                code = status.name
+                rec.end(code, details)
+                await context.abort(status, details)
+            self.watchers += 1
+            counted = True
+            due = loop.time()
+            while not self._stopping.is_set():
+                state = await self._shared_state(slot)
+                await context.write(state)
+                rec.fused(state)
+                sent += 1
+                # paced on the loop's clock; a client slower than the rate gets fewer states
+                due = max(due + period, loop.time())
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(self._stopping.wait(), due - loop.time())
+            code = "UNAVAILABLE"
+            rec.end(code, SHUTDOWN)
+            context.set_code(_UNAVAILABLE)
+            context.set_details(SHUTDOWN)
+        except asyncio.CancelledError:
+            code = "CANCELLED"
+            rec.end(code)
+            raise
+        finally:
+            self.watchers -= counted
+            self.calls.done("WatchArm", code, t0, context, messages=sent)
+
+    @staticmethod
+    def _watch_rate(rate: float) -> float:
+        if not (math.isfinite(rate) and rate >= 0.0):
+            raise FieldError(f"rate_hz: must be finite and >= 0 (0: {WATCH_HZ:g} Hz), got "
+                             f"{rate!r}")
+        if rate > MAX_WATCH_HZ:
+            raise limits.OverLimit(f"rate_hz: {rate:.6g} Hz is above WatchArm's most, "
+                                   f"{MAX_WATCH_HZ:g} Hz")
+        return rate or WATCH_HZ
+
+    async def _shared_state(self, slot: _Arm) -> pb.ArmState:
+        """The arm's state, read at most :data:`MAX_WATCH_HZ` times a second for all its
+        watchers together (one watcher leaving never cancels the others' reading)."""
+        loop = asyncio.get_running_loop()
+        r = slot.reading
+        if r is None or (r.done() and loop.time() - slot.read_at >= 1.0 / MAX_WATCH_HZ):
+            slot.read_at = loop.time()
+            r = slot.reading = asyncio.ensure_future(self._state(slot))
+        return await asyncio.shield(r)
+
     # ------------------------------------------------------------------ Execute
 
     async def execute(self, request, context) -> None:
         t0 = self.calls.begin()
-        code, sent = "OK", 0
+        code, sent, details = "OK", 0, ""
         run = beat = None
+        # the execution feedback recorded (dqpose.record): commanded and actual, the state
+        rec = self.calls.recorder.call(f"{self.NAME}/Execute", pb.ExecuteRequest,
+                                       pb.ExecutionFeedback)
+        rec.measurements(request)
         try:
             try:
                 slot, args = await self._check(request, world_of(context))
@@ -154,7 +243,9 @@ class Arms:
             assert run is not None          # claimed above, or the call was aborted
             while True:
                 fb = await run.queue.get()
-                await context.write(_feedback_msg(fb))
+                msg = _feedback_msg(fb)
+                await context.write(msg)
+                rec.fused(msg)
                 sent += 1
                 if fb.result != 0:         # the last record: how the run ended
                     break
@@ -162,13 +253,14 @@ class Arms:
             if run.halted is not None and state == pb.EXECUTION_STOPPED:
                 status = _UNAVAILABLE
             if status is not _OK:
-                code = status.name
+                code, details = status.name, f"{fb.result.name}: {fb.message}"
                 context.set_code(status)
-                context.set_details(f"{fb.result.name}: {fb.message}")
+                context.set_details(details)
         except asyncio.CancelledError:
             code = "CANCELLED"
             raise
         finally:
+            rec.end(code, details)
             if beat is not None:
                 beat.cancel()
             if run is not None and not run.ended:
@@ -259,6 +351,8 @@ class Arms:
         except ValueError as e:
             raise _plan_error(e, from_current) from None
         run.duration = traj.duration
+        if self.calls.recorder.recording:
+            self._record_plan(slot, traj, args.limits)
         # The arm is ours once its last run's final record came (_claim); its control loop may
         # take a moment more to end, which the executor waits for, within the same second.
         ex = run.executor = self.executor(
@@ -275,6 +369,19 @@ class Arms:
             raise Precondition(f"arm: {slot.name!r} cannot run a plan now: {e}") from None
         if run.abandoned:
             ex.cancel()
+
+    def _record_plan(self, slot: _Arm, traj, planned) -> None:
+        """What a recording shows beside the run's feedback: the plan's path (``/plans/<arm>``,
+        :data:`record.PLAN_VIEW_POSES` poses at most, the last on the plan's end) and the
+        limits, the arm's own and the plan's (``/arms/<arm>/limits``)."""
+        n = max(2, min(record.PLAN_VIEW_POSES, int(traj.duration * 100) + 2))
+        self.calls.recorder.plan(slot.name, traj.sample(np.linspace(0.0, traj.duration, n)).pose)
+        data: dict = {"arm": slot.name}
+        for name in ARM_LIMITS:
+            data[name] = float(getattr(slot.arm.limits, name))
+        for name in trajectory.LIMIT_FIELDS:
+            data[f"plan_{name}"] = float(getattr(planned, name))
+        self.calls.recorder.note(arm_topic(slot.name, "limits"), "dqpose.record.ArmLimits", data)
 
     def _record(self, slot: _Arm, run: _Run, fb) -> None:
         """A record of the run's control loop, on the event loop; the last frees the arm."""
@@ -310,6 +417,9 @@ class Arms:
         still ends with a last record and a status instead of being cut (one that settles past
         the grace is cut, and its arm stopped)."""
         self._stop_at = asyncio.get_running_loop().time() + seconds
+        if self._stopping is None:
+            self._stopping = asyncio.Event()
+        self._stopping.set()        # watches end at once: nothing to finish
         for slot in self._arms.values():
             if slot.run is not None and slot.run.started is not None:
                 self._halt_if_late(slot.run)

@@ -245,6 +245,9 @@ class Client:
             f"/{TRAJECTORIES}/Execute", request_serializer=tpb.ExecuteRequest.SerializeToString,
             response_deserializer=tpb.ExecutionFeedback.FromString)
         self._get_arm: _Unary = self.channel.unary_unary(f"/{TRAJECTORIES}/GetArm")
+        self._watch_arm = self.channel.unary_stream(
+            f"/{TRAJECTORIES}/WatchArm", request_serializer=tpb.GetArmRequest.SerializeToString,
+            response_deserializer=tpb.ArmState.FromString)
         self._list_arms: _Unary = self.channel.unary_unary(f"/{TRAJECTORIES}/ListArms")
         self._calibrate: _Unary = self.channel.unary_unary(f"/{HANDEYE}/Calibrate")
         self._configure_world = self.channel.unary_unary(
@@ -542,6 +545,21 @@ class Client:
         answer = tpb.ArmState.FromString(self._call(
             self._get_arm, tpb.GetArmRequest(arm=arm).SerializeToString()))
         return _arm_state(answer)
+
+    def watch_arm(self, arm: str, rate_hz: float = 0.0, *,
+                  timeout: Optional[float] = None) -> Iterator[ArmState]:
+        """The server's arm ``arm`` as :meth:`get_arm` gives it, ``rate_hz`` times a second (0:
+        the server's default, 50) until the iterator is closed (which cancels the call) or
+        ``timeout`` s have passed; the stream has no deadline unless ``timeout``."""
+        call = self._watch_arm(tpb.GetArmRequest(arm=arm, rate_hz=rate_hz), timeout=timeout,
+                               metadata=self.metadata)
+        try:
+            for m in call:
+                yield _arm_state(m)
+        except grpc.RpcError as e:
+            raise _rpc_error(e) from None
+        finally:
+            call.cancel()
 
     def list_arms(self) -> list[ArmState]:
         """Every arm of the server, in name order."""

@@ -1,6 +1,6 @@
 """The ``dqpose.v1.Trajectories`` service: Plan (:func:`dqpose.trajectory.plan`, streamed as
-samples), Smooth (:func:`dqpose.smoothing.smooth`), and the arms' RPCs, Execute, GetArm and
-ListArms (:mod:`dqpose.rpc.arms`).
+samples), Smooth (:func:`dqpose.smoothing.smooth`), and the arms' RPCs, Execute, GetArm,
+WatchArm and ListArms (:mod:`dqpose.rpc.arms`).
 """
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import grpc
 import numpy as np
 from google.protobuf.message import DecodeError
 
-from dqpose import limits, smoothing, trajectory
+from dqpose import limits, record, smoothing, trajectory
 from dqpose.errors import FieldError, rename
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
 from dqpose.rpc.arms import Arms
@@ -50,10 +50,6 @@ def _planned(args, field: str = ""):
                            "start_velocity": f"{field}{start}"})
         raise field_named(named, tuple(field + f for f in PLAN_FIELDS),
                           f"{field}waypoints") from None
-
-
-#: a recorded plan's poses at most (its samples thinned evenly, the last kept)
-PLAN_VIEW_POSES = 1000
 
 
 class Trajectories:
@@ -133,7 +129,7 @@ class Trajectories:
         traj, rate, resolved = self.plan(_parsed(pb.PlanRequest, data), world)
         samples = traj.at_rate(rate)
         # for viewing (dqpose.record): at most PLAN_VIEW_POSES of the path, evenly
-        step = max(1, -(-len(samples.pose) // PLAN_VIEW_POSES))
+        step = max(1, -(-len(samples.pose) // record.PLAN_VIEW_POSES))
         self.calls.recorder.plan("Plan", np.concatenate([samples.pose[::step],
                                                           samples.pose[-1:]]))
         return traj, samples, resolved
@@ -162,6 +158,9 @@ class Trajectories:
                 response_serializer=pb.ExecutionFeedback.SerializeToString),
             "GetArm": grpc.unary_unary_rpc_method_handler(
                 self.GetArm, request_deserializer=pb.GetArmRequest.FromString,
+                response_serializer=pb.ArmState.SerializeToString),
+            "WatchArm": grpc.unary_stream_rpc_method_handler(
+                self.WatchArm, request_deserializer=pb.GetArmRequest.FromString,
                 response_serializer=pb.ArmState.SerializeToString),
             "ListArms": grpc.unary_unary_rpc_method_handler(
                 self.ListArms, request_deserializer=pb.ListArmsRequest.FromString,
@@ -205,6 +204,9 @@ class Trajectories:
 
     async def GetArm(self, request, context):
         return await self.calls.unary("GetArm", self.arms.get_arm, request, context)
+
+    async def WatchArm(self, request, context):
+        await self.arms.watch_arm(request, context)
 
     async def ListArms(self, request, context):
         return await self.calls.unary("ListArms", self.arms.list_arms, request, context)

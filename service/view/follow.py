@@ -1,4 +1,4 @@
-"""``dqpose view --server HOST:PORT``: the page following a server live, as a client of its
+"""``dqpose view --live HOST:PORT``: the page following a server live, as a client of its
 ``serve --live`` WebSocket (Foxglove's protocol, ``foxglove.sdk.v1``): it subscribes to ``/tf``
 (the bodies' frames), ``/fused/ellipsoids`` (each body's 3-sigma ellipsoid, drawn as the
 recording draws it) and ``/plans/*``, and draws each message as it comes. A channel's messages

@@ -1,7 +1,9 @@
 """The viewer page (viser: a local web server with its own three.js client): the world frame, each
 body's frame where it was last fused, its position's 3-sigma ellipsoid drawn in the body's frame
 (the axes :func:`dqpose.record.views.ellipsoid_axes` gives Foxglove's ellipsoids too), the plans
-as lines, and a time slider over the recording (the scene as it was at that time)."""
+as lines, each arm's actual path as a line of another colour with its tool's frame where it
+last was (a plan's and an arm's poses are in the arm's base frame, drawn as the world frame),
+and a time slider over the recording (the scene as it was at that time)."""
 from __future__ import annotations
 
 import numpy as np
@@ -14,6 +16,8 @@ from dqpose.view.timeline import Timeline
 ELLIPSOID_RGB = (220, 30, 200)
 ELLIPSOID_OPACITY = 0.6
 PLAN_RGB = (255, 140, 0)
+#: an arm's actual path (green and blue above red: neither the plans' nor the ellipsoids')
+ACTUAL_RGB = (0, 190, 230)
 AXES = 0.1      # m, a body frame's axes
 #: where the camera starts, from the centre of the bodies' and plans' last positions (m)
 CAMERA = np.array([1.2, -1.2, 0.9])
@@ -32,6 +36,8 @@ class Scene:
         self.frames: dict = {}
         self.ellipsoids: dict = {}
         self.plans: dict = {}
+        self.paths: dict = {}       # arm -> its actual path's line
+        self.tools: dict = {}       # arm -> its tool's frame
 
     def body(self, body: str):
         """The frame and the ellipsoid of ``body`` (hidden until drawn)."""
@@ -70,6 +76,25 @@ class Scene:
         elif name in self.plans:
             self.plans[name].visible = False
 
+    def draw_arm(self, arm: str, positions, t=None, q=None) -> None:
+        """The actual path of ``arm`` through ``positions (n, 3)`` and its tool's frame at
+        ``t``, ``q`` (``None``: hidden)."""
+        p = np.asarray(positions, dtype=float).reshape(-1, 3)
+        if len(p) > 1:
+            self.paths[arm] = self.server.scene.add_line_segments(
+                f"/arms/{arm}/actual", np.stack([p[:-1], p[1:]], axis=1), ACTUAL_RGB,
+                thickness=0.01)
+        elif arm in self.paths:
+            self.paths[arm].visible = False
+        if arm not in self.tools:
+            self.tools[arm] = self.server.scene.add_frame(
+                f"/arms/{arm}/tool", axes_length=AXES, axes_radius=0.004, visible=False)
+        tool = self.tools[arm]
+        if t is None:
+            tool.visible = False
+        else:
+            tool.position, tool.wxyz, tool.visible = tuple(t), tuple(q), True
+
     def look_at(self, points) -> None:
         """The camera on ``points``' centre, from above one side."""
         if len(points):
@@ -96,6 +121,7 @@ class Page(Scene):
             "time (s)", min=0.0, max=duration, step=min(1e-3, duration / 100),
             initial_value=duration)
         self.look_at([t.t[-1] for t in tl.tracks.values()]
+                     + [a.t[-1] for a in tl.arms.values()]
                      + [p[-1] for _, _, p in tl.plans if len(p)])
         self.slider.on_update(lambda _: self.show(self.ns(self.slider.value)))
         self.show(tl.end)
@@ -118,3 +144,9 @@ class Page(Scene):
                 self.draw_body(body, track.t[i], track.q[i])
         for name in self.plan_names:
             self.draw_plan(name, self.tl.plan_at(name, ns))
+        for arm, path in self.tl.arms.items():
+            n = path.upto(ns)
+            if n:
+                self.draw_arm(arm, path.t[:n], path.t[n - 1], path.q[n - 1])
+            else:
+                self.draw_arm(arm, ())

@@ -142,3 +142,52 @@ def test_the_first_view_is_measured_as_its_covariance_says(interrupted):
     d = cam.detect(read_image(os.path.join(folder, _poses(folder)[0]["image"])))
     xi = lie.se3_log(dq.mul(dq.inv(d.pose), true))
     assert float(xi @ np.linalg.solve(d.covariance, xi)) < NEES_BOUND
+
+
+def test_a_recorded_capture_holds_its_views_solves_and_residuals(tmp_path):
+    pytest.importorskip("foxglove", reason="the [record] extra")
+    from dqpose.cli.handeye_folder import read_truth
+    from dqpose.record import handeye as views_of
+    from dqpose.record.reader import read
+    from dqpose.record.schemas import message_class
+    from tests.record.test_recorder import messages
+
+    folder, path = str(tmp_path / "calib"), str(tmp_path / "capture.mcap")
+    res = _dqpose("handeye", "capture", folder, "--views", "6", "--record", path)
+    assert res.returncode == 0, res.stderr
+    assert f"recording: {path}" in res.stderr
+    by_topic: dict = {}
+    for topic, name, _, schema, data, _ in messages(path):    # every CRC checked
+        by_topic.setdefault(topic, []).append((name, schema, data))
+    rpc = "dqpose.v1.HandEye/Calibrate"
+    requests, answers = (by_topic[f"/dqpose/{rpc}/{k}"] for k in ("requests", "answers"))
+    assert 1 <= len(requests) == len(answers) <= 6 - 3    # a solve from the fourth view on
+    Request = message_class(requests[-1][1], requests[-1][0])
+    Answer = message_class(answers[-1][1], answers[-1][0])
+    last, solved = Request.FromString(requests[-1][2]), Answer.FromString(answers[-1][2])
+    # the last solve has every view, at the flange poses the capture saved
+    flanges = [_pose(d["base_to_flange"]) for d in _poses(folder)]
+    assert len(last.pairs) == len(flanges) == 6
+    for p, f in zip(last.pairs, flanges):
+        t = p.base_to_flange.position
+        assert np.linalg.norm(dq.to_pose(f)[1] - [t.x, t.y, t.z]) < 1e-6
+    x_true, _ = read_truth(folder, "eye_in_hand")
+    x_pos = [solved.x.position.x, solved.x.position.y, solved.x.position.z]
+    assert np.linalg.norm(dq.to_pose(x_true)[1] - x_pos) < 5e-3
+    # the views: X and Z on /tf with their ellipsoids, the per-view residuals
+    tf = message_class(by_topic["/tf"][-1][1], "foxglove.FrameTransforms")
+    children = {t.child_frame_id for _, _, d in by_topic["/tf"]
+                for t in tf.FromString(d).transforms}
+    assert set(views_of.TF) <= children
+    scene = message_class(by_topic[views_of.ELLIPSOIDS_TOPIC][-1][1], "foxglove.SceneUpdate")
+    ents = scene.FromString(by_topic[views_of.ELLIPSOIDS_TOPIC][-1][2]).entities
+    assert [e.frame_id for e in ents] == ["handeye/x", "handeye/z"]
+    assert all(e.spheres[0].size.x > 0 for e in ents)
+    rows = [json.loads(d) for _, _, d in by_topic[views_of.RESIDUALS_TOPIC]]
+    last_rows = rows[-6:]
+    assert [r["view"] for r in last_rows] == list(range(6))
+    assert [r["translation"] for r in last_rows] == list(
+        np.asarray(solved.residuals).reshape(-1, 2)[:, 1])
+    targets = message_class(by_topic[views_of.TARGETS_TOPIC][-1][1], "foxglove.PosesInFrame")
+    assert len(targets.FromString(by_topic[views_of.TARGETS_TOPIC][-1][2]).poses) == 6
+    assert read(path).calls    # dqpose's own reader reads it too

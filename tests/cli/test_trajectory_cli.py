@@ -133,3 +133,32 @@ def test_demo_trajectory_runs_on_the_simulated_ur(tmp_path, capsys):
     demo_trajectory.report(r)
     out = capsys.readouterr().out
     assert "FINISHED" in out and "period jitter" in out
+
+
+def test_demo_trajectory_records_the_plan_and_its_execution(tmp_path, capsys):
+    pytest.importorskip("rtde_control")
+    pytest.importorskip("foxglove", reason="the [record] extra")
+    from dqpose.cli import main
+    from dqpose.record import topics
+    from dqpose.record.reader import read
+    from dqpose.view.timeline import timeline
+    from tests.record.test_recorder import messages
+
+    path = str(tmp_path / "demo.mcap")
+    assert main(["demo", "trajectory", "--trajectory-plot", str(tmp_path / "t.png"),
+                 "--record", path]) == 0
+    assert f"recording: {path}" in capsys.readouterr().out
+    # mcap's own readers, every CRC checked
+    got = {topic for topic, *_ in messages(path)}
+    assert {topics.plan_topic("Plan"), topics.plan_topic("ur"), topics.arm_topic("ur", "limits"),
+            topics.arm_topic("ur", "commanded"), topics.arm_topic("ur", "actual"),
+            topics.arm_topic("ur", "feedback")} <= got
+    rec = read(path)
+    (execute,) = [c for c in rec.calls.values() if c.rpc.endswith("/Execute")]
+    assert execute.code == "OK"
+    assert sum(e.kind == "answer" and e.call == execute.id for e in rec.events) > 10
+    # what dqpose view draws: the arm's actual path ends where the plan does
+    tl = timeline(rec)
+    plan = [p for name, _, p in tl.plans if name == "ur"][-1]
+    np.testing.assert_allclose(tl.arms["ur"].t[-1], plan[-1], atol=1e-3)
+    assert main(["demo", "trajectory", "--record", path]) == 2     # exists already

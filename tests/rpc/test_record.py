@@ -100,7 +100,7 @@ def test_a_stalled_recording_drops_says_so_and_every_rpc_is_answered(tmp_path, c
 
 
 def test_a_plan_is_recorded_as_a_path_to_view(tmp_path):
-    from dqpose.rpc.trajectories import PLAN_VIEW_POSES
+    from dqpose.record import PLAN_VIEW_POSES
     from tests.rpc.test_trajectories import LIMITS, _waypoints
 
     recorder = Recorder(tmp_path)

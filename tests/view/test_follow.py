@@ -1,4 +1,4 @@
-"""``dqpose view --server``: a real ``dqpose serve --live`` followed by a real ``dqpose view``
+"""``dqpose view --live``: a real ``dqpose serve --live`` followed by a real ``dqpose view``
 process; Fuse calls through gRPC; the page draws both bodies with their ellipsoids (its own
 events say so) and headless Chromium shows the ellipsoids' colour."""
 from __future__ import annotations
@@ -27,7 +27,7 @@ def test_the_page_follows_a_live_server(tmp_path):
     server, events = serving("--live", "127.0.0.1:0")
     live = next(e for e in events if e.get("event") == "live")
     target = next(e for e in events if e.get("event") == "serving")["address"]
-    view = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "view", "--server",
+    view = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "view", "--live",
                              f"127.0.0.1:{live['port']}", "--port", "0"], cwd=ROOT,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     said: queue.Queue = queue.Queue()
@@ -74,4 +74,5 @@ def test_view_needs_a_file_or_a_server():
     res = subprocess.run([sys.executable, "-m", "dqpose.cli", "view"], capture_output=True,
                          text=True, timeout=60, cwd=ROOT)
     assert (res.returncode, res.stderr) == (
-        2, "dqpose view: error: give a recording FILE.mcap or --server HOST:PORT (one of them)\n")
+        2, "dqpose view: error: give a recording FILE.mcap, --server HOST:PORT or --live "
+           "HOST:PORT (one of them)\n")

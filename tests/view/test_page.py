@@ -47,6 +47,40 @@ def record(directory) -> str:
     return f
 
 
+def record_arm(directory) -> str:
+    """A recording of an arm's run through the recorder, as a server records it: the plan's
+    path (a line along x at y = 0.3), an Execute call whose feedback's actual poses trail the
+    plan 2 cm off it (along y = 0.32), then two WatchArm states at its end."""
+    from dqpose.record.recorder import Recorder
+    from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
+    from dqpose.rpc.geometry import dq_to_pose
+
+    recorder = Recorder(directory)
+    xs = np.linspace(0.0, 0.6, 30)
+    level = np.array([[1.0, 0, 0, 0]] * 30)
+    recorder.plan("ur", dq.from_pose(level, np.stack([xs, np.full(30, 0.3),
+                                                      np.full(30, 0.2)], axis=1)))
+    call = recorder.call("dqpose.v1.Trajectories/Execute", tpb.ExecuteRequest,
+                         tpb.ExecutionFeedback)
+    call.measurements(tpb.ExecuteRequest(arm="ur"))
+    for k, x in enumerate(xs):
+        fb = tpb.ExecutionFeedback(time=0.1 * k, state=tpb.EXECUTION_WORKING)
+        dq_to_pose(dq.from_pose([1.0, 0, 0, 0], [x, 0.3, 0.2]), fb.commanded)
+        dq_to_pose(dq.from_pose([1.0, 0, 0, 0], [x, 0.32, 0.2]), fb.actual)
+        call.fused(fb)
+    call.end("OK")
+    watch = recorder.call("dqpose.v1.Trajectories/WatchArm", tpb.GetArmRequest, tpb.ArmState)
+    watch.measurements(tpb.GetArmRequest(arm="ur"))
+    for _ in range(2):
+        st = tpb.ArmState(arm="ur", state=tpb.EXECUTION_FINISHED)
+        dq_to_pose(dq.from_pose([1.0, 0, 0, 0], [0.6, 0.32, 0.2]), st.pose)
+        watch.fused(st)
+    watch.end("CANCELLED")
+    recorder.close()
+    (f,) = recorder.files
+    return f
+
+
 def screenshot(url: str, out) -> np.ndarray:
     """The page at ``url`` as headless Chromium draws it (1280x800, RGB 0..255)."""
     import matplotlib.image
@@ -82,6 +116,27 @@ def plan_pixels(img: np.ndarray) -> int:
     return int(np.sum((r - g > 20) & (g - b > 20)))
 
 
+def actual_pixels(img: np.ndarray) -> int:
+    """Pixels of an arm's actual path's cyan hue (green and blue above red, close to each
+    other) at any lightness: the line comes out (120, 200, 200) to (160, 200, 240); the time
+    slider and the axes' blue have green well below blue."""
+    img = img[SCENE_ROWS]
+    r, g, b = img[..., 0], img[..., 1], img[..., 2]
+    return int(np.sum((g - r > 20) & (b - r > 20) & (np.abs(g - b) < 50)))
+
+
+def empty_screenshot(tmp_path) -> np.ndarray:
+    """The page without bodies, plans or arms, rendered as the others."""
+    from dqpose.view.page import Page
+    from dqpose.view.timeline import Timeline
+
+    empty_page = Page(Timeline(0, 0, {}, []), port=0)
+    try:
+        return screenshot(f"http://127.0.0.1:{empty_page.port}", tmp_path / "empty.png")
+    finally:
+        empty_page.close()
+
+
 def view(path):
     proc = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "view", path, "--port",
                              "0"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
@@ -94,9 +149,6 @@ def view(path):
 
 
 def test_the_page_draws_the_bodies_ellipsoids(tmp_path):
-    from dqpose.view.page import Page
-    from dqpose.view.timeline import Timeline
-
     path = record(tmp_path / "rec")
     proc, info = view(path)
     try:
@@ -105,11 +157,7 @@ def test_the_page_draws_the_bodies_ellipsoids(tmp_path):
     finally:
         proc.terminate()
         proc.wait(30)
-    empty_page = Page(Timeline(0, 0, {}, []), port=0)
-    try:
-        empty = screenshot(f"http://127.0.0.1:{empty_page.port}", tmp_path / "empty.png")
-    finally:
-        empty_page.close()
+    empty = empty_screenshot(tmp_path)
     assert empty.std() > 1.0, "the empty page rendered blank"
     # the empty scene has a few orange-ish pixels of its own (the world frame's axes blended
     # into the grid): the plan must add well more than that
@@ -143,3 +191,18 @@ def test_the_slider_shows_the_scene_as_it_was(tmp_path):
             sorted(3 * np.array([0.08, 0.05, 0.03]) / np.sqrt(2)), rel=1e-6)
     finally:
         page.close()
+
+
+def test_the_page_draws_the_arms_actual_path_beside_its_plan(tmp_path):
+    path = record_arm(tmp_path / "rec")
+    proc, info = view(path)
+    try:
+        assert (info["bodies"], info["plans"], info["arms"]) == ([], ["ur"], ["ur"])
+        scene = screenshot(info["url"], tmp_path / "scene.png")
+    finally:
+        proc.terminate()
+        proc.wait(30)
+    empty = empty_screenshot(tmp_path)
+    assert actual_pixels(empty) < 50, actual_pixels(empty)
+    assert actual_pixels(scene) > 150, actual_pixels(scene)
+    assert plan_pixels(scene) > plan_pixels(empty) + 150, (plan_pixels(scene), plan_pixels(empty))

@@ -1,0 +1,106 @@
+"""``dqpose view --server HOST:PORT``: the page following a dqpose server through its own RPCs:
+``World/Subscribe`` (every body's fused pose, drawn with its 3-sigma ellipsoid as it comes) and
+``Trajectories/WatchArm`` for each of the server's arms (its tool where it is, and the path it
+has followed since the page started). A subscription gets every answer from the moment the
+server took it, so a body's first fused pose is drawn too (the ``--live`` WebSocket sends a
+channel's messages only once the viewer subscribed to a channel that its first message
+advertised). Each stream runs in a thread of its own; the first that fails ends the page."""
+from __future__ import annotations
+
+import json
+import sys
+import threading
+from collections import deque
+
+import numpy as np
+
+from dqpose import dq
+from dqpose.record.views import ELLIPSOID_SIGMAS, ellipsoid_axes
+from dqpose.view.page import Scene
+
+#: WatchArm's rate: states a second per arm
+ARM_HZ = 20.0
+#: an arm's path keeps this many of its last positions (30 s at ARM_HZ)
+PATH_POINTS = 600
+
+
+def say(**event) -> None:
+    print(json.dumps(event), file=sys.stderr, flush=True)
+
+
+class Watcher:
+    """Draws what the server at ``target`` streams on ``scene``; :meth:`start` its threads,
+    :attr:`failed` set with :attr:`why` once a stream ends."""
+
+    def __init__(self, target: str, scene: Scene, token: str | None = None):
+        from dqpose.rpc.client import Client
+
+        self.client = Client(target, token=token)
+        self.target, self.scene = target, scene
+        self.failed = threading.Event()
+        self.why = ""
+        self._drawn: set = set()
+        self._places: dict = {}             # what was drawn -> where, for the camera
+        self._lock = threading.Lock()       # the scene is drawn from several threads
+
+    def start(self) -> None:
+        arms = [a.arm for a in self.client.list_arms()]
+        say(event="following", server=self.target, arms=arms)
+        self._thread(self.bodies, "world")
+        for arm in arms:
+            self._thread(self.arm, arm, arm)
+
+    def _thread(self, fn, name: str, *args) -> None:
+        def run() -> None:
+            try:
+                fn(*args)
+                why = f"--server {self.target}: the {name} stream ended"
+            except Exception as e:
+                why = f"--server {self.target}: {e}"
+            if not self.failed.is_set():
+                self.why = why
+                self.failed.set()
+        threading.Thread(target=run, name=f"dqpose-view-{name}", daemon=True).start()
+
+    def _once(self, key, at, **event) -> None:
+        """The first drawing of ``key`` said, and the camera a page opened from now on starts
+        with turned to what is drawn (``at``: its position)."""
+        if key not in self._drawn:
+            self._drawn.add(key)
+            self._places[key[:2]] = at
+            with self._lock:
+                self.scene.look_at(list(self._places.values()))
+            say(event="drawn", **event)
+
+    def bodies(self) -> None:
+        for a in self.client.subscribe():
+            if a.fused is None:
+                continue
+            q, t = dq.to_pose(a.fused.mean)
+            cov = np.asarray(a.fused.covariance, dtype=np.float64)
+            half = axes = None
+            if cov.shape == (6, 6) and np.all(np.isfinite(cov)):
+                sigmas, axes = ellipsoid_axes(cov[3:, 3:])
+                half = ELLIPSOID_SIGMAS * sigmas
+            with self._lock:
+                self.scene.draw_body(a.body, t, q, half, axes)
+            self._once(("body", a.body), t, body=a.body, ellipsoid=half is not None)
+
+    def arm(self, arm: str) -> None:
+        path: deque = deque(maxlen=PATH_POINTS)
+        last = None
+        for st in self.client.watch_arm(arm, rate_hz=ARM_HZ):
+            # an arm at rest is not drawn again (each drawing is sent to the page)
+            if st.pose is None or (last is not None and np.allclose(st.pose, last, rtol=0,
+                                                                    atol=1e-9)):
+                continue
+            last = st.pose
+            q, t = dq.to_pose(st.pose)
+            if not path or np.linalg.norm(t - path[-1]) > 1e-6:
+                path.append(t)
+            with self._lock:
+                self.scene.draw_arm(arm, np.array(path), t, q)
+            self._once(("arm", arm, len(path) > 1), t, arm=arm, path=len(path) > 1)
+
+    def close(self) -> None:
+        self.client.close()
