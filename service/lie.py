@@ -27,6 +27,7 @@ from typing import Optional
 
 import numpy as np
 
+from dqpose import _dqcore as _c
 from dqpose import dq
 from dqpose.errors import rename
 
@@ -233,7 +234,27 @@ def _se3_q(w: np.ndarray, v: np.ndarray) -> np.ndarray:
             + c3[e] * (WVW @ W + W @ WVW))
 
 
+def _in_core(xi: np.ndarray) -> bool:
+    """Whether the C core's Jacobians (service/csrc/se3.c, the same closed forms and series)
+    apply: they take the half angle's sine and cosine as a quaternion gives them, so rotations of
+    at most pi (every residual's, every small step's); beyond, the NumPy forms below."""
+    return xi.size > 0 and bool(np.all(np.einsum("...i,...i->...", xi[..., :3], xi[..., :3])
+                                       <= np.pi ** 2))
+
+
 def _se3_jl(xi: np.ndarray, sign: float) -> np.ndarray:
+    if _in_core(xi):
+        return _c.se3_jr(-sign * xi)        # Jl(x) = Jr(-x)
+    return _se3_jl_numpy(xi, sign)
+
+
+def _se3_jl_inv(xi: np.ndarray, sign: float) -> np.ndarray:
+    if _in_core(xi):
+        return _c.se3_jl_inv(sign * xi)
+    return _se3_jl_inv_numpy(xi, sign)
+
+
+def _se3_jl_numpy(xi: np.ndarray, sign: float) -> np.ndarray:
     w, v = sign * xi[..., :3], sign * xi[..., 3:]
     J = np.zeros(xi.shape[:-1] + (6, 6))
     J[..., :3, :3] = J[..., 3:, 3:] = _so3_jl(w, 1.0)
@@ -241,7 +262,7 @@ def _se3_jl(xi: np.ndarray, sign: float) -> np.ndarray:
     return J
 
 
-def _se3_jl_inv(xi: np.ndarray, sign: float) -> np.ndarray:
+def _se3_jl_inv_numpy(xi: np.ndarray, sign: float) -> np.ndarray:
     w, v = sign * xi[..., :3], sign * xi[..., 3:]
     Ji = _so3_jl_inv(w, 1.0, "xi")
     J = np.zeros(xi.shape[:-1] + (6, 6))

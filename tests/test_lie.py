@@ -111,12 +111,30 @@ def test_so3_jacobians_are_the_rotation_blocks_and_match_finite_differences(angl
                    (lie.so3_right_jacobian, lie.se3_right_jacobian),
                    (lie.so3_left_jacobian_inv, lie.se3_left_jacobian_inv),
                    (lie.so3_right_jacobian_inv, lie.se3_right_jacobian_inv)]:
-        assert np.array_equal(f3(w), f6(rot(w))[:, :3, :3])
-        assert np.array_equal(f3(w), f6(rot(w))[:, 3:, 3:])
+        # the SE(3) ones are the C core's up to a rotation of pi (service/csrc/se3.c), the SO(3)
+        # ones NumPy's: the same formulas, to rounding
+        for block in (f6(rot(w))[:, :3, :3], f6(rot(w))[:, 3:, 3:]):
+            np.testing.assert_allclose(block, f3(w), rtol=0, atol=1e-15 * np.abs(f3(w)).max())
     for wi in w:
         E = Exp(rot(wi))
         Jr = numeric_jacobian(lambda x: Log(dq.mul(dq.inv(E), Exp(rot(x))))[:3], wi)
         assert np.allclose(lie.so3_right_jacobian(wi), Jr, atol=1e-8)
+
+
+@pytest.mark.parametrize("scale", [1e-9, 1e-3, 0.3, 0.49, 0.51, 1.5, 3.1])
+def test_se3_jacobians_of_the_core_equal_numpys(scale):
+    # The C core's (rotations up to pi) and NumPy's forms, both sides of the series' switch at
+    # 0.5 rad: equal to rounding, so that the two paths of lie.py give one answer.
+    rng = np.random.default_rng(7)
+    xi = rng.normal(size=(50, 6))
+    xi[:, :3] *= scale / np.linalg.norm(xi[:, :3], axis=1, keepdims=True)
+    for sign in (1.0, -1.0):
+        for core, numpy_form in ((lie._se3_jl_inv, lie._se3_jl_inv_numpy),
+                                 (lie._se3_jl, lie._se3_jl_numpy)):
+            got, want = core(xi, sign), numpy_form(xi, sign)
+            assert lie._in_core(xi)
+            scale = np.abs(want).max(axis=(1, 2))
+            assert (np.abs(got - want).max(axis=(1, 2)) <= 2e-15 * scale).all()
 
 
 def test_inverse_right_jacobian_matches_scipy_rotations():

@@ -34,6 +34,10 @@ static PyMethodDef methods[] = {
     {"motion_determined", py_motion_determined, METH_VARARGS,
      "motion_determined(stamps, latencies, inliers, two_instants): does the state stay determined "
      "without each measurement (motion.h)."},
+    {"se3_jl_inv", py_se3_jl_inv, METH_O,
+     "se3_jl_inv(xi[...,6]) -> [...,6,6]: the SE(3) left Jacobian's inverse (service/lie.py)."},
+    {"se3_jr", py_se3_jr, METH_O,
+     "se3_jr(xi[...,6]) -> [...,6,6]: the SE(3) right Jacobian (service/lie.py)."},
     {"pair_distances", py_pair_distances, METH_VARARGS,
      "pair_distances(poses, covariances, candidates) -> (m, n) squared Mahalanobis distances of "
      "the consensus (fusion.h)."},

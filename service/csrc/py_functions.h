@@ -38,6 +38,10 @@ PyObject *py_motion_fit(PyObject *self, PyObject *args);
 PyObject *py_motion_determined(PyObject *self, PyObject *args);
 PyObject *py_pair_distances(PyObject *self, PyObject *args);
 
+/* py_se3.c: the SE(3) Jacobians */
+PyObject *py_se3_jl_inv(PyObject *self, PyObject *x);
+PyObject *py_se3_jr(PyObject *self, PyObject *x);
+
 /* py_trajectory.c: the trajectory planner */
 PyObject *py_traj_plan(PyObject *self, PyObject *args);
 PyObject *py_traj_eval(PyObject *self, PyObject *args);
