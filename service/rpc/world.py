@@ -20,7 +20,7 @@ from google.protobuf.message import DecodeError
 
 from dqpose import world as domain
 from dqpose.errors import FieldError
-from dqpose.rpc import DEFAULT_MAX_POSES
+from dqpose.rpc import DEFAULT_MAX_POSES, world_record
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from dqpose.rpc._proto.dqpose.v1 import world_pb2 as pb
 from dqpose.rpc.calls import Calls, readable, refused
@@ -294,7 +294,10 @@ class World:
                                       status=lambda _, e: status_of(e))
 
     async def Configure(self, request, context):
-        return await self._unary("Configure", self.configure, request, context)
+        # recording (dqpose.rpc.world_record)
+        rec = self.calls.recorder.call(f"{self.NAME}/Configure", pb.WorldConfig, pb.WorldConfig)
+        return await self._unary("Configure", lambda r: world_record.configure(self, rec, r),
+                                 request, context)
 
     async def Lookup(self, request, context):
         return await self._unary("Lookup", self.lookup, request, context)
@@ -303,12 +306,14 @@ class World:
         t0 = self.calls.begin()
         code, r = "OK", 0
         anonymous = f"\0call{id(context)}"
+        # recording (dqpose.rpc.world_record)
+        rec = self.calls.recorder.call(f"{self.NAME}/Publish", pb.PublishRequest, pb.PublishAck)
         try:
             # Registered without a deserializer: each request is parsed with its work in the
             # worker pool (publish_bytes), never on the event loop.
             async for data in request_iterator:
-                await context.write(await self.calls.work(self.publish_bytes, data, r,
-                                                          anonymous))
+                await context.write(await self.calls.work(world_record.publish, self, rec, data,
+                                                          r, anonymous))
                 r += 1
         except Exception:
             code = "INTERNAL"
@@ -321,12 +326,16 @@ class World:
             if anonymous in self.acked:
                 with self.lock:
                     self.acked.pop(anonymous, None)
+            rec.end(code)       # recording
             self.calls.done("Publish", code, t0, context, messages=r)
 
     async def Subscribe(self, request, context):
         t0 = self.calls.begin()
         code, sent = "OK", 0
         sub = None
+        # recording (dqpose.rpc.world_record)
+        rec = self.calls.recorder.call(f"{self.NAME}/Subscribe", pb.SubscribeRequest,
+                                       fpb.FusedPose)
         try:
             problem = None
             if not (math.isfinite(request.rate_hz) and request.rate_hz >= 0.0):
@@ -350,8 +359,9 @@ class World:
             options = self.world.options
             sub = Subscription(request.bodies, request.rate_hz, request.relative_to,
                                asyncio.get_running_loop(), options.max_delay, options.window)
-            with self.lock:
+            with world_record.ordered(rec), self.lock:
                 self.subscriptions.add(sub)
+                rec.measurements(request)       # recording
             while True:
                 answer = await sub.queue.get()
                 if answer is None:
@@ -360,14 +370,18 @@ class World:
                         f"Subscribe: this subscriber fell {MAX_QUEUED} answers behind the "
                         f"world; subscribe to fewer bodies or a lower rate_hz"))
                 await context.write(answer)
+                rec.fused(answer)               # recording
                 sent += 1
         except asyncio.CancelledError:
             code = "CANCELLED"
             raise
         finally:
             if sub is not None:
-                with self.lock:
+                with world_record.ordered(rec), self.lock:
                     self.subscriptions.discard(sub)
+                    rec.end(code)               # recording
+            else:
+                rec.end(code)                   # recording
             self.calls.done("Subscribe", code, t0, context, messages=sent)
 
     def world_bounds(self):
