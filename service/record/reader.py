@@ -27,6 +27,7 @@ class Call:
     continued: bool              # began in an earlier file: its start is not in this one
     code: str | None = None      # its status when it ended in this file, else None
     details: str = ""            # a refusal's text
+    end_at: int | None = None    # the event index before which it ended
 
 
 @dataclasses.dataclass
@@ -80,7 +81,7 @@ def read(path: str | os.PathLike) -> Recording:
                 elif isinstance(rec, Message):
                     ch = channels[rec.channel_id]
                     if ch.topic == CALLS_TOPIC:
-                        _call_event(calls, json.loads(rec.data))
+                        _call_event(calls, json.loads(rec.data), len(events))
                     elif ch.topic == DROPPED_TOPIC:
                         d = json.loads(rec.data)
                         dropped.append(Dropped(d["first_dropped"], d["count"], len(events)))
@@ -99,10 +100,11 @@ def read(path: str | os.PathLike) -> Recording:
     return Recording(path, calls, events, dropped, by_name, plans)
 
 
-def _call_event(calls: dict[int, Call], d: dict) -> None:
+def _call_event(calls: dict[int, Call], d: dict, at: int) -> None:
     if d["event"] == "begin":
         calls[d["call"]] = Call(d["call"], d["rpc"], d["request_type"], d["answer_type"],
                                 d.get("continued", False))
     elif d["event"] == "end" and d["call"] in calls:
         calls[d["call"]].code = d["code"]
         calls[d["call"]].details = d.get("details", "")
+        calls[d["call"]].end_at = at

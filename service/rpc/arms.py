@@ -156,7 +156,7 @@ class Arms:
 
     async def watch_arm(self, request, context) -> None:
         t0 = self.calls.begin()
-        code, sent = "OK", 0
+        code, sent, details = "OK", 0, ""
         rec = self.calls.recorder.call(f"{self.NAME}/WatchArm", pb.GetArmRequest, pb.ArmState)
         rec.measurements(request)
         loop = asyncio.get_running_loop()
@@ -173,7 +173,6 @@ class Arms:
             except Exception as e:
                 status, details = refused("WatchArm", e)
                 code = status.name
-                rec.end(code, details)
                 await context.abort(status, details)
             self.watchers += 1
             counted = True
@@ -187,15 +186,14 @@ class Arms:
                 due = max(due + period, loop.time())
                 with contextlib.suppress(asyncio.TimeoutError):
                     await asyncio.wait_for(self._stopping.wait(), due - loop.time())
-            code = "UNAVAILABLE"
-            rec.end(code, SHUTDOWN)
+            code, details = "UNAVAILABLE", SHUTDOWN
             context.set_code(_UNAVAILABLE)
             context.set_details(SHUTDOWN)
         except asyncio.CancelledError:
             code = "CANCELLED"
-            rec.end(code)
             raise
         finally:
+            rec.end(code, details)
             self.watchers -= counted
             self.calls.done("WatchArm", code, t0, context, messages=sent)
 

@@ -1,12 +1,14 @@
 """Recorded calls fed again, to this process's servicers or to a server, and their answers
 compared with the recorded ones byte for byte (:mod:`dqpose.record.reader` reads the file).
 
-Each call gets its own requests in their recorded order; calls are independent (a StreamFuse
-stream's answers are a function of its own requests: they are paced on the measurements' time),
-so they are replayed one after the other, each as fast as it answers (``speed`` None) or at
-``speed`` times the recorded pace. A file whose recorder fell behind is replayed up to the first
-messages it is missing ("not replayable after T"); a call that began in an earlier file (the
-recording was rotated) is skipped, saying so.
+Each call gets its own requests in their recorded order; Fusion's calls are independent (a
+StreamFuse stream's answers are a function of its own requests: they are paced on the
+measurements' time), so they are replayed one after the other, each as fast as it answers
+(``speed`` None) or at ``speed`` times the recorded pace. The World's calls depend on each other
+(one world, one order of arrivals): they are replayed together first, in process, in the order
+the recorded world applied them (:mod:`dqpose.rpc.replay_world`). A file whose recorder fell
+behind is replayed up to the first messages it is missing ("not replayable after T"); a call that
+began in an earlier file (the recording was rotated) is skipped, saying so.
 """
 from __future__ import annotations
 
@@ -17,12 +19,13 @@ from typing import Callable, Optional
 import grpc
 
 from dqpose.record.reader import Call, Event, Recording
+from dqpose.rpc import replay_world
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 from dqpose.rpc.calls import refused
 from dqpose.rpc.fusion import FUSE, STREAM_FUSE, Fusion
 
-#: the calls a replay can feed
-REPLAYABLE = (FUSE, STREAM_FUSE)
+#: the calls a replay can feed (the World's in process only: :mod:`dqpose.rpc.replay_world`)
+REPLAYABLE = (FUSE, STREAM_FUSE, *replay_world.CALLS)
 
 
 @dataclasses.dataclass
@@ -135,9 +138,13 @@ class Remote:
 def replay(rec: Recording, target, speed: Optional[float] = None) -> Report:
     """Feeds ``rec``'s calls to ``target`` (:class:`InProcess` or :class:`Remote`) and compares;
     the report holds the first difference (the replay stops there)."""
-    by_call, cut, _ = _recorded(rec)
+    by_call, cut, n = _recorded(rec)
     report = Report(cut=cut)
     t0 = time.perf_counter()
+    world = None
+    if isinstance(target, InProcess) and any(c.rpc in replay_world.CALLS
+                                             for c in rec.calls.values()):
+        world = replay_world.run(rec, rec.events[:n], Outcome)
     for call in rec.calls.values():
         if call.rpc not in REPLAYABLE:
             report.skipped.append(f"call {call.id} ({call.rpc}): not a call replay feeds")
@@ -152,6 +159,21 @@ def replay(rec: Recording, target, speed: Optional[float] = None) -> Report:
         recorded = Outcome([e.data for e in events if e.kind == "answer"],
                            call.code or "OK", call.details)
         complete = cut is None and call.code is not None
+        if call.rpc in replay_world.CALLS:
+            if world is None:
+                report.skipped.append(f"call {call.id} ({call.rpc}): the World's calls are "
+                                      f"replayed in process only")
+                continue
+            got = world[call.id]
+            report.calls += 1
+            report.requests += len(requests)
+            report.answers += len(got.answers)
+            # a subscription's recorded answers are those it sent before its client left
+            report.difference = compare_outcomes(call, recorded, got, complete and call.rpc
+                                                 != replay_world.SUBSCRIBE)
+            if report.difference is not None:
+                break
+            continue
         start = time.perf_counter()
 
         def pace(r: int, requests=requests, start=start) -> None:
@@ -179,7 +201,7 @@ def compare_outcomes(call: Call, want: Outcome, got: Outcome,
     ended when the file did), answers beyond the recorded ones are not a difference."""
     for k, (a, b) in enumerate(zip(want.answers, got.answers)):
         if a != b:
-            return Difference(call, k, _what(a, b))
+            return Difference(call, k, _what(a, b, call.answer_type))
     if len(got.answers) < len(want.answers):
         return Difference(call, len(got.answers),
                           f"{len(want.answers)} answers recorded, {len(got.answers)} given")
@@ -192,15 +214,20 @@ def compare_outcomes(call: Call, want: Outcome, got: Outcome,
     return None
 
 
-def _what(a: bytes, b: bytes) -> str:
-    """Where two FusedPose answers differ: the body and time of the recorded one and the first
-    field (in field order) whose values differ, or bytes when they do not parse."""
+def _what(a: bytes, b: bytes, answer_type: str = "dqpose.v1.FusedPose") -> str:
+    """Where two answers differ: the first field (in field order) whose values differ, after
+    the body and time of a recorded FusedPose; bytes when they do not parse."""
+    from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
+
+    cls = {"dqpose.v1.FusedPose": pb.FusedPose, "dqpose.v1.PublishAck": wpb.PublishAck,
+           "dqpose.v1.WorldConfig": wpb.WorldConfig}.get(answer_type)
     try:
-        x, y = pb.FusedPose.FromString(a), pb.FusedPose.FromString(b)
+        x, y = cls.FromString(a), cls.FromString(b)     # type: ignore[union-attr]
     except Exception:
         return "the bytes differ"
-    head = f"body {x.body!r} at {x.time!r} s (request {x.request})"
-    return f"{head}: {_first(x, y, '') or 'the bytes differ (the same values)'}"
+    head = f"body {x.body!r} at {x.time!r} s (request {x.request}): " \
+        if cls is pb.FusedPose else ""
+    return f"{head}{_first(x, y, '') or 'the bytes differ (the same values)'}"
 
 
 def _first(x, y, prefix: str) -> str:

@@ -28,7 +28,7 @@ from google.protobuf.message import DecodeError
 
 from dqpose import world as domain
 from dqpose.errors import FieldError
-from dqpose.rpc import DEFAULT_MAX_POSES
+from dqpose.rpc import DEFAULT_MAX_POSES, world_record
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from dqpose.rpc._proto.dqpose.v1 import world_pb2 as pb
 from dqpose.rpc.calls import Calls, readable, refused
@@ -365,7 +365,11 @@ class World:
             status=lambda _, e: status_of(e))
 
     async def Configure(self, request, context):
-        return await self._unary("Configure", Cell.configure, request, context, make=True)
+        # recording (dqpose.rpc.world_record)
+        rec = self.calls.recorder.call(f"{self.NAME}/Configure", pb.WorldConfig, pb.WorldConfig)
+        return await self._unary(
+            "Configure", lambda cell, r: world_record.configure(cell, rec, r), request, context,
+            make=True)
 
     async def Lookup(self, request, context):
         return await self._unary("Lookup", Cell.lookup, request, context)
@@ -375,6 +379,8 @@ class World:
         code, r = "OK", 0
         anonymous = f"\0call{id(context)}"
         cell = None
+        # recording (dqpose.rpc.world_record)
+        rec = self.calls.recorder.call(f"{self.NAME}/Publish", pb.PublishRequest, pb.PublishAck)
         try:
             try:
                 cell = self.called(context, make=True)
@@ -385,8 +391,8 @@ class World:
             # Registered without a deserializer: each request is parsed with its work in the
             # worker pool (publish_bytes), never on the event loop.
             async for data in request_iterator:
-                await context.write(await self.calls.work(cell.publish_bytes, data, r,
-                                                          anonymous))
+                await context.write(await self.calls.work(world_record.publish, cell, rec, data,
+                                                          r, anonymous))
                 r += 1
         except grpc.aio.AbortError:
             raise
@@ -401,12 +407,16 @@ class World:
             if cell is not None and anonymous in cell.acked:
                 with cell.lock:
                     cell.acked.pop(anonymous, None)
+            rec.end(code)       # recording
             self.calls.done("Publish", code, t0, context, messages=r)
 
     async def Subscribe(self, request, context):
         t0 = self.calls.begin()
         code, sent = "OK", 0
         sub = cell = None
+        # recording (dqpose.rpc.world_record)
+        rec = self.calls.recorder.call(f"{self.NAME}/Subscribe", pb.SubscribeRequest,
+                                       fpb.FusedPose)
         try:
             problem = None
             if not (math.isfinite(request.rate_hz) and request.rate_hz >= 0.0):
@@ -438,8 +448,9 @@ class World:
             sub = Subscription(request.bodies, request.rate_hz, request.relative_to,
                                asyncio.get_running_loop(), options.max_delay, options.window)
             self.subscribers += 1
-            with cell.lock:
+            with world_record.ordered(rec), cell.lock:
                 cell.subscriptions.add(sub)
+                rec.measurements(request)       # recording
             while True:
                 answer = await sub.queue.get()
                 if answer is None:
@@ -448,6 +459,7 @@ class World:
                         f"Subscribe: this subscriber fell {MAX_QUEUED} answers behind the "
                         f"world; subscribe to fewer bodies or a lower rate_hz"))
                 await context.write(answer)
+                rec.fused(answer)               # recording
                 sent += 1
         except asyncio.CancelledError:
             code = "CANCELLED"
@@ -455,6 +467,9 @@ class World:
         finally:
             if sub is not None and cell is not None:
                 self.subscribers -= 1
-                with cell.lock:
+                with world_record.ordered(rec), cell.lock:
                     cell.subscriptions.discard(sub)
+                    rec.end(code)               # recording
+            else:
+                rec.end(code)                   # recording
             self.calls.done("Subscribe", code, t0, context, messages=sent)

@@ -1,0 +1,53 @@
+"""The World service's calls recorded (:mod:`dqpose.record`) in the order the world applied them.
+
+A World's answers depend on the one order in which it applied every call's requests (Publish
+requests, a subscription's start and end, Configure), not on each call's own order; Publish
+requests are applied in the worker pool, where two of them may take the world's lock in another
+order than they arrived. So while a call is recorded, recording it and applying it happen
+together under :data:`ORDER` (taken before the world's lock): the file holds the requests in the
+order the world saw them, and a replay that applies them in the file's order makes the same
+answers (:func:`dqpose.rpc.replay.replay`). A call not recorded takes no extra lock.
+"""
+from __future__ import annotations
+
+import contextlib
+import threading
+
+#: held while a recorded World call records and applies one step (before the world's lock)
+ORDER = threading.Lock()
+
+
+def ordered(rec):
+    """:data:`ORDER` held (when ``rec`` records) around a Subscribe's start or end."""
+    return ORDER if rec.alive else contextlib.nullcontext()
+
+
+def publish(world, rec, data: bytes, r: int, anonymous: str):
+    """``world.publish_bytes(data, r, anonymous)`` (``world`` a world's cell), recorded with its
+    ack as one step."""
+    if not rec.alive:
+        return world.publish_bytes(data, r, anonymous)
+    with ORDER:
+        rec.measurements(data)
+        ack = world.publish_bytes(data, r, anonymous)
+        rec.fused(ack)
+    return ack
+
+
+def configure(world, rec, request):
+    """``world.configure(request)``, recorded with its answer or refusal as one step."""
+    from dqpose.rpc.world import status_of
+
+    if not rec.alive:
+        return world.configure(request)
+    with ORDER:
+        rec.measurements(request)
+        try:
+            answer = world.configure(request)
+        except Exception as e:
+            status, details = status_of(e)
+            rec.end(status.name, details)
+            raise
+        rec.fused(answer)
+        rec.end("OK")
+    return answer
