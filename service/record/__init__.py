@@ -38,7 +38,7 @@ class NullRecorder:
     #: whether anything is recorded (a caller skips work only a recording needs)
     recording = False
 
-    def call(self, rpc: str, request_type, answer_type) -> _NullCall:
+    def call(self, rpc: str, request_type, answer_type, world: str = "") -> _NullCall:
         return _NULL_CALL
 
     def plan(self, name: str, dqs) -> None:

@@ -11,7 +11,7 @@ import struct
 HEADER = struct.Struct("<BQQI")
 
 SCHEMA = 1      # payload: name, NUL, the FileDescriptorSet
-BEGIN = 2       # JSON {rpc, request_type, answer_type}
+BEGIN = 2       # JSON {rpc, request_type, answer_type[, world]}
 REQUEST = 3     # the request's wire bytes
 ANSWER = 4      # the answer's wire bytes
 END = 5         # JSON {code, details}

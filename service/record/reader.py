@@ -28,6 +28,7 @@ class Call:
     code: str | None = None      # its status when it ended in this file, else None
     details: str = ""            # a refusal's text
     end_at: int | None = None    # the event index before which it ended
+    world: str = ""              # a World call's named world (x-dqpose-world)
 
 
 @dataclasses.dataclass
@@ -103,7 +104,7 @@ def read(path: str | os.PathLike) -> Recording:
 def _call_event(calls: dict[int, Call], d: dict, at: int) -> None:
     if d["event"] == "begin":
         calls[d["call"]] = Call(d["call"], d["rpc"], d["request_type"], d["answer_type"],
-                                d.get("continued", False))
+                                d.get("continued", False), world=d.get("world", ""))
     elif d["event"] == "end" and d["call"] in calls:
         calls[d["call"]].code = d["code"]
         calls[d["call"]].details = d.get("details", "")

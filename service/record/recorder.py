@@ -142,9 +142,10 @@ class Recorder:
 
     # -- the servicers' side: no waiting
 
-    def call(self, rpc: str, request_type, answer_type) -> CallRecord:
+    def call(self, rpc: str, request_type, answer_type, world: str = "") -> CallRecord:
         """A call of ``rpc`` (``"dqpose.v1.Fusion/StreamFuse"``) begins; its requests are
-        ``request_type`` messages, its answers ``answer_type`` (protobuf classes)."""
+        ``request_type`` messages, its answers ``answer_type`` (protobuf classes); ``world``:
+        the named world a World call is in (its ``x-dqpose-world``)."""
         names = (request_type.DESCRIPTOR.full_name, answer_type.DESCRIPTOR.full_name)
         with self._lock:
             self._calls += 1
@@ -158,8 +159,10 @@ class Recorder:
                         self._schemas.add(name)
                         self._append(frames.frame(frames.SCHEMA, 0, ns, frames.named(
                             name, descriptor_set(cls))), counted=False)
-            rec.alive = self._put_locked(None, frames.BEGIN, call, ns, frames.as_json(
-                {"rpc": rpc, "request_type": names[0], "answer_type": names[1]}))
+            begin = {"rpc": rpc, "request_type": names[0], "answer_type": names[1]}
+            if world:
+                begin["world"] = world
+            rec.alive = self._put_locked(None, frames.BEGIN, call, ns, frames.as_json(begin))
         return rec
 
     def plan(self, name: str, dqs) -> None:

@@ -39,7 +39,7 @@ def arm_topic(arm: str, what: str) -> str:
 
 CALL_FIELDS = {"call": "integer", "rpc": "string", "event": "string",
                "request_type": "string", "answer_type": "string", "code": "string",
-               "details": "string", "continued": "boolean"}
+               "details": "string", "continued": "boolean", "world": "string"}
 DROPPED_FIELDS = {"first_dropped": "integer", "count": "integer", "resumed": "integer"}
 STATS_FIELDS = {"body": "string", "time": "number", "chi2": "number", "dof": "integer",
                 "sigma_position": "number", "sigma_rotation": "number"}

@@ -61,7 +61,7 @@ class Writer:
         self.frames = 0
         self.schemas: dict[str, bytes] = {}
         self.classes: dict[str, object] = {}
-        self.calls: dict[int, tuple[str, str, str]] = {}
+        self.calls: dict[int, tuple[str, str, str, str]] = {}   # rpc, types, world
         # the request of a call whose answers' views need it (an Execute's arm, a Calibrate's
         # views and setup)
         self.requests: dict[int, Any] = {}
@@ -101,11 +101,14 @@ class Writer:
             self.file = None
 
     @staticmethod
-    def log_call(sinks, call, ns, rpc, req, ans, continued=False) -> None:
+    def log_call(sinks, call, ns, rpc, req, ans, world="", continued=False) -> None:
+        begin = {"call": call, "rpc": rpc, "event": "begin", "request_type": req,
+                 "answer_type": ans, "continued": continued}
+        if world:
+            begin["world"] = world
         for s in sinks:
             s.write_json(s.json_channel(CALLS_TOPIC, "dqpose.record.Call", CALL_FIELDS), ns,
-                         {"call": call, "rpc": rpc, "event": "begin", "request_type": req,
-                          "answer_type": ans, "continued": continued})
+                         begin)
 
     def channel(self, s: Sink, topic: str, name: str, call: int):
         return s.proto_channel(topic, name, self.schemas[name], (("call", str(call)),))
@@ -123,13 +126,14 @@ class Writer:
         elif kind == frames.BEGIN:
             d = json.loads(payload)
             sinks = self.sinks()    # first: a file opened now repeats the calls open before it
-            self.calls[call] = (d["rpc"], d["request_type"], d["answer_type"])
+            self.calls[call] = (d["rpc"], d["request_type"], d["answer_type"],
+                                d.get("world", ""))
             self.log_call(sinks, call, ns, *self.calls[call])
         elif kind in (frames.REQUEST, frames.ANSWER):
             began = self.calls.get(call)
             if began is None:
                 return
-            rpc, req, ans = began
+            rpc, req, ans, _ = began
             sinks = self.sinks()
             if kind == frames.REQUEST:
                 for s in sinks:
@@ -162,7 +166,7 @@ class Writer:
             self.requests.pop(call, None)
             for s in sinks:
                 if began is not None:
-                    rpc, req, ans = began
+                    rpc, req, ans, _ = began
                     s.forget(requests_topic(rpc), req, (("call", str(call)),))
                     s.forget(answers_topic(rpc), ans, (("call", str(call)),))
                 s.write_json(s.json_channel(CALLS_TOPIC, "dqpose.record.Call", CALL_FIELDS),

@@ -29,9 +29,8 @@ def run(rec, events, outcome):
     ``events`` (the recording's, up to where it is cut) in order."""
     from dqpose.rpc.world import Subscription
 
-    # the default world's cell: a recording replays into one world (its calls' world names
-    # are not recorded)
-    world = World().cell("", make=True)
+    # each call into the world it named (recorded with it), as the server kept them apart
+    server = World()
     outs: dict[int, object] = {}
     answers: dict[int, list[bytes]] = {}
     subs: dict[int, Subscription] = {}
@@ -41,12 +40,14 @@ def run(rec, events, outcome):
         for c, sub in list(subs.items()):       # subscriptions that ended before this step
             end = calls[c].end_at
             if end is not None and end <= i:
+                world = server.cell(calls[c].world, make=True)
                 with world.lock:
                     world.subscriptions.discard(sub)
                 del subs[c]
         call = calls.get(e.call)
         if call is None or e.kind != "request":
             continue
+        world = server.cell(call.world, make=True)
         if call.rpc == CONFIGURE:
             try:
                 got = world.configure(pb.WorldConfig.FromString(e.data))

@@ -89,6 +89,15 @@ def status_of(e: Exception) -> tuple[grpc.StatusCode, str]:
     return refused("World", e)
 
 
+def _recorded_world(context) -> str:
+    """The world a recorded call is in; a malformed header records "" (the call itself is
+    refused with the header's error where its world is looked up)."""
+    try:
+        return world_of(context)
+    except FieldError:
+        return ""
+
+
 class Subscription:
     """One Subscribe stream: its bodies (None: all), pacing per body, and the queue of its
     answers (serialized ``FusedPose`` messages, filled by the publishing thread through the
@@ -366,7 +375,8 @@ class World:
 
     async def Configure(self, request, context):
         # recording (dqpose.rpc.world_record)
-        rec = self.calls.recorder.call(f"{self.NAME}/Configure", pb.WorldConfig, pb.WorldConfig)
+        rec = self.calls.recorder.call(f"{self.NAME}/Configure", pb.WorldConfig, pb.WorldConfig,
+                                       _recorded_world(context))
         return await self._unary(
             "Configure", lambda cell, r: world_record.configure(cell, rec, r), request, context,
             make=True)
@@ -380,7 +390,8 @@ class World:
         anonymous = f"\0call{id(context)}"
         cell = None
         # recording (dqpose.rpc.world_record)
-        rec = self.calls.recorder.call(f"{self.NAME}/Publish", pb.PublishRequest, pb.PublishAck)
+        rec = self.calls.recorder.call(f"{self.NAME}/Publish", pb.PublishRequest, pb.PublishAck,
+                                       _recorded_world(context))
         try:
             try:
                 cell = self.called(context, make=True)
@@ -416,7 +427,7 @@ class World:
         sub = cell = None
         # recording (dqpose.rpc.world_record)
         rec = self.calls.recorder.call(f"{self.NAME}/Subscribe", pb.SubscribeRequest,
-                                       fpb.FusedPose)
+                                       fpb.FusedPose, _recorded_world(context))
         try:
             problem = None
             if not (math.isfinite(request.rate_hz) and request.rate_hz >= 0.0):

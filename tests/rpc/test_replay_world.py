@@ -100,3 +100,34 @@ def test_the_world_is_replayed_in_process_only(recording):
             report = replay.replay(rec, replay.Remote(ch))
     assert report.calls == 0 and report.difference is None
     assert sum("replayed in process only" in line for line in report.skipped) == 5
+
+
+def test_two_named_worlds_replay_each_into_its_own(tmp_path):
+    # The same body names in two worlds with different data: replayed into one world, each
+    # world's answers would mix the other's measurements.
+    recorder = Recorder(tmp_path)
+    with ServerThread(ServerConfig(port=0, recorder=recorder)) as s:
+        subs = []
+        for name in ("cell-a", "cell-b"):
+            with Client(s.target, world=name) as c:
+                c.configure_world(SOURCES, twist_covariance=TWIST, window=10.0)
+            subs.append(Collector(s.target, world=name))
+        (w,) = [x for x in s.running.servicers if x.NAME == replay_world.NAME]
+        assert wait_until(lambda: all(len(w.cell(n).subscriptions) == 1
+                                      for n in ("cell-a", "cell-b")), timeout=10)
+        for k, name in enumerate(("cell-a", "cell-b")):
+            batches = [measurements("cam1", 0.01 * (j * PER + np.arange(PER)), 100 * k + j,
+                                    body="box") for j in range(10)]
+            with Client(s.target, world=name) as c:
+                assert len(list(c.publish(batches, producer="cam1"))) == 10
+        assert wait_until(lambda: all(len(x.answers) > 0 for x in subs), timeout=10)
+        for x in subs:
+            x.stop()
+        assert wait_until(lambda: not any(w.cell(n).subscriptions
+                                          for n in ("cell-a", "cell-b")), timeout=10)
+    recorder.close()
+    rec = read(recorder.files[0])
+    assert sorted(c.world for c in rec.calls.values()) == ["cell-a"] * 3 + ["cell-b"] * 3
+    report = replay.replay(rec, replay.InProcess())
+    assert report.difference is None, str(report.difference)
+    assert report.answers >= 2 * (1 + 10) + sum(len(x.answers) for x in subs)
