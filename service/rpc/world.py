@@ -301,6 +301,7 @@ class Cell:
         msg.measurements.append(last_id)
         return msg
 
+
 class World:
     """The ``dqpose.v1.World`` service: the server's worlds by name (:class:`Cell` each; the
     Trajectories service resolves ``Waypoint.frame`` through the one its call names)."""
