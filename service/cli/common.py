@@ -56,7 +56,8 @@ def client(args):
     return Client(args.target, token=token, tls=args.tls,
                   root_certificates=read(args.tls_ca) if args.tls_ca else None,
                   certificate_chain=read(args.cert) if args.cert else None,
-                  private_key=read(args.key) if args.key else None, timeout=args.timeout)
+                  private_key=read(args.key) if args.key else None, timeout=args.timeout,
+                  world=getattr(args, "world", "") or None)
 
 
 def failure(cmd: str, args, e: Exception) -> int:

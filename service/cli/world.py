@@ -52,6 +52,9 @@ def configure(name: str, p) -> None:
                       help="measurement time, s (0: the newest both are known at)")
     for q in (pub, watch, look):
         connection_args(q)
+        q.add_argument("--world", default="", metavar="NAME",
+                       help="the named world on the server (x-dqpose-world; default: the "
+                            "server's default world)")
     p.set_defaults(func=_run)
 
 

@@ -59,6 +59,19 @@ def test_publish_then_lookup_answers_what_fuse_computes(server, capsys, tmp_path
     np.testing.assert_allclose(got * np.sign(got[:4] @ want.mean[:4]), want.mean, atol=1e-8)
 
 
+def test_world_names_the_world_published_into_and_looked_up_in(server, capsys, tmp_path):
+    write_csv(tmp_path / "m.csv", 4, 3)
+    code, out, err = run(capsys, "world", "publish", "--target", server.target, "--world",
+                         "cell-7", str(tmp_path / "m.csv"))
+    assert code == 0, err
+    code, out, err = run(capsys, "world", "lookup", "--target", server.target, "--world",
+                         "cell-7", "world", "box")
+    assert code == 0, err
+    # the default world never saw it
+    code, out, err = run(capsys, "world", "lookup", "--target", server.target, "world", "box")
+    assert code == 2 and "box" in err, err
+
+
 def test_publish_names_what_is_missing_and_lookup_an_unknown_body(server, capsys, tmp_path):
     write_csv(tmp_path / "m.csv", 3, 2, body=None)
     code, out, err = run(capsys, "world", "publish", "--target", server.target,
