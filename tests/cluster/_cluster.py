@@ -44,11 +44,11 @@ class Replica:
     """``dqpose serve --replica-name NAME`` on a free port; its standard error is read by a
     thread (JSON events kept in ``events``) so that the pipe never fills."""
 
-    def __init__(self, name: str, *flags: str):
-        self.name = name
+    def __init__(self, name: str, *flags: str, port: int = 0):
+        self.name, self.flags = name, flags
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "dqpose.cli", "serve", "--port", "0", "--replica-name", name,
-             "--no-call-log", *flags], cwd=ROOT, stderr=subprocess.PIPE, text=True)
+            [sys.executable, "-m", "dqpose.cli", "serve", "--port", str(port), "--replica-name",
+             name, "--no-call-log", *flags], cwd=ROOT, stderr=subprocess.PIPE, text=True)
         self.events: list[dict] = []
         self._serving = threading.Event()
         threading.Thread(target=self._read, daemon=True).start()
@@ -151,6 +151,15 @@ class Cluster:
 
     def replica(self, name: str) -> Replica:
         return next(r for r in self.replicas if r.name == name)
+
+    def restart(self, name: str) -> Replica:
+        """Replica ``name`` (which has exited) started again on its port, as an orchestrator
+        restarts it: the proxy's configuration stays as it is."""
+        k = next(i for i, r in enumerate(self.replicas) if r.name == name)
+        old = self.replicas[k]
+        assert old.proc.poll() is not None, f"replica {name} still runs"
+        self.replicas[k] = Replica(name, *old.flags, port=old.port)
+        return self.replicas[k]
 
     def stop(self) -> None:
         if self.proxy is not None:

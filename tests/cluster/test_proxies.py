@@ -136,6 +136,32 @@ def test_sigterm_drains_without_a_failed_call(own_cluster):
     assert _owner(target, WORLDS[0]) != victim.name
 
 
+def test_a_rolling_restart_of_every_replica_fails_no_call(own_cluster):
+    # Each replica in turn: SIGTERM (NOT_SERVING, drain, exit 0), started again on its port,
+    # back in the proxy's rotation before the next one goes; stateless and world calls run
+    # throughout.
+    c = own_cluster
+    target = c.proxy.target
+    load = _Load(target, [None, None, WORLDS[0], WORLDS[1], WORLDS[2], WORLDS[3]])
+    try:
+        assert wait_until(lambda: load.answered > 50, timeout=30, poll=0.01)
+        for name in ("r1", "r2", "r3"):
+            victim = c.replica(name)
+            victim.signal(signal.SIGTERM)
+            assert victim.proc.wait(30) == 0
+            c.restart(name)
+            # back in rotation: the proxy sends stateless calls to it again
+            with grpc.insecure_channel(target) as ch:
+                assert wait_until(lambda: _blend_replica(ch, None) == name, timeout=60,
+                                  poll=0.01), name
+            before = load.answered
+            assert wait_until(lambda: load.answered > before + 20, timeout=30, poll=0.01)
+    finally:
+        load.stop()
+    assert load.failures == []
+    assert load.answered > 150
+
+
 def _health(client):
     try:
         return client.health()
