@@ -162,9 +162,11 @@ def main(args: argparse.Namespace) -> int:
         recorder, code = open_file_recorder("demo trajectory", path, target)
         if recorder is None:
             return code
-    result = run(target, progress=sys.stderr.isatty(), recorder=recorder)
-    if recorder is not None:
-        print(finish(recorder, path))
+    try:
+        result = run(target, progress=sys.stderr.isatty(), recorder=recorder)
+    finally:        # a run that failed is recorded too: the file is what tells why
+        if recorder is not None:
+            print(finish(recorder, path))
     report(result)
     try:
         from dqpose.cli.plots import plot_motion

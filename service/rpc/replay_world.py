@@ -24,7 +24,7 @@ class _AtOnce:
         fn(*args)
 
 
-def run(rec, events, outcome):
+def run(rec, events, outcome) -> dict:
     """Each World call's ``outcome(answers, code, details)`` (by call id) from replaying
     ``events`` (the recording's, up to where it is cut) in order."""
     from dqpose.rpc.world import Subscription
@@ -50,8 +50,8 @@ def run(rec, events, outcome):
         world = server.cell(call.world, make=True)
         if call.rpc == CONFIGURE:
             try:
-                got = world.configure(pb.WorldConfig.FromString(e.data))
-                outs[call.id] = outcome([got.SerializeToString()])
+                config = world.configure(pb.WorldConfig.FromString(e.data))
+                outs[call.id] = outcome([config.SerializeToString()])
             except Exception as ex:
                 status, details = status_of(ex)
                 outs[call.id] = outcome([], status.name, details)
