@@ -22,3 +22,20 @@ def _nees(estimate, truth, cov):
 
 def _reading(F, setup):
     return F if setup == "eye_in_hand" else dq.inv(F)
+
+
+def flipped(n: int, fraction: float, tip_deg: tuple[float, float], seed: int,
+            noise: tuple[float, float] = (0.1, 0.5)):
+    """A wrist scene of ``n`` samples with camera noise ``noise`` (deg, mm per axis), a
+    ``fraction`` of its camera poses marker-flipped: the board's rotation tipped by ``tip_deg``
+    about an in-plane axis, its position unchanged. ``(scene, camera_target, flipped indices)``."""
+    s = H.scene(n, "eye_in_hand", "wrist", camera_noise=noise, seed=seed)
+    rng = np.random.default_rng(50_000 + seed)
+    k = int(round(fraction * n))
+    bad = np.sort(rng.choice(n, k, replace=False))
+    a = rng.uniform(0.0, 2.0 * np.pi, k)
+    tip = np.radians(rng.uniform(*tip_deg, k))
+    C = s.camera_target.copy()
+    C[bad] = dq.mul(C[bad], H.rotation(np.column_stack([np.cos(a), np.sin(a), np.zeros(k)])
+                                       * tip[:, None]))
+    return s, dq.normalize(C), bad
