@@ -143,8 +143,11 @@ EST, GIVEN = bench.OURS
 CASES = [
     (HEALTHY, EST, ("median trans", "silent"), None),
     (HEALTHY, GIVEN, ("median trans", "silent"), None),
-    (RESCALE, EST, ("median trans",), None),
-    (RESCALE, GIVEN, ("median trans",), None),
+    # one sequence: the median's bootstrap interval is a point, so any excess misses it (4.26 mm
+    # against Shah + LM's 4.22 did); the 90th percentile's 20 % is the target that tells a false
+    # rescale (24.6 mm) from the noise
+    (RESCALE, EST, ("p90", "silent"), None),
+    (RESCALE, GIVEN, ("p90", "silent"), None),
     (OUTLIERS, EST, ("solved", "vs RANSAC"), None),
     (OUTLIERS, GIVEN, ("solved", "vs RANSAC"), None),
     (OUTLIERS, EST, ("silent",), None),
