@@ -49,7 +49,9 @@ The solution, in order:
 3. **Outliers**: every sample is gated on its NIS (χ² with 6 dof, probability ``outliers._GATE``):
    the inliers' standardised residual ``r_iᵀ (Σ_r,i − J_i P J_iᵀ)⁻¹ r_i`` (the leave-one-out
    NIS to first order), the others' against the prediction ``Σ_r,i + J_i P J_iᵀ``, starting
-   from a fit on the samples that pass the screw-congruence test and re-fitting until the set
+   from a fit on the consensus of minimal sets (:mod:`~dqpose.handeye.consensus`: least
+   median of squares over hypotheses from three samples each and the closed form, so that
+   outliers screw congruence lets through do not anchor it) and re-fitting until the set
    settles. ``robust`` leaves the outliers out (``rejected``, each with a reason: a marker flip
    when the rotation is off and the board's position is not); otherwise they stay in and a
    warning names them.
@@ -88,18 +90,22 @@ answering them as given would be silently wrong (:mod:`~dqpose.handeye.readings`
   given and plausible inverted and the depths agree with the inverted reading, the answer is the
   inverted reading's, with a warning; when the depths do not tell, ``Infeasible`` naming both.
 * **The camera's translations at another scale** (a wrong board size,
-  :func:`~dqpose.handeye.readings._camera_scale`):
+  :mod:`~dqpose.handeye.scale`):
   the data are re-solved with the camera's translations (and at corner level the board's points)
   scaled by the best-fitting scale, whose uncertainty enters the covariance (at corner level the
-  board's scale is refined with the corners), with a warning naming the scale.
+  board's scale is refined with the corners), with a warning naming the scale; only when the
+  likelihood ratio against no scale error says so, and re-solved until the scale found on the
+  rescaled data is 1 (the joint optimum of the scale, the inliers and the noise).
 
 Healthy scenes (960 runs over tests/_handeye.py's grid) are never refused.
 
 The package, one stage a module: :mod:`~dqpose.handeye.setups` (the two setups and their
 equation), :mod:`~dqpose.handeye.checks` (the data checks), :mod:`~dqpose.handeye.closed_form`,
 :mod:`~dqpose.handeye.noise` (the residual covariances, REML, Kenward–Roger),
-:mod:`~dqpose.handeye.likelihood` (Gauss–Newton on X and Z), :mod:`~dqpose.handeye.outliers`
-(the χ² gate, leave-one-out), :mod:`~dqpose.handeye.readings` (the readings that fit as well),
+:mod:`~dqpose.handeye.likelihood` (Gauss–Newton on X and Z),
+:mod:`~dqpose.handeye.consensus` (where the fit starts), :mod:`~dqpose.handeye.outliers` (the
+χ² gate, leave-one-out), :mod:`~dqpose.handeye.readings` (the readings that fit as well),
+:mod:`~dqpose.handeye.scale` (the camera's scale),
 :mod:`~dqpose.handeye.corners` (the corner level), :mod:`~dqpose.handeye.next_best` and
 :mod:`~dqpose.handeye.calibrate`, which runs them in order; :mod:`~dqpose.handeye.result` holds
 what it returns.

@@ -46,21 +46,31 @@ def _rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def _null_dq(T: np.ndarray) -> np.ndarray:
     """The unit dual quaternion in the two-dimensional near-null space of ``T`` (m·6, 8)."""
     _, _, Vt = np.linalg.svd(T, full_matrices=False)
-    v1, v2 = Vt[-2], Vt[-1]
-    u1, d1, u2, d2 = v1[:4], v1[4:], v2[:4], v2[4:]
-    # (λ1, λ2) with q·q' = 0: a quadratic form M in (λ1, λ2); its null directions, the one with
-    # the larger |q| (the other is the pure-dual, translation-only solution).
-    M = np.array([[u1 @ d1, 0.5 * (u1 @ d2 + u2 @ d1)], [0.5 * (u1 @ d2 + u2 @ d1), u2 @ d2]])
-    N = np.array([[u1 @ u1, u1 @ u2], [u1 @ u2, u2 @ u2]])
+    return _unit_in_span(Vt[-2], Vt[-1])
+
+
+def _unit_in_span(v1: np.ndarray, v2: np.ndarray) -> np.ndarray:
+    """The unit dual quaternions ``λ1 v1 + λ2 v2`` (``(..., 8)`` each, a basis of the near-null
+    space): ``(λ1, λ2)`` with ``q·q' = 0``, a quadratic form M in ``(λ1, λ2)``, at its null
+    direction with the larger ``|q|`` (the other is the pure-dual, translation-only solution);
+    under noise M has none, and its eigenvector nearest to one is taken."""
+    u1, d1, u2, d2 = v1[..., :4], v1[..., 4:], v2[..., :4], v2[..., 4:]
+    M = np.empty(v1.shape[:-1] + (2, 2))
+    M[..., 0, 0], M[..., 1, 1] = (u1 * d1).sum(-1), (u2 * d2).sum(-1)
+    M[..., 0, 1] = M[..., 1, 0] = 0.5 * ((u1 * d2).sum(-1) + (u2 * d1).sum(-1))
     e, R = np.linalg.eigh(M)
-    if e[0] * e[1] < 0.0:
-        c = np.sqrt(np.abs(e[::-1]))           # directions where e0 y0² + e1 y1² = 0
-        cands = [R @ np.array([c[0], c[1]]), R @ np.array([c[0], -c[1]])]
-    else:                                      # noise: the nearest direction to a root
-        cands = [R[:, int(np.argmin(np.abs(e)))]]
-    lam = max(cands, key=lambda c: c @ N @ c)
-    lam = lam / np.sqrt(lam @ N @ lam)
-    x = lam[0] * v1 + lam[1] * v2
+    # two candidates (λ1, λ2) each: the null directions e0 y0² + e1 y1² = 0 where M has them,
+    # else twice its eigenvector nearest to one
+    c = np.sqrt(np.abs(e[..., ::-1]))
+    cands = np.stack([R @ c[..., :, None], R @ (c * [1.0, -1.0])[..., :, None]], -3)[..., 0]
+    near = np.where((np.abs(e[..., 0]) <= np.abs(e[..., 1]))[..., None], R[..., 0], R[..., 1])
+    cands = np.where((e[..., 0] * e[..., 1] < 0.0)[..., None, None], cands, near[..., None, :])
+    q = cands[..., :1] * u1[..., None, :] + cands[..., 1:] * u2[..., None, :]   # (..., 2, 4)
+    norm = (q * q).sum(-1)
+    best = (norm[..., 1] > norm[..., 0])[..., None]
+    lam = np.where(best, cands[..., 1, :], cands[..., 0, :])
+    lam = lam / np.sqrt(np.where(best[..., 0], norm[..., 1], norm[..., 0]))[..., None]
+    x = lam[..., :1] * v1 + lam[..., 1:] * v2
     return dq.normalize(_hemisphere(x))
 
 

@@ -18,6 +18,7 @@ import numpy as np
 
 from dqpose import dq, lie
 from dqpose.handeye.checks import _MIN_POSES, _samples
+from dqpose.handeye.consensus import _consensus
 from dqpose.handeye.likelihood import _Fit, _fit, _linearise, _standardised
 from dqpose.handeye.noise import _Noise
 from dqpose.handeye.result import Rejection
@@ -31,11 +32,16 @@ _GATE_3 = 16.266236196238010           # χ²₃ quantile at _GATE
 
 
 def _gated(p: _Prepared, noise: _Noise, robust: bool, warnings: list):
-    """The fit from the closed form on the samples that pass screw congruence, re-fitted on
-    those the gate passes until the set settles: ``(fit, inliers, rejected)``. The gate runs in
+    """The fit from the consensus of minimal sets (from the closed form on the samples that pass
+    screw congruence when there are too few for one), re-fitted on those the gate passes until
+    the set settles: ``(fit, inliers, rejected)``. The gate runs in
     both modes; without ``robust`` its outliers are named, not left out."""
-    inlier = p.use & ~p.suspect
-    fit = _fit(p.A, p.C, p.closed[0], p.closed[1], noise, inlier)
+    start = _consensus(p, noise, _GATE_6)
+    if start is None:
+        inlier, X, Z = p.use & ~p.suspect, p.closed[0], p.closed[1]
+    else:
+        inlier, X, Z = start
+    fit = _fit(p.A, p.C, X, Z, noise, inlier)
     for _ in range(5):
         r_all, S_all, nis_all = _against(p, fit, noise, inlier)
         new = p.use & (nis_all <= _GATE_6)

@@ -1,8 +1,8 @@
 """Other readings of the data: the setup swapped or the camera poses inverted (refused when they
 fit far better than the reading given), and the two that fit (nearly) as well as the right one,
 so that the residuals cannot refuse them and only plausibility tells: both poses inverted
-(``T_flange_base`` and ``T_target_camera``: ``F⁻¹ Z C⁻¹ = X``, X and Z exchanged) and the
-camera's translations at another scale (a wrong board size).
+(``T_flange_base`` and ``T_target_camera``: ``F⁻¹ Z C⁻¹ = X``, X and Z exchanged); the camera's
+translations at another scale (a wrong board size) are :mod:`~dqpose.handeye.scale`'s.
 """
 from __future__ import annotations
 
@@ -18,16 +18,11 @@ from dqpose.handeye.setups import EYE_IN_HAND, _other, _reading
 
 if TYPE_CHECKING:
     from dqpose.handeye.checks import _Prepared
-    from dqpose.handeye.likelihood import _Fit
 
 _READING_FACTOR = 5.0                  # another reading fits this many times better: refuse
 _MAX_MOUNT = 1.0                       # (m) a flange-mounted camera or target farther, or
 _MIN_FIXED = 0.25                      # (m) a fixed one nearer the base's origin: warn
                                        # (only when both poses inverted would be plausible)
-# Camera translations scaled beyond both: re-solved rescaled, with a warning. A Wald test at 5 σ
-# (nominal false-alarm rate < 1e-6 a solve; none in 800 healthy scenes of
-# tests/bench/bench_handeye_false_alarms.py).
-_SCALE_SIGMAS, _MIN_SCALE = 5.0, 2e-3
 
 
 def _spread(A, C, X, Z, use):
@@ -102,41 +97,3 @@ def _inverse_noise(T, S):
 
 def _moved(a, b) -> float:
     return float(np.linalg.norm(dq.to_pose(a)[1] - dq.to_pose(b)[1]))
-
-
-def _camera_scale(fit: _Fit, C: np.ndarray) -> tuple[float, float, np.ndarray]:
-    """The scale ``λ`` of the camera's translations that fits best, its σ, and what ``λ`` free
-    adds to the covariance of ``(X, Z)``: one Gauss–Newton step from λ = 1 at the optimum with
-    ``λ`` joined to (X, Z). Scaling ``t`` of ``C_i`` moves
-    ``C_i`` by ``Exp([0, R_iᵀ t_i dλ])`` on the right, so the residual by ``Jr⁻¹(r_i)`` of that."""
-    R, t = (M := dq.to_matrix(C))[:, :3, :3], M[:, :3, 3]
-    d = np.zeros((len(C), 6))
-    d[:, 3:] = (np.swapaxes(R, 1, 2) @ t[..., None])[..., 0]
-    Jl = (lie.se3_right_jacobian_inv(fit.r) @ d[..., None])[..., 0]          # (n, 6)
-    W = np.linalg.inv(fit.S)
-    Jfull = np.concatenate([fit.J, Jl[..., None]], axis=2)                   # (n, 6, 13)
-    JtW = np.swapaxes(Jfull, 1, 2) @ W
-    H = (JtW @ Jfull).sum(axis=0)
-    g = np.einsum("nij,nj->i", JtW, fit.r)
-    try:
-        Hi = np.linalg.inv(H)
-    except np.linalg.LinAlgError:
-        return 1.0, float("inf"), np.zeros((12, 12))
-    step = -Hi @ g
-    # λ's σ is the larger of the model's, (H⁻¹)_λλ, and the sandwich's, (H⁻¹ Σ gᵢgᵢᵀ H⁻¹)_λλ
-    # (gᵢ each sample's score): the scale moves the camera's translations along its line of
-    # sight, where a detector's depth noise is largest, and isotropic noise (estimated, or a
-    # covariance given too small) understates it there. KinHEC's camera, 3× noisier in depth,
-    # had its scale "corrected" to 0.57–0.97 in 9 of ~920 healthy sequences; the sandwich holds
-    # to the scatter the residuals show whatever the model.
-    # (the scores at the λ-free optimum, one Gauss–Newton step on: at λ = 1 a real scale error
-    # is a shared bias of every score, not scatter)
-    gi = np.einsum("nij,nj->ni", JtW, fit.r + np.einsum("nij,j->ni", Jfull, step))
-    sandwich = Hi @ (gi.T @ gi) @ Hi
-    sigma = float(np.sqrt(max(Hi[12, 12], sandwich[12, 12], 0.0)))
-    if not np.isfinite(sigma):
-        return 1.0 + float(step[12]), float("inf"), np.zeros((12, 12))
-    # λ free widens (X, Z)'s covariance from H₁₂⁻¹ to (H⁻¹)₁₂: by h hᵀ / (H⁻¹)_λλ, h = (H⁻¹)_:12,λ.
-    h = Hi[:12, 12]
-    extra = np.outer(h, h) / Hi[12, 12] if Hi[12, 12] > 0.0 else np.zeros((12, 12))
-    return 1.0 + float(step[12]), sigma, extra

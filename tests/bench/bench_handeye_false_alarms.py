@@ -6,7 +6,7 @@ Every scene of tests/_handeye.py's grid (both geometries, both setups, ``--seeds
 noise estimated and given (the generator's true covariances). Nothing in these scenes is wrong,
 so every alarm is a false one. Per noise level and mode: the genuine samples the χ² gate
 rejected (nominal rate ``1 − outliers._GATE``, 0.1 %), the scenes rescaled (the camera-scale
-test, :mod:`dqpose.handeye.readings`), the scenes warned that a fixed part is near the robot
+test, :mod:`dqpose.handeye.scale`), the scenes warned that a fixed part is near the robot
 base, and the scenes with any warning.
 """
 from __future__ import annotations

@@ -134,7 +134,7 @@ MONOCULAR = "monocular: scale=0.5, drift=0.0, camera=se3_gaussian; free6d eye_in
 #: failure mode of issue 24 in the recorded run
 SUBSET = {
     HEALTHY: ["noise-000024", "noise-000025", "noise-000026"],
-    RESCALE: ["noise-000068"],      # estimated: rescaled by 0.91 ± 0.017, 24.6 mm against 4.2 mm
+    RESCALE: ["noise-000068"],      # estimated: was rescaled by 0.91 ± 0.017, 24.6 mm against 4.2
     OUTLIERS: ["outliers-000051", "outliers-000052", "outliers-000054"],   # two refused
     MONOCULAR: ["monocular-000016"],   # given: 23.9 mm, NEES 5188, no sample named but all
 }
@@ -143,9 +143,11 @@ EST, GIVEN = bench.OURS
 CASES = [
     (HEALTHY, EST, ("median trans", "silent"), None),
     (HEALTHY, GIVEN, ("median trans", "silent"), None),
-    (RESCALE, EST, ("median trans",),
-     "issue 24 (1): the camera-scale check rescales data with no scale error (c5 noise)"),
-    (RESCALE, GIVEN, ("median trans",), None),
+    # one sequence: the median's bootstrap interval is a point, so any excess misses it (4.26 mm
+    # against Shah + LM's 4.22 did); the 90th percentile's 20 % is the target that tells a false
+    # rescale (24.6 mm) from the noise
+    (RESCALE, EST, ("p90", "silent"), None),
+    (RESCALE, GIVEN, ("p90", "silent"), None),
     (OUTLIERS, EST, ("solved", "vs RANSAC"), None),
     (OUTLIERS, GIVEN, ("solved", "vs RANSAC"), None),
     (OUTLIERS, EST, ("silent",), None),

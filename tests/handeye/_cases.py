@@ -22,3 +22,33 @@ def _nees(estimate, truth, cov):
 
 def _reading(F, setup):
     return F if setup == "eye_in_hand" else dq.inv(F)
+
+
+def flipped(n: int, fraction: float, tip_deg: tuple[float, float], seed: int,
+            noise: tuple[float, float] = (0.1, 0.5)):
+    """A wrist scene of ``n`` samples with camera noise ``noise`` (deg, mm per axis), a
+    ``fraction`` of its camera poses marker-flipped: the board's rotation tipped by ``tip_deg``
+    about an in-plane axis, its position unchanged. ``(scene, camera_target, flipped indices)``."""
+    s = H.scene(n, "eye_in_hand", "wrist", camera_noise=noise, seed=seed)
+    rng = np.random.default_rng(50_000 + seed)
+    k = int(round(fraction * n))
+    bad = np.sort(rng.choice(n, k, replace=False))
+    a = rng.uniform(0.0, 2.0 * np.pi, k)
+    tip = np.radians(rng.uniform(*tip_deg, k))
+    C = s.camera_target.copy()
+    C[bad] = dq.mul(C[bad], H.rotation(np.column_stack([np.cos(a), np.sin(a), np.zeros(k)])
+                                       * tip[:, None]))
+    return s, dq.normalize(C), bad
+
+
+def depth_noisy(n: int, seed: int, rot_deg: float = 1.15, mm=(12.0, 12.0, 40.0),
+                geometry: str = "wrist", setup: str = "eye_in_hand"):
+    """A scene whose camera poses carry KinHEC's camera noise c5 by default: rotation ``rot_deg``
+    per axis and translation ``mm`` per axis of the camera's own frame (depth the largest), no
+    scale error. ``(scene, camera_target)``."""
+    s = H.scene(n, setup, geometry, camera_noise=(0.0, 0.0), seed=seed)
+    rng = np.random.default_rng(70_000 + seed)
+    q, t = dq.to_pose(dq.mul(s.camera_target, H.rotation(
+        np.radians(rot_deg) * rng.normal(size=(n, 3)))))
+    t = t + 1e-3 * np.asarray(mm) * rng.normal(size=(n, 3))
+    return s, dq.from_pose(q, t)
