@@ -248,7 +248,10 @@ class Blending(pb_grpc.BlendingServicer):
             raise
         except grpc.aio.AbortError:
             raise
-        except Exception:
+        except Exception as e:
+            if self.calls.cut_off(e):
+                code = "CANCELLED"
+                raise
             code = "INTERNAL"
             log.exception("BlendStream failed")
             await context.abort(grpc.StatusCode.INTERNAL, INTERNAL_DETAILS)

@@ -174,6 +174,12 @@ class Calls:
         """Calls begun and not yet done."""
         return self._open
 
+    def cut_off(self, e: BaseException) -> bool:
+        """Whether a stream's handler raising ``e`` was cut by the server's stop (its grace period
+        over: gRPC's reader raises its private ``_ServerStoppedError``), not failed: CANCELLED,
+        as its client saw, and nothing to log as an error."""
+        return self.cut or type(e).__name__ == "_ServerStoppedError"
+
     def begin(self) -> float:
         """Counts a call in; returns its start time, for :meth:`done`."""
         self._open += 1

@@ -423,6 +423,9 @@ class Fusion(pb_grpc.FusionServicer):
         except Exception as e:
             if isinstance(e, grpc.aio.AbortError):
                 raise
+            if self.calls.cut_off(e):
+                code = "CANCELLED"
+                raise
             code = "INTERNAL"
             log.exception("StreamFuse failed")
             await context.abort(grpc.StatusCode.INTERNAL, INTERNAL_DETAILS)

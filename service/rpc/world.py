@@ -408,7 +408,10 @@ class World:
                 r += 1
         except grpc.aio.AbortError:
             raise
-        except Exception:
+        except Exception as e:
+            if self.calls.cut_off(e):
+                code = "CANCELLED"
+                raise
             code = "INTERNAL"
             log.exception("Publish failed")
             raise

@@ -48,7 +48,9 @@ def _until(said: queue.Queue, done, seen: list, timeout: float = 60.0) -> None:
 def test_the_page_follows_a_server_through_its_rpcs(tmp_path):
     from dqpose.rpc.client import Batch, Client
 
-    rig = URRig()
+    # a heartbeat for a machine drawing WebGL in software beside the server (the hang safety is
+    # tests/robustness/test_execute.py's): this test is about the page
+    rig = URRig(heartbeat=0.5)
     view = None
     try:
         rig.reset()

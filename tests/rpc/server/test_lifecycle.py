@@ -207,3 +207,17 @@ def test_blend_stream_cancelled_mid_way_leaves_the_server_serving(stub):
     assert len(got) == 20
     for req, r in zip(fresh, got):
         same_pose(msg_to_dq(r.pose), msg_to_dq(stub.Blend(req, timeout=10).pose), atol=1e-12)
+
+
+def test_a_read_the_servers_stop_ends_is_a_cut_not_a_failure():
+    # What grpc's stream reader raises once the grace period has cut the calls (it failed
+    # StreamFuse as INTERNAL with an error logged): the installed grpc's own class, so that a
+    # rename there fails here.
+    from grpc._cython import cygrpc
+
+    from dqpose.rpc.calls import Calls
+    calls = Calls()
+    assert calls.cut_off(cygrpc._ServerStoppedError("Server already stopped."))
+    assert not calls.cut_off(ValueError("a bug"))
+    calls.cut = True
+    assert calls.cut_off(ValueError("anything, once the calls were cut"))
