@@ -220,6 +220,12 @@ def test_thirty_worlds_move_after_a_sigkill_and_resume_by_themselves(own_cluster
     victim = c.replica(owners[WORLDS[0]])
     moved = [w for w in WORLDS if owners[w] == victim.name]
     caplog.set_level(logging.INFO, logger="dqpose.client")
+
+    def resumed(world: str) -> list[dict]:
+        return [e for e in map(json.loads, [r.getMessage() for r in list(caplog.records)
+                                             if '"stream_resumed"' in r.getMessage()])
+                if e["world"] == world]
+
     stop = threading.Event()
     t0 = time.monotonic()
     worlds = [WorldLoad(target, w, t0, stop) for w in WORLDS]
@@ -229,10 +235,15 @@ def test_thirty_worlds_move_after_a_sigkill_and_resume_by_themselves(own_cluster
         killed = time.monotonic()
         victim.signal(signal.SIGKILL)
         victim.proc.wait(10)
-        # every moved world's producers and subscriber answered again, by themselves
-        assert wait_until(lambda: all(w.answered_after(killed) for w in worlds), timeout=60,
-                          poll=0.05), [w.missing(killed) for w in worlds
-                                       if not w.answered_after(killed)]
+        # every moved world's producers and subscriber answered again, by themselves. An ack
+        # the victim sent just before it died can arrive after `killed`, so answers alone do
+        # not show a stream reopened; its log line does (a stream that reopens after its
+        # producer stopped sends nothing, gets no answer and logs nothing)
+        assert wait_until(lambda: all(w.answered_after(killed) for w in worlds)
+                          and all(len(resumed(w)) == 3 for w in moved), timeout=60,
+                          poll=0.05), ([w.missing(killed) for w in worlds
+                                        if not w.answered_after(killed)],
+                                       {w: resumed(w) for w in moved})
         stop.set()
     finally:
         stop.set()
@@ -253,14 +264,12 @@ def test_thirty_worlds_move_after_a_sigkill_and_resume_by_themselves(own_cluster
             assert look.lookup("", "box").time == newest, w.name
         last = w.answers[-1][1]
         assert last.error is None and {s.name for s in last.fused.sources} == {"cam1", "cam2"}
-        resumed = [e for e in events if e["world"] == w.name and e["event"] == "stream_resumed"]
+        lines = [e for e in events if e["world"] == w.name and e["event"] == "stream_resumed"]
         if w.name in moved:
-            # its streams (two Publish, one Subscribe) left the victim for the new owner. One
-            # CI run logged 2 of the 3 for one world with every batch acked once (the acks
-            # above are the loss check); why a stream moved without its log line is not known
-            assert 1 <= len(resumed) <= 3, (w.name, resumed)
-            assert {(e["from"], e["to"]) for e in resumed} == {(victim.name, after[w.name])}
+            # its streams (two Publish, one Subscribe) left the victim for the new owner
+            assert len(lines) == 3, (w.name, lines)
+            assert {(e["from"], e["to"]) for e in lines} == {(victim.name, after[w.name])}
             assert after[w.name] != victim.name
         else:
-            assert resumed == [] and after[w.name] == owners[w.name], w.name
+            assert lines == [] and after[w.name] == owners[w.name], w.name
     assert moved and len(moved) < len(WORLDS)
