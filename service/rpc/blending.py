@@ -18,7 +18,7 @@ from dqpose.rpc import BATCH_POSE_FACTOR, DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
 from dqpose.rpc.blending_convert import METHOD_NAMES
-from dqpose.rpc.calls import INTERNAL_DETAILS, Calls, fit, log, readable, refusal
+from dqpose.rpc.calls import Calls, fit, readable, refusal
 from dqpose.rpc.checks import check_count, field_named
 from dqpose.rpc.geometry import (
     arrays_to_stamped,
@@ -249,12 +249,8 @@ class Blending(pb_grpc.BlendingServicer):
         except grpc.aio.AbortError:
             raise
         except Exception as e:
-            if self.calls.cut_off(e):
-                code = "CANCELLED"
-                raise
-            code = "INTERNAL"
-            log.exception("BlendStream failed")
-            await context.abort(grpc.StatusCode.INTERNAL, INTERNAL_DETAILS)
+            code = self.calls.failure_code(e)
+            await self.calls.failed("BlendStream", e, context)
         finally:
             reader.cancel()
             self.calls.done("BlendStream", code, t0, context, messages=i)

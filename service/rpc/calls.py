@@ -19,6 +19,7 @@ import re
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
+from typing import NoReturn
 
 import grpc
 
@@ -179,6 +180,21 @@ class Calls:
         over: gRPC's reader raises its private ``_ServerStoppedError``), not failed: CANCELLED,
         as its client saw, and nothing to log as an error."""
         return self.cut or type(e).__name__ == "_ServerStoppedError"
+
+    def failure_code(self, e: BaseException) -> str:
+        """The code a stream's call ends with when its handler raised ``e`` (not an abort):
+        CANCELLED when the server's stop cut it (see :meth:`cut_off`), else INTERNAL."""
+        return "CANCELLED" if self.cut_off(e) else "INTERNAL"
+
+    async def failed(self, rpc: str, e: Exception, context) -> NoReturn:
+        """Ends a stream whose handler raised ``e`` (not an abort): cut by the server's stop it
+        goes on as it is (CANCELLED, as its client saw, no error logged); anything else is
+        logged with its traceback and the call aborted INTERNAL without the exception's text."""
+        if self.cut_off(e):
+            raise e
+        log.exception("%s failed", rpc)
+        await context.abort(grpc.StatusCode.INTERNAL, INTERNAL_DETAILS)
+        raise AssertionError("unreachable: abort raises")
 
     def begin(self) -> float:
         """Counts a call in; returns its start time, for :meth:`done`."""

@@ -19,8 +19,6 @@ the server takes in one message (``max_message_bytes``, ``max_poses``: the serve
 """
 from __future__ import annotations
 
-import json
-import math
 from collections import deque
 from typing import TYPE_CHECKING, Iterable, Iterator, Optional, Sequence
 
@@ -34,8 +32,18 @@ from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from dqpose.rpc._proto.dqpose.v1 import handeye_pb2 as hpb
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
 from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
-from dqpose.rpc.blending_convert import METHOD_ENUMS
 from dqpose.rpc.checks import over_count
+from dqpose.rpc.client_arrays import (
+    BLEND_ANSWER_MAX,
+    SAMPLE_ANSWER_MAX,
+    blend_answer,
+    blend_batch_answer,
+    dq_rows,
+    interpolate_answer,
+    method_code,
+    sets,
+    stream_answer,
+)
 from dqpose.rpc.client_types import (  # noqa: F401 (Batch, Planned, RequestTooLarge: the API)
     Ack,
     ArmState,
@@ -51,6 +59,7 @@ from dqpose.rpc.client_types import (  # noqa: F401 (Batch, Planned, RequestTooL
     _pose_or_none,
     _rpc_error,
     _state_name,
+    rpc_errors,
 )
 from dqpose.rpc.fusion_convert import (
     DEFAULT_MAX_EXTRAPOLATION,
@@ -65,11 +74,10 @@ from dqpose.rpc.geometry import (
     pose_arrays,
     pose_to_dq,
     poses_to_arrays,
-    poses_to_flat,
     stamped_msgs,
 )
 from dqpose.rpc.handeye_convert import calibrate_msg, calibration_from_msg
-from dqpose.rpc.resume import Resuming, reopened
+from dqpose.rpc.resume import Resuming, reopened, retry_config
 from dqpose.rpc.routing import MAX_WORLD_NAME, WORLD_HEADER, check_name
 from dqpose.rpc.trajectories_convert import (
     PLAN_INTERPOLATION,
@@ -80,7 +88,6 @@ from dqpose.rpc.trajectories_convert import (
 from dqpose.rpc.wire import (
     blend_batch_items_wire,
     blend_request_wire,
-    blend_responses_from_wire,
     interpolate_request_wire,
     measurements_wire,
     stamped_poses_wire,
@@ -92,110 +99,11 @@ FUSION = fpb.DESCRIPTOR.services_by_name["Fusion"].full_name
 TRAJECTORIES = tpb.DESCRIPTOR.services_by_name["Trajectories"].full_name
 HANDEYE = hpb.DESCRIPTOR.services_by_name["HandEye"].full_name
 WORLD = wpb.DESCRIPTOR.services_by_name["World"].full_name
+SERVICES = (SERVICE, FUSION, TRAJECTORIES, HANDEYE, WORLD)
+_IN_FLIGHT = 2          # calls of one split request outstanding: the next is sent while one is read
 if TYPE_CHECKING:   # the stubs' generics: grpc's own classes take no parameters at run time
     _Unary = grpc.UnaryUnaryMultiCallable[bytes, bytes]
     _Streams = grpc.StreamStreamMultiCallable[bytes, bytes]
-# Largest answer per item, to keep answers under the message limit too: BlendBatchResponse item
-# = tag, length, BlendResponse {pose (2 + 67), iterations (1 + up to 5), residual (1 + 8)};
-# InterpolateResponse item = tag, length, StampedPose {time (1 + 8), pose (2 + 67)}.
-_BLEND_ANSWER_MAX = 2 + 69 + 6 + 9
-_SAMPLE_ANSWER_MAX = 2 + 9 + 69
-_IN_FLIGHT = 2          # calls of one split request outstanding: the next is sent while one is read
-
-
-def _method_code(method: str) -> int:
-    if method not in METHOD_ENUMS:
-        raise ValueError(f"method: unknown blending method {method!r}; expected one of "
-                         f"{', '.join(METHOD_ENUMS)}")
-    return METHOD_ENUMS[method]
-
-
-def _dq_rows(dqs, name: str) -> np.ndarray:
-    a = np.asarray(dqs, dtype=np.float64)
-    if a.ndim != 2 or a.shape[1] != 8:
-        raise ValueError(f"{name}: expected shape (n, 8), got {a.shape}")
-    return a
-
-
-def _flat_to_dqs(flat: np.ndarray) -> np.ndarray:
-    return dq.from_pose(flat[:, :4], flat[:, 4:7])
-
-
-def _blend_answer(data: bytes) -> tuple[np.ndarray, int, float]:
-    r = pb.BlendResponse.FromString(data)
-    return pose_to_dq(r.pose), r.iterations, r.residual
-
-
-def _blend_batch_answer(data: bytes) -> np.ndarray:
-    fast = blend_responses_from_wire(data)
-    if fast is not None:
-        return _flat_to_dqs(fast[0])
-    r = pb.BlendBatchResponse.FromString(data)   # a layout the fast reader does not take
-    return _flat_to_dqs(poses_to_flat([x.pose for x in r.responses]))
-
-
-def _interpolate_answer(data: bytes) -> np.ndarray:
-    r = pb.InterpolateResponse.FromString(data)
-    return _flat_to_dqs(poses_to_flat([s.pose for s in r.samples]))
-
-
-def _stream_answer(data: bytes, probability: float = DEFAULT_PROBABILITY,
-                   max_skew: Optional[float] = None,
-                   request: Optional[int] = None) -> StreamAnswer:
-    """A ``FusedPose`` of a stream (StreamFuse's, Subscribe's) as a :class:`StreamAnswer`;
-    ``request``: the caller's number of the request it answers (a resumed stream renumbers
-    them), else the message's own."""
-    a = fpb.FusedPose.FromString(data)
-    index = a.request if request is None else request
-    if a.HasField("error"):
-        return StreamAnswer(index, a.body, a.time, None, np.empty(0, np.int64),
-                            a.error.details, a.error.measurement)
-    return StreamAnswer(index, a.body, a.time, fused_from_msg(a, probability, max_skew),
-                        np.array(a.measurements, dtype=np.int64))
-
-
-def _sets(dqs, weights):
-    """``(m, n, 8)`` or a list of ``(n_i, 8)``, and weights ``(m, n)``, a list, or None, to the
-    flat arrays of :func:`blend_batch_items_wire`."""
-    if isinstance(dqs, np.ndarray) and dqs.dtype != object:
-        a = np.asarray(dqs, dtype=np.float64)
-        if a.ndim != 3 or a.shape[2] != 8:
-            raise ValueError(f"dqs: expected shape (m, n, 8) or a list of (n, 8) arrays, "
-                             f"got {a.shape}")
-        sets = list(a)
-        flat, counts = a.reshape(-1, 8), np.full(len(a), a.shape[1])
-    else:
-        sets = [_dq_rows(d, f"dqs[{i}]") for i, d in enumerate(dqs)]
-        flat = np.concatenate(sets) if sets else np.empty((0, 8))
-        counts = np.array([len(d) for d in sets], dtype=np.int64)
-    m = len(sets)
-    if weights is None:
-        return flat, counts, np.empty(0), np.zeros(m, np.int64)
-    if isinstance(weights, np.ndarray) and weights.dtype != object and weights.ndim == 2:
-        ws = list(weights)
-    else:
-        ws = list(weights)
-    if len(ws) != m:
-        raise ValueError(f"weights: {len(ws)} weight sets for {m} pose sets")
-    ws = [np.empty(0) if w is None else np.asarray(w, dtype=np.float64).ravel() for w in ws]
-    w_counts = np.array([len(w) for w in ws], dtype=np.int64)
-    return flat, counts, (np.concatenate(ws) if ws else np.empty(0)), w_counts
-
-
-def _retry_config(seconds: float) -> str:
-    """gRPC's service config that retries a call refused before any answer with backoff, within
-    about ``seconds``; the balancer sends the retry to another replica. UNAVAILABLE: the
-    replica is gone or draining. CANCELLED: a proxy cut the call as its replica closed (nginx).
-    Both are safe to retry: gRPC retries only calls without response headers, and every dqpose
-    handler sends its headers (x-dqpose-replica) before it does anything, so a call retried
-    never ran."""
-    attempts = max(2, min(5, 1 + int(math.log2(1 + seconds / 0.2))))   # gRPC caps it at 5
-    policy = {"maxAttempts": attempts, "initialBackoff": "0.2s", "maxBackoff": "1s",
-              "backoffMultiplier": 2, "retryableStatusCodes": ["UNAVAILABLE", "CANCELLED"]}
-    names = [{"service": s} for s in (SERVICE, FUSION, TRAJECTORIES, HANDEYE, WORLD)]
-    return json.dumps({"methodConfig": [{"name": names, "retryPolicy": policy}]})
-
-
 class Client:
     """A channel to one server. ``tls=True`` uses the system roots; pass ``root_certificates``
     (PEM bytes) for a private CA and ``certificate_chain``/``private_key`` for mTLS. ``token`` is
@@ -207,7 +115,7 @@ class Client:
     ``reconnect`` (s): how long a broken stream (its replica gone) keeps being reopened with
     backoff, its unanswered requests sent again (:mod:`dqpose.rpc.resume`); with it, a unary call
     refused before any answer (UNAVAILABLE, CANCELLED) is retried by gRPC's retry policy
-    (:func:`_retry_config`). 0: neither, the error is raised at once."""
+    (:func:`~dqpose.rpc.resume.retry_config`). 0: neither, the error is raised at once."""
 
     def __init__(self, target: str = DEFAULT_TARGET, *, token: str | None = None,
                  tls: bool = False, root_certificates: bytes | None = None,
@@ -223,7 +131,7 @@ class Client:
                              f"{reconnect!r}")
         opts = [("grpc.max_receive_message_length", 64 * 1024 * 1024)] + list(options or [])
         if reconnect > 0:
-            opts.append(("grpc.service_config", _retry_config(reconnect)))
+            opts.append(("grpc.service_config", retry_config(reconnect, SERVICES)))
         if tls or root_certificates or certificate_chain:
             creds = grpc.ssl_channel_credentials(root_certificates, private_key, certificate_chain)
             self.channel = grpc.secure_channel(target, creds, options=opts)
@@ -282,10 +190,8 @@ class Client:
         self.close()
 
     def _call(self, method, request: bytes) -> bytes:
-        try:
+        with rpc_errors():
             return method(request, timeout=self.timeout, metadata=self.metadata)
-        except grpc.RpcError as e:
-            raise _rpc_error(e) from None
 
     def _split_calls(self, method, requests, field: str, read) -> list:
         """``read`` of each answer to ``requests`` (``(first item, bytes)`` pairs), in order,
@@ -318,7 +224,7 @@ class Client:
         """``(times (n,), poses (n, 8))`` of time-stamped poses to send, one time per pose and
         within the server's count; ValueError naming the argument otherwise."""
         t = np.asarray(times, dtype=np.float64).ravel()
-        a = _dq_rows(dqs, dqs_name)
+        a = dq_rows(dqs, dqs_name)
         if len(t) != len(a):
             raise ValueError(f"{times_name}: length {len(t)} does not match the number of {what} "
                              f"({len(a)})")
@@ -335,33 +241,31 @@ class Client:
               max_iterations: int = 0, *, return_info: bool = False):
         """Blend ``(n, 8)`` poses on the server; ``(8,)``, or ``(mean, iterations, residual)``
         with ``return_info``. Zero ``tolerance``/``max_iterations`` mean the server defaults."""
-        a = _dq_rows(dqs, "dqs")
+        a = dq_rows(dqs, "dqs")
         self._check_count("dqs", len(a), "poses")
-        data = blend_request_wire(*pose_arrays(a), weights, _method_code(method), tolerance,
+        data = blend_request_wire(*pose_arrays(a), weights, method_code(method), tolerance,
                                   max_iterations)
-        mean, iterations, residual = _blend_answer(self._call(self._blend, data))
+        mean, iterations, residual = blend_answer(self._call(self._blend, data))
         return (mean, iterations, residual) if return_info else mean
 
     def blend_stream(self, batches: Iterable[tuple], method: str = "dib") -> Iterator[np.ndarray]:
         """Stream ``(dqs, weights)`` pairs (weights may be None); yields one ``(8,)`` per pair, in
         order. The stream has no deadline. A pair that cannot be sent (wrong shape) ends the
         stream and raises its ``ValueError`` after the answers to the pairs before it."""
-        code = _method_code(method)
+        code = method_code(method)
         refused: list[Exception] = []
 
         def requests():
             try:
                 for i, (d, w) in enumerate(batches):
-                    yield blend_request_wire(*pose_arrays(_dq_rows(d, f"batches[{i}] dqs")), w,
+                    yield blend_request_wire(*pose_arrays(dq_rows(d, f"batches[{i}] dqs")), w,
                                              code)
             except Exception as e:   # raised to the caller below, not lost in grpc's thread
                 refused.append(e)
 
-        try:
+        with rpc_errors():
             for data in self._blend_stream(requests(), metadata=self.metadata):
-                yield _blend_answer(data)[0]
-        except grpc.RpcError as e:
-            raise _rpc_error(e) from None
+                yield blend_answer(data)[0]
         if refused:
             raise refused[0]
 
@@ -369,13 +273,13 @@ class Client:
         """Blend many independent sets: ``dqs`` ``(m, n, 8)`` or a list of ``(n_i, 8)`` arrays,
         ``weights`` ``(m, n)``, a list (of arrays or None), or None -> ``(m, 8)``. Any number of
         sets: they go in as many calls as the server's limits need."""
-        code = _method_code(method)
-        flat, counts, weights, w_counts = _sets(dqs, weights)
+        code = method_code(method)
+        flat, counts, weights, w_counts = sets(dqs, weights)
         q, t = pose_arrays(flat)
         buf, offsets = blend_batch_items_wire(q, t, counts, weights, w_counts, code)
         cum = np.concatenate([[0], np.cumsum(counts)])
         m = len(counts)
-        per_call = max(1, min(self.max_poses, self.max_message_bytes // _BLEND_ANSWER_MAX))
+        per_call = max(1, min(self.max_poses, self.max_message_bytes // BLEND_ANSWER_MAX))
 
         def chunks():
             i = 0
@@ -391,7 +295,7 @@ class Client:
                     return
                 i = j
 
-        parts = self._split_calls(self._blend_batch, chunks(), "requests", _blend_batch_answer)
+        parts = self._split_calls(self._blend_batch, chunks(), "requests", blend_batch_answer)
         return np.concatenate(parts).reshape(-1, 8)
 
     def interpolate(self, times_k, dqs_k, times, mode: str = "screw") -> np.ndarray:
@@ -405,14 +309,14 @@ class Client:
         keyframes = stamped_poses_wire(tk, *pose_arrays(a))
         times = np.asarray(times, dtype=np.float64).ravel()
         room = self.max_message_bytes - len(keyframes) - 16     # 16: the times field's header
-        per_call = min(self.max_poses, room // 8, self.max_message_bytes // _SAMPLE_ANSWER_MAX)
+        per_call = min(self.max_poses, room // 8, self.max_message_bytes // SAMPLE_ANSWER_MAX)
         if per_call < 1:
             raise RequestTooLarge(f"dqs_k: {len(a)} keyframes fill the server's message limit "
                                   f"of {self.max_message_bytes} bytes (Client max_message_bytes)")
         code = INTERPOLATION_ENUMS[mode]
         chunks = ((i, interpolate_request_wire(keyframes, times[i:i + per_call], code))
                   for i in range(0, max(len(times), 1), per_call))
-        parts = self._split_calls(self._interpolate, chunks, "times", _interpolate_answer)
+        parts = self._split_calls(self._interpolate, chunks, "times", interpolate_answer)
         return np.concatenate(parts).reshape(-1, 8)
 
     def fuse(self, poses, covariances=None, *, weights=None,
@@ -471,11 +375,9 @@ class Client:
         stream = Resuming(self._stream_fuse, requests(), first.SerializeToString(),
                           lambda data: fpb.FusedPose.FromString(data).request,
                           metadata=self.metadata, reconnect=self.reconnect)
-        try:
+        with rpc_errors():
             for index, data in stream.answers():
-                yield _stream_answer(data, probability, max_skew, index)
-        except grpc.RpcError as e:
-            raise _rpc_error(e) from None
+                yield stream_answer(data, probability, max_skew, index)
         if stream.failed:
             raise stream.failed[0]
 
@@ -487,10 +389,8 @@ class Client:
         stream has no deadline (a long plan is many samples). ``frames``: per waypoint the body
         of the server's world its pose is given in ("" the base; see ``Waypoint.frame``)."""
         request = plan_msg(waypoints, limits, rate_hz, interpolation, start_velocity, frames)
-        try:
+        with rpc_errors():
             msgs = list(self._plan(request, metadata=self.metadata))
-        except grpc.RpcError as e:
-            raise _rpc_error(e) from None
         info = msgs[0].plan
         segments = tuple(trajectory.Segment(s.start, s.duration, s.binding)
                          for s in info.segments)
@@ -554,10 +454,9 @@ class Client:
         call = self._watch_arm(tpb.GetArmRequest(arm=arm, rate_hz=rate_hz), timeout=timeout,
                                metadata=self.metadata)
         try:
-            for m in call:
-                yield _arm_state(m)
-        except grpc.RpcError as e:
-            raise _rpc_error(e) from None
+            with rpc_errors():
+                for m in call:
+                    yield _arm_state(m)
         finally:
             call.cancel()
 
@@ -598,10 +497,8 @@ class Client:
     def configure_world_msg(self, config: wpb.WorldConfig) -> wpb.WorldConfig:
         """:meth:`configure_world` of a ready ``WorldConfig``; the client keeps it to send again
         when a World stream reopens."""
-        try:
+        with rpc_errors():
             answer = self._configure_world(config, timeout=self.timeout, metadata=self.metadata)
-        except grpc.RpcError as e:
-            raise _rpc_error(e) from None
         self.world_config = config
         return answer
 
@@ -643,12 +540,11 @@ class Client:
                           before=self._configure_again)
         acks = stream.answers()
         try:
-            for _, data in acks:
-                a = wpb.PublishAck.FromString(data)
-                yield Ack(a.acked_through, tuple((e.request, e.measurement, e.details)
-                                                 for e in a.errors))
-        except grpc.RpcError as e:
-            raise _rpc_error(e) from None
+            with rpc_errors():
+                for _, data in acks:
+                    a = wpb.PublishAck.FromString(data)
+                    yield Ack(a.acked_through, tuple((e.request, e.measurement, e.details)
+                                                     for e in a.errors))
         finally:
             acks.close()
         if stream.failed:
@@ -670,10 +566,9 @@ class Client:
                                                    metadata=self.metadata),
                            self.reconnect, self._configure_again, self.world)
         try:
-            for data in answers:
-                yield _stream_answer(data, probability)
-        except grpc.RpcError as e:
-            raise _rpc_error(e) from None
+            with rpc_errors():
+                for data in answers:
+                    yield stream_answer(data, probability)
         finally:
             answers.close()     # the call cancelled when the caller closes this iterator
 
@@ -681,11 +576,9 @@ class Client:
         """``T_target_source`` at ``time`` (0: the newest both are known at; "" is the world
         frame) with its covariance, tf2's lookupTransform order. An unknown body raises
         :class:`RpcError` NOT_FOUND, a time the world does not know FAILED_PRECONDITION."""
-        try:
+        with rpc_errors():
             r = self._lookup(wpb.LookupRequest(target=target, source=source, time=time),
                              timeout=self.timeout, metadata=self.metadata)
-        except grpc.RpcError as e:
-            raise _rpc_error(e) from None
         return Relative(pose_to_dq(r.pose),
                         np.array(r.covariance, dtype=np.float64).reshape(6, 6), r.time)
 
@@ -693,9 +586,7 @@ class Client:
         """The health status name (``"SERVING"``, ``"NOT_SERVING"``, ...)."""
         from grpc_health.v1 import health_pb2, health_pb2_grpc
 
-        try:
+        with rpc_errors():
             r = health_pb2_grpc.HealthStub(self.channel).Check(
                 health_pb2.HealthCheckRequest(service=service), timeout=self.timeout)
-        except grpc.RpcError as e:
-            raise _rpc_error(e) from None
         return health_pb2.HealthCheckResponse.ServingStatus.Name(r.status)

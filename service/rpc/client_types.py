@@ -2,8 +2,9 @@
 its answers, read from the server's messages, and its errors."""
 from __future__ import annotations
 
+import contextlib
 import re
-from typing import NamedTuple, Optional, Sequence
+from typing import Iterator, NamedTuple, Optional, Sequence
 
 import grpc
 import numpy as np
@@ -143,3 +144,12 @@ def _rpc_error(e: grpc.RpcError, field: str = "", offset: int = 0) -> RpcError:
                          lambda m: f"{field}[{int(m.group(1)) + offset}]", details)
     cls = InvalidArgument if code == grpc.StatusCode.INVALID_ARGUMENT else RpcError
     return cls(code, details)
+
+
+@contextlib.contextmanager
+def rpc_errors() -> Iterator[None]:
+    """grpc's errors raised inside as ours (:func:`_rpc_error`)."""
+    try:
+        yield
+    except grpc.RpcError as e:
+        raise _rpc_error(e) from None

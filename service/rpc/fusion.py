@@ -17,7 +17,7 @@ from dqpose.errors import FieldError, rename
 from dqpose.rpc import DEFAULT_MAX_POSES
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2_grpc as pb_grpc
-from dqpose.rpc.calls import INTERNAL_DETAILS, Calls, log, readable, refusal
+from dqpose.rpc.calls import Calls, readable, refusal
 from dqpose.rpc.checks import over_count
 from dqpose.rpc.fusion_convert import (
     DEFAULT_WINDOW,
@@ -420,15 +420,11 @@ class Fusion(pb_grpc.FusionServicer):
                 await self._write(answers, state.cost, context, rec)
                 next_id += n
                 r += 1
+        except grpc.aio.AbortError:
+            raise
         except Exception as e:
-            if isinstance(e, grpc.aio.AbortError):
-                raise
-            if self.calls.cut_off(e):
-                code = "CANCELLED"
-                raise
-            code = "INTERNAL"
-            log.exception("StreamFuse failed")
-            await context.abort(grpc.StatusCode.INTERNAL, INTERNAL_DETAILS)
+            code = self.calls.failure_code(e)
+            await self.calls.failed("StreamFuse", e, context)
         except BaseException:   # asyncio.CancelledError: the client went away
             code = "CANCELLED"
             raise

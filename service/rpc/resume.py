@@ -19,11 +19,12 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import random
 import threading
 import time
 from collections import deque
-from typing import Callable, Generator, Iterator, Optional
+from typing import Callable, Generator, Iterable, Iterator, Optional
 
 import grpc
 
@@ -67,6 +68,20 @@ def _replica(call) -> Optional[str]:
     except grpc.RpcError:
         pass
     return None
+
+
+def retry_config(seconds: float, services: Iterable[str]) -> str:
+    """gRPC's service config that retries a call of ``services`` (full names) refused before any
+    answer, with backoff, within about ``seconds``; the balancer sends the retry to another
+    replica. UNAVAILABLE: the replica is gone or draining. CANCELLED: a proxy cut the call as
+    its replica closed (nginx). Both are safe to retry: gRPC retries only calls without response
+    headers, and every dqpose handler sends its headers (x-dqpose-replica) before it does
+    anything, so a call retried never ran."""
+    attempts = max(2, min(5, 1 + int(math.log2(1 + seconds / 0.2))))   # gRPC caps it at 5
+    policy = {"maxAttempts": attempts, "initialBackoff": "0.2s", "maxBackoff": "1s",
+              "backoffMultiplier": 2, "retryableStatusCodes": ["UNAVAILABLE", "CANCELLED"]}
+    names = [{"service": s} for s in services]
+    return json.dumps({"methodConfig": [{"name": names, "retryPolicy": policy}]})
 
 
 class Resuming:

@@ -409,12 +409,8 @@ class World:
         except grpc.aio.AbortError:
             raise
         except Exception as e:
-            if self.calls.cut_off(e):
-                code = "CANCELLED"
-                raise
-            code = "INTERNAL"
-            log.exception("Publish failed")
-            raise
+            code = self.calls.failure_code(e)
+            await self.calls.failed("Publish", e, context)
         except BaseException:
             code = "CANCELLED"
             raise
