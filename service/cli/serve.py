@@ -127,8 +127,6 @@ def _arm_keys_help() -> str:
 def _serve(args) -> int:
     import asyncio
     import contextlib
-    import dataclasses
-    import functools
     import logging
     import os
 
@@ -162,30 +160,9 @@ def _serve(args) -> int:
             return fail("serve", f"--arm {simulated[0]}: TARGET '{SIM}' is the simulator that "
                                  f"--sims starts; add --sims")
         with contextlib.ExitStack() as stack:
-            if args.record is not None or args.live is not None:
-                from dqpose.errors import MissingExtra
-                from dqpose.record import LiveFailed, open_recorder, parse_address
-                try:
-                    live = None if args.live is None else parse_address(args.live)
-                except ValueError as e:
-                    return fail("serve", str(e))
-                cmd = "serve --record" if args.record is not None else "serve --live"
-                for flag, value in (("--record-max-mb", args.record_max_mb),
-                                    ("--record-max-s", args.record_max_s),
-                                    ("--record-queue", args.record_queue)):
-                    if not value > 0:
-                        return fail("serve", f"{flag}: must be > 0, got {value:g}")
-                try:
-                    cfg.recorder = open_recorder(
-                        args.record, max_bytes=max(1, int(args.record_max_mb * 1e6)),
-                        max_seconds=args.record_max_s, queue=args.record_queue, live=live)
-                except MissingExtra as e:
-                    return missing_extra(cmd, e)
-                except LiveFailed as e:
-                    return fail("serve", str(e))
-                except OSError as e:
-                    return fail("serve", f"--record {args.record}: {e.strerror or e}")
-                stack.callback(cfg.recorder.close)
+            if (args.record is not None or args.live is not None) and (
+                    code := _open_recorder(args, cfg, stack)):
+                return code
             fleet = None
             if args.sims:
                 from dqpose.drivers.sim.fleet import Fleet
@@ -195,34 +172,8 @@ def _serve(args) -> int:
                     return missing_extra("serve --sims", e)
                 for info in fleet.info:
                     logging.getLogger("dqpose").info(json.dumps({"event": "simulator", **info}))
-            if arm_specs:
-                try:
-                    from dqpose import drivers
-                    from dqpose.drivers.executor import Executor
-                except ModuleNotFoundError as e:
-                    return missing_extra("serve --arm", e)
-                for name, (text, spec) in arm_specs.items():
-                    try:
-                        simulated = spec.target == SIM
-                        if simulated:
-                            spec = dataclasses.replace(spec, target=fleet.target(spec.kind))
-                        # the server's own work delays a control thread's set-points (1,991 missed
-                        # cycles in 30 s against 51:
-                        # docs/benchmarks/arms.md#thread-or-process-for-the-loop)
-                        why_not = None if args.arm_loop == "process" else (
-                            "--arm-loop thread" if args.arm_loop == "thread"
-                            else drivers.process_problem(str(spec)))
-                        cfg.arms[name] = stack.enter_context(
-                            open_arm(spec, process=why_not is None, simulated=simulated))
-                    except ModuleNotFoundError as e:
-                        return missing_extra("serve --arm", e)
-                    except (OSError, ValueError, RuntimeError) as e:
-                        return fail("serve", f"--arm {name}={text}: {e}")
-                    logging.getLogger("dqpose").info(json.dumps(
-                        {"event": "arm", "name": name, "spec": str(spec),
-                         "loop": "thread" if why_not else "process",
-                         **({"why": why_not} if why_not else {})}))
-                cfg.executor = functools.partial(Executor, realtime=args.arm_realtime)
+            if arm_specs and (code := _open_arms(args, arm_specs, cfg, fleet, stack)):
+                return code
             # libuv's loop: ~8 % more calls/s with 8 clients
             # (docs/benchmarks/grpc.md#server-choices-measured)
             try:
@@ -240,6 +191,72 @@ def _serve(args) -> int:
         setting = getattr(e, "setting", None)    # server.AddressInUse: which flag to change
         hint = f"; choose another {_flag(setting)}" if setting else ""
         return fail("serve", f"{e}{hint}")
+
+
+def _open_recorder(args, cfg, stack) -> int | None:
+    """``--record``/``--live``: the recorder into ``cfg``, closed by ``stack``; an exit code
+    when it cannot start."""
+    from dqpose.errors import MissingExtra
+    from dqpose.record import LiveFailed, open_recorder, parse_address
+    try:
+        live = None if args.live is None else parse_address(args.live)
+    except ValueError as e:
+        return fail("serve", str(e))
+    cmd = "serve --record" if args.record is not None else "serve --live"
+    for flag, value in (("--record-max-mb", args.record_max_mb),
+                        ("--record-max-s", args.record_max_s),
+                        ("--record-queue", args.record_queue)):
+        if not value > 0:
+            return fail("serve", f"{flag}: must be > 0, got {value:g}")
+    try:
+        cfg.recorder = open_recorder(
+            args.record, max_bytes=max(1, int(args.record_max_mb * 1e6)),
+            max_seconds=args.record_max_s, queue=args.record_queue, live=live)
+    except MissingExtra as e:
+        return missing_extra(cmd, e)
+    except LiveFailed as e:
+        return fail("serve", str(e))
+    except OSError as e:
+        return fail("serve", f"--record {args.record}: {e.strerror or e}")
+    stack.callback(cfg.recorder.close)
+    return None
+
+
+def _open_arms(args, arm_specs: dict, cfg, fleet, stack) -> int | None:
+    """``--arm``: each arm opened into ``cfg.arms`` (a simulated one on ``fleet``), closed by
+    ``stack``, and the executor; an exit code when one cannot open."""
+    import dataclasses
+    import functools
+    import logging
+
+    try:
+        from dqpose import drivers
+        from dqpose.drivers.executor import Executor
+    except ModuleNotFoundError as e:
+        return missing_extra("serve --arm", e)
+    for name, (text, spec) in arm_specs.items():
+        try:
+            simulated = spec.target == SIM
+            if simulated:
+                spec = dataclasses.replace(spec, target=fleet.target(spec.kind))
+            # the server's own work delays a control thread's set-points (1,991 missed
+            # cycles in 30 s against 51:
+            # docs/benchmarks/arms.md#thread-or-process-for-the-loop)
+            why_not = None if args.arm_loop == "process" else (
+                "--arm-loop thread" if args.arm_loop == "thread"
+                else drivers.process_problem(str(spec)))
+            cfg.arms[name] = stack.enter_context(
+                open_arm(spec, process=why_not is None, simulated=simulated))
+        except ModuleNotFoundError as e:
+            return missing_extra("serve --arm", e)
+        except (OSError, ValueError, RuntimeError) as e:
+            return fail("serve", f"--arm {name}={text}: {e}")
+        logging.getLogger("dqpose").info(json.dumps(
+            {"event": "arm", "name": name, "spec": str(spec),
+             "loop": "thread" if why_not else "process",
+             **({"why": why_not} if why_not else {})}))
+    cfg.executor = functools.partial(Executor, realtime=args.arm_realtime)
+    return None
 
 
 def _arm_specs(values: list[str]) -> dict:

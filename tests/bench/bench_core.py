@@ -234,6 +234,204 @@ def render(rows) -> str:
 
 
 
+class _Run:
+    """One run's inputs, the C harness's times (``ct``) and outputs (``co``), the peers found
+    (pytransform3d, scipy; None when absent) and the rows measured so far."""
+
+    def __init__(self, inp: dict, ct: dict, co: dict):
+        self.inp, self.ct, self.co = inp, ct, co
+        self.pt3, self.sp = _pt3d(), _scipy_R()
+        self.rows: list = []
+
+    def crow(self, op, impl, label, per_unit, ref_out, out_name, core_row=None, target=None,
+             note=""):
+        """The C harness's row of ``op`` by ``impl`` (core or floor), deviation from ``ref_out``."""
+        r = self.ct[(op, impl)]
+        row = Row(label, "C core" if impl == "core" else "C floor (scalar, libm per pose)",
+                  r["seconds"], r["units"] if per_unit else 1, per_unit or "call", core_row,
+                  dev(self.co[out_name], ref_out) if out_name in self.co else None, target, note)
+        self.rows.append(row)
+        return row
+
+
+def sclerp_rows(run: "_Run") -> None:
+    """ScLERP in the C core and from Python: one pair at many tau, independent pairs."""
+    inp, pt3, sp = run.inp, run.pt3, run.sp
+    a, b = inp["pair"][:8], inp["pair"][8:]
+    pt, ptr, pu = pt3 or (None, None, None)
+    Rotation, Slerp = sp or (None, None)
+    ct = run.ct
+    taus = inp["taus"]
+    pa, pb, ptau = inp["pairs_a"], inp["pairs_b"], inp["pairs_tau"]
+    # -- ScLERP, one pair, many tau
+    label = f"ScLERP 1 pair × {N_TAU} tau"
+    ours = dq.sclerp(a, b, taus)
+    core = run.crow("sclerp_tau", "core", label, "pose", ours, "sclerp_tau_core",
+                    target=(25e-9, "per"))
+    run.crow("sclerp_tau", "floor", label, "pose", ours, "sclerp_tau_floor", core)
+    py = Row(label, "ours Python", median_call(lambda: dq.sclerp(a, b, taus)), N_TAU, "pose")
+    run.rows.append(py)
+    if pt3:
+        pt, ptr, pu = pt3
+        A, B = np.broadcast_to(a, (N_TAU, 8)), np.broadcast_to(b, (N_TAU, 8))
+        run.rows.append(Row(label, "pytransform3d", median_call(
+            lambda: ptr.dual_quaternions_sclerp(A, B, taus)), N_TAU, "pose", py,
+            dev(ptr.dual_quaternions_sclerp(A, B, taus), ours)))
+    if sp:
+        Rotation, Slerp = sp
+        R, t = scipy_sclerp_tau(Rotation, Slerp, a, b, taus)
+        run.rows.append(Row(label, "scipy", median_call(
+            lambda: scipy_sclerp_tau(Rotation, Slerp, a, b, taus)), N_TAU, "pose", py,
+            dev(_dq_from_R_t(R, t), ours), note="Slerp + lerp"))
+
+    # -- ScLERP, independent pairs
+    label = f"ScLERP {N_PAIRS} pairs"
+    ours = dq.sclerp(pa, pb, ptau)
+    core = run.crow("sclerp_pairs", "core", label, "pair", ours, "sclerp_pairs_core",
+                    target=(60e-9, "per"))
+    run.crow("sclerp_pairs", "floor", label, "pair", ours, "sclerp_pairs_floor", core)
+    # Issue 10: vectorised across poses, the kernel is to cost at most 0.6 of the scalar loop.
+    # The harness times the two alternately for this ratio, so a load change hits both alike.
+    run.rows.append(RatioRow(label, "C core ÷ C floor (ratio to the scalar C loop)",
+                             ct[("sclerp_pairs", "core/floor")]["ratio"], 0.6))
+    py = Row(label, "ours Python", median_call(lambda: dq.sclerp(pa, pb, ptau)), N_PAIRS, "pair")
+    run.rows.append(py)
+    if pt3:
+        run.rows.append(Row(label, "pytransform3d", median_call(
+            lambda: ptr.dual_quaternions_sclerp(pa, pb, ptau)), N_PAIRS, "pair", py,
+            dev(ptr.dual_quaternions_sclerp(pa, pb, ptau), ours)))
+    if sp:
+        qa, ta = dq.to_pose(pa)
+        qb, tb = dq.to_pose(pb)
+        R, t = scipy_sclerp_pairs(Rotation, qa, ta, qb, tb, ptau)
+        run.rows.append(Row(label, "scipy", median_call(
+            lambda: scipy_sclerp_pairs(Rotation, qa, ta, qb, tb, ptau)), N_PAIRS, "pair", py,
+            dev(_dq_from_R_t(R, t), ours), note="slerp + lerp"))
+
+
+
+def sclerp_call_rows(run: "_Run") -> None:
+    """ScLERP from Python: one call, and 100k samples of one pair or of 100k pairs."""
+    inp, pt3, sp = run.inp, run.pt3, run.sp
+    a, b = inp["pair"][:8], inp["pair"][8:]
+    pt, ptr, pu = pt3 or (None, None, None)
+    Rotation, Slerp = sp or (None, None)
+    # -- ScLERP from Python: one call
+    label = "ScLERP 1 call"
+    ours = dq.sclerp(a, b, 0.3)
+    py = Row(label, "ours Python", median_call(lambda: dq.sclerp(a, b, 0.3)),
+             target=(1e-6, "total"))
+    run.rows.append(py)
+    if pt3:
+        run.rows.append(Row(label, "pytransform3d", median_call(
+            lambda: pt.dual_quaternion_sclerp(a, b, 0.3)), ours=py,
+            dev_=dev(pt.dual_quaternion_sclerp(a, b, 0.3), ours)))
+    if sp:
+        run.rows.append(Row(label, "scipy", median_call(
+            lambda: scipy_sclerp_tau(Rotation, Slerp, a, b, np.array([0.3]))), ours=py,
+            dev_=dev(_dq_from_R_t(*scipy_sclerp_tau(Rotation, Slerp, a, b, np.array([0.3]))),
+                     ours), note="Slerp + lerp"))
+
+    # -- 100k batch from Python
+    tb_ = inp["taus_batch"]
+    ba, bb, bt = inp["batch_a"], inp["batch_b"], inp["batch_tau"]
+    label = f"ScLERP {N_BATCH // 1000}k batch, 1 pair"
+    ours = dq.sclerp(a, b, tb_)
+    py = Row(label, "ours Python", median_call(lambda: dq.sclerp(a, b, tb_)),
+             target=(5e-3, "total"))
+    run.rows.append(py)
+    if pt3:
+        A, B = np.broadcast_to(a, (N_BATCH, 8)), np.broadcast_to(b, (N_BATCH, 8))
+        run.rows.append(Row(label, "pytransform3d", median_call(
+            lambda: ptr.dual_quaternions_sclerp(A, B, tb_), 5), ours=py,
+            dev_=dev(ptr.dual_quaternions_sclerp(A, B, tb_), ours)))
+    label = f"ScLERP {N_BATCH // 1000}k batch, pairs"
+    ours = dq.sclerp(ba, bb, bt)
+    # No target: the issue's 100k batch is samples of one interpolation (the row above); here
+    # every pair is its own screw, and the kernel's own 60 ns per pair is its target.
+    py = Row(label, "ours Python", median_call(lambda: dq.sclerp(ba, bb, bt)))
+    run.rows.append(py)
+    if pt3:
+        run.rows.append(Row(label, "pytransform3d", median_call(
+            lambda: ptr.dual_quaternions_sclerp(ba, bb, bt), 5), ours=py,
+            dev_=dev(ptr.dual_quaternions_sclerp(ba, bb, bt), ours)))
+
+
+def mean_rows(run: "_Run") -> None:
+    """DLB and DIB over 10 and 1000 poses."""
+    inp, pt3, sp = run.inp, run.pt3, run.sp
+    pt, ptr, pu = pt3 or (None, None, None)
+    Rotation, Slerp = sp or (None, None)
+    ct, co = run.ct, run.co
+    # -- means
+    for m in (10, 1000):
+        q = inp[f"set{m}"]
+        label = f"DLB n={m}"
+        ours = dq.dlb(q)
+        core = run.crow(f"dlb{m}", "core", label, None, ours, f"dlb{m}",
+                        target=(50e-9, "total") if m == 10 else None)
+        run.crow(f"dlb{m}", "floor", label, None, ours, "-", core)
+        run.rows.append(Row(label, "ours Python", median_call(lambda: dq.dlb(q))))
+
+        res = dq.dib(q, return_info=True)
+        ours = res.mean
+        it = int(res.iterations)
+        label = f"DIB n={m} ({it} steps, {it + 1} passes)"
+        r = ct[(f"dib{m}", "core")]
+        # A pass is one log-sum over all poses; DIB takes `steps` steps and `steps + 1` passes.
+        passes = r["iters"] + 1
+        core = Row(label, "C core", r["seconds"], m * passes, "pose·pass",
+                   dev_=dev(co[f"dib{m}_core"], ours), target=(20e-9, "per"))
+        run.rows.append(core)
+        if m == 1000:
+            run.rows.append(Row(label, "C core", r["seconds"], 1, "call",
+                                dev_=dev(co[f"dib{m}_core"], ours), target=(125e-6, "total")))
+        rf = ct[(f"dib{m}", "floor")]
+        run.rows.append(Row(label, "C floor (scalar, libm per pose)", rf["seconds"],
+                            m * (rf["iters"] + 1), "pose·pass", core,
+                            dev(co[f"dib{m}_floor"], ours)))
+        py = Row(label, "ours Python", median_call(lambda: dq.dib(q)),
+                 target=(3e-6, "total") if m == 10 else None)
+        run.rows.append(py)
+        if pt3:
+            Ts = dq.to_matrix(q)
+            Tm, _ = pu.estimate_gaussian_transform_from_samples(Ts)
+            run.rows.append(Row(label, "pytransform3d", median_call(
+                lambda: pu.estimate_gaussian_transform_from_samples(Ts), 7), ours=py,
+                dev_=dev(dq.from_matrix(Tm), ours), note="Fréchet mean, 20 fixed steps"))
+        if sp:
+            qq, tt = dq.to_pose(q)
+            R, t = scipy_mean(Rotation, qq, tt)
+            run.rows.append(Row(label, "scipy", median_call(lambda: scipy_mean(Rotation, qq, tt)),
+                                ours=py, dev_=dev(_dq_from_R_t(R, t), ours),
+                                note="Rotation.mean + mean t"))
+
+
+def conversion_rows(run: "_Run") -> None:
+    """to_matrix and from_matrix."""
+    inp, pt3, sp = run.inp, run.pt3, run.sp
+    pt, ptr, pu = pt3 or (None, None, None)
+    Rotation, Slerp = sp or (None, None)
+    ct = run.ct
+    # -- conversions
+    cq = inp["conv_dq"]
+    Ts = dq.to_matrix(cq)
+    for op, fn, arg, ref, ptf in (
+            ("to_matrix", dq.to_matrix, cq, Ts, "transforms_from_dual_quaternions"),
+            ("from_matrix", dq.from_matrix, Ts, cq, "dual_quaternions_from_transforms")):
+        label = f"{op} ×{N_CONV}"
+        r = ct[(op, "core")]
+        run.rows.append(Row(label, "C core", r["seconds"], N_CONV, "pose"))
+        py = Row(label, "ours Python", median_call(lambda: fn(arg)), N_CONV, "pose")
+        run.rows.append(py)
+        if pt3:
+            f = getattr(ptr, ptf)
+            got = f(arg)
+            d = (np.abs(got - ref).max() if op == "to_matrix" else dev(got, ref))
+            run.rows.append(Row(label, "pytransform3d", median_call(lambda: f(arg)), N_CONV, "pose",
+                                py, float(d)))
+
+
 def main(argv=None):
     global SAMPLES
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -246,175 +444,16 @@ def main(argv=None):
 
     rng = np.random.default_rng(args.seed)
     inp = make_inputs(rng)
-    exe = build_harness()
-    ct, co = run_harness(exe, inp)
-    pt3 = _pt3d()
-    sp = _scipy_R()
-    rows = []
-    a, b = inp["pair"][:8], inp["pair"][8:]
-    taus = inp["taus"]
-    pa, pb, ptau = inp["pairs_a"], inp["pairs_b"], inp["pairs_tau"]
-
-    def crow(op, impl, label, per_unit, ref_out, out_name, core_row=None, target=None, note=""):
-        r = ct[(op, impl)]
-        row = Row(label, "C core" if impl == "core" else "C floor (scalar, libm per pose)",
-                  r["seconds"], r["units"] if per_unit else 1, per_unit or "call", core_row,
-                  dev(co[out_name], ref_out) if out_name in co else None, target, note)
-        rows.append(row)
-        return row
-
-    # -- ScLERP, one pair, many tau
-    label = f"ScLERP 1 pair × {N_TAU} tau"
-    ours = dq.sclerp(a, b, taus)
-    core = crow("sclerp_tau", "core", label, "pose", ours, "sclerp_tau_core",
-                target=(25e-9, "per"))
-    crow("sclerp_tau", "floor", label, "pose", ours, "sclerp_tau_floor", core)
-    py = Row(label, "ours Python", median_call(lambda: dq.sclerp(a, b, taus)), N_TAU, "pose")
-    rows.append(py)
-    if pt3:
-        pt, ptr, pu = pt3
-        A, B = np.broadcast_to(a, (N_TAU, 8)), np.broadcast_to(b, (N_TAU, 8))
-        rows.append(Row(label, "pytransform3d", median_call(
-            lambda: ptr.dual_quaternions_sclerp(A, B, taus)), N_TAU, "pose", py,
-            dev(ptr.dual_quaternions_sclerp(A, B, taus), ours)))
-    if sp:
-        Rotation, Slerp = sp
-        R, t = scipy_sclerp_tau(Rotation, Slerp, a, b, taus)
-        rows.append(Row(label, "scipy", median_call(
-            lambda: scipy_sclerp_tau(Rotation, Slerp, a, b, taus)), N_TAU, "pose", py,
-            dev(_dq_from_R_t(R, t), ours), note="Slerp + lerp"))
-
-    # -- ScLERP, independent pairs
-    label = f"ScLERP {N_PAIRS} pairs"
-    ours = dq.sclerp(pa, pb, ptau)
-    core = crow("sclerp_pairs", "core", label, "pair", ours, "sclerp_pairs_core",
-                target=(60e-9, "per"))
-    crow("sclerp_pairs", "floor", label, "pair", ours, "sclerp_pairs_floor", core)
-    # Issue 10: vectorised across poses, the kernel is to cost at most 0.6 of the scalar loop.
-    # The harness times the two alternately for this ratio, so a load change hits both alike.
-    rows.append(RatioRow(label, "C core ÷ C floor (ratio to the scalar C loop)",
-                         ct[("sclerp_pairs", "core/floor")]["ratio"], 0.6))
-    py = Row(label, "ours Python", median_call(lambda: dq.sclerp(pa, pb, ptau)), N_PAIRS, "pair")
-    rows.append(py)
-    if pt3:
-        rows.append(Row(label, "pytransform3d", median_call(
-            lambda: ptr.dual_quaternions_sclerp(pa, pb, ptau)), N_PAIRS, "pair", py,
-            dev(ptr.dual_quaternions_sclerp(pa, pb, ptau), ours)))
-    if sp:
-        qa, ta = dq.to_pose(pa)
-        qb, tb = dq.to_pose(pb)
-        R, t = scipy_sclerp_pairs(Rotation, qa, ta, qb, tb, ptau)
-        rows.append(Row(label, "scipy", median_call(
-            lambda: scipy_sclerp_pairs(Rotation, qa, ta, qb, tb, ptau)), N_PAIRS, "pair", py,
-            dev(_dq_from_R_t(R, t), ours), note="slerp + lerp"))
-
-    # -- ScLERP from Python: one call
-    label = "ScLERP 1 call"
-    ours = dq.sclerp(a, b, 0.3)
-    py = Row(label, "ours Python", median_call(lambda: dq.sclerp(a, b, 0.3)),
-             target=(1e-6, "total"))
-    rows.append(py)
-    if pt3:
-        rows.append(Row(label, "pytransform3d", median_call(
-            lambda: pt.dual_quaternion_sclerp(a, b, 0.3)), ours=py,
-            dev_=dev(pt.dual_quaternion_sclerp(a, b, 0.3), ours)))
-    if sp:
-        rows.append(Row(label, "scipy", median_call(
-            lambda: scipy_sclerp_tau(Rotation, Slerp, a, b, np.array([0.3]))), ours=py,
-            dev_=dev(_dq_from_R_t(*scipy_sclerp_tau(Rotation, Slerp, a, b, np.array([0.3]))),
-                     ours), note="Slerp + lerp"))
-
-    # -- 100k batch from Python
-    tb_ = inp["taus_batch"]
-    ba, bb, bt = inp["batch_a"], inp["batch_b"], inp["batch_tau"]
-    label = f"ScLERP {N_BATCH // 1000}k batch, 1 pair"
-    ours = dq.sclerp(a, b, tb_)
-    py = Row(label, "ours Python", median_call(lambda: dq.sclerp(a, b, tb_)),
-             target=(5e-3, "total"))
-    rows.append(py)
-    if pt3:
-        A, B = np.broadcast_to(a, (N_BATCH, 8)), np.broadcast_to(b, (N_BATCH, 8))
-        rows.append(Row(label, "pytransform3d", median_call(
-            lambda: ptr.dual_quaternions_sclerp(A, B, tb_), 5), ours=py,
-            dev_=dev(ptr.dual_quaternions_sclerp(A, B, tb_), ours)))
-    label = f"ScLERP {N_BATCH // 1000}k batch, pairs"
-    ours = dq.sclerp(ba, bb, bt)
-    # No target: the issue's 100k batch is samples of one interpolation (the row above); here
-    # every pair is its own screw, and the kernel's own 60 ns per pair is its target.
-    py = Row(label, "ours Python", median_call(lambda: dq.sclerp(ba, bb, bt)))
-    rows.append(py)
-    if pt3:
-        rows.append(Row(label, "pytransform3d", median_call(
-            lambda: ptr.dual_quaternions_sclerp(ba, bb, bt), 5), ours=py,
-            dev_=dev(ptr.dual_quaternions_sclerp(ba, bb, bt), ours)))
-
-    # -- means
-    for m in (10, 1000):
-        q = inp[f"set{m}"]
-        label = f"DLB n={m}"
-        ours = dq.dlb(q)
-        core = crow(f"dlb{m}", "core", label, None, ours, f"dlb{m}",
-                    target=(50e-9, "total") if m == 10 else None)
-        crow(f"dlb{m}", "floor", label, None, ours, "-", core)
-        rows.append(Row(label, "ours Python", median_call(lambda: dq.dlb(q))))
-
-        res = dq.dib(q, return_info=True)
-        ours = res.mean
-        it = int(res.iterations)
-        label = f"DIB n={m} ({it} steps, {it + 1} passes)"
-        r = ct[(f"dib{m}", "core")]
-        # A pass is one log-sum over all poses; DIB takes `steps` steps and `steps + 1` passes.
-        passes = r["iters"] + 1
-        core = Row(label, "C core", r["seconds"], m * passes, "pose·pass",
-                   dev_=dev(co[f"dib{m}_core"], ours), target=(20e-9, "per"))
-        rows.append(core)
-        if m == 1000:
-            rows.append(Row(label, "C core", r["seconds"], 1, "call",
-                            dev_=dev(co[f"dib{m}_core"], ours), target=(125e-6, "total")))
-        rf = ct[(f"dib{m}", "floor")]
-        rows.append(Row(label, "C floor (scalar, libm per pose)", rf["seconds"],
-                        m * (rf["iters"] + 1), "pose·pass", core, dev(co[f"dib{m}_floor"], ours)))
-        py = Row(label, "ours Python", median_call(lambda: dq.dib(q)),
-                 target=(3e-6, "total") if m == 10 else None)
-        rows.append(py)
-        if pt3:
-            Ts = dq.to_matrix(q)
-            Tm, _ = pu.estimate_gaussian_transform_from_samples(Ts)
-            rows.append(Row(label, "pytransform3d", median_call(
-                lambda: pu.estimate_gaussian_transform_from_samples(Ts), 7), ours=py,
-                dev_=dev(dq.from_matrix(Tm), ours), note="Fréchet mean, 20 fixed steps"))
-        if sp:
-            qq, tt = dq.to_pose(q)
-            R, t = scipy_mean(Rotation, qq, tt)
-            rows.append(Row(label, "scipy", median_call(lambda: scipy_mean(Rotation, qq, tt)),
-                            ours=py, dev_=dev(_dq_from_R_t(R, t), ours),
-                            note="Rotation.mean + mean t"))
-
-    # -- conversions
-    cq = inp["conv_dq"]
-    Ts = dq.to_matrix(cq)
-    for op, fn, arg, ref, ptf in (
-            ("to_matrix", dq.to_matrix, cq, Ts, "transforms_from_dual_quaternions"),
-            ("from_matrix", dq.from_matrix, Ts, cq, "dual_quaternions_from_transforms")):
-        label = f"{op} ×{N_CONV}"
-        r = ct[(op, "core")]
-        rows.append(Row(label, "C core", r["seconds"], N_CONV, "pose"))
-        py = Row(label, "ours Python", median_call(lambda: fn(arg)), N_CONV, "pose")
-        rows.append(py)
-        if pt3:
-            f = getattr(ptr, ptf)
-            got = f(arg)
-            d = (np.abs(got - ref).max() if op == "to_matrix" else dev(got, ref))
-            rows.append(Row(label, "pytransform3d", median_call(lambda: f(arg)), N_CONV, "pose",
-                            py, float(d)))
-
+    run = _Run(inp, *run_harness(build_harness(), inp))
+    for rows in (sclerp_rows, sclerp_call_rows, mean_rows, conversion_rows):
+        rows(run)
     print(f"dqpose benchmarks — {platform.processor() or platform.machine()}, "
           f"{os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f}, Python "
           f"{platform.python_version()}, NumPy {np.__version__}; medians of {SAMPLES} samples")
-    print(render(rows))
+    print(render(run.rows))
 
     if args.plot:
-        plot(args.plot, a, b, pt3, sp)
+        plot(args.plot, inp["pair"][:8], inp["pair"][8:], run.pt3, run.sp)
 
 
 def plot(path, a, b, pt3, sp):

@@ -20,10 +20,8 @@ import shutil
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 import timeit
-from concurrent import futures
 
 import grpc
 import numpy as np
@@ -35,8 +33,12 @@ from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 from dqpose.rpc.blending import Blending
 from dqpose.rpc.geometry import pose_msgs, poses_to_dqs
 from dqpose.rpc.wire import decode_blend_request
+from tests.bench.grpc_servers import (  # noqa: F401 (FUSE_EVERY: other benchmarks import it here)
+    FUSE_EVERY,
+    ROOT,
+    ServerProcess,
+)
 
-ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 PROTO = os.path.join(ROOT, "proto")
 
 
@@ -69,142 +71,6 @@ def request_measured(seed: int = 0) -> pb.BlendRequest:
 def us_per_call(fn, n: int) -> float:
     fn()
     return min(timeit.repeat(fn, number=n, repeat=3)) / n * 1e6
-
-
-# --------------------------------------------------------------------------- servers
-
-class _SyncBlending(pb_grpc.BlendingServicer):
-    """The same adapter behind the threaded server, for comparison only."""
-
-    def __init__(self):
-        self.b = Blending()
-
-    def Blend(self, request, context):
-        try:
-            return self.b.blend(request)
-        except ValueError as e:
-            context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
-
-    def BlendStream(self, request_iterator, context):
-        for r in request_iterator:
-            yield self.b.blend(r)
-
-
-def serve_sync(port: int) -> None:
-    server = grpc.server(futures.ThreadPoolExecutor(max_workers=8),
-                         options=[("grpc.so_reuseport", 0)])
-    pb_grpc.add_BlendingServicer_to_server(_SyncBlending(), server)
-    from grpc_reflection.v1alpha import reflection
-    reflection.enable_server_reflection(("dqpose.v1.Blending", reflection.SERVICE_NAME), server)
-    port = server.add_insecure_port(f"127.0.0.1:{port}")
-    server.start()
-    print(json.dumps({"event": "serving", "address": f"127.0.0.1:{port}"}), file=sys.stderr,
-          flush=True)
-    server.wait_for_termination()
-
-
-FUSE_EVERY = 20     # bench_fusion_stream's scene: 100 answers/s at 2,000 messages/s
-
-
-def fused_reply():
-    """A FusedPose of the size bench_fusion_stream's answers have: 18 measurements with times."""
-    from dqpose import dq, fusion, lie
-    from dqpose.rpc.fusion_convert import fused_to_msg
-
-    rng = np.random.default_rng(0)
-    t = np.arange(18) * 0.005
-    Z = dq.mul(lie.se3_exp(rng.normal(size=6)), lie.se3_exp(t[:, None] * rng.normal(size=6)))
-    f = fusion.fuse(Z, np.broadcast_to(np.eye(6) * 1e-6, (18, 6, 6)), times=t)
-    msg = fused_to_msg(f, "body0", f.time)
-    msg.measurements.extend(range(18))
-    return msg
-
-
-def serve_echo(port: int) -> None:
-    """The transport ceiling: grpc.aio answering each BlendStream request with one fixed
-    pre-serialized reply, with the server's read-ahead but none of its work."""
-    import asyncio
-
-    import uvloop
-
-    reply = pb.BlendResponse(pose=request10().poses[0], iterations=3).SerializeToString()
-    fused = fused_reply()
-
-    async def stream(request_iterator, context):
-        pending: asyncio.Queue = asyncio.Queue(maxsize=64)
-
-        async def read():
-            while True:
-                r = await context.read()
-                await pending.put(r)
-                if r is grpc.aio.EOF:
-                    return
-        reader = asyncio.ensure_future(read())
-        try:
-            while await pending.get() is not grpc.aio.EOF:
-                await context.write(reply)
-        finally:
-            reader.cancel()
-
-    async def fuse_stream(request_iterator, context):
-        # StreamFuse's transport alone (bench_fusion_stream): requests taken as bytes and not
-        # read, one fused pose of a typical size after every FUSE_EVERY-th, naming it
-        r = 0
-        async for _ in request_iterator:
-            if r % FUSE_EVERY == FUSE_EVERY - 1:
-                fused.request = r
-                await context.write(fused.SerializeToString())
-            r += 1
-
-    async def run():
-        server = grpc.aio.server(options=[("grpc.so_reuseport", 0)])
-        handler = grpc.stream_stream_rpc_method_handler(stream)
-        server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(
-            "dqpose.v1.Blending", {"BlendStream": handler}),))
-        server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(
-            "dqpose.v1.Fusion", {"StreamFuse": grpc.stream_stream_rpc_method_handler(
-                fuse_stream)}),))
-        bound = server.add_insecure_port(f"127.0.0.1:{port}")
-        await server.start()
-        print(json.dumps({"event": "serving", "address": f"127.0.0.1:{bound}"}),
-              file=sys.stderr, flush=True)
-        await server.wait_for_termination()
-
-    uvloop.run(run())
-
-
-class ServerProcess:
-    def __init__(self, kind: str, quiet_log: bool, extra: tuple = ()):
-        if kind == "echo":
-            cmd = [sys.executable, "-m", "tests.bench.bench_grpc", "--serve-echo"]
-        elif kind == "aio":
-            cmd = [sys.executable, "-m", "dqpose.cli", "serve", "--port", "0", "--grace", "2",
-                   *(["--no-call-log"] if quiet_log else []), *extra]
-        else:
-            cmd = [sys.executable, "-m", "tests.bench.bench_grpc", "--serve-sync"]
-        self.log = tempfile.TemporaryFile("w+")
-        self.proc = subprocess.Popen(cmd, cwd=ROOT, stderr=subprocess.PIPE, text=True)
-        line = json.loads(self.proc.stderr.readline())
-        self.target = line["address"]
-        # Drain stderr (one log line per call) into a file so the pipe never blocks the server.
-        self._drain = threading.Thread(target=shutil.copyfileobj,
-                                       args=(self.proc.stderr, self.log), daemon=True)
-        self._drain.start()
-
-    def rss_mb(self) -> float:
-        with open(f"/proc/{self.proc.pid}/status") as f:
-            for line in f:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) / 1024
-        return float("nan")
-
-    def stop(self) -> int:
-        self.proc.terminate()
-        try:
-            return self.proc.wait(15)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            return self.proc.wait()
 
 
 # --------------------------------------------------------------------------- clients
@@ -389,40 +255,35 @@ def json_body(req: pb.BlendRequest) -> str:
 
 # --------------------------------------------------------------------------- main
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="smaller counts (~40 s)")
-    ap.add_argument("--server", choices=["aio", "sync"], default="aio")
-    ap.add_argument("--quiet-log", action="store_true", help="serve with --no-call-log")
-    ap.add_argument("--plot", metavar="PATH", help="also save the throughputs as a bar chart (PNG)")
-    ap.add_argument("--serve-sync", action="store_true", help=argparse.SUPPRESS)
-    ap.add_argument("--serve-echo", action="store_true", help=argparse.SUPPRESS)
-    args = ap.parse_args(argv)
-    if args.serve_sync:
-        serve_sync(0)
-        return 0
-    if args.serve_echo:
-        serve_echo(0)
-        return 0
+class _Table:
+    """The benchmark's one table, and for --plot each row's rate (blends or messages a second)."""
 
-    n1 = 3000 if args.quick else 10000
-    secs = 5.0 if args.quick else 10.0
-    n_stream = 20000 if args.quick else 50000
-    n_mem = 20000 if args.quick else 100000
+    def __init__(self) -> None:
+        self.rows: list[tuple[str, str, str, str, str]] = []
+        self.rates: dict[str, float] = {}
 
-    rows: list[tuple[str, str, str, str, str]] = []
-    rates: dict[str, float] = {}          # for --plot: blends (or messages) per second
-
-    def row(what, p50="", p99="", rate="", note=""):
-        rows.append((what, p50, p99, rate, note))
+    def row(self, what, p50="", p99="", rate="", note="") -> None:
+        self.rows.append((what, p50, p99, rate, note))
         if rate and not what[0].isdigit():          # not the memory row
-            rates[what.strip()] = float(rate.split()[0].rstrip("/s"))
+            self.rates[what.strip()] = float(rate.split()[0].rstrip("/s"))
 
-    def us(x):
-        return f"{x * 1e6:.0f} us"
+    def print(self) -> None:
+        head = ("what", "p50", "p99", "throughput", "note")
+        widths = [max(len(r[i]) for r in self.rows + [head]) for i in range(5)]
+        fmt = "| " + " | ".join(f"{{:{w}}}" for w in widths) + " |"
+        print(fmt.format(*head))
+        print("|" + "|".join("-" * (w + 2) for w in widths) + "|")
+        for r in self.rows:
+            print(fmt.format(*r))
 
-    # -- where the time goes, without transport
-    req = request10()
+
+def _us(x: float) -> str:
+    return f"{x * 1e6:.0f} us"
+
+
+def in_process_rows(t: _Table, req: pb.BlendRequest) -> float:
+    """Where the time of one Blend goes without transport; returns what the server runs per
+    Blend (us)."""
     dqs = poses_to_dqs(req.poses, "poses")
     core = us_per_call(lambda: dq.dib(dqs, None, 1e-12, 100, return_info=True), 2000)
     conv = us_per_call(lambda: poses_to_dqs(req.poses, "poses"), 2000)
@@ -433,124 +294,170 @@ def main(argv=None) -> int:
     b = Blending()
     adapter_bytes = us_per_call(lambda: b.blend_bytes(data), 2000)
     served = us_per_call(lambda: b.blend_wire(data), 2000)
-    row("C core: dq.dib of 10 poses", f"{core:.1f} us", note="in process")
-    row("message objects -> array (10 poses)", f"{conv:.1f} us", note="in process (fallback path)")
-    row("wire bytes -> arrays (10 poses, C)", f"{wire:.1f} us", note="in process (served path)")
-    row("adapter: Blending.blend(request)", f"{adapter:.1f} us",
-        note="from message objects, no transport")
-    row("adapter: Blending.blend_bytes(data)", f"{adapter_bytes:.1f} us",
-        note="full path (names errors), no transport")
-    row("adapter: Blending.blend_wire(data)", f"{served:.1f} us",
-        note="what the server runs per Blend: bytes to bytes in C")
-    row("protobuf parse of the request", f"{parse:.1f} us", note="in process")
+    t.row("C core: dq.dib of 10 poses", f"{core:.1f} us", note="in process")
+    t.row("message objects -> array (10 poses)", f"{conv:.1f} us",
+          note="in process (fallback path)")
+    t.row("wire bytes -> arrays (10 poses, C)", f"{wire:.1f} us", note="in process (served path)")
+    t.row("adapter: Blending.blend(request)", f"{adapter:.1f} us",
+          note="from message objects, no transport")
+    t.row("adapter: Blending.blend_bytes(data)", f"{adapter_bytes:.1f} us",
+          note="full path (names errors), no transport")
+    t.row("adapter: Blending.blend_wire(data)", f"{served:.1f} us",
+          note="what the server runs per Blend: bytes to bytes in C")
+    t.row("protobuf parse of the request", f"{parse:.1f} us", note="in process")
+    return served
 
+
+def _ghz_bodies(req: pb.BlendRequest) -> dict[str, str]:
+    """ghz's request files: one Blend (``unary``), a stream of them (``stream``), a stream of
+    measurements of one pose (``measured``)."""
+    bodies = {"unary": json_body(req),
+              "stream": "[" + ",".join(json_body(request10(i % 16))
+                                       for i in range(STREAM_LEN)) + "]",
+              "measured": "[" + ",".join(json_body(request_measured(i))
+                                         for i in range(STREAM_LEN)) + "]"}
+    paths = {}
+    for name, body in bodies.items():
+        with tempfile.NamedTemporaryFile("w", suffix=".json", delete=False) as f:
+            f.write(body)
+        paths[name] = f.name
+    return paths
+
+
+def unary_rows(t: _Table, target: str, n1: int, secs: float, exe, files, served: float) -> int:
+    """Blend from each kind of client; returns ghz's error count."""
+    lat = python_unary(target, n1)
+    p50, p99 = np.percentile(lat, [50, 99])
+    t.row("Blend 10 poses, 1 Python client", _us(p50), _us(p99), f"{1 / lat.mean():.0f}/s",
+          f"gRPC layer ~{p50 * 1e6 - served:.0f} us of the p50")
+    lat = client_unary(target, n1)
+    p50, p99 = np.percentile(lat, [50, 99])
+    t.row("Blend 10 poses, Client.blend", _us(p50), _us(p99), f"{1 / lat.mean():.0f}/s",
+          "the shipped client: (10, 8) array in, (8,) out")
+    errors = 0
+    if exe:
+        g1 = ghz(exe, target, 1, n1, files["unary"])
+        t.row("Blend 10 poses, 1 client (ghz)", _us(g1["p50"]), _us(g1["p99"]),
+              f"{g1['rps']:.0f}/s", f"errors {g1['errors'] or 0}")
+        g1p = ghz(exe, target, 1, n1, files["unary"], procs=1)
+        t.row("Blend 10 poses, 1 client (ghz, GOMAXPROCS=1)", _us(g1p["p50"]), _us(g1p["p99"]),
+              f"{g1p['rps']:.0f}/s", f"errors {g1p['errors'] or 0}; client on one thread")
+        g8 = ghz(exe, target, 8, int(n1 * 3), files["unary"])
+        t.row("Blend 10 poses, 8 clients (ghz)", _us(g8["p50"]), _us(g8["p99"]),
+              f"{g8['rps']:.0f}/s", f"errors {g8['errors'] or 0}")
+        errors += sum(sum(g["errors"].values()) for g in (g1, g1p, g8))
+    else:
+        t.row("ghz", note="not installed: go install github.com/bojand/ghz/cmd/ghz@latest")
+    rate8, lat8 = python_clients(target, 8, secs)
+    p50, p99 = np.percentile(lat8, [50, 99])
+    t.row("Blend 10 poses, 8 Python client processes", _us(p50), _us(p99), f"{rate8:.0f}/s",
+          "clients share the 2 cores with the server")
+    return errors
+
+
+def stream_rows(t: _Table, target: str, n_stream: int, exe, files) -> None:
+    """BlendStream from each kind of client."""
+    sr = python_stream(target, n_stream)
+    t.row("BlendStream 10 poses, 1 stream (Python)", rate=f"{sr:.0f} blends/s",
+          note=f"{n_stream} requests sent ahead")
+    cs = client_stream(target, n_stream)
+    t.row("BlendStream 10 poses, Client.blend_stream", rate=f"{cs:.0f} blends/s",
+          note=f"{n_stream} (dqs, None) pairs of (10, 8) arrays")
+    if exe:
+        gs = ghz_stream(exe, target, files["stream"], STREAM_LEN)
+        t.row("BlendStream 10 poses, 1 stream (ghz)", rate=f"{gs:.0f} blends/s",
+              note=f"20 streams of {STREAM_LEN} requests")
+        gs1 = ghz_stream(exe, target, files["stream"], STREAM_LEN, procs=1)
+        t.row("BlendStream 10 poses, 1 stream (ghz, GOMAXPROCS=1)", rate=f"{gs1:.0f} blends/s",
+              note="client on one thread")
+        gm1 = ghz_stream(exe, target, files["measured"], STREAM_LEN, procs=1)
+        t.row("BlendStream 10 measurements of one pose (ghz, GOMAXPROCS=1)",
+              rate=f"{gm1:.0f} blends/s", note="5 deg / 2 cm noise: DIB ~3 steps")
+
+
+def ceiling_rows(t: _Table, n_stream: int, exe, files) -> None:
+    """The same clients against a grpc.aio stream that does no work: the transport's ceiling."""
+    echo = ServerProcess("echo", True)
+    try:
+        er = python_stream(echo.target, n_stream)
+        t.row("  ceiling: grpc.aio fixed-reply stream (Python)", rate=f"{er:.0f} msgs/s",
+              note="same client, server does no work")
+        if exe:
+            eg = ghz_stream(exe, echo.target, files["stream"], STREAM_LEN)
+            t.row("  ceiling: grpc.aio fixed-reply stream (ghz)", rate=f"{eg:.0f} msgs/s",
+                  note="same client, server does no work")
+            eg1 = ghz_stream(exe, echo.target, files["stream"], STREAM_LEN, procs=1)
+            t.row("  ceiling: grpc.aio fixed-reply stream (ghz, GOMAXPROCS=1)",
+                  rate=f"{eg1:.0f} msgs/s", note="same client, server does no work")
+    finally:
+        echo.stop()
+
+
+def memory_row(t: _Table, srv: ServerProcess, n_mem: int, exe, files) -> int:
+    """The server's RSS over many calls; returns ghz's error count."""
+    errors = 0
+    rss0 = srv.rss_mb()
+    t0 = time.perf_counter()
+    if exe:
+        gm = ghz(exe, srv.target, 8, n_mem, files["unary"])
+        errors += sum(gm["errors"].values())
+        how = f"ghz, 8 clients, errors {gm['errors'] or 0}"
+    else:
+        python_unary(srv.target, n_mem)
+        how = "Python client"
+    dt = time.perf_counter() - t0
+    rss1 = srv.rss_mb()
+    t.row(f"{n_mem} Blend calls: server RSS", rate=f"{n_mem / dt:.0f}/s",
+          note=f"{rss0:.1f} -> {rss1:.1f} MB ({rss1 - rss0:+.1f} MB), {how}")
+    return errors
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="smaller counts (~40 s)")
+    ap.add_argument("--server", choices=["aio", "sync"], default="aio")
+    ap.add_argument("--quiet-log", action="store_true", help="serve with --no-call-log")
+    ap.add_argument("--plot", metavar="PATH", help="also save the throughputs as a bar chart (PNG)")
+    args = ap.parse_args(argv)
+
+    n1 = 3000 if args.quick else 10000
+    secs = 5.0 if args.quick else 10.0
+    n_stream = 20000 if args.quick else 50000
+    n_mem = 20000 if args.quick else 100000
+
+    t = _Table()
+    req = request10()
+    served = in_process_rows(t, req)
+    exe = find_tool("ghz")
+    files = _ghz_bodies(req) if exe else {}
     srv = ServerProcess(args.server, args.quiet_log)
     errors = 0
     try:
-        lat = python_unary(srv.target, n1)
-        p50, p99 = np.percentile(lat, [50, 99])
-        row("Blend 10 poses, 1 Python client", us(p50), us(p99), f"{1 / lat.mean():.0f}/s",
-            f"gRPC layer ~{p50 * 1e6 - served:.0f} us of the p50")
-        lat = client_unary(srv.target, n1)
-        p50, p99 = np.percentile(lat, [50, 99])
-        row("Blend 10 poses, Client.blend", us(p50), us(p99), f"{1 / lat.mean():.0f}/s",
-            "the shipped client: (10, 8) array in, (8,) out")
-        exe = find_tool("ghz")
-        if exe:
-            with tempfile.NamedTemporaryFile("w", suffix=".json", delete=False) as f:
-                f.write(json_body(req))
-            g1 = ghz(exe, srv.target, 1, n1, f.name)
-            row("Blend 10 poses, 1 client (ghz)", us(g1["p50"]), us(g1["p99"]),
-                f"{g1['rps']:.0f}/s", f"errors {g1['errors'] or 0}")
-            g1p = ghz(exe, srv.target, 1, n1, f.name, procs=1)
-            row("Blend 10 poses, 1 client (ghz, GOMAXPROCS=1)", us(g1p["p50"]), us(g1p["p99"]),
-                f"{g1p['rps']:.0f}/s", f"errors {g1p['errors'] or 0}; client on one thread")
-            g8 = ghz(exe, srv.target, 8, int(n1 * 3), f.name)
-            row("Blend 10 poses, 8 clients (ghz)", us(g8["p50"]), us(g8["p99"]),
-                f"{g8['rps']:.0f}/s", f"errors {g8['errors'] or 0}")
-            errors += sum(sum(g["errors"].values()) for g in (g1, g1p, g8))
-        else:
-            row("ghz", note="not installed: go install github.com/bojand/ghz/cmd/ghz@latest")
-        rate8, lat8 = python_clients(srv.target, 8, secs)
-        p50, p99 = np.percentile(lat8, [50, 99])
-        row("Blend 10 poses, 8 Python client processes", us(p50), us(p99), f"{rate8:.0f}/s",
-            "clients share the 2 cores with the server")
-        sr = python_stream(srv.target, n_stream)
-        row("BlendStream 10 poses, 1 stream (Python)", rate=f"{sr:.0f} blends/s",
-            note=f"{n_stream} requests sent ahead")
-        cs = client_stream(srv.target, n_stream)
-        row("BlendStream 10 poses, Client.blend_stream", rate=f"{cs:.0f} blends/s",
-            note=f"{n_stream} (dqs, None) pairs of (10, 8) arrays")
-        if exe:
-            with tempfile.NamedTemporaryFile("w", suffix=".json", delete=False) as fs:
-                fs.write("[" + ",".join(json_body(request10(i % 16))
-                                        for i in range(STREAM_LEN)) + "]")
-            gs = ghz_stream(exe, srv.target, fs.name, STREAM_LEN)
-            row("BlendStream 10 poses, 1 stream (ghz)", rate=f"{gs:.0f} blends/s",
-                note=f"20 streams of {STREAM_LEN} requests")
-            gs1 = ghz_stream(exe, srv.target, fs.name, STREAM_LEN, procs=1)
-            row("BlendStream 10 poses, 1 stream (ghz, GOMAXPROCS=1)", rate=f"{gs1:.0f} blends/s",
-                note="client on one thread")
-            with tempfile.NamedTemporaryFile("w", suffix=".json", delete=False) as fm:
-                fm.write("[" + ",".join(json_body(request_measured(i))
-                                        for i in range(STREAM_LEN)) + "]")
-            gm1 = ghz_stream(exe, srv.target, fm.name, STREAM_LEN, procs=1)
-            row("BlendStream 10 measurements of one pose (ghz, GOMAXPROCS=1)",
-                rate=f"{gm1:.0f} blends/s", note="5 deg / 2 cm noise: DIB ~3 steps")
-        # The same client against a grpc.aio stream that does no work: the transport's ceiling.
-        echo = ServerProcess("echo", True)
-        try:
-            er = python_stream(echo.target, n_stream)
-            row("  ceiling: grpc.aio fixed-reply stream (Python)", rate=f"{er:.0f} msgs/s",
-                note="same client, server does no work")
-            if exe:
-                eg = ghz_stream(exe, echo.target, fs.name, STREAM_LEN)
-                row("  ceiling: grpc.aio fixed-reply stream (ghz)", rate=f"{eg:.0f} msgs/s",
-                    note="same client, server does no work")
-                eg1 = ghz_stream(exe, echo.target, fs.name, STREAM_LEN, procs=1)
-                row("  ceiling: grpc.aio fixed-reply stream (ghz, GOMAXPROCS=1)",
-                    rate=f"{eg1:.0f} msgs/s", note="same client, server does no work")
-        finally:
-            echo.stop()
+        errors += unary_rows(t, srv.target, n1, secs, exe, files, served)
+        stream_rows(t, srv.target, n_stream, exe, files)
+        ceiling_rows(t, n_stream, exe, files)
         if args.server == "aio":
             br = python_batch(srv.target, n_stream)
-            row("BlendBatch 10 poses x 500 per call, 1 client", rate=f"{br:.0f} blends/s",
-                note="many blends per message")
+            t.row("BlendBatch 10 poses x 500 per call, 1 client", rate=f"{br:.0f} blends/s",
+                  note="many blends per message")
             cb = client_batch(srv.target)
-            row("BlendBatch 10 poses, Client.blend_batch", rate=f"{cb:.0f} blends/s",
-                note="(20000, 10, 8) array in, (20000, 8) out; split in 4 MiB calls")
-        # -- memory over many calls
-        rss0 = srv.rss_mb()
-        t0 = time.perf_counter()
-        if exe:
-            gm = ghz(exe, srv.target, 8, n_mem, f.name)
-            errors += sum(gm["errors"].values())
-            how = f"ghz, 8 clients, errors {gm['errors'] or 0}"
-        else:
-            lat = python_unary(srv.target, n_mem)
-            how = "Python client"
-        dt = time.perf_counter() - t0
-        rss1 = srv.rss_mb()
-        row(f"{n_mem} Blend calls: server RSS", rate=f"{n_mem / dt:.0f}/s",
-            note=f"{rss0:.1f} -> {rss1:.1f} MB ({rss1 - rss0:+.1f} MB), {how}")
+            t.row("BlendBatch 10 poses, Client.blend_batch", rate=f"{cb:.0f} blends/s",
+                  note="(20000, 10, 8) array in, (20000, 8) out; split in 4 MiB calls")
+        errors += memory_row(t, srv, n_mem, exe, files)
     finally:
         rc = srv.stop()
-    row("server exit code after SIGTERM", note=str(rc))
+        for path in files.values():
+            os.unlink(path)
+    t.row("server exit code after SIGTERM", note=str(rc))
 
     load = os.getloadavg()
     print(f"\ngRPC benchmark ({args.server} server, per-call log "
           f"{'off' if args.quiet_log else 'on'}; loopback; {os.cpu_count()} CPUs, load average "
           f"{load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f})\n")
-    head = ("what", "p50", "p99", "throughput", "note")
-    widths = [max(len(r[i]) for r in rows + [head]) for i in range(5)]
-    fmt = "| " + " | ".join(f"{{:{w}}}" for w in widths) + " |"
-    print(fmt.format(*head))
-    print("|" + "|".join("-" * (w + 2) for w in widths) + "|")
-    for r in rows:
-        print(fmt.format(*r))
+    t.print()
     if args.plot:
-        plot(args.plot, rates, f"{os.cpu_count()} CPUs, loopback, call log "
-                               f"{'off' if args.quiet_log else 'on'}")
+        plot(args.plot, t.rates, f"{os.cpu_count()} CPUs, loopback, call log "
+                                 f"{'off' if args.quiet_log else 'on'}")
     return 1 if errors else 0
 
 

@@ -14,6 +14,7 @@ import pytest
 from dqpose import dq, lie
 from tests import _handeye
 from tests.bench import bench_handeye as bench
+from tests.bench import handeye_opencv
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -57,7 +58,7 @@ def test_opencv_conventions_on_exact_data(opencv4, setup, geometry):
 def test_opencv_environment_offline_says_so(tmp_path, monkeypatch):
     """No package index: a clear error naming the environment and the way around it, not a
     traceback from pip."""
-    monkeypatch.setattr(bench, "OPENCV_ENV", tmp_path / "opencv4")
+    monkeypatch.setattr(handeye_opencv, "OPENCV_ENV", tmp_path / "opencv4")
     monkeypatch.setenv("PIP_INDEX_URL", "http://127.0.0.1:9/simple")   # nothing listens there
     monkeypatch.setenv("PIP_FIND_LINKS", "")
     with pytest.raises(bench.OpenCVUnavailable) as e:

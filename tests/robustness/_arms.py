@@ -188,6 +188,25 @@ def served_rigs(**rig_options):
             r.close()
 
 
+@pytest.fixture(scope="module")
+def rigs():
+    """:func:`served_rigs` for a module's tests (import it with :func:`rig`)."""
+    with served_rigs() as made:
+        yield made
+
+
+@pytest.fixture(params=list(RIGS))
+def rig(rigs, request):
+    """Each arm in turn, reset: ``(rig, a Client of the server, the server)``."""
+    from dqpose.rpc.client import Client
+
+    by_name, server = rigs
+    r = by_name[request.param]
+    r.reset()
+    with Client(server.target) as c:
+        yield r, c, server
+
+
 def block(server) -> threading.Event:
     """Holds the server's event loop (a handler that never yields, as a hung server would)
     until the returned event is set."""

@@ -18,34 +18,19 @@ import time
 import pytest
 
 from dqpose.rpc.client import Client, RpcError
-from tests.robustness._arms import (
+from tests.robustness._arms import (  # noqa: F401 (rigs: rig's fixture)
     LIMITS,
-    RIGS,
     SLOW,
     STALE_AFTER,
     URRig,
     block,
     distance,
     offset,
+    rig,
+    rigs,
     serve,
-    served_rigs,
     wait_until,
 )
-
-
-@pytest.fixture(scope="module")
-def rigs():
-    with served_rigs() as made:
-        yield made
-
-
-@pytest.fixture(params=list(RIGS))
-def rig(rigs, request):
-    by_name, server = rigs
-    r = by_name[request.param]
-    r.reset()
-    with Client(server.target) as c:
-        yield r, c, server
 
 
 def _run(it):

@@ -12,8 +12,8 @@ from multiprocessing.connection import wait
 
 import pytest
 
-from dqpose.rpc.client import Client, RpcError
-from tests.robustness._arms import RIGS, SLOW, distance, offset, served_rigs
+from dqpose.rpc.client import RpcError
+from tests.robustness._arms import SLOW, distance, offset, rig, served_rigs  # noqa: F401 (rig: a fixture)
 
 
 @pytest.fixture(scope="module")
@@ -21,15 +21,6 @@ def rigs():
     # each test kills an arm's process: it is opened again at once (not once per 5 s)
     with served_rigs(reopen_every=0.0) as made:
         yield made
-
-
-@pytest.fixture(params=list(RIGS))
-def rig(rigs, request):
-    by_name, server = rigs
-    r = by_name[request.param]
-    r.reset()
-    with Client(server.target) as c:
-        yield r, c
 
 
 def _kill(arm) -> int:
@@ -58,7 +49,7 @@ def _reports(state, r) -> None:
 
 
 def test_an_execute_whose_arm_process_dies_ends_unavailable_and_the_arm_serves_on(rig):
-    r, c = rig
+    r, c, _ = rig
     it = c.execute(r.name, [r.home, offset(r.home, dx=0.06)], SLOW)
     assert next(it).state == "WORKING"
     pid = _kill(r.arm)
@@ -78,7 +69,7 @@ def test_an_execute_whose_arm_process_dies_ends_unavailable_and_the_arm_serves_o
 
 
 def test_an_arm_whose_process_died_at_rest_takes_the_next_execute(rig):
-    r, c = rig
+    r, c, _ = rig
     pid = _kill(r.arm)
     # the next Execute opens the arm again and runs to its end; GetArm reports the arm
     got, err = _run(c.execute(r.name, [r.home, offset(r.home, dz=0.005)], SLOW))

@@ -12,22 +12,14 @@ import pytest
 from dqpose.rpc.arms import MAX_WATCH_HZ, MAX_WATCHERS
 from dqpose.rpc.client import Client, InvalidArgument, RpcError
 from tests._polling import wait_until
-from tests.robustness._arms import RIGS, SLOW, distance, offset, serve, served_rigs
-
-
-@pytest.fixture(scope="module")
-def rigs():
-    with served_rigs() as made:
-        yield made
-
-
-@pytest.fixture(params=list(RIGS))
-def rig(rigs, request):
-    by_name, server = rigs
-    r = by_name[request.param]
-    r.reset()
-    with Client(server.target) as c:
-        yield r, c, server
+from tests.robustness._arms import (  # noqa: F401 (rigs: rig's fixture)
+    SLOW,
+    distance,
+    offset,
+    rig,
+    rigs,
+    serve,
+)
 
 
 def _off_path(pose, start, goal) -> float:
