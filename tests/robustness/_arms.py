@@ -207,6 +207,19 @@ def rig(rigs, request):
         yield r, c, server
 
 
+def run_out(it):
+    """The records of an Execute iterator ``it`` and the RpcError it ended with (None: OK)."""
+    from dqpose.rpc.client import RpcError
+
+    got = []
+    try:
+        for fb in it:
+            got.append(fb)
+    except RpcError as e:
+        return got, e
+    return got, None
+
+
 def block(server) -> threading.Event:
     """Holds the server's event loop (a handler that never yields, as a hung server would)
     until the returned event is set."""

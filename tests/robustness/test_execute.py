@@ -28,20 +28,10 @@ from tests.robustness._arms import (  # noqa: F401 (rigs: rig's fixture)
     offset,
     rig,
     rigs,
+    run_out,
     serve,
     wait_until,
 )
-
-
-def _run(it):
-    """The records of an Execute and the error it ended with (None: OK)."""
-    got = []
-    try:
-        for fb in it:
-            got.append(fb)
-    except RpcError as e:
-        return got, e
-    return got, None
 
 
 def test_limits_above_the_arms_are_refused_before_it_moves(rig):
@@ -61,7 +51,7 @@ def test_a_protective_stop_ends_the_call_aborted_after_a_record_that_says_so(rig
     it = c.execute(r.name, [r.home, offset(r.home, dx=0.06)], SLOW)
     assert next(it).state == "WORKING"
     r.fault()
-    got, err = _run(it)
+    got, err = run_out(it)
     assert err is not None and err.code.name == "ABORTED", got[-1:]
     assert got[-1].state == "PROTECTIVE_STOP" and err.feedback is got[-1]
     assert err.details == f"PROTECTIVE_STOP: {got[-1].message}" and got[-1].message
@@ -73,13 +63,13 @@ def test_lost_data_fails_that_call_unavailable_and_the_next_one_works(rig):
     it = c.execute(r.name, [r.home, offset(r.home, dx=0.06)], SLOW)
     assert next(it).state == "WORKING"
     r.lose_data(2 * STALE_AFTER)
-    got, err = _run(it)
+    got, err = run_out(it)
     assert err is not None and err.code.name == "UNAVAILABLE", got[-1:]
     assert got[-1].state == "ERROR" and err.details == f"ERROR: {got[-1].message}"
     # at once, while the data is still stale: no plan from a pose that is not the arm's
     assert _settled(r, quiet=0.1)       # the stop's own last command in
     sent = r.setpoints()
-    _, err = _run(c.execute(r.name, [offset(r.home, dz=0.01)], LIMITS, from_current=True))
+    _, err = run_out(c.execute(r.name, [offset(r.home, dz=0.01)], LIMITS, from_current=True))
     assert err is not None and err.code.name == "FAILED_PRECONDITION", err
     assert err.details.startswith(f"from_current: arm {r.name!r} "), err.details
     assert r.setpoints() == sent
@@ -88,7 +78,7 @@ def test_lost_data_fails_that_call_unavailable_and_the_next_one_works(rig):
     assert wait_until(lambda: c.get_arm(r.name).faults == () and not r.moving(), timeout=5)
     assert c.health() == "SERVING"
     here = c.get_arm(r.name).pose
-    got, err = _run(c.execute(r.name, [offset(here, dz=0.01)], LIMITS, from_current=True))
+    got, err = run_out(c.execute(r.name, [offset(here, dz=0.01)], LIMITS, from_current=True))
     assert err is None and got[-1].state == "FINISHED"
     assert c.get_arm(r.name).state == "FINISHED"
 
@@ -101,7 +91,7 @@ def test_an_execute_right_after_a_cancel_waits_for_the_arm(rig):
         assert next(it).state == "WORKING"
         it.close()              # cancels; the arm brakes
         # at once: the server waits for the arm to be free and at rest, then starts from there
-        got, err = _run(c.execute(r.name, [offset(r.home, dz=0.005)], LIMITS,
+        got, err = run_out(c.execute(r.name, [offset(r.home, dz=0.005)], LIMITS,
                                   from_current=True))
         assert err is None, err
         assert got[-1].state == "FINISHED"
@@ -127,7 +117,7 @@ def test_a_hung_server_loop_stops_the_arm_by_itself(rig, cancel):
     assert stopped, "the arm kept moving while the server's loop was held"
     assert distance(where, goal) > 0.05         # stopped early, not at the plan's end
     if not cancel:
-        got, err = _run(it)
+        got, err = run_out(it)
         assert err is not None and err.code.name == "ABORTED"
         assert got[-1].state == "STALLED" and "heartbeat" in got[-1].message
     assert wait_until(lambda: not c.get_arm(r.name).busy, timeout=5)
@@ -156,7 +146,7 @@ def test_a_tracking_error_stops_the_arm_aborted():
     try:
         r.reset()
         with serve([r]) as server, Client(server.target) as c:
-            got, err = _run(c.execute(r.name, [r.home, offset(r.home, dx=0.15)], LIMITS))
+            got, err = run_out(c.execute(r.name, [r.home, offset(r.home, dx=0.15)], LIMITS))
             assert err is not None and err.code.name == "ABORTED", got[-1:]
             assert got[-1].state == "TRACKING_ERROR" and "max_tracking" in got[-1].message
             assert c.get_arm(r.name).state == "TRACKING_ERROR"
@@ -170,7 +160,7 @@ def test_a_plan_that_leaves_the_workspace_ends_limited_aborted():
     try:
         r.reset()
         with serve([r]) as server, Client(server.target) as c:
-            got, err = _run(c.execute(r.name, [r.home, offset(r.home, dx=0.05)], LIMITS))
+            got, err = run_out(c.execute(r.name, [r.home, offset(r.home, dx=0.05)], LIMITS))
             assert err is not None and err.code.name == "ABORTED", got[-1:]
             # the box's edge, or on a starved machine a late set-point's speed: a limit either way
             assert got[-1].state == "LIMITED" and "limits." in got[-1].message, got[-1].message
@@ -195,7 +185,7 @@ def test_an_execute_right_after_a_cancel_is_never_internal(rig):
         first = next(it)
         assert first.state == "WORKING", first.message
         it.close()
-        got, err = _run(c.execute(r.name, [here, offset(here, dz=0.005)], LIMITS))
+        got, err = run_out(c.execute(r.name, [here, offset(here, dz=0.005)], LIMITS))
         if err is None:
             assert got[-1].state == "FINISHED"
         else:

@@ -12,8 +12,14 @@ from multiprocessing.connection import wait
 
 import pytest
 
-from dqpose.rpc.client import RpcError
-from tests.robustness._arms import SLOW, distance, offset, rig, served_rigs  # noqa: F401 (rig: a fixture)
+from tests.robustness._arms import (  # noqa: F401 (rig: a fixture)
+    SLOW,
+    distance,
+    offset,
+    rig,
+    run_out,
+    served_rigs,
+)
 
 
 @pytest.fixture(scope="module")
@@ -31,16 +37,6 @@ def _kill(arm) -> int:
     return old.pid
 
 
-def _run(it):
-    got = []
-    try:
-        for fb in it:
-            got.append(fb)
-    except RpcError as e:
-        return got, e
-    return got, None
-
-
 def _reports(state, r) -> None:
     """GetArm's answer is the arm's: where it stands, no fault, its own limits."""
     assert state.faults == (), state.faults
@@ -53,7 +49,7 @@ def test_an_execute_whose_arm_process_dies_ends_unavailable_and_the_arm_serves_o
     it = c.execute(r.name, [r.home, offset(r.home, dx=0.06)], SLOW)
     assert next(it).state == "WORKING"
     pid = _kill(r.arm)
-    got, err = _run(it)
+    got, err = run_out(it)
     assert err is not None and err.code.name == "UNAVAILABLE", got[-1:]
     assert [f.state for f in got[:-1]] == ["WORKING"] * (len(got) - 1)
     assert got[-1].state == "ERROR" and err.details == f"ERROR: {got[-1].message}"
@@ -64,7 +60,7 @@ def test_an_execute_whose_arm_process_dies_ends_unavailable_and_the_arm_serves_o
     state = c.get_arm(r.name)
     _reports(state, r)
     assert state.state == "ERROR" and not state.busy and r.arm.pid != pid
-    got, err = _run(c.execute(r.name, [offset(state.pose, dz=0.005)], SLOW, from_current=True))
+    got, err = run_out(c.execute(r.name, [offset(state.pose, dz=0.005)], SLOW, from_current=True))
     assert err is None and got[-1].state == "FINISHED", got[-1:]
 
 
@@ -72,7 +68,7 @@ def test_an_arm_whose_process_died_at_rest_takes_the_next_execute(rig):
     r, c, _ = rig
     pid = _kill(r.arm)
     # the next Execute opens the arm again and runs to its end; GetArm reports the arm
-    got, err = _run(c.execute(r.name, [r.home, offset(r.home, dz=0.005)], SLOW))
+    got, err = run_out(c.execute(r.name, [r.home, offset(r.home, dz=0.005)], SLOW))
     assert err is None and got[-1].state == "FINISHED", (got[-1:], err)
     assert r.arm.pid != pid
     state = c.get_arm(r.name)
