@@ -41,8 +41,10 @@ class URRig:
         self.sim = ursim.URSimProcess(args=("--max-linear-speed", "5"))
         self.home = np.array([0.4, -0.1, 0.3, 2.2, 2.2, 0.0])
         self.process = process
+        # watchdog 0.5 s: a loaded machine can pause this test's servo loop past 0.2 s, which
+        # stops the stream and measures the next set-point from rest (not what is tested here)
         self.arm = drivers.open_arm(f"ur:{self.sim.host}", process=process, limits=LIMITS,
-                                    watchdog=0.2, tracking_lag=TRACKING_LAG, **arm_options)
+                                    watchdog=0.5, tracking_lag=TRACKING_LAG, **arm_options)
 
     def reset(self):
         self.arm.stop()
@@ -83,7 +85,7 @@ class PiperRig:
         self.home = self.sim.pose
         # generous timeouts: the test machine is shared and Python threads get starved
         self.process = process
-        self.arm = drivers.open_arm(f"piper:{interface}:{channel}?watchdog=0.2&stale_after=0.5"
+        self.arm = drivers.open_arm(f"piper:{interface}:{channel}?watchdog=0.5&stale_after=0.5"
                                     f"&tracking_lag={TRACKING_LAG}", process=process,
                                     limits=LIMITS)
         self.arm.wait_for_feedback(2.0)
@@ -115,9 +117,9 @@ class PiperRig:
 @pytest.fixture(scope="module", params=["ur", "piper", "ur-process"])
 def rig(request):
     process = request.param.endswith("-process")
-    # an arm's own process is one more on a shared machine: a 0.1 s hiccup is no fault there
-    r = URRig(process, **({"stale_after": 0.5} if process else {})) \
-        if request.param.startswith("ur") else PiperRig(process)
+    # a shared, loaded test machine pauses the simulator for longer than the UR's default
+    # 0.1 s now and then: no fault there (the default itself: tests/drivers/test_spec.py)
+    r = URRig(process, stale_after=0.5) if request.param.startswith("ur") else PiperRig(process)
     yield r
     r.close()
 
@@ -155,8 +157,9 @@ def _same(a, b) -> bool:
 
 def test_stream_within_the_limits_is_sent_unchanged(rig, arm):
     sent = _stream(arm)
+    # the last set-points may still be on their way to a simulator the machine's load slows
+    assert wait_until(lambda: len(rig.received()) >= len(sent))
     got = rig.received()[:len(sent)]
-    assert len(got) == len(sent)
     assert all(_same(a, b) for a, b in zip(got, sent))
     assert wait_until(lambda: _same(arm.tool_pose()[1], sent[-1]))
     assert arm.status().ok
@@ -306,6 +309,6 @@ def test_state_says_where_the_arm_is_and_that_it_rests(arm):
 
 
 def test_the_spec_keys_reach_the_arm(rig, arm):
-    assert arm.stale_after == (0.5 if isinstance(rig, PiperRig) or rig.process else 0.1)
+    assert arm.stale_after == 0.5
     assert arm.options["max_tracking"] == arm.max_tracking == 0.005
     assert set(arm.options) == set(drivers.ARM_KEYS)
