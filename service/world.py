@@ -316,16 +316,18 @@ class World:
 
     def _known(self, body) -> None:
         body = _body_name(body)
-        if body not in self._t.bodies:
+        if not self._t.has(body):
             some = list(self._t.bodies)[:5]
             raise NotFound(f"body: {body!r} is not in the world (" + (
                 f"{len(self._t.bodies)} bodies: {', '.join(map(repr, some))}"
                 + (", ..." if len(self._t.bodies) > 5 else "") if some else "no bodies yet")
                 + ")")
 
-    def _fit(self, body: str, time: Optional[float]) -> Fused:
+    def _fit(self, body: str, time: Optional[float], nis: bool = True) -> Fused:
         """``body``'s fit at ``time`` from the measurements taken within ``window`` of it (the
-        lock held), or ``OutOfRange`` naming what is known."""
+        lock held), or ``OutOfRange`` naming what is known. Without ``nis`` (a Lookup, which
+        answers the pose and its covariance) the fit may leave out the leave-one-out NIS
+        (:meth:`Tracker.estimate_ids`); a kept fit with them serves both."""
         self._known(body)
         t = self._t
         newest = t.newest(body)
@@ -338,9 +340,10 @@ class World:
         key = (body, at)
         hit = self._fits.get(key)
         version = self._version.get(body, 0)
-        if hit is not None and hit[0] == version:      # no new data: it was in range then
-            return hit[1]
-        oldest = t.oldest(body)
+        if hit is not None and hit[0] == version and (hit[2] or not nis):
+            return hit[1]       # no new data: it was in range then
+        window = self.options.window
+        oldest, rows = t.near_rows(body, at, window)
         known = f"{body!r} is known from {_s(oldest)} to {_s(newest)}"
         if at < oldest:
             raise OutOfRange(f"time: {_s(at)} is before the oldest measurement kept; {known} "
@@ -349,15 +352,14 @@ class World:
         if limit is not None and at > newest + limit:
             raise OutOfRange(f"time: {_s(at)} is {at - newest:.6g} s past the newest "
                              f"measurement, beyond max_extrapolation {limit:g} s; {known}")
-        window = self.options.window
-        if not t.near(body, at, window):
+        if not len(rows):
             raise OutOfRange(f"time: no measurement of {body!r} within the window "
                              f"{window:g} s of {_s(at)}; {known}")
         try:
-            f = t.estimate_ids(body, at, window)[0]
+            f = t.estimate_rows(rows, at, nis)[0]
         except ValueError as e:
             raise OutOfRange(f"{e}; {known}") from None
-        _keep(self._fits, key, (version, f))
+        _keep(self._fits, key, (version, f, nis))
         return f
 
     def pose(self, body: str, time: Optional[float] = None) -> BodyPose:
@@ -388,7 +390,7 @@ class World:
                 return BodyPose(source, 0.0, ident, np.zeros((DOF, DOF)), None)
             if target == source:
                 if target:
-                    self._fit(target, at)   # known at that time
+                    self._fit(target, at, nis=False)   # known at that time
                 return BodyPose(source, at, np.array([1.0, 0, 0, 0, 0, 0, 0, 0]),
                                 np.zeros((DOF, DOF)), None)
             key = (target, source, at)
@@ -396,7 +398,7 @@ class World:
             hit = self._relatives.get(key)
             if hit is not None and hit[0] == versions:
                 return hit[1]
-            fits = {b: self._fit(b, at) for b in (target, source) if b}
+            fits = {b: self._fit(b, at, nis=False) for b in (target, source) if b}
             if target and source and self._share(fits[target], fits[source]):
                 (Xa, Xb), P = self._t.joint([target, source], [fits[target], fits[source]],
                                             at, self.options.window)

@@ -293,10 +293,13 @@ static int motion_leave_one_out(const dq_motion_model *m, const double *V, const
 
 /* Gauss-Newton from out's X, V, ell over the selected measurements (motion.h), updated in place;
  * *slot is the workspace slot left holding the inliers' r, e at the estimate. The solver's
- * dim-sized arrays follow the measurements' blocks in work. */
+ * dim-sized arrays follow the measurements' blocks in work. A step shorter than tol is not
+ * taken (fusion.c's rule): the estimate is then the point it was solved at, so *current = 1
+ * says that the information H (priors included, mirrored) and the inliers' compact Jacobians
+ * in their blocks are at the estimate, and need not be computed again. */
 static int motion_solve(const double *z, const unsigned char *inlier, size_t n,
                         const dq_motion_model *m, const dq_fuse_params *p, double *work,
-                        size_t stride, int dim, dq_motion_fitted *out, int *slot)
+                        size_t stride, int dim, dq_motion_fitted *out, int *slot, int *current)
 {
     const int off = m->twist ? 12 : 6, k = (int)m->k;
     double *H = work + stride * n, *Lh = H + dim * dim, *g = Lh + dim * dim, *delta = g + dim;
@@ -318,6 +321,12 @@ static int motion_solve(const double *z, const unsigned char *inlier, size_t n,
         double step = 0.0;
         for (int j = 0; j < dim; j++) step += delta[j] * delta[j];
         step = sqrt(step);
+        if (step < p->tol) {
+            out->status = DQ_FUSE_CONVERGED;
+            out->iterations = it;
+            *current = 1;
+            break;
+        }
         double Xn[8], Vn[6], total_new = total;
         for (int h = 0; h < DQ_FUSE_MAX_HALVINGS; h++) {
             double half[6], E[8], P[8];
@@ -370,14 +379,21 @@ int dq_motion_fit(const double *z, const double *cov, const unsigned char *inlie
     for (int j = 0; j < 8; j++) X[j] = start[j];
     for (int j = 0; j < 6; j++) V[j] = 0.0;
     for (int j = 0; j < k; j++) ell[j] = m->prior[j];
-    int ro, rc = motion_solve(z, inlier, n, m, p, work, stride, dim, out, &ro);
+    int ro, current = 0, rc = motion_solve(z, inlier, n, m, p, work, stride, dim, out, &ro,
+                                           &current);
     if (rc) return rc;
     /* Everything at the estimate: the others' residuals (the inliers' are in slot ro), every
-     * Jacobian, the inliers' information with the priors'. */
+     * Jacobian, the inliers' information with the priors' (the solver's last when it is at the
+     * estimate: then only the others' Jacobians are new). */
     motion_evaluate(X, V, ell, z, m, work, stride, n, inlier, 0, ro);
-    motion_linearize(m, V, work, stride, n, inlier, 1, ro, dim, H, g, per->G);
-    motion_prior_terms(m, V, ell, dim, H, g);
-    dq_mirror(H, dim);
+    if (current && !per->G) {
+        for (size_t i = 0; i < n; i++)
+            if (!dq_selected(inlier, i)) motion_jacobian(m, V, i, work + stride * i, ro, dim, NULL);
+    } else {
+        motion_linearize(m, V, work, stride, n, inlier, 1, ro, dim, H, g, per->G);
+        motion_prior_terms(m, V, ell, dim, H, g);
+        dq_mirror(H, dim);
+    }
     double chi2 = motion_prior_cost(m, V, ell);
     for (size_t i = 0; i < n; i++) {
         const double *s = work + stride * i + ro, *e = s + S_E;
