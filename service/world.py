@@ -399,7 +399,10 @@ class World:
             if hit is not None and hit[0] == versions:
                 return hit[1]
             fits = {b: self._fit(b, at, nis=False) for b in (target, source) if b}
-            if target and source and self._share(fits[target], fits[source]):
+            if not target:      # the world frame is exact: the body's own fit
+                f = fits[source]
+                answer = BodyPose(source, at, f.mean, f.covariance, None)
+            elif source and self._share(fits[target], fits[source]):
                 (Xa, Xb), P = self._t.joint([target, source], [fits[target], fits[source]],
                                             at, self.options.window)
                 answer = BodyPose(source, at, _frozen(dq.mul(dq.conj(Xa), Xb)),

@@ -357,6 +357,32 @@ static int motion_solve(const double *z, const unsigned char *inlier, size_t n,
     return DQ_OK;
 }
 
+/* Where the twist starts: the motion between the inliers taken first and last,
+ * Log(Z_a^-1 Z_b) / (t_b - t_a) (exact for a constant twist without noise), when their
+ * rotation is within a quarter turn (beyond, the logarithm could take the short way round a
+ * faster spin); else (or with one instant) at rest. */
+static void motion_twist_start(const double *z, const unsigned char *inlier, size_t n,
+                               const dq_motion_model *m, double *V)
+{
+    size_t a = n, b = n;
+    double ta = INFINITY, tb = -INFINITY;
+    for (size_t i = 0; i < n; i++) {
+        if (!dq_selected(inlier, i)) continue;
+        double t = m->stamp[i] - (m->slot[i] >= 0 ? m->prior[m->slot[i]] : m->latency[i]);
+        if (t < ta) { ta = t; a = i; }
+        if (t > tb) { tb = t; b = i; }
+    }
+    for (int k = 0; k < 6; k++) V[k] = 0.0;
+    if (a == n || !(tb > ta)) return;
+    double ac[8], r[6], sc[2];
+    dq_conj(z + 8 * a, ac);
+    dq_se3_residual(ac, z + 8 * b, r, sc);
+    if (!(fabs(sc[1]) >= 0.9238795325112867)) return;   /* cos(pi / 8): a quarter turn */
+    for (int k = 0; k < 6; k++) V[k] = r[k] / (tb - ta);
+    if (!dq_finite_n(V, 6))
+        for (int k = 0; k < 6; k++) V[k] = 0.0;
+}
+
 int dq_motion_fit(const double *z, const double *cov, const unsigned char *inlier, size_t n,
                   const dq_motion_model *m, const double *start, const unsigned char *tested,
                   const dq_fuse_params *p, double *work, dq_motion_fitted *out,
@@ -377,8 +403,20 @@ int dq_motion_fit(const double *z, const double *cov, const unsigned char *inlie
     double *H = work + stride * n, *g = H + 2 * dim * dim, *scratch = g + 4 * dim;
     double *X = out->mean, *V = out->twist, *ell = out->ell;
     for (int j = 0; j < 8; j++) X[j] = start[j];
-    for (int j = 0; j < 6; j++) V[j] = 0.0;
     for (int j = 0; j < k; j++) ell[j] = m->prior[j];
+    for (int j = 0; j < 6; j++) V[j] = 0.0;
+    if (m->twist) {
+        /* the data's twist when it fits them better than rest does */
+        double V0[6];
+        motion_twist_start(z, inlier, n, m, V0);
+        if ((V0[0] != 0.0 || V0[1] != 0.0 || V0[2] != 0.0 || V0[3] != 0.0 || V0[4] != 0.0 ||
+             V0[5] != 0.0) &&
+            motion_evaluate(X, V0, ell, z, m, work, stride, n, inlier, 1, M_S0) +
+                motion_prior_cost(m, V0, ell) <
+            motion_evaluate(X, V, ell, z, m, work, stride, n, inlier, 1, M_S0) +
+                motion_prior_cost(m, V, ell))
+            for (int j = 0; j < 6; j++) V[j] = V0[j];
+    }
     int ro, current = 0, rc = motion_solve(z, inlier, n, m, p, work, stride, dim, out, &ro,
                                            &current);
     if (rc) return rc;
