@@ -116,6 +116,10 @@ def _s(t: float) -> str:
     return f"{t:.6f}".rstrip("0").rstrip(".")
 
 
+def _known_from(body: str, oldest: float, newest: float) -> str:
+    return f"{body!r} is known from {_s(oldest)} to {_s(newest)}"
+
+
 def _body_name(body) -> str:
     if not isinstance(body, str):
         raise WorldError(f"body: expected a string, got {type(body).__name__}")
@@ -342,25 +346,29 @@ class World:
         version = self._version.get(body, 0)
         if hit is not None and hit[0] == version and (hit[2] or not nis):
             return hit[1]       # no new data: it was in range then
-        window = self.options.window
-        oldest, rows = t.near_rows(body, at, window)
-        known = f"{body!r} is known from {_s(oldest)} to {_s(newest)}"
-        if at < oldest:
-            raise OutOfRange(f"time: {_s(at)} is before the oldest measurement kept; {known} "
-                             f"(buffer {self.options.buffer:g} s)")
+        oldest, rows = t.near_rows(body, at, self.options.window)
         limit = self.options.max_extrapolation
-        if limit is not None and at > newest + limit:
-            raise OutOfRange(f"time: {_s(at)} is {at - newest:.6g} s past the newest "
-                             f"measurement, beyond max_extrapolation {limit:g} s; {known}")
-        if not len(rows):
-            raise OutOfRange(f"time: no measurement of {body!r} within the window "
-                             f"{window:g} s of {_s(at)}; {known}")
+        if at < oldest or (limit is not None and at > newest + limit) or not len(rows):
+            raise self._out_of_range(body, at, oldest, newest)
         try:
             f = t.estimate_rows(rows, at, nis)[0]
         except ValueError as e:
-            raise OutOfRange(f"{e}; {known}") from None
+            raise OutOfRange(f"{e}; {_known_from(body, oldest, newest)}") from None
         _keep(self._fits, key, (version, f, nis))
         return f
+
+    def _out_of_range(self, body: str, at: float, oldest: float, newest: float) -> OutOfRange:
+        """Why :meth:`_fit` cannot fit ``body`` at ``at``, naming what is known."""
+        known = _known_from(body, oldest, newest)
+        if at < oldest:
+            return OutOfRange(f"time: {_s(at)} is before the oldest measurement kept; {known} "
+                              f"(buffer {self.options.buffer:g} s)")
+        limit = self.options.max_extrapolation
+        if limit is not None and at > newest + limit:
+            return OutOfRange(f"time: {_s(at)} is {at - newest:.6g} s past the newest "
+                              f"measurement, beyond max_extrapolation {limit:g} s; {known}")
+        return OutOfRange(f"time: no measurement of {body!r} within the window "
+                          f"{self.options.window:g} s of {_s(at)}; {known}")
 
     def pose(self, body: str, time: Optional[float] = None) -> BodyPose:
         """``T_world_body`` at ``time`` (None: the body's newest): :func:`dqpose.fusion.fuse`
