@@ -299,16 +299,17 @@ static int motion_leave_one_out(const dq_motion_model *m, const double *V, const
  * in their blocks are at the estimate, and need not be computed again. */
 static int motion_solve(const double *z, const unsigned char *inlier, size_t n,
                         const dq_motion_model *m, const dq_fuse_params *p, double *work,
-                        size_t stride, int dim, dq_motion_fitted *out, int *slot, int *current)
+                        size_t stride, int dim, int start_slot, double start_total,
+                        dq_motion_fitted *out, int *slot, int *current)
 {
     const int off = m->twist ? 12 : 6, k = (int)m->k;
     double *H = work + stride * n, *Lh = H + dim * dim, *g = Lh + dim * dim, *delta = g + dim;
     double *dh = delta + dim, *elln = dh + dim;
     double *X = out->mean, *V = out->twist, *ell = out->ell;
-    /* The current point's slot and a trial point's swap. */
-    int ro = M_S0, rt = M_S1;
-    double total = motion_evaluate(X, V, ell, z, m, work, stride, n, inlier, 1, ro) +
-                   motion_prior_cost(m, V, ell);
+    /* The current point's slot (the start's residuals and cost are the caller's) and a trial
+     * point's swap. */
+    int ro = start_slot, rt = start_slot == M_S0 ? M_S1 : M_S0;
+    double total = start_total;
     out->status = DQ_FUSE_MAX_ITERATIONS;
     out->iterations = p->max_iter;
     for (int it = 1; it <= p->max_iter; it++) {
@@ -405,20 +406,26 @@ int dq_motion_fit(const double *z, const double *cov, const unsigned char *inlie
     for (int j = 0; j < 8; j++) X[j] = start[j];
     for (int j = 0; j < k; j++) ell[j] = m->prior[j];
     for (int j = 0; j < 6; j++) V[j] = 0.0;
+    int start_slot = M_S0;
+    double total = motion_evaluate(X, V, ell, z, m, work, stride, n, inlier, 1, M_S0) +
+                   motion_prior_cost(m, V, ell);
     if (m->twist) {
         /* the data's twist when it fits them better than rest does */
         double V0[6];
         motion_twist_start(z, inlier, n, m, V0);
-        if ((V0[0] != 0.0 || V0[1] != 0.0 || V0[2] != 0.0 || V0[3] != 0.0 || V0[4] != 0.0 ||
-             V0[5] != 0.0) &&
-            motion_evaluate(X, V0, ell, z, m, work, stride, n, inlier, 1, M_S0) +
-                motion_prior_cost(m, V0, ell) <
-            motion_evaluate(X, V, ell, z, m, work, stride, n, inlier, 1, M_S0) +
-                motion_prior_cost(m, V, ell))
-            for (int j = 0; j < 6; j++) V[j] = V0[j];
+        if (V0[0] != 0.0 || V0[1] != 0.0 || V0[2] != 0.0 || V0[3] != 0.0 || V0[4] != 0.0 ||
+            V0[5] != 0.0) {
+            double moving = motion_evaluate(X, V0, ell, z, m, work, stride, n, inlier, 1, M_S1) +
+                            motion_prior_cost(m, V0, ell);
+            if (moving < total) {
+                for (int j = 0; j < 6; j++) V[j] = V0[j];
+                total = moving;
+                start_slot = M_S1;
+            }
+        }
     }
-    int ro, current = 0, rc = motion_solve(z, inlier, n, m, p, work, stride, dim, out, &ro,
-                                           &current);
+    int ro, current = 0, rc = motion_solve(z, inlier, n, m, p, work, stride, dim, start_slot,
+                                           total, out, &ro, &current);
     if (rc) return rc;
     /* Everything at the estimate: the others' residuals (the inliers' are in slot ro), every
      * Jacobian, the inliers' information with the priors' (the solver's last when it is at the
