@@ -116,6 +116,10 @@ def _s(t: float) -> str:
     return f"{t:.6f}".rstrip("0").rstrip(".")
 
 
+def _known_from(body: str, oldest: float, newest: float) -> str:
+    return f"{body!r} is known from {_s(oldest)} to {_s(newest)}"
+
+
 def _body_name(body) -> str:
     if not isinstance(body, str):
         raise WorldError(f"body: expected a string, got {type(body).__name__}")
@@ -316,16 +320,18 @@ class World:
 
     def _known(self, body) -> None:
         body = _body_name(body)
-        if body not in self._t.bodies:
+        if not self._t.has(body):
             some = list(self._t.bodies)[:5]
             raise NotFound(f"body: {body!r} is not in the world (" + (
                 f"{len(self._t.bodies)} bodies: {', '.join(map(repr, some))}"
                 + (", ..." if len(self._t.bodies) > 5 else "") if some else "no bodies yet")
                 + ")")
 
-    def _fit(self, body: str, time: Optional[float]) -> Fused:
+    def _fit(self, body: str, time: Optional[float], nis: bool = True) -> Fused:
         """``body``'s fit at ``time`` from the measurements taken within ``window`` of it (the
-        lock held), or ``OutOfRange`` naming what is known."""
+        lock held), or ``OutOfRange`` naming what is known. Without ``nis`` (a Lookup, which
+        answers the pose and its covariance) the fit may leave out the leave-one-out NIS
+        (:meth:`Tracker.estimate_ids`); a kept fit with them serves both."""
         self._known(body)
         t = self._t
         newest = t.newest(body)
@@ -338,27 +344,31 @@ class World:
         key = (body, at)
         hit = self._fits.get(key)
         version = self._version.get(body, 0)
-        if hit is not None and hit[0] == version:      # no new data: it was in range then
-            return hit[1]
-        oldest = t.oldest(body)
-        known = f"{body!r} is known from {_s(oldest)} to {_s(newest)}"
+        if hit is not None and hit[0] == version and (hit[2] or not nis):
+            return hit[1]       # no new data: it was in range then
+        oldest, rows = t.near_rows(body, at, self.options.window)
+        limit = self.options.max_extrapolation
+        if at < oldest or (limit is not None and at > newest + limit) or not len(rows):
+            raise self._out_of_range(body, at, oldest, newest)
+        try:
+            f = t.estimate_rows(rows, at, nis)[0]
+        except ValueError as e:
+            raise OutOfRange(f"{e}; {_known_from(body, oldest, newest)}") from None
+        _keep(self._fits, key, (version, f, nis))
+        return f
+
+    def _out_of_range(self, body: str, at: float, oldest: float, newest: float) -> OutOfRange:
+        """Why :meth:`_fit` cannot fit ``body`` at ``at``, naming what is known."""
+        known = _known_from(body, oldest, newest)
         if at < oldest:
-            raise OutOfRange(f"time: {_s(at)} is before the oldest measurement kept; {known} "
-                             f"(buffer {self.options.buffer:g} s)")
+            return OutOfRange(f"time: {_s(at)} is before the oldest measurement kept; {known} "
+                              f"(buffer {self.options.buffer:g} s)")
         limit = self.options.max_extrapolation
         if limit is not None and at > newest + limit:
-            raise OutOfRange(f"time: {_s(at)} is {at - newest:.6g} s past the newest "
-                             f"measurement, beyond max_extrapolation {limit:g} s; {known}")
-        window = self.options.window
-        if not t.near(body, at, window):
-            raise OutOfRange(f"time: no measurement of {body!r} within the window "
-                             f"{window:g} s of {_s(at)}; {known}")
-        try:
-            f = t.estimate_ids(body, at, window)[0]
-        except ValueError as e:
-            raise OutOfRange(f"{e}; {known}") from None
-        _keep(self._fits, key, (version, f))
-        return f
+            return OutOfRange(f"time: {_s(at)} is {at - newest:.6g} s past the newest "
+                              f"measurement, beyond max_extrapolation {limit:g} s; {known}")
+        return OutOfRange(f"time: no measurement of {body!r} within the window "
+                          f"{self.options.window:g} s of {_s(at)}; {known}")
 
     def pose(self, body: str, time: Optional[float] = None) -> BodyPose:
         """``T_world_body`` at ``time`` (None: the body's newest): :func:`dqpose.fusion.fuse`
@@ -388,7 +398,7 @@ class World:
                 return BodyPose(source, 0.0, ident, np.zeros((DOF, DOF)), None)
             if target == source:
                 if target:
-                    self._fit(target, at)   # known at that time
+                    self._fit(target, at, nis=False)   # known at that time
                 return BodyPose(source, at, np.array([1.0, 0, 0, 0, 0, 0, 0, 0]),
                                 np.zeros((DOF, DOF)), None)
             key = (target, source, at)
@@ -396,8 +406,11 @@ class World:
             hit = self._relatives.get(key)
             if hit is not None and hit[0] == versions:
                 return hit[1]
-            fits = {b: self._fit(b, at) for b in (target, source) if b}
-            if target and source and self._share(fits[target], fits[source]):
+            fits = {b: self._fit(b, at, nis=False) for b in (target, source) if b}
+            if not target:      # the world frame is exact: the body's own fit
+                f = fits[source]
+                answer = BodyPose(source, at, f.mean, f.covariance, None)
+            elif source and self._share(fits[target], fits[source]):
                 (Xa, Xb), P = self._t.joint([target, source], [fits[target], fits[source]],
                                             at, self.options.window)
                 answer = BodyPose(source, at, _frozen(dq.mul(dq.conj(Xa), Xb)),

@@ -121,6 +121,33 @@ def motion_start(Z, model, inlier) -> np.ndarray:
     return Z[inlier][int(np.argmin(np.abs(model.dt(model.prior)[inlier])))]
 
 
+def motion_twist_start(Z, W, model, inlier, start) -> np.ndarray:
+    """Where the C fit's twist starts (``motion_twist_start`` in motion.c): the motion between
+    the first inliers taken earliest and latest, ``Log(Z_a⁻¹ Z_b) / (t_b − t_a)``, when their
+    rotation is within a quarter turn and it fits the inliers better from ``start`` than rest
+    does; else rest."""
+    rest = np.zeros(6)
+    if not model.twist:
+        return rest
+    t = model.dt(model.prior)
+    idx = np.flatnonzero(inlier)
+    a, b = idx[np.argmin(t[idx])], idx[np.argmax(t[idx])]
+    if not t[b] > t[a]:
+        return rest
+    D = dq.mul(dq.conj(Z[a]), Z[b])
+    if abs(dq.normalize(D)[0]) < np.cos(np.pi / 8):
+        return rest
+    V0 = lie.se3_log(D) / (t[b] - t[a])
+    if not V0.any():
+        return rest
+    m = model.take(inlier)
+
+    def cost(V):
+        _, r, c = fusion._motion_evaluate(start, V, m.prior, Z[inlier], W[inlier], m)
+        return float(c.sum()) + m.prior_cost(V, m.prior)
+    return V0 if cost(V0) < cost(rest) else rest
+
+
 def determined_without_each(model, inlier) -> np.ndarray:
     """``dq_motion_determined``: do the inliers other than each measurement determine the state?
     The twist needs two instants (times taken, stamp minus configured latency) unless it has a
@@ -148,8 +175,8 @@ def motion_fit(Z, S, model, inlier, start, tested, tol=1e-12, max_iter=100) -> M
     W = 0.5 * (W + np.swapaxes(W, 1, 2))
     n, dim = Z.shape[0], model.dim
     X, V, ell, status, iterations = fusion._motion_solve(
-        Z[inlier], model.take(inlier), start, np.zeros(6), model.prior.copy(), tol, max_iter,
-        W[inlier])
+        Z[inlier], model.take(inlier), start, motion_twist_start(Z, W, model, inlier, start),
+        model.prior.copy(), tol, max_iter, W[inlier])
     dt, r, cost = fusion._motion_evaluate(X, V, ell, Z, W, model)
     G = fusion._motion_jacobian(V, dt, r, model)
     Hp, _ = model.prior_terms(V, ell)

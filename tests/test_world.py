@@ -48,6 +48,33 @@ def fuse_of(ms, body, time, window, sources, **kw):
                        time=time, sources=sources, **kw)
 
 
+def test_a_lookup_leaves_out_the_nis_and_a_pose_still_has_them():
+    """A Lookup (``relative``) answers a body's fit without its leave-one-out NIS, to the last
+    bit the pose and covariance fuse gives; ``pose`` afterwards (what a Subscribe answer
+    carries) has fuse's NIS and verdicts, not the Lookup's fit kept without them."""
+    rng = np.random.default_rng(11)
+    sources = [Source(f"cam{k}", random_pose(rng)) for k in range(2)]
+    ms, _ = stream(rng, sources, ["box", "cup"], np.arange(20) * 0.03)
+    world = World(sources=sources, options=WorldOptions(window=0.3))
+    assert world.publish(ms).accepted == len(ms)
+    at = world.newest("box")
+    f = fuse_of(ms, "box", at, 0.3, sources)
+    assert f.tested.any()
+    looked = world.relative("", "box")
+    assert looked.time == at
+    assert looked.pose.tobytes() == f.mean.tobytes()
+    assert looked.covariance.tobytes() == f.covariance.tobytes()
+    p = world.pose("box")
+    assert p.fused is not None
+    np.testing.assert_array_equal(p.fused.nis, f.nis)
+    np.testing.assert_array_equal(p.fused.tested, f.tested)
+    assert p.fused.sources == f.sources
+    # and the other way round: a kept fit with its NIS serves a Lookup
+    world.pose("cup")
+    cup = world.relative("", "cup")
+    assert cup.pose.tobytes() == world.pose("cup").pose.tobytes()
+
+
 def test_pose_equals_fuse_with_producers_on_threads():
     rng = np.random.default_rng(1)
     sources = [Source(f"cam{k}", random_pose(rng), latency=0.0) for k in range(3)]

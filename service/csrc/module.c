@@ -38,6 +38,9 @@ static PyMethodDef methods[] = {
      "se3_jl_inv(xi[...,6]) -> [...,6,6]: the SE(3) left Jacobian's inverse (service/lie.py)."},
     {"se3_jr", py_se3_jr, METH_O,
      "se3_jr(xi[...,6]) -> [...,6,6]: the SE(3) right Jacobian (service/lie.py)."},
+    {"check_rows", py_check_rows, METH_VARARGS,
+     "check_rows(poses, covariances, sym_tol) -> (ok, symmetrised): a stream's rows by the "
+     "Tracker's pose and covariance rules (fusion.h)."},
     {"pair_distances", py_pair_distances, METH_VARARGS,
      "pair_distances(poses, covariances, candidates) -> (m, n) squared Mahalanobis distances of "
      "the consensus (fusion.h)."},

@@ -293,19 +293,23 @@ static int motion_leave_one_out(const dq_motion_model *m, const double *V, const
 
 /* Gauss-Newton from out's X, V, ell over the selected measurements (motion.h), updated in place;
  * *slot is the workspace slot left holding the inliers' r, e at the estimate. The solver's
- * dim-sized arrays follow the measurements' blocks in work. */
+ * dim-sized arrays follow the measurements' blocks in work. A step shorter than tol is not
+ * taken (fusion.c's rule): the estimate is then the point it was solved at, so *current = 1
+ * says that the information H (priors included, mirrored) and the inliers' compact Jacobians
+ * in their blocks are at the estimate, and need not be computed again. */
 static int motion_solve(const double *z, const unsigned char *inlier, size_t n,
                         const dq_motion_model *m, const dq_fuse_params *p, double *work,
-                        size_t stride, int dim, dq_motion_fitted *out, int *slot)
+                        size_t stride, int dim, int start_slot, double start_total,
+                        dq_motion_fitted *out, int *slot, int *current)
 {
     const int off = m->twist ? 12 : 6, k = (int)m->k;
     double *H = work + stride * n, *Lh = H + dim * dim, *g = Lh + dim * dim, *delta = g + dim;
     double *dh = delta + dim, *elln = dh + dim;
     double *X = out->mean, *V = out->twist, *ell = out->ell;
-    /* The current point's slot and a trial point's swap. */
-    int ro = M_S0, rt = M_S1;
-    double total = motion_evaluate(X, V, ell, z, m, work, stride, n, inlier, 1, ro) +
-                   motion_prior_cost(m, V, ell);
+    /* The current point's slot (the start's residuals and cost are the caller's) and a trial
+     * point's swap. */
+    int ro = start_slot, rt = start_slot == M_S0 ? M_S1 : M_S0;
+    double total = start_total;
     out->status = DQ_FUSE_MAX_ITERATIONS;
     out->iterations = p->max_iter;
     for (int it = 1; it <= p->max_iter; it++) {
@@ -318,6 +322,12 @@ static int motion_solve(const double *z, const unsigned char *inlier, size_t n,
         double step = 0.0;
         for (int j = 0; j < dim; j++) step += delta[j] * delta[j];
         step = sqrt(step);
+        if (step < p->tol) {
+            out->status = DQ_FUSE_CONVERGED;
+            out->iterations = it;
+            *current = 1;
+            break;
+        }
         double Xn[8], Vn[6], total_new = total;
         for (int h = 0; h < DQ_FUSE_MAX_HALVINGS; h++) {
             double half[6], E[8], P[8];
@@ -348,6 +358,32 @@ static int motion_solve(const double *z, const unsigned char *inlier, size_t n,
     return DQ_OK;
 }
 
+/* Where the twist starts: the motion between the inliers taken first and last,
+ * Log(Z_a^-1 Z_b) / (t_b - t_a) (exact for a constant twist without noise), when their
+ * rotation is within a quarter turn (beyond, the logarithm could take the short way round a
+ * faster spin); else (or with one instant) at rest. */
+static void motion_twist_start(const double *z, const unsigned char *inlier, size_t n,
+                               const dq_motion_model *m, double *V)
+{
+    size_t a = n, b = n;
+    double ta = INFINITY, tb = -INFINITY;
+    for (size_t i = 0; i < n; i++) {
+        if (!dq_selected(inlier, i)) continue;
+        double t = m->stamp[i] - (m->slot[i] >= 0 ? m->prior[m->slot[i]] : m->latency[i]);
+        if (t < ta) { ta = t; a = i; }
+        if (t > tb) { tb = t; b = i; }
+    }
+    for (int k = 0; k < 6; k++) V[k] = 0.0;
+    if (a == n || !(tb > ta)) return;
+    double ac[8], r[6], sc[2];
+    dq_conj(z + 8 * a, ac);
+    dq_se3_residual(ac, z + 8 * b, r, sc);
+    if (!(fabs(sc[1]) >= 0.9238795325112867)) return;   /* cos(pi / 8): a quarter turn */
+    for (int k = 0; k < 6; k++) V[k] = r[k] / (tb - ta);
+    if (!dq_finite_n(V, 6))
+        for (int k = 0; k < 6; k++) V[k] = 0.0;
+}
+
 int dq_motion_fit(const double *z, const double *cov, const unsigned char *inlier, size_t n,
                   const dq_motion_model *m, const double *start, const unsigned char *tested,
                   const dq_fuse_params *p, double *work, dq_motion_fitted *out,
@@ -368,16 +404,41 @@ int dq_motion_fit(const double *z, const double *cov, const unsigned char *inlie
     double *H = work + stride * n, *g = H + 2 * dim * dim, *scratch = g + 4 * dim;
     double *X = out->mean, *V = out->twist, *ell = out->ell;
     for (int j = 0; j < 8; j++) X[j] = start[j];
-    for (int j = 0; j < 6; j++) V[j] = 0.0;
     for (int j = 0; j < k; j++) ell[j] = m->prior[j];
-    int ro, rc = motion_solve(z, inlier, n, m, p, work, stride, dim, out, &ro);
+    for (int j = 0; j < 6; j++) V[j] = 0.0;
+    int start_slot = M_S0;
+    double total = motion_evaluate(X, V, ell, z, m, work, stride, n, inlier, 1, M_S0) +
+                   motion_prior_cost(m, V, ell);
+    if (m->twist) {
+        /* the data's twist when it fits them better than rest does */
+        double V0[6];
+        motion_twist_start(z, inlier, n, m, V0);
+        if (V0[0] != 0.0 || V0[1] != 0.0 || V0[2] != 0.0 || V0[3] != 0.0 || V0[4] != 0.0 ||
+            V0[5] != 0.0) {
+            double moving = motion_evaluate(X, V0, ell, z, m, work, stride, n, inlier, 1, M_S1) +
+                            motion_prior_cost(m, V0, ell);
+            if (moving < total) {
+                for (int j = 0; j < 6; j++) V[j] = V0[j];
+                total = moving;
+                start_slot = M_S1;
+            }
+        }
+    }
+    int ro, current = 0, rc = motion_solve(z, inlier, n, m, p, work, stride, dim, start_slot,
+                                           total, out, &ro, &current);
     if (rc) return rc;
     /* Everything at the estimate: the others' residuals (the inliers' are in slot ro), every
-     * Jacobian, the inliers' information with the priors'. */
+     * Jacobian, the inliers' information with the priors' (the solver's last when it is at the
+     * estimate: then only the others' Jacobians are new). */
     motion_evaluate(X, V, ell, z, m, work, stride, n, inlier, 0, ro);
-    motion_linearize(m, V, work, stride, n, inlier, 1, ro, dim, H, g, per->G);
-    motion_prior_terms(m, V, ell, dim, H, g);
-    dq_mirror(H, dim);
+    if (current && !per->G) {
+        for (size_t i = 0; i < n; i++)
+            if (!dq_selected(inlier, i)) motion_jacobian(m, V, i, work + stride * i, ro, dim, NULL);
+    } else {
+        motion_linearize(m, V, work, stride, n, inlier, 1, ro, dim, H, g, per->G);
+        motion_prior_terms(m, V, ell, dim, H, g);
+        dq_mirror(H, dim);
+    }
     double chi2 = motion_prior_cost(m, V, ell);
     for (size_t i = 0; i < n; i++) {
         const double *s = work + stride * i + ro, *e = s + S_E;

@@ -55,8 +55,9 @@ size_t dq_motion_workspace(size_t n, const dq_motion_model *m);
  * Gauss-Newton over pose, twist and latencies for the measurements inlier selects (NULL: all)
  * from X = start, V = 0, ell = the priors: the step solved from the whitened normal equations
  * with the priors' information (twist_w on the twist, prior_w on the latencies), halved while it
- * raises the cost by more than 1e-12 (relative), at most 30 times; taken, and the loop ended
- * when it is shorter than tol. Then everything at the estimate: the information H (inliers and
+ * raises the cost by more than 1e-12 (relative), at most 30 times; a step shorter than tol is
+ * not taken and ends the loop (the estimate is the point it was solved at, whose linearisation
+ * is then reused), one halved below tol is taken and ends it. Then everything at the estimate: the information H (inliers and
  * priors), and per measurement its dt, residual, cost, G_i and, where tested[i], its
  * leave-one-out NIS: an inlier's nu^T (S + K)^-1 nu with K = G Hj^-1 G^T, Hj the information of
  * the priors and the other inliers (summed, not subtracted), nu = r + K S^-1 r; any other

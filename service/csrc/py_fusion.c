@@ -1,5 +1,5 @@
 /*
- * py_fusion.c — the Python functions of the fusion (fusion.h: fuse, pair_distances) and of the
+ * py_fusion.c — the Python functions of the fusion (fusion.h: fuse, pair_distances, check_rows) and of the
  * constant-twist fit (motion.h: motion_fit, motion_determined), on arrays service/fusion/ has
  * prepared. Poses are checked unit and covariances finite here, the GIL released meanwhile.
  */
@@ -494,5 +494,49 @@ PyObject *py_pair_distances(PyObject *self, PyObject *args)
 done:
     for (int j = 0; j < 3; j++) Py_XDECREF(a[j]);
     Py_XDECREF(out);
+    return result;
+}
+
+/* check_rows(poses (n, 8), covariances (n, 6, 6), sym_tol) -> (ok (n,) bool, symmetrised
+ * (n, 6, 6)): a stream's rows checked by the Tracker's rules in one pass, the GIL released.
+ * ok[i]: pose i is a unit rigid motion (dq_unit, the rule of dq.to_matrix) and covariance i
+ * passes fusion.h's dq_covariance_check (finite, symmetric within sym_tol, variances within
+ * bounds, positive definite beyond doubt), symmetrised[i] then 0.5 (S + S^T) (NumPy's bits).
+ * A row not ok (a problem, or a covariance too near the edge to be sure) is for the caller's
+ * own check to name; its symmetrised entry is a copy of the covariance given. */
+PyObject *py_check_rows(PyObject *self, PyObject *args)
+{
+    PyObject *o[2];
+    double sym_tol;
+    if (!PyArg_ParseTuple(args, "OOd:check_rows", &o[0], &o[1], &sym_tol)) return NULL;
+    PyArrayObject *a[2] = {NULL}, *ok = NULL, *sym = NULL;
+    PyObject *result = NULL;
+    if (!(a[0] = (PyArrayObject *)PyArray_FROM_OTF(o[0], NPY_DOUBLE, NPY_ARRAY_IN_ARRAY)))
+        goto done;
+    if (PyArray_NDIM(a[0]) != 2 || PyArray_DIMS(a[0])[1] != 8) {
+        PyErr_SetString(PyExc_ValueError, "poses: expected shape (n, 8)");
+        goto done;
+    }
+    npy_intp n = PyArray_DIMS(a[0])[0], s3[3] = {n, 6, 6};
+    if (!(a[1] = exact_array(o[1], NPY_DOUBLE, "covariances", 3, s3)) ||
+        !(ok = (PyArrayObject *)PyArray_SimpleNew(1, &n, NPY_BOOL)) ||
+        !(sym = (PyArrayObject *)PyArray_SimpleNew(3, s3, NPY_DOUBLE)))
+        goto done;
+    const double *z = PyArray_DATA(a[0]), *S = PyArray_DATA(a[1]);
+    double *out = PyArray_DATA(sym);
+    unsigned char *good = PyArray_DATA(ok);
+    Py_BEGIN_ALLOW_THREADS
+    for (npy_intp i = 0; i < n; i++) {
+        double unit[8];
+        good[i] = dq_unit(z + 8 * i, unit) == DQ_OK &&
+                  dq_covariance_check(S + 36 * i, sym_tol, out + 36 * i) == DQ_OK;
+        if (!good[i]) memcpy(out + 36 * i, S + 36 * i, 36 * sizeof(double));
+    }
+    Py_END_ALLOW_THREADS
+    result = PyTuple_Pack(2, (PyObject *)ok, (PyObject *)sym);
+done:
+    for (int j = 0; j < 2; j++) Py_XDECREF(a[j]);
+    Py_XDECREF(ok);
+    Py_XDECREF(sym);
     return result;
 }

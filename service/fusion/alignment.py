@@ -27,18 +27,20 @@ from dqpose.fusion.validation import _acceleration, _seconds, _twist_information
 DEFAULT_MAX_EXTRAPOLATION = 0.1
 
 
-def _motion_fit(Z, S, model: _Model, inlier: np.ndarray, tol: float,
-                max_iter: int) -> _MotionFit:
+def _motion_fit(Z, S, model: _Model, inlier: np.ndarray, tol: float, max_iter: int,
+                nis: bool = True) -> _MotionFit:
     """Fit of the measurements ``inlier`` selects, evaluated at every measurement. The constant
-    twist is fitted in C, leave-one-out NIS and covariance included; the correlated model in
-    NumPy from the constant-twist fit."""
+    twist is fitted in C, covariance and (``nis``) leave-one-out NIS included; the correlated
+    model in NumPy from the constant-twist fit (its NIS: :func:`_motion_nis`). Without ``nis``
+    the fit's ``nis`` is None: what needs only the pose and its covariance skips them."""
     if model.extrinsics is not None:
-        # the joint fit with the uncertain extrinsics, from the C fit without them
-        first = _constant_twist_fit(Z, S, model, inlier, tol, max_iter)
+        # the joint fit with the uncertain extrinsics, from the C fit without them (whose NIS
+        # nothing uses)
+        first = _constant_twist_fit(Z, S, model, inlier, tol, max_iter, False)
         return _motion_fit_ext(Z, S, model, model.extrinsics, inlier, first.mean, first.V,
-                               first.ell, tol, max_iter)
+                               first.ell, tol, max_iter, nis)
     if model.accel is None:
-        return _constant_twist_fit(Z, S, model, inlier, tol, max_iter)
+        return _constant_twist_fit(Z, S, model, inlier, tol, max_iter, nis)
     return _correlated_fit(Z, S, model, inlier, tol, max_iter)
 
 
@@ -55,7 +57,7 @@ def _robust_motion(Z, S, model: _Model, allowed: np.ndarray, gate2, tol, max_ite
     """:func:`_robust` over time: the consensus start compares the measurements brought to the
     fusion time with the twist of a first fit of all of them (an outlier biases that twist; the
     gate that follows judges every measurement against the fit of the others)."""
-    first = _motion_fit(Z, S, model, allowed, tol, max_iter)
+    first = _motion_fit(Z, S, model, allowed, tol, max_iter, False)   # its dt and twist
     back = lie.se3_exp(-first.dt[:, None] * first.V)
     Wm = _marginal_information(S, first.dt, model.accel)
     Sm = S if Wm is None else np.linalg.inv(Wm)
@@ -162,9 +164,12 @@ def _setup(Z, names, table, times, time, max_skew, max_extrapolation, twist_cova
 
 def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
                   twist_covariance, acceleration_psd, robust, probability, gate2, tol,
-                  max_iter) -> Fused:
+                  max_iter, nis: bool = True) -> Fused:
     """:func:`dqpose.fusion.fuse` with times, after its checks: the fusion time and the
-    measurements' span, then the fit of one instant or of the motion model over the window."""
+    measurements' span, then the fit of one instant or of the motion model over the window.
+    Without ``nis`` (and not robust, whose gate needs them) the fit over time skips the
+    leave-one-out NIS: ``nis`` is zeros and ``tested`` all False (every source UNTESTED), the
+    pose, covariance and everything else the same to the last bit."""
     u = _setup(Z, names, table, times, time, max_skew, max_extrapolation, twist_covariance,
                acceleration_psd)
     time, model, Wp, estimated = u.time, u.model, u.Wp, u.estimated
@@ -186,8 +191,10 @@ def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
     if robust and np.count_nonzero(allowed) > 1:
         gated = _robust_motion(Z, S, model, allowed, gate2, tol, max_iter)
     else:
-        fit = _motion_fit(Z, S, model, allowed, tol, max_iter)
-        gated = (fit, *_motion_nis(fit, S, allowed, model), allowed, None)
+        fit = _motion_fit(Z, S, model, allowed, tol, max_iter, nis)
+        tests = (_motion_nis(fit, S, allowed, model) if nis else
+                 (np.zeros(Z.shape[0]), np.zeros(Z.shape[0], dtype=bool)))
+        gated = (fit, *tests, allowed, None)
     return _result(gated, u.span, model, names, u.sources, u.code, table, estimated, time,
                    u.taken, gate2, probability)
 

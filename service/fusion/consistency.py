@@ -21,8 +21,12 @@ def _source_stats(sources, code, nis, tested, inlier, probability) -> tuple[Sour
     out = []
     use = tested & inlier
     m = len(sources)
-    counts = np.bincount(code, use, m).astype(np.intp).tolist()
-    rejected = np.bincount(code, ~inlier, m).astype(np.intp).tolist()
+    if m == 1:      # one source (a common case): its counts without two bincounts
+        counts = [int(np.count_nonzero(use))]
+        rejected = [len(inlier) - int(np.count_nonzero(inlier))]
+    else:
+        counts = np.bincount(code, use, m).astype(np.intp).tolist()
+        rejected = np.bincount(code, ~inlier, m).astype(np.intp).tolist()
     sums = np.bincount(code, np.where(use, nis, 0.0), m).tolist()
     for k, name in enumerate(sources):
         count = counts[k]

@@ -311,16 +311,17 @@ def _nis(fit: _Joint, k: int, part: _Part):
 
 
 def _motion_fit_ext(Z, S, model: _Model, ext: _Extrinsics, inlier: np.ndarray, start, V,
-                    ell, tol: float, max_iter: int) -> _MotionFit:
+                    ell, tol: float, max_iter: int, nis: bool = True) -> _MotionFit:
     """One body's joint fit as a :class:`~dqpose.fusion.motion._MotionFit` (its state's block of
-    the covariance first, the ε's after), leave-one-out NIS included."""
+    the covariance first, the ε's after), leave-one-out NIS included when ``nis`` (else its
+    ``nis`` and ``tested`` are None)."""
     part = _Part(Z, S, model, inlier, ext.slot, start, V, ell, None)
     fit = _joint_fit([part], ext, tol, max_iter)
-    nis, tested = _nis(fit, 0, part)
+    nis_, tested = _nis(fit, 0, part) if nis else (None, None)
     r = fit.r[0]
     cost = np.einsum("ni,nij,nj->n", r, np.linalg.inv(S), r)
     return _MotionFit(fit.status, fit.X[0], fit.V[0], fit.ell[0], fit.H, fit.P, fit.dt[0], r,
-                      fit.G[0], cost, fit.chi2, fit.iterations, nis=nis, tested=tested)
+                      fit.G[0], cost, fit.chi2, fit.iterations, nis=nis_, tested=tested)
 
 
 def _relative_covariance(T_a: np.ndarray, T_b: np.ndarray, P: np.ndarray) -> np.ndarray:

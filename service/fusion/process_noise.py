@@ -106,7 +106,8 @@ def _normal(G: np.ndarray, r: np.ndarray, info: np.ndarray):
 def _motion_solve(Z, model: _Model, X, V, ell, tol: float, max_iter: int, info: np.ndarray):
     """Gauss-Newton over pose, twist and latencies in NumPy, for residuals correlated by the
     model error: ``info`` their joint information (held at its value at the start of this
-    solve). The step and its halving are the C constant-twist fit's (``dq_motion_fit``)."""
+    solve). The step, its halving and the step shorter than ``tol`` left untaken are the C
+    constant-twist fit's (``dq_motion_fit``)."""
     dt, r, _ = _motion_evaluate(X, V, ell, Z, None, model)
     total = _data_cost(r, info) + model.prior_cost(V, ell)
     off = model.offset
@@ -118,6 +119,8 @@ def _motion_solve(Z, model: _Model, X, V, ell, tol: float, max_iter: int, info: 
         g = gd + gp
         delta = np.linalg.solve(H, g)
         step = float(np.linalg.norm(delta))
+        if step < tol:
+            return X, V, ell, Status.CONVERGED, it
         for _ in range(_MAX_HALVINGS):
             X_new = dq.normalize(dq.mul(X, lie.se3_exp(delta[:6])))
             V_new = V + delta[6:12] if model.twist else V

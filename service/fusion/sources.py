@@ -93,14 +93,17 @@ def _sources(sources: Optional[Iterable[Source]]) -> dict[str, Source]:
 def _to_world(Z: np.ndarray, S: np.ndarray, names: tuple[str, ...],
               table: dict[str, Source]) -> tuple[np.ndarray, np.ndarray]:
     """``T_world_frame · Z · T_flange_body`` and the exactly transported covariances."""
-    framed = [(name, src) for name, src in table.items()
-              if src.body_offset is not None or src.extrinsic is not None]
+    framed = {name: src for name, src in table.items()
+              if src.body_offset is not None or src.extrinsic is not None}
+    rows: dict[str, list[int]] = {}
     if framed:
+        for i, s in enumerate(names):       # one pass: each framed source's measurements
+            if s in framed:
+                rows.setdefault(s, []).append(i)
+    if rows:
         Z, S = Z.copy(), S.copy()
-    for name, src in framed:
-        idx = [i for i, s in enumerate(names) if s == name]
-        if not idx:
-            continue
+    for name, idx in rows.items():
+        src = framed[name]
         if src.body_offset is not None:
             Z[idx] = dq.mul(Z[idx], src.body_offset)
             S[idx] = lie.cov_compose(S[idx], src.body_offset, None)

@@ -199,13 +199,20 @@ def _check_rows(bodies, sources, times, poses, covs):
         errors.setdefault(k, ValueError(f"measurements[{k}].time: must be finite, "
                                         f"got {float(times[k])!r}"))
     ok[list(errors)] = False
-    # The batch is checked at once; only a batch with a bad one is checked row by row. The
-    # poses are kept as given (fuse normalises them), so that an estimate is exactly fuse of
-    # what was given; the covariances symmetrised (which fuse leaves as they are).
+    # The batch is checked at once in C (the rules of _poses and _covariances); only the rows
+    # it cannot pass are checked here row by row, to name the problem (or pass one too near the
+    # edge of positive definite for the C check to be sure). The poses are kept as given (fuse
+    # normalises them), so that an estimate is exactly fuse of what was given; the covariances
+    # symmetrised (which fuse leaves as they are).
+    rows = np.flatnonzero(ok)
     covs = np.array(covs)
+    if len(rows):
+        passed, sym = _c.check_rows(poses[rows], covs[rows], _SYMMETRY_TOL)
+        covs[rows] = sym        # (a row it cannot pass: the covariance as given)
+        rows = rows[~passed]
     for arrays, check in ((poses.copy(), lambda a: _poses(a)),
                           (covs, lambda a: _covariances(a, None, len(a)))):
-        rows = np.flatnonzero(ok)
+        rows = rows[ok[rows]]
         if not len(rows):
             break
         try:

@@ -43,7 +43,7 @@ def test_relay_row_answers_like_the_world_without_fusing():
 
 def test_lookup_rows_time_real_answers():
     rows = bw.lookup_rows(5)
-    assert len(rows) == 8
+    assert len(rows) == 12
     for row in rows:
         assert np.isfinite(float(row[2])) and float(row[2]) > 0.0, row
 

@@ -165,3 +165,43 @@ def test_one_instant_at_its_time_is_the_static_fusion_bit_for_bit():
     f = fusion.fuse(Z[:3], S[:3], times=[1.5] * 3, twist_covariance=prior)
     assert np.array_equal(f.mean, fusion.fuse(Z[:3], S[:3]).mean)
     assert np.array_equal(f.twist, np.zeros(6)) and np.array_equal(f.twist_covariance, prior)
+
+
+def test_rows_checked_in_c_answer_as_numpy_does_each_row():
+    """The tracker's row checks run in one C pass (``check_rows``) and only the rows it cannot
+    pass are checked in NumPy: good rows mixed with every kind of bad one, and covariances at
+    the edge of positive definite, get the verdicts, messages and symmetrised covariances of
+    NumPy's checks of each row alone (``_poses``, ``_covariances``)."""
+    from dqpose.errors import rename
+    from dqpose.fusion import validation
+    from tests.fusion._scenes import random_cov
+    rng = np.random.default_rng(31)
+    n = 48
+    Z = np.array([lie.se3_exp(rng.normal(size=6)) for _ in range(n)])
+    S = np.array([random_cov(rng) for _ in range(n)])
+    Z[1, 2] = np.nan
+    Z[2] *= 1.1                                            # not unit
+    Z[3, 4:] += 0.1 * Z[3, :4]                             # not a rigid motion
+    S[4, 0, 1] = np.inf
+    S[5, 0, 1] += 1e-6 * S[5].max()                        # asymmetric
+    S[6] -= 1.01 * S[6].max() * np.eye(6)                  # not positive definite
+    S[7, 2, 2] = 1e-30                                     # variance out of range
+    S[8, 0, 1] += 1e-12 * S[8].max()                       # asymmetric within tolerance
+    for k, low in enumerate([0.0, 1e-17, -1e-17, 1e-16, -1e-16, 1e-15, 1e-9, -1e-9, 1e-6], 9):
+        Q = np.linalg.qr(rng.normal(size=(6, 6)))[0]       # at the edge of positive definite
+        S[k] = (Q * np.r_[np.ones(5), low]) @ Q.T * 1e-4
+    bodies, sources = [f"b{k % 3}" for k in range(n)], ["cam"] * n
+    ok, errors, covs = validation._check_rows(bodies, sources, np.zeros(n), Z, S)
+    for k in range(n):
+        try:
+            validation._poses(Z[k:k + 1])
+            want = validation._covariances(S[k:k + 1], None, 1)[0]
+        except ValueError as e:
+            assert not ok[k], k
+            assert str(errors[k]) == str(rename(e, {
+                "poses": f"measurements[{k}].pose",
+                "covariances": f"measurements[{k}].covariance"})), k
+            continue
+        assert ok[k] and k not in errors, k
+        assert covs[k].tobytes() == want.tobytes(), k
+    assert ok[:9].tolist() == [True] + [False] * 7 + [True] and ok[9:].sum() >= 2
