@@ -231,8 +231,22 @@ class _Run:
     def play(self, items: Iterable[reader.Item]) -> None:
         report = self.report
         self.target.begin()
+        it = iter(items)
+        read = False
         try:
-            for item in items:
+            while True:
+                try:
+                    item = next(it)
+                except StopIteration:
+                    break
+                except ValueError as e:
+                    if not read:        # nothing of it is a recording
+                        raise
+                    # a file cut short (its server killed): what was read replays
+                    report.cut = (f"not replayable after {self.where[1] / 1e9:.6f} (Unix "
+                                  f"time): {e}")
+                    break
+                read = True
                 if isinstance(item, Event):
                     self.where = (self.file(item.file), item.ns)
                     opened = self.open.get(item.call)

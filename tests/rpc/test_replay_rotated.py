@@ -48,8 +48,8 @@ def _publish(target: str, world: str, k: int) -> None:
 @pytest.fixture(scope="module")
 def rotated(tmp_path_factory):
     folder = tmp_path_factory.mktemp("rotated")
-    # 16 kB files: the stream's 400 requests and the worlds' 80 span several of them
-    recorder = Recorder(folder, max_bytes=16_000)
+    # 64 kB files: the stream's 400 requests and the worlds' 80 span several of them
+    recorder = Recorder(folder, max_bytes=64_000)
     with ServerThread(ServerConfig(port=0, recorder=recorder)) as s:
         subs = []
         for name in WORLDS:
@@ -161,3 +161,29 @@ def test_an_answer_changed_in_the_second_file_is_reported_there(rotated, tmp_pat
     assert "covariance[7] recorded" in d.what
     assert f"(recorded in {os.path.basename(files[1])} at {answers[k].ns / 1e9:.6f} s" \
         in str(d)
+
+
+def test_a_run_whose_last_file_was_cut_short_replays_up_to_the_cut(rotated, tmp_path):
+    # the server killed while it wrote a file of the stream: its last file, without a summary
+    # or a footer, cut in a chunk
+    _, files, _ = rotated
+    whole = read_all(files)
+    (stream,) = [c for c in whole.calls.values() if c.rpc == STREAM_FUSE]
+    # a file in the middle of the stream: its second half holds some of its requests
+    held = sorted(e.file for e in whole.events if e.call == stream.id and e.kind == "request")
+    k = held[len(held) // 2]
+    for f in files[:k + 1]:
+        shutil.copy(f, tmp_path / os.path.basename(f))
+    last = tmp_path / os.path.basename(files[k])
+    last.write_bytes(last.read_bytes()[:last.stat().st_size // 2])
+    report = replay.replay(runs([tmp_path]), replay.InProcess())
+    assert report.difference is None, str(report.difference)
+    assert report.cut is not None and report.cut.startswith("not replayable after ")
+    assert f"{last}: not a complete MCAP recording" in report.cut
+    requests = sum(e.kind == "request" for e in whole.events if e.file < k)
+    assert requests <= report.requests < len([e for e in whole.events if e.kind == "request"])
+    assert report.files == k + 1 and report.calls >= 7     # the Fuse came last
+    # a file of which nothing can be read is not a recording, not a cut
+    last.write_bytes(last.read_bytes()[:100])
+    with pytest.raises(ValueError, match="not a complete MCAP recording"):
+        replay.replay(runs([last]), replay.InProcess())
