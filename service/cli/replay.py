@@ -1,7 +1,8 @@
-"""``dqpose replay FILE.mcap``: a recording's calls fed again (in this process or to a server),
-every answer compared with the recorded one byte for byte; ``--compare OTHER.mcap`` compares two
-recordings of the same requests instead. Exit 0 when every answer is the same, 1 at the first
-difference (printed), 2 for a file that cannot be read or a missing extra."""
+"""``dqpose replay FILE.mcap|DIR ...``: a recording's calls fed again (in this process or to a
+server), every answer compared with the recorded one byte for byte; a server's rotated files (a
+directory, several files, a glob) are replayed as one sequence, run by run. ``--compare OTHER``
+compares two recordings of the same requests instead. Exit 0 when every answer is the same, 1 at
+the first difference (printed), 2 for a file that cannot be read or a missing extra."""
 from __future__ import annotations
 
 import argparse
@@ -13,7 +14,9 @@ from dqpose.cli.common import fail, missing_extra, read
 def configure(name: str, p) -> None:
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.description = __doc__.split("\n\n")[0].replace("``", "")
-    p.add_argument("file", metavar="FILE.mcap", help="a recording (dqpose serve --record)")
+    p.add_argument("file", metavar="FILE.mcap", nargs="+",
+                   help="a recording (dqpose serve --record): files, the directory they are "
+                        "in, or a glob; a server's rotated files replay as one sequence")
     p.add_argument("--speed", default="max",
                    help="'max' (default): each request as soon as the last is answered; a "
                         "number: that many times the recorded pace (1: as recorded)")
@@ -21,9 +24,10 @@ def configure(name: str, p) -> None:
                    help="feed a server there (default: this process's servicers, with the "
                         "server's default limits)")
     p.add_argument("--token-file", help="file holding the server's bearer token")
-    p.add_argument("--compare", metavar="OTHER.mcap",
-                   help="compare FILE's answers with OTHER's (the same requests recorded by "
-                        "another version or setting) instead of replaying")
+    p.add_argument("--compare", metavar="OTHER",
+                   help="compare FILE's answers with OTHER's (a file, directory or glob: the "
+                        "same requests recorded by another version or setting), run by run, "
+                        "instead of replaying")
     p.set_defaults(func=_replay)
 
 
@@ -46,35 +50,37 @@ def _replay(args) -> int:
     try:
         from dqpose.errors import require
         require(*MODULES)
-        from dqpose.record.reader import read as read_recording
+        from dqpose.record.reader import runs as runs_of
         from dqpose.rpc import replay
     except (MissingExtra, ModuleNotFoundError) as e:
         return missing_extra("replay", e)
     try:
         speed = _speed(args.speed)
-        rec = read_recording(args.file)
-        other = read_recording(args.compare) if args.compare else None
+        runs = runs_of(args.file)
+        other = runs_of([args.compare]) if args.compare else None
+        if other is not None:
+            report = replay.compare_runs(runs, other)
+            verb = "compared"
+        else:
+            if args.server:
+                import grpc
+                token = read(args.token_file, "r").strip() if args.token_file else None
+                metadata = (("authorization", f"Bearer {token}"),) if token else None
+                target = replay.Remote(grpc.insecure_channel(args.server), metadata)
+            else:
+                target = replay.InProcess()
+            report = replay.replay(runs, target, speed)
+            verb = "replayed"
     except (OSError, ValueError) as e:
         return fail("replay", str(e) if not isinstance(e, OSError) or not e.filename
                     else f"{e.filename}: {e.strerror}")
-    if other is not None:
-        report = replay.compare(rec, other)
-        verb = "compared"
-    else:
-        if args.server:
-            import grpc
-            token = read(args.token_file, "r").strip() if args.token_file else None
-            metadata = (("authorization", f"Bearer {token}"),) if token else None
-            target = replay.Remote(grpc.insecure_channel(args.server), metadata)
-        else:
-            target = replay.InProcess()
-        report = replay.replay(rec, target, speed)
-        verb = "replayed"
     for line in report.skipped:
         print(f"skipped {line}", file=sys.stderr)
     rate = f" in {report.seconds:.3f} s" if other is None else ""
+    files = (f" from {report.files} files in {report.runs} run"
+             f"{'s' if report.runs != 1 else ''}" if report.files > 1 else "")
     print(f"{verb} {report.calls} calls, {report.requests} requests, {report.answers} "
-          f"answers{rate}")
+          f"answers{files}{rate}")
     if report.cut:
         print(report.cut)
     if report.difference is not None:

@@ -2,12 +2,20 @@
 CRC checked (``mcap``'s stream reader): each call's requests and answers as wire bytes, the calls'
 begin and end, the markers where messages were dropped. What replay and the tests read; any
 other MCAP reader sees the same file.
+
+A server's recording is rotated into files ``dqpose-<server start>-<n>.mcap``; :func:`runs`
+orders them into the runs they belong to and :func:`items` reads a run's files as one sequence
+(a call that goes on in the next file is the same call there), streamed, so that a run larger
+than memory replays whole (:mod:`dqpose.rpc.replay`); :func:`read_all` holds one in memory.
 """
 from __future__ import annotations
 
 import dataclasses
+import glob
 import json
 import os
+import re
+from typing import Iterable, Iterator, Union
 
 from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
@@ -29,6 +37,17 @@ class Call:
     details: str = ""            # a refusal's text
     end_at: int | None = None    # the event index before which it ended
     world: str = ""              # a World call's named world (x-dqpose-world)
+    begin_at: int = 0            # the event index before which it began
+
+
+@dataclasses.dataclass
+class End:
+    """A call's end: its status ``code`` and a refusal's ``details``, where it was recorded."""
+    call: int
+    code: str
+    details: str
+    ns: int
+    file: int = 0
 
 
 @dataclasses.dataclass
@@ -38,6 +57,7 @@ class Event:
     call: int
     ns: int
     data: bytes
+    file: int = 0                # the index of its file in the run (Recording.files)
 
 
 @dataclasses.dataclass
@@ -45,6 +65,11 @@ class Dropped:
     first_dropped: int           # ns (Unix time) the first missing message arrived
     count: int
     at: int                      # the event index before which they are missing
+    file: int = 0
+
+
+#: what :func:`items` yields, in the order it was recorded
+Item = Union[Call, End, Event, Dropped]
 
 
 @dataclasses.dataclass
@@ -55,57 +80,162 @@ class Recording:
     dropped: list[Dropped]
     schemas: dict[str, bytes]    # message type -> its FileDescriptorSet, from the file itself
     plans: list[tuple[str, int, bytes]]   # (name, ns, foxglove.PosesInFrame bytes)
+    files: list[str] = dataclasses.field(default_factory=list)   # the run's files, in order
+    ends: dict[int, End] = dataclasses.field(default_factory=dict)
 
     def message_class(self, name: str):
         """The protobuf class of message type ``name`` built from the schema the file embeds
         alone (its own descriptor pool): no generated code needed."""
         return message_class(self.schemas[name], name)
 
+    def items(self) -> Iterator[Item]:
+        """The recording in the order it was written (as :func:`items` reads it): before each
+        event the calls that ended, the drop markers and the calls that began there."""
+        begins: dict[int, list[Call]] = {}
+        ends: dict[int, list[Call]] = {}
+        for c in self.calls.values():
+            begins.setdefault(c.begin_at, []).append(c)
+            if c.end_at is not None:
+                ends.setdefault(c.end_at, []).append(c)
+        drops: dict[int, list[Dropped]] = {}
+        for d in self.dropped:
+            drops.setdefault(d.at, []).append(d)
+        for i in range(len(self.events) + 1):
+            for c in ends.get(i, ()):
+                e = self.ends.get(c.id)
+                yield End(c.id, c.code or "OK", c.details, e.ns if e else 0, e.file if e else 0)
+            yield from drops.get(i, ())
+            yield from begins.get(i, ())
+            if i < len(self.events):
+                yield self.events[i]
+
 
 def read(path: str | os.PathLike) -> Recording:
     """The recording at ``path``; ``ValueError`` naming it for a file that is not MCAP or fails
     its CRCs, and for one that ends before its footer (cut short: the process was killed)."""
-    path = os.fspath(path)
-    schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
+    return read_all([path])
+
+
+def read_all(paths: Iterable[str | os.PathLike]) -> Recording:
+    """One run's files (in order: :func:`runs`) read into memory as one recording."""
+    files = [os.fspath(p) for p in paths]
+    schemas: dict[str, bytes] = {}
+    plans: list[tuple[str, int, bytes]] = []
     calls: dict[int, Call] = {}
     events: list[Event] = []
     dropped: list[Dropped] = []
-    plans: list[tuple[str, int, bytes]] = []
+    ends: dict[int, End] = {}
+    for item in items(files, schemas, plans):
+        if isinstance(item, Event):
+            events.append(item)
+        elif isinstance(item, Call):
+            item.begin_at = len(events)
+            calls[item.id] = item
+        elif isinstance(item, End):
+            if item.call in calls:
+                c = calls[item.call]
+                c.code, c.details, c.end_at = item.code, item.details, len(events)
+                ends[item.call] = item
+        else:
+            item.at = len(events)
+            dropped.append(item)
+    return Recording(files[0] if files else "", calls, events, dropped, schemas, plans, files,
+                     ends)
+
+
+def items(files: list[str], schemas: dict[str, bytes] | None = None,
+          plans: list | None = None) -> Iterator[Item]:
+    """The items of one run's ``files`` (in order) as one sequence: a call's begin
+    (:class:`Call`, ``continued`` when it began before the first file), its requests and
+    answers (:class:`Event`), its :class:`End`, drop markers (:class:`Dropped`, ``at`` unset).
+    ``schemas`` and ``plans`` (when given) are filled as the files are read."""
+    open_calls: set[int] = set()
+    for k, path in enumerate(files):
+        for topic, metadata, ns, data in _messages(path, schemas):
+            if topic == CALLS_TOPIC:
+                d = json.loads(data)
+                call = d["call"]
+                if d["event"] == "begin":
+                    if call in open_calls:      # goes on from the file before
+                        continue
+                    open_calls.add(call)
+                    yield Call(call, d["rpc"], d["request_type"], d["answer_type"],
+                               d.get("continued", False),
+                               world=d.get("world", ""))
+                elif d["event"] == "end" and call in open_calls:
+                    open_calls.discard(call)
+                    yield End(call, d["code"], d.get("details", ""), ns, k)
+            elif topic == DROPPED_TOPIC:
+                d = json.loads(data)
+                yield Dropped(d["first_dropped"], d["count"], -1, k)
+            elif topic.startswith(PLANS):
+                if plans is not None:
+                    plans.append((topic[len(PLANS):], ns, data))
+            elif "call" in metadata:
+                kind = topic.rsplit("/", 1)[1][:-1]     # requests -> request
+                yield Event(kind, int(metadata["call"]), ns, data, k)
+
+
+def _messages(path: str, schemas: dict[str, bytes] | None):
+    """``(topic, channel metadata, log_time, data)`` of each message of ``path``,
+    CRCs checked; ``ValueError`` naming the file for one that is not a complete MCAP file."""
+    channels: dict[int, Channel] = {}
     try:
         with open(path, "rb") as f:
             for rec in StreamReader(f, validate_crcs=True).records:
                 if isinstance(rec, Schema):
-                    schemas[rec.id] = rec
+                    if schemas is not None and rec.encoding == "protobuf":
+                        schemas[rec.name] = rec.data
                 elif isinstance(rec, Channel):
                     channels[rec.id] = rec
                 elif isinstance(rec, Message):
                     ch = channels[rec.channel_id]
-                    if ch.topic == CALLS_TOPIC:
-                        _call_event(calls, json.loads(rec.data), len(events))
-                    elif ch.topic == DROPPED_TOPIC:
-                        d = json.loads(rec.data)
-                        dropped.append(Dropped(d["first_dropped"], d["count"], len(events)))
-                    elif ch.topic.startswith(PLANS):
-                        plans.append((ch.topic[len(PLANS):], rec.log_time, rec.data))
-                    elif "call" in ch.metadata:
-                        kind = ch.topic.rsplit("/", 1)[1][:-1]     # requests -> request
-                        events.append(Event(kind, int(ch.metadata["call"]), rec.log_time,
-                                            rec.data))
+                    yield ch.topic, ch.metadata, rec.log_time, rec.data
     except OSError:
         raise
     except Exception as e:   # mcap's own exceptions: EndOfFile, CRC and record errors
         raise ValueError(f"{path}: not a complete MCAP recording ({type(e).__name__}: "
                          f"{e})") from None
-    by_name = {s.name: s.data for s in schemas.values() if s.encoding == "protobuf"}
-    return Recording(path, calls, events, dropped, by_name, plans)
 
 
-def _call_event(calls: dict[int, Call], d: dict, at: int) -> None:
-    if d["event"] == "begin":
-        calls[d["call"]] = Call(d["call"], d["rpc"], d["request_type"], d["answer_type"],
-                                d.get("continued", False), world=d.get("world", ""))
-    elif d["event"] == "end" and d["call"] in calls:
-        calls[d["call"]].code = d["code"]
-        calls[d["call"]].details = d.get("details", "")
-        calls[d["call"]].end_at = at
+#: a rotated file's name: the server's start (one for all its files) and the file's number
+_ROTATED = re.compile(r"^(?P<run>.*)-(?P<n>\d{4,})\.mcap$")
+
+
+def runs(args: Iterable[str | os.PathLike]) -> list[list[str]]:
+    """The recordings named by ``args`` (files, directories of ``*.mcap`` files, glob
+    patterns) as runs: a server's rotated files (``<run>-<n>.mcap``, the same ``<run>``,
+    consecutive ``n``) in their order form one run; a run's file missing starts another from
+    the next one; any other file is a run of its own. Runs in the order of their names.
+    ``ValueError`` for an argument that names nothing."""
+    paths: list[str] = []
+    for arg in args:
+        name = os.fspath(arg)
+        if os.path.isdir(name):
+            found = glob.glob(os.path.join(glob.escape(name), "*.mcap"))
+        elif not os.path.exists(name) and any(c in name for c in "*?["):
+            found = glob.glob(name)
+        else:
+            found = [name]
+        if not found:
+            raise ValueError(f"{name}: no .mcap file there")
+        paths += found
+    chains: dict[tuple[str, str], list[tuple[int, str]]] = {}
+    alone: list[str] = []
+    for p in dict.fromkeys(os.path.normpath(p) for p in paths):
+        m = _ROTATED.match(os.path.basename(p))
+        if m is None:
+            alone.append(p)
+        else:
+            chains.setdefault((os.path.dirname(p), m["run"]), []).append((int(m["n"]), p))
+    out: list[list[str]] = [[p] for p in alone]
+    for files in chains.values():
+        files.sort()
+        run = [files[0][1]]
+        for (a, _), (b, p) in zip(files, files[1:]):
+            if b != a + 1:
+                out.append(run)
+                run = []
+            run.append(p)
+        out.append(run)
+    return sorted(out, key=lambda run: run[0])

@@ -56,6 +56,9 @@ class Writer:
         self.directory, self.max_bytes, self.max_seconds = directory, max_bytes, max_seconds
         self.live = live
         self.file: McapFile | None = None
+        # every file of this run named after its start, numbered: the run's files are found
+        # and ordered by their names alone (dqpose.record.reader.runs)
+        self.run = time.strftime("dqpose-%Y%m%dT%H%M%SZ", time.gmtime())
         self.opened = 0.0
         self.count = 0
         self.frames = 0
@@ -69,8 +72,7 @@ class Writer:
     def open(self) -> McapFile:
         if self.file is None:
             assert self.directory is not None
-            name = time.strftime("dqpose-%Y%m%dT%H%M%SZ", time.gmtime())
-            path = os.path.join(self.directory, f"{name}-{self.count:04d}.mcap")
+            path = os.path.join(self.directory, f"{self.run}-{self.count:04d}.mcap")
             self.count += 1
             self.file = McapFile(path, chunk_size=min(CHUNK_BYTES,
                                                       max(self.max_bytes // 8, 1024)))

@@ -1,14 +1,17 @@
-"""A recording's World calls replayed in this process: one new World servicer, every recorded
-step applied in the file's order, which is the order the recorded world applied them
-(:mod:`dqpose.rpc.world_record`): each Configure, each Publish request (numbered within its call
-as it was), each subscription started and ended where it was. What it answers is each call's
-:class:`~dqpose.rpc.replay.Outcome`: a Configure's answer or refusal, a Publish call's acks, a
+"""A recording's World calls replayed in this process: one new World servicer a run, every
+recorded step applied as the replay reaches it in the file's order, which is the order the
+recorded world applied them (:mod:`dqpose.rpc.world_record`): each Configure, each Publish
+request (numbered within its call as it was), each subscription started and ended where it was,
+each call into the named world it was recorded in. Each call is a player
+(:class:`dqpose.rpc.replay.Player`): a Configure's answer or refusal, a Publish call's acks, a
 Subscribe call's answers as the world made them (a recorded subscription's answers are those it
 sent before its client left: the ones it had queued beyond are not a difference)."""
 from __future__ import annotations
 
+import collections
+
 from dqpose.rpc._proto.dqpose.v1 import world_pb2 as pb
-from dqpose.rpc.world import World, status_of
+from dqpose.rpc.world import Subscription, World, status_of
 
 NAME = World.NAME
 CONFIGURE, PUBLISH, SUBSCRIBE = (f"{NAME}/{m}" for m in ("Configure", "Publish", "Subscribe"))
@@ -24,56 +27,85 @@ class _AtOnce:
         fn(*args)
 
 
-def run(rec, events, outcome) -> dict:
-    """Each World call's ``outcome(answers, code, details)`` (by call id) from replaying
-    ``events`` (the recording's, up to where it is cut) in order."""
-    from dqpose.rpc.world import Subscription
+class _Player:
+    """What every World call's player has: the answers made and not yet compared, its status
+    (None: the recorded one, a stream's end being its client's doing)."""
 
-    # each call into the world it named (recorded with it), as the server kept them apart
-    server = World()
-    outs: dict[int, object] = {}
-    answers: dict[int, list[bytes]] = {}
-    subs: dict[int, Subscription] = {}
-    published: dict[int, int] = {}
-    calls = {c.id: c for c in rec.calls.values() if c.rpc in CALLS and not c.continued}
-    for i, e in enumerate(events):
-        for c, sub in list(subs.items()):       # subscriptions that ended before this step
-            end = calls[c].end_at
-            if end is not None and end <= i:
-                world = server.cell(calls[c].world, make=True)
-                with world.lock:
-                    world.subscriptions.discard(sub)
-                del subs[c]
-        call = calls.get(e.call)
-        if call is None or e.kind != "request":
-            continue
-        world = server.cell(call.world, make=True)
-        if call.rpc == CONFIGURE:
-            try:
-                config = world.configure(pb.WorldConfig.FromString(e.data))
-                outs[call.id] = outcome([config.SerializeToString()])
-            except Exception as ex:
-                status, details = status_of(ex)
-                outs[call.id] = outcome([], status.name, details)
-        elif call.rpc == PUBLISH:
-            r = published.get(call.id, 0)
-            published[call.id] = r + 1
-            ack = world.publish_bytes(e.data, r, f"\0call{call.id}")
-            answers.setdefault(call.id, []).append(ack.SerializeToString())
-            for c, sub in subs.items():
-                while not sub.queue.empty():
-                    a = sub.queue.get_nowait()
-                    if a is not None:       # answers are serialized when made
-                        answers[c].append(a)
-        else:
-            request = pb.SubscribeRequest.FromString(e.data)
-            options = world.world.options
-            sub = Subscription(request.bodies, request.rate_hz, request.relative_to, _AtOnce(),
-                               options.max_delay, options.window)
+    def __init__(self, worlds: "Worlds", call):
+        self.worlds, self.call = worlds, call
+        self.given: collections.deque = collections.deque()
+        self.status: tuple[str, str] | None = None
+
+    def end(self, recorded: int) -> None:
+        pass
+
+    def result(self) -> tuple[str, str] | None:
+        return self.status
+
+    def cancel(self) -> None:
+        pass
+
+
+class _Configure(_Player):
+    def send(self, data: bytes) -> None:
+        world = self.worlds.server.cell(self.call.world, make=True)
+        try:
+            self.given.append(world.configure(pb.WorldConfig.FromString(data))
+                              .SerializeToString())
+            self.status = ("OK", "")
+        except Exception as ex:
+            status, details = status_of(ex)
+            self.status = (status.name, details)
+
+
+class _Publish(_Player):
+    r = 0
+
+    def send(self, data: bytes) -> None:
+        world = self.worlds.server.cell(self.call.world, make=True)
+        ack = world.publish_bytes(data, self.r, f"\0call{self.call.id}")
+        self.r += 1
+        self.given.append(ack.SerializeToString())
+        self.worlds.deliver()
+
+
+class _Subscribe(_Player):
+    sub: Subscription | None = None
+
+    def send(self, data: bytes) -> None:
+        world = self.worlds.server.cell(self.call.world, make=True)
+        request = pb.SubscribeRequest.FromString(data)
+        options = world.world.options
+        self.sub = Subscription(request.bodies, request.rate_hz, request.relative_to, _AtOnce(),
+                                options.max_delay, options.window)
+        with world.lock:
+            world.subscriptions.add(self.sub)
+        self.worlds.subscribed[self.call.id] = self
+
+    def end(self, recorded: int) -> None:
+        if self.sub is not None:
+            world = self.worlds.server.cell(self.call.world, make=True)
             with world.lock:
-                world.subscriptions.add(sub)
-            subs[call.id] = sub
-            answers[call.id] = []
-    for c, got in answers.items():      # a stream's status is its client's doing: the recorded
-        outs[c] = outcome(got, calls[c].code or "OK", calls[c].details)
-    return outs
+                world.subscriptions.discard(self.sub)
+            self.worlds.subscribed.pop(self.call.id, None)
+
+
+class Worlds:
+    """The World servicer a run's World calls are replayed into (new for each run)."""
+
+    def __init__(self):
+        self.server = World()
+        self.subscribed: dict[int, _Subscribe] = {}
+
+    def open(self, call) -> _Player:
+        return {CONFIGURE: _Configure, PUBLISH: _Publish, SUBSCRIBE: _Subscribe}[call.rpc](
+            self, call)
+
+    def deliver(self) -> None:
+        """What the last Publish request queued to each subscription, into its answers."""
+        for s in self.subscribed.values():
+            q = s.sub.queue       # type: ignore[union-attr]
+            while not q.empty():
+                a = q.get_nowait()
+                if a is not None:       # answers are serialized when made
+                    s.given.append(a)

@@ -163,7 +163,8 @@ def run(target: str, scene: Scene, seconds: float, msg_rate: float | None, args,
                 max=lat.max() * 1e3, latencies=len(lat),
                 msg_p99=np.nanpercentile(msg_lat, 99) * 1e3 if scene.probe else None,
                 server_cpu=(cpu1[0] - cpu0[0]) / n * 1e6 if server_pid else float("nan"),
-                client_cpu=(cpu1[1] - cpu0[1]) / n * 1e6, rss=samples, n=n)
+                client_cpu=(cpu1[1] - cpu0[1]) / n * 1e6, rss=samples, n=n,
+                lat=lat * 1e3)
 
 
 def wire_messages(scene: Scene, messages: int) -> list[bytes]:

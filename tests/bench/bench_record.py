@@ -1,17 +1,25 @@
 """What recording costs and how fast a recording replays: StreamFuse through the shipped client
-into a ``dqpose serve`` process without and with ``--record``, alternating within one run (the
-same scene, rate and machine load), then the recording replayed in process at ``--speed max``
-with every answer compared byte for byte.
+into three ``dqpose serve`` processes, two without and one with ``--record``, in many short
+rounds of rotating order (the same scene, rate and load within a round), then the recording
+replayed whole in process at ``--speed max`` (its rotated files as one run) with every answer
+compared byte for byte.
 
-    .venv/bin/python -m tests.bench.bench_record                  # ~2 min
-    .venv/bin/python -m tests.bench.bench_record --seconds 600    # a 10-minute recording
+    .venv/bin/python -m tests.bench.bench_record                      # ~6 min
+    .venv/bin/python -m tests.bench.bench_record --replay-seconds 600 # and a 10-minute stream
 
 Rows: the paced stream (``--rate`` measurements/s, 10 a message, ``--bodies`` bodies, the scene of
-``bench_fusion_stream``) against a server without recording and one with it, ``--rounds`` times
-each in turn; the added latency of the answers (p50/p99/max, as ``bench_fusion_stream`` measures
-it), the server's CPU per message, the recording's size per minute and the messages it dropped.
-Then the replay: measurements/s through ``dqpose.rpc.replay`` in process, and whether every answer
-was identical.
+``bench_fusion_stream``); each round streams ``--seconds`` into both servers in turn (which one
+first alternates), and the latency of the answers after each stream's first second is kept
+(``bench_fusion_stream``'s measure). The servers share one CPU, the client and the writer
+process the other (``os.sched_setaffinity``; ``--no-pin``: none), so the rounds differ less by
+where the scheduler put them. The added p99 is the p99 of every recorded round's latencies
+less the p99 of every unrecorded round's (the first unrecorded server's), with a 95 % bootstrap
+interval that resamples whole rounds (each round's streams together: the load they shared is
+kept); and, less moved by a few rounds' stalls, the median over rounds of each round's p99
+difference, with its bootstrap interval. The same between the two unrecorded servers is the
+control: what this machine shows when nothing differs. The target (≤ 0.3 ms) is shown only when
+an interval lies below it and its control's holds 0. Then what one recorded request costs its
+servicer, and the replay: measurements/s and whether every answer was identical.
 """
 from __future__ import annotations
 
@@ -28,6 +36,9 @@ import numpy as np
 from tests.bench.bench_fusion_stream import PER_MESSAGE, Scene, _cpu_seconds, run
 from tests.bench.bench_grpc import ServerProcess
 
+#: the target: what recording may add to StreamFuse's p99 at 20,000 measurements/s, ms
+TARGET_MS = 0.3
+
 
 def _children(pid: int) -> list[int]:
     """The processes ``pid`` started (``dqpose serve --record``'s writer)."""
@@ -36,6 +47,57 @@ def _children(pid: int) -> list[int]:
             return [int(c) for c in f.read().split()]
     except OSError:
         return []
+
+
+def _pin(pid: int, cpus: set[int]) -> None:
+    """Every thread of process ``pid`` on ``cpus`` (threads it starts later inherit it)."""
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            os.sched_setaffinity(int(tid), cpus)
+        except OSError:
+            pass
+
+
+def added_p99(off: list[np.ndarray], on: list[np.ndarray], resamples: int = 2000,
+              seed: int = 0) -> tuple[float, float, float]:
+    """p99(on) - p99(off) over the rounds' pooled latencies (ms), and its 95 % bootstrap
+    interval: rounds drawn with replacement, each round's two streams together."""
+    def diff(idx) -> float:
+        return float(np.percentile(np.concatenate([on[i] for i in idx]), 99)
+                     - np.percentile(np.concatenate([off[i] for i in idx]), 99))
+
+    k = len(off)
+    rng = np.random.default_rng(seed)
+    boot = np.array([diff(rng.integers(0, k, k)) for _ in range(resamples)])
+    lo, hi = np.percentile(boot, [2.5, 97.5])
+    return diff(range(k)), float(lo), float(hi)
+
+
+def round_p99s(off: list[np.ndarray], on: list[np.ndarray], resamples: int = 2000,
+               seed: int = 0) -> tuple[float, float, float]:
+    """The median over rounds of each round's p99(on) - p99(off) (ms), and its 95 % bootstrap
+    interval: what recording adds to a round's p99, a few rounds' stalls weighing no more than
+    any other round."""
+    d = np.array([np.percentile(b, 99) - np.percentile(a, 99) for a, b in zip(off, on)])
+    rng = np.random.default_rng(seed)
+    boot = np.median(d[rng.integers(0, len(d), (resamples, len(d)))], axis=1)
+    lo, hi = np.percentile(boot, [2.5, 97.5])
+    return float(np.median(d)), float(lo), float(hi)
+
+
+def verdict(lo: float, hi: float, control: tuple[float, float], rounds: int) -> str:
+    if rounds < 10:
+        return "not judged: fewer than 10 rounds"
+    if not control[0] <= 0.0 <= control[1]:
+        return (f"not resolved: two unrecorded servers differ too (control interval "
+                f"[{control[0]:+.2f}, {control[1]:+.2f}] ms), so the rounds do not isolate "
+                f"recording")
+    if hi <= TARGET_MS:
+        return f"shown: the added p99 is <= {TARGET_MS} ms (95 % interval)"
+    if lo > TARGET_MS:
+        return f"missed: recording adds more than {TARGET_MS} ms at p99 (95 % interval)"
+    return (f"not resolved: the 95 % interval [{lo:+.2f}, {hi:+.2f}] ms holds {TARGET_MS} ms; "
+            f"this machine at this load cannot tell whether recording adds more or less")
 
 
 def put_cost(messages: int, rate: float) -> dict:
@@ -76,71 +138,119 @@ def main(argv=None) -> int:
     ap.add_argument("--bodies", type=int, default=100)
     ap.add_argument("--output-rate", type=float, default=1.0, help="answers per body, Hz")
     ap.add_argument("--window", type=float, default=0.1, help="seconds per body")
-    ap.add_argument("--seconds", type=float, default=15.0, help="length of each stream")
-    ap.add_argument("--rounds", type=int, default=2, help="streams per server, in turn")
+    ap.add_argument("--seconds", type=float, default=5.0, help="length of each round's streams")
+    ap.add_argument("--rounds", type=int, default=30, help="rounds, each both servers in turn")
+    ap.add_argument("--replay-seconds", type=float, default=0.0,
+                    help="then one stream this long into the recording server, so that the "
+                         "replayed run holds it (600: a 10-minute recording)")
+    ap.add_argument("--record-max-mb", type=float, default=256.0,
+                    help="the recording server's rotation size")
+    ap.add_argument("--no-pin", action="store_true", help="leave the CPUs to the scheduler")
     args = ap.parse_args(argv)
 
-    from dqpose.record.reader import read
+    from dqpose.record.reader import runs
     from dqpose.rpc import replay
 
+    cpus = sorted(os.sched_getaffinity(0))
+    pin = not args.no_pin and len(cpus) >= 2
+    mine = set(cpus)
     work = tempfile.mkdtemp(prefix="bench_record_")
-    rows: dict[str, list] = {"off": [], "on": []}
-    sizes, minutes = [], 0.0
+    folder = os.path.join(work, "on")
+    load = [os.getloadavg()[0]]
+    modes = ("off", "on", "off2")
+    rows: dict[str, list] = {m: [] for m in modes}
+    writer_cpu = []
+    t_long = 0.0
     try:
-        for k in range(args.rounds):
-            for mode in ("off", "on"):
-                scene = Scene(args.bodies, args.rate, seed=k)
-                folder = os.path.join(work, f"{mode}{k}")
-                extra = ("--record", folder) if mode == "on" else ()
-                server = ServerProcess("aio", quiet_log=True, extra=extra)
-                try:
-                    writer = _children(server.proc.pid)
+        if pin:     # the servers (and the writer they start) inherit the server CPU
+            os.sched_setaffinity(0, {cpus[-1]})
+        servers = {"off": ServerProcess("aio", quiet_log=True),
+                   "on": ServerProcess("aio", quiet_log=True, extra=(
+                       "--record", folder, "--record-max-mb", str(args.record_max_mb))),
+                   "off2": ServerProcess("aio", quiet_log=True)}
+        writer = _children(servers["on"].proc.pid)
+        if pin:
+            os.sched_setaffinity(0, {cpus[0]})
+            for w in writer:
+                _pin(w, {cpus[0]})
+        try:
+            for mode in modes:      # warm-up, not counted
+                run(servers[mode].target, Scene(args.bodies, args.rate, seed=99), 2.0,
+                    args.rate / PER_MESSAGE, args, servers[mode].rss_mb)
+            for k in range(args.rounds):
+                # each server first, second and third as often
+                order = modes[k % 3:] + modes[:k % 3]
+                for mode in order if k % 6 < 3 else order[::-1]:
+                    s = servers[mode]
                     cpu0 = sum(map(_cpu_seconds, writer))
-                    r = run(server.target, scene, args.seconds, args.rate / PER_MESSAGE, args,
-                            server.rss_mb, server.proc.pid)
-                    r["writer_cpu"] = (sum(map(_cpu_seconds, writer)) - cpu0) / r["n"] * 1e6
+                    r = run(s.target, Scene(args.bodies, args.rate, seed=k), args.seconds,
+                            args.rate / PER_MESSAGE, args, s.rss_mb, s.proc.pid)
+                    if mode == "on":
+                        writer_cpu.append((sum(map(_cpu_seconds, writer)) - cpu0) / r["n"])
                     rows[mode].append(r)
-                finally:
-                    server.stop()      # SIGTERM: the recording is finished
-                if mode == "on":
-                    sizes.append(sum(os.path.getsize(f) for f in glob.glob(f"{folder}/*.mcap")))
-                    minutes += args.seconds / 60
-        files = sorted(glob.glob(os.path.join(work, "on0", "*.mcap")))
+                load.append(os.getloadavg()[0])
+            if args.replay_seconds > 0:
+                t = time.perf_counter()
+                run(servers["on"].target, Scene(args.bodies, args.rate, seed=1000),
+                    args.replay_seconds, args.rate / PER_MESSAGE, args, servers["on"].rss_mb)
+                t_long = time.perf_counter() - t
+                load.append(os.getloadavg()[0])
+        finally:
+            for s in servers.values():
+                s.stop()        # SIGTERM: the recording is finished
+            os.sched_setaffinity(0, mine)
+        files = sorted(glob.glob(os.path.join(folder, "*.mcap")))
+        size = sum(os.path.getsize(f) for f in files)
+        found = runs([folder])
         t0 = time.perf_counter()
-        recordings = [read(f) for f in files]
-        t_read = time.perf_counter() - t0
-        reports = [replay.replay(r, replay.InProcess()) for r in recordings]
-        dropped = sum(d.count for r in recordings for d in r.dropped)
+        report = replay.replay(found, replay.InProcess())
+        t_replay = time.perf_counter() - t0
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
     def pooled(mode, key):
         return float(np.mean([r[key] for r in rows[mode]]))
 
-    print(f"StreamFuse with and without dqpose serve --record (--no-call-log), "
-          f"{args.bodies} bodies, {PER_MESSAGE} measurements a message (full covariances), "
-          f"{args.rate:.0f} measurements/s paced, output_rate {args.output_rate:g} Hz per body, "
-          f"{args.rounds} x {args.seconds:g} s each in turn; latency of the answers after each "
-          f"stream's first second (bench_fusion_stream's measure), the mean over the rounds")
-    head = ("server", "meas/s", "answers/s", "p50 ms", "p99 ms", "max ms", "server CPU us/msg",
-            "writer process CPU us/msg", "MB/min recorded", "dropped")
+    off = [r["lat"] for r in rows["off"]]
+    added, lo, hi = added_p99(off, [r["lat"] for r in rows["on"]])
+    same, *control = added_p99(off, [r["lat"] for r in rows["off2"]])
+    per_round = round_p99s(off, [r["lat"] for r in rows["on"]])
+    per_round_control = round_p99s(off, [r["lat"] for r in rows["off2"]])
+    recorded_s = args.rounds * args.seconds + 2.0 + t_long
+    placed = (f"servers on CPU {cpus[-1]}, client and writer on CPU {cpus[0]}" if pin
+              else "unpinned")
+    print(f"StreamFuse without and with dqpose serve --record (--no-call-log), {args.bodies} "
+          f"bodies, {PER_MESSAGE} measurements a message (full covariances), {args.rate:.0f} "
+          f"measurements/s paced, output_rate {args.output_rate:g} Hz per body; {args.rounds} "
+          f"rounds of {args.seconds:g} s into each server in turn; "
+          f"{placed}; load {min(load):.1f}-{max(load):.1f}")
+    names = {"off": "no recording", "on": "--record", "off2": "no recording (control)"}
+    head = ("server", "meas/s", "answers/s", "latencies", "p50 ms", "p99 ms (pooled)",
+            "p99 ms of a round: min / median / max", "max ms", "server CPU us/msg",
+            "writer process CPU us/msg")
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
-    for mode in ("off", "on"):
-        mb = f"{sum(sizes) / 1e6 / minutes:.1f}" if mode == "on" else "-"
-        writer = f"{pooled(mode, 'writer_cpu'):.0f}" if mode == "on" else "-"
-        drops = str(dropped) if mode == "on" else "-"
-        print(f"| {'--record' if mode == 'on' else 'no recording'} | "
-              f"{pooled(mode, 'measurements'):.0f} | {pooled(mode, 'answers'):.1f} | "
-              f"{pooled(mode, 'p50'):.2f} | {pooled(mode, 'p99'):.2f} | "
-              f"{max(r['max'] for r in rows[mode]):.1f} | {pooled(mode, 'server_cpu'):.0f} | "
-              f"{writer} | {mb} | {drops} |")
-    added = pooled("on", "p99") - pooled("off", "p99")
-    print(f"added p99: {added:+.2f} ms; per round (off, on): " + ", ".join(
-        f"({a['p99']:.2f}, {b['p99']:.2f})" for a, b in zip(rows["off"], rows["on"])))
-    requests = sum(r.requests for r in reports)
-    seconds = sum(r.seconds for r in reports)
-    same = all(r.difference is None for r in reports)
+    for mode in modes:
+        lat = np.concatenate([r["lat"] for r in rows[mode]])
+        p99s = [r["p99"] for r in rows[mode]]
+        writer_us = f"{np.mean(writer_cpu) * 1e6:.0f}" if mode == "on" else "-"
+        print(f"| {names[mode]} | "
+              f"{pooled(mode, 'measurements'):.0f} | {pooled(mode, 'answers'):.1f} | {len(lat)} | "
+              f"{np.percentile(lat, 50):.2f} | {np.percentile(lat, 99):.2f} | "
+              f"{min(p99s):.2f} / {np.median(p99s):.2f} / {max(p99s):.2f} | {lat.max():.1f} | "
+              f"{pooled(mode, 'server_cpu'):.0f} | {writer_us} |")
+    print(f"added p99: {added:+.2f} ms, 95 % interval [{lo:+.2f}, {hi:+.2f}] ms (bootstrap over "
+          f"rounds); control (two unrecorded servers): {same:+.2f} ms, [{control[0]:+.2f}, "
+          f"{control[1]:+.2f}] ms; target <= {TARGET_MS} ms: "
+          f"{verdict(lo, hi, (control[0], control[1]), args.rounds)}")
+    m, mlo, mhi = per_round
+    c, clo, chi = per_round_control
+    print(f"a round's p99, recorded less unrecorded, median over rounds: {m:+.2f} ms, 95 % "
+          f"interval [{mlo:+.2f}, {mhi:+.2f}] ms; control {c:+.2f} ms, [{clo:+.2f}, {chi:+.2f}] "
+          f"ms; target <= {TARGET_MS} ms: {verdict(mlo, mhi, (clo, chi), args.rounds)}")
+    for mode in modes:
+        print(f"p99 ms of each round, {names[mode]}: " + " ".join(
+            f"{r['p99']:.1f}" for r in rows[mode]))
     put = put_cost(20000, args.rate / PER_MESSAGE)
     print()
     print(f"| a request recorded by its servicer ({put['size']:.0f} bytes, "
@@ -151,13 +261,19 @@ def main(argv=None) -> int:
           f"{put['mean']:.1f} | {put['p50']:.1f} | {put['p99']:.1f} | {put['max']:.0f} | "
           f"{put['dropped']} |")
     print()
-    print("| replay (in process, --speed max) | requests | measurements | answers | read s | "
-          "replay s | measurements/s | every answer identical |")
-    print("|---|---|---|---|---|---|---|---|")
-    print(f"| {len(files)} file(s), {args.seconds:g} s recorded | {requests} | "
-          f"{requests * PER_MESSAGE} | {sum(r.answers for r in reports)} | {t_read:.2f} | "
-          f"{seconds:.2f} | {requests * PER_MESSAGE / seconds:.0f} | "
-          f"{'yes' if same else 'NO: ' + str(reports[0].difference)} |")
+    print("| replay (in process, --speed max, the run's files as one sequence) | files | MB | "
+          "MB/min | calls | requests | measurements | answers | s | measurements/s | "
+          "every answer identical |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    long = f", {args.replay_seconds:g} s in one stream" if t_long else ""
+    same_answers = ("yes" if report.difference is None and not report.cut
+                    else f"NO: {report.difference or report.cut}")
+    print(f"| {recorded_s:.0f} s recorded{long} | {len(files)} in {len(found)} run(s) | "
+          f"{size / 1e6:.0f} | "
+          f"{size / 1e6 / recorded_s * 60:.1f} | {report.calls} | {report.requests} | "
+          f"{report.requests * PER_MESSAGE} | {report.answers} | {t_replay:.1f} | "
+          f"{report.requests * PER_MESSAGE / t_replay:.0f} | "
+          f"{same_answers} |")
     return 0
 
 

@@ -70,3 +70,28 @@ def test_what_cannot_be_replayed_is_named(tmp_path, files):
     res = dqpose(files[0], "--speed", "0")
     assert (res.returncode, res.stderr) == (
         2, "dqpose replay: error: --speed: 'max' or a number > 0, got '0'\n")
+
+
+def test_a_rotated_recording_replays_as_one_run_from_its_directory(tmp_path):
+    from dqpose.record.recorder import Recorder
+    from dqpose.rpc.server import ServerConfig
+    from tests.rpc._grpc_server import ServerThread
+    from tests.rpc.test_record import stream_bytes
+
+    recorder = Recorder(tmp_path / "run", max_bytes=16_000)
+    with ServerThread(ServerConfig(port=0, recorder=recorder)) as s:
+        answers = len(stream_bytes(s.target, _stream.requests(300)))
+    recorder.close()
+    n = len(recorder.files)
+    assert n >= 3
+    res = dqpose(str(tmp_path / "run"))
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.splitlines()
+    assert lines[0].startswith(f"replayed 1 calls, 300 requests, {answers} answers from {n} "
+                               f"files in 1 run in ")
+    assert lines[-1] == "every answer identical" and res.stderr == ""
+    # each file alone (before: all a replay could take) skips the stream after the first
+    alone = dqpose(recorder.files[1])
+    assert "began before" in alone.stderr and alone.stdout.startswith("replayed 0 calls")
+    same = dqpose(str(tmp_path / "run" / "*.mcap"), "--compare", str(tmp_path / "run"))
+    assert same.returncode == 0 and same.stdout.splitlines()[-1] == "every answer identical"
