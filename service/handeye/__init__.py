@@ -54,9 +54,10 @@ The solution, in order:
    least median of squares over hypotheses from three samples each and the closed form, so that
    outliers screw congruence lets through do not anchor it), with the noise estimated screened
    once more against a noise estimated on the 60 % of the samples that fit best (so that an
-   outlier does not hide by inflating the estimate), and re-fits until the set settles. ``robust`` leaves the outliers out (``rejected``, each with a reason: a marker flip
-   when the rotation is off and the board's position is not); otherwise they stay in and a
-   warning names them.
+   outlier does not hide by inflating the estimate), and re-fits until the set settles.
+   ``robust`` leaves the outliers out (``rejected``, each with a reason: a marker flip when the
+   rotation is off and the board's position is not); otherwise they stay in and a warning names
+   them.
 4. **After solving**: leave-one-out (how far X moves when each sample is left out, to first
    order: ``P J_iᵀ S_i⁻¹ r_i``), the closed form's distance from the answer in its own
    covariance, and :func:`next_best_pose`.

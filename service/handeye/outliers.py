@@ -20,9 +20,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from dqpose import dq, lie
-from dqpose.handeye.checks import _MIN_POSES, _samples
 from dqpose.errors import Infeasible
 from dqpose.fusion.chi2 import _gamma_p, chi2_quantile
+from dqpose.handeye.checks import _MIN_POSES, _samples
 from dqpose.handeye.consensus import _consensus
 from dqpose.handeye.gate import _GATE_3, _GATE_6, _thresholds
 from dqpose.handeye.likelihood import _Fit, _fit, _linearise, _standardised
