@@ -72,6 +72,7 @@ SLOW_MODULES = {
     "cli/test_world_cli.py", "cluster/test_proxies.py", "drivers/test_arm_safety.py",
     "drivers/test_armproc_respawn.py", "drivers/test_camera.py", "fusion/test_process_noise.py",
     "handeye/test_calibrate.py", "handeye/test_checks.py", "handeye/test_corners.py",
+    "handeye/test_gate.py",
     "handeye/test_readings.py", "robustness/test_execute.py", "robustness/test_fuzz_rpc.py",
     "rpc/server/test_shutdown.py", "test_examples.py", "view/test_watch.py",
 }

@@ -46,15 +46,18 @@ The solution, in order:
    NEES 6.7–9.3; with
    it 5.6–6.8 over 200 seeded trials on every row of tests/bench/bench_handeye.py (5.7–6.3 at
    20 poses).
-3. **Outliers**: every sample is gated on its NIS (χ² with 6 dof, probability ``outliers._GATE``):
-   the inliers' standardised residual ``r_iᵀ (Σ_r,i − J_i P J_iᵀ)⁻¹ r_i`` (the leave-one-out
-   NIS to first order), the others' against the prediction ``Σ_r,i + J_i P J_iᵀ``, starting
-   from a fit on the consensus of minimal sets (:mod:`~dqpose.handeye.consensus`: least
-   median of squares over hypotheses from three samples each and the closed form, so that
-   outliers screw congruence lets through do not anchor it) and re-fitting until the set
-   settles. ``robust`` leaves the outliers out (``rejected``, each with a reason: a marker flip
-   when the rotation is off and the board's position is not); otherwise they stay in and a
-   warning names them.
+3. **Outliers**: every sample is gated on its NIS at probability ``gate._GATE``: the inliers'
+   standardised residual ``r_iᵀ (Σ_r,i − J_i P J_iᵀ)⁻¹ r_i`` (the leave-one-out NIS to first
+   order), the others' against the prediction ``Σ_r,i + J_i P J_iᵀ``; against χ²₆ with the noise
+   given, with it estimated against the studentised laws (:mod:`~dqpose.handeye.gate`). The
+   gate starts from a fit on the consensus of minimal sets (:mod:`~dqpose.handeye.consensus`:
+   least median of squares over hypotheses from three samples each and the closed form, so that
+   outliers screw congruence lets through do not anchor it), with the noise estimated screened
+   once more against a noise estimated on the 60 % of the samples that fit best (so that an
+   outlier does not hide by inflating the estimate), and re-fits until the set settles.
+   ``robust`` leaves the outliers out (``rejected``, each with a reason: a marker flip when the
+   rotation is off and the board's position is not); otherwise they stay in and a warning names
+   them.
 4. **After solving**: leave-one-out (how far X moves when each sample is left out, to first
    order: ``P J_iᵀ S_i⁻¹ r_i``), the closed form's distance from the answer in its own
    covariance, and :func:`next_best_pose`.

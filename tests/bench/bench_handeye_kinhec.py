@@ -170,16 +170,41 @@ def plan(python: Path, repeats: int) -> list[dict]:
         return json.loads(dst.read_text())
 
 
-def generate(python: Path, repeats: int, ids: list[str]) -> list[dict]:
-    """The sequences ``ids`` of the plan, generated and solved by every baseline (the runner's
-    ``run`` output)."""
+def generate(python: Path, repeats: int, ids: list[str], baselines: bool = True) -> list[dict]:
+    """The sequences ``ids`` of the plan, generated and (unless not ``baselines``) solved by every
+    baseline (the runner's ``run`` output)."""
     with tempfile.TemporaryDirectory() as tmp:
         src, idf, dst = Path(tmp, "spec.json"), Path(tmp, "ids.json"), Path(tmp, "out.pkl")
         src.write_text(json.dumps(spec(repeats)))
         idf.write_text(json.dumps(ids))
-        _runner(python, "run", src, idf, dst)
+        _runner(python, "run", src, idf, dst, *([] if baselines else ["--no-baselines"]))
         with open(dst, "rb") as f:
             return pickle.load(f)
+
+
+def sequences(python: Path, repeats: int, ids: list[str], baselines: bool = True,
+              store: Path | None = None) -> list[dict]:
+    """:func:`generate`'s sequences ``ids``, kept in the directory ``store`` (one pickle a
+    sequence id) when given: those already there (with the baselines' answers, when
+    ``baselines``) are read, not generated again, so a changed solver of ours is re-run on the
+    same sequences at the cost of its own solves."""
+    if store is None:
+        return generate(python, repeats, ids, baselines)
+    store.mkdir(parents=True, exist_ok=True)
+    have = {}
+    for i in ids:
+        f = store / f"{i}.pkl"
+        if f.exists():
+            with open(f, "rb") as fh:
+                seq = pickle.load(fh)
+            if not baselines or "baselines" in seq or seq["error"]:
+                have[i] = seq
+    missing = [i for i in ids if i not in have]
+    for seq in (generate(python, repeats, missing, baselines) if missing else []):
+        with open(store / f"{seq['id']}.pkl", "wb") as fh:
+            pickle.dump(seq, fh)
+        have[seq["id"]] = seq
+    return [have[i] for i in ids]
 
 
 # ---- ours ----------------------------------------------------------------------------------------
@@ -250,25 +275,30 @@ def solve_ours(seq: dict, mode: str) -> Answer:
                   tuple(cal.warnings))
 
 
-def evaluate(seq: dict) -> dict:
-    """Every method's result on one generated sequence: ``{method: Answer}``."""
+def evaluate(seq: dict, modes=MODES) -> dict:
+    """Every method's result on one generated sequence: ``{method: Answer}`` (ours only in
+    ``modes``, "n/a" in the others)."""
     out = {}
     for name in BASELINES:
+        if "baselines" not in seq and not seq["error"]:      # generated without them
+            out[name] = Answer(status="n/a")
+            continue
         rot, trans, err = seq.get("baselines", {}).get(name, (np.nan, np.nan, seq["error"]))
         ok = np.isfinite(rot) and np.isfinite(trans)
         out[name] = Answer(rot if ok else np.inf, trans if ok else np.inf,
                            status="ok" if ok else f"failed: {err or 'NaN'}")
     for mode, label in zip(MODES, OURS):
-        out[label] = (solve_ours(seq, mode) if not seq["error"]
+        out[label] = (Answer(status="n/a") if mode not in modes else
+                      solve_ours(seq, mode) if not seq["error"]
                       else Answer(status=f"refused: {seq['error']}"))
     return out
 
 
 def _chunk(args) -> list[tuple[str, dict]]:
-    python, repeats, ids = args
+    python, repeats, ids, baselines, store, modes = args
     out = []
-    for seq in generate(python, repeats, ids):
-        answers = evaluate(seq)
+    for seq in sequences(python, repeats, ids, baselines, store):
+        answers = evaluate(seq, modes)
         for a in answers.values():
             a.sequence = seq["id"]
         out.append((seq["id"], answers))
@@ -276,10 +306,12 @@ def _chunk(args) -> list[tuple[str, dict]]:
 
 
 def run(python: Path, repeats: int, select: str | None = None, jobs: int = 1,
-        progress=None, ids=None) -> dict[str, dict[str, list[Answer]]]:
+        progress=None, ids=None, baselines: bool = True, store: Path | None = None,
+        modes=MODES) -> dict[str, dict[str, list[Answer]]]:
     """``{setting: {method: [Answer per sequence]}}`` over the planned settings matching the
     regular expression ``select`` (all by default), and of those only the sequences ``ids`` when
-    given."""
+    given; the baselines not run unless ``baselines``, ours in ``modes``; the sequences kept in
+    ``store`` (:func:`sequences`)."""
     planned = [p for p in plan(python, repeats) if (not select or re.search(select, setting_of(p)))
                and (ids is None or p["id"] in ids)]
     by_setting: dict[str, list[str]] = {}
@@ -289,7 +321,7 @@ def run(python: Path, repeats: int, select: str | None = None, jobs: int = 1,
     chunks = [ids[i:i + 5] for ids in by_setting.values() for i in range(0, len(ids), 5)]
     setting = {p["id"]: setting_of(p) for p in planned}
     results: dict[str, dict[str, list[Answer]]] = {s: {} for s in by_setting}
-    tasks = [(python, repeats, c) for c in chunks]
+    tasks = [(python, repeats, c, baselines, store, modes) for c in chunks]
     if jobs > 1:
         with ProcessPoolExecutor(jobs) as ex:
             done = ex.map(_chunk, tasks)
@@ -360,8 +392,10 @@ class Row:
         return float(np.percentile(getattr(self, which), q, method="lower"))
 
 
-def best_baseline(rows: dict[str, Row]) -> str:
-    return min(BASELINES, key=lambda m: (rows[m].p(50), rows[m].p(50, "rot")))
+def best_baseline(rows: dict[str, Row]) -> str | None:
+    """The baseline with the lowest median translation error (None when none ran)."""
+    ran = [m for m in BASELINES if m in rows and rows[m].ran]
+    return min(ran, key=lambda m: (rows[m].p(50), rows[m].p(50, "rot"))) if ran else None
 
 
 def gaussian(setting: str) -> bool:
@@ -387,7 +421,7 @@ def targets(setting: str, rows: dict[str, Row], label: str) -> dict[str, str]:
     if not r.ran:
         return misses
     best = best_baseline(rows)
-    if not any(d in setting for d in DEGENERATE):
+    if best is not None and not any(d in setting for d in DEGENERATE):
         for which, unit in (("trans", "mm"), ("rot", "deg")):
             m, lo, hi = paired_median_ci(getattr(r, which), getattr(rows[best], which))
             if lo > 0:
@@ -400,7 +434,7 @@ def targets(setting: str, rows: dict[str, Row], label: str) -> dict[str, str]:
         solved = 1 - r.failed / len(r.answers)
         if solved < 0.95:
             misses["solved"] = f"solved {solved:.0%} < 95 %"
-        if r.p(50) >= rows[RANSAC].p(50):
+        if rows[RANSAC].ran and r.p(50) >= rows[RANSAC].p(50):
             misses["vs RANSAC"] = f"median {r.p(50):.3g} mm ≥ RANSAC's {rows[RANSAC].p(50):.3g}"
     n = len(r.answers)
     if label == OURS[1] and gaussian(setting) and n >= 50:
@@ -408,6 +442,24 @@ def targets(setting: str, rows: dict[str, Row], label: str) -> dict[str, str]:
         if abs(r.mean_nees() - 6) > tol:
             misses["NEES"] = f"mean {r.mean_nees():.3g} outside 6 ± {tol:.2g}"
     return misses
+
+
+def pooled_nees(summary: dict[str, dict[str, Row]]) -> str:
+    """The mean NEES of X with the noise given pooled over the Gaussian settings' answers, against
+    issue 24's 6 ± 0.5, and how many settings of N ≥ 50 miss 6 ± 3·√(12/N)."""
+    rows = [rows[OURS[1]] for s, rows in summary.items() if gaussian(s) and rows[OURS[1]].ran]
+    v = [a.nees for r in rows for a in r.answers if a.status == "ok"]
+    if not v:
+        return ""
+    big = [r for r in rows if len(r.answers) >= 50]
+    out = (f"mean NEES of X with the noise given, pooled over {len(v)} answers on {len(rows)} "
+           f"Gaussian settings: {np.mean(v):.3g} (target 6 ± 0.5: "
+           f"{'met' if abs(np.mean(v) - 6) <= 0.5 else 'missed'})")
+    if big:
+        miss = sum(abs(r.mean_nees() - 6) > 3 * np.sqrt(12 / len(r.answers)) for r in big)
+        out += (f"; per setting (N ≥ 50, 6 ± 3·√(12/N)): {len(big) - miss} of {len(big)} "
+                f"settings within")
+    return out
 
 
 def summarise(results) -> dict[str, dict[str, Row]]:
@@ -434,7 +486,7 @@ def render(summary: dict[str, dict[str, Row]]) -> str:
                 continue
             ours = m in OURS
             d = ""
-            if ours:
+            if ours and best is not None:
                 med, lo, hi = paired_median_ci(r.trans, rows[best].trans)
                 d = f"{med:+.3g} mm [{lo:+.3g}, {hi:+.3g}]"
             fails = f"{r.failed}/{len(r.answers)}" if r.failed else "0"
@@ -470,11 +522,13 @@ def render_brief(summary: dict[str, dict[str, Row]]) -> str:
     for s, rows in summary.items():
         best = best_baseline(rows)
         misses = [f"{m.split()[1][1:-1]}: {k}" for m in OURS for k in targets(s, rows, m)]
-        lines.append([s, str(len(rows[OURS[0]].answers)), f"{best}: {_cell(rows[best])}",
+        lines.append([s, str(len(rows[OURS[0]].answers)),
+                      f"{best}: {_cell(rows[best])}" if best else "— (not run)",
                       *(_cell(rows[m]) for m in OURS), _pair(rows, lambda r: str(r.failed)),
                       _pair(rows, lambda r: f"{r.mean_nees():.3g}"),
                       _pair(rows, lambda r: str(r.silent)),
-                      *(_delta(rows[m], rows[best]) for m in OURS), "; ".join(misses)])
+                      *(_delta(rows[m], rows[best]) if best else "—" for m in OURS),
+                      "; ".join(misses)])
     return markdown(head, lines)
 
 
@@ -490,10 +544,11 @@ def plot(summary: dict[str, dict[str, Row]], path: str) -> None:
         settings = [s for s in summary if s.startswith(track + ":")]
         x = np.arange(len(settings))
         for m in BASELINES:
-            y = [summary[s][m].p(50) for s in settings]
+            y = [summary[s][m].p(50) if summary[s][m].ran else np.nan for s in settings]
             ax.plot(x, y, "o", color="0.7", ms=4, label="KinHEC baselines" if m == BASELINES[0]
                     else None)
-        ax.plot(x, [summary[s][best_baseline(summary[s])].p(50) for s in settings], "_",
+        best = [best_baseline(summary[s]) for s in settings]
+        ax.plot(x, [summary[s][b].p(50) if b else np.nan for s, b in zip(settings, best)], "_",
                 color="k", ms=18, mew=2, label="best baseline")
         for m, c in zip(OURS, ("tab:red", "tab:blue")):
             y = [summary[s][m].p(50) if summary[s][m].ran else np.nan for s in settings]
@@ -517,6 +572,13 @@ def main(argv=None) -> None:
     ap.add_argument("--select", help="only the settings matching this regular expression")
     ap.add_argument("--jobs", type=int, default=1, help="processes (default 1)")
     ap.add_argument("--kinhec-python", help="an interpreter that has kinhec 1.1.0")
+    ap.add_argument("--no-baselines", action="store_true",
+                    help="generate the sequences and solve ours only (NEES, refusals, our "
+                         "errors; no comparison)")
+    ap.add_argument("--modes", default=",".join(MODES),
+                    help=f"ours in these modes, comma-separated (default {','.join(MODES)})")
+    ap.add_argument("--sequences", help="a directory that keeps every generated sequence: "
+                                        "those there are read, not generated again")
     ap.add_argument("--plot", help="save the plot of the medians here (PNG)")
     ap.add_argument("--save", help="pickle every answer here "
                                    "({setting: {method: [Answer as a dict]}})")
@@ -534,6 +596,7 @@ def main(argv=None) -> None:
         print(f"dqpose hand-eye on KinHEC: the answers saved in {args.load} (★: the best "
               f"baseline)\n")
         print(table(summary))
+        print("\n" + pooled_nees(summary))
         if args.plot:
             plot(summary, args.plot)
         return
@@ -542,7 +605,10 @@ def main(argv=None) -> None:
     except KinhecUnavailable as e:
         sys.exit(f"bench_handeye_kinhec: {e}")
     t0 = time.perf_counter()
-    results = run(python, repeats, args.select, args.jobs, progress=sys.stderr)
+    results = run(python, repeats, args.select, args.jobs, progress=sys.stderr,
+                  baselines=not args.no_baselines,
+                  store=Path(args.sequences) if args.sequences else None,
+                  modes=args.modes.split(","))
     wall = time.perf_counter() - t0
     if args.save:
         with open(args.save, "wb") as f:
@@ -555,6 +621,7 @@ def main(argv=None) -> None:
           f"{os.cpu_count()} cores, {args.jobs} job(s): {n} sequences in {len(summary)} "
           f"settings, {wall:.0f} s (★: the best baseline)\n")
     print(table(summary))
+    print("\n" + pooled_nees(summary))
     if args.plot:
         plot(summary, args.plot)
         print(f"\nplot: {args.plot}")

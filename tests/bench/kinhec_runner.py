@@ -1,7 +1,7 @@
 """KinHEC's side of the KinHEC benchmark, run by an interpreter that has ``kinhec`` 1.1.0:
 
     PYTHON tests/bench/kinhec_runner.py plan SPEC.json OUT.json
-    PYTHON tests/bench/kinhec_runner.py run SPEC.json IDS.json OUT.pkl
+    PYTHON tests/bench/kinhec_runner.py run SPEC.json IDS.json OUT.pkl [--no-baselines]
 
 Not part of the dqpose package and imports nothing of it: ``bench_handeye_kinhec`` writes the tier
 spec (the structure of KinHEC's ``configs/*.yaml``), asks for the plan, then has chunks of its
@@ -15,7 +15,8 @@ run  → a pickled list, one dict per sequence id (plain Python and NumPy only):
     them; ``X``/``Y`` (4, 4) the truth; ``eye_in_hand``; ``outlier`` (k,) the generator's labels
     at the keyframes; ``scale``; ``robot_noise``/``camera_noise``: the generator's settings;
     ``baselines``: ``{solver: (rot_deg, trans_mm, error)}`` (NaN errors and the exception text
-    when a solver raised or answered NaN); ``error``: why the sequence has no data ("" else).
+    when a solver raised or answered NaN; absent with ``--no-baselines``, which only generates);
+    ``error``: why the sequence has no data ("" else).
 """
 import json
 import pickle
@@ -45,7 +46,7 @@ def _keyframes(seq: Sequence):
     return A_abs[idx], B_abs[idx], outlier[idx]
 
 
-def _run(cfg: SequenceConfig) -> dict:
+def _run(cfg: SequenceConfig, baselines: bool = True) -> dict:
     out = {"id": cfg.sequence_id, "robot_noise": cfg.robot_noise,
            "camera_noise": cfg.camera_noise, "error": ""}
     rec = generate_sequence(cfg)
@@ -56,6 +57,8 @@ def _run(cfg: SequenceConfig) -> dict:
     if len(A) < 3:
         out["error"] = f"{len(A)} keyframes"
         return out
+    if not baselines:
+        return out
     rows = benchmark.evaluate_sequence(seq, list(benchmark.SOLVERS), sync="oracle",
                                        rng=np.random.default_rng(cfg.seed))
     out["baselines"] = {r["solver"]: (float(r.get("X_rot_err_deg", np.nan)),
@@ -65,8 +68,11 @@ def _run(cfg: SequenceConfig) -> dict:
 
 
 def main(argv):
+    baselines = "--no-baselines" not in argv
+    argv = [a for a in argv if a != "--no-baselines"]
     if len(argv) < 4 or argv[1] not in ("plan", "run"):
-        sys.exit(f"usage: {argv[0]} plan SPEC.json OUT.json | run SPEC.json IDS.json OUT.pkl")
+        sys.exit(f"usage: {argv[0]} plan SPEC.json OUT.json | run SPEC.json IDS.json OUT.pkl "
+                 f"[--no-baselines]")
     with open(argv[2]) as f:
         spec = json.load(f)
     plan = _plan(spec)
@@ -80,7 +86,7 @@ def main(argv):
         wanted = json.load(f)
     by_id = {c.sequence_id: c for c in plan}
     with open(argv[4], "wb") as f:
-        pickle.dump([_run(by_id[i]) for i in wanted], f)
+        pickle.dump([_run(by_id[i], baselines) for i in wanted], f)
 
 
 if __name__ == "__main__":

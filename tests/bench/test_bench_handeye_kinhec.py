@@ -108,6 +108,46 @@ def test_targets_name_what_is_missed():
     assert bench.targets(cone, _rows(refused_all, best), bench.OURS[0]) == {}
 
 
+def test_ours_alone_is_held_to_the_nees_target():
+    """``--no-baselines``: no comparison, no best baseline, and the NEES target (noise given,
+    Gaussian setting, N ≥ 50) judged on ours alone, per setting and pooled."""
+    noise = "noise: robot=r2, camera=c5; ur5e eye_in_hand lookat"
+    seq = {"baselines": None, "error": ""}
+    del seq["baselines"]
+    assert all(a.status == "n/a" for m, a in bench.evaluate(seq, modes=()).items())
+    na = [bench.Answer(status="n/a")] * 50
+
+    def rows(nees):
+        r = {m: bench.Row.of(na) for m in bench.BASELINES}
+        r[bench.OURS[0]] = bench.Row.of(na)
+        r[bench.OURS[1]] = bench.Row.of([bench.Answer(0.1, 1.0, nees=v) for v in nees])
+        return r
+    assert bench.best_baseline(rows([6.0] * 50)) is None
+    assert bench.targets(noise, rows([6.0] * 50), bench.OURS[1]) == {}
+    high = rows([9.0] * 50)
+    assert set(bench.targets(noise, high, bench.OURS[1])) == {"NEES"}    # 6 ± 1.47 at N = 50
+    assert "not run" in bench.render_brief({noise: high})
+    assert "9 (target 6 ± 0.5: missed)" in bench.pooled_nees({noise: high})
+    assert "0 of 1 settings within" in bench.pooled_nees({noise: high})
+
+
+def test_generated_sequences_are_kept_and_read_again(tmp_path, monkeypatch):
+    """``--sequences DIR``: a sequence generated once is read back, not generated again, unless
+    the baselines are wanted and it was generated without them."""
+    calls = []
+
+    def fake(python, repeats, ids, baselines=True):
+        calls.append((list(ids), baselines))
+        return [{"id": i, "error": "", **({"baselines": {}} if baselines else {})} for i in ids]
+    monkeypatch.setattr(bench, "generate", fake)
+    first = bench.sequences(None, 50, ["a", "b"], False, tmp_path)
+    again = bench.sequences(None, 50, ["b", "a", "c"], False, tmp_path)
+    assert [q["id"] for q in first] == ["a", "b"] and [q["id"] for q in again] == ["b", "a", "c"]
+    assert calls == [(["a", "b"], False), (["c"], False)]
+    bench.sequences(None, 50, ["a"], True, tmp_path)
+    assert calls[-1] == (["a"], True)
+
+
 def test_kinhec_environment_offline_says_so(tmp_path, monkeypatch):
     """No package index: a clear error naming the environment and the way around it."""
     monkeypatch.setattr(bench, "KINHEC_ENV", tmp_path / "kinhec")

@@ -32,14 +32,15 @@ def test_small_marker_flips_do_not_anchor_the_fit_with_the_noise_given():
 def test_small_marker_flips_do_not_inflate_the_estimated_noise():
     """The same data with the noise estimated: started on every sample, the flips inflated the
     estimated rotation noise up to 11 times (up to 1.1° for 0.1°) and so hid themselves; 69 of
-    160 were rejected. From the consensus nearly all are, and X stays consistent."""
-    found = total = 0
+    160 were rejected. From the consensus 153 were: the flips of 1.0–1.3° it let into the start
+    still took the estimated rotation noise to 0.2–0.26°. With the robust screen
+    (:func:`dqpose.handeye.outliers._screened`) every flip is rejected, and X stays consistent."""
+    missed = []
     for bad, cal, s in _flips(False):
-        found += len(set(bad.tolist()) & {r.index for r in cal.rejected})
-        total += len(bad)
+        missed += [(s.seed, int(k)) for k in set(bad.tolist()) - {r.index for r in cal.rejected}]
         assert nees(cal.x, cal.covariance_x, s.x) < 30.0, s.seed
         assert H.pose_error(cal.x, s.x)[1] < 2.0, s.seed
-    assert found >= 0.9 * total
+    assert not missed, missed
 
 
 def test_healthy_data_start_from_every_sample():
