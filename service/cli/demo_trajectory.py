@@ -64,9 +64,10 @@ def _angle(a: np.ndarray, b: np.ndarray) -> float:
     return math.degrees(2 * math.acos(min(1.0, abs(float(qa @ qb)))))
 
 
-def run(target: str | None = None, progress: bool = False, recorder=None) -> Result:
+def run(target: str | None = None, progress: bool = False, recorder=None,
+        heartbeat: float | None = None) -> Result:
     """The demo on the simulated UR, through ``target`` or a server of its own (recording into
-    ``recorder`` when given)."""
+    ``recorder`` when given); ``heartbeat``: the arm's (s, None: the UR's default)."""
     from dqpose import drivers
     from dqpose.cli.common import local_server, open_arm
     from dqpose.drivers.executor import Executor
@@ -79,7 +80,9 @@ def run(target: str | None = None, progress: bool = False, recorder=None) -> Res
         sim.set_pose(_HOME)
         spec = f"ur:{sim.host}"        # in its own process where it can, as `dqpose serve` opens it
         arm = stack.enter_context(open_arm(spec, process=drivers.process_problem(spec) is None,
-                                           simulated=True, stale_after=0.5))
+                                           simulated=True, stale_after=0.5,
+                                           **({} if heartbeat is None
+                                              else {"heartbeat": heartbeat})))
         if target is None:
             target = stack.enter_context(local_server(
                 arms={"ur": arm}, executor=Executor,
