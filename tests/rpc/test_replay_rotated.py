@@ -182,7 +182,11 @@ def test_a_run_whose_last_file_was_cut_short_replays_up_to_the_cut(rotated, tmp_
     assert f"{last}: not a complete MCAP recording" in report.cut
     requests = sum(e.kind == "request" for e in whole.events if e.file < k)
     assert requests <= report.requests < len([e for e in whole.events if e.kind == "request"])
-    assert report.files == k + 1 and report.calls >= 7     # the Fuse came last
+    # every call begun before the cut file is replayed, none begun after it (where the Fuse
+    # falls among the files depends on the recording's timing)
+    before = {e.call for e in whole.events if e.file < k}
+    upto = {e.call for e in whole.events if e.file <= k}
+    assert report.files == k + 1 and len(before) <= report.calls <= len(upto)
     # a file of which nothing can be read is not a recording, not a cut
     last.write_bytes(last.read_bytes()[:100])
     with pytest.raises(ValueError, match="not a complete MCAP recording"):
