@@ -53,8 +53,9 @@ The solution, in order:
    gate starts from a fit on the consensus of minimal sets (:mod:`~dqpose.handeye.consensus`:
    least median of squares over hypotheses from three samples each and the closed form, so that
    outliers screw congruence lets through do not anchor it), with the noise estimated screened
-   once more against a noise estimated on the 60 % of the samples that fit best (so that an
-   outlier does not hide by inflating the estimate), and re-fits until the set settles.
+   once more at robust scales of the rotation and the translation residuals (from the 60 % of
+   the samples that fit best, so that an outlier does not hide by inflating the estimate), and
+   re-fits until the set settles.
    ``robust`` leaves the outliers out (``rejected``, each with a reason: a marker flip when the
    rotation is off and the board's position is not); otherwise they stay in and a warning names
    them.
