@@ -449,6 +449,22 @@ done:
     return result;
 }
 
+/* poses (n, 8) and covariances (n, 6, 6) as float64 arrays into a[0], a[1] (new references,
+ * NULL on an error, which is set); n their count. */
+static int poses_and_covariances(PyObject *poses, PyObject *covariances, PyArrayObject **a,
+                                 npy_intp *n)
+{
+    if (!(a[0] = (PyArrayObject *)PyArray_FROM_OTF(poses, NPY_DOUBLE, NPY_ARRAY_IN_ARRAY)))
+        return 0;
+    if (PyArray_NDIM(a[0]) != 2 || PyArray_DIMS(a[0])[1] != 8) {
+        PyErr_SetString(PyExc_ValueError, "poses: expected shape (n, 8)");
+        return 0;
+    }
+    *n = PyArray_DIMS(a[0])[0];
+    npy_intp s3[3] = {*n, 6, 6};
+    return (a[1] = exact_array(covariances, NPY_DOUBLE, "covariances", 3, s3)) != NULL;
+}
+
 /* pair_distances(poses (n, 8), covariances (n, 6, 6), candidates (m,) int) -> (m, n): fusion.h's
  * dq_pair_distances, the GIL released. */
 PyObject *py_pair_distances(PyObject *self, PyObject *args)
@@ -457,14 +473,8 @@ PyObject *py_pair_distances(PyObject *self, PyObject *args)
     if (!PyArg_ParseTuple(args, "OOO:pair_distances", &o[0], &o[1], &o[2])) return NULL;
     PyArrayObject *a[3] = {NULL}, *out = NULL;
     PyObject *result = NULL;
-    if (!(a[0] = (PyArrayObject *)PyArray_FROM_OTF(o[0], NPY_DOUBLE, NPY_ARRAY_IN_ARRAY)))
-        goto done;
-    if (PyArray_NDIM(a[0]) != 2 || PyArray_DIMS(a[0])[1] != 8) {
-        PyErr_SetString(PyExc_ValueError, "poses: expected shape (n, 8)");
-        goto done;
-    }
-    npy_intp n = PyArray_DIMS(a[0])[0], s3[3] = {n, 6, 6};
-    if (!(a[1] = exact_array(o[1], NPY_DOUBLE, "covariances", 3, s3)) ||
+    npy_intp n = 0;
+    if (!poses_and_covariances(o[0], o[1], a, &n) ||
         !(a[2] = (PyArrayObject *)PyArray_FROM_OTF(o[2], NPY_LONGLONG, NPY_ARRAY_IN_ARRAY)))
         goto done;
     if (PyArray_NDIM(a[2]) != 1) {
@@ -511,15 +521,10 @@ PyObject *py_check_rows(PyObject *self, PyObject *args)
     if (!PyArg_ParseTuple(args, "OOd:check_rows", &o[0], &o[1], &sym_tol)) return NULL;
     PyArrayObject *a[2] = {NULL}, *ok = NULL, *sym = NULL;
     PyObject *result = NULL;
-    if (!(a[0] = (PyArrayObject *)PyArray_FROM_OTF(o[0], NPY_DOUBLE, NPY_ARRAY_IN_ARRAY)))
-        goto done;
-    if (PyArray_NDIM(a[0]) != 2 || PyArray_DIMS(a[0])[1] != 8) {
-        PyErr_SetString(PyExc_ValueError, "poses: expected shape (n, 8)");
-        goto done;
-    }
-    npy_intp n = PyArray_DIMS(a[0])[0], s3[3] = {n, 6, 6};
-    if (!(a[1] = exact_array(o[1], NPY_DOUBLE, "covariances", 3, s3)) ||
-        !(ok = (PyArrayObject *)PyArray_SimpleNew(1, &n, NPY_BOOL)) ||
+    npy_intp n = 0;
+    if (!poses_and_covariances(o[0], o[1], a, &n)) goto done;
+    npy_intp s3[3] = {n, 6, 6};
+    if (!(ok = (PyArrayObject *)PyArray_SimpleNew(1, &n, NPY_BOOL)) ||
         !(sym = (PyArrayObject *)PyArray_SimpleNew(3, s3, NPY_DOUBLE)))
         goto done;
     const double *z = PyArray_DATA(a[0]), *S = PyArray_DATA(a[1]);
