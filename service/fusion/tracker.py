@@ -220,28 +220,24 @@ class Tracker:
         return self.estimate_ids(body, time)[0]
 
     def estimate_ids(self, body: str, time: Optional[float] = None,
-                     within: Optional[float] = None, nis: bool = True
-                     ) -> tuple[Fused, np.ndarray]:
+                     within: Optional[float] = None) -> tuple[Fused, np.ndarray]:
         """:meth:`estimate`, and the ids of the measurements it fused (:meth:`window_of`'s);
         ``within``: only the measurements taken within that many seconds of ``time`` (of the
-        newest when ``time`` is None). Without ``nis`` (for an answer that needs the pose and
-        its covariance only) a fit over time that is not robust leaves out the leave-one-out
-        NIS (``nis`` zeros, ``tested`` all False), everything else the same to the last bit."""
-        return self.estimate_rows(self._rows_near(body, time, within), time, nis)
+        newest when ``time`` is None)."""
+        return self.estimate_rows(self._rows_near(body, time, within), time)
 
     def estimate_rows(self, rows: np.ndarray, time: Optional[float] = None,
                       nis: bool = True) -> tuple[Fused, np.ndarray]:
-        """:meth:`estimate_ids` of the rows :meth:`near_rows` found."""
+        """:meth:`estimate_ids` of the rows :meth:`near_rows` found. Without ``nis`` (for an
+        answer that needs the pose and its covariance only) a fit over time that is not robust
+        leaves out the leave-one-out NIS (``nis`` zeros, ``tested`` all False), everything else
+        the same to the last bit."""
         s = self._store
         names = self._names
         # the rows were checked by fuse's rules when they came in
         return _fuse_rows(s.poses[rows], s.covs[rows],
                           tuple([names[c] for c in s.codes[rows].tolist()]), s.times[rows],
                           time, self._checked, nis), s.ids[rows]
-
-    def near(self, body: str, time: Optional[float], within: Optional[float]) -> int:
-        """How many of ``body``'s measurements were taken within ``within`` s of ``time``."""
-        return len(self._rows_near(body, time, within))
 
     def near_rows(self, body: str, time: float, within: float) -> tuple[float, np.ndarray]:
         """When ``body``'s oldest measurement kept was taken, and its rows taken within
