@@ -390,7 +390,9 @@ int dq_motion_fit(const double *z, const double *cov, const unsigned char *inlie
                   const dq_motion_outputs *per, size_t *bad)
 {
     const int dim = (int)dq_motion_dim(m), k = (int)m->k;
-    const size_t stride = M_PER + (size_t)dim * dim;
+    /* the prefix sums of the information only when the leave-one-out NIS are wanted: without
+     * them a measurement's block is a third of the size (fewer pages and cache lines) */
+    const size_t stride = M_PER + (per->nis && tested ? (size_t)dim * dim : 0);
     size_t n_in = 0;
     for (size_t i = 0; i < n; i++) {
         double *blk = work + stride * i;

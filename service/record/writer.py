@@ -276,12 +276,20 @@ class Writer:
             self.live.close()
             self.live = None
 
+#: how far below the server the writer's scheduling priority is (``nice``)
+WRITER_NICE = 10
+
 
 def main(argv: list[str]) -> int:
     # It ends when its input does (the server closes it after its last call, or dies), so that
     # the file is finished: a signal meant for the server is not for it.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    # Below the server and its clients on a shared CPU: the writer works in bursts (a read of
+    # many frames, a chunk compressed), and a burst on the CPU an RPC's thread waits for delays
+    # that answer; niced, the scheduler hands the CPU back as soon as they wake. A writer that
+    # then falls behind drops recording messages, counted, never RPCs.
+    os.nice(WRITER_NICE)
     directory, max_bytes, max_seconds = argv[0] or None, int(argv[1]), float(argv[2])
     live = None
     if len(argv) > 3:

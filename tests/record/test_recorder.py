@@ -247,3 +247,17 @@ def test_a_writer_that_dies_is_logged_and_what_follows_dropped(tmp_path, scene, 
     assert r.dropped == before + 1
     r.close()
     assert any('"event": "recording_failed"' in rec.getMessage() for rec in caplog.records)
+
+
+def test_the_writer_runs_niced_below_the_server(tmp_path):
+    from dqpose.record.writer import WRITER_NICE
+
+    r = Recorder(tmp_path)
+    try:
+        pid = r._proc.pid
+        mine = os.getpriority(os.PRIO_PROCESS, 0)
+        # it nices itself once started: until then it has the server's priority
+        wait_until(lambda: os.getpriority(os.PRIO_PROCESS, pid) != mine, timeout=30)
+        assert os.getpriority(os.PRIO_PROCESS, pid) == min(19, mine + WRITER_NICE)
+    finally:
+        r.close()
