@@ -94,26 +94,27 @@ class _Checked(NamedTuple):
     acceleration_psd: Optional[np.ndarray]
 
 
-def _fuse_rows(Z, S, names, times, time, o: _Checked, nis: bool = True) -> Fused:
+def _fuse_world_rows(Z, S, names, times, time, o: _Checked, nis: bool = True) -> Fused:
     """:func:`fuse` with times of rows already checked by its rules (finite stamps, unit rigid
-    poses, symmetric positive definite covariances symmetrised, names as strings) and checked
-    options: the same result, bit for bit, without checking them again (without ``nis``, the
-    leave-one-out NIS left out where the answer does not need them: ``_fuse_in_time``)."""
-    Z, S = _to_world(dq.normalize(Z), S, names, o.table)
+    poses, symmetric positive definite covariances symmetrised, names as strings) and brought
+    into the world frame (``_to_world(dq.normalize(Z), S, names, o.table)``, as a
+    :class:`~dqpose.fusion.Tracker` keeps them), with checked options: the same result, bit for
+    bit, without checking them again (without ``nis``, the leave-one-out NIS left out where the
+    answer does not need them: ``_fuse_in_time``)."""
     return _fuse_in_time(Z, S, names, o.table, times, time, o.max_skew, o.max_extrapolation,
                          o.twist_covariance, o.acceleration_psd, o.robust, o.probability,
                          o.gate2, o.tol, o.max_iter, nis)
 
 
 def _fuse_joint_rows(rows, fits: Sequence[Fused], time, o: _Checked):
-    """Several bodies' rows ``(poses, covariances, names, times)`` (checked as for
-    :func:`_fuse_rows`) fitted together, with one error per uncertain extrinsic and one latency
-    per source whose latency is estimated (:func:`dqpose.fusion.extrinsics._joint_fit`), each
-    body started from its own fit in ``fits`` and keeping its inliers: the poses and the joint
+    """Several bodies' rows ``(poses, covariances, names, times)`` (checked and in the world
+    frame as for :func:`_fuse_world_rows`) fitted together, with one error per uncertain
+    extrinsic and one latency per source whose latency is estimated
+    (:func:`dqpose.fusion.extrinsics._joint_fit`), each body started from its own fit in
+    ``fits`` and keeping its inliers: the poses and the joint
     covariance of their right perturbations ``(6k, 6k)``."""
     parts, names_all, setups = [], [], []
     for (Z, S, names, times), f in zip(rows, fits):
-        Z, S = _to_world(dq.normalize(Z), S, names, o.table)
         u = _setup(Z, names, o.table, times, time if time is not None else f.time, o.max_skew,
                    o.max_extrapolation, o.twist_covariance, o.acceleration_psd)
         setups.append((Z, S, u, f))

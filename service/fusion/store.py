@@ -20,9 +20,12 @@ class _Store:
     finding them costs what the body holds, not what the stream holds (a world of 1000 bodies
     with 10 s of history holds hundreds of thousands of rows)."""
 
-    _ARRAYS = ("ids", "body", "codes", "times", "taken", "poses", "covs")
+    # as they came (``poses``, ``covs``) and in the world frame (``wposes``, and ``wcovs`` when a
+    # source's body offset moves them): each row brought there once, not at every fit
+    _ARRAYS = ("ids", "body", "codes", "times", "taken", "poses", "covs", "wposes")
 
-    def __init__(self, capacity: int = 256):
+    def __init__(self, capacity: int = 256, world_covs: bool = False):
+        self._arrays = self._ARRAYS + (("wcovs",) if world_covs else ())
         self.n = 0
         self._index: dict[int, np.ndarray] = {}     # body -> its rows, ascending (a prefix)
         self._count: dict[int, int] = {}            # body -> how much of its index is used
@@ -33,6 +36,14 @@ class _Store:
         self.taken = np.empty(capacity)
         self.poses = np.empty((capacity, 8))
         self.covs = np.empty((capacity, DOF, DOF))
+        self.wposes = np.empty((capacity, 8))
+        if world_covs:
+            self.wcovs = np.empty((capacity, DOF, DOF))
+
+    def world(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rows' poses and covariances in the world frame."""
+        covs = self.wcovs if "wcovs" in self._arrays else self.covs
+        return self.wposes[rows], covs[rows]
 
     def live(self, newest: np.ndarray, window: float, cap: Optional[int] = None) -> np.ndarray:
         """The rows in their body's window: taken within ``window`` of its newest, and among
@@ -60,7 +71,7 @@ class _Store:
 
     def keep(self, mask: np.ndarray) -> None:
         k = int(np.count_nonzero(mask))
-        for a in self._ARRAYS:
+        for a in self._arrays:
             arr = getattr(self, a)
             arr[:k] = arr[:self.n][mask]
         self.n = k
@@ -98,12 +109,12 @@ class _Store:
             self.keep(self.live(newest, window, cap))
             if 2 * (self.n + m) > len(self.ids):
                 size = max(2 * len(self.ids), 2 * (self.n + m))
-                for a in self._ARRAYS:
+                for a in self._arrays:
                     old = getattr(self, a)
                     new = np.empty((size,) + old.shape[1:], old.dtype)
                     new[:self.n] = old[:self.n]
                     setattr(self, a, new)
-        for a in self._ARRAYS:
+        for a in self._arrays:
             getattr(self, a)[self.n:self.n + m] = rows[a]
         self._add_to_index(self.n, np.asarray(rows["body"], np.int64).reshape(-1))
         self.n += m

@@ -14,10 +14,10 @@ from dqpose import dq
 from dqpose import limits as _limits
 from dqpose.errors import rename
 from dqpose.fusion.alignment import DEFAULT_MAX_EXTRAPOLATION
-from dqpose.fusion.api import _Checked, _fuse_joint_rows, _fuse_rows, fuse
+from dqpose.fusion.api import _Checked, _fuse_joint_rows, _fuse_world_rows, fuse
 from dqpose.fusion.chi2 import DEFAULT_PROBABILITY, chi2_quantile
 from dqpose.fusion.results import DOF, Fused
-from dqpose.fusion.sources import Source, _sources
+from dqpose.fusion.sources import Source, _sources, _to_world
 from dqpose.fusion.store import _Store
 from dqpose.fusion.validation import _check_rows, _covariances, _finite_shape, _seconds, _shape
 
@@ -126,7 +126,8 @@ class Tracker:
                                  chi2_quantile(probability, DOF), dq._as_tol(tol),
                                  dq._as_iter(max_iter), max_skew, max_extrapolation,
                                  twist_covariance, acceleration_psd)
-        self._store = _Store()
+        self._store = _Store(world_covs=any(src.body_offset is not None
+                                            for src in self._table.values()))
         # bodies and sources as small integers in the store: a body's newest taken time, a
         # source's configured latency
         self._body_codes: dict[str, int] = {}
@@ -234,10 +235,11 @@ class Tracker:
         the same to the last bit."""
         s = self._store
         names = self._names
-        # the rows were checked by fuse's rules when they came in
-        return _fuse_rows(s.poses[rows], s.covs[rows],
-                          tuple([names[c] for c in s.codes[rows].tolist()]), s.times[rows],
-                          time, self._checked, nis), s.ids[rows]
+        # the rows were checked by fuse's rules when they came in, and brought into the world
+        # frame (_in_world)
+        return _fuse_world_rows(*s.world(rows),
+                                tuple([names[c] for c in s.codes[rows].tolist()]), s.times[rows],
+                                time, self._checked, nis), s.ids[rows]
 
     def near_rows(self, body: str, time: float, within: float) -> tuple[float, np.ndarray]:
         """When ``body``'s oldest measurement kept was taken, and its rows taken within
@@ -261,7 +263,7 @@ class Tracker:
         rows = []
         for b in bodies:
             r = self._rows_near(b, time, within)
-            rows.append((s.poses[r], s.covs[r], tuple(self._names[c] for c in s.codes[r].tolist()),
+            rows.append((*s.world(r), tuple(self._names[c] for c in s.codes[r].tolist()),
                          s.times[r]))
         return _fuse_joint_rows(rows, fits, time, self._checked)
 
@@ -380,24 +382,36 @@ class Tracker:
         if every and not late:
             self._newest = newest     # the maxima over these rows, taken above
             self._store.append(self._newest, self.window, self.cap, ids=ids, body=body,
-                               codes=codes, times=times, taken=taken, poses=poses, covs=covs)
+                               codes=codes, times=times, taken=taken, poses=poses, covs=covs,
+                               **self._in_world(sources, poses, covs))
             for b in bodies:
                 self._active.setdefault(b, None)
         elif ok.all():
             np.maximum.at(self._newest, body, taken)
             self._store.append(self._newest, self.window, self.cap, ids=ids, body=body,
-                               codes=codes, times=times, taken=taken, poses=poses, covs=covs)
+                               codes=codes, times=times, taken=taken, poses=poses, covs=covs,
+                               **self._in_world(sources, poses, covs))
             for b in bodies:
                 self._active.setdefault(b, None)
         elif ok.any():
             np.maximum.at(self._newest, body[ok], taken[ok])
+            kept = np.flatnonzero(ok).tolist()
             self._store.append(self._newest, self.window, self.cap, ids=ids[ok], body=body[ok],
                                codes=codes[ok], times=times[ok], taken=taken[ok],
-                               poses=poses[ok], covs=covs[ok])
-            for k in np.flatnonzero(ok).tolist():
+                               poses=poses[ok], covs=covs[ok],
+                               **self._in_world([sources[k] for k in kept], poses[ok], covs[ok]))
+            for k in kept:
                 self._active.setdefault(bodies[k], None)
         return sorted(errors.items())
 
+
+    def _in_world(self, sources, poses, covs) -> dict:
+        """Checked rows in the world frame as :func:`~dqpose.fusion.fuse` brings them there (the
+        same operations on the same rows, so the same bits), for the store to keep: a fit then
+        reads them as they are (``wcovs`` only when a body offset moves the covariances)."""
+        wposes, wcovs = _to_world(dq.normalize(poses), covs, tuple(sources), self._table)
+        return {"wposes": wposes, "wcovs": wcovs} if "wcovs" in self._store._arrays else {
+            "wposes": wposes}
 
     def _jump_check(self, bodies, sources, times, body, taken, ok, errors) -> None:
         """Refuses (in ``ok`` and ``errors``) the rows taken more than ``max_time_jump`` after

@@ -24,7 +24,8 @@ def test_rows_by_index_equal_a_scan_through_growth_compaction_and_removal():
         t += 0.01
         np.maximum.at(newest, body, taken)
         s.append(newest, window, None, ids=np.arange(m), body=body, codes=np.zeros(m, int),
-                 times=taken, taken=taken, poses=np.zeros((m, 8)), covs=np.zeros((m, 6, 6)))
+                 times=taken, taken=taken, poses=np.zeros((m, 8)), covs=np.zeros((m, 6, 6)),
+                 wposes=np.zeros((m, 8)))
         if step == 250:
             s.keep(s.body[:s.n] != 3)                 # a body removed
             newest[3] = -np.inf

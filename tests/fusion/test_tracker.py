@@ -42,6 +42,36 @@ def test_tracker_window_estimates_like_fuse_and_stays_bounded():
     assert tracker.bodies == ("box",)
 
 
+def test_framed_sources_fit_like_fuse_bit_for_bit_and_their_window_is_as_given():
+    """The tracker keeps each row in the world frame once (extrinsic, body offset and the
+    covariance the offset moves): its fit equals fuse's over the rows as given, and its window
+    gives them back as they came (not in the world frame)."""
+    rng = np.random.default_rng(5)
+    T = trajectory(lie.se3_exp(rng.normal(size=6)), False)
+    framed = [Source("cam_a", lie.se3_exp(rng.normal(size=6)), lie.se3_exp(0.3 * rng.normal(
+                  size=6)), latency=SOURCES[0].latency),
+              Source("cam_b", lie.se3_exp(rng.normal(size=6)), latency=SOURCES[1].latency)]
+    tracker = Tracker(WINDOW, sources=framed)       # "arm" is not configured: the world frame
+    given = list(stream(rng, T))[:120]
+    tracker.add(*given)
+    window = tracker.measurements("box")
+    kept = {(m.source, m.time) for m in window}
+    for m in given:
+        if (m.source, m.time) in kept:
+            w = next(w for w in window if (w.source, w.time) == (m.source, m.time))
+            # (the covariance as checked: its symmetric part)
+            assert np.array_equal(w.pose, m.pose)
+            assert np.array_equal(w.covariance, 0.5 * (m.covariance + m.covariance.T))
+    for nis in (True, False):
+        f = tracker.estimate_rows(tracker._rows("box"), None, nis)[0]
+        g = fusion.fuse(np.array([m.pose for m in window]),
+                        np.array([m.covariance for m in window]),
+                        names=[m.source for m in window], sources=framed,
+                        times=[m.time for m in window])
+        assert np.array_equal(f.mean, g.mean) and np.array_equal(f.covariance, g.covariance)
+        assert np.array_equal(f.residuals, g.residuals)
+
+
 def test_tracker_time_going_back_beyond_the_window_is_an_error_naming_the_measurement():
     tracker = Tracker(WINDOW, sources=SOURCES)
     X = lie.se3_exp(np.full(6, 0.1))
