@@ -21,6 +21,11 @@ def _source_stats(sources, code, nis, tested, inlier, probability) -> tuple[Sour
     out = []
     use = tested & inlier
     m = len(sources)
+    if not use.any():   # nothing tested (a fit without its NIS): every source untested
+        rejected = [len(inlier) - int(np.count_nonzero(inlier))] if m == 1 else np.bincount(
+            code, ~inlier, m).astype(np.intp).tolist()
+        return tuple(SourceStats(name, 0, rejected[k], 0.0, 0.0, 0.0, Verdict.UNTESTED)
+                     for k, name in enumerate(sources))
     if m == 1:      # one source (a common case): its counts without two bincounts
         counts = [int(np.count_nonzero(use))]
         rejected = [len(inlier) - int(np.count_nonzero(inlier))]

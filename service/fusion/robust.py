@@ -68,6 +68,8 @@ def _gate(inlier, allowed, fit_of, nis_of, gate2):
 def _rejections(names, nis: np.ndarray, out: np.ndarray, gate2: float,
                 probability: float) -> tuple[Rejection, ...]:
     """The measurements ``out`` selects, each as the gate rejected it."""
+    if not out.any():
+        return ()
     gate = math.sqrt(gate2)
     return tuple(Rejection(int(i), names[i], float(math.sqrt(nis[i])), gate, probability)
                  for i in np.flatnonzero(out))
