@@ -20,7 +20,10 @@ difference, with its bootstrap interval. The same between the two unrecorded ser
 control: what this machine shows when nothing differs. The target (≤ 0.3 ms) is judged only
 when the control's interval lies within ±0.3 ms (the machine resolves a difference that size),
 and shown only when the interval lies below it. Then what one recorded request costs its
-servicer, and the replay: measurements/s and whether every answer was identical.
+servicer, and the replay: measurements/s and whether every answer was identical; then the
+shipped ``dqpose replay`` in its own process over the whole run and over its first file alone,
+with each one's peak resident memory (a replay holds only the open calls and the answers not
+yet compared, so the peak does not grow with the recording).
 """
 from __future__ import annotations
 
@@ -28,6 +31,7 @@ import argparse
 import glob
 import os
 import shutil
+import subprocess
 import sys
 import tempfile
 import time
@@ -48,6 +52,17 @@ def _children(pid: int) -> list[int]:
             return [int(c) for c in f.read().split()]
     except OSError:
         return []
+
+
+def cli_replay(paths: list[str]) -> tuple[float, float, int]:
+    """``dqpose replay PATHS`` as a user runs it (its own process): seconds, its peak resident
+    memory (MB, the kernel's high-water mark) and its exit code."""
+    t = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "replay", *paths],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    _, status, usage = os.wait4(proc.pid, 0)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    return time.perf_counter() - t, usage.ru_maxrss / 1024.0, proc.returncode
 
 
 def _pin(pid: int, cpus: set[int]) -> None:
@@ -208,6 +223,11 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         report = replay.replay(found, replay.InProcess())
         t_replay = time.perf_counter() - t0
+        # the shipped command's memory: the whole run, and its first file alone (a replay holds
+        # the open calls and the answers not yet compared, so the two peaks are alike)
+        cli_rows = [("the whole run", len(files), size, True, *cli_replay([folder])),
+                    ("its first file alone", 1, os.path.getsize(files[0]), False,
+                     *cli_replay(files[:1]))]
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
@@ -277,6 +297,14 @@ def main(argv=None) -> int:
           f"{report.requests * PER_MESSAGE} | {report.answers} | {t_replay:.1f} | "
           f"{report.requests * PER_MESSAGE / t_replay:.0f} | "
           f"{same_answers} |")
+    print()
+    print("| dqpose replay (the CLI, its own process, --speed max) | files | MB | s | "
+          "measurements/s | peak RSS MB | exit |")
+    print("|---|---|---|---|---|---|---|")
+    for label, count, nbytes, whole, secs, rss, rc in cli_rows:
+        rate = f"{report.requests * PER_MESSAGE / secs:.0f}" if whole else "-"
+        print(f"| {label} | {count} | {nbytes / 1e6:.0f} | {secs:.1f} | {rate} | {rss:.0f} | "
+              f"{rc} |")
     return 0
 
 
