@@ -21,9 +21,10 @@ control: what this machine shows when nothing differs. The target (≤ 0.3 ms) i
 when the control's interval lies within ±0.3 ms (the machine resolves a difference that size),
 and shown only when the interval lies below it. Then what one recorded request costs its
 servicer, and the replay: measurements/s and whether every answer was identical; then the
-shipped ``dqpose replay`` in its own process over the whole run and over its first file alone,
-with each one's peak resident memory (a replay holds only the open calls and the answers not
-yet compared, so the peak does not grow with the recording).
+shipped ``dqpose replay`` in its own process over the whole run, over its first file alone and
+over the whole run into a fresh server (``--server``), with each one's peak resident memory (a
+replay holds only the open calls and the answers not yet compared, so the peak does not grow
+with the recording).
 """
 from __future__ import annotations
 
@@ -54,11 +55,11 @@ def _children(pid: int) -> list[int]:
         return []
 
 
-def cli_replay(paths: list[str]) -> tuple[float, float, int]:
-    """``dqpose replay PATHS`` as a user runs it (its own process): seconds, its peak resident
-    memory (MB, the kernel's high-water mark) and its exit code."""
+def cli_replay(paths: list[str], *flags: str) -> tuple[float, float, int]:
+    """``dqpose replay [FLAGS] PATHS`` as a user runs it (its own process): seconds, its peak
+    resident memory (MB, the kernel's high-water mark) and its exit code."""
     t = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "replay", *paths],
+    proc = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "replay", *flags, *paths],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     _, status, usage = os.wait4(proc.pid, 0)
     proc.returncode = os.waitstatus_to_exitcode(status)
@@ -228,6 +229,12 @@ def main(argv=None) -> int:
         cli_rows = [("the whole run", len(files), size, True, *cli_replay([folder])),
                     ("its first file alone", 1, os.path.getsize(files[0]), False,
                      *cli_replay(files[:1]))]
+        fresh = ServerProcess("aio", quiet_log=True)     # the run fed to a server
+        try:
+            cli_rows.append(("the whole run into a fresh server (--server)", len(files), size,
+                             True, *cli_replay([folder], "--server", fresh.target)))
+        finally:
+            fresh.stop()
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
@@ -299,7 +306,7 @@ def main(argv=None) -> int:
           f"{same_answers} |")
     print()
     print("| dqpose replay (the CLI, its own process, --speed max) | files | MB | s | "
-          "measurements/s | peak RSS MB | exit |")
+          "measurements/s | peak RSS MB (the CLI's) | exit (0: every answer identical) |")
     print("|---|---|---|---|---|---|---|")
     for label, count, nbytes, whole, secs, rss, rc in cli_rows:
         rate = f"{report.requests * PER_MESSAGE / secs:.0f}" if whole else "-"
