@@ -301,7 +301,8 @@ def joint_state(parts, ext, lay, X, V, L, Ehat):
 def joint_fit(given, ext, tol, max_iter):
     """Gauss-Newton over every part's state and the ε's from the parts' starts and the
     configured extrinsics: a step that raises the cost by more than 1e-12 (relative) halved up
-    to 30 times, then taken; the loop ends after a step shorter than ``tol``. An
+    to 30 times, then taken; a step shorter than ``tol`` is not taken and ends the loop, one
+    halved below it is taken and ends it (:func:`_solve`'s rule). An
     :class:`dqpose.fusion.extrinsics._Joint` (its ``nis``, ``tested`` and ``cost`` None)."""
     from dqpose.fusion.extrinsics import _Joint, _layout
     parts = [Prepared(*p, W=_inv(p.S), A=_carried(p, ext)) for p in given]
@@ -321,6 +322,9 @@ def joint_fit(given, ext, tol, max_iter):
     for it in range(1, max_iter + 1):
         delta = np.linalg.solve(H, g)
         step = float(np.linalg.norm(delta))
+        if step < tol:   # not taken: the state is the optimum to within tol
+            status, iterations = 0, it
+            break
         for _ in range(MAX_HALVINGS):
             X2, V2 = [], []
             for k, p in enumerate(parts):

@@ -22,7 +22,12 @@
  * point last evaluated (every trial step is taken once its halving ends, so one slot is
  * enough). */
 enum { J_L = 0, J_DI = 36, J_A = 42, J_G = 78, J_R = 192, J_E = 198, J_SC = 204, J_EXP = 206,
-       J_DT = 214, J_PER = 215 };
+       J_DT = 214, J_GRP = 215, J_PER = 216 };
+/* The measurements of a part whose latency and extrinsic slots are the same touch the same
+ * state columns: their information is summed compact (JC x JC, and the gradient's JC) per such
+ * group, with fixed bounds the compiler vectorises, and scattered into the state's once. A
+ * group's accumulator, then one of its measurements, its part's offset and twist. */
+enum { G_M = 0, G_G = JC * JC, G_REP = JC * JC + JC, G_OFF, G_TWIST, G_PER };
 /* An extrinsic's prior residual Log(E^-1 Ehat) and [s2, ch] of its rotation. */
 enum { E_R = 0, E_SC = 6, E_PER = 8 };
 
@@ -33,6 +38,8 @@ typedef struct {
     size_t N;
     int dim, lat, ext;   /* the state's size, where its latencies and extrinsics start */
     double *blocks;      /* N x J_PER */
+    double *groups;      /* ngroups x G_PER */
+    size_t ngroups;
     double *shift;       /* m x 8: Ehat E^-1 at the point last evaluated */
     double *eres;        /* m x E_PER */
 } joint_ctx;
@@ -44,10 +51,46 @@ size_t dq_joint_dim(const dq_joint_model *m)
     return d + m->k + 6 * m->m;
 }
 
+/* The groups of the measurements (G_PER above): each measurement's (J_GRP) and each group's
+ * measurement, offset and twist; returns their count. */
+static size_t joint_groups(const dq_joint_model *m, double *blocks, double *groups)
+{
+    size_t count = 0, i = 0, off = 0;
+    for (size_t p = 0; p < m->parts; p++) {
+        const size_t first = count;
+        for (size_t j = 0; j < m->part[p].n; j++, i++) {
+            size_t g = first;
+            while (g < count) {
+                const size_t rep = (size_t)groups[G_PER * g + G_REP];
+                if (m->lat_slot[rep] == m->lat_slot[i] && m->ext_slot[rep] == m->ext_slot[i]) break;
+                g++;
+            }
+            if (g == count) {
+                double *G = groups + G_PER * count++;
+                G[G_REP] = (double)i;
+                G[G_OFF] = (double)off;
+                G[G_TWIST] = m->part[p].twist;
+            }
+            blocks[J_PER * i + J_GRP] = (double)g;
+        }
+        off += m->part[p].twist ? 12 : 6;
+    }
+    return count;
+}
+
+/* At most this many groups: per part, its measurements or the (latency, extrinsic) pairs. */
+static size_t joint_max_groups(const dq_joint_model *m)
+{
+    size_t pairs = (m->k + 1) * (m->m + 1), total = 0;
+    for (size_t p = 0; p < m->parts; p++) total += m->part[p].n < pairs ? m->part[p].n : pairs;
+    return total;
+}
+
 size_t dq_joint_workspace(size_t N, const dq_joint_model *m)
 {
     size_t D = dq_joint_dim(m);
-    return J_PER * N + 3 * D * D + 6 * D + 14 * m->parts + m->k + (16 + E_PER) * m->m;
+    return J_PER * N + G_PER * joint_max_groups(m) + 3 * D * D + 6 * D + 14 * m->parts + m->k +
+           (16 + E_PER) * m->m;
 }
 
 static inline double sq6(const double *e)
@@ -213,6 +256,21 @@ static int joint_present(const int *map, int *cols, int *at)
     return nc;
 }
 
+/* M += B^T B (upper triangle, JC x JC) and M's gradient += B^T e of a whitened compact
+ * Jacobian B whose columns from w on are zero; w is a constant where this is inlined. */
+static inline void gram(const double *restrict B, const double *restrict e, double *restrict M,
+                        const int w)
+{
+    for (int k = 0; k < 6; k++) {
+        const double *row = B + JC * k;
+        for (int a = 0; a < w; a++) {
+            const double ra = row[a];
+            M[G_G + a] += ra * e[k];
+            for (int bb = a; bb < w; bb++) M[JC * a + bb] += ra * row[bb];
+        }
+    }
+}
+
 /* The inliers' information H (upper triangle) and gradient g at the point last evaluated,
  * their Jacobians kept in their blocks, with the priors' terms. */
 static void joint_linearize(const joint_ctx *c, const double *V, const double *L, double *H,
@@ -222,28 +280,33 @@ static void joint_linearize(const joint_ctx *c, const double *V, const double *L
     const int dim = c->dim;
     for (int k = 0; k < dim * dim; k++) H[k] = 0.0;
     for (int k = 0; k < dim; k++) g[k] = 0.0;
+    for (size_t q = 0; q < c->ngroups; q++)
+        for (int k = 0; k < G_REP; k++) c->groups[G_PER * q + k] = 0.0;
     size_t i = 0;
-    int off = 0;
     for (size_t p = 0; p < m->parts; p++) {
         const int twist = m->part[p].twist;
         for (size_t j = 0; j < m->part[p].n; j++, i++) {
             if (!dq_selected(c->inlier, i)) continue;
-            int map[JC], cols[JC], at[JC];
-            joint_map(c, i, off, twist, map);
-            joint_jacobian(c, i, V + 6 * p, twist, map, NULL);
-            const double *b = c->blocks + J_PER * i, *Gw = b + J_G, *e = b + J_E;
-            const int nc = joint_present(map, cols, at);
-            for (int a = 0; a < nc; a++) {
-                double s = 0.0;
-                for (int k = 0; k < 6; k++) s += Gw[JC * k + cols[a]] * e[k];
-                g[at[a]] += s;
-                for (int bb = a; bb < nc; bb++) {
-                    double t = 0.0;
-                    for (int k = 0; k < 6; k++) t += Gw[JC * k + cols[a]] * Gw[JC * k + cols[bb]];
-                    H[dim * at[a] + at[bb]] += t;
-                }
-            }
+            joint_jacobian(c, i, V + 6 * p, twist, NULL, NULL);
+            const double *b = c->blocks + J_PER * i;
+            double *G = c->groups + G_PER * (size_t)b[J_GRP];
+            if (m->ext_slot[i] >= 0) gram(b + J_G, b + J_E, G, JC);
+            else gram(b + J_G, b + J_E, G, 13);
         }
+    }
+    for (size_t q = 0; q < c->ngroups; q++) {
+        const double *G = c->groups + G_PER * q;
+        int map[JC], cols[JC], at[JC];
+        joint_map(c, (size_t)G[G_REP], (int)G[G_OFF], (int)G[G_TWIST], map);
+        const int nc = joint_present(map, cols, at);
+        for (int a = 0; a < nc; a++) {
+            g[at[a]] += G[G_G + cols[a]];
+            for (int bb = a; bb < nc; bb++) H[dim * at[a] + at[bb]] += G[JC * cols[a] + cols[bb]];
+        }
+    }
+    int off = 0;
+    for (size_t p = 0; p < m->parts; p++) {
+        const int twist = m->part[p].twist;
         const double *Tw = m->part[p].twist_w, *Vp = V + 6 * p;
         if (twist && Tw)
             for (int a = 0; a < 6; a++) {
@@ -381,11 +444,13 @@ int dq_joint_fit(const double *z, const double *cov, const unsigned char *inlier
 {
     const int dim = (int)dq_joint_dim(m), k = (int)m->k, K = (int)m->parts;
     const int ext = dim - 6 * (int)m->m;
-    double *H = work + J_PER * N, *Lh = H + dim * dim, *inv = Lh + dim * dim;
+    double *groups = work + J_PER * N;
+    double *H = groups + G_PER * joint_max_groups(m), *Lh = H + dim * dim, *inv = Lh + dim * dim;
     double *g = inv + dim * dim + 2 * dim, *delta = g + dim, *dh = delta + dim, *Pg = dh + dim;
     double *Xn = Pg + dim, *Vn = Xn + 8 * K, *Ln = Vn + 6 * K, *En = Ln + k;
     double *shift = En + 8 * m->m, *eres = shift + 8 * m->m;
-    joint_ctx c = {m, z, inlier, N, dim, ext - k, ext, work, shift, eres};
+    joint_ctx c = {m, z, inlier, N, dim, ext - k, ext, work, groups,
+                   joint_groups(m, work, groups), shift, eres};
     size_t n_in = 0;
     for (size_t i = 0; i < N; i++) {
         double *b = work + J_PER * i;
@@ -416,6 +481,11 @@ int dq_joint_fit(const double *z, const double *cov, const unsigned char *inlier
         double step = 0.0;
         for (int j = 0; j < dim; j++) step += delta[j] * delta[j];
         step = sqrt(step);
+        if (step < p->tol) {   /* not taken: H and g are the estimate's */
+            st->status = DQ_FUSE_CONVERGED;
+            st->iterations = it;
+            break;
+        }
         double trial = total;
         for (int h = 0; h < DQ_FUSE_MAX_HALVINGS; h++) {
             int off = 0;
