@@ -162,6 +162,7 @@ def _joint_fit(parts: Sequence[_Part], ext: _Extrinsics, tol: float, max_iter: i
     tests/fusion_reference.py holds it in NumPy); with ``nis`` each measurement's leave-one-out
     NIS, with ``jacobians`` each part's ``G``."""
     lay = _layout(parts, ext)
+    cat: tuple[np.ndarray, ...]
     if len(parts) == 1:
         p = parts[0]
         cat = (p.Z, p.S, p.inlier, p.model.stamp, p.model.latency, _part_slots(p, lay.maps[0]),
@@ -181,8 +182,10 @@ def _joint_fit(parts: Sequence[_Part], ext: _Extrinsics, tol: float, max_iter: i
     priors = np.array([p.model.twist and p.model.twist_w is not None for p in parts])
     twist_w = np.array([p.model.twist_w if prior else np.zeros((DOF, DOF))
                         for p, prior in zip(parts, priors)])
+    Z, S, inlier, stamp, latency, lat_slot, ext_slot = cat
     (X, V, L, Ehat, H, P, g, dt, r, cost, G, loo, tested, chi2, status, iterations) = \
-        _c.joint_fit(*cat[:3], counts, *cat[3:], np.array([p.start for p in parts]),
+        _c.joint_fit(Z, S, inlier, counts, stamp, latency, lat_slot, ext_slot,
+                     np.array([p.start for p in parts]),
                      np.array([p.V for p in parts]), np.array([p.model.twist for p in parts]),
                      twist_w, priors, L0, lay.prior, lay.prior_w, ext.E, ext.info, nis, tol,
                      max_iter, jacobians)

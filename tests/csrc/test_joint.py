@@ -163,7 +163,7 @@ def test_hard_case_near_pi_and_tiny_covariances():
 
     def cov(r):
         return random_cov(r) * (1e-8 if r.random() < 0.3 else 1.0)
-    for trial in range(6):
+    for _ in range(6):
         parts, ext = problem(rng, parts=2, per=8, pose=near_pi, twist_prior=(0, 1), cov=cov)
         p = parts[0]
         axis = rng.normal(size=3)
