@@ -184,6 +184,26 @@ static double joint_evaluate(const joint_ctx *c, const double *X, const double *
     return total;
 }
 
+/* C = s A B for 6 x 6 A and B (B's rows ldb apart, C's ldc) whose upper-right 3 x 3 blocks
+ * are zero (Jl^-1, its whitened form, adjoints, Jr), as C's is: the zeros' products skipped. */
+static inline void mul_lower6(const double *restrict A, const double *restrict B, int ldb,
+                              double s, double *restrict C, int ldc)
+{
+    for (int a = 0; a < 6; a++) {
+        const int rot = a < 3 ? 3 : 6;   /* A's row a is zero from column rot on */
+        for (int col = 0; col < 3; col++) {
+            double t = 0.0;
+            for (int k = 0; k < rot; k++) t += A[6 * a + k] * B[ldb * k + col];
+            C[ldc * a + col] = s * t;
+        }
+        for (int col = 3; col < 6; col++) {
+            double t = 0.0;
+            for (int k = 3; k < rot; k++) t += A[6 * a + k] * B[ldb * k + col];
+            C[ldc * a + col] = s * t;
+        }
+    }
+}
+
 /* Measurement i's whitened compact Jacobian L^-1 G into its block, and G itself (6 x dim,
  * through map) into Gout when not NULL. */
 static void joint_jacobian(const joint_ctx *c, size_t i, const double *Vp, int twist,
@@ -206,27 +226,29 @@ static void joint_jacobian(const joint_ctx *c, size_t i, const double *Vp, int t
         for (int a = 0; a < 6; a++)
             for (int k = 6; k < 12; k++) Bc[13 * a + k] = 0.0;
     }
-    for (int a = 0; a < 6; a++) Bc[13 * a + 12] = c->m->lat_slot[i] >= 0 ? -Vp[a] : 0.0;
-    for (int a = 0; a < 6; a++)
-        for (int col = 0; col < 13; col++) {
-            double s = 0.0;
-            for (int k = 0; k < 6; k++) s += Aw[6 * a + k] * Bc[13 * k + col];
-            Gw[JC * a + col] = s;
-        }
+    const int lat = c->m->lat_slot[i] >= 0;
+    for (int a = 0; a < 6; a++) Bc[13 * a + 12] = lat ? -Vp[a] : 0.0;
+    mul_lower6(Aw, Ad, 6, 1.0, Gw, JC);
+    if (twist) mul_lower6(Aw, Bc + 6, 13, 1.0, Gw + 6, JC);
+    for (int a = 0; a < 6; a++) {
+        double s = 0.0;
+        if (lat)
+            for (int k = 0; k < 6; k++) s += Aw[6 * a + k] * Bc[13 * k + 12];
+        Gw[JC * a + 12] = s;
+        if (!twist)
+            for (int col = 6; col < 12; col++) Gw[JC * a + col] = 0.0;
+    }
     double Ar[36], Arw[36], mr[6];
     const int ext = c->m->ext_slot[i] >= 0;
     if (ext) {   /* -Jr^-1(r) A, Jr^-1(r) = Jl^-1(-r) */
         for (int k = 0; k < 6; k++) mr[k] = -r[k];
         dq_jl_inv(mr, b[J_SC], b[J_SC + 1], Ar);
         dq_whiten_jacobian6(b + J_L, b + J_DI, Ar, Arw);
+        mul_lower6(Arw, b + J_A, 6, -1.0, Gw + 13, JC);
+    } else {
+        for (int a = 0; a < 6; a++)
+            for (int col = 13; col < JC; col++) Gw[JC * a + col] = 0.0;
     }
-    for (int a = 0; a < 6; a++)
-        for (int col = 0; col < 6; col++) {
-            double s = 0.0;
-            if (ext)
-                for (int k = 0; k < 6; k++) s -= Arw[6 * a + k] * b[J_A + 6 * k + col];
-            Gw[JC * a + 13 + col] = s;
-        }
     if (!Gout) return;
     const int dim = c->dim;
     for (int a = 0; a < 6 * dim; a++) Gout[a] = 0.0;
@@ -261,7 +283,18 @@ static int joint_present(const int *map, int *cols, int *at)
 static inline void gram(const double *restrict B, const double *restrict e, double *restrict M,
                         const int w)
 {
-    for (int k = 0; k < 6; k++) {
+    /* B's first three rows are zero in the translation columns (mul_lower6's blocks) */
+    static const int rot[10] = {0, 1, 2, 6, 7, 8, 12, 13, 14, 15};
+    const int nr = w == JC ? 10 : 7;
+    for (int k = 0; k < 3; k++) {
+        const double *row = B + JC * k;
+        for (int a = 0; a < nr; a++) {
+            const double ra = row[rot[a]];
+            M[G_G + rot[a]] += ra * e[k];
+            for (int bb = a; bb < nr; bb++) M[JC * rot[a] + rot[bb]] += ra * row[rot[bb]];
+        }
+    }
+    for (int k = 3; k < 6; k++) {
         const double *row = B + JC * k;
         for (int a = 0; a < w; a++) {
             const double ra = row[a];
