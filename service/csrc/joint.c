@@ -86,11 +86,11 @@ static size_t joint_max_groups(const dq_joint_model *m)
     return total;
 }
 
-size_t dq_joint_workspace(size_t N, const dq_joint_model *m)
+size_t dq_joint_workspace(size_t N, const dq_joint_model *m, int nis)
 {
     size_t D = dq_joint_dim(m);
     return J_PER * N + G_PER * joint_max_groups(m) + 3 * D * D + 6 * D + 14 * m->parts + m->k +
-           (16 + E_PER) * m->m;
+           (16 + E_PER) * m->m + (nis ? N * D * D : 0);
 }
 
 static inline double sq6(const double *e)
@@ -304,6 +304,9 @@ static inline void gram(const double *restrict B, const double *restrict e, doub
     }
 }
 
+static void joint_prior_terms(const joint_ctx *c, const double *V, const double *L, double *H,
+                              double *g);
+
 /* The inliers' information H (upper triangle) and gradient g at the point last evaluated,
  * their Jacobians kept in their blocks, with the priors' terms. */
 static void joint_linearize(const joint_ctx *c, const double *V, const double *L, double *H,
@@ -337,6 +340,17 @@ static void joint_linearize(const joint_ctx *c, const double *V, const double *L
             for (int bb = a; bb < nc; bb++) H[dim * at[a] + at[bb]] += G[JC * cols[a] + cols[bb]];
         }
     }
+    joint_prior_terms(c, V, L, H, g);
+    dq_mirror(H, dim);
+}
+
+/* H += the priors' information (upper triangle at least), g += their part of the descent
+ * direction: the latencies', the twists', the extrinsics' at the point last evaluated. */
+static void joint_prior_terms(const joint_ctx *c, const double *V, const double *L, double *H,
+                              double *g)
+{
+    const dq_joint_model *m = c->m;
+    const int dim = c->dim;
     int off = 0;
     for (size_t p = 0; p < m->parts; p++) {
         const int twist = m->part[p].twist;
@@ -380,93 +394,110 @@ static void joint_linearize(const joint_ctx *c, const double *V, const double *L
             }
         }
     }
-    dq_mirror(H, dim);
 }
 
-/* x = M^-1 b for a 6 x 6 M, Gaussian elimination with partial pivoting (M need not be
- * definite: the leave-one-out downdate's I - K is only in theory); 0 when singular. */
-static int solve6(const double *M, const double *b, double *x)
+/* M += measurement i's information (L^-1 G)^T (L^-1 G), upper triangle. */
+static void joint_add_information(const joint_ctx *c, size_t i, int off, int twist, double *M)
 {
-    double A[6][7];
-    for (int a = 0; a < 6; a++) {
-        for (int k = 0; k < 6; k++) A[a][k] = M[6 * a + k];
-        A[a][6] = b[a];
-    }
-    for (int col = 0; col < 6; col++) {
-        int piv = col;
-        for (int a = col + 1; a < 6; a++)
-            if (fabs(A[a][col]) > fabs(A[piv][col])) piv = a;
-        if (!(A[piv][col] != 0.0)) return 0;
-        if (piv != col)
-            for (int k = 0; k < 7; k++) {
-                double t = A[col][k];
-                A[col][k] = A[piv][k];
-                A[piv][k] = t;
-            }
-        for (int a = col + 1; a < 6; a++) {
-            double f = A[a][col] / A[col][col];
-            for (int k = col; k < 7; k++) A[a][k] -= f * A[col][k];
+    int map[JC], cols[JC], at[JC];
+    joint_map(c, i, off, twist, map);
+    const int nc = joint_present(map, cols, at), dim = c->dim;
+    const double *Gw = c->blocks + J_PER * i + J_G;
+    for (int a = 0; a < nc; a++)
+        for (int bb = a; bb < nc; bb++) {
+            double t = 0.0;
+            for (int k = 0; k < 6; k++) t += Gw[JC * k + cols[a]] * Gw[JC * k + cols[bb]];
+            M[dim * at[a] + at[bb]] += t;
         }
-    }
-    for (int a = 5; a >= 0; a--) {
-        double s = A[a][6];
-        for (int k = a + 1; k < 6; k++) s -= A[a][k] * x[k];
-        x[a] = s / A[a][a];
-    }
-    return 1;
 }
 
 /* Each tested measurement's leave-one-out NIS (joint.h) from its whitened compact Jacobian and
- * residual, P and Pg = P g. */
-static int joint_leave_one_out(const joint_ctx *c, const double *P, const double *Pg,
+ * residual, P and Pg = P g, at the estimate (V, L). An inlier's (I - K)^-1 is
+ * I + (L^-1 G) Hj^-1 (L^-1 G)^T, Hj the information of the priors and the other inliers summed
+ * (earlier ones kept as prefix sums in pre, N x dim^2, later ones accumulated backwards, as in
+ * motion.c), so a measurement far surer than the rest does not cancel the others away; so its
+ * NIS is |u|^2 + |Lh^-1 (L^-1 G)^T u|^2. scratch: 3 dim^2 + 2 dim. */
+static int joint_leave_one_out(const joint_ctx *c, const double *V, const double *L,
+                               const double *P, const double *Pg, double *scratch, double *pre,
                                dq_taken *taken, const dq_joint_outputs *per)
 {
     const dq_joint_model *m = c->m;
     const int dim = c->dim;
-    size_t i0 = 0;
+    const size_t D2 = (size_t)dim * dim;
+    double *acc = scratch, *Hj = acc + D2, *Lh = Hj + D2, *dh = Lh + D2, *y = dh + dim;
+    for (size_t k = 0; k < D2; k++) acc[k] = 0.0;
+    for (int k = 0; k < dim; k++) y[k] = 0.0;
+    joint_prior_terms(c, V, L, acc, y);
+    size_t i = 0;
     int off = 0;
     for (size_t p = 0; p < m->parts; p++) {
         const dq_joint_part *pt = m->part + p;
-        const dq_motion_model mm = {m->stamp + i0, m->latency + i0, NULL, 0, NULL, NULL,
+        const dq_motion_model mm = {m->stamp + i, m->latency + i, NULL, 0, NULL, NULL,
                                     pt->twist, pt->twist_w};
-        dq_motion_determined(&mm, c->inlier ? c->inlier + i0 : NULL, pt->n, taken,
-                             per->tested + i0);
-        for (size_t j = 0; j < pt->n; j++) {
-            const size_t i = i0 + j;
+        dq_motion_determined(&mm, c->inlier ? c->inlier + i : NULL, pt->n, taken,
+                             per->tested + i);
+        for (size_t j = 0; j < pt->n; j++, i++) {
             const int in = dq_selected(c->inlier, i);
             if (!in) per->tested[i] = 1;
-            if (!per->tested[i]) {
-                per->nis[i] = 0.0;
-                continue;
-            }
+            if (in && per->tested[i]) memcpy(pre + D2 * i, acc, D2 * sizeof(double));
+            if (in) joint_add_information(c, i, off, pt->twist, acc);
+        }
+        off += pt->twist ? 12 : 6;
+    }
+    for (size_t k = 0; k < D2; k++) acc[k] = 0.0;   /* now the later inliers' */
+    for (size_t p = m->parts; p-- > 0;) {
+        const dq_joint_part *pt = m->part + p;
+        off -= pt->twist ? 12 : 6;
+        for (size_t j = pt->n; j-- > 0;) {
+            i--;
+            const int in = dq_selected(c->inlier, i);
             int map[JC], cols[JC], at[JC];
             joint_map(c, i, off, pt->twist, map);
             const int nc = joint_present(map, cols, at);
             const double *b = c->blocks + J_PER * i, *Gw = b + J_G, *e = b + J_E;
-            double T[6 * JC], M[36], u[6], x[6];
-            for (int a = 0; a < 6; a++)   /* T = (L^-1 G) P over the present columns */
+            if (!per->tested[i]) {
+                per->nis[i] = 0.0;
+            } else if (in) {
+                double u[6];
+                for (int a = 0; a < 6; a++) {
+                    double s = 0.0;
+                    for (int q = 0; q < nc; q++) s += Gw[JC * a + cols[q]] * Pg[at[q]];
+                    u[a] = e[a] - s;
+                }
+                for (size_t k = 0; k < D2; k++) Hj[k] = pre[D2 * i + k] + acc[k];
+                dq_mirror(Hj, dim);
+                if (!dq_chol(Hj, Lh, dh, dim)) return DQ_E_SINGULAR;
+                for (int k = 0; k < dim; k++) y[k] = 0.0;
                 for (int q = 0; q < nc; q++) {
                     double s = 0.0;
-                    for (int k = 0; k < nc; k++) s += Gw[JC * a + cols[k]] * P[dim * at[k] + at[q]];
-                    T[JC * a + q] = s;
+                    for (int k = 0; k < 6; k++) s += Gw[JC * k + cols[q]] * u[k];
+                    y[at[q]] = s;
                 }
-            for (int a = 0; a < 6; a++) {
-                for (int bb = 0; bb < 6; bb++) {
-                    double s = 0.0;
-                    for (int q = 0; q < nc; q++) s += T[JC * a + q] * Gw[JC * bb + cols[q]];
-                    M[6 * a + bb] = (a == bb ? 1.0 : 0.0) + (in ? -s : s);
-                }
-                double s = 0.0;
-                if (in)
-                    for (int q = 0; q < nc; q++) s += Gw[JC * a + cols[q]] * Pg[at[q]];
-                u[a] = e[a] - s;
+                dq_lower_solve(Lh, dh, y, y, dim);
+                double nis = sq6(u);
+                for (int k = 0; k < dim; k++) nis += y[k] * y[k];
+                per->nis[i] = nis;
+            } else {   /* e^T (I + (L^-1 G) P (L^-1 G)^T)^-1 e */
+                double T[6 * JC], M[36], N[36], dn[6], x[6];
+                for (int a = 0; a < 6; a++)
+                    for (int q = 0; q < nc; q++) {
+                        double s = 0.0;
+                        for (int k = 0; k < nc; k++)
+                            s += Gw[JC * a + cols[k]] * P[dim * at[k] + at[q]];
+                        T[JC * a + q] = s;
+                    }
+                for (int a = 0; a < 6; a++)
+                    for (int bb = 0; bb < 6; bb++) {
+                        double s = 0.0;
+                        for (int q = 0; q < nc; q++) s += T[JC * a + q] * Gw[JC * bb + cols[q]];
+                        M[6 * a + bb] = (a == bb ? 1.0 : 0.0) + s;
+                    }
+                if (!dq_chol6(M, N, dn)) return DQ_E_SINGULAR;
+                dq_lower_solve6(N, dn, e, x);
+                per->nis[i] = sq6(x);
             }
-            if (!solve6(M, u, x)) return DQ_E_SINGULAR;
-            per->nis[i] = u[0] * x[0] + u[1] * x[1] + u[2] * x[2] + u[3] * x[3] + u[4] * x[4] +
-                          u[5] * x[5];
+            if (in) joint_add_information(c, i, off, pt->twist, acc);
         }
-        i0 += pt->n;
-        off += pt->twist ? 12 : 6;
     }
     return DQ_OK;
 }
@@ -481,7 +512,7 @@ int dq_joint_fit(const double *z, const double *cov, const unsigned char *inlier
     double *H = groups + G_PER * joint_max_groups(m), *Lh = H + dim * dim, *inv = Lh + dim * dim;
     double *g = inv + dim * dim + 2 * dim, *delta = g + dim, *dh = delta + dim, *Pg = dh + dim;
     double *Xn = Pg + dim, *Vn = Xn + 8 * K, *Ln = Vn + 6 * K, *En = Ln + k;
-    double *shift = En + 8 * m->m, *eres = shift + 8 * m->m;
+    double *shift = En + 8 * m->m, *eres = shift + 8 * m->m, *pre = eres + E_PER * m->m;
     joint_ctx c = {m, z, inlier, N, dim, ext - k, ext, work, groups,
                    joint_groups(m, work, groups), shift, eres};
     size_t n_in = 0;
@@ -597,7 +628,7 @@ int dq_joint_fit(const double *z, const double *cov, const unsigned char *inlier
             for (int q = 0; q < dim; q++) s += st->P[dim * a + q] * g[q];
             Pg[a] = s;
         }
-        int rc = joint_leave_one_out(&c, st->P, Pg, taken, per);
+        int rc = joint_leave_one_out(&c, V, L, st->P, Pg, H, pre, taken, per);
         if (rc) return rc;
         if (!dq_finite_n(per->nis, N)) return DQ_E_OVERFLOW;
     }

@@ -68,8 +68,9 @@ typedef struct {
 } dq_joint_outputs;
 
 size_t dq_joint_dim(const dq_joint_model *m);
-/* The doubles of workspace dq_joint_fit needs for N measurements. */
-size_t dq_joint_workspace(size_t N, const dq_joint_model *m);
+/* The doubles of workspace dq_joint_fit needs for N measurements, with the leave-one-out NIS
+ * (nis: N dim^2 more) or without. */
+size_t dq_joint_workspace(size_t N, const dq_joint_model *m, int nis);
 
 /*
  * Gauss-Newton over the joint state for the measurements inlier selects (NULL: all) from the
@@ -80,8 +81,11 @@ size_t dq_joint_workspace(size_t N, const dq_joint_model *m);
  * estimate: H, P = H^-1, g, and per measurement its dt, residual, cost, G_i and, with nis and
  * tested, its leave-one-out NIS (the priors stay in): an inlier's u^T (I - K)^-1 u,
  * u = L^-1 r - (L^-1 G) P g, K = (L^-1 G) P (L^-1 G)^T (S = L L^T; the downdate of the joint
- * fit by measurement i, the gradient at the answer kept), tested where dq_motion_determined
- * says its part stays determined without it; any other measurement's r^T (S + G P G^T)^-1 r.
+ * fit by measurement i, the gradient at the answer kept), as u^T (I + (L^-1 G) Hj^-1
+ * (L^-1 G)^T) u with Hj the information of the priors and the other inliers summed (not H less
+ * its own, which a measurement far surer than the rest cancels to rounding), tested where
+ * dq_motion_determined says its part stays determined without it (the workspace then needs
+ * dq_joint_workspace's nis); any other measurement's r^T (S + G P G^T)^-1 r.
  * The caller validates the poses (unit), the starts and the model (finite; informations
  * symmetric positive definite). taken: N entries (dq_motion_determined's).
  *

@@ -215,7 +215,7 @@ PyObject *py_joint_fit(PyObject *self, PyObject *args)
                          PyArray_DATA(a[A_EINFO])};
     const npy_intp D = (npy_intp)dq_joint_dim(&jm);
     if (joint_outputs(outs, dims, D, want_g, want_nis) < 0) goto done;
-    work = (double *)malloc(sizeof(double) * dq_joint_workspace((size_t)N, &jm));
+    work = (double *)malloc(sizeof(double) * dq_joint_workspace((size_t)N, &jm, want_nis));
     zu = (double *)malloc(sizeof(double) * 8 * (size_t)(N ? N : 1));
     ext = (double *)malloc(sizeof(double) * 8 * (size_t)(dims[3] ? dims[3] : 1));
     taken = (dq_taken *)malloc(sizeof *taken * (size_t)(N ? N : 1));
