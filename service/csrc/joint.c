@@ -27,7 +27,7 @@ enum { J_L = 0, J_DI = 36, J_A = 42, J_G = 78, J_R = 192, J_E = 198, J_SC = 204,
  * state columns: their information is summed compact (JC x JC, and the gradient's JC) per such
  * group, with fixed bounds the compiler vectorises, and scattered into the state's once. A
  * group's accumulator, then one of its measurements, its part's offset and twist. */
-enum { G_M = 0, G_G = JC * JC, G_REP = JC * JC + JC, G_OFF, G_TWIST, G_PER };
+enum { G_G = JC * JC, G_REP = JC * JC + JC, G_OFF, G_TWIST, G_PER };
 /* An extrinsic's prior residual Log(E^-1 Ehat) and [s2, ch] of its rotation. */
 enum { E_R = 0, E_SC = 6, E_PER = 8 };
 
@@ -307,8 +307,8 @@ static inline void gram(const double *restrict B, const double *restrict e, doub
 static void joint_prior_terms(const joint_ctx *c, const double *V, const double *L, double *H,
                               double *g);
 
-/* The inliers' information H (upper triangle) and gradient g at the point last evaluated,
- * their Jacobians kept in their blocks, with the priors' terms. */
+/* The information H (mirrored) and gradient g of the inliers and the priors at the point last
+ * evaluated, the inliers' Jacobians kept in their blocks. */
 static void joint_linearize(const joint_ctx *c, const double *V, const double *L, double *H,
                             double *g)
 {
