@@ -34,6 +34,9 @@ static PyMethodDef methods[] = {
     {"motion_determined", py_motion_determined, METH_VARARGS,
      "motion_determined(stamps, latencies, inliers, two_instants): does the state stay determined "
      "without each measurement (motion.h)."},
+    {"joint_fit", py_joint_fit, METH_VARARGS,
+     "joint_fit(...): several bodies and the uncertain extrinsics' errors fitted jointly "
+     "(joint.h)."},
     {"se3_jl_inv", py_se3_jl_inv, METH_O,
      "se3_jl_inv(xi[...,6]) -> [...,6,6]: the SE(3) left Jacobian's inverse (service/lie.py)."},
     {"se3_jr", py_se3_jr, METH_O,

@@ -157,3 +157,21 @@ void dq_se3_residual(const double *xc, const double *z, double *r, double *sc)
     sc[1] = p[0];
 }
 
+
+void dq_adjoint(const double *q, double *restrict Ad)
+{
+    double T[16];
+    dq_to_matrix(q, T);
+    const double t[3] = {T[3], T[7], T[11]};
+    for (int a = 0; a < 3; a++)
+        for (int b = 0; b < 3; b++) {
+            double R = T[4 * a + b];
+            double tR = (a == 0 ? -t[2] * T[4 + b] + t[1] * T[8 + b]
+                         : a == 1 ? t[2] * T[b] - t[0] * T[8 + b]
+                                  : -t[1] * T[b] + t[0] * T[4 + b]);
+            Ad[6 * a + b] = R;
+            Ad[6 * a + 3 + b] = 0.0;
+            Ad[6 * (a + 3) + b] = tR;
+            Ad[6 * (a + 3) + 3 + b] = R;
+        }
+}

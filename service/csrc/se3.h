@@ -20,4 +20,8 @@ void dq_jr_scaled(const double *xi, double s2, double ch, double s, double *J, i
  * rotation. */
 void dq_se3_residual(const double *xc, const double *z, double *r, double *sc);
 
+/* Ad(q) = [[R, 0], [t^ R, R]] of the unit pose q (service/lie.py's adjoint): a right
+ * perturbation carried through q, q Exp(xi) = Exp(Ad(q) xi) q. */
+void dq_adjoint(const double *q, double *Ad);
+
 #endif

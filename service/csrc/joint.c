@@ -1,0 +1,636 @@
+/*
+ * joint.c — the joint fit of joint.h: Gauss-Newton over the parts' poses and twists, the shared
+ * latencies and the extrinsic errors, each measurement whitened by its covariance's Cholesky
+ * factor as in motion.c, its Jacobian kept compact (the JC columns it can touch) and scattered
+ * into the dense normal equations; then the covariance and the leave-one-out NIS.
+ */
+#include "joint.h"
+
+#include <math.h>
+#include <string.h>
+
+#include "dq.h"
+#include "linalg6.h"
+#include "se3.h"
+
+/* A measurement's compact columns: its part's pose (6) and twist (6), its latency (1), its
+ * extrinsic's error (6); absent ones map to -1. */
+#define JC 19
+
+/* A measurement's block: its covariance factor L and DI, A = Ad(W^-1 E_s), its whitened compact
+ * Jacobian L^-1 G, then r, e = L^-1 r, sin^2 and cos of half r's angle, Exp(dt V) and dt at the
+ * point last evaluated (every trial step is taken once its halving ends, so one slot is
+ * enough). */
+enum { J_L = 0, J_DI = 36, J_A = 42, J_G = 78, J_R = 192, J_E = 198, J_SC = 204, J_EXP = 206,
+       J_DT = 214, J_GRP = 215, J_PER = 216 };
+/* The measurements of a part whose latency and extrinsic slots are the same touch the same
+ * state columns: their information is summed compact (JC x JC, and the gradient's JC) per such
+ * group, with fixed bounds the compiler vectorises, and scattered into the state's once. A
+ * group's accumulator, then one of its measurements, its part's offset and twist. */
+enum { G_G = JC * JC, G_REP = JC * JC + JC, G_OFF, G_TWIST, G_PER };
+/* An extrinsic's prior residual Log(E^-1 Ehat) and [s2, ch] of its rotation. */
+enum { E_R = 0, E_SC = 6, E_PER = 8 };
+
+typedef struct {
+    const dq_joint_model *m;
+    const double *z;
+    const unsigned char *inlier;
+    size_t N;
+    int dim, lat, ext;   /* the state's size, where its latencies and extrinsics start */
+    double *blocks;      /* N x J_PER */
+    double *groups;      /* ngroups x G_PER */
+    size_t ngroups;
+    double *shift;       /* m x 8: Ehat E^-1 at the point last evaluated */
+    double *eres;        /* m x E_PER */
+} joint_ctx;
+
+size_t dq_joint_dim(const dq_joint_model *m)
+{
+    size_t d = 0;
+    for (size_t p = 0; p < m->parts; p++) d += m->part[p].twist ? 12 : 6;
+    return d + m->k + 6 * m->m;
+}
+
+/* The groups of the measurements (G_PER above): each measurement's (J_GRP) and each group's
+ * measurement, offset and twist; returns their count. */
+static size_t joint_groups(const dq_joint_model *m, double *blocks, double *groups)
+{
+    size_t count = 0, i = 0, off = 0;
+    for (size_t p = 0; p < m->parts; p++) {
+        const size_t first = count;
+        for (size_t j = 0; j < m->part[p].n; j++, i++) {
+            size_t g = first;
+            while (g < count) {
+                const size_t rep = (size_t)groups[G_PER * g + G_REP];
+                if (m->lat_slot[rep] == m->lat_slot[i] && m->ext_slot[rep] == m->ext_slot[i]) break;
+                g++;
+            }
+            if (g == count) {
+                double *G = groups + G_PER * count++;
+                G[G_REP] = (double)i;
+                G[G_OFF] = (double)off;
+                G[G_TWIST] = m->part[p].twist;
+            }
+            blocks[J_PER * i + J_GRP] = (double)g;
+        }
+        off += m->part[p].twist ? 12 : 6;
+    }
+    return count;
+}
+
+/* At most this many groups: per part, its measurements or the (latency, extrinsic) pairs. */
+static size_t joint_max_groups(const dq_joint_model *m)
+{
+    size_t pairs = (m->k + 1) * (m->m + 1), total = 0;
+    for (size_t p = 0; p < m->parts; p++) total += m->part[p].n < pairs ? m->part[p].n : pairs;
+    return total;
+}
+
+size_t dq_joint_workspace(size_t N, const dq_joint_model *m, int nis)
+{
+    size_t D = dq_joint_dim(m);
+    return J_PER * N + G_PER * joint_max_groups(m) + 3 * D * D + 6 * D + 14 * m->parts + m->k +
+           (16 + E_PER) * m->m + (nis ? N * D * D : 0);
+}
+
+static inline double sq6(const double *e)
+{
+    return e[0] * e[0] + e[1] * e[1] + e[2] * e[2] + e[3] * e[3] + e[4] * e[4] + e[5] * e[5];
+}
+
+/* The state columns of measurement i's compact columns, for its part's offset and twist. */
+static void joint_map(const joint_ctx *c, size_t i, int off, int twist, int *map)
+{
+    const long long s = c->m->ext_slot[i], l = c->m->lat_slot[i];
+    for (int a = 0; a < 6; a++) {
+        map[a] = off + a;
+        map[6 + a] = twist ? off + 6 + a : -1;
+        map[13 + a] = s >= 0 ? c->ext + 6 * (int)s + a : -1;
+    }
+    map[12] = l >= 0 ? c->lat + (int)l : -1;
+}
+
+/* Shift = Ehat E^-1 and the extrinsics' prior residuals at Ehat; returns their prior cost. */
+static double joint_extrinsics(const joint_ctx *c, const double *Ehat)
+{
+    const dq_joint_model *m = c->m;
+    double total = 0.0;
+    for (size_t s = 0; s < m->m; s++) {
+        double Ec[8], *pr = c->eres + E_PER * s;
+        const double *I = m->E_info + 36 * s;
+        dq_conj(m->E + 8 * s, Ec);
+        dq_mul(Ehat + 8 * s, Ec, c->shift + 8 * s);
+        dq_se3_residual(Ec, Ehat + 8 * s, pr + E_R, pr + E_SC);
+        for (int a = 0; a < 6; a++) {
+            double t = 0.0;
+            for (int b = 0; b < 6; b++) t += I[6 * a + b] * pr[b];
+            total += pr[a] * t;
+        }
+    }
+    return total;
+}
+
+/* The latencies' and twists' prior cost. */
+static double joint_prior_cost(const joint_ctx *c, const double *V, const double *L)
+{
+    const dq_joint_model *m = c->m;
+    double total = 0.0;
+    for (size_t j = 0; j < m->k; j++)
+        total += m->prior_w[j] * (L[j] - m->prior[j]) * (L[j] - m->prior[j]);
+    for (size_t p = 0; p < m->parts; p++) {
+        const double *Tw = m->part[p].twist_w, *Vp = V + 6 * p;
+        if (!m->part[p].twist || !Tw) continue;
+        for (int a = 0; a < 6; a++) {
+            double t = 0.0;
+            for (int b = 0; b < 6; b++) t += Tw[6 * a + b] * Vp[b];
+            total += Vp[a] * t;
+        }
+    }
+    return total;
+}
+
+/* Residuals and whitened residuals at (X, V, L) and the shift of joint_extrinsics of the
+ * inliers (want = 1) or the others (want = 0); returns their cost. */
+static double joint_evaluate(const joint_ctx *c, const double *X, const double *V,
+                             const double *L, int want)
+{
+    const dq_joint_model *m = c->m;
+    double total = 0.0;
+    size_t i = 0;
+    for (size_t p = 0; p < m->parts; p++) {
+        const double *Xp = X + 8 * p, *Vp = V + 6 * p;
+        for (size_t j = 0; j < m->part[p].n; j++, i++) {
+            if (dq_selected(c->inlier, i) != want) continue;
+            double *b = c->blocks + J_PER * i;
+            double dt = m->stamp[i] - (m->lat_slot[i] >= 0 ? L[m->lat_slot[i]] : m->latency[i]);
+            double h[6], P[8], Pc[8], W[8];
+            for (int a = 0; a < 6; a++) h[a] = 0.5 * (dt * Vp[a]);
+            dq_exp(h, b + J_EXP);
+            dq_mul(Xp, b + J_EXP, P);
+            dq_conj(P, Pc);
+            const double *w = c->z + 8 * i;
+            if (m->ext_slot[i] >= 0) {
+                double M[8];
+                dq_mul(c->shift + 8 * m->ext_slot[i], w, M);
+                dq_normalize(M, W);
+                w = W;
+            }
+            dq_se3_residual(Pc, w, b + J_R, b + J_SC);
+            dq_lower_solve6(b + J_L, b + J_DI, b + J_R, b + J_E);
+            total += sq6(b + J_E);
+            b[J_DT] = dt;
+        }
+    }
+    return total;
+}
+
+/* C = s A B for 6 x 6 A and B (B's rows ldb apart, C's ldc) whose upper-right 3 x 3 blocks
+ * are zero (Jl^-1, its whitened form, adjoints, Jr), as C's is: the zeros' products skipped. */
+static inline void mul_lower6(const double *restrict A, const double *restrict B, int ldb,
+                              double s, double *restrict C, int ldc)
+{
+    for (int a = 0; a < 6; a++) {
+        const int rot = a < 3 ? 3 : 6;   /* A's row a is zero from column rot on */
+        for (int col = 0; col < 3; col++) {
+            double t = 0.0;
+            for (int k = 0; k < rot; k++) t += A[6 * a + k] * B[ldb * k + col];
+            C[ldc * a + col] = s * t;
+        }
+        for (int col = 3; col < 6; col++) {
+            double t = 0.0;
+            for (int k = 3; k < rot; k++) t += A[6 * a + k] * B[ldb * k + col];
+            C[ldc * a + col] = s * t;
+        }
+    }
+}
+
+/* Measurement i's whitened compact Jacobian L^-1 G into its block, and G itself (6 x dim,
+ * through map) into Gout when not NULL. */
+static void joint_jacobian(const joint_ctx *c, size_t i, const double *Vp, int twist,
+                           const int *map, double *Gout)
+{
+    double *b = c->blocks + J_PER * i, *Gw = b + J_G;
+    const double dt = b[J_DT], *E = b + J_EXP, *r = b + J_R;
+    double A[36], Aw[36], Ad[36], Ei[8], Bc[6 * 13];
+    dq_jl_inv(r, b[J_SC], b[J_SC + 1], A);
+    dq_whiten_jacobian6(b + J_L, b + J_DI, A, Aw);
+    dq_conj(E, Ei);
+    dq_adjoint(Ei, Ad);   /* Ad(Exp(-dt V)) */
+    for (int a = 0; a < 6; a++)
+        for (int k = 0; k < 6; k++) Bc[13 * a + k] = Ad[6 * a + k];
+    if (twist) {
+        double x[6];
+        for (int k = 0; k < 6; k++) x[k] = dt * Vp[k];
+        dq_jr_scaled(x, E[1] * E[1] + E[2] * E[2] + E[3] * E[3], E[0], dt, Bc + 6, 13);
+    } else {
+        for (int a = 0; a < 6; a++)
+            for (int k = 6; k < 12; k++) Bc[13 * a + k] = 0.0;
+    }
+    const int lat = c->m->lat_slot[i] >= 0;
+    for (int a = 0; a < 6; a++) Bc[13 * a + 12] = lat ? -Vp[a] : 0.0;
+    mul_lower6(Aw, Ad, 6, 1.0, Gw, JC);
+    if (twist) mul_lower6(Aw, Bc + 6, 13, 1.0, Gw + 6, JC);
+    for (int a = 0; a < 6; a++) {
+        double s = 0.0;
+        if (lat)
+            for (int k = 0; k < 6; k++) s += Aw[6 * a + k] * Bc[13 * k + 12];
+        Gw[JC * a + 12] = s;
+        if (!twist)
+            for (int col = 6; col < 12; col++) Gw[JC * a + col] = 0.0;
+    }
+    double Ar[36], Arw[36], mr[6];
+    const int ext = c->m->ext_slot[i] >= 0;
+    if (ext) {   /* -Jr^-1(r) A, Jr^-1(r) = Jl^-1(-r) */
+        for (int k = 0; k < 6; k++) mr[k] = -r[k];
+        dq_jl_inv(mr, b[J_SC], b[J_SC + 1], Ar);
+        dq_whiten_jacobian6(b + J_L, b + J_DI, Ar, Arw);
+        mul_lower6(Arw, b + J_A, 6, -1.0, Gw + 13, JC);
+    } else {
+        for (int a = 0; a < 6; a++)
+            for (int col = 13; col < JC; col++) Gw[JC * a + col] = 0.0;
+    }
+    if (!Gout) return;
+    const int dim = c->dim;
+    for (int a = 0; a < 6 * dim; a++) Gout[a] = 0.0;
+    for (int col = 0; col < JC; col++) {
+        if (map[col] < 0) continue;
+        for (int a = 0; a < 6; a++) {
+            double s = 0.0;
+            if (col < 13)
+                for (int k = 0; k < 6; k++) s += A[6 * a + k] * Bc[13 * k + col];
+            else
+                for (int k = 0; k < 6; k++) s -= Ar[6 * a + k] * b[J_A + 6 * k + col - 13];
+            Gout[dim * a + map[col]] = s;
+        }
+    }
+}
+
+/* The columns of map that are in the state: their compact indices and state columns,
+ * ascending in both. */
+static int joint_present(const int *map, int *cols, int *at)
+{
+    int nc = 0;
+    for (int col = 0; col < JC; col++)
+        if (map[col] >= 0) {
+            cols[nc] = col;
+            at[nc++] = map[col];
+        }
+    return nc;
+}
+
+/* M += B^T B (upper triangle, JC x JC) and M's gradient += B^T e of a whitened compact
+ * Jacobian B whose columns from w on are zero; w is a constant where this is inlined. */
+static inline void gram(const double *restrict B, const double *restrict e, double *restrict M,
+                        const int w)
+{
+    /* B's first three rows are zero in the translation columns (mul_lower6's blocks) */
+    static const int rot[10] = {0, 1, 2, 6, 7, 8, 12, 13, 14, 15};
+    const int nr = w == JC ? 10 : 7;
+    for (int k = 0; k < 3; k++) {
+        const double *row = B + JC * k;
+        for (int a = 0; a < nr; a++) {
+            const double ra = row[rot[a]];
+            M[G_G + rot[a]] += ra * e[k];
+            for (int bb = a; bb < nr; bb++) M[JC * rot[a] + rot[bb]] += ra * row[rot[bb]];
+        }
+    }
+    for (int k = 3; k < 6; k++) {
+        const double *row = B + JC * k;
+        for (int a = 0; a < w; a++) {
+            const double ra = row[a];
+            M[G_G + a] += ra * e[k];
+            for (int bb = a; bb < w; bb++) M[JC * a + bb] += ra * row[bb];
+        }
+    }
+}
+
+static void joint_prior_terms(const joint_ctx *c, const double *V, const double *L, double *H,
+                              double *g);
+
+/* The information H (mirrored) and gradient g of the inliers and the priors at the point last
+ * evaluated, the inliers' Jacobians kept in their blocks. */
+static void joint_linearize(const joint_ctx *c, const double *V, const double *L, double *H,
+                            double *g)
+{
+    const dq_joint_model *m = c->m;
+    const int dim = c->dim;
+    for (int k = 0; k < dim * dim; k++) H[k] = 0.0;
+    for (int k = 0; k < dim; k++) g[k] = 0.0;
+    for (size_t q = 0; q < c->ngroups; q++)
+        for (int k = 0; k < G_REP; k++) c->groups[G_PER * q + k] = 0.0;
+    size_t i = 0;
+    for (size_t p = 0; p < m->parts; p++) {
+        const int twist = m->part[p].twist;
+        for (size_t j = 0; j < m->part[p].n; j++, i++) {
+            if (!dq_selected(c->inlier, i)) continue;
+            joint_jacobian(c, i, V + 6 * p, twist, NULL, NULL);
+            const double *b = c->blocks + J_PER * i;
+            double *G = c->groups + G_PER * (size_t)b[J_GRP];
+            if (m->ext_slot[i] >= 0) gram(b + J_G, b + J_E, G, JC);
+            else gram(b + J_G, b + J_E, G, 13);
+        }
+    }
+    for (size_t q = 0; q < c->ngroups; q++) {
+        const double *G = c->groups + G_PER * q;
+        int map[JC], cols[JC], at[JC];
+        joint_map(c, (size_t)G[G_REP], (int)G[G_OFF], (int)G[G_TWIST], map);
+        const int nc = joint_present(map, cols, at);
+        for (int a = 0; a < nc; a++) {
+            g[at[a]] += G[G_G + cols[a]];
+            for (int bb = a; bb < nc; bb++) H[dim * at[a] + at[bb]] += G[JC * cols[a] + cols[bb]];
+        }
+    }
+    joint_prior_terms(c, V, L, H, g);
+    dq_mirror(H, dim);
+}
+
+/* H += the priors' information (upper triangle at least), g += their part of the descent
+ * direction: the latencies', the twists', the extrinsics' at the point last evaluated. */
+static void joint_prior_terms(const joint_ctx *c, const double *V, const double *L, double *H,
+                              double *g)
+{
+    const dq_joint_model *m = c->m;
+    const int dim = c->dim;
+    int off = 0;
+    for (size_t p = 0; p < m->parts; p++) {
+        const int twist = m->part[p].twist;
+        const double *Tw = m->part[p].twist_w, *Vp = V + 6 * p;
+        if (twist && Tw)
+            for (int a = 0; a < 6; a++) {
+                double s = 0.0;
+                for (int bb = 0; bb < 6; bb++) {
+                    H[dim * (off + 6 + a) + off + 6 + bb] += Tw[6 * a + bb];
+                    s += Tw[6 * a + bb] * Vp[bb];
+                }
+                g[off + 6 + a] -= s;
+            }
+        off += twist ? 12 : 6;
+    }
+    for (size_t j = 0; j < m->k; j++) {
+        const int col = c->lat + (int)j;
+        H[dim * col + col] += m->prior_w[j];
+        g[col] -= m->prior_w[j] * (L[j] - m->prior[j]);
+    }
+    for (size_t s = 0; s < m->m; s++) {
+        const double *pr = c->eres + E_PER * s, *I = m->E_info + 36 * s;
+        double Jp[36], JtI[36], mp[6];
+        for (int k = 0; k < 6; k++) mp[k] = -pr[E_R + k];
+        dq_jl_inv(mp, pr[E_SC], pr[E_SC + 1], Jp);   /* Jr^-1(p_s) */
+        for (int a = 0; a < 6; a++)
+            for (int bb = 0; bb < 6; bb++) {
+                double t = 0.0;
+                for (int k = 0; k < 6; k++) t += Jp[6 * k + a] * I[6 * k + bb];
+                JtI[6 * a + bb] = t;
+            }
+        const int e0 = c->ext + 6 * (int)s;
+        for (int a = 0; a < 6; a++) {
+            double t = 0.0;
+            for (int k = 0; k < 6; k++) t += JtI[6 * a + k] * pr[E_R + k];
+            g[e0 + a] -= t;
+            for (int bb = 0; bb < 6; bb++) {
+                double h = 0.0;
+                for (int k = 0; k < 6; k++) h += JtI[6 * a + k] * Jp[6 * k + bb];
+                H[dim * (e0 + a) + e0 + bb] += h;
+            }
+        }
+    }
+}
+
+/* M += measurement i's information (L^-1 G)^T (L^-1 G), upper triangle. */
+static void joint_add_information(const joint_ctx *c, size_t i, int off, int twist, double *M)
+{
+    int map[JC], cols[JC], at[JC];
+    joint_map(c, i, off, twist, map);
+    const int nc = joint_present(map, cols, at), dim = c->dim;
+    const double *Gw = c->blocks + J_PER * i + J_G;
+    for (int a = 0; a < nc; a++)
+        for (int bb = a; bb < nc; bb++) {
+            double t = 0.0;
+            for (int k = 0; k < 6; k++) t += Gw[JC * k + cols[a]] * Gw[JC * k + cols[bb]];
+            M[dim * at[a] + at[bb]] += t;
+        }
+}
+
+/* Each tested measurement's leave-one-out NIS (joint.h) from its whitened compact Jacobian and
+ * residual, P and Pg = P g, at the estimate (V, L). An inlier's (I - K)^-1 is
+ * I + (L^-1 G) Hj^-1 (L^-1 G)^T, Hj the information of the priors and the other inliers summed
+ * (earlier ones kept as prefix sums in pre, N x dim^2, later ones accumulated backwards, as in
+ * motion.c), so a measurement far surer than the rest does not cancel the others away; so its
+ * NIS is |u|^2 + |Lh^-1 (L^-1 G)^T u|^2. scratch: 3 dim^2 + 2 dim. */
+static int joint_leave_one_out(const joint_ctx *c, const double *V, const double *L,
+                               const double *P, const double *Pg, double *scratch, double *pre,
+                               dq_taken *taken, const dq_joint_outputs *per)
+{
+    const dq_joint_model *m = c->m;
+    const int dim = c->dim;
+    const size_t D2 = (size_t)dim * dim;
+    double *acc = scratch, *Hj = acc + D2, *Lh = Hj + D2, *dh = Lh + D2, *y = dh + dim;
+    for (size_t k = 0; k < D2; k++) acc[k] = 0.0;
+    for (int k = 0; k < dim; k++) y[k] = 0.0;
+    joint_prior_terms(c, V, L, acc, y);
+    size_t i = 0;
+    int off = 0;
+    for (size_t p = 0; p < m->parts; p++) {
+        const dq_joint_part *pt = m->part + p;
+        const dq_motion_model mm = {m->stamp + i, m->latency + i, NULL, 0, NULL, NULL,
+                                    pt->twist, pt->twist_w};
+        dq_motion_determined(&mm, c->inlier ? c->inlier + i : NULL, pt->n, taken,
+                             per->tested + i);
+        for (size_t j = 0; j < pt->n; j++, i++) {
+            const int in = dq_selected(c->inlier, i);
+            if (!in) per->tested[i] = 1;
+            if (in && per->tested[i]) memcpy(pre + D2 * i, acc, D2 * sizeof(double));
+            if (in) joint_add_information(c, i, off, pt->twist, acc);
+        }
+        off += pt->twist ? 12 : 6;
+    }
+    for (size_t k = 0; k < D2; k++) acc[k] = 0.0;   /* now the later inliers' */
+    for (size_t p = m->parts; p-- > 0;) {
+        const dq_joint_part *pt = m->part + p;
+        off -= pt->twist ? 12 : 6;
+        for (size_t j = pt->n; j-- > 0;) {
+            i--;
+            const int in = dq_selected(c->inlier, i);
+            int map[JC], cols[JC], at[JC];
+            joint_map(c, i, off, pt->twist, map);
+            const int nc = joint_present(map, cols, at);
+            const double *b = c->blocks + J_PER * i, *Gw = b + J_G, *e = b + J_E;
+            if (!per->tested[i]) {
+                per->nis[i] = 0.0;
+            } else if (in) {
+                double u[6];
+                for (int a = 0; a < 6; a++) {
+                    double s = 0.0;
+                    for (int q = 0; q < nc; q++) s += Gw[JC * a + cols[q]] * Pg[at[q]];
+                    u[a] = e[a] - s;
+                }
+                for (size_t k = 0; k < D2; k++) Hj[k] = pre[D2 * i + k] + acc[k];
+                dq_mirror(Hj, dim);
+                if (!dq_chol(Hj, Lh, dh, dim)) return DQ_E_SINGULAR;
+                for (int k = 0; k < dim; k++) y[k] = 0.0;
+                for (int q = 0; q < nc; q++) {
+                    double s = 0.0;
+                    for (int k = 0; k < 6; k++) s += Gw[JC * k + cols[q]] * u[k];
+                    y[at[q]] = s;
+                }
+                dq_lower_solve(Lh, dh, y, y, dim);
+                double nis = sq6(u);
+                for (int k = 0; k < dim; k++) nis += y[k] * y[k];
+                per->nis[i] = nis;
+            } else {   /* e^T (I + (L^-1 G) P (L^-1 G)^T)^-1 e */
+                double T[6 * JC], M[36], N[36], dn[6], x[6];
+                for (int a = 0; a < 6; a++)
+                    for (int q = 0; q < nc; q++) {
+                        double s = 0.0;
+                        for (int k = 0; k < nc; k++)
+                            s += Gw[JC * a + cols[k]] * P[dim * at[k] + at[q]];
+                        T[JC * a + q] = s;
+                    }
+                for (int a = 0; a < 6; a++)
+                    for (int bb = 0; bb < 6; bb++) {
+                        double s = 0.0;
+                        for (int q = 0; q < nc; q++) s += T[JC * a + q] * Gw[JC * bb + cols[q]];
+                        M[6 * a + bb] = (a == bb ? 1.0 : 0.0) + s;
+                    }
+                if (!dq_chol6(M, N, dn)) return DQ_E_SINGULAR;
+                dq_lower_solve6(N, dn, e, x);
+                per->nis[i] = sq6(x);
+            }
+            if (in) joint_add_information(c, i, off, pt->twist, acc);
+        }
+    }
+    return DQ_OK;
+}
+
+int dq_joint_fit(const double *z, const double *cov, const unsigned char *inlier, size_t N,
+                 const dq_joint_model *m, const dq_fuse_params *p, double *work,
+                 dq_taken *taken, dq_joint_state *st, const dq_joint_outputs *per, size_t *bad)
+{
+    const int dim = (int)dq_joint_dim(m), k = (int)m->k, K = (int)m->parts;
+    const int ext = dim - 6 * (int)m->m;
+    double *groups = work + J_PER * N;
+    double *H = groups + G_PER * joint_max_groups(m), *Lh = H + dim * dim, *inv = Lh + dim * dim;
+    double *g = inv + dim * dim + 2 * dim, *delta = g + dim, *dh = delta + dim, *Pg = dh + dim;
+    double *Xn = Pg + dim, *Vn = Xn + 8 * K, *Ln = Vn + 6 * K, *En = Ln + k;
+    double *shift = En + 8 * m->m, *eres = shift + 8 * m->m, *pre = eres + E_PER * m->m;
+    joint_ctx c = {m, z, inlier, N, dim, ext - k, ext, work, groups,
+                   joint_groups(m, work, groups), shift, eres};
+    size_t n_in = 0;
+    for (size_t i = 0; i < N; i++) {
+        double *b = work + J_PER * i;
+        if (!dq_chol6(cov + 36 * i, b + J_L, b + J_DI)) {
+            *bad = i;
+            return DQ_E_NOT_SPD;
+        }
+        if (m->ext_slot[i] >= 0) {
+            double zc[8], T[8];
+            dq_conj(z + 8 * i, zc);
+            dq_mul(zc, m->E + 8 * m->ext_slot[i], T);
+            dq_adjoint(T, b + J_A);
+        }
+        if (dq_selected(inlier, i)) n_in++;
+    }
+    if (n_in == 0) return DQ_E_NO_INLIERS;
+    double *X = st->X, *V = st->V, *L = st->L, *Ehat = st->Ehat;
+    memcpy(Ehat, m->E, sizeof(double) * 8 * m->m);
+    double total = joint_extrinsics(&c, Ehat) + joint_evaluate(&c, X, V, L, 1) +
+                   joint_prior_cost(&c, V, L);
+    joint_linearize(&c, V, L, H, g);
+    st->status = DQ_FUSE_MAX_ITERATIONS;
+    st->iterations = p->max_iter;
+    for (int it = 1; it <= p->max_iter; it++) {
+        if (!dq_chol(H, Lh, dh, dim)) return DQ_E_SINGULAR;
+        dq_lower_solve(Lh, dh, g, delta, dim);
+        dq_upper_solve(Lh, dh, delta, delta, dim);
+        double step = 0.0;
+        for (int j = 0; j < dim; j++) step += delta[j] * delta[j];
+        step = sqrt(step);
+        if (step < p->tol) {   /* not taken: H and g are the estimate's */
+            st->status = DQ_FUSE_CONVERGED;
+            st->iterations = it;
+            break;
+        }
+        double trial = total;
+        for (int h = 0; h < DQ_FUSE_MAX_HALVINGS; h++) {
+            int off = 0;
+            for (int q = 0; q < K; q++) {
+                double half[6], E[8], P[8];
+                for (int j = 0; j < 6; j++) half[j] = 0.5 * delta[off + j];
+                dq_exp(half, E);
+                dq_mul(X + 8 * q, E, P);
+                if (dq_normalize(P, Xn + 8 * q)) return DQ_E_OVERFLOW;
+                for (int j = 0; j < 6; j++)
+                    Vn[6 * q + j] = V[6 * q + j] + (m->part[q].twist ? delta[off + 6 + j] : 0.0);
+                off += m->part[q].twist ? 12 : 6;
+            }
+            for (int j = 0; j < k; j++) Ln[j] = L[j] + delta[c.lat + j];
+            for (size_t s = 0; s < m->m; s++) {
+                double half[6], E[8], P[8];
+                for (int j = 0; j < 6; j++) half[j] = 0.5 * delta[ext + 6 * (int)s + j];
+                dq_exp(half, E);
+                dq_mul(Ehat + 8 * s, E, P);
+                if (dq_normalize(P, En + 8 * s)) return DQ_E_OVERFLOW;
+            }
+            trial = joint_extrinsics(&c, En) + joint_evaluate(&c, Xn, Vn, Ln, 1) +
+                    joint_prior_cost(&c, Vn, Ln);
+            if (trial <= total * (1.0 + DQ_FUSE_COST_SLACK) || step < p->tol) break;
+            for (int j = 0; j < dim; j++) delta[j] *= 0.5;
+            step *= 0.5;
+        }
+        memcpy(X, Xn, sizeof(double) * 8 * K);
+        memcpy(V, Vn, sizeof(double) * 6 * K);
+        memcpy(L, Ln, sizeof(double) * k);
+        memcpy(Ehat, En, sizeof(double) * 8 * m->m);
+        total = trial;
+        joint_linearize(&c, V, L, H, g);
+        if (step < p->tol) {
+            st->status = DQ_FUSE_CONVERGED;
+            st->iterations = it;
+            break;
+        }
+    }
+    /* everything at the estimate: the others' residuals, and the Jacobians asked for */
+    joint_evaluate(&c, X, V, L, 0);
+    const int want_nis = per->nis && per->tested;
+    if (per->G || want_nis) {
+        size_t i = 0;
+        int off = 0;
+        for (int q = 0; q < K; q++) {
+            const int twist = m->part[q].twist;
+            for (size_t j = 0; j < m->part[q].n; j++, i++) {
+                if (!per->G && dq_selected(inlier, i)) continue;   /* theirs are current */
+                int map[JC];
+                joint_map(&c, i, off, twist, map);
+                joint_jacobian(&c, i, V + 6 * q, twist, map,
+                               per->G ? per->G + 6 * (size_t)dim * i : NULL);
+            }
+            off += twist ? 12 : 6;
+        }
+    }
+    for (size_t i = 0; i < N; i++) {
+        const double *b = work + J_PER * i;
+        if (per->cost) per->cost[i] = sq6(b + J_E);
+        if (per->dt) per->dt[i] = b[J_DT];
+        if (per->residuals) memcpy(per->residuals + 6 * i, b + J_R, 6 * sizeof(double));
+    }
+    st->chi2 = total;
+    memcpy(st->H, H, sizeof(double) * dim * dim);
+    memcpy(st->g, g, sizeof(double) * dim);
+    if (!dq_finite_n(X, 8 * (size_t)K) || !dq_finite_n(V, 6 * (size_t)K) ||
+        !dq_finite_n(L, (size_t)k) || !dq_finite_n(Ehat, 8 * m->m) ||
+        !dq_finite_n(H, (size_t)dim * dim) || !dq_finite_n(g, (size_t)dim) ||
+        !(total * 0.0 == 0.0))
+        return DQ_E_OVERFLOW;
+    if (!dq_spd_inverse(H, dim, inv, st->P)) return DQ_E_SINGULAR;
+    if (want_nis) {
+        for (int a = 0; a < dim; a++) {
+            double s = 0.0;
+            for (int q = 0; q < dim; q++) s += st->P[dim * a + q] * g[q];
+            Pg[a] = s;
+        }
+        int rc = joint_leave_one_out(&c, V, L, st->P, Pg, H, pre, taken, per);
+        if (rc) return rc;
+        if (!dq_finite_n(per->nis, N)) return DQ_E_OVERFLOW;
+    }
+    return DQ_OK;
+}
