@@ -2,9 +2,10 @@
  * joint.c — the joint fit of joint.h: Gauss-Newton over the parts' poses and twists, the shared
  * latencies and the extrinsic errors, each measurement whitened by its covariance's Cholesky
  * factor as in motion.c, its Jacobian kept compact (the JC columns it can touch) and scattered
- * into the dense normal equations; then the covariance and the leave-one-out NIS.
+ * into the dense normal equations; then the covariance (the leave-one-out NIS: joint_nis.c).
  */
 #include "joint.h"
+#include "joint_ctx.h"
 
 #include <math.h>
 #include <string.h>
@@ -12,37 +13,6 @@
 #include "dq.h"
 #include "linalg6.h"
 #include "se3.h"
-
-/* A measurement's compact columns: its part's pose (6) and twist (6), its latency (1), its
- * extrinsic's error (6); absent ones map to -1. */
-#define JC 19
-
-/* A measurement's block: its covariance factor L and DI, A = Ad(W^-1 E_s), its whitened compact
- * Jacobian L^-1 G, then r, e = L^-1 r, sin^2 and cos of half r's angle, Exp(dt V) and dt at the
- * point last evaluated (every trial step is taken once its halving ends, so one slot is
- * enough). */
-enum { J_L = 0, J_DI = 36, J_A = 42, J_G = 78, J_R = 192, J_E = 198, J_SC = 204, J_EXP = 206,
-       J_DT = 214, J_GRP = 215, J_PER = 216 };
-/* The measurements of a part whose latency and extrinsic slots are the same touch the same
- * state columns: their information is summed compact (JC x JC, and the gradient's JC) per such
- * group, with fixed bounds the compiler vectorises, and scattered into the state's once. A
- * group's accumulator, then one of its measurements, its part's offset and twist. */
-enum { G_G = JC * JC, G_REP = JC * JC + JC, G_OFF, G_TWIST, G_PER };
-/* An extrinsic's prior residual Log(E^-1 Ehat) and [s2, ch] of its rotation. */
-enum { E_R = 0, E_SC = 6, E_PER = 8 };
-
-typedef struct {
-    const dq_joint_model *m;
-    const double *z;
-    const unsigned char *inlier;
-    size_t N;
-    int dim, lat, ext;   /* the state's size, where its latencies and extrinsics start */
-    double *blocks;      /* N x J_PER */
-    double *groups;      /* ngroups x G_PER */
-    size_t ngroups;
-    double *shift;       /* m x 8: Ehat E^-1 at the point last evaluated */
-    double *eres;        /* m x E_PER */
-} joint_ctx;
 
 size_t dq_joint_dim(const dq_joint_model *m)
 {
@@ -93,13 +63,8 @@ size_t dq_joint_workspace(size_t N, const dq_joint_model *m, int nis)
            (16 + E_PER) * m->m + (nis ? N * D * D : 0);
 }
 
-static inline double sq6(const double *e)
-{
-    return e[0] * e[0] + e[1] * e[1] + e[2] * e[2] + e[3] * e[3] + e[4] * e[4] + e[5] * e[5];
-}
-
 /* The state columns of measurement i's compact columns, for its part's offset and twist. */
-static void joint_map(const joint_ctx *c, size_t i, int off, int twist, int *map)
+void joint_map(const joint_ctx *c, size_t i, int off, int twist, int *map)
 {
     const long long s = c->m->ext_slot[i], l = c->m->lat_slot[i];
     for (int a = 0; a < 6; a++) {
@@ -267,7 +232,7 @@ static void joint_jacobian(const joint_ctx *c, size_t i, const double *Vp, int t
 
 /* The columns of map that are in the state: their compact indices and state columns,
  * ascending in both. */
-static int joint_present(const int *map, int *cols, int *at)
+int joint_present(const int *map, int *cols, int *at)
 {
     int nc = 0;
     for (int col = 0; col < JC; col++)
@@ -303,9 +268,6 @@ static inline void gram(const double *restrict B, const double *restrict e, doub
         }
     }
 }
-
-static void joint_prior_terms(const joint_ctx *c, const double *V, const double *L, double *H,
-                              double *g);
 
 /* The information H (mirrored) and gradient g of the inliers and the priors at the point last
  * evaluated, the inliers' Jacobians kept in their blocks. */
@@ -346,8 +308,8 @@ static void joint_linearize(const joint_ctx *c, const double *V, const double *L
 
 /* H += the priors' information (upper triangle at least), g += their part of the descent
  * direction: the latencies', the twists', the extrinsics' at the point last evaluated. */
-static void joint_prior_terms(const joint_ctx *c, const double *V, const double *L, double *H,
-                              double *g)
+void joint_prior_terms(const joint_ctx *c, const double *V, const double *L, double *H,
+                       double *g)
 {
     const dq_joint_model *m = c->m;
     const int dim = c->dim;
@@ -394,112 +356,6 @@ static void joint_prior_terms(const joint_ctx *c, const double *V, const double 
             }
         }
     }
-}
-
-/* M += measurement i's information (L^-1 G)^T (L^-1 G), upper triangle. */
-static void joint_add_information(const joint_ctx *c, size_t i, int off, int twist, double *M)
-{
-    int map[JC], cols[JC], at[JC];
-    joint_map(c, i, off, twist, map);
-    const int nc = joint_present(map, cols, at), dim = c->dim;
-    const double *Gw = c->blocks + J_PER * i + J_G;
-    for (int a = 0; a < nc; a++)
-        for (int bb = a; bb < nc; bb++) {
-            double t = 0.0;
-            for (int k = 0; k < 6; k++) t += Gw[JC * k + cols[a]] * Gw[JC * k + cols[bb]];
-            M[dim * at[a] + at[bb]] += t;
-        }
-}
-
-/* Each tested measurement's leave-one-out NIS (joint.h) from its whitened compact Jacobian and
- * residual, P and Pg = P g, at the estimate (V, L). An inlier's (I - K)^-1 is
- * I + (L^-1 G) Hj^-1 (L^-1 G)^T, Hj the information of the priors and the other inliers summed
- * (earlier ones kept as prefix sums in pre, N x dim^2, later ones accumulated backwards, as in
- * motion.c), so a measurement far surer than the rest does not cancel the others away; so its
- * NIS is |u|^2 + |Lh^-1 (L^-1 G)^T u|^2. scratch: 3 dim^2 + 2 dim. */
-static int joint_leave_one_out(const joint_ctx *c, const double *V, const double *L,
-                               const double *P, const double *Pg, double *scratch, double *pre,
-                               dq_taken *taken, const dq_joint_outputs *per)
-{
-    const dq_joint_model *m = c->m;
-    const int dim = c->dim;
-    const size_t D2 = (size_t)dim * dim;
-    double *acc = scratch, *Hj = acc + D2, *Lh = Hj + D2, *dh = Lh + D2, *y = dh + dim;
-    for (size_t k = 0; k < D2; k++) acc[k] = 0.0;
-    for (int k = 0; k < dim; k++) y[k] = 0.0;
-    joint_prior_terms(c, V, L, acc, y);
-    size_t i = 0;
-    int off = 0;
-    for (size_t p = 0; p < m->parts; p++) {
-        const dq_joint_part *pt = m->part + p;
-        const dq_motion_model mm = {m->stamp + i, m->latency + i, NULL, 0, NULL, NULL,
-                                    pt->twist, pt->twist_w};
-        dq_motion_determined(&mm, c->inlier ? c->inlier + i : NULL, pt->n, taken,
-                             per->tested + i);
-        for (size_t j = 0; j < pt->n; j++, i++) {
-            const int in = dq_selected(c->inlier, i);
-            if (!in) per->tested[i] = 1;
-            if (in && per->tested[i]) memcpy(pre + D2 * i, acc, D2 * sizeof(double));
-            if (in) joint_add_information(c, i, off, pt->twist, acc);
-        }
-        off += pt->twist ? 12 : 6;
-    }
-    for (size_t k = 0; k < D2; k++) acc[k] = 0.0;   /* now the later inliers' */
-    for (size_t p = m->parts; p-- > 0;) {
-        const dq_joint_part *pt = m->part + p;
-        off -= pt->twist ? 12 : 6;
-        for (size_t j = pt->n; j-- > 0;) {
-            i--;
-            const int in = dq_selected(c->inlier, i);
-            int map[JC], cols[JC], at[JC];
-            joint_map(c, i, off, pt->twist, map);
-            const int nc = joint_present(map, cols, at);
-            const double *b = c->blocks + J_PER * i, *Gw = b + J_G, *e = b + J_E;
-            if (!per->tested[i]) {
-                per->nis[i] = 0.0;
-            } else if (in) {
-                double u[6];
-                for (int a = 0; a < 6; a++) {
-                    double s = 0.0;
-                    for (int q = 0; q < nc; q++) s += Gw[JC * a + cols[q]] * Pg[at[q]];
-                    u[a] = e[a] - s;
-                }
-                for (size_t k = 0; k < D2; k++) Hj[k] = pre[D2 * i + k] + acc[k];
-                dq_mirror(Hj, dim);
-                if (!dq_chol(Hj, Lh, dh, dim)) return DQ_E_SINGULAR;
-                for (int k = 0; k < dim; k++) y[k] = 0.0;
-                for (int q = 0; q < nc; q++) {
-                    double s = 0.0;
-                    for (int k = 0; k < 6; k++) s += Gw[JC * k + cols[q]] * u[k];
-                    y[at[q]] = s;
-                }
-                dq_lower_solve(Lh, dh, y, y, dim);
-                double nis = sq6(u);
-                for (int k = 0; k < dim; k++) nis += y[k] * y[k];
-                per->nis[i] = nis;
-            } else {   /* e^T (I + (L^-1 G) P (L^-1 G)^T)^-1 e */
-                double T[6 * JC], M[36], N[36], dn[6], x[6];
-                for (int a = 0; a < 6; a++)
-                    for (int q = 0; q < nc; q++) {
-                        double s = 0.0;
-                        for (int k = 0; k < nc; k++)
-                            s += Gw[JC * a + cols[k]] * P[dim * at[k] + at[q]];
-                        T[JC * a + q] = s;
-                    }
-                for (int a = 0; a < 6; a++)
-                    for (int bb = 0; bb < 6; bb++) {
-                        double s = 0.0;
-                        for (int q = 0; q < nc; q++) s += T[JC * a + q] * Gw[JC * bb + cols[q]];
-                        M[6 * a + bb] = (a == bb ? 1.0 : 0.0) + s;
-                    }
-                if (!dq_chol6(M, N, dn)) return DQ_E_SINGULAR;
-                dq_lower_solve6(N, dn, e, x);
-                per->nis[i] = sq6(x);
-            }
-            if (in) joint_add_information(c, i, off, pt->twist, acc);
-        }
-    }
-    return DQ_OK;
 }
 
 int dq_joint_fit(const double *z, const double *cov, const unsigned char *inlier, size_t N,

@@ -186,8 +186,9 @@ def _correlated_nis(fit: _MotionFit, S, inlier: np.ndarray, model: _Model):
     ``C``, information ``H`` of the inliers' fit). An inlier i: with ``Ω = C⁻¹ − C⁻¹ G H⁻¹ Gᵀ
     C⁻¹`` over the inliers, ``(Ω r)_iᵀ Ω_ii⁻¹ (Ω r)_i`` is the NIS of its residual against the
     prediction from all the others (its conditional mean given their residuals included); with
-    independent residuals this is :func:`_nis`. Any other measurement j: its residual less its
-    conditional mean given the inliers', against that covariance plus the fit's."""
+    independent residuals this is the joint fit's (service/csrc/joint_nis.c). Any other
+    measurement j: its residual less its conditional mean given the inliers', against that
+    covariance plus the fit's."""
     n, dim = S.shape[0], model.dim
     rows = np.repeat(inlier, DOF)
     assert fit.G is not None and fit.Cinv is not None and model.accel is not None  # correlated

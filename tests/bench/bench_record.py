@@ -165,6 +165,8 @@ def main(argv=None) -> int:
     ap.add_argument("--record-max-mb", type=float, default=256.0,
                     help="the recording server's rotation size")
     ap.add_argument("--no-pin", action="store_true", help="leave the CPUs to the scheduler")
+    ap.add_argument("--writer-cpu", choices=("client", "server"), default="client",
+                    help="pin the writer process beside the client (default) or the servers")
     args = ap.parse_args(argv)
 
     from dqpose.record.reader import runs
@@ -191,7 +193,7 @@ def main(argv=None) -> int:
         if pin:
             os.sched_setaffinity(0, {cpus[0]})
             for w in writer:
-                _pin(w, {cpus[0]})
+                _pin(w, {cpus[0] if args.writer_cpu == "client" else cpus[-1]})
         try:
             for mode in modes:      # warm-up, not counted
                 run(servers[mode].target, Scene(args.bodies, args.rate, seed=99), 2.0,
@@ -247,7 +249,9 @@ def main(argv=None) -> int:
     per_round = round_p99s(off, [r["lat"] for r in rows["on"]])
     per_round_control = round_p99s(off, [r["lat"] for r in rows["off2"]])
     recorded_s = args.rounds * args.seconds + 2.0 + t_long
-    placed = (f"servers on CPU {cpus[-1]}, client and writer on CPU {cpus[0]}" if pin
+    placed = ((f"servers on CPU {cpus[-1]}, client and writer on CPU {cpus[0]}"
+               if args.writer_cpu == "client" else
+               f"servers and writer on CPU {cpus[-1]}, client on CPU {cpus[0]}") if pin
               else "unpinned")
     print(f"StreamFuse without and with dqpose serve --record (--no-call-log), {args.bodies} "
           f"bodies, {PER_MESSAGE} measurements a message (full covariances), {args.rate:.0f} "
