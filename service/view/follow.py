@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import struct
-import sys
 
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
@@ -16,6 +15,7 @@ from websockets.sync.client import connect
 from websockets.typing import Subprotocol
 
 from dqpose.record.topics import ELLIPSOIDS_TOPIC, TF_TOPIC, plan_topic
+from dqpose.view.events import say
 from dqpose.view.page import Scene
 
 SUBPROTOCOL = "foxglove.sdk.v1"
@@ -61,9 +61,7 @@ class Follower:
                 subs.append({"id": sub, "channelId": ch["id"]})
         if subs:
             ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
-            print(json.dumps({"event": "following", "topics": [self.subscriptions[s["id"]]
-                                                               for s in subs]}),
-                  file=sys.stderr, flush=True)
+            say(event="following", topics=[self.subscriptions[s["id"]] for s in subs])
 
     def draw_body(self, body: str) -> None:
         """``body`` where ``/tf`` last put it, with the last ellipsoid it came with (a pose's
@@ -74,8 +72,7 @@ class Follower:
             first = (body, body in self.ellipsoids)
             if first not in self.announced:     # a body's first drawing (with an ellipsoid)
                 self.announced.add(first)
-                print(json.dumps({"event": "drawn", "body": body, "ellipsoid": first[1]}),
-                      file=sys.stderr, flush=True)
+                say(event="drawn", body=body, ellipsoid=first[1])
 
     def draw(self, topic: str, data: bytes) -> None:
         if topic == ELLIPSOIDS_TOPIC:

@@ -7,8 +7,6 @@ channel's messages only once the viewer subscribed to a channel that its first m
 advertised). Each stream runs in a thread of its own; the first that fails ends the page."""
 from __future__ import annotations
 
-import json
-import sys
 import threading
 from collections import deque
 
@@ -16,16 +14,13 @@ import numpy as np
 
 from dqpose import dq
 from dqpose.record.views import ELLIPSOID_SIGMAS, ellipsoid_axes
+from dqpose.view.events import say
 from dqpose.view.page import Scene
 
 #: WatchArm's rate: states a second per arm
 ARM_HZ = 20.0
 #: an arm's path keeps this many of its last positions (30 s at ARM_HZ)
 PATH_POINTS = 600
-
-
-def say(**event) -> None:
-    print(json.dumps(event), file=sys.stderr, flush=True)
 
 
 class Watcher:
