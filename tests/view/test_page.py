@@ -81,11 +81,13 @@ def record_arm(directory) -> str:
     return f
 
 
-def screenshot(url: str, out, attempts: int = 3) -> np.ndarray:
+def screenshot(url: str, out, ready=None, attempts: int = 3) -> np.ndarray:
     """The page at ``url`` as headless Chromium draws it (1280x800, RGB 0..255). On a loaded
-    machine Chromium can take its picture before the page's script has drawn the 3D view (its
-    rows one uniform colour, even where the controls above it are drawn); that picture says
-    nothing about the page, so it is taken again."""
+    machine Chromium can take its picture before the page has drawn what the viewer sent it
+    (the 3D view blank, or the grid without the bodies: the scene's messages still on their way
+    over the WebSocket while Chromium's virtual time ran out); that picture says nothing about
+    the page, so it is taken again, at most ``attempts`` times, until ``ready(img)`` (default:
+    the 3D view drawn) holds. A page that never draws what a test looks for still fails it."""
     import matplotlib.image
 
     for _ in range(attempts):
@@ -95,7 +97,7 @@ def screenshot(url: str, out, attempts: int = 3) -> np.ndarray:
                         "--window-size=1280,800", url], check=True, capture_output=True,
                        timeout=180)
         img = (matplotlib.image.imread(str(out))[..., :3] * 255).astype(int)
-        if drawn(img):
+        if (ready or drawn)(img):
             break
     return img
 
@@ -165,7 +167,8 @@ def test_the_page_draws_the_bodies_ellipsoids(tmp_path):
     proc, info = view(path)
     try:
         assert (info["bodies"], info["plans"]) == (["box", "cup"], ["Plan"])
-        scene = screenshot(info["url"], tmp_path / "scene.png")
+        scene = screenshot(info["url"], tmp_path / "scene.png",
+                           lambda img: drawn(img) and ellipsoid_pixels(img) > 0)
     finally:
         proc.terminate()
         proc.wait(30)
@@ -210,7 +213,8 @@ def test_the_page_draws_the_arms_actual_path_beside_its_plan(tmp_path):
     proc, info = view(path)
     try:
         assert (info["bodies"], info["plans"], info["arms"]) == ([], ["ur"], ["ur"])
-        scene = screenshot(info["url"], tmp_path / "scene.png")
+        scene = screenshot(info["url"], tmp_path / "scene.png",
+                           lambda img: drawn(img) and actual_pixels(img) > 0)
     finally:
         proc.terminate()
         proc.wait(30)
