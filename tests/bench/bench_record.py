@@ -167,6 +167,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-pin", action="store_true", help="leave the CPUs to the scheduler")
     ap.add_argument("--writer-cpu", choices=("client", "server"), default="client",
                     help="pin the writer process beside the client (default) or the servers")
+    ap.add_argument("--cost-only", action="store_true",
+                    help="the recording's cost alone, no replay of the recording")
     args = ap.parse_args(argv)
 
     from dqpose.record.reader import runs
@@ -220,23 +222,24 @@ def main(argv=None) -> int:
             for s in servers.values():
                 s.stop()        # SIGTERM: the recording is finished
             os.sched_setaffinity(0, mine)
-        files = sorted(glob.glob(os.path.join(folder, "*.mcap")))
-        size = sum(os.path.getsize(f) for f in files)
-        found = runs([folder])
-        t0 = time.perf_counter()
-        report = replay.replay(found, replay.InProcess())
-        t_replay = time.perf_counter() - t0
-        # the shipped command's memory: the whole run, and its first file alone (a replay holds
-        # the open calls and the answers not yet compared, so the two peaks are alike)
-        cli_rows = [("the whole run", len(files), size, True, *cli_replay([folder])),
-                    ("its first file alone", 1, os.path.getsize(files[0]), False,
-                     *cli_replay(files[:1]))]
-        fresh = ServerProcess("aio", quiet_log=True)     # the run fed to a server
-        try:
-            cli_rows.append(("the whole run into a fresh server (--server)", len(files), size,
-                             True, *cli_replay([folder], "--server", fresh.target)))
-        finally:
-            fresh.stop()
+        if not args.cost_only:
+            files = sorted(glob.glob(os.path.join(folder, "*.mcap")))
+            size = sum(os.path.getsize(f) for f in files)
+            found = runs([folder])
+            t0 = time.perf_counter()
+            report = replay.replay(found, replay.InProcess())
+            t_replay = time.perf_counter() - t0
+            # the shipped command's memory: the whole run, and its first file alone (a replay holds
+            # the open calls and the answers not yet compared, so the two peaks are alike)
+            cli_rows = [("the whole run", len(files), size, True, *cli_replay([folder])),
+                        ("its first file alone", 1, os.path.getsize(files[0]), False,
+                         *cli_replay(files[:1]))]
+            fresh = ServerProcess("aio", quiet_log=True)     # the run fed to a server
+            try:
+                cli_rows.append(("the whole run into a fresh server (--server)", len(files), size,
+                                 True, *cli_replay([folder], "--server", fresh.target)))
+            finally:
+                fresh.stop()
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
@@ -294,6 +297,8 @@ def main(argv=None) -> int:
     print(f"| CallRecord.measurements (frame, buffer, non-blocking pipe write) | "
           f"{put['mean']:.1f} | {put['p50']:.1f} | {put['p99']:.1f} | {put['max']:.0f} | "
           f"{put['dropped']} |")
+    if args.cost_only:
+        return 0
     print()
     print("| replay (in process, --speed max, the run's files as one sequence) | files | MB | "
           "MB/min | calls | requests | measurements | answers | s | measurements/s | "
