@@ -110,6 +110,40 @@ static void linearize(double *work, size_t n, const unsigned char *use, int ro, 
     dq_mirror6(H);
 }
 
+int dq_line_search(dq_trial_fn trial, void *solver, double *delta, int dim, double *step,
+                   double total, double tol, double *cost)
+{
+    *cost = total;
+    for (int h = 0; h < DQ_FUSE_MAX_HALVINGS; h++) {
+        int rc = trial(solver, delta, cost);
+        if (rc) return rc;
+        if (*cost <= total * (1.0 + DQ_FUSE_COST_SLACK) || *step < tol) break;
+        for (int j = 0; j < dim; j++) delta[j] *= 0.5;
+        *step *= 0.5;
+    }
+    return DQ_OK;
+}
+
+/* The static fit's trial point (dq_line_search): Xn = X Exp(delta), its residuals into the
+ * trial slots. */
+typedef struct {
+    const double *X;
+    double *Xn;
+    const double *z;
+    double *work;
+    size_t n;
+    const unsigned char *use;
+    int rt, et, st;
+} static_trial;
+
+static int static_trial_cost(void *solver, const double *delta, double *cost)
+{
+    static_trial *t = solver;
+    if (dq_retract(t->X, delta, t->Xn)) return DQ_E_OVERFLOW;
+    *cost = evaluate(t->Xn, t->z, t->work, t->n, t->use, 1, t->rt, t->et, t->st);
+    return DQ_OK;
+}
+
 /* Gauss-Newton from X over the selected measurements (see fusion.h); X is updated in place and
  * the selected measurements' r, e, sc at it are left in the W_R, W_E, W_SC slots. A step shorter
  * than tol is not taken: the point it was computed at is the optimum to within tol, and its
@@ -138,18 +172,11 @@ static int solve(double *X, const double *z, double *work, size_t n, const unsig
             *current = 1;
             break;
         }
-        double total_new = total;
-        for (int h = 0; h < DQ_FUSE_MAX_HALVINGS; h++) {
-            double half[6], E[8], P[8];
-            for (int k = 0; k < 6; k++) half[k] = 0.5 * delta[k];
-            dq_exp(half, E);
-            dq_mul(X, E, P);
-            if (dq_normalize(P, Xn)) return DQ_E_OVERFLOW;
-            total_new = evaluate(Xn, z, work, n, use, 1, rt, et, st);
-            if (total_new <= total * (1.0 + DQ_FUSE_COST_SLACK) || step < p->tol) break;
-            for (int k = 0; k < 6; k++) delta[k] *= 0.5;
-            step *= 0.5;
-        }
+        double total_new;
+        static_trial tr = {X, Xn, z, work, n, use, rt, et, st};
+        int rc = dq_line_search(static_trial_cost, &tr, delta, 6, &step, total, p->tol,
+                                &total_new);
+        if (rc) return rc;
         for (int k = 0; k < 8; k++) X[k] = Xn[k];
         int t;
         t = ro; ro = rt; rt = t;

@@ -112,6 +112,17 @@ int dq_pair_distances(const double *z, const double *cov, size_t n, const long l
 #define DQ_FUSE_COST_SLACK 1e-12
 #define DQ_FUSE_MAX_HALVINGS 30
 
+/* A solver's trial point: the state moved by delta into the solver's trial buffers, and the
+ * cost there into *cost; DQ_OK or the DQ_E* code that stops the fit. */
+typedef int (*dq_trial_fn)(void *solver, const double *delta, double *cost);
+
+/* The step rule above, for dq_fuse, dq_motion_fit and dq_joint_fit: trial(solver, delta) from
+ * the full step (dim entries, *step its length) down, halving delta and *step while the cost
+ * rises above total by more than the slack; a step halved below tol is taken. *cost is the
+ * cost of the trial point left in the solver's buffers. */
+int dq_line_search(dq_trial_fn trial, void *solver, double *delta, int dim, double *step,
+                   double total, double tol, double *cost);
+
 /* Whether the inlier mask (NULL: all) selects measurement i. */
 static inline int dq_selected(const unsigned char *inlier, size_t i) { return !inlier || inlier[i]; }
 

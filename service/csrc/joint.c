@@ -358,6 +358,36 @@ void joint_prior_terms(const joint_ctx *c, const double *V, const double *L, dou
     }
 }
 
+/* The joint fit's trial point (dq_line_search): every part's pose and twist, the latencies and
+ * the extrinsics moved by delta into Xn, Vn, Ln, En; the cost with the priors'. */
+typedef struct {
+    const joint_ctx *c;
+    int ext;
+    const double *X, *V, *L, *Ehat;
+    double *Xn, *Vn, *Ln, *En;
+} joint_trial;
+
+static int joint_trial_cost(void *solver, const double *delta, double *cost)
+{
+    const joint_trial *t = solver;
+    const joint_ctx *c = t->c;
+    const dq_joint_model *m = c->m;
+    int off = 0;
+    for (size_t q = 0; q < m->parts; q++) {
+        if (dq_retract(t->X + 8 * q, delta + off, t->Xn + 8 * q)) return DQ_E_OVERFLOW;
+        for (int j = 0; j < 6; j++)
+            t->Vn[6 * q + j] = t->V[6 * q + j] + (m->part[q].twist ? delta[off + 6 + j] : 0.0);
+        off += m->part[q].twist ? 12 : 6;
+    }
+    for (int j = 0; j < (int)m->k; j++) t->Ln[j] = t->L[j] + delta[c->lat + j];
+    for (size_t s = 0; s < m->m; s++)
+        if (dq_retract(t->Ehat + 8 * s, delta + t->ext + 6 * (int)s, t->En + 8 * s))
+            return DQ_E_OVERFLOW;
+    *cost = joint_extrinsics(c, t->En) + joint_evaluate(c, t->Xn, t->Vn, t->Ln, 1) +
+            joint_prior_cost(c, t->Vn, t->Ln);
+    return DQ_OK;
+}
+
 int dq_joint_fit(const double *z, const double *cov, const unsigned char *inlier, size_t N,
                  const dq_joint_model *m, const dq_fuse_params *p, double *work,
                  dq_taken *taken, dq_joint_state *st, const dq_joint_outputs *per, size_t *bad)
@@ -406,33 +436,10 @@ int dq_joint_fit(const double *z, const double *cov, const unsigned char *inlier
             st->iterations = it;
             break;
         }
-        double trial = total;
-        for (int h = 0; h < DQ_FUSE_MAX_HALVINGS; h++) {
-            int off = 0;
-            for (int q = 0; q < K; q++) {
-                double half[6], E[8], P[8];
-                for (int j = 0; j < 6; j++) half[j] = 0.5 * delta[off + j];
-                dq_exp(half, E);
-                dq_mul(X + 8 * q, E, P);
-                if (dq_normalize(P, Xn + 8 * q)) return DQ_E_OVERFLOW;
-                for (int j = 0; j < 6; j++)
-                    Vn[6 * q + j] = V[6 * q + j] + (m->part[q].twist ? delta[off + 6 + j] : 0.0);
-                off += m->part[q].twist ? 12 : 6;
-            }
-            for (int j = 0; j < k; j++) Ln[j] = L[j] + delta[c.lat + j];
-            for (size_t s = 0; s < m->m; s++) {
-                double half[6], E[8], P[8];
-                for (int j = 0; j < 6; j++) half[j] = 0.5 * delta[ext + 6 * (int)s + j];
-                dq_exp(half, E);
-                dq_mul(Ehat + 8 * s, E, P);
-                if (dq_normalize(P, En + 8 * s)) return DQ_E_OVERFLOW;
-            }
-            trial = joint_extrinsics(&c, En) + joint_evaluate(&c, Xn, Vn, Ln, 1) +
-                    joint_prior_cost(&c, Vn, Ln);
-            if (trial <= total * (1.0 + DQ_FUSE_COST_SLACK) || step < p->tol) break;
-            for (int j = 0; j < dim; j++) delta[j] *= 0.5;
-            step *= 0.5;
-        }
+        double trial;
+        joint_trial tr = {&c, ext, X, V, L, Ehat, Xn, Vn, Ln, En};
+        int rc = dq_line_search(joint_trial_cost, &tr, delta, dim, &step, total, p->tol, &trial);
+        if (rc) return rc;
         memcpy(X, Xn, sizeof(double) * 8 * K);
         memcpy(V, Vn, sizeof(double) * 6 * K);
         memcpy(L, Ln, sizeof(double) * k);

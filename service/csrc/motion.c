@@ -109,24 +109,13 @@ static void motion_jacobian(const dq_motion_model *m, const double *V, size_t i,
 {
     const double *s = blk + so, *E = s + S_EXP;
     double dt = s[S_DT];
-    double A[36], Aw[36], Bc[6 * MC], Ei[8], T[16];
+    double A[36], Aw[36], Bc[6 * MC], Ei[8], Ad[36];
     dq_jl_inv(s + S_R, s[S_SC], s[S_SC + 1], A);
     dq_whiten_jacobian6(blk + M_L, blk + M_DI, A, Aw);
-    /* Ad(Exp(-dt V)) = [[R, 0], [t^ R, R]] of the inverse of Exp(dt V) */
     dq_conj(E, Ei);
-    dq_to_matrix(Ei, T);
-    double t[3] = {T[3], T[7], T[11]};
-    for (int a = 0; a < 3; a++)
-        for (int b = 0; b < 3; b++) {
-            double R = T[4 * a + b];
-            double tR = (a == 0 ? -t[2] * T[4 + b] + t[1] * T[8 + b]
-                         : a == 1 ? t[2] * T[b] - t[0] * T[8 + b]
-                                  : -t[1] * T[b] + t[0] * T[4 + b]);
-            Bc[MC * a + b] = R;
-            Bc[MC * a + 3 + b] = 0.0;
-            Bc[MC * (a + 3) + b] = tR;
-            Bc[MC * (a + 3) + 3 + b] = R;
-        }
+    dq_adjoint(Ei, Ad);   /* Ad(Exp(-dt V)) */
+    for (int a = 0; a < 6; a++)
+        for (int b = 0; b < 6; b++) Bc[MC * a + b] = Ad[6 * a + b];
     if (m->twist) {
         double x[6];
         for (int k = 0; k < 6; k++) x[k] = dt * V[k];
@@ -291,6 +280,33 @@ static int motion_leave_one_out(const dq_motion_model *m, const double *V, const
     return DQ_OK;
 }
 
+/* The motion fit's trial point (dq_line_search): the state moved by delta into Xn, Vn, elln,
+ * the inliers' residuals into slot rt; the cost with the priors'. */
+typedef struct {
+    const dq_motion_model *m;
+    const double *z;
+    const unsigned char *inlier;
+    size_t n;
+    double *work;
+    size_t stride;
+    int rt, off;
+    const double *X, *V, *ell;
+    double *Xn, *Vn, *elln;
+} motion_trial;
+
+static int motion_trial_cost(void *solver, const double *delta, double *cost)
+{
+    const motion_trial *t = solver;
+    const dq_motion_model *m = t->m;
+    if (dq_retract(t->X, delta, t->Xn)) return DQ_E_OVERFLOW;
+    for (int j = 0; j < 6; j++) t->Vn[j] = m->twist ? t->V[j] + delta[6 + j] : t->V[j];
+    for (int j = 0; j < (int)m->k; j++) t->elln[j] = t->ell[j] + delta[t->off + j];
+    *cost = motion_evaluate(t->Xn, t->Vn, t->elln, t->z, m, t->work, t->stride, t->n, t->inlier,
+                            1, t->rt) +
+            motion_prior_cost(m, t->Vn, t->elln);
+    return DQ_OK;
+}
+
 /* Gauss-Newton from out's X, V, ell over the selected measurements (motion.h), updated in place;
  * *slot is the workspace slot left holding the inliers' r, e at the estimate. The solver's
  * dim-sized arrays follow the measurements' blocks in work. A step shorter than tol is not
@@ -328,21 +344,11 @@ static int motion_solve(const double *z, const unsigned char *inlier, size_t n,
             *current = 1;
             break;
         }
-        double Xn[8], Vn[6], total_new = total;
-        for (int h = 0; h < DQ_FUSE_MAX_HALVINGS; h++) {
-            double half[6], E[8], P[8];
-            for (int j = 0; j < 6; j++) half[j] = 0.5 * delta[j];
-            dq_exp(half, E);
-            dq_mul(X, E, P);
-            if (dq_normalize(P, Xn)) return DQ_E_OVERFLOW;
-            for (int j = 0; j < 6; j++) Vn[j] = m->twist ? V[j] + delta[6 + j] : V[j];
-            for (int j = 0; j < k; j++) elln[j] = ell[j] + delta[off + j];
-            total_new = motion_evaluate(Xn, Vn, elln, z, m, work, stride, n, inlier, 1, rt) +
-                        motion_prior_cost(m, Vn, elln);
-            if (total_new <= total * (1.0 + DQ_FUSE_COST_SLACK) || step < p->tol) break;
-            for (int j = 0; j < dim; j++) delta[j] *= 0.5;
-            step *= 0.5;
-        }
+        double Xn[8], Vn[6], total_new;
+        motion_trial tr = {m, z, inlier, n, work, stride, rt, off, X, V, ell, Xn, Vn, elln};
+        int rc = dq_line_search(motion_trial_cost, &tr, delta, dim, &step, total, p->tol,
+                                &total_new);
+        if (rc) return rc;
         for (int j = 0; j < 8; j++) X[j] = Xn[j];
         for (int j = 0; j < 6; j++) V[j] = Vn[j];
         for (int j = 0; j < k; j++) ell[j] = elln[j];

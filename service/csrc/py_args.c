@@ -9,6 +9,7 @@
 #include <string.h>
 
 #include "dq.h"
+#include "fusion.h"
 
 typedef struct {
     PyArrayObject *arr;
@@ -98,6 +99,27 @@ void problem_text(int code, const double *v, int kind, char *buf, size_t len)
         return;
     default:
         snprintf(buf, len, "invalid value");
+    }
+}
+
+void fit_error(int code, const char *inliers, const char *covariances, const char *where,
+               const double *pose)
+{
+    char what[256];
+    if (code == DQ_E_NO_INLIERS)
+        PyErr_Format(PyExc_ValueError, "%s: selects no measurement", inliers);
+    else if (code == DQ_E_SINGULAR)
+        PyErr_Format(PyExc_ValueError, "%s: the information is not positive definite",
+                     covariances);
+    else if (code == DQ_E_OVERFLOW)
+        PyErr_Format(PyExc_ValueError, "%s: the result is not finite (input too large)",
+                     covariances);
+    else if (code == DQ_E_NOT_SPD)
+        PyErr_Format(PyExc_ValueError, "%s: not positive definite", where);
+    else {
+        /* without a pose only its own codes can be told (problem_text reads the pose) */
+        problem_text(pose || code == DQ_E_NONFINITE ? code : -1, pose, 8, what, sizeof what);
+        PyErr_Format(PyExc_ValueError, "%s: %s", where, what);
     }
 }
 

@@ -72,6 +72,13 @@ void format_index(char *buf, size_t len, const char *name, int nd, const npy_int
  * values, 16 for a matrix) where it helps. */
 void problem_text(int code, const double *v, int kind, char *buf, size_t len);
 
+/* The ValueError of a fit's failure (fuse, motion_fit, joint_fit): the whole fit's, naming
+ * `inliers` (none selected) or `covariances` (the information singular, the result not finite),
+ * or one measurement's, `where` its argument and index ("covariances[3]") and `pose` the pose
+ * it names (NULL: not a pose). */
+void fit_error(int code, const char *inliers, const char *covariances, const char *where,
+               const double *pose);
+
 /* The stopping rule of an iteration (DIB, DEC, fusion): 0, or -1 with a ValueError. */
 int check_iteration(double tol, int max_iter);
 

@@ -126,27 +126,14 @@ static void fuse_batch(const double *zd, const double *sd, const unsigned char *
 static void fuse_error(const fuse_failure *bad, int lead, const npy_intp *zs, npy_intp n,
                        const double *zd)
 {
-    char where[256], what[256];
+    char inliers[256], covariances[256], where[256];
     npy_intp shape[NPY_MAXDIMS + 1];
     for (int k = 0; k < lead; k++) shape[k] = zs[k];
     shape[lead] = n;
-    if (bad->code == DQ_E_NO_INLIERS) {
-        format_index(where, sizeof where, "inliers", lead, shape, bad->b);
-        PyErr_Format(PyExc_ValueError, "%s: selects no measurement", where);
-    } else if (bad->code == DQ_E_SINGULAR || bad->code == DQ_E_OVERFLOW) {
-        format_index(where, sizeof where, "covariances", lead, shape, bad->b);
-        PyErr_Format(PyExc_ValueError, "%s: %s", where,
-                     bad->code == DQ_E_SINGULAR ? "the information is not positive definite"
-                                                : "the result is not finite (input too large)");
-    } else {
-        format_index(where, sizeof where, bad->name, lead + 1, shape,
-                     bad->b * n + (npy_intp)bad->i);
-        if (bad->code == DQ_E_NOT_SPD)
-            snprintf(what, sizeof what, "not positive definite");
-        else
-            problem_text(bad->code, zd + 8 * (n * bad->b + (npy_intp)bad->i), 8, what, sizeof what);
-        PyErr_Format(PyExc_ValueError, "%s: %s", where, what);
-    }
+    format_index(inliers, sizeof inliers, "inliers", lead, shape, bad->b);
+    format_index(covariances, sizeof covariances, "covariances", lead, shape, bad->b);
+    format_index(where, sizeof where, bad->name, lead + 1, shape, bad->b * n + (npy_intp)bad->i);
+    fit_error(bad->code, inliers, covariances, where, zd + 8 * (n * bad->b + (npy_intp)bad->i));
 }
 
 /* fuse(poses (..., n, 8), covariances (..., n, 6, 6), inliers (..., n) bool or None, tol,
@@ -321,23 +308,15 @@ static int motion_run(const motion_call *c, const dq_motion_model *m, dq_motion_
 /* The ValueError of motion_run's failure. */
 static void motion_error(int code, const char *bad_name, size_t bad, PyArrayObject **a)
 {
-    char what[256];
-    if (code == DQ_E_NO_INLIERS)
-        PyErr_SetString(PyExc_ValueError, "inliers: selects no measurement");
-    else if (code == DQ_E_SINGULAR)
-        PyErr_SetString(PyExc_ValueError, "covariances: the information is not positive definite");
-    else if (code == DQ_E_OVERFLOW)
-        PyErr_SetString(PyExc_ValueError, "covariances: the result is not finite (input too large)");
-    else if (strcmp(bad_name, "start") == 0) {
-        problem_text(code, PyArray_DATA(a[3]), 8, what, sizeof what);
-        PyErr_Format(PyExc_ValueError, "start: %s", what);
+    char where[64];
+    const double *pose = (const double *)PyArray_DATA(a[0]) + 8 * bad;
+    if (strcmp(bad_name, "start") == 0) {
+        snprintf(where, sizeof where, "start");
+        pose = PyArray_DATA(a[3]);
     } else {
-        if (code == DQ_E_NOT_SPD)
-            snprintf(what, sizeof what, "not positive definite");
-        else
-            problem_text(code, (const double *)PyArray_DATA(a[0]) + 8 * bad, 8, what, sizeof what);
-        PyErr_Format(PyExc_ValueError, "%s[%zu]: %s", bad_name, bad, what);
+        snprintf(where, sizeof where, "%s[%zu]", bad_name, bad);
     }
+    fit_error(code, "inliers", "covariances", where, pose);
 }
 
 /* motion_fit(poses (n, 8), covariances (n, 6, 6), inliers (n,) bool or None, start (8,) or

@@ -151,23 +151,13 @@ static int joint_run(PyArrayObject **a, const npy_intp *dims, dq_joint_model *jm
 /* The ValueError of joint_run's failure. */
 static void joint_error(int code, const char *bad_name, size_t bad, PyArrayObject **a)
 {
-    char what[256];
-    if (code == DQ_E_NO_INLIERS)
-        PyErr_SetString(PyExc_ValueError, "inliers: selects no measurement");
-    else if (code == DQ_E_SINGULAR)
-        PyErr_SetString(PyExc_ValueError, "covariances: the information is not positive definite");
-    else if (code == DQ_E_OVERFLOW)
-        PyErr_SetString(PyExc_ValueError, "covariances: the result is not finite (input too large)");
-    else if (code == DQ_E_NOT_SPD)
-        PyErr_Format(PyExc_ValueError, "%s[%zu]: not positive definite", bad_name, bad);
-    else if (code == DQ_E_NONFINITE)
-        PyErr_Format(PyExc_ValueError, "%s[%zu]: not finite", bad_name, bad);
-    else {
-        int j = strcmp(bad_name, "starts") == 0 ? A_STARTS
-                : strcmp(bad_name, "extrinsics") == 0 ? A_EXT : A_POSES;
-        problem_text(code, (const double *)PyArray_DATA(a[j]) + 8 * bad, 8, what, sizeof what);
-        PyErr_Format(PyExc_ValueError, "%s[%zu]: %s", bad_name, bad, what);
-    }
+    char where[64];
+    snprintf(where, sizeof where, "%s[%zu]", bad_name, bad);
+    int j = strcmp(bad_name, "starts") == 0 ? A_STARTS
+            : strcmp(bad_name, "extrinsics") == 0 ? A_EXT
+            : strcmp(bad_name, "poses") == 0 ? A_POSES : -1;
+    fit_error(code, "inliers", "covariances", where,
+              j < 0 ? NULL : (const double *)PyArray_DATA(a[j]) + 8 * bad);
 }
 
 /* joint_fit(poses (N, 8), covariances (N, 6, 6), inliers (N,) bool or None, counts (K,) int,

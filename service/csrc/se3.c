@@ -175,3 +175,12 @@ void dq_adjoint(const double *q, double *restrict Ad)
             Ad[6 * (a + 3) + 3 + b] = R;
         }
 }
+
+int dq_retract(const double *X, const double *delta, double *out)
+{
+    double half[6], E[8], P[8];
+    for (int k = 0; k < 6; k++) half[k] = 0.5 * delta[k];
+    dq_exp(half, E);
+    dq_mul(X, E, P);
+    return dq_normalize(P, out);
+}

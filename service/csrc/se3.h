@@ -24,4 +24,8 @@ void dq_se3_residual(const double *xc, const double *z, double *r, double *sc);
  * perturbation carried through q, q Exp(xi) = Exp(Ad(q) xi) q. */
 void dq_adjoint(const double *q, double *Ad);
 
+/* out = X Exp(delta), normalised (a Gauss-Newton step's retraction): 0, or nonzero when the
+ * result is not finite (dq_normalize's code). */
+int dq_retract(const double *X, const double *delta, double *out);
+
 #endif

@@ -253,7 +253,8 @@ def test_arguments_named():
         ("covariances", np.where(np.arange(5)[:, None, None] == 1, -np.eye(6), p.S),
          r"^covariances\[1\]: not positive definite"),
         ("inliers", np.zeros(5, bool), r"^inliers: selects no measurement"),
-        ("twist_information", np.full((1, 6, 6), np.inf), r"^twist_information\[0\]: not finite"),
+        ("twist_information", np.full((1, 6, 6), np.inf),
+         r"^twist_information\[0\]: contains NaN or infinity"),
         ("extrinsics", np.zeros((3, 6)), r"^extrinsics: expected shape \(m, 8\)"),
     ]:
         with pytest.raises(ValueError, match=text):
