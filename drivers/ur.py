@@ -68,7 +68,10 @@ class URArm(Arm):
     the interpreter lock. False is for an arm closed only as its process ends (the arm's own
     process, a command on its way out, with a controller that outlives it): :meth:`close` then
     stops the arm and ends the control script as ever, and leaves the connections to the
-    process's end, which closes them.
+    process's end, which closes them. Such a process ends with ``os._exit`` once its output is
+    flushed (``dqpose``'s commands do: :func:`~dqpose.drivers.ur_connection.kept_to_exit`):
+    ur_rtde's threads still run while the interpreter tears itself down, which now and then
+    crashes it after the clean stop.
     """
 
     name = "ur"

@@ -273,9 +273,13 @@ def test_a_close_without_disconnect_stops_and_leaves_the_connections_to_the_proc
     import sys
     sim = doomed_sim
     root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    code = ("import sys; from dqpose.drivers.ur import URArm; "
+    # ended as the class says such a process ends (os._exit: a teardown with ur_rtde's threads
+    # still running crashes now and then)
+    code = ("import os, sys; from dqpose.drivers.ur import URArm; "
+            "from dqpose.drivers.ur_connection import kept_to_exit; "
             "a = URArm(sys.argv[1], disconnect=False); "
-            "a.close(); print('closed', flush=True); sys.stdin.readline()")
+            "a.close(); print('closed', flush=True); sys.stdin.readline(); "
+            "assert kept_to_exit(); os._exit(0)")
     proc = subprocess.Popen([sys.executable, "-c", code, sim.host], cwd=root, text=True,
                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
