@@ -110,6 +110,18 @@ static void linearize(double *work, size_t n, const unsigned char *use, int ro, 
     dq_mirror6(H);
 }
 
+int dq_newton_step(const double *H, const double *g, int dim, double *Lh, double *dh,
+                   double *delta, double *step)
+{
+    if (!dq_chol(H, Lh, dh, dim)) return DQ_E_SINGULAR;
+    dq_lower_solve(Lh, dh, g, delta, dim);
+    dq_upper_solve(Lh, dh, delta, delta, dim);
+    double s = 0.0;
+    for (int j = 0; j < dim; j++) s += delta[j] * delta[j];
+    *step = sqrt(s);
+    return DQ_OK;
+}
+
 int dq_line_search(dq_trial_fn trial, void *solver, double *delta, int dim, double *step,
                    double total, double tol, double *cost)
 {

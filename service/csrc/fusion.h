@@ -112,6 +112,12 @@ int dq_pair_distances(const double *z, const double *cov, size_t n, const long l
 #define DQ_FUSE_COST_SLACK 1e-12
 #define DQ_FUSE_MAX_HALVINGS 30
 
+/* The Gauss-Newton step delta = H^-1 g of the dim x dim information H (mirrored; Lh and dh
+ * hold its Cholesky factor) and its length *step: DQ_OK, or DQ_E_SINGULAR when H does not
+ * factor. For dq_motion_fit and dq_joint_fit (dq_fuse's is the 6 x 6 one of linalg6.h). */
+int dq_newton_step(const double *H, const double *g, int dim, double *Lh, double *dh,
+                   double *delta, double *step);
+
 /* A solver's trial point: the state moved by delta into the solver's trial buffers, and the
  * cost there into *cost; DQ_OK or the DQ_E* code that stops the fit. */
 typedef int (*dq_trial_fn)(void *solver, const double *delta, double *cost);

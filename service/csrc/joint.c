@@ -425,12 +425,8 @@ int dq_joint_fit(const double *z, const double *cov, const unsigned char *inlier
     st->status = DQ_FUSE_MAX_ITERATIONS;
     st->iterations = p->max_iter;
     for (int it = 1; it <= p->max_iter; it++) {
-        if (!dq_chol(H, Lh, dh, dim)) return DQ_E_SINGULAR;
-        dq_lower_solve(Lh, dh, g, delta, dim);
-        dq_upper_solve(Lh, dh, delta, delta, dim);
-        double step = 0.0;
-        for (int j = 0; j < dim; j++) step += delta[j] * delta[j];
-        step = sqrt(step);
+        double step;
+        if (dq_newton_step(H, g, dim, Lh, dh, delta, &step)) return DQ_E_SINGULAR;
         if (step < p->tol) {   /* not taken: H and g are the estimate's */
             st->status = DQ_FUSE_CONVERGED;
             st->iterations = it;

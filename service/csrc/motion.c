@@ -332,12 +332,8 @@ static int motion_solve(const double *z, const unsigned char *inlier, size_t n,
         motion_linearize(m, V, work, stride, n, inlier, 0, ro, dim, H, g, NULL);
         motion_prior_terms(m, V, ell, dim, H, g);
         dq_mirror(H, dim);
-        if (!dq_chol(H, Lh, dh, dim)) return DQ_E_SINGULAR;
-        dq_lower_solve(Lh, dh, g, delta, dim);
-        dq_upper_solve(Lh, dh, delta, delta, dim);
-        double step = 0.0;
-        for (int j = 0; j < dim; j++) step += delta[j] * delta[j];
-        step = sqrt(step);
+        double step;
+        if (dq_newton_step(H, g, dim, Lh, dh, delta, &step)) return DQ_E_SINGULAR;
         if (step < p->tol) {
             out->status = DQ_FUSE_CONVERGED;
             out->iterations = it;
