@@ -28,6 +28,10 @@ TRACKING_LAG = 0.15
 POS_Q, ANG_Q = math.sqrt(3) * 0.5e-6, math.radians(0.0005) * 3
 
 
+#: how long the arm and the simulator get to show what a test waits for: a loaded machine starves
+#: their threads for seconds (each wait ends as soon as it holds)
+SETTLE = 10.0
+
 class URRig:
     """The UR arm and what its simulated controller saw; ``process``: the arm in a process of
     its own (``open_arm(..., process=True)``)."""
@@ -50,7 +54,8 @@ class URRig:
         self.arm.stop()
         self.sim.set_pose(self.home)
         target = self._pose_from_rotvec(self.home)
-        assert wait_until(lambda: pose_delta(self.arm.tool_pose()[1], target)[0] < 1e-9)
+        assert wait_until(lambda: pose_delta(self.arm.tool_pose()[1], target)[0] < 1e-9,
+                          timeout=SETTLE)
         self._mark = self.sim.log()["next"]
 
     def received(self) -> list[np.ndarray]:
@@ -92,11 +97,12 @@ class PiperRig:
 
     def reset(self):
         self.sim.set_pose(self.home)
-        assert wait_until(lambda: pose_delta(self.arm.tool_pose()[1], self.home)[0] < POS_Q)
+        assert wait_until(lambda: pose_delta(self.arm.tool_pose()[1], self.home)[0] < POS_Q,
+                          timeout=SETTLE)
         self.arm.stop()
         # the hold has arrived: what the simulator logs from here on is the test's
         assert wait_until(lambda: self.sim.target is not None
-                          and pose_delta(self.sim.target, self.home)[0] < POS_Q)
+                          and pose_delta(self.sim.target, self.home)[0] < POS_Q, timeout=SETTLE)
         self._mark = len(self.sim.log)
 
     def received(self) -> list[np.ndarray]:
@@ -158,10 +164,10 @@ def _same(a, b) -> bool:
 def test_stream_within_the_limits_is_sent_unchanged(rig, arm):
     sent = _stream(arm)
     # the last set-points may still be on their way to a simulator the machine's load slows
-    assert wait_until(lambda: len(rig.received()) >= len(sent))
+    assert wait_until(lambda: len(rig.received()) >= len(sent), timeout=SETTLE)
     got = rig.received()[:len(sent)]
     assert all(_same(a, b) for a, b in zip(got, sent))
-    assert wait_until(lambda: _same(arm.tool_pose()[1], sent[-1]))
+    assert wait_until(lambda: _same(arm.tool_pose()[1], sent[-1]), timeout=SETTLE)
     assert arm.status().ok
 
 
@@ -211,7 +217,7 @@ def test_over_limit_setpoint_is_refused_and_the_arm_stopped(rig, arm, limit):
     else:
         assert e.bound == getattr(LIMITS, limit) and e.bound < e.value < 2 * e.bound
         assert f"{e.bound:g}" in str(e)
-    assert wait_until(rig.stopped)
+    assert wait_until(rig.stopped, timeout=SETTLE)
     got = rig.received()
     assert all(_same(a, b) for a, b in zip(got, sent))          # never changed to fit
     assert not any(_same(g, bad) for g in got)                  # and never sent
