@@ -96,11 +96,14 @@ class PiperRig:
         self.arm.wait_for_feedback(2.0)
 
     def reset(self):
+        # the teleport drops the simulator's target, so that the hold below is seen to arrive
+        self.sim.set_pose(self.home)
+
         def home() -> bool:
             if pose_delta(self.arm.tool_pose()[1], self.home)[0] < POS_Q:
                 return True
-            # (again) a set-point of the last test still on its way over a loaded machine's
-            # bus takes the simulator back to that test's pose
+            # again: a set-point of the last test still on its way over a loaded machine's
+            # bus took the simulator back to that test's pose
             self.sim.set_pose(self.home)
             return False
         assert wait_until(home, timeout=SETTLE, poll=0.05)
