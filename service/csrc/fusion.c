@@ -79,7 +79,7 @@ static double evaluate(const double *X, const double *z, double *work, size_t n,
         dq_se3_residual(xc, z + 8 * i, m + ro, m + so);
         dq_lower_solve6(m + W_L, m + W_DI, m + ro, m + eo);
         const double *e = m + eo;
-        total += e[0] * e[0] + e[1] * e[1] + e[2] * e[2] + e[3] * e[3] + e[4] * e[4] + e[5] * e[5];
+        total += dq_sq6(e);
     }
     return total;
 }
@@ -300,8 +300,7 @@ static int leave_one_out(const double *cov, double *work, size_t n, const unsign
             for (int k = 0; k < 36; k++) T[k] = S[k] + K[k];
             if (!dq_chol6(T, N, dn)) return DQ_E_SINGULAR;
             dq_lower_solve6(N, dn, nu, y);
-            nis[jj] = y[0] * y[0] + y[1] * y[1] + y[2] * y[2] + y[3] * y[3] + y[4] * y[4] +
-                      y[5] * y[5];
+            nis[jj] = dq_sq6(y);
         }
         if (in)
             for (int k = 0; k < 36; k++) acc[k] += m[W_OWN + k];
@@ -347,7 +346,7 @@ int dq_fuse(const double *z, const double *cov, const unsigned char *inlier, siz
     for (size_t i = 0; i < n; i++) {
         const double *m = work + W_PER * i;
         const double *e = m + W_E;
-        double c = e[0] * e[0] + e[1] * e[1] + e[2] * e[2] + e[3] * e[3] + e[4] * e[4] + e[5] * e[5];
+        double c = dq_sq6(e);
         if (dq_selected(inlier, i)) chi2 += c;
         if (per->distances) per->distances[i] = sqrt(c);
         if (per->residuals)
@@ -384,8 +383,7 @@ int dq_pair_distances(const double *z, const double *cov, size_t n, const long l
                 return DQ_E_NOT_SPD;
             }
             dq_lower_solve6(L, di, r, e);
-            d2[a * n + j] = e[0] * e[0] + e[1] * e[1] + e[2] * e[2] + e[3] * e[3] + e[4] * e[4] +
-                            e[5] * e[5];
+            d2[a * n + j] = dq_sq6(e);
         }
     }
     return DQ_OK;

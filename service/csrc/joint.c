@@ -142,7 +142,7 @@ static double joint_evaluate(const joint_ctx *c, const double *X, const double *
             }
             dq_se3_residual(Pc, w, b + J_R, b + J_SC);
             dq_lower_solve6(b + J_L, b + J_DI, b + J_R, b + J_E);
-            total += sq6(b + J_E);
+            total += dq_sq6(b + J_E);
             b[J_DT] = dt;
         }
     }
@@ -468,7 +468,7 @@ int dq_joint_fit(const double *z, const double *cov, const unsigned char *inlier
     }
     for (size_t i = 0; i < N; i++) {
         const double *b = work + J_PER * i;
-        if (per->cost) per->cost[i] = sq6(b + J_E);
+        if (per->cost) per->cost[i] = dq_sq6(b + J_E);
         if (per->dt) per->dt[i] = b[J_DT];
         if (per->residuals) memcpy(per->residuals + 6 * i, b + J_R, 6 * sizeof(double));
     }

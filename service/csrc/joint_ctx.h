@@ -41,11 +41,6 @@ typedef struct {
     double *eres;        /* m x E_PER */
 } joint_ctx;
 
-static inline double sq6(const double *e)
-{
-    return e[0] * e[0] + e[1] * e[1] + e[2] * e[2] + e[3] * e[3] + e[4] * e[4] + e[5] * e[5];
-}
-
 /* The state columns of measurement i's compact columns, for its part's offset and twist. */
 void joint_map(const joint_ctx *c, size_t i, int off, int twist, int *map);
 /* The columns of map that are in the state: their compact indices and state columns,

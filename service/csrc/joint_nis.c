@@ -87,7 +87,7 @@ int joint_leave_one_out(const joint_ctx *c, const double *V, const double *L,
                     y[at[q]] = s;
                 }
                 dq_lower_solve(Lh, dh, y, y, dim);
-                double nis = sq6(u);
+                double nis = dq_sq6(u);
                 for (int k = 0; k < dim; k++) nis += y[k] * y[k];
                 per->nis[i] = nis;
             } else {   /* e^T (I + (L^-1 G) P (L^-1 G)^T)^-1 e */
@@ -107,7 +107,7 @@ int joint_leave_one_out(const joint_ctx *c, const double *V, const double *L,
                     }
                 if (!dq_chol6(M, N, dn)) return DQ_E_SINGULAR;
                 dq_lower_solve6(N, dn, e, x);
-                per->nis[i] = sq6(x);
+                per->nis[i] = dq_sq6(x);
             }
             if (in) joint_add_information(c, i, off, pt->twist, acc);
         }

@@ -11,6 +11,12 @@
 #ifndef DQPOSE_LINALG6_H
 #define DQPOSE_LINALG6_H
 
+/* |e|^2 of a 6-vector (a whitened residual's cost, a NIS). */
+static inline double dq_sq6(const double *e)
+{
+    return e[0] * e[0] + e[1] * e[1] + e[2] * e[2] + e[3] * e[3] + e[4] * e[4] + e[5] * e[5];
+}
+
 /* A = L L^T from the lower triangle of the m x m A (L's upper triangle is left as it was), and
  * di; 0 when a pivot is not positive (or not finite). dq_chol6: m = 6. */
 int dq_chol(const double *A, double *L, double *di, int m);

@@ -96,7 +96,7 @@ static double motion_evaluate(const double *X, const double *V, const double *el
         dq_se3_residual(Pc, z + 8 * i, s + S_R, s + S_SC);
         dq_lower_solve6(blk + M_L, blk + M_DI, s + S_R, s + S_E);
         const double *e = s + S_E;
-        total += e[0] * e[0] + e[1] * e[1] + e[2] * e[2] + e[3] * e[3] + e[4] * e[4] + e[5] * e[5];
+        total += dq_sq6(e);
         s[S_DT] = dt;
     }
     return total;
@@ -227,7 +227,7 @@ static int motion_leave_one_out(const dq_motion_model *m, const double *V, const
         double *blk = work + stride * jj;
         int in = dq_selected(use, jj);
         const double *Gw = blk + M_G, *e = blk + so + S_E;
-        double ee = e[0] * e[0] + e[1] * e[1] + e[2] * e[2] + e[3] * e[3] + e[4] * e[4] + e[5] * e[5];
+        double ee = dq_sq6(e);
         if (!tested[jj]) {
             nis[jj] = 0.0;
         } else {
@@ -271,8 +271,7 @@ static int motion_leave_one_out(const dq_motion_model *m, const double *V, const
                     }
                 if (!dq_chol6(K, N, dn)) return DQ_E_SINGULAR;
                 dq_lower_solve6(N, dn, e, u);
-                nis[jj] = u[0] * u[0] + u[1] * u[1] + u[2] * u[2] + u[3] * u[3] + u[4] * u[4] +
-                          u[5] * u[5];
+                nis[jj] = dq_sq6(u);
             }
         }
         if (in) motion_add_information(m, jj, Gw, dim, acc);
@@ -446,7 +445,7 @@ int dq_motion_fit(const double *z, const double *cov, const unsigned char *inlie
     double chi2 = motion_prior_cost(m, V, ell);
     for (size_t i = 0; i < n; i++) {
         const double *s = work + stride * i + ro, *e = s + S_E;
-        double c = e[0] * e[0] + e[1] * e[1] + e[2] * e[2] + e[3] * e[3] + e[4] * e[4] + e[5] * e[5];
+        double c = dq_sq6(e);
         if (dq_selected(inlier, i)) chi2 += c;
         if (per->cost) per->cost[i] = c;
         if (per->dt) per->dt[i] = s[S_DT];
