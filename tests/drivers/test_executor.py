@@ -61,11 +61,7 @@ class URExec(URRig):
 
 class PiperExec(PiperRig):
     def reset(self):
-        # a stop's hold may still be on the bus: let it land before the teleport, not after
-        n = -1
-        while n != len(self.sim.log):
-            n = len(self.sim.log)
-            time.sleep(0.02)
+        # (a stop's hold still on the bus when the rig teleports: PiperRig.reset teleports again)
         super().reset()
         self._arrival_mark = len(self.sim.arrivals)
 
