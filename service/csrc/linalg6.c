@@ -7,6 +7,7 @@
 #include "linalg6.h"
 
 #include <math.h>
+#include <stddef.h>
 
 static inline int chol_m(const double *A, double *L, double *di, int m)
 {
@@ -127,6 +128,61 @@ void dq_add_gram6(const double *restrict B, double *restrict G)
             double b = B[6 * k + i];
             for (int j = i; j < 6; j++) G[6 * i + j] += b * B[6 * k + j];
         }
+}
+
+#if defined(__GNUC__)
+typedef double dq_v2d __attribute__((vector_size(16), aligned(8)));
+#endif
+
+/* G[a][b], G[a][b+1] = x . y0, x . y1 over n rows: two columns share x's loads, and two partial
+ * sums each (pairs of rows in a vector register where the compiler offers them) hide the
+ * additions' latency; no -ffast-math, so a single running sum would stay scalar. */
+static void dot_columns2(const double *restrict x, const double *restrict y0,
+                         const double *restrict y1, int n, double *out)
+{
+    int r = 0;
+    double s0 = 0.0, s1 = 0.0;
+#if defined(__GNUC__)
+    dq_v2d a0 = {0.0, 0.0}, a1 = {0.0, 0.0}, b0 = {0.0, 0.0}, b1 = {0.0, 0.0};
+    for (; r + 4 <= n; r += 4) {
+        dq_v2d xa = *(const dq_v2d *)(x + r), xb = *(const dq_v2d *)(x + r + 2);
+        a0 += xa * *(const dq_v2d *)(y0 + r);
+        a1 += xb * *(const dq_v2d *)(y0 + r + 2);
+        b0 += xa * *(const dq_v2d *)(y1 + r);
+        b1 += xb * *(const dq_v2d *)(y1 + r + 2);
+    }
+    a0 += a1;
+    b0 += b1;
+    s0 = a0[0] + a0[1];
+    s1 = b0[0] + b0[1];
+#endif
+    for (; r < n; r++) {
+        s0 += x[r] * y0[r];
+        s1 += x[r] * y1[r];
+    }
+    out[0] = s0;
+    out[1] = s1;
+}
+
+void dq_gram_columns(const double *B, int rows, int stride, int dim, int se3, int zero,
+                     double *G)
+{
+#define DQ_FROM(c) ((c) < se3 && (c) % 6 >= 3 ? zero : 0)
+    for (int a = 0; a < dim; a++) {
+        int b = a;
+        for (; b < dim; b += 2) {
+            int two = b + 1 < dim, c = two ? b + 1 : b;
+            int from = DQ_FROM(a), fb = DQ_FROM(b), fc = DQ_FROM(c);
+            if (fb < fc) fc = fb;
+            if (fc > from) from = fc;
+            double out[2];
+            dot_columns2(B + (size_t)stride * a + from, B + (size_t)stride * b + from,
+                         B + (size_t)stride * c + from, rows - from, out);
+            G[dim * a + b] = out[0];
+            if (two) G[dim * a + c] = out[1];
+        }
+    }
+#undef DQ_FROM
 }
 
 void dq_mirror6(double *G)

@@ -38,6 +38,14 @@ void dq_whiten_jacobian6(const double *L, const double *di, const double *A, dou
  * dq_whiten_jacobian6 (its first three rows end in zeros). */
 void dq_add_gram6(const double *B, double *G);
 void dq_add_gram_whitened6(const double *B, double *G);
+/* G = B^T B into G's upper triangle for a B of `rows` rows stored by columns (column c at
+ * B + stride c): the information of many stacked Jacobians in one pass of contiguous dot
+ * products, which vectorise where a sum per measurement's 6 rows does not. The columns of
+ * translations, c < se3 with c mod 6 >= 3, are zero in their first `zero` rows (the stacked
+ * rows 0-2 of whitened Jacobians, dq_whiten_jacobian6's zero block) and are summed without
+ * them. */
+void dq_gram_columns(const double *B, int rows, int stride, int dim, int se3, int zero,
+                     double *G);
 /* The upper triangle copied to the lower. */
 void dq_mirror6(double *G);
 void dq_mirror(double *M, int dim);
