@@ -332,30 +332,48 @@ class World:
         lock held), or ``OutOfRange`` naming what is known. Without ``nis`` (a Lookup, which
         answers the pose and its covariance) the fit may leave out the leave-one-out NIS
         (:meth:`Tracker.estimate_ids`); a kept fit with them serves both."""
-        self._known(body)
-        t = self._t
-        newest = t.newest(body)
-        at = newest if time is None else time
-        if time is not None:
-            try:
-                at = _seconds(time, "time")
-            except ValueError as e:
-                raise WorldError(str(e)) from None
+        at = self._at(body, time)
         key = (body, at)
         hit = self._fits.get(key)
         version = self._version.get(body, 0)
         if hit is not None and hit[0] == version and (hit[2] or not nis):
             return hit[1]       # no new data: it was in range then
+        f = self._fitted(body, at, lambda rows: self._t.estimate_rows(rows, at, nis)[0])
+        _keep(self._fits, key, (version, f, nis))
+        return f
+
+    def _pose_only(self, body: str, at: float) -> tuple[np.ndarray, np.ndarray]:
+        """``body``'s pose and covariance at ``at`` (the lock held), as :meth:`_fit` would give
+        them: a kept fit's, else only those (``Tracker.pose_rows``)."""
+        at = self._at(body, at)
+        hit = self._fits.get((body, at))
+        if hit is not None and hit[0] == self._version.get(body, 0):
+            return hit[1].mean, hit[1].covariance
+        return self._fitted(body, at, lambda rows: self._t.pose_rows(rows, at))
+
+    def _at(self, body: str, time: Optional[float]) -> float:
+        """The time of a fit of the known ``body``: ``time`` checked, None its newest."""
+        self._known(body)
+        if time is None:
+            return self._t.newest(body)
+        try:
+            return _seconds(time, "time")
+        except ValueError as e:
+            raise WorldError(str(e)) from None
+
+    def _fitted(self, body: str, at: float, fit):
+        """``fit(rows)`` of ``body``'s rows taken within ``window`` of ``at``, or ``OutOfRange``
+        naming what is known."""
+        t = self._t
+        newest = t.newest(body)
         oldest, rows = t.near_rows(body, at, self.options.window)
         limit = self.options.max_extrapolation
         if at < oldest or (limit is not None and at > newest + limit) or not len(rows):
             raise self._out_of_range(body, at, oldest, newest)
         try:
-            f = t.estimate_rows(rows, at, nis)[0]
+            return fit(rows)
         except ValueError as e:
             raise OutOfRange(f"{e}; {_known_from(body, oldest, newest)}") from None
-        _keep(self._fits, key, (version, f, nis))
-        return f
 
     def _out_of_range(self, body: str, at: float, oldest: float, newest: float) -> OutOfRange:
         """Why :meth:`_fit` cannot fit ``body`` at ``at``, naming what is known."""
@@ -406,11 +424,12 @@ class World:
             hit = self._relatives.get(key)
             if hit is not None and hit[0] == versions:
                 return hit[1]
+            if not target:      # the world frame is exact: the body's own pose
+                answer = BodyPose(source, at, *self._pose_only(source, at), None)
+                _keep(self._relatives, key, (versions, answer))
+                return answer
             fits = {b: self._fit(b, at, nis=False) for b in (target, source) if b}
-            if not target:      # the world frame is exact: the body's own fit
-                f = fits[source]
-                answer = BodyPose(source, at, f.mean, f.covariance, None)
-            elif source and self._share(fits[target], fits[source]):
+            if source and self._share(fits[target], fits[source]):
                 (Xa, Xb), P = self._t.joint([target, source], [fits[target], fits[source]],
                                             at, self.options.window)
                 answer = BodyPose(source, at, _frozen(dq.mul(dq.conj(Xa), Xb)),

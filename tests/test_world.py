@@ -75,6 +75,59 @@ def test_a_lookup_leaves_out_the_nis_and_a_pose_still_has_them():
     assert cup.pose.tobytes() == world.pose("cup").pose.tobytes()
 
 
+_LOOKUP_CASES = {
+    # the Lookup's own lane: the constant-twist fit straight from the rows
+    "exact sources with latencies": ({}, {}),
+    "a twist prior": ({}, {"twist_covariance": np.eye(6) * 0.01}),
+    # each of the other fits, through the full one
+    "a latency estimated": ({"latency_sigma": 0.01}, {}),
+    "an uncertain extrinsic": ({"extrinsic_covariance": np.eye(6) * 1e-6}, {}),
+    "robust": ({}, {"robust": True}),
+    "max_skew": ({}, {"max_skew": 0.2}),
+    "acceleration_psd": ({}, {"acceleration_psd": np.eye(6) * 0.1}),
+}
+
+
+@pytest.mark.parametrize("case", list(_LOOKUP_CASES))
+def test_a_lookup_of_a_body_is_fuses_pose_and_covariance_bit_for_bit_whichever_fit_runs(case):
+    """A Lookup of one body computes its pose and covariance alone where the constant-twist fit
+    applies, and through the full fit where another one does: either way the same bits as
+    fuse's, and as the body's pose afterwards."""
+    source_kw, option_kw = _LOOKUP_CASES[case]
+    rng = np.random.default_rng(12)
+    sources = [Source("cam0", random_pose(rng), latency=0.02),
+               Source("cam1", random_pose(rng), latency=0.01, **source_kw)]
+    ms, _ = stream(rng, sources, ["box"], np.arange(12) * 0.03)
+    world = World(sources=sources, options=WorldOptions(window=0.3, **option_kw))
+    assert world.publish(ms).accepted == len(ms)
+    latency = {s.name: s.latency for s in sources}
+    for at in (world.newest("box"), world.newest("box") - 0.05):
+        # the world's window: taken (stamp less latency) within 0.3 s of the time
+        mine = [m for m in ms if abs(m.time - latency[m.source] - at) <= 0.3]
+        f = fuse_of(mine, "box", at, np.inf, sources, **option_kw)
+        looked = world.relative("", "box", at)
+        assert looked.pose.tobytes() == f.mean.tobytes()
+        assert looked.covariance.tobytes() == f.covariance.tobytes()
+        assert world.pose("box", at).covariance.tobytes() == f.covariance.tobytes()
+
+
+def test_a_lookup_of_one_instant_and_out_of_range_answers_as_the_full_fit():
+    """Measurements all taken at one instant (the static fit) and a time beyond
+    max_extrapolation: a Lookup of the body answers fuse's pose, or refuses naming what is
+    known, as the full fit does."""
+    rng = np.random.default_rng(13)
+    sources = [Source(f"cam{k}", random_pose(rng)) for k in range(2)]
+    ms, _ = stream(rng, sources, ["box"], [1.0])
+    world = World(sources=sources, options=WorldOptions(window=0.3, max_extrapolation=0.1))
+    world.publish(ms)
+    f = fuse_of(ms, "box", 1.0, 0.3, sources)
+    assert world.relative("", "box").pose.tobytes() == f.mean.tobytes()
+    with pytest.raises(OutOfRange, match="max_extrapolation"):
+        world.relative("", "box", 1.5)
+    with pytest.raises(WorldError, match="time"):
+        world.relative("", "box", float("nan"))
+
+
 def test_pose_equals_fuse_with_producers_on_threads():
     rng = np.random.default_rng(1)
     sources = [Source(f"cam{k}", random_pose(rng), latency=0.0) for k in range(3)]

@@ -13,7 +13,7 @@ import numpy as np
 from dqpose import dq
 from dqpose import limits as _limits
 from dqpose.errors import rename
-from dqpose.fusion.alignment import DEFAULT_MAX_EXTRAPOLATION
+from dqpose.fusion.alignment import DEFAULT_MAX_EXTRAPOLATION, _pose_in_time
 from dqpose.fusion.api import _Checked, _fuse_joint_rows, _fuse_world_rows, fuse
 from dqpose.fusion.chi2 import DEFAULT_PROBABILITY, chi2_quantile
 from dqpose.fusion.results import DOF, Fused
@@ -136,6 +136,9 @@ class Tracker:
         self._codes: dict[str, int] = {}
         self._names: list[str] = []
         self._latency = np.empty(0)
+        # per source code: its extrinsic and latency exact (no extrinsic_covariance, no
+        # latency_sigma), for pose_rows
+        self._exact = np.empty(0, dtype=bool)
         self._count = 0            # measurements offered so far: the default ids
         # per body code: the time of its last refused jump, which a second one near it confirms
         self._jumps: dict[int, float] = {}
@@ -241,6 +244,21 @@ class Tracker:
                                 tuple([names[c] for c in s.codes[rows].tolist()]), s.times[rows],
                                 time, self._checked, nis), s.ids[rows]
 
+    def pose_rows(self, rows: np.ndarray, time: float) -> tuple[np.ndarray, np.ndarray]:
+        """The pose and covariance of :meth:`estimate_rows` ``(rows, time, nis=False)``, bit for
+        bit, and only those (a Lookup of a body): the constant-twist fit straight from the rows
+        where it applies (``_pose_in_time``), else that fit's."""
+        s = self._store
+        codes = s.codes[rows]
+        got = None
+        if self._exact[codes].all():
+            got = _pose_in_time(*s.world(rows), self._latency[codes], s.times[rows], time,
+                                self._checked)
+        if got is None:
+            f = self.estimate_rows(rows, time, False)[0]
+            got = f.mean, f.covariance
+        return got
+
     def near_rows(self, body: str, time: float, within: float) -> tuple[float, np.ndarray]:
         """When ``body``'s oldest measurement kept was taken, and its rows taken within
         ``within`` s of ``time`` (for :meth:`estimate_rows`): one look-up of its window for
@@ -289,6 +307,8 @@ class Tracker:
             self._names.append(source)
             src = self._table.get(source)
             self._latency = np.append(self._latency, src.latency if src is not None else 0.0)
+            self._exact = np.append(self._exact, src is None or (
+                src.extrinsic_covariance is None and src.latency_sigma is None))
         return code
 
     def _body_code(self, body: str) -> int:
