@@ -426,16 +426,20 @@ class World:
                 return hit[1]
             if not target:      # the world frame is exact: the body's own pose
                 answer = BodyPose(source, at, *self._pose_only(source, at), None)
-                _keep(self._relatives, key, (versions, answer))
-                return answer
-            fits = {b: self._fit(b, at, nis=False) for b in (target, source) if b}
-            if source and self._share(fits[target], fits[source]):
-                (Xa, Xb), P = self._t.joint([target, source], [fits[target], fits[source]],
-                                            at, self.options.window)
-                answer = BodyPose(source, at, _frozen(dq.mul(dq.conj(Xa), Xb)),
-                                  _frozen(_relative_covariance(Xa, Xb, P)), None)
+            elif not source or self._t.exact:
+                # nothing uncertain that two bodies could share: each body's own pose
+                answer = _composed(target, source, at,
+                                   {b: self._pose_only(b, at) for b in (target, source) if b})
             else:
-                answer = _composed(target, source, at, fits)
+                fits = {b: self._fit(b, at, nis=False) for b in (target, source)}
+                if self._share(fits[target], fits[source]):
+                    (Xa, Xb), P = self._t.joint([target, source], [fits[target], fits[source]],
+                                                at, self.options.window)
+                    answer = BodyPose(source, at, _frozen(dq.mul(dq.conj(Xa), Xb)),
+                                      _frozen(_relative_covariance(Xa, Xb, P)), None)
+                else:
+                    answer = _composed(target, source, at,
+                                       {b: (f.mean, f.covariance) for b, f in fits.items()})
             _keep(self._relatives, key, (versions, answer))
             return answer
 
@@ -444,8 +448,7 @@ class World:
         latency is estimated (errors the two poses then share)."""
         table = self._t._table
         common = {s.name for s in a.sources} & {s.name for s in b.sources}
-        return any(table[s].extrinsic_covariance is not None or table[s].latency_sigma is not None
-                   for s in common if s in table)
+        return any(not table[s].exact for s in common if s in table)
 
     def arm_base(self, arm: str) -> BodyPose:
         """``T_world_base`` of ``arm``: the extrinsic of the source ``arms`` names, with its
@@ -477,14 +480,15 @@ def _keep(cache: dict, key, value) -> None:
     cache[key] = value
 
 
-def _composed(target: str, source: str, at: float, fits: Mapping[str, Fused]) -> BodyPose:
-    """``T_target_source`` composed of the two bodies' own fits, as if their errors were
-    independent (the world frame "" is exact): the answer when they share no uncertain
-    extrinsic, and the comparison the benchmark shows when they do."""
+def _composed(target: str, source: str, at: float,
+              poses: Mapping[str, tuple[np.ndarray, np.ndarray]]) -> BodyPose:
+    """``T_target_source`` composed of the two bodies' own poses and covariances (``poses``),
+    as if their errors were independent (the world frame "" is exact): the answer when they
+    share no uncertain extrinsic, and the comparison the benchmark shows when they do."""
     ident = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
     zero = np.zeros((DOF, DOF))
-    Xa, Pa = (fits[target].mean, fits[target].covariance) if target else (ident, zero)
-    Xb, Pb = (fits[source].mean, fits[source].covariance) if source else (ident, zero)
+    Xa, Pa = poses[target] if target else (ident, zero)
+    Xb, Pb = poses[source] if source else (ident, zero)
     P = np.zeros((2 * DOF, 2 * DOF))
     P[:DOF, :DOF], P[DOF:, DOF:] = Pa, Pb
     return BodyPose(source, at, _frozen(dq.mul(dq.conj(Xa), Xb)),

@@ -111,6 +111,28 @@ def test_a_lookup_of_a_body_is_fuses_pose_and_covariance_bit_for_bit_whichever_f
         assert world.pose("box", at).covariance.tobytes() == f.covariance.tobytes()
 
 
+@pytest.mark.parametrize("uncertain", [False, True])
+def test_a_lookup_between_bodies_that_share_no_error_composes_their_poses_bit_for_bit(uncertain):
+    """Two bodies whose sources share no uncertain extrinsic or latency: the relative pose is
+    the composition of the two bodies' poses, the same bits whether every source of the world is
+    exact (each body's pose alone) or another body's camera is uncertain (the full fits)."""
+    rng = np.random.default_rng(14)
+    sources = [Source("cam0", random_pose(rng), latency=0.02),
+               Source("cam1", random_pose(rng), latency=0.01),
+               Source("cam2", random_pose(rng), extrinsic_covariance=(
+                   np.eye(6) * 1e-6 if uncertain else None))]
+    ms, _ = stream(rng, sources[:2], ["box", "cup"], np.arange(12) * 0.03)
+    seen, _ = stream(rng, sources[2:], ["jar"], np.arange(12) * 0.03)
+    world = World(sources=sources, options=WorldOptions(window=0.3))
+    assert world.publish(ms + seen).accepted == len(ms) + len(seen)
+    at = min(world.newest("box"), world.newest("cup"))
+    r = world.relative("box", "cup")
+    poses = {b: (p.pose, p.covariance) for b, p in ((b, world.pose(b, at)) for b in ("box", "cup"))}
+    c = _composed("box", "cup", at, poses)
+    assert r.pose.tobytes() == c.pose.tobytes()
+    assert r.covariance.tobytes() == c.covariance.tobytes()
+
+
 def test_a_lookup_of_one_instant_and_out_of_range_answers_as_the_full_fit():
     """Measurements all taken at one instant (the static fit) and a time beyond
     max_extrapolation: a Lookup of the body answers fuse's pose, or refuses naming what is
@@ -308,7 +330,8 @@ def relative_nees(trials: int, seed: int = 0):
         world = World(sources=sources)
         T = shared_scene(rng, world, sources, EXTRINSIC)
         r = world.relative("a", "b")
-        c = _composed("a", "b", r.time, {b: world.pose(b, r.time).fused for b in "ab"})
+        c = _composed("a", "b", r.time, {b: (p.pose, p.covariance) for b, p in
+                                          ((b, world.pose(b, r.time)) for b in "ab")})
         for est, out in ((r, joint), (c, composed)):
             e = lie.se3_log(dq.mul(dq.conj(est.pose), T))
             out.append(float(e @ np.linalg.solve(est.covariance, e)))
@@ -348,7 +371,8 @@ def latency_errors(trials: int, seed: int = 0):
                 ms.append(Measurement("cam", body, float(t), z, NOISE))
         assert world.publish(ms).accepted == len(ms)
         r = world.relative("a", "b")
-        c = _composed("a", "b", r.time, {b: world.pose(b, r.time).fused for b in "ab"})
+        c = _composed("a", "b", r.time, {b: (p.pose, p.covariance) for b, p in
+                                          ((b, world.pose(b, r.time)) for b in "ab")})
         errors.append(lie.se3_log(dq.mul(dq.conj(r.pose), C)))
         joint.append(r.covariance)
         composed.append(c.covariance)

@@ -37,6 +37,13 @@ class Source:
     latency_sigma: Optional[float] = None
     extrinsic_covariance: Optional[np.ndarray] = None
 
+    @property
+    def exact(self) -> bool:
+        """Its extrinsic and latency are taken as exact (no ``extrinsic_covariance``, no
+        ``latency_sigma``): nothing of it is estimated, and no two bodies it sees share an
+        error through it."""
+        return self.extrinsic_covariance is None and self.latency_sigma is None
+
 
 # What a latency and its prior's standard deviation may be (seconds): a prior of 5e-324 s has an
 # information (sigma^-2) no double holds.

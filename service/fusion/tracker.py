@@ -139,6 +139,7 @@ class Tracker:
         # per source code: its extrinsic and latency exact (no extrinsic_covariance, no
         # latency_sigma), for pose_rows
         self._exact = np.empty(0, dtype=bool)
+        self._all_exact = all(src.exact for src in self._table.values())
         self._count = 0            # measurements offered so far: the default ids
         # per body code: the time of its last refused jump, which a second one near it confirms
         self._jumps: dict[int, float] = {}
@@ -147,6 +148,12 @@ class Tracker:
             correlated = acceleration_psd is not None and np.any(acceleration_psd)
             self.cap = min(limits.max_window, limits.max_robust if robust else limits.max_window,
                            limits.max_correlated if correlated else limits.max_window)
+
+    @property
+    def exact(self) -> bool:
+        """Whether every configured source's extrinsic and latency are exact (no
+        ``extrinsic_covariance``, no ``latency_sigma``): then no two bodies share an error."""
+        return self._all_exact
 
     @property
     def bodies(self) -> tuple[str, ...]:
@@ -307,8 +314,7 @@ class Tracker:
             self._names.append(source)
             src = self._table.get(source)
             self._latency = np.append(self._latency, src.latency if src is not None else 0.0)
-            self._exact = np.append(self._exact, src is None or (
-                src.extrinsic_covariance is None and src.latency_sigma is None))
+            self._exact = np.append(self._exact, src is None or src.exact)
         return code
 
     def _body_code(self, body: str) -> int:
