@@ -165,21 +165,25 @@ static void dot_columns2(const double *restrict x, const double *restrict y0,
 }
 
 void dq_gram_columns(const double *B, int rows, int stride, int dim, int se3, int zero,
-                     double *G)
+                     double *G, double *g)
 {
 #define DQ_FROM(c) ((c) < se3 && (c) % 6 >= 3 ? zero : 0)
+    const int last = g ? dim : dim - 1;     /* column dim: the residual, for g */
     for (int a = 0; a < dim; a++) {
-        int b = a;
-        for (; b < dim; b += 2) {
-            int two = b + 1 < dim, c = two ? b + 1 : b;
+        for (int b = a; b <= last; b += 2) {
+            int two = b + 1 <= last, c = two ? b + 1 : b;
             int from = DQ_FROM(a), fb = DQ_FROM(b), fc = DQ_FROM(c);
             if (fb < fc) fc = fb;
             if (fc > from) from = fc;
             double out[2];
             dot_columns2(B + (size_t)stride * a + from, B + (size_t)stride * b + from,
                          B + (size_t)stride * c + from, rows - from, out);
-            G[dim * a + b] = out[0];
-            if (two) G[dim * a + c] = out[1];
+            if (b < dim) G[dim * a + b] = out[0];
+            else g[a] = out[0];
+            if (two) {
+                if (c < dim) G[dim * a + c] = out[1];
+                else g[a] = out[1];
+            }
         }
     }
 #undef DQ_FROM

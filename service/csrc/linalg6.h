@@ -43,9 +43,9 @@ void dq_add_gram_whitened6(const double *B, double *G);
  * products, which vectorise where a sum per measurement's 6 rows does not. The columns of
  * translations, c < se3 with c mod 6 >= 3, are zero in their first `zero` rows (the stacked
  * rows 0-2 of whitened Jacobians, dq_whiten_jacobian6's zero block) and are summed without
- * them. */
+ * them. With g, column dim is the stacked residual e and g = B^T e over the dim columns. */
 void dq_gram_columns(const double *B, int rows, int stride, int dim, int se3, int zero,
-                     double *G);
+                     double *G, double *g);
 /* The upper triangle copied to the lower. */
 void dq_mirror6(double *G);
 void dq_mirror(double *M, int dim);

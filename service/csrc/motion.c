@@ -30,7 +30,7 @@ size_t dq_motion_dim(const dq_motion_model *m) { return (m->twist ? 12 : 6) + m-
 size_t dq_motion_workspace(size_t n, const dq_motion_model *m)
 {
     size_t dim = dq_motion_dim(m);
-    return (M_PER + dim * dim) * n + 5 * dim * dim + 7 * dim + 6 * dim * n;
+    return (M_PER + dim * dim) * n + 5 * dim * dim + 7 * dim + 6 * (dim + 1) * n;
 }
 
 /* Where the selected measurements' L^-1 G_i are stacked by state column (6 n rows a column,
@@ -197,10 +197,11 @@ static void motion_add_information(const dq_motion_model *m, size_t i, const dou
 
 /* The data's information H (upper triangle) and gradient g = sum (L^-1 G)^T e over `use`, from
  * slot so; every measurement's compact Jacobian is kept in its block (with all = 1 the others'
- * too, not added), G_i written to G when not NULL. H is the Gram matrix of the selected
- * L^-1 G_i stacked by state column (a quarter of the fit's time went into summing 6 x 12
- * products one measurement at a time): first every measurement's rows 0-2, then its rows 3-5,
- * so that the translations' columns, zero in rows 0-2, are summed over the second half only. */
+ * too, not added), G_i written to G when not NULL. H and g come from one Gram pass over the
+ * selected L^-1 G_i and e stacked by state column, e last (summed one measurement at a time,
+ * the 6 x 12 products took a quarter of the fit's time): first every measurement's rows 0-2,
+ * then its rows 3-5, so that the translations' columns, zero in rows 0-2, are summed over the
+ * second half only. */
 static void motion_linearize(const dq_motion_model *m, const double *V, double *work,
                              size_t stride, size_t n, const unsigned char *use, int all, int so,
                              int dim, double *H, double *g, double *G)
@@ -209,7 +210,6 @@ static void motion_linearize(const dq_motion_model *m, const double *V, double *
     const size_t R = 6 * n;
     size_t half = 0, j = 0;
     for (size_t i = 0; i < n; i++) half += dq_selected(use, i) ? 3 : 0;
-    for (int k = 0; k < dim; k++) g[k] = 0.0;
     for (size_t i = 0; i < n; i++) {
         int in = dq_selected(use, i);
         if (!in && !all) continue;
@@ -217,24 +217,34 @@ static void motion_linearize(const dq_motion_model *m, const double *V, double *
         motion_jacobian(m, V, i, blk, so, dim, G ? G + 6 * dim * i : NULL);
         if (!in) continue;
         const double *Gw = blk + M_G, *e = blk + so + S_E;
+        double *to = cols + j, *eto = cols + R * (size_t)dim + j;
+        for (int k = 0; k < 3; k++) {
+            eto[k] = e[k];
+            eto[half + k] = e[k + 3];
+        }
         for (int c = m->twist ? 12 : 6; c < dim; c++)    /* the latencies' columns */
-            for (int a = 0; a < 3; a++)
-                cols[R * (size_t)c + j + a] = cols[R * (size_t)c + half + j + a] = 0.0;
-        for (int c = 0; c < MC; c++) {
-            int col = motion_column(m, i, c);
-            if (col < 0) continue;
-            double s = 0.0;
-            double *to = cols + R * (size_t)col + j;
-            for (int k = 0; k < 6; k++) s += Gw[MC * k + c] * e[k];
-            for (int k = 0; k < 3; k++) {
-                to[k] = Gw[MC * k + c];
-                to[half + k] = Gw[MC * (k + 3) + c];
+            for (int k = 0; k < 3; k++)
+                cols[R * (size_t)c + j + k] = cols[R * (size_t)c + half + j + k] = 0.0;
+        if (m->twist && m->slot[i] < 0) {   /* the common case: the state's first 12 columns */
+            for (int c = 0; c < 12; c++, to += R)
+                for (int k = 0; k < 3; k++) {
+                    to[k] = Gw[MC * k + c];
+                    to[half + k] = Gw[MC * (k + 3) + c];
+                }
+        } else {
+            for (int c = 0; c < MC; c++) {
+                int col = motion_column(m, i, c);
+                if (col < 0) continue;
+                double *at = cols + R * (size_t)col + j;
+                for (int k = 0; k < 3; k++) {
+                    at[k] = Gw[MC * k + c];
+                    at[half + k] = Gw[MC * (k + 3) + c];
+                }
             }
-            g[col] += s;
         }
         j += 3;
     }
-    dq_gram_columns(cols, (int)(2 * half), (int)R, dim, m->twist ? 12 : 6, (int)half, H);
+    dq_gram_columns(cols, (int)(2 * half), (int)R, dim, m->twist ? 12 : 6, (int)half, H, g);
 }
 
 /* Leave-one-out NIS (fusion.h) from the compact Jacobians and whitened residuals in slot so:
