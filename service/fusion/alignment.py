@@ -16,7 +16,13 @@ import numpy as np
 from dqpose import dq, lie
 from dqpose.fusion.consistency import _codes, _source_stats
 from dqpose.fusion.extrinsics import _extrinsics, _motion_fit_ext
-from dqpose.fusion.motion import _constant_twist_fit, _determined_without_each, _Model, _MotionFit
+from dqpose.fusion.motion import (
+    _constant_twist_fit,
+    _constant_twist_pose,
+    _determined_without_each,
+    _Model,
+    _MotionFit,
+)
 from dqpose.fusion.process_noise import _correlated_fit, _correlated_nis, _marginal_information
 from dqpose.fusion.results import DOF, Dropped, Fused, Latency, _frozen
 from dqpose.fusion.robust import _consensus, _gate, _rejections
@@ -202,25 +208,26 @@ def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
 _NO_PRIORS = np.empty(0)
 
 
-def _pose_in_time(Z, S, latency: np.ndarray, stamps: np.ndarray, time: float,
-                  o) -> Optional[tuple[np.ndarray, np.ndarray]]:
+def _pose_in_time(Z, S, latency: np.ndarray, stamps: np.ndarray, taken: np.ndarray,
+                  time: float, o) -> Optional[tuple[np.ndarray, np.ndarray]]:
     """The pose and covariance of :func:`_fuse_in_time` (``nis`` False) alone, bit for bit, for
     measurements whose sources' extrinsics and latencies are exact (``latency`` each
-    measurement's), when its fit is the constant-twist fit: not robust, no ``acceleration_psd``
-    or ``max_skew``, more than one instant. None when another fit applies.
+    measurement's, ``taken`` = ``stamps - latency``), when its fit is the constant-twist fit:
+    not robust, no ``acceleration_psd`` or ``max_skew``, more than one instant. None when
+    another fit applies.
     A Lookup of a body needs no more, and the rest of the answer (the sources' names and
     verdicts, the residuals as read-only arrays) cost it a third of its time. ``o``:
     :class:`dqpose.fusion.api._Checked`."""
     if o.robust or o.acceleration_psd is not None or o.max_skew is not None:
         return None
-    span = _span(stamps - latency, time, None, o.max_extrapolation)
+    span = _span(taken, time, None, o.max_extrapolation)
     if span.lo == span.hi:
         return None
     Wp = None if o.twist_covariance is None else _twist_information(o.twist_covariance)[1]
     n = Z.shape[0]
     model = _Model(stamps - time, latency, np.full(n, -1), _NO_PRIORS, _NO_PRIORS, True, Wp)
-    fit = _constant_twist_fit(Z, S, model, np.ones(n, dtype=bool), o.tol, o.max_iter, False)
-    return _frozen(fit.mean), _frozen(fit.P[:6, :6])
+    mean, P = _constant_twist_pose(Z, S, model, np.ones(n, dtype=bool), o.tol, o.max_iter)
+    return _frozen(mean), _frozen(P[:6, :6])
 
 
 def _result(gated, span: _Span, model: _Model, names, sources, code, table, estimated,

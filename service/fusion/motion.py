@@ -151,6 +151,14 @@ def _constant_twist_fit(Z, S, model: _Model, inlier: np.ndarray, tol: float,
                       int(iterations), nis=loo, tested=tested)
 
 
+def _constant_twist_pose(Z, S, model: _Model, inlier: np.ndarray, tol: float,
+                         max_iter: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_constant_twist_fit`'s pose and joint covariance alone (no NIS), for an answer
+    that needs no more."""
+    out = _constant_twist(Z, S, model, inlier, tol, max_iter, None)
+    return out[0], out[-1]
+
+
 def _determined_without_each(model: _Model, inlier: np.ndarray) -> np.ndarray:
     """For each measurement: do the inliers other than it determine the state? The twist needs
     two instants unless it has a prior; the latencies always have theirs (in C,

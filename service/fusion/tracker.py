@@ -259,8 +259,9 @@ class Tracker:
         codes = s.codes[rows]
         got = None
         if self._exact[codes].all():
-            got = _pose_in_time(*s.world(rows), self._latency[codes], s.times[rows], time,
-                                self._checked)
+            # taken was stamp less latency when the rows came in: the same bits as fuse's
+            got = _pose_in_time(*s.world(rows), self._latency[codes], s.times[rows],
+                                s.taken[rows], time, self._checked)
         if got is None:
             f = self.estimate_rows(rows, time, False)[0]
             got = f.mean, f.covariance
