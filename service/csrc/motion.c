@@ -109,10 +109,14 @@ static double motion_evaluate(const double *X, const double *V, const double *el
     return total;
 }
 
-/* Measurement i's Jacobian from slot so: L^-1 G_i compact into its block, and G_i itself
- * (6 x dim) into Gout when not NULL. */
+/* Measurement i's Jacobian from slot so: L^-1 G_i compact into its block, or with top its
+ * pose's and twist's columns into the stacked columns of motion_linearize instead (rows 0-2
+ * from top, rows 3-5 from bottom, column c at c * cs: for a measurement whose latency is not
+ * estimated, when the block is not read again), and G_i itself (6 x dim) into Gout when not
+ * NULL. */
 static void motion_jacobian(const dq_motion_model *m, const double *V, size_t i, double *blk,
-                            int so, int dim, double *Gout)
+                            int so, int dim, double *Gout, double *top, double *bottom,
+                            size_t cs)
 {
     const double *s = blk + so, *E = s + S_EXP;
     double dt = s[S_DT];
@@ -136,22 +140,41 @@ static void motion_jacobian(const dq_motion_model *m, const double *V, size_t i,
      * zeros): the sums leave out the products that are zero, so they are the full sums to the
      * bit at half the cost. */
     double *Gw = blk + M_G;
-    for (int a = 0; a < 6; a++)
-        for (int c = 0; c < MC; c++) Gw[MC * a + c] = 0.0;
-    for (int b = 0; b < 12; b += 6) {
-        for (int a = 0; a < 3; a++)     /* Aw's rows 0-2: zero beyond column 2 */
-            for (int c = b; c < b + 3; c++)
-                for (int k = 0; k < 3; k++) Gw[MC * a + c] += Aw[6 * a + k] * Bc[MC * k + c];
-        for (int a = 3; a < 6; a++) {
-            for (int c = b; c < b + 3; c++)
-                for (int k = 0; k < 6; k++) Gw[MC * a + c] += Aw[6 * a + k] * Bc[MC * k + c];
-            for (int c = b + 3; c < b + 6; c++)     /* zero in Bc's rows 0-2 */
-                for (int k = 3; k < 6; k++) Gw[MC * a + c] += Aw[6 * a + k] * Bc[MC * k + c];
+    size_t rs = 1;
+    if (!top) {
+        top = Gw;
+        bottom = Gw + 3 * MC;
+        rs = MC;
+        cs = 1;
+        for (int a = 0; a < 6; a++) {
+            double sw = 0.0;
+            if (m->slot[i] >= 0)
+                for (int k = 0; k < 6; k++) sw += Aw[6 * a + k] * Bc[MC * k + 12];
+            Gw[MC * a + 12] = sw;
         }
     }
-    if (m->slot[i] >= 0)
-        for (int a = 0; a < 6; a++)
-            for (int k = 0; k < 6; k++) Gw[MC * a + 12] += Aw[6 * a + k] * Bc[MC * k + 12];
+    for (int b = 0; b < 12; b += 6) {
+        for (int c = b; c < b + 3; c++) {
+            for (int a = 0; a < 3; a++) {   /* Aw's rows 0-2: zero beyond column 2 */
+                double sw = 0.0;
+                for (int k = 0; k < 3; k++) sw += Aw[6 * a + k] * Bc[MC * k + c];
+                top[rs * a + cs * c] = sw;
+            }
+            for (int a = 3; a < 6; a++) {
+                double sw = 0.0;
+                for (int k = 0; k < 6; k++) sw += Aw[6 * a + k] * Bc[MC * k + c];
+                bottom[rs * (a - 3) + cs * c] = sw;
+            }
+        }
+        for (int c = b + 3; c < b + 6; c++) {   /* zero in Bc's rows 0-2 */
+            for (int a = 0; a < 3; a++) top[rs * a + cs * c] = 0.0;
+            for (int a = 3; a < 6; a++) {
+                double sw = 0.0;
+                for (int k = 3; k < 6; k++) sw += Aw[6 * a + k] * Bc[MC * k + c];
+                bottom[rs * (a - 3) + cs * c] = sw;
+            }
+        }
+    }
     if (Gout) {
         for (int a = 0; a < 6 * dim; a++) Gout[a] = 0.0;
         for (int c = 0; c < MC; c++) {
@@ -204,7 +227,7 @@ static void motion_add_information(const dq_motion_model *m, size_t i, const dou
  * second half only. */
 static void motion_linearize(const dq_motion_model *m, const double *V, double *work,
                              size_t stride, size_t n, const unsigned char *use, int all, int so,
-                             int dim, double *H, double *g, double *G)
+                             int dim, int keep, double *H, double *g, double *G)
 {
     double *cols = motion_columns(work, stride, n, dim);
     const size_t R = 6 * n;
@@ -214,7 +237,10 @@ static void motion_linearize(const dq_motion_model *m, const double *V, double *
         int in = dq_selected(use, i);
         if (!in && !all) continue;
         double *blk = work + stride * i;
-        motion_jacobian(m, V, i, blk, so, dim, G ? G + 6 * dim * i : NULL);
+        /* straight into the stack unless the block is read again (keep: the leave-one-out NIS) */
+        const int direct = in && !keep && m->twist && m->slot[i] < 0;
+        motion_jacobian(m, V, i, blk, so, dim, G ? G + 6 * dim * i : NULL,
+                        direct ? cols + j : NULL, direct ? cols + half + j : NULL, R);
         if (!in) continue;
         const double *Gw = blk + M_G, *e = blk + so + S_E;
         double *to = cols + j, *eto = cols + R * (size_t)dim + j;
@@ -225,7 +251,9 @@ static void motion_linearize(const dq_motion_model *m, const double *V, double *
         for (int c = m->twist ? 12 : 6; c < dim; c++)    /* the latencies' columns */
             for (int k = 0; k < 3; k++)
                 cols[R * (size_t)c + j + k] = cols[R * (size_t)c + half + j + k] = 0.0;
-        if (m->twist && m->slot[i] < 0) {   /* the common case: the state's first 12 columns */
+        if (direct) {
+            /* written by motion_jacobian */
+        } else if (m->twist && m->slot[i] < 0) {  /* the common case: the first 12 columns */
             for (int c = 0; c < 12; c++, to += R)
                 for (int k = 0; k < 3; k++) {
                     to[k] = Gw[MC * k + c];
@@ -355,11 +383,11 @@ static int motion_trial_cost(void *solver, const double *delta, double *cost)
  * *slot is the workspace slot left holding the inliers' r, e at the estimate. The solver's
  * dim-sized arrays follow the measurements' blocks in work. A step shorter than tol is not
  * taken (fusion.c's rule): the estimate is then the point it was solved at, so *current = 1
- * says that the information H (priors included, mirrored) and the inliers' compact Jacobians
- * in their blocks are at the estimate, and need not be computed again. */
+ * says that the information H (priors included, mirrored) and (with keep) the inliers' compact
+ * Jacobians in their blocks are at the estimate, and need not be computed again. */
 static int motion_solve(const double *z, const unsigned char *inlier, size_t n,
                         const dq_motion_model *m, const dq_fuse_params *p, double *work,
-                        size_t stride, int dim, int start_slot, double start_total,
+                        size_t stride, int dim, int keep, int start_slot, double start_total,
                         dq_motion_fitted *out, int *slot, int *current)
 {
     const int off = m->twist ? 12 : 6, k = (int)m->k;
@@ -373,7 +401,7 @@ static int motion_solve(const double *z, const unsigned char *inlier, size_t n,
     out->status = DQ_FUSE_MAX_ITERATIONS;
     out->iterations = p->max_iter;
     for (int it = 1; it <= p->max_iter; it++) {
-        motion_linearize(m, V, work, stride, n, inlier, 0, ro, dim, H, g, NULL);
+        motion_linearize(m, V, work, stride, n, inlier, 0, ro, dim, keep, H, g, NULL);
         motion_prior_terms(m, V, ell, dim, H, g);
         dq_mirror(H, dim);
         double step;
@@ -472,8 +500,9 @@ int dq_motion_fit(const double *z, const double *cov, const unsigned char *inlie
             }
         }
     }
-    int ro, current = 0, rc = motion_solve(z, inlier, n, m, p, work, stride, dim, start_slot,
-                                           total, out, &ro, &current);
+    const int keep = per->nis && tested;    /* the leave-one-out NIS read the blocks */
+    int ro, current = 0, rc = motion_solve(z, inlier, n, m, p, work, stride, dim, keep,
+                                           start_slot, total, out, &ro, &current);
     if (rc) return rc;
     /* Everything at the estimate: the others' residuals (the inliers' are in slot ro), every
      * Jacobian, the inliers' information with the priors' (the solver's last when it is at the
@@ -481,9 +510,10 @@ int dq_motion_fit(const double *z, const double *cov, const unsigned char *inlie
     motion_evaluate(X, V, ell, z, m, work, stride, n, inlier, 0, ro);
     if (current && !per->G) {
         for (size_t i = 0; i < n; i++)
-            if (!dq_selected(inlier, i)) motion_jacobian(m, V, i, work + stride * i, ro, dim, NULL);
+            if (!dq_selected(inlier, i))
+                motion_jacobian(m, V, i, work + stride * i, ro, dim, NULL, NULL, NULL, 0);
     } else {
-        motion_linearize(m, V, work, stride, n, inlier, 1, ro, dim, H, g, per->G);
+        motion_linearize(m, V, work, stride, n, inlier, 1, ro, dim, keep, H, g, per->G);
         motion_prior_terms(m, V, ell, dim, H, g);
         dq_mirror(H, dim);
     }
