@@ -343,17 +343,19 @@ class World:
         return f
 
     def _pose_only(self, body: str, at: float) -> tuple[np.ndarray, np.ndarray]:
-        """``body``'s pose and covariance at ``at`` (the lock held), as :meth:`_fit` would give
-        them: a kept fit's, else only those (``Tracker.pose_rows``)."""
-        at = self._at(body, at)
+        """The known ``body``'s pose and covariance at the checked time ``at`` (the lock held),
+        as :meth:`_fit` would give them: a kept fit's, else only those
+        (``Tracker.pose_rows``)."""
         hit = self._fits.get((body, at))
         if hit is not None and hit[0] == self._version.get(body, 0):
             return hit[1].mean, hit[1].covariance
         return self._fitted(body, at, lambda rows: self._t.pose_rows(rows, at))
 
     def _at(self, body: str, time: Optional[float]) -> float:
-        """The time of a fit of the known ``body``: ``time`` checked, None its newest."""
-        self._known(body)
+        """The time of a fit of ``body`` (checked to be known; "" the world frame): ``time``
+        checked, None its newest."""
+        if body:
+            self._known(body)
         if time is None:
             return self._t.newest(body)
         try:
@@ -410,7 +412,7 @@ class World:
                 times = [self._t.newest(b) for b in (target, source) if b]
                 at: Optional[float] = min(times) if times else None
             else:
-                at = time
+                at = self._at("", time)
             if at is None:      # world to world
                 ident = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
                 return BodyPose(source, 0.0, ident, np.zeros((DOF, DOF)), None)

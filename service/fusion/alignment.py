@@ -7,6 +7,7 @@ not) and the result. The model is :mod:`dqpose.fusion.motion`'s, with an ``accel
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import replace
 from typing import NamedTuple, Optional
@@ -224,10 +225,17 @@ def _pose_in_time(Z, S, latency: np.ndarray, stamps: np.ndarray, taken: np.ndarr
     if span.lo == span.hi:
         return None
     Wp = None if o.twist_covariance is None else _twist_information(o.twist_covariance)[1]
-    n = Z.shape[0]
-    model = _Model(stamps - time, latency, np.full(n, -1), _NO_PRIORS, _NO_PRIORS, True, Wp)
-    mean, P = _constant_twist_pose(Z, S, model, np.ones(n, dtype=bool), o.tol, o.max_iter)
+    model = _Model(stamps - time, latency, _no_slots(Z.shape[0]), _NO_PRIORS, _NO_PRIORS, True,
+                   Wp)
+    # every measurement an inlier: None tells the C fit so without a mask
+    mean, P = _constant_twist_pose(Z, S, model, None, o.tol, o.max_iter)
     return _frozen(mean), _frozen(P[:6, :6])
+
+
+@functools.lru_cache(maxsize=256)
+def _no_slots(n: int) -> np.ndarray:
+    """n measurements' slots among the estimated latencies when none is (-1 each), read-only."""
+    return _frozen(np.full(n, -1))
 
 
 def _result(gated, span: _Span, model: _Model, names, sources, code, table, estimated,

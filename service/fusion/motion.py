@@ -151,7 +151,7 @@ def _constant_twist_fit(Z, S, model: _Model, inlier: np.ndarray, tol: float,
                       int(iterations), nis=loo, tested=tested)
 
 
-def _constant_twist_pose(Z, S, model: _Model, inlier: np.ndarray, tol: float,
+def _constant_twist_pose(Z, S, model: _Model, inlier: Optional[np.ndarray], tol: float,
                          max_iter: int) -> tuple[np.ndarray, np.ndarray]:
     """:func:`_constant_twist_fit`'s pose and joint covariance alone (no NIS), for an answer
     that needs no more."""

@@ -258,7 +258,7 @@ class Tracker:
         s = self._store
         codes = s.codes[rows]
         got = None
-        if self._exact[codes].all():
+        if self._all_exact or self._exact[codes].all():
             # taken was stamp less latency when the rows came in: the same bits as fuse's
             got = _pose_in_time(*s.world(rows), self._latency[codes], s.times[rows],
                                 s.taken[rows], time, self._checked)
