@@ -21,6 +21,9 @@ from dqpose.drivers.sim.ur.model import (
 )
 from dqpose.drivers.sim.ur.rtde_server import RTDEServer, _Session
 
+#: how much missed time the model catches up on at most, seconds (beyond, the arm lags)
+CATCH_UP = 0.5
+
 
 class URSim(Controller, RTDEServer, TextPorts, Hooks):
     """The controller: servers, the 500 Hz (or 125 Hz) cycle, the register protocol, the model."""
@@ -113,7 +116,12 @@ class URSim(Controller, RTDEServer, TextPorts, Hooks):
             if delay > 0:
                 time.sleep(delay)
             elif delay < -0.05:
-                next_t = time.monotonic()   # fell far behind (machine busy): do not burst
+                # Fell far behind (a starved machine): a real arm would have moved on in the
+                # meantime, so the model steps through the missed cycles (at most CATCH_UP s of
+                # them) without streaming them, and the stream resumes from now without a burst.
+                for _ in range(int(min(-delay, CATCH_UP) / self.dt)):
+                    self.step()
+                next_t = time.monotonic()
         self.shutdown()
 
     def shutdown(self):
