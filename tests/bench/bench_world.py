@@ -15,6 +15,8 @@ Sections (each a function returning rows of the one table, so that more can be a
   ``--lookups`` calls: bodies that share no uncertain extrinsic (two fits composed), and bodies
   seen by the same camera with an ``extrinsic_covariance`` (the joint fit with its error), and
   ``World.pose`` alone. Target: ≤ 200 µs.
+* :func:`rpc_lookup_rows` — the Lookup RPC of one body through a ``dqpose serve`` process and
+  the shipped client: the server's own time (its call log) and the client's round trip.
 * :func:`nees_rows` — the mean NEES of ``World.relative`` against the truth over ``--trials``
   draws, on the scene of tests/test_world.py: one camera whose mount is uncertain (1° / 5 mm)
   sees both bodies twice (0.1° / 0.5 mm each); beside it the composition of the two bodies'
@@ -192,6 +194,63 @@ def lookup_rows(lookups: int = 1000) -> list[list[str]]:
                              f"{np.percentile(cpu, 50):.1f} µs; {n} measurements a body, "
                              f"{lookups} calls"])
     return rows
+
+
+def rpc_lookup_rows(lookups: int = 1000) -> list[list[str]]:
+    """The Lookup RPC of one body through a ``dqpose serve`` process and the shipped client,
+    after new data each time (a 30 Hz tick of both cameras published, acked, then the Lookup):
+    the server's own time (its call log: from the handler's start to its answer, the worker
+    pool's hop included) and the client's round trip. Scene: :func:`lookup_rows`' body "a"."""
+    import queue
+
+    from dqpose.rpc.client import Batch, Client
+
+    rng = np.random.default_rng(0)
+    names = ["a1", "a2"]
+    sources = [Source(n, lie.se3_exp(rng.normal(size=6) * 0.5), latency=0.02 + 0.01 * k)
+               for k, n in enumerate(names)]
+    X0, V = lie.se3_exp(rng.normal(size=6) * 0.3), rng.normal(size=6) * 0.2
+    pending: queue.Queue = queue.Queue()
+
+    def batches():
+        while (b := pending.get()) is not None:
+            yield b
+
+    def tick(k: int) -> Batch:
+        t = 1000.0 + k / 30.0
+        Z = [dq.mul(dq.mul(dq.conj(s.extrinsic), dq.mul(X0, lie.se3_exp((k / 30.0 - s.latency)
+                                                                         * V))),
+                    lie.se3_exp(rng.multivariate_normal(np.zeros(6), COV))) for s in sources]
+        return Batch(np.array(Z), np.array([COV, COV]), None, names, ["a", "a"],
+                     np.array([t, t]))
+
+    server = ServerProcess("aio", quiet_log=False)
+    rtt = []
+    try:
+        with Client(server.target) as c:
+            c.configure_world(sources, window=1.0, buffer=10.0)
+            acks = c.publish(batches(), producer="bench")
+            for k in range(60 + lookups):
+                pending.put(tick(k))
+                next(acks)
+                if k >= 60:
+                    t0 = time.perf_counter()
+                    c.lookup("", "a")
+                    rtt.append(time.perf_counter() - t0)
+            pending.put(None)
+            for _ in acks:
+                pass
+    finally:
+        server.stop()
+    server.log.seek(0)
+    calls = [json.loads(line) for line in server.log if line.startswith("{")]
+    ms = np.array([r["ms"] for r in calls if r.get("rpc", "").endswith("Lookup")][-lookups:])
+    us, rt = ms * 1e3, np.array(rtt) * 1e6
+    return [["Lookup (gRPC)", "Lookup of a body through dqpose serve; after new data",
+             f"{np.percentile(us, 50):.1f}", "µs p50",
+             f"the server's time (its call log) p99 {np.percentile(us, 99):.1f} µs; the "
+             f"shipped client's round trip p50 {np.percentile(rt, 50):.1f} µs, p99 "
+             f"{np.percentile(rt, 99):.1f} µs; 61 measurements a body, {len(us)} calls"]]
 
 
 def _nees(trials: int, seed: int = 0) -> tuple[float, float]:
@@ -515,7 +574,8 @@ def main(argv=None) -> int:
         serve_relay(args.serve_relay)
         return 0
     if not args.publish:
-        print(markdown(HEAD, ingest_rows() + lookup_rows(args.lookups) + nees_rows(args.trials)))
+        print(markdown(HEAD, ingest_rows() + lookup_rows(args.lookups)
+                       + rpc_lookup_rows(args.lookups) + nees_rows(args.trials)))
         return 0
     if args.soak:
         return soak(args)

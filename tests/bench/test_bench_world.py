@@ -48,6 +48,12 @@ def test_lookup_rows_time_real_answers():
         assert np.isfinite(float(row[2])) and float(row[2]) > 0.0, row
 
 
+def test_rpc_lookup_row_times_the_servers_lookups():
+    (row,) = bw.rpc_lookup_rows(5)
+    assert row[0] == "Lookup (gRPC)" and float(row[2]) > 0.0, row
+    assert row[4].endswith("5 calls"), row      # each Lookup found in the server's call log
+
+
 def test_ingest_row_fits_the_ticks_it_made_due():
     (row,) = bw.ingest_rows(300)
     # 300 messages span 0.15 s of stamps: 100 bodies at 30 Hz make ~450 ticks due
