@@ -418,7 +418,7 @@ class World:
                 return BodyPose(source, 0.0, ident, np.zeros((DOF, DOF)), None)
             if target == source:
                 if target:
-                    self._fit(target, at, nis=False)   # known at that time
+                    self._pose_only(target, at)   # known at that time
                 return BodyPose(source, at, np.array([1.0, 0, 0, 0, 0, 0, 0, 0]),
                                 np.zeros((DOF, DOF)), None)
             key = (target, source, at)
