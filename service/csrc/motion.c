@@ -243,7 +243,7 @@ static void motion_linearize(const dq_motion_model *m, const double *V, double *
                         direct ? cols + j : NULL, direct ? cols + half + j : NULL, R);
         if (!in) continue;
         const double *Gw = blk + M_G, *e = blk + so + S_E;
-        double *to = cols + j, *eto = cols + R * (size_t)dim + j;
+        double *eto = cols + R * (size_t)dim + j;
         for (int k = 0; k < 3; k++) {
             eto[k] = e[k];
             eto[half + k] = e[k + 3];
@@ -251,15 +251,7 @@ static void motion_linearize(const dq_motion_model *m, const double *V, double *
         for (int c = m->twist ? 12 : 6; c < dim; c++)    /* the latencies' columns */
             for (int k = 0; k < 3; k++)
                 cols[R * (size_t)c + j + k] = cols[R * (size_t)c + half + j + k] = 0.0;
-        if (direct) {
-            /* written by motion_jacobian */
-        } else if (m->twist && m->slot[i] < 0) {  /* the common case: the first 12 columns */
-            for (int c = 0; c < 12; c++, to += R)
-                for (int k = 0; k < 3; k++) {
-                    to[k] = Gw[MC * k + c];
-                    to[half + k] = Gw[MC * (k + 3) + c];
-                }
-        } else {
+        if (!direct) {      /* from the block, through its column map */
             for (int c = 0; c < MC; c++) {
                 int col = motion_column(m, i, c);
                 if (col < 0) continue;
