@@ -180,6 +180,8 @@ def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
     u = _setup(Z, names, table, times, time, max_skew, max_extrapolation, twist_covariance,
                acceleration_psd)
     time, model, Wp, estimated = u.time, u.model, u.Wp, u.estimated
+    # Which fit runs is decided here; _pose_in_time restates when it is the constant-twist fit
+    # (a Lookup's pose alone), and tests/test_world.py holds the two to the same bits.
     if u.one_instant:
         # All taken at the fusion time: nothing moves, the answer is the static fit itself (its
         # C core), bit for bit; the twist keeps its prior, each latency its prior (one instant
@@ -206,7 +208,7 @@ def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
                    u.taken, gate2, probability)
 
 
-_NO_PRIORS = np.empty(0)
+_NO_PRIORS = _frozen(np.empty(0))     # shared by every Lookup's model: read-only
 
 
 def _pose_in_time(Z, S, latency: np.ndarray, stamps: np.ndarray, taken: np.ndarray,
