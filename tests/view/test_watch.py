@@ -22,6 +22,9 @@ from tests.cli._cli import ROOT
 from tests.robustness._arms import LIMITS, URRig, offset, serve
 from tests.view.test_page import CHROMIUM, actual_pixels, ellipsoid_pixels, screenshot
 
+#: pixels of the two ellipsoids and of the arm's actual path at the least
+LIVE, PATH = 500, 30
+
 pytest.importorskip("viser", reason="the [view] extra (pip install -e '.[view]')")
 pytest.importorskip("foxglove", reason="the [record] extra")
 
@@ -84,9 +87,9 @@ def test_the_page_follows_a_server_through_its_rpcs(tmp_path):
             if CHROMIUM is None:
                 pytest.skip("no Chromium: apt-get install -y chromium (.ci/run installs it)")
             img = screenshot(url, tmp_path / "server.png",
-                             lambda i: ellipsoid_pixels(i) > 0 and actual_pixels(i) > 0)
-            assert ellipsoid_pixels(img) > 500, ellipsoid_pixels(img)
-            assert actual_pixels(img) > 30, actual_pixels(img)
+                             lambda i: ellipsoid_pixels(i) > LIVE and actual_pixels(i) > PATH)
+            assert ellipsoid_pixels(img) > LIVE, ellipsoid_pixels(img)
+            assert actual_pixels(img) > PATH, actual_pixels(img)
     finally:
         if view is not None:
             view.terminate()
