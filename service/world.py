@@ -433,7 +433,10 @@ class World:
                 answer = _composed(target, source, at,
                                    {b: self._pose_only(b, at) for b in (target, source) if b})
             else:
-                fits = {b: self._fit(b, at, nis=False) for b in (target, source)}
+                # each body's start for the joint fit: its constant-twist fit, unless robust
+                # (the gate's inliers need the whole fit); kept apart from the body's own fits
+                fits = {b: self._fitted(b, at, lambda rows: self._t.estimate_rows(
+                    rows, at, False, joint=False)[0]) for b in (target, source)}
                 if self._share(fits[target], fits[source]):
                     (Xa, Xb), P = self._t.joint([target, source], [fits[target], fits[source]],
                                                 at, self.options.window)
@@ -441,7 +444,7 @@ class World:
                                       _frozen(_relative_covariance(Xa, Xb, P)), None)
                 else:
                     answer = _composed(target, source, at,
-                                       {b: (f.mean, f.covariance) for b, f in fits.items()})
+                                       {b: self._pose_only(b, at) for b in fits})
             _keep(self._relatives, key, (versions, answer))
             return answer
 

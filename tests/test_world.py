@@ -9,6 +9,7 @@ import pytest
 
 from dqpose import dq, fusion, handeye, lie
 from dqpose.fusion import Measurement, Source
+from dqpose.fusion.extrinsics import _relative_covariance
 from dqpose.world import (
     NotFound,
     OutOfRange,
@@ -493,6 +494,30 @@ def test_relative_equals_gtsam_joint_marginal():
     J = np.hstack([-lie.adjoint(dq.conj(T)), np.eye(6)])
     expected = J @ P @ J.T
     assert np.abs(r.covariance - expected).max() <= 1e-8 * np.abs(expected).max()
+
+
+def test_a_lookup_between_moving_bodies_starts_them_where_their_own_joint_fits_start():
+    """Between two moving bodies that an uncertain camera sees, the joint fit starts each body
+    from its constant-twist fit (where its own joint fit starts), not from that joint fit: the
+    same optimum, to 1e-12, as the joint fit started from the bodies' own fits."""
+    rng = np.random.default_rng(12)
+    sources = [Source("top", random_pose(rng), extrinsic_covariance=EXTRINSIC),
+               Source("side", random_pose(rng))]
+    world = World(sources=sources, options=WorldOptions(window=1.0))
+    ms, _ = stream(rng, sources, ["a", "b"], np.arange(10) * 0.05)
+    assert world.publish(ms).accepted == len(ms)
+    at = 0.45
+    r = world.relative("a", "b", at)
+    starts = {b: world._t.estimate_rows(world._t.near_rows(b, at, 1.0)[1], at, False,
+                                        joint=False)[0] for b in "ab"}
+    own = {b: world._fit(b, at, nis=False) for b in "ab"}
+    # the starts are not the bodies' own (joint) fits: this Lookup took the shorter way
+    assert min(np.abs(starts[b].mean - own[b].mean).max() for b in "ab") > 1e-9
+    (Xa, Xb), P = world._t.joint(["a", "b"], [own["a"], own["b"]], at, 1.0)
+    T = dq.mul(dq.conj(Xa), Xb)
+    assert np.abs(dq.mul(dq.conj(r.pose), T) - [1, 0, 0, 0, 0, 0, 0, 0]).max() < 1e-12
+    C = _relative_covariance(Xa, Xb, P)
+    assert np.abs(r.covariance - C).max() <= 1e-11 * np.abs(C).max()
 
 
 def test_measurements_per_body_bound_keeps_the_newest():

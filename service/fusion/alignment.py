@@ -35,12 +35,14 @@ DEFAULT_MAX_EXTRAPOLATION = 0.1
 
 
 def _motion_fit(Z, S, model: _Model, inlier: np.ndarray, tol: float, max_iter: int,
-                nis: bool = True) -> _MotionFit:
+                nis: bool = True, joint: bool = True) -> _MotionFit:
     """Fit of the measurements ``inlier`` selects, evaluated at every measurement. The constant
     twist is fitted in C, covariance and (``nis``) leave-one-out NIS included; the correlated
     model in NumPy from the constant-twist fit (its NIS: :func:`_motion_nis`). Without ``nis``
-    the fit's ``nis`` is None: what needs only the pose and its covariance skips them."""
-    if model.extrinsics is not None:
+    the fit's ``nis`` is None: what needs only the pose and its covariance skips them. Without
+    ``joint`` the fit with uncertain extrinsics stops at the constant-twist fit it starts from
+    (the start of a joint fit of several bodies, which needs no more)."""
+    if model.extrinsics is not None and joint:
         # the joint fit with the uncertain extrinsics, from the C fit without them (whose NIS
         # nothing uses)
         first = _constant_twist_fit(Z, S, model, inlier, tol, max_iter, False)
@@ -171,12 +173,15 @@ def _setup(Z, names, table, times, time, max_skew, max_extrapolation, twist_cova
 
 def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
                   twist_covariance, acceleration_psd, robust, probability, gate2, tol,
-                  max_iter, nis: bool = True) -> Fused:
+                  max_iter, nis: bool = True, joint: bool = True) -> Fused:
     """:func:`dqpose.fusion.fuse` with times, after its checks: the fusion time and the
     measurements' span, then the fit of one instant or of the motion model over the window.
     Without ``nis`` (and not robust, whose gate needs them) the fit over time skips the
     leave-one-out NIS: ``nis`` is zeros and ``tested`` all False (every source UNTESTED), the
-    pose, covariance and everything else the same to the last bit."""
+    pose, covariance and everything else the same to the last bit. Without ``joint`` (and not
+    robust, whose gate needs the whole fit) a fit over time with uncertain extrinsics is the
+    constant-twist fit it would start from: where a joint fit of several bodies starts (its
+    pose, twist, latencies and inliers; its covariance leaves the extrinsics' errors out)."""
     u = _setup(Z, names, table, times, time, max_skew, max_extrapolation, twist_covariance,
                acceleration_psd)
     time, model, Wp, estimated = u.time, u.model, u.Wp, u.estimated
@@ -200,7 +205,7 @@ def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
     if robust and np.count_nonzero(allowed) > 1:
         gated = _robust_motion(Z, S, model, allowed, gate2, tol, max_iter)
     else:
-        fit = _motion_fit(Z, S, model, allowed, tol, max_iter, nis)
+        fit = _motion_fit(Z, S, model, allowed, tol, max_iter, nis, joint)
         tests = (_motion_nis(fit, S, allowed, model) if nis else
                  (np.zeros(Z.shape[0]), np.zeros(Z.shape[0], dtype=bool)))
         gated = (fit, *tests, allowed, None)

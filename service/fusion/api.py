@@ -94,16 +94,18 @@ class _Checked(NamedTuple):
     acceleration_psd: Optional[np.ndarray]
 
 
-def _fuse_world_rows(Z, S, names, times, time, o: _Checked, nis: bool = True) -> Fused:
+def _fuse_world_rows(Z, S, names, times, time, o: _Checked, nis: bool = True,
+                     joint: bool = True) -> Fused:
     """:func:`fuse` with times of rows already checked by its rules (finite stamps, unit rigid
     poses, symmetric positive definite covariances symmetrised, names as strings) and brought
     into the world frame (``_to_world(dq.normalize(Z), S, names, o.table)``, as a
     :class:`~dqpose.fusion.Tracker` keeps them), with checked options: the same result, bit for
     bit, without checking them again (without ``nis``, the leave-one-out NIS left out where the
-    answer does not need them: ``_fuse_in_time``)."""
+    answer does not need them; without ``joint``, where a joint fit of several bodies starts:
+    ``_fuse_in_time``)."""
     return _fuse_in_time(Z, S, names, o.table, times, time, o.max_skew, o.max_extrapolation,
                          o.twist_covariance, o.acceleration_psd, o.robust, o.probability,
-                         o.gate2, o.tol, o.max_iter, nis)
+                         o.gate2, o.tol, o.max_iter, nis, joint)
 
 
 def _fuse_joint_rows(rows, fits: Sequence[Fused], time, o: _Checked):

@@ -238,18 +238,19 @@ class Tracker:
         return self.estimate_rows(self._rows_near(body, time, within), time)
 
     def estimate_rows(self, rows: np.ndarray, time: Optional[float] = None,
-                      nis: bool = True) -> tuple[Fused, np.ndarray]:
+                      nis: bool = True, joint: bool = True) -> tuple[Fused, np.ndarray]:
         """:meth:`estimate_ids` of the rows :meth:`near_rows` found. Without ``nis`` (for an
         answer that needs the pose and its covariance only) a fit over time that is not robust
         leaves out the leave-one-out NIS (``nis`` zeros, ``tested`` all False), everything else
-        the same to the last bit."""
+        the same to the last bit. Without ``joint``, where :meth:`joint` may start the body
+        (``_fuse_in_time``'s)."""
         s = self._store
         names = self._names
         # the rows were checked by fuse's rules when they came in, and brought into the world
         # frame (_in_world)
         return _fuse_world_rows(*s.world(rows),
                                 tuple([names[c] for c in s.codes[rows].tolist()]), s.times[rows],
-                                time, self._checked, nis), s.ids[rows]
+                                time, self._checked, nis, joint), s.ids[rows]
 
     def pose_rows(self, rows: np.ndarray, time: float) -> tuple[np.ndarray, np.ndarray]:
         """The pose and covariance of :meth:`estimate_rows` ``(rows, time, nis=False)``, bit for
