@@ -432,27 +432,26 @@ class World:
                 # nothing uncertain that two bodies could share: each body's own pose
                 answer = _composed(target, source, at,
                                    {b: self._pose_only(b, at) for b in (target, source) if b})
-            else:
+            elif self._share(target, source, at):
                 # each body's start for the joint fit: its constant-twist fit, unless robust
                 # (the gate's inliers need the whole fit); kept apart from the body's own fits
-                fits = {b: self._fitted(b, at, lambda rows: self._t.estimate_rows(
-                    rows, at, False, joint=False)[0]) for b in (target, source)}
-                if self._share(fits[target], fits[source]):
-                    (Xa, Xb), P = self._t.joint([target, source], [fits[target], fits[source]],
-                                                at, self.options.window)
-                    answer = BodyPose(source, at, _frozen(dq.mul(dq.conj(Xa), Xb)),
-                                      _frozen(_relative_covariance(Xa, Xb, P)), None)
-                else:
-                    answer = _composed(target, source, at,
-                                       {b: self._pose_only(b, at) for b in fits})
+                fits = [self._fitted(b, at, lambda rows: self._t.estimate_rows(
+                    rows, at, False, joint=False)[0]) for b in (target, source)]
+                (Xa, Xb), P = self._t.joint([target, source], fits, at, self.options.window)
+                answer = BodyPose(source, at, _frozen(dq.mul(dq.conj(Xa), Xb)),
+                                  _frozen(_relative_covariance(Xa, Xb, P)), None)
+            else:
+                answer = _composed(target, source, at,
+                                   {b: self._pose_only(b, at) for b in (target, source)})
             _keep(self._relatives, key, (versions, answer))
             return answer
 
-    def _share(self, a: Fused, b: Fused) -> bool:
-        """Whether two fits used in common a source whose extrinsic is uncertain or whose
-        latency is estimated (errors the two poses then share)."""
-        table = self._t._table
-        common = {s.name for s in a.sources} & {s.name for s in b.sources}
+    def _share(self, a: str, b: str, at: float) -> bool:
+        """Whether bodies ``a`` and ``b`` have measurements within ``window`` of ``at`` from a
+        common source whose extrinsic is uncertain or whose latency is estimated (errors the
+        two poses then share)."""
+        table, window = self._t._table, self.options.window
+        common = self._t.sources_near(a, at, window) & self._t.sources_near(b, at, window)
         return any(not table[s].exact for s in common if s in table)
 
     def arm_base(self, arm: str) -> BodyPose:

@@ -276,6 +276,11 @@ class Tracker:
         taken = self._store.taken[rows]
         return float(taken.min()), rows[np.abs(taken - time) <= within]
 
+    def sources_near(self, body: str, time: float, within: float) -> set[str]:
+        """The sources of ``body``'s rows taken within ``within`` s of ``time``."""
+        codes = self._store.codes[self.near_rows(body, time, within)[1]]
+        return {self._names[c] for c in np.unique(codes).tolist()}
+
     def has(self, body: str) -> bool:
         """Whether ``body`` has measurements."""
         return body in self._active
