@@ -204,11 +204,56 @@ def lookup_rows(lookups: int = 1000) -> list[list[str]]:
     return rows
 
 
-def rpc_lookup_rows(lookups: int = 1000) -> list[list[str]]:
+#: the load beside the "while others publish" Lookup row: measurements/s of LOAD_BODIES static
+#: bodies from one producer (10 a request) and a subscriber of them all at SUBSCRIBE_RATE
+LOAD_BODIES, LOAD_RATE = 20, 2000.0
+
+
+def _load(target: str, stop: threading.Event) -> list[threading.Thread]:
+    """A producer and a subscriber of the load bodies (source "load"), each a thread with its
+    own client, until ``stop``: the Publish requests whose Subscribe answers the server fits
+    (about 3 a request) while a Lookup runs."""
+    from dqpose.rpc.client import Batch, Client
+
+    bodies = [f"load{i}" for i in range(LOAD_BODIES)]
+    poses, cov = _scene_poses(LOAD_BODIES)
+    covs = np.broadcast_to(cov, (10, 6, 6))
+
+    def batches():
+        n, t0 = 0, time.perf_counter()
+        while not stop.is_set():
+            chosen = [(n * 10 + j) % LOAD_BODIES for j in range(10)]
+            yield Batch(poses[chosen], covs, None, ["load"] * 10, [bodies[b] for b in chosen],
+                        np.full(10, 2000.0 + n * 10 / LOAD_RATE))
+            n += 1
+            time.sleep(max(0.0, t0 + n * 10 / LOAD_RATE - time.perf_counter()))
+
+    def produce():
+        with Client(target) as c:
+            for _ in c.publish(batches(), producer="load"):
+                pass
+
+    def subscribe():
+        with Client(target) as c:
+            answers = c.subscribe(bodies, rate_hz=SUBSCRIBE_RATE)
+            for _ in answers:
+                if stop.is_set():
+                    answers.close()
+                    return
+
+    threads = [threading.Thread(target=f, daemon=True) for f in (subscribe, produce)]
+    for th in threads:
+        th.start()
+        time.sleep(0.5)             # the subscription open before the first measurement
+    return threads
+
+
+def rpc_lookup_rows(lookups: int = 1000, load: bool = False) -> list[list[str]]:
     """The Lookup RPC of one body through a ``dqpose serve`` process and the shipped client,
     after new data each time (a 30 Hz tick of both cameras published, acked, then the Lookup):
     the server's own time (its call log: from the handler's start to its answer, the worker
-    pool's hop included) and the client's round trip. Scene: :func:`lookup_rows`' body "a"."""
+    pool's hop included) and the client's round trip. Scene: :func:`lookup_rows`' body "a".
+    With ``load``, while :func:`_load` publishes into the same world and subscribes."""
     import queue
 
     from dqpose.rpc.client import Batch, Client
@@ -234,9 +279,14 @@ def rpc_lookup_rows(lookups: int = 1000) -> list[list[str]]:
 
     server = ServerProcess("aio", quiet_log=False)
     rtt = []
+    stop = threading.Event()
+    threads: list[threading.Thread] = []
     try:
         with Client(server.target) as c:
-            c.configure_world(sources, window=1.0, buffer=10.0)
+            c.configure_world(sources + [Source("load", lie.se3_exp(np.zeros(6)))], window=1.0,
+                              buffer=10.0)
+            if load:
+                threads = _load(server.target, stop)
             acks = c.publish(batches(), producer="bench")
             for k in range(60 + lookups):
                 pending.put(tick(k))
@@ -249,12 +299,17 @@ def rpc_lookup_rows(lookups: int = 1000) -> list[list[str]]:
             for _ in acks:
                 pass
     finally:
+        stop.set()
+        for th in threads:
+            th.join(10.0)
         server.stop()
     server.log.seek(0)
     calls = [json.loads(line) for line in server.log if line.startswith("{")]
     ms = np.array([r["ms"] for r in calls if r.get("rpc", "").endswith("Lookup")][-lookups:])
     us, rt = ms * 1e3, np.array(rtt) * 1e6
-    return [["Lookup (gRPC)", "Lookup of a body through dqpose serve; after new data",
+    beside = (f"; while {LOAD_RATE:,.0f} measurements/s of {LOAD_BODIES} other bodies are "
+              f"published and their {SUBSCRIBE_RATE:g} Hz answers fitted" if load else "")
+    return [["Lookup (gRPC)", "Lookup of a body through dqpose serve; after new data" + beside,
              f"{np.percentile(us, 50):.1f}", "µs p50",
              f"the server's time (its call log) p99 {np.percentile(us, 99):.1f} µs; the "
              f"shipped client's round trip p50 {np.percentile(rt, 50):.1f} µs, p99 "
@@ -583,7 +638,8 @@ def main(argv=None) -> int:
         return 0
     if not args.publish:
         print(markdown(HEAD, ingest_rows() + lookup_rows(args.lookups)
-                       + rpc_lookup_rows(args.lookups) + nees_rows(args.trials)))
+                       + rpc_lookup_rows(args.lookups)
+                       + rpc_lookup_rows(args.lookups, load=True) + nees_rows(args.trials)))
         return 0
     if args.soak:
         return soak(args)

@@ -215,6 +215,20 @@ def test_lookup_status_codes(client):
     np.testing.assert_allclose(abs(r.pose[0]), 1.0, atol=1e-12)
 
 
+def test_a_lookup_is_answered_while_a_publish_request_holds_the_world(server, client):
+    """A Publish request holds its world's cell while its Subscribe answers are fitted (up to
+    MAX_FITS_PER_REQUEST of them); a Lookup does not wait for that, only for the world's own
+    lock, which each fit takes on its own."""
+    list(client.publish([measurements("cam1", [10.0, 10.01], 1)], producer="p"))
+    world = next(s for s in server.running.servicers if s.NAME == "dqpose.v1.World")
+    cell = world.cell("")
+    with Client(server.target, timeout=5.0) as c, cell.lock:
+        held = c.lookup("", "box")
+    after = client.lookup("", "box")
+    assert np.array_equal(held.pose, after.pose)
+    assert np.array_equal(held.covariance, after.covariance)
+
+
 def test_bounds_and_bad_configuration_are_refused_with_their_field(client):
     with pytest.raises(InvalidArgument, match=r"^config\.buffer: must be finite"):
         client.configure_world(SOURCES, buffer=-1.0)
