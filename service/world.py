@@ -4,7 +4,10 @@ buffer, the pose of any body relative to any other, and an arm's base, all with 
 A :class:`World` holds one :class:`dqpose.fusion.Tracker` whose window is the ``buffer`` (the
 history kept for lookups at past times); a body's pose at a time is :func:`dqpose.fusion.fuse`
 over the measurements taken within ``window`` of that time (the tracker's rows, so the answer is
-``fuse``'s to the last bit). Producers call :meth:`World.publish` from any thread (one lock).
+``fuse``'s to the last bit). Producers call :meth:`World.publish` from any thread: what changes
+the world (publish, ingest, configure) has it alone, what reads it (poses, lookups) runs beside
+other readers (:class:`dqpose.readwrite.ReadWrite`), each answer a function of the measurements
+alone, so a reader never waits for another's fit.
 
 Correlations: two bodies measured by the same source share its extrinsic error ``ε`` (the
 source's ``extrinsic_covariance``) and, when its latency is estimated (``latency_sigma``), its
@@ -18,7 +21,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import threading
 from dataclasses import dataclass
 from typing import Mapping, Optional, Sequence
 
@@ -38,6 +40,7 @@ from dqpose.fusion.extrinsics import _relative_covariance
 from dqpose.fusion.results import DOF, _frozen
 from dqpose.fusion.tracker import _arrays
 from dqpose.fusion.validation import _finite_shape, _seconds
+from dqpose.readwrite import ReadWrite
 
 __all__ = ["WorldOptions", "WorldBounds", "WorldError", "NotFound", "OutOfRange", "Published",
            "BodyPose", "World", "Measurement", "Source", "Fused"]
@@ -127,15 +130,15 @@ def _body_name(body) -> str:
 
 
 class World:
-    """Named bodies and sources; see the module's docstring. Every public method takes the one
-    lock, so producers and readers may call from any thread."""
+    """Named bodies and sources; see the module's docstring. Every public method takes the
+    world's lock, to write or to read, so producers and readers may call from any thread."""
 
     def __init__(self, *, sources: Sequence[Source] = (), arms: Mapping[str, str] = {},
                  options: WorldOptions = WorldOptions(), bounds: WorldBounds = WorldBounds(),
                  limits: Optional[_limits.Limits] = None):
         self.bounds = bounds
         self.limits = limits
-        self._lock = threading.Lock()
+        self._lock = ReadWrite()
         self._fed: dict[str, dict[str, float]] = {}     # body -> source -> newest taken
         self._tracker: Optional[Tracker] = None
         # answers kept until their bodies change: per body a version bumped by every
@@ -189,7 +192,7 @@ class World:
         except ValueError as e:
             raise WorldError(str(e) if str(e).startswith("sources") else f"options.{e}") \
                 from None
-        with self._lock:
+        with self._lock.write():
             old = self._tracker
             self._tracker = tracker
             self._fits.clear()
@@ -212,7 +215,7 @@ class World:
 
     @property
     def bodies(self) -> tuple[str, ...]:
-        with self._lock:
+        with self._lock.read():
             return self._t.bodies
 
     @property
@@ -229,7 +232,7 @@ class World:
         sources = [getattr(m, "source", "") for m in measurements]
         for k in bad:
             bodies[k] = ""          # refused already: the tracker refuses it again, unnamed
-        with self._lock:
+        with self._lock.write():
             errors = self._admit(bodies, sources, times, poses, covs, bad)
         return _published(bodies, errors)
 
@@ -250,7 +253,7 @@ class World:
         except ValueError as e:
             raise WorldError(str(e)) from None
         bodies = list(bodies)
-        with self._lock:
+        with self._lock.write():
             errors = self._admit(bodies, list(sources), times, poses, covs)
         return _published(bodies, errors)
 
@@ -302,13 +305,13 @@ class World:
 
     def sources_of(self, body: str) -> tuple[str, ...]:
         """The sources that ever fed ``body``."""
-        with self._lock:
+        with self._lock.read():
             self._known(body)
             return tuple(self._fed.get(body, {}))
 
     def newest(self, body: str, source: Optional[str] = None) -> float:
         """When ``body``'s newest measurement (of ``source``) was taken."""
-        with self._lock:
+        with self._lock.read():
             self._known(body)
             if source is None:
                 return self._t.newest(body)
@@ -393,7 +396,7 @@ class World:
     def pose(self, body: str, time: Optional[float] = None) -> BodyPose:
         """``T_world_body`` at ``time`` (None: the body's newest): :func:`dqpose.fusion.fuse`
         over its measurements taken within ``window`` of ``time``."""
-        with self._lock:
+        with self._lock.read():
             f = self._fit(body, time)
         assert f.time is not None            # a fit over time
         return BodyPose(body, f.time, f.mean, f.covariance, f)
@@ -404,7 +407,7 @@ class World:
         latency are fitted together (one error per such source), so the covariance has their
         cross-covariance."""
         target, source = _body_name(target), _body_name(source)
-        with self._lock:
+        with self._lock.read():
             for b in (target, source):
                 if b:
                     self._known(b)
@@ -457,7 +460,7 @@ class World:
     def arm_base(self, arm: str) -> BodyPose:
         """``T_world_base`` of ``arm``: the extrinsic of the source ``arms`` names, with its
         ``extrinsic_covariance`` (zeros when exact); it does not move, so ``time`` is 0."""
-        with self._lock:
+        with self._lock.read():
             if arm not in self.arms:
                 raise NotFound(f"arm: {arm!r} has no source in the world's arms (" + (
                     ", ".join(map(repr, self.arms)) or "none configured") + ")")
