@@ -178,9 +178,9 @@ class Cell:
             raise FieldError(f"time: must be finite (0: the newest both are known at), got "
                              f"{request.time!r}")
         # Not under the cell's lock, which a Publish request holds while its Subscribe answers
-        # are fitted: the world's own lock is taken per fit, so a Lookup waits for one fit at
-        # most. It reads whole requests either way (each is ingested in one world call), and
-        # the fits are functions of the data alone, so neither answer depends on the timing.
+        # are fitted: the world is read beside them (dqpose.world's read/write lock). It sees
+        # whole requests (each ingested in one write), and a fit is a function of the data
+        # alone, so neither answer depends on the timing.
         return relative_msg(self.world.relative(request.target, request.source, request.time))
 
     def publish(self, request: pb.PublishRequest, r: int, producer: str) -> pb.PublishAck:
