@@ -2,6 +2,7 @@
 subscribers' answers are matched to the measurement that made each due, against a real
 ``dqpose serve`` process and the relay; and its Lookup rows time real answers."""
 import numpy as np
+import pytest
 
 from dqpose.rpc.client import Client
 from tests.bench import bench_world as bw
@@ -43,14 +44,18 @@ def test_relay_row_answers_like_the_world_without_fusing():
 
 def test_lookup_rows_time_real_answers():
     rows = bw.lookup_rows(5)
-    assert len(rows) == 12
+    # 3 cases x (after new data, repeated) x 2 worlds, and the first case after 1 ms idle
+    assert len(rows) == 13
+    assert sum("1 ms idle" in r[1] for r in rows) == 1
     for row in rows:
         assert np.isfinite(float(row[2])) and float(row[2]) > 0.0, row
 
 
-def test_rpc_lookup_row_times_the_servers_lookups():
-    (row,) = bw.rpc_lookup_rows(5)
+@pytest.mark.parametrize("load", [False, True])
+def test_rpc_lookup_row_times_the_servers_lookups(load):
+    (row,) = bw.rpc_lookup_rows(5, load=load)
     assert row[0] == "Lookup (gRPC)" and float(row[2]) > 0.0, row
+    assert ("published" in row[1]) == load, row
     assert row[4].endswith("5 calls"), row      # each Lookup found in the server's call log
 
 
