@@ -18,6 +18,12 @@ def _hold(lock: ReadWrite, how: str, entered: list, name: str, release: threadin
     return t
 
 
+def _ended(threads) -> bool:
+    for t in threads:
+        t.join(10.0)
+    return not any(t.is_alive() for t in threads)
+
+
 def test_readers_hold_it_together_and_a_writer_waits_for_them():
     lock, entered = ReadWrite(), []
     first, second, writer = threading.Event(), threading.Event(), threading.Event()
@@ -33,9 +39,7 @@ def test_readers_hold_it_together_and_a_writer_waits_for_them():
     second.set()
     assert wait_until(lambda: entered == ["r1", "r2", "w"])
     writer.set()
-    for t in threads:
-        t.join(10.0)
-    assert not any(t.is_alive() for t in threads)
+    assert _ended(threads)
 
 
 def test_a_waiting_writer_goes_before_the_readers_that_came_after_it():
@@ -55,6 +59,4 @@ def test_a_waiting_writer_goes_before_the_readers_that_came_after_it():
     writing.set()
     assert wait_until(lambda: entered == ["r1", "w", "r2"])
     late.set()
-    for t in threads:
-        t.join(10.0)
-    assert not any(t.is_alive() for t in threads)
+    assert _ended(threads)
