@@ -129,6 +129,17 @@ def _body_name(body) -> str:
     return body
 
 
+def _beyond(k: int, field: str, name: str, held, new: set, bound: str,
+            limit: int) -> Optional[WorldError]:
+    """The refusal of row ``k`` when ``name`` would be one ``field`` more than ``limit`` (the
+    world's ``bound``): ``held`` ones are in the world, ``new`` ones this request adds; a row
+    refused for either name adds neither."""
+    if name in held or name in new or len(held) + len(new) < limit:
+        return None
+    return WorldError(f"measurements[{k}].{field}: {name!r} would be {field} "
+                      f"{len(held) + len(new) + 1}, above the world's {bound} {limit}")
+
+
 class World:
     """Named bodies and sources; see the module's docstring. Every public method takes the
     world's lock, to write or to read, so producers and readers may call from any thread."""
@@ -267,21 +278,16 @@ class World:
         for k, (body, src) in enumerate(zip(bodies, sources)):
             if k in errors or not isinstance(body, str) or not isinstance(src, str):
                 continue
-            if body and body not in known and body not in new_bodies:
-                if len(known) + len(new_bodies) >= b.max_bodies:
-                    errors[k] = WorldError(
-                        f"measurements[{k}].body: {body!r} would be body "
-                        f"{len(known) + len(new_bodies) + 1}, above the world's max_bodies "
-                        f"{b.max_bodies}")
-                    continue
+            refusal = ((body and _beyond(k, "body", body, known, new_bodies, "max_bodies",
+                                         b.max_bodies))
+                       or _beyond(k, "source", src, named, new_sources, "max_sources",
+                                  b.max_sources))
+            if refusal:
+                errors[k] = refusal
+                continue
+            if body and body not in known:
                 new_bodies.add(body)
-            if src not in named and src not in new_sources:
-                if len(named) + len(new_sources) >= b.max_sources:
-                    errors[k] = WorldError(
-                        f"measurements[{k}].source: {src!r} would be source "
-                        f"{len(named) + len(new_sources) + 1}, above the world's max_sources "
-                        f"{b.max_sources}")
-                    continue
+            if src not in named:
                 new_sources.add(src)
         use = [k for k in range(len(bodies)) if k not in errors]
         if use:

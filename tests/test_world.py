@@ -281,6 +281,17 @@ def test_bounds_refused_naming_the_limit():
     assert world.bodies == ("b0", "b1")     # refused configurations changed nothing
 
 
+
+def test_a_row_refused_for_its_source_takes_no_body_slot():
+    """A row over max_sources names a new body too: the refusal must leave the body's place
+    for the next row that brings it."""
+    p = random_pose(np.random.default_rng(4))
+    world = World(bounds=WorldBounds(max_bodies=2, max_sources=1))
+    r = world.publish([Measurement("a", "b0", 0.0, p), Measurement("z", "b1", 0.0, p),
+                       Measurement("a", "b2", 0.0, p)])
+    assert [k for k, _ in r.errors] == [1]
+    assert world.bodies == ("b0", "b2")
+
 def test_configure_keeps_the_measurements_and_refits_with_the_new_sources():
     rng = np.random.default_rng(5)
     sources = [Source("cam", random_pose(rng))]
