@@ -64,8 +64,8 @@ def calibrate(base_flange, camera_target, setup: str = EYE_IN_HAND, *, robust: b
     3. maximum likelihood on ``(X, Z)`` with the χ² gate (:mod:`~dqpose.handeye.likelihood`,
        :mod:`~dqpose.handeye.outliers`);
     4. the diagnostics: residuals, leave-one-out, the closed form's agreement;
-    5. the readings: re-solved inverted or rescaled when the data say so
-       (:func:`_both_inverted`, :func:`_rescale`);
+    5. the readings: re-solved rescaled, then (at the scale found) inverted, when the data
+       say so (:func:`_rescale`, :func:`_both_inverted`);
     6. the corner level, when ``corners`` are given (:func:`_corner_level`).
     """
     return _calibrate(_Request(base_flange, camera_target, setup, robust, corners,
@@ -111,10 +111,9 @@ def _calibrate(q: _Request) -> Calibration:
     loo = _leave_one_out(fit, idx, n)
     residuals = _residuals(p, fit, r_all)
     agree = _agreement(fit, p.closed[0], idx, warnings)
-    # 5. the readings the residuals cannot tell apart
-    cal = _both_inverted(q, p, fit, inlier, SC, SRob, warnings)
-    if cal is not None:
-        return cal
+    # 5. the readings the residuals cannot tell apart: the scale first, since a mount's
+    # plausibility read off a fit at the wrong scale is no evidence (a monocular camera's X and
+    # Z come out at the wrong distances, and both-inverted looked the likelier)
     found = _camera_scale(fit, p.C[inlier], noise, inlier)
     scale: tuple[float, float] = (found.lam, found.sigma)
     P_scale: float | np.ndarray = 0.0
@@ -125,6 +124,11 @@ def _calibrate(q: _Request) -> Calibration:
     elif (abs(found.lam - 1.0) > max(_SCREEN_SIGMAS * found.sigma, _MIN_SCALE)
           and _evidence(p, fit, noise, inlier, found) > _SCALE_SIGMAS ** 2):
         return _rescale(q, p, views, SC, SRob, fit, idx, scale)
+    # a re-solve whose scale has not settled is one step of _rescale's loop: judged at its end
+    settled = q.rescaled is None or abs(found.lam - 1.0) <= 0.1 * found.sigma
+    cal = _both_inverted(q, p, fit, inlier, SC, SRob, warnings, settled)
+    if cal is not None:
+        return cal
     # 6. the corner level
     X, Z, P = fit.X, fit.Z, fit.reported + P_scale
     Hx = np.linalg.inv(P)
@@ -170,14 +174,15 @@ def _agreement(fit: _Fit, X0, idx, warnings: list) -> tuple[float, float, float]
 
 
 def _both_inverted(q: _Request, p: _Prepared, fit: _Fit, inlier, SC, SRob,
-                   warnings: list) -> Optional[Calibration]:
+                   warnings: list, settled: bool = True) -> Optional[Calibration]:
     """Robot and camera poses both inverted fit exactly as well as the truth (F⁻¹ Z C⁻¹ = X: X
     and Z exchange roles), so the residuals cannot tell; plausibility can. The re-solve as
     inverted when the mount is implausible as given and the depths say inverted, ``Infeasible``
-    when they cannot tell, a warning when the mount is implausible either way; else None."""
+    when they cannot tell, a warning when the mount is implausible either way; else None. Not
+    ``settled`` (a re-solve at a scale still moving): the warning alone."""
     idx = np.flatnonzero(inlier)
     given, other = _plausible(p, fit.X, fit.Z, inlier), _plausible(p, fit.Z, fit.X, inlier, True)
-    if not given.mount_ok and not q.inverted and q.rescaled is None:
+    if not given.mount_ok and not q.inverted and settled:
         if other.mount_ok and other.front and given.behind:
             cal = _calibrate(replace(q, base_flange=dq.inv(p.F), camera_target=dq.inv(p.C),
                                      setup=p.setup, camera_covariance=_inverse_noise(p.C, SC),

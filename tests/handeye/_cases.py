@@ -52,3 +52,17 @@ def depth_noisy(n: int, seed: int, rot_deg: float = 1.15, mm=(12.0, 12.0, 40.0),
         np.radians(rot_deg) * rng.normal(size=(n, 3)))))
     t = t + 1e-3 * np.asarray(mm) * rng.normal(size=(n, 3))
     return s, dq.from_pose(q, t)
+
+
+def monocular(n: int, seed: int, scale: float, from_base: float = 0.3):
+    """A wrist scene of ``n`` samples seen by a monocular camera, as visual odometry gives it:
+    the "target" is the camera's first pose, set ``from_base`` m from the robot's base (the base
+    frame moved toward it), and the camera's translations are at ``scale``. Returns the scene
+    (its ``x`` the truth), the flange poses in the moved base and the camera's poses."""
+    s = H.scene(n, "eye_in_hand", "wrist", camera_noise=(0.1, 0.5), seed=seed)
+    start = dq.mul(s.base_flange, s.x)[0]
+    p = dq.to_pose(start)[1]
+    base = dq.from_pose(np.array([1.0, 0.0, 0.0, 0.0]), (from_base / np.linalg.norm(p) - 1) * p)
+    C = dq.mul(s.camera_target, dq.mul(dq.inv(s.z), start))
+    C[:, 4:] *= scale               # the dual part carries the translation linearly
+    return s, dq.mul(base, s.base_flange), dq.normalize(C)

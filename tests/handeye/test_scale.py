@@ -6,7 +6,7 @@ import pytest
 from dqpose import dq, handeye
 from tests import _handeye as H
 from tests.bench.fusion_scenes import nees
-from tests.handeye._cases import depth_noisy
+from tests.handeye._cases import depth_noisy, monocular
 
 
 def _rescaled(cal) -> bool:
@@ -50,3 +50,18 @@ def test_a_monocular_scale_is_solved_at_the_joint_optimum(given, true_scale):
         assert abs(lam * true_scale - 1.0) < 3.0 * sigma * true_scale, (seed, lam, sigma)
         assert nees(cal.x, cal.covariance_x, s.x) < 25.0, seed
         assert len(cal.rejected) <= 1, seed
+
+
+@pytest.mark.parametrize("true_scale", [0.5, 2.0])
+def test_a_monocular_camera_starting_near_the_base_is_solved_not_refused(true_scale):
+    """KinHEC's monocular sequences at 50 a setting: the camera's odometry frame (its first pose)
+    0.13–0.33 m from the base. The fit before the rescale puts X and Z at the wrong distances,
+    and read there, both poses inverted looked as plausible a mount as the data given: 2 of 100
+    sequences were refused ("the data cannot tell which"), here 3 of 6 seeds at half scale. The
+    scale is now found before the mount's plausibility is read, at the scale found."""
+    for seed in range(6):
+        s, F, C = monocular(30, seed, true_scale)
+        cal = handeye.calibrate(F, C)
+        assert _rescaled(cal), seed
+        assert H.pose_error(cal.x, s.x)[1] < 5.0, seed
+        assert nees(cal.x, cal.covariance_x, s.x) < 25.0, seed
