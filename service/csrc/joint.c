@@ -388,6 +388,61 @@ static int joint_trial_cost(void *solver, const double *delta, double *cost)
     return DQ_OK;
 }
 
+/* Each measurement's covariance factor and, seen through an uncertain extrinsic, its adjoint
+ * A = Ad(W^-1 E_s) into its block (both fixed for the whole fit); the index of a covariance
+ * that is not positive definite in *bad, DQ_E_NO_INLIERS when no measurement is an inlier. */
+static int joint_blocks(const joint_ctx *c, const double *cov, size_t *bad)
+{
+    const dq_joint_model *m = c->m;
+    size_t n_in = 0;
+    for (size_t i = 0; i < c->N; i++) {
+        double *b = c->blocks + J_PER * i;
+        if (!dq_chol6(cov + 36 * i, b + J_L, b + J_DI)) {
+            *bad = i;
+            return DQ_E_NOT_SPD;
+        }
+        if (m->ext_slot[i] >= 0) {
+            double zc[8], T[8];
+            dq_conj(c->z + 8 * i, zc);
+            dq_mul(zc, m->E + 8 * m->ext_slot[i], T);
+            dq_adjoint(T, b + J_A);
+        }
+        if (dq_selected(c->inlier, i)) n_in++;
+    }
+    return n_in == 0 ? DQ_E_NO_INLIERS : DQ_OK;
+}
+
+/* Everything at the estimate the solver left: the others' residuals, the Jacobians asked for
+ * (G, or the others' for the leave-one-out NIS: the inliers' are the last linearisation's) and
+ * each measurement's cost, dt and residual. */
+static void joint_at_estimate(const joint_ctx *c, const double *X, const double *V,
+                              const double *L, const dq_joint_outputs *per, int want_nis)
+{
+    const dq_joint_model *m = c->m;
+    joint_evaluate(c, X, V, L, 0);
+    if (per->G || want_nis) {
+        size_t i = 0;
+        int off = 0;
+        for (int q = 0; q < (int)m->parts; q++) {
+            const int twist = m->part[q].twist;
+            for (size_t j = 0; j < m->part[q].n; j++, i++) {
+                if (!per->G && dq_selected(c->inlier, i)) continue;   /* theirs are current */
+                int map[JC];
+                joint_map(c, i, off, twist, map);
+                joint_jacobian(c, i, V + 6 * q, twist, map,
+                               per->G ? per->G + 6 * (size_t)c->dim * i : NULL);
+            }
+            off += twist ? 12 : 6;
+        }
+    }
+    for (size_t i = 0; i < c->N; i++) {
+        const double *b = c->blocks + J_PER * i;
+        if (per->cost) per->cost[i] = dq_sq6(b + J_E);
+        if (per->dt) per->dt[i] = b[J_DT];
+        if (per->residuals) memcpy(per->residuals + 6 * i, b + J_R, 6 * sizeof(double));
+    }
+}
+
 int dq_joint_fit(const double *z, const double *cov, const unsigned char *inlier, size_t N,
                  const dq_joint_model *m, const dq_fuse_params *p, double *work,
                  dq_taken *taken, dq_joint_state *st, const dq_joint_outputs *per, size_t *bad)
@@ -401,22 +456,8 @@ int dq_joint_fit(const double *z, const double *cov, const unsigned char *inlier
     double *shift = En + 8 * m->m, *eres = shift + 8 * m->m, *pre = eres + E_PER * m->m;
     joint_ctx c = {m, z, inlier, N, dim, ext - k, ext, work, groups,
                    joint_groups(m, work, groups), shift, eres};
-    size_t n_in = 0;
-    for (size_t i = 0; i < N; i++) {
-        double *b = work + J_PER * i;
-        if (!dq_chol6(cov + 36 * i, b + J_L, b + J_DI)) {
-            *bad = i;
-            return DQ_E_NOT_SPD;
-        }
-        if (m->ext_slot[i] >= 0) {
-            double zc[8], T[8];
-            dq_conj(z + 8 * i, zc);
-            dq_mul(zc, m->E + 8 * m->ext_slot[i], T);
-            dq_adjoint(T, b + J_A);
-        }
-        if (dq_selected(inlier, i)) n_in++;
-    }
-    if (n_in == 0) return DQ_E_NO_INLIERS;
+    int rc = joint_blocks(&c, cov, bad);
+    if (rc) return rc;
     double *X = st->X, *V = st->V, *L = st->L, *Ehat = st->Ehat;
     memcpy(Ehat, m->E, sizeof(double) * 8 * m->m);
     double total = joint_extrinsics(&c, Ehat) + joint_evaluate(&c, X, V, L, 1) +
@@ -434,7 +475,7 @@ int dq_joint_fit(const double *z, const double *cov, const unsigned char *inlier
         }
         double trial;
         joint_trial tr = {&c, ext, X, V, L, Ehat, Xn, Vn, Ln, En};
-        int rc = dq_line_search(joint_trial_cost, &tr, delta, dim, &step, total, p->tol, &trial);
+        rc = dq_line_search(joint_trial_cost, &tr, delta, dim, &step, total, p->tol, &trial);
         if (rc) return rc;
         memcpy(X, Xn, sizeof(double) * 8 * K);
         memcpy(V, Vn, sizeof(double) * 6 * K);
@@ -448,30 +489,8 @@ int dq_joint_fit(const double *z, const double *cov, const unsigned char *inlier
             break;
         }
     }
-    /* everything at the estimate: the others' residuals, and the Jacobians asked for */
-    joint_evaluate(&c, X, V, L, 0);
     const int want_nis = per->nis && per->tested;
-    if (per->G || want_nis) {
-        size_t i = 0;
-        int off = 0;
-        for (int q = 0; q < K; q++) {
-            const int twist = m->part[q].twist;
-            for (size_t j = 0; j < m->part[q].n; j++, i++) {
-                if (!per->G && dq_selected(inlier, i)) continue;   /* theirs are current */
-                int map[JC];
-                joint_map(&c, i, off, twist, map);
-                joint_jacobian(&c, i, V + 6 * q, twist, map,
-                               per->G ? per->G + 6 * (size_t)dim * i : NULL);
-            }
-            off += twist ? 12 : 6;
-        }
-    }
-    for (size_t i = 0; i < N; i++) {
-        const double *b = work + J_PER * i;
-        if (per->cost) per->cost[i] = dq_sq6(b + J_E);
-        if (per->dt) per->dt[i] = b[J_DT];
-        if (per->residuals) memcpy(per->residuals + 6 * i, b + J_R, 6 * sizeof(double));
-    }
+    joint_at_estimate(&c, X, V, L, per, want_nis);
     st->chi2 = total;
     memcpy(st->H, H, sizeof(double) * dim * dim);
     memcpy(st->g, g, sizeof(double) * dim);
@@ -487,7 +506,7 @@ int dq_joint_fit(const double *z, const double *cov, const unsigned char *inlier
             for (int q = 0; q < dim; q++) s += st->P[dim * a + q] * g[q];
             Pg[a] = s;
         }
-        int rc = joint_leave_one_out(&c, V, L, st->P, Pg, H, pre, taken, per);
+        rc = joint_leave_one_out(&c, V, L, st->P, Pg, H, pre, taken, per);
         if (rc) return rc;
         if (!dq_finite_n(per->nis, N)) return DQ_E_OVERFLOW;
     }

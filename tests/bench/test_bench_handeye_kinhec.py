@@ -13,6 +13,7 @@ import pytest
 from dqpose import dq
 from tests import _handeye
 from tests.bench import bench_handeye_kinhec as bench
+from tests.bench import kinhec_sequences as kinhec
 
 # ---- without KinHEC ------------------------------------------------------------------------------
 
@@ -139,27 +140,27 @@ def test_generated_sequences_are_kept_and_read_again(tmp_path, monkeypatch):
     def fake(python, repeats, ids, baselines=True):
         calls.append((list(ids), baselines))
         return [{"id": i, "error": "", **({"baselines": {}} if baselines else {})} for i in ids]
-    monkeypatch.setattr(bench, "generate", fake)
-    first = bench.sequences(None, 50, ["a", "b"], False, tmp_path)
-    again = bench.sequences(None, 50, ["b", "a", "c"], False, tmp_path)
+    monkeypatch.setattr(kinhec, "generate", fake)
+    first = kinhec.sequences(None, 50, ["a", "b"], False, tmp_path)
+    again = kinhec.sequences(None, 50, ["b", "a", "c"], False, tmp_path)
     assert [q["id"] for q in first] == ["a", "b"] and [q["id"] for q in again] == ["b", "a", "c"]
     assert calls == [(["a", "b"], False), (["c"], False)]
-    bench.sequences(None, 50, ["a"], True, tmp_path)
+    kinhec.sequences(None, 50, ["a"], True, tmp_path)
     assert calls[-1] == (["a"], True)
 
 
 def test_kinhec_environment_offline_says_so(tmp_path, monkeypatch):
     """No package index: a clear error naming the environment and the way around it."""
-    monkeypatch.setattr(bench, "KINHEC_ENV", tmp_path / "kinhec")
-    monkeypatch.setattr(bench, "_PROBE", "import kinhec_is_not_here")  # not even in this venv
+    monkeypatch.setattr(kinhec, "KINHEC_ENV", tmp_path / "kinhec")
+    monkeypatch.setattr(kinhec, "_PROBE", "import kinhec_is_not_here")  # not even in this venv
     monkeypatch.setenv("PIP_INDEX_URL", "http://127.0.0.1:9/simple")   # nothing listens there
     monkeypatch.setenv("PIP_FIND_LINKS", "")
-    with pytest.raises(bench.KinhecUnavailable) as e:
-        bench.kinhec_python()
+    with pytest.raises(kinhec.KinhecUnavailable) as e:
+        kinhec.kinhec_python()
     msg = str(e.value)
     assert str(tmp_path / "kinhec") in msg and "offline" in msg and "--kinhec-python" in msg
-    with pytest.raises(bench.KinhecUnavailable, match="--kinhec-python"):
-        bench.kinhec_python(str(tmp_path / "no-such-python"))
+    with pytest.raises(kinhec.KinhecUnavailable, match="--kinhec-python"):
+        kinhec.kinhec_python(str(tmp_path / "no-such-python"))
 
 
 # ---- the subset, with KinHEC ---------------------------------------------------------------------
@@ -200,8 +201,8 @@ CASES = [
 @pytest.fixture(scope="module")
 def subset():
     try:
-        python = bench.kinhec_python()[0]
-    except bench.KinhecUnavailable as e:
+        python = kinhec.kinhec_python()[0]
+    except kinhec.KinhecUnavailable as e:
         pytest.skip(str(e))
     ids = [i for v in SUBSET.values() for i in v]
     return bench.summarise(bench.run(python, PLAN_REPEATS, ids=ids))

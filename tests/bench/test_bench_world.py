@@ -6,6 +6,7 @@ import pytest
 
 from dqpose.rpc.client import Client
 from tests.bench import bench_world as bw
+from tests.bench import world_publish as wp
 from tests.bench.bench_grpc import ServerProcess
 
 
@@ -14,7 +15,7 @@ def test_publish_row_acks_every_measurement_and_answers_every_body_at_its_ticks(
     try:
         with Client(server.target) as c:
             c.configure_world(window=0.2)
-        r = bw.run(server.target, 2, 1, 6, 300.0, 2.0, server.rss_mb)
+        r = wp.run(server.target, 2, 1, 6, 300.0, 2.0, server.rss_mb)
         with Client(server.target) as c:
             poses = {b: c.lookup("", f"b{b}") for b in range(6)}
     finally:
@@ -26,16 +27,16 @@ def test_publish_row_acks_every_measurement_and_answers_every_body_at_its_ticks(
     # before it arrived (a latency is an arrival minus a send time: positive)
     assert 6 * 30 * 2 * 0.5 < r["answers"] * 2.0 < 6 * 30 * 2 * 1.5, r
     assert 0.0 < r["p50"] <= r["p99"] < 10_000.0, r
-    truth, _ = bw._scene_poses(6)
+    truth, _ = wp.scene_poses(6)
     for b, p in poses.items():     # the world fused the static poses the producers sent
         assert np.allclose(p.pose, truth[b], atol=1e-9) or np.allclose(p.pose, -truth[b],
                                                                         atol=1e-9), b
 
 
 def test_relay_row_answers_like_the_world_without_fusing():
-    relay = bw.RelayProcess(700)
+    relay = wp.RelayProcess(700)
     try:
-        r = bw.run(relay.target, 1, 1, 4, 200.0, 2.0, relay.rss_mb)
+        r = wp.run(relay.target, 1, 1, 4, 200.0, 2.0, relay.rss_mb)
     finally:
         relay.stop()
     assert r["ended"] == "" and 4 * 30 * 2 * 0.5 < r["answers"] * 2.0 < 4 * 30 * 2 * 1.5, r
