@@ -185,7 +185,8 @@ def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
     u = _setup(Z, names, table, times, time, max_skew, max_extrapolation, twist_covariance,
                acceleration_psd)
     time, model, Wp, estimated = u.time, u.model, u.Wp, u.estimated
-    # Which fit runs is decided here; _pose_in_time restates when it is the constant-twist fit
+    # Which fit runs is decided here; _pose_in_time and _pose_over_time restate when it is
+    # a fit over time (a Lookup's pose alone; the constant-twist fit for the first)
     # (a Lookup's pose alone), and tests/test_world.py holds the two to the same bits.
     if u.one_instant:
         # All taken at the fusion time: nothing moves, the answer is the static fit itself (its
@@ -237,6 +238,23 @@ def _pose_in_time(Z, S, latency: np.ndarray, stamps: np.ndarray, taken: np.ndarr
     # every measurement an inlier: None tells the C fit so without a mask
     mean, P = _constant_twist_pose(Z, S, model, None, o.tol, o.max_iter)
     return _frozen(mean), _frozen(P[:6, :6])
+
+
+def _pose_over_time(Z, S, names, times, time: float, o) -> Optional[tuple[np.ndarray,
+                                                                           np.ndarray]]:
+    """The pose and covariance of :func:`_fuse_in_time` (``nis`` False) alone, bit for bit, for
+    any fit over time that is not robust (a source's uncertain extrinsic or estimated latency
+    included, where :func:`_pose_in_time` does not apply): the same set-up and fit, without the
+    answer's other fields (the rejections, the sources' verdicts, the latencies). None when the
+    fit is robust or of one instant. ``o``: :class:`dqpose.fusion.api._Checked`."""
+    if o.robust:
+        return None
+    u = _setup(Z, names, o.table, times, time, o.max_skew, o.max_extrapolation,
+               o.twist_covariance, o.acceleration_psd)
+    if u.one_instant:
+        return None
+    fit = _motion_fit(Z, S, u.model, u.allowed, o.tol, o.max_iter, False)
+    return _frozen(fit.mean), _frozen(fit.P[:6, :6])
 
 
 @functools.lru_cache(maxsize=256)

@@ -13,7 +13,11 @@ import numpy as np
 from dqpose import dq
 from dqpose import limits as _limits
 from dqpose.errors import rename
-from dqpose.fusion.alignment import DEFAULT_MAX_EXTRAPOLATION, _pose_in_time
+from dqpose.fusion.alignment import (
+    DEFAULT_MAX_EXTRAPOLATION,
+    _pose_in_time,
+    _pose_over_time,
+)
 from dqpose.fusion.api import _Checked, _fuse_joint_rows, _fuse_world_rows, fuse
 from dqpose.fusion.chi2 import DEFAULT_PROBABILITY, chi2_quantile
 from dqpose.fusion.results import DOF, Fused
@@ -255,7 +259,8 @@ class Tracker:
     def pose_rows(self, rows: np.ndarray, time: float) -> tuple[np.ndarray, np.ndarray]:
         """The pose and covariance of :meth:`estimate_rows` ``(rows, time, nis=False)``, bit for
         bit, and only those (a Lookup of a body): the constant-twist fit straight from the rows
-        where it applies (``_pose_in_time``), else that fit's."""
+        where it applies (``_pose_in_time``), else any fit over time that is not robust
+        (``_pose_over_time``), else the full fit's."""
         s = self._store
         codes = s.codes[rows]
         got = None
@@ -263,6 +268,9 @@ class Tracker:
             # taken was stamp less latency when the rows came in: the same bits as fuse's
             got = _pose_in_time(*s.world(rows), self._latency[codes], s.times[rows],
                                 s.taken[rows], time, self._checked)
+        if got is None:
+            got = _pose_over_time(*s.world(rows), tuple([self._names[c] for c in codes.tolist()]),
+                                  s.times[rows], time, self._checked)
         if got is None:
             f = self.estimate_rows(rows, time, False)[0]
             got = f.mean, f.covariance
