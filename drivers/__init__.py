@@ -37,14 +37,23 @@ def _backend(kind: str, table: dict, spec: str) -> tuple[str, str, str]:
     """(module, class, channel) of ``spec``, else ``ValueError`` naming ``kind``."""
     if not isinstance(spec, str):
         raise ValueError(f"{kind}: expected '<backend>:<channel>', got {spec!r}")
-    name, sep, channel = spec.partition(":")
-    if name not in table:
-        raise ValueError(f"{kind}: unknown backend {name!r} in {spec!r}; known: "
-                         f"{', '.join(sorted(table))} (as '<backend>:<channel>')")
-    if not sep or not channel:
-        raise ValueError(f"{kind}: {spec!r} has no channel; expected '{name}:<channel>'")
+    name, channel = _split_backend(kind, table, spec)
     module, cls = table[name].split(":")
     return module, cls, channel
+
+
+def _split_backend(kind: str, table: dict, spec: str, whole: Optional[str] = None,
+                   grammar: str = "<backend>:<channel>") -> tuple[str, str]:
+    """``spec``'s backend (a name in ``table``) and channel, else ``ValueError`` naming ``kind``
+    and ``whole`` (the text ``spec`` is part of; ``grammar``: how it is written)."""
+    whole = spec if whole is None else whole
+    name, sep, channel = spec.partition(":")
+    if name not in table:
+        raise ValueError(f"{kind}: unknown backend {name!r} in {whole!r}; known: "
+                         f"{', '.join(sorted(table))} (as '{grammar}')")
+    if not sep or not channel:
+        raise ValueError(f"{kind}: {whole!r} has no channel; expected '{name}:<channel>'")
+    return name, channel
 
 
 def _arm_class(spec: ArmSpec):

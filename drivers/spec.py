@@ -121,16 +121,11 @@ def _nearest(name: str) -> str:
 def parse_arm_spec(text: str) -> ArmSpec:
     """``KIND:TARGET[?key=value&...]`` to an :class:`ArmSpec`; ``ValueError`` for an unknown kind
     or key (naming the nearest known key) or a bad value (naming the key and the value)."""
-    from dqpose.drivers import ARMS
+    from dqpose.drivers import ARMS, _split_backend
     if not isinstance(text, str):
         raise ValueError(f"arm: expected '{GRAMMAR}', got {text!r}")
     body, question, query = text.partition("?")
-    kind, colon, target = body.partition(":")
-    if kind not in ARMS:
-        raise ValueError(f"arm: unknown backend {kind!r} in {text!r}; known: "
-                         f"{', '.join(sorted(ARMS))} (as '{GRAMMAR}')")
-    if not colon or not target:
-        raise ValueError(f"arm: {text!r} has no channel; expected '{kind}:<channel>'")
+    kind, target = _split_backend("arm", ARMS, body, text, GRAMMAR)
     options: dict = {}
     if question:
         if not query:
