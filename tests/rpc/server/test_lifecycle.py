@@ -20,6 +20,7 @@ from dqpose import dq
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import blending_pb2_grpc as pb_grpc
 from dqpose.rpc.server import ServerConfig, start
+from tests._polling import wait_until
 from tests.rpc._grpc_server import ServerThread
 from tests.rpc.server._blending import (
     ROOT,
@@ -95,7 +96,15 @@ def test_metrics_count_calls():
         with grpc.insecure_channel(s.target) as ch:
             _blend_ok(ch)
             _code(lambda: pb_grpc.BlendingStub(ch).Blend(pb.BlendRequest(), timeout=5))
-        text = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5).read().decode()
+
+        def scrape() -> str:
+            return urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics",
+                                          timeout=5).read().decode()
+        # a call is counted when its handler has ended, which can be just after its client has
+        # the answer: read until both calls are in (or time out and check what was there)
+        wait_until(lambda: 'dqpose_grpc_call_seconds_count{rpc="Blend"} 2.0' in scrape(),
+                   timeout=10, poll=0.01)
+        text = scrape()
     assert re.search(r'dqpose_grpc_calls_total\{code="OK",rpc="Blend"\} 1\.0', text)
     assert re.search(r'dqpose_grpc_calls_total\{code="INVALID_ARGUMENT",rpc="Blend"\} 1\.0', text)
     assert 'dqpose_grpc_call_seconds_count{rpc="Blend"} 2.0' in text
