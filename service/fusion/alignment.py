@@ -185,9 +185,9 @@ def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
     u = _setup(Z, names, table, times, time, max_skew, max_extrapolation, twist_covariance,
                acceleration_psd)
     time, model, Wp, estimated = u.time, u.model, u.Wp, u.estimated
-    # Which fit runs is decided here; _pose_in_time and _pose_over_time restate when it is
-    # a fit over time (a Lookup's pose alone; the constant-twist fit for the first)
-    # (a Lookup's pose alone), and tests/test_world.py holds the two to the same bits.
+    # Which fit runs is decided here; for a Lookup's pose alone _pose_in_time (the constant-twist
+    # fit) and _pose_over_time (any fit over time that is not robust) restate it, and
+    # tests/test_world.py holds them to the same bits.
     if u.one_instant:
         # All taken at the fusion time: nothing moves, the answer is the static fit itself (its
         # C core), bit for bit; the twist keeps its prior, each latency its prior (one instant
