@@ -444,8 +444,8 @@ class World:
             elif self._share(target, source, at):
                 # each body's start for the joint fit: its constant-twist fit, unless robust
                 # (the gate's inliers need the whole fit); kept apart from the body's own fits
-                fits = [self._fitted(b, at, lambda rows: self._t.estimate_rows(
-                    rows, at, False, joint=False)[0]) for b in (target, source)]
+                fits = [self._fitted(b, at, lambda rows: self._t.start_rows(rows, at))
+                        for b in (target, source)]
                 (Xa, Xb), P = self._t.joint([target, source], fits, at, self.options.window)
                 answer = BodyPose(source, at, _frozen(dq.mul(dq.conj(Xa), Xb)),
                                   _frozen(_relative_covariance(Xa, Xb, P)), None)

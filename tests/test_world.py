@@ -9,6 +9,7 @@ import pytest
 
 from dqpose import dq, fusion, handeye, lie
 from dqpose.fusion import Measurement, Source
+from dqpose.fusion.alignment import _Start
 from dqpose.fusion.extrinsics import _relative_covariance
 from dqpose.world import (
     NotFound,
@@ -529,6 +530,26 @@ def test_a_lookup_between_moving_bodies_starts_them_where_their_own_joint_fits_s
     assert np.abs(dq.mul(dq.conj(r.pose), T) - [1, 0, 0, 0, 0, 0, 0, 0]).max() < 1e-12
     C = _relative_covariance(Xa, Xb, P)
     assert np.abs(r.covariance - C).max() <= 1e-11 * np.abs(C).max()
+
+
+def test_a_joint_fit_from_a_bodys_lean_start_is_the_one_from_its_full_fit_bit_for_bit():
+    """Tracker.start_rows gives a body's start for a joint fit without the rest of an answer
+    (rejections, verdicts, latencies); the joint fit from it is the joint fit from the full
+    constant-twist fit, to the last bit."""
+    rng = np.random.default_rng(12)
+    sources = [Source("top", random_pose(rng), extrinsic_covariance=EXTRINSIC),
+               Source("side", random_pose(rng))]
+    world = World(sources=sources, options=WorldOptions(window=1.0))
+    ms, _ = stream(rng, sources, ["a", "b"], np.arange(10) * 0.05)
+    assert world.publish(ms).accepted == len(ms)
+    at = 0.45
+    rows = {b: world._t.near_rows(b, at, 1.0)[1] for b in "ab"}
+    lean = [world._t.start_rows(rows[b], at) for b in "ab"]
+    full = [world._t.estimate_rows(rows[b], at, False, joint=False)[0] for b in "ab"]
+    assert all(isinstance(s, _Start) for s in lean)
+    (Xa, Xb), P = world._t.joint(["a", "b"], lean, at, 1.0)
+    (Ya, Yb), Q = world._t.joint(["a", "b"], full, at, 1.0)
+    assert (Xa.tobytes(), Xb.tobytes(), P.tobytes()) == (Ya.tobytes(), Yb.tobytes(), Q.tobytes())
 
 
 def test_measurements_per_body_bound_keeps_the_newest():

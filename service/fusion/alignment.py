@@ -257,6 +257,40 @@ def _pose_over_time(Z, S, names, times, time: float, o) -> Optional[tuple[np.nda
     return _frozen(fit.mean), _frozen(fit.P[:6, :6])
 
 
+class _Start(NamedTuple):
+    """Where a body starts in a joint fit of several bodies: its set-up (:func:`_setup`), and its
+    own fit's pose, twist, latencies and inliers (a mask)."""
+    setup: _Setup
+    mean: np.ndarray
+    V: np.ndarray
+    ell: np.ndarray
+    inlier: np.ndarray
+
+    @classmethod
+    def of(cls, f: Fused, u: _Setup) -> "_Start":
+        """The start a fit ``f`` (a :class:`~dqpose.fusion.Fused`) of the set-up ``u`` gives."""
+        inlier = np.zeros(u.taken.shape[0], dtype=bool)
+        inlier[f.inliers] = True
+        V = np.zeros(DOF) if f.twist is None else np.array(f.twist)
+        return cls(u, f.mean, V, np.array([lat.value for lat in f.latencies], dtype=np.float64),
+                   inlier)
+
+
+def _joint_start(Z, S, names, times, time: float, o) -> Optional[_Start]:
+    """The start of :class:`_Start`.of(:func:`_fuse_in_time` (``nis`` and ``joint`` False)),
+    bit for bit, for a fit over time that is not robust, without that answer's other fields;
+    None when the fit is robust or of one instant. ``o``: :class:`dqpose.fusion.api._Checked`."""
+    if o.robust:
+        return None
+    u = _setup(Z, names, o.table, times, time, o.max_skew, o.max_extrapolation,
+               o.twist_covariance, o.acceleration_psd)
+    if u.one_instant:
+        return None
+    fit = _motion_fit(Z, S, u.model, u.allowed, o.tol, o.max_iter, False, False)
+    return _Start(u, fit.mean, np.array(fit.V), np.array(fit.ell, dtype=np.float64),
+                  u.allowed.copy())
+
+
 @functools.lru_cache(maxsize=256)
 def _no_slots(n: int) -> np.ndarray:
     """n measurements' slots among the estimated latencies when none is (-1 each), read-only."""

@@ -11,7 +11,12 @@ from typing import Iterable, NamedTuple, Optional, Sequence
 import numpy as np
 
 from dqpose import dq
-from dqpose.fusion.alignment import DEFAULT_MAX_EXTRAPOLATION, _fuse_in_time, _setup
+from dqpose.fusion.alignment import (
+    DEFAULT_MAX_EXTRAPOLATION,
+    _fuse_in_time,
+    _setup,
+    _Start,
+)
 from dqpose.fusion.chi2 import DEFAULT_PROBABILITY, chi2_quantile
 from dqpose.fusion.extrinsics import _extrinsics, _joint_fit, _no_extrinsics, _Part
 from dqpose.fusion.results import DOF, Fused
@@ -108,36 +113,35 @@ def _fuse_world_rows(Z, S, names, times, time, o: _Checked, nis: bool = True,
                          o.gate2, o.tol, o.max_iter, nis, joint)
 
 
-def _fuse_joint_rows(rows, fits: Sequence[Fused], time, o: _Checked):
+def _fuse_joint_rows(rows, starts: Sequence, time, o: _Checked):
     """Several bodies' rows ``(poses, covariances, names, times)`` (checked and in the world
     frame as for :func:`_fuse_world_rows`) fitted together, with one error per uncertain
     extrinsic and one latency per source whose latency is estimated
-    (:func:`dqpose.fusion.extrinsics._joint_fit`), each body started from its own fit in
-    ``fits`` and keeping its inliers: the poses and the joint
-    covariance of their right perturbations ``(6k, 6k)``."""
-    parts, names_all, setups = [], [], []
-    for (Z, S, names, times), f in zip(rows, fits):
-        u = _setup(Z, names, o.table, times, time if time is not None else f.time, o.max_skew,
-                   o.max_extrapolation, o.twist_covariance, o.acceleration_psd)
-        setups.append((Z, S, u, f))
+    (:func:`dqpose.fusion.extrinsics._joint_fit`), each body started from ``starts``: its own
+    fit (a :class:`Fused`) or a :class:`~dqpose.fusion.alignment._Start`, keeping its inliers:
+    the poses and the joint covariance of their right perturbations ``(6k, 6k)``."""
+    parts, names_all, begun = [], [], []
+    for (Z, S, names, times), st in zip(rows, starts):
+        if isinstance(st, Fused):
+            st = _Start.of(st, _setup(Z, names, o.table, times,
+                                      time if time is not None else st.time, o.max_skew,
+                                      o.max_extrapolation, o.twist_covariance,
+                                      o.acceleration_psd))
+        begun.append((Z, S, st))
         names_all.extend(names)
     ext = _extrinsics(names_all, o.table)
-    latencies = list(dict.fromkeys(s for _, _, u, _ in setups for s in u.estimated))
+    latencies = list(dict.fromkeys(s for _, _, st in begun for s in st.setup.estimated))
     if ext is None and not latencies:
         raise ValueError("bodies: no uncertain extrinsic or estimated latency to fit them "
                          "jointly over")
     if ext is None:
         ext = _no_extrinsics(len(names_all))
     start = 0
-    for Z, S, u, f in setups:
+    for Z, S, st in begun:
         n = Z.shape[0]
-        inlier = np.zeros(n, dtype=bool)
-        inlier[f.inliers] = True
-        V = np.zeros(DOF) if f.twist is None else np.array(f.twist)
-        ell = np.array([lat.value for lat in f.latencies], dtype=np.float64)
-        shared = np.array([latencies.index(s) for s in u.estimated], dtype=np.intp)
-        parts.append(_Part(Z, S, u.model, inlier, ext.slot[start:start + n], f.mean, V, ell,
-                           shared))
+        shared = np.array([latencies.index(s) for s in st.setup.estimated], dtype=np.intp)
+        parts.append(_Part(Z, S, st.setup.model, st.inlier, ext.slot[start:start + n], st.mean,
+                           st.V, st.ell, shared))
         start += n
     fit = _joint_fit(parts, ext, o.tol, o.max_iter)
     idx = np.concatenate([np.arange(off, off + DOF) for off in fit.offsets])

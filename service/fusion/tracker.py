@@ -15,6 +15,7 @@ from dqpose import limits as _limits
 from dqpose.errors import rename
 from dqpose.fusion.alignment import (
     DEFAULT_MAX_EXTRAPOLATION,
+    _joint_start,
     _pose_in_time,
     _pose_over_time,
 )
@@ -276,6 +277,15 @@ class Tracker:
             got = f.mean, f.covariance
         return got
 
+    def start_rows(self, rows: np.ndarray, time: float):
+        """Where the body of ``rows`` starts in :meth:`joint` at ``time``: its constant-twist fit
+        (where its own joint fit starts) without the rest of an answer where that is the fit
+        (``_joint_start``), else :meth:`estimate_rows` ``(nis=False, joint=False)``'s."""
+        s = self._store
+        got = _joint_start(*s.world(rows), tuple([self._names[c] for c in s.codes[rows].tolist()]),
+                           s.times[rows], time, self._checked)
+        return got if got is not None else self.estimate_rows(rows, time, False, joint=False)[0]
+
     def near_rows(self, body: str, time: float, within: float) -> tuple[float, np.ndarray]:
         """When ``body``'s oldest measurement kept was taken, and its rows taken within
         ``within`` s of ``time`` (for :meth:`estimate_rows`): one look-up of its window for
@@ -293,12 +303,12 @@ class Tracker:
         """Whether ``body`` has measurements."""
         return body in self._active
 
-    def joint(self, bodies: Sequence[str], fits: Sequence[Fused], time: Optional[float] = None,
+    def joint(self, bodies: Sequence[str], fits: Sequence, time: Optional[float] = None,
               within: Optional[float] = None) -> tuple[list, np.ndarray]:
         """``bodies`` fitted together with one error per uncertain extrinsic their sources share
-        (:mod:`dqpose.fusion.extrinsics`), each from its own :meth:`estimate` ``fits`` (their
-        inliers, their start): the poses and the joint covariance ``(6k, 6k)`` of their right
-        perturbations, cross-covariances included."""
+        (:mod:`dqpose.fusion.extrinsics`), each from its own :meth:`estimate` ``fits`` or
+        :meth:`start_rows` (their inliers, their start): the poses and the joint covariance
+        ``(6k, 6k)`` of their right perturbations, cross-covariances included."""
         s = self._store
         rows = []
         for b in bodies:
