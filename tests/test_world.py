@@ -508,16 +508,23 @@ def test_relative_equals_gtsam_joint_marginal():
     assert np.abs(r.covariance - expected).max() <= 1e-8 * np.abs(expected).max()
 
 
-def test_a_lookup_between_moving_bodies_starts_them_where_their_own_joint_fits_start():
-    """Between two moving bodies that an uncertain camera sees, the joint fit starts each body
-    from its constant-twist fit (where its own joint fit starts), not from that joint fit: the
-    same optimum, to 1e-12, as the joint fit started from the bodies' own fits."""
+def _two_moving_bodies_one_uncertain_camera() -> World:
+    """Bodies "a" and "b" over 0.45 s, both seen by camera "top" (its extrinsic uncertain) and
+    by "side"."""
     rng = np.random.default_rng(12)
     sources = [Source("top", random_pose(rng), extrinsic_covariance=EXTRINSIC),
                Source("side", random_pose(rng))]
     world = World(sources=sources, options=WorldOptions(window=1.0))
     ms, _ = stream(rng, sources, ["a", "b"], np.arange(10) * 0.05)
     assert world.publish(ms).accepted == len(ms)
+    return world
+
+
+def test_a_lookup_between_moving_bodies_starts_them_where_their_own_joint_fits_start():
+    """Between two moving bodies that an uncertain camera sees, the joint fit starts each body
+    from its constant-twist fit (where its own joint fit starts), not from that joint fit: the
+    same optimum, to 1e-12, as the joint fit started from the bodies' own fits."""
+    world = _two_moving_bodies_one_uncertain_camera()
     at = 0.45
     r = world.relative("a", "b", at)
     starts = {b: world._t.estimate_rows(world._t.near_rows(b, at, 1.0)[1], at, False,
@@ -536,12 +543,7 @@ def test_a_joint_fit_from_a_bodys_lean_start_is_the_one_from_its_full_fit_bit_fo
     """Tracker.start_rows gives a body's start for a joint fit without the rest of an answer
     (rejections, verdicts, latencies); the joint fit from it is the joint fit from the full
     constant-twist fit, to the last bit."""
-    rng = np.random.default_rng(12)
-    sources = [Source("top", random_pose(rng), extrinsic_covariance=EXTRINSIC),
-               Source("side", random_pose(rng))]
-    world = World(sources=sources, options=WorldOptions(window=1.0))
-    ms, _ = stream(rng, sources, ["a", "b"], np.arange(10) * 0.05)
-    assert world.publish(ms).accepted == len(ms)
+    world = _two_moving_bodies_one_uncertain_camera()
     at = 0.45
     rows = {b: world._t.near_rows(b, at, 1.0)[1] for b in "ab"}
     lean = [world._t.start_rows(rows[b], at) for b in "ab"]

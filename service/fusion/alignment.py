@@ -247,14 +247,21 @@ def _pose_over_time(Z, S, names, times, time: float, o) -> Optional[tuple[np.nda
     included, where :func:`_pose_in_time` does not apply): the same set-up and fit, without the
     answer's other fields (the rejections, the sources' verdicts, the latencies). None when the
     fit is robust or of one instant. ``o``: :class:`dqpose.fusion.api._Checked`."""
+    u = _plain_setup(Z, names, times, time, o)
+    if u is None:
+        return None
+    fit = _motion_fit(Z, S, u.model, u.allowed, o.tol, o.max_iter, False)
+    return _frozen(fit.mean), _frozen(fit.P[:6, :6])
+
+
+def _plain_setup(Z, names, times, time: float, o) -> Optional[_Setup]:
+    """:func:`_fuse_in_time`'s set-up when its fit is a fit over time that is not robust (the
+    one fit over the allowed measurements), else None."""
     if o.robust:
         return None
     u = _setup(Z, names, o.table, times, time, o.max_skew, o.max_extrapolation,
                o.twist_covariance, o.acceleration_psd)
-    if u.one_instant:
-        return None
-    fit = _motion_fit(Z, S, u.model, u.allowed, o.tol, o.max_iter, False)
-    return _frozen(fit.mean), _frozen(fit.P[:6, :6])
+    return None if u.one_instant else u
 
 
 class _Start(NamedTuple):
@@ -280,11 +287,8 @@ def _joint_start(Z, S, names, times, time: float, o) -> Optional[_Start]:
     """The start of :class:`_Start`.of(:func:`_fuse_in_time` (``nis`` and ``joint`` False)),
     bit for bit, for a fit over time that is not robust, without that answer's other fields;
     None when the fit is robust or of one instant. ``o``: :class:`dqpose.fusion.api._Checked`."""
-    if o.robust:
-        return None
-    u = _setup(Z, names, o.table, times, time, o.max_skew, o.max_extrapolation,
-               o.twist_covariance, o.acceleration_psd)
-    if u.one_instant:
+    u = _plain_setup(Z, names, times, time, o)
+    if u is None:
         return None
     fit = _motion_fit(Z, S, u.model, u.allowed, o.tol, o.max_iter, False, False)
     return _Start(u, fit.mean, np.array(fit.V), np.array(fit.ell, dtype=np.float64),
