@@ -250,11 +250,9 @@ class Tracker:
         the same to the last bit. Without ``joint``, where :meth:`joint` may start the body
         (``_fuse_in_time``'s)."""
         s = self._store
-        names = self._names
         # the rows were checked by fuse's rules when they came in, and brought into the world
         # frame (_in_world)
-        return _fuse_world_rows(*s.world(rows),
-                                tuple([names[c] for c in s.codes[rows].tolist()]), s.times[rows],
+        return _fuse_world_rows(*s.world(rows), self._sources_of(rows), s.times[rows],
                                 time, self._checked, nis, joint), s.ids[rows]
 
     def pose_rows(self, rows: np.ndarray, time: float) -> tuple[np.ndarray, np.ndarray]:
@@ -270,8 +268,8 @@ class Tracker:
             got = _pose_in_time(*s.world(rows), self._latency[codes], s.times[rows],
                                 s.taken[rows], time, self._checked)
         if got is None:
-            got = _pose_over_time(*s.world(rows), tuple([self._names[c] for c in codes.tolist()]),
-                                  s.times[rows], time, self._checked)
+            got = _pose_over_time(*s.world(rows), self._sources_of(rows), s.times[rows], time,
+                                  self._checked)
         if got is None:
             f = self.estimate_rows(rows, time, False)[0]
             got = f.mean, f.covariance
@@ -282,9 +280,14 @@ class Tracker:
         (where its own joint fit starts) without the rest of an answer where that is the fit
         (``_joint_start``), else :meth:`estimate_rows` ``(nis=False, joint=False)``'s."""
         s = self._store
-        got = _joint_start(*s.world(rows), tuple([self._names[c] for c in s.codes[rows].tolist()]),
-                           s.times[rows], time, self._checked)
+        got = _joint_start(*s.world(rows), self._sources_of(rows), s.times[rows], time,
+                           self._checked)
         return got if got is not None else self.estimate_rows(rows, time, False, joint=False)[0]
+
+    def _sources_of(self, rows: np.ndarray) -> tuple[str, ...]:
+        """Each row's source name, as the fits take them."""
+        names = self._names
+        return tuple([names[c] for c in self._store.codes[rows].tolist()])
 
     def near_rows(self, body: str, time: float, within: float) -> tuple[float, np.ndarray]:
         """When ``body``'s oldest measurement kept was taken, and its rows taken within
@@ -313,8 +316,7 @@ class Tracker:
         rows = []
         for b in bodies:
             r = self._rows_near(b, time, within)
-            rows.append((*s.world(r), tuple(self._names[c] for c in s.codes[r].tolist()),
-                         s.times[r]))
+            rows.append((*s.world(r), self._sources_of(r), s.times[r]))
         return _fuse_joint_rows(rows, fits, time, self._checked)
 
     def _rows_near(self, body: str, time: Optional[float], within: Optional[float]):
