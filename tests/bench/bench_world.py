@@ -192,6 +192,7 @@ def _load(target: str, stop: threading.Event) -> list[threading.Thread]:
     own client, until ``stop``: the Publish requests whose Subscribe answers the server fits
     (about 3 a request) while a Lookup runs."""
     from dqpose.rpc.client import Batch, Client
+    from dqpose.rpc.client_types import RpcError
 
     bodies = [f"load{i}" for i in range(LOAD_BODIES)]
     poses, cov = scene_poses(LOAD_BODIES)
@@ -214,10 +215,16 @@ def _load(target: str, stop: threading.Event) -> list[threading.Thread]:
     def subscribe():
         with Client(target) as c:
             answers = c.subscribe(bodies, rate_hz=SUBSCRIBE_RATE)
-            for _ in answers:
-                if stop.is_set():
-                    answers.close()
-                    return
+            try:
+                for _ in answers:
+                    if stop.is_set():
+                        answers.close()
+                        return
+            except RpcError:
+                # once the producer stops no answer comes, and the server's stop ends the
+                # stream UNAVAILABLE: the end of the load, not a failure
+                if not stop.is_set():
+                    raise
 
     threads = [threading.Thread(target=f, daemon=True) for f in (subscribe, produce)]
     for th in threads:
@@ -278,9 +285,11 @@ def rpc_lookup_rows(lookups: int = 1000, load: bool = False) -> list[list[str]]:
                 pass
     finally:
         stop.set()
-        for th in threads:
-            th.join(10.0)
+        for th in threads[1:]:      # the producer; the subscriber waits for an answer that
+            th.join(10.0)           # no longer comes, until the server's stop ends its stream
         server.stop()
+        for th in threads[:1]:
+            th.join(10.0)
     server.log.seek(0)
     calls = [json.loads(line) for line in server.log if line.startswith("{")]
     ms = np.array([r["ms"] for r in calls if r.get("rpc", "").endswith("Lookup")][-lookups:])
