@@ -101,6 +101,8 @@ class Ticks:
             due, self.pending = self.pending[:k], self.pending[k:]
             return [t for t in due if t >= oldest][-MAX_DUE:]
         assert self.next is not None
+        if tick_time(self.next, self.rate, self.phase) > h:
+            return []           # the common case: no tick reached (the answer below, sooner)
         last = first_tick(h, self.rate, self.phase)
         if tick_time(last, self.rate, self.phase) > h:
             last -= 1

@@ -1,6 +1,8 @@
 """The world benchmark's harness, small: its producers' measurements reach the world and its
 subscribers' answers are matched to the measurement that made each due, against a real
 ``dqpose serve`` process and the relay; and its Lookup rows time real answers."""
+import os
+
 import numpy as np
 import pytest
 
@@ -15,7 +17,7 @@ def test_publish_row_acks_every_measurement_and_answers_every_body_at_its_ticks(
     try:
         with Client(server.target) as c:
             c.configure_world(window=0.2)
-        r = wp.run(server.target, 2, 1, 6, 300.0, 2.0, server.rss_mb)
+        r = wp.run(server.target, 2, 1, 6, 300.0, 2.0, server.rss_mb, server.cpu_seconds)
         with Client(server.target) as c:
             poses = {b: c.lookup("", f"b{b}") for b in range(6)}
     finally:
@@ -27,6 +29,8 @@ def test_publish_row_acks_every_measurement_and_answers_every_body_at_its_ticks(
     # before it arrived (a latency is an arrival minus a send time: positive)
     assert 6 * 30 * 2 * 0.5 < r["answers"] * 2.0 < 6 * 30 * 2 * 1.5, r
     assert 0.0 < r["p50"] <= r["p99"] < 10_000.0, r
+    # the server worked (fits, answers) and its threads cannot use more than the machine's cores
+    assert 0.0 < r["cores"] <= (os.cpu_count() or 1) + 0.1, r
     truth, _ = wp.scene_poses(6)
     for b, p in poses.items():     # the world fused the static poses the producers sent
         assert np.allclose(p.pose, truth[b], atol=1e-9) or np.allclose(p.pose, -truth[b],

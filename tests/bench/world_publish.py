@@ -4,8 +4,9 @@
 (processes) publishing measurements of many bodies into one server (a ``dqpose serve`` process)
 while subscribers (processes) read the fused poses at 30 Hz per body: measurements/s sustained,
 the added latency from a measurement's arrival to the subscriber's answer that it made due
-(p50/p99), answers/s, the server's RSS at the start and the end; :func:`soak` one row for
-minutes, its RSS.
+(p50/p99), answers/s, the server's CPU over the row (cores: its CPU seconds a second; one
+Python process's threads share one interpreter lock, so ~1 is its ceiling), its RSS at the
+start and the end; :func:`soak` one row for minutes, its RSS.
 
 Scene: body ``b{i}`` is measured by producer ``i % producers`` only (its own source), a static
 pose with a full covariance; each producer sends messages of 10 measurements (10 bodies each),
@@ -38,8 +39,8 @@ from tests.bench._table import markdown
 from tests.bench.bench_grpc import ServerProcess
 
 PUBLISH_HEAD = ["row", "producers", "subscribers", "bodies", "offered meas/s", "sustained meas/s",
-                "answers/s", "p50 ms", "p99 ms", "added p99 ms", "answer bytes", "RSS MB start",
-                "RSS MB end", "subscriber streams"]
+                "answers/s", "p50 ms", "p99 ms", "added p99 ms", "server cores", "answer bytes",
+                "RSS MB start", "RSS MB end", "subscriber streams"]
 PER_MESSAGE = 10
 IN_FLIGHT = 8
 SUBSCRIBE_RATE = 30.0
@@ -135,7 +136,7 @@ def subscribe(target: str, k: int, seconds: float, ready, go, out) -> None:
 
 
 def run(target: str, producers: int, subscribers: int, bodies: int, rate: float | None,
-        seconds: float, rss=None) -> dict:
+        seconds: float, rss=None, cpu=None) -> dict:
     ctx = multiprocessing.get_context("spawn")
     out = ctx.Queue()
     ready, go = ctx.Queue(), ctx.Value("d", 0.0)
@@ -158,11 +159,24 @@ def run(target: str, producers: int, subscribers: int, bodies: int, rate: float 
         while rss and not done.wait(5.0):
             samples.append((time.time() - start, rss()))
 
+    cores: list[float] = []     # the server's CPU time over the run / its seconds
+
+    def server_cpu():
+        time.sleep(max(0.0, start - time.time()))
+        c0 = cpu()
+        time.sleep(seconds)
+        cores.append((cpu() - c0) / seconds)
+
     sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()
+    timer = threading.Thread(target=server_cpu, daemon=True)
+    if cpu:
+        timer.start()
     results = [out.get(timeout=seconds + 120) for _ in procs]
     done.set()
     rss1 = rss() if rss else float("nan")
+    if cpu:
+        timer.join()
     for p in procs:
         p.join(30)
     sent: dict[int, np.ndarray] = {}
@@ -193,7 +207,8 @@ def run(target: str, producers: int, subscribers: int, bodies: int, rate: float 
                 p50=float(np.percentile(lat_ms, 50)) if len(lat_ms) else float("nan"),
                 p99=float(np.percentile(lat_ms, 99)) if len(lat_ms) else float("nan"),
                 size=float(np.mean(np.concatenate(sizes))) if sizes and sum(map(len, sizes))
-                else 0.0, rss0=rss0, rss1=rss1, ended=",".join(sorted(ended)), samples=samples)
+                else 0.0, rss0=rss0, rss1=rss1, ended=",".join(sorted(ended)), samples=samples,
+                cores=cores[0] if cores else float("nan"))
 
 
 def serve_relay(answer_bytes: int) -> None:
@@ -274,7 +289,7 @@ def publish_rows(args) -> list:
             with Client(server.target) as c:
                 c.configure_world(window=args.window)
             r = run(server.target, producers, subscribers, bodies, rate, args.seconds,
-                    server.rss_mb)
+                    server.rss_mb, server.cpu_seconds)
         finally:
             server.stop()
         rows.append((name, producers, subscribers, bodies, rate, r))
@@ -287,7 +302,8 @@ def publish_rows(args) -> list:
         world = on_world(name, 4, 4, bodies, rate)
         relay = RelayProcess(int(world["size"]) or 1000)
         try:
-            floor = run(relay.target, 4, 4, bodies, rate, args.seconds, relay.rss_mb)
+            floor = run(relay.target, 4, 4, bodies, rate, args.seconds, relay.rss_mb,
+                        relay.cpu_seconds)
         finally:
             relay.stop()
         rows.insert(len(rows) - 1, ("transport (relay)", 4, 4, bodies, rate, floor))
@@ -338,8 +354,8 @@ def publish_table(args) -> int:
                       f"{r['rate']:.0f}", f"{r['answers']:.0f}", f"{r['p50']:.2f}",
                       f"{r['p99']:.2f}",
                       "" if relay or floor != floor else f"{r['p99'] - floor:.2f}",
-                      f"{r['size']:.0f}", f"{r['rss0']:.1f}", f"{r['rss1']:.1f}",
-                      r["ended"] or "ran to the end"])
+                      f"{r['cores']:.2f}", f"{r['size']:.0f}", f"{r['rss0']:.1f}",
+                      f"{r['rss1']:.1f}", r["ended"] or "ran to the end"])
         if not relay:
             floor = float("nan")        # the sweep's rows have no transport row of their own
     print(markdown(PUBLISH_HEAD, lines))
