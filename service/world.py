@@ -155,6 +155,7 @@ class World:
         # answers kept until their bodies change: per body a version bumped by every
         # measurement taken into it; fits by (body, time), relatives by (target, source, time)
         self._version: dict[str, int] = {}
+        self._generation = 0              # configurations made, for stamp()
         self._named: set = set()          # the configured sources and those that fed a body
         self._fits: dict = {}
         self._relatives: dict = {}
@@ -209,6 +210,7 @@ class World:
             self._fits.clear()
             self._relatives.clear()
             self._version = {}
+            self._generation += 1
             self._named = {s.name for s in sources}
             self.sources, self.arms, self.options = sources, arms, options
             if old is None:
@@ -454,6 +456,15 @@ class World:
                                    {b: self._pose_only(b, at) for b in (target, source)})
             _keep(self._relatives, key, (versions, answer))
             return answer
+
+    def stamp(self, *bodies: str) -> tuple[int, ...]:
+        """What an answer about ``bodies`` depends on: the configuration's number and each
+        body's version, both only ever growing. Read without the lock (each is one dict or
+        attribute read, whole under the interpreter lock), so an event loop may call it: an
+        answer made between two equal stamps is the answer for as long as the stamp stays
+        equal (no measurement of those bodies, no configuration came in)."""
+        version = self._version
+        return (self._generation,) + tuple(version.get(b, 0) for b in bodies)
 
     def _share(self, a: str, b: str, at: float) -> bool:
         """Whether bodies ``a`` and ``b`` have measurements within ``window`` of ``at`` from a

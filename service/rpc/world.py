@@ -40,8 +40,8 @@ from dqpose.rpc.world_convert import (
     config_from_msg,
     config_msg,
     published_errors,
-    relative_msg,
 )
+from dqpose.rpc.world_ready import Ready
 from dqpose.world_ticks import Ticks, tick_phase
 
 log = logging.getLogger("dqpose.server")
@@ -150,6 +150,7 @@ class Cell:
         self.subscriptions: set[Subscription] = set()
         self.requests = 0                    # Publish requests, in arrival order
         self.measurements = 0                # measurements numbered in arrival order
+        self.ready = Ready()                 # Lookups answered on the event loop
 
     @property
     def world(self) -> domain.World:
@@ -173,7 +174,8 @@ class Cell:
                 raise FieldError(msg if msg.startswith("config") else f"config.{msg}") from None
             return config_msg(self.world.sources, self.world.arms, self.world.options)
 
-    def lookup(self, request: pb.LookupRequest) -> pb.RelativePose:
+    def lookup(self, request: pb.LookupRequest) -> bytes:
+        """A ``RelativePose``, serialized (:mod:`dqpose.rpc.world_ready` keeps it)."""
         if not math.isfinite(request.time):
             raise FieldError(f"time: must be finite (0: the newest both are known at), got "
                              f"{request.time!r}")
@@ -181,7 +183,7 @@ class Cell:
         # are fitted: the world is read beside them (dqpose.world's read/write lock). It sees
         # whole requests (each ingested in one write), and a fit is a function of the data
         # alone, so neither answer depends on the timing.
-        return relative_msg(self.world.relative(request.target, request.source, request.time))
+        return self.ready.lookup(self.world, request)
 
     def publish(self, request: pb.PublishRequest, r: int, producer: str) -> pb.PublishAck:
         """Request ``r`` of a Publish call (``producer``: its key for acks): applied to the world,
@@ -249,9 +251,14 @@ class Cell:
         bad = published_errors(published, m.index, field)
         for i, text in bad:
             error(i, text)
+        self._answer_subscriptions(m, ids, {i for i, _ in bad})
+        self.ready.refresh(self.world, published.bodies)
+
+    def _answer_subscriptions(self, m, ids, refused_rows: set) -> None:
+        """The Subscribe answers the request's rows (``m``, numbered ``ids``) make due, fitted
+        and queued to their subscribers."""
         if not self.subscriptions:
             return
-        refused_rows = {i for i, _ in bad}
         latency = {s.name: s.latency for s in self.world.sources}
         cache: dict[tuple[str, float, str], Any] = {}
         for sub in list(self.subscriptions):
@@ -363,9 +370,10 @@ class World:
             "Subscribe": grpc.unary_stream_rpc_method_handler(
                 self.Subscribe, request_deserializer=pb.SubscribeRequest.FromString,
                 response_serializer=None),
+            # answers are RelativePose messages serialized when made (world_ready)
             "Lookup": grpc.unary_unary_rpc_method_handler(
                 self.Lookup, request_deserializer=pb.LookupRequest.FromString,
-                response_serializer=pb.RelativePose.SerializeToString),
+                response_serializer=None),
         }
         generic = grpc.method_handlers_generic_handler(self.NAME, handlers)
         server.add_generic_rpc_handlers((generic,))
@@ -385,7 +393,16 @@ class World:
             make=True)
 
     async def Lookup(self, request, context):
-        return await self._unary("Lookup", Cell.lookup, request, context)
+        return await self.calls.unary("Lookup", lambda r: self._lookup(r, context), request,
+                                      context, status=lambda _, e: status_of(e))
+
+    async def _lookup(self, request, context) -> bytes:
+        cell = self.called(context)
+        # a kept answer that is still the answer: a dict read and a stamp, on the loop
+        kept = cell.ready.answer(cell.world, request)
+        if kept is not None:
+            return kept
+        return await self.calls.work(Cell.lookup, cell, request)
 
     async def Publish(self, request_iterator, context):
         t0 = self.calls.begin()

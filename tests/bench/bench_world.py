@@ -233,12 +233,16 @@ def _load(target: str, stop: threading.Event) -> list[threading.Thread]:
     return threads
 
 
-def rpc_lookup_rows(lookups: int = 1000, load: bool = False) -> list[list[str]]:
+def rpc_lookup_rows(lookups: int = 1000, load: bool = False,
+                    polled: bool = True) -> list[list[str]]:
     """The Lookup RPC of one body through a ``dqpose serve`` process and the shipped client,
     after new data each time (a 30 Hz tick of both cameras published, acked, then the Lookup):
     the server's own time (its call log: from the handler's start to its answer, the worker
-    pool's hop included) and the client's round trip. Scene: :func:`lookup_rows`' body "a".
-    With ``load``, while :func:`_load` publishes into the same world and subscribes."""
+    pool's hop included), the client's round trip, and the Publish request's (its ack).
+    Scene: :func:`lookup_rows`' body "a". ``polled``: at time 0, so the pair is watched and
+    each Publish request makes its answer (:mod:`dqpose.rpc.world_ready`); else at the tick's
+    time (the newest), fitted by each Lookup. With ``load``, while :func:`_load` publishes
+    into the same world and subscribes."""
     import queue
 
     from dqpose.rpc.client import Batch, Client
@@ -263,7 +267,7 @@ def rpc_lookup_rows(lookups: int = 1000, load: bool = False) -> list[list[str]]:
                      np.array([t, t]))
 
     server = ServerProcess("aio", quiet_log=False)
-    rtt = []
+    rtt, acked = [], []
     stop = threading.Event()
     threads: list[threading.Thread] = []
     try:
@@ -274,11 +278,13 @@ def rpc_lookup_rows(lookups: int = 1000, load: bool = False) -> list[list[str]]:
                 threads = _load(server.target, stop)
             acks = c.publish(batches(), producer="bench")
             for k in range(60 + lookups):
+                t0 = time.perf_counter()
                 pending.put(tick(k))
                 next(acks)
                 if k >= 60:
+                    acked.append(time.perf_counter() - t0)
                     t0 = time.perf_counter()
-                    c.lookup("", "a")
+                    c.lookup("", "a", 0.0 if polled else 1000.0 + k / 30.0)
                     rtt.append(time.perf_counter() - t0)
             pending.put(None)
             for _ in acks:
@@ -293,14 +299,17 @@ def rpc_lookup_rows(lookups: int = 1000, load: bool = False) -> list[list[str]]:
     server.log.seek(0)
     calls = [json.loads(line) for line in server.log if line.startswith("{")]
     ms = np.array([r["ms"] for r in calls if r.get("rpc", "").endswith("Lookup")][-lookups:])
-    us, rt = ms * 1e3, np.array(rtt) * 1e6
+    us, rt, ack = ms * 1e3, np.array(rtt) * 1e6, np.array(acked) * 1e6
+    how = ("at time 0, polled (answered from the answer its data made)" if polled else
+           "at its newest time (fitted)")
     beside = (f"; while {LOAD_RATE:,.0f} measurements/s of {LOAD_BODIES} other bodies are "
               f"published and their {SUBSCRIBE_RATE:g} Hz answers fitted" if load else "")
-    return [["Lookup (gRPC)", "Lookup of a body through dqpose serve; after new data" + beside,
-             f"{np.percentile(us, 50):.1f}", "µs p50",
+    return [["Lookup (gRPC)", f"Lookup of a body through dqpose serve {how}; after new data"
+             + beside, f"{np.percentile(us, 50):.1f}", "µs p50",
              f"the server's time (its call log) p99 {np.percentile(us, 99):.1f} µs; the "
              f"shipped client's round trip p50 {np.percentile(rt, 50):.1f} µs, p99 "
-             f"{np.percentile(rt, 99):.1f} µs; 61 measurements a body, {len(us)} calls"]]
+             f"{np.percentile(rt, 99):.1f} µs; the tick's Publish round trip p50 "
+             f"{np.percentile(ack, 50):.1f} µs; 61 measurements a body, {len(us)} calls"]]
 
 
 def _nees(trials: int, seed: int = 0) -> tuple[float, float]:
@@ -345,8 +354,9 @@ def main(argv=None) -> int:
         return 0
     if not args.publish:
         print(markdown(HEAD, ingest_rows() + lookup_rows(args.lookups)
-                       + rpc_lookup_rows(args.lookups)
-                       + rpc_lookup_rows(args.lookups, load=True) + nees_rows(args.trials)))
+                       + [row for load in (False, True) for polled in (False, True)
+                          for row in rpc_lookup_rows(args.lookups, load, polled)]
+                       + nees_rows(args.trials)))
         return 0
     if args.soak:
         return soak(args)

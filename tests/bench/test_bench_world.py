@@ -56,11 +56,12 @@ def test_lookup_rows_time_real_answers():
         assert np.isfinite(float(row[2])) and float(row[2]) > 0.0, row
 
 
-@pytest.mark.parametrize("load", [False, True])
-def test_rpc_lookup_row_times_the_servers_lookups(load):
-    (row,) = bw.rpc_lookup_rows(5, load=load)
+@pytest.mark.parametrize("load,polled", [(False, False), (False, True), (True, True)])
+def test_rpc_lookup_row_times_the_servers_lookups(load, polled):
+    (row,) = bw.rpc_lookup_rows(5, load=load, polled=polled)
     assert row[0] == "Lookup (gRPC)" and float(row[2]) > 0.0, row
     assert ("published" in row[1]) == load, row
+    assert ("polled" in row[1]) == polled, row
     assert row[4].endswith("5 calls"), row      # each Lookup found in the server's call log
 
 
