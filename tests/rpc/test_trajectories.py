@@ -146,8 +146,10 @@ def ur():
     from dqpose.drivers.executor import Executor
     from dqpose.drivers.sim.ur import URSimProcess
     sim = URSimProcess()
-    # generous watchdogs: the simulator, the server and its clients share a loaded machine
-    arm = drivers.open_arm(f"ur:{sim.host}", stale_after=0.5, heartbeat=0.1)
+    # generous watchdogs: the simulator, the server and its clients share a loaded machine (a
+    # 0.1 s heartbeat, 0.3 s of stall allowed, stopped a run in CI once; the watchdog's own
+    # timing is tests/drivers/test_arm_safety.py's)
+    arm = drivers.open_arm(f"ur:{sim.host}", stale_after=0.5, heartbeat=0.25)
     server = ServerThread(ServerConfig(port=0, arms={"ur": arm}, executor=Executor))
     try:
         yield sim, arm, server
