@@ -3,7 +3,9 @@ both are known at, tf's ``Time(0)``) is *watched* for :data:`WATCH_FOR` seconds,
 request that brings a measurement of a watched body makes that pair's answer again, in the worker
 pool, after the request's Subscribe answers. A Lookup finding an answer made since the last
 measurement of either body (:meth:`dqpose.world.World.stamp`) is answered on the loop without a
-fit, the same bytes the fit gives; any other Lookup is fitted in the worker pool.
+fit, the same bytes the fit gives; any other Lookup is fitted in the worker pool. (The world's
+own kept answers are read under its lock, which a Publish request's write may hold; these are
+read without it, so the loop never waits.)
 
 So a planner or a view polling a body's pose gets it without waiting for a fit, and the fit's
 cost moves to the Publish requests that bring the body's measurements: at most

@@ -4,8 +4,8 @@
 (processes) publishing measurements of many bodies into one server (a ``dqpose serve`` process)
 while subscribers (processes) read the fused poses at 30 Hz per body: measurements/s sustained,
 the added latency from a measurement's arrival to the subscriber's answer that it made due
-(p50/p99), answers/s, the server's CPU over the row (cores: its CPU seconds a second; one
-Python process's threads share one interpreter lock, so ~1 is its ceiling), its RSS at the
+(p50/p99), answers/s, the server's CPU over the row (cores: its CPU seconds a second, all
+threads; its Python runs under one interpreter lock, only its C parts beside it), its RSS at the
 start and the end; :func:`soak` one row for minutes, its RSS.
 
 Scene: body ``b{i}`` is measured by producer ``i % producers`` only (its own source), a static
