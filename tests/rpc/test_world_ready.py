@@ -25,16 +25,20 @@ from tests.rpc.test_world_service import (  # noqa: F401 (the fixtures server an
 OPTIONS = dict(twist_covariance=TWIST, window=10.0)     # the client fixture's world
 
 
-def ready(server) -> world_ready.Ready:
+def cell(server):
+    """The server's default world (its servicer's Cell)."""
     world = next(s for s in server.running.servicers if s.NAME == "dqpose.v1.World")
-    return world.cell("").ready
+    return world.cell("")
+
+
+def ready(server) -> world_ready.Ready:
+    return cell(server).ready
 
 
 def fitted(batches, target: str, source: str, sources=SOURCES):
     """``T_target_source`` at time 0 by a world of this process fed the same measurements, as
     the server gets them (sent as messages, read back)."""
-    w = domain.World(sources=sources, options=domain.WorldOptions(
-        twist_covariance=TWIST, window=10.0))
+    w = domain.World(sources=sources, options=domain.WorldOptions(**OPTIONS))
     for b in batches:
         m = measurements_to_arrays(measurement_msgs(*b), "measurements")
         w.ingest(m.bodies, m.sources, m.times, m.poses, m.covariances)
@@ -73,13 +77,12 @@ def test_data_that_bypass_the_refresh_and_a_new_configuration_are_fitted(server,
     list(client.publish(sent, producer="p"))
     r = ready(server)
     first = client.lookup("", "box")
-    world = next(s for s in server.running.servicers if s.NAME == "dqpose.v1.World")
     # a measurement that reaches the world without a Publish request's refresh: the kept
     # answer's stamp no longer holds, so the Lookup fits
     more = measurements("cam2", [0.03], 2)
     sent.append(more)
     m = measurements_to_arrays(measurement_msgs(*more), "measurements")
-    world.cell("").world.ingest(m.bodies, m.sources, m.times, m.poses, m.covariances)
+    cell(server).world.ingest(m.bodies, m.sources, m.times, m.poses, m.covariances)
     after = client.lookup("", "box")
     assert r.hits == 0 and after.time > first.time
     same(after, fitted(sent, "", "box"))
