@@ -163,7 +163,8 @@ class Client:
             response_deserializer=wpb.WorldConfig.FromString)
         self._publish: _Streams = self.channel.stream_stream(f"/{WORLD}/Publish")
         self._subscribe: grpc.UnaryStreamMultiCallable = self.channel.unary_stream(
-            f"/{WORLD}/Subscribe", request_serializer=wpb.SubscribeRequest.SerializeToString)
+            f"/{WORLD}/SubscribeBatches",
+            request_serializer=wpb.SubscribeRequest.SerializeToString)
         self._lookup = self.channel.unary_unary(
             f"/{WORLD}/Lookup", request_serializer=wpb.LookupRequest.SerializeToString,
             response_deserializer=wpb.RelativePose.FromString)
@@ -567,8 +568,10 @@ class Client:
                            self.reconnect, self._configure_again, self.world)
         try:
             with rpc_errors():
+                # SubscribeBatches: Subscribe's answers, those ready together in one message
                 for data in answers:
-                    yield stream_answer(data, probability)
+                    for a in wpb.FusedPoseBatch.FromString(data).poses:
+                        yield stream_answer(a, probability)
         finally:
             answers.close()     # the call cancelled when the caller closes this iterator
 

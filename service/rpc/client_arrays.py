@@ -59,13 +59,13 @@ def interpolate_answer(data: bytes) -> np.ndarray:
     return flat_to_dqs(poses_to_flat([s.pose for s in r.samples]))
 
 
-def stream_answer(data: bytes, probability: float = DEFAULT_PROBABILITY,
+def stream_answer(data: bytes | fpb.FusedPose, probability: float = DEFAULT_PROBABILITY,
                    max_skew: Optional[float] = None,
                    request: Optional[int] = None) -> StreamAnswer:
-    """A ``FusedPose`` of a stream (StreamFuse's, Subscribe's) as a :class:`StreamAnswer`;
-    ``request``: the caller's number of the request it answers (a resumed stream renumbers
-    them), else the message's own."""
-    a = fpb.FusedPose.FromString(data)
+    """A ``FusedPose`` of a stream (StreamFuse's, Subscribe's), or its bytes, as a
+    :class:`StreamAnswer`; ``request``: the caller's number of the request it answers (a
+    resumed stream renumbers them), else the message's own."""
+    a = fpb.FusedPose.FromString(data) if isinstance(data, bytes) else data
     index = a.request if request is None else request
     if a.HasField("error"):
         return StreamAnswer(index, a.body, a.time, None, np.empty(0, np.int64),

@@ -51,6 +51,9 @@ MAX_SUBSCRIBERS = 64
 #: answers queued for one subscriber; a subscriber that falls further behind is ended with
 #: RESOURCE_EXHAUSTED (its answers would otherwise grow without bound)
 MAX_QUEUED = 4096
+#: bytes of answers in one SubscribeBatches message at most (gRPC clients receive 4 MiB by
+#: default); an answer larger than this goes alone
+MAX_BATCH_BYTES = 1 << 20
 #: fits one Publish request may make due, for all subscriptions together; the oldest ticks beyond
 #: are skipped (an error entry per body says how many): a source's time jumping ahead would
 #: otherwise make every tick in between due at once, under the world's lock
@@ -133,6 +136,34 @@ class Subscription:
             return
         for a in answers:
             self.queue.put_nowait(a)
+
+
+def _ready(first: bytes | None, queue: asyncio.Queue) -> tuple[list, bytes | None]:
+    """``first`` and the answers queued behind it, up to MAX_BATCH_BYTES (a None, the end of
+    the stream, last): one SubscribeBatches message; and the answer that did not fit."""
+    answers, size = [first], 0 if first is None else len(first)
+    while answers[-1] is not None and not queue.empty():
+        a = queue.get_nowait()
+        if a is not None:
+            if size + len(a) > MAX_BATCH_BYTES:
+                return answers, a
+            size += len(a)
+        answers.append(a)
+    return answers, None
+
+
+def _batch(answers: list[bytes]) -> bytes:
+    """A FusedPoseBatch of serialized FusedPose ``answers``: each its field 1 (tag, length,
+    bytes), so no answer is parsed or serialized again."""
+    parts: list[bytes | bytearray] = []
+    for a in answers:
+        n, head = len(a), bytearray(b"\x0a")
+        while n >= 0x80:
+            head.append(n & 0x7F | 0x80)
+            n >>= 7
+        head.append(n)
+        parts += (head, a)
+    return b"".join(parts)
 
 
 class Cell:
@@ -370,6 +401,9 @@ class World:
             "Subscribe": grpc.unary_stream_rpc_method_handler(
                 self.Subscribe, request_deserializer=pb.SubscribeRequest.FromString,
                 response_serializer=None),
+            "SubscribeBatches": grpc.unary_stream_rpc_method_handler(
+                self.SubscribeBatches, request_deserializer=pb.SubscribeRequest.FromString,
+                response_serializer=None),
             # answers are RelativePose messages serialized when made (world_ready)
             "Lookup": grpc.unary_unary_rpc_method_handler(
                 self.Lookup, request_deserializer=pb.LookupRequest.FromString,
@@ -441,9 +475,18 @@ class World:
             self.calls.done("Publish", code, t0, context, messages=r)
 
     async def Subscribe(self, request, context):
+        await self._subscribe("Subscribe", request, context)
+
+    async def SubscribeBatches(self, request, context):
+        await self._subscribe("SubscribeBatches", request, context)
+
+    async def _subscribe(self, rpc: str, request, context):
+        """Subscribe, or SubscribeBatches (``rpc``): the answers ready at each write in one
+        FusedPoseBatch. Both are recorded as Subscribe: the same answers in the same order."""
         t0 = self.calls.begin()
         code, sent = "OK", 0
         sub = cell = None
+        batched = rpc == "SubscribeBatches"
         # recording (dqpose.rpc.world_record)
         rec = self.calls.recorder.call(f"{self.NAME}/Subscribe", pb.SubscribeRequest,
                                        fpb.FusedPose, _recorded_world(context))
@@ -481,16 +524,24 @@ class World:
             with world_record.ordered(rec), cell.lock:
                 cell.subscriptions.add(sub)
                 rec.measurements(request)       # recording
+            carry = None
             while True:
-                answer = await sub.queue.get()
-                if answer is None:
+                answers = [carry if carry is not None else await sub.queue.get()]
+                carry = None
+                if batched:
+                    answers, carry = _ready(answers[0], sub.queue)
+                if answers[-1] is None:
+                    answers.pop()
+                    if answers:
+                        await context.write(_batch(answers))
                     code = "RESOURCE_EXHAUSTED"
                     await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, (
-                        f"Subscribe: this subscriber fell {MAX_QUEUED} answers behind the "
+                        f"{rpc}: this subscriber fell {MAX_QUEUED} answers behind the "
                         f"world; subscribe to fewer bodies or a lower rate_hz"))
-                await context.write(answer)
-                rec.fused(answer)               # recording
-                sent += 1
+                await context.write(_batch(answers) if batched else answers[0])
+                for answer in answers:
+                    rec.fused(answer)           # recording
+                sent += len(answers)
         except asyncio.CancelledError:
             code = "CANCELLED"
             raise
@@ -502,4 +553,4 @@ class World:
                     rec.end(code)               # recording
             else:
                 rec.end(code)                   # recording
-            self.calls.done("Subscribe", code, t0, context, messages=sent)
+            self.calls.done(rpc, code, t0, context, messages=sent)

@@ -39,8 +39,9 @@ from tests.bench._table import markdown
 from tests.bench.bench_grpc import ServerProcess
 
 PUBLISH_HEAD = ["row", "producers", "subscribers", "bodies", "offered meas/s", "sustained meas/s",
-                "answers/s", "p50 ms", "p99 ms", "added p99 ms", "server cores", "answer bytes",
-                "RSS MB start", "RSS MB end", "subscriber streams"]
+                "answers/s", "answers a message", "p50 ms", "p99 ms", "added p99 ms",
+                "server cores", "answer bytes", "RSS MB start", "RSS MB end",
+                "subscriber streams"]
 PER_MESSAGE = 10
 IN_FLIGHT = 8
 SUBSCRIBE_RATE = 30.0
@@ -110,29 +111,30 @@ def produce(target: str, k: int, producers: int, bodies: int, rate: float | None
 
 
 def subscribe(target: str, k: int, seconds: float, ready, go, out) -> None:
-    """Subscriber ``k``: every answer's ``(body, time, arrival)`` and its size in bytes."""
+    """Subscriber ``k`` (SubscribeBatches, as the shipped client): every answer's ``(body, time,
+    arrival)``, and each message's ``(bytes, answers)``."""
     import grpc
 
-    from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
     from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
     rows, sizes = [], []
     ended = ""
     start = _start_time(ready, go)
     with grpc.insecure_channel(target) as ch:
-        call = ch.unary_stream("/dqpose.v1.World/Subscribe",
+        call = ch.unary_stream("/dqpose.v1.World/SubscribeBatches",
                                request_serializer=wpb.SubscribeRequest.SerializeToString)(
             wpb.SubscribeRequest(rate_hz=SUBSCRIBE_RATE), timeout=seconds + (start - time.time())
             + 5.0)
         try:
             for data in call:
                 now = time.time()
-                a = fpb.FusedPose.FromString(data)
-                rows.append((int(a.body[1:]) if a.body else -1, a.time, now))
-                sizes.append(len(data))
+                batch = wpb.FusedPoseBatch.FromString(data).poses
+                rows += [(int(a.body[1:]) if a.body else -1, a.time, now) for a in batch]
+                sizes.append((len(data), len(batch)))
         except grpc.RpcError as e:
             if e.code() != grpc.StatusCode.DEADLINE_EXCEEDED:
                 ended = e.code().name       # e.g. RESOURCE_EXHAUSTED: it fell too far behind
-    out.put(("subscriber", k, np.array(rows).reshape(-1, 3), np.array(sizes), ended))
+    out.put(("subscriber", k, np.array(rows).reshape(-1, 3), np.array(sizes).reshape(-1, 2),
+             ended))
 
 
 def run(target: str, producers: int, subscribers: int, bodies: int, rate: float | None,
@@ -203,11 +205,13 @@ def run(target: str, producers: int, subscribers: int, bodies: int, rate: float 
                 lat.append(arrival - times[i])
     lat_ms = np.array(lat) * 1e3
     n_answers = sum(len(a) for a in answers)
+    messages = np.concatenate(sizes) if sizes else np.zeros((0, 2))
     return dict(rate=measured / span if span else 0.0, answers=n_answers / span if span else 0.0,
                 p50=float(np.percentile(lat_ms, 50)) if len(lat_ms) else float("nan"),
                 p99=float(np.percentile(lat_ms, 99)) if len(lat_ms) else float("nan"),
-                size=float(np.mean(np.concatenate(sizes))) if sizes and sum(map(len, sizes))
-                else 0.0, rss0=rss0, rss1=rss1, ended=",".join(sorted(ended)), samples=samples,
+                size=messages[:, 0].sum() / messages[:, 1].sum() if messages[:, 1].sum()
+                else 0.0, per_message=messages[:, 1].mean() if len(messages) else 0.0,
+                rss0=rss0, rss1=rss1, ended=",".join(sorted(ended)), samples=samples,
                 cores=cores[0] if cores else float("nan"))
 
 
@@ -218,6 +222,7 @@ def serve_relay(answer_bytes: int) -> None:
 
     from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
     from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
+    from dqpose.rpc.world import _batch, _ready
     from dqpose.world_ticks import Ticks, tick_phase
     subs: list = []
     template = fpb.FusedPose()
@@ -241,8 +246,12 @@ def serve_relay(answer_bytes: int) -> None:
         entry = (queue, {})
         subs.append(entry)
         try:
+            carry = None
             while True:
-                yield await queue.get()
+                # the world's batching (one message of what is ready), never its end
+                answers, carry = _ready(carry if carry is not None else await queue.get(),
+                                        queue)
+                yield _batch(answers)
         finally:
             subs.remove(entry)
 
@@ -251,7 +260,7 @@ def serve_relay(answer_bytes: int) -> None:
         server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(
             "dqpose.v1.World", {
                 "Publish": grpc.stream_stream_rpc_method_handler(publish),
-                "Subscribe": grpc.unary_stream_rpc_method_handler(subscribe_)}),))
+                "SubscribeBatches": grpc.unary_stream_rpc_method_handler(subscribe_)}),))
         port = server.add_insecure_port("127.0.0.1:0")
         await server.start()
         print(json.dumps({"event": "serving", "address": f"127.0.0.1:{port}"}),
@@ -351,7 +360,8 @@ def publish_table(args) -> int:
         if relay:
             floor = r["p99"]
         lines.append([name, str(p), str(s_), str(b), "unpaced" if rate is None else f"{rate:.0f}",
-                      f"{r['rate']:.0f}", f"{r['answers']:.0f}", f"{r['p50']:.2f}",
+                      f"{r['rate']:.0f}", f"{r['answers']:.0f}", f"{r['per_message']:.1f}",
+                      f"{r['p50']:.2f}",
                       f"{r['p99']:.2f}",
                       "" if relay or floor != floor else f"{r['p99'] - floor:.2f}",
                       f"{r['cores']:.2f}", f"{r['size']:.0f}", f"{r['rss0']:.1f}",

@@ -1,0 +1,130 @@
+"""World.SubscribeBatches against a real server on 127.0.0.1, beside a plain Subscribe of the
+same bodies: the same answers in the same order, the answers one Publish request makes due in
+as few messages as the byte bound allows, and a subscriber that falls behind ended the same
+way."""
+from __future__ import annotations
+
+import threading
+
+import grpc
+import pytest
+
+from dqpose.rpc import world as servicer
+from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
+from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
+from tests._polling import wait_until
+from tests.rpc.test_world_service import (  # noqa: F401 (the fixtures server and client)
+    SOURCES,
+    TWIST,
+    client,
+    measurements,
+    server,
+)
+
+
+class Raw:
+    """One Subscribe or SubscribeBatches call in a thread: every message as it came, and the
+    error that ended it."""
+
+    def __init__(self, target: str, rpc: str, **request):
+        self.channel = grpc.insecure_channel(target)
+        self.call = self.channel.unary_stream(
+            f"/dqpose.v1.World/{rpc}", request_serializer=wpb.SubscribeRequest.SerializeToString)(
+            wpb.SubscribeRequest(**request))
+        self.messages: list[bytes] = []
+        self.error: grpc.RpcError | None = None
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        try:
+            for data in self.call:
+                self.messages.append(data)
+        except grpc.RpcError as e:
+            self.error = e
+
+    def stop(self) -> None:
+        self.call.cancel()
+        self.thread.join(10)
+        self.channel.close()
+
+
+def batches(raw: Raw) -> list[list[fpb.FusedPose]]:
+    return [list(wpb.FusedPoseBatch.FromString(m).poses) for m in raw.messages]
+
+
+def subscribed(server, n: int) -> bool:
+    world = next(s for s in server.running.servicers if s.NAME == "dqpose.v1.World")
+    return len(world.cell("").subscriptions) == n
+
+
+def streams(server, client) -> tuple[Raw, Raw]:
+    """A Subscribe and a SubscribeBatches of the box at 30 Hz, open, in a world whose window
+    spans a 60 s jump (as the subscriptions see it when they open)."""
+    client.configure_world(SOURCES, twist_covariance=TWIST, window=60.0, buffer=60.0,
+                           max_extrapolation=None)
+    pair = (Raw(server.target, "Subscribe", bodies=["box"], rate_hz=30.0),
+            Raw(server.target, "SubscribeBatches", bodies=["box"], rate_hz=30.0))
+    assert wait_until(lambda: subscribed(server, 2), timeout=10)
+    return pair
+
+
+def jump(client) -> int:
+    """One request whose source's time jumps 60 s (1,024 fits due at once, the rest skipped),
+    then three ordinary ones: the answers a subscription at 30 Hz gets, the error included."""
+    list(client.publish([measurements("cam1", [0.0], 1), measurements("cam1", [60.0], 2)]
+                        + [measurements("cam1", [60.0 + k / 30], 3 + k) for k in (1, 2, 3)],
+                        producer="p"))
+    return servicer.MAX_FITS_PER_REQUEST + 1 + 3
+
+
+def packed(sizes: list[int]) -> int:
+    """Messages that answers of ``sizes`` bytes fill, in order, each up to MAX_BATCH_BYTES."""
+    messages, room = 0, 0
+    for n in sizes:
+        if n > room:
+            messages, room = messages + 1, servicer.MAX_BATCH_BYTES
+        room -= n
+    return messages
+
+
+@pytest.mark.parametrize("cap", [None, 2000])
+def test_batches_carry_subscribes_answers_in_order_in_few_messages(server, client, cap,
+                                                                   monkeypatch):
+    if cap is not None:
+        monkeypatch.setattr(servicer, "MAX_BATCH_BYTES", cap)
+    plain, batched = streams(server, client)
+    n = jump(client)
+    assert wait_until(lambda: len(plain.messages) == n and
+                      sum(map(len, batches(batched))) == n, timeout=60)
+    plain.stop()
+    batched.stop()
+    got = batches(batched)
+    assert [a for b in got for a in b] == [fpb.FusedPose.FromString(m) for m in plain.messages]
+    assert got[0][0].HasField("error")      # the skipped ticks named first, as Subscribe does
+    # every message within the byte bound, unless it is one answer larger than it
+    cap = servicer.MAX_BATCH_BYTES
+    assert all(len(b) == 1 or sum(a.ByteSize() for a in b) <= cap for b in got)
+    # the answers one request made due are queued together: a message is only ever cut by the
+    # bound, so there are at most as many as each request's answers need, packed in order
+    per_request: dict[int, list[int]] = {}
+    for m in plain.messages:
+        a = fpb.FusedPose.FromString(m)
+        per_request.setdefault(a.request, []).append(len(m))
+    most = sum(map(packed, per_request.values()))
+    assert len(got) <= most < n
+    if cap == 2000:
+        assert len(got) > len(per_request)      # the bound did cut the jump's answers
+
+
+def test_a_subscriber_that_falls_behind_is_ended_the_same_way(server, client, monkeypatch):
+    monkeypatch.setattr(servicer, "MAX_QUEUED", 16)
+    plain, batched = streams(server, client)
+    jump(client)
+    plain.thread.join(30)
+    batched.thread.join(30)
+    for raw, rpc in ((plain, "Subscribe"), (batched, "SubscribeBatches")):
+        assert raw.error is not None and raw.error.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+        assert raw.error.details().startswith(f"{rpc}: this subscriber fell 16 answers behind")
+        assert raw.messages == []       # the jump's 1,025 answers would have been 16 too many
+        raw.stop()
