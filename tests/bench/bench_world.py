@@ -344,6 +344,10 @@ def main(argv=None) -> int:
     ap.add_argument("--fit-rate", type=float, default=4_000.0,
                     help="--publish: its measurements/s in total (default %(default)s)")
     ap.add_argument("--sweep", choices=("full", "none"), default="full")
+    ap.add_argument("--subscribe", choices=("SubscribeBatches", "Subscribe"),
+                    default="SubscribeBatches",
+                    help="--publish: the subscribers' RPC (default %(default)s, the shipped "
+                         "client's; Subscribe: one answer a message), the relay's alike")
     ap.add_argument("--soak", type=float, metavar="SECONDS",
                     help="--publish: instead of the table, one world row (--fit-bodies, "
                          "--fit-rate) for SECONDS, its RSS from minute 2 to the end")

@@ -31,20 +31,24 @@ def test_publish_row_acks_every_measurement_and_answers_every_body_at_its_ticks(
     assert 0.0 < r["p50"] <= r["p99"] < 10_000.0, r
     # the server worked (fits, answers) and its threads cannot use more than the machine's cores
     assert 0.0 < r["cores"] <= (os.cpu_count() or 1) + 0.1, r
+    assert 0.0 < r["client_cores"] <= (os.cpu_count() or 1) + 0.1, r
     truth, _ = wp.scene_poses(6)
     for b, p in poses.items():     # the world fused the static poses the producers sent
         assert np.allclose(p.pose, truth[b], atol=1e-9) or np.allclose(p.pose, -truth[b],
                                                                         atol=1e-9), b
 
 
-def test_relay_row_answers_like_the_world_without_fusing():
+@pytest.mark.parametrize("rpc", ["SubscribeBatches", "Subscribe"])
+def test_relay_row_answers_like_the_world_without_fusing(rpc):
     relay = wp.RelayProcess(700)
     try:
-        r = wp.run(relay.target, 1, 1, 4, 200.0, 2.0, relay.rss_mb)
+        r = wp.run(relay.target, 1, 1, 4, 200.0, 2.0, relay.rss_mb, rpc=rpc)
     finally:
         relay.stop()
     assert r["ended"] == "" and 4 * 30 * 2 * 0.5 < r["answers"] * 2.0 < 4 * 30 * 2 * 1.5, r
     assert 650 < r["size"] < 800, r         # answers of the size it was asked for
+    # Subscribe: one answer a message; SubscribeBatches: what was ready, at least one
+    assert r["per_message"] == 1.0 if rpc == "Subscribe" else r["per_message"] >= 1.0, r
 
 
 def test_lookup_rows_time_real_answers():

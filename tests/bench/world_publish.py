@@ -4,9 +4,11 @@
 (processes) publishing measurements of many bodies into one server (a ``dqpose serve`` process)
 while subscribers (processes) read the fused poses at 30 Hz per body: measurements/s sustained,
 the added latency from a measurement's arrival to the subscriber's answer that it made due
-(p50/p99), answers/s, the server's CPU over the row (cores: its CPU seconds a second, all
-threads; its Python runs under one interpreter lock, only its C parts beside it), its RSS at the
-start and the end; :func:`soak` one row for minutes, its RSS.
+(p50/p99), answers/s and answers a message, the server's CPU over the row (cores: its CPU
+seconds a second, all threads; its Python runs under one interpreter lock, only its C parts
+beside it) and the client processes' (all of them together), its RSS at the start and the end;
+:func:`soak` one row for minutes, its RSS. Subscribers use SubscribeBatches, as the shipped
+client does (``--subscribe Subscribe``: one answer a message), and so does the relay.
 
 Scene: body ``b{i}`` is measured by producer ``i % producers`` only (its own source), a static
 pose with a full covariance; each producer sends messages of 10 measurements (10 bodies each),
@@ -40,7 +42,7 @@ from tests.bench.bench_grpc import ServerProcess
 
 PUBLISH_HEAD = ["row", "producers", "subscribers", "bodies", "offered meas/s", "sustained meas/s",
                 "answers/s", "answers a message", "p50 ms", "p99 ms", "added p99 ms",
-                "server cores", "answer bytes", "RSS MB start", "RSS MB end",
+                "server cores", "client cores", "answer bytes", "RSS MB start", "RSS MB end",
                 "subscriber streams"]
 PER_MESSAGE = 10
 IN_FLIGHT = 8
@@ -102,47 +104,53 @@ def produce(target: str, k: int, producers: int, bodies: int, rate: float | None
                         np.full(per, t))
 
     acked = 0
+    c0 = time.process_time()
     with Client(target) as c:
         for ack in c.publish(batches(), producer=f"p{k}"):
             slots.release()
             acked = ack.acked_through
     out.put(("producer", k, {b: np.array(v) for b, v in sent.items()}, acked * per,
-             time.time() - start))
+             time.time() - start, time.process_time() - c0))
 
 
-def subscribe(target: str, k: int, seconds: float, ready, go, out) -> None:
-    """Subscriber ``k`` (SubscribeBatches, as the shipped client): every answer's ``(body, time,
-    arrival)``, and each message's ``(bytes, answers)``."""
+def subscribe(target: str, k: int, seconds: float, ready, go, out,
+              rpc: str = "SubscribeBatches") -> None:
+    """Subscriber ``k`` through ``rpc`` (SubscribeBatches, the shipped client's, or Subscribe):
+    every answer's ``(body, time, arrival)``, and each message's ``(bytes, answers)``."""
     import grpc
 
+    from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
     from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
+    batched = rpc == "SubscribeBatches"
     rows, sizes = [], []
     ended = ""
     start = _start_time(ready, go)
+    c0 = time.process_time()
     with grpc.insecure_channel(target) as ch:
-        call = ch.unary_stream("/dqpose.v1.World/SubscribeBatches",
+        call = ch.unary_stream(f"/dqpose.v1.World/{rpc}",
                                request_serializer=wpb.SubscribeRequest.SerializeToString)(
             wpb.SubscribeRequest(rate_hz=SUBSCRIBE_RATE), timeout=seconds + (start - time.time())
             + 5.0)
         try:
             for data in call:
                 now = time.time()
-                batch = wpb.FusedPoseBatch.FromString(data).poses
+                batch = (wpb.FusedPoseBatch.FromString(data).poses if batched else
+                         [fpb.FusedPose.FromString(data)])
                 rows += [(int(a.body[1:]) if a.body else -1, a.time, now) for a in batch]
                 sizes.append((len(data), len(batch)))
         except grpc.RpcError as e:
             if e.code() != grpc.StatusCode.DEADLINE_EXCEEDED:
                 ended = e.code().name       # e.g. RESOURCE_EXHAUSTED: it fell too far behind
     out.put(("subscriber", k, np.array(rows).reshape(-1, 3), np.array(sizes).reshape(-1, 2),
-             ended))
+             ended, time.process_time() - c0))
 
 
 def run(target: str, producers: int, subscribers: int, bodies: int, rate: float | None,
-        seconds: float, rss=None, cpu=None) -> dict:
+        seconds: float, rss=None, cpu=None, rpc: str = "SubscribeBatches") -> dict:
     ctx = multiprocessing.get_context("spawn")
     out = ctx.Queue()
     ready, go = ctx.Queue(), ctx.Value("d", 0.0)
-    procs = [ctx.Process(target=subscribe, args=(target, k, seconds, ready, go, out))
+    procs = [ctx.Process(target=subscribe, args=(target, k, seconds, ready, go, out, rpc))
              for k in range(subscribers)]
     procs += [ctx.Process(target=produce, args=(target, k, producers, bodies,
                                                 None if rate is None else rate / producers,
@@ -182,9 +190,10 @@ def run(target: str, producers: int, subscribers: int, bodies: int, rate: float 
     for p in procs:
         p.join(30)
     sent: dict[int, np.ndarray] = {}
-    measured, span = 0, 0.0
+    measured, span, client_cpu = 0, 0.0, 0.0
     answers, sizes, ended = [], [], set()
     for r in results:
+        client_cpu += r[-1]
         if r[0] == "producer":
             sent.update(r[2])
             measured += r[3]
@@ -212,7 +221,8 @@ def run(target: str, producers: int, subscribers: int, bodies: int, rate: float 
                 size=messages[:, 0].sum() / messages[:, 1].sum() if messages[:, 1].sum()
                 else 0.0, per_message=messages[:, 1].mean() if len(messages) else 0.0,
                 rss0=rss0, rss1=rss1, ended=",".join(sorted(ended)), samples=samples,
-                cores=cores[0] if cores else float("nan"))
+                cores=cores[0] if cores else float("nan"),
+                client_cores=client_cpu / span if span else float("nan"))
 
 
 def serve_relay(answer_bytes: int) -> None:
@@ -241,7 +251,17 @@ def serve_relay(answer_bytes: int) -> None:
                         queue.put_nowait(template.SerializeToString())
             yield wpb.PublishAck(acked_through=req.sequence).SerializeToString()
 
-    async def subscribe_(request, context):
+    async def one_a_message(request, context):
+        queue: asyncio.Queue = asyncio.Queue()
+        entry = (queue, {})
+        subs.append(entry)
+        try:
+            while True:
+                yield await queue.get()
+        finally:
+            subs.remove(entry)
+
+    async def batches(request, context):
         queue: asyncio.Queue = asyncio.Queue()
         entry = (queue, {})
         subs.append(entry)
@@ -260,7 +280,8 @@ def serve_relay(answer_bytes: int) -> None:
         server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(
             "dqpose.v1.World", {
                 "Publish": grpc.stream_stream_rpc_method_handler(publish),
-                "SubscribeBatches": grpc.unary_stream_rpc_method_handler(subscribe_)}),))
+                "Subscribe": grpc.unary_stream_rpc_method_handler(one_a_message),
+                "SubscribeBatches": grpc.unary_stream_rpc_method_handler(batches)}),))
         port = server.add_insecure_port("127.0.0.1:0")
         await server.start()
         print(json.dumps({"event": "serving", "address": f"127.0.0.1:{port}"}),
@@ -298,7 +319,7 @@ def publish_rows(args) -> list:
             with Client(server.target) as c:
                 c.configure_world(window=args.window)
             r = run(server.target, producers, subscribers, bodies, rate, args.seconds,
-                    server.rss_mb, server.cpu_seconds)
+                    server.rss_mb, server.cpu_seconds, args.subscribe)
         finally:
             server.stop()
         rows.append((name, producers, subscribers, bodies, rate, r))
@@ -312,7 +333,7 @@ def publish_rows(args) -> list:
         relay = RelayProcess(int(world["size"]) or 1000)
         try:
             floor = run(relay.target, 4, 4, bodies, rate, args.seconds, relay.rss_mb,
-                        relay.cpu_seconds)
+                        relay.cpu_seconds, args.subscribe)
         finally:
             relay.stop()
         rows.insert(len(rows) - 1, ("transport (relay)", 4, 4, bodies, rate, floor))
@@ -331,7 +352,8 @@ def soak(args) -> int:
     try:
         with Client(server.target) as c:
             c.configure_world(window=args.window)
-        r = run(server.target, 4, 4, args.fit_bodies, args.fit_rate, args.soak, server.rss_mb)
+        r = run(server.target, 4, 4, args.fit_bodies, args.fit_rate, args.soak, server.rss_mb,
+                rpc=args.subscribe)
     finally:
         server.stop()
     after2 = [mb for t, mb in r["samples"] if t >= 120.0]
@@ -350,10 +372,10 @@ def publish_table(args) -> int:
     """The table of :func:`publish_rows`, each world row's added p99 over the transport row just
     above it."""
     rows = publish_rows(args)
-    print(f"World Publish -> Subscribe, one server (dqpose serve), producers and subscribers in "
-          f"processes of their own, window {args.window:g} s, subscribers at {SUBSCRIBE_RATE:g} Hz "
-          f"per body, {args.seconds:g} s per row; added p99 = p99 - the p99 of the transport row "
-          f"just above it")
+    print(f"World Publish -> {args.subscribe}, one server (dqpose serve), producers and "
+          f"subscribers in processes of their own, window {args.window:g} s, subscribers at "
+          f"{SUBSCRIBE_RATE:g} Hz per body, {args.seconds:g} s per row; added p99 = p99 - the p99 "
+          f"of the transport row just above it")
     lines, floor = [], float("nan")
     for name, p, s_, b, rate, r in rows:
         relay = name.startswith("transport")
@@ -364,8 +386,8 @@ def publish_table(args) -> int:
                       f"{r['p50']:.2f}",
                       f"{r['p99']:.2f}",
                       "" if relay or floor != floor else f"{r['p99'] - floor:.2f}",
-                      f"{r['cores']:.2f}", f"{r['size']:.0f}", f"{r['rss0']:.1f}",
-                      f"{r['rss1']:.1f}", r["ended"] or "ran to the end"])
+                      f"{r['cores']:.2f}", f"{r['client_cores']:.2f}", f"{r['size']:.0f}",
+                      f"{r['rss0']:.1f}", f"{r['rss1']:.1f}", r["ended"] or "ran to the end"])
         if not relay:
             floor = float("nan")        # the sweep's rows have no transport row of their own
     print(markdown(PUBLISH_HEAD, lines))
