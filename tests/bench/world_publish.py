@@ -68,6 +68,25 @@ def _start_time(ready, go) -> float:
     return go.value
 
 
+def _cpu_over(start: float, seconds: float) -> threading.Thread:
+    """A thread that reads this process's CPU time (all its threads) at ``start`` and
+    ``start + seconds`` (host clock), the server's interval: ``.cpu`` the seconds between."""
+    def read():
+        time.sleep(max(0.0, start - time.time()))
+        c0 = time.process_time()
+        time.sleep(max(0.0, start + seconds - time.time()))
+        reader.cpu = time.process_time() - c0    # type: ignore[attr-defined]
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    return reader
+
+
+def _cpu(reader: threading.Thread, seconds: float) -> float:
+    reader.join()
+    return reader.cpu / seconds      # type: ignore[attr-defined]
+
+
 def produce(target: str, k: int, producers: int, bodies: int, rate: float | None,
             seconds: float, ready, go, out) -> None:
     """Producer ``k``: its bodies' measurements in messages of PER_MESSAGE from ``start`` (host
@@ -104,13 +123,13 @@ def produce(target: str, k: int, producers: int, bodies: int, rate: float | None
                         np.full(per, t))
 
     acked = 0
-    c0 = time.process_time()
+    cpu = _cpu_over(start, seconds)
     with Client(target) as c:
         for ack in c.publish(batches(), producer=f"p{k}"):
             slots.release()
             acked = ack.acked_through
     out.put(("producer", k, {b: np.array(v) for b, v in sent.items()}, acked * per,
-             time.time() - start, time.process_time() - c0))
+             time.time() - start, _cpu(cpu, seconds)))
 
 
 def subscribe(target: str, k: int, seconds: float, ready, go, out,
@@ -125,7 +144,7 @@ def subscribe(target: str, k: int, seconds: float, ready, go, out,
     rows, sizes = [], []
     ended = ""
     start = _start_time(ready, go)
-    c0 = time.process_time()
+    cpu = _cpu_over(start, seconds)
     with grpc.insecure_channel(target) as ch:
         call = ch.unary_stream(f"/dqpose.v1.World/{rpc}",
                                request_serializer=wpb.SubscribeRequest.SerializeToString)(
@@ -142,7 +161,7 @@ def subscribe(target: str, k: int, seconds: float, ready, go, out,
             if e.code() != grpc.StatusCode.DEADLINE_EXCEEDED:
                 ended = e.code().name       # e.g. RESOURCE_EXHAUSTED: it fell too far behind
     out.put(("subscriber", k, np.array(rows).reshape(-1, 3), np.array(sizes).reshape(-1, 2),
-             ended, time.process_time() - c0))
+             ended, _cpu(cpu, seconds)))
 
 
 def run(target: str, producers: int, subscribers: int, bodies: int, rate: float | None,
@@ -190,10 +209,10 @@ def run(target: str, producers: int, subscribers: int, bodies: int, rate: float 
     for p in procs:
         p.join(30)
     sent: dict[int, np.ndarray] = {}
-    measured, span, client_cpu = 0, 0.0, 0.0
+    measured, span, client_cores = 0, 0.0, 0.0
     answers, sizes, ended = [], [], set()
     for r in results:
-        client_cpu += r[-1]
+        client_cores += r[-1]       # over the server's interval, as its cores
         if r[0] == "producer":
             sent.update(r[2])
             measured += r[3]
@@ -222,7 +241,7 @@ def run(target: str, producers: int, subscribers: int, bodies: int, rate: float 
                 else 0.0, per_message=messages[:, 1].mean() if len(messages) else 0.0,
                 rss0=rss0, rss1=rss1, ended=",".join(sorted(ended)), samples=samples,
                 cores=cores[0] if cores else float("nan"),
-                client_cores=client_cpu / span if span else float("nan"))
+                client_cores=client_cores)
 
 
 def serve_relay(answer_bytes: int) -> None:
@@ -309,7 +328,8 @@ class RelayProcess(ServerProcess):
 
 
 def publish_rows(args) -> list:
-    """The Publish -> Subscribe rows: target, its transport floor, the sweep."""
+    """The Publish -> Subscribe rows: the target's producers alone, its transport floor, the
+    target, the row within 2 cores and its floor, the sweep."""
     from dqpose.rpc.client import Client
     rows = []
 
@@ -326,7 +346,8 @@ def publish_rows(args) -> list:
         return r
 
     # The target row, then a row this machine can carry (fits are made per body and tick, so
-    # fewer bodies), each beside the transport alone at the same load.
+    # fewer bodies), each beside the transport alone at the same load; first what the target's
+    # producers alone take of the machine (against the relay, nobody subscribed).
     for name, bodies, rate in (("target", 100, args.rate),
                                ("within 2 cores", args.fit_bodies, args.fit_rate)):
         world = on_world(name, 4, 4, bodies, rate)
@@ -334,9 +355,13 @@ def publish_rows(args) -> list:
         try:
             floor = run(relay.target, 4, 4, bodies, rate, args.seconds, relay.rss_mb,
                         relay.cpu_seconds, args.subscribe)
+            rows.insert(len(rows) - 1, ("transport (relay)", 4, 4, bodies, rate, floor))
+            if name == "target":
+                alone = run(relay.target, 4, 0, bodies, rate, args.seconds, relay.rss_mb,
+                            relay.cpu_seconds, args.subscribe)
+                rows.insert(0, ("producers alone (relay)", 4, 0, bodies, rate, alone))
         finally:
             relay.stop()
-        rows.insert(len(rows) - 1, ("transport (relay)", 4, 4, bodies, rate, floor))
     if args.sweep == "full":
         for producers in (1, 2, 4, 8):
             for bodies in (1, 10, 100, 1000):
@@ -381,13 +406,14 @@ def publish_table(args) -> int:
         relay = name.startswith("transport")
         if relay:
             floor = r["p99"]
+        heard = [f"{r['answers']:.0f}", f"{r['per_message']:.1f}", f"{r['p50']:.2f}",
+                 f"{r['p99']:.2f}",
+                 "" if relay or floor != floor else f"{r['p99'] - floor:.2f}"]
         lines.append([name, str(p), str(s_), str(b), "unpaced" if rate is None else f"{rate:.0f}",
-                      f"{r['rate']:.0f}", f"{r['answers']:.0f}", f"{r['per_message']:.1f}",
-                      f"{r['p50']:.2f}",
-                      f"{r['p99']:.2f}",
-                      "" if relay or floor != floor else f"{r['p99'] - floor:.2f}",
-                      f"{r['cores']:.2f}", f"{r['client_cores']:.2f}", f"{r['size']:.0f}",
-                      f"{r['rss0']:.1f}", f"{r['rss1']:.1f}", r["ended"] or "ran to the end"])
+                      f"{r['rate']:.0f}", *(heard if s_ else [""] * len(heard)),
+                      f"{r['cores']:.2f}", f"{r['client_cores']:.2f}",
+                      f"{r['size']:.0f}" if s_ else "", f"{r['rss0']:.1f}", f"{r['rss1']:.1f}",
+                      (r["ended"] or "ran to the end") if s_ else "none"])
         if not relay:
             floor = float("nan")        # the sweep's rows have no transport row of their own
     print(markdown(PUBLISH_HEAD, lines))
