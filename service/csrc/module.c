@@ -54,7 +54,8 @@ static PyMethodDef methods[] = {
     {"blend_request_from_wire", py_blend_request_from_wire, METH_O,
      "blend_request_from_wire(bytes) -> (poses, weights, method, tolerance, max_iterations) or None."},
     {"fuse_stream_from_wire", py_fuse_stream_from_wire, METH_VARARGS,
-     "fuse_stream_from_wire(bytes, sym_tol) -> (poses, covariances, times, codes, bodies, "
+     "fuse_stream_from_wire(bytes, sym_tol, publish=False) -> (poses, covariances, times, "
+     "codes, bodies, "
      "sources, spans) or None."},
     {"measurements_wire", py_measurements_wire, METH_VARARGS,
      "measurements_wire(q, t, covariances, weights, times, sources, bodies) -> bytes: repeated "

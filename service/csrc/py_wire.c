@@ -120,20 +120,24 @@ done:
     return result;
 }
 
-/* fuse_stream_from_wire(bytes, sym_tol) -> (poses (n, 8), covariances (n, 6, 6), times (n,),
- * codes (n,) uint8, bodies, sources (tuples of str), spans (n, 2): each measurement's offset and
- * length in the bytes), or None outside the plain case (see dq_wire_fuse_stream). */
+/* fuse_stream_from_wire(bytes, sym_tol, publish=0) -> (poses (n, 8), covariances (n, 6, 6),
+ * times (n,), codes (n,) uint8, bodies, sources (tuples of str), spans (n, 2): each
+ * measurement's offset and length in the bytes), or None outside the plain case (see
+ * dq_wire_fuse_stream); publish: the bytes are a PublishRequest's. */
 PyObject *py_fuse_stream_from_wire(PyObject *self, PyObject *args)
 {
     Py_buffer view;
     double sym_tol;
-    if (!PyArg_ParseTuple(args, "y*d:fuse_stream_from_wire", &view, &sym_tol)) return NULL;
+    int publish = 0;
+    if (!PyArg_ParseTuple(args, "y*d|p:fuse_stream_from_wire", &view, &sym_tol, &publish))
+        return NULL;
     const uint8_t *buf = (const uint8_t *)view.buf;
     PyObject *result = NULL, *bodies = NULL, *sources = NULL;
     PyArrayObject *poses = NULL, *covs = NULL, *times = NULL, *codes = NULL, *spans = NULL;
     uint32_t *sp = NULL;
     dq_fuse_stream r;
     memset(&r, 0, sizeof r);
+    r.publish = publish;
     if (dq_wire_fuse_count(buf, (size_t)view.len, &r)) goto none;
     npy_intp n = (npy_intp)r.n;
     npy_intp d8[2] = {n, 8}, d36[3] = {n, 6, 6}, d1[1] = {n}, d2[2] = {n, 2};

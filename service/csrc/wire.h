@@ -111,6 +111,8 @@ typedef struct {
     double *times;     /* n */
     uint32_t *spans;   /* n x 6: offset and length in buf of the measurement, its source, its body */
     uint8_t *codes;    /* n */
+    int publish;       /* the bytes are a World PublishRequest (measurements field 1, beside a
+                        * producer string 2 and a sequence varint 3), not a FuseStreamRequest */
 } dq_fuse_stream;
 
 /* Counts the measurements (r->n); -1 outside the plain case at the request's level. */

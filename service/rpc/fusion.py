@@ -29,9 +29,8 @@ from dqpose.rpc.fusion_convert import (
     options_error,
     options_from_msg,
     unknown_sources,
-    wire_measurement_error,
 )
-from dqpose.rpc.wire import CONVERT_LAST, fuse_stream_from_wire
+from dqpose.rpc.wire import fuse_stream_from_wire, wire_rows
 from dqpose.world_ticks import first_tick, tick_phase, tick_time
 
 
@@ -298,19 +297,8 @@ class Fusion(pb_grpc.FusionServicer):
                     len(request.measurements))
         field = f"requests[{r}].measurements"
         n = len(w.times)
-        errors = [(i, wire_measurement_error(data, w.spans[i], field, i))
-                  for i, c in enumerate(w.codes.tolist()) if 0 < c <= CONVERT_LAST]
-        if errors:
-            index = np.flatnonzero((w.codes == 0) | (w.codes > CONVERT_LAST))
-            m = Measurements(index, tuple(w.bodies[i] for i in index.tolist()),
-                             tuple(w.sources[i] for i in index.tolist()), w.times[index],
-                             w.poses[index], w.covariances[index])
-            codes = w.codes[index]
-        else:
-            index = np.arange(n)
-            m = Measurements(index, w.bodies, w.sources, w.times, w.poses, w.covariances)
-            codes = w.codes
-        answers, more = state.update(m, first_id + index, field, codes)
+        m, errors, codes = wire_rows(data, w, field)
+        answers, more = state.update(m, first_id + m.index, field, codes)
         errors += more
         return self._answers(r, errors, [w.bodies[i] for i, _ in errors], answers), n
 

@@ -76,7 +76,8 @@ def measurements_to_arrays(ms, field: str = "measurements",
         covs = covs.reshape(n, fusion.DOF, fusion.DOF)
         iso = counts == 0
         w = np.where(weights == 0.0, 1.0, weights)        # weight 0 means 1
-        covs[iso] = np.eye(fusion.DOF) / w[iso, None, None]
+        with np.errstate(over="ignore"):     # a subnormal weight: inf, refused by the domain
+            covs[iso] = np.eye(fusion.DOF) / w[iso, None, None]
         problems = (
         (~np.isfinite(times), lambda i: f"time: must be finite, got {ms[i].time!r}"),
         (~iso & ~full, lambda i: f"covariance: expected {COVARIANCE_SIZE} values (6x6, "

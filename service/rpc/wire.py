@@ -13,8 +13,13 @@ from typing import NamedTuple
 import numpy as np
 
 from dqpose import _dqcore
+from dqpose.errors import FieldError
 from dqpose.fusion.validation import _SYMMETRY_TOL
-from dqpose.rpc.fusion_convert import measurement_columns
+from dqpose.rpc.fusion_convert import (
+    Measurements,
+    measurement_columns,
+    wire_measurement_error,
+)
 
 # ---- the servers' C fast paths -------------------------------------------------------------------
 
@@ -319,3 +324,30 @@ def fuse_stream_from_wire(data: bytes) -> WireMeasurements | None:
     rule), which the protobuf path then takes."""
     out = _dqcore.fuse_stream_from_wire(data, _SYMMETRY_TOL)
     return None if out is None else WireMeasurements(*out)
+
+
+def publish_from_wire(data: bytes) -> WireMeasurements | None:
+    """:func:`fuse_stream_from_wire` of a serialized World ``PublishRequest``: its measurements
+    (field 1), its producer and sequence skipped (the caller reads them from the parsed
+    message, which checks the producer's UTF-8)."""
+    out = _dqcore.fuse_stream_from_wire(data, _SYMMETRY_TOL, True)
+    return None if out is None else WireMeasurements(*out)
+
+
+def wire_rows(data: bytes, w: WireMeasurements,
+              field: str) -> tuple[Measurements, list[tuple[int, FieldError]], np.ndarray]:
+    """The decoded request ``w`` (of ``data``) as :func:`~dqpose.rpc.fusion_convert.
+    measurements_to_arrays` gives it: the rows it keeps, the ones it refuses as ``(i,
+    FieldError)`` with its texts (``field``: the repeated field's path), and the kept rows'
+    codes (0, or the Tracker's check that refuses the row)."""
+    codes = w.codes
+    errors = [(i, wire_measurement_error(data, w.spans[i], field, i))
+              for i, c in enumerate(codes.tolist()) if 0 < c <= CONVERT_LAST]
+    if not errors:
+        return (Measurements(np.arange(len(w.times)), w.bodies, w.sources, w.times, w.poses,
+                             w.covariances), errors, codes)
+    index = np.flatnonzero((codes == 0) | (codes > CONVERT_LAST))
+    rows = index.tolist()
+    return (Measurements(index, tuple(w.bodies[i] for i in rows),
+                         tuple(w.sources[i] for i in rows), w.times[index], w.poses[index],
+                         w.covariances[index]), errors, codes[index])

@@ -35,6 +35,7 @@ from dqpose.rpc.calls import Calls, readable, refused
 from dqpose.rpc.checks import over_count
 from dqpose.rpc.fusion_convert import measurements_to_arrays
 from dqpose.rpc.routing import WORLD_HEADER, world_of
+from dqpose.rpc.wire import publish_from_wire, wire_rows
 from dqpose.rpc.world_convert import (
     body_pose_msg,
     config_from_msg,
@@ -216,9 +217,11 @@ class Cell:
         # alone, so neither answer depends on the timing.
         return self.ready.lookup(self.world, request)
 
-    def publish(self, request: pb.PublishRequest, r: int, producer: str) -> pb.PublishAck:
+    def publish(self, request: pb.PublishRequest, r: int, producer: str,
+                data: bytes | None = None) -> pb.PublishAck:
         """Request ``r`` of a Publish call (``producer``: its key for acks): applied to the world,
-        its Subscribe answers made and queued, its ack returned; never raises for bad input."""
+        its Subscribe answers made and queued, its ack returned; never raises for bad input.
+        ``data``: the request's bytes, whose measurements are then read in C."""
         ack = pb.PublishAck()
         field = f"requests[{r}].measurements"
 
@@ -242,7 +245,7 @@ class Cell:
             too_many = over_count(field, len(request.measurements), self.max_poses,
                                   "measurements")
             if too_many is None:
-                self._apply(request, field, error)
+                self._apply(request, field, error, data)
             else:
                 error(-1, f"{too_many}; none was used")
             self.requests += 1
@@ -265,13 +268,19 @@ class Cell:
                 f"requests[{r}]: not a valid dqpose.v1.PublishRequest message; none of it was "
                 f"used"))
             return ack
-        return self.publish(request, r, request.producer or anonymous)
+        return self.publish(request, r, request.producer or anonymous, data)
 
-    def _apply(self, request: pb.PublishRequest, field: str, error) -> None:
+    def _apply(self, request: pb.PublishRequest, field: str, error,
+               data: bytes | None = None) -> None:
         """Under the lock: the request's measurements into the world, then the answers they
-        make due."""
+        make due. From ``data`` its measurements are decoded in C where they are plain (the
+        same rows and texts; the world checks the rows it is given either way)."""
+        w = None if data is None else publish_from_wire(data)
         errors: list = []
-        m = measurements_to_arrays(request.measurements, field, errors)
+        if data is None or w is None:
+            m = measurements_to_arrays(request.measurements, field, errors)
+        else:
+            m, errors, _ = wire_rows(data, w, field)
         for i, e in errors:
             error(i, str(e))
         ids = self.measurements + m.index

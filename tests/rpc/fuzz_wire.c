@@ -83,24 +83,28 @@ int main(int argc, char **argv)
             }
             free(bo);
         }
-        dq_fuse_stream fs;
-        if (dq_wire_fuse_count(exact, len, &fs) == 0 && fs.n > 0 && fs.n < 4096) {
-            /* exact-size arrays, so a write past a row is caught */
-            fs.poses = malloc(fs.n * 8 * sizeof(double));
-            fs.covs = malloc(fs.n * 36 * sizeof(double));
-            fs.times = malloc(fs.n * sizeof(double));
-            fs.spans = malloc(fs.n * 6 * sizeof(uint32_t));
-            fs.codes = malloc(fs.n);
-            if (dq_wire_fuse_stream(exact, len, 1e-9, &fs) == 0) {
-                for (size_t j = 0; j < fs.n; j++) {
-                    const uint32_t *sp = fs.spans + 6 * j;
-                    for (int k = 0; k < 6; k += 2)
-                        if ((size_t)sp[k] + sp[k + 1] > len) abort();
-                    if (fs.codes[j] > DQ_MEAS_COV_SCALE) abort();
+        /* the same bytes read as a FuseStreamRequest and as a PublishRequest */
+        for (int publish = 0; publish < 2; publish++) {
+            dq_fuse_stream fs = {0};
+            fs.publish = publish;
+            if (dq_wire_fuse_count(exact, len, &fs) == 0 && fs.n > 0 && fs.n < 4096) {
+                /* exact-size arrays, so a write past a row is caught */
+                fs.poses = malloc(fs.n * 8 * sizeof(double));
+                fs.covs = malloc(fs.n * 36 * sizeof(double));
+                fs.times = malloc(fs.n * sizeof(double));
+                fs.spans = malloc(fs.n * 6 * sizeof(uint32_t));
+                fs.codes = malloc(fs.n);
+                if (dq_wire_fuse_stream(exact, len, 1e-9, &fs) == 0) {
+                    for (size_t j = 0; j < fs.n; j++) {
+                        const uint32_t *sp = fs.spans + 6 * j;
+                        for (int k = 0; k < 6; k += 2)
+                            if ((size_t)sp[k] + sp[k + 1] > len) abort();
+                        if (fs.codes[j] > DQ_MEAS_COV_SCALE) abort();
+                    }
+                    streams++;
                 }
-                streams++;
+                free(fs.poses); free(fs.covs); free(fs.times); free(fs.spans); free(fs.codes);
             }
-            free(fs.poses); free(fs.covs); free(fs.times); free(fs.spans); free(fs.codes);
         }
         free(exact);
     }

@@ -493,7 +493,7 @@ def test_wire_paths_survive_mutated_input_under_sanitizers(tmp_path):
              req(3, method=5), req(4, method=6), req(4, method=4),
              pb.BlendBatchRequest(requests=[req(3), req(4, method=6), req(2, method=3),
                                             req(3, method=4)]),
-             _fuse_stream_seed(rng)]
+             _fuse_stream_seed(rng), _publish_seed(rng)]
     paths = []
     for i, s in enumerate(seeds):
         p = tmp_path / f"seed{i}.bin"
@@ -521,3 +521,10 @@ def _fuse_stream_seed(rng):
     ms[3].covariance[1] += 1.0
     ms[5].time = float("nan")
     return fpb.FuseStreamRequest(measurements=ms)
+
+
+def _publish_seed(rng):
+    """A World Publish request of the same 8 measurements, with its producer and sequence."""
+    from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
+    return wpb.PublishRequest(measurements=_fuse_stream_seed(rng).measurements, producer="cam-7",
+                              sequence=300)
