@@ -9,6 +9,8 @@ Sections (each a function returning rows of the one table, so that more can be a
 
 * :func:`ingest_rows` — the world in process under the Publish table's target scene (100
   bodies, 20,000 stamps/s, 30 Hz ticks): measurements/s and fits/s one thread sustains.
+* :func:`publish_request_rows` — one Publish request of 10 measurements into that world, as
+  the server's worker runs it: from its bytes (decoded in C) against the protobuf path.
 * :func:`lookup_rows` — ``World.relative`` (Lookup's server time, in process): the latency of a
   lookup between two moving bodies, each seen at 30 Hz by two cameras with latencies over a 1 s
   window (60 measurements a body's fit, the constant-twist fit over time), p50/p99 over
@@ -126,6 +128,53 @@ def ingest_rows(messages: int = 2000) -> list[list[str]]:
              f"admission included); by the thread's CPU time {messages * per / cpu:.0f} "
              f"measurements/s, {1e6 * cpu / made:.0f} µs a fit; window 0.2 s, 10 s of "
              f"history"]]
+
+
+def publish_request_rows(requests: int = 3000, rounds: int = 3,
+                         history: float = 10.0) -> list[list[str]]:
+    """One Publish request of 10 measurements into the target scene's world (100 bodies, 10 s
+    of history, nobody subscribed), in process as the server's worker runs it: from its bytes
+    (``Cell.publish_bytes``, measurements decoded and checked in C) against the protobuf path
+    (the request parsed, ``measurements_to_arrays``), each ``rounds`` times alternated, the
+    best µs a request of each."""
+    from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
+    from dqpose.rpc.fusion_convert import measurement_msgs
+    from dqpose.rpc.world import Cell
+    bodies, per, rate = 100, 10, 20_000.0
+    poses, cov = scene_poses(bodies)
+    covs = np.repeat(cov[None], per, 0)
+
+    def wire(first: int, n: int) -> list[bytes]:
+        out = []
+        for i in range(first, first + n):
+            chosen = [(i * per + j) % bodies for j in range(per)]
+            out.append(wpb.PublishRequest(measurements=measurement_msgs(
+                poses[chosen], covs, names=[f"p{b % 4}" for b in chosen],
+                bodies=[f"b{b}" for b in chosen], times=np.full(per, 1000.0 + i * per / rate)),
+                producer="p", sequence=i + 1).SerializeToString())
+        return out
+
+    n = int(history * rate / per)
+    filled, timed = wire(0, n), wire(n, requests)
+    best = {"bytes": math.inf, "message": math.inf}
+    for _ in range(rounds):
+        for path in best:
+            cell = Cell("bench")
+            for r, data in enumerate(filled):
+                cell.publish_bytes(data, r, "")
+            t0 = time.perf_counter()
+            for r, data in enumerate(timed):
+                if path == "bytes":
+                    cell.publish_bytes(data, r, "")
+                else:
+                    cell.publish(wpb.PublishRequest.FromString(data), r, "p")
+            best[path] = min(best[path], (time.perf_counter() - t0) / requests * 1e6)
+    detail = (f"10 measurements, 100 bodies, {history:g} s of history, nobody subscribed; best of "
+              f"{rounds} alternated runs of {requests} requests")
+    return [["Publish (in process)", "a request from its bytes (measurements decoded in C)",
+             f"{best['bytes']:.1f}", "µs a request", detail],
+            ["Publish (in process)", "the same request parsed (protobuf path)",
+             f"{best['message']:.1f}", "µs a request", detail]]
 
 
 def _timed(call, n: int, before=None) -> tuple[np.ndarray, np.ndarray]:
@@ -357,7 +406,7 @@ def main(argv=None) -> int:
         serve_relay(args.serve_relay)
         return 0
     if not args.publish:
-        print(markdown(HEAD, ingest_rows() + lookup_rows(args.lookups)
+        print(markdown(HEAD, ingest_rows() + publish_request_rows() + lookup_rows(args.lookups)
                        + [row for load in (False, True) for polled in (False, True)
                           for row in rpc_lookup_rows(args.lookups, load, polled)]
                        + nees_rows(args.trials)))

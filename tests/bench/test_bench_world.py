@@ -75,3 +75,10 @@ def test_ingest_row_fits_the_ticks_it_made_due():
     fits_per_s = float(row[4].split(" fits/s")[0])
     meas_per_s = float(row[2])
     assert 300 < fits_per_s / meas_per_s * 3000 < 600, row
+
+
+def test_publish_request_rows_time_both_paths():
+    rows = bw.publish_request_rows(requests=20, rounds=1, history=0.1)
+    assert [r[1] for r in rows] == ["a request from its bytes (measurements decoded in C)",
+                                    "the same request parsed (protobuf path)"]
+    assert all(float(r[2]) > 0.0 for r in rows), rows
