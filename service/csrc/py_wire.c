@@ -218,15 +218,21 @@ static int name_at(PyObject *seq, npy_intp i, const char *field, const char **s,
 }
 
 /* measurements_wire(q (n, 4), t (n, 3), covariances (n, 36) or None, weights (n,) or None,
- * times (n,) or None, sources or None, bodies or None) -> bytes: the measurements as repeated
- * FuseStreamRequest.measurements (dq_wire_measurement). The caller has checked the shapes;
- * a name that is not a str is a ValueError naming it. */
+ * times (n,) or None, sources or None, bodies or None, field=3) -> bytes: the measurements as
+ * repeated FuseStreamRequest.measurements (dq_wire_measurement), or as the repeated field
+ * ``field`` of another message (1: PublishRequest's). The caller has checked the shapes; a name
+ * that is not a str is a ValueError naming it. */
 PyObject *py_measurements_wire(PyObject *self, PyObject *args)
 {
     PyObject *oq, *ot, *ocov, *ow, *otimes, *osrc, *obody;
-    if (!PyArg_ParseTuple(args, "OOOOOOO:measurements_wire", &oq, &ot, &ocov, &ow, &otimes, &osrc,
-                          &obody))
+    int field = 3;
+    if (!PyArg_ParseTuple(args, "OOOOOOO|i:measurements_wire", &oq, &ot, &ocov, &ow, &otimes,
+                          &osrc, &obody, &field))
         return NULL;
+    if (field < 1 || field > 15) {
+        PyErr_SetString(PyExc_ValueError, "field: expected 1..15 (a one-byte tag)");
+        return NULL;
+    }
     PyObject *q = NULL, *t = NULL, *cov = NULL, *w = NULL, *times = NULL, *src = NULL,
              *body = NULL, *result = NULL;
     uint8_t *buf = NULL;
@@ -265,9 +271,11 @@ PyObject *py_measurements_wire(PyObject *self, PyObject *args)
         Py_ssize_t na, nb;
         name_at(src, i, "names", &a, &na); /* checked above */
         name_at(body, i, "bodies", &b, &nb);
+        size_t at = len;
         len += dq_wire_measurement(buf + len, a, (size_t)na, b, (size_t)nb, ptm ? ptm[i] : 0.0,
                                    pq + 4 * i, pt + 3 * i, pc ? pc + 36 * i : NULL,
                                    pw ? pw[i] : 0.0);
+        buf[at] = (uint8_t)(field << 3 | 2); /* each entry starts with its one-byte tag */
     }
     result = PyBytes_FromStringAndSize((const char *)buf, (Py_ssize_t)len);
 done:

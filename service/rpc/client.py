@@ -90,6 +90,7 @@ from dqpose.rpc.wire import (
     blend_request_wire,
     interpolate_request_wire,
     measurements_wire,
+    publish_request_wire,
     stamped_poses_wire,
 )
 
@@ -523,20 +524,24 @@ class Client:
         def requests():
             for i, b in enumerate(batches):
                 b = b if isinstance(b, Batch) else Batch(*b)
+                seq = first_sequence + i if first_sequence else 0
                 try:
-                    ms = measurement_msgs(*b)
+                    # the bytes protobuf would write, without a message a measurement
+                    data = publish_request_wire(b, producer, seq)
                 except ValueError as e:
                     raise ValueError(f"batches[{i}].{e}") from None
-                seq = first_sequence + i if first_sequence else 0
-                yield wpb.PublishRequest(measurements=ms, producer=producer, sequence=seq)
+                yield data
 
-        return self.publish_requests(requests())
+        return self._publish_bytes(requests())
 
     def publish_requests(self, requests: Iterable[wpb.PublishRequest]) -> Iterator[Ack]:
         """:meth:`publish` of ready ``PublishRequest`` messages (``dqpose world publish``)."""
+        return self._publish_bytes(r.SerializeToString() for r in requests)
+
+    def _publish_bytes(self, requests: Iterator[bytes]) -> Iterator[Ack]:
         # one ack per request, in order: an ack's place acknowledges its request, as its
         # acked_through does the sequences up to it
-        stream = Resuming(self._publish, (r.SerializeToString() for r in requests), b"", None,
+        stream = Resuming(self._publish, requests, b"", None,
                           metadata=self.metadata, reconnect=self.reconnect,
                           before=self._configure_again)
         acks = stream.answers()

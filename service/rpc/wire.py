@@ -204,17 +204,30 @@ def stamped_poses_wire(times: np.ndarray, q: np.ndarray, t: np.ndarray, field: i
 
 
 def measurements_wire(poses, covariances=None, weights=None, names=None, bodies=None,
-                      times=None) -> bytes:
+                      times=None, field: int = 3) -> bytes:
     """:func:`~dqpose.rpc.fusion_convert.measurement_msgs` as repeated
-    ``FuseStreamRequest.measurements`` in wire bytes,
-    the bytes protobuf would write for them (``service/csrc/wire.c``), ~30x faster: what a
-    client streaming thousands of measurements a second spends per message."""
+    ``FuseStreamRequest.measurements`` (``field`` 3; 1: ``PublishRequest.measurements``) in wire
+    bytes, the bytes protobuf would write for them (``service/csrc/wire.c``), ~30x faster: what
+    a client streaming thousands of measurements a second spends per message."""
     q, t, covariances, weights, names, bodies, times = measurement_columns(
         poses, covariances, weights, names, bodies, times)
     return _dqcore.measurements_wire(
         q, t, None if covariances is None else covariances.reshape(len(q), 36),
         None if weights is None else np.asarray(weights, np.float64),
-        None if times is None else np.asarray(times, np.float64), names, bodies)
+        None if times is None else np.asarray(times, np.float64), names, bodies, field)
+
+
+def publish_request_wire(batch, producer: str, sequence: int) -> bytes:
+    """A serialized World ``PublishRequest`` of ``batch`` (a client ``Batch``: its
+    measurements), ``producer`` and ``sequence``: the bytes protobuf writes for it, fields in
+    order, empty ones left out."""
+    parts = [measurements_wire(*batch, field=1)]
+    if producer:
+        name = producer.encode()
+        parts += [b"\x12", _varint(len(name)), name]
+    if sequence:
+        parts += [b"\x18", _varint(sequence)]
+    return b"".join(parts)
 
 
 # ---- answers read back (client side) ------------------------------------------------------------

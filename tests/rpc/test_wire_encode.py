@@ -20,6 +20,7 @@ from dqpose.rpc.wire import (
     blend_responses_from_wire,
     interpolate_request_wire,
     measurements_wire,
+    publish_request_wire,
     stamped_poses_wire,
 )
 
@@ -72,6 +73,29 @@ def test_measurements_wire_is_what_protobuf_would_send(n, kind, data):
         got = measurements_wire(dqs, names=names, bodies=bodies, times=times, **kw)
         want = fpb.FuseStreamRequest(measurements=measurement_msgs(
             dqs, names=names, bodies=bodies, times=times, **kw)).SerializeToString()
+    assert got == want
+
+
+@settings(max_examples=200)
+@given(n=st.integers(0, 3), covariances=st.booleans(), producer=_names,
+       sequence=st.sampled_from([0, 1, 300, 2**64 - 1]), data=st.data())
+def test_publish_request_wire_is_what_protobuf_would_send(n, covariances, producer, sequence,
+                                                         data):
+    """World.Publish's client encoder: the PublishRequest's bytes, its measurements as field 1,
+    then the producer and the sequence (each left out when empty, as protobuf does)."""
+    from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
+    from dqpose.rpc.client import Batch
+    dqs = np.array(data.draw(st.lists(st.lists(_doubles, min_size=8, max_size=8), min_size=n,
+                                      max_size=n))).reshape(n, 8)
+    values = np.array(data.draw(st.lists(_doubles, min_size=36 * n, max_size=36 * n)))
+    batch = Batch(dqs, values.reshape(n, 6, 6) if covariances else None, None,
+                  data.draw(st.lists(_names, min_size=n, max_size=n)),
+                  data.draw(st.lists(_names, min_size=n, max_size=n)),
+                  data.draw(st.lists(_doubles, min_size=n, max_size=n)))
+    with np.errstate(all="ignore"):
+        got = publish_request_wire(batch, producer, sequence)
+        want = wpb.PublishRequest(measurements=measurement_msgs(*batch), producer=producer,
+                                  sequence=sequence).SerializeToString()
     assert got == want
 
 
