@@ -221,7 +221,8 @@ def publish_request_wire(batch, producer: str, sequence: int) -> bytes:
     """A serialized World ``PublishRequest`` of ``batch`` (a client ``Batch``: its
     measurements), ``producer`` and ``sequence``: the bytes protobuf writes for it, fields in
     order, empty ones left out."""
-    parts = [measurements_wire(*batch, field=1)]
+    poses, covariances, weights, names, bodies, times = batch
+    parts = [measurements_wire(poses, covariances, weights, names, bodies, times, field=1)]
     if producer:
         name = producer.encode()
         parts += [b"\x12", _varint(len(name)), name]
