@@ -217,6 +217,13 @@ def measurements_wire(poses, covariances=None, weights=None, names=None, bodies=
         None if times is None else np.asarray(times, np.float64), names, bodies, field)
 
 
+def messages_wire(messages: list[bytes], field: int = 1) -> bytes:
+    """Serialized messages as the repeated message field ``field`` (< 16): each behind its tag
+    and length, not parsed or serialized again (World.SubscribeBatches' ``FusedPoseBatch``)."""
+    tag = bytes([field << 3 | 2])
+    return b"".join(part for m in messages for part in (tag, _varint(len(m)), m))
+
+
 def publish_request_wire(batch, producer: str, sequence: int) -> bytes:
     """A serialized World ``PublishRequest`` of ``batch`` (a client ``Batch``: its
     measurements), ``producer`` and ``sequence``: the bytes protobuf writes for it, fields in

@@ -35,7 +35,7 @@ from dqpose.rpc.calls import Calls, readable, refused
 from dqpose.rpc.checks import over_count
 from dqpose.rpc.fusion_convert import measurements_to_arrays
 from dqpose.rpc.routing import WORLD_HEADER, world_of
-from dqpose.rpc.wire import publish_from_wire, wire_rows
+from dqpose.rpc.wire import messages_wire, publish_from_wire, wire_rows
 from dqpose.rpc.world_convert import (
     body_pose_msg,
     config_from_msg,
@@ -151,20 +151,6 @@ def _ready(first: bytes | None, queue: asyncio.Queue) -> tuple[list, bytes | Non
             size += len(a)
         answers.append(a)
     return answers, None
-
-
-def _batch(answers: list[bytes]) -> bytes:
-    """A FusedPoseBatch of serialized FusedPose ``answers``: each its field 1 (tag, length,
-    bytes), so no answer is parsed or serialized again."""
-    parts: list[bytes | bytearray] = []
-    for a in answers:
-        n, head = len(a), bytearray(b"\x0a")
-        while n >= 0x80:
-            head.append(n & 0x7F | 0x80)
-            n >>= 7
-        head.append(n)
-        parts += (head, a)
-    return b"".join(parts)
 
 
 class Cell:
@@ -539,18 +525,19 @@ class World:
                 carry = None
                 if batched:
                     answers, carry = _ready(answers[0], sub.queue)
-                if answers[-1] is None:
+                end = answers[-1] is None       # the queue overflowed: what came before goes
+                if end:
                     answers.pop()
-                    if answers:
-                        await context.write(_batch(answers))
+                if answers:
+                    await context.write(messages_wire(answers) if batched else answers[0])
+                    for answer in answers:
+                        rec.fused(answer)       # recording
+                    sent += len(answers)
+                if end:
                     code = "RESOURCE_EXHAUSTED"
                     await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, (
                         f"{rpc}: this subscriber fell {MAX_QUEUED} answers behind the "
                         f"world; subscribe to fewer bodies or a lower rate_hz"))
-                await context.write(_batch(answers) if batched else answers[0])
-                for answer in answers:
-                    rec.fused(answer)           # recording
-                sent += len(answers)
         except asyncio.CancelledError:
             code = "CANCELLED"
             raise

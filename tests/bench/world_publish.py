@@ -251,7 +251,8 @@ def serve_relay(answer_bytes: int) -> None:
 
     from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
     from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
-    from dqpose.rpc.world import _batch, _ready
+    from dqpose.rpc.wire import messages_wire
+    from dqpose.rpc.world import _ready
     from dqpose.world_ticks import Ticks, tick_phase
     subs: list = []
     template = fpb.FusedPose()
@@ -290,7 +291,7 @@ def serve_relay(answer_bytes: int) -> None:
                 # the world's batching (one message of what is ready), never its end
                 answers, carry = _ready(carry if carry is not None else await queue.get(),
                                         queue)
-                yield _batch(answers)
+                yield messages_wire(answers)
         finally:
             subs.remove(entry)
 
