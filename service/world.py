@@ -277,11 +277,7 @@ class World:
         known, named = self._version, self._named
         new_bodies: set = set()
         new_sources: set = set()
-        # the common case: every row's body and source already in the world, nothing to bound
-        held = (not errors and all(type(x) is str for x in bodies)
-                and all(type(x) is str for x in sources)
-                and known.keys() >= set(bodies) and named >= set(sources))
-        for k, (body, src) in enumerate(zip(bodies, sources) if not held else ()):
+        for k, (body, src) in enumerate(zip(bodies, sources)):
             if k in errors or not isinstance(body, str) or not isinstance(src, str):
                 continue
             refusal = ((body and _beyond(k, "body", body, known, new_bodies, "max_bodies",
@@ -304,22 +300,15 @@ class World:
                 k = use[j]
                 errors[k] = type(e)(str(e).replace(f"measurements[{j}]", f"measurements[{k}]",
                                                    1))
-            table, fed, version = self._t._table, self._fed, self._version
-            latency: dict[str, float] = {}
-            stamps = times.tolist()
             for k in use:
                 if k in errors:
                     continue
-                body, source = bodies[k], sources[k]
-                version[body] = version.get(body, 0) + 1
-                named.add(source)
-                lat = latency.get(source)
-                if lat is None:
-                    src = table.get(source)
-                    lat = latency[source] = src.latency if src is not None else 0.0
-                t = stamps[k] - lat
-                seen = fed.setdefault(body, {})
-                seen[source] = max(seen.get(source, -math.inf), t)
+                self._version[bodies[k]] = self._version.get(bodies[k], 0) + 1
+                named.add(sources[k])
+                src = self._t._table.get(sources[k])
+                t = float(times[k]) - (src.latency if src is not None else 0.0)
+                seen = self._fed.setdefault(bodies[k], {})
+                seen[sources[k]] = max(seen.get(sources[k], -math.inf), t)
         return errors
 
     def sources_of(self, body: str) -> tuple[str, ...]:

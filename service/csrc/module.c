@@ -55,11 +55,10 @@ static PyMethodDef methods[] = {
      "blend_request_from_wire(bytes) -> (poses, weights, method, tolerance, max_iterations) or None."},
     {"fuse_stream_from_wire", py_fuse_stream_from_wire, METH_VARARGS,
      "fuse_stream_from_wire(bytes, sym_tol, publish=False) -> (poses, covariances, times, "
-     "codes, bodies, "
-     "sources, spans) or None."},
+     "codes, bodies, sources, spans) or None."},
     {"measurements_wire", py_measurements_wire, METH_VARARGS,
-     "measurements_wire(q, t, covariances, weights, times, sources, bodies) -> bytes: repeated "
-     "FuseStreamRequest.measurements."},
+     "measurements_wire(q, t, covariances, weights, times, sources, bodies, field=3) -> bytes: "
+     "repeated FuseStreamRequest.measurements (field 1: PublishRequest's)."},
     {"blend_batch_wire", py_blend_batch_wire, METH_VARARGS,
      "blend_batch_wire(bytes, max_requests, max_total_poses, max_poses, default_tol, "
      "default_max_iter, max_iter_limit) -> (bytes, n) or None."},
