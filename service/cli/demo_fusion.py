@@ -269,6 +269,16 @@ def independent(result: Result) -> np.ndarray:
     return result.nees[::max(1, math.ceil(WINDOW * OUTPUT_RATE - 1e-9))]
 
 
+def _digits(value: float, *bounds: float) -> int:
+    """Decimals enough that the printed value sits on the same side of each printed bound as the
+    value itself: a reader checking the verdict against the figures must reach the same one."""
+    for d in range(2, 7):
+        if all((round(value, d) < round(b, d)) == (value < b)
+               and (round(value, d) > round(b, d)) == (value > b) for b in bounds):
+            return d
+    return 6
+
+
 def verdict(result: Result) -> list[str]:
     """The summary's claims, each checked on the run: the fused RMS error against each source
     alone's, the fused NEES against its band; and, when a claim fails, what in the run explains
@@ -292,12 +302,13 @@ def verdict(result: Result) -> list[str]:
         lo, hi = nees_band(len(sub))
         mean = float(np.mean(sub))
         consistent = lo <= mean <= hi
-        lines.append(f"fused NEES: mean {mean:.2f} over {len(sub)} answers with windows apart "
-                     f"(6 expected; {100 * NEES_PROBABILITY:g} % band {lo:.2f}-{hi:.2f}): "
+        d = _digits(mean, lo, hi)
+        lines.append(f"fused NEES: mean {mean:.{d}f} over {len(sub)} answers with windows apart "
+                     f"(6 expected; {100 * NEES_PROBABILITY:g} % band {lo:.{d}f}-{hi:.{d}f}): "
                      + ("consistent" if consistent else
-                        "too large: the covariance claims more than the error shows"
+                        "too large: the covariance claims less than the error shows"
                         if mean > hi else
-                        "too small: the covariance claims less than the error shows")
+                        "too small: the covariance claims more than the error shows")
                      + f"; over all {len(result.nees)} answers {np.mean(result.nees):.2f}")
     why = []
     t = result.timing

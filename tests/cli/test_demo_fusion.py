@@ -122,6 +122,23 @@ def test_the_nees_band_is_the_chi_square_band_of_the_mean():
     assert 0.98 < inside < 0.997
 
 
+@pytest.mark.parametrize("offset", [-3e-5, 0.0, 3e-5])
+def test_the_nees_figures_as_printed_reach_the_verdict_printed(offset):
+    """A mean NEES a hair from its band's lower end: the printed mean and band, read as a reader
+    would, put it on the side the verdict names (a CI run printed "mean 5.15 ... band 5.15-6.93:
+    too small")."""
+    from dqpose.cli import demo_fusion
+    r = demo_fusion.run(5)
+    lo, hi = demo_fusion.nees_band(len(demo_fusion.independent(r)))
+    r.nees[:] = lo + offset
+    line = next(x for x in demo_fusion.verdict(r) if x.startswith("fused NEES"))
+    m = re.search(r"mean ([\d.]+) .* band ([\d.]+)-([\d.]+)\): (\w+)", line)
+    assert m, line
+    inside = float(m.group(2)) <= float(m.group(1)) <= float(m.group(3))
+    assert inside == (m.group(4) == "consistent") == (offset >= 0), line
+    assert ("too small" in line) == (offset < 0), line
+
+
 def test_roughness_is_zero_on_a_quadratic_and_measures_jitter():
     from dqpose import dq
     from dqpose.cli import demo_fusion
