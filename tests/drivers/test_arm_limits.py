@@ -96,22 +96,30 @@ class PiperRig:
         self.arm.wait_for_feedback(2.0)
 
     def reset(self):
-        # the teleport drops the simulator's target, so that the hold below is seen to arrive
-        self.sim.set_pose(self.home)
-
-        def home() -> bool:
-            if pose_delta(self.arm.tool_pose()[1], self.home)[0] < POS_Q:
-                return True
-            # again: a set-point of the last test still on its way over a loaded machine's
-            # bus took the simulator back to that test's pose
-            self.sim.set_pose(self.home)
-            return False
-        assert wait_until(home, timeout=SETTLE, poll=0.05)
-        self.arm.stop()
-        # the hold has arrived: what the simulator logs from here on is the test's
-        assert wait_until(lambda: self.sim.target is not None
-                          and pose_delta(self.sim.target, self.home)[0] < POS_Q, timeout=SETTLE)
+        # First a hold at a pose no test commands: the arm's frames arrive in the order sent, so
+        # once it is in, nothing of the last test is still on the bus (a loaded machine's bus
+        # delivered the last test's final hold at home after the hold below had been awaited,
+        # and the test saw that hold arrive as its own).
+        self._hold_at(dq.mul(self.home, dq.from_pose([1.0, 0, 0, 0], [0.0, 0.0, 0.001])))
+        self._hold_at(self.home)
+        # what the simulator logs from here on is the test's
         self._mark = len(self.sim.log)
+
+    def _hold_at(self, pose):
+        """The arm brought to ``pose`` by hand (teleported: the simulator's target dropped) and
+        stopped there, its hold arrived at the simulator."""
+        self.sim.set_pose(pose)
+
+        def there() -> bool:
+            if pose_delta(self.arm.tool_pose()[1], pose)[0] < POS_Q:
+                return True
+            # again: a set-point of the last test still on its way took the simulator back
+            self.sim.set_pose(pose)
+            return False
+        assert wait_until(there, timeout=SETTLE, poll=0.05)
+        self.arm.stop()
+        assert wait_until(lambda: self.sim.target is not None
+                          and pose_delta(self.sim.target, pose)[0] < POS_Q, timeout=SETTLE)
 
     def received(self) -> list[np.ndarray]:
         from dqpose.drivers.piper import units_to_pose

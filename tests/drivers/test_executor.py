@@ -61,8 +61,7 @@ class URExec(URRig):
 
 class PiperExec(PiperRig):
     def reset(self):
-        # (a stop's hold still on the bus when the rig teleports: PiperRig.reset teleports again)
-        super().reset()
+        super().reset()         # nothing of the last test still on the bus
         self._arrival_mark = len(self.sim.arrivals)
 
     def arrivals(self) -> list[tuple[float, np.ndarray]]:
