@@ -28,6 +28,7 @@ from dqpose.rpc.geometry import (
     pose_msgs,
     pose_to_dq,
 )
+from dqpose.rpc.varint import packed
 
 DEFAULT_PROBABILITY = fusion.DEFAULT_PROBABILITY
 DEFAULT_MAX_EXTRAPOLATION = fusion.DEFAULT_MAX_EXTRAPOLATION
@@ -285,17 +286,15 @@ def fused_to_msg(f: fusion.Fused, body: str, time: float, out=None):
     msg = fpb.FusedPose() if out is None else out
     msg.body, msg.time = body, float(time)
     dq_to_pose(f.mean, msg.pose)
-    msg.covariance.extend(f.covariance.ravel().tolist())
     msg.inliers.extend(f.inliers.tolist())
     msg.rejected.extend(r.index for r in f.rejected)
     msg.rejected_sources.extend(r.source for r in f.rejected)
     msg.reasons.extend(r.reason for r in f.rejected)
     msg.chi2, msg.dof, msg.iterations = f.chi2, f.dof, f.iterations
     msg.status = STATUS_ENUMS[f.status]
-    msg.distances.extend(f.distances.tolist())
-    msg.nis.extend(f.nis.tolist())
-    msg.tested.extend(f.tested.tolist())
-    msg.residuals.extend(f.residuals.ravel().tolist())
+    # the arrays merged in as packed bytes: half the time of a Subscribe answer's message
+    wire = [packed(4, f.covariance), packed(12, f.distances), packed(13, f.nis),
+            packed(14, f.tested, "u1"), packed(15, f.residuals)]
     for s in f.sources:
         msg.sources.add(name=s.name, count=s.count, rejected=s.rejected, nis_mean=s.nis_mean,
                         low=s.low, high=s.high, verdict=int(s.verdict))
@@ -303,12 +302,12 @@ def fused_to_msg(f: fusion.Fused, body: str, time: float, out=None):
         msg.dropped.add(index=d.index, source=d.source, age=d.age, reason=d.reason)
     if f.twist is not None:
         assert f.twist_covariance is not None      # fusion sets the two together
-        msg.twist.extend(f.twist.tolist())
-        msg.twist_covariance.extend(f.twist_covariance.ravel().tolist())
+        wire += [packed(22, f.twist), packed(23, f.twist_covariance)]
     msg.extrapolation = f.extrapolation
     for a in f.latencies:
         msg.latencies.add(source=a.name, configured=a.configured, prior_sigma=a.prior_sigma,
                           value=a.value, sigma=a.sigma)
+    msg.MergeFromString(b"".join(wire))
     return msg
 
 

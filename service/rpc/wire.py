@@ -20,6 +20,7 @@ from dqpose.rpc.fusion_convert import (
     measurement_columns,
     wire_measurement_error,
 )
+from dqpose.rpc.varint import packed, varint
 
 # ---- the servers' C fast paths -------------------------------------------------------------------
 
@@ -56,15 +57,6 @@ def blend_batch_wire(data: bytes, max_requests: int, max_total_poses: int, max_p
 _POSE_RECORD = np.dtype([("k", "u1"), ("n", "u1"),
                          ("pk", "u1"), ("pn", "u1"), ("p", [("k", "u1"), ("v", "<f8")], 3),
                          ("ok", "u1"), ("on", "u1"), ("o", [("k", "u1"), ("v", "<f8")], 4)])
-
-
-def _varint(v: int) -> bytes:
-    out = bytearray()
-    while v >= 0x80:
-        out.append(v & 0x7F | 0x80)
-        v >>= 7
-    out.append(v)
-    return bytes(out)
 
 
 def _pose_records(q: np.ndarray, t: np.ndarray, field: int = 1) -> np.ndarray:
@@ -109,16 +101,14 @@ def blend_request_wire(q: np.ndarray, t: np.ndarray, weights=None, method: int =
         raise ValueError(f"max_iterations: must be a whole number within 0..4294967295, "
                          f"got {max_iterations!r}")
     parts = [poses_wire(q, t)]
-    w = np.asarray([] if weights is None else weights, dtype="<f8").ravel()
-    if w.size:
-        parts += [b"\x12", _varint(8 * w.size), w.tobytes()]          # packed doubles
+    parts.append(packed(2, np.asarray([] if weights is None else weights, dtype="<f8").ravel()))
     if method:
-        parts += [b"\x18", _varint(method & 0xFFFFFFFFFFFFFFFF)]      # enum: int32 as varint
+        parts += [b"\x18", varint(method & 0xFFFFFFFFFFFFFFFF)]      # enum: int32 as varint
     tol = np.float64(tolerance).astype("<f8").tobytes()
     if tol != bytes(8):                                         # -0.0 is sent, as protobuf does
         parts += [b"\x21", tol]
     if max_iterations:
-        parts += [b"\x28", _varint(int(max_iterations))]
+        parts += [b"\x28", varint(int(max_iterations))]
     return b"".join(parts)
 
 
@@ -151,9 +141,9 @@ def blend_batch_items_wire(q: np.ndarray, t: np.ndarray, counts: np.ndarray,
     w_start = np.concatenate([[0], np.cumsum(weight_counts)])
     groups, sizes = [], np.empty(m, np.int64)
     for g, (n, k) in enumerate(shapes.tolist()):
-        whead = b"\x12" + _varint(8 * k) if k else b""
+        whead = b"\x12" + varint(8 * k) if k else b""
         body = n * size + len(whead) + 8 * k + len(tail)
-        head = b"\x0a" + _varint(body)
+        head = b"\x0a" + varint(body)
         rows = np.flatnonzero(which == g)
         items = np.empty((len(rows), len(head) + body), np.uint8)
         items[:] = np.frombuffer(head + pose * n + whead + bytes(8 * k) + tail, np.uint8)
@@ -185,12 +175,9 @@ _STAMPED_RECORD = np.dtype([("k", "u1"), ("n", "u1"), ("tk", "u1"), ("time", "<f
 def interpolate_request_wire(keyframes: bytes, times: np.ndarray, interpolation: int) -> bytes:
     """A serialized ``InterpolateRequest``: ``keyframes`` from :func:`stamped_poses_wire`, the
     ``times`` packed, then the ``interpolation`` enum."""
-    times = np.ascontiguousarray(times, dtype="<f8")
-    parts = [keyframes]
-    if times.size:
-        parts += [b"\x12", _varint(8 * times.size), times.tobytes()]
+    parts = [keyframes, packed(2, np.ravel(times))]
     if interpolation:
-        parts += [b"\x18", _varint(interpolation & 0xFFFFFFFFFFFFFFFF)]
+        parts += [b"\x18", varint(interpolation & 0xFFFFFFFFFFFFFFFF)]
     return b"".join(parts)
 
 
@@ -221,7 +208,7 @@ def messages_wire(messages: list[bytes], field: int = 1) -> bytes:
     """Serialized messages as the repeated message field ``field`` (< 16): each behind its tag
     and length, not parsed or serialized again (World.SubscribeBatches' ``FusedPoseBatch``)."""
     tag = bytes([field << 3 | 2])
-    return b"".join(part for m in messages for part in (tag, _varint(len(m)), m))
+    return b"".join(part for m in messages for part in (tag, varint(len(m)), m))
 
 
 def publish_request_wire(batch, producer: str, sequence: int) -> bytes:
@@ -232,9 +219,9 @@ def publish_request_wire(batch, producer: str, sequence: int) -> bytes:
     parts = [measurements_wire(poses, covariances, weights, names, bodies, times, field=1)]
     if producer:
         name = producer.encode()
-        parts += [b"\x12", _varint(len(name)), name]
+        parts += [b"\x12", varint(len(name)), name]
     if sequence:
-        parts += [b"\x18", _varint(sequence)]
+        parts += [b"\x18", varint(sequence)]
     return b"".join(parts)
 
 

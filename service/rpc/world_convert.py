@@ -113,6 +113,8 @@ def body_pose_msg(p, out=None):
     msg = fpb.FusedPose() if out is None else out
     if p.fused is not None:
         fused_to_msg(p.fused, p.body, p.time, msg)
+        if p.pose is p.fused.mean and p.covariance is p.fused.covariance:
+            return msg      # a body's own pose (World.pose's): the fit's, written once
         msg.ClearField("pose")
         del msg.covariance[:]
     msg.body, msg.time = p.body, float(p.time)

@@ -16,11 +16,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from dqpose import dq, fusion
-from dqpose.rpc import wire
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 from dqpose.rpc.fusion import Fusion
 from dqpose.rpc.fusion_convert import measurement_msgs, measurements_to_arrays, options_msg
 from dqpose.rpc.server import ServerConfig
+from dqpose.rpc.varint import varint
 from dqpose.rpc.wire import fuse_stream_from_wire
 from tests.rpc._mutate import damaged
 from tests.rpc.test_wire import PADS, _key, reencode
@@ -191,7 +191,7 @@ def test_what_the_c_path_leaves_to_protobuf():
     datas = [o.SerializeToString() for o in others]
     # an unknown field in a measurement, and at the request's level
     m = good(1)[0].SerializeToString() + _key(9, 1) + struct.pack("<d", 1.0)
-    datas += [_key(3, 2) + wire._varint(len(m)) + m,
+    datas += [_key(3, 2) + varint(len(m)) + m,
               plain.SerializeToString() + _key(7, 0) + b"\x01"]
     # a covariance on the edge of positive definite: LAPACK decides, not the margin
     c = np.diag([1.0, 1, 1, 1, 1, 1e-12]) * 1e-4
