@@ -38,7 +38,7 @@ from dqpose.fusion import (
 )
 from dqpose.fusion.extrinsics import _relative_covariance
 from dqpose.fusion.results import DOF, _frozen
-from dqpose.fusion.tracker import _arrays
+from dqpose.fusion.tracker import _arrays, _renumbered
 from dqpose.fusion.validation import _finite_shape, _seconds
 from dqpose.readwrite import ReadWrite
 
@@ -250,12 +250,13 @@ class World:
         return _published(bodies, errors)
 
     def ingest(self, bodies: Sequence[str], sources: Sequence[str], times, poses,
-               covariances) -> Published:
+               covariances, codes=None) -> Published:
         """:meth:`publish` of measurements given as arrays (a server's parsed request):
         ``bodies`` and ``sources`` one name each, ``times`` ``(n,)``, ``poses`` ``(n, 8)``,
         ``covariances`` ``(n, 6, 6)``; checked together in NumPy, the same checks and answers
-        as :meth:`publish` without a :class:`Measurement` per row. Arrays of the wrong shape are
-        a ``WorldError`` for the call."""
+        as :meth:`publish` without a :class:`Measurement` per row. ``codes`` ``(n,)``: the rows
+        were checked by a decoder already (``Tracker.ingest_checked``: 0 a good row, not checked
+        again). Arrays of the wrong shape are a ``WorldError`` for the call."""
         n = len(bodies)
         if len(sources) != n:
             raise WorldError(f"sources: expected {n} names, got {len(sources)}")
@@ -265,13 +266,17 @@ class World:
             covs = _finite_shape(covariances, "covariances", (n, DOF, DOF))
         except ValueError as e:
             raise WorldError(str(e)) from None
+        if codes is not None and np.shape(codes) != (n,):
+            raise WorldError(f"codes: expected shape {(n,)}, got {np.shape(codes)}")
         bodies = list(bodies)
         with self._lock.write():
-            errors = self._admit(bodies, list(sources), times, poses, covs)
+            errors = self._admit(bodies, list(sources), times, poses, covs, codes=codes)
         return _published(bodies, errors)
 
-    def _admit(self, bodies, sources, times, poses, covs, bad=None) -> dict[int, ValueError]:
-        """Rows into the tracker under the world's bounds (the lock held)."""
+    def _admit(self, bodies, sources, times, poses, covs, bad=None,
+               codes=None) -> dict[int, ValueError]:
+        """Rows into the tracker under the world's bounds (the lock held); ``codes``: as
+        :meth:`ingest` takes them."""
         errors: dict[int, ValueError] = dict(bad or {})
         b = self.bounds
         known, named = self._version, self._named
@@ -294,12 +299,12 @@ class World:
         use = [k for k in range(len(bodies)) if k not in errors]
         if use:
             idx = np.array(use)
-            refused = self._t.ingest([bodies[k] for k in use], [sources[k] for k in use],
-                                     times[idx], poses[idx], covs[idx], ids=idx)
+            rows = ([bodies[k] for k in use], [sources[k] for k in use], times[idx],
+                    poses[idx], covs[idx])
+            refused = (self._t.ingest(*rows, ids=idx) if codes is None else
+                       self._t.ingest_checked(*rows, idx, np.asarray(codes)[idx]))
             for j, e in refused:
-                k = use[j]
-                errors[k] = type(e)(str(e).replace(f"measurements[{j}]", f"measurements[{k}]",
-                                                   1))
+                errors[use[j]] = _renumbered(e, j, use[j])
             for k in use:
                 if k in errors:
                     continue

@@ -376,6 +376,27 @@ class Tracker:
                                   np.asarray(poses, np.float64),
                                   np.asarray(covariances, np.float64))[1].items())
 
+    def ingest_checked(self, bodies: Sequence[str], sources: Sequence[str], times, poses,
+                       covariances, ids, codes) -> list[tuple[int, ValueError]]:
+        """:meth:`ingest` of rows a decoder has checked by its rules (service/csrc/wire.c, for
+        StreamFuse and World.Publish): ``codes`` one a row, 0 for a row taken in unchecked
+        (:meth:`_ingest_valid`), else the check that refuses it, the row then named by this
+        tracker's own check of it alone. The same answers as :meth:`ingest`, without checking
+        the good rows again."""
+        coded = np.flatnonzero(codes).tolist()
+        n = len(bodies)
+        if not coded:           # the common case: every row taken in
+            return self._ingest_valid(bodies, sources, times, poses, covariances, ids, n)
+        refused = [(k, _renumbered(self.refusals(
+            bodies[k:k + 1], sources[k:k + 1], times[k:k + 1], poses[k:k + 1],
+            covariances[k:k + 1])[0][1], 0, k)) for k in coded]
+        good = np.flatnonzero(np.asarray(codes) == 0)
+        rows = good.tolist()
+        refused += [(rows[j], _renumbered(e, j, rows[j])) for j, e in self._ingest_valid(
+            [bodies[k] for k in rows], [sources[k] for k in rows], times[good], poses[good],
+            covariances[good], np.asarray(ids)[good], n)]
+        return sorted(refused, key=lambda x: x[0])
+
     def _ingest_valid(self, bodies, sources, times, poses, covariances, ids,
                       offered: int) -> list[tuple[int, ValueError]]:
         """:meth:`ingest` of measurements already checked by its rules, with nothing checked
@@ -525,3 +546,8 @@ class Tracker:
             errors[j] = _limits.over(
                 f"measurements[{j}]", f"the stream's windows hold {s.n} measurements", limits,
                 "max_stream_measurements")
+
+
+def _renumbered(e: ValueError, j: int, k: int) -> ValueError:
+    """``e``, about ``measurements[j]``, about ``measurements[k]`` instead (its kind kept)."""
+    return type(e)(str(e).replace(f"measurements[{j}]", f"measurements[{k}]", 1))

@@ -89,19 +89,14 @@ class Stream:
             refused = [(rows[j], e) for j, e in tracker.ingest(
                 [m.bodies[k] for k in rows], [m.sources[k] for k in rows], m.times[rows],
                 m.poses[rows], m.covariances[rows], ids=ids[rows])]
+        elif len(rows) == n:       # the common case: every row offered to the tracker
+            refused = tracker.ingest_checked(m.bodies, m.sources, m.times, m.poses,
+                                             m.covariances, ids, codes)
         else:
-            coded = codes.tolist()
-            refused = [(k, fusion.Tracker.refusals(
-                m.bodies[k:k + 1], m.sources[k:k + 1], m.times[k:k + 1], m.poses[k:k + 1],
-                m.covariances[k:k + 1])[0][1]) for k in rows if coded[k]]
-            if len(rows) == n and not refused:     # the common case: every row taken in
-                refused = tracker._ingest_valid(m.bodies, m.sources, m.times, m.poses,
-                                                m.covariances, ids, n)
-            else:
-                good = [k for k in rows if not coded[k]]
-                refused += [(good[j], e) for j, e in tracker._ingest_valid(
-                    [m.bodies[k] for k in good], [m.sources[k] for k in good], m.times[good],
-                    m.poses[good], m.covariances[good], ids[good], len(rows))]
+            rows = list(rows)
+            refused = [(rows[j], e) for j, e in tracker.ingest_checked(
+                [m.bodies[k] for k in rows], [m.sources[k] for k in rows], m.times[rows],
+                m.poses[rows], m.covariances[rows], ids[rows], codes[rows])]
         for k, e in refused:
             i = int(m.index[k])
             errors.append((i, rename(e, {"measurements": f"{field}[{i}]"})))

@@ -259,21 +259,23 @@ class Cell:
     def _apply(self, request: pb.PublishRequest, field: str, error,
                data: bytes | None = None) -> None:
         """Under the lock: the request's measurements into the world, then the answers they
-        make due. From ``data`` its measurements are decoded in C where they are plain (the
-        same rows and texts; the world checks the rows it is given either way)."""
+        make due. From ``data`` its measurements are decoded and checked in C where they are
+        plain (the same rows and texts; the rows C passed are not checked again)."""
         w = None if data is None else publish_from_wire(data)
         errors: list = []
+        codes = None
         if data is None or w is None:
             m = measurements_to_arrays(request.measurements, field, errors)
         else:
-            m, errors, _ = wire_rows(data, w, field)
+            m, errors, codes = wire_rows(data, w, field)
         for i, e in errors:
             error(i, str(e))
         ids = self.measurements + m.index
         self.measurements += len(request.measurements)
         if not len(m.index):
             return
-        published = self.world.ingest(m.bodies, m.sources, m.times, m.poses, m.covariances)
+        published = self.world.ingest(m.bodies, m.sources, m.times, m.poses, m.covariances,
+                                      codes)
         bad = published_errors(published, m.index, field)
         for i, text in bad:
             error(i, text)

@@ -175,6 +175,44 @@ def test_tracker_ingest_keeps_the_valid_measurements_and_names_the_others():
     assert np.array_equal(f.mean, g.mean) and np.array_equal(f.covariance, g.covariance)
 
 
+def test_rows_a_decoder_checked_answer_as_ingest_does():
+    """``ingest_checked`` (StreamFuse's and World.Publish's rows, checked in C): the rows coded
+    bad are named by the tracker's own check, the others taken in unchecked, a row too old for
+    the window refused still; the same errors, window and estimate as :meth:`Tracker.ingest`."""
+    rng = np.random.default_rng(76)
+    T = trajectory(lie.se3_exp(rng.normal(size=6)), False)
+    ms = stream(rng, T, end=0.3)
+    a, b = Tracker(WINDOW, sources=SOURCES), Tracker(WINDOW, sources=SOURCES)
+    head, batch = ms[:-10], ms[-10:]
+    a.add(*head)
+    b.add(*head)
+    poses = np.array([m.pose for m in batch])
+    covs = np.array([m.covariance for m in batch])
+    times = np.array([m.time for m in batch])
+    names, bodies = [m.source for m in batch], ["box"] * 10
+    poses[1, 0] = np.nan
+    covs[4, 1, 1] = -1.0
+    times[8] -= 0.5                         # a good row, too old for the window
+    bodies[9] = ""
+    codes = np.zeros(10, np.int64)
+    codes[[1, 4, 9]] = 7                    # what the decoder refused
+    ids = np.arange(100, 110)
+    want = a.ingest(bodies, names, times, poses, covs, ids=ids)
+    got = b.ingest_checked(bodies, names, times, poses, covs, ids, codes)
+    assert [k for k, _ in got] == [1, 4, 8, 9]
+    assert [(k, type(e), str(e)) for k, e in got] == [(k, type(e), str(e)) for k, e in want]
+    assert a.window_of("box").ids.tolist() == b.window_of("box").ids.tolist()
+    f, g = a.estimate("box"), b.estimate("box")
+    assert f.mean.tobytes() == g.mean.tobytes() and f.nis.tobytes() == g.nis.tobytes()
+    c = Tracker(WINDOW, sources=SOURCES)            # every row good: none checked again
+    c.add(*head)
+    assert c.ingest_checked(["box"] * 10, names, np.array([m.time for m in batch]),
+                            np.array([m.pose for m in batch]), np.array([m.covariance
+                                                                         for m in batch]),
+                            ids, np.zeros(10, np.int64)) == []
+    assert c.window_of("box").ids[-10:].tolist() == ids.tolist()
+
+
 def test_one_instant_at_its_time_is_the_static_fusion_bit_for_bit():
     rng = np.random.default_rng(75)
     X = lie.se3_exp(rng.normal(size=6))
