@@ -77,6 +77,16 @@ def test_ingest_row_fits_the_ticks_it_made_due():
     assert 300 < fits_per_s / meas_per_s * 3000 < 600, row
 
 
+def test_answer_rows_time_the_fit_and_the_message_of_each_tick():
+    rows = bw.answer_rows(300)
+    assert [r[1] for r in rows] == ["a tick's fit (World.pose)",
+                                    "its FusedPose message, serialized"]
+    assert all(float(r[2]) > 0.0 for r in rows), rows
+    ticks = int(rows[0][4].split(" ticks")[0])
+    assert 300 < ticks < 600, rows                  # as test_ingest_row_fits_the_ticks_it_made_due
+    assert int(rows[0][4].split(", ")[1].split(" measurements")[0]) > 1, rows
+
+
 def test_publish_request_rows_time_both_paths():
     rows = bw.publish_request_rows(requests=20, rounds=1, history=0.1)
     assert [r[1] for r in rows] == ["a request from its bytes (measurements decoded in C)",
