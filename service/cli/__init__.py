@@ -36,7 +36,8 @@ COMMANDS = {
                                "and faults"),
     "handeye": ("dqpose.cli.handeye",
                 "hand-eye calibration: capture views on an arm, solve from images and robot poses"),
-    "demo": ("dqpose.cli.demo", "blend and interpolate sample poses and print the results"),
+    "demo": ("dqpose.cli.demo", "the demos: blending sample poses (default), live fusion, a "
+                                "trajectory on a simulated arm, a shared world"),
     "properties": ("dqpose.cli.properties", "measure Table 1 of Kavan et al. on this build"),
     "sim": ("dqpose.cli.sim", "run a device simulator that speaks the real protocol"),
 }
