@@ -1,7 +1,9 @@
 """``dqpose demo trajectory``: plan a blended path with the Trajectories service and execute it
 on the simulated UR (the simulated controller in its own process, driven through the real
 ``ur_rtde`` client by the server's executor at 500 Hz), then print the tracking error and the
-period jitter as the controller saw it, and plot the plan against its limits.
+period jitter as the controller saw it, and plot the plan against its limits. A run that ends
+short of the plan (the executor stopped the arm) is reported too, its state and message, and
+why when the set-points reached the controller late (a busy machine); the exit status is 1.
 
 The path: from where the arm stands, the tool point goes round a 10 cm square in the horizontal
 plane, turning the tool by 30 degrees about the vertical on the way, with 2 cm blends at the
@@ -73,7 +75,7 @@ def run(target: str | None = None, progress: bool = False, recorder=None,
     from dqpose.drivers.executor import Executor
     from dqpose.drivers.rotvec import pose_from_rotvec
     from dqpose.drivers.sim import ur as ursim
-    from dqpose.rpc.client import Client
+    from dqpose.rpc.client import Client, RpcError
 
     with contextlib.ExitStack() as stack:
         sim = stack.enter_context(ursim.URSimProcess())
@@ -92,13 +94,20 @@ def run(target: str | None = None, progress: bool = False, recorder=None,
         plan = client.plan(wps, LIMITS, 1.0 / arm.period)
         mark = sim.log()["next"]
         feedback = []
-        for fb in client.execute("ur", wps, LIMITS):
-            feedback.append(fb)
+        try:
+            for fb in client.execute("ur", wps, LIMITS):
+                feedback.append(fb)
+                if progress:
+                    print(f"\r  executing: {fb.time:6.3f} / {plan.duration:.3f} s", end="",
+                          file=sys.stderr, flush=True)
+        except RpcError as e:
+            if e.feedback is None:      # refused before it ran: nothing to report on
+                raise
+            # it ran and ended short of the plan (its last record, already taken, says how):
+            # the report says so, and why when the machine shows why
+        finally:
             if progress:
-                print(f"\r  executing: {fb.time:6.3f} / {plan.duration:.3f} s", end="",
-                      file=sys.stderr, flush=True)
-        if progress:
-            print(file=sys.stderr)
+                print(file=sys.stderr)
         arrivals = servo_arrivals(sim, mark)
         period = arm.period
     moving = [f for f in feedback if f.actual is not None and f.commanded is not None]
@@ -141,13 +150,17 @@ def report(r: Result, out=None) -> None:
               f"/ {np.median(r.tracking_deg):.3f} deg, max {r.tracking_mm.max():.3f} mm / "
               f"{r.tracking_deg.max():.3f} deg (the controller follows servoL with its lookahead)",
               file=out)
+    missed = missed_cycles(r.periods, r.period)
     if len(r.periods):
         jitter = np.abs(r.periods - r.period) * 1e6
-        missed = missed_cycles(r.periods, r.period)
         print(f"  set-points at the controller: {len(r.periods) + 1}, period jitter |dt - "
               f"{r.period * 1e3:g} ms| p50 {np.percentile(jitter, 50):.0f} us, p99 "
               f"{np.percentile(jitter, 99):.0f} us, max {jitter.max():.0f} us; missed cycles "
               f"{missed}", file=out)
+    if r.state != "FINISHED" and missed:
+        print(f"  why: {missed} controller cycles got no set-point in time (a busy machine: "
+              f"the simulated controller, the arm's process and the server share its CPUs; a "
+              f"real controller runs on its own)", file=out)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -127,14 +127,47 @@ def test_demo_trajectory_runs_on_the_simulated_ur(tmp_path, capsys):
     # the server's event loop beats 0.5 s here, not the UR's 0.1 s: a loaded machine starved it
     # for 0.3 s (STALLED; the hang safety itself is tests/robustness/test_execute.py's)
     r = demo_trajectory.run(heartbeat=0.5)
-    assert r.state == "FINISHED", r.message
+    demo_trajectory.report(r)
+    out = capsys.readouterr().out
+    assert f": {r.state}" in out and "period jitter" in out, out
+    if r.state != "FINISHED":
+        # a machine too busy for the simulated controller (it shares the CPUs with the arm's
+        # process and the server): the run ends short of the plan and the report says why,
+        # from the set-points that came late
+        assert demo_trajectory.missed_cycles(r.periods, r.period) > 0, out
+        assert "why: " in out and "a busy machine" in out, out
+        return
+    assert "why: " not in out, out
     # the arm follows the plan: within a few millimetres of the set-points (servoL lookahead)
     assert 0 < np.median(r.tracking_mm) < 5.0
     # every set-point of the plan reached the controller
     assert len(r.periods) + 1 >= len(r.plan.time)
-    demo_trajectory.report(r)
-    out = capsys.readouterr().out
-    assert "FINISHED" in out and "period jitter" in out
+
+
+def test_a_run_ended_short_says_why_when_set_points_came_late():
+    """The report of a run the executor stopped: its state and message, and a reason when the
+    controller missed cycles (a busy machine); none for a run without missed cycles, and none
+    for a finished one."""
+    import io
+
+    from dqpose.cli import demo_trajectory
+    from dqpose.trajectory import Segment
+
+    seg = (Segment(0.0, 0.01, "max_linear_velocity"),)
+    on_time = np.full(4, 0.002)
+    late = np.array([0.002, 0.008, 0.002, 0.002])         # 3 cycles without a set-point
+
+    def report(state, periods):
+        out = io.StringIO()
+        demo_trajectory.report(demo_trajectory.Result(
+            state, "tracking: the arm is 0.0052 m from its set-points" if state != "FINISHED"
+            else "", 0.01, seg, None, np.array([1.0]), np.array([0.1]), periods, 0.002), out)
+        return out.getvalue()
+    text = report("TRACKING", late)
+    assert ": TRACKING (tracking: the arm is" in text and "missed cycles 3" in text, text
+    assert "why: 3 controller cycles got no set-point in time (a busy machine" in text, text
+    assert "why: " not in report("TRACKING", on_time)
+    assert "why: " not in report("FINISHED", late)
 
 
 def test_demo_trajectory_records_the_plan_and_its_execution(tmp_path, capsys):
@@ -143,16 +176,13 @@ def test_demo_trajectory_records_the_plan_and_its_execution(tmp_path, capsys):
     from dqpose.cli import main
     from dqpose.record import topics
     from dqpose.record.reader import read
-    from dqpose.rpc.client import RpcError
     from dqpose.view.timeline import timeline
     from tests.record.test_recorder import messages
 
     path = str(tmp_path / "demo.mcap")
-    try:
-        code = main(["demo", "trajectory", "--trajectory-plot", str(tmp_path / "t.png"),
-                     "--record", path])
-    except RpcError as e:      # a loaded machine starves the simulated UR: the run ends early
-        code = e
+    # 1 when a loaded machine starves the simulated UR and the run ends early
+    code = main(["demo", "trajectory", "--trajectory-plot", str(tmp_path / "t.png"),
+                 "--record", path])
     assert f"recording: {path}" in capsys.readouterr().out
     # mcap's own readers, every CRC checked
     got = {topic for topic, *_ in messages(path)}
@@ -161,7 +191,7 @@ def test_demo_trajectory_records_the_plan_and_its_execution(tmp_path, capsys):
             topics.arm_topic("ur", "feedback")} <= got
     rec = read(path)
     (execute,) = [c for c in rec.calls.values() if c.rpc.endswith("/Execute")]
-    assert execute.code == ("OK" if code == 0 else code.code.name)
+    assert (execute.code == "OK") == (code == 0), (execute.code, code)
     assert sum(e.kind == "answer" and e.call == execute.id for e in rec.events) > 1
     tl = timeline(rec)
     plan = [p for name, _, p in tl.plans if name == "ur"][-1]
