@@ -141,19 +141,23 @@ def test_tracker_bad_options_fail_at_construction():
         Tracker(0.2, sources=[Source("")])
 
 
-def test_tracker_ingest_keeps_the_valid_measurements_and_names_the_others():
-    rng = np.random.default_rng(74)
+def _two_trackers_and_a_batch(seed: int):
+    """Two trackers fed the same stream of body "box" but its last 10 measurements, and those
+    10 as arrays ``(batch, poses, covs, times, names, bodies)`` (copies, to spoil)."""
+    rng = np.random.default_rng(seed)
     T = trajectory(lie.se3_exp(rng.normal(size=6)), False)
     ms = stream(rng, T, end=0.3)
-    tracker, alone = Tracker(WINDOW, sources=SOURCES), Tracker(WINDOW, sources=SOURCES)
+    a, b = Tracker(WINDOW, sources=SOURCES), Tracker(WINDOW, sources=SOURCES)
     head, batch = ms[:-10], ms[-10:]
-    tracker.add(*head)
-    alone.add(*head)
-    poses = np.array([m.pose for m in batch])
-    covs = np.array([m.covariance for m in batch])
-    times = np.array([m.time for m in batch])
-    names = [m.source for m in batch]
-    bodies = ["box"] * 10
+    a.add(*head)
+    b.add(*head)
+    return a, b, (batch, np.array([m.pose for m in batch]),
+                  np.array([m.covariance for m in batch]), np.array([m.time for m in batch]),
+                  [m.source for m in batch], ["box"] * 10)
+
+
+def test_tracker_ingest_keeps_the_valid_measurements_and_names_the_others():
+    tracker, alone, (batch, poses, covs, times, names, bodies) = _two_trackers_and_a_batch(74)
     poses[1, 0] = np.nan
     covs[4, 1, 1] = -1.0
     times[6] = np.inf
@@ -179,17 +183,7 @@ def test_rows_a_decoder_checked_answer_as_ingest_does():
     """``ingest_checked`` (StreamFuse's and World.Publish's rows, checked in C): the rows coded
     bad are named by the tracker's own check, the others taken in unchecked, a row too old for
     the window refused still; the same errors, window and estimate as :meth:`Tracker.ingest`."""
-    rng = np.random.default_rng(76)
-    T = trajectory(lie.se3_exp(rng.normal(size=6)), False)
-    ms = stream(rng, T, end=0.3)
-    a, b = Tracker(WINDOW, sources=SOURCES), Tracker(WINDOW, sources=SOURCES)
-    head, batch = ms[:-10], ms[-10:]
-    a.add(*head)
-    b.add(*head)
-    poses = np.array([m.pose for m in batch])
-    covs = np.array([m.covariance for m in batch])
-    times = np.array([m.time for m in batch])
-    names, bodies = [m.source for m in batch], ["box"] * 10
+    a, b, (batch, poses, covs, times, names, bodies) = _two_trackers_and_a_batch(76)
     poses[1, 0] = np.nan
     covs[4, 1, 1] = -1.0
     times[8] -= 0.5                         # a good row, too old for the window
@@ -204,12 +198,9 @@ def test_rows_a_decoder_checked_answer_as_ingest_does():
     assert a.window_of("box").ids.tolist() == b.window_of("box").ids.tolist()
     f, g = a.estimate("box"), b.estimate("box")
     assert f.mean.tobytes() == g.mean.tobytes() and f.nis.tobytes() == g.nis.tobytes()
-    c = Tracker(WINDOW, sources=SOURCES)            # every row good: none checked again
-    c.add(*head)
-    assert c.ingest_checked(["box"] * 10, names, np.array([m.time for m in batch]),
-                            np.array([m.pose for m in batch]), np.array([m.covariance
-                                                                         for m in batch]),
-                            ids, np.zeros(10, np.int64)) == []
+    c, _, (_, poses, covs, times, names, bodies) = _two_trackers_and_a_batch(76)
+    # every row good: none checked again
+    assert c.ingest_checked(bodies, names, times, poses, covs, ids, np.zeros(10, np.int64)) == []
     assert c.window_of("box").ids[-10:].tolist() == ids.tolist()
 
 
