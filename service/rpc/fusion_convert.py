@@ -292,7 +292,8 @@ def fused_to_msg(f: fusion.Fused, body: str, time: float, out=None):
     msg.reasons.extend(r.reason for r in f.rejected)
     msg.chi2, msg.dof, msg.iterations = f.chi2, f.dof, f.iterations
     msg.status = STATUS_ENUMS[f.status]
-    # the arrays merged in as packed bytes: half the time of a Subscribe answer's message
+    # the arrays merged in as packed bytes, each at once rather than a Python float at a time
+    # (a Subscribe answer's message ~30 % faster, docs/benchmarks/world.md)
     wire = [packed(4, f.covariance), packed(12, f.distances), packed(13, f.nis),
             packed(14, f.tested, "u1"), packed(15, f.residuals)]
     for s in f.sources:
