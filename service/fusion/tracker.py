@@ -402,8 +402,9 @@ class Tracker:
         """:meth:`ingest` of measurements already checked by its rules, with nothing checked
         again but the window: ``times`` finite, ``poses`` unit (as ``dq.from_pose`` makes them),
         ``covariances`` the symmetric part of symmetric positive definite ones, every body named.
-        service/csrc/wire.c checks them so for StreamFuse. ``offered``: how many measurements
-        the caller had, these and those it refused (they count, as in :meth:`ingest`)."""
+        service/csrc/wire.c checks them so (:meth:`ingest_checked`). ``offered``: how many
+        measurements the caller had, these and those it refused (they count, as in
+        :meth:`ingest`)."""
         n = len(bodies)
         return self._admit(bodies, sources, times, poses, covariances, ids, np.ones(n, bool), {},
                            offered, False)
