@@ -118,8 +118,9 @@ class Limits:
         1e10, "s", "largest |time| of a measurement or a fusion time (seconds on any clock; "
                    "Unix time is 1.8e9), so that a time keeps microseconds", lo=1.0)
     max_time_jump: float = _limit(
-        60.0, "s", "StreamFuse: how far after its body's newest a measurement may be taken; "
-                   "one further is refused, unless the body's next one confirms the jump",
+        60.0, "s", "StreamFuse and World: how far after its body's newest a measurement may "
+                   "be taken; one further is refused, unless the body's next one confirms the "
+                   "jump (in a world, one from another producer while others feed the body)",
         lo=1e-9)
     max_window: int = _limit(
         1000, "measurements", "StreamFuse: measurements in one body's window (the oldest are "
@@ -177,6 +178,12 @@ def over(where: str, what: str, limits: Limits, name: str) -> OverLimit:
     return OverLimit(f"{where}: {what}, over the server's limit {name} = "
                      f"{getattr(limits, name):.6g} {f.metadata['unit']} "
                      f"(dqpose serve {flag(name)})")
+
+
+def beyond_time(where: str, t: float, limits: Limits) -> OverLimit:
+    """A time (a measurement's, a fusion time) beyond ``+-max_time``: every service's refusal of
+    it, naming ``where``."""
+    return over(where, f"{t:.6g} s is beyond +-{limits.max_time:.6g} s", limits, "max_time")
 
 
 def add_flags(parser) -> None:

@@ -236,9 +236,11 @@ class World:
         assert self._tracker is not None    # set by __init__'s configure
         return self._tracker
 
-    def publish(self, measurements: Sequence[Measurement]) -> Published:
+    def publish(self, measurements: Sequence[Measurement], producer=None) -> Published:
         """Add measurements (thread-safe); a bad one is answered in ``errors`` as
-        ``(index, message)``, the message naming ``measurements[k]``; never raised."""
+        ``(index, message)``, the message naming ``measurements[k]``; never raised.
+        ``producer``: who sent them (a body's time jump is confirmed by another producer than
+        the one that made it, ``Tracker``'s origins; None: any)."""
         measurements = list(measurements)
         poses, covs, times, bad = _arrays(measurements)
         bodies = [getattr(m, "body", "") for m in measurements]
@@ -246,17 +248,18 @@ class World:
         for k in bad:
             bodies[k] = ""          # refused already: the tracker refuses it again, unnamed
         with self._lock.write():
-            errors = self._admit(bodies, sources, times, poses, covs, bad)
+            errors = self._admit(bodies, sources, times, poses, covs, bad, producer=producer)
         return _published(bodies, errors)
 
     def ingest(self, bodies: Sequence[str], sources: Sequence[str], times, poses,
-               covariances, codes=None) -> Published:
+               covariances, codes=None, producer=None) -> Published:
         """:meth:`publish` of measurements given as arrays (a server's parsed request):
         ``bodies`` and ``sources`` one name each, ``times`` ``(n,)``, ``poses`` ``(n, 8)``,
         ``covariances`` ``(n, 6, 6)``; checked together in NumPy, the same checks and answers
         as :meth:`publish` without a :class:`Measurement` per row. ``codes`` ``(n,)``: the rows
         were checked by a decoder already (``Tracker.ingest_checked``: 0 a good row, not checked
-        again). Arrays of the wrong shape are a ``WorldError`` for the call."""
+        again). ``producer``: as :meth:`publish` takes it. Arrays of the wrong shape are a
+        ``WorldError`` for the call."""
         n = len(bodies)
         if len(sources) != n:
             raise WorldError(f"sources: expected {n} names, got {len(sources)}")
@@ -270,13 +273,14 @@ class World:
             raise WorldError(f"codes: expected shape {(n,)}, got {np.shape(codes)}")
         bodies = list(bodies)
         with self._lock.write():
-            errors = self._admit(bodies, list(sources), times, poses, covs, codes=codes)
+            errors = self._admit(bodies, list(sources), times, poses, covs, codes=codes,
+                                 producer=producer)
         return _published(bodies, errors)
 
-    def _admit(self, bodies, sources, times, poses, covs, bad=None,
-               codes=None) -> dict[int, ValueError]:
-        """Rows into the tracker under the world's bounds (the lock held); ``codes``: as
-        :meth:`ingest` takes them."""
+    def _admit(self, bodies, sources, times, poses, covs, bad=None, codes=None,
+               producer=None) -> dict[int, ValueError]:
+        """Rows into the tracker under the world's bounds (the lock held); ``codes`` and
+        ``producer``: as :meth:`ingest` takes them."""
         errors: dict[int, ValueError] = dict(bad or {})
         b = self.bounds
         known, named = self._version, self._named
@@ -301,8 +305,8 @@ class World:
             idx = np.array(use)
             rows = ([bodies[k] for k in use], [sources[k] for k in use], times[idx],
                     poses[idx], covs[idx])
-            refused = (self._t.ingest(*rows, ids=idx) if codes is None else
-                       self._t.ingest_checked(*rows, idx, np.asarray(codes)[idx]))
+            refused = (self._t.ingest(*rows, ids=idx, origin=producer) if codes is None else
+                       self._t.ingest_checked(*rows, idx, np.asarray(codes)[idx], producer))
             for j, e in refused:
                 errors[use[j]] = _renumbered(e, j, use[j])
             for k in use:

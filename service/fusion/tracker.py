@@ -105,10 +105,14 @@ class Tracker:
     ``limits`` (a server's :class:`dqpose.limits.Limits`; None: unbounded) bounds what a stream
     keeps: a body's window holds its last ``max_window`` measurements (``max_robust`` when
     robust, ``max_correlated`` with an ``acceleration_psd``), the stream
-    ``max_stream_measurements`` in all (more are refused), and a measurement taken more than
-    ``max_time_jump`` after its body's newest is refused without moving the body, unless the
-    body's next such measurement confirms the jump (a clock that really moved, a body seen
-    again after a pause): one stray stamp never poisons a body.
+    ``max_stream_measurements`` in all (more are refused), a time beyond ``+-max_time`` is
+    refused, and a measurement taken more than ``max_time_jump`` after its body's newest is
+    refused without moving the body, unless the body's next such measurement confirms the jump
+    (a clock that really moved, a body seen again after a pause): one stray stamp never poisons
+    a body. Rows may name their ``origin`` (a World's producer; None: a stream, its bodies' one
+    producer): a jump is then confirmed only by another origin, or by the same one while no
+    other fed the body within ``max_time_jump`` of its newest, so one producer's clock never
+    takes a body away from the others feeding it.
     """
 
     def __init__(self, window: float, *, sources: Optional[Iterable[Source]] = None,
@@ -146,8 +150,10 @@ class Tracker:
         self._exact = np.empty(0, dtype=bool)
         self._all_exact = all(src.exact for src in self._table.values())
         self._count = 0            # measurements offered so far: the default ids
-        # per body code: the time of its last refused jump, which a second one near it confirms
-        self._jumps: dict[int, float] = {}
+        # per body code: the time and origin of its last refused jump, which a second one near
+        # it confirms; and the two origins that fed it last, each with its newest taken time
+        self._jumps: dict[int, tuple[float, Any]] = {}
+        self._feeders: dict[int, list[tuple[Any, float]]] = {}
         self.cap = None            # measurements a body's window holds (None: all)
         if limits is not None:
             correlated = acceleration_psd is not None and np.any(acceleration_psd)
@@ -205,6 +211,8 @@ class Tracker:
         s = self._store
         s.keep(s.body[:s.n] != b)
         self._newest[b] = -math.inf
+        self._jumps.pop(b, None)
+        self._feeders.pop(b, None)
         del self._active[body]
 
     def add(self, *measurements: Measurement) -> None:
@@ -219,17 +227,19 @@ class Tracker:
             raise errors[0][1]
 
     def ingest(self, bodies: Sequence[str], sources: Sequence[str], times, poses,
-               covariances=None, *, ids=None) -> list[tuple[int, ValueError]]:
+               covariances=None, *, ids=None, origin=None) -> list[tuple[int, ValueError]]:
         """Add measurements given as arrays: ``bodies`` and ``sources`` (one name each),
         ``times`` ``(n,)`` (stamps), ``poses`` ``(n, 8)`` (``T_frame_body``), ``covariances``
         ``(n, 6, 6)`` (``None``: identity), and the caller's numbers ``ids`` ``(n,)`` (default:
-        counting every measurement offered to this tracker), which :meth:`window_of` returns.
-        Every valid measurement is kept; returned are ``(k, ValueError)`` for the others, each
-        naming ``measurements[k]`` and the problem (a time that is not finite, a pose that is not
-        a unit rigid motion, a covariance that is not symmetric positive definite, a time taken
-        further back than the window). Arrays of the wrong shape are a ``ValueError`` for the
+        counting every measurement offered to this tracker), which :meth:`window_of` returns;
+        ``origin`` who sent them (the class's docstring). Every valid measurement is kept;
+        returned are ``(k, ValueError)`` for the others, each naming ``measurements[k]`` and the
+        problem (a time that is not finite, a pose that is not a unit rigid motion, a covariance
+        that is not symmetric positive definite, a time taken further back than the window, or
+        beyond the limits). Arrays of the wrong shape are a ``ValueError`` for the
         call."""
-        return self._ingest(bodies, sources, times, poses, covariances, ids, all_or_none=False)
+        return self._ingest(bodies, sources, times, poses, covariances, ids, all_or_none=False,
+                            origin=origin)
 
     def estimate(self, body: str, time: Optional[float] = None) -> Fused:
         """``body``'s pose at ``time`` (default: its newest measurement's) from its window."""
@@ -353,7 +363,8 @@ class Tracker:
                                                                      -math.inf)])
         return code
 
-    def _ingest(self, bodies, sources, times, poses, covariances, ids, all_or_none: bool):
+    def _ingest(self, bodies, sources, times, poses, covariances, ids, all_or_none: bool,
+                origin=None):
         n = len(bodies)
         if len(sources) != n:
             raise ValueError(f"sources: expected {n} names, got {len(sources)}")
@@ -365,7 +376,8 @@ class Tracker:
         if ids.shape != (n,):
             raise ValueError(f"ids: expected shape {(n,)}, got {ids.shape}")
         ok, errors, covs = _check_rows(bodies, sources, times, poses, covs)
-        return self._admit(bodies, sources, times, poses, covs, ids, ok, errors, n, all_or_none)
+        return self._admit(bodies, sources, times, poses, covs, ids, ok, errors, n, all_or_none,
+                           origin)
 
     @staticmethod
     def refusals(bodies, sources, times, poses, covariances) -> list[tuple[int, ValueError]]:
@@ -377,7 +389,7 @@ class Tracker:
                                   np.asarray(covariances, np.float64))[1].items())
 
     def ingest_checked(self, bodies: Sequence[str], sources: Sequence[str], times, poses,
-                       covariances, ids, codes) -> list[tuple[int, ValueError]]:
+                       covariances, ids, codes, origin=None) -> list[tuple[int, ValueError]]:
         """:meth:`ingest` of rows a decoder has checked by its rules (service/csrc/wire.c, for
         StreamFuse and World.Publish): ``codes`` one a row, 0 for a row taken in unchecked
         (:meth:`_ingest_valid`), else the check that refuses it, the row then named by this
@@ -386,7 +398,7 @@ class Tracker:
         coded = np.flatnonzero(codes).tolist()
         n = len(bodies)
         if not coded:           # the common case: every row taken in
-            return self._ingest_valid(bodies, sources, times, poses, covariances, ids, n)
+            return self._ingest_valid(bodies, sources, times, poses, covariances, ids, n, origin)
         refused = [(k, _renumbered(self.refusals(
             bodies[k:k + 1], sources[k:k + 1], times[k:k + 1], poses[k:k + 1],
             covariances[k:k + 1])[0][1], 0, k)) for k in coded]
@@ -394,11 +406,11 @@ class Tracker:
         rows = good.tolist()
         refused += [(rows[j], _renumbered(e, j, rows[j])) for j, e in self._ingest_valid(
             [bodies[k] for k in rows], [sources[k] for k in rows], times[good], poses[good],
-            covariances[good], np.asarray(ids)[good], n)]
+            covariances[good], np.asarray(ids)[good], n, origin)]
         return sorted(refused, key=lambda x: x[0])
 
     def _ingest_valid(self, bodies, sources, times, poses, covariances, ids,
-                      offered: int) -> list[tuple[int, ValueError]]:
+                      offered: int, origin=None) -> list[tuple[int, ValueError]]:
         """:meth:`ingest` of measurements already checked by its rules, with nothing checked
         again but the window: ``times`` finite, ``poses`` unit (as ``dq.from_pose`` makes them),
         ``covariances`` the symmetric part of symmetric positive definite ones, every body named.
@@ -407,12 +419,12 @@ class Tracker:
         :meth:`ingest`)."""
         n = len(bodies)
         return self._admit(bodies, sources, times, poses, covariances, ids, np.ones(n, bool), {},
-                           offered, False)
+                           offered, False, origin)
 
     def _admit(self, bodies, sources, times, poses, covs, ids, ok, errors, offered: int,
-               all_or_none: bool):
+               all_or_none: bool, origin=None):
         """Checked measurements (``ok``; ``errors`` those refused so far) into the windows: the
-        window-floor check, then the store."""
+        limits' time checks, the window-floor check, then the store."""
         every = bool(ok.all())
         # known sources and bodies by plain look-ups (the common case), else coded on the way
         codes: Any = [self._codes.get(s) for s in sources] if every else [None]
@@ -427,7 +439,8 @@ class Tracker:
         body = np.array(body, dtype=np.int64)
         taken = times - (self._latency[codes] if self._names else 0.0)
         if self.limits is not None:
-            self._jump_check(bodies, sources, times, body, taken, ok, errors)
+            self._time_check(times, ok, errors)
+            self._jump_check(bodies, sources, times, body, taken, ok, errors, origin)
             every = bool(ok.all())
         # Taken no further back than the window before the body's newest, counting the earlier
         # measurements of the same call: checked at once against the newest of the whole call,
@@ -454,15 +467,11 @@ class Tracker:
         if all_or_none and errors:
             return [min(errors.items())]
         self._count += offered
-        if every and not late:
-            self._newest = newest     # the maxima over these rows, taken above
-            self._store.append(self._newest, self.window, self.cap, ids=ids, body=body,
-                               codes=codes, times=times, taken=taken, poses=poses, covs=covs,
-                               **self._in_world(sources, poses, covs))
-            for b in bodies:
-                self._active.setdefault(b, None)
-        elif ok.all():
-            np.maximum.at(self._newest, body, taken)
+        if ok.all():
+            if every and not late:
+                self._newest = newest     # the maxima over these rows, taken above
+            else:
+                np.maximum.at(self._newest, body, taken)
             self._store.append(self._newest, self.window, self.cap, ids=ids, body=body,
                                codes=codes, times=times, taken=taken, poses=poses, covs=covs,
                                **self._in_world(sources, poses, covs))
@@ -477,8 +486,9 @@ class Tracker:
                                **self._in_world([sources[k] for k in kept], poses[ok], covs[ok]))
             for k in kept:
                 self._active.setdefault(bodies[k], None)
+        if origin is not None and ok.any():
+            self._fed_by(origin, body[ok], taken[ok])
         return sorted(errors.items())
-
 
     def _in_world(self, sources, poses, covs) -> dict:
         """Checked rows in the world frame as :func:`~dqpose.fusion.fuse` brings them there (the
@@ -488,11 +498,44 @@ class Tracker:
         return {"wposes": wposes, "wcovs": wcovs} if "wcovs" in self._store._arrays else {
             "wposes": wposes}
 
-    def _jump_check(self, bodies, sources, times, body, taken, ok, errors) -> None:
+    def _time_check(self, times, ok, errors) -> None:
+        """Refuses (in ``ok`` and ``errors``) the rows stamped beyond ``+-max_time``: before the
+        jump check, so that no such time moves a body, first or confirmed."""
+        limits = self.limits
+        assert limits is not None       # called only for a tracker with limits
+        for k in np.flatnonzero(ok & (np.abs(times) > limits.max_time)).tolist():
+            ok[k] = False
+            errors[k] = _limits.beyond_time(f"measurements[{k}].time", float(times[k]), limits)
+
+    def _fed_by(self, origin, body: np.ndarray, taken: np.ndarray) -> None:
+        """``origin`` fed the bodies ``body`` (codes) measurements taken at ``taken``: each
+        body's two latest origins kept, each with its newest (enough to find whether any origin
+        but one fed it lately)."""
+        codes, inverse = np.unique(body, return_inverse=True)
+        newest = np.full(len(codes), -math.inf)
+        np.maximum.at(newest, inverse, taken)
+        for b, t in zip(codes.tolist(), newest.tolist()):
+            latest = [(o, u) for o, u in self._feeders.get(b, ()) if o != origin]
+            mine = max([t] + [u for o, u in self._feeders.get(b, ()) if o == origin])
+            self._feeders[b] = sorted(latest + [(origin, mine)], key=lambda x: -x[1])[:2]
+
+    def _confirms(self, b: int, by, origin, newest: float) -> bool:
+        """Whether a row of ``origin`` confirms body ``b``'s pending jump, which ``by`` made
+        (``newest``: the body's newest taken): any row of a stream (origin None), else one of
+        another origin, or of ``by`` itself while no other fed the body within
+        ``max_time_jump`` of its newest (then it moves only what it fed)."""
+        if origin is None or origin != by:
+            return True
+        assert self.limits is not None
+        floor = newest - self.limits.max_time_jump
+        return not any(o != origin and u >= floor for o, u in self._feeders.get(b, ()))
+
+    def _jump_check(self, bodies, sources, times, body, taken, ok, errors, origin=None) -> None:
         """Refuses (in ``ok`` and ``errors``) the rows taken more than ``max_time_jump`` after
         their body's newest measurement, the earlier rows of the call counted (for a body new
         to the stream, its earliest row of the call is the reference), unless the row confirms
-        the body's last refused jump by lying within ``max_time_jump`` of it."""
+        the body's last refused jump by lying within ``max_time_jump`` of it (and by its
+        ``origin``, :meth:`_confirms`)."""
         limits = self.limits
         assert limits is not None       # called only for a tracker with limits
         jump = limits.max_time_jump
@@ -517,17 +560,19 @@ class Tracker:
                 current[b] = max(cur, t)
                 continue
             pending = self._jumps.get(b)
-            if pending is not None and abs(t - pending) <= jump:
+            if (pending is not None and abs(t - pending[0]) <= jump
+                    and self._confirms(b, pending[1], origin, cur)):
                 del self._jumps[b]       # a second measurement confirms it: the body moves on
                 current[b] = t
                 continue
-            self._jumps[b] = t
+            self._jumps[b] = (t, origin)
             ok[k] = False
+            who = "" if self._confirms(b, origin, origin, cur) else " from another producer"
             errors[k] = _limits.over(
                 f"measurements[{k}]", f"body {bodies[k]!r}, source {sources[k]!r}, time "
                 f"{float(times[k])!r}: taken {t - cur:.6g} s after the newest measurement of "
-                f"the body, so not used (a second measurement near it would confirm the jump)",
-                limits, "max_time_jump")
+                f"the body, so not used (a second measurement near it{who} would confirm the "
+                f"jump)", limits, "max_time_jump")
 
     def _room(self, ok, errors) -> None:
         """Refuses the rows that would take the stream past ``max_stream_measurements`` live

@@ -71,18 +71,12 @@ class Stream:
         errors = []
         if self.known is not None and not self.known.issuperset(m.sources):
             errors = unknown_sources(m, self.options, field)
-        far = np.abs(m.times) > self.limits.max_time
-        if far.any():
-            errors += [(k, limits.over(
-                f"{field}[{int(m.index[k])}].time", f"{float(m.times[k]):.6g} s is beyond "
-                f"+-{self.limits.max_time:.6g} s", self.limits, "max_time"))
-                for k in np.flatnonzero(far).tolist()]
         if errors:
             bad = {k for k, _ in errors}
             errors = [(int(m.index[k]), e) for k, e in errors]
             rows: Sequence[int] = [k for k in range(n) if k not in bad]
         else:
-            rows = range(n)     # the common case: every source listed, every time in range
+            rows = range(n)     # the common case: every source listed
         tracker = self.tracker
         if codes is None:
             rows = list(rows)

@@ -462,11 +462,9 @@ def _check_times(times: np.ndarray, index: np.ndarray, field: str, options: Opti
     far = np.flatnonzero(np.abs(times) > bound)
     if len(far):
         k = int(far[0])
-        raise limits.over(f"{field}[{int(index[k])}].time", f"{float(times[k]):.6g} s is "
-                          f"beyond +-{bound:.6g} s", bounds, "max_time")
+        raise limits.beyond_time(f"{field}[{int(index[k])}].time", float(times[k]), bounds)
     if abs(options.time) > bound:
-        raise limits.over("options.time", f"{options.time:.6g} s is beyond +-{bound:.6g} s",
-                          bounds, "max_time")
+        raise limits.beyond_time("options.time", options.time, bounds)
 
 
 def _check_fit_size(field: str, n: int, options: Options, bounds: limits.Limits) -> None:

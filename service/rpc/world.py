@@ -231,7 +231,7 @@ class Cell:
             too_many = over_count(field, len(request.measurements), self.max_poses,
                                   "measurements")
             if too_many is None:
-                self._apply(request, field, error, data)
+                self._apply(request, field, error, data, producer)
             else:
                 error(-1, f"{too_many}; none was used")
             self.requests += 1
@@ -257,10 +257,11 @@ class Cell:
         return self.publish(request, r, request.producer or anonymous, data)
 
     def _apply(self, request: pb.PublishRequest, field: str, error,
-               data: bytes | None = None) -> None:
-        """Under the lock: the request's measurements into the world, then the answers they
-        make due. From ``data`` its measurements are decoded and checked in C where they are
-        plain (the same rows and texts; the rows C passed are not checked again)."""
+               data: bytes | None = None, producer: str | None = None) -> None:
+        """Under the lock: the request's measurements (of ``producer``) into the world, then the
+        answers they make due. From ``data`` its measurements are decoded and checked in C
+        where they are plain (the same rows and texts; the rows C passed are not checked
+        again)."""
         w = None if data is None else publish_from_wire(data)
         errors: list = []
         codes = None
@@ -275,7 +276,7 @@ class Cell:
         if not len(m.index):
             return
         published = self.world.ingest(m.bodies, m.sources, m.times, m.poses, m.covariances,
-                                      codes)
+                                      codes, producer)
         bad = published_errors(published, m.index, field)
         for i, text in bad:
             error(i, text)
