@@ -12,6 +12,8 @@ import argparse
 import importlib
 import sys
 
+from dqpose.cli.shell import PIPE_CLOSED, Parser, PipeClosed, guarded_stdout, silence_stdout
+
 # command -> (module, help); in the order the help lists them
 COMMANDS = {
     "serve": ("dqpose.cli.serve", "run the gRPC server"),
@@ -54,7 +56,7 @@ def _chosen(argv: list[str]) -> str | None:
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     """The parser, with the arguments of the command in ``argv`` (of every command when
     ``argv`` is None: for documentation and tests)."""
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="dqpose",
         description="Average, fuse and interpolate rigid poses with dual quaternions.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -68,11 +70,18 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    args = build_parser(argv).parse_args(argv)
+    before = guarded_stdout()
     try:
-        return int(args.func(args) or 0)
+        args = build_parser(argv).parse_args(argv)
+        code = int(args.func(args) or 0)
+        sys.stdout.flush()      # what is still buffered: a closed pipe is found here, not at exit
+        return code
     except KeyboardInterrupt:
         return 130
+    except PipeClosed:
+        return PIPE_CLOSED
+    finally:
+        sys.stdout = before
 
 
 def run() -> None:
@@ -81,6 +90,8 @@ def run() -> None:
     ends without the interpreter's teardown, which their threads can crash (SIGSEGV after a
     clean stop)."""
     code = main()
+    if code == PIPE_CLOSED:
+        silence_stdout()
     ur = sys.modules.get("dqpose.drivers.ur_connection")
     if ur is not None and ur.kept_to_exit():
         import logging

@@ -9,7 +9,7 @@ from dqpose.cli.common import client, connection_args, failure
 
 
 def configure(name: str, p) -> None:
-    p.description = ("The arms of the server at --target (those `dqpose serve --arm` opened): "
+    p.description = ("The arms of the server at --server (those `dqpose serve --arm` opened): "
                      "where each tool is (T_base_tool), how fast it moves, its run's state, its "
                      "limits and faults.")
     sub = p.add_subparsers(dest="action", required=True, metavar="ACTION")

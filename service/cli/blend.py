@@ -39,7 +39,7 @@ def configure(name: str, p) -> None:
         from dqpose.dq import METHODS  # NumPy and the C core: only for this command's help
 
         methods = "".join(f"  {m:8s}{spec.description}\n" for m, spec in METHODS.items())
-        p.description = "Blend the poses in FILE into one (on the server at --target, or --local)."
+        p.description = "Blend the poses in FILE into one (on the server at --server, or --local)."
         p.epilog = (POSE_FORMATS % (BLEND_JSON, "poses", BLEND_CSV)
                     + "\nmethods (--method):\n" + methods
                     + "\nexample: dqpose blend --method dlb poses.csv")
@@ -53,7 +53,7 @@ def configure(name: str, p) -> None:
         func = _blend
     else:
         p.description = ("Sample the motion through the keyframes in FILE (on the server at "
-                         "--target, or --local). Times outside the keyframe range are an error: "
+                         "--server, or --local). Times outside the keyframe range are an error: "
                          "the motion is never extrapolated.")
         p.epilog = (POSE_FORMATS % (INTERPOLATE_JSON, "keyframes", INTERPOLATE_CSV)
                     + "\nexample: dqpose interpolate --step 0.002 --mode tool_linear keyframes.csv")

@@ -34,10 +34,13 @@ def read(path: str, mode: str = "rb") -> bytes:
         return f.read()
 
 
-def connection_args(p: argparse.ArgumentParser) -> None:
+def connection_args(p: argparse.ArgumentParser, target_alias: bool = True) -> None:
+    """The options of a command that calls a server. ``--target`` (the flag's old name) stays an
+    alias where no positional is named TARGET: one would read as the other."""
     g = p.add_argument_group("server connection")
-    g.add_argument("--target", default="127.0.0.1:50051",
-                   help="server address (default: %(default)s)")
+    g.add_argument("--server", *(["--target"] if target_alias else []), dest="server",
+                   default="127.0.0.1:50051", metavar="HOST:PORT",
+                   help="the server's address (default: %(default)s)")
     g.add_argument("--token-file", help="file holding the bearer token")
     g.add_argument("--tls-ca", metavar="PEM",
                    help="CA certificate to verify the server (enables TLS)")
@@ -53,7 +56,7 @@ def client(args):
     from dqpose.rpc.client import Client
 
     token = read(args.token_file, "r").strip() if args.token_file else None
-    return Client(args.target, token=token, tls=args.tls,
+    return Client(args.server, token=token, tls=args.tls,
                   root_certificates=read(args.tls_ca) if args.tls_ca else None,
                   certificate_chain=read(args.cert) if args.cert else None,
                   private_key=read(args.key) if args.key else None, timeout=args.timeout,
@@ -74,7 +77,7 @@ def failure(cmd: str, args, e: Exception) -> int:
         if isinstance(e, RequestTooLarge) or code == "RESOURCE_EXHAUSTED":
             return fail(cmd, f"{e}; or compute it in this process with --local")
         if code in ("UNAVAILABLE", "DEADLINE_EXCEEDED"):
-            return fail(cmd, f"no answer from the server at {args.target} ({e}); start one "
+            return fail(cmd, f"no answer from the server at {args.server} ({e}); start one "
                              f"with `dqpose serve`, or add --local")
         if code is not None:
             return fail(cmd, str(e))

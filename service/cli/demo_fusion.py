@@ -394,7 +394,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--plot", default="fusion_demo.png", metavar="PATH",
                    help="where to write the PNG plot (default fusion_demo.png; needs matplotlib)")
-    g.add_argument("--target", default=None,
+    g.add_argument("--server", "--target", dest="server", default=None,
                    help="a running dqpose server (host:port); default: start one in process")
 
 
@@ -415,10 +415,10 @@ def main(args: argparse.Namespace) -> int:
     recorder = None
     if args.record is not None:
         from dqpose.cli.demo_record import open_file_recorder
-        recorder, code = open_file_recorder("demo fusion", args.record, args.target)
+        recorder, code = open_file_recorder("demo fusion", args.record, args.server)
         if recorder is None:
             return code
-    result = run(args.steps, seed=args.seed, target=args.target, out=sys.stdout,
+    result = run(args.steps, seed=args.seed, target=args.server, out=sys.stdout,
                  recorder=recorder)
     if recorder is not None:
         from dqpose.cli.demo_record import finish

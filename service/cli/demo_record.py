@@ -17,7 +17,7 @@ def open_file_recorder(cmd: str, path: str, target: str | None):
     from dqpose.errors import MissingExtra
 
     if target is not None:
-        return None, fail(cmd, "--record: records the demo's own server; not with --target")
+        return None, fail(cmd, "--record: records the demo's own server; not with --server")
     if os.path.exists(path):
         return None, fail(cmd, f"--record {path}: exists already")
     try:

@@ -171,7 +171,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    target = getattr(args, "target", None)
+    target = getattr(args, "server", None)
     path, recorder = getattr(args, "record", None), None
     if path is not None:
         from dqpose.cli.demo_record import finish, open_file_recorder

@@ -89,7 +89,7 @@ def main(args: argparse.Namespace, out=None) -> int:
     rng = np.random.default_rng(0)
     cov = np.diag(np.repeat(np.square(ARM_SIGMA), 3))
     with contextlib.ExitStack() as stack:
-        target = getattr(args, "target", None) or stack.enter_context(local_server())
+        target = getattr(args, "server", None) or stack.enter_context(local_server())
         sim = stack.enter_context(URSimProcess())
         sim.set_pose(np.array(HOME))
         spec = f"ur:{sim.host}"

@@ -60,7 +60,7 @@ example: dqpose fuse --robust --local measurements.csv
 def configure(name: str, p) -> None:
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.description = ("Fuse the measurements of one body in FILE into its maximum-likelihood pose "
-                     "with a covariance (on the server at --target, or --local).")
+                     "with a covariance (on the server at --server, or --local).")
     p.epilog = EPILOG
     p.add_argument("file", metavar="FILE",
                    help="measurements (JSON, YAML or CSV; - reads standard input)")

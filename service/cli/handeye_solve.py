@@ -44,7 +44,7 @@ def add_parser(sub) -> None:
     from dqpose.handeye import SETUPS  # NumPy and the C core: only for this command's help
     s = sub.add_parser("solve", help="solve from a folder of images and robot poses",
                        description="Detect the board in every image of DIR, solve hand-eye "
-                                   "with the robot poses (on the server at --target, or "
+                                   "with the robot poses (on the server at --server, or "
                                    "--local) and write a report.",
                        formatter_class=argparse.RawDescriptionHelpFormatter,
                        epilog=SOLVE_EPILOG)

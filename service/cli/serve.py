@@ -300,7 +300,7 @@ def _health(args) -> int:
     except OSError as e:
         return fail("health", str(e))
     except RpcError as e:
-        print(f"dqpose health: {args.target}: {e.code.name}", file=sys.stderr)
+        print(f"dqpose health: {args.server}: {e.code.name}", file=sys.stderr)
         return 1
     print(status)
     return 0 if status == "SERVING" else 1

@@ -65,7 +65,7 @@ def configure(name: str, p) -> None:
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     if name == "plan":
         p.description = ("Plan the fastest motion through the waypoints in FILE that the limits "
-                         "allow (on the server at --target, or --local) and print its samples.")
+                         "allow (on the server at --server, or --local) and print its samples.")
         p.epilog = PLAN_EPILOG
         p.add_argument("file", metavar="FILE",
                        help="waypoints (JSON, YAML or CSV; - reads standard input)")
@@ -75,7 +75,7 @@ def configure(name: str, p) -> None:
                        help="tool point on straight lines (default), or screw motions (ScLERP)")
     else:
         p.description = ("Smooth the noisy recorded path in FILE (fidelity plus jerk) under the "
-                         "velocity and acceleration limits (on the server at --target, or "
+                         "velocity and acceleration limits (on the server at --server, or "
                          "--local) and print it.")
         p.epilog = SMOOTH_EPILOG
         p.add_argument("file", metavar="FILE",

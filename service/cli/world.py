@@ -45,13 +45,12 @@ def configure(name: str, p) -> None:
     watch.add_argument("--count", type=int, default=0,
                        help="stop after this many answers (0: until Ctrl-C)")
     look = sub.add_parser("lookup", help="the pose of SOURCE in TARGET's frame")
-    # dests of their own: --target is the server's address
     look.add_argument("frame_target", metavar="TARGET", help="a body, or world")
     look.add_argument("frame_source", metavar="SOURCE", help="a body, or world")
     look.add_argument("--time", type=float, default=0.0,
                       help="measurement time, s (0: the newest both are known at)")
     for q in (pub, watch, look):
-        connection_args(q)
+        connection_args(q, target_alias=q is not look)
         q.add_argument("--world", default="", metavar="NAME",
                        help="the named world on the server (x-dqpose-world; default: the "
                             "server's default world)")

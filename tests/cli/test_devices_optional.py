@@ -60,7 +60,7 @@ def test_server_and_health_run_without_device_libraries():
         first = server.stderr.readline()
         assert json.loads(first)["event"] == "serving", first
         target = json.loads(first)["address"]
-        health = _dqpose("health", "--target", target, "--timeout", "20")
+        health = _dqpose("health", "--server", target, "--timeout", "20")
         out, err = health.communicate(timeout=60)
         assert (health.returncode, out.strip()) == (0, "SERVING"), err
         assert "blocked import" not in err

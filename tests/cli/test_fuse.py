@@ -51,7 +51,7 @@ def test_csv_with_sigmas_on_the_server_and_local(server, capsys, tmp_path):
     S = np.array([np.diag(s * s) for s in sd])
     # stamped 10 ms apart: fused with time alignment (the body's twist estimated with it)
     want = fusion.fuse(Z, S, names=names, robust=True, times=0.01 * np.arange(5))
-    code, out, err = run(capsys, "fuse", "--robust", "--target", server.target, "--format",
+    code, out, err = run(capsys, "fuse", "--robust", "--server", server.target, "--format",
                          "json", str(path))
     assert code == 0, err
     doc = json.loads(out)
@@ -61,7 +61,7 @@ def test_csv_with_sigmas_on_the_server_and_local(server, capsys, tmp_path):
     assert doc["rejected"] == [3] and doc["rejected_sources"] == ["cam2"]
     assert doc["reasons"] == [want.rejected[0].reason] and doc["time"] == pytest.approx(0.04)
     # the text for people, identical from the server and in process
-    code, text, _ = run(capsys, "fuse", "--robust", "--target", server.target, str(path))
+    code, text, _ = run(capsys, "fuse", "--robust", "--server", server.target, str(path))
     code_local, text_local, _ = run(capsys, "fuse", "--robust", "--local", str(path))
     assert code == code_local == 0 and text == text_local
     assert "rejected:\n  measurement 3 (cam2): Mahalanobis distance" in text
@@ -89,7 +89,7 @@ def test_json_grpcurl_body_with_frames(server, capsys, tmp_path):
     want = fusion.fuse(Z, S, names=["cam"] * 3, sources=[Source("cam", extrinsic=E)])
     assert_pose(pose_of(got), want.mean)
     assert got["body"] == "box" and got["status"] == "FUSION_STATUS_CONVERGED"
-    code, remote, _ = run(capsys, "fuse", "--target", server.target, "--format", "json", str(path))
+    code, remote, _ = run(capsys, "fuse", "--server", server.target, "--format", "json", str(path))
     assert code == 0 and remote == out
     # a bare list of measurements, grpcurl's camelCase names are fine too
     path.write_text(json.dumps(doc["measurements"]))
@@ -110,7 +110,7 @@ def test_json_grpcurl_body_with_frames(server, capsys, tmp_path):
 def test_bad_input_names_the_measurement(server, capsys, tmp_path, csv, message):
     path = tmp_path / "bad.csv"
     path.write_text(csv)
-    for where in (["--local"], ["--target", server.target]):
+    for where in (["--local"], ["--server", server.target]):
         code, out, err = run(capsys, "fuse", *where, str(path))
         assert code == 2 and out == ""
         assert err.startswith(f"dqpose fuse: error: {message}"), err
@@ -186,7 +186,7 @@ def test_time_alignment_options_and_output(server, capsys, tmp_path):
     assert [d["index"] for d in doc["dropped"]] == [4] and doc["dropped"][0]["source"] == "a"
     assert doc["time"] == 0.03 and doc["twist"][3] == pytest.approx(0.1, abs=1e-9)
     assert doc["pose"]["position"]["x"] == pytest.approx(0.103, abs=1e-9)
-    code, remote, _ = run(capsys, *args[:-1], "--target", server.target, str(path))
+    code, remote, _ = run(capsys, *args[:-1], "--server", server.target, str(path))
     assert code == 0 and json.loads(remote)["dropped"] == doc["dropped"]
     code, text, _ = run(capsys, "fuse", "--local", "--max-skew", "0.1", "--time", "0.03",
                         str(path))
@@ -215,7 +215,7 @@ def test_acceleration_psd_option(server, capsys, tmp_path):
     assert_pose(pose_of(doc), want.mean, atol=1e-12)
     np.testing.assert_allclose(np.reshape(doc["covariance"], (6, 6)), want.covariance,
                                rtol=1e-12)
-    code, remote, _ = run(capsys, *args[:-1], "--target", server.target,
+    code, remote, _ = run(capsys, *args[:-1], "--server", server.target,
                           "--acceleration-psd", "0.01", "0.1", str(path))
     assert code == 0
     np.testing.assert_allclose(json.loads(remote)["covariance"], doc["covariance"], rtol=1e-12)

@@ -73,7 +73,7 @@ def test_capture_writes_what_solve_reads(eye_in_hand):
 def test_solve_on_the_server_recovers_the_truth(eye_in_hand, server, capsys, tmp_path):
     out = {k: str(tmp_path / n) for k, n in (("report", "r.txt"), ("plot", "p.png"),
                                              ("json", "r.json"))}
-    code, stdout, err = run(capsys, "handeye", "solve", eye_in_hand, "--target", server.target,
+    code, stdout, err = run(capsys, "handeye", "solve", eye_in_hand, "--server", server.target,
                             "--report", out["report"], "--plot", out["plot"], "-o", out["json"])
     assert code == 0, err
     _check_against_truth(eye_in_hand, out["json"])
@@ -89,7 +89,7 @@ def test_solve_on_the_server_recovers_the_truth(eye_in_hand, server, capsys, tmp
 
 def test_corner_level_on_the_server(eye_in_hand, server, capsys, tmp_path):
     result = str(tmp_path / "r.json")
-    code, stdout, err = run(capsys, "handeye", "solve", eye_in_hand, "--target", server.target,
+    code, stdout, err = run(capsys, "handeye", "solve", eye_in_hand, "--server", server.target,
                             "--corners", "--refine-focal", "-o", result,
                             "--report", str(tmp_path / "r.txt"), "--plot", str(tmp_path / "p.png"))
     assert code == 0, err
@@ -137,7 +137,7 @@ def test_unusable_views_are_refused_naming_the_images(eye_in_hand, server, capsy
     doc["poses"] = doc["poses"][:2]
     with open(os.path.join(folder, "poses.json"), "w") as f:
         json.dump(doc, f)
-    code, _, err = run(capsys, "handeye", "solve", folder, "--target", server.target)
+    code, _, err = run(capsys, "handeye", "solve", folder, "--server", server.target)
     assert code == 2
     assert "FAILED_PRECONDITION" in err and "at least 3" in err
     code, _, err = run(capsys, "handeye", "solve", folder, "--local")
@@ -149,7 +149,7 @@ def test_unusable_views_are_refused_naming_the_images(eye_in_hand, server, capsy
         p["base_to_flange"] = doc["poses"][0]["base_to_flange"]
     with open(os.path.join(folder, "poses.json"), "w") as f:
         json.dump(doc, f)
-    code, _, err = run(capsys, "handeye", "solve", folder, "--target", server.target)
+    code, _, err = run(capsys, "handeye", "solve", folder, "--server", server.target)
     assert code == 2 and "FAILED_PRECONDITION" in err and "samples 0, 1" in err, err
     assert "pairs[0] = view_000.png, pairs[1] = view_001.png" in err
 
@@ -180,7 +180,7 @@ def test_refusals_before_any_work(capsys, tmp_path, eye_in_hand):
     assert code == 2 and "already holds a capture" in err
     code, _, err = run(capsys, "handeye", "solve", str(tmp_path / "none"), "--local")
     assert code == 2 and "DIR: no such folder" in err
-    code, _, err = run(capsys, "handeye", "solve", eye_in_hand, "--target", "127.0.0.1:1",
+    code, _, err = run(capsys, "handeye", "solve", eye_in_hand, "--server", "127.0.0.1:1",
                        "--timeout", "2")
     assert code == 2 and "no answer from the server at 127.0.0.1:1" in err
 

@@ -368,7 +368,7 @@ def test_rounded_quaternions_are_taken_and_garbage_is_refused_saying_how_far(tmp
     (tmp_path / "exact.csv").write_text(exact)
     (tmp_path / "rounded.csv").write_text(rounded)
     (tmp_path / "bad.csv").write_text(exact.replace(repr(H), "0.7"))   # 0.0101 off
-    args = ["--local"] if where == "--local" else ["--target", server.target]
+    args = ["--local"] if where == "--local" else ["--server", server.target]
     want = dqpose("blend", "exact.csv", *args, cwd=tmp_path)
     assert want[0] == 0, want
     got = dqpose("blend", "rounded.csv", *args, cwd=tmp_path)

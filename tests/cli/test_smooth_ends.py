@@ -57,7 +57,7 @@ def test_smooth_says_the_ends_are_held_at_rest_and_free_ends_follows_the_data(tm
                                                                               where):
     path = tmp_path / "moving.csv"
     t, truth = _recording(path)
-    extra = ["--local"] if where == "local" else ["--target", server.target]
+    extra = ["--local"] if where == "local" else ["--server", server.target]
 
     rest = _dqpose("smooth", str(path), *LIMIT_FLAGS, *extra)
     assert rest.returncode == 0, rest.stderr

@@ -50,7 +50,7 @@ def test_plan_csv_prints_the_samples_the_domain_plans(tmp_path, capsys, server, 
     path = tmp_path / "path.csv"
     _csv(path)
     png = tmp_path / "plan.png"
-    extra = ["--local"] if where == "local" else ["--target", server.target]
+    extra = ["--local"] if where == "local" else ["--server", server.target]
     code, out, err = run(capsys, "plan", str(path), "--rate", "250", "--plot", str(png),
                          *LIMIT_FLAGS, *extra)
     assert code == 0, err
@@ -113,7 +113,7 @@ def test_smooth_csv_local_and_server_agree_with_the_domain(tmp_path, capsys, ser
         for k in range(len(t)):
             f.write(",".join(repr(float(v)) for v in [t[k], *p[k], *q[k]]) + "\n")
     want_t, want = smoothing.smooth(t, dq.from_pose(q, p), LIMITS)
-    for extra in (["--local"], ["--target", server.target]):
+    for extra in (["--local"], ["--server", server.target]):
         code, out, err = run(capsys, "smooth", str(path), *LIMIT_FLAGS, *extra)
         assert code == 0, err
         got_t, got, _ = _read_samples(out)

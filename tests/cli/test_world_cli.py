@@ -47,11 +47,11 @@ def printed_pose(out: str) -> np.ndarray:
 
 def test_publish_then_lookup_answers_what_fuse_computes(server, capsys, tmp_path):
     Z, times = write_csv(tmp_path / "m.csv", 12, 1)
-    code, out, err = run(capsys, "world", "publish", "--target", server.target, "--batch", "5",
+    code, out, err = run(capsys, "world", "publish", "--server", server.target, "--batch", "5",
                          str(tmp_path / "m.csv"))
     assert code == 0, err
     assert "published 12 measurements in 3 requests" in out and "acked through 3, 0 errors" in out
-    code, out, err = run(capsys, "world", "lookup", "--target", server.target, "world", "box")
+    code, out, err = run(capsys, "world", "lookup", "--server", server.target, "world", "box")
     assert code == 0, err
     want = fusion.fuse(Z, np.repeat(np.diag(SD ** 2)[None], len(Z), 0), names=["cam"] * len(Z),
                        times=times)
@@ -61,34 +61,34 @@ def test_publish_then_lookup_answers_what_fuse_computes(server, capsys, tmp_path
 
 def test_world_names_the_world_published_into_and_looked_up_in(server, capsys, tmp_path):
     write_csv(tmp_path / "m.csv", 4, 3)
-    code, out, err = run(capsys, "world", "publish", "--target", server.target, "--world",
+    code, out, err = run(capsys, "world", "publish", "--server", server.target, "--world",
                          "cell-7", str(tmp_path / "m.csv"))
     assert code == 0, err
-    code, out, err = run(capsys, "world", "lookup", "--target", server.target, "--world",
+    code, out, err = run(capsys, "world", "lookup", "--server", server.target, "--world",
                          "cell-7", "world", "box")
     assert code == 0, err
     # the default world never saw it
-    code, out, err = run(capsys, "world", "lookup", "--target", server.target, "world", "box")
+    code, out, err = run(capsys, "world", "lookup", "--server", server.target, "world", "box")
     assert code == 2 and "box" in err, err
 
 
 def test_publish_names_what_is_missing_and_lookup_an_unknown_body(server, capsys, tmp_path):
     write_csv(tmp_path / "m.csv", 3, 2, body=None)
-    code, out, err = run(capsys, "world", "publish", "--target", server.target,
+    code, out, err = run(capsys, "world", "publish", "--server", server.target,
                          str(tmp_path / "m.csv"))
     assert code == 2 and "measurements[0].body: none given" in err
-    code, out, err = run(capsys, "world", "lookup", "--target", server.target, "world", "cup")
+    code, out, err = run(capsys, "world", "lookup", "--server", server.target, "world", "cup")
     assert code == 2 and "cup" in err
 
 
 def test_watch_prints_a_row_per_answer(server, tmp_path):
     watch = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "world", "watch", "box",
-                              "--count", "3", "--target", server.target], cwd=ROOT,
+                              "--count", "3", "--server", server.target], cwd=ROOT,
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert wait_until(lambda: server.running.servicers[0].cell("").subscriptions, timeout=60)
         write_csv(tmp_path / "m.csv", 8, 3)
-        subprocess.run([sys.executable, "-m", "dqpose.cli", "world", "publish", "--target",
+        subprocess.run([sys.executable, "-m", "dqpose.cli", "world", "publish", "--server",
                         server.target, "--batch", "1", str(tmp_path / "m.csv")], cwd=ROOT,
                        check=True, capture_output=True, timeout=60)
         out, err = watch.communicate(timeout=60)

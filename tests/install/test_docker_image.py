@@ -86,7 +86,7 @@ def test_the_image_install_serves_without_extras(tmp_path):
     cwd = str(tmp_path / "run")
     os.makedirs(cwd)
     with serving(venv, *cmd[1:], "--host", "127.0.0.1", "--port", "0", cwd=cwd) as address:
-        target = check.index("--target") + 1
+        target = check.index("--server") + 1
         health = venv.run(*check[:target], address, *check[target + 1:], cwd=cwd)
         assert health.stdout.strip() == "SERVING"
         check_bare_server(address, hint("planning", "dqpose"))

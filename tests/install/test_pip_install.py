@@ -44,15 +44,15 @@ def clone(tmp_path_factory):
 def test_the_server_answers_every_service_that_needs_no_extra(clone):
     venv, src = clone
     with serving(venv, "--port", "0", cwd=src) as address:
-        health = venv.run("dqpose", "health", "--target", address, cwd=src)
+        health = venv.run("dqpose", "health", "--server", address, cwd=src)
         assert health.stdout.strip() == "SERVING"
         check_bare_server(address, hint("planning", "."))
         # the CLI of this install, through its client: the server's answer, exit 2
-        smooth = venv.run("dqpose", "smooth", "recording.csv", "--target", address, *LIMIT_FLAGS,
+        smooth = venv.run("dqpose", "smooth", "recording.csv", "--server", address, *LIMIT_FLAGS,
                           cwd=src, check=False)
         assert smooth.returncode == 2, smooth
         assert smooth.stderr.strip().endswith(hint("planning", ".")), smooth.stderr
-        blend = venv.run("dqpose", "blend", "path.csv", "--target", address, cwd=src)
+        blend = venv.run("dqpose", "blend", "path.csv", "--server", address, cwd=src)
         assert blend.stdout.splitlines()[0] == "x,y,z,qw,qx,qy,qz"
 
 

@@ -238,7 +238,7 @@ def _csv_pose(text):
 
 def test_cli_blend_csv_on_the_server_matches_local(server, token_file, pose_files):
     dqs, csv_path, _ = pose_files
-    remote = dqpose("blend", csv_path, "--target", server.target, "--token-file", token_file)
+    remote = dqpose("blend", csv_path, "--server", server.target, "--token-file", token_file)
     local = dqpose("blend", csv_path, "--local")
     assert remote.returncode == 0 and local.returncode == 0, remote.stderr + local.stderr
     want = dq.dib(dqs, [1.0, 2.0, 3.0])
@@ -261,7 +261,7 @@ def test_cli_interpolate_from_stdin_csv(server, token_file):
     keys = ("t,x,y,z,qw,qx,qy,qz\n0,0,0,0,1,0,0,0\n"
             "1,0.3,0,0,0.7071067811865476,0,0,0.7071067811865476\n")
     res = dqpose("interpolate", "-", "--step", "0.25", "--mode", "tool_linear",
-                 "--target", server.target, "--token-file", token_file, stdin=keys)
+                 "--server", server.target, "--token-file", token_file, stdin=keys)
     assert res.returncode == 0, res.stderr
     rows = np.loadtxt(res.stdout.splitlines()[1:], delimiter=",")
     np.testing.assert_allclose(rows[:, 0], [0, 0.25, 0.5, 0.75, 1.0])
@@ -298,20 +298,20 @@ def test_cli_errors_are_one_line_and_exit_2(args, stdin, message):
 
 def test_cli_server_errors_and_unreachable_server(server, token_file):
     zero = "0,0,0,0,0,0,0\n0,0,0,1,0,0,0\n"
-    res = dqpose("blend", "-", "--target", server.target, "--token-file", token_file,
+    res = dqpose("blend", "-", "--server", server.target, "--token-file", token_file,
                  stdin=zero.replace("0,0,0,0,0,0,0", "0,0,0,1,0,0,0"))
     assert res.returncode == 0, res.stderr
-    res = dqpose("blend", "-", "--target", server.target, stdin="0,0,0,1,0,0,0\n")
+    res = dqpose("blend", "-", "--server", server.target, stdin="0,0,0,1,0,0,0\n")
     assert res.returncode == 2 and "UNAUTHENTICATED" in res.stderr
-    res = dqpose("blend", "-", "--target", "127.0.0.1:1", "--timeout", "2", stdin="0,0,0,1,0,0,0\n")
+    res = dqpose("blend", "-", "--server", "127.0.0.1:1", "--timeout", "2", stdin="0,0,0,1,0,0,0\n")
     assert res.returncode == 2
     assert res.stderr.startswith("dqpose blend: error: no answer from the server at 127.0.0.1:1")
 
 
 def test_cli_health(server):
-    res = dqpose("health", "--target", server.target)
+    res = dqpose("health", "--server", server.target)
     assert res.returncode == 0 and res.stdout.strip() == "SERVING"
-    res = dqpose("health", "--target", "127.0.0.1:1", "--timeout", "1")
+    res = dqpose("health", "--server", "127.0.0.1:1", "--timeout", "1")
     assert res.returncode == 1
 
 
@@ -319,7 +319,7 @@ def test_cli_interpolate_at_a_fine_step_is_split_and_matches_local(server, token
     keys = ("t,x,y,z,qw,qx,qy,qz\n0,0,0,0,1,0,0,0\n"
             "2,0.3,0,0,0.7071067811865476,0,0,0.7071067811865476\n")
     args = ("interpolate", "-", "--step", "0.0001", "--format", "csv")
-    remote = dqpose(*args, "--target", server.target, "--token-file", token_file, stdin=keys)
+    remote = dqpose(*args, "--server", server.target, "--token-file", token_file, stdin=keys)
     local = dqpose(*args, "--local", stdin=keys)
     assert remote.returncode == 0, remote.stderr
     got = np.loadtxt(remote.stdout.splitlines()[1:], delimiter=",")
@@ -333,7 +333,7 @@ def test_cli_oversize_input_names_local(server, token_file, tmp_path):
     keys = tmp_path / "many.csv"
     keys.write_text("t,x,y,z,qw,qx,qy,qz\n"
                     + "".join(f"{i},0,0,0,1,0,0,0\n" for i in range(10_001)))
-    res = dqpose("interpolate", str(keys), "--times", "0.5", "--target", server.target,
+    res = dqpose("interpolate", str(keys), "--times", "0.5", "--server", server.target,
                  "--token-file", token_file)
     assert res.returncode == 2
     assert res.stderr.startswith("dqpose interpolate: error: dqs_k: 10001 keyframes exceed the "
