@@ -13,6 +13,9 @@ writes ROS 2 bags).
 """
 from __future__ import annotations
 
+import errno
+import os
+
 from dqpose.errors import require
 
 
@@ -33,8 +36,9 @@ class _NullCall:
 class NullRecorder:
     """The recorder of a server that records nothing: the same calls, each doing nothing."""
 
-    dropped = written = 0
+    dropped = written = failed = 0
     files: list = []
+    failure = None
     #: whether anything is recorded (a caller skips work only a recording needs)
     recording = False
 
@@ -45,6 +49,9 @@ class NullRecorder:
         pass
 
     def note(self, topic: str, title: str, data: dict) -> None:
+        pass
+
+    def watch(self, changed) -> None:
         pass
 
     def close(self, timeout: float = 0.0) -> None:
@@ -76,6 +83,43 @@ def parse_address(text: str | None) -> tuple[str, int]:
     if not port.isdigit() or not 0 <= int(port) <= 65535:
         raise ValueError(f"--live: expected HOST:PORT with a port within 0..65535, got {text!r}")
     return host, int(port)
+
+
+#: the health service (grpc.health.v1) that says whether the recording's files are written:
+#: NOT_SERVING while they fail (a full disk), the server's own "" staying SERVING
+HEALTH_SERVICE = "dqpose.record"
+
+#: bytes a probe of a recording's directory writes (about a chunk: what the next write needs)
+PROBE_BYTES = 16 << 10
+
+
+def cannot_write(directory: str) -> OSError | None:
+    """Why no file can be written into ``directory`` now (read-only, no permission, full), found
+    by writing and removing a probe file of :data:`PROBE_BYTES`; ``None`` when one can."""
+    import tempfile
+
+    try:
+        fd, path = tempfile.mkstemp(prefix=".dqpose-probe-", dir=directory)
+    except OSError as e:
+        return e
+    try:
+        left = memoryview(bytes(PROBE_BYTES))
+        while left:
+            left = left[os.write(fd, left):]
+        return None
+    except OSError as e:
+        return e
+    finally:
+        os.close(fd)
+        os.unlink(path)
+
+
+def describe(error: BaseException) -> str:
+    """An OS error as its text and symbol (``No space left on device (ENOSPC)``), another as
+    its text."""
+    if isinstance(error, OSError) and error.errno is not None and error.errno in errno.errorcode:
+        return f"{error.strerror or error} ({errno.errorcode[error.errno]})"
+    return str(error) or type(error).__name__
 
 
 class LiveFailed(Exception):

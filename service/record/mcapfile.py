@@ -22,13 +22,49 @@ LIBRARY = "dqpose"
 CHUNK_BYTES = 16 << 10
 
 
+class _Out:
+    """The file the SDK writes through: the SDK logs a failed write and goes on (every later
+    message failing too) without telling the caller, so the first ``OSError`` is kept here
+    (:attr:`McapFile.error`) for the writer to see."""
+
+    def __init__(self, path: str):
+        self._f = open(path, "xb", buffering=0)      # x: never over another file
+        self.error: OSError | None = None
+
+    def write(self, data) -> int:
+        try:
+            return self._f.write(data)
+        except OSError as e:
+            self.error = self.error or e
+            raise
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        return self._f.seek(offset, whence)
+
+    def flush(self) -> None:
+        pass
+
+    def close(self) -> None:
+        self._f.close()
+
+
 class McapFile(Sink):
     def __init__(self, path: str | os.PathLike, chunk_size: int = CHUNK_BYTES):
         super().__init__()
         self.path = os.fspath(path)
-        self._writer = foxglove.open_mcap(
-            self.path, allow_overwrite=False, context=self._context,
-            writer_options=MCAPWriteOptions(chunk_size=chunk_size, compression_threads=0))
+        self._out = _Out(self.path)
+        try:
+            self._writer = foxglove.open_mcap(
+                self._out, context=self._context,
+                writer_options=MCAPWriteOptions(chunk_size=chunk_size, compression_threads=0))
+        except BaseException:
+            self._out.close()
+            raise
+
+    @property
+    def error(self) -> OSError | None:
+        """The first write that failed (the file is cut there: nothing after it is written)."""
+        return self._out.error
 
     @property
     def size(self) -> int:
@@ -41,4 +77,7 @@ class McapFile(Sink):
     def close(self) -> None:
         """The last chunk, the summary (indexes, statistics) and the footer."""
         self.close_channels()
-        self._writer.close()
+        try:
+            self._writer.close()
+        finally:
+            self._out.close()

@@ -9,6 +9,13 @@ When the writer falls behind (the pipe is full, the buffer reaches ``queue`` mes
 ``max_buffer`` bytes), what comes is dropped and counted (:attr:`Recorder.dropped`), and once
 there is room again a marker goes where the messages are missing (``/dqpose/record/dropped``),
 which the writer logs and a replay stops at. An RPC never waits for the disk.
+
+When the files cannot be written (a full disk, a read-only one), the writer says so once, with the
+cause (``recording_failed``, logged here), and counts what it cannot write
+(:attr:`Recorder.failed`); :attr:`Recorder.failure` says why until a new file can be written
+(``recording_resumed``; it begins with the marker of what was lost), and :meth:`Recorder.watch`
+hears each change (the server's health service ``dqpose.record``). A directory that cannot be
+written at all is refused at the start.
 """
 from __future__ import annotations
 
@@ -22,7 +29,7 @@ import sys
 import threading
 import time
 
-from dqpose.record import LiveFailed, frames
+from dqpose.record import LiveFailed, cannot_write, frames
 from dqpose.record.schemas import descriptor_set
 
 log = logging.getLogger("dqpose.record")
@@ -72,7 +79,12 @@ class Recorder:
     hands over what is waiting and waits for the file to be finished.
 
     ``stall`` is a test hook: while it is set nothing is handed to the writer (a disk that
-    hangs)."""
+    hangs).
+
+    Counted in messages (schemas aside): :attr:`written` to the files (or the live server alone),
+    as the writer last told (every 0.25 s at most); :attr:`dropped` before the writer, the
+    recording behind; :attr:`failed` lost because the files could not be written or the writer
+    ended. ``OSError`` when ``directory`` cannot be written into."""
 
     recording = True
 
@@ -90,6 +102,8 @@ class Recorder:
         self.directory = None if directory is None else os.fspath(directory)
         if self.directory is not None:
             os.makedirs(self.directory, exist_ok=True)
+            if (e := cannot_write(self.directory)) is not None:
+                raise OSError(e.errno, f"cannot write into it: {e.strerror or e}")
         #: the live server's port once it listens
         self.live_port: int | None = None
         self._live_said = threading.Event()
@@ -97,8 +111,13 @@ class Recorder:
         self.capacity, self.max_buffer = queue, max_buffer
         self.stall = threading.Event()
         self.files: list[str] = []
-        self.written = 0            # messages handed to the writer
+        self.written = 0            # messages written, as the writer last told
+        self.handed = 0             # messages handed to the writer
         self.dropped = 0
+        self._failed = [0, 0]       # lost: as the writer last told, and here (the writer gone)
+        #: why the files are not written now (None: they are)
+        self.failure: str | None = None
+        self._watchers: list = []
         self._buf = bytearray()
         self._lengths: collections.deque = collections.deque()   # of the frames in _buf
         self._head = 0              # bytes of _lengths[0] written already
@@ -110,6 +129,7 @@ class Recorder:
         self._schemas: set[str] = set()
         self._flushed = 0.0
         self._closed = False
+        self._gone = False          # the writer ended before close
         self._proc = subprocess.Popen(
             [sys.executable, "-m", "dqpose.record.writer", self.directory or "", str(max_bytes),
              repr(float(max_seconds)), *([f"{live[0]}:{live[1]}"] if live else [])],
@@ -181,6 +201,20 @@ class Recorder:
         with self._lock:
             self._put_locked(None, frames.NOTE, 0, time.time_ns(), payload)
 
+    @property
+    def failed(self) -> int:
+        return self._failed[0] + self._failed[1]
+
+    def watch(self, changed) -> None:
+        """``changed()`` is called (from a thread of the recorder's) each time :attr:`failure`
+        changes."""
+        self._watchers.append(changed)
+
+    def _set_failure(self, why: str | None) -> None:
+        self.failure = why
+        for changed in self._watchers:
+            changed()
+
     def _put(self, rec, kind: int, call: int, payload: bytes) -> bool:
         with self._lock:
             return self._put_locked(rec, kind, call, time.time_ns(), payload)
@@ -190,6 +224,9 @@ class Recorder:
                 or self._closed)
 
     def _put_locked(self, rec, kind: int, call: int, ns: int, payload: bytes) -> bool:
+        if self._gone:
+            self._failed[1] += 1
+            return False
         if self._full() or (rec is not None and not rec.alive):
             if not self._gap:
                 self._gap_ns = ns
@@ -220,10 +257,7 @@ class Recorder:
         except BlockingIOError:
             return
         except (BrokenPipeError, ValueError, OSError):     # the writer is gone
-            if not self._closed:
-                log.error(json.dumps({"event": "recording_failed",
-                                      "error": "the writer process ended"}))
-            self._closed = True
+            self._writer_gone()
             return
         del self._buf[:n]
         n += self._head
@@ -232,9 +266,19 @@ class Recorder:
             size = lengths.popleft()
             n -= abs(size)
             if size > 0:
-                self.written += 1
+                self.handed += 1
                 self._pending -= 1
         self._head = n
+
+    def _writer_gone(self) -> None:
+        """The writer process ended before the recorder closed: what waits and what comes is
+        lost (counted failed), said once."""
+        if self._closed:
+            return
+        self._closed = self._gone = True
+        self._failed[1] += self._pending
+        log.error(json.dumps({"event": "recording_failed", "error": "the writer process ended"}))
+        self._set_failure("the writer process ended")
 
     def _flush_periodically(self) -> None:
         """What came last before a pause (the servicers' own puts flush while messages come)."""
@@ -254,22 +298,33 @@ class Recorder:
             except ValueError:
                 log.warning(json.dumps({"event": "recording_output", "line": text}))
                 continue
-            if event.get("event") == "recording":
+            kind = event.get("event")
+            if kind == "recording_counts":
+                self.written, self._failed[0] = event["written"], event["failed"]
+            elif kind == "recording":
                 self.files.append(event["file"])
                 log.info(text)
-            elif event.get("event") == "recording_dropped":
+            elif kind == "recording_dropped":
                 log.warning(text)
-            elif event.get("event") == "live":
+            elif kind == "recording_failed":
+                log.error(text)
+                self._set_failure(event["error"])
+            elif kind == "recording_resumed":
+                log.warning(text)
+                self._set_failure(None)
+            elif kind == "live":
                 self.live_port = event["port"]
                 log.info(text)
                 self._live_said.set()
-            elif event.get("event") == "live_failed":
+            elif kind == "live_failed":
                 self._live_error = event["error"]
                 log.error(text)
                 self._live_said.set()
             else:
                 log.error(text)
         self._live_said.set()       # the writer ended
+        with self._lock:
+            self._writer_gone()
 
     def close(self, timeout: float = 30.0) -> None:
         """Hands over what is waiting (unless stalled), then waits for the writer to finish

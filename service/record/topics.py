@@ -3,7 +3,8 @@ from __future__ import annotations
 
 #: the call log: one JSON object a call's beginning (with what it records) and end
 CALLS_TOPIC = "/dqpose/calls"
-#: where messages are missing (the recorder fell behind)
+#: where messages are missing (the recorder fell behind, or the files could not be written:
+#: ``error`` says why)
 DROPPED_TOPIC = "/dqpose/record/dropped"
 TF_TOPIC = "/tf"
 ELLIPSOIDS_TOPIC = "/fused/ellipsoids"
@@ -40,7 +41,8 @@ def arm_topic(arm: str, what: str) -> str:
 CALL_FIELDS = {"call": "integer", "rpc": "string", "event": "string",
                "request_type": "string", "answer_type": "string", "code": "string",
                "details": "string", "continued": "boolean", "world": "string"}
-DROPPED_FIELDS = {"first_dropped": "integer", "count": "integer", "resumed": "integer"}
+DROPPED_FIELDS = {"first_dropped": "integer", "count": "integer", "resumed": "integer",
+                  "error": "string"}
 STATS_FIELDS = {"body": "string", "time": "number", "chi2": "number", "dof": "integer",
                 "sigma_position": "number", "sigma_rotation": "number"}
 FEEDBACK_FIELDS = {"time": "number", "state": "string", "message": "string",

@@ -2,11 +2,14 @@
 [HOST:PORT]``): frames (:mod:`dqpose.record.frames`) on standard input, MCAP files in DIR (an
 empty DIR: none), rotated by size and age, and the same channels on the live WebSocket server at
 HOST:PORT when given (:mod:`dqpose.record.live`); JSON lines on standard output for the server
-to log (``recording``: a file opened, ``recording_dropped``: a drop marker written, ``live``:
-the live server listens, with its port, or ``live_failed``, after which the process ends). Its
-own process, so that neither the writing nor the views nor the compression nor the live
-server's clients take the server's interpreter lock. Ends, the file finished, when its input
-does.
+to log (``recording``: a file opened, ``recording_dropped``: a drop marker written,
+``recording_failed``: the files cannot be written, with the cause, said once until
+``recording_resumed``: a new file takes the frames again, behind a marker of those lost;
+``recording_counts``: the frames written and lost so far, at most every :data:`COUNTS_PERIOD` s;
+``live``: the live server listens, with its port, or ``live_failed``, after which the process
+ends). Its own process, so that neither the writing nor the views nor the compression nor the
+live server's clients take the server's interpreter lock. Ends, the file finished, when its
+input does.
 """
 from __future__ import annotations
 
@@ -18,7 +21,7 @@ import sys
 import time
 from typing import Any
 
-from dqpose.record import frames, handeye, parse_address, views
+from dqpose.record import cannot_write, describe, frames, handeye, parse_address, views
 from dqpose.record.live import LiveServer
 from dqpose.record.mcapfile import CHUNK_BYTES, McapFile
 from dqpose.record.schemas import message_class
@@ -47,6 +50,12 @@ def say(**event) -> None:
     print(json.dumps(event), flush=True)
 
 
+#: while the files cannot be written, a new one is tried this often (s), once a probe file can be
+RETRY_PERIOD = 1.0
+#: the frames written and lost are told the server at most this often (s)
+COUNTS_PERIOD = 0.25
+
+
 class Writer:
     """Writes what comes into the MCAP files of ``directory`` (``None``: no files) and the live
     server ``live`` (``None``: none): the same channels, built here once for both."""
@@ -68,25 +77,73 @@ class Writer:
         # the request of a call whose answers' views need it (an Execute's arm, a Calibrate's
         # views and setup)
         self.requests: dict[int, Any] = {}
+        # frames (schemas aside) a file took, and those lost because no file could be written
+        # (a file's last chunk, being filled when its write failed, is lost with it uncounted)
+        self.written = self.failed = 0
+        # while the files cannot be written: [why, ns of the first frame lost, frames lost]
+        self.failure: list | None = None
+        self.retry_at = 0.0
+        self.told = (0, 0, 0.0)     # the counts last told the server, and when
 
-    def open(self) -> McapFile:
+    def open(self) -> McapFile | None:
+        """The file frames go to (a new one when there is none); ``None`` while files cannot be
+        written (tried again every :data:`RETRY_PERIOD` s)."""
         if self.file is None:
             assert self.directory is not None
+            if self.failure is not None:
+                if time.monotonic() < self.retry_at:
+                    return None
+                if cannot_write(self.directory) is not None:
+                    self.retry_at = time.monotonic() + RETRY_PERIOD
+                    return None
             path = os.path.join(self.directory, f"{self.run}-{self.count:04d}.mcap")
             self.count += 1
-            self.file = McapFile(path, chunk_size=min(CHUNK_BYTES,
-                                                      max(self.max_bytes // 8, 1024)))
+            try:
+                self.file = McapFile(path, chunk_size=min(CHUNK_BYTES,
+                                                          max(self.max_bytes // 8, 1024)))
+            except (OSError, RuntimeError) as e:
+                self.fail(e, time.time_ns(), path)
+                return None
             self.opened = time.monotonic()
             say(event="recording", file=path)
+            if self.failure is not None:
+                self.resume(self.file)
             for call, began in self.calls.items():
                 self.log_call((self.file,), call, time.time_ns(), *began, continued=True)
         return self.file
 
+    def fail(self, error: BaseException, ns: int, path: str | None = None) -> None:
+        """The files cannot be written (``error``, found at frame time ``ns``): the file is
+        given up (cut where its writes failed), said once until a new one can be written."""
+        if self.file is not None:
+            path = self.file.path
+            try:
+                self.file.close()
+            except (OSError, RuntimeError):
+                pass
+            self.file = None
+        self.retry_at = time.monotonic() + RETRY_PERIOD
+        if self.failure is None:
+            self.failure = [describe(error), ns, 0]
+            say(event="recording_failed", file=path, error=self.failure[0])
+
+    def resume(self, file: McapFile) -> None:
+        """A file takes frames again: it begins with the marker of those lost."""
+        why, first, count = self.failure or ("", 0, 0)
+        self.failure = None
+        ns = time.time_ns()
+        file.write_json(file.json_channel(DROPPED_TOPIC, "dqpose.record.Dropped",
+                                          DROPPED_FIELDS), ns,
+                        {"first_dropped": first, "count": count, "resumed": ns, "error": why})
+        say(event="recording_resumed", file=file.path, lost=count, first_lost=first,
+            error=why)
+
     def sinks(self) -> list[Sink]:
-        """Where a message goes: the file (opened when there is none) and the live server."""
+        """Where a message goes: the file (opened when there is none and files can be written)
+        and the live server."""
         out: list[Sink] = []
-        if self.directory is not None:
-            out.append(self.open())
+        if self.directory is not None and (f := self.open()) is not None:
+            out.append(f)
         if self.live is not None:
             out.append(self.live)
         return out
@@ -99,7 +156,10 @@ class Writer:
         if f is None or self.frames % every:
             return
         if f.size >= self.max_bytes or time.monotonic() - self.opened >= self.max_seconds:
-            f.close()
+            try:
+                f.close()
+            except (OSError, RuntimeError) as e:
+                self.fail(f.error or e, time.time_ns())
             self.file = None
 
     @staticmethod
@@ -122,6 +182,34 @@ class Writer:
         return cls.FromString(data)      # type: ignore[attr-defined]
 
     def write(self, kind: int, call: int, ns: int, payload: bytes) -> None:
+        """One frame to every sink; counted written, or lost when the files fail."""
+        lost = False
+        try:
+            self.put(kind, call, ns, payload)
+        except Exception as e:     # one message lost, not the recording
+            say(event="recording_message_failed", kind=kind, error=repr(e))
+            lost = True
+        if self.file is not None and self.file.error is not None:
+            self.fail(self.file.error, ns)
+        if kind != frames.SCHEMA:
+            if self.failure is not None:
+                if not self.failure[2]:
+                    self.failure[1] = ns
+                self.failure[2] += 1
+                lost = True
+            self.failed += lost
+            self.written += not lost
+        self.rotate_if_due(16 if self.max_bytes >= 1 << 20 else 1)
+
+    def tell_counts(self, now: float, force: bool = False) -> None:
+        """``recording_counts`` when they changed, at most every :data:`COUNTS_PERIOD` s."""
+        written, failed, when = self.told
+        if (self.written, self.failed) != (written, failed) and (
+                force or now - when >= COUNTS_PERIOD):
+            self.told = (self.written, self.failed, now)
+            say(event="recording_counts", written=self.written, failed=self.failed)
+
+    def put(self, kind: int, call: int, ns: int, payload: bytes) -> None:
         if kind == frames.SCHEMA:
             name, data = frames.unnamed(payload)
             self.schemas[name] = data
@@ -192,7 +280,6 @@ class Writer:
             name, data = frames.unnamed(payload)
             for s in self.sinks():
                 s.write(s.channel(plan_topic(name), views.PosesInFrame), ns, data)
-        self.rotate_if_due(16 if self.max_bytes >= 1 << 20 else 1)
 
     @staticmethod
     def views(s: Sink, ns: int, msg) -> None:
@@ -270,7 +357,10 @@ class Writer:
 
     def close(self) -> None:
         if self.file is not None:
-            self.file.close()
+            try:
+                self.file.close()
+            except (OSError, RuntimeError) as e:
+                self.fail(self.file.error or e, time.time_ns())
             self.file = None
         if self.live is not None:
             self.live.close()
@@ -308,18 +398,20 @@ def main(argv: list[str]) -> int:
             ready, _, _ = select.select([fd], [], [], 0.05)
             if not ready:
                 w.rotate_if_due()
+                if w.failure is not None:
+                    w.open()        # a file again once one can be written, frames or none
+                w.tell_counts(time.monotonic())
                 continue
             data = os.read(fd, 1 << 20)
             if not data:
                 break
             buffer += data
             for kind, call, ns, payload in frames.read_frames(buffer):
-                try:
-                    w.write(kind, call, ns, payload)
-                except Exception as e:     # one message lost, not the recording
-                    say(event="recording_failed", kind=kind, error=repr(e))
+                w.write(kind, call, ns, payload)
+            w.tell_counts(time.monotonic())
     finally:
         w.close()
+        w.tell_counts(time.monotonic(), force=True)
     return 0
 
 

@@ -124,16 +124,35 @@ class Health(health_pb2_grpc.HealthServicer):
     def __init__(self) -> None:
         self._status: dict[str, int] = {}
         self._changed = asyncio.Condition()
-        self._closed = False
+        self._closed = self._stopping = False
 
     async def set(self, service: str, status: int) -> None:
         async with self._changed:
-            self._status[service] = status
-            self._changed.notify_all()
+            if not self._stopping:
+                self._status[service] = status
+                self._changed.notify_all()
+
+    async def follow(self, recorder) -> None:
+        """``dqpose.record``: SERVING while the recording's files are written, NOT_SERVING while
+        they fail (``recorder.failure``), whichever thread of the recorder's hears it."""
+        loop = asyncio.get_running_loop()
+        ok, failing = health_pb2.HealthCheckResponse.SERVING, \
+            health_pb2.HealthCheckResponse.NOT_SERVING
+
+        def status() -> int:
+            return ok if recorder.failure is None else failing
+
+        def changed() -> None:      # the state when the loop gets to it: the last one wins
+            loop.call_soon_threadsafe(
+                lambda: asyncio.ensure_future(self.set(record.HEALTH_SERVICE, status())))
+
+        recorder.watch(changed)
+        await self.set(record.HEALTH_SERVICE, status())
 
     async def not_serving(self) -> None:
         """Every service NOT_SERVING, for good: the server is shutting down."""
         async with self._changed:
+            self._stopping = True
             for service in self._status:
                 self._status[service] = health_pb2.HealthCheckResponse.NOT_SERVING
             self._changed.notify_all()
@@ -194,17 +213,18 @@ class _Metrics:
         child[1].observe(seconds)
 
     def watch(self, recorder) -> None:
-        """``dqpose_record_messages_total{outcome="written"|"dropped"}``, read from
+        """``dqpose_record_messages_total{outcome="written"|"dropped"|"failed"}``, read from
         ``recorder`` when scraped."""
         from prometheus_client.core import CounterMetricFamily
 
         class Collector:
             def collect(self):
-                c = CounterMetricFamily("dqpose_record_messages", "Messages recorded or "
-                                        "dropped because the recording fell behind",
-                                        labels=["outcome"])
+                c = CounterMetricFamily("dqpose_record_messages", "Messages recorded, dropped "
+                                        "because the recording fell behind, or failed because "
+                                        "its files could not be written", labels=["outcome"])
                 c.add_metric(["written"], recorder.written)
                 c.add_metric(["dropped"], recorder.dropped)
+                c.add_metric(["failed"], recorder.failed)
                 yield c
 
         self._registry.register(Collector())
@@ -383,6 +403,8 @@ async def start(cfg: ServerConfig) -> Running:
     await health_servicer.set("", health_pb2.HealthCheckResponse.SERVING)
     for cls in SERVICERS:
         await health_servicer.set(cls.NAME, health_pb2.HealthCheckResponse.SERVING)
+    if cfg.recorder is not None:
+        await health_servicer.follow(cfg.recorder)
     return Running(server, health_servicer, gate, port, calls, servicers)
 
 

@@ -233,20 +233,23 @@ def test_a_plan_is_a_path_of_poses(tmp_path):
     assert [p.orientation.z for p in msg.poses] == q[:, 3].tolist()
 
 
-def test_a_writer_that_dies_is_logged_and_what_follows_dropped(tmp_path, scene, caplog):
+def test_a_writer_that_dies_is_logged_once_and_what_follows_failed(tmp_path, scene, caplog):
     data, _ = scene
     r = Recorder(tmp_path)
+    heard = []
+    r.watch(lambda: heard.append(r.failure))
     call = r.call(RPC, pb.FuseStreamRequest, pb.FusedPose)
     r._proc.kill()
     r._proc.wait()
     for d in data:      # none waits: the pipe's end is gone
         call.measurements(d)
     wait_until(lambda: (call.measurements(data[0]) or True) and r._closed, 10)
-    before = r.dropped
+    before = r.failed
     call.measurements(data[1])
-    assert r.dropped == before + 1
+    assert r.failed == before + 1 and r.dropped == 0
     r.close()
-    assert any('"event": "recording_failed"' in rec.getMessage() for rec in caplog.records)
+    assert heard == ["the writer process ended"] == [r.failure]
+    assert sum('"event": "recording_failed"' in rec.getMessage() for rec in caplog.records) == 1
 
 
 def test_the_writer_runs_niced_below_the_server(tmp_path):
