@@ -171,18 +171,55 @@ DQ_INLINE void sclerp_block(const double *restrict a, const double *restrict b,
     }
 }
 
+/* One block of pairs: the kernel, then the pairs whose tau is beyond its sin/cos reduction's
+ * range (|tau| ~ 1e5 and more) by libm's sin/cos. */
+DQ_INLINE void sclerp_pairs_block(const double *restrict a, const double *restrict b,
+                                  const double *restrict tau, size_t m, double *restrict out)
+{
+    sclerp_block(a, b, tau, m, out);
+    for (size_t j = 0; j < m; j++) {
+        double t = tau[j];
+        if (t > 1e4 || t < -1e4) dq_sclerp(a + 8 * j, b + 8 * j, t, out + 8 * j);
+    }
+}
+
 DQ_CLONES void dq_sclerp_pairs(const double *a, const double *b, const double *tau, size_t n,
                               double *out)
 {
     for (size_t i0 = 0; i0 < n; i0 += DQ_BLK) {
         size_t m = n - i0 < DQ_BLK ? n - i0 : DQ_BLK;
-        sclerp_block(a + 8 * i0, b + 8 * i0, tau + i0, m, out + 8 * i0);
+        sclerp_pairs_block(a + 8 * i0, b + 8 * i0, tau + i0, m, out + 8 * i0);
     }
-    /* Screw angles beyond the reduction's range (|tau| ~ 1e5 and more): libm's sin/cos. */
-    for (size_t i = 0; i < n; i++) {
-        double t = tau[i];
-        if (t > 1e4 || t < -1e4) dq_sclerp(a + 8 * i, b + 8 * i, t, out + 8 * i);
+}
+
+DQ_CLONES int dq_sclerp_pairs_checked(const double *a, const double *b, const double *tau,
+                                      size_t n, double *out)
+{
+    double ua[8 * DQ_BLK], ub[8 * DQ_BLK];
+    for (size_t i0 = 0; i0 < n; i0 += DQ_BLK) {
+        size_t m = n - i0 < DQ_BLK ? n - i0 : DQ_BLK;
+        const double *pa = a + 8 * i0, *pb = b + 8 * i0, *pt = tau + i0;
+        double *po = out + 8 * i0;
+        /* the block's checks in one pass without branches (it vectorises): every pose as
+         * dq_unit would use it as it is, every tau finite */
+        int plain = 1;
+        for (size_t j = 0; j < m; j++)
+            plain &= dq_unit_as_is(pa + 8 * j) & dq_unit_as_is(pb + 8 * j) & (pt[j] * 0.0 == 0.0);
+        if (!plain) {
+            /* a pose to normalise (or refuse): the block's poses through dq_unit into copies */
+            for (size_t j = 0; j < m; j++) {
+                int rc = dq_unit(pa + 8 * j, ua + 8 * j);
+                if (rc == DQ_OK) rc = dq_unit(pb + 8 * j, ub + 8 * j);
+                if (rc == DQ_OK && !(pt[j] * 0.0 == 0.0)) rc = DQ_E_NONFINITE;
+                if (rc != DQ_OK) return rc;
+            }
+            pa = ua;
+            pb = ub;
+        }
+        sclerp_pairs_block(pa, pb, pt, m, po);
+        if (!dq_finite_n(po, 8 * m)) return DQ_E_OVERFLOW;
     }
+    return DQ_OK;
 }
 
 /* ---- weights ---------------------------------------------------------------------------- */

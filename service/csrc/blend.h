@@ -61,6 +61,12 @@ void dq_sclerp_eval(const dq_sclerp_pair *p, double tau, double *out);
 void dq_sclerp(const double *a, const double *b, double tau, double *out);
 /* dq_sclerp for n independent pairs (out[i] from a[i], b[i], tau[i]); vectorised. */
 void dq_sclerp_pairs(const double *a, const double *b, const double *tau, size_t n, double *out);
+/* dq_sclerp_pairs of poses as given (not yet checked by dq_unit), each block of them checked
+ * while it is in cache: the poses by dq_unit's rules (only a block holding a pose that is not
+ * unit to a few ulps is copied, normalised), tau and the output finite. Returns DQ_OK, or the
+ * first failure's code (out then partly written; the caller names the element). */
+int dq_sclerp_pairs_checked(const double *a, const double *b, const double *tau, size_t n,
+                            double *out);
 
 /* Checks weights (finite, >= 0, positive sum) and writes them normalised to sum 1; w NULL
  * means equal weights. On error *bad is the offending index (for a zero sum, n). */

@@ -6,9 +6,6 @@
 
 #include <math.h>
 
-/* Dual parts with |d|^2 beyond this (translations beyond ~2e150 m) overflow the products in
- * to_matrix, log and screw; validation and conversions reject them so every result is finite. */
-#define DUAL_NORM2_MAX 1e300
 /* Half rotation angles at or below this count as zero in dq_screw (blend.c's ScLERP uses the
  * same value): the moment |t|/phi would overflow, and the rotation is far below rounding. */
 #define DQ_SCREW_MIN_PHI 1e-150
@@ -16,7 +13,7 @@
 static inline int dual_too_large(const double *q)
 {
     double dd = q[4] * q[4] + q[5] * q[5] + q[6] * q[6] + q[7] * q[7];
-    return !(dd <= DUAL_NORM2_MAX);
+    return !(dd <= DQ_DUAL_NORM2_MAX);
 }
 
 void dq_mul(const double *a, const double *b, double *out)
@@ -64,6 +61,12 @@ int dq_normalize(const double *q, double *out)
 
 int dq_unit(const double *q, double *out)
 {
+    /* Unit to a few ulps already (any computed pose): normalising would move it by as little, so
+     * the input is used as it is and a batch pays no sqrt or division per pose. */
+    if (dq_unit_as_is(q)) {
+        if (out != q) for (int i = 0; i < 8; i++) out[i] = q[i];
+        return DQ_OK;
+    }
     if (!dq_finite8(q)) return DQ_E_NONFINITE;
     double rr = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3];
     if (!(rr > 1e-200)) return DQ_E_ZERO;
@@ -73,18 +76,12 @@ int dq_unit(const double *q, double *out)
         if (fabs(sqrt(rr) - 1.0) > DQ_UNIT_TOL) return DQ_E_NOT_UNIT;
     }
     double dd = q[4] * q[4] + q[5] * q[5] + q[6] * q[6] + q[7] * q[7];
-    if (!(dd <= DUAL_NORM2_MAX)) return DQ_E_OVERFLOW;
+    if (!(dd <= DQ_DUAL_NORM2_MAX)) return DQ_E_OVERFLOW;
     double rd = q[0] * q[4] + q[1] * q[5] + q[2] * q[6] + q[3] * q[7];
     /* Relative to the size of the dual part, so a 1 km translation has the same slack as 1 m;
      * squared, so no sqrt (rd^2 <= rr dd cannot overflow after the check above). */
     double scale2 = dd > 1.0 ? dd : 1.0;
     if (rd * rd > DQ_UNIT_TOL * DQ_UNIT_TOL * scale2) return DQ_E_DUAL;
-    /* Unit to a few ulps already (any computed pose): normalising would move it by as little, so
-     * the input is used as it is and a batch pays no sqrt or division per pose. */
-    if (fabs(e) <= 1e-15 && rd * rd <= 1e-30 * scale2) {
-        if (out != q) for (int i = 0; i < 8; i++) out[i] = q[i];
-        return DQ_OK;
-    }
     normalize_by(q, rr, out);
     if (!dq_finite8(out)) return DQ_E_OVERFLOW;
     return DQ_OK;

@@ -15,6 +15,7 @@
 #ifndef DQPOSE_DQ_H
 #define DQPOSE_DQ_H
 
+#include <math.h>
 #include <stddef.h>
 
 /* Result codes. The module turns each into a ValueError naming the argument. */
@@ -42,6 +43,9 @@ enum {
 /* |R^T R - I| up to this is a rotation to rounding: dq_from_matrix takes its quaternion in closed
  * form rather than by projection. */
 #define DQ_ROTATION_EXACT 1e-14
+/* Dual parts with |d|^2 beyond this (translations beyond ~2e150 m) overflow the products in
+ * to_matrix, log and screw; validation and conversions reject them so every result is finite. */
+#define DQ_DUAL_NORM2_MAX 1e300
 
 /* Algebra (any dual quaternion). */
 void dq_mul(const double *a, const double *b, double *out);
@@ -101,6 +105,18 @@ static inline int dq_finite_n(const double *v, size_t n)
     double s = 0.0;
     for (size_t i = 0; i < n; i++) s += v[i] * 0.0;
     return s == 0.0;
+}
+
+/* Whether dq_unit passes q through as it is: unit to a few ulps (any computed pose), so that
+ * normalising would move it by as little. Implies every check of dq_unit holds (a NaN or an
+ * infinity fails a comparison). Written without branches, so a batch check vectorises. */
+static inline int dq_unit_as_is(const double *q)
+{
+    double rr = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3];
+    double dd = q[4] * q[4] + q[5] * q[5] + q[6] * q[6] + q[7] * q[7];
+    double rd = q[0] * q[4] + q[1] * q[5] + q[2] * q[6] + q[3] * q[7];
+    double scale2 = dd > 1.0 ? dd : 1.0;
+    return (fabs(rr - 1.0) <= 1e-15) & (dd <= DQ_DUAL_NORM2_MAX) & (rd * rd <= 1e-30 * scale2);
 }
 
 #endif

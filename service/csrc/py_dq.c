@@ -5,7 +5,6 @@
  */
 #include "py_args.h"
 
-#include <stdlib.h>
 #include <string.h>
 
 #include "blend.h"
@@ -237,10 +236,10 @@ PyObject *py_power(PyObject *self, PyObject *args)
     return run_kernel(k_power, NULL, 2, objs, is, 1, &O_DQ, 0);
 }
 
-/* Independent pairs of one shape (a, b (..., 8), tau (...)): validated into one buffer and
- * interpolated by the vectorised dq_sclerp_pairs, without the per-element kernel call. Returns
- * NULL without an exception when the fast path does not apply or an element is invalid; the
- * general path then runs (and names the bad element). */
+/* Independent pairs of one shape (a, b (..., 8), tau (...)): interpolated by the vectorised
+ * dq_sclerp_pairs_checked straight from the arrays, without the per-element kernel call.
+ * Returns NULL without an exception when the fast path does not apply or an element is invalid;
+ * the general path then runs (and names the bad element). */
 #define SCLERP_PAIRS_MIN 16
 static PyObject *sclerp_pairs_fast(PyObject **objs)
 {
@@ -263,28 +262,17 @@ static PyObject *sclerp_pairs_fast(PyObject **objs)
     npy_intp n = PyArray_SIZE(T);
     if (n < SCLERP_PAIRS_MIN) return NULL;
     PyArrayObject *out = (PyArrayObject *)PyArray_SimpleNew(nd, PyArray_DIMS(A), NPY_DOUBLE);
-    double *buf = (double *)malloc(sizeof(double) * 16 * (size_t)n);
-    if (!out || !buf) {
-        Py_XDECREF(out);
-        free(buf);
+    if (!out) {
         PyErr_Clear();
         return NULL;
     }
     const double *a = PyArray_DATA(A), *b = PyArray_DATA(B), *t = PyArray_DATA(T);
-    double *ua = buf, *ub = buf + 8 * n, *o = PyArray_DATA(out);
-    int ok = 1;
+    int rc;
     NPY_BEGIN_THREADS_DEF;
     NPY_BEGIN_THREADS;
-    for (npy_intp i = 0; ok && i < n; i++)
-        ok = dq_unit(a + 8 * i, ua + 8 * i) == DQ_OK && dq_unit(b + 8 * i, ub + 8 * i) == DQ_OK &&
-             t[i] * 0.0 == 0.0;
-    if (ok) {
-        dq_sclerp_pairs(ua, ub, t, (size_t)n, o);
-        ok = dq_finite_n(o, 8 * (size_t)n);
-    }
+    rc = dq_sclerp_pairs_checked(a, b, t, (size_t)n, PyArray_DATA(out));
     NPY_END_THREADS;
-    free(buf);
-    if (!ok) {
+    if (rc != DQ_OK) {
         Py_DECREF(out);
         return NULL;
     }

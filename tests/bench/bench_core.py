@@ -14,7 +14,9 @@ Times are medians of repeated samples after a warm-up. Ratios are to *ours at th
 difference of a component from our result (``q`` and ``-q`` counted equal), so a peer that does
 different math (scipy: slerp + lerp, chordal rotation mean) shows it there. The row "C core ÷
 C floor" (issue 10's target for independent ScLERP pairs) is the median of ratios of samples of
-the two taken alternately, so it holds still when other jobs load the machine.
+the two taken alternately, so it holds still when other jobs load the machine; the rows "ours
+Python ÷ C floor" (issue 38's target for ScLERP pairs from Python) likewise alternate the call
+from Python with the floor's loop, built as a shared library and called through ctypes.
 
 Options: ``--plot PATH`` also saves ns/pose versus batch size (PNG); ``--quick`` uses fewer
 samples (for a smoke run, not for quoting).
@@ -28,6 +30,7 @@ import platform
 import shutil
 import subprocess
 import sys
+import time
 import timeit
 from pathlib import Path
 
@@ -103,6 +106,38 @@ def build_harness() -> Path:
            str(CSRC / "dq.c"), str(CSRC / "blend.c"), "-lm", "-o", str(exe)]
     subprocess.run(cmd, check=True)
     return exe
+
+
+def build_floor() -> Path:
+    """``floor.c`` as a shared library, for the plain C loop timed beside calls from Python."""
+    cc = shutil.which(os.environ.get("CC", "gcc")) or "gcc"
+    BUILD.mkdir(exist_ok=True)
+    lib = BUILD / "libfloor.so"
+    subprocess.run([cc, *CFLAGS, "-shared", "-fPIC", str(HERE / "floor.c"), "-lm", "-o",
+                    str(lib)], check=True)
+    return lib
+
+
+def python_over_floor(a, b, tau, samples: int) -> float:
+    """The median over ``samples`` of (``dq.sclerp(a, b, tau)`` from Python) / (the plain C loop
+    ``floor_sclerp_each`` over the same pairs), the two timed alternately as the harness's
+    ratios are, so a change of load moves both sides of each ratio alike."""
+    import ctypes
+    floor = ctypes.CDLL(str(build_floor())).floor_sclerp_each
+    out = np.empty_like(a)
+    ptr = ctypes.POINTER(ctypes.c_double)
+    args = [x.ctypes.data_as(ptr) for x in (a, b, tau)] + [ctypes.c_size_t(len(tau)),
+                                                          out.ctypes.data_as(ptr)]
+    ratios = []
+    for k in range(samples + 1):
+        t0 = time.perf_counter()
+        dq.sclerp(a, b, tau)
+        t1 = time.perf_counter()
+        floor(*args)
+        t2 = time.perf_counter()
+        if k:                   # the first pair warms both up
+            ratios.append((t1 - t0) / (t2 - t1))
+    return float(np.median(ratios))
 
 
 def run_harness(exe: Path, inp: dict) -> tuple[dict, dict]:
@@ -296,6 +331,9 @@ def sclerp_rows(run: "_Run") -> None:
                              ct[("sclerp_pairs", "core/floor")]["ratio"], 0.6))
     py = Row(label, "ours Python", median_call(lambda: dq.sclerp(pa, pb, ptau)), N_PAIRS, "pair")
     run.rows.append(py)
+    # Issue 38: the whole call from Python (checks, the output's allocation) at most 0.5 of it.
+    run.rows.append(RatioRow(label, "ours Python ÷ C floor (alternating)",
+                             python_over_floor(pa, pb, ptau, 201), 0.5))
     if pt3:
         run.rows.append(Row(label, "pytransform3d", median_call(
             lambda: ptr.dual_quaternions_sclerp(pa, pb, ptau)), N_PAIRS, "pair", py,
@@ -351,6 +389,8 @@ def sclerp_call_rows(run: "_Run") -> None:
     # every pair is its own screw, and the kernel's own 60 ns per pair is its target.
     py = Row(label, "ours Python", median_call(lambda: dq.sclerp(ba, bb, bt)))
     run.rows.append(py)
+    run.rows.append(RatioRow(label, "ours Python ÷ C floor (alternating)",
+                             python_over_floor(ba, bb, bt, 51), 0.5))
     if pt3:
         run.rows.append(Row(label, "pytransform3d", median_call(
             lambda: ptr.dual_quaternions_sclerp(ba, bb, bt), 5), ours=py,

@@ -84,6 +84,13 @@ void floor_sclerp(const double *a, const double *b, double tau, double *out)
     dmul(a, e, out);
 }
 
+/* Independent pairs: floor_sclerp of each (the C harness's floor, and the plain C loop bench_core
+ * times beside ScLERP pairs from Python). */
+void floor_sclerp_each(const double *a, const double *b, const double *tau, size_t n, double *out)
+{
+    for (size_t i = 0; i < n; i++) floor_sclerp(a + 8 * i, b + 8 * i, tau[i], out + 8 * i);
+}
+
 static void floor_normalize(double *q)
 {
     double n = sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);

@@ -17,6 +17,7 @@
 #include "harness_io.h"
 
 void floor_sclerp(const double *a, const double *b, double tau, double *out);
+void floor_sclerp_each(const double *a, const double *b, const double *tau, size_t n, double *out);
 void floor_dlb(const double *q, const double *w, size_t n, double *out);
 int floor_dib(const double *q, const double *w, size_t n, double tol, int max_iter, double *out);
 
@@ -106,7 +107,7 @@ static void core_sclerp_pairs(void *c)
 static void floor_sclerp_pairs(void *c)
 {
     job *j = c;
-    for (size_t i = 0; i < j->n; i++) floor_sclerp(j->a + 8 * i, j->b + 8 * i, j->tau[i], j->out + 8 * i);
+    floor_sclerp_each(j->a, j->b, j->tau, j->n, j->out);
 }
 
 static void core_dlb(void *c) { job *j = c; dq_dlb(j->a, j->w, j->n, j->out); }

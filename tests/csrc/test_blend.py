@@ -14,7 +14,7 @@ import pytest
 from dqpose import _dqcore
 
 # The batch loops built as clones; each AVX2 clone must use the 256-bit registers throughout.
-CLONED = ("dq_sclerp_pairs", "log_sum")
+CLONED = ("dq_sclerp_pairs", "dq_sclerp_pairs_checked", "log_sum")
 
 
 def disassembly() -> dict[str, str]:
