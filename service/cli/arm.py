@@ -36,10 +36,16 @@ def _run(args) -> int:
         doc = [as_json(a) for a in arms]
         print(json.dumps(doc if args.action == "list" else doc[0], indent=2))
     elif args.action == "list":
-        sys.stdout.write(table(arms))
+        sys.stdout.write(table(arms) if arms else NO_ARMS)
     else:
         sys.stdout.write(details(arms[0]))
     return 0
+
+
+#: what ``arm list`` says of a server without arms
+NO_ARMS = ("no arms: this server drives none; start it with one or more --arm NAME=KIND:TARGET "
+           "(e.g. dqpose serve --arm ur=ur:192.168.1.10), or with --sims for the simulated UR "
+           "and PiPER (make run does)\n")
 
 
 def _pose(a):
@@ -83,7 +89,8 @@ def table(arms) -> str:
         pose = _pose(a)
         numbers = ["-"] * 7 if pose is None else [f"{v:.4f}" for v in pose[0] + pose[1]]
         v, w = _speeds(a)
-        rows.append((a.arm, a.state or "-", "yes" if a.busy else "no", *numbers,
+        # no run yet: idle (a run's state stays shown after it ended)
+        rows.append((a.arm, a.state or "idle", "yes" if a.busy else "no", *numbers,
                      f"{v:.3g}", f"{w:.3g}", "; ".join(a.faults) or "none"))
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]) - 1)]
     return "".join("  ".join(c.ljust(n) for c, n in zip(r, widths)) + "  " + r[-1] + "\n"

@@ -101,8 +101,9 @@ def configure(name: str, p) -> None:
                               "(default: %(default)s)")
         p.add_argument("--sims", action="store_true",
                        help="also start the simulated devices (a UR controller, a PiPER, camera "
-                            "views; see drivers/sim/fleet.py) and log where they are; --arm "
-                            "NAME=KIND:sim drives one of them")
+                            "views; see drivers/sim/fleet.py), log where they are and serve the "
+                            "simulated arms as ur=ur:sim and piper=piper:sim; with --arm, only "
+                            "the arms given (--arm NAME=KIND:sim drives a simulator)")
         p.set_defaults(func=_serve)
     else:
         p.description = ("Ask the grpc.health.v1 service; prints the status and exits 0 when "
@@ -114,6 +115,25 @@ def configure(name: str, p) -> None:
 
 #: the TARGET that stands for the simulator of the arm's kind (drivers.sim.fleet)
 SIM = "sim"
+
+
+def sim_arms(fleet) -> list[str]:
+    """The ``--arm`` values ``--sims`` stands for when none is given: each simulated arm that
+    started, named by its kind (``ur=ur:sim``, ``piper=piper:sim``)."""
+    started = {i["device"] for i in fleet.info if "error" not in i}
+    return [f"{kind}={kind}:{SIM}" for kind in ("ur", "piper") if kind in started]
+
+
+def _log_sims(fleet, arm_specs: dict) -> None:
+    """A line per simulated device: where it is and how to use it; one the server drives as an
+    arm is used through the server (its controller takes one client: ours)."""
+    import logging
+    served = {spec.kind: name for name, (_, spec) in arm_specs.items() if spec.target == SIM}
+    for info in fleet.info:
+        if info["device"] in served:
+            name = served[info["device"]]
+            info = {**info, "arm": name, "use": f"dqpose arm get {name}; Client.get_arm({name!r})"}
+        logging.getLogger("dqpose").info(json.dumps({"event": "simulator", **info}))
 
 
 def _arm_keys_help() -> str:
@@ -170,8 +190,8 @@ def _serve(args) -> int:
                     fleet = stack.enter_context(Fleet())
                 except ModuleNotFoundError as e:
                     return missing_extra("serve --sims", e)
-                for info in fleet.info:
-                    logging.getLogger("dqpose").info(json.dumps({"event": "simulator", **info}))
+                arm_specs = arm_specs or _arm_specs(sim_arms(fleet))
+                _log_sims(fleet, arm_specs)
             if arm_specs and (code := _open_arms(args, arm_specs, cfg, fleet, stack)):
                 return code
             # libuv's loop: ~8 % more calls/s with 8 clients

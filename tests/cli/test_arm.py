@@ -1,8 +1,8 @@
-"""A new user's arm session: ``dqpose serve --sims`` with the simulated arms named by the arm
-spec (``--arm ur=ur:sim --arm piper=piper:sim?max_tracking=0.003``: no bus name to look up),
-``dqpose arm list`` / ``dqpose arm get`` to see where they are, and a plan run from there
-(``Client.execute(..., from_current=True)``). The real command in its own process, the real
-ur_rtde and python-can against the simulators it started."""
+"""A new user's arm session: ``dqpose serve --sims`` (``make run``), which serves the simulated UR
+and PiPER as the arms ``ur`` and ``piper`` (``--arm ur=ur:sim --arm piper=piper:sim``: no bus
+name to look up), ``dqpose arm list`` / ``dqpose arm get`` to see where they are, and a plan run
+from there (``Client.execute(..., from_current=True)``). The real command in its own process, the
+real ur_rtde and python-can against the simulators it started."""
 from __future__ import annotations
 
 import json
@@ -13,7 +13,7 @@ import pytest
 
 from dqpose import dq, trajectory
 from dqpose.rpc.client import Client
-from tests.cli._cli import run, serving
+from tests.cli._cli import run, server, serving  # noqa: F401 (server: a fixture)
 
 LIMITS = trajectory.Limits(0.1, 0.5, 0.5, 1.0, 5.0, 10.0)
 
@@ -22,8 +22,7 @@ LIMITS = trajectory.Limits(0.1, 0.5, 0.5, 1.0, 5.0, 10.0)
 def served():
     pytest.importorskip("rtde_control")
     pytest.importorskip("msgpack")
-    proc, events = serving("--sims", "--arm", "ur=ur:sim",
-                           "--arm", "piper=piper:sim?max_tracking=0.003")
+    proc, events = serving("--sims")       # make run's flags
     try:
         yield events, events[-1]["address"]
         proc.send_signal(signal.SIGTERM)
@@ -41,7 +40,7 @@ def test_sim_targets_are_the_simulators_started(served):
     sims = {e["device"]: e for e in events if e.get("event") == "simulator"}
     arms = {e["name"]: e for e in events if e.get("event") == "arm"}
     assert arms["ur"]["spec"] == sims["ur"]["spec"]
-    assert arms["piper"]["spec"] == sims["piper"]["spec"] + "?max_tracking=0.003"
+    assert arms["piper"]["spec"] == sims["piper"]["spec"]
 
 
 def test_arm_list_is_a_table_of_every_arm(served, capsys):
@@ -56,6 +55,17 @@ def test_arm_list_is_a_table_of_every_arm(served, capsys):
             x, y, z = (float(v) for v in row.split()[3:6])
             assert np.allclose([x, y, z], dq.to_pose(arm.pose)[1], atol=1e-4)
             assert row.split()[-1] == "none"         # no faults
+            # an arm that has run no plan yet is idle (its run's state once it has one)
+            assert row.split()[1] == (arm.state or "idle")
+            assert row.split()[2] == ("yes" if arm.busy else "no")
+
+
+def test_arm_list_on_a_server_without_arms_says_how_to_add_one(server, capsys):
+    code, out, err = run(capsys, "arm", "list", "--target", server.target)
+    assert (code, err) == (0, "")
+    assert out.startswith("no arms: ") and "--arm NAME=KIND:TARGET" in out and "--sims" in out
+    code, out, _ = run(capsys, "arm", "list", "--format", "json", "--target", server.target)
+    assert (code, json.loads(out)) == (0, [])
 
 
 def test_arm_get_as_json_then_move_from_there(served, capsys):

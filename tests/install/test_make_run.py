@@ -1,4 +1,5 @@
-"""``make run ARGS="--port N"``: the documented server, on the port the user asked for."""
+"""``make run ARGS="--port N"``: the documented server, on the port the user asked for, driving
+the simulated UR and PiPER as its arms."""
 from __future__ import annotations
 
 import json
@@ -41,6 +42,8 @@ def test_make_run_serves_on_the_port_given_in_args():
         assert json.loads(lines[-1])["address"] == f"127.0.0.1:{port}"
         with Client(f"127.0.0.1:{port}", timeout=30) as c:
             assert c.health() == "SERVING"
+            assert [(a.arm, a.state, a.busy) for a in c.list_arms()] == [
+                ("piper", "", False), ("ur", "", False)]
         os.killpg(proc.pid, signal.SIGINT)                # Ctrl-C in the terminal
         proc.communicate(timeout=120)
     finally:

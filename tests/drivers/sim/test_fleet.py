@@ -36,16 +36,17 @@ def test_serve_with_sims_brings_up_reachable_devices_and_takes_them_down():
     from dqpose.drivers.sim.ur import _address_free
     from dqpose.rpc.client import Client
 
+    # the PiPER served as an arm, the UR left to the user (--sims alone serves both)
     proc = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "serve", "--port", "0",
-                             "--sims", "--no-call-log"], cwd=ROOT, stderr=subprocess.PIPE,
-                            text=True)
+                             "--sims", "--arm", "piper=piper:sim", "--no-call-log"], cwd=ROOT,
+                            stderr=subprocess.PIPE, text=True)
     try:
         events = {}
         while "serving" not in events:
             line = proc.stderr.readline()
             assert line, "the server ended before serving"
             e = json.loads(line)
-            events[e.get("device", e["event"])] = e
+            events.setdefault(e.get("device", e["event"]), e)
         host, folder = events["ur"]["host"], events["camera"]["images"]
         # every device is reached by the name its "use" line gives
         assert events["ur"]["use"] == f"drivers.open_arm('ur:{host}')"
@@ -53,11 +54,15 @@ def test_serve_with_sims_brings_up_reachable_devices_and_takes_them_down():
             _, pose = arm.tool_pose()
             assert np.isclose(np.linalg.norm(pose[:4]), 1.0)
         piper = events["piper"]
-        assert piper["use"] == f"drivers.open_arm('{piper['spec']}')"
+        # the server drives it: it is used through the server
+        assert (piper["arm"], piper["use"]) == ("piper", "dqpose arm get piper; "
+                                                         "Client.get_arm('piper')")
         assert piper["spec"].startswith("piper:udp_multicast:239.")
-        with drivers.open_arm(piper["spec"]) as arm:          # another process, over UDP
-            _, pose = arm.wait_for_feedback(5.0)
-            assert arm.status().ok and np.isclose(np.linalg.norm(pose[:4]), 1.0)
+        assert "arm" not in events["ur"]
+        with Client(events["serving"]["address"], timeout=5) as c:   # over UDP, in its process
+            (arm,) = c.list_arms()
+            assert arm.arm == "piper" and not arm.faults
+            assert np.isclose(np.linalg.norm(arm.pose[:4]), 1.0)
         with open(os.path.join(folder, "poses.json")) as f:
             truth = json.load(f)["T_camera_board"]
         cam = drivers.open_source(events["camera"]["spec"],
