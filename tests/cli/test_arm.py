@@ -45,7 +45,7 @@ def test_sim_targets_are_the_simulators_started(served):
 
 def test_arm_list_is_a_table_of_every_arm(served, capsys):
     _, target = served
-    code, out, err = run(capsys, "arm", "list", "--target", target)
+    code, out, err = run(capsys, "arm", "list", "--server", target)
     assert (code, err) == (0, "")
     header, *rows = out.splitlines()
     assert header.split()[:3] == ["ARM", "STATE", "BUSY"]
@@ -61,16 +61,16 @@ def test_arm_list_is_a_table_of_every_arm(served, capsys):
 
 
 def test_arm_list_on_a_server_without_arms_says_how_to_add_one(server, capsys):
-    code, out, err = run(capsys, "arm", "list", "--target", server.target)
+    code, out, err = run(capsys, "arm", "list", "--server", server.target)
     assert (code, err) == (0, "")
     assert out.startswith("no arms: ") and "--arm NAME=KIND:TARGET" in out and "--sims" in out
-    code, out, _ = run(capsys, "arm", "list", "--format", "json", "--target", server.target)
+    code, out, _ = run(capsys, "arm", "list", "--format", "json", "--server", server.target)
     assert (code, json.loads(out)) == (0, [])
 
 
 def test_arm_get_as_json_then_move_from_there(served, capsys):
     _, target = served
-    code, out, err = run(capsys, "arm", "get", "piper", "--format", "json", "--target", target)
+    code, out, err = run(capsys, "arm", "get", "piper", "--format", "json", "--server", target)
     assert (code, err) == (0, "")
     doc = json.loads(out)
     assert doc["arm"] == "piper" and doc["faults"] == [] and doc["busy"] is False
@@ -81,7 +81,7 @@ def test_arm_get_as_json_then_move_from_there(served, capsys):
     with Client(target) as c:
         feedback = list(c.execute("piper", [goal], LIMITS, from_current=True))
     assert feedback[-1].state == "FINISHED", feedback[-1]
-    code, out, _ = run(capsys, "arm", "get", "piper", "--target", target)
+    code, out, _ = run(capsys, "arm", "get", "piper", "--server", target)
     assert code == 0
     assert out.splitlines()[0] == "arm piper: idle; its run: FINISHED"
     xyz = [float(v) for v in out.splitlines()[2].split(",")[:3]]
@@ -90,7 +90,7 @@ def test_arm_get_as_json_then_move_from_there(served, capsys):
 
 def test_an_unknown_arm_is_named_with_the_servers_arms(served, capsys):
     _, target = served
-    code, out, err = run(capsys, "arm", "get", "kuka", "--target", target)
+    code, out, err = run(capsys, "arm", "get", "kuka", "--server", target)
     assert (code, out) == (2, "")
     assert err == ("dqpose arm get: error: arm: unknown arm 'kuka' (this server's arms: piper, "
                    "ur)\n")
