@@ -40,6 +40,7 @@ from dqpose.fusion.extrinsics import _relative_covariance
 from dqpose.fusion.results import DOF, _frozen
 from dqpose.fusion.tracker import _arrays, _renumbered
 from dqpose.fusion.validation import _finite_shape, _seconds
+from dqpose.names import name_problem, quoted
 from dqpose.readwrite import ReadWrite
 
 __all__ = ["WorldOptions", "WorldBounds", "WorldError", "NotFound", "OutOfRange", "Published",
@@ -123,9 +124,12 @@ def _known_from(body: str, oldest: float, newest: float) -> str:
     return f"{body!r} is known from {_s(oldest)} to {_s(newest)}"
 
 
-def _body_name(body) -> str:
-    if not isinstance(body, str):
-        raise WorldError(f"body: expected a string, got {type(body).__name__}")
+def _body_name(body, field: str = "body") -> str:
+    """``body`` when it is a body's name or "" (the world frame), else a ``WorldError`` naming
+    ``field``."""
+    problem = name_problem(body, empty=True)
+    if problem is not None:
+        raise WorldError(f"{field}: {problem}")
     return body
 
 
@@ -136,7 +140,7 @@ def _beyond(k: int, field: str, name: str, held, new: set, bound: str,
     refused for either name adds neither."""
     if name in held or name in new or len(held) + len(new) < limit:
         return None
-    return WorldError(f"measurements[{k}].{field}: {name!r} would be {field} "
+    return WorldError(f"measurements[{k}].{field}: {quoted(name)} would be {field} "
                       f"{len(held) + len(new) + 1}, above the world's {bound} {limit}")
 
 
@@ -186,11 +190,12 @@ class World:
         names = {s.name for s in sources if isinstance(s, Source)}
         arms = dict(arms)
         for arm, src in arms.items():
-            if not isinstance(arm, str) or not arm:
-                raise WorldError(f"arms: an arm needs a name, got {arm!r}")
+            problem = name_problem(arm)
+            if problem is not None:
+                raise WorldError(f"arms: {problem}")
             if src not in names:
-                raise WorldError(f"arms[{arm!r}]: source {src!r} is not among the world's "
-                                 f"sources")
+                raise WorldError(f"arms[{arm!r}]: source {quoted(src)} is not among the "
+                                 f"world's sources")
         base = self.limits if self.limits is not None else _limits.Limits()
         limits = dataclasses.replace(
             base, max_window=b.max_measurements_per_body,
@@ -423,7 +428,7 @@ class World:
         world frame. Bodies that share a source with an ``extrinsic_covariance`` or an estimated
         latency are fitted together (one error per such source), so the covariance has their
         cross-covariance."""
-        target, source = _body_name(target), _body_name(source)
+        target, source = _body_name(target, "target"), _body_name(source, "source")
         with self._lock.read():
             for b in (target, source):
                 if b:

@@ -13,6 +13,7 @@ from dqpose import dq, lie
 from dqpose.errors import rename
 from dqpose.fusion.results import DOF
 from dqpose.fusion.validation import _covariances, _pose, _seconds, _shape
+from dqpose.names import name_problem, quoted
 
 
 @dataclass(frozen=True)
@@ -85,10 +86,11 @@ def _sources(sources: Optional[Iterable[Source]]) -> dict[str, Source]:
     for k, s in enumerate(sources or ()):
         if not isinstance(s, Source):
             raise ValueError(f"sources[{k}]: expected a Source, got {type(s).__name__}")
-        if not s.name:
-            raise ValueError(f"sources[{k}]: a source needs a name")
+        problem = name_problem(s.name)
+        if problem is not None:
+            raise ValueError(f"sources[{k}].name: {problem}")
         if s.name in table:
-            raise ValueError(f"sources[{k}]: source {s.name!r} given twice")
+            raise ValueError(f"sources[{k}]: source {quoted(s.name)} given twice")
         table[s.name] = Source(
             s.name,
             None if s.extrinsic is None else _pose(s.extrinsic, f"sources[{k}].extrinsic"),

@@ -21,10 +21,18 @@ from dqpose.fusion.alignment import (
 )
 from dqpose.fusion.api import _Checked, _fuse_joint_rows, _fuse_world_rows, fuse
 from dqpose.fusion.chi2 import DEFAULT_PROBABILITY, chi2_quantile
+from dqpose.fusion.jumps import Jumps
 from dqpose.fusion.results import DOF, Fused
 from dqpose.fusion.sources import Source, _sources, _to_world
 from dqpose.fusion.store import _Store
-from dqpose.fusion.validation import _check_rows, _covariances, _finite_shape, _seconds, _shape
+from dqpose.fusion.validation import (
+    _check_rows,
+    _covariances,
+    _finite_shape,
+    _named_rows,
+    _seconds,
+    _shape,
+)
 
 
 @dataclass(frozen=True)
@@ -109,10 +117,8 @@ class Tracker:
     refused, and a measurement taken more than ``max_time_jump`` after its body's newest is
     refused without moving the body, unless the body's next such measurement confirms the jump
     (a clock that really moved, a body seen again after a pause): one stray stamp never poisons
-    a body. Rows may name their ``origin`` (a World's producer; None: a stream, its bodies' one
-    producer): a jump is then confirmed only by another origin, or by the same one while no
-    other fed the body within ``max_time_jump`` of its newest, so one producer's clock never
-    takes a body away from the others feeding it.
+    a body. Rows may name their ``origin`` (a World's producer): who may confirm a jump is
+    :mod:`dqpose.fusion.jumps`'s.
     """
 
     def __init__(self, window: float, *, sources: Optional[Iterable[Source]] = None,
@@ -150,10 +156,7 @@ class Tracker:
         self._exact = np.empty(0, dtype=bool)
         self._all_exact = all(src.exact for src in self._table.values())
         self._count = 0            # measurements offered so far: the default ids
-        # per body code: the time and origin of its last refused jump, which a second one near
-        # it confirms; and the two origins that fed it last, each with its newest taken time
-        self._jumps: dict[int, tuple[float, Any]] = {}
-        self._feeders: dict[int, list[tuple[Any, float]]] = {}
+        self._jumps = Jumps(limits.max_time_jump if limits is not None else math.inf)
         self.cap = None            # measurements a body's window holds (None: all)
         if limits is not None:
             correlated = acceleration_psd is not None and np.any(acceleration_psd)
@@ -211,8 +214,7 @@ class Tracker:
         s = self._store
         s.keep(s.body[:s.n] != b)
         self._newest[b] = -math.inf
-        self._jumps.pop(b, None)
-        self._feeders.pop(b, None)
+        self._jumps.forget(b)
         del self._active[body]
 
     def add(self, *measurements: Measurement) -> None:
@@ -394,7 +396,11 @@ class Tracker:
         StreamFuse and World.Publish): ``codes`` one a row, 0 for a row taken in unchecked
         (:meth:`_ingest_valid`), else the check that refuses it, the row then named by this
         tracker's own check of it alone. The same answers as :meth:`ingest`, without checking
-        the good rows again."""
+        the good rows again. The names, which a decoder passes as strings, are checked here."""
+        named = _named_rows(bodies, sources)
+        if named:       # refused for a name: then named by the check of the row alone
+            codes = np.array(codes, np.int64)
+            codes[named] = -1
         coded = np.flatnonzero(codes).tolist()
         n = len(bodies)
         if not coded:           # the common case: every row taken in
@@ -487,7 +493,7 @@ class Tracker:
             for k in kept:
                 self._active.setdefault(bodies[k], None)
         if origin is not None and ok.any():
-            self._fed_by(origin, body[ok], taken[ok])
+            self._jumps.fed(origin, body[ok], taken[ok])
         return sorted(errors.items())
 
     def _in_world(self, sources, poses, covs) -> dict:
@@ -507,35 +513,12 @@ class Tracker:
             ok[k] = False
             errors[k] = _limits.beyond_time(f"measurements[{k}].time", float(times[k]), limits)
 
-    def _fed_by(self, origin, body: np.ndarray, taken: np.ndarray) -> None:
-        """``origin`` fed the bodies ``body`` (codes) measurements taken at ``taken``: each
-        body's two latest origins kept, each with its newest (enough to find whether any origin
-        but one fed it lately)."""
-        codes, inverse = np.unique(body, return_inverse=True)
-        newest = np.full(len(codes), -math.inf)
-        np.maximum.at(newest, inverse, taken)
-        for b, t in zip(codes.tolist(), newest.tolist()):
-            latest = [(o, u) for o, u in self._feeders.get(b, ()) if o != origin]
-            mine = max([t] + [u for o, u in self._feeders.get(b, ()) if o == origin])
-            self._feeders[b] = sorted(latest + [(origin, mine)], key=lambda x: -x[1])[:2]
-
-    def _confirms(self, b: int, by, origin, newest: float) -> bool:
-        """Whether a row of ``origin`` confirms body ``b``'s pending jump, which ``by`` made
-        (``newest``: the body's newest taken): any row of a stream (origin None), else one of
-        another origin, or of ``by`` itself while no other fed the body within
-        ``max_time_jump`` of its newest (then it moves only what it fed)."""
-        if origin is None or origin != by:
-            return True
-        assert self.limits is not None
-        floor = newest - self.limits.max_time_jump
-        return not any(o != origin and u >= floor for o, u in self._feeders.get(b, ()))
-
     def _jump_check(self, bodies, sources, times, body, taken, ok, errors, origin=None) -> None:
         """Refuses (in ``ok`` and ``errors``) the rows taken more than ``max_time_jump`` after
         their body's newest measurement, the earlier rows of the call counted (for a body new
         to the stream, its earliest row of the call is the reference), unless the row confirms
         the body's last refused jump by lying within ``max_time_jump`` of it (and by its
-        ``origin``, :meth:`_confirms`)."""
+        ``origin``, :class:`~dqpose.fusion.jumps.Jumps`)."""
         limits = self.limits
         assert limits is not None       # called only for a tracker with limits
         jump = limits.max_time_jump
@@ -559,15 +542,11 @@ class Tracker:
             if t <= cur + jump:
                 current[b] = max(cur, t)
                 continue
-            pending = self._jumps.get(b)
-            if (pending is not None and abs(t - pending[0]) <= jump
-                    and self._confirms(b, pending[1], origin, cur)):
-                del self._jumps[b]       # a second measurement confirms it: the body moves on
-                current[b] = t
+            if self._jumps.confirms(b, t, origin, cur):
+                current[b] = t          # a second measurement confirms it: the body moves on
                 continue
-            self._jumps[b] = (t, origin)
             ok[k] = False
-            who = "" if self._confirms(b, origin, origin, cur) else " from another producer"
+            who = "" if self._jumps.alone(b, origin, cur) else " from another producer"
             errors[k] = _limits.over(
                 f"measurements[{k}]", f"body {bodies[k]!r}, source {sources[k]!r}, time "
                 f"{float(times[k])!r}: taken {t - cur:.6g} s after the newest measurement of "

@@ -16,6 +16,7 @@ from dqpose import _dqcore as _c
 from dqpose import dq
 from dqpose.errors import rename
 from dqpose.fusion.results import DOF
+from dqpose.names import bad_names, name_problem
 
 # Relative asymmetry a covariance may have and still be taken as symmetric (its mean with its
 # transpose is used): a product J Σ Jᵀ computed in float64 is asymmetric at ~1e-16.
@@ -112,8 +113,9 @@ def _names(names, n: int) -> tuple[str, ...]:
     if len(out) != n:
         raise ValueError(f"names: expected {n} source names, got {len(out)}")
     for i, s in enumerate(out):
-        if not isinstance(s, str):
-            raise ValueError(f"names[{i}]: expected a string, got {type(s).__name__}")
+        problem = name_problem(s, empty=True)      # "": the world frame
+        if problem is not None:
+            raise ValueError(f"names[{i}]: {problem}")
     return out
 
 
@@ -184,14 +186,25 @@ def _check_rows(bodies, sources, times, poses, covs):
     the rows that pass, ``errors`` ``{k: ValueError}`` of the others, ``covs`` a copy with the
     rows that pass symmetrised."""
     errors: dict[int, ValueError] = {}
+    seen: dict[str, Optional[str]] = {}     # each name checked once, however many rows repeat it
+
+    def problem(name) -> Optional[str]:
+        if not isinstance(name, str):
+            return name_problem(name)
+        if name not in seen:
+            seen[name] = name_problem(name, empty=True)     # a source's "": the world frame
+        return seen[name]
+
     for k, (b, s) in enumerate(zip(bodies, sources)):
-        if not isinstance(b, str) or not b:
-            errors[k] = ValueError(f"measurements[{k}].body: " + (
-                "empty (every measurement names its body)" if isinstance(b, str) else
-                f"expected a string, got {type(b).__name__}"))
-        elif not isinstance(s, str):
-            errors[k] = ValueError(f"measurements[{k}].source: expected a string, "
-                                   f"got {type(s).__name__}")
+        if isinstance(b, str) and not b:
+            errors[k] = ValueError(f"measurements[{k}].body: empty (every measurement names "
+                                   f"its body)")
+            continue
+        for field, name in (("body", b), ("source", s)):
+            p = problem(name)
+            if p is not None:
+                errors[k] = ValueError(f"measurements[{k}].{field}: {p}")
+                break
     if len(errors) == len(times):       # every row refused by its names: nothing else to check
         return np.zeros(len(times), bool), errors, np.array(covs)
     ok = np.isfinite(times)
@@ -227,6 +240,16 @@ def _check_rows(bodies, sources, times, poses, covs):
                         "poses": f"measurements[{k}].pose",
                         "covariances": f"measurements[{k}].covariance"}))
     return ok, errors, covs
+
+
+def _named_rows(bodies, sources) -> list[int]:
+    """The rows whose body or source breaks the name rule (:mod:`dqpose.names`; a source may be
+    "", the world frame), for rows that were decoded as strings: each name checked once."""
+    bad_bodies, bad_sources = bad_names(bodies), bad_names(sources, empty=True)
+    if not bad_bodies and not bad_sources:
+        return []
+    return [k for k, (b, s) in enumerate(zip(bodies, sources))
+            if b in bad_bodies or s in bad_sources]
 
 
 def _finite_shape(x, name: str, shape: tuple) -> np.ndarray:

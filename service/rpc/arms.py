@@ -26,6 +26,7 @@ import numpy as np
 
 from dqpose import limits, record, trajectory
 from dqpose.errors import FieldError, Infeasible, rename
+from dqpose.names import check_name
 from dqpose.record.topics import arm_topic
 from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
@@ -118,6 +119,7 @@ class Arms:
     def _slot(self, name: str) -> _Arm:
         slot = self._arms.get(name)
         if slot is None:
+            check_name(name, "arm")      # the refusal quotes it
             known = ", ".join(self._arms) or "none: start the server with --arm NAME=SPEC"
             raise FieldError(f"arm: unknown arm {name!r} (this server's arms: {known})")
         return slot

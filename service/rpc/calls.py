@@ -102,12 +102,24 @@ _LONG_NUMBER = re.compile(r"(?<![\w.\[])-?\d{10,}(?:\.\d*)?(?:e[+-]?\d+)?(?![\w.
                           r"|(?<![\w.])-?\d*\.\d{10,}(?:e[+-]?\d+)?(?![\w.])")
 
 
+#: bytes of UTF-8 a refusal's text has at most (then "..."): a status's details travel in its
+#: trailers, whose size a client bounds (8 KiB by default, a hard limit that turns the status into
+#: RESOURCE_EXHAUSTED "received metadata size exceeds hard limit")
+MAX_DETAILS = 1024
+
+
 def readable(text: str) -> str:
     """``text`` with every number of more than 9 significant digits written ``%.6g``: what the
     domain's texts hold as ``repr`` (``0.041694716291423795``, a 300-digit count) reads as
     ``0.0416947`` and ``5e+299``; a whole count of up to 15 digits is kept (``999999990 ticks``
-    reads better exact). Every refusal's text goes through here, so none can leak one."""
-    return _LONG_NUMBER.sub(_short, text)
+    reads better exact); at most :data:`MAX_DETAILS` bytes. Every refusal's text goes through
+    here, so none can leak a number or grow with what a client sent."""
+    cut = len(text) > 2 * MAX_DETAILS       # (what is beyond cannot be kept anyway)
+    text = _LONG_NUMBER.sub(_short, text[:2 * MAX_DETAILS])
+    data = text.encode(errors="replace")
+    if cut or len(data) > MAX_DETAILS:
+        text = data[:MAX_DETAILS - 3].decode(errors="ignore") + "..."
+    return text
 
 
 def _short(match: re.Match) -> str:

@@ -14,6 +14,7 @@ from google.protobuf.message import DecodeError
 
 from dqpose import fusion, limits
 from dqpose.errors import FieldError, rename
+from dqpose.names import name_problem
 from dqpose.rpc import DEFAULT_MAX_POSES
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2_grpc as pb_grpc
@@ -294,9 +295,10 @@ class Fusion(pb_grpc.FusionServicer):
     def _answers(self, r: int, errors: list, bodies: list, answers):
         """Request ``r``'s error entries (``errors`` ``(measurement, FieldError)``, of the
         measurements of ``bodies``) in order of measurement, then its fused poses, one at a
-        time."""
+        time. An entry names its body when that is a name (one refused for its name is not
+        sent back)."""
         for (i, e), body in sorted(zip(errors, bodies), key=lambda x: x[0][0]):
-            yield _error_entry(r, i, str(e), body)
+            yield _error_entry(r, i, str(e), "" if name_problem(body) else body)
         for body, fused, ids in answers:
             if isinstance(fused, FieldError):
                 yield _error_entry(r, -1, str(fused), body)

@@ -16,6 +16,7 @@ import numpy as np
 
 from dqpose import dq, fusion, limits
 from dqpose.errors import FieldError, rename
+from dqpose.names import check_name, quoted
 from dqpose.rpc import DEFAULT_MAX_POSES
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from dqpose.rpc.checks import check_count, field_named
@@ -151,6 +152,7 @@ def sources_from_msg(msgs, field: str = "options.sources") -> tuple[fusion.Sourc
     sources = []
     for k, s in enumerate(msgs):
         where = f"{field}[{k}]"
+        check_name(s.name, f"{where}.name")
         extra = {}
         n = len(s.extrinsic_covariance)
         if n not in (0, COVARIANCE_SIZE):
@@ -354,7 +356,8 @@ def fused_from_msg(msg, probability: float = DEFAULT_PROBABILITY,
 # ---- a FuseRequest as fusion.fuse's arguments, errors named by field ---------------------------
 
 # The domain's per-measurement arguments, as fields of a Measurement.
-_MEASUREMENT_FIELDS = {"poses": "pose", "covariances": "covariance", "times": "time"}
+_MEASUREMENT_FIELDS = {"poses": "pose", "covariances": "covariance", "times": "time",
+                       "names": "source"}
 _OPTION_FIELDS = ("probability", "time", "max_skew", "max_extrapolation", "window",
                   "twist_covariance", "acceleration_psd")
 _INDEXED = re.compile(r"^(\w+)\[(\d+)\]")
@@ -389,8 +392,8 @@ def unknown_sources(m: Measurements, options: Options, field: str) -> list:
         return []
     known = {s.name for s in options.sources}
     listed = ", ".join(s.name for s in options.sources)
-    return [(k, FieldError(f"{field}[{int(m.index[k])}].source: {m.sources[k]!r} is not among "
-                           f"options.sources ({listed})"))
+    return [(k, FieldError(f"{field}[{int(m.index[k])}].source: {quoted(m.sources[k])} is not "
+                           f"among options.sources ({listed})"))
             for k in range(len(m.index)) if m.sources[k] not in known]
 
 
@@ -426,11 +429,13 @@ def fuse_from_msg(request, bounds: limits.Limits = limits.DEFAULT,
     options = options_from_msg(request.options)
     _check_fit_size("measurements", n, options, bounds)
     m = measurements_to_arrays(request.measurements)
+    if n:
+        check_name(m.bodies[0], "measurements[0].body", empty=True)    # Fuse's may be ""
     for k, body in enumerate(m.bodies):
         if body != m.bodies[0]:
-            raise FieldError(f"measurements[{k}].body: {body!r} differs from "
-                             f"measurements[0].body {m.bodies[0]!r} (Fuse fuses one body; "
-                             f"StreamFuse takes many)")
+            raise FieldError(f"measurements[{k}].body: {quoted(body)} differs from "
+                             f"measurements[0].body {quoted(m.bodies[0])} (Fuse fuses one "
+                             f"body; StreamFuse takes many)")
     if options.window:
         raise FieldError("options.window: Fuse keeps no window (StreamFuse does); leave it 0")
     _check_times(m.times, m.index, "measurements", options, bounds)

@@ -23,9 +23,10 @@ from grpc_reflection.v1alpha import _async as reflection_aio
 from grpc_reflection.v1alpha import reflection, reflection_pb2_grpc
 
 from dqpose import record
+from dqpose.names import quoted
 from dqpose.rpc import routing
 from dqpose.rpc.blending import Blending
-from dqpose.rpc.calls import Calls, log
+from dqpose.rpc.calls import Calls, log, readable
 from dqpose.rpc.fusion import Fusion
 from dqpose.rpc.handeye import HandEye
 from dqpose.rpc.server_config import (  # noqa: F401 (ConfigError: the server's API)
@@ -167,7 +168,7 @@ class Health(health_pb2_grpc.HealthServicer):
         status = self._status.get(request.service)
         if status is None:
             await context.abort(grpc.StatusCode.NOT_FOUND,
-                                f"service: unknown service {request.service!r}")
+                                readable(f"service: unknown service {quoted(request.service)}"))
         return health_pb2.HealthCheckResponse(status=status)
 
     async def Watch(self, request, context):

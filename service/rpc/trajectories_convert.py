@@ -12,6 +12,7 @@ import numpy as np
 
 from dqpose import dq, trajectory
 from dqpose.errors import FieldError, Infeasible, rename
+from dqpose.names import check_name
 from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
 from dqpose.rpc.geometry import (
@@ -159,6 +160,7 @@ def resolve_frames(args: PlanArgs, req, world, field: str = "", arm: str | None 
     resolved = []
     for i in framed:
         w = req.waypoints[i]
+        check_name(w.frame, f"{field}waypoints[{i}].frame")
         r = resolve(world, w.frame, waypoints[i].pose, f"{field}waypoints[{i}].frame", base)
         waypoints[i] = trajectory.Waypoint(pose=r.pose, time=waypoints[i].time,
                                            blend_radius=waypoints[i].blend_radius)

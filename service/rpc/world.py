@@ -28,6 +28,7 @@ from google.protobuf.message import DecodeError
 
 from dqpose import world as domain
 from dqpose.errors import FieldError
+from dqpose.names import name_problem
 from dqpose.rpc import DEFAULT_MAX_POSES, world_record
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from dqpose.rpc._proto.dqpose.v1 import world_pb2 as pb
@@ -41,6 +42,7 @@ from dqpose.rpc.world_convert import (
     config_from_msg,
     config_msg,
     published_errors,
+    subscribe_names,
 )
 from dqpose.rpc.world_ready import Ready
 from dqpose.world_ticks import Ticks, tick_phase
@@ -85,7 +87,7 @@ def status_of(e: Exception) -> tuple[grpc.StatusCode, str]:
     if isinstance(e, (domain.NotFound, UnknownWorld)):
         return grpc.StatusCode.NOT_FOUND, readable(str(e).strip("'\""))
     if isinstance(e, TooManyWorlds):
-        return grpc.StatusCode.RESOURCE_EXHAUSTED, str(e)
+        return grpc.StatusCode.RESOURCE_EXHAUSTED, readable(str(e))
     if isinstance(e, domain.OutOfRange):
         return grpc.StatusCode.FAILED_PRECONDITION, readable(str(e).strip("'\""))
     if isinstance(e, domain.WorldError) and not isinstance(e, FieldError):
@@ -214,7 +216,12 @@ class Cell:
         def error(i: int, text: str) -> None:
             ack.errors.add(request=r, measurement=i, details=readable(text))
 
+        named = name_problem(request.producer, empty=True)     # "": anonymous, one per call
         with self.lock:
+            if named is not None:
+                self.requests += 1
+                error(-1, f"requests[{r}].producer: {named}; none of it was used")
+                return ack
             seq = request.sequence
             known = self.acked.get(producer)
             last = known or 0
@@ -511,6 +518,8 @@ class World:
                     "bodies", len(request.bodies), cell.world.bounds.max_bodies,
                     "bodies")) is not None:
                 problem = (grpc.StatusCode.RESOURCE_EXHAUSTED, too_many)
+            if problem is None and (named := subscribe_names(request)) is not None:
+                problem = (grpc.StatusCode.INVALID_ARGUMENT, named)
             if problem is not None:
                 code = problem[0].name
                 await context.abort(problem[0], problem[1])

@@ -13,6 +13,7 @@ import numpy as np
 
 from dqpose import world
 from dqpose.errors import FieldError
+from dqpose.names import name_problem
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from dqpose.rpc._proto.dqpose.v1 import world_pb2 as pb
 from dqpose.rpc.fusion_convert import (
@@ -93,6 +94,17 @@ def world_config(sources=(), arms=None, *, robust: bool = False, probability: fl
     for arm, source in (arms or {}).items():
         msg.arms.add(arm=arm, source=source)
     return msg
+
+
+def subscribe_names(request: pb.SubscribeRequest) -> str | None:
+    """What is wrong with a ``SubscribeRequest``'s names (``bodies``, ``relative_to``: a body
+    or "", the world frame), naming the field; None when they are names."""
+    for i, body in enumerate(request.bodies):
+        problem = name_problem(body)
+        if problem is not None:
+            return f"bodies[{i}]: {problem}"
+    problem = name_problem(request.relative_to, empty=True)
+    return None if problem is None else f"relative_to: {problem}"
 
 
 def published_errors(published, index: np.ndarray, field: str) -> list:

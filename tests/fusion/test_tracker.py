@@ -137,7 +137,7 @@ def test_tracker_bad_options_fail_at_construction():
         Tracker(0.2, max_skew=-1.0)
     with pytest.raises(ValueError, match=r"^acceleration_psd: not positive semidefinite"):
         Tracker(0.2, acceleration_psd=-np.eye(6))
-    with pytest.raises(ValueError, match=r"^sources\[0\]: a source needs a name"):
+    with pytest.raises(ValueError, match=r"^sources\[0\]\.name: empty"):
         Tracker(0.2, sources=[Source("")])
 
 
