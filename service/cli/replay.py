@@ -2,7 +2,9 @@
 server), every answer compared with the recorded one byte for byte; a server's rotated files (a
 directory, several files, a glob) are replayed as one sequence, run by run. ``--compare OTHER``
 compares two recordings of the same requests instead. Exit 0 when every answer is the same, 1 at
-the first difference (printed), 2 for a file that cannot be read or a missing extra."""
+the first difference (printed), 2 when not every answer could be compared (a file cut short or
+damaged, messages the recorder dropped: what precedes is replayed, and where and why each run
+stopped is printed), for a file that is not a recording, or a missing extra."""
 from __future__ import annotations
 
 import argparse
@@ -81,10 +83,15 @@ def _replay(args) -> int:
              f"{'s' if report.runs != 1 else ''}" if report.files > 1 else "")
     print(f"{verb} {report.calls} calls, {report.requests} requests, {report.answers} "
           f"answers{files}{rate}")
-    if report.cut:
-        print(report.cut)
+    for cut in report.cuts:
+        print(cut)
     if report.difference is not None:
         print(f"first difference: {report.difference}")
         return 1
+    if report.cuts:
+        where = "it" if len(report.cuts) == 1 else "each run"
+        print(f"no difference up to where {where} stopped; what follows was not {verb}"
+              if report.calls else f"nothing {verb}")
+        return 2
     print("every answer identical" if report.calls else "nothing to compare")
     return 0

@@ -1,7 +1,9 @@
-"""A recording read back in the order it was written (the calls' arrival order), every record's
-CRC checked (``mcap``'s stream reader): each call's requests and answers as wire bytes, the calls'
-begin and end, the markers where messages were dropped. What replay and the tests read; any
-other MCAP reader sees the same file.
+"""A recording read back in the order it was written (the calls' arrival order), every CRC and
+declared size checked first (:mod:`dqpose.record.mcapread`): each call's requests and answers as
+wire bytes, the calls' begin and end, the markers where messages were dropped. What replay,
+export and the viewer read; any other MCAP reader sees the same file. A file that stops being
+readable is a :class:`Damaged` naming it, the byte and why, once what precedes it was given out;
+one that is not MCAP a :class:`~dqpose.record.mcapread.NotMcap`.
 
 A server's recording is rotated into files ``dqpose-<server start>-<n>.mcap``; :func:`runs`
 orders them into the runs they belong to and :func:`items` reads a run's files as one sequence
@@ -17,9 +19,7 @@ import os
 import re
 from typing import Iterable, Iterator, Union
 
-from mcap.records import Channel, Message, Schema
-from mcap.stream_reader import StreamReader
-
+from dqpose.record.mcapread import Damaged, messages
 from dqpose.record.schemas import message_class
 from dqpose.record.topics import CALLS_TOPIC, DROPPED_TOPIC, plan_topic
 
@@ -85,8 +85,13 @@ class Recording:
 
     def message_class(self, name: str):
         """The protobuf class of message type ``name`` built from the schema the file embeds
-        alone (its own descriptor pool): no generated code needed."""
-        return message_class(self.schemas[name], name)
+        alone (its own descriptor pool): no generated code needed; :class:`Damaged` for a schema
+        that does not build it."""
+        try:
+            return message_class(self.schemas[name], name)
+        except Exception as e:      # protobuf's own: DecodeError, TypeError, KeyError
+            raise Damaged(self.path, None, f"its schema of {name} does not build the message "
+                                           f"({type(e).__name__}: {e})") from None
 
     def items(self) -> Iterator[Item]:
         """The recording in the order it was written (as :func:`items` reads it): before each
@@ -111,8 +116,9 @@ class Recording:
 
 
 def read(path: str | os.PathLike) -> Recording:
-    """The recording at ``path``; ``ValueError`` naming it for a file that is not MCAP or fails
-    its CRCs, and for one that ends before its footer (cut short: the process was killed)."""
+    """The recording at ``path``; :class:`Damaged` (a ``ValueError``) naming it for a file that
+    fails a check (a CRC, a declared size, a file cut short: its process was killed),
+    :class:`~dqpose.record.mcapread.NotMcap` for one that is not MCAP."""
     return read_all([path])
 
 
@@ -151,51 +157,41 @@ def items(files: list[str], schemas: dict[str, bytes] | None = None,
     ``schemas`` and ``plans`` (when given) are filled as the files are read."""
     open_calls: set[int] = set()
     for k, path in enumerate(files):
-        for topic, metadata, ns, data in _messages(path, schemas):
-            if topic == CALLS_TOPIC:
-                d = json.loads(data)
-                call = d["call"]
-                if d["event"] == "begin":
-                    if call in open_calls:      # goes on from the file before
-                        continue
-                    open_calls.add(call)
-                    yield Call(call, d["rpc"], d["request_type"], d["answer_type"],
-                               d.get("continued", False),
-                               world=d.get("world", ""))
-                elif d["event"] == "end" and call in open_calls:
-                    open_calls.discard(call)
-                    yield End(call, d["code"], d.get("details", ""), ns, k)
-            elif topic == DROPPED_TOPIC:
-                d = json.loads(data)
-                yield Dropped(d["first_dropped"], d["count"], -1, k)
-            elif topic.startswith(PLANS):
-                if plans is not None:
-                    plans.append((topic[len(PLANS):], ns, data))
-            elif "call" in metadata:
-                kind = topic.rsplit("/", 1)[1][:-1]     # requests -> request
-                yield Event(kind, int(metadata["call"]), ns, data, k)
+        for topic, metadata, ns, data in messages(path, schemas):
+            try:
+                item = _item(topic, metadata, ns, data, k, open_calls, plans)
+            except (ValueError, KeyError, TypeError, RecursionError) as e:
+                raise Damaged(path, None, f"its {topic} message of {ns} ns is not what dqpose "
+                                          f"writes ({type(e).__name__}: {e})") from None
+            if item is not None:
+                yield item
 
 
-def _messages(path: str, schemas: dict[str, bytes] | None):
-    """``(topic, channel metadata, log_time, data)`` of each message of ``path``,
-    CRCs checked; ``ValueError`` naming the file for one that is not a complete MCAP file."""
-    channels: dict[int, Channel] = {}
-    try:
-        with open(path, "rb") as f:
-            for rec in StreamReader(f, validate_crcs=True).records:
-                if isinstance(rec, Schema):
-                    if schemas is not None and rec.encoding == "protobuf":
-                        schemas[rec.name] = rec.data
-                elif isinstance(rec, Channel):
-                    channels[rec.id] = rec
-                elif isinstance(rec, Message):
-                    ch = channels[rec.channel_id]
-                    yield ch.topic, ch.metadata, rec.log_time, rec.data
-    except OSError:
-        raise
-    except Exception as e:   # mcap's own exceptions: EndOfFile, CRC and record errors
-        raise ValueError(f"{path}: not a complete MCAP recording ({type(e).__name__}: "
-                         f"{e})") from None
+def _item(topic: str, metadata: dict, ns: int, data: bytes, k: int, open_calls: set[int],
+          plans: list | None) -> Item | None:
+    """What one message of file ``k`` of a run is, None for one replay does not read."""
+    if topic == CALLS_TOPIC:
+        d = json.loads(data)
+        call = int(d["call"])
+        if d["event"] == "begin":
+            if call in open_calls:      # goes on from the file before
+                return None
+            open_calls.add(call)
+            return Call(call, str(d["rpc"]), str(d["request_type"]), str(d["answer_type"]),
+                        bool(d.get("continued", False)), world=str(d.get("world", "")))
+        if d["event"] == "end" and call in open_calls:
+            open_calls.discard(call)
+            return End(call, str(d["code"]), str(d.get("details", "")), ns, k)
+    elif topic == DROPPED_TOPIC:
+        d = json.loads(data)
+        return Dropped(int(d["first_dropped"]), int(d["count"]), -1, k)
+    elif topic.startswith(PLANS):
+        if plans is not None:
+            plans.append((topic[len(PLANS):], ns, data))
+    elif "call" in metadata and topic.endswith(("/requests", "/answers")):
+        kind = topic.rsplit("/", 1)[1][:-1]     # requests -> request
+        return Event(kind, int(metadata["call"]), ns, data, k)
+    return None
 
 
 #: a rotated file's name: the server's start (one for all its files) and the file's number

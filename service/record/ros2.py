@@ -4,18 +4,19 @@ installation: each fused pose as ``geometry_msgs/PoseWithCovarianceStamped`` on
 bodies' frames on ``/tf`` (``tf2_msgs/TFMessage``), each body's fused path and each plan as
 ``nav_msgs/Path`` (``/fused/<body>/path``, ``/plans/<name>``). Stamps are the arrival times of
 the recording, like its Foxglove views; the fused poses are decoded with the schema the
-recording embeds.
+recording embeds (one that does not decode is a ``Damaged`` recording).
 """
 from __future__ import annotations
 
 import os
 
 import numpy as np
+from google.protobuf.message import DecodeError
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from dqpose import dq, lie
-from dqpose.record.reader import Recording
+from dqpose.record.reader import Damaged, Recording
 from dqpose.record.views import WORLD
 
 STORE = Stores.ROS2_HUMBLE
@@ -58,7 +59,11 @@ def export(rec: Recording, out_dir: str | os.PathLike) -> dict[str, int]:
             if e.kind != "answer" or Fused is None or \
                     rec.calls[e.call].answer_type != "dqpose.v1.FusedPose":
                 continue
-            f = Fused.FromString(e.data)
+            try:
+                f = Fused.FromString(e.data)
+            except DecodeError:
+                raise Damaged(rec.files[e.file] if e.file < len(rec.files) else rec.path, None,
+                              f"its answer of {e.ns} ns is not a FusedPose") from None
             if f.HasField("error") or not f.HasField("pose") or len(f.covariance) != 36:
                 continue
             p, o = f.pose.position, f.pose.orientation

@@ -12,9 +12,11 @@ so each World step is fed only once the one before it is applied (in process: at
 :mod:`dqpose.rpc.replay_world`; a server: :mod:`dqpose.rpc.replay_remote`). Nothing of a run is
 held but its open calls and the answers not yet compared, so a recording larger than memory
 replays whole. A run whose recorder fell behind is replayed up to the first messages it is
-missing ("not replayable after T"); a call that began before the run's first file is skipped,
-saying so. The first difference names its call, answer and field, and the file and time the
-recorded answer is in.
+missing ("not replayable after T"), one with a file cut short (its server killed) or damaged (a
+CRC or a declared size that fails its check: :mod:`dqpose.record.mcapread`) up to where it
+stops being readable, naming the file, the byte and why; the runs after it are replayed. A call
+that began before the run's first file is skipped, saying so. The first difference names its
+call, answer and field, and the file and time the recorded answer is in.
 """
 from __future__ import annotations
 
@@ -71,11 +73,18 @@ class Report:
     requests: int = 0
     answers: int = 0
     skipped: list[str] = dataclasses.field(default_factory=list)
-    cut: Optional[str] = None    # "not replayable after T: ..." when messages are missing
+    #: "not replayable after T: ...", one for each run not replayed to its end (messages
+    #: dropped, a file cut short or damaged): its answers up to there were compared
+    cuts: list[str] = dataclasses.field(default_factory=list)
     difference: Optional[Difference] = None
     seconds: float = 0.0
     files: int = 0               # files replayed (a run of rotated files counts each)
     runs: int = 0
+
+    @property
+    def cut(self) -> Optional[str]:
+        """The first of :attr:`cuts`, None when every run was replayed whole."""
+        return self.cuts[0] if self.cuts else None
 
 
 class Player(Protocol):
@@ -232,21 +241,18 @@ class _Run:
         report = self.report
         self.target.begin()
         it = iter(items)
-        read = False
         try:
             while True:
                 try:
                     item = next(it)
                 except StopIteration:
                     break
-                except ValueError as e:
-                    if not read:        # nothing of it is a recording
-                        raise
-                    # a file cut short (its server killed): what was read replays
-                    report.cut = (f"not replayable after {self.where[1] / 1e9:.6f} (Unix "
-                                  f"time): {e}")
+                except reader.Damaged as e:
+                    # a file cut short (its server killed) or damaged: what was read replays
+                    ns = self.where[1]
+                    at = f"after {ns / 1e9:.6f} (Unix time)" if ns else "at all"
+                    report.cuts.append(f"not replayable {at}: {e}")
                     break
-                read = True
                 if isinstance(item, Event):
                     self.where = (self.file(item.file), item.ns)
                     opened = self.open.get(item.call)
@@ -268,9 +274,10 @@ class _Run:
                     if opened is not None:
                         self.finish(*opened, (item.code, item.details), True)
                 elif isinstance(item, Dropped):
-                    report.cut = (f"not replayable after {item.first_dropped / 1e9:.6f} (Unix "
-                                  f"time): {item.count} messages dropped by the recorder there "
-                                  f"({os.path.basename(self.file(item.file))})")
+                    report.cuts.append(
+                        f"not replayable after {item.first_dropped / 1e9:.6f} (Unix time): "
+                        f"{item.count} messages dropped by the recorder there "
+                        f"({os.path.basename(self.file(item.file))})")
                     break
                 if report.difference is not None:
                     break
@@ -318,15 +325,16 @@ def replay(source: Source, target, speed: Optional[float] = None) -> Report:
     """Feeds ``source`` (a :class:`Recording` in memory, or runs of files, e.g.
     :func:`dqpose.record.reader.runs`: each run's files read as one sequence as it is
     replayed) to ``target`` (:class:`InProcess` or :class:`~dqpose.rpc.replay_remote.Remote`)
-    and compares; the report holds the first difference (the replay stops there). A file that
-    cannot be read is a ``ValueError`` naming it, when the replay reaches it."""
+    and compares; the report holds the first difference (the replay stops there) and where each
+    run that could not be replayed whole stops (``cuts``: the replay goes on with the next run).
+    A file that is not MCAP is a ``ValueError`` naming it, when the replay reaches it."""
     report = Report()
     t0 = time.perf_counter()
     for files, items in _runs(source):
         report.runs += 1
         report.files += len(files)
         _Run(target, speed, report, files).play(items)
-        if report.difference is not None or report.cut is not None:
+        if report.difference is not None:
             break
     report.seconds = time.perf_counter() - t0
     return report
@@ -416,7 +424,7 @@ def compare(a: Recording, b: Recording) -> Report:
     differ are a difference too."""
     ca, cut_a = _recorded(a)
     cb, cut_b = _recorded(b)
-    report = Report(cut=cut_a or cut_b)
+    report = Report(cuts=[c for c in (cut_a, cut_b) if c])
     for x, y in zip(a.calls.values(), b.calls.values()):
         ex, ey = ca.get(x.id, []), cb.get(y.id, [])
         qx = [e.data for e in ex if e.kind == "request"]
@@ -428,7 +436,7 @@ def compare(a: Recording, b: Recording) -> Report:
             report.difference = Difference(x, -1, f"not the same requests: {b.path} call "
                                                   f"{y.id} ({y.rpc}) was sent others")
             break
-        complete = report.cut is None and x.code is not None and y.code is not None
+        complete = not report.cuts and x.code is not None and y.code is not None
         answers = [e for e in ex if e.kind == "answer"]
         d = compare_outcomes(
             x, Outcome([e.data for e in answers], x.code or "OK", x.details),
@@ -459,8 +467,9 @@ def compare_runs(a: list[list[str]], b: list[list[str]]) -> Report:
         report.requests += one.requests
         report.answers += one.answers
         report.skipped += one.skipped
-        report.cut, report.difference = one.cut, one.difference
-        if one.cut or one.difference:
+        report.cuts += one.cuts
+        report.difference = one.difference
+        if one.cuts or one.difference:
             return report
     if len(a) != len(b):
         report.skipped.append(f"{len(a)} runs against {len(b)}: compared the first "

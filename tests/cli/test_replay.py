@@ -1,7 +1,10 @@
 """``dqpose replay``: exit 0 when a recording replays to every answer, 1 with the first
-difference, 2 naming a file that is not a recording or a bad --speed."""
+difference, 2 naming a file that is not a recording or a bad --speed; a file cut short or with a
+byte flipped (alone, or in a directory beside a whole one) replays up to where it can be read,
+says where and why it stopped and exits 2, never "identical"."""
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 
@@ -63,7 +66,7 @@ def test_what_cannot_be_replayed_is_named(tmp_path, files):
     junk.write_bytes(b"not mcap at all")
     res = dqpose(str(junk))
     assert res.returncode == 2
-    assert res.stderr.startswith(f"dqpose replay: error: {junk}: not a complete MCAP recording")
+    assert res.stderr.startswith(f"dqpose replay: error: {junk}: not an MCAP file")
     res = dqpose(str(tmp_path / "missing.mcap"))
     assert (res.returncode, res.stderr) == (
         2, f"dqpose replay: error: {tmp_path / 'missing.mcap'}: No such file or directory\n")
@@ -95,3 +98,58 @@ def test_a_rotated_recording_replays_as_one_run_from_its_directory(tmp_path):
     assert "began before" in alone.stderr and alone.stdout.startswith("replayed 0 calls")
     same = dqpose(str(tmp_path / "run" / "*.mcap"), "--compare", str(tmp_path / "run"))
     assert same.returncode == 0 and same.stdout.splitlines()[-1] == "every answer identical"
+
+
+def _flipped(whole: bytes) -> bytes:
+    data = bytearray(whole)
+    data[len(whole) // 3] ^= 0x10          # a CRC failure
+    return bytes(data)
+
+
+#: the probe's four damaged copies of a recording
+DAMAGES = {"cut at 50 %": lambda whole: whole[:len(whole) // 2],
+           "cut at 90 %": lambda whole: whole[:len(whole) * 9 // 10],
+           "missing its last 10 bytes": lambda whole: whole[:-10],
+           "a byte flipped": _flipped}
+
+
+def _counts(stdout: str) -> tuple[int, int]:
+    m = re.match(r"replayed (\d+) calls, (\d+) requests, ", stdout)
+    assert m, stdout
+    return int(m[1]), int(m[2])
+
+
+@pytest.mark.parametrize("damage", list(DAMAGES))
+def test_a_damaged_file_replays_what_it_can_says_where_it_stopped_and_exits_2(files, tmp_path,
+                                                                             damage):
+    with open(files[0], "rb") as f:
+        whole = f.read()
+    path = tmp_path / "damaged.mcap"
+    path.write_bytes(DAMAGES[damage](whole))
+    res = dqpose(str(path))
+    assert res.returncode == 2, (res.stdout, res.stderr)
+    assert "identical" not in res.stdout + res.stderr
+    lines = res.stdout.splitlines()
+    (cut,) = [line for line in lines if line.startswith("not replayable ")]
+    assert f": {path}: not a complete MCAP recording: byte " in cut, cut
+    assert lines[-1].startswith("no difference up to where it stopped") or \
+        lines[-1] == "nothing replayed"
+    calls, requests = _counts(res.stdout)
+    assert requests <= 30 + 3
+    if damage != "a byte flipped":
+        assert requests > 0         # the readable part was replayed
+
+
+def test_a_directory_with_a_cut_file_replays_every_run_and_exits_2(files, tmp_path):
+    with open(files[0], "rb") as f:
+        whole = f.read()
+    (tmp_path / "a.mcap").write_bytes(whole[:len(whole) // 2])
+    (tmp_path / "b.mcap").write_bytes(whole)
+    res = dqpose(str(tmp_path))
+    assert res.returncode == 2, (res.stdout, res.stderr)
+    assert "identical" not in res.stdout
+    assert " from 2 files in 2 runs in " in res.stdout.splitlines()[0]
+    (cut,) = [line for line in res.stdout.splitlines() if line.startswith("not replayable ")]
+    assert f"{tmp_path / 'a.mcap'}: not a complete MCAP recording" in cut
+    calls, requests = _counts(res.stdout)
+    assert calls > 4 and requests > 33      # b.mcap whole after the part of a.mcap

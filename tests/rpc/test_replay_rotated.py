@@ -187,7 +187,12 @@ def test_a_run_whose_last_file_was_cut_short_replays_up_to_the_cut(rotated, tmp_
     before = {e.call for e in whole.events if e.file < k}
     upto = {e.call for e in whole.events if e.file <= k}
     assert report.files == k + 1 and len(before) <= report.calls <= len(upto)
-    # a file of which nothing can be read is not a recording, not a cut
+    # a file of which nothing can be read: a cut with nothing replayed; one that is not MCAP
+    # is refused
     last.write_bytes(last.read_bytes()[:100])
-    with pytest.raises(ValueError, match="not a complete MCAP recording"):
+    report = replay.replay(runs([last]), replay.InProcess())
+    assert report.calls == 0 and len(report.cuts) == 1
+    assert report.cut.startswith(f"not replayable at all: {last}: not a complete MCAP recording")
+    last.write_bytes(b"PK\x03\x04" + last.read_bytes()[4:])
+    with pytest.raises(ValueError, match="not an MCAP file"):
         replay.replay(runs([last]), replay.InProcess())
