@@ -18,9 +18,12 @@ record is taken as the record, attachments' CRCs and the summary's are not check
   chunks, attachments and metadata read (per channel too), its schemas and channels are the
   ones the data defined; the footer and the closing magic end the file.
 
-Time and memory a file can cost are thus bounded by its size and the 64 MiB limit, whatever it
-holds. Anything wrong is a :class:`Damaged` naming the file, the byte and what is wrong;
-messages before it were given out (a replay replays them), none after it.
+- a compressed chunk declaring more than :data:`MAX_RATIO` times its compressed size (beyond
+  1 MiB) is refused too, so a file of many small chunks cannot ask for gigabytes either.
+
+Time and memory a file can cost are thus bounded by its size (times the ratio) and the 64 MiB
+limit, whatever it holds. Anything wrong is a :class:`Damaged` naming the file, the byte and
+what is wrong; messages before it were given out (a replay replays them), none after it.
 """
 from __future__ import annotations
 
@@ -38,6 +41,10 @@ MAGIC = b"\x89MCAP0\r\n"
 #: the most bytes a record may declare (it is read whole to be checked) and a chunk may declare
 #: it holds uncompressed; dqpose writes 16 kB chunks, and a gRPC message is 4 MiB at most
 MAX_RECORD_BYTES = 64 << 20
+#: the most a compressed chunk may declare per byte it holds (beyond its first MiB): dqpose's
+#: 16 kB chunks of poses compress 2-10x, while zeros compress ~30,000x, so without it a file of
+#: many chunks each declaring 64 MiB costs decompression work thousands of times its size
+MAX_RATIO = 1024
 
 _U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
 _HEAD = struct.Struct("<BQ")            # a record's opcode and length
@@ -261,6 +268,10 @@ class _Reader:
             raise ValueError(f"it declares {size} bytes uncompressed, more than the "
                              f"{MAX_RECORD_BYTES >> 20} MiB a chunk may hold: not decompressed")
         packed = memoryview(body)[f._take(n, "records"):f.i]
+        if compression and size > max(1 << 20, MAX_RATIO * len(packed)):
+            raise ValueError(f"it declares {size} bytes uncompressed from {len(packed)} "
+                             f"compressed, more than the {MAX_RATIO}:1 a chunk may expand: "
+                             f"not decompressed")
         if compression == "":
             data = bytes(packed)
         elif compression == "zstd":

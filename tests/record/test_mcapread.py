@@ -11,6 +11,7 @@ import importlib.util
 import struct
 import subprocess
 import sys
+import zlib
 
 import lz4.frame
 import pytest
@@ -18,7 +19,7 @@ from mcap.opcode import Opcode
 from mcap.records import Channel, Message
 from mcap.stream_reader import StreamReader
 
-from dqpose.record.mcapread import MAX_RECORD_BYTES, Damaged, NotMcap, messages
+from dqpose.record.mcapread import MAX_RATIO, MAX_RECORD_BYTES, Damaged, NotMcap, messages
 from dqpose.record.reader import read, runs
 from dqpose.record.recorder import Recorder
 from dqpose.rpc import replay
@@ -97,6 +98,21 @@ def test_a_chunk_declaring_a_gib_is_refused_by_every_reader_before_decompressing
         assert said in res.stdout + res.stderr, (argv, res.stdout, res.stderr)
         assert "identical" not in res.stdout
     assert not (tmp_path / "bag").exists()
+
+
+def test_a_chunk_expanding_beyond_the_ratio_is_refused_before_decompressing(tmp_path):
+    # 32 MiB of zeros, under the 64 MiB a chunk may hold, from a few kB of zstd (lz4 expands
+    # ~255:1 at most): a file of many such chunks would cost gigabytes of decompression; its
+    # CRC holds, so only the ratio stops it
+    n, compression = 32 << 20, "zstd"
+    packed = zeros_zstd(n)
+    assert n > MAX_RATIO * len(packed)
+    path = _file(tmp_path, mcap([chunk(b"", compression, size=n, packed=packed,
+                                       crc=zlib.crc32(bytes(n)))] * 3))
+    with pytest.raises(Damaged, match=rf"byte {DATA_START}: chunk record: it declares {n} "
+                                      rf"bytes uncompressed from {len(packed)} compressed, "
+                                      rf"more than the {MAX_RATIO}:1 a chunk may expand"):
+        list(messages(path))
 
 
 @pytest.mark.parametrize("compression", ["zstd", "lz4"])
