@@ -49,7 +49,8 @@ def matrix_from_sxyz(rx, ry, rz) -> np.ndarray:
 
 
 def sxyz_from_quat(q) -> np.ndarray:
-    """Unit quaternions ``(..., 4)`` to ``(..., 3)`` angles ``[rx, ry, rz]``."""
+    """Unit quaternions ``(..., 4)`` ``[w, x, y, z]`` (w first) to ``(..., 3)`` angles
+    ``[rx, ry, rz]``."""
     q = np.asarray(q, dtype=float)
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     # Matrix entries written in quaternion components: no intermediate 3x3 round-off.

@@ -40,9 +40,9 @@ def quat_from_rotvec(rotvec) -> np.ndarray:
 
 
 def rotvec_from_quat(q) -> np.ndarray:
-    """Unit quaternions ``(..., 4)`` ``[w, x, y, z]`` to rotation vectors ``(..., 3)`` with angle
-    in ``[0, pi]`` (``q`` and ``-q`` give the same vector, except at exactly pi where the
-    sign of the axis follows ``q``). Quaternions within 1e-6 of unit norm are normalised."""
+    """Unit quaternions ``(..., 4)`` ``[w, x, y, z]`` (w first) to rotation vectors ``(..., 3)``
+    with angle in ``[0, pi]`` (``q`` and ``-q`` give the same vector, except at exactly pi where
+    the sign of the axis follows ``q``). Quaternions within 1e-6 of unit norm are normalised."""
     q = _as_array(q, "q", 4)
     try:
         return 2.0 * dq.log(np.concatenate([q, np.zeros_like(q)], axis=-1))[..., :3]

@@ -4,7 +4,8 @@ Conventions (stated once, used everywhere in dqpose):
 
 * A dual quaternion is a float64 array of shape ``(..., 8)``: ``[w, x, y, z, w', x', y', z']``,
   real part first; the dual part is ``1/2 * t * r``.
-* Quaternions are scalar first ``[w, x, y, z]``; metres, radians, seconds.
+* Quaternions are scalar first ``[w, x, y, z]`` (ROS, Eigen's ``coeffs()`` and scipy put w
+  last: reorder with ``q[..., [3, 0, 1, 2]]``); metres, radians, seconds.
 * A pose named ``T_a_b`` maps points from frame b to frame a; ``mul(T_a_b, T_b_c) = T_a_c``.
 * ``log`` returns ``(..., 6)``: the real vector part, then the dual vector part. It is half the
   se(3) twist ``(omega, v)`` of the same motion, with the rotation taken the short way.
@@ -129,12 +130,15 @@ def to_matrix(a) -> np.ndarray:
 
 
 def from_pose(q_wxyz, t) -> np.ndarray:
-    """Rotation quaternion ``[w, x, y, z]`` and translation ``[x, y, z]`` to a dual quaternion."""
+    """Rotation quaternion ``[w, x, y, z]`` (w first; ROS's, Eigen's ``coeffs()`` and scipy's
+    ``as_quat()`` put it last: pass ``q[..., [3, 0, 1, 2]]``) and translation ``[x, y, z]`` to a
+    dual quaternion."""
     return _c.from_pose(q_wxyz, t)
 
 
 def to_pose(a) -> tuple[np.ndarray, np.ndarray]:
-    """Dual quaternion to ``(q_wxyz, t)``. The quaternion keeps the sign of the input."""
+    """Dual quaternion to ``(q_wxyz, t)``: the quaternion w first (for ROS, Eigen or scipy's
+    x, y, z, w: ``q[..., [1, 2, 3, 0]]``), keeping the sign of the input."""
     return _c.to_pose(a)
 
 

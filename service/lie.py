@@ -36,7 +36,7 @@ __all__ = [
     "so3_left_jacobian", "so3_right_jacobian", "so3_left_jacobian_inv", "so3_right_jacobian_inv",
     "se3_left_jacobian", "se3_right_jacobian", "se3_left_jacobian_inv", "se3_right_jacobian_inv",
     "cov_right_to_left", "cov_left_to_right", "cov_inverse", "cov_compose",
-    "cov_to_ros", "cov_from_ros",
+    "cov_to_ros", "cov_from_ros", "cov_sigmas",
 ]
 
 # Below this angle the coefficients come from their Taylor series: the closed forms divide
@@ -332,6 +332,18 @@ def cov_compose(cov_a: Optional[np.ndarray], T_b, cov_b: Optional[np.ndarray]) -
     if cov_b is not None:
         out = out + _array(cov_b, "cov_b", (6, 6))
     return out
+
+
+def cov_sigmas(cov) -> np.ndarray:
+    """``(..., 2)``: the one-sigma rotation (rad) and translation (m) of 6x6 covariances
+    ``(..., 6, 6)`` (rotation first): the square roots of the largest eigenvalues of the rotation
+    and of the translation block, the standard deviation along the least certain direction
+    (frame-independent, as a rotation of the frame leaves the eigenvalues). Every sigma dqpose
+    prints or records for a pose is this one; a negative eigenvalue (round-off) is 0."""
+    c = _array(cov, "cov", (6, 6))
+    largest = np.stack([np.linalg.eigvalsh(c[..., :3, :3])[..., -1],
+                        np.linalg.eigvalsh(c[..., 3:, 3:])[..., -1]], axis=-1)
+    return np.sqrt(np.maximum(largest, 0.0))
 
 
 # ---- ROS's pose covariance -------------------------------------------------------------------

@@ -340,6 +340,25 @@ def test_covariance_maps_are_first_order_exact():
                        lie.adjoint(dq.inv(C)) @ xi, rtol=0, atol=1e-11)
 
 
+def test_cov_sigmas_are_the_largest_standard_deviations_of_each_block():
+    # independent: the worst direction's standard deviation of samples drawn from the covariance
+    A = RNG.normal(size=(6, 6)) * np.array([0.01, 0.02, 0.005, 0.001, 0.003, 0.002])[:, None]
+    cov = A @ A.T
+    xs = RNG.multivariate_normal(np.zeros(6), cov, size=200_000)
+    want = []
+    for block in (xs[:, :3], xs[:, 3:]):
+        _, _, vt = np.linalg.svd(block - block.mean(0), full_matrices=False)
+        want.append(np.std(block @ vt[0]))
+    got = lie.cov_sigmas(cov)
+    np.testing.assert_allclose(got, want, rtol=0.01)
+    # larger than any one axis' (the largest diagonal entry), broadcast over leading axes
+    assert np.all(got >= np.sqrt([cov[:3, :3].diagonal().max(), cov[3:, 3:].diagonal().max()]))
+    np.testing.assert_array_equal(lie.cov_sigmas(np.stack([cov, cov]))[1], got)
+    np.testing.assert_array_equal(lie.cov_sigmas(np.diag([-1e-20] * 3 + [4.0] * 3)), [0.0, 2.0])
+    with pytest.raises(ValueError, match=r"^cov: expected shape"):
+        lie.cov_sigmas(np.eye(3))
+
+
 # ---- GTSAM, where installed ---------------------------------------------------------------------
 def test_matches_gtsam_pose3():
     gtsam = pytest.importorskip("gtsam")

@@ -5,6 +5,8 @@ from __future__ import annotations
 import pathlib
 import re
 
+import numpy as np
+
 from tests.rpc._grpc_server import ServerThread
 
 README = pathlib.Path(__file__).resolve().parents[1] / "README.md"
@@ -23,3 +25,8 @@ def test_every_python_snippet_of_the_readme_runs():
                 if name in namespace:
                     v = namespace[name]
                     assert v.shape[-1] == 8 and (abs(v[..., :4] ** 2).sum(-1) - 1 < 1e-12).all()
+            if "look" in namespace:     # the World's: the box where both sources saw it
+                look, box = namespace["look"], namespace["box"]
+                np.testing.assert_allclose(look.pose * np.sign(look.pose[:4] @ box[:4]), box,
+                                           atol=1e-9)
+                assert (np.linalg.eigvalsh(look.covariance) > 0).all()

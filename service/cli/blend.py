@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from dqpose.cli.common import client, connection_args, failure
+from dqpose.cli.inputs import add_quaternion_order
 
 BLEND_CSV = "x,y,z,qw,qx,qy,qz[,weight]"
 INTERPOLATE_CSV = "t,x,y,z,qw,qx,qy,qz"
@@ -22,14 +23,16 @@ POSE_FORMATS = """\
 input formats (FILE, or - for standard input; chosen by the extension, else by the content):
   JSON  the request body grpcurl sends (enums as METHOD_DLB or just dlb), e.g.
 %s
-        positions may also be [x, y, z] and orientations [w, x, y, z]; a bare list of
-        %s is accepted too. A missing position or coordinate is zero, as in protobuf;
-        an orientation is required, and a key not shown here is an error.
+        positions may also be [x, y, z]; an orientation as four numbers names their order:
+        "orientation_xyzw": [x, y, z, w] (ROS, Eigen, scipy) or "orientation_wxyz": [w, x, y, z]
+        (a bare "orientation": [...] is refused unless --quaternion-order names it). A bare
+        list of %s is accepted too. A missing position or coordinate is zero, as in
+        protobuf; an orientation is required, and a key not shown here is an error.
   YAML  the same document in YAML (.yaml, .yml; needs the [yaml] extra).
   CSV   one pose per line, columns %s, separated by commas, semicolons,
-        tabs or spaces (a header line naming the columns is optional; columns are matched by
-        name when present).
-units: metres; quaternions scalar first (w, x, y, z), unit norm (within 1e-3: normalised).
+        tabs or spaces; a header line names the columns (matched by name, any order: qx,qy,qz,qw
+        works too); a file without one needs --quaternion-order.
+units: metres; quaternions of unit norm (within 1e-3: normalised).
 """
 
 
@@ -72,6 +75,7 @@ def configure(name: str, p) -> None:
     p.add_argument("--format", choices=["auto", "csv", "json"], default="auto",
                    help="output format; auto = the input's (default: %(default)s)")
     p.add_argument("--local", action="store_true", help="compute in this process, no server")
+    add_quaternion_order(p)
     connection_args(p)
     p.set_defaults(func=func)
 
@@ -81,7 +85,7 @@ def _blend(args) -> int:
     from dqpose.cli import posefile as io
 
     try:
-        req = io.read_blend(args.file)
+        req = io.read_blend(args.file, args.quaternion_order)
         method = args.method or req.method or "dib"
         weights = io.parse_floats("--weights", args.weights) if args.weights else req.weights
         fmt = req.format if args.format == "auto" else args.format
@@ -104,7 +108,7 @@ def _interpolate(args) -> int:
     from dqpose.interpolate import interpolate
 
     try:
-        req = io.read_interpolate(args.file)
+        req = io.read_interpolate(args.file, args.quaternion_order)
         mode = args.mode or req.mode or "screw"
         if args.times:
             times = io.parse_floats("--times", args.times)

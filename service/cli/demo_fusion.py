@@ -106,8 +106,8 @@ class Result:
     ``behind`` the most the stream ran behind real time, ``read_gap`` the longest time between
     two arm reads, ``missed`` controller cycles that got no set-point,
     ``roughness`` the RMS distance (m) of the arm's reads from a quadratic in time through the
-    reads within half a window of each, ``sigma`` the fused pose's mean translation standard
-    deviation (m))."""
+    reads within half a window of each, ``sigma`` the mean of the fused pose's one sigma of
+    position (m, :func:`dqpose.lie.cov_sigmas`))."""
     names: tuple[str, ...]
     series: dict
     nees: np.ndarray
@@ -150,7 +150,7 @@ def _follow(answers, scene, names, cams, errors, nees, latencies, out) -> list:
             errors[n].append((a.time, *pose_error(pose, T_true)))
             cells.append(f"{errors[n][-1][1]:7.3f} {errors[n][-1][2]:6.2f}")
         nees.append(_nees(a.fused.mean, a.fused.covariance, T_true))
-        sigma.append(math.sqrt(np.trace(a.fused.covariance[3:, 3:]) / 3))
+        sigma.append(float(lie.cov_sigmas(a.fused.covariance)[1]))
         cells.append("  ".join(f"{1e3 * latencies[c.name][0]:5.1f}" for c in cams
                                if c.name in latencies))
         if out is not None:

@@ -77,7 +77,7 @@ def main(args: argparse.Namespace, out=None) -> int:
     from dqpose import drivers
     from dqpose.cli.common import local_server, open_arm
     from dqpose.cli.demo_fusion_scene import BOARD_OFFSET, HOME, cameras, pose_error
-    from dqpose.cli.world import HEADER, format_row
+    from dqpose.cli.readout import Readout
     from dqpose.drivers.base import ArmError
     from dqpose.drivers.sim.camera import BoardRenderer
     from dqpose.drivers.sim.ur import URSimProcess
@@ -143,25 +143,27 @@ def main(args: argparse.Namespace, out=None) -> int:
             target=lambda: [None for _ in Client(target).publish(arm_reads(), producer="ur")],
             daemon=True)
         publisher.start()
-        print(HEADER + "   error vs truth", file=out, flush=True)
+        table = Readout(start=start, delay=True)
+        print(f"the fused box, times in s since the producers started; delay: from the "
+              f"measurement time to this row\n{table.header(' error vs truth mm deg')}",
+              file=out, flush=True)
         errors = []
         for a in client.subscribe(["box"], ANSWER_RATE, timeout=seconds + 15.0):
-            line = format_row(a)
+            extra = ""
             if a.fused is not None:
                 deg, mm = pose_error(a.fused.mean, T_true)
                 errors.append((mm, deg))
-                line += f"   {mm:.2f} mm {deg:.3f} deg"
-            print(line, file=out, flush=True)
+                extra = f" {mm:14.2f} {deg:7.3f}"
+            print(table.row(a, extra), file=out, flush=True)
             if a.time >= start + seconds - 2.0 / CAMERA_RATE:
                 break
         publisher.join(seconds + 10)
         r = client.lookup("tool", "box")
         deg, mm = pose_error(r.pose, offset)
-        sd = np.sqrt(np.diag(r.covariance))
+        s_rot, s_pos = lie.cov_sigmas(r.covariance)
         print(f"\nLookup box in the tool frame at {r.time - start:.2f} s: "
-              f"{mm:.2f} mm, {deg:.3f} deg from the mount (sigma "
-              f"{np.linalg.norm(sd[3:]) * 1e3:.2f} mm, "
-              f"{np.degrees(np.linalg.norm(sd[:3])):.3f} deg)", file=out, flush=True)
+              f"{mm:.2f} mm, {deg:.3f} deg from the mount (1 sigma {s_pos * 1e3:.2f} mm, "
+              f"{np.degrees(s_rot):.3f} deg)", file=out, flush=True)
     if not errors:
         print("dqpose demo world: no fused answer arrived", file=out)
         return 1

@@ -7,6 +7,7 @@ import argparse
 import sys
 
 from dqpose.cli.common import client, connection_args, failure
+from dqpose.cli.inputs import add_quaternion_order
 
 AXES = ("wx", "wy", "wz", "vx", "vy", "vz")
 BASE_COLUMNS = ("source", "time", "x", "y", "z", "qw", "qx", "qy", "qz")
@@ -28,9 +29,12 @@ input formats (FILE, or - for standard input; chosen by the extension, else snif
                                     "extrinsic": {"position": {...}, "orientation": {...}}},
                                    {"name": "arm", "latency": 0.004, "latency_sigma": 0.005,
                                     "body_offset": {...}}]}}
-        a bare list of measurements is accepted too.
-  CSV   one measurement per line, columns source,time,x,y,z,qw,qx,qy,qz and, by header
-        name, optionally:
+        a bare list of measurements is accepted too. An orientation may also be given as
+        "orientation_xyzw": [x, y, z, w] or "orientation_wxyz": [w, x, y, z], a position as
+        [x, y, z].
+  CSV   one measurement per line, columns source,time,x,y,z,qw,qx,qy,qz (matched by the
+        header's names, any order; a file without a header needs --quaternion-order) and
+        optionally:
           body                      the body (all lines name the same one)
           sigma_wx .. sigma_vz      standard deviations of [wx wy wz vx vy vz] (rad, m):
                                     a diagonal covariance
@@ -84,12 +88,14 @@ def configure(name: str, p) -> None:
     p.add_argument("--format", choices=["text", "json"], default="text",
                    help="output: text for people, or the FusedPose as JSON (default: %(default)s)")
     p.add_argument("--local", action="store_true", help="compute in this process, no server")
+    add_quaternion_order(p)
     connection_args(p)
     p.set_defaults(func=_fuse)
 
 
-def read_request(path: str):
-    """A ``FuseRequest`` from a JSON, YAML or CSV file (see the help)."""
+def read_request(path: str, order: str | None = None):
+    """A ``FuseRequest`` from a JSON, YAML or CSV file (see the help); ``order``
+    (``--quaternion-order``) of quaternions not named one by one."""
     from dqpose.cli import inputs
     from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 
@@ -98,19 +104,19 @@ def read_request(path: str):
         from google.protobuf import json_format
 
         doc = inputs.document(path, text, fmt, "measurements")
-        inputs.message("", doc, pb.FuseRequest.DESCRIPTOR)
+        inputs.message("", doc, pb.FuseRequest.DESCRIPTOR, order)
         try:
             request = json_format.ParseDict(doc, pb.FuseRequest())
         except json_format.ParseError as e:
             raise ValueError(f"{path}: not a dqpose.v1.FuseRequest: {e}") from None
     else:
-        request = pb.FuseRequest(measurements=_csv_measurements(text))
+        request = pb.FuseRequest(measurements=_csv_measurements(text, order))
     if not request.measurements:
         raise ValueError(f"{path}: no measurements")
     return request
 
 
-def _csv_measurements(text: str) -> list:
+def _csv_measurements(text: str, order: str | None) -> list:
     from dqpose.cli import inputs, posefile
     from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 
@@ -133,7 +139,8 @@ def _csv_measurements(text: str) -> list:
         raise ValueError(f"line 1: unknown column {unknown[0]!r}; expected "
                          f"{','.join(BASE_COLUMNS)} and optionally body, weight, "
                          f"sigma_wx..sigma_vz or c00..c55 (see --help)")
-    rows = posefile._csv_rows(table, BASE_COLUMNS[1:], NUMBER_COLUMNS)
+    rows = posefile._csv_rows(table, BASE_COLUMNS[1:], NUMBER_COLUMNS, order=order,
+                              taken=("source",))
     have = [c for c in NUMBER_COLUMNS if c in cols]
     groups = {"weight": [c for c in have if c == "weight"],
               "sigma": [c for c in have if c in SIGMA_COLUMNS],
@@ -168,7 +175,7 @@ def _csv_measurements(text: str) -> list:
 
 def _fuse(args) -> int:
     try:
-        request = read_request(args.file)
+        request = read_request(args.file, args.quaternion_order)
         if args.robust:
             request.options.robust = True
         if args.probability is not None:

@@ -73,6 +73,7 @@ def save(args, images, flanges, intr, board, truth) -> None:
 def read_truth(folder: str, setup: str):
     """``(x, z)`` of a simulated capture (its truth.json), when it is one of this setup."""
     from dqpose import dq
+    from dqpose.cli.inputs import pose
     path = os.path.join(folder, "truth.json")
     if not os.path.isfile(path):
         return None
@@ -80,5 +81,5 @@ def read_truth(folder: str, setup: str):
         doc = json.load(f)
     if doc.get("setup") != setup:
         return None
-    return tuple(dq.from_pose([doc[k]["orientation"][c] for c in "wxyz"],
-                              [doc[k]["position"][c] for c in "xyz"]) for k in ("x", "z"))
+    rows = [pose(f"{path}: {k}", doc[k]) for k in ("x", "z")]
+    return tuple(dq.from_pose(r[:4], r[4:]) for r in rows)

@@ -14,6 +14,7 @@ import sys
 
 from dqpose.cli.common import client, connection_args, failure
 from dqpose.cli.handeye_folder import POSE_FILES, find, read_truth
+from dqpose.cli.inputs import add_quaternion_order
 
 SOLVE_EPILOG = """\
 DIR holds:
@@ -21,11 +22,13 @@ DIR holds:
   poses.json   the flange pose T_base_flange of each image, as the robot reported it:
                  {"setup": "eye_in_hand", "units": "m", "poses": [
                     {"image": "view_000.png", "base_to_flange": POSE}, ...]}
-               POSE: {"position": {...}, "orientation": {"w", "x", "y", "z"}},
-                     [x, y, z, rx, ry, rz] (a UR rotation vector, radians) or
-                     [x, y, z, qw, qx, qy, qz]
-  or poses.csv [image,]x,y,z,qw,qx,qy,qz  or  [image,]x,y,z,rx,ry,rz (UR); without image
-               names the poses go with the images in name order
+               POSE: {"position": [x, y, z], "orientation": {"w": .., "x": .., "y": ..,
+                     "z": ..}} (or "orientation_xyzw": [x, y, z, w] / "orientation_wxyz":
+                     [w, x, y, z]), [x, y, z, rx, ry, rz] (a UR rotation vector, radians),
+                     or 7 numbers x, y, z and a quaternion in --quaternion-order's order
+  or poses.csv [image,]x,y,z,qx,qy,qz,qw (by header, any order; a file without a header needs
+               --quaternion-order) or [image,]x,y,z,rx,ry,rz (UR); without image names the
+               poses go with the images in name order
   intrinsics.json (or .yaml)  K, dist, image_size (OpenCV and ROS camera_info files work)
   board.json (optional)       squares, square_length, marker_length, dictionary_name
 Positions beyond 3 m are read as millimetres (--units to say), 6-value poses as UR rotation
@@ -78,6 +81,7 @@ def add_parser(sub) -> None:
     s.add_argument("-o", "--output", metavar="JSON", help="default: DIR/handeye.json")
     s.add_argument("--local", action="store_true",
                    help="solve in this process instead of on a server")
+    add_quaternion_order(s)
     connection_args(s)
 
 
@@ -94,7 +98,7 @@ class _Views:
         if path is None:
             raise ValueError(f"DIR: no {' or '.join(POSE_FILES)} in {args.dir!r} (or give "
                              f"--poses FILE)")
-        robot = read_robot_poses(path, args.units)
+        robot = read_robot_poses(path, args.units, args.quaternion_order)
         if robot.images[0] is not None:
             self.images = [os.path.join(args.dir, im) for im in robot.images]
             missing = [im for im, p in zip(robot.images, self.images) if not os.path.isfile(p)]

@@ -12,6 +12,7 @@ from typing import NamedTuple
 import numpy as np
 
 from dqpose import dq, trajectory
+from dqpose.cli import inputs
 from dqpose.cli.inputs import document, fields, is_number, load, nearest, not_a_number, table
 from dqpose.errors import rename
 
@@ -45,37 +46,10 @@ def parse_floats(name: str, text: str) -> np.ndarray:
         raise ValueError(f"{name}: expected comma-separated numbers, got {text!r}") from None
 
 
-QUATERNION, VECTOR = ("w", "x", "y", "z"), ("x", "y", "z")
-POSE_KEYS = ("position", "orientation")
-
-
-def _vec(field: str, value, names: tuple[str, ...]) -> list[float]:
-    """A vector given as an object (a key left out is 0, as protobuf's JSON has it) or a list."""
-    if value is None:
-        return [0.0] * len(names)
-    if isinstance(value, dict):
-        value = fields(field, value, names)
-        value = [value.get(k, 0.0) for k in names]
-    if not isinstance(value, (list, tuple)) or len(value) != len(names):
-        raise ValueError(f"{field}: expected [{', '.join(names)}] or an object with those keys")
-    try:
-        return [float(v) for v in value]
-    except (TypeError, ValueError):
-        raise ValueError(f"{field}: expected numbers, got {value!r}") from None
-
-
-def _pose_row(where: str, value) -> list[float]:
-    """``[qw, qx, qy, qz, x, y, z]`` of a ``Pose`` object: an orientation is required (a missing
-    one is no rotation), a missing position is the origin."""
-    p = fields(where, value, POSE_KEYS, required=("orientation",))
-    return (_vec(f"{where}.orientation", p["orientation"], QUATERNION)
-            + _vec(f"{where}.position", p.get("position"), VECTOR))
-
-
-def _json_poses(field: str, entries, stamped: tuple[str, ...] = ()):
+def _json_poses(field: str, entries, stamped: tuple[str, ...] = (), order: str | None = None):
     """The poses of a list, each a ``Pose`` or, with ``stamped`` (the entry's keys besides
     ``pose``), ``{"time": ..., "pose": ...}``: ``(entries with checked keys, times, (n, 7)
-    rows)``."""
+    rows)``; ``order``: ``--quaternion-order``."""
     if not isinstance(entries, list):
         raise ValueError(f"{field}: expected a list")
     checked, times, rows = [], [], []
@@ -84,9 +58,9 @@ def _json_poses(field: str, entries, stamped: tuple[str, ...] = ()):
         if stamped:
             e = fields(where, e, ("pose",) + stamped, required=("pose",))
             times.append(_optional_number(e, "time", where) or 0.0)
-            rows.append(_pose_row(where + ".pose", e["pose"]))
+            rows.append(inputs.pose(where + ".pose", e["pose"], order))
         else:
-            rows.append(_pose_row(where, e))
+            rows.append(inputs.pose(where, e, order))
         checked.append(e)
     return checked, np.array(times), np.array(rows, dtype=np.float64).reshape(-1, 7)
 
@@ -101,11 +75,14 @@ def _numbers(field: str, value) -> np.ndarray | None:
 
 
 def _csv_rows(text: str, columns: tuple[str, ...], optional: tuple[str, ...] = (),
-              refused: dict[str, str] | None = None, names_out: list | None = None) -> np.ndarray:
+              refused: dict[str, str] | None = None, names_out: list | None = None,
+              order: str | None = None, taken: tuple[str, ...] = ()) -> np.ndarray:
     """Rows of ``columns`` (+ any ``optional`` present). A first line with no number in it is a
     header: columns are then matched by name, and a missing one, an unknown one, or one named
-    in ``refused`` (name -> why) is an error. Without a header the columns are positional.
-    ``names_out``, a list, receives the names of the returned columns."""
+    in ``refused`` (name -> why) is an error. Without a header the columns are positional, the
+    quaternion's (qw, qx, qy, qz in ``columns``) in ``order`` (``--quaternion-order``), which
+    such a file needs. ``names_out``, a list, receives the names of the returned columns;
+    ``taken``: the text columns the caller took out of the rows before (named in messages)."""
     lines = table(text)
     if not lines:
         return np.empty((0, len(columns)))
@@ -125,7 +102,7 @@ def _csv_rows(text: str, columns: tuple[str, ...], optional: tuple[str, ...] = (
             raise ValueError(f"line {first_line}: missing column {missing[0]}; expected "
                              f"{expected}")
         names = list(columns) + [o for o in optional if o in header]
-        order = [header.index(c) for c in names]
+        place = [header.index(c) for c in names]
         width = len(header)
         lines = lines[1:]
     else:
@@ -134,15 +111,23 @@ def _csv_rows(text: str, columns: tuple[str, ...], optional: tuple[str, ...] = (
             raise ValueError(f"line {first_line}: expected the columns {expected}, got {width} "
                              f"values")
         names = list((columns + optional)[:width])
-        order = list(range(width))
+        if "qw" in names:
+            if order is None:
+                shown = ",".join(list(taken) + names).replace("qw,qx,qy,qz", "QUATERNION")
+                raise inputs.unordered_row(first_line, shown)
+            at = names.index("qw")
+            given = names[:at] + ["q" + c for c in inputs.ORDERS[order]] + names[at + 4:]
+            place = [given.index(c) for c in names]
+        else:
+            place = list(range(width))
     if names_out is not None:
         names_out[:] = names
-    out = np.empty((len(lines), len(order)))
+    out = np.empty((len(lines), len(place)))
     for i, (n, row) in enumerate(lines):
         if len(row) != width:
             raise ValueError(f"line {n}: expected {width} values ({','.join(names)}), got "
                              f"{len(row)}")
-        for j, (k, name) in enumerate(zip(order, names)):
+        for j, (k, name) in enumerate(zip(place, names)):
             try:
                 out[i, j] = float(row[k])
             except ValueError:
@@ -168,18 +153,19 @@ def _enum(field: str, value, prefix: str, names: tuple[str, ...]) -> str | None:
     return v
 
 
-def read_blend(path: str) -> BlendFile:
+def read_blend(path: str, order: str | None = None) -> BlendFile:
+    """Poses to blend; ``order`` (``--quaternion-order``) of quaternions not named one by one."""
     text, fmt = load(path)
     if fmt != "csv":
         doc = fields(path, document(path, text, fmt, "poses"), ("poses", "weights", "method"),
                      required=("poses",))
-        _, _, flat = _json_poses("poses", doc["poses"])
+        _, _, flat = _json_poses("poses", doc["poses"], order=order)
         weights = _numbers("weights", doc.get("weights"))
         method = _enum("method", doc.get("method"), "method", tuple(dq.METHODS))
     else:
         rows = _csv_rows(text, POSE_COLUMNS, ("weight",), refused={
             "t": "a time column means keyframes: sample the motion through them with "
-                 "`dqpose interpolate`"})
+                 "`dqpose interpolate`"}, order=order)
         flat = np.concatenate([rows[:, 3:7], rows[:, :3]], axis=1)
         weights = rows[:, 7] if rows.shape[1] == 8 else None
         method = None
@@ -188,20 +174,22 @@ def read_blend(path: str) -> BlendFile:
     return BlendFile(_to_dqs("poses", flat), weights, method, _answer(fmt))
 
 
-def read_interpolate(path: str) -> InterpolateFile:
+def read_interpolate(path: str, order: str | None = None) -> InterpolateFile:
+    """Keyframes; ``order`` (``--quaternion-order``) of quaternions not named one by one."""
     text, fmt = load(path)
     times = mode = None
     if fmt != "csv":
         doc = fields(path, document(path, text, fmt, "keyframes"),
                      ("keyframes", "times", "interpolation"), required=("keyframes",))
-        _, times_k, flat = _json_poses("keyframes", doc["keyframes"], stamped=("time",))
+        _, times_k, flat = _json_poses("keyframes", doc["keyframes"], stamped=("time",),
+                                       order=order)
         times = _numbers("times", doc.get("times"))
         mode = _enum("interpolation", doc.get("interpolation"), "interpolation",
                      ("screw", "tool_linear"))
         sub = ".pose"
     else:
         rows = _csv_rows(text, ("t",) + POSE_COLUMNS, refused={
-            "weight": "weights belong to poses that are blended: `dqpose blend`"})
+            "weight": "weights belong to poses that are blended: `dqpose blend`"}, order=order)
         times_k = rows[:, 0]
         flat = np.concatenate([rows[:, 4:8], rows[:, 1:4]], axis=1)
         sub = ""
@@ -296,16 +284,17 @@ def _optional_number(doc: dict, key: str, where: str = "") -> float | None:
                          f"got {v!r}") from None
 
 
-def read_plan(path: str) -> PlanFile:
+def read_plan(path: str, order: str | None = None) -> PlanFile:
     """Waypoints: JSON as grpcurl sends a ``dqpose.v1.PlanRequest`` (a bare list is the
     waypoints), or CSV ``x,y,z,qw,qx,qy,qz`` with optional ``time`` and ``blend_radius``
-    columns (by header)."""
+    columns (by header); ``order`` (``--quaternion-order``) of quaternions not named one by
+    one."""
     text, fmt = load(path)
     if fmt != "csv":
         doc = fields(path, document(path, text, fmt, "waypoints"),
                      ("waypoints", "limits", "rate_hz", "interpolation"), required=("waypoints",))
         wps, times, flat = _json_poses("waypoints", doc["waypoints"],
-                                       stamped=("time", "blend_radius"))
+                                       stamped=("time", "blend_radius"), order=order)
         extra = np.array([[t, _optional_number(w, "blend_radius", f"waypoints[{i}]") or 0.0]
                           for i, (t, w) in enumerate(zip(times, wps))],
                          dtype=np.float64).reshape(-1, 2)
@@ -315,7 +304,8 @@ def read_plan(path: str) -> PlanFile:
         sub = ".pose"
     else:
         names: list = []
-        rows = _csv_rows(text, POSE_COLUMNS, ("time", "blend_radius"), names_out=names)
+        rows = _csv_rows(text, POSE_COLUMNS, ("time", "blend_radius"), names_out=names,
+                         order=order)
         flat = np.concatenate([rows[:, 3:7], rows[:, :3]], axis=1)
         extra = np.zeros((len(rows), 2))
         for j, name in enumerate(("time", "blend_radius")):
@@ -328,19 +318,20 @@ def read_plan(path: str) -> PlanFile:
                     mode, _answer(fmt))
 
 
-def read_stamped(path: str) -> StampedFile:
+def read_stamped(path: str, order: str | None = None) -> StampedFile:
     """Time-stamped poses: JSON as grpcurl sends a ``dqpose.v1.SmoothRequest`` (a bare list is
-    the poses), or CSV ``t,x,y,z,qw,qx,qy,qz``."""
+    the poses), or CSV ``t,x,y,z,qw,qx,qy,qz``; ``order`` (``--quaternion-order``) of
+    quaternions not named one by one."""
     text, fmt = load(path)
     if fmt != "csv":
         doc = fields(path, document(path, text, fmt, "poses"),
                      ("poses", "limits", "smoothing", "rate_hz"), required=("poses",))
-        _, times, flat = _json_poses("poses", doc["poses"], stamped=("time",))
+        _, times, flat = _json_poses("poses", doc["poses"], stamped=("time",), order=order)
         limits = _limits(doc)
         smoothing, rate = _optional_number(doc, "smoothing"), _optional_number(doc, "rate_hz")
         sub = ".pose"
     else:
-        rows = _csv_rows(text, ("t",) + POSE_COLUMNS)
+        rows = _csv_rows(text, ("t",) + POSE_COLUMNS, order=order)
         times = rows[:, 0]
         flat = np.concatenate([rows[:, 4:8], rows[:, 1:4]], axis=1)
         limits, smoothing, rate, sub = {}, None, None, ""
@@ -390,25 +381,32 @@ class RobotPoses(NamedTuple):
     setup: str | None
 
 
-def _robot_row(field: str, value) -> tuple[str, list[float]]:
+def _robot_row(field: str, value, order: str | None) -> tuple[str, list[float]]:
     """One pose of a robot pose file: ``("quaternion", [qw, qx, qy, qz, x, y, z])`` or
-    ``("rotvec", [x, y, z, rx, ry, rz])``."""
+    ``("rotvec", [x, y, z, rx, ry, rz])``; seven numbers are a position and a quaternion in
+    ``order`` (``--quaternion-order``), which they need."""
     if isinstance(value, dict):
-        return "quaternion", _pose_row(field, value)
+        return "quaternion", inputs.pose(field, value, order)
     if isinstance(value, (list, tuple)) and len(value) in (6, 7):
         try:
             v = [float(x) for x in value]
         except (TypeError, ValueError):
             raise ValueError(f"{field}: expected numbers, got {value!r}") from None
-        return ("rotvec", v) if len(v) == 6 else ("quaternion", v[3:] + v[:3])
+        if len(v) == 6:
+            return "rotvec", v
+        if order is None:
+            raise inputs.unordered(field, value[3:], position=value[:3]) from None
+        q = [v[3 + inputs.ORDERS[order].index(c)] for c in inputs.QUATERNION]
+        return "quaternion", q + v[:3]
     raise ValueError(f"{field}: expected a pose: {{\"position\": ..., \"orientation\": ...}}, "
-                     f"[x, y, z, rx, ry, rz] (UR) or [x, y, z, qw, qx, qy, qz]")
+                     f"[x, y, z, rx, ry, rz] (UR) or [x, y, z, then a quaternion in the order "
+                     f"--quaternion-order names]")
 
 
 _ROBOT_ENTRY = ("image", "base_to_flange", "pose")
 
 
-def _robot_json(path: str, text: str, fmt: str):
+def _robot_json(path: str, text: str, fmt: str, order: str | None):
     doc = fields(path, document(path, text, fmt, "poses"), ("setup", "units", "poses"),
                  required=("poses",))
     entries = doc["poses"]
@@ -419,7 +417,8 @@ def _robot_json(path: str, text: str, fmt: str):
         field = f"poses[{i}]"
         image, key = None, ""
         # {"image": ..., "base_to_flange" | "pose": POSE}, else a POSE itself
-        if isinstance(e, dict) and not set(e) & set(POSE_KEYS) and set(e) & set(_ROBOT_ENTRY):
+        if (isinstance(e, dict) and not set(e) & set(inputs.POSE_KEYS)
+                and set(e) & set(_ROBOT_ENTRY)):
             e = fields(field, e, _ROBOT_ENTRY)
             key = next((k for k in _ROBOT_ENTRY[1:] if k in e), None)
             if key is None:
@@ -429,7 +428,7 @@ def _robot_json(path: str, text: str, fmt: str):
                 raise ValueError(f"{field}.image: expected a file name, got {image!r}")
             e, field = e[key], f"{field}.{key}"
         keys.add(key)
-        kind, row = _robot_row(field, e)
+        kind, row = _robot_row(field, e, order)
         images.append(image)
         kinds.append(kind)
         rows.append(row)
@@ -437,7 +436,7 @@ def _robot_json(path: str, text: str, fmt: str):
     return doc, images, kinds, rows, sub
 
 
-def _robot_csv(text: str):
+def _robot_csv(text: str, order: str | None):
     lines = table(text)
     header = None
     if lines and not any(is_number(c) for c in lines[0][1][1:]):
@@ -464,8 +463,13 @@ def _robot_csv(text: str):
             image = None if is_number(row[0]) else row[0]
             values = row[1:] if image is not None else row
             if len(values) not in (6, 7):
-                raise ValueError(f"line {n}: expected [image,]x,y,z,qw,qx,qy,qz or "
+                raise ValueError(f"line {n}: expected [image,]x,y,z and a quaternion or "
                                  f"[image,]x,y,z,rx,ry,rz, got {len(row)} values")
+            if len(values) == 7:
+                if order is None:
+                    raise inputs.unordered_row(n, "[image,]x,y,z,QUATERNION")
+                values = values[:3] + [values[3 + inputs.ORDERS[order].index(c)]
+                                       for c in inputs.QUATERNION]
         try:
             v = [float(c) for c in values]
         except ValueError:
@@ -476,19 +480,21 @@ def _robot_csv(text: str):
     return {}, images, kinds, rows, ""
 
 
-def read_robot_poses(path: str, units: str = "auto") -> RobotPoses:
+def read_robot_poses(path: str, units: str = "auto", order: str | None = None) -> RobotPoses:
     """The flange poses ``T_base_flange`` of a hand-eye capture, one per image: JSON
     ``{"setup": ..., "units": "m"|"mm", "poses": [{"image": NAME, "base_to_flange": POSE}]}`` (a
-    bare list is the poses; POSE is ``{"position", "orientation"}``, ``[x, y, z, rx, ry, rz]`` (a
-    UR rotation vector) or ``[x, y, z, qw, qx, qy, qz]``), or CSV ``[image,]x,y,z,qw,qx,qy,qz``
-    or ``[image,]x,y,z,rx,ry,rz``. ``units`` ``auto`` reads positions as millimetres when a
-    coordinate is beyond :data:`MAX_METRES` (the file's ``"units"`` wins over ``auto``); the
-    returned notes say so, and that rotation vectors were read."""
+    bare list is the poses; POSE is a pose object (:func:`inputs.pose`), ``[x, y, z, rx, ry,
+    rz]`` (a UR rotation vector) or seven numbers x, y, z and a quaternion in ``order``), or CSV
+    ``[image,]x,y,z,qw,qx,qy,qz`` (by header, any order; without one, the quaternion in
+    ``order``) or ``[image,]x,y,z,rx,ry,rz``. ``order`` is ``--quaternion-order``: quaternions
+    not named one by one are refused without it. ``units`` ``auto`` reads positions as
+    millimetres when a coordinate is beyond :data:`MAX_METRES` (the file's ``"units"`` wins over
+    ``auto``); the returned notes say so, and that rotation vectors were read."""
     if units not in UNITS:
         raise ValueError(f"units: expected one of {', '.join(UNITS)}, got {units!r}")
     text, fmt = load(path)
-    doc, images, kinds, rows, sub = _robot_json(path, text, fmt) if fmt != "csv" else \
-        _robot_csv(text)
+    doc, images, kinds, rows, sub = _robot_json(path, text, fmt, order) if fmt != "csv" else \
+        _robot_csv(text, order)
     if not rows:
         raise ValueError(f"{path}: no poses")
     if len(set(kinds)) > 1:

@@ -8,6 +8,7 @@ import argparse
 import sys
 
 from dqpose.cli.common import client, connection_args, failure
+from dqpose.cli.inputs import add_quaternion_order
 from dqpose.errors import require
 
 PLAN_EPILOG = """\
@@ -25,7 +26,10 @@ input formats (FILE, or - for standard input; chosen by the extension, else snif
   YAML  the same document in YAML (.yaml, .yml; needs the [yaml] extra).
   CSV   one waypoint per line: x,y,z,qw,qx,qy,qz and, by header name, time (s from the start
         it must be reached; 0: as fast as the limits allow) and blend_radius (m); separated
-        by commas, semicolons, tabs or spaces.
+        by commas, semicolons, tabs or spaces; a file without a header needs
+        --quaternion-order.
+  an orientation is {"w": .., "x": .., "y": .., "z": ..}, or "orientation_xyzw" /
+  "orientation_wxyz": four numbers in that order.
 poses are T_base_tool; limits are norms of the tool point's (linear) and the tool's (angular)
 motion in the base frame. Flags override the file's limits; velocity and acceleration limits are
 required, a jerk limit of 0 (the default) means none.
@@ -42,7 +46,8 @@ input formats (FILE, or - for standard input):
   JSON  the SmoothRequest body of dqpose.v1.Trajectories/Smooth: {"poses": [{"time": 0.0,
         "pose": {...}}, ...], "limits": {...}, "smoothing": 1, "rate_hz": 0}
   YAML  the same document in YAML (.yaml, .yml; needs the [yaml] extra).
-  CSV   t,x,y,z,qw,qx,qy,qz (commas, semicolons, tabs or spaces), times strictly increasing.
+  CSV   t,x,y,z,qw,qx,qy,qz (commas, semicolons, tabs or spaces; a file without a header needs
+        --quaternion-order), times strictly increasing.
 output: the smoothed poses as CSV t,x,y,z,qw,qx,qy,qz (or JSON with -o x.json), and on
 standard error how far its ends are from the recording's. By default the path starts and ends at
 rest (velocity and acceleration zero, as a controller starts and stops): where the recording is
@@ -98,6 +103,7 @@ def configure(name: str, p) -> None:
                    help="draw position, velocity, acceleration and jerk against the limits")
     p.add_argument("--local", action="store_true",
                    help="compute in this process instead of on a server")
+    add_quaternion_order(p)
     connection_args(p)
     p.set_defaults(func=_plan if name == "plan" else _smooth)
 
@@ -132,7 +138,7 @@ def _plan(args) -> int:
     try:
         if args.plot:       # before the work, not after it
             require("matplotlib")
-        f = read_plan(args.file)
+        f = read_plan(args.file, args.quaternion_order)
         limits = _limits(args, f.limits)
         rate = args.rate or f.rate_hz or 125.0
         mode = args.interpolation or f.mode or "tool_linear"
@@ -171,7 +177,7 @@ def _smooth(args) -> int:
     try:
         if args.plot:       # before the work, not after it
             require("matplotlib")
-        f = read_stamped(args.file)
+        f = read_stamped(args.file, args.quaternion_order)
         limits = _limits(args, f.limits)
         weight = args.smoothing or f.smoothing or 1.0
         rate = args.rate or f.rate_hz or 0.0

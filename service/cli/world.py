@@ -4,21 +4,25 @@ shows a live table of fused poses, ``lookup TARGET SOURCE`` prints one relative 
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 
 from dqpose.cli.common import client, connection_args, failure
+from dqpose.cli.inputs import add_quaternion_order
 
 EPILOG = """\
 publish: FILE is what `dqpose fuse` reads (JSON/YAML FuseRequest, or CSV); every measurement
   needs a body (the file's, else --body). The file's options.sources (when it has any) are
   configured into the world first unless --no-configure. Measurements are sent in file order,
   --batch per request, numbered from 1 under --producer; the acks' errors are printed.
-watch: one line per answer: body, time, position (m), rotation vector (deg), the standard
-  deviations of position (mm) and rotation (deg), the sources' NIS verdicts and the estimated
-  latencies. Ctrl-C ends it.
+watch: one line per answer: the time in s since the first answer's, the body, its position
+  (mm), rotation vector (axis times angle) and roll, pitch, yaw (deg; fixed axes as ROS has them:
+  R = Rz(yaw) Ry(pitch) Rx(roll)), each angle unwrapped against the body's row before, one sigma
+  of position (mm) and rotation (deg) along the least certain direction, then the sources' NIS
+  verdicts in name order and the latencies the world estimates. Ctrl-C ends it.
 lookup: T_target_source (tf2's lookupTransform order; "" or "world" is the world frame) at
-  --time (0: the newest time both are known at), with its covariance.
+  --time (0: the newest time both are known at): position, rotation, one sigma as watch has them.
+--json: one JSON object per answer (watch: a line each) with SI units, absolute times, the pose
+  with named components (as the pose files have it) and the 6x6 covariance (rotation first).
 """
 
 
@@ -37,6 +41,7 @@ def configure(name: str, p) -> None:
                      help="measurements per request (default: %(default)s)")
     pub.add_argument("--no-configure", action="store_true",
                      help="do not configure the file's options.sources into the world")
+    add_quaternion_order(pub)
     watch = sub.add_parser("watch", help="a live table of fused poses")
     watch.add_argument("bodies", nargs="*", metavar="BODY", help="bodies (none: all)")
     watch.add_argument("--rate", type=float, default=0.0,
@@ -49,6 +54,9 @@ def configure(name: str, p) -> None:
     look.add_argument("frame_source", metavar="SOURCE", help="a body, or world")
     look.add_argument("--time", type=float, default=0.0,
                       help="measurement time, s (0: the newest both are known at)")
+    for q in (watch, look):
+        q.add_argument("--json", action="store_true",
+                       help="for machines: JSON, SI units, the pose's components named")
     for q in (pub, watch, look):
         connection_args(q, target_alias=q is not look)
         q.add_argument("--world", default="", metavar="NAME",
@@ -70,15 +78,16 @@ def _run(args) -> int:
         return failure(f"world {args.action}", args, e)
 
 
-def publish_requests(path: str, body: str, batch: int, producer: str):
+def publish_requests(path: str, body: str, batch: int, producer: str, order: str | None = None):
     """``(sources, PublishRequest s)`` of a measurement file: its options' sources and its
-    measurements in file order, ``batch`` per request, numbered from 1."""
+    measurements in file order, ``batch`` per request, numbered from 1; ``order``
+    (``--quaternion-order``) of quaternions not named one by one."""
     from dqpose.cli.fuse import read_request
     from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
 
     if batch < 1:
         raise ValueError(f"--batch: must be at least 1, got {batch}")
-    request = read_request(path)
+    request = read_request(path, order)
     ms = list(request.measurements)
     for i, m in enumerate(ms):
         if not m.body:
@@ -94,7 +103,8 @@ def publish_requests(path: str, body: str, batch: int, producer: str):
 def _publish(args) -> int:
     from dqpose.rpc.fusion_convert import sources_from_msg
 
-    sources, requests = publish_requests(args.file, args.body, args.batch, args.producer)
+    sources, requests = publish_requests(args.file, args.body, args.batch, args.producer,
+                                         args.quaternion_order)
     with client(args) as c:
         if sources and not args.no_configure:
             c.configure_world(sources_from_msg(sources, f"{args.file}: options.sources"))
@@ -110,53 +120,25 @@ def _publish(args) -> int:
     return 1 if errors else 0
 
 
-HEADER = (f"{'body':>12} {'time s':>10} {'x m':>8} {'y m':>8} {'z m':>8} {'rot deg':>18} "
-          f"{'σpos mm':>8} {'σrot deg':>8}  NIS verdicts / latencies")
-
-
-def format_row(a) -> str:
-    """One :class:`~dqpose.rpc.client_types.StreamAnswer` as a line of the watch table."""
-    import numpy as np
-
-    from dqpose import dq, fusion, lie
-
-    if a.fused is None:
-        return f"{a.body:>12} {a.time:10.4f}  error: {a.error}"
-    f = a.fused
-    _, t = dq.to_pose(f.mean)
-    w = np.degrees(lie.se3_log(f.mean)[:3])
-    sd = np.sqrt(np.maximum(np.diag(f.covariance), 0.0))
-    verdicts = " ".join(f"{s.name}:{fusion.Verdict(s.verdict).name.lower()}"
-                        for s in f.sources)
-    lat = " ".join(f"{x.name}={x.value * 1e3:.1f}ms" for x in f.latencies)
-    return (f"{a.body:>12} {a.time:10.4f} {t[0]:8.4f} {t[1]:8.4f} {t[2]:8.4f} "
-            f"{w[0]:+6.2f},{w[1]:+6.2f},{w[2]:+6.2f} {np.linalg.norm(sd[3:]) * 1e3:8.3f} "
-            f"{math.degrees(np.linalg.norm(sd[:3])):8.4f}  {verdicts} {lat}".rstrip())
-
-
 def _watch(args) -> int:
+    from dqpose.cli.readout import Readout, answer_json
+
+    table = Readout()
     with client(args) as c:
-        print(HEADER)
+        if not args.json:
+            print(table.header())
         for k, a in enumerate(c.subscribe(args.bodies, args.rate, args.relative_to), 1):
-            print(format_row(a), flush=True)
+            print(answer_json(a) if args.json else table.row(a), flush=True)
             if args.count and k >= args.count:
                 break
     return 0
 
 
 def _lookup(args) -> int:
-    import numpy as np
-
-    from dqpose import dq
+    from dqpose.cli.readout import lookup_json, lookup_text
 
     with client(args) as c:
         r = c.lookup(_frame(args.frame_target), _frame(args.frame_source), args.time)
-    q, t = dq.to_pose(r.pose)
-    if q[0] < 0:
-        q = -q
-    print(f"T_{args.frame_target}_{args.frame_source} at {r.time:.9g} s (x,y,z,qw,qx,qy,qz):")
-    print("  " + ",".join(f"{v:.9g}" for v in (*t, *q)))
-    print("covariance (rotation first [wx wy wz vx vy vz], right perturbation):")
-    for row in np.asarray(r.covariance):
-        print("  " + " ".join(f"{v: .6e}" for v in row))
+    show = lookup_json if args.json else lookup_text
+    sys.stdout.write(show(args.frame_target, args.frame_source, r))
     return 0

@@ -26,7 +26,7 @@ from foxglove_schemas_protobuf.SpherePrimitive_pb2 import SpherePrimitive
 from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
 from google.protobuf.timestamp_pb2 import Timestamp
 
-from dqpose import dq
+from dqpose import dq, lie
 
 #: the frame every fused pose is in (and an arm's base frame, which plans stand it for)
 WORLD = "world"
@@ -107,8 +107,7 @@ def scalars(fused) -> dict:
            "rejected": len(fused.rejected)}
     if cov.size == 36:
         cov = cov.reshape(6, 6)
-        out["sigma_rotation"] = float(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3])[-1], 0.0)))
-        out["sigma_position"] = float(np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:])[-1], 0.0)))
+        out["sigma_rotation"], out["sigma_position"] = map(float, lie.cov_sigmas(cov))
     for s in fused.sources:
         out[f"nis_{s.name or 'world'}"] = s.nis_mean
     for lat in fused.latencies:

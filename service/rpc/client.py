@@ -116,7 +116,9 @@ class Client:
     ``reconnect`` (s): how long a broken stream (its replica gone) keeps being reopened with
     backoff, its unanswered requests sent again (:mod:`dqpose.rpc.resume`); with it, a unary call
     refused before any answer (UNAVAILABLE, CANCELLED) is retried by gRPC's retry policy
-    (:func:`~dqpose.rpc.resume.retry_config`). 0: neither, the error is raised at once."""
+    (:func:`~dqpose.rpc.resume.retry_config`). 0: neither, the error is raised at once.
+    Poses in and out are ``(..., 8)`` dual quaternions, w first (:mod:`dqpose.dq`'s convention;
+    :func:`dqpose.dq.from_pose` takes a quaternion ``[w, x, y, z]``)."""
 
     def __init__(self, target: str = DEFAULT_TARGET, *, token: str | None = None,
                  tls: bool = False, root_certificates: bytes | None = None,

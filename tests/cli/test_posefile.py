@@ -44,11 +44,25 @@ def test_csv_with_and_without_header_and_weights(tmp_path, poses):
     _same(f.dqs, poses)
     np.testing.assert_array_equal(f.weights, w)
     assert f.format == "csv" and f.method is None
+    # without a header, the quaternion's order is named by --quaternion-order, never guessed
     bare = tmp_path / "bare.txt"
     bare.write_text("".join(",".join(repr(float(v)) for v in r) + "\n" for r in rows))
-    g = read_blend(str(bare))
+    with pytest.raises(ValueError, match=r"^line 1: a row without a header does not say which "
+                                         r"number of its quaternion is w: start the file with "
+                                         r"the header x,y,z,qx,qy,qz,qw \(x, y, z, w .*\) or "
+                                         r"x,y,z,qw,qx,qy,qz \(w first\), or give "
+                                         r"--quaternion-order xyzw\|wxyz$"):
+        read_blend(str(bare))
+    g = read_blend(str(bare), "wxyz")
     _same(g.dqs, poses)
     assert g.weights is None
+    xyzw = tmp_path / "xyzw.txt"
+    xyzw.write_text("".join(",".join(repr(float(v)) for v in (*r[:3], *r[4:], r[3])) + "\n"
+                            for r in rows))
+    _same(read_blend(str(xyzw), "xyzw").dqs, poses)
+    # a header names the order: x, y, z, w as ROS writes it is read so
+    (tmp_path / "ros.csv").write_text("x,y,z,qx,qy,qz,qw\n" + xyzw.read_text())
+    _same(read_blend(str(tmp_path / "ros.csv")).dqs, poses)
 
 
 def test_json_is_the_grpcurl_body(tmp_path, poses):
@@ -62,6 +76,26 @@ def test_json_is_the_grpcurl_body(tmp_path, poses):
     _same(f.dqs, poses)
     assert f.method == "dlb" and f.format == "json"
     np.testing.assert_array_equal(f.weights, [1, 1, 2, 2])
+
+
+def test_an_orientation_is_read_in_the_order_its_key_or_the_flag_names(tmp_path, poses):
+    rows = _rows(poses)                        # [x, y, z, qw, qx, qy, qz]
+    wxyz, xyzw = rows[:, 3:].tolist(), rows[:, [4, 5, 6, 3]].tolist()
+    forms = {"named": ([{"position": r[:3].tolist(), "orientation_xyzw": q}
+                        for r, q in zip(rows, xyzw)], None),
+             "named_wxyz": ([{"position": r[:3].tolist(), "orientation_wxyz": q}
+                             for r, q in zip(rows, wxyz)], None),
+             "flag_xyzw": ([{"position": r[:3].tolist(), "orientation": q}
+                            for r, q in zip(rows, xyzw)], "xyzw"),
+             "flag_wxyz": ([{"position": r[:3].tolist(), "orientation": q}
+                            for r, q in zip(rows, wxyz)], "wxyz")}
+    for name, (entries, order) in forms.items():
+        p = tmp_path / f"{name}.json"
+        p.write_text(json.dumps({"poses": entries}))
+        _same(read_blend(str(p), order).dqs, poses)
+        if order is not None:       # the same file without the flag is refused
+            with pytest.raises(ValueError, match=r"^poses\[0\]\.orientation: .* does not say"):
+                read_blend(str(p))
 
 
 def test_keyframes_and_times(tmp_path, poses):
@@ -80,9 +114,11 @@ def test_keyframes_and_times(tmp_path, poses):
 
 @pytest.mark.parametrize("text, message", [
     ("x,y,z,qw,qx,qy,qz\n0,0,0,0,0,0,0\n", r"^poses\[0\]\.orientation: zero quaternion"),
-    ("0,0,0,1,0,0,0\n0,0,nan,1,0,0,0\n", r"^poses\[1\]\.position: contains NaN or infinity"),
+    ("x,y,z,qw,qx,qy,qz\n0,0,0,1,0,0,0\n0,0,nan,1,0,0,0\n",
+     r"^poses\[1\]\.position: contains NaN or infinity"),
     ("0,0,0,1,0,0\n", r"^line 1: expected the columns x,y,z,qw,qx,qy,qz\[,weight\], got 6 values"),
-    ("0,0,0,1,0,0,0\n0,0,zero,1,0,0,0\n", r"^line 2, column z: 'zero' is not a number$"),
+    ("x,y,z,qw,qx,qy,qz\n0,0,0,1,0,0,0\n0,0,zero,1,0,0,0\n",
+     r"^line 3, column z: 'zero' is not a number$"),
     ("# measured\nx,y,z,qw,qx,qy,qz\n0,0,0,1,0,0,0\n0,0,0,1,abc,0,0\n",
      r"^line 4, column qx: 'abc' is not a number$"),
     ("qw,qx,qy,qz,x,y,z,weight\n1,0,0,0,0,0,0,\n", r"^line 2, column weight: '' is not a number$"),
@@ -99,6 +135,17 @@ def test_keyframes_and_times(tmp_path, poses):
     ('{"poses": [{"orientation": {"w": 1, "q": 2}}]}',
      r"^poses\[0\]\.orientation: unknown key 'q'"),
     ('{"poses": [1]}', r"^poses\[0\]: expected an object"),
+    # four numbers whose order nothing names: both ways to name it are shown
+    ('{"poses": [{"orientation": [0, 0, 0, 1]}]}',
+     r'^poses\[0\]\.orientation: \[0, 0, 0, 1\] does not say which number of the quaternion '
+     r'is w: write "orientation_xyzw": \[0, 0, 0, 1\] \(x, y, z, w .*\) or "orientation_wxyz": '
+     r'\[0, 0, 0, 1\] \(w first\), or the orientation as an object'),
+    ('{"poses": [{"orientation_xyzw": [0, 0, 1]}]}',
+     r"^poses\[0\]\.orientation_xyzw: expected four numbers x, y, z, w, got \[0, 0, 1\]$"),
+    ('{"poses": [{"orientation_wxyz": [1, 0, 0, 0], "orientation": {"w": 1}}]}',
+     r"^poses\[0\]: both 'orientation' and 'orientation_wxyz'; give one orientation$"),
+    ('{"poses": [{"orientation_xywz": [0, 0, 0, 1]}]}',
+     r"^poses\[0\]: unknown key 'orientation_xywz' \(did you mean 'orientation_xyzw'\?\)$"),
     ('{"poses": [{"orientation": {"w": 1}}], "method": "fancy"}',
      r"^method: unknown value 'fancy'"),
     ("{not json", r"not valid JSON"),
@@ -192,7 +239,10 @@ def test_robot_poses_in_every_form_read_alike(tmp_path, poses):
     }
     for name, text in files.items():
         (tmp_path / name).write_text(text)
-        got = read_robot_poses(str(tmp_path / name))
+        if name in ("seven.json", "plain.csv", "named.csv"):    # seven numbers: order named
+            with pytest.raises(ValueError, match="does not say which number"):
+                read_robot_poses(str(tmp_path / name))
+        got = read_robot_poses(str(tmp_path / name), order="wxyz")
         _same(got.base_flange, poses, atol=1e-12)
         assert got.images == (names if name != "plain.csv" else [None] * len(poses)), name
         said = " ".join(got.notes)
@@ -202,14 +252,23 @@ def test_robot_poses_in_every_form_read_alike(tmp_path, poses):
     # told the units, the file is read so: metres in millimetres, or millimetres by the file's key
     (tmp_path / "mm.json").write_text(json.dumps({"units": "mm", "poses": (
         np.c_[_rows(poses)[:, :3] * 1000, _rows(poses)[:, 3:]]).tolist()}))
-    _same(read_robot_poses(str(tmp_path / "mm.json")).base_flange, poses, atol=1e-12)
-    small = read_robot_poses(str(tmp_path / "plain.csv"), units="mm").base_flange
+    _same(read_robot_poses(str(tmp_path / "mm.json"), order="wxyz").base_flange, poses,
+          atol=1e-12)
+    small = read_robot_poses(str(tmp_path / "plain.csv"), units="mm", order="wxyz").base_flange
     np.testing.assert_allclose(dq.to_pose(small)[1], dq.to_pose(poses)[1] / 1000, atol=1e-15)
 
 
 @pytest.mark.parametrize("text, message", [
-    ('{"poses": [[0, 0, 0, 0, 0, 0], [0, 0, 0, 1, 0, 0, 0]]}',
+    ('{"poses": [[0, 0, 0, 0, 0, 0], {"orientation": {"w": 1}}]}',
      "poses[1]: a quaternion pose among rotvec ones"),
+    ('{"poses": [[0.1, 0, 0, 0, 0, 0, 1]]}',
+     'poses[0]: [0.1, 0, 0, 0, 0, 0, 1] does not say which number of the quaternion is w: '
+     'write {"position": [0.1, 0, 0], "orientation_xyzw": [0, 0, 0, 1]} (x, y, z, w as ROS, '
+     'Eigen and scipy order them) or {"position": [0.1, 0, 0], "orientation_wxyz": [0, 0, 0, '
+     '1]} (w first)'),
+    ("a.png,0.1,0,0,0,0,0,1\n", "line 1: a row without a header does not say which number of "
+                                "its quaternion is w: start the file with the header "
+                                "[image,]x,y,z,qx,qy,qz,qw"),
     ('{"poses": [{"image": "a.png", "pose": [0, 0, 0, 0, 0, 0]}, [0, 0, 0, 0, 0, 0]]}',
      "poses[1]: no image named, while poses[0] names one"),
     ('{"poses": [[0, 0, 0, 0, 0, 90]]}', "poses[0]: rotation vector of 90, beyond 2 pi"),
@@ -227,7 +286,7 @@ def test_robot_poses_in_every_form_read_alike(tmp_path, poses):
     ('{"pose": [[0, 0, 0, 0, 0, 0]]}', "unknown key 'pose' (did you mean 'poses'?)"),
     ('{"poses": []}', "no poses"),
     ("image,x,y,z,roll,pitch,yaw\na.png,0,0,0,0,0,0\n", "line 1: columns image,x,y,z,roll"),
-    ("a.png,0,0,0,0,0\n", "line 1: expected [image,]x,y,z,qw,qx,qy,qz"),
+    ("a.png,0,0,0,0,0\n", "line 1: expected [image,]x,y,z and a quaternion"),
     ("x,y,z,rx,ry,rz\n0,0,zero,0,0,0\n", "line 2: '0,0,zero,0,0,0' are not all numbers"),
 ])
 def test_bad_robot_pose_files_say_where(tmp_path, text, message):
@@ -333,8 +392,9 @@ POSE_COLUMNS_W = ("x", "y", "z", "qw", "qx", "qy", "qz", "weight")
 def test_csv_with_any_separator_reads_as_with_commas(tmp_path, sep, header):
     (tmp_path / "commas.csv").write_text(_blend_csv(",", header))
     (tmp_path / "other.csv").write_text(_blend_csv(sep, header))
-    want = dqpose("blend", "commas.csv", "--local", cwd=tmp_path)
-    got = dqpose("blend", "other.csv", "--local", cwd=tmp_path)
+    order = () if header else ("--quaternion-order", "wxyz")
+    want = dqpose("blend", "commas.csv", "--local", *order, cwd=tmp_path)
+    got = dqpose("blend", "other.csv", "--local", *order, cwd=tmp_path)
     assert want[0] == 0 and got == want, (want, got)
 
 

@@ -2,6 +2,7 @@
 world` as a user runs it."""
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
@@ -9,6 +10,7 @@ import sys
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from dqpose import dq, fusion, lie
 from tests._polling import wait_until
@@ -41,8 +43,10 @@ def write_csv(path, n: int, seed: int, body: str | None = "box", start: float = 
 
 
 def printed_pose(out: str) -> np.ndarray:
-    row = [float(v) for v in out.splitlines()[1].split(",")]
-    return dq.from_pose(row[3:], row[:3])
+    """The pose of `world lookup --json`'s answer, read as the pose files are."""
+    from dqpose.cli.inputs import pose
+    row = pose("pose", json.loads(out)["pose"])
+    return dq.from_pose(row[:4], row[4:])
 
 
 def test_publish_then_lookup_answers_what_fuse_computes(server, capsys, tmp_path):
@@ -51,12 +55,33 @@ def test_publish_then_lookup_answers_what_fuse_computes(server, capsys, tmp_path
                          str(tmp_path / "m.csv"))
     assert code == 0, err
     assert "published 12 measurements in 3 requests" in out and "acked through 3, 0 errors" in out
-    code, out, err = run(capsys, "world", "lookup", "--server", server.target, "world", "box")
+    code, out, err = run(capsys, "world", "lookup", "--server", server.target, "world", "box",
+                         "--json")
     assert code == 0, err
     want = fusion.fuse(Z, np.repeat(np.diag(SD ** 2)[None], len(Z), 0), names=["cam"] * len(Z),
                        times=times)
     got = printed_pose(out)
     np.testing.assert_allclose(got * np.sign(got[:4] @ want.mean[:4]), want.mean, atol=1e-8)
+    np.testing.assert_allclose(np.reshape(json.loads(out)["covariance"], (6, 6)),
+                               want.covariance, rtol=1e-6, atol=1e-12)
+    # for people: mm, degrees as an independent reader (scipy) computes them, one sigma
+    code, text, err = run(capsys, "world", "lookup", "--server", server.target, "world", "box")
+    assert code == 0, err
+    q, t = dq.to_pose(want.mean)
+    r = Rotation.from_quat(q[[1, 2, 3, 0]])
+    lines = dict(line.strip().split("  ", 1) for line in text.splitlines()[1:-1])
+    np.testing.assert_allclose(_numbers(lines["position"])[:3], t * 1e3, atol=1e-3)
+    np.testing.assert_allclose(_numbers(lines["roll pitch yaw"])[:3],
+                               r.as_euler("xyz", degrees=True), atol=1e-3)   # fixed axes
+    angle = _numbers(lines["rotation"])
+    np.testing.assert_allclose(angle[1:4] * angle[0], r.as_rotvec(degrees=True), atol=1e-3)
+    eig = [np.linalg.eigvalsh(want.covariance[k:k + 3, k:k + 3]).max() for k in (0, 3)]
+    np.testing.assert_allclose(_numbers(lines["1 sigma"])[:2],
+                               [np.sqrt(eig[1]) * 1e3, np.degrees(np.sqrt(eig[0]))], rtol=1e-3)
+
+
+def _numbers(text: str) -> np.ndarray:
+    return np.array([float(v) for v in re.findall(r"[-+]?\d+\.\d+(?:e[-+]\d+)?", text)])
 
 
 def test_world_names_the_world_published_into_and_looked_up_in(server, capsys, tmp_path):
@@ -95,8 +120,9 @@ def test_watch_prints_a_row_per_answer(server, tmp_path):
     finally:
         watch.kill()
     assert watch.returncode == 0, err
-    rows = [line for line in out.splitlines()[1:] if line.split()[0] == "box"]
-    assert len(rows) == 3 and all("cam:" in r for r in rows), out
+    rows = [line.split() for line in out.splitlines()[1:] if line.split()[1] == "box"]
+    assert len(rows) == 3 and all(r[-1].startswith("cam:") for r in rows), out
+    assert float(rows[0][0]) == 0.0 and float(rows[-1][0]) > 0.0      # since the first answer
 
 
 @pytest.mark.skipif(os.environ.get("DQPOSE_SKIP_DEVICES") == "1", reason="no device extras")
@@ -108,5 +134,12 @@ def test_demo_world_runs_and_its_fused_box_is_near_the_truth():
     assert m, r.stdout
     assert int(m[1]) >= 10 and float(m[2]) < 2.0 and float(m[3]) < 0.5
     assert "camera1:" in r.stdout and "camera2:" in r.stdout       # both processes fed it
+    rows = [line.split() for line in r.stdout.splitlines()
+            if re.match(r"\s*\d+\.\d+\s+box\s", line)]
+    # times since the start, the sources in one order on every row, a delay on each
+    assert 0.0 <= float(rows[0][0]) < float(rows[-1][0]) < 2.0 + 1.0, r.stdout
+    for row in rows:
+        names = [c.split(":")[0] for c in row if re.fullmatch(r"\w+:\w+", c)]
+        assert names == sorted(names) and float(row[13]) >= 0.0, row
     look = re.search(r"Lookup box in the tool frame .*: ([\d.]+) mm, ([\d.]+) deg", r.stdout)
     assert look and float(look[1]) < 2.0, r.stdout

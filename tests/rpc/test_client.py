@@ -272,18 +272,24 @@ def test_cli_interpolate_from_stdin_csv(server, token_file):
 @pytest.mark.parametrize("args, stdin, message", [
     (["blend", "-", "--local"], "x,y,z,qw,qx,qy,qz\n0,0,0,0,0,0,0\n",
      "dqpose blend: error: poses[0].orientation: zero quaternion"),
-    (["blend", "-", "--local"], "0,0,0,1,0,0,0\n0,0,0,1,0,0,0\n",
+    (["blend", "-", "--local", "--quaternion-order", "wxyz"], "0,0,0,1,0,0,0\n0,0,0,1,0,0,0\n",
      None),
-    (["blend", "-", "--local", "--weights", "1,-2"], "0,0,0,1,0,0,0\n0,0,0,1,0,0,0\n",
+    # without a header or --quaternion-order, which number is w is not guessed
+    (["blend", "-", "--local"], "0,0,0,0,0,0,1\n",
+     "dqpose blend: error: line 1: a row without a header does not say which number"),
+    (["blend", "-", "--local", "--weights", "1,-2"],
+     "x,y,z,qw,qx,qy,qz\n0,0,0,1,0,0,0\n0,0,0,1,0,0,0\n",
      "dqpose blend: error: weights[1]: negative weight -2"),
-    (["blend", "-", "--local"], "0,0,abc,1,0,0,0\n",
-     "dqpose blend: error: line 1, column z: 'abc' is not a number"),
+    (["blend", "-", "--local"], "x,y,z,qw,qx,qy,qz\n0,0,abc,1,0,0,0\n",
+     "dqpose blend: error: line 2, column z: 'abc' is not a number"),
     (["blend", "/nonexistent/poses.csv", "--local"], None,
      "dqpose blend: error: /nonexistent/poses.csv: No such file or directory"),
     (["blend", "-", "--local"], '{"poses": [', "dqpose blend: error: -: not valid JSON"),
-    (["interpolate", "-", "--local", "--times", "0,3"], "0,0,0,0,1,0,0,0\n1,0,0,0,1,0,0,0\n",
+    (["interpolate", "-", "--local", "--times", "0,3"],
+     "t,x,y,z,qw,qx,qy,qz\n0,0,0,0,1,0,0,0\n1,0,0,0,1,0,0,0\n",
      "dqpose interpolate: error: times[1]: 3.0 is outside the keyframe range [0.0, 1.0]"),
-    (["interpolate", "-", "--local"], "1,0,0,0,1,0,0,0\n0,0,0,0,1,0,0,0\n",
+    (["interpolate", "-", "--local", "--quaternion-order", "wxyz"],
+     "1,0,0,0,1,0,0,0\n0,0,0,0,1,0,0,0\n",
      "dqpose interpolate: error: times_k[1]: 0.0 is not after the previous keyframe time 1.0"),
 ])
 def test_cli_errors_are_one_line_and_exit_2(args, stdin, message):
@@ -297,13 +303,13 @@ def test_cli_errors_are_one_line_and_exit_2(args, stdin, message):
 
 
 def test_cli_server_errors_and_unreachable_server(server, token_file):
-    zero = "0,0,0,0,0,0,0\n0,0,0,1,0,0,0\n"
+    poses = "x,y,z,qw,qx,qy,qz\n0,0,0,1,0,0,0\n0,0,0,1,0,0,0\n"
     res = dqpose("blend", "-", "--server", server.target, "--token-file", token_file,
-                 stdin=zero.replace("0,0,0,0,0,0,0", "0,0,0,1,0,0,0"))
+                 stdin=poses)
     assert res.returncode == 0, res.stderr
-    res = dqpose("blend", "-", "--server", server.target, stdin="0,0,0,1,0,0,0\n")
+    res = dqpose("blend", "-", "--server", server.target, stdin=poses)
     assert res.returncode == 2 and "UNAUTHENTICATED" in res.stderr
-    res = dqpose("blend", "-", "--server", "127.0.0.1:1", "--timeout", "2", stdin="0,0,0,1,0,0,0\n")
+    res = dqpose("blend", "-", "--server", "127.0.0.1:1", "--timeout", "2", stdin=poses)
     assert res.returncode == 2
     assert res.stderr.startswith("dqpose blend: error: no answer from the server at 127.0.0.1:1")
 
