@@ -55,7 +55,11 @@ def configure(name: str, p) -> None:
         p.add_argument("--grace", type=float, default=10.0,
                        help="once the listener closed, how long calls in flight get to finish "
                             "before they are cancelled, s (default: %(default)s)")
-        p.add_argument("--metrics-port", type=int, help="serve Prometheus metrics on this port")
+        p.add_argument("--metrics-port", type=int,
+                       help="serve Prometheus metrics on this port (with --token-file, a scrape "
+                            "sends 'Authorization: Bearer <token>')")
+        p.add_argument("--metrics-host", default="127.0.0.1",
+                       help="address the metrics port binds (default: %(default)s)")
         p.add_argument("--replica-name", metavar="NAME",
                        help="the name every answer carries in its x-dqpose-replica metadata, "
                             "for clients behind a load balancer (default: the host name)")
@@ -90,7 +94,16 @@ def configure(name: str, p) -> None:
                          help="serve the recording's channels live on a Foxglove WebSocket "
                               "(Foxglove or Lichtblick: open connection, Foxglove WebSocket, "
                               "ws://HOST:PORT; default 127.0.0.1:8765; README), with or without "
-                              "--record")
+                              "--record; with --token-file a client connects to "
+                              "ws://HOST:PORT/?token=TOKEN, and beyond the loopback it needs "
+                              "--token-file or --live-insecure")
+        rec.add_argument("--live-origin", metavar="ORIGIN", action="append", default=[],
+                         help="a browser origin --live lets in (e.g. https://app.foxglove.dev); "
+                              "repeat for more; a client that sends another Origin is refused, "
+                              "one that sends none is let in (default: none)")
+        rec.add_argument("--live-insecure", action="store_true",
+                         help="--live lets in every client that reaches it: no token asked, no "
+                              "origin checked")
         rec.add_argument("--record-max-mb", type=float, default=256.0,
                          help="a new file after this many MB (default: %(default)s)")
         rec.add_argument("--record-max-s", type=float, default=3600.0,
@@ -173,7 +186,8 @@ def _serve(args) -> int:
             client_ca=read(args.client_ca) if args.client_ca else None,
             token=token, max_message_bytes=args.max_message_bytes, max_poses=args.max_poses,
             keepalive_s=args.keepalive, grace_s=args.grace, drain_s=args.drain,
-            metrics_port=args.metrics_port, limits=limits.from_args(args),
+            metrics_port=args.metrics_port, metrics_host=args.metrics_host,
+            limits=limits.from_args(args),
             **({"replica_name": args.replica_name} if args.replica_name is not None else {}))
         simulated = [f"{n}={text}" for n, (text, spec) in arm_specs.items() if spec.target == SIM]
         if simulated and not args.sims:
@@ -231,10 +245,12 @@ def _open_recorder(args, cfg, stack) -> int | None:
     try:
         cfg.recorder = open_recorder(
             args.record, max_bytes=max(1, int(args.record_max_mb * 1e6)),
-            max_seconds=args.record_max_s, queue=args.record_queue, live=live)
+            max_seconds=args.record_max_s, queue=args.record_queue, live=live,
+            live_token=cfg.token, live_origins=args.live_origin,
+            live_insecure=args.live_insecure)
     except MissingExtra as e:
         return missing_extra(cmd, e)
-    except LiveFailed as e:
+    except (LiveFailed, ValueError) as e:
         return fail("serve", str(e))
     except OSError as e:
         return fail("serve", f"--record {args.record}: {e.strerror or e}")

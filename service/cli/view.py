@@ -10,6 +10,7 @@ import json
 import signal
 import sys
 import threading
+import urllib.parse
 
 from dqpose.cli.common import fail, missing_extra
 
@@ -25,7 +26,8 @@ def configure(name: str, p) -> None:
     live.add_argument("--live", metavar="HOST:PORT",
                       help="follow a `serve --live` WebSocket instead (the [view] extra's "
                            "websockets client)")
-    p.add_argument("--token-file", help="with --server: file holding its bearer token")
+    p.add_argument("--token-file", help="with --server or --live: file holding the server's "
+                                        "bearer token")
     p.add_argument("--host", default="127.0.0.1",
                    help="the page's address (default: %(default)s; 0.0.0.0 for other machines)")
     p.add_argument("--port", type=int, default=8080,
@@ -100,6 +102,7 @@ def _watch(args, Scene) -> int:
 
 
 def _follow(args, Scene) -> int:
+    from dqpose.cli.common import read
     from dqpose.record import parse_address
     from dqpose.view.follow import Follower
 
@@ -107,8 +110,10 @@ def _follow(args, Scene) -> int:
         host, port = parse_address(args.live)
     except ValueError as e:
         return fail("view", str(e))
+    token = read(args.token_file, "r").strip() if args.token_file else None
+    query = "" if token is None else "/?" + urllib.parse.urlencode({"token": token})
     scene = Scene(host=args.host, port=args.port)
-    follower = Follower(f"ws://{host}:{port}", scene)
+    follower = Follower(f"ws://{host}:{port}{query}", scene)
     done = threading.Event()
     why: list[str] = []
 

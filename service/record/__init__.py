@@ -16,7 +16,7 @@ from __future__ import annotations
 import errno
 import os
 
-from dqpose.errors import require
+from dqpose.errors import MissingExtra, require
 
 
 class _NullCall:
@@ -66,6 +66,9 @@ PLAN_VIEW_POSES = 1000
 
 #: the modules of the [record] extra
 MODULES = ("foxglove", "mcap", "foxglove_schemas_protobuf")
+
+#: the environment variable that hands the writer process the live view's token
+LIVE_TOKEN_ENV = "DQPOSE_LIVE_TOKEN"
 
 #: where ``--live`` without a value listens (Foxglove's default for a WebSocket connection)
 DEFAULT_HOST, DEFAULT_PORT = "127.0.0.1", 8765
@@ -122,15 +125,44 @@ def describe(error: BaseException) -> str:
     return str(error) or type(error).__name__
 
 
+def loopback(host: str) -> bool:
+    """Whether every address ``host`` names is a loopback one (reachable from this machine
+    alone); ``False`` for a name that does not resolve."""
+    import ipaddress
+    import socket
+
+    try:
+        infos = socket.getaddrinfo(host.strip("[]"), None, type=socket.SOCK_STREAM)
+    except OSError:
+        return False
+    return all(ipaddress.ip_address(str(info[4][0]).split("%")[0]).is_loopback
+               for info in infos)
+
+
+def live_problem(host: str, port: int, token: str | None, insecure: bool) -> str | None:
+    """Why ``--live HOST:PORT`` may not start: beyond the loopback it asks for the server's
+    token (``--token-file``), or is told not to (``--live-insecure``)."""
+    if token is None and not insecure and not loopback(host):
+        return (f"--live {host}:{port}: beyond the loopback the live view asks for the server's "
+                f"token (--token-file); --live-insecure serves it to anyone who reaches it")
+    return None
+
+
 class LiveFailed(Exception):
     """The live server did not start (the address is taken, ...): the message says why."""
 
 
 def open_recorder(directory, **kw):
     """A :class:`~dqpose.record.recorder.Recorder` writing into ``directory`` (and serving
-    ``live=(host, port)``, else :class:`LiveFailed`); ``MissingExtra`` naming ``[record]``
-    when its modules are not installed."""
+    ``live=(host, port)``, else :class:`LiveFailed`, to the clients ``live_token``,
+    ``live_origins`` and ``live_insecure`` let in); ``MissingExtra`` naming ``[record]`` when
+    its modules are not installed."""
     require(*MODULES)
+    if kw.get("live") is not None:
+        try:
+            import websockets  # noqa: F401
+        except ModuleNotFoundError:     # the [view] extra's too, which EXTRA_OF names
+            raise MissingExtra("record", "websockets") from None
     from dqpose.record.recorder import Recorder
 
     return Recorder(directory, **kw)

@@ -29,7 +29,7 @@ import sys
 import threading
 import time
 
-from dqpose.record import LiveFailed, cannot_write, frames
+from dqpose.record import LIVE_TOKEN_ENV, LiveFailed, cannot_write, frames, live_problem
 from dqpose.record.schemas import descriptor_set
 
 log = logging.getLogger("dqpose.record")
@@ -73,8 +73,10 @@ class Recorder:
     """Records calls into MCAP files in ``directory`` (``dqpose-<UTC time>-<n>.mcap``; ``None``:
     no files), a new file once one holds ``max_bytes`` or is ``max_seconds`` old, and serves
     the same channels live on ``live`` (``(host, port)``, port 0 a free one; ``None``: no live
-    view), :attr:`live_port` its port; :class:`~dqpose.record.LiveFailed` when it cannot
-    listen. ``queue`` messages (and
+    view), :attr:`live_port` its port, to the clients ``live_token`` (the server's bearer token),
+    ``live_origins`` and ``live_insecure`` let in (:mod:`dqpose.record.live`; ``ValueError``
+    beyond the loopback without a token or ``live_insecure``);
+    :class:`~dqpose.record.LiveFailed` when it cannot listen. ``queue`` messages (and
     ``max_buffer`` bytes) wait for the writer at most; beyond, they are dropped. :meth:`close`
     hands over what is waiting and waits for the file to be finished.
 
@@ -90,7 +92,8 @@ class Recorder:
 
     def __init__(self, directory: str | os.PathLike | None, max_bytes: int = 256 << 20,
                  max_seconds: float = 3600.0, queue: int = 100_000,
-                 max_buffer: int = 64 << 20, live: tuple[str, int] | None = None):
+                 max_buffer: int = 64 << 20, live: tuple[str, int] | None = None,
+                 live_token: str | None = None, live_origins=(), live_insecure: bool = False):
         if not (isinstance(max_bytes, int) and max_bytes > 0):
             raise ValueError(f"max_bytes: must be a positive integer, got {max_bytes!r}")
         if not (max_seconds > 0):
@@ -99,6 +102,8 @@ class Recorder:
             raise ValueError(f"queue: must be a positive integer, got {queue!r}")
         if directory is None and live is None:
             raise ValueError("directory: None needs a live address")
+        if live is not None and (why := live_problem(*live, live_token, live_insecure)):
+            raise ValueError(why)
         self.directory = None if directory is None else os.fspath(directory)
         if self.directory is not None:
             os.makedirs(self.directory, exist_ok=True)
@@ -130,10 +135,17 @@ class Recorder:
         self._flushed = 0.0
         self._closed = False
         self._gone = False          # the writer ended before close
+        live_args = [] if live is None else [json.dumps(
+            {"host": live[0], "port": live[1], "origins": list(live_origins),
+             "insecure": live_insecure})]
+        # the token in the writer's environment, which only its user can read (not its argv)
+        env = {k: v for k, v in os.environ.items() if k != LIVE_TOKEN_ENV}
+        if live is not None and live_token is not None:
+            env[LIVE_TOKEN_ENV] = live_token
         self._proc = subprocess.Popen(
             [sys.executable, "-m", "dqpose.record.writer", self.directory or "", str(max_bytes),
-             repr(float(max_seconds)), *([f"{live[0]}:{live[1]}"] if live else [])],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, bufsize=0,
+             repr(float(max_seconds)), *live_args],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, bufsize=0, env=env,
             # out of the server's process group: a Ctrl-C at its terminal (SIGINT to the group)
             # must not end the writer, even while it starts; it ends when its input does
             start_new_session=True)
@@ -304,7 +316,7 @@ class Recorder:
             elif kind == "recording":
                 self.files.append(event["file"])
                 log.info(text)
-            elif kind == "recording_dropped":
+            elif kind in ("recording_dropped", "live_refused"):
                 log.warning(text)
             elif kind == "recording_failed":
                 log.error(text)

@@ -1,8 +1,9 @@
 """Where the writer process logs a recording's channels: a foxglove-sdk context of its own with
 its channels, registered as they are first used (protobuf with the schema embedded, or JSON).
 An MCAP file (:mod:`dqpose.record.mcapfile`) and the live WebSocket server
-(:mod:`dqpose.record.live`) are each one, so both carry the same topics and schemas, built by
-the same code (:mod:`dqpose.record.writer`). Not thread-safe: the writer owns it.
+(:mod:`dqpose.record.live`, whose channels are its own: ``_open``) are each one, so both carry
+the same topics and schemas, built by the same code (:mod:`dqpose.record.writer`). Not
+thread-safe: the writer owns it.
 """
 from __future__ import annotations
 
@@ -38,9 +39,8 @@ class Sink:
         key = (topic, name, metadata)
         ch = self._channels.get(key)
         if ch is None:
-            ch = self._channels[key] = foxglove.Channel(
-                topic, schema=foxglove.Schema(name=name, encoding="protobuf", data=schema),
-                message_encoding="protobuf", context=self._context, metadata=dict(metadata))
+            ch = self._channels[key] = self._open(topic, "protobuf", name, "protobuf", schema,
+                                                  metadata)
         return ch
 
     def json_channel(self, topic: str, title: str, properties: dict):
@@ -49,11 +49,18 @@ class Sink:
         key = (topic, "json")
         ch = self._channels.get(key)
         if ch is None:
-            schema = foxglove.Schema(name=title, encoding="jsonschema",
-                                     data=json_schema(title, properties))
-            ch = self._channels[key] = foxglove.Channel(
-                topic, schema=schema, message_encoding="json", context=self._context)
+            ch = self._channels[key] = self._open(topic, "json", title, "jsonschema",
+                                                  json_schema(title, properties))
         return ch
+
+    def _open(self, topic: str, message_encoding: str, schema_name: str, schema_encoding: str,
+              schema: bytes, metadata: tuple = ()):
+        """A new channel (anything with ``log(data, log_time=ns)`` and ``close()``): here
+        foxglove-sdk's, in this sink's context."""
+        return foxglove.Channel(
+            topic, schema=foxglove.Schema(name=schema_name, encoding=schema_encoding,
+                                          data=schema),
+            message_encoding=message_encoding, context=self._context, metadata=dict(metadata))
 
     def forget(self, topic: str, name: str, metadata: tuple) -> None:
         """Closes a channel no more messages will come on (a call that ended)."""

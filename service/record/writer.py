@@ -1,15 +1,16 @@
 """The recorder's writer process (``python -m dqpose.record.writer DIR MAX_BYTES MAX_SECONDS
-[HOST:PORT]``): frames (:mod:`dqpose.record.frames`) on standard input, MCAP files in DIR (an
-empty DIR: none), rotated by size and age, and the same channels on the live WebSocket server at
-HOST:PORT when given (:mod:`dqpose.record.live`); JSON lines on standard output for the server
-to log (``recording``: a file opened, ``recording_dropped``: a drop marker written,
+[LIVE]``): frames (:mod:`dqpose.record.frames`) on standard input, MCAP files in DIR (an empty
+DIR: none), rotated by size and age, and the same channels on the live WebSocket server when
+LIVE is given (:mod:`dqpose.record.live`; JSON: ``host``, ``port``, ``origins``, ``insecure``;
+its token in the environment's ``DQPOSE_LIVE_TOKEN``); JSON lines on standard output for the
+server to log (``recording``: a file opened, ``recording_dropped``: a drop marker written,
 ``recording_failed``: the files cannot be written, with the cause, said once until
 ``recording_resumed``: a new file takes the frames again, behind a marker of those lost;
 ``recording_counts``: the frames written and lost so far, at most every :data:`COUNTS_PERIOD` s;
 ``live``: the live server listens, with its port, or ``live_failed``, after which the process
-ends). Its own process, so that neither the writing nor the views nor the compression nor the
-live server's clients take the server's interpreter lock. Ends, the file finished, when its
-input does.
+ends; ``live_refused``: a client the live server did not let in, with why). Its own process, so
+that neither the writing nor the views nor the compression nor the live server's clients take
+the server's interpreter lock. Ends, the file finished, when its input does.
 """
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ import sys
 import time
 from typing import Any
 
-from dqpose.record import cannot_write, describe, frames, handeye, parse_address, views
+from dqpose.record import LIVE_TOKEN_ENV, cannot_write, describe, frames, handeye, views
 from dqpose.record.live import LiveServer
 from dqpose.record.mcapfile import CHUNK_BYTES, McapFile
 from dqpose.record.schemas import message_class
@@ -383,13 +384,16 @@ def main(argv: list[str]) -> int:
     directory, max_bytes, max_seconds = argv[0] or None, int(argv[1]), float(argv[2])
     live = None
     if len(argv) > 3:
-        host, port = parse_address(argv[3])
+        opts = json.loads(argv[3])
+        host, port = opts["host"], opts["port"]
         try:
-            live = LiveServer(host, port)
-        except RuntimeError as e:
-            say(event="live_failed", host=host, port=port, error=str(e))
+            live = LiveServer(host, port, token=os.environ.pop(LIVE_TOKEN_ENV, None),
+                              origins=opts["origins"], insecure=opts["insecure"], say=say)
+        except (OSError, RuntimeError) as e:
+            say(event="live_failed", host=host, port=port, error=describe(e))
             return 1
-        say(event="live", host=host, port=live.port)
+        say(event="live", host=host, port=live.port, token=live.token is not None,
+            origins=sorted(live.origins), insecure=live.insecure)
     w = Writer(directory, max_bytes, max_seconds, live)
     fd = sys.stdin.fileno()
     buffer = bytearray()

@@ -12,7 +12,6 @@ from __future__ import annotations
 import asyncio
 import errno
 import gc
-import hmac
 import json
 import signal
 import socket
@@ -22,7 +21,7 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import _async as reflection_aio
 from grpc_reflection.v1alpha import reflection, reflection_pb2_grpc
 
-from dqpose import record
+from dqpose import record, tokens
 from dqpose.names import quoted
 from dqpose.rpc import routing
 from dqpose.rpc.blending import Blending
@@ -78,7 +77,7 @@ class BearerTokenAuth(grpc.aio.ServerInterceptor):
     load balancers and the Docker HEALTHCHECK need no secret."""
 
     def __init__(self, token: str, calls: Calls):
-        self._expected = ("Bearer " + token).encode()
+        self._token = token
         self._calls = calls
 
     async def intercept_service(self, continuation, details):
@@ -87,10 +86,9 @@ class BearerTokenAuth(grpc.aio.ServerInterceptor):
         got = None
         for key, value in details.invocation_metadata or ():
             if key == "authorization":
-                got = value.encode() if isinstance(value, str) else value
+                got = value
                 break
-        # compare_digest: the time taken must not reveal how much of the token matched.
-        if got is not None and hmac.compare_digest(got, self._expected):
+        if tokens.bearer_matches(got, self._token):
             return await continuation(details)
         reason = ("authorization: missing bearer token (send metadata 'authorization: Bearer "
                   "<token>')" if got is None else "authorization: invalid bearer token")
@@ -189,9 +187,11 @@ class Health(health_pb2_grpc.HealthServicer):
 
 
 class _Metrics:
-    """Prometheus call counter and latency histogram, served on their own HTTP port."""
+    """Prometheus call counter and latency histogram, served on their own HTTP port (``host``:
+    the loopback unless told otherwise), which asks for the server's bearer ``token`` when it has
+    one."""
 
-    def __init__(self, host: str, port: int):
+    def __init__(self, host: str, port: int, token: str | None = None):
         import prometheus_client as prom
 
         self._registry = prom.CollectorRegistry()
@@ -202,7 +202,8 @@ class _Metrics:
             buckets=(1e-4, 2.5e-4, 5e-4, 1e-3, 2.5e-3, 5e-3, 1e-2, 5e-2, 0.25, 1.0),
             registry=self._registry)
         self._children: dict = {}
-        self.server, self.thread = prom.start_http_server(port, addr=host, registry=self._registry)
+        self.server, self.thread = _serve_metrics(host, port, prom.make_wsgi_app(self._registry),
+                                                  token)
 
     def observe(self, rpc: str, code: str, seconds: float) -> None:
         key = (rpc, code)
@@ -232,6 +233,37 @@ class _Metrics:
 
     def close(self) -> None:
         self.server.shutdown()
+        self.server.server_close()
+
+
+def _serve_metrics(host: str, port: int, app, token: str | None):
+    """``app`` on ``host:port`` in a thread (prometheus_client's server, quiet), a request without
+    ``Authorization: Bearer <token>`` answered 401 when there is a token."""
+    import threading
+    from wsgiref.simple_server import WSGIRequestHandler, make_server
+
+    from prometheus_client.exposition import ThreadingWSGIServer
+
+    class Quiet(WSGIRequestHandler):
+        def log_message(self, format, *args):
+            pass
+
+    class Server(ThreadingWSGIServer):
+        address_family = socket.getaddrinfo(host.strip("[]"), port,
+                                            type=socket.SOCK_STREAM)[0][0]
+
+    def guarded(environ, start_response):
+        if token is None or tokens.bearer_matches(environ.get("HTTP_AUTHORIZATION"), token):
+            return app(environ, start_response)
+        start_response("401 Unauthorized", [("WWW-Authenticate", 'Bearer realm="dqpose"'),
+                                            ("Content-Type", "text/plain; charset=utf-8")])
+        return [b"authorization: missing or invalid bearer token (send 'Authorization: Bearer "
+                b"<token>', the server's --token-file)\n"]
+
+    httpd = make_server(host.strip("[]"), port, guarded, Server, handler_class=Quiet)
+    thread = threading.Thread(target=httpd.serve_forever, name="dqpose-metrics", daemon=True)
+    thread.start()
+    return httpd, thread
 
 
 class _Reflection(reflection_aio.ReflectionServicer):
@@ -358,9 +390,10 @@ async def start(cfg: ServerConfig) -> Running:
     if cfg.port and (problem := _listen_error(address, cfg.host, cfg.port)) is not None:
         raise problem
     try:
-        metrics = _Metrics(cfg.host, cfg.metrics_port) if cfg.metrics_port is not None else None
+        metrics = (_Metrics(cfg.metrics_host, cfg.metrics_port, cfg.token)
+                   if cfg.metrics_port is not None else None)
     except OSError as e:
-        where = f"{cfg.host}:{cfg.metrics_port}"
+        where = f"{cfg.metrics_host}:{cfg.metrics_port}"
         if e.errno == errno.EADDRINUSE:
             raise AddressInUse("serve metrics on", where, "metrics_port") from None
         why = (e.strerror or str(e)).lower()

@@ -45,6 +45,9 @@ class ServerConfig:
     drain_s: float = 0.5               # on SIGTERM (serve): health NOT_SERVING, new calls
                                        # UNAVAILABLE, the listener still open
     metrics_port: int | None = None
+    # where the metrics port listens: the loopback unless told (it asks for the token when
+    # there is one)
+    metrics_host: str = "127.0.0.1"
     # Arms that Trajectories.Execute may drive, by the name a request gives (opened by whoever
     # starts the server: `dqpose serve --arm NAME=SPEC`), and ``executor(arm, trajectory)``,
     # which starts running a plan on one (drivers.executor; this package imports no driver).
@@ -70,6 +73,9 @@ class ServerConfig:
         _integer(self, "port", 0, 65535)
         if self.metrics_port is not None:
             _integer(self, "metrics_port", 1, 65535)
+        if not (isinstance(self.metrics_host, str) and self.metrics_host):
+            raise ConfigError("metrics_host", f"must be a host name or address, got "
+                                              f"{self.metrics_host!r}")
         _integer(self, "max_message_bytes", 1, INT32_MAX)
         # a message of at most INT32_MAX bytes holds fewer poses than that
         _integer(self, "max_poses", 1, INT32_MAX)

@@ -22,3 +22,10 @@ def test_a_recorder_without_the_extra_names_it(tmp_path, monkeypatch, module):
         record.open_recorder(tmp_path)
     assert e.value.extra == "record" and e.value.module == module
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_live_recorder_without_websockets_names_the_record_extra(tmp_path, monkeypatch):
+    monkeypatch.setitem(__import__("sys").modules, "websockets", None)
+    with pytest.raises(MissingExtra, match=r"\[record\] extra") as e:
+        record.open_recorder(None, live=("127.0.0.1", 0))
+    assert e.value.module == "websockets"

@@ -74,7 +74,18 @@ class Viewer:
                     return ns, m[13:]
 
 
-def test_a_viewer_sees_the_channels_and_receives_the_fused_pose(tmp_path):
+TOKEN = "s3cret-token"
+
+
+@pytest.fixture()
+def token_file(tmp_path):
+    path = tmp_path / "token"
+    path.write_text(TOKEN + "\n")
+    return path
+
+
+@pytest.mark.parametrize("token", [False, True], ids=["no token", "token"])
+def test_a_viewer_sees_the_channels_and_receives_the_fused_pose(tmp_path, token, token_file):
     data = _stream.requests(40)
     expected = _stream.answers(data)     # the answers each request brings (in process)
     first = next(i for i, a in enumerate(expected) if a)
@@ -82,18 +93,23 @@ def test_a_viewer_sees_the_channels_and_receives_the_fused_pose(tmp_path):
     # the first request after ``first`` that brings an answer for the body
     later = next(i for i in range(first + 1, len(data))
                  if any(a.body == body for a in expected[i]))
-    proc, events = serving("--live", "127.0.0.1:0", "--record", str(tmp_path))
+    # with a token: the client gives it in the URL and sends no Origin (not a browser)
+    proc, events = serving("--live", "127.0.0.1:0", "--record", str(tmp_path / "runs"),
+                           *(("--token-file", str(token_file)) if token else ()))
     requests: queue.Queue = queue.Queue()
     try:
         live = event(events, "live")
         target = event(events, "serving")["address"]
-        with websockets_sync.connect(f"ws://127.0.0.1:{live['port']}",
+        with websockets_sync.connect(f"ws://127.0.0.1:{live['port']}"
+                                     f"{f'/?token={TOKEN}' if token else ''}",
                                      subprotocols=[SUBPROTOCOL], open_timeout=30) as ws, \
                 grpc.insecure_channel(target) as ch:
             viewer = Viewer(ws)
             assert ws.subprotocol == SUBPROTOCOL
             assert viewer.receive()["op"] == "serverInfo"
-            call = ch.stream_stream(f"/{STREAM_FUSE}")(iter(requests.get, None), timeout=60)
+            call = ch.stream_stream(f"/{STREAM_FUSE}")(
+                iter(requests.get, None), timeout=60,
+                metadata=[("authorization", f"Bearer {TOKEN}")] if token else None)
 
             def send(upto: int) -> list[pb.FusedPose]:
                 """Requests up to index ``upto`` sent, their answers received."""
@@ -161,3 +177,84 @@ def test_a_malformed_live_address_is_named(value):
     assert (res.returncode, res.stderr) == (
         2, f"dqpose serve: error: --live: expected HOST:PORT with a port within 0..65535, "
            f"got {value!r}\n")
+
+
+def refused(url: str, origin: str | None = None, subprotocol: str = SUBPROTOCOL):
+    """The HTTP status and body a WebSocket handshake to ``url`` is refused with (``None``: it
+    was let in and the server said who it is)."""
+    from websockets.exceptions import InvalidStatus
+
+    try:
+        with websockets_sync.connect(url, subprotocols=[subprotocol], open_timeout=30,
+                                     origin=origin) as ws:
+            assert json.loads(ws.recv(timeout=30))["op"] == "serverInfo"
+            return None
+    except InvalidStatus as e:
+        return e.response.status_code, e.response.body.decode()
+
+
+def test_with_a_token_a_client_without_it_or_from_another_origin_is_refused(token_file):
+    proc, events = serving("--live", "127.0.0.1:0", "--token-file", str(token_file),
+                           "--live-origin", "https://app.foxglove.dev")
+    try:
+        url = f"ws://127.0.0.1:{event(events, 'live')['port']}"
+        # the issue's client: no credential, a browser page's origin
+        assert refused(url, "http://evil.example")[0] == 403
+        assert refused(url, "http://evil.example")[1] == (
+            "origin http://evil.example is not allowed (dqpose serve --live-origin "
+            "http://evil.example)\n")
+        for bad in (url, f"{url}/?token=", f"{url}/?token=s3cret", f"{url}/?token={TOKEN}x",
+                    f"{url}/?tok={TOKEN}"):
+            status, body = refused(bad)
+            assert status == 401 and body.startswith("missing or invalid token"), bad
+        assert refused(f"{url}/?token={TOKEN}", "http://evil.example")[0] == 403
+        assert refused(f"{url}/?token={TOKEN}", subprotocol="foxglove.websocket.v1") == (
+            400, f"the WebSocket subprotocol {SUBPROTOCOL} is expected\n")
+        # let in: the token without an Origin, and with an allowed one
+        assert refused(f"{url}/?token={TOKEN}") is None
+        with websockets_sync.connect(f"{url}/?token={TOKEN}", subprotocols=[SUBPROTOCOL],
+                                     open_timeout=30) as ws:
+            # what it does not take is answered with a status, and the connection goes on
+            for bad in (b"\x01abc", "{", json.dumps({"op": "setParameters"}),
+                        json.dumps({"op": "subscribe", "subscriptions": [{"id": -1,
+                                                                          "channelId": 1}]})):
+                ws.send(bad)
+            statuses = [json.loads(ws.recv(timeout=30)) for _ in range(6)][2:]
+            assert [(s["op"], s["level"]) for s in statuses] == [("status", 2)] * 4
+            assert "'setParameters'" in statuses[2]["message"]
+            ws.ping().wait(30)
+        assert refused(f"{url}/?token={TOKEN}", "https://app.foxglove.dev") is None
+        assert refused(url, "https://app.foxglove.dev")[0] == 401
+    finally:
+        proc.terminate()
+        proc.wait(30)
+    lines = [json.loads(line) for line in proc.stderr.read().splitlines()
+             if line.startswith('{"event": "live_refused"')]
+    assert lines and lines[0]["status"] == 403 and lines[0]["peer"].startswith("127.0.0.1:")
+
+
+def test_live_insecure_lets_every_client_in(token_file):
+    proc, events = serving("--live", "127.0.0.1:0", "--token-file", str(token_file),
+                           "--live-insecure")
+    try:
+        assert event(events, "live")["insecure"] is True
+        assert refused(f"ws://127.0.0.1:{event(events, 'live')['port']}",
+                       "http://evil.example") is None
+    finally:
+        proc.terminate()
+        proc.wait(30)
+
+
+def test_live_beyond_the_loopback_needs_a_token_or_insecure(token_file):
+    res = subprocess.run([sys.executable, "-m", "dqpose.cli", "serve", "--port", "0",
+                          "--live", "0.0.0.0:0"], capture_output=True, text=True, timeout=60,
+                         cwd=ROOT)
+    assert (res.returncode, res.stderr) == (
+        2, "dqpose serve: error: --live 0.0.0.0:0: beyond the loopback the live view asks for "
+           "the server's token (--token-file); --live-insecure serves it to anyone who reaches "
+           "it\n")
+    for flags in (("--token-file", str(token_file)), ("--live-insecure",)):
+        proc, events = serving("--live", "0.0.0.0:0", *flags)
+        proc.terminate()
+        proc.wait(30)
+        assert event(events, "live")["host"] == "0.0.0.0"
