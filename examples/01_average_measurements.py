@@ -16,7 +16,8 @@ def angle_deg(a, b):
     return np.degrees(2 * np.arctan2(np.linalg.norm(q[1:]), abs(q[0])))
 
 
-true = dq.from_pose([np.cos(0.3), 0, 0, np.sin(0.3)], [0.5, 0.1, 0.3])   # 34.4 deg about z
+# quaternions are [w, x, y, z], w first (ROS, Eigen and scipy put it last): 34.4 deg about z
+true = dq.from_pose([np.cos(0.3), 0, 0, np.sin(0.3)], [0.5, 0.1, 0.3])
 rng = np.random.default_rng(7)
 twist = np.concatenate([rng.normal(size=(3, 3)) * np.radians(2) / 2,      # log: half angles
                         rng.normal(size=(3, 3)) * 0.003 / 2], axis=1)
