@@ -7,18 +7,20 @@ a ``serve --live`` WebSocket. Serves until Ctrl-C; says where on standard error 
 from __future__ import annotations
 
 import json
+import os
 import signal
 import sys
 import threading
-import urllib.parse
 
-from dqpose.cli.common import fail, missing_extra
+from dqpose.cli.common import fail, missing_extra, read
 
 
 def configure(name: str, p) -> None:
     p.description = __doc__.split("\n\n")[0].replace("``", "")
     p.add_argument("file", metavar="FILE.mcap", nargs="?",
-                   help="a recording (dqpose serve --record)")
+                   help="a recording (dqpose serve --record): a file, the directory it is in "
+                        "or a glob, as replay takes them; a server's rotated files show as "
+                        "one, the newest run of several")
     live = p.add_mutually_exclusive_group()
     live.add_argument("--server", metavar="HOST:PORT",
                       help="follow a dqpose server live instead (its gRPC address): the "
@@ -27,9 +29,10 @@ def configure(name: str, p) -> None:
                       help="follow a `serve --live` WebSocket instead (the [view] extra's "
                            "websockets client)")
     p.add_argument("--token-file", help="with --server or --live: file holding the server's "
-                                        "bearer token")
+                                        "bearer token (the page then serves the loopback only)")
     p.add_argument("--host", default="127.0.0.1",
-                   help="the page's address (default: %(default)s; 0.0.0.0 for other machines)")
+                   help="the page's address (default: %(default)s; 0.0.0.0 for other machines: "
+                        "the page has no password)")
     p.add_argument("--port", type=int, default=8080,
                    help="the page's port; the next free one when taken (default: %(default)s)")
     p.set_defaults(func=_view)
@@ -45,31 +48,64 @@ def _view(args) -> int:
                             "HOST:PORT (one of them)")
     try:
         require(*MODULES, *(("websockets",) if args.live else ()))
-        from dqpose.record.reader import read
+        from dqpose.record.reader import read_all
+        from dqpose.record.reader import runs as runs_of
         from dqpose.view.page import Page, Scene
         from dqpose.view.timeline import timeline
     except (MissingExtra, ModuleNotFoundError) as e:
         return missing_extra("view", e)
     if not 0 <= args.port <= 65535:
         return fail("view", f"--port: must be within 0..65535, got {args.port}")
-    if args.server is not None:
-        return _watch(args, Scene)
-    if args.live is not None:
-        return _follow(args, Scene)
+    if following is not None:
+        try:
+            token = _token(args)
+        except ValueError as e:
+            return fail("view", str(e))
+        return (_watch if args.server else _follow)(args, Scene, token)
+    if args.token_file:
+        return fail("view", "--token-file: only with --server or --live (a file needs none)")
     try:
-        tl = timeline(read(args.file))
+        runs = runs_of([args.file])
+        tl = timeline(read_all(runs[-1]))
     except OSError as e:
         return fail("view", f"{e.filename or args.file}: {e.strerror or e}")
     except ValueError as e:
         return fail("view", str(e))
+    if len(runs) > 1:
+        print(f"dqpose view: {args.file} holds {len(runs)} runs; showing the last by name "
+              f"({os.path.basename(runs[-1][0])}, {len(runs[-1])} file"
+              f"{'s' if len(runs[-1]) > 1 else ''}); name a file to see another",
+              file=sys.stderr)
     page = Page(tl, host=args.host, port=args.port)
     print(json.dumps({"event": "viewing", "url": f"http://{args.host}:{page.port}",
-                      "bodies": sorted(tl.tracks), "plans": page.plan_names,
+                      "files": runs[-1], "bodies": sorted(tl.tracks), "plans": page.plan_names,
                       "arms": sorted(tl.arms),
                       "seconds": (tl.end - tl.start) * 1e-9}), file=sys.stderr, flush=True)
     _serve_until_done(threading.Event())
     page.close()
     return 0
+
+
+def _token(args) -> str | None:
+    """The token of ``--token-file`` (none: ``None``); ``ValueError`` saying why not, or why
+    not with this ``--host``."""
+    from dqpose.view.guard import LOOPBACK
+
+    if not args.token_file:
+        return None
+    try:
+        token = read(args.token_file, "r").strip()
+    except OSError as e:
+        raise ValueError(f"--token-file {args.token_file}: {e.strerror or e}") from None
+    if not token:
+        raise ValueError(f"--token-file {args.token_file}: empty")
+    if args.host not in LOOPBACK:
+        # what a token protects would be served to anyone reaching --host
+        port = args.port or 8080
+        raise ValueError(f"--host {args.host}: the page has no authentication, so with "
+                         f"--token-file it serves the loopback only (from another machine: "
+                         f"ssh -L {port}:127.0.0.1:{port} this one)")
+    return token
 
 
 def _serve_until_done(done: threading.Event) -> None:
@@ -78,12 +114,10 @@ def _serve_until_done(done: threading.Event) -> None:
     done.wait()
 
 
-def _watch(args, Scene) -> int:
-    from dqpose.cli.common import read
+def _watch(args, Scene, token: str | None) -> int:
     from dqpose.rpc.client import RpcError
     from dqpose.view.watch import Watcher
 
-    token = read(args.token_file, "r").strip() if args.token_file else None
     scene = Scene(host=args.host, port=args.port)
     watcher = Watcher(args.server, scene, token=token)
     print(json.dumps({"event": "viewing", "url": f"http://{args.host}:{scene.port}",
@@ -101,8 +135,9 @@ def _watch(args, Scene) -> int:
     return fail("view", watcher.why) if watcher.failed.is_set() else 0
 
 
-def _follow(args, Scene) -> int:
-    from dqpose.cli.common import read
+def _follow(args, Scene, token: str | None) -> int:
+    from urllib.parse import urlencode
+
     from dqpose.record import parse_address
     from dqpose.view.follow import Follower
 
@@ -110,10 +145,10 @@ def _follow(args, Scene) -> int:
         host, port = parse_address(args.live)
     except ValueError as e:
         return fail("view", str(e))
-    token = read(args.token_file, "r").strip() if args.token_file else None
-    query = "" if token is None else "/?" + urllib.parse.urlencode({"token": token})
     scene = Scene(host=args.host, port=args.port)
-    follower = Follower(f"ws://{host}:{port}{query}", scene)
+    # serve --live takes a token as a query parameter (a browser's WebSocket sends no header)
+    follower = Follower(f"ws://{host}:{port}" + (f"/?{urlencode({'token': token})}"
+                                                  if token else ""), scene)
     done = threading.Event()
     why: list[str] = []
 

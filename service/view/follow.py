@@ -16,7 +16,7 @@ from websockets.typing import Subprotocol
 
 from dqpose.record.topics import ELLIPSOIDS_TOPIC, TF_TOPIC, plan_topic
 from dqpose.view.events import say
-from dqpose.view.page import Scene
+from dqpose.view.page import WORLD_PLAN, Scene
 
 SUBPROTOCOL = "foxglove.sdk.v1"
 MESSAGE_DATA = 0x01
@@ -35,7 +35,6 @@ class Follower:
         self.subscriptions: dict[int, str] = {}      # subscription id -> topic
         self.ellipsoids: dict[str, tuple] = {}       # body -> (half axes, their rotation)
         self.poses: dict[str, tuple] = {}            # body -> (t, q), the last
-        self.announced: set[tuple[str, bool]] = set()
 
     def run(self) -> None:
         with connect(self.url, subprotocols=[Subprotocol(SUBPROTOCOL)], open_timeout=30,
@@ -67,12 +66,12 @@ class Follower:
         """``body`` where ``/tf`` last put it, with the last ellipsoid it came with (a pose's
         ``/tf`` comes before its ellipsoid: both redraw)."""
         if body in self.poses:
-            self.scene.draw_body(body, *self.poses[body],
-                                 *self.ellipsoids.get(body, (None, None)))
-            first = (body, body in self.ellipsoids)
-            if first not in self.announced:     # a body's first drawing (with an ellipsoid)
-                self.announced.add(first)
-                say(event="drawn", body=body, ellipsoid=first[1])
+            t, q = self.poses[body]
+            half, axes = self.ellipsoids.get(body, (None, None))
+            self.scene.draw_live(body, t, q, half, axes)
+            # a body's first drawing (with an ellipsoid)
+            if self.scene.reveal(("body", body, half is not None), t, half):
+                say(event="drawn", body=body, ellipsoid=half is not None)
 
     def draw(self, topic: str, data: bytes) -> None:
         if topic == ELLIPSOIDS_TOPIC:
@@ -88,6 +87,11 @@ class Follower:
                 self.poses[tf.child_frame_id] = ((t.x, t.y, t.z), _q(tf.rotation))
                 self.draw_body(tf.child_frame_id)
         else:
-            msg = PosesInFrame.FromString(data)
-            self.scene.draw_plan(topic[len(PLANS):], [(p.position.x, p.position.y,
-                                                       p.position.z) for p in msg.poses])
+            name = topic[len(PLANS):]
+            points = [(p.position.x, p.position.y, p.position.z)
+                      for p in PosesInFrame.FromString(data).poses]
+            self.scene.draw_plan(name, points)
+            if points:
+                end = (points[-1] if name == WORLD_PLAN
+                       else self.scene.in_world(name, points[-1])[0])
+                self.scene.reveal(("plan", name), end, kind="lines")

@@ -1,15 +1,26 @@
 """The viewer page (viser: a local web server with its own three.js client): the world frame, each
-body's frame where it was last fused, its position's 3-sigma ellipsoid drawn in the body's frame
-(the axes :func:`dqpose.record.views.ellipsoid_axes` gives Foxglove's ellipsoids too), the plans
-as lines, each arm's actual path as a line of another colour with its tool's frame where it
-last was (a plan's and an arm's poses are in the arm's base frame, drawn as the world frame),
-and a time slider over the recording (the scene as it was at that time)."""
+body's frame where it was last fused with its name and a trail of its last
+:data:`~dqpose.view.layout.TRAIL_SECONDS`, its position's 3-sigma ellipsoid drawn in the body's
+frame (the axes :func:`dqpose.record.views.ellipsoid_axes` gives Foxglove's ellipsoids too) at
+the scale the page's menu says (x1, x10, x100: sub-millimetre ellipsoids are invisible at x1),
+each arm at its own base (a plan's and an arm's poses are in the arm's base frame) with its
+plans, its actual path and its tool's frame, and, for a file, a time slider (the scene as it
+was at that time). The camera, the grid and the frames' axes fit what is drawn
+(:mod:`dqpose.view.layout`); the controls are docked beside the view, never over it."""
 from __future__ import annotations
+
+import itertools
+import threading
+import time
+from collections import deque
 
 import numpy as np
 import viser
 
+from dqpose import dq
 from dqpose.record.views import ELLIPSOID_SIGMAS, ellipsoid_axes
+from dqpose.view import layout
+from dqpose.view.guard import protect
 from dqpose.view.timeline import Timeline
 
 #: the ellipsoids' colour (RGB), which nothing else on the page has
@@ -18,97 +29,318 @@ ELLIPSOID_OPACITY = 0.6
 PLAN_RGB = (255, 140, 0)
 #: an arm's actual path (green and blue above red: neither the plans' nor the ellipsoids')
 ACTUAL_RGB = (0, 190, 230)
-AXES = 0.1      # m, a body frame's axes
-#: where the camera starts, from the centre of the bodies' and plans' last positions (m)
-CAMERA = np.array([1.2, -1.2, 0.9])
+#: a body's trail (blue above red = green: neither the ellipsoids' nor the plans')
+TRAIL_RGB = (70, 70, 170)
+#: lines' width in pixels, whatever the content's size
+LINE_PX = 3.0
+TRAIL_PX = 2.0
+#: Trajectories/Plan's recorded plan, in the world frame (service/rpc/trajectories.py); every
+#: other plan is named after the arm that ran it, in that arm's base frame
+WORLD_PLAN = "Plan"
+#: how far apart (m) arms whose base the page does not know are drawn, by default
+ARM_SPACING = 1.0
+#: the positions a body drawn live keeps for its trail, at the most
+LIVE_TRAIL = 600
+#: the points a line is drawn through, at the most (a slider's move redraws every line)
+MAX_LINE_POINTS = 2000
+SCALE_LABELS = {s: f"x{s}" + (" (true size)" if s == 1 else "") for s in layout.SCALES}
+
+
+def _segments(p: np.ndarray) -> np.ndarray:
+    return np.stack([p[:-1], p[1:]], axis=1)
 
 
 class Scene:
-    """The page's drawing: the grid, the world frame, a frame and an ellipsoid per body (made
-    when a body first comes), a line per plan."""
+    """The page's drawing: the grid, the world frame, a frame, a label, a trail and an ellipsoid
+    per body (made when a body first comes), each arm's base frame with its plan, path and
+    tool, the world's plans. Drawn from any thread (one lock)."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = 8080):
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        protect(self.server, host)
         self.port = self.server.get_port()
-        self.server.scene.add_grid("/grid", width=4.0, height=4.0, cell_size=0.1,
-                                   section_size=1.0)
-        self.server.scene.add_frame("/world", axes_length=0.3, axes_radius=0.008)
+        self.lock = threading.RLock()
+        gui = self.server.gui
+        gui.configure_theme(show_share_button=False, show_logo=False)
+        gui.main_panel.dock_right()
+        self.view = layout.camera(())
+        self._fitted: tuple | None = None      # the box the cameras were last moved to
+        self.scale, self._scale_chosen = 1, False
         self.frames: dict = {}
+        self.labels: list = []
         self.ellipsoids: dict = {}
+        self.half: dict = {}        # body -> its ellipsoid's true half axes (m), their rotation
+        self.trails: dict = {}
         self.plans: dict = {}
+        self.bases: dict = {}       # arm -> its base's frame
+        self.placed: dict = {}      # arm -> the k of layout.aside (None: its base is known)
+        self.arm_spacing = ARM_SPACING
         self.paths: dict = {}       # arm -> its actual path's line
         self.tools: dict = {}       # arm -> its tool's frame
+        self._past: dict = {}       # body -> (arrival, position) drawn live, for its trail
+        self._places: dict = {}     # what was drawn live -> (its kind for fit, first place)
+        self._largest: float | None = None
+        self.scale_menu = gui.add_dropdown("ellipsoids", tuple(SCALE_LABELS.values()),
+                                           initial_value=SCALE_LABELS[1])
+        self.scale_menu.on_update(self._scale_picked)
+        self.show_labels = gui.add_checkbox("names", initial_value=True)
+        self.show_labels.on_update(lambda _: self._relabel())
+        self.legend = gui.add_markdown("")
+        self.world = self._frame("/world", "world", self.view.axes * 1.5)
+        self._grid()
+
+    def _frame(self, name: str, text: str, axes: float | None = None, visible: bool = True,
+               anchor="bottom-left"):
+        """A frame at ``name`` with its label ``text`` beside its origin (on the side
+        ``anchor`` says: an arm's base is below, where the world frame may be too)."""
+        axes = self.view.axes if axes is None else axes
+        frame = self.server.scene.add_frame(name, axes_length=axes, axes_radius=axes / 25,
+                                            visible=visible)
+        self.labels.append(self.server.scene.add_label(
+            f"{name}/label", text, anchor=anchor, font_screen_scale=1.3,
+            visible=self.show_labels.value))
+        return frame
+
+    def _grid(self) -> None:
+        """The grid under what the view frames, 3 times its size, on the world's z = 0."""
+        step = layout.grid_step(self.view.extent)
+        section = 10 * step
+        size = section * np.ceil(3 * self.view.extent / section)
+        centre = np.round(self.view.look_at[:2] / section) * section
+        self.server.scene.add_grid("/grid", width=size, height=size, cell_size=step,
+                                   section_size=section, position=(*centre, 0.0))
+        self._legend()
+
+    def _legend(self) -> None:
+        step = layout.grid_step(self.view.extent)
+        self.legend.content = (
+            f"**ellipsoids** (magenta): 3σ of each body's position, drawn "
+            f"**x{self.scale}**{' (true size)' if self.scale == 1 else ''}  \n"
+            f"**trails** (indigo): each body's last {layout.TRAIL_SECONDS:g} s  \n"
+            f"**plans** orange, **arms' actual paths** cyan, each arm at its base  \n"
+            f"**grid**: {_length(step)} cells on the world's z = 0")
+
+    def _scale_picked(self, event) -> None:
+        if event.client is not None:        # a person chose it: no longer chosen for them
+            self._scale_chosen = True
+        with self.lock:
+            self.scale = next(s for s, text in SCALE_LABELS.items()
+                              if text == self.scale_menu.value)
+            for body in self.half:
+                self._ellipsoid(body)
+            self._legend()
+
+    def _relabel(self) -> None:
+        for label in self.labels:
+            label.visible = self.show_labels.value
 
     def body(self, body: str):
         """The frame and the ellipsoid of ``body`` (hidden until drawn)."""
-        if body not in self.frames:
-            scene = self.server.scene
-            self.frames[body] = scene.add_frame(f"/world/{body}", axes_length=AXES,
-                                                axes_radius=0.004, visible=False)
-            self.ellipsoids[body] = scene.add_icosphere(
-                f"/world/{body}/ellipsoid", radius=1.0, color=ELLIPSOID_RGB, subdivisions=3,
-                opacity=ELLIPSOID_OPACITY, visible=False)
-        return self.frames[body], self.ellipsoids[body]
+        with self.lock:
+            if body not in self.frames:
+                self.frames[body] = self._frame(f"/world/{body}", body, visible=False)
+                self.ellipsoids[body] = self.server.scene.add_icosphere(
+                    f"/world/{body}/ellipsoid", radius=1.0, color=ELLIPSOID_RGB,
+                    subdivisions=3, opacity=ELLIPSOID_OPACITY, visible=False)
+            return self.frames[body], self.ellipsoids[body]
 
-    def draw_body(self, body: str, t, q, half_axes=None, axes_q=None) -> None:
+    def _ellipsoid(self, body: str) -> None:
+        half, _ = self.half[body]
+        ell = self.ellipsoids[body]
+        ell.scale = tuple(np.maximum(self.scale * np.asarray(half), 1e-9).tolist())
+
+    def draw_body(self, body: str, t, q, half_axes=None, axes_q=None, trail=None) -> None:
         """``body`` at ``t``, ``q``, its ellipsoid's half axes along the rotation ``axes_q``
-        (in the body's frame; ``None``: no ellipsoid)."""
-        frame, ell = self.body(body)
-        frame.position, frame.wxyz, frame.visible = tuple(t), tuple(q), True
-        if half_axes is None:
-            ell.visible = False
-        else:
-            ell.wxyz = tuple(axes_q)
-            ell.scale = tuple(np.maximum(np.asarray(half_axes, dtype=float), 1e-6).tolist())
-            ell.visible = True
+        (in the body's frame; ``None``: no ellipsoid), its trail through ``trail (n, 3)``."""
+        with self.lock:
+            frame, ell = self.body(body)
+            frame.position, frame.wxyz, frame.visible = tuple(t), tuple(q), True
+            if half_axes is None:
+                self.half.pop(body, None)
+                ell.visible = False
+            else:
+                self.half[body] = (tuple(np.asarray(half_axes, dtype=float)), tuple(axes_q))
+                ell.wxyz = tuple(axes_q)
+                self._ellipsoid(body)
+                ell.visible = True
+            self._line(self.trails, body, f"/trails/{body}", trail, TRAIL_RGB, TRAIL_PX)
 
     def hide_body(self, body: str) -> None:
-        frame, ell = self.body(body)
-        frame.visible = ell.visible = False
+        with self.lock:
+            frame, ell = self.body(body)
+            frame.visible = ell.visible = False
+            self.half.pop(body, None)
+            self._line(self.trails, body, f"/trails/{body}", None, TRAIL_RGB, TRAIL_PX)
+
+    def _line(self, lines: dict, key: str, name: str, positions, rgb, px: float) -> None:
+        """The line ``name`` through ``positions (n, 3)`` (``None`` or fewer than 2: hidden)."""
+        p = None if positions is None else np.asarray(positions, dtype=float).reshape(-1, 3)
+        if p is not None and len(p) > MAX_LINE_POINTS:      # evenly, the last one kept
+            p = p[np.linspace(0, len(p) - 1, MAX_LINE_POINTS).round().astype(int)]
+        if p is not None and len(p) > 1:      # the same name: the line is replaced
+            lines[key] = self.server.scene.add_line_segments(
+                name, _segments(p), rgb, thickness=px, thickness_units="screen")
+        elif key in lines:
+            lines[key].visible = False
+
+    def arm_base(self, arm: str, pose=None):
+        """The frame of ``arm``'s base, at ``pose`` (``T_world_base``, ``(8,)``) or, when the
+        page does not know it, :func:`~dqpose.view.layout.aside` the others (said on its
+        label); what the arm's path, tool and plans are drawn in."""
+        with self.lock:
+            if arm not in self.bases:
+                if pose is None:
+                    k = sum(1 for v in self.placed.values() if v is not None)
+                    k += any(v is None for v in self.placed.values())
+                    self.placed[arm] = k
+                    where = layout.aside(k, self.arm_spacing)
+                    # the server's rule for an arm the World does not place: its base is
+                    # the world frame (trajectories.proto); a second one is moved aside
+                    text = f"{arm} base (not configured: " + (
+                        f"drawn {abs(where[1]):.2g} m aside)" if k else "the world frame)")
+                    self.bases[arm] = self._frame(f"/arms/{arm}", text, anchor="top-left")
+                    self.bases[arm].position = tuple(where)
+                else:
+                    self.placed[arm] = None
+                    self.bases[arm] = self._frame(f"/arms/{arm}", f"{arm} base",
+                                                  anchor="top-left")
+            if pose is not None and self.placed[arm] is None:
+                q, t = dq.to_pose(np.asarray(pose, dtype=float))
+                self.bases[arm].position, self.bases[arm].wxyz = tuple(t), tuple(q)
+            return self.bases[arm]
 
     def draw_plan(self, name: str, positions) -> None:
-        """The path through ``positions (n, 3)`` (``None`` or fewer than 2: hidden)."""
-        p = None if positions is None else np.asarray(positions, dtype=float)
-        if p is not None and len(p) > 1:      # the same name: the line is replaced
-            self.plans[name] = self.server.scene.add_line_segments(
-                f"/plans/{name}", np.stack([p[:-1], p[1:]], axis=1), PLAN_RGB,
-                thickness=0.01)
-        elif name in self.plans:
-            self.plans[name].visible = False
+        """The plan ``name`` through ``positions (n, 3)`` (``None`` or fewer than 2: hidden):
+        Trajectories/Plan's in the world frame, an arm's in its base frame."""
+        with self.lock:
+            if name == WORLD_PLAN:
+                self._line(self.plans, name, f"/plans/{name}", positions, PLAN_RGB, LINE_PX)
+            else:
+                self.arm_base(name)
+                self._line(self.plans, name, f"/arms/{name}/plan", positions, PLAN_RGB,
+                           LINE_PX)
 
     def draw_arm(self, arm: str, positions, t=None, q=None) -> None:
         """The actual path of ``arm`` through ``positions (n, 3)`` and its tool's frame at
-        ``t``, ``q`` (``None``: hidden)."""
-        p = np.asarray(positions, dtype=float).reshape(-1, 3)
-        if len(p) > 1:
-            self.paths[arm] = self.server.scene.add_line_segments(
-                f"/arms/{arm}/actual", np.stack([p[:-1], p[1:]], axis=1), ACTUAL_RGB,
-                thickness=0.01)
-        elif arm in self.paths:
-            self.paths[arm].visible = False
-        if arm not in self.tools:
-            self.tools[arm] = self.server.scene.add_frame(
-                f"/arms/{arm}/tool", axes_length=AXES, axes_radius=0.004, visible=False)
-        tool = self.tools[arm]
-        if t is None:
-            tool.visible = False
-        else:
-            tool.position, tool.wxyz, tool.visible = tuple(t), tuple(q), True
+        ``t``, ``q`` (``None``: hidden), in its base frame."""
+        with self.lock:
+            self.arm_base(arm)
+            self._line(self.paths, arm, f"/arms/{arm}/actual", positions, ACTUAL_RGB, LINE_PX)
+            if arm not in self.tools:
+                self.tools[arm] = self._frame(f"/arms/{arm}/tool", f"{arm} tool",
+                                              visible=False)
+            tool = self.tools[arm]
+            if t is None:
+                tool.visible = False
+            else:
+                tool.position, tool.wxyz, tool.visible = tuple(t), tuple(q), True
 
-    def look_at(self, points) -> None:
-        """The camera on ``points``' centre, from above one side."""
-        if len(points):
-            centre = np.mean(np.asarray(points, dtype=float), axis=0)
-            self.server.initial_camera.look_at = tuple(centre.tolist())
-            self.server.initial_camera.position = tuple((centre + CAMERA).tolist())
+    def draw_live(self, body: str, t, q, half_axes=None, axes_q=None) -> None:
+        """``body`` drawn as it comes (``--server``, ``--live``), its trail through its
+        positions of the last :data:`~dqpose.view.layout.TRAIL_SECONDS` of arrival (at most
+        :data:`LIVE_TRAIL` of them)."""
+        now = time.monotonic()
+        with self.lock:
+            past = self._past.setdefault(body, deque(maxlen=LIVE_TRAIL))
+            past.append((now, tuple(t)))
+            times = [a for a, _ in past]
+            trail = [p for _, p in itertools.islice(past, layout.recent(times, now), None)]
+            self.draw_body(body, t, q, half_axes, axes_q, trail)
+
+    def reveal(self, key, at, half_axes=None, kind: str = "bodies") -> bool:
+        """Whether ``key`` is drawn for the first time; if so the camera is fitted again to the
+        first places (``at``, world frame) of everything drawn so far, each of a ``kind`` of
+        :meth:`fit` (``"lines"``, ``"frames"``, ``"bodies"``), and to the largest ellipsoid
+        seen (``half_axes``)."""
+        with self.lock:
+            if half_axes is not None:
+                self._largest = max(self._largest or 0.0, float(np.max(half_axes)))
+            if key in self._places:
+                return False
+            self._places[key] = (kind, np.asarray(at, dtype=float))
+            seen: dict[str, list] = {"lines": [], "frames": [], "bodies": []}
+            for k, place in self._places.values():
+                seen[k].append(place)
+            self.fit(**seen, largest_half_axis=self._largest)
+            return True
+
+    def in_world(self, arm: str, points) -> np.ndarray:
+        """``points (n, 3)`` of ``arm``'s base frame in the world, where its base is drawn."""
+        base = self.arm_base(arm)
+        pose = dq.from_pose(np.asarray(base.wxyz, dtype=float),
+                            np.asarray(base.position, dtype=float))
+        return dq.transform(pose, np.asarray(points, dtype=float).reshape(-1, 3))
+
+    def fit(self, lines=(), frames=(), bodies=(), largest_half_axis: float | None = None) -> None:
+        """The camera, the grid and the frames' axes fitted to what is drawn (world frame; each
+        a list of arrays of points, ``(n, 3)`` or ``(3,)``): the points of ``lines``, the
+        origins of ``frames`` with their axes, the positions of ``bodies`` with their axes and
+        their ellipsoids of true half axes up to ``largest_half_axis`` (m); the ellipsoids'
+        scale chosen for them unless a person chose one. The page's cameras move only when the
+        content left the box they were last fitted to; the camera a page opened later starts
+        with is always the new one."""
+        parts = [_stack(x) for x in (lines, frames, bodies)]
+        p = np.concatenate(parts)
+        with self.lock:
+            lo, hi = layout.box(p)
+            extent = float(np.max(hi - lo))
+            if not self._scale_chosen:
+                scale = layout.ellipsoid_scale(largest_half_axis, extent)
+                # assignable (GuiInputHandle's setter), though viser's dropdown types it not
+                self.scale_menu.value = SCALE_LABELS[scale]  # type: ignore[misc]
+            axes = layout.AXES_SHARE * extent
+            pad = np.concatenate([np.zeros(len(parts[0])), np.full(len(parts[1]), axes),
+                                  np.full(len(parts[2]), max(
+                                      axes, self.scale * (largest_half_axis or 0.0)))])
+            self.view = v = layout.camera(p, pad)
+            lo, hi = layout.box(p, pad)
+            cam = self.server.initial_camera
+            cam.fov, cam.near, cam.far = layout.FOV, v.near, v.far
+            cam.look_at, cam.position = tuple(v.look_at), tuple(v.position)
+            old = self._fitted
+            if old is None or np.any(lo < old[0]) or np.any(hi > old[1]):
+                self._fitted = (lo, hi)
+                for client in self.server.get_clients().values():
+                    c = client.camera
+                    c.fov, c.near, c.far = layout.FOV, v.near, v.far
+                    c.look_at, c.position = tuple(v.look_at), tuple(v.position)
+            for frame in (*self.frames.values(), *self.bases.values(), *self.tools.values()):
+                frame.axes_length, frame.axes_radius = v.axes, v.axes / 25
+            self.world.axes_length, self.world.axes_radius = 1.5 * v.axes, v.axes / 20
+            self._grid()
 
     def close(self) -> None:
         self.server.stop()
 
 
+def _stack(parts) -> np.ndarray:
+    arrays = [np.asarray(a, dtype=float).reshape(-1, 3) for a in parts]
+    return np.concatenate(arrays) if arrays else np.zeros((0, 3))
+
+
+def _length(m: float) -> str:
+    """``m`` metres in the unit that reads best (mm below 1 cm, cm below 1 m)."""
+    for unit, size in (("m", 1.0), ("cm", 1e-2), ("mm", 1e-3)):
+        if m >= size * 0.999:
+            return f"{m / size:g} {unit}"
+    return f"{m * 1e3:g} mm"
+
+
+def largest_half_axis(covariances) -> float | None:
+    """The median over poses of each pose's largest 3-sigma half axis of position (m), from
+    covariances ``(n, 6, 6)`` (NaN ones left out): what the page sizes ellipsoids for."""
+    c = np.asarray(covariances, dtype=np.float64).reshape(-1, 6, 6)
+    c = c[np.all(np.isfinite(c), axis=(1, 2))]
+    if not len(c):
+        return None
+    top = np.linalg.eigvalsh(c[:, 3:, 3:])[:, -1]
+    return float(ELLIPSOID_SIGMAS * np.sqrt(np.median(np.clip(top, 0.0, None))))
+
+
 class Page(Scene):
     """Serves ``tl`` on ``host:port`` (viser takes the next free port when that one is taken:
-    :attr:`port` is the one it serves on), with a time slider."""
+    :attr:`port` is the one it serves on), with a time slider, the camera fitted to everything
+    the file holds."""
 
     def __init__(self, tl: Timeline, host: str = "127.0.0.1", port: int = 8080):
         super().__init__(host, port)
@@ -116,37 +348,63 @@ class Page(Scene):
         for b in tl.tracks:
             self.body(b)
         self.plan_names = sorted({name for name, _, _ in tl.plans})
+        arms = sorted(set(tl.arms) | {n for n in self.plan_names if n != WORLD_PLAN})
+        self.arm_spacing = _spacing([a.t for a in tl.arms.values()]
+                                    + [p for n, _, p in tl.plans if n != WORLD_PLAN])
+        for arm in sorted(arms, key=lambda a: a not in tl.bases):   # the known ones first
+            self.arm_base(arm, tl.bases[arm].at(tl.end) if arm in tl.bases else None)
         duration = max((tl.end - tl.start) * 1e-9, 1e-3)
         self.slider = self.server.gui.add_slider(
             "time (s)", min=0.0, max=duration, step=min(1e-3, duration / 100),
-            initial_value=duration)
-        self.look_at([t.t[-1] for t in tl.tracks.values()]
-                     + [a.t[-1] for a in tl.arms.values()]
-                     + [p[-1] for _, _, p in tl.plans if len(p)])
+            initial_value=duration, order=-1.0)
+        tracks = list(tl.tracks.values())
+        self.fit(*self._content(), [t.t for t in tracks],
+                 largest_half_axis(np.concatenate([t.cov for t in tracks])) if tracks else None)
         self.slider.on_update(lambda _: self.show(self.ns(self.slider.value)))
         self.show(tl.end)
+
+    def _content(self) -> tuple[list, list]:
+        """Where the file draws plans (``lines``), and arms' bases and tools (``frames``) in
+        the world frame (:meth:`fit`)."""
+        tl = self.tl
+        lines = [p if n == WORLD_PLAN else self.in_world(n, p) for n, _, p in tl.plans]
+        frames = [self.in_world(arm, path.t) for arm, path in tl.arms.items()]
+        frames += [np.asarray(b.position, dtype=float)[None] for b in self.bases.values()]
+        return lines, frames
 
     def ns(self, seconds: float) -> int:
         return self.tl.start + int(round(seconds * 1e9))
 
     def show(self, ns: int) -> None:
         """The scene as it was at ``ns``."""
-        for body, track in self.tl.tracks.items():
-            i = track.at(ns)
-            if i is None:
-                self.hide_body(body)
-                continue
-            cov = track.cov[i]
-            if np.all(np.isfinite(cov)):
-                sigmas, q = ellipsoid_axes(cov[3:, 3:])
-                self.draw_body(body, track.t[i], track.q[i], ELLIPSOID_SIGMAS * sigmas, q)
-            else:
-                self.draw_body(body, track.t[i], track.q[i])
-        for name in self.plan_names:
-            self.draw_plan(name, self.tl.plan_at(name, ns))
-        for arm, path in self.tl.arms.items():
-            n = path.upto(ns)
-            if n:
-                self.draw_arm(arm, path.t[:n], path.t[n - 1], path.q[n - 1])
-            else:
-                self.draw_arm(arm, ())
+        with self.lock:
+            for body, track in self.tl.tracks.items():
+                i = track.at(ns)
+                if i is None:
+                    self.hide_body(body)
+                    continue
+                trail = track.t[layout.recent(track.ns * 1e-9, ns * 1e-9):i + 1]
+                cov = track.cov[i]
+                if np.all(np.isfinite(cov)):
+                    sigmas, q = ellipsoid_axes(cov[3:, 3:])
+                    self.draw_body(body, track.t[i], track.q[i], ELLIPSOID_SIGMAS * sigmas, q,
+                                   trail)
+                else:
+                    self.draw_body(body, track.t[i], track.q[i], trail=trail)
+            for arm, bases in self.tl.bases.items():
+                self.arm_base(arm, bases.at(ns))
+            for name in self.plan_names:
+                self.draw_plan(name, self.tl.plan_at(name, ns))
+            for arm, path in self.tl.arms.items():
+                n = path.upto(ns)
+                if n:
+                    self.draw_arm(arm, path.t[:n], path.t[n - 1], path.q[n - 1])
+                else:
+                    self.draw_arm(arm, ())
+
+
+def _spacing(paths) -> float:
+    """How far apart to draw arms whose base is unknown: 1.5 times the widest of their paths
+    and plans (in their base frames) along y, at least 0.3 m."""
+    widths = [float(np.ptp(np.asarray(p)[:, 1])) for p in paths if len(p)]
+    return max(0.3, 1.5 * max(widths)) if widths else ARM_SPACING

@@ -1,7 +1,8 @@
 """A recording (:func:`dqpose.record.reader.read`) as what the viewer draws: each body's fused
 poses (answers that carry a pose, error entries left out) with their covariances, each plan, and
-each arm's actual poses (its Execute feedback and its WatchArm states), all on one clock (the
-recording's arrival time, ns), looked up by time."""
+each arm's actual poses (its Execute feedback and its WatchArm states), each arm's base in the
+world (the World's configuration, ``WorldConfig.arms``), all on one clock (the recording's
+arrival time, ns), looked up by time."""
 from __future__ import annotations
 
 import dataclasses
@@ -9,9 +10,11 @@ import dataclasses
 import numpy as np
 from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
 
+from dqpose import dq
 from dqpose.record.views import ARM_STATE, EXECUTE_REQUEST, EXECUTION_FEEDBACK, pose_of
 
 FUSED_POSE = "dqpose.v1.FusedPose"
+WORLD_CONFIG = "dqpose.v1.WorldConfig"
 
 
 @dataclasses.dataclass
@@ -42,12 +45,26 @@ class Path:
 
 
 @dataclasses.dataclass
+class Bases:
+    """One arm's base in the world as each configuration in force set it: ``ns (n,)``,
+    ``pose (n, 8)`` (``T_world_base``)."""
+    ns: np.ndarray
+    pose: np.ndarray
+
+    def at(self, ns: int) -> np.ndarray:
+        """The base in force at ``ns``; before the first configuration, the first (an arm's
+        path recorded before its world was configured is drawn where the world later put it)."""
+        return self.pose[max(int(np.searchsorted(self.ns, ns, side="right")) - 1, 0)]
+
+
+@dataclasses.dataclass
 class Timeline:
     start: int                  # ns of the first message drawn
     end: int
     tracks: dict[str, Track]
     plans: list[tuple[str, int, np.ndarray]]    # (name, ns, positions (n, 3))
     arms: dict[str, Path] = dataclasses.field(default_factory=dict)
+    bases: dict[str, Bases] = dataclasses.field(default_factory=dict)
 
     def plan_at(self, name: str, ns: int) -> np.ndarray | None:
         """The positions of the last plan ``name`` made at or before ``ns``."""
@@ -86,7 +103,8 @@ def timeline(rec) -> Timeline:
     drawn: list[Track | Path] = [*tracks.values(), *arms.values()]
     times = [int(t.ns[0]) for t in drawn] + [ns for _, ns, _ in plans]
     ends = [int(t.ns[-1]) for t in drawn] + [ns for _, ns, _ in plans]
-    return Timeline(min(times, default=0), max(ends, default=0), tracks, plans, arms)
+    return Timeline(min(times, default=0), max(ends, default=0), tracks, plans, arms,
+                    arm_bases(rec))
 
 
 def arm_paths(rec) -> dict[str, Path]:
@@ -119,3 +137,35 @@ def arm_paths(rec) -> dict[str, Path]:
     return {arm: Path(np.array([r[0] for r in rs], dtype=np.int64), np.array([r[1] for r in rs]),
                       np.array([r[2] for r in rs]))
             for arm, rs in rows.items()}
+
+
+def arm_bases(rec) -> dict[str, Bases]:
+    """Each arm's base in the world: ``T_world_base`` = the extrinsic of the source that the
+    World's configuration in force (a ``Configure`` call's answer) names for it. An arm named
+    in several worlds' configurations is placed by the default world's, else by the first
+    world (in name order) naming it."""
+    calls = {c.id: c.world for c in rec.calls.values()
+             if c.answer_type == WORLD_CONFIG and c.rpc.endswith("/Configure")}
+    if not calls:
+        return {}
+    cls = rec.message_class(WORLD_CONFIG)
+    rows: dict[str, dict[str, list]] = {}         # arm -> world -> [(ns, T_world_base)]
+    for e in rec.events:
+        if e.kind != "answer" or e.call not in calls:
+            continue
+        config = cls.FromString(e.data)
+        sources = {s.name: s for s in config.sources}
+        for a in config.arms:
+            src = sources.get(a.source)
+            if src is not None:
+                pose = dq.identity()                # unset: the identity (fusion.proto)
+                if src.HasField("extrinsic"):
+                    t, q = pose_of(src.extrinsic)
+                    pose = dq.from_pose(q, t)
+                rows.setdefault(a.arm, {}).setdefault(calls[e.call], []).append((e.ns, pose))
+    out = {}
+    for arm, worlds in rows.items():
+        got = worlds[min(worlds)]          # "" (the default world) sorts first
+        out[arm] = Bases(np.array([n for n, _ in got], dtype=np.int64),
+                         np.array([p for _, p in got]))
+    return out

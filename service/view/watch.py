@@ -34,9 +34,6 @@ class Watcher:
         self.target, self.scene = target, scene
         self.failed = threading.Event()
         self.why = ""
-        self._drawn: set = set()
-        self._places: dict = {}             # what was drawn -> where, for the camera
-        self._lock = threading.Lock()       # the scene is drawn from several threads
 
     def start(self) -> None:
         arms = [a.arm for a in self.client.list_arms()]
@@ -57,16 +54,6 @@ class Watcher:
                 self.failed.set()
         threading.Thread(target=run, name=f"dqpose-view-{name}", daemon=True).start()
 
-    def _once(self, key, at, **event) -> None:
-        """The first drawing of ``key`` said, and the camera a page opened from now on starts
-        with turned to what is drawn (``at``: its position)."""
-        if key not in self._drawn:
-            self._drawn.add(key)
-            self._places[key[:2]] = at
-            with self._lock:
-                self.scene.look_at(list(self._places.values()))
-            say(event="drawn", **event)
-
     def bodies(self) -> None:
         for a in self.client.subscribe():
             if a.fused is None:
@@ -77,9 +64,9 @@ class Watcher:
             if cov.shape == (6, 6) and np.all(np.isfinite(cov)):
                 sigmas, axes = ellipsoid_axes(cov[3:, 3:])
                 half = ELLIPSOID_SIGMAS * sigmas
-            with self._lock:
-                self.scene.draw_body(a.body, t, q, half, axes)
-            self._once(("body", a.body), t, body=a.body, ellipsoid=half is not None)
+            self.scene.draw_live(a.body, t, q, half, axes)
+            if self.scene.reveal(("body", a.body, half is not None), t, half):
+                say(event="drawn", body=a.body, ellipsoid=half is not None)
 
     def arm(self, arm: str) -> None:
         path: deque = deque(maxlen=PATH_POINTS)
@@ -93,9 +80,10 @@ class Watcher:
             q, t = dq.to_pose(st.pose)
             if not path or np.linalg.norm(t - path[-1]) > 1e-6:
                 path.append(t)
-            with self._lock:
-                self.scene.draw_arm(arm, np.array(path), t, q)
-            self._once(("arm", arm, len(path) > 1), t, arm=arm, path=len(path) > 1)
+            self.scene.draw_arm(arm, np.array(path), t, q)
+            at = self.scene.in_world(arm, t)[0]
+            if self.scene.reveal(("arm", arm, len(path) > 1), at, kind="frames"):
+                say(event="drawn", arm=arm, path=len(path) > 1)
 
     def close(self) -> None:
         self.client.close()

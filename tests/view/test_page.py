@@ -2,7 +2,10 @@
 WebGL): a recording of two fused bodies with large covariances and a plan, served by a real
 ``dqpose view`` process, rendered to a PNG; the ellipsoids' and the plan's colours cover enough
 pixels, where the same page without bodies (rendered the same way) has none of them and is not
-blank either."""
+blank either. A robot cell's recording (``_cell.py``) opened as its folder: what is drawn covers
+at least a quarter of the view and every frame's name is drawn. In process: each arm at its base
+(or aside when the file does not place it), the ellipsoids' scale chosen and changed, the
+bodies' trails."""
 from __future__ import annotations
 
 import json
@@ -232,3 +235,155 @@ def test_the_page_draws_the_arms_actual_path_beside_its_plan(tmp_path):
     assert actual_pixels(empty) < 50, actual_pixels(empty)
     assert actual_pixels(scene) > ACTUAL_PATH, actual_pixels(scene)
     assert plan_pixels(scene) > plan_pixels(empty) + 150, (plan_pixels(scene), plan_pixels(empty))
+
+
+#: the 3D view of a 1280x800 window: the controls are docked right of column 955
+VIEW_COLUMNS = 955
+#: the overlays over the 3D view: the notice of software WebGL (top left), the axes gizmo
+OVERLAYS = ((slice(0, 160), slice(0, 320)), (slice(730, 800), slice(0, 70)))
+
+
+def _view(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The 3D view's pixels and where no overlay covers them."""
+    v = img[:, :VIEW_COLUMNS]
+    free = np.ones(v.shape[:2], dtype=bool)
+    for rows, cols in OVERLAYS:
+        free[rows, cols] = False
+    return v, free
+
+
+def content_share(img: np.ndarray) -> float:
+    """The share of the 3D view the bounding box of what the page draws covers: the coloured
+    pixels (the ellipsoids, the frames' axes, the lines; the grid, the labels, the background
+    and the shadows are grey)."""
+    v, free = _view(img)
+    ys, xs = np.nonzero((v.max(axis=-1) - v.min(axis=-1) > 40) & free)
+    if not len(xs):
+        return 0.0
+    return (np.ptp(xs) + 1) * (np.ptp(ys) + 1) / (v.shape[0] * v.shape[1])
+
+
+def label_count(img: np.ndarray) -> int:
+    """How many words of dark grey text the 3D view shows (the labels' text; the grid's lines
+    are lighter, every drawn thing is coloured): dark grey pixels, joined into words."""
+    from scipy import ndimage
+
+    v, free = _view(img)
+    text = (v.max(axis=-1) <= 140) & (v.max(axis=-1) - v.min(axis=-1) < 25) & free
+    words, n = ndimage.label(ndimage.binary_dilation(text, iterations=4))
+    sizes = ndimage.sum(text, words, range(1, n + 1))
+    return int(np.sum(np.asarray(sizes) >= 30))
+
+
+def test_the_page_fits_its_content_and_names_it(tmp_path):
+    """A robot cell's recording (tests/view/_cell.py) opened as its folder: the content's
+    bounding box covers at least a quarter of the view, every frame's name is drawn, the
+    sub-millimetre ellipsoids are drawn large enough to see."""
+    from tests.view._cell import LABELS, record_cell
+
+    path = record_cell(tmp_path / "rec")
+    proc, info = view(str(tmp_path / "rec"))
+    try:
+        assert info["files"] == [path]
+        assert (info["bodies"], info["arms"]) == (["box", "cup"], ["piper", "ur"])
+        # two labels may touch (the world's and the UR's base are at one place)
+        scene = screenshot(info["url"], tmp_path / "cell.png",
+                           lambda img: content_share(img) >= 0.25
+                           and label_count(img) >= len(LABELS) - 1
+                           and ellipsoid_pixels(img) > ELLIPSOIDS)
+    finally:
+        proc.terminate()
+        proc.wait(30)
+    assert content_share(scene) >= 0.25, content_share(scene)
+    assert label_count(scene) >= len(LABELS) - 1, label_count(scene)
+    assert ellipsoid_pixels(scene) > ELLIPSOIDS, ellipsoid_pixels(scene)
+
+
+def cell_page(tmp_path):
+    from dqpose.record.reader import read
+    from dqpose.view.page import Page
+    from dqpose.view.timeline import timeline
+    from tests.view._cell import record_cell
+
+    return Page(timeline(read(record_cell(tmp_path))), port=0)
+
+
+def test_each_arm_is_drawn_at_its_base(tmp_path):
+    """The same path in each arm's base frame is drawn at each base (the World's
+    configuration in the recording places them), with the arm's plan."""
+    from tests.view._cell import BASES, PATH
+
+    page = cell_page(tmp_path)
+    try:
+        ends = {}
+        for arm, (q, t) in BASES.items():
+            np.testing.assert_allclose(page.bases[arm].position, t, atol=1e-9)
+            np.testing.assert_allclose(np.abs(page.bases[arm].wxyz), np.abs(q), atol=1e-9)
+            assert page.paths[arm].name == f"/arms/{arm}/actual"
+            assert page.plans[arm].name == f"/arms/{arm}/plan"
+            ends[arm] = page.in_world(arm, PATH[-1])[0]
+        # the PiPER faces the UR from 0.7 m: its path's end mirrored through (0, 0.35)
+        np.testing.assert_allclose(ends["piper"], [-PATH[-1, 0], 0.7 - PATH[-1, 1], 0.2],
+                                   atol=1e-9)
+        np.testing.assert_allclose(ends["ur"], PATH[-1], atol=1e-9)
+    finally:
+        page.close()
+
+
+def test_arms_without_a_configured_base_are_drawn_apart():
+    from dqpose.view.page import Page
+    from dqpose.view.timeline import Path, Timeline
+
+    path = Path(np.array([0, 1], dtype=np.int64), np.array([[0.3, 0.0, 0.2], [0.4, 0.1, 0.2]]),
+                np.array([[1.0, 0, 0, 0]] * 2))
+    page = Page(Timeline(0, 1, {}, [], {"a": path, "b": path}), port=0)
+    try:
+        a, b = (np.asarray(page.bases[k].position) for k in "ab")
+        np.testing.assert_allclose(a, [0, 0, 0])
+        np.testing.assert_allclose(b, [0, -page.arm_spacing, 0])
+        assert page.arm_spacing >= 1.5 * 0.1            # wider than the paths
+        texts = [label.text for label in page.labels]
+        assert "a base (not configured: the world frame)" in texts
+        assert f"b base (not configured: drawn {page.arm_spacing:.2g} m aside)" in texts
+    finally:
+        page.close()
+
+
+def test_the_ellipsoids_scale_is_chosen_shown_and_changed(tmp_path):
+    from tests.view._cell import SIGMA
+
+    page = cell_page(tmp_path)
+    try:
+        # 3-sigma half axes of about 1 mm in a cell of a metre: x100
+        true = 3 * SIGMA
+        assert page.scale_menu.value == "x100"
+        assert "drawn **x100**" in page.legend.content
+        np.testing.assert_allclose(page.ellipsoids["box"].scale, [100 * true] * 3, rtol=1e-6)
+        page.scale_menu.value = "x1 (true size)"
+        np.testing.assert_allclose(page.ellipsoids["box"].scale, [true] * 3, rtol=1e-6)
+        assert "drawn **x1** (true size)" in page.legend.content
+        page.show_labels.value = False
+        assert not any(label.visible for label in page.labels)
+    finally:
+        page.close()
+
+
+def test_bodies_leave_a_trail_of_their_last_seconds():
+    from dqpose.view import layout
+    from dqpose.view.page import Page
+    from dqpose.view.timeline import Timeline, Track
+
+    ns = np.arange(50, dtype=np.int64) * 100_000_000            # 0.1 s apart
+    t = np.stack([np.linspace(0, 1, 50), np.zeros(50), np.zeros(50)], axis=1)
+    track = Track(ns, t, np.array([[1.0, 0, 0, 0]] * 50), np.full((50, 6, 6), np.nan))
+    page = Page(Timeline(0, int(ns[-1]), {"box": track}, []), port=0)
+    try:
+        first = int(round(49 - layout.TRAIL_SECONDS / 0.1))      # 2.9 s .. 4.9 s
+        trail = page.trails["box"].points
+        np.testing.assert_allclose(trail[0, 0], t[first], atol=1e-6)
+        np.testing.assert_allclose(trail[-1, 1], t[49], atol=1e-6)
+        assert len(trail) == 49 - first
+        page.show(int(ns[0]))                           # one pose: no line to draw
+        assert not page.trails["box"].visible
+    finally:
+        page.close()
