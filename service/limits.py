@@ -14,7 +14,9 @@ keep the costliest legal request near a second of one worker's time:
   its decoding (~7 µs a measurement) plus its answers. An answer fuses its body's window:
   ~13 µs a measurement (constant twist; its message included) and ~0.17 ms around it
   (:func:`answer_cost`). ``max_fused_per_request`` bounds the sum over one message's answers
-  (75,000: ~1 s); ticks beyond it are skipped, the latest kept, and said so.
+  (75,000: ~1 s); ticks beyond it are skipped, the latest kept, and said so (:class:`Budget`,
+  which bounds a World Publish request's Subscribe answers, all its subscribers', alike: the
+  costliest legal requests took 0.3-0.9 s of a server's CPU, docs/benchmarks/world.md).
   A tick is exact in floating point while ``|time| * output_rate`` stays below 2^50
   (``max_time * max_output_rate``, checked at start).
 * A stream keeps at most ``max_stream_measurements`` (100,000: ~40 MB) in its windows, a body
@@ -129,8 +131,9 @@ class Limits:
         100_000, "measurements", "StreamFuse: measurements all of one stream's windows hold "
                                  "(~0.4 kB each); more are refused", lo=1)
     max_fused_per_request: int = _limit(
-        75_000, "measurements", "StreamFuse: the cost of one message's answers, in "
-                                "measurements fused (an answer counts its window and "
+        75_000, "measurements", "StreamFuse and World: the cost of one message's answers (a "
+                                "Publish request's, all its subscribers'), in measurements "
+                                "fused (an answer counts its window and "
                                 f"{ANSWER_ROWS} more, a robust one 4x its window); "
                                 "ticks beyond it are skipped (the latest kept)", lo=1)
 
@@ -178,6 +181,38 @@ def over(where: str, what: str, limits: Limits, name: str) -> OverLimit:
     return OverLimit(f"{where}: {what}, over the server's limit {name} = "
                      f"{getattr(limits, name):.6g} {f.metadata['unit']} "
                      f"(dqpose serve {flag(name)})")
+
+
+class Budget:
+    """What one request's answers may still cost, ``max_fused_per_request`` measurements fused,
+    an answer :func:`answer_cost` of those it fuses: a StreamFuse message's, a World Publish
+    request's for all its subscribers. Which answers are given is decided before any is fused:
+    a body's answers beyond what is left are skipped, its latest kept (:meth:`take`), and one
+    error says which (:meth:`skipped`)."""
+
+    def __init__(self, limits: Limits):
+        self.limits = limits
+        self.left = limits.max_fused_per_request
+
+    @property
+    def spent(self) -> int:
+        return self.limits.max_fused_per_request - self.left
+
+    def take(self, due: int, rows: int, robust: bool = False,
+             correlated: bool = False) -> tuple[int, int]:
+        """How many of a body's ``due`` answers, each fusing ``rows`` measurements (as
+        :func:`answer_cost` takes them), are given, the latest; and what one costs. Charged."""
+        cost = answer_cost(rows, robust, correlated)
+        k = min(due, self.left // cost)
+        self.left -= k * cost
+        return k, cost
+
+    def skipped(self, where: str, body: str, what: str, cost: int) -> OverLimit:
+        """The error of ``body``'s answers ``what`` ("5 ticks from 1 s to 2 s") that
+        :meth:`take` left out, each costing ``cost``."""
+        return over(where, f"body {body!r}: {what} not answered: the answers would cost more "
+                           f"({cost} measurements fused an answer)", self.limits,
+                    "max_fused_per_request")
 
 
 def beyond_time(where: str, t: float, limits: Limits) -> OverLimit:

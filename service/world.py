@@ -343,6 +343,16 @@ class World:
                                f"{', '.join(map(repr, seen)) or 'none'})")
             return seen[source]
 
+    def rows_near(self, body: str, lo: float, hi: float) -> int:
+        """How many measurements a fit of ``body`` at a time in ``[lo, hi]`` fuses at most
+        (those taken within ``window`` of it; 0 for a body the world does not hold): what its
+        answers cost (:func:`dqpose.limits.answer_cost`)."""
+        with self._lock.read():
+            if not self._t.has(body):
+                return 0
+            return len(self._t.near_rows(body, 0.5 * (lo + hi),
+                                         0.5 * (hi - lo) + self.options.window)[1])
+
     def _known(self, body) -> None:
         body = _body_name(body)
         if not self._t.has(body):

@@ -5,12 +5,19 @@ from __future__ import annotations
 import argparse
 import gc
 import json
+import os
 import sys
 import textwrap
 
 from dqpose import limits
 from dqpose.cli.common import client, connection_args, fail, missing_extra, open_arm, read
 from dqpose.rpc import DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_POSES
+
+# The worker pool is the server's parallelism (limits.workers): OpenBLAS's own threads beside
+# each worker oversubscribe the cores and spin while idle (a 100-measurement acceleration_psd
+# fit took 201 ms of CPU on two BLAS threads, 42 ms on one, on a loaded 2-core machine). Set
+# before NumPy's first import, which nothing above makes.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
 def configure(name: str, p) -> None:

@@ -139,15 +139,13 @@ class Stream:
         are answered is decided here, at once, and what they will cost is left in
         :attr:`cost` (measurements to fuse, :data:`limits.ANSWER_ROWS` an answer included);
         each answer is fused as it is taken."""
-        budget = self.limits.max_fused_per_request
+        budget = limits.Budget(self.limits)
         items = []
         for body, ticks in due:
             if not len(ticks):
                 continue
-            cost = limits.answer_cost(self.tracker.count(body), self.options.robust,
-                                      self.correlated)
-            take = min(len(ticks), budget // cost)
-            budget -= take * cost
+            take, cost = budget.take(len(ticks), self.tracker.count(body), self.options.robust,
+                                     self.correlated)
             where = field.rsplit(".", 1)[0]
             if body not in self.capped and self.tracker.capped(body):
                 self.capped.add(body)
@@ -160,12 +158,9 @@ class Stream:
                 at = (f"{skipped} ticks from {self._time(body, ticks[0]):.6g} s to "
                       f"{self._time(body, ticks[skipped - 1]):.6g} s" if self.rate else
                       "its newest measurement")
-                items.append((body, limits.over(
-                    where, f"body {body!r}: {at} not answered: this message's answers would "
-                           f"cost more ({cost} measurements fused an answer)", self.limits,
-                    "max_fused_per_request")))
+                items.append((body, budget.skipped(where, body, at, cost)))
             items += [(body, self._time(body, k)) for k in ticks[len(ticks) - take:]]
-        self.cost = self.limits.max_fused_per_request - budget
+        self.cost = budget.spent
         return (self._answer(body, t, field) if not isinstance(t, FieldError)
                 else (body, t, np.empty(0, np.int64)) for body, t in items)
 

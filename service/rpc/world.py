@@ -24,8 +24,10 @@ import threading
 from typing import Any
 
 import grpc
+import numpy as np
 from google.protobuf.message import DecodeError
 
+from dqpose import limits as _limits
 from dqpose import world as domain
 from dqpose.errors import FieldError
 from dqpose.names import name_problem
@@ -57,10 +59,6 @@ MAX_QUEUED = 4096
 #: bytes of answers in one SubscribeBatches message at most (gRPC clients receive 4 MiB by
 #: default); an answer larger than this goes alone
 MAX_BATCH_BYTES = 1 << 20
-#: fits one Publish request may make due, for all subscriptions together; the oldest ticks beyond
-#: are skipped (an error entry per body says how many): a source's time jumping ahead would
-#: otherwise make every tick in between due at once, under the world's lock
-MAX_FITS_PER_REQUEST = 1024
 #: producer names a world remembers (each one's acked_through); the oldest-acked is forgotten
 #: beyond
 MAX_PRODUCERS = 4096
@@ -291,12 +289,14 @@ class Cell:
         self.ready.refresh(self.world, published.bodies)
 
     def _answer_subscriptions(self, m, ids, refused_rows: set) -> None:
-        """The Subscribe answers the request's rows (``m``, numbered ``ids``) make due, fitted
-        and queued to their subscribers."""
+        """The Subscribe answers the request's rows (``m``, numbered ``ids``) make due, within
+        the request's :class:`dqpose.limits.Budget` (all subscriptions together), fitted and
+        queued to their subscribers."""
         if not self.subscriptions:
             return
         latency = {s.name: s.latency for s in self.world.sources}
         cache: dict[tuple[str, float, str], Any] = {}
+        budget = _limits.Budget(self.limits or _limits.DEFAULT)
         for sub in list(self.subscriptions):
             due: list[tuple[str, float, int]] = []
             for k in range(len(m.index)):
@@ -306,20 +306,7 @@ class Cell:
                 source = m.sources[k]
                 taken = float(m.times[k]) - latency.get(source, 0.0)
                 due += [(body, t, int(ids[k])) for t in sub.due(body, source, taken)]
-            fits = sum((b, t, sub.relative_to) not in cache for b, t, _ in due)
-            budget = MAX_FITS_PER_REQUEST - len(cache)
-            answers = []
-            if fits > budget:
-                skipped: dict[str, int] = {}
-                for b, _t, _ in due[:fits - max(budget, 0)]:
-                    skipped[b] = skipped.get(b, 0) + 1
-                due = due[fits - max(budget, 0):]
-                r = self.requests
-                answers += [fpb.FusedPose(body=b, request=r, error=fpb.FuseError(
-                    request=r, measurement=-1, details=(
-                        f"body {b!r}: {n} ticks skipped: request {r} made more than "
-                        f"{MAX_FITS_PER_REQUEST} fits due (a source's time jumped ahead)")))
-                    .SerializeToString() for b, n in skipped.items()]
+            due, answers = self._affordable(due, sub.relative_to, cache, budget)
             for body, t, last in due:
                 key = (body, t, sub.relative_to)
                 if key not in cache:
@@ -328,6 +315,39 @@ class Cell:
                 answers.append(cache[key])
             if answers:
                 sub.loop.call_soon_threadsafe(sub.deliver, answers)
+
+    def _affordable(self, due: list, relative_to: str, cache: dict,
+                    budget: _limits.Budget) -> tuple[list, list]:
+        """``due`` ``(body, tick, id)`` less the ticks the request's ``budget`` cannot afford, and
+        an error entry (serialized) per body with ticks skipped: a fit not in ``cache`` costs
+        what it fuses (with ``relative_to``, the relative pose's fits besides), a body's oldest
+        ticks are skipped and its latest kept."""
+        new: dict[str, list[int]] = {}
+        for j, (b, t, _) in enumerate(due):
+            if (b, t, relative_to) not in cache:
+                new.setdefault(b, []).append(j)
+        world, options = self.world, self.world.options
+        correlated = options.acceleration_psd is not None and bool(
+            np.any(options.acceleration_psd))
+        skip: set[int] = set()
+        errors = []
+        r = self.requests
+        for b, js in new.items():
+            lo, hi = min(due[j][1] for j in js), max(due[j][1] for j in js)
+            rows = world.rows_near(b, lo, hi)
+            if relative_to:
+                rows += rows + world.rows_near(relative_to, lo, hi)
+            take, cost = budget.take(len(js), rows, options.robust, correlated)
+            if take < len(js):
+                gone = js[:len(js) - take]
+                skip.update(gone)
+                e = budget.skipped(f"request {r}", b, f"{len(gone)} ticks from "
+                                   f"{due[gone[0]][1]:.6g} s to {due[gone[-1]][1]:.6g} s", cost)
+                errors.append(fpb.FusedPose(body=b, request=r, error=fpb.FuseError(
+                    request=r, measurement=-1, details=readable(str(e)))).SerializeToString())
+        if skip:
+            due = [d for j, d in enumerate(due) if j not in skip]
+        return due, errors
 
     def _answer(self, body: str, t: float, relative_to: str, last_id: int) -> fpb.FusedPose:
         """Body ``body`` at tick ``t`` (relative to ``relative_to`` when set), or an error

@@ -4,6 +4,7 @@
     .venv/bin/python -m tests.bench.bench_world --trials 500 --lookups 2000
     .venv/bin/python -m tests.bench.bench_world --publish          # Publish -> Subscribe, ~4 min
     .venv/bin/python -m tests.bench.bench_world --publish --soak 600   # RSS over 10 min
+    .venv/bin/python -m tests.bench.bench_world --cost           # the costliest Publish, ~1 min
 
 Sections (each a function returning rows of the one table, so that more can be added):
 
@@ -21,6 +22,9 @@ Sections (each a function returning rows of the one table, so that more can be a
   ``World.pose`` alone. Target: ≤ 200 µs.
 * :func:`rpc_lookup_rows` — the Lookup RPC of one body through a ``dqpose serve`` process and
   the shipped client: the server's own time (its call log) and the client's round trip.
+* :func:`publish_cost_rows` (``--cost``: these rows alone) — the costliest legal Publish
+  request through a ``dqpose serve`` process: the server's CPU for it and what its budget
+  (``limits.Budget``) answered and skipped.
 * :func:`nees_rows` — the mean NEES of ``World.relative`` against the truth over ``--trials``
   draws, on the scene of tests/test_world.py: one camera whose mount is uncertain (1° / 5 mm)
   sees both bodies twice (0.1° / 0.5 mm each); beside it the composition of the two bodies'
@@ -399,6 +403,61 @@ def rpc_lookup_rows(lookups: int = 1000, load: bool = False,
              f"{np.percentile(ack, 50):.1f} µs; 61 measurements a body, {len(us)} calls"]]
 
 
+def publish_cost_rows() -> list[list[str]]:
+    """The costliest legal Publish requests, each with one subscriber at rate 0 (an answer due
+    at every new time of a body, each fusing the body's measurements within the window, 1 s):
+    1,000 measurements of one body, each at its own time, in a plain, a robust and an
+    ``acceleration_psd`` world; and ``max_poses`` (10,000) measurements of the world's 1,000
+    bodies, 10 times each. Per request the ``dqpose serve`` process's CPU (user + system, all
+    its threads) from its send until its ack and its answers are in, the ack's wall time, and
+    the answers fitted and ticks skipped (``limits.Budget``)."""
+    from dqpose.rpc.client import Batch, Client, RpcError
+
+    def subscribe(sub: Client, answers: list) -> None:
+        try:
+            answers.extend(sub.subscribe())
+        except RpcError:
+            pass        # closed at the end
+
+    server = ServerProcess("aio", quiet_log=True)
+    cases = [("plain", {}, 1000, 1), ("robust", {"robust": True}, 1000, 1),
+             ("acceleration_psd", {"acceleration_psd": np.eye(6) * 1e-2}, 1000, 1),
+             ("plain", {}, 10_000, 1000)]
+    rows = []
+    try:
+        for k, (label, options, n, bodies) in enumerate(cases):
+            with Client(server.target, world=f"cost-{k}") as c, \
+                    Client(server.target, world=f"cost-{k}") as sub:
+                c.configure_world(window=1.0, buffer=10.0, **options)
+                answers: list = []
+                threading.Thread(target=subscribe, args=(sub, answers), daemon=True).start()
+                time.sleep(1.0)     # the subscription open before the request
+                poses = lie.se3_exp(1e-3 * np.random.default_rng(0).normal(size=(n, 6)))
+                each = n // bodies
+                batch = Batch(poses, np.repeat(COV[None], n, 0), None, ["cam"] * n,
+                              [f"b{i // each}" for i in range(n)],
+                              np.tile(np.arange(each) * 1e-3, bodies))
+                cpu, t0 = server.cpu_seconds(), time.perf_counter()
+                list(c.publish([batch], producer="bench"))
+                ack = time.perf_counter() - t0
+                got = -1
+                while got != len(answers):      # every answer in: none more for 1 s
+                    got = len(answers)
+                    time.sleep(1.0)
+                cpu = server.cpu_seconds() - cpu
+            errors = [a.error for a in answers if a.error is not None]
+            skipped = sum(int(e.split(": ")[2].split()[0]) for e in errors
+                          if "max_fused_per_request" in e)
+            what = "one body" if bodies == 1 else f"{bodies} bodies"
+            rows.append(["costliest Publish", f"{n} measurements of {what}, a subscriber at "
+                         f"rate 0, {label} world", f"{cpu:.2f}", "s CPU",
+                         f"ack after {ack:.2f} s; {got - len(errors)} answers fitted, "
+                         f"{skipped} ticks skipped; the server process, all threads"])
+    finally:
+        server.stop()
+    return rows
+
+
 def _nees(trials: int, seed: int = 0) -> tuple[float, float]:
     from tests.test_world import relative_nees
     return relative_nees(trials, seed)
@@ -438,17 +497,22 @@ def main(argv=None) -> int:
     ap.add_argument("--soak", type=float, metavar="SECONDS",
                     help="--publish: instead of the table, one world row (--fit-bodies, "
                          "--fit-rate) for SECONDS, its RSS from minute 2 to the end")
+    ap.add_argument("--cost", action="store_true",
+                    help="only the costliest Publish's rows (publish_cost_rows)")
     ap.add_argument("--serve-relay", type=int, metavar="BYTES", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.serve_relay is not None:
         serve_relay(args.serve_relay)
+        return 0
+    if args.cost:
+        print(markdown(HEAD, publish_cost_rows()))
         return 0
     if not args.publish:
         print(markdown(HEAD, ingest_rows() + answer_rows() + publish_request_rows()
                        + lookup_rows(args.lookups)
                        + [row for load in (False, True) for polled in (False, True)
                           for row in rpc_lookup_rows(args.lookups, load, polled)]
-                       + nees_rows(args.trials)))
+                       + publish_cost_rows() + nees_rows(args.trials)))
         return 0
     if args.soak:
         return soak(args)

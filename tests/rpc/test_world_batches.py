@@ -9,17 +9,28 @@ import threading
 import grpc
 import pytest
 
+from dqpose.limits import Limits, answer_cost
 from dqpose.rpc import world as servicer
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
 from tests._polling import wait_until
-from tests.rpc.test_world_service import (  # noqa: F401 (the fixtures server and client)
+from tests.rpc._grpc_server import ServerThread
+from tests.rpc.test_world_service import (  # noqa: F401 (the fixture client)
     SOURCES,
     TWIST,
     client,
     measurements,
-    server,
 )
+
+#: the answers a Publish request here affords: 1,024 fits of the box's two measurements, so
+#: that the jump below skips some
+FITS = 1024
+
+
+@pytest.fixture
+def server():
+    with ServerThread(limits=Limits(max_fused_per_request=FITS * answer_cost(2))) as s:
+        yield s
 
 
 class Raw:
@@ -70,12 +81,13 @@ def streams(server, client) -> tuple[Raw, Raw]:
 
 
 def jump(client) -> int:
-    """One request whose source's time jumps 60 s (1,024 fits due at once, the rest skipped),
-    then three ordinary ones: the answers a subscription at 30 Hz gets, the error included."""
+    """One request whose source's time jumps 60 s (1,800 ticks due at once, FITS fitted, the
+    rest skipped), then three ordinary ones: the answers a subscription at 30 Hz gets, the error
+    included."""
     list(client.publish([measurements("cam1", [0.0], 1), measurements("cam1", [60.0], 2)]
                         + [measurements("cam1", [60.0 + k / 30], 3 + k) for k in (1, 2, 3)],
                         producer="p"))
-    return servicer.MAX_FITS_PER_REQUEST + 1 + 3
+    return FITS + 1 + 3
 
 
 def packed(sizes: list[int]) -> int:

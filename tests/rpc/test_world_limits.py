@@ -1,7 +1,7 @@
 """World.Publish within the server's limits, against a real server on 127.0.0.1: times beyond
 ``max_time`` refused as StreamFuse refuses them, a body's time jump confirmed only by another
 producer, on both of Publish's decoders (the C one for plain requests, protobuf's for the rest:
-a name that is not ASCII)."""
+a name that is not ASCII); a request's Subscribe answers within its budget."""
 from __future__ import annotations
 
 import itertools
@@ -10,9 +10,12 @@ import grpc
 import numpy as np
 import pytest
 
+from dqpose.limits import Limits, answer_cost
 from dqpose.rpc.client import Batch, Client, RpcError
 from dqpose.rpc.wire import publish_from_wire, publish_request_wire
+from tests._polling import wait_until
 from tests.rpc._grpc_server import ServerThread
+from tests.rpc.test_world_service import Collector
 
 IDENTITY = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
 # "box" takes the C decoder, "bóx" protobuf's (the C one leaves names that are not ASCII to it)
@@ -96,3 +99,34 @@ def test_a_body_only_its_producer_feeds_follows_that_producers_jump(client):
     assert "max_time_jump" in details and "another producer" not in details, details
     assert publish(client, "a", batch("cup", 1000.01)) == [()]
     assert client.lookup("", "cup").time == 1000.01
+
+
+@pytest.mark.parametrize("robust", [False, True])
+def test_the_costliest_legal_publish_answers_what_its_budget_affords_in_each_world(server,
+                                                                                 robust):
+    """One request of 1,000 measurements of one body, each at its own time within the window,
+    and a subscriber at rate 0: an answer is due at every time, each fusing all 1,000. The
+    request answers what ``max_fused_per_request`` affords (limits.Budget, StreamFuse's rule),
+    the latest, and names the ticks it skipped; another world's request has a budget of its
+    own. (Before: every answer fitted, 6.4 s of CPU, 26.7 s robust, under the world's lock.)"""
+    n = 1000
+    fits = Limits().max_fused_per_request // answer_cost(n, robust)
+    times = np.arange(n) * 1e-3
+    worlds = [f"w{next(WORLDS)}", f"w{next(WORLDS)}"]
+    subs = []
+    for world in worlds:
+        with Client(server.target, world=world) as c:
+            c.configure_world(window=1.0, buffer=10.0, robust=robust)
+        subs.append(Collector(server.target, world=world))
+    cells = next(s for s in server.running.servicers if s.NAME == "dqpose.v1.World").cells
+    assert wait_until(lambda: all(cells[w].subscriptions for w in worlds), timeout=10)
+    for sub in subs:
+        with Client(server.target, world=sub.client.world) as c:
+            assert publish(c, "p", batch("box", *times)) == [()]
+    for sub in subs:
+        assert wait_until(lambda: len(sub.answers) == fits + 1, timeout=60)
+        answers = sub.stop()
+        [skip] = [a.error for a in answers if a.error is not None]
+        assert f"body 'box': {n - fits} ticks from 0 s to " in skip, skip
+        assert "max_fused_per_request" in skip, skip
+        assert [a.time for a in answers if a.error is None] == times[n - fits:].tolist()

@@ -216,8 +216,8 @@ def test_lookup_status_codes(client):
 
 
 def test_a_lookup_is_answered_while_a_publish_request_holds_the_world(server, client):
-    """A Publish request holds its world's cell while its Subscribe answers are fitted (up to
-    MAX_FITS_PER_REQUEST of them); a Lookup does not wait for that, only for the world's own
+    """A Publish request holds its world's cell while its Subscribe answers are fitted (within
+    its budget, limits.Budget); a Lookup does not wait for that, only for the world's own
     lock, which each fit takes on its own."""
     list(client.publish([measurements("cam1", [10.0, 10.01], 1)], producer="p"))
     world = next(s for s in server.running.servicers if s.NAME == "dqpose.v1.World")
@@ -313,21 +313,26 @@ def test_fusion_source_extrinsic_covariance_round_trips():
     assert fusion.Source("x").latency == 0.0
 
 
-def test_a_time_jump_makes_at_most_max_fits_due_and_says_what_it_skipped(server, client):
-    from dqpose.rpc.world import MAX_FITS_PER_REQUEST
-    client.configure_world(SOURCES, twist_covariance=TWIST, window=60.0, buffer=60.0,
-                           max_extrapolation=None)
-    sub = Collector(server.target, bodies=["box"], rate_hz=30.0)
-    assert wait_until(lambda: server.running.servicers[0].cell("").subscriptions, timeout=10)
-    list(client.publish([measurements("cam1", [0.0], 1), measurements("cam1", [60.0], 2)],
-                        producer="p"))
-    assert wait_until(lambda: len(sub.answers) > MAX_FITS_PER_REQUEST, timeout=60)   # + error
-    answers = sub.stop()
+def test_a_time_jump_makes_due_what_the_requests_budget_affords_the_latest_kept():
+    from dqpose.limits import Limits, answer_cost
+    fits = 1024         # the box's two measurements fused at each tick
+    with ServerThread(limits=Limits(max_fused_per_request=fits * answer_cost(2))) as server, \
+            Client(server.target) as client:
+        client.configure_world(SOURCES, twist_covariance=TWIST, window=60.0, buffer=60.0,
+                               max_extrapolation=None)
+        sub = Collector(server.target, bodies=["box"], rate_hz=30.0)
+        assert wait_until(lambda: server.running.servicers[0].cell("").subscriptions, timeout=10)
+        list(client.publish([measurements("cam1", [0.0], 1), measurements("cam1", [60.0], 2)],
+                            producer="p"))
+        assert wait_until(lambda: len(sub.answers) > fits, timeout=60)   # + the error
+        answers = sub.stop()
     [skip] = [a for a in answers if a.error is not None]
-    n = int(re.search(r"(\d+) ticks skipped", skip.error)[1])
+    n = int(re.search(r"(\d+) ticks from", skip.error)[1])
+    assert "max_fused_per_request" in skip.error, skip.error
+    assert f"({answer_cost(2)} measurements fused an answer)" in skip.error, skip.error
     fused = [a for a in answers if a.error is None]
-    assert len(fused) == MAX_FITS_PER_REQUEST     # "box"'s first tick is after 0 (its phase)
-    assert n + MAX_FITS_PER_REQUEST == round(60.0 * 30.0)
+    assert len(fused) == fits     # "box"'s first tick is after 0 (its phase)
+    assert n + fits == round(60.0 * 30.0)
     assert fused[-1].time == pytest.approx(60.0, abs=1 / 30)   # the newest ticks were kept
 
 
