@@ -115,6 +115,11 @@ def configure(name: str, p) -> None:
                          help="a new file after this many MB (default: %(default)s)")
         rec.add_argument("--record-max-s", type=float, default=3600.0,
                          help="a new file after this many seconds (default: %(default)s)")
+        rec.add_argument("--record-rate", type=float, default=30.0,
+                         help="every body of a world is recorded at this rate, Hz of its "
+                              "measurement time, subscribed or not (the recorder's own "
+                              "subscriber: a Subscribe call marked internal; default: "
+                              "%(default)s)")
         rec.add_argument("--record-queue", type=int, default=100_000,
                          help="messages waiting for the disk at most; beyond, they are dropped "
                               "(counted, logged, marked in the file), never an RPC delayed "
@@ -246,15 +251,20 @@ def _open_recorder(args, cfg, stack) -> int | None:
     cmd = "serve --record" if args.record is not None else "serve --live"
     for flag, value in (("--record-max-mb", args.record_max_mb),
                         ("--record-max-s", args.record_max_s),
-                        ("--record-queue", args.record_queue)):
+                        ("--record-queue", args.record_queue),
+                        ("--record-rate", args.record_rate)):
         if not value > 0:
             return fail("serve", f"{flag}: must be > 0, got {value:g}")
+    if args.record_rate > cfg.limits.max_output_rate:
+        return fail("serve", f"--record-rate: {args.record_rate:g} Hz is over the server's "
+                             f"limit max_output_rate = {cfg.limits.max_output_rate:g} Hz "
+                             f"(--max-output-rate)")
     try:
         cfg.recorder = open_recorder(
             args.record, max_bytes=max(1, int(args.record_max_mb * 1e6)),
             max_seconds=args.record_max_s, queue=args.record_queue, live=live,
             live_token=cfg.token, live_origins=args.live_origin,
-            live_insecure=args.live_insecure)
+            live_insecure=args.live_insecure, world_rate=args.record_rate)
     except MissingExtra as e:
         return missing_extra(cmd, e)
     except (LiveFailed, ValueError) as e:

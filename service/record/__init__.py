@@ -39,10 +39,13 @@ class NullRecorder:
     dropped = written = failed = 0
     files: list = []
     failure = None
+    #: no subscriber of its own in a world (dqpose.rpc.world_record.follow)
+    world_rate = None
     #: whether anything is recorded (a caller skips work only a recording needs)
     recording = False
 
-    def call(self, rpc: str, request_type, answer_type, world: str = "") -> _NullCall:
+    def call(self, rpc: str, request_type, answer_type, world: str = "",
+             internal: bool = False) -> _NullCall:
         return _NULL_CALL
 
     def plan(self, name: str, dqs) -> None:

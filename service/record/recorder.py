@@ -23,6 +23,7 @@ import collections
 import fcntl
 import json
 import logging
+import math
 import os
 import subprocess
 import sys
@@ -93,13 +94,20 @@ class Recorder:
     def __init__(self, directory: str | os.PathLike | None, max_bytes: int = 256 << 20,
                  max_seconds: float = 3600.0, queue: int = 100_000,
                  max_buffer: int = 64 << 20, live: tuple[str, int] | None = None,
-                 live_token: str | None = None, live_origins=(), live_insecure: bool = False):
+                 live_token: str | None = None, live_origins=(), live_insecure: bool = False,
+                 world_rate: float = 30.0):
         if not (isinstance(max_bytes, int) and max_bytes > 0):
             raise ValueError(f"max_bytes: must be a positive integer, got {max_bytes!r}")
         if not (max_seconds > 0):
             raise ValueError(f"max_seconds: must be > 0, got {max_seconds!r}")
         if not (isinstance(queue, int) and queue > 0):
             raise ValueError(f"queue: must be a positive integer, got {queue!r}")
+        if not (isinstance(world_rate, (int, float)) and 0 < world_rate < math.inf):
+            raise ValueError(f"world_rate: must be a rate > 0 Hz, got {world_rate!r}")
+        #: the rate (Hz of measurement time) at which the recorder's own subscriber records every
+        #: body of a world (dqpose.rpc.world_record.follow)
+        self.world_rate = float(world_rate)
+        self._internal: list[CallRecord] = []
         if directory is None and live is None:
             raise ValueError("directory: None needs a live address")
         if live is not None and (why := live_problem(*live, live_token, live_insecure)):
@@ -174,10 +182,12 @@ class Recorder:
 
     # -- the servicers' side: no waiting
 
-    def call(self, rpc: str, request_type, answer_type, world: str = "") -> CallRecord:
+    def call(self, rpc: str, request_type, answer_type, world: str = "",
+             internal: bool = False) -> CallRecord:
         """A call of ``rpc`` (``"dqpose.v1.Fusion/StreamFuse"``) begins; its requests are
         ``request_type`` messages, its answers ``answer_type`` (protobuf classes); ``world``:
-        the named world a World call is in (its ``x-dqpose-world``)."""
+        the named world a World call is in (its ``x-dqpose-world``); ``internal``: the server's
+        own, no client's (its call log says so), ended ``OK`` by :meth:`close` if not before."""
         names = (request_type.DESCRIPTOR.full_name, answer_type.DESCRIPTOR.full_name)
         with self._lock:
             self._calls += 1
@@ -194,7 +204,11 @@ class Recorder:
             begin = {"rpc": rpc, "request_type": names[0], "answer_type": names[1]}
             if world:
                 begin["world"] = world
+            if internal:
+                begin["internal"] = True
             rec.alive = self._put_locked(None, frames.BEGIN, call, ns, frames.as_json(begin))
+            if internal and rec.alive:
+                self._internal.append(rec)
         return rec
 
     def plan(self, name: str, dqs) -> None:
@@ -339,9 +353,12 @@ class Recorder:
             self._writer_gone()
 
     def close(self, timeout: float = 30.0) -> None:
-        """Hands over what is waiting (unless stalled), then waits for the writer to finish
-        the file."""
+        """Ends the internal calls, hands over what is waiting (unless stalled), then waits for
+        the writer to finish the file."""
+        for rec in self._internal:
+            rec.end("OK")
         with self._lock:
+            self._internal.clear()
             if self._proc.stdin is None or self._proc.stdin.closed:
                 return
             self.stall.clear()

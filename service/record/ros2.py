@@ -2,9 +2,12 @@
 installation: each fused pose as ``geometry_msgs/PoseWithCovarianceStamped`` on
 ``/fused/<body>/pose`` (its covariance converted once, by :func:`dqpose.lie.cov_to_ros`), the
 bodies' frames on ``/tf`` (``tf2_msgs/TFMessage``), each body's fused path and each plan as
-``nav_msgs/Path`` (``/fused/<body>/path``, ``/plans/<name>``). Stamps are the arrival times of
-the recording, like its Foxglove views; the fused poses are decoded with the schema the
-recording embeds (one that does not decode is a ``Damaged`` recording).
+``nav_msgs/Path`` (``/fused/<body>/path``, ``/plans/<name>``). A fused pose's header stamp is
+its own time (``FusedPose.time``, as in its Foxglove views: a tf lookup at a time finds the pose
+of that time), the bag's timestamp of each message its arrival, as the recording's log time; a
+plan is stamped with its arrival. The fused poses are decoded with the schema the recording
+embeds (one that does not decode is a ``Damaged`` recording); a pose time beyond a ROS stamp's
+int32 seconds is a ``ValueError`` naming it.
 """
 from __future__ import annotations
 
@@ -17,7 +20,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from dqpose import dq, lie
 from dqpose.record.reader import Damaged, Recording
-from dqpose.record.views import WORLD
+from dqpose.record.views import WORLD, time_ns
 
 STORE = Stores.ROS2_HUMBLE
 POSE = "geometry_msgs/msg/PoseWithCovarianceStamped"
@@ -36,6 +39,9 @@ def export(rec: Recording, out_dir: str | os.PathLike) -> dict[str, int]:
         else None
 
     def header(ns: int):
+        if not -2**31 <= ns // 10**9 < 2**31:
+            raise ValueError(f"a time of {ns / 1e9:.6g} s is beyond a ROS 2 stamp (int32 "
+                             f"seconds)")
         return T["std_msgs/msg/Header"](
             stamp=T["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9),
             frame_id=WORLD)
@@ -69,19 +75,22 @@ def export(rec: Recording, out_dir: str | os.PathLike) -> dict[str, int]:
             p, o = f.pose.position, f.pose.orientation
             cov = lie.cov_to_ros(dq.from_pose([o.w, o.x, o.y, o.z], [p.x, p.y, p.z]),
                                  np.asarray(f.covariance).reshape(6, 6))
+            try:
+                h = header(time_ns(f.time))
+            except ValueError as ex:
+                raise ValueError(f"the fused pose of {f.body!r} at {e.ns} ns: {ex}") from None
             write(f"/fused/{f.body}/pose", POSE, e.ns, T[POSE](
-                header=header(e.ns), pose=T["geometry_msgs/msg/PoseWithCovariance"](
+                header=h, pose=T["geometry_msgs/msg/PoseWithCovariance"](
                     pose=pose(p, o), covariance=cov.ravel())))
-            h = header(e.ns)
             write("/tf", TF, e.ns, T[TF](transforms=[T["geometry_msgs/msg/TransformStamped"](
                 header=h, child_frame_id=f.body, transform=T["geometry_msgs/msg/Transform"](
                     translation=T["geometry_msgs/msg/Vector3"](x=p.x, y=p.y, z=p.z),
                     rotation=T["geometry_msgs/msg/Quaternion"](x=o.x, y=o.y, z=o.z, w=o.w)))]))
-            paths.setdefault(f.body, []).append((e.ns, pose(p, o)))
+            paths.setdefault(f.body, []).append((e.ns, h, pose(p, o)))
         for body, poses in paths.items():
-            ns = poses[-1][0]
-            write(f"/fused/{body}/path", PATH, ns, T[PATH](header=header(ns), poses=[
-                T["geometry_msgs/msg/PoseStamped"](header=header(t), pose=q) for t, q in poses]))
+            ns, h, _ = poses[-1]
+            write(f"/fused/{body}/path", PATH, ns, T[PATH](header=h, poses=[
+                T["geometry_msgs/msg/PoseStamped"](header=ph, pose=q) for _, ph, q in poses]))
         if rec.plans:
             Poses = rec.message_class("foxglove.PosesInFrame")
             for name, ns, data in rec.plans:

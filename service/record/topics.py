@@ -40,7 +40,8 @@ def arm_topic(arm: str, what: str) -> str:
 
 CALL_FIELDS = {"call": "integer", "rpc": "string", "event": "string",
                "request_type": "string", "answer_type": "string", "code": "string",
-               "details": "string", "continued": "boolean", "world": "string"}
+               "details": "string", "continued": "boolean", "world": "string",
+               "internal": "boolean"}
 DROPPED_FIELDS = {"first_dropped": "integer", "count": "integer", "resumed": "integer",
                   "error": "string"}
 STATS_FIELDS = {"body": "string", "time": "number", "chi2": "number", "dof": "integer",

@@ -42,6 +42,12 @@ def stamp(ns: int) -> Timestamp:
     return Timestamp(seconds=ns // 1_000_000_000, nanos=ns % 1_000_000_000)
 
 
+def time_ns(seconds: float) -> int:
+    """A pose's own time (``FusedPose.time``, s) as the ns of its views' stamps: Unix time when
+    the world's measurements are stamped in it (else near 1970; negative before it)."""
+    return round(seconds * 1e9)
+
+
 def _pose(t, q) -> Pose:
     """Foxglove's Pose from a translation and a scalar-first quaternion (Foxglove's is x, y, z,
     w by field name: no order to confuse)."""

@@ -74,7 +74,8 @@ class Writer:
         self.frames = 0
         self.schemas: dict[str, bytes] = {}
         self.classes: dict[str, object] = {}
-        self.calls: dict[int, tuple[str, str, str, str]] = {}   # rpc, types, world
+        # rpc, types, world, internal
+        self.calls: dict[int, tuple[str, str, str, str, bool]] = {}
         # the request of a call whose answers' views need it (an Execute's arm, a Calibrate's
         # views and setup)
         self.requests: dict[int, Any] = {}
@@ -164,11 +165,14 @@ class Writer:
             self.file = None
 
     @staticmethod
-    def log_call(sinks, call, ns, rpc, req, ans, world="", continued=False) -> None:
+    def log_call(sinks, call, ns, rpc, req, ans, world="", internal=False,
+                 continued=False) -> None:
         begin = {"call": call, "rpc": rpc, "event": "begin", "request_type": req,
                  "answer_type": ans, "continued": continued}
         if world:
             begin["world"] = world
+        if internal:
+            begin["internal"] = True
         for s in sinks:
             s.write_json(s.json_channel(CALLS_TOPIC, "dqpose.record.Call", CALL_FIELDS), ns,
                          begin)
@@ -218,13 +222,13 @@ class Writer:
             d = json.loads(payload)
             sinks = self.sinks()    # first: a file opened now repeats the calls open before it
             self.calls[call] = (d["rpc"], d["request_type"], d["answer_type"],
-                                d.get("world", ""))
+                                d.get("world", ""), d.get("internal", False))
             self.log_call(sinks, call, ns, *self.calls[call])
         elif kind in (frames.REQUEST, frames.ANSWER):
             began = self.calls.get(call)
             if began is None:
                 return
-            rpc, req, ans, _ = began
+            rpc, req, ans, *_ = began
             sinks = self.sinks()
             if kind == frames.REQUEST:
                 for s in sinks:
@@ -257,7 +261,7 @@ class Writer:
             self.requests.pop(call, None)
             for s in sinks:
                 if began is not None:
-                    rpc, req, ans, _ = began
+                    rpc, req, ans, *_ = began
                     s.forget(requests_topic(rpc), req, (("call", str(call)),))
                     s.forget(answers_topic(rpc), ans, (("call", str(call)),))
                 s.write_json(s.json_channel(CALLS_TOPIC, "dqpose.record.Call", CALL_FIELDS),
@@ -284,7 +288,8 @@ class Writer:
 
     @staticmethod
     def views(s: Sink, ns: int, msg) -> None:
-        """The Foxglove views of a fused pose (not of an error entry)."""
+        """The Foxglove views of a fused pose (not of an error entry), logged at its arrival
+        ``ns``, stamped with its own time."""
         if msg.HasField("error") or not msg.HasField("pose"):
             return
         body = msg.body
@@ -294,13 +299,14 @@ class Writer:
             s.view_bodies.add(body)
         p, o = msg.pose.position, msg.pose.orientation
         t, q = (p.x, p.y, p.z), (o.w, o.x, o.y, o.z)
+        at = views.time_ns(msg.time)
         s.write(s.channel(pose_topic(body), views.PoseInFrame), ns,
-                views.pose_in_frame(ns, t, q).SerializeToString())
+                views.pose_in_frame(at, t, q).SerializeToString())
         s.write(s.channel(TF_TOPIC, views.FrameTransforms), ns,
-                views.frame_transforms(ns, [(views.WORLD, body, t, q)]).SerializeToString())
+                views.frame_transforms(at, [(views.WORLD, body, t, q)]).SerializeToString())
         if len(msg.covariance) == 36:
             s.write(s.channel(ELLIPSOIDS_TOPIC, views.SceneUpdate), ns, views.scene_update(
-                [views.ellipsoid(ns, body, msg.covariance)]).SerializeToString())
+                [views.ellipsoid(at, body, msg.covariance)]).SerializeToString())
         s.write_json(s.json_channel(stats_topic(body), "dqpose.record.FusedStats",
                                     STATS_FIELDS), ns, views.scalars(msg))
 

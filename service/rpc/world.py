@@ -395,6 +395,7 @@ class World:
                                f"naming it)")
         with self._making:
             cell = self.cells.get(name)
+            made = cell is None
             if cell is None:
                 named = len(self.cells) - ("" in self.cells)
                 if name and named >= MAX_WORLDS:
@@ -402,6 +403,8 @@ class World:
                                         f"{named + 1} on replica {self.replica!r}, above its "
                                         f"{MAX_WORLDS} (MAX_WORLDS)")
                 cell = self.cells[name] = Cell(name, self.limits, self.max_poses)
+        if made:        # a recorded world records every body (the recorder's own subscriber)
+            world_record.follow(cell, self.calls.recorder)
         return cell
 
     def called(self, context, make: bool = False) -> Cell:

@@ -98,15 +98,24 @@ def test_fused_poses_are_drawn_with_foxglove_schemas(tmp_path, scene):
     assert p.frame_id == "world"
     assert (p.pose.position.x, p.pose.orientation.w, p.pose.orientation.z) == \
         (want.position.x, want.orientation.w, want.orientation.z)
-    assert p.timestamp.seconds * 10**9 + p.timestamp.nanos == poses[-1][5]
+    # stamped with the pose's own time (this stream's: seconds after 0, so near 1970), logged
+    # at its arrival
+    def stamped(ts) -> float:
+        return ts.seconds + ts.nanos * 1e-9
+
+    assert stamped(p.timestamp) == pytest.approx(want_time := last["box"].time, abs=1e-9)
+    assert 0 < want_time < 1 and poses[-1][5] > 1.7e18
     tf = [g for g in got if g[0] == topics.TF_TOPIC]
     FrameTransforms = message_class(tf[-1][3], "foxglove.FrameTransforms")
     t = FrameTransforms.FromString(tf[-1][4]).transforms[0]
     assert t.parent_frame_id == "world" and t.child_frame_id == flat[-1].body
+    assert stamped(t.timestamp) == pytest.approx(flat[-1].time, abs=1e-9)
     scene_msgs = [g for g in got if g[0] == topics.ELLIPSOIDS_TOPIC]
     SceneUpdate = message_class(scene_msgs[-1][3], "foxglove.SceneUpdate")
     entity = SceneUpdate.FromString(scene_msgs[-1][4]).entities[0]
     assert entity.frame_id == entity.id == flat[-1].body
+    assert stamped(entity.timestamp) == pytest.approx(flat[-1].time, abs=1e-9)
+    assert len(tf) == len(flat)
     # the sphere's axes and diameters give back the position block of the covariance
     s = entity.spheres[0]
     o = s.pose.orientation

@@ -6,6 +6,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
@@ -47,9 +48,13 @@ def test_the_bag_reads_back_with_its_types_and_the_covariance_round_trips(tmp_pa
     box = [f for f in fused if f.body == "box"]
     poses = got["/fused/box/pose"]
     assert len(poses) == len(box) > 3
-    for (msgtype, _, m), f in zip(poses, box):
+    for (msgtype, arrival, m), f in zip(poses, box):
         assert msgtype == "geometry_msgs/msg/PoseWithCovarianceStamped"
         assert m.header.frame_id == "world"
+        # stamped with the pose's own time (this stream's, near 1970), in the bag at arrival
+        assert m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 == \
+            pytest.approx(f.time, abs=1e-9)
+        assert arrival > 1.7e18
         p, o = m.pose.pose.position, m.pose.pose.orientation
         assert (p.x, p.y, p.z, o.w, o.x, o.y, o.z) == (
             f.pose.position.x, f.pose.position.y, f.pose.position.z, f.pose.orientation.w,
@@ -65,10 +70,14 @@ def test_the_bag_reads_back_with_its_types_and_the_covariance_round_trips(tmp_pa
     assert tf[0][0] == "tf2_msgs/msg/TFMessage" and len(tf) == len(fused)
     t = tf[-1][2].transforms[0]
     assert (t.header.frame_id, t.child_frame_id) == ("world", fused[-1].body)
+    assert t.header.stamp.sec + t.header.stamp.nanosec * 1e-9 == \
+        pytest.approx(fused[-1].time, abs=1e-9)
     (path_msg,) = got["/fused/cup/path"]
     assert path_msg[0] == "nav_msgs/msg/Path"
     assert [q.pose.position.x for q in path_msg[2].poses] == \
         [f.pose.position.x for f in fused if f.body == "cup"]
+    assert [q.header.stamp.nanosec for q in path_msg[2].poses] == \
+        [round(f.time * 1e9) for f in fused if f.body == "cup"]
     (plan,) = got["/plans/ur"]
     assert plan[0] == "nav_msgs/msg/Path" and len(plan[2].poses) == 4
 
@@ -92,3 +101,17 @@ def test_error_entries_are_left_out(tmp_path):
     call.fused(pb.FusedPose(body="box", error=pb.FuseError(details="x")))
     r.close()
     assert export(read(r.files[0]), tmp_path / "bag") == {}
+
+
+def test_a_pose_time_beyond_a_ros_stamp_is_named(tmp_path):
+    data = _stream.requests(30)
+    answers = [a for got in _stream.answers(data) for a in got if not a.HasField("error")]
+    late = pb.FusedPose()
+    late.CopyFrom(answers[0])
+    late.time = 3e9                     # after 2038: beyond int32 seconds
+    r = Recorder(tmp_path / "rec")
+    record_stream(r, data[:1], [[late]])
+    r.close()
+    with pytest.raises(ValueError, match=r"^the fused pose of 'box' at \d+ ns: a time of 3e\+09 "
+                                         r"s is beyond a ROS 2 stamp \(int32 seconds\)$"):
+        export(read(r.files[0]), tmp_path / "bag")

@@ -56,7 +56,8 @@ def rotated(tmp_path_factory):
             with Client(s.target, world=name or None) as c:
                 c.configure_world(SOURCES, twist_covariance=TWIST, window=10.0)
             subs.append(Collector(s.target, world=name or None, rate_hz=20.0))
-        assert wait_until(lambda: all(len(c.subscriptions) == 1 for c in _cells(s)), timeout=10)
+        # each world's subscriber and the recorder's own
+        assert wait_until(lambda: all(len(c.subscriptions) == 2 for c in _cells(s)), timeout=10)
         stream = threading.Thread(target=stream_bytes, args=(s.target, _stream.requests(400)))
         stream.start()
         for k, name in enumerate(WORLDS):
@@ -66,7 +67,7 @@ def rotated(tmp_path_factory):
         assert wait_until(lambda: all(len(x.answers) > 5 for x in subs), timeout=10)
         for x in subs:
             x.stop()
-        assert wait_until(lambda: not any(c.subscriptions for c in _cells(s)), timeout=10)
+        assert wait_until(lambda: all(len(c.subscriptions) == 1 for c in _cells(s)), timeout=10)
     recorder.close()
     assert recorder.dropped == 0
     return folder, recorder.files, [len(x.answers) for x in subs]
@@ -92,9 +93,9 @@ def test_the_run_replays_whole_in_process_to_every_answer(rotated):
     assert report.difference is None, str(report.difference)
     assert report.cut is None and report.skipped == []
     assert (report.files, report.runs) == (len(files), 1)
-    # 2 Configure, 2 Subscribe, 2 Publish, StreamFuse, Fuse
-    assert report.calls == len(whole.calls) == 8
-    assert report.requests == 2 + 2 + 2 * BATCHES + 400 + 1
+    # 2 Configure, 2 Subscribe and the recorder's own 2, 2 Publish, StreamFuse, Fuse
+    assert report.calls == len(whole.calls) == 10
+    assert report.requests == 2 + 4 + 2 * BATCHES + 400 + 1
     recorded = sum(e.kind == "answer" for e in whole.events)
     assert report.answers >= recorded >= 2 + 2 * BATCHES + sum(subscribed) + 20
 
@@ -104,7 +105,7 @@ def test_the_run_replays_whole_into_a_server(rotated):
     with ServerThread() as s, grpc.insecure_channel(s.target) as ch:
         report = replay.replay(runs([folder]), replay.Remote(ch))
     assert report.difference is None, str(report.difference)
-    assert report.calls == 8 and report.skipped == []
+    assert report.calls == 10 and report.skipped == []
 
 
 def test_one_file_alone_skips_the_calls_that_began_before_it(rotated):

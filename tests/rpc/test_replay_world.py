@@ -48,7 +48,8 @@ def recording(tmp_path_factory):
     with ServerThread(ServerConfig(port=0, recorder=recorder)) as s, Client(s.target) as c:
         c.configure_world(SOURCES, twist_covariance=TWIST, window=10.0)
         early = Collector(s.target)
-        assert wait_until(lambda: len(_world(s).subscriptions) == 1, timeout=10)
+        # early's and the recorder's own (every body of a recorded world is recorded)
+        assert wait_until(lambda: len(_world(s).subscriptions) == 2, timeout=10)
         gate = threading.Barrier(3)
         producers = [threading.Thread(target=_produce, args=(s.target, src, k + 1, gate))
                      for k, src in enumerate(("cam1", "cam2"))]
@@ -61,7 +62,7 @@ def recording(tmp_path_factory):
         assert wait_until(lambda: early.answers and late.answers, timeout=10)
         early.stop()
         late.stop()
-        assert wait_until(lambda: not _world(s).subscriptions, timeout=10)
+        assert wait_until(lambda: len(_world(s).subscriptions) == 1, timeout=10)
     recorder.close()
     assert recorder.dropped == 0
     return read(recorder.files[0]), len(early.answers), len(late.answers)
@@ -73,8 +74,9 @@ def test_a_world_run_replays_to_every_ack_and_answer(recording):
     assert report.difference is None, str(report.difference)
     rpcs = sorted(c.rpc for c in rec.calls.values())
     assert rpcs == sorted([replay_world.CONFIGURE, replay_world.PUBLISH, replay_world.PUBLISH,
-                           replay_world.SUBSCRIBE, replay_world.SUBSCRIBE])
-    assert report.calls == 5 and report.requests == 1 + 2 * REQUESTS + 2
+                           replay_world.SUBSCRIBE, replay_world.SUBSCRIBE,
+                           replay_world.SUBSCRIBE])       # the recorder's own
+    assert report.calls == 6 and report.requests == 1 + 2 * REQUESTS + 3
     assert report.skipped == []
     # every ack, and at least every answer the subscribers got
     assert report.answers >= 1 + 2 * REQUESTS + early + late > 1 + 2 * REQUESTS
@@ -108,8 +110,8 @@ def test_the_world_replays_into_a_server(recording):
     rec, early, late = recording
     report = _into_a_server(rec)
     assert report.difference is None, str(report.difference)
-    assert report.calls == 5 and report.skipped == []
-    assert report.requests == 1 + 2 * REQUESTS + 2
+    assert report.calls == 6 and report.skipped == []
+    assert report.requests == 1 + 2 * REQUESTS + 3
     assert report.answers >= 1 + 2 * REQUESTS + early + late
 
 
@@ -132,7 +134,7 @@ def test_two_named_worlds_replay_each_into_its_own(tmp_path):
                 c.configure_world(SOURCES, twist_covariance=TWIST, window=10.0)
             subs.append(Collector(s.target, world=name))
         (w,) = [x for x in s.running.servicers if x.NAME == replay_world.NAME]
-        assert wait_until(lambda: all(len(w.cell(n).subscriptions) == 1
+        assert wait_until(lambda: all(len(w.cell(n).subscriptions) == 2    # and the recorder's
                                       for n in ("cell-a", "cell-b")), timeout=10)
         for k, name in enumerate(("cell-a", "cell-b")):
             batches = [measurements("cam1", 0.01 * (j * PER + np.arange(PER)), 100 * k + j,
@@ -142,12 +144,12 @@ def test_two_named_worlds_replay_each_into_its_own(tmp_path):
         assert wait_until(lambda: all(len(x.answers) > 0 for x in subs), timeout=10)
         for x in subs:
             x.stop()
-        assert wait_until(lambda: not any(w.cell(n).subscriptions
-                                          for n in ("cell-a", "cell-b")), timeout=10)
+        assert wait_until(lambda: all(len(w.cell(n).subscriptions) == 1
+                                      for n in ("cell-a", "cell-b")), timeout=10)
     recorder.close()
     rec = read(recorder.files[0])
-    assert sorted(c.world for c in rec.calls.values()) == ["cell-a"] * 3 + ["cell-b"] * 3
+    assert sorted(c.world for c in rec.calls.values()) == ["cell-a"] * 4 + ["cell-b"] * 4
     for report in (replay.replay(rec, replay.InProcess()), _into_a_server(rec)):
         assert report.difference is None, str(report.difference)
-        assert report.calls == 6
+        assert report.calls == 8
         assert report.answers >= 2 * (1 + 10) + sum(len(x.answers) for x in subs)
