@@ -6,7 +6,8 @@ the content's longer horizontal dimension across the view), centred on the conte
 shows it, and stands as close as lets every point lie within :data:`FILL` of the view's half
 height and half width. Content smaller than :data:`MIN_EXTENT` (one pose) is framed as a box
 that large. The grid's
-cells and the frames' axes follow the box's size, so millimetres and metres both read."""
+cells and the frames' axes follow the box's size, so millimetres and metres both read; the grid
+lies under the content."""
 from __future__ import annotations
 
 import dataclasses
@@ -39,13 +40,16 @@ TRAIL_SECONDS = 2.0
 
 @dataclasses.dataclass
 class View:
-    """A camera ``position`` looking at ``look_at``, its clipping planes, and the size of what
-    it frames (``extent``, m: the largest side of the content's box)."""
+    """A camera ``position`` looking at ``look_at``, its clipping planes, the size of what it
+    frames (``extent``, m: the largest side of the content's box) and the height of the grid
+    under it (``floor``, m: the world's z = 0 when the content reaches it, else the content's
+    lowest z, so that the grid is in view)."""
     position: np.ndarray
     look_at: np.ndarray
     near: float
     far: float
     extent: float
+    floor: float = 0.0
 
     @property
     def axes(self) -> float:
@@ -105,8 +109,9 @@ def camera(points, pad=0.0, fov: float = FOV) -> View:
                               for axis, tan in ((right, tan_up * ASPECT), (up, tan_up))]) \
         - v @ forward
     distance = float(max(np.max(need), 1e-3))
+    floor = 0.0 if lo[2] <= 0.0 <= hi[2] else float(lo[2])
     return View(centre + distance * back, centre, distance / 100, distance * 100,
-                float(np.max(size)))
+                float(np.max(size)), floor)
 
 
 def box_corners(lo, hi) -> np.ndarray:

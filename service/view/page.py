@@ -102,13 +102,14 @@ class Scene:
         return frame
 
     def _grid(self) -> None:
-        """The grid under what the view frames, 3 times its size, on the world's z = 0."""
+        """The grid under what the view frames, 3 times its size (at ``view.floor``)."""
         step = layout.grid_step(self.view.extent)
         section = 10 * step
         size = section * np.ceil(3 * self.view.extent / section)
         centre = np.round(self.view.look_at[:2] / section) * section
         self.server.scene.add_grid("/grid", width=size, height=size, cell_size=step,
-                                   section_size=section, position=(*centre, 0.0))
+                                   section_size=section,
+                                   position=(*centre, self.view.floor))
         self._legend()
 
     def _legend(self) -> None:
@@ -118,7 +119,8 @@ class Scene:
             f"**x{self.scale}**{' (true size)' if self.scale == 1 else ''}  \n"
             f"**trails** (indigo): each body's last {layout.TRAIL_SECONDS:g} s  \n"
             f"**plans** orange, **arms' actual paths** cyan, each arm at its base  \n"
-            f"**grid**: {_length(step)} cells on the world's z = 0")
+            f"**grid**: {_length(step)} cells at the world's z = "
+            f"{0 if self.view.floor == 0 else _length(self.view.floor)}")
 
     def _scale_picked(self, event) -> None:
         if event.client is not None:        # a person chose it: no longer chosen for them
@@ -319,11 +321,11 @@ def _stack(parts) -> np.ndarray:
 
 
 def _length(m: float) -> str:
-    """``m`` metres in the unit that reads best (mm below 1 cm, cm below 1 m)."""
+    """``m`` metres to 3 digits in the unit that reads best (mm below 1 cm, cm below 1 m)."""
     for unit, size in (("m", 1.0), ("cm", 1e-2), ("mm", 1e-3)):
-        if m >= size * 0.999:
-            return f"{m / size:g} {unit}"
-    return f"{m * 1e3:g} mm"
+        if abs(m) >= size * 0.999:
+            return f"{m / size:.3g} {unit}"
+    return f"{m * 1e3:.3g} mm"
 
 
 def largest_half_axis(covariances) -> float | None:

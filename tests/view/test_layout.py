@@ -70,3 +70,9 @@ def test_arms_aside_and_a_trail_of_the_last_seconds():
     times = np.arange(50) * 0.1
     assert layout.recent(times, 4.9) == 29                   # 2.9 s .. 4.9 s
     assert layout.recent(times, 1.0) == 0
+
+
+def test_the_grid_lies_under_the_content():
+    assert layout.camera([[0.0, 0, 0], [1.0, 0, 0.5]]).floor == 0.0        # it reaches z = 0
+    assert layout.camera([[0.0, 0, 0.4], [0.1, 0, 0.5]]).floor == pytest.approx(0.4)
+    assert layout.camera([[0.0, 0, -0.5], [0.1, 0, -0.4]]).floor == pytest.approx(-0.5)
