@@ -39,8 +39,10 @@ TRAIL_PX = 2.0
 WORLD_PLAN = "Plan"
 #: how far apart (m) arms whose base the page does not know are drawn, by default
 ARM_SPACING = 1.0
-#: the positions a body drawn live keeps for its trail, at the most
+#: the positions a body drawn live keeps for its trail, at the most, and how often (s) its trail
+#: is redrawn at the most
 LIVE_TRAIL = 600
+TRAIL_PERIOD = 0.1
 #: the points a line is drawn through, at the most (a slider's move redraws every line)
 MAX_LINE_POINTS = 2000
 SCALE_LABELS = {s: f"x{s}" + (" (true size)" if s == 1 else "") for s in layout.SCALES}
@@ -78,6 +80,8 @@ class Scene:
         self.paths: dict = {}       # arm -> its actual path's line
         self.tools: dict = {}       # arm -> its tool's frame
         self._past: dict = {}       # body -> (arrival, position) drawn live, for its trail
+        self._trailed: dict = {}    # body -> when its trail was last drawn live
+        self.clock = time.monotonic     # of a live pose's arrival
         self._places: dict = {}     # what was drawn live -> (its kind for fit, first place)
         self._largest: float | None = None
         self.scale_menu = gui.add_dropdown("ellipsoids", tuple(SCALE_LABELS.values()),
@@ -153,7 +157,8 @@ class Scene:
 
     def draw_body(self, body: str, t, q, half_axes=None, axes_q=None, trail=None) -> None:
         """``body`` at ``t``, ``q``, its ellipsoid's half axes along the rotation ``axes_q``
-        (in the body's frame; ``None``: no ellipsoid), its trail through ``trail (n, 3)``."""
+        (in the body's frame; ``None``: no ellipsoid), its trail through ``trail (n, 3)``
+        (``None``: as it was)."""
         with self.lock:
             frame, ell = self.body(body)
             frame.position, frame.wxyz, frame.visible = tuple(t), tuple(q), True
@@ -165,7 +170,8 @@ class Scene:
                 ell.wxyz = tuple(axes_q)
                 self._ellipsoid(body)
                 ell.visible = True
-            self._line(self.trails, body, f"/trails/{body}", trail, TRAIL_RGB, TRAIL_PX)
+            if trail is not None:
+                self._line(self.trails, body, f"/trails/{body}", trail, TRAIL_RGB, TRAIL_PX)
 
     def hide_body(self, body: str) -> None:
         with self.lock:
@@ -240,13 +246,17 @@ class Scene:
     def draw_live(self, body: str, t, q, half_axes=None, axes_q=None) -> None:
         """``body`` drawn as it comes (``--server``, ``--live``), its trail through its
         positions of the last :data:`~dqpose.view.layout.TRAIL_SECONDS` of arrival (at most
-        :data:`LIVE_TRAIL` of them)."""
-        now = time.monotonic()
+        :data:`LIVE_TRAIL` of them), redrawn every :data:`TRAIL_PERIOD` at most (a trail is
+        sent whole: at every pose, 20 bodies at 30 Hz would send the page ~8 MB/s)."""
+        now = self.clock()
         with self.lock:
             past = self._past.setdefault(body, deque(maxlen=LIVE_TRAIL))
             past.append((now, tuple(t)))
-            times = [a for a, _ in past]
-            trail = [p for _, p in itertools.islice(past, layout.recent(times, now), None)]
+            trail = None
+            if now - self._trailed.get(body, -TRAIL_PERIOD) >= TRAIL_PERIOD:
+                self._trailed[body] = now
+                times = [a for a, _ in past]
+                trail = [p for _, p in itertools.islice(past, layout.recent(times, now), None)]
             self.draw_body(body, t, q, half_axes, axes_q, trail)
 
     def reveal(self, key, at, half_axes=None, kind: str = "bodies") -> bool:

@@ -81,6 +81,7 @@ class Watcher:
             if not path or np.linalg.norm(t - path[-1]) > 1e-6:
                 path.append(t)
             self.scene.draw_arm(arm, np.array(path), t, q)
+            self.scene.reveal(("base", arm), self.scene.arm_base(arm).position, kind="frames")
             at = self.scene.in_world(arm, t)[0]
             if self.scene.reveal(("arm", arm, len(path) > 1), at, kind="frames"):
                 say(event="drawn", arm=arm, path=len(path) > 1)

@@ -387,3 +387,33 @@ def test_bodies_leave_a_trail_of_their_last_seconds():
         assert not page.trails["box"].visible
     finally:
         page.close()
+
+
+def test_a_body_drawn_live_leaves_a_trail_of_its_last_seconds():
+    """``--server`` and ``--live``: a pose arriving every 1/16 s; the trail is redrawn at most
+    every TRAIL_PERIOD, through the positions of the last TRAIL_SECONDS of arrival."""
+    import math
+
+    from dqpose.view import layout
+    from dqpose.view.page import TRAIL_PERIOD, Scene
+
+    dt = 1 / 16                                 # exact in binary: no rounding at the period
+    scene = Scene(port=0)
+    now = [0.0]
+    scene.clock = lambda: now[0]
+    try:
+        drawn = []
+        for k in range(100):
+            now[0] = dt * k
+            scene.draw_live("box", (0.01 * k, 0.0, 0.0), (1.0, 0, 0, 0))
+            line = scene.trails.get("box")
+            if line is not None and (not drawn or line is not drawn[-1][1]):
+                drawn.append((k, line))
+        every = math.ceil(TRAIL_PERIOD / dt)
+        assert [k for k, _ in drawn] == list(range(every, 100, every))
+        k, line = drawn[-1]
+        first = k - round(layout.TRAIL_SECONDS / dt)
+        np.testing.assert_allclose(line.points[0, 0], [0.01 * first, 0, 0], atol=1e-6)
+        np.testing.assert_allclose(line.points[-1, 1], [0.01 * k, 0, 0], atol=1e-6)
+    finally:
+        scene.close()
