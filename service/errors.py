@@ -16,6 +16,72 @@ class FieldError(ValueError):
     """Invalid input, with a message that starts with the caller's field path."""
 
 
+class WorldError(FieldError):
+    """Bad input to a world or a live stream (:mod:`dqpose.world`, :class:`dqpose.fusion.Tracker`)
+    as data, so a transport names it without reading its text: ``index`` the row of the call it
+    is about (None: the call itself, as a configuration's option), ``field`` the path below it
+    (``"time"``; ``""`` the row itself), ``text`` the problem, ``limit`` the server's limit it is
+    over (a :class:`dqpose.limits.Limits` field: RESOURCE_EXHAUSTED), ``about`` the row described
+    (``"body 'box', source 'cam', time 1.5"``). Its message is :meth:`named` ``()``:
+    ``measurements[3].time: ...``, ``options.window: ...``."""
+
+    def __init__(self, index: int | None, field: str, text: str, limit: str | None = None,
+                 about: str | None = None):
+        self.index, self.field, self.text, self.limit, self.about = (
+            index, field, text, limit, about)
+        super().__init__(self.named())
+
+    def path(self, under: str = "", index: int | None = None) -> str:
+        """The field's path below ``under``: ``under[index].field`` for a row's (``index``
+        default its own, ``under`` default ``measurements``), ``under.field`` for the call's."""
+        if self.index is None:
+            return f"{under}.{self.field}" if under else self.field
+        i = self.index if index is None else index
+        return f"{under or 'measurements'}[{i}]" + (f".{self.field}" if self.field else "")
+
+    def named(self, under: str = "", index: int | None = None) -> str:
+        """The message, its path :meth:`path` ``(under, index)``."""
+        about = f" ({self.about})" if self.about else ""
+        return f"{self.path(under, index)}{about}: {self.text}"
+
+    def _key(self) -> tuple:
+        return (self.index, self.field, self.text, self.limit, self.about)
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, WorldError) and self._key() == other._key()
+
+    def __hash__(self) -> int:
+        return hash(self._key())
+
+    def at(self, index: int) -> "WorldError":
+        """The same error about row ``index`` of the caller's."""
+        return WorldError(index, self.field, self.text, self.limit, self.about)
+
+    @classmethod
+    def of(cls, e: ValueError, index: int | None = None,
+           field: str | dict[str, str] | None = None, under: str = "") -> "WorldError":
+        """A domain check's ``ValueError`` (``"name[i]: problem"``, the argument it names first)
+        as data about row ``index``'s ``field``: a dict maps the argument named to the field;
+        None: the argument named itself, below ``under`` when given."""
+        named, sep, text = str(e).partition(": ")
+        if not sep:
+            named, text = "", str(e)
+        if isinstance(field, dict):
+            field = field.get(named.split("[")[0], named)
+        elif field is None:
+            field = f"{under}.{named}" if under else named
+        return cls(index, field, text)
+
+
+class NotFound(LookupError):
+    """An unknown body or arm."""
+
+
+class OutOfRange(LookupError):
+    """A time outside the buffer, or beyond ``max_extrapolation`` past what is known; the
+    message names what is known."""
+
+
 class Infeasible(ValueError):
     """Well-formed input whose demands cannot be met (waypoint times too short for the limits, a
     path the limits cannot follow): gRPC's ``FAILED_PRECONDITION`` rather than

@@ -44,8 +44,12 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from dqpose.errors import FieldError
+
+if TYPE_CHECKING:       # dqpose.fusion imports this module
+    from dqpose.fusion.bounds import TrackerBounds
 
 #: a request of at most this many bytes is served on the event loop (its work, linear in its
 #: size, stays under ~1 ms); a larger one in the worker pool (``workers``)
@@ -177,10 +181,25 @@ def flag(name: str) -> str:
 
 def over(where: str, what: str, limits: Limits, name: str) -> OverLimit:
     """``"{where}: {what}, over the server's limit max_x = v unit (dqpose serve --max-x)"``."""
+    return OverLimit(f"{where}: {over_text(what, name, getattr(limits, name))}")
+
+
+def over_text(what: str, name: str, value: float) -> str:
+    """:func:`over`'s text after its field, limit ``name`` being ``value``."""
     f = Limits.__dataclass_fields__[name]
-    return OverLimit(f"{where}: {what}, over the server's limit {name} = "
-                     f"{getattr(limits, name):.6g} {f.metadata['unit']} "
-                     f"(dqpose serve {flag(name)})")
+    return (f"{what}, over the server's limit {name} = {value:.6g} {f.metadata['unit']} "
+            f"(dqpose serve {flag(name)})")
+
+
+def tracker_bounds(limits: Limits, **bounds) -> TrackerBounds:
+    """The :class:`~dqpose.fusion.bounds.TrackerBounds` of a stream under ``limits``; ``bounds``
+    replace fields (a world's: its own per body and in all)."""
+    from dqpose.fusion.bounds import TrackerBounds
+
+    fields = {f: getattr(limits, f) for f in ("max_window", "max_robust", "max_correlated",
+                                              "max_time", "max_time_jump",
+                                              "max_fused_per_request")}
+    return TrackerBounds(**{**fields, "max_rows": limits.max_stream_measurements, **bounds})
 
 
 class Budget:
@@ -190,13 +209,13 @@ class Budget:
     a body's answers beyond what is left are skipped, its latest kept (:meth:`take`), and one
     error says which (:meth:`skipped`)."""
 
-    def __init__(self, limits: Limits):
-        self.limits = limits
-        self.left = limits.max_fused_per_request
+    def __init__(self, limits: Limits | TrackerBounds):
+        self.limit = limits.max_fused_per_request
+        self.left = self.limit
 
     @property
     def spent(self) -> int:
-        return self.limits.max_fused_per_request - self.left
+        return self.limit - self.left
 
     def take(self, due: int, rows: int, robust: bool = False,
              correlated: bool = False) -> tuple[int, int]:
@@ -210,15 +229,20 @@ class Budget:
     def skipped(self, where: str, body: str, what: str, cost: int) -> OverLimit:
         """The error of ``body``'s answers ``what`` ("5 ticks from 1 s to 2 s") that
         :meth:`take` left out, each costing ``cost``."""
-        return over(where, f"body {body!r}: {what} not answered: the answers would cost more "
-                           f"({cost} measurements fused an answer)", self.limits,
-                    "max_fused_per_request")
+        return OverLimit(f"{where}: " + over_text(
+            f"body {body!r}: {what} not answered: the answers would cost more ({cost} "
+            f"measurements fused an answer)", "max_fused_per_request", self.limit))
 
 
 def beyond_time(where: str, t: float, limits: Limits) -> OverLimit:
     """A time (a measurement's, a fusion time) beyond ``+-max_time``: every service's refusal of
     it, naming ``where``."""
-    return over(where, f"{t:.6g} s is beyond +-{limits.max_time:.6g} s", limits, "max_time")
+    return OverLimit(f"{where}: {beyond_time_text(t, limits.max_time)}")
+
+
+def beyond_time_text(t: float, max_time: float) -> str:
+    """:func:`beyond_time`'s text after its field."""
+    return over_text(f"{t:.6g} s is beyond +-{max_time:.6g} s", "max_time", max_time)
 
 
 def add_flags(parser) -> None:

@@ -28,6 +28,7 @@ import numpy as np
 
 from dqpose import dq
 from dqpose import limits as _limits
+from dqpose.errors import NotFound, OutOfRange, WorldError
 from dqpose.fusion import (
     DEFAULT_MAX_EXTRAPOLATION,
     DEFAULT_PROBABILITY,
@@ -36,9 +37,11 @@ from dqpose.fusion import (
     Source,
     Tracker,
 )
+from dqpose.fusion.bounds import TrackerBounds
 from dqpose.fusion.extrinsics import _relative_covariance
 from dqpose.fusion.results import DOF, _frozen
-from dqpose.fusion.tracker import _arrays, _renumbered
+from dqpose.fusion.sources import _sources
+from dqpose.fusion.tracker import _arrays
 from dqpose.fusion.validation import _finite_shape, _seconds
 from dqpose.names import name_problem, quoted
 from dqpose.readwrite import ReadWrite
@@ -75,26 +78,13 @@ class WorldBounds:
     max_buffer: float = 60.0
 
 
-class WorldError(ValueError):
-    """Bad input: the message starts with the field path."""
-
-
-class NotFound(LookupError):
-    """An unknown body or arm."""
-
-
-class OutOfRange(LookupError):
-    """A time outside the buffer, or beyond ``max_extrapolation`` past what is known; the
-    message names what is known."""
-
-
 @dataclass(frozen=True)
 class Published:
     """What one :meth:`World.publish` did: ``accepted`` measurements fused into the world,
-    ``errors`` ``(index in the request's measurements, message)`` of the others, the
-    ``bodies`` the request touched."""
+    ``errors`` a :class:`WorldError` about each of the others (its ``index`` in the request's
+    measurements), the ``bodies`` the request touched."""
     accepted: int
-    errors: tuple[tuple[int, str], ...]
+    errors: tuple[WorldError, ...]
     bodies: tuple[str, ...]
 
 
@@ -112,7 +102,7 @@ class BodyPose:
 
 def _over(field: str, value, bound: str, limit, unit: str = "") -> WorldError:
     u = f" {unit}" if unit else ""
-    return WorldError(f"{field}: {value:.6g}{u} is above the world's {bound} {limit:.6g}{u}")
+    return WorldError(None, field, f"{value:.6g}{u} is above the world's {bound} {limit:.6g}{u}")
 
 
 def _s(t: float) -> str:
@@ -129,7 +119,7 @@ def _body_name(body, field: str = "body") -> str:
     ``field``."""
     problem = name_problem(body, empty=True)
     if problem is not None:
-        raise WorldError(f"{field}: {problem}")
+        raise WorldError(None, field, problem)
     return body
 
 
@@ -140,8 +130,8 @@ def _beyond(k: int, field: str, name: str, held, new: set, bound: str,
     refused for either name adds neither."""
     if name in held or name in new or len(held) + len(new) < limit:
         return None
-    return WorldError(f"measurements[{k}].{field}: {quoted(name)} would be {field} "
-                      f"{len(held) + len(new) + 1}, above the world's {bound} {limit}")
+    return WorldError(k, field, f"{quoted(name)} would be {field} {len(held) + len(new) + 1}, "
+                                f"above the world's {bound} {limit}")
 
 
 class World:
@@ -150,9 +140,12 @@ class World:
 
     def __init__(self, *, sources: Sequence[Source] = (), arms: Mapping[str, str] = {},
                  options: WorldOptions = WorldOptions(), bounds: WorldBounds = WorldBounds(),
-                 limits: Optional[_limits.Limits] = None):
+                 tracker: Optional[TrackerBounds] = None):
         self.bounds = bounds
-        self.limits = limits
+        # a server's bounds of a stream (its Limits'); a body's buffer and the rows of all
+        # bodies are the world's own (bounds)
+        self.tracker_bounds = (tracker if tracker is not None
+                               else _limits.tracker_bounds(_limits.DEFAULT))
         self._lock = ReadWrite()
         self._fed: dict[str, dict[str, float]] = {}     # body -> source -> newest taken
         self._tracker: Optional[Tracker] = None
@@ -175,40 +168,46 @@ class World:
         if len(sources) > b.max_sources:
             raise _over("sources", len(sources), "max_sources", b.max_sources)
         if not isinstance(options, WorldOptions):
-            raise WorldError(f"options: expected WorldOptions, got {type(options).__name__}")
+            raise WorldError(None, "options",
+                             f"expected WorldOptions, got {type(options).__name__}")
         try:
-            buffer = _seconds(options.buffer, "options.buffer", "positive")
-            window = _seconds(options.window, "options.window", "positive")
-            _seconds(options.max_delay, "options.max_delay", "nonnegative")
+            buffer = _seconds(options.buffer, "buffer", "positive")
+            window = _seconds(options.window, "window", "positive")
+            _seconds(options.max_delay, "max_delay", "nonnegative")
         except ValueError as e:
-            raise WorldError(str(e)) from None
+            raise WorldError.of(e, under="options") from None
         if buffer > b.max_buffer:
             raise _over("options.buffer", buffer, "max_buffer", b.max_buffer, "s")
         if window > buffer:
-            raise WorldError(f"options.window: {window:.6g} s is longer than options.buffer "
-                             f"{buffer:.6g} s (a fit uses measurements the buffer keeps)")
+            raise WorldError(None, "options.window",
+                             f"{window:.6g} s is longer than options.buffer {buffer:.6g} s (a "
+                             f"fit uses measurements the buffer keeps)")
         names = {s.name for s in sources if isinstance(s, Source)}
         arms = dict(arms)
         for arm, src in arms.items():
             problem = name_problem(arm)
             if problem is not None:
-                raise WorldError(f"arms: {problem}")
+                raise WorldError(None, "arms", problem)
             if src not in names:
-                raise WorldError(f"arms[{arm!r}]: source {quoted(src)} is not among the "
-                                 f"world's sources")
-        base = self.limits if self.limits is not None else _limits.Limits()
-        limits = dataclasses.replace(
-            base, max_window=b.max_measurements_per_body,
-            max_stream_measurements=b.max_bodies * b.max_measurements_per_body)
+                raise WorldError(None, f"arms[{arm!r}]",
+                                 f"source {quoted(src)} is not among the world's sources")
+        # the tracker's window is the buffer, which holds a body's measurements up to the
+        # world's bound (not a stream's max_window)
+        bounds = dataclasses.replace(
+            self.tracker_bounds, max_window=b.max_measurements_per_body,
+            max_rows=b.max_bodies * b.max_measurements_per_body)
         try:
+            _sources(sources)
+        except ValueError as e:
+            raise WorldError.of(e) from None
+        try:        # the sources passed: what the tracker refuses is an option
             tracker = Tracker(buffer, sources=sources, robust=options.robust,
                               probability=options.probability, max_skew=options.max_skew,
                               max_extrapolation=options.max_extrapolation,
                               twist_covariance=options.twist_covariance,
-                              acceleration_psd=options.acceleration_psd, limits=limits)
+                              acceleration_psd=options.acceleration_psd, bounds=bounds)
         except ValueError as e:
-            raise WorldError(str(e) if str(e).startswith("sources") else f"options.{e}") \
-                from None
+            raise WorldError.of(e, under="options") from None
         with self._lock.write():
             old = self._tracker
             self._tracker = tracker
@@ -267,15 +266,15 @@ class World:
         ``WorldError`` for the call."""
         n = len(bodies)
         if len(sources) != n:
-            raise WorldError(f"sources: expected {n} names, got {len(sources)}")
+            raise WorldError(None, "sources", f"expected {n} names, got {len(sources)}")
         try:
             times = _finite_shape(times, "times", (n,))
             poses = _finite_shape(poses, "poses", (n, 8))
             covs = _finite_shape(covariances, "covariances", (n, DOF, DOF))
         except ValueError as e:
-            raise WorldError(str(e)) from None
+            raise WorldError.of(e) from None
         if codes is not None and np.shape(codes) != (n,):
-            raise WorldError(f"codes: expected shape {(n,)}, got {np.shape(codes)}")
+            raise WorldError(None, "codes", f"expected shape {(n,)}, got {np.shape(codes)}")
         bodies = list(bodies)
         with self._lock.write():
             errors = self._admit(bodies, list(sources), times, poses, covs, codes=codes,
@@ -283,10 +282,10 @@ class World:
         return _published(bodies, errors)
 
     def _admit(self, bodies, sources, times, poses, covs, bad=None, codes=None,
-               producer=None) -> dict[int, ValueError]:
+               producer=None) -> dict[int, WorldError]:
         """Rows into the tracker under the world's bounds (the lock held); ``codes`` and
         ``producer``: as :meth:`ingest` takes them."""
-        errors: dict[int, ValueError] = dict(bad or {})
+        errors: dict[int, WorldError] = dict(bad or {})
         b = self.bounds
         known, named = self._version, self._named
         new_bodies: set = set()
@@ -313,7 +312,7 @@ class World:
             refused = (self._t.ingest(*rows, ids=idx, origin=producer) if codes is None else
                        self._t.ingest_checked(*rows, idx, np.asarray(codes)[idx], producer))
             for j, e in refused:
-                errors[use[j]] = _renumbered(e, j, use[j])
+                errors[use[j]] = e.at(use[j])
             for k in use:
                 if k in errors:
                     continue
@@ -396,7 +395,7 @@ class World:
         try:
             return _seconds(time, "time")
         except ValueError as e:
-            raise WorldError(str(e)) from None
+            raise WorldError.of(e) from None
 
     def _fitted(self, body: str, at: float, fit):
         """``fit(rows)`` of ``body``'s rows taken within ``window`` of ``at``, or ``OutOfRange``
@@ -512,10 +511,10 @@ class World:
         return BodyPose(f"arm:{arm}", 0.0, pose, cov, None)
 
 
-def _published(bodies, errors: Mapping[int, ValueError]) -> Published:
+def _published(bodies, errors: Mapping[int, WorldError]) -> Published:
     touched = dict.fromkeys(b for k, b in enumerate(bodies) if k not in errors)
-    return Published(len(bodies) - len(errors),
-                     tuple((k, str(e)) for k, e in sorted(errors.items())), tuple(touched))
+    return Published(len(bodies) - len(errors), tuple(errors[k] for k in sorted(errors)),
+                     tuple(touched))
 
 
 # answers kept at most (each a few kB); beyond, the cache starts over

@@ -22,6 +22,24 @@ def test_rename_all_maps_every_argument_the_message_names():
     assert str(rename_all(ValueError("ab[1]: x"), names)) == "ab[1]: x"
 
 
+def test_a_world_error_is_data_named_under_any_field_path():
+    from dqpose.errors import WorldError
+    e = WorldError(3, "time", "must be finite, got nan")
+    assert isinstance(e, FieldError) and str(e) == "measurements[3].time: must be finite, got nan"
+    assert e.named("requests[2].measurements", 7) == \
+        "requests[2].measurements[7].time: must be finite, got nan"
+    assert e.at(7) == WorldError(7, "time", "must be finite, got nan") and e.at(7) != e
+    late = WorldError(8, "", "taken at 0.5, beyond the window 0.2 s", about="body 'box'")
+    assert str(late) == "measurements[8] (body 'box'): taken at 0.5, beyond the window 0.2 s"
+    # the call's own field, and a domain check's ValueError as data
+    assert WorldError(None, "options.window", "too long").named("config") == \
+        "config.options.window: too long"
+    got = WorldError.of(ValueError("poses[0]: not a unit dual quaternion"), 4, {"poses": "pose"})
+    assert (got.index, got.field, got.text) == (4, "pose", "not a unit dual quaternion")
+    assert str(WorldError.of(ValueError("max_skew: must be nonnegative"), under="options")) == \
+        "options.max_skew: must be nonnegative"
+
+
 def test_each_optional_module_is_in_the_extra_it_is_said_to_be_in():
     """EXTRA_OF against the installed metadata (pyproject.toml's lists): a hint never names an
     extra that does not bring the module."""

@@ -229,10 +229,11 @@ def test_publish_answers_each_bad_measurement_and_keeps_the_others():
     world = World(sources=sources)
     r = world.publish(bad)
     assert r.accepted == 2
-    assert [k for k, _ in r.errors] == [1, 2, 4]
-    assert r.errors[0][1].startswith("measurements[1].covariance: not positive definite")
-    assert r.errors[1][1].startswith("measurements[2].time: must be finite")
-    assert r.errors[2][1].startswith("measurements[4].pose: expected shape (8,)")
+    assert [e.index for e in r.errors] == [1, 2, 4]
+    assert [e.field for e in r.errors] == ["covariance", "time", "pose"]
+    assert str(r.errors[0]).startswith("measurements[1].covariance: not positive definite")
+    assert str(r.errors[1]).startswith("measurements[2].time: must be finite")
+    assert str(r.errors[2]).startswith("measurements[4].pose: expected shape (8,)")
     assert r.bodies == ("box",)
 
 
@@ -249,7 +250,7 @@ def test_ingest_of_arrays_answers_as_publish_does():
     a = by_objects.publish(ms)
     b = by_arrays.ingest([m.body for m in ms], [m.source for m in ms], [m.time for m in ms],
                          np.array([m.pose for m in ms]), np.array([m.covariance for m in ms]))
-    assert a == b and [k for k, _ in b.errors] == [3, 5, 6]
+    assert a == b and [e.index for e in b.errors] == [3, 5, 6]
     for body in ("box", "cup"):
         pa, pb = by_objects.pose(body, 0.1), by_arrays.pose(body, 0.1)
         assert np.array_equal(pa.pose, pb.pose) and np.array_equal(pa.covariance, pb.covariance)
@@ -264,11 +265,11 @@ def test_bounds_refused_naming_the_limit():
     p = random_pose(rng)
     r = world.publish([Measurement("a", f"b{k}", 0.0, p) for k in range(3)])
     assert r.accepted == 2
-    assert r.errors == ((2, "measurements[2].body: 'b2' would be body 3, above the world's "
-                            "max_bodies 2"),)
+    assert [(e.index, str(e)) for e in r.errors] == [
+        (2, "measurements[2].body: 'b2' would be body 3, above the world's max_bodies 2")]
     r = world.publish([Measurement(s, "b0", 0.0, p) for s in ("b", "c")])
-    assert r.errors == ((1, "measurements[1].source: 'c' would be source 3, above the world's "
-                            "max_sources 2"),)
+    assert [(e.index, str(e)) for e in r.errors] == [
+        (1, "measurements[1].source: 'c' would be source 3, above the world's max_sources 2")]
     with pytest.raises(WorldError, match=r"^sources: 3 is above the world's max_sources 2"):
         world.configure(sources=[Source(n) for n in "xyz"], arms={}, options=WorldOptions())
     with pytest.raises(WorldError, match=r"^options.buffer: 90 s is above the world's "
@@ -290,7 +291,7 @@ def test_a_row_refused_for_its_source_takes_no_body_slot():
     world = World(bounds=WorldBounds(max_bodies=2, max_sources=1))
     r = world.publish([Measurement("a", "b0", 0.0, p), Measurement("z", "b1", 0.0, p),
                        Measurement("a", "b2", 0.0, p)])
-    assert [k for k, _ in r.errors] == [1]
+    assert [e.index for e in r.errors] == [1]
     assert world.bodies == ("b0", "b2")
 
 def test_configure_keeps_the_measurements_and_refits_with_the_new_sources():

@@ -1,6 +1,7 @@
 """Live streams: :class:`Tracker` keeps a sliding window of measurements per body (many bodies,
 keyed by name) and fuses a body's window at a time with :func:`~dqpose.fusion.fuse`; the stream's
-bounds come from a server's :class:`dqpose.limits.Limits`.
+bounds are a :class:`~dqpose.fusion.bounds.TrackerBounds` (a server's filled from its
+:class:`dqpose.limits.Limits`), its refusals :class:`~dqpose.errors.WorldError` s.
 """
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import numpy as np
 
 from dqpose import dq
 from dqpose import limits as _limits
-from dqpose.errors import rename
+from dqpose.errors import WorldError
 from dqpose.fusion.alignment import (
     DEFAULT_MAX_EXTRAPOLATION,
     _joint_start,
@@ -20,6 +21,7 @@ from dqpose.fusion.alignment import (
     _pose_over_time,
 )
 from dqpose.fusion.api import _Checked, _fuse_joint_rows, _fuse_world_rows, fuse
+from dqpose.fusion.bounds import TrackerBounds
 from dqpose.fusion.chi2 import DEFAULT_PROBABILITY, chi2_quantile
 from dqpose.fusion.jumps import Jumps
 from dqpose.fusion.results import DOF, Fused
@@ -50,35 +52,37 @@ class Measurement:
 
 def _arrays(measurements: Sequence[Measurement]):
     """:class:`Measurement` s as the arrays :meth:`Tracker.ingest` takes (poses, covariances,
-    times; a bad row's left as zeros and identity) and ``{k: ValueError}`` naming
+    times; a bad row's left as zeros and identity) and ``{k: WorldError}`` about
     ``measurements[k]`` for the rows whose shapes or types are wrong."""
     n = len(measurements)
     poses, covs, times = np.zeros((n, 8)), np.empty((n, DOF, DOF)), np.zeros(n)
     covs[:] = np.eye(DOF)
-    errors: dict[int, ValueError] = {}
+    errors: dict[int, WorldError] = {}
     for k, m in enumerate(measurements):
-        name = f"measurements[{k}]"
         try:
             if not isinstance(m, Measurement):
-                raise ValueError(f"{name}: expected a Measurement, got {type(m).__name__}")
-            times[k] = _seconds(m.time, f"{name}.time")
+                raise WorldError(k, "", f"expected a Measurement, got {type(m).__name__}")
+            try:
+                times[k] = _seconds(m.time, "time")
+            except ValueError as e:
+                raise WorldError.of(e, k) from None
             if _shape(m.pose) != (8,):
-                raise ValueError(f"{name}.pose: expected shape (8,), got {_shape(m.pose)}")
+                raise WorldError(k, "pose", f"expected shape (8,), got {_shape(m.pose)}")
             try:
                 poses[k] = m.pose
             except (TypeError, ValueError):
-                raise ValueError(f"{name}.pose: expected numbers, got "
-                                 f"{type(m.pose).__name__}") from None
+                raise WorldError(k, "pose", f"expected numbers, got "
+                                            f"{type(m.pose).__name__}") from None
             if m.covariance is not None and _shape(m.covariance) != (DOF, DOF):
-                raise ValueError(f"{name}.covariance: expected shape (6, 6), "
-                                 f"got {_shape(m.covariance)}")
+                raise WorldError(k, "covariance", f"expected shape (6, 6), "
+                                                  f"got {_shape(m.covariance)}")
             try:
                 covs[k] = _covariances(None if m.covariance is None else [m.covariance],
                                        None if m.weight is None else [m.weight], 1)[0]
             except ValueError as e:
-                raise rename(e, {"covariances": f"{name}.covariance",
-                                 "weights": f"{name}.weight"}) from None
-        except ValueError as e:
+                raise WorldError.of(e, k, {"covariances": "covariance",
+                                           "weights": "weight"}) from None
+        except WorldError as e:
             errors[k] = e
             poses[k] = (1.0, 0, 0, 0, 0, 0, 0, 0)
             covs[k] = np.eye(DOF)
@@ -110,10 +114,10 @@ class Tracker:
     body's window at a time with :func:`fuse` (its keyword options are those given here).
     Bodies are independent: nothing of one enters another's estimate.
 
-    ``limits`` (a server's :class:`dqpose.limits.Limits`; None: unbounded) bounds what a stream
-    keeps: a body's window holds its last ``max_window`` measurements (``max_robust`` when
-    robust, ``max_correlated`` with an ``acceleration_psd``), the stream
-    ``max_stream_measurements`` in all (more are refused), a time beyond ``+-max_time`` is
+    ``bounds`` (:class:`~dqpose.fusion.bounds.TrackerBounds`; None: unbounded) bound what a
+    stream keeps: a body's window holds its last ``max_window`` measurements (``max_robust`` when
+    robust, ``max_correlated`` with an ``acceleration_psd``), the stream ``max_rows`` in all
+    (more are refused), a time beyond ``+-max_time`` is
     refused, and a measurement taken more than ``max_time_jump`` after its body's newest is
     refused without moving the body, unless the body's next such measurement confirms the jump
     (a clock that really moved, a body seen again after a pause): one stray stamp never poisons
@@ -126,9 +130,9 @@ class Tracker:
                  max_skew: Optional[float] = None,
                  max_extrapolation: Optional[float] = DEFAULT_MAX_EXTRAPOLATION,
                  twist_covariance=None, acceleration_psd=None, tol: float = 1e-12,
-                 max_iter: int = 100, limits: Optional[_limits.Limits] = None):
+                 max_iter: int = 100, bounds: Optional[TrackerBounds] = None):
         self.window = _seconds(window, "window", "positive")
-        self.limits = limits
+        self.bounds = bounds
         self.sources = tuple(sources or ())
         self._table = _sources(self.sources)
         # the options' checks are fuse's: one fusion of a placeholder runs them now, not later
@@ -156,12 +160,11 @@ class Tracker:
         self._exact = np.empty(0, dtype=bool)
         self._all_exact = all(src.exact for src in self._table.values())
         self._count = 0            # measurements offered so far: the default ids
-        self._jumps = Jumps(limits.max_time_jump if limits is not None else math.inf)
+        self._jumps = Jumps(bounds.max_time_jump if bounds is not None else math.inf)
         self.cap = None            # measurements a body's window holds (None: all)
-        if limits is not None:
-            correlated = acceleration_psd is not None and np.any(acceleration_psd)
-            self.cap = min(limits.max_window, limits.max_robust if robust else limits.max_window,
-                           limits.max_correlated if correlated else limits.max_window)
+        if bounds is not None:
+            self.cap = bounds.cap(robust, bool(acceleration_psd is not None
+                                               and np.any(acceleration_psd)))
 
     @property
     def exact(self) -> bool:
@@ -229,13 +232,13 @@ class Tracker:
             raise errors[0][1]
 
     def ingest(self, bodies: Sequence[str], sources: Sequence[str], times, poses,
-               covariances=None, *, ids=None, origin=None) -> list[tuple[int, ValueError]]:
+               covariances=None, *, ids=None, origin=None) -> list[tuple[int, WorldError]]:
         """Add measurements given as arrays: ``bodies`` and ``sources`` (one name each),
         ``times`` ``(n,)`` (stamps), ``poses`` ``(n, 8)`` (``T_frame_body``), ``covariances``
         ``(n, 6, 6)`` (``None``: identity), and the caller's numbers ``ids`` ``(n,)`` (default:
         counting every measurement offered to this tracker), which :meth:`window_of` returns;
         ``origin`` who sent them (the class's docstring). Every valid measurement is kept;
-        returned are ``(k, ValueError)`` for the others, each naming ``measurements[k]`` and the
+        returned are ``(k, WorldError)`` for the others, each about ``measurements[k]`` and the
         problem (a time that is not finite, a pose that is not a unit rigid motion, a covariance
         that is not symmetric positive definite, a time taken further back than the window, or
         beyond the limits). Arrays of the wrong shape are a ``ValueError`` for the
@@ -382,16 +385,16 @@ class Tracker:
                            origin)
 
     @staticmethod
-    def refusals(bodies, sources, times, poses, covariances) -> list[tuple[int, ValueError]]:
+    def refusals(bodies, sources, times, poses, covariances) -> list[tuple[int, WorldError]]:
         """What :meth:`ingest` would refuse of these measurements (arrays as it takes them) by
-        the checks that need no state (all but the window), each ``(k, ValueError)`` naming
+        the checks that need no state (all but the window), each ``(k, WorldError)`` about
         ``measurements[k]``."""
         return sorted(_check_rows(bodies, sources, np.asarray(times, np.float64),
                                   np.asarray(poses, np.float64),
                                   np.asarray(covariances, np.float64))[1].items())
 
     def ingest_checked(self, bodies: Sequence[str], sources: Sequence[str], times, poses,
-                       covariances, ids, codes, origin=None) -> list[tuple[int, ValueError]]:
+                       covariances, ids, codes, origin=None) -> list[tuple[int, WorldError]]:
         """:meth:`ingest` of rows a decoder has checked by its rules (service/csrc/wire.c, for
         StreamFuse and World.Publish): ``codes`` one a row, 0 for a row taken in unchecked
         (:meth:`_ingest_valid`), else the check that refuses it, the row then named by this
@@ -405,18 +408,18 @@ class Tracker:
         n = len(bodies)
         if not coded:           # the common case: every row taken in
             return self._ingest_valid(bodies, sources, times, poses, covariances, ids, n, origin)
-        refused = [(k, _renumbered(self.refusals(
+        refused = [(k, self.refusals(
             bodies[k:k + 1], sources[k:k + 1], times[k:k + 1], poses[k:k + 1],
-            covariances[k:k + 1])[0][1], 0, k)) for k in coded]
+            covariances[k:k + 1])[0][1].at(k)) for k in coded]
         good = np.flatnonzero(np.asarray(codes) == 0)
         rows = good.tolist()
-        refused += [(rows[j], _renumbered(e, j, rows[j])) for j, e in self._ingest_valid(
+        refused += [(rows[j], e.at(rows[j])) for j, e in self._ingest_valid(
             [bodies[k] for k in rows], [sources[k] for k in rows], times[good], poses[good],
             covariances[good], np.asarray(ids)[good], n, origin)]
         return sorted(refused, key=lambda x: x[0])
 
     def _ingest_valid(self, bodies, sources, times, poses, covariances, ids,
-                      offered: int, origin=None) -> list[tuple[int, ValueError]]:
+                      offered: int, origin=None) -> list[tuple[int, WorldError]]:
         """:meth:`ingest` of measurements already checked by its rules, with nothing checked
         again but the window: ``times`` finite, ``poses`` unit (as ``dq.from_pose`` makes them),
         ``covariances`` the symmetric part of symmetric positive definite ones, every body named.
@@ -444,7 +447,7 @@ class Tracker:
         codes = np.array(codes, dtype=np.int64)
         body = np.array(body, dtype=np.int64)
         taken = times - (self._latency[codes] if self._names else 0.0)
-        if self.limits is not None:
+        if self.bounds is not None:
             self._time_check(times, ok, errors)
             self._jump_check(bodies, sources, times, body, taken, ok, errors, origin)
             every = bool(ok.all())
@@ -462,12 +465,11 @@ class Tracker:
                 taken[j] for j in range(k) if ok[j] and body[j] == body[k]])
             if taken[k] < floor - self.window:
                 ok[k] = False
-                errors[k] = ValueError(
-                    f"measurements[{k}] (body {bodies[k]!r}, source {sources[k]!r}, time "
-                    f"{float(times[k])!r}): taken at {float(taken[k])!r}, "
-                    f"{floor - taken[k]:.6g} s before the newest measurement of the body, "
-                    f"beyond the window {self.window:g} s")
-        if self.limits is not None:
+                errors[k] = WorldError(
+                    k, "", f"taken at {float(taken[k])!r}, {floor - taken[k]:.6g} s before the "
+                           f"newest measurement of the body, beyond the window {self.window:g} s",
+                    about=f"body {bodies[k]!r}, source {sources[k]!r}, time {float(times[k])!r}")
+        if self.bounds is not None:
             self._room(ok, errors)
             every = every and bool(ok.all())
         if all_or_none and errors:
@@ -507,11 +509,13 @@ class Tracker:
     def _time_check(self, times, ok, errors) -> None:
         """Refuses (in ``ok`` and ``errors``) the rows stamped beyond ``+-max_time``: before the
         jump check, so that no such time moves a body, first or confirmed."""
-        limits = self.limits
-        assert limits is not None       # called only for a tracker with limits
-        for k in np.flatnonzero(ok & (np.abs(times) > limits.max_time)).tolist():
+        bounds = self.bounds
+        assert bounds is not None       # called only for a tracker with bounds
+        for k in np.flatnonzero(ok & (np.abs(times) > bounds.max_time)).tolist():
             ok[k] = False
-            errors[k] = _limits.beyond_time(f"measurements[{k}].time", float(times[k]), limits)
+            errors[k] = WorldError(k, "time", _limits.beyond_time_text(float(times[k]),
+                                                                       bounds.max_time),
+                                   "max_time")
 
     def _jump_check(self, bodies, sources, times, body, taken, ok, errors, origin=None) -> None:
         """Refuses (in ``ok`` and ``errors``) the rows taken more than ``max_time_jump`` after
@@ -519,9 +523,9 @@ class Tracker:
         to the stream, its earliest row of the call is the reference), unless the row confirms
         the body's last refused jump by lying within ``max_time_jump`` of it (and by its
         ``origin``, :class:`~dqpose.fusion.jumps.Jumps`)."""
-        limits = self.limits
-        assert limits is not None       # called only for a tracker with limits
-        jump = limits.max_time_jump
+        bounds = self.bounds
+        assert bounds is not None       # called only for a tracker with bounds
+        jump = bounds.max_time_jump
         ref = self._newest[body]
         fresh = ~np.isfinite(ref)
         if fresh.any():
@@ -547,18 +551,18 @@ class Tracker:
                 continue
             ok[k] = False
             who = "" if self._jumps.alone(b, origin, cur) else " from another producer"
-            errors[k] = _limits.over(
-                f"measurements[{k}]", f"body {bodies[k]!r}, source {sources[k]!r}, time "
-                f"{float(times[k])!r}: taken {t - cur:.6g} s after the newest measurement of "
-                f"the body, so not used (a second measurement near it{who} would confirm the "
-                f"jump)", limits, "max_time_jump")
+            errors[k] = WorldError(k, "", _limits.over_text(
+                f"body {bodies[k]!r}, source {sources[k]!r}, time {float(times[k])!r}: taken "
+                f"{t - cur:.6g} s after the newest measurement of the body, so not used (a "
+                f"second measurement near it{who} would confirm the jump)", "max_time_jump",
+                jump), "max_time_jump")
 
     def _room(self, ok, errors) -> None:
-        """Refuses the rows that would take the stream past ``max_stream_measurements`` live
-        measurements (those out of their window dropped first)."""
-        limits = self.limits
-        assert limits is not None       # called only for a tracker with limits
-        s, cap = self._store, limits.max_stream_measurements
+        """Refuses the rows that would take the stream past ``max_rows`` live measurements
+        (those out of their window dropped first)."""
+        bounds = self.bounds
+        assert bounds is not None       # called only for a tracker with bounds
+        s, cap = self._store, bounds.max_rows
         k = int(np.count_nonzero(ok))
         if s.n + k <= cap:
             return
@@ -568,11 +572,6 @@ class Tracker:
             return
         for j in np.flatnonzero(ok)[k - over:].tolist():
             ok[j] = False
-            errors[j] = _limits.over(
-                f"measurements[{j}]", f"the stream's windows hold {s.n} measurements", limits,
+            errors[j] = WorldError(j, "", _limits.over_text(
+                f"the stream's windows hold {s.n} measurements", "max_stream_measurements", cap),
                 "max_stream_measurements")
-
-
-def _renumbered(e: ValueError, j: int, k: int) -> ValueError:
-    """``e``, about ``measurements[j]``, about ``measurements[k]`` instead (its kind kept)."""
-    return type(e)(str(e).replace(f"measurements[{j}]", f"measurements[{k}]", 1))

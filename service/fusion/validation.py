@@ -14,7 +14,7 @@ import numpy as np
 
 from dqpose import _dqcore as _c
 from dqpose import dq
-from dqpose.errors import rename
+from dqpose.errors import WorldError, rename
 from dqpose.fusion.results import DOF
 from dqpose.names import bad_names, name_problem
 
@@ -183,9 +183,9 @@ def _acceleration(acceleration_psd) -> Optional[np.ndarray]:
 
 def _check_rows(bodies, sources, times, poses, covs):
     """The checks of :meth:`Tracker.ingest` that need no state: ``(ok, errors, covs)``, ``ok``
-    the rows that pass, ``errors`` ``{k: ValueError}`` of the others, ``covs`` a copy with the
+    the rows that pass, ``errors`` ``{k: WorldError}`` of the others, ``covs`` a copy with the
     rows that pass symmetrised."""
-    errors: dict[int, ValueError] = {}
+    errors: dict[int, WorldError] = {}
     seen: dict[str, Optional[str]] = {}     # each name checked once, however many rows repeat it
 
     def problem(name) -> Optional[str]:
@@ -197,20 +197,18 @@ def _check_rows(bodies, sources, times, poses, covs):
 
     for k, (b, s) in enumerate(zip(bodies, sources)):
         if isinstance(b, str) and not b:
-            errors[k] = ValueError(f"measurements[{k}].body: empty (every measurement names "
-                                   f"its body)")
+            errors[k] = WorldError(k, "body", "empty (every measurement names its body)")
             continue
         for field, name in (("body", b), ("source", s)):
             p = problem(name)
             if p is not None:
-                errors[k] = ValueError(f"measurements[{k}].{field}: {p}")
+                errors[k] = WorldError(k, field, p)
                 break
     if len(errors) == len(times):       # every row refused by its names: nothing else to check
         return np.zeros(len(times), bool), errors, np.array(covs)
     ok = np.isfinite(times)
     for k in np.flatnonzero(~ok).tolist():
-        errors.setdefault(k, ValueError(f"measurements[{k}].time: must be finite, "
-                                        f"got {float(times[k])!r}"))
+        errors.setdefault(k, WorldError(k, "time", f"must be finite, got {float(times[k])!r}"))
     ok[list(errors)] = False
     # The batch is checked at once in C (the rules of _poses and _covariances); only the rows
     # it cannot pass are checked here row by row, to name the problem (or pass one too near the
@@ -236,9 +234,8 @@ def _check_rows(bodies, sources, times, poses, covs):
                     arrays[k] = check(arrays[k:k + 1])[0]
                 except ValueError as e:
                     ok[k] = False
-                    errors.setdefault(k, rename(e, {
-                        "poses": f"measurements[{k}].pose",
-                        "covariances": f"measurements[{k}].covariance"}))
+                    errors.setdefault(k, WorldError.of(e, k, {"poses": "pose",
+                                                              "covariances": "covariance"}))
     return ok, errors, covs
 
 

@@ -24,7 +24,7 @@ from typing import NoReturn
 import grpc
 
 from dqpose import limits, record
-from dqpose.errors import FieldError, Infeasible, MissingExtra
+from dqpose.errors import FieldError, Infeasible, MissingExtra, WorldError
 from dqpose.limits import OverLimit
 
 log = logging.getLogger("dqpose.server")
@@ -59,7 +59,7 @@ def refusal(e: Exception) -> grpc.StatusCode | None:
     """The status a handler's deliberate refusal stands for; None for anything else (INTERNAL)."""
     if isinstance(e, (Infeasible, MissingExtra)):   # MissingExtra: an extra the server lacks
         return grpc.StatusCode.FAILED_PRECONDITION
-    if isinstance(e, OverLimit):
+    if isinstance(e, OverLimit) or (isinstance(e, WorldError) and e.limit is not None):
         return grpc.StatusCode.RESOURCE_EXHAUSTED
     if isinstance(e, FieldError):
         return grpc.StatusCode.INVALID_ARGUMENT

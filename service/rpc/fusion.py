@@ -13,7 +13,7 @@ import numpy as np
 from google.protobuf.message import DecodeError
 
 from dqpose import fusion, limits
-from dqpose.errors import FieldError, rename
+from dqpose.errors import FieldError
 from dqpose.names import name_problem
 from dqpose.rpc import DEFAULT_MAX_POSES
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
@@ -47,7 +47,8 @@ class Stream:
         self.limits = bounds
         try:
             self.tracker = fusion.Tracker(options.window or DEFAULT_WINDOW,
-                                          **options.fuse_kwargs(), limits=bounds)
+                                          **options.fuse_kwargs(),
+                                          bounds=limits.tracker_bounds(bounds))
         except ValueError as e:
             raise options_error(e, field) from None
         self.next_tick: dict[str, int] = {}
@@ -94,7 +95,7 @@ class Stream:
                 m.poses[rows], m.covariances[rows], ids[rows], codes[rows])]
         for k, e in refused:
             i = int(m.index[k])
-            errors.append((i, rename(e, {"measurements": f"{field}[{i}]"})))
+            errors.append((i, FieldError(e.named(field, i))))
         if refused:
             out = {k for k, _ in refused}
             bodies = dict.fromkeys(m.bodies[k] for k in rows if k not in out)

@@ -88,8 +88,6 @@ def status_of(e: Exception) -> tuple[grpc.StatusCode, str]:
         return grpc.StatusCode.RESOURCE_EXHAUSTED, readable(str(e))
     if isinstance(e, domain.OutOfRange):
         return grpc.StatusCode.FAILED_PRECONDITION, readable(str(e).strip("'\""))
-    if isinstance(e, domain.WorldError) and not isinstance(e, FieldError):
-        e = FieldError(str(e))
     return refused("World", e)
 
 
@@ -176,8 +174,8 @@ class Cell:
         if self._world is None:
             with self._making:
                 if self._world is None:
-                    kw: dict[str, Any] = {} if self.limits is None else {"limits": self.limits}
-                    self._world = domain.World(**kw)
+                    self._world = domain.World(tracker=_limits.tracker_bounds(
+                        self.limits or _limits.DEFAULT))
         return self._world
 
     # -- request -> response, no transport
@@ -188,8 +186,7 @@ class Cell:
             try:
                 self.world.configure(sources=sources, arms=arms, options=options)
             except domain.WorldError as e:
-                msg = str(e)
-                raise FieldError(msg if msg.startswith("config") else f"config.{msg}") from None
+                raise FieldError(e.named("config")) from None
             return config_msg(self.world.sources, self.world.arms, self.world.options)
 
     def lookup(self, request: pb.LookupRequest) -> bytes:
@@ -296,7 +293,7 @@ class Cell:
             return
         latency = {s.name: s.latency for s in self.world.sources}
         cache: dict[tuple[str, float, str], Any] = {}
-        budget = _limits.Budget(self.limits or _limits.DEFAULT)
+        budget = _limits.Budget(self.world.tracker_bounds)
         for sub in list(self.subscriptions):
             due: list[tuple[str, float, int]] = []
             for k in range(len(m.index)):

@@ -7,7 +7,6 @@ a ``RelativePose``. Measurements, sources and fused poses convert as Fusion's do
 from __future__ import annotations
 
 import math
-import re
 
 import numpy as np
 
@@ -25,9 +24,6 @@ from dqpose.rpc.fusion_convert import (
     sources_from_msg,
 )
 from dqpose.rpc.geometry import dq_to_pose
-
-#: a domain error's leading ``measurements[i]`` (renamed to the request's field path)
-_MEASUREMENT = re.compile(r"^measurements\[(\d+)\](.*)$", re.DOTALL)
 
 
 def config_from_msg(msg: pb.WorldConfig, field: str = "config"):
@@ -108,15 +104,11 @@ def subscribe_names(request: pb.SubscribeRequest) -> str | None:
 
 
 def published_errors(published, index: np.ndarray, field: str) -> list:
-    """The domain's ``(k, message)`` errors of measurement ``k`` of those it was given, as
-    ``(i, text)`` naming the request's measurement ``i = index[k]`` under ``field``."""
-    out = []
-    for k, text in published.errors:
-        i = int(index[k])
-        hit = _MEASUREMENT.match(text)
-        rest = hit[2] if hit else (": " + text if not text.startswith((".", ":")) else text)
-        out.append((i, f"{field}[{i}]{rest}"))
-    return out
+    """The domain's errors (:class:`dqpose.errors.WorldError`) of measurement ``k`` of those it
+    was given, as ``(i, text)`` naming the request's measurement ``i = index[k]`` under
+    ``field``."""
+    return [(int(index[e.index]), e.named(field, int(index[e.index])))
+            for e in published.errors]
 
 
 def body_pose_msg(p, out=None):

@@ -1,0 +1,26 @@
+"""What a live stream's tracker holds and answers at most (:class:`TrackerBounds`): the domain's
+own bounds, which a server fills from its :class:`dqpose.limits.Limits`
+(:func:`dqpose.limits.tracker_bounds`) and a world from its own bounds besides."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class TrackerBounds:
+    """A tracker's bounds; each field is the :class:`dqpose.limits.Limits` field of that name
+    (whose default, meaning and unit are stated there, the one place), except ``max_rows``: the
+    measurements all of the tracker's windows hold (``Limits.max_stream_measurements`` for a
+    stream)."""
+    max_window: int
+    max_robust: int
+    max_correlated: int
+    max_rows: int
+    max_time: float
+    max_time_jump: float
+    max_fused_per_request: int
+
+    def cap(self, robust: bool, correlated: bool) -> int:
+        """Measurements one body's fit takes at most (its window's latest)."""
+        return min(self.max_window, self.max_robust if robust else self.max_window,
+                   self.max_correlated if correlated else self.max_window)
