@@ -19,6 +19,8 @@ import os
 import re
 from typing import Iterable, Iterator, Union
 
+from google.protobuf.message import DecodeError
+
 from dqpose.record.mcapread import Damaged, messages
 from dqpose.record.schemas import message_class
 from dqpose.record.topics import CALLS_TOPIC, DROPPED_TOPIC, plan_topic
@@ -92,6 +94,17 @@ class Recording:
         except Exception as e:      # protobuf's own: DecodeError, TypeError, KeyError
             raise Damaged(self.path, None, f"its schema of {name} does not build the message "
                                            f"({type(e).__name__}: {e})") from None
+
+    def decode(self, cls, data: bytes, ns: int, file: int | None = None):
+        """``data`` parsed by ``cls`` (a :meth:`message_class`); :class:`Damaged` naming the
+        file and the message's arrival (``ns``) when it does not parse: a file whose CRCs hold
+        was not necessarily written by dqpose."""
+        try:
+            return cls.FromString(data)
+        except DecodeError:
+            path = self.files[file] if file is not None and file < len(self.files) else self.path
+            raise Damaged(path, None, f"its message of {ns} ns is not a "
+                                      f"{cls.DESCRIPTOR.full_name}") from None
 
     def items(self) -> Iterator[Item]:
         """The recording in the order it was written (as :func:`items` reads it): before each

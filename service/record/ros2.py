@@ -14,12 +14,11 @@ from __future__ import annotations
 import os
 
 import numpy as np
-from google.protobuf.message import DecodeError
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from dqpose import dq, lie
-from dqpose.record.reader import Damaged, Recording
+from dqpose.record.reader import Recording
 from dqpose.record.views import WORLD, time_ns
 
 STORE = Stores.ROS2_HUMBLE
@@ -65,11 +64,7 @@ def export(rec: Recording, out_dir: str | os.PathLike) -> dict[str, int]:
             if e.kind != "answer" or Fused is None or \
                     rec.calls[e.call].answer_type != "dqpose.v1.FusedPose":
                 continue
-            try:
-                f = Fused.FromString(e.data)
-            except DecodeError:
-                raise Damaged(rec.files[e.file] if e.file < len(rec.files) else rec.path, None,
-                              f"its answer of {e.ns} ns is not a FusedPose") from None
+            f = rec.decode(Fused, e.data, e.ns, e.file)
             if f.HasField("error") or not f.HasField("pose") or len(f.covariance) != 36:
                 continue
             p, o = f.pose.position, f.pose.orientation
@@ -94,7 +89,7 @@ def export(rec: Recording, out_dir: str | os.PathLike) -> dict[str, int]:
         if rec.plans:
             Poses = rec.message_class("foxglove.PosesInFrame")
             for name, ns, data in rec.plans:
-                m = Poses.FromString(data)
+                m = rec.decode(Poses, data, ns)
                 write(f"/plans/{name}", PATH, ns, T[PATH](header=header(ns), poses=[
                     T["geometry_msgs/msg/PoseStamped"](header=header(ns),
                                                        pose=pose(q.position, q.orientation))

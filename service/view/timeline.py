@@ -83,7 +83,7 @@ def timeline(rec) -> Timeline:
     for e in rec.events:
         if e.kind != "answer" or e.call not in fused:
             continue
-        m = cls.FromString(e.data)       # type: ignore[union-attr]
+        m = rec.decode(cls, e.data, e.ns, e.file)
         if m.HasField("error") or not m.HasField("pose"):
             continue
         p, o = m.pose.position, m.pose.orientation
@@ -96,7 +96,7 @@ def timeline(rec) -> Timeline:
               for body, rs in rows.items()}
     plans = []
     for name, ns, data in rec.plans:
-        msg = PosesInFrame.FromString(data)
+        msg = rec.decode(PosesInFrame, data, ns)
         plans.append((name, ns, np.array([(p.position.x, p.position.y, p.position.z)
                                           for p in msg.poses]).reshape(-1, 3)))
     arms = arm_paths(rec)
@@ -125,9 +125,9 @@ def arm_paths(rec) -> dict[str, Path]:
             continue
         if e.kind == "request":
             if kind == EXECUTION_FEEDBACK:
-                arm_of[e.call] = classes[EXECUTE_REQUEST].FromString(e.data).arm
+                arm_of[e.call] = rec.decode(classes[EXECUTE_REQUEST], e.data, e.ns, e.file).arm
             continue
-        m = classes[kind].FromString(e.data)
+        m = rec.decode(classes[kind], e.data, e.ns, e.file)
         if kind == ARM_STATE:
             arm, field = m.arm, "pose"
         else:
@@ -153,7 +153,7 @@ def arm_bases(rec) -> dict[str, Bases]:
     for e in rec.events:
         if e.kind != "answer" or e.call not in calls:
             continue
-        config = cls.FromString(e.data)
+        config = rec.decode(cls, e.data, e.ns, e.file)
         sources = {s.name: s for s in config.sources}
         for a in config.arms:
             src = sources.get(a.source)

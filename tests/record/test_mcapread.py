@@ -232,3 +232,26 @@ def test_a_byte_flipped_anywhere_stops_every_reader_with_a_damaged_file(small, t
                 continue
             assert report.difference is None and len(report.cuts) == 1, (pos, report)
             assert f"{damaged}: not a complete MCAP recording: byte " in report.cut
+
+
+def test_a_message_that_does_not_parse_is_named_by_every_reader(tmp_path):
+    # every CRC holds (the writer computed them), but an answer is not a FusedPose: a file not
+    # written by dqpose; export and view stop naming it instead of a traceback
+    data = _stream.requests(4)
+    answers = _stream.answers(data)
+    answers[1] = [b"\xff\xff\xff"]
+    r = Recorder(tmp_path / "rec")
+    record_stream(r, data, answers)
+    r.close()
+    (path,) = r.files
+    said = f"{path}: not a complete MCAP recording: its message of "
+    commands = [["export", path, "--ros2", str(tmp_path / "bag")]]
+    if importlib.util.find_spec("viser"):       # the [view] extra
+        commands.append(["view", path, "--port", "0"])
+    for argv in commands:
+        res = subprocess.run([sys.executable, "-m", "dqpose.cli", *argv], capture_output=True,
+                             text=True, timeout=120, cwd=ROOT)
+        assert res.returncode == 2, (argv, res.stdout, res.stderr)
+        assert said in res.stderr and "ns is not a dqpose.v1.FusedPose" in res.stderr, \
+            (argv, res.stderr)
+        assert "Traceback" not in res.stderr
