@@ -16,7 +16,7 @@ INPUTS := Makefile pyproject.toml setup.py $(wildcard service/csrc/*.c service/c
 MISSING := $(if $(wildcard service/_dqcore*.so),,FORCE) \
            $(if $(wildcard service/rpc/_proto/dqpose/v1/*_pb2.py),,FORCE)
 
-.PHONY: setup run test test-fast lint bench clean FORCE
+.PHONY: setup run cluster test test-fast lint bench clean FORCE
 
 $(BIN)/python:
 	@echo "make: creating the virtual environment $(VENV) (a few seconds)"
@@ -40,6 +40,12 @@ setup: $(STAMP)
 # (`dqpose serve --help` for TLS, tokens, ports; ARGS after the defaults, so they override them).
 run: setup
 	$(BIN)/dqpose serve --host 127.0.0.1 --port 50051 --sims $(ARGS)
+
+# Three replicas of the server and HAProxy in front of them on 127.0.0.1:50050, the proxy running
+# docker/haproxy.cfg with its server lines rewritten to the replicas, until Ctrl-C (`dqpose cluster
+# --help`; needs haproxy: apt-get install -y haproxy): make cluster ARGS="--replicas 5".
+cluster: setup
+	$(BIN)/dqpose cluster --config docker/haproxy.cfg $(ARGS)
 
 # The suite without the fresh-venv installs (pytest's addopts: -m 'not install'); CI runs those
 # after it: make test ARGS="-m install".

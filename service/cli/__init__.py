@@ -34,6 +34,8 @@ COMMANDS = {
              "plan a limit-respecting motion through waypoints from a JSON, YAML or CSV file"),
     "smooth": ("dqpose.cli.trajectory",
                "smooth a noisy recorded path under limits from a JSON, YAML or CSV file"),
+    "cluster": ("dqpose.cli.cluster", "replicas of the server behind HAProxy on this machine "
+                                      "(make cluster): scale-out tried without Docker"),
     "arm": ("dqpose.cli.arm", "the arms a server drives: where each is, its state, limits "
                                "and faults"),
     "handeye": ("dqpose.cli.handeye",

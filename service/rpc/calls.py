@@ -213,7 +213,9 @@ class Calls:
         self._open += 1
         return time.perf_counter()
 
-    def done(self, rpc: str, code: str, t0: float, context, messages: int | None = None) -> None:
+    def done(self, rpc: str, code: str, t0: float, context, messages: int | None = None,
+             world: str | None = None) -> None:
+        """The call's record; ``world``: the world a World call named, in its log line."""
         dt = time.perf_counter() - t0
         self._open -= 1
         if self.cut and code == "OK":
@@ -224,6 +226,8 @@ class Calls:
             # Hand-built JSON: the values are our own names, numbers and an address (quoted
             # through json).
             extra = "" if messages is None else f', "messages": {messages}'
+            if world is not None:
+                extra += f', "world": {json.dumps(world)}'
             self._pending.append(
                 f'{{"t": {time.time():.6f}, "rpc": "{rpc}", "code": "{code}", '
                 f'"ms": {dt * 1e3:.3f}, "peer": {json.dumps(context.peer())}{extra}}}')
@@ -258,12 +262,13 @@ class Calls:
             self.flush()
 
     async def unary(self, rpc: str, handle, request, context, counted: bool = False,
-                    status=None):
+                    status=None, world: str | None = None):
         """One unary call: the response of ``handle(request)`` (awaited when it is a coroutine),
         the :func:`refusal` status for a FieldError or TooLarge, INTERNAL (logged) for anything
         else, and one record either way.
         With ``counted``, ``handle`` returns ``(response, messages)`` and the record counts them.
-        ``status(rpc, e)``: a service's own mapping of exceptions (default :func:`refused`)."""
+        ``status(rpc, e)``: a service's own mapping of exceptions (default :func:`refused`).
+        ``world``: the world a World call named, in its record's log line."""
         t0 = self.begin()
         code = "OK"
         messages = None
@@ -279,7 +284,7 @@ class Calls:
             code = code_.name
             await context.abort(code_, details)
         finally:
-            self.done(rpc, code, t0, context, messages)
+            self.done(rpc, code, t0, context, messages, world)
 
     async def refuse(self, rpc: str, context, status: grpc.StatusCode, details: str) -> None:
         """A call refused before its handler runs (shutting down, no token): recorded too."""

@@ -31,7 +31,6 @@ from dqpose.rpc._proto.dqpose.v1 import blending_pb2 as pb
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from dqpose.rpc._proto.dqpose.v1 import handeye_pb2 as hpb
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
-from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
 from dqpose.rpc.checks import over_count
 from dqpose.rpc.client_arrays import (
     BLEND_ANSWER_MAX,
@@ -61,6 +60,7 @@ from dqpose.rpc.client_types import (  # noqa: F401 (Batch, Planned, RequestTooL
     _state_name,
     rpc_errors,
 )
+from dqpose.rpc.client_world import WORLD, WorldCalls
 from dqpose.rpc.fusion_convert import (
     DEFAULT_MAX_EXTRAPOLATION,
     DEFAULT_PROBABILITY,
@@ -77,7 +77,7 @@ from dqpose.rpc.geometry import (
     stamped_msgs,
 )
 from dqpose.rpc.handeye_convert import calibrate_msg, calibration_from_msg
-from dqpose.rpc.resume import Resuming, reopened, retry_config
+from dqpose.rpc.resume import Resuming, replica_of, retry_config
 from dqpose.rpc.routing import MAX_WORLD_NAME, WORLD_HEADER, check_name
 from dqpose.rpc.trajectories_convert import (
     PLAN_INTERPOLATION,
@@ -90,7 +90,6 @@ from dqpose.rpc.wire import (
     blend_request_wire,
     interpolate_request_wire,
     measurements_wire,
-    publish_request_wire,
     stamped_poses_wire,
 )
 
@@ -99,13 +98,12 @@ SERVICE = pb.DESCRIPTOR.services_by_name["Blending"].full_name
 FUSION = fpb.DESCRIPTOR.services_by_name["Fusion"].full_name
 TRAJECTORIES = tpb.DESCRIPTOR.services_by_name["Trajectories"].full_name
 HANDEYE = hpb.DESCRIPTOR.services_by_name["HandEye"].full_name
-WORLD = wpb.DESCRIPTOR.services_by_name["World"].full_name
 SERVICES = (SERVICE, FUSION, TRAJECTORIES, HANDEYE, WORLD)
 _IN_FLIGHT = 2          # calls of one split request outstanding: the next is sent while one is read
 if TYPE_CHECKING:   # the stubs' generics: grpc's own classes take no parameters at run time
     _Unary = grpc.UnaryUnaryMultiCallable[bytes, bytes]
     _Streams = grpc.StreamStreamMultiCallable[bytes, bytes]
-class Client:
+class Client(WorldCalls):
     """A channel to one server. ``tls=True`` uses the system roots; pass ``root_certificates``
     (PEM bytes) for a private CA and ``certificate_chain``/``private_key`` for mTLS. ``token`` is
     sent as ``authorization: Bearer <token>``. ``timeout`` (seconds) is the deadline of every
@@ -161,16 +159,7 @@ class Client:
             response_deserializer=tpb.ArmState.FromString)
         self._list_arms: _Unary = self.channel.unary_unary(f"/{TRAJECTORIES}/ListArms")
         self._calibrate: _Unary = self.channel.unary_unary(f"/{HANDEYE}/Calibrate")
-        self._configure_world = self.channel.unary_unary(
-            f"/{WORLD}/Configure", request_serializer=wpb.WorldConfig.SerializeToString,
-            response_deserializer=wpb.WorldConfig.FromString)
-        self._publish: _Streams = self.channel.stream_stream(f"/{WORLD}/Publish")
-        self._subscribe: grpc.UnaryStreamMultiCallable = self.channel.unary_stream(
-            f"/{WORLD}/SubscribeBatches",
-            request_serializer=wpb.SubscribeRequest.SerializeToString)
-        self._lookup = self.channel.unary_unary(
-            f"/{WORLD}/Lookup", request_serializer=wpb.LookupRequest.SerializeToString,
-            response_deserializer=wpb.RelativePose.FromString)
+        self._world_stubs()
         self.timeout = timeout
         self.max_message_bytes = max_message_bytes
         self.max_poses = max_poses
@@ -180,9 +169,9 @@ class Client:
         self.world = world
         self.metadata = tuple(metadata) or None
         self.reconnect = reconnect
-        # the last WorldConfig this client's world accepted: sent again before a World stream
-        # reopens (its world may have moved to a replica that never had it)
-        self.world_config: Optional[wpb.WorldConfig] = None
+        #: the replica that answered the last call (its x-dqpose-replica; a stream's as its
+        #: answers come, and again when it moves), None when no dqpose server answered it
+        self.last_replica: Optional[str] = None
 
     def close(self) -> None:
         self.channel.close()
@@ -193,9 +182,15 @@ class Client:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def _call(self, method, request: bytes) -> bytes:
-        with rpc_errors():
-            return method(request, timeout=self.timeout, metadata=self.metadata)
+    def _seen(self, replica: Optional[str]) -> None:
+        self.last_replica = replica
+
+    def _call(self, method, request):
+        with rpc_errors(self._seen):
+            answer, call = method.with_call(request, timeout=self.timeout,
+                                            metadata=self.metadata)
+        self.last_replica = replica_of(call)
+        return answer
 
     def _split_calls(self, method, requests, field: str, read) -> list:
         """``read`` of each answer to ``requests`` (``(first item, bytes)`` pairs), in order,
@@ -216,13 +211,15 @@ class Client:
                 f.cancel()
         return out
 
-    @staticmethod
-    def _answer(pending, field: str, read):
+    def _answer(self, pending, field: str, read):
         first, future = pending
         try:
-            return read(future.result())
+            answer = future.result()
         except grpc.RpcError as e:
+            self.last_replica = replica_of(e)
             raise _rpc_error(e, field, first) from None
+        self.last_replica = replica_of(future)
+        return read(answer)
 
     def _stamped(self, times, dqs, times_name: str, dqs_name: str, what: str):
         """``(times (n,), poses (n, 8))`` of time-stamped poses to send, one time per pose and
@@ -267,8 +264,11 @@ class Client:
             except Exception as e:   # raised to the caller below, not lost in grpc's thread
                 refused.append(e)
 
-        with rpc_errors():
-            for data in self._blend_stream(requests(), metadata=self.metadata):
+        call = self._blend_stream(requests(), metadata=self.metadata)
+        with rpc_errors(self._seen):
+            for k, data in enumerate(call):
+                if k == 0:
+                    self.last_replica = replica_of(call)
                 yield blend_answer(data)[0]
         if refused:
             raise refused[0]
@@ -378,7 +378,7 @@ class Client:
         # a message's fields in any order parse as one: the options, then a batch
         stream = Resuming(self._stream_fuse, requests(), first.SerializeToString(),
                           lambda data: fpb.FusedPose.FromString(data).request,
-                          metadata=self.metadata, reconnect=self.reconnect)
+                          metadata=self.metadata, reconnect=self.reconnect, seen=self._seen)
         with rpc_errors():
             for index, data in stream.answers():
                 yield stream_answer(data, probability, max_skew, index)
@@ -393,8 +393,10 @@ class Client:
         stream has no deadline (a long plan is many samples). ``frames``: per waypoint the body
         of the server's world its pose is given in ("" the base; see ``Waypoint.frame``)."""
         request = plan_msg(waypoints, limits, rate_hz, interpolation, start_velocity, frames)
-        with rpc_errors():
-            msgs = list(self._plan(request, metadata=self.metadata))
+        call = self._plan(request, metadata=self.metadata)
+        with rpc_errors(self._seen):
+            msgs = list(call)
+        self.last_replica = replica_of(call)
         info = msgs[0].plan
         segments = tuple(trajectory.Segment(s.start, s.duration, s.binding)
                          for s in info.segments)
@@ -433,10 +435,13 @@ class Client:
         last = None
         try:
             for m in call:
+                if last is None:
+                    self.last_replica = replica_of(call)
                 last = Feedback(m.time, _pose_or_none(m, "commanded"), _pose_or_none(m, "actual"),
                                 _state_name(m.state), m.message)
                 yield last
         except grpc.RpcError as e:
+            self.last_replica = replica_of(e)
             err = _rpc_error(e)
             err.feedback = last
             raise err from None
@@ -458,8 +463,10 @@ class Client:
         call = self._watch_arm(tpb.GetArmRequest(arm=arm, rate_hz=rate_hz), timeout=timeout,
                                metadata=self.metadata)
         try:
-            with rpc_errors():
-                for m in call:
+            with rpc_errors(self._seen):
+                for k, m in enumerate(call):
+                    if k == 0:
+                        self.last_replica = replica_of(call)
                     yield _arm_state(m)
         finally:
             call.cancel()
@@ -486,117 +493,12 @@ class Client:
                                                              request.SerializeToString()))
         return calibration_from_msg(answer, setup)
 
-    # -- the shared world (world.proto)
-
-    def configure_world(self, sources: Iterable[fusion.Source] = (), arms=None,
-                        **options) -> wpb.WorldConfig:
-        """Sets the server's world: its sources (:class:`dqpose.fusion.Source`, with
-        ``extrinsic_covariance``), ``arms`` (arm name -> source name) and ``options``
-        (:func:`dqpose.rpc.world_convert.world_config`'s: robust, probability, max_skew,
-        max_extrapolation, window, twist_covariance, acceleration_psd, buffer, max_delay).
-        Returns the ``WorldConfig`` in force."""
-        from dqpose.rpc.world_convert import world_config
-        return self.configure_world_msg(world_config(sources, arms, **options))
-
-    def configure_world_msg(self, config: wpb.WorldConfig) -> wpb.WorldConfig:
-        """:meth:`configure_world` of a ready ``WorldConfig``; the client keeps it to send again
-        when a World stream reopens."""
-        with rpc_errors():
-            answer = self._configure_world(config, timeout=self.timeout, metadata=self.metadata)
-        self.world_config = config
-        return answer
-
-    def _configure_again(self) -> None:
-        """Before a World stream reopens: the last configuration sent again (grpc's errors
-        raised as they are: the stream's reopening decides)."""
-        if self.world_config is not None:
-            self._configure_world(self.world_config, timeout=self.timeout,
-                                  metadata=self.metadata)
-
-    def publish(self, batches: Iterable, producer: str = "",
-                first_sequence: int = 1) -> Iterator[Ack]:
-        """Publishes :class:`Batch` es (each measurement naming its body) into the world as one
-        ``Publish`` stream, numbered ``first_sequence``, ``first_sequence + 1``, ... under
-        ``producer`` (0: unnumbered); yields one :class:`Ack` per batch, in order. A batch that
-        cannot be sent (wrong shape) ends the stream and raises its ``ValueError`` after the
-        acks before it. With ``reconnect``, a stream whose replica went away is reopened (the
-        world's last configuration sent first) and the batches after the last ``acked_through``
-        are sent again (numbered, a batch the world already had is acked with an error, never
-        fused twice); every batch gets its one ack."""
-        def requests():
-            for i, b in enumerate(batches):
-                b = b if isinstance(b, Batch) else Batch(*b)
-                seq = first_sequence + i if first_sequence else 0
-                try:
-                    # the bytes protobuf would write, without a message a measurement
-                    data = publish_request_wire(b, producer, seq)
-                except ValueError as e:
-                    raise ValueError(f"batches[{i}].{e}") from None
-                yield data
-
-        return self._publish_bytes(requests())
-
-    def publish_requests(self, requests: Iterable[wpb.PublishRequest]) -> Iterator[Ack]:
-        """:meth:`publish` of ready ``PublishRequest`` messages (``dqpose world publish``)."""
-        return self._publish_bytes(r.SerializeToString() for r in requests)
-
-    def _publish_bytes(self, requests: Iterator[bytes]) -> Iterator[Ack]:
-        # one ack per request, in order: an ack's place acknowledges its request, as its
-        # acked_through does the sequences up to it
-        stream = Resuming(self._publish, requests, b"", None,
-                          metadata=self.metadata, reconnect=self.reconnect,
-                          before=self._configure_again)
-        acks = stream.answers()
-        try:
-            with rpc_errors():
-                for _, data in acks:
-                    a = wpb.PublishAck.FromString(data)
-                    yield Ack(a.acked_through, tuple((e.request, e.measurement, e.details)
-                                                     for e in a.errors))
-        finally:
-            acks.close()
-        if stream.failed:
-            raise stream.failed[0]
-
-    def subscribe(self, bodies: Sequence[str] = (), rate_hz: float = 0.0,
-                  relative_to: str = "", *, timeout: Optional[float] = None,
-                  probability: float = DEFAULT_PROBABILITY) -> Iterator[StreamAnswer]:
-        """The world's fused poses of ``bodies`` (empty: all) as they fall due (see
-        world.proto: paced on measurement time), as :class:`StreamAnswer` s; with
-        ``relative_to`` a body, ``fused.mean``/``covariance`` are ``T_relative_to_body``. The
-        stream has no deadline unless ``timeout``; close the iterator (or cancel) to end it.
-        With ``reconnect``, a stream whose replica went away is opened again (the world's last
-        configuration sent first): answers go on from what the world's new replica receives
-        (its ``request`` numbers restart there)."""
-        request = wpb.SubscribeRequest(bodies=list(bodies), rate_hz=rate_hz,
-                                       relative_to=relative_to)
-        answers = reopened(lambda: self._subscribe(request, timeout=timeout,
-                                                   metadata=self.metadata),
-                           self.reconnect, self._configure_again, self.world)
-        try:
-            with rpc_errors():
-                # SubscribeBatches: Subscribe's answers, those ready together in one message
-                for data in answers:
-                    for a in wpb.FusedPoseBatch.FromString(data).poses:
-                        yield stream_answer(a, probability)
-        finally:
-            answers.close()     # the call cancelled when the caller closes this iterator
-
-    def lookup(self, target: str, source: str, time: float = 0.0) -> Relative:
-        """``T_target_source`` at ``time`` (0: the newest both are known at; "" is the world
-        frame) with its covariance, tf2's lookupTransform order. An unknown body raises
-        :class:`RpcError` NOT_FOUND, a time the world does not know FAILED_PRECONDITION."""
-        with rpc_errors():
-            r = self._lookup(wpb.LookupRequest(target=target, source=source, time=time),
-                             timeout=self.timeout, metadata=self.metadata)
-        return Relative(pose_to_dq(r.pose),
-                        np.array(r.covariance, dtype=np.float64).reshape(6, 6), r.time)
-
     def health(self, service: str = "") -> str:
         """The health status name (``"SERVING"``, ``"NOT_SERVING"``, ...)."""
         from grpc_health.v1 import health_pb2, health_pb2_grpc
 
-        with rpc_errors():
-            r = health_pb2_grpc.HealthStub(self.channel).Check(
+        with rpc_errors(self._seen):
+            r, call = health_pb2_grpc.HealthStub(self.channel).Check.with_call(
                 health_pb2.HealthCheckRequest(service=service), timeout=self.timeout)
+        self.last_replica = replica_of(call)
         return health_pb2.HealthCheckResponse.ServingStatus.Name(r.status)

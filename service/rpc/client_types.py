@@ -12,6 +12,7 @@ import numpy as np
 from dqpose import fusion, trajectory
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
 from dqpose.rpc.geometry import pose_to_dq
+from dqpose.rpc.resume import replica_of
 
 
 class Planned(NamedTuple):
@@ -147,9 +148,12 @@ def _rpc_error(e: grpc.RpcError, field: str = "", offset: int = 0) -> RpcError:
 
 
 @contextlib.contextmanager
-def rpc_errors() -> Iterator[None]:
-    """grpc's errors raised inside as ours (:func:`_rpc_error`)."""
+def rpc_errors(seen=None) -> Iterator[None]:
+    """grpc's errors raised inside as ours (:func:`_rpc_error`); ``seen(replica)`` told first
+    which replica refused (``dqpose.rpc.resume.replica_of``), when given."""
     try:
         yield
     except grpc.RpcError as e:
+        if seen is not None:
+            seen(replica_of(e))
         raise _rpc_error(e) from None

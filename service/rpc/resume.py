@@ -60,14 +60,48 @@ def _world(metadata) -> Optional[str]:
     return next((v for k, v in metadata or () if k == WORLD_HEADER), None)
 
 
-def _replica(call) -> Optional[str]:
-    try:
-        for key, value in call.initial_metadata() or ():
+def replica_of(call) -> Optional[str]:
+    """The replica that answered ``call`` (a call, a future or grpc's error): its
+    ``x-dqpose-replica``, from the initial metadata or, for an answer that had none (a call
+    refused before its handler ran, an error), the trailers; None when no dqpose server
+    answered (nothing listens, a proxy's own refusal)."""
+    for read in ("initial_metadata", "trailing_metadata"):
+        try:
+            metadata = getattr(call, read)()
+        except (grpc.RpcError, AttributeError):     # an error without metadata of that kind
+            continue
+        for key, value in metadata or ():
             if key == REPLICA_HEADER:
                 return value
-    except grpc.RpcError:
-        pass
     return None
+
+
+class ReplicaLost(grpc.RpcError):
+    """A stream broken because its server went away (:func:`resumable`), not reopened: grpc's
+    error (HAProxy's cut reads ``UNKNOWN: Stream removed``) said as what it is, and how to have
+    such a stream reopened. UNAVAILABLE: a server that went away is what that code is for."""
+
+    def __init__(self, e: grpc.RpcError, reconnect: float):
+        self.cause = e
+        what = f"{e.code().name}: {e.details()}"
+        self._details = (
+            f"the stream's server went away (its replica was lost, {what}); a Client made with "
+            f"reconnect=SECONDS reopens such a stream on the replica that takes its world over"
+            if reconnect <= 0 else
+            f"the stream's server went away ({what}) and reopening it found no server to "
+            f"answer within reconnect={reconnect:g} s")
+
+    def code(self) -> grpc.StatusCode:
+        return grpc.StatusCode.UNAVAILABLE
+
+    def details(self) -> str:
+        return self._details
+
+    def trailing_metadata(self):
+        return self.cause.trailing_metadata()
+
+    def __str__(self) -> str:
+        return f"UNAVAILABLE: {self._details}"
 
 
 def retry_config(seconds: float, services: Iterable[str]) -> str:
@@ -96,10 +130,11 @@ class Resuming:
 
     def __init__(self, open_call: Callable, items: Iterator[bytes], first: bytes,
                  acked: Optional[Callable[[bytes], int]], *, metadata=None,
-                 reconnect: float = 0.0, before: Optional[Callable[[], object]] = None):
+                 reconnect: float = 0.0, before: Optional[Callable[[], object]] = None,
+                 seen: Optional[Callable[[Optional[str]], object]] = None):
         self._open, self._items, self._first = open_call, items, first
         self._acked, self._metadata = acked, metadata
-        self.link = Reconnecting(reconnect, before, _world(metadata))
+        self.link = Reconnecting(reconnect, before, _world(metadata), seen)
         self._lock = threading.Lock()
         self._source = threading.Lock()
         self._generation = 0
@@ -191,8 +226,10 @@ class Resuming:
                     yield index, data
                 return
             except grpc.RpcError as e:
-                if self.failed or not link.broke(e):
+                if self.failed:
                     raise
+                if not link.broke(e):
+                    raise link.given_up(e) from None
             finally:
                 if call is not None:
                     call.cancel()
@@ -202,12 +239,14 @@ class Resuming:
 
 class Reconnecting:
     """What every reopened stream does between its streams: the backoff, the log lines (naming
-    the stream's ``world``, None without one), the replica it is on, and ``before`` (a call made
-    before each reopening: Configure again)."""
+    the stream's ``world``, None without one), the replica it is on (``seen(replica)`` told on
+    the first answer and on each move), and ``before`` (a call made before each reopening:
+    Configure again)."""
 
     def __init__(self, reconnect: float, before: Optional[Callable[[], object]] = None,
-                 world: Optional[str] = None):
-        self.reconnect, self.before, self.world = reconnect, before, world
+                 world: Optional[str] = None,
+                 seen: Optional[Callable[[Optional[str]], object]] = None):
+        self.reconnect, self.before, self.world, self.seen = reconnect, before, world, seen
         self.replica: Optional[str] = None     # the replica of the stream open now
         self.reopened = 0
         self._broken_at: Optional[float] = None
@@ -221,10 +260,19 @@ class Reconnecting:
     def answered(self, call) -> None:
         """On each answer: the first after a break logs the move."""
         if self._broken_at is not None:
-            self._moved(_replica(call), time.monotonic() - self._broken_at)
+            self._moved(replica_of(call), time.monotonic() - self._broken_at)
             self._broken_at, self._wait = None, BACKOFF_FIRST
         elif self.replica is None:
-            self.replica = _replica(call)
+            self.replica = replica_of(call)
+        else:
+            return
+        if self.seen is not None:
+            self.seen(self.replica)
+
+    def given_up(self, e: grpc.RpcError) -> grpc.RpcError:
+        """What a break not reopened raises: :class:`ReplicaLost` when the stream's server went
+        away, ``e`` itself otherwise."""
+        return ReplicaLost(e, self.reconnect) if resumable(e) else e
 
     def broke(self, e: grpc.RpcError) -> bool:
         """Whether to reopen after ``e`` (:func:`resumable`, and the next try within
@@ -253,13 +301,14 @@ class Reconnecting:
 
 
 def reopened(open_call: Callable, reconnect: float,
-             before: Optional[Callable[[], object]] = None,
-             world: Optional[str] = None) -> Generator[bytes, None, None]:
+             before: Optional[Callable[[], object]] = None, world: Optional[str] = None,
+             seen: Optional[Callable[[Optional[str]], object]] = None
+             ) -> Generator[bytes, None, None]:
     """The answers of a server-streaming call ``open_call()`` (World.Subscribe), opened again
     after a :func:`resumable` break with backoff for up to ``reconnect`` s without an answer
     (``before()`` first each time); the answers of each stream as they come (none is resent:
     the request is the call's one message)."""
-    link = Reconnecting(reconnect, before, world)
+    link = Reconnecting(reconnect, before, world, seen)
     while True:
         call = None
         try:
@@ -271,7 +320,7 @@ def reopened(open_call: Callable, reconnect: float,
             return
         except grpc.RpcError as e:
             if not link.broke(e):
-                raise
+                raise link.given_up(e) from None
         finally:
             if call is not None:
                 call.cancel()

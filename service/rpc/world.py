@@ -78,7 +78,7 @@ class TooManyWorlds(Exception):
     """A call that would make a world past :data:`MAX_WORLDS`: RESOURCE_EXHAUSTED."""
 
 
-def status_of(e: Exception) -> tuple[grpc.StatusCode, str]:
+def status_of(e: Exception, rpc: str = "World") -> tuple[grpc.StatusCode, str]:
     """The status a World call ends with for ``e``: the domain's NotFound is NOT_FOUND, its
     OutOfRange FAILED_PRECONDITION, WorldError INVALID_ARGUMENT, anything else as every
     servicer (:func:`refused`)."""
@@ -88,7 +88,12 @@ def status_of(e: Exception) -> tuple[grpc.StatusCode, str]:
         return grpc.StatusCode.RESOURCE_EXHAUSTED, readable(str(e))
     if isinstance(e, domain.OutOfRange):
         return grpc.StatusCode.FAILED_PRECONDITION, readable(str(e).strip("'\""))
-    return refused("World", e)
+    return refused(rpc, e)         # rpc: how a log line names the call (and its world)
+
+
+def _named(rpc: str, world: str) -> str:
+    """How a log line names a World call: the RPC and its world."""
+    return f"World/{rpc} in world {world!r}"
 
 
 def _recorded_world(context) -> str:
@@ -439,9 +444,10 @@ class World:
         server.add_registered_method_handlers(self.NAME, handlers)
 
     async def _unary(self, rpc: str, fn, request, context, make: bool = False):
+        world = _recorded_world(context)
         return await self.calls.unary(
             rpc, lambda r: self.calls.work(fn, self.called(context, make), r), request, context,
-            status=lambda _, e: status_of(e))
+            status=lambda _, e: status_of(e, _named(rpc, world)), world=world)
 
     async def Configure(self, request, context):
         # recording (dqpose.rpc.world_record)
@@ -452,8 +458,10 @@ class World:
             make=True)
 
     async def Lookup(self, request, context):
+        world = _recorded_world(context)
         return await self.calls.unary("Lookup", lambda r: self._lookup(r, context), request,
-                                      context, status=lambda _, e: status_of(e))
+                                      context, status=lambda _, e: status_of(
+                                          e, _named("Lookup", world)), world=world)
 
     async def _lookup(self, request, context) -> bytes:
         cell = self.called(context)
@@ -468,14 +476,15 @@ class World:
         code, r = "OK", 0
         anonymous = f"\0call{id(context)}"
         cell = None
+        world = _recorded_world(context)
         # recording (dqpose.rpc.world_record)
         rec = self.calls.recorder.call(f"{self.NAME}/Publish", pb.PublishRequest, pb.PublishAck,
-                                       _recorded_world(context))
+                                       world)
         try:
             try:
                 cell = self.called(context, make=True)
             except Exception as e:
-                status, details = status_of(e)
+                status, details = status_of(e, _named("Publish", world))
                 code = status.name
                 await context.abort(status, details)
             # Registered without a deserializer: each request is parsed with its work in the
@@ -488,7 +497,7 @@ class World:
             raise
         except Exception as e:
             code = self.calls.failure_code(e)
-            await self.calls.failed("Publish", e, context)
+            await self.calls.failed(_named("Publish", world), e, context)
         except BaseException:
             code = "CANCELLED"
             raise
@@ -497,7 +506,7 @@ class World:
                 with cell.lock:
                     cell.acked.pop(anonymous, None)
             rec.end(code)       # recording
-            self.calls.done("Publish", code, t0, context, messages=r)
+            self.calls.done("Publish", code, t0, context, messages=r, world=world)
 
     async def Subscribe(self, request, context):
         await self._subscribe("Subscribe", request, context)
@@ -512,9 +521,10 @@ class World:
         code, sent = "OK", 0
         sub = cell = None
         batched = rpc == "SubscribeBatches"
+        world = _recorded_world(context)
         # recording (dqpose.rpc.world_record)
         rec = self.calls.recorder.call(f"{self.NAME}/Subscribe", pb.SubscribeRequest,
-                                       fpb.FusedPose, _recorded_world(context))
+                                       fpb.FusedPose, world)
         try:
             problem = None
             if not (math.isfinite(request.rate_hz) and request.rate_hz >= 0.0):
@@ -533,7 +543,7 @@ class World:
                 try:
                     cell = self.called(context, make=True)
                 except Exception as e:
-                    problem = status_of(e)
+                    problem = status_of(e, _named(rpc, world))
             if cell is not None and (too_many := over_count(
                     "bodies", len(request.bodies), cell.world.bounds.max_bodies,
                     "bodies")) is not None:
@@ -581,4 +591,4 @@ class World:
                     rec.end(code)               # recording
             else:
                 rec.end(code)                   # recording
-            self.calls.done(rpc, code, t0, context, messages=sent)
+            self.calls.done(rpc, code, t0, context, messages=sent, world=world)
