@@ -140,6 +140,23 @@ class Limits:
                                 "fused (an answer counts its window and "
                                 f"{ANSWER_ROWS} more, a robust one 4x its window); "
                                 "ticks beyond it are skipped (the latest kept)", lo=1)
+    max_subscriptions: int = _limit(
+        256, "streams", "World Subscribe/SubscribeBatches and WatchArm streams open on the "
+                        "server, all worlds and peers together", lo=1)
+    max_world_subscriptions: int = _limit(
+        64, "streams", "World Subscribe/SubscribeBatches streams open in one world", lo=1)
+    max_peer_subscriptions: int = _limit(
+        16, "streams", "Subscribe/SubscribeBatches and WatchArm streams of one peer (its bearer "
+                       "token when the server has one, else its host), each counted until its "
+                       "client has closed it", lo=1)
+    max_peer_streams: int = _limit(
+        64, "streams", "streams of any RPC of one peer (BlendStream, StreamFuse, Publish, "
+                       "Subscribe, Plan, Execute, WatchArm...), each counted until its client "
+                       "has closed it", lo=1)
+    max_write_wait: float = _limit(
+        1.0, "s", "a subscription (World Subscribe, WatchArm) whose client reads nothing for "
+                  "this long, a write waiting, is ended RESOURCE_EXHAUSTED and its slot freed",
+        lo=1e-3)
 
     def __post_init__(self):
         self.check()

@@ -32,6 +32,7 @@ from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
 from dqpose.rpc.calls import Calls, refused
 from dqpose.rpc.geometry import dq_to_pose
+from dqpose.rpc.peers import SUBSCRIPTION, FellBehind, exhausted
 from dqpose.rpc.routing import world_of
 from dqpose.rpc.trajectories_convert import plan_from_msg, resolve_frames, world_named
 
@@ -164,7 +165,7 @@ class Arms:
         loop = asyncio.get_running_loop()
         if self._stopping is None:
             self._stopping = asyncio.Event()
-        counted = False
+        watch = None
         try:
             try:
                 slot = self._slot(request.arm)
@@ -176,12 +177,19 @@ class Arms:
                 status, details = refused("WatchArm", e)
                 code = status.name
                 await context.abort(status, details)
+            watch = self.calls.open_stream("WatchArm", context, SUBSCRIPTION)
+            if watch is None:
+                code, details = "RESOURCE_EXHAUSTED", context.details()
+                return
             self.watchers += 1
-            counted = True
             due = loop.time()
             while not self._stopping.is_set():
                 state = await self._shared_state(slot)
-                await context.write(state)
+                try:
+                    await self.calls.peers.write(context, state, "WatchArm")
+                except FellBehind as e:
+                    code, details = await exhausted(context, str(e), watch), str(e)
+                    return
                 rec.fused(state)
                 sent += 1
                 # paced on the loop's clock; a client slower than the rate gets fewer states
@@ -196,7 +204,9 @@ class Arms:
             raise
         finally:
             rec.end(code, details)
-            self.watchers -= counted
+            if watch is not None:
+                self.watchers -= 1
+                watch.end()         # its server slot free at once, its client reading or not
             self.calls.done("WatchArm", code, t0, context, messages=sent)
 
     @staticmethod
@@ -230,6 +240,9 @@ class Arms:
                                        pb.ExecutionFeedback)
         rec.measurements(request)
         try:
+            if self.calls.open_stream("Execute", context) is None:
+                code, details = "RESOURCE_EXHAUSTED", context.details()
+                return
             try:
                 slot, args = await self._check(request, world_of(context))
                 deadline = time.monotonic() + FREE_WAIT     # for the arm: free, at rest

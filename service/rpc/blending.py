@@ -33,6 +33,7 @@ from dqpose.rpc.wire import blend_batch_wire, blend_wire, decode_blend_request
 DEFAULT_TOLERANCE = 1e-12
 DEFAULT_MAX_ITERATIONS = 100
 STREAM_READ_AHEAD = 64         # requests a BlendStream reads ahead of its replies
+STREAM_READ_AHEAD_BYTES = 1 << 20   # and their bytes (a request may be max_message_bytes)
 #: Interpolate's mode for INTERPOLATION_UNSPECIFIED (blending.proto says so)
 INTERPOLATE_INTERPOLATION = "screw"
 
@@ -214,18 +215,23 @@ class Blending(pb_grpc.BlendingServicer):
                                       request, context)
 
     async def BlendStream(self, request_iterator, context) -> None:
-        # Reading runs ahead of writing (a reader task feeding a queue of STREAM_READ_AHEAD):
-        # in grpc.aio every read and every write is a round trip through gRPC's poller thread,
-        # and overlapping the two is worth ~1.5x in blends/s
-        # (docs/benchmarks/grpc.md#server-choices-measured). The bound keeps
-        # HTTP/2 flow control as the client's backpressure. request_iterator stays unused: the
-        # reader takes the messages with context.read().
+        # Reading runs ahead of writing (a reader task feeding a queue of STREAM_READ_AHEAD
+        # requests, STREAM_READ_AHEAD_BYTES at most): in grpc.aio every read and every write is
+        # a round trip through gRPC's poller thread, and overlapping the two is worth ~1.5x in
+        # blends/s (docs/benchmarks/grpc.md#server-choices-measured). The bounds keep HTTP/2
+        # flow control as the client's backpressure, and what a client that stops reading
+        # leaves here small. request_iterator stays unused: the reader takes the messages with
+        # context.read().
         code = "OK"
         i = 0
-        pending: asyncio.Queue = asyncio.Queue(maxsize=STREAM_READ_AHEAD)
-        reader = asyncio.ensure_future(_read_all(context, pending))
+        reader = None
         t0 = self.calls.begin()
         try:
+            if self.calls.open_stream("BlendStream", context) is None:
+                code = "RESOURCE_EXHAUSTED"
+                return
+            pending = _ReadAhead()
+            reader = asyncio.ensure_future(_read_all(context, pending))
             while True:
                 request = await pending.get()
                 if request is grpc.aio.EOF:
@@ -252,11 +258,39 @@ class Blending(pb_grpc.BlendingServicer):
             code = self.calls.failure_code(e)
             await self.calls.failed("BlendStream", e, context)
         finally:
-            reader.cancel()
+            if reader is not None:
+                reader.cancel()
             self.calls.done("BlendStream", code, t0, context, messages=i)
 
 
-async def _read_all(context, pending: asyncio.Queue) -> None:
+class _ReadAhead:
+    """BlendStream's requests read ahead of its replies: at most STREAM_READ_AHEAD of them and
+    STREAM_READ_AHEAD_BYTES (one more request when it alone is larger)."""
+
+    def __init__(self):
+        self._queue: asyncio.Queue = asyncio.Queue(maxsize=STREAM_READ_AHEAD)
+        self._bytes = 0
+        self._room = asyncio.Event()
+        self._room.set()
+
+    async def put(self, item) -> None:
+        await self._room.wait()
+        if isinstance(item, bytes):
+            self._bytes += len(item)
+            if self._bytes >= STREAM_READ_AHEAD_BYTES:
+                self._room.clear()
+        await self._queue.put(item)
+
+    async def get(self):
+        item = await self._queue.get()
+        if isinstance(item, bytes):
+            self._bytes -= len(item)
+            if self._bytes < STREAM_READ_AHEAD_BYTES:
+                self._room.set()
+        return item
+
+
+async def _read_all(context, pending: _ReadAhead) -> None:
     """Puts every request of a stream into ``pending``, then ``grpc.aio.EOF``; a read that
     fails puts its exception instead, for the writer to raise."""
     try:

@@ -26,6 +26,7 @@ import grpc
 from dqpose import limits, record
 from dqpose.errors import FieldError, Infeasible, MissingExtra, WorldError
 from dqpose.limits import OverLimit
+from dqpose.rpc.peers import STREAM, Peers, Slot
 
 log = logging.getLogger("dqpose.server")
 call_log = logging.getLogger("dqpose.calls")
@@ -143,8 +144,10 @@ class Calls:
     stream reads as a stream the client closed), and is recorded as CANCELLED, as its client saw."""
 
     def __init__(self, metrics=None, workers: int = limits.DEFAULT.workers,
-                 recorder=record.NULL):
+                 recorder=record.NULL, peers: Peers | None = None):
         self.metrics = metrics
+        # every stream's slot (dqpose.rpc.peers: per peer, world and server)
+        self.peers = peers if peers is not None else Peers()
         # where the servicers record their calls (dqpose.record: ``recorder.call(...)``)
         self.recorder = recorder
         self.workers = workers
@@ -285,6 +288,18 @@ class Calls:
             await context.abort(code_, details)
         finally:
             self.done(rpc, code, t0, context, messages, world)
+
+    def open_stream(self, rpc: str, context, kind: str = STREAM,
+                    world: str | None = None) -> Slot | None:
+        """A stream's slot (:mod:`dqpose.rpc.peers`: its peer's, its world's, the server's);
+        None when a bound is reached: the call's status is then RESOURCE_EXHAUSTED naming it,
+        for the handler to return with at once, before it has allocated anything."""
+        try:
+            return self.peers.open(rpc, context, kind, world)
+        except OverLimit as e:
+            context.set_code(grpc.StatusCode.RESOURCE_EXHAUSTED)
+            context.set_details(str(e))
+            return None
 
     async def refuse(self, rpc: str, context, status: grpc.StatusCode, details: str) -> None:
         """A call refused before its handler runs (shutting down, no token): recorded too."""

@@ -375,6 +375,9 @@ class Fusion(pb_grpc.FusionServicer):
         details = ""
         rec = self.calls.recorder.call(STREAM_FUSE, pb.FuseStreamRequest, pb.FusedPose)
         try:
+            if self.calls.open_stream("StreamFuse", context) is None:
+                code, details = "RESOURCE_EXHAUSTED", _details(context)
+                return
             # Registered without a deserializer (register): each request arrives as bytes.
             # Decoded on the event loop when small (most of a live stream's messages), else in
             # the worker pool, like the answers (_write).

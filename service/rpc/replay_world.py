@@ -104,8 +104,9 @@ class Worlds:
     def deliver(self) -> None:
         """What the last Publish request queued to each subscription, into its answers."""
         for s in self.subscribed.values():
-            q = s.sub.queue       # type: ignore[union-attr]
-            while not q.empty():
-                a = q.get_nowait()
+            sub = s.sub
+            assert sub is not None
+            while not sub.queue.empty():
+                a = sub.take()
                 if a is not None:       # answers are serialized when made
                     s.given.append(a)

@@ -28,6 +28,7 @@ from dqpose.rpc.blending import Blending
 from dqpose.rpc.calls import Calls, log, readable
 from dqpose.rpc.fusion import Fusion
 from dqpose.rpc.handeye import HandEye
+from dqpose.rpc.peers import Peers
 from dqpose.rpc.server_config import (  # noqa: F401 (ConfigError: the server's API)
     INT32_MAX,
     ConfigError,
@@ -399,7 +400,8 @@ async def start(cfg: ServerConfig) -> Running:
         why = (e.strerror or str(e)).lower()
         raise OSError(f"cannot serve metrics on {where}: {why}") from None
     calls = Calls(metrics, cfg.limits.workers,
-                  record.NULL if cfg.recorder is None else cfg.recorder)
+                  record.NULL if cfg.recorder is None else cfg.recorder,
+                  Peers(cfg.limits, cfg.token))
     if metrics is not None and cfg.recorder is not None:
         metrics.watch(cfg.recorder)
     gate = Gate(calls)

@@ -180,6 +180,9 @@ class Trajectories:
         t0 = self.calls.begin()
         code, sent = "OK", 0
         try:
+            if self.calls.open_stream("Plan", context) is None:
+                code = "RESOURCE_EXHAUSTED"
+                return
             try:
                 traj, samples, resolved = await self.calls.work(self.planned, request,
                                                                 world_of(context))

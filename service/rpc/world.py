@@ -21,7 +21,7 @@ import asyncio
 import logging
 import math
 import threading
-from typing import Any
+from typing import Any, Callable
 
 import grpc
 import numpy as np
@@ -37,6 +37,7 @@ from dqpose.rpc._proto.dqpose.v1 import world_pb2 as pb
 from dqpose.rpc.calls import Calls, readable, refused
 from dqpose.rpc.checks import over_count
 from dqpose.rpc.fusion_convert import measurements_to_arrays
+from dqpose.rpc.peers import SUBSCRIPTION, FellBehind, Slot, exhausted
 from dqpose.rpc.routing import WORLD_HEADER, world_of
 from dqpose.rpc.wire import messages_wire, publish_from_wire, wire_rows
 from dqpose.rpc.world_convert import (
@@ -51,11 +52,12 @@ from dqpose.world_ticks import Ticks, tick_phase
 
 log = logging.getLogger("dqpose.server")
 
-#: Subscribe streams open at once on one server
-MAX_SUBSCRIBERS = 64
-#: answers queued for one subscriber; a subscriber that falls further behind is ended with
-#: RESOURCE_EXHAUSTED (its answers would otherwise grow without bound)
+#: answers queued for one subscriber, and their bytes (an answer lists its window's
+#: measurements: ~2 kB at 300, up to ~80 kB); a subscriber that falls further behind is ended
+#: with RESOURCE_EXHAUSTED at once, its queue and slots freed (its answers would otherwise grow
+#: without bound). How many are open: dqpose.rpc.peers.
 MAX_QUEUED = 4096
+MAX_QUEUED_BYTES = 8 << 20
 #: bytes of answers in one SubscribeBatches message at most (gRPC clients receive 4 MiB by
 #: default); an answer larger than this goes alone
 MAX_BATCH_BYTES = 1 << 20
@@ -108,7 +110,8 @@ def _recorded_world(context) -> str:
 class Subscription:
     """One Subscribe stream: its bodies (None: all), pacing per body, and the queue of its
     answers (serialized ``FusedPose`` messages, filled by the publishing thread through the
-    event loop, in arrival order)."""
+    event loop, in arrival order), at most :data:`MAX_QUEUED` answers and
+    :data:`MAX_QUEUED_BYTES` bytes. ``ended`` says why the server ended it (None: open)."""
 
     def __init__(self, bodies, rate: float, relative_to: str, loop, max_delay: float,
                  window: float):
@@ -118,7 +121,10 @@ class Subscription:
         self.max_delay, self.window = max_delay, window
         self.ticks: dict[str, Ticks] = {}
         self.queue: asyncio.Queue = asyncio.Queue()
-        self.overflow = False
+        self.queued = 0                     # bytes in the queue
+        self.ended: str | None = None
+        # called once when ended (its slots freed)
+        self.on_end: Callable[[], None] | None = None
 
     def wants(self, body: str) -> bool:
         return self.bodies is None or body in self.bodies
@@ -131,27 +137,57 @@ class Subscription:
         return t.arrive(source, taken)
 
     def deliver(self, answers: list) -> None:
-        """On the event loop: queue ``answers``; past MAX_QUEUED the stream is ended."""
-        if self.overflow:
+        """On the event loop: queue ``answers``; past a bound the subscription is ended."""
+        if self.ended is not None:
             return
+        size = sum(map(len, answers))
         if self.queue.qsize() + len(answers) > MAX_QUEUED:
-            self.overflow = True
-            self.queue.put_nowait(None)
+            self.end(f"this subscriber fell {MAX_QUEUED} answers behind the world (MAX_QUEUED)")
+        elif self.queued + size > MAX_QUEUED_BYTES:
+            self.end(f"this subscriber fell {MAX_QUEUED_BYTES} bytes of answers behind the "
+                     f"world (MAX_QUEUED_BYTES)")
+        else:
+            self.queued += size
+            for a in answers:
+                self.queue.put_nowait(a)
+
+    def end(self, why: str) -> None:
+        """On the event loop: ends the subscription at once: its queue emptied, its slots
+        freed (``on_end``), its reader woken by a None."""
+        if self.ended is not None:
             return
-        for a in answers:
-            self.queue.put_nowait(a)
+        self.ended = why
+        while not self.queue.empty():
+            self.queue.get_nowait()
+        self.queued = 0
+        self.queue.put_nowait(None)
+        if self.on_end is not None:
+            self.on_end()
 
+    def take(self) -> bytes | None:
+        """The next answer queued (there is one); None once ended."""
+        return self._taken(self.queue.get_nowait())
 
-def _ready(first: bytes | None, queue: asyncio.Queue) -> tuple[list, bytes | None]:
-    """``first`` and the answers queued behind it, up to MAX_BATCH_BYTES (a None, the end of
-    the stream, last): one SubscribeBatches message; and the answer that did not fit."""
-    answers, size = [first], 0 if first is None else len(first)
-    while answers[-1] is not None and not queue.empty():
-        a = queue.get_nowait()
+    async def next(self) -> bytes | None:
+        """The next answer, once there is one; None once ended."""
+        return self._taken(await self.queue.get())
+
+    def _taken(self, a: bytes | None) -> bytes | None:
         if a is not None:
-            if size + len(a) > MAX_BATCH_BYTES:
-                return answers, a
-            size += len(a)
+            self.queued -= len(a)
+        return a
+
+
+def _ready(first: bytes, sub: Subscription) -> tuple[list, bytes | None]:
+    """``first`` and the answers queued behind it, up to MAX_BATCH_BYTES: one SubscribeBatches
+    message; and the answer that did not fit."""
+    answers, size = [first], len(first)
+    while sub.ended is None and not sub.queue.empty():
+        a = sub.take()
+        assert a is not None            # a None is queued only once ended
+        if size + len(a) > MAX_BATCH_BYTES:
+            return answers, a
+        size += len(a)
         answers.append(a)
     return answers, None
 
@@ -300,6 +336,8 @@ class Cell:
         cache: dict[tuple[str, float, str], Any] = {}
         budget = _limits.Budget(self.world.tracker_bounds)
         for sub in list(self.subscriptions):
+            if sub.ended is not None:       # ended on the event loop, not yet taken out
+                continue
             due: list[tuple[str, float, int]] = []
             for k in range(len(m.index)):
                 body = m.bodies[k]
@@ -382,7 +420,6 @@ class World:
         self.calls = calls or Calls()
         self.cells: dict[str, Cell] = {}
         self._making = threading.Lock()
-        self.subscribers = 0                 # Subscribe streams open, all worlds (event loop)
 
     def cell(self, name: str, make: bool = False) -> Cell:
         """World ``name`` ("" the default, made at first use): made when ``make`` (Configure,
@@ -487,6 +524,9 @@ class World:
                 status, details = status_of(e, _named("Publish", world))
                 code = status.name
                 await context.abort(status, details)
+            if self.calls.open_stream("Publish", context) is None:
+                code = "RESOURCE_EXHAUSTED"
+                return
             # Registered without a deserializer: each request is parsed with its work in the
             # worker pool (publish_bytes), never on the event loop.
             async for data in request_iterator:
@@ -519,76 +559,129 @@ class World:
         FusedPoseBatch. Both are recorded as Subscribe: the same answers in the same order."""
         t0 = self.calls.begin()
         code, sent = "OK", 0
-        sub = cell = None
-        batched = rpc == "SubscribeBatches"
+        sub = added = cell = None
         world = _recorded_world(context)
         # recording (dqpose.rpc.world_record)
         rec = self.calls.recorder.call(f"{self.NAME}/Subscribe", pb.SubscribeRequest,
                                        fpb.FusedPose, world)
         try:
-            problem = None
-            if not (math.isfinite(request.rate_hz) and request.rate_hz >= 0.0):
-                problem = (grpc.StatusCode.INVALID_ARGUMENT,
-                           f"rate_hz: must be finite and >= 0 (0: every update), got "
-                           f"{request.rate_hz!r}")
-            elif self.limits is not None and request.rate_hz > self.limits.max_output_rate:
-                problem = (grpc.StatusCode.RESOURCE_EXHAUSTED,
-                           f"rate_hz: {request.rate_hz:.6g} Hz, over the server's limit "
-                           f"max_output_rate = {self.limits.max_output_rate:.6g} Hz")
-            elif self.subscribers >= MAX_SUBSCRIBERS:
-                problem = (grpc.StatusCode.RESOURCE_EXHAUSTED,
-                           f"Subscribe: {MAX_SUBSCRIBERS} subscriptions are open, the server's "
-                           f"most")
-            else:
-                try:
-                    cell = self.called(context, make=True)
-                except Exception as e:
-                    problem = status_of(e, _named(rpc, world))
-            if cell is not None and (too_many := over_count(
-                    "bodies", len(request.bodies), cell.world.bounds.max_bodies,
-                    "bodies")) is not None:
-                problem = (grpc.StatusCode.RESOURCE_EXHAUSTED, too_many)
-            if problem is None and (named := subscribe_names(request)) is not None:
-                problem = (grpc.StatusCode.INVALID_ARGUMENT, named)
+            cell, problem = self._admit(request, context, _named(rpc, world))
             if problem is not None:
                 code = problem[0].name
                 await context.abort(problem[0], problem[1])
             assert cell is not None
+            slot = self.calls.open_stream(rpc, context, SUBSCRIPTION, cell.name)
+            if slot is None:
+                code = "RESOURCE_EXHAUSTED"
+                return
             options = cell.world.options
             sub = Subscription(request.bodies, request.rate_hz, request.relative_to,
                                asyncio.get_running_loop(), options.max_delay, options.window)
-            self.subscribers += 1
-            with world_record.ordered(rec), cell.lock:
-                cell.subscriptions.add(sub)
-                rec.measurements(request)       # recording
-            carry = None
-            while True:
-                answers = [carry if carry is not None else await sub.queue.get()]
-                carry = None
-                if batched:
-                    answers, carry = _ready(answers[0], sub.queue)
-                end = answers[-1] is None       # the queue overflowed: what came before goes
-                if end:
-                    answers.pop()
-                if answers:
-                    await context.write(messages_wire(answers) if batched else answers[0])
-                    for answer in answers:
-                        rec.fused(answer)       # recording
-                    sent += len(answers)
-                if end:
-                    code = "RESOURCE_EXHAUSTED"
-                    await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, (
-                        f"{rpc}: this subscriber fell {MAX_QUEUED} answers behind the "
-                        f"world; subscribe to fewer bodies or a lower rate_hz"))
+            sub.on_end = slot.end
+            # In the world at once when its lock is free, with nothing since the headers went
+            # that yields to another call (dqpose.rpc.replay_remote waits for the headers);
+            # else in the pool, never waiting on the event loop for a Publish request's fits.
+            added = _at_once(cell, sub, rec, request) or asyncio.ensure_future(
+                self.calls.work(_subscribed, cell, sub, rec, request))
+            await asyncio.shield(added)
+            sent, code = await self._answers(rpc, sub, slot, context, rec)
         except asyncio.CancelledError:
             code = "CANCELLED"
             raise
         finally:
-            if sub is not None and cell is not None:
-                self.subscribers -= 1
-                with world_record.ordered(rec), cell.lock:
-                    cell.subscriptions.discard(sub)
+            try:
+                if added is not None:
+                    assert sub is not None and cell is not None
+                    sub.end(sub.ended or "the call ended")
+                    await asyncio.shield(self._leave(added, cell, sub, rec, code))
+                else:
                     rec.end(code)               # recording
-            else:
-                rec.end(code)                   # recording
-            self.calls.done(rpc, code, t0, context, messages=sent, world=world)
+            finally:
+                self.calls.done(rpc, code, t0, context, messages=sent, world=world)
+
+    def _admit(self, request, context, named: str) -> tuple[Cell | None, tuple | None]:
+        """The world a Subscribe request names, or why it is refused before it takes a slot:
+        ``(cell, None)`` or ``(None or cell, (status, details))`` (``named``: the call, as a
+        log line names it)."""
+        if not (math.isfinite(request.rate_hz) and request.rate_hz >= 0.0):
+            return None, (grpc.StatusCode.INVALID_ARGUMENT,
+                          f"rate_hz: must be finite and >= 0 (0: every update), got "
+                          f"{request.rate_hz!r}")
+        if self.limits is not None and request.rate_hz > self.limits.max_output_rate:
+            return None, (grpc.StatusCode.RESOURCE_EXHAUSTED,
+                          f"rate_hz: {request.rate_hz:.6g} Hz, over the server's limit "
+                          f"max_output_rate = {self.limits.max_output_rate:.6g} Hz")
+        try:
+            cell = self.called(context, make=True)
+        except Exception as e:
+            return None, status_of(e, named)
+        too_many = over_count("bodies", len(request.bodies), cell.world.bounds.max_bodies,
+                              "bodies")
+        if too_many is not None:
+            return cell, (grpc.StatusCode.RESOURCE_EXHAUSTED, too_many)
+        bad = subscribe_names(request)
+        return cell, None if bad is None else (grpc.StatusCode.INVALID_ARGUMENT, bad)
+
+    async def _leave(self, added, cell: Cell, sub: Subscription, rec, code: str) -> None:
+        """``sub`` out of its world once it is in (the pool may run both at once)."""
+        await added
+        await self.calls.work(_unsubscribed, cell, sub, rec, code)
+
+    async def _answers(self, rpc: str, sub: Subscription, slot: Slot, context,
+                       rec) -> tuple[int, str]:
+        """Writes ``sub``'s answers until the server ends it (its client fell behind a bound:
+        RESOURCE_EXHAUSTED, not waiting for the client to read it); ``(answers sent, the
+        status's name)``."""
+        batched = rpc == "SubscribeBatches"
+        carry, sent = None, 0
+        while sub.ended is None:
+            first = carry if carry is not None else await sub.next()
+            if first is None:
+                break
+            answers, carry = _ready(first, sub) if batched else ([first], None)
+            try:
+                await self.calls.peers.write(
+                    context, messages_wire(answers) if batched else first, rpc)
+            except FellBehind as e:
+                sub.end(str(e))
+                return sent, await exhausted(context, str(e), slot)
+            for answer in answers:
+                rec.fused(answer)       # recording
+            sent += len(answers)
+        return sent, await exhausted(context, f"{rpc}: {sub.ended}; subscribe to fewer bodies "
+                                              f"or a lower rate_hz", slot)
+
+
+def _subscribed(cell: Cell, sub: Subscription, rec, request, wait: bool = True) -> bool:
+    """Under the world's lock: ``sub`` answered from the next Publish request on; False when
+    not ``wait`` and the lock (or the recording's order, dqpose.rpc.world_record) is held."""
+    order = world_record.ORDER if rec.alive else None
+    if order is not None and not order.acquire(wait):
+        return False
+    try:
+        if not cell.lock.acquire(wait):
+            return False
+        try:
+            cell.subscriptions.add(sub)
+            rec.measurements(request)       # recording
+        finally:
+            cell.lock.release()
+    finally:
+        if order is not None:
+            order.release()
+    return True
+
+
+def _at_once(cell: Cell, sub: Subscription, rec, request) -> asyncio.Future | None:
+    """:func:`_subscribed` without waiting: a done future, or None when the lock is held."""
+    if not _subscribed(cell, sub, rec, request, wait=False):
+        return None
+    done = asyncio.get_running_loop().create_future()
+    done.set_result(True)
+    return done
+
+
+def _unsubscribed(cell: Cell, sub: Subscription, rec, code: str) -> None:
+    with world_record.ordered(rec), cell.lock:
+        cell.subscriptions.discard(sub)
+        rec.end(code)                   # recording

@@ -4,6 +4,7 @@ through a run (where it is, the run's state, busy), watchers share the arm's rea
 requests are refused by field, and the server's shutdown ends the stream UNAVAILABLE."""
 from __future__ import annotations
 
+import dataclasses
 import threading
 
 import numpy as np
@@ -120,8 +121,11 @@ def test_bad_watches_are_refused_by_field(rigs):
         assert e.value.details == "rate_hz: 1000 Hz is above WatchArm's most, 100 Hz"
 
 
-def test_watches_beyond_the_servers_most_are_refused(rigs):
+def test_watches_beyond_the_servers_most_are_refused(rigs, monkeypatch):
     by_name, server = rigs
+    peers = server.running.calls.peers      # one peer may hold them all here
+    monkeypatch.setattr(peers, "limits", dataclasses.replace(
+        peers.limits, max_peer_subscriptions=MAX_WATCHERS + 1, max_peer_streams=MAX_WATCHERS + 1))
     with Client(server.target) as c:
         open_ = [c.watch_arm("ur", rate_hz=1.0) for _ in range(MAX_WATCHERS)]
         try:

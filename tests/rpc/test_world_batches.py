@@ -129,14 +129,24 @@ def test_batches_carry_subscribes_answers_in_order_in_few_messages(server, clien
         assert len(got) > len(per_request)      # the bound did cut the jump's answers
 
 
-def test_a_subscriber_that_falls_behind_is_ended_the_same_way(server, client, monkeypatch):
-    monkeypatch.setattr(servicer, "MAX_QUEUED", 16)
+@pytest.mark.parametrize("bound, value, text", [
+    ("MAX_QUEUED", 16, "this subscriber fell 16 answers behind the world (MAX_QUEUED)"),
+    ("MAX_QUEUED_BYTES", 20_000, "this subscriber fell 20000 bytes of answers behind the world "
+                                 "(MAX_QUEUED_BYTES)"),
+])
+def test_a_subscriber_that_falls_behind_is_ended_the_same_way(server, client, monkeypatch,
+                                                               bound, value, text):
+    monkeypatch.setattr(servicer, bound, value)
     plain, batched = streams(server, client)
     jump(client)
     plain.thread.join(30)
     batched.thread.join(30)
     for raw, rpc in ((plain, "Subscribe"), (batched, "SubscribeBatches")):
         assert raw.error is not None and raw.error.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
-        assert raw.error.details().startswith(f"{rpc}: this subscriber fell 16 answers behind")
-        assert raw.messages == []       # the jump's 1,025 answers would have been 16 too many
+        assert raw.error.details() == (f"{rpc}: {text}; subscribe to fewer bodies or a lower "
+                                       f"rate_hz")
+        assert raw.messages == []       # the jump's 1,025 answers would have been too many
         raw.stop()
+    # both slots free: the subscriptions left the world, the server counts none
+    assert wait_until(lambda: subscribed(server, 0), timeout=10)
+    assert wait_until(lambda: not server.running.calls.peers.open_count, timeout=10)

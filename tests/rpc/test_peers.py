@@ -1,0 +1,123 @@
+"""dqpose.rpc.peers against a real server: every streaming RPC takes a slot of its peer
+(max_peer_streams, RESOURCE_EXHAUSTED naming it, the slot taken again once a stream is closed);
+the peer of gRPC's address forms; BlendStream's read-ahead bounded in bytes."""
+from __future__ import annotations
+
+import asyncio
+import queue
+import threading
+
+import grpc
+import pytest
+
+from dqpose import limits
+from dqpose.rpc import blending
+from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
+from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
+from dqpose.rpc.peers import host_of
+from tests._polling import wait_until
+from tests.rpc._grpc_server import ServerThread
+
+
+@pytest.mark.parametrize("peer, host", [
+    ("ipv4:10.0.0.7:51234", "10.0.0.7"),
+    ("ipv6:%5B::1%5D:5555", "::1"),
+    ("ipv6:[fe80::1]:80", "fe80::1"),
+    ("unix:/run/dqpose.sock", "unix:/run/dqpose.sock"),
+])
+def test_the_peer_is_the_clients_host(peer, host):
+    assert host_of(peer) == host
+
+
+class Held:
+    """A client-streaming call kept open (its requests wait on a queue) until :meth:`close`."""
+
+    def __init__(self, channel, method: str, first: bytes | None = None):
+        self.requests: queue.Queue = queue.Queue()
+        if first is not None:
+            self.requests.put(first)
+        self.call = channel.stream_stream(method)(iter(self.requests.get, None))
+        self.error: grpc.RpcError | None = None
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self):
+        try:
+            for _ in self.call:
+                pass
+        except grpc.RpcError as e:
+            self.error = e
+
+    def close(self):
+        self.requests.put(None)
+        self.thread.join(10)
+
+
+def test_every_stream_takes_a_slot_of_its_peer():
+    bound = 3
+    with ServerThread(limits=limits.Limits(max_peer_streams=bound)) as server:
+        peers = server.running.calls.peers
+        channel = grpc.insecure_channel(server.target)
+        first = fpb.FuseStreamRequest(output_rate=0.0).SerializeToString()
+        held = [Held(channel, "/dqpose.v1.Blending/BlendStream"),
+                Held(channel, "/dqpose.v1.Fusion/StreamFuse", first),
+                Held(channel, "/dqpose.v1.World/Publish", wpb.PublishRequest().SerializeToString())]
+        try:
+            assert wait_until(lambda: peers.open_count[("stream", "peer", "127.0.0.1")] == bound,
+                              timeout=10)
+            over = channel.unary_stream(
+                "/dqpose.v1.World/Subscribe",
+                request_serializer=wpb.SubscribeRequest.SerializeToString)(wpb.SubscribeRequest())
+            with pytest.raises(grpc.RpcError) as e:
+                next(over)
+            assert e.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+            assert e.value.details() == (
+                f"Subscribe: peer '127.0.0.1' has {bound} streams open, over the server's limit "
+                f"max_peer_streams = {bound} streams (dqpose serve --max-peer-streams)")
+            plan = channel.unary_stream("/dqpose.v1.Trajectories/Plan")(b"")
+            with pytest.raises(grpc.RpcError) as e:
+                next(plan)
+            assert "max_peer_streams" in e.value.details()
+            assert all(h.error is None for h in held)
+            held[0].close()         # one closed: its slot is taken again
+            assert wait_until(lambda: peers.open_count[("stream", "peer", "127.0.0.1")]
+                              == bound - 1, timeout=10)
+            again = Held(channel, "/dqpose.v1.Blending/BlendStream")
+            assert wait_until(lambda: peers.open_count[("stream", "peer", "127.0.0.1")] == bound,
+                              timeout=10)
+            again.close()
+            assert again.error is None
+        finally:
+            for h in held:
+                h.close()
+            channel.close()
+        assert wait_until(lambda: not peers.open_count, timeout=10), dict(peers.open_count)
+
+
+def test_blend_streams_read_ahead_is_bounded_in_bytes():
+    """A reader stops taking requests once what waits for a reply reaches the byte bound (one
+    request past it), and goes on as the writer takes them."""
+    async def run():
+        ahead = blending._ReadAhead()
+        size = blending.STREAM_READ_AHEAD_BYTES // 4
+        put = 0
+
+        async def reader():
+            nonlocal put
+            for _ in range(10):
+                await ahead.put(b"x" * size)
+                put += 1
+
+        task = asyncio.ensure_future(reader())
+        for _ in range(10):
+            await asyncio.sleep(0)
+        assert put == 4             # 4 x a quarter: at the bound, the fifth waits
+        assert len(await ahead.get()) == size
+        for _ in range(10):
+            await asyncio.sleep(0)
+        assert put == 5
+        for _ in range(5):
+            await ahead.get()
+        await asyncio.wait_for(task, 5)
+        assert put == 10
+    asyncio.run(run())
