@@ -84,11 +84,13 @@ def test_a_client_that_never_reads_holds_no_slot_another_client_needs(caplog):
             assert wait_until(lambda: subscriptions(server) == bound, timeout=10)
             # answers the attacker never reads, until the server has ended all its streams
             ended = threading.Event()
+            sent = [0]
 
             def requests():
                 for k in range(1, 100_000):
                     if ended.is_set():
                         return
+                    sent[0] = k
                     yield measurements("cam1", [0.01 * k], k)
                     time.sleep(0.002)
 
@@ -108,7 +110,7 @@ def test_a_client_that_never_reads_holds_no_slot_another_client_needs(caplog):
             other = Collector(server.target, bodies=["box"])
             assert wait_until(lambda: subscriptions(server) == 1, timeout=10)
             with Client(server.target) as producer:
-                list(producer.publish([measurements("cam1", [5000.0 + 0.01 * k], k)
+                list(producer.publish([measurements("cam1", [0.01 * (sent[0] + k)], k)
                                        for k in range(1, 4)], "q"))
             assert wait_until(lambda: other.answers, timeout=10), other.error
             other.stop()
