@@ -13,11 +13,18 @@ calls each, so that both workers are busy), its status and median time; the byst
 latency (p50, p99, max) and the slowest health answer over that time; the server's resident
 memory before the row, at its peak (sampled every 10 ms) and 2 s after the row. Targets (issue
 18): bystander p99 <= 100 ms, health <= 1 s, memory back at its baseline.
+
+Then the attack rows (``tests/bench/attacks.py``, one process each, ``--attack-seconds`` long)
+with a bystander Blend every 20 ms: its latency during the attack, the slowest health answer,
+the server's memory before, at its peak, and when it came back within 20 % of before after the
+attack ended (looked at every 0.1 s for 10 s), and the machine's load average. Targets (issue
+36): bystander p99 <= 100 ms and max <= 250 ms, memory back within 20 % within 10 s.
 """
 from __future__ import annotations
 
 import argparse
 import multiprocessing as mp
+import os
 import sys
 import threading
 import time
@@ -45,6 +52,7 @@ from dqpose.rpc._proto.dqpose.v1 import handeye_pb2_grpc as hpb_grpc
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2_grpc as tpb_grpc
 from tests import _handeye as H
+from tests.bench.attacks import ATTACKS
 from tests.bench.bench_grpc import ServerProcess, request10
 
 L = limits.DEFAULT
@@ -235,7 +243,7 @@ def timed(fn):
     return run
 
 
-def _bystander(target: str, stop, out) -> None:
+def _bystander(target: str, stop, out, period: float = 0.005) -> None:
     """The bystander and the health checks, in a process of their own (as another client of the
     server would be): the heavy calls' answers, parsed in the bench's process, must not hold
     the bystander's interpreter lock and show up as server latency. Sends both lists of
@@ -251,7 +259,7 @@ def _bystander(target: str, stop, out) -> None:
     def bystander():
         blend(req, timeout=5.0)
 
-    samplers = [Sampler(timed(bystander), 0.005), Sampler(timed(check), 0.1)]
+    samplers = [Sampler(timed(bystander), period), Sampler(timed(check), 0.1)]
     for s in samplers:
         s.start()
     out.send("started")
@@ -311,17 +319,103 @@ def row(server, name: str, make, seconds: float) -> dict:
                 peak=max(rss.values), after=after)
 
 
+#: the attack rows' bystander: a Blend every this many seconds (issue 36's)
+ATTACK_PERIOD = 0.02
+#: RSS back within this fraction above its baseline, looked at for this many seconds
+BACK_WITHIN, BACK_SECONDS = 0.2, 10.0
+
+
+def attack_row(server, name: str, attack, seconds: float) -> dict:
+    """The bystander (a Blend every :data:`ATTACK_PERIOD`) and health while ``attack`` runs in
+    its own process for ``seconds``; the server's RSS then until it is back within
+    :data:`BACK_WITHIN` of where it was. Its background traffic runs from 3 s before."""
+    ctx = mp.get_context("spawn")
+    quiet = ctx.Event()
+    background = None
+    if attack.background is not None:
+        background = ctx.Process(target=attack.background, args=(server.target, quiet),
+                                 daemon=True)
+        background.start()
+        time.sleep(3.0)
+    try:
+        return _attacked(server, name, attack.attack, seconds)
+    finally:
+        quiet.set()
+        if background is not None:
+            background.join(30)
+
+
+def _attacked(server, name: str, attack, seconds: float) -> dict:
+    ctx = mp.get_context("spawn")
+    stop, (got, out) = ctx.Event(), ctx.Pipe(duplex=False)
+    others = ctx.Process(target=_bystander, args=(server.target, stop, out, ATTACK_PERIOD),
+                         daemon=True)
+    others.start()
+    assert got.recv() == "started"
+    time.sleep(1.0)
+    before, load = server.rss_mb(), os.getloadavg()[0]
+    rss = Sampler(server.rss_mb, 0.01)
+    rss.start()
+    ended = ctx.Event()
+    attacker = ctx.Process(target=attack, args=(server.target, ended), daemon=True)
+    attacker.start()
+    time.sleep(seconds)
+    ended.set()
+    stop.set()
+    blends, checks = got.recv()
+    others.join()
+    attacker.join(30)
+    if attacker.is_alive():
+        attacker.kill()
+    rss.stop.set()
+    rss.join()
+    t0, back = time.perf_counter(), None
+    while time.perf_counter() - t0 < BACK_SECONDS:
+        if server.rss_mb() <= (1 + BACK_WITHIN) * before:
+            back = time.perf_counter() - t0
+            break
+        time.sleep(0.1)
+    lat = np.array(blends) * 1e3
+    return dict(name=name, p50=float(np.percentile(lat, 50)), p99=float(np.percentile(lat, 99)),
+                max=float(lat.max()), health=float(max(checks)) * 1e3, before=before,
+                peak=max(rss.values), after=server.rss_mb(), back=back,
+                load=(load, os.getloadavg()[0]))
+
+
+def attack_table(rows: list) -> None:
+    print(f"\nAttacks ({ATTACK_PERIOD * 1e3:.0f} ms bystander; RSS back: seconds after the "
+          f"attack until within {BACK_WITHIN:.0%} of before, looked at for {BACK_SECONDS:g} s)"
+          f"\n")
+    print("| attack | bystander Blend p50 / p99 / max ms | health max ms | RSS before / peak / "
+          "now MB | RSS back | load before / after |")
+    print("|---|---|---|---|---|---|")
+    for r in rows:
+        back = "no" if r["back"] is None else f"{r['back']:.1f} s"
+        print(f"| {r['name']} | {r['p50']:.1f} / {r['p99']:.1f} / {r['max']:.1f} | "
+              f"{r['health']:.0f} | {r['before']:.0f} / {r['peak']:.0f} / {r['after']:.0f} | "
+              f"{back} | {r['load'][0]:.1f} / {r['load'][1]:.1f} |")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=2.0, help="heavy calls per row, at least")
     ap.add_argument("--only", default="", help="rows whose name contains this")
+    ap.add_argument("--attack-seconds", type=float, default=10.0, help="each attack's length")
+    ap.add_argument("--attacks", action="store_true", help="the attack rows only")
     args = ap.parse_args(argv)
     server = ServerProcess("aio", quiet_log=True)
-    rows = []
+    rows, attacked = [], []
     try:
         baseline = server.rss_mb()
-        for name, make in cases().items():
+        for name, attack in ATTACKS.items():
             if args.only.lower() in name.lower():
+                attacked.append(attack_row(server, name, attack, args.attack_seconds))
+                r = attacked[-1]
+                print(f"  {name}: p99 {r['p99']:.1f} ms, max {r['max']:.1f} ms, RSS "
+                      f"{r['before']:.0f}/{r['peak']:.0f}/{r['after']:.0f} MB, back "
+                      f"{r['back']}", file=sys.stderr, flush=True)
+        for name, make in cases().items():
+            if not args.attacks and args.only.lower() in name.lower():
                 rows.append(row(server, name, make, args.seconds))
                 r = rows[-1]
                 print(f"  {name}: {r['code']} x{r['calls']}, p99 {r['p99']:.1f} ms, health "
@@ -330,8 +424,11 @@ def main(argv=None) -> int:
     finally:
         server.stop()
     print(f"\nServer RSS at start {baseline:.0f} MB; workers {L.workers}; limits "
-          f"{service_limits()}\n")
-    print("| request | status x calls | call s (median) | bystander Blend p50 / p99 / max ms "
+          f"{service_limits()}")
+    attack_table(attacked)
+    if not rows:
+        return 0
+    print("\n| request | status x calls | call s (median) | bystander Blend p50 / p99 / max ms "
           "| health max ms | RSS before / peak / after MB |")
     print("|---|---|---|---|---|---|")
     for r in rows:

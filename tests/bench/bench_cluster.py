@@ -36,7 +36,7 @@ import numpy as np
 
 from dqpose.rpc.client import Client
 from tests.bench._table import markdown
-from tests.cluster._cluster import Proxy, Replica, missing
+from tests.cluster._cluster import BEHIND_PROXY, Proxy, Replica, missing
 
 PER_MESSAGE = 20
 IDENTITY = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
@@ -118,7 +118,7 @@ def main(argv=None) -> int:
     if args.world_failover_only:
         print(world_failover_table())
         return 0
-    replicas = [Replica(f"r{i + 1}", "--drain", "1") for i in range(3)]
+    replicas = [Replica(f"r{i + 1}", *BEHIND_PROXY, "--drain", "1") for i in range(3)]
     lines: list[list[str]] = []
     try:
         for _ in () if args.failover_only else (1,):

@@ -26,6 +26,11 @@ class Proxy(cluster.Proxy):
                          [(f"r{k + 1}", a) for k, a in enumerate(addresses)])
 
 
+#: a replica behind a proxy: every client reaches it from the proxy's host, one peer, so the
+#: per-peer bounds are the server's (docker/compose.yaml and deploy/kubernetes say the same)
+BEHIND_PROXY = ("--max-peer-subscriptions", "256", "--max-peer-streams", "1024")
+
+
 class Cluster:
     """Three replicas (r1, r2, r3) behind one proxy."""
 
@@ -34,7 +39,7 @@ class Cluster:
         self.proxy = None
         try:
             for i in range(3):
-                self.replicas.append(Replica(f"r{i + 1}", *flags))
+                self.replicas.append(Replica(f"r{i + 1}", *BEHIND_PROXY, *flags))
             self.proxy = Proxy(kind, [r.address for r in self.replicas])
         except BaseException:
             self.stop()

@@ -9,6 +9,7 @@ import os
 import pytest
 import yaml
 
+from dqpose import limits
 from dqpose.rpc import routing
 
 kv = pytest.importorskip("kubernetes_validate", reason="the [test] extra's kubernetes-validate")
@@ -66,6 +67,9 @@ def test_the_pieces_agree():
         assert container[probe]["grpc"]["port"] == port
     # the replica's name is its pod's, which the StatefulSet keeps stable
     assert args[args.index("--replica-name") + 1] == "$(POD_NAME)"
+    # behind Envoy every client is one peer: its bounds are the server's
+    assert (int(args[args.index("--max-peer-subscriptions") + 1])
+            >= limits.DEFAULT.max_subscriptions)
     assert any(e["name"] == "POD_NAME" and e["valueFrom"]["fieldRef"]["fieldPath"]
                == "metadata.name" for e in container["env"])
     # the kubelet's SIGKILL comes after the server's drain and grace
