@@ -73,6 +73,12 @@ def proxy_config(kind: str, text: str, replicas: list[tuple[str, str]], listen: 
     return result
 
 
+#: a replica's flags behind a proxy: every client reaches it from the proxy's host, one peer
+#: (dqpose.rpc.peers), so the per-peer bounds are the server's (docker/compose.yaml and
+#: deploy/kubernetes give the same)
+BEHIND_PROXY = ("--max-peer-subscriptions", "256", "--max-peer-streams", "1024")
+
+
 def free_port(host: str = "127.0.0.1") -> int:
     with socket.socket() as s:
         s.bind((host, 0))
@@ -243,7 +249,8 @@ def _serve(args, config: str) -> int:
     proxy = None
     try:
         for k in range(args.replicas):
-            replicas.append(Replica(f"r{k + 1}", "--drain", args.drain, echo=sys.stderr))
+            replicas.append(Replica(f"r{k + 1}", *BEHIND_PROXY, "--drain", args.drain,
+                                    echo=sys.stderr))
         proxy = Proxy(args.proxy, config, [(r.name, r.address) for r in replicas],
                       f"{args.host}:{args.port}")
         print(json.dumps({"event": "cluster", "address": proxy.target, "proxy": args.proxy,

@@ -9,7 +9,12 @@ import threading
 import time
 
 from dqpose.cli import cluster
-from dqpose.cli.cluster import Replica, free_port, missing  # noqa: F401 (the tests' names)
+from dqpose.cli.cluster import (  # noqa: F401 (the tests' names)
+    BEHIND_PROXY,
+    Replica,
+    free_port,
+    missing,
+)
 from dqpose.rpc.client import Client
 from tests.rpc.test_world_service import SOURCES, measurements
 
@@ -24,11 +29,6 @@ class Proxy(cluster.Proxy):
     def __init__(self, kind: str, addresses: list[str]):
         super().__init__(kind, os.path.join(DOCKER, cluster.PROXIES[kind][2]),
                          [(f"r{k + 1}", a) for k, a in enumerate(addresses)])
-
-
-#: a replica behind a proxy: every client reaches it from the proxy's host, one peer, so the
-#: per-peer bounds are the server's (docker/compose.yaml and deploy/kubernetes say the same)
-BEHIND_PROXY = ("--max-peer-subscriptions", "256", "--max-peer-streams", "1024")
 
 
 class Cluster:

@@ -9,7 +9,7 @@ import re
 
 import yaml
 
-from dqpose import limits
+from dqpose.cli.cluster import BEHIND_PROXY
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 DOCKER = os.path.join(ROOT, "docker")
@@ -43,7 +43,8 @@ def test_the_cluster_profile_serves_what_haproxy_dials():
         assert _flag(command, "--replica-name") == name       # x-dqpose-replica says which
         assert float(_flag(command, "--drain")) * 1000 > check_ms
         # behind the proxy every client is one peer: its bounds are the server's
-        assert int(_flag(command, "--max-peer-subscriptions")) >= limits.DEFAULT.max_subscriptions
+        for flag, value in zip(BEHIND_PROXY[::2], BEHIND_PROXY[1::2]):
+            assert _flag(command, flag) == value
     assert "./haproxy.cfg:/usr/local/etc/haproxy/haproxy.cfg:ro" in proxy["volumes"]
     assert any(p.endswith(f":{bind}") for p in proxy["ports"])
     assert set(proxy["depends_on"]) == set(cluster)

@@ -9,7 +9,7 @@ import os
 import pytest
 import yaml
 
-from dqpose import limits
+from dqpose.cli.cluster import BEHIND_PROXY
 from dqpose.rpc import routing
 
 kv = pytest.importorskip("kubernetes_validate", reason="the [test] extra's kubernetes-validate")
@@ -68,8 +68,8 @@ def test_the_pieces_agree():
     # the replica's name is its pod's, which the StatefulSet keeps stable
     assert args[args.index("--replica-name") + 1] == "$(POD_NAME)"
     # behind Envoy every client is one peer: its bounds are the server's
-    assert (int(args[args.index("--max-peer-subscriptions") + 1])
-            >= limits.DEFAULT.max_subscriptions)
+    for flag, value in zip(BEHIND_PROXY[::2], BEHIND_PROXY[1::2]):
+        assert args[args.index(flag) + 1] == value
     assert any(e["name"] == "POD_NAME" and e["valueFrom"]["fieldRef"]["fieldPath"]
                == "metadata.name" for e in container["env"])
     # the kubelet's SIGKILL comes after the server's drain and grace
