@@ -59,6 +59,11 @@ static PyMethodDef methods[] = {
     {"measurements_wire", py_measurements_wire, METH_VARARGS,
      "measurements_wire(q, t, covariances, weights, times, sources, bodies, field=3) -> bytes: "
      "repeated FuseStreamRequest.measurements (field 1: PublishRequest's)."},
+    {"fused_pose_wire", py_fused_pose_wire, METH_VARARGS,
+     "fused_pose_wire(body, time, mean, covariance, inliers, rejected, reasons, "
+     "rejected_sources, chi2, dof, iterations, status, distances, nis, tested, residuals, "
+     "sources, request, measurements, dropped, twist, twist_covariance, extrapolation, "
+     "latencies) -> FusedPose bytes."},
     {"blend_batch_wire", py_blend_batch_wire, METH_VARARGS,
      "blend_batch_wire(bytes, max_requests, max_total_poses, max_poses, default_tol, "
      "default_max_iter, max_iter_limit) -> (bytes, n) or None."},

@@ -31,6 +31,7 @@ PyObject *py_blend_wire(PyObject *self, PyObject *args);
 PyObject *py_blend_batch_wire(PyObject *self, PyObject *args);
 PyObject *py_fuse_stream_from_wire(PyObject *self, PyObject *args);
 PyObject *py_measurements_wire(PyObject *self, PyObject *args);
+PyObject *py_fused_pose_wire(PyObject *self, PyObject *args);
 
 /* py_fusion.c: the fusion and the constant-twist fit */
 PyObject *py_fuse(PyObject *self, PyObject *args);

@@ -8,6 +8,8 @@
 
 #include <string.h>
 
+#include "dq.h"
+#include "fused_wire.h"
 #include "wire.h"
 #include "py_functions.h"
 
@@ -287,5 +289,177 @@ done:
     Py_XDECREF(src);
     Py_XDECREF(body);
     PyMem_Free(buf);
+    return result;
+}
+
+/* ---- a FusedPose written (fused_wire.h) ------------------------------------------------------- */
+
+/* the n elements of obj as a C-contiguous array of type (NPY_DOUBLE, NPY_UINT32, ...), named
+ * for an error; None with n 0 is an empty array */
+static PyArrayObject *column(PyObject *obj, int type, npy_intp *n, npy_intp want, const char *name)
+{
+    PyArrayObject *a = (PyArrayObject *)PyArray_FROM_OTF(obj, type, NPY_ARRAY_IN_ARRAY |
+                                                                    NPY_ARRAY_FORCECAST);
+    if (!a) return NULL;
+    if (want >= 0 && PyArray_SIZE(a) != want) {
+        PyErr_Format(PyExc_ValueError, "%s: expected %zd values, got %zd", name, (Py_ssize_t)want,
+                     (Py_ssize_t)PyArray_SIZE(a));
+        Py_DECREF(a);
+        return NULL;
+    }
+    if (n) *n = PyArray_SIZE(a);
+    return a;
+}
+
+static int utf8(PyObject *s, const char *name, dq_str *out)
+{
+    if (!PyUnicode_Check(s)) {
+        PyErr_Format(PyExc_TypeError, "%s: expected a string, got %s", name, Py_TYPE(s)->tp_name);
+        return -1;
+    }
+    Py_ssize_t n;
+    out->s = PyUnicode_AsUTF8AndSize(s, &n);
+    out->n = (size_t)n;
+    return out->s ? 0 : -1;
+}
+
+/* each item of seq (a PySequence_Fast) read by fill into the k-th record of size bytes of a new
+ * array *out (the caller frees it); returns the count, or -1 with an exception set */
+typedef int (*fill_fn)(PyObject *item, void *out);
+
+static Py_ssize_t records(PyObject *seq, size_t size, fill_fn fill, void **out, const char *name)
+{
+    Py_ssize_t n = PySequence_Fast_GET_SIZE(seq);
+    *out = PyMem_Calloc(n ? (size_t)n : 1, size);
+    if (!*out) {
+        PyErr_NoMemory();
+        return -1;
+    }
+    for (Py_ssize_t k = 0; k < n; k++)
+        if (fill(PySequence_Fast_GET_ITEM(seq, k), (char *)*out + (size_t)k * size)) {
+            if (!PyErr_Occurred()) PyErr_Format(PyExc_ValueError, "%s[%zd]: malformed", name, k);
+            return -1;
+        }
+    return n;
+}
+
+static int fill_str(PyObject *item, void *out) { return utf8(item, "string", (dq_str *)out); }
+
+static int fill_source(PyObject *item, void *out)
+{
+    dq_wire_source *s = (dq_wire_source *)out;
+    PyObject *name;
+    if (!PyArg_ParseTuple(item, "OIIdddI", &name, &s->count, &s->rejected, &s->nis_mean, &s->low,
+                          &s->high, &s->verdict))
+        return -1;
+    return utf8(name, "sources.name", &s->name);
+}
+
+static int fill_dropped(PyObject *item, void *out)
+{
+    dq_wire_dropped *d = (dq_wire_dropped *)out;
+    PyObject *source, *reason;
+    if (!PyArg_ParseTuple(item, "IOdO", &d->index, &source, &d->age, &reason)) return -1;
+    return utf8(source, "dropped.source", &d->source) || utf8(reason, "dropped.reason", &d->reason);
+}
+
+static int fill_latency(PyObject *item, void *out)
+{
+    dq_wire_latency *a = (dq_wire_latency *)out;
+    PyObject *source;
+    if (!PyArg_ParseTuple(item, "Odddd", &source, &a->configured, &a->prior_sigma, &a->value,
+                          &a->sigma))
+        return -1;
+    return utf8(source, "latencies.source", &a->source);
+}
+
+/* fused_pose_wire(body, time, mean (8,), covariance (36), inliers, rejected, reasons,
+ * rejected_sources, chi2, dof, iterations, status, distances (n,), nis (n,), tested (n,),
+ * residuals (n, 6), sources [(name, count, rejected, nis_mean, low, high, verdict)], request,
+ * measurements, dropped [(index, source, age, reason)], twist (6,) or None, twist_covariance (36)
+ * or None, extrapolation, latencies [(source, configured, prior_sigma, value, sigma)]) -> the
+ * FusedPose's bytes (dq_fused_pose_write); status and verdicts as proto numbers. */
+PyObject *py_fused_pose_wire(PyObject *self, PyObject *args)
+{
+    PyObject *obody, *omean, *ocov, *oinl, *orej, *oreasons, *orsrc, *odist, *onis, *otested,
+             *ores, *osrc, *omeas, *odrop, *otwist, *otc, *olat;
+    dq_fused_pose f;
+    memset(&f, 0, sizeof f);
+    if (!PyArg_ParseTuple(args, "OdOOOOOOdIIIOOOOOIOOOOdO:fused_pose_wire", &obody, &f.time,
+                          &omean, &ocov, &oinl, &orej, &oreasons, &orsrc, &f.chi2, &f.dof,
+                          &f.iterations, &f.status, &odist, &onis, &otested, &ores, &osrc,
+                          &f.request, &omeas, &odrop, &otwist, &otc, &f.extrapolation, &olat))
+        return NULL;
+    PyArrayObject *arr[11] = {NULL};
+    PyObject *seq[5] = {NULL};
+    void *mem[5] = {NULL};
+    PyObject *result = NULL;
+    npy_intp n_inl, n_rej, n, n_meas;
+    if (utf8(obody, "body", &f.body)) goto done;
+    if (!(arr[0] = column(omean, NPY_DOUBLE, NULL, 8, "mean")) ||
+        !(arr[1] = column(ocov, NPY_DOUBLE, NULL, 36, "covariance")) ||
+        !(arr[2] = column(oinl, NPY_UINT32, &n_inl, -1, "inliers")) ||
+        !(arr[3] = column(orej, NPY_UINT32, &n_rej, -1, "rejected")) ||
+        !(arr[4] = column(odist, NPY_DOUBLE, &n, -1, "distances")) ||
+        !(arr[5] = column(onis, NPY_DOUBLE, NULL, n, "nis")) ||
+        !(arr[6] = column(otested, NPY_UINT8, NULL, n, "tested")) ||
+        !(arr[7] = column(ores, NPY_DOUBLE, NULL, 6 * n, "residuals")) ||
+        !(arr[8] = column(omeas, NPY_UINT64, &n_meas, -1, "measurements")))
+        goto done;
+    if (otwist != Py_None && (!(arr[9] = column(otwist, NPY_DOUBLE, NULL, 6, "twist")) ||
+                              !(arr[10] = column(otc, NPY_DOUBLE, NULL, 36, "twist_covariance"))))
+        goto done;
+    const char *names[5] = {"reasons", "rejected_sources", "sources", "dropped", "latencies"};
+    PyObject *given[5] = {oreasons, orsrc, osrc, odrop, olat};
+    for (int k = 0; k < 5; k++)
+        if (!(seq[k] = PySequence_Fast(given[k], names[k]))) goto done;
+    if (PySequence_Fast_GET_SIZE(seq[0]) != n_rej || PySequence_Fast_GET_SIZE(seq[1]) != n_rej) {
+        PyErr_SetString(PyExc_ValueError, "reasons, rejected_sources: expected one a rejection");
+        goto done;
+    }
+    Py_ssize_t got[5];
+    size_t sizes[5] = {sizeof(dq_str), sizeof(dq_str), sizeof(dq_wire_source),
+                       sizeof(dq_wire_dropped), sizeof(dq_wire_latency)};
+    fill_fn fills[5] = {fill_str, fill_str, fill_source, fill_dropped, fill_latency};
+    for (int k = 0; k < 5; k++)
+        if ((got[k] = records(seq[k], sizes[k], fills[k], &mem[k], names[k])) < 0) goto done;
+    double unit[8];
+    if (dq_unit(PyArray_DATA(arr[0]), unit)) {
+        PyErr_SetString(PyExc_ValueError, "mean: not a unit dual quaternion");
+        goto done;
+    }
+    dq_to_pose(unit, f.quat, f.t);
+    f.covariance = PyArray_DATA(arr[1]);
+    f.inliers = PyArray_DATA(arr[2]);
+    f.n_inliers = (size_t)n_inl;
+    f.rejected = PyArray_DATA(arr[3]);
+    f.n_rejected = (size_t)n_rej;
+    f.reasons = mem[0];
+    f.rejected_sources = mem[1];
+    f.distances = PyArray_DATA(arr[4]);
+    f.nis = PyArray_DATA(arr[5]);
+    f.tested = PyArray_DATA(arr[6]);
+    f.residuals = PyArray_DATA(arr[7]);
+    f.n = (size_t)n;
+    f.sources = mem[2];
+    f.n_sources = (size_t)got[2];
+    f.measurements = PyArray_DATA(arr[8]);
+    f.n_measurements = (size_t)n_meas;
+    f.dropped = mem[3];
+    f.n_dropped = (size_t)got[3];
+    f.twist = arr[9] ? PyArray_DATA(arr[9]) : NULL;
+    f.twist_covariance = arr[10] ? PyArray_DATA(arr[10]) : NULL;
+    f.latencies = mem[4];
+    f.n_latencies = (size_t)got[4];
+    result = PyBytes_FromStringAndSize(NULL, (Py_ssize_t)dq_fused_pose_bound(&f));
+    if (!result) goto done;
+    size_t len = dq_fused_pose_write(&f, (uint8_t *)PyBytes_AS_STRING(result));
+    _PyBytes_Resize(&result, (Py_ssize_t)len);
+done:
+    for (int k = 0; k < 11; k++) Py_XDECREF(arr[k]);
+    for (int k = 0; k < 5; k++) {
+        Py_XDECREF(seq[k]);
+        PyMem_Free(mem[k]);
+    }
     return result;
 }

@@ -9,8 +9,7 @@
 #include "blend.h"
 #include "dq.h"
 #include "fusion.h"
-
-enum { WT_VARINT = 0, WT_I64 = 1, WT_LEN = 2, WT_I32 = 5 };
+#include "pbwrite.h"
 
 typedef struct {
     const uint8_t *p, *end;
@@ -193,27 +192,6 @@ int dq_wire_blend_request(const uint8_t *buf, size_t len, dq_blend_request *r)
 }
 
 /* ---- the served Blend ----------------------------------------------------------------------- */
-
-static uint8_t *put_double(uint8_t *p, int field, double d)
-{
-    uint64_t v;
-    memcpy(&v, &d, sizeof v);
-    if (!v) return p; /* proto3 omits +0.0 (only: the runtime compares bits) */
-    *p++ = (uint8_t)(field << 3 | WT_I64);
-    for (int i = 0; i < 8; i++) *p++ = (uint8_t)(v >> (8 * i));
-    return p;
-}
-
-/* A submessage of doubles (fields 1..n); short enough that its length is one byte. */
-static uint8_t *put_doubles(uint8_t *p, int field, const double *d, int n)
-{
-    uint8_t *len = p + 1;
-    *p = (uint8_t)(field << 3 | WT_LEN);
-    p += 2;
-    for (int k = 0; k < n; k++) p = put_double(p, k + 1, d[k]);
-    *len = (uint8_t)(p - len - 1);
-    return p;
-}
 
 static size_t encode_response(const double *quat, const double *t, uint32_t iterations,
                               double residual, uint8_t *out)
@@ -522,22 +500,6 @@ int dq_wire_fuse_stream(const uint8_t *buf, size_t len, double sym_tol, dq_fuse_
 
 /* ---- the client's FuseStreamRequest ----------------------------------------------------------- */
 
-static uint8_t *put_varint(uint8_t *p, uint64_t v)
-{
-    for (; v >= 0x80; v >>= 7) *p++ = (uint8_t)(v | 0x80);
-    *p++ = (uint8_t)v;
-    return p;
-}
-
-static uint8_t *put_string(uint8_t *p, int field, const char *s, size_t n)
-{
-    if (!n) return p;
-    *p++ = (uint8_t)(field << 3 | WT_LEN);
-    p = put_varint(p, n);
-    memcpy(p, s, n);
-    return p + n;
-}
-
 size_t dq_wire_measurement(uint8_t *out, const char *source, size_t source_len, const char *body,
                            size_t body_len, double time, const double q[4], const double t[3],
                            const double *cov, double weight)
@@ -553,15 +515,7 @@ size_t dq_wire_measurement(uint8_t *out, const char *source, size_t source_len, 
     p = put_doubles(p, 1, t, 3);
     p = put_doubles(p, 2, q, 4);
     *len = (uint8_t)(p - len - 1);
-    if (cov) {
-        *p++ = (uint8_t)(5 << 3 | WT_LEN); /* packed */
-        p = put_varint(p, 36 * 8);
-        for (int k = 0; k < 36; k++) {
-            uint64_t v;
-            memcpy(&v, cov + k, sizeof v);
-            for (int i = 0; i < 8; i++) *p++ = (uint8_t)(v >> (8 * i));
-        }
-    }
+    if (cov) p = put_packed_doubles(p, 5, cov, 36);
     p = put_double(p, 6, weight);
     size_t n = (size_t)(p - start);
     uint8_t head[11], *h = head;

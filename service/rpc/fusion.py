@@ -24,14 +24,13 @@ from dqpose.rpc.fusion_convert import (
     DEFAULT_WINDOW,
     Measurements,
     Options,
-    fused_pose,
-    fused_to_msg,
+    fused_of,
     measurements_to_arrays,
     options_error,
     options_from_msg,
     unknown_sources,
 )
-from dqpose.rpc.wire import fuse_stream_from_wire, wire_rows
+from dqpose.rpc.wire import fuse_stream_from_wire, fused_pose_bytes, wire_rows
 from dqpose.world_ticks import first_tick, tick_phase, tick_time
 
 
@@ -181,11 +180,11 @@ class Stream:
                                     f"{options_error(e, 'options')}"), ids
 
 
-def _error_entry(r: int, measurement: int, details: str, body: str = "") -> pb.FusedPose:
-    """A StreamFuse answer saying what request ``r`` (its ``measurement``, -1: all of it) had
-    wrong."""
+def _error_entry(r: int, measurement: int, details: str, body: str = "") -> bytes:
+    """A StreamFuse answer (its bytes) saying what request ``r`` (its ``measurement``, -1: all
+    of it) had wrong."""
     return pb.FusedPose(body=body, request=r, error=pb.FuseError(
-        request=r, measurement=measurement, details=readable(details)))
+        request=r, measurement=measurement, details=readable(details))).SerializeToString()
 
 
 class Fusion(pb_grpc.FusionServicer):
@@ -202,20 +201,23 @@ class Fusion(pb_grpc.FusionServicer):
 
     # -- request -> response, no transport
 
-    def fuse(self, request: pb.FuseRequest) -> pb.FusedPose:
-        return fused_pose(request, self.limits, self.max_poses)
+    def fuse(self, request: pb.FuseRequest) -> bytes:
+        """Fuse's answer: the ``FusedPose``'s bytes (:func:`~dqpose.rpc.wire.fused_pose_bytes`)."""
+        fused, body = fused_of(request, self.limits, self.max_poses)
+        assert fused.time is not None       # the measurements have times (fused_of)
+        return fused_pose_bytes(fused, body, fused.time)
 
     def fuse_bytes(self, data: bytes) -> bytes:
         """What Fuse serves: ``FusedPose`` bytes for ``FuseRequest`` bytes."""
-        return self.fuse(_fuse_request(data)).SerializeToString()
+        return self.fuse(_fuse_request(data))
 
     def _fuse_small(self, data: bytes):
         """A small request's answer: on the event loop, unless it asks for a fit whose cost is
         not its size (:func:`_dear`), which goes to the worker pool, parsed once either way."""
         request = _fuse_request(data)
         if _dear(request.options):
-            return self.calls.work(lambda: self.fuse(request).SerializeToString())
-        return self.fuse(request).SerializeToString()
+            return self.calls.work(self.fuse, request)
+        return self.fuse(request)
 
     def stream_options(self, request: pb.FuseStreamRequest):
         """The first request's options as the stream's state; a ``FieldError`` ends the stream."""
@@ -235,12 +237,14 @@ class Fusion(pb_grpc.FusionServicer):
     def stream_step(self, state, request: pb.FuseStreamRequest, r: int,
                     first_id: int) -> list[pb.FusedPose]:
         """The answers to request ``r`` of a stream (its measurements numbered from
-        ``first_id``): fused poses and error entries, never an exception for bad input."""
-        return list(self._stream_answers(state, request, r, first_id))
+        ``first_id``): fused poses and error entries, never an exception for bad input; as
+        messages, for a reader (the stream serves their bytes)."""
+        return [pb.FusedPose.FromString(a)
+                for a in self._stream_answers(state, request, r, first_id)]
 
     def _stream_answers(self, state, request: pb.FuseStreamRequest, r: int, first_id: int):
-        """:meth:`stream_step`'s answers, the error entries made at once, each fused pose
-        when it is taken (what they will cost: ``state.cost``)."""
+        """:meth:`stream_step`'s answers as bytes, the error entries made at once, each fused
+        pose when it is taken (what they will cost: ``state.cost``)."""
         state.cost = 0
         out = []
         if r and (request.HasField("options") or request.output_rate):
@@ -259,13 +263,15 @@ class Fusion(pb_grpc.FusionServicer):
         return itertools.chain(out, self._answers(r, errors + more, bodies, answers))
 
     def stream_step_wire(self, state, data: bytes, r: int, first_id: int):
-        """:meth:`stream_answers_wire` with the answers made at once, as a list."""
+        """:meth:`stream_answers_wire` with the answers made at once, as a list of messages
+        (for a reader)."""
         answers, n = self.stream_answers_wire(state, data, r, first_id)
-        return list(answers), n
+        return [pb.FusedPose.FromString(a) for a in answers], n
 
     def stream_answers_wire(self, state, data: bytes, r: int, first_id: int):
         """:meth:`stream_step` of request ``r``'s bytes: ``(answers, its number of
-        measurements)``, the answers an iterator that fuses each as it is taken. A plain request
+        measurements)``, the answers an iterator of ``FusedPose`` bytes that fuses each as it is
+        taken (what StreamFuse serves and records). A plain request
         (measurements only) is decoded and checked in C
         (:func:`dqpose.rpc.wire.fuse_stream_from_wire`) and its valid measurements go to the tracker
         unchecked; any other takes the protobuf path. Both give the same answers. Bytes that are
@@ -299,23 +305,20 @@ class Fusion(pb_grpc.FusionServicer):
             if isinstance(fused, FieldError):
                 yield _error_entry(r, -1, str(fused), body)
                 continue
-            msg = fused_to_msg(fused, body, fused.time)
-            msg.request = r
-            msg.measurements.extend(ids.tolist())
-            yield msg
+            yield fused_pose_bytes(fused, body, fused.time, r, ids)
 
     # -- RPCs
 
     def register(self, server) -> None:
-        """``add_FusionServicer_to_server`` except that both RPCs take bytes: Fuse's are parsed
-        with the fit (:meth:`fuse_bytes`, off the event loop when large), StreamFuse's decoded by
-        :meth:`stream_step_wire` (the C decoder for plain ones)."""
+        """``add_FusionServicer_to_server`` except that both RPCs take and give bytes: Fuse's
+        are parsed with the fit (:meth:`fuse_bytes`, off the event loop when large),
+        StreamFuse's decoded by :meth:`stream_answers_wire` (the C decoder for plain ones); the
+        answers are written by :func:`~dqpose.rpc.wire.fused_pose_bytes`."""
         handlers: dict[str, grpc.RpcMethodHandler[Any, Any]] = {
             "Fuse": grpc.unary_unary_rpc_method_handler(
                 self.Fuse, request_deserializer=None, response_serializer=None),
             "StreamFuse": grpc.stream_stream_rpc_method_handler(
-                self.StreamFuse, request_deserializer=None,
-                response_serializer=pb.FusedPose.SerializeToString),
+                self.StreamFuse, request_deserializer=None, response_serializer=None),
         }
         generic = grpc.method_handlers_generic_handler(self.NAME, handlers)
         server.add_generic_rpc_handlers((generic,))

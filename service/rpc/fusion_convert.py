@@ -445,18 +445,26 @@ def fuse_from_msg(request, bounds: limits.Limits = limits.DEFAULT,
     return FuseArgs(m, options)
 
 
-def fused_pose(request, bounds: limits.Limits = limits.DEFAULT,
-               max_poses: int = DEFAULT_MAX_POSES) -> fpb.FusedPose:
-    """:func:`dqpose.fusion.fuse` of a ``FuseRequest`` as its ``FusedPose``, the request checked
-    (:func:`fuse_from_msg`) and the domain's errors named by field: Fuse's answer, and what
-    ``dqpose fuse --local`` computes in process."""
+def fused_of(request, bounds: limits.Limits = limits.DEFAULT,
+             max_poses: int = DEFAULT_MAX_POSES) -> tuple[fusion.Fused, str]:
+    """:func:`dqpose.fusion.fuse` of a ``FuseRequest`` and its body, the request checked
+    (:func:`fuse_from_msg`) and the domain's errors named by field: Fuse's fit."""
     args = fuse_from_msg(request, bounds, max_poses)
     try:
         fused = fusion.fuse(**args.kwargs())
     except ValueError as e:
         raise args.error(e) from None
     assert fused.time is not None       # the measurements have times (kwargs)
-    return fused_to_msg(fused, args.body, fused.time)
+    return fused, args.body
+
+
+def fused_pose(request, bounds: limits.Limits = limits.DEFAULT,
+               max_poses: int = DEFAULT_MAX_POSES) -> fpb.FusedPose:
+    """:func:`fused_of` as its ``FusedPose`` message: what ``dqpose fuse --local`` computes in
+    process (the server writes the same message's bytes in C)."""
+    fused, body = fused_of(request, bounds, max_poses)
+    assert fused.time is not None       # the measurements have times (fused_of)
+    return fused_to_msg(fused, body, fused.time)
 
 
 def _check_times(times: np.ndarray, index: np.ndarray, field: str, options: Options,

@@ -147,7 +147,7 @@ class _StreamFuse(_Player):
                 return
         else:
             got, n = self.fusion.stream_answers_wire(self.state, data, r, self.next_id)
-        self.given.extend(a.SerializeToString() for a in got)
+        self.given.extend(got)
         self.next_id += n
 
 

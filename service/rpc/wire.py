@@ -14,8 +14,10 @@ import numpy as np
 
 from dqpose import _dqcore
 from dqpose.errors import FieldError
+from dqpose.fusion import Fused
 from dqpose.fusion.validation import _SYMMETRY_TOL
 from dqpose.rpc.fusion_convert import (
+    STATUS_ENUMS,
     Measurements,
     measurement_columns,
     wire_measurement_error,
@@ -223,6 +225,29 @@ def publish_request_wire(batch, producer: str, sequence: int) -> bytes:
     if sequence:
         parts += [b"\x18", varint(sequence)]
     return b"".join(parts)
+
+
+# ---- a fused pose (the servers' answers) ---------------------------------------------------------
+
+def fused_pose_bytes(f: Fused, body: str, time: float, request: int = 0, measurements=(),
+                     pose=None, covariance=None) -> bytes:
+    """The ``FusedPose`` of fit ``f`` of ``body`` at ``time`` in wire bytes, written in C
+    (service/csrc/fused_wire.h) as protobuf writes the message
+    :func:`~dqpose.rpc.fusion_convert.fused_to_msg` makes with ``request`` and ``measurements``
+    set: every answer a server gives of a fit (Fuse, StreamFuse, a World's Subscribe) goes
+    through this one writer. ``pose`` and ``covariance``: another pose and covariance than the
+    fit's (a World answer relative to another body), its other fields the fit's."""
+    rejected = f.rejected
+    return _dqcore.fused_pose_wire(
+        body, float(time), f.mean if pose is None else pose,
+        f.covariance if covariance is None else covariance, f.inliers,
+        [r.index for r in rejected], [r.reason for r in rejected], [r.source for r in rejected],
+        f.chi2, f.dof, f.iterations, STATUS_ENUMS[f.status], f.distances, f.nis, f.tested,
+        f.residuals, [(s.name, s.count, s.rejected, s.nis_mean, s.low, s.high, int(s.verdict))
+                      for s in f.sources], request, measurements,
+        [(d.index, d.source, d.age, d.reason) for d in f.dropped], f.twist,
+        f.twist_covariance, f.extrapolation,
+        [(a.name, a.configured, a.prior_sigma, a.value, a.sigma) for a in f.latencies])
 
 
 # ---- answers read back (client side) ------------------------------------------------------------

@@ -41,7 +41,7 @@ from dqpose.rpc.peers import SUBSCRIPTION, FellBehind, Slot, exhausted
 from dqpose.rpc.routing import WORLD_HEADER, world_of
 from dqpose.rpc.wire import messages_wire, publish_from_wire, wire_rows
 from dqpose.rpc.world_convert import (
-    body_pose_msg,
+    body_pose_bytes,
     config_from_msg,
     config_msg,
     published_errors,
@@ -350,8 +350,8 @@ class Cell:
             for body, t, last in due:
                 key = (body, t, sub.relative_to)
                 if key not in cache:
-                    # serialized once here for every subscriber it goes to
-                    cache[key] = self._answer(body, t, sub.relative_to, last).SerializeToString()
+                    # written once here for every subscriber it goes to
+                    cache[key] = self._answer(body, t, sub.relative_to, last)
                 answers.append(cache[key])
             if answers:
                 sub.loop.call_soon_threadsafe(sub.deliver, answers)
@@ -389,9 +389,9 @@ class Cell:
             due = [d for j, d in enumerate(due) if j not in skip]
         return due, errors
 
-    def _answer(self, body: str, t: float, relative_to: str, last_id: int) -> fpb.FusedPose:
+    def _answer(self, body: str, t: float, relative_to: str, last_id: int) -> bytes:
         """Body ``body`` at tick ``t`` (relative to ``relative_to`` when set), or an error
-        entry naming why it cannot be answered."""
+        entry naming why it cannot be answered: a ``FusedPose``'s bytes."""
         r = self.requests
         try:
             p = self.world.pose(body, t)
@@ -400,11 +400,9 @@ class Cell:
                 p = domain.BodyPose(body, rel.time, rel.pose, rel.covariance, p.fused)
         except (ValueError, LookupError) as e:
             return fpb.FusedPose(body=body, time=t, request=r, error=fpb.FuseError(
-                request=r, measurement=-1, details=readable(f"body {body!r} at {t:.6g} s: {e}")))
-        msg = body_pose_msg(p)
-        msg.request = r
-        msg.measurements.append(last_id)
-        return msg
+                request=r, measurement=-1, details=readable(f"body {body!r} at {t:.6g} s: {e}"))
+            ).SerializeToString()
+        return body_pose_bytes(p, r, [last_id])
 
 
 class World:

@@ -13,17 +13,16 @@ import numpy as np
 from dqpose import world
 from dqpose.errors import FieldError
 from dqpose.names import name_problem
-from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from dqpose.rpc._proto.dqpose.v1 import world_pb2 as pb
 from dqpose.rpc.fusion_convert import (
     DEFAULT_MAX_EXTRAPOLATION,
-    fused_to_msg,
     options_from_msg,
     options_msg,
     source_msgs,
     sources_from_msg,
 )
 from dqpose.rpc.geometry import dq_to_pose
+from dqpose.rpc.wire import fused_pose_bytes
 
 
 def config_from_msg(msg: pb.WorldConfig, field: str = "config"):
@@ -111,20 +110,13 @@ def published_errors(published, index: np.ndarray, field: str) -> list:
             for e in published.errors]
 
 
-def body_pose_msg(p, out=None):
-    """A :class:`dqpose.world.BodyPose` as a ``FusedPose``: every field of its fit when it has
-    one, its pose and covariance (a relative one's) either way."""
-    msg = fpb.FusedPose() if out is None else out
-    if p.fused is not None:
-        fused_to_msg(p.fused, p.body, p.time, msg)
-        if p.pose is p.fused.mean and p.covariance is p.fused.covariance:
-            return msg      # a body's own pose (World.pose's): the fit's, written once
-        msg.ClearField("pose")
-        del msg.covariance[:]
-    msg.body, msg.time = p.body, float(p.time)
-    dq_to_pose(np.asarray(p.pose, dtype=np.float64), msg.pose)
-    msg.covariance.extend(np.asarray(p.covariance, dtype=np.float64).ravel().tolist())
-    return msg
+def body_pose_bytes(p, request: int = 0, measurements=()) -> bytes:
+    """A :class:`dqpose.world.BodyPose` with its fit (a Subscribe answer) as ``FusedPose``
+    bytes (:func:`dqpose.rpc.wire.fused_pose_bytes`): every field of its fit, its own pose and
+    covariance (a relative one's), ``request`` and the fused ``measurements``."""
+    assert p.fused is not None          # a tick's answer is a body's fit
+    return fused_pose_bytes(p.fused, p.body, p.time, request, measurements, p.pose,
+                            p.covariance)
 
 
 def relative_msg(p) -> pb.RelativePose:

@@ -54,7 +54,7 @@ from dqpose.fusion import Source
 from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
 from dqpose.rpc.client_types import Batch
 from dqpose.rpc.wire import publish_from_wire, publish_request_wire, wire_rows
-from dqpose.rpc.world_convert import body_pose_msg, relative_msg
+from dqpose.rpc.world_convert import body_pose_bytes, relative_msg
 from dqpose.world import World, WorldOptions
 from dqpose.world_ticks import Ticks, tick_phase
 from tests.bench._table import markdown
@@ -110,7 +110,7 @@ class Engine:
 
     def tick(self, body: str, t: float) -> bytes:
         """The Subscribe answer of ``body`` at tick ``t``."""
-        return body_pose_msg(self.world.pose(body, t)).SerializeToString()
+        return body_pose_bytes(self.world.pose(body, t))
 
     def lookup(self, target: str, source: str) -> bytes:
         """The Lookup answer of ``T_target_source`` at time 0 (the newest both are known at)."""

@@ -150,17 +150,24 @@ def ingest_rows(messages: int = 2000) -> list[list[str]]:
 def answer_rows(messages: int = 2000) -> list[list[str]]:
     """A Subscribe answer as the server makes it for a tick of the target scene
     (:func:`_target_scene`): the body's fit (``World.pose``, NIS and the sources' verdicts
-    included) and its ``FusedPose`` message serialized (``body_pose_msg``), each timed, p50."""
-    from dqpose.rpc.world_convert import body_pose_msg
-    fits, msgs, sizes = [], [], []
+    included) and its ``FusedPose`` bytes (``body_pose_bytes``, the C writer), each timed, p50;
+    beside it the same message made by protobuf (``fused_to_msg``, serialized), alternated."""
+    from dqpose.rpc.fusion_convert import fused_to_msg
+    from dqpose.rpc.world_convert import body_pose_bytes
+    fits, msgs, protobuf, sizes = [], [], [], []
 
     def answer(body: str, t: float) -> None:
         t0 = time.perf_counter()
         p = world.pose(body, t)
         t1 = time.perf_counter()
-        body_pose_msg(p).SerializeToString()
+        body_pose_bytes(p, 1, [7])
+        t2 = time.perf_counter()
+        msg = fused_to_msg(p.fused, p.body, p.time)
+        msg.request, msg.measurements[:] = 1, [7]
+        msg.SerializeToString()
         fits.append(t1 - t0)
-        msgs.append(time.perf_counter() - t1)
+        msgs.append(t2 - t1)
+        protobuf.append(time.perf_counter() - t2)
         sizes.append(len(p.fused.nis))
     world, step = _target_scene(answer)
     step(messages, True)
@@ -168,8 +175,10 @@ def answer_rows(messages: int = 2000) -> list[list[str]]:
               f"window 0.2 s, 10 s of history")
     return [["Subscribe answer (in process)", "a tick's fit (World.pose)",
              f"{1e6 * np.median(fits):.1f}", "µs p50", detail],
-            ["Subscribe answer (in process)", "its FusedPose message, serialized",
-             f"{1e6 * np.median(msgs):.1f}", "µs p50", detail]]
+            ["Subscribe answer (in process)", "its FusedPose bytes (the C writer)",
+             f"{1e6 * np.median(msgs):.1f}", "µs p50", detail],
+            ["Subscribe answer (in process)", "the same by protobuf (fused_to_msg, serialized)",
+             f"{1e6 * np.median(protobuf):.1f}", "µs p50", detail]]
 
 
 def publish_request_rows(requests: int = 3000, rounds: int = 3,

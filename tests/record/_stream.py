@@ -57,10 +57,9 @@ def answers(data: list[bytes]) -> list[list[pb.FusedPose]]:
     for r, d in enumerate(data):
         if state is None:
             state, first, n = servicer._open_stream(d)
-            got = list(first)
         else:
             first, n = servicer.stream_answers_wire(state, d, r, next_id)
-            got = list(first)
+        got = [pb.FusedPose.FromString(a) for a in first]     # served as bytes
         out.append(got)
         next_id += n
     return out
