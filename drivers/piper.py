@@ -67,7 +67,10 @@ class PiperArm(Arm):
     ``move`` checks its arguments with :meth:`Limits.check_move`. If no servo set-point arrives
     for ``watchdog`` seconds the arm is told to hold its measured pose. The arm counts as
     connected while both end-pose feedback and arm status (0x2A1) are younger than
-    ``stale_after``. ``watchdog``, ``stale_after`` and the other keys of
+    ``stale_after``: when not given, the larger of its default (0.35 s) and
+    :data:`STALE_PERIODS` times the feedback's period as measured (the median of the last
+    intervals of each kind, the slower kind's), the measure started again after feedback that
+    went stale resumes (a gap is no period). ``watchdog``, ``stale_after`` and the other keys of
     :data:`dqpose.drivers.spec.ARM_KEYS` are ``options``. ``own_bus`` shuts the bus down on
     ``close()`` (``open_arm`` does, and waits up to ``connect_timeout`` for the arm's first
     feedback).
@@ -141,6 +144,10 @@ class PiperArm(Arm):
                 raise ValueError(f"{name}: must be a positive number, got {v!r}")
         if limits is not None and not isinstance(limits, Limits):
             raise ValueError(f"limits: expected a drivers.base.Limits, got {type(limits).__name__}")
+        # stale_after not given: at least STALE_PERIODS feedback periods (the stale_after
+        # property); given: as given
+        self._stale_given = options.get("stale_after") is not None
+        self._periods = {"status": _Period(), "pose": _Period()}
         self._set_options("piper", options)
         self.bus = bus
         self._own_bus = bool(own_bus)
@@ -180,6 +187,18 @@ class PiperArm(Arm):
         self._thread = threading.Thread(target=self._receive, name="piper-rx", daemon=True)
         self._thread.start()
 
+    @property
+    def stale_after(self) -> float:
+        """Feedback older than this is a fault (s): as given, else the larger of the default and
+        :data:`STALE_PERIODS` times the slower feedback's measured period."""
+        if self._stale_given:
+            return self._stale
+        return max(self._stale, STALE_PERIODS * max(p.period for p in self._periods.values()))
+
+    @stale_after.setter
+    def stale_after(self, value: float) -> None:      # _set_options: given or the default
+        self._stale = float(value)
+
     # ---- receive side -------------------------------------------------------------------------
     def _receive(self) -> None:
         while not self._closed.is_set():
@@ -217,9 +236,11 @@ class PiperArm(Arm):
             return
         pose = units_to_pose(ep)
         stamp = msg.timestamp if msg.timestamp else time.time()
+        now = time.monotonic()
         with self._lock:
+            self._periods["pose"].arrived(now - self._pose_mono, self.stale_after)
             self._prev = (self._pose, self._pose_time)
-            self._pose, self._pose_time, self._pose_mono = pose, stamp, time.monotonic()
+            self._pose, self._pose_time, self._pose_mono = pose, stamp, now
             self.poses += 1
 
     def _handle_status(self, msg: can.Message) -> None:
@@ -229,9 +250,11 @@ class PiperArm(Arm):
             self._count(e.reason)
             return
         fault = describe_status(report)
+        now = time.monotonic()
         with self._lock:
+            self._periods["status"].arrived(now - self._report_mono, self.stale_after)
             prev, was_bad = self._report, bool(self._fault[2])
-            self._report, self._report_mono, self._fault = report, time.monotonic(), fault
+            self._report, self._report_mono, self._fault = report, now, fault
             self.reports += 1
         went_bad = bool(fault[2]) and not was_bad
         left_can = (prev is not None and prev.ctrl_mode == CTRL_MODE_CAN
@@ -477,7 +500,7 @@ class PiperArm(Arm):
             error = fault
         extra = {"feedback_age": age, "poses": poses, "frames": frames, "malformed": malformed,
                  "watchdog_stops": self.watchdog_stops, "status_age": report_age,
-                 "reports": reports}
+                 "reports": reports, "stale_after": self.stale_after}
         if report is not None:
             extra.update(ctrl_mode=report.ctrl_mode, arm_status=report.arm_status,
                          mode_feed=report.mode_feed, teach_status=report.teach_status,
@@ -500,3 +523,33 @@ class PiperArm(Arm):
         self._thread.join(timeout=1.0)
         if self._own_bus:
             self.bus.shutdown()
+
+
+#: stale_after, when not given, is at least this many feedback periods
+STALE_PERIODS = 3
+
+
+class _Period:
+    """One kind of feedback's period: the median of its last intervals (0 until there are a
+    few), measured again from scratch after a gap longer than stale_after (a recovery)."""
+
+    KEEP, EVERY = 32, 8         # intervals kept; the median taken again every EVERY of them
+
+    def __init__(self):
+        self.intervals: list[float] = []
+        self.period = 0.0
+        self._new = 0
+
+    def arrived(self, interval: float, stale_after: float) -> None:
+        if not math.isfinite(interval):
+            return                  # the first one
+        if interval > stale_after:
+            self.intervals, self.period, self._new = [], 0.0, 0
+            return
+        self.intervals.append(interval)
+        if len(self.intervals) > self.KEEP:
+            del self.intervals[0]
+        self._new += 1
+        if self._new >= self.EVERY:
+            self._new = 0
+            self.period = float(np.median(self.intervals))

@@ -43,11 +43,11 @@ def test_every_key_has_a_default_for_every_arm_and_one_line_of_help():
     for kind in drivers.ARMS:
         values = resolve(kind, {})
         assert set(values) == set(ARM_KEYS) and all(v > 0 for v in values.values())
-    assert resolve("ur", {})["stale_after"] == 0.1 and resolve("piper", {})["stale_after"] == 0.2
+    assert resolve("ur", {})["stale_after"] == 0.1 and resolve("piper", {})["stale_after"] == 0.35
     assert resolve("ur", {"max_tracking": 0.01})["max_tracking"] == 0.01
     lines = key_table().splitlines()
     assert len(lines) == len(ARM_KEYS)
-    assert lines[0].startswith("stale_after (s, default piper 0.2, ur 0.1): ")
+    assert lines[0].startswith("stale_after (s, default piper 0.35, ur 0.1): ")
     with pytest.raises(ValueError, match=r"^stale_timeout: unknown arm key \(did you mean "
                                          r"'stale_after'\?\)"):
         resolve("piper", {"stale_timeout": 0.5})
