@@ -22,6 +22,7 @@ from grpc_reflection.v1alpha import _async as reflection_aio
 from grpc_reflection.v1alpha import reflection, reflection_pb2_grpc
 
 from dqpose import record, tokens
+from dqpose.limits import OverLimit
 from dqpose.names import quoted
 from dqpose.rpc import routing
 from dqpose.rpc.blending import Blending
@@ -121,10 +122,12 @@ class Health(health_pb2_grpc.HealthServicer):
     Watch streams end (after their last status) once the server closes: an open watch would
     otherwise hold the shutdown for the whole grace period."""
 
-    def __init__(self) -> None:
+    def __init__(self, peers: Peers | None = None) -> None:
         self._status: dict[str, int] = {}
         self._changed = asyncio.Condition()
         self._closed = self._stopping = False
+        # a Watch is a stream of its peer (open to clients without a token: bounded all the same)
+        self._peers = peers if peers is not None else Peers()
 
     async def set(self, service: str, status: int) -> None:
         async with self._changed:
@@ -171,6 +174,10 @@ class Health(health_pb2_grpc.HealthServicer):
         return health_pb2.HealthCheckResponse(status=status)
 
     async def Watch(self, request, context):
+        try:
+            self._peers.open("Watch", context)
+        except OverLimit as e:
+            await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, str(e))
         unknown = health_pb2.HealthCheckResponse.SERVICE_UNKNOWN
         sent = None
         while True:
@@ -416,7 +423,7 @@ async def start(cfg: ServerConfig) -> Running:
             s.world = world.domain_world       # made when a waypoint first names a frame
     for servicer in servicers:
         servicer.register(server)
-    health_servicer = Health()
+    health_servicer = Health(calls.peers)
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     reflection_pb2_grpc.add_ServerReflectionServicer_to_server(_Reflection(SERVICE_NAMES), server)
     try:

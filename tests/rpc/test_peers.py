@@ -121,3 +121,21 @@ def test_blend_streams_read_ahead_is_bounded_in_bytes():
         await asyncio.wait_for(task, 5)
         assert put == 10
     asyncio.run(run())
+
+
+def test_health_watches_are_streams_of_their_peer_too():
+    """Health is open to clients without a token: its Watch streams are bounded all the same."""
+    from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+    with ServerThread(limits=limits.Limits(max_peer_streams=2)) as server, \
+            grpc.insecure_channel(server.target) as channel:
+        watch = health_pb2_grpc.HealthStub(channel).Watch
+        held = [watch(health_pb2.HealthCheckRequest()) for _ in range(2)]
+        for w in held:
+            assert next(w).status == health_pb2.HealthCheckResponse.SERVING
+        with pytest.raises(grpc.RpcError) as e:
+            next(watch(health_pb2.HealthCheckRequest()))
+        assert e.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+        assert "max_peer_streams = 2 streams" in e.value.details()
+        for w in held:
+            w.cancel()
