@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 import re
 import sys
+import threading
 import time
 from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
@@ -29,8 +30,14 @@ SIGMA = np.eye(6) * 1e-6
 def fed_world(target: str, stop) -> None:
     """The world an attack meets: :data:`BODIES` bodies at :data:`RATE` Hz of measurement time,
     published paced on the wall clock into the default world (configured here) by an ordinary
-    producer until ``stop`` is set."""
+    producer, and an ordinary subscriber reading every answer, until ``stop`` is set."""
     from dqpose.rpc.client import Batch, Client
+
+    def subscriber():
+        with Client(target) as reader:
+            for _ in reader.subscribe():
+                if stop.is_set():
+                    return
 
     names = [f"body{b}" for b in range(BODIES)]
     poses = lie.se3_exp(0.1 * np.random.default_rng(0).normal(size=(BODIES, 6)))
@@ -47,6 +54,7 @@ def fed_world(target: str, stop) -> None:
     with Client(target) as client:
         client.configure_world([Source("cam", dq.identity())], window=2.0,
                                twist_covariance=np.eye(6) * 1e-2)
+        threading.Thread(target=subscriber, daemon=True).start()
         for _ in client.publish(batches(), producer=f"feed-{os.getpid()}"):
             pass
 
@@ -107,16 +115,22 @@ def _ended(calls, wait: float = 2.0) -> str:
 @dataclass(frozen=True)
 class Attack:
     """An attack (``attack(target, stop)``) and the ordinary traffic it meets (``background``,
-    the same shape, running from before the row's baseline to after its memory is looked at;
-    None: none)."""
+    the same shape, running for ``warmup`` s before the row's baseline and until its memory has
+    been looked at; None: none)."""
 
     attack: Callable
     background: Optional[Callable] = None
+    warmup: float = 3.0
+
+
+#: the fed world's warm-up: its fits kept (dqpose.world's cache of 4096) filled once, 300 a
+#: second, so that the baseline holds them
+WORLD_WARMUP = 16.0
 
 
 #: name -> the attack
 ATTACKS = {
-    "the world fed (no attack)": Attack(nothing, fed_world),
+    "the world fed and read (no attack)": Attack(nothing, fed_world, WORLD_WARMUP),
     "P4: 64 never-read SubscribeBatches, reopened every 5 s": Attack(
-        never_read_subscriptions, fed_world),
+        never_read_subscriptions, fed_world, WORLD_WARMUP),
 }

@@ -14,10 +14,11 @@ latency (p50, p99, max) and the slowest health answer over that time; the server
 memory before the row, at its peak (sampled every 10 ms) and 2 s after the row. Targets (issue
 18): bystander p99 <= 100 ms, health <= 1 s, memory back at its baseline.
 
-Then the attack rows (``tests/bench/attacks.py``, one process each, ``--attack-seconds`` long)
-with a bystander Blend every 20 ms: its latency during the attack, the slowest health answer,
-the server's memory before, at its peak, and when it came back within 20 % of before after the
-attack ended (looked at every 0.1 s for 10 s), and the machine's load average. Targets (issue
+Then the attack rows (``tests/bench/attacks.py``, one process each, ``--attack-seconds`` long,
+beside the ordinary traffic it meets) with a bystander Blend every 20 ms: its latency during
+the attack, the slowest health answer, the server's memory before, at its peak, and when it came
+back within 20 % of before after the attack ended (looked at every 0.1 s for 10 s), and the
+machine's load average. Targets (issue
 36): bystander p99 <= 100 ms and max <= 250 ms, memory back within 20 % within 10 s.
 """
 from __future__ import annotations
@@ -328,7 +329,7 @@ BACK_WITHIN, BACK_SECONDS = 0.2, 10.0
 def attack_row(server, name: str, attack, seconds: float) -> dict:
     """The bystander (a Blend every :data:`ATTACK_PERIOD`) and health while ``attack`` runs in
     its own process for ``seconds``; the server's RSS then until it is back within
-    :data:`BACK_WITHIN` of where it was. Its background traffic runs from 3 s before."""
+    :data:`BACK_WITHIN` of where it was. Its background traffic runs from ``warmup`` s before."""
     ctx = mp.get_context("spawn")
     quiet = ctx.Event()
     background = None
@@ -336,7 +337,7 @@ def attack_row(server, name: str, attack, seconds: float) -> dict:
         background = ctx.Process(target=attack.background, args=(server.target, quiet),
                                  daemon=True)
         background.start()
-        time.sleep(3.0)
+        time.sleep(attack.warmup)
     try:
         return _attacked(server, name, attack.attack, seconds)
     finally:
