@@ -5,7 +5,9 @@ answers arrive, summed up with the fused pose's NEES, and plotted over time.
 
 The scene: the body is a ChArUco board held by a UR (the UR simulator, driven through the real
 ``ur_rtde`` by ``drivers.open_arm``), its base the world frame, the board ``BOARD_OFFSET`` from
-the flange. The arm follows a slow loop (small sinusoids in position and angle) through
+the flange. The arm follows a slow loop (small sinusoids in position and angle, at most
+``GENTLE_SPEED``, 3.5 mm/s: a busy machine's stalls leave the arm's pose old, and the loop
+stops the arm once it lags 5 mm behind, see ``demo_fusion_scene``) through
 :class:`dqpose.drivers.executor.Executor`, in the arm's own process where the platform allows
 (nothing in this one then delays a set-point); the simulator's tool pose is the ground truth. The
 control loop reads the arm after every tenth set-point (every 20 ms) and hands the reading over with
@@ -14,7 +16,7 @@ its time: the UR's measurement is the true pose with the arm's absolute accuracy
 real arm's kinematic model is not), stamped with the time it was read. Each of two cameras with
 known extrinsics captures at 10 Hz of the same clock (their frames half a period apart): a capture
 renders the board at the true pose of that instant (between two reads 20 ms apart, exact to well
-below a micrometre at the loop's few cm/s) with blur and pixel noise and detects it with
+below a micrometre at the loop's few mm/s) with blur and pixel noise and detects it with
 :class:`dqpose.drivers.camera.CharucoCamera` (covariance from PnP); the detection is stamped 40 ms
 after the capture, as a camera's frame is. The stream carries them in the order of their stamps, as
 the devices would deliver them.
@@ -28,21 +30,31 @@ a camera alone.
 The server is told each camera's latency only as a prior, 30 +- 20 ms, and estimates it online
 (:class:`dqpose.fusion.Source` ``latency_sigma``); the UR's stamps are taken as exact. It fuses
 a sliding window of 0.2 s and answers at 10 Hz of the measurements' time with the fused pose at
-that instant. The peers at the same instant: each source alone as its user would have it then
-(ScLERP of its two newest measurements delivered by then, latency known; the bench's
-single-source rows do the same).
+that instant. The peers at the same instant: each source alone as its user would have it then,
+from what it had delivered by then: the arm's newest read (stamped exactly, 20 ms apart;
+extrapolated along two reads at least 10 ms apart it was 3.25 mm RMS off, against 1.87 mm held,
+and along two reads a busy machine took microseconds apart hundreds of metres), each camera's
+two newest frames extrapolated by ScLERP, their latency known (the bench's single-source rows do
+the same).
 
 The fused pose's NEES tells whether its covariance is honest. The simulated arm follows each
 set-point exactly (a real arm's servo filters them), and on a machine shared with other work
-many reach the controller late, so its path is rough on the scale of the fused pose's
-uncertainty (0.03-0.1 mm RMS, against ~0.1 mm): a constant twist over the window (the fusion's
-default) left the NEES at 9.7-10.4 at loads of 3-5. The motion model is therefore a constant
-twist with white-noise acceleration, ``ACCELERATION_PSD`` (3e-5 per axis, m^2/s^3 and rad^2/s^3):
-on a recorded run with a path rough by 0.04 mm, 1e-5 gave a NEES of 7.2 and 3e-5 of 6.4, and
-live at a load of 5-7 it was 5.8. That model is the fusion's NumPy path, ~60 ms of processor time
-per answer instead of ~1.5 ms; the stream then runs further behind real time. The report
-measures the roughness (each read against a quadratic through the reads within half a window)
-and says so when it explains a NEES above its band.
+many reach the controller late, or the controller stalls, so its path is rough on the scale of
+the fused pose's uncertainty (~0.1 mm): a constant twist over the window (the fusion's default)
+left the NEES at 9.7-10.4 at loads of 3-5 with the loop four times as fast as today's, and at
+6.3 and 41.9 at today's beside two CPU hogs (the second run's reads paused 0.54 s). The motion
+model is therefore a constant twist with white-noise acceleration, ``ACCELERATION_PSD`` (3e-6
+per axis, m^2/s^3 and rad^2/s^3): beside two CPU hogs (a load of 17) it gave a NEES of 6.0 and
+5.2, where 3e-5 gave 5.1 (tuned when the loop was four times as fast: 1e-5 gave 7.2 and 3e-5
+6.4 on a recorded run). That model is the fusion's NumPy path, ~60 ms of processor time per
+answer instead of ~1.5 ms; the stream then runs further behind real time. The report measures the
+roughness (each read against a quadratic through the reads within half a window) and says so when
+it explains a NEES above its band.
+
+What a run prints: what it does and what each column of its table is, a row per fused answer,
+the summary of the rows, the claims checked (the fused pose more accurate than each source
+alone; its NEES in its band) with what in the run explains one that fails, and, last, a one-line
+verdict.
 """
 from __future__ import annotations
 
@@ -61,6 +73,7 @@ from dqpose.cli.demo_fusion_scene import (
     ARM_RATE,
     BOARD_OFFSET,
     CAMERA_LATENCY,
+    GENTLE_SPEED,
     HOME,
     MIN_PATH_STEPS,
     STEP,
@@ -75,9 +88,12 @@ from dqpose.cli.demo_fusion_scene import (
 LATENCY_PRIOR = (0.030, 0.020)   # what the server is told of it (a data sheet): estimated online
 OUTPUT_RATE = 10.0         # fused answers per second of the measurements' time
 WINDOW = 0.2               # s of measurements each answer fuses (StreamFuse's default)
+#: the noise drawn on each arm read, (rotation rad, translation m) per axis: a real arm's
+#: absolute accuracy (the simulated arm itself is exact)
+ARM_SIGMA = (2e-3, 1e-3)
 MIN_ANSWERS = 200          # the summary's claims are made over at least this many answers
 NEES_PROBABILITY = 0.99    # the two-sided band the fused pose's mean NEES is tested against
-ACCELERATION_PSD = np.diag([3e-5] * 6)   # the motion model's (module docstring)
+ACCELERATION_PSD = np.diag([3e-6] * 6)   # the motion model's (module docstring)
 # The demo's arm is a simulator on a machine that may be busy: its data may pause this long
 # before it counts as lost, and its control loop be this many periods late before the arm stops
 # servoing (limits for a simulator, not for an arm that can hurt anyone).
@@ -151,14 +167,14 @@ def _follow(answers, scene, names, cams, errors, nees, latencies, out) -> list:
             cells.append(f"{errors[n][-1][1]:7.3f} {errors[n][-1][2]:6.2f}")
         nees.append(_nees(a.fused.mean, a.fused.covariance, T_true))
         sigma.append(float(lie.cov_sigmas(a.fused.covariance)[1]))
-        cells.append("  ".join(f"{1e3 * latencies[c.name][0]:5.1f}" for c in cams
-                               if c.name in latencies))
+        cells.append("  ".join(f"{1e3 * latencies[c.name][0]:5.1f}" if c.name in latencies
+                               else f"{'—':>5s}" for c in cams))
         if out is not None:
             print("  ".join(cells), file=out, flush=True)
     return sigma
 
 
-def run(steps: int = 200, *, seed: int = 0, arm_sigma=(2e-3, 1e-3), noise: float = 6.0,
+def run(steps: int = 200, *, seed: int = 0, arm_sigma=ARM_SIGMA, noise: float = 6.0,
         blur: float = 0.8, target: str | None = None, out=None, recorder=None) -> Result:
     """The demo: ``steps`` of 0.1 s (five arm reads and one frame of each camera each; the
     reads go on for two steps more, to deliver the last frames); prints a line per fused answer
@@ -279,37 +295,29 @@ def _digits(value: float, *bounds: float) -> int:
     return 6
 
 
-def verdict(result: Result) -> list[str]:
-    """The summary's claims, each checked on the run: the fused RMS error against each source
-    alone's, the fused NEES against its band; and, when a claim fails, what in the run explains
-    it."""
-    fused = result.series["fused"]
-    n = len(fused.t)
-    lines = []
-    rms = {k: (math.sqrt(np.mean(s.rotation_deg ** 2)), math.sqrt(np.mean(s.translation_mm ** 2)))
-           for k, s in result.series.items() if len(s.t)}
-    worse = [f"{k} alone ({rms[k][0]:.4f} deg / {rms[k][1]:.3f} mm)"
-             for k in result.names[:-1] if k in rms and "fused" in rms
-             and (rms["fused"][0] > rms[k][0] or rms["fused"][1] > rms[k][1])]
-    if "fused" in rms:
-        lines.append(f"fused RMS error over {n} answers: {rms['fused'][0]:.4f} deg / "
-                     f"{rms['fused'][1]:.3f} mm: " + (
-                         "at most every source alone's, in rotation and translation"
-                         if not worse else "above " + ", ".join(worse)))
+def _rms(result: Result) -> dict:
+    """Each series' RMS errors, ``(deg, mm)``, by name (those with a value)."""
+    return {k: (math.sqrt(np.mean(s.rotation_deg ** 2)), math.sqrt(np.mean(s.translation_mm ** 2)))
+            for k, s in result.series.items() if len(s.t)}
+
+
+def _worse(result: Result, rms: dict) -> list[str]:
+    """The sources whose RMS error alone is below the fused one's, in rotation or translation."""
+    return [k for k in result.names[:-1] if k in rms and "fused" in rms
+            and (rms["fused"][0] > rms[k][0] or rms["fused"][1] > rms[k][1])]
+
+
+def _nees_test(result: Result):
+    """``(mean, lo, hi)`` of the independent answers' NEES and its band, or None."""
     sub = independent(result)
-    consistent = False
-    if len(sub):
-        lo, hi = nees_band(len(sub))
-        mean = float(np.mean(sub))
-        consistent = lo <= mean <= hi
-        d = _digits(mean, lo, hi)
-        lines.append(f"fused NEES: mean {mean:.{d}f} over {len(sub)} answers with windows apart "
-                     f"(6 expected; {100 * NEES_PROBABILITY:g} % band {lo:.{d}f}-{hi:.{d}f}): "
-                     + ("consistent" if consistent else
-                        "too large: the covariance claims less than the error shows"
-                        if mean > hi else
-                        "too small: the covariance claims more than the error shows")
-                     + f"; over all {len(result.nees)} answers {np.mean(result.nees):.2f}")
+    if not len(sub):
+        return None
+    return (float(np.mean(sub)), *nees_band(len(sub)))
+
+
+def _why(result: Result) -> list[str]:
+    """What in the run can keep a claim of :func:`verdict` from holding."""
+    n = len(result.series["fused"].t)
     why = []
     t = result.timing
     if t["roughness"] > 0.5 * t["sigma"] > 0:
@@ -324,13 +332,105 @@ def verdict(result: Result) -> list[str]:
     if t["read_gap"] > 3.0 / ARM_RATE:
         why.append(f"the arm's reads were up to {1e3 * t['read_gap']:.0f} ms apart (a busy "
                    f"machine; {1e3 / ARM_RATE:.0f} ms planned)")
+    return why
+
+
+def verdict(result: Result) -> list[str]:
+    """The summary's claims, each checked on the run: the fused RMS error against each source
+    alone's, the fused NEES against its band; and, when a claim fails, what in the run explains
+    it."""
+    n = len(result.series["fused"].t)
+    lines = []
+    rms = _rms(result)
+    worse = _worse(result, rms)
+    if "fused" in rms:
+        lines.append(f"fused RMS error over {n} answers: {rms['fused'][0]:.4f} deg / "
+                     f"{rms['fused'][1]:.3f} mm: " + (
+                         "at most every source alone's, in rotation and translation"
+                         if not worse else "above " + ", ".join(
+                             f"{k} alone ({rms[k][0]:.4f} deg / {rms[k][1]:.3f} mm)"
+                             for k in worse)))
+    test = _nees_test(result)
+    consistent = False
+    if test is not None:
+        mean, lo, hi = test
+        consistent = lo <= mean <= hi
+        d = _digits(mean, lo, hi)
+        lines.append(f"fused NEES: mean {mean:.{d}f} over {len(independent(result))} answers "
+                     f"with windows apart (6 expected; {100 * NEES_PROBABILITY:g} % band "
+                     f"{lo:.{d}f}-{hi:.{d}f}): "
+                     + ("consistent" if consistent else
+                        "too large: the covariance claims less than the error shows"
+                        if mean > hi else
+                        "too small: the covariance claims more than the error shows")
+                     + f"; over all {len(result.nees)} answers {np.mean(result.nees):.2f}")
+    why = _why(result)
     if (worse or not consistent) and why:
         lines.append("why: " + "; ".join(why))
     return lines
 
 
+def conclusion(result: Result) -> str:
+    """The run in one line for a newcomer: whether fusing beat every source alone and whether
+    the fused pose's covariance was honest (the claims :func:`verdict` checks)."""
+    rms = _rms(result)
+    if "fused" not in rms:
+        return "verdict: no fused answer arrived, so nothing was shown (see the errors above)"
+    worse, test = _worse(result, rms), _nees_test(result)
+    because = ("'why:' above says what in the run kept it from it" if _why(result) else
+               "nothing measured in the run explains it")
+    fused = f"{rms['fused'][1]:.3f} mm / {rms['fused'][0]:.4f} deg RMS"
+    if worse:
+        return (f"verdict: on this run fusing did not beat {', '.join(worse)} alone (fused "
+                f"{fused}); {because}")
+    best = min((k for k in result.names[:-1] if k in rms), key=lambda k: rms[k][1])
+    line = (f"verdict: fusing works: the fused pose ({fused}) is more accurate than every "
+            f"source alone (the best, {best}: {rms[best][1]:.3f} mm / {rms[best][0]:.4f} deg)")
+    if test is None:
+        return line
+    mean, lo, hi = test
+    d = _digits(mean, lo, hi)
+    if lo <= mean <= hi:
+        return line + (f", and the uncertainty it states is honest (NEES {mean:.{d}f}, 6 "
+                       f"expected)")
+    return line + (f", but the uncertainty it states is not honest on this run (NEES "
+                   f"{mean:.{d}f}, 6 expected): {because}")
+
+
+def legend(steps: int) -> str:
+    """What the run does and what each column of its table is (printed before the table)."""
+    import textwrap
+    rs, ts = ARM_SIGMA
+    lines = [textwrap.fill(
+        f"{steps} steps of 0.1 s: a simulated UR holds a ChArUco board and moves it along a "
+        f"slow loop (at most {1e3 * GENTLE_SPEED:g} mm/s); the UR itself (read at "
+        f"{ARM_RATE:g} Hz) and two simulated cameras (10 Hz each, a frame "
+        f"{1e3 * CAMERA_LATENCY:.0f} ms late) measure the board, and StreamFuse fuses them over "
+        f"{WINDOW:g} s windows, answering {OUTPUT_RATE:g} times a second of their time. A row "
+        f"per answer, each error against the ground truth at the answer's instant, as rotation "
+        f"(deg) and position (mm):", 100)]
+    for column, text in (
+            ("t (s)", "the instant, seconds after the arm's first read"),
+            ("ur", f"the arm alone: its newest read (the simulated arm is exact; each read "
+                   f"carries the noise of a real arm's absolute accuracy, {1e3 * rs:g} mrad and "
+                   f"{1e3 * ts:g} mm per axis)"),
+            ("camera1, camera2", f"each camera alone: its two newest frames extrapolated to the "
+                                 f"instant (a frame is {1e3 * CAMERA_LATENCY:.0f}-"
+                                 f"{1e3 * (CAMERA_LATENCY + STEP):.0f} ms old by then)"),
+            ("fused", "StreamFuse's pose of the board at the instant, from all three"),
+            ("latency", f"each camera's latency as the server estimates it (told "
+                        f"{1e3 * LATENCY_PRIOR[0]:.0f} ± {1e3 * LATENCY_PRIOR[1]:.0f} ms, "
+                        f"simulated {1e3 * CAMERA_LATENCY:.0f} ms; the slow loop shows little "
+                        f"of it: 10 ms of latency is at most {10 * GENTLE_SPEED:.3f} mm of "
+                        f"motion, under a frame's noise, so it stays near what it was told)")):
+        lines.append(textwrap.fill(f"{column}: {text}", 100, initial_indent="  ",
+                                   subsequent_indent="      "))
+    return "\n".join(lines)
+
+
 def report(result: Result, out=None) -> None:
     out = out or sys.stdout       # looked up now: the caller may have redirected it
+    print("Over the run, the errors of the rows above (count: rows with a value):", file=out)
     print(f"{'source':10s} {'count':>5s}  {'rotation error (deg)':>24s}  "
           f"{'translation error (mm)':>24s}", file=out)
     print(f"{'':10s} {'':5s}  {'median':>11s} {'RMS':>12s}  {'median':>11s} {'RMS':>12s}",
@@ -406,12 +506,7 @@ def main(args: argparse.Namespace) -> int:
         import matplotlib  # noqa: F401
     except ImportError:
         matplotlib = None
-    print(f"{args.steps} steps of 0.1 s: a simulated UR holding a ChArUco board (read at "
-          f"{ARM_RATE:g} Hz) and two simulated cameras (10 Hz, {1e3 * CAMERA_LATENCY:.0f} ms "
-          f"latency, estimated online), streamed into StreamFuse ({WINDOW:g} s windows). At "
-          "each fused answer's instant, the error against the ground truth of each source alone "
-          "(ScLERP of what it had delivered by then, its latency known) and of the fused pose:",
-          flush=True)
+    print(legend(args.steps), flush=True)
     recorder = None
     if args.record is not None:
         from dqpose.cli.demo_record import open_file_recorder
@@ -431,4 +526,5 @@ def main(args: argparse.Namespace) -> int:
     else:
         plot(result, args.plot)
         print(f"plot: {args.plot}")
+    print(conclusion(result))
     return 0

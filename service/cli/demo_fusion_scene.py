@@ -21,27 +21,36 @@ HOME = (0.45, -0.10, 0.35, math.pi, 0.0, 0.0)
 
 # The path lasts at least this many 0.1 s steps, so it stays within the arm's default limits.
 MIN_PATH_STEPS = 40
+# The tool's top speed (m/s) along the loop: a shorter loop is a smaller one. A machine busy
+# enough to starve the simulator leaves the arm's pose as old as the stall, and the control loop
+# stops the arm once that pose is max_tracking (5 mm) behind its set-points: at 14 mm/s (the
+# full loop over 20 s) runs beside two CPU hogs ended TRACKING (5.007 mm) or on a pose 0.44 and
+# 0.72 s old; at 3.5 mm/s a stall of 1.4 s is needed.
+GENTLE_SPEED = 0.0035
 STEP = 0.1                 # s: one frame of each camera
 ARM_RATE = 50.0            # arm reads per second
 CAMERA_LATENCY = 0.040     # capture to stamp (the simulated truth)
 
 
-def wobble(k, n: int) -> np.ndarray:
+def wobble(k, n: int, size: float = 1.0) -> np.ndarray:
     """Offsets of set-points ``k`` of ``n`` from home, rotation-vector poses ``(..., 6)``: a loop
     starting and ending at rest (the phase follows 1 - cos, so speed and acceleration start at
-    zero)."""
+    zero), ``size`` times the full one (2 cm along x, 1 cm along y and z, 0.05 rad)."""
     k = np.minimum(np.asarray(k, dtype=np.float64), n)
     phase = math.pi * (1.0 - np.cos(math.pi * k / n))
     z = np.zeros_like(phase)
-    return np.stack([0.02 * np.sin(phase), 0.01 * np.sin(2 * phase),
-                     0.01 * (np.cos(phase) - 1.0), z, 0.05 * np.sin(phase), z], axis=-1)
+    return size * np.stack([0.02 * np.sin(phase), 0.01 * np.sin(2 * phase),
+                            0.01 * (np.cos(phase) - 1.0), z, 0.05 * np.sin(phase), z], axis=-1)
 
 
 def loop_path(n: int, period: float):
-    """The loop's set-points ``(times, T_base_flange)`` and the board's poses along it."""
+    """The loop's set-points ``(times, T_base_flange)`` over ``n`` periods, as large as
+    :data:`GENTLE_SPEED` allows (at most the full loop), and the board's poses along it."""
     from dqpose.drivers.rotvec import pose_from_rotvec
     k = np.arange(n + 1)
-    flange = pose_from_rotvec(np.array(HOME) + wobble(k, n))
+    full = wobble(k, n)
+    peak = float(np.max(np.linalg.norm(np.diff(full[:, :3], axis=0), axis=1))) / period
+    flange = pose_from_rotvec(np.array(HOME) + min(1.0, GENTLE_SPEED / peak) * full)
     board = dq.mul(flange, dq.from_pose(np.array(BOARD_OFFSET[0]), np.array(BOARD_OFFSET[1])))
     return k * period, flange, board
 
@@ -68,9 +77,11 @@ def cameras(T_world_board0: np.ndarray, board, intrinsics):
 
 class Track:
     """Poses over time (taken, and stamped when they reached the stream), appended by one thread
-    and read by others."""
+    and read by others. ``hold``: what a user of the source has at a time is its newest pose
+    (:meth:`at`)."""
 
-    def __init__(self):
+    def __init__(self, hold: bool = False):
+        self.hold = hold
         self.poses: list[np.ndarray] = []
         self.taken: list[float] = []
         self.stamps: list[float] = []
@@ -83,9 +94,14 @@ class Track:
     def at(self, t: float, known_by: float | None = None) -> np.ndarray | None:
         """The pose at ``t`` by ScLERP between the two taken times around it, or along the
         newest two beyond them, among the poses stamped by ``known_by`` (None: all); None with
-        fewer than two. The truth: the path moves a few cm/s, so between reads 20 ms apart
-        this is exact to well below a micrometre. A source alone: what a user of it does."""
+        fewer than two. With ``hold`` and ``known_by``, the newest pose stamped by then. The
+        truth: the path moves a few mm/s, so between reads 20 ms apart this is exact to well
+        below a micrometre. A source alone: what a user of it does (a camera's two newest
+        frames are a step apart; two reads of a busy arm may be microseconds apart, and
+        extrapolated along them a millimetre of noise became hundreds of metres)."""
         n = len(self.stamps) if known_by is None else bisect.bisect_right(self.stamps, known_by)
+        if self.hold and known_by is not None:
+            return self.poses[n - 1] if n else None
         if n < 2:
             return None
         j = min(max(bisect.bisect_left(self.taken, t, 0, n), 1), n - 1)
@@ -107,7 +123,10 @@ class Scene:
         self.cams, self.extrinsics, self.renderer = cams, extrinsics, renderer
         self.arm_sigma, self.duration, self.noise, self.blur = arm_sigma, duration, noise, blur
         self.truth = Track()
-        self.alone = {n: Track() for n in ("ur",) + tuple(c.name for c in cams)}
+        # each source alone as its user has it at an instant: the arm's newest read (stamped
+        # exactly, 20 ms apart: extrapolating reads adds to their noise), a camera's two newest
+        # frames (40-140 ms old by then) extrapolated to it
+        self.alone = {"ur": Track(hold=True), **{c.name: Track() for c in cams}}
         self.accuracy: dict[str, list] = {n: [] for n in self.alone}
         self.rejected = {c.name: 0 for c in cams}
         self.reads: queue.Queue = queue.Queue()
@@ -215,8 +234,8 @@ class Scene:
     def batches(self):
         """The measurements in the order of their stamps, as the devices would send them,
         however long the rendering takes: each arm read once every capture that could be
-        stamped by then is rendered, after the camera frames stamped since the read before it
-        (in a batch of their own)."""
+        stamped by then is rendered, after the camera frames stamped since the read before it;
+        one measurement a batch."""
         from dqpose.rpc.client import Batch
         sent = 0                            # frames sent
         while True:
@@ -240,11 +259,13 @@ class Scene:
             for f in arrived:
                 self.alone[f[1]].add(f[4], f[5], f[0])
             self.alone["ur"].add(stamp, dq.mul(reading, self.offset))
-            for batch in ([f[:4] for f in arrived], [(stamp, "ur", reading, covariance)]):
-                if batch:
-                    yield Batch(np.array([b[2] for b in batch]), np.array([b[3] for b in batch]),
-                                names=[b[1] for b in batch], bodies=["board"] * len(batch),
-                                times=np.array([b[0] for b in batch]))
+            # a message each, as each device sends it: a batch of frames spanning more than a
+            # window (reads a busy machine took 0.2-0.5 s apart) left the ticks before its
+            # window unanswered (197 answers of 202)
+            for stamp_, name, pose, cov in [f[:4] for f in arrived] + [
+                    (stamp, "ur", reading, covariance)]:
+                yield Batch(pose[None], cov[None], names=[name], bodies=["board"],
+                            times=np.array([stamp_]))
 
 
 def missed_cycles(sim, mark: int, period: float) -> int:

@@ -4,6 +4,7 @@ on the simulated UR (the simulated controller in its own process, driven through
 period jitter as the controller saw it, and plot the plan against its limits. A run that ends
 short of the plan (the executor stopped the arm) is reported too, its state and message, and
 why when the set-points reached the controller late (a busy machine); the exit status is 1.
+The last line is a one-line verdict.
 
 The path: from where the arm stands, the tool point goes round a 10 cm square in the horizontal
 plane, turning the tool by 30 degrees about the vertical on the way, with 2 cm blends at the
@@ -163,6 +164,18 @@ def report(r: Result, out=None) -> None:
               f"real controller runs on its own)", file=out)
 
 
+def conclusion(r: Result) -> str:
+    """The run in one line for a newcomer."""
+    if r.state == "FINISHED":
+        follow = (f", the arm within {r.tracking_mm.max():.2f} mm of its set-points"
+                  if len(r.tracking_mm) else "")
+        return (f"verdict: the planned path ({r.duration:.2f} s, within its limits) ran to its "
+                f"end on the simulated UR{follow}")
+    why = ("'why:' above says what kept it from it" if r.state != "FINISHED"
+           and missed_cycles(r.periods, r.period) else "its message above says why")
+    return f"verdict: the run stopped short of the plan ({r.state}); {why}"
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("trajectory mode")
     g.add_argument("--trajectory-plot", default="trajectory_demo.png", metavar="PATH",
@@ -192,4 +205,5 @@ def main(args: argparse.Namespace) -> int:
     except ModuleNotFoundError as e:
         from dqpose.errors import missing
         print(f"no plot: {missing(e)}")
+    print(conclusion(result))
     return 0 if result.state == "FINISHED" else 1

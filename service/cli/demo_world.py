@@ -170,4 +170,7 @@ def main(args: argparse.Namespace, out=None) -> int:
     e = np.array(errors)
     print(f"fused box: {len(e)} answers, median error {np.median(e[:, 0]):.2f} mm "
           f"{np.median(e[:, 1]):.3f} deg", file=out)
+    print(f"verdict: producers in three processes fed one world, and its fused box stayed "
+          f"within {np.median(e[:, 0]):.2f} mm (median) of the truth; looked up in the tool "
+          f"frame it is {mm:.2f} mm from where it is mounted", file=out)
     return 0

@@ -168,6 +168,15 @@ def test_a_run_ended_short_says_why_when_set_points_came_late():
     assert "why: 3 controller cycles got no set-point in time (a busy machine" in text, text
     assert "why: " not in report("TRACKING", on_time)
     assert "why: " not in report("FINISHED", late)
+    # the demo's last line, its verdict, says the same
+    def verdict(state, periods):
+        return demo_trajectory.conclusion(demo_trajectory.Result(
+            state, "", 0.01, seg, None, np.array([1.0]), np.array([0.1]), periods, 0.002))
+    assert verdict("FINISHED", late) == ("verdict: the planned path (0.01 s, within its limits) "
+                                         "ran to its end on the simulated UR, the arm within "
+                                         "1.00 mm of its set-points")
+    assert verdict("TRACKING", late).endswith("(TRACKING); 'why:' above says what kept it from it")
+    assert verdict("TRACKING", on_time).endswith("(TRACKING); its message above says why")
 
 
 def test_demo_trajectory_records_the_plan_and_its_execution(tmp_path, capsys):

@@ -143,3 +143,6 @@ def test_demo_world_runs_and_its_fused_box_is_near_the_truth():
         assert names == sorted(names) and float(row[13]) >= 0.0, row
     look = re.search(r"Lookup box in the tool frame .*: ([\d.]+) mm, ([\d.]+) deg", r.stdout)
     assert look and float(look[1]) < 2.0, r.stdout
+    last = r.stdout.splitlines()[-1]        # the verdict, with the figures above
+    assert last.startswith("verdict: ") and f"within {m[2]} mm" in last \
+        and f"it is {look[1]} mm from" in last, last
