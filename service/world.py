@@ -154,8 +154,8 @@ class World:
         self._version: dict[str, int] = {}
         self._generation = 0              # configurations made, for stamp()
         self._named: set = set()          # the configured sources and those that fed a body
-        self._fits: dict = {}
-        self._relatives: dict = {}
+        self._fits = _Kept()
+        self._relatives = _Kept()
         self.configure(sources=sources, arms=arms, options=options)
 
     def configure(self, *, sources: Sequence[Source], arms: Mapping[str, str],
@@ -373,7 +373,7 @@ class World:
         if hit is not None and hit[0] == version and (hit[2] or not nis):
             return hit[1]       # no new data: it was in range then
         f = self._fitted(body, at, lambda rows: self._t.estimate_rows(rows, at, nis)[0])
-        _keep(self._fits, key, (version, f, nis))
+        self._fits.keep(key, (version, f, nis), len(f.distances))
         return f
 
     def _pose_only(self, body: str, at: float) -> tuple[np.ndarray, np.ndarray]:
@@ -477,7 +477,7 @@ class World:
             else:
                 answer = _composed(target, source, at,
                                    {b: self._pose_only(b, at) for b in (target, source)})
-            _keep(self._relatives, key, (versions, answer))
+            self._relatives.keep(key, (versions, answer))
             return answer
 
     def stamp(self, *bodies: str) -> tuple[int, ...]:
@@ -517,14 +517,26 @@ def _published(bodies, errors: Mapping[int, WorldError]) -> Published:
                      tuple(touched))
 
 
-# answers kept at most (each a few kB); beyond, the cache starts over
-_CACHED = 4096
+# answers kept at most, and the measurements their fits describe at most (a fit keeps ~75
+# bytes of each: residuals, distances, NIS...; ~5 MB); beyond either, the cache starts over
+_CACHED, _CACHED_ROWS = 4096, 65536
 
 
-def _keep(cache: dict, key, value) -> None:
-    if len(cache) >= _CACHED:
-        cache.clear()
-    cache[key] = value
+class _Kept(dict):
+    """Answers kept, bounded by their number and by the measurements they describe
+    (``rows``)."""
+
+    rows = 0
+
+    def clear(self) -> None:
+        super().clear()
+        self.rows = 0
+
+    def keep(self, key, value, rows: int = 1) -> None:
+        if len(self) >= _CACHED or self.rows + rows > _CACHED_ROWS:
+            self.clear()
+        self[key] = value
+        self.rows += rows
 
 
 def _composed(target: str, source: str, at: float,
