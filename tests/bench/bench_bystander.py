@@ -15,20 +15,25 @@ memory before the row, at its peak (sampled every 10 ms) and 2 s after the row. 
 18): bystander p99 <= 100 ms, health <= 1 s, memory back at its baseline.
 
 Then the attack rows (``tests/bench/attacks.py``, one process each, ``--attack-seconds`` long,
-beside the ordinary traffic it meets) with a bystander Blend every 20 ms: its latency during
-the attack, the slowest health answer, the server's memory before, at its peak, and when it came
-back within 20 % of before after the attack ended (looked at every 0.1 s for 10 s), and the
-machine's load average. Targets (issue
-36): bystander p99 <= 100 ms and max <= 250 ms, memory back within 20 % within 10 s.
+beside the ordinary traffic it meets, on a server started as the attack needs: default flags,
+``--live`` with ``--token-file``, ``--record`` on a small tmpfs) with a bystander Blend every
+20 ms: its latency during the attack, the slowest health answer, the server's memory before, at
+its peak, and when it came back within 20 % of before after the attack ended (looked at every
+0.1 s for 10 s), the machine's load average, and what the server did with the attack and the
+ordinary traffic (flagged where it is not what the attack expects). Targets (issue 36):
+bystander p99 <= 100 ms and max <= 250 ms, memory back within 20 % within 10 s.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import multiprocessing as mp
 import os
 import sys
+import tempfile
 import threading
 import time
+from collections import Counter
 
 import grpc
 import numpy as np
@@ -53,7 +58,17 @@ from dqpose.rpc._proto.dqpose.v1 import handeye_pb2_grpc as hpb_grpc
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2_grpc as tpb_grpc
 from tests import _handeye as H
-from tests.bench.attacks import ATTACKS
+from tests.bench.attacks import (
+    ATTACKS,
+    FED,
+    Served,
+    Unavailable,
+    default_server,
+    run,
+    said,
+    served,
+    surprises,
+)
 from tests.bench.bench_grpc import ServerProcess, request10
 
 L = limits.DEFAULT
@@ -244,12 +259,13 @@ def timed(fn):
     return run
 
 
-def _bystander(target: str, stop, out, period: float = 0.005) -> None:
+def _bystander(served: Served, stop, out, period: float = 0.005) -> None:
     """The bystander and the health checks, in a process of their own (as another client of the
     server would be): the heavy calls' answers, parsed in the bench's process, must not hold
     the bystander's interpreter lock and show up as server latency. Sends both lists of
-    latencies (s) on ``out`` once ``stop`` is set."""
-    by = grpc.insecure_channel(target)
+    latencies (s) on ``out`` once ``stop`` is set. Health asks for no token, Blend sends the
+    server's."""
+    by = grpc.insecure_channel(served.target)
     blend = bpb_grpc.BlendingStub(by).Blend
     req = request10()
     health = health_pb2_grpc.HealthStub(by).Check
@@ -258,7 +274,7 @@ def _bystander(target: str, stop, out, period: float = 0.005) -> None:
         health(health_pb2.HealthCheckRequest(), timeout=5.0)
 
     def bystander():
-        blend(req, timeout=5.0)
+        blend(req, timeout=5.0, metadata=served.metadata)
 
     samplers = [Sampler(timed(bystander), period), Sampler(timed(check), 0.1)]
     for s in samplers:
@@ -277,7 +293,8 @@ def row(server, name: str, make, seconds: float) -> dict:
     ch = grpc.insecure_channel(server.target, options=BIG)
     ctx = mp.get_context("spawn")
     stop, (got, out) = ctx.Event(), ctx.Pipe(duplex=False)
-    others = ctx.Process(target=_bystander, args=(server.target, stop, out), daemon=True)
+    others = ctx.Process(target=_bystander, args=(Served(server.target), stop, out),
+                         daemon=True)
     others.start()
     assert got.recv() == "started"
     time.sleep(1.0)
@@ -326,39 +343,41 @@ ATTACK_PERIOD = 0.02
 BACK_WITHIN, BACK_SECONDS = 0.2, 10.0
 
 
-def attack_row(server, name: str, attack, seconds: float) -> dict:
+def attack_row(server, served: Served, name: str, attack, seconds: float) -> dict:
     """The bystander (a Blend every :data:`ATTACK_PERIOD`) and health while ``attack`` runs in
     its own process for ``seconds``; the server's RSS then until it is back within
-    :data:`BACK_WITHIN` of where it was. Its background traffic runs from ``warmup`` s before."""
+    :data:`BACK_WITHIN` of where it was. Its background traffic runs from ``warmup`` s before.
+    What the attack and the background got from the server (``outcome``, ``fed``)."""
     ctx = mp.get_context("spawn")
-    quiet = ctx.Event()
+    quiet, (fed, fed_out) = ctx.Event(), ctx.Pipe(duplex=False)
     background = None
     if attack.background is not None:
-        background = ctx.Process(target=attack.background, args=(server.target, quiet),
-                                 daemon=True)
+        background = ctx.Process(target=run, args=(attack.background, served, quiet, fed_out,
+                                                   {}), daemon=True)
         background.start()
         time.sleep(attack.warmup)
     try:
-        return _attacked(server, name, attack.attack, seconds)
+        r = _attacked(server, served, name, attack.attack, seconds)
     finally:
         quiet.set()
         if background is not None:
             background.join(30)
+    r["fed"] = fed.recv() if background is not None and fed.poll(5) else None
+    return r
 
 
-def _attacked(server, name: str, attack, seconds: float) -> dict:
+def _attacked(server, served: Served, name: str, attack, seconds: float) -> dict:
     ctx = mp.get_context("spawn")
     stop, (got, out) = ctx.Event(), ctx.Pipe(duplex=False)
-    others = ctx.Process(target=_bystander, args=(server.target, stop, out, ATTACK_PERIOD),
-                         daemon=True)
+    others = ctx.Process(target=_bystander, args=(served, stop, out, ATTACK_PERIOD), daemon=True)
     others.start()
     assert got.recv() == "started"
     time.sleep(1.0)
     before, load = server.rss_mb(), os.getloadavg()[0]
     rss = Sampler(server.rss_mb, 0.01)
     rss.start()
-    ended = ctx.Event()
-    attacker = ctx.Process(target=attack, args=(server.target, ended), daemon=True)
+    ended, (outcome, said_out) = ctx.Event(), ctx.Pipe(duplex=False)
+    attacker = ctx.Process(target=run, args=(attack, served, ended, said_out, {}), daemon=True)
     attacker.start()
     time.sleep(seconds)
     ended.set()
@@ -380,7 +399,19 @@ def _attacked(server, name: str, attack, seconds: float) -> dict:
     return dict(name=name, p50=float(np.percentile(lat, 50)), p99=float(np.percentile(lat, 99)),
                 max=float(lat.max()), health=float(max(checks)) * 1e3, before=before,
                 peak=max(rss.values), after=server.rss_mb(), back=back,
-                load=(load, os.getloadavg()[0]))
+                load=(load, os.getloadavg()[0]),
+                outcome=outcome.recv() if outcome.poll(5) else Counter({"no outcome": 1}))
+
+
+def verdict(r: dict, attack) -> str:
+    """What the server did with the attack (and the background beside it), and what of it was
+    not as :data:`~tests.bench.attacks.ATTACKS` expects."""
+    wrong = surprises(r["outcome"], attack.expected, attack.allowed)
+    text = said(r["outcome"]) or "-"
+    if r["fed"] is not None:
+        wrong += [f"fed world: {w}" for w in surprises(r["fed"], FED)]
+        text += f"; the fed world: {said(r['fed'])}"
+    return text + (f" **NOT AS EXPECTED: {'; '.join(wrong)}**" if wrong else "")
 
 
 def attack_table(rows: list) -> None:
@@ -388,13 +419,44 @@ def attack_table(rows: list) -> None:
           f"attack until within {BACK_WITHIN:.0%} of before, looked at for {BACK_SECONDS:g} s)"
           f"\n")
     print("| attack | bystander Blend p50 / p99 / max ms | health max ms | RSS before / peak / "
-          "now MB | RSS back | load before / after |")
-    print("|---|---|---|---|---|---|")
+          "now MB | RSS back | load before / after | what the server did |")
+    print("|---|---|---|---|---|---|---|")
     for r in rows:
+        if "skipped" in r:
+            print(f"| {r['name']} | | | | | | not run: {r['skipped']} |")
+            continue
         back = "no" if r["back"] is None else f"{r['back']:.1f} s"
         print(f"| {r['name']} | {r['p50']:.1f} / {r['p99']:.1f} / {r['max']:.1f} | "
               f"{r['health']:.0f} | {r['before']:.0f} / {r['peak']:.0f} / {r['after']:.0f} | "
-              f"{back} | {r['load'][0]:.1f} / {r['load'][1]:.1f} |")
+              f"{back} | {r['load'][0]:.1f} / {r['load'][1]:.1f} | {r['verdict']} |")
+
+
+def attack_rows(only: str, seconds: float, default) -> list:
+    """The attack rows whose name has ``only``, each on a server of its setup: ``default``
+    (the bench's, default flags) or one started for the rows of another setup in turn."""
+    rows: list = []
+    chosen = {name: a for name, a in ATTACKS.items() if only.lower() in name.lower()}
+    for setup in dict.fromkeys(a.setup for a in chosen.values()):
+        names = [name for name, a in chosen.items() if a.setup is setup]
+        with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
+            try:
+                flags = stack.enter_context(setup(tmp))
+            except Unavailable as e:
+                rows += [dict(name=name, skipped=str(e)) for name in names]
+                continue
+            server = default
+            if setup is not default_server:
+                server = ServerProcess("aio", quiet_log=True, extra=flags.flags)
+                stack.callback(server.stop)
+            target = served(server.target, server.events, flags)
+            for name in names:
+                rows.append(attack_row(server, target, name, chosen[name], seconds))
+                r = rows[-1]
+                r["verdict"] = verdict(r, chosen[name])
+                print(f"  {name}: p99 {r['p99']:.1f} ms, max {r['max']:.1f} ms, RSS "
+                      f"{r['before']:.0f}/{r['peak']:.0f}/{r['after']:.0f} MB, back "
+                      f"{r['back']}; {r['verdict']}", file=sys.stderr, flush=True)
+    return rows
 
 
 def main(argv=None) -> int:
@@ -405,16 +467,10 @@ def main(argv=None) -> int:
     ap.add_argument("--attacks", action="store_true", help="the attack rows only")
     args = ap.parse_args(argv)
     server = ServerProcess("aio", quiet_log=True)
-    rows, attacked = [], []
+    rows: list = []
     try:
         baseline = server.rss_mb()
-        for name, attack in ATTACKS.items():
-            if args.only.lower() in name.lower():
-                attacked.append(attack_row(server, name, attack, args.attack_seconds))
-                r = attacked[-1]
-                print(f"  {name}: p99 {r['p99']:.1f} ms, max {r['max']:.1f} ms, RSS "
-                      f"{r['before']:.0f}/{r['peak']:.0f}/{r['after']:.0f} MB, back "
-                      f"{r['back']}", file=sys.stderr, flush=True)
+        attacked = attack_rows(args.only, args.attack_seconds, server)
         for name, make in cases().items():
             if not args.attacks and args.only.lower() in name.lower():
                 rows.append(row(server, name, make, args.seconds))

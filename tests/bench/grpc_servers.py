@@ -129,7 +129,8 @@ def serve_echo(port: int) -> None:
 
 class ServerProcess:
     """A server of ``kind`` in its own process: "aio" (``dqpose serve`` with ``extra`` flags),
-    "sync" or "echo"; ``target`` its address, ``rss_mb()``, ``stop()`` (SIGTERM)."""
+    "sync" or "echo"; ``target`` its address, ``events`` its JSON log lines until it served,
+    ``rss_mb()``, ``stop()`` (SIGTERM)."""
 
     def __init__(self, kind: str, quiet_log: bool, extra: tuple = ()):
         if kind == "echo":
@@ -141,8 +142,15 @@ class ServerProcess:
             cmd = [sys.executable, "-m", "tests.bench.grpc_servers", "sync"]
         self.log = tempfile.TemporaryFile("w+")
         self.proc = subprocess.Popen(cmd, cwd=ROOT, stderr=subprocess.PIPE, text=True)
-        line = json.loads(self.proc.stderr.readline())
-        self.target = line["address"]
+        # the JSON events before it serves (--live says its port first), the last one its address
+        self.events: list = []
+        while "address" not in (self.events or [{}])[-1]:
+            line = self.proc.stderr.readline()
+            if not line:
+                raise RuntimeError(f"{' '.join(cmd[2:])} ended before serving")
+            if line.startswith("{"):
+                self.events.append(json.loads(line))
+        self.target = self.events[-1]["address"]
         # Drain stderr (one log line per call) into a file so the pipe never blocks the server.
         self._drain = threading.Thread(target=shutil.copyfileobj,
                                        args=(self.proc.stderr, self.log), daemon=True)
