@@ -35,14 +35,15 @@ class WorldError(FieldError):
         """The field's path below ``under``: ``under[index].field`` for a row's (``index``
         default its own, ``under`` default ``measurements``), ``under.field`` for the call's."""
         if self.index is None:
-            return f"{under}.{self.field}" if under else self.field
+            return ".".join(part for part in (under, self.field) if part)
         i = self.index if index is None else index
         return f"{under or 'measurements'}[{i}]" + (f".{self.field}" if self.field else "")
 
     def named(self, under: str = "", index: int | None = None) -> str:
         """The message, its path :meth:`path` ``(under, index)``."""
         about = f" ({self.about})" if self.about else ""
-        return f"{self.path(under, index)}{about}: {self.text}"
+        path = self.path(under, index)
+        return f"{path}{about}: {self.text}" if path or about else self.text
 
     def _key(self) -> tuple:
         return (self.index, self.field, self.text, self.limit, self.about)

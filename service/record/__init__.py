@@ -39,7 +39,7 @@ class NullRecorder:
     dropped = written = failed = 0
     files: list = []
     failure = None
-    #: no subscriber of its own in a world (dqpose.rpc.world_record.follow)
+    #: no subscriber of its own in a world (dqpose.rpc.world._follow)
     world_rate = None
     #: whether anything is recorded (a caller skips work only a recording needs)
     recording = False

@@ -105,7 +105,7 @@ class Recorder:
         if not (isinstance(world_rate, (int, float)) and 0 < world_rate < math.inf):
             raise ValueError(f"world_rate: must be a rate > 0 Hz, got {world_rate!r}")
         #: the rate (Hz of measurement time) at which the recorder's own subscriber records every
-        #: body of a world (dqpose.rpc.world_record.follow)
+        #: body of a world (dqpose.rpc.world._follow)
         self.world_rate = float(world_rate)
         self._internal: list[CallRecord] = []
         if directory is None and live is None:

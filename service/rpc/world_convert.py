@@ -1,8 +1,7 @@
 """The ``dqpose.v1.World`` messages <-> :mod:`dqpose.world`: a ``WorldConfig`` as the World's
-sources, arms and options (the proto's zeros made the domain's defaults here) and back, a
-``PublishRequest``'s measurement errors named by their field path
-(``requests[4].measurements[2]...``), and a :class:`dqpose.world.BodyPose` as a ``FusedPose`` or
-a ``RelativePose``. Measurements, sources and fused poses convert as Fusion's do
+sources, arms and options (the proto's zeros made the domain's defaults here) and back, and a
+:class:`dqpose.world.BodyPose` as a ``FusedPose`` or a ``RelativePose`` (:class:`Encoder`: how a
+hub writes its answers). Measurements, sources and fused poses convert as Fusion's do
 (:mod:`dqpose.rpc.fusion_convert`)."""
 from __future__ import annotations
 
@@ -13,7 +12,9 @@ import numpy as np
 from dqpose import world
 from dqpose.errors import FieldError
 from dqpose.names import name_problem
+from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from dqpose.rpc._proto.dqpose.v1 import world_pb2 as pb
+from dqpose.rpc.calls import readable
 from dqpose.rpc.fusion_convert import (
     DEFAULT_MAX_EXTRAPOLATION,
     options_from_msg,
@@ -102,14 +103,6 @@ def subscribe_names(request: pb.SubscribeRequest) -> str | None:
     return None if problem is None else f"relative_to: {problem}"
 
 
-def published_errors(published, index: np.ndarray, field: str) -> list:
-    """The domain's errors (:class:`dqpose.errors.WorldError`) of measurement ``k`` of those it
-    was given, as ``(i, text)`` naming the request's measurement ``i = index[k]`` under
-    ``field``."""
-    return [(int(index[e.index]), e.named(field, int(index[e.index])))
-            for e in published.errors]
-
-
 def body_pose_bytes(p, request: int = 0, measurements=()) -> bytes:
     """A :class:`dqpose.world.BodyPose` with its fit (a Subscribe answer) as ``FusedPose``
     bytes (:func:`dqpose.rpc.wire.fused_pose_bytes`): every field of its fit, its own pose and
@@ -117,6 +110,23 @@ def body_pose_bytes(p, request: int = 0, measurements=()) -> bytes:
     assert p.fused is not None          # a tick's answer is a body's fit
     return fused_pose_bytes(p.fused, p.body, p.time, request, measurements, p.pose,
                             p.covariance)
+
+
+def error_bytes(body: str, time: float, request: int, text: str) -> bytes:
+    """A Subscribe answer saying why ``body`` at ``time`` (0: none) was not answered after
+    request ``request``: a ``FusedPose`` error entry's bytes."""
+    return fpb.FusedPose(body=body, time=time, request=request, error=fpb.FuseError(
+        request=request, measurement=-1, details=readable(text))).SerializeToString()
+
+
+class Encoder:
+    """The World service's answers as the hubs write them (:class:`dqpose.hub.Encoder`)."""
+    fused = staticmethod(body_pose_bytes)
+    error = staticmethod(error_bytes)
+
+    @staticmethod
+    def relative(p) -> bytes:
+        return relative_msg(p).SerializeToString()
 
 
 def relative_msg(p) -> pb.RelativePose:

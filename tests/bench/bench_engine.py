@@ -77,9 +77,9 @@ ESTIMATORS = (
 
 
 class Engine:
-    """The dqpose side, through the calls the server makes today (``rpc/world.py``'s ``Cell``:
-    a Publish request applied, a subscriber's ticks, a Subscribe answer, a Lookup answer): the
-    few lines the engine's rewrite changes."""
+    """The dqpose side, through the calls a world's hub (:class:`dqpose.hub.Hub`) makes in a
+    step (a Publish request applied, a subscriber's ticks, a Subscribe answer, a Lookup
+    answer), each timed apart: the few lines the engine's rewrite changes."""
 
     def __init__(self, window: float, sources=()):
         self.world = World(sources=sources, options=WorldOptions(window=window, buffer=HISTORY))

@@ -185,12 +185,12 @@ def publish_request_rows(requests: int = 3000, rounds: int = 3,
                          history: float = 10.0) -> list[list[str]]:
     """One Publish request of 10 measurements into the target scene's world (100 bodies, 10 s
     of history, nobody subscribed), in process as the server's worker runs it: from its bytes
-    (``Cell.publish_bytes``, measurements decoded and checked in C) against the protobuf path
+    (``World.publish_bytes``, measurements decoded and checked in C) against the protobuf path
     (the request parsed, ``measurements_to_arrays``), each ``rounds`` times alternated, the
     best µs a request of each."""
     from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
     from dqpose.rpc.fusion_convert import measurement_msgs
-    from dqpose.rpc.world import Cell
+    from dqpose.rpc.world import World
     bodies, per, rate = 100, 10, 20_000.0
     poses, cov = scene_poses(bodies)
     covs = np.repeat(cov[None], per, 0)
@@ -210,15 +210,16 @@ def publish_request_rows(requests: int = 3000, rounds: int = 3,
     best = {"bytes": math.inf, "message": math.inf}
     for _ in range(rounds):
         for path in best:
-            cell = Cell("bench")
+            server = World()
+            hub = server.hub("bench", make=True)
             for r, data in enumerate(filled):
-                cell.publish_bytes(data, r, "")
+                server.publish_bytes(hub, data, r, "")
             t0 = time.perf_counter()
             for r, data in enumerate(timed):
                 if path == "bytes":
-                    cell.publish_bytes(data, r, "")
+                    server.publish_bytes(hub, data, r, "")
                 else:
-                    cell.publish(wpb.PublishRequest.FromString(data), r, "p")
+                    server.publish(hub, wpb.PublishRequest.FromString(data), r, "")
             best[path] = min(best[path], (time.perf_counter() - t0) / requests * 1e6)
     detail = (f"10 measurements, 100 bodies, {history:g} s of history, nobody subscribed; best of "
               f"{rounds} alternated runs of {requests} requests")
@@ -340,7 +341,7 @@ def rpc_lookup_rows(lookups: int = 1000, load: bool = False,
     the server's own time (its call log: from the handler's start to its answer, the worker
     pool's hop included), the client's round trip, and the Publish request's (its ack).
     Scene: :func:`lookup_rows`' body "a". ``polled``: at time 0, so the pair is watched and
-    each Publish request makes its answer (:mod:`dqpose.rpc.world_ready`); else at the tick's
+    each Publish request makes its answer (:mod:`dqpose.answers`); else at the tick's
     time (the newest), fitted by each Lookup. With ``load``, while :func:`_load` publishes
     into the same world and subscribes."""
     import queue

@@ -80,7 +80,8 @@ def test_ingest_row_fits_the_ticks_it_made_due():
 def test_answer_rows_time_the_fit_and_the_message_of_each_tick():
     rows = bw.answer_rows(300)
     assert [r[1] for r in rows] == ["a tick's fit (World.pose)",
-                                    "its FusedPose message, serialized"]
+                                    "its FusedPose bytes (the C writer)",
+                                    "the same by protobuf (fused_to_msg, serialized)"]
     assert all(float(r[2]) > 0.0 for r in rows), rows
     ticks = int(rows[0][4].split(" ticks")[0])
     assert 300 < ticks < 600, rows                  # as test_ingest_row_fits_the_ticks_it_made_due

@@ -251,8 +251,9 @@ def serve_relay(answer_bytes: int) -> None:
 
     from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
     from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
+    from dqpose.hub import Interest
     from dqpose.rpc.wire import messages_wire
-    from dqpose.rpc.world import _ready
+    from dqpose.rpc.world import Subscriber, _ready
     from dqpose.world_ticks import Ticks, tick_phase
     subs: list = []
     template = fpb.FusedPose()
@@ -261,36 +262,37 @@ def serve_relay(answer_bytes: int) -> None:
     async def publish(request_iterator, context):
         async for data in request_iterator:
             req = wpb.PublishRequest.FromString(data)
-            for queue, ticks in subs:
+            for sub, ticks in subs:
                 for m in req.measurements:
                     t = ticks.get(m.body)
                     if t is None:
                         t = ticks[m.body] = Ticks(SUBSCRIBE_RATE, 0.1, tick_phase(m.body), 0.2)
                     for due in t.arrive(m.source, m.time):
                         template.body, template.time = m.body, due
-                        queue.put_nowait(template.SerializeToString())
+                        sub.deliver([template.SerializeToString()])
             yield wpb.PublishAck(acked_through=req.sequence).SerializeToString()
 
+    def subscriber():
+        # the world's queue of a subscriber (its bounds and batching), fed by the relay
+        return Subscriber(Interest(None, SUBSCRIBE_RATE), asyncio.get_running_loop()), {}
+
     async def one_a_message(request, context):
-        queue: asyncio.Queue = asyncio.Queue()
-        entry = (queue, {})
+        entry = subscriber()
         subs.append(entry)
         try:
-            while True:
-                yield await queue.get()
+            while (answer := await entry[0].next()) is not None:
+                yield answer
         finally:
             subs.remove(entry)
 
     async def batches(request, context):
-        queue: asyncio.Queue = asyncio.Queue()
-        entry = (queue, {})
+        entry = subscriber()
         subs.append(entry)
         try:
             carry = None
-            while True:
-                # the world's batching (one message of what is ready), never its end
-                answers, carry = _ready(carry if carry is not None else await queue.get(),
-                                        queue)
+            while (first := carry if carry is not None else await entry[0].next()) is not None:
+                # the world's batching (one message of what is ready)
+                answers, carry = _ready(first, entry[0])
                 yield messages_wire(answers)
         finally:
             subs.remove(entry)

@@ -111,7 +111,7 @@ def test_watch_prints_a_row_per_answer(server, tmp_path):
                               "--count", "3", "--server", server.target], cwd=ROOT,
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        assert wait_until(lambda: server.running.servicers[0].cell("").subscriptions, timeout=60)
+        assert wait_until(lambda: server.running.servicers[0].hub("").subscriptions, timeout=60)
         write_csv(tmp_path / "m.csv", 8, 3)
         subprocess.run([sys.executable, "-m", "dqpose.cli", "world", "publish", "--server",
                         server.target, "--batch", "1", str(tmp_path / "m.csv")], cwd=ROOT,

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from dqpose import dq
-from dqpose.rpc import world_record
+from dqpose.hub import Hub
 from dqpose.rpc.blending import Blending
 from dqpose.rpc.calls import INTERNAL_DETAILS
 from dqpose.rpc.client import Client, RpcError
@@ -41,7 +41,7 @@ def _publish(c: Client):
 @pytest.mark.parametrize("rpc, owner, name, call", [
     ("BlendStream", Blending, "blend_wire", _blend_stream),
     ("StreamFuse", Fusion, "_open_stream", _stream_fuse),
-    ("Publish", world_record, "publish", _publish),
+    ("Publish", Hub, "publish", _publish),
 ])
 def test_a_defect_in_a_stream_is_internal_logged_and_the_server_goes_on(rpc, owner, name, call,
                                                                         monkeypatch, caplog):
@@ -53,7 +53,9 @@ def test_a_defect_in_a_stream_is_internal_logged_and_the_server_goes_on(rpc, own
             call(c)
         assert e.value.code == grpc.StatusCode.INTERNAL
         assert e.value.details == INTERNAL_DETAILS
-        failed = [r for r in caplog.records if r.getMessage() == f"{rpc} failed"]
+        # a World call's log line names its world too
+        named = (f"{rpc} failed", f"World/{rpc} in world '' failed")
+        failed = [r for r in caplog.records if r.getMessage() in named]
         assert len(failed) == 1 and SECRET in str(failed[0].exc_info[1])
         monkeypatch.undo()
         assert call(c)                   # the server answers the next stream

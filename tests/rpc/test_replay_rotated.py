@@ -35,7 +35,7 @@ BATCHES, PER = 40, 3
 
 def _cells(server):
     (w,) = [s for s in server.running.servicers if s.NAME == replay_world.NAME]
-    return [w.cell(n, make=True) for n in WORLDS]
+    return [w.hub(n, make=True) for n in WORLDS]
 
 
 def _publish(target: str, world: str, k: int) -> None:

@@ -1,4 +1,4 @@
-"""dqpose.rpc.replay_world and replay_remote (with dqpose.rpc.world_record): a World run recorded
+"""dqpose.rpc.replay_world and replay_remote (with the hubs' recording hooks): a World run recorded
 by a real server, two producers publishing at once from threads of their own while two
 subscribers come and go, replays in this process and into a real server to every ack and every
 subscriber's answer byte for byte; one changed measurement in the file is found in a
@@ -30,7 +30,7 @@ REQUESTS, PER = 30, 3
 def _world(server):
     """The server's default world (its cell of the World servicer)."""
     (w,) = [s for s in server.running.servicers if s.NAME == replay_world.NAME]
-    return w.cell("", make=True)
+    return w.hub("", make=True)
 
 
 def _produce(target: str, source: str, seed: int, gate: threading.Barrier) -> None:
@@ -134,7 +134,7 @@ def test_two_named_worlds_replay_each_into_its_own(tmp_path):
                 c.configure_world(SOURCES, twist_covariance=TWIST, window=10.0)
             subs.append(Collector(s.target, world=name))
         (w,) = [x for x in s.running.servicers if x.NAME == replay_world.NAME]
-        assert wait_until(lambda: all(len(w.cell(n).subscriptions) == 2    # and the recorder's
+        assert wait_until(lambda: all(len(w.hub(n).subscriptions) == 2    # and the recorder's
                                       for n in ("cell-a", "cell-b")), timeout=10)
         for k, name in enumerate(("cell-a", "cell-b")):
             batches = [measurements("cam1", 0.01 * (j * PER + np.arange(PER)), 100 * k + j,
@@ -144,7 +144,7 @@ def test_two_named_worlds_replay_each_into_its_own(tmp_path):
         assert wait_until(lambda: all(len(x.answers) > 0 for x in subs), timeout=10)
         for x in subs:
             x.stop()
-        assert wait_until(lambda: all(len(w.cell(n).subscriptions) == 1
+        assert wait_until(lambda: all(len(w.hub(n).subscriptions) == 1
                                       for n in ("cell-a", "cell-b")), timeout=10)
     recorder.close()
     rec = read(recorder.files[0])

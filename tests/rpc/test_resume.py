@@ -112,8 +112,8 @@ class _Swap:
         self.first.stop(grace=0)
         self.second.append(ServerThread(ServerConfig(port=self.port, replica_name="after")))
 
-    def cell(self, world: str):
-        return self.second[0].running.servicers[0].cells.get(world) if self.second else None
+    def hub(self, world: str):
+        return self.second[0].running.servicers[0].hubs.get(world) if self.second else None
 
     def stop(self) -> None:
         self.first.stop()
@@ -148,7 +148,7 @@ def test_publish_resumes_with_its_world_configured_again(caplog):
             acks = list(c.publish(batches(), producer="cam1"))
             # the new replica has the world as configured, and every batch from the first one
             # its old replica never acknowledged
-            cell = swap.cell("cell-1")
+            cell = swap.hub("cell-1")
             assert cell is not None and cell.world.options.window == 7.0
             newest = c.lookup("", "box").time
     finally:
@@ -177,15 +177,15 @@ def test_subscribe_reopens_on_the_replica_its_world_moved_to(caplog):
         watcher.configure_world(SOURCES, window=7.0)
         threading.Thread(target=watch, daemon=True).start()
         with Client(swap.target, world="cell-2", reconnect=10.0) as producer:
-            assert wait_until(lambda: swap.first.running.servicers[0].cells["cell-2"]
+            assert wait_until(lambda: swap.first.running.servicers[0].hubs["cell-2"]
                               .subscriptions, timeout=10)
             list(producer.publish([measurements("cam1", [0.0, 0.01], 1)], producer="cam1"))
             assert wait_until(lambda: answers, timeout=10)
             swap.now()
             # the watcher is back by itself, its world configured again before it subscribed
-            assert wait_until(lambda: swap.cell("cell-2") is not None
-                              and swap.cell("cell-2").subscriptions, timeout=30, poll=0.01)
-            assert swap.cell("cell-2").world.options.window == 7.0
+            assert wait_until(lambda: swap.hub("cell-2") is not None
+                              and swap.hub("cell-2").subscriptions, timeout=30, poll=0.01)
+            assert swap.hub("cell-2").world.options.window == 7.0
             before = len(answers)
             list(producer.publish([measurements("cam1", [1.0, 1.01], 2)], producer="cam1",
                                   first_sequence=2))
@@ -226,4 +226,4 @@ def test_a_configuration_the_new_server_refuses_ends_the_stream_with_its_error(m
         swap.stop()
     assert e.value.code.name == "RESOURCE_EXHAUSTED" and "MAX_WORLDS" in e.value.details
     assert [a.acked_through for a in acks] == list(range(1, len(acks) + 1)) and len(acks) <= 10
-    assert swap.cell("cell-3") is None
+    assert swap.hub("cell-3") is None

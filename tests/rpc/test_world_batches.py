@@ -66,7 +66,7 @@ def batches(raw: Raw) -> list[list[fpb.FusedPose]]:
 
 def subscribed(server, n: int) -> bool:
     world = next(s for s in server.running.servicers if s.NAME == "dqpose.v1.World")
-    return len(world.cell("").subscriptions) == n
+    return len(world.hub("").subscriptions) == n
 
 
 def streams(server, client) -> tuple[Raw, Raw]:

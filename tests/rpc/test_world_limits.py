@@ -118,7 +118,7 @@ def test_the_costliest_legal_publish_answers_what_its_budget_affords_in_each_wor
         with Client(server.target, world=world) as c:
             c.configure_world(window=1.0, buffer=10.0, robust=robust)
         subs.append(Collector(server.target, world=world))
-    cells = next(s for s in server.running.servicers if s.NAME == "dqpose.v1.World").cells
+    cells = next(s for s in server.running.servicers if s.NAME == "dqpose.v1.World").hubs
     assert wait_until(lambda: all(cells[w].subscriptions for w in worlds), timeout=10)
     for sub in subs:
         with Client(server.target, world=sub.client.world) as c:

@@ -26,7 +26,7 @@ def server():
 
 
 def _cells(server):
-    return server.running.servicers[0].cells
+    return server.running.servicers[0].hubs
 
 
 def test_two_worlds_on_one_server_do_not_see_each_others_bodies(server):

@@ -221,7 +221,7 @@ def test_a_lookup_is_answered_while_a_publish_request_holds_the_world(server, cl
     lock, which each fit takes on its own."""
     list(client.publish([measurements("cam1", [10.0, 10.01], 1)], producer="p"))
     world = next(s for s in server.running.servicers if s.NAME == "dqpose.v1.World")
-    cell = world.cell("")
+    cell = world.hub("")
     with Client(server.target, timeout=5.0) as c, cell.lock:
         held = c.lookup("", "box")
     after = client.lookup("", "box")
@@ -262,7 +262,7 @@ def replay(rate_hz: float) -> list:
     with ServerThread() as s, Client(s.target) as c:
         c.configure_world(SOURCES, twist_covariance=TWIST, window=10.0, max_delay=0.02)
         sub = Collector(s.target, bodies=["box"], rate_hz=rate_hz)
-        wait_until(lambda: s.running.servicers[0].cell("").subscriptions, timeout=10)
+        wait_until(lambda: s.running.servicers[0].hub("").subscriptions, timeout=10)
         seq = {"cam1": 0, "cam2": 0}
         for source, batch in arrivals():
             seq[source] += 1
@@ -321,7 +321,7 @@ def test_a_time_jump_makes_due_what_the_requests_budget_affords_the_latest_kept(
         client.configure_world(SOURCES, twist_covariance=TWIST, window=60.0, buffer=60.0,
                                max_extrapolation=None)
         sub = Collector(server.target, bodies=["box"], rate_hz=30.0)
-        assert wait_until(lambda: server.running.servicers[0].cell("").subscriptions, timeout=10)
+        assert wait_until(lambda: server.running.servicers[0].hub("").subscriptions, timeout=10)
         list(client.publish([measurements("cam1", [0.0], 1), measurements("cam1", [60.0], 2)],
                             producer="p"))
         assert wait_until(lambda: len(sub.answers) > fits, timeout=60)   # + the error
@@ -338,7 +338,7 @@ def test_a_time_jump_makes_due_what_the_requests_budget_affords_the_latest_kept(
 
 def test_subscribe_relative_to_answers_what_lookup_does(server, client):
     sub = Collector(server.target, bodies=["box"], relative_to="cup")
-    assert wait_until(lambda: server.running.servicers[0].cell("").subscriptions, timeout=10)
+    assert wait_until(lambda: server.running.servicers[0].hub("").subscriptions, timeout=10)
     # the cup first, so that it is known at the box's ticks
     for k in range(3):
         list(client.publish([measurements("cam1", [0.01 * k], 10 + k, body="cup"),

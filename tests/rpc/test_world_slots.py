@@ -60,7 +60,7 @@ def counts(server) -> dict:
 def subscriptions(server, name: str = "") -> int:
     """Subscriptions open in world ``name`` (0 before it is made)."""
     world = next(s for s in server.running.servicers if s.NAME == "dqpose.v1.World")
-    cell = world.cells.get(name)
+    cell = world.hubs.get(name)
     return 0 if cell is None else len(cell.subscriptions)
 
 

@@ -1,4 +1,4 @@
-"""World.Publish's C path (dqpose.rpc.wire.publish_from_wire, from Cell.publish_bytes) against
+"""World.Publish's C path (dqpose.rpc.wire.publish_from_wire, from World.publish_bytes) against
 the protobuf path it replaces: on generated, damaged and re-encoded requests a world fed the
 bytes acks exactly what a world fed the parsed messages acks (errors and their texts) and holds
 the same rows, bit for bit."""
@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
 from dqpose.rpc.wire import publish_from_wire
-from dqpose.rpc.world import Cell
+from dqpose.rpc.world import World
 from tests.rpc._mutate import damaged
 from tests.rpc.test_fusion_wire import good, measurement
 from tests.rpc.test_wire import PADS, reencode
@@ -31,15 +31,16 @@ def requests(draw, r: int):
 def run_both(datas: list[bytes], decoded: list | None = None) -> None:
     """The same request bytes into two worlds, one through each path: the same acks, the same
     rows in each body's window."""
-    by_bytes, by_message = Cell("bytes"), Cell("message")
+    server = World()
+    by_bytes, by_message = server.hub("bytes", make=True), server.hub("message", make=True)
     for r, data in enumerate(datas):
-        got = by_bytes.publish_bytes(data, r, "anonymous")
+        got = server.publish_bytes(by_bytes, data, r, "anonymous")
         try:
             request = wpb.PublishRequest.FromString(data)
         except DecodeError:
             assert got.errors[0].details.startswith(f"requests[{r}]: not a valid")
             continue
-        want = by_message.publish(request, r, request.producer or "anonymous")
+        want = server.publish(by_message, request, r, "anonymous")
         assert got.SerializeToString() == want.SerializeToString()
         if decoded is not None:
             decoded.append(publish_from_wire(data) is not None)

@@ -69,7 +69,7 @@ def test_the_page_follows_a_server_through_its_rpcs(tmp_path):
             url = next(e["url"] for e in seen if e["event"] == "viewing")
             assert next(e["arms"] for e in seen if e["event"] == "following") == ["ur"]
             (world,) = [s for s in server.running.servicers if s.NAME == "dqpose.v1.World"]
-            assert wait_until(lambda: len(world.cell("", make=True).subscriptions) == 1,
+            assert wait_until(lambda: len(world.hub("", make=True).subscriptions) == 1,
                               timeout=30)
             # each body's measurements once: its first (and only) fused pose must be drawn
             poses = dq.from_pose(np.array([[1.0, 0, 0, 0]] * 4),

@@ -1,4 +1,4 @@
-"""Lookups answered on the event loop (dqpose.rpc.world_ready) against a real server on
+"""Lookups answered without a fit (dqpose.answers, a hub's) against a real server on
 127.0.0.1: a polled pair's answer, made again when its data arrive, is the fit's answer to the
 bit; new data, a new configuration or a time other than 0 are never answered from a kept answer;
 watched pairs are bounded and expire."""
@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from dqpose import answers
 from dqpose import world as domain
 from dqpose.fusion import Source
-from dqpose.rpc import world_ready
 from dqpose.rpc.fusion_convert import measurement_msgs, measurements_to_arrays
 from dqpose.rpc.geometry import pose_to_dq
 from dqpose.rpc.world_convert import relative_msg
@@ -25,14 +25,14 @@ from tests.rpc.test_world_service import (  # noqa: F401 (the fixtures server an
 OPTIONS = dict(twist_covariance=TWIST, window=10.0)     # the client fixture's world
 
 
-def cell(server):
-    """The server's default world (its servicer's Cell)."""
+def hub(server):
+    """The server's default world (its servicer's hub)."""
     world = next(s for s in server.running.servicers if s.NAME == "dqpose.v1.World")
-    return world.cell("")
+    return world.hub("")
 
 
-def ready(server) -> world_ready.Ready:
-    return cell(server).ready
+def ready(server) -> answers.Answers:
+    return hub(server).answers
 
 
 def fitted(batches, target: str, source: str, sources=SOURCES):
@@ -82,7 +82,7 @@ def test_data_that_bypass_the_refresh_and_a_new_configuration_are_fitted(server,
     more = measurements("cam2", [0.03], 2)
     sent.append(more)
     m = measurements_to_arrays(measurement_msgs(*more), "measurements")
-    cell(server).world.ingest(m.bodies, m.sources, m.times, m.poses, m.covariances)
+    hub(server).world.ingest(m.bodies, m.sources, m.times, m.poses, m.covariances)
     after = client.lookup("", "box")
     assert r.hits == 0 and after.time > first.time
     same(after, fitted(sent, "", "box"))
@@ -105,18 +105,18 @@ def test_a_lookup_at_a_time_is_fitted_and_watches_nothing(server, client):
 
 
 def test_watched_pairs_are_bounded_and_expire(server, client, monkeypatch):
-    bodies = [f"b{k}" for k in range(world_ready.MAX_WATCHED + 3)]
+    bodies = [f"b{k}" for k in range(answers.MAX_WATCHED + 3)]
     list(client.publish([joined(*(measurements("cam1", [0.0, 0.01], k, body=b)
                                   for k, b in enumerate(bodies)))], producer="p"))
     r = ready(server)
     for b in bodies:
         client.lookup("", b)
     # the pairs watched longest ago gave way, their answers with them
-    assert list(r._watched) == [("", b) for b in bodies[-world_ready.MAX_WATCHED:]]
+    assert list(r._watched) == [("", b) for b in bodies[-answers.MAX_WATCHED:]]
     assert set(r._answers) == set(r._watched)
     # a Publish request after their watch ran out forgets them
-    later = world_ready._clock() + world_ready.WATCH_FOR + 1.0
-    monkeypatch.setattr(world_ready, "_clock", lambda: later)
+    later = answers._clock() + answers.WATCH_FOR + 1.0
+    monkeypatch.setattr(answers, "_clock", lambda: later)
     list(client.publish([measurements("cam1", [0.02], 99, body=bodies[0])], producer="p",
                         first_sequence=2))
     assert not r._watched and not r._answers

@@ -1,0 +1,306 @@
+"""One world's engine: the order its steps are applied in, and what each step does.
+
+A :class:`Hub` holds a :class:`dqpose.world.World` and everything a world's calls share: its one
+lock (the world's order), its producers' sequences and acks, its subscriptions (in the order
+they came), its request and measurement numbering, and its watched Lookups
+(:class:`dqpose.answers.Answers`). A Publish request is one step under the lock
+(:meth:`Hub.publish`): its sequence checked, its rows into the world, the ticks they make due for
+every subscription (:mod:`dqpose.world_ticks`), the request's :class:`dqpose.limits.Budget`
+(all subscriptions together, a fit made once for all), the answers fitted and handed to each
+subscription's ``deliver`` in that order, the watched Lookups made again. A step's ``hook`` runs
+first under the same lock: where a recording writes the step, so a recording holds each world's
+steps in the world's order and replays to the same answers.
+
+No transport: the answers are bytes an :class:`Encoder` writes (the server's protobuf messages),
+and ``deliver`` is any callable (a server's event-loop queue, a replay's list, a recording).
+"""
+from __future__ import annotations
+
+import threading
+from typing import Callable, NamedTuple, Optional, Protocol
+
+import numpy as np
+
+from dqpose import limits as _limits
+from dqpose.answers import Answers
+from dqpose.errors import WorldError
+from dqpose.fusion.bounds import TrackerBounds
+from dqpose.names import name_problem
+from dqpose.world import BodyPose, World
+from dqpose.world_ticks import Ticks, tick_phase
+
+#: producer names a world remembers (each one's acked_through); the oldest-acked is forgotten
+#: beyond
+MAX_PRODUCERS = 4096
+
+Hook = Optional[Callable[[], None]]
+
+
+class Encoder(Protocol):
+    """How a hub's answers are written: a body's fit at a tick (``request``: the step's number,
+    ``measurements``: the ids the answer names), an error entry, a Lookup's relative pose."""
+
+    def fused(self, p: BodyPose, request: int, measurements: list[int]) -> bytes: ...
+
+    def error(self, body: str, time: float, request: int, text: str) -> bytes: ...
+
+    def relative(self, p: BodyPose) -> bytes: ...
+
+
+class Interest(NamedTuple):
+    """What a subscription asks for: its ``bodies`` (None: all), ``rate`` (Hz of measurement
+    time; 0: every update) and the frame its answers are ``relative_to`` ("" the world)."""
+    bodies: Optional[frozenset]
+    rate: float
+    relative_to: str = ""
+
+
+class Subscription:
+    """One subscription of a hub: its :class:`Interest`, its ticks per body and ``deliver``,
+    called under the hub's lock once a step with that step's answers in order (it must not
+    block, raise or call the hub). Its owner sets ``closed`` when it ends: no answer is made
+    for it after that."""
+
+    def __init__(self, interest: Interest, deliver: Callable[[list], None]):
+        self.interest, self.deliver = interest, deliver
+        self.closed = False
+        self._ticks: dict[str, Ticks] = {}
+        self._paced = (0.0, 0.0)            # max_delay and window, when it came in
+
+    def wants(self, body: str) -> bool:
+        bodies = self.interest.bodies
+        return bodies is None or body in bodies
+
+    def due(self, body: str, source: str, taken: float) -> list[float]:
+        t = self._ticks.get(body)
+        if t is None:
+            rate = self.interest.rate
+            t = self._ticks[body] = Ticks(rate, self._paced[0],
+                                          tick_phase(body) if rate else 0.0, self._paced[1])
+        return t.arrive(source, taken)
+
+
+class Rows(NamedTuple):
+    """A Publish request's measurements as arrays, ``index[k]`` the request's measurement of row
+    ``k`` (of ``offered``), ``codes`` what a decoder's checks said of each row (None: not
+    checked)."""
+    # shadows tuple.index(), which no caller uses, as Measurements' does
+    index: np.ndarray  # type: ignore[assignment]
+    bodies: tuple
+    sources: tuple
+    times: np.ndarray
+    poses: np.ndarray
+    covariances: np.ndarray
+    codes: Optional[np.ndarray]
+    offered: int
+
+
+class Applied(NamedTuple):
+    """What one Publish step did: its number in the world's order (``request``), the producer's
+    ``acked_through``, ``notes`` about the request as a whole and ``errors`` about its
+    measurements (``index``: the request's measurement); ``used`` False when none of it was
+    (a repeated sequence, a producer's name that is not one)."""
+    request: int
+    acked_through: int
+    notes: tuple
+    errors: tuple
+    used: bool
+
+
+def _run(hook: Hook) -> None:
+    if hook is not None:
+        hook()
+
+
+class Hub:
+    """One world (see the module's docstring). ``tracker``: the server's bounds of a stream;
+    ``encoder``: how answers are written."""
+
+    def __init__(self, name: str, encoder: Encoder, tracker: Optional[TrackerBounds] = None):
+        self.name, self.encoder = name, encoder
+        self.world = World(tracker=tracker)
+        self.lock = threading.Lock()
+        self._acked: dict[str, int] = {}         # producer -> acked_through
+        self._subscriptions: dict[int, Subscription] = {}     # in the order they came
+        self._came = 0
+        self.requests = 0                        # Publish requests, in the world's order
+        self.measurements = 0                    # measurements numbered in that order
+        self.answers = Answers(encoder.relative)
+
+    @property
+    def subscriptions(self) -> tuple[Subscription, ...]:
+        return tuple(self._subscriptions.values())
+
+    def configure(self, sources, arms, options, hook: Hook = None) -> None:
+        """:meth:`dqpose.world.World.configure` as a step (a ``WorldError`` leaves the world as
+        it was)."""
+        with self.lock:
+            _run(hook)
+            self.world.configure(sources=sources, arms=arms, options=options)
+
+    def count(self, hook: Hook = None) -> None:
+        """A request the transport could not read: numbered in the world's order, unused."""
+        with self.lock:
+            _run(hook)
+            self.requests += 1
+
+    def publish(self, producer: str, anonymous: str, sequence: int, rows: Optional[Rows],
+                hook: Hook = None) -> Applied:
+        """A Publish request as one step: from ``producer`` ("": the call's own key
+        ``anonymous``) with ``sequence`` (0: none), its ``rows`` into the world (None: refused
+        whole by the transport, counted and acked), its answers made and delivered. Never raises
+        for bad input: what was refused is in the :class:`Applied`."""
+        with self.lock:
+            _run(hook)
+            r = self.requests
+            named = name_problem(producer, empty=True)
+            if named is not None:
+                self.requests += 1
+                return Applied(r, 0, (WorldError(None, "producer",
+                                                 f"{named}; none of it was used"),), (), False)
+            key = producer or anonymous
+            known = self._acked.get(key)
+            last = known or 0
+            if sequence and sequence <= last:
+                return Applied(r, last, (WorldError(
+                    None, "", f"sequence {sequence} already in the world (acked through {last}); "
+                              f"not fused again"),), (), False)
+            # a producer's first request names no gap: the world may have moved here from a
+            # replica that holds the producer's earlier requests (docs/deploy.md)
+            notes = () if known is None or sequence <= last + 1 else (WorldError(
+                None, "", f"sequences {last + 1}..{sequence - 1} of producer {key!r} never "
+                          f"arrived"),)
+            errors = () if rows is None else self._apply(rows, key)
+            self.requests += 1
+            if sequence:
+                self._acked[key] = sequence
+                if len(self._acked) > MAX_PRODUCERS:
+                    del self._acked[min(self._acked, key=self._acked.__getitem__)]
+            return Applied(r, sequence or last, notes, errors, True)
+
+    def forget(self, anonymous: str) -> None:
+        """The acks of a call's own key ``anonymous`` (its call ended)."""
+        with self.lock:
+            self._acked.pop(anonymous, None)
+
+    def subscribe(self, sub: Subscription, hook: Hook = None, wait: bool = True) -> bool:
+        """``sub`` answered from the next step on, paced by the world's options now; False
+        (nothing done) when not ``wait`` and the lock is held."""
+        if not self.lock.acquire(wait):
+            return False
+        try:
+            _run(hook)
+            sub._paced = (self.world.options.max_delay, self.world.options.window)
+            self._subscriptions[self._came] = sub
+            self._came += 1
+        finally:
+            self.lock.release()
+        return True
+
+    def unsubscribe(self, sub: Subscription, hook: Hook = None) -> None:
+        """``sub`` answered no more (a step: ``hook`` where a recording ends it)."""
+        with self.lock:
+            for k, s in self._subscriptions.items():
+                if s is sub:
+                    del self._subscriptions[k]
+                    break
+            _run(hook)
+
+    def lookup(self, target: str, source: str, time: float) -> bytes:
+        """A Lookup fitted beside the steps (the world's read lock; a fit is a function of the
+        data alone): at time 0 its pair watched (:class:`dqpose.answers.Answers`)."""
+        return self.answers.lookup(self.world, target, source, time)
+
+    def kept(self, target: str, source: str) -> Optional[bytes]:
+        """A Lookup at time 0 answered from a kept answer, without a lock; None: fit it."""
+        return self.answers.kept(self.world, target, source)
+
+    # -- a Publish step, under the lock
+
+    def _apply(self, rows: Rows, producer: str) -> tuple:
+        """``rows`` into the world (from ``producer``), then the answers they make due."""
+        ids = self.measurements + rows.index
+        self.measurements += rows.offered
+        if not len(rows.index):
+            return ()
+        published = self.world.ingest(rows.bodies, rows.sources, rows.times, rows.poses,
+                                      rows.covariances, rows.codes, producer)
+        errors = tuple(e.at(int(rows.index[e.index])) for e in published.errors)
+        self._answer_subscriptions(rows, ids, {e.index for e in errors})
+        self.answers.refresh(self.world, published.bodies)
+        return errors
+
+    def _answer_subscriptions(self, rows: Rows, ids, refused: set) -> None:
+        """The answers the step's rows (numbered ``ids``; the request's measurements
+        ``refused`` left out) make due, within the request's budget (all subscriptions
+        together, each fit made once for all), delivered to each subscription in order."""
+        if not self._subscriptions:
+            return
+        latency = {s.name: s.latency for s in self.world.sources}
+        made: dict[tuple[str, float, str], bytes] = {}
+        budget = _limits.Budget(self.world.tracker_bounds)
+        for sub in list(self._subscriptions.values()):
+            if sub.closed:          # ended by its owner, not yet taken out
+                continue
+            due: list[tuple[str, float, int]] = []
+            for k in range(len(rows.index)):
+                body = rows.bodies[k]
+                if int(rows.index[k]) in refused or not sub.wants(body):
+                    continue
+                source = rows.sources[k]
+                taken = float(rows.times[k]) - latency.get(source, 0.0)
+                due += [(body, t, int(ids[k])) for t in sub.due(body, source, taken)]
+            relative_to = sub.interest.relative_to
+            due, answers = self._affordable(due, relative_to, made, budget)
+            for body, t, last in due:
+                key = (body, t, relative_to)
+                if key not in made:
+                    made[key] = self._answer(body, t, relative_to, last)
+                answers.append(made[key])
+            if answers:
+                sub.deliver(answers)
+
+    def _affordable(self, due: list, relative_to: str, made: dict,
+                    budget: _limits.Budget) -> tuple[list, list]:
+        """``due`` ``(body, tick, id)`` less the ticks the request's ``budget`` cannot afford, and
+        an error entry per body with ticks skipped: a fit not ``made`` yet costs what it fuses
+        (with ``relative_to``, the relative pose's fits besides), a body's oldest ticks are
+        skipped and its latest kept."""
+        new: dict[str, list[int]] = {}
+        for j, (b, t, _) in enumerate(due):
+            if (b, t, relative_to) not in made:
+                new.setdefault(b, []).append(j)
+        world, options = self.world, self.world.options
+        correlated = options.acceleration_psd is not None and bool(
+            np.any(options.acceleration_psd))
+        skip: set[int] = set()
+        errors = []
+        r = self.requests
+        for b, js in new.items():
+            lo, hi = min(due[j][1] for j in js), max(due[j][1] for j in js)
+            rows = world.rows_near(b, lo, hi)
+            if relative_to:
+                rows += rows + world.rows_near(relative_to, lo, hi)
+            take, cost = budget.take(len(js), rows, options.robust, correlated)
+            if take < len(js):
+                gone = js[:len(js) - take]
+                skip.update(gone)
+                e = budget.skipped(f"request {r}", b, f"{len(gone)} ticks from "
+                                   f"{due[gone[0]][1]:.6g} s to {due[gone[-1]][1]:.6g} s", cost)
+                errors.append(self.encoder.error(b, 0.0, r, str(e)))
+        if skip:
+            due = [d for j, d in enumerate(due) if j not in skip]
+        return due, errors
+
+    def _answer(self, body: str, t: float, relative_to: str, last_id: int) -> bytes:
+        """Body ``body`` at tick ``t`` (relative to ``relative_to`` when set), or an error
+        entry naming why it cannot be answered."""
+        r = self.requests
+        try:
+            p = self.world.pose(body, t)
+            if relative_to:
+                rel = self.world.relative(relative_to, body, t)
+                p = BodyPose(body, rel.time, rel.pose, rel.covariance, p.fused)
+        except (ValueError, LookupError) as e:
+            return self.encoder.error(body, t, r, f"body {body!r} at {t:.6g} s: {e}")
+        return self.encoder.fused(p, r, [last_id])

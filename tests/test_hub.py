@@ -1,0 +1,174 @@
+"""dqpose.hub, in process: a world's steps in its one order: producers' sequences and acks, the
+answers a step makes due (its budget shared by every subscription, the earlier subscription
+served first), each subscription handed its answers once a step, and the hooks a recording
+writes each step with, run under the world's lock in that order."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dqpose import hub as hub_module
+from dqpose import limits
+from dqpose.fusion import Source
+from dqpose.hub import Hub, Interest, Rows, Subscription
+from dqpose.world import WorldError, WorldOptions
+
+RATE = 20.0
+
+
+class Written:
+    """An encoder whose answers say what they are: ``b"fused box 1.05 r3"``, ``b"error ..."``."""
+
+    @staticmethod
+    def fused(p, request: int, measurements: list) -> bytes:
+        return f"fused {p.body} {p.time:.6g} r{request} {measurements}".encode()
+
+    @staticmethod
+    def error(body: str, time: float, request: int, text: str) -> bytes:
+        return f"error {body} r{request}: {text}".encode()
+
+    @staticmethod
+    def relative(p) -> bytes:
+        return f"relative {p.body} {p.time:.6g}".encode()
+
+
+def rows(bodies, times, sources=None) -> Rows:
+    """One measurement of each body at each time (identity poses, unit covariances)."""
+    n = len(bodies)
+    return Rows(np.arange(n), tuple(bodies), tuple(sources or ["cam"] * n),
+                np.asarray(times, np.float64), np.tile([1.0, 0, 0, 0, 0, 0, 0, 0], (n, 1)),
+                np.tile(np.eye(6) * 1e-4, (n, 1, 1)), None, n)
+
+
+def made(bounds: limits.Limits = limits.DEFAULT) -> Hub:
+    h = Hub("test", Written(), limits.tracker_bounds(bounds))
+    h.configure([Source("cam")], {}, WorldOptions(window=0.2, buffer=2.0, max_delay=0.0))
+    return h
+
+
+def test_sequences_are_acked_repeats_refused_and_gaps_named():
+    h = made()
+    first = h.publish("cam", "call1", 1, rows(["box"], [0.0]))
+    assert (first.request, first.acked_through, first.notes, first.used) == (0, 1, (), True)
+    again = h.publish("cam", "call1", 1, rows(["box"], [0.01]))
+    assert not again.used and again.acked_through == 1 and h.requests == 1   # not counted
+    assert str(again.notes[0]) == "sequence 1 already in the world (acked through 1); not " \
+                                  "fused again"
+    gap = h.publish("cam", "call2", 4, rows(["box"], [0.02]))
+    assert gap.used and gap.acked_through == 4
+    assert gap.notes[0].named("requests[7]") == "requests[7]: sequences 2..3 of producer " \
+                                                "'cam' never arrived"
+    bad = h.publish("a/b", "call3", 9, rows(["box"], [0.03]))
+    assert not bad.used and bad.acked_through == 0 and h.requests == 3
+    assert bad.notes[0].field == "producer" and "none of it was used" in bad.notes[0].text
+    # a call's own key is forgotten when the call ends: its sequences start again
+    h.publish("", "call4", 5, rows(["box"], [0.04]))
+    h.forget("call4")
+    assert h.publish("", "call4", 1, rows(["box"], [0.05])).notes == ()
+
+
+def test_a_request_refused_whole_is_counted_and_acked_but_not_used():
+    h = made()
+    got = h.publish("cam", "call", 3, None)
+    assert got.used and got.acked_through == 3 and h.requests == 1 and h.measurements == 0
+    assert not h.world.bodies
+
+
+def test_the_producers_remembered_are_bounded(monkeypatch):
+    monkeypatch.setattr(hub_module, "MAX_PRODUCERS", 2)
+    h = made()
+    for k, p in enumerate(("a", "b", "c")):
+        h.publish(p, "call", 1, rows(["box"], [0.01 * k]))
+    # "a" was forgotten (acked longest ago): its next request names no gap
+    assert h.publish("a", "call", 5, rows(["box"], [0.05])).notes == ()
+    assert h.publish("c", "call", 5, rows(["box"], [0.06])).notes != ()
+
+
+def test_measurement_errors_name_the_requests_measurement():
+    h = made()
+    r = rows(["box", "box", "box"], [0.0, 1e11, 0.01])
+    got = h.publish("cam", "call", 1, r._replace(index=np.array([0, 2, 5]), offered=6))
+    (e,) = got.errors
+    assert e.index == 2 and e.field == "time" and e.limit == "max_time"
+    assert e.named("requests[0].measurements").startswith("requests[0].measurements[2].time: ")
+    assert h.measurements == 6
+
+
+def test_each_subscription_gets_its_answers_once_a_step_in_order():
+    h = made()
+    got: dict[str, list] = {"all": [], "box": [], "zero": []}
+    calls: dict[str, int] = {k: 0 for k in got}
+
+    def to(name):
+        def deliver(answers):
+            calls[name] += 1
+            got[name].extend(answers)
+        return deliver
+
+    h.subscribe(Subscription(Interest(None, RATE), to("all")))
+    h.subscribe(Subscription(Interest(frozenset({"box"}), RATE), to("box")))
+    h.subscribe(Subscription(Interest(frozenset({"cup"}), 0.0), to("zero")))
+    h.publish("cam", "call", 1, rows(["box", "cup"] * 3, [0.0, 0.0, 0.1, 0.1, 0.2, 0.2]))
+    assert calls == {"all": 1, "box": 1, "zero": 1}
+    assert got["box"] and all(a.startswith(b"fused box") for a in got["box"])
+    # a tick answered for two subscriptions is made once: the same bytes
+    assert set(got["box"]) <= set(got["all"])
+    assert any(a.startswith(b"fused cup") for a in got["all"])
+    assert got["zero"] and all(a.startswith(b"fused cup") for a in got["zero"])
+    # a closed subscription is answered no more, even before it is taken out
+    h.subscriptions[0].closed = True
+    h.publish("cam", "call", 2, rows(["box"], [0.3]))
+    assert calls["all"] == 1 and calls["box"] == 2
+    h.unsubscribe(h.subscriptions[1])
+    assert [s.interest.bodies for s in h.subscriptions] == [None, frozenset({"cup"})]
+
+
+def test_the_budget_serves_the_earlier_subscription_first():
+    """One step's answers share the request's budget: an earlier subscription's ticks are
+    fitted first, the later one's beyond the budget skipped and named. (Subscriptions were a
+    set, in an order of their own: which subscriber got the answers was not the order they
+    came in, and a replay of a recording could hand them to the other.)"""
+    bounds = limits.Limits(max_fused_per_request=limits.answer_cost(3))
+    for trial in range(20):
+        h = made(bounds)
+        got: dict[str, list] = {"first": [], "second": []}
+        body = {"first": f"a{trial}", "second": f"b{trial}"}
+        for name in ("first", "second"):
+            h.subscribe(Subscription(Interest(frozenset({body[name]}), 0.0),
+                                     got[name].extend))
+        h.publish("cam", "call", 1, rows([body["first"], body["second"]], [0.0, 0.0]))
+        assert [a.split()[0] for a in got["first"]] == [b"fused"], trial
+        (skip,) = got["second"]
+        assert skip.startswith(b"error " + body["second"].encode()) and \
+            b"max_fused_per_request" in skip, trial
+
+
+def test_a_hook_runs_under_the_lock_in_the_order_of_the_steps():
+    h = made()
+    order = []
+
+    def hook(name):
+        def run():
+            assert h.lock.locked()
+            order.append(name)
+        return run
+
+    sub = Subscription(Interest(None, RATE), lambda answers: order.append("answers"))
+    h.subscribe(sub, hook("subscribe"))
+    h.publish("cam", "call", 1, rows(["box", "box"], [0.0, 0.1]), hook("publish"))
+    h.count(hook("count"))
+    h.configure([Source("cam")], {}, WorldOptions(window=0.3), hook("configure"))
+    h.unsubscribe(sub, hook("unsubscribe"))
+    assert order == ["subscribe", "publish", "answers", "count", "configure", "unsubscribe"]
+    with pytest.raises(WorldError, match="^options.window: must be positive"):
+        h.configure([Source("cam")], {}, WorldOptions(window=-1.0), hook("refused"))
+    assert order[-1] == "refused" and not h.lock.locked()
+
+
+def test_a_subscription_that_cannot_wait_is_not_added_while_a_step_holds_the_lock():
+    h = made()
+    sub = Subscription(Interest(None, RATE), lambda answers: None)
+    with h.lock:
+        assert not h.subscribe(sub, wait=False)
+    assert not h.subscriptions
+    assert h.subscribe(sub, wait=False) and h.subscriptions == (sub,)
