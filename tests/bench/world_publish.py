@@ -249,9 +249,9 @@ def serve_relay(answer_bytes: int) -> None:
     ``answer_bytes``, fusing nothing."""
     import grpc
 
+    from dqpose.hub import Interest
     from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
     from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
-    from dqpose.hub import Interest
     from dqpose.rpc.wire import messages_wire
     from dqpose.rpc.world import Subscriber, _ready
     from dqpose.world_ticks import Ticks, tick_phase
