@@ -66,6 +66,8 @@ def replica_of(call) -> Optional[str]:
     refused before its handler ran, an error), the trailers; None when no dqpose server
     answered (nothing listens, a proxy's own refusal)."""
     for read in ("initial_metadata", "trailing_metadata"):
+        if read == "trailing_metadata" and not _ended(call):
+            break       # a stream's trailers wait for its end: a server without the header
         try:
             metadata = getattr(call, read)()
         except (grpc.RpcError, AttributeError):     # an error without metadata of that kind
@@ -74,6 +76,12 @@ def replica_of(call) -> Optional[str]:
             if key == REPLICA_HEADER:
                 return value
     return None
+
+
+def _ended(call) -> bool:
+    # grpc's calls are RpcErrors too: only done() tells a live stream from an ended one
+    done = getattr(call, "done", None)
+    return done is None or done()
 
 
 class ReplicaLost(grpc.RpcError):
