@@ -10,7 +10,7 @@ step's write may hold; these are read without it, so a reader never waits.
 So a planner or a view polling a body's pose gets it without waiting for a fit, and the fit's
 cost moves to the Publish steps that bring the body's measurements: at most :data:`MAX_WATCHED`
 pairs a world, each made again at most once a step. The clock decides only what is kept, never
-an answer's bytes.
+an answer's bytes. A world's own fits are kept in a :class:`Kept` (bounded).
 """
 from __future__ import annotations
 
@@ -95,3 +95,25 @@ class Answers:
         before = world.stamp(*pair)
         data = self.encode(world.relative(pair[0], pair[1], 0.0))
         return (before if world.stamp(*pair) == before else None), data
+
+
+# answers kept at most, and the measurements their fits describe at most (a fit keeps ~75
+# bytes of each: residuals, distances, NIS...; ~5 MB); beyond either, the cache starts over
+_CACHED, _CACHED_ROWS = 4096, 65536
+
+
+class Kept(dict):
+    """Answers kept (a world's fits, by their body, time and window), bounded by their number
+    and by the measurements they describe (``rows``)."""
+
+    rows = 0
+
+    def clear(self) -> None:
+        super().clear()
+        self.rows = 0
+
+    def keep(self, key, value, rows: int = 1) -> None:
+        if len(self) >= _CACHED or self.rows + rows > _CACHED_ROWS:
+            self.clear()
+        self[key] = value
+        self.rows += rows

@@ -26,8 +26,8 @@ from dqpose.answers import Answers
 from dqpose.errors import WorldError
 from dqpose.fusion.bounds import TrackerBounds
 from dqpose.names import name_problem
-from dqpose.world import BodyPose, World
-from dqpose.world_ticks import Ticks, tick_phase
+from dqpose.world import BodyPose, TickWindow, World
+from dqpose.world_ticks import Schedule
 
 #: producer names a world remembers (each one's acked_through); the oldest-acked is forgotten
 #: beyond
@@ -56,34 +56,34 @@ class Interest(NamedTuple):
 
 
 class Subscription:
-    """One subscription of a hub: its :class:`Interest`, its ticks per body and ``deliver``,
-    called under the hub's lock once a step with that step's answers in order (it must not
-    block, raise or call the hub). Its owner sets ``closed`` when it ends: no answer is made
-    for it after that."""
+    """One subscription of a hub: its :class:`Interest`, its ticks (a
+    :class:`~dqpose.world_ticks.Schedule` at a rate > 0) and ``deliver``, called under the hub's
+    lock once a step with that step's answers in order (it must not block, raise or call the
+    hub). Its owner sets ``closed`` when it ends: no answer is made for it after that."""
 
     def __init__(self, interest: Interest, deliver: Callable[[list], None]):
         self.interest, self.deliver = interest, deliver
         self.closed = False
-        self._ticks: dict[str, Ticks] = {}
-        self._paced = (0.0, 0.0)            # max_delay and window, when it came in
+        self.schedule = Schedule(interest.rate) if interest.rate else None
+        self.capped: set[str] = set()       # bodies said to hold more than their fits take
 
     def wants(self, body: str) -> bool:
         bodies = self.interest.bodies
         return bodies is None or body in bodies
 
-    def due(self, body: str, source: str, taken: float) -> list[float]:
-        t = self._ticks.get(body)
-        if t is None:
-            rate = self.interest.rate
-            t = self._ticks[body] = Ticks(rate, self._paced[0],
-                                          tick_phase(body) if rate else 0.0, self._paced[1])
-        return t.arrive(source, taken)
+    def due(self, body: str, window: TickWindow) -> list[Optional[float]]:
+        """``body``'s ticks due after a step (its :class:`~dqpose.world.TickWindow` then):
+        at a rate, those its horizon reached; at rate 0, one at its newest measurement
+        (None)."""
+        if self.schedule is None:
+            return [None]
+        ks = self.schedule.due(body, window.horizon, window.floor)
+        return [self.schedule.time(body, k) for k in ks]
 
 
 class Rows(NamedTuple):
     """A Publish request's measurements as arrays, ``index[k]`` the request's measurement of row
-    ``k`` (of ``offered``), ``codes`` what a decoder's checks said of each row (None: not
-    checked)."""
+    ``k``, ``codes`` what a decoder's checks said of each row (None: not checked)."""
     # shadows tuple.index(), which no caller uses, as Measurements' does
     index: np.ndarray  # type: ignore[assignment]
     bodies: tuple
@@ -92,7 +92,6 @@ class Rows(NamedTuple):
     poses: np.ndarray
     covariances: np.ndarray
     codes: Optional[np.ndarray]
-    offered: int
 
 
 class Applied(NamedTuple):
@@ -116,8 +115,10 @@ class Hub:
     """One world (see the module's docstring). ``tracker``: the server's bounds of a stream;
     ``encoder``: how answers are written."""
 
-    def __init__(self, name: str, encoder: Encoder, tracker: Optional[TrackerBounds] = None):
+    def __init__(self, name: str, encoder: Encoder, tracker: Optional[TrackerBounds] = None,
+                 where: str = "request {}"):
         self.name, self.encoder = name, encoder
+        self.where = where.format           # how an answer names request r: "request 4"
         self.world = World(tracker=tracker)
         self.lock = threading.Lock()
         self._acked: dict[str, int] = {}         # producer -> acked_through
@@ -145,14 +146,16 @@ class Hub:
             self.requests += 1
 
     def publish(self, producer: str, anonymous: str, sequence: int, rows: Optional[Rows],
-                hook: Hook = None) -> Applied:
-        """A Publish request as one step: from ``producer`` ("": the call's own key
-        ``anonymous``) with ``sequence`` (0: none), its ``rows`` into the world (None: refused
-        whole by the transport, counted and acked), its answers made and delivered. Never raises
-        for bad input: what was refused is in the :class:`Applied`."""
+                offered: int, hook: Hook = None) -> Applied:
+        """A Publish request of ``offered`` measurements as one step: from ``producer`` ("":
+        the call's own key ``anonymous``) with ``sequence`` (0: none), its ``rows`` into the
+        world (None: refused whole by the transport, counted and acked), its answers made and
+        delivered. Its measurements are numbered in the world's order whatever becomes of them.
+        Never raises for bad input: what was refused is in the :class:`Applied`."""
         with self.lock:
             _run(hook)
-            r = self.requests
+            r, first = self.requests, self.measurements
+            self.measurements += offered
             named = name_problem(producer, empty=True)
             if named is not None:
                 self.requests += 1
@@ -170,7 +173,7 @@ class Hub:
             notes = () if known is None or sequence <= last + 1 else (WorldError(
                 None, "", f"sequences {last + 1}..{sequence - 1} of producer {key!r} never "
                           f"arrived"),)
-            errors = () if rows is None else self._apply(rows, key)
+            errors = () if rows is None else self._apply(rows, key, first)
             self.requests += 1
             if sequence:
                 self._acked[key] = sequence
@@ -184,13 +187,12 @@ class Hub:
             self._acked.pop(anonymous, None)
 
     def subscribe(self, sub: Subscription, hook: Hook = None, wait: bool = True) -> bool:
-        """``sub`` answered from the next step on, paced by the world's options now; False
-        (nothing done) when not ``wait`` and the lock is held."""
+        """``sub`` answered from the next step on; False (nothing done) when not ``wait`` and
+        the lock is held."""
         if not self.lock.acquire(wait):
             return False
         try:
             _run(hook)
-            sub._paced = (self.world.options.max_delay, self.world.options.window)
             self._subscriptions[self._came] = sub
             self._came += 1
         finally:
@@ -217,90 +219,89 @@ class Hub:
 
     # -- a Publish step, under the lock
 
-    def _apply(self, rows: Rows, producer: str) -> tuple:
-        """``rows`` into the world (from ``producer``), then the answers they make due."""
-        ids = self.measurements + rows.index
-        self.measurements += rows.offered
+    def _apply(self, rows: Rows, producer: str, first: int) -> tuple:
+        """``rows`` into the world (from ``producer``, numbered from ``first``), then the
+        answers they make due."""
         if not len(rows.index):
             return ()
         published = self.world.ingest(rows.bodies, rows.sources, rows.times, rows.poses,
-                                      rows.covariances, rows.codes, producer)
+                                      rows.covariances, rows.codes, producer,
+                                      first + rows.index)
         errors = tuple(e.at(int(rows.index[e.index])) for e in published.errors)
-        self._answer_subscriptions(rows, ids, {e.index for e in errors})
+        self._answer_subscriptions(published.bodies)
         self.answers.refresh(self.world, published.bodies)
         return errors
 
-    def _answer_subscriptions(self, rows: Rows, ids, refused: set) -> None:
-        """The answers the step's rows (numbered ``ids``; the request's measurements
-        ``refused`` left out) make due, within the request's budget (all subscriptions
-        together, each fit made once for all), delivered to each subscription in order."""
+    def _answer_subscriptions(self, bodies: tuple) -> None:
+        """The answers due after a step that brought measurements of ``bodies`` (in order of
+        their first measurement), within the request's budget (all subscriptions together,
+        the earlier first, each fit made once for all), delivered to each subscription."""
         if not self._subscriptions:
             return
-        latency = {s.name: s.latency for s in self.world.sources}
-        made: dict[tuple[str, float, str], bytes] = {}
+        made: dict[tuple, bytes] = {}
         budget = _limits.Budget(self.world.tracker_bounds)
+        windows: dict[str, TickWindow] = {}
         for sub in list(self._subscriptions.values()):
             if sub.closed:          # ended by its owner, not yet taken out
                 continue
-            due: list[tuple[str, float, int]] = []
-            for k in range(len(rows.index)):
-                body = rows.bodies[k]
-                if int(rows.index[k]) in refused or not sub.wants(body):
-                    continue
-                source = rows.sources[k]
-                taken = float(rows.times[k]) - latency.get(source, 0.0)
-                due += [(body, t, int(ids[k])) for t in sub.due(body, source, taken)]
-            relative_to = sub.interest.relative_to
-            due, answers = self._affordable(due, relative_to, made, budget)
-            for body, t, last in due:
-                key = (body, t, relative_to)
-                if key not in made:
-                    made[key] = self._answer(body, t, relative_to, last)
-                answers.append(made[key])
+            answers: list = []
+            for body in bodies:
+                if sub.wants(body):
+                    w = windows.get(body) or windows.setdefault(
+                        body, self.world.tick_window(body))
+                    answers += self._due(sub, body, w, made, budget)
             if answers:
                 sub.deliver(answers)
 
-    def _affordable(self, due: list, relative_to: str, made: dict,
-                    budget: _limits.Budget) -> tuple[list, list]:
-        """``due`` ``(body, tick, id)`` less the ticks the request's ``budget`` cannot afford, and
-        an error entry per body with ticks skipped: a fit not ``made`` yet costs what it fuses
-        (with ``relative_to``, the relative pose's fits besides), a body's oldest ticks are
-        skipped and its latest kept."""
-        new: dict[str, list[int]] = {}
-        for j, (b, t, _) in enumerate(due):
-            if (b, t, relative_to) not in made:
-                new.setdefault(b, []).append(j)
-        world, options = self.world, self.world.options
-        correlated = options.acceleration_psd is not None and bool(
-            np.any(options.acceleration_psd))
-        skip: set[int] = set()
-        errors = []
-        r = self.requests
-        for b, js in new.items():
-            lo, hi = min(due[j][1] for j in js), max(due[j][1] for j in js)
-            rows = world.rows_near(b, lo, hi)
-            if relative_to:
-                rows += rows + world.rows_near(relative_to, lo, hi)
-            take, cost = budget.take(len(js), rows, options.robust, correlated)
-            if take < len(js):
-                gone = js[:len(js) - take]
-                skip.update(gone)
-                e = budget.skipped(f"request {r}", b, f"{len(gone)} ticks from "
-                                   f"{due[gone[0]][1]:.6g} s to {due[gone[-1]][1]:.6g} s", cost)
-                errors.append(self.encoder.error(b, 0.0, r, str(e)))
-        if skip:
-            due = [d for j, d in enumerate(due) if j not in skip]
-        return due, errors
+    def _due(self, sub: Subscription, body: str, w: TickWindow, made: dict,
+             budget: _limits.Budget) -> list:
+        """``sub``'s answers of ``body`` due in this step, StreamFuse's order: that its window
+        is capped (once), the ticks its budget skips (a body's oldest, named), the answers. A
+        fit not ``made`` yet costs what it fuses (relative to another body, that body's window
+        and its own again besides)."""
+        times = sub.due(body, w)
+        if not times:
+            return []
+        r, out = self.requests, []
+        where = self.where(r)
+        if w.capped and body not in sub.capped:
+            sub.capped.add(body)
+            out.append(self.encoder.error(body, 0.0, r, f"{where}: " + _limits.over_text(
+                f"body {body!r}: its window holds more measurements than its fits take "
+                f"({self.world.cap}); the oldest are left out", "max_window",
+                self.world.tracker_bounds.max_window)))
+        rel = sub.interest.relative_to
+        new = [t for t in times if (body, t, rel) not in made]
+        rows = w.rows + (w.rows + self.world.tick_window(rel).rows if rel else 0)
+        options = self.world.options
+        take, cost = budget.take(len(new), rows, options.robust, options.acceleration_psd
+                                 is not None and bool(np.any(options.acceleration_psd)))
+        if take < len(new):
+            gone = new[:len(new) - take]
+            what = (f"{len(gone)} ticks from {gone[0]:.6g} s to {gone[-1]:.6g} s"
+                    if sub.schedule is not None else "its newest measurement")
+            out.append(self.encoder.error(body, 0.0, r, str(budget.skipped(where, body, what,
+                                                                            cost))))
+            skipped = set(gone)
+            times = [t for t in times if t not in skipped]
+        for t in times:
+            key = (body, t, rel)
+            if key not in made:
+                made[key] = self._answer(body, t, rel)
+            out.append(made[key])
+        return out
 
-    def _answer(self, body: str, t: float, relative_to: str, last_id: int) -> bytes:
-        """Body ``body`` at tick ``t`` (relative to ``relative_to`` when set), or an error
-        entry naming why it cannot be answered."""
+    def _answer(self, body: str, t: Optional[float], relative_to: str) -> bytes:
+        """Body ``body`` at tick ``t`` (None: its newest measurement's time; relative to
+        ``relative_to`` when set), or an error entry naming why it cannot be answered."""
         r = self.requests
         try:
-            p = self.world.pose(body, t)
+            p, ids = self.world.tick(body, t)
             if relative_to:
-                rel = self.world.relative(relative_to, body, t)
+                rel = self.world.relative(relative_to, body, p.time)
                 p = BodyPose(body, rel.time, rel.pose, rel.covariance, p.fused)
         except (ValueError, LookupError) as e:
-            return self.encoder.error(body, t, r, f"body {body!r} at {t:.6g} s: {e}")
-        return self.encoder.fused(p, r, [last_id])
+            at = f"{t!r} s" if t is not None else "its newest measurement"
+            return self.encoder.error(body, 0.0, r,
+                                      f"{self.where(r)}: body {body!r} at {at}: {e}")
+        return self.encoder.fused(p, r, ids.tolist())

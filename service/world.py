@@ -2,12 +2,13 @@
 buffer, the pose of any body relative to any other, and an arm's base, all with covariances.
 
 A :class:`World` holds one :class:`dqpose.fusion.Tracker` whose window is the ``buffer`` (the
-history kept for lookups at past times); a body's pose at a time is :func:`dqpose.fusion.fuse`
-over the measurements taken within ``window`` of that time (the tracker's rows, so the answer is
-``fuse``'s to the last bit). Producers call :meth:`World.publish` from any thread: what changes
-the world (publish, ingest, configure) has it alone, what reads it (poses, lookups) runs beside
-other readers (:class:`dqpose.readwrite.ReadWrite`), each answer a function of the measurements
-alone, so a reader never waits for another's fit.
+history kept for lookups at past times). A fit is :func:`dqpose.fusion.fuse` over the
+measurements taken in a ``window`` (the tracker's rows: ``fuse``'s answer to the last bit): a
+tick's (:meth:`World.tick`) ends at the body's newest measurement, StreamFuse's rows; a
+Lookup's at ``time`` (:meth:`World.pose`, :meth:`World.relative`) half a window after it, or at
+the newest if sooner. What changes the world (publish, ingest, configure) has it alone, what
+reads it runs beside other readers (:class:`dqpose.readwrite.ReadWrite`), each answer a function
+of the measurements alone, so a reader never waits for another's fit.
 
 Correlations: two bodies measured by the same source share its extrinsic error ``ε`` (the
 source's ``extrinsic_covariance``) and, when its latency is estimated (``latency_sigma``), its
@@ -22,12 +23,13 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Mapping, Optional, Sequence
+from typing import Mapping, NamedTuple, Optional, Sequence
 
 import numpy as np
 
 from dqpose import dq
 from dqpose import limits as _limits
+from dqpose.answers import Kept
 from dqpose.errors import NotFound, OutOfRange, WorldError
 from dqpose.fusion import (
     DEFAULT_MAX_EXTRAPOLATION,
@@ -45,6 +47,7 @@ from dqpose.fusion.tracker import _arrays
 from dqpose.fusion.validation import _finite_shape, _seconds
 from dqpose.names import name_problem, quoted
 from dqpose.readwrite import ReadWrite
+from dqpose.world_ticks import horizon
 
 __all__ = ["WorldOptions", "WorldBounds", "WorldError", "NotFound", "OutOfRange", "Published",
            "BodyPose", "World", "Measurement", "Source", "Fused"]
@@ -86,6 +89,16 @@ class Published:
     accepted: int
     errors: tuple[WorldError, ...]
     bodies: tuple[str, ...]
+
+
+class TickWindow(NamedTuple):
+    """What a body's ticks would fit now: its ``horizon`` (:func:`dqpose.world_ticks.horizon`),
+    its window's oldest measurement (``floor``), the ``rows`` a tick fits, and ``capped``: its
+    window holds more than those."""
+    horizon: float
+    floor: float
+    rows: int
+    capped: bool
 
 
 @dataclass(frozen=True)
@@ -154,8 +167,8 @@ class World:
         self._version: dict[str, int] = {}
         self._generation = 0              # configurations made, for stamp()
         self._named: set = set()          # the configured sources and those that fed a body
-        self._fits = _Kept()
-        self._relatives = _Kept()
+        self._fits = Kept()
+        self._relatives = Kept()
         self.configure(sources=sources, arms=arms, options=options)
 
     def configure(self, *, sources: Sequence[Source], arms: Mapping[str, str],
@@ -182,6 +195,11 @@ class World:
             raise WorldError(None, "options.window",
                              f"{window:.6g} s is longer than options.buffer {buffer:.6g} s (a "
                              f"fit uses measurements the buffer keeps)")
+        if options.max_delay > window:
+            raise WorldError(None, "options.max_delay",
+                             f"{options.max_delay:.6g} s is longer than options.window "
+                             f"{window:.6g} s (a tick waits at most that long for slower "
+                             f"sources, its window then holding its data)")
         names = {s.name for s in sources if isinstance(s, Source)}
         arms = dict(arms)
         for arm, src in arms.items():
@@ -223,7 +241,8 @@ class World:
             for body in old.bodies:
                 w = old.window_of(body)
                 n = len(w.ids)
-                self._admit([body] * n, list(w.sources), w.times, w.poses, w.covariances)
+                self._admit([body] * n, list(w.sources), w.times, w.poses, w.covariances,
+                            ids=w.ids)
             # a body's sources are those that ever fed it, across configurations
             for body, seen in fed.items():
                 mine = self._fed.setdefault(body, {})
@@ -234,6 +253,11 @@ class World:
     def bodies(self) -> tuple[str, ...]:
         with self._lock.read():
             return self._t.bodies
+
+    @property
+    def cap(self) -> Optional[int]:
+        """Measurements one fit of a body takes at most (the last of its window)."""
+        return self._t.cap
 
     @property
     def _t(self) -> Tracker:
@@ -256,11 +280,12 @@ class World:
         return _published(bodies, errors)
 
     def ingest(self, bodies: Sequence[str], sources: Sequence[str], times, poses,
-               covariances, codes=None, producer=None) -> Published:
+               covariances, codes=None, producer=None, ids=None) -> Published:
         """:meth:`publish` of measurements given as arrays (a server's parsed request):
         ``bodies`` and ``sources`` one name each, ``times`` ``(n,)``, ``poses`` ``(n, 8)``,
         ``covariances`` ``(n, 6, 6)``; checked together in NumPy, the same checks and answers
-        as :meth:`publish` without a :class:`Measurement` per row. ``codes`` ``(n,)``: the rows
+        as :meth:`publish` without a :class:`Measurement` per row; ``ids`` ``(n,)``: the
+        numbers the answers name them by (default: their index). ``codes`` ``(n,)``: the rows
         were checked by a decoder already (``Tracker.ingest_checked``: 0 a good row, not checked
         again). ``producer``: as :meth:`publish` takes it. Arrays of the wrong shape are a
         ``WorldError`` for the call."""
@@ -278,11 +303,11 @@ class World:
         bodies = list(bodies)
         with self._lock.write():
             errors = self._admit(bodies, list(sources), times, poses, covs, codes=codes,
-                                 producer=producer)
+                                 producer=producer, ids=ids)
         return _published(bodies, errors)
 
     def _admit(self, bodies, sources, times, poses, covs, bad=None, codes=None,
-               producer=None) -> dict[int, WorldError]:
+               producer=None, ids=None) -> dict[int, WorldError]:
         """Rows into the tracker under the world's bounds (the lock held); ``codes`` and
         ``producer``: as :meth:`ingest` takes them."""
         errors: dict[int, WorldError] = dict(bad or {})
@@ -309,8 +334,9 @@ class World:
             idx = np.array(use)
             rows = ([bodies[k] for k in use], [sources[k] for k in use], times[idx],
                     poses[idx], covs[idx])
-            refused = (self._t.ingest(*rows, ids=idx, origin=producer) if codes is None else
-                       self._t.ingest_checked(*rows, idx, np.asarray(codes)[idx], producer))
+            numbers = idx if ids is None else np.asarray(ids, np.int64)[idx]
+            refused = (self._t.ingest(*rows, ids=numbers, origin=producer) if codes is None else
+                       self._t.ingest_checked(*rows, numbers, np.asarray(codes)[idx], producer))
             for j, e in refused:
                 errors[use[j]] = e.at(use[j])
             for k in use:
@@ -342,15 +368,36 @@ class World:
                                f"{', '.join(map(repr, seen)) or 'none'})")
             return seen[source]
 
-    def rows_near(self, body: str, lo: float, hi: float) -> int:
-        """How many measurements a fit of ``body`` at a time in ``[lo, hi]`` fuses at most
-        (those taken within ``window`` of it; 0 for a body the world does not hold): what its
-        answers cost (:func:`dqpose.limits.answer_cost`)."""
+    def tick_window(self, body: str) -> TickWindow:
+        """What ``body``'s ticks would fit now (:meth:`tick`; none for a body not held)."""
         with self._lock.read():
             if not self._t.has(body):
-                return 0
-            return len(self._t.near_rows(body, 0.5 * (lo + hi),
-                                         0.5 * (hi - lo) + self.options.window)[1])
+                return TickWindow(-math.inf, math.inf, 0, False)
+            t = self._t
+            newest, window = t.newest(body), self.options.window
+            rows = t.rows_ending(body, newest, window)[1]
+            return TickWindow(horizon(self._fed.get(body, {}), self.options.max_delay),
+                              float(t.taken_of(rows).min()), len(rows), t.capped(body, window))
+
+    def tick(self, body: str, time: Optional[float]) -> tuple[BodyPose, np.ndarray]:
+        """``body`` at tick ``time`` (None: its newest measurement's time) from the
+        measurements of its tick window: those taken within ``window`` of its newest, the last
+        the tracker's cap of them (StreamFuse's rows), with the fused measurements' ids."""
+        with self._lock.read():
+            self._known(body)
+            t = self._t
+            end = t.newest(body)
+            key = (body, time, end)
+            hit = self._fits.get(key)
+            version = self._version.get(body, 0)
+            if hit is not None and hit[0] == version and hit[2]:
+                f, ids = hit[1], hit[3]
+            else:
+                rows = self._rows_for(body, end if time is None else time, end)
+                f, ids = self._fit_of(body, rows, lambda r: t.estimate_rows(r, time))
+                self._fits.keep(key, (version, f, True, ids), len(f.distances))
+        assert f.time is not None            # a fit over time
+        return BodyPose(body, f.time, f.mean, f.covariance, f), ids
 
     def _known(self, body) -> None:
         body = _body_name(body)
@@ -361,26 +408,31 @@ class World:
                 + (", ..." if len(self._t.bodies) > 5 else "") if some else "no bodies yet")
                 + ")")
 
+    def _end(self, body: str, at: float) -> float:
+        """Where a Lookup's window of ``body`` at ``at`` ends: half a window past ``at``, or at
+        its newest (a tick's window when ``at`` is in its newer half)."""
+        return min(self._t.newest(body), at + 0.5 * self.options.window)
+
     def _fit(self, body: str, time: Optional[float], nis: bool = True) -> Fused:
-        """``body``'s fit at ``time`` from the measurements taken within ``window`` of it (the
+        """``body``'s fit at ``time`` from the measurements of the window :meth:`_end` ends (the
         lock held), or ``OutOfRange`` naming what is known. Without ``nis`` (a Lookup, which
         answers the pose and its covariance) the fit may leave out the leave-one-out NIS
-        (:meth:`Tracker.estimate_ids`); a kept fit with them serves both."""
+        (:meth:`Tracker.estimate_rows`); a kept fit with them serves both."""
         at = self._at(body, time)
-        key = (body, at)
+        end = self._end(body, at)
+        key = (body, at, end)
         hit = self._fits.get(key)
         version = self._version.get(body, 0)
         if hit is not None and hit[0] == version and (hit[2] or not nis):
             return hit[1]       # no new data: it was in range then
-        f = self._fitted(body, at, lambda rows: self._t.estimate_rows(rows, at, nis)[0])
-        self._fits.keep(key, (version, f, nis), len(f.distances))
+        f, ids = self._fitted(body, at, lambda rows: self._t.estimate_rows(rows, at, nis))
+        self._fits.keep(key, (version, f, nis, ids), len(f.distances))
         return f
 
     def _pose_only(self, body: str, at: float) -> tuple[np.ndarray, np.ndarray]:
         """The known ``body``'s pose and covariance at the checked time ``at`` (the lock held),
-        as :meth:`_fit` would give them: a kept fit's, else only those
-        (``Tracker.pose_rows``)."""
-        hit = self._fits.get((body, at))
+        as :meth:`_fit` would give them: a kept fit's, else only those (``pose_rows``)."""
+        hit = self._fits.get((body, at, self._end(body, at)))
         if hit is not None and hit[0] == self._version.get(body, 0):
             return hit[1].mean, hit[1].covariance
         return self._fitted(body, at, lambda rows: self._t.pose_rows(rows, at))
@@ -398,20 +450,32 @@ class World:
             raise WorldError.of(e) from None
 
     def _fitted(self, body: str, at: float, fit):
-        """``fit(rows)`` of ``body``'s rows taken within ``window`` of ``at``, or ``OutOfRange``
-        naming what is known."""
+        """``fit(rows)`` of ``body``'s rows of a Lookup at ``at``, or ``OutOfRange``."""
+        return self._fit_of(body, self._rows_for(body, at), fit)
+
+    def _rows_for(self, body: str, at: float, end: Optional[float] = None) -> np.ndarray:
+        """``body``'s rows of a fit at ``at``: taken in ``[end - window, end]`` (``end``: a
+        Lookup's, :meth:`_end`; a tick's, its newest), or ``OutOfRange`` naming what is
+        known."""
         t = self._t
         newest = t.newest(body)
-        oldest, rows = t.near_rows(body, at, self.options.window)
+        end = self._end(body, at) if end is None else end
+        oldest, rows = t.rows_ending(body, end, self.options.window)
         limit = self.options.max_extrapolation
         if at < oldest or (limit is not None and at > newest + limit) or not len(rows):
-            raise self._out_of_range(body, at, oldest, newest)
+            raise self._out_of_range(body, at, oldest, newest, end)
+        return rows
+
+    def _fit_of(self, body: str, rows: np.ndarray, fit):
+        """``fit(rows)``, or ``OutOfRange`` naming why and what is known."""
         try:
             return fit(rows)
         except ValueError as e:
-            raise OutOfRange(f"{e}; {_known_from(body, oldest, newest)}") from None
+            known = _known_from(body, self._t.oldest(body), self._t.newest(body))
+            raise OutOfRange(f"{e}; {known}") from None
 
-    def _out_of_range(self, body: str, at: float, oldest: float, newest: float) -> OutOfRange:
+    def _out_of_range(self, body: str, at: float, oldest: float, newest: float,
+                      end: float) -> OutOfRange:
         """Why :meth:`_fit` cannot fit ``body`` at ``at``, naming what is known."""
         known = _known_from(body, oldest, newest)
         if at < oldest:
@@ -421,12 +485,13 @@ class World:
         if limit is not None and at > newest + limit:
             return OutOfRange(f"time: {_s(at)} is {at - newest:.6g} s past the newest "
                               f"measurement, beyond max_extrapolation {limit:g} s; {known}")
-        return OutOfRange(f"time: no measurement of {body!r} within the window "
-                          f"{self.options.window:g} s of {_s(at)}; {known}")
+        return OutOfRange(f"time: no measurement of {body!r} in the window "
+                          f"{self.options.window:g} s ending at {_s(end)}; {known}")
 
     def pose(self, body: str, time: Optional[float] = None) -> BodyPose:
         """``T_world_body`` at ``time`` (None: the body's newest): :func:`dqpose.fusion.fuse`
-        over its measurements taken within ``window`` of ``time``."""
+        over its measurements taken in the ``window`` that ends half a window after ``time``,
+        or at its newest measurement if sooner."""
         with self._lock.read():
             f = self._fit(body, time)
         assert f.time is not None            # a fit over time
@@ -469,9 +534,10 @@ class World:
             elif self._share(target, source, at):
                 # each body's start for the joint fit: its constant-twist fit, unless robust
                 # (the gate's inliers need the whole fit); kept apart from the body's own fits
-                fits = [self._fitted(b, at, lambda rows: self._t.start_rows(rows, at))
-                        for b in (target, source)]
-                (Xa, Xb), P = self._t.joint([target, source], fits, at, self.options.window)
+                rows = [self._rows_for(b, at) for b in (target, source)]
+                fits = [self._fit_of(b, r, lambda r: self._t.start_rows(r, at))
+                        for b, r in zip((target, source), rows)]
+                (Xa, Xb), P = self._t.joint(rows, fits, at)
                 answer = BodyPose(source, at, _frozen(dq.mul(dq.conj(Xa), Xb)),
                                   _frozen(_relative_covariance(Xa, Xb, P)), None)
             else:
@@ -490,12 +556,13 @@ class World:
         return (self._generation,) + tuple(version.get(b, 0) for b in bodies)
 
     def _share(self, a: str, b: str, at: float) -> bool:
-        """Whether bodies ``a`` and ``b`` have measurements within ``window`` of ``at`` from a
-        common source whose extrinsic is uncertain or whose latency is estimated (errors the
-        two poses then share)."""
-        table, window = self._t._table, self.options.window
-        common = self._t.sources_near(a, at, window) & self._t.sources_near(b, at, window)
-        return any(not table[s].exact for s in common if s in table)
+        """Whether bodies ``a`` and ``b`` have measurements in their windows of a Lookup at
+        ``at`` from a common source whose extrinsic is uncertain or whose latency is estimated
+        (errors the two poses then share)."""
+        t, window = self._t, self.options.window
+        common = (t.sources_of(t.rows_ending(a, self._end(a, at), window)[1])
+                  & t.sources_of(t.rows_ending(b, self._end(b, at), window)[1]))
+        return any(not t._table[s].exact for s in common if s in t._table)
 
     def arm_base(self, arm: str) -> BodyPose:
         """``T_world_base`` of ``arm``: the extrinsic of the source ``arms`` names, with its
@@ -515,28 +582,6 @@ def _published(bodies, errors: Mapping[int, WorldError]) -> Published:
     touched = dict.fromkeys(b for k, b in enumerate(bodies) if k not in errors)
     return Published(len(bodies) - len(errors), tuple(errors[k] for k in sorted(errors)),
                      tuple(touched))
-
-
-# answers kept at most, and the measurements their fits describe at most (a fit keeps ~75
-# bytes of each: residuals, distances, NIS...; ~5 MB); beyond either, the cache starts over
-_CACHED, _CACHED_ROWS = 4096, 65536
-
-
-class _Kept(dict):
-    """Answers kept, bounded by their number and by the measurements they describe
-    (``rows``)."""
-
-    rows = 0
-
-    def clear(self) -> None:
-        super().clear()
-        self.rows = 0
-
-    def keep(self, key, value, rows: int = 1) -> None:
-        if len(self) >= _CACHED or self.rows + rows > _CACHED_ROWS:
-            self.clear()
-        self[key] = value
-        self.rows += rows
 
 
 def _composed(target: str, source: str, at: float,

@@ -6,19 +6,14 @@ With several sources feeding a body (cameras on their hosts, an arm on its contr
 body's *horizon* is the time up to which its data can be taken as complete: every source that has
 fed it has a measurement taken at or after it, or the fastest source is ``max_delay`` of
 measurement time past it (a source that stopped, or lags by more than that, is not waited for).
-A tick falls due once the horizon reaches it; a measurement arriving for a tick already answered
-enters the later ticks' fits only.
+A tick falls due once the horizon reaches it (:class:`Schedule`); a measurement arriving for a
+tick already answered enters the later ticks' fits only.
 """
 from __future__ import annotations
 
-import bisect
 import math
 import zlib
 from typing import Mapping
-
-#: ticks one arrival may make due at most (a jump of the horizon past more is answered for the
-#: newest ones only: the older ones' data left the window long ago)
-MAX_DUE = 4096
 
 
 def tick_phase(body: str) -> float:
@@ -55,61 +50,39 @@ def horizon(newest: Mapping[str, float], max_delay: float) -> float:
     return max(min(times), max(times) - max_delay)
 
 
-class Ticks:
-    """One body's ticks for one subscription. :meth:`arrive` takes each measurement's source and
-    taken time in arrival order and returns the tick times that fell due, in order, each once.
+class Schedule:
+    """One subscription's ticks (``rate`` > 0): each body's next tick, counted in closed form
+    (StreamFuse's: a body whose time leapt gives a range, not a loop over every tick between).
+    :meth:`due` takes a body's horizon and the oldest measurement of its window after a step
+    and gives the ticks that fell due, each once, in order: those at or before the horizon,
+    none before the window (its data gone)."""
 
-    ``rate`` > 0: ticks at :func:`tick_time` ``(k, rate, phase)`` from the body's first
-    measurement on. ``rate`` 0: one tick per distinct taken time (each measurement time of the
-    body is answered once its horizon reaches it). ``window``: ticks more than this before the
-    horizon when they fall due are skipped (their data left the body's window)."""
+    def __init__(self, rate: float):
+        if not (math.isfinite(rate) and rate > 0.0):
+            raise ValueError(f"rate: must be finite and > 0, got {rate!r}")
+        self.rate = rate
+        self.next: dict[str, int] = {}
+        self._phase: dict[str, float] = {}
 
-    def __init__(self, rate: float, max_delay: float, phase: float = 0.0,
-                 window: float = math.inf):
-        if not (math.isfinite(rate) and rate >= 0.0):
-            raise ValueError(f"rate: must be finite and >= 0, got {rate!r}")
-        if not (math.isfinite(max_delay) and max_delay >= 0.0):
-            raise ValueError(f"max_delay: must be finite and >= 0, got {max_delay!r}")
-        self.rate, self.max_delay, self.phase, self.window = rate, max_delay, phase, window
-        self.newest: dict[str, float] = {}
-        self.next: int | None = None           # rate > 0: the next tick to fire
-        self.pending: list[float] = []         # rate 0: times not yet due, sorted
-        self.done = -math.inf                  # the horizon answered up to
+    def phase(self, body: str) -> float:
+        p = self._phase.get(body)
+        if p is None:
+            p = self._phase[body] = tick_phase(body)
+        return p
 
-    def arrive(self, source: str, taken: float) -> list[float]:
-        """The ticks due after a measurement of ``source`` taken at ``taken`` arrived."""
-        if taken > self.newest.get(source, -math.inf):
-            self.newest[source] = taken
-        if self.rate:
-            if self.next is None:
-                self.next = first_tick(taken, self.rate, self.phase)
-        elif taken > self.done:
-            i = bisect.bisect_left(self.pending, taken)
-            if i == len(self.pending) or self.pending[i] != taken:
-                self.pending.insert(i, taken)
-                if len(self.pending) > MAX_DUE:    # bounded: the oldest pending time gives way
-                    del self.pending[0]
-        return self._due(horizon(self.newest, self.max_delay))
+    def due(self, body: str, horizon: float, floor: float) -> range:
+        """``body``'s ticks (numbers ``k``, :meth:`time` ``(body, k)``) due now that its data
+        are complete up to ``horizon``, not before ``floor``."""
+        rate, phase = self.rate, self.phase(body)
+        k = self.next.get(body)
+        first = first_tick(floor, rate, phase)
+        k = first if k is None else max(k, first)
+        end = first_tick(horizon, rate, phase)
+        if tick_time(end, rate, phase) <= horizon:
+            end += 1
+        self.next[body] = max(k, end)
+        return range(k, end)
 
-    def _due(self, h: float) -> list[float]:
-        if h <= self.done:
-            return []
-        self.done = h
-        oldest = h - self.window
-        if not self.rate:
-            k = bisect.bisect_right(self.pending, h)
-            due, self.pending = self.pending[:k], self.pending[k:]
-            return [t for t in due if t >= oldest][-MAX_DUE:]
-        assert self.next is not None
-        if tick_time(self.next, self.rate, self.phase) > h:
-            return []           # the common case: no tick reached (the answer below, sooner)
-        last = first_tick(h, self.rate, self.phase)
-        if tick_time(last, self.rate, self.phase) > h:
-            last -= 1
-        if last < self.next:
-            return []
-        start = max(self.next, last - MAX_DUE + 1)
-        if math.isfinite(oldest):
-            start = max(start, first_tick(oldest, self.rate, self.phase))
-        self.next = last + 1
-        return [tick_time(k, self.rate, self.phase) for k in range(start, last + 1)]
+    def time(self, body: str, k: int) -> float:
+        """The time of ``body``'s tick ``k``."""
+        return tick_time(k, self.rate, self.phase(body))

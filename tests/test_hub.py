@@ -11,7 +11,7 @@ from dqpose import hub as hub_module
 from dqpose import limits
 from dqpose.fusion import Source
 from dqpose.hub import Hub, Interest, Rows, Subscription
-from dqpose.world import WorldError, WorldOptions
+from dqpose.world import WorldBounds, WorldError, WorldOptions
 
 RATE = 20.0
 
@@ -37,7 +37,13 @@ def rows(bodies, times, sources=None) -> Rows:
     n = len(bodies)
     return Rows(np.arange(n), tuple(bodies), tuple(sources or ["cam"] * n),
                 np.asarray(times, np.float64), np.tile([1.0, 0, 0, 0, 0, 0, 0, 0], (n, 1)),
-                np.tile(np.eye(6) * 1e-4, (n, 1, 1)), None, n)
+                np.tile(np.eye(6) * 1e-4, (n, 1, 1)), None)
+
+
+def step(h: Hub, producer: str, anonymous: str, sequence: int, r, hook=None, offered=None):
+    """A Publish request of rows ``r`` (None: refused whole) as one step of ``h``."""
+    n = len(r.index) if offered is None else offered
+    return h.publish(producer, anonymous, sequence, r, n, hook)
 
 
 def made(bounds: limits.Limits = limits.DEFAULT) -> Hub:
@@ -48,29 +54,30 @@ def made(bounds: limits.Limits = limits.DEFAULT) -> Hub:
 
 def test_sequences_are_acked_repeats_refused_and_gaps_named():
     h = made()
-    first = h.publish("cam", "call1", 1, rows(["box"], [0.0]))
+    first = step(h, "cam", "call1", 1, rows(["box"], [0.0]))
     assert (first.request, first.acked_through, first.notes, first.used) == (0, 1, (), True)
-    again = h.publish("cam", "call1", 1, rows(["box"], [0.01]))
+    again = step(h, "cam", "call1", 1, rows(["box"], [0.01]))
     assert not again.used and again.acked_through == 1 and h.requests == 1   # not counted
     assert str(again.notes[0]) == "sequence 1 already in the world (acked through 1); not " \
                                   "fused again"
-    gap = h.publish("cam", "call2", 4, rows(["box"], [0.02]))
+    gap = step(h, "cam", "call2", 4, rows(["box"], [0.02]))
     assert gap.used and gap.acked_through == 4
     assert gap.notes[0].named("requests[7]") == "requests[7]: sequences 2..3 of producer " \
                                                 "'cam' never arrived"
-    bad = h.publish("a/b", "call3", 9, rows(["box"], [0.03]))
+    bad = step(h, "a/b", "call3", 9, rows(["box"], [0.03]))
     assert not bad.used and bad.acked_through == 0 and h.requests == 3
     assert bad.notes[0].field == "producer" and "none of it was used" in bad.notes[0].text
     # a call's own key is forgotten when the call ends: its sequences start again
-    h.publish("", "call4", 5, rows(["box"], [0.04]))
+    step(h, "", "call4", 5, rows(["box"], [0.04]))
     h.forget("call4")
-    assert h.publish("", "call4", 1, rows(["box"], [0.05])).notes == ()
+    assert step(h, "", "call4", 1, rows(["box"], [0.05])).notes == ()
 
 
 def test_a_request_refused_whole_is_counted_and_acked_but_not_used():
     h = made()
-    got = h.publish("cam", "call", 3, None)
-    assert got.used and got.acked_through == 3 and h.requests == 1 and h.measurements == 0
+    got = step(h, "cam", "call", 3, None, offered=5)
+    # numbered all the same: the next request's measurements start at 5
+    assert got.used and got.acked_through == 3 and h.requests == 1 and h.measurements == 5
     assert not h.world.bodies
 
 
@@ -78,16 +85,16 @@ def test_the_producers_remembered_are_bounded(monkeypatch):
     monkeypatch.setattr(hub_module, "MAX_PRODUCERS", 2)
     h = made()
     for k, p in enumerate(("a", "b", "c")):
-        h.publish(p, "call", 1, rows(["box"], [0.01 * k]))
+        step(h, p, "call", 1, rows(["box"], [0.01 * k]))
     # "a" was forgotten (acked longest ago): its next request names no gap
-    assert h.publish("a", "call", 5, rows(["box"], [0.05])).notes == ()
-    assert h.publish("c", "call", 5, rows(["box"], [0.06])).notes != ()
+    assert step(h, "a", "call", 5, rows(["box"], [0.05])).notes == ()
+    assert step(h, "c", "call", 5, rows(["box"], [0.06])).notes != ()
 
 
 def test_measurement_errors_name_the_requests_measurement():
     h = made()
     r = rows(["box", "box", "box"], [0.0, 1e11, 0.01])
-    got = h.publish("cam", "call", 1, r._replace(index=np.array([0, 2, 5]), offered=6))
+    got = step(h, "cam", "call", 1, r._replace(index=np.array([0, 2, 5])), offered=6)
     (e,) = got.errors
     assert e.index == 2 and e.field == "time" and e.limit == "max_time"
     assert e.named("requests[0].measurements").startswith("requests[0].measurements[2].time: ")
@@ -108,7 +115,7 @@ def test_each_subscription_gets_its_answers_once_a_step_in_order():
     h.subscribe(Subscription(Interest(None, RATE), to("all")))
     h.subscribe(Subscription(Interest(frozenset({"box"}), RATE), to("box")))
     h.subscribe(Subscription(Interest(frozenset({"cup"}), 0.0), to("zero")))
-    h.publish("cam", "call", 1, rows(["box", "cup"] * 3, [0.0, 0.0, 0.1, 0.1, 0.2, 0.2]))
+    step(h, "cam", "call", 1, rows(["box", "cup"] * 3, [0.0, 0.0, 0.1, 0.1, 0.2, 0.2]))
     assert calls == {"all": 1, "box": 1, "zero": 1}
     assert got["box"] and all(a.startswith(b"fused box") for a in got["box"])
     # a tick answered for two subscriptions is made once: the same bytes
@@ -117,7 +124,7 @@ def test_each_subscription_gets_its_answers_once_a_step_in_order():
     assert got["zero"] and all(a.startswith(b"fused cup") for a in got["zero"])
     # a closed subscription is answered no more, even before it is taken out
     h.subscriptions[0].closed = True
-    h.publish("cam", "call", 2, rows(["box"], [0.3]))
+    step(h, "cam", "call", 2, rows(["box"], [0.3]))
     assert calls["all"] == 1 and calls["box"] == 2
     h.unsubscribe(h.subscriptions[1])
     assert [s.interest.bodies for s in h.subscriptions] == [None, frozenset({"cup"})]
@@ -136,7 +143,7 @@ def test_the_budget_serves_the_earlier_subscription_first():
         for name in ("first", "second"):
             h.subscribe(Subscription(Interest(frozenset({body[name]}), 0.0),
                                      got[name].extend))
-        h.publish("cam", "call", 1, rows([body["first"], body["second"]], [0.0, 0.0]))
+        step(h, "cam", "call", 1, rows([body["first"], body["second"]], [0.0, 0.0]))
         assert [a.split()[0] for a in got["first"]] == [b"fused"], trial
         (skip,) = got["second"]
         assert skip.startswith(b"error " + body["second"].encode()) and \
@@ -155,7 +162,7 @@ def test_a_hook_runs_under_the_lock_in_the_order_of_the_steps():
 
     sub = Subscription(Interest(None, RATE), lambda answers: order.append("answers"))
     h.subscribe(sub, hook("subscribe"))
-    h.publish("cam", "call", 1, rows(["box", "box"], [0.0, 0.1]), hook("publish"))
+    step(h, "cam", "call", 1, rows(["box", "box"], [0.0, 0.1]), hook("publish"))
     h.count(hook("count"))
     h.configure([Source("cam")], {}, WorldOptions(window=0.3), hook("configure"))
     h.unsubscribe(sub, hook("unsubscribe"))
@@ -172,3 +179,28 @@ def test_a_subscription_that_cannot_wait_is_not_added_while_a_step_holds_the_loc
         assert not h.subscribe(sub, wait=False)
     assert not h.subscriptions
     assert h.subscribe(sub, wait=False) and h.subscriptions == (sub,)
+
+
+def test_rate_zero_answers_each_body_a_request_brought_once_at_its_newest():
+    h = made()
+    got: list = []
+    h.subscribe(Subscription(Interest(None, 0.0), got.extend))
+    step(h, "cam", "call", 1, rows(["box", "cup", "box"], [0.0, 0.01, 0.02]))
+    step(h, "cam", "call", 2, rows(["cup"], [0.005]))      # older than the cup's newest
+    # box first (its first measurement came first), each at its newest; the measurements
+    # each answer fused, numbered in the world's order
+    assert got == [b"fused box 0.02 r0 [0, 2]", b"fused cup 0.01 r0 [1]",
+                   b"fused cup 0.01 r1 [1, 3]"]
+
+
+def test_a_body_whose_window_holds_more_than_a_fit_takes_is_said_so_once():
+    h = made()
+    h.world.bounds = WorldBounds(max_measurements_per_body=2)     # a fit takes two at most
+    h.configure([Source("cam")], {}, WorldOptions(window=0.2, buffer=2.0, max_delay=0.0))
+    got: list = []
+    h.subscribe(Subscription(Interest(None, 0.0), got.extend))
+    for k in range(3):
+        step(h, "cam", "call", k + 1, rows(["box", "box"], [0.02 * k, 0.02 * k + 0.01]))
+    said = [a for a in got if a.startswith(b"error")]
+    assert len(said) == 1 and b"its window holds more measurements than its fits take" in said[0]
+    assert got[-1] == b"fused box 0.05 r2 [4, 5]"          # the last two: the window's cap

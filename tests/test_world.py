@@ -44,7 +44,12 @@ def stream(rng, sources, bodies, times, truth_extrinsic=None):
 
 
 def fuse_of(ms, body, time, window, sources, **kw):
-    mine = [m for m in ms if m.body == body and abs(m.time - time) <= window]
+    """fuse over ``body``'s measurements a Lookup at ``time`` fits: those taken in the
+    ``window`` ending half a window after ``time``, or at the newest if sooner (no latencies
+    here: taken is the stamp)."""
+    newest = max(m.time for m in ms if m.body == body)
+    end = min(newest, time + 0.5 * window)
+    mine = [m for m in ms if m.body == body and end - window <= m.time <= end]
     return fusion.fuse(np.array([m.pose for m in mine]), np.array([m.covariance for m in mine]),
                        names=[m.source for m in mine], times=[m.time for m in mine],
                        time=time, sources=sources, **kw)
@@ -103,9 +108,12 @@ def test_a_lookup_of_a_body_is_fuses_pose_and_covariance_bit_for_bit_whichever_f
     world = World(sources=sources, options=WorldOptions(window=0.3, **option_kw))
     assert world.publish(ms).accepted == len(ms)
     latency = {s.name: s.latency for s in sources}
-    for at in (world.newest("box"), world.newest("box") - 0.05):
-        # the world's window: taken (stamp less latency) within 0.3 s of the time
-        mine = [m for m in ms if abs(m.time - latency[m.source] - at) <= 0.3]
+    newest = world.newest("box")
+    for at in (newest, newest - 0.05, newest - 0.2):
+        # a Lookup's window: taken (stamp less latency) in the 0.3 s ending 0.15 s after the
+        # time, or at the newest
+        end = min(newest, at + 0.15)
+        mine = [m for m in ms if end - 0.3 <= m.time - latency[m.source] <= end]
         f = fuse_of(mine, "box", at, np.inf, sources, **option_kw)
         looked = world.relative("", "box", at)
         assert looked.pose.tobytes() == f.mean.tobytes()
@@ -278,6 +286,9 @@ def test_bounds_refused_naming_the_limit():
     with pytest.raises(WorldError, match=r"^sources\[0\]\.extrinsic_covariance: not positive"):
         world.configure(sources=[Source("x", extrinsic_covariance=-np.eye(6))], arms={},
                         options=WorldOptions())
+    with pytest.raises(WorldError, match=r"^options.max_delay: 0.5 s is longer than "
+                                         r"options.window 0.2 s"):
+        world.configure(sources=[], arms={}, options=WorldOptions(window=0.2, max_delay=0.5))
     with pytest.raises(WorldError, match=r"^arms\['ur'\]: source 'q' is not among"):
         world.configure(sources=[Source("x")], arms={"ur": "q"}, options=WorldOptions())
     assert world.bodies == ("b0", "b1")     # refused configurations changed nothing
@@ -528,12 +539,13 @@ def test_a_lookup_between_moving_bodies_starts_them_where_their_own_joint_fits_s
     world = _two_moving_bodies_one_uncertain_camera()
     at = 0.45
     r = world.relative("a", "b", at)
-    starts = {b: world._t.estimate_rows(world._t.near_rows(b, at, 1.0)[1], at, False,
-                                        joint=False)[0] for b in "ab"}
+    rows = [world._rows_for(b, at) for b in "ab"]
+    starts = {b: world._t.estimate_rows(r, at, False, joint=False)[0]
+              for b, r in zip("ab", rows)}
     own = {b: world._fit(b, at, nis=False) for b in "ab"}
     # the starts are not the bodies' own (joint) fits: this Lookup took the shorter way
     assert min(np.abs(starts[b].mean - own[b].mean).max() for b in "ab") > 1e-9
-    (Xa, Xb), P = world._t.joint(["a", "b"], [own["a"], own["b"]], at, 1.0)
+    (Xa, Xb), P = world._t.joint(rows, [own["a"], own["b"]], at)
     T = dq.mul(dq.conj(Xa), Xb)
     assert np.abs(dq.mul(dq.conj(r.pose), T) - [1, 0, 0, 0, 0, 0, 0, 0]).max() < 1e-12
     C = _relative_covariance(Xa, Xb, P)
@@ -546,12 +558,12 @@ def test_a_joint_fit_from_a_bodys_lean_start_is_the_one_from_its_full_fit_bit_fo
     constant-twist fit, to the last bit."""
     world = _two_moving_bodies_one_uncertain_camera()
     at = 0.45
-    rows = {b: world._t.near_rows(b, at, 1.0)[1] for b in "ab"}
-    lean = [world._t.start_rows(rows[b], at) for b in "ab"]
-    full = [world._t.estimate_rows(rows[b], at, False, joint=False)[0] for b in "ab"]
+    rows = [world._rows_for(b, at) for b in "ab"]
+    lean = [world._t.start_rows(r, at) for r in rows]
+    full = [world._t.estimate_rows(r, at, False, joint=False)[0] for r in rows]
     assert all(isinstance(s, _Start) for s in lean)
-    (Xa, Xb), P = world._t.joint(["a", "b"], lean, at, 1.0)
-    (Ya, Yb), Q = world._t.joint(["a", "b"], full, at, 1.0)
+    (Xa, Xb), P = world._t.joint(rows, lean, at)
+    (Ya, Yb), Q = world._t.joint(rows, full, at)
     assert (Xa.tobytes(), Xb.tobytes(), P.tobytes()) == (Ya.tobytes(), Yb.tobytes(), Q.tobytes())
 
 

@@ -201,12 +201,14 @@ class Tracker:
         """How many measurements ``body``'s window holds."""
         return len(self._rows(body))
 
-    def capped(self, body: str) -> bool:
-        """Whether ``body``'s window leaves measurements out for its ``cap``."""
+    def capped(self, body: str, within: Optional[float] = None) -> bool:
+        """Whether ``body``'s window (its rows taken ``within`` its newest; default
+        :attr:`window`) leaves measurements out for its ``cap``."""
         if self.cap is None:
             return False
         s = self._store
-        return len(s.rows(self._code_of(body), self._newest, self.window)) > self.cap
+        return len(s.rows(self._code_of(body), self._newest,
+                          self.window if within is None else within)) > self.cap
 
     def oldest(self, body: str) -> float:
         """When the oldest measurement in ``body``'s window was taken."""
@@ -259,7 +261,7 @@ class Tracker:
 
     def estimate_rows(self, rows: np.ndarray, time: Optional[float] = None,
                       nis: bool = True, joint: bool = True) -> tuple[Fused, np.ndarray]:
-        """:meth:`estimate_ids` of the rows :meth:`near_rows` found. Without ``nis`` (for an
+        """:meth:`estimate_ids` of the rows :meth:`rows_ending` found. Without ``nis`` (for an
         answer that needs the pose and its covariance only) a fit over time that is not robust
         leaves out the leave-one-out NIS (``nis`` zeros, ``tested`` all False), everything else
         the same to the last bit. Without ``joint``, where :meth:`joint` may start the body
@@ -304,35 +306,39 @@ class Tracker:
         names = self._names
         return tuple([names[c] for c in self._store.codes[rows].tolist()])
 
-    def near_rows(self, body: str, time: float, within: float) -> tuple[float, np.ndarray]:
-        """When ``body``'s oldest measurement kept was taken, and its rows taken within
-        ``within`` s of ``time`` (for :meth:`estimate_rows`): one look-up of its window for
-        both."""
+    def rows_ending(self, body: str, end: float, window: float) -> tuple[float, np.ndarray]:
+        """When ``body``'s oldest measurement kept was taken, and its rows taken in
+        ``[end - window, end]`` (for :meth:`estimate_rows`), in arrival order, the last
+        :attr:`cap` of them: one look-up of its window for both."""
         rows = self._rows(body)
         taken = self._store.taken[rows]
-        return float(taken.min()), rows[np.abs(taken - time) <= within]
+        mine = rows[(taken >= end - window) & (taken <= end)]
+        if self.cap is not None and len(mine) > self.cap:
+            mine = mine[len(mine) - self.cap:]
+        return float(taken.min()), mine
 
-    def sources_near(self, body: str, time: float, within: float) -> set[str]:
-        """The sources of ``body``'s rows taken within ``within`` s of ``time``."""
-        codes = self._store.codes[self.near_rows(body, time, within)[1]]
-        return {self._names[c] for c in np.unique(codes).tolist()}
+    def taken_of(self, rows: np.ndarray) -> np.ndarray:
+        """When ``rows`` were taken."""
+        return self._store.taken[rows]
+
+    def sources_of(self, rows: np.ndarray) -> set[str]:
+        """The sources of ``rows``."""
+        return {self._names[c] for c in np.unique(self._store.codes[rows]).tolist()}
 
     def has(self, body: str) -> bool:
         """Whether ``body`` has measurements."""
         return body in self._active
 
-    def joint(self, bodies: Sequence[str], fits: Sequence, time: Optional[float] = None,
-              within: Optional[float] = None) -> tuple[list, np.ndarray]:
-        """``bodies`` fitted together with one error per uncertain extrinsic their sources share
-        (:mod:`dqpose.fusion.extrinsics`), each from its own :meth:`estimate` ``fits`` or
-        :meth:`start_rows` (their inliers, their start): the poses and the joint covariance
-        ``(6k, 6k)`` of their right perturbations, cross-covariances included."""
+    def joint(self, rows: Sequence[np.ndarray], fits: Sequence,
+              time: Optional[float] = None) -> tuple[list, np.ndarray]:
+        """Bodies fitted together from their ``rows`` (each body's, :meth:`rows_ending`'s) with
+        one error per uncertain extrinsic their sources share (:mod:`dqpose.fusion.extrinsics`),
+        each from its own :meth:`estimate` ``fits`` or :meth:`start_rows` (their inliers, their
+        start): the poses and the joint covariance ``(6k, 6k)`` of their right perturbations,
+        cross-covariances included."""
         s = self._store
-        rows = []
-        for b in bodies:
-            r = self._rows_near(b, time, within)
-            rows.append((*s.world(r), self._sources_of(r), s.times[r]))
-        return _fuse_joint_rows(rows, fits, time, self._checked)
+        return _fuse_joint_rows([(*s.world(r), self._sources_of(r), s.times[r]) for r in rows],
+                                fits, time, self._checked)
 
     def _rows_near(self, body: str, time: Optional[float], within: Optional[float]):
         rows = self._rows(body)

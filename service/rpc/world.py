@@ -192,8 +192,7 @@ def _rows(request: pb.PublishRequest, data: bytes | None, field: str,
     else:
         m, more, codes = wire_rows(data, w, field)
         errors += more
-    return Rows(m.index, m.bodies, m.sources, m.times, m.poses, m.covariances, codes,
-                len(request.measurements))
+    return Rows(m.index, m.bodies, m.sources, m.times, m.poses, m.covariances, codes)
 
 
 class World:
@@ -308,6 +307,7 @@ class World:
         errors: list = []
         rows = None if too_many is not None else _rows(request, data, field, errors)
         applied = world.publish(request.producer, anonymous, request.sequence, rows,
+                                len(request.measurements),
                                 hook=lambda: rec.measurements(data or request))
         ack = pb.PublishAck(acked_through=applied.acked_through)
 

@@ -56,7 +56,7 @@ from dqpose.rpc.client_types import Batch
 from dqpose.rpc.wire import publish_from_wire, publish_request_wire, wire_rows
 from dqpose.rpc.world_convert import body_pose_bytes, relative_msg
 from dqpose.world import World, WorldOptions
-from dqpose.world_ticks import Ticks, tick_phase
+from dqpose.world_ticks import Schedule
 from tests.bench._table import markdown
 
 #: every measurement's noise: 0.3° and 1 mm (1 σ), rotation first
@@ -83,7 +83,7 @@ class Engine:
 
     def __init__(self, window: float, sources=()):
         self.world = World(sources=sources, options=WorldOptions(window=window, buffer=HISTORY))
-        self.ticks: dict[str, Ticks] = {}
+        self.schedule = Schedule(TICK_RATE)
 
     def ingest(self, data: bytes):
         """A Publish request's bytes into the world as the server applies them: the message
@@ -98,26 +98,24 @@ class Engine:
     def due(self, m) -> list[tuple[str, float]]:
         """The ticks that the rows ``m`` made due for a subscriber of every body at
         :data:`TICK_RATE` (the sources' latencies are 0)."""
-        o = self.world.options
         out = []
-        for body, source, t in zip(m.bodies, m.sources, m.times.tolist()):
-            ticks = self.ticks.get(body)
-            if ticks is None:
-                ticks = self.ticks[body] = Ticks(TICK_RATE, o.max_delay, tick_phase(body),
-                                                 o.window)
-            out += [(body, due) for due in ticks.arrive(source, t)]
+        for body in dict.fromkeys(m.bodies):
+            w = self.world.tick_window(body)
+            out += [(body, self.schedule.time(body, k))
+                    for k in self.schedule.due(body, w.horizon, w.floor)]
         return out
 
     def tick(self, body: str, t: float) -> bytes:
         """The Subscribe answer of ``body`` at tick ``t``."""
-        return body_pose_bytes(self.world.pose(body, t))
+        p, ids = self.world.tick(body, t)
+        return body_pose_bytes(p, 0, ids.tolist())
 
     def lookup(self, target: str, source: str) -> bytes:
         """The Lookup answer of ``T_target_source`` at time 0 (the newest both are known at)."""
         return relative_msg(self.world.relative(target, source, 0.0)).SerializeToString()
 
     def estimate(self, body: str, t: float) -> tuple[np.ndarray, np.ndarray]:
-        p = self.world.pose(body, t)
+        p = self.world.tick(body, t)[0]
         return p.pose, p.covariance
 
 

@@ -20,7 +20,7 @@ The world fuses over a window of 0.2 s (``--window``).
 
 Rows: "transport" is the same producers and subscribers against a relay server (``bench_world
 --serve-relay``, :func:`serve_relay`) that parses each request, paces ticks with the same
-:class:`dqpose.world_ticks.Ticks` and sends an answer of the size the world's answers had in the
+:class:`dqpose.world_ticks.Schedule` and sends an answer of the size the world's answers had in the
 target row, fusing nothing: the floor the added latency is measured against. "target" is 4
 producers and 4 subscribers at 20,000 measurements/s into 100 bodies; the sweep rows are one
 subscriber and unpaced producers (as fast as the acks come back, 8 requests in flight each).
@@ -254,27 +254,30 @@ def serve_relay(answer_bytes: int) -> None:
     from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
     from dqpose.rpc.wire import messages_wire
     from dqpose.rpc.world import Subscriber, _ready
-    from dqpose.world_ticks import Ticks, tick_phase
+    from dqpose.world_ticks import Schedule, horizon
     subs: list = []
+    newest: dict[str, dict[str, float]] = {}
     template = fpb.FusedPose()
     template.residuals.extend([0.0] * max(0, (answer_bytes - 40) // 8))
 
     async def publish(request_iterator, context):
         async for data in request_iterator:
             req = wpb.PublishRequest.FromString(data)
-            for sub, ticks in subs:
-                for m in req.measurements:
-                    t = ticks.get(m.body)
-                    if t is None:
-                        t = ticks[m.body] = Ticks(SUBSCRIBE_RATE, 0.1, tick_phase(m.body), 0.2)
-                    for due in t.arrive(m.source, m.time):
-                        template.body, template.time = m.body, due
+            for m in req.measurements:          # the world's newest of each body's sources
+                mine = newest.setdefault(m.body, {})
+                mine[m.source] = max(mine.get(m.source, m.time), m.time)
+            for sub, schedule in subs:
+                for body in dict.fromkeys(m.body for m in req.measurements):
+                    h = horizon(newest[body], 0.1)
+                    for k in schedule.due(body, h, h - 0.2):
+                        template.body, template.time = body, schedule.time(body, k)
                         sub.deliver([template.SerializeToString()])
             yield wpb.PublishAck(acked_through=req.sequence).SerializeToString()
 
     def subscriber():
         # the world's queue of a subscriber (its bounds and batching), fed by the relay
-        return Subscriber(Interest(None, SUBSCRIBE_RATE), asyncio.get_running_loop()), {}
+        return (Subscriber(Interest(None, SUBSCRIBE_RATE), asyncio.get_running_loop()),
+                Schedule(SUBSCRIBE_RATE))
 
     async def one_a_message(request, context):
         entry = subscriber()

@@ -45,8 +45,8 @@ def test_a_stream_fuse_recording_replays_to_every_answer(path):
 
 def test_the_world_recording_replays_in_process_and_into_a_server_to_the_same_lookups():
     (first, *_) = replay(FIXTURES / "world.mcap")
-    # Configure, two producers' Publish streams, two subscribers
-    assert first.startswith("replayed 5 calls, 27 requests, "), first
+    # Configure, two producers' Publish streams, two subscribers and the recorder's own
+    assert first.startswith("replayed 6 calls, 28 requests, "), first
     lookups = json.loads((FIXTURES / "world_lookups.json").read_text())
     proc, events = serving()
     try:
