@@ -375,7 +375,9 @@ def _attacked(server, served: Served, name: str, attack, seconds: float) -> dict
     time.sleep(1.0)
     before, load = server.rss_mb(), os.getloadavg()[0]
     rss = Sampler(server.rss_mb, 0.01)
+    waits = Sampler(lambda: run_delays(server.proc.pid), 0.01)
     rss.start()
+    waits.start()
     ended, (outcome, said_out) = ctx.Event(), ctx.Pipe(duplex=False)
     attacker = ctx.Process(target=run, args=(attack, served, ended, said_out, {}), daemon=True)
     attacker.start()
@@ -387,8 +389,9 @@ def _attacked(server, served: Served, name: str, attack, seconds: float) -> dict
     attacker.join(30)
     if attacker.is_alive():
         attacker.kill()
-    rss.stop.set()
-    rss.join()
+    for sampler in (rss, waits):
+        sampler.stop.set()
+        sampler.join()
     t0, back = time.perf_counter(), None
     while time.perf_counter() - t0 < BACK_SECONDS:
         if server.rss_mb() <= (1 + BACK_WITHIN) * before:
@@ -399,8 +402,39 @@ def _attacked(server, served: Served, name: str, attack, seconds: float) -> dict
     return dict(name=name, p50=float(np.percentile(lat, 50)), p99=float(np.percentile(lat, 99)),
                 max=float(lat.max()), health=float(max(checks)) * 1e3, before=before,
                 peak=max(rss.values), after=server.rss_mb(), back=back,
-                load=(load, os.getloadavg()[0]),
+                load=(load, os.getloadavg()[0]), wait=worst_wait(waits.values),
                 outcome=outcome.recv() if outcome.poll(5) else Counter({"no outcome": 1}))
+
+
+def run_delays(pid: int) -> tuple:
+    """``(start, end, {thread: ns})``: each thread of process ``pid``, the ns it has waited for
+    a CPU while runnable, read between ``start`` and ``end`` (perf_counter s)."""
+    out, start = {}, time.perf_counter()
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            with open(f"/proc/{pid}/task/{tid}/schedstat") as f:
+                out[tid] = int(f.read().split()[1])
+        except (OSError, IndexError):
+            pass        # ended meanwhile
+    return start, time.perf_counter(), out
+
+
+#: the span in which the attack rows look for the server's longest wait for a CPU, s
+WAIT_SPAN = 0.25
+
+
+def worst_wait(samples: list) -> float:
+    """The longest any thread waited for a CPU within :data:`WAIT_SPAN`, ms, from
+    :func:`run_delays` samples (two read within the span from the first's start to the
+    second's end): a server descheduled that long cannot answer in less, whatever its code
+    does."""
+    worst, j = 0, 0
+    for i, (start, _, d) in enumerate(samples):
+        j = max(i, j)
+        while j + 1 < len(samples) and samples[j + 1][1] - start <= WAIT_SPAN:
+            j += 1
+        worst = max([worst] + [samples[j][2].get(tid, n) - n for tid, n in d.items()])
+    return worst / 1e6
 
 
 def verdict(r: dict, attack) -> str:
@@ -418,17 +452,19 @@ def attack_table(rows: list) -> None:
     print(f"\nAttacks ({ATTACK_PERIOD * 1e3:.0f} ms bystander; RSS back: seconds after the "
           f"attack until within {BACK_WITHIN:.0%} of before, looked at for {BACK_SECONDS:g} s)"
           f"\n")
-    print("| attack | bystander Blend p50 / p99 / max ms | health max ms | RSS before / peak / "
-          "now MB | RSS back | load before / after | what the server did |")
-    print("|---|---|---|---|---|---|---|")
+    print(f"| attack | bystander Blend p50 / p99 / max ms | health max ms | RSS before / peak / "
+          f"now MB | RSS back | load before / after | CPU wait ms (a server thread's longest in "
+          f"{WAIT_SPAN * 1e3:.0f} ms) | what the server did |")
+    print("|---|---|---|---|---|---|---|---|")
     for r in rows:
         if "skipped" in r:
-            print(f"| {r['name']} | | | | | | not run: {r['skipped']} |")
+            print(f"| {r['name']} | | | | | | | not run: {r['skipped']} |")
             continue
         back = "no" if r["back"] is None else f"{r['back']:.1f} s"
         print(f"| {r['name']} | {r['p50']:.1f} / {r['p99']:.1f} / {r['max']:.1f} | "
               f"{r['health']:.0f} | {r['before']:.0f} / {r['peak']:.0f} / {r['after']:.0f} | "
-              f"{back} | {r['load'][0]:.1f} / {r['load'][1]:.1f} | {r['verdict']} |")
+              f"{back} | {r['load'][0]:.1f} / {r['load'][1]:.1f} | {r['wait']:.0f} | "
+              f"{r['verdict']} |")
 
 
 def attack_rows(only: str, seconds: float, default) -> list:
@@ -455,7 +491,8 @@ def attack_rows(only: str, seconds: float, default) -> list:
                 r["verdict"] = verdict(r, chosen[name])
                 print(f"  {name}: p99 {r['p99']:.1f} ms, max {r['max']:.1f} ms, RSS "
                       f"{r['before']:.0f}/{r['peak']:.0f}/{r['after']:.0f} MB, back "
-                      f"{r['back']}; {r['verdict']}", file=sys.stderr, flush=True)
+                      f"{r['back']}, CPU wait {r['wait']:.0f} ms; {r['verdict']}",
+                      file=sys.stderr, flush=True)
     return rows
 
 
