@@ -170,14 +170,27 @@ def items(files: list[str], schemas: dict[str, bytes] | None = None,
     ``schemas`` and ``plans`` (when given) are filled as the files are read."""
     open_calls: set[int] = set()
     for k, path in enumerate(files):
-        for topic, metadata, ns, data in messages(path, schemas):
+        stream = messages(path, schemas)
+        for topic, metadata, ns, data in stream:
             try:
                 item = _item(topic, metadata, ns, data, k, open_calls, plans)
             except (ValueError, KeyError, TypeError, RecursionError) as e:
-                raise Damaged(path, None, f"its {topic} message of {ns} ns is not what dqpose "
-                                          f"writes ({type(e).__name__}: {e})") from None
+                raise _explained(path, stream, f"its {topic} message of {ns} ns is not what "
+                                 f"dqpose writes ({type(e).__name__}: {e})") from None
             if item is not None:
                 yield item
+
+
+def _explained(path: str, rest: Iterator, bad: str) -> Damaged:
+    """A message that does not parse, named with the damage the rest of its file shows: a
+    flipped bit can make an unchecked record parse as a message (a message index's opcode 7
+    read as 5), and the CRC that finds it comes later, at the data section's end."""
+    try:
+        for _ in rest:
+            pass
+    except Damaged as d:
+        return Damaged(path, d.offset, f"{d.reason}; before it, {bad}")
+    return Damaged(path, None, bad)
 
 
 def _item(topic: str, metadata: dict, ns: int, data: bytes, k: int, open_calls: set[int],

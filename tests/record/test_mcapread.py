@@ -234,6 +234,22 @@ def test_a_byte_flipped_anywhere_stops_every_reader_with_a_damaged_file(small, t
             assert f"{damaged}: not a complete MCAP recording: byte " in report.cut
 
 
+def test_a_message_index_read_as_a_message_is_named_as_the_damage_it_is(small, tmp_path):
+    # a message index is not covered by the chunk's CRC; its opcode 7 with one bit flipped is
+    # a message's 5, which parses (its channel is defined) but is not dqpose's: the data
+    # section's CRC, later in the file, says why
+    path, whole = small
+    (at, *_) = [a for a in _records(whole) if whole[a] == Opcode.MESSAGE_INDEX]
+    data = bytearray(whole)
+    data[at] = Opcode.MESSAGE
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data))
+    report = replay.replay(runs([damaged]), replay.InProcess())
+    assert report.difference is None and len(report.cuts) == 1, report
+    assert f"{damaged}: not a complete MCAP recording: byte " in report.cut
+    assert "CRC" in report.cut and "is not what dqpose writes" in report.cut
+
+
 def test_a_message_that_does_not_parse_is_named_by_every_reader(tmp_path):
     # every CRC holds (the writer computed them), but an answer is not a FusedPose: a file not
     # written by dqpose; export and view stop naming it instead of a traceback
