@@ -13,6 +13,7 @@
 
 #include "blend.h"
 #include "dq.h"
+#include "gn.h"
 #include "linalg6.h"
 #include "se3.h"
 
@@ -110,104 +111,74 @@ static void linearize(double *work, size_t n, const unsigned char *use, int ro, 
     dq_mirror6(H);
 }
 
-int dq_newton_step(const double *H, const double *g, int dim, double *Lh, double *dh,
-                   double *delta, double *step)
-{
-    if (!dq_chol(H, Lh, dh, dim)) return DQ_E_SINGULAR;
-    dq_lower_solve(Lh, dh, g, delta, dim);
-    dq_upper_solve(Lh, dh, delta, delta, dim);
-    double s = 0.0;
-    for (int j = 0; j < dim; j++) s += delta[j] * delta[j];
-    *step = sqrt(s);
-    return DQ_OK;
-}
-
-int dq_line_search(dq_trial_fn trial, void *solver, double *delta, int dim, double *step,
-                   double total, double tol, double *cost)
-{
-    *cost = total;
-    for (int h = 0; h < DQ_FUSE_MAX_HALVINGS; h++) {
-        int rc = trial(solver, delta, cost);
-        if (rc) return rc;
-        if (*cost <= total * (1.0 + DQ_FUSE_COST_SLACK) || *step < tol) break;
-        for (int j = 0; j < dim; j++) delta[j] *= 0.5;
-        *step *= 0.5;
-    }
-    return DQ_OK;
-}
-
-/* The static fit's trial point (dq_line_search): Xn = X Exp(delta), its residuals into the
- * trial slots. */
+/* The static fit as a Gauss-Newton problem (gn.h): the current point's r, e, sc and a trial
+ * point's swap between two slots of each measurement's block. */
 typedef struct {
-    const double *X;
-    double *Xn;
+    double *X, Xn[8];
     const double *z;
     double *work;
     size_t n;
     const unsigned char *use;
-    int rt, et, st;
-} static_trial;
+    double *H, g[6], L[36], di[6];
+    int ro, eo, so, rt, et, st;
+} static_fit;
 
-static int static_trial_cost(void *solver, const double *delta, double *cost)
+static void static_linearize(void *self)
 {
-    static_trial *t = solver;
-    if (dq_retract(t->X, delta, t->Xn)) return DQ_E_OVERFLOW;
-    *cost = evaluate(t->Xn, t->z, t->work, t->n, t->use, 1, t->rt, t->et, t->st);
+    static_fit *f = self;
+    linearize(f->work, f->n, f->use, f->ro, f->eo, f->so, f->H, f->g);
+}
+
+static int static_step(void *self, double *delta, double *length)
+{
+    static_fit *f = self;
+    if (!dq_chol6(f->H, f->L, f->di)) return DQ_E_SINGULAR;
+    dq_lower_solve6(f->L, f->di, f->g, delta);
+    dq_upper_solve6(f->L, f->di, delta, delta);
+    *length = sqrt(delta[0] * delta[0] + delta[1] * delta[1] + delta[2] * delta[2] +
+                   delta[3] * delta[3] + delta[4] * delta[4] + delta[5] * delta[5]);
     return DQ_OK;
 }
 
+static int static_trial(void *self, const double *delta, double *cost)
+{
+    static_fit *f = self;
+    if (dq_retract(f->X, delta, f->Xn)) return DQ_E_OVERFLOW;
+    *cost = evaluate(f->Xn, f->z, f->work, f->n, f->use, 1, f->rt, f->et, f->st);
+    return DQ_OK;
+}
+
+static void static_accept(void *self)
+{
+    static_fit *f = self;
+    for (int k = 0; k < 8; k++) f->X[k] = f->Xn[k];
+    int t;
+    t = f->ro; f->ro = f->rt; f->rt = t;
+    t = f->eo; f->eo = f->et; f->et = t;
+    t = f->so; f->so = f->st; f->st = t;
+}
+
+static const dq_gn_problem STATIC_FIT = {6, static_linearize, static_step, static_trial,
+                                         static_accept};
+
 /* Gauss-Newton from X over the selected measurements (see fusion.h); X is updated in place and
- * the selected measurements' r, e, sc at it are left in the W_R, W_E, W_SC slots. A step shorter
- * than tol is not taken: the point it was computed at is the optimum to within tol, and its
- * linearisation (H, and each measurement's A) is the one at X. *current says whether H
- * is at the returned X (not so when the step limit or a line search ended the loop). */
+ * the selected measurements' r, e, sc at it are left in the W_R, W_E, W_SC slots. *current says
+ * whether H is at the returned X (gn.h). */
 static int solve(double *X, const double *z, double *work, size_t n, const unsigned char *use,
                  const dq_fuse_params *p, int *status, int *iterations, double *H, int *current)
 {
-    /* The current point's r, e, sc and a trial point's swap between two slots. */
-    int ro = W_R, eo = W_E, so = W_SC, rt = W_R2, et = W_E2, st = W_SC2;
-    double total = evaluate(X, z, work, n, use, 1, ro, eo, so);
-    *current = 0;
-    *status = DQ_FUSE_MAX_ITERATIONS;
-    *iterations = p->max_iter;
-    for (int it = 1; it <= p->max_iter; it++) {
-        double g[6], L[36], di[6], delta[6], Xn[8];
-        linearize(work, n, use, ro, eo, so, H, g);
-        if (!dq_chol6(H, L, di)) return DQ_E_SINGULAR;
-        dq_lower_solve6(L, di, g, delta);
-        dq_upper_solve6(L, di, delta, delta);
-        double step = sqrt(delta[0] * delta[0] + delta[1] * delta[1] + delta[2] * delta[2] +
-                           delta[3] * delta[3] + delta[4] * delta[4] + delta[5] * delta[5]);
-        if (step < p->tol) {
-            *status = DQ_FUSE_CONVERGED;
-            *iterations = it;
-            *current = 1;
-            break;
-        }
-        double total_new;
-        static_trial tr = {X, Xn, z, work, n, use, rt, et, st};
-        int rc = dq_line_search(static_trial_cost, &tr, delta, 6, &step, total, p->tol,
-                                &total_new);
-        if (rc) return rc;
-        for (int k = 0; k < 8; k++) X[k] = Xn[k];
-        int t;
-        t = ro; ro = rt; rt = t;
-        t = eo; eo = et; et = t;
-        t = so; so = st; st = t;
-        total = total_new;
-        if (step < p->tol) { /* halved below tol: the line search found no lower cost */
-            *status = DQ_FUSE_CONVERGED;
-            *iterations = it;
-            break;
-        }
-    }
-    if (ro != W_R)
+    static_fit f = {X, {0}, z, work, n, use, H, {0}, {0}, {0},
+                    W_R, W_E, W_SC, W_R2, W_E2, W_SC2};
+    double total = evaluate(X, z, work, n, use, 1, W_R, W_E, W_SC), delta[6];
+    int rc = dq_gauss_newton(&STATIC_FIT, &f, delta, p, &total, status, iterations, current);
+    if (rc) return rc;
+    if (f.ro != W_R)
         for (size_t i = 0; i < n; i++) {
             if (!dq_selected(use, i)) continue;
             double *m = work + W_PER * i;
-            for (int k = 0; k < 6; k++) m[W_R + k] = m[ro + k];
-            for (int k = 0; k < 6; k++) m[W_E + k] = m[eo + k];
-            for (int k = 0; k < 2; k++) m[W_SC + k] = m[so + k];
+            for (int k = 0; k < 6; k++) m[W_R + k] = m[f.ro + k];
+            for (int k = 0; k < 6; k++) m[W_E + k] = m[f.eo + k];
+            for (int k = 0; k < 2; k++) m[W_SC + k] = m[f.so + k];
         }
     return DQ_OK;
 }

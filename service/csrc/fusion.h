@@ -106,29 +106,6 @@ int dq_fuse(const double *z, const double *cov, const unsigned char *inlier, siz
 int dq_pair_distances(const double *z, const double *cov, size_t n, const long long *cand,
                       size_t m, double *d2, size_t *bad);
 
-/* The step rule dq_fuse and dq_motion_fit (motion.h) share: a Gauss-Newton step that raises the
- * cost by more than DQ_FUSE_COST_SLACK (relative) is halved, at most DQ_FUSE_MAX_HALVINGS times
- * (service/fusion/'s reference uses the same values). */
-#define DQ_FUSE_COST_SLACK 1e-12
-#define DQ_FUSE_MAX_HALVINGS 30
-
-/* The Gauss-Newton step delta = H^-1 g of the dim x dim information H (mirrored; Lh and dh
- * hold its Cholesky factor) and its length *step: DQ_OK, or DQ_E_SINGULAR when H does not
- * factor. For dq_motion_fit and dq_joint_fit (dq_fuse's is the 6 x 6 one of linalg6.h). */
-int dq_newton_step(const double *H, const double *g, int dim, double *Lh, double *dh,
-                   double *delta, double *step);
-
-/* A solver's trial point: the state moved by delta into the solver's trial buffers, and the
- * cost there into *cost; DQ_OK or the DQ_E* code that stops the fit. */
-typedef int (*dq_trial_fn)(void *solver, const double *delta, double *cost);
-
-/* The step rule above, for dq_fuse, dq_motion_fit and dq_joint_fit: trial(solver, delta) from
- * the full step (dim entries, *step its length) down, halving delta and *step while the cost
- * rises above total by more than the slack; a step halved below tol is taken. *cost is the
- * cost of the trial point left in the solver's buffers. */
-int dq_line_search(dq_trial_fn trial, void *solver, double *delta, int dim, double *step,
-                   double total, double tol, double *cost);
-
 /* Whether the inlier mask (NULL: all) selects measurement i. */
 static inline int dq_selected(const unsigned char *inlier, size_t i) { return !inlier || inlier[i]; }
 

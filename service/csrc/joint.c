@@ -11,6 +11,7 @@
 #include <string.h>
 
 #include "dq.h"
+#include "gn.h"
 #include "linalg6.h"
 #include "se3.h"
 
@@ -358,18 +359,31 @@ void joint_prior_terms(const joint_ctx *c, const double *V, const double *L, dou
     }
 }
 
-/* The joint fit's trial point (dq_line_search): every part's pose and twist, the latencies and
- * the extrinsics moved by delta into Xn, Vn, Ln, En; the cost with the priors'. */
+/* The joint fit as a Gauss-Newton problem (gn.h): every part's pose and twist, the latencies
+ * and the extrinsics, and a trial point's Xn, Vn, Ln, En. */
 typedef struct {
     const joint_ctx *c;
     int ext;
-    const double *X, *V, *L, *Ehat;
+    double *X, *V, *L, *Ehat;
     double *Xn, *Vn, *Ln, *En;
-} joint_trial;
+    double *H, *g, *Lh, *dh;
+} joint_fit;
 
-static int joint_trial_cost(void *solver, const double *delta, double *cost)
+static void joint_fit_linearize(void *self)
 {
-    const joint_trial *t = solver;
+    joint_fit *f = self;
+    joint_linearize(f->c, f->V, f->L, f->H, f->g);
+}
+
+static int joint_fit_step(void *self, double *delta, double *length)
+{
+    joint_fit *f = self;
+    return dq_newton_step(f->H, f->g, f->c->dim, f->Lh, f->dh, delta, length);
+}
+
+static int joint_fit_trial(void *self, const double *delta, double *cost)
+{
+    const joint_fit *t = self;
     const joint_ctx *c = t->c;
     const dq_joint_model *m = c->m;
     int off = 0;
@@ -386,6 +400,16 @@ static int joint_trial_cost(void *solver, const double *delta, double *cost)
     *cost = joint_extrinsics(c, t->En) + joint_evaluate(c, t->Xn, t->Vn, t->Ln, 1) +
             joint_prior_cost(c, t->Vn, t->Ln);
     return DQ_OK;
+}
+
+static void joint_fit_accept(void *self)
+{
+    joint_fit *f = self;
+    const dq_joint_model *m = f->c->m;
+    memcpy(f->X, f->Xn, sizeof(double) * 8 * m->parts);
+    memcpy(f->V, f->Vn, sizeof(double) * 6 * m->parts);
+    memcpy(f->L, f->Ln, sizeof(double) * m->k);
+    memcpy(f->Ehat, f->En, sizeof(double) * 8 * m->m);
 }
 
 /* Each measurement's covariance factor and, seen through an uncertain extrinsic, its adjoint
@@ -462,33 +486,13 @@ int dq_joint_fit(const double *z, const double *cov, const unsigned char *inlier
     memcpy(Ehat, m->E, sizeof(double) * 8 * m->m);
     double total = joint_extrinsics(&c, Ehat) + joint_evaluate(&c, X, V, L, 1) +
                    joint_prior_cost(&c, V, L);
-    joint_linearize(&c, V, L, H, g);
-    st->status = DQ_FUSE_MAX_ITERATIONS;
-    st->iterations = p->max_iter;
-    for (int it = 1; it <= p->max_iter; it++) {
-        double step;
-        if (dq_newton_step(H, g, dim, Lh, dh, delta, &step)) return DQ_E_SINGULAR;
-        if (step < p->tol) {   /* not taken: H and g are the estimate's */
-            st->status = DQ_FUSE_CONVERGED;
-            st->iterations = it;
-            break;
-        }
-        double trial;
-        joint_trial tr = {&c, ext, X, V, L, Ehat, Xn, Vn, Ln, En};
-        rc = dq_line_search(joint_trial_cost, &tr, delta, dim, &step, total, p->tol, &trial);
-        if (rc) return rc;
-        memcpy(X, Xn, sizeof(double) * 8 * K);
-        memcpy(V, Vn, sizeof(double) * 6 * K);
-        memcpy(L, Ln, sizeof(double) * k);
-        memcpy(Ehat, En, sizeof(double) * 8 * m->m);
-        total = trial;
-        joint_linearize(&c, V, L, H, g);
-        if (step < p->tol) {
-            st->status = DQ_FUSE_CONVERGED;
-            st->iterations = it;
-            break;
-        }
-    }
+    joint_fit f = {&c, ext, X, V, L, Ehat, Xn, Vn, Ln, En, H, g, Lh, dh};
+    const dq_gn_problem problem = {dim, joint_fit_linearize, joint_fit_step, joint_fit_trial,
+                                   joint_fit_accept};
+    int current;
+    rc = dq_gauss_newton(&problem, &f, delta, p, &total, &st->status, &st->iterations, &current);
+    if (rc) return rc;
+    if (!current) joint_linearize(&c, V, L, H, g);   /* H and g at the estimate, always */
     const int want_nis = per->nis && per->tested;
     joint_at_estimate(&c, X, V, L, per, want_nis);
     st->chi2 = total;

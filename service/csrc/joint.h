@@ -74,10 +74,8 @@ size_t dq_joint_workspace(size_t N, const dq_joint_model *m, int nis);
 
 /*
  * Gauss-Newton over the joint state for the measurements inlier selects (NULL: all) from the
- * state given (Ehat = E): the step solved from the normal equations (Cholesky), halved while it
- * raises the cost by more than DQ_FUSE_COST_SLACK (relative), at most DQ_FUSE_MAX_HALVINGS
- * times, and taken; a step shorter than tol is not taken and ends the loop, one halved below tol
- * is taken and ends it (dq_motion_fit's rule). Then everything at the
+ * state given (Ehat = E): gn.h's loop and step rule, the step solved from the normal equations
+ * (Cholesky). Then everything at the
  * estimate: H, P = H^-1, g, and per measurement its dt, residual, cost, G_i and, with nis and
  * tested, its leave-one-out NIS (the priors stay in): an inlier's u^T (I - K)^-1 u,
  * u = L^-1 r - (L^-1 G) P g, K = (L^-1 G) P (L^-1 G)^T (S = L L^T; the downdate of the joint

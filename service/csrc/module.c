@@ -9,6 +9,7 @@
 #include "blend.h"
 #include "dq.h"
 #include "fusion.h"
+#include "gn.h"
 #include "py_functions.h"
 #include "wire.h"
 
@@ -108,5 +109,8 @@ PyMODINIT_FUNC PyInit__dqcore(void)
     PyModule_AddIntConstant(m, "MEASUREMENT_CONVERT_LAST", DQ_MEAS_CONVERT_LAST);
     PyModule_AddObject(m, "MIN_VARIANCE", PyFloat_FromDouble(DQ_MIN_VARIANCE));
     PyModule_AddObject(m, "MAX_VARIANCE", PyFloat_FromDouble(DQ_MAX_VARIANCE));
+    /* the fits' step rule (gn.h), for process_noise.py's NumPy loop */
+    PyModule_AddObject(m, "COST_SLACK", PyFloat_FromDouble(DQ_GN_COST_SLACK));
+    PyModule_AddIntConstant(m, "MAX_HALVINGS", DQ_GN_MAX_HALVINGS);
     return m;
 }

@@ -11,6 +11,7 @@
 #include <string.h>
 
 #include "dq.h"
+#include "gn.h"
 #include "linalg6.h"
 #include "se3.h"
 
@@ -344,8 +345,8 @@ static int motion_leave_one_out(const dq_motion_model *m, const double *V, const
     return DQ_OK;
 }
 
-/* The motion fit's trial point (dq_line_search): the state moved by delta into Xn, Vn, elln,
- * the inliers' residuals into slot rt; the cost with the priors'. */
+/* The motion fit as a Gauss-Newton problem (gn.h): the state X, V, ell and a trial point's
+ * Xn, Vn, elln; the inliers' residuals of the current point in slot ro, a trial's in rt. */
 typedef struct {
     const dq_motion_model *m;
     const double *z;
@@ -353,75 +354,71 @@ typedef struct {
     size_t n;
     double *work;
     size_t stride;
-    int rt, off;
-    const double *X, *V, *ell;
-    double *Xn, *Vn, *elln;
-} motion_trial;
+    int dim, keep, off, ro, rt;
+    double *X, *V, *ell, Xn[8], Vn[6], *elln;
+    double *H, *Lh, *g, *dh;
+} motion_fit;
 
-static int motion_trial_cost(void *solver, const double *delta, double *cost)
+static void motion_fit_linearize(void *self)
 {
-    const motion_trial *t = solver;
-    const dq_motion_model *m = t->m;
-    if (dq_retract(t->X, delta, t->Xn)) return DQ_E_OVERFLOW;
-    for (int j = 0; j < 6; j++) t->Vn[j] = m->twist ? t->V[j] + delta[6 + j] : t->V[j];
-    for (int j = 0; j < (int)m->k; j++) t->elln[j] = t->ell[j] + delta[t->off + j];
-    *cost = motion_evaluate(t->Xn, t->Vn, t->elln, t->z, m, t->work, t->stride, t->n, t->inlier,
-                            1, t->rt) +
-            motion_prior_cost(m, t->Vn, t->elln);
+    motion_fit *f = self;
+    motion_linearize(f->m, f->V, f->work, f->stride, f->n, f->inlier, 0, f->ro, f->dim, f->keep,
+                     f->H, f->g, NULL);
+    motion_prior_terms(f->m, f->V, f->ell, f->dim, f->H, f->g);
+    dq_mirror(f->H, f->dim);
+}
+
+static int motion_fit_step(void *self, double *delta, double *length)
+{
+    motion_fit *f = self;
+    return dq_newton_step(f->H, f->g, f->dim, f->Lh, f->dh, delta, length);
+}
+
+static int motion_fit_trial(void *self, const double *delta, double *cost)
+{
+    motion_fit *f = self;
+    const dq_motion_model *m = f->m;
+    if (dq_retract(f->X, delta, f->Xn)) return DQ_E_OVERFLOW;
+    for (int j = 0; j < 6; j++) f->Vn[j] = m->twist ? f->V[j] + delta[6 + j] : f->V[j];
+    for (int j = 0; j < (int)m->k; j++) f->elln[j] = f->ell[j] + delta[f->off + j];
+    *cost = motion_evaluate(f->Xn, f->Vn, f->elln, f->z, m, f->work, f->stride, f->n, f->inlier,
+                            1, f->rt) +
+            motion_prior_cost(m, f->Vn, f->elln);
     return DQ_OK;
+}
+
+static void motion_fit_accept(void *self)
+{
+    motion_fit *f = self;
+    for (int j = 0; j < 8; j++) f->X[j] = f->Xn[j];
+    for (int j = 0; j < 6; j++) f->V[j] = f->Vn[j];
+    for (int j = 0; j < (int)f->m->k; j++) f->ell[j] = f->elln[j];
+    int t = f->ro; f->ro = f->rt; f->rt = t;
 }
 
 /* Gauss-Newton from out's X, V, ell over the selected measurements (motion.h), updated in place;
  * *slot is the workspace slot left holding the inliers' r, e at the estimate. The solver's
- * dim-sized arrays follow the measurements' blocks in work. A step shorter than tol is not
- * taken (fusion.c's rule): the estimate is then the point it was solved at, so *current = 1
- * says that the information H (priors included, mirrored) and (with keep) the inliers' compact
- * Jacobians in their blocks are at the estimate, and need not be computed again. */
+ * dim-sized arrays follow the measurements' blocks in work. *current = 1 (gn.h) says that the
+ * information H (priors included, mirrored) and (with keep) the inliers' compact Jacobians in
+ * their blocks are at the estimate, and need not be computed again. */
 static int motion_solve(const double *z, const unsigned char *inlier, size_t n,
                         const dq_motion_model *m, const dq_fuse_params *p, double *work,
                         size_t stride, int dim, int keep, int start_slot, double start_total,
                         dq_motion_fitted *out, int *slot, int *current)
 {
-    const int off = m->twist ? 12 : 6, k = (int)m->k;
     double *H = work + stride * n, *Lh = H + dim * dim, *g = Lh + dim * dim, *delta = g + dim;
     double *dh = delta + dim, *elln = dh + dim;
-    double *X = out->mean, *V = out->twist, *ell = out->ell;
-    /* The current point's slot (the start's residuals and cost are the caller's) and a trial
-     * point's swap. */
-    int ro = start_slot, rt = start_slot == M_S0 ? M_S1 : M_S0;
+    /* the start's residuals and cost are the caller's */
+    motion_fit f = {m, z, inlier, n, work, stride, dim, keep, m->twist ? 12 : 6, start_slot,
+                    start_slot == M_S0 ? M_S1 : M_S0, out->mean, out->twist, out->ell,
+                    {0}, {0}, elln, H, Lh, g, dh};
+    const dq_gn_problem problem = {dim, motion_fit_linearize, motion_fit_step, motion_fit_trial,
+                                   motion_fit_accept};
     double total = start_total;
-    out->status = DQ_FUSE_MAX_ITERATIONS;
-    out->iterations = p->max_iter;
-    for (int it = 1; it <= p->max_iter; it++) {
-        motion_linearize(m, V, work, stride, n, inlier, 0, ro, dim, keep, H, g, NULL);
-        motion_prior_terms(m, V, ell, dim, H, g);
-        dq_mirror(H, dim);
-        double step;
-        if (dq_newton_step(H, g, dim, Lh, dh, delta, &step)) return DQ_E_SINGULAR;
-        if (step < p->tol) {
-            out->status = DQ_FUSE_CONVERGED;
-            out->iterations = it;
-            *current = 1;
-            break;
-        }
-        double Xn[8], Vn[6], total_new;
-        motion_trial tr = {m, z, inlier, n, work, stride, rt, off, X, V, ell, Xn, Vn, elln};
-        int rc = dq_line_search(motion_trial_cost, &tr, delta, dim, &step, total, p->tol,
-                                &total_new);
-        if (rc) return rc;
-        for (int j = 0; j < 8; j++) X[j] = Xn[j];
-        for (int j = 0; j < 6; j++) V[j] = Vn[j];
-        for (int j = 0; j < k; j++) ell[j] = elln[j];
-        int t = ro; ro = rt; rt = t;
-        total = total_new;
-        if (step < p->tol) {
-            out->status = DQ_FUSE_CONVERGED;
-            out->iterations = it;
-            break;
-        }
-    }
-    *slot = ro;
-    return DQ_OK;
+    int rc = dq_gauss_newton(&problem, &f, delta, p, &total, &out->status, &out->iterations,
+                             current);
+    *slot = f.ro;
+    return rc;
 }
 
 /* Where the twist starts: the motion between the inliers taken first and last,

@@ -30,6 +30,7 @@ from typing import Optional
 import numpy as np
 
 from dqpose import dq, lie
+from dqpose._dqcore import COST_SLACK, MAX_HALVINGS
 from dqpose.fusion.motion import (
     _constant_twist,
     _determined_without_each,
@@ -40,10 +41,8 @@ from dqpose.fusion.motion import (
 )
 from dqpose.fusion.results import DOF, Status
 
-# The motion model's Gauss-Newton halves a step that raises the cost by more than _COST_SLACK
-# (relative), at most _MAX_HALVINGS times: the rule of the static fit in service/csrc/fusion.c.
-_COST_SLACK = 1e-12
-_MAX_HALVINGS = 30
+# The C fits' step rule (service/csrc/gn.h): a step that raises the cost by more than
+# COST_SLACK (relative) is halved, at most MAX_HALVINGS times.
 
 
 def _kernel(dt: np.ndarray) -> np.ndarray:
@@ -121,13 +120,13 @@ def _motion_solve(Z, model: _Model, X, V, ell, tol: float, max_iter: int, info: 
         step = float(np.linalg.norm(delta))
         if step < tol:
             return X, V, ell, Status.CONVERGED, it
-        for _ in range(_MAX_HALVINGS):
+        for _ in range(MAX_HALVINGS):
             X_new = dq.normalize(dq.mul(X, lie.se3_exp(delta[:6])))
             V_new = V + delta[6:12] if model.twist else V
             ell_new = ell + delta[off:]
             dt_new, r_new, _ = _motion_evaluate(X_new, V_new, ell_new, Z, None, model)
             total_new = _data_cost(r_new, info) + model.prior_cost(V_new, ell_new)
-            if total_new <= total * (1.0 + _COST_SLACK) or step < tol:
+            if total_new <= total * (1.0 + COST_SLACK) or step < tol:
                 break
             delta = 0.5 * delta
             step *= 0.5
