@@ -414,18 +414,20 @@ def rpc_lookup_rows(lookups: int = 1000, load: bool = False,
 
 
 def publish_cost_rows() -> list[list[str]]:
-    """The costliest legal Publish requests, each with one subscriber at rate 0 (an answer due
-    at every new time of a body, each fusing the body's measurements within the window, 1 s):
-    1,000 measurements of one body, each at its own time, in a plain, a robust and an
-    ``acceleration_psd`` world; and ``max_poses`` (10,000) measurements of the world's 1,000
-    bodies, 10 times each. Per request the ``dqpose serve`` process's CPU (user + system, all
-    its threads) from its send until its ack and its answers are in, the ack's wall time, and
-    the answers fitted and ticks skipped (``limits.Budget``)."""
+    """The costliest legal Publish requests, each with one subscriber at the server's
+    ``max_output_rate`` (1 kHz: a tick due every ms of a body's measurements, each fusing the
+    body's window, 1 s; at rate 0 a request is answered once a body, one fit): 1,000
+    measurements of one body 1 ms apart, in a plain, a robust and an ``acceleration_psd``
+    world; and ``max_poses`` (10,000) measurements of the world's 1,000 bodies, 10 each. Per
+    request the ``dqpose serve`` process's CPU (user + system, all its threads) from its send
+    until its ack and its answers are in, the ack's wall time, and the answers fitted and
+    ticks skipped (``limits.Budget``)."""
+    from dqpose.limits import DEFAULT
     from dqpose.rpc.client import Batch, Client, RpcError
 
     def subscribe(sub: Client, answers: list) -> None:
         try:
-            answers.extend(sub.subscribe())
+            answers.extend(sub.subscribe(rate_hz=DEFAULT.max_output_rate))
         except RpcError:
             pass        # closed at the end
 
@@ -460,7 +462,7 @@ def publish_cost_rows() -> list[list[str]]:
                           if "max_fused_per_request" in e)
             what = "one body" if bodies == 1 else f"{bodies} bodies"
             rows.append(["costliest Publish", f"{n} measurements of {what}, a subscriber at "
-                         f"rate 0, {label} world", f"{cpu:.2f}", "s CPU",
+                         f"{DEFAULT.max_output_rate:g} Hz, {label} world", f"{cpu:.2f}", "s CPU",
                          f"ack after {ack:.2f} s; {got - len(errors)} answers fitted, "
                          f"{skipped} ticks skipped; the server process, all threads"])
     finally:
