@@ -89,15 +89,18 @@ class Peers:
                        if token else None)
         self.open_count: Counter = Counter()      # (kind, scope, name) -> streams open
 
-    def peer(self, context) -> str:
-        """The peer a call comes from."""
-        return self._token or host_of(context.peer())
+    def peer(self, context, authenticated: bool = True) -> str:
+        """The peer a call comes from: with a token, every call that presented it is the
+        token's; a call open to anyone (``authenticated=False``: health) is its host's, so that
+        clients without the token cannot use up the token holders' slots."""
+        return (self._token if authenticated else None) or host_of(context.peer())
 
-    def open(self, rpc: str, context, kind: str = STREAM, world: str | None = None) -> Slot:
+    def open(self, rpc: str, context, kind: str = STREAM, world: str | None = None,
+             authenticated: bool = True) -> Slot:
         """A slot for a stream of ``rpc`` from ``context``'s peer (``world``: a World
-        subscription's), released when the call is done; :class:`OverLimit` naming the bound
-        when one is reached, before anything is counted."""
-        peer = self.peer(context)
+        subscription's; ``authenticated``: :meth:`peer`'s), released when the call is done;
+        :class:`OverLimit` naming the bound when one is reached, before anything is counted."""
+        peer = self.peer(context, authenticated)
         now: list = []
         later = [(STREAM, "peer", peer, "max_peer_streams")]
         if kind == SUBSCRIPTION:

@@ -126,7 +126,8 @@ class Health(health_pb2_grpc.HealthServicer):
         self._status: dict[str, int] = {}
         self._changed = asyncio.Condition()
         self._closed = self._stopping = False
-        # a Watch is a stream of its peer (open to clients without a token: bounded all the same)
+        # a Watch is a stream of its host (open to clients without a token: bounded all the same,
+        # and apart from the token holders' streams)
         self._peers = peers if peers is not None else Peers()
 
     async def set(self, service: str, status: int) -> None:
@@ -175,7 +176,7 @@ class Health(health_pb2_grpc.HealthServicer):
 
     async def Watch(self, request, context):
         try:
-            self._peers.open("Watch", context)
+            self._peers.open("Watch", context, authenticated=False)
         except OverLimit as e:
             await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, str(e))
         unknown = health_pb2.HealthCheckResponse.SERVICE_UNKNOWN

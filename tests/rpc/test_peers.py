@@ -139,3 +139,35 @@ def test_health_watches_are_streams_of_their_peer_too():
         assert "max_peer_streams = 2 streams" in e.value.details()
         for w in held:
             w.cancel()
+
+
+def test_watches_without_the_token_take_no_slot_of_the_token_holders():
+    """With a token every authenticated call is one peer (the token's): a Watch, open to anyone,
+    is its host's, so watchers without the token cannot use up the token holders' streams."""
+    from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+    token = "peers-test-token"
+    with ServerThread(token=token, limits=limits.Limits(max_peer_streams=2)) as server, \
+            grpc.insecure_channel(server.target) as channel:
+        watch = health_pb2_grpc.HealthStub(channel).Watch
+        held = [watch(health_pb2.HealthCheckRequest()) for _ in range(2)]
+        for w in held:
+            assert next(w).status == health_pb2.HealthCheckResponse.SERVING
+        with pytest.raises(grpc.RpcError) as e:     # the watchers' own bound holds
+            next(watch(health_pb2.HealthCheckRequest()))
+        assert "peer '127.0.0.1' has 2 streams open" in e.value.details()
+        subscribe = channel.unary_stream(
+            "/dqpose.v1.World/Subscribe",
+            request_serializer=wpb.SubscribeRequest.SerializeToString)
+        call = subscribe(wpb.SubscribeRequest(), metadata=[("authorization", f"Bearer {token}")])
+        counts = server.running.calls.peers.open_count
+        try:        # the token holder's subscription open beside the two watches
+            assert wait_until(lambda: call.done() or counts[("stream", "peer", "127.0.0.1")]
+                              + sum(n for (kind, scope, name), n in counts.items()
+                                    if (kind, scope) == ("stream", "peer")
+                                    and name.startswith("token ")) == 3, timeout=10)
+            assert not call.done(), call.details()
+        finally:
+            call.cancel()
+            for w in held:
+                w.cancel()
