@@ -69,7 +69,8 @@ class PiperArm(Arm):
     connected while both end-pose feedback and arm status (0x2A1) are younger than
     ``stale_after``: when not given, the larger of its default (0.35 s) and
     :data:`STALE_PERIODS` times the feedback's period as measured (the median of the last
-    intervals of each kind, the slower kind's), the measure started again after feedback that
+    intervals of each kind, the slower kind's; at most :data:`STALE_MAX`, 1 s), the measure
+    started again after feedback that
     went stale resumes (a gap is no period). ``watchdog``, ``stale_after`` and the other keys of
     :data:`dqpose.drivers.spec.ARM_KEYS` are ``options``. ``own_bus`` shuts the bus down on
     ``close()`` (``open_arm`` does, and waits up to ``connect_timeout`` for the arm's first
@@ -190,10 +191,12 @@ class PiperArm(Arm):
     @property
     def stale_after(self) -> float:
         """Feedback older than this is a fault (s): as given, else the larger of the default and
-        :data:`STALE_PERIODS` times the slower feedback's measured period."""
+        :data:`STALE_PERIODS` times the slower feedback's measured period, at most
+        :data:`STALE_MAX`."""
         if self._stale_given:
             return self._stale
-        return max(self._stale, STALE_PERIODS * max(p.period for p in self._periods.values()))
+        measured = min(STALE_MAX, STALE_PERIODS * max(p.period for p in self._periods.values()))
+        return max(self._stale, measured)
 
     @stale_after.setter
     def stale_after(self, value: float) -> None:      # _set_options: given or the default
@@ -527,6 +530,9 @@ class PiperArm(Arm):
 
 #: stale_after, when not given, is at least this many feedback periods
 STALE_PERIODS = 3
+#: ... and at most this (s): feedback slower than a third of it is a fault, not a period, so a
+#: bus that slows down by degrees cannot stretch the arm's trust in old feedback without end
+STALE_MAX = 1.0
 
 
 class _Period:

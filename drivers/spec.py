@@ -60,7 +60,7 @@ class ArmKey:
 ARM_KEYS: dict[str, ArmKey] = {k.name: k for k in (
     ArmKey("stale_after", "s", "feedback (pose, status) older than this is a fault: the run "
            "under way ends ERROR, and the fault clears once data flows again (a PiPER's "
-           "default is at least 3 periods of its feedback, as measured)",
+           "default is at least 3 periods of its feedback, as measured, and at most 1 s)",
            {"ur": 0.1, "piper": 0.35}),
     ArmKey("watchdog", "s", "servo set-points may pause this long before the driver holds the "
            "arm", {"ur": 0.05, "piper": 0.1}),

@@ -273,10 +273,10 @@ class PiperSim:
             self.bus.send(encode_arm_status(self.status_report))
 
     def _run(self) -> None:
-        period = 1.0 / self.rate
         next_tick = time.monotonic()
         last = next_tick
         while not self._stop.is_set():
+            period = 1.0 / self.rate    # read each tick: a test slows the bus down by degrees
             now = time.monotonic()
             self.step(now - last)
             last = now

@@ -11,7 +11,7 @@ import uuid
 import can
 import pytest
 
-from dqpose.drivers.piper import STALE_PERIODS, PiperArm
+from dqpose.drivers.piper import STALE_MAX, STALE_PERIODS, PiperArm
 from dqpose.drivers.sim.piper import PiperSim
 from dqpose.drivers.spec import ARM_KEYS
 from tests._polling import wait_until
@@ -80,3 +80,23 @@ def test_a_given_stale_after_is_kept(bus):
         arm.wait_for_feedback(2.0)
         time.sleep(3.0)        # 12 intervals of 0.25 s measured, and not used
         assert arm.stale_after == 0.3
+
+
+def test_the_measured_stale_after_stops_at_its_ceiling(bus):
+    """Feedback slowing down by degrees (4 Hz, then 2.2 Hz: each interval within the
+    stale_after measured before it) would stretch the arm's trust in old feedback without end
+    (three periods at 2.2 Hz are 1.36 s); the measure stops at STALE_MAX."""
+    slower = 2.2
+    assert STALE_PERIODS / slower > STALE_MAX and 1 / slower < STALE_PERIODS / SLOW
+    with PiperSim(bus(), rate=SLOW) as sim, PiperArm(bus()) as arm:
+        arm.wait_for_feedback(2.0)
+        assert _measured(arm, STALE_PERIODS / SLOW)
+        sim.rate = slower
+        assert wait_until(lambda: arm.stale_after > STALE_PERIODS / SLOW * 1.2, timeout=15,
+                          poll=0.02)
+        seen = []
+        t_end = time.monotonic() + 2.0
+        while time.monotonic() < t_end:
+            seen.append(arm.stale_after)
+            time.sleep(0.05)
+        assert max(seen) == STALE_MAX and arm.status().connected
