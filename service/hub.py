@@ -16,8 +16,12 @@ and ``deliver`` is any callable (a server's event-loop queue, a replay's list, a
 """
 from __future__ import annotations
 
+import dataclasses
+import functools
+import math
+import sys
 import threading
-from typing import Callable, NamedTuple, Optional, Protocol
+from typing import Any, Callable, NamedTuple, Optional, Protocol
 
 import numpy as np
 
@@ -26,7 +30,9 @@ from dqpose.answers import Answers
 from dqpose.errors import WorldError
 from dqpose.fusion.bounds import TrackerBounds
 from dqpose.names import name_problem
-from dqpose.world import BodyPose, TickWindow, World
+from dqpose.world import BodyPose, TickWindow, World, WorldOptions
+from dqpose.world_bounds import DEFAULT as DEFAULT_BOUNDS
+from dqpose.world_bounds import WorldBounds
 from dqpose.world_ticks import Schedule
 
 #: producer names a world remembers (each one's acked_through); the oldest-acked is forgotten
@@ -45,6 +51,8 @@ class Encoder(Protocol):
     def error(self, body: str, time: float, request: int, text: str) -> bytes: ...
 
     def relative(self, p: BodyPose) -> bytes: ...
+
+    def fit_error(self, e: Exception) -> str: ...
 
 
 class Interest(NamedTuple):
@@ -71,14 +79,23 @@ class Subscription:
         bodies = self.interest.bodies
         return bodies is None or body in bodies
 
-    def due(self, body: str, window: TickWindow) -> list[Optional[float]]:
+    def waiting(self, body: str, horizon: float) -> bool:
+        """Whether ``body``'s next tick is beyond ``horizon`` (none due: at a rate, its window
+        need not be looked at)."""
+        return self.schedule is not None and self.schedule.waiting(body, horizon)
+
+    def due(self, body: str, window: TickWindow, most: int) -> tuple[list, int, list]:
         """``body``'s ticks due after a step (its :class:`~dqpose.world.TickWindow` then):
-        at a rate, those its horizon reached; at rate 0, one at its newest measurement
-        (None)."""
+        at a rate, those its horizon reached; at rate 0, one at its newest measurement (None).
+        ``(times, cut, ends)``: the latest ``most`` listed, the ``cut`` older ones counted (a
+        body whose time leapt: a billion ticks are a range, never a list), ``ends`` the times of
+        the first and the last of those."""
         if self.schedule is None:
-            return [None]
+            return [None], 0, []
         ks = self.schedule.due(body, window.horizon, window.floor)
-        return [self.schedule.time(body, k) for k in ks]
+        cut = max(0, len(ks) - most)
+        time = functools.partial(self.schedule.time, body)
+        return [time(k) for k in ks[cut:]], cut, [time(ks[0]), time(ks[cut - 1])] if cut else []
 
 
 class Rows(NamedTuple):
@@ -98,12 +115,14 @@ class Applied(NamedTuple):
     """What one Publish step did: its number in the world's order (``request``), the producer's
     ``acked_through``, ``notes`` about the request as a whole and ``errors`` about its
     measurements (``index``: the request's measurement); ``used`` False when none of it was
-    (a repeated sequence, a producer's name that is not one)."""
+    (a repeated sequence, a producer's name that is not one); ``cost``: what its answers fuse
+    (:class:`dqpose.limits.Budget`)."""
     request: int
     acked_through: int
     notes: tuple
     errors: tuple
     used: bool
+    cost: int = 0
 
 
 def _run(hook: Hook) -> None:
@@ -113,13 +132,16 @@ def _run(hook: Hook) -> None:
 
 class Hub:
     """One world (see the module's docstring). ``tracker``: the server's bounds of a stream;
-    ``encoder``: how answers are written."""
+    ``encoder``: how answers are written; ``where``: how an answer names request r
+    (``request 4``); ``bounds``: the world's. A ``stream`` hub has one producer (its rows name
+    no origin) and fits its answers when they are taken, after its step (:meth:`stream`)."""
 
     def __init__(self, name: str, encoder: Encoder, tracker: Optional[TrackerBounds] = None,
-                 where: str = "request {}"):
-        self.name, self.encoder = name, encoder
-        self.where = where.format           # how an answer names request r: "request 4"
-        self.world = World(tracker=tracker)
+                 where: str = "request {}", bounds: WorldBounds = DEFAULT_BOUNDS,
+                 stream: bool = False):
+        self.name, self.encoder, self.stream = name, encoder, stream
+        self.where = where.format
+        self.world = World(bounds=bounds, tracker=tracker)
         self.lock = threading.Lock()
         self._acked: dict[str, int] = {}         # producer -> acked_through
         self._subscriptions: dict[int, Subscription] = {}     # in the order they came
@@ -127,6 +149,25 @@ class Hub:
         self.requests = 0                        # Publish requests, in the world's order
         self.measurements = 0                    # measurements numbered in that order
         self.answers = Answers(encoder.relative)
+
+    @classmethod
+    def open_stream(cls, sources, options: WorldOptions, rate: float, tracker: TrackerBounds,
+                    encoder: Encoder) -> tuple["Hub", list]:
+        """StreamFuse's private world: one producer, its window the buffer, a tick never
+        waiting (``max_delay`` 0), bounded by the stream's ``tracker`` bounds alone; and the
+        list its one subscription (every body at ``rate``) hands its answers to, each step's
+        (bytes, or a callable that fits and writes one: see :class:`Hub`). Configured from
+        ``options`` (``buffer`` and ``max_delay`` set here); a ``WorldError`` names the
+        option."""
+        bounds = WorldBounds(max_bodies=sys.maxsize, max_sources=sys.maxsize,
+                             max_measurements_per_body=tracker.max_window, max_buffer=math.inf,
+                             max_measurements=tracker.max_rows)
+        made = cls("", encoder, tracker, "requests[{}]", bounds, stream=True)
+        made.configure(sources, {}, dataclasses.replace(options, buffer=options.window,
+                                                         max_delay=0.0))
+        answers: list = []
+        made.subscribe(Subscription(Interest(None, rate), answers.extend))
+        return made, answers
 
     @property
     def subscriptions(self) -> tuple[Subscription, ...]:
@@ -173,13 +214,14 @@ class Hub:
             notes = () if known is None or sequence <= last + 1 else (WorldError(
                 None, "", f"sequences {last + 1}..{sequence - 1} of producer {key!r} never "
                           f"arrived"),)
-            errors = () if rows is None else self._apply(rows, key, first)
+            errors, cost = ((), 0) if rows is None else self._apply(
+                rows, None if self.stream else key, first)
             self.requests += 1
             if sequence:
                 self._acked[key] = sequence
                 if len(self._acked) > MAX_PRODUCERS:
                     del self._acked[min(self._acked, key=self._acked.__getitem__)]
-            return Applied(r, sequence or last, notes, errors, True)
+            return Applied(r, sequence or last, notes, errors, True, cost)
 
     def forget(self, anonymous: str) -> None:
         """The acks of a call's own key ``anonymous`` (its call ended)."""
@@ -219,39 +261,45 @@ class Hub:
 
     # -- a Publish step, under the lock
 
-    def _apply(self, rows: Rows, producer: str, first: int) -> tuple:
+    def _apply(self, rows: Rows, producer: Optional[str], first: int) -> tuple[tuple, int]:
         """``rows`` into the world (from ``producer``, numbered from ``first``), then the
-        answers they make due."""
+        answers they make due: the rows' errors and what the answers cost."""
         if not len(rows.index):
-            return ()
+            return (), 0
         published = self.world.ingest(rows.bodies, rows.sources, rows.times, rows.poses,
                                       rows.covariances, rows.codes, producer,
                                       first + rows.index)
         errors = tuple(e.at(int(rows.index[e.index])) for e in published.errors)
-        self._answer_subscriptions(published.bodies)
+        cost = self._answer_subscriptions(published.bodies)
         self.answers.refresh(self.world, published.bodies)
-        return errors
+        return errors, cost
 
-    def _answer_subscriptions(self, bodies: tuple) -> None:
+    def _answer_subscriptions(self, bodies: tuple) -> int:
         """The answers due after a step that brought measurements of ``bodies`` (in order of
         their first measurement), within the request's budget (all subscriptions together,
-        the earlier first, each fit made once for all), delivered to each subscription."""
+        the earlier first, each fit made once for all), delivered to each subscription; what
+        they cost. A stream hub's fits are made when its subscription takes them (each answer
+        a callable that makes it)."""
         if not self._subscriptions:
-            return
-        made: dict[tuple, bytes] = {}
+            return 0
+        made: dict[tuple, Any] = {}
         budget = _limits.Budget(self.world.tracker_bounds)
         windows: dict[str, TickWindow] = {}
+        horizons = self.world.horizons(bodies)
         for sub in list(self._subscriptions.values()):
             if sub.closed:          # ended by its owner, not yet taken out
                 continue
             answers: list = []
-            for body in bodies:
-                if sub.wants(body):
+            wants, waiting = sub.wants, sub.waiting
+            for body, h in zip(bodies, horizons):
+                # most steps: a body's next tick not reached, its window not looked at
+                if wants(body) and not waiting(body, h):
                     w = windows.get(body) or windows.setdefault(
                         body, self.world.tick_window(body))
                     answers += self._due(sub, body, w, made, budget)
             if answers:
                 sub.deliver(answers)
+        return budget.spent
 
     def _due(self, sub: Subscription, body: str, w: TickWindow, made: dict,
              budget: _limits.Budget) -> list:
@@ -259,7 +307,14 @@ class Hub:
         is capped (once), the ticks its budget skips (a body's oldest, named), the answers. A
         fit not ``made`` yet costs what it fuses (relative to another body, that body's window
         and its own again besides)."""
-        times = sub.due(body, w)
+        options = self.world.options
+        correlated = options.acceleration_psd is not None and bool(
+            np.any(options.acceleration_psd))
+        # no more can be answered than the budget has left (an answer costs its own window at
+        # least) and what is made already
+        most = (budget.left // _limits.answer_cost(w.rows, options.robust, correlated)
+                + len(made))
+        times, cut, ends = sub.due(body, w, most)
         if not times:
             return []
         r, out = self.requests, []
@@ -271,37 +326,37 @@ class Hub:
                 f"({self.world.cap}); the oldest are left out", "max_window",
                 self.world.tracker_bounds.max_window)))
         rel = sub.interest.relative_to
-        new = [t for t in times if (body, t, rel) not in made]
         rows = w.rows + (w.rows + self.world.tick_window(rel).rows if rel else 0)
-        options = self.world.options
-        take, cost = budget.take(len(new), rows, options.robust, options.acceleration_psd
-                                 is not None and bool(np.any(options.acceleration_psd)))
-        if take < len(new):
-            gone = new[:len(new) - take]
-            what = (f"{len(gone)} ticks from {gone[0]:.6g} s to {gone[-1]:.6g} s"
-                    if sub.schedule is not None else "its newest measurement")
+        new = [t for t in times if (body, t, rel) not in made]
+        take, cost = budget.take(len(new), rows, options.robust, correlated)
+        skip = new[:len(new) - take]
+        if skip or cut:
+            what = (f"{cut + len(skip)} ticks from {ends[0] if cut else skip[0]:.6g} s to "
+                    f"{skip[-1] if skip else ends[1]:.6g} s" if sub.schedule is not None
+                    else "its newest measurement")
             out.append(self.encoder.error(body, 0.0, r, str(budget.skipped(where, body, what,
                                                                             cost))))
-            skipped = set(gone)
+            skipped = set(skip)
             times = [t for t in times if t not in skipped]
         for t in times:
             key = (body, t, rel)
             if key not in made:
-                made[key] = self._answer(body, t, rel)
+                made[key] = (functools.partial(self._answer, body, t, rel, r) if self.stream
+                             else self._answer(body, t, rel, r))
             out.append(made[key])
         return out
 
-    def _answer(self, body: str, t: Optional[float], relative_to: str) -> bytes:
+    def _answer(self, body: str, t: Optional[float], relative_to: str, r: int) -> bytes:
         """Body ``body`` at tick ``t`` (None: its newest measurement's time; relative to
-        ``relative_to`` when set), or an error entry naming why it cannot be answered."""
-        r = self.requests
+        ``relative_to`` when set) as request ``r``'s answer, or an error entry naming why it
+        cannot be answered."""
         try:
-            p, ids = self.world.tick(body, t)
+            p, ids = self.world.tick(body, t, keep=not self.stream)
             if relative_to:
                 rel = self.world.relative(relative_to, body, p.time)
                 p = BodyPose(body, rel.time, rel.pose, rel.covariance, p.fused)
         except (ValueError, LookupError) as e:
             at = f"{t!r} s" if t is not None else "its newest measurement"
-            return self.encoder.error(body, 0.0, r,
-                                      f"{self.where(r)}: body {body!r} at {at}: {e}")
+            return self.encoder.error(body, 0.0, r, f"{self.where(r)}: body {body!r} at {at}: "
+                                                    f"{self.encoder.fit_error(e)}")
         return self.encoder.fused(p, r, ids.tolist())

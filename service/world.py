@@ -47,6 +47,8 @@ from dqpose.fusion.tracker import _arrays
 from dqpose.fusion.validation import _finite_shape, _seconds
 from dqpose.names import name_problem, quoted
 from dqpose.readwrite import ReadWrite
+from dqpose.world_bounds import DEFAULT as DEFAULT_BOUNDS
+from dqpose.world_bounds import WorldBounds, over, over_bounds
 from dqpose.world_ticks import horizon
 
 __all__ = ["WorldOptions", "WorldBounds", "WorldError", "NotFound", "OutOfRange", "Published",
@@ -68,17 +70,6 @@ class WorldOptions:
     window: float = 1.0
     buffer: float = 10.0
     max_delay: float = 0.1
-
-
-@dataclass(frozen=True)
-class WorldBounds:
-    """What a world holds at most; a refusal names the bound ("bodies: 1001 is above the
-    world's 1000"). ``max_measurements_per_body``: measurements a body's buffer keeps (the
-    server's ``Limits.max_window`` when the world has limits)."""
-    max_bodies: int = 1000
-    max_sources: int = 64
-    max_measurements_per_body: int = _limits.Limits().max_window
-    max_buffer: float = 60.0
 
 
 @dataclass(frozen=True)
@@ -113,11 +104,6 @@ class BodyPose:
     fused: Optional[Fused]
 
 
-def _over(field: str, value, bound: str, limit, unit: str = "") -> WorldError:
-    u = f" {unit}" if unit else ""
-    return WorldError(None, field, f"{value:.6g}{u} is above the world's {bound} {limit:.6g}{u}")
-
-
 def _s(t: float) -> str:
     """A time to the microsecond, without trailing zeros (Unix times keep their digits)."""
     return f"{t:.6f}".rstrip("0").rstrip(".")
@@ -136,23 +122,12 @@ def _body_name(body, field: str = "body") -> str:
     return body
 
 
-def _beyond(k: int, field: str, name: str, held, new: set, bound: str,
-            limit: int) -> Optional[WorldError]:
-    """The refusal of row ``k`` when ``name`` would be one ``field`` more than ``limit`` (the
-    world's ``bound``): ``held`` ones are in the world, ``new`` ones this request adds; a row
-    refused for either name adds neither."""
-    if name in held or name in new or len(held) + len(new) < limit:
-        return None
-    return WorldError(k, field, f"{quoted(name)} would be {field} {len(held) + len(new) + 1}, "
-                                f"above the world's {bound} {limit}")
-
-
 class World:
     """Named bodies and sources; see the module's docstring. Every public method takes the
     world's lock, to write or to read, so producers and readers may call from any thread."""
 
     def __init__(self, *, sources: Sequence[Source] = (), arms: Mapping[str, str] = {},
-                 options: WorldOptions = WorldOptions(), bounds: WorldBounds = WorldBounds(),
+                 options: WorldOptions = WorldOptions(), bounds: WorldBounds = DEFAULT_BOUNDS,
                  tracker: Optional[TrackerBounds] = None):
         self.bounds = bounds
         # a server's bounds of a stream (its Limits'); a body's buffer and the rows of all
@@ -179,18 +154,18 @@ class World:
         sources = tuple(sources)
         b = self.bounds
         if len(sources) > b.max_sources:
-            raise _over("sources", len(sources), "max_sources", b.max_sources)
+            raise over("sources", len(sources), "max_sources", b.max_sources)
         if not isinstance(options, WorldOptions):
             raise WorldError(None, "options",
                              f"expected WorldOptions, got {type(options).__name__}")
         try:
-            buffer = _seconds(options.buffer, "buffer", "positive")
             window = _seconds(options.window, "window", "positive")
+            buffer = _seconds(options.buffer, "buffer", "positive")
             _seconds(options.max_delay, "max_delay", "nonnegative")
         except ValueError as e:
             raise WorldError.of(e, under="options") from None
         if buffer > b.max_buffer:
-            raise _over("options.buffer", buffer, "max_buffer", b.max_buffer, "s")
+            raise over("options.buffer", buffer, "max_buffer", b.max_buffer, "s")
         if window > buffer:
             raise WorldError(None, "options.window",
                              f"{window:.6g} s is longer than options.buffer {buffer:.6g} s (a "
@@ -213,7 +188,7 @@ class World:
         # world's bound (not a stream's max_window)
         bounds = dataclasses.replace(
             self.tracker_bounds, max_window=b.max_measurements_per_body,
-            max_rows=b.max_bodies * b.max_measurements_per_body)
+            max_rows=b.max_measurements or b.max_bodies * b.max_measurements_per_body)
         try:
             _sources(sources)
         except ValueError as e:
@@ -253,6 +228,11 @@ class World:
     def bodies(self) -> tuple[str, ...]:
         with self._lock.read():
             return self._t.bodies
+
+    @property
+    def tracker(self) -> Tracker:
+        """The tracker holding the world's measurements (its window the buffer)."""
+        return self._t
 
     @property
     def cap(self) -> Optional[int]:
@@ -311,44 +291,49 @@ class World:
         """Rows into the tracker under the world's bounds (the lock held); ``codes`` and
         ``producer``: as :meth:`ingest` takes them."""
         errors: dict[int, WorldError] = dict(bad or {})
-        b = self.bounds
-        known, named = self._version, self._named
-        new_bodies: set = set()
-        new_sources: set = set()
-        for k, (body, src) in enumerate(zip(bodies, sources)):
-            if k in errors or not isinstance(body, str) or not isinstance(src, str):
-                continue
-            refusal = ((body and _beyond(k, "body", body, known, new_bodies, "max_bodies",
-                                         b.max_bodies))
-                       or _beyond(k, "source", src, named, new_sources, "max_sources",
-                                  b.max_sources))
-            if refusal:
-                errors[k] = refusal
-                continue
-            if body and body not in known:
-                new_bodies.add(body)
-            if src not in named:
-                new_sources.add(src)
-        use = [k for k in range(len(bodies)) if k not in errors]
-        if use:
+        known, named, b = self._version, self._named, self.bounds
+        if (len(known) + len(bodies) > b.max_bodies
+                or len(named) + len(sources) > b.max_sources):     # else none can be over
+            over_bounds(bodies, sources, errors, known, named, b)
+        n = len(bodies)
+        use = [k for k in range(n) if k not in errors] if errors else range(n)
+        if not use:
+            return errors
+        if len(use) == n:       # the common case: every row offered, no copies
+            rows = (bodies, sources, times, poses, covs)
+            numbers = np.arange(n) if ids is None else np.asarray(ids, np.int64)
+            checks = None if codes is None else np.asarray(codes)
+        else:
             idx = np.array(use)
             rows = ([bodies[k] for k in use], [sources[k] for k in use], times[idx],
                     poses[idx], covs[idx])
             numbers = idx if ids is None else np.asarray(ids, np.int64)[idx]
-            refused = (self._t.ingest(*rows, ids=numbers, origin=producer) if codes is None else
-                       self._t.ingest_checked(*rows, numbers, np.asarray(codes)[idx], producer))
-            for j, e in refused:
-                errors[use[j]] = e.at(use[j])
-            for k in use:
-                if k in errors:
-                    continue
-                self._version[bodies[k]] = self._version.get(bodies[k], 0) + 1
-                named.add(sources[k])
-                src = self._t._table.get(sources[k])
-                t = float(times[k]) - (src.latency if src is not None else 0.0)
-                seen = self._fed.setdefault(bodies[k], {})
-                seen[sources[k]] = max(seen.get(sources[k], -math.inf), t)
+            checks = None if codes is None else np.asarray(codes)[idx]
+        refused = (self._t.ingest(*rows, ids=numbers, origin=producer) if checks is None else
+                   self._t.ingest_checked(*rows, numbers, checks, producer))
+        for j, e in refused:
+            errors[use[j]] = e.at(use[j])
+        self._fed_by([k for k in use if k not in errors] if errors else use, bodies, sources,
+                     times)
         return errors
+
+    def _fed_by(self, rows, bodies, sources, times) -> None:
+        """The versions and per-source newest taken times of the bodies ``rows`` fed."""
+        table = self._t._table
+        srcs = [sources[k] for k in rows]
+        latency = {s: table[s].latency if s in table else 0.0 for s in set(srcs)}
+        taken = (times[np.asarray(rows, np.intp)]
+                 - np.fromiter((latency[s] for s in srcs), np.float64, len(srcs))).tolist()
+        version, fed = self._version, self._fed
+        for k, s, t in zip(rows, srcs, taken):
+            b = bodies[k]
+            version[b] = version.get(b, 0) + 1
+            seen = fed.get(b)
+            if seen is None:
+                seen = fed[b] = {}
+            if t > seen.get(s, -math.inf):
+                seen[s] = t
+        self._named.update(latency)
 
     def sources_of(self, body: str) -> tuple[str, ...]:
         """The sources that ever fed ``body``."""
@@ -368,6 +353,12 @@ class World:
                                f"{', '.join(map(repr, seen)) or 'none'})")
             return seen[source]
 
+    def horizons(self, bodies: Sequence[str]) -> list[float]:
+        """Each of ``bodies``' horizon (:func:`dqpose.world_ticks.horizon`), as
+        :meth:`tick_window` has it."""
+        with self._lock.read():
+            return [horizon(self._fed.get(body, {}), self.options.max_delay) for body in bodies]
+
     def tick_window(self, body: str) -> TickWindow:
         """What ``body``'s ticks would fit now (:meth:`tick`; none for a body not held)."""
         with self._lock.read():
@@ -379,10 +370,12 @@ class World:
             return TickWindow(horizon(self._fed.get(body, {}), self.options.max_delay),
                               float(t.taken_of(rows).min()), len(rows), t.capped(body, window))
 
-    def tick(self, body: str, time: Optional[float]) -> tuple[BodyPose, np.ndarray]:
+    def tick(self, body: str, time: Optional[float],
+             keep: bool = True) -> tuple[BodyPose, np.ndarray]:
         """``body`` at tick ``time`` (None: its newest measurement's time) from the
         measurements of its tick window: those taken within ``window`` of its newest, the last
-        the tracker's cap of them (StreamFuse's rows), with the fused measurements' ids."""
+        the tracker's cap of them (StreamFuse's rows), with the fused measurements' ids; the fit
+        kept for Lookups at that time unless not ``keep``."""
         with self._lock.read():
             self._known(body)
             t = self._t
@@ -395,7 +388,8 @@ class World:
             else:
                 rows = self._rows_for(body, end if time is None else time, end)
                 f, ids = self._fit_of(body, rows, lambda r: t.estimate_rows(r, time))
-                self._fits.keep(key, (version, f, True, ids), len(f.distances))
+                if keep:
+                    self._fits.keep(key, (version, f, True, ids), len(f.distances))
         assert f.time is not None            # a fit over time
         return BodyPose(body, f.time, f.mean, f.covariance, f), ids
 
@@ -472,7 +466,7 @@ class World:
             return fit(rows)
         except ValueError as e:
             known = _known_from(body, self._t.oldest(body), self._t.newest(body))
-            raise OutOfRange(f"{e}; {known}") from None
+            raise OutOfRange(f"{e}; {known}") from e      # the fit's own words kept
 
     def _out_of_range(self, body: str, at: float, oldest: float, newest: float,
                       end: float) -> OutOfRange:

@@ -31,6 +31,8 @@ class Written:
     def relative(p) -> bytes:
         return f"relative {p.body} {p.time:.6g}".encode()
 
+    fit_error = staticmethod(str)
+
 
 def rows(bodies, times, sources=None) -> Rows:
     """One measurement of each body at each time (identity poses, unit covariances)."""
@@ -204,3 +206,25 @@ def test_a_body_whose_window_holds_more_than_a_fit_takes_is_said_so_once():
     said = [a for a in got if a.startswith(b"error")]
     assert len(said) == 1 and b"its window holds more measurements than its fits take" in said[0]
     assert got[-1] == b"fused box 0.05 r2 [4, 5]"          # the last two: the window's cap
+
+
+def test_a_billion_ticks_due_at_once_are_counted_not_listed():
+    """A body whose time leapt across a wide window: its ticks are a range until the budget
+    cuts them; the latest it affords answered, each made once for the two subscriptions of that
+    rate, the rest named by one skip entry each. (The hub listed every tick's time first: 1e9
+    floats, the process killed by the kernel's OOM killer.)"""
+    h = Hub("test", Written(), limits.tracker_bounds(limits.Limits(
+        max_fused_per_request=10 * limits.answer_cost(2), max_time_jump=2e6)),
+        bounds=WorldBounds(max_buffer=2e6))
+    h.configure([Source("cam")], {}, WorldOptions(window=1e6, buffer=1e6, max_delay=0.0))
+    got: dict[str, list] = {"first": [], "second": []}
+    for name in got:
+        h.subscribe(Subscription(Interest(None, 1000.0), got[name].extend))
+    step(h, "cam", "call", 1, rows(["box"], [0.0]))
+    step(h, "cam", "call", 2, rows(["box"], [1e6]))
+    for name, answers in got.items():
+        fused = [a for a in answers if a.startswith(b"fused") and b" r1 " in a]
+        assert len(fused) == 10, name
+        (skip,) = [a for a in answers if a.startswith(b"error") and b" r1:" in a]
+        assert b": 999999990 ticks from " in skip and b"max_fused_per_request" in skip, name
+    assert got["first"][-10:] == got["second"][-10:]

@@ -6,14 +6,15 @@ from __future__ import annotations
 
 import itertools
 import math
-from typing import Any, Optional, Sequence
+from typing import Any
 
 import grpc
 import numpy as np
 from google.protobuf.message import DecodeError
 
 from dqpose import fusion, limits
-from dqpose.errors import FieldError
+from dqpose.errors import FieldError, rename
+from dqpose.hub import Hub, Rows
 from dqpose.names import name_problem
 from dqpose.rpc import DEFAULT_MAX_POSES
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
@@ -31,153 +32,92 @@ from dqpose.rpc.fusion_convert import (
     unknown_sources,
 )
 from dqpose.rpc.wire import fuse_stream_from_wire, fused_pose_bytes, wire_rows
-from dqpose.world_ticks import first_tick, tick_phase, tick_time
+from dqpose.rpc.world_convert import Encoder
+from dqpose.world import WorldOptions
 
 
 class Stream:
-    """One StreamFuse stream's state: a :class:`fusion.Tracker` of its bodies and, with an output
-    rate, each body's next tick. Nothing here reads a clock: the answers are a function of the
-    requests alone, so a recorded stream replays to the same answers."""
+    """One StreamFuse stream's state: its private world (:meth:`dqpose.hub.Hub.open_stream`:
+    one producer, the stream's window, its ticks at ``rate``, the server's limits), the one
+    engine the World's Subscribe answers from too. Nothing here reads a clock: the answers are a
+    function of the requests alone, so a recorded stream replays to the same answers."""
 
     def __init__(self, options: Options, rate: float, field: str = "requests[0].options",
                  bounds: limits.Limits = limits.DEFAULT):
         self.options = options
-        self.rate = rate
-        self.limits = bounds
+        world = WorldOptions(robust=options.robust, probability=options.probability,
+                             max_skew=options.max_skew,
+                             max_extrapolation=options.max_extrapolation,
+                             twist_covariance=options.twist_covariance,
+                             acceleration_psd=options.acceleration_psd,
+                             window=options.window or DEFAULT_WINDOW)
         try:
-            self.tracker = fusion.Tracker(options.window or DEFAULT_WINDOW,
-                                          **options.fuse_kwargs(),
-                                          bounds=limits.tracker_bounds(bounds))
+            self.hub, self._answers = Hub.open_stream(options.sources, world, rate,
+                                                      limits.tracker_bounds(bounds),
+                                                      _StreamEncoder())
         except ValueError as e:
-            raise options_error(e, field) from None
-        self.next_tick: dict[str, int] = {}
-        # per body: the time of its next tick, and its phase
-        self.next_time: dict[str, float] = {}
-        self.phase: dict[str, float] = {}
+            # the world names its options "options.x", a stream's sources are among them
+            raise rename(e, {"options": field, "sources": f"{field}.sources{{}}"}) from None
         self.known = frozenset(s.name for s in options.sources) if options.sources else None
-        self.capped: set[str] = set()      # bodies whose window has been said to be full
         self.cost = 0       # what the answers of the last update will cost (answer_cost)
-        self.correlated = bool(options.acceleration_psd is not None
-                               and options.acceleration_psd.any())
+        self._pending = False   # a step's answers not all taken yet
 
-    def update(self, m: Measurements, ids: np.ndarray, field: str, codes=None):
-        """Measurements ``m`` of one request (``ids``: their stream-wide numbers) into the
-        tracker: ``(answers, errors)``, answers (an iterator, each fused as it is taken) of
-        ``(body, Fused or FieldError, ids of the fused measurements)`` in order of the bodies'
-        first appearance, then of time; errors
+    @property
+    def tracker(self) -> fusion.Tracker:
+        """The stream's measurements (its world's tracker)."""
+        return self.hub.world.tracker
+
+    def update(self, m: Measurements, first: int, offered: int, field: str, codes=None):
+        """Measurements ``m`` of one request of ``offered``, numbered from ``first`` (one step
+        of its world): ``(answers, errors)``, answers an iterator of ``FusedPose`` bytes in
+        order of the bodies' first appearance, then of time, each fused as it is taken; errors
         ``(measurement index, FieldError)``. ``codes`` (from the C decoder, one a row): the
         rows are checked already by the tracker's rules, those with a code refused (and named by
         the tracker's own check of that row alone), the others taken in unchecked."""
-        n = len(m.index)
         errors = []
         if self.known is not None and not self.known.issuperset(m.sources):
-            errors = unknown_sources(m, self.options, field)
-        if errors:
-            bad = {k for k, _ in errors}
-            errors = [(int(m.index[k]), e) for k, e in errors]
-            rows: Sequence[int] = [k for k in range(n) if k not in bad]
-        else:
-            rows = range(n)     # the common case: every source listed
-        tracker = self.tracker
-        if codes is None:
-            rows = list(rows)
-            refused = [(rows[j], e) for j, e in tracker.ingest(
-                [m.bodies[k] for k in rows], [m.sources[k] for k in rows], m.times[rows],
-                m.poses[rows], m.covariances[rows], ids=ids[rows])]
-        elif len(rows) == n:       # the common case: every row offered to the tracker
-            refused = tracker.ingest_checked(m.bodies, m.sources, m.times, m.poses,
-                                             m.covariances, ids, codes)
-        else:
-            rows = list(rows)
-            refused = [(rows[j], e) for j, e in tracker.ingest_checked(
-                [m.bodies[k] for k in rows], [m.sources[k] for k in rows], m.times[rows],
-                m.poses[rows], m.covariances[rows], ids[rows], codes[rows])]
-        for k, e in refused:
-            i = int(m.index[k])
-            errors.append((i, FieldError(e.named(field, i))))
-        if refused:
-            out = {k for k, _ in refused}
-            bodies = dict.fromkeys(m.bodies[k] for k in rows if k not in out)
-        else:
-            bodies = dict.fromkeys(m.bodies if len(rows) == n else [m.bodies[k] for k in rows])
-        due: list[tuple[str, Sequence[Optional[int]]]]
-        if not self.rate:
-            due = [(body, (None,)) for body in bodies]
-        else:
-            newest = tracker.newest_of(bodies)
-            next_time = self.next_time
-            # most bodies of a request: their next tick not reached yet
-            due = [(body, self._due(body)) for body, newest_t in zip(bodies, newest)
-                   if next_time.get(body, -math.inf) <= newest_t]
-        # each estimated when it is asked for: an answer can be on its way while the next one
-        # of the same request is fused
-        return self._within_budget(due, field), errors
+            errors = [(int(m.index[k]), e) for k, e in unknown_sources(m, self.options, field)]
+            keep = np.setdiff1d(m.index, [i for i, _ in errors])
+            rows = np.flatnonzero(np.isin(m.index, keep))
+            m = Measurements(m.index[rows], tuple(m.bodies[k] for k in rows),
+                             tuple(m.sources[k] for k in rows), m.times[rows], m.poses[rows],
+                             m.covariances[rows])
+            codes = None if codes is None else codes[rows]
+        self._step()
+        self.hub.measurements = first       # the stream's call numbers its measurements
+        applied = self.hub.publish("", "", 0, Rows(m.index, m.bodies, m.sources, m.times,
+                                                   m.poses, m.covariances, codes), offered)
+        errors += [(e.index, FieldError(e.named(field))) for e in applied.errors]
+        self.cost = applied.cost
+        answers, self._answers[:] = list(self._answers), []
+        self._pending = not all(isinstance(a, bytes) for a in answers)
+        return self._made(answers), errors
 
-    def _due(self, body: str) -> range:
-        """The fusion times due for ``body`` (output rate > 0): the ticks its newest measurement
-        has reached (not before the oldest one in its window), counted in closed form: a body
-        whose time leapt gives a range, not a loop over every tick in between."""
-        newest = self.tracker.newest(body)
-        rate = self.rate
-        k = self.next_tick.get(body)
-        phase = self.phase.get(body)
-        if phase is None:
-            phase = self.phase[body] = tick_phase(body)
-        first = first_tick(self.tracker.oldest(body), rate, phase)
-        k = first if k is None else max(k, first)
-        end = first_tick(newest, rate, phase)
-        if tick_time(end, rate, phase) <= newest:
-            end += 1
-        self.next_tick[body] = max(k, end)
-        self.next_time[body] = tick_time(max(k, end), rate, phase)
-        return range(k, end)
+    def skip(self) -> None:
+        """A request none of whose measurements was used: a step, no answer."""
+        self._step()
+        self.hub.publish("", "", 0, None, 0)
+        self.cost = 0
 
-    def _within_budget(self, due: list, field: str):
-        """``(body, fused or FieldError, ids)`` of each due tick, in order, as long as the
-        message's answers fuse at most ``max_fused_per_request`` measurements: a body's ticks
-        beyond it are skipped, its latest kept, and one error entry says how many. Which ticks
-        are answered is decided here, at once, and what they will cost is left in
-        :attr:`cost` (measurements to fuse, :data:`limits.ANSWER_ROWS` an answer included);
-        each answer is fused as it is taken."""
-        budget = limits.Budget(self.limits)
-        items = []
-        for body, ticks in due:
-            if not len(ticks):
-                continue
-            take, cost = budget.take(len(ticks), self.tracker.count(body), self.options.robust,
-                                     self.correlated)
-            where = field.rsplit(".", 1)[0]
-            if body not in self.capped and self.tracker.capped(body):
-                self.capped.add(body)
-                items.append((body, limits.over(
-                    where, f"body {body!r}: its window holds more measurements than its fits "
-                           f"take ({self.tracker.cap}); the oldest are left out", self.limits,
-                    "max_window")))
-            if take < len(ticks):
-                skipped = len(ticks) - take
-                at = (f"{skipped} ticks from {self._time(body, ticks[0]):.6g} s to "
-                      f"{self._time(body, ticks[skipped - 1]):.6g} s" if self.rate else
-                      "its newest measurement")
-                items.append((body, budget.skipped(where, body, at, cost)))
-            items += [(body, self._time(body, k)) for k in ticks[len(ticks) - take:]]
-        self.cost = budget.spent
-        return (self._answer(body, t, field) if not isinstance(t, FieldError)
-                else (body, t, np.empty(0, np.int64)) for body, t in items)
+    def _step(self) -> None:
+        # a deferred answer fits the world as it is when taken: the stream's one producer takes
+        # a request's answers before it sends the next (StreamFuse writes them first)
+        assert not self._pending, "a stream's answers are taken before its next request"
 
-    def _time(self, body: str, k):
-        """The fusion time of ``body``'s tick ``k`` (None: its newest measurement's, output
-        rate 0)."""
-        return None if k is None else tick_time(k, self.rate, self.phase[body])
+    def _made(self, answers: list):
+        """The step's ``answers``, each fitted (a callable) as it is taken."""
+        for a in answers:
+            yield a if isinstance(a, bytes) else a()
+        self._pending = False
 
-    def _answer(self, body: str, t, field: str):
-        try:
-            return body, *self.tracker.estimate_ids(body, t)
-        except ValueError as e:
-            ids = self.tracker.window_of(body).ids
-            at = f"{t!r} s" if t is not None else "its newest measurement"
-            where = field.rsplit(".", 1)[0]
-            return body, FieldError(f"{where}: body {body!r} at {at}: "
-                                    f"{options_error(e, 'options')}"), ids
+
+class _StreamEncoder(Encoder):
+    """StreamFuse's answers: the World's, a fit's failure named by the option it is about."""
+
+    @staticmethod
+    def fit_error(e: Exception) -> str:
+        cause = e.__cause__ if isinstance(e.__cause__, ValueError) else e
+        return str(options_error(cause, "options")) if isinstance(cause, ValueError) else str(e)
 
 
 def _error_entry(r: int, measurement: int, details: str, body: str = "") -> bytes:
@@ -253,12 +193,13 @@ class Fusion(pb_grpc.FusionServicer):
         too_many = over_count(f"requests[{r}].measurements", len(request.measurements),
                               self.max_poses, "measurements")
         if too_many is not None:
+            state.skip()
             out.append(_error_entry(r, -1, f"{too_many}; none was used"))
             return out
         errors: list = []
         field = f"requests[{r}].measurements"
         m = measurements_to_arrays(request.measurements, field, errors)
-        answers, more = state.update(m, first_id + m.index, field)
+        answers, more = state.update(m, first_id, len(request.measurements), field)
         bodies = [request.measurements[i].body for i, _ in errors + more]
         return itertools.chain(out, self._answers(r, errors + more, bodies, answers))
 
@@ -282,6 +223,7 @@ class Fusion(pb_grpc.FusionServicer):
             try:
                 request = pb.FuseStreamRequest.FromString(data)
             except DecodeError:
+                state.skip()
                 return [_error_entry(r, -1, f"requests[{r}]: not a valid "
                                             f"dqpose.v1.FuseStreamRequest message; none of it "
                                             f"was used")], 0
@@ -290,7 +232,7 @@ class Fusion(pb_grpc.FusionServicer):
         field = f"requests[{r}].measurements"
         n = len(w.times)
         m, errors, codes = wire_rows(data, w, field)
-        answers, more = state.update(m, first_id + m.index, field, codes)
+        answers, more = state.update(m, first_id, n, field, codes)
         errors += more
         return self._answers(r, errors, [w.bodies[i] for i, _ in errors], answers), n
 
@@ -301,11 +243,7 @@ class Fusion(pb_grpc.FusionServicer):
         sent back)."""
         for (i, e), body in sorted(zip(errors, bodies), key=lambda x: x[0][0]):
             yield _error_entry(r, i, str(e), "" if name_problem(body) else body)
-        for body, fused, ids in answers:
-            if isinstance(fused, FieldError):
-                yield _error_entry(r, -1, str(fused), body)
-                continue
-            yield fused_pose_bytes(fused, body, fused.time, r, ids)
+        yield from answers
 
     # -- RPCs
 

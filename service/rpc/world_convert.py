@@ -125,6 +125,10 @@ class Encoder:
     error = staticmethod(error_bytes)
 
     @staticmethod
+    def fit_error(e: Exception) -> str:
+        return str(e)
+
+    @staticmethod
     def relative(p) -> bytes:
         return relative_msg(p).SerializeToString()
 
