@@ -366,7 +366,7 @@ class World:
                 return TickWindow(-math.inf, math.inf, 0, False)
             t = self._t
             newest, window = t.newest(body), self.options.window
-            rows = t.rows_ending(body, newest, window)[1]
+            rows = t.rows_ending(body, newest, window)
             return TickWindow(horizon(self._fed.get(body, {}), self.options.max_delay),
                               float(t.taken_of(rows).min()), len(rows), t.capped(body, window))
 
@@ -454,10 +454,12 @@ class World:
         t = self._t
         newest = t.newest(body)
         end = self._end(body, at) if end is None else end
-        oldest, rows = t.rows_ending(body, end, self.options.window)
+        rows = t.rows_ending(body, end, self.options.window)
         limit = self.options.max_extrapolation
-        if at < oldest or (limit is not None and at > newest + limit) or not len(rows):
-            raise self._out_of_range(body, at, oldest, newest, end)
+        # the buffer's oldest is looked for only when the rows do not show it older than ``at``
+        if not len(rows) or (limit is not None and at > newest + limit) or (
+                at < t.taken_of(rows).min() and at < t.oldest(body)):
+            raise self._out_of_range(body, at, t.oldest(body), newest, end)
         return rows
 
     def _fit_of(self, body: str, rows: np.ndarray, fit):
@@ -554,8 +556,8 @@ class World:
         ``at`` from a common source whose extrinsic is uncertain or whose latency is estimated
         (errors the two poses then share)."""
         t, window = self._t, self.options.window
-        common = (t.sources_of(t.rows_ending(a, self._end(a, at), window)[1])
-                  & t.sources_of(t.rows_ending(b, self._end(b, at), window)[1]))
+        common = (t.sources_of(t.rows_ending(a, self._end(a, at), window))
+                  & t.sources_of(t.rows_ending(b, self._end(b, at), window)))
         return any(not t._table[s].exact for s in common if s in t._table)
 
     def arm_base(self, arm: str) -> BodyPose:

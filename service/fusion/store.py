@@ -18,7 +18,10 @@ class _Store:
     (compacted in place, grown only when the live rows fill half), so memory follows the largest
     live window, flat over a long stream. Each body's rows are listed in an index of its own, so
     finding them costs what the body holds, not what the stream holds (a world of 1000 bodies
-    with 10 s of history holds hundreds of thousands of rows)."""
+    with 10 s of history holds hundreds of thousands of rows); beside it the running maximum of
+    their taken times, so rows taken from a time on are found from the first index entry whose
+    running maximum reaches it: what the window holds and rows that came late, not the body's
+    whole buffer."""
 
     # as they came (``poses``, ``covs``) and in the world frame (``wposes``, and ``wcovs`` when a
     # source's body offset moves them): each row brought there once, not at every fit
@@ -29,6 +32,7 @@ class _Store:
         self.n = 0
         self._index: dict[int, np.ndarray] = {}     # body -> its rows, ascending (a prefix)
         self._count: dict[int, int] = {}            # body -> how much of its index is used
+        self._reach: dict[int, np.ndarray] = {}     # body -> running max of its rows' taken
         self.ids = np.empty(capacity, np.int64)
         self.body = np.empty(capacity, np.int64)
         self.codes = np.empty(capacity, np.int64)
@@ -62,12 +66,26 @@ class _Store:
     def rows(self, b: int, newest: np.ndarray, window: float,
              cap: Optional[int] = None) -> np.ndarray:
         """Body ``b``'s rows in its window, in arrival order (the last ``cap`` of them)."""
+        rows = self.since(b, newest[b] - window)
+        return rows if cap is None or len(rows) <= cap else rows[len(rows) - cap:]
+
+    def since(self, b: int, lo: float) -> np.ndarray:
+        """Body ``b``'s rows taken at ``lo`` or later, in arrival order."""
+        mine = self.after(b, lo)
+        return mine[self.taken[mine] >= lo]
+
+    def after(self, b: int, lo: float) -> np.ndarray:
+        """Body ``b``'s rows from its first one whose running maximum of taken reaches ``lo``
+        (every earlier row was taken before ``lo``), in arrival order."""
         mine = self._index.get(b)
         if mine is None:
             return np.empty(0, np.intp)
-        mine = mine[:self._count[b]]
-        rows = mine[self.taken[mine] >= newest[b] - window]
-        return rows if cap is None or len(rows) <= cap else rows[len(rows) - cap:]
+        used = self._count[b]
+        return mine[int(np.searchsorted(self._reach[b][:used], lo)):used]
+
+    def count(self, b: int) -> int:
+        """How many rows body ``b`` has in the store (in its window or not)."""
+        return self._count.get(b, 0)
 
     def keep(self, mask: np.ndarray) -> None:
         k = int(np.count_nonzero(mask))
@@ -77,13 +95,15 @@ class _Store:
         self.n = k
         self._index.clear()
         self._count.clear()
+        self._reach.clear()
         self._add_to_index(0, self.body[:k])
 
     def _add_to_index(self, first: int, body: np.ndarray) -> None:
         """Rows ``first, first + 1, ...`` of bodies ``body`` appended to the bodies' indices."""
         if len(body) <= 16:     # a message of a few bodies: plain look-ups
-            for row, b in enumerate(body.tolist(), first):
-                self._push(b, np.array([row], np.intp))
+            taken = self.taken[first:first + len(body)].tolist()
+            for row, (b, t) in enumerate(zip(body.tolist(), taken), first):
+                self._push_one(b, row, t)
             return
         order = np.argsort(body, kind="stable")
         sorted_body = body[order]
@@ -91,15 +111,39 @@ class _Store:
         for lo, hi in zip(cuts[:-1].tolist(), cuts[1:].tolist()):
             self._push(int(sorted_body[lo]), (order[lo:hi] + first).astype(np.intp))
 
+    def _push_one(self, b: int, row: int, taken: float) -> None:
+        mine = self._index.get(b)
+        used = self._count.get(b, 0)
+        if mine is None or used == len(mine):
+            self._grow(b, used, 1)
+            mine = self._index[b]
+        mine[used] = row
+        reach = self._reach[b]
+        reach[used] = taken if not used or taken > reach[used - 1] else reach[used - 1]
+        self._count[b] = used + 1
+
+    def _grow(self, b: int, used: int, more: int) -> None:
+        """Body ``b``'s index (``used`` entries) made room for ``more``."""
+        mine = self._index.get(b)
+        size = max(16, 2 * (used + more))
+        grown, reach = np.empty(size, np.intp), np.empty(size)
+        if mine is not None:
+            grown[:used] = mine[:used]
+            reach[:used] = self._reach[b][:used]
+        self._index[b], self._reach[b] = grown, reach
+
     def _push(self, b: int, rows: np.ndarray) -> None:
         mine = self._index.get(b)
         used = self._count.get(b, 0)
         if mine is None or used + len(rows) > len(mine):
-            grown = np.empty(max(16, 2 * (used + len(rows))), np.intp)
-            if mine is not None:
-                grown[:used] = mine[:used]
-            self._index[b] = mine = grown
+            self._grow(b, used, len(rows))
+            mine = self._index[b]
         mine[used:used + len(rows)] = rows
+        reach = self._reach[b]
+        taken = self.taken[rows]
+        if used:
+            taken = np.maximum(taken, reach[used - 1])
+        np.maximum.accumulate(taken, out=reach[used:used + len(rows)])
         self._count[b] = used + len(rows)
 
     def append(self, newest: np.ndarray, window: float, cap: Optional[int] = None,

@@ -306,16 +306,22 @@ class Tracker:
         names = self._names
         return tuple([names[c] for c in self._store.codes[rows].tolist()])
 
-    def rows_ending(self, body: str, end: float, window: float) -> tuple[float, np.ndarray]:
-        """When ``body``'s oldest measurement kept was taken, and its rows taken in
-        ``[end - window, end]`` (for :meth:`estimate_rows`), in arrival order, the last
-        :attr:`cap` of them: one look-up of its window for both."""
-        rows = self._rows(body)
-        taken = self._store.taken[rows]
-        mine = rows[(taken >= end - window) & (taken <= end)]
-        if self.cap is not None and len(mine) > self.cap:
-            mine = mine[len(mine) - self.cap:]
-        return float(taken.min()), mine
+    def rows_ending(self, body: str, end: float, window: float) -> np.ndarray:
+        """``body``'s rows taken in ``[end - window, end]`` (for :meth:`estimate_rows`), in
+        arrival order, the last :attr:`cap` of them, among the rows of its window (:meth:`_rows`:
+        the last :attr:`cap` of those too). Looked for from the first row whose running maximum
+        of taken reaches ``end - window`` (:meth:`_Store.after`): the rows of that window and
+        those that came after them late, not the body's whole window, unless more than
+        :attr:`cap` of its window's rows are among them (then its cap may leave some out)."""
+        b, s, cap = self._code_of(body), self._store, self.cap
+        lo, floor = end - window, self._newest[b] - self.window
+        rows = s.after(b, lo) if lo > floor else None
+        if rows is None or (cap is not None and len(rows) > cap
+                            and np.count_nonzero(s.taken[rows] >= floor) > cap):
+            rows = self._rows(body)
+        taken = s.taken[rows]
+        mine = rows[(taken >= lo) & (taken <= end)]
+        return mine if cap is None or len(mine) <= cap else mine[len(mine) - cap:]
 
     def taken_of(self, rows: np.ndarray) -> np.ndarray:
         """When ``rows`` were taken."""
