@@ -112,5 +112,10 @@ PyMODINIT_FUNC PyInit__dqcore(void)
     /* the fits' step rule (gn.h), for process_noise.py's NumPy loop */
     PyModule_AddObject(m, "COST_SLACK", PyFloat_FromDouble(DQ_GN_COST_SLACK));
     PyModule_AddIntConstant(m, "MAX_HALVINGS", DQ_GN_MAX_HALVINGS);
+    if (PyType_Ready(&dq_store_index_type) < 0
+        || PyModule_AddObjectRef(m, "StoreIndex", (PyObject *)&dq_store_index_type) < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
     return m;
 }

@@ -47,6 +47,9 @@ PyObject *py_joint_fit(PyObject *self, PyObject *args);
 PyObject *py_se3_jl_inv(PyObject *self, PyObject *x);
 PyObject *py_se3_jr(PyObject *self, PyObject *x);
 
+/* _dqcore.StoreIndex (py_store.c) */
+extern PyTypeObject dq_store_index_type;
+
 /* py_trajectory.c: the trajectory planner */
 PyObject *py_traj_plan(PyObject *self, PyObject *args);
 PyObject *py_traj_eval(PyObject *self, PyObject *args);

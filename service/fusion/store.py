@@ -8,6 +8,7 @@ from typing import Optional
 
 import numpy as np
 
+from dqpose._dqcore import StoreIndex
 from dqpose.fusion.results import DOF
 
 
@@ -30,9 +31,8 @@ class _Store:
     def __init__(self, capacity: int = 256, world_covs: bool = False):
         self._arrays = self._ARRAYS + (("wcovs",) if world_covs else ())
         self.n = 0
-        self._index: dict[int, np.ndarray] = {}     # body -> its rows, ascending (a prefix)
-        self._count: dict[int, int] = {}            # body -> how much of its index is used
-        self._reach: dict[int, np.ndarray] = {}     # body -> running max of its rows' taken
+        # body -> its rows, ascending, with the running maximum of their taken times (C)
+        self._index = StoreIndex()
         self.ids = np.empty(capacity, np.int64)
         self.body = np.empty(capacity, np.int64)
         self.codes = np.empty(capacity, np.int64)
@@ -52,40 +52,25 @@ class _Store:
     def live(self, newest: np.ndarray, window: float, cap: Optional[int] = None) -> np.ndarray:
         """The rows in their body's window: taken within ``window`` of its newest, and among
         the last ``cap`` of those (arrival order) when a cap is given."""
-        body = self.body[:self.n]
-        live = self.taken[:self.n] >= newest[body] - window
-        if cap is not None:
-            idx = np.flatnonzero(live)
-            b = body[idx]
-            order = np.lexsort((-idx, b))              # by body, newest arrival first
-            start = np.flatnonzero(np.r_[True, b[order][1:] != b[order][:-1]])
-            rank = np.arange(len(order)) - np.repeat(start, np.diff(np.r_[start, len(order)]))
-            live[idx[order[rank >= cap]]] = False
-        return live
+        return self._index.live(self.taken, newest, window, -1 if cap is None else cap, self.n)
 
     def rows(self, b: int, newest: np.ndarray, window: float,
              cap: Optional[int] = None) -> np.ndarray:
         """Body ``b``'s rows in its window, in arrival order (the last ``cap`` of them)."""
-        rows = self.since(b, newest[b] - window)
-        return rows if cap is None or len(rows) <= cap else rows[len(rows) - cap:]
+        return self._index.since(b, newest[b] - window, self.taken, -1 if cap is None else cap)
 
     def since(self, b: int, lo: float) -> np.ndarray:
         """Body ``b``'s rows taken at ``lo`` or later, in arrival order."""
-        mine = self.after(b, lo)
-        return mine[self.taken[mine] >= lo]
+        return self._index.since(b, lo, self.taken)
 
     def after(self, b: int, lo: float) -> np.ndarray:
         """Body ``b``'s rows from its first one whose running maximum of taken reaches ``lo``
         (every earlier row was taken before ``lo``), in arrival order."""
-        mine = self._index.get(b)
-        if mine is None:
-            return np.empty(0, np.intp)
-        used = self._count[b]
-        return mine[int(np.searchsorted(self._reach[b][:used], lo)):used]
+        return self._index.after(b, lo)
 
     def count(self, b: int) -> int:
         """How many rows body ``b`` has in the store (in its window or not)."""
-        return self._count.get(b, 0)
+        return self._index.count(b)
 
     def keep(self, mask: np.ndarray) -> None:
         k = int(np.count_nonzero(mask))
@@ -93,58 +78,8 @@ class _Store:
             arr = getattr(self, a)
             arr[:k] = arr[:self.n][mask]
         self.n = k
-        self._index.clear()
-        self._count.clear()
-        self._reach.clear()
-        self._add_to_index(0, self.body[:k])
-
-    def _add_to_index(self, first: int, body: np.ndarray) -> None:
-        """Rows ``first, first + 1, ...`` of bodies ``body`` appended to the bodies' indices."""
-        if len(body) <= 16:     # a message of a few bodies: plain look-ups
-            taken = self.taken[first:first + len(body)].tolist()
-            for row, (b, t) in enumerate(zip(body.tolist(), taken), first):
-                self._push_one(b, row, t)
-            return
-        order = np.argsort(body, kind="stable")
-        sorted_body = body[order]
-        cuts = np.flatnonzero(np.r_[True, sorted_body[1:] != sorted_body[:-1], True])
-        for lo, hi in zip(cuts[:-1].tolist(), cuts[1:].tolist()):
-            self._push(int(sorted_body[lo]), (order[lo:hi] + first).astype(np.intp))
-
-    def _push_one(self, b: int, row: int, taken: float) -> None:
-        mine = self._index.get(b)
-        used = self._count.get(b, 0)
-        if mine is None or used == len(mine):
-            self._grow(b, used, 1)
-            mine = self._index[b]
-        mine[used] = row
-        reach = self._reach[b]
-        reach[used] = taken if not used or taken > reach[used - 1] else reach[used - 1]
-        self._count[b] = used + 1
-
-    def _grow(self, b: int, used: int, more: int) -> None:
-        """Body ``b``'s index (``used`` entries) made room for ``more``."""
-        mine = self._index.get(b)
-        size = max(16, 2 * (used + more))
-        grown, reach = np.empty(size, np.intp), np.empty(size)
-        if mine is not None:
-            grown[:used] = mine[:used]
-            reach[:used] = self._reach[b][:used]
-        self._index[b], self._reach[b] = grown, reach
-
-    def _push(self, b: int, rows: np.ndarray) -> None:
-        mine = self._index.get(b)
-        used = self._count.get(b, 0)
-        if mine is None or used + len(rows) > len(mine):
-            self._grow(b, used, len(rows))
-            mine = self._index[b]
-        mine[used:used + len(rows)] = rows
-        reach = self._reach[b]
-        taken = self.taken[rows]
-        if used:
-            taken = np.maximum(taken, reach[used - 1])
-        np.maximum.accumulate(taken, out=reach[used:used + len(rows)])
-        self._count[b] = used + len(rows)
+        self._index.reset()
+        self._index.push(0, self.body[:k], self.taken[:k])
 
     def append(self, newest: np.ndarray, window: float, cap: Optional[int] = None,
                **rows) -> None:
@@ -160,5 +95,5 @@ class _Store:
                     setattr(self, a, new)
         for a in self._arrays:
             getattr(self, a)[self.n:self.n + m] = rows[a]
-        self._add_to_index(self.n, np.asarray(rows["body"], np.int64).reshape(-1))
+        self._index.push(self.n, self.body[self.n:self.n + m], self.taken[self.n:self.n + m])
         self.n += m
