@@ -285,15 +285,22 @@ class Hub:
         made: dict[tuple, Any] = {}
         budget = _limits.Budget(self.world.tracker_bounds)
         windows: dict[str, TickWindow] = {}
-        horizons = self.world.horizons(bodies)
+        horizons: dict[str, float] = {}
+        # a body's horizon is never past its newest measurement: most steps, its next tick is
+        # beyond that, and neither its horizon nor its window is looked at
+        tops = self.world.newest_of(bodies)
         for sub in list(self._subscriptions.values()):
             if sub.closed:          # ended by its owner, not yet taken out
                 continue
             answers: list = []
             wants, waiting = sub.wants, sub.waiting
-            for body, h in zip(bodies, horizons):
-                # most steps: a body's next tick not reached, its window not looked at
-                if wants(body) and not waiting(body, h):
+            for body, top in zip(bodies, tops):
+                if not wants(body) or waiting(body, top):
+                    continue
+                h = horizons.get(body)
+                if h is None:
+                    h = horizons[body] = self.world.horizon(body)
+                if not waiting(body, h):
                     w = windows.get(body) or windows.setdefault(
                         body, self.world.tick_window(body))
                     answers += self._due(sub, body, w, made, budget)

@@ -353,11 +353,16 @@ class World:
                                f"{', '.join(map(repr, seen)) or 'none'})")
             return seen[source]
 
-    def horizons(self, bodies: Sequence[str]) -> list[float]:
-        """Each of ``bodies``' horizon (:func:`dqpose.world_ticks.horizon`), as
-        :meth:`tick_window` has it."""
+    def horizon(self, body: str) -> float:
+        """``body``'s horizon (:func:`dqpose.world_ticks.horizon`), as :meth:`tick_window` has
+        it."""
         with self._lock.read():
-            return [horizon(self._fed.get(body, {}), self.options.max_delay) for body in bodies]
+            return horizon(self._fed.get(body, {}), self.options.max_delay)
+
+    def newest_of(self, bodies: Sequence[str]) -> list[float]:
+        """When each of ``bodies`` (held) had its newest measurement taken, in one look."""
+        with self._lock.read():
+            return self._t.newest_of(bodies)
 
     def tick_window(self, body: str) -> TickWindow:
         """What ``body``'s ticks would fit now (:meth:`tick`; none for a body not held)."""

@@ -412,7 +412,8 @@ class Tracker:
         (:meth:`_ingest_valid`), else the check that refuses it, the row then named by this
         tracker's own check of it alone. The same answers as :meth:`ingest`, without checking
         the good rows again. The names, which a decoder passes as strings, are checked here."""
-        named = _named_rows(bodies, sources)
+        # a name coded already was checked when it came first (here or by refusals)
+        named = _named_rows(bodies, sources, self._body_codes, self._codes)
         if named:       # refused for a name: then named by the check of the row alone
             codes = np.array(codes, np.int64)
             codes[named] = -1

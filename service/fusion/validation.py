@@ -239,10 +239,12 @@ def _check_rows(bodies, sources, times, poses, covs):
     return ok, errors, covs
 
 
-def _named_rows(bodies, sources) -> list[int]:
+def _named_rows(bodies, sources, known_bodies=(), known_sources=()) -> list[int]:
     """The rows whose body or source breaks the name rule (:mod:`dqpose.names`; a source may be
-    "", the world frame), for rows that were decoded as strings: each name checked once."""
-    bad_bodies, bad_sources = bad_names(bodies), bad_names(sources, empty=True)
+    "", the world frame), for rows that were decoded as strings: each name checked once, none of
+    the ``known`` ones (names that passed before)."""
+    bad_bodies = bad_names(set(bodies).difference(known_bodies))
+    bad_sources = bad_names(set(sources).difference(known_sources), empty=True)
     if not bad_bodies and not bad_sources:
         return []
     return [k for k, (b, s) in enumerate(zip(bodies, sources))
