@@ -579,3 +579,42 @@ void dq_motion_determined(const dq_motion_model *m, const unsigned char *inlier,
         if (b == a + 1) det[work[a].i] = instants - 1 >= 2;
     }
 }
+
+int dq_motion_run(const dq_motion_run_args *c, const dq_motion_model *m, dq_motion_fitted *f,
+                  const dq_motion_outputs *per, size_t *bad, const char **bad_name)
+{
+    const size_t n = c->n;
+    int code = DQ_OK;
+    double start[8];
+    for (size_t i = 0; i < n && code == DQ_OK; i++) {
+        if ((code = dq_unit(c->poses + 8 * i, c->zu + 8 * i))) *bad = i;
+        else if (!dq_finite_n(c->covs + 36 * i, 36)) {
+            code = DQ_E_NONFINITE; *bad = i; *bad_name = "covariances";
+        }
+    }
+    if (code == DQ_OK && !c->start) {
+        size_t j = dq_motion_nearest(m, c->inlier, n);
+        if (j == n) code = DQ_E_NO_INLIERS;
+        else memcpy(start, c->zu + 8 * j, sizeof start);
+    } else if (code == DQ_OK && (code = dq_unit(c->start, start))) {
+        *bad_name = "start";
+    }
+    if (code == DQ_OK && c->tested) {
+        if (c->find_tested) {
+            dq_motion_determined(m, c->inlier, n, c->taken, c->tested);
+            for (size_t i = 0; i < n; i++)
+                c->tested[i] = c->tested[i] || (c->inlier && !c->inlier[i]);
+        } else {
+            memcpy(c->tested, c->tested_in, n);
+        }
+    }
+    if (code == DQ_OK) {
+        code = dq_motion_fit(c->zu, c->covs, c->inlier, n, m, start, c->tested, c->p, c->work, f,
+                             per, bad);
+        *bad_name = "covariances";
+    }
+    /* (dq_spd_inverse's workspace fits in the fit's, spent by then) */
+    if (code == DQ_OK && !dq_spd_inverse(f->H, (int)dq_motion_dim(m), c->work, c->P))
+        code = DQ_E_SINGULAR;
+    return code;
+}

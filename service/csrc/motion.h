@@ -87,4 +87,29 @@ typedef struct {
 void dq_motion_determined(const dq_motion_model *m, const unsigned char *inlier, size_t n,
                           dq_taken *work, unsigned char *det);
 
+/* One constant-twist fit from its rows as given (what _dqcore.motion_fit runs, the GIL released,
+ * and a tick will): poses (n x 8) made unit into zu (n x 8), covariances (n x 36) checked
+ * finite, the start (NULL: dq_motion_nearest's inlier; else made unit), the measurements whose
+ * NIS is tested (tested NULL: none; else copied from tested_in, or with find_tested those
+ * dq_motion_determined finds and every outlier, taken its work), dq_motion_fit, then P = H^-1
+ * (dim x dim, dq_motion_dim; work then spent). */
+typedef struct {
+    const double *poses, *covs;
+    const unsigned char *inlier;
+    const double *start;
+    size_t n;
+    const unsigned char *tested_in;
+    int find_tested;
+    unsigned char *tested;
+    const dq_fuse_params *p;
+    double *work, *zu, *P;
+    dq_taken *taken;
+} dq_motion_run_args;
+
+/* DQ_OK, or the DQ_E* code that stopped it with *bad the measurement and *bad_name the argument
+ * it concerns ("poses", "covariances", "start"; *bad_name is left as it was for a pose). f->ell
+ * and f->H are the caller's memory, as dq_motion_fit's. */
+int dq_motion_run(const dq_motion_run_args *c, const dq_motion_model *m, dq_motion_fitted *f,
+                  const dq_motion_outputs *per, size_t *bad, const char **bad_name);
+
 #endif

@@ -246,61 +246,33 @@ static int motion_outputs(PyArrayObject **outs, npy_intp n, npy_intp k, npy_intp
 typedef struct {
     PyArrayObject **a, **outs;
     npy_intp n;
-    int dim, pick_start, find_tested;
+    int pick_start, find_tested;
     const dq_fuse_params *p;
     double *work, *zu;
     dq_taken *taken;
 } motion_call;
 
-/* The fit with the GIL released: poses checked unit and covariances finite, the start picked
- * (or checked), the measurements to test found (or copied), dq_motion_fit, then P = H^-1.
- * Returns a DQ_E* code with *bad and *bad_name the measurement and argument it concerns. */
+/* The fit (motion.h's dq_motion_run) with the GIL released, on the call's arrays. Returns a
+ * DQ_E* code with *bad and *bad_name the measurement and argument it concerns. */
 static int motion_run(const motion_call *c, const dq_motion_model *m, dq_motion_fitted *f,
                       size_t *bad, const char **bad_name)
 {
     PyArrayObject **a = c->a, **outs = c->outs;
-    const npy_intp n = c->n;
-    const double *zd = PyArray_DATA(a[0]), *sd = PyArray_DATA(a[1]);
-    int code = DQ_OK;
     f->ell = PyArray_DATA(outs[2]);
     f->H = PyArray_DATA(outs[3]);
     dq_motion_outputs per = {PyArray_DATA(outs[7]), PyArray_DATA(outs[8]), PyArray_DATA(outs[9]),
                              outs[10] ? PyArray_DATA(outs[10]) : NULL,
                              outs[11] ? PyArray_DATA(outs[11]) : NULL};
-    double start[8];
-    const unsigned char *inl = a[2] ? PyArray_DATA(a[2]) : NULL;
-    unsigned char *tested = outs[12] ? PyArray_DATA(outs[12]) : NULL;
+    dq_motion_run_args r = {PyArray_DATA(a[0]), PyArray_DATA(a[1]),
+                            a[2] ? PyArray_DATA(a[2]) : NULL,
+                            c->pick_start ? NULL : PyArray_DATA(a[3]), (size_t)c->n,
+                            c->find_tested || !a[11] ? NULL : PyArray_DATA(a[11]),
+                            c->find_tested, outs[12] ? PyArray_DATA(outs[12]) : NULL, c->p,
+                            c->work, c->zu, PyArray_DATA(outs[13]), c->taken};
+    int code;
     NPY_BEGIN_THREADS_DEF;
     NPY_BEGIN_THREADS;
-    for (npy_intp i = 0; i < n && code == DQ_OK; i++) {
-        if ((code = dq_unit(zd + 8 * i, c->zu + 8 * i))) *bad = (size_t)i;
-        else if (!dq_finite_n(sd + 36 * i, 36)) {
-            code = DQ_E_NONFINITE; *bad = (size_t)i; *bad_name = "covariances";
-        }
-    }
-    if (code == DQ_OK && c->pick_start) {
-        size_t j = dq_motion_nearest(m, inl, (size_t)n);
-        if (j == (size_t)n) code = DQ_E_NO_INLIERS;
-        else memcpy(start, c->zu + 8 * j, sizeof start);
-    } else if (code == DQ_OK && (code = dq_unit(PyArray_DATA(a[3]), start))) {
-        *bad_name = "start";
-    }
-    if (code == DQ_OK && tested) {
-        if (c->find_tested) {
-            dq_motion_determined(m, inl, (size_t)n, c->taken, tested);
-            for (npy_intp i = 0; i < n; i++) tested[i] = tested[i] || (inl && !inl[i]);
-        } else {
-            memcpy(tested, PyArray_DATA(a[11]), (size_t)n);
-        }
-    }
-    if (code == DQ_OK) {
-        code = dq_motion_fit(c->zu, sd, inl, (size_t)n, m, start, tested, c->p, c->work, f, &per,
-                             bad);
-        *bad_name = "covariances";
-    }
-    /* (dq_spd_inverse's workspace fits in the fit's, spent by then) */
-    if (code == DQ_OK && !dq_spd_inverse(f->H, c->dim, c->work, PyArray_DATA(outs[13])))
-        code = DQ_E_SINGULAR;
+    code = dq_motion_run(&r, m, f, &per, bad, bad_name);
     NPY_END_THREADS;
     return code;
 }
@@ -369,7 +341,7 @@ PyObject *py_motion_fit(PyObject *self, PyObject *args)
     size_t bad = 0;
     const char *bad_name = "poses";
     dq_motion_fitted f;
-    motion_call c = {a, outs, n, (int)dim, pick_start, find_tested, &p, work, zu, taken};
+    motion_call c = {a, outs, n, pick_start, find_tested, &p, work, zu, taken};
     int code = motion_run(&c, &m, &f, &bad, &bad_name);
     if (code != DQ_OK) {
         motion_error(code, bad_name, bad, a);
