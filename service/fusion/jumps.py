@@ -28,14 +28,26 @@ class Jumps:
 
     def fed(self, origin, body: np.ndarray, taken: np.ndarray) -> None:
         """``origin`` fed the bodies ``body`` (codes) measurements taken at ``taken``."""
-        codes, inverse = np.unique(body, return_inverse=True)
-        newest = np.full(len(codes), -math.inf)
-        np.maximum.at(newest, inverse, taken)
-        for b, t in zip(codes.tolist(), newest.tolist()):
-            had = self._feeders.get(b, ())
-            mine = max([t] + [u for o, u in had if o == origin])
-            others = [(o, u) for o, u in had if o != origin]
-            self._feeders[b] = sorted(others + [(origin, mine)], key=lambda x: -x[1])[:2]
+        # each body's newest of the call by plain look-ups: a request holds few rows a body,
+        # and the bodies are independent here (np.unique cost more than the rest of a step)
+        newest: dict[int, float] = {}
+        for b, t in zip(body.tolist(), taken.tolist()):
+            if not t <= newest.get(b, -math.inf):
+                newest[b] = t
+        feeders = self._feeders
+        for b, t in newest.items():
+            had = feeders.get(b)
+            if had is None:
+                feeders[b] = [(origin, t)]
+                continue
+            others = []
+            for o, u in had:
+                if o != origin:
+                    others.append((o, u))
+                elif u > t:
+                    t = u
+            others.append((origin, t))
+            feeders[b] = sorted(others, key=lambda x: -x[1])[:2]
 
     def alone(self, b: int, origin, newest: float) -> bool:
         """Whether a jump of ``origin`` needs no other origin to confirm it: a stream's (None),

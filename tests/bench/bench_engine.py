@@ -99,7 +99,13 @@ class Engine:
         """The ticks that the rows ``m`` made due for a subscriber of every body at
         :data:`TICK_RATE` (the sources' latencies are 0)."""
         out = []
-        for body in dict.fromkeys(m.bodies):
+        bodies = list(dict.fromkeys(m.bodies))
+        # the hub's order of looks (Hub._answer_subscriptions): the body's newest, its horizon,
+        # then its window, each only while a tick may be due
+        for body, top in zip(bodies, self.world.newest_of(bodies)):
+            if self.schedule.waiting(body, top) or self.schedule.waiting(
+                    body, self.world.horizon(body)):
+                continue
             w = self.world.tick_window(body)
             out += [(body, self.schedule.time(body, k))
                     for k in self.schedule.due(body, w.horizon, w.floor)]
