@@ -172,9 +172,33 @@ def test_reported_covariance_is_the_se3_right_perturbation_covariance(renderer, 
 
     h = 1e-7
     J = np.column_stack([(project(h * e) - project(-h * e)) / (2 * h) for e in np.eye(6)])
-    s2 = max(d.rms ** 2 * d.n_points / (2 * d.n_points - 6), cam.min_pixel_sigma ** 2)
+    # the pixel variance whose inverse is unbiased (the module's doc): sum r^2 / (2N - 8)
+    s2 = max(d.rms ** 2 * d.n_points / (2 * d.n_points - 8), cam.min_pixel_sigma ** 2)
     expected = s2 * np.linalg.inv(J.T @ J)
     assert np.allclose(d.covariance, expected, rtol=1e-5, atol=0)
+
+
+def test_few_corners_give_an_honest_mean_nees():
+    """150 random views of a board of 6 corners (``nu = 2N - 6 = 6`` residual degrees of
+    freedom): the mean NEES of the detections against their truth is about 6. With the pixel
+    variance taken as ``sum r^2 / nu`` its inverse was ``nu / (nu - 2) = 1.5`` times too large on
+    average: the mean NEES was 7.2-10.0 over seeds 0-7 of 100 views (4.8-6.7 with ``2N - 8``)."""
+    board = BoardSpec(squares=(4, 3))
+    intr = Intrinsics(K=np.array([[300.0, 0, 159.5], [0, 300.0, 119.5], [0, 0, 1]]),
+                      size=(320, 240))
+    small, cam = BoardRenderer(intrinsics=intr, board=board), CharucoCamera(intr, board)
+    rng = np.random.default_rng(0)
+    nees = []
+    for _ in range(150):
+        T = random_view(rng, board, distance=(0.25, 0.4))
+        d = cam.detect(small.render(T, blur=0.8, noise=6.0, rng=rng))
+        if d.ok:
+            assert d.n_points == board.n_corners
+            xi = lie.se3_log(dq.mul(dq.inv(d.pose), T))
+            nees.append(xi @ np.linalg.solve(d.covariance, xi))
+    assert len(nees) >= 140
+    print(f"\nmean NEES of {len(nees)} views of 6 corners: {np.mean(nees):.2f}")
+    assert 4.8 < np.mean(nees) < 7.2
 
 
 def test_covariance_matches_monte_carlo_of_renders():
