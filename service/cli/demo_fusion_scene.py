@@ -1,7 +1,7 @@
 """The scene of ``dqpose demo fusion`` (:mod:`dqpose.cli.demo_fusion` describes it): the arm's
-loop, the threads that read the arm and render and detect the cameras' frames, the order the
-stream carries them in, and the measures of how the run went (late set-points, the path's
-roughness)."""
+loop and its clock, the threads that read the arm and render and detect the cameras' frames, the
+order the stream carries them in, and the controller cycles a busy machine left without a
+set-point."""
 from __future__ import annotations
 
 import bisect
@@ -43,11 +43,12 @@ def wobble(k, n: int, size: float = 1.0) -> np.ndarray:
                             0.01 * (np.cos(phase) - 1.0), z, 0.05 * np.sin(phase), z], axis=-1)
 
 
-def loop_path(n: int, period: float):
+def loop_path(n: int, period: float, hold: int = 0):
     """The loop's set-points ``(times, T_base_flange)`` over ``n`` periods, as large as
-    :data:`GENTLE_SPEED` allows (at most the full loop), and the board's poses along it."""
+    :data:`GENTLE_SPEED` allows (at most the full loop), then held at its end ``hold`` periods,
+    and the board's poses along it."""
     from dqpose.drivers.rotvec import pose_from_rotvec
-    k = np.arange(n + 1)
+    k = np.arange(n + hold + 1)
     full = wobble(k, n)
     peak = float(np.max(np.linalg.norm(np.diff(full[:, :3], axis=0), axis=1))) / period
     flange = pose_from_rotvec(np.array(HOME) + min(1.0, GENTLE_SPEED / peak) * full)
@@ -60,6 +61,12 @@ def pose_error(est: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     _, t = dq.to_pose(est)
     _, tt = dq.to_pose(truth)
     return math.degrees(float(np.linalg.norm(xi[:3]))), 1e3 * float(np.linalg.norm(t - tt))
+
+
+def nees_of(est: np.ndarray, covariance: np.ndarray, truth: np.ndarray) -> float:
+    """``xi^T P^-1 xi`` with ``truth = est * Exp(xi)`` (the covariance's convention)."""
+    xi = lie.se3_log(dq.mul(dq.inv(est), truth))
+    return float(xi @ np.linalg.solve(covariance, xi))
 
 
 def cameras(T_world_board0: np.ndarray, board, intrinsics):
@@ -109,6 +116,43 @@ class Track:
         return dq.sclerp(self.poses[j - 1], self.poses[j], (t - t0) / (t1 - t0))
 
 
+class LoopClock:
+    """The time of each read of the arm on the loop's own clock: the simulated arm follows each
+    set-point exactly, so the pose read is one of the loop's set-points (to ~1e-15 m), and its
+    time is that set-point's. A busy machine delays the set-points (the loop took 23.5 s of wall
+    time for 20 s of plan on a quiet machine, 3 times as long beside two CPU hogs, with pauses of
+    0.1-0.7 s) and the reads' arrival (the arm stamps its data when it arrives): against the wall
+    clock the board stops and jumps, a motion no real arm makes and no smooth motion model
+    follows. On this clock its motion is the loop, whatever the load; a simulation's time, as a
+    ROS simulation's ``/clock``. ``start``: the wall time of the loop's first set-point (the
+    first read's arrival less its time on the loop), so stamps read as Unix times."""
+
+    #: m: the largest distance between a read and its set-point (reads matched 6e-16 m)
+    MATCH = 1e-9
+
+    def __init__(self, times: np.ndarray, flange: np.ndarray):
+        self.times = np.asarray(times, dtype=np.float64)
+        self.positions = dq.to_pose(np.asarray(flange, dtype=np.float64))[1]
+        self.next = 0               # no read is of a set-point before the previous read's
+        self.start: float | None = None
+
+    def __call__(self, plan_time: float, stamp: float, actual: np.ndarray) -> float:
+        """The loop-clock stamp of a read of ``actual`` (``T_base_flange``) that arrived at wall
+        time ``stamp`` while the set-point of ``plan_time`` was sent."""
+        last = int(np.searchsorted(self.times, plan_time + 1e-9, side="right"))
+        gap = np.linalg.norm(self.positions[self.next:last] - dq.to_pose(actual)[1], axis=1)
+        if not gap.size or gap.min() > self.MATCH:
+            raise RuntimeError(
+                f"the simulated arm's pose read at {plan_time:.3f} s of the loop is none of its "
+                f"set-points since the previous read (nearest "
+                f"{gap.min() if gap.size else math.inf:.3g} m): the demo's clock needs an arm "
+                f"that follows each set-point exactly")
+        self.next += int(np.argmin(gap))
+        if self.start is None:
+            self.start = stamp - float(self.times[self.next])
+        return self.start + float(self.times[self.next])
+
+
 class Scene:
     """What measures: :meth:`read` (the arm's pose, as the control loop read it after a
     set-point: the truth and the UR's readings, onto ``reads``), :meth:`capture` (a thread: each
@@ -116,12 +160,13 @@ class Scene:
     order of the stream (:meth:`batches`)."""
 
     def __init__(self, offset, cams, extrinsics, renderer, rng, arm_sigma, duration, noise,
-                 blur):
+                 blur, clock: LoopClock | None = None):
         from dqpose.drivers.base import pose_covariance
         self.offset, self.rng = offset, rng
         self.covariance = pose_covariance(*arm_sigma)
         self.cams, self.extrinsics, self.renderer = cams, extrinsics, renderer
         self.arm_sigma, self.duration, self.noise, self.blur = arm_sigma, duration, noise, blur
+        self.clock = clock                 # None: the reads' own (wall) stamps
         self.truth = Track()
         # each source alone as its user has it at an instant: the arm's newest read (stamped
         # exactly, 20 ms apart: extrapolating reads adds to their noise), a camera's two newest
@@ -160,21 +205,23 @@ class Scene:
                 return
             if fb.actual is None:
                 return
+            stamp = fb.stamp if self.clock is None else self.clock(fb.time, fb.stamp, fb.actual)
             with self.cond:
                 if self.start is None:
-                    self.start = fb.stamp
-                elif fb.stamp <= self.truth.taken[-1]:
-                    return
+                    self.start = stamp
+                elif stamp <= self.truth.taken[-1]:
+                    return          # the set-point of the read before
                 else:
-                    self.read_gap = max(self.read_gap, fb.stamp - self.truth.taken[-1])
+                    self.read_gap = max(self.read_gap, stamp - self.truth.taken[-1])
                 T_true = dq.mul(fb.actual, self.offset)
-                self.truth.add(fb.stamp, T_true)
+                self.truth.add(stamp, T_true)
                 self.cond.notify_all()
             eps = self.rng.normal(0.0, 1.0, 6) * np.repeat(self.arm_sigma, 3)
             reading = dq.mul(fb.actual, lie.se3_exp(-eps))
-            self.accuracy["ur"].append(pose_error(dq.mul(reading, self.offset), T_true))
-            self.reads.put((fb.stamp, reading, self.covariance))
-            if fb.stamp - self.start >= self.duration:
+            self.accuracy["ur"].append((*pose_error(dq.mul(reading, self.offset), T_true),
+                                        nees_of(reading, self.covariance, fb.actual)))
+            self.reads.put((stamp, reading, self.covariance))
+            if stamp - self.start >= self.duration:
                 self.end()
         except BaseException as e:      # raised to the caller by batches()
             with self.cond:
@@ -221,7 +268,9 @@ class Scene:
                         world = dq.mul(E, d.pose)
                         self.frames.append((t + CAMERA_LATENCY, cam.name, d.pose, d.covariance,
                                             t, world))
-                        self.accuracy[cam.name].append(pose_error(world, T_true))
+                        self.accuracy[cam.name].append((
+                            *pose_error(world, T_true),
+                            nees_of(d.pose, d.covariance, dq.mul(dq.inv(E), T_true))))
                     else:
                         self.rejected[cam.name] += 1
                     self.rendered = j = j + 1
@@ -272,21 +321,3 @@ def missed_cycles(sim, mark: int, period: float) -> int:
     """Controller cycles without a set-point since the hook log's entry ``mark``."""
     from dqpose.cli.demo_trajectory import missed_cycles, servo_arrivals
     return missed_cycles(np.diff(servo_arrivals(sim, mark)), period)
-
-
-def roughness(times, poses, span: float) -> float:
-    """How far, RMS in metres, each pose lies from a quadratic in time fitted to the positions
-    within ``span / 2`` of it: what a smooth motion model cannot follow over a window."""
-    t = np.asarray(times, dtype=np.float64)
-    if t.size < 5:
-        return 0.0
-    p = dq.to_pose(np.asarray(poses, dtype=np.float64).reshape(-1, 8))[1]
-    out = []
-    for i in range(t.size):
-        lo, hi = np.searchsorted(t, [t[i] - span / 2, t[i] + span / 2])
-        if hi - lo < 5:
-            continue
-        A = np.vander(t[lo:hi] - t[i], 3)
-        c = np.linalg.lstsq(A, p[lo:hi], rcond=None)[0]
-        out.append(float(np.linalg.norm(c[2] - p[i])))      # the fit at t[i] is its constant
-    return math.sqrt(np.mean(np.square(out))) if out else 0.0
