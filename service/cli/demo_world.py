@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import multiprocessing
+import queue
 import threading
 import time
 
@@ -23,6 +25,8 @@ ARM_RATE = 50.0            # arm reads published per second
 CAMERA_RATE = 10.0         # frames per second per camera
 ANSWER_RATE = 10.0         # fused answers per second of measurement time
 ARM_SIGMA = (2e-3, 1e-3)   # rad, m: the arm's reading noise (one sigma per axis)
+WINDOW = 0.5               # s: the world's window
+MAX_DELAY = 0.15           # s of measurement time the world waits for a source that lags
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -32,11 +36,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def camera_process(target: str, name: str, E: np.ndarray, T_true: np.ndarray, ready, go,
-                   start, seconds: float, seed: int) -> None:
+                   start, seconds: float, seed: int, newest) -> None:
     """A camera in a process of its own: renders the board at ``T_true`` (world frame) from its
     extrinsic ``E`` every 1/CAMERA_RATE s from ``start.value`` (set once every producer is
     ``ready``; ``go`` says it is), detects it and publishes each detection, stamped with the
-    clock, as a measurement of "box" from source ``name``."""
+    clock, as a measurement of "box" from source ``name``; ``newest``: the time of the last one
+    published."""
     from dqpose.drivers.camera import CharucoCamera
     from dqpose.drivers.sim.camera import BoardRenderer
     from dqpose.rpc.client import Batch, Client
@@ -58,6 +63,7 @@ def camera_process(target: str, name: str, E: np.ndarray, T_true: np.ndarray, re
             d = cam.detect(renderer.render(T_cam_box, blur=0.8, noise=6.0, rng=rng))
             k += 1
             if hasattr(d, "covariance"):
+                newest.value = t
                 yield Batch(d.pose[None], d.covariance[None], None, [name], ["box"],
                             np.array([t]))
 
@@ -73,11 +79,73 @@ def _intrinsics():
                       size=(400, 300))
 
 
+def last_tick(newest: dict, rate: float = ANSWER_RATE, body: str = "box") -> float:
+    """The time of ``body``'s last tick a subscription at ``rate`` is answered once no more
+    measurements come, given each source's newest measurement time (``-inf``: none): the last
+    at or before the body's horizon (:mod:`dqpose.world_ticks`, the world's rule); ``-inf``
+    when there is none."""
+    from dqpose.world_ticks import Schedule, horizon
+    h = horizon({k: t for k, t in newest.items() if math.isfinite(t)}, MAX_DELAY)
+    if not math.isfinite(h):
+        return -math.inf
+    schedule = Schedule(rate)
+    due = schedule.due(body, h, h - WINDOW)
+    return schedule.time(body, due[-1]) if len(due) else -math.inf
+
+
+def _follow(client, T_true, start: float, seconds: float, producers, newest, out) -> list:
+    """Prints a row per answer of a subscription to the box (its error against ``T_true``)
+    until the world's last once every one of ``producers`` (threads, processes) has ended:
+    :func:`last_tick` of the measurement times they published last (``newest``: a shared
+    ``Value`` by source). A busy machine's
+    stalled controller ends the arm's reads before the cameras' last frames, and then the
+    box's data end before the tick at ``seconds - 0.2`` the demo waited for: it never came
+    (the subscription's deadline ended the demo with a traceback). Returns ``(mm, deg)`` of
+    each fused answer."""
+    from dqpose.cli.demo_fusion_scene import pose_error
+    from dqpose.cli.readout import Readout
+    answers: queue.Queue = queue.Queue()
+
+    def read():         # a thread: the stream's next answer is awaited while producers end
+        try:
+            for a in client.subscribe(["box"], ANSWER_RATE, timeout=seconds + 15.0):
+                answers.put(a)
+        except BaseException as e:
+            answers.put(e)
+        answers.put(None)
+    threading.Thread(target=read, name="demo world answers", daemon=True).start()
+    table = Readout(start=start, delay=True)
+    print(f"the fused box, times in s since the producers started; delay: from the "
+          f"measurement time to this row\n{table.header(' error vs truth mm deg')}",
+          file=out, flush=True)
+    errors: list = []
+    end, last = None, -math.inf
+    while end is None or last < end:
+        try:
+            a = answers.get(timeout=0.1)
+        except queue.Empty:
+            pass                    # none yet: have the producers ended?
+        else:
+            if a is None:
+                break
+            if isinstance(a, BaseException):
+                raise a
+            extra = ""
+            if a.fused is not None:
+                deg, mm = pose_error(a.fused.mean, T_true)
+                errors.append((mm, deg))
+                extra = f" {mm:14.2f} {deg:7.3f}"
+            print(table.row(a, extra), file=out, flush=True)
+            last = a.time
+        if end is None and not any(p.is_alive() for p in producers):
+            end = last_tick({n: v.value for n, v in newest.items()})
+    return errors
+
+
 def main(args: argparse.Namespace, out=None) -> int:
     from dqpose import drivers
     from dqpose.cli.common import local_server, open_arm
     from dqpose.cli.demo_fusion_scene import BOARD_OFFSET, HOME, cameras, pose_error
-    from dqpose.cli.readout import Readout
     from dqpose.drivers.base import ArmError
     from dqpose.drivers.sim.camera import BoardRenderer
     from dqpose.drivers.sim.ur import URSimProcess
@@ -104,13 +172,15 @@ def main(args: argparse.Namespace, out=None) -> int:
         client.configure_world(
             [Source("ur", body_offset=offset), Source("ur_flange")]
             + [Source(n, extrinsic=E) for n, E in zip(names, extrinsics)],
-            arms={"ur": "ur_flange"}, window=0.5, max_delay=0.15,
+            arms={"ur": "ur_flange"}, window=WINDOW, max_delay=MAX_DELAY,
             twist_covariance=np.diag([0.05] * 3 + [0.02] * 3) ** 2)
         ctx = multiprocessing.get_context("spawn")
         go, shared_start = ctx.Event(), ctx.Value("d", 0.0)
         ready = [ctx.Event() for _ in names]
+        newest = {n: ctx.Value("d", -math.inf) for n in ("ur", *names)}
         procs = [ctx.Process(target=camera_process, args=(target, n, E, T_true, r, go,
-                                                         shared_start, seconds, k + 1),
+                                                         shared_start, seconds, k + 1,
+                                                         newest[n]),
                              daemon=True)
                  for k, (n, E, r) in enumerate(zip(names, extrinsics, ready))]
         for p in procs:
@@ -136,6 +206,7 @@ def main(args: argparse.Namespace, out=None) -> int:
                     continue
                 reading = dq.mul(T, lie.se3_exp(rng.normal(0.0, 1.0, 6)
                                                 * np.repeat(ARM_SIGMA, 3)))
+                newest["ur"].value = t
                 yield Batch(np.array([reading, reading]), np.array([cov, cov]), None,
                             ["ur", "ur_flange"], ["box", "tool"], np.array([t, t]))
 
@@ -143,20 +214,7 @@ def main(args: argparse.Namespace, out=None) -> int:
             target=lambda: [None for _ in Client(target).publish(arm_reads(), producer="ur")],
             daemon=True)
         publisher.start()
-        table = Readout(start=start, delay=True)
-        print(f"the fused box, times in s since the producers started; delay: from the "
-              f"measurement time to this row\n{table.header(' error vs truth mm deg')}",
-              file=out, flush=True)
-        errors = []
-        for a in client.subscribe(["box"], ANSWER_RATE, timeout=seconds + 15.0):
-            extra = ""
-            if a.fused is not None:
-                deg, mm = pose_error(a.fused.mean, T_true)
-                errors.append((mm, deg))
-                extra = f" {mm:14.2f} {deg:7.3f}"
-            print(table.row(a, extra), file=out, flush=True)
-            if a.time >= start + seconds - 2.0 / CAMERA_RATE:
-                break
+        errors = _follow(client, T_true, start, seconds, [publisher, *procs], newest, out)
         publisher.join(seconds + 10)
         r = client.lookup("tool", "box")
         deg, mm = pose_error(r.pose, offset)
@@ -164,6 +222,12 @@ def main(args: argparse.Namespace, out=None) -> int:
         print(f"\nLookup box in the tool frame at {r.time - start:.2f} s: "
               f"{mm:.2f} mm, {deg:.3f} deg from the mount (1 sigma {s_pos * 1e3:.2f} mm, "
               f"{np.degrees(s_rot):.3f} deg)", file=out, flush=True)
+    return _summary(errors, mm, out)
+
+
+def _summary(errors: list, mm: float, out) -> int:
+    """The fused box's errors (``(mm, deg)`` each) and the looked-up one's ``mm`` summed up,
+    then the verdict; the exit code."""
     if not errors:
         print("dqpose demo world: no fused answer arrived", file=out)
         return 1
