@@ -472,15 +472,22 @@ def test_wire_paths_survive_mutated_input_under_sanitizers(tmp_path):
     root = __import__("pathlib").Path(__file__).resolve().parents[2]
     csrc = root / "service" / "csrc"
     exe = tmp_path / "fuzz_wire"
+    sanitize = ["-fsanitize=address,undefined", "-fno-sanitize-recover=all"]
+    probe = tmp_path / "probe.c"
+    probe.write_text("int main(void) { return 0; }\n")
+    if subprocess.run([cc, *sanitize, str(probe), "-o", str(tmp_path / "probe")],
+                      capture_output=True).returncode:
+        pytest.skip("no AddressSanitizer/UBSan here")
+    # the core's files fuzz_wire.c links (a file the core gained and this list lacks fails here,
+    # it is not skipped)
     build = subprocess.run(
-        [cc, "-std=c99", "-O1", "-g", "-fsanitize=address,undefined", "-fno-sanitize-recover=all",
-         "-fno-omit-frame-pointer", f"-I{csrc}", str(root / "tests" / "rpc" / "fuzz_wire.c"),
-         *(str(csrc / f) for f in ("wire.c", "blend.c", "dq.c", "fusion.c", "linalg6.c", "se3.c")),
-         "-lm", "-o",
-         str(exe)],
+        [cc, "-std=c99", "-O1", "-g", *sanitize, "-fno-omit-frame-pointer", f"-I{csrc}",
+         str(root / "tests" / "rpc" / "fuzz_wire.c"),
+         *(str(csrc / f) for f in ("wire.c", "blend.c", "dq.c", "fusion.c", "gn.c",
+                                   "linalg6.c", "se3.c")),
+         "-lm", "-o", str(exe)],
         capture_output=True, text=True)
-    if build.returncode:
-        pytest.skip(f"cannot build with sanitizers here: {build.stderr[-300:]}")
+    assert build.returncode == 0, build.stderr[-3000:]
     rng = np.random.default_rng(0)
 
     def req(n, **kw):
