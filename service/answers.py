@@ -70,6 +70,8 @@ class Answers:
     def refresh(self, world, bodies) -> None:
         """After a Publish step brought measurements of ``bodies``: the answers of the watched
         pairs they concern made again; pairs no longer watched forgotten."""
+        if not self._watched:       # no pair watched (most worlds): read without the lock
+            return
         now = _clock()
         touched = set(bodies)
         with self._lock:

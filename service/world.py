@@ -580,6 +580,8 @@ class World:
 
 
 def _published(bodies, errors: Mapping[int, WorldError]) -> Published:
+    if not errors:          # the common case
+        return Published(len(bodies), (), tuple(dict.fromkeys(bodies)))
     touched = dict.fromkeys(b for k, b in enumerate(bodies) if k not in errors)
     return Published(len(bodies) - len(errors), tuple(errors[k] for k in sorted(errors)),
                      tuple(touched))

@@ -1,6 +1,7 @@
 """The ``dqpose.v1.Fusion`` service: Fuse (one body, one answer, :func:`dqpose.fusion.fuse`) and
-StreamFuse (many bodies, a live stream: a :class:`dqpose.fusion.Tracker` per stream, answered at
-output ticks paced on the measurements' time), errors named by proto field.
+StreamFuse (many bodies, a live stream: a private :class:`dqpose.hub.Hub` per stream, the engine
+a World's Subscribe answers from, answered at output ticks paced on the measurements' time),
+errors named by proto field.
 """
 from __future__ import annotations
 
