@@ -135,7 +135,9 @@ class World:
         self.tracker_bounds = (tracker if tracker is not None
                                else _limits.tracker_bounds(_limits.DEFAULT))
         self._lock = ReadWrite()
-        self._fed: dict[str, dict[str, float]] = {}     # body -> source -> newest taken
+        # body -> source -> newest taken, of the sources that fed it under earlier
+        # configurations (the tracker's own, Tracker.by_source, win)
+        self._fed_before: dict[str, dict[str, float]] = {}
         self._tracker: Optional[Tracker] = None
         # answers kept until their bodies change: per body a version bumped by every
         # measurement taken into it; fits by (body, time), relatives by (target, source, time)
@@ -212,17 +214,16 @@ class World:
             self.sources, self.arms, self.options = sources, arms, options
             if old is None:
                 return
-            fed, self._fed = self._fed, {}
+            fed = {body: self._fed(body, old) for body in old.bodies}
+            fed.update((b, seen) for b, seen in self._fed_before.items() if b not in fed)
+            self._fed_before = {}
             for body in old.bodies:
                 w = old.window_of(body)
                 n = len(w.ids)
                 self._admit([body] * n, list(w.sources), w.times, w.poses, w.covariances,
                             ids=w.ids)
             # a body's sources are those that ever fed it, across configurations
-            for body, seen in fed.items():
-                mine = self._fed.setdefault(body, {})
-                for src, t in seen.items():
-                    mine.setdefault(src, t)
+            self._fed_before = fed
 
     @property
     def bodies(self) -> tuple[str, ...]:
@@ -313,33 +314,30 @@ class World:
                    self._t.ingest_checked(*rows, numbers, checks, producer))
         for j, e in refused:
             errors[use[j]] = e.at(use[j])
-        self._fed_by([k for k in use if k not in errors] if errors else use, bodies, sources,
-                     times)
+        self._fed_by([k for k in use if k not in errors] if errors else use, bodies, sources)
         return errors
 
-    def _fed_by(self, rows, bodies, sources, times) -> None:
-        """The versions and per-source newest taken times of the bodies ``rows`` fed."""
-        table = self._t._table
-        srcs = [sources[k] for k in rows]
-        latency = {s: table[s].latency if s in table else 0.0 for s in set(srcs)}
-        taken = (times[np.asarray(rows, np.intp)]
-                 - np.fromiter((latency[s] for s in srcs), np.float64, len(srcs))).tolist()
-        version, fed = self._version, self._fed
-        for k, s, t in zip(rows, srcs, taken):
-            b = bodies[k]
+    def _fed_by(self, rows, bodies, sources) -> None:
+        """The versions of the bodies ``rows`` fed (one step each), their sources named."""
+        version = self._version
+        for b in dict.fromkeys(bodies[k] for k in rows):
             version[b] = version.get(b, 0) + 1
-            seen = fed.get(b)
-            if seen is None:
-                seen = fed[b] = {}
-            if t > seen.get(s, -math.inf):
-                seen[s] = t
-        self._named.update(latency)
+        self._named.update(sources[k] for k in rows)
+
+    def _fed(self, body: str, tracker: Optional[Tracker] = None) -> dict[str, float]:
+        """Source -> when ``body``'s newest measurement of it was taken, of every source that
+        ever fed it (the lock held)."""
+        t = self._t if tracker is None else tracker
+        seen = t.by_source(body) if t.has(body) else {}
+        for src, at in self._fed_before.get(body, {}).items():
+            seen.setdefault(src, at)
+        return seen
 
     def sources_of(self, body: str) -> tuple[str, ...]:
         """The sources that ever fed ``body``."""
         with self._lock.read():
             self._known(body)
-            return tuple(self._fed.get(body, {}))
+            return tuple(self._fed(body))
 
     def newest(self, body: str, source: Optional[str] = None) -> float:
         """When ``body``'s newest measurement (of ``source``) was taken."""
@@ -347,7 +345,7 @@ class World:
             self._known(body)
             if source is None:
                 return self._t.newest(body)
-            seen = self._fed.get(body, {})
+            seen = self._fed(body)
             if source not in seen:
                 raise NotFound(f"source: {source!r} never fed body {body!r} (its sources: "
                                f"{', '.join(map(repr, seen)) or 'none'})")
@@ -357,7 +355,7 @@ class World:
         """``body``'s horizon (:func:`dqpose.world_ticks.horizon`), as :meth:`tick_window` has
         it."""
         with self._lock.read():
-            return horizon(self._fed.get(body, {}), self.options.max_delay)
+            return horizon(self._fed(body), self.options.max_delay)
 
     def newest_of(self, bodies: Sequence[str]) -> list[float]:
         """When each of ``bodies`` (held) had its newest measurement taken, in one look."""
@@ -372,7 +370,7 @@ class World:
             t = self._t
             newest, window = t.newest(body), self.options.window
             rows = t.rows_ending(body, newest, window)
-            return TickWindow(horizon(self._fed.get(body, {}), self.options.max_delay),
+            return TickWindow(horizon(self._fed(body), self.options.max_delay),
                               float(t.taken_of(rows).min()), len(rows), t.capped(body, window))
 
     def tick(self, body: str, time: Optional[float],

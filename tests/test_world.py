@@ -322,6 +322,27 @@ def test_configure_keeps_the_measurements_and_refits_with_the_new_sources():
     np.testing.assert_array_equal(base.covariance, 0.5 * (SE + SE.T))
 
 
+def test_a_bodys_sources_are_those_that_ever_fed_it_across_configurations():
+    """Each source's newest measurement of a body (its horizon's input): kept through a new
+    configuration whose buffer no longer holds it, the new tracker's own newer one winning."""
+    rng = np.random.default_rng(6)
+    world = World(sources=[Source("cam0"), Source("cam1")],
+                  options=WorldOptions(window=0.5, buffer=5.0, max_delay=0.0))
+    for src, t in (("cam0", 0.1), ("cam1", 0.2), ("cam0", 3.0)):
+        assert world.publish([Measurement(src, "box", t, random_pose(rng),
+                                          NOISE)]).accepted == 1
+    assert world.newest("box", "cam0") == 3.0 and world.newest("box", "cam1") == 0.2
+    # a buffer of 1 s: cam1's 0.2 is not brought into the new tracker, yet it fed the body
+    world.configure(sources=[Source("cam0"), Source("cam1"), Source("cam2")], arms={},
+                    options=WorldOptions(window=0.5, buffer=1.0, max_delay=0.0))
+    assert world.publish([Measurement("cam2", "box", 3.1, random_pose(rng), NOISE)]).accepted
+    assert sorted(world.sources_of("box")) == ["cam0", "cam1", "cam2"]
+    assert (world.newest("box", "cam0"), world.newest("box", "cam1"),
+            world.newest("box", "cam2")) == (3.0, 0.2, 3.1)
+    with pytest.raises(NotFound, match="source: 'cam3' never fed body 'box'"):
+        world.newest("box", "cam3")
+
+
 def shared_scene(rng, world, sources, SE):
     """One camera ("top", extrinsic uncertain) sees both bodies twice, a second ("side", exact)
     sees a third body "c"; the true extrinsic of "top" drawn once per trial. Returns the true

@@ -152,6 +152,8 @@ class Tracker:
         self._body_codes: dict[str, int] = {}
         self._active: dict[str, None] = {}        # bodies with measurements, in order
         self._newest = np.full(16, -math.inf)
+        # per body code and source code: the newest measurement of that source taken
+        self._by_source = np.full((16, 4), -math.inf)
         self._codes: dict[str, int] = {}
         self._names: list[str] = []
         self._latency = np.empty(0)
@@ -192,6 +194,13 @@ class Tracker:
         """When ``body``'s newest measurement was taken."""
         return float(self._newest[self._code_of(body)])
 
+    def by_source(self, body: str) -> dict[str, float]:
+        """When ``body``'s newest measurement of each source that fed it was taken (those whose
+        measurements it holds or held)."""
+        row = self._by_source[self._code_of(body)].tolist()
+        names = self._names
+        return {names[c]: t for c, t in enumerate(row) if t != -math.inf}
+
     def newest_of(self, bodies: Iterable[str]) -> list[float]:
         """:meth:`newest` of each of ``bodies`` (which have measurements), in one go."""
         codes = self._body_codes
@@ -219,6 +228,7 @@ class Tracker:
         s = self._store
         s.keep(s.body[:s.n] != b)
         self._newest[b] = -math.inf
+        self._by_source[b] = -math.inf
         self._jumps.forget(b)
         del self._active[body]
 
@@ -369,6 +379,9 @@ class Tracker:
             src = self._table.get(source)
             self._latency = np.append(self._latency, src.latency if src is not None else 0.0)
             self._exact = np.append(self._exact, src is None or src.exact)
+            if code >= self._by_source.shape[1]:
+                self._by_source = np.pad(self._by_source, ((0, 0), (0, code + 1)),
+                                         constant_values=-math.inf)
         return code
 
     def _body_code(self, body: str) -> int:
@@ -378,6 +391,9 @@ class Tracker:
             if code >= len(self._newest):
                 self._newest = np.concatenate([self._newest, np.full(len(self._newest),
                                                                      -math.inf)])
+                self._by_source = np.pad(self._by_source, ((0, len(self._newest)
+                                                            - len(self._by_source)), (0, 0)),
+                                         constant_values=-math.inf)
         return code
 
     def _ingest(self, bodies, sources, times, poses, covariances, ids, all_or_none: bool,
@@ -507,6 +523,10 @@ class Tracker:
                                **self._in_world([sources[k] for k in kept], poses[ok], covs[ok]))
             for k in kept:
                 self._active.setdefault(bodies[k], None)
+        if ok.all():
+            np.maximum.at(self._by_source, (body, codes), taken)
+        elif ok.any():
+            np.maximum.at(self._by_source, (body[ok], codes[ok]), taken[ok])
         if origin is not None and ok.any():
             self._jumps.fed(origin, body[ok], taken[ok])
         return sorted(errors.items())
