@@ -70,6 +70,9 @@ static PyMethodDef methods[] = {
      "default_max_iter, max_iter_limit) -> (bytes, n) or None."},
     {"blend_wire", py_blend_wire, METH_VARARGS,
      "blend_wire(bytes, max_poses, default_tol, default_max_iter, max_iter_limit) -> bytes or None."},
+    {"store_plain", py_store_plain, METH_VARARGS,
+     "store_plain(newest, body, times, taken, window, max_time, jump) -> bool: the rows pass a "
+     "tracker's time, jump and window rules with nothing to refuse, newest updated (store.h)."},
     {NULL, NULL, 0, NULL},
 };
 

@@ -175,6 +175,46 @@ static PyObject *index_reset(StoreIndex *self, PyObject *unused)
     return Py_NewRef(Py_None);
 }
 
+/* plain(newest, body, times, taken, window, max_time, jump) -> bool: store.h's dq_store_plain;
+ * newest (float64, C-contiguous, writeable) updated in place (spent when False). */
+PyObject *py_store_plain(PyObject *self, PyObject *args)
+{
+    PyObject *no, *bo, *mo, *to;
+    double window, max_time, jump;
+    if (!PyArg_ParseTuple(args, "OOOOddd", &no, &bo, &mo, &to, &window, &max_time, &jump))
+        return NULL;
+    if (!PyArray_Check(no) || PyArray_TYPE((PyArrayObject *)no) != NPY_FLOAT64 ||
+        PyArray_NDIM((PyArrayObject *)no) != 1 ||
+        !PyArray_ISCARRAY((PyArrayObject *)no)) {
+        PyErr_SetString(PyExc_ValueError, "newest: expected a writeable contiguous float64 "
+                                          "vector");
+        return NULL;
+    }
+    PyArrayObject *newest = (PyArrayObject *)no;
+    PyArrayObject *body = vector(bo, NPY_INT64, "body");
+    PyArrayObject *times = body ? vector(mo, NPY_FLOAT64, "times") : NULL;
+    PyArrayObject *taken = times ? vector(to, NPY_FLOAT64, "taken") : NULL;
+    PyObject *out = NULL;
+    if (!taken) goto done;
+    npy_intp n = PyArray_DIM(body, 0);
+    if (PyArray_DIM(times, 0) != n || PyArray_DIM(taken, 0) != n) {
+        PyErr_SetString(PyExc_ValueError, "times, taken: expected one a row");
+        goto done;
+    }
+    int plain = dq_store_plain(PyArray_DATA(newest), (size_t)PyArray_DIM(newest, 0),
+                               PyArray_DATA(body), PyArray_DATA(times), PyArray_DATA(taken),
+                               (size_t)n, window, max_time, jump);
+    if (plain < 0)
+        PyErr_NoMemory();
+    else
+        out = PyBool_FromLong(plain);
+done:
+    Py_XDECREF(body);
+    Py_XDECREF(times);
+    Py_XDECREF(taken);
+    return out;
+}
+
 static PyMethodDef index_methods[] = {
     {"push", (PyCFunction)index_push, METH_VARARGS,
      "push(first, body, taken): rows first, first + 1, ... of bodies body[k] appended."},

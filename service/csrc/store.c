@@ -3,6 +3,7 @@
  */
 #include "store.h"
 
+#include <math.h>
 #include <stdlib.h>
 #include <string.h>
 
@@ -83,6 +84,42 @@ void dq_store_live(const dq_store_index *x, const double *taken, const double *n
             kept++;
         }
     }
+}
+
+/* The earliest of these rows of each body without a newest one (+inf elsewhere): first[]. */
+static void earliest(const double *newest, size_t bodies, const int64_t *body,
+                     const double *taken, size_t n, double *first)
+{
+    for (size_t b = 0; b < bodies; b++) first[b] = INFINITY;
+    for (size_t k = 0; k < n; k++)
+        if (!isfinite(newest[body[k]]) && taken[k] < first[body[k]]) first[body[k]] = taken[k];
+}
+
+int dq_store_plain(double *newest, size_t bodies, const int64_t *body, const double *times,
+                   const double *taken, size_t n, double window, double max_time, double jump)
+{
+    int fresh = 0;
+    for (size_t k = 0; k < n; k++) {
+        if (body[k] < 0 || (size_t)body[k] >= bodies) return 0;
+        if (fabs(times[k]) > max_time) return 0;
+        if (!isfinite(newest[body[k]])) fresh = 1;
+        else if (taken[k] > newest[body[k]] + jump) return 0;
+    }
+    if (fresh) {
+        double *first = malloc(bodies * sizeof *first);
+        if (!first) return -1;
+        earliest(newest, bodies, body, taken, n, first);
+        int ahead = 0;
+        for (size_t k = 0; k < n && !ahead; k++)
+            ahead = !isfinite(newest[body[k]]) && taken[k] > first[body[k]] + jump;
+        free(first);
+        if (ahead) return 0;
+    }
+    for (size_t k = 0; k < n; k++)
+        if (taken[k] > newest[body[k]]) newest[body[k]] = taken[k];
+    for (size_t k = 0; k < n; k++)
+        if (taken[k] < newest[body[k]] - window) return 0;
+    return 1;
 }
 
 void dq_store_reset(dq_store_index *x)

@@ -42,6 +42,16 @@ size_t dq_store_count(const dq_store_index *x, int64_t body);
 void dq_store_live(const dq_store_index *x, const double *taken, const double *newest,
                    double window, long cap, size_t n, unsigned char *live);
 
+/* Whether rows (body[k], times[k], taken[k]), k < n, none refused so far, pass a tracker's
+ * rules with nothing to refuse (service/fusion/tracker.py's _admit, whose slow path names each
+ * refusal): |time| <= max_time; none taken more than `jump` after its body's newest (a body
+ * without one: after its earliest row of these); none taken more than `window` before its
+ * body's newest with these rows taken in. 1 with newest[] (bodies entries) the maxima with
+ * these rows; 0 when a row needs the slow path (newest[] may have moved: the caller's copy is
+ * spent); -1 when memory ran out. */
+int dq_store_plain(double *newest, size_t bodies, const int64_t *body, const double *times,
+                   const double *taken, size_t n, double window, double max_time, double jump);
+
 /* Every body's index emptied (memory kept), or freed. */
 void dq_store_reset(dq_store_index *x);
 void dq_store_free(dq_store_index *x);

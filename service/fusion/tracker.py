@@ -13,6 +13,7 @@ import numpy as np
 
 from dqpose import dq
 from dqpose import limits as _limits
+from dqpose._dqcore import store_plain
 from dqpose.errors import WorldError
 from dqpose.fusion.alignment import (
     DEFAULT_MAX_EXTRAPOLATION,
@@ -476,28 +477,15 @@ class Tracker:
         codes = np.array(codes, dtype=np.int64)
         body = np.array(body, dtype=np.int64)
         taken = times - (self._latency[codes] if self._names else 0.0)
-        if self.bounds is not None:
-            self._time_check(times, ok, errors)
-            self._jump_check(bodies, sources, times, body, taken, ok, errors, origin)
-            every = bool(ok.all())
-        # Taken no further back than the window before the body's newest, counting the earlier
-        # measurements of the same call: checked at once against the newest of the whole call,
-        # and only the rows that fail that (stricter) test one by one in order.
         newest = self._newest.copy()
-        if every:
-            np.maximum.at(newest, body, taken)
-        else:
-            np.maximum.at(newest, body[ok], taken[ok])
-        late = np.flatnonzero(ok & (taken < newest[body] - self.window)).tolist()
-        for k in late:
-            floor = max([self._newest[body[k]]] + [
-                taken[j] for j in range(k) if ok[j] and body[j] == body[k]])
-            if taken[k] < floor - self.window:
-                ok[k] = False
-                errors[k] = WorldError(
-                    k, "", f"taken at {float(taken[k])!r}, {floor - taken[k]:.6g} s before the "
-                           f"newest measurement of the body, beyond the window {self.window:g} s",
-                    about=f"body {bodies[k]!r}, source {sources[k]!r}, time {float(times[k])!r}")
+        b = self.bounds
+        # the common case in one C call: nothing to refuse (then newest holds these rows)
+        late: list = []
+        if not every or not store_plain(newest, body, times, taken, self.window,
+                                        math.inf if b is None else b.max_time,
+                                        math.inf if b is None else b.max_time_jump):
+            newest, late, every = self._refused(bodies, sources, times, body, taken, ok,
+                                                errors, origin)
         if self.bounds is not None:
             self._room(ok, errors)
             every = every and bool(ok.all())
@@ -530,6 +518,33 @@ class Tracker:
         if origin is not None and ok.any():
             self._jumps.fed(origin, body[ok], taken[ok])
         return sorted(errors.items())
+
+    def _refused(self, bodies, sources, times, body, taken, ok, errors, origin):
+        """The rows the limits' time checks and the window floor refuse (in ``ok`` and
+        ``errors``, each named): ``(newest with the others, the late rows, all still ok)``."""
+        if self.bounds is not None:
+            self._time_check(times, ok, errors)
+            self._jump_check(bodies, sources, times, body, taken, ok, errors, origin)
+        every = bool(ok.all())
+        # Taken no further back than the window before the body's newest, counting the earlier
+        # measurements of the same call: checked at once against the newest of the whole call,
+        # and only the rows that fail that (stricter) test one by one in order.
+        newest = self._newest.copy()
+        if every:
+            np.maximum.at(newest, body, taken)
+        else:
+            np.maximum.at(newest, body[ok], taken[ok])
+        late = np.flatnonzero(ok & (taken < newest[body] - self.window)).tolist()
+        for k in late:
+            floor = max([self._newest[body[k]]] + [
+                taken[j] for j in range(k) if ok[j] and body[j] == body[k]])
+            if taken[k] < floor - self.window:
+                ok[k] = False
+                errors[k] = WorldError(
+                    k, "", f"taken at {float(taken[k])!r}, {floor - taken[k]:.6g} s before the "
+                           f"newest measurement of the body, beyond the window {self.window:g} s",
+                    about=f"body {bodies[k]!r}, source {sources[k]!r}, time {float(times[k])!r}")
+        return newest, late, every
 
     def _in_world(self, sources, poses, covs) -> dict:
         """Checked rows in the world frame as :func:`~dqpose.fusion.fuse` brings them there (the

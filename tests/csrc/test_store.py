@@ -49,3 +49,26 @@ def test_its_refusals_name_the_argument():
         x.live(np.array([0.0, 1.0]), np.array([0.0]), 1.0, -1, 2)
     with pytest.raises(ValueError, match="^taken: fewer rows than n"):
         x.live(np.array([0.0]), np.zeros(4), 1.0, -1, 2)
+
+
+def test_a_plain_request_is_one_with_nothing_to_refuse():
+    from dqpose._dqcore import store_plain
+
+    def plain(newest, body, times, window=1.0, max_time=100.0, jump=5.0):
+        newest = np.array(newest, np.float64)
+        t = np.array(times, np.float64)
+        return store_plain(newest, np.array(body, np.int64), t, t - 0.0, window, max_time,
+                           jump), newest
+
+    ok, newest = plain([0.0, -np.inf], [0, 1, 1], [0.5, 3.0, 3.2])
+    assert ok and newest.tolist() == [0.5, 3.2]
+    # a new body's rows of one call: its earliest is the reference of the jump rule
+    assert not plain([0.0, -np.inf], [1, 1], [3.0, 8.5])[0]
+    assert not plain([0.0], [0], [5.5])[0]                          # a jump
+    assert not plain([0.0], [0], [101.0], jump=1e9)[0]             # past max_time
+    assert not plain([0.0], [0, 0], [2.0, 0.9])[0]                  # late: 1.1 s before 2.0
+    assert plain([0.0], [0, 0], [2.0, 1.0])[0]                      # exactly the window: kept
+    assert not plain([0.0], [1], [0.0])[0]                          # a body beyond newest
+    with pytest.raises(ValueError, match="^newest: expected a writeable contiguous float64"):
+        store_plain(np.zeros(3, np.float32), np.zeros(1, np.int64), np.zeros(1), np.zeros(1),
+                    1.0, 1.0, 1.0)

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from dqpose import dq, fusion, lie
+from dqpose import dq, fusion, lie, limits
 from dqpose.fusion import Measurement, Source, Tracker
 from tests.fusion._moving import (
     ARM,
@@ -264,3 +264,46 @@ def test_rows_checked_in_c_answer_as_numpy_does_each_row():
         assert ok[k] and k not in errors, k
         assert covs[k].tobytes() == want.tobytes(), k
     assert ok[:9].tolist() == [True] + [False] * 7 + [True] and ok[9:].sum() >= 2
+
+
+def test_the_c_check_of_a_plain_request_takes_in_what_the_python_checks_do(monkeypatch):
+    """store_plain (C) decides a request has nothing to refuse, else the Python checks name
+    each refusal: trackers fed the same random requests (late rows, jumps confirmed or not, times
+    past max_time, new bodies), one with the C check and one without, refuse the same rows with
+    the same texts and hold the same rows, bit for bit."""
+    from dqpose.fusion import tracker as tracker_module
+    rng = np.random.default_rng(11)
+    bounds = limits.tracker_bounds(limits.Limits(max_time_jump=2.0, max_time=7.9))
+    made = [Tracker(0.5, sources=[Source("cam", latency=0.01)], bounds=bounds) for _ in range(2)]
+    plain = tracker_module.store_plain
+    said = {True: 0, False: 0}
+
+    def c_check(*a):
+        verdict = plain(*a)
+        said[verdict] += 1
+        return verdict
+
+    ident = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
+    t, refused = 0.0, 0
+    for step in range(400):
+        m = int(rng.choice([1, 3, 12]))
+        bodies = [f"b{k}" for k in rng.integers(0, 6, m)]
+        times = t + rng.uniform(-0.1, 0.05, m)
+        odd = rng.random(m)
+        times = np.where(odd < 0.01, times - 1.0, times)             # late
+        times = np.where((odd > 0.99) & (odd < 0.997), times + 5.0, times)  # jumps
+        times = np.where(odd >= 0.998, times + 100.0, times)        # past max_time
+        t += 0.02
+        got = []
+        for k, tr in enumerate(made):
+            monkeypatch.setattr(tracker_module, "store_plain",
+                                c_check if k == 0 else (lambda *a: False))
+            got.append(tr.ingest(bodies, ["cam"] * m, times, np.tile(ident, (m, 1)),
+                                 np.tile(np.eye(6) * 1e-4, (m, 1, 1))))
+        assert [(i, str(e)) for i, e in got[0]] == [(i, str(e)) for i, e in got[1]], step
+        a, b = (tr._store for tr in made)
+        assert a.n == b.n and np.array_equal(a.taken[:a.n], b.taken[:b.n]), step
+        assert made[0]._newest.tobytes() == made[1]._newest.tobytes(), step
+        refused += len(got[0])
+    # both paths taken, and refusals of every kind met (the last requests past max_time)
+    assert said[True] > 100 and said[False] > 20 and refused > 20
