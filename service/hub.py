@@ -75,15 +75,6 @@ class Subscription:
         self.schedule = Schedule(interest.rate) if interest.rate else None
         self.capped: set[str] = set()       # bodies said to hold more than their fits take
 
-    def wants(self, body: str) -> bool:
-        bodies = self.interest.bodies
-        return bodies is None or body in bodies
-
-    def waiting(self, body: str, horizon: float) -> bool:
-        """Whether ``body``'s next tick is beyond ``horizon`` (none due: at a rate, its window
-        need not be looked at)."""
-        return self.schedule is not None and self.schedule.waiting(body, horizon)
-
     def due(self, body: str, window: TickWindow, most: int) -> tuple[list, int, list]:
         """``body``'s ticks due after a step (its :class:`~dqpose.world.TickWindow` then):
         at a rate, those its horizon reached; at rate 0, one at its newest measurement (None).
@@ -293,17 +284,22 @@ class Hub:
             if sub.closed:          # ended by its owner, not yet taken out
                 continue
             answers: list = []
-            wants, waiting = sub.wants, sub.waiting
+            wanted = sub.interest.bodies
+            # a body's next tick's time (rate 0: none, every step is due)
+            schedule = sub.schedule
+            paced = schedule is not None
+            at: dict[str, float] = schedule.next_time if schedule is not None else {}
             for body, top in zip(bodies, tops):
-                if not wants(body) or waiting(body, top):
+                if wanted is not None and body not in wanted or at.get(body, -math.inf) > top:
                     continue
-                h = horizons.get(body)
-                if h is None:
-                    h = horizons[body] = self.world.horizon(body)
-                if not waiting(body, h):
-                    w = windows.get(body) or windows.setdefault(
-                        body, self.world.tick_window(body))
-                    answers += self._due(sub, body, w, made, budget)
+                if paced:
+                    h = horizons.get(body)
+                    if h is None:
+                        h = horizons[body] = self.world.horizon(body)
+                    if at.get(body, -math.inf) > h:
+                        continue
+                w = windows.get(body) or windows.setdefault(body, self.world.tick_window(body))
+                answers += self._due(sub, body, w, made, budget)
             if answers:
                 sub.deliver(answers)
         return budget.spent

@@ -62,7 +62,7 @@ class Schedule:
             raise ValueError(f"rate: must be finite and > 0, got {rate!r}")
         self.rate = rate
         self.next: dict[str, int] = {}
-        self._at: dict[str, float] = {}        # the time of each body's next tick
+        self.next_time: dict[str, float] = {}      # the time of each body's next tick
         self._phase: dict[str, float] = {}
 
     def phase(self, body: str) -> float:
@@ -82,13 +82,13 @@ class Schedule:
         if tick_time(end, rate, phase) <= horizon:
             end += 1
         self.next[body] = max(k, end)
-        self._at[body] = tick_time(max(k, end), rate, phase)
+        self.next_time[body] = tick_time(max(k, end), rate, phase)
         return range(k, end)
 
     def waiting(self, body: str, horizon: float) -> bool:
         """Whether ``body``'s next tick (once it has had one) is beyond ``horizon``: no tick
         due, and :meth:`due` not asked (StreamFuse's test before its ticks are counted)."""
-        return self._at.get(body, -math.inf) > horizon
+        return self.next_time.get(body, -math.inf) > horizon
 
     def time(self, body: str, k: int) -> float:
         """The time of ``body``'s tick ``k``."""
