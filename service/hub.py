@@ -67,10 +67,13 @@ class Subscription:
     """One subscription of a hub: its :class:`Interest`, its ticks (a
     :class:`~dqpose.world_ticks.Schedule` at a rate > 0) and ``deliver``, called under the hub's
     lock once a step with that step's answers in order (it must not block, raise or call the
-    hub). Its owner sets ``closed`` when it ends: no answer is made for it after that."""
+    hub). Its owner sets ``closed`` when it ends: no answer is made for it after that. An
+    ``internal`` one (the recorder's) is served after every client's within a request's
+    budget, so that recording a world never takes a client's answers."""
 
-    def __init__(self, interest: Interest, deliver: Callable[[list], None]):
-        self.interest, self.deliver = interest, deliver
+    def __init__(self, interest: Interest, deliver: Callable[[list], None],
+                 internal: bool = False):
+        self.interest, self.deliver, self.internal = interest, deliver, internal
         self.closed = False
         self.schedule = Schedule(interest.rate) if interest.rate else None
         self.capped: set[str] = set()       # bodies said to hold more than their fits take
@@ -280,7 +283,8 @@ class Hub:
         # a body's horizon is never past its newest measurement: most steps, its next tick is
         # beyond that, and neither its horizon nor its window is looked at
         tops = self.world.newest_of(bodies)
-        for sub in list(self._subscriptions.values()):
+        # clients in the order they came, then the internal ones (sorted() keeps the order)
+        for sub in sorted(self._subscriptions.values(), key=lambda s: s.internal):
             if sub.closed:          # ended by its owner, not yet taken out
                 continue
             answers: list = []

@@ -152,6 +152,21 @@ def test_the_budget_serves_the_earlier_subscription_first():
             b"max_fused_per_request" in skip, trial
 
 
+def test_an_internal_subscription_is_served_after_the_clients():
+    """The recorder's subscription comes first (made with its world) but is served last within
+    a request's budget: recording a world never takes a client's answers."""
+    bounds = limits.Limits(max_fused_per_request=limits.answer_cost(3))
+    h = made(bounds)
+    got: dict[str, list] = {"recorder": [], "client": []}
+    h.subscribe(Subscription(Interest(frozenset({"a"}), 0.0), got["recorder"].extend,
+                             internal=True))
+    h.subscribe(Subscription(Interest(frozenset({"b"}), 0.0), got["client"].extend))
+    step(h, "cam", "call", 1, rows(["a", "b"], [0.0, 0.0]))
+    assert [a.split()[0] for a in got["client"]] == [b"fused"]
+    (skip,) = got["recorder"]
+    assert skip.startswith(b"error a") and b"max_fused_per_request" in skip
+
+
 def test_a_hook_runs_under_the_lock_in_the_order_of_the_steps():
     h = made()
     order = []

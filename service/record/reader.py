@@ -40,6 +40,7 @@ class Call:
     end_at: int | None = None    # the event index before which it ended
     world: str = ""              # a World call's named world (x-dqpose-world)
     begin_at: int = 0            # the event index before which it began
+    internal: bool = False       # the server's own (the recorder's World subscription)
 
 
 @dataclasses.dataclass
@@ -204,7 +205,8 @@ def _item(topic: str, metadata: dict, ns: int, data: bytes, k: int, open_calls: 
                 return None
             open_calls.add(call)
             return Call(call, str(d["rpc"]), str(d["request_type"]), str(d["answer_type"]),
-                        bool(d.get("continued", False)), world=str(d.get("world", "")))
+                        bool(d.get("continued", False)), world=str(d.get("world", "")),
+                        internal=bool(d.get("internal", False)))
         if d["event"] == "end" and call in open_calls:
             open_calls.discard(call)
             return End(call, str(d["code"]), str(d.get("details", "")), ns, k)

@@ -70,7 +70,7 @@ class _Subscribe(_Player):
     def send(self, data: bytes) -> None:
         # its answers straight into what it gave, in the step that makes them
         self.sub = hub.Subscription(interest(pb.SubscribeRequest.FromString(data)),
-                                    self.given.extend)
+                                    self.given.extend, internal=self.call.internal)
         self.hub.subscribe(self.sub)
 
     def end(self, recorded: int) -> None:

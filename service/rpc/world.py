@@ -563,5 +563,5 @@ def _follow(world: Hub, recorder) -> None:
             rec.fused(answer)
 
     request = pb.SubscribeRequest(rate_hz=recorder.world_rate)
-    world.subscribe(Subscription(interest(request), deliver),
+    world.subscribe(Subscription(interest(request), deliver, internal=True),
                     hook=lambda: rec.measurements(request))
