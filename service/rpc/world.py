@@ -389,15 +389,16 @@ class World:
         rec = self.calls.recorder.call(f"{self.NAME}/Publish", pb.PublishRequest, pb.PublishAck,
                                        world)
         try:
+            # the slot first: a call refused for its peer's streams makes no world
+            if self.calls.open_stream("Publish", context) is None:
+                code = "RESOURCE_EXHAUSTED"
+                return
             try:
                 hub_ = self.called(context, make=True)
             except Exception as e:
                 status, details = status_of(e, _named("Publish", world))
                 code = status.name
                 await context.abort(status, details)
-            if self.calls.open_stream("Publish", context) is None:
-                code = "RESOURCE_EXHAUSTED"
-                return
             # Registered without a deserializer: each request is parsed with its work in the
             # worker pool (publish_bytes), never on the event loop.
             async for data in request_iterator:
@@ -483,16 +484,16 @@ class World:
             return None, (grpc.StatusCode.RESOURCE_EXHAUSTED,
                           f"rate_hz: {request.rate_hz:.6g} Hz, over the server's limit "
                           f"max_output_rate = {self.limits.max_output_rate:.6g} Hz")
+        bad = subscribe_names(request)      # before the world is made: a refusal makes none
+        if bad is not None:
+            return None, (grpc.StatusCode.INVALID_ARGUMENT, bad)
         try:
             found = self.called(context, make=True)
         except Exception as e:
             return None, status_of(e, named)
         too_many = over_count("bodies", len(request.bodies), found.world.bounds.max_bodies,
                               "bodies")
-        if too_many is not None:
-            return found, (grpc.StatusCode.RESOURCE_EXHAUSTED, too_many)
-        bad = subscribe_names(request)
-        return found, None if bad is None else (grpc.StatusCode.INVALID_ARGUMENT, bad)
+        return found, None if too_many is None else (grpc.StatusCode.RESOURCE_EXHAUSTED, too_many)
 
     async def _leave(self, added, world: Hub, sub: Subscriber, rec, code: str) -> None:
         """``sub`` out of its world once it is in (the pool may run both at once), its end

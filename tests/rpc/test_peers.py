@@ -171,3 +171,32 @@ def test_watches_without_the_token_take_no_slot_of_the_token_holders():
             call.cancel()
             for w in held:
                 w.cancel()
+
+
+def test_a_call_refused_for_its_peers_streams_makes_no_world():
+    """A Publish refused for max_peer_streams, and a Subscribe refused for a bad body name, leave
+    no world behind (the 256 named worlds of a replica are not taken by refused calls)."""
+    with ServerThread(limits=limits.Limits(max_peer_streams=1)) as server, \
+            grpc.insecure_channel(server.target) as channel:
+        worlds = next(s for s in server.running.servicers if s.NAME == "dqpose.v1.World").hubs
+        held = Held(channel, "/dqpose.v1.Blending/BlendStream")
+        try:
+            assert wait_until(lambda: server.running.calls.peers.open_count[
+                ("stream", "peer", "127.0.0.1")] == 1, timeout=10)
+            publish = channel.stream_stream("/dqpose.v1.World/Publish")(
+                iter([wpb.PublishRequest().SerializeToString()]),
+                metadata=[("x-dqpose-world", "refused-publish")])
+            with pytest.raises(grpc.RpcError) as e:
+                list(publish)
+            assert e.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+        finally:
+            held.close()
+        subscribe = channel.unary_stream(
+            "/dqpose.v1.World/Subscribe",
+            request_serializer=wpb.SubscribeRequest.SerializeToString)(
+                wpb.SubscribeRequest(bodies=["a/b"]),
+                metadata=[("x-dqpose-world", "refused-subscribe")])
+        with pytest.raises(grpc.RpcError) as e:
+            next(subscribe)
+        assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+        assert "refused-publish" not in worlds and "refused-subscribe" not in worlds
