@@ -277,7 +277,7 @@ class Hub:
         if not self._subscriptions:
             return 0
         made: dict[tuple, Any] = {}
-        budget = _limits.Budget(self.world.tracker_bounds)
+        budget = _limits.Budget(self.world.tracker_bounds.max_fused_per_request)
         windows: dict[str, TickWindow] = {}
         horizons: dict[str, float] = {}
         # a body's horizon is never past its newest measurement: most steps, its next tick is

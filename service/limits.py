@@ -44,12 +44,8 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 from dqpose.errors import FieldError
-
-if TYPE_CHECKING:       # dqpose.fusion imports this module
-    from dqpose.fusion.bounds import TrackerBounds
 
 #: a request of at most this many bytes is served on the event loop (its work, linear in its
 #: size, stays under ~1 ms); a larger one in the worker pool (``workers``)
@@ -208,17 +204,6 @@ def over_text(what: str, name: str, value: float) -> str:
             f"(dqpose serve {flag(name)})")
 
 
-def tracker_bounds(limits: Limits, **bounds) -> TrackerBounds:
-    """The :class:`~dqpose.fusion.bounds.TrackerBounds` of a stream under ``limits``; ``bounds``
-    replace fields (a world's: its own per body and in all)."""
-    from dqpose.fusion.bounds import TrackerBounds
-
-    fields = {f: getattr(limits, f) for f in ("max_window", "max_robust", "max_correlated",
-                                              "max_time", "max_time_jump",
-                                              "max_fused_per_request")}
-    return TrackerBounds(**{**fields, "max_rows": limits.max_stream_measurements, **bounds})
-
-
 class Budget:
     """What one request's answers may still cost, ``max_fused_per_request`` measurements fused,
     an answer :func:`answer_cost` of those it fuses: a StreamFuse message's, a World Publish
@@ -226,8 +211,8 @@ class Budget:
     a body's answers beyond what is left are skipped, its latest kept (:meth:`take`), and one
     error says which (:meth:`skipped`)."""
 
-    def __init__(self, limits: Limits | TrackerBounds):
-        self.limit = limits.max_fused_per_request
+    def __init__(self, max_fused_per_request: int):
+        self.limit = max_fused_per_request
         self.left = self.limit
 
     @property

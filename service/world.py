@@ -133,7 +133,7 @@ class World:
         # a server's bounds of a stream (its Limits'); a body's buffer and the rows of all
         # bodies are the world's own (bounds)
         self.tracker_bounds = (tracker if tracker is not None
-                               else _limits.tracker_bounds(_limits.DEFAULT))
+                               else TrackerBounds.of(_limits.DEFAULT))
         self._lock = ReadWrite()
         # body -> source -> newest taken, of the sources that fed it under earlier
         # configurations (the tracker's own, Tracker.by_source, win)

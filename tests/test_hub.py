@@ -10,6 +10,7 @@ import pytest
 from dqpose import hub as hub_module
 from dqpose import limits
 from dqpose.fusion import Source
+from dqpose.fusion.bounds import TrackerBounds
 from dqpose.hub import Hub, Interest, Rows, Subscription
 from dqpose.world import WorldBounds, WorldError, WorldOptions
 
@@ -49,7 +50,7 @@ def step(h: Hub, producer: str, anonymous: str, sequence: int, r, hook=None, off
 
 
 def made(bounds: limits.Limits = limits.DEFAULT) -> Hub:
-    h = Hub("test", Written(), limits.tracker_bounds(bounds))
+    h = Hub("test", Written(), TrackerBounds.of(bounds))
     h.configure([Source("cam")], {}, WorldOptions(window=0.2, buffer=2.0, max_delay=0.0))
     return h
 
@@ -228,7 +229,7 @@ def test_a_billion_ticks_due_at_once_are_counted_not_listed():
     cuts them; the latest it affords answered, each made once for the two subscriptions of that
     rate, the rest named by one skip entry each. (The hub listed every tick's time first: 1e9
     floats, the process killed by the kernel's OOM killer.)"""
-    h = Hub("test", Written(), limits.tracker_bounds(limits.Limits(
+    h = Hub("test", Written(), TrackerBounds.of(limits.Limits(
         max_fused_per_request=10 * limits.answer_cost(2), max_time_jump=2e6)),
         bounds=WorldBounds(max_buffer=2e6))
     h.configure([Source("cam")], {}, WorldOptions(window=1e6, buffer=1e6, max_delay=0.0))

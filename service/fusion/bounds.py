@@ -1,6 +1,6 @@
 """What a live stream's tracker holds and answers at most (:class:`TrackerBounds`): the domain's
 own bounds, which a server fills from its :class:`dqpose.limits.Limits`
-(:func:`dqpose.limits.tracker_bounds`) and a world from its own bounds besides."""
+(:meth:`TrackerBounds.of`) and a world from its own bounds besides."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -19,6 +19,16 @@ class TrackerBounds:
     max_time: float
     max_time_jump: float
     max_fused_per_request: int
+
+    @classmethod
+    def of(cls, limits, **bounds) -> "TrackerBounds":
+        """A stream's bounds under ``limits`` (a :class:`dqpose.limits.Limits`: read by field
+        name, so this module needs no import of it); ``bounds`` replace fields (a world's: its
+        own per body and in all)."""
+        fields = {f: getattr(limits, f) for f in ("max_window", "max_robust", "max_correlated",
+                                                  "max_time", "max_time_jump",
+                                                  "max_fused_per_request")}
+        return cls(**{**fields, "max_rows": limits.max_stream_measurements, **bounds})
 
     def cap(self, robust: bool, correlated: bool) -> int:
         """Measurements one body's fit takes at most (its window's latest)."""

@@ -15,6 +15,7 @@ from google.protobuf.message import DecodeError
 
 from dqpose import fusion, limits
 from dqpose.errors import FieldError, rename
+from dqpose.fusion.bounds import TrackerBounds
 from dqpose.hub import Hub, Rows
 from dqpose.names import name_problem
 from dqpose.rpc import DEFAULT_MAX_POSES
@@ -54,7 +55,7 @@ class Stream:
                              window=options.window or DEFAULT_WINDOW)
         try:
             self.hub, self._answers = Hub.open_stream(options.sources, world, rate,
-                                                      limits.tracker_bounds(bounds),
+                                                      TrackerBounds.of(bounds),
                                                       _StreamEncoder())
         except ValueError as e:
             # the world names its options "options.x", a stream's sources are among them

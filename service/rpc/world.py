@@ -32,6 +32,7 @@ from dqpose import limits as _limits
 from dqpose import record
 from dqpose import world as domain
 from dqpose.errors import FieldError
+from dqpose.fusion.bounds import TrackerBounds
 from dqpose.hub import Hub, Interest, Rows, Subscription
 from dqpose.rpc import DEFAULT_MAX_POSES
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
@@ -232,7 +233,7 @@ class World:
                                     f"{named + 1} on replica {self.replica!r}, above its "
                                     f"{MAX_WORLDS} (MAX_WORLDS)")
             made = self.hubs[name] = Hub(
-                name, Encoder(), _limits.tracker_bounds(self.limits or _limits.DEFAULT))
+                name, Encoder(), TrackerBounds.of(self.limits or _limits.DEFAULT))
         _follow(made, self.calls.recorder)
         return made
 

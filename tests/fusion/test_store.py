@@ -6,6 +6,7 @@ import numpy as np
 
 from dqpose import limits
 from dqpose.fusion import Source, Tracker
+from dqpose.fusion.bounds import TrackerBounds
 from dqpose.fusion.store import _Store
 
 
@@ -73,7 +74,7 @@ def test_a_window_found_by_the_running_maximum_equals_its_definition_under_a_cap
     """A buffer of 2 s, windows of 0.2 s ending anywhere in it, a cap of 25 rows a body that the
     buffer exceeds (the cap of the buffer's rows decides), rows late by up to 1.5 s."""
     rng = np.random.default_rng(2)
-    bounds = limits.tracker_bounds(limits.Limits(max_window=25))
+    bounds = TrackerBounds.of(limits.Limits(max_window=25))
     t = Tracker(2.0, sources=[Source("cam")], bounds=bounds)
     assert t.cap == 25
     ident = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])

@@ -4,6 +4,7 @@ import pytest
 
 from dqpose import dq, fusion, lie, limits
 from dqpose.fusion import Measurement, Source, Tracker
+from dqpose.fusion.bounds import TrackerBounds
 from tests.fusion._moving import (
     ARM,
     ARM_RATE,
@@ -273,7 +274,7 @@ def test_the_c_check_of_a_plain_request_takes_in_what_the_python_checks_do(monke
     the same texts and hold the same rows, bit for bit."""
     from dqpose.fusion import tracker as tracker_module
     rng = np.random.default_rng(11)
-    bounds = limits.tracker_bounds(limits.Limits(max_time_jump=2.0, max_time=7.9))
+    bounds = TrackerBounds.of(limits.Limits(max_time_jump=2.0, max_time=7.9))
     made = [Tracker(0.5, sources=[Source("cam", latency=0.01)], bounds=bounds) for _ in range(2)]
     plain = tracker_module.store_plain
     said = {True: 0, False: 0}
