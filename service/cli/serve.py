@@ -256,9 +256,8 @@ def _open_recorder(args, cfg, stack) -> int | None:
         if not value > 0:
             return fail("serve", f"{flag}: must be > 0, got {value:g}")
     if args.record_rate > cfg.limits.max_output_rate:
-        return fail("serve", f"--record-rate: {args.record_rate:g} Hz is over the server's "
-                             f"limit max_output_rate = {cfg.limits.max_output_rate:g} Hz "
-                             f"(--max-output-rate)")
+        return fail("serve", "--record-rate: " + limits.over_text(
+            f"{args.record_rate:g} Hz", "max_output_rate", cfg.limits.max_output_rate))
     try:
         cfg.recorder = open_recorder(
             args.record, max_bytes=max(1, int(args.record_max_mb * 1e6)),

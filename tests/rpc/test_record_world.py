@@ -104,8 +104,8 @@ def test_the_ros2_bag_stamps_the_poses_time(recorded):
 
 @pytest.mark.parametrize("rate, problem", [
     ("0", "--record-rate: must be > 0, got 0"),
-    ("2000", "--record-rate: 2000 Hz is over the server's limit max_output_rate = 1000 Hz "
-             "(--max-output-rate)")])
+    ("2000", "--record-rate: 2000 Hz, over the server's limit max_output_rate = 1000 Hz "
+             "(dqpose serve --max-output-rate)")])
 def test_a_record_rate_out_of_range_is_one_line(tmp_path, rate, problem):
     import subprocess
     import sys
