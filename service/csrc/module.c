@@ -11,6 +11,7 @@
 #include "fusion.h"
 #include "gn.h"
 #include "py_functions.h"
+#include "store.h"
 #include "wire.h"
 
 static PyMethodDef methods[] = {
@@ -70,9 +71,6 @@ static PyMethodDef methods[] = {
      "default_max_iter, max_iter_limit) -> (bytes, n) or None."},
     {"blend_wire", py_blend_wire, METH_VARARGS,
      "blend_wire(bytes, max_poses, default_tol, default_max_iter, max_iter_limit) -> bytes or None."},
-    {"store_plain", py_store_plain, METH_VARARGS,
-     "store_plain(newest, body, times, taken, window, max_time, jump) -> bool: the rows pass a "
-     "tracker's time, jump and window rules with nothing to refuse, newest updated (store.h)."},
     {NULL, NULL, 0, NULL},
 };
 
@@ -110,6 +108,9 @@ PyMODINIT_FUNC PyInit__dqcore(void)
     /* fuse_stream_from_wire's codes up to this one are measurements_to_arrays's, the rest the
      * Tracker's (wire.h) */
     PyModule_AddIntConstant(m, "MEASUREMENT_CONVERT_LAST", DQ_MEAS_CONVERT_LAST);
+    PyModule_AddIntConstant(m, "REFUSED_TIME", DQ_REFUSED_TIME);
+    PyModule_AddIntConstant(m, "REFUSED_JUMP", DQ_REFUSED_JUMP);
+    PyModule_AddIntConstant(m, "REFUSED_FLOOR", DQ_REFUSED_FLOOR);
     PyModule_AddObject(m, "MIN_VARIANCE", PyFloat_FromDouble(DQ_MIN_VARIANCE));
     PyModule_AddObject(m, "MAX_VARIANCE", PyFloat_FromDouble(DQ_MAX_VARIANCE));
     /* the fits' step rule (gn.h), for process_noise.py's NumPy loop */

@@ -47,9 +47,8 @@ PyObject *py_joint_fit(PyObject *self, PyObject *args);
 PyObject *py_se3_jl_inv(PyObject *self, PyObject *x);
 PyObject *py_se3_jr(PyObject *self, PyObject *x);
 
-/* _dqcore.StoreIndex and store_plain (py_store.c) */
+/* _dqcore.StoreIndex (py_store.c) */
 extern PyTypeObject dq_store_index_type;
-PyObject *py_store_plain(PyObject *self, PyObject *args);
 
 /* py_trajectory.c: the trajectory planner */
 PyObject *py_traj_plan(PyObject *self, PyObject *args);

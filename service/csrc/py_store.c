@@ -175,44 +175,227 @@ static PyObject *index_reset(StoreIndex *self, PyObject *unused)
     return Py_NewRef(Py_None);
 }
 
-/* plain(newest, body, times, taken, window, max_time, jump) -> bool: store.h's dq_store_plain;
- * newest (float64, C-contiguous, writeable) updated in place (spent when False). */
-PyObject *py_store_plain(PyObject *self, PyObject *args)
+/* Column `name` of the store `o`: an ndarray of `type`, C-contiguous and writeable, of shape
+ * (rows, inner...) (inner: 0, 8 or 36 doubles a row, 36 as 6x6), rows the first column's
+ * (*rows 0: any, then set); a borrowed pointer to its data, NULL with the ValueError. */
+static void *column(PyObject *o, const char *name, int type, int inner, size_t *rows)
 {
-    PyObject *no, *bo, *mo, *to;
-    double window, max_time, jump;
-    if (!PyArg_ParseTuple(args, "OOOOddd", &no, &bo, &mo, &to, &window, &max_time, &jump))
-        return NULL;
-    if (!PyArray_Check(no) || PyArray_TYPE((PyArrayObject *)no) != NPY_FLOAT64 ||
-        PyArray_NDIM((PyArrayObject *)no) != 1 ||
-        !PyArray_ISCARRAY((PyArrayObject *)no)) {
-        PyErr_SetString(PyExc_ValueError, "newest: expected a writeable contiguous float64 "
-                                          "vector");
+    PyObject *a = PyObject_GetAttrString(o, name);
+    if (!a) return NULL;
+    void *data = NULL;
+    PyArrayObject *arr = (PyArrayObject *)a;
+    int nd = inner == 0 ? 1 : inner == 8 ? 2 : 3;
+    if (!PyArray_Check(a) || PyArray_TYPE(arr) != type || PyArray_NDIM(arr) != nd
+        || !PyArray_ISCARRAY(arr) || (nd == 2 && PyArray_DIM(arr, 1) != 8)
+        || (nd == 3 && (PyArray_DIM(arr, 1) != 6 || PyArray_DIM(arr, 2) != 6))
+        || (*rows && (size_t)PyArray_DIM(arr, 0) != *rows)) {
+        PyErr_Format(PyExc_ValueError, "store.%s: expected a writeable contiguous column of "
+                                       "the store's rows", name);
+    } else {
+        *rows = (size_t)PyArray_DIM(arr, 0);
+        data = PyArray_DATA(arr);
+    }
+    Py_DECREF(a);       /* the store keeps it */
+    return data;
+}
+
+/* The store's columns (n: store.n), NULL pointers with the ValueError. */
+static int columns(PyObject *store, dq_store_cols *c)
+{
+    size_t cap = 0;
+    memset(c, 0, sizeof *c);
+    if (!(c->ids = column(store, "ids", NPY_INT64, 0, &cap))
+        || !(c->body = column(store, "body", NPY_INT64, 0, &cap))
+        || !(c->codes = column(store, "codes", NPY_INT64, 0, &cap))
+        || !(c->times = column(store, "times", NPY_FLOAT64, 0, &cap))
+        || !(c->taken = column(store, "taken", NPY_FLOAT64, 0, &cap))
+        || !(c->poses = column(store, "poses", NPY_FLOAT64, 8, &cap))
+        || !(c->covs = column(store, "covs", NPY_FLOAT64, 36, &cap))
+        || !(c->wposes = column(store, "wposes", NPY_FLOAT64, 8, &cap)))
+        return -1;
+    if (PyObject_HasAttrString(store, "wcovs")
+        && !(c->wcovs = column(store, "wcovs", NPY_FLOAT64, 36, &cap)))
+        return -1;
+    c->capacity = cap;
+    PyObject *n = PyObject_GetAttrString(store, "n");
+    Py_ssize_t v = n ? PyLong_AsSsize_t(n) : -1;
+    Py_XDECREF(n);
+    if (v < 0 || (size_t)v > cap) {
+        if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "store.n: out of range");
+        return -1;
+    }
+    c->n = (size_t)v;
+    return 0;
+}
+
+static int set_n(PyObject *store, size_t n)
+{
+    PyObject *v = PyLong_FromSize_t(n);
+    int rc = v ? PyObject_SetAttrString(store, "n", v) : -1;
+    Py_XDECREF(v);
+    return rc;
+}
+
+/* A writeable C-contiguous ndarray of `type` and `nd` dimensions, else NULL with the error. */
+static PyArrayObject *writeable(PyObject *o, int type, int nd, const char *name)
+{
+    if (!PyArray_Check(o) || PyArray_TYPE((PyArrayObject *)o) != type
+        || PyArray_NDIM((PyArrayObject *)o) != nd || !PyArray_ISCARRAY((PyArrayObject *)o)) {
+        PyErr_Format(PyExc_ValueError, "%s: expected a writeable contiguous %d-d array", name,
+                     nd);
         return NULL;
     }
-    PyArrayObject *newest = (PyArrayObject *)no;
-    PyArrayObject *body = vector(bo, NPY_INT64, "body");
-    PyArrayObject *times = body ? vector(mo, NPY_FLOAT64, "times") : NULL;
-    PyArrayObject *taken = times ? vector(to, NPY_FLOAT64, "taken") : NULL;
-    PyObject *out = NULL;
-    if (!taken) goto done;
-    npy_intp n = PyArray_DIM(body, 0);
-    if (PyArray_DIM(times, 0) != n || PyArray_DIM(taken, 0) != n) {
-        PyErr_SetString(PyExc_ValueError, "times, taken: expected one a row");
+    return (PyArrayObject *)o;
+}
+
+/* A C-contiguous array of `type`, (n, inner...) as column() (inner 8 or 36), a new reference. */
+static PyArrayObject *rows_of_shape(PyObject *o, int type, int inner, npy_intp n,
+                                    const char *name)
+{
+    int nd = inner == 0 ? 1 : inner == 8 ? 2 : 3;
+    PyArrayObject *a = (PyArrayObject *)PyArray_FROMANY(o, type, nd, nd, NPY_ARRAY_CARRAY_RO);
+    if (a && PyArray_DIM(a, 0) == n && (nd < 2 || PyArray_DIM(a, 1) == (inner == 8 ? 8 : 6))
+        && (nd < 3 || PyArray_DIM(a, 2) == 6))
+        return a;
+    Py_XDECREF(a);
+    PyErr_Format(PyExc_ValueError, "%s: expected %zd rows", name, (Py_ssize_t)n);
+    return NULL;
+}
+
+/* ingest(store, newest, by_source, latency, body, source, ids, times, poses, covs, ok, wposes,
+ * wcovs, window, cap, max_time, jump, max_rows, origin, all_or_none) -> (refusals, fresh):
+ * store.h's dq_store_ingest over the store's columns (store.n updated), newest and by_source
+ * (body x source) updated in place, ok (bool) the rows taken in; refusals [(k, code, a, b)];
+ * max_rows < 0: unbounded (max_time, jump unused); origin None: a stream's rows. */
+static PyObject *index_ingest(StoreIndex *self, PyObject *args)
+{
+    PyObject *store, *no, *so, *lo, *bo, *co, *io, *to, *po, *vo, *oko, *wpo, *wco, *origin;
+    dq_store_rules r;
+    Py_ssize_t max_rows;
+    int all_or_none;
+    memset(&r, 0, sizeof r);
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOOdlddnOp", &store, &no, &so, &lo, &bo, &co, &io,
+                          &to, &po, &vo, &oko, &wpo, &wco, &r.window, &r.cap, &r.max_time,
+                          &r.jump, &max_rows, &origin, &all_or_none))
+        return NULL;
+    r.bounded = max_rows >= 0;
+    r.max_rows = r.bounded ? (size_t)max_rows : 0;
+    r.all_or_none = all_or_none;
+    r.anon = origin == Py_None;
+    if (!r.anon) {
+        r.origin = PyLong_AsLongLong(origin);
+        if (r.origin == -1 && PyErr_Occurred()) return NULL;
+    }
+    dq_store_cols cols;
+    if (columns(store, &cols) < 0) return NULL;
+    PyArrayObject *newest = writeable(no, NPY_FLOAT64, 1, "newest");
+    PyArrayObject *by_source = newest ? writeable(so, NPY_FLOAT64, 2, "by_source") : NULL;
+    PyArrayObject *ok = by_source ? writeable(oko, NPY_BOOL, 1, "ok") : NULL;
+    if (!ok) return NULL;
+    npy_intp n = PyArray_DIM(ok, 0);
+    PyArrayObject *latency = vector(lo, NPY_FLOAT64, "latency");
+    PyArrayObject *body = latency ? rows_of_shape(bo, NPY_INT64, 0, n, "body") : NULL;
+    PyArrayObject *source = body ? rows_of_shape(co, NPY_INT64, 0, n, "source") : NULL;
+    PyArrayObject *ids = source ? rows_of_shape(io, NPY_INT64, 0, n, "ids") : NULL;
+    PyArrayObject *times = ids ? rows_of_shape(to, NPY_FLOAT64, 0, n, "times") : NULL;
+    PyArrayObject *poses = times ? rows_of_shape(po, NPY_FLOAT64, 8, n, "poses") : NULL;
+    PyArrayObject *covs = poses ? rows_of_shape(vo, NPY_FLOAT64, 36, n, "covs") : NULL;
+    PyArrayObject *wposes = NULL, *wcovs = NULL;
+    PyObject *out = NULL, *list = NULL;
+    double *taken = NULL;
+    dq_store_refusal *refused = NULL;
+    if (!covs) goto done;
+    if (wpo != Py_None && !(wposes = rows_of_shape(wpo, NPY_FLOAT64, 8, n, "wposes")))
+        goto done;
+    if (wco != Py_None && !(wcovs = rows_of_shape(wco, NPY_FLOAT64, 36, n, "wcovs")))
+        goto done;
+    taken = malloc(((size_t)n + 1) * sizeof *taken);
+    refused = malloc(((size_t)n + 1) * sizeof *refused);
+    if (!taken || !refused) {
+        PyErr_NoMemory();
         goto done;
     }
-    int plain = dq_store_plain(PyArray_DATA(newest), (size_t)PyArray_DIM(newest, 0),
-                               PyArray_DATA(body), PyArray_DATA(times), PyArray_DATA(taken),
-                               (size_t)n, window, max_time, jump);
-    if (plain < 0)
+    dq_store_state st = {PyArray_DATA(newest), PyArray_DATA(by_source),
+                         (size_t)PyArray_DIM(newest, 0), (size_t)PyArray_DIM(by_source, 1),
+                         (size_t)PyArray_DIM(latency, 0), PyArray_DATA(latency)};
+    if ((size_t)PyArray_DIM(by_source, 0) < st.bodies) {
+        PyErr_SetString(PyExc_ValueError, "by_source: fewer bodies than newest");
+        goto done;
+    }
+    dq_store_rows in = {(size_t)n, PyArray_DATA(body), PyArray_DATA(source), PyArray_DATA(ids),
+                        PyArray_DATA(times), PyArray_DATA(poses), PyArray_DATA(covs),
+                        wposes ? PyArray_DATA(wposes) : NULL,
+                        wcovs ? PyArray_DATA(wcovs) : NULL, PyArray_DATA(ok), taken};
+    size_t nout = 0;
+    int fresh = 0;
+    int rc = dq_store_ingest(&self->x, &cols, &st, &in, &r, refused, &nout, &fresh);
+    if (set_n(store, cols.n) < 0) goto done;
+    if (rc == -1) {
         PyErr_NoMemory();
-    else
-        out = PyBool_FromLong(plain);
+        goto done;
+    }
+    if (rc == -2) {
+        PyErr_SetString(PyExc_ValueError, "rows: a code out of range, or the store's columns "
+                                          "too short for them");
+        goto done;
+    }
+    if (rc == -3) {
+        PyErr_SetString(PyExc_ValueError, "poses: a pose is not a rigid motion");
+        goto done;
+    }
+    if (!(list = PyList_New((Py_ssize_t)nout))) goto done;
+    for (size_t i = 0; i < nout; i++) {
+        PyObject *t = Py_BuildValue("(nidd)", (Py_ssize_t)refused[i].row, refused[i].code,
+                                    refused[i].a, refused[i].b);
+        if (!t) goto done;
+        PyList_SET_ITEM(list, (Py_ssize_t)i, t);
+    }
+    out = Py_BuildValue("(OO)", list, fresh ? Py_True : Py_False);
 done:
+    Py_XDECREF(list);
+    free(taken);
+    free(refused);
+    Py_XDECREF(latency);
     Py_XDECREF(body);
+    Py_XDECREF(source);
+    Py_XDECREF(ids);
     Py_XDECREF(times);
-    Py_XDECREF(taken);
+    Py_XDECREF(poses);
+    Py_XDECREF(covs);
+    Py_XDECREF(wposes);
+    Py_XDECREF(wcovs);
     return out;
+}
+
+/* keep(store, live): store.h's dq_store_keep over the store's columns (store.n updated). */
+static PyObject *index_keep(StoreIndex *self, PyObject *args)
+{
+    PyObject *store, *lo;
+    if (!PyArg_ParseTuple(args, "OO", &store, &lo)) return NULL;
+    dq_store_cols cols;
+    if (columns(store, &cols) < 0) return NULL;
+    PyArrayObject *live = rows_of_shape(lo, NPY_BOOL, 0, (npy_intp)cols.n, "live");
+    if (!live) return NULL;
+    int rc = dq_store_keep(&self->x, &cols, PyArray_DATA(live));
+    Py_DECREF(live);
+    if (set_n(store, cols.n) < 0) return NULL;
+    if (rc < 0) return PyErr_NoMemory();
+    return Py_NewRef(Py_None);
+}
+
+static PyObject *index_version(StoreIndex *self, PyObject *arg)
+{
+    long long b = PyLong_AsLongLong(arg);
+    if (b == -1 && PyErr_Occurred()) return NULL;
+    return PyLong_FromLongLong(dq_store_version(&self->x, b));
+}
+
+static PyObject *index_forget(StoreIndex *self, PyObject *arg)
+{
+    long long b = PyLong_AsLongLong(arg);
+    if (b == -1 && PyErr_Occurred()) return NULL;
+    dq_store_forget(&self->x, b);
+    return Py_NewRef(Py_None);
 }
 
 static PyMethodDef index_methods[] = {
@@ -227,6 +410,15 @@ static PyMethodDef index_methods[] = {
      "live(taken, newest, window, cap, n): the rows within their body's window (the last cap "
      "of them; cap < 0: all), as bools."},
     {"reset", (PyCFunction)index_reset, METH_NOARGS, "reset(): every body's index emptied."},
+    {"ingest", (PyCFunction)index_ingest, METH_VARARGS,
+     "ingest(store, newest, by_source, latency, body, source, ids, times, poses, covs, ok, "
+     "wposes, wcovs, window, cap, max_time, jump, max_rows, origin, all_or_none) -> (refusals, "
+     "fresh): a request's rows checked and taken into the store (store.h)."},
+    {"keep", (PyCFunction)index_keep, METH_VARARGS,
+     "keep(store, live): the store's rows with live[r] kept, in order."},
+    {"version", (PyCFunction)index_version, METH_O,
+     "version(b): requests that brought body b rows (0: none)."},
+    {"forget", (PyCFunction)index_forget, METH_O, "forget(b): body b's jump state forgotten."},
     {NULL, NULL, 0, NULL},
 };
 

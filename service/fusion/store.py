@@ -24,6 +24,7 @@ class _Store:
     running maximum reaches it: what the window holds and rows that came late, not the body's
     whole buffer."""
 
+    # rows are written by _index.ingest (C, service/csrc/store.h), which checks them first;
     # as they came (``poses``, ``covs``) and in the world frame (``wposes``, and ``wcovs`` when a
     # source's body offset moves them): each row brought there once, not at every fit
     _ARRAYS = ("ids", "body", "codes", "times", "taken", "poses", "covs", "wposes")
@@ -73,27 +74,20 @@ class _Store:
         return self._index.count(b)
 
     def keep(self, mask: np.ndarray) -> None:
-        k = int(np.count_nonzero(mask))
-        for a in self._arrays:
-            arr = getattr(self, a)
-            arr[:k] = arr[:self.n][mask]
-        self.n = k
-        self._index.reset()
-        self._index.push(0, self.body[:k], self.taken[:k])
+        """The rows ``mask`` kept, in order, the others dropped (``_index.keep``, C)."""
+        self._index.keep(self, np.asarray(mask, bool))
 
-    def append(self, newest: np.ndarray, window: float, cap: Optional[int] = None,
-               **rows) -> None:
-        m = len(rows["ids"])
-        if self.n + m > len(self.ids):
-            self.keep(self.live(newest, window, cap))
-            if 2 * (self.n + m) > len(self.ids):
-                size = max(2 * len(self.ids), 2 * (self.n + m))
-                for a in self._arrays:
-                    old = getattr(self, a)
-                    new = np.empty((size,) + old.shape[1:], old.dtype)
-                    new[:self.n] = old[:self.n]
-                    setattr(self, a, new)
-        for a in self._arrays:
-            getattr(self, a)[self.n:self.n + m] = rows[a]
-        self._index.push(self.n, self.body[self.n:self.n + m], self.taken[self.n:self.n + m])
-        self.n += m
+    def reserve(self, m: int, newest: np.ndarray, window: float,
+                cap: Optional[int] = None) -> None:
+        """Room for ``m`` more rows: when full, the rows out of their window (``live``) are
+        dropped, and the arrays grown when the live rows fill half."""
+        if self.n + m <= len(self.ids):
+            return
+        self.keep(self.live(newest, window, cap))
+        if 2 * (self.n + m) > len(self.ids):
+            size = max(2 * len(self.ids), 2 * (self.n + m))
+            for a in self._arrays:
+                old = getattr(self, a)
+                new = np.empty((size,) + old.shape[1:], old.dtype)
+                new[:self.n] = old[:self.n]
+                setattr(self, a, new)

@@ -13,7 +13,7 @@ import numpy as np
 
 from dqpose import dq
 from dqpose import limits as _limits
-from dqpose._dqcore import store_plain
+from dqpose._dqcore import REFUSED_FLOOR, REFUSED_JUMP, REFUSED_TIME
 from dqpose.errors import WorldError
 from dqpose.fusion.alignment import (
     DEFAULT_MAX_EXTRAPOLATION,
@@ -24,7 +24,6 @@ from dqpose.fusion.alignment import (
 from dqpose.fusion.api import _Checked, _fuse_joint_rows, _fuse_world_rows, fuse
 from dqpose.fusion.bounds import TrackerBounds
 from dqpose.fusion.chi2 import DEFAULT_PROBABILITY, chi2_quantile
-from dqpose.fusion.jumps import Jumps
 from dqpose.fusion.results import DOF, Fused
 from dqpose.fusion.sources import Source, _sources, _to_world
 from dqpose.fusion.store import _Store
@@ -122,8 +121,11 @@ class Tracker:
     refused, and a measurement taken more than ``max_time_jump`` after its body's newest is
     refused without moving the body, unless the body's next such measurement confirms the jump
     (a clock that really moved, a body seen again after a pause): one stray stamp never poisons
-    a body. Rows may name their ``origin`` (a World's producer): who may confirm a jump is
-    :mod:`dqpose.fusion.jumps`'s.
+    a body. Rows may name their ``origin`` (a World's producer): a jump is confirmed by another
+    origin's measurement near it, or by its own while no other origin fed the body within
+    ``max_time_jump`` of its newest (a body seen again after a pause by the one camera that sees
+    it), so one producer's clock never takes a body away from the others feeding it. The rules
+    and the store's rows are the C's (service/csrc/store.h ``dq_store_ingest``).
     """
 
     def __init__(self, window: float, *, sources: Optional[Iterable[Source]] = None,
@@ -163,7 +165,10 @@ class Tracker:
         self._exact = np.empty(0, dtype=bool)
         self._all_exact = all(src.exact for src in self._table.values())
         self._count = 0            # measurements offered so far: the default ids
-        self._jumps = Jumps(bounds.max_time_jump if bounds is not None else math.inf)
+        # rows whose source has frames are brought to the world frame in NumPy (_in_world), the
+        # others by the store's C (unit poses, covariances as they are)
+        self._framed = any(src.body_offset is not None or src.extrinsic is not None
+                           for src in self._table.values())
         self.cap = None            # measurements a body's window holds (None: all)
         if bounds is not None:
             self.cap = bounds.cap(robust, bool(acceleration_psd is not None
@@ -230,7 +235,7 @@ class Tracker:
         s.keep(s.body[:s.n] != b)
         self._newest[b] = -math.inf
         self._by_source[b] = -math.inf
-        self._jumps.forget(b)
+        s._index.forget(b)
         del self._active[body]
 
     def add(self, *measurements: Measurement) -> None:
@@ -462,8 +467,10 @@ class Tracker:
 
     def _admit(self, bodies, sources, times, poses, covs, ids, ok, errors, offered: int,
                all_or_none: bool, origin=None):
-        """Checked measurements (``ok``; ``errors`` those refused so far) into the windows: the
-        limits' time checks, the window-floor check, then the store."""
+        """Checked measurements (``ok``; ``errors`` those refused so far) into the windows in one
+        C call (service/csrc/store.h ``dq_store_ingest``: the limits' time checks, the jump rule,
+        the window floor, the room, then the store), its refusals named here (:meth:`_refusal`).
+        """
         every = bool(ok.all())
         # known sources and bodies by plain look-ups (the common case), else coded on the way
         codes: Any = [self._codes.get(s) for s in sources] if every else [None]
@@ -474,152 +481,62 @@ class Tracker:
         if None in body:
             use = ok.tolist()
             body = [self._body_code(b) if u else 0 for u, b in zip(use, bodies)]
-        codes = np.array(codes, dtype=np.int64)
-        body = np.array(body, dtype=np.int64)
-        taken = times - (self._latency[codes] if self._names else 0.0)
-        newest = self._newest.copy()
-        b = self.bounds
-        # the common case in one C call: nothing to refuse (then newest holds these rows)
-        late: list = []
-        if not every or not store_plain(newest, body, times, taken, self.window,
-                                        math.inf if b is None else b.max_time,
-                                        math.inf if b is None else b.max_time_jump):
-            newest, late, every = self._refused(bodies, sources, times, body, taken, ok,
-                                                errors, origin)
-        if self.bounds is not None:
-            self._room(ok, errors)
-            every = every and bool(ok.all())
+        s, b = self._store, self.bounds
+        s.reserve(len(body), self._newest, self.window, self.cap)
+        wposes = wcovs = None
+        if self._framed and ok.any():
+            wposes, wcovs = self._in_world(sources, poses, covs, ok)
+        refused, fresh = s._index.ingest(
+            s, self._newest, self._by_source, self._latency, body, codes, ids, times, poses,
+            covs, ok, wposes, wcovs, self.window, -1 if self.cap is None else self.cap,
+            math.inf if b is None else b.max_time, math.inf if b is None else b.max_time_jump,
+            -1 if b is None else b.max_rows, None if origin is None else hash(origin),
+            all_or_none)
+        for k, code, x, y in refused:
+            errors[k] = self._refusal(k, code, x, y, bodies[k], sources[k], times[k])
         if all_or_none and errors:
             return [min(errors.items())]
         self._count += offered
-        if ok.all():
-            if every and not late:
-                self._newest = newest     # the maxima over these rows, taken above
-            else:
-                np.maximum.at(self._newest, body, taken)
-            self._store.append(self._newest, self.window, self.cap, ids=ids, body=body,
-                               codes=codes, times=times, taken=taken, poses=poses, covs=covs,
-                               **self._in_world(sources, poses, covs))
-            for b in bodies:
-                self._active.setdefault(b, None)
-        elif ok.any():
-            np.maximum.at(self._newest, body[ok], taken[ok])
-            kept = np.flatnonzero(ok).tolist()
-            self._store.append(self._newest, self.window, self.cap, ids=ids[ok], body=body[ok],
-                               codes=codes[ok], times=times[ok], taken=taken[ok],
-                               poses=poses[ok], covs=covs[ok],
-                               **self._in_world([sources[k] for k in kept], poses[ok], covs[ok]))
-            for k in kept:
+        if fresh:           # a body without measurements got some
+            for k in np.flatnonzero(ok).tolist():
                 self._active.setdefault(bodies[k], None)
-        if ok.all():
-            np.maximum.at(self._by_source, (body, codes), taken)
-        elif ok.any():
-            np.maximum.at(self._by_source, (body[ok], codes[ok]), taken[ok])
-        if origin is not None and ok.any():
-            self._jumps.fed(origin, body[ok], taken[ok])
         return sorted(errors.items())
 
-    def _refused(self, bodies, sources, times, body, taken, ok, errors, origin):
-        """The rows the limits' time checks and the window floor refuse (in ``ok`` and
-        ``errors``, each named): ``(newest with the others, the late rows, all still ok)``."""
-        if self.bounds is not None:
-            self._time_check(times, ok, errors)
-            self._jump_check(bodies, sources, times, body, taken, ok, errors, origin)
-        every = bool(ok.all())
-        # Taken no further back than the window before the body's newest, counting the earlier
-        # measurements of the same call: checked at once against the newest of the whole call,
-        # and only the rows that fail that (stricter) test one by one in order.
-        newest = self._newest.copy()
-        if every:
-            np.maximum.at(newest, body, taken)
-        else:
-            np.maximum.at(newest, body[ok], taken[ok])
-        late = np.flatnonzero(ok & (taken < newest[body] - self.window)).tolist()
-        for k in late:
-            floor = max([self._newest[body[k]]] + [
-                taken[j] for j in range(k) if ok[j] and body[j] == body[k]])
-            if taken[k] < floor - self.window:
-                ok[k] = False
-                errors[k] = WorldError(
-                    k, "", f"taken at {float(taken[k])!r}, {floor - taken[k]:.6g} s before the "
-                           f"newest measurement of the body, beyond the window {self.window:g} s",
-                    about=f"body {bodies[k]!r}, source {sources[k]!r}, time {float(times[k])!r}")
-        return newest, late, every
+    def _refusal(self, k: int, code: int, x: float, y: float, body, source,
+                 time) -> WorldError:
+        """Row ``k`` refused by the C check ``code`` (store.h's ``DQ_REFUSED_*``) with its
+        numbers ``x``, ``y``, as its text names it."""
+        about = f"body {body!r}, source {source!r}, time {float(time)!r}"
+        if code == REFUSED_TIME:
+            return WorldError(k, "time", _limits.beyond_time_text(x, y), "max_time")
+        if code == REFUSED_JUMP:
+            who = "" if y else " from another producer"
+            assert self.bounds is not None      # refused only by a tracker with bounds
+            return WorldError(k, "", _limits.over_text(
+                f"{about}: taken {x:.6g} s after the newest measurement of the body, so not used "
+                f"(a second measurement near it{who} would confirm the jump)", "max_time_jump",
+                self.bounds.max_time_jump), "max_time_jump")
+        if code == REFUSED_FLOOR:
+            return WorldError(k, "", f"taken at {x!r}, {y - x:.6g} s before the newest "
+                                     f"measurement of the body, beyond the window "
+                                     f"{self.window:g} s", about=about)
+        return WorldError(k, "", _limits.over_text(
+            f"the stream's windows hold {int(x)} measurements", "max_stream_measurements",
+            int(y)), "max_stream_measurements")
 
-    def _in_world(self, sources, poses, covs) -> dict:
-        """Checked rows in the world frame as :func:`~dqpose.fusion.fuse` brings them there (the
-        same operations on the same rows, so the same bits), for the store to keep: a fit then
-        reads them as they are (``wcovs`` only when a body offset moves the covariances)."""
+    def _in_world(self, sources, poses, covs, ok) -> tuple[np.ndarray, Optional[np.ndarray]]:
+        """The rows ``ok`` in the world frame as :func:`~dqpose.fusion.fuse` brings them there
+        (the same operations on the same rows, so the same bits), for the store to keep: a fit
+        then reads them as they are (the covariances only when a body offset moves them)."""
+        idx = None if ok.all() else np.flatnonzero(ok)
+        if idx is not None:
+            sources, poses, covs = [sources[k] for k in idx.tolist()], poses[idx], covs[idx]
         wposes, wcovs = _to_world(dq.normalize(poses), covs, tuple(sources), self._table)
-        return {"wposes": wposes, "wcovs": wcovs} if "wcovs" in self._store._arrays else {
-            "wposes": wposes}
-
-    def _time_check(self, times, ok, errors) -> None:
-        """Refuses (in ``ok`` and ``errors``) the rows stamped beyond ``+-max_time``: before the
-        jump check, so that no such time moves a body, first or confirmed."""
-        bounds = self.bounds
-        assert bounds is not None       # called only for a tracker with bounds
-        for k in np.flatnonzero(ok & (np.abs(times) > bounds.max_time)).tolist():
-            ok[k] = False
-            errors[k] = WorldError(k, "time", _limits.beyond_time_text(float(times[k]),
-                                                                       bounds.max_time),
-                                   "max_time")
-
-    def _jump_check(self, bodies, sources, times, body, taken, ok, errors, origin=None) -> None:
-        """Refuses (in ``ok`` and ``errors``) the rows taken more than ``max_time_jump`` after
-        their body's newest measurement, the earlier rows of the call counted (for a body new
-        to the stream, its earliest row of the call is the reference), unless the row confirms
-        the body's last refused jump by lying within ``max_time_jump`` of it (and by its
-        ``origin``, :class:`~dqpose.fusion.jumps.Jumps`)."""
-        bounds = self.bounds
-        assert bounds is not None       # called only for a tracker with bounds
-        jump = bounds.max_time_jump
-        ref = self._newest[body]
-        fresh = ~np.isfinite(ref)
-        if fresh.any():
-            first = np.full(len(self._newest), np.inf)
-            np.minimum.at(first, body[ok], taken[ok])
-            ref = np.where(fresh, first[body], ref)
-        ahead = np.flatnonzero(ok & (taken > ref + jump))
-        if not len(ahead):
-            return
-        suspects = set(body[ahead].tolist())
-        current: dict[int, float] = {}
-        for k in range(len(body)):
-            b = int(body[k])
-            if not ok[k] or b not in suspects:
-                continue
-            cur = current.get(b, float(ref[k]))
-            t = float(taken[k])
-            if t <= cur + jump:
-                current[b] = max(cur, t)
-                continue
-            if self._jumps.confirms(b, t, origin, cur):
-                current[b] = t          # a second measurement confirms it: the body moves on
-                continue
-            ok[k] = False
-            who = "" if self._jumps.alone(b, origin, cur) else " from another producer"
-            errors[k] = WorldError(k, "", _limits.over_text(
-                f"body {bodies[k]!r}, source {sources[k]!r}, time {float(times[k])!r}: taken "
-                f"{t - cur:.6g} s after the newest measurement of the body, so not used (a "
-                f"second measurement near it{who} would confirm the jump)", "max_time_jump",
-                jump), "max_time_jump")
-
-    def _room(self, ok, errors) -> None:
-        """Refuses the rows that would take the stream past ``max_rows`` live measurements
-        (those out of their window dropped first)."""
-        bounds = self.bounds
-        assert bounds is not None       # called only for a tracker with bounds
-        s, cap = self._store, bounds.max_rows
-        k = int(np.count_nonzero(ok))
-        if s.n + k <= cap:
-            return
-        s.keep(s.live(self._newest, self.window, self.cap))
-        over = s.n + k - cap
-        if over <= 0:
-            return
-        for j in np.flatnonzero(ok)[k - over:].tolist():
-            ok[j] = False
-            errors[j] = WorldError(j, "", _limits.over_text(
-                f"the stream's windows hold {s.n} measurements", "max_stream_measurements", cap),
-                "max_stream_measurements")
+        if idx is not None:
+            full = np.zeros((len(ok), 8))
+            full[idx] = wposes
+            wposes = full
+            fullc = np.zeros((len(ok), DOF, DOF))
+            fullc[idx] = wcovs
+            wcovs = fullc
+        return wposes, wcovs if "wcovs" in self._store._arrays else None

@@ -51,24 +51,30 @@ def test_its_refusals_name_the_argument():
         x.live(np.array([0.0]), np.zeros(4), 1.0, -1, 2)
 
 
-def test_a_plain_request_is_one_with_nothing_to_refuse():
-    from dqpose._dqcore import store_plain
+def test_ingest_refuses_columns_and_codes_it_cannot_write():
+    from dqpose.fusion.store import _Store
+    s = _Store(capacity=4)
+    newest, seen, latency = np.full(2, -np.inf), np.full((2, 1), -np.inf), np.zeros(1)
 
-    def plain(newest, body, times, window=1.0, max_time=100.0, jump=5.0):
-        newest = np.array(newest, np.float64)
-        t = np.array(times, np.float64)
-        return store_plain(newest, np.array(body, np.int64), t, t - 0.0, window, max_time,
-                           jump), newest
+    def ingest(store=s, body=(0,), ok=None, newest=newest):
+        m = len(body)
+        return store._index.ingest(
+            store, newest, seen, latency, np.array(body, np.int64), np.zeros(m, np.int64),
+            np.arange(m), np.zeros(m), np.tile(np.eye(1, 8)[0], (m, 1)),
+            np.tile(np.eye(6), (m, 1, 1)), np.ones(m, bool) if ok is None else ok, None, None,
+            1.0, -1, np.inf, np.inf, -1, None, False)
 
-    ok, newest = plain([0.0, -np.inf], [0, 1, 1], [0.5, 3.0, 3.2])
-    assert ok and newest.tolist() == [0.5, 3.2]
-    # a new body's rows of one call: its earliest is the reference of the jump rule
-    assert not plain([0.0, -np.inf], [1, 1], [3.0, 8.5])[0]
-    assert not plain([0.0], [0], [5.5])[0]                          # a jump
-    assert not plain([0.0], [0], [101.0], jump=1e9)[0]             # past max_time
-    assert not plain([0.0], [0, 0], [2.0, 0.9])[0]                  # late: 1.1 s before 2.0
-    assert plain([0.0], [0, 0], [2.0, 1.0])[0]                      # exactly the window: kept
-    assert not plain([0.0], [1], [0.0])[0]                          # a body beyond newest
-    with pytest.raises(ValueError, match="^newest: expected a writeable contiguous float64"):
-        store_plain(np.zeros(3, np.float32), np.zeros(1, np.int64), np.zeros(1), np.zeros(1),
-                    1.0, 1.0, 1.0)
+    with pytest.raises(ValueError, match="^rows: a code out of range"):
+        ingest(body=(2,))                                   # no such body in newest
+    with pytest.raises(ValueError, match="^rows: a code out of range, or the store's columns"):
+        ingest(body=(0,) * 5)                               # 5 rows, room for 4
+    assert s.n == 0
+    with pytest.raises(ValueError, match="^ok: expected a writeable contiguous 1-d array"):
+        ingest(ok=np.ones(1, np.int8))
+    with pytest.raises(ValueError, match="^newest: expected a writeable contiguous 1-d array"):
+        ingest(newest=np.zeros(2, np.float32))
+    short = _Store(capacity=4)
+    short.taken = np.zeros(3)
+    with pytest.raises(ValueError, match="^store.taken: expected a writeable contiguous column"):
+        ingest(store=short)
+    assert ingest() == ([], True) and s.n == 1 and newest.tolist() == [0.0, -np.inf]

@@ -15,6 +15,20 @@ def _scan(s: _Store, b: int, newest, window: float, cap=None) -> np.ndarray:
     return rows if cap is None or len(rows) <= cap else rows[len(rows) - cap:]
 
 
+def _append(s: _Store, newest, window: float, body, taken) -> None:
+    """Rows of ``body`` taken at ``taken`` into ``s`` as a tracker without bounds takes them
+    (``_index.ingest``, newest updated), every one taken in."""
+    m = len(body)
+    s.reserve(m, newest, window)
+    ok = np.ones(m, bool)
+    refused, _ = s._index.ingest(
+        s, newest, np.full((len(newest), 1), -np.inf), np.zeros(1), np.asarray(body, np.int64),
+        np.zeros(m, np.int64), np.arange(m), taken, np.tile(np.eye(1, 8)[0], (m, 1)),
+        np.tile(np.eye(6), (m, 1, 1)), ok, None, None, window, -1, np.inf, np.inf, -1, None,
+        False)
+    assert not refused and ok.all()
+
+
 def test_rows_by_index_equal_a_scan_through_growth_compaction_and_removal():
     rng = np.random.default_rng(0)
     s = _Store(capacity=8)
@@ -27,10 +41,7 @@ def test_rows_by_index_equal_a_scan_through_growth_compaction_and_removal():
         body = rng.integers(0, bodies, m)
         taken = t + rng.uniform(-0.3, 0.0, m)        # out of order within the window
         t += 0.01
-        np.maximum.at(newest, body, taken)
-        s.append(newest, window, None, ids=np.arange(m), body=body, codes=np.zeros(m, int),
-                 times=taken, taken=taken, poses=np.zeros((m, 8)), covs=np.zeros((m, 6, 6)),
-                 wposes=np.zeros((m, 8)))
+        _append(s, newest, window, body, taken)
         if step == 250:
             s.keep(s.body[:s.n] != 3)                 # a body removed
             newest[3] = -np.inf
@@ -51,10 +62,7 @@ def test_rows_taken_since_a_time_by_the_running_maximum_equal_a_scan():
         # mostly in order, some rows late by up to a second
         taken = step * 0.01 - rng.exponential(0.02, m) * (rng.random(m) < 0.9) \
             - rng.uniform(0, 1.0, m) * (rng.random(m) < 0.1)
-        np.maximum.at(newest, body, taken)
-        s.append(newest, 2.0, None, ids=np.arange(m), body=body, codes=np.zeros(m, int),
-                 times=taken, taken=taken, poses=np.zeros((m, 8)), covs=np.zeros((m, 6, 6)),
-                 wposes=np.zeros((m, 8)))
+        _append(s, newest, 2.0, body, taken)
         for b in range(3):
             lo = newest[b] - rng.uniform(0, 2.5)
             scan = np.flatnonzero((s.body[:s.n] == b) & (s.taken[:s.n] >= lo))

@@ -1,4 +1,6 @@
 """dqpose.fusion.tracker: the per-body sliding window of a live stream."""
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -267,44 +269,53 @@ def test_rows_checked_in_c_answer_as_numpy_does_each_row():
     assert ok[:9].tolist() == [True] + [False] * 7 + [True] and ok[9:].sum() >= 2
 
 
-def test_the_c_check_of_a_plain_request_takes_in_what_the_python_checks_do(monkeypatch):
-    """store_plain (C) decides a request has nothing to refuse, else the Python checks name
-    each refusal: trackers fed the same random requests (late rows, jumps confirmed or not, times
-    past max_time, new bodies), one with the C check and one without, refuse the same rows with
-    the same texts and hold the same rows, bit for bit."""
-    from dqpose.fusion import tracker as tracker_module
-    rng = np.random.default_rng(11)
-    bounds = TrackerBounds.of(limits.Limits(max_time_jump=2.0, max_time=7.9))
-    made = [Tracker(0.5, sources=[Source("cam", latency=0.01)], bounds=bounds) for _ in range(2)]
-    plain = tracker_module.store_plain
-    said = {True: 0, False: 0}
+def _jumpy(max_rows=100_000) -> Tracker:
+    bounds = TrackerBounds.of(limits.Limits(max_time_jump=2.0, max_time=50.0))
+    return Tracker(10.0, sources=[Source("cam", latency=0.5)],
+                   bounds=dataclasses.replace(bounds, max_rows=max_rows))
 
-    def c_check(*a):
-        verdict = plain(*a)
-        said[verdict] += 1
-        return verdict
 
-    ident = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
-    t, refused = 0.0, 0
-    for step in range(400):
-        m = int(rng.choice([1, 3, 12]))
-        bodies = [f"b{k}" for k in rng.integers(0, 6, m)]
-        times = t + rng.uniform(-0.1, 0.05, m)
-        odd = rng.random(m)
-        times = np.where(odd < 0.01, times - 1.0, times)             # late
-        times = np.where((odd > 0.99) & (odd < 0.997), times + 5.0, times)  # jumps
-        times = np.where(odd >= 0.998, times + 100.0, times)        # past max_time
-        t += 0.02
-        got = []
-        for k, tr in enumerate(made):
-            monkeypatch.setattr(tracker_module, "store_plain",
-                                c_check if k == 0 else (lambda *a: False))
-            got.append(tr.ingest(bodies, ["cam"] * m, times, np.tile(ident, (m, 1)),
-                                 np.tile(np.eye(6) * 1e-4, (m, 1, 1))))
-        assert [(i, str(e)) for i, e in got[0]] == [(i, str(e)) for i, e in got[1]], step
-        a, b = (tr._store for tr in made)
-        assert a.n == b.n and np.array_equal(a.taken[:a.n], b.taken[:b.n]), step
-        assert made[0]._newest.tobytes() == made[1]._newest.tobytes(), step
-        refused += len(got[0])
-    # both paths taken, and refusals of every kind met (the last requests past max_time)
-    assert said[True] > 100 and said[False] > 20 and refused > 20
+def _fed(t: Tracker, times, origin=None, body="box") -> list[str]:
+    n = len(times)
+    return [f"{k}: {e}" for k, e in t.ingest([body] * n, ["cam"] * n, np.array(times, float),
+                                              np.tile([1.0, 0, 0, 0, 0, 0, 0, 0], (n, 1)),
+                                              np.tile(np.eye(6), (n, 1, 1)), origin=origin)]
+
+
+def test_a_jump_waits_for_a_second_measurement_from_whoever_may_confirm_it():
+    """The jump rule (service/csrc/store.c dq_store_ingest): a row taken more than max_time_jump
+    after its body's newest (earlier rows of the call counted) is refused without moving the
+    body, its text naming how far; the next one near it confirms it, from another origin, or
+    from the same one only while no other origin fed the body within the limit."""
+    t = _jumpy()
+    assert _fed(t, [1.0, 2.0], "a") == []
+    assert t.newest("box") == 1.5                       # stamp less the source's latency
+    one = _fed(t, [6.0], "a")
+    assert one == ["0: measurements[0]: body 'box', source 'cam', time 6.0: taken 4 s after "
+                   "the newest measurement of the body, so not used (a second measurement near "
+                   "it would confirm the jump), over the server's limit max_time_jump = 2 s "
+                   "(dqpose serve --max-time-jump)"] and t.newest("box") == 1.5
+    assert _fed(t, [6.5], "a") == [] and t.newest("box") == 6.0     # a's own: alone, confirmed
+    assert _fed(t, [6.6], "b") == []                    # b feeds the body now
+    said = _fed(t, [12.0], "a")                         # a's jump, b fed lately
+    assert said and "near it from another producer would confirm" in said[0]
+    assert _fed(t, [12.1], "a") and t.newest("box") == 6.1          # a cannot confirm it
+    assert _fed(t, [12.2], "b") == [] and t.newest("box") == 11.7   # b can
+    # in one call: the earlier rows count, for the jump and for the window floor
+    assert _fed(t, [13.0, 15.0, 14.9], "b") == [] and t.newest("box") == 14.5
+    # a body new to the stream: its earliest row of the call is the reference
+    assert [e[:2] for e in _fed(t, [1.0, 1.5, 9.0], "a", "new")] == ["2:"]
+    # a stream's rows (no origin) confirm their own jumps
+    s = _jumpy()
+    assert _fed(s, [1.0]) == [] and _fed(s, [9.0]) and _fed(s, [9.1]) == []
+    assert s.newest("box") == 8.6
+
+
+def test_times_beyond_max_time_and_past_the_stream_room_are_refused_by_name():
+    t = _jumpy(max_rows=4)
+    assert _fed(t, [60.0, 1.0]) == ["0: measurements[0].time: 60 s is beyond +-50 s, over the "
+                                    "server's limit max_time = 50 s (dqpose serve --max-time)"]
+    assert _fed(t, [1.1, 1.2, 1.3, 1.4]) == [
+        "3: measurements[3]: the stream's windows hold 1 measurements, over the server's limit "
+        "max_stream_measurements = 4 measurements (dqpose serve --max-stream-measurements)"]
+    assert t.count("box") == 4
