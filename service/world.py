@@ -27,7 +27,6 @@ from typing import Mapping, NamedTuple, Optional, Sequence
 
 import numpy as np
 
-from dqpose import dq
 from dqpose import limits as _limits
 from dqpose.answers import Kept
 from dqpose.errors import NotFound, OutOfRange, WorldError
@@ -40,11 +39,11 @@ from dqpose.fusion import (
     Tracker,
 )
 from dqpose.fusion.bounds import TrackerBounds
-from dqpose.fusion.extrinsics import _relative_covariance
-from dqpose.fusion.results import DOF, _frozen
+from dqpose.fusion.results import DOF
 from dqpose.fusion.sources import _sources
 from dqpose.fusion.tracker import _arrays
 from dqpose.fusion.validation import _finite_shape, _seconds
+from dqpose.lookup import Lookups
 from dqpose.names import name_problem, quoted
 from dqpose.readwrite import ReadWrite
 from dqpose.world_bounds import DEFAULT as DEFAULT_BOUNDS
@@ -146,6 +145,7 @@ class World:
         self._named: set = set()          # the configured sources and those that fed a body
         self._fits = Kept()
         self._relatives = Kept()
+        self._lookups = Lookups(self)
         self.configure(sources=sources, arms=arms, options=options)
 
     def configure(self, *, sources: Sequence[Source], arms: Mapping[str, str],
@@ -429,10 +429,17 @@ class World:
     def _pose_only(self, body: str, at: float) -> tuple[np.ndarray, np.ndarray]:
         """The known ``body``'s pose and covariance at the checked time ``at`` (the lock held),
         as :meth:`_fit` would give them: a kept fit's, else only those (``pose_rows``)."""
+        kept = self._kept_pose(body, at)
+        if kept is not None:
+            return kept
+        return self._fitted(body, at, lambda rows: self._t.pose_rows(rows, at))
+
+    def _kept_pose(self, body: str, at: float) -> Optional[tuple[np.ndarray, np.ndarray]]:
+        """A kept fit's pose and covariance of ``body`` at ``at`` if it is current, else None."""
         hit = self._fits.get((body, at, self._end(body, at)))
         if hit is not None and hit[0] == self._version.get(body, 0):
             return hit[1].mean, hit[1].covariance
-        return self._fitted(body, at, lambda rows: self._t.pose_rows(rows, at))
+        return None
 
     def _at(self, body: str, time: Optional[float]) -> float:
         """The time of a fit of ``body`` (checked to be known; "" the world frame): ``time``
@@ -500,7 +507,7 @@ class World:
         """``T_target_source`` at ``time`` (0: the newest time both are known at); "" is the
         world frame. Bodies that share a source with an ``extrinsic_covariance`` or an estimated
         latency are fitted together (one error per such source), so the covariance has their
-        cross-covariance."""
+        cross-covariance (:mod:`dqpose.lookup`)."""
         target, source = _body_name(target, "target"), _body_name(source, "source")
         with self._lock.read():
             for b in (target, source):
@@ -524,24 +531,7 @@ class World:
             hit = self._relatives.get(key)
             if hit is not None and hit[0] == versions:
                 return hit[1]
-            if not target:      # the world frame is exact: the body's own pose
-                answer = BodyPose(source, at, *self._pose_only(source, at), None)
-            elif not source or self._t.exact:
-                # nothing uncertain that two bodies could share: each body's own pose
-                answer = _composed(target, source, at,
-                                   {b: self._pose_only(b, at) for b in (target, source) if b})
-            elif self._share(target, source, at):
-                # each body's start for the joint fit: its constant-twist fit, unless robust
-                # (the gate's inliers need the whole fit); kept apart from the body's own fits
-                rows = [self._rows_for(b, at) for b in (target, source)]
-                fits = [self._fit_of(b, r, lambda r: self._t.start_rows(r, at))
-                        for b, r in zip((target, source), rows)]
-                (Xa, Xb), P = self._t.joint(rows, fits, at)
-                answer = BodyPose(source, at, _frozen(dq.mul(dq.conj(Xa), Xb)),
-                                  _frozen(_relative_covariance(Xa, Xb, P)), None)
-            else:
-                answer = _composed(target, source, at,
-                                   {b: self._pose_only(b, at) for b in (target, source)})
+            answer = self._lookups.relative(target, source, at)
             self._relatives.keep(key, (versions, answer))
             return answer
 
@@ -553,15 +543,6 @@ class World:
         equal (no measurement of those bodies, no configuration came in)."""
         version = self._version
         return (self._generation,) + tuple(version.get(b, 0) for b in bodies)
-
-    def _share(self, a: str, b: str, at: float) -> bool:
-        """Whether bodies ``a`` and ``b`` have measurements in their windows of a Lookup at
-        ``at`` from a common source whose extrinsic is uncertain or whose latency is estimated
-        (errors the two poses then share)."""
-        t, window = self._t, self.options.window
-        common = (t.sources_of(t.rows_ending(a, self._end(a, at), window))
-                  & t.sources_of(t.rows_ending(b, self._end(b, at), window)))
-        return any(not t._table[s].exact for s in common if s in t._table)
 
     def arm_base(self, arm: str) -> BodyPose:
         """``T_world_base`` of ``arm``: the extrinsic of the source ``arms`` names, with its
@@ -583,18 +564,3 @@ def _published(bodies, errors: Mapping[int, WorldError]) -> Published:
     touched = dict.fromkeys(b for k, b in enumerate(bodies) if k not in errors)
     return Published(len(bodies) - len(errors), tuple(errors[k] for k in sorted(errors)),
                      tuple(touched))
-
-
-def _composed(target: str, source: str, at: float,
-              poses: Mapping[str, tuple[np.ndarray, np.ndarray]]) -> BodyPose:
-    """``T_target_source`` composed of the two bodies' own poses and covariances (``poses``),
-    as if their errors were independent (the world frame "" is exact): the answer when they
-    share no uncertain extrinsic, and the comparison the benchmark shows when they do."""
-    ident = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
-    zero = np.zeros((DOF, DOF))
-    Xa, Pa = poses[target] if target else (ident, zero)
-    Xb, Pb = poses[source] if source else (ident, zero)
-    P = np.zeros((2 * DOF, 2 * DOF))
-    P[:DOF, :DOF], P[DOF:, DOF:] = Pa, Pb
-    return BodyPose(source, at, _frozen(dq.mul(dq.conj(Xa), Xb)),
-                    _frozen(_relative_covariance(Xa, Xb, P)), None)

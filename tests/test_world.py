@@ -11,6 +11,7 @@ from dqpose import dq, fusion, handeye, lie
 from dqpose.fusion import Measurement, Source
 from dqpose.fusion.alignment import _Start
 from dqpose.fusion.extrinsics import _relative_covariance
+from dqpose.lookup import _composed
 from dqpose.world import (
     NotFound,
     OutOfRange,
@@ -18,7 +19,6 @@ from dqpose.world import (
     WorldBounds,
     WorldError,
     WorldOptions,
-    _composed,
 )
 from tests import _handeye
 from tests.fusion._scenes import random_cov, random_pose
@@ -55,9 +55,17 @@ def fuse_of(ms, body, time, window, sources, **kw):
                        time=time, sources=sources, **kw)
 
 
+def same_fit(pose, covariance, mean, cov) -> None:
+    """A Lookup's pose and covariance are those of the fit ``(mean, cov)`` to within what the
+    fit's tol (1e-12 on a step) leaves: a Lookup's fit may start elsewhere (its warm start,
+    service/lookup.py), so its last bits are not pinned."""
+    np.testing.assert_allclose(pose, mean, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(covariance, cov, rtol=0, atol=1e-8 * np.abs(cov).max())
+
+
 def test_a_lookup_leaves_out_the_nis_and_a_pose_still_has_them():
-    """A Lookup (``relative``) answers a body's fit without its leave-one-out NIS, to the last
-    bit the pose and covariance fuse gives; ``pose`` afterwards (what a Subscribe answer
+    """A Lookup (``relative``) answers a body's fit without its leave-one-out NIS, the pose and
+    covariance fuse gives (to within its tol); ``pose`` afterwards (what a Subscribe answer
     carries) has fuse's NIS and verdicts, not the Lookup's fit kept without them."""
     rng = np.random.default_rng(11)
     sources = [Source(f"cam{k}", random_pose(rng)) for k in range(2)]
@@ -69,8 +77,7 @@ def test_a_lookup_leaves_out_the_nis_and_a_pose_still_has_them():
     assert f.tested.any()
     looked = world.relative("", "box")
     assert looked.time == at
-    assert looked.pose.tobytes() == f.mean.tobytes()
-    assert looked.covariance.tobytes() == f.covariance.tobytes()
+    same_fit(looked.pose, looked.covariance, f.mean, f.covariance)
     p = world.pose("box")
     assert p.fused is not None
     np.testing.assert_array_equal(p.fused.nis, f.nis)
@@ -96,10 +103,10 @@ _LOOKUP_CASES = {
 
 
 @pytest.mark.parametrize("case", list(_LOOKUP_CASES))
-def test_a_lookup_of_a_body_is_fuses_pose_and_covariance_bit_for_bit_whichever_fit_runs(case):
+def test_a_lookup_of_a_body_is_fuses_pose_and_covariance_whichever_fit_runs(case):
     """A Lookup of one body computes its pose and covariance alone where the constant-twist fit
-    applies, and through the full fit where another one does: either way the same bits as
-    fuse's, and as the body's pose afterwards."""
+    applies (in C, to within its tol), and through the full fit where another one does (the
+    same bits): either way fuse's, and the body's pose afterwards is fuse's bit for bit."""
     source_kw, option_kw = _LOOKUP_CASES[case]
     rng = np.random.default_rng(12)
     sources = [Source("cam0", random_pose(rng), latency=0.02),
@@ -116,16 +123,18 @@ def test_a_lookup_of_a_body_is_fuses_pose_and_covariance_bit_for_bit_whichever_f
         mine = [m for m in ms if end - 0.3 <= m.time - latency[m.source] <= end]
         f = fuse_of(mine, "box", at, np.inf, sources, **option_kw)
         looked = world.relative("", "box", at)
-        assert looked.pose.tobytes() == f.mean.tobytes()
-        assert looked.covariance.tobytes() == f.covariance.tobytes()
+        same_fit(looked.pose, looked.covariance, f.mean, f.covariance)
+        if "robust" in option_kw or "max_skew" in option_kw or "acceleration_psd" in option_kw:
+            assert looked.pose.tobytes() == f.mean.tobytes()
+            assert looked.covariance.tobytes() == f.covariance.tobytes()
         assert world.pose("box", at).covariance.tobytes() == f.covariance.tobytes()
 
 
 @pytest.mark.parametrize("uncertain", [False, True])
-def test_a_lookup_between_bodies_that_share_no_error_composes_their_poses_bit_for_bit(uncertain):
+def test_a_lookup_between_bodies_that_share_no_error_composes_their_poses(uncertain):
     """Two bodies whose sources share no uncertain extrinsic or latency: the relative pose is
-    the composition of the two bodies' poses, the same bits whether every source of the world is
-    exact (each body's pose alone) or another body's camera is uncertain (the full fits)."""
+    the composition of the two bodies' poses (to within the fit's tol), whether every source of
+    the world is exact or another body's camera is uncertain."""
     rng = np.random.default_rng(14)
     sources = [Source("cam0", random_pose(rng), latency=0.02),
                Source("cam1", random_pose(rng), latency=0.01),
@@ -139,8 +148,7 @@ def test_a_lookup_between_bodies_that_share_no_error_composes_their_poses_bit_fo
     r = world.relative("box", "cup")
     poses = {b: (p.pose, p.covariance) for b, p in ((b, world.pose(b, at)) for b in ("box", "cup"))}
     c = _composed("box", "cup", at, poses)
-    assert r.pose.tobytes() == c.pose.tobytes()
-    assert r.covariance.tobytes() == c.covariance.tobytes()
+    same_fit(r.pose, r.covariance, c.pose, c.covariance)
 
 
 def test_a_lookup_of_one_instant_and_out_of_range_answers_as_the_full_fit():
@@ -456,8 +464,7 @@ def test_relative_is_the_inverse_and_world_frame_composition():
                                rtol=0, atol=1e-9 * np.abs(ba.covariance).max())
     wa = world.relative("", "a")
     pa = world.pose("a")
-    assert wa.pose.tobytes() == pa.pose.tobytes()
-    np.testing.assert_allclose(wa.covariance, pa.covariance, rtol=1e-12)
+    same_fit(wa.pose, wa.covariance, pa.pose, pa.covariance)
     for t, s in (("", ""), ("a", "a")):
         same = world.relative(t, s, 1.0)
         assert same.pose.tolist() == [1, 0, 0, 0, 0, 0, 0, 0] and not same.covariance.any()

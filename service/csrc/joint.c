@@ -483,7 +483,7 @@ int dq_joint_fit(const double *z, const double *cov, const unsigned char *inlier
     int rc = joint_blocks(&c, cov, bad);
     if (rc) return rc;
     double *X = st->X, *V = st->V, *L = st->L, *Ehat = st->Ehat;
-    memcpy(Ehat, m->E, sizeof(double) * 8 * m->m);
+    if (!st->ehat_given) memcpy(Ehat, m->E, sizeof(double) * 8 * m->m);
     double total = joint_extrinsics(&c, Ehat) + joint_evaluate(&c, X, V, L, 1) +
                    joint_prior_cost(&c, V, L);
     joint_fit f = {&c, ext, X, V, L, Ehat, Xn, Vn, Ln, En, H, g, Lh, dh};

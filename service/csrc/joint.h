@@ -48,13 +48,14 @@ typedef struct {
     double *X;       /* parts x 8 */
     double *V;       /* parts x 6 */
     double *L;       /* k */
-    double *Ehat;    /* m x 8 (out only) */
+    double *Ehat;    /* m x 8: out; in too with ehat_given (else the fit starts at E) */
     double *H;       /* dim x dim: the information at the estimate, priors included */
     double *P;       /* dim x dim: H^-1, symmetric */
     double *g;       /* dim: the gradient at the estimate (the step's right-hand side) */
     double chi2;     /* the inliers' cost and the priors' */
     int status;      /* a dq_fuse_status */
     int iterations;
+    int ehat_given;  /* Ehat is where the fit starts (a warm start), not E */
 } dq_joint_state;
 
 /* Per-measurement outputs at the estimate (N each); any may be NULL. */

@@ -218,7 +218,7 @@ PyObject *py_joint_fit(PyObject *self, PyObject *args)
     dq_joint_state st = {PyArray_DATA(outs[O_X]), PyArray_DATA(outs[O_V]),
                          PyArray_DATA(outs[O_L]), PyArray_DATA(outs[O_E]),
                          PyArray_DATA(outs[O_H]), PyArray_DATA(outs[O_P]),
-                         PyArray_DATA(outs[O_G]), 0.0, 0, 0};
+                         PyArray_DATA(outs[O_G]), 0.0, 0, 0, 0};
     dq_joint_outputs per = {PyArray_DATA(outs[O_DT]), PyArray_DATA(outs[O_R]),
                             PyArray_DATA(outs[O_COST]),
                             outs[O_JAC] ? PyArray_DATA(outs[O_JAC]) : NULL,

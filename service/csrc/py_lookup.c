@@ -1,0 +1,163 @@
+/*
+ * py_lookup.c — _dqcore.lookup, lookup.h's Lookup on a store's columns and its sources' table
+ * (service/lookup.py prepares them), the GIL released for the fits. Rows and codes are checked
+ * against the arrays here; the columns are the store's, checked when they came in.
+ */
+#include "py_args.h"
+
+#include <math.h>
+#include <string.h>
+
+#include "dq.h"
+#include "lookup.h"
+#include "py_functions.h"
+
+enum { A_POSES, A_COVS, A_TIMES, A_CODES, A_LAT, A_LATW, A_E, A_EINFO, A_UNC, A_ROWS_A,
+       A_ROWS_B, A_TWIST, A_WARM_A, A_WARM_B, A_L, A_EHAT, A_COUNT };
+
+static const char *const names[A_COUNT] = {
+    "poses", "covariances", "times", "codes", "latency", "latency_information", "extrinsics",
+    "extrinsic_information", "uncertain", "rows_a", "rows_b", "twist_information", "warm_a",
+    "warm_b", "latencies", "extrinsic_starts"};
+
+/* Trailing shapes (-1: the leading dimension, any; -2: ncodes); None allowed where optional. */
+static const int types[A_COUNT] = {NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE, NPY_INT64, NPY_DOUBLE,
+                                   NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE, NPY_BOOL, NPY_INT64,
+                                   NPY_INT64, NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE, NPY_DOUBLE,
+                                   NPY_DOUBLE};
+static const int nds[A_COUNT] = {2, 3, 1, 1, 1, 1, 2, 3, 1, 1, 1, 2, 1, 1, 1, 2};
+static const npy_intp shapes[A_COUNT][3] = {
+    {-1, 8}, {-1, 6, 6}, {-1}, {-1}, {-2}, {-2}, {-2, 8}, {-2, 6, 6}, {-2}, {-1}, {-1},
+    {6, 6}, {15}, {15}, {-2}, {-2, 8}};
+static const int optional[A_COUNT] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 1, 0, 0};
+
+static int lookup_arrays(PyObject **o, PyArrayObject **a)
+{
+    npy_intp nc = -1;
+    for (int j = 0; j < A_COUNT; j++) {
+        if (optional[j] && o[j] == Py_None) continue;
+        a[j] = (PyArrayObject *)PyArray_FROM_OTF(o[j], types[j], NPY_ARRAY_IN_ARRAY);
+        if (!a[j]) return -1;
+        int ok = PyArray_NDIM(a[j]) == nds[j];
+        for (int d = 0; ok && d < nds[j]; d++) {
+            const npy_intp want = shapes[j][d], got = PyArray_DIMS(a[j])[d];
+            if (want == -2 && nc < 0) nc = got;
+            ok = want == -1 || got == (want == -2 ? nc : want);
+        }
+        if (!ok) {
+            PyErr_Format(PyExc_ValueError, "%s: not of the shape the store's columns give",
+                         names[j]);
+            return -1;
+        }
+    }
+    const npy_intp rows = PyArray_DIMS(a[A_TIMES])[0];
+    if (PyArray_DIMS(a[A_POSES])[0] < rows || PyArray_DIMS(a[A_COVS])[0] < rows ||
+        PyArray_DIMS(a[A_CODES])[0] < rows) {
+        PyErr_SetString(PyExc_ValueError, "poses: fewer rows than times");
+        return -1;
+    }
+    const npy_int64 *codes = PyArray_DATA(a[A_CODES]);
+    for (int side = A_ROWS_A; side <= A_ROWS_B; side++) {
+        if (!a[side]) continue;
+        const npy_int64 *r = PyArray_DATA(a[side]);
+        for (npy_intp i = 0; i < PyArray_DIMS(a[side])[0]; i++)
+            if (r[i] < 0 || r[i] >= rows || codes[r[i]] < 0 || codes[r[i]] >= nc) {
+                PyErr_Format(PyExc_ValueError, "%s[%zd]: %lld is not a row of the store",
+                             names[side], (Py_ssize_t)i, (long long)r[i]);
+                return -1;
+            }
+    }
+    return 0;
+}
+
+static void body_in(PyArrayObject *rows, PyArrayObject *warm, dq_lookup_body *b)
+{
+    memset(b, 0, sizeof *b);
+    if (!rows) return;
+    b->rows = PyArray_DATA(rows);
+    b->n = (size_t)PyArray_DIMS(rows)[0];
+    if (warm) {
+        const double *w = PyArray_DATA(warm);
+        b->warm = dq_finite_n(w, 15);
+        b->t0 = w[0];
+        memcpy(b->X, w + 1, 8 * sizeof(double));
+        memcpy(b->V, w + 9, 6 * sizeof(double));
+    }
+}
+
+static PyObject *body_out(const dq_lookup_body *b)
+{
+    if (!b->n) Py_RETURN_NONE;
+    npy_intp n = 15;
+    PyArrayObject *w = (PyArrayObject *)PyArray_SimpleNew(1, &n, NPY_DOUBLE);
+    if (!w) return NULL;
+    double *d = PyArray_DATA(w);
+    d[0] = b->t0;
+    memcpy(d + 1, b->X, 8 * sizeof(double));
+    memcpy(d + 9, b->V, 6 * sizeof(double));
+    return (PyObject *)w;
+}
+
+/* lookup(poses, covariances, times, codes, latency, latency_information, extrinsics,
+ * extrinsic_information, uncertain, rows_a, rows_b, twist_information, warm_a, warm_b,
+ * latencies, extrinsic_starts, at, max_extrapolation, tol, max_iter) -> None (another path's
+ * Lookup) or (pose, covariance, warm_a, warm_b, latencies, extrinsic_starts, shared):
+ * lookup.h's dq_lookup of T_a^-1 T_b, a the target's rows (None: the world frame), b the
+ * source's. warm_*: [t0, X (8), V (6)] or None; latencies and extrinsic_starts by source code
+ * (NaN: none), copied and returned with the fitted ones. */
+PyObject *py_lookup(PyObject *self, PyObject *args)
+{
+    PyObject *o[A_COUNT];
+    double at, max_extrapolation;
+    dq_fuse_params p = {1e-12, 100};
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOOOOOdddi:lookup", &o[0], &o[1], &o[2], &o[3],
+                          &o[4], &o[5], &o[6], &o[7], &o[8], &o[9], &o[10], &o[11], &o[12],
+                          &o[13], &o[14], &o[15], &at, &max_extrapolation, &p.tol, &p.max_iter))
+        return NULL;
+    if (check_iteration(p.tol, p.max_iter) < 0) return NULL;
+    PyArrayObject *a[A_COUNT] = {NULL}, *L = NULL, *Ehat = NULL, *pose = NULL, *cov = NULL;
+    PyObject *result = NULL;
+    if (lookup_arrays(o, a) < 0) goto done;
+    L = (PyArrayObject *)PyArray_NewCopy(a[A_L], NPY_CORDER);
+    Ehat = (PyArrayObject *)PyArray_NewCopy(a[A_EHAT], NPY_CORDER);
+    npy_intp d8 = 8, d66[2] = {6, 6};
+    pose = (PyArrayObject *)PyArray_SimpleNew(1, &d8, NPY_DOUBLE);
+    cov = (PyArrayObject *)PyArray_SimpleNew(2, d66, NPY_DOUBLE);
+    if (!L || !Ehat || !pose || !cov) goto done;
+    const dq_lookup_store s = {PyArray_DATA(a[A_POSES]), PyArray_DATA(a[A_COVS]),
+                               PyArray_DATA(a[A_TIMES]), PyArray_DATA(a[A_CODES]),
+                               (size_t)PyArray_DIMS(a[A_LAT])[0], PyArray_DATA(a[A_LAT]),
+                               PyArray_DATA(a[A_LATW]), PyArray_DATA(a[A_E]),
+                               PyArray_DATA(a[A_EINFO]), PyArray_DATA(a[A_UNC])};
+    dq_lookup_body body[2];
+    body_in(a[A_ROWS_A], a[A_WARM_A], &body[0]);
+    body_in(a[A_ROWS_B], a[A_WARM_B], &body[1]);
+    dq_lookup_args la = {at, a[A_TWIST] ? PyArray_DATA(a[A_TWIST]) : NULL,
+                         max_extrapolation, p, PyArray_DATA(L), PyArray_DATA(Ehat)};
+    int shared = 0, rc;
+    Py_BEGIN_ALLOW_THREADS
+    rc = dq_lookup(&s, body, &la, PyArray_DATA(pose), PyArray_DATA(cov), &shared);
+    Py_END_ALLOW_THREADS
+    if (rc == DQ_LOOKUP_NOMEM) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    if (rc) {
+        result = Py_None;
+        Py_INCREF(result);
+        goto done;
+    }
+    PyObject *wa = body_out(&body[0]), *wb = wa ? body_out(&body[1]) : NULL;
+    if (wa && wb)
+        result = Py_BuildValue("(OOOOOOO)", pose, cov, wa, wb, L, Ehat,
+                               shared ? Py_True : Py_False);
+    Py_XDECREF(wa);
+    Py_XDECREF(wb);
+done:
+    for (int j = 0; j < A_COUNT; j++) Py_XDECREF(a[j]);
+    Py_XDECREF(L);
+    Py_XDECREF(Ehat);
+    Py_XDECREF(pose);
+    Py_XDECREF(cov);
+    return result;
+}
