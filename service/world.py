@@ -138,9 +138,9 @@ class World:
         # configurations (the tracker's own, Tracker.by_source, win)
         self._fed_before: dict[str, dict[str, float]] = {}
         self._tracker: Optional[Tracker] = None
-        # answers kept until their bodies change: per body a version bumped by every
-        # measurement taken into it; fits by (body, time), relatives by (target, source, time)
-        self._version: dict[str, int] = {}
+        # answers kept until their bodies change (each body's version, Tracker.version, grows
+        # with every request that brought it measurements); fits by (body, time), relatives by
+        # (target, source, time)
         self._generation = 0              # configurations made, for stamp()
         self._named: set = set()          # the configured sources and those that fed a body
         self._fits = Kept()
@@ -208,7 +208,6 @@ class World:
             self._tracker = tracker
             self._fits.clear()
             self._relatives.clear()
-            self._version = {}
             self._generation += 1
             self._named = {s.name for s in sources}
             self.sources, self.arms, self.options = sources, arms, options
@@ -292,7 +291,7 @@ class World:
         """Rows into the tracker under the world's bounds (the lock held); ``codes`` and
         ``producer``: as :meth:`ingest` takes them."""
         errors: dict[int, WorldError] = dict(bad or {})
-        known, named, b = self._version, self._named, self.bounds
+        known, named, b = self._t.held, self._named, self.bounds
         if (len(known) + len(bodies) > b.max_bodies
                 or len(named) + len(sources) > b.max_sources):     # else none can be over
             over_bounds(bodies, sources, errors, known, named, b)
@@ -314,15 +313,9 @@ class World:
                    self._t.ingest_checked(*rows, numbers, checks, producer))
         for j, e in refused:
             errors[use[j]] = e.at(use[j])
-        self._fed_by([k for k in use if k not in errors] if errors else use, bodies, sources)
+        if not named.issuperset(sources):       # a source new to the world fed a body
+            named.update(sources[k] for k in use if k not in errors)
         return errors
-
-    def _fed_by(self, rows, bodies, sources) -> None:
-        """The versions of the bodies ``rows`` fed (one step each), their sources named."""
-        version = self._version
-        for b in dict.fromkeys(bodies[k] for k in rows):
-            version[b] = version.get(b, 0) + 1
-        self._named.update(sources[k] for k in rows)
 
     def _fed(self, body: str, tracker: Optional[Tracker] = None) -> dict[str, float]:
         """Source -> when ``body``'s newest measurement of it was taken, of every source that
@@ -385,7 +378,7 @@ class World:
             end = t.newest(body)
             key = (body, time, end)
             hit = self._fits.get(key)
-            version = self._version.get(body, 0)
+            version = t.version(body)
             if hit is not None and hit[0] == version and hit[2]:
                 f, ids = hit[1], hit[3]
             else:
@@ -419,7 +412,7 @@ class World:
         end = self._end(body, at)
         key = (body, at, end)
         hit = self._fits.get(key)
-        version = self._version.get(body, 0)
+        version = self._t.version(body)
         if hit is not None and hit[0] == version and (hit[2] or not nis):
             return hit[1]       # no new data: it was in range then
         f, ids = self._fitted(body, at, lambda rows: self._t.estimate_rows(rows, at, nis))
@@ -437,7 +430,7 @@ class World:
     def _kept_pose(self, body: str, at: float) -> Optional[tuple[np.ndarray, np.ndarray]]:
         """A kept fit's pose and covariance of ``body`` at ``at`` if it is current, else None."""
         hit = self._fits.get((body, at, self._end(body, at)))
-        if hit is not None and hit[0] == self._version.get(body, 0):
+        if hit is not None and hit[0] == self._t.version(body):
             return hit[1].mean, hit[1].covariance
         return None
 
@@ -527,7 +520,7 @@ class World:
                 return BodyPose(source, at, np.array([1.0, 0, 0, 0, 0, 0, 0, 0]),
                                 np.zeros((DOF, DOF)), None)
             key = (target, source, at)
-            versions = (self._version.get(target, 0), self._version.get(source, 0))
+            versions = (self._t.version(target), self._t.version(source))
             hit = self._relatives.get(key)
             if hit is not None and hit[0] == versions:
                 return hit[1]
@@ -541,8 +534,8 @@ class World:
         attribute read, whole under the interpreter lock), so an event loop may call it: an
         answer made between two equal stamps is the answer for as long as the stamp stays
         equal (no measurement of those bodies, no configuration came in)."""
-        version = self._version
-        return (self._generation,) + tuple(version.get(b, 0) for b in bodies)
+        t = self._t
+        return (self._generation,) + tuple(t.version(b) for b in bodies)
 
     def arm_base(self, arm: str) -> BodyPose:
         """``T_world_base`` of ``arm``: the extrinsic of the source ``arms`` names, with its

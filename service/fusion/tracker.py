@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Iterable, NamedTuple, Optional, Sequence
+from typing import Any, Iterable, Mapping, NamedTuple, Optional, Sequence
 
 import numpy as np
 
@@ -183,6 +183,17 @@ class Tracker:
     @property
     def bodies(self) -> tuple[str, ...]:
         return tuple(self._active)
+
+    @property
+    def held(self) -> Mapping[str, None]:
+        """The bodies with measurements, in the order they came (a view: read, never written)."""
+        return self._active
+
+    def version(self, body: str) -> int:
+        """How many requests (calls of :meth:`ingest` or :meth:`add`) brought ``body``
+        measurements (0: none): a body's answers change only when this does."""
+        code = self._body_codes.get(body)
+        return 0 if code is None else self._store._index.version(code)
 
     def window_of(self, body: str) -> Window:
         """``body``'s window as arrays, in the order of its :meth:`estimate`'s indices."""
