@@ -44,7 +44,9 @@ Hook = Optional[Callable[[], None]]
 
 class Encoder(Protocol):
     """How a hub's answers are written: a body's fit at a tick (``request``: the step's number,
-    ``measurements``: the ids the answer names), an error entry, a Lookup's relative pose."""
+    ``measurements``: the ids the answer names), an error entry, a Lookup's relative pose. One
+    whose ``wire`` attribute is True writes :func:`dqpose.rpc.wire.fused_pose_bytes`' bytes, which
+    a tick's one C call (:meth:`dqpose.world.World.tick_wire`) writes too."""
 
     def fused(self, p: BodyPose, request: int, measurements: list[int]) -> bytes: ...
 
@@ -134,6 +136,7 @@ class Hub:
                  where: str = "request {}", bounds: WorldBounds = DEFAULT_BOUNDS,
                  stream: bool = False):
         self.name, self.encoder, self.stream = name, encoder, stream
+        self._wire = bool(getattr(encoder, "wire", False))
         self.where = where.format
         self.world = World(bounds=bounds, tracker=tracker)
         self.lock = threading.Lock()
@@ -358,7 +361,11 @@ class Hub:
         ``relative_to`` when set) as request ``r``'s answer, or an error entry naming why it
         cannot be answered."""
         try:
-            p, ids = self.world.tick(body, t, keep=not self.stream)
+            if self._wire and not relative_to:     # the common case: one C call
+                data = self.world.tick_wire(body, t, r)
+                if data is not None:
+                    return data
+            p, ids = self.world.tick(body, t)
             if relative_to:
                 rel = self.world.relative(relative_to, body, p.time)
                 p = BodyPose(body, rel.time, rel.pose, rel.covariance, p.fused)

@@ -41,6 +41,7 @@ from dqpose.fusion import (
 from dqpose.fusion.bounds import TrackerBounds
 from dqpose.fusion.results import DOF
 from dqpose.fusion.sources import _sources
+from dqpose.fusion.tick import WireTicks
 from dqpose.fusion.tracker import _arrays
 from dqpose.fusion.validation import _finite_shape, _seconds
 from dqpose.lookup import Lookups
@@ -205,7 +206,7 @@ class World:
             raise WorldError.of(e, under="options") from None
         with self._lock.write():
             old = self._tracker
-            self._tracker = tracker
+            self._tracker, self._wire = tracker, WireTicks(tracker)
             self._fits.clear()
             self._relatives.clear()
             self._generation += 1
@@ -366,28 +367,27 @@ class World:
             return TickWindow(horizon(self._fed(body), self.options.max_delay),
                               float(t.taken_of(rows).min()), len(rows), t.capped(body, window))
 
-    def tick(self, body: str, time: Optional[float],
-             keep: bool = True) -> tuple[BodyPose, np.ndarray]:
-        """``body`` at tick ``time`` (None: its newest measurement's time) from the
-        measurements of its tick window: those taken within ``window`` of its newest, the last
-        the tracker's cap of them (StreamFuse's rows), with the fused measurements' ids; the fit
-        kept for Lookups at that time unless not ``keep``."""
+    def tick(self, body: str, time: Optional[float]) -> tuple[BodyPose, np.ndarray]:
+        """``body`` at tick ``time`` (None: its newest measurement's time) from its tick window
+        (:meth:`_tick_rows`: StreamFuse's rows), with the fused measurements' ids."""
         with self._lock.read():
-            self._known(body)
-            t = self._t
-            end = t.newest(body)
-            key = (body, time, end)
-            hit = self._fits.get(key)
-            version = t.version(body)
-            if hit is not None and hit[0] == version and hit[2]:
-                f, ids = hit[1], hit[3]
-            else:
-                rows = self._rows_for(body, end if time is None else time, end)
-                f, ids = self._fit_of(body, rows, lambda r: t.estimate_rows(r, time))
-                if keep:
-                    self._fits.keep(key, (version, f, True, ids), len(f.distances))
+            rows = self._tick_rows(body, time)
+            f, ids = self._fit_of(body, rows, lambda r: self._t.estimate_rows(r, time))
         assert f.time is not None            # a fit over time
         return BodyPose(body, f.time, f.mean, f.covariance, f), ids
+
+    def tick_wire(self, body: str, time: Optional[float], request: int) -> Optional[bytes]:
+        """:meth:`tick`'s answer to ``request`` as ``FusedPose`` bytes made in one C call
+        (:class:`dqpose.fusion.tick.WireTicks`), or None: ask :meth:`tick`."""
+        with self._lock.read():
+            return self._wire(self._tick_rows(body, time), time, body, request)
+
+    def _tick_rows(self, body: str, time: Optional[float]) -> np.ndarray:
+        """A tick's rows (the lock held): those taken within ``window`` of ``body``'s newest,
+        the last the tracker's cap of them."""
+        self._known(body)
+        end = self._t.newest(body)
+        return self._rows_for(body, end if time is None else time, end)
 
     def _known(self, body) -> None:
         body = _body_name(body)

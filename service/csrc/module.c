@@ -72,6 +72,9 @@ static PyMethodDef methods[] = {
      "default_max_iter, max_iter_limit) -> (bytes, n) or None."},
     {"blend_wire", py_blend_wire, METH_VARARGS,
      "blend_wire(bytes, max_poses, default_tol, default_max_iter, max_iter_limit) -> bytes or None."},
+    {"tick", py_tick, METH_VARARGS,
+     "tick(options, poses, covs, times, codes, ids, rows, time, body, request, bounds) -> bytes "
+     "or None: one tick's FusedPose (tick.h)."},
     {NULL, NULL, 0, NULL},
 };
 
@@ -118,7 +121,9 @@ PyMODINIT_FUNC PyInit__dqcore(void)
     PyModule_AddObject(m, "COST_SLACK", PyFloat_FromDouble(DQ_GN_COST_SLACK));
     PyModule_AddIntConstant(m, "MAX_HALVINGS", DQ_GN_MAX_HALVINGS);
     if (PyType_Ready(&dq_store_index_type) < 0
-        || PyModule_AddObjectRef(m, "StoreIndex", (PyObject *)&dq_store_index_type) < 0) {
+        || PyModule_AddObjectRef(m, "StoreIndex", (PyObject *)&dq_store_index_type) < 0
+        || PyType_Ready(&dq_fit_options_type) < 0
+        || PyModule_AddObjectRef(m, "FitOptions", (PyObject *)&dq_fit_options_type) < 0) {
         Py_DECREF(m);
         return NULL;
     }

@@ -51,6 +51,10 @@ PyObject *py_se3_jr(PyObject *self, PyObject *x);
 /* _dqcore.StoreIndex (py_store.c) */
 extern PyTypeObject dq_store_index_type;
 
+/* _dqcore.FitOptions and tick (py_tick.c) */
+extern PyTypeObject dq_fit_options_type;
+PyObject *py_tick(PyObject *self, PyObject *args);
+
 /* py_trajectory.c: the trajectory planner */
 PyObject *py_traj_plan(PyObject *self, PyObject *args);
 PyObject *py_traj_eval(PyObject *self, PyObject *args);

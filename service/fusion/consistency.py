@@ -9,6 +9,29 @@ import numpy as np
 from dqpose.fusion.chi2 import chi2_quantile
 from dqpose.fusion.results import DOF, SourceStats, Verdict
 
+#: per probability, the verdict's interval by count (:func:`_verdict_bounds`)
+_BOUNDS: dict[float, np.ndarray] = {}
+
+
+def _verdict_bounds(probability: float, n: int) -> np.ndarray:
+    """``(2, c)``, ``c > n``: the mean NIS interval ``[low, high]`` of a consistent source with
+    ``count`` tested measurements in column ``count`` (column 0 unused), for ``probability``.
+    One table a process (a quantile costs ~1 ms of Python): grown when a window needs more; the
+    C tick (service/csrc/tick.h) reads the same numbers."""
+    b = _BOUNDS.get(probability)
+    if b is not None and b.shape[1] > n:
+        return b
+    old = 1 if b is None else b.shape[1]
+    grown = np.zeros((2, n + 17))
+    if b is not None:
+        grown[:, :old] = b
+    for count in range(old, n + 17):
+        grown[0, count] = chi2_quantile(0.5 * (1.0 - probability), DOF * count) / count
+        grown[1, count] = chi2_quantile(0.5 * (1.0 + probability), DOF * count) / count
+    grown.flags.writeable = False
+    _BOUNDS[probability] = grown
+    return grown
+
 
 def _codes(names) -> tuple[tuple[str, ...], np.ndarray]:
     """Each source once, in order of first appearance, and each measurement's index in that."""
@@ -33,14 +56,14 @@ def _source_stats(sources, code, nis, tested, inlier, probability) -> tuple[Sour
         counts = np.bincount(code, use, m).astype(np.intp).tolist()
         rejected = np.bincount(code, ~inlier, m).astype(np.intp).tolist()
     sums = np.bincount(code, np.where(use, nis, 0.0), m).tolist()
+    bounds = _verdict_bounds(probability, len(code))
     for k, name in enumerate(sources):
         count = counts[k]
         if count == 0:
             out.append(SourceStats(name, 0, rejected[k], 0.0, 0.0, 0.0, Verdict.UNTESTED))
             continue
         mean = sums[k] / count
-        low = chi2_quantile(0.5 * (1.0 - probability), DOF * count) / count
-        high = chi2_quantile(0.5 * (1.0 + probability), DOF * count) / count
+        low, high = float(bounds[0, count]), float(bounds[1, count])
         verdict = (Verdict.OPTIMISTIC if mean > high else
                    Verdict.PESSIMISTIC if mean < low else Verdict.CONSISTENT)
         out.append(SourceStats(name, count, rejected[k], mean, low, high, verdict))

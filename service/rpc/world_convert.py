@@ -122,6 +122,7 @@ def error_bytes(body: str, time: float, request: int, text: str) -> bytes:
 class Encoder:
     """The World service's answers as the hubs write them (:class:`dqpose.hub.Encoder`)."""
     fused = staticmethod(body_pose_bytes)
+    wire = True
     error = staticmethod(error_bytes)
 
     @staticmethod

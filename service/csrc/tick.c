@@ -1,0 +1,283 @@
+/*
+ * tick.c — one tick's answer in one call (see tick.h). Each step names the Python it moves;
+ * the operations are those, in that order.
+ */
+#include "tick.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "dq.h"
+#include "motion.h"
+
+#define REASON_MAX 400 /* a dropped measurement's reason: its source's name is <= 128 bytes */
+
+/* a tick's memory, carved from one block */
+static void *carve(char **at, size_t bytes)
+{
+    void *p = *at;
+    *at += (bytes + 15) & ~(size_t)15;
+    return p;
+}
+
+/* The set-up (alignment._setup and _span): per row its latency, when it was taken, its slot
+ * among the estimated latencies (sources in order of first appearance); the fusion time; the
+ * rows kept (max_skew), their span and the extrapolation. */
+typedef struct {
+    double *stamp, *latency, *taken;
+    long long *slot;
+    unsigned char *keep, *drop;
+    int *local;      /* per source code: its index among the rows' sources, or -1 */
+    int64_t *order;  /* the rows' sources (codes), in order of first appearance */
+    size_t n_sources, k;
+    double *prior, *prior_w;
+    int64_t *estimated; /* k codes */
+    double time, lo, hi, extrapolation;
+    int skewed;
+} tick_setup;
+
+static int setup(const dq_tick_options *o, const dq_tick_input *in, tick_setup *u)
+{
+    const size_t n = in->n;
+    for (size_t c = 0; c < o->m; c++) u->local[c] = -1;
+    u->n_sources = 0;
+    for (size_t i = 0; i < n; i++) {
+        int64_t c = in->codes[in->rows[i]];
+        if (c < 0 || (size_t)c >= o->m) return DQ_TICK_PYTHON; /* a source the options lack */
+        if (u->local[c] < 0) {
+            if (!o->exact[c]) return DQ_TICK_PYTHON; /* an uncertain extrinsic: the joint fit */
+            u->local[c] = (int)u->n_sources;
+            u->order[u->n_sources++] = c;
+        }
+        u->latency[i] = o->latency[c];
+        u->taken[i] = in->times[in->rows[i]] - u->latency[i];
+    }
+    double time = in->time;
+    if (isnan(time)) { /* taken.max() */
+        time = u->taken[0];
+        for (size_t i = 1; i < n; i++)
+            if (u->taken[i] > time) time = u->taken[i];
+    }
+    u->time = time;
+    int any = 0;
+    u->skewed = 0;
+    for (size_t i = 0; i < n; i++) {
+        u->drop[i] = o->has_skew && fabs(time - u->taken[i]) > o->max_skew;
+        u->keep[i] = !u->drop[i];
+        u->skewed |= u->drop[i];
+        if (!u->keep[i]) continue;
+        if (!any || u->taken[i] < u->lo) u->lo = u->taken[i];
+        if (!any || u->taken[i] > u->hi) u->hi = u->taken[i];
+        any = 1;
+    }
+    if (!any) return DQ_TICK_PYTHON; /* every row beyond max_skew: Python names it */
+    double e = 0.0; /* max(0.0, time - hi, lo - time) */
+    if (time - u->hi > e) e = time - u->hi;
+    if (u->lo - time > e) e = u->lo - time;
+    u->extrapolation = e;
+    if (o->has_extrapolation && e > o->max_extrapolation) return DQ_TICK_PYTHON;
+    /* one instant: the static fit (Python's); one instant brought elsewhere needs a prior */
+    if (u->lo == u->hi && (e == 0.0 || !o->twist_w)) return DQ_TICK_PYTHON;
+    u->k = 0;
+    for (size_t s = 0; s < u->n_sources; s++) {
+        int64_t c = u->order[s];
+        if (!o->estimated[c]) continue;
+        u->prior[u->k] = o->latency[c];
+        u->prior_w[u->k] = o->prior_w[c];
+        u->estimated[u->k++] = c;
+    }
+    for (size_t i = 0; i < n; i++) {
+        int64_t c = in->codes[in->rows[i]];
+        long long slot = -1;
+        for (size_t j = 0; j < u->k; j++)
+            if (u->estimated[j] == c) slot = (long long)j;
+        u->slot[i] = slot;
+        u->stamp[i] = in->times[in->rows[i]] - time;
+    }
+    return 0;
+}
+
+/* consistency._source_stats of the non-robust fit: every kept row an inlier, the dropped ones
+ * neither tested nor rejected. */
+static void source_stats(const dq_tick_options *o, const dq_tick_input *in, const tick_setup *u,
+                         const double *nis, const unsigned char *tested, dq_wire_source *out)
+{
+    const size_t n = in->n, m = u->n_sources;
+    int used = 0;
+    for (size_t s = 0; s < m; s++) {
+        memset(out + s, 0, sizeof *out);
+        out[s].name = o->names[u->order[s]];
+    }
+    for (size_t i = 0; i < n; i++) used |= tested[i] && u->keep[i];
+    if (!used) return; /* every source untested, none rejected */
+    double *sums = (double *)calloc(m ? m : 1, sizeof *sums);
+    for (size_t i = 0; i < n; i++) { /* the bincounts, in row order */
+        size_t s = (size_t)u->local[in->codes[in->rows[i]]];
+        int use = tested[i] && u->keep[i];
+        out[s].count += use ? 1 : 0;
+        sums[s] += use ? nis[i] : 0.0;
+    }
+    for (size_t s = 0; s < m; s++) {
+        uint32_t count = out[s].count;
+        if (!count) continue;
+        double mean = sums[s] / (double)count;
+        double low = o->low[count], high = o->high[count];
+        out[s].nis_mean = mean;
+        out[s].low = low;
+        out[s].high = high;
+        out[s].verdict = mean > high ? 2 : mean < low ? 3 : 1; /* Verdict's values */
+    }
+    free(sums);
+}
+
+/* Dropped.reason */
+static size_t dropped_reason(char *buf, size_t i, dq_str src, double age, double max_skew)
+{
+    char who[200];
+    if (src.n) snprintf(who, sizeof who, "measurement %zu (%.*s)", i, (int)src.n, src.s);
+    else snprintf(who, sizeof who, "measurement %zu", i);
+    int len = snprintf(buf, REASON_MAX, "%s: taken %.6g s %s the fusion time, beyond max_skew %g s",
+                       who, age >= 0 ? age : -age, age >= 0 ? "before" : "after", max_skew);
+    return len < 0 ? 0 : (size_t)len < REASON_MAX ? (size_t)len : REASON_MAX - 1;
+}
+
+int dq_tick(const dq_tick_options *o, const dq_tick_input *in, uint8_t **out, size_t *len)
+{
+    const size_t n = in->n, m = o->m;
+    if (!n || in->n > (size_t)1 << 28 || n >= o->n_bounds) return DQ_TICK_PYTHON;
+    const size_t dim_max = 12 + m;
+    dq_motion_model probe = {NULL, NULL, NULL, m, NULL, NULL, 1, NULL};
+    size_t work_n = dq_motion_workspace(n, &probe);
+    size_t bytes = 16 * (64 + 6 * m + 8 * n) + sizeof(double) * (8 * n + 36 * n + 12 * n +
+                   6 * n + 8 * n + work_n + 3 * dim_max * dim_max + 4 * m + 72) +
+                   sizeof(long long) * n + sizeof(int) * m + sizeof(int64_t) * (3 * m + n) +
+                   sizeof(dq_taken) * n + sizeof(uint32_t) * n +
+                   (sizeof(dq_wire_source) + sizeof(dq_wire_latency)) * (m + 1) +
+                   (sizeof(dq_wire_dropped) + REASON_MAX) * n + 4 * n;
+    char *block = (char *)malloc(bytes), *at = block;
+    if (!block) return -1;
+    tick_setup u;
+    u.stamp = carve(&at, sizeof(double) * n);
+    u.latency = carve(&at, sizeof(double) * n);
+    u.taken = carve(&at, sizeof(double) * n);
+    u.slot = carve(&at, sizeof(long long) * n);
+    u.keep = carve(&at, n);
+    u.drop = carve(&at, n);
+    u.local = carve(&at, sizeof(int) * (m ? m : 1));
+    u.order = carve(&at, sizeof(int64_t) * (m ? m : 1));
+    u.prior = carve(&at, sizeof(double) * (m ? m : 1));
+    u.prior_w = carve(&at, sizeof(double) * (m ? m : 1));
+    u.estimated = carve(&at, sizeof(int64_t) * (m ? m : 1));
+    int code = setup(o, in, &u);
+    if (code) {
+        free(block);
+        return code;
+    }
+    double *z = carve(&at, sizeof(double) * 8 * n), *s = carve(&at, sizeof(double) * 36 * n);
+    for (size_t i = 0; i < n; i++) { /* the rows' world-frame poses and covariances */
+        memcpy(z + 8 * i, in->poses + 8 * in->rows[i], 8 * sizeof(double));
+        memcpy(s + 36 * i, in->covs + 36 * in->rows[i], 36 * sizeof(double));
+    }
+    dq_motion_model model = {u.stamp, u.latency, u.slot, u.k, u.prior, u.prior_w, 1, o->twist_w};
+    const size_t dim = dq_motion_dim(&model), off = 12;
+    double *dt = carve(&at, sizeof(double) * n), *res = carve(&at, sizeof(double) * 6 * n);
+    double *cost = carve(&at, sizeof(double) * n), *nis = carve(&at, sizeof(double) * n);
+    double *dist = carve(&at, sizeof(double) * n), *zu = carve(&at, sizeof(double) * 8 * n);
+    double *work = carve(&at, sizeof(double) * dq_motion_workspace(n, &model));
+    double *P = carve(&at, sizeof(double) * dim * dim), *H = carve(&at, sizeof(double) * dim * dim);
+    double *ell = carve(&at, sizeof(double) * (u.k ? u.k : 1));
+    unsigned char *tested = carve(&at, n);
+    dq_taken *taken_work = carve(&at, sizeof(dq_taken) * n);
+    dq_motion_fitted f;
+    f.ell = ell;
+    f.H = H;
+    dq_motion_outputs per = {dt, res, cost, NULL, nis};
+    /* _constant_twist_fit(Z, S, model, allowed, tol, max_iter, nis=True) */
+    dq_motion_run_args r = {z, s, u.keep, NULL, n, NULL, 1, tested, &o->p, work, zu, P,
+                            taken_work};
+    size_t bad = 0;
+    const char *bad_name = "poses";
+    code = dq_motion_run(&r, &model, &f, &per, &bad, &bad_name);
+    double unit[8];
+    if (code != DQ_OK || dq_unit(f.mean, unit)) { /* Python names the failure */
+        free(block);
+        return DQ_TICK_PYTHON;
+    }
+    /* _result */
+    dq_fused_pose w;
+    memset(&w, 0, sizeof w);
+    w.body = in->body;
+    w.time = u.time;
+    dq_to_pose(unit, w.quat, w.t);
+    double *cov = carve(&at, sizeof(double) * 36), *tcov = carve(&at, sizeof(double) * 36);
+    for (size_t a = 0; a < 6; a++)
+        for (size_t b = 0; b < 6; b++) {
+            cov[6 * a + b] = P[dim * a + b];
+            tcov[6 * a + b] = P[dim * (6 + a) + 6 + b];
+        }
+    w.covariance = cov;
+    uint32_t *inliers = carve(&at, sizeof(uint32_t) * n);
+    for (size_t i = 0; i < n; i++)
+        if (u.keep[i]) inliers[w.n_inliers++] = (uint32_t)i;
+    w.inliers = inliers;
+    w.chi2 = f.chi2;
+    /* only the twist's unconstrained 6 reduce the degrees of freedom beyond the pose's */
+    long dof = 6 * ((long)w.n_inliers - 1) - (o->twist_w ? 0 : 6);
+    w.dof = (uint32_t)dof;
+    w.iterations = (uint32_t)f.iterations;
+    w.status = (uint32_t)f.status + 1; /* STATUS_ENUMS */
+    for (size_t i = 0; i < n; i++) dist[i] = sqrt(cost[i]);
+    w.distances = dist;
+    w.nis = nis;
+    w.tested = tested;
+    w.residuals = res;
+    w.n = n;
+    dq_wire_source *sources = carve(&at, sizeof(dq_wire_source) * (u.n_sources + 1));
+    source_stats(o, in, &u, nis, tested, sources);
+    w.sources = sources;
+    w.n_sources = u.n_sources;
+    w.request = in->request;
+    uint64_t *ids = carve(&at, sizeof(uint64_t) * n);
+    for (size_t i = 0; i < n; i++) ids[i] = (uint64_t)in->ids[in->rows[i]];
+    w.measurements = ids;
+    w.n_measurements = n;
+    if (u.skewed) {
+        dq_wire_dropped *d = carve(&at, sizeof(dq_wire_dropped) * n);
+        char *text = carve(&at, (size_t)REASON_MAX * n);
+        for (size_t i = 0; i < n; i++) {
+            if (!u.drop[i]) continue;
+            dq_wire_dropped *x = d + w.n_dropped++;
+            x->index = (uint32_t)i;
+            x->source = o->names[in->codes[in->rows[i]]];
+            x->age = u.time - u.taken[i];
+            x->reason.s = text;
+            x->reason.n = dropped_reason(text, i, x->source, x->age, o->max_skew);
+            text += REASON_MAX;
+        }
+        w.dropped = d;
+    }
+    w.twist = f.twist;
+    w.twist_covariance = tcov;
+    w.extrapolation = u.extrapolation;
+    dq_wire_latency *lat = carve(&at, sizeof(dq_wire_latency) * (u.k + 1));
+    for (size_t j = 0; j < u.k; j++) {
+        int64_t c = u.estimated[j];
+        lat[j].source = o->names[c];
+        lat[j].configured = o->latency[c];
+        lat[j].prior_sigma = o->sigma[c];
+        lat[j].value = ell[j];
+        lat[j].sigma = sqrt(P[(off + j) * dim + off + j]);
+    }
+    w.latencies = lat;
+    w.n_latencies = u.k;
+    *out = (uint8_t *)malloc(dq_fused_pose_bound(&w));
+    if (!*out) {
+        free(block);
+        return -1;
+    }
+    *len = dq_fused_pose_write(&w, *out);
+    free(block);
+    return 0;
+}

@@ -1,0 +1,65 @@
+"""A tick's answer in one C call (service/csrc/tick.h): a tracker's rows to the ``FusedPose``
+bytes of their fit over time, the answer :meth:`Tracker.estimate_rows` and
+:func:`dqpose.rpc.wire.fused_pose_bytes` give, bit for bit, for the common case (not robust,
+the constant twist, every extrinsic exact, more than one instant); None where the C leaves the
+answer to that Python path (which also names every error).
+"""
+from __future__ import annotations
+
+import math
+from typing import Optional
+
+import numpy as np
+
+from dqpose import _dqcore
+from dqpose.fusion.consistency import _verdict_bounds
+from dqpose.fusion.tracker import Tracker
+from dqpose.fusion.validation import _seconds, _twist_information
+
+
+def _options(t: Tracker) -> _dqcore.FitOptions:
+    """The C tick's options of tracker ``t``: its checked options and, per source code, the
+    source's latency and prior and whether its extrinsic is exact (the numbers the Python set-up
+    computes, by the same expressions)."""
+    o, table, names = t._checked, t._table, list(t._names)
+    srcs = [table.get(name) for name in names]
+    sigma = [None if s is None else s.latency_sigma for s in srcs]   # None: not estimated
+    Wp = None if o.twist_covariance is None else _twist_information(o.twist_covariance)[1]
+    return _dqcore.FitOptions(
+        np.array(t._latency, np.float64),
+        np.array([math.nan if x is None else x for x in sigma], np.float64),
+        np.array([math.nan if x is None else x ** -2 for x in sigma], np.float64),
+        np.array([x is not None for x in sigma], bool),
+        np.array([s is None or s.extrinsic_covariance is None for s in srcs], bool), names,
+        None if o.max_skew is None else _seconds(o.max_skew, "max_skew", "nonnegative"),
+        None if o.max_extrapolation is None else _seconds(
+            o.max_extrapolation, "max_extrapolation", "nonnegative"),
+        None if Wp is None else np.ascontiguousarray(Wp).ravel(), o.probability, o.tol,
+        o.max_iter)
+
+
+class WireTicks:
+    """Tracker ``tracker``'s ticks in C: its options made once (again when it has met a new
+    source); None for every tick when its fit is robust or correlated (``acceleration_psd``)."""
+
+    def __init__(self, tracker: Tracker):
+        self.tracker = tracker
+        o = tracker._checked
+        self.plain = not o.robust and (o.acceleration_psd is None
+                                       or not np.any(o.acceleration_psd))
+        self._options: Optional[_dqcore.FitOptions] = None
+
+    def __call__(self, rows: np.ndarray, time: Optional[float], body: str,
+                 request: int) -> Optional[bytes]:
+        """The ``FusedPose`` bytes of the fit of ``rows`` at ``time`` (None: their newest
+        taken) as ``body``'s answer to ``request``, with the rows' ids; None: not made here."""
+        if not self.plain:
+            return None
+        t = self.tracker
+        opts = self._options
+        if opts is None or opts.sources != len(t._names):
+            opts = self._options = _options(t)
+        s = t._store
+        return _dqcore.tick(opts, s.wposes, s.wcovs if "wcovs" in s._arrays else s.covs,
+                            s.times, s.codes, s.ids, rows, math.nan if time is None else time,
+                            body, request, _verdict_bounds(t._checked.probability, len(rows)))
