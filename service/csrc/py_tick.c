@@ -18,7 +18,7 @@ typedef struct {
     unsigned char *flags; /* estimated, exact (m each) */
     dq_str *names;
     PyObject *name_refs; /* the tuple of str the names point into */
-    double twist_w[36];
+    double twist_w[36], twist_cov[36];
 } FitOptions;
 
 static void options_dealloc(FitOptions *self)
@@ -46,16 +46,16 @@ static int copy_vector(PyObject *o, npy_intp m, int type, void *dst, size_t size
 }
 
 /* FitOptions(latency, sigma, prior_w, estimated, exact, names, max_skew, max_extrapolation,
- * twist_w, probability, tol, max_iter): per source code its configured latency, its latency
- * prior's sigma (NaN: exact) and information, whether estimated, whether its extrinsic is exact,
- * its name; the options (None: unbounded, no prior). */
+ * twist_w, twist_cov, probability, tol, max_iter): per source code its configured latency, its
+ * latency prior's sigma (NaN: exact) and information, whether estimated, whether its extrinsic
+ * is exact, its name; the options (None: unbounded, no twist prior: both or neither). */
 static int options_init(FitOptions *self, PyObject *args, PyObject *kw)
 {
-    PyObject *lat, *sig, *pw, *est, *exact, *names, *skew, *extra, *tw;
+    PyObject *lat, *sig, *pw, *est, *exact, *names, *skew, *extra, *tw, *tc;
     double probability, tol;
     int max_iter;
-    if (!PyArg_ParseTuple(args, "OOOOOOOOOddi:FitOptions", &lat, &sig, &pw, &est, &exact,
-                          &names, &skew, &extra, &tw, &probability, &tol, &max_iter))
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOddi:FitOptions", &lat, &sig, &pw, &est, &exact,
+                          &names, &skew, &extra, &tw, &tc, &probability, &tol, &max_iter))
         return -1;
     PyObject *tuple = PySequence_Tuple(names);
     if (!tuple) return -1;
@@ -101,9 +101,11 @@ static int options_init(FitOptions *self, PyObject *args, PyObject *kw)
         (o->max_extrapolation = PyFloat_AsDouble(extra)) == -1.0 && PyErr_Occurred())
         return -1;
     if (tw != Py_None) {
-        if (copy_vector(tw, 36, NPY_DOUBLE, self->twist_w, sizeof(double), "twist_w") < 0)
+        if (copy_vector(tw, 36, NPY_DOUBLE, self->twist_w, sizeof(double), "twist_w") < 0 ||
+            copy_vector(tc, 36, NPY_DOUBLE, self->twist_cov, sizeof(double), "twist_cov") < 0)
             return -1;
         o->twist_w = self->twist_w;
+        o->twist_cov = self->twist_cov;
     }
     o->probability = probability;
     o->p.tol = tol;

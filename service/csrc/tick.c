@@ -35,7 +35,7 @@ typedef struct {
     double *prior, *prior_w;
     int64_t *estimated; /* k codes */
     double time, lo, hi, extrapolation;
-    int skewed;
+    int skewed, one_instant;
 } tick_setup;
 
 static int setup(const dq_tick_options *o, const dq_tick_input *in, tick_setup *u)
@@ -78,8 +78,10 @@ static int setup(const dq_tick_options *o, const dq_tick_input *in, tick_setup *
     if (u->lo - time > e) e = u->lo - time;
     u->extrapolation = e;
     if (o->has_extrapolation && e > o->max_extrapolation) return DQ_TICK_PYTHON;
-    /* one instant: the static fit (Python's); one instant brought elsewhere needs a prior */
-    if (u->lo == u->hi && (e == 0.0 || !o->twist_w)) return DQ_TICK_PYTHON;
+    /* one instant brought elsewhere needs the twist's prior (Python names it); one instant at
+     * the fusion time is the static fit */
+    if (u->lo == u->hi && e > 0.0 && !o->twist_w) return DQ_TICK_PYTHON;
+    u->one_instant = u->lo == u->hi && e == 0.0;
     u->k = 0;
     for (size_t s = 0; s < u->n_sources; s++) {
         int64_t c = u->order[s];
@@ -99,10 +101,11 @@ static int setup(const dq_tick_options *o, const dq_tick_input *in, tick_setup *
     return 0;
 }
 
-/* consistency._source_stats of the non-robust fit: every kept row an inlier, the dropped ones
- * neither tested nor rejected. */
+/* consistency._source_stats of the non-robust fit: every kept row (keep NULL: every row) an
+ * inlier, the dropped ones neither tested nor rejected. */
 static void source_stats(const dq_tick_options *o, const dq_tick_input *in, const tick_setup *u,
-                         const double *nis, const unsigned char *tested, dq_wire_source *out)
+                         const unsigned char *keep, const double *nis,
+                         const unsigned char *tested, dq_wire_source *out)
 {
     const size_t n = in->n, m = u->n_sources;
     int used = 0;
@@ -110,12 +113,12 @@ static void source_stats(const dq_tick_options *o, const dq_tick_input *in, cons
         memset(out + s, 0, sizeof *out);
         out[s].name = o->names[u->order[s]];
     }
-    for (size_t i = 0; i < n; i++) used |= tested[i] && u->keep[i];
+    for (size_t i = 0; i < n; i++) used |= tested[i] && (!keep || keep[i]);
     if (!used) return; /* every source untested, none rejected */
     double *sums = (double *)calloc(m ? m : 1, sizeof *sums);
     for (size_t i = 0; i < n; i++) { /* the bincounts, in row order */
         size_t s = (size_t)u->local[in->codes[in->rows[i]]];
-        int use = tested[i] && u->keep[i];
+        int use = tested[i] && (!keep || keep[i]);
         out[s].count += use ? 1 : 0;
         sums[s] += use ? nis[i] : 0.0;
     }
@@ -143,19 +146,105 @@ static size_t dropped_reason(char *buf, size_t i, dq_str src, double age, double
     return len < 0 ? 0 : (size_t)len < REASON_MAX ? (size_t)len : REASON_MAX - 1;
 }
 
+/* What the fits fill of a tick's answer (the rest is the set-up's): the fused pose's fields. */
+typedef struct {
+    double *res, *nis, *dist, *cov, *tcov, *P, *ell;
+    unsigned char *tested;
+    uint32_t *inliers;
+    size_t dim;
+} tick_fit;
+
+/* The constant-twist fit (_motion_fit -> _constant_twist_fit, NIS included) into w. */
+static int fit_motion(const dq_tick_options *o, const tick_setup *u, const double *z,
+                      const double *s, size_t n, char **at, tick_fit *t, dq_fused_pose *w,
+                      double *mean, double *twist)
+{
+    dq_motion_model model = {u->stamp, u->latency, u->slot, u->k, u->prior, u->prior_w, 1,
+                             o->twist_w};
+    const size_t dim = t->dim = dq_motion_dim(&model);
+    double *dt = carve(at, sizeof(double) * n), *cost = carve(at, sizeof(double) * n);
+    double *zu = carve(at, sizeof(double) * 8 * n);
+    double *work = carve(at, sizeof(double) * dq_motion_workspace(n, &model));
+    double *H = carve(at, sizeof(double) * dim * dim);
+    dq_taken *taken_work = carve(at, sizeof(dq_taken) * n);
+    t->P = carve(at, sizeof(double) * dim * dim);
+    dq_motion_fitted f;
+    f.ell = t->ell;
+    f.H = H;
+    dq_motion_outputs per = {dt, t->res, cost, NULL, t->nis};
+    dq_motion_run_args r = {z, s, u->keep, NULL, n, NULL, 1, t->tested, &o->p, work, zu, t->P,
+                            taken_work};
+    size_t bad = 0;
+    const char *bad_name = "poses";
+    int code = dq_motion_run(&r, &model, &f, &per, &bad, &bad_name);
+    if (code != DQ_OK) return code;
+    memcpy(mean, f.mean, sizeof f.mean);
+    for (size_t a = 0; a < 6; a++)
+        for (size_t b = 0; b < 6; b++) {
+            t->cov[6 * a + b] = t->P[dim * a + b];
+            t->tcov[6 * a + b] = t->P[dim * (6 + a) + 6 + b];
+        }
+    for (size_t i = 0; i < n; i++)
+        if (u->keep[i]) t->inliers[w->n_inliers++] = (uint32_t)i;
+    /* only the twist's unconstrained 6 reduce the degrees of freedom beyond the pose's */
+    w->dof = (uint32_t)(6 * ((long)w->n_inliers - 1) - (o->twist_w ? 0 : 6));
+    w->chi2 = f.chi2;
+    w->iterations = (uint32_t)f.iterations;
+    w->status = (uint32_t)f.status + 1; /* STATUS_ENUMS */
+    for (size_t i = 0; i < n; i++) t->dist[i] = sqrt(cost[i]);
+    memcpy(twist, f.twist, sizeof f.twist);
+    w->twist = twist;
+    w->twist_covariance = t->tcov;
+    return DQ_OK;
+}
+
+/* One instant at the fusion time: the static fit of every row (static._fit, as _dqcore.fuse
+ * runs it), the twist at its prior (zeros, the prior's covariance) when it has one. */
+static int fit_static(const dq_tick_options *o, const double *z, const double *s, size_t n,
+                      char **at, tick_fit *t, dq_fused_pose *w, double *mean, double *twist)
+{
+    double *zu = carve(at, sizeof(double) * 8 * n);
+    double *work = carve(at, sizeof(double) * dq_fuse_workspace(n));
+    unsigned char *all = carve(at, n);
+    int code = DQ_OK;
+    for (size_t i = 0; i < n && code == DQ_OK; i++) {
+        code = dq_unit(z + 8 * i, zu + 8 * i);
+        if (code == DQ_OK && !dq_finite_n(s + 36 * i, 36)) code = DQ_E_NONFINITE;
+        all[i] = 1;
+    }
+    if (code != DQ_OK) return code;
+    dq_fused f;
+    dq_fuse_outputs per = {t->res, t->dist, t->nis, t->tested};
+    size_t bad = 0;
+    if ((code = dq_fuse(zu, s, all, n, &o->p, work, &f, &per, &bad)) != DQ_OK) return code;
+    memcpy(mean, f.mean, sizeof f.mean);
+    memcpy(t->cov, f.covariance, sizeof f.covariance);
+    for (size_t i = 0; i < n; i++) t->inliers[w->n_inliers++] = (uint32_t)i;
+    w->dof = (uint32_t)(6 * ((long)n - 1));
+    w->chi2 = f.chi2;
+    w->iterations = (uint32_t)f.iterations;
+    w->status = (uint32_t)f.status + 1;
+    if (o->twist_w) {
+        memset(twist, 0, 6 * sizeof(double));
+        w->twist = twist;
+        w->twist_covariance = o->twist_cov;
+    }
+    return DQ_OK;
+}
+
 int dq_tick(const dq_tick_options *o, const dq_tick_input *in, uint8_t **out, size_t *len)
 {
     const size_t n = in->n, m = o->m;
     if (!n || in->n > (size_t)1 << 28 || n >= o->n_bounds) return DQ_TICK_PYTHON;
     const size_t dim_max = 12 + m;
     dq_motion_model probe = {NULL, NULL, NULL, m, NULL, NULL, 1, NULL};
-    size_t work_n = dq_motion_workspace(n, &probe);
+    size_t work_n = dq_motion_workspace(n, &probe) + dq_fuse_workspace(n);
     size_t bytes = 16 * (64 + 6 * m + 8 * n) + sizeof(double) * (8 * n + 36 * n + 12 * n +
                    6 * n + 8 * n + work_n + 3 * dim_max * dim_max + 4 * m + 72) +
                    sizeof(long long) * n + sizeof(int) * m + sizeof(int64_t) * (3 * m + n) +
                    sizeof(dq_taken) * n + sizeof(uint32_t) * n +
                    (sizeof(dq_wire_source) + sizeof(dq_wire_latency)) * (m + 1) +
-                   (sizeof(dq_wire_dropped) + REASON_MAX) * n + 4 * n;
+                   (sizeof(dq_wire_dropped) + REASON_MAX) * n + 5 * n;
     char *block = (char *)malloc(bytes), *at = block;
     if (!block) return -1;
     tick_setup u;
@@ -180,62 +269,37 @@ int dq_tick(const dq_tick_options *o, const dq_tick_input *in, uint8_t **out, si
         memcpy(z + 8 * i, in->poses + 8 * in->rows[i], 8 * sizeof(double));
         memcpy(s + 36 * i, in->covs + 36 * in->rows[i], 36 * sizeof(double));
     }
-    dq_motion_model model = {u.stamp, u.latency, u.slot, u.k, u.prior, u.prior_w, 1, o->twist_w};
-    const size_t dim = dq_motion_dim(&model), off = 12;
-    double *dt = carve(&at, sizeof(double) * n), *res = carve(&at, sizeof(double) * 6 * n);
-    double *cost = carve(&at, sizeof(double) * n), *nis = carve(&at, sizeof(double) * n);
-    double *dist = carve(&at, sizeof(double) * n), *zu = carve(&at, sizeof(double) * 8 * n);
-    double *work = carve(&at, sizeof(double) * dq_motion_workspace(n, &model));
-    double *P = carve(&at, sizeof(double) * dim * dim), *H = carve(&at, sizeof(double) * dim * dim);
-    double *ell = carve(&at, sizeof(double) * (u.k ? u.k : 1));
-    unsigned char *tested = carve(&at, n);
-    dq_taken *taken_work = carve(&at, sizeof(dq_taken) * n);
-    dq_motion_fitted f;
-    f.ell = ell;
-    f.H = H;
-    dq_motion_outputs per = {dt, res, cost, NULL, nis};
-    /* _constant_twist_fit(Z, S, model, allowed, tol, max_iter, nis=True) */
-    dq_motion_run_args r = {z, s, u.keep, NULL, n, NULL, 1, tested, &o->p, work, zu, P,
-                            taken_work};
-    size_t bad = 0;
-    const char *bad_name = "poses";
-    code = dq_motion_run(&r, &model, &f, &per, &bad, &bad_name);
-    double unit[8];
-    if (code != DQ_OK || dq_unit(f.mean, unit)) { /* Python names the failure */
+    tick_fit t;
+    t.res = carve(&at, sizeof(double) * 6 * n);
+    t.nis = carve(&at, sizeof(double) * n);
+    t.dist = carve(&at, sizeof(double) * n);
+    t.cov = carve(&at, sizeof(double) * 36);
+    t.tcov = carve(&at, sizeof(double) * 36);
+    t.ell = carve(&at, sizeof(double) * (u.k ? u.k : 1));
+    t.tested = carve(&at, n);
+    t.inliers = carve(&at, sizeof(uint32_t) * n);
+    dq_fused_pose w;
+    memset(&w, 0, sizeof w);
+    double mean[8], unit[8], twist[6];
+    code = u.one_instant ? fit_static(o, z, s, n, &at, &t, &w, mean, twist)
+                         : fit_motion(o, &u, z, s, n, &at, &t, &w, mean, twist);
+    if (code != DQ_OK || dq_unit(mean, unit)) { /* Python names the failure */
         free(block);
         return DQ_TICK_PYTHON;
     }
-    /* _result */
-    dq_fused_pose w;
-    memset(&w, 0, sizeof w);
+    /* _result (the static fit's Fused and its replace, one instant) */
     w.body = in->body;
     w.time = u.time;
     dq_to_pose(unit, w.quat, w.t);
-    double *cov = carve(&at, sizeof(double) * 36), *tcov = carve(&at, sizeof(double) * 36);
-    for (size_t a = 0; a < 6; a++)
-        for (size_t b = 0; b < 6; b++) {
-            cov[6 * a + b] = P[dim * a + b];
-            tcov[6 * a + b] = P[dim * (6 + a) + 6 + b];
-        }
-    w.covariance = cov;
-    uint32_t *inliers = carve(&at, sizeof(uint32_t) * n);
-    for (size_t i = 0; i < n; i++)
-        if (u.keep[i]) inliers[w.n_inliers++] = (uint32_t)i;
-    w.inliers = inliers;
-    w.chi2 = f.chi2;
-    /* only the twist's unconstrained 6 reduce the degrees of freedom beyond the pose's */
-    long dof = 6 * ((long)w.n_inliers - 1) - (o->twist_w ? 0 : 6);
-    w.dof = (uint32_t)dof;
-    w.iterations = (uint32_t)f.iterations;
-    w.status = (uint32_t)f.status + 1; /* STATUS_ENUMS */
-    for (size_t i = 0; i < n; i++) dist[i] = sqrt(cost[i]);
-    w.distances = dist;
-    w.nis = nis;
-    w.tested = tested;
-    w.residuals = res;
+    w.covariance = t.cov;
+    w.inliers = t.inliers;
+    w.distances = t.dist;
+    w.nis = t.nis;
+    w.tested = t.tested;
+    w.residuals = t.res;
     w.n = n;
     dq_wire_source *sources = carve(&at, sizeof(dq_wire_source) * (u.n_sources + 1));
-    source_stats(o, in, &u, nis, tested, sources);
+    source_stats(o, in, &u, u.one_instant ? NULL : u.keep, t.nis, t.tested, sources);
     w.sources = sources;
     w.n_sources = u.n_sources;
     w.request = in->request;
@@ -243,7 +307,7 @@ int dq_tick(const dq_tick_options *o, const dq_tick_input *in, uint8_t **out, si
     for (size_t i = 0; i < n; i++) ids[i] = (uint64_t)in->ids[in->rows[i]];
     w.measurements = ids;
     w.n_measurements = n;
-    if (u.skewed) {
+    if (u.skewed && !u.one_instant) { /* the static fit's answer lists none */
         dq_wire_dropped *d = carve(&at, sizeof(dq_wire_dropped) * n);
         char *text = carve(&at, (size_t)REASON_MAX * n);
         for (size_t i = 0; i < n; i++) {
@@ -258,17 +322,16 @@ int dq_tick(const dq_tick_options *o, const dq_tick_input *in, uint8_t **out, si
         }
         w.dropped = d;
     }
-    w.twist = f.twist;
-    w.twist_covariance = tcov;
     w.extrapolation = u.extrapolation;
     dq_wire_latency *lat = carve(&at, sizeof(dq_wire_latency) * (u.k + 1));
-    for (size_t j = 0; j < u.k; j++) {
+    for (size_t j = 0; j < u.k; j++) { /* one instant shows no latency: each keeps its prior */
         int64_t c = u.estimated[j];
         lat[j].source = o->names[c];
         lat[j].configured = o->latency[c];
         lat[j].prior_sigma = o->sigma[c];
-        lat[j].value = ell[j];
-        lat[j].sigma = sqrt(P[(off + j) * dim + off + j]);
+        lat[j].value = u.one_instant ? o->latency[c] : t.ell[j];
+        lat[j].sigma = u.one_instant ? o->sigma[c]
+                                     : sqrt(t.P[(12 + j) * t.dim + 12 + j]);
     }
     w.latencies = lat;
     w.n_latencies = u.k;

@@ -1,8 +1,8 @@
 """A tick's answer in one C call (service/csrc/tick.h): a tracker's rows to the ``FusedPose``
 bytes of their fit over time, the answer :meth:`Tracker.estimate_rows` and
 :func:`dqpose.rpc.wire.fused_pose_bytes` give, bit for bit, for the common case (not robust,
-the constant twist, every extrinsic exact, more than one instant); None where the C leaves the
-answer to that Python path (which also names every error).
+the constant twist or one instant, every extrinsic exact); None where the C leaves the answer to
+that Python path (which also names every error).
 """
 from __future__ import annotations
 
@@ -24,7 +24,8 @@ def _options(t: Tracker) -> _dqcore.FitOptions:
     o, table, names = t._checked, t._table, list(t._names)
     srcs = [table.get(name) for name in names]
     sigma = [None if s is None else s.latency_sigma for s in srcs]   # None: not estimated
-    Wp = None if o.twist_covariance is None else _twist_information(o.twist_covariance)[1]
+    C, Wp = (None, None) if o.twist_covariance is None else _twist_information(
+        o.twist_covariance)
     return _dqcore.FitOptions(
         np.array(t._latency, np.float64),
         np.array([math.nan if x is None else x for x in sigma], np.float64),
@@ -34,8 +35,8 @@ def _options(t: Tracker) -> _dqcore.FitOptions:
         None if o.max_skew is None else _seconds(o.max_skew, "max_skew", "nonnegative"),
         None if o.max_extrapolation is None else _seconds(
             o.max_extrapolation, "max_extrapolation", "nonnegative"),
-        None if Wp is None else np.ascontiguousarray(Wp).ravel(), o.probability, o.tol,
-        o.max_iter)
+        None if Wp is None else np.ascontiguousarray(Wp).ravel(),
+        None if C is None else np.ascontiguousarray(C).ravel(), o.probability, o.tol, o.max_iter)
 
 
 class WireTicks:

@@ -1,9 +1,9 @@
 """A tick's answer in one C call (service/csrc/tick.c, ``World.tick_wire``) against the Python
 path it stands for (``World.tick`` + ``fused_pose_bytes``): the same FusedPose bytes over scenes
 it makes (moving bodies, sources with latencies, estimated latencies, a twist prior, max_skew
-drops, capped windows, several sources, a body offset, ticks between measurements), and None,
-leaving the answer to Python, where it does not (one instant, an uncertain extrinsic, robust, an
-acceleration_psd, a tick beyond max_extrapolation)."""
+drops, capped windows, several sources, a body offset, ticks between measurements, one instant:
+the static fit), and None, leaving the answer to Python, where it does not (an uncertain
+extrinsic, robust, an acceleration_psd, a tick beyond max_extrapolation)."""
 import numpy as np
 import pytest
 
@@ -108,8 +108,32 @@ def test_the_verdicts_bounds_are_chi2s():
         assert b[1, count] == chi2_quantile(0.995, 6 * count) / count
 
 
+INSTANT = {
+    "plain": ([Source("cam"), Source("arm"), Source("imu")], {}),
+    "a twist prior": ([Source("cam"), Source("arm")], {"twist_covariance": np.eye(6) * 0.01}),
+    "an estimated latency": ([Source("cam", latency=0.02, latency_sigma=0.01), Source("arm")],
+                             {}),
+    "one measurement": ([Source("cam")], {}),
+    # the kept rows one instant: the static fit of every row, none listed as dropped (Python's)
+    "max_skew drops": ([Source("cam"), Source("arm")], {"max_skew": 0.1}),
+}
+
+
+@pytest.mark.parametrize("case", list(INSTANT))
+def test_one_instant_is_the_static_fit_in_c_too(case):
+    sources, kw = INSTANT[case]
+    rng = np.random.default_rng(len(case) + 100)
+    w = world_of(rng, sources, WorldOptions(window=0.3, buffer=2.0, **kw), [0.5], ("box",))
+    if case == "max_skew drops":
+        assert not w.publish([Measurement("cam", "box", 0.3, random_pose(rng),
+                                          random_cov(rng))]).errors
+    (c, py), = ticks_of(w, "box", [None])
+    assert c is not None and c == py
+    f = w.tick("box", None)[0].fused
+    assert f is not None and f.twist is None if "twist" not in case else f.twist is not None
+
+
 LEFT = {
-    "one instant": ([Source("cam"), Source("arm")], {}, [0.5]),
     "an uncertain extrinsic": (
         [Source("cam", random_pose(np.random.default_rng(2)), extrinsic_covariance=np.eye(6)
                 * 1e-6)], {}, np.arange(20) * 0.02),
