@@ -279,11 +279,12 @@ class World:
             covs = _finite_shape(covariances, "covariances", (n, DOF, DOF))
         except ValueError as e:
             raise WorldError.of(e) from None
-        if codes is not None and np.shape(codes) != (n,):
-            raise WorldError(None, "codes", f"expected shape {(n,)}, got {np.shape(codes)}")
-        bodies = list(bodies)
+        if codes is not None:
+            codes = np.asarray(codes)
+            if codes.shape != (n,):
+                raise WorldError(None, "codes", f"expected shape {(n,)}, got {codes.shape}")
         with self._lock.write():
-            errors = self._admit(bodies, list(sources), times, poses, covs, codes=codes,
+            errors = self._admit(bodies, sources, times, poses, covs, codes=codes,
                                  producer=producer, ids=ids)
         return _published(bodies, errors)
 
@@ -303,13 +304,13 @@ class World:
         if len(use) == n:       # the common case: every row offered, no copies
             rows = (bodies, sources, times, poses, covs)
             numbers = np.arange(n) if ids is None else np.asarray(ids, np.int64)
-            checks = None if codes is None else np.asarray(codes)
+            checks = codes
         else:
             idx = np.array(use)
             rows = ([bodies[k] for k in use], [sources[k] for k in use], times[idx],
                     poses[idx], covs[idx])
             numbers = idx if ids is None else np.asarray(ids, np.int64)[idx]
-            checks = None if codes is None else np.asarray(codes)[idx]
+            checks = None if codes is None else codes[idx]
         refused = (self._t.ingest(*rows, ids=numbers, origin=producer) if checks is None else
                    self._t.ingest_checked(*rows, numbers, checks, producer))
         for j, e in refused:

@@ -262,21 +262,52 @@ static PyArrayObject *rows_of_shape(PyObject *o, int type, int inner, npy_intp n
     return NULL;
 }
 
-/* ingest(store, newest, by_source, latency, body, source, ids, times, poses, covs, ok, wposes,
- * wcovs, window, cap, max_time, jump, max_rows, origin, all_or_none) -> (refusals, fresh):
- * store.h's dq_store_ingest over the store's columns (store.n updated), newest and by_source
- * (body x source) updated in place, ok (bool) the rows taken in; refusals [(k, code, a, b)];
- * max_rows < 0: unbounded (max_time, jump unused); origin None: a stream's rows. */
+/* The codes of names[k] in `codes` (a dict of str -> int) for the rows with ok[k] (0 for the
+ * others) into out[]: 1, 0 when a name is not in it, -1 with the error. */
+static int coded(PyObject *names, PyObject *codes, const npy_bool *ok, npy_intp n,
+                 int64_t *out, const char *what)
+{
+    PyObject *seq = PySequence_Fast(names, what);
+    if (!seq) return -1;
+    int rc = 1;
+    if (PySequence_Fast_GET_SIZE(seq) != n || !PyDict_Check(codes)) {
+        PyErr_Format(PyExc_ValueError, "%s: expected a name a row and a dict of codes", what);
+        rc = -1;
+    }
+    PyObject **items = PySequence_Fast_ITEMS(seq);
+    for (npy_intp k = 0; k < n && rc == 1; k++) {
+        out[k] = 0;
+        if (!ok[k]) continue;
+        PyObject *c = PyDict_GetItemWithError(codes, items[k]);
+        if (!c) {
+            rc = PyErr_Occurred() ? -1 : 0;
+            break;
+        }
+        out[k] = PyLong_AsLongLong(c);
+        if (out[k] == -1 && PyErr_Occurred()) rc = -1;
+    }
+    Py_DECREF(seq);
+    return rc;
+}
+
+/* ingest(store, newest, by_source, latency, bodies, body_codes, sources, source_codes, ids,
+ * times, poses, covs, ok, wposes, wcovs, window, cap, max_time, jump, max_rows, origin,
+ * all_or_none) -> (refusals, fresh) | None: store.h's dq_store_ingest over the store's columns
+ * (store.n updated), newest and by_source (body x source) updated in place, ok (bool) the rows
+ * taken in; the rows' bodies and sources are names coded by the dicts (None, nothing done, when
+ * a row with ok names one they do not hold); refusals [(k, code, a, b)]; max_rows < 0:
+ * unbounded (max_time, jump unused); origin None: a stream's rows. */
 static PyObject *index_ingest(StoreIndex *self, PyObject *args)
 {
-    PyObject *store, *no, *so, *lo, *bo, *co, *io, *to, *po, *vo, *oko, *wpo, *wco, *origin;
+    PyObject *store, *no, *so, *lo, *bn, *bc, *sn, *sc, *io, *to, *po, *vo, *oko, *wpo, *wco;
+    PyObject *origin;
     dq_store_rules r;
     Py_ssize_t max_rows;
     int all_or_none;
     memset(&r, 0, sizeof r);
-    if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOOdlddnOp", &store, &no, &so, &lo, &bo, &co, &io,
-                          &to, &po, &vo, &oko, &wpo, &wco, &r.window, &r.cap, &r.max_time,
-                          &r.jump, &max_rows, &origin, &all_or_none))
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOOOOdlddnOp", &store, &no, &so, &lo, &bn, &bc, &sn,
+                          &sc, &io, &to, &po, &vo, &oko, &wpo, &wco, &r.window, &r.cap,
+                          &r.max_time, &r.jump, &max_rows, &origin, &all_or_none))
         return NULL;
     r.bounded = max_rows >= 0;
     r.max_rows = r.bounded ? (size_t)max_rows : 0;
@@ -294,17 +325,29 @@ static PyObject *index_ingest(StoreIndex *self, PyObject *args)
     if (!ok) return NULL;
     npy_intp n = PyArray_DIM(ok, 0);
     PyArrayObject *latency = vector(lo, NPY_FLOAT64, "latency");
-    PyArrayObject *body = latency ? rows_of_shape(bo, NPY_INT64, 0, n, "body") : NULL;
-    PyArrayObject *source = body ? rows_of_shape(co, NPY_INT64, 0, n, "source") : NULL;
-    PyArrayObject *ids = source ? rows_of_shape(io, NPY_INT64, 0, n, "ids") : NULL;
+    PyArrayObject *ids = latency ? rows_of_shape(io, NPY_INT64, 0, n, "ids") : NULL;
     PyArrayObject *times = ids ? rows_of_shape(to, NPY_FLOAT64, 0, n, "times") : NULL;
     PyArrayObject *poses = times ? rows_of_shape(po, NPY_FLOAT64, 8, n, "poses") : NULL;
     PyArrayObject *covs = poses ? rows_of_shape(vo, NPY_FLOAT64, 36, n, "covs") : NULL;
     PyArrayObject *wposes = NULL, *wcovs = NULL;
     PyObject *out = NULL, *list = NULL;
     double *taken = NULL;
+    int64_t *body = NULL, *source = NULL;
     dq_store_refusal *refused = NULL;
     if (!covs) goto done;
+    body = malloc(2 * ((size_t)n + 1) * sizeof *body);
+    if (!body) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    source = body + n + 1;
+    int known = coded(bn, bc, PyArray_DATA(ok), n, body, "bodies");
+    if (known == 1) known = coded(sn, sc, PyArray_DATA(ok), n, source, "sources");
+    if (known < 0) goto done;
+    if (!known) {
+        out = Py_NewRef(Py_None);
+        goto done;
+    }
     if (wpo != Py_None && !(wposes = rows_of_shape(wpo, NPY_FLOAT64, 8, n, "wposes")))
         goto done;
     if (wco != Py_None && !(wcovs = rows_of_shape(wco, NPY_FLOAT64, 36, n, "wcovs")))
@@ -322,7 +365,7 @@ static PyObject *index_ingest(StoreIndex *self, PyObject *args)
         PyErr_SetString(PyExc_ValueError, "by_source: fewer bodies than newest");
         goto done;
     }
-    dq_store_rows in = {(size_t)n, PyArray_DATA(body), PyArray_DATA(source), PyArray_DATA(ids),
+    dq_store_rows in = {(size_t)n, body, source, PyArray_DATA(ids),
                         PyArray_DATA(times), PyArray_DATA(poses), PyArray_DATA(covs),
                         wposes ? PyArray_DATA(wposes) : NULL,
                         wcovs ? PyArray_DATA(wcovs) : NULL, PyArray_DATA(ok), taken};
@@ -355,9 +398,8 @@ done:
     Py_XDECREF(list);
     free(taken);
     free(refused);
+    free(body);
     Py_XDECREF(latency);
-    Py_XDECREF(body);
-    Py_XDECREF(source);
     Py_XDECREF(ids);
     Py_XDECREF(times);
     Py_XDECREF(poses);
@@ -411,9 +453,10 @@ static PyMethodDef index_methods[] = {
      "of them; cap < 0: all), as bools."},
     {"reset", (PyCFunction)index_reset, METH_NOARGS, "reset(): every body's index emptied."},
     {"ingest", (PyCFunction)index_ingest, METH_VARARGS,
-     "ingest(store, newest, by_source, latency, body, source, ids, times, poses, covs, ok, "
-     "wposes, wcovs, window, cap, max_time, jump, max_rows, origin, all_or_none) -> (refusals, "
-     "fresh): a request's rows checked and taken into the store (store.h)."},
+     "ingest(store, newest, by_source, latency, bodies, body_codes, sources, source_codes, ids, "
+     "times, poses, covs, ok, wposes, wcovs, window, cap, max_time, jump, max_rows, origin, "
+     "all_or_none) -> (refusals, fresh) | None: a request's rows checked and taken into the "
+     "store (store.h); None when a name is not coded."},
     {"keep", (PyCFunction)index_keep, METH_VARARGS,
      "keep(store, live): the store's rows with live[r] kept, in order."},
     {"version", (PyCFunction)index_version, METH_O,

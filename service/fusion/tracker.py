@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Iterable, Mapping, NamedTuple, Optional, Sequence
+from typing import Iterable, Mapping, NamedTuple, Optional, Sequence
 
 import numpy as np
 
@@ -445,13 +445,19 @@ class Tracker:
         (:meth:`_ingest_valid`), else the check that refuses it, the row then named by this
         tracker's own check of it alone. The same answers as :meth:`ingest`, without checking
         the good rows again. The names, which a decoder passes as strings, are checked here."""
+        n = len(bodies)
+        codes = np.asarray(codes)
+        if not codes.any():     # the common case: every row taken in, its names known
+            got = self._admit(bodies, sources, times, poses, covariances, ids, np.ones(n, bool),
+                              {}, n, False, origin, new_names=False)
+            if got is not None:
+                return got
         # a name coded already was checked when it came first (here or by refusals)
         named = _named_rows(bodies, sources, self._body_codes, self._codes)
         if named:       # refused for a name: then named by the check of the row alone
-            codes = np.array(codes, np.int64)
+            codes = codes.astype(np.int64)
             codes[named] = -1
         coded = np.flatnonzero(codes).tolist()
-        n = len(bodies)
         if not coded:           # the common case: every row taken in
             return self._ingest_valid(bodies, sources, times, poses, covariances, ids, n, origin)
         refused = [(k, self.refusals(
@@ -477,32 +483,38 @@ class Tracker:
                            offered, False, origin)
 
     def _admit(self, bodies, sources, times, poses, covs, ids, ok, errors, offered: int,
-               all_or_none: bool, origin=None):
+               all_or_none: bool, origin=None, new_names: bool = True):
         """Checked measurements (``ok``; ``errors`` those refused so far) into the windows in one
         C call (service/csrc/store.h ``dq_store_ingest``: the limits' time checks, the jump rule,
         the window floor, the room, then the store), its refusals named here (:meth:`_refusal`).
-        """
-        every = bool(ok.all())
-        # known sources and bodies by plain look-ups (the common case), else coded on the way
-        codes: Any = [self._codes.get(s) for s in sources] if every else [None]
-        if None in codes:
-            use = ok.tolist()
-            codes = [self._source_code(s) if u else 0 for u, s in zip(use, sources)]
-        body: Any = [self._body_codes.get(b) for b in bodies] if every else [None]
-        if None in body:
-            use = ok.tolist()
-            body = [self._body_code(b) if u else 0 for u, b in zip(use, bodies)]
+        A body or source new to the tracker is coded first (unless not ``new_names``: then None,
+        nothing done)."""
         s, b = self._store, self.bounds
-        s.reserve(len(body), self._newest, self.window, self.cap)
+        s.reserve(len(bodies), self._newest, self.window, self.cap)
         wposes = wcovs = None
         if self._framed and ok.any():
             wposes, wcovs = self._in_world(sources, poses, covs, ok)
-        refused, fresh = s._index.ingest(
-            s, self._newest, self._by_source, self._latency, body, codes, ids, times, poses,
-            covs, ok, wposes, wcovs, self.window, -1 if self.cap is None else self.cap,
-            math.inf if b is None else b.max_time, math.inf if b is None else b.max_time_jump,
-            -1 if b is None else b.max_rows, None if origin is None else hash(origin),
-            all_or_none)
+        rules = (self.window, -1 if self.cap is None else self.cap,
+                 math.inf if b is None else b.max_time, math.inf if b is None else b.max_time_jump,
+                 -1 if b is None else b.max_rows, None if origin is None else hash(origin),
+                 all_or_none)
+        got = s._index.ingest(s, self._newest, self._by_source, self._latency, bodies,
+                              self._body_codes, sources, self._codes, ids, times, poses, covs, ok,
+                              wposes, wcovs, *rules)
+        if got is None:         # a name new to the tracker: coded, sources first, in row order
+            if not new_names:
+                return None
+            use = ok.tolist()
+            for u, src in zip(use, sources):
+                if u:
+                    self._source_code(src)
+            for u, body in zip(use, bodies):
+                if u:
+                    self._body_code(body)
+            got = s._index.ingest(s, self._newest, self._by_source, self._latency, bodies,
+                                  self._body_codes, sources, self._codes, ids, times, poses, covs,
+                                  ok, wposes, wcovs, *rules)
+        refused, fresh = got
         for k, code, x, y in refused:
             errors[k] = self._refusal(k, code, x, y, bodies[k], sources[k], times[k])
         if all_or_none and errors:
@@ -511,7 +523,7 @@ class Tracker:
         if fresh:           # a body without measurements got some
             for k in np.flatnonzero(ok).tolist():
                 self._active.setdefault(bodies[k], None)
-        return sorted(errors.items())
+        return sorted(errors.items()) if errors else []
 
     def _refusal(self, k: int, code: int, x: float, y: float, body, source,
                  time) -> WorldError:

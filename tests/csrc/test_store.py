@@ -56,19 +56,22 @@ def test_ingest_refuses_columns_and_codes_it_cannot_write():
     s = _Store(capacity=4)
     newest, seen, latency = np.full(2, -np.inf), np.full((2, 1), -np.inf), np.zeros(1)
 
-    def ingest(store=s, body=(0,), ok=None, newest=newest):
+    def ingest(store=s, body=(0,), ok=None, newest=newest, names=None):
         m = len(body)
         return store._index.ingest(
-            store, newest, seen, latency, np.array(body, np.int64), np.zeros(m, np.int64),
-            np.arange(m), np.zeros(m), np.tile(np.eye(1, 8)[0], (m, 1)),
-            np.tile(np.eye(6), (m, 1, 1)), np.ones(m, bool) if ok is None else ok, None, None,
-            1.0, -1, np.inf, np.inf, -1, None, False)
+            store, newest, seen, latency, list(body) if names is None else names,
+            {0: 0, 1: 1, 2: 2}, ["s"] * m, {"s": 0}, np.arange(m), np.zeros(m),
+            np.tile(np.eye(1, 8)[0], (m, 1)), np.tile(np.eye(6), (m, 1, 1)),
+            np.ones(m, bool) if ok is None else ok, None, None, 1.0, -1, np.inf, np.inf, -1,
+            None, False)
 
     with pytest.raises(ValueError, match="^rows: a code out of range"):
         ingest(body=(2,))                                   # no such body in newest
     with pytest.raises(ValueError, match="^rows: a code out of range, or the store's columns"):
         ingest(body=(0,) * 5)                               # 5 rows, room for 4
     assert s.n == 0
+    with pytest.raises(ValueError, match="^bodies: expected a name a row and a dict of codes"):
+        ingest(names=[0, 0])
     with pytest.raises(ValueError, match="^ok: expected a writeable contiguous 1-d array"):
         ingest(ok=np.ones(1, np.int8))
     with pytest.raises(ValueError, match="^newest: expected a writeable contiguous 1-d array"):
@@ -77,4 +80,5 @@ def test_ingest_refuses_columns_and_codes_it_cannot_write():
     short.taken = np.zeros(3)
     with pytest.raises(ValueError, match="^store.taken: expected a writeable contiguous column"):
         ingest(store=short)
+    assert ingest(body=(3,)) is None and s.n == 0          # a name not coded: nothing done
     assert ingest() == ([], True) and s.n == 1 and newest.tolist() == [0.0, -np.inf]
