@@ -42,6 +42,9 @@ class Lookups:
         self._warm: dict[str, np.ndarray] = {}
         self._tracker: Optional["Tracker"] = None
         self._kept: Optional[tuple] = None     # _table's
+        # per fit (a body's alone, two bodies' together) the record of its last run
+        # (service/csrc/lookup.h): where the next one's first step comes from
+        self._records: dict[tuple, np.ndarray] = {}
         self._L = np.empty(0)
         self._E = np.empty((0, 8))
 
@@ -72,15 +75,21 @@ class Lookups:
         covs = s.wcovs if "wcovs" in s._arrays else s.covs
         o = t._checked
         limit = o.max_extrapolation
-        got = _c.lookup(s.wposes, covs, s.times[:s.n], s.codes, latency, latency_w, E, E_info,
-                        uncertain, rows[0], rows[1], twist_w, warm[0], warm[1], L, Ehat, at,
+        keys = ((target,), (source,), (target, source))
+        records = self._records
+        got = _c.lookup(s.ids, s.wposes, covs, s.times[:s.n], s.codes, latency, latency_w, E,
+                        E_info, uncertain, rows[0], rows[1], twist_w, warm[0], warm[1], L, Ehat,
+                        *(records.get(k) for k in keys), at,
                         math.inf if limit is None else float(limit), o.tol, o.max_iter)
         if got is None:
             return None
-        pose, cov, wa, wb, self._L, self._E, _ = got
+        pose, cov, wa, wb, self._L, self._E, *made, _ = got
         for b, warmed in ((target, wa), (source, wb)):
             if b:
                 self._warm[b] = warmed
+        for k, rec in zip(keys, made):
+            if rec is not None:
+                records[k] = rec
         return BodyPose(source, at, _frozen(pose), _frozen(cov), None)
 
     def _table(self, t: "Tracker") -> tuple:
@@ -89,7 +98,7 @@ class Lookups:
         information and whether it is uncertain; then the twist's prior information (or None).
         Made again when the tracker (a configuration) or its codes change."""
         if self._tracker is not t:     # a new configuration: its own codes and estimates
-            self._tracker, self._warm, self._kept = t, {}, None
+            self._tracker, self._warm, self._kept, self._records = t, {}, None, {}
             self._L, self._E = np.empty(0), np.empty((0, 8))
         names = t._names
         kept = self._kept

@@ -78,19 +78,33 @@ def test_a_lookup_in_c_is_the_fits_answer_cold_and_warm(scene):
         publish(k)
 
 
-def test_a_warm_start_far_from_the_answer_ends_at_the_answer():
-    """A warm start half a radian and a metre off, or not finite: the fit ends where the cold
-    one does (converging from it, or started again cold)."""
-    kws, sees_b = SCENES["a shared uncertain mount"]
-    world, _, _ = moving(np.random.default_rng(4), kws, sees_b)
-    c, f = both_paths(world, "a", "b")
+@pytest.mark.parametrize("shared", [True, False])
+def test_a_warm_start_far_from_the_answer_ends_at_the_answer(shared):
+    """A warm start half a radian and a metre off or not finite (no record), and a record of the
+    last fit whose normal equations are wrong: the fit ends where the cold one does (converging
+    from it, or started again cold)."""
+    kws, sees_b = SCENES["a shared uncertain mount" if shared else "exact, each body its own "
+                                                                  "cameras"]
+    world, publish, _ = moving(np.random.default_rng(4), kws, sees_b)
     lookups = world._lookups
-    for off in (np.r_[0.5, 0, 0, 1.0, 0, 0], np.full(6, np.nan)):
-        for b in "ab":
-            warm = lookups._warm[b].copy()
-            warm[1:9] = dq.mul(warm[1:9], lie.se3_exp(off)) if np.isfinite(off).all() else off[0]
-            lookups._warm[b] = warm
-        c, _ = both_paths(world, "a", "b")
+    for k in range(31, 36):
+        both_paths(world, "a", "b")
+        assert lookups._records       # the fits' records, from which the next ones start
+        publish(k)
+        if k < 33:      # far and non-finite warm starts
+            off = np.r_[0.5, 0, 0, 1.0, 0, 0] if k == 31 else np.full(6, np.nan)
+            lookups._records.clear()
+            for b in "ab":
+                warm = lookups._warm[b].copy()
+                warm[1:9] = dq.mul(warm[1:9], lie.se3_exp(off)) if k == 31 else np.nan
+                lookups._warm[b] = warm
+        else:           # the records' H and g scaled, or made not finite
+            for key, rec in lookups._records.items():
+                dim = int(rec[0])
+                rec = rec.copy()
+                rec[-dim * dim - dim:] *= 1e3 if k == 33 else np.nan
+                lookups._records[key] = rec
+        c, f = both_paths(world, "a", "b")
         assert c is not None
         same_fit(c.pose, c.covariance, f.pose, f.covariance)
 
@@ -134,5 +148,6 @@ def test_rows_that_are_not_the_stores_are_refused_by_name():
     s = t._store
     for bad in (np.array([s.n]), np.array([-1])):
         with pytest.raises(ValueError, match=r"rows_a\[0\]"):
-            _dqcore.lookup(s.wposes, s.covs, s.times[:s.n], s.codes, *table[:5], bad, None,
-                           None, None, None, L, E, 1.0, np.inf, 1e-12, 100)
+            _dqcore.lookup(s.ids, s.wposes, s.covs, s.times[:s.n], s.codes, *table[:5], bad,
+                           None, None, None, None, L, E, None, None, None, 1.0, np.inf, 1e-12,
+                           100)

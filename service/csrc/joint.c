@@ -516,3 +516,21 @@ int dq_joint_fit(const double *z, const double *cov, const unsigned char *inlier
     }
     return DQ_OK;
 }
+
+int dq_joint_linearized(const double *z, const double *cov, const unsigned char *inlier,
+                        size_t N, const dq_joint_model *m, double *work,
+                        const dq_joint_state *st, double *H, double *g, size_t *bad)
+{
+    const int dim = (int)dq_joint_dim(m), k = (int)m->k;
+    const int ext = dim - 6 * (int)m->m;
+    double *groups = work + J_PER * N;
+    double *shift = groups + G_PER * joint_max_groups(m), *eres = shift + 8 * m->m;
+    joint_ctx c = {m, z, inlier, N, dim, ext - k, ext, work, groups,
+                   joint_groups(m, work, groups), shift, eres};
+    int rc = joint_blocks(&c, cov, bad);
+    if (rc && rc != DQ_E_NO_INLIERS) return rc;
+    joint_extrinsics(&c, st->Ehat);
+    joint_evaluate(&c, st->X, st->V, st->L, 1);
+    joint_linearize(&c, st->V, st->L, H, g);
+    return DQ_OK;
+}

@@ -95,4 +95,13 @@ int dq_joint_fit(const double *z, const double *cov, const unsigned char *inlier
                  const dq_joint_model *m, const dq_fuse_params *p, double *work,
                  dq_taken *taken, dq_joint_state *st, const dq_joint_outputs *per, size_t *bad);
 
+/* H (dim x dim, mirrored) and g of the fit's linearisation at the state st (X, V, L, Ehat) for
+ * the measurements inlier selects (none: the priors' alone), the priors included: what
+ * dq_joint_fit's normal equations are at that point (a warm start's first step made from the
+ * measurements that changed, service/csrc/lookup.c). work: dq_joint_workspace(N, m, 0).
+ * DQ_OK, or DQ_E_NOT_SPD with *bad the measurement. */
+int dq_joint_linearized(const double *z, const double *cov, const unsigned char *inlier,
+                        size_t N, const dq_joint_model *m, double *work,
+                        const dq_joint_state *st, double *H, double *g, size_t *bad);
+
 #endif

@@ -11,6 +11,7 @@
 #include <string.h>
 
 #include "dq.h"
+#include "gn.h"
 #include "joint.h"
 #include "se3.h"
 
@@ -122,8 +123,250 @@ static void lookup_starts(dq_lookup_body *const *parts, int K, const dq_lookup_a
     }
 }
 
+/* A fit's record (lookup.h): header, then the slots' codes, the state (X, V per part, L,
+ * Ehat), the parts' rows and their ids, H and g at the estimate. */
+enum { R_DIM, R_K, R_KL, R_M, R_T0, R_N0, R_N1, R_HEAD };
+
+static size_t rec_size(size_t dim, size_t K, size_t k, size_t m, size_t n)
+{
+    return R_HEAD + k + m + 14 * K + k + 8 * m + 2 * n + dim * dim + dim;
+}
+
+/* The record of the fit just made (parts' estimates in f, H and g at them). */
+static double *rec_make(const dq_lookup_store *s, dq_lookup_body *const *parts, int K,
+                        const dq_lookup_args *a, const fit_arrays *f, size_t dim, size_t *n_out)
+{
+    const size_t n = f->N, size = rec_size(dim, (size_t)K, f->k, f->m, n);
+    double *r = malloc(sizeof(double) * size);
+    if (!r) return NULL;
+    r[R_DIM] = (double)dim;
+    r[R_K] = K;
+    r[R_KL] = (double)f->k;
+    r[R_M] = (double)f->m;
+    r[R_T0] = a->at;
+    r[R_N0] = (double)parts[0]->n;
+    r[R_N1] = K > 1 ? (double)parts[1]->n : 0.0;
+    double *p = r + R_HEAD;
+    for (size_t j = 0; j < f->k; j++) *p++ = (double)f->lcode[j];
+    for (size_t j = 0; j < f->m; j++) *p++ = (double)f->ecode[j];
+    memcpy(p, f->X, sizeof(double) * 8 * K);
+    p += 8 * K;
+    memcpy(p, f->V, sizeof(double) * 6 * K);
+    p += 6 * K;
+    memcpy(p, f->L, sizeof(double) * f->k);
+    p += f->k;
+    memcpy(p, f->Ehat, sizeof(double) * 8 * f->m);
+    p += 8 * f->m;
+    for (int q = 0; q < K; q++)
+        for (size_t j = 0; j < parts[q]->n; j++) *p++ = (double)parts[q]->rows[j];
+    for (int q = 0; q < K; q++)
+        for (size_t j = 0; j < parts[q]->n; j++) *p++ = (double)s->ids[parts[q]->rows[j]];
+    memcpy(p, f->H, sizeof(double) * dim * dim);
+    memcpy(p + dim * dim, f->g, sizeof(double) * dim);
+    *n_out = size;
+    return r;
+}
+
+/* The rows of sorted a not in sorted b (their indices in a into out); their count. */
+static size_t rows_not_in(const long long *a, size_t na, const long long *b, size_t nb,
+                          size_t *out)
+{
+    size_t i = 0, j = 0, c = 0;
+    while (i < na) {
+        while (j < nb && b[j] < a[i]) j++;
+        if (j >= nb || b[j] != a[i]) out[c++] = i;
+        i++;
+    }
+    return c;
+}
+
+/* Whether the rows of sorted a (ids aid) that are also in sorted b hold the same measurements
+ * still (a compaction moves rows: the same index, another measurement). */
+static int rows_kept(const dq_lookup_store *s, const long long *a, const double *aid, size_t na,
+                     const long long *b, size_t nb)
+{
+    size_t j = 0;
+    for (size_t i = 0; i < na; i++) {
+        while (j < nb && b[j] < a[i]) j++;
+        if (j < nb && b[j] == a[i] && (double)s->ids[a[i]] != aid[i]) return 0;
+    }
+    return 1;
+}
+
+/* H, g of the given rows at state st (X, V, L, Ehat), priors included: the rows' arrays
+ * gathered per part (their counts in cnt), dq_joint_linearized. */
+static int rows_linearized(const dq_joint_model *m0, const size_t *cnt, const double *z,
+                           const double *S, const double *stamp, const double *lat,
+                           const long long *ls, const long long *es, const dq_joint_state *st,
+                           double *H, double *g)
+{
+    dq_joint_part jp[2];
+    size_t n = 0;
+    for (size_t q = 0; q < m0->parts; q++) {
+        jp[q] = m0->part[q];
+        jp[q].n = cnt[q];
+        n += cnt[q];
+    }
+    const dq_joint_model m = {m0->parts, jp, stamp, lat, ls, es, m0->k, m0->prior, m0->prior_w,
+                              m0->m, m0->E, m0->E_info};
+    double *work = malloc(sizeof(double) * (dq_joint_workspace(n, &m, 0) + 1));
+    if (!work) return DQ_LOOKUP_NOMEM;
+    size_t bad = 0;
+    int rc = dq_joint_linearized(z, S, NULL, n, &m, work, st, H, g, &bad);
+    free(work);
+    return rc;
+}
+
+/* The start from the record rec of this fit's last run: its state carried to the time, moved
+ * by one Newton step of the normal equations there: the record's, carried by T (the state's
+ * map between the two times: a pose-and-twist block [[Ad(Exp(dV)), -d Jr(-dV)], [0, I]] per
+ * part, d the time moved), less the rows that left, plus those that came. Nothing is changed
+ * when the record does not describe this fit (its layout); the record's state carried stays
+ * the start when a row that left is no longer the store's, too many rows changed, or the step
+ * fails. */
+static void lookup_refine(const dq_lookup_store *s, dq_lookup_body *const *parts, int K,
+                          const dq_lookup_args *a, fit_arrays *f, const dq_joint_model *m,
+                          const double *rec, size_t rec_n)
+{
+    const size_t dim = dq_joint_dim(m);
+    if (!rec || rec_n < R_HEAD || rec[R_DIM] != (double)dim || rec[R_K] != K ||
+        rec[R_KL] != (double)f->k || rec[R_M] != (double)f->m)
+        return;
+    const size_t pn[2] = {(size_t)rec[R_N0], (size_t)rec[R_N1]}, n = pn[0] + pn[1];
+    if (rec_n != rec_size(dim, (size_t)K, f->k, f->m, n)) return;
+    const double *p = rec + R_HEAD, d = a->at - rec[R_T0];
+    for (size_t j = 0; j < f->k; j++)
+        if (p[j] != (double)f->lcode[j]) return;
+    for (size_t j = 0; j < f->m; j++)
+        if (p[f->k + j] != (double)f->ecode[j]) return;
+    const double *X0 = p + f->k + f->m, *V0 = X0 + 8 * K, *L0 = V0 + 6 * K, *E0 = L0 + f->k;
+    const double *prow = E0 + 8 * f->m, *pid = prow + n, *H0 = pid + n, *g0 = H0 + dim * dim;
+    if (!dq_finite_n(X0, 14 * (size_t)K + f->k + 8 * f->m) || !(fabs(d) < HUGE_VAL)) return;
+    size_t nmax = 1;
+    for (int q = 0; q < K; q++) nmax += pn[q] + parts[q]->n;
+    const size_t D = dim;
+    /* scratch: T, H, g, Ha, ga, Lh, dh, delta; the rows that left and came (at most all) */
+    double *mem = malloc(sizeof(double) * (5 * D * D + 5 * D + 46 * nmax) +
+                         sizeof(long long) * 2 * nmax + sizeof(size_t) * 3 * nmax);
+    if (!mem) return;
+    double *T = mem, *H = T + D * D, *g = H + D * D, *Ha = g + D, *ga = Ha + D * D,
+           *Lh = ga + D, *dh = Lh + D * D, *delta = dh + D, *TH = delta + D, *z = TH + D * D,
+           *S = z + 8 * nmax, *st_ = S + 36 * nmax, *lt = st_ + nmax;
+    long long *ls = (long long *)(lt + nmax), *es = ls + nmax;
+    size_t *idx = (size_t *)(es + nmax), *came = idx + nmax, *left = came + nmax;
+    /* the record's state carried to the time: the start */
+    for (int q = 0; q < K; q++) {
+        double h[6], M[8], X[8];
+        for (int j = 0; j < 6; j++) h[j] = 0.5 * (d * V0[6 * q + j]);
+        dq_exp(h, M);
+        dq_mul(X0 + 8 * q, M, X);
+        dq_normalize(X, f->X + 8 * q);
+    }
+    memcpy(f->V, V0, sizeof(double) * 6 * K);
+    memcpy(f->L, L0, sizeof(double) * f->k);
+    memcpy(f->Ehat, E0, sizeof(double) * 8 * f->m);
+    /* T, and H = T^T H0 T, g = T^T g0 */
+    memset(T, 0, sizeof(double) * D * D);
+    for (size_t j = 0; j < D; j++) T[D * j + j] = 1.0;
+    for (int q = 0; q < K; q++) {
+        double h[6], E[8], Ad[36], x[6];
+        const size_t off = 12 * (size_t)q;
+        for (int j = 0; j < 6; j++) h[j] = 0.5 * (d * V0[6 * q + j]);
+        dq_exp(h, E);
+        dq_adjoint(E, Ad);
+        for (int r = 0; r < 6; r++)
+            for (int c = 0; c < 6; c++) T[D * (off + r) + off + c] = Ad[6 * r + c];
+        for (int j = 0; j < 6; j++) {
+            x[j] = -d * V0[6 * q + j];
+            h[j] = 0.5 * x[j];
+        }
+        dq_exp(h, E);
+        dq_jr_scaled(x, E[1] * E[1] + E[2] * E[2] + E[3] * E[3], E[0], -d, T + D * off + off + 6,
+                     (int)D);
+    }
+    for (size_t r = 0; r < D; r++)
+        for (size_t c = 0; c < D; c++) {
+            double t = 0.0;
+            for (size_t k = 0; k < D; k++) t += T[D * k + r] * H0[D * k + c];
+            TH[D * r + c] = t;
+        }
+    for (size_t r = 0; r < D; r++) {
+        for (size_t c = 0; c < D; c++) {
+            double t = 0.0;
+            for (size_t k = 0; k < D; k++) t += TH[D * r + k] * T[D * k + c];
+            H[D * r + c] = t;
+        }
+        double t = 0.0;
+        for (size_t k = 0; k < D; k++) t += T[D * k + r] * g0[k];
+        g[r] = t;
+    }
+    const dq_joint_state st = {f->X, f->V, f->L, f->Ehat, NULL, NULL, NULL, 0.0, 0, 0, 1};
+    /* the rows that came (this fit's not in the record's: came[], by index in f) and those that
+     * left (the record's not in this fit's: left[], by index in the record), per part */
+    size_t ncame[2] = {0, 0}, nleft[2] = {0, 0}, nc = 0, nl = 0, first = 0, pfirst = 0;
+    for (int q = 0; q < K; q++) {
+        long long *prev = ls;      /* scratch: this part's rows in the record */
+        for (size_t j = 0; j < pn[q]; j++) prev[j] = (long long)prow[pfirst + j];
+        if (!rows_kept(s, prev, pid + pfirst, pn[q], parts[q]->rows, parts[q]->n)) goto done;
+        ncame[q] = rows_not_in(parts[q]->rows, parts[q]->n, prev, pn[q], idx);
+        for (size_t j = 0; j < ncame[q]; j++) came[nc + j] = first + idx[j];
+        nleft[q] = rows_not_in(prev, pn[q], parts[q]->rows, parts[q]->n, idx);
+        for (size_t j = 0; j < nleft[q]; j++) left[nl + j] = pfirst + idx[j];
+        nc += ncame[q];
+        nl += nleft[q];
+        first += parts[q]->n;
+        pfirst += pn[q];
+    }
+    if (2 * (nc + nl) > f->N) goto done;
+    for (size_t j = 0; j < nc; j++) {
+        const size_t i = came[j];
+        memcpy(z + 8 * j, f->zu + 8 * i, sizeof(double) * 8);
+        memcpy(S + 36 * j, f->S + 36 * i, sizeof(double) * 36);
+        st_[j] = f->stamp[i];
+        lt[j] = f->lat[i];
+        ls[j] = f->lslot[i];
+        es[j] = f->eslot[i];
+    }
+    if (rows_linearized(m, ncame, z, S, st_, lt, ls, es, &st, Ha, ga)) goto done;
+    for (size_t j = 0; j < D * D; j++) H[j] += Ha[j];
+    for (size_t j = 0; j < D; j++) g[j] += ga[j];
+    for (size_t j = 0; j < nl; j++) {
+        const size_t i = left[j];
+        const long long r = (long long)prow[i];
+        if (r < 0 || (size_t)r >= s->rows || (double)s->ids[r] != pid[i]) goto done;
+        const long long c = s->codes[r];
+        if (c < 0 || (size_t)c >= s->ncodes || dq_unit(s->poses + 8 * r, z + 8 * j)) goto done;
+        memcpy(S + 36 * j, s->covs + 36 * r, sizeof(double) * 36);
+        st_[j] = s->times[r] - a->at;
+        lt[j] = s->latency[c];
+        ls[j] = f->slot_of[2 * c];
+        es[j] = f->slot_of[2 * c + 1];
+        if ((s->latency_w[c] > 0.0 && ls[j] < 0) || (s->uncertain[c] && es[j] < 0)) goto done;
+    }
+    if (rows_linearized(m, nleft, z, S, st_, lt, ls, es, &st, Ha, ga)) goto done;
+    for (size_t j = 0; j < D * D; j++) H[j] -= Ha[j];
+    for (size_t j = 0; j < D; j++) g[j] -= ga[j];
+    double len;
+    if (dq_newton_step(H, g, (int)D, Lh, dh, delta, &len) || !(len < 1.0)) goto done;
+    {
+        double X[8];
+        for (int q = 0; q < K; q++) {
+            if (dq_retract(f->X + 8 * q, delta + 12 * q, X)) goto done;
+            memcpy(f->X + 8 * q, X, sizeof X);
+            for (int j = 0; j < 6; j++) f->V[6 * q + j] += delta[12 * q + 6 + j];
+        }
+        for (size_t j = 0; j < f->k; j++) f->L[j] += delta[12 * K + j];
+        for (size_t j = 0; j < f->m; j++) {
+            if (dq_retract(f->Ehat + 8 * j, delta + 12 * K + f->k + 6 * j, X)) goto done;
+            memcpy(f->Ehat + 8 * j, X, sizeof X);
+        }
+    }
+done:
+    free(mem);
+}
+
 static int lookup_solve(const dq_lookup_store *s, dq_lookup_body *const *parts, int K,
-                        const dq_lookup_args *a, fit_arrays *f, double *Pout)
+                        dq_lookup_args *a, fit_arrays *f, double *Pout, int slot)
 {
     int rc = lookup_gather(s, parts, K, a, f);
     if (rc) return rc;
@@ -136,9 +379,11 @@ static int lookup_solve(const dq_lookup_store *s, dq_lookup_body *const *parts, 
     for (int q = 0; q < K; q++) warm |= parts[q]->warm;
     for (size_t j = 0; j < f->k; j++) warm |= a->L[f->lcode[j]] == a->L[f->lcode[j]];
     for (size_t j = 0; j < f->m; j++) warm |= dq_finite_n(a->Ehat + 8 * f->ecode[j], 8);
+    warm |= a->rec_in[slot] != NULL;
     const dq_joint_outputs per = {NULL, NULL, NULL, NULL, NULL, NULL};
     for (;; warm = 0) {
         lookup_starts(parts, K, a, f, warm);
+        if (warm) lookup_refine(s, parts, K, a, f, &m, a->rec_in[slot], a->rec_in_n[slot]);
         dq_joint_state st = {f->X, f->V, f->L, f->Ehat, f->H, f->P, f->g, 0.0, 0, 0, 1};
         size_t bad = 0;
         rc = dq_joint_fit(f->zu, f->S, NULL, f->N, &m, &a->p, f->work, f->taken, &st, &per,
@@ -158,13 +403,15 @@ static int lookup_solve(const dq_lookup_store *s, dq_lookup_body *const *parts, 
     for (size_t j = 0; j < f->k; j++) a->L[f->lcode[j]] = f->L[j];
     for (size_t j = 0; j < f->m; j++)
         memcpy(a->Ehat + 8 * f->ecode[j], f->Ehat + 8 * j, 8 * sizeof(double));
+    free(a->rec_out[slot]);
+    a->rec_out[slot] = rec_make(s, parts, K, a, f, (size_t)dim, &a->rec_out_n[slot]);
     return DQ_OK;
 }
 
 /* One fit of K parts (1 or 2): its arrays allocated for the parts' rows, solved, freed; Pout
  * the parts' poses' joint covariance (6K x 6K). */
 static int lookup_fit(const dq_lookup_store *s, dq_lookup_body *const *parts, int K,
-                      dq_lookup_args *a, double *Pout)
+                      dq_lookup_args *a, double *Pout, int slot)
 {
     fit_arrays f;
     size_t N = 0;
@@ -207,7 +454,7 @@ static int lookup_fit(const dq_lookup_store *s, dq_lookup_body *const *parts, in
     f.lcode = f.slot_of + 2 * nc;
     f.ecode = f.lcode + nc;
     f.taken = (dq_taken *)(ll + longs);
-    int rc = lookup_solve(s, parts, K, a, &f, Pout);
+    int rc = lookup_solve(s, parts, K, a, &f, Pout, slot);
     free(mem);
     return rc;
 }
@@ -236,12 +483,12 @@ int dq_lookup(const dq_lookup_store *s, dq_lookup_body *body, dq_lookup_args *a,
     if (*shared < 0) return DQ_LOOKUP_NOMEM;
     if (*shared) {
         dq_lookup_body *parts[2] = {&body[0], &body[1]};
-        rc = lookup_fit(s, parts, 2, a, P);
+        rc = lookup_fit(s, parts, 2, a, P, 2);
     } else {
         for (int q = 0; q < 2 && rc == DQ_OK; q++) {
             if (!body[q].n) continue;
             dq_lookup_body *part = &body[q];
-            rc = lookup_fit(s, &part, 1, a, Pq);
+            rc = lookup_fit(s, &part, 1, a, Pq, q);
             for (int x = 0; x < 6; x++)
                 for (int y = 0; y < 6; y++) P[12 * (6 * q + x) + 6 * q + y] = Pq[6 * x + y];
         }

@@ -8,7 +8,10 @@
  *
  * A fit starts where the caller says: a body's earlier estimate (pose and twist at its time,
  * carried to this time on the twist), a source's earlier latency and extrinsic estimate (warm
- * starts, which change the answer only within the fit's tol), else where the fits of
+ * starts, which change the answer only within the fit's tol); or, given the record of the same
+ * fit's last run (its state, rows and normal equations at its estimate), that state carried to
+ * this time and moved by one Newton step made from the rows that came and went alone (the
+ * others' information carried over, exactly to first order); else where the fits of
  * alignment.py start (the row taken nearest the time, at rest; latencies at their priors,
  * extrinsics as configured). Not here (DQ_LOOKUP_ELSEWHERE, the caller's other path): rows of
  * one instant, a time farther than max_extrapolation outside a body's rows, a fit that did not
@@ -28,6 +31,8 @@
 /* A store's columns (rows in the world frame, as service/fusion/store.py keeps them) and its
  * sources' table, by source code. */
 typedef struct {
+    size_t rows;
+    const long long *ids;           /* rows: each row's measurement id */
     const double *poses;            /* rows x 8 (unit to DQ_UNIT_TOL) */
     const double *covs;             /* rows x 36 (symmetric positive definite) */
     const double *times;            /* rows: stamps */
@@ -58,6 +63,12 @@ typedef struct {
     /* ncodes each, in: warm starts (NaN: none), out: the estimates of those fitted */
     double *L;                 /* latencies */
     double *Ehat;              /* ncodes x 8: extrinsics */
+    /* the records of the fits of body 0 alone, body 1 alone, both together: in (NULL: none)
+     * and out (malloc'd here, NULL where that fit did not run; the caller frees) */
+    const double *rec_in[3];
+    size_t rec_in_n[3];
+    double *rec_out[3];
+    size_t rec_out_n[3];
 } dq_lookup_args;
 
 /* T_target_source (pose 8, cov 36) of body[0] = target, body[1] = source; *shared = fitted
