@@ -14,7 +14,7 @@
 typedef struct {
     PyObject_HEAD
     dq_tick_options o;
-    double *numbers;    /* latency, sigma, prior_w (m each), twist_w (36) */
+    double *numbers;    /* latency, sigma, prior_w (m each), E (8 m), E_info (36 m) */
     unsigned char *flags; /* estimated, exact (m each) */
     dq_str *names;
     PyObject *name_refs; /* the tuple of str the names point into */
@@ -45,17 +45,19 @@ static int copy_vector(PyObject *o, npy_intp m, int type, void *dst, size_t size
     return 0;
 }
 
-/* FitOptions(latency, sigma, prior_w, estimated, exact, names, max_skew, max_extrapolation,
- * twist_w, twist_cov, probability, tol, max_iter): per source code its configured latency, its
- * latency prior's sigma (NaN: exact) and information, whether estimated, whether its extrinsic
- * is exact, its name; the options (None: unbounded, no twist prior: both or neither). */
+/* FitOptions(latency, sigma, prior_w, estimated, exact, names, E, E_info, max_skew,
+ * max_extrapolation, twist_w, twist_cov, probability, tol, max_iter): per source code its
+ * configured latency, its latency prior's sigma (NaN: exact) and information, whether estimated,
+ * whether its extrinsic is exact, its name, its extrinsic and that one's information (read where
+ * not exact); the options (None: unbounded, no twist prior: both or neither). */
 static int options_init(FitOptions *self, PyObject *args, PyObject *kw)
 {
-    PyObject *lat, *sig, *pw, *est, *exact, *names, *skew, *extra, *tw, *tc;
+    PyObject *lat, *sig, *pw, *est, *exact, *names, *eo, *eio, *skew, *extra, *tw, *tc;
     double probability, tol;
     int max_iter;
-    if (!PyArg_ParseTuple(args, "OOOOOOOOOOddi:FitOptions", &lat, &sig, &pw, &est, &exact,
-                          &names, &skew, &extra, &tw, &tc, &probability, &tol, &max_iter))
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOddi:FitOptions", &lat, &sig, &pw, &est, &exact,
+                          &names, &eo, &eio, &skew, &extra, &tw, &tc, &probability, &tol,
+                          &max_iter))
         return -1;
     PyObject *tuple = PySequence_Tuple(names);
     if (!tuple) return -1;
@@ -64,7 +66,7 @@ static int options_init(FitOptions *self, PyObject *args, PyObject *kw)
     PyMem_Free(self->numbers);
     PyMem_Free(self->flags);
     PyMem_Free(self->names);
-    self->numbers = PyMem_Calloc(3 * (size_t)m + 1, sizeof(double));
+    self->numbers = PyMem_Calloc(47 * (size_t)m + 1, sizeof(double));
     self->flags = PyMem_Calloc(2 * (size_t)m + 1, 1);
     self->names = PyMem_Calloc((size_t)m + 1, sizeof(dq_str));
     if (!self->numbers || !self->flags || !self->names) {
@@ -79,8 +81,12 @@ static int options_init(FitOptions *self, PyObject *args, PyObject *kw)
         copy_vector(sig, m, NPY_DOUBLE, x + m, sizeof(double), "sigma") ||
         copy_vector(pw, m, NPY_DOUBLE, x + 2 * m, sizeof(double), "prior_w") ||
         copy_vector(est, m, NPY_BOOL, self->flags, 1, "estimated") ||
-        copy_vector(exact, m, NPY_BOOL, self->flags + m, 1, "exact"))
+        copy_vector(exact, m, NPY_BOOL, self->flags + m, 1, "exact") ||
+        copy_vector(eo, 8 * m, NPY_DOUBLE, x + 3 * m, sizeof(double), "E") ||
+        copy_vector(eio, 36 * m, NPY_DOUBLE, x + 11 * m, sizeof(double), "E_info"))
         return -1;
+    o->E = x + 3 * m;
+    o->E_info = x + 11 * m;
     o->latency = x;
     o->sigma = x + m;
     o->prior_w = x + 2 * m;

@@ -10,6 +10,7 @@
 #include <string.h>
 
 #include "dq.h"
+#include "joint.h"
 #include "motion.h"
 
 #define REASON_MAX 400 /* a dropped measurement's reason: its source's name is <= 128 bytes */
@@ -34,6 +35,9 @@ typedef struct {
     size_t n_sources, k;
     double *prior, *prior_w;
     int64_t *estimated; /* k codes */
+    long long *ext_slot; /* per row: its source among the uncertain extrinsics, or -1 */
+    int64_t *ext;        /* the uncertain extrinsics' sources (codes), in order */
+    size_t n_ext;
     double time, lo, hi, extrapolation;
     int skewed, one_instant;
 } tick_setup;
@@ -42,15 +46,19 @@ static int setup(const dq_tick_options *o, const dq_tick_input *in, tick_setup *
 {
     const size_t n = in->n;
     for (size_t c = 0; c < o->m; c++) u->local[c] = -1;
-    u->n_sources = 0;
+    u->n_sources = u->n_ext = 0;
     for (size_t i = 0; i < n; i++) {
         int64_t c = in->codes[in->rows[i]];
         if (c < 0 || (size_t)c >= o->m) return DQ_TICK_PYTHON; /* a source the options lack */
         if (u->local[c] < 0) {
-            if (!o->exact[c]) return DQ_TICK_PYTHON; /* an uncertain extrinsic: the joint fit */
             u->local[c] = (int)u->n_sources;
             u->order[u->n_sources++] = c;
+            if (!o->exact[c]) u->ext[u->n_ext++] = c; /* extrinsics._extrinsics' order */
         }
+        long long e = -1;
+        for (size_t j = 0; j < u->n_ext; j++)
+            if (u->ext[j] == c) e = (long long)j;
+        u->ext_slot[i] = e;
         u->latency[i] = o->latency[c];
         u->taken[i] = in->times[in->rows[i]] - u->latency[i];
     }
@@ -82,6 +90,7 @@ static int setup(const dq_tick_options *o, const dq_tick_input *in, tick_setup *
      * the fusion time is the static fit */
     if (u->lo == u->hi && e > 0.0 && !o->twist_w) return DQ_TICK_PYTHON;
     u->one_instant = u->lo == u->hi && e == 0.0;
+    if (u->one_instant && u->n_ext) return DQ_TICK_PYTHON; /* the static joint fit: Python's */
     u->k = 0;
     for (size_t s = 0; s < u->n_sources; s++) {
         int64_t c = u->order[s];
@@ -152,7 +161,55 @@ typedef struct {
     unsigned char *tested;
     uint32_t *inliers;
     size_t dim;
+    double *joint; /* the joint fit's memory (the caller frees it), or NULL */
 } tick_fit;
+
+/* With uncertain extrinsics (_motion_fit -> extrinsics._motion_fit_ext): the joint fit of the
+ * one body and the extrinsics' errors (extrinsics._joint_fit of one part, as _dqcore.joint_fit
+ * runs it, NIS included) from the constant-twist fit f, which it replaces (mean, twist,
+ * latencies, chi2, status, iterations; t: P, the residuals and the NIS). */
+static int fit_joint(const dq_tick_options *o, const tick_setup *u, const double *s, size_t n,
+                     const double *zu, dq_motion_fitted *f, double *dt, double *cost,
+                     tick_fit *t)
+{
+    dq_joint_part part = {n, 1, o->twist_w};
+    dq_joint_model jm = {1, &part, u->stamp, u->latency, u->slot, u->ext_slot, u->k, u->prior,
+                         u->prior_w, u->n_ext, NULL, NULL};
+    const size_t D = dq_joint_dim(&jm), m = u->n_ext;
+    size_t doubles = dq_joint_workspace(n, &jm, 1) + 2 * D * D + D + 8 + 6 + u->k + 1 +
+                     8 * m + 8 * m + 36 * m + (sizeof(dq_taken) * n) / sizeof(double) + 1;
+    double *mem = t->joint = (double *)malloc(sizeof(double) * doubles);
+    if (!mem) return DQ_E_OVERFLOW;
+    double *work = mem, *H = work + dq_joint_workspace(n, &jm, 1), *P = H + D * D, *g = P + D * D;
+    double *X = g + D, *V = X + 8, *L = V + 6, *E = L + u->k + 1, *Ehat = E + 8 * m;
+    double *info = Ehat + 8 * m;
+    dq_taken *taken = (dq_taken *)(info + 36 * m);
+    int code = dq_unit(f->mean, X); /* joint_run's checks: the start and E unit, all finite */
+    for (size_t j = 0; j < m && code == DQ_OK; j++) {
+        code = dq_unit(o->E + 8 * u->ext[j], E + 8 * j);
+        memcpy(info + 36 * j, o->E_info + 36 * u->ext[j], 36 * sizeof(double));
+        if (code == DQ_OK && !dq_finite_n(info + 36 * j, 36)) code = DQ_E_NONFINITE;
+    }
+    if (code != DQ_OK) return code;
+    memcpy(V, f->twist, sizeof f->twist);
+    memcpy(L, f->ell, sizeof(double) * u->k);
+    jm.E = E;
+    jm.E_info = info;
+    dq_joint_state st = {X, V, L, Ehat, H, P, g, 0.0, 0, 0, 0};
+    dq_joint_outputs per = {dt, t->res, cost, NULL, t->nis, t->tested};
+    size_t bad = 0;
+    code = dq_joint_fit(zu, s, u->keep, n, &jm, &o->p, work, taken, &st, &per, &bad);
+    if (code != DQ_OK) return code;
+    memcpy(f->mean, X, sizeof f->mean);
+    memcpy(f->twist, V, sizeof f->twist);
+    memcpy(f->ell, L, sizeof(double) * u->k);
+    f->chi2 = st.chi2;
+    f->status = st.status;
+    f->iterations = st.iterations;
+    t->P = P;
+    t->dim = D;
+    return DQ_OK;
+}
 
 /* The constant-twist fit (_motion_fit -> _constant_twist_fit, NIS included) into w. */
 static int fit_motion(const dq_tick_options *o, const tick_setup *u, const double *z,
@@ -161,24 +218,30 @@ static int fit_motion(const dq_tick_options *o, const tick_setup *u, const doubl
 {
     dq_motion_model model = {u->stamp, u->latency, u->slot, u->k, u->prior, u->prior_w, 1,
                              o->twist_w};
-    const size_t dim = t->dim = dq_motion_dim(&model);
+    const size_t dim0 = t->dim = dq_motion_dim(&model);
     double *dt = carve(at, sizeof(double) * n), *cost = carve(at, sizeof(double) * n);
     double *zu = carve(at, sizeof(double) * 8 * n);
     double *work = carve(at, sizeof(double) * dq_motion_workspace(n, &model));
-    double *H = carve(at, sizeof(double) * dim * dim);
+    double *H = carve(at, sizeof(double) * dim0 * dim0);
     dq_taken *taken_work = carve(at, sizeof(dq_taken) * n);
-    t->P = carve(at, sizeof(double) * dim * dim);
+    t->P = carve(at, sizeof(double) * dim0 * dim0);
     dq_motion_fitted f;
     f.ell = t->ell;
     f.H = H;
-    dq_motion_outputs per = {dt, t->res, cost, NULL, t->nis};
-    dq_motion_run_args r = {z, s, u->keep, NULL, n, NULL, 1, t->tested, &o->p, work, zu, t->P,
-                            taken_work};
+    /* with uncertain extrinsics, the fit the joint fit starts from: without its NIS */
+    dq_motion_outputs per = {dt, t->res, cost, NULL, u->n_ext ? NULL : t->nis};
+    dq_motion_run_args r = {z, s, u->keep, NULL, n, NULL, 1, u->n_ext ? NULL : t->tested, &o->p,
+                            work, zu, t->P, taken_work};
     size_t bad = 0;
     const char *bad_name = "poses";
     int code = dq_motion_run(&r, &model, &f, &per, &bad, &bad_name);
     if (code != DQ_OK) return code;
+    if (u->n_ext) {
+        code = fit_joint(o, u, s, n, zu, &f, dt, cost, t);
+        if (code != DQ_OK) return code;
+    }
     memcpy(mean, f.mean, sizeof f.mean);
+    const size_t dim = t->dim;
     for (size_t a = 0; a < 6; a++)
         for (size_t b = 0; b < 6; b++) {
             t->cov[6 * a + b] = t->P[dim * a + b];
@@ -241,7 +304,7 @@ int dq_tick(const dq_tick_options *o, const dq_tick_input *in, uint8_t **out, si
     size_t work_n = dq_motion_workspace(n, &probe) + dq_fuse_workspace(n);
     size_t bytes = 16 * (64 + 6 * m + 8 * n) + sizeof(double) * (8 * n + 36 * n + 12 * n +
                    6 * n + 8 * n + work_n + 3 * dim_max * dim_max + 4 * m + 72) +
-                   sizeof(long long) * n + sizeof(int) * m + sizeof(int64_t) * (3 * m + n) +
+                   sizeof(long long) * 2 * n + sizeof(int) * m + sizeof(int64_t) * (4 * m + n) +
                    sizeof(dq_taken) * n + sizeof(uint32_t) * n +
                    (sizeof(dq_wire_source) + sizeof(dq_wire_latency)) * (m + 1) +
                    (sizeof(dq_wire_dropped) + REASON_MAX) * n + 5 * n;
@@ -259,6 +322,8 @@ int dq_tick(const dq_tick_options *o, const dq_tick_input *in, uint8_t **out, si
     u.prior = carve(&at, sizeof(double) * (m ? m : 1));
     u.prior_w = carve(&at, sizeof(double) * (m ? m : 1));
     u.estimated = carve(&at, sizeof(int64_t) * (m ? m : 1));
+    u.ext = carve(&at, sizeof(int64_t) * (m ? m : 1));
+    u.ext_slot = carve(&at, sizeof(long long) * n);
     int code = setup(o, in, &u);
     if (code) {
         free(block);
@@ -278,12 +343,14 @@ int dq_tick(const dq_tick_options *o, const dq_tick_input *in, uint8_t **out, si
     t.ell = carve(&at, sizeof(double) * (u.k ? u.k : 1));
     t.tested = carve(&at, n);
     t.inliers = carve(&at, sizeof(uint32_t) * n);
+    t.joint = NULL;
     dq_fused_pose w;
     memset(&w, 0, sizeof w);
     double mean[8], unit[8], twist[6];
     code = u.one_instant ? fit_static(o, z, s, n, &at, &t, &w, mean, twist)
                          : fit_motion(o, &u, z, s, n, &at, &t, &w, mean, twist);
     if (code != DQ_OK || dq_unit(mean, unit)) { /* Python names the failure */
+        free(t.joint);
         free(block);
         return DQ_TICK_PYTHON;
     }
@@ -336,11 +403,8 @@ int dq_tick(const dq_tick_options *o, const dq_tick_input *in, uint8_t **out, si
     w.latencies = lat;
     w.n_latencies = u.k;
     *out = (uint8_t *)malloc(dq_fused_pose_bound(&w));
-    if (!*out) {
-        free(block);
-        return -1;
-    }
-    *len = dq_fused_pose_write(&w, *out);
+    if (*out) *len = dq_fused_pose_write(&w, *out);
+    free(t.joint);
     free(block);
-    return 0;
+    return *out ? 0 : -1;
 }

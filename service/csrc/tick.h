@@ -4,10 +4,11 @@
  * _fuse_in_time, not robust, the constant twist, every extrinsic exact), the same operations in
  * the same order, so the same bits: the set-up (_setup, _span), the fit (dq_motion_run, as
  * _dqcore.motion_fit runs it; one instant at the fusion time: dq_fuse, as _dqcore.fuse runs
+ * it; uncertain extrinsics: dq_joint_fit of one part from that fit, as _dqcore.joint_fit runs
  * it), the result (_result or the static fit's, consistency._source_stats) and the message
- * (fused_wire.h, as wire.fused_pose_bytes writes it). What it does not port (an uncertain
- * extrinsic, any error: the texts are Python's) is DQ_TICK_PYTHON: the caller runs the Python
- * path for that tick.
+ * (fused_wire.h, as wire.fused_pose_bytes writes it). What it does not port (one instant with an
+ * uncertain extrinsic, any error: the texts are Python's) is DQ_TICK_PYTHON: the caller runs the
+ * Python path for that tick.
  */
 #ifndef DQPOSE_TICK_H
 #define DQPOSE_TICK_H
@@ -35,6 +36,7 @@ typedef struct {
     double max_skew, max_extrapolation;
     const double *twist_w; /* 36, or NULL: no twist prior */
     const double *twist_cov; /* 36: the prior's covariance (as checked), with twist_w */
+    const double *E, *E_info; /* m x 8, m x 36: an uncertain extrinsic and its information */
     double probability;
     dq_fuse_params p;
     const double *low, *high;

@@ -1,8 +1,8 @@
 """A tick's answer in one C call (service/csrc/tick.h): a tracker's rows to the ``FusedPose``
 bytes of their fit over time, the answer :meth:`Tracker.estimate_rows` and
 :func:`dqpose.rpc.wire.fused_pose_bytes` give, bit for bit, for the common case (not robust,
-the constant twist or one instant, every extrinsic exact); None where the C leaves the answer to
-that Python path (which also names every error).
+the constant twist, its joint fit with uncertain extrinsics, one instant with exact ones); None
+where the C leaves the answer to that Python path (which also names every error).
 """
 from __future__ import annotations
 
@@ -26,12 +26,23 @@ def _options(t: Tracker) -> _dqcore.FitOptions:
     sigma = [None if s is None else s.latency_sigma for s in srcs]   # None: not estimated
     C, Wp = (None, None) if o.twist_covariance is None else _twist_information(
         o.twist_covariance)
+    # the uncertain extrinsics and their information, as extrinsics._extrinsics makes them
+    E, info = np.zeros((len(names), 8)), np.zeros((len(names), 6, 6))
+    uncertain = [(k, s) for k, s in enumerate(srcs) if s is not None
+                 and s.extrinsic_covariance is not None]
+    if uncertain:
+        ident = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
+        at = [k for k, _ in uncertain]
+        E[at] = np.array([ident if s.extrinsic is None else s.extrinsic for _, s in uncertain])
+        inv = np.linalg.inv(np.array([s.extrinsic_covariance for _, s in uncertain]))
+        info[at] = 0.5 * (inv + np.swapaxes(inv, 1, 2))
     return _dqcore.FitOptions(
         np.array(t._latency, np.float64),
         np.array([math.nan if x is None else x for x in sigma], np.float64),
         np.array([math.nan if x is None else x ** -2 for x in sigma], np.float64),
         np.array([x is not None for x in sigma], bool),
         np.array([s is None or s.extrinsic_covariance is None for s in srcs], bool), names,
+        E.ravel(), info.ravel(),
         None if o.max_skew is None else _seconds(o.max_skew, "max_skew", "nonnegative"),
         None if o.max_extrapolation is None else _seconds(
             o.max_extrapolation, "max_extrapolation", "nonnegative"),

@@ -1,9 +1,10 @@
 """A tick's answer in one C call (service/csrc/tick.c, ``World.tick_wire``) against the Python
 path it stands for (``World.tick`` + ``fused_pose_bytes``): the same FusedPose bytes over scenes
 it makes (moving bodies, sources with latencies, estimated latencies, a twist prior, max_skew
-drops, capped windows, several sources, a body offset, ticks between measurements, one instant:
-the static fit), and None, leaving the answer to Python, where it does not (an uncertain
-extrinsic, robust, an acceleration_psd, a tick beyond max_extrapolation)."""
+drops, capped windows, several sources, a body offset, ticks between measurements, uncertain
+extrinsics: the joint fit, one instant: the static fit), and None, leaving the answer to Python,
+where it does not (one instant with an uncertain extrinsic, robust, an acceleration_psd, a tick
+beyond max_extrapolation)."""
 import numpy as np
 import pytest
 
@@ -16,6 +17,8 @@ from dqpose.world import OutOfRange, World, WorldBounds, WorldOptions
 from tests.fusion._scenes import random_cov, random_pose
 
 V = np.array([0.3, -0.2, 0.1, 0.2, 0.05, -0.1])
+#: an uncertain mount: 1 degree and 5 mm
+MOUNT = np.diag(np.r_[np.full(3, np.deg2rad(1.0)), np.full(3, 5e-3)] ** 2)
 
 
 def world_of(rng, sources, options, times, bodies=("box", "cup"), per_body=None, jitter=0.0):
@@ -63,6 +66,15 @@ SCENES = {
     "max_skew drops": ([Source("cam", latency=0.01), Source("arm")], {"max_skew": 0.08}),
     "no max_extrapolation": ([Source("cam")], {"max_extrapolation": None}),
     "an unconfigured source": ([Source("cam")], {}),
+    "an uncertain extrinsic (the joint fit)": (
+        [Source("cam", random_pose(np.random.default_rng(2)), extrinsic_covariance=MOUNT)], {}),
+    "two uncertain extrinsics and an exact source": (
+        [Source("cam", random_pose(np.random.default_rng(2)), extrinsic_covariance=MOUNT),
+         Source("top", extrinsic_covariance=MOUNT * 4), Source("arm", latency=0.01)], {}),
+    "an uncertain extrinsic, an estimated latency, a twist prior, max_skew": (
+        [Source("cam", random_pose(np.random.default_rng(2)), extrinsic_covariance=MOUNT,
+                latency=0.02, latency_sigma=0.01), Source("arm")],
+        {"twist_covariance": np.eye(6) * 0.05, "max_skew": 0.08}),
     "a body offset (covariances moved into the world frame)": (
         [Source("cam", random_pose(np.random.default_rng(4)),
                 body_offset=random_pose(np.random.default_rng(5), 0.1)), Source("arm")], {}),
@@ -134,9 +146,9 @@ def test_one_instant_is_the_static_fit_in_c_too(case):
 
 
 LEFT = {
-    "an uncertain extrinsic": (
-        [Source("cam", random_pose(np.random.default_rng(2)), extrinsic_covariance=np.eye(6)
-                * 1e-6)], {}, np.arange(20) * 0.02),
+    "one instant with an uncertain extrinsic": (
+        [Source("cam", random_pose(np.random.default_rng(2)), extrinsic_covariance=MOUNT),
+         Source("arm")], {}, [0.5]),
     "robust": ([Source("cam")], {"robust": True}, np.arange(20) * 0.02),
     "an acceleration_psd": ([Source("cam")], {"acceleration_psd": np.eye(6) * 0.1},
                             np.arange(20) * 0.02),
