@@ -56,6 +56,8 @@ static PyMethodDef methods[] = {
     {"lin", py_lin, METH_VARARGS, "lin(dqs, weights): the raw matrix blend -> [...,4,4]."},
     {"blend_request_from_wire", py_blend_request_from_wire, METH_O,
      "blend_request_from_wire(bytes) -> (poses, weights, method, tolerance, max_iterations) or None."},
+    {"publish_head", py_publish_head, METH_O,
+     "publish_head(bytes) -> (producer, sequence, count) of a PublishRequest, or None."},
     {"fuse_stream_from_wire", py_fuse_stream_from_wire, METH_VARARGS,
      "fuse_stream_from_wire(bytes, sym_tol, publish=False) -> (poses, covariances, times, "
      "codes, bodies, sources, spans) or None."},

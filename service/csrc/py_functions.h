@@ -30,6 +30,7 @@ PyObject *py_blend_request_from_wire(PyObject *self, PyObject *arg);
 PyObject *py_blend_wire(PyObject *self, PyObject *args);
 PyObject *py_blend_batch_wire(PyObject *self, PyObject *args);
 PyObject *py_fuse_stream_from_wire(PyObject *self, PyObject *args);
+PyObject *py_publish_head(PyObject *self, PyObject *arg);
 PyObject *py_measurements_wire(PyObject *self, PyObject *args);
 PyObject *py_fused_pose_wire(PyObject *self, PyObject *args);
 

@@ -192,6 +192,35 @@ done:
     return result;
 }
 
+/* publish_head(bytes) -> (producer, sequence, count) of a World PublishRequest read as protobuf
+ * reads them (the last producer and sequence given, the measurements counted, none decoded),
+ * or None outside the plain case (a field the decoder does not take, bytes it does not read, a
+ * producer that is not ASCII): then protobuf reads it. */
+PyObject *py_publish_head(PyObject *self, PyObject *arg)
+{
+    Py_buffer view;
+    if (PyObject_GetBuffer(arg, &view, PyBUF_SIMPLE) < 0) return NULL;
+    const uint8_t *buf = (const uint8_t *)view.buf;
+    dq_fuse_stream r;
+    memset(&r, 0, sizeof r);
+    r.publish = 1;
+    PyObject *out = NULL;
+    int plain = !dq_wire_fuse_count(buf, (size_t)view.len, &r);
+    for (size_t i = 0; plain && i < r.producer_len; i++)
+        plain = buf[r.producer + i] < 0x80;
+    if (!plain) {
+        out = Py_NewRef(Py_None);
+    } else {
+        PyObject *producer = PyUnicode_DecodeASCII((const char *)buf + r.producer,
+                                                   (Py_ssize_t)r.producer_len, NULL);
+        if (producer)
+            out = Py_BuildValue("(NKn)", producer, (unsigned long long)r.sequence,
+                                (Py_ssize_t)r.n);
+    }
+    PyBuffer_Release(&view);
+    return out;
+}
+
 static PyObject *double_rows(PyObject *obj, npy_intp n, npy_intp width, const char *name)
 {
     if (obj == Py_None) return NULL;

@@ -429,23 +429,26 @@ static int check_measurement(measurement *m, double sym_tol, double *pose_out, d
 
 /* Walks the request: fn(measurement body, ctx) for each measurement, in order; -1 for options,
  * an output rate or an unknown field (the protobuf path's), or undecodable bytes. A
- * PublishRequest's (publish) producer and sequence are skipped: the caller has them from
- * protobuf, which checks the producer's UTF-8. */
-static int each_measurement(const uint8_t *buf, size_t len, int publish,
+ * PublishRequest's (r->publish) producer and sequence go to r, the last of each as protobuf
+ * reads them (its producer's UTF-8 is the caller's to check). */
+static int each_measurement(const uint8_t *buf, size_t len, dq_fuse_stream *r,
                             int (*fn)(cursor, void *), void *ctx)
 {
     cursor c = {buf, buf + len};
     if (len > 0xFFFFFFFFu) return -1; /* spans are 32 bits */
-    const int measurements = publish ? 1 : 3;
+    const int publish = r->publish, measurements = publish ? 1 : 3;
+    r->producer = r->producer_len = 0;
+    r->sequence = 0;
     while (c.p < c.end) {
         int field, wt;
         cursor sub;
-        uint64_t v;
         if (tag(&c, &field, &wt)) return -1;
         if (publish && field == 2 && wt == WT_LEN) {
             if (length(&c, &sub)) return -1;
+            r->producer = (size_t)(sub.p - buf);
+            r->producer_len = (size_t)(sub.end - sub.p);
         } else if (publish && field == 3 && wt == WT_VARINT) {
-            if (varint(&c, &v)) return -1;
+            if (varint(&c, &r->sequence)) return -1;
         } else if (field != measurements || wt != WT_LEN || length(&c, &sub) || fn(sub, ctx)) {
             return -1;
         }
@@ -463,7 +466,7 @@ static int count_measurement(cursor sub, void *ctx)
 int dq_wire_fuse_count(const uint8_t *buf, size_t len, dq_fuse_stream *r)
 {
     r->n = 0;
-    return each_measurement(buf, len, r->publish, count_measurement, r);
+    return each_measurement(buf, len, r, count_measurement, r);
 }
 
 typedef struct {
@@ -494,7 +497,7 @@ static int fill_measurement(cursor sub, void *ctx)
 int dq_wire_fuse_stream(const uint8_t *buf, size_t len, double sym_tol, dq_fuse_stream *r)
 {
     fill_state f = {r, buf, sym_tol, 0};
-    if (each_measurement(buf, len, r->publish, fill_measurement, &f) || f.i != r->n) return -1;
+    if (each_measurement(buf, len, r, fill_measurement, &f) || f.i != r->n) return -1;
     return 0;
 }
 

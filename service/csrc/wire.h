@@ -113,9 +113,12 @@ typedef struct {
     uint8_t *codes;    /* n */
     int publish;       /* the bytes are a World PublishRequest (measurements field 1, beside a
                         * producer string 2 and a sequence varint 3), not a FuseStreamRequest */
+    size_t producer, producer_len;  /* where its producer is in buf (the last one given) */
+    uint64_t sequence;              /* its sequence (the last one given; 0: none) */
 } dq_fuse_stream;
 
-/* Counts the measurements (r->n); -1 outside the plain case at the request's level. */
+/* Counts the measurements (r->n), and a PublishRequest's producer and sequence; -1 outside the
+ * plain case at the request's level. */
 int dq_wire_fuse_count(const uint8_t *buf, size_t len, dq_fuse_stream *r);
 /* Fills r's arrays (r->n rows, as counted) and checks every measurement; -1 outside the plain
  * case. sym_tol: the relative symmetry tolerance of a covariance (service/fusion/'s). */

@@ -367,6 +367,14 @@ def publish_from_wire(data: bytes) -> WireMeasurements | None:
     return None if out is None else WireMeasurements(*out)
 
 
+def publish_head(data: bytes) -> tuple[str, int, int] | None:
+    """A serialized World ``PublishRequest``'s producer, sequence and number of measurements,
+    read by the C core as protobuf reads them (none of its measurements decoded); ``None`` for
+    bytes outside its plain case (unknown fields, a producer that is not ASCII, bytes it cannot
+    read), which protobuf then reads."""
+    return _dqcore.publish_head(data)
+
+
 def wire_rows(data: bytes, w: WireMeasurements,
               field: str) -> tuple[Measurements, list[tuple[int, FieldError]], np.ndarray]:
     """The decoded request ``w`` (of ``data``) as :func:`~dqpose.rpc.fusion_convert.

@@ -42,7 +42,7 @@ from dqpose.rpc.checks import over_count
 from dqpose.rpc.fusion_convert import measurements_to_arrays
 from dqpose.rpc.peers import SUBSCRIPTION, FellBehind, Slot, exhausted
 from dqpose.rpc.routing import WORLD_HEADER, world_of
-from dqpose.rpc.wire import messages_wire, publish_from_wire, wire_rows
+from dqpose.rpc.wire import messages_wire, publish_from_wire, publish_head, wire_rows
 from dqpose.rpc.world_convert import Encoder, config_from_msg, config_msg, subscribe_names
 
 log = logging.getLogger("dqpose.server")
@@ -180,15 +180,19 @@ def _ready(first: bytes, sub: Subscriber) -> tuple[list, bytes | None]:
     return answers, None
 
 
-def _rows(request: pb.PublishRequest, data: bytes | None, field: str,
+def _rows(request: pb.PublishRequest | None, data: bytes | None, field: str,
           errors: list) -> Rows:
     """A request's measurements as the world takes them, those refused by their encoding
     appended to ``errors`` as ``(i, FieldError)``. From ``data`` (its bytes) they are decoded and
     checked in C where they are plain (the same rows and texts; the rows C passed are not
-    checked again)."""
+    checked again); else from ``request`` (None: parsed from ``data`` here, which may raise
+    ``DecodeError``)."""
     w = None if data is None else publish_from_wire(data)
     codes = None
     if data is None or w is None:
+        if request is None:
+            assert data is not None         # one of the two is given
+            request = pb.PublishRequest.FromString(data)
         m = measurements_to_arrays(request.measurements, field, errors)
     else:
         m, more, codes = wire_rows(data, w, field)
@@ -283,17 +287,21 @@ class World:
                       rec=NOT_RECORDED) -> pb.PublishAck:
         """Request ``r``'s bytes (``anonymous``: the producer key of a request that names none)
         as one step of the world, recorded with its ack; bytes that are not a PublishRequest
-        are an ack error."""
+        are an ack error. Its producer, sequence and count are read in C where the bytes are
+        plain (``publish_head``), else by protobuf."""
+        head = publish_head(data)
         try:
-            request = pb.PublishRequest.FromString(data)
-        except DecodeError:
+            if head is not None and head[2] <= self.max_poses:
+                ack = self._publish(world, None, *head, r, anonymous, data, rec)
+            else:
+                request = pb.PublishRequest.FromString(data)
+                ack = self.publish(world, request, r, anonymous, data, rec)
+        except DecodeError:     # raised before the world was touched
             world.count(hook=lambda: rec.measurements(data))
             ack = pb.PublishAck()
             ack.errors.add(request=r, measurement=-1, details=(
                 f"requests[{r}]: not a valid dqpose.v1.PublishRequest message; none of it was "
                 f"used"))
-        else:
-            ack = self.publish(world, request, r, anonymous, data, rec)
         rec.fused(ack)
         return ack
 
@@ -302,13 +310,20 @@ class World:
         """Request ``r`` of a Publish call applied (:meth:`dqpose.Hub.publish`), its ack
         returned; never raises for bad input. ``data``: the request's bytes, whose measurements
         are then read in C."""
+        return self._publish(world, request, request.producer, request.sequence,
+                             len(request.measurements), r, anonymous, data, rec)
+
+    def _publish(self, world: Hub, request: pb.PublishRequest | None, producer: str,
+                 sequence: int, count: int, r: int, anonymous: str, data: bytes | None,
+                 rec) -> pb.PublishAck:
+        """:meth:`publish` of a request read as its ``producer``, ``sequence`` and ``count`` of
+        measurements, from ``request`` or (None) its bytes ``data``; ``DecodeError`` from bytes
+        protobuf would not read, before anything is done."""
         field = f"requests[{r}].measurements"
-        too_many = over_count(field, len(request.measurements), self.max_poses,
-                              "measurements")
+        too_many = over_count(field, count, self.max_poses, "measurements")
         errors: list = []
         rows = None if too_many is not None else _rows(request, data, field, errors)
-        applied = world.publish(request.producer, anonymous, request.sequence, rows,
-                                len(request.measurements),
+        applied = world.publish(producer, anonymous, sequence, rows, count,
                                 hook=lambda: rec.measurements(data or request))
         ack = pb.PublishAck(acked_through=applied.acked_through)
 

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
-from dqpose.rpc.wire import publish_from_wire
+from dqpose.rpc.wire import publish_from_wire, publish_head
 from dqpose.rpc.world import World
 from tests.rpc._mutate import damaged
 from tests.rpc.test_fusion_wire import good, measurement
@@ -80,3 +80,40 @@ def test_plain_requests_take_the_c_path():
     unknown = datas[0] + b"\x38\x01"                     # field 7, a varint
     wrong = datas[0] + b"\x10\x01"                       # field 2 as a varint
     assert publish_from_wire(unknown) is None and publish_from_wire(wrong) is None
+
+
+def _head_is_protobufs(data: bytes) -> None:
+    head = publish_head(data)
+    try:
+        request = wpb.PublishRequest.FromString(data)
+    except DecodeError:     # the head may read: its measurements then fail to decode
+        return
+    if head is not None:
+        assert head == (request.producer, request.sequence, len(request.measurements))
+
+
+@settings(max_examples=300, deadline=None)
+@given(requests(1), st.data())
+def test_a_requests_head_is_read_in_c_as_protobuf_reads_it(req, data):
+    """publish_head (World.publish_bytes's producer, sequence and count, no protobuf parse) is
+    protobuf's reading of damaged bytes that protobuf reads, or None (then protobuf reads them);
+    run_both's tests above show bytes protobuf refuses acked as it does."""
+    _head_is_protobufs(damaged(req.SerializeToString(), data))
+    _head_is_protobufs(reencode(req.SerializeToString(), "publish", lambda: data.draw(PADS),
+                                NESTED))
+
+
+def test_a_head_the_c_leaves_to_protobuf():
+    data = wpb.PublishRequest(measurements=good(2, 0.0), producer="cam-1",
+                              sequence=7).SerializeToString()
+    assert publish_head(data) == ("cam-1", 7, 2)
+    # the last producer and sequence given are protobuf's
+    again = data + wpb.PublishRequest(producer="arm", sequence=9).SerializeToString()
+    assert publish_head(again) == ("arm", 9, 2) == (
+        wpb.PublishRequest.FromString(again).producer,
+        wpb.PublishRequest.FromString(again).sequence, 2)
+    assert publish_head(wpb.PublishRequest(producer="kamera-é").SerializeToString()) is None
+    assert publish_head(data + b"\x38\x01") is None        # an unknown field
+    bad_utf8 = b"\x12\x02\xc3\x28"                           # producer of invalid UTF-8
+    assert publish_head(bad_utf8) is None
+    run_both([bad_utf8, data])
