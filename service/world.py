@@ -504,11 +504,12 @@ class World:
         cross-covariance (:mod:`dqpose.lookup`)."""
         target, source = _body_name(target, "target"), _body_name(source, "source")
         with self._lock.read():
+            t = self._t
             for b in (target, source):
-                if b:
-                    self._known(b)
+                if b and not t.has(b):
+                    self._known(b)      # raises, naming what is known
             if time == 0.0:
-                times = [self._t.newest(b) for b in (target, source) if b]
+                times = [t.newest(b) for b in (target, source) if b]
                 at: Optional[float] = min(times) if times else None
             else:
                 at = self._at("", time)

@@ -251,7 +251,7 @@ static inline void gram(const double *restrict B, const double *restrict e, doub
 {
     /* B's first three rows are zero in the translation columns (mul_lower6's blocks) */
     static const int rot[10] = {0, 1, 2, 6, 7, 8, 12, 13, 14, 15};
-    const int nr = w == JC ? 10 : 7;
+    const int nr = w == JC ? 10 : w == 13 ? 7 : 6;
     for (int k = 0; k < 3; k++) {
         const double *row = B + JC * k;
         for (int a = 0; a < nr; a++) {
@@ -290,7 +290,8 @@ static void joint_linearize(const joint_ctx *c, const double *V, const double *L
             const double *b = c->blocks + J_PER * i;
             double *G = c->groups + G_PER * (size_t)b[J_GRP];
             if (m->ext_slot[i] >= 0) gram(b + J_G, b + J_E, G, JC);
-            else gram(b + J_G, b + J_E, G, 13);
+            else if (m->lat_slot[i] >= 0) gram(b + J_G, b + J_E, G, 13);
+            else gram(b + J_G, b + J_E, G, 12);   /* no latency: column 12 is zero */
         }
     }
     for (size_t q = 0; q < c->ngroups; q++) {
