@@ -9,6 +9,8 @@
 #include <math.h>
 #include <stddef.h>
 
+#include "vecmath.h"
+
 static inline int chol_m(const double *A, double *L, double *di, int m)
 {
     for (int j = 0; j < m; j++) {
@@ -187,6 +189,53 @@ void dq_gram_columns(const double *B, int rows, int stride, int dim, int se3, in
         }
     }
 #undef DQ_FROM
+}
+
+/* Lane loops innermost, of constant length: the compiler makes each a vector operation. */
+DQ_INLINE int chol_solve_lanes(const double *restrict A, int m, double *restrict L,
+                               double *restrict di, double *restrict y, double *restrict yy)
+{
+    enum { W = DQ_LANES };
+    int ok = 1;
+    for (int j = 0; j < m; j++) {
+        double d[W], inv[W];
+        for (int l = 0; l < W; l++) d[l] = A[W * (m * j + j) + l];
+        for (int k = 0; k < j; k++)
+            for (int l = 0; l < W; l++) d[l] -= L[W * (m * j + k) + l] * L[W * (m * j + k) + l];
+        for (int l = 0; l < W; l++) ok &= d[l] > 0.0;
+        for (int l = 0; l < W; l++) {
+            double ljj = sqrt(d[l]);
+            inv[l] = 1.0 / ljj;
+            L[W * (m * j + j) + l] = ljj;
+            di[W * j + l] = inv[l];
+        }
+        for (int i = j + 1; i < m; i++) {
+            double s[W];
+            for (int l = 0; l < W; l++) s[l] = A[W * (m * i + j) + l];
+            for (int k = 0; k < j; k++)
+                for (int l = 0; l < W; l++) s[l] -= L[W * (m * i + k) + l] * L[W * (m * j + k) + l];
+            for (int l = 0; l < W; l++) L[W * (m * i + j) + l] = s[l] * inv[l];
+        }
+    }
+    double q[W] = {0.0, 0.0, 0.0, 0.0};
+    for (int i = 0; i < m; i++) {
+        double s[W];
+        for (int l = 0; l < W; l++) s[l] = y[W * i + l];
+        for (int k = 0; k < i; k++)
+            for (int l = 0; l < W; l++) s[l] -= L[W * (m * i + k) + l] * y[W * k + l];
+        for (int l = 0; l < W; l++) {
+            y[W * i + l] = s[l] * di[W * i + l];
+            q[l] += y[W * i + l] * y[W * i + l];
+        }
+    }
+    for (int l = 0; l < W; l++) yy[l] = q[l];
+    return ok;
+}
+
+DQ_CLONES int dq_chol_solve_lanes(const double *A, int m, double *L, double *di, double *y,
+                                  double *yy)
+{
+    return m == 12 ? chol_solve_lanes(A, 12, L, di, y, yy) : chol_solve_lanes(A, m, L, di, y, yy);
 }
 
 void dq_mirror6(double *G)

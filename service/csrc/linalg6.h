@@ -50,6 +50,15 @@ void dq_gram_columns(const double *B, int rows, int stride, int dim, int se3, in
 void dq_mirror6(double *G);
 void dq_mirror(double *M, int dim);
 
+/* DQ_LANES problems of one size side by side, entry k of lane l at [DQ_LANES * k + l]: A's
+ * m x m lower triangle factored (L, di as dq_chol's) and y made L^-1 y in place, *yy = |y|^2
+ * summed from entry 0 up, each lane the same operations in the same order as dq_chol,
+ * dq_lower_solve and that sum on its own problem (so the same bits), the lanes computed together
+ * (vector registers, AVX2 where the CPU has it). Returns 0 when a lane's A is not positive
+ * definite (its outputs are then not meaningful). */
+#define DQ_LANES 4
+int dq_chol_solve_lanes(const double *A, int m, double *L, double *di, double *y, double *yy);
+
 /* P = A^-1 = L^-T L^-1 from A's 6 x 6 Cholesky factor, symmetric by construction. */
 void dq_chol6_inverse(const double *L, const double *di, double *P);
 

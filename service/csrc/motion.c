@@ -21,9 +21,12 @@
 
 /* The motion workspace: a block per measurement (its covariance factor L and DI, its whitened
  * compact Jacobian L^-1 G, two slots of r, e = L^-1 r, sin^2 and cos of half r's angle,
- * Exp(dt V) and dt, for the current and a trial estimate; then the prefix sum of the earlier
- * inliers' information, dim x dim), then the solver's dim-sized arrays. */
+ * Exp(dt V) and dt, for the current and a trial estimate), then the solver's dim-sized arrays. */
 enum { M_L = 0, M_DI = 36, M_G = 42, M_S0 = 120, M_S1 = 143, M_PER = 166 };
+/* With the leave-one-out NIS a block goes on: its information's terms (MI at most, the upper
+ * triangle of MC columns), then the prefix sum of the earlier inliers' information (its upper
+ * triangle packed by rows, dim (dim + 1) / 2). */
+enum { MI = MC * (MC + 1) / 2, M_INFO = M_PER, M_HJ = M_PER + MI };
 enum { S_R = 0, S_E = 6, S_SC = 12, S_EXP = 14, S_DT = 22 };
 
 size_t dq_motion_dim(const dq_motion_model *m) { return (m->twist ? 12 : 6) + m->k; }
@@ -31,7 +34,8 @@ size_t dq_motion_dim(const dq_motion_model *m) { return (m->twist ? 12 : 6) + m-
 size_t dq_motion_workspace(size_t n, const dq_motion_model *m)
 {
     size_t dim = dq_motion_dim(m);
-    return (M_PER + dim * dim) * n + 5 * dim * dim + 7 * dim + 6 * (dim + 1) * n;
+    return (M_HJ + dim * (dim + 1) / 2) * n + 5 * dim * dim + 7 * dim + 6 * (dim + 1) * n +
+           (2 * dim * dim + 2 * dim) * DQ_LANES;
 }
 
 /* Where the selected measurements' L^-1 G_i are stacked by state column (6 n rows a column,
@@ -190,45 +194,61 @@ static void motion_jacobian(const dq_motion_model *m, const double *V, size_t i,
     }
 }
 
-/* M += (L^-1 G_i)^T (L^-1 G_i) of measurement i into the upper triangle of the dim x dim M. */
-static void motion_add_information(const dq_motion_model *m, size_t i, const double *Gw, int dim,
-                                   double *M)
+/* The terms of measurement i's information (L^-1 G_i)^T (L^-1 G_i), its upper triangle in the
+ * state's columns, into t (at most MI) in the order motion_add_information adds them: computed
+ * once for the two sums of the leave-one-out NIS. */
+static void motion_information(const dq_motion_model *m, size_t i, const double *Gw, double *t)
 {
     if (m->twist && m->slot[i] < 0) {
         /* the common case, the pose's and the twist's columns as they are: fixed bounds the
          * compiler unrolls (the same sums in the same order as below) */
-        for (int a = 0; a < 12; a++)
+        for (int a = 0, q = 0; a < 12; a++)
             for (int b = a; b < 12; b++) {
                 double s = 0.0;
                 for (int k = 0; k < 6; k++) s += Gw[MC * k + a] * Gw[MC * k + b];
-                M[dim * a + b] += s;
+                t[q++] = s;
             }
         return;
     }
-    int cols[MC], map[MC], nc = 0;
-    for (int c = 0; c < MC; c++) {
-        int col = motion_column(m, i, c);
-        if (col >= 0) { cols[nc] = c; map[nc++] = col; }
-    }
-    for (int a = 0; a < nc; a++)
+    int cols[MC], nc = 0;
+    for (int c = 0; c < MC; c++)
+        if (motion_column(m, i, c) >= 0) cols[nc++] = c;
+    for (int a = 0, q = 0; a < nc; a++)
         for (int b = a; b < nc; b++) {
             double s = 0.0;
             for (int k = 0; k < 6; k++) s += Gw[MC * k + cols[a]] * Gw[MC * k + cols[b]];
-            M[dim * map[a] + map[b]] += s;
+            t[q++] = s;
         }
 }
 
+/* M += measurement i's information from its terms t (motion_information), upper triangle. */
+static void motion_add_information(const dq_motion_model *m, size_t i, const double *t, int dim,
+                                   double *M)
+{
+    if (m->twist && m->slot[i] < 0) {
+        for (int a = 0, q = 0; a < 12; a++)
+            for (int b = a; b < 12; b++) M[dim * a + b] += t[q++];
+        return;
+    }
+    int map[MC], nc = 0;
+    for (int c = 0; c < MC; c++) {
+        int col = motion_column(m, i, c);
+        if (col >= 0) map[nc++] = col;
+    }
+    for (int a = 0, q = 0; a < nc; a++)
+        for (int b = a; b < nc; b++) M[dim * map[a] + map[b]] += t[q++];
+}
 
 /* The data's information H (upper triangle) and gradient g = sum (L^-1 G)^T e over `use`, from
- * slot so; every measurement's compact Jacobian is kept in its block (with all = 1 the others'
- * too, not added), G_i written to G when not NULL. H and g come from one Gram pass over the
+ * slot so; the selected measurements' whitened Jacobians stacked by state column (below), the
+ * others' (with all = 1) compact in their blocks, G_i written to G when not NULL. H and g come from one Gram pass over the
  * selected L^-1 G_i and e stacked by state column, e last (summed one measurement at a time,
  * the 6 x 12 products took a quarter of the fit's time): first every measurement's rows 0-2,
  * then its rows 3-5, so that the translations' columns, zero in rows 0-2, are summed over the
  * second half only. */
 static void motion_linearize(const dq_motion_model *m, const double *V, double *work,
                              size_t stride, size_t n, const unsigned char *use, int all, int so,
-                             int dim, int keep, double *H, double *g, double *G)
+                             int dim, double *H, double *g, double *G)
 {
     double *cols = motion_columns(work, stride, n, dim);
     const size_t R = 6 * n;
@@ -238,8 +258,8 @@ static void motion_linearize(const dq_motion_model *m, const double *V, double *
         int in = dq_selected(use, i);
         if (!in && !all) continue;
         double *blk = work + stride * i;
-        /* straight into the stack unless the block is read again (keep: the leave-one-out NIS) */
-        const int direct = in && !keep && m->twist && m->slot[i] < 0;
+        /* straight into the stack (the leave-one-out NIS read them there) */
+        const int direct = in && m->twist && m->slot[i] < 0;
         motion_jacobian(m, V, i, blk, so, dim, G ? G + 6 * dim * i : NULL,
                         direct ? cols + j : NULL, direct ? cols + half + j : NULL, R);
         if (!in) continue;
@@ -268,81 +288,151 @@ static void motion_linearize(const dq_motion_model *m, const double *V, double *
     dq_gram_columns(cols, (int)(2 * half), (int)R, dim, m->twist ? 12 : 6, (int)half, H, g);
 }
 
+/* An inlier's L^-1 G_i compact (6 x MC, the columns in the state) from where motion_linearize
+ * stacked it: rows 0-2 at j, rows 3-5 at half + j of each state column (R rows a column). */
+static void motion_stacked(const dq_motion_model *m, size_t i, const double *cols, size_t R,
+                           size_t half, size_t j, double *Gw)
+{
+    for (int c = 0; c < MC; c++) {
+        int col = motion_column(m, i, c);
+        if (col < 0) continue;
+        const double *at = cols + R * (size_t)col + j;
+        for (int k = 0; k < 3; k++) {
+            Gw[MC * k + c] = at[k];
+            Gw[MC * (k + 3) + c] = at[half + k];
+        }
+    }
+}
+
+/* Lane l of the inliers' Hj factored side by side (dq_chol_solve_lanes): measurement i's Hj, the
+ * sum of its earlier inliers' information pre (the upper triangle, packed by rows) and its later
+ * ones' acc (dim x dim, upper triangle), in its lower triangle (dq_mirror's copy of the upper),
+ * its y = (L^-1 G_i)^T e and |e|^2 into ee. lanes: (2 dim^2 + 2 dim) DQ_LANES. */
+static void motion_lane_load(const dq_motion_model *m, const double *blk, const double *Gw,
+                             size_t i, int so, int dim, const double *acc, int l, double *lanes,
+                             double *ee)
+{
+    enum { W = DQ_LANES };
+    double *A = lanes, *y = lanes + W * (2 * dim * dim + dim);
+    const double *pre = blk + M_HJ, *e = blk + so + S_E;
+    for (int j = 0, q = 0; j < dim; j++)
+        for (int k = j; k < dim; k++, q++) A[W * (dim * k + j) + l] = pre[q] + acc[dim * j + k];
+    ee[l] = dq_sq6(e);
+    for (int k = 0; k < dim; k++) y[W * k + l] = 0.0;
+    for (int c = 0; c < MC; c++) {
+        int col = motion_column(m, i, c);
+        if (col < 0) continue;
+        double s = 0.0;
+        for (int k = 0; k < 6; k++) s += Gw[MC * k + c] * e[k];
+        y[W * col + l] = s;
+    }
+}
+
+/* The NIS of the measurements rows[0..count) loaded into lanes 0..count-1 (a lane left over
+ * solves the identity). */
+static int motion_lanes_nis(const size_t *rows, int count, int dim, double *lanes,
+                            const double *ee, double *nis)
+{
+    enum { W = DQ_LANES };
+    double *A = lanes, *L = A + W * dim * dim, *di = L + W * dim * dim, *y = di + W * dim;
+    double yy[W];
+    for (int l = count; l < W; l++)
+        for (int i = 0; i < dim; i++) {
+            for (int j = 0; j <= i; j++) A[W * (dim * i + j) + l] = i == j ? 1.0 : 0.0;
+            y[W * i + l] = 0.0;
+        }
+    if (!dq_chol_solve_lanes(A, dim, L, di, y, yy)) return DQ_E_SINGULAR;
+    for (int l = 0; l < count; l++) nis[rows[l]] = ee[l] + yy[l];
+    return DQ_OK;
+}
+
 /* Leave-one-out NIS (fusion.h) from the compact Jacobians and whitened residuals in slot so:
  * whitened, K_i = L G Hj^-1 G^T L^T, so an inlier's NIS is |e|^2 + |Lh^-1 (L^-1 G)^T e|^2 and an
  * outlier's e^T (I + (L^-1 G) H^-1 (L^-1 G)^T)^-1 e. Hj sums the priors and the other inliers'
  * information (earlier ones kept as prefix sums, later ones accumulated backwards), so a
- * dominant measurement does not cancel the others away. */
+ * dominant measurement does not cancel the others away. Each inlier's information is computed
+ * once (motion_information) for both sums, and the inliers' Hj are factored DQ_LANES at a time;
+ * H's factor, the same for every outlier, once. */
 static int motion_leave_one_out(const dq_motion_model *m, const double *V, const double *ell,
                                 double *work, size_t stride, size_t n, const unsigned char *use,
                                 const unsigned char *tested, int so, int dim, const double *H,
                                 double *scratch, double *nis)
 {
     double *acc = scratch, *Hj = acc + dim * dim, *Lh = Hj + dim * dim, *dh = Lh + dim * dim;
-    double *y = dh + dim, *gz = y + dim;
+    double *gz = dh + 2 * dim, Gw[6 * MC];
+    const double *cols = motion_columns(work, stride, n, dim);
+    const size_t R = 6 * n;
+    double *lanes = motion_columns(work, stride, n, dim) + R * (size_t)(dim + 1);
+    size_t half = 0, j = 0;
+    for (size_t i = 0; i < n; i++) half += dq_selected(use, i) ? 3 : 0;
     for (int k = 0; k < dim * dim; k++) acc[k] = 0.0;
     for (int k = 0; k < dim; k++) gz[k] = 0.0;
     motion_prior_terms(m, V, ell, dim, acc, gz);
     for (size_t i = 0; i < n; i++) {
         double *blk = work + stride * i;
-        for (int k = 0; k < dim * dim; k++) blk[M_PER + k] = acc[k];
-        if (dq_selected(use, i)) motion_add_information(m, i, blk + M_G, dim, acc);
+        for (int a = 0, q = 0; a < dim; a++)
+            for (int b = a; b < dim; b++, q++) blk[M_HJ + q] = acc[dim * a + b];
+        if (dq_selected(use, i)) {
+            motion_stacked(m, i, cols, R, half, j, Gw);
+            j += 3;
+            motion_information(m, i, Gw, blk + M_INFO);
+            motion_add_information(m, i, blk + M_INFO, dim, acc);
+        }
     }
     for (int k = 0; k < dim * dim; k++) acc[k] = 0.0; /* now the later inliers' */
+    size_t pending[DQ_LANES];
+    double ee[DQ_LANES];
+    int count = 0, factored = 0;
     for (size_t jj = n; jj-- > 0;) {
         double *blk = work + stride * jj;
         int in = dq_selected(use, jj);
-        const double *Gw = blk + M_G, *e = blk + so + S_E;
-        double ee = dq_sq6(e);
+        const double *e = blk + so + S_E;
+        if (in) {
+            j -= 3;
+            motion_stacked(m, jj, cols, R, half, j, Gw);
+        }
         if (!tested[jj]) {
             nis[jj] = 0.0;
+        } else if (in) {
+            motion_lane_load(m, blk, Gw, jj, so, dim, acc, count, lanes, ee);
+            pending[count++] = jj;
+            if (count == DQ_LANES) {
+                int rc = motion_lanes_nis(pending, count, dim, lanes, ee, nis);
+                if (rc) return rc;
+                count = 0;
+            }
         } else {
-            if (in) {
-                for (int k = 0; k < dim * dim; k++) Hj[k] = blk[M_PER + k] + acc[k];
-            } else {
+            if (!factored) {
                 for (int k = 0; k < dim * dim; k++) Hj[k] = H[k];
+                dq_mirror(Hj, dim);
+                if (!dq_chol(Hj, Lh, dh, dim)) return DQ_E_SINGULAR;
+                factored = 1;
             }
-            dq_mirror(Hj, dim);
-            if (!dq_chol(Hj, Lh, dh, dim)) return DQ_E_SINGULAR;
-            if (in) {
-                for (int k = 0; k < dim; k++) y[k] = 0.0;
+            const double *Go = blk + M_G;   /* an outlier's, in its block */
+            double K[36], N[36], dn[6], u[6];
+            double *Yc = Hj; /* Y = Lh^-1 (L^-1 G)^T, 6 columns: Hj is spent */
+            for (int a = 0; a < 6; a++) {
+                double *col = Yc + dim * a;
+                for (int k = 0; k < dim; k++) col[k] = 0.0;
                 for (int c = 0; c < MC; c++) {
-                    int col = motion_column(m, jj, c);
-                    if (col < 0) continue;
-                    double s = 0.0;
-                    for (int k = 0; k < 6; k++) s += Gw[MC * k + c] * e[k];
-                    y[col] = s;
+                    int s = motion_column(m, jj, c);
+                    if (s >= 0) col[s] = Go[MC * a + c];
                 }
-                dq_lower_solve(Lh, dh, y, y, dim);
-                double yy = 0.0;
-                for (int k = 0; k < dim; k++) yy += y[k] * y[k];
-                nis[jj] = ee + yy;
-            } else {
-                double K[36], N[36], dn[6], u[6];
-                double *Yc = Hj; /* Y = Lh^-1 (L^-1 G)^T, 6 columns: Hj is spent */
-                for (int a = 0; a < 6; a++) {
-                    double *col = Yc + dim * a;
-                    for (int k = 0; k < dim; k++) col[k] = 0.0;
-                    for (int c = 0; c < MC; c++) {
-                        int s = motion_column(m, jj, c);
-                        if (s >= 0) col[s] = Gw[MC * a + c];
-                    }
-                    dq_lower_solve(Lh, dh, col, col, dim);
-                }
-                for (int a = 0; a < 6; a++)
-                    for (int b = 0; b < 6; b++) {
-                        double s = 0.0;
-                        for (int k = 0; k < dim; k++) s += Yc[dim * a + k] * Yc[dim * b + k];
-                        K[6 * a + b] = s + (a == b ? 1.0 : 0.0);
-                    }
-                if (!dq_chol6(K, N, dn)) return DQ_E_SINGULAR;
-                dq_lower_solve6(N, dn, e, u);
-                nis[jj] = dq_sq6(u);
+                dq_lower_solve(Lh, dh, col, col, dim);
             }
+            for (int a = 0; a < 6; a++)
+                for (int b = 0; b < 6; b++) {
+                    double s = 0.0;
+                    for (int k = 0; k < dim; k++) s += Yc[dim * a + k] * Yc[dim * b + k];
+                    K[6 * a + b] = s + (a == b ? 1.0 : 0.0);
+                }
+            if (!dq_chol6(K, N, dn)) return DQ_E_SINGULAR;
+            dq_lower_solve6(N, dn, e, u);
+            nis[jj] = dq_sq6(u);
         }
-        if (in) motion_add_information(m, jj, Gw, dim, acc);
+        if (in) motion_add_information(m, jj, blk + M_INFO, dim, acc);
     }
-    return DQ_OK;
+    return count ? motion_lanes_nis(pending, count, dim, lanes, ee, nis) : DQ_OK;
 }
 
 /* The motion fit as a Gauss-Newton problem (gn.h): the state X, V, ell and a trial point's
@@ -354,7 +444,7 @@ typedef struct {
     size_t n;
     double *work;
     size_t stride;
-    int dim, keep, off, ro, rt;
+    int dim, off, ro, rt;
     double *X, *V, *ell, Xn[8], Vn[6], *elln;
     double *H, *Lh, *g, *dh;
 } motion_fit;
@@ -362,8 +452,8 @@ typedef struct {
 static void motion_fit_linearize(void *self)
 {
     motion_fit *f = self;
-    motion_linearize(f->m, f->V, f->work, f->stride, f->n, f->inlier, 0, f->ro, f->dim, f->keep,
-                     f->H, f->g, NULL);
+    motion_linearize(f->m, f->V, f->work, f->stride, f->n, f->inlier, 0, f->ro, f->dim, f->H,
+                     f->g, NULL);
     motion_prior_terms(f->m, f->V, f->ell, f->dim, f->H, f->g);
     dq_mirror(f->H, f->dim);
 }
@@ -399,17 +489,17 @@ static void motion_fit_accept(void *self)
 /* Gauss-Newton from out's X, V, ell over the selected measurements (motion.h), updated in place;
  * *slot is the workspace slot left holding the inliers' r, e at the estimate. The solver's
  * dim-sized arrays follow the measurements' blocks in work. *current = 1 (gn.h) says that the
- * information H (priors included, mirrored) and (with keep) the inliers' compact Jacobians in
- * their blocks are at the estimate, and need not be computed again. */
+ * information H (priors included, mirrored) and the inliers' whitened Jacobians (stacked by
+ * motion_linearize) are at the estimate, and need not be computed again. */
 static int motion_solve(const double *z, const unsigned char *inlier, size_t n,
                         const dq_motion_model *m, const dq_fuse_params *p, double *work,
-                        size_t stride, int dim, int keep, int start_slot, double start_total,
+                        size_t stride, int dim, int start_slot, double start_total,
                         dq_motion_fitted *out, int *slot, int *current)
 {
     double *H = work + stride * n, *Lh = H + dim * dim, *g = Lh + dim * dim, *delta = g + dim;
     double *dh = delta + dim, *elln = dh + dim;
     /* the start's residuals and cost are the caller's */
-    motion_fit f = {m, z, inlier, n, work, stride, dim, keep, m->twist ? 12 : 6, start_slot,
+    motion_fit f = {m, z, inlier, n, work, stride, dim, m->twist ? 12 : 6, start_slot,
                     start_slot == M_S0 ? M_S1 : M_S0, out->mean, out->twist, out->ell,
                     {0}, {0}, elln, H, Lh, g, dh};
     const dq_gn_problem problem = {dim, motion_fit_linearize, motion_fit_step, motion_fit_trial,
@@ -455,7 +545,7 @@ int dq_motion_fit(const double *z, const double *cov, const unsigned char *inlie
     const int dim = (int)dq_motion_dim(m), k = (int)m->k;
     /* the prefix sums of the information only when the leave-one-out NIS are wanted: without
      * them a measurement's block is a third of the size (fewer pages and cache lines) */
-    const size_t stride = M_PER + (per->nis && tested ? (size_t)dim * dim : 0);
+    const size_t stride = per->nis && tested ? M_HJ + (size_t)dim * (dim + 1) / 2 : M_PER;
     size_t n_in = 0;
     for (size_t i = 0; i < n; i++) {
         double *blk = work + stride * i;
@@ -489,9 +579,8 @@ int dq_motion_fit(const double *z, const double *cov, const unsigned char *inlie
             }
         }
     }
-    const int keep = per->nis && tested;    /* the leave-one-out NIS read the blocks */
-    int ro, current = 0, rc = motion_solve(z, inlier, n, m, p, work, stride, dim, keep,
-                                           start_slot, total, out, &ro, &current);
+    int ro, current = 0, rc = motion_solve(z, inlier, n, m, p, work, stride, dim, start_slot,
+                                           total, out, &ro, &current);
     if (rc) return rc;
     /* Everything at the estimate: the others' residuals (the inliers' are in slot ro), every
      * Jacobian, the inliers' information with the priors' (the solver's last when it is at the
@@ -502,7 +591,7 @@ int dq_motion_fit(const double *z, const double *cov, const unsigned char *inlie
             if (!dq_selected(inlier, i))
                 motion_jacobian(m, V, i, work + stride * i, ro, dim, NULL, NULL, NULL, 0);
     } else {
-        motion_linearize(m, V, work, stride, n, inlier, 1, ro, dim, keep, H, g, per->G);
+        motion_linearize(m, V, work, stride, n, inlier, 1, ro, dim, H, g, per->G);
         motion_prior_terms(m, V, ell, dim, H, g);
         dq_mirror(H, dim);
     }
