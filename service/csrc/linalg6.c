@@ -238,6 +238,38 @@ DQ_CLONES int dq_chol_solve_lanes(const double *A, int m, double *L, double *di,
     return m == 12 ? chol_solve_lanes(A, 12, L, di, y, yy) : chol_solve_lanes(A, m, L, di, y, yy);
 }
 
+#if DQ_V4
+DQ_CLONES void dq_whiten_jacobian6_lanes(const double *L, const double *di, const double *A,
+                                         double *B)
+{
+    /* dq_whiten_jacobian6's operations, four problems a vector */
+    dq_v4 Lv[36], Bv[36];
+    for (int k = 0; k < 36; k++) Lv[k] = dq_v4_load(L + 4 * k);
+    for (int i = 0; i < 3; i++) {
+        dq_v4 row[3] = {dq_v4_load(A + 4 * (6 * i)), dq_v4_load(A + 4 * (6 * i + 1)),
+                        dq_v4_load(A + 4 * (6 * i + 2))};
+        for (int k = 0; k < i; k++) {
+            dq_v4 l = Lv[6 * i + k];
+            for (int c = 0; c < 3; c++) row[c] -= l * Bv[6 * k + c];
+        }
+        dq_v4 d = dq_v4_load(di + 4 * i);
+        for (int c = 0; c < 3; c++) Bv[6 * i + c] = row[c] * d;
+        Bv[6 * i + 3] = Bv[6 * i + 4] = Bv[6 * i + 5] = dq_v4_of(0.0);
+    }
+    for (int i = 3; i < 6; i++) {
+        dq_v4 row[6];
+        for (int c = 0; c < 6; c++) row[c] = dq_v4_load(A + 4 * (6 * i + c));
+        for (int k = 0; k < i; k++) {
+            dq_v4 l = Lv[6 * i + k];
+            for (int c = 0; c < 6; c++) row[c] -= l * Bv[6 * k + c];
+        }
+        dq_v4 d = dq_v4_load(di + 4 * i);
+        for (int c = 0; c < 6; c++) Bv[6 * i + c] = row[c] * d;
+    }
+    for (int k = 0; k < 36; k++) dq_v4_store(B + 4 * k, Bv[k]);
+}
+#endif
+
 void dq_mirror6(double *G)
 {
     for (int i = 0; i < 6; i++)

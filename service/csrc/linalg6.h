@@ -58,6 +58,8 @@ void dq_mirror(double *M, int dim);
  * definite (its outputs are then not meaningful). */
 #define DQ_LANES 4
 int dq_chol_solve_lanes(const double *A, int m, double *L, double *di, double *y, double *yy);
+/* dq_whiten_jacobian6 of DQ_LANES problems side by side, laid out as above (where DQ_V4). */
+void dq_whiten_jacobian6_lanes(const double *L, const double *di, const double *A, double *B);
 
 /* P = A^-1 = L^-T L^-1 from A's 6 x 6 Cholesky factor, symmetric by construction. */
 void dq_chol6_inverse(const double *L, const double *di, double *P);

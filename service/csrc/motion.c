@@ -14,6 +14,7 @@
 #include "gn.h"
 #include "linalg6.h"
 #include "se3.h"
+#include "vecmath.h"
 
 /* A measurement's Jacobian is kept compact: MC columns, the pose's 6, the twist's 6 and its own
  * latency's 1 (zero columns when the twist or the latency is not estimated). */
@@ -194,6 +195,62 @@ static void motion_jacobian(const dq_motion_model *m, const double *V, size_t i,
     }
 }
 
+#if DQ_V4
+/* motion_jacobian's L^-1 G_i of the measurements rows[0..DQ_LANES), all of the common case (a
+ * twist, no latency estimated), side by side, into the stacked columns of motion_linearize (rows
+ * 0-2 at cols + at[l], rows 3-5 at cols + half + at[l], column c at c R): each the same operations
+ * in the same order (se3.h's and linalg6.h's lane kernels, then motion_jacobian's products), so
+ * the same bits. 0, nothing written, when a rotation is beyond the kernels' series. */
+DQ_CLONES static int motion_jacobian_lanes(const double *V, const size_t *rows, const size_t *at,
+                                           const double *work, size_t stride, int so,
+                                           double *cols, size_t R, size_t half)
+{
+    enum { W = DQ_LANES };
+    double r[6 * W], x[6 * W], dt[W], q[8 * W], A[36 * W], Aw[36 * W], L[36 * W], di[6 * W];
+    double Ad[36 * W], Jr[36 * W];
+    for (int l = 0; l < W; l++) {
+        const double *blk = work + stride * rows[l], *s = blk + so, *E = s + S_EXP;
+        dt[l] = s[S_DT];
+        for (int k = 0; k < 6; k++) {
+            r[W * k + l] = s[S_R + k];
+            x[W * k + l] = dt[l] * V[k];
+            di[W * k + l] = blk[M_DI + k];
+        }
+        for (int k = 0; k < 36; k++) L[W * k + l] = blk[M_L + k];
+        for (int k = 0; k < 8; k++) q[W * k + l] = k == 0 || k == 4 ? E[k] : -E[k]; /* dq_conj */
+    }
+    if (!dq_jl_inv_lanes(r, A) || !dq_jr_scaled_lanes(x, dt, Jr)) return 0;
+    dq_whiten_jacobian6_lanes(L, di, A, Aw);
+    dq_adjoint_lanes(q, Ad);
+#define AW(a, k) dq_v4_load(Aw + W * (6 * (a) + (k)))
+#define BC(k, c) dq_v4_load(Bc + W * (6 * (k) + (c)))
+    for (int b = 0; b < 12; b += 6) {
+        const double *Bc = b ? Jr : Ad;   /* the columns b .. b + 5 of motion_jacobian's Bc */
+        for (int c = 0; c < 6; c++) {
+            dq_v4 top[3], bottom[3];
+            for (int a = 0; a < 3; a++) {
+                dq_v4 sw = dq_v4_of(0.0);
+                if (c < 3)
+                    for (int k = 0; k < 3; k++) sw += AW(a, k) * BC(k, c);
+                top[a] = sw;   /* zero in Bc's rows 0-2 beyond column 2: the sum's +0 */
+                sw = dq_v4_of(0.0);
+                for (int k = c < 3 ? 0 : 3; k < 6; k++) sw += AW(a + 3, k) * BC(k, c);
+                bottom[a] = sw;
+            }
+            double *to = cols + R * (size_t)(b + c);
+            for (int l = 0; l < W; l++)
+                for (int a = 0; a < 3; a++) {
+                    to[at[l] + a] = top[a][l];
+                    to[half + at[l] + a] = bottom[a][l];
+                }
+        }
+    }
+#undef AW
+#undef BC
+    return 1;
+}
+#endif
+
 /* The terms of measurement i's information (L^-1 G_i)^T (L^-1 G_i), its upper triangle in the
  * state's columns, into t (at most MI) in the order motion_add_information adds them: computed
  * once for the two sums of the leave-one-out NIS. */
@@ -254,14 +311,38 @@ static void motion_linearize(const dq_motion_model *m, const double *V, double *
     const size_t R = 6 * n;
     size_t half = 0, j = 0;
     for (size_t i = 0; i < n; i++) half += dq_selected(use, i) ? 3 : 0;
+    /* the common case's inliers DQ_LANES at a time into their blocks, the first `done` of them */
+    const int lanes = DQ_V4 && !G && m->twist;
+    size_t done = 0, common = 0;
+#if DQ_V4
+    size_t rows[DQ_LANES], at[DQ_LANES], sel = 0;
+    int count = 0;
+    for (size_t i = 0; lanes && i < n; i++) {
+        if (!dq_selected(use, i)) continue;
+        sel += 3;
+        if (m->slot[i] >= 0) continue;
+        rows[count] = i;
+        at[count++] = sel - 3;
+        if (count < DQ_LANES) continue;
+        if (!motion_jacobian_lanes(V, rows, at, work, stride, so, cols, R, half))
+            for (int l = 0; l < DQ_LANES; l++)
+                motion_jacobian(m, V, rows[l], work + stride * rows[l], so, dim, NULL,
+                                cols + at[l], cols + half + at[l], R);
+        done += DQ_LANES;
+        count = 0;
+    }
+#endif
     for (size_t i = 0; i < n; i++) {
         int in = dq_selected(use, i);
         if (!in && !all) continue;
         double *blk = work + stride * i;
-        /* straight into the stack (the leave-one-out NIS read them there) */
-        const int direct = in && m->twist && m->slot[i] < 0;
-        motion_jacobian(m, V, i, blk, so, dim, G ? G + 6 * dim * i : NULL,
-                        direct ? cols + j : NULL, direct ? cols + half + j : NULL, R);
+        /* taken: stacked by the lanes above; direct: straight into the stack (the
+         * leave-one-out NIS read them there) */
+        const int taken = lanes && in && m->slot[i] < 0 && common++ < done;
+        const int direct = in && m->twist && m->slot[i] < 0 && !taken;
+        if (!taken)
+            motion_jacobian(m, V, i, blk, so, dim, G ? G + 6 * dim * i : NULL,
+                            direct ? cols + j : NULL, direct ? cols + half + j : NULL, R);
         if (!in) continue;
         const double *Gw = blk + M_G, *e = blk + so + S_E;
         double *eto = cols + R * (size_t)dim + j;
@@ -272,7 +353,7 @@ static void motion_linearize(const dq_motion_model *m, const double *V, double *
         for (int c = m->twist ? 12 : 6; c < dim; c++)    /* the latencies' columns */
             for (int k = 0; k < 3; k++)
                 cols[R * (size_t)c + j + k] = cols[R * (size_t)c + half + j + k] = 0.0;
-        if (!direct) {      /* from the block, through its column map */
+        if (!direct && !taken) {      /* from the block, through its column map */
             for (int c = 0; c < MC; c++) {
                 int col = motion_column(m, i, c);
                 if (col < 0) continue;

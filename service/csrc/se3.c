@@ -7,6 +7,8 @@
 #include <math.h>
 
 #include "dq.h"
+#include "linalg6.h"
+#include "vecmath.h"
 
 /* Below this rotation angle the Jacobian coefficients come from their Taylor series (the closed
  * forms divide cancelling differences by up to t^5); service/lie.py uses the same. */
@@ -184,3 +186,147 @@ int dq_retract(const double *X, const double *delta, double *out)
     dq_mul(X, E, P);
     return dq_normalize(P, out);
 }
+
+/* ---- DQ_LANES measurements at a time (motion.c's Jacobians): entry k of lane l at
+ * [DQ_LANES k + l], each lane the same operations in the same order as the functions above on
+ * its own input (so the same bits), the lanes in one vector (two without AVX2). The series branch
+ * only: a lane whose rotation is beyond SERIES_ANGLE makes them return 0 with nothing written,
+ * for the scalar functions. */
+#if DQ_V4
+typedef dq_v4 v4;
+
+/* (pointers, not values: a 32-byte vector passed by value has another ABI without AVX) */
+DQ_INLINE void series8_v4(const double *c, const v4 *t2, v4 *out)
+{
+    v4 s = dq_v4_of(0.0);
+    for (int k = 7; k >= 0; k--) s = s * *t2 + c[k];
+    *out = s;
+}
+
+DQ_INLINE void hat3_v4(const v4 *w, v4 *K)
+{
+    K[0] = dq_v4_of(0.0); K[1] = -w[2];         K[2] = w[1];
+    K[3] = w[2];          K[4] = dq_v4_of(0.0); K[5] = -w[0];
+    K[6] = -w[1];         K[7] = w[0];          K[8] = dq_v4_of(0.0);
+}
+
+DQ_INLINE void mul3_v4(const v4 *a, const v4 *b, v4 *c)
+{
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++)
+            c[3 * i + j] = a[3 * i] * b[j] + a[3 * i + 1] * b[3 + j] + a[3 * i + 2] * b[6 + j];
+}
+
+DQ_INLINE void q_block_v4(const v4 *w, const v4 *v, const v4 *t2p, const v4 *k, v4 *Q)
+{
+    const v4 t2 = *t2p, C = k[0], c2 = k[1], c3 = k[2];
+    v4 wv = w[0] * v[0] + w[1] * v[1] + w[2] * v[2];
+    v4 u[3] = {w[1] * v[2] - w[2] * v[1], w[2] * v[0] - w[0] * v[2], w[0] * v[1] - w[1] * v[0]};
+    v4 W[9], V[9];
+    hat3_v4(w, W);
+    hat3_v4(v, V);
+    v4 kv = 0.5 - 2.0 * c2 * t2, kw = 3.0 * c2 * wv - C * wv, kww = -2.0 * c3 * wv;
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++) {
+            v4 ww = w[i] * w[j] - (i == j ? t2 : dq_v4_of(0.0));
+            Q[3 * i + j] = kv * V[3 * i + j] + kw * W[3 * i + j] +
+                           C * (v[i] * w[j] + w[i] * v[j] - (i == j ? 2.0 * wv : dq_v4_of(0.0))) +
+                           c2 * (w[i] * u[j] - u[i] * w[j]) + kww * ww;
+        }
+}
+
+/* |w|^2, and whether every lane's is within the series */
+DQ_INLINE int series_v4(const v4 *w, v4 *t2)
+{
+    *t2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
+    const double lim = SERIES_ANGLE * SERIES_ANGLE;
+    return (*t2)[0] < lim && (*t2)[1] < lim && (*t2)[2] < lim && (*t2)[3] < lim;
+}
+
+DQ_CLONES int dq_jl_inv_lanes(const double *xi, double *J)
+{
+    v4 w[3], v[3], t2;
+    for (int k = 0; k < 3; k++) {
+        w[k] = dq_v4_load(xi + 4 * k);
+        v[k] = dq_v4_load(xi + 4 * (3 + k));
+    }
+    if (!series_v4(w, &t2)) return 0;
+    v4 k[4];   /* C, c2, c3, D */
+    series8_v4(C_SERIES, &t2, k);
+    series8_v4(C2_SERIES, &t2, k + 1);
+    series8_v4(C3_SERIES, &t2, k + 2);
+    series8_v4(D_SERIES, &t2, k + 3);
+    v4 Q[9], W[9], Ji[9], T[9], M[9], D = k[3];
+    q_block_v4(w, v, &t2, k, Q);
+    hat3_v4(w, W);
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++) {
+            v4 ww = w[i] * w[j] - (i == j ? t2 : dq_v4_of(0.0));
+            Ji[3 * i + j] = (i == j ? 1.0 : 0.0) - 0.5 * W[3 * i + j] + D * ww;
+        }
+    mul3_v4(Ji, Q, T);
+    mul3_v4(T, Ji, M);
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++) {
+            dq_v4_store(J + 4 * (6 * i + j), Ji[3 * i + j]);
+            dq_v4_store(J + 4 * (6 * i + 3 + j), dq_v4_of(0.0));
+            dq_v4_store(J + 4 * (6 * (i + 3) + j), -M[3 * i + j]);
+            dq_v4_store(J + 4 * (6 * (i + 3) + 3 + j), Ji[3 * i + j]);
+        }
+    return 1;
+}
+
+DQ_CLONES int dq_jr_scaled_lanes(const double *xi, const double *s, double *J)
+{
+    v4 w[3], v[3], t2, sc = dq_v4_load(s);
+    for (int k = 0; k < 3; k++) {
+        w[k] = -dq_v4_load(xi + 4 * k);
+        v[k] = -dq_v4_load(xi + 4 * (3 + k));
+    }
+    if (!series_v4(w, &t2)) return 0;
+    v4 k[4];   /* C, c2, c3, B */
+    series8_v4(C_SERIES, &t2, k);
+    series8_v4(C2_SERIES, &t2, k + 1);
+    series8_v4(C3_SERIES, &t2, k + 2);
+    series8_v4(B_SERIES, &t2, k + 3);
+    v4 Q[9], W[9], B = k[3], C = k[0];
+    q_block_v4(w, v, &t2, k, Q);
+    hat3_v4(w, W);
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++) {
+            v4 ww = w[i] * w[j] - (i == j ? t2 : dq_v4_of(0.0));
+            v4 a = sc * ((i == j ? 1.0 : 0.0) + B * W[3 * i + j] + C * ww);
+            dq_v4_store(J + 4 * (6 * i + j), a);
+            dq_v4_store(J + 4 * (6 * i + 3 + j), dq_v4_of(0.0));
+            dq_v4_store(J + 4 * (6 * (i + 3) + j), sc * Q[3 * i + j]);
+            dq_v4_store(J + 4 * (6 * (i + 3) + 3 + j), a);
+        }
+    return 1;
+}
+
+DQ_CLONES void dq_adjoint_lanes(const double *q, double *Ad)
+{
+    v4 w = dq_v4_load(q), x = dq_v4_load(q + 4), y = dq_v4_load(q + 8), z = dq_v4_load(q + 12);
+    v4 q4 = dq_v4_load(q + 16), q5 = dq_v4_load(q + 20), q6 = dq_v4_load(q + 24);
+    v4 q7 = dq_v4_load(q + 28);
+    /* dq_to_matrix's */
+    v4 t[3], T[12];
+    t[0] = 2.0 * (-q4 * x + q5 * w - q6 * z + q7 * y);
+    t[1] = 2.0 * (-q4 * y + q5 * z + q6 * w - q7 * x);
+    t[2] = 2.0 * (-q4 * z - q5 * y + q6 * x + q7 * w);
+    T[0] = 1.0 - 2.0 * (y * y + z * z); T[1] = 2.0 * (x * y - w * z); T[2] = 2.0 * (x * z + w * y);
+    T[4] = 2.0 * (x * y + w * z); T[5] = 1.0 - 2.0 * (x * x + z * z); T[6] = 2.0 * (y * z - w * x);
+    T[8] = 2.0 * (x * z - w * y); T[9] = 2.0 * (y * z + w * x); T[10] = 1.0 - 2.0 * (x * x + y * y);
+    for (int a = 0; a < 3; a++)
+        for (int b = 0; b < 3; b++) {
+            v4 R = T[4 * a + b];
+            v4 tR = (a == 0 ? -t[2] * T[4 + b] + t[1] * T[8 + b]
+                     : a == 1 ? t[2] * T[b] - t[0] * T[8 + b]
+                              : -t[1] * T[b] + t[0] * T[4 + b]);
+            dq_v4_store(Ad + 4 * (6 * a + b), R);
+            dq_v4_store(Ad + 4 * (6 * a + 3 + b), dq_v4_of(0.0));
+            dq_v4_store(Ad + 4 * (6 * (a + 3) + b), tR);
+            dq_v4_store(Ad + 4 * (6 * (a + 3) + 3 + b), R);
+        }
+}
+#endif

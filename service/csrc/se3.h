@@ -28,4 +28,15 @@ void dq_adjoint(const double *q, double *Ad);
  * result is not finite (dq_normalize's code). */
 int dq_retract(const double *X, const double *delta, double *out);
 
+/* DQ_LANES (linalg6.h) of dq_jl_inv, dq_jr_scaled (ld 6) and dq_adjoint side by side, entry k of
+ * lane l at [DQ_LANES k + l] (xi, s, q in; J, Ad out), each lane's bits those of the function on
+ * its own; dq_jl_inv_lanes and dq_jr_scaled_lanes return 0, writing nothing, when a lane's
+ * rotation is beyond their series (then the scalar ones serve). */
+#include "vecmath.h"
+#if DQ_V4
+int dq_jl_inv_lanes(const double *xi, double *J);
+int dq_jr_scaled_lanes(const double *xi, const double *s, double *J);
+void dq_adjoint_lanes(const double *q, double *Ad);
+#endif
+
 #endif

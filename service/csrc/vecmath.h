@@ -31,6 +31,20 @@
 #define DQ_INLINE static inline
 #endif
 
+/* Four doubles in one vector (GCC's vector extension; two SSE2 registers without AVX2): the
+ * element-wise IEEE operations of the scalar code, lane by lane, so a loop over four problems
+ * gives each the bits it has alone (ISO C: no FMA contraction). */
+#if defined(__GNUC__)
+#define DQ_V4 1
+#include <string.h>
+typedef double dq_v4 __attribute__((vector_size(32)));
+#define dq_v4_of(x) ((dq_v4){(x), (x), (x), (x)})
+#define dq_v4_load(p) (__extension__({ dq_v4 v_; memcpy(&v_, (p), sizeof v_); v_; }))
+#define dq_v4_store(p, v) (__extension__({ dq_v4 v_ = (v); memcpy((p), &v_, sizeof v_); }))
+#else
+#define DQ_V4 0
+#endif
+
 #define DQ_PIO2 1.57079632679489661923
 #define DQ_PIO4 7.85398163397448309616E-1
 #define DQ_MOREBITS 6.123233995736765886130E-17 /* pi/2 - DQ_PIO2 */
