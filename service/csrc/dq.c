@@ -6,6 +6,23 @@
 
 #include <math.h>
 
+#include "vecmath.h"
+
+/* The series of dq_exp (Taylor in y = phi^2; 7 terms leave < 1e-19 relative error at y = 1e-2)
+ * and dq_log (asin(n)/n and (n - asin(n) sqrt(1-n^2))/n^3 in x = n^2; 8 terms < 1e-18 at
+ * x = 1e-2), one text for the scalar functions and their lanes (the same operations). */
+#define EXP_SERIES_MAX 1e-2
+#define EXP_CS(y) (1.0 + (y) * (-1.0 / 2 + (y) * (1.0 / 24 + (y) * (-1.0 / 720 + (y) * (1.0 / 40320 \
+              + (y) * (-1.0 / 3628800 + (y) * (1.0 / 479001600)))))))
+#define EXP_SC(y) (1.0 + (y) * (-1.0 / 6 + (y) * (1.0 / 120 + (y) * (-1.0 / 5040 + (y) * (1.0 / 362880 \
+              + (y) * (-1.0 / 39916800 + (y) * (1.0 / 6227020800.0)))))))
+#define EXP_C(y) (-1.0 / 3 + (y) * (1.0 / 30 + (y) * (-1.0 / 840 + (y) * (1.0 / 45360 \
+              + (y) * (-1.0 / 3991680 + (y) * (1.0 / 518918400 + (y) * (-1.0 / 93405312000.0)))))))
+#define LOG_A(x) (1.0 + (x) * (1.0 / 6 + (x) * (3.0 / 40 + (x) * (5.0 / 112 + (x) * (35.0 / 1152 \
+              + (x) * (63.0 / 2816 + (x) * (231.0 / 13312 + (x) * (143.0 / 10240))))))))
+#define LOG_B(x) (1.0 / 3 + (x) * (2.0 / 15 + (x) * (8.0 / 105 + (x) * (16.0 / 315 + (x) * (128.0 / 3465 \
+              + (x) * (256.0 / 9009 + (x) * (1024.0 / 45045 + (x) * (2048.0 / 109395))))))))
+
 /* Half rotation angles at or below this count as zero in dq_screw (blend.c's ScLERP uses the
  * same value): the moment |t|/phi would overflow, and the rotation is far below rounding. */
 #define DQ_SCREW_MIN_PHI 1e-150
@@ -99,14 +116,10 @@ void dq_exp(const double *x, double *out)
     double y = r[0] * r[0] + r[1] * r[1] + r[2] * r[2];
     double rd = r[0] * d[0] + r[1] * d[1] + r[2] * d[2];
     double cs, sc, c;
-    if (y < 1e-2) {
-        /* Taylor series in y = phi^2; 7 terms leave < 1e-19 relative error at y = 1e-2. */
-        cs = 1.0 + y * (-1.0 / 2 + y * (1.0 / 24 + y * (-1.0 / 720 + y * (1.0 / 40320
-              + y * (-1.0 / 3628800 + y * (1.0 / 479001600))))));
-        sc = 1.0 + y * (-1.0 / 6 + y * (1.0 / 120 + y * (-1.0 / 5040 + y * (1.0 / 362880
-              + y * (-1.0 / 39916800 + y * (1.0 / 6227020800.0))))));
-        c = -1.0 / 3 + y * (1.0 / 30 + y * (-1.0 / 840 + y * (1.0 / 45360 + y * (-1.0 / 3991680
-              + y * (1.0 / 518918400 + y * (-1.0 / 93405312000.0))))));
+    if (y < EXP_SERIES_MAX) {
+        cs = EXP_CS(y);
+        sc = EXP_SC(y);
+        c = EXP_C(y);
     } else {
         double phi = sqrt(y);
         double s = sin(phi);
@@ -139,11 +152,8 @@ void dq_log(const double *q, double *out)
     double x = v0 * v0 + v1 * v1 + v2 * v2;
     double a, b;
     if (x < DQ_LOG_SERIES_MAX) {
-        /* asin(n)/n and (n - asin(n) sqrt(1-n^2))/n^3 in x = n^2; 8 terms < 1e-18 at x = 1e-2. */
-        a = 1.0 + x * (1.0 / 6 + x * (3.0 / 40 + x * (5.0 / 112 + x * (35.0 / 1152
-              + x * (63.0 / 2816 + x * (231.0 / 13312 + x * (143.0 / 10240)))))));
-        b = 1.0 / 3 + x * (2.0 / 15 + x * (8.0 / 105 + x * (16.0 / 315 + x * (128.0 / 3465
-              + x * (256.0 / 9009 + x * (1024.0 / 45045 + x * (2048.0 / 109395)))))));
+        a = LOG_A(x);
+        b = LOG_B(x);
     } else {
         double n = sqrt(x);
         double phi = atan2(n, w);
@@ -397,3 +407,74 @@ void dq_screw(const double *q, double *theta, double *d, double *l, double *m)
         }
     }
 }
+
+#if DQ_V4
+/* ---- four at a time (motion.c's residuals): entry k of lane l at [4 k + l], each lane the
+ * operations of the scalar function on its own input (so the same bits). The series branch only:
+ * 0, with nothing written, when a lane is beyond it (then the scalar function serves). */
+#define LD(p, k) dq_v4_load((p) + 4 * (k))
+#define ST(p, k, v) dq_v4_store((p) + 4 * (k), (v))
+
+DQ_CLONES int dq_exp_lanes(const double *x, double *out)
+{
+    dq_v4 r0 = LD(x, 0), r1 = LD(x, 1), r2 = LD(x, 2), d0 = LD(x, 3), d1 = LD(x, 4), d2 = LD(x, 5);
+    dq_v4 y = r0 * r0 + r1 * r1 + r2 * r2;
+    for (int l = 0; l < 4; l++)
+        if (!(y[l] < EXP_SERIES_MAX)) return 0;
+    dq_v4 rd = r0 * d0 + r1 * d1 + r2 * d2;
+    dq_v4 cs = EXP_CS(y), sc = EXP_SC(y), c = EXP_C(y), k = c * rd;
+    ST(out, 0, cs);
+    ST(out, 1, sc * r0); ST(out, 2, sc * r1); ST(out, 3, sc * r2);
+    ST(out, 4, -sc * rd);
+    ST(out, 5, sc * d0 + k * r0); ST(out, 6, sc * d1 + k * r1); ST(out, 7, sc * d2 + k * r2);
+    return 1;
+}
+
+/* dq_qmul's */
+#define QMUL_V4(a, b, c) do { \
+    c[0] = a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3]; \
+    c[1] = a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2]; \
+    c[2] = a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1]; \
+    c[3] = a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0]; } while (0)
+
+DQ_CLONES void dq_mul_lanes(const double *a, const double *b, double *out)
+{
+    dq_v4 av[8], bv[8], r[4], d1[4], d2[4];
+    for (int k = 0; k < 8; k++) {
+        av[k] = LD(a, k);
+        bv[k] = LD(b, k);
+    }
+    QMUL_V4(av, bv, r);
+    QMUL_V4(av, (bv + 4), d1);
+    QMUL_V4((av + 4), bv, d2);
+    for (int k = 0; k < 4; k++) {
+        ST(out, k, r[k]);
+        ST(out, 4 + k, d1[k] + d2[k]);
+    }
+}
+
+DQ_CLONES int dq_log_lanes(const double *q, double *out)
+{
+    double f[32];
+    for (int k = 0; k < 32; k++) f[k] = q[k];
+    for (int l = 0; l < 4; l++)
+        if (f[l] < 0.0) /* the same pose, the short way round */
+            for (int k = 0; k < 8; k++) f[4 * k + l] = -f[4 * k + l];
+    dq_v4 w = LD(f, 0), v0 = LD(f, 1), v1 = LD(f, 2), v2 = LD(f, 3);
+    dq_v4 wd = LD(f, 4), u0 = LD(f, 5), u1 = LD(f, 6), u2 = LD(f, 7);
+    dq_v4 x = v0 * v0 + v1 * v1 + v2 * v2;
+    for (int l = 0; l < 4; l++)
+        if (!(x[l] < DQ_LOG_SERIES_MAX)) return 0;
+    dq_v4 a = LOG_A(x), b = LOG_B(x);
+    dq_v4 vu = v0 * u0 + v1 * u1 + v2 * u2;
+    dq_v4 k = b * (w * vu - wd * x);
+    ST(out, 0, a * v0); ST(out, 1, a * v1); ST(out, 2, a * v2);
+    ST(out, 3, a * u0 + k * v0);
+    ST(out, 4, a * u1 + k * v1);
+    ST(out, 5, a * u2 + k * v2);
+    return 1;
+}
+#undef QMUL_V4
+#undef LD
+#undef ST
+#endif

@@ -64,6 +64,13 @@ void dq_log(const double *q, double *out);
 /* Series form of log, valid for |vec(q_r)|^2 < DQ_LOG_SERIES_MAX with scalar part >= 0. */
 #define DQ_LOG_SERIES_MAX 1e-2
 void dq_pow(const double *q, double tau, double *out);
+/* dq_exp, dq_mul and dq_log of four problems side by side (entry k of lane l at [4 k + l]),
+ * each lane's bits the scalar function's; dq_exp_lanes and dq_log_lanes take their series
+ * branch only and return 0, writing nothing, when a lane is beyond it. Where vecmath.h's
+ * DQ_V4. */
+int dq_exp_lanes(const double *x, double *out);
+void dq_mul_lanes(const double *a, const double *b, double *out);
+int dq_log_lanes(const double *q, double *out);
 
 /* Conversions. Matrices are 4x4 row-major. dq_from_matrix takes a rotation block within
  * DQ_UNIT_TOL of orthonormal (dq_rotation_error) with det > 0 and uses the nearest rotation. */

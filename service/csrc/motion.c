@@ -90,28 +90,101 @@ static void motion_prior_terms(const dq_motion_model *m, const double *V, const 
     }
 }
 
+/* One measurement's evaluation (motion_evaluate) at (X, V) and its dt, into slot so of blk. */
+static void motion_evaluate_one(const double *X, const double *V, double dt, const double *z,
+                                double *blk, int so)
+{
+    double *s = blk + so;
+    double h[6], P[8], Pc[8];
+    for (int k = 0; k < 6; k++) h[k] = 0.5 * (dt * V[k]);
+    dq_exp(h, s + S_EXP);
+    dq_mul(X, s + S_EXP, P);
+    dq_conj(P, Pc);
+    dq_se3_residual(Pc, z, s + S_R, s + S_SC);
+    dq_lower_solve6(blk + M_L, blk + M_DI, s + S_R, s + S_E);
+    s[S_DT] = dt;
+}
+
+#if DQ_V4
+/* motion_evaluate_one of the measurements rows[0..DQ_LANES) side by side, each lane the same
+ * operations (dq.h's lanes, then dq_se3_residual's and dq_lower_solve6's), so the same bits; 0,
+ * nothing written, when a rotation is beyond the lanes' series. */
+DQ_CLONES static int motion_evaluate_lanes(const double *X, const double *V, const double *dt,
+                                           const double *z, const size_t *rows, double *work,
+                                           size_t stride, int so)
+{
+    enum { W = DQ_LANES };
+    double h[6 * W], E[8 * W], Xl[8 * W], P[8 * W], zl[8 * W], p[8 * W], lg[6 * W];
+    for (int l = 0; l < W; l++) {
+        for (int k = 0; k < 6; k++) h[W * k + l] = 0.5 * (dt[l] * V[k]);
+        for (int k = 0; k < 8; k++) {
+            Xl[W * k + l] = X[k];
+            zl[W * k + l] = z[8 * rows[l] + k];
+        }
+    }
+    if (!dq_exp_lanes(h, E)) return 0;
+    dq_mul_lanes(Xl, E, P);
+    for (int k = 0; k < 8 * W; k++)   /* dq_conj */
+        if (k / W != 0 && k / W != 4) P[k] = -P[k];
+    dq_mul_lanes(P, zl, p);
+    for (int l = 0; l < W; l++)   /* dq_se3_residual's */
+        if (p[l] < 0.0)
+            for (int k = 0; k < 8; k++) p[W * k + l] = -p[W * k + l];
+    if (!dq_log_lanes(p, lg)) return 0;
+    dq_v4 r[6], e[6];
+    for (int k = 0; k < 6; k++) r[k] = 2.0 * dq_v4_load(lg + W * k);
+    for (int i = 0; i < 6; i++) {   /* dq_lower_solve6's */
+        double Li[6 * W], di[W];
+        for (int l = 0; l < W; l++) {
+            const double *blk = work + stride * rows[l];
+            for (int k = 0; k < i; k++) Li[W * k + l] = blk[M_L + 6 * i + k];
+            di[l] = blk[M_DI + i];
+        }
+        dq_v4 acc = r[i];
+        for (int k = 0; k < i; k++) acc -= dq_v4_load(Li + W * k) * e[k];
+        e[i] = acc * dq_v4_load(di);
+    }
+    for (int l = 0; l < W; l++) {
+        double *s = work + stride * rows[l] + so;
+        for (int k = 0; k < 8; k++) s[S_EXP + k] = E[W * k + l];
+        for (int k = 0; k < 6; k++) {
+            s[S_R + k] = r[k][l];
+            s[S_E + k] = e[k][l];
+        }
+        s[S_SC] = p[W + l] * p[W + l] + p[2 * W + l] * p[2 * W + l] + p[3 * W + l] * p[3 * W + l];
+        s[S_SC + 1] = p[l];
+        s[S_DT] = dt[l];
+    }
+    return 1;
+}
+#endif
+
 /* Residuals and whitened residuals at (X, V, ell) of the measurements `use` selects (want = 1)
- * or the others (want = 0), into slot so of their blocks; returns their cost. */
+ * or the others (want = 0), into slot so of their blocks (DQ_LANES at a time where they can
+ * be); returns their cost. */
 static double motion_evaluate(const double *X, const double *V, const double *ell,
                               const double *z, const dq_motion_model *m, double *work,
                               size_t stride, size_t n, const unsigned char *use, int want, int so)
 {
-    double total = 0.0;
+    size_t rows[DQ_LANES];
+    double dts[DQ_LANES];
+    int count = 0;
     for (size_t i = 0; i < n; i++) {
         if (dq_selected(use, i) != want) continue;
-        double *blk = work + stride * i, *s = blk + so;
         double dt = m->stamp[i] - (m->slot[i] >= 0 ? ell[m->slot[i]] : m->latency[i]);
-        double h[6], P[8], Pc[8];
-        for (int k = 0; k < 6; k++) h[k] = 0.5 * (dt * V[k]);
-        dq_exp(h, s + S_EXP);
-        dq_mul(X, s + S_EXP, P);
-        dq_conj(P, Pc);
-        dq_se3_residual(Pc, z + 8 * i, s + S_R, s + S_SC);
-        dq_lower_solve6(blk + M_L, blk + M_DI, s + S_R, s + S_E);
-        const double *e = s + S_E;
-        total += dq_sq6(e);
-        s[S_DT] = dt;
+        rows[count] = i;
+        dts[count++] = dt;
+        if (count < DQ_LANES) continue;
+        if (!DQ_V4 || !motion_evaluate_lanes(X, V, dts, z, rows, work, stride, so))
+            for (int l = 0; l < DQ_LANES; l++)
+                motion_evaluate_one(X, V, dts[l], z + 8 * rows[l], work + stride * rows[l], so);
+        count = 0;
     }
+    for (int l = 0; l < count; l++)
+        motion_evaluate_one(X, V, dts[l], z + 8 * rows[l], work + stride * rows[l], so);
+    double total = 0.0;
+    for (size_t i = 0; i < n; i++)
+        if (dq_selected(use, i) == want) total += dq_sq6(work + stride * i + so + S_E);
     return total;
 }
 
