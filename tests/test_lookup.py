@@ -3,15 +3,19 @@ answer of the tracker's fits (to within their tol) for bodies fitted alone or to
 uncertain extrinsic, a shared estimated latency), against the world frame either way, after
 warm starts near and far from the answer; rows of one instant and times beyond
 max_extrapolation are the fits' (their answers and errors bit for bit); its relative covariance
-is honest over time (NEES through a shared uncertain mount); bad rows are refused by name."""
+is honest over time (NEES through a shared uncertain mount); bad rows are refused by name; its
+answer's RelativePose bytes written in C are protobuf's."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from dqpose import _dqcore, dq, lie
 from dqpose.fusion import Measurement, Source
-from dqpose.world import OutOfRange, World, WorldOptions
+from dqpose.rpc.world_convert import relative_msg, relative_pose_bytes
+from dqpose.world import BodyPose, OutOfRange, World, WorldOptions
 from tests.fusion._scenes import random_pose
 from tests.test_world import same_fit
 
@@ -151,3 +155,19 @@ def test_rows_that_are_not_the_stores_are_refused_by_name():
             _dqcore.lookup(s.ids, s.wposes, s.covs, s.times[:s.n], s.codes, *table[:5], bad,
                            None, None, None, None, L, E, None, None, None, 1.0, np.inf, 1e-12,
                            100)
+
+
+_DOUBLE = st.floats(allow_nan=True, allow_infinity=True, width=64)
+
+
+@given(st.lists(st.floats(-50, 50), min_size=6, max_size=6), st.sampled_from([0.0, 1e-9, 1.0]),
+       st.booleans(), st.lists(_DOUBLE, min_size=36, max_size=36),
+       st.one_of(_DOUBLE, st.sampled_from([0.0, -0.0])))
+def test_a_lookups_bytes_are_protobufs(xi, scale, flip, cov, time):
+    """The RelativePose a Lookup answers, written in C (the server's encoder), is the message
+    relative_msg makes, serialized by protobuf: any pose (identity, tiny, the quaternion's sign
+    flipped), any covariance values (NaN, infinities, -0.0) and time (-0.0 and 0.0 included)."""
+    X = lie.se3_exp(np.array(xi) * scale)
+    X = -X if flip else X
+    p = BodyPose("b", time, X, np.array(cov).reshape(6, 6), None)
+    assert relative_pose_bytes(p) == relative_msg(p).SerializeToString()

@@ -13,6 +13,7 @@
 #include "dq.h"
 #include "gn.h"
 #include "joint.h"
+#include "pbwrite.h"
 #include "se3.h"
 
 static const double IDENT[8] = {1.0, 0, 0, 0, 0, 0, 0, 0};
@@ -284,22 +285,28 @@ static void lookup_refine(const dq_lookup_store *s, dq_lookup_body *const *parts
         dq_jr_scaled(x, E[1] * E[1] + E[2] * E[2] + E[3] * E[3], E[0], -d, T + D * off + off + 6,
                      (int)D);
     }
-    for (size_t r = 0; r < D; r++)
-        for (size_t c = 0; c < D; c++) {
-            double t = 0.0;
-            for (size_t k = 0; k < D; k++) t += T[D * k + r] * H0[D * k + c];
-            TH[D * r + c] = t;
-        }
+    /* T's column r is zero outside rows [lo(r), hi(r)): its part's pose and twist, or r alone */
+    const size_t parts_end = 12 * (size_t)K;
+#define T_LO(r) ((r) < parts_end ? (r) / 12 * 12 : (r))
+#define T_HI(r) ((r) < parts_end ? (r) / 12 * 12 + 12 : (r) + 1)
     for (size_t r = 0; r < D; r++) {
         for (size_t c = 0; c < D; c++) {
             double t = 0.0;
-            for (size_t k = 0; k < D; k++) t += TH[D * r + k] * T[D * k + c];
-            H[D * r + c] = t;
+            for (size_t k = T_LO(r); k < T_HI(r); k++) t += T[D * k + r] * H0[D * k + c];
+            TH[D * r + c] = t;
         }
         double t = 0.0;
-        for (size_t k = 0; k < D; k++) t += T[D * k + r] * g0[k];
+        for (size_t k = T_LO(r); k < T_HI(r); k++) t += T[D * k + r] * g0[k];
         g[r] = t;
     }
+    for (size_t r = 0; r < D; r++)
+        for (size_t c = 0; c < D; c++) {
+            double t = 0.0;
+            for (size_t k = T_LO(c); k < T_HI(c); k++) t += TH[D * r + k] * T[D * k + c];
+            H[D * r + c] = t;
+        }
+#undef T_LO
+#undef T_HI
     const dq_joint_state st = {f->X, f->V, f->L, f->Ehat, NULL, NULL, NULL, 0.0, 0, 0, 1};
     /* the rows that came (this fit's not in the record's: came[], by index in f) and those that
      * left (the record's not in this fit's: left[], by index in the record), per part */
@@ -521,4 +528,20 @@ int dq_lookup(const dq_lookup_store *s, dq_lookup_body *body, dq_lookup_args *a,
         for (int y = 0; y < x; y++) cov[6 * x + y] = cov[6 * y + x] =
             0.5 * (cov[6 * x + y] + cov[6 * y + x]);
     return dq_finite_n(pose, 8) && dq_finite_n(cov, 36) ? DQ_OK : DQ_E_OVERFLOW;
+}
+
+size_t dq_relative_pose_write(const double *pose, const double *cov, double time,
+                              unsigned char *out)
+{
+    double quat[4], t[3];
+    dq_to_pose(pose, quat, t);
+    uint8_t *p = out, *len = p + 1; /* pose: always present, at most 67 bytes */
+    *p = (uint8_t)(1 << 3 | WT_LEN);
+    p += 2;
+    p = put_doubles(p, 1, t, 3);
+    p = put_doubles(p, 2, quat, 4);
+    *len = (uint8_t)(p - len - 1);
+    p = put_packed_doubles(p, 2, cov, 36);
+    p = put_double(p, 3, time);
+    return (size_t)(p - out);
 }

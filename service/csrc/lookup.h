@@ -76,4 +76,12 @@ typedef struct {
 int dq_lookup(const dq_lookup_store *s, dq_lookup_body *body, dq_lookup_args *a, double *pose,
               double *cov, int *shared);
 
+/* A RelativePose's bytes (proto/dqpose/v1/world.proto) of the unit pose (8), its covariance
+ * (36) and time, as protobuf writes the message world_convert.relative_msg makes: the pose's
+ * position and orientation always present, zero doubles left out (+0.0 only), the covariance
+ * packed. out: DQ_RELATIVE_POSE_MAX bytes; returns the length. */
+#define DQ_RELATIVE_POSE_MAX 384
+size_t dq_relative_pose_write(const double *pose, const double *cov, double time,
+                              unsigned char *out);
+
 #endif

@@ -40,6 +40,8 @@ static PyMethodDef methods[] = {
      "joint_fit(...): several bodies and the uncertain extrinsics' errors fitted jointly "
      "(joint.h)."},
     {"lookup", py_lookup, METH_VARARGS, "lookup(...): a World's Lookup in one call (lookup.h)."},
+    {"relative_pose_bytes", py_relative_pose_bytes, METH_VARARGS,
+     "relative_pose_bytes(pose, covariance, time) -> a RelativePose's bytes (lookup.h)."},
     {"se3_jl_inv", py_se3_jl_inv, METH_O,
      "se3_jl_inv(xi[...,6]) -> [...,6,6]: the SE(3) left Jacobian's inverse (service/lie.py)."},
     {"se3_jr", py_se3_jr, METH_O,

@@ -44,6 +44,7 @@ PyObject *py_check_rows(PyObject *self, PyObject *args);
 /* py_joint.c: the joint fit with uncertain extrinsics */
 PyObject *py_joint_fit(PyObject *self, PyObject *args);
 PyObject *py_lookup(PyObject *self, PyObject *args);
+PyObject *py_relative_pose_bytes(PyObject *self, PyObject *args);
 
 /* py_se3.c: the SE(3) Jacobians */
 PyObject *py_se3_jl_inv(PyObject *self, PyObject *x);

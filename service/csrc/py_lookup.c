@@ -189,3 +189,28 @@ done:
     Py_XDECREF(cov);
     return result;
 }
+
+/* relative_pose_bytes(pose (8,), covariance (6, 6), time) -> bytes: a RelativePose
+ * (lookup.h's dq_relative_pose_write); the pose made unit first (a ValueError when it is not). */
+PyObject *py_relative_pose_bytes(PyObject *self, PyObject *args)
+{
+    PyObject *po, *co;
+    double time;
+    if (!PyArg_ParseTuple(args, "OOd:relative_pose_bytes", &po, &co, &time)) return NULL;
+    static const npy_intp s8[1] = {8}, s66[2] = {6, 6};
+    PyArrayObject *pa = exact_array(po, NPY_DOUBLE, "pose", 1, s8), *ca = NULL;
+    PyObject *result = NULL;
+    if (!pa || !(ca = exact_array(co, NPY_DOUBLE, "covariance", 2, s66))) goto done;
+    double u[8];
+    if (dq_unit(PyArray_DATA(pa), u)) {
+        PyErr_SetString(PyExc_ValueError, "pose: not a unit dual quaternion");
+        goto done;
+    }
+    unsigned char buf[DQ_RELATIVE_POSE_MAX];
+    size_t n = dq_relative_pose_write(u, PyArray_DATA(ca), time, buf);
+    result = PyBytes_FromStringAndSize((const char *)buf, (Py_ssize_t)n);
+done:
+    Py_XDECREF(pa);
+    Py_XDECREF(ca);
+    return result;
+}

@@ -9,6 +9,7 @@ import math
 
 import numpy as np
 
+from dqpose import _dqcore as _c
 from dqpose import world
 from dqpose.errors import FieldError
 from dqpose.names import name_problem
@@ -112,6 +113,12 @@ def body_pose_bytes(p, request: int = 0, measurements=()) -> bytes:
                             p.covariance)
 
 
+def relative_pose_bytes(p) -> bytes:
+    """A :class:`dqpose.world.BodyPose` (``relative``'s, a Lookup's answer) as ``RelativePose``
+    bytes, written in C (service/csrc/lookup.c): the bytes of :func:`relative_msg`'s message."""
+    return _c.relative_pose_bytes(p.pose, p.covariance, float(p.time))
+
+
 def error_bytes(body: str, time: float, request: int, text: str) -> bytes:
     """A Subscribe answer saying why ``body`` at ``time`` (0: none) was not answered after
     request ``request``: a ``FusedPose`` error entry's bytes."""
@@ -129,9 +136,7 @@ class Encoder:
     def fit_error(e: Exception) -> str:
         return str(e)
 
-    @staticmethod
-    def relative(p) -> bytes:
-        return relative_msg(p).SerializeToString()
+    relative = staticmethod(relative_pose_bytes)
 
 
 def relative_msg(p) -> pb.RelativePose:

@@ -53,7 +53,7 @@ from dqpose import dq, lie
 from dqpose.fusion import Source
 from dqpose.rpc.client_types import Batch
 from dqpose.rpc.wire import publish_from_wire, publish_head, publish_request_wire, wire_rows
-from dqpose.rpc.world_convert import body_pose_bytes, relative_msg
+from dqpose.rpc.world_convert import body_pose_bytes, relative_pose_bytes
 from dqpose.world import World, WorldOptions
 from dqpose.world_ticks import Schedule
 from tests.bench._table import markdown
@@ -122,7 +122,7 @@ class Engine:
 
     def lookup(self, target: str, source: str) -> bytes:
         """The Lookup answer of ``T_target_source`` at time 0 (the newest both are known at)."""
-        return relative_msg(self.world.relative(target, source, 0.0)).SerializeToString()
+        return relative_pose_bytes(self.world.relative(target, source, 0.0))
 
     def estimate(self, body: str, t: float) -> tuple[np.ndarray, np.ndarray]:
         p = self.world.tick(body, t)[0]
