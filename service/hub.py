@@ -266,7 +266,8 @@ class Hub:
         published = self.world.ingest(rows.bodies, rows.sources, rows.times, rows.poses,
                                       rows.covariances, rows.codes, producer,
                                       first + rows.index)
-        errors = tuple(e.at(int(rows.index[e.index])) for e in published.errors)
+        errors = tuple(e.at(int(rows.index[e.index])) for e in published.errors
+                       ) if published.errors else ()
         cost = self._answer_subscriptions(published.bodies)
         self.answers.refresh(self.world, published.bodies)
         return errors, cost

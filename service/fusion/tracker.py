@@ -447,7 +447,7 @@ class Tracker:
         the good rows again. The names, which a decoder passes as strings, are checked here."""
         n = len(bodies)
         codes = np.asarray(codes)
-        if not codes.any():     # the common case: every row taken in, its names known
+        if not np.count_nonzero(codes):     # the common case: every row taken in, names known
             got = self._admit(bodies, sources, times, poses, covariances, ids, np.ones(n, bool),
                               {}, n, False, origin, new_names=False)
             if got is not None:

@@ -382,8 +382,9 @@ def wire_rows(data: bytes, w: WireMeasurements,
     FieldError)`` with its texts (``field``: the repeated field's path), and the kept rows'
     codes (0, or the Tracker's check that refuses the row)."""
     codes = w.codes
-    errors = [(i, wire_measurement_error(data, w.spans[i], field, i))
-              for i, c in enumerate(codes.tolist()) if 0 < c <= CONVERT_LAST]
+    errors = ([(i, wire_measurement_error(data, w.spans[i], field, i))
+               for i, c in enumerate(codes.tolist()) if 0 < c <= CONVERT_LAST]
+              if np.count_nonzero(codes) else [])
     if not errors:
         return (Measurements(np.arange(len(w.times)), w.bodies, w.sources, w.times, w.poses,
                              w.covariances), errors, codes)
