@@ -351,13 +351,16 @@ static void motion_information(const dq_motion_model *m, size_t i, const double 
         }
 }
 
-/* M += measurement i's information from its terms t (motion_information), upper triangle. */
-static void motion_add_information(const dq_motion_model *m, size_t i, const double *t, int dim,
-                                   double *M)
+/* Where the upper triangle's (a, b), a <= b, of a dim x dim matrix is packed by rows. */
+static inline int motion_packed(int dim, int a, int b) { return a * dim - a * (a - 1) / 2 + b - a; }
+
+/* M += measurement i's information from its terms t (motion_information), M the upper triangle
+ * packed by rows. */
+static void motion_add_information(const dq_motion_model *m, size_t i,
+                                   const double *restrict t, int dim, double *restrict M)
 {
-    if (m->twist && m->slot[i] < 0) {
-        for (int a = 0, q = 0; a < 12; a++)
-            for (int b = a; b < 12; b++) M[dim * a + b] += t[q++];
+    if (dim == 12 && m->twist && m->slot[i] < 0) {   /* the terms in M's packed order */
+        for (int q = 0; q < 78; q++) M[q] += t[q];
         return;
     }
     int map[MC], nc = 0;
@@ -366,7 +369,7 @@ static void motion_add_information(const dq_motion_model *m, size_t i, const dou
         if (col >= 0) map[nc++] = col;
     }
     for (int a = 0, q = 0; a < nc; a++)
-        for (int b = a; b < nc; b++) M[dim * map[a] + map[b]] += t[q++];
+        for (int b = a; b < nc; b++) M[motion_packed(dim, map[a], map[b])] += t[q++];
 }
 
 /* The data's information H (upper triangle) and gradient g = sum (L^-1 G)^T e over `use`, from
@@ -470,7 +473,7 @@ static void motion_lane_load(const dq_motion_model *m, const double *blk, const 
     double *A = lanes, *y = lanes + W * (2 * dim * dim + dim);
     const double *pre = blk + M_HJ, *e = blk + so + S_E;
     for (int j = 0, q = 0; j < dim; j++)
-        for (int k = j; k < dim; k++, q++) A[W * (dim * k + j) + l] = pre[q] + acc[dim * j + k];
+        for (int k = j; k < dim; k++, q++) A[W * (dim * k + j) + l] = pre[q] + acc[q];
     ee[l] = dq_sq6(e);
     for (int k = 0; k < dim; k++) y[W * k + l] = 0.0;
     for (int c = 0; c < MC; c++) {
@@ -519,13 +522,15 @@ static int motion_leave_one_out(const dq_motion_model *m, const double *V, const
     double *lanes = motion_columns(work, stride, n, dim) + R * (size_t)(dim + 1);
     size_t half = 0, j = 0;
     for (size_t i = 0; i < n; i++) half += dq_selected(use, i) ? 3 : 0;
-    for (int k = 0; k < dim * dim; k++) acc[k] = 0.0;
+    const int np = dim * (dim + 1) / 2;   /* acc: the upper triangle packed by rows */
+    for (int k = 0; k < dim * dim; k++) Hj[k] = 0.0;
     for (int k = 0; k < dim; k++) gz[k] = 0.0;
-    motion_prior_terms(m, V, ell, dim, acc, gz);
+    motion_prior_terms(m, V, ell, dim, Hj, gz);
+    for (int a = 0, q = 0; a < dim; a++)
+        for (int b = a; b < dim; b++, q++) acc[q] = Hj[dim * a + b];
     for (size_t i = 0; i < n; i++) {
         double *blk = work + stride * i;
-        for (int a = 0, q = 0; a < dim; a++)
-            for (int b = a; b < dim; b++, q++) blk[M_HJ + q] = acc[dim * a + b];
+        memcpy(blk + M_HJ, acc, sizeof(double) * (size_t)np);
         if (dq_selected(use, i)) {
             motion_stacked(m, i, cols, R, half, j, Gw);
             j += 3;
@@ -533,7 +538,7 @@ static int motion_leave_one_out(const dq_motion_model *m, const double *V, const
             motion_add_information(m, i, blk + M_INFO, dim, acc);
         }
     }
-    for (int k = 0; k < dim * dim; k++) acc[k] = 0.0; /* now the later inliers' */
+    for (int k = 0; k < np; k++) acc[k] = 0.0; /* now the later inliers' */
     size_t pending[DQ_LANES];
     double ee[DQ_LANES];
     int count = 0, factored = 0;
