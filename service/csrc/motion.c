@@ -814,8 +814,11 @@ void dq_motion_determined(const dq_motion_model *m, const unsigned char *inlier,
         return;
     }
     /* Sorted by the time taken, equal times are runs; an inlier alone in its run is the only
-     * one of its instant, and leaving it out loses that instant. */
-    qsort(work, k, sizeof *work, by_taken);
+     * one of its instant, and leaving it out loses that instant. Rows come mostly in time order:
+     * sorted already, they are not sorted again (the runs, all that is read, are the same). */
+    size_t sorted = 1;
+    while (sorted < k && work[sorted].t >= work[sorted - 1].t) sorted++;
+    if (sorted < k) qsort(work, k, sizeof *work, by_taken);
     size_t instants = 0;
     for (size_t a = 0, b; a < k; a = b) {
         for (b = a + 1; b < k && work[b].t == work[a].t; b++) continue;
