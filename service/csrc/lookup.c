@@ -218,13 +218,12 @@ static int rows_linearized(const dq_joint_model *m0, const size_t *cnt, const do
     return rc;
 }
 
-/* The start from the record rec of this fit's last run: its state carried to the time, moved
- * by one Newton step of the normal equations there: the record's, carried by T (the state's
- * map between the two times: a pose-and-twist block [[Ad(Exp(dV)), -d Jr(-dV)], [0, I]] per
- * part, d the time moved), less the rows that left, plus those that came. Nothing is changed
- * when the record does not describe this fit (its layout); the record's state carried stays
- * the start when a row that left is no longer the store's, too many rows changed, or the step
- * fails. */
+/* The start from the record rec of this fit's last run: its state moved by one Newton step of
+ * the normal equations there (its own time's parametrisation, the rows' stamps from that time:
+ * the record's H and g, exact there, less the rows that left, plus those that came), then
+ * carried to this time on the twists. Nothing is changed when the record does not describe
+ * this fit (its layout, its slots), a row that left is no longer the store's, rows a
+ * compaction moved, more than half the rows changed, or the step fails. */
 static void lookup_refine(const dq_lookup_store *s, dq_lookup_body *const *parts, int K,
                           const dq_lookup_args *a, fit_arrays *f, const dq_joint_model *m,
                           const double *rec, size_t rec_n)
@@ -246,68 +245,22 @@ static void lookup_refine(const dq_lookup_store *s, dq_lookup_body *const *parts
     size_t nmax = 1;
     for (int q = 0; q < K; q++) nmax += pn[q] + parts[q]->n;
     const size_t D = dim;
-    /* scratch: T, H, g, Ha, ga, Lh, dh, delta; the rows that left and came (at most all) */
-    double *mem = malloc(sizeof(double) * (5 * D * D + 5 * D + 46 * nmax) +
+    const size_t state = 14 * (size_t)K + f->k + 8 * f->m;
+    /* scratch: H, g, Ha, ga, Lh, dh, delta, the state; the rows that left and came (at most
+     * all of both fits') */
+    double *mem = malloc(sizeof(double) * (3 * D * D + 4 * D + state + 46 * nmax) +
                          sizeof(long long) * 2 * nmax + sizeof(size_t) * 3 * nmax);
     if (!mem) return;
-    double *T = mem, *H = T + D * D, *g = H + D * D, *Ha = g + D, *ga = Ha + D * D,
-           *Lh = ga + D, *dh = Lh + D * D, *delta = dh + D, *TH = delta + D, *z = TH + D * D,
-           *S = z + 8 * nmax, *st_ = S + 36 * nmax, *lt = st_ + nmax;
+    double *H = mem, *g = H + D * D, *Ha = g + D, *ga = Ha + D * D, *Lh = ga + D,
+           *dh = Lh + D * D, *delta = dh + D, *X0c = delta + D, *V0c = X0c + 8 * K,
+           *L0c = V0c + 6 * K, *E0c = L0c + f->k, *z = X0c + state, *S = z + 8 * nmax,
+           *st_ = S + 36 * nmax, *lt = st_ + nmax;
     long long *ls = (long long *)(lt + nmax), *es = ls + nmax;
     size_t *idx = (size_t *)(es + nmax), *came = idx + nmax, *left = came + nmax;
-    /* the record's state carried to the time: the start */
-    for (int q = 0; q < K; q++) {
-        double h[6], M[8], X[8];
-        for (int j = 0; j < 6; j++) h[j] = 0.5 * (d * V0[6 * q + j]);
-        dq_exp(h, M);
-        dq_mul(X0 + 8 * q, M, X);
-        dq_normalize(X, f->X + 8 * q);
-    }
-    memcpy(f->V, V0, sizeof(double) * 6 * K);
-    memcpy(f->L, L0, sizeof(double) * f->k);
-    memcpy(f->Ehat, E0, sizeof(double) * 8 * f->m);
-    /* T, and H = T^T H0 T, g = T^T g0 */
-    memset(T, 0, sizeof(double) * D * D);
-    for (size_t j = 0; j < D; j++) T[D * j + j] = 1.0;
-    for (int q = 0; q < K; q++) {
-        double h[6], E[8], Ad[36], x[6];
-        const size_t off = 12 * (size_t)q;
-        for (int j = 0; j < 6; j++) h[j] = 0.5 * (d * V0[6 * q + j]);
-        dq_exp(h, E);
-        dq_adjoint(E, Ad);
-        for (int r = 0; r < 6; r++)
-            for (int c = 0; c < 6; c++) T[D * (off + r) + off + c] = Ad[6 * r + c];
-        for (int j = 0; j < 6; j++) {
-            x[j] = -d * V0[6 * q + j];
-            h[j] = 0.5 * x[j];
-        }
-        dq_exp(h, E);
-        dq_jr_scaled(x, E[1] * E[1] + E[2] * E[2] + E[3] * E[3], E[0], -d, T + D * off + off + 6,
-                     (int)D);
-    }
-    /* T's column r is zero outside rows [lo(r), hi(r)): its part's pose and twist, or r alone */
-    const size_t parts_end = 12 * (size_t)K;
-#define T_LO(r) ((r) < parts_end ? (r) / 12 * 12 : (r))
-#define T_HI(r) ((r) < parts_end ? (r) / 12 * 12 + 12 : (r) + 1)
-    for (size_t r = 0; r < D; r++) {
-        for (size_t c = 0; c < D; c++) {
-            double t = 0.0;
-            for (size_t k = T_LO(r); k < T_HI(r); k++) t += T[D * k + r] * H0[D * k + c];
-            TH[D * r + c] = t;
-        }
-        double t = 0.0;
-        for (size_t k = T_LO(r); k < T_HI(r); k++) t += T[D * k + r] * g0[k];
-        g[r] = t;
-    }
-    for (size_t r = 0; r < D; r++)
-        for (size_t c = 0; c < D; c++) {
-            double t = 0.0;
-            for (size_t k = T_LO(c); k < T_HI(c); k++) t += TH[D * r + k] * T[D * k + c];
-            H[D * r + c] = t;
-        }
-#undef T_LO
-#undef T_HI
-    const dq_joint_state st = {f->X, f->V, f->L, f->Ehat, NULL, NULL, NULL, 0.0, 0, 0, 1};
+    memcpy(X0c, X0, sizeof(double) * state);
+    memcpy(H, H0, sizeof(double) * D * D);
+    memcpy(g, g0, sizeof(double) * D);
+    const dq_joint_state st = {X0c, V0c, L0c, E0c, NULL, NULL, NULL, 0.0, 0, 0, 1};
     /* the rows that came (this fit's not in the record's: came[], by index in f) and those that
      * left (the record's not in this fit's: left[], by index in the record), per part */
     size_t ncame[2] = {0, 0}, nleft[2] = {0, 0}, nc = 0, nl = 0, first = 0, pfirst = 0;
@@ -329,7 +282,7 @@ static void lookup_refine(const dq_lookup_store *s, dq_lookup_body *const *parts
         const size_t i = came[j];
         memcpy(z + 8 * j, f->zu + 8 * i, sizeof(double) * 8);
         memcpy(S + 36 * j, f->S + 36 * i, sizeof(double) * 36);
-        st_[j] = f->stamp[i];
+        st_[j] = f->stamp[i] + d;
         lt[j] = f->lat[i];
         ls[j] = f->lslot[i];
         es[j] = f->eslot[i];
@@ -344,7 +297,7 @@ static void lookup_refine(const dq_lookup_store *s, dq_lookup_body *const *parts
         const long long c = s->codes[r];
         if (c < 0 || (size_t)c >= s->ncodes || dq_unit(s->poses + 8 * r, z + 8 * j)) goto done;
         memcpy(S + 36 * j, s->covs + 36 * r, sizeof(double) * 36);
-        st_[j] = s->times[r] - a->at;
+        st_[j] = s->times[r] - rec[R_T0];
         lt[j] = s->latency[c];
         ls[j] = f->slot_of[2 * c];
         es[j] = f->slot_of[2 * c + 1];
@@ -355,19 +308,26 @@ static void lookup_refine(const dq_lookup_store *s, dq_lookup_body *const *parts
     for (size_t j = 0; j < D; j++) g[j] -= ga[j];
     double len;
     if (dq_newton_step(H, g, (int)D, Lh, dh, delta, &len) || !(len < 1.0)) goto done;
-    {
-        double X[8];
-        for (int q = 0; q < K; q++) {
-            if (dq_retract(f->X + 8 * q, delta + 12 * q, X)) goto done;
-            memcpy(f->X + 8 * q, X, sizeof X);
-            for (int j = 0; j < 6; j++) f->V[6 * q + j] += delta[12 * q + 6 + j];
-        }
-        for (size_t j = 0; j < f->k; j++) f->L[j] += delta[12 * K + j];
-        for (size_t j = 0; j < f->m; j++) {
-            if (dq_retract(f->Ehat + 8 * j, delta + 12 * K + f->k + 6 * j, X)) goto done;
-            memcpy(f->Ehat + 8 * j, X, sizeof X);
-        }
+    for (int q = 0; q < K; q++) {
+        double X[8], h[6], M[8];
+        if (dq_retract(X0c + 8 * q, delta + 12 * q, X)) goto done;
+        for (int j = 0; j < 6; j++) V0c[6 * q + j] += delta[12 * q + 6 + j];
+        for (int j = 0; j < 6; j++) h[j] = 0.5 * (d * V0c[6 * q + j]);
+        dq_exp(h, M);
+        dq_mul(X, M, X0c + 8 * q);
     }
+    for (size_t j = 0; j < f->k; j++) L0c[j] += delta[12 * K + j];
+    for (size_t j = 0; j < f->m; j++) {
+        double X[8];
+        if (dq_retract(E0c + 8 * j, delta + 12 * K + f->k + 6 * j, X)) goto done;
+        memcpy(E0c + 8 * j, X, sizeof X);
+    }
+    for (int q = 0; q < K; q++) {
+        if (dq_normalize(X0c + 8 * q, f->X + 8 * q)) goto done;
+        memcpy(f->V + 6 * q, V0c + 6 * q, 6 * sizeof(double));
+    }
+    memcpy(f->L, L0c, sizeof(double) * f->k);
+    memcpy(f->Ehat, E0c, sizeof(double) * 8 * f->m);
 done:
     free(mem);
 }

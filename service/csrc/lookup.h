@@ -9,9 +9,9 @@
  * A fit starts where the caller says: a body's earlier estimate (pose and twist at its time,
  * carried to this time on the twist), a source's earlier latency and extrinsic estimate (warm
  * starts, which change the answer only within the fit's tol); or, given the record of the same
- * fit's last run (its state, rows and normal equations at its estimate), that state carried to
- * this time and moved by one Newton step made from the rows that came and went alone (the
- * others' information carried over, exactly to first order); else where the fits of
+ * fit's last run (its state, rows and normal equations at its estimate), that state moved by
+ * one Newton step of those normal equations less the rows that left plus those that came, then
+ * carried to this time on the twist; else where the fits of
  * alignment.py start (the row taken nearest the time, at rest; latencies at their priors,
  * extrinsics as configured). Not here (DQ_LOOKUP_ELSEWHERE, the caller's other path): rows of
  * one instant, a time farther than max_extrapolation outside a body's rows, a fit that did not
