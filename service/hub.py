@@ -362,8 +362,8 @@ class Hub:
         ``relative_to`` when set) as request ``r``'s answer, or an error entry naming why it
         cannot be answered."""
         try:
-            if self._wire and not relative_to:     # the common case: one C call
-                data = self.world.tick_wire(body, t, r)
+            if self._wire:     # the common case: one C call
+                data = self.world.tick_wire(body, t, r, relative_to)
                 if data is not None:
                     return data
             p, ids = self.world.tick(body, t)

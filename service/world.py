@@ -377,11 +377,32 @@ class World:
         assert f.time is not None            # a fit over time
         return BodyPose(body, f.time, f.mean, f.covariance, f), ids
 
-    def tick_wire(self, body: str, time: Optional[float], request: int) -> Optional[bytes]:
+    def tick_wire(self, body: str, time: Optional[float], request: int,
+                  relative_to: str = "") -> Optional[bytes]:
         """:meth:`tick`'s answer to ``request`` as ``FusedPose`` bytes made in one C call
-        (:class:`dqpose.fusion.tick.WireTicks`), or None: ask :meth:`tick`."""
+        (:class:`dqpose.fusion.tick.WireTicks`), with :meth:`relative`'s pose and covariance at
+        the fit's time when ``relative_to`` names a body; or None: ask :meth:`tick` (then
+        :meth:`relative`, whose refusal comes after the fit's)."""
+        rel = None
+        if relative_to:
+            with self._lock.read():
+                at = self._tick_time(body, time)
+            try:
+                rel = self.relative(relative_to, body, at)
+            except (ValueError, LookupError):
+                return None
         with self._lock.read():
-            return self._wire(self._tick_rows(body, time), time, body, request)
+            rows = self._tick_rows(body, time)
+            if rel is None:
+                return self._wire(rows, time, body, request)
+            if rel.time != self._tick_time(body, time):   # time 0, or the world moved
+                return None
+            return self._wire(rows, time, body, request, rel.pose, rel.covariance)
+
+    def _tick_time(self, body: str, time: Optional[float]) -> float:
+        """A tick's fusion time (the lock held): ``time``, or its rows' newest taken."""
+        return float(time) if time is not None else float(
+            self._t.taken_of(self._tick_rows(body, time)).max())
 
     def _tick_rows(self, body: str, time: Optional[float]) -> np.ndarray:
         """A tick's rows (the lock held): those taken within ``window`` of ``body``'s newest,

@@ -156,26 +156,38 @@ static PyArrayObject *column(PyObject *o, int type, npy_intp rows, npy_intp widt
     return a;
 }
 
-/* tick(options, poses, covs, times, codes, ids, rows, time, body, request, bounds) -> bytes or
- * None: the FusedPose bytes of the fit of the store's rows `rows` (poses (N, 8) and covs
- * (N, 6, 6) in the world frame, times, codes, ids: the store's columns) at `time` (NaN: their
- * newest taken) of `body` as request `request`'s answer; None: the Python path makes it.
+/* an array of n float64 values in all (any shape), or NULL with the ValueError */
+static PyArrayObject *values(PyObject *o, npy_intp n, const char *name)
+{
+    PyArrayObject *a = (PyArrayObject *)PyArray_FROMANY(o, NPY_DOUBLE, 1, 2, NPY_ARRAY_CARRAY_RO);
+    if (a && PyArray_SIZE(a) == n) return a;
+    Py_XDECREF(a);
+    PyErr_Format(PyExc_ValueError, "%s: expected %ld values", name, (long)n);
+    return NULL;
+}
+
+/* tick(options, poses, covs, times, codes, ids, rows, time, body, request, bounds[, pose, cov])
+ * -> bytes or None: the FusedPose bytes of the fit of the store's rows `rows` (poses (N, 8) and
+ * covs (N, 6, 6) in the world frame, times, codes, ids: the store's columns) at `time` (NaN:
+ * their newest taken) of `body` as request `request`'s answer, with `pose` (8,) and `cov`
+ * (6, 6) instead of the fit's when given; None: the Python path makes it.
  * bounds (2, c): the verdict's chi2 interval (low, high) by count, c > len(rows). */
 PyObject *py_tick(PyObject *self, PyObject *args)
 {
-    PyObject *opts, *o[6], *obody, *obounds;
+    PyObject *opts, *o[6], *obody, *obounds, *opose = Py_None, *ocov = Py_None;
     dq_tick_input in;
     memset(&in, 0, sizeof in);
     unsigned int request;
-    if (!PyArg_ParseTuple(args, "O!OOOOOOdOIO:tick", &dq_fit_options_type, &opts, &o[0], &o[1],
-                          &o[2], &o[3], &o[4], &o[5], &in.time, &obody, &request, &obounds))
+    if (!PyArg_ParseTuple(args, "O!OOOOOOdOIO|OO:tick", &dq_fit_options_type, &opts, &o[0],
+                          &o[1], &o[2], &o[3], &o[4], &o[5], &in.time, &obody, &request, &obounds,
+                          &opose, &ocov))
         return NULL;
     Py_ssize_t blen;
     in.body.s = PyUnicode_AsUTF8AndSize(obody, &blen);
     if (!in.body.s) return NULL;
     in.body.n = (size_t)blen;
     in.request = request;
-    PyArrayObject *a[7] = {NULL};
+    PyArrayObject *a[9] = {NULL};
     PyObject *result = NULL;
     if (!(a[5] = column(o[5], NPY_INT64, 0, 0, "rows"))) goto done;
     npy_intp n = PyArray_DIM(a[5], 0), N = 0;
@@ -192,6 +204,11 @@ PyObject *py_tick(PyObject *self, PyObject *args)
         PyErr_SetString(PyExc_ValueError, "bounds: expected shape (2, c)");
         goto done;
     }
+    if (opose != Py_None && (!(a[7] = values(opose, 8, "pose")) ||
+                             !(a[8] = values(ocov, 36, "cov"))))
+        goto done;
+    in.pose = a[7] ? PyArray_DATA(a[7]) : NULL;
+    in.cov = a[8] ? PyArray_DATA(a[8]) : NULL;
     const int64_t *rows = PyArray_DATA(a[5]);
     for (npy_intp i = 0; i < n; i++)
         if (rows[i] < 0 || rows[i] >= N) {
@@ -226,6 +243,6 @@ PyObject *py_tick(PyObject *self, PyObject *args)
         free(bytes);
     }
 done:
-    for (int k = 0; k < 7; k++) Py_XDECREF(a[k]);
+    for (int k = 0; k < 9; k++) Py_XDECREF(a[k]);
     return result;
 }

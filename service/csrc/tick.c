@@ -349,7 +349,7 @@ int dq_tick(const dq_tick_options *o, const dq_tick_input *in, uint8_t **out, si
     double mean[8], unit[8], twist[6];
     code = u.one_instant ? fit_static(o, z, s, n, &at, &t, &w, mean, twist)
                          : fit_motion(o, &u, z, s, n, &at, &t, &w, mean, twist);
-    if (code != DQ_OK || dq_unit(mean, unit)) { /* Python names the failure */
+    if (code != DQ_OK || dq_unit(in->pose ? in->pose : mean, unit)) { /* Python names it */
         free(t.joint);
         free(block);
         return DQ_TICK_PYTHON;
@@ -358,7 +358,7 @@ int dq_tick(const dq_tick_options *o, const dq_tick_input *in, uint8_t **out, si
     w.body = in->body;
     w.time = u.time;
     dq_to_pose(unit, w.quat, w.t);
-    w.covariance = t.cov;
+    w.covariance = in->cov ? in->cov : t.cov;
     w.inliers = t.inliers;
     w.distances = t.dist;
     w.nis = t.nis;

@@ -45,7 +45,8 @@ typedef struct {
 
 /* One tick: the store's columns (world-frame poses n x 8 and covariances n x 36, stamps, source
  * codes, ids) read at rows[0..n), the fusion time (NaN: the rows' newest taken), the answer's
- * body and request. */
+ * body and request; pose (8) and cov (36): the answer's pose and covariance instead of the fit's
+ * (a World answer relative to another body), or NULL. */
 typedef struct {
     const double *poses, *covs, *times;
     const int64_t *codes, *ids, *rows;
@@ -53,6 +54,7 @@ typedef struct {
     double time;
     dq_str body;
     uint32_t request;
+    const double *pose, *cov;
 } dq_tick_input;
 
 /* The tick's FusedPose bytes in *out (malloc'd, *len bytes; the caller frees it): 0; or

@@ -61,10 +61,11 @@ class WireTicks:
                                        or not np.any(o.acceleration_psd))
         self._options: Optional[_dqcore.FitOptions] = None
 
-    def __call__(self, rows: np.ndarray, time: Optional[float], body: str,
-                 request: int) -> Optional[bytes]:
+    def __call__(self, rows: np.ndarray, time: Optional[float], body: str, request: int,
+                 pose=None, covariance=None) -> Optional[bytes]:
         """The ``FusedPose`` bytes of the fit of ``rows`` at ``time`` (None: their newest
-        taken) as ``body``'s answer to ``request``, with the rows' ids; None: not made here."""
+        taken) as ``body``'s answer to ``request``, with the rows' ids (``pose`` and
+        ``covariance``: the answer's instead of the fit's); None: not made here."""
         if not self.plain:
             return None
         t = self.tracker
@@ -74,4 +75,5 @@ class WireTicks:
         s = t._store
         return _dqcore.tick(opts, s.wposes, s.wcovs if "wcovs" in s._arrays else s.covs,
                             s.times, s.codes, s.ids, rows, math.nan if time is None else time,
-                            body, request, _verdict_bounds(t._checked.probability, len(rows)))
+                            body, request, _verdict_bounds(t._checked.probability, len(rows)),
+                            pose, covariance)

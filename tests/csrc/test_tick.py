@@ -13,7 +13,7 @@ from dqpose.fusion import Measurement, Source
 from dqpose.fusion.chi2 import chi2_quantile
 from dqpose.fusion.consistency import _verdict_bounds
 from dqpose.rpc.world_convert import body_pose_bytes
-from dqpose.world import OutOfRange, World, WorldBounds, WorldOptions
+from dqpose.world import BodyPose, OutOfRange, World, WorldBounds, WorldOptions
 from tests.fusion._scenes import random_cov, random_pose
 
 V = np.array([0.3, -0.2, 0.1, 0.2, 0.05, -0.1])
@@ -179,3 +179,39 @@ def test_a_tick_beyond_max_extrapolation_is_the_python_paths_error():
     assert w.tick_wire("box", t, 1) is None
     with pytest.raises(OutOfRange, match="beyond max_extrapolation"):
         w.tick("box", t)
+
+
+def test_the_bindings_refusals_name_the_argument():
+    from dqpose import _dqcore
+    w = world_of(np.random.default_rng(9), [Source("cam")], WorldOptions(window=0.3),
+                 np.arange(10) * 0.02)
+    t = w.tracker
+    s, rows = t._store, w._tick_rows("box", None)
+    w.tick_wire("box", None, 1)
+    opts, bounds = w._wire._options, _verdict_bounds(t._checked.probability, 40)
+    args = [opts, s.wposes, s.covs, s.times, s.codes, s.ids, rows, np.nan, "box", 1, bounds]
+    for k, bad, name in ((6, np.array([s.n + len(s.ids)]), "rows"),
+                         (1, s.wposes[:, :7], "poses"), (10, bounds[:1], "bounds")):
+        with pytest.raises(ValueError, match=name):
+            _dqcore.tick(*args[:k], bad, *args[k + 1:])
+    assert _dqcore.tick(*args) == python_bytes(w, "box", None, 1)
+
+
+@pytest.mark.parametrize("shared", [False, True])
+def test_an_answer_relative_to_another_body_is_the_python_paths(shared):
+    """The pose and covariance World.relative gives at the fit's time, the fit's other fields:
+    two worlds of the same measurements, one answered in C, the other by the Python path (a
+    Lookup's warm start depends on the Lookups made before, so each world makes the same)."""
+    sources = [Source("cam", random_pose(np.random.default_rng(2)),
+                      extrinsic_covariance=MOUNT if shared else None), Source("arm")]
+    worlds = [world_of(np.random.default_rng(12), sources, WorldOptions(window=0.3, buffer=2.0),
+                       np.arange(40) * 0.021, jitter=0.004) for _ in range(2)]
+    c, py = worlds
+    for t in (None, c.newest("box"), c.newest("box") - 0.05):
+        got = c.tick_wire("box", t, 3, "cup")
+        p, ids = py.tick("box", t)
+        rel = py.relative("cup", "box", p.time)
+        assert got is not None and got == body_pose_bytes(
+            BodyPose("box", rel.time, rel.pose, rel.covariance, p.fused), 3, ids.tolist())
+    # a body the world does not hold: the Python path names it (after the fit)
+    assert c.tick_wire("box", None, 3, "nothing") is None
