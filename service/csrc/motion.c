@@ -175,9 +175,14 @@ static double motion_evaluate(const double *X, const double *V, const double *el
         rows[count] = i;
         dts[count++] = dt;
         if (count < DQ_LANES) continue;
-        if (!DQ_V4 || !motion_evaluate_lanes(X, V, dts, z, rows, work, stride, so))
-            for (int l = 0; l < DQ_LANES; l++)
-                motion_evaluate_one(X, V, dts[l], z + 8 * rows[l], work + stride * rows[l], so);
+#if DQ_V4
+        if (motion_evaluate_lanes(X, V, dts, z, rows, work, stride, so)) {
+            count = 0;
+            continue;
+        }
+#endif
+        for (int l = 0; l < DQ_LANES; l++)
+            motion_evaluate_one(X, V, dts[l], z + 8 * rows[l], work + stride * rows[l], so);
         count = 0;
     }
     for (int l = 0; l < count; l++)
