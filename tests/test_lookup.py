@@ -113,6 +113,27 @@ def test_a_warm_start_far_from_the_answer_ends_at_the_answer(shared):
         same_fit(c.pose, c.covariance, f.pose, f.covariance)
 
 
+@pytest.mark.parametrize("scene", ["exact, each body its own cameras", "a shared uncertain mount"])
+def test_a_fit_of_the_same_rows_at_the_same_time_is_its_records(scene):
+    """A Lookup whose fits' records hold the same rows at the same time (another pair with the
+    same bodies, a body against the world frame) takes the records' state and covariance
+    outright: the fit's answer, and the records as they were."""
+    world, _, _ = moving(np.random.default_rng(8), *SCENES[scene])
+    assert world.newest("a") == world.newest("b")
+    first = world.relative("a", "b")
+    lookups = world._lookups
+    kept = {k: r.copy() for k, r in lookups._records.items()}
+    for target, source in (("", "b"), ("a", ""), ("b", "a")):
+        c, f = both_paths(world, target, source)
+        same_fit(c.pose, c.covariance, f.pose, f.covariance)
+    if scene.startswith("exact"):      # each body's fit alone: its record made again as it was
+        for k in (("a",), ("b",)):
+            assert lookups._records[k].tobytes() == kept[k].tobytes()
+    again = world._lookups._in_c("a", "b", first.time)
+    assert again.pose.tobytes() == first.pose.tobytes()
+    assert again.covariance.tobytes() == first.covariance.tobytes()
+
+
 def test_one_instant_and_a_time_beyond_max_extrapolation_are_the_fits_answers():
     rng = np.random.default_rng(5)
     kws, sees_b = SCENES["a shared uncertain mount"]

@@ -13,6 +13,7 @@
 #include "dq.h"
 #include "gn.h"
 #include "joint.h"
+#include "linalg6.h"
 #include "pbwrite.h"
 #include "se3.h"
 
@@ -332,6 +333,40 @@ done:
     free(mem);
 }
 
+/* Whether the record rec is this fit's at this time over the same rows (the same measurements):
+ * then its state, H and g are the fit's, which start from there would only confirm, and they
+ * are taken outright (P = H^-1 into f->P, work dim^2 + 2 dim). */
+static int lookup_kept(const dq_lookup_store *s, dq_lookup_body *const *parts, int K,
+                       const dq_lookup_args *a, fit_arrays *f, size_t dim, const double *rec,
+                       size_t rec_n, double *work)
+{
+    if (!rec || rec_n < R_HEAD || rec[R_DIM] != (double)dim || rec[R_K] != K ||
+        rec[R_KL] != (double)f->k || rec[R_M] != (double)f->m || rec[R_T0] != a->at ||
+        rec[R_N0] != (double)parts[0]->n || (K > 1 && rec[R_N1] != (double)parts[1]->n))
+        return 0;
+    const size_t n = f->N, state = 14 * (size_t)K + f->k + 8 * f->m;
+    if (rec_n != rec_size(dim, (size_t)K, f->k, f->m, n)) return 0;
+    const double *p = rec + R_HEAD;
+    for (size_t j = 0; j < f->k; j++)
+        if (p[j] != (double)f->lcode[j]) return 0;
+    for (size_t j = 0; j < f->m; j++)
+        if (p[f->k + j] != (double)f->ecode[j]) return 0;
+    const double *X0 = p + f->k + f->m, *prow = X0 + state, *pid = prow + n, *H0 = pid + n;
+    for (int q = 0, i = 0; q < K; q++)
+        for (size_t j = 0; j < parts[q]->n; j++, i++) {
+            const long long r = parts[q]->rows[j];
+            if (prow[i] != (double)r || pid[i] != (double)s->ids[r]) return 0;
+        }
+    if (!dq_finite_n(X0, state) || !dq_spd_inverse(H0, (int)dim, work, f->P)) return 0;
+    memcpy(f->X, X0, sizeof(double) * 8 * K);
+    memcpy(f->V, X0 + 8 * K, sizeof(double) * 6 * K);
+    memcpy(f->L, X0 + 14 * K, sizeof(double) * f->k);
+    memcpy(f->Ehat, X0 + 14 * K + f->k, sizeof(double) * 8 * f->m);
+    memcpy(f->H, H0, sizeof(double) * dim * dim);
+    memcpy(f->g, H0 + dim * dim, sizeof(double) * dim);
+    return 1;
+}
+
 static int lookup_solve(const dq_lookup_store *s, dq_lookup_body *const *parts, int K,
                         dq_lookup_args *a, fit_arrays *f, double *Pout, int slot)
 {
@@ -348,7 +383,10 @@ static int lookup_solve(const dq_lookup_store *s, dq_lookup_body *const *parts, 
     for (size_t j = 0; j < f->m; j++) warm |= dq_finite_n(a->Ehat + 8 * f->ecode[j], 8);
     warm |= a->rec_in[slot] != NULL;
     const dq_joint_outputs per = {NULL, NULL, NULL, NULL, NULL, NULL};
-    for (;; warm = 0) {
+    if (lookup_kept(s, parts, K, a, f, (size_t)dim, a->rec_in[slot], a->rec_in_n[slot],
+                    f->work))
+        warm = -1;
+    for (; warm >= 0; warm = 0) {
         lookup_starts(parts, K, a, f, warm);
         if (warm) lookup_refine(s, parts, K, a, f, &m, a->rec_in[slot], a->rec_in_n[slot]);
         dq_joint_state st = {f->X, f->V, f->L, f->Ehat, f->H, f->P, f->g, 0.0, 0, 0, 1};
