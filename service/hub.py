@@ -212,7 +212,7 @@ class Hub:
                 None, "", f"sequences {last + 1}..{sequence - 1} of producer {key!r} never "
                           f"arrived"),)
             errors, cost = ((), 0) if rows is None else self._apply(
-                rows, None if self.stream else key, first)
+                rows, None if self.stream else key, first, offered)
             self.requests += 1
             if sequence:
                 self._acked[key] = sequence
@@ -258,14 +258,17 @@ class Hub:
 
     # -- a Publish step, under the lock
 
-    def _apply(self, rows: Rows, producer: Optional[str], first: int) -> tuple[tuple, int]:
-        """``rows`` into the world (from ``producer``, numbered from ``first``), then the
-        answers they make due: the rows' errors and what the answers cost."""
+    def _apply(self, rows: Rows, producer: Optional[str], first: int,
+               offered: int) -> tuple[tuple, int]:
+        """``rows`` into the world (from ``producer``, numbered from ``first``, ``offered`` in
+        the request), then the answers they make due: the rows' errors and what the answers
+        cost."""
         if not len(rows.index):
             return (), 0
+        # every row of the request (its index 0 .. offered - 1): numbered by the first alone
+        ids = first if len(rows.index) == offered else first + rows.index
         published = self.world.ingest(rows.bodies, rows.sources, rows.times, rows.poses,
-                                      rows.covariances, rows.codes, producer,
-                                      first + rows.index)
+                                      rows.covariances, rows.codes, producer, ids)
         errors = tuple(e.at(int(rows.index[e.index])) for e in published.errors
                        ) if published.errors else ()
         cost = self._answer_subscriptions(published.bodies)

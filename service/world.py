@@ -266,7 +266,8 @@ class World:
         ``bodies`` and ``sources`` one name each, ``times`` ``(n,)``, ``poses`` ``(n, 8)``,
         ``covariances`` ``(n, 6, 6)``; checked together in NumPy, the same checks and answers
         as :meth:`publish` without a :class:`Measurement` per row; ``ids`` ``(n,)``: the
-        numbers the answers name them by (default: their index). ``codes`` ``(n,)``: the rows
+        numbers the answers name them by (an int: the first of consecutive ones; default: their
+        index). ``codes`` ``(n,)``: the rows
         were checked by a decoder already (``Tracker.ingest_checked``: 0 a good row, not checked
         again). ``producer``: as :meth:`publish` takes it. Arrays of the wrong shape are a
         ``WorldError`` for the call."""
@@ -286,7 +287,8 @@ class World:
         with self._lock.write():
             errors = self._admit(bodies, sources, times, poses, covs, codes=codes,
                                  producer=producer, ids=ids)
-        return _published(bodies, errors)
+            touched = self._t.touched if len(errors) < n else ()
+        return Published(n - len(errors), tuple(errors[k] for k in sorted(errors)), touched)
 
     def _admit(self, bodies, sources, times, poses, covs, bad=None, codes=None,
                producer=None, ids=None) -> dict[int, WorldError]:
@@ -301,15 +303,18 @@ class World:
         use = [k for k in range(n) if k not in errors] if errors else range(n)
         if not use:
             return errors
+        ids = 0 if ids is None else ids     # an int: the first of consecutive ids
+        if isinstance(ids, int) and (len(use) < n or codes is None):
+            ids = ids + np.arange(n)
         if len(use) == n:       # the common case: every row offered, no copies
             rows = (bodies, sources, times, poses, covs)
-            numbers = np.arange(n) if ids is None else np.asarray(ids, np.int64)
+            numbers = ids if isinstance(ids, int) else np.asarray(ids, np.int64)
             checks = codes
         else:
             idx = np.array(use)
             rows = ([bodies[k] for k in use], [sources[k] for k in use], times[idx],
                     poses[idx], covs[idx])
-            numbers = idx if ids is None else np.asarray(ids, np.int64)[idx]
+            numbers = np.asarray(ids, np.int64)[idx]
             checks = None if codes is None else codes[idx]
         refused = (self._t.ingest(*rows, ids=numbers, origin=producer) if checks is None else
                    self._t.ingest_checked(*rows, numbers, checks, producer))

@@ -290,13 +290,35 @@ static int coded(PyObject *names, PyObject *codes, const npy_bool *ok, npy_intp 
     return rc;
 }
 
+/* The names of bodies[k] (codes body[k] < bodies) of the rows with use[k], once each, in order:
+ * a new tuple; *seen the scratch it allocates (the caller frees it). */
+static PyObject *touched_bodies(PyObject *names, const int64_t *body, const npy_bool *use,
+                                npy_intp n, size_t bodies, unsigned char **seen)
+{
+    *seen = calloc(bodies + 1, 1);
+    PyObject *seq = *seen ? PySequence_Fast(names, "bodies") : NULL;
+    if (!seq) return *seen ? NULL : PyErr_NoMemory();
+    PyObject *list = PyList_New(0);
+    for (npy_intp k = 0; list && k < n; k++) {
+        if (!use[k] || (*seen)[body[k]]) continue;
+        (*seen)[body[k]] = 1;
+        if (PyList_Append(list, PySequence_Fast_GET_ITEM(seq, k)) < 0) Py_CLEAR(list);
+    }
+    Py_DECREF(seq);
+    PyObject *out = list ? PyList_AsTuple(list) : NULL;
+    Py_XDECREF(list);
+    return out;
+}
+
 /* ingest(store, newest, by_source, latency, bodies, body_codes, sources, source_codes, ids,
  * times, poses, covs, ok, wposes, wcovs, window, cap, max_time, jump, max_rows, origin,
- * all_or_none) -> (refusals, fresh) | None: store.h's dq_store_ingest over the store's columns
- * (store.n updated), newest and by_source (body x source) updated in place, ok (bool) the rows
- * taken in; the rows' bodies and sources are names coded by the dicts (None, nothing done, when
- * a row with ok names one they do not hold); refusals [(k, code, a, b)]; max_rows < 0:
- * unbounded (max_time, jump unused); origin None: a stream's rows. */
+ * all_or_none) -> (refusals, fresh, touched) | None: store.h's dq_store_ingest over the store's
+ * columns (store.n updated), newest and by_source (body x source) updated in place; ok (bool, or
+ * None: every row) the rows offered, out: taken in; ids an int64 array or the first of
+ * consecutive ids; the rows' bodies and sources are names coded by the dicts (None, nothing
+ * done, when a row with ok names one they do not hold); refusals [(k, code, a, b)]; touched the
+ * bodies of the rows taken in, once each, in order; max_rows < 0: unbounded (max_time, jump
+ * unused); origin None: a stream's rows. */
 static PyObject *index_ingest(StoreIndex *self, PyObject *args)
 {
     PyObject *store, *no, *so, *lo, *bn, *bc, *sn, *sc, *io, *to, *po, *vo, *oko, *wpo, *wco;
@@ -321,28 +343,49 @@ static PyObject *index_ingest(StoreIndex *self, PyObject *args)
     if (columns(store, &cols) < 0) return NULL;
     PyArrayObject *newest = writeable(no, NPY_FLOAT64, 1, "newest");
     PyArrayObject *by_source = newest ? writeable(so, NPY_FLOAT64, 2, "by_source") : NULL;
-    PyArrayObject *ok = by_source ? writeable(oko, NPY_BOOL, 1, "ok") : NULL;
-    if (!ok) return NULL;
-    npy_intp n = PyArray_DIM(ok, 0);
+    PyArrayObject *ok = NULL;
+    if (!by_source || (oko != Py_None && !(ok = writeable(oko, NPY_BOOL, 1, "ok"))))
+        return NULL;
+    npy_intp n = PySequence_Size(bn);
+    if (n < 0) return NULL;
+    if (ok && PyArray_DIM(ok, 0) != n) {
+        PyErr_SetString(PyExc_ValueError, "ok: expected one a row");
+        return NULL;
+    }
+    long long first = 0;
+    int consecutive = PyLong_Check(io);
+    if (consecutive && (first = PyLong_AsLongLong(io)) == -1 && PyErr_Occurred()) return NULL;
     PyArrayObject *latency = vector(lo, NPY_FLOAT64, "latency");
-    PyArrayObject *ids = latency ? rows_of_shape(io, NPY_INT64, 0, n, "ids") : NULL;
-    PyArrayObject *times = ids ? rows_of_shape(to, NPY_FLOAT64, 0, n, "times") : NULL;
+    PyArrayObject *ids = latency && !consecutive ? rows_of_shape(io, NPY_INT64, 0, n, "ids")
+                                                 : NULL;
+    PyArrayObject *times = ids || (latency && consecutive)
+                           ? rows_of_shape(to, NPY_FLOAT64, 0, n, "times") : NULL;
     PyArrayObject *poses = times ? rows_of_shape(po, NPY_FLOAT64, 8, n, "poses") : NULL;
     PyArrayObject *covs = poses ? rows_of_shape(vo, NPY_FLOAT64, 36, n, "covs") : NULL;
     PyArrayObject *wposes = NULL, *wcovs = NULL;
     PyObject *out = NULL, *list = NULL;
     double *taken = NULL;
-    int64_t *body = NULL, *source = NULL;
+    int64_t *body = NULL, *source = NULL, *id = NULL;
+    npy_bool *use = NULL;
+    unsigned char *seen = NULL;
     dq_store_refusal *refused = NULL;
     if (!covs) goto done;
-    body = malloc(2 * ((size_t)n + 1) * sizeof *body);
-    if (!body) {
+    body = malloc(3 * ((size_t)n + 1) * sizeof *body);
+    use = malloc((size_t)n + 1);
+    if (!body || !use) {
         PyErr_NoMemory();
         goto done;
     }
     source = body + n + 1;
-    int known = coded(bn, bc, PyArray_DATA(ok), n, body, "bodies");
-    if (known == 1) known = coded(sn, sc, PyArray_DATA(ok), n, source, "sources");
+    id = source + n + 1;
+    if (ok)
+        memcpy(use, PyArray_DATA(ok), (size_t)n);
+    else
+        memset(use, 1, (size_t)n);
+    for (npy_intp k = 0; k < n; k++)
+        id[k] = consecutive ? (int64_t)(first + k) : ((const int64_t *)PyArray_DATA(ids))[k];
+    int known = coded(bn, bc, use, n, body, "bodies");
+    if (known == 1) known = coded(sn, sc, use, n, source, "sources");
     if (known < 0) goto done;
     if (!known) {
         out = Py_NewRef(Py_None);
@@ -365,10 +408,10 @@ static PyObject *index_ingest(StoreIndex *self, PyObject *args)
         PyErr_SetString(PyExc_ValueError, "by_source: fewer bodies than newest");
         goto done;
     }
-    dq_store_rows in = {(size_t)n, body, source, PyArray_DATA(ids),
-                        PyArray_DATA(times), PyArray_DATA(poses), PyArray_DATA(covs),
+    dq_store_rows in = {(size_t)n, body, source, id, PyArray_DATA(times),
+                        PyArray_DATA(poses), PyArray_DATA(covs),
                         wposes ? PyArray_DATA(wposes) : NULL,
-                        wcovs ? PyArray_DATA(wcovs) : NULL, PyArray_DATA(ok), taken};
+                        wcovs ? PyArray_DATA(wcovs) : NULL, use, taken};
     size_t nout = 0;
     int fresh = 0;
     int rc = dq_store_ingest(&self->x, &cols, &st, &in, &r, refused, &nout, &fresh);
@@ -393,12 +436,16 @@ static PyObject *index_ingest(StoreIndex *self, PyObject *args)
         if (!t) goto done;
         PyList_SET_ITEM(list, (Py_ssize_t)i, t);
     }
-    out = Py_BuildValue("(OO)", list, fresh ? Py_True : Py_False);
+    if (ok) memcpy(PyArray_DATA(ok), use, (size_t)n);
+    PyObject *touched = touched_bodies(bn, body, use, n, st.bodies, &seen);
+    if (touched) out = Py_BuildValue("(ONN)", list, PyBool_FromLong(fresh), touched);
 done:
     Py_XDECREF(list);
     free(taken);
     free(refused);
     free(body);
+    free(use);
+    free(seen);
     Py_XDECREF(latency);
     Py_XDECREF(ids);
     Py_XDECREF(times);
@@ -455,8 +502,8 @@ static PyMethodDef index_methods[] = {
     {"ingest", (PyCFunction)index_ingest, METH_VARARGS,
      "ingest(store, newest, by_source, latency, bodies, body_codes, sources, source_codes, ids, "
      "times, poses, covs, ok, wposes, wcovs, window, cap, max_time, jump, max_rows, origin, "
-     "all_or_none) -> (refusals, fresh) | None: a request's rows checked and taken into the "
-     "store (store.h); None when a name is not coded."},
+     "all_or_none) -> (refusals, fresh, touched) | None: a request's rows checked and taken "
+     "into the store (store.h); None when a name is not coded."},
     {"keep", (PyCFunction)index_keep, METH_VARARGS,
      "keep(store, live): the store's rows with live[r] kept, in order."},
     {"version", (PyCFunction)index_version, METH_O,

@@ -165,6 +165,8 @@ class Tracker:
         self._exact = np.empty(0, dtype=bool)
         self._all_exact = all(src.exact for src in self._table.values())
         self._count = 0            # measurements offered so far: the default ids
+        # the bodies of the last ingest's measurements taken in, once each, in order
+        self.touched: tuple = ()
         # rows whose source has frames are brought to the world frame in NumPy (_in_world), the
         # others by the store's C (unit poses, covariances as they are)
         self._framed = any(src.body_offset is not None or src.extrinsic is not None
@@ -448,10 +450,12 @@ class Tracker:
         n = len(bodies)
         codes = np.asarray(codes)
         if not np.count_nonzero(codes):     # the common case: every row taken in, names known
-            got = self._admit(bodies, sources, times, poses, covariances, ids, np.ones(n, bool),
-                              {}, n, False, origin, new_names=False)
+            got = self._admit(bodies, sources, times, poses, covariances, ids, None, {}, n, False,
+                              origin, new_names=False)
             if got is not None:
                 return got
+        if isinstance(ids, int):
+            ids = ids + np.arange(n)
         # a name coded already was checked when it came first (here or by refusals)
         named = _named_rows(bodies, sources, self._body_codes, self._codes)
         if named:       # refused for a name: then named by the check of the row alone
@@ -492,8 +496,9 @@ class Tracker:
         s, b = self._store, self.bounds
         s.reserve(len(bodies), self._newest, self.window, self.cap)
         wposes = wcovs = None
-        if self._framed and ok.any():
-            wposes, wcovs = self._in_world(sources, poses, covs, ok)
+        if self._framed and (ok is None or ok.any()):
+            wposes, wcovs = self._in_world(sources, poses, covs,
+                                           np.ones(len(bodies), bool) if ok is None else ok)
         rules = (self.window, -1 if self.cap is None else self.cap,
                  math.inf if b is None else b.max_time, math.inf if b is None else b.max_time_jump,
                  -1 if b is None else b.max_rows, None if origin is None else hash(origin),
@@ -504,7 +509,7 @@ class Tracker:
         if got is None:         # a name new to the tracker: coded, sources first, in row order
             if not new_names:
                 return None
-            use = ok.tolist()
+            use = [True] * len(bodies) if ok is None else ok.tolist()
             for u, src in zip(use, sources):
                 if u:
                     self._source_code(src)
@@ -514,15 +519,16 @@ class Tracker:
             got = s._index.ingest(s, self._newest, self._by_source, self._latency, bodies,
                                   self._body_codes, sources, self._codes, ids, times, poses, covs,
                                   ok, wposes, wcovs, *rules)
-        refused, fresh = got
+        refused, fresh, self.touched = got
         for k, code, x, y in refused:
             errors[k] = self._refusal(k, code, x, y, bodies[k], sources[k], times[k])
         if all_or_none and errors:
+            self.touched = ()
             return [min(errors.items())]
         self._count += offered
         if fresh:           # a body without measurements got some
-            for k in np.flatnonzero(ok).tolist():
-                self._active.setdefault(bodies[k], None)
+            for body in self.touched:
+                self._active.setdefault(body, None)
         return sorted(errors.items()) if errors else []
 
     def _refusal(self, k: int, code: int, x: float, y: float, body, source,

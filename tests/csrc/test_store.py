@@ -70,8 +70,10 @@ def test_ingest_refuses_columns_and_codes_it_cannot_write():
     with pytest.raises(ValueError, match="^rows: a code out of range, or the store's columns"):
         ingest(body=(0,) * 5)                               # 5 rows, room for 4
     assert s.n == 0
-    with pytest.raises(ValueError, match="^bodies: expected a name a row and a dict of codes"):
+    with pytest.raises(ValueError, match="^ok: expected one a row"):
         ingest(names=[0, 0])
+    with pytest.raises(ValueError, match="^ids: expected 2 rows"):
+        ingest(names=[0, 0], ok=np.ones(2, bool))
     with pytest.raises(ValueError, match="^ok: expected a writeable contiguous 1-d array"):
         ingest(ok=np.ones(1, np.int8))
     with pytest.raises(ValueError, match="^newest: expected a writeable contiguous 1-d array"):
@@ -81,4 +83,4 @@ def test_ingest_refuses_columns_and_codes_it_cannot_write():
     with pytest.raises(ValueError, match="^store.taken: expected a writeable contiguous column"):
         ingest(store=short)
     assert ingest(body=(3,)) is None and s.n == 0          # a name not coded: nothing done
-    assert ingest() == ([], True) and s.n == 1 and newest.tolist() == [0.0, -np.inf]
+    assert ingest() == ([], True, (0,)) and s.n == 1 and newest.tolist() == [0.0, -np.inf]
