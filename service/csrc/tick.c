@@ -90,7 +90,6 @@ static int setup(const dq_tick_options *o, const dq_tick_input *in, tick_setup *
      * the fusion time is the static fit */
     if (u->lo == u->hi && e > 0.0 && !o->twist_w) return DQ_TICK_PYTHON;
     u->one_instant = u->lo == u->hi && e == 0.0;
-    if (u->one_instant && u->n_ext) return DQ_TICK_PYTHON; /* the static joint fit: Python's */
     u->k = 0;
     for (size_t s = 0; s < u->n_sources; s++) {
         int64_t c = u->order[s];
@@ -164,17 +163,18 @@ typedef struct {
     double *joint; /* the joint fit's memory (the caller frees it), or NULL */
 } tick_fit;
 
-/* With uncertain extrinsics (_motion_fit -> extrinsics._motion_fit_ext): the joint fit of the
- * one body and the extrinsics' errors (extrinsics._joint_fit of one part, as _dqcore.joint_fit
- * runs it, NIS included) from the constant-twist fit f, which it replaces (mean, twist,
- * latencies, chi2, status, iterations; t: P, the residuals and the NIS). */
-static int fit_joint(const dq_tick_options *o, const tick_setup *u, const double *s, size_t n,
-                     const double *zu, dq_motion_fitted *f, double *dt, double *cost,
-                     tick_fit *t)
+/* With uncertain extrinsics (extrinsics._motion_fit_ext): the joint fit of the one body (its
+ * model: the motion model, or static._fit's _static_model) and the extrinsics' errors
+ * (extrinsics._joint_fit of one part, as _dqcore.joint_fit runs it, NIS included) of the rows
+ * inlier selects, from the fit f, which it replaces (mean, twist, latencies, chi2, status,
+ * iterations; t: P, the residuals and the NIS). */
+static int fit_joint(const dq_tick_options *o, const tick_setup *u, const dq_motion_model *mm,
+                     const unsigned char *inlier, const double *s, size_t n, const double *zu,
+                     dq_motion_fitted *f, double *dt, double *cost, tick_fit *t)
 {
-    dq_joint_part part = {n, 1, o->twist_w};
-    dq_joint_model jm = {1, &part, u->stamp, u->latency, u->slot, u->ext_slot, u->k, u->prior,
-                         u->prior_w, u->n_ext, NULL, NULL};
+    dq_joint_part part = {n, mm->twist, mm->twist_w};
+    dq_joint_model jm = {1, &part, mm->stamp, mm->latency, mm->slot, u->ext_slot, mm->k,
+                         mm->prior, mm->prior_w, u->n_ext, NULL, NULL};
     const size_t D = dq_joint_dim(&jm), m = u->n_ext;
     size_t doubles = dq_joint_workspace(n, &jm, 1) + 2 * D * D + D + 8 + 6 + u->k + 1 +
                      8 * m + 8 * m + 36 * m + (sizeof(dq_taken) * n) / sizeof(double) + 1;
@@ -192,17 +192,17 @@ static int fit_joint(const dq_tick_options *o, const tick_setup *u, const double
     }
     if (code != DQ_OK) return code;
     memcpy(V, f->twist, sizeof f->twist);
-    memcpy(L, f->ell, sizeof(double) * u->k);
+    memcpy(L, f->ell, sizeof(double) * mm->k);
     jm.E = E;
     jm.E_info = info;
     dq_joint_state st = {X, V, L, Ehat, H, P, g, 0.0, 0, 0, 0};
     dq_joint_outputs per = {dt, t->res, cost, NULL, t->nis, t->tested};
     size_t bad = 0;
-    code = dq_joint_fit(zu, s, u->keep, n, &jm, &o->p, work, taken, &st, &per, &bad);
+    code = dq_joint_fit(zu, s, inlier, n, &jm, &o->p, work, taken, &st, &per, &bad);
     if (code != DQ_OK) return code;
     memcpy(f->mean, X, sizeof f->mean);
     memcpy(f->twist, V, sizeof f->twist);
-    memcpy(f->ell, L, sizeof(double) * u->k);
+    memcpy(f->ell, L, sizeof(double) * mm->k);
     f->chi2 = st.chi2;
     f->status = st.status;
     f->iterations = st.iterations;
@@ -237,7 +237,7 @@ static int fit_motion(const dq_tick_options *o, const tick_setup *u, const doubl
     int code = dq_motion_run(&r, &model, &f, &per, &bad, &bad_name);
     if (code != DQ_OK) return code;
     if (u->n_ext) {
-        code = fit_joint(o, u, s, n, zu, &f, dt, cost, t);
+        code = fit_joint(o, u, &model, u->keep, s, n, zu, &f, dt, cost, t);
         if (code != DQ_OK) return code;
     }
     memcpy(mean, f.mean, sizeof f.mean);
@@ -263,8 +263,9 @@ static int fit_motion(const dq_tick_options *o, const tick_setup *u, const doubl
 
 /* One instant at the fusion time: the static fit of every row (static._fit, as _dqcore.fuse
  * runs it), the twist at its prior (zeros, the prior's covariance) when it has one. */
-static int fit_static(const dq_tick_options *o, const double *z, const double *s, size_t n,
-                      char **at, tick_fit *t, dq_fused_pose *w, double *mean, double *twist)
+static int fit_static(const dq_tick_options *o, const tick_setup *u, const double *z,
+                      const double *s, size_t n, char **at, tick_fit *t, dq_fused_pose *w,
+                      double *mean, double *twist)
 {
     double *zu = carve(at, sizeof(double) * 8 * n);
     double *work = carve(at, sizeof(double) * dq_fuse_workspace(n));
@@ -282,11 +283,34 @@ static int fit_static(const dq_tick_options *o, const double *z, const double *s
     if ((code = dq_fuse(zu, s, all, n, &o->p, work, &f, &per, &bad)) != DQ_OK) return code;
     memcpy(mean, f.mean, sizeof f.mean);
     memcpy(t->cov, f.covariance, sizeof f.covariance);
-    for (size_t i = 0; i < n; i++) t->inliers[w->n_inliers++] = (uint32_t)i;
-    w->dof = (uint32_t)(6 * ((long)n - 1));
     w->chi2 = f.chi2;
     w->iterations = (uint32_t)f.iterations;
     w->status = (uint32_t)f.status + 1;
+    if (u->n_ext) { /* static._fit with ext: the joint fit of _static_model from the C fit */
+        double *zeros = carve(at, sizeof(double) * n), *dt = carve(at, sizeof(double) * n);
+        double *cost = carve(at, sizeof(double) * n);
+        long long *none = carve(at, sizeof(long long) * n);
+        for (size_t i = 0; i < n; i++) {
+            zeros[i] = 0.0;
+            none[i] = -1;
+        }
+        dq_motion_model stat = {zeros, zeros, none, 0, NULL, NULL, 0, NULL};
+        dq_motion_fitted jf;
+        memcpy(jf.mean, f.mean, sizeof f.mean);
+        memset(jf.twist, 0, sizeof jf.twist);
+        jf.ell = t->ell;
+        if ((code = fit_joint(o, u, &stat, all, s, n, zu, &jf, dt, cost, t)) != DQ_OK)
+            return code;
+        memcpy(mean, jf.mean, sizeof jf.mean);
+        for (size_t a = 0; a < 6; a++)
+            for (size_t b = 0; b < 6; b++) t->cov[6 * a + b] = t->P[t->dim * a + b];
+        for (size_t i = 0; i < n; i++) t->dist[i] = sqrt(cost[i]);
+        w->chi2 = jf.chi2;
+        w->iterations = (uint32_t)(f.iterations + jf.iterations);
+        w->status = (uint32_t)jf.status + 1;
+    }
+    for (size_t i = 0; i < n; i++) t->inliers[w->n_inliers++] = (uint32_t)i;
+    w->dof = (uint32_t)(6 * ((long)n - 1));
     if (o->twist_w) {
         memset(twist, 0, 6 * sizeof(double));
         w->twist = twist;
@@ -304,7 +328,7 @@ int dq_tick(const dq_tick_options *o, const dq_tick_input *in, uint8_t **out, si
     size_t work_n = dq_motion_workspace(n, &probe) + dq_fuse_workspace(n);
     size_t bytes = 16 * (64 + 6 * m + 8 * n) + sizeof(double) * (8 * n + 36 * n + 12 * n +
                    6 * n + 8 * n + work_n + 3 * dim_max * dim_max + 4 * m + 72) +
-                   sizeof(long long) * 2 * n + sizeof(int) * m + sizeof(int64_t) * (4 * m + n) +
+                   sizeof(long long) * 3 * n + sizeof(int) * m + sizeof(int64_t) * (4 * m + n) +
                    sizeof(dq_taken) * n + sizeof(uint32_t) * n +
                    (sizeof(dq_wire_source) + sizeof(dq_wire_latency)) * (m + 1) +
                    (sizeof(dq_wire_dropped) + REASON_MAX) * n + 5 * n;
@@ -347,7 +371,7 @@ int dq_tick(const dq_tick_options *o, const dq_tick_input *in, uint8_t **out, si
     dq_fused_pose w;
     memset(&w, 0, sizeof w);
     double mean[8], unit[8], twist[6];
-    code = u.one_instant ? fit_static(o, z, s, n, &at, &t, &w, mean, twist)
+    code = u.one_instant ? fit_static(o, &u, z, s, n, &at, &t, &w, mean, twist)
                          : fit_motion(o, &u, z, s, n, &at, &t, &w, mean, twist);
     if (code != DQ_OK || dq_unit(in->pose ? in->pose : mean, unit)) { /* Python names it */
         free(t.joint);

@@ -6,9 +6,9 @@
  * _dqcore.motion_fit runs it; one instant at the fusion time: dq_fuse, as _dqcore.fuse runs
  * it; uncertain extrinsics: dq_joint_fit of one part from that fit, as _dqcore.joint_fit runs
  * it), the result (_result or the static fit's, consistency._source_stats) and the message
- * (fused_wire.h, as wire.fused_pose_bytes writes it). What it does not port (one instant with an
- * uncertain extrinsic, any error: the texts are Python's) is DQ_TICK_PYTHON: the caller runs the
- * Python path for that tick.
+ * (fused_wire.h, as wire.fused_pose_bytes writes it). What it does not port (robust and
+ * correlated fits are not asked for; any error: the texts are Python's) is DQ_TICK_PYTHON: the
+ * caller runs the Python path for that tick.
  */
 #ifndef DQPOSE_TICK_H
 #define DQPOSE_TICK_H

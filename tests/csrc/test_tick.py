@@ -3,8 +3,7 @@ path it stands for (``World.tick`` + ``fused_pose_bytes``): the same FusedPose b
 it makes (moving bodies, sources with latencies, estimated latencies, a twist prior, max_skew
 drops, capped windows, several sources, a body offset, ticks between measurements, uncertain
 extrinsics: the joint fit, one instant: the static fit), and None, leaving the answer to Python,
-where it does not (one instant with an uncertain extrinsic, robust, an acceleration_psd, a tick
-beyond max_extrapolation)."""
+where it does not (robust, an acceleration_psd, a tick beyond max_extrapolation)."""
 import numpy as np
 import pytest
 
@@ -126,6 +125,13 @@ INSTANT = {
     "an estimated latency": ([Source("cam", latency=0.02, latency_sigma=0.01), Source("arm")],
                              {}),
     "one measurement": ([Source("cam")], {}),
+    "an uncertain extrinsic (the static joint fit)": (
+        [Source("cam", random_pose(np.random.default_rng(2)), extrinsic_covariance=MOUNT),
+         Source("arm")], {}),
+    "an uncertain extrinsic, an estimated latency, a twist prior": (
+        [Source("cam", random_pose(np.random.default_rng(2)), extrinsic_covariance=MOUNT,
+                latency=0.01, latency_sigma=0.005), Source("top", extrinsic_covariance=MOUNT)],
+        {"twist_covariance": np.eye(6) * 0.01}),
     # the kept rows one instant: the static fit of every row, none listed as dropped (Python's)
     "max_skew drops": ([Source("cam"), Source("arm")], {"max_skew": 0.1}),
 }
@@ -146,9 +152,6 @@ def test_one_instant_is_the_static_fit_in_c_too(case):
 
 
 LEFT = {
-    "one instant with an uncertain extrinsic": (
-        [Source("cam", random_pose(np.random.default_rng(2)), extrinsic_covariance=MOUNT),
-         Source("arm")], {}, [0.5]),
     "robust": ([Source("cam")], {"robust": True}, np.arange(20) * 0.02),
     "an acceleration_psd": ([Source("cam")], {"acceleration_psd": np.eye(6) * 0.1},
                             np.arange(20) * 0.02),
