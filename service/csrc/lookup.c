@@ -367,6 +367,12 @@ static int lookup_kept(const dq_lookup_store *s, dq_lookup_body *const *parts, i
     return 1;
 }
 
+static int lookup_solved(const dq_lookup_store *s, dq_lookup_body *const *parts, int K,
+                         dq_lookup_args *a, fit_arrays *f, const dq_joint_model *mp,
+                         double *Pout, int slot);
+
+/* One fit of the parts (f's arrays for their rows): gathered, its model's arrays allocated,
+ * solved (lookup_solved), freed. */
 static int lookup_solve(const dq_lookup_store *s, dq_lookup_body *const *parts, int K,
                         dq_lookup_args *a, fit_arrays *f, double *Pout, int slot)
 {
@@ -377,7 +383,26 @@ static int lookup_solve(const dq_lookup_store *s, dq_lookup_body *const *parts, 
     const dq_joint_model m = {(size_t)K, jp, f->stamp, f->lat, f->lslot, f->eslot, f->k,
                               f->prior, f->prior_w, f->m, f->E, f->E_info};
     const int dim = (int)dq_joint_dim(&m);
-    int warm = 0;
+    double *dmem = malloc(sizeof(double) * (2 * (size_t)dim * dim + dim +
+                                            dq_joint_workspace(f->N, &m, 0)));
+    if (!dmem) return DQ_LOOKUP_NOMEM;
+    f->H = dmem;
+    f->P = f->H + dim * dim;
+    f->g = f->P + dim * dim;
+    f->work = f->g + dim;
+    rc = lookup_solved(s, parts, K, a, f, &m, Pout, slot);
+    free(dmem);
+    return rc;
+}
+
+/* lookup_solve's fit, its arrays allocated (f->H, P, g, work for the model m). */
+static int lookup_solved(const dq_lookup_store *s, dq_lookup_body *const *parts, int K,
+                         dq_lookup_args *a, fit_arrays *f, const dq_joint_model *mp,
+                         double *Pout, int slot)
+{
+    const dq_joint_model m = *mp;
+    const int dim = (int)dq_joint_dim(&m);
+    int rc, warm = 0;
     for (int q = 0; q < K; q++) warm |= parts[q]->warm;
     for (size_t j = 0; j < f->k; j++) warm |= a->L[f->lcode[j]] == a->L[f->lcode[j]];
     for (size_t j = 0; j < f->m; j++) warm |= dq_finite_n(a->Ehat + 8 * f->ecode[j], 8);
@@ -421,16 +446,11 @@ static int lookup_fit(const dq_lookup_store *s, dq_lookup_body *const *parts, in
     fit_arrays f;
     size_t N = 0;
     for (int q = 0; q < K; q++) N += parts[q]->n;
-    const size_t nc = s->ncodes, D = 12 * (size_t)K + 7 * nc;
-    /* the largest model these rows can make: every source estimated and uncertain */
-    dq_joint_part jp[2] = {{0, 1, NULL}, {0, 1, NULL}};
-    const dq_joint_model big = {(size_t)K, jp, NULL, NULL, NULL, NULL, nc, NULL, NULL, nc, NULL,
-                                NULL};
-    jp[0].n = parts[0]->n;
-    if (K > 1) jp[1].n = parts[1]->n;
+    const size_t nc = s->ncodes;
+    /* the rows' arrays and the sources' (the state's and the normal equations' are sized by
+     * the model the rows make: lookup_solve's) */
     const size_t doubles = 8 * N + 36 * N + 2 * N + 2 * nc + 8 * nc + 36 * nc + 8 * (size_t)K +
-                           6 * (size_t)K + nc + 8 * nc + 2 * D * D + D +
-                           dq_joint_workspace(N, &big, 0);
+                           6 * (size_t)K + nc + 8 * nc;
     const size_t longs = 2 * N + 4 * nc;
     double *mem = malloc(sizeof(double) * doubles + sizeof(long long) * longs +
                          sizeof(dq_taken) * (N ? N : 1));
@@ -448,10 +468,6 @@ static int lookup_fit(const dq_lookup_store *s, dq_lookup_body *const *parts, in
     f.V = f.X + 8 * K;
     f.L = f.V + 6 * K;
     f.Ehat = f.L + nc;
-    f.H = f.Ehat + 8 * nc;
-    f.P = f.H + D * D;
-    f.g = f.P + D * D;
-    f.work = f.g + D;
     long long *ll = (long long *)(mem + doubles);
     f.lslot = ll;
     f.eslot = ll + N;
