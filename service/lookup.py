@@ -22,6 +22,7 @@ import numpy as np
 
 from dqpose import _dqcore as _c
 from dqpose import dq
+from dqpose.answers import Kept
 from dqpose.fusion.extrinsics import _relative_covariance
 from dqpose.fusion.results import DOF, _frozen
 from dqpose.fusion.validation import _twist_information
@@ -39,12 +40,12 @@ class Lookups:
 
     def __init__(self, world: "World"):
         self._world = world
-        self._warm: dict[str, np.ndarray] = {}
+        self._warm = Kept()        # per body its last estimate: [t0, X (8), V (6)]
         self._tracker: Optional["Tracker"] = None
         self._kept: Optional[tuple] = None     # _table's
         # per fit (a body's alone, two bodies' together) the record of its last run
         # (service/csrc/lookup.h): where the next one's first step comes from
-        self._records: dict[tuple, np.ndarray] = {}
+        self._records = Kept()
         self._L = np.empty(0)
         self._E = np.empty((0, 8))
 
@@ -86,10 +87,10 @@ class Lookups:
         pose, cov, wa, wb, self._L, self._E, *made, _ = got
         for b, warmed in ((target, wa), (source, wb)):
             if b:
-                self._warm[b] = warmed
+                self._warm.keep(b, warmed)
         for k, rec in zip(keys, made):
-            if rec is not None:
-                records[k] = rec
+            if rec is not None:     # bounded as a world's fits are: ~16 doubles a "row"
+                records.keep(k, rec, rec.size // 16 + 1)
         return BodyPose(source, at, _frozen(pose), _frozen(cov), None)
 
     def _table(self, t: "Tracker") -> tuple:
@@ -98,7 +99,9 @@ class Lookups:
         information and whether it is uncertain; then the twist's prior information (or None).
         Made again when the tracker (a configuration) or its codes change."""
         if self._tracker is not t:     # a new configuration: its own codes and estimates
-            self._tracker, self._warm, self._kept, self._records = t, {}, None, {}
+            self._tracker, self._kept = t, None
+            self._warm.clear()
+            self._records.clear()
             self._L, self._E = np.empty(0), np.empty((0, 8))
         names = t._names
         kept = self._kept

@@ -134,6 +134,17 @@ def test_a_fit_of_the_same_rows_at_the_same_time_is_its_records(scene):
     assert again.covariance.tobytes() == first.covariance.tobytes()
 
 
+def test_the_warm_starts_and_records_are_bounded_as_a_worlds_fits_are(monkeypatch):
+    """Every pair looked up leaves a record: they are kept as a world's fits are (dqpose.answers'
+    bounds, here 1 entry), so Lookups of many pairs do not grow them."""
+    from dqpose import answers
+    monkeypatch.setattr(answers, "_CACHED", 1)
+    world, _, _ = moving(np.random.default_rng(9), *SCENES["exact, each body its own cameras"])
+    for target, source in (("a", "b"), ("b", "a"), ("", "a"), ("", "b"), ("a", ""), ("b", "")):
+        world.relative(target, source)
+        assert len(world._lookups._records) <= 1 and len(world._lookups._warm) <= 1
+
+
 def test_one_instant_and_a_time_beyond_max_extrapolation_are_the_fits_answers():
     rng = np.random.default_rng(5)
     kws, sees_b = SCENES["a shared uncertain mount"]
