@@ -175,57 +175,61 @@ static PyObject *index_reset(StoreIndex *self, PyObject *unused)
     return Py_NewRef(Py_None);
 }
 
-/* Column `name` of the store `o`: an ndarray of `type`, C-contiguous and writeable, of shape
- * (rows, inner...) (inner: 0, 8 or 36 doubles a row, 36 as 6x6), rows the first column's
- * (*rows 0: any, then set); a borrowed pointer to its data, NULL with the ValueError. */
-static void *column(PyObject *o, const char *name, int type, int inner, size_t *rows)
+/* Column `name` of the store's attributes `d` (its __dict__): an ndarray of `type`,
+ * C-contiguous and writeable, of shape (rows, inner...) (inner: 0, 8 or 36 doubles a row, 36 as
+ * 6x6), rows the first column's (*rows 0: any, then set); a borrowed pointer to its data, NULL
+ * with the ValueError. */
+static void *column(PyObject *d, const char *name, int type, int inner, size_t *rows)
 {
-    PyObject *a = PyObject_GetAttrString(o, name);
-    if (!a) return NULL;
-    void *data = NULL;
+    PyObject *a = PyDict_GetItemString(d, name);        /* borrowed: the store keeps it */
     PyArrayObject *arr = (PyArrayObject *)a;
     int nd = inner == 0 ? 1 : inner == 8 ? 2 : 3;
-    if (!PyArray_Check(a) || PyArray_TYPE(arr) != type || PyArray_NDIM(arr) != nd
+    if (!a || !PyArray_Check(a) || PyArray_TYPE(arr) != type || PyArray_NDIM(arr) != nd
         || !PyArray_ISCARRAY(arr) || (nd == 2 && PyArray_DIM(arr, 1) != 8)
         || (nd == 3 && (PyArray_DIM(arr, 1) != 6 || PyArray_DIM(arr, 2) != 6))
         || (*rows && (size_t)PyArray_DIM(arr, 0) != *rows)) {
         PyErr_Format(PyExc_ValueError, "store.%s: expected a writeable contiguous column of "
                                        "the store's rows", name);
-    } else {
-        *rows = (size_t)PyArray_DIM(arr, 0);
-        data = PyArray_DATA(arr);
+        return NULL;
     }
-    Py_DECREF(a);       /* the store keeps it */
-    return data;
+    *rows = (size_t)PyArray_DIM(arr, 0);
+    return PyArray_DATA(arr);
 }
 
-/* The store's columns (n: store.n), NULL pointers with the ValueError. */
+/* The store's columns (n: store.n; wcovs only when it has them), read from its __dict__ (no
+ * attribute look-up through its type, no AttributeError made for an absent wcovs); NULL
+ * pointers with the ValueError. */
 static int columns(PyObject *store, dq_store_cols *c)
 {
     size_t cap = 0;
     memset(c, 0, sizeof *c);
-    if (!(c->ids = column(store, "ids", NPY_INT64, 0, &cap))
-        || !(c->body = column(store, "body", NPY_INT64, 0, &cap))
-        || !(c->codes = column(store, "codes", NPY_INT64, 0, &cap))
-        || !(c->times = column(store, "times", NPY_FLOAT64, 0, &cap))
-        || !(c->taken = column(store, "taken", NPY_FLOAT64, 0, &cap))
-        || !(c->poses = column(store, "poses", NPY_FLOAT64, 8, &cap))
-        || !(c->covs = column(store, "covs", NPY_FLOAT64, 36, &cap))
-        || !(c->wposes = column(store, "wposes", NPY_FLOAT64, 8, &cap)))
-        return -1;
-    if (PyObject_HasAttrString(store, "wcovs")
-        && !(c->wcovs = column(store, "wcovs", NPY_FLOAT64, 36, &cap)))
-        return -1;
+    PyObject *d = PyObject_GenericGetDict(store, NULL);
+    if (!d) return -1;
+    int rc = -1;
+    if (!(c->ids = column(d, "ids", NPY_INT64, 0, &cap))
+        || !(c->body = column(d, "body", NPY_INT64, 0, &cap))
+        || !(c->codes = column(d, "codes", NPY_INT64, 0, &cap))
+        || !(c->times = column(d, "times", NPY_FLOAT64, 0, &cap))
+        || !(c->taken = column(d, "taken", NPY_FLOAT64, 0, &cap))
+        || !(c->poses = column(d, "poses", NPY_FLOAT64, 8, &cap))
+        || !(c->covs = column(d, "covs", NPY_FLOAT64, 36, &cap))
+        || !(c->wposes = column(d, "wposes", NPY_FLOAT64, 8, &cap)))
+        goto done;
+    if (PyDict_GetItemString(d, "wcovs")
+        && !(c->wcovs = column(d, "wcovs", NPY_FLOAT64, 36, &cap)))
+        goto done;
     c->capacity = cap;
-    PyObject *n = PyObject_GetAttrString(store, "n");
-    Py_ssize_t v = n ? PyLong_AsSsize_t(n) : -1;
-    Py_XDECREF(n);
+    PyObject *n = PyDict_GetItemString(d, "n");
+    Py_ssize_t v = n && PyLong_Check(n) ? PyLong_AsSsize_t(n) : -1;
     if (v < 0 || (size_t)v > cap) {
         if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "store.n: out of range");
-        return -1;
+        goto done;
     }
     c->n = (size_t)v;
-    return 0;
+    rc = 0;
+done:
+    Py_DECREF(d);
+    return rc;
 }
 
 static int set_n(PyObject *store, size_t n)

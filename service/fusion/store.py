@@ -14,8 +14,10 @@ from dqpose.fusion.results import DOF
 
 class _Store:
     """Every body's measurements in one set of preallocated arrays, in arrival order, each row
-    tagged with its body. A message costs a few NumPy operations whatever the number of bodies
-    in it; rows that fell out of their body's window are dropped when the arrays are full
+    tagged with its body. A message's rows are checked and written by one C call
+    (``_index.ingest``: service/csrc/store.h's ``dq_store_ingest``) whatever the number of bodies
+    in it, after :meth:`reserve` made room; rows that fell out of their body's window are dropped
+    when the arrays are full
     (compacted in place, grown only when the live rows fill half), so memory follows the largest
     live window, flat over a long stream. Each body's rows are listed in an index of its own, so
     finding them costs what the body holds, not what the stream holds (a world of 1000 bodies
@@ -24,7 +26,6 @@ class _Store:
     running maximum reaches it: what the window holds and rows that came late, not the body's
     whole buffer."""
 
-    # rows are written by _index.ingest (C, service/csrc/store.h), which checks them first;
     # as they came (``poses``, ``covs``) and in the world frame (``wposes``, and ``wcovs`` when a
     # source's body offset moves them): each row brought there once, not at every fit
     _ARRAYS = ("ids", "body", "codes", "times", "taken", "poses", "covs", "wposes")
