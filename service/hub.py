@@ -285,6 +285,8 @@ class Hub:
             return 0
         made: dict[tuple, Any] = {}
         budget = _limits.Budget(self.world.tracker_bounds.max_fused_per_request)
+        psd = self.world.options.acceleration_psd
+        correlated = psd is not None and bool(np.any(psd))
         windows: dict[str, TickWindow] = {}
         horizons: dict[str, float] = {}
         # a body's horizon is never past its newest measurement: most steps, its next tick is
@@ -303,27 +305,27 @@ class Hub:
             for body, top in zip(bodies, tops):
                 if wanted is not None and body not in wanted or at.get(body, -math.inf) > top:
                     continue
+                h = None
                 if paced:
                     h = horizons.get(body)
                     if h is None:
                         h = horizons[body] = self.world.horizon(body)
                     if at.get(body, -math.inf) > h:
                         continue
-                w = windows.get(body) or windows.setdefault(body, self.world.tick_window(body))
-                answers += self._due(sub, body, w, made, budget)
+                w = windows.get(body) or windows.setdefault(body,
+                                                            self.world.tick_window(body, h))
+                answers += self._due(sub, body, w, made, budget, correlated)
             if answers:
                 sub.deliver(answers)
         return budget.spent
 
     def _due(self, sub: Subscription, body: str, w: TickWindow, made: dict,
-             budget: _limits.Budget) -> list:
+             budget: _limits.Budget, correlated: bool) -> list:
         """``sub``'s answers of ``body`` due in this step, StreamFuse's order: that its window
         is capped (once), the ticks its budget skips (a body's oldest, named), the answers. A
         fit not ``made`` yet costs what it fuses (relative to another body, that body's window
-        and its own again besides)."""
+        and its own again besides; ``correlated``: the world's fits are)."""
         options = self.world.options
-        correlated = options.acceleration_psd is not None and bool(
-            np.any(options.acceleration_psd))
         # no more can be answered than the budget has left (an answer costs its own window at
         # least) and what is made already
         most = (budget.left // _limits.answer_cost(w.rows, options.robust, correlated)
@@ -332,10 +334,9 @@ class Hub:
         if not times:
             return []
         r, out = self.requests, []
-        where = self.where(r)
         if w.capped and body not in sub.capped:
             sub.capped.add(body)
-            out.append(self.encoder.error(body, 0.0, r, f"{where}: " + _limits.over_text(
+            out.append(self.encoder.error(body, 0.0, r, f"{self.where(r)}: " + _limits.over_text(
                 f"body {body!r}: its window holds more measurements than its fits take "
                 f"({self.world.cap}); the oldest are left out", "max_window",
                 self.world.tracker_bounds.max_window)))
@@ -348,25 +349,29 @@ class Hub:
             what = (f"{cut + len(skip)} ticks from {ends[0] if cut else skip[0]:.6g} s to "
                     f"{skip[-1] if skip else ends[1]:.6g} s" if sub.schedule is not None
                     else "its newest measurement")
-            out.append(self.encoder.error(body, 0.0, r, str(budget.skipped(where, body, what,
-                                                                            cost))))
+            out.append(self.encoder.error(body, 0.0, r, str(budget.skipped(
+                self.where(r), body, what, cost))))
             skipped = set(skip)
             times = [t for t in times if t not in skipped]
+        # the window's rows are the tick's (none of its refusals possible) in [floor, horizon]
+        picked = None if self.stream else w.picked
         for t in times:
             key = (body, t, rel)
             if key not in made:
                 made[key] = (functools.partial(self._answer, body, t, rel, r) if self.stream
-                             else self._answer(body, t, rel, r))
+                             else self._answer(body, t, rel, r, picked if t is None or
+                                               w.floor <= t <= w.horizon else None))
             out.append(made[key])
         return out
 
-    def _answer(self, body: str, t: Optional[float], relative_to: str, r: int) -> bytes:
+    def _answer(self, body: str, t: Optional[float], relative_to: str, r: int,
+                picked: Optional[np.ndarray] = None) -> bytes:
         """Body ``body`` at tick ``t`` (None: its newest measurement's time; relative to
         ``relative_to`` when set) as request ``r``'s answer, or an error entry naming why it
-        cannot be answered."""
+        cannot be answered (``picked``: its rows, :meth:`World.tick_wire`'s)."""
         try:
             if self._wire:     # the common case: one C call
-                data = self.world.tick_wire(body, t, r, relative_to)
+                data = self.world.tick_wire(body, t, r, relative_to, picked)
                 if data is not None:
                     return data
             p, ids = self.world.tick(body, t)

@@ -85,11 +85,13 @@ class Published:
 class TickWindow(NamedTuple):
     """What a body's ticks would fit now: its ``horizon`` (:func:`dqpose.world_ticks.horizon`),
     its window's oldest measurement (``floor``), the ``rows`` a tick fits, and ``capped``: its
-    window holds more than those."""
+    window holds more than those; ``picked``: those rows (a tick's in ``[floor, horizon]``,
+    for :meth:`World.tick_wire`, until the world changes)."""
     horizon: float
     floor: float
     rows: int
     capped: bool
+    picked: Optional[np.ndarray] = None
 
 
 @dataclass(frozen=True)
@@ -362,16 +364,18 @@ class World:
         with self._lock.read():
             return self._t.newest_of(bodies)
 
-    def tick_window(self, body: str) -> TickWindow:
-        """What ``body``'s ticks would fit now (:meth:`tick`; none for a body not held)."""
+    def tick_window(self, body: str, known: Optional[float] = None) -> TickWindow:
+        """What ``body``'s ticks would fit now (:meth:`tick`; none for a body not held);
+        ``known``: its :meth:`horizon`, when the caller has it."""
         with self._lock.read():
             if not self._t.has(body):
                 return TickWindow(-math.inf, math.inf, 0, False)
             t = self._t
             newest, window = t.newest(body), self.options.window
             rows = t.rows_ending(body, newest, window)
-            return TickWindow(horizon(self._fed(body), self.options.max_delay),
-                              float(t.taken_of(rows).min()), len(rows), t.capped(body, window))
+            return TickWindow(horizon(self._fed(body), self.options.max_delay) if known is None
+                              else known, float(t.taken_of(rows).min()), len(rows),
+                              t.capped(body, window), rows)
 
     def tick(self, body: str, time: Optional[float]) -> tuple[BodyPose, np.ndarray]:
         """``body`` at tick ``time`` (None: its newest measurement's time) from its tick window
@@ -383,11 +387,16 @@ class World:
         return BodyPose(body, f.time, f.mean, f.covariance, f), ids
 
     def tick_wire(self, body: str, time: Optional[float], request: int,
-                  relative_to: str = "") -> Optional[bytes]:
+                  relative_to: str = "", picked: Optional[np.ndarray] = None) -> Optional[bytes]:
         """:meth:`tick`'s answer to ``request`` as ``FusedPose`` bytes made in one C call
         (:class:`dqpose.fusion.tick.WireTicks`), with :meth:`relative`'s pose and covariance at
         the fit's time when ``relative_to`` names a body; or None: ask :meth:`tick` (then
-        :meth:`relative`, whose refusal comes after the fit's)."""
+        :meth:`relative`, whose refusal comes after the fit's). ``picked``: the rows of
+        :meth:`tick_window`, unchanged since, when ``time`` is in its ``[floor, horizon]`` (the
+        tick's rows, none of its refusals possible)."""
+        if picked is not None and not relative_to:
+            with self._lock.read():
+                return self._wire(picked, time, body, request)
         rel = None
         if relative_to:
             with self._lock.read():

@@ -28,6 +28,7 @@ from dqpose.rpc.geometry import (
     poses_to_flat,
     stamped_to_arrays,
 )
+from dqpose.rpc.peers import ReadAhead, read_all
 from dqpose.rpc.wire import blend_batch_wire, blend_wire, decode_blend_request
 
 DEFAULT_TOLERANCE = 1e-12
@@ -230,8 +231,8 @@ class Blending(pb_grpc.BlendingServicer):
             if self.calls.open_stream("BlendStream", context) is None:
                 code = "RESOURCE_EXHAUSTED"
                 return
-            pending = _ReadAhead()
-            reader = asyncio.ensure_future(_read_all(context, pending))
+            pending = ReadAhead(STREAM_READ_AHEAD, STREAM_READ_AHEAD_BYTES)
+            reader = asyncio.ensure_future(read_all(context, pending))
             while True:
                 request = await pending.get()
                 if request is grpc.aio.EOF:
@@ -261,43 +262,3 @@ class Blending(pb_grpc.BlendingServicer):
             if reader is not None:
                 reader.cancel()
             self.calls.done("BlendStream", code, t0, context, messages=i)
-
-
-class _ReadAhead:
-    """BlendStream's requests read ahead of its replies: at most STREAM_READ_AHEAD of them and
-    STREAM_READ_AHEAD_BYTES (one more request when it alone is larger)."""
-
-    def __init__(self):
-        self._queue: asyncio.Queue = asyncio.Queue(maxsize=STREAM_READ_AHEAD)
-        self._bytes = 0
-        self._room = asyncio.Event()
-        self._room.set()
-
-    async def put(self, item) -> None:
-        await self._room.wait()
-        if isinstance(item, bytes):
-            self._bytes += len(item)
-            if self._bytes >= STREAM_READ_AHEAD_BYTES:
-                self._room.clear()
-        await self._queue.put(item)
-
-    async def get(self):
-        item = await self._queue.get()
-        if isinstance(item, bytes):
-            self._bytes -= len(item)
-            if self._bytes < STREAM_READ_AHEAD_BYTES:
-                self._room.set()
-        return item
-
-
-async def _read_all(context, pending: _ReadAhead) -> None:
-    """Puts every request of a stream into ``pending``, then ``grpc.aio.EOF``; a read that
-    fails puts its exception instead, for the writer to raise."""
-    try:
-        while True:
-            request = await context.read()
-            await pending.put(request)
-            if request is grpc.aio.EOF:
-                return
-    except Exception as e:   # the writer is still consuming, so this put finds room
-        await pending.put(e)

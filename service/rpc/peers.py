@@ -210,3 +210,56 @@ def _sent(task: asyncio.Task) -> None:
 
 #: the statuses being sent to clients that fell behind (a task needs a reference until done)
 _sending: set = set()
+
+
+class ReadAhead:
+    """A stream's requests read ahead of its replies (:func:`read_all` puts them): at most
+    ``most`` of them and ``most_bytes`` (one more request when it alone is larger), so that
+    HTTP/2 flow control stays the client's backpressure and what a client that stops reading
+    leaves here stays small."""
+
+    def __init__(self, most: int, most_bytes: int):
+        self.most, self.most_bytes = most, most_bytes
+        self._queue: asyncio.Queue = asyncio.Queue(maxsize=most)
+        self._bytes = 0
+        self._room = asyncio.Event()
+        self._room.set()
+
+    async def put(self, item) -> None:
+        await self._room.wait()
+        if isinstance(item, bytes):
+            self._bytes += len(item)
+            if self._bytes >= self.most_bytes:
+                self._room.clear()
+        await self._queue.put(item)
+
+    async def get(self):
+        return self._taken(await self._queue.get())
+
+    async def take(self) -> list:
+        """The next request (waited for) and every one read behind it, up to the first that
+        is not a request (``grpc.aio.EOF``, or a read's exception), which ends the list."""
+        items = [await self.get()]
+        while isinstance(items[-1], bytes) and not self._queue.empty():
+            items.append(self._taken(self._queue.get_nowait()))
+        return items
+
+    def _taken(self, item):
+        if isinstance(item, bytes):
+            self._bytes -= len(item)
+            if self._bytes < self.most_bytes:
+                self._room.set()
+        return item
+
+
+async def read_all(context, pending: ReadAhead) -> None:
+    """Puts every request of a stream into ``pending``, then ``grpc.aio.EOF``; a read that
+    fails puts its exception instead, for the writer to raise."""
+    try:
+        while True:
+            request = await context.read()
+            await pending.put(request)
+            if request is grpc.aio.EOF:
+                return
+    except Exception as e:   # the writer is still consuming, so this put finds room
+        await pending.put(e)

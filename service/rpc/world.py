@@ -40,7 +40,7 @@ from dqpose.rpc._proto.dqpose.v1 import world_pb2 as pb
 from dqpose.rpc.calls import Calls, readable, refused
 from dqpose.rpc.checks import over_count
 from dqpose.rpc.fusion_convert import measurements_to_arrays
-from dqpose.rpc.peers import SUBSCRIPTION, FellBehind, Slot, exhausted
+from dqpose.rpc.peers import SUBSCRIPTION, FellBehind, ReadAhead, Slot, exhausted, read_all
 from dqpose.rpc.routing import WORLD_HEADER, world_of
 from dqpose.rpc.wire import messages_wire, publish_from_wire, publish_head, wire_rows
 from dqpose.rpc.world_convert import Encoder, config_from_msg, config_msg, subscribe_names
@@ -56,6 +56,10 @@ MAX_QUEUED_BYTES = 8 << 20
 #: bytes of answers in one SubscribeBatches message at most (gRPC clients receive 4 MiB by
 #: default); an answer larger than this goes alone
 MAX_BATCH_BYTES = 1 << 20
+#: Publish requests one call reads ahead of its acks, and their bytes (a request may be
+#: max_message_bytes): those read while earlier ones are applied are applied in one pool job
+PUBLISH_READ_AHEAD = 16
+PUBLISH_READ_AHEAD_BYTES = 1 << 20
 #: named worlds one server holds (the default world "" besides them): each has its own tables
 #: (bodies within its bounds, hub.MAX_PRODUCERS acks), so their number is what bounds a server's
 #: memory; a call that would make one more is RESOURCE_EXHAUSTED before anything is made. A
@@ -118,10 +122,23 @@ class Subscriber:
         self.ended: str | None = None
         # called once when ended (its slots freed)
         self.on_end: Callable[[], None] | None = None
+        # answers handed over and not yet on the loop: steps that follow each other before the
+        # loop takes them are taken in one callback (one wake-up of the loop, not one a step)
+        self._handing: list = []
+        self._hand = threading.Lock()
 
     def _handed(self, answers: list) -> None:
         """In the world's step (its lock held): the answers, to the event loop."""
-        self.loop.call_soon_threadsafe(self.deliver, answers)
+        with self._hand:
+            wake = not self._handing
+            self._handing += answers
+        if wake:
+            self.loop.call_soon_threadsafe(self._arrived)
+
+    def _arrived(self) -> None:
+        with self._hand:
+            answers, self._handing = self._handing, []
+        self.deliver(answers)
 
     def deliver(self, answers: list) -> None:
         """On the event loop: queue ``answers``; past a bound the subscription is ended."""
@@ -305,6 +322,18 @@ class World:
         rec.fused(ack)
         return ack
 
+    def _publish_all(self, world: Hub, data: list, r: int, anonymous: str,
+                     rec) -> tuple[list, Exception | None]:
+        """:meth:`publish_bytes` of requests ``r``, ``r + 1``, ... in turn (one pool job): their
+        acks, and what the one that failed raised (the acks before it are still sent)."""
+        acks: list = []
+        try:
+            for d in data:
+                acks.append(self.publish_bytes(world, d, r + len(acks), anonymous, rec))
+        except Exception as e:
+            return acks, e
+        return acks, None
+
     def publish(self, world: Hub, request: pb.PublishRequest, r: int, anonymous: str,
                 data: bytes | None = None, rec=NOT_RECORDED) -> pb.PublishAck:
         """Request ``r`` of a Publish call applied (:meth:`dqpose.Hub.publish`), its ack
@@ -399,7 +428,7 @@ class World:
         t0 = self.calls.begin()
         code, r = "OK", 0
         anonymous = f"\0call{id(context)}"
-        hub_ = None
+        hub_ = reader = None
         world = _recorded_world(context)
         # recording: in the world's order (publish_bytes)
         rec = self.calls.recorder.call(f"{self.NAME}/Publish", pb.PublishRequest, pb.PublishAck,
@@ -416,11 +445,27 @@ class World:
                 code = status.name
                 await context.abort(status, details)
             # Registered without a deserializer: each request is parsed with its work in the
-            # worker pool (publish_bytes), never on the event loop.
-            async for data in request_iterator:
-                await context.write(await self.calls.work(self.publish_bytes, hub_, data, r,
-                                                          anonymous, rec))
-                r += 1
+            # worker pool (publish_bytes), never on the event loop. Requests are read while
+            # earlier ones are applied (PUBLISH_READ_AHEAD), and those read meanwhile go to the
+            # pool together, each its own step: a producer's requests do not each wait for
+            # a round trip through the event loop and the pool (which made a producer's rate
+            # that round trip's inverse).
+            pending = ReadAhead(PUBLISH_READ_AHEAD, PUBLISH_READ_AHEAD_BYTES)
+            reader = asyncio.ensure_future(read_all(context, pending))
+            while True:
+                taken = await pending.take()
+                data = [d for d in taken if isinstance(d, bytes)]
+                acks, failure = ((), None) if not data else await self.calls.work(
+                    self._publish_all, hub_, data, r, anonymous, rec)
+                for ack in acks:
+                    await context.write(ack)
+                    r += 1
+                if failure is not None:
+                    raise failure
+                if isinstance(taken[-1], Exception):
+                    raise taken[-1]
+                if taken[-1] is grpc.aio.EOF:
+                    break
         except grpc.aio.AbortError:
             raise
         except Exception as e:
@@ -430,6 +475,8 @@ class World:
             code = "CANCELLED"
             raise
         finally:
+            if reader is not None:
+                reader.cancel()
             if hub_ is not None:
                 hub_.forget(anonymous)
             rec.end(code)       # recording

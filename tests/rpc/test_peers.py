@@ -14,7 +14,7 @@ from dqpose import limits
 from dqpose.rpc import blending
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
-from dqpose.rpc.peers import host_of
+from dqpose.rpc.peers import ReadAhead, host_of
 from tests._polling import wait_until
 from tests.rpc._grpc_server import ServerThread
 
@@ -94,11 +94,32 @@ def test_every_stream_takes_a_slot_of_its_peer():
         assert wait_until(lambda: not peers.open_count, timeout=10), dict(peers.open_count)
 
 
+def test_read_ahead_takes_what_was_read_up_to_the_end_of_the_stream():
+    """take() waits for one request, then hands over every one read behind it (World.Publish
+    applies them in one pool job), and stops at the end of the stream or a read's failure."""
+    async def run():
+        ahead = ReadAhead(8, 1 << 20)
+        for item in (b"a", b"b", b"c", grpc.aio.EOF, b"late"):
+            await ahead.put(item)
+        assert await ahead.take() == [b"a", b"b", b"c", grpc.aio.EOF]
+        assert await ahead.take() == [b"late"]
+        failed = ValueError("read failed")
+        await ahead.put(b"d")
+        await ahead.put(failed)
+        assert await ahead.take() == [b"d", failed]
+        waiting = asyncio.ensure_future(ahead.take())
+        await asyncio.sleep(0)
+        assert not waiting.done()
+        await ahead.put(b"e")
+        assert await asyncio.wait_for(waiting, 5) == [b"e"]
+    asyncio.run(run())
+
+
 def test_blend_streams_read_ahead_is_bounded_in_bytes():
     """A reader stops taking requests once what waits for a reply reaches the byte bound (one
     request past it), and goes on as the writer takes them."""
     async def run():
-        ahead = blending._ReadAhead()
+        ahead = ReadAhead(blending.STREAM_READ_AHEAD, blending.STREAM_READ_AHEAD_BYTES)
         size = blending.STREAM_READ_AHEAD_BYTES // 4
         put = 0
 
