@@ -11,6 +11,11 @@
 #include "py_functions.h"
 #include "tick.h"
 
+/* A tick of at most this many rows keeps the GIL (tens of us): released, the thread that took
+ * it meanwhile (a server's event loop) holds it until its switch interval (5 ms) or its next
+ * wait, and the step's lock is held all that time. */
+#define TICK_RELEASE_ROWS 64
+
 typedef struct {
     PyObject_HEAD
     dq_tick_options o;
@@ -231,9 +236,13 @@ PyObject *py_tick(PyObject *self, PyObject *args)
     uint8_t *bytes = NULL;
     size_t len = 0;
     int code;
-    Py_BEGIN_ALLOW_THREADS
-    code = dq_tick(&opt, &in, &bytes, &len);
-    Py_END_ALLOW_THREADS
+    if (n > TICK_RELEASE_ROWS) {
+        Py_BEGIN_ALLOW_THREADS
+        code = dq_tick(&opt, &in, &bytes, &len);
+        Py_END_ALLOW_THREADS
+    } else {
+        code = dq_tick(&opt, &in, &bytes, &len);
+    }
     if (code < 0) {
         PyErr_NoMemory();
     } else if (code == DQ_TICK_PYTHON) {
