@@ -86,12 +86,15 @@ class Subscription:
         ``(times, cut, ends)``: the latest ``most`` listed, the ``cut`` older ones counted (a
         body whose time leapt: a billion ticks are a range, never a list), ``ends`` the times of
         the first and the last of those."""
-        if self.schedule is None:
+        schedule = self.schedule
+        if schedule is None:
             return [None], 0, []
-        ks = self.schedule.due(body, window.horizon, window.floor)
-        cut = max(0, len(ks) - most)
-        time = functools.partial(self.schedule.time, body)
-        return [time(k) for k in ks[cut:]], cut, [time(ks[0]), time(ks[cut - 1])] if cut else []
+        ks = schedule.due(body, window.horizon, window.floor)
+        if len(ks) <= most:     # the common case: a tick or two
+            return [schedule.time(body, k) for k in ks], 0, []
+        cut = len(ks) - most
+        time = functools.partial(schedule.time, body)
+        return [time(k) for k in ks[cut:]], cut, [time(ks[0]), time(ks[cut - 1])]
 
 
 class Rows(NamedTuple):

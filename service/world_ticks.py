@@ -76,8 +76,10 @@ class Schedule:
         are complete up to ``horizon``, not before ``floor``."""
         rate, phase = self.rate, self.phase(body)
         k = self.next.get(body)
-        first = first_tick(floor, rate, phase)
-        k = first if k is None else max(k, first)
+        # a next tick at or after the floor is at or after the floor's first: not looked for
+        if k is None or self.next_time[body] < floor:
+            first = first_tick(floor, rate, phase)
+            k = first if k is None else max(k, first)
         end = first_tick(horizon, rate, phase)
         if tick_time(end, rate, phase) <= horizon:
             end += 1
