@@ -175,6 +175,11 @@ class Tracker:
         if bounds is not None:
             self.cap = bounds.cap(robust, bool(acceleration_psd is not None
                                                and np.any(acceleration_psd)))
+        # the store's C check's rules (window, cap, max_time, max_time_jump, max_rows; < 0: none)
+        b = bounds
+        self._rules = (self.window, -1 if self.cap is None else self.cap,
+                       math.inf if b is None else b.max_time,
+                       math.inf if b is None else b.max_time_jump, -1 if b is None else b.max_rows)
 
     @property
     def exact(self) -> bool:
@@ -493,16 +498,13 @@ class Tracker:
         the window floor, the room, then the store), its refusals named here (:meth:`_refusal`).
         A body or source new to the tracker is coded first (unless not ``new_names``: then None,
         nothing done)."""
-        s, b = self._store, self.bounds
+        s = self._store
         s.reserve(len(bodies), self._newest, self.window, self.cap)
         wposes = wcovs = None
         if self._framed and (ok is None or ok.any()):
             wposes, wcovs = self._in_world(sources, poses, covs,
                                            np.ones(len(bodies), bool) if ok is None else ok)
-        rules = (self.window, -1 if self.cap is None else self.cap,
-                 math.inf if b is None else b.max_time, math.inf if b is None else b.max_time_jump,
-                 -1 if b is None else b.max_rows, None if origin is None else hash(origin),
-                 all_or_none)
+        rules = self._rules + (None if origin is None else hash(origin), all_or_none)
         got = s._index.ingest(s, self._newest, self._by_source, self._latency, bodies,
                               self._body_codes, sources, self._codes, ids, times, poses, covs, ok,
                               wposes, wcovs, *rules)
