@@ -295,6 +295,10 @@ class Hub:
         # a body's horizon is never past its newest measurement: most steps, its next tick is
         # beyond that, and neither its horizon nor its window is looked at
         tops = self.world.newest_of(bodies)
+        # a body's answers for a subscription that asks what an earlier one asked, its next
+        # tick and its capped note where that one's were: the same answers, the same next tick
+        # (kept only when the budget took every answer: fits made are free, so it does again)
+        same: dict[tuple, tuple] = {}
         # clients in the order they came, then the internal ones (sorted() keeps the order)
         for sub in sorted(self._subscriptions.values(), key=lambda s: s.internal):
             if sub.closed:          # ended by its owner, not yet taken out
@@ -315,19 +319,35 @@ class Hub:
                         h = horizons[body] = self.world.horizon(body)
                     if at.get(body, -math.inf) > h:
                         continue
+                key = (sub.interest, body, None if schedule is None else schedule.next.get(body),
+                       body in sub.capped)
+                if key in same:
+                    out, after, capped = same[key]
+                    if after is not None and schedule is not None:
+                        schedule.next[body], schedule.next_time[body] = after
+                    if capped:
+                        sub.capped.add(body)
+                    answers += out
+                    continue
                 w = windows.get(body) or windows.setdefault(body,
                                                             self.world.tick_window(body, h))
-                answers += self._due(sub, body, w, made, budget, correlated)
+                out, whole = self._due(sub, body, w, made, budget, correlated)
+                if whole:
+                    same[key] = (out, (schedule.next[body], schedule.next_time[body])
+                                 if schedule is not None else None,
+                                 not key[3] and body in sub.capped)
+                answers += out
             if answers:
                 sub.deliver(answers)
         return budget.spent
 
     def _due(self, sub: Subscription, body: str, w: TickWindow, made: dict,
-             budget: _limits.Budget, correlated: bool) -> list:
+             budget: _limits.Budget, correlated: bool) -> tuple[list, bool]:
         """``sub``'s answers of ``body`` due in this step, StreamFuse's order: that its window
-        is capped (once), the ticks its budget skips (a body's oldest, named), the answers. A
-        fit not ``made`` yet costs what it fuses (relative to another body, that body's window
-        and its own again besides; ``correlated``: the world's fits are)."""
+        is capped (once), the ticks its budget skips (a body's oldest, named), the answers; and
+        whether the budget took every one. A fit not ``made`` yet costs what it fuses (relative
+        to another body, that body's window and its own again besides; ``correlated``: the
+        world's fits are)."""
         options = self.world.options
         # no more can be answered than the budget has left (an answer costs its own window at
         # least) and what is made already
@@ -335,7 +355,7 @@ class Hub:
                 + len(made))
         times, cut, ends = sub.due(body, w, most)
         if not times:
-            return []
+            return [], True
         r, out = self.requests, []
         if w.capped and body not in sub.capped:
             sub.capped.add(body)
@@ -365,7 +385,7 @@ class Hub:
                              else self._answer(body, t, rel, r, picked if t is None or
                                                w.floor <= t <= w.horizon else None))
             out.append(made[key])
-        return out
+        return out, not (skip or cut)
 
     def _answer(self, body: str, t: Optional[float], relative_to: str, r: int,
                 picked: Optional[np.ndarray] = None) -> bytes:

@@ -244,3 +244,33 @@ def test_a_billion_ticks_due_at_once_are_counted_not_listed():
         (skip,) = [a for a in answers if a.startswith(b"error") and b" r1:" in a]
         assert b": 999999990 ticks from " in skip and b"max_fused_per_request" in skip, name
     assert got["first"][-10:] == got["second"][-10:]
+
+
+def test_subscriptions_asking_the_same_get_what_each_would_get_alone():
+    """A step makes a body's answers once for the subscriptions that ask the same with the
+    same next tick and the same note said: each still gets what it gets as a world's only
+    subscription, its window's capped note once, and one that came later its own ticks."""
+    def run(only=None) -> dict:
+        h = made()
+        h.world.bounds = WorldBounds(max_measurements_per_body=2)     # a fit takes two
+        h.configure([Source("cam")], {}, WorldOptions(window=0.2, buffer=2.0, max_delay=0.0))
+        got: dict[str, list] = {"early": [], "again": [], "late": []}
+
+        def join(name):
+            if only in (None, name):
+                h.subscribe(Subscription(Interest(None, RATE), got[name].extend))
+        join("early")
+        join("again")
+        for k in range(8):
+            if k == 3:
+                join("late")
+            step(h, "cam", "call", k + 1,
+                 rows(["box", "cup", "box"], [0.03 * k, 0.03 * k, 0.03 * k + 0.01]))
+        return got
+
+    together = run()
+    for name in together:
+        assert together[name] == run(name)[name], name
+    assert together["early"] == together["again"]
+    assert together["late"] and together["late"] != together["early"][-len(together["late"]):]
+    assert sum(a.startswith(b"error box") for a in together["again"]) == 1
