@@ -188,6 +188,11 @@ def test_an_execute_right_after_a_cancel_is_never_internal(rig):
         got, err = run_out(c.execute(r.name, [here, offset(here, dz=0.005)], LIMITS))
         if err is None:
             assert got[-1].state == "FINISHED"
+        elif err.code.name == "ABORTED":
+            # a starved machine: the control loop came late for a set-point, which the arm
+            # refuses as over its limits and stops (a safety stop, not INTERNAL)
+            assert got[-1].state == "LIMITED" and "late for the set-point" in got[-1].message, (
+                got[-1].message)
         else:
             assert err.code.name == "FAILED_PRECONDITION", err
             assert err.details.startswith("plan.waypoints[0].pose"), err.details
