@@ -319,6 +319,44 @@ static int fit_static(const dq_tick_options *o, const tick_setup *u, const doubl
     return DQ_OK;
 }
 
+/* The rows max_skew dropped, with their reasons, as the answer's dropped entries. */
+static void dropped(const dq_tick_options *o, const dq_tick_input *in, const tick_setup *u,
+                    char **at, dq_fused_pose *w)
+{
+    const size_t n = in->n;
+    dq_wire_dropped *d = carve(at, sizeof(dq_wire_dropped) * n);
+    char *text = carve(at, (size_t)REASON_MAX * n);
+    for (size_t i = 0; i < n; i++) {
+        if (!u->drop[i]) continue;
+        dq_wire_dropped *x = d + w->n_dropped++;
+        x->index = (uint32_t)i;
+        x->source = o->names[in->codes[in->rows[i]]];
+        x->age = u->time - u->taken[i];
+        x->reason.s = text;
+        x->reason.n = dropped_reason(text, i, x->source, x->age, o->max_skew);
+        text += REASON_MAX;
+    }
+    w->dropped = d;
+}
+
+/* The estimated latencies' entries (one instant shows none estimated: each keeps its prior). */
+static void latencies(const dq_tick_options *o, const tick_setup *u, const tick_fit *t,
+                      char **at, dq_fused_pose *w)
+{
+    dq_wire_latency *lat = carve(at, sizeof(dq_wire_latency) * (u->k + 1));
+    for (size_t j = 0; j < u->k; j++) {
+        int64_t c = u->estimated[j];
+        lat[j].source = o->names[c];
+        lat[j].configured = o->latency[c];
+        lat[j].prior_sigma = o->sigma[c];
+        lat[j].value = u->one_instant ? o->latency[c] : t->ell[j];
+        lat[j].sigma = u->one_instant ? o->sigma[c]
+                                      : sqrt(t->P[(12 + j) * t->dim + 12 + j]);
+    }
+    w->latencies = lat;
+    w->n_latencies = u->k;
+}
+
 int dq_tick(const dq_tick_options *o, const dq_tick_input *in, uint8_t **out, size_t *len)
 {
     const size_t n = in->n, m = o->m;
@@ -398,34 +436,9 @@ int dq_tick(const dq_tick_options *o, const dq_tick_input *in, uint8_t **out, si
     for (size_t i = 0; i < n; i++) ids[i] = (uint64_t)in->ids[in->rows[i]];
     w.measurements = ids;
     w.n_measurements = n;
-    if (u.skewed && !u.one_instant) { /* the static fit's answer lists none */
-        dq_wire_dropped *d = carve(&at, sizeof(dq_wire_dropped) * n);
-        char *text = carve(&at, (size_t)REASON_MAX * n);
-        for (size_t i = 0; i < n; i++) {
-            if (!u.drop[i]) continue;
-            dq_wire_dropped *x = d + w.n_dropped++;
-            x->index = (uint32_t)i;
-            x->source = o->names[in->codes[in->rows[i]]];
-            x->age = u.time - u.taken[i];
-            x->reason.s = text;
-            x->reason.n = dropped_reason(text, i, x->source, x->age, o->max_skew);
-            text += REASON_MAX;
-        }
-        w.dropped = d;
-    }
+    if (u.skewed && !u.one_instant) dropped(o, in, &u, &at, &w); /* the static fit lists none */
     w.extrapolation = u.extrapolation;
-    dq_wire_latency *lat = carve(&at, sizeof(dq_wire_latency) * (u.k + 1));
-    for (size_t j = 0; j < u.k; j++) { /* one instant shows no latency: each keeps its prior */
-        int64_t c = u.estimated[j];
-        lat[j].source = o->names[c];
-        lat[j].configured = o->latency[c];
-        lat[j].prior_sigma = o->sigma[c];
-        lat[j].value = u.one_instant ? o->latency[c] : t.ell[j];
-        lat[j].sigma = u.one_instant ? o->sigma[c]
-                                     : sqrt(t.P[(12 + j) * t.dim + 12 + j]);
-    }
-    w.latencies = lat;
-    w.n_latencies = u.k;
+    latencies(o, &u, &t, &at, &w);
     *out = (uint8_t *)malloc(dq_fused_pose_bound(&w));
     if (*out) *len = dq_fused_pose_write(&w, *out);
     free(t.joint);
