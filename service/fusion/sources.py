@@ -30,13 +30,18 @@ class Source:
     perturbation of ``T_world_frame`` (the true extrinsic is ``extrinsic · Exp(ε)``,
     ``ε ~ N(0, Σ)``), e.g. a hand-eye calibration's covariance. Every measurement of the source
     shares the one ``ε``; :mod:`dqpose.fusion.extrinsics` estimates it jointly with the body.
-    ``None``: the extrinsic is exact."""
+    ``None``: the extrinsic is exact.
+
+    ``parent``: the frame ``extrinsic`` is given in (``T_parent_frame``): "" the world; a body's
+    or a static's name in a :class:`dqpose.world.World`, which composes the parent's pose at each
+    measurement's taken time when it fits (:func:`fuse` has no parents: it refuses one)."""
     name: str
     extrinsic: Optional[np.ndarray] = None
     body_offset: Optional[np.ndarray] = None
     latency: float = 0.0
     latency_sigma: Optional[float] = None
     extrinsic_covariance: Optional[np.ndarray] = None
+    parent: str = ""
 
     @property
     def exact(self) -> bool:
@@ -91,11 +96,14 @@ def _sources(sources: Optional[Iterable[Source]]) -> dict[str, Source]:
             raise ValueError(f"sources[{k}].name: {problem}")
         if s.name in table:
             raise ValueError(f"sources[{k}]: source {quoted(s.name)} given twice")
+        problem = name_problem(s.parent, empty=True)
+        if problem is not None:
+            raise ValueError(f"sources[{k}].parent: {problem}")
         table[s.name] = Source(
             s.name,
             None if s.extrinsic is None else _pose(s.extrinsic, f"sources[{k}].extrinsic"),
             None if s.body_offset is None else _pose(s.body_offset, f"sources[{k}].body_offset"),
-            *_latency(s, k), _extrinsic_covariance(s, k))
+            *_latency(s, k), _extrinsic_covariance(s, k), s.parent)
     return table
 
 
