@@ -153,17 +153,17 @@ def sources_from_msg(msgs, field: str = "options.sources") -> tuple[fusion.Sourc
     for k, s in enumerate(msgs):
         where = f"{field}[{k}]"
         check_name(s.name, f"{where}.name")
-        extra = {}
+        cov = None
         n = len(s.extrinsic_covariance)
         if n not in (0, COVARIANCE_SIZE):
             raise FieldError(f"{where}.extrinsic_covariance: expected {COVARIANCE_SIZE} values "
                              f"(6x6, row-major, rotation first) or none, got {n}")
         if n:
-            extra["extrinsic_covariance"] = np.array(
+            cov = np.array(
                 s.extrinsic_covariance, dtype=np.float64).reshape(fusion.DOF, fusion.DOF)
         sources.append(fusion.Source(s.name, optional_pose(s, "extrinsic", where),
                                      optional_pose(s, "body_offset", where), s.latency,
-                                     s.latency_sigma or None, **extra))
+                                     s.latency_sigma or None, cov))
     return tuple(sources)
 
 
