@@ -7,6 +7,9 @@ CALLS_TOPIC = "/dqpose/calls"
 #: ``error`` says why)
 DROPPED_TOPIC = "/dqpose/record/dropped"
 TF_TOPIC = "/tf"
+#: a World's frames fixed in their parents (statics, sources), one message a Configure (tf2's
+#: latched ``/tf_static``: repeated at the start of each later file of the run)
+TF_STATIC_TOPIC = "/tf_static"
 ELLIPSOIDS_TOPIC = "/fused/ellipsoids"
 #: views are drawn for this many bodies a file at most (each has its channels)
 MAX_VIEW_BODIES = 1000

@@ -34,6 +34,8 @@ WORLD = "world"
 EXECUTE_REQUEST = "dqpose.v1.ExecuteRequest"
 EXECUTION_FEEDBACK = "dqpose.v1.ExecutionFeedback"
 ARM_STATE = "dqpose.v1.ArmState"
+#: the World's configuration, whose frames a recording shows on ``/tf_static``
+WORLD_CONFIG = "dqpose.v1.WorldConfig"
 #: the ellipsoids' size: the position's n-sigma surface
 ELLIPSOID_SIGMAS = 3.0
 
@@ -73,6 +75,19 @@ def frame_transforms(ns: int, items) -> FrameTransforms:
                        translation=Vector3(x=t[0], y=t[1], z=t[2]),
                        rotation=Quaternion(w=q[0], x=q[1], y=q[2], z=q[3]))
         for parent, child, t, q in items])
+
+
+def static_transforms(config) -> FrameTransforms:
+    """``/tf_static`` of a World's configuration in force (``dqpose.v1.WorldConfig``, Configure's
+    answer): each static ``parent → child`` at its pose and each named source in its parent at
+    its extrinsic (an unset pose is the identity; the world ``""`` is :data:`WORLD`), stamped 0:
+    valid at every time, as tf2 takes a static transform."""
+    def edge(parent: str, child: str, pose, given: bool):
+        return (parent or WORLD, child, *(pose_of(pose) if given else IDENTITY))
+    return frame_transforms(0, [edge(s.parent, s.child, s.pose, s.HasField("pose"))
+                                for s in config.statics] +
+                            [edge(s.parent, s.name, s.extrinsic, s.HasField("extrinsic"))
+                             for s in config.sources if s.name])
 
 
 def ellipsoid_axes(cov_position) -> tuple[np.ndarray, np.ndarray]:
@@ -124,6 +139,10 @@ def scalars(fused) -> dict:
 def tool_frame(arm: str) -> str:
     """The frame of an arm's tool on ``/tf``."""
     return f"{arm}/tool"
+
+
+#: ``(t, q)`` of the identity
+IDENTITY = ((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0))
 
 
 def pose_of(msg) -> tuple[tuple, tuple]:

@@ -37,6 +37,7 @@ from dqpose.record.topics import (
     FEEDBACK_FIELDS,
     MAX_VIEW_BODIES,
     STATS_FIELDS,
+    TF_STATIC_TOPIC,
     TF_TOPIC,
     answers_topic,
     arm_topic,
@@ -79,6 +80,9 @@ class Writer:
         # the request of a call whose answers' views need it (an Execute's arm, a Calibrate's
         # views and setup)
         self.requests: dict[int, Any] = {}
+        # each world's last /tf_static message (its frames fixed in their parents), latched:
+        # repeated at the start of every later file
+        self.latched: dict[str, bytes] = {}
         # frames (schemas aside) a file took, and those lost because no file could be written
         # (a file's last chunk, being filled when its write failed, is lost with it uncounted)
         self.written = self.failed = 0
@@ -112,6 +116,9 @@ class Writer:
                 self.resume(self.file)
             for call, began in self.calls.items():
                 self.log_call((self.file,), call, time.time_ns(), *began, continued=True)
+            for data in self.latched.values():
+                self.file.write(self.file.channel(TF_STATIC_TOPIC, views.FrameTransforms),
+                                time.time_ns(), data)
         return self.file
 
     def fail(self, error: BaseException, ns: int, path: str | None = None) -> None:
@@ -250,6 +257,8 @@ class Writer:
                     msg = self.message(ans, payload)
                     for s in sinks:
                         self.handeye_views(s, ns, self.requests[call], msg)
+                elif ans == views.WORLD_CONFIG:
+                    self.static_views(sinks, ns, began[3], self.message(ans, payload))
                 elif ans == views.ARM_STATE:
                     msg = self.message(ans, payload)
                     for s in sinks:
@@ -309,6 +318,17 @@ class Writer:
                 [views.ellipsoid(at, body, msg.covariance)]).SerializeToString())
         s.write_json(s.json_channel(stats_topic(body), "dqpose.record.FusedStats",
                                     STATS_FIELDS), ns, views.scalars(msg))
+
+    def static_views(self, sinks, ns: int, world: str, config) -> None:
+        """A World's configuration in force (Configure's answer) on ``/tf_static``: one message
+        of its statics and sources, kept as the world's latched one (none when it has none)."""
+        msg = views.static_transforms(config)
+        if not msg.transforms:
+            self.latched.pop(world, None)
+            return
+        self.latched[world] = data = msg.SerializeToString()
+        for s in sinks:
+            s.write(s.channel(TF_STATIC_TOPIC, views.FrameTransforms), ns, data)
 
     @staticmethod
     def feedback_views(s: Sink, ns: int, arm: str, msg) -> None:

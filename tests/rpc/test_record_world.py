@@ -13,6 +13,7 @@ from mcap.reader import make_reader
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
+from dqpose import dq
 from dqpose.record.reader import read
 from dqpose.record.recorder import Recorder
 from dqpose.record.ros2 import export
@@ -20,7 +21,7 @@ from dqpose.record.schemas import message_class
 from dqpose.rpc.client import Client
 from dqpose.rpc.server import ServerConfig
 from tests.rpc._grpc_server import ServerThread
-from tests.rpc.test_world_service import SOURCES, TWIST, joined, measurements
+from tests.rpc.test_world_service import EXTRINSICS, SOURCES, TWIST, joined, measurements
 
 #: the world's measurements are stamped in Unix seconds (2017: far from the arrival, now)
 T0 = 1.5e9
@@ -83,6 +84,23 @@ def test_views_carry_the_poses_time_and_are_logged_at_arrival(recorded):
     cup_e = [stamped(e.timestamp) for _, m in ellipsoids
              for e in SceneUpdate.FromString(m.data).entities if e.id == "cup"]
     assert cup_e == pytest.approx(cup, abs=1e-6)
+
+
+def test_the_worlds_sources_are_on_tf_static_as_configured(recorded):
+    """Configure's answer through the server: each source in the world at its extrinsic, one
+    message, stamped 0 (valid at every time), logged at its arrival."""
+    _, _, got, started = recorded
+    (tf,) = [(sc, m) for t, sc, m in got if t == "/tf_static"]
+    msg = message_class(tf[0].data, "foxglove.FrameTransforms").FromString(tf[1].data)
+    assert started <= tf[1].log_time <= time.time_ns()
+    edges = {(x.parent_frame_id, x.child_frame_id): x for x in msg.transforms}
+    assert set(edges) == {("world", name) for name in EXTRINSICS}
+    for name, T in EXTRINSICS.items():
+        x = edges["world", name]
+        assert stamped(x.timestamp) == 0
+        got_T = dq.from_pose([x.rotation.w, x.rotation.x, x.rotation.y, x.rotation.z],
+                             [x.translation.x, x.translation.y, x.translation.z])
+        np.testing.assert_allclose(dq.to_matrix(got_T), dq.to_matrix(T), atol=1e-12)
 
 
 def test_the_ros2_bag_stamps_the_poses_time(recorded):
