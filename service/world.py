@@ -354,8 +354,7 @@ class World:
             return seen[source]
 
     def horizon(self, body: str) -> float:
-        """``body``'s horizon (:func:`dqpose.world_ticks.horizon`), as :meth:`tick_window` has
-        it."""
+        """``body``'s horizon (:func:`dqpose.world_ticks.horizon`) as :meth:`tick_window` has it."""
         with self._lock.read():
             return horizon(self._fed(body), self.options.max_delay)
 
@@ -564,6 +563,11 @@ class World:
             answer = self._lookups.relative(target, source, at)
             self._relatives.keep(key, (versions, answer))
             return answer
+
+    def relative_at(self, target, time, source, source_time=0.0, fixed="") -> BodyPose:
+        """tf2's advanced lookup through ``fixed`` (:func:`dqpose.two_times.relative_at`)."""
+        from dqpose.two_times import relative_at
+        return relative_at(self, target, time, source, source_time, fixed)
 
     def stamp(self, *bodies: str) -> tuple[int, ...]:
         """What an answer about ``bodies`` depends on: the configuration's number and each

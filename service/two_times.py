@@ -1,0 +1,163 @@
+"""tf2's advanced lookup: the target frame at ``time``, the source frame at ``source_time``,
+through a ``fixed`` frame held still between the two times,
+
+    T_target(t)_source(s) = T_target_fixed(t) · T_fixed_source(s)
+                          = T_w_target(t)⁻¹ · T_w_fixed(t) · T_w_fixed(s)⁻¹ · T_w_source(s),
+
+each factor a body's Lookup fit at its time (:meth:`dqpose.world.World.pose`'s window; the world
+frame "" is exact). ``time`` 0 is the newest time target and source are both known at (a Lookup's
+rule), ``source_time`` 0 is ``time``; at one time the answer is :meth:`World.relative`'s.
+
+The covariance model. Each factor k is an estimate with right perturbation ``δ_k``; the answer's
+right perturbation is ``ξ = Σ_k G_k δ_k`` (``G_k``: the adjoint of the inverse of what follows
+factor k in the product, and ``−Ad(T_k)`` first for an inverted factor), so ``Cov ξ = G Σ Gᵀ``
+over the joint covariance ``Σ`` of the factors. Its diagonal blocks are the fits' covariances;
+two fits of the same body at two times share the measurements both windows hold, and to first
+order the Gauss-Newton estimates ``x_k = P_k Σ_{i∈R_k} J_kiᵀ W_i r_i`` (state: pose and twist,
+``P_k`` the inverse information with the twist prior, ``J_ki`` the motion model's Jacobian of
+:mod:`dqpose.fusion.motion`, ``W_i = Σ_i⁻¹`` in the world frame) have
+``Cov(x_1, x_2) = P_1 (Σ_{i∈R_1∩R_2} J_1iᵀ W_i J_2i) P_2``, whose pose block is their block.
+Fits of different bodies are independent.
+
+Not modelled: errors two bodies' fits at two different times share (a source's uncertain
+extrinsic or estimated latency: at one time :meth:`World.relative` fits them jointly); the
+latencies a fit estimates (left out of ``P_k``); a robust fit's gate (its inliers are taken as
+given); ``acceleration_psd``'s correlated residuals (the shared rows taken as white noise).
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from dqpose import dq, lie
+from dqpose.fusion.motion import _Model, _motion_jacobian
+from dqpose.fusion.results import DOF
+from dqpose.fusion.validation import _seconds, _twist_information
+
+IDENTITY = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
+
+
+class _Fit(NamedTuple):
+    """A body's Lookup fit at ``time``: its pose and covariance, and what another fit of the
+    body needs for their cross-covariance: the ids of its inlier rows, their Jacobians ``J``
+    ``(n, 6, d)`` and weights ``W`` ``(n, 6, 6)``, and ``P`` ``(d, d)``."""
+    body: str
+    time: float
+    pose: np.ndarray
+    covariance: np.ndarray
+    ids: np.ndarray
+    J: np.ndarray
+    W: np.ndarray
+    P: np.ndarray
+
+
+def relative_at(world, target: str, time: float, source: str, source_time: float = 0.0,
+                fixed: str = ""):
+    """``T_target(time)_source(source_time)`` through ``fixed`` (see the module) as a
+    :class:`dqpose.world.BodyPose` at ``time``: ``WorldError``, ``NotFound`` or ``OutOfRange``
+    as :meth:`World.relative` names them."""
+    from dqpose.world import BodyPose, _body_name
+
+    target, source = _body_name(target, "target"), _body_name(source, "source")
+    fixed = _body_name(fixed, "fixed_frame")
+    try:
+        _seconds(time, "time")
+        _seconds(source_time, "source_time")
+    except ValueError as e:
+        from dqpose.errors import WorldError
+        raise WorldError.of(e) from None
+    if fixed:
+        world.newest(fixed)         # a frame the world knows (NotFound names what it holds)
+    at = float(time) if time != 0.0 else _newest_both(world, target, source, fixed)
+    s = at if source_time == 0.0 else float(source_time)
+    if s == at:
+        return world.relative(target, source, at)
+    factors = [(target, at, True), (fixed, at, False), (fixed, s, True), (source, s, False)]
+    if target == fixed:             # T_target_target(t): exact, known at t
+        factors = factors[2:]
+        if target:
+            world.pose(target, at)
+    if fixed == source:
+        factors = factors[:-2]
+        if source:
+            world.pose(source, s)
+    fits = {(b, t): _fit(world, b, t) for b, t, _ in factors if b}
+    pose, cov = _compose([(fits[(b, t)], inverse) for b, t, inverse in factors if b])
+    return BodyPose(source, at, pose, cov, None)
+
+
+def _newest_both(world, target: str, source: str, fixed: str) -> float:
+    """``time`` 0: the newest time target and source are both known at (the fixed frame's
+    newest when both are the world)."""
+    times = [world.newest(b) for b in (target, source) if b]
+    if not times and fixed:
+        times = [world.newest(fixed)]
+    return min(times) if times else 0.0
+
+
+def _fit(world, body: str, at: float) -> _Fit:
+    """``body``'s Lookup fit at ``at`` with what its cross-covariance needs (see the module).
+    Read under the world's read lock, from its tracker's rows: this module is the World's."""
+    with world._lock.read():
+        world._known(body)
+        t = world._t
+        rows = world._rows_for(body, at)
+        f, ids = world._fit_of(body, rows, lambda r: t.estimate_rows(r, at, False))
+        S = t._store.world(rows)[1]
+        dt = t.taken_of(rows) - f.time
+        twist_cov = world.options.twist_covariance
+    keep = np.asarray(f.inliers)
+    # one instant without a twist prior is the static fit: the pose alone
+    twist = f.twist is not None
+    Wp = None if twist_cov is None or not twist else _twist_information(twist_cov)[1]
+    n = keep.size
+    model = _Model(dt[keep], np.zeros(n), -np.ones(n, dtype=np.int64), np.empty(0), np.empty(0),
+                   twist, Wp)
+    V = np.asarray(f.twist) if twist else np.zeros(DOF)
+    J = _motion_jacobian(V, dt[keep], np.asarray(f.residuals)[keep], model)
+    W = np.linalg.inv(S[keep])
+    H = np.einsum("nia,nij,njb->ab", J, W, J)
+    if Wp is not None:
+        H[6:12, 6:12] += Wp
+    return _Fit(body, float(f.time), np.asarray(f.mean), np.asarray(f.covariance),
+                np.asarray(ids)[keep], J, W, np.linalg.inv(H))
+
+
+def cross_covariance(a: _Fit, b: _Fit) -> np.ndarray:
+    """``Cov(δ_a, δ_b)`` ``(6, 6)`` of two fits of the same body: ``P_a (Σ J_aᵀ W J_b) P_b``
+    over the rows both used, its pose block."""
+    shared, ia, ib = np.intersect1d(a.ids, b.ids, assume_unique=True, return_indices=True)
+    if not shared.size:
+        return np.zeros((DOF, DOF))
+    M = np.einsum("nia,nij,njb->ab", a.J[ia], a.W[ia], b.J[ib])
+    return (a.P @ M @ b.P)[:DOF, :DOF]
+
+
+def _block(a: _Fit, b: _Fit, shared: bool) -> np.ndarray:
+    """The joint covariance's block of two factors' fits (``shared`` False: the rows two fits
+    share left out, every fit independent)."""
+    if a is b:
+        return a.covariance
+    if a.body != b.body or not shared:
+        return np.zeros((DOF, DOF))
+    return cross_covariance(a, b)
+
+
+def _compose(factors: list, shared: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """The product of ``factors`` (``(fit, inverted)``, in order) and its covariance ``G Σ
+    Gᵀ`` (``shared`` False: as if the fits were independent, what the tests compare with)."""
+    if not factors:
+        return IDENTITY.copy(), np.zeros((DOF, DOF))
+    poses = [dq.conj(f.pose) if inv else f.pose for f, inv in factors]
+    G, after = [], IDENTITY
+    for (f, inv), pose in zip(reversed(factors), reversed(poses)):
+        g = lie.adjoint(dq.conj(after))
+        G.append(-g @ lie.adjoint(f.pose) if inv else g)
+        after = dq.mul(pose, after)
+    G.reverse()
+    cov = np.zeros((DOF, DOF))
+    for (a, _), ga in zip(factors, G):
+        for (b, _), gb in zip(factors, G):
+            cov += ga @ _block(a, b, shared) @ gb.T
+    return after, 0.5 * (cov + cov.T)
