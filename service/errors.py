@@ -83,6 +83,11 @@ class OutOfRange(LookupError):
     message names what is known."""
 
 
+class NotYet(OutOfRange):
+    """A time past the newest measurement beyond ``max_extrapolation``: measurements to come
+    may answer it (a Lookup's ``wait`` waits for them)."""
+
+
 class Infeasible(ValueError):
     """Well-formed input whose demands cannot be met (waypoint times too short for the limits, a
     path the limits cannot follow): gRPC's ``FAILED_PRECONDITION`` rather than

@@ -149,6 +149,9 @@ class Hub:
         self.requests = 0                        # Publish requests, in the world's order
         self.measurements = 0                    # measurements numbered in that order
         self.answers = Answers(encoder.relative)
+        # called after each Publish step with the bodies it brought, under the lock (they must
+        # not block: dqpose.rpc.world_wait's waiting Lookups hand them to their event loop)
+        self.listeners: set[Callable[[tuple], None]] = set()
 
     @classmethod
     def open_stream(cls, sources, options: WorldOptions, rate: float, tracker: TrackerBounds,
@@ -276,6 +279,8 @@ class Hub:
                        ) if published.errors else ()
         cost = self._answer_subscriptions(published.bodies)
         self.answers.refresh(self.world, published.bodies)
+        for listener in tuple(self.listeners):
+            listener(published.bodies)
         return errors, cost
 
     def _answer_subscriptions(self, bodies: tuple) -> int:

@@ -145,6 +145,10 @@ class Limits:
         16, "streams", "Subscribe/SubscribeBatches and WatchArm streams of one peer (its bearer "
                        "token when the server has one, else its host), each counted until its "
                        "client has closed it", lo=1)
+    max_world_waits: int = _limit(
+        64, "lookups", "World Lookups waiting (LookupRequest.wait) in one world at once", lo=1)
+    max_peer_waits: int = _limit(
+        16, "lookups", "World Lookups of one peer waiting (LookupRequest.wait) at once", lo=1)
     max_peer_streams: int = _limit(
         64, "streams", "streams of any RPC of one peer (BlendStream, StreamFuse, Publish, "
                        "Subscribe, Plan, Execute, WatchArm...), each counted until its client "

@@ -29,7 +29,7 @@ import numpy as np
 
 from dqpose import limits as _limits
 from dqpose.answers import Kept
-from dqpose.errors import NotFound, OutOfRange, WorldError
+from dqpose.errors import NotFound, NotYet, OutOfRange, WorldError
 from dqpose.fusion import (
     DEFAULT_MAX_EXTRAPOLATION,
     DEFAULT_PROBABILITY,
@@ -517,7 +517,7 @@ class World:
                               f"(buffer {self.options.buffer:g} s)")
         limit = self.options.max_extrapolation
         if limit is not None and at > newest + limit:
-            return OutOfRange(f"time: {_s(at)} is {at - newest:.6g} s past the newest "
+            return NotYet(f"time: {_s(at)} is {at - newest:.6g} s past the newest "
                               f"measurement, beyond max_extrapolation {limit:g} s; {known}")
         return OutOfRange(f"time: no measurement of {body!r} in the window "
                           f"{self.options.window:g} s ending at {_s(end)}; {known}")

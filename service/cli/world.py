@@ -20,7 +20,9 @@ watch: one line per answer: the time in s since the first answer's, the body, it
   of position (mm) and rotation (deg) along the least certain direction, then the sources' NIS
   verdicts in name order and the latencies the world estimates. Ctrl-C ends it.
 lookup: T_target_source (tf2's lookupTransform order; "" or "world" is the world frame) at
-  --time (0: the newest time both are known at): position, rotation, one sigma as watch has them.
+  --at (alias --time; 0: the newest time both are known at): position, rotation, one sigma as
+  watch has them. --source-time: the source at that time through --fixed-frame (tf2's advanced
+  lookupTransform); --wait S: wait up to S s for the data (tf2's waitForTransform).
 --json: one JSON object per answer (watch: a line each) with SI units, absolute times, the pose
   with named components (as the pose files have it) and the 6x6 covariance (rotation first).
 """
@@ -52,8 +54,16 @@ def configure(name: str, p) -> None:
     look = sub.add_parser("lookup", help="the pose of SOURCE in TARGET's frame")
     look.add_argument("frame_target", metavar="TARGET", help="a body, or world")
     look.add_argument("frame_source", metavar="SOURCE", help="a body, or world")
-    look.add_argument("--time", type=float, default=0.0,
+    look.add_argument("--at", "--time", dest="time", type=float, default=0.0, metavar="S",
                       help="measurement time, s (0: the newest both are known at)")
+    look.add_argument("--source-time", type=float, default=0.0, metavar="S",
+                      help="SOURCE at this time, TARGET at --at, through --fixed-frame "
+                           "(tf2's advanced lookup; 0: --at's)")
+    look.add_argument("--fixed-frame", default="", metavar="FRAME",
+                      help="the frame held still between the two times (default: world)")
+    look.add_argument("--wait", type=float, default=0.0, metavar="S",
+                      help="wait up to S seconds (at most 10) for the world to be able to "
+                           "answer (tf2's waitForTransform)")
     for q in (watch, look):
         q.add_argument("--json", action="store_true",
                        help="for machines: JSON, SI units, the pose's components named")
@@ -138,7 +148,9 @@ def _lookup(args) -> int:
     from dqpose.cli.readout import lookup_json, lookup_text
 
     with client(args) as c:
-        r = c.lookup(_frame(args.frame_target), _frame(args.frame_source), args.time)
+        r = c.lookup(_frame(args.frame_target), _frame(args.frame_source), args.time,
+                     wait=args.wait, source_time=args.source_time,
+                     fixed_frame=_frame(args.fixed_frame))
     show = lookup_json if args.json else lookup_text
     sys.stdout.write(show(args.frame_target, args.frame_source, r))
     return 0

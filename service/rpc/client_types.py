@@ -9,7 +9,7 @@ from typing import Iterator, NamedTuple, Optional, Sequence
 import grpc
 import numpy as np
 
-from dqpose import fusion, trajectory
+from dqpose import dq, fusion, lie, trajectory
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as tpb
 from dqpose.rpc.geometry import pose_to_dq
 from dqpose.rpc.resume import replica_of
@@ -124,10 +124,41 @@ class Ack(NamedTuple):
 
 class Relative(NamedTuple):
     """``Lookup``'s answer: ``pose`` ``T_target_source`` ``(8,)`` at ``time``, its ``covariance``
-    ``(6, 6)`` (rotation first, right perturbation)."""
+    ``(6, 6)`` (rotation first, right perturbation); the pose's other forms and its one-sigma
+    figures (:func:`dqpose.lie.cov_sigmas`) as properties."""
     pose: np.ndarray
     covariance: np.ndarray
     time: float
+
+    @property
+    def dq(self) -> np.ndarray:
+        """The pose as a dual quaternion ``(8,)`` (``pose`` itself)."""
+        return self.pose
+
+    @property
+    def position(self) -> np.ndarray:
+        """The translation ``(3,)``, m."""
+        return dq.to_pose(self.pose)[1]
+
+    @property
+    def quaternion(self) -> np.ndarray:
+        """The rotation ``(4,)``, w first."""
+        return dq.to_pose(self.pose)[0]
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """The homogeneous transform ``(4, 4)``."""
+        return dq.to_matrix(self.pose)
+
+    @property
+    def sigma_position(self) -> float:
+        """One sigma of position along the least certain direction, m."""
+        return float(lie.cov_sigmas(self.covariance)[1])
+
+    @property
+    def sigma_rotation(self) -> float:
+        """One sigma of rotation about the least certain axis, rad."""
+        return float(lie.cov_sigmas(self.covariance)[0])
 
 
 class RequestTooLarge(ValueError):

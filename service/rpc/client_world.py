@@ -14,7 +14,7 @@ from dqpose.rpc.client_arrays import stream_answer
 from dqpose.rpc.client_types import Ack, Batch, Relative, StreamAnswer, rpc_errors
 from dqpose.rpc.fusion_convert import DEFAULT_PROBABILITY
 from dqpose.rpc.geometry import pose_to_dq
-from dqpose.rpc.resume import Resuming, reopened
+from dqpose.rpc.resume import Resuming, reopened, replica_of
 from dqpose.rpc.wire import publish_request_wire
 
 WORLD = wpb.DESCRIPTOR.services_by_name["World"].full_name
@@ -147,11 +147,19 @@ class WorldCalls:
         finally:
             answers.close()     # the call cancelled when the caller closes this iterator
 
-    def lookup(self, target: str, source: str, time: float = 0.0) -> Relative:
+    def lookup(self, target: str, source: str, time: float = 0.0, wait: float = 0.0,
+               source_time: float = 0.0, fixed_frame: str = "") -> Relative:
         """``T_target_source`` at ``time`` (0: the newest both are known at; "" is the world
-        frame) with its covariance, tf2's lookupTransform order. An unknown body raises
-        :class:`RpcError` NOT_FOUND, a time the world does not know FAILED_PRECONDITION."""
-        r = self._call(self._lookup, wpb.LookupRequest(target=target, source=source, time=time))
+        frame) with its covariance, tf2's lookupTransform order; with ``source_time`` the source
+        at that time through ``fixed_frame`` ("": the world), tf2's advanced lookupTransform.
+        ``wait`` (s, up to 10): until the world can answer (tf2's waitForTransform), the call's
+        deadline extended by it. An unknown frame raises :class:`RpcError` NOT_FOUND, a time
+        the world does not know FAILED_PRECONDITION."""
+        request = wpb.LookupRequest(target=target, source=source, time=time, wait=wait,
+                                    source_time=source_time, fixed_frame=fixed_frame)
+        deadline = None if self.timeout is None else self.timeout + (wait if wait > 0 else 0.0)
+        with rpc_errors(self._seen):
+            r, call = self._lookup.with_call(request, timeout=deadline, metadata=self.metadata)
+        self._seen(replica_of(call))
         return Relative(pose_to_dq(r.pose),
                         np.array(r.covariance, dtype=np.float64).reshape(6, 6), r.time)
-

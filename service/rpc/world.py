@@ -34,7 +34,7 @@ from dqpose import world as domain
 from dqpose.errors import FieldError
 from dqpose.fusion.bounds import TrackerBounds
 from dqpose.hub import Hub, Interest, Rows, Subscription
-from dqpose.rpc import DEFAULT_MAX_POSES
+from dqpose.rpc import DEFAULT_MAX_POSES, world_wait
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from dqpose.rpc._proto.dqpose.v1 import world_pb2 as pb
 from dqpose.rpc.calls import Calls, readable, refused
@@ -86,6 +86,8 @@ def status_of(e: Exception, rpc: str = "World") -> tuple[grpc.StatusCode, str]:
     servicer (:func:`refused`)."""
     if isinstance(e, (domain.NotFound, UnknownWorld)):
         return grpc.StatusCode.NOT_FOUND, readable(str(e).strip("'\""))
+    if isinstance(e, world_wait.Stopped):
+        return grpc.StatusCode.UNAVAILABLE, str(e)
     if isinstance(e, TooManyWorlds):
         return grpc.StatusCode.RESOURCE_EXHAUSTED, readable(str(e))
     if isinstance(e, domain.OutOfRange):
@@ -231,6 +233,7 @@ class World:
         self.replica = getattr(cfg, "replica_name", "")
         self.calls = calls or Calls()
         self.hubs: dict[str, Hub] = {}
+        self.waits = world_wait.Waits(self.limits or _limits.DEFAULT, self.calls.peers)
         self._making = threading.Lock()
 
     def hub(self, name: str, make: bool = False) -> Hub:
@@ -291,14 +294,11 @@ class World:
 
     @staticmethod
     def lookup(world: Hub, request: pb.LookupRequest) -> bytes:
-        """A ``RelativePose``, serialized; at time 0 watched (:class:`dqpose.answers.Answers`).
-        Beside the world's steps, which hold its lock while their answers are fitted: it reads
-        whole requests, and a fit is a function of the data alone, so neither answer depends
-        on the timing."""
-        if not math.isfinite(request.time):
-            raise FieldError(f"time: must be finite (0: the newest both are known at), got "
-                             f"{request.time!r}")
-        return world.lookup(request.target, request.source, request.time)
+        """A ``RelativePose``, serialized (:func:`world_wait.answer`); at time 0 watched
+        (:class:`dqpose.answers.Answers`). Beside the world's steps, which hold its lock while
+        their answers are fitted: it reads whole requests, and a fit is a function of the data
+        alone, so neither answer depends on the timing."""
+        return world_wait.answer(world, request)
 
     def publish_bytes(self, world: Hub, data: bytes, r: int, anonymous: str,
                       rec=NOT_RECORDED) -> pb.PublishAck:
@@ -417,12 +417,19 @@ class World:
                                           e, _named("Lookup", world)), world=world)
 
     async def _lookup(self, request, context) -> bytes:
+        world_wait.check(request)
         world = self.called(context)
         # a kept answer that is still the answer: a dict read and a stamp, on the loop
-        kept = world.kept(request.target, request.source) if request.time == 0.0 else None
+        kept = (world.kept(request.target, request.source)
+                if request.time == 0.0 and world_wait.plain(request) else None)
         if kept is not None:
             return kept
-        return await self.calls.work(self.lookup, world, request)
+        return await self.waits.lookup(world, request, context,
+                                       lambda: self.calls.work(self.lookup, world, request))
+
+    def stopping(self, seconds: float) -> None:
+        """The server stops: waiting Lookups answered UNAVAILABLE (:mod:`world_wait`)."""
+        self.waits.stop()
 
     async def Publish(self, request_iterator, context):
         t0 = self.calls.begin()
