@@ -192,3 +192,34 @@ def test_demo_world_follows_the_world_to_its_last_answer_when_the_arm_stops_earl
     times = [start + float(line.split()[0]) for line in out.getvalue().splitlines()[2:]]
     assert times and times[-1] == pytest.approx(end, abs=5e-4), out.getvalue()   # as printed
     assert len(errors) == len(times) and max(mm for mm, _ in errors) < 0.1
+
+
+def test_lookup_at_two_times_through_a_fixed_frame_and_waiting(server, capsys, tmp_path):
+    """--at (alias --time), --source-time and --fixed-frame answer what the client's lookup
+    does; --wait on a body that never comes ends with the error it would have had."""
+    from dqpose.rpc.client import Client
+
+    write_csv(tmp_path / "m.csv", 100, 4)
+    code, out, err = run(capsys, "world", "publish", "--server", server.target,
+                         str(tmp_path / "m.csv"))
+    assert code == 0, err
+    argv = ["world", "lookup", "--server", server.target, "--json", "world", "box"]
+    code, out, err = run(capsys, *argv, "--at", "0.5", "--source-time", "0.8",
+                         "--fixed-frame", "world")
+    assert code == 0, err
+    with Client(server.target) as c:
+        want = c.lookup("", "box", 0.5, source_time=0.8)
+        at = c.lookup("", "box", 0.5)
+    assert json.loads(out)["time"] == 0.5
+    got = printed_pose(out)
+    np.testing.assert_allclose(got * np.sign(got[:4] @ want.pose[:4]), want.pose, atol=1e-12)
+    np.testing.assert_allclose(np.reshape(json.loads(out)["covariance"], (6, 6)),
+                               want.covariance, rtol=1e-12, atol=1e-18)
+    code, out, err = run(capsys, *argv, "--time", "0.5")
+    assert code == 0, err
+    got = printed_pose(out)
+    np.testing.assert_allclose(got * np.sign(got[:4] @ at.pose[:4]), at.pose, atol=1e-12)
+    code, _, without = run(capsys, "world", "lookup", "--server", server.target, "world", "cup")
+    code_wait, _, after = run(capsys, "world", "lookup", "--server", server.target, "world",
+                              "cup", "--wait", "0.2")
+    assert code == code_wait == 2 and after == without and "cup" in after
