@@ -9,7 +9,8 @@ each Publish step that brought a measurement of one of its frames (the hub's ``l
 called under its lock, hand the wake-up to the event loop: nothing polls), each try a fit in
 the worker pool as any Lookup's; answered as soon as one succeeds, else after ``wait`` seconds
 with the error of its last try (the error it would have had without waiting: the same status
-and text). Any other error answers at once. A cancelled call stops waiting; the server's stop
+and text). Any other error answers at once, and so does a world the server does not hold
+(NOT_FOUND: no steps of it to wait for). A cancelled call stops waiting; the server's stop
 answers the waiting ones UNAVAILABLE. Waiting Lookups are bounded per world
 (``max_world_waits``) and per peer (``max_peer_waits``): one more is RESOURCE_EXHAUSTED naming
 the limit, before it waits.
