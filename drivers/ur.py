@@ -52,6 +52,28 @@ _RECEIVE_VARIABLES = ["timestamp", "actual_TCP_pose", "actual_TCP_speed", "runti
                       "safety_mode", "robot_status_bits", "safety_status_bits"]
 
 
+def _check_arguments(host, frequency, lookahead, gain, stop_decel, watchdog_periods,
+                     limits) -> None:
+    """:class:`URArm`'s arguments, each a ``ValueError`` naming it."""
+    if not isinstance(host, str) or not host:
+        raise ValueError(f"host: expected a host name or address, got {host!r}")
+    if frequency is not None and not (math.isfinite(frequency) and 0 < frequency <= 500):
+        raise ValueError(f"frequency: must be within (0, 500] Hz, got {frequency!r}")
+    if not 0.03 <= lookahead <= 0.2:
+        raise ValueError(f"lookahead: must be within [0.03, 0.2] s, got {lookahead!r}")
+    if not 100 <= gain <= 2000:
+        raise ValueError(f"gain: must be within [100, 2000], got {gain!r}")
+    if not (isinstance(stop_decel, numbers.Real) and math.isfinite(stop_decel)
+            and stop_decel > 0):
+        raise ValueError(f"stop_decel: must be a positive number, got {stop_decel!r}")
+    if watchdog_periods is not None and (int(watchdog_periods) != watchdog_periods
+                                         or watchdog_periods < 1):
+        raise ValueError("watchdog_periods: must be a whole number >= 1, "
+                         f"got {watchdog_periods!r}")
+    if limits is not None and not isinstance(limits, Limits):
+        raise ValueError(f"limits: expected a drivers.base.Limits, got {type(limits).__name__}")
+
+
 class URArm(Arm):
     """A UR arm (CB3 or e-series) commanded in tool space through ``ur_rtde``.
 
@@ -88,23 +110,7 @@ class URArm(Arm):
                  limits: Optional[Limits] = None, lookahead: float = 0.1, gain: float = 300.0,
                  stop_decel: float = 10.0, watchdog_periods: Optional[int] = None,
                  disconnect: bool = True, **options):
-        if not isinstance(host, str) or not host:
-            raise ValueError(f"host: expected a host name or address, got {host!r}")
-        if frequency is not None and not (math.isfinite(frequency) and 0 < frequency <= 500):
-            raise ValueError(f"frequency: must be within (0, 500] Hz, got {frequency!r}")
-        if not 0.03 <= lookahead <= 0.2:
-            raise ValueError(f"lookahead: must be within [0.03, 0.2] s, got {lookahead!r}")
-        if not 100 <= gain <= 2000:
-            raise ValueError(f"gain: must be within [100, 2000], got {gain!r}")
-        if not (isinstance(stop_decel, numbers.Real) and math.isfinite(stop_decel)
-                and stop_decel > 0):
-            raise ValueError(f"stop_decel: must be a positive number, got {stop_decel!r}")
-        if watchdog_periods is not None and (int(watchdog_periods) != watchdog_periods
-                                             or watchdog_periods < 1):
-            raise ValueError("watchdog_periods: must be a whole number >= 1, "
-                             f"got {watchdog_periods!r}")
-        if limits is not None and not isinstance(limits, Limits):
-            raise ValueError(f"limits: expected a drivers.base.Limits, got {type(limits).__name__}")
+        _check_arguments(host, frequency, lookahead, gain, stop_decel, watchdog_periods, limits)
         self._set_options("ur", options)
         connect_timeout = self.connect_timeout
         self.host, self.limits = host, limits or Limits()

@@ -187,6 +187,26 @@ def _follow(answers, scene, names, cams, errors, nees, latencies, out) -> None:
             print("  ".join(cells), file=out, flush=True)
 
 
+def _sensors():
+    """The cameras' intrinsics, the board's renderer and the two ChArUco cameras."""
+    from dqpose.drivers.camera import CharucoCamera, Intrinsics
+    from dqpose.drivers.sim.camera import BoardRenderer
+    intr = Intrinsics(K=np.array([[400.0, 0, 199.5], [0, 400.0, 149.5], [0, 0, 1]]),
+                      size=(400, 300))
+    renderer = BoardRenderer(intrinsics=intr, pixels_per_metre=5000.0)
+    cams = [CharucoCamera(intr, renderer.board, name=f"camera{k + 1}") for k in range(2)]
+    return intr, renderer, cams
+
+
+def _sources(offset, cams, extrinsics) -> list:
+    """The arm (its board on the flange at ``offset``) and the cameras at their extrinsics, each
+    camera's latency estimated from its prior."""
+    from dqpose.fusion import Source
+    return [Source("ur", body_offset=offset)] + [
+        Source(c.name, extrinsic=E, latency=LATENCY_PRIOR[0], latency_sigma=LATENCY_PRIOR[1])
+        for c, E in zip(cams, extrinsics)]
+
+
 def run(steps: int = 200, *, seed: int = 0, arm_sigma=ARM_SIGMA, noise: float = 6.0,
         blur: float = 0.8, target: str | None = None, out=None, recorder=None) -> Result:
     """The demo: ``steps`` of 0.1 s (five arm reads and one frame of each camera each; the
@@ -195,20 +215,14 @@ def run(steps: int = 200, *, seed: int = 0, arm_sigma=ARM_SIGMA, noise: float = 
     in-process server records into (``--record``)."""
     from dqpose import drivers
     from dqpose.cli.common import local_server, open_arm
-    from dqpose.drivers.camera import CharucoCamera, Intrinsics
     from dqpose.drivers.executor import Executor
-    from dqpose.drivers.sim.camera import BoardRenderer
     from dqpose.drivers.sim.ur import URSimProcess
-    from dqpose.fusion import Source
     from dqpose.rpc.client import Client
 
     rng = np.random.default_rng(seed)
-    intr = Intrinsics(K=np.array([[400.0, 0, 199.5], [0, 400.0, 149.5], [0, 0, 1]]),
-                      size=(400, 300))
-    renderer = BoardRenderer(intrinsics=intr, pixels_per_metre=5000.0)
+    intr, renderer, cams = _sensors()
     offset = dq.from_pose(np.array(BOARD_OFFSET[0]), np.array(BOARD_OFFSET[1]))
     home = np.array(HOME)
-    cams = [CharucoCamera(intr, renderer.board, name=f"camera{k + 1}") for k in range(2)]
     names = ("ur",) + tuple(c.name for c in cams)
     errors: dict[str, list] = {n: [] for n in names + ("fused",)}   # at the fusion instants
     nees: list[float] = []
@@ -235,9 +249,7 @@ def run(steps: int = 200, *, seed: int = 0, arm_sigma=ARM_SIGMA, noise: float = 
                                                / arm.period), arm.period,
                                          round(SIM_HOLD / arm.period))
         extrinsics = cameras(board[0], renderer.board, intr)
-        sources = [Source("ur", body_offset=offset)] + [
-            Source(c.name, extrinsic=E, latency=LATENCY_PRIOR[0], latency_sigma=LATENCY_PRIOR[1])
-            for c, E in zip(cams, extrinsics)]
+        sources = _sources(offset, cams, extrinsics)
         client = stack.enter_context(Client(target))
         for cam, E in zip(cams, extrinsics):    # the first detection is slow (set-up)
             cam.detect(renderer.render(dq.mul(dq.inv(E), board[0]), blur=blur, noise=noise,
@@ -269,13 +281,18 @@ def run(steps: int = 200, *, seed: int = 0, arm_sigma=ARM_SIGMA, noise: float = 
         executor.wait(30)            # the loop's end (it outlasts the measurements)
         missed = missed_cycles(sim, mark, arm.period)
 
+    timing = {"seconds": seconds, "measured": (scene.truth.taken[-1] - scene.start
+                                               if scene.truth.taken else 0.0),
+              "behind": scene.behind, "read_gap": scene.read_gap, "missed": missed}
+    return _result(names, errors, nees, latencies, scene, timing)
+
+
+def _result(names, errors, nees, latencies, scene, timing) -> Result:
+    """The run's :class:`Result`: each series' errors from the scene's start."""
     series = {}
     for n, rows in errors.items():
         r = np.array(rows, dtype=np.float64).reshape(-1, 3)
         series[n] = Series(r[:, 0] - (scene.start or 0.0), r[:, 1], r[:, 2])
-    timing = {"seconds": seconds, "measured": (scene.truth.taken[-1] - scene.start
-                                               if scene.truth.taken else 0.0),
-              "behind": scene.behind, "read_gap": scene.read_gap, "missed": missed}
     return Result(names + ("fused",), series, np.array(nees),
                   {n: np.array(e).reshape(-1, 3) for n, e in scene.accuracy.items()},
                   scene.rejected, latencies, timing)

@@ -22,7 +22,6 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 def configure(name: str, p) -> None:
     if name == "serve":
-        from dqpose.drivers.spec import GRAMMAR as ARM_GRAMMAR
         from dqpose.rpc.server import INTERRUPT_GRACE, SERVICERS
         p.formatter_class = argparse.RawDescriptionHelpFormatter
         p.description = textwrap.fill(
@@ -74,56 +73,8 @@ def configure(name: str, p) -> None:
                        help="JSON log lines on standard error (default: %(default)s)")
         p.add_argument("--no-call-log", action="store_true",
                        help="skip the per-call line (method, status, duration) logged at info")
-        p.add_argument("--arm", action="append", default=[], metavar="NAME=SPEC",
-                       help="an arm Trajectories.Execute may drive, by name, as "
-                            f"NAME={ARM_GRAMMAR}: e.g. ur=ur:192.168.1.10?stale_after=0.3, "
-                            "piper=piper:socketcan:can0; TARGET 'sim' is that kind's simulator "
-                            "started by --sims (ur=ur:sim, piper=piper:sim?max_tracking=0.003); "
-                            "the keys are listed below. Repeat for more arms. Each is connected "
-                            "at start and stopped when the server stops.")
-        p.add_argument("--arm-realtime", type=int, metavar="PRIO",
-                       help="run each arm's control loop with real-time scheduling (Linux "
-                            "SCHED_FIFO at PRIO, 1..99; needs CAP_SYS_NICE): fewer late "
-                            "set-points on a busy machine (default: ordinary scheduling)")
-        p.add_argument("--arm-loop", choices=["auto", "process", "thread"], default="auto",
-                       help="where each arm's Execute control loop runs: 'process', the arm "
-                            "opened in a process of its own, so no work of the server's delays "
-                            "a set-point (needs x86-64 and a bus that reaches across processes, "
-                            "not python-can's virtual); 'thread', in the server; 'auto' "
-                            "(default): the arm's process where it can, else a thread (logged)")
-        rec = p.add_argument_group(
-            "recording", "every Fuse and StreamFuse call into MCAP files (docs/recording.md; "
-                         "the [record] extra); `dqpose replay FILE` replays one")
-        rec.add_argument("--record", metavar="DIR",
-                         help="record into DIR (created if missing), a new file at either bound "
-                              "below")
-        rec.add_argument("--live", metavar="HOST:PORT", nargs="?", const="",
-                         help="serve the recording's channels live on a Foxglove WebSocket "
-                              "(Foxglove or Lichtblick: open connection, Foxglove WebSocket, "
-                              "ws://HOST:PORT; default 127.0.0.1:8765; README), with or without "
-                              "--record; with --token-file a client connects to "
-                              "ws://HOST:PORT/?token=TOKEN, and beyond the loopback it needs "
-                              "--token-file or --live-insecure")
-        rec.add_argument("--live-origin", metavar="ORIGIN", action="append", default=[],
-                         help="a browser origin --live lets in (e.g. https://app.foxglove.dev); "
-                              "repeat for more; a client that sends another Origin is refused, "
-                              "one that sends none is let in (default: none)")
-        rec.add_argument("--live-insecure", action="store_true",
-                         help="--live lets in every client that reaches it: no token asked, no "
-                              "origin checked")
-        rec.add_argument("--record-max-mb", type=float, default=256.0,
-                         help="a new file after this many MB (default: %(default)s)")
-        rec.add_argument("--record-max-s", type=float, default=3600.0,
-                         help="a new file after this many seconds (default: %(default)s)")
-        rec.add_argument("--record-rate", type=float, default=30.0,
-                         help="every body of a world is recorded at this rate, Hz of its "
-                              "measurement time, subscribed or not (the recorder's own "
-                              "subscriber: a Subscribe call marked internal; default: "
-                              "%(default)s)")
-        rec.add_argument("--record-queue", type=int, default=100_000,
-                         help="messages waiting for the disk at most; beyond, they are dropped "
-                              "(counted, logged, marked in the file), never an RPC delayed "
-                              "(default: %(default)s)")
+        _arm_args(p)
+        _recording_args(p)
         p.add_argument("--sims", action="store_true",
                        help="also start the simulated devices (a UR controller, a PiPER, camera "
                             "views; see drivers/sim/fleet.py), log where they are and serve the "
@@ -136,6 +87,65 @@ def configure(name: str, p) -> None:
         connection_args(p)
         p.add_argument("--service", default="", help="service name to check (default: the server)")
         p.set_defaults(func=_health)
+
+
+def _arm_args(p) -> None:
+    """The arms Execute may drive and where their control loops run."""
+    from dqpose.drivers.spec import GRAMMAR as ARM_GRAMMAR
+    p.add_argument("--arm", action="append", default=[], metavar="NAME=SPEC",
+                   help="an arm Trajectories.Execute may drive, by name, as "
+                        f"NAME={ARM_GRAMMAR}: e.g. ur=ur:192.168.1.10?stale_after=0.3, "
+                        "piper=piper:socketcan:can0; TARGET 'sim' is that kind's simulator "
+                        "started by --sims (ur=ur:sim, piper=piper:sim?max_tracking=0.003); "
+                        "the keys are listed below. Repeat for more arms. Each is connected "
+                        "at start and stopped when the server stops.")
+    p.add_argument("--arm-realtime", type=int, metavar="PRIO",
+                   help="run each arm's control loop with real-time scheduling (Linux "
+                        "SCHED_FIFO at PRIO, 1..99; needs CAP_SYS_NICE): fewer late "
+                        "set-points on a busy machine (default: ordinary scheduling)")
+    p.add_argument("--arm-loop", choices=["auto", "process", "thread"], default="auto",
+                   help="where each arm's Execute control loop runs: 'process', the arm "
+                        "opened in a process of its own, so no work of the server's delays "
+                        "a set-point (needs x86-64 and a bus that reaches across processes, "
+                        "not python-can's virtual); 'thread', in the server; 'auto' "
+                        "(default): the arm's process where it can, else a thread (logged)")
+
+
+def _recording_args(p) -> None:
+    """Recording into MCAP files and serving it live."""
+    rec = p.add_argument_group(
+        "recording", "every Fuse and StreamFuse call into MCAP files (docs/recording.md; "
+                     "the [record] extra); `dqpose replay FILE` replays one")
+    rec.add_argument("--record", metavar="DIR",
+                     help="record into DIR (created if missing), a new file at either bound "
+                          "below")
+    rec.add_argument("--live", metavar="HOST:PORT", nargs="?", const="",
+                     help="serve the recording's channels live on a Foxglove WebSocket "
+                          "(Foxglove or Lichtblick: open connection, Foxglove WebSocket, "
+                          "ws://HOST:PORT; default 127.0.0.1:8765; README), with or without "
+                          "--record; with --token-file a client connects to "
+                          "ws://HOST:PORT/?token=TOKEN, and beyond the loopback it needs "
+                          "--token-file or --live-insecure")
+    rec.add_argument("--live-origin", metavar="ORIGIN", action="append", default=[],
+                     help="a browser origin --live lets in (e.g. https://app.foxglove.dev); "
+                          "repeat for more; a client that sends another Origin is refused, "
+                          "one that sends none is let in (default: none)")
+    rec.add_argument("--live-insecure", action="store_true",
+                     help="--live lets in every client that reaches it: no token asked, no "
+                          "origin checked")
+    rec.add_argument("--record-max-mb", type=float, default=256.0,
+                     help="a new file after this many MB (default: %(default)s)")
+    rec.add_argument("--record-max-s", type=float, default=3600.0,
+                     help="a new file after this many seconds (default: %(default)s)")
+    rec.add_argument("--record-rate", type=float, default=30.0,
+                     help="every body of a world is recorded at this rate, Hz of its "
+                          "measurement time, subscribed or not (the recorder's own "
+                          "subscriber: a Subscribe call marked internal; default: "
+                          "%(default)s)")
+    rec.add_argument("--record-queue", type=int, default=100_000,
+                     help="messages waiting for the disk at most; beyond, they are dropped "
+                          "(counted, logged, marked in the file), never an RPC delayed "
+                          "(default: %(default)s)")
 
 
 #: the TARGET that stands for the simulator of the arm's kind (drivers.sim.fleet)

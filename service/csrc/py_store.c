@@ -314,6 +314,61 @@ static PyObject *touched_bodies(PyObject *names, const int64_t *body, const npy_
     return out;
 }
 
+/* The ingest rules' bound, all-or-none and origin (None: anonymous); -1 with an exception. */
+static int rules_of(dq_store_rules *r, Py_ssize_t max_rows, int all_or_none, PyObject *origin)
+{
+    r->bounded = max_rows >= 0;
+    r->max_rows = r->bounded ? (size_t)max_rows : 0;
+    r->all_or_none = all_or_none;
+    r->anon = origin == Py_None;
+    if (!r->anon) {
+        r->origin = PyLong_AsLongLong(origin);
+        if (r->origin == -1 && PyErr_Occurred()) return -1;
+    }
+    return 0;
+}
+
+/* Whether dq_store_ingest's rc is an error (then set as the Python exception). */
+static int ingest_failed(int rc)
+{
+    if (rc == -1)
+        PyErr_NoMemory();
+    else if (rc == -2)
+        PyErr_SetString(PyExc_ValueError, "rows: a code out of range, or the store's columns "
+                                          "too short for them");
+    else if (rc == -3)
+        PyErr_SetString(PyExc_ValueError, "poses: a pose is not a rigid motion");
+    return rc < 0;
+}
+
+/* The refusals as a list of (row, code, a, b), or NULL (an exception set). */
+static PyObject *refusal_list(const dq_store_refusal *refused, size_t nout)
+{
+    PyObject *list = PyList_New((Py_ssize_t)nout);
+    for (size_t i = 0; list && i < nout; i++) {
+        PyObject *t = Py_BuildValue("(nidd)", (Py_ssize_t)refused[i].row, refused[i].code,
+                                    refused[i].a, refused[i].b);
+        if (!t) {
+            Py_CLEAR(list);
+            break;
+        }
+        PyList_SET_ITEM(list, (Py_ssize_t)i, t);
+    }
+    return list;
+}
+
+/* The rows offered (ok's, else all) and each row's id (first + k when consecutive). */
+static void rows_used(PyArrayObject *ok, int consecutive, long long first, PyArrayObject *ids,
+                      npy_intp n, npy_bool *use, int64_t *id)
+{
+    if (ok)
+        memcpy(use, PyArray_DATA(ok), (size_t)n);
+    else
+        memset(use, 1, (size_t)n);
+    for (npy_intp k = 0; k < n; k++)
+        id[k] = consecutive ? (int64_t)(first + k) : ((const int64_t *)PyArray_DATA(ids))[k];
+}
+
 /* ingest(store, newest, by_source, latency, bodies, body_codes, sources, source_codes, ids,
  * times, poses, covs, ok, wposes, wcovs, window, cap, max_time, jump, max_rows, origin,
  * all_or_none) -> (refusals, fresh, touched) | None: store.h's dq_store_ingest over the store's
@@ -327,22 +382,14 @@ static PyObject *index_ingest(StoreIndex *self, PyObject *args)
 {
     PyObject *store, *no, *so, *lo, *bn, *bc, *sn, *sc, *io, *to, *po, *vo, *oko, *wpo, *wco;
     PyObject *origin;
-    dq_store_rules r;
+    dq_store_rules r = {0};
     Py_ssize_t max_rows;
     int all_or_none;
-    memset(&r, 0, sizeof r);
     if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOOOOdlddnOp", &store, &no, &so, &lo, &bn, &bc, &sn,
                           &sc, &io, &to, &po, &vo, &oko, &wpo, &wco, &r.window, &r.cap,
                           &r.max_time, &r.jump, &max_rows, &origin, &all_or_none))
         return NULL;
-    r.bounded = max_rows >= 0;
-    r.max_rows = r.bounded ? (size_t)max_rows : 0;
-    r.all_or_none = all_or_none;
-    r.anon = origin == Py_None;
-    if (!r.anon) {
-        r.origin = PyLong_AsLongLong(origin);
-        if (r.origin == -1 && PyErr_Occurred()) return NULL;
-    }
+    if (rules_of(&r, max_rows, all_or_none, origin) < 0) return NULL;
     dq_store_cols cols;
     if (columns(store, &cols) < 0) return NULL;
     PyArrayObject *newest = writeable(no, NPY_FLOAT64, 1, "newest");
@@ -352,10 +399,8 @@ static PyObject *index_ingest(StoreIndex *self, PyObject *args)
         return NULL;
     npy_intp n = PySequence_Size(bn);
     if (n < 0) return NULL;
-    if (ok && PyArray_DIM(ok, 0) != n) {
-        PyErr_SetString(PyExc_ValueError, "ok: expected one a row");
-        return NULL;
-    }
+    if (ok && PyArray_DIM(ok, 0) != n)
+        return PyErr_Format(PyExc_ValueError, "ok: expected one a row");
     long long first = 0;
     int consecutive = PyLong_Check(io);
     if (consecutive && (first = PyLong_AsLongLong(io)) == -1 && PyErr_Occurred()) return NULL;
@@ -382,12 +427,7 @@ static PyObject *index_ingest(StoreIndex *self, PyObject *args)
     }
     source = body + n + 1;
     id = source + n + 1;
-    if (ok)
-        memcpy(use, PyArray_DATA(ok), (size_t)n);
-    else
-        memset(use, 1, (size_t)n);
-    for (npy_intp k = 0; k < n; k++)
-        id[k] = consecutive ? (int64_t)(first + k) : ((const int64_t *)PyArray_DATA(ids))[k];
+    rows_used(ok, consecutive, first, ids, n, use, id);
     int known = coded(bn, bc, use, n, body, "bodies");
     if (known == 1) known = coded(sn, sc, use, n, source, "sources");
     if (known < 0) goto done;
@@ -395,9 +435,8 @@ static PyObject *index_ingest(StoreIndex *self, PyObject *args)
         out = Py_NewRef(Py_None);
         goto done;
     }
-    if (wpo != Py_None && !(wposes = rows_of_shape(wpo, NPY_FLOAT64, 8, n, "wposes")))
-        goto done;
-    if (wco != Py_None && !(wcovs = rows_of_shape(wco, NPY_FLOAT64, 36, n, "wcovs")))
+    if ((wpo != Py_None && !(wposes = rows_of_shape(wpo, NPY_FLOAT64, 8, n, "wposes"))) ||
+        (wco != Py_None && !(wcovs = rows_of_shape(wco, NPY_FLOAT64, 36, n, "wcovs"))))
         goto done;
     taken = malloc(((size_t)n + 1) * sizeof *taken);
     refused = malloc(((size_t)n + 1) * sizeof *refused);
@@ -419,27 +458,8 @@ static PyObject *index_ingest(StoreIndex *self, PyObject *args)
     size_t nout = 0;
     int fresh = 0;
     int rc = dq_store_ingest(&self->x, &cols, &st, &in, &r, refused, &nout, &fresh);
-    if (set_n(store, cols.n) < 0) goto done;
-    if (rc == -1) {
-        PyErr_NoMemory();
-        goto done;
-    }
-    if (rc == -2) {
-        PyErr_SetString(PyExc_ValueError, "rows: a code out of range, or the store's columns "
-                                          "too short for them");
-        goto done;
-    }
-    if (rc == -3) {
-        PyErr_SetString(PyExc_ValueError, "poses: a pose is not a rigid motion");
-        goto done;
-    }
-    if (!(list = PyList_New((Py_ssize_t)nout))) goto done;
-    for (size_t i = 0; i < nout; i++) {
-        PyObject *t = Py_BuildValue("(nidd)", (Py_ssize_t)refused[i].row, refused[i].code,
-                                    refused[i].a, refused[i].b);
-        if (!t) goto done;
-        PyList_SET_ITEM(list, (Py_ssize_t)i, t);
-    }
+    if (set_n(store, cols.n) < 0 || ingest_failed(rc)) goto done;
+    if (!(list = refusal_list(refused, nout))) goto done;
     if (ok) memcpy(PyArray_DATA(ok), use, (size_t)n);
     PyObject *touched = touched_bodies(bn, body, use, n, st.bodies, &seen);
     if (touched) out = Py_BuildValue("(ONN)", list, PyBool_FromLong(fresh), touched);

@@ -209,7 +209,6 @@ def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool
     use_robot = robot is not None
     nf = 1 if refine_focal else 0
     nb = 1 if refine_board else 0
-    off = 12 + nf + nb
     N = len(sub.points)
     theta = _ROBOT_START.copy()
     delta = np.zeros((n_in, 6)) if use_robot else None
@@ -240,14 +239,7 @@ def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool
             r, Jg, Jd = _whitened(e, M, sub.view, pts, pc, Jp, ds, sigma, X, toA, nf, nb,
                                   use_robot)
             step, H, lev = _arrow_step(Jg, Jd, r, prior, delta, starts)
-            X = dq.mul(X, lie.se3_exp(step[:6]))
-            Z = dq.mul(Z, lie.se3_exp(step[6:12]))
-            if nf:
-                scale *= 1.0 + step[12]
-            if nb:
-                board *= 1.0 + step[12 + nf]
-            if use_robot:
-                delta = delta + step[off:].reshape(n_in, 6)
+            X, Z, scale, board, delta = _stepped(step, X, Z, scale, board, delta, nf, nb)
             # the pixel dof the fit takes, per view (REML: each σ from what the fit leaves)
             leverage = np.add.reduceat(lev.reshape(N, 2).sum(axis=1), starts)
             new = H.cost
@@ -271,6 +263,20 @@ def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool
     return _CornerFit(X, Z, P12, rms, scale, pooled, float(np.sqrt(P[12, 12])) if nf else 0.0,
                       np.diag(theta) if estimate else None, board,
                       float(np.sqrt(P[12 + nf, 12 + nf])) if nb else 0.0)
+
+
+def _stepped(step, X, Z, scale, board, delta, nf: int, nb: int):
+    """The unknowns moved by one Gauss-Newton ``step`` (its layout: ``X``, ``Z``, the focal
+    scale when ``nf``, the board's scale when ``nb``, then each view's robot correction)."""
+    X = dq.mul(X, lie.se3_exp(step[:6]))
+    Z = dq.mul(Z, lie.se3_exp(step[6:12]))
+    if nf:
+        scale *= 1.0 + step[12]
+    if nb:
+        board *= 1.0 + step[12 + nf]
+    if delta is not None:
+        delta = delta + step[12 + nf + nb:].reshape(len(delta), 6)
+    return X, Z, scale, board, delta
 
 
 def _view_sigma(e, view, corners_in, leverage) -> np.ndarray:

@@ -179,7 +179,7 @@ def open_arm(sim, process: bool, priority: int):
     return arm
 
 
-def main(argv=None) -> int:
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seconds", type=float, default=60.0, help="length of each run (default 60)")
     ap.add_argument("--clients", type=int, default=8)
@@ -203,7 +203,11 @@ def main(argv=None) -> int:
                     help="once the clients run, set the simulator and this process (every "
                          "thread) to this nice value, e.g. -10 (root): the control path ahead of "
                          "the load")
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
     from tests.bench.bench_grpc import ServerProcess, python_clients
     from tests.rpc._grpc_server import ServerThread
 
@@ -258,6 +262,12 @@ def main(argv=None) -> int:
                   flush=True)
         arm.close()
 
+    _print_table(args, rows)
+    return 0
+
+
+def _print_table(args, rows) -> None:
+    """The one table of the rows run."""
     import os
     print(f"\nExecutor ({args.executor}) on the simulated UR, 500 Hz, {args.seconds:g} s per row; "
           f"{args.clients} Blend client processes where a server is named; simulator "
@@ -278,7 +288,6 @@ def main(argv=None) -> int:
               f"| {_us(r['read_jitter'], 99)} | {np.nanmax(r['cancel']) * 1e3:.2f} "
               f"| {np.median(tr):.3f} / {np.percentile(tr, 99):.3f} / {tr.max():.3f} "
               f"| {tl.max():.4f} | {r.get('calls', math.nan):.0f} | {r['load']:.1f} |")
-    return 0
 
 
 if __name__ == "__main__":

@@ -194,6 +194,16 @@ def in_process(scene: Scene, args, messages: int, warm: int = 500) -> None:
             a.SerializeToString()
 
 
+def _best_us(fn, n, repeat=3):
+    """Microseconds a unit of ``fn()``'s ``n``, its best of ``repeat`` runs (a shared machine)."""
+    best = np.inf
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best / n * 1e6
+
+
 def per_message_cost(scene: Scene, args, messages: int = 6000) -> str:
     """The server's per-message path in process (no transport): request bytes to answers by
     ``Fusion.stream_step_wire`` (what StreamFuse serves: the C decoder, then the tracker), and
@@ -227,35 +237,27 @@ def per_message_cost(scene: Scene, args, messages: int = 6000) -> str:
             for a in answers:
                 a.SerializeToString()
 
-    def us(fn, n, repeat=3):
-        best = np.inf
-        for _ in range(repeat):
-            t0 = time.perf_counter()
-            fn()
-            best = min(best, time.perf_counter() - t0)
-        return best / n * 1e6
-
     # The stream runs over consecutive chunks (a tracker cannot take the same times twice): the
     # best chunk, as the machine is shared.
     chunk = messages // 6
 
     def chunks(state, pick, wire=True):
         go(0, chunk, state, wire)
-        return pick([us(lambda k=k: go(k * chunk, (k + 1) * chunk, state, wire), chunk, 1)
+        return pick([_best_us(lambda k=k: go(k * chunk, (k + 1) * chunk, state, wire), chunk, 1)
                      for k in range(1, 5)])
 
     per = chunks(state, np.mean)      # the ticks fall in some chunks: all of them
     # the same messages with no tick due (output_rate 1e-9 Hz: one tick, at 0): the ingest path
     ingest = chunks(stream(1e-9), min)
     ingest_pb = chunks(stream(1e-9), min, wire=False)
-    decode = us(lambda: [fuse_stream_from_wire(d) for d in data[:chunk]], chunk)
+    decode = _best_us(lambda: [fuse_stream_from_wire(d) for d in data[:chunk]], chunk)
     parsed = [pb.FuseStreamRequest.FromString(d) for d in data[:chunk]]
-    parse = us(lambda: [pb.FuseStreamRequest.FromString(d) for d in data[:chunk]], chunk)
-    convert = us(lambda: [measurements_to_arrays(m.measurements, "m", []) for m in parsed],
+    parse = _best_us(lambda: [pb.FuseStreamRequest.FromString(d) for d in data[:chunk]], chunk)
+    convert = _best_us(lambda: [measurements_to_arrays(m.measurements, "m", []) for m in parsed],
                  chunk)
     tracker = state.tracker
     bodies = tracker.bodies[:50]
-    fit = us(lambda: [tracker.estimate(b, tracker.newest(b) - 0.01) for b in bodies],
+    fit = _best_us(lambda: [tracker.estimate(b, tracker.newest(b) - 0.01) for b in bodies],
              len(bodies))
     size = np.mean([len(tracker.window_of(b).ids) for b in bodies])
     ticks = args.output_rate * args.bodies / (args.rate / PER_MESSAGE)
@@ -274,16 +276,21 @@ def per_message_cost(scene: Scene, args, messages: int = 6000) -> str:
         f"Tracker.ingest (batched checks, window arrays) and the bookkeeping\n"
         f"  one estimate (Tracker.estimate, {size:.0f} measurements in the window): "
         f"{fit / 1e3:.2f} ms\n")
+    _profile(lambda: go(5 * chunk, messages), out)
+    return out.getvalue()
+
+
+def _profile(run, out) -> None:
+    """cProfile of ``run()``: the per-message path's parts, written to ``out``."""
     pr = cProfile.Profile()
     pr.enable()
-    go(5 * chunk, messages)
+    run()
     pr.disable()
     st = pstats.Stats(pr, stream=out)
     st.sort_stats("cumulative").print_stats(
         r"stream_step|update|ingest|_admit|refusals|measurements_to_arrays|_covariances|_poses|"
         r"_due|estimate|fused_to_msg|unknown_sources|append|fuse_stream_from_wire|FromString|"
         r"SerializeToString")
-    return out.getvalue()
 
 
 def main(argv=None) -> int:

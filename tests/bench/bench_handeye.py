@@ -386,6 +386,17 @@ def best_opencv(res):
     return float(np.median(res[r].rot)), r, float(np.median(res[t].trans)), t
 
 
+def _broken_line(broken_results: dict) -> str:
+    """The target line of the broken data sets: each flagged, refused or warned, never NaN."""
+    silent = {k: r[OURS]["silent"] for k, r in broken_results.items()
+              if OURS in r and r[OURS]["silent"]}
+    nan = {k: len(r[OURS]["series"].bad) for k, r in broken_results.items()
+           if OURS in r and r[OURS]["series"].bad}
+    return (f"- every broken data set flagged ({', '.join(broken_results)}), refused or "
+            f"warned: " + ("PASS" if not silent else f"FAIL, silent on {silent}")
+            + ("" if not nan else f"; bad answers {nan}: FAIL"))
+
+
 def targets(results: dict, charuco_label: str | None, broken_results: dict | None = None) -> str:
     """Issue 11's targets, PASS/FAIL each, beside the best OpenCV method of the same run."""
     ok = lambda b: "PASS" if b else "FAIL"  # noqa: E731
@@ -452,13 +463,7 @@ def targets(results: dict, charuco_label: str | None, broken_results: dict | Non
                    f"{np.percentile(t20, 95) * 1e3:.1f} ms over "
                    f"{len(t20)} solves: {ok(med <= 0.05)}")
     if broken_results:
-        silent = {k: r[OURS]["silent"] for k, r in broken_results.items()
-                  if OURS in r and r[OURS]["silent"]}
-        nan = {k: len(r[OURS]["series"].bad) for k, r in broken_results.items()
-               if OURS in r and r[OURS]["series"].bad}
-        out.append(f"- every broken data set flagged ({', '.join(broken_results)}), refused or "
-                   f"warned: " + ("PASS" if not silent else f"FAIL, silent on {silent}")
-                   + ("" if not nan else f"; bad answers {nan}: FAIL"))
+        out.append(_broken_line(broken_results))
     wrong = {k: sum(not b.startswith("refused") for b in s.bad) for k, s in mine.items()}
     wrong = {k: v for k, v in wrong.items() if v}
     out.append("- ours never NaN, never a reflection, never a silent identity: "
