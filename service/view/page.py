@@ -4,9 +4,11 @@ body's frame where it was last fused with its name and a trail of its last
 frame (the axes :func:`dqpose.record.views.ellipsoid_axes` gives Foxglove's ellipsoids too) at
 the scale the page's menu says (x1, x10, x100: sub-millimetre ellipsoids are invisible at x1),
 each arm at its own base (a plan's and an arm's poses are in the arm's base frame) with its
-plans, its actual path and its tool's frame, and, for a file, a time slider (the scene as it
-was at that time). The camera, the grid and the frames' axes fit what is drawn
-(:mod:`dqpose.view.layout`); the controls are docked beside the view, never over it."""
+plans, its actual path and its tool's frame, the frame tree (a line from each frame's parent to
+it; a World's statics and sources drawn as frames of their own, riding on their parents), and,
+for a file, a time slider (the scene as it was at that time). The camera, the grid and the
+frames' axes fit what is drawn (:mod:`dqpose.view.layout`); the controls are docked beside the
+view, never over it."""
 from __future__ import annotations
 
 import itertools
@@ -21,7 +23,7 @@ from dqpose import dq
 from dqpose.record.views import ELLIPSOID_SIGMAS, ellipsoid_axes
 from dqpose.view import layout
 from dqpose.view.guard import protect
-from dqpose.view.timeline import Timeline
+from dqpose.view.timeline import Timeline, resolve
 
 #: the ellipsoids' colour (RGB), which nothing else on the page has
 ELLIPSOID_RGB = (220, 30, 200)
@@ -31,6 +33,9 @@ PLAN_RGB = (255, 140, 0)
 ACTUAL_RGB = (0, 190, 230)
 #: a body's trail (blue above red = green: neither the ellipsoids' nor the plans')
 TRAIL_RGB = (70, 70, 170)
+#: the frame tree's links (green above red above blue: none of the other lines', nor the
+#: green axis's, whose red and blue are equal)
+TREE_RGB = (120, 190, 0)
 #: lines' width in pixels, whatever the content's size
 LINE_PX = 3.0
 TRAIL_PX = 2.0
@@ -79,6 +84,8 @@ class Scene:
         self.arm_spacing = ARM_SPACING
         self.paths: dict = {}       # arm -> its actual path's line
         self.tools: dict = {}       # arm -> its tool's frame
+        self.fixed: dict = {}       # a static's or source's name -> its frame
+        self.tree: viser.LineSegmentsHandle | None = None     # the tree's links
         self._past: dict = {}       # body -> (arrival, position) drawn live, for its trail
         self._trailed: dict = {}    # body -> when its trail was last drawn live
         self.clock = time.monotonic     # of a live pose's arrival
@@ -89,6 +96,8 @@ class Scene:
         self.scale_menu.on_update(self._scale_picked)
         self.show_labels = gui.add_checkbox("names", initial_value=True)
         self.show_labels.on_update(lambda _: self._relabel())
+        self.show_tree = gui.add_checkbox("tree", initial_value=True)
+        self.show_tree.on_update(lambda _: self._retree())
         self.legend = gui.add_markdown("")
         self.world = self._frame("/world", "world", self.view.axes * 1.5)
         self._grid()
@@ -123,6 +132,7 @@ class Scene:
             f"**x{self.scale}**{' (true size)' if self.scale == 1 else ''}  \n"
             f"**trails** (indigo): each body's last {layout.TRAIL_SECONDS:g} s  \n"
             f"**plans** orange, **arms' actual paths** cyan, each arm at its base  \n"
+            f"**tree** (yellow-green): each frame's link from its parent  \n"
             f"**grid**: {_length(step)} cells at the world's z = "
             f"{0 if self.view.floor == 0 else _length(self.view.floor)}")
 
@@ -139,6 +149,38 @@ class Scene:
     def _relabel(self) -> None:
         for label in self.labels:
             label.visible = self.show_labels.value
+
+    def _retree(self) -> None:
+        with self.lock:
+            if self.tree is not None:
+                self.tree.visible = self.show_tree.value
+
+    def draw_tree(self, links: dict, fixed=()) -> None:
+        """The frame tree: a line from each frame's parent to it (``links``: name ->
+        ``(parent, T_world_name (8,))``, ``None`` where it is not known now; the world ``""``
+        at the origin) and the frame of each of ``fixed`` (statics and sources) with its name,
+        hidden while its pose is not known."""
+        with self.lock:
+            at = {"": np.zeros(3)} | {n: dq.to_pose(T)[1] for n, (_, T) in links.items()
+                                      if T is not None}
+            for name in fixed:
+                if name not in self.fixed:
+                    self.fixed[name] = self._frame(f"/fixed/{name}", name, visible=False)
+            for name, frame in self.fixed.items():
+                T = links.get(name, (None, None))[1] if name in fixed else None
+                if T is None:
+                    frame.visible = False
+                else:
+                    q, t = dq.to_pose(T)
+                    frame.position, frame.wxyz, frame.visible = tuple(t), tuple(q), True
+            segments = [(at[p], at[n]) for n, (p, T) in links.items() if T is not None
+                        and p in at]
+            if segments:            # the same name: the tree is replaced
+                self.tree = self.server.scene.add_line_segments(
+                    "/tree", np.array(segments), TREE_RGB, thickness=LINE_PX,
+                    thickness_units="screen", visible=self.show_tree.value)
+            elif self.tree is not None:
+                self.tree.visible = False
 
     def body(self, body: str):
         """The frame and the ellipsoid of ``body`` (hidden until drawn)."""
@@ -316,7 +358,8 @@ class Scene:
                     c = client.camera
                     c.fov, c.near, c.far = layout.FOV, v.near, v.far
                     c.look_at, c.position = tuple(v.look_at), tuple(v.position)
-            for frame in (*self.frames.values(), *self.bases.values(), *self.tools.values()):
+            for frame in (*self.frames.values(), *self.bases.values(), *self.tools.values(),
+                          *self.fixed.values()):
                 frame.axes_length, frame.axes_radius = v.axes, v.axes / 25
             self.world.axes_length, self.world.axes_radius = 1.5 * v.axes, v.axes / 20
             self._grid()
@@ -382,7 +425,24 @@ class Page(Scene):
         lines = [p if n == WORLD_PLAN else self.in_world(n, p) for n, _, p in tl.plans]
         frames = [self.in_world(arm, path.t) for arm, path in tl.arms.items()]
         frames += [np.asarray(b.position, dtype=float)[None] for b in self.bases.values()]
+        last = {b: dq.from_pose(t.q[-1], t.t[-1]) for b, t in tl.tracks.items()}
+        links, fixed = self.tree_at(tl.end, last)
+        frames += [dq.to_pose(links[n][1])[1][None] for n in fixed if links[n][1] is not None]
         return lines, frames
+
+    def tree_at(self, ns: int, known: dict) -> tuple[dict, list]:
+        """The tree at ``ns`` (:meth:`draw_tree`'s arguments): each body of ``known`` (name ->
+        ``T_world_body``, those drawn now) linked from the world, each static and source from
+        its parent, at the pose its chain gives (:func:`~dqpose.view.timeline.resolve`); the
+        statics and the sources that are no arm's base drawn as frames."""
+        fx = self.tl.fixed
+        if fx is None:
+            return {b: ("", T) for b, T in known.items()}, []
+        k = fx.at(ns)
+        world = resolve(fx.frames[k], known)
+        links = {b: ("", T) for b, T in known.items()}
+        links.update({n: (p, world.get(n)) for n, (p, _) in fx.frames[k].items()})
+        return links, [n for n in fx.frames[k] if n not in fx.bases[k]]
 
     def ns(self, seconds: float) -> int:
         return self.tl.start + int(round(seconds * 1e9))
@@ -390,11 +450,13 @@ class Page(Scene):
     def show(self, ns: int) -> None:
         """The scene as it was at ``ns``."""
         with self.lock:
+            known = {}
             for body, track in self.tl.tracks.items():
                 i = track.at(ns)
                 if i is None:
                     self.hide_body(body)
                     continue
+                known[body] = dq.from_pose(track.q[i], track.t[i])
                 trail = track.t[layout.recent(track.ns * 1e-9, ns * 1e-9):i + 1]
                 cov = track.cov[i]
                 if np.all(np.isfinite(cov)):
@@ -405,6 +467,7 @@ class Page(Scene):
                     self.draw_body(body, track.t[i], track.q[i], trail=trail)
             for arm, bases in self.tl.bases.items():
                 self.arm_base(arm, bases.at(ns))
+            self.draw_tree(*self.tree_at(ns, known))
             for name in self.plan_names:
                 self.draw_plan(name, self.tl.plan_at(name, ns))
             for arm, path in self.tl.arms.items():

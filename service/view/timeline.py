@@ -1,8 +1,9 @@
 """A recording (:func:`dqpose.record.reader.read`) as what the viewer draws: each body's fused
 poses (answers that carry a pose, error entries left out) with their covariances, each plan, and
 each arm's actual poses (its Execute feedback and its WatchArm states), each arm's base in the
-world (the World's configuration, ``WorldConfig.arms``), all on one clock (the recording's
-arrival time, ns), looked up by time."""
+world (the World's configuration, ``WorldConfig.arms``), the frames fixed in their parents (its
+statics and sources: the frame tree), all on one clock (the recording's arrival time, ns),
+looked up by time."""
 from __future__ import annotations
 
 import dataclasses
@@ -58,6 +59,43 @@ class Bases:
 
 
 @dataclasses.dataclass
+class Fixed:
+    """The frames fixed in their parents (a World's statics and sources) as each configuration
+    in force set them: ``ns (n,)`` and, for each, ``frames``: name -> ``(parent,
+    T_parent_frame (8,))``; ``bases``: the sources that are arms' bases (drawn as the arm's
+    base, not again)."""
+    ns: np.ndarray
+    frames: list[dict[str, tuple[str, np.ndarray]]]
+    bases: list[frozenset[str]]
+
+    def at(self, ns: int) -> int:
+        """The configuration in force at ``ns``; before the first, the first (as
+        :class:`Bases`)."""
+        return max(int(np.searchsorted(self.ns, ns, side="right")) - 1, 0)
+
+
+def resolve(frames: dict[str, tuple[str, np.ndarray]],
+            known: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``T_world_frame`` of each of ``frames`` (name -> ``(parent, T_parent_frame)``) whose
+    chain of parents ends in one of ``known`` (name -> ``T_world_name``; ``""``, the world, is
+    the identity): composed along the chain; a frame whose chain reaches an unknown name (a
+    body not fused yet) or loops (a recording is not trusted to hold a valid tree) is left
+    out."""
+    out = {"": dq.identity(), **known}
+    for name in frames:
+        chain: list[str] = []
+        at = name
+        while at not in out and at in frames and len(chain) <= len(frames):
+            chain.append(at)
+            at = frames[at][0]
+        if at not in out:
+            continue
+        for child in reversed(chain):
+            out[child] = dq.mul(out[frames[child][0]], frames[child][1])
+    return {name: out[name] for name in frames if name in out}
+
+
+@dataclasses.dataclass
 class Timeline:
     start: int                  # ns of the first message drawn
     end: int
@@ -65,6 +103,7 @@ class Timeline:
     plans: list[tuple[str, int, np.ndarray]]    # (name, ns, positions (n, 3))
     arms: dict[str, Path] = dataclasses.field(default_factory=dict)
     bases: dict[str, Bases] = dataclasses.field(default_factory=dict)
+    fixed: Fixed | None = None
 
     def plan_at(self, name: str, ns: int) -> np.ndarray | None:
         """The positions of the last plan ``name`` made at or before ``ns``."""
@@ -103,8 +142,9 @@ def timeline(rec) -> Timeline:
     drawn: list[Track | Path] = [*tracks.values(), *arms.values()]
     times = [int(t.ns[0]) for t in drawn] + [ns for _, ns, _ in plans]
     ends = [int(t.ns[-1]) for t in drawn] + [ns for _, ns, _ in plans]
+    configs = configurations(rec)
     return Timeline(min(times, default=0), max(ends, default=0), tracks, plans, arms,
-                    arm_bases(rec))
+                    arm_bases(configs), fixed_frames(configs))
 
 
 def arm_paths(rec) -> dict[str, Path]:
@@ -139,30 +179,58 @@ def arm_paths(rec) -> dict[str, Path]:
             for arm, rs in rows.items()}
 
 
-def arm_bases(rec) -> dict[str, Bases]:
-    """Each arm's base in the world: ``T_world_base`` = the extrinsic of the source that the
-    World's configuration in force (a ``Configure`` call's answer) names for it. An arm named
-    in several worlds' configurations is placed by the default world's, else by the first
-    world (in name order) naming it."""
+def configurations(rec) -> dict[str, list]:
+    """Each world's configurations in force (a ``Configure`` call's answer, a
+    ``dqpose.v1.WorldConfig``) in arrival order: world -> ``[(ns, config)]``."""
     calls = {c.id: c.world for c in rec.calls.values()
              if c.answer_type == WORLD_CONFIG and c.rpc.endswith("/Configure")}
     if not calls:
         return {}
     cls = rec.message_class(WORLD_CONFIG)
-    rows: dict[str, dict[str, list]] = {}         # arm -> world -> [(ns, T_world_base)]
+    out: dict[str, list] = {}
     for e in rec.events:
-        if e.kind != "answer" or e.call not in calls:
-            continue
-        config = rec.decode(cls, e.data, e.ns, e.file)
-        sources = {s.name: s for s in config.sources}
-        for a in config.arms:
-            src = sources.get(a.source)
-            if src is not None:
-                pose = dq.identity()                # unset: the identity (fusion.proto)
-                if src.HasField("extrinsic"):
-                    t, q = pose_of(src.extrinsic)
-                    pose = dq.from_pose(q, t)
-                rows.setdefault(a.arm, {}).setdefault(calls[e.call], []).append((e.ns, pose))
+        if e.kind == "answer" and e.call in calls:
+            out.setdefault(calls[e.call], []).append((e.ns, rec.decode(cls, e.data, e.ns,
+                                                                       e.file)))
+    return out
+
+
+def _pose(msg, given: bool) -> np.ndarray:
+    """A ``Pose`` field as ``(8,)``; unset: the identity (fusion.proto, world.proto)."""
+    if not given:
+        return dq.identity()
+    t, q = pose_of(msg)
+    return dq.from_pose(q, t)
+
+
+def fixed_frames(configs: dict[str, list]) -> Fixed | None:
+    """The frames fixed in their parents of the default world's configurations, else of the
+    first world's (in name order): each static at its pose, each named source at its
+    extrinsic; ``None`` when no world was configured."""
+    if not configs:
+        return None
+    got = configs[min(configs)]          # "" (the default world) sorts first
+    frames = [{**{s.child: (s.parent, _pose(s.pose, s.HasField("pose"))) for s in c.statics},
+               **{s.name: (s.parent, _pose(s.extrinsic, s.HasField("extrinsic")))
+                  for s in c.sources if s.name}} for _, c in got]
+    return Fixed(np.array([n for n, _ in got], dtype=np.int64), frames,
+                 [frozenset(a.source for a in c.arms) for _, c in got])
+
+
+def arm_bases(configs: dict[str, list]) -> dict[str, Bases]:
+    """Each arm's base in the world: ``T_world_base`` = the extrinsic of the source that the
+    World's configuration in force (:func:`configurations`) names for it. An arm named in
+    several worlds' configurations is placed by the default world's, else by the first world
+    (in name order) naming it."""
+    rows: dict[str, dict[str, list]] = {}         # arm -> world -> [(ns, T_world_base)]
+    for world, got in configs.items():
+        for ns, config in got:
+            sources = {s.name: s for s in config.sources}
+            for a in config.arms:
+                src = sources.get(a.source)
+                if src is not None:
+                    pose = _pose(src.extrinsic, src.HasField("extrinsic"))
+                    rows.setdefault(a.arm, {}).setdefault(world, []).append((ns, pose))
     out = {}
     for arm, worlds in rows.items():
         got = worlds[min(worlds)]          # "" (the default world) sorts first
