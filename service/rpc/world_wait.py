@@ -129,12 +129,12 @@ class Waits:
                     del self.count[key]
 
     def _hold(self, world: str, context) -> list:
-        """A waiting Lookup's counts in its world and its peer's; ``OverLimit`` naming the
+        """A waiting Lookup's counts in its peer's and its world; ``OverLimit`` naming the
         first bound reached (and :class:`Stopped` once the server stops)."""
         if self.stopped:
             raise Stopped("the server is stopping; the Lookup would wait for data")
-        keys = [(("world", world), "max_world_waits"),
-                (("peer", self.peers.peer(context)), "max_peer_waits")]
+        keys = [(("peer", self.peers.peer(context)), "max_peer_waits"),
+                (("world", world), "max_world_waits")]
         for key, name in keys:
             bound = getattr(self.limits, name)
             if self.count[key] >= bound:

@@ -35,7 +35,7 @@ def batch(body: str, times, seed: int = 0) -> Batch:
 
 @pytest.fixture(scope="module")
 def server():
-    limits = Limits(max_peer_waits=2)
+    limits = Limits(max_peer_waits=2, max_world_waits=1)
     with ServerThread(ServerConfig(port=0, limits=limits)) as s:
         yield s
 
@@ -85,9 +85,9 @@ def test_a_waiting_lookup_is_answered_by_the_publish_that_brings_its_body(server
 
 
 def test_after_wait_the_error_it_would_have_had(server):
-    """Unknown body, a time past the newest: after waiting, the same status and text; an
-    error more data cannot mend (a time before the buffer) is answered without waiting: it
-    takes no waiting slot, which are full."""
+    """Unknown body, a time past the newest: after waiting, the same status and text. Waiting
+    Lookups are bounded by world and by peer; an error more data cannot mend (a time before
+    the buffer) is answered without waiting: it takes no waiting slot, which are full."""
     with Client(server.target, world="never") as c:
         list(c.publish([batch("box", [5.0, 5.1])]))
         for args in (("", "ghost"), ("", "box", 9.0)):
@@ -97,10 +97,18 @@ def test_after_wait_the_error_it_would_have_had(server):
             assert without.code in (grpc.StatusCode.NOT_FOUND,
                                     grpc.StatusCode.FAILED_PRECONDITION)
         request = wpb.LookupRequest(source="ghost", wait=10.0)
-        holders = [c._lookup.future(request, timeout=30, metadata=c.metadata) for _ in range(2)]
+        holders = [c._lookup.future(request, timeout=30, metadata=c.metadata)]
         try:
-            assert wait_until(lambda: waiting(server) == 2, 10.0)
+            assert wait_until(lambda: waiting(server) == 1, 10.0)
             full = refusal(c, "", "box", 9.0, wait=1.0)
+            assert full.code == grpc.StatusCode.RESOURCE_EXHAUSTED
+            assert full.details.startswith("wait: world 'never' has 1 Lookups waiting")
+            assert "max_world_waits = 1" in full.details
+            with Client(server.target, world="other") as o:
+                list(o.publish([batch("box", [5.0, 5.1])]))
+                holders.append(o._lookup.future(request, timeout=30, metadata=o.metadata))
+                assert wait_until(lambda: waiting(server) == 2, 10.0)
+                full = refusal(o, "", "box", 9.0, wait=1.0)
             assert full.code == grpc.StatusCode.RESOURCE_EXHAUSTED
             assert "max_peer_waits = 2" in full.details and full.details.startswith("wait: ")
             before = refusal(c, "", "box", 1.0, wait=10.0)
