@@ -78,6 +78,16 @@ class NotFound(LookupError):
     """An unknown body or arm."""
 
 
+def seconds_text(t: float) -> str:
+    """A time to the microsecond, without trailing zeros (Unix times keep their digits)."""
+    return f"{t:.6f}".rstrip("0").rstrip(".")
+
+
+def known_from(name: str, oldest: float, newest: float) -> str:
+    """What an :class:`OutOfRange` names: the span a body (or frame) is known over."""
+    return f"{name!r} is known from {seconds_text(oldest)} to {seconds_text(newest)}"
+
+
 class OutOfRange(LookupError):
     """A time outside the buffer, or beyond ``max_extrapolation`` past what is known; the
     message names what is known."""
@@ -96,6 +106,11 @@ class Infeasible(ValueError):
 
 class FieldInfeasible(FieldError, Infeasible):
     """An :class:`Infeasible` renamed to the caller's field path."""
+
+
+class WorldInfeasible(WorldError, Infeasible):
+    """A world's refusal of well-formed input it cannot serve (FAILED_PRECONDITION): an arm
+    whose source rides on a body."""
 
 
 def rename(err: ValueError, names: dict[str, str]) -> FieldError:

@@ -54,6 +54,12 @@ class Lookups:
         world frame, not both; not the same body), the world's read lock held."""
         w = self._world
         t = w._t
+        riders = w._riders
+        if riders.parents and riders.rides(target, source):
+            # a rider's rows composed with its parent's poses (dqpose.riders): each body's own
+            # fit, their errors taken as independent
+            return _composed(target, source, at,
+                             {b: w._pose_only(b, at) for b in (target, source) if b})
         if t.exact or not (target and source):
             # nothing uncertain two bodies could share: each body's own pose (a kept fit's)
             kept = {b: w._kept_pose(b, at) for b in (target, source) if b}

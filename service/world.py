@@ -30,6 +30,8 @@ import numpy as np
 from dqpose import limits as _limits
 from dqpose.answers import Kept
 from dqpose.errors import NotFound, NotYet, OutOfRange, WorldError
+from dqpose.errors import known_from as _known_from
+from dqpose.errors import seconds_text as _s
 from dqpose.fusion import (
     DEFAULT_MAX_EXTRAPOLATION,
     DEFAULT_PROBABILITY,
@@ -47,6 +49,7 @@ from dqpose.fusion.validation import _finite_shape, _seconds
 from dqpose.lookup import Lookups
 from dqpose.names import name_problem, quoted
 from dqpose.readwrite import ReadWrite
+from dqpose.riders import Riders
 from dqpose.world_bounds import DEFAULT as DEFAULT_BOUNDS
 from dqpose.world_bounds import WorldBounds, over, over_bounds
 from dqpose.world_ticks import horizon
@@ -104,15 +107,6 @@ class BodyPose:
     pose: np.ndarray
     covariance: np.ndarray
     fused: Optional[Fused]
-
-
-def _s(t: float) -> str:
-    """A time to the microsecond, without trailing zeros (Unix times keep their digits)."""
-    return f"{t:.6f}".rstrip("0").rstrip(".")
-
-
-def _known_from(body: str, oldest: float, newest: float) -> str:
-    return f"{body!r} is known from {_s(oldest)} to {_s(newest)}"
 
 
 def _body_name(body, field: str = "body") -> str:
@@ -195,9 +189,10 @@ class World:
             self.tracker_bounds, max_window=b.max_measurements_per_body,
             max_rows=b.max_measurements or b.max_bodies * b.max_measurements_per_body)
         try:
-            _sources(sources)
+            table = _sources(sources)
         except ValueError as e:
             raise WorldError.of(e) from None
+        Riders.check_arms(arms, table)
         try:        # the sources passed: what the tracker refuses is an option
             tracker = Tracker(buffer, sources=sources, robust=options.robust,
                               probability=options.probability, max_skew=options.max_skew,
@@ -209,6 +204,8 @@ class World:
         with self._lock.write():
             old = self._tracker
             self._tracker, self._wire = tracker, WireTicks(tracker)
+            self._riders = Riders(self, tracker._table)
+            tracker.riders = self._riders if self._riders.parents else None
             self._fits.clear()
             self._relatives.clear()
             self._generation += 1
@@ -356,7 +353,7 @@ class World:
     def horizon(self, body: str) -> float:
         """``body``'s horizon (:func:`dqpose.world_ticks.horizon`) as :meth:`tick_window` has it."""
         with self._lock.read():
-            return horizon(self._fed(body), self.options.max_delay)
+            return horizon(self._riders.waited(body), self.options.max_delay)
 
     def newest_of(self, bodies: Sequence[str]) -> list[float]:
         """When each of ``bodies`` (held) had its newest measurement taken, in one look."""
@@ -372,8 +369,8 @@ class World:
             t = self._t
             newest, window = t.newest(body), self.options.window
             rows = t.rows_ending(body, newest, window)
-            return TickWindow(horizon(self._fed(body), self.options.max_delay) if known is None
-                              else known, float(t.taken_of(rows).min()), len(rows),
+            return TickWindow(horizon(self._riders.waited(body), self.options.max_delay)
+                              if known is None else known, float(t.taken_of(rows).min()), len(rows),
                               t.capped(body, window), rows)
 
     def tick(self, body: str, time: Optional[float]) -> tuple[BodyPose, np.ndarray]:
@@ -393,6 +390,8 @@ class World:
         :meth:`relative`, whose refusal comes after the fit's). ``picked``: the rows of
         :meth:`tick_window`, unchanged since, when ``time`` is in its ``[floor, horizon]`` (the
         tick's rows, none of its refusals possible)."""
+        if self._riders.parents and self._riders.rides(body, relative_to):
+            return None     # composed in Python (dqpose.riders)
         if picked is not None and not relative_to:
             with self._lock.read():
                 return self._wire(picked, time, body, request)
@@ -447,7 +446,7 @@ class World:
         end = self._end(body, at)
         key = (body, at, end)
         hit = self._fits.get(key)
-        version = self._t.version(body)
+        version = self._riders.version(body)
         if hit is not None and hit[0] == version and (hit[2] or not nis):
             return hit[1]       # no new data: it was in range then
         f, ids = self._fitted(body, at, lambda rows: self._t.estimate_rows(rows, at, nis))
@@ -465,7 +464,7 @@ class World:
     def _kept_pose(self, body: str, at: float) -> Optional[tuple[np.ndarray, np.ndarray]]:
         """A kept fit's pose and covariance of ``body`` at ``at`` if it is current, else None."""
         hit = self._fits.get((body, at, self._end(body, at)))
-        if hit is not None and hit[0] == self._t.version(body):
+        if hit is not None and hit[0] == self._riders.version(body):
             return hit[1].mean, hit[1].covariance
         return None
 
@@ -556,7 +555,7 @@ class World:
                 return BodyPose(source, at, np.array([1.0, 0, 0, 0, 0, 0, 0, 0]),
                                 np.zeros((DOF, DOF)), None)
             key = (target, source, at)
-            versions = (self._t.version(target), self._t.version(source))
+            versions = (self._riders.version(target), self._riders.version(source))
             hit = self._relatives.get(key)
             if hit is not None and hit[0] == versions:
                 return hit[1]
@@ -575,8 +574,7 @@ class World:
         attribute read, whole under the interpreter lock), so an event loop may call it: an
         answer made between two equal stamps is the answer for as long as the stamp stays
         equal (no measurement of those bodies, no configuration came in)."""
-        t = self._t
-        return (self._generation,) + tuple(t.version(b) for b in bodies)
+        return (self._generation,) + tuple(self._riders.version(b) for b in bodies)
 
     def arm_base(self, arm: str) -> BodyPose:
         """``T_world_base`` of ``arm``: the extrinsic of the source ``arms`` names, with its

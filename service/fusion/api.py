@@ -60,6 +60,9 @@ def fuse(poses, covariances=None, *, weights=None, names: Optional[Sequence[str]
     S = _covariances(covariances, weights, n)
     names = _names(names, n)
     table = _sources(sources)
+    for k, src in enumerate(table.values()):
+        if src.parent:      # the parent's pose at each measurement's time is a world's fit
+            raise ValueError(f"sources[{k}].parent: only a world resolves a parent")
     try:
         probability = float(probability)
     except (TypeError, ValueError):

@@ -5,9 +5,10 @@ bounds are a :class:`~dqpose.fusion.bounds.TrackerBounds` (a server's filled fro
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Iterable, Mapping, NamedTuple, Optional, Sequence
+from typing import TYPE_CHECKING, Iterable, Mapping, NamedTuple, Optional, Sequence
 
 import numpy as np
 
@@ -35,6 +36,9 @@ from dqpose.fusion.validation import (
     _seconds,
     _shape,
 )
+
+if TYPE_CHECKING:
+    from dqpose.riders import Riders
 
 
 @dataclass(frozen=True)
@@ -139,7 +143,9 @@ class Tracker:
         self.sources = tuple(sources or ())
         self._table = _sources(self.sources)
         # the options' checks are fuse's: one fusion of a placeholder runs them now, not later
-        fuse(np.array([[1.0, 0, 0, 0, 0, 0, 0, 0]]), times=[0.0], sources=self.sources,
+        # (its parents a world's, which fuse refuses)
+        fuse(np.array([[1.0, 0, 0, 0, 0, 0, 0, 0]]), times=[0.0],
+             sources=[dataclasses.replace(s, parent="") for s in self._table.values()],
              robust=robust, probability=probability, max_skew=max_skew,
              max_extrapolation=max_extrapolation, twist_covariance=twist_covariance,
              acceleration_psd=acceleration_psd, tol=tol, max_iter=max_iter)
@@ -164,6 +170,10 @@ class Tracker:
         # latency_sigma), for pose_rows
         self._exact = np.empty(0, dtype=bool)
         self._all_exact = all(src.exact for src in self._table.values())
+        # a World's riders (dqpose.riders.Riders: rows composed with their parents' poses when
+        # fitted) and, per source code, whether it is one
+        self.riders: Optional[Riders] = None
+        self._riding = np.empty(0, dtype=bool)
         self._count = 0            # measurements offered so far: the default ids
         # the bodies of the last ingest's measurements taken in, once each, in order
         self.touched: tuple = ()
@@ -300,6 +310,10 @@ class Tracker:
         leaves out the leave-one-out NIS (``nis`` zeros, ``tested`` all False), everything else
         the same to the last bit. Without ``joint``, where :meth:`joint` may start the body
         (``_fuse_in_time``'s)."""
+        if self.riders is not None:     # a World's sources riding on its bodies
+            got = self.riders.fit(rows, time, nis, joint)
+            if got is not None:
+                return got
         s = self._store
         # the rows were checked by fuse's rules when they came in, and brought into the world
         # frame (_in_world)
@@ -314,6 +328,9 @@ class Tracker:
         s = self._store
         codes = s.codes[rows]
         got = None
+        if self.riders is not None and self._riding[codes].any():
+            f = self.estimate_rows(rows, time, False)[0]
+            return f.mean, f.covariance
         if self._all_exact or self._exact[codes].all():
             # taken was stamp less latency when the rows came in: the same bits as fuse's
             got = _pose_in_time(*s.world(rows), self._latency[codes], s.times[rows],
@@ -403,6 +420,7 @@ class Tracker:
             src = self._table.get(source)
             self._latency = np.append(self._latency, src.latency if src is not None else 0.0)
             self._exact = np.append(self._exact, src is None or src.exact)
+            self._riding = np.append(self._riding, src is not None and bool(src.parent))
             if code >= self._by_source.shape[1]:
                 self._by_source = np.pad(self._by_source, ((0, 0), (0, code + 1)),
                                          constant_values=-math.inf)

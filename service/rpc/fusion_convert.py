@@ -163,7 +163,7 @@ def sources_from_msg(msgs, field: str = "options.sources") -> tuple[fusion.Sourc
                 s.extrinsic_covariance, dtype=np.float64).reshape(fusion.DOF, fusion.DOF)
         sources.append(fusion.Source(s.name, optional_pose(s, "extrinsic", where),
                                      optional_pose(s, "body_offset", where), s.latency,
-                                     s.latency_sigma or None, cov))
+                                     s.latency_sigma or None, cov, s.parent))
     return tuple(sources)
 
 
@@ -171,7 +171,8 @@ def source_msgs(sources, out) -> None:
     """:class:`fusion.Source` s appended to the repeated ``Source`` field ``out``."""
     for s in sources or ():
         msg = out.add(name=s.name, latency=float(s.latency),
-                      latency_sigma=float(s.latency_sigma or 0.0))
+                      latency_sigma=float(s.latency_sigma or 0.0),
+                      parent=getattr(s, "parent", ""))
         if s.extrinsic is not None:
             dq_to_pose(np.asarray(s.extrinsic, dtype=np.float64), msg.extrinsic)
         if s.body_offset is not None:

@@ -31,7 +31,7 @@ from google.protobuf.message import DecodeError
 from dqpose import limits as _limits
 from dqpose import record
 from dqpose import world as domain
-from dqpose.errors import FieldError
+from dqpose.errors import FieldError, FieldInfeasible, Infeasible
 from dqpose.fusion.bounds import TrackerBounds
 from dqpose.hub import Hub, Interest, Rows, Subscription
 from dqpose.rpc import DEFAULT_MAX_POSES, world_wait
@@ -284,7 +284,8 @@ class World:
         try:
             world.configure(sources, arms, options, hook=lambda: rec.measurements(request))
         except domain.WorldError as e:
-            error = FieldError(e.named("config"))
+            error = (FieldInfeasible if isinstance(e, Infeasible) else FieldError)(
+                e.named("config"))
             _ended(rec, error)
             raise error from None
         answer = config_msg(world.world.sources, world.world.arms, world.world.options)

@@ -125,3 +125,15 @@ def test_the_c_writer_writes_a_real_fit_with_every_field_as_protobuf():
     msg = fused_to_msg(f, "box", f.time)
     msg.request, msg.measurements[:] = 7, [3, 300, 2**40]
     assert fused_pose_bytes(f, "box", f.time, 7, [3, 300, 2**40]) == msg.SerializeToString()
+
+
+def test_a_source_keeps_its_parent_through_its_message():
+    from dqpose.rpc.fusion_convert import source_msgs, sources_from_msg
+    cam = fusion.Source("cam", extrinsic=lie.se3_exp(np.array([0, 0, 0.1, 0.05, 0, 0.02])),
+                        extrinsic_covariance=np.eye(6) * 1e-6, parent="tool")
+    msg = fpb.FusionOptions()
+    source_msgs([cam, fusion.Source("arm")], msg.sources)
+    assert [s.parent for s in msg.sources] == ["tool", ""]
+    back = sources_from_msg(fpb.FusionOptions.FromString(msg.SerializeToString()).sources)
+    assert [s.parent for s in back] == ["tool", ""]
+    np.testing.assert_allclose(back[0].extrinsic, cam.extrinsic, atol=1e-15)

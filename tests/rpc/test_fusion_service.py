@@ -177,6 +177,8 @@ def _request(Z, S, **kw):
      "options.sources[1].latency_sigma: must be positive"),
     (lambda r: setattr(r.options.sources[1], "latency", float("inf")),
      "options.sources[1].latency: must be finite"),
+    (lambda r: setattr(r.options.sources[1], "parent", "tool"),
+     "options.sources[1].parent: only a world resolves a parent"),
     (lambda r: r.options.twist_covariance.extend([1.0] * 35),
      "options.twist_covariance: expected 36 values"),
     (lambda r: r.options.twist_covariance.extend((-np.eye(6)).ravel().tolist()),

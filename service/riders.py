@@ -1,0 +1,207 @@
+"""Sources riding on bodies (``Source.parent``): a camera on an arm's tool, on a mobile base.
+
+A rider's measurement is kept as every measurement is, in its source's frame composed with the
+extrinsic and body offset (``E · Z · O``, :mod:`dqpose.fusion.sources`), which for a rider is its
+parent's frame; it is brought to the world when a fit takes it, never at ingest, so a replay
+stays a function of arrival order: row i becomes ``T_world_P(t_i) · E · Z_i · O`` with the
+parent P's pose at the row's taken time ``t_i`` (P's own fit, :meth:`World._pose_only`). A row
+whose time P is not known at is left out of that fit and listed among its dropped measurements
+(:class:`Unparented`), after the rows it fitted.
+
+Covariance model. With ``T_world_P · Exp(δP) · E · Exp(δE)`` (``δP`` the error of P's fit,
+``Σ_P``; ``δE`` the extrinsic's, ``Σ_E`` its ``extrinsic_covariance``), the errors of P's fit
+are strongly correlated over one window (the same measurements make every one of them), so they
+are taken as ONE error shared by all the rider's rows in the fit, as an uncertain extrinsic is:
+``T_world_P(t_i) · E · Exp(ε)`` with ``ε = Ad(E⁻¹) δP + δE``, ``Σ_ε = Ad(E⁻¹) Σ_P Ad(E⁻¹)ᵀ +
+Σ_E``, ``Σ_P`` P's covariance at the reference row's time (the rider's row taken nearest the
+fit's time). The joint fit of uncertain extrinsics (:mod:`dqpose.fusion.extrinsics`) then
+estimates the body with ``ε`` integrated out; it takes one extrinsic per source, so P's motion
+is folded into the rows: the fit's extrinsic is ``Ext = T_world_P(t_ref) · E`` and its rows the
+composed ones (``Ext · z_i' · O`` with ``z_i' = Ext⁻¹ · T_world_P(t_i) · E · Z_i``), ``ε``
+entering each row through ``Ad((z_i' O)⁻¹)``: exact while P moves little over the window, an
+approximation of the per-row ``Ad((Z_i O)⁻¹)`` as it moves more.
+
+Bodies without riders keep the C fast paths (:meth:`Riders.rides`: one set look-up per body).
+"""
+from __future__ import annotations
+
+import dataclasses
+import threading
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Mapping, Optional
+
+import numpy as np
+
+from dqpose import dq, lie
+from dqpose.errors import WorldInfeasible, known_from, seconds_text
+from dqpose.fusion.api import _fuse_world_rows
+from dqpose.fusion.results import Dropped, Fused, _who
+
+if TYPE_CHECKING:
+    from dqpose.fusion import Source
+    from dqpose.world import World
+
+_IDENT = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
+
+
+@dataclass(frozen=True)
+class Unparented(Dropped):
+    """A rider's measurement left out of a fit: its parent is not known at its taken time
+    (``age`` before the fusion time); ``why`` names the parent and what is known of it."""
+    why: str = ""
+
+    @property
+    def reason(self) -> str:
+        return f"{_who(self.index, self.source)}: {self.why}"
+
+
+class Riders:
+    """A world's riders (source -> parent, from its configuration's source ``table``) and their
+    fits; without riders, what a tick waits for and an answer depends on are the body's own."""
+
+    def __init__(self, world: "World", table: Mapping[str, "Source"]):
+        self._world = world
+        self.parents = {name: s.parent for name, s in table.items() if s.parent}
+        self._composing = threading.local()    # the bodies whose fit a thread is composing
+
+    def rides(self, *bodies: str) -> bool:
+        """Whether a rider ever fed one of ``bodies`` ("" the world: none; the lock held)."""
+        parents, w = self.parents, self._world
+        return any(s in parents for b in bodies if b for s in w._fed(b))
+
+    def parents_of(self, body: str) -> list[str]:
+        """The parents of the riders that ever fed ``body``, once each (the lock held)."""
+        parents = self.parents
+        return list(dict.fromkeys(parents[s] for s in self._world._fed(body) if s in parents))
+
+    @staticmethod
+    def check_arms(arms: Mapping[str, str], table: Mapping[str, "Source"]) -> None:
+        """An arm whose source rides on a body (an arm on a moving base) is refused for now."""
+        for arm, src in arms.items():
+            if table[src].parent:
+                raise WorldInfeasible(None, f"arms[{arm!r}]", f"source {src!r} rides on "
+                                      f"{table[src].parent!r}: an arm on a moving base is not "
+                                      f"supported (its source's parent must be the world)")
+
+    def waited(self, body: str) -> dict:
+        """``body``'s sources' newest taken with those of the bodies its riders ride on: what a
+        tick of ``body`` waits for (:func:`dqpose.world_ticks.horizon`)."""
+        w = self._world
+        if not self.parents:
+            return w._fed(body)
+        out: dict = dict(w._fed(body))
+        for p in self.parents_of(body):
+            if p != body and w._t.has(p):
+                out.update(((p, s), at) for s, at in w._fed(p).items())
+        return out
+
+    def version(self, body: str):
+        """What ``body``'s answers depend on: its version (:meth:`Tracker.version`), and with
+        riders its parents' too."""
+        t = self._world._t
+        own = t.version(body)
+        if not self.parents or not self.rides(body):
+            return own
+        return (own,) + tuple(t.version(p) for p in self.parents_of(body) if p != body)
+
+    def fit(self, rows: np.ndarray, time: Optional[float], nis: bool,
+            joint: bool) -> Optional[tuple[Fused, np.ndarray]]:
+        """The fit of ``rows`` (one body's, the lock held) with its riders' rows composed with
+        their parents' poses (the module's docstring), or None when no row is a rider's."""
+        w = self._world
+        t = w._t
+        s = t._store
+        names = t._sources_of(rows)
+        riding = [k for k, n in enumerate(names) if n in self.parents]
+        if not riding:
+            return None
+        Z, S = s.world(rows)
+        times, taken = s.times[rows], s.taken[rows]
+        at = float(taken.max()) if time is None else float(time)
+        keep = np.ones(len(rows), bool)
+        why: dict[int, str] = {}
+        table = dict(t._checked.table)
+        body = self._body_of(rows)
+        for src in dict.fromkeys(names[k] for k in riding):
+            idx = [k for k in riding if names[k] == src]
+            got = self._compose(src, body, idx, taken, Z, why)
+            keep[list(why)] = False
+            if got is not None:
+                table[src] = got(at)
+        kept = np.flatnonzero(keep)
+        if not kept.size:
+            first = min(why)
+            raise ValueError(Unparented(first, names[first], 0.0, 0.0, why[first]).reason)
+        o = t._checked._replace(table=table)
+        f = _fuse_world_rows(Z[kept], S[kept], tuple(names[k] for k in kept), times[kept], time,
+                             o, nis, joint)
+        out = np.flatnonzero(~keep)
+        assert f.time is not None
+        dropped = tuple(Unparented(kept.size + j, names[k], float(f.time - taken[k]), 0.0,
+                                   why[k]) for j, k in enumerate(out.tolist()))
+        ids = s.ids[rows]
+        return (dataclasses.replace(f, dropped=f.dropped + dropped),
+                np.concatenate([ids[kept], ids[out]]))
+
+    def _body_of(self, rows: np.ndarray) -> str:
+        t = self._world._t
+        code = int(t._store.body[rows[0]])
+        return next(b for b, c in t._body_codes.items() if c == code)
+
+    def _compose(self, src: str, body: str, idx: list, taken: np.ndarray, Z: np.ndarray,
+                 why: dict):
+        """Rows ``idx`` of rider ``src`` composed in place with its parent's pose at their taken
+        times (those it is not known at named in ``why``); the source as the fit takes it, at
+        a fit's time, or None when no row is kept."""
+        w = self._world
+        parent = self.parents[src]
+        poses: dict[float, tuple] = {}
+        good = []
+        for k in idx:
+            at = float(taken[k])
+            if at not in poses:
+                poses[at] = self._parent_pose(parent, body, at)
+            got = poses[at]
+            if isinstance(got, str):
+                why[k] = got
+                continue
+            Z[k] = dq.mul(got[0], Z[k])
+            good.append(k)
+        if not good:
+            return None
+        src_ = w._t._checked.table[src]
+
+        def source(at: float):
+            ref = min(good, key=lambda k: abs(float(taken[k]) - at))
+            P, C = poses[float(taken[ref])]
+            E = _IDENT if src_.extrinsic is None else src_.extrinsic
+            A = lie.adjoint(dq.conj(E))
+            cov = A @ C @ A.T
+            if src_.extrinsic_covariance is not None:
+                cov = cov + src_.extrinsic_covariance
+            cov = 0.5 * (cov + cov.T)
+            return dataclasses.replace(src_, extrinsic=dq.normalize(dq.mul(P, E)), parent="",
+                                       extrinsic_covariance=cov if np.any(cov) else None)
+        Z[good] = dq.normalize(Z[good])
+        return source
+
+    def _parent_pose(self, parent: str, body: str, at: float):
+        """``T_world_parent`` at ``at`` and its covariance, or why it is not known there."""
+        w = self._world
+        stack = getattr(self._composing, "bodies", None)
+        if stack is None:
+            stack = self._composing.bodies = []
+        if parent == body or parent in stack:
+            return f"its parent {parent!r} rides on {body!r} (a cycle)"
+        if not w._t.has(parent):
+            return (f"its parent {parent!r} is not known at {seconds_text(at)} (no measurement "
+                    f"of it)")
+        stack.append(body)
+        try:
+            return w._pose_only(parent, at)
+        except (LookupError, ValueError):
+            t = w._t
+            return (f"its parent {parent!r} is not known at {seconds_text(at)} ("
+                    f"{known_from(parent, t.oldest(parent), t.newest(parent))})")
+        finally:
+            stack.pop()

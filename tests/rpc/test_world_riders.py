@@ -1,0 +1,62 @@
+"""Sources riding on bodies through a real server on 127.0.0.1: a camera on the arm's tool
+configured, the tool and the camera's box published, the box looked up (World) and streamed
+(StreamFuse); an arm whose source rides on a body refused FAILED_PRECONDITION."""
+from __future__ import annotations
+
+import grpc
+import numpy as np
+import pytest
+
+from dqpose import dq
+from dqpose.fusion import Source
+from dqpose.rpc.client import Batch, Client, RpcError
+from tests.rpc._grpc_server import ServerThread
+from tests.test_riders import BOX, COV_X, X, scene, tool_at
+
+SOURCES = [Source("arm"), Source("cam", extrinsic=X, extrinsic_covariance=COV_X, parent="tool")]
+
+
+@pytest.fixture(scope="module")
+def target():
+    with ServerThread() as s:
+        yield s.target
+
+
+def batch(ms) -> Batch:
+    return Batch(np.array([m.pose for m in ms]), np.array([m.covariance for m in ms]), None,
+                 [m.source for m in ms], [m.body for m in ms], np.array([m.time for m in ms]))
+
+
+def test_a_camera_on_the_tool_gives_a_lookup_of_the_box(target):
+    with Client(target, world="riders") as c:
+        config = c.configure_world(SOURCES, window=0.5, buffer=5.0)
+        assert [s.parent for s in config.sources] == ["", "tool"]
+        acks = list(c.publish([batch(scene())], producer="p"))
+        assert not acks[0].errors
+        got = c.lookup("", "box")
+        np.testing.assert_allclose(got.pose * np.sign(got.pose[0]), BOX, rtol=0, atol=1e-9)
+        assert np.all(np.linalg.eigvalsh(got.covariance) > 0)
+        # the box in the tool's frame at the tool's newest
+        t = got.time
+        rel = c.lookup("tool", "box", t)
+        want = dq.mul(dq.conj(tool_at(t)), BOX)
+        np.testing.assert_allclose(rel.pose * np.sign(rel.pose[0] * want[0]), want, rtol=0,
+                                   atol=1e-9)
+
+
+def test_stream_fuse_resolves_a_parent_as_the_world_does(target):
+    with Client(target) as c:
+        answers = list(c.stream_fuse([batch(scene())], sources=SOURCES, window=0.5))
+    box = [a for a in answers if a.body == "box"]
+    assert box and box[-1].error is None, answers
+    f = box[-1].fused
+    np.testing.assert_allclose(f.mean * np.sign(f.mean[0]), BOX, rtol=0, atol=1e-9)
+
+
+def test_an_arm_whose_source_rides_on_a_body_is_failed_precondition(target):
+    with Client(target, world="riders-arm") as c:
+        with pytest.raises(RpcError) as e:
+            c.configure_world([Source("ur", parent="base")], arms={"ur": "ur"})
+    assert e.value.code == grpc.StatusCode.FAILED_PRECONDITION
+    assert e.value.details.startswith("config.arms['ur']: source 'ur' rides on 'base'"), \
+        e.value.details
