@@ -176,12 +176,14 @@ class Hub:
     def subscriptions(self) -> tuple[Subscription, ...]:
         return tuple(self._subscriptions.values())
 
-    def configure(self, sources, arms, options, hook: Hook = None) -> None:
+    def configure(self, sources, arms, options, hook: Hook = None, statics=(),
+                  static_bodies=()) -> None:
         """:meth:`dqpose.world.World.configure` as a step (a ``WorldError`` leaves the world as
         it was)."""
         with self.lock:
             _run(hook)
-            self.world.configure(sources=sources, arms=arms, options=options)
+            self.world.configure(sources=sources, arms=arms, options=options, statics=statics,
+                                 static_bodies=static_bodies)
 
     def count(self, hook: Hook = None) -> None:
         """A request the transport could not read: numbered in the world's order, unused."""

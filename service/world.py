@@ -27,6 +27,7 @@ from typing import Mapping, NamedTuple, Optional, Sequence
 
 import numpy as np
 
+from dqpose import frames as _frames
 from dqpose import limits as _limits
 from dqpose.answers import Kept
 from dqpose.errors import NotFound, NotYet, OutOfRange, WorldError
@@ -146,10 +147,12 @@ class World:
         self.configure(sources=sources, arms=arms, options=options)
 
     def configure(self, *, sources: Sequence[Source], arms: Mapping[str, str],
-                  options: WorldOptions) -> None:
-        """Replace the sources, arms and options (all checked first: a ``WorldError`` naming the
-        field leaves the world as it was); the measurements kept that still fit the new
-        buffer and bounds stay, re-fused under the new sources."""
+                  options: WorldOptions, statics: Sequence[_frames.Static] = (),
+                  static_bodies: Sequence[str] = ()) -> None:
+        """Replace the sources, arms, options, statics and static bodies (the frame tree,
+        :class:`dqpose.frames.FrameTree`; all checked first: a ``WorldError`` naming the field
+        leaves the world as it was); the measurements kept that still fit the new buffer and
+        bounds stay, re-fused under the new sources."""
         sources = tuple(sources)
         b = self.bounds
         if len(sources) > b.max_sources:
@@ -193,6 +196,7 @@ class World:
         except ValueError as e:
             raise WorldError.of(e) from None
         Riders.check_arms(arms, table)
+        tree = _frames.FrameTree(table, statics, static_bodies, b)
         try:        # the sources passed: what the tracker refuses is an option
             tracker = Tracker(buffer, sources=sources, robust=options.robust,
                               probability=options.probability, max_skew=options.max_skew,
@@ -202,7 +206,9 @@ class World:
         except ValueError as e:
             raise WorldError.of(e, under="options") from None
         with self._lock.write():
-            old = self._tracker
+            if self._tracker is not None:
+                tree.clashes(self._t.held)
+            old, self.tree = self._tracker, tree
             self._tracker, self._wire = tracker, WireTicks(tracker)
             self._riders = Riders(self, tracker._table)
             tracker.riders = self._riders if self._riders.parents else None
@@ -298,6 +304,8 @@ class World:
         if (len(known) + len(bodies) > b.max_bodies
                 or len(named) + len(sources) > b.max_sources):     # else none can be over
             over_bounds(bodies, sources, errors, known, named, b)
+        if self.tree.checks:       # a name of a source or static, a source riding on its body
+            self.tree.refuse(bodies, sources, errors)
         n = len(bodies)
         use = [k for k in range(n) if k not in errors] if errors else range(n)
         if not use:
@@ -377,6 +385,8 @@ class World:
         """``body`` at tick ``time`` (None: its newest measurement's time) from its tick window
         (:meth:`_tick_rows`: StreamFuse's rows), with the fused measurements' ids."""
         with self._lock.read():
+            if body in self.tree.static_bodies:        # its one constant pose
+                return _frames.static_tick(self, body, time)
             rows = self._tick_rows(body, time)
             f, ids = self._fit_of(body, rows, lambda r: self._t.estimate_rows(r, time))
         assert f.time is not None            # a fit over time
@@ -392,6 +402,8 @@ class World:
         tick's rows, none of its refusals possible)."""
         if self._riders.parents and self._riders.rides(body, relative_to):
             return None     # composed in Python (dqpose.riders)
+        if body in self.tree.static_bodies:
+            return None         # tick's
         if picked is not None and not relative_to:
             with self._lock.read():
                 return self._wire(picked, time, body, request)
@@ -531,37 +543,24 @@ class World:
         return BodyPose(body, f.time, f.mean, f.covariance, f)
 
     def relative(self, target: str, source: str, time: float = 0.0) -> BodyPose:
-        """``T_target_source`` at ``time`` (0: the newest time both are known at); "" is the
-        world frame. Bodies that share a source with an ``extrinsic_covariance`` or an estimated
-        latency are fitted together (one error per such source), so the covariance has their
-        cross-covariance (:mod:`dqpose.lookup`)."""
+        """``T_target_source`` at ``time`` (0: the newest time both are known at) of any two
+        frames ("" the world; :func:`dqpose.frames.relative`). Bodies that share a source with
+        an ``extrinsic_covariance`` or an estimated latency are fitted together (one error per
+        such source), so the covariance has their cross-covariance (:mod:`dqpose.lookup`)."""
         target, source = _body_name(target, "target"), _body_name(source, "source")
         with self._lock.read():
-            t = self._t
-            for b in (target, source):
-                if b and not t.has(b):
-                    self._known(b)      # raises, naming what is known
-            if time == 0.0:
-                times = [t.newest(b) for b in (target, source) if b]
-                at: Optional[float] = min(times) if times else None
-            else:
-                at = self._at("", time)
-            if at is None:      # world to world
-                ident = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
-                return BodyPose(source, 0.0, ident, np.zeros((DOF, DOF)), None)
-            if target == source:
-                if target:
-                    self._pose_only(target, at)   # known at that time
-                return BodyPose(source, at, np.array([1.0, 0, 0, 0, 0, 0, 0, 0]),
-                                np.zeros((DOF, DOF)), None)
-            key = (target, source, at)
-            versions = (self._riders.version(target), self._riders.version(source))
-            hit = self._relatives.get(key)
-            if hit is not None and hit[0] == versions:
-                return hit[1]
-            answer = self._lookups.relative(target, source, at)
-            self._relatives.keep(key, (versions, answer))
-            return answer
+            return _frames.relative(self, target, source, time)
+
+    def frame_pose(self, frame: str, at: float) -> BodyPose:
+        """``T_world_frame`` at ``at``, its covariance, any frame (:func:`dqpose.frames.frame_pose`)."""
+        frame = _body_name(frame, "frame")
+        with self._lock.read():
+            return _frames.frame_pose(self, frame, at)
+
+    def frames(self) -> list[_frames.FrameInfo]:
+        """The world's frames (:func:`dqpose.frames.frames`)."""
+        with self._lock.read():
+            return _frames.frames(self)
 
     def relative_at(self, target, time, source, source_time=0.0, fixed="") -> BodyPose:
         """tf2's advanced lookup through ``fixed`` (:func:`dqpose.two_times.relative_at`)."""
@@ -574,7 +573,8 @@ class World:
         attribute read, whole under the interpreter lock), so an event loop may call it: an
         answer made between two equal stamps is the answer for as long as the stamp stays
         equal (no measurement of those bodies, no configuration came in)."""
-        return (self._generation,) + tuple(self._riders.version(b) for b in bodies)
+        t, tree = self._riders, self.tree
+        return (self._generation,) + tuple(t.version(tree.root(b)) for b in bodies)
 
     def arm_base(self, arm: str) -> BodyPose:
         """``T_world_base`` of ``arm``: the extrinsic of the source ``arms`` names, with its

@@ -21,6 +21,8 @@ class WorldBounds:
     max_measurements_per_body: int = _limits.Limits().max_window
     max_buffer: float = 60.0
     max_measurements: Optional[int] = None
+    max_statics: int = 1000
+    max_static_bodies: int = 1000
 
 
 #: the bounds of a world made without any
@@ -28,8 +30,10 @@ DEFAULT = WorldBounds()
 
 
 def over(field: str, value, bound: str, limit, unit: str = "") -> WorldError:
+    """``field``'s ``value`` above the world's ``bound`` (RESOURCE_EXHAUSTED on the wire)."""
     u = f" {unit}" if unit else ""
-    return WorldError(None, field, f"{value:.6g}{u} is above the world's {bound} {limit:.6g}{u}")
+    return WorldError(None, field, f"{value:.6g}{u} is above the world's {bound} {limit:.6g}{u}",
+                      limit=bound)
 
 
 def over_bounds(bodies, sources, errors: dict, known, named, b: WorldBounds) -> None:

@@ -1,6 +1,7 @@
 """``dqpose world``: a server's shared world (the ``dqpose.v1.World`` service): ``publish FILE``
 replays a recorded measurement file into it (the file ``dqpose fuse`` reads), ``watch BODY...``
-shows a live table of fused poses, ``lookup TARGET SOURCE`` prints one relative pose."""
+shows a live table of fused poses, ``lookup TARGET SOURCE`` prints one relative pose, ``frames``
+prints the frame tree."""
 from __future__ import annotations
 
 import argparse
@@ -23,6 +24,9 @@ lookup: T_target_source (tf2's lookupTransform order; "" or "world" is the world
   --at (alias --time; 0: the newest time both are known at): position, rotation, one sigma as
   watch has them. --source-time: the source at that time through --fixed-frame (tf2's advanced
   lookupTransform); --wait S: wait up to S s for the data (tf2's waitForTransform).
+frames: the frame tree as tf2_tools' view_frames has it, one line a frame: "parent -> child",
+  its kind, rate (measurements a second of measurement time over the second before its newest),
+  span of kept measurements (s) and the sources that measured it; children under their parent.
 --json: one JSON object per answer (watch: a line each) with SI units, absolute times, the pose
   with named components (as the pose files have it) and the 6x6 covariance (rotation first).
 """
@@ -64,10 +68,11 @@ def configure(name: str, p) -> None:
     look.add_argument("--wait", type=float, default=0.0, metavar="S",
                       help="wait up to S seconds (at most 10) for the world to be able to "
                            "answer (tf2's waitForTransform)")
-    for q in (watch, look):
+    frames = sub.add_parser("frames", help="the frame tree: parent -> child, kind, rate, span")
+    for q in (watch, look, frames):
         q.add_argument("--json", action="store_true",
                        help="for machines: JSON, SI units, the pose's components named")
-    for q in (pub, watch, look):
+    for q in (pub, watch, look, frames):
         connection_args(q, target_alias=q is not look)
         q.add_argument("--world", default="", metavar="NAME",
                        help="the named world on the server (x-dqpose-world; default: the "
@@ -81,7 +86,8 @@ def _frame(name: str) -> str:
 
 def _run(args) -> int:
     try:
-        return {"publish": _publish, "watch": _watch, "lookup": _lookup}[args.action](args)
+        return {"publish": _publish, "watch": _watch, "lookup": _lookup,
+                "frames": _frames}[args.action](args)
     except KeyboardInterrupt:
         return 130
     except Exception as e:
@@ -154,3 +160,45 @@ def _lookup(args) -> int:
     show = lookup_json if args.json else lookup_text
     sys.stdout.write(show(args.frame_target, args.frame_source, r))
     return 0
+
+
+def _frames(args) -> int:
+    import json
+
+    with client(args) as c:
+        frames = c.frames()
+    if args.json:
+        print(json.dumps([{"name": f.name, "parent": f.parent, "kind": _kind(f.kind),
+                           "oldest": f.oldest, "newest": f.newest, "rate_hz": f.rate_hz,
+                           "sources": list(f.sources)} for f in frames], indent=1))
+    else:
+        sys.stdout.write(frames_text(frames))
+    return 0
+
+
+def _kind(kind) -> str:
+    return getattr(kind, "name", str(kind)).lower().replace("_", " ")
+
+
+def frames_text(frames) -> str:
+    """The tree of :class:`dqpose.frames.FrameInfo` s, depth first from the world ("world"),
+    one line a frame (a frame whose parent is not listed, a body not measured yet, under it)."""
+    children: dict[str, list] = {}
+    names = {f.name for f in frames}
+    for f in frames:
+        if f.name:
+            children.setdefault(f.parent if f.parent in names else "", []).append(f)
+    lines: list[str] = []
+
+    def walk(parent: str, depth: int) -> None:
+        for f in children.get(parent, ()):
+            what = [_kind(f.kind)]
+            if f.newest or f.oldest:
+                what += [f"{f.rate_hz:g} Hz", f"{f.oldest:.6g} .. {f.newest:.6g} s"]
+            if f.sources:
+                what.append("sources " + ", ".join(f.sources))
+            lines.append(f"{'  ' * depth}{f.parent or 'world'} -> {f.name}: {'; '.join(what)}")
+            walk(f.name, depth + 1)
+
+    walk("", 0)
+    return "world\n" + "".join(line + "\n" for line in lines)

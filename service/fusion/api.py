@@ -116,6 +116,13 @@ def _fuse_world_rows(Z, S, names, times, time, o: _Checked, nis: bool = True,
                          o.gate2, o.tol, o.max_iter, nis, joint)
 
 
+def _fuse_static_rows(Z, S, names, o: _Checked) -> Fused:
+    """:func:`fuse` without times (one instant: no twist, times ignored) of rows checked and in
+    the world frame as for :func:`_fuse_world_rows`: a body that does not move."""
+    return _fuse_static(Z, S, names, o.robust, o.probability, o.gate2, o.tol, o.max_iter,
+                        _extrinsics(names, o.table))
+
+
 def _fuse_joint_rows(rows, starts: Sequence, time, o: _Checked):
     """Several bodies' rows ``(poses, covariances, names, times)`` (checked and in the world
     frame as for :func:`_fuse_world_rows`) fitted together, with one error per uncertain

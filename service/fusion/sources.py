@@ -72,16 +72,21 @@ def _latency(s: Source, k: int) -> tuple[float, Optional[float]]:
 
 
 def _extrinsic_covariance(s: Source, k: int) -> Optional[np.ndarray]:
-    """The source's extrinsic covariance by the measurements' rule (symmetric, variances within
-    bounds, positive definite), symmetrised."""
-    if s.extrinsic_covariance is None:
+    """The source's extrinsic covariance by :func:`pose_covariance`'s rule."""
+    return pose_covariance(s.extrinsic_covariance, f"sources[{k}].extrinsic_covariance")
+
+
+def pose_covariance(covariance, name: str) -> Optional[np.ndarray]:
+    """A fixed pose's covariance (an extrinsic's, a static's; None: exact) by the measurements'
+    rule (symmetric, variances within bounds, positive definite), symmetrised; a ValueError
+    naming ``name``."""
+    if covariance is None:
         return None
-    name = f"sources[{k}].extrinsic_covariance"
-    shape = _shape(s.extrinsic_covariance)
+    shape = _shape(covariance)
     if shape != (DOF, DOF):
         raise ValueError(f"{name}: expected shape (6, 6), got {shape}")
     try:
-        return _covariances([s.extrinsic_covariance], None, 1)[0]
+        return _covariances([covariance], None, 1)[0]
     except ValueError as e:
         raise rename(e, {"covariances": name}) from None
 

@@ -22,7 +22,13 @@ from dqpose.fusion.alignment import (
     _pose_in_time,
     _pose_over_time,
 )
-from dqpose.fusion.api import _Checked, _fuse_joint_rows, _fuse_world_rows, fuse
+from dqpose.fusion.api import (
+    _Checked,
+    _fuse_joint_rows,
+    _fuse_static_rows,
+    _fuse_world_rows,
+    fuse,
+)
 from dqpose.fusion.bounds import TrackerBounds
 from dqpose.fusion.chi2 import DEFAULT_PROBABILITY, chi2_quantile
 from dqpose.fusion.results import DOF, Fused
@@ -351,6 +357,13 @@ class Tracker:
         got = _joint_start(*s.world(rows), self._sources_of(rows), s.times[rows], time,
                            self._checked)
         return got if got is not None else self.estimate_rows(rows, time, False, joint=False)[0]
+
+    def static_rows(self, rows: np.ndarray) -> tuple[Fused, np.ndarray]:
+        """The one-instant fit of ``rows`` (a body that does not move: no twist, their times
+        left out), with their ids."""
+        s = self._store
+        return _fuse_static_rows(*s.world(rows), self._sources_of(rows), self._checked), \
+            s.ids[rows]
 
     def _sources_of(self, rows: np.ndarray) -> tuple[str, ...]:
         """Each row's source name, as the fits take them."""

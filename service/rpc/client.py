@@ -192,6 +192,17 @@ class Client(WorldCalls):
         self.last_replica = replica_of(call)
         return answer
 
+    def frames(self) -> list:
+        """The world's frames (``ListFrames``), :class:`dqpose.frames.FrameInfo` s: the world
+        "", its bodies, static bodies, sources and statics, each with its parent, kind, span of
+        measurements, rate and the sources that measured it; an unknown world is NOT_FOUND."""
+        from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
+        from dqpose.rpc.world_frames import frames_of
+        stub = self.channel.unary_unary(
+            f"/{WORLD}/ListFrames", request_serializer=wpb.ListFramesRequest.SerializeToString,
+            response_deserializer=wpb.FrameList.FromString)
+        return frames_of(self._call(stub, wpb.ListFramesRequest()))
+
     def _split_calls(self, method, requests, field: str, read) -> list:
         """``read`` of each answer to ``requests`` (``(first item, bytes)`` pairs), in order,
         with up to ``_IN_FLIGHT`` calls outstanding; an error names the item in the whole

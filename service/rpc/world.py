@@ -31,7 +31,7 @@ from google.protobuf.message import DecodeError
 from dqpose import limits as _limits
 from dqpose import record
 from dqpose import world as domain
-from dqpose.errors import FieldError, FieldInfeasible, Infeasible
+from dqpose.errors import FieldError, Infeasible, WorldInfeasible
 from dqpose.fusion.bounds import TrackerBounds
 from dqpose.hub import Hub, Interest, Rows, Subscription
 from dqpose.rpc import DEFAULT_MAX_POSES, world_wait
@@ -43,7 +43,15 @@ from dqpose.rpc.fusion_convert import measurements_to_arrays
 from dqpose.rpc.peers import SUBSCRIPTION, FellBehind, ReadAhead, Slot, exhausted, read_all
 from dqpose.rpc.routing import WORLD_HEADER, world_of
 from dqpose.rpc.wire import messages_wire, publish_from_wire, publish_head, wire_rows
-from dqpose.rpc.world_convert import Encoder, config_from_msg, config_msg, subscribe_names
+from dqpose.rpc.world_convert import (
+    Encoder,
+    config_from_msg,
+    config_msg,
+    frames_from_msg,
+    frames_msgs,
+    subscribe_names,
+)
+from dqpose.rpc.world_frames import list_frames
 
 log = logging.getLogger("dqpose.server")
 
@@ -277,18 +285,21 @@ class World:
         world."""
         try:
             sources, arms, options = config_from_msg(request)
+            statics, static_bodies = frames_from_msg(request)
         except Exception as e:
             rec.measurements(request)
             _ended(rec, e)
             raise
         try:
-            world.configure(sources, arms, options, hook=lambda: rec.measurements(request))
-        except domain.WorldError as e:
-            error = (FieldInfeasible if isinstance(e, Infeasible) else FieldError)(
-                e.named("config"))
+            world.configure(sources, arms, options, hook=lambda: rec.measurements(request),
+                            statics=statics, static_bodies=static_bodies)
+        except domain.WorldError as e:      # a bound's (e.limit) is RESOURCE_EXHAUSTED
+            error = (WorldInfeasible if isinstance(e, Infeasible) else domain.WorldError)(
+                None, e.path("config"), e.text, e.limit)
             _ended(rec, error)
             raise error from None
-        answer = config_msg(world.world.sources, world.world.arms, world.world.options)
+        answer = frames_msgs(world.world.tree, config_msg(
+            world.world.sources, world.world.arms, world.world.options))
         rec.fused(answer)
         rec.end("OK")
         return answer
@@ -392,6 +403,9 @@ class World:
             "Lookup": grpc.unary_unary_rpc_method_handler(
                 self.Lookup, request_deserializer=pb.LookupRequest.FromString,
                 response_serializer=None),
+            "ListFrames": grpc.unary_unary_rpc_method_handler(     # serialized: list_frames
+                self.ListFrames, request_deserializer=pb.ListFramesRequest.FromString,
+                response_serializer=None),
         }
         generic = grpc.method_handlers_generic_handler(self.NAME, handlers)
         server.add_generic_rpc_handlers((generic,))
@@ -410,6 +424,9 @@ class World:
         return await self._unary(
             "Configure", lambda world, r: self.configure(world, r, rec), request, context,
             make=True)
+
+    async def ListFrames(self, request, context):
+        return await self._unary("ListFrames", list_frames, request, context)
 
     async def Lookup(self, request, context):
         world = _recorded_world(context)

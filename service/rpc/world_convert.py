@@ -10,7 +10,7 @@ import math
 import numpy as np
 
 from dqpose import _dqcore as _c
-from dqpose import world
+from dqpose import frames, world
 from dqpose.errors import FieldError
 from dqpose.names import name_problem
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
@@ -23,7 +23,7 @@ from dqpose.rpc.fusion_convert import (
     source_msgs,
     sources_from_msg,
 )
-from dqpose.rpc.geometry import dq_to_pose
+from dqpose.rpc.geometry import COVARIANCE_SIZE, dq_to_pose, optional_pose
 from dqpose.rpc.wire import fused_pose_bytes
 
 
@@ -60,6 +60,39 @@ def config_from_msg(msg: pb.WorldConfig, field: str = "config"):
     return sources, arms, wo
 
 
+def frames_from_msg(msg: pb.WorldConfig, field: str = "config"):
+    """``(statics, static_bodies)`` of a ``WorldConfig`` (:class:`dqpose.frames.Static` s; the
+    domain checks names, poses and covariances); FieldError naming the field."""
+    statics = []
+    for k, s in enumerate(msg.statics):
+        where = f"{field}.statics[{k}]"
+        if not s.HasField("pose"):
+            raise FieldError(f"{where}.pose: required (T_parent_child)")
+        n = len(s.covariance)
+        if n not in (0, COVARIANCE_SIZE):
+            raise FieldError(f"{where}.covariance: expected {COVARIANCE_SIZE} values (6x6, "
+                             f"row-major, rotation first) or none, got {n}")
+        cov = np.array(s.covariance, dtype=np.float64).reshape(6, 6) if n else None
+        pose = optional_pose(s, "pose", where)
+        assert pose is not None                 # it has the field
+        statics.append(frames.Static(s.parent, s.child, pose, cov))
+    return tuple(statics), tuple(msg.static_bodies)
+
+
+def frames_msgs(tree, msg: pb.WorldConfig) -> pb.WorldConfig:
+    """``msg`` with the statics and static bodies of :class:`dqpose.frames.FrameTree` ``tree``
+    (or of the client's arguments: ``(statics, static_bodies)``)."""
+    statics, static_bodies = ((tree.statics, tree.static_body_names)
+                              if isinstance(tree, frames.FrameTree) else tree)
+    for s in statics:
+        m = msg.statics.add(parent=s.parent, child=s.child)
+        dq_to_pose(np.asarray(s.pose, dtype=np.float64), m.pose)
+        if s.covariance is not None:
+            m.covariance.extend(np.asarray(s.covariance, dtype=np.float64).ravel().tolist())
+    msg.static_bodies.extend(static_bodies)
+    return msg
+
+
 def config_msg(sources, arms, options) -> pb.WorldConfig:
     """The ``WorldConfig`` of a world's sources, arms and :class:`dqpose.world.WorldOptions`
     (the configuration in force, defaults filled in)."""
@@ -79,10 +112,11 @@ def world_config(sources=(), arms=None, *, robust: bool = False, probability: fl
                  max_skew: float | None = None,
                  max_extrapolation: float | None = DEFAULT_MAX_EXTRAPOLATION,
                  window: float = 0.0, twist_covariance=None, acceleration_psd=None,
-                 buffer: float = 0.0, max_delay: float = 0.0) -> pb.WorldConfig:
+                 buffer: float = 0.0, max_delay: float = 0.0, statics=(),
+                 static_bodies=()) -> pb.WorldConfig:
     """Client side: a ``WorldConfig`` from the domain's arguments (``sources``:
-    :class:`dqpose.fusion.Source`, ``arms`` arm name -> source name; 0: the server's
-    default)."""
+    :class:`dqpose.fusion.Source`, ``arms`` arm name -> source name, ``statics``:
+    :class:`dqpose.frames.Static`, ``static_bodies`` names; 0: the server's default)."""
     o = options_msg(robust=robust, probability=probability, max_skew=max_skew,
                     max_extrapolation=max_extrapolation, window=window,
                     twist_covariance=twist_covariance, acceleration_psd=acceleration_psd)
@@ -90,7 +124,7 @@ def world_config(sources=(), arms=None, *, robust: bool = False, probability: fl
     source_msgs(sources, msg.sources)
     for arm, source in (arms or {}).items():
         msg.arms.add(arm=arm, source=source)
-    return msg
+    return frames_msgs((statics, static_bodies), msg)
 
 
 def subscribe_names(request: pb.SubscribeRequest) -> str | None:

@@ -1,0 +1,368 @@
+"""The world's frame tree, tf2's with covariance: world, bodies, static bodies, sources, statics.
+
+Convention: a frame's pose ``T_parent_frame`` maps points from the frame to its parent (bodies
+and static bodies: fused in the world frame ""; sources: their extrinsic; statics: their pose),
+each with a covariance 6x6, rotation first, a right perturbation ``T·Exp(ξ)`` (GTSAM's Pose3).
+
+:class:`FrameTree` is one configuration's namespace and parents (checked: names, clashes, the
+reserved "world", cycles, bounds); :func:`relative` resolves ``T_target_source`` of any two
+frames through their lowest common ancestor, as tf2 does, so the part of the chain they share
+cancels exactly; two bodies at the roots keep the world's joint fit (:mod:`dqpose.lookup`).
+"""
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Iterable, Mapping, Optional, Sequence
+
+import numpy as np
+
+from dqpose import dq, lie
+from dqpose.errors import WorldError
+from dqpose.fusion import Fused
+from dqpose.fusion.results import DOF, _frozen
+from dqpose.fusion.sources import Source, pose_covariance
+from dqpose.fusion.validation import _pose
+from dqpose.lookup import _composed
+from dqpose.names import name_problem, quoted
+from dqpose.world_bounds import DEFAULT, WorldBounds, over
+
+if TYPE_CHECKING:
+    from dqpose.world import BodyPose, World
+
+__all__ = ["Static", "FrameTree", "FrameKind", "FrameInfo", "RESERVED"]
+
+#: the name no frame may have: the CLI's word for "", the world frame
+RESERVED = "world"
+_IDENT = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
+_ZERO = np.zeros((DOF, DOF))
+
+
+class FrameKind(enum.IntEnum):
+    """A frame's kind (the numbers of ``dqpose.v1.FrameKind``)."""
+    UNSPECIFIED = 0
+    WORLD = 1
+    BODY = 2
+    STATIC_BODY = 3
+    SOURCE = 4
+    STATIC = 5
+
+
+@dataclass(frozen=True)
+class Static:
+    """``child`` fixed in ``parent`` ("" the world, a body, a source or another static) at
+    ``pose`` ``(8,)`` = ``T_parent_child`` with ``covariance`` ``(6, 6)`` (None: exact), valid at
+    every time (tf2's ``/tf_static``)."""
+    parent: str
+    child: str
+    pose: np.ndarray
+    covariance: Optional[np.ndarray] = None
+
+
+@dataclass(frozen=True)
+class FrameInfo:
+    """One frame of :meth:`dqpose.world.World.frames`: its ``parent`` ("" for the world, bodies
+    and static bodies), ``kind``, the span of its kept measurements ``oldest``..``newest`` (0
+    for statics, sources and the world), ``rate_hz`` (measurements a second of measurement time
+    over the second before ``newest``) and the ``sources`` that measured it."""
+    name: str
+    parent: str
+    kind: FrameKind
+    oldest: float = 0.0
+    newest: float = 0.0
+    rate_hz: float = 0.0
+    sources: tuple[str, ...] = ()
+
+
+def _named(name, field: str, empty: bool = False) -> str:
+    problem = name_problem(name, empty)
+    if problem is None and name == RESERVED:
+        problem = (f"{RESERVED!r} is reserved (the world frame is \"\")")
+    if problem is not None:
+        raise WorldError(None, field, problem)
+    return name
+
+
+def _checked_static(s, k: int) -> Static:
+    if not isinstance(s, Static):
+        raise WorldError(None, f"statics[{k}]", f"expected a Static, got {type(s).__name__}")
+    parent = _named(s.parent, f"statics[{k}].parent", empty=True)
+    child = _named(s.child, f"statics[{k}].child")
+    try:
+        pose = _pose(s.pose, f"statics[{k}].pose")
+        cov = pose_covariance(s.covariance, f"statics[{k}].covariance")
+    except ValueError as e:
+        raise WorldError.of(e) from None
+    return Static(parent, child, _frozen(pose), None if cov is None else _frozen(cov))
+
+
+class FrameTree:
+    """One configuration's frames besides the bodies: ``sources`` (checked
+    :class:`~dqpose.fusion.Source` by name), ``statics``, ``static_bodies``; every check a
+    :class:`WorldError` naming the field (``statics[3].child``), the bounds'
+    RESOURCE_EXHAUSTED (:func:`dqpose.world_bounds.over`)."""
+
+    def __init__(self, sources: Mapping[str, Source], statics: Iterable[Static] = (),
+                 static_bodies: Iterable[str] = (), bounds: WorldBounds = DEFAULT):
+        statics, static_bodies = tuple(statics), tuple(static_bodies)
+        if len(statics) > bounds.max_statics:
+            raise over("statics", len(statics), "max_statics", bounds.max_statics)
+        if len(static_bodies) > bounds.max_static_bodies:
+            raise over("static_bodies", len(static_bodies), "max_static_bodies",
+                       bounds.max_static_bodies)
+        field: dict[str, str] = {}       # each configured name -> the field that gave it
+        for k, name in enumerate(sources):
+            _named(name, f"sources[{k}].name")
+            field[name] = f"sources[{k}]"
+        self.statics = tuple(_checked_static(s, k) for k, s in enumerate(statics))
+        for k, s in enumerate(self.statics):
+            _clash(field, s.child, f"statics[{k}].child", f"statics[{k}]")
+        for k, b in enumerate(static_bodies):
+            _clash(field, _named(b, f"static_bodies[{k}]"), f"static_bodies[{k}]",
+                   f"static_bodies[{k}]")
+        self.static_bodies = frozenset(static_bodies)
+        self.sources = frozenset(sources)
+        self.kinds: dict[str, FrameKind] = {n: FrameKind.SOURCE for n in sources}
+        self.kinds.update((s.child, FrameKind.STATIC) for s in self.statics)
+        self.kinds.update((b, FrameKind.STATIC_BODY) for b in static_bodies)
+        # name -> (parent, T_parent_name, its covariance or None) of sources and statics
+        self.links: dict[str, tuple[str, np.ndarray, Optional[np.ndarray]]] = {
+            n: (s.parent, _IDENT if s.extrinsic is None else s.extrinsic,
+                s.extrinsic_covariance) for n, s in sources.items()}
+        self.links.update((s.child, (s.parent, s.pose, s.covariance)) for s in self.statics)
+        for k, name in enumerate(sources):
+            _named(sources[name].parent, f"sources[{k}].parent", empty=True)
+        _acyclic(self.links, field)
+        self.riders = {n: self.chain(n)[1:] for n, s in sources.items() if s.parent}
+        # a Publish checks its rows' names only when a name could clash or a source rides
+        self.checks = bool(self.statics or self.riders)
+        self.static_body_names = tuple(static_bodies)      # in their configured order
+        self.infos: dict[str, tuple[int, FrameInfo]] = {}    # a body's, by its version
+        # the world's, the sources' and the statics': the same objects until a configuration
+        self.fixed = ([FrameInfo("", "", FrameKind.WORLD)],
+                      [FrameInfo(n, self.links[n][0], FrameKind.SOURCE) for n in sources]
+                      + [FrameInfo(s.child, s.parent, FrameKind.STATIC) for s in self.statics])
+
+    def kind(self, name: str) -> FrameKind:
+        """``name``'s kind: "" the world, a configured one's, else a body."""
+        return FrameKind.WORLD if not name else self.kinds.get(name, FrameKind.BODY)
+
+    def chain(self, name: str) -> list[str]:
+        """``name`` and its ancestors up to its root: "", a body or a static body."""
+        out = [name]
+        while name in self.links:
+            name = self.links[name][0]
+            out.append(name)
+        return out
+
+    def root(self, name: str) -> str:
+        return self.chain(name)[-1] if name in self.links else name
+
+    def clashes(self, held: Mapping[str, object]) -> None:
+        """A configured source or static that is a body the world holds measurements of: a
+        WorldError naming it."""
+        for name in held:
+            kind = self.kinds.get(name)
+            if kind is not None and kind != FrameKind.STATIC_BODY:
+                raise WorldError(None, "statics" if kind == FrameKind.STATIC else "sources",
+                                 f"{quoted(name)} is a body with measurements in the world "
+                                 f"(bodies, sources and statics share one namespace)")
+
+    def refuse(self, bodies: Sequence[str], sources: Sequence[str], errors: dict) -> None:
+        """Rows (not refused yet) whose body is a source or a static, or whose source rides on
+        the body it measures, refused in ``errors``."""
+        seen: dict[tuple, Optional[WorldError]] = {}
+        for k, pair in enumerate(zip(bodies, sources)):
+            if k in errors:
+                continue
+            if pair not in seen:
+                seen[pair] = self._refusal(*pair)
+            e = seen[pair]
+            if e is not None:
+                errors[k] = e.at(k)
+
+    def _refusal(self, body, source) -> Optional[WorldError]:
+        kind = self.kinds.get(body) if isinstance(body, str) else None
+        if kind == FrameKind.SOURCE:
+            return WorldError(0, "body", f"{quoted(body)} is a source (config.sources)")
+        if kind == FrameKind.STATIC:
+            return WorldError(0, "body", f"{quoted(body)} is a static (config.statics)")
+        if body and body in self.riders.get(source, ()):
+            return WorldError(0, "source", f"source {quoted(source)} rides on body "
+                                           f"{quoted(body)} (its parent chain reaches it): it "
+                                           f"cannot measure the body it rides on")
+        return None
+
+    def offset(self, frame: str, ancestor: str) -> tuple[np.ndarray, Optional[np.ndarray]]:
+        """``T_ancestor_frame`` composed down the chain, with its covariance (None: exact)."""
+        links = []
+        while frame != ancestor:
+            parent, X, P = self.links[frame]
+            links.append((X, P))
+            frame = parent
+        X, P = _IDENT, None
+        for Xb, Pb in reversed(links):
+            X, P = _compose(X, P, Xb, Pb)
+        return X, P
+
+
+def _clash(field: dict[str, str], name: str, path: str, giver: str) -> None:
+    if name in field:
+        raise WorldError(None, path, f"{quoted(name)} is {field[name]}'s name already (bodies, "
+                                     f"sources, statics and static bodies share one namespace)")
+    field[name] = giver
+
+
+def _acyclic(links: Mapping[str, tuple], field: Mapping[str, str]) -> None:
+    """A cycle among the configured parents: a WorldError naming its frames."""
+    done: set = set()
+    for start in links:
+        path: list[str] = []
+        name = start
+        while name in links and name not in done:
+            if name in path:
+                cycle = path[path.index(name):] + [name]
+                raise WorldError(None, f"{field[name]}.parent", "the frames " + " -> ".join(
+                    map(quoted, cycle)) + " form a cycle (each the parent of the one before)")
+            path.append(name)
+            name = links[name][0]
+        done.update(path)
+
+
+def _compose(Xa, Pa, Xb, Pb) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    """``T_a·T_b`` of independent estimates and its covariance (None: both exact)."""
+    X = dq.normalize(dq.mul(Xa, Xb))
+    return X, (None if Pa is None and Pb is None else lie.cov_compose(Pa, Xb, Pb))
+
+
+def _inverse(X, P) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    return dq.conj(X), None if P is None else lie.cov_inverse(X, P)
+
+
+# ---- the world's answers (its read lock held) --------------------------------------------------
+
+def static_fit(world: "World", body: str) -> Fused:
+    """Static body ``body``'s one constant pose from all its kept measurements (the tracker's
+    one-instant fit), kept until its version changes."""
+    t = world._t
+    world._known(body)
+    key = (body, None, None)
+    version = t.version(body)
+    hit = world._fits.get(key)
+    if hit is not None and hit[0] == version:
+        return hit[1]
+    rows = t.rows_ending(body, t.newest(body), t.window)
+    f, ids = world._fit_of(body, rows, t.static_rows)
+    world._fits.keep(key, (version, f, True, ids), len(f.distances))
+    return f
+
+
+def static_tick(world: "World", body: str, time: Optional[float]) -> tuple["BodyPose", np.ndarray]:
+    """Static body ``body``'s tick at ``time`` (None: its newest measurement's): its one pose,
+    with the ids of the measurements fused."""
+    from dqpose.world import BodyPose
+    f = static_fit(world, body)
+    return (BodyPose(body, world._tick_time(body, time), f.mean, f.covariance, f),
+            world._fits[(body, None, None)][3])
+
+
+def _root_pose(world: "World", root: str, at: float) -> tuple[np.ndarray, np.ndarray]:
+    if root in world.tree.static_bodies:
+        f = static_fit(world, root)
+        return f.mean, f.covariance
+    return world._pose_only(root, at)
+
+
+def relative(world: "World", target: str, source: str, time: float) -> "BodyPose":
+    """``T_target_source`` at ``time`` of any two frames (0: the newest time both roots'
+    bodies are known at; statics, static bodies and the world alone: 0, valid at every time)."""
+    from dqpose.world import BodyPose
+    tree, t = world.tree, world._t
+    ct, cs = tree.chain(target), tree.chain(source)
+    roots = (ct[-1], cs[-1])
+    for r in roots:
+        if r and not t.has(r):
+            world._known(r)         # raises, naming what is known
+    moving = [r for r in roots if r and r not in tree.static_bodies]
+    if time == 0.0:
+        at = min(t.newest(r) for r in moving) if moving else 0.0
+    else:
+        at = world._at("", time)
+    if roots[0] == roots[1]:
+        common = set(cs)
+        lca = next(f for f in ct if f in common)
+        if lca == roots[0] and moving:
+            world._pose_only(lca, at)       # known at that time
+        Xt, Pt = tree.offset(target, lca)
+        Xs, Ps = tree.offset(source, lca)
+        X, P = _compose(*_inverse(Xt, Pt), Xs, Ps)
+        return BodyPose(source, at, _frozen(X), _frozen(_ZERO if P is None else P), None)
+    rel = _roots(world, roots[0], roots[1], at)
+    if len(ct) == 1 and len(cs) == 1:
+        return rel
+    Xt, Pt = tree.offset(target, roots[0])
+    Xs, Ps = tree.offset(source, roots[1])
+    X, P = _compose(*_inverse(Xt, Pt), rel.pose, rel.covariance)
+    X, P = _compose(X, P, Xs, Ps)
+    assert P is not None
+    return BodyPose(source, at, _frozen(X), _frozen(P), None)
+
+
+def _roots(world: "World", target: str, source: str, at: float) -> "BodyPose":
+    """``T_target_source`` of two different roots ("", bodies, static bodies): two bodies'
+    Lookup (their joint fit where they share an uncertain source), kept until either
+    changes; a static body's own pose composed."""
+    statics = world.tree.static_bodies
+    if target in statics or source in statics:
+        return _composed(target, source, at,
+                         {b: _root_pose(world, b, at) for b in (target, source) if b})
+    key = (target, source, at)
+    versions = (world._riders.version(target), world._riders.version(source))
+    hit = world._relatives.get(key)
+    if hit is not None and hit[0] == versions:
+        return hit[1]
+    answer = world._lookups.relative(target, source, at)
+    world._relatives.keep(key, (versions, answer))
+    return answer
+
+
+def frame_pose(world: "World", frame: str, at: float) -> "BodyPose":
+    """``T_world_frame`` at ``at`` with its covariance; a body's and a static body's own fit
+    (``fused``), any other frame composed."""
+    from dqpose.world import BodyPose
+    if frame in world.tree.static_bodies:
+        f = static_fit(world, frame)
+        return BodyPose(frame, at, f.mean, f.covariance, f)
+    if frame and world.tree.kind(frame) == FrameKind.BODY:
+        f = world._fit(frame, at, nis=False)
+        assert f.time is not None
+        return BodyPose(frame, f.time, f.mean, f.covariance, f)
+    p = relative(world, "", frame, at)
+    return BodyPose(frame, p.time, p.pose, p.covariance, None)
+
+
+def frames(world: "World") -> list[FrameInfo]:
+    """The world's frames: the world "", the bodies with measurements, the static bodies, the
+    sources, the statics; the same :class:`FrameInfo` objects while they hold (a body's until
+    its version changes, the others' until a configuration)."""
+    tree, t = world.tree, world._t
+    out = list(tree.fixed[0])
+    infos = tree.infos
+    for body in list(t.held) + [b for b in tree.static_body_names if not t.has(b)]:
+        version = t.version(body)
+        hit = infos.get(body)
+        if hit is None or hit[0] != version:
+            hit = infos[body] = (version, _body_info(world, body))
+        out.append(hit[1])
+    return out + tree.fixed[1]
+
+
+def _body_info(world: "World", body: str) -> FrameInfo:
+    t = world._t
+    kind = FrameKind.STATIC_BODY if body in world.tree.static_bodies else FrameKind.BODY
+    if not t.has(body):
+        return FrameInfo(body, "", kind)
+    newest = t.newest(body)
+    recent = t.rows_ending(body, newest, 1.0)
+    return FrameInfo(body, "", kind, t.oldest(body), newest, float(len(recent)),
+                     tuple(world._fed(body)))
