@@ -552,7 +552,7 @@ class World:
             return _frames.relative(self, target, source, time)
 
     def frame_pose(self, frame: str, at: float) -> BodyPose:
-        """``T_world_frame`` at ``at``, its covariance, any frame (:func:`dqpose.frames.frame_pose`)."""
+        """``T_world_frame`` at ``at`` and its covariance (:func:`dqpose.frames.frame_pose`)."""
         frame = _body_name(frame, "frame")
         with self._lock.read():
             return _frames.frame_pose(self, frame, at)
