@@ -247,7 +247,7 @@ def static_fit(world: "World", body: str) -> Fused:
     t = world._t
     world._known(body)
     key = (body, None, None)
-    version = t.version(body)
+    version = world._riders.version(body)
     hit = world._fits.get(key)
     if hit is not None and hit[0] == version:
         return hit[1]

@@ -34,7 +34,7 @@ import numpy as np
 
 from dqpose import dq, lie
 from dqpose.errors import WorldInfeasible, known_from, seconds_text
-from dqpose.fusion.api import _fuse_world_rows
+from dqpose.fusion.api import _fuse_static_rows, _fuse_world_rows
 from dqpose.fusion.results import Dropped, Fused, _who
 
 if TYPE_CHECKING:
@@ -105,9 +105,10 @@ class Riders:
         return (own,) + tuple(t.version(p) for p in self.parents_of(body) if p != body)
 
     def fit(self, rows: np.ndarray, time: Optional[float], nis: bool,
-            joint: bool) -> Optional[tuple[Fused, np.ndarray]]:
+            joint: bool, static: bool = False) -> Optional[tuple[Fused, np.ndarray]]:
         """The fit of ``rows`` (one body's, the lock held) with its riders' rows composed with
-        their parents' poses (the module's docstring), or None when no row is a rider's."""
+        their parents' poses (the module's docstring), or None when no row is a rider's;
+        ``static``: the one-instant fit of a static body (``Tracker.static_rows``)."""
         w = self._world
         t = w._t
         s = t._store
@@ -133,11 +134,12 @@ class Riders:
             first = min(why)
             raise ValueError(Unparented(first, names[first], 0.0, 0.0, why[first]).reason)
         o = t._checked._replace(table=table)
-        f = _fuse_world_rows(Z[kept], S[kept], tuple(names[k] for k in kept), times[kept], time,
-                             o, nis, joint)
+        used = tuple(names[k] for k in kept)
+        f = (_fuse_static_rows(Z[kept], S[kept], used, o) if static else
+             _fuse_world_rows(Z[kept], S[kept], used, times[kept], time, o, nis, joint))
         out = np.flatnonzero(~keep)
-        assert f.time is not None
-        dropped = tuple(Unparented(kept.size + j, names[k], float(f.time - taken[k]), 0.0,
+        at = at if f.time is None else f.time
+        dropped = tuple(Unparented(kept.size + j, names[k], float(at - taken[k]), 0.0,
                                    why[k]) for j, k in enumerate(out.tolist()))
         ids = s.ids[rows]
         return (dataclasses.replace(f, dropped=f.dropped + dropped),

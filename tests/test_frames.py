@@ -262,3 +262,22 @@ def test_frames_lists_every_frame_with_its_kind_parent_span_rate_and_sources():
     assert (got["w"].kind, got["w"].parent) == (FrameKind.SOURCE, "tip")
     assert (got["tip"].kind, got["tip"].parent, got["tip"].newest) == (FrameKind.STATIC, "box",
                                                                        0.0)
+
+
+def test_a_static_body_seen_by_a_camera_riding_on_a_moving_tool():
+    """A static body measured by a camera on the tool (a rider): each row composed with the
+    tool's fit at its time, then the one-instant fit: without noise the box itself to 1e-9 at
+    any time (before the measurements too); its covariance carries the hand-eye X's."""
+    from tests.test_riders import BOX, COV_X, scene
+    from tests.test_riders import world as rider_world
+    w = rider_world()
+    w.configure(sources=w.sources, arms={}, options=w.options, static_bodies=["box"])
+    assert w.publish(scene()).accepted == len(scene())
+    for at in (0.0, 10.1, 500.0):
+        p = w.frame_pose("box", at)
+        np.testing.assert_allclose(p.pose * np.sign(p.pose[0]), BOX, rtol=0, atol=1e-9)
+    tick, ids = w.tick("box", None)
+    np.testing.assert_allclose(tick.pose * np.sign(tick.pose[0]), BOX, rtol=0, atol=1e-9)
+    # the camera's mount error is shared by every row: it stays in the covariance
+    # (the rotation block's trace: rotated, never averaged away)
+    assert np.trace(tick.covariance[:3, :3]) >= np.trace(COV_X[:3, :3]) * (1 - 1e-9)

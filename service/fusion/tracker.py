@@ -360,7 +360,12 @@ class Tracker:
 
     def static_rows(self, rows: np.ndarray) -> tuple[Fused, np.ndarray]:
         """The one-instant fit of ``rows`` (a body that does not move: no twist, their times
-        left out), with their ids."""
+        left out; a rider's composed with its parent's pose at each row's time), with their
+        ids."""
+        if self.riders is not None:
+            got = self.riders.fit(rows, None, True, True, static=True)
+            if got is not None:
+                return got
         s = self._store
         return _fuse_static_rows(*s.world(rows), self._sources_of(rows), self._checked), \
             s.ids[rows]
