@@ -4,9 +4,12 @@ through a ``fixed`` frame held still between the two times,
     T_target(t)_source(s) = T_target_fixed(t) · T_fixed_source(s)
                           = T_w_target(t)⁻¹ · T_w_fixed(t) · T_w_fixed(s)⁻¹ · T_w_source(s),
 
-each factor a body's Lookup fit at its time (:meth:`dqpose.world.World.pose`'s window; the world
-frame "" is exact). ``time`` 0 is the newest time target and source are both known at (a Lookup's
-rule), ``source_time`` 0 is ``time``; at one time the answer is :meth:`World.relative`'s.
+each frame's pose its root's (:mod:`dqpose.frames`: a body's Lookup fit at its time,
+:meth:`dqpose.world.World.pose`'s window; a static body's one pose; the world "", exact) composed
+with its offset in the root (its chain of extrinsics and statics, the same at every time: the
+fixed frame's cancels, so any frame fixed on a root holds it still). ``time`` 0 is the newest
+time the bodies target and source hang from are both known at (a Lookup's rule),
+``source_time`` 0 is ``time``; at one time the answer is :meth:`World.relative`'s.
 
 The covariance model. Each factor k is an estimate with right perturbation ``δ_k``; the answer's
 right perturbation is ``ξ = Σ_k G_k δ_k`` (``G_k``: the adjoint of the inverse of what follows
@@ -17,16 +20,19 @@ order the Gauss-Newton estimates ``x_k = P_k Σ_{i∈R_k} J_kiᵀ W_i r_i`` (sta
 ``P_k`` the inverse information with the twist prior, ``J_ki`` the motion model's Jacobian of
 :mod:`dqpose.fusion.motion`, ``W_i = Σ_i⁻¹`` in the world frame) have
 ``Cov(x_1, x_2) = P_1 (Σ_{i∈R_1∩R_2} J_1iᵀ W_i J_2i) P_2``, whose pose block is their block.
-Fits of different bodies are independent.
+Fits of different bodies are independent, and so are the offsets of different frames; a
+static body's pose and a frame's offset are one estimate at both times.
 
 Not modelled: errors two bodies' fits at two different times share (a source's uncertain
 extrinsic or estimated latency: at one time :meth:`World.relative` fits them jointly); the
 latencies a fit estimates (left out of ``P_k``); a robust fit's gate (its inliers are taken as
-given); ``acceleration_psd``'s correlated residuals (the shared rows taken as white noise).
+given); ``acceleration_psd``'s correlated residuals (the shared rows taken as white noise); the
+links two frames' offsets share below their root (a static both hang from).
 """
 from __future__ import annotations
 
-from typing import NamedTuple
+import math
+from typing import NamedTuple, Optional
 
 import numpy as np
 
@@ -57,6 +63,7 @@ def relative_at(world, target: str, time: float, source: str, source_time: float
     """``T_target(time)_source(source_time)`` through ``fixed`` (see the module) as a
     :class:`dqpose.world.BodyPose` at ``time``: ``WorldError``, ``NotFound`` or ``OutOfRange``
     as :meth:`World.relative` names them."""
+    from dqpose.errors import WorldError
     from dqpose.world import BodyPose, _body_name
 
     target, source = _body_name(target, "target"), _body_name(source, "source")
@@ -65,35 +72,70 @@ def relative_at(world, target: str, time: float, source: str, source_time: float
         _seconds(time, "time")
         _seconds(source_time, "source_time")
     except ValueError as e:
-        from dqpose.errors import WorldError
         raise WorldError.of(e) from None
-    if fixed:
-        world.newest(fixed)         # a frame the world knows (NotFound names what it holds)
-    at = float(time) if time != 0.0 else _newest_both(world, target, source, fixed)
+    tree = world.tree
+    roots = {f: tree.root(f) for f in (target, fixed, source)}
+    for root in set(roots.values()) - {""}:
+        world.newest(root)          # a frame the world knows (NotFound names what it holds)
+    at = float(time) if time != 0.0 else _newest_both(world, roots, target, source, fixed)
     s = at if source_time == 0.0 else float(source_time)
     if s == at:
         return world.relative(target, source, at)
-    factors = [(target, at, True), (fixed, at, False), (fixed, s, True), (source, s, False)]
-    if target == fixed:             # T_target_target(t): exact, known at t
-        factors = factors[2:]
-        if target:
-            world.pose(target, at)
-    if fixed == source:
-        factors = factors[:-2]
-        if source:
-            world.pose(source, s)
-    fits = {(b, t): _fit(world, b, t) for b, t, _ in factors if b}
-    pose, cov = _compose([(fits[(b, t)], inverse) for b, t, inverse in factors if b])
+    made: dict = {}
+    factors = [(_offset(tree, target, made), True), (_root(world, roots[target], at, made), True),
+               (_root(world, roots[fixed], at, made), False),
+               (_root(world, roots[fixed], s, made), True),
+               (_root(world, roots[source], s, made), False), (_offset(tree, source, made), False)]
+    pose, cov = _compose([(f, inv) for f, inv in factors if f is not None])
     return BodyPose(source, at, pose, cov, None)
 
 
-def _newest_both(world, target: str, source: str, fixed: str) -> float:
-    """``time`` 0: the newest time target and source are both known at (the fixed frame's
-    newest when both are the world)."""
-    times = [world.newest(b) for b in (target, source) if b]
-    if not times and fixed:
-        times = [world.newest(fixed)]
-    return min(times) if times else 0.0
+def _newest_both(world, roots: dict, target: str, source: str, fixed: str) -> float:
+    """``time`` 0: the newest time the moving bodies target and source hang from are both
+    known at (the fixed frame's when neither moves; 0 when nothing does)."""
+    statics = world.tree.static_bodies
+    for frames in ((target, source), (fixed,)):
+        moving = {roots[f] for f in frames} - {""} - set(statics)
+        if moving:
+            return min(world.newest(b) for b in moving)
+    return 0.0
+
+
+def _root(world, root: str, at: float, made: dict) -> Optional[_Fit]:
+    """The factor of a frame's root at ``at``: None for the world; a static body's one pose
+    (the same factor at every time); a body's fit."""
+    from dqpose import frames
+    if not root:
+        return None
+    if root in world.tree.static_bodies:
+        if root not in made:
+            with world._lock.read():
+                f = frames.static_fit(world, root)
+            made[root] = _constant(root, f.mean, f.covariance)
+        return made[root]
+    if (root, at) not in made:
+        made[(root, at)] = _fit(world, root, at)
+    return made[(root, at)]
+
+
+def _offset(tree, frame: str, made: dict) -> Optional[_Fit]:
+    """The factor of ``frame`` in its root (its chain of extrinsics and statics, the same at
+    every time); None for a root."""
+    root = tree.root(frame)
+    if frame == root:
+        return None
+    key = ("offset", frame)
+    if key not in made:
+        X, P = tree.offset(frame, root)
+        made[key] = _constant(f"\0offset {frame}", X, np.zeros((DOF, DOF)) if P is None else P)
+    return made[key]
+
+
+def _constant(name: str, pose: np.ndarray, covariance: np.ndarray) -> _Fit:
+    """A factor with no rows: nothing shared with another but itself."""
+    none = np.empty(0)
+    return _Fit(name, math.nan, np.asarray(pose), np.asarray(covariance), np.empty(0, np.int64),
+                none, none, none)
 
 
 def _fit(world, body: str, at: float) -> _Fit:

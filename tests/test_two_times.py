@@ -112,3 +112,31 @@ def test_refusals_name_the_field():
         world.relative_at("arm", 0.5, "arm", float("nan"))
     with pytest.raises(WorldError, match="fixed_frame"):
         world.relative_at("arm", 0.5, "arm", 0.8, fixed="a/b")
+
+
+def test_frames_of_the_tree_at_two_times():
+    """A static "corner" on a static body "table", a camera riding on "arm": the table held
+    still, the corner at any time is where it is now; a frame fixed on a body holds that body
+    still; its offset cancels."""
+    from dqpose.frames import Static
+
+    rng = np.random.default_rng(6)
+    T0 = lie.se3_exp(rng.normal(size=6) * 0.5)
+    world = moving_world(rng, T0, seconds=2.0, bodies=("arm", "table"))
+    corner = lie.se3_exp(np.array([0.0, 0.0, 0.3, 0.2, 0.1, 0.0]))
+    world.configure(sources=[Source("cam"), Source("wrist", corner, parent="arm")], arms={},
+                    options=WorldOptions(window=1.0, buffer=10.0),
+                    statics=[Static("table", "corner", corner, NOISE)], static_bodies=["table"])
+    via_table = world.relative_at("arm", 1.2, "corner", 1.6, fixed="table")
+    now = world.relative("arm", "corner", 1.2)
+    np.testing.assert_allclose(via_table.pose, now.pose, atol=1e-12)
+    np.testing.assert_allclose(via_table.covariance, now.covariance, rtol=1e-9, atol=1e-15)
+    # through the camera on arm: arm held still, the same answer as through arm itself
+    via_wrist = world.relative_at("corner", 1.2, "arm", 1.6, fixed="wrist")
+    via_arm = world.relative_at("corner", 1.2, "arm", 1.6, fixed="arm")
+    np.testing.assert_allclose(via_wrist.pose, via_arm.pose, atol=1e-12)
+    np.testing.assert_allclose(via_wrist.covariance, via_arm.covariance, rtol=1e-9, atol=1e-15)
+    # the wrist camera at two times against the world: arm's two fits and its offset
+    w = world.relative_at("", 1.2, "wrist", 1.6)
+    np.testing.assert_allclose(w.pose, world.frame_pose("wrist", 1.6).pose, atol=1e-12)
+    assert np.all(np.linalg.eigvalsh(w.covariance) > 0)

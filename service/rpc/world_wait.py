@@ -5,7 +5,8 @@ tf2's ``canTransform``/``waitForTransform`` with a timeout: :class:`Waits`).
 A Lookup that cannot be answered for lack of data (a frame not in the world yet,
 :class:`dqpose.errors.NotFound`; a time past the newest measurement beyond
 ``max_extrapolation``, :class:`dqpose.errors.NotYet`) and asks to wait is tried again after
-each Publish step that brought a measurement of one of its frames (the hub's ``listeners``,
+each Publish step that brought a measurement of one of its frames or of a body they hang
+from (a source's or a static's chain, :mod:`dqpose.frames`; the hub's ``listeners``,
 called under its lock, hand the wake-up to the event loop: nothing polls), each try a fit in
 the worker pool as any Lookup's; answered as soon as one succeeds, else after ``wait`` seconds
 with the error of its last try (the error it would have had without waiting: the same status
@@ -93,7 +94,11 @@ class Waits:
             return await attempt()
         loop = asyncio.get_running_loop()
         deadline = loop.time() + request.wait
-        frames = {request.target, request.source, request.fixed_frame} - {""}
+        # the frames and those they hang from (dqpose.frames: a source's or a static's chain
+        # to its root, a body whose step may answer it), in the tree of the wait's start
+        tree = world.world.tree
+        frames = {f for name in (request.target, request.source, request.fixed_frame) if name
+                  for f in tree.chain(name)} - {""}
         woken = asyncio.Event()
 
         def listener(bodies: tuple) -> None:        # a worker thread, the hub's lock held

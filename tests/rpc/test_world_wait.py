@@ -161,3 +161,18 @@ def test_two_times_and_a_fixed_frame_answer_what_the_domain_does(server):
         s_rot, s_pos = lie.cov_sigmas(got.covariance)
         assert (got.sigma_rotation, got.sigma_position) == (s_rot, s_pos)
         assert 0 < got.sigma_position < 1e-2 and 0 < got.sigma_rotation < 1e-2
+
+
+def test_a_static_on_a_body_is_waited_for_through_its_body(server):
+    """A Lookup of a static fixed on a body not measured yet waits for that body's data."""
+    from dqpose.frames import Static
+
+    tip = lie.se3_exp(np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.1]))
+    with Client(server.target, world="tip") as c, \
+            concurrent.futures.ThreadPoolExecutor(1) as pool:
+        c.configure_world(statics=[Static("arm", "tip", tip)])
+        pending = pool.submit(c.lookup, "", "tip", 0.0, 10.0)
+        assert wait_until(lambda: waiting(server) == 1, 10.0)
+        list(c.publish([batch("arm", [0.0, 0.1])]))
+        got = pending.result(30)
+        np.testing.assert_allclose(got.pose, dq.mul(c.lookup("", "arm").pose, tip), atol=1e-12)
