@@ -281,3 +281,38 @@ def test_a_static_body_seen_by_a_camera_riding_on_a_moving_tool():
     # the camera's mount error is shared by every row: it stays in the covariance
     # (the rotation block's trace: rotated, never averaged away)
     assert np.trace(tick.covariance[:3, :3]) >= np.trace(COV_X[:3, :3]) * (1 - 1e-9)
+
+
+def test_subscribe_answers_relative_to_a_static_and_a_static_bodys_one_pose():
+    """A hub's Subscribe answers (the server's FusedPose bytes) relative to a static: the body's
+    tick composed with the static; a static body's answer: its one pose."""
+    from dqpose.hub import Hub, Interest, Rows, Subscription
+    from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
+    from dqpose.rpc.world_convert import Encoder
+    rng = np.random.default_rng(12)
+    S = random_pose(rng)
+    hub = Hub("", Encoder())
+    hub.configure([Source("cam")], {}, WorldOptions(window=0.5), statics=[
+        Static("", "table", S)], static_bodies=["shelf"])
+    got: list = []
+    hub.subscribe(Subscription(Interest(None, 0.0, "table"), got.extend))
+    ms = moving(rng) + [Measurement("cam", "shelf", 0.3, random_pose(rng), random_cov(rng))]
+    ms.sort(key=lambda m: m.time)
+    for m in ms:
+        rows = Rows(np.arange(1), (m.body,), (m.source,), np.array([m.time]), m.pose[None],
+                    m.covariance[None], None)
+        hub.publish("p", "a", 0, rows, 1)
+    answers = [fpb.FusedPose.FromString(a) for a in got]
+    assert not [a.error.details for a in answers if a.error.details]
+    last = {a.body: a for a in answers}
+    for body in ("box", "shelf"):
+        a = last[body]
+        want = hub.world.relative("table", body, a.time)
+        pose = dq.from_pose([a.pose.orientation.w, a.pose.orientation.x, a.pose.orientation.y,
+                             a.pose.orientation.z],
+                            [a.pose.position.x, a.pose.position.y, a.pose.position.z])
+        np.testing.assert_allclose(pose * np.sign(pose[0] * want.pose[0]), want.pose,
+                                   atol=1e-9)
+        np.testing.assert_allclose(np.reshape(a.covariance, (6, 6)), want.covariance,
+                                   rtol=1e-9, atol=1e-15)
+    assert last["shelf"].time == 0.3 and last["box"].time == TIMES[-1]

@@ -65,6 +65,20 @@ def test_configure_echoes_the_frames_and_refuses_them_by_field_path(server):
             with pytest.raises(RpcError) as e:
                 c.configure_world([Source("cam")], statics=statics)
             assert e.value.code == code and e.value.details.startswith(text), e.value.details
+        from dqpose.rpc.world_convert import world_config
+        for mutate, text in [(lambda m: m.statics.add(child="t"),
+                              "config.statics[1].pose: required (T_parent_child)"),
+                             (lambda m: m.statics[0].covariance.extend([1.0] * 3),
+                              "config.statics[0].covariance: expected 36 values"),
+                             (lambda m: m.static_bodies.append("a/b"),
+                              "config.static_bodies[1]: 'a/b' has '/'")]:
+            msg = world_config([Source("cam")], statics=[Static("", "table", TABLE, TABLE_COV)],
+                               static_bodies=["shelf"])
+            mutate(msg)
+            with pytest.raises(RpcError) as e:
+                c.configure_world_msg(msg)
+            assert e.value.code == grpc.StatusCode.INVALID_ARGUMENT
+            assert e.value.details.startswith(text), e.value.details
         # the world kept its frames
         assert {f.name for f in c.frames()} == {"", "cam", "table", "shelf"}
 
