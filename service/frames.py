@@ -159,11 +159,12 @@ class FrameTree:
         return self.chain(name)[-1] if name in self.links else name
 
     def clashes(self, held: Mapping[str, object]) -> None:
-        """A configured source or static that is a body the world holds measurements of: a
-        WorldError naming it."""
+        """A configured static (or, in a world with statics or riders, a source: as
+        :meth:`refuse`) that is a body the world holds measurements of: a WorldError naming
+        it."""
         for name in held:
             kind = self.kinds.get(name)
-            if kind is not None and kind != FrameKind.STATIC_BODY:
+            if kind == FrameKind.STATIC or (kind == FrameKind.SOURCE and self.checks):
                 raise WorldError(None, "statics" if kind == FrameKind.STATIC else "sources",
                                  f"{quoted(name)} is a body with measurements in the world "
                                  f"(bodies, sources and statics share one namespace)")
@@ -278,7 +279,10 @@ def relative(world: "World", target: str, source: str, time: float) -> "BodyPose
     bodies are known at; statics, static bodies and the world alone: 0, valid at every time)."""
     from dqpose.world import BodyPose
     tree, t = world.tree, world._t
-    ct, cs = tree.chain(target), tree.chain(source)
+    # a body with measurements is that body (a source's name only where no static or rider
+    # makes the names one namespace, Publish refusing them there)
+    ct = [target] if t.has(target) else tree.chain(target)
+    cs = [source] if t.has(source) else tree.chain(source)
     roots = (ct[-1], cs[-1])
     for r in roots:
         if r and not t.has(r):

@@ -316,3 +316,14 @@ def test_subscribe_answers_relative_to_a_static_and_a_static_bodys_one_pose():
         np.testing.assert_allclose(np.reshape(a.covariance, (6, 6)), want.covariance,
                                    rtol=1e-9, atol=1e-15)
     assert last["shelf"].time == 0.3 and last["box"].time == TIMES[-1]
+
+
+def test_a_world_without_statics_or_riders_keeps_a_body_named_as_a_source():
+    """Without statics or riders a body may share a source's name, as before the frame tree:
+    Publish and Configure take it, a Lookup of the name is the body's."""
+    rng = np.random.default_rng(13)
+    world = world_of(rng, sources=(Source("cam"), Source("ur", random_pose(rng))))
+    assert world.publish(moving(rng, body="ur")).accepted == len(TIMES)
+    world.configure(sources=world.sources, arms={}, options=world.options)
+    np.testing.assert_allclose(world.relative("", "ur", 1.0).pose, world.pose("ur", 1.0).pose,
+                               atol=1e-12)
