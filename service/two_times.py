@@ -16,18 +16,23 @@ right perturbation is ``ξ = Σ_k G_k δ_k`` (``G_k``: the adjoint of the invers
 factor k in the product, and ``−Ad(T_k)`` first for an inverted factor), so ``Cov ξ = G Σ Gᵀ``
 over the joint covariance ``Σ`` of the factors. Its diagonal blocks are the fits' covariances;
 two fits of the same body at two times share the measurements both windows hold, and to first
-order the Gauss-Newton estimates ``x_k = P_k Σ_{i∈R_k} J_kiᵀ W_i r_i`` (state: pose and twist,
-``P_k`` the inverse information with the twist prior, ``J_ki`` the motion model's Jacobian of
-:mod:`dqpose.fusion.motion`, ``W_i = Σ_i⁻¹`` in the world frame) have
-``Cov(x_1, x_2) = P_1 (Σ_{i∈R_1∩R_2} J_1iᵀ W_i J_2i) P_2``, whose pose block is their block.
-Fits of different bodies are independent, and so are the offsets of different frames; a
-static body's pose and a frame's offset are one estimate at both times.
+order the Gauss-Newton estimates ``x_k = P_k Σ_f J_kfᵀ W_f e_f`` over their factors f (state:
+pose, twist, and one error per source with an ``extrinsic_covariance``; ``P_k`` the inverse
+information with the priors; ``J_kf`` the Jacobians of :mod:`dqpose.fusion.motion` and
+:mod:`dqpose.fusion.extrinsics`, ``W_i = Σ_i⁻¹`` in the world frame) have
+``Cov(x_1, x_2) = P_1 (Σ_{i∈R_1∩R_2} J_1iᵀ W_i J_2i + Σ_s Σ_E,s⁻¹) P_2``: the rows both windows
+hold, and the prior of each uncertain mount both estimate (one error: it cancels in the body's
+motion between the two times); its pose block is their block. Fits of different bodies are
+independent, and so are the offsets of different frames; a static body's pose and a frame's
+offset are one estimate at both times.
 
 Not modelled: errors two bodies' fits at two different times share (a source's uncertain
-extrinsic or estimated latency: at one time :meth:`World.relative` fits them jointly); the
-latencies a fit estimates (left out of ``P_k``); a robust fit's gate (its inliers are taken as
-given); ``acceleration_psd``'s correlated residuals (the shared rows taken as white noise); the
-links two frames' offsets share below their root (a static both hang from).
+extrinsic or estimated latency: at one time :meth:`World.relative` fits them jointly); a body
+fed by riders (its rows composed with a parent's fit, :mod:`dqpose.riders`: its fits at two times
+taken as independent); the latencies a fit estimates (left out of ``P_k``); a robust fit's gate
+(its inliers taken as given); ``acceleration_psd``'s correlated residuals (the shared rows taken
+as white noise); the links two frames' offsets share below their root (a static both hang
+from).
 """
 from __future__ import annotations
 
@@ -37,6 +42,7 @@ from typing import NamedTuple, Optional
 import numpy as np
 
 from dqpose import dq, lie
+from dqpose.fusion.extrinsics import _extrinsics
 from dqpose.fusion.motion import _Model, _motion_jacobian
 from dqpose.fusion.results import DOF
 from dqpose.fusion.validation import _seconds, _twist_information
@@ -47,7 +53,8 @@ IDENTITY = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
 class _Fit(NamedTuple):
     """A body's Lookup fit at ``time``: its pose and covariance, and what another fit of the
     body needs for their cross-covariance: the ids of its inlier rows, their Jacobians ``J``
-    ``(n, 6, d)`` and weights ``W`` ``(n, 6, 6)``, and ``P`` ``(d, d)``."""
+    ``(n, 6, d)`` and weights ``W`` ``(n, 6, 6)``, ``P`` ``(d, d)``, and ``priors``: per
+    uncertain source its error's first column in the state and its prior's information."""
     body: str
     time: float
     pose: np.ndarray
@@ -56,6 +63,7 @@ class _Fit(NamedTuple):
     J: np.ndarray
     W: np.ndarray
     P: np.ndarray
+    priors: tuple = ()
 
 
 def relative_at(world, target: str, time: float, source: str, source_time: float = 0.0,
@@ -146,10 +154,14 @@ def _fit(world, body: str, at: float) -> _Fit:
         t = world._t
         rows = world._rows_for(body, at)
         f, ids = world._fit_of(body, rows, lambda r: t.estimate_rows(r, at, False))
-        S = t._store.world(rows)[1]
+        Z, S = t._store.world(rows)
+        names = t._sources_of(rows)
         dt = t.taken_of(rows) - f.time
-        twist_cov = world.options.twist_covariance
+        twist_cov, table = world.options.twist_covariance, t._table
+        riders = world._riders.rides(body)
     keep = np.asarray(f.inliers)
+    if riders:          # rows composed with a parent's fit: no shared term modelled
+        return _constant(body, f.mean, f.covariance)
     # one instant without a twist prior is the static fit: the pose alone
     twist = f.twist is not None
     Wp = None if twist_cov is None or not twist else _twist_information(twist_cov)[1]
@@ -157,22 +169,44 @@ def _fit(world, body: str, at: float) -> _Fit:
     model = _Model(dt[keep], np.zeros(n), -np.ones(n, dtype=np.int64), np.empty(0), np.empty(0),
                    twist, Wp)
     V = np.asarray(f.twist) if twist else np.zeros(DOF)
-    J = _motion_jacobian(V, dt[keep], np.asarray(f.residuals)[keep], model)
+    r = np.asarray(f.residuals)[keep]
+    ext = _extrinsics([names[i] for i in keep], table)
+    k = 0 if ext is None else len(ext.names)
+    # r_i moves by -G_i for the state and by Jr⁻¹(r_i) A_i for an extrinsic's error
+    # (dqpose.fusion.motion, dqpose.fusion.extrinsics)
+    J = np.zeros((n, DOF, model.dim + DOF * k))
+    J[:, :, :model.dim] = -_motion_jacobian(V, dt[keep], r, model)
+    H = np.zeros((J.shape[2],) * 2)
+    priors = []
+    for s in range(k):
+        assert ext is not None
+        col, mine = model.dim + DOF * s, ext.slot == s
+        A = lie.adjoint(dq.mul(dq.conj(Z[keep][mine]), ext.E[s]))
+        J[mine, :, col:col + DOF] = lie.se3_right_jacobian_inv(r[mine]) @ A
+        H[col:col + DOF, col:col + DOF] = ext.info[s]
+        priors.append((ext.names[s], col, ext.info[s]))
     W = np.linalg.inv(S[keep])
-    H = np.einsum("nia,nij,njb->ab", J, W, J)
+    H += np.einsum("nia,nij,njb->ab", J, W, J)
     if Wp is not None:
         H[6:12, 6:12] += Wp
     return _Fit(body, float(f.time), np.asarray(f.mean), np.asarray(f.covariance),
-                np.asarray(ids)[keep], J, W, np.linalg.inv(H))
+                np.asarray(ids)[keep], J, W, np.linalg.inv(H), tuple(priors))
 
 
 def cross_covariance(a: _Fit, b: _Fit) -> np.ndarray:
     """``Cov(δ_a, δ_b)`` ``(6, 6)`` of two fits of the same body: ``P_a (Σ J_aᵀ W J_b) P_b``
-    over the rows both used, its pose block."""
+    over the rows both used and the priors of the uncertain extrinsics both estimate, its pose
+    block."""
     shared, ia, ib = np.intersect1d(a.ids, b.ids, assume_unique=True, return_indices=True)
-    if not shared.size:
+    M = np.zeros((a.P.shape[0], b.P.shape[0]))
+    if shared.size:
+        M += np.einsum("nia,nij,njb->ab", a.J[ia], a.W[ia], b.J[ib])
+    theirs = {name: col for name, col, _ in b.priors}
+    for name, col, info in a.priors:
+        if name in theirs:
+            M[col:col + DOF, theirs[name]:theirs[name] + DOF] += info
+    if not M.any():
         return np.zeros((DOF, DOF))
-    M = np.einsum("nia,nij,njb->ab", a.J[ia], a.W[ia], b.J[ib])
     return (a.P @ M @ b.P)[:DOF, :DOF]
 
 
