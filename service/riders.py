@@ -6,7 +6,7 @@ parent's frame; it is brought to the world when a fit takes it, never at ingest,
 stays a function of arrival order: row i becomes ``T_world_P(t_i) · E · Z_i · O`` with the
 parent P's pose at the row's taken time ``t_i`` (P's own fit, :meth:`World._pose_only`). A row
 whose time P is not known at is left out of that fit and listed among its dropped measurements
-(:class:`Unparented`), after the rows it fitted.
+(a :class:`~dqpose.fusion.Dropped` with its ``why``), after the rows it fitted.
 
 Covariance model. With ``T_world_P · Exp(δP) · E · Exp(δE)`` (``δP`` the error of P's fit,
 ``Σ_P``; ``δE`` the extrinsic's, ``Σ_E`` its ``extrinsic_covariance``), the errors of P's fit
@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import dataclasses
 import threading
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Mapping, Optional
 
 import numpy as np
@@ -35,24 +34,14 @@ import numpy as np
 from dqpose import dq, lie
 from dqpose.errors import WorldInfeasible, known_from, seconds_text
 from dqpose.fusion.api import _fuse_static_rows, _fuse_world_rows
-from dqpose.fusion.results import Dropped, Fused, _who
+from dqpose.fusion.results import Dropped, Fused
+from dqpose.limits import ANSWER_ROWS
 
 if TYPE_CHECKING:
     from dqpose.fusion import Source
     from dqpose.world import World
 
 _IDENT = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
-
-
-@dataclass(frozen=True)
-class Unparented(Dropped):
-    """A rider's measurement left out of a fit: its parent is not known at its taken time
-    (``age`` before the fusion time); ``why`` names the parent and what is known of it."""
-    why: str = ""
-
-    @property
-    def reason(self) -> str:
-        return f"{_who(self.index, self.source)}: {self.why}"
 
 
 class Riders:
@@ -95,6 +84,18 @@ class Riders:
                 out.update(((p, s), at) for s, at in w._fed(p).items())
         return out
 
+    def cost(self, body: str, rows: np.ndarray) -> int:
+        """What a fit of ``body``'s ``rows`` costs, in rows of a plain fit: its rows, and a
+        parent's fit (its tick window's rows and an answer's overhead) for each rider's row."""
+        if not self.parents or not self.rides(body):
+            return len(rows)
+        w = self._world
+        t = w._t
+        riding = int(np.count_nonzero(t._riding[t._store.codes[rows]]))
+        parent = max((len(t.rows_ending(p, t.newest(p), w.options.window))
+                      for p in self.parents_of(body) if t.has(p)), default=0)
+        return len(rows) + riding * (parent + ANSWER_ROWS)
+
     def version(self, body: str):
         """What ``body``'s answers depend on: its version (:meth:`Tracker.version`), and with
         riders its parents' too."""
@@ -132,14 +133,14 @@ class Riders:
         kept = np.flatnonzero(keep)
         if not kept.size:
             first = min(why)
-            raise ValueError(Unparented(first, names[first], 0.0, 0.0, why[first]).reason)
+            raise ValueError(Dropped(first, names[first], 0.0, 0.0, why[first]).reason)
         o = t._checked._replace(table=table)
         used = tuple(names[k] for k in kept)
         f = (_fuse_static_rows(Z[kept], S[kept], used, o) if static else
              _fuse_world_rows(Z[kept], S[kept], used, times[kept], time, o, nis, joint))
         out = np.flatnonzero(~keep)
         at = at if f.time is None else f.time
-        dropped = tuple(Unparented(kept.size + j, names[k], float(at - taken[k]), 0.0,
+        dropped = tuple(Dropped(kept.size + j, names[k], float(at - taken[k]), 0.0,
                                    why[k]) for j, k in enumerate(out.tolist()))
         ids = s.ids[rows]
         return (dataclasses.replace(f, dropped=f.dropped + dropped),

@@ -88,7 +88,8 @@ class Published:
 
 class TickWindow(NamedTuple):
     """What a body's ticks would fit now: its ``horizon`` (:func:`dqpose.world_ticks.horizon`),
-    its window's oldest measurement (``floor``), the ``rows`` a tick fits, and ``capped``: its
+    its window's oldest measurement (``floor``), the ``rows`` a tick fits (with a rider's, its
+    parent's fits: :meth:`dqpose.riders.Riders.cost`), and ``capped``: its
     window holds more than those; ``picked``: those rows (a tick's in ``[floor, horizon]``,
     for :meth:`World.tick_wire`, until the world changes)."""
     horizon: float
@@ -378,7 +379,8 @@ class World:
             newest, window = t.newest(body), self.options.window
             rows = t.rows_ending(body, newest, window)
             return TickWindow(horizon(self._riders.waited(body), self.options.max_delay)
-                              if known is None else known, float(t.taken_of(rows).min()), len(rows),
+                              if known is None else known, float(t.taken_of(rows).min()),
+                              self._riders.cost(body, rows),
                               t.capped(body, window), rows)
 
     def tick(self, body: str, time: Optional[float]) -> tuple[BodyPose, np.ndarray]:

@@ -8,6 +8,7 @@ import pytest
 from dqpose import dq, lie
 from dqpose.errors import Infeasible, WorldError
 from dqpose.fusion import Source
+from dqpose.limits import ANSWER_ROWS
 from dqpose.world import Measurement, World, WorldOptions
 
 X = lie.se3_exp(np.array([0.1, -0.2, 0.3, 0.02, 0.05, 0.08]))     # T_tool_camera
@@ -121,6 +122,15 @@ def test_bodies_without_riders_keep_the_c_tick():
     assert w.tick_wire("cup", None, 0) is not None
     assert w.tick_wire("box", None, 0) is None       # composed in Python
     assert w.tick_wire("tool", None, 0, relative_to="box") is None
+
+
+def test_a_ticks_cost_counts_the_parents_fits():
+    w = world()
+    w.publish(scene())
+    tool, box = w.tick_window("tool"), w.tick_window("box")
+    assert tool.rows == N
+    # each of the box's rows costs the tool's fit at its time besides itself
+    assert box.rows == N + N * (N + ANSWER_ROWS)
 
 
 def test_the_box_follows_the_tools_new_measurements():

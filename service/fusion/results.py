@@ -111,15 +111,20 @@ class Fused:
 @dataclass(frozen=True)
 class Dropped:
     """Measurement ``index`` (of source ``source``) was taken ``age`` seconds before the fusion
-    time (negative: after it), further than ``max_skew`` from it; it did not enter the fit."""
+    time (negative: after it), further than ``max_skew`` from it; it did not enter the fit.
+    ``why``: another reason it did not (a World's rider whose parent is not known at its time,
+    :mod:`dqpose.riders`)."""
     index: int
     source: str
     age: float
     max_skew: float
+    why: str = ""
 
     @property
     def reason(self) -> str:
         who = _who(self.index, self.source)
+        if self.why:
+            return f"{who}: {self.why}"
         when = f"{self.age:.6g} s before" if self.age >= 0 else f"{-self.age:.6g} s after"
         return f"{who}: taken {when} the fusion time, beyond max_skew {self.max_skew:g} s"
 

@@ -315,6 +315,16 @@ def fused_to_msg(f: fusion.Fused, body: str, time: float, out=None):
     return msg
 
 
+def _dropped(d, max_skew: float | None) -> fusion.Dropped:
+    """A ``FusedPose.dropped`` entry: for skew, or (another reason) with the server's words."""
+    skew = fusion.Dropped(d.index, d.source, d.age, max_skew or 0.0)
+    if d.reason == skew.reason:
+        return skew
+    who = skew.reason[:len(skew.reason) - len(skew.reason.split(": ", 1)[-1])]
+    why = d.reason[len(who):] if d.reason.startswith(who) else d.reason
+    return fusion.Dropped(d.index, d.source, d.age, max_skew or 0.0, why)
+
+
 def fused_from_msg(msg, probability: float = DEFAULT_PROBABILITY,
                    max_skew: float | None = None) -> fusion.Fused:
     """A ``FusedPose`` back into the :class:`fusion.Fused` it was made from (client side);
@@ -348,8 +358,7 @@ def fused_from_msg(msg, probability: float = DEFAULT_PROBABILITY,
         twist_covariance=frozen(np.array(msg.twist_covariance, dtype=np.float64).reshape(6, 6))
         if msg.twist else None,
         extrapolation=msg.extrapolation,
-        dropped=tuple(fusion.Dropped(d.index, d.source, d.age, max_skew or 0.0)
-                      for d in msg.dropped),
+        dropped=tuple(_dropped(d, max_skew) for d in msg.dropped),
         latencies=tuple(fusion.Latency(a.source, a.configured, a.prior_sigma, a.value, a.sigma)
                         for a in msg.latencies))
 

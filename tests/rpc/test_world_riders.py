@@ -10,8 +10,9 @@ import pytest
 from dqpose import dq
 from dqpose.fusion import Source
 from dqpose.rpc.client import Batch, Client, RpcError
+from dqpose.world import Measurement
 from tests.rpc._grpc_server import ServerThread
-from tests.test_riders import BOX, COV_X, X, scene, tool_at
+from tests.test_riders import BOX, COV_CAM, COV_X, RATE, N, X, scene, tool_at
 
 SOURCES = [Source("arm"), Source("cam", extrinsic=X, extrinsic_covariance=COV_X, parent="tool")]
 
@@ -45,11 +46,21 @@ def test_a_camera_on_the_tool_gives_a_lookup_of_the_box(target):
 
 
 def test_stream_fuse_resolves_a_parent_as_the_world_does(target):
+    late = 10.0 + (N - 1) / RATE + 0.25      # the tool known up to 0.25 s before
+    cam = dq.conj(dq.mul(tool_at(late), X))
+    row = Measurement("cam", "box", late, dq.mul(cam, BOX), COV_CAM)
     with Client(target) as c:
-        answers = list(c.stream_fuse([batch(scene())], sources=SOURCES, window=0.5))
+        answers = list(c.stream_fuse([batch(scene()), batch([row])], sources=SOURCES,
+                                     window=0.5))
     box = [a for a in answers if a.body == "box"]
-    assert box and box[-1].error is None, answers
-    f = box[-1].fused
+    assert [a.request for a in box] == [0, 1] and box[0].error is None, answers
+    f = box[0].fused
+    np.testing.assert_allclose(f.mean * np.sign(f.mean[0]), BOX, rtol=0, atol=1e-9)
+    # the late row is the answer's last measurement, dropped with the reason
+    f, ids = box[1].fused, box[1].measurements
+    assert len(f.dropped) == 1 and f.dropped[0].index == len(ids) - 1 and ids[-1] == 2 * N
+    assert f.dropped[0].reason.startswith(
+        f"measurement {len(ids) - 1} (cam): its parent 'tool' is not known at 10.55"), f.dropped
     np.testing.assert_allclose(f.mean * np.sign(f.mean[0]), BOX, rtol=0, atol=1e-9)
 
 
