@@ -33,6 +33,7 @@ import numpy as np
 
 from dqpose import dq, lie
 from dqpose.errors import WorldInfeasible, known_from, seconds_text
+from dqpose.frames import frame_pose
 from dqpose.fusion.api import _fuse_static_rows, _fuse_world_rows
 from dqpose.fusion.results import Dropped, Fused
 from dqpose.limits import ANSWER_ROWS
@@ -59,9 +60,10 @@ class Riders:
         return any(s in parents for b in bodies if b for s in w._fed(b))
 
     def parents_of(self, body: str) -> list[str]:
-        """The parents of the riders that ever fed ``body``, once each (the lock held)."""
-        parents = self.parents
-        return list(dict.fromkeys(parents[s] for s in self._world._fed(body) if s in parents))
+        """The bodies the riders that ever fed ``body`` ride on (their parents' roots in the
+        frame tree: a static's body), once each (the lock held)."""
+        parents, w = self.parents, self._world
+        return list(dict.fromkeys(w.tree.root(parents[s]) for s in w._fed(body) if s in parents))
 
     @staticmethod
     def check_arms(arms: Mapping[str, str], table: Mapping[str, "Source"]) -> None:
@@ -189,22 +191,27 @@ class Riders:
         return source
 
     def _parent_pose(self, parent: str, body: str, at: float):
-        """``T_world_parent`` at ``at`` and its covariance, or why it is not known there."""
+        """``T_world_parent`` at ``at`` and its covariance (a body's own fit, else the frame
+        tree's, :func:`dqpose.frames.frame_pose`), or why it is not known there."""
         w = self._world
         stack = getattr(self._composing, "bodies", None)
         if stack is None:
             stack = self._composing.bodies = []
-        if parent == body or parent in stack:
+        root = w.tree.root(parent)
+        if root == body or root in stack:
             return f"its parent {parent!r} rides on {body!r} (a cycle)"
-        if not w._t.has(parent):
+        if root and not w._t.has(root):
             return (f"its parent {parent!r} is not known at {seconds_text(at)} (no measurement "
-                    f"of it)")
+                    f"of {root!r})")
         stack.append(body)
         try:
-            return w._pose_only(parent, at)
+            if parent == root and root not in w.tree.static_bodies:
+                return w._pose_only(parent, at)     # a body: its own fit, the C path
+            p = frame_pose(w, parent, at)
+            return p.pose, p.covariance
         except (LookupError, ValueError):
             t = w._t
             return (f"its parent {parent!r} is not known at {seconds_text(at)} ("
-                    f"{known_from(parent, t.oldest(parent), t.newest(parent))})")
+                    f"{known_from(root, t.oldest(root), t.newest(root))})")
         finally:
             stack.pop()

@@ -7,6 +7,7 @@ import pytest
 
 from dqpose import dq, lie
 from dqpose.errors import Infeasible, WorldError
+from dqpose.frames import Static
 from dqpose.fusion import Source
 from dqpose.limits import ANSWER_ROWS
 from dqpose.world import Measurement, World, WorldOptions
@@ -19,6 +20,7 @@ COV_ARM = np.diag([1e-8] * 3 + [1e-8] * 3)
 COV_X = np.diag([4e-6] * 3 + [1e-6] * 3)
 COV_CAM = np.diag([2.5e-5] * 3 + [4e-6] * 3)
 RATE, N = 30.0, 10
+_IDENT = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
 
 
 def tool_at(t: float) -> np.ndarray:
@@ -86,6 +88,31 @@ def box_nees(seed: int = 39, trials: int = 200) -> float:
 def test_eye_in_hand_box_nees_over_200_trials():
     nees = box_nees()
     assert abs(nees - 6.0) <= 0.7, nees
+
+
+def test_a_camera_on_a_static_mount_of_the_tool_and_on_a_static_of_the_world():
+    # the mount fixed on the tool (uncertain), the camera on the mount: X = M · X_mount
+    M = lie.se3_exp(np.array([0.0, 0.1, 0.0, 0.0, 0.02, 0.03]))
+    mount = Static("tool", "mount", M, COV_X)
+    w = World(sources=[Source("arm"), Source("cam", extrinsic=dq.mul(dq.conj(M), X),
+                                             extrinsic_covariance=COV_X, parent="mount")],
+              options=WorldOptions(window=0.5, buffer=5.0))
+    w.configure(sources=w.sources, arms={}, options=w.options, statics=[mount])
+    w.publish(scene())
+    p = w.pose("box")
+    np.testing.assert_allclose(p.pose * np.sign(p.pose[0]), BOX, rtol=0, atol=1e-9)
+    assert w.horizon("box") == w.horizon("tool")      # it waits for the arm
+    # a camera on a static fixed in the world sees the box as a world-fixed camera does
+    C = dq.mul(tool_at(10.0), X)
+    w = World(sources=[Source("cam", extrinsic=_IDENT, parent="stand")],
+              options=WorldOptions(window=0.5, buffer=5.0))
+    w.configure(sources=w.sources, arms={}, options=w.options,
+                statics=[Static("", "stand", C, None)])
+    w.publish([Measurement("cam", "box", 10.0 + k / RATE, dq.mul(dq.conj(C), BOX), COV_CAM)
+               for k in range(N)])
+    p = w.pose("box")
+    np.testing.assert_allclose(p.pose * np.sign(p.pose[0]), BOX, rtol=0, atol=1e-9)
+    assert np.linalg.eigvalsh(p.covariance).max() < COV_CAM.max()
 
 
 def test_a_row_its_parent_is_not_known_at_is_dropped_with_the_reason():
