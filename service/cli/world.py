@@ -56,8 +56,8 @@ def configure(name: str, p) -> None:
     watch.add_argument("--count", type=int, default=0,
                        help="stop after this many answers (0: until Ctrl-C)")
     look = sub.add_parser("lookup", help="the pose of SOURCE in TARGET's frame")
-    look.add_argument("frame_target", metavar="TARGET", help="a body, or world")
-    look.add_argument("frame_source", metavar="SOURCE", help="a body, or world")
+    look.add_argument("frame_target", metavar="TARGET", help="a frame (world frames), or world")
+    look.add_argument("frame_source", metavar="SOURCE", help="a frame (world frames), or world")
     look.add_argument("--at", "--time", dest="time", type=float, default=0.0, metavar="S",
                       help="measurement time, s (0: the newest both are known at)")
     look.add_argument("--source-time", type=float, default=0.0, metavar="S",
@@ -157,8 +157,14 @@ def _lookup(args) -> int:
         r = c.lookup(_frame(args.frame_target), _frame(args.frame_source), args.time,
                      wait=args.wait, source_time=args.source_time,
                      fixed_frame=_frame(args.fixed_frame))
-    show = lookup_json if args.json else lookup_text
-    sys.stdout.write(show(args.frame_target, args.frame_source, r))
+    if args.json:
+        sys.stdout.write(lookup_json(args.frame_target, args.frame_source, r))
+    else:
+        head, rest = lookup_text(args.frame_target, args.frame_source, r).split("\n", 1)
+        if args.source_time:    # the source at its own time, under the header
+            head += (f"\n  source at       {args.source_time:.9g} s, through "
+                     f"{args.fixed_frame or 'world'} held still")
+        sys.stdout.write(head + "\n" + rest)
     return 0
 
 

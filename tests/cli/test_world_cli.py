@@ -215,6 +215,11 @@ def test_lookup_at_two_times_through_a_fixed_frame_and_waiting(server, capsys, t
     np.testing.assert_allclose(got * np.sign(got[:4] @ want.pose[:4]), want.pose, atol=1e-12)
     np.testing.assert_allclose(np.reshape(json.loads(out)["covariance"], (6, 6)),
                                want.covariance, rtol=1e-12, atol=1e-18)
+    code, text, err = run(capsys, *argv[:-3], "world", "box", "--at", "0.5", "--source-time",
+                          "0.8")
+    assert code == 0, err
+    assert text.splitlines()[1].split() == ["source", "at", "0.8", "s,", "through", "world",
+                                            "held", "still"]
     code, out, err = run(capsys, *argv, "--time", "0.5")
     assert code == 0, err
     got = printed_pose(out)
