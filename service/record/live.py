@@ -2,7 +2,9 @@
 ``foxglove.sdk.v1``, which Foxglove and Lichtblick open as a "Foxglove WebSocket" connection)
 carrying the recording's channels as they are logged, a :class:`~dqpose.record.sink.Sink` of
 the writer process, so that neither the server's sockets nor its clients cost the gRPC server
-anything. Messages logged while no client subscribes to a channel are not kept.
+anything. Messages logged while no client subscribes to a channel are not kept, but for a
+latched channel's last one (``/tf_static``, :data:`LATCHED`), which a client subscribing later
+receives first, as ROS latches ``/tf_static``.
 
 Who may connect is decided before the WebSocket opens (:meth:`LiveServer.refusal`): a browser's
 ``Origin`` must be one of ``--live-origin``'s, and with the server's bearer token a client gives
@@ -25,6 +27,7 @@ import urllib.parse
 
 from dqpose import tokens
 from dqpose.record.sink import Sink
+from dqpose.record.topics import TF_STATIC_TOPIC
 
 SUBPROTOCOL = "foxglove.sdk.v1"
 #: messages waiting per client at most; beyond, the oldest are dropped (a slow viewer); a client
@@ -37,6 +40,9 @@ MAX_CLIENT_MESSAGE = 64 << 10
 #: a refused client is logged at most this often (s); those in between are counted
 REFUSALS_PERIOD = 1.0
 _MESSAGE_DATA = b"\x01"
+#: the topics whose last message a new subscriber receives (a World's fixed frames, logged once
+#: a Configure: a viewer that connects later would never see them)
+LATCHED = frozenset({TF_STATIC_TOPIC})
 
 
 def _status(message: str) -> str:
@@ -47,14 +53,25 @@ class _Channel:
     """One advertised channel: ``log`` (the writer's thread) sends each subscriber the message
     (``subscribers`` is replaced under the server's lock, never changed, so read without it)."""
 
-    __slots__ = ("server", "id", "advert", "subscribers")
+    __slots__ = ("server", "id", "advert", "subscribers", "latch", "last")
 
-    def __init__(self, server: "LiveServer", id: int, advert: dict):
+    def __init__(self, server: "LiveServer", id: int, advert: dict, latch: bool = False):
         self.server, self.id, self.advert = server, id, advert
         self.subscribers: dict[_Client, int] = {}
+        # a latched channel's last message, (data, log_time): a new subscriber's first
+        self.latch = latch
+        self.last: tuple[bytes, int] | None = None
 
     def log(self, data: bytes, log_time: int) -> None:
-        subscribers = self.subscribers
+        if self.latch:      # under the lock: a subscriber gets the last, then what follows
+            with self.server._lock:
+                self.last = (data, log_time)
+                self._send(self.subscribers, data, log_time)
+        else:
+            self._send(self.subscribers, data, log_time)
+
+    @staticmethod
+    def _send(subscribers: dict, data: bytes, log_time: int) -> None:
         if subscribers:
             stamp = log_time.to_bytes(8, "little")
             for client, sub in subscribers.items():
@@ -187,7 +204,7 @@ class LiveServer(Sink):
     def _open(self, topic: str, message_encoding: str, schema_name: str, schema_encoding: str,
               schema: bytes, metadata: tuple = ()):
         with self._lock:
-            ch = _Channel(self, next(self._ids), {})
+            ch = _Channel(self, next(self._ids), {}, topic in LATCHED)
             ch.advert = {"id": ch.id, "topic": topic, "encoding": message_encoding,
                          "schemaName": schema_name, "schemaEncoding": schema_encoding,
                          "schema": (base64.b64encode(schema).decode()
@@ -265,6 +282,8 @@ class LiveServer(Sink):
             else:
                 client.subscriptions[sub] = ch
                 ch.subscribers = {**ch.subscribers, client: sub}
+                if ch.last is not None:
+                    ch._send({client: sub}, *ch.last)
                 return
         client.text(_status(why))
 

@@ -1,6 +1,7 @@
 """``dqpose view --live HOST:PORT``: the page following a server live, as a client of its
 ``serve --live`` WebSocket (Foxglove's protocol, ``foxglove.sdk.v1``): it subscribes to ``/tf``
-(the bodies' frames), ``/fused/ellipsoids`` (each body's 3-sigma ellipsoid, drawn as the
+(the bodies' frames), ``/tf_static`` (a World's statics and sources, the frame tree; latched: its
+last message comes first), ``/fused/ellipsoids`` (each body's 3-sigma ellipsoid, drawn as the
 recording draws it) and ``/plans/*``, and draws each message as it comes. A channel's messages
 logged before the subscription reached the server are not sent (the protocol keeps none)."""
 from __future__ import annotations
@@ -14,7 +15,9 @@ from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from websockets.sync.client import connect
 from websockets.typing import Subprotocol
 
-from dqpose.record.topics import ELLIPSOIDS_TOPIC, TF_TOPIC, plan_topic
+from dqpose import dq
+from dqpose.record.topics import ELLIPSOIDS_TOPIC, TF_STATIC_TOPIC, TF_TOPIC, plan_topic
+from dqpose.record.views import WORLD
 from dqpose.view.events import say
 from dqpose.view.page import WORLD_PLAN, Scene
 
@@ -54,7 +57,8 @@ class Follower:
         subs = []
         for ch in op["channels"]:
             topic = ch["topic"]
-            if topic in (TF_TOPIC, ELLIPSOIDS_TOPIC) or topic.startswith(PLANS):
+            if topic in (TF_TOPIC, TF_STATIC_TOPIC, ELLIPSOIDS_TOPIC) or \
+                    topic.startswith(PLANS):
                 sub = len(self.subscriptions) + 1
                 self.subscriptions[sub] = topic
                 subs.append({"id": sub, "channelId": ch["id"]})
@@ -81,6 +85,16 @@ class Follower:
                     self.ellipsoids[e.frame_id] = ((s.size.x / 2, s.size.y / 2, s.size.z / 2),
                                                    _q(s.pose.orientation))
                     self.draw_body(e.frame_id)
+        elif topic == TF_STATIC_TOPIC:
+            frames = {}
+            for tf in FrameTransforms.FromString(data).transforms:
+                t = tf.translation
+                frames[tf.child_frame_id] = (
+                    "" if tf.parent_frame_id == WORLD else tf.parent_frame_id,
+                    dq.from_pose(_q(tf.rotation), (t.x, t.y, t.z)))
+            for name, T in self.scene.set_fixed(frames).items():
+                if self.scene.reveal(("fixed", name), dq.to_pose(T)[1], kind="frames"):
+                    say(event="drawn", frame=name)
         elif topic == TF_TOPIC:
             for tf in FrameTransforms.FromString(data).transforms:
                 t = tf.translation

@@ -23,7 +23,7 @@ from dqpose import dq
 from dqpose.record.views import ELLIPSOID_SIGMAS, ellipsoid_axes
 from dqpose.view import layout
 from dqpose.view.guard import protect
-from dqpose.view.timeline import Timeline, resolve
+from dqpose.view.timeline import Timeline, resolve, tree
 
 #: the ellipsoids' colour (RGB), which nothing else on the page has
 ELLIPSOID_RGB = (220, 30, 200)
@@ -86,6 +86,11 @@ class Scene:
         self.tools: dict = {}       # arm -> its tool's frame
         self.fixed: dict = {}       # a static's or source's name -> its frame
         self.tree: viser.LineSegmentsHandle | None = None     # the tree's links
+        # drawn live: the fixed frames (name -> (parent, T_parent_frame)), each body's last
+        # pose, when the tree was last drawn
+        self.live_fixed: dict = {}
+        self._now: dict = {}
+        self._treed = -TRAIL_PERIOD
         self._past: dict = {}       # body -> (arrival, position) drawn live, for its trail
         self._trailed: dict = {}    # body -> when its trail was last drawn live
         self.clock = time.monotonic     # of a live pose's arrival
@@ -300,6 +305,20 @@ class Scene:
                 times = [a for a, _ in past]
                 trail = [p for _, p in itertools.islice(past, layout.recent(times, now), None)]
             self.draw_body(body, t, q, half_axes, axes_q, trail)
+            self._now[body] = dq.from_pose(np.asarray(q, dtype=float),
+                                           np.asarray(t, dtype=float))
+            if now - self._treed >= TRAIL_PERIOD:       # as often as a trail at most
+                self._treed = now
+                self.draw_tree(*tree(self.live_fixed, frozenset(), self._now))
+
+    def set_fixed(self, frames: dict) -> dict:
+        """The frames fixed in their parents drawn live from now on (name -> ``(parent,
+        T_parent_frame)``: ``/tf_static``'s), the tree drawn again; ``T_world_frame`` of
+        those whose chain is known now."""
+        with self.lock:
+            self.live_fixed = dict(frames)
+            self.draw_tree(*tree(self.live_fixed, frozenset(), self._now))
+            return resolve(self.live_fixed, self._now)
 
     def reveal(self, key, at, half_axes=None, kind: str = "bodies") -> bool:
         """Whether ``key`` is drawn for the first time; if so the camera is fitted again to the
@@ -437,12 +456,9 @@ class Page(Scene):
         statics and the sources that are no arm's base drawn as frames."""
         fx = self.tl.fixed
         if fx is None:
-            return {b: ("", T) for b, T in known.items()}, []
+            return tree({}, frozenset(), known)
         k = fx.at(ns)
-        world = resolve(fx.frames[k], known)
-        links = {b: ("", T) for b, T in known.items()}
-        links.update({n: (p, world.get(n)) for n, (p, _) in fx.frames[k].items()})
-        return links, [n for n in fx.frames[k] if n not in fx.bases[k]]
+        return tree(fx.frames[k], fx.bases[k], known)
 
     def ns(self, seconds: float) -> int:
         return self.tl.start + int(round(seconds * 1e9))

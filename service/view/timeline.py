@@ -95,6 +95,19 @@ def resolve(frames: dict[str, tuple[str, np.ndarray]],
     return {name: out[name] for name in frames if name in out}
 
 
+def tree(frames: dict[str, tuple[str, np.ndarray]], bases: frozenset[str],
+         known: dict[str, np.ndarray]) -> tuple[dict, list]:
+    """The frame tree to draw (``Scene.draw_tree``'s arguments): each body of ``known`` (name
+    -> ``T_world_body``, those drawn now) linked from the world, each of ``frames`` (statics
+    and sources: name -> ``(parent, T_parent_frame)``) from its parent at the pose its chain
+    gives (:func:`resolve`; ``None`` while not known); the names drawn as frames of their own:
+    ``frames`` but ``bases`` (arms' base sources, drawn as the arm's base)."""
+    world = resolve(frames, known)
+    links: dict = {b: ("", T) for b, T in known.items()}
+    links.update({n: (p, world.get(n)) for n, (p, _) in frames.items()})
+    return links, [n for n in frames if n not in bases]
+
+
 @dataclasses.dataclass
 class Timeline:
     start: int                  # ns of the first message drawn

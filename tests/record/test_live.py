@@ -258,3 +258,38 @@ def test_live_beyond_the_loopback_needs_a_token_or_insecure(token_file):
         proc.terminate()
         proc.wait(30)
         assert event(events, "live")["host"] == "0.0.0.0"
+
+
+def test_a_latched_channels_last_message_reaches_a_later_subscriber():
+    """``/tf_static`` (logged once a Configure, usually before a viewer connects): a client
+    that subscribes later gets its last message first, then what follows; ``/tf``'s messages
+    before the subscription are not kept. In process, the live server alone."""
+    from dqpose.record import views
+    from dqpose.record.live import LiveServer
+    from dqpose.record.topics import TF_STATIC_TOPIC, TF_TOPIC
+    from tests._polling import wait_until
+
+    def table(x: float) -> bytes:
+        return views.frame_transforms(0, [("world", "table", (x, 0.0, 0.0),
+                                           (1.0, 0.0, 0.0, 0.0))]).SerializeToString()
+
+    live = LiveServer("127.0.0.1", 0, insecure=True)
+    try:
+        static = live.channel(TF_STATIC_TOPIC, views.FrameTransforms)
+        tf = live.channel(TF_TOPIC, views.FrameTransforms)
+        for ns, x in ((5, 1.0), (6, 2.0)):
+            live.write(static, ns, table(x))
+            live.write(tf, ns, table(x))
+        with websockets_sync.connect(f"ws://127.0.0.1:{live.port}", subprotocols=[SUBPROTOCOL],
+                                     open_timeout=30) as ws:
+            viewer = Viewer(ws)
+            viewer.subscribe(1, viewer.wait_for_topic(TF_STATIC_TOPIC))
+            viewer.subscribe(2, viewer.wait_for_topic(TF_TOPIC))
+            assert viewer.next_message(1) == (6, table(2.0))
+            assert wait_until(lambda: tf.subscribers, 30)   # taken by the server (in process)
+            live.write(tf, 7, table(3.0))
+            live.write(static, 8, table(4.0))
+            assert viewer.next_message(2) == (7, table(3.0))
+            assert viewer.next_message(1) == (8, table(4.0))
+    finally:
+        live.close()

@@ -1,6 +1,7 @@
 """``dqpose view --live``: a real ``dqpose serve --live`` followed by a real ``dqpose view``
 process; Fuse calls through gRPC; the page draws both bodies with their ellipsoids (its own
-events say so) and headless Chromium shows the ellipsoids' colour."""
+events say so) and headless Chromium shows the ellipsoids' colour. A World configured before the
+page connected: its source's frame drawn from ``/tf_static``'s latched message."""
 from __future__ import annotations
 
 import json
@@ -25,11 +26,14 @@ pytest.importorskip("foxglove", reason="the [record] extra")
 
 
 def test_the_page_follows_a_live_server(tmp_path):
+    from dqpose.fusion import Source
     from dqpose.rpc.client import Client
 
     server, events = serving("--live", "127.0.0.1:0")
     live = next(e for e in events if e.get("event") == "live")
     target = next(e for e in events if e.get("event") == "serving")["address"]
+    with Client(target) as c:       # before the page: /tf_static is latched
+        c.configure_world([Source("cam", extrinsic=dq.from_pose([0, 1, 0, 0], [0.3, 0, 1]))])
     view = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "view", "--live",
                              f"127.0.0.1:{live['port']}", "--port", "0"], cwd=ROOT,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
@@ -44,6 +48,7 @@ def test_the_page_follows_a_live_server(tmp_path):
         c = Client(target)
         cov = np.diag([1e-3, 1e-3, 1e-3, 0.08 ** 2, 0.05 ** 2, 0.03 ** 2])
         drawn: set = set()
+        frames: set = set()
         # the channels are made by the first calls; the page sees what comes once it subscribed
         for _ in range(200):
             for body, x in (("box", 0.0), ("cup", 0.6)):
@@ -55,13 +60,15 @@ def test_the_page_follows_a_live_server(tmp_path):
                     line = said.get(timeout=0.1)
                     if line.startswith("{"):
                         e = json.loads(line)
-                        if e["event"] == "drawn" and e["ellipsoid"]:
+                        if e["event"] == "drawn" and "frame" in e:
+                            frames.add(e["frame"])
+                        elif e["event"] == "drawn" and e["ellipsoid"]:
                             drawn.add(e["body"])
             except queue.Empty:
                 pass
-            if drawn == {"box", "cup"}:
+            if drawn == {"box", "cup"} and frames:
                 break
-        assert drawn == {"box", "cup"}
+        assert drawn == {"box", "cup"} and frames == {"cam"}
         if CHROMIUM is None:
             pytest.skip("no Chromium: apt-get install -y chromium (.ci/run installs it)")
         # retaken until both ellipsoids are in, not a picture of the scene half arrived
