@@ -170,8 +170,8 @@ class FrameTree:
                                  f"(bodies, sources and statics share one namespace)")
 
     def refuse(self, bodies: Sequence[str], sources: Sequence[str], errors: dict) -> None:
-        """Rows (not refused yet) whose body is a source or a static, or whose source rides on
-        the body it measures, refused in ``errors``."""
+        """Rows (not refused yet) whose body is "world", a source or a static, or whose source
+        rides on the body it measures, refused in ``errors``."""
         seen: dict[tuple, Optional[WorldError]] = {}
         for k, pair in enumerate(zip(bodies, sources)):
             if k in errors:
@@ -183,6 +183,8 @@ class FrameTree:
                 errors[k] = e.at(k)
 
     def _refusal(self, body, source) -> Optional[WorldError]:
+        if body == RESERVED:
+            return WorldError(0, "body", f"{RESERVED!r} is reserved (the world frame is \"\")")
         kind = self.kinds.get(body) if isinstance(body, str) else None
         if kind == FrameKind.SOURCE:
             return WorldError(0, "body", f"{quoted(body)} is a source (config.sources)")

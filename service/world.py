@@ -305,7 +305,7 @@ class World:
         if (len(known) + len(bodies) > b.max_bodies
                 or len(named) + len(sources) > b.max_sources):     # else none can be over
             over_bounds(bodies, sources, errors, known, named, b)
-        if self.tree.checks:       # a name of a source or static, a source riding on its body
+        if self.tree.checks or _frames.RESERVED in bodies:     # dqpose.frames' namespace
             self.tree.refuse(bodies, sources, errors)
         n = len(bodies)
         use = [k for k in range(n) if k not in errors] if errors else range(n)

@@ -219,15 +219,21 @@ def test_publish_refuses_a_static_or_source_as_a_body_and_a_source_measuring_its
                     statics=[Static("", "table", one), Static("tool", "hand", one)])
     got = world.publish([Measurement("cam", "table", 0.0, one), Measurement("cam", "eye", 0.0, one),
                          Measurement("eye", "tool", 0.0, one), Measurement("tip", "tool", 0.0, one),
-                         Measurement("eye", "box", 0.0, one)])
+                         Measurement("eye", "box", 0.0, one),
+                         Measurement("cam", "world", 0.0, one)])
     assert [e.named() for e in got.errors] == [
         "measurements[0].body: 'table' is a static (config.statics)",
         "measurements[1].body: 'eye' is a source (config.sources)",
         "measurements[2].source: source 'eye' rides on body 'tool' (its parent chain reaches "
         "it): it cannot measure the body it rides on",
         "measurements[3].source: source 'tip' rides on body 'tool' (its parent chain reaches "
-        "it): it cannot measure the body it rides on"]
+        "it): it cannot measure the body it rides on",
+        "measurements[5].body: 'world' is reserved (the world frame is \"\")"]
     assert got.accepted == 1 and world.bodies == ("box",)
+    # without statics or riders too
+    plain = world_of(rng)
+    assert [e.named() for e in plain.publish([Measurement("cam", "world", 0.0, one)]).errors
+            ] == ["measurements[0].body: 'world' is reserved (the world frame is \"\")"]
 
 
 def test_unknown_frames_are_not_found():

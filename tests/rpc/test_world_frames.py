@@ -108,6 +108,11 @@ def test_publish_refuses_a_static_as_a_body(server):
         acks = list(c.publish([box([0.0], 0, "table")]))
         assert [e[2] for e in acks[0].errors] == [
             "requests[0].measurements[0].body: 'table' is a static (config.statics)"]
+    with Client(server.target, world="f-plain") as c:      # no statics: "world" still refused
+        acks = list(c.publish([box([0.0, 0.1], 0, "world")]))
+        assert [e[2] for e in acks[0].errors] == [
+            f"requests[0].measurements[{i}].body: 'world' is reserved (the world frame is \"\")"
+            for i in range(2)]
 
 
 def test_list_frames_names_every_frame_and_an_unknown_world_is_not_found(server):
