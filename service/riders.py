@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Mapping, Optional
 import numpy as np
 
 from dqpose import dq, lie
-from dqpose.errors import WorldInfeasible, known_from, seconds_text
+from dqpose.errors import WorldError, WorldInfeasible, known_from, seconds_text
 from dqpose.frames import frame_pose
 from dqpose.fusion.api import _fuse_static_rows, _fuse_world_rows
 from dqpose.fusion.results import Dropped, Fused
@@ -66,8 +66,17 @@ class Riders:
         return list(dict.fromkeys(w.tree.root(parents[s]) for s in w._fed(body) if s in parents))
 
     @staticmethod
-    def check_arms(arms: Mapping[str, str], table: Mapping[str, "Source"]) -> None:
-        """An arm whose source rides on a body (an arm on a moving base) is refused for now."""
+    def check(table: Mapping[str, "Source"], arms: Mapping[str, str], acceleration_psd) -> None:
+        """A configuration's riders: an arm whose source rides on a body (an arm on a moving
+        base) refused for now (FAILED_PRECONDITION); a rider beside an ``acceleration_psd``
+        refused, its fit being the uncertain-extrinsic one, which that model does not have."""
+        if acceleration_psd is not None and np.any(acceleration_psd):
+            for k, (name, s) in enumerate(table.items()):
+                if s.parent:
+                    raise WorldError(None, f"sources[{k}].parent", f"source {name!r} rides on "
+                                     f"{s.parent!r}: its rows carry their parent's covariance "
+                                     f"as an uncertain extrinsic, not fitted with "
+                                     f"options.acceleration_psd")
         for arm, src in arms.items():
             if table[src].parent:
                 raise WorldInfeasible(None, f"arms[{arm!r}]", f"source {src!r} rides on "

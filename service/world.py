@@ -196,7 +196,7 @@ class World:
             table = _sources(sources)
         except ValueError as e:
             raise WorldError.of(e) from None
-        Riders.check_arms(arms, table)
+        Riders.check(table, arms, options.acceleration_psd)
         tree = _frames.FrameTree(table, statics, static_bodies, b)
         try:        # the sources passed: what the tracker refuses is an option
             tracker = Tracker(buffer, sources=sources, robust=options.robust,

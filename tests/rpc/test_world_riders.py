@@ -71,3 +71,12 @@ def test_an_arm_whose_source_rides_on_a_body_is_failed_precondition(target):
     assert e.value.code == grpc.StatusCode.FAILED_PRECONDITION
     assert e.value.details.startswith("config.arms['ur']: source 'ur' rides on 'base'"), \
         e.value.details
+
+
+def test_a_rider_beside_an_acceleration_psd_is_invalid_argument(target):
+    with Client(target, world="riders-psd") as c:
+        with pytest.raises(RpcError) as e:
+            c.configure_world(SOURCES, window=0.5, acceleration_psd=np.eye(6) * 1e-3)
+    assert e.value.code == grpc.StatusCode.INVALID_ARGUMENT
+    assert e.value.details.startswith("config.sources[1].parent: source 'cam' rides on 'tool'"), \
+        e.value.details
