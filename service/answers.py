@@ -78,7 +78,8 @@ class Answers:
             for pair in [p for p, until in self._watched.items() if until < now]:
                 del self._watched[pair]
                 self._answers.pop(pair, None)
-            due = [p for p in self._watched if p[0] in touched or p[1] in touched]
+            root = world.tree.root      # a static's or source's answer moves with its body
+            due = [p for p in self._watched if root(p[0]) in touched or root(p[1]) in touched]
         for pair in due:
             try:
                 stamp, data = self._made(world, pair)

@@ -333,3 +333,28 @@ def test_a_world_without_statics_or_riders_keeps_a_body_named_as_a_source():
     world.configure(sources=world.sources, arms={}, options=world.options)
     np.testing.assert_allclose(world.relative("", "ur", 1.0).pose, world.pose("ur", 1.0).pose,
                                atol=1e-12)
+
+
+def test_a_watched_lookup_of_a_static_on_a_body_is_made_again_by_the_bodys_publish():
+    """A pair polled at time 0 whose frame is a static on a body: the Publish step that brings
+    the body's measurements makes its answer again (the hub's kept answer, no fit when asked)."""
+    from dqpose.hub import Hub, Rows
+    from dqpose.rpc.world_convert import Encoder
+    rng = np.random.default_rng(14)
+    hub = Hub("", Encoder())
+    hub.configure([Source("cam")], {}, WorldOptions(window=0.5),
+                  statics=[Static("box", "tip", random_pose(rng))])
+
+    def publish(m):
+        hub.publish("p", "a", 0, Rows(np.arange(1), (m.body,), (m.source,), np.array([m.time]),
+                                      m.pose[None], m.covariance[None], None), 1)
+
+    ms = moving(rng)
+    for m in ms[:-1]:
+        publish(m)
+    first = hub.lookup("", "tip", 0.0)
+    assert hub.kept("", "tip") == first
+    publish(ms[-1])
+    again = hub.kept("", "tip")
+    assert again is not None and again != first
+    assert again == hub.answers.encode(hub.world.relative("", "tip", 0.0))
