@@ -56,10 +56,16 @@ class Lookups:
         t = w._t
         riders = w._riders
         if riders.parents and riders.rides(target, source):
-            # a rider's rows composed with its parent's poses (dqpose.riders): each body's own
-            # fit, their errors taken as independent
-            return _composed(target, source, at,
-                             {b: w._pose_only(b, at) for b in (target, source) if b})
+            # a rider's rows composed with its parent's poses (dqpose.riders): the two bodies
+            # fitted together over the uncertain sources they share, else each alone
+            got = riders.joint(target, source, at) if target and source else None
+            if got is None:
+                return _composed(target, source, at,
+                                 {b: w._pose_only(b, at) for b in (target, source) if b})
+            from dqpose.world import BodyPose
+            Xa, Xb, P = got
+            return BodyPose(source, at, _frozen(dq.mul(dq.conj(Xa), Xb)),
+                            _frozen(_relative_covariance(Xa, Xb, P)), None)
         if t.exact or not (target and source):
             # nothing uncertain two bodies could share: each body's own pose (a kept fit's)
             kept = {b: w._kept_pose(b, at) for b in (target, source) if b}

@@ -27,14 +27,14 @@ from __future__ import annotations
 
 import dataclasses
 import threading
-from typing import TYPE_CHECKING, Mapping, Optional
+from typing import TYPE_CHECKING, Mapping, NamedTuple, Optional
 
 import numpy as np
 
 from dqpose import dq, lie
 from dqpose.errors import WorldError, WorldInfeasible, known_from, seconds_text
 from dqpose.frames import frame_pose
-from dqpose.fusion.api import _fuse_static_rows, _fuse_world_rows
+from dqpose.fusion.api import _fuse_joint_rows, _fuse_static_rows, _fuse_world_rows
 from dqpose.fusion.results import Dropped, Fused
 from dqpose.limits import ANSWER_ROWS
 
@@ -43,6 +43,32 @@ if TYPE_CHECKING:
     from dqpose.world import World
 
 _IDENT = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
+
+
+class _Composed(NamedTuple):
+    """One body's rows with its riders' composed (:meth:`Riders.compose`): poses, covariances,
+    sources, stamps and taken times; ``keep`` those whose parent is known (``why`` the others',
+    by row), ``table`` the sources as the fit takes them (``riders`` its riders' entries) at
+    ``at``."""
+    Z: np.ndarray
+    S: np.ndarray
+    names: tuple
+    times: np.ndarray
+    taken: np.ndarray
+    keep: np.ndarray
+    why: dict
+    table: dict
+    riders: dict
+    at: float
+
+    def kept(self) -> np.ndarray:
+        """The rows kept, or a ValueError naming why the first is not."""
+        kept = np.flatnonzero(self.keep)
+        if not kept.size:
+            first = min(self.why)
+            raise ValueError(Dropped(first, self.names[first], 0.0, 0.0,
+                                     self.why[first]).reason)
+        return kept
 
 
 class Riders:
@@ -116,11 +142,10 @@ class Riders:
             return own
         return (own,) + tuple(t.version(p) for p in self.parents_of(body) if p != body)
 
-    def fit(self, rows: np.ndarray, time: Optional[float], nis: bool,
-            joint: bool, static: bool = False) -> Optional[tuple[Fused, np.ndarray]]:
-        """The fit of ``rows`` (one body's, the lock held) with its riders' rows composed with
-        their parents' poses (the module's docstring), or None when no row is a rider's;
-        ``static``: the one-instant fit of a static body (``Tracker.static_rows``)."""
+    def compose(self, rows: np.ndarray, time: Optional[float]) -> Optional[_Composed]:
+        """``rows`` (one body's, the lock held) with its riders' rows composed with their
+        parents' poses (the module's docstring) for a fit at ``time`` (None: the rows' newest),
+        or None when no row is a rider's."""
         w = self._world
         t = w._t
         s = t._store
@@ -129,33 +154,77 @@ class Riders:
         if not riding:
             return None
         Z, S = s.world(rows)
-        times, taken = s.times[rows], s.taken[rows]
+        taken = s.taken[rows]
         at = float(taken.max()) if time is None else float(time)
         keep = np.ones(len(rows), bool)
         why: dict[int, str] = {}
         table = dict(t._checked.table)
         body = self._body_of(rows)
+        riders = {}
         for src in dict.fromkeys(names[k] for k in riding):
             idx = [k for k in riding if names[k] == src]
             got = self._compose(src, body, idx, taken, Z, why)
             keep[list(why)] = False
             if got is not None:
-                table[src] = got(at)
-        kept = np.flatnonzero(keep)
-        if not kept.size:
-            first = min(why)
-            raise ValueError(Dropped(first, names[first], 0.0, 0.0, why[first]).reason)
-        o = t._checked._replace(table=table)
-        used = tuple(names[k] for k in kept)
-        f = (_fuse_static_rows(Z[kept], S[kept], used, o) if static else
-             _fuse_world_rows(Z[kept], S[kept], used, times[kept], time, o, nis, joint))
-        out = np.flatnonzero(~keep)
-        at = at if f.time is None else f.time
-        dropped = tuple(Dropped(kept.size + j, names[k], float(at - taken[k]), 0.0,
-                                   why[k]) for j, k in enumerate(out.tolist()))
-        ids = s.ids[rows]
+                table[src] = riders[src] = got(at)
+        return _Composed(Z, S, names, s.times[rows], taken, keep, why, table, riders, at)
+
+    def fit(self, rows: np.ndarray, time: Optional[float], nis: bool,
+            joint: bool, static: bool = False) -> Optional[tuple[Fused, np.ndarray]]:
+        """The fit of ``rows`` (one body's, the lock held) composed (:meth:`compose`), or None
+        when no row is a rider's; ``static``: the one-instant fit of a static body
+        (``Tracker.static_rows``). The rows left out are listed last, dropped with why."""
+        c = self.compose(rows, time)
+        if c is None:
+            return None
+        kept = c.kept()
+        o = self._world._t._checked._replace(table=c.table)
+        used = tuple(c.names[k] for k in kept)
+        f = (_fuse_static_rows(c.Z[kept], c.S[kept], used, o) if static else
+             _fuse_world_rows(c.Z[kept], c.S[kept], used, c.times[kept], time, o, nis, joint))
+        out = np.flatnonzero(~c.keep)
+        at = c.at if f.time is None else f.time
+        dropped = tuple(Dropped(kept.size + j, c.names[k], float(at - c.taken[k]), 0.0,
+                                c.why[k]) for j, k in enumerate(out.tolist()))
+        ids = self._world._t._store.ids[rows]
         return (dataclasses.replace(f, dropped=f.dropped + dropped),
                 np.concatenate([ids[kept], ids[out]]))
+
+    def joint(self, a: str, b: str, at: float) -> Optional[tuple]:
+        """Bodies ``a`` and ``b`` (known; riders among their rows) fitted together over the
+        uncertain sources they share, a rider's shared error among them (one ``ε`` a source,
+        :mod:`dqpose.fusion.extrinsics`): ``(X_a, X_b, P)`` with ``P`` their joint covariance
+        ``(12, 12)``; None when they share none (the lock held)."""
+        w = self._world
+        t = w._t
+        table = dict(t._checked.table)
+        parts: list[tuple] = []
+        composed: dict = {}
+        for body in (a, b):
+            part, riders = w._fit_of(body, w._rows_for(body, at), lambda r: self._part(r, at))
+            parts.append(part)
+            for name, src in riders.items():
+                composed.setdefault(name, src)       # one extrinsic a source: a's
+        table.update(composed)
+        common = set(parts[0][2]) & set(parts[1][2])
+        if not any(n in table and not table[n].exact for n in common):
+            return None
+        o = t._checked._replace(table=table)
+        starts = [_fuse_world_rows(Z, S, names, times, at, o, False, False)
+                  for Z, S, names, times in parts]
+        (Xa, Xb), P = _fuse_joint_rows(parts, starts, at, o)
+        return Xa, Xb, P
+
+    def _part(self, rows: np.ndarray, at: float) -> tuple[tuple, dict]:
+        """A body's rows of a joint fit at ``at`` (those kept, composed) and its riders'
+        sources as the fit takes them."""
+        c = self.compose(rows, at)
+        if c is None:
+            t = self._world._t
+            Z, S = t._store.world(rows)
+            return (Z, S, t._sources_of(rows), t._store.times[rows]), {}
+        kept = c.kept()
+        return (c.Z[kept], c.S[kept], tuple(c.names[k] for k in kept), c.times[kept]), c.riders
 
     def _body_of(self, rows: np.ndarray) -> str:
         t = self._world._t
