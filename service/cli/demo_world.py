@@ -2,7 +2,9 @@
 simulated ChArUco cameras (each in a process of its own, rendering and detecting the board the
 simulated UR holds) and the simulated UR (its controller read through ur_rtde here), all
 publishing into one server's ``World``; a subscriber prints the fused board ("box") pose against
-the truth, and a ``Lookup`` gives the box in the tool frame (against the known mount).
+the truth, and a ``Lookup`` gives the box in the tool frame (against the known mount). The
+world is a frame tree (:mod:`dqpose.cli.demo_world_tree`): a table fixed in it, and a fourth
+camera riding on the arm's tool that sees a mug on the table, looked up in the table's frame.
 
 Measurement time is the host's clock (``time.time()``), which every producer here shares; the
 arm holds still at its home pose, the cameras see it from either side (the scene of ``dqpose
@@ -142,14 +144,40 @@ def _follow(client, T_true, start: float, seconds: float, producers, newest, out
     return errors
 
 
+def _configure(client, offset, extrinsics, names, rng) -> None:
+    """The world: the arm (its flange the body "tool", the board at ``offset`` on it, its base
+    the world), the cameras at ``extrinsics``, the tree's wrist camera and table."""
+    from dqpose.cli import demo_world_tree
+    from dqpose.fusion import Source
+    tree = demo_world_tree.frames(rng)
+    client.configure_world(
+        [Source("ur", body_offset=offset), Source("ur_flange")]
+        + [Source(n, extrinsic=E) for n, E in zip(names, extrinsics)] + tree["sources"],
+        arms={"ur": "ur_flange"}, window=WINDOW, max_delay=MAX_DELAY,
+        twist_covariance=np.diag([0.05] * 3 + [0.02] * 3) ** 2, statics=tree["statics"])
+
+
+def _publisher(target: str, reads, producer: str) -> threading.Thread:
+    """A thread publishing ``reads`` (``Batch`` es) as ``producer``, started."""
+    from dqpose.rpc.client import Client
+
+    def run():
+        with Client(target) as c:
+            for _ in c.publish(reads, producer=producer):
+                pass
+    thread = threading.Thread(target=run, daemon=True, name=f"demo world {producer}")
+    thread.start()
+    return thread
+
+
 def main(args: argparse.Namespace, out=None) -> int:
     from dqpose import drivers
     from dqpose.cli.common import local_server, open_arm
-    from dqpose.cli.demo_fusion_scene import BOARD_OFFSET, HOME, cameras, pose_error
+    from dqpose.cli.demo_fusion_scene import BOARD_OFFSET, HOME, cameras
+    from dqpose.cli.demo_world_tree import looked_up, report, wrist_reads
     from dqpose.drivers.base import ArmError
     from dqpose.drivers.sim.camera import BoardRenderer
     from dqpose.drivers.sim.ur import URSimProcess
-    from dqpose.fusion import Source
     from dqpose.rpc.client import Batch, Client
 
     seconds = args.seconds
@@ -169,15 +197,11 @@ def main(args: argparse.Namespace, out=None) -> int:
         extrinsics = cameras(T_true, board, _intrinsics())
         client = stack.enter_context(Client(target))
         names = ("camera1", "camera2")
-        client.configure_world(
-            [Source("ur", body_offset=offset), Source("ur_flange")]
-            + [Source(n, extrinsic=E) for n, E in zip(names, extrinsics)],
-            arms={"ur": "ur_flange"}, window=WINDOW, max_delay=MAX_DELAY,
-            twist_covariance=np.diag([0.05] * 3 + [0.02] * 3) ** 2)
+        _configure(client, offset, extrinsics, names, rng)
         ctx = multiprocessing.get_context("spawn")
         go, shared_start = ctx.Event(), ctx.Value("d", 0.0)
         ready = [ctx.Event() for _ in names]
-        newest = {n: ctx.Value("d", -math.inf) for n in ("ur", *names)}
+        newest = {n: ctx.Value("d", -math.inf) for n in ("ur", *names, "wrist")}
         procs = [ctx.Process(target=camera_process, args=(target, n, E, T_true, r, go,
                                                          shared_start, seconds, k + 1,
                                                          newest[n]),
@@ -210,24 +234,23 @@ def main(args: argparse.Namespace, out=None) -> int:
                 yield Batch(np.array([reading, reading]), np.array([cov, cov]), None,
                             ["ur", "ur_flange"], ["box", "tool"], np.array([t, t]))
 
-        publisher = threading.Thread(
-            target=lambda: [None for _ in Client(target).publish(arm_reads(), producer="ur")],
-            daemon=True)
-        publisher.start()
-        errors = _follow(client, T_true, start, seconds, [publisher, *procs], newest, out)
-        publisher.join(seconds + 10)
-        r = client.lookup("tool", "box")
-        deg, mm = pose_error(r.pose, offset)
-        s_rot, s_pos = lie.cov_sigmas(r.covariance)
-        print(f"\nLookup box in the tool frame at {r.time - start:.2f} s: "
-              f"{mm:.2f} mm, {deg:.3f} deg from the mount (1 sigma {s_pos * 1e3:.2f} mm, "
-              f"{np.degrees(s_rot):.3f} deg)", file=out, flush=True)
-    return _summary(errors, mm, out)
+        publishers = [_publisher(target, arm_reads(), "ur"), _publisher(
+            target, wrist_reads(T_flange, start, seconds, newest["wrist"],
+                                np.random.default_rng(1)), "wrist")]
+        errors = _follow(client, T_true, start, seconds, [*publishers, *procs],
+                         {n: v for n, v in newest.items() if n != "wrist"}, out)
+        for p in publishers:
+            p.join(seconds + 10)
+        print(file=out)
+        mm, _ = looked_up(client, "tool", "box", offset, start, "box in the tool frame",
+                          "the mount", out)
+        mug = report(client, start, out)
+    return _summary(errors, mm, mug, out)
 
 
-def _summary(errors: list, mm: float, out) -> int:
-    """The fused box's errors (``(mm, deg)`` each) and the looked-up one's ``mm`` summed up,
-    then the verdict; the exit code."""
+def _summary(errors: list, mm: float, mug: tuple[float, float], out) -> int:
+    """The fused box's errors (``(mm, deg)`` each), the looked-up one's ``mm`` and the mug's
+    ``(mm, sigma mm)`` on the table summed up, then the verdict; the exit code."""
     if not errors:
         print("dqpose demo world: no fused answer arrived", file=out)
         return 1
@@ -236,5 +259,7 @@ def _summary(errors: list, mm: float, out) -> int:
           f"{np.median(e[:, 1]):.3f} deg", file=out)
     print(f"verdict: producers in three processes fed one world, and its fused box stayed "
           f"within {np.median(e[:, 0]):.2f} mm (median) of the truth; looked up in the tool "
-          f"frame it is {mm:.2f} mm from where it is mounted", file=out)
+          f"frame it is {mm:.2f} mm from where it is mounted; the mug the wrist camera on the tool "
+          f"sees is {mug[0]:.2f} mm from where it stands on the static table (1 sigma "
+          f"{mug[1]:.2f} mm)", file=out)
     return 0

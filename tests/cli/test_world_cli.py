@@ -127,6 +127,8 @@ def test_watch_prints_a_row_per_answer(server, tmp_path):
 
 @pytest.mark.skipif(os.environ.get("DQPOSE_SKIP_DEVICES") == "1", reason="no device extras")
 def test_demo_world_runs_and_its_fused_box_is_near_the_truth():
+    from dqpose.cli import demo_world_tree
+
     r = subprocess.run([sys.executable, "-m", "dqpose.cli", "demo", "world", "--seconds", "2"],
                        cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
@@ -143,9 +145,20 @@ def test_demo_world_runs_and_its_fused_box_is_near_the_truth():
         assert names == sorted(names) and float(row[13]) >= 0.0, row
     look = re.search(r"Lookup box in the tool frame .*: ([\d.]+) mm, ([\d.]+) deg", r.stdout)
     assert look and float(look[1]) < 2.0, r.stdout
+    # the frame tree: the wrist camera rides on the tool, the table is a static of the world
+    lines = r.stdout.splitlines()
+    assert "  tool -> wrist: source" in lines and "world -> table: static" in lines, r.stdout
+    assert any(re.match(r"world -> mug: body; .*sources wrist$", line) for line in lines)
+    mug = re.search(r"Lookup mug in the table frame .*riding on the tool\) at [\d.]+ s: "
+                    r"([\d.]+) mm, ([\d.]+) deg from where it stands \(1 sigma ([\d.]+) mm",
+                    r.stdout)
+    assert mug, r.stdout
+    # its covariance carries X's (0.5 mm a position axis) and the error is within it
+    assert demo_world_tree.X_SIGMA[1] * 1e3 <= float(mug[3]) < 5.0, mug[0]
+    assert float(mug[1]) < 5 * float(mug[3]), mug[0]
     last = r.stdout.splitlines()[-1]        # the verdict, with the figures above
     assert last.startswith("verdict: ") and f"within {m[2]} mm" in last \
-        and f"it is {look[1]} mm from" in last, last
+        and f"it is {look[1]} mm from" in last and f"sees is {mug[1]} mm from" in last, last
 
 
 def test_demo_world_follows_the_world_to_its_last_answer_when_the_arm_stops_early(server):

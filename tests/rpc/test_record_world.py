@@ -14,6 +14,7 @@ from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
 from dqpose import dq
+from dqpose.frames import Static
 from dqpose.record.reader import read
 from dqpose.record.recorder import Recorder
 from dqpose.record.ros2 import export
@@ -27,6 +28,8 @@ from tests.rpc.test_world_service import EXTRINSICS, SOURCES, TWIST, joined, mea
 T0 = 1.5e9
 RATE = 10.0
 STEP, STEPS = 0.02, 120          # 2.4 s of measurement time
+#: a static of the world: a table fixed in camera 1's frame
+TABLE = dq.from_pose([np.cos(0.4), 0.0, np.sin(0.4), 0.0], [0.2, -0.1, 1.3])
 
 
 def stamped(ts) -> float:
@@ -39,7 +42,8 @@ def recorded(tmp_path_factory):
     recorder = Recorder(folder / "runs", world_rate=RATE)
     started = time.time_ns()
     with ServerThread(ServerConfig(port=0, recorder=recorder)) as s, Client(s.target) as c:
-        c.configure_world(SOURCES, twist_covariance=TWIST, window=10.0)
+        c.configure_world(SOURCES, twist_covariance=TWIST, window=10.0,
+                          statics=[Static("cam1", "table", TABLE)])
         batches = [joined(measurements("cam1", [T0 + STEP * k], k, body="box"),
                           measurements("cam1", [T0 + STEP * k], 1000 + k, body="cup"))
                    for k in range(STEPS)]
@@ -86,17 +90,19 @@ def test_views_carry_the_poses_time_and_are_logged_at_arrival(recorded):
     assert cup_e == pytest.approx(cup, abs=1e-6)
 
 
-def test_the_worlds_sources_are_on_tf_static_as_configured(recorded):
-    """Configure's answer through the server: each source in the world at its extrinsic, one
-    message, stamped 0 (valid at every time), logged at its arrival."""
+def test_the_worlds_sources_and_statics_are_on_tf_static_as_configured(recorded):
+    """Configure's answer through the server: each source in the world at its extrinsic, the
+    static in its parent, one message, stamped 0 (valid at every time), logged at its
+    arrival."""
     _, _, got, started = recorded
     (tf,) = [(sc, m) for t, sc, m in got if t == "/tf_static"]
     msg = message_class(tf[0].data, "foxglove.FrameTransforms").FromString(tf[1].data)
     assert started <= tf[1].log_time <= time.time_ns()
     edges = {(x.parent_frame_id, x.child_frame_id): x for x in msg.transforms}
-    assert set(edges) == {("world", name) for name in EXTRINSICS}
-    for name, T in EXTRINSICS.items():
-        x = edges["world", name]
+    want = {("world", name): T for name, T in EXTRINSICS.items()} | {("cam1", "table"): TABLE}
+    assert set(edges) == set(want)
+    for edge, T in want.items():
+        x = edges[edge]
         assert stamped(x.timestamp) == 0
         got_T = dq.from_pose([x.rotation.w, x.rotation.x, x.rotation.y, x.rotation.z],
                              [x.translation.x, x.translation.y, x.translation.z])

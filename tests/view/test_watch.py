@@ -2,8 +2,9 @@
 127.0.0.1, its arm the simulated UR through ur_rtde) through World/Subscribe and
 Trajectories/WatchArm. Each body's measurements are published once, after the page's
 subscription reached the server: the page draws both bodies with their ellipsoids (so a body's
-first fused pose is not lost), the arm's path as it moves, and headless Chromium shows the
-ellipsoids' and the path's colours."""
+first fused pose is not lost), the arm's path as it moves, the world's static and source frames
+(one on a body that comes later), and headless Chromium shows the ellipsoids' and the path's
+colours."""
 from __future__ import annotations
 
 import json
@@ -16,6 +17,7 @@ import numpy as np
 import pytest
 
 from dqpose import dq
+from dqpose.frames import Static
 from dqpose.fusion import Source
 from tests._polling import wait_until
 from tests.cli._cli import ROOT
@@ -58,7 +60,11 @@ def test_the_page_follows_a_server_through_its_rpcs(tmp_path):
     try:
         rig.reset()
         with serve([rig]) as server, Client(server.target) as c:
-            c.configure_world([Source("cam", dq.from_pose([1.0, 0, 0, 0], [0.0, 0.0, 0.0]))])
+            c.configure_world([Source("cam", dq.from_pose([1.0, 0, 0, 0], [0.0, 0.0, 0.0]))],
+                              statics=[Static("", "table", dq.from_pose([1.0, 0, 0, 0],
+                                                                        [0.3, 0.2, 0.0])),
+                                       Static("box", "lid", dq.from_pose([1.0, 0, 0, 0],
+                                                                         [0.0, 0.0, 0.05]))])
             view = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "view", "--server",
                                      server.target, "--port", "0"], cwd=ROOT,
                                     stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
@@ -83,7 +89,8 @@ def test_the_page_follows_a_server_through_its_rpcs(tmp_path):
             assert feedback[-1].state == "FINISHED"
             _until(said, lambda s: {(e.get("body"), e.get("ellipsoid")) for e in s
                                     if e["event"] == "drawn"} >= {("box", True), ("cup", True)}
-                   and any(e.get("arm") == "ur" and e.get("path") for e in s), seen)
+                   and any(e.get("arm") == "ur" and e.get("path") for e in s)
+                   and {e.get("frame") for e in s} >= {"cam", "table", "lid"}, seen)
             if CHROMIUM is None:
                 pytest.skip("no Chromium: apt-get install -y chromium (.ci/run installs it)")
             img = screenshot(url, tmp_path / "server.png",
