@@ -21,7 +21,11 @@ composed ones (``Ext · z_i' · O`` with ``z_i' = Ext⁻¹ · T_world_P(t_i) · 
 entering each row through ``Ad((z_i' O)⁻¹)``: exact while P moves little over the window, an
 approximation of the per-row ``Ad((Z_i O)⁻¹)`` as it moves more.
 
-Bodies without riders keep the C fast paths (:meth:`Riders.rides`: one set look-up per body).
+A parent that is a static or a static body is the frame tree's (:func:`dqpose.frames.frame_pose`);
+a tick waits for the sources of the body at the root of the parent's chain, and an answer holds
+until that body changes too. Two bodies a rider sees share its ``ε``: a Lookup between them fits
+them together (:meth:`Riders.joint`). Bodies without riders keep the C fast paths
+(:meth:`Riders.rides`: one set look-up per body).
 """
 from __future__ import annotations
 
