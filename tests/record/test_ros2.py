@@ -115,3 +115,33 @@ def test_a_pose_time_beyond_a_ros_stamp_is_named(tmp_path):
     with pytest.raises(ValueError, match=r"^the fused pose of 'box' at \d+ ns: a time of 3e\+09 "
                                          r"s is beyond a ROS 2 stamp \(int32 seconds\)$"):
         export(read(r.files[0]), tmp_path / "bag")
+
+
+def test_a_worlds_fixed_frames_are_latched_on_tf_static(tmp_path):
+    """A Configure's answer: its statics and sources on ``/tf_static`` (tf2_msgs/TFMessage),
+    stamped 0, the connection offered reliable and transient local with a depth of 1 (what
+    ``ros2 bag play`` latches, as tf2's static broadcaster offers it)."""
+    from rosbags.interfaces import QosDurability, QosReliability
+
+    from tests.record.test_tf_static import CAM, TABLE, config, configure
+
+    r = Recorder(tmp_path / "rec")
+    configure(r, config())
+    r.close()
+    export(read(r.files[0]), tmp_path / "bag")
+    ((msgtype, _, m),) = bag(tmp_path / "bag")["/tf_static"]
+    assert msgtype == "tf2_msgs/msg/TFMessage"
+    got = {(t.header.frame_id, t.child_frame_id): t for t in m.transforms}
+    assert set(got) == {("world", "table"), ("tool", "tcp"), ("tool", "wrist"),
+                        ("world", "ceiling"), ("world", "arm")}
+    for edge, T in ((("world", "table"), TABLE), (("tool", "wrist"), CAM)):
+        x = got[edge].transform
+        assert (got[edge].header.stamp.sec, got[edge].header.stamp.nanosec) == (0, 0)
+        back = dq.from_pose([x.rotation.w, x.rotation.x, x.rotation.y, x.rotation.z],
+                            [x.translation.x, x.translation.y, x.translation.z])
+        assert np.allclose(dq.to_matrix(back), dq.to_matrix(T), atol=1e-12)
+    with Reader(tmp_path / "bag") as reader:
+        (c,) = [c for c in reader.connections if c.topic == "/tf_static"]
+        (qos,) = c.ext.offered_qos_profiles
+    assert (qos.durability, qos.reliability, qos.depth) == (
+        QosDurability.TRANSIENT_LOCAL, QosReliability.RELIABLE, 1)
