@@ -37,12 +37,12 @@ def _backend(kind: str, table: dict, spec: str) -> tuple[str, str, str]:
     """(module, class, channel) of ``spec``, else ``ValueError`` naming ``kind``."""
     if not isinstance(spec, str):
         raise ValueError(f"{kind}: expected '<backend>:<channel>', got {spec!r}")
-    name, channel = _split_backend(kind, table, spec)
+    name, channel = split_backend(kind, table, spec)
     module, cls = table[name].split(":")
     return module, cls, channel
 
 
-def _split_backend(kind: str, table: dict, spec: str, whole: Optional[str] = None,
+def split_backend(kind: str, table: dict, spec: str, whole: Optional[str] = None,
                    grammar: str = "<backend>:<channel>") -> tuple[str, str]:
     """``spec``'s backend (a name in ``table``) and channel, else ``ValueError`` naming ``kind``
     and ``whole`` (the text ``spec`` is part of; ``grammar``: how it is written)."""

@@ -122,11 +122,11 @@ def _nearest(name: str) -> str:
 def parse_arm_spec(text: str) -> ArmSpec:
     """``KIND:TARGET[?key=value&...]`` to an :class:`ArmSpec`; ``ValueError`` for an unknown kind
     or key (naming the nearest known key) or a bad value (naming the key and the value)."""
-    from dqpose.drivers import ARMS, _split_backend
+    from dqpose.drivers import ARMS, split_backend
     if not isinstance(text, str):
         raise ValueError(f"arm: expected '{GRAMMAR}', got {text!r}")
     body, question, query = text.partition("?")
-    kind, target = _split_backend("arm", ARMS, body, text, GRAMMAR)
+    kind, target = split_backend("arm", ARMS, body, text, GRAMMAR)
     options: dict = {}
     if question:
         if not query:

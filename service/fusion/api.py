@@ -22,7 +22,7 @@ from dqpose.fusion.extrinsics import _extrinsics, _joint_fit, _no_extrinsics, _P
 from dqpose.fusion.results import DOF, Fused
 from dqpose.fusion.sources import Source, _sources, _to_world
 from dqpose.fusion.static import _fuse_static
-from dqpose.fusion.validation import _covariances, _finite, _names, _poses
+from dqpose.fusion.validation import _covariances, _names, _poses, finite
 
 
 def fuse(poses, covariances=None, *, weights=None, names: Optional[Sequence[str]] = None,
@@ -74,7 +74,7 @@ def fuse(poses, covariances=None, *, weights=None, names: Optional[Sequence[str]
     Z, S = _to_world(Z, S, names, table)
     gate2 = chi2_quantile(probability, DOF)
     if times is not None:
-        return _fuse_in_time(Z, S, names, table, _finite(times, "times", (), n), time, max_skew,
+        return _fuse_in_time(Z, S, names, table, finite(times, "times", (), n), time, max_skew,
                              max_extrapolation, twist_covariance, acceleration_psd, robust,
                              probability, gate2, tol, max_iter)
     for key, value in (("time", time), ("max_skew", max_skew),

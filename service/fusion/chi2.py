@@ -11,7 +11,7 @@ from functools import lru_cache
 DEFAULT_PROBABILITY = 0.999
 
 
-def _gamma_p(a: float, x: float) -> float:
+def gamma_p(a: float, x: float) -> float:
     """The regularised lower incomplete gamma function P(a, x) (series / continued fraction)."""
     if x <= 0.0:
         return 0.0
@@ -53,13 +53,13 @@ def chi2_quantile(probability: float, dof: int) -> float:
         raise ValueError(f"dof: must be >= 1, got {dof!r}")
     a = 0.5 * dof
     lo, hi = 0.0, max(1.0, float(dof))
-    while _gamma_p(a, 0.5 * hi) < probability:
+    while gamma_p(a, 0.5 * hi) < probability:
         lo, hi = hi, 2.0 * hi
     for _ in range(200):
         mid = 0.5 * (lo + hi)
         if mid in (lo, hi):
             break
-        if _gamma_p(a, 0.5 * mid) < probability:
+        if gamma_p(a, 0.5 * mid) < probability:
             lo = mid
         else:
             hi = mid

@@ -23,10 +23,10 @@ from dqpose.names import bad_names, name_problem
 _SYMMETRY_TOL = 1e-9
 # The variances a covariance may have (standard deviations 1e-12 to 1e12 rad or m): beyond them
 # its information cannot be used (service/csrc/fusion.h, which checks the same for StreamFuse).
-_MIN_VARIANCE, _MAX_VARIANCE = _c.MIN_VARIANCE, _c.MAX_VARIANCE
+MIN_VARIANCE, MAX_VARIANCE = _c.MIN_VARIANCE, _c.MAX_VARIANCE
 
 
-def _finite(x, name: str, tail: tuple[int, ...], n: Optional[int]) -> np.ndarray:
+def finite(x, name: str, tail: tuple[int, ...], n: Optional[int]) -> np.ndarray:
     try:
         a = np.asarray(x, dtype=np.float64)
     except (TypeError, ValueError):
@@ -45,7 +45,7 @@ def _finite(x, name: str, tail: tuple[int, ...], n: Optional[int]) -> np.ndarray
 
 
 def _poses(poses) -> np.ndarray:
-    Z = _finite(poses, "poses", (8,), None)
+    Z = finite(poses, "poses", (8,), None)
     if Z.shape[0] == 0:
         raise ValueError("poses: no measurements (expected at least one pose)")
     try:
@@ -56,7 +56,7 @@ def _poses(poses) -> np.ndarray:
 
 
 def _pose(T, name: str) -> np.ndarray:
-    a = _finite(np.asarray(T, dtype=np.float64)[None] if np.ndim(T) == 1 else T, name, (8,), 1)
+    a = finite(np.asarray(T, dtype=np.float64)[None] if np.ndim(T) == 1 else T, name, (8,), 1)
     try:
         dq.to_matrix(a)
     except ValueError as e:
@@ -68,7 +68,7 @@ def _covariances(covariances, weights, n: int) -> np.ndarray:
     if covariances is not None and weights is not None:
         raise ValueError("weights: give covariances or weights, not both")
     if weights is not None:
-        w = _finite(weights, "weights", (), n)
+        w = finite(weights, "weights", (), n)
         bad = ~(w > 0.0)
         if np.any(bad):
             i = int(np.flatnonzero(bad)[0])
@@ -76,7 +76,7 @@ def _covariances(covariances, weights, n: int) -> np.ndarray:
         return np.eye(DOF) / w[:, None, None]
     if covariances is None:
         return np.broadcast_to(np.eye(DOF), (n, DOF, DOF)).copy()
-    S = _finite(covariances, "covariances", (DOF, DOF), n)
+    S = finite(covariances, "covariances", (DOF, DOF), n)
     scale = np.abs(S).reshape(n, -1).max(axis=1)
     asym = np.abs(S - np.swapaxes(S, 1, 2)).reshape(n, -1).max(axis=1)
     bad = ~(asym <= _SYMMETRY_TOL * scale)
@@ -84,13 +84,13 @@ def _covariances(covariances, weights, n: int) -> np.ndarray:
         i = int(np.flatnonzero(bad)[0])
         raise ValueError(f"covariances[{i}]: not symmetric (largest asymmetry {asym[i]:.3g})")
     var = np.diagonal(S, axis1=1, axis2=2)
-    out = (var > 0.0) & ~((var >= _MIN_VARIANCE) & (var <= _MAX_VARIANCE))   # <= 0: not SPD
+    out = (var > 0.0) & ~((var >= MIN_VARIANCE) & (var <= MAX_VARIANCE))   # <= 0: not SPD
     bad = out.any(axis=1)
     if np.any(bad):
         i = int(np.flatnonzero(bad)[0])
         v = var[i][out[i]][0]
-        raise ValueError(f"covariances[{i}]: variance {v:.6g} outside [{_MIN_VARIANCE:g}, "
-                         f"{_MAX_VARIANCE:g}] (standard deviations 1e-12 to 1e+12 rad or m): "
+        raise ValueError(f"covariances[{i}]: variance {v:.6g} outside [{MIN_VARIANCE:g}, "
+                         f"{MAX_VARIANCE:g}] (standard deviations 1e-12 to 1e+12 rad or m): "
                          f"its information cannot be used")
     S = 0.5 * (S + np.swapaxes(S, 1, 2))
     try:

@@ -22,7 +22,7 @@ The solution, in order:
 1. **Closed form** (Daniilidis 1999, dual quaternions): motions between all pairs ``i < j``
    (not only consecutive ones), ``A_j⁻¹A_i · X = X · C_j C_i⁻¹``; each pair's dual quaternions put
    in one hemisphere (scalar parts ≥ 0, the short screw both sides); pairs that rotate less than
-   ``closed_form._MIN_PAIR_ANGLE`` or nearly half a turn (sign ill-defined) left out, and samples
+   ``closed_form.MIN_PAIR_ANGLE`` or nearly half a turn (sign ill-defined) left out, and samples
    whose pairs
    are not screw-congruent (rotation angle and pitch of the two motions must agree) left out of
    it; the 6 m × 8 system solved by SVD, then re-solved with Huber weights on each pair's
@@ -34,7 +34,7 @@ The solution, in order:
    ``Σ_r,i = Jr⁻¹(r_i) (Ad(K_i⁻¹) Σ_A,i Ad(K_i⁻¹)ᵀ + Σ_C,i) Jr⁻ᵀ``, ``K_i = X C_i``
    (the errors-in-variables problem with the true poses eliminated, to first order), re-evaluated
    at each iterate. The noise covariances are the caller's when given (``noise_model == "given"``),
-   else **estimated from the residuals** (``"estimated"``, :class:`~dqpose.handeye.noise._Noise`):
+   else **estimated from the residuals** (``"estimated"``, :class:`~dqpose.handeye.noise.Noise`):
    three isotropic
    variance components, camera rotation, translation (camera and robot alike) and robot rotation
    (which reaches the residual's translation through the lever arm ``X C_i``), by REML Fisher
@@ -42,7 +42,7 @@ The solution, in order:
    covariance of ``(X, Z)`` is the inverse of the information ``Σ Jᵢᵀ Σ_r,i⁻¹ Jᵢ`` at the
    optimum; ``covariance_x``/``covariance_z`` are its marginals. With the noise estimated, the
    uncertainty of the estimate is propagated into them (Kenward–Roger,
-   :meth:`~dqpose.handeye.noise._Noise.kenward_roger`): from 10 poses the bare ``H(θ̂)⁻¹`` had mean
+   :meth:`~dqpose.handeye.noise.Noise.kenward_roger`): from 10 poses the bare ``H(θ̂)⁻¹`` had mean
    NEES 6.7–9.3; with
    it 5.6–6.8 over 200 seeded trials on every row of tests/bench/bench_handeye.py (5.7–6.3 at
    20 poses).
@@ -63,7 +63,7 @@ The solution, in order:
    order: ``P J_iᵀ S_i⁻¹ r_i``), the closed form's distance from the answer in its own
    covariance, and :func:`next_best_pose`.
 5. **Corner level** (``corners`` given): maximum likelihood on the reprojection of the board's
-   corners through ``C_i = X⁻¹ A_i⁻¹ Z`` (:func:`~dqpose.handeye.corners._corner_fit`), from the
+   corners through ``C_i = X⁻¹ A_i⁻¹ Z`` (:func:`~dqpose.handeye.corners.corner_fit`), from the
    pose-level answer, with
    an optional focal-length scale and a correction of each robot pose under the robot's noise,
    given or estimated (taken as exact, 0.02° / 0.1 mm of robot noise made the covariance claim
@@ -116,9 +116,7 @@ what it returns.
 """
 from dqpose.handeye.calibrate import calibrate
 from dqpose.handeye.checks import check
-from dqpose.handeye.likelihood import _evaluate, _linearise  # noqa: F401 (tests check the Jacobians)
 from dqpose.handeye.next_best import next_best_pose
-from dqpose.handeye.noise import _Noise  # noqa: F401 (tests check the Jacobians)
 from dqpose.handeye.result import Calibration, Rejection
 from dqpose.handeye.setups import EYE_IN_HAND, EYE_TO_HAND, SETUPS, flange_for, view_at
 

@@ -11,19 +11,19 @@ import numpy as np
 
 from dqpose import dq, lie
 from dqpose.errors import FieldError, Infeasible
-from dqpose.handeye.checks import _prepare, _Prepared, _samples
-from dqpose.handeye.corners import _corner_fit, _views
-from dqpose.handeye.likelihood import _Fit
-from dqpose.handeye.noise import _noise_model
-from dqpose.handeye.outliers import _against, _gated, _leave_one_out
-from dqpose.handeye.readings import _inverse_noise, _moved, _plausible
+from dqpose.handeye.checks import Prepared, prepare, samples
+from dqpose.handeye.corners import corner_fit, corner_views
+from dqpose.handeye.likelihood import Fit
+from dqpose.handeye.noise import noise_model
+from dqpose.handeye.outliers import against, gated, leave_one_out
+from dqpose.handeye.readings import inverse_noise, moved, plausible
 from dqpose.handeye.result import Calibration
 from dqpose.handeye.scale import (
-    _MIN_SCALE,
-    _SCALE_SIGMAS,
-    _SCREEN_SIGMAS,
-    _camera_scale,
-    _evidence,
+    MIN_SCALE,
+    SCALE_SIGMAS,
+    SCREEN_SIGMAS,
+    camera_scale,
+    evidence,
 )
 from dqpose.handeye.setups import EYE_IN_HAND
 
@@ -43,7 +43,7 @@ def calibrate(base_flange, camera_target, setup: str = EYE_IN_HAND, *, robust: b
 
     ``corners`` (one ``(board_points (k,3), image_points (k,2), K)`` per sample, undistorted
     pixels, board points in the target frame) adds a corner-level refinement after the pose-level
-    one (:func:`~dqpose.handeye.corners._corner_fit`): ``x``, ``z`` and their covariances then
+    one (:func:`~dqpose.handeye.corners.corner_fit`): ``x``, ``z`` and their covariances then
     come from the corners, ``reprojection`` holds each view's RMS error (px); ``refine_focal``
     estimates one scale of the focal lengths too (``focal_scale``); ``pixel_sigma`` (px) is the
     corner noise, estimated per view from the reprojection errors when not given (the reported
@@ -93,36 +93,36 @@ class _Request:
 def _calibrate(q: _Request) -> Calibration:
     """:func:`calibrate`, stage by stage."""
     # 1. the data checks and the closed form
-    p = _prepare(q.base_flange, q.camera_target, q.setup)
+    p = prepare(q.base_flange, q.camera_target, q.setup)
     n = p.F.shape[0]
-    views = None if q.corners is None else _views(q.corners, n)
+    views = None if q.corners is None else corner_views(q.corners, n)
     if q.pixel_sigma is not None and not (np.isfinite(q.pixel_sigma) and q.pixel_sigma > 0):
         raise FieldError(f"pixel_sigma: must be a positive number of pixels, got "
                          f"{q.pixel_sigma!r}")
     # 2. the noise model
-    SC, SRob, noise = _noise_model(p, q.camera_covariance, q.robot_covariance)
+    SC, SRob, noise = noise_model(p, q.camera_covariance, q.robot_covariance)
     estimate = noise.estimate
     warnings = list(p.warnings)
     # 3. maximum likelihood with the χ² gate
-    fit, inlier, rejected = _gated(p, noise, q.robust, warnings)
+    fit, inlier, rejected = gated(p, noise, q.robust, warnings)
     # 4. the diagnostics
-    r_all, S_all, nis = _against(p, fit, noise, inlier)
+    r_all, S_all, nis = against(p, fit, noise, inlier)
     idx = np.flatnonzero(inlier)
-    loo = _leave_one_out(fit, idx, n)
+    loo = leave_one_out(fit, idx, n)
     residuals = _residuals(p, fit, r_all)
     agree = _agreement(fit, p.closed[0], idx, warnings)
     # 5. the readings the residuals cannot tell apart: the scale first, since a mount's
     # plausibility read off a fit at the wrong scale is no evidence (a monocular camera's X and
     # Z come out at the wrong distances, and both-inverted looked the likelier)
-    found = _camera_scale(fit, p.C[inlier], noise, inlier)
+    found = camera_scale(fit, p.C[inlier], noise, inlier)
     scale: tuple[float, float] = (found.lam, found.sigma)
     P_scale: float | np.ndarray = 0.0
     if q.rescaled is not None:
         # The re-solve on scaled translations: λ's uncertainty widens the covariance.
         P_scale = found.extra
         scale = (q.rescaled[0] * found.lam, q.rescaled[0] * found.sigma)
-    elif (abs(found.lam - 1.0) > max(_SCREEN_SIGMAS * found.sigma, _MIN_SCALE)
-          and _evidence(p, fit, noise, inlier, found) > _SCALE_SIGMAS ** 2):
+    elif (abs(found.lam - 1.0) > max(SCREEN_SIGMAS * found.sigma, MIN_SCALE)
+          and evidence(p, fit, noise, inlier, found) > SCALE_SIGMAS ** 2):
         return _rescale(q, p, views, SC, SRob, fit, idx, scale)
     # a re-solve whose scale has not settled is one step of _rescale's loop: judged at its end
     settled = q.rescaled is None or abs(found.lam - 1.0) <= 0.1 * found.sigma
@@ -150,7 +150,7 @@ def _calibrate(q: _Request) -> Calibration:
         readings=p.readings, camera_scale=scale[:2])
 
 
-def _residuals(p: _Prepared, fit: _Fit, r: np.ndarray) -> np.ndarray:
+def _residuals(p: Prepared, fit: Fit, r: np.ndarray) -> np.ndarray:
     """``(n, 2)``: each sample's residual rotation (rad, of ``r``) and the target's position
     (m) from it."""
     E = dq.mul(dq.mul(dq.mul(dq.inv(fit.Z), p.A), fit.X), p.C)
@@ -158,22 +158,22 @@ def _residuals(p: _Prepared, fit: _Fit, r: np.ndarray) -> np.ndarray:
                             np.linalg.norm(dq.to_pose(E)[1], axis=1)])
 
 
-def _agreement(fit: _Fit, X0, idx, warnings: list) -> tuple[float, float, float]:
+def _agreement(fit: Fit, X0, idx, warnings: list) -> tuple[float, float, float]:
     """The closed form ``X0`` against the refined X: rad, m and NEES in the reported covariance;
     a warning when they disagree grossly."""
     xi = lie.se3_log(dq.mul(dq.inv(fit.X), X0))
-    agree = (float(np.linalg.norm(xi[:3])), _moved(X0, fit.X),
+    agree = (float(np.linalg.norm(xi[:3])), moved(X0, fit.X),
              float(xi @ np.linalg.solve(fit.reported[:6, :6], xi)))
     # The closed form weighs nothing and is far less precise than the refinement (on OpenCV's
     # geometry 10–20 mm off at 0.1° / 0.5 mm noise): only a gross disagreement is a sign.
     if agree[2] > 1e4 and (agree[0] > np.radians(3.0) or agree[1] > 0.05):
-        warnings.append(f"{_samples(idx)}: the closed form and the refined X differ by "
+        warnings.append(f"{samples(idx)}: the closed form and the refined X differ by "
                         f"{np.degrees(agree[0]):.2f}° / {1e3 * agree[1]:.1f} mm "
                         f"(NEES {agree[2]:.3g}): the model may not fit the data")
     return agree
 
 
-def _both_inverted(q: _Request, p: _Prepared, fit: _Fit, inlier, SC, SRob,
+def _both_inverted(q: _Request, p: Prepared, fit: Fit, inlier, SC, SRob,
                    warnings: list, settled: bool = True) -> Optional[Calibration]:
     """Robot and camera poses both inverted fit exactly as well as the truth (F⁻¹ Z C⁻¹ = X: X
     and Z exchange roles), so the residuals cannot tell; plausibility can. The re-solve as
@@ -181,13 +181,13 @@ def _both_inverted(q: _Request, p: _Prepared, fit: _Fit, inlier, SC, SRob,
     when they cannot tell, a warning when the mount is implausible either way; else None. Not
     ``settled`` (a re-solve at a scale still moving): the warning alone."""
     idx = np.flatnonzero(inlier)
-    given, other = _plausible(p, fit.X, fit.Z, inlier), _plausible(p, fit.Z, fit.X, inlier, True)
+    given, other = plausible(p, fit.X, fit.Z, inlier), plausible(p, fit.Z, fit.X, inlier, True)
     if not given.mount_ok and not q.inverted and settled:
         if other.mount_ok and other.front and given.behind:
             cal = _calibrate(replace(q, base_flange=dq.inv(p.F), camera_target=dq.inv(p.C),
-                                     setup=p.setup, camera_covariance=_inverse_noise(p.C, SC),
-                                     robot_covariance=_inverse_noise(p.F, SRob), inverted=True))
-            return _warned(cal, f"{_samples(idx)}: base_flange and camera_target look both "
+                                     setup=p.setup, camera_covariance=inverse_noise(p.C, SC),
+                                     robot_covariance=inverse_noise(p.F, SRob), inverted=True))
+            return _warned(cal, f"{samples(idx)}: base_flange and camera_target look both "
                                 f"inverted (T_flange_base, T_target_camera): as given "
                                 f"{given.says}, and the target lies behind the camera in every "
                                 f"sample; inverted, {other.says} with the target in front. "
@@ -198,19 +198,19 @@ def _both_inverted(q: _Request, p: _Prepared, fit: _Fit, inlier, SC, SRob,
                              f"inverted (T_flange_base, T_target_camera: an exact fit too) "
                              f"{other.says}. The data cannot tell which; check both pose "
                              f"conventions (the flange in the robot's base frame, the target "
-                             f"in the camera's) ({_samples(idx)})")
+                             f"in the camera's) ({samples(idx)})")
     # A fixed part near the base is only a sign of inverted poses when the inverted reading is
     # plausible; alone it is a real mount (a target 0.21 m from the base is legitimate).
     if not given.reach_ok or (not given.base_ok and other.mount_ok):
         why = ("though the target lies in front of the camera as given and behind it "
                "inverted" if given.front and other.behind else
                f"and as inverted poses {other.says}")
-        warnings.append(f"{_samples(idx)}: {given.says}, {why}: check the mount and the pose "
+        warnings.append(f"{samples(idx)}: {given.says}, {why}: check the mount and the pose "
                         f"conventions (both poses inverted fit as well)")
     return None
 
 
-def _rescale(q: _Request, p: _Prepared, views, SC, SRob, fit: _Fit, idx, scale) -> Calibration:
+def _rescale(q: _Request, p: Prepared, views, SC, SRob, fit: Fit, idx, scale) -> Calibration:
     """The re-solve with camera_target's translations (and the board's points) scaled by the
     best-fitting ``λ``, its uncertainty in the covariance, with a warning. ``scale[0]`` is one
     Newton step from λ = 1; the scale, the inliers and the noise are re-solved together until the
@@ -232,20 +232,20 @@ def _rescale(q: _Request, p: _Prepared, views, SC, SRob, fit: _Fit, idx, scale) 
         if not (np.isfinite(found) and found > 0.0) or abs(found - lam) <= 0.1 * sigma:
             break
         lam = found
-    return _warned(cal, f"{_samples(idx)}: the camera's translations fit best scaled by "
+    return _warned(cal, f"{samples(idx)}: the camera's translations fit best scaled by "
                         f"{cal.camera_scale[0]:.4f} ± {cal.camera_scale[1]:.4f} against the "
                         f"robot's: a wrong board size, or a camera scale error? Solved with "
                         f"camera_target's translations (and the board's points) scaled by "
                         f"{lam:.4f}, its uncertainty in the covariance; X's translation was off "
-                        f"by {1e3 * _moved(fit.X, cal.x):.2f} mm without")
+                        f"by {1e3 * moved(fit.X, cal.x):.2f} mm without")
 
 
-def _corner_level(q: _Request, p: _Prepared, views, X, Z, inlier, robot, scale,
+def _corner_level(q: _Request, p: Prepared, views, X, Z, inlier, robot, scale,
                   warnings: list):
     """The corner-level refinement from the pose level's ``(X, Z)``: ``(X, Z, P, information,
     the Calibration's corner fields, camera scale)``, with a warning naming the views whose
     reprojection errors stand out."""
-    cf = _corner_fit(p.F, p.setup, X, Z, views, inlier, robot, q.refine_focal, q.pixel_sigma,
+    cf = corner_fit(p.F, p.setup, X, Z, views, inlier, robot, q.refine_focal, q.pixel_sigma,
                      refine_board=q.rescaled is not None)
     if q.rescaled is not None:
         scale = (q.rescaled[0] * cf.board_scale, q.rescaled[0] * cf.board_sigma)
@@ -255,7 +255,7 @@ def _corner_level(q: _Request, p: _Prepared, views, X, Z, inlier, robot, scale,
         corner["robot_covariance"] = cf.robot_covariance
     bad = np.flatnonzero(inlier & (cf.reprojection > 5.0 * cf.pixel_sigma + 0.5))
     if len(bad):
-        warnings.append(f"{_samples(bad)}: reprojection errors of " + ", ".join(
+        warnings.append(f"{samples(bad)}: reprojection errors of " + ", ".join(
             f"{cf.reprojection[k]:.2f}" for k in bad) + f" px, against {cf.pixel_sigma:.2f} "
             f"px overall: corners misdetected, or the robot pose off?")
     return cf.X, cf.Z, cf.P, np.linalg.inv(cf.P), corner, scale

@@ -16,12 +16,12 @@ import numpy as np
 
 from dqpose import dq
 from dqpose.errors import FieldError, Infeasible, rename
-from dqpose.fusion.validation import _MAX_VARIANCE, _MIN_VARIANCE, _finite
-from dqpose.handeye.closed_form import _MIN_PAIR_ANGLE, _closed_form, _hemisphere, _motions
-from dqpose.handeye.readings import _compare_readings
-from dqpose.handeye.setups import EYE_IN_HAND, _reading, _setup
+from dqpose.fusion.validation import MAX_VARIANCE, MIN_VARIANCE, finite
+from dqpose.handeye.closed_form import MIN_PAIR_ANGLE, closed_form, hemisphere, motions
+from dqpose.handeye.readings import compare_readings
+from dqpose.handeye.setups import EYE_IN_HAND, checked_setup, reading
 
-_MIN_POSES = 3
+MIN_POSES = 3
 _DUPLICATE_ANGLE = np.radians(1e-3)    # two samples this close in rotation and translation
 _DUPLICATE_DISTANCE = 1e-6             # (m) on both sides are one sample taken twice
 _PURE_TRANSLATION = np.radians(0.5)    # no pair rotates more: X's translation is not determined
@@ -33,16 +33,16 @@ _MISMATCH_ANGLE = np.radians(3.0)      # median congruence errors beyond these: 
 _MISMATCH_PITCH = 0.02                 # correspond (time or pairing), for most samples (m)
 
 
-def _poses(x, name: str) -> np.ndarray:
+def poses(x, name: str) -> np.ndarray:
     try:
-        a = _finite(x, name, (8,), None)   # shape and finiteness, with the index
+        a = finite(x, name, (8,), None)   # shape and finiteness, with the index
         dq.to_matrix(a)                           # the core's unit and rigidity checks
     except ValueError as e:
         raise rename(e, {"a": name + "{}"}) from None
     return dq.normalize(a)
 
 
-def _covariances(cov, name: str, n: int) -> Optional[np.ndarray]:
+def checked_covariances(cov, name: str, n: int) -> Optional[np.ndarray]:
     if cov is None:
         return None
     try:
@@ -62,15 +62,15 @@ def _covariances(cov, name: str, n: int) -> Optional[np.ndarray]:
         if np.linalg.eigvalsh(0.5 * (s + s.T))[0] < 0.0:
             raise FieldError(f"{where}: not positive semi-definite")
         var = np.diagonal(s)
-        bad = (var > 0.0) & ~((var >= _MIN_VARIANCE) & (var <= _MAX_VARIANCE))
+        bad = (var > 0.0) & ~((var >= MIN_VARIANCE) & (var <= MAX_VARIANCE))
         if bad.any():
             raise FieldError(f"{where}: variance {var[bad][0]:.6g} outside "
-                             f"[{_MIN_VARIANCE:g}, {_MAX_VARIANCE:g}] (0 is "
+                             f"[{MIN_VARIANCE:g}, {MAX_VARIANCE:g}] (0 is "
                              f"exact): its information cannot be used")
     return 0.5 * (S + np.swapaxes(S, -1, -2))
 
 
-def _samples(idx) -> str:
+def samples(idx) -> str:
     idx = [int(i) for i in idx]
     return f"sample{'s' if len(idx) != 1 else ''} {', '.join(map(str, idx))}"
 
@@ -88,7 +88,7 @@ class _Congruence:
 def _congruence(A, C) -> _Congruence:
     n = A.shape[0]
     i, j = np.triu_indices(n, 1)
-    a, b = _motions(A, C, i, j)
+    a, b = motions(A, C, i, j)
     sa, sb = dq.screw(a), dq.screw(b)
     return _Congruence(i, j, sa.theta, sb.theta, sa.d, sb.d)
 
@@ -105,7 +105,7 @@ def _per_sample_median(n, i, j, v) -> np.ndarray:
 
 
 @dataclass
-class _Prepared:
+class Prepared:
     setup: str
     F: np.ndarray
     A: np.ndarray
@@ -122,7 +122,7 @@ class _Prepared:
 def _rotation_information(A, i, j):
     """``Σ θ² (I − k kᵀ)`` over the pairs' robot rotation axes ``k``: the rotation of X is seen
     only across the axes; its condition number and the RMS angle of its smallest eigenvalue."""
-    a = _hemisphere(dq.mul(dq.inv(A[j]), A[i]))
+    a = hemisphere(dq.mul(dq.inv(A[j]), A[i]))
     v = a[:, 1:4]
     s = np.linalg.norm(v, axis=1)
     k = v / np.maximum(s, 1e-300)[:, None]
@@ -134,21 +134,21 @@ def _rotation_information(A, i, j):
     return cond, float(np.sqrt(max(e[0], 0.0) / m))
 
 
-def _prepare(base_flange, camera_target, setup) -> _Prepared:
+def prepare(base_flange, camera_target, setup) -> Prepared:
     """The checked data of a solve: its poses read, duplicates and stale samples found, the
     rotations' excitation and the motions' correspondence checked, and the closed form of the
-    reading given against the others (:func:`~dqpose.handeye.readings._compare_readings`)."""
-    setup = _setup(setup)
-    F = _poses(base_flange, "base_flange")
-    C = _poses(camera_target, "camera_target")
+    reading given against the others (:func:`~dqpose.handeye.readings.compare_readings`)."""
+    setup = checked_setup(setup)
+    F = poses(base_flange, "base_flange")
+    C = poses(camera_target, "camera_target")
     n = F.shape[0]
     if C.shape[0] != n:
         raise FieldError(f"camera_target: {C.shape[0]} poses for {n} in base_flange "
                          f"(one per sample)")
-    if n < _MIN_POSES:
-        raise Infeasible(f"base_flange: {n} pose{'s' if n != 1 else ''}; at least {_MIN_POSES} "
+    if n < MIN_POSES:
+        raise Infeasible(f"base_flange: {n} pose{'s' if n != 1 else ''}; at least {MIN_POSES} "
                          f"are needed (two motions about different axes)")
-    A = _reading(F, setup)
+    A = reading(F, setup)
     warnings: list[str] = []
     cg = _congruence(A, C)
     use, still = _distinct(A, C, cg, warnings)
@@ -156,13 +156,13 @@ def _prepare(base_flange, camera_target, setup) -> _Prepared:
     cond, excitation = _excitation(A, cg, use, pu, warnings)
     suspect, s_th, s_d = _correspondence(cg, use, pu, still, warnings)
     base_use = use & ~suspect
-    closed = _closed_form(A, C, base_use)
+    closed = closed_form(A, C, base_use)
     if closed is None:
         raise Infeasible(f"base_flange: fewer than two pairs of samples rotate by more than "
-                         f"{np.degrees(_MIN_PAIR_ANGLE):.0f}°; add poses rotating about "
+                         f"{np.degrees(MIN_PAIR_ANGLE):.0f}°; add poses rotating about "
                          f"different axes")
-    readings = _compare_readings(F, A, C, setup, base_use, closed, s_th, s_d)
-    return _Prepared(setup, F, A, C, use, suspect, warnings, closed, readings, cond, excitation)
+    readings = compare_readings(F, A, C, setup, base_use, closed, s_th, s_d)
+    return Prepared(setup, F, A, C, use, suspect, warnings, closed, readings, cond, excitation)
 
 
 def _distinct(A, C, cg: _Congruence, warnings: list) -> tuple[np.ndarray, np.ndarray]:
@@ -181,19 +181,19 @@ def _distinct(A, C, cg: _Congruence, warnings: list) -> tuple[np.ndarray, np.nda
         for p in np.flatnonzero(dup):
             use[j[p]] = False if use[i[p]] else use[j[p]]
         groups = sorted({(int(i[p]), int(j[p])) for p in np.flatnonzero(dup)})
-        warnings.append(f"{_samples(sorted({k for g in groups for k in g}))}: duplicate poses "
+        warnings.append(f"{samples(sorted({k for g in groups for k in g}))}: duplicate poses "
                         f"({', '.join(f'{a} = {b}' for a, b in groups)}); each kept once")
     stale = still_a ^ still_b
     if np.any(stale):
         which = [(int(i[p]), int(j[p]), "robot" if still_a[p] else "camera")
                  for p in np.flatnonzero(stale)]
-        warnings.append(f"{_samples(sorted({k for w in which for k in w[:2]}))}: stale poses ("
+        warnings.append(f"{samples(sorted({k for w in which for k in w[:2]}))}: stale poses ("
                         + "; ".join(f"{a} and {b}: the {who} did not move while the other did"
                                     for a, b, who in which[:5])
                         + ("; …" if len(which) > 5 else "") + ")")
-    if np.count_nonzero(use) < _MIN_POSES:
+    if np.count_nonzero(use) < MIN_POSES:
         raise Infeasible(f"base_flange: {np.count_nonzero(use)} distinct poses after removing "
-                         f"duplicates; at least {_MIN_POSES} are needed")
+                         f"duplicates; at least {MIN_POSES} are needed")
     return use, da + db
 
 
@@ -206,18 +206,18 @@ def _excitation(A, cg: _Congruence, use, pu, warnings: list) -> tuple[float, flo
         raise Infeasible(f"base_flange: pure translation: no two samples differ in rotation by "
                          f"more than {np.degrees(largest):.2f}°; the camera's position cannot be "
                          f"found without rotations about at least two axes "
-                         f"({_samples(np.flatnonzero(use))})")
+                         f"({samples(np.flatnonzero(use))})")
     cond, excitation = _rotation_information(A, cg.i[pu], cg.j[pu])
     if excitation < _MIN_EXCITATION:
         raise Infeasible(f"base_flange: the rotation axes of all motions are parallel "
                          f"(smallest rotation excitation {np.degrees(excitation):.2f}°, "
                          f"condition number {cond:.3g} of the rotation information); rotate "
-                         f"about at least two different axes ({_samples(np.flatnonzero(use))})")
+                         f"about at least two different axes ({samples(np.flatnonzero(use))})")
     if largest < _SMALL_ROTATION:
-        warnings.append(f"{_samples(np.flatnonzero(use))}: small rotations (largest between "
+        warnings.append(f"{samples(np.flatnonzero(use))}: small rotations (largest between "
                         f"two samples {np.degrees(largest):.1f}°); X is poorly determined")
     if excitation < _LOW_EXCITATION:
-        warnings.append(f"{_samples(np.flatnonzero(use))}: rotation axes nearly parallel or "
+        warnings.append(f"{samples(np.flatnonzero(use))}: rotation axes nearly parallel or "
                         f"coplanar (smallest excitation {np.degrees(excitation):.2f}°, condition "
                         f"number {cond:.3g} of the rotation information)")
     return cond, excitation
@@ -243,17 +243,17 @@ def _correspondence(cg: _Congruence, use, pu, moved, warnings: list):
         raise Infeasible(f"base_flange, camera_target: the robot and camera motions do not "
                          f"correspond: their rotation angles differ by {np.degrees(med_th):.1f}° "
                          f"(median over pairs; about the noise when they do); samples misaligned "
-                         f"in time or paired wrongly ({_samples(np.flatnonzero(use))})")
+                         f"in time or paired wrongly ({samples(np.flatnonzero(use))})")
     _units(cg, pu, use)
     s_th = max(1.4826 * med_th, np.radians(0.01))
     s_d = max(1.4826 * med_d, 1e-4)
     # A pitch is the translation along an axis that rotation noise tilts by about σ/θ, so it is
     # noisy by |t| σ/θ: centimetres on healthy data with the target metres away (OpenCV's
     # geometry at 0.5°: 45 mm median). Pitches off by more than that only warn: misaligned
-    # samples show in the angles, and a wrong reading is refused by _compare_readings.
+    # samples show in the angles, and a wrong reading is refused by compare_readings.
     expected = s_th * moved[pu] / np.maximum(cg.angle_a[pu], 0.1) + 1e-3
     if med_d > _MISMATCH_PITCH and float(np.median(dd / expected)) > 5.0:
-        warnings.append(f"{_samples(np.flatnonzero(use))}: the robot's and the camera's "
+        warnings.append(f"{samples(np.flatnonzero(use))}: the robot's and the camera's "
                         f"translations along the screw axes differ by {1e3 * med_d:.1f} mm "
                         f"(median over pairs) while the angles agree "
                         f"({np.degrees(med_th):.2f}°): samples misaligned in time, or noisy "
@@ -261,7 +261,7 @@ def _correspondence(cg: _Congruence, use, pu, moved, warnings: list):
     score = np.maximum(_per_sample_median(n, ip, jp, dth / s_th),
                        _per_sample_median(n, ip, jp, dd / s_d))
     suspect = use & (score > _SUSPECT)
-    if np.count_nonzero(use & ~suspect) < _MIN_POSES:
+    if np.count_nonzero(use & ~suspect) < MIN_POSES:
         suspect[:] = False
     return suspect, s_th, s_d
 
@@ -285,17 +285,17 @@ def _units(cg: _Congruence, pu: np.ndarray, use: np.ndarray) -> None:
                          ("base_flange", "camera_target", s))
         unit = " (millimetres given as metres?)" if 300 < f < 3000 else ""
         raise Infeasible(f"{big}: translations {f:.4g}× those of {small} along the same screw "
-                         f"axes{unit}; give both in metres ({_samples(np.flatnonzero(use))})")
+                         f"axes{unit}; give both in metres ({samples(np.flatnonzero(use))})")
 
 
 def check(base_flange, camera_target, setup: str = EYE_IN_HAND) -> tuple[str, ...]:
     """The data checks of :func:`calibrate` without the refinement: raises what it would raise
     (``FieldError`` for malformed input, ``Infeasible`` for unusable data), returns its warnings
     (each naming the samples), samples failing screw congruence among them."""
-    p = _prepare(base_flange, camera_target, setup)
+    p = prepare(base_flange, camera_target, setup)
     w = list(p.warnings)
     if np.any(p.suspect):
-        w.append(f"{_samples(np.flatnonzero(p.suspect))}: robot and camera motions not "
+        w.append(f"{samples(np.flatnonzero(p.suspect))}: robot and camera motions not "
                  f"screw-congruent with the other samples (outliers, a robot that had not "
                  f"settled, or a marker flip)")
     return tuple(w)

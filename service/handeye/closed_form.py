@@ -3,7 +3,7 @@
 Motions between all pairs ``i < j`` (not only consecutive ones) satisfy
 ``A_j⁻¹A_i · X = X · C_j C_i⁻¹``; each pair's dual quaternions are put in one hemisphere
 (scalar parts ≥ 0: the short screw both sides), pairs that rotate less than
-``_MIN_PAIR_ANGLE`` or nearly half a turn (sign ill-defined) are left out, the 6 m × 8 system
+``MIN_PAIR_ANGLE`` or nearly half a turn (sign ill-defined) are left out, the 6 m × 8 system
 is solved by SVD and re-solved with Huber weights on each pair's residual (robust averaging).
 ``Z`` is then the DIB mean (:func:`dqpose.dq.dib`) of the per-sample ``A_i X C_i``.
 """
@@ -13,22 +13,22 @@ import numpy as np
 
 from dqpose import dq, lie
 
-_MIN_PAIR_ANGLE = np.radians(2.0)      # pairs rotating less say little about X's rotation
-_MAX_PAIR_ANGLE = np.radians(170.0)    # near half a turn the hemisphere of a pair is ambiguous
+MIN_PAIR_ANGLE = np.radians(2.0)      # pairs rotating less say little about X's rotation
+MAX_PAIR_ANGLE = np.radians(170.0)    # near half a turn the hemisphere of a pair is ambiguous
 
 
-def _hemisphere(d: np.ndarray) -> np.ndarray:
+def hemisphere(d: np.ndarray) -> np.ndarray:
     return np.where(d[..., :1] < 0.0, -d, d)
 
 
-def _motions(A, C, i, j):
+def motions(A, C, i, j):
     """The pair motions ``A_j⁻¹ A_i`` and ``C_j C_i⁻¹`` in one hemisphere each."""
-    a = _hemisphere(dq.mul(dq.inv(A[j]), A[i]))
-    b = _hemisphere(dq.mul(C[j], dq.inv(C[i])))
+    a = hemisphere(dq.mul(dq.inv(A[j]), A[i]))
+    b = hemisphere(dq.mul(C[j], dq.inv(C[i])))
     return a, b
 
 
-def _rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Daniilidis' 6×8 block per pair: ``[[a−b, (a+b)^, 0, 0], [a'−b', (a'+b')^, a−b, (a+b)^]]``
     on the vector parts; ``T · [q; q'] = 0`` for the true ``X = (q, q')``."""
     m = a.shape[0]
@@ -46,10 +46,10 @@ def _rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def _null_dq(T: np.ndarray) -> np.ndarray:
     """The unit dual quaternion in the two-dimensional near-null space of ``T`` (m·6, 8)."""
     _, _, Vt = np.linalg.svd(T, full_matrices=False)
-    return _unit_in_span(Vt[-2], Vt[-1])
+    return unit_in_span(Vt[-2], Vt[-1])
 
 
-def _unit_in_span(v1: np.ndarray, v2: np.ndarray) -> np.ndarray:
+def unit_in_span(v1: np.ndarray, v2: np.ndarray) -> np.ndarray:
     """The unit dual quaternions ``λ1 v1 + λ2 v2`` (``(..., 8)`` each, a basis of the near-null
     space): ``(λ1, λ2)`` with ``q·q' = 0``, a quadratic form M in ``(λ1, λ2)``, at its null
     direction with the larger ``|q|`` (the other is the pure-dual, translation-only solution);
@@ -71,22 +71,22 @@ def _unit_in_span(v1: np.ndarray, v2: np.ndarray) -> np.ndarray:
     lam = np.where(best, cands[..., 1, :], cands[..., 0, :])
     lam = lam / np.sqrt(np.where(best[..., 0], norm[..., 1], norm[..., 0]))[..., None]
     x = lam[..., :1] * v1 + lam[..., 1:] * v2
-    return dq.normalize(_hemisphere(x))
+    return dq.normalize(hemisphere(x))
 
 
-def _closed_form(A, C, use: np.ndarray, robust: bool = True):
+def closed_form(A, C, use: np.ndarray, robust: bool = True):
     """Daniilidis over all usable pairs, Huber-reweighted; ``Z`` the DIB mean of ``A_i X C_i``.
     Returns ``(X, Z, number of pairs)``, or None when too few pairs rotate."""
     idx = np.flatnonzero(use)
     i, j = np.triu_indices(len(idx), 1)
     i, j = idx[i], idx[j]
-    a, b = _motions(A, C, i, j)
+    a, b = motions(A, C, i, j)
     ang = 2.0 * np.arccos(np.clip(a[:, 0], -1.0, 1.0))
-    keep = (ang > _MIN_PAIR_ANGLE) & (ang < _MAX_PAIR_ANGLE)
+    keep = (ang > MIN_PAIR_ANGLE) & (ang < MAX_PAIR_ANGLE)
     if np.count_nonzero(keep) < 2:
         return None
     a, b = a[keep], b[keep]
-    T = _rows(a, b)
+    T = rows(a, b)
     w = np.ones(len(a))
     X = None
     for _ in range(3 if robust else 1):

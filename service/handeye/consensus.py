@@ -27,16 +27,16 @@ import numpy as np
 from dqpose import dq, lie
 from dqpose.fusion.chi2 import chi2_quantile
 from dqpose.handeye.closed_form import (
-    _MAX_PAIR_ANGLE,
-    _MIN_PAIR_ANGLE,
-    _hemisphere,
-    _rows,
-    _unit_in_span,
+    MAX_PAIR_ANGLE,
+    MIN_PAIR_ANGLE,
+    hemisphere,
+    rows,
+    unit_in_span,
 )
-from dqpose.handeye.noise import _FLOORS, _Noise
+from dqpose.handeye.noise import FLOORS, Noise
 
 if TYPE_CHECKING:
-    from dqpose.handeye.checks import _Prepared
+    from dqpose.handeye.checks import Prepared
 
 _HYPOTHESES = 128      # minimal sets drawn (all of them when there are fewer): with half the
                        # samples outliers, all three genuine in one of 8, missed in 128 draws
@@ -44,7 +44,7 @@ _HYPOTHESES = 128      # minimal sets drawn (all of them when there are fewer): 
 _SEED = 20260909       # the draws are the same for the same data: one answer for one input
 
 
-def _consensus(p: _Prepared, noise: _Noise,
+def consensus(p: Prepared, noise: Noise,
                gate: float) -> Optional[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """``(start, X, Z)``: the samples the fit starts from (within the χ²₆ quantile ``gate`` at
     the robust scale) and the best hypothesis; None when there are too few samples for a
@@ -113,15 +113,15 @@ def _hypotheses(A, C, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     than two such pairs left out."""
     m = len(t)
     i, j = t[:, [0, 0, 1]].ravel(), t[:, [1, 2, 2]].ravel()
-    a = _hemisphere(dq.mul(dq.inv(A[j]), A[i]))
-    b = _hemisphere(dq.mul(C[j], dq.inv(C[i])))
+    a = hemisphere(dq.mul(dq.inv(A[j]), A[i]))
+    b = hemisphere(dq.mul(C[j], dq.inv(C[i])))
     ang = 2.0 * np.arccos(np.clip(a[:, 0], -1.0, 1.0))
-    keep = ((ang > _MIN_PAIR_ANGLE) & (ang < _MAX_PAIR_ANGLE)).reshape(m, 3)
-    T = _rows(a, b).reshape(m, 3, 6, 8) * keep[..., None, None]
+    keep = ((ang > MIN_PAIR_ANGLE) & (ang < MAX_PAIR_ANGLE)).reshape(m, 3)
+    T = rows(a, b).reshape(m, 3, 6, 8) * keep[..., None, None]
     G = np.einsum("mpki,mpkj->mij", T, T)
     _, V = np.linalg.eigh(G)
     with np.errstate(invalid="ignore", divide="ignore"):
-        X = _unit_in_span(V[..., 0], V[..., 1])
+        X = unit_in_span(V[..., 0], V[..., 1])
     ok = (keep.sum(axis=1) >= 2) & np.all(np.isfinite(X), axis=1)
     X, t = X[ok], t[ok]
     K = dq.mul(dq.mul(A[t], X[:, None]), C[t])                           # (m, 3, 8)
@@ -129,14 +129,14 @@ def _hypotheses(A, C, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return X, dq.normalize(K.sum(axis=1))
 
 
-def _metric(p: _Prepared, noise: _Noise, idx, r0) -> np.ndarray:
+def _metric(p: Prepared, noise: Noise, idx, r0) -> np.ndarray:
     """``(n, 6, 6)``: the inverse residual covariances the hypotheses are scored in: the given
     noise transported at the closed form's X, or the isotropic rotation and translation variances
-    of the closed form's residuals ``r0`` (as :class:`~dqpose.handeye.noise._Noise` starts)."""
+    of the closed form's residuals ``r0`` (as :class:`~dqpose.handeye.noise.Noise` starts)."""
     n = len(idx)
     if noise.estimate:
         v = (1.4826 * np.median(np.abs(r0), axis=0)) ** 2
-        var = np.maximum(np.array([v[:3].mean(), v[3:].mean()]), _FLOORS[:2])
+        var = np.maximum(np.array([v[:3].mean(), v[3:].mean()]), FLOORS[:2])
         return np.broadcast_to(np.diag(np.repeat(1.0 / var, 3)), (n, 6, 6))
     use = np.zeros(p.F.shape[0], bool)
     use[idx] = True

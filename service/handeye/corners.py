@@ -11,8 +11,8 @@ import numpy as np
 
 from dqpose import dq, lie
 from dqpose.errors import FieldError, Infeasible
-from dqpose.handeye.likelihood import _TOL
-from dqpose.handeye.setups import EYE_IN_HAND, _reading
+from dqpose.handeye.likelihood import TOL
+from dqpose.handeye.setups import EYE_IN_HAND, reading
 
 _MIN_CORNERS = 4
 
@@ -31,7 +31,7 @@ class _Views:
                       self.K[idx])
 
 
-def _views(corners, n: int) -> _Views:
+def corner_views(corners, n: int) -> _Views:
     """``corners``: one ``(board_points (k,3), image_points (k,2), K (3,3))`` per sample (a
     mapping with those keys also does); undistorted pixels."""
     try:
@@ -83,7 +83,7 @@ def _views(corners, n: int) -> _Views:
 def _corner_cameras(F, setup, X, Z, delta):
     """``C_i = X⁻¹ A_i⁻¹ Z`` as 4×4 matrices, ``A_i`` the reading of ``F_i Exp(δ_i)``."""
     Fi = F if delta is None else dq.mul(F, lie.se3_exp(delta))
-    return dq.to_matrix(dq.mul(dq.mul(dq.inv(X), dq.inv(_reading(Fi, setup))), Z))
+    return dq.to_matrix(dq.mul(dq.mul(dq.inv(X), dq.inv(reading(Fi, setup))), Z))
 
 
 def _project(M, views: _Views, scale: float):
@@ -187,7 +187,7 @@ def _arrow_step(Jg, Jd, r, prior, delta, starts):
     return np.concatenate([step_g, step_d.ravel()]), _Arrow(Pgg, Pdd, cost, moved), lev
 
 
-def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool,
+def corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool,
                 pixel_sigma: Optional[float], refine_board: bool = False) -> _CornerFit:
     """Maximum likelihood on the corners: pixels with isotropic noise σ (given, or estimated
     per view from its reprojection errors, the fit's leverage in that view taken out: a view's
@@ -243,7 +243,7 @@ def _corner_fit(F, setup, X, Z, views: _Views, inlier, robot, refine_focal: bool
             # the pixel dof the fit takes, per view (REML: each σ from what the fit leaves)
             leverage = np.add.reduceat(lev.reshape(N, 2).sum(axis=1), starts)
             new = H.cost
-            if H.moved(step) < _TOL and abs(cost - new) <= 1e-9 * new:
+            if H.moved(step) < TOL and abs(cost - new) <= 1e-9 * new:
                 break
             cost = new
         assert H is not None                # the step loop runs at least once

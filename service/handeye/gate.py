@@ -21,8 +21,8 @@ import math
 from functools import lru_cache
 
 _GATE = 0.999                          # χ² probability of the robust gate
-_GATE_6 = 22.457744484825192           # χ²₆ quantile at _GATE (fusion.chi2_quantile(0.999, 6))
-_GATE_3 = 16.266236196238010           # χ²₃ quantile at _GATE
+GATE_6 = 22.457744484825192           # χ²₆ quantile at _GATE (fusion.chi2_quantile(0.999, 6))
+GATE_3 = 16.266236196238010           # χ²₃ quantile at _GATE
 
 
 def _beta_fraction(a: float, b: float, x: float) -> float:
@@ -69,12 +69,12 @@ def _beta_quantile(a: float, b: float, probability: float) -> float:
     return 0.5 * (lo + hi)
 
 
-def _thresholds(estimated: bool, dof: int) -> tuple[float, float]:
+def thresholds(estimated: bool, dof: int) -> tuple[float, float]:
     """``(in the fit, left out)``: the NIS thresholds of the gate at probability ``_GATE`` for a
     sample in the fit and for one left out of it; ``dof`` the residual degrees of freedom of the
     fit (``6m − 12``) when the noise is estimated (see the module docstring)."""
     if not estimated or dof > 100_000:
-        return _GATE_6, _GATE_6
+        return GATE_6, GATE_6
     if dof <= 6:
         # A fit with no spare degrees of freedom tells nothing about a sample in it; one left
         # out is judged by an F with so few that only a gross error passes the bound.

@@ -12,19 +12,19 @@ import numpy as np
 
 from dqpose import dq, lie
 from dqpose.errors import Infeasible
-from dqpose.handeye.noise import _Noise
+from dqpose.handeye.noise import Noise
 
-_TOL = 1e-8                            # a step this short in its own σ (squared): converged
+TOL = 1e-8                            # a step this short in its own σ (squared): converged
 _MAX_ITER = 30
 
 
-def _evaluate(A, C, X, Z):
+def evaluate(A, C, X, Z):
     E = dq.mul(dq.mul(dq.mul(dq.inv(Z), A), X), C)
     return E, lie.se3_log(E)
 
 
 @dataclass
-class _Fit:
+class Fit:
     X: np.ndarray
     Z: np.ndarray
     E: np.ndarray
@@ -37,8 +37,8 @@ class _Fit:
     reported: np.ndarray   # (12,12) P with the noise estimate's uncertainty (Kenward–Roger)
 
 
-def _linearise(A, C, AdCi, X, Z, noise: _Noise, use):
-    E, r = _evaluate(A, C, X, Z)
+def linearise(A, C, AdCi, X, Z, noise: Noise, use):
+    E, r = evaluate(A, C, X, Z)
     Jri = lie.se3_right_jacobian_inv(r)
     S = noise(X, C, r, Jri, use)
     J = np.empty((len(r), 6, 12))
@@ -49,14 +49,14 @@ def _linearise(A, C, AdCi, X, Z, noise: _Noise, use):
     return E, r, J, S
 
 
-def _fit(A, C, X, Z, noise: _Noise, use) -> _Fit:
+def gauss_newton(A, C, X, Z, noise: Noise, use) -> Fit:
     """Gauss–Newton on ``(X, Z)`` over the samples ``use``, minimising Σ r_iᵀ Σ_r,i⁻¹ r_i; steps
     halved while the cost (at the step's weights) rises."""
     Au, Cu = A[use], C[use]
     AdCi = lie.adjoint(dq.inv(Cu))
     it = 0
     for it in range(1, _MAX_ITER + 1):  # noqa: B007 (the count is read after the loop)
-        E, r, J, S = _linearise(Au, Cu, AdCi, X, Z, noise, use)
+        E, r, J, S = linearise(Au, Cu, AdCi, X, Z, noise, use)
         for _ in range(20 if noise.estimate else 1):
             W = np.linalg.inv(S)
             JtW = np.swapaxes(J, 1, 2) @ W
@@ -85,14 +85,14 @@ def _fit(A, C, X, Z, noise: _Noise, use) -> _Fit:
         for _ in range(30):
             Xn = dq.mul(X, lie.se3_exp(t * step[:6]))
             Zn = dq.mul(Z, lie.se3_exp(t * step[6:]))
-            rn = _evaluate(Au, Cu, Xn, Zn)[1]
+            rn = evaluate(Au, Cu, Xn, Zn)[1]
             if float(np.einsum("ni,nij,nj->", rn, W, rn)) <= cost * (1 + 1e-12) + 1e-300:
                 break
             t *= 0.5
         X, Z = Xn, Zn
-        if (t * t) * float(step @ H @ step) < _TOL or t < 1e-8:
+        if (t * t) * float(step @ H @ step) < TOL or t < 1e-8:
             break
-    E, r, J, S = _linearise(Au, Cu, AdCi, X, Z, noise, use)
+    E, r, J, S = linearise(Au, Cu, AdCi, X, Z, noise, use)
     for _ in range(20 if noise.estimate else 1):   # the shared noise settled at the optimum
         JtW = np.swapaxes(J, 1, 2) @ np.linalg.inv(S)
         H = (JtW @ J).sum(axis=0)
@@ -110,11 +110,11 @@ def _fit(A, C, X, Z, noise: _Noise, use) -> _Fit:
         raise Infeasible("base_flange: the motions do not determine X and Z (singular "
                          "information); add poses rotating about other axes")
     P = 0.5 * (P + P.T)
-    return _Fit(X, Z, E, r, J, np.array(S), H, P, it,
+    return Fit(X, Z, E, r, J, np.array(S), H, P, it,
                 noise.kenward_roger(J, P) if noise.estimate else P)
 
 
-def _standardised(fit: _Fit) -> tuple[np.ndarray, np.ndarray]:
+def standardised(fit: Fit) -> tuple[np.ndarray, np.ndarray]:
     """``r_iᵀ S_i⁻¹ r_i`` with ``S_i = Σ_r,i − J_i H⁻¹ J_iᵀ``, and ``S_i⁻¹ r_i`` (for the
     leave-one-out shift)."""
     Si = fit.S - fit.J @ fit.P @ np.swapaxes(fit.J, 1, 2)

@@ -6,10 +6,10 @@ import numpy as np
 
 from dqpose import dq, lie
 from dqpose.errors import FieldError
-from dqpose.handeye.checks import _poses
-from dqpose.handeye.noise import _transported
+from dqpose.handeye.checks import poses
+from dqpose.handeye.noise import transported
 from dqpose.handeye.result import Calibration
-from dqpose.handeye.setups import EYE_TO_HAND, _reading
+from dqpose.handeye.setups import EYE_TO_HAND, reading
 
 
 def next_best_pose(calibration: Calibration, base_flange, camera_target, candidates) -> np.ndarray:
@@ -18,16 +18,16 @@ def next_best_pose(calibration: Calibration, base_flange, camera_target, candida
     X most (smallest determinant of X's marginal). The candidate's camera pose is predicted from
     the calibration; its noise is the calibration's noise model (``base_flange`` and
     ``camera_target`` are the samples it was solved from, checked for shape only)."""
-    _poses(base_flange, "base_flange")
-    _poses(camera_target, "camera_target")
-    cand = _poses(candidates, "candidates")
+    poses(base_flange, "base_flange")
+    poses(camera_target, "camera_target")
+    cand = poses(candidates, "candidates")
     if cand.shape[0] == 0:
         raise FieldError("candidates: no candidate poses")
     c = calibration
     if c.information is None:
         raise FieldError("calibration: has no information matrix (one calibrate() returned "
                          "with a covariance is needed)")
-    A = _reading(cand, c.setup)
+    A = reading(cand, c.setup)
     X, Z = c.x, c.z
     C = dq.mul(dq.mul(dq.inv(X), dq.inv(A)), Z)             # A X C = Z
     m = cand.shape[0]
@@ -41,7 +41,7 @@ def next_best_pose(calibration: Calibration, base_flange, camera_target, candida
         SA = np.broadcast_to(np.asarray(c.robot_covariance).reshape(-1, 6, 6)[-1], (m, 6, 6))
         if c.setup == EYE_TO_HAND:
             SA = lie.cov_inverse(cand, SA)
-    S = _transported(X, C, SA, SC, I6)
+    S = transported(X, C, SA, SC, I6)
     W = np.linalg.inv(S)
     H = c.information[None] + np.swapaxes(J, 1, 2) @ W @ J
     P = np.linalg.inv(H)

@@ -14,13 +14,13 @@ import numpy as np
 
 from dqpose import dq, lie
 from dqpose.errors import FieldError
-from dqpose.handeye.checks import _covariances
+from dqpose.handeye.checks import checked_covariances
 from dqpose.handeye.setups import EYE_IN_HAND, EYE_TO_HAND
 
-_FLOORS = np.array([1e-9, 1e-9, 1e-12]) ** 2   # smallest estimated variances: exact data
+FLOORS = np.array([1e-9, 1e-9, 1e-12]) ** 2   # smallest estimated variances: exact data
 
 
-def _transported(X, C, SA, SC, Jri):
+def transported(X, C, SA, SC, Jri):
     """Σ_r,i = Jr⁻¹(r) (Ad(K⁻¹) Σ_A Ad(K⁻¹)ᵀ + Σ_C) Jr⁻ᵀ, K = X C_i (see the module docstring)."""
     S = SC.copy() if SC is not None else np.zeros((C.shape[0], 6, 6))
     if SA is not None:
@@ -31,7 +31,7 @@ def _transported(X, C, SA, SC, Jri):
 _ROT, _TRANS = np.diag([1.0] * 3 + [0.0] * 3), np.diag([0.0] * 3 + [1.0] * 3)
 
 
-class _Noise:
+class Noise:
     """The residual covariances ``Σ_r,i``: transported from the given pose noise, or estimated.
 
     Estimated (no covariance given): three isotropic variance components, camera rotation
@@ -67,10 +67,10 @@ class _Noise:
             if self.theta is None:
                 v = (1.4826 * np.median(np.abs(r), axis=0)) ** 2   # outliers do not inflate it
                 self.theta = np.array([v[:3].mean(), v[3:].mean(), 0.1 * v[:3].mean()])
-                self.theta = np.maximum(self.theta, _FLOORS)
+                self.theta = np.maximum(self.theta, FLOORS)
             return np.einsum("k,nkij->nij", self.theta, self.G)
         SA = None if self.SA is None else self.SA[use]
-        return _transported(X, C, SA, self.SC[use], Jri)
+        return transported(X, C, SA, self.SC[use], Jri)
 
     def _reml(self, J: np.ndarray, P: np.ndarray):
         """The pieces of the REML score and information at the current ``θ``: ``W_i = Σ_r,i⁻¹``,
@@ -110,18 +110,18 @@ class _Noise:
         free = np.ones(3, bool)
         theta = last
         for _ in range(3):
-            t = np.array(_FLOORS)
+            t = np.array(FLOORS)
             try:
                 t[free] = np.linalg.solve(F[np.ix_(free, free)],
                                           q[free] - F[np.ix_(free, ~free)] @ t[~free])
             except np.linalg.LinAlgError:
                 t[:] = np.nan
-            low = free & (t < _FLOORS)
+            low = free & (t < FLOORS)
             if not np.any(low):
                 theta = t
                 break
             free &= ~low
-            theta = np.maximum(t, _FLOORS)
+            theta = np.maximum(t, FLOORS)
         # Far from the answer scoring can overshoot: when a component carrying a share of the
         # residuals more than triples or falls below a third (or a negligible one grows a
         # hundredfold), the multiplicative (EM) step θ_k q_k / (F θ)_k is taken instead, slower
@@ -131,13 +131,13 @@ class _Noise:
                         theta > 100.0 * np.maximum(last, 1e-4 * last.max()))
         if not np.all(np.isfinite(theta)) or np.any(jump):
             theta = last * q / np.maximum(F @ last, 1e-300)
-        theta = np.maximum(theta, _FLOORS)
+        theta = np.maximum(theta, FLOORS)
         # Near the boundary scoring can cycle between two points: a component whose step
         # reverses its last one moves half as far.
         step = theta - last
         if self.step is not None:
             step = np.where(step * self.step < 0.0, 0.5 * step, step)
-            theta = np.maximum(last + step, _FLOORS)
+            theta = np.maximum(last + step, FLOORS)
         self.step = step
         # Settled when the residual degrees of freedom the components account for,
         # θ_k tr(R G_k) = θ_k (F θ)_k (summing to 6n − 12), move by less than 1e-3 of them.
@@ -198,13 +198,13 @@ class _Noise:
         return 0.5 * (PA + PA.T)
 
 
-def _noise_model(p, camera_covariance, robot_covariance) -> tuple:
-    """The noise model of a solve on the checked data ``p``: ``(Σ_C, Σ_robot, _Noise)``, the
+def noise_model(p, camera_covariance, robot_covariance) -> tuple:
+    """The noise model of a solve on the checked data ``p``: ``(Σ_C, Σ_robot, Noise)``, the
     given covariances validated (``None`` where not given); estimated when no camera noise is
     given, the robot then exact unless its noise is given too."""
     n = p.F.shape[0]
-    SC = _covariances(camera_covariance, "camera_covariance", n)
-    SRob = _covariances(robot_covariance, "robot_covariance", n)
+    SC = checked_covariances(camera_covariance, "camera_covariance", n)
+    SRob = checked_covariances(robot_covariance, "robot_covariance", n)
     if SC is None and SRob is not None:
         raise FieldError("camera_covariance: needed when robot_covariance is given (or give "
                          "neither to estimate the noise)")
@@ -215,7 +215,7 @@ def _noise_model(p, camera_covariance, robot_covariance) -> tuple:
         SA = SRob if p.setup == EYE_IN_HAND else lie.cov_inverse(p.F, SRob)
         if not np.any(SA):
             SA = None
-    noise = _Noise(SA, SC, estimate,
+    noise = Noise(SA, SC, estimate,
                    lie.adjoint(p.F) if p.setup == EYE_TO_HAND and estimate else None)
     if not estimate:
         S0 = noise(p.closed[0], p.C, np.zeros((n, 6)), np.broadcast_to(np.eye(6), (n, 6, 6)),

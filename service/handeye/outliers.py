@@ -21,16 +21,16 @@ import numpy as np
 
 from dqpose import dq, lie
 from dqpose.errors import Infeasible
-from dqpose.fusion.chi2 import _gamma_p, chi2_quantile
-from dqpose.handeye.checks import _MIN_POSES, _samples
-from dqpose.handeye.consensus import _consensus
-from dqpose.handeye.gate import _GATE_3, _GATE_6, _thresholds
-from dqpose.handeye.likelihood import _Fit, _fit, _linearise, _standardised
-from dqpose.handeye.noise import _Noise
+from dqpose.fusion.chi2 import chi2_quantile, gamma_p
+from dqpose.handeye.checks import MIN_POSES, samples
+from dqpose.handeye.consensus import consensus
+from dqpose.handeye.gate import GATE_3, GATE_6, thresholds
+from dqpose.handeye.likelihood import Fit, gauss_newton, linearise, standardised
+from dqpose.handeye.noise import Noise
 from dqpose.handeye.result import Rejection
 
 if TYPE_CHECKING:
-    from dqpose.handeye.checks import _Prepared
+    from dqpose.handeye.checks import Prepared
 
 # The robust screen's share of the samples: the noise is estimated on this fraction of them with
 # the smallest NIS (the rest may be outliers), its truncation undone (:func:`_screened`).
@@ -38,38 +38,38 @@ _SCREEN_SHARE = 0.6
 _SCREEN_GATE = 27.856341236012888       # χ²₆ quantile at 1 − 1e-4 (fusion.chi2_quantile)
 
 
-def _gated(p: _Prepared, noise: _Noise, robust: bool, warnings: list):
+def gated(p: Prepared, noise: Noise, robust: bool, warnings: list):
     """The fit from the consensus of minimal sets (from the closed form on the samples that pass
     screw congruence when there are too few for one), re-fitted on those the gate passes until
     the set settles: ``(fit, inliers, rejected)``. The gate runs in
     both modes; without ``robust`` its outliers are named, not left out."""
-    start = _consensus(p, noise, _GATE_6)
+    start = consensus(p, noise, GATE_6)
     if start is None:
         inlier, X, Z = p.use & ~p.suspect, p.closed[0], p.closed[1]
     else:
         inlier, X, Z = start
-    fit = _fit(p.A, p.C, X, Z, noise, inlier)
+    fit = gauss_newton(p.A, p.C, X, Z, noise, inlier)
     if noise.estimate:
         fit, inlier = _screened(p, noise, fit, inlier)
     for _ in range(5):
-        r_all, S_all, nis_all = _against(p, fit, noise, inlier)
+        r_all, S_all, nis_all = against(p, fit, noise, inlier)
         limit = _limits(noise, inlier)
         new = p.use & (nis_all <= limit)
-        if np.count_nonzero(new) < _MIN_POSES:
+        if np.count_nonzero(new) < MIN_POSES:
             # Too few would pass to solve on: the answer stands on samples the gate doubts, so
             # it says which (never silently; a given noise far too small does this too).
             doubt = np.flatnonzero(p.use & ~new)
             worst = doubt[np.argmax(nis_all[doubt] / limit[doubt])]
-            warnings.append(f"{_samples(doubt)}: fail the χ² gate (NIS up to "
+            warnings.append(f"{samples(doubt)}: fail the χ² gate (NIS up to "
                             f"{float(nis_all[worst]):.3g} > {float(limit[worst]):.3g}), leaving "
-                            f"fewer than {_MIN_POSES} samples; kept, so the answer is doubtful: "
+                            f"fewer than {MIN_POSES} samples; kept, so the answer is doubtful: "
                             f"outliers, or a given noise too small?")
             break
         if np.array_equal(new, inlier):
             break
         inlier = new
-        fit = _fit(p.A, p.C, fit.X, fit.Z, noise, inlier)
-    r_all, S_all, nis_all = _against(p, fit, noise, inlier)
+        fit = gauss_newton(p.A, p.C, fit.X, fit.Z, noise, inlier)
+    r_all, S_all, nis_all = against(p, fit, noise, inlier)
     limit = _limits(noise, inlier)
     outliers = [Rejection(int(k), _reason(k, fit, p, r_all[k], S_all[k], nis_all[k], limit[k]))
                 for k in np.flatnonzero(p.use & ~inlier)]
@@ -77,24 +77,24 @@ def _gated(p: _Prepared, noise: _Noise, robust: bool, warnings: list):
     if outliers:
         what = ("rejected as outliers" if robust else
                 "outliers (kept: robust mode is off)")
-        warnings.append(f"{_samples([r.index for r in outliers])}: {what} (" +
+        warnings.append(f"{samples([r.index for r in outliers])}: {what} (" +
                         "; ".join(f"{r.index}: {r.reason}" for r in outliers) + ")")
     if robust:
         rejected = outliers
     elif not np.array_equal(inlier, p.use):
         inlier = p.use.copy()
-        fit = _fit(p.A, p.C, fit.X, fit.Z, noise, inlier)
+        fit = gauss_newton(p.A, p.C, fit.X, fit.Z, noise, inlier)
     return fit, inlier, tuple(rejected)
 
 
-def _limits(noise: _Noise, inlier) -> np.ndarray:
-    """Each sample's NIS threshold (:func:`~dqpose.handeye.gate._thresholds`): the fit's for the
+def _limits(noise: Noise, inlier) -> np.ndarray:
+    """Each sample's NIS threshold (:func:`~dqpose.handeye.gate.thresholds`): the fit's for the
     inliers, the prediction's for the others."""
-    inside, outside = _thresholds(noise.estimate, 6 * int(np.count_nonzero(inlier)) - 12)
+    inside, outside = thresholds(noise.estimate, 6 * int(np.count_nonzero(inlier)) - 12)
     return np.where(inlier, inside, outside)
 
 
-def _screened(p: _Prepared, noise: _Noise, fit: _Fit, inlier):
+def _screened(p: Prepared, noise: Noise, fit: Fit, inlier):
     """The fit and its samples after a screen by a robust scale of the estimated noise: each
     sample's standardised residual split into its rotation and its translation (χ²₃ each), each
     block's scale from the ``_SCREEN_SHARE`` of the samples smallest in it, scaled up by what
@@ -116,11 +116,11 @@ def _screened(p: _Prepared, noise: _Noise, fit: _Fit, inlier):
     if h < 3:
         return fit, inlier
     n = p.F.shape[0]
-    _, r, J, S = _linearise(p.A, p.C, lie.adjoint(dq.inv(p.C)), fit.X, fit.Z, noise,
+    _, r, J, S = linearise(p.A, p.C, lie.adjoint(dq.inv(p.C)), fit.X, fit.Z, noise,
                             np.ones(n, bool))
     V = (S - J @ fit.P @ np.swapaxes(J, 1, 2))[idx]
     c = chi2_quantile(h / (m + 1), 3)
-    kept = _gamma_p(2.5, 0.5 * c) / _gamma_p(1.5, 0.5 * c)
+    kept = gamma_p(2.5, 0.5 * c) / gamma_p(1.5, 0.5 * c)
     nis = np.zeros(m)
     for b in (slice(0, 3), slice(3, 6)):
         Vb = 0.5 * (V[:, b, b] + np.swapaxes(V[:, b, b], 1, 2))
@@ -137,21 +137,21 @@ def _screened(p: _Prepared, noise: _Noise, fit: _Fit, inlier):
     # noise estimated without them.
     screen = inlier.copy()
     screen[idx] = nis <= _SCREEN_GATE
-    if np.array_equal(screen, inlier) or np.count_nonzero(screen) < _MIN_POSES:
+    if np.array_equal(screen, inlier) or np.count_nonzero(screen) < MIN_POSES:
         return fit, inlier
     state = noise.theta, noise.step
     try:
         with np.errstate(over="raise", divide="raise", invalid="raise"):
-            return _fit(p.A, p.C, fit.X, fit.Z, noise, screen), screen
+            return gauss_newton(p.A, p.C, fit.X, fit.Z, noise, screen), screen
     except (Infeasible, np.linalg.LinAlgError, FloatingPointError):
         noise.theta, noise.step = state
         return fit, inlier
 
 
-def _leave_one_out(fit: _Fit, idx, n: int) -> np.ndarray:
+def leave_one_out(fit: Fit, idx, n: int) -> np.ndarray:
     """``(n, 2)``: how far X turns (rad) and moves (m) when each inlier ``idx`` is left out: by
     ``H⁻¹ J_iᵀ S_i⁻¹ r_i`` (Sherman–Morrison, first order); zero for the others."""
-    _, y = _standardised(fit)
+    _, y = standardised(fit)
     loo = np.zeros((n, 2))
     shift = np.einsum("ij,nkj,nk->ni", fit.P, fit.J, y)
     m = lie.se3_exp(shift[:, :6])
@@ -160,13 +160,13 @@ def _leave_one_out(fit: _Fit, idx, n: int) -> np.ndarray:
     return loo
 
 
-def _against(p: _Prepared, fit: _Fit, noise: _Noise, inlier):
+def against(p: Prepared, fit: Fit, noise: Noise, inlier):
     """Residuals, their covariances and NIS of every sample against a fit: the inliers'
     standardised (leave-one-out to first order, ``Σ_r − J P Jᵀ``), the others' against the
     prediction (``Σ_r + J P Jᵀ``)."""
     n = p.F.shape[0]
     everyone = np.ones(n, bool)
-    E, r, J, S = _linearise(p.A, p.C, lie.adjoint(dq.inv(p.C)), fit.X, fit.Z, noise, everyone)
+    E, r, J, S = linearise(p.A, p.C, lie.adjoint(dq.inv(p.C)), fit.X, fit.Z, noise, everyone)
     sign = np.where(inlier, -1.0, 1.0)
     V = S + sign[:, None, None] * (J @ fit.P @ np.swapaxes(J, 1, 2))
     V = 0.5 * (V + np.swapaxes(V, 1, 2))
@@ -174,7 +174,7 @@ def _against(p: _Prepared, fit: _Fit, noise: _Noise, inlier):
     return r, np.array(S), np.einsum("ni,ni->n", r, y)
 
 
-def _reason(k, fit: _Fit, p: _Prepared, r, S, nis, limit) -> str:
+def _reason(k, fit: Fit, p: Prepared, r, S, nis, limit) -> str:
     if not p.use[k]:
         return "duplicate"
     # The rotation off while the board's position (the translation of the residual) is not:
@@ -184,7 +184,7 @@ def _reason(k, fit: _Fit, p: _Prepared, r, S, nis, limit) -> str:
     St = S[3:, 3:]
     pos_nis = float(t @ np.linalg.solve(St, t))
     ang = float(np.linalg.norm(r[:3]))
-    if ang > np.radians(3.0) and pos_nis <= _GATE_3:
+    if ang > np.radians(3.0) and pos_nis <= GATE_3:
         return (f"marker flip? rotation off by {np.degrees(ang):.1f}° while the board's "
                 f"position agrees to {1e3 * np.linalg.norm(t):.2f} mm")
     return (f"NIS {nis:.3g} > {limit:.3g}: off by {np.degrees(ang):.2f}° / "

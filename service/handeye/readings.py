@@ -13,11 +13,11 @@ import numpy as np
 
 from dqpose import dq, lie
 from dqpose.errors import Infeasible
-from dqpose.handeye.closed_form import _closed_form
-from dqpose.handeye.setups import EYE_IN_HAND, _other, _reading
+from dqpose.handeye.closed_form import closed_form
+from dqpose.handeye.setups import EYE_IN_HAND, other_setup, reading
 
 if TYPE_CHECKING:
-    from dqpose.handeye.checks import _Prepared
+    from dqpose.handeye.checks import Prepared
 
 _READING_FACTOR = 5.0                  # another reading fits this many times better: refuse
 _MAX_MOUNT = 1.0                       # (m) a flange-mounted camera or target farther, or
@@ -33,18 +33,18 @@ def _spread(A, C, X, Z, use):
     return float(np.median(ang)), float(np.median(pos))
 
 
-def _compare_readings(F, A, C, setup, use, closed, s_th, s_d) -> tuple:
+def compare_readings(F, A, C, setup, use, closed, s_th, s_d) -> tuple:
     """``(reading, median rad, median m)`` of the closed form's fit of the reading given
     (``closed``), the setup swapped and the camera poses inverted, over the samples ``use``;
     ``Infeasible`` when another fits far better (``s_th``, ``s_d``: the robust σ of the motions'
     angle and pitch differences). Both swapped is no alternative: ``F⁻¹ Z C⁻¹ = X`` is the same
     equation with X and Z exchanged."""
     readings = []
-    other = _other(setup)
+    other = other_setup(setup)
     for name, Ar, Cr in ((setup, A, C),
-                         (other, _reading(F, other), C),
+                         (other, reading(F, other), C),
                          (f"{setup}, camera_target inverted", A, dq.inv(C))):
-        res = closed if Ar is A and Cr is C else _closed_form(Ar, Cr, use)
+        res = closed if Ar is A and Cr is C else closed_form(Ar, Cr, use)
         if res is None:
             continue
         readings.append((name,) + _spread(Ar, Cr, res[0], res[1], use))
@@ -76,7 +76,7 @@ class _Reading:
         return self.reach_ok and self.base_ok
 
 
-def _plausible(p: _Prepared, X, Z, inlier, inverted: bool = False) -> _Reading:
+def plausible(p: Prepared, X, Z, inlier, inverted: bool = False) -> _Reading:
     """How plausible the answer ``(X, Z)`` is as a mount (``inverted``: the reading of both poses
     inverted, where ``(Z, X)`` of the given fit is the answer and ``C⁻¹`` the camera poses)."""
     mount, fixed = (X, Z) if p.setup == EYE_IN_HAND else (Z, X)
@@ -91,9 +91,9 @@ def _plausible(p: _Prepared, X, Z, inlier, inverted: bool = False) -> _Reading:
                     f"{base:.2f} m from the robot base")
 
 
-def _inverse_noise(T, S):
+def inverse_noise(T, S):
     return None if S is None else lie.cov_inverse(T, S)
 
 
-def _moved(a, b) -> float:
+def moved(a, b) -> float:
     return float(np.linalg.norm(dq.to_pose(a)[1] - dq.to_pose(b)[1]))

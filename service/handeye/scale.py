@@ -2,14 +2,14 @@
 camera): the scale that fits best with its σ, and the evidence for it against no scale error.
 
 A rescale needs a likelihood ratio of the fit at the best-fitting scale against the fit at 1
-above ``_SCALE_SIGMAS²`` (χ²₁; scaled by the model's variance over the sandwich's when the
+above ``SCALE_SIGMAS²`` (χ²₁; scaled by the model's variance over the sandwich's when the
 residuals scatter more than the model says: the robust likelihood ratio). It is computed (one
-more fit) only when the scale is off 1 by more than ``_SCREEN_SIGMAS`` of its σ (the larger of
+more fit) only when the scale is off 1 by more than ``SCREEN_SIGMAS`` of its σ (the larger of
 the model's and the sandwich's): at 1 that σ is inflated by the misfit of a real scale error
 (twice the scale with the noise estimated: 0.77 ± 0.055 in one step), so a Wald test at 5 σ
 missed it. Without the evidence
 the answer is the unscaled fit's, the scale and its σ still reported. The likelihood is that of
-the translations as measured (:func:`_camera_scale`).
+the translations as measured (:func:`camera_scale`).
 """
 from __future__ import annotations
 
@@ -18,12 +18,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from dqpose import dq, lie
-from dqpose.handeye.likelihood import _Fit, _fit
-from dqpose.handeye.noise import _Noise
+from dqpose.handeye.likelihood import Fit, gauss_newton
+from dqpose.handeye.noise import Noise
 
 # The likelihood-ratio threshold (5 σ: nominal false-alarm rate < 1e-6 a solve), the screen before
 # it, and the smallest scale error corrected.
-_SCALE_SIGMAS, _SCREEN_SIGMAS, _MIN_SCALE = 5.0, 2.0, 2e-3
+SCALE_SIGMAS, SCREEN_SIGMAS, MIN_SCALE = 5.0, 2.0, 2e-3
 
 
 @dataclass(frozen=True)
@@ -34,7 +34,7 @@ class _Scale:
     extra: np.ndarray     # (12, 12): what λ free adds to the covariance of (X, Z)
 
 
-def _camera_scale(fit: _Fit, C: np.ndarray, noise: _Noise, use: np.ndarray) -> _Scale:
+def camera_scale(fit: Fit, C: np.ndarray, noise: Noise, use: np.ndarray) -> _Scale:
     """The scale ``λ`` of the camera's translations that fits best, its σ, and what ``λ`` free
     adds to the covariance of ``(X, Z)``: one Newton step from λ = 1 at the optimum with ``λ``
     joined to (X, Z), ``C`` the samples ``use`` of the fit. Scaling ``t`` of ``C_i`` moves
@@ -83,7 +83,7 @@ def _camera_scale(fit: _Fit, C: np.ndarray, noise: _Noise, use: np.ndarray) -> _
     return _Scale(1.0 + float(step[12]), sigma, model, extra)
 
 
-def _noise_score(fit: _Fit, W, Jri, noise: _Noise, use) -> np.ndarray | float:
+def _noise_score(fit: Fit, W, Jri, noise: Noise, use) -> np.ndarray | float:
     """Each sample's ``−½ tr(S⁻¹Ṡ) + ½ rᵀS⁻¹ṠS⁻¹r`` at λ = 1 with the camera noise given
     (``Ṡ`` the residual covariance's change as the camera's translation noise scales with λ:
     ``Σ_C → D Σ_C D``, ``D = diag(1, 1, 1, λ, λ, λ)``); 0 with the noise estimated."""
@@ -97,7 +97,7 @@ def _noise_score(fit: _Fit, W, Jri, noise: _Noise, use) -> np.ndarray | float:
             + 0.5 * np.einsum("ni,nij,nj->n", y, Sdot, y))
 
 
-def _log_likelihood(fit: _Fit, lam: float) -> float:
+def _log_likelihood(fit: Fit, lam: float) -> float:
     """The Gaussian log-likelihood of the measured data at a fit on translations scaled by
     ``lam``: ``−½ Σ (log det S_i + r_iᵀ S_i⁻¹ r_i) + 3 n log λ`` (the Jacobian of the scaling)."""
     _, logdet = np.linalg.slogdet(fit.S)
@@ -105,7 +105,7 @@ def _log_likelihood(fit: _Fit, lam: float) -> float:
     return float(-0.5 * (logdet.sum() + quad) + 3.0 * len(fit.r) * np.log(lam))
 
 
-def _evidence(p, fit: _Fit, noise: _Noise, use, scale: _Scale) -> float:
+def evidence(p, fit: Fit, noise: Noise, use, scale: _Scale) -> float:
     """The (robust) likelihood ratio of the fit at ``scale.lam`` against ``fit`` at 1, on the same
     samples ``use``: ``2 (ℓ(λ) − ℓ(1))``, times ``σ_model² / σ²`` (≤ 1: the residuals scatter
     more along the scale than the model says, so its likelihood overstates the evidence)."""
@@ -118,6 +118,7 @@ def _evidence(p, fit: _Fit, noise: _Noise, use, scale: _Scale) -> float:
     if SC is not None:
         D = np.diag([1.0] * 3 + [lam] * 3)
         SC = D @ SC @ D
-    scaled = _fit(p.A, C, fit.X, fit.Z, _Noise(noise.SA, SC, noise.estimate, noise.frames), use)
+    scaled = gauss_newton(p.A, C, fit.X, fit.Z,
+                          Noise(noise.SA, SC, noise.estimate, noise.frames), use)
     lr = 2.0 * (_log_likelihood(scaled, lam) - _log_likelihood(fit, 1.0))
     return lr * min(1.0, (scale.model_sigma / scale.sigma) ** 2)

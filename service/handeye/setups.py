@@ -16,18 +16,18 @@ SETUPS = ("eye_in_hand", "eye_to_hand")
 EYE_IN_HAND, EYE_TO_HAND = SETUPS
 
 
-def _setup(setup) -> str:
+def checked_setup(setup) -> str:
     if setup not in SETUPS:
         raise FieldError(f"setup: expected one of {', '.join(SETUPS)}, got {setup!r}")
     return setup
 
 
-def _reading(F, setup):
+def reading(F, setup):
     """The ``A_i`` of the flange poses ``F`` in ``setup``."""
     return F if setup == EYE_IN_HAND else dq.inv(F)
 
 
-def _other(setup: str) -> str:
+def other_setup(setup: str) -> str:
     """The setup that is not ``setup``."""
     return EYE_TO_HAND if setup == EYE_IN_HAND else EYE_IN_HAND
 
@@ -36,7 +36,7 @@ def view_at(base_flange, x, z, setup: str = EYE_IN_HAND) -> np.ndarray:
     """The ``T_camera_target`` a calibration ``(x, z)`` predicts at the robot poses
     ``base_flange``: eye-in-hand ``x⁻¹ · base_flange⁻¹ · z``, eye-to-hand
     ``x⁻¹ · base_flange · z``."""
-    if _setup(setup) == EYE_IN_HAND:
+    if checked_setup(setup) == EYE_IN_HAND:
         return dq.mul(dq.mul(dq.inv(x), dq.inv(base_flange)), z)
     return dq.mul(dq.mul(dq.inv(x), base_flange), z)
 
@@ -44,6 +44,6 @@ def view_at(base_flange, x, z, setup: str = EYE_IN_HAND) -> np.ndarray:
 def flange_for(camera_target, x, z, setup: str = EYE_IN_HAND) -> np.ndarray:
     """The ``T_base_flange`` at which a calibration ``(x, z)`` has the camera see the target at
     ``camera_target`` (the inverse of :func:`view_at`)."""
-    if _setup(setup) == EYE_IN_HAND:
+    if checked_setup(setup) == EYE_IN_HAND:
         return dq.mul(dq.mul(z, dq.inv(camera_target)), dq.inv(x))
     return dq.mul(dq.mul(x, camera_target), dq.inv(z))

@@ -81,9 +81,4 @@ from dqpose.smoothing.solve import CUTOFF_HZ, smooth
 from dqpose.smoothing.spline import MIN_POSES  # noqa: F401
 from dqpose.trajectory import Limits, Peaks, peaks  # noqa: F401 (Limits: smooth's argument)
 
-# isort: split
-# Private names the benchmark's peers use (tests/bench/bench_smoothing.py).
-from dqpose.smoothing.solve import _evaluate, _smooth, _unconstrained  # noqa: F401
-from dqpose.smoothing.spline import _rot  # noqa: F401
-
 __all__ = ["CUTOFF_HZ", "Infeasible", "Peaks", "peaks", "smooth"]

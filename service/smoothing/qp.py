@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from dqpose.errors import Infeasible
-from dqpose.smoothing.spline import _Model, _Problem
+from dqpose.smoothing.spline import Model, Problem
 
 if TYPE_CHECKING:
     import scipy.sparse as sp
@@ -19,13 +19,13 @@ if TYPE_CHECKING:
 _BOX_ALONG = 0.995        # a of the inscribed box where the reference is at or over the limit
 _SELECT = 0.6             # QP rows only where the reference exceeds this share of the limit
 _ROUNDS = 4               # QP solves per linearisation (rows added when the solution breaks one)
-_TOL = 1e-9               # relative slack when checking limits (rounding)
+TOL = 1e-9               # relative slack when checking limits (rounding)
 # PIQP's tolerances, in units of the limits (rows are scaled by them) and of the scaled cost;
 # the box is drawn that much inside the ball so a row met only to the tolerance stays inside.
 _EPS = 1e-6
-# No Ruiz preconditioning: the rows and the cost are scaled already (see _qp); it cost 15 % of
+# No Ruiz preconditioning: the rows and the cost are scaled already (see solve_qp); it cost 15 % of
 # the solve and moved the optimum by 1e-9 of itself.
-_PIQP = {"verbose": False, "eps_abs": _EPS, "eps_rel": _EPS, "preconditioner_iter": 0}
+PIQP = {"verbose": False, "eps_abs": _EPS, "eps_rel": _EPS, "preconditioner_iter": 0}
 
 
 def _quantities(d: np.ndarray, h: float):
@@ -33,8 +33,8 @@ def _quantities(d: np.ndarray, h: float):
     return d / h, np.diff(d, axis=0) / h ** 2, np.diff(d, 2, axis=0) / h ** 3
 
 
-def _breaks(d: np.ndarray, h: float, lims) -> bool:
-    return any(L > 0 and np.linalg.norm(Q, axis=1).max(initial=0) > L * (1 + _TOL)
+def breaks(d: np.ndarray, h: float, lims) -> bool:
+    return any(L > 0 and np.linalg.norm(Q, axis=1).max(initial=0) > L * (1 + TOL)
                for Q, L in zip(_quantities(d, h), lims))
 
 
@@ -62,7 +62,7 @@ def _box_rows(Q: np.ndarray, Jd: sp.csr_matrix, order: int, h: float, rows: np.n
     (``diff(d, order - 1)_j / h^order``, Jacobian from the increments' ``Jd``) in the box
     inscribed in the ball of radius ``L`` aligned with ``along_j``, in units of ``L`` (rows of
     order one keep the interior-point solver well scaled)."""
-    import scipy.sparse as sp  # the [planning] extra, here once a _Problem was built
+    import scipy.sparse as sp  # the [planning] extra, here once a Problem was built
 
     nrm = np.linalg.norm(along, axis=1)
     F = _frames(along / nrm[:, None])
@@ -82,7 +82,7 @@ def _box_rows(Q: np.ndarray, Jd: sp.csr_matrix, order: int, h: float, rows: np.n
     return P @ Jd, -lim - off, lim - off
 
 
-def _qp(prob: _Problem, model: _Model, lims, name: str, solver=("piqp", _PIQP)) -> np.ndarray:
+def solve_qp(prob: Problem, model: Model, lims, name: str, solver=("piqp", PIQP)) -> np.ndarray:
     """Correction ``(m, 3)`` of the control points: the linearised cost under the limits."""
     import casadi as ca
     import scipy.sparse as sp
@@ -136,7 +136,7 @@ def _qp(prob: _Problem, model: _Model, lims, name: str, solver=("piqp", _PIQP)) 
         for o, (Q, L) in enumerate(zip(_quantities(d, h), lims)):
             if L <= 0:
                 continue
-            over = np.setdiff1d(np.flatnonzero(np.linalg.norm(Q, axis=1) > L * (1 + _TOL)),
+            over = np.setdiff1d(np.flatnonzero(np.linalg.norm(Q, axis=1) > L * (1 + TOL)),
                                 chosen[o])
             if over.size:
                 chosen[o] = np.concatenate([chosen[o], over])

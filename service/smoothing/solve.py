@@ -10,8 +10,8 @@ import numpy as np
 
 from dqpose import dq
 from dqpose.errors import Infeasible, rename
-from dqpose.smoothing.qp import _PIQP, _TOL, _breaks, _qp
-from dqpose.smoothing.spline import MIN_POSES, _increments, _Problem, _quat_rot, _rot, _rotvec
+from dqpose.smoothing.qp import PIQP, TOL, breaks, solve_qp
+from dqpose.smoothing.spline import MIN_POSES, Problem, increments, quat_rot, rot_dq, rotvec
 from dqpose.trajectory import Limits, peaks
 
 CUTOFF_HZ = 2.0
@@ -99,54 +99,54 @@ def smooth(times, poses, limits: Limits, smoothing: float = 1.0, rate_hz: float 
     t, q, p, smoothing, rate_hz = _check(times, poses, limits, smoothing, rate_hz)
     if not isinstance(free_ends, (bool, np.bool_)):
         raise ValueError(f"free_ends: expected True or False, got {free_ends!r}")
-    return _smooth(t, q, p, limits, smoothing, rate_hz, rest=not free_ends)
+    return smooth_checked(t, q, p, limits, smoothing, rate_hz, rest=not free_ends)
 
 
-def _unconstrained(t: np.ndarray, q: np.ndarray, p: np.ndarray, smoothing: float,
+def unconstrained(t: np.ndarray, q: np.ndarray, p: np.ndarray, smoothing: float,
                    rest: bool = True):
     """The banded start: the problem, position and orientation control points, the samples'
     rotations."""
-    prob = _Problem(t, smoothing / (2 * math.pi * CUTOFF_HZ), rest)
-    r_meas = _quat_rot(q)
+    prob = Problem(t, smoothing / (2 * math.pi * CUTOFF_HZ), rest)
+    r_meas = quat_rot(q)
     # Position: exact in one banded solve.
     c = prob.fit(p)
     # Orientation: chordal smoothing of the sign-aligned quaternions as a reference, then one
     # Gauss-Newton step of the geodesic cost about it with the same factor.
     flip = np.cumsum(np.r_[0, np.einsum("ij,ij->i", q[1:], q[:-1]) < 0]) % 2
-    rc = _quat_rot(prob.fit(np.where(flip[:, None] == 1, -q, q)))
+    rc = quat_rot(prob.fit(np.where(flip[:, None] == 1, -q, q)))
     m = prob.rotation_model(rc, r_meas, t, jacobian=False)
-    return prob, c, dq.mul(rc, _rot(prob.gauss_newton(m.r, m.d))), r_meas
+    return prob, c, dq.mul(rc, rot_dq(prob.gauss_newton(m.r, m.d))), r_meas
 
 
-def _evaluate(prob: _Problem, c: np.ndarray, rc: np.ndarray, times: np.ndarray) -> np.ndarray:
+def evaluate(prob: Problem, c: np.ndarray, rc: np.ndarray, times: np.ndarray) -> np.ndarray:
     rot = prob.s.rotations(rc, times)
     return dq.from_pose(rot[:, :4], prob.s.positions(c, times))
 
 
-def _smooth(t, q, p, limits: Limits, smoothing: float, rate_hz: float,
-            solver=("piqp", _PIQP), verify: bool = True, rest: bool = True):
+def smooth_checked(t, q, p, limits: Limits, smoothing: float, rate_hz: float,
+            solver=("piqp", PIQP), verify: bool = True, rest: bool = True):
     """:func:`smooth` after the checks; ``solver`` and ``verify=False`` (one pass, the samples
     not measured) are for the benchmark's peers."""
-    prob, c, rc, r_meas = _unconstrained(t, q, p, smoothing, rest)
+    prob, c, rc, r_meas = unconstrained(t, q, p, smoothing, rest)
     h = prob.s.h
     if rest:
         _check_ends(t[-1] - t[0], float(np.linalg.norm(c[-1] - c[0])),
-                    float(np.linalg.norm(_rotvec(dq.mul(dq.conj(rc[0]), rc[-1])))), limits)
+                    float(np.linalg.norm(rotvec(dq.mul(dq.conj(rc[0]), rc[-1])))), limits)
 
     lin = [limits.max_linear_velocity, limits.max_linear_acceleration, limits.max_linear_jerk]
     ang = [limits.max_angular_velocity, limits.max_angular_acceleration, limits.max_angular_jerk]
     out_t = _output_times(t, rate_hz)
     for _ in range(_CHECKS):
-        if _breaks(np.diff(c, axis=0), h, lin):
-            c = c + _qp(prob, prob.position_model(c, p, t), lin, "poses", solver)
+        if breaks(np.diff(c, axis=0), h, lin):
+            c = c + solve_qp(prob, prob.position_model(c, p, t), lin, "poses", solver)
         for _ in range(_LINEARISATIONS):
-            if not _breaks(_increments(rc), h, ang):
+            if not breaks(increments(rc), h, ang):
                 break
             # The increments are linearised: held back by their second-order error (~0.5 % of
             # the limit for corrections of a few degrees), one linearisation usually suffices.
-            rc = dq.mul(rc, _rot(_qp(prob, prob.rotation_model(rc, r_meas, t),
+            rc = dq.mul(rc, rot_dq(solve_qp(prob, prob.rotation_model(rc, r_meas, t),
                                      [L * (1 - _ROTATION_MARGIN) for L in ang], "poses", solver)))
-        out = _evaluate(prob, c, rc, out_t)
+        out = evaluate(prob, c, rc, out_t)
         if not verify:
             return out_t, out
         # The control points obey the limits; the samples do too for the position (convex
@@ -158,7 +158,7 @@ def _smooth(t, q, p, limits: Limits, smoothing: float, rate_hz: float,
         ok = True
         for held, given, seen in zip((lin, ang), _limit_rows(limits), measured):
             for i, (L, v) in enumerate(zip(given, seen)):
-                if L > 0 and v > L * (1 + _TOL):
+                if L > 0 and v > L * (1 + TOL):
                     # squared: the angular jerk of the samples (base frame) exceeds that of the
                     # increments (body frame) by w x alpha, which does not shrink with the limit
                     held[i] = min(held[i], held[i] * (L / v) ** 2 * (1 - 1e-3))

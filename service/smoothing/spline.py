@@ -35,14 +35,14 @@ def _solvers() -> None:
 
 
 # ---- small SO(3) helpers on rotation-only dual quaternions (real part = quaternion) ------------
-def _rot(w: np.ndarray) -> np.ndarray:
+def rot_dq(w: np.ndarray) -> np.ndarray:
     """Rotation vectors (..., 3) -> rotation-only dual quaternions (..., 8)."""
     x = np.zeros(w.shape[:-1] + (6,))
     x[..., :3] = 0.5 * w
     return dq.exp(x)
 
 
-def _rotvec(r: np.ndarray) -> np.ndarray:
+def rotvec(r: np.ndarray) -> np.ndarray:
     """Rotation part of dual quaternions (..., 8) -> rotation vectors (..., 3), angle in [0, pi]."""
     return 2.0 * dq.log(_only_rotation(r))[..., :3]
 
@@ -53,7 +53,7 @@ def _only_rotation(r: np.ndarray) -> np.ndarray:
     return out
 
 
-def _quat_rot(q: np.ndarray) -> np.ndarray:
+def quat_rot(q: np.ndarray) -> np.ndarray:
     out = np.zeros(q.shape[:-1] + (8,))
     out[..., :4] = q / np.linalg.norm(q, axis=-1, keepdims=True)
     return out
@@ -101,17 +101,17 @@ class _Spline:
     def rotations(self, rc: np.ndarray, t: np.ndarray) -> np.ndarray:
         """The cumulative B-spline on SO(3) through control rotations ``rc`` (m, 8)."""
         i, b = self.basis(t)
-        d = _increments(rc)
+        d = increments(rc)
         cum = np.cumsum(b[:, ::-1], axis=1)[:, ::-1]          # B~_j = b_j + ... + b_3
         r = rc[i]
         for j in (1, 2, 3):
-            r = dq.mul(r, _rot(cum[:, j, None] * d[i + j - 1]))
+            r = dq.mul(r, rot_dq(cum[:, j, None] * d[i + j - 1]))
         return r
 
 
-def _increments(rc: np.ndarray) -> np.ndarray:
+def increments(rc: np.ndarray) -> np.ndarray:
     """Body increments ``d_j = Log(Rc_j-1^-1 Rc_j)``, ``(m - 1, 3)``; row j-1 holds ``d_j``."""
-    return _rotvec(dq.mul(dq.conj(rc[:-1]), rc[1:]))
+    return rotvec(dq.mul(dq.conj(rc[:-1]), rc[1:]))
 
 
 def _kron3(a: sp.spmatrix) -> sp.csr_matrix:
@@ -132,7 +132,7 @@ def _kron3(a: sp.spmatrix) -> sp.csr_matrix:
 
 
 # ---- one channel (position or orientation) as a linear model about a reference ------------------
-class _Model(NamedTuple):
+class Model(NamedTuple):
     """Residuals and increments at the reference, and the increments' Jacobian.
 
     ``r`` (n, 3) residuals at the samples (their Jacobian in the corrections ``x`` is the spline's
@@ -212,7 +212,7 @@ def _knots(t: np.ndarray, tau: float) -> int:
     return int(min(n, max(MIN_POSES, math.ceil((t[-1] - t[0]) * _SPANS_PER_TAU / tau) + 1)))
 
 
-class _Problem:
+class Problem:
     """What both channels share: the spline, the sample weights, the cost and its banded factor."""
 
     def __init__(self, t: np.ndarray, tau: float, rest: bool = True):
@@ -262,11 +262,11 @@ class _Problem:
              + self.lam * (self.D1E.T @ (self.D2.T @ (self.D2 @ d))))
         return self.s.E @ -self.solve(g)
 
-    def position_model(self, c: np.ndarray, y: np.ndarray, t: np.ndarray) -> _Model:
-        return _Model(self.s.positions(c, t) - y, np.diff(c, axis=0), self.st.D1E3)
+    def position_model(self, c: np.ndarray, y: np.ndarray, t: np.ndarray) -> Model:
+        return Model(self.s.positions(c, t) - y, np.diff(c, axis=0), self.st.D1E3)
 
     def rotation_model(self, rc: np.ndarray, r_meas: np.ndarray, t: np.ndarray,
-                       jacobian: bool = True) -> _Model:
-        res = _rotvec(dq.mul(dq.conj(r_meas), self.s.rotations(rc, t)))
-        d = _increments(rc)
-        return _Model(res, d, _rotation_jacobian(self.s, d) if jacobian else None)
+                       jacobian: bool = True) -> Model:
+        res = rotvec(dq.mul(dq.conj(r_meas), self.s.rotations(rc, t)))
+        d = increments(rc)
+        return Model(res, d, _rotation_jacobian(self.s, d) if jacobian else None)

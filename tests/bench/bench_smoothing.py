@@ -34,8 +34,10 @@ import time
 
 import numpy as np
 
-from dqpose import dq, smoothing
+from dqpose import dq
 from dqpose.smoothing import peaks, smooth
+from dqpose.smoothing.solve import evaluate, smooth_checked, unconstrained
+from dqpose.smoothing.spline import rot_dq
 from tests.smoothing.test_solve import errors, limits_from, noisy, teleop_path
 
 FIELDS = ("linear_velocity", "angular_velocity", "linear_acceleration", "angular_acceleration")
@@ -58,13 +60,13 @@ def ours(t, y, limits):
 
 def banded(t, y, limits):
     q, p = dq.to_pose(y)
-    prob, c, rc, _ = smoothing._unconstrained(t, q, p, 1.0)
-    return t, smoothing._evaluate(prob, c, rc, t)
+    prob, c, rc, _ = unconstrained(t, q, p, 1.0)
+    return t, evaluate(prob, c, rc, t)
 
 
 def osqp(t, y, limits):
     q, p = dq.to_pose(y)
-    return smoothing._smooth(t, q, p, limits, 1.0, 0.0, solver=("osqp", {"verbose": False}),
+    return smooth_checked(t, q, p, limits, 1.0, 0.0, solver=("osqp", {"verbose": False}),
                              verify=False)
 
 
@@ -93,7 +95,7 @@ class Ipopt:
 
         t0 = time.perf_counter()
         q, p = dq.to_pose(y)
-        prob, c0, rc0, r_meas = smoothing._unconstrained(t, q, p, 1.0)
+        prob, c0, rc0, r_meas = unconstrained(t, q, p, 1.0)
         self.prob, self.c0, self.rc0, self.t = prob, c0, rc0, t
         s, h, Z = prob.s, prob.s.h, prob.s.z
         zmap = np.clip(np.arange(s.m) - 2, 0, Z - 1)
@@ -155,9 +157,9 @@ class Ipopt:
         xp, xe = x[:3 * self.Z].reshape(3, -1).T, x[3 * self.Z:].reshape(3, -1).T
         E = self.prob.s.E
         c = self.c0 + self.units[0] * (E @ xp)
-        rc = dq.mul(self.rc0, smoothing._rot(self.units[1] * (E @ xe)))
+        rc = dq.mul(self.rc0, rot_dq(self.units[1] * (E @ xe)))
         status = self.solver.stats()["return_status"]
-        return elapsed, status, smoothing._evaluate(self.prob, c, rc, self.t)
+        return elapsed, status, evaluate(self.prob, c, rc, self.t)
 
 
 def _cols(a):

@@ -301,7 +301,7 @@ def test_a_close_without_disconnect_stops_and_leaves_the_connections_to_the_proc
 
 
 def test_unreachable_host_fails_fast():
-    host = next(h for h in (f"127.0.0.{i}" for i in range(250, 20, -1)) if ursim._address_free(h))
+    host = next(h for h in (f"127.0.0.{i}" for i in range(250, 20, -1)) if ursim.address_free(h))
     t0 = time.monotonic()
     with pytest.raises(ArmError, match=f"^host: cannot reach a UR controller at {host}:30004"):
         URArm(host, connect_timeout=0.5)

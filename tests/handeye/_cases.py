@@ -20,10 +20,6 @@ def _nees(estimate, truth, cov):
     return float(xi @ np.linalg.solve(cov, xi))
 
 
-def _reading(F, setup):
-    return F if setup == "eye_in_hand" else dq.inv(F)
-
-
 def flipped(n: int, fraction: float, tip_deg: tuple[float, float], seed: int,
             noise: tuple[float, float] = (0.1, 0.5)):
     """A wrist scene of ``n`` samples with camera noise ``noise`` (deg, mm per axis), a

@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 
 from dqpose import dq, handeye
+from dqpose.handeye.setups import reading
 from tests import _handeye as H
-from tests.handeye._cases import CASES, _close, _nees, _reading
+from tests.handeye._cases import CASES, _close, _nees
 
 
 # ---- exact data --------------------------------------------------------------------------------
@@ -17,7 +18,7 @@ def test_exact_data_solved_exactly(setup, geometry):
     assert _close(c.x, s.x, 1e-9) and _close(c.z, s.z, 1e-9)
     assert _close(c.closed_form_x, s.x, 1e-9)
     # A X = X B for every motion pair, with the answer.
-    A = _reading(s.base_flange, setup)
+    A = reading(s.base_flange, setup)
     i, j = np.triu_indices(15, 1)
     lhs = dq.mul(dq.mul(dq.inv(A[j]), A[i]), c.x)
     rhs = dq.mul(c.x, dq.mul(s.camera_target[j], dq.inv(s.camera_target[i])))

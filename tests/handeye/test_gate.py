@@ -7,7 +7,7 @@ import pytest
 
 from dqpose import handeye
 from dqpose.fusion.chi2 import chi2_quantile
-from dqpose.handeye.gate import _GATE, _GATE_6, _beta_cdf, _beta_quantile, _thresholds
+from dqpose.handeye.gate import _GATE, GATE_6, _beta_cdf, _beta_quantile, thresholds
 from tests import _handeye as H
 from tests.bench.bench_handeye_false_alarms import OTHER_SETUP_SEEDS, binomial_interval
 
@@ -27,16 +27,16 @@ def test_studentised_thresholds_bracket_chi2_and_tend_to_it():
     """A sample in the fit is bounded by the fit's own degrees of freedom (below χ²₆), one left
     out is judged against a noise estimated on finitely many (above it); both tend to χ²₆, which
     the given noise uses throughout."""
-    assert _GATE_6 == pytest.approx(chi2_quantile(_GATE, 6), rel=1e-12)
-    assert _thresholds(False, 48) == (_GATE_6, _GATE_6)
+    assert GATE_6 == pytest.approx(chi2_quantile(_GATE, 6), rel=1e-12)
+    assert thresholds(False, 48) == (GATE_6, GATE_6)
     last_in, last_out = 0.0, math.inf
     for dof in (18, 48, 108, 228, 828, 20_000):
-        inside, outside = _thresholds(True, dof)
-        assert last_in < inside < _GATE_6 < outside < last_out
+        inside, outside = thresholds(True, dof)
+        assert last_in < inside < GATE_6 < outside < last_out
         last_in, last_out = inside, outside
-    assert _thresholds(True, 20_000)[0] == pytest.approx(_GATE_6, rel=2e-3)
-    assert _thresholds(True, 20_000)[1] == pytest.approx(_GATE_6, rel=2e-3)
-    assert _thresholds(True, 6) == (math.inf, math.inf)
+    assert thresholds(True, 20_000)[0] == pytest.approx(GATE_6, rel=2e-3)
+    assert thresholds(True, 20_000)[1] == pytest.approx(GATE_6, rel=2e-3)
+    assert thresholds(True, 6) == (math.inf, math.inf)
 
 
 def _rejected_share(mode: str, seeds: int, poses: int = 20):

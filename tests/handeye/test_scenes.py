@@ -4,15 +4,16 @@ import numpy as np
 import pytest
 
 from dqpose import dq, lie
+from dqpose.handeye.setups import reading
 from tests import _handeye as H
-from tests.handeye._cases import CASES, _close, _reading
+from tests.handeye._cases import CASES, _close
 
 
 # ---- the scenes themselves ---------------------------------------------------------------------
 @pytest.mark.parametrize("setup,geometry", CASES)
 def test_scene_closes_the_loop(setup, geometry):
     s = H.scene(12, setup, geometry, camera_noise=(0.0, 0.0), seed=3)
-    Z = dq.mul(dq.mul(_reading(s.base_flange, setup), s.x), s.camera_target)
+    Z = dq.mul(dq.mul(reading(s.base_flange, setup), s.x), s.camera_target)
     assert all(_close(z, s.z, 1e-12) for z in Z)
 
 

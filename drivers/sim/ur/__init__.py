@@ -43,10 +43,10 @@ from dqpose.drivers.sim.ur.model import (
     SimConfig,
 )
 
-# _address_free: the tests pick a free loopback address with it too
+# address_free: the tests pick a free loopback address with it too
 from dqpose.drivers.sim.ur.process import (  # noqa: F401
     URSimProcess,
-    _address_free,
+    address_free,
     servo_lag_cycles,
 )
 from dqpose.drivers.sim.ur.server import URSim

@@ -22,7 +22,7 @@ class URSimProcess:
         candidates = [host] if host else [f"127.0.0.{i}" for i in range(20, 250)]
         last = "no address tried"
         for addr in candidates:
-            if host is None and not _address_free(addr):
+            if host is None and not address_free(addr):
                 continue
             self.host = addr
             self.proc = start_process("dqpose.drivers.sim.ur", "--host", addr, *args)
@@ -137,7 +137,7 @@ def servo_lag_cycles(entries: list[dict], history: np.ndarray, tol: float = 1e-9
     return lags
 
 
-def _address_free(host: str) -> bool:
+def address_free(host: str) -> bool:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         try:
             s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)

@@ -56,7 +56,7 @@ class _StampedReader:
         return kind, body, self.stamp
 
 
-class _Session:
+class Session:
     """One RTDE client connection."""
 
     def __init__(self, sock, peer):
@@ -92,13 +92,13 @@ class RTDEServer:
     ``dt`` it uses)."""
 
     def _init_rtde(self):
-        self.sessions: list[_Session] = []
-        self.register_owner: dict[str, _Session] = {}
+        self.sessions: list[Session] = []
+        self.register_owner: dict[str, Session] = {}
         self.stream_paused_until = 0.0
         self.log: collections.deque = collections.deque(maxlen=self.cfg.log)
         self.log_base = 0            # index of log[0] in the whole run
 
-    def _rtde_client(self, sess: _Session):
+    def _rtde_client(self, sess: Session):
         try:
             reader = _StampedReader(sess.sock)
             while sess.alive and not self.stopping.is_set():
@@ -113,7 +113,7 @@ class RTDEServer:
                     self.sessions.remove(sess)
             sess.close()
 
-    def _rtde_message(self, sess: _Session, kind: int, body: bytes, arrived: float):
+    def _rtde_message(self, sess: Session, kind: int, body: bytes, arrived: float):
         if kind == rp.REQUEST_PROTOCOL_VERSION:
             ok = len(body) >= 2 and struct.unpack(">H", body[:2])[0] in (1, 2)
             sess.send(rp.frame(kind, bytes([int(ok)])))

@@ -19,7 +19,7 @@ from dqpose.drivers.sim.ur.model import (
     Controller,
     SimConfig,
 )
-from dqpose.drivers.sim.ur.rtde_server import RTDEServer, _Session
+from dqpose.drivers.sim.ur.rtde_server import RTDEServer, Session
 
 #: how much missed time the model catches up on at most, seconds (beyond, the arm lags)
 CATCH_UP = 0.5
@@ -84,7 +84,7 @@ class URSim(Controller, RTDEServer, TextPorts, Hooks):
             # stopped reading, and the cycle must not wait for it.
             conn.setsockopt(socket.SOL_SOCKET, socket.SO_SNDTIMEO, struct.pack("ll", 1, 0))
             if kind == "rtde":
-                arg = _Session(conn, peer)
+                arg = Session(conn, peer)
                 with self.lock:
                     self.sessions.append(arg)
             else:

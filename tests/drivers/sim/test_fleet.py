@@ -33,7 +33,7 @@ def test_serve_with_sims_brings_up_reachable_devices_and_takes_them_down():
     pytest.importorskip("msgpack")                    # the PiPER simulator's udp_multicast bus
     from dqpose import dq, drivers
     from dqpose.drivers.camera import read_image
-    from dqpose.drivers.sim.ur import _address_free
+    from dqpose.drivers.sim.ur import address_free
     from dqpose.rpc.client import Client
 
     # the PiPER served as an arm, the UR left to the user (--sims alone serves both)
@@ -80,7 +80,7 @@ def test_serve_with_sims_brings_up_reachable_devices_and_takes_them_down():
 
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=30) == 0
-        assert _address_free(host)                    # the UR simulator is gone
+        assert address_free(host)                    # the UR simulator is gone
         assert _gone(piper["pid"])                    # the PiPER simulator too
         assert not os.path.exists(folder)             # and the temporary views
     finally:
@@ -96,7 +96,7 @@ def test_unknown_device_is_named():
 def test_simulators_do_not_outlive_a_killed_server():
     pytest.importorskip("rtde_control")
     pytest.importorskip("msgpack")
-    from dqpose.drivers.sim.ur import _address_free
+    from dqpose.drivers.sim.ur import address_free
     # A killed server cannot remove its camera views: give it a temporary directory of ours.
     with tempfile.TemporaryDirectory(prefix="dqpose-test-fleet-") as tmp:
         proc = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "serve", "--port", "0",
@@ -108,13 +108,13 @@ def test_simulators_do_not_outlive_a_killed_server():
                 e = json.loads(proc.stderr.readline())
                 events[e.get("device", e["event"])] = e
             host, pid = events["ur"]["host"], events["piper"]["pid"]
-            assert not _address_free(host) and not _gone(pid)
+            assert not address_free(host) and not _gone(pid)
             assert events["camera"]["images"].startswith(tmp)
         finally:
             proc.kill()                               # no chance to clean up
             proc.wait()
             proc.stderr.close()
         deadline = time.monotonic() + 5
-        while not (_address_free(host) and _gone(pid)) and time.monotonic() < deadline:
+        while not (address_free(host) and _gone(pid)) and time.monotonic() < deadline:
             time.sleep(0.1)
-        assert _address_free(host) and _gone(pid)
+        assert address_free(host) and _gone(pid)

@@ -213,7 +213,7 @@ def test_stopScript_ends_the_program(sim, rtde):
 
 
 def test_cli_starts_the_simulator():
-    host = next(h for h in (f"127.0.0.{i}" for i in range(250, 20, -1)) if ur._address_free(h))
+    host = next(h for h in (f"127.0.0.{i}" for i in range(250, 20, -1)) if ur.address_free(h))
     proc = subprocess.Popen([sys.executable, "-m", "dqpose.cli", "sim", "ur", "--host", host,
                              "--version", "3.15.7.106331"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
