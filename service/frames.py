@@ -352,23 +352,29 @@ def frames(world: "World") -> list[FrameInfo]:
     sources, the statics; the same :class:`FrameInfo` objects while they hold (a body's until
     its version changes, the others' until a configuration)."""
     tree, t = world.tree, world._t
-    out = list(tree.fixed[0])
     infos = tree.infos
-    for body in list(t.held) + [b for b in tree.static_body_names if not t.has(b)]:
-        version = t.version(body)
-        hit = infos.get(body)
-        if hit is None or hit[0] != version:
-            hit = infos[body] = (version, _body_info(world, body))
-        out.append(hit[1])
-    return out + tree.fixed[1]
+    bodies = list(t.held) + [b for b in tree.static_body_names if not t.has(b)]
+    version = t.version
+    stale = [b for b in bodies if b not in infos or infos[b][0] != version(b)]
+    if stale:
+        _body_infos(world, stale)
+    return list(tree.fixed[0]) + [infos[b][1] for b in bodies] + tree.fixed[1]
 
 
-def _body_info(world: "World", body: str) -> FrameInfo:
-    t = world._t
-    kind = FrameKind.STATIC_BODY if body in world.tree.static_bodies else FrameKind.BODY
-    if not t.has(body):
-        return FrameInfo(body, "", kind)
-    newest = t.newest(body)
-    recent = t.rows_ending(body, newest, 1.0)
-    return FrameInfo(body, "", kind, t.oldest(body), newest, float(len(recent)),
-                     tuple(world._fed(body)))
+def _body_infos(world: "World", bodies: list[str]) -> None:
+    """``bodies``' :class:`FrameInfo` made again and kept with their versions (the span and
+    rate of all of them from one pass over the store's rows)."""
+    t, tree = world._t, world.tree
+    held = [b for b in bodies if t.has(b)]
+    spans = {}
+    if held:
+        oldest, newest, near, fed = t.spans(held, 1.0)
+        spans = dict(zip(held, zip(oldest.tolist(), newest.tolist(), near.tolist(), fed)))
+    before = world._fed_before      # sources that fed a body under earlier configurations
+    for body in bodies:
+        kind = FrameKind.STATIC_BODY if body in tree.static_bodies else FrameKind.BODY
+        span = spans.get(body)
+        info = (FrameInfo(body, "", kind) if span is None else
+                FrameInfo(body, "", kind, span[0], span[1], float(span[2]),
+                          span[3] + tuple(s for s in before.get(body, ()) if s not in span[3])))
+        tree.infos[body] = (t.version(body), info)

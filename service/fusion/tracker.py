@@ -263,6 +263,40 @@ class Tracker:
         """When the oldest measurement in ``body``'s window was taken."""
         return float(self._store.taken[self._rows(body)].min())
 
+    def spans(self, bodies: Sequence[str], recent: float) -> tuple:
+        """:meth:`oldest` and :meth:`newest` of each of ``bodies`` (which have measurements),
+        how many of its window's rows were taken within ``recent`` s before its newest, and the
+        names of the sources of :meth:`by_source`, in one pass over the live rows (a list of
+        every body: one body's looks cost ~13 us)."""
+        s = self._store
+        codes = np.array([self._body_codes[b] for b in bodies], np.int64)
+        oldest = np.full(len(self._newest), math.inf)
+        near = np.zeros(len(self._newest), np.int64)
+        if 400 * len(codes) < s.n:      # a few bodies: each one's rows (~4 us a body)
+            for b in codes.tolist():
+                taken = s.taken[s.rows(b, self._newest, self.window, self.cap)]
+                oldest[b] = taken.min()
+                near[b] = np.count_nonzero(taken >= self._newest[b] - recent)
+        else:                           # many: one pass over the live rows (~10 ns a row)
+            rows = np.flatnonzero(s.live(self._newest, self.window, self.cap))
+            body, taken = s.body[rows], s.taken[rows]
+            np.minimum.at(oldest, body, taken)
+            near = np.bincount(body[taken >= self._newest[body] - recent],
+                               minlength=len(self._newest))
+        # the sources' sets by pattern: few patterns among many bodies
+        seen = self._by_source[codes] != -math.inf
+        names, fed = self._names, []
+        if len(codes):
+            if seen.shape[1] <= 62:     # each row's pattern as one integer
+                _, first, which = np.unique(seen @ (1 << np.arange(seen.shape[1])),
+                                            return_index=True, return_inverse=True)
+            else:
+                _, first, which = np.unique(seen, axis=0, return_index=True,
+                                            return_inverse=True)
+            named = [tuple(names[c] for c in np.flatnonzero(seen[i])) for i in first.tolist()]
+            fed = [named[k] for k in which.ravel().tolist()]
+        return oldest[codes], self._newest[codes], near[codes], fed
+
     def remove(self, body: str) -> None:
         b = self._code_of(body)
         s = self._store

@@ -9,7 +9,8 @@ handler's work as the server's worker runs it (:func:`dqpose.rpc.world_frames.li
 world's frames and their serialized ``FrameList``), by ``time.thread_time`` (CPU time of the
 thread, which a loaded machine's other processes do not add to), per call over ``--calls``
 calls: the world unchanged since the last call (each body's info kept), after a Publish request
-that brought one body a measurement (its info made again), and after a configuration (every
+that brought one body a measurement (its info made again), after one that brought every body
+one (a live world: every body's span new at each call), and after a configuration (every
 body's made again). Target: <= 1 ms a call.
 """
 from __future__ import annotations
@@ -76,6 +77,12 @@ def main() -> None:
         hub.world.ingest(["b0"], ["cam0"], np.array([2.0 + k / 1e4]), ONE[None],
                          np.eye(6)[None] * 1e-6)
 
+    def every_body(k: int) -> None:
+        n = BODIES
+        hub.world.ingest([f"b{j}" for j in range(n)], [f"cam{j % 4}" for j in range(n)],
+                         np.full(n, 3.0 + k / 30.0), np.tile(ONE, (n, 1)),
+                         np.tile(np.eye(6) * 1e-6, (n, 1, 1)))
+
     def configured(_: int) -> None:
         w = hub.world
         w.configure(sources=w.sources, arms={}, options=w.options, statics=w.tree.statics,
@@ -83,6 +90,8 @@ def main() -> None:
 
     rows = [["unchanged", per_call(hub, args.calls)],
             ["after a request to one body", per_call(hub, args.calls, one_body)],
+            ["after a request to every body (a live world: each call lists new spans)",
+             per_call(hub, max(args.calls // 5, 5), every_body)],
             ["after a configuration", per_call(hub, max(args.calls // 10, 5), configured)]]
     print(markdown(["ListFrames, 1,000 frames", "server CPU / call (ms)"],
                    [[case, f"{1e3 * s:.3f}"] for case, s in rows]))

@@ -319,3 +319,25 @@ def test_times_beyond_max_time_and_past_the_stream_room_are_refused_by_name():
         "3: measurements[3]: the stream's windows hold 1 measurements, over the server's limit "
         "max_stream_measurements = 4 measurements (dqpose serve --max-stream-measurements)"]
     assert t.count("box") == 4
+
+
+@pytest.mark.parametrize("bodies", [1, 60])   # one body by its rows, all in one pass
+def test_spans_are_each_bodys_own_looks(bodies):
+    """Tracker.spans (ListFrames' spans, rates and sources of many bodies at once, by either
+    of its two ways) gives what oldest, newest, rows_ending and by_source give body by body,
+    with measurements late, out of order and past a cap."""
+    rng = np.random.default_rng(bodies)
+    t = Tracker(2.0, bounds=TrackerBounds.of(limits.DEFAULT), robust=False)
+    names = [f"b{k}" for k in range(60)]
+    for step in range(40):
+        n = 30
+        t.ingest([names[k] for k in rng.integers(0, 60, n)],
+                 [f"cam{k}" for k in rng.integers(0, 5, n)],
+                 step * 0.1 + rng.uniform(-0.5, 0.1, n), np.tile(dq.identity(), (n, 1)),
+                 np.tile(np.eye(6) * 1e-4, (n, 1, 1)))
+    asked = list(t.bodies)[:bodies]
+    oldest, newest, near, fed = t.spans(asked, 1.0)
+    for k, b in enumerate(asked):
+        assert oldest[k] == t.oldest(b) and newest[k] == t.newest(b)
+        assert near[k] == len(t.rows_ending(b, t.newest(b), 1.0))
+        assert fed[k] == tuple(t.by_source(b))
