@@ -23,7 +23,7 @@ from dqpose.fusion import Fused
 from dqpose.fusion.results import DOF, _frozen
 from dqpose.fusion.sources import Source, pose_covariance
 from dqpose.fusion.validation import _pose
-from dqpose.lookup import _composed
+from dqpose.lookup import composed_independent
 from dqpose.names import name_problem, quoted
 from dqpose.world_bounds import DEFAULT, WorldBounds, over
 
@@ -320,7 +320,7 @@ def _roots(world: "World", target: str, source: str, at: float) -> "BodyPose":
     changes; a static body's own pose composed."""
     statics = world.tree.static_bodies
     if target in statics or source in statics:
-        return _composed(target, source, at,
+        return composed_independent(target, source, at,
                          {b: _root_pose(world, b, at) for b in (target, source) if b})
     key = (target, source, at)
     versions = (world._riders.version(target), world._riders.version(source))

@@ -60,7 +60,7 @@ class Lookups:
             # fitted together over the uncertain sources they share, else each alone
             got = riders.joint(target, source, at) if target and source else None
             if got is None:
-                return _composed(target, source, at,
+                return composed_independent(target, source, at,
                                  {b: w._pose_only(b, at) for b in (target, source) if b})
             from dqpose.world import BodyPose
             Xa, Xb, P = got
@@ -71,7 +71,7 @@ class Lookups:
             kept = {b: w._kept_pose(b, at) for b in (target, source) if b}
             poses = {b: k for b, k in kept.items() if k is not None}
             if len(poses) == len(kept):
-                return _composed(target, source, at, poses)
+                return composed_independent(target, source, at, poses)
         answer = self._in_c(target, source, at) if _plain(t) else None
         return answer if answer is not None else self._fitted(target, source, at)
 
@@ -164,7 +164,7 @@ class Lookups:
             return BodyPose(source, at, *w._pose_only(source, at), None)
         if not source or w._t.exact or not self.share(target, source, at):
             # nothing uncertain that two bodies could share: each body's own pose
-            return _composed(target, source, at,
+            return composed_independent(target, source, at,
                              {b: w._pose_only(b, at) for b in (target, source) if b})
         # each body's start for the joint fit: its constant-twist fit, unless robust (the
         # gate's inliers need the whole fit); kept apart from the body's own fits
@@ -194,7 +194,7 @@ def _plain(t: "Tracker") -> bool:
     return not o.robust and o.acceleration_psd is None and o.max_skew is None
 
 
-def _composed(target: str, source: str, at: float,
+def composed_independent(target: str, source: str, at: float,
               poses: Mapping[str, tuple[np.ndarray, np.ndarray]]) -> "BodyPose":
     """``T_target_source`` composed of the two bodies' own poses and covariances (``poses``),
     as if their errors were independent (the world frame "" is exact): the answer when they

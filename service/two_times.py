@@ -72,10 +72,10 @@ def relative_at(world, target: str, time: float, source: str, source_time: float
     :class:`dqpose.world.BodyPose` at ``time``: ``WorldError``, ``NotFound`` or ``OutOfRange``
     as :meth:`World.relative` names them."""
     from dqpose.errors import WorldError
-    from dqpose.world import BodyPose, _body_name
+    from dqpose.world import BodyPose, body_name
 
-    target, source = _body_name(target, "target"), _body_name(source, "source")
-    fixed = _body_name(fixed, "fixed_frame")
+    target, source = body_name(target, "target"), body_name(source, "source")
+    fixed = body_name(fixed, "fixed_frame")
     try:
         _seconds(time, "time")
         _seconds(source_time, "source_time")

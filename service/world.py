@@ -111,7 +111,7 @@ class BodyPose:
     fused: Optional[Fused]
 
 
-def _body_name(body, field: str = "body") -> str:
+def body_name(body, field: str = "body") -> str:
     """``body`` when it is a body's name or "" (the world frame), else a ``WorldError`` naming
     ``field``."""
     problem = name_problem(body, empty=True)
@@ -438,7 +438,7 @@ class World:
         return self._rows_for(body, end if time is None else time, end)
 
     def _known(self, body) -> None:
-        body = _body_name(body)
+        body = body_name(body)
         if not self._t.has(body):
             some = list(self._t.bodies)[:5]
             raise NotFound(f"body: {body!r} is not in the world (" + (
@@ -549,13 +549,13 @@ class World:
         frames ("" the world; :func:`dqpose.frames.relative`). Bodies that share a source with
         an ``extrinsic_covariance`` or an estimated latency are fitted together (one error per
         such source), so the covariance has their cross-covariance (:mod:`dqpose.lookup`)."""
-        target, source = _body_name(target, "target"), _body_name(source, "source")
+        target, source = body_name(target, "target"), body_name(source, "source")
         with self._lock.read():
             return _frames.relative(self, target, source, time)
 
     def frame_pose(self, frame: str, at: float) -> BodyPose:
         """``T_world_frame`` at ``at`` and its covariance (:func:`dqpose.frames.frame_pose`)."""
-        frame = _body_name(frame, "frame")
+        frame = body_name(frame, "frame")
         with self._lock.read():
             return _frames.frame_pose(self, frame, at)
 

@@ -11,7 +11,7 @@ from dqpose import dq, fusion, handeye, lie
 from dqpose.fusion import Measurement, Source
 from dqpose.fusion.alignment import _Start
 from dqpose.fusion.extrinsics import _relative_covariance
-from dqpose.lookup import _composed
+from dqpose.lookup import composed_independent
 from dqpose.world import (
     NotFound,
     OutOfRange,
@@ -147,7 +147,7 @@ def test_a_lookup_between_bodies_that_share_no_error_composes_their_poses(uncert
     at = min(world.newest("box"), world.newest("cup"))
     r = world.relative("box", "cup")
     poses = {b: (p.pose, p.covariance) for b, p in ((b, world.pose(b, at)) for b in ("box", "cup"))}
-    c = _composed("box", "cup", at, poses)
+    c = composed_independent("box", "cup", at, poses)
     same_fit(r.pose, r.covariance, c.pose, c.covariance)
 
 
@@ -384,7 +384,7 @@ def relative_nees(trials: int, seed: int = 0):
         world = World(sources=sources)
         T = shared_scene(rng, world, sources, EXTRINSIC)
         r = world.relative("a", "b")
-        c = _composed("a", "b", r.time, {b: (p.pose, p.covariance) for b, p in
+        c = composed_independent("a", "b", r.time, {b: (p.pose, p.covariance) for b, p in
                                           ((b, world.pose(b, r.time)) for b in "ab")})
         for est, out in ((r, joint), (c, composed)):
             e = lie.se3_log(dq.mul(dq.conj(est.pose), T))
@@ -425,7 +425,7 @@ def latency_errors(trials: int, seed: int = 0):
                 ms.append(Measurement("cam", body, float(t), z, NOISE))
         assert world.publish(ms).accepted == len(ms)
         r = world.relative("a", "b")
-        c = _composed("a", "b", r.time, {b: (p.pose, p.covariance) for b, p in
+        c = composed_independent("a", "b", r.time, {b: (p.pose, p.covariance) for b, p in
                                           ((b, world.pose(b, r.time)) for b in "ab")})
         errors.append(lie.se3_log(dq.mul(dq.conj(r.pose), C)))
         joint.append(r.covariance)

@@ -54,11 +54,11 @@ from dqpose.rpc.client_types import (  # noqa: F401 (Batch, Planned, RequestTooL
     RequestTooLarge,
     RpcError,
     StreamAnswer,
-    _arm_state,
-    _pose_or_none,
-    _rpc_error,
-    _state_name,
+    arm_state,
+    pose_or_none,
+    rpc_error,
     rpc_errors,
+    state_name,
 )
 from dqpose.rpc.client_world import WORLD, WorldCalls
 from dqpose.rpc.fusion_convert import (
@@ -228,7 +228,7 @@ class Client(WorldCalls):
             answer = future.result()
         except grpc.RpcError as e:
             self.last_replica = replica_of(e)
-            raise _rpc_error(e, field, first) from None
+            raise rpc_error(e, field, first) from None
         self.last_replica = replica_of(future)
         return read(answer)
 
@@ -448,12 +448,12 @@ class Client(WorldCalls):
             for m in call:
                 if last is None:
                     self.last_replica = replica_of(call)
-                last = Feedback(m.time, _pose_or_none(m, "commanded"), _pose_or_none(m, "actual"),
-                                _state_name(m.state), m.message)
+                last = Feedback(m.time, pose_or_none(m, "commanded"), pose_or_none(m, "actual"),
+                                state_name(m.state), m.message)
                 yield last
         except grpc.RpcError as e:
             self.last_replica = replica_of(e)
-            err = _rpc_error(e)
+            err = rpc_error(e)
             err.feedback = last
             raise err from None
         finally:
@@ -464,7 +464,7 @@ class Client(WorldCalls):
         limits and faults (:class:`ArmState`)."""
         answer = tpb.ArmState.FromString(self._call(
             self._get_arm, tpb.GetArmRequest(arm=arm).SerializeToString()))
-        return _arm_state(answer)
+        return arm_state(answer)
 
     def watch_arm(self, arm: str, rate_hz: float = 0.0, *,
                   timeout: Optional[float] = None) -> Iterator[ArmState]:
@@ -478,7 +478,7 @@ class Client(WorldCalls):
                 for k, m in enumerate(call):
                     if k == 0:
                         self.last_replica = replica_of(call)
-                    yield _arm_state(m)
+                    yield arm_state(m)
         finally:
             call.cancel()
 
@@ -486,7 +486,7 @@ class Client(WorldCalls):
         """Every arm of the server, in name order."""
         answer = tpb.ListArmsResponse.FromString(self._call(
             self._list_arms, tpb.ListArmsRequest().SerializeToString()))
-        return [_arm_state(m) for m in answer.arms]
+        return [arm_state(m) for m in answer.arms]
 
     def calibrate(self, base_flange, camera_target, setup: str = handeye.EYE_IN_HAND, *,
                   robust: bool = True, camera_covariance=None, robot_covariance=None,

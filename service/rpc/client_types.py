@@ -49,20 +49,20 @@ class ArmState(NamedTuple):
     busy: bool                        # running a plan, or braking from one
 
 
-def _state_name(code: int) -> str:
+def state_name(code: int) -> str:
     return "" if code == 0 else tpb.ExecutionState.Name(code).removeprefix("EXECUTION_")
 
 
-def _arm_state(m) -> ArmState:
+def arm_state(m) -> ArmState:
     v, w = m.linear_velocity, m.angular_velocity
-    return ArmState(m.arm, _pose_or_none(m, "pose"), np.array([v.x, v.y, v.z]),
-                    np.array([w.x, w.y, w.z]), _state_name(m.state),
+    return ArmState(m.arm, pose_or_none(m, "pose"), np.array([v.x, v.y, v.z]),
+                    np.array([w.x, w.y, w.z]), state_name(m.state),
                     trajectory.Limits(**{f: getattr(m.limits, f)
                                          for f in trajectory.LIMIT_FIELDS}),
                     tuple(m.faults), m.busy)
 
 
-def _pose_or_none(msg, field: str) -> Optional[np.ndarray]:
+def pose_or_none(msg, field: str) -> Optional[np.ndarray]:
     if not msg.HasField(field):
         return None
     return pose_to_dq(getattr(msg, field))
@@ -166,7 +166,7 @@ class RequestTooLarge(ValueError):
     ``max_poses``)."""
 
 
-def _rpc_error(e: grpc.RpcError, field: str = "", offset: int = 0) -> RpcError:
+def rpc_error(e: grpc.RpcError, field: str = "", offset: int = 0) -> RpcError:
     """Ours from grpc's; ``field[i]`` in the message is renumbered by ``offset`` (the position of
     a split call's first item in the whole input)."""
     code = e.code() if callable(getattr(e, "code", None)) else grpc.StatusCode.UNKNOWN
@@ -180,11 +180,11 @@ def _rpc_error(e: grpc.RpcError, field: str = "", offset: int = 0) -> RpcError:
 
 @contextlib.contextmanager
 def rpc_errors(seen=None) -> Iterator[None]:
-    """grpc's errors raised inside as ours (:func:`_rpc_error`); ``seen(replica)`` told first
+    """grpc's errors raised inside as ours (:func:`rpc_error`); ``seen(replica)`` told first
     which replica refused (``dqpose.rpc.resume.replica_of``), when given."""
     try:
         yield
     except grpc.RpcError as e:
         if seen is not None:
             seen(replica_of(e))
-        raise _rpc_error(e) from None
+        raise rpc_error(e) from None
