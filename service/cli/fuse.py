@@ -139,7 +139,7 @@ def _csv_measurements(text: str, order: str | None) -> list:
         raise ValueError(f"line 1: unknown column {unknown[0]!r}; expected "
                          f"{','.join(BASE_COLUMNS)} and optionally body, weight, "
                          f"sigma_wx..sigma_vz or c00..c55 (see --help)")
-    rows = posefile._csv_rows(table, BASE_COLUMNS[1:], NUMBER_COLUMNS, order=order,
+    rows = posefile.csv_rows(table, BASE_COLUMNS[1:], NUMBER_COLUMNS, order=order,
                               taken=("source",))
     have = [c for c in NUMBER_COLUMNS if c in cols]
     groups = {"weight": [c for c in have if c == "weight"],

@@ -19,7 +19,7 @@ _FRAMES = {EYE_IN_HAND: ("T_flange_camera", "T_base_target"),
            EYE_TO_HAND: ("T_base_camera", "T_flange_target")}
 
 
-def _named(text: str, names: list) -> str:
+def with_image_names(text: str, names: list) -> str:
     """``pairs[3]`` in a message followed by the image it came from."""
     return re.sub(r"\b(pairs|base_flange|camera_target)\[(\d+)\]",
                   lambda m: f"{m.group(0)} ({names[int(m.group(2))]})"
@@ -89,7 +89,8 @@ def report(cal, views, names: list, skipped: list, truth=None) -> str:
                         if cal.focal_sigma else ""))
     for r, a, d in cal.readings:
         lines.append(f"reading {r}: median residual {math.degrees(a):.4f} deg, {d * 1e3:.3f} mm")
-    lines += [""] + ([f"warning: {_named(w, names)}" for w in cal.warnings] or ["no warnings"])
+    warnings = [f"warning: {with_image_names(w, names)}" for w in cal.warnings]
+    lines += [""] + (warnings or ["no warnings"])
     if truth is not None:
         lines.append("")
         for label, est, cov, true in (("X", cal.x, cal.covariance_x, truth[0]),

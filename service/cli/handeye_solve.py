@@ -210,7 +210,7 @@ def solve(args) -> int:
         from_server = hasattr(e, "code")
         if names and isinstance(e, ValueError) and not from_server:
             # the solver's base_flange[3] -> its image
-            e = type(e)(handeye_report._named(str(e), names))
+            e = type(e)(handeye_report.with_image_names(str(e), names))
         code = failure("handeye solve", args, e)
         if names and from_server and re.search(r"pairs\[|samples? \d", str(e)):
             # the server's pairs[k] and samples k, by image

@@ -74,7 +74,7 @@ def _numbers(field: str, value) -> np.ndarray | None:
         raise ValueError(f"{field}: expected a list of numbers, got {value!r}") from None
 
 
-def _csv_rows(text: str, columns: tuple[str, ...], optional: tuple[str, ...] = (),
+def csv_rows(text: str, columns: tuple[str, ...], optional: tuple[str, ...] = (),
               refused: dict[str, str] | None = None, names_out: list | None = None,
               order: str | None = None, taken: tuple[str, ...] = ()) -> np.ndarray:
     """Rows of ``columns`` (+ any ``optional`` present). A first line with no number in it is a
@@ -163,7 +163,7 @@ def read_blend(path: str, order: str | None = None) -> BlendFile:
         weights = _numbers("weights", doc.get("weights"))
         method = _enum("method", doc.get("method"), "method", tuple(dq.METHODS))
     else:
-        rows = _csv_rows(text, POSE_COLUMNS, ("weight",), refused={
+        rows = csv_rows(text, POSE_COLUMNS, ("weight",), refused={
             "t": "a time column means keyframes: sample the motion through them with "
                  "`dqpose interpolate`"}, order=order)
         flat = np.concatenate([rows[:, 3:7], rows[:, :3]], axis=1)
@@ -188,7 +188,7 @@ def read_interpolate(path: str, order: str | None = None) -> InterpolateFile:
                      ("screw", "tool_linear"))
         sub = ".pose"
     else:
-        rows = _csv_rows(text, ("t",) + POSE_COLUMNS, refused={
+        rows = csv_rows(text, ("t",) + POSE_COLUMNS, refused={
             "weight": "weights belong to poses that are blended: `dqpose blend`"}, order=order)
         times_k = rows[:, 0]
         flat = np.concatenate([rows[:, 4:8], rows[:, 1:4]], axis=1)
@@ -304,7 +304,7 @@ def read_plan(path: str, order: str | None = None) -> PlanFile:
         sub = ".pose"
     else:
         names: list = []
-        rows = _csv_rows(text, POSE_COLUMNS, ("time", "blend_radius"), names_out=names,
+        rows = csv_rows(text, POSE_COLUMNS, ("time", "blend_radius"), names_out=names,
                          order=order)
         flat = np.concatenate([rows[:, 3:7], rows[:, :3]], axis=1)
         extra = np.zeros((len(rows), 2))
@@ -331,7 +331,7 @@ def read_stamped(path: str, order: str | None = None) -> StampedFile:
         smoothing, rate = _optional_number(doc, "smoothing"), _optional_number(doc, "rate_hz")
         sub = ".pose"
     else:
-        rows = _csv_rows(text, ("t",) + POSE_COLUMNS, order=order)
+        rows = csv_rows(text, ("t",) + POSE_COLUMNS, order=order)
         times = rows[:, 0]
         flat = np.concatenate([rows[:, 4:8], rows[:, 1:4]], axis=1)
         limits, smoothing, rate, sub = {}, None, None, ""
