@@ -255,7 +255,8 @@ def static_fit(world: "World", body: str) -> Fused:
     if hit is not None and hit[0] == version:
         return hit[1]
     rows = t.rows_ending(body, t.newest(body), t.window)
-    f, ids = world._fit_of(body, rows, t.static_rows)
+    f, ids = world._fit_of(body, rows,
+                           lambda r: t.estimate(rows=r, fit="static", ids=True))
     world._fits.keep(key, (version, f, True, ids), len(f.distances))
     return f
 

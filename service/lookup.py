@@ -11,7 +11,7 @@ Where the fit is the constant-twist fit over time (not robust, no ``acceleration
 (its pose carried on its twist) and each shared latency and extrinsic at its last estimate: warm
 starts, so a Lookup after a few new measurements takes one or two Gauss-Newton steps fewer; the
 answer moves with the start only within the fit's ``tol``. The other Lookups are the fits of
-:class:`~dqpose.fusion.Tracker` (``pose_rows``, ``start_rows``, ``joint``), with their errors.
+:class:`~dqpose.fusion.Tracker` (``estimate``, ``joint``), with their errors.
 """
 from __future__ import annotations
 
@@ -170,7 +170,7 @@ class Lookups:
         # gate's inliers need the whole fit); kept apart from the body's own fits
         t = w._t
         rows = [w._rows_for(b, at) for b in (target, source)]
-        fits = [w._fit_of(b, r, lambda r: t.start_rows(r, at))
+        fits = [w._fit_of(b, r, lambda r: t.estimate(None, at, rows=r, fit="start"))
                 for b, r in zip((target, source), rows)]
         (Xa, Xb), P = t.joint(rows, fits, at)
         return BodyPose(source, at, _frozen(dq.mul(dq.conj(Xa), Xb)),

@@ -177,7 +177,8 @@ class Riders:
             joint: bool, static: bool = False) -> Optional[tuple[Fused, np.ndarray]]:
         """The fit of ``rows`` (one body's, the lock held) composed (:meth:`compose`), or None
         when no row is a rider's; ``static``: the one-instant fit of a static body
-        (``Tracker.static_rows``). The rows left out are listed last, dropped with why."""
+        (``Tracker.estimate``'s ``fit="static"``). The rows left out are listed last, dropped
+        with why."""
         c = self.compose(rows, time)
         if c is None:
             return None

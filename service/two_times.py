@@ -153,7 +153,8 @@ def _fit(world, body: str, at: float) -> _Fit:
         world._known(body)
         t = world._t
         rows = world._rows_for(body, at)
-        f, ids = world._fit_of(body, rows, lambda r: t.estimate_rows(r, at, False))
+        f, ids = world._fit_of(body, rows,
+                               lambda r: t.estimate(None, at, rows=r, nis=False, ids=True))
         Z, S = t._store.world(rows)
         names = t._sources_of(rows)
         dt = t.taken_of(rows) - f.time

@@ -42,10 +42,10 @@ from dqpose.fusion import (
     Tracker,
 )
 from dqpose.fusion.bounds import TrackerBounds
+from dqpose.fusion.measurements import Rows, rows_of
 from dqpose.fusion.results import DOF
 from dqpose.fusion.sources import _sources
 from dqpose.fusion.tick import WireTicks
-from dqpose.fusion.tracker import _arrays
 from dqpose.fusion.validation import _finite_shape, _seconds
 from dqpose.lookup import Lookups
 from dqpose.names import name_problem, quoted
@@ -256,15 +256,10 @@ class World:
         ``(index, message)``, the message naming ``measurements[k]``; never raised.
         ``producer``: who sent them (a body's time jump is confirmed by another producer than
         the one that made it, ``Tracker``'s origins; None: any)."""
-        measurements = list(measurements)
-        poses, covs, times, bad = _arrays(measurements)
-        bodies = [getattr(m, "body", "") for m in measurements]
-        sources = [getattr(m, "source", "") for m in measurements]
-        for k in bad:
-            bodies[k] = ""          # refused already: the tracker refuses it again, unnamed
+        rows, bad = rows_of(measurements)      # a row refused already: its body ""
         with self._lock.write():
-            errors = self._admit(bodies, sources, times, poses, covs, bad, producer=producer)
-        return _published(bodies, errors)
+            errors = self._admit(*rows, bad, producer=producer)
+        return _published(rows.bodies, errors)
 
     def ingest(self, bodies: Sequence[str], sources: Sequence[str], times, poses,
                covariances, codes=None, producer=None, ids=None) -> Published:
@@ -273,10 +268,9 @@ class World:
         ``covariances`` ``(n, 6, 6)``; checked together in NumPy, the same checks and answers
         as :meth:`publish` without a :class:`Measurement` per row; ``ids`` ``(n,)``: the
         numbers the answers name them by (an int: the first of consecutive ones; default: their
-        index). ``codes`` ``(n,)``: the rows
-        were checked by a decoder already (``Tracker.ingest_checked``: 0 a good row, not checked
-        again). ``producer``: as :meth:`publish` takes it. Arrays of the wrong shape are a
-        ``WorldError`` for the call."""
+        index). ``codes`` ``(n,)``: the rows were checked by a decoder already
+        (``Tracker.ingest``'s ``checked``: 0 a good row, not checked again). ``producer``: as
+        :meth:`publish` takes it. Arrays of the wrong shape are a ``WorldError`` for the call."""
         n = len(bodies)
         if len(sources) != n:
             raise WorldError(None, "sources", f"expected {n} names, got {len(sources)}")
@@ -324,8 +318,7 @@ class World:
                     poses[idx], covs[idx])
             numbers = np.asarray(ids, np.int64)[idx]
             checks = None if codes is None else codes[idx]
-        refused = (self._t.ingest(*rows, ids=numbers, origin=producer) if checks is None else
-                   self._t.ingest_checked(*rows, numbers, checks, producer))
+        refused = self._t.ingest(Rows(*rows), ids=numbers, origin=producer, checked=checks)
         for j, e in refused:
             errors[use[j]] = e.at(use[j])
         if not named.issuperset(sources):       # a source new to the world fed a body
@@ -390,7 +383,8 @@ class World:
             if body in self.tree.static_bodies:        # its one constant pose
                 return _frames.static_tick(self, body, time)
             rows = self._tick_rows(body, time)
-            f, ids = self._fit_of(body, rows, lambda r: self._t.estimate_rows(r, time))
+            f, ids = self._fit_of(body, rows,
+                                  lambda r: self._t.estimate(None, time, rows=r, ids=True))
         assert f.time is not None            # a fit over time
         return BodyPose(body, f.time, f.mean, f.covariance, f), ids
 
@@ -455,7 +449,7 @@ class World:
         """``body``'s fit at ``time`` from the measurements of the window :meth:`_end` ends (the
         lock held), or ``OutOfRange`` naming what is known. Without ``nis`` (a Lookup, which
         answers the pose and its covariance) the fit may leave out the leave-one-out NIS
-        (:meth:`Tracker.estimate_rows`); a kept fit with them serves both."""
+        (:meth:`Tracker.estimate`); a kept fit with them serves both."""
         at = self._at(body, time)
         end = self._end(body, at)
         key = (body, at, end)
@@ -463,17 +457,20 @@ class World:
         version = self._riders.version(body)
         if hit is not None and hit[0] == version and (hit[2] or not nis):
             return hit[1]       # no new data: it was in range then
-        f, ids = self._fitted(body, at, lambda rows: self._t.estimate_rows(rows, at, nis))
+        f, ids = self._fitted(body, at, lambda rows: self._t.estimate(None, at, rows=rows, nis=nis,
+                                                                      ids=True))
         self._fits.keep(key, (version, f, nis, ids), len(f.distances))
         return f
 
     def _pose_only(self, body: str, at: float) -> tuple[np.ndarray, np.ndarray]:
         """The known ``body``'s pose and covariance at the checked time ``at`` (the lock held),
-        as :meth:`_fit` would give them: a kept fit's, else only those (``pose_rows``)."""
+        as :meth:`_fit` would give them: a kept fit's, else only those (``Tracker.estimate``'s
+        ``fit="pose"``)."""
         kept = self._kept_pose(body, at)
         if kept is not None:
             return kept
-        return self._fitted(body, at, lambda rows: self._t.pose_rows(rows, at))
+        return self._fitted(body, at,
+                            lambda rows: self._t.estimate(None, at, rows=rows, fit="pose"))
 
     def _kept_pose(self, body: str, at: float) -> Optional[tuple[np.ndarray, np.ndarray]]:
         """A kept fit's pose and covariance of ``body`` at ``at`` if it is current, else None."""

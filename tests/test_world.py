@@ -568,7 +568,7 @@ def test_a_lookup_between_moving_bodies_starts_them_where_their_own_joint_fits_s
     at = 0.45
     r = world.relative("a", "b", at)
     rows = [world._rows_for(b, at) for b in "ab"]
-    starts = {b: world._t.estimate_rows(r, at, False, joint=False)[0]
+    starts = {b: world._t.estimate(None, at, rows=r, nis=False, joint=False)
               for b, r in zip("ab", rows)}
     own = {b: world._fit(b, at, nis=False) for b in "ab"}
     # the starts are not the bodies' own (joint) fits: this Lookup took the shorter way
@@ -581,14 +581,14 @@ def test_a_lookup_between_moving_bodies_starts_them_where_their_own_joint_fits_s
 
 
 def test_a_joint_fit_from_a_bodys_lean_start_is_the_one_from_its_full_fit_bit_for_bit():
-    """Tracker.start_rows gives a body's start for a joint fit without the rest of an answer
-    (rejections, verdicts, latencies); the joint fit from it is the joint fit from the full
+    """Tracker.estimate's fit="start" gives a body's start for a joint fit without the rest of an
+    answer (rejections, verdicts, latencies); the joint fit from it is the joint fit from the full
     constant-twist fit, to the last bit."""
     world = _two_moving_bodies_one_uncertain_camera()
     at = 0.45
     rows = [world._rows_for(b, at) for b in "ab"]
-    lean = [world._t.start_rows(r, at) for r in rows]
-    full = [world._t.estimate_rows(r, at, False, joint=False)[0] for r in rows]
+    lean = [world._t.estimate(None, at, rows=r, fit="start") for r in rows]
+    full = [world._t.estimate(None, at, rows=r, nis=False, joint=False) for r in rows]
     assert all(isinstance(s, _Start) for s in lean)
     (Xa, Xb), P = world._t.joint(rows, lean, at)
     (Ya, Yb), Q = world._t.joint(rows, full, at)

@@ -53,7 +53,7 @@ from dqpose.fusion.results import (
     Verdict,
 )
 from dqpose.fusion.sources import Source
-from dqpose.fusion.tracker import Measurement, Tracker, Window
+from dqpose.fusion.tracker import Measurement, Rows, Tracker, Window
 
 # isort: split
 # Private names other modules and the tests use (the rpc layer's wire decoder, hand-eye's
@@ -69,4 +69,4 @@ from dqpose.fusion.process_noise import _kernel, _motion_solve  # noqa: F401
 
 __all__ = ["DOF", "DEFAULT_PROBABILITY", "DEFAULT_MAX_EXTRAPOLATION", "Status", "Verdict", "Source",
            "Rejection", "SourceStats", "Fused", "fuse", "chi2_quantile", "Dropped", "Latency",
-           "Measurement", "Window", "Tracker"]
+           "Measurement", "Rows", "Window", "Tracker"]

@@ -1,5 +1,5 @@
 """A tick's answer in one C call (service/csrc/tick.h): a tracker's rows to the ``FusedPose``
-bytes of their fit over time, the answer :meth:`Tracker.estimate_rows` and
+bytes of their fit over time, the answer :meth:`Tracker.estimate` and
 :func:`dqpose.rpc.wire.fused_pose_bytes` give, bit for bit, for the common case (not robust,
 the constant twist or one instant, jointly with uncertain extrinsics); None where the C leaves
 the answer to that Python path (robust, ``acceleration_psd``; it also names every error).

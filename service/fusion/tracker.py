@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Iterable, Mapping, NamedTuple, Optional, Sequence
 
 import numpy as np
@@ -31,73 +30,19 @@ from dqpose.fusion.api import (
 )
 from dqpose.fusion.bounds import TrackerBounds
 from dqpose.fusion.chi2 import DEFAULT_PROBABILITY, chi2_quantile
+from dqpose.fusion.measurements import Measurement, Rows, rows_of
 from dqpose.fusion.results import DOF, Fused
 from dqpose.fusion.sources import Source, _sources, _to_world
 from dqpose.fusion.store import _Store
 from dqpose.fusion.validation import (
     _check_rows,
-    _covariances,
     _finite_shape,
     _named_rows,
     _seconds,
-    _shape,
 )
 
 if TYPE_CHECKING:
     from dqpose.riders import Riders
-
-
-@dataclass(frozen=True)
-class Measurement:
-    """One pose of ``body`` from ``source`` stamped ``time`` (the proto's ``Measurement``):
-    ``pose`` ``T_frame_body`` ``(8,)``, ``covariance`` ``(6, 6)``, or (``None``) isotropic
-    ``I / weight`` (no weight: 1)."""
-    source: str
-    body: str
-    time: float
-    pose: np.ndarray
-    covariance: Optional[np.ndarray] = None
-    weight: Optional[float] = None
-
-
-def _arrays(measurements: Sequence[Measurement]):
-    """:class:`Measurement` s as the arrays :meth:`Tracker.ingest` takes (poses, covariances,
-    times; a bad row's left as zeros and identity) and ``{k: WorldError}`` about
-    ``measurements[k]`` for the rows whose shapes or types are wrong."""
-    n = len(measurements)
-    poses, covs, times = np.zeros((n, 8)), np.empty((n, DOF, DOF)), np.zeros(n)
-    covs[:] = np.eye(DOF)
-    errors: dict[int, WorldError] = {}
-    for k, m in enumerate(measurements):
-        try:
-            if not isinstance(m, Measurement):
-                raise WorldError(k, "", f"expected a Measurement, got {type(m).__name__}")
-            try:
-                times[k] = _seconds(m.time, "time")
-            except ValueError as e:
-                raise WorldError.of(e, k) from None
-            if _shape(m.pose) != (8,):
-                raise WorldError(k, "pose", f"expected shape (8,), got {_shape(m.pose)}")
-            try:
-                poses[k] = m.pose
-            except (TypeError, ValueError):
-                raise WorldError(k, "pose", f"expected numbers, got "
-                                            f"{type(m.pose).__name__}") from None
-            if m.covariance is not None and _shape(m.covariance) != (DOF, DOF):
-                raise WorldError(k, "covariance", f"expected shape (6, 6), "
-                                                  f"got {_shape(m.covariance)}")
-            try:
-                covs[k] = _covariances(None if m.covariance is None else [m.covariance],
-                                       None if m.weight is None else [m.weight], 1)[0]
-            except ValueError as e:
-                raise WorldError.of(e, k, {"covariances": "covariance",
-                                           "weights": "weight"}) from None
-        except WorldError as e:
-            errors[k] = e
-            poses[k] = (1.0, 0, 0, 0, 0, 0, 0, 0)
-            covs[k] = np.eye(DOF)
-            times[k] = 0.0
-    return poses, covs, times, errors
 
 
 class Window(NamedTuple):
@@ -118,10 +63,10 @@ class Tracker:
 
     Each body keeps its measurements taken (stamp minus the source's latency) within ``window``
     seconds of its newest; one taken further back than that is refused, naming it.
-    :meth:`ingest` takes arrays of measurements of any bodies, checks them together in NumPy and
-    keeps every valid one, returning the errors of the others (a live stream goes on past a bad
-    measurement); :meth:`add` takes :class:`Measurement` s, all or none. :meth:`estimate` fuses a
-    body's window at a time with :func:`fuse` (its keyword options are those given here).
+    :meth:`ingest` takes measurements of any bodies (arrays or objects), checks them together in
+    NumPy and keeps every valid one, returning the errors of the others (a live stream goes on
+    past a bad measurement), or all or none. :meth:`estimate` fuses a body's window at a time
+    with :func:`fuse` (its keyword options are those given here).
     Bodies are independent: nothing of one enters another's estimate.
 
     ``bounds`` (:class:`~dqpose.fusion.bounds.TrackerBounds`; None: unbounded) bound what a
@@ -173,7 +118,7 @@ class Tracker:
         self._names: list[str] = []
         self._latency = np.empty(0)
         # per source code: its extrinsic and latency exact (no extrinsic_covariance, no
-        # latency_sigma), for pose_rows
+        # latency_sigma), for estimate's fit="pose"
         self._exact = np.empty(0, dtype=bool)
         self._all_exact = all(src.exact for src in self._table.values())
         # a World's riders (dqpose.riders.Riders: rows composed with their parents' poses when
@@ -213,7 +158,7 @@ class Tracker:
         return self._active
 
     def version(self, body: str) -> int:
-        """How many requests (calls of :meth:`ingest` or :meth:`add`) brought ``body``
+        """How many requests (calls of :meth:`ingest`) brought ``body``
         measurements (0: none): a body's answers change only when this does."""
         code = self._body_codes.get(body)
         return 0 if code is None else self._store._index.version(code)
@@ -306,50 +251,68 @@ class Tracker:
         s._index.forget(b)
         del self._active[body]
 
-    def add(self, *measurements: Measurement) -> None:
-        """Add measurements of any bodies; all or none (the first bad one is a ``ValueError``
-        naming ``measurements[k]``, its body, source and time)."""
-        poses, covs, times, bad = _arrays(measurements)
-        if bad:
-            raise min(bad.items())[1]
-        errors = self._ingest([m.body for m in measurements], [m.source for m in measurements],
-                              times, poses, covs, None, all_or_none=True)
-        if errors:
-            raise errors[0][1]
+    def ingest(self, rows: "Rows | Sequence[Measurement]", *, ids=None, origin=None,
+               checked=None, all_or_none: bool = False) -> list[tuple[int, WorldError]]:
+        """Add measurements of any bodies: :class:`Rows` (arrays: ``times`` ``(n,)`` stamps,
+        ``poses`` ``(n, 8)`` ``T_frame_body``, ``covariances`` ``(n, 6, 6)``, None: identity) or
+        :class:`Measurement` s. ``ids`` ``(n,)`` the caller's numbers, which :meth:`window_of`
+        returns (default: counting every measurement offered to this tracker); ``origin`` who
+        sent them (the class's docstring). Every valid measurement is kept; returned are
+        ``(k, WorldError)`` for the others, each about ``measurements[k]`` and the problem (a
+        name that is not one, a time that is not finite, a pose that is not a unit rigid motion,
+        a covariance that is not symmetric positive definite, a time taken further back than the
+        window, or beyond the bounds). ``all_or_none``: none kept if one is refused, the first
+        refusal raised. ``checked`` ``(n,)``: the rows a decoder checked by these rules
+        (service/csrc/wire.c, for StreamFuse and World.Publish), 0 a row taken in without
+        checking it again, else the row named by this tracker's own check of it alone; the same
+        answers. Arrays of the wrong shape are a ``ValueError`` for the call."""
+        bad: dict[int, WorldError] = {}
+        if not isinstance(rows, Rows):
+            rows, bad = rows_of(rows)
+            if bad and all_or_none:
+                raise min(bad.items())[1]
+        if checked is not None and not bad and not all_or_none:
+            return self._ingest_checked(rows, ids, np.asarray(checked), origin)
+        got = self._ingest(rows, ids, all_or_none, origin, bad)
+        if all_or_none and got:
+            raise got[0][1]
+        return got
 
-    def ingest(self, bodies: Sequence[str], sources: Sequence[str], times, poses,
-               covariances=None, *, ids=None, origin=None) -> list[tuple[int, WorldError]]:
-        """Add measurements given as arrays: ``bodies`` and ``sources`` (one name each),
-        ``times`` ``(n,)`` (stamps), ``poses`` ``(n, 8)`` (``T_frame_body``), ``covariances``
-        ``(n, 6, 6)`` (``None``: identity), and the caller's numbers ``ids`` ``(n,)`` (default:
-        counting every measurement offered to this tracker), which :meth:`window_of` returns;
-        ``origin`` who sent them (the class's docstring). Every valid measurement is kept;
-        returned are ``(k, WorldError)`` for the others, each about ``measurements[k]`` and the
-        problem (a time that is not finite, a pose that is not a unit rigid motion, a covariance
-        that is not symmetric positive definite, a time taken further back than the window, or
-        beyond the limits). Arrays of the wrong shape are a ``ValueError`` for the
-        call."""
-        return self._ingest(bodies, sources, times, poses, covariances, ids, all_or_none=False,
-                            origin=origin)
-
-    def estimate(self, body: str, time: Optional[float] = None) -> Fused:
-        """``body``'s pose at ``time`` (default: its newest measurement's) from its window."""
-        return self.estimate_ids(body, time)[0]
-
-    def estimate_ids(self, body: str, time: Optional[float] = None,
-                     within: Optional[float] = None) -> tuple[Fused, np.ndarray]:
-        """:meth:`estimate`, and the ids of the measurements it fused (:meth:`window_of`'s);
-        ``within``: only the measurements taken within that many seconds of ``time`` (of the
-        newest when ``time`` is None)."""
-        return self.estimate_rows(self._rows_near(body, time, within), time)
-
-    def estimate_rows(self, rows: np.ndarray, time: Optional[float] = None,
-                      nis: bool = True, joint: bool = True) -> tuple[Fused, np.ndarray]:
-        """:meth:`estimate_ids` of the rows :meth:`rows_ending` found. Without ``nis`` (for an
+    def estimate(self, body: Optional[str] = None, time: Optional[float] = None, *,
+                 rows: Optional[np.ndarray] = None, within: Optional[float] = None,
+                 nis: bool = True, joint: bool = True, fit: str = "full", ids: bool = False):
+        """``body``'s pose at ``time`` (default: its newest measurement's) from its window
+        (``within``: its measurements taken within that many seconds of ``time``, of the newest
+        when None), or from ``rows`` (:meth:`rows_ending`'s), a :class:`Fused`; with ``ids``,
+        and the ids of the measurements it fused (:meth:`window_of`'s). Without ``nis`` (an
         answer that needs the pose and its covariance only) a fit over time that is not robust
         leaves out the leave-one-out NIS (``nis`` zeros, ``tested`` all False), everything else
-        the same to the last bit. Without ``joint``, where :meth:`joint` may start the body
-        (``_fuse_in_time``'s)."""
+        the same to the last bit; without ``joint``, where :meth:`joint` may start the body.
+        ``fit``: ``"full"``; ``"static"`` the one-instant fit (a body that does not move: no
+        twist, the times left out; a rider's rows composed with its parent's pose at each row's
+        time); ``"pose"`` only ``(mean, covariance)`` of the full fit without ``nis``, bit for
+        bit (a Lookup of a body); ``"start"`` where the body starts in :meth:`joint` at
+        ``time``."""
+        if rows is None:
+            if body is None:
+                raise ValueError("body: give a body or its rows")
+            rows = self._rows_near(body, time, within)
+        if fit == "pose":
+            assert time is not None
+            return self._pose(rows, time)
+        if fit == "start":
+            assert time is not None
+            return self._start(rows, time)
+        if fit == "static":
+            got = self._static(rows)
+        elif fit == "full":
+            got = self._fit(rows, time, nis, joint)
+        else:
+            raise ValueError(f"fit: expected 'full', 'static', 'pose' or 'start', got {fit!r}")
+        return got if ids else got[0]
+
+    def _fit(self, rows: np.ndarray, time: Optional[float], nis: bool,
+             joint: bool) -> tuple[Fused, np.ndarray]:
         if self.riders is not None:     # a World's sources riding on its bodies
             got = self.riders.fit(rows, time, nis, joint)
             if got is not None:
@@ -360,16 +323,14 @@ class Tracker:
         return _fuse_world_rows(*s.world(rows), self._sources_of(rows), s.times[rows],
                                 time, self._checked, nis, joint), s.ids[rows]
 
-    def pose_rows(self, rows: np.ndarray, time: float) -> tuple[np.ndarray, np.ndarray]:
-        """The pose and covariance of :meth:`estimate_rows` ``(rows, time, nis=False)``, bit for
-        bit, and only those (a Lookup of a body): the constant-twist fit straight from the rows
-        where it applies (``_pose_in_time``), else any fit over time that is not robust
-        (``_pose_over_time``), else the full fit's."""
+    def _pose(self, rows: np.ndarray, time: float) -> tuple[np.ndarray, np.ndarray]:
+        """The constant-twist fit straight from the rows where it applies (``_pose_in_time``),
+        else any fit over time that is not robust (``_pose_over_time``), else the full fit's."""
         s = self._store
         codes = s.codes[rows]
         got = None
         if self.riders is not None and self._riding[codes].any():
-            f = self.estimate_rows(rows, time, False)[0]
+            f = self._fit(rows, time, False, True)[0]
             return f.mean, f.covariance
         if self._all_exact or self._exact[codes].all():
             # taken was stamp less latency when the rows came in: the same bits as fuse's
@@ -379,23 +340,20 @@ class Tracker:
             got = _pose_over_time(*s.world(rows), self._sources_of(rows), s.times[rows], time,
                                   self._checked)
         if got is None:
-            f = self.estimate_rows(rows, time, False)[0]
+            f = self._fit(rows, time, False, True)[0]
             got = f.mean, f.covariance
         return got
 
-    def start_rows(self, rows: np.ndarray, time: float):
-        """Where the body of ``rows`` starts in :meth:`joint` at ``time``: its constant-twist fit
-        (where its own joint fit starts) without the rest of an answer where that is the fit
-        (``_joint_start``), else :meth:`estimate_rows` ``(nis=False, joint=False)``'s."""
+    def _start(self, rows: np.ndarray, time: float):
+        """The constant-twist fit (where its own joint fit starts) without the rest of an
+        answer where that is the fit (``_joint_start``), else the full fit's (``nis`` and
+        ``joint`` False)."""
         s = self._store
         got = _joint_start(*s.world(rows), self._sources_of(rows), s.times[rows], time,
                            self._checked)
-        return got if got is not None else self.estimate_rows(rows, time, False, joint=False)[0]
+        return got if got is not None else self._fit(rows, time, False, False)[0]
 
-    def static_rows(self, rows: np.ndarray) -> tuple[Fused, np.ndarray]:
-        """The one-instant fit of ``rows`` (a body that does not move: no twist, their times
-        left out; a rider's composed with its parent's pose at each row's time), with their
-        ids."""
+    def _static(self, rows: np.ndarray) -> tuple[Fused, np.ndarray]:
         if self.riders is not None:
             got = self.riders.fit(rows, None, True, True, static=True)
             if got is not None:
@@ -403,14 +361,13 @@ class Tracker:
         s = self._store
         return _fuse_static_rows(*s.world(rows), self._sources_of(rows), self._checked), \
             s.ids[rows]
-
     def _sources_of(self, rows: np.ndarray) -> tuple[str, ...]:
         """Each row's source name, as the fits take them."""
         names = self._names
         return tuple([names[c] for c in self._store.codes[rows].tolist()])
 
     def rows_ending(self, body: str, end: float, window: float) -> np.ndarray:
-        """``body``'s rows taken in ``[end - window, end]`` (for :meth:`estimate_rows`), in
+        """``body``'s rows taken in ``[end - window, end]`` (for :meth:`estimate`), in
         arrival order, the last :attr:`cap` of them, among the rows of its window (:meth:`_rows`:
         the last :attr:`cap` of those too). Looked for from the first row whose running maximum
         of taken reaches ``end - window`` (:meth:`_Store.after`): the rows of that window and
@@ -442,8 +399,8 @@ class Tracker:
               time: Optional[float] = None) -> tuple[list, np.ndarray]:
         """Bodies fitted together from their ``rows`` (each body's, :meth:`rows_ending`'s) with
         one error per uncertain extrinsic their sources share (:mod:`dqpose.fusion.extrinsics`),
-        each from its own :meth:`estimate` ``fits`` or :meth:`start_rows` (their inliers, their
-        start): the poses and the joint covariance ``(6k, 6k)`` of their right perturbations,
+        each from its own :meth:`estimate` ``fits`` (its ``fit="start"``'s: their inliers,
+        their start): the poses and the joint covariance ``(6k, 6k)`` of their right perturbations,
         cross-covariances included."""
         s = self._store
         return _fuse_joint_rows([(*s.world(r), self._sources_of(r), s.times[r]) for r in rows],
@@ -490,19 +447,23 @@ class Tracker:
                                          constant_values=-math.inf)
         return code
 
-    def _ingest(self, bodies, sources, times, poses, covariances, ids, all_or_none: bool,
-                origin=None):
+    def _ingest(self, rows: "Rows", ids, all_or_none: bool, origin, bad: dict):
+        """The rows checked here (:func:`_check_rows`; ``bad`` refused already), then admitted."""
+        bodies, sources = rows.bodies, rows.sources
         n = len(bodies)
         if len(sources) != n:
             raise ValueError(f"sources: expected {n} names, got {len(sources)}")
-        times = _finite_shape(times, "times", (n,))
-        poses = _finite_shape(poses, "poses", (n, 8))
-        covs = (np.broadcast_to(np.eye(DOF), (n, DOF, DOF)) if covariances is None
-                else _finite_shape(covariances, "covariances", (n, DOF, DOF)))
+        times = _finite_shape(rows.times, "times", (n,))
+        poses = _finite_shape(rows.poses, "poses", (n, 8))
+        covs = (np.broadcast_to(np.eye(DOF), (n, DOF, DOF)) if rows.covariances is None
+                else _finite_shape(rows.covariances, "covariances", (n, DOF, DOF)))
         ids = np.arange(self._count, self._count + n) if ids is None else np.asarray(ids, np.int64)
         if ids.shape != (n,):
             raise ValueError(f"ids: expected shape {(n,)}, got {ids.shape}")
         ok, errors, covs = _check_rows(bodies, sources, times, poses, covs)
+        if bad:
+            errors.update(bad)
+            ok[list(bad)] = False
         return self._admit(bodies, sources, times, poses, covs, ids, ok, errors, n, all_or_none,
                            origin)
 
@@ -515,15 +476,15 @@ class Tracker:
                                   np.asarray(poses, np.float64),
                                   np.asarray(covariances, np.float64))[1].items())
 
-    def ingest_checked(self, bodies: Sequence[str], sources: Sequence[str], times, poses,
-                       covariances, ids, codes, origin=None) -> list[tuple[int, WorldError]]:
-        """:meth:`ingest` of rows a decoder has checked by its rules (service/csrc/wire.c, for
-        StreamFuse and World.Publish): ``codes`` one a row, 0 for a row taken in unchecked
-        (:meth:`_ingest_valid`), else the check that refuses it, the row then named by this
-        tracker's own check of it alone. The same answers as :meth:`ingest`, without checking
-        the good rows again. The names, which a decoder passes as strings, are checked here."""
+    def _ingest_checked(self, rows: "Rows", ids, codes: np.ndarray,
+                        origin) -> list[tuple[int, WorldError]]:
+        """:meth:`ingest` of rows a decoder checked (``codes``), without checking the good rows
+        again (``times`` finite, ``poses`` unit as ``dq.from_pose`` makes them, ``covariances``
+        the symmetric part of symmetric positive definite ones) but for the window. The names,
+        which a decoder passes as strings, are checked here."""
+        bodies, sources, times, poses, covariances = rows
+        assert covariances is not None      # a decoder's: every row has one
         n = len(bodies)
-        codes = np.asarray(codes)
         if not np.count_nonzero(codes):     # the common case: every row taken in, names known
             got = self._admit(bodies, sources, times, poses, covariances, ids, None, {}, n, False,
                               origin, new_names=False)
@@ -538,29 +499,18 @@ class Tracker:
             codes[named] = -1
         coded = np.flatnonzero(codes).tolist()
         if not coded:           # the common case: every row taken in
-            return self._ingest_valid(bodies, sources, times, poses, covariances, ids, n, origin)
+            return self._admit(bodies, sources, times, poses, covariances, ids, np.ones(n, bool),
+                               {}, n, False, origin)
         refused = [(k, self.refusals(
             bodies[k:k + 1], sources[k:k + 1], times[k:k + 1], poses[k:k + 1],
             covariances[k:k + 1])[0][1].at(k)) for k in coded]
-        good = np.flatnonzero(np.asarray(codes) == 0)
-        rows = good.tolist()
-        refused += [(rows[j], e.at(rows[j])) for j, e in self._ingest_valid(
-            [bodies[k] for k in rows], [sources[k] for k in rows], times[good], poses[good],
-            covariances[good], np.asarray(ids)[good], n, origin)]
+        good = np.flatnonzero(codes == 0)
+        use = good.tolist()
+        refused += [(use[j], e.at(use[j])) for j, e in self._admit(
+            [bodies[k] for k in use], [sources[k] for k in use], times[good], poses[good],
+            covariances[good], np.asarray(ids)[good], np.ones(len(use), bool), {}, n, False,
+            origin)]
         return sorted(refused, key=lambda x: x[0])
-
-    def _ingest_valid(self, bodies, sources, times, poses, covariances, ids,
-                      offered: int, origin=None) -> list[tuple[int, WorldError]]:
-        """:meth:`ingest` of measurements already checked by its rules, with nothing checked
-        again but the window: ``times`` finite, ``poses`` unit (as ``dq.from_pose`` makes them),
-        ``covariances`` the symmetric part of symmetric positive definite ones, every body named.
-        service/csrc/wire.c checks them so (:meth:`ingest_checked`). ``offered``: how many
-        measurements the caller had, these and those it refused (they count, as in
-        :meth:`ingest`)."""
-        n = len(bodies)
-        return self._admit(bodies, sources, times, poses, covariances, ids, np.ones(n, bool), {},
-                           offered, False, origin)
-
     def _admit(self, bodies, sources, times, poses, covs, ids, ok, errors, offered: int,
                all_or_none: bool, origin=None, new_names: bool = True):
         """Checked measurements (``ok``; ``errors`` those refused so far) into the windows in one

@@ -201,7 +201,8 @@ def test_tracker_estimate_is_fuse_with_extrinsic_covariance():
     src = [Source("a", E[0], extrinsic_covariance=ext_cov(rng)), Source("b", E[1])]
     Z, S, N, T = moving(rng, src, None)
     tr = Tracker(1.0, sources=src)
-    tr.add(*[Measurement(n, "box", float(t), z, c) for n, t, z, c in zip(N, T, Z, S)])
+    tr.ingest([Measurement(n, "box", float(t), z, c) for n, t, z, c in zip(N, T, Z, S)],
+              all_or_none=True)
     a = tr.estimate("box")
     b = fusion.fuse(Z, S, names=N, sources=src, times=T)
     assert a.mean.tobytes() == b.mean.tobytes()

@@ -138,7 +138,7 @@ def test_acceleration_noise_with_latency_estimated_and_in_the_tracker():
     assert np.all(np.abs(z) < 4.0), z
     T = trajectory(lie.se3_exp(rng.normal(size=6)), True)
     tracker = Tracker(WINDOW, sources=SOURCES, acceleration_psd=Q)
-    tracker.add(*stream(rng, T, end=0.5))
+    tracker.ingest(stream(rng, T, end=0.5), all_or_none=True)
     window = tracker.measurements("box")
     f = tracker.estimate("box", time=0.48)
     g = fusion.fuse(np.array([m.pose for m in window]), np.array([m.covariance for m in window]),

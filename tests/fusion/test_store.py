@@ -5,7 +5,7 @@ at any time, found that way, is the one its definition gives under a cap."""
 import numpy as np
 
 from dqpose import limits
-from dqpose.fusion import Source, Tracker
+from dqpose.fusion import Rows, Source, Tracker
 from dqpose.fusion.bounds import TrackerBounds
 from dqpose.fusion.store import _Store
 
@@ -91,8 +91,8 @@ def test_a_window_found_by_the_running_maximum_equals_its_definition_under_a_cap
         m = int(rng.choice([1, 4, 20]))
         bodies = [f"b{k}" for k in rng.integers(0, 2, m)]
         times = step * 0.01 - rng.uniform(0, 1.5, m) * (rng.random(m) < 0.15)
-        t.ingest(bodies, ["cam"] * m, times, np.tile(ident, (m, 1)),
-                 np.tile(np.eye(6) * 1e-4, (m, 1, 1)))
+        t.ingest(Rows(bodies, ["cam"] * m, times, np.tile(ident, (m, 1)),
+                      np.tile(np.eye(6) * 1e-4, (m, 1, 1))))
         for body in t.bodies:
             end = t.newest(body) - rng.choice([0.0, rng.uniform(0, 2.0)])
             for window in (0.05, 0.2, 2.5):

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from dqpose import dq, fusion, lie, limits
-from dqpose.fusion import Measurement, Source, Tracker
+from dqpose.fusion import Measurement, Rows, Source, Tracker
 from dqpose.fusion.bounds import TrackerBounds
 from tests.fusion._moving import (
     ARM,
@@ -29,7 +29,7 @@ def test_tracker_window_estimates_like_fuse_and_stays_bounded():
     tracker = Tracker(WINDOW, sources=SOURCES)
     errors, sizes_seen = [], []
     for k, m in enumerate(stream(rng, T)):
-        tracker.add(m)
+        tracker.ingest([m], all_or_none=True)
         sizes_seen.append(len(tracker.measurements("box")))
         if k % 50 == 49:
             f = tracker.estimate("box")
@@ -56,7 +56,7 @@ def test_framed_sources_fit_like_fuse_bit_for_bit_and_their_window_is_as_given()
               Source("cam_b", lie.se3_exp(rng.normal(size=6)), latency=SOURCES[1].latency)]
     tracker = Tracker(WINDOW, sources=framed)       # "arm" is not configured: the world frame
     given = list(stream(rng, T))[:120]
-    tracker.add(*given)
+    tracker.ingest(given, all_or_none=True)
     window = tracker.measurements("box")
     kept = {(m.source, m.time) for m in window}
     for m in given:
@@ -66,7 +66,7 @@ def test_framed_sources_fit_like_fuse_bit_for_bit_and_their_window_is_as_given()
             assert np.array_equal(w.pose, m.pose)
             assert np.array_equal(w.covariance, 0.5 * (m.covariance + m.covariance.T))
     for nis in (True, False):
-        f = tracker.estimate_rows(tracker._rows("box"), None, nis)[0]
+        f = tracker.estimate(rows=tracker._rows("box"), nis=nis)
         g = fusion.fuse(np.array([m.pose for m in window]),
                         np.array([m.covariance for m in window]),
                         names=[m.source for m in window], sources=framed,
@@ -78,15 +78,17 @@ def test_framed_sources_fit_like_fuse_bit_for_bit_and_their_window_is_as_given()
 def test_tracker_time_going_back_beyond_the_window_is_an_error_naming_the_measurement():
     tracker = Tracker(WINDOW, sources=SOURCES)
     X = lie.se3_exp(np.full(6, 0.1))
-    tracker.add(Measurement("arm", "box", 1.0, X), Measurement("arm", "box", 0.9, X))
+    tracker.ingest([Measurement("arm", "box", 1.0, X), Measurement("arm", "box", 0.9, X)],
+                   all_or_none=True)
     assert len(tracker.measurements("box")) == 2  # out of order within the window is fine
     late = Measurement("cam_a", "box", 0.83, X)  # taken at 0.79, 0.216 s before 1.006
     with pytest.raises(ValueError, match=r"^measurements\[1\] \(body 'box', source 'cam_a', "
                                          r"time 0.83\): taken at 0.7[89].* "
                                          r"beyond the window 0.2 s"):
-        tracker.add(Measurement("arm", "box", 1.01, X), late)
+        tracker.ingest([Measurement("arm", "box", 1.01, X), late], all_or_none=True)
     assert len(tracker.measurements("box")) == 2  # all or none
-    tracker.add(Measurement("arm", "other", 0.0, X))  # another body has its own clock
+    # another body has its own clock
+    tracker.ingest([Measurement("arm", "other", 0.0, X)], all_or_none=True)
 
 
 def test_tracker_bodies_are_independent():
@@ -97,8 +99,8 @@ def test_tracker_bodies_are_independent():
     b = stream(rng, Tb, body="b", end=1.3)
     both, alone = Tracker(WINDOW, sources=SOURCES), Tracker(WINDOW, sources=SOURCES)
     for m in sorted(a + b, key=lambda m: m.time):
-        both.add(m)
-    alone.add(*a)
+        both.ingest([m], all_or_none=True)
+    alone.ingest(a, all_or_none=True)
     assert set(both.bodies) == {"a", "b"}
     fa, ga = both.estimate("a"), alone.estimate("a")
     assert fa.time == ga.time and np.array_equal(fa.mean, ga.mean)
@@ -129,7 +131,7 @@ def test_tracker_bodies_are_independent():
 def test_tracker_bad_measurement_names_it(measurement, message):
     tracker = Tracker(WINDOW)
     with pytest.raises(ValueError, match=message):
-        tracker.add(measurement)
+        tracker.ingest([measurement], all_or_none=True)
     assert tracker.bodies == ()
 
 
@@ -152,8 +154,8 @@ def _two_trackers_and_a_batch(seed: int):
     ms = stream(rng, T, end=0.3)
     a, b = Tracker(WINDOW, sources=SOURCES), Tracker(WINDOW, sources=SOURCES)
     head, batch = ms[:-10], ms[-10:]
-    a.add(*head)
-    b.add(*head)
+    a.ingest(head, all_or_none=True)
+    b.ingest(head, all_or_none=True)
     return a, b, (batch, np.array([m.pose for m in batch]),
                   np.array([m.covariance for m in batch]), np.array([m.time for m in batch]),
                   [m.source for m in batch], ["box"] * 10)
@@ -166,7 +168,7 @@ def test_tracker_ingest_keeps_the_valid_measurements_and_names_the_others():
     times[6] = np.inf
     times[8] -= 0.5
     bodies[9] = ""
-    errors = tracker.ingest(bodies, names, times, poses, covs, ids=np.arange(100, 110))
+    errors = tracker.ingest(Rows(bodies, names, times, poses, covs), ids=np.arange(100, 110))
     assert [k for k, _ in errors] == [1, 4, 6, 8, 9]
     text = [str(e) for _, e in errors]
     assert text[0] == "measurements[1].pose: contains NaN or infinity"
@@ -175,7 +177,7 @@ def test_tracker_ingest_keeps_the_valid_measurements_and_names_the_others():
     assert text[3].startswith("measurements[8] (body 'box'") and "beyond the window" in text[3]
     assert text[4] == "measurements[9].body: empty (every measurement names its body)"
     good = [0, 2, 3, 5, 7]
-    alone.add(*[batch[k] for k in good])
+    alone.ingest([batch[k] for k in good], all_or_none=True)
     w = tracker.window_of("box")
     assert w.ids[-5:].tolist() == [100 + k for k in good]
     f, g = tracker.estimate("box"), alone.estimate("box")
@@ -183,9 +185,9 @@ def test_tracker_ingest_keeps_the_valid_measurements_and_names_the_others():
 
 
 def test_rows_a_decoder_checked_answer_as_ingest_does():
-    """``ingest_checked`` (StreamFuse's and World.Publish's rows, checked in C): the rows coded
-    bad are named by the tracker's own check, the others taken in unchecked, a row too old for
-    the window refused still; the same errors, window and estimate as :meth:`Tracker.ingest`."""
+    """``ingest``'s ``checked`` (StreamFuse's and World.Publish's rows, checked in C): the rows
+    coded bad are named by the tracker's own check, the others taken in unchecked, a row too old
+    for the window refused still; the same errors, window and estimate as :meth:`Tracker.ingest`."""
     a, b, (batch, poses, covs, times, names, bodies) = _two_trackers_and_a_batch(76)
     poses[1, 0] = np.nan
     covs[4, 1, 1] = -1.0
@@ -194,8 +196,8 @@ def test_rows_a_decoder_checked_answer_as_ingest_does():
     codes = np.zeros(10, np.int64)
     codes[[1, 4, 9]] = 7                    # what the decoder refused
     ids = np.arange(100, 110)
-    want = a.ingest(bodies, names, times, poses, covs, ids=ids)
-    got = b.ingest_checked(bodies, names, times, poses, covs, ids, codes)
+    want = a.ingest(Rows(bodies, names, times, poses, covs), ids=ids)
+    got = b.ingest(Rows(bodies, names, times, poses, covs), ids=ids, checked=codes)
     assert [k for k, _ in got] == [1, 4, 8, 9]
     assert [(k, type(e), str(e)) for k, e in got] == [(k, type(e), str(e)) for k, e in want]
     assert a.window_of("box").ids.tolist() == b.window_of("box").ids.tolist()
@@ -203,7 +205,8 @@ def test_rows_a_decoder_checked_answer_as_ingest_does():
     assert f.mean.tobytes() == g.mean.tobytes() and f.nis.tobytes() == g.nis.tobytes()
     c, _, (_, poses, covs, times, names, bodies) = _two_trackers_and_a_batch(76)
     # every row good: none checked again
-    assert c.ingest_checked(bodies, names, times, poses, covs, ids, np.zeros(10, np.int64)) == []
+    assert c.ingest(Rows(bodies, names, times, poses, covs), ids=ids,
+                    checked=np.zeros(10, np.int64)) == []
     assert c.window_of("box").ids[-10:].tolist() == ids.tolist()
 
 
@@ -277,9 +280,9 @@ def _jumpy(max_rows=100_000) -> Tracker:
 
 def _fed(t: Tracker, times, origin=None, body="box") -> list[str]:
     n = len(times)
-    return [f"{k}: {e}" for k, e in t.ingest([body] * n, ["cam"] * n, np.array(times, float),
-                                              np.tile([1.0, 0, 0, 0, 0, 0, 0, 0], (n, 1)),
-                                              np.tile(np.eye(6), (n, 1, 1)), origin=origin)]
+    return [f"{k}: {e}" for k, e in t.ingest(Rows([body] * n, ["cam"] * n, np.array(times, float),
+                                                   np.tile([1.0, 0, 0, 0, 0, 0, 0, 0], (n, 1)),
+                                                   np.tile(np.eye(6), (n, 1, 1))), origin=origin)]
 
 
 def test_a_jump_waits_for_a_second_measurement_from_whoever_may_confirm_it():
@@ -331,10 +334,10 @@ def test_spans_are_each_bodys_own_looks(bodies):
     names = [f"b{k}" for k in range(60)]
     for step in range(40):
         n = 30
-        t.ingest([names[k] for k in rng.integers(0, 60, n)],
-                 [f"cam{k}" for k in rng.integers(0, 5, n)],
-                 step * 0.1 + rng.uniform(-0.5, 0.1, n), np.tile(dq.identity(), (n, 1)),
-                 np.tile(np.eye(6) * 1e-4, (n, 1, 1)))
+        t.ingest(Rows([names[k] for k in rng.integers(0, 60, n)],
+                      [f"cam{k}" for k in rng.integers(0, 5, n)],
+                      step * 0.1 + rng.uniform(-0.5, 0.1, n), np.tile(dq.identity(), (n, 1)),
+                      np.tile(np.eye(6) * 1e-4, (n, 1, 1))))
     asked = list(t.bodies)[:bodies]
     oldest, newest, near, fed = t.spans(asked, 1.0)
     for k, b in enumerate(asked):

@@ -360,7 +360,7 @@ def test_stream_answers_each_body_at_its_output_ticks(client):
     # the same answers as the domain's tracker fed the same requests, up to each answer's request
     replay = fusion.Tracker(window, sources=SOURCES)
     for r, b in enumerate(batches):
-        replay.ingest(b.bodies, b.names, b.times, b.poses, b.covariances)
+        replay.ingest(fusion.Rows(b.bodies, b.names, b.times, b.poses, b.covariances))
         for a in (a for a in answers if a.request == r):
             want = replay.estimate(a.body, a.time)
             s = np.sign(a.fused.mean[:4] @ want.mean[:4])
