@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Iterable, Mapping, Optional, Sequence
+from typing import TYPE_CHECKING, Iterable, Mapping, NamedTuple, Optional, Sequence
 
 import numpy as np
 
@@ -137,7 +137,6 @@ class FrameTree:
         # a Publish checks its rows' names only when a name could clash or a source rides
         self.checks = bool(self.statics or self.riders)
         self.static_body_names = tuple(static_bodies)      # in their configured order
-        self.infos: dict[str, tuple[int, FrameInfo]] = {}    # a body's, by its version
         # the world's, the sources' and the statics': the same objects until a configuration
         self.fixed = ([FrameInfo("", "", FrameKind.WORLD)],
                       [FrameInfo(n, self.links[n][0], FrameKind.SOURCE) for n in sources]
@@ -348,34 +347,42 @@ def frame_pose(world: "World", frame: str, at: float) -> "BodyPose":
     return BodyPose(frame, p.time, p.pose, p.covariance, None)
 
 
-def frames(world: "World") -> list[FrameInfo]:
-    """The world's frames: the world "", the bodies with measurements, the static bodies, the
-    sources, the statics; the same :class:`FrameInfo` objects while they hold (a body's until
-    its version changes, the others' until a configuration)."""
-    tree, t = world.tree, world._t
-    infos = tree.infos
-    bodies = list(t.held) + [b for b in tree.static_body_names if not t.has(b)]
-    version = t.version
-    stale = [b for b in bodies if b not in infos or infos[b][0] != version(b)]
-    if stale:
-        _body_infos(world, stale)
-    return list(tree.fixed[0]) + [infos[b][1] for b in bodies] + tree.fixed[1]
+class BodyColumns(NamedTuple):
+    """The bodies' and static bodies' frames as columns: ``names``, ``kinds``, ``spans``
+    ``(n, 3)`` (oldest, newest, rate_hz; zeros for a static body not measured yet) and the
+    ``sources`` that measured each."""
+    names: list[str]
+    kinds: list[FrameKind]
+    spans: np.ndarray
+    sources: list[tuple[str, ...]]
 
 
-def _body_infos(world: "World", bodies: list[str]) -> None:
-    """``bodies``' :class:`FrameInfo` made again and kept with their versions (the span and
-    rate of all of them from one pass over the store's rows)."""
+def body_columns(world: "World") -> BodyColumns:
+    """The bodies' frames (:class:`BodyColumns`), the measured ones' spans, rates and sources
+    from one pass over the store's rows (``Tracker.spans``)."""
     t, tree = world._t, world.tree
-    held = [b for b in bodies if t.has(b)]
-    spans = {}
+    held = list(t.held)
+    names = held + [b for b in tree.static_body_names if not t.has(b)]
+    spans = np.zeros((len(names), 3))
+    sources: list[tuple[str, ...]] = [()] * len(names)
     if held:
         oldest, newest, near, fed = t.spans(held, 1.0)
-        spans = dict(zip(held, zip(oldest.tolist(), newest.tolist(), near.tolist(), fed)))
-    before = world._fed_before      # sources that fed a body under earlier configurations
-    for body in bodies:
-        kind = FrameKind.STATIC_BODY if body in tree.static_bodies else FrameKind.BODY
-        span = spans.get(body)
-        info = (FrameInfo(body, "", kind) if span is None else
-                FrameInfo(body, "", kind, span[0], span[1], float(span[2]),
-                          span[3] + tuple(s for s in before.get(body, ()) if s not in span[3])))
-        tree.infos[body] = (t.version(body), info)
+        spans[:len(held)] = np.stack([oldest, newest, near], axis=1)
+        before = world._fed_before      # sources that fed a body under earlier configurations
+        sources[:len(held)] = [
+            f + tuple(s for s in before[b] if s not in f) if b in before else f
+            for b, f in zip(held, fed)]
+    statics = tree.static_bodies
+    kinds = [FrameKind.STATIC_BODY if b in statics else FrameKind.BODY for b in names]
+    return BodyColumns(names, kinds, spans, sources)
+
+
+def frames(world: "World") -> list[FrameInfo]:
+    """The world's frames: the world "", the bodies with measurements, the static bodies, the
+    sources, the statics."""
+    c = body_columns(world)
+    return (list(world.tree.fixed[0])
+            + [FrameInfo(n, "", k, lo, hi, rate, src)
+               for n, k, (lo, hi, rate), src in zip(c.names, c.kinds, c.spans.tolist(),
+                                                    c.sources)]
+            + world.tree.fixed[1])

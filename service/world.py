@@ -15,9 +15,7 @@ source's ``extrinsic_covariance``) and, when its latency is estimated (``latency
 latency error. :meth:`World.relative` fits both bodies jointly, with one ``ε`` and one latency
 per such source, so the relative pose's covariance carries their cross-covariance (a body's own
 pose, :meth:`World.pose`, is its own fit, which estimates the latency from its measurements
-alone). Not modelled: errors of a source's ``body_offset``, and correlations between the
-measurement noises of one image.
-"""
+alone). Not modelled: errors of a source's ``body_offset``, correlated noises of one image."""
 from __future__ import annotations
 
 import dataclasses
@@ -27,6 +25,7 @@ from typing import Mapping, NamedTuple, Optional, Sequence
 
 import numpy as np
 
+from dqpose import dq
 from dqpose import frames as _frames
 from dqpose import limits as _limits
 from dqpose.answers import Kept
@@ -556,10 +555,12 @@ class World:
         with self._lock.read():
             return _frames.frame_pose(self, frame, at)
 
-    def frames(self) -> list[_frames.FrameInfo]:
-        """The world's frames (:func:`dqpose.frames.frames`)."""
+    def frames(self, columns: bool = False):
+        """The world's frames (:func:`dqpose.frames.frames`); ``columns``: the world's, the
+        bodies' (:func:`dqpose.frames.body_columns`), the sources' and statics'."""
         with self._lock.read():
-            return _frames.frames(self)
+            return ((self.tree.fixed[0][0], _frames.body_columns(self), self.tree.fixed[1])
+                    if columns else _frames.frames(self))
 
     def relative_at(self, target, time, source, source_time=0.0, fixed="") -> BodyPose:
         """tf2's advanced lookup through ``fixed`` (:func:`dqpose.two_times.relative_at`)."""
@@ -583,10 +584,9 @@ class World:
                 raise NotFound(f"arm: {arm!r} has no source in the world's arms (" + (
                     ", ".join(map(repr, self.arms)) or "none configured") + ")")
             src = self._t._table[self.arms[arm]]
-        pose = np.array([1.0, 0, 0, 0, 0, 0, 0, 0]) if src.extrinsic is None else src.extrinsic
-        cov = (np.zeros((DOF, DOF)) if src.extrinsic_covariance is None
-               else src.extrinsic_covariance)
-        return BodyPose(f"arm:{arm}", 0.0, pose, cov, None)
+        cov = src.extrinsic_covariance
+        return BodyPose(f"arm:{arm}", 0.0, dq.identity() if src.extrinsic is None else
+                        src.extrinsic, np.zeros((DOF, DOF)) if cov is None else cov, None)
 
 
 def _published(bodies, errors: Mapping[int, WorldError]) -> Published:

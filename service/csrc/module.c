@@ -71,6 +71,9 @@ static PyMethodDef methods[] = {
      "rejected_sources, chi2, dof, iterations, status, distances, nis, tested, residuals, "
      "sources, request, measurements, dropped, twist, twist_covariance, extrapolation, "
      "latencies) -> FusedPose bytes."},
+    {"frame_entries", py_frame_entries, METH_VARARGS,
+     "frame_entries(heads, spans, tails) -> a FrameList's entries: heads[k] + FrameInfo fields "
+     "4-6 of spans[k] (n x 3) + tails[k], each as field 1."},
     {"blend_batch_wire", py_blend_batch_wire, METH_VARARGS,
      "blend_batch_wire(bytes, max_requests, max_total_poses, max_poses, default_tol, "
      "default_max_iter, max_iter_limit) -> (bytes, n) or None."},

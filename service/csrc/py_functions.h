@@ -33,6 +33,7 @@ PyObject *py_fuse_stream_from_wire(PyObject *self, PyObject *args);
 PyObject *py_publish_head(PyObject *self, PyObject *arg);
 PyObject *py_measurements_wire(PyObject *self, PyObject *args);
 PyObject *py_fused_pose_wire(PyObject *self, PyObject *args);
+PyObject *py_frame_entries(PyObject *self, PyObject *args);
 
 /* py_fusion.c: the fusion and the constant-twist fit */
 PyObject *py_fuse(PyObject *self, PyObject *args);

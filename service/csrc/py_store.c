@@ -133,18 +133,19 @@ static PyObject *index_count(StoreIndex *self, PyObject *arg)
     return PyLong_FromSize_t(dq_store_count(&self->x, b));
 }
 
-/* live(taken, newest, window, cap, n): which of rows 0 .. n - 1 a compaction keeps (bool);
- * newest[b] for every body b the index holds rows of. */
+/* live(taken, newest, window, cap, n, recent=None): which of rows 0 .. n - 1 a compaction keeps
+ * (bool); newest[b] for every body b the index holds rows of. With recent: instead, each body
+ * code's (oldest, near) over those rows (store.h's dq_store_spans). */
 static PyObject *index_live(StoreIndex *self, PyObject *args)
 {
-    PyObject *to, *no;
+    PyObject *to, *no, *ro = Py_None;
     double window;
     long cap;
     Py_ssize_t n;
-    if (!PyArg_ParseTuple(args, "OOdln", &to, &no, &window, &cap, &n)) return NULL;
+    if (!PyArg_ParseTuple(args, "OOdln|O", &to, &no, &window, &cap, &n, &ro)) return NULL;
     PyArrayObject *taken = vector(to, NPY_FLOAT64, "taken");
     PyArrayObject *newest = taken ? vector(no, NPY_FLOAT64, "newest") : NULL;
-    PyArrayObject *out = NULL;
+    PyObject *out = NULL;
     if (!newest) goto done;
     dq_store_index x = self->x;
     if ((size_t)PyArray_DIM(newest, 0) < x.count) x.count = (size_t)PyArray_DIM(newest, 0);
@@ -158,15 +159,32 @@ static PyObject *index_live(StoreIndex *self, PyObject *args)
         PyErr_SetString(PyExc_ValueError, "taken: fewer rows than n");
         goto done;
     }
-    npy_intp dim = n;
-    out = (PyArrayObject *)PyArray_SimpleNew(1, &dim, NPY_BOOL);
-    if (out)
+    if (ro == Py_None) {
+        npy_intp dim = n;
+        out = PyArray_SimpleNew(1, &dim, NPY_BOOL);
+        if (out)
+            dq_store_live(&x, PyArray_DATA(taken), PyArray_DATA(newest), window, cap,
+                          (size_t)n, PyArray_DATA((PyArrayObject *)out), NULL);
+        goto done;
+    }
+    double recent = PyFloat_AsDouble(ro);
+    if (recent == -1.0 && PyErr_Occurred()) goto done;
+    npy_intp dim = (npy_intp)x.count;
+    PyObject *oldest = PyArray_SimpleNew(1, &dim, NPY_FLOAT64);
+    PyObject *near = oldest ? PyArray_SimpleNew(1, &dim, NPY_INT64) : NULL;
+    if (near) {
+        dq_store_spans sp = {recent, PyArray_DATA((PyArrayObject *)oldest),
+                             PyArray_DATA((PyArrayObject *)near)};
         dq_store_live(&x, PyArray_DATA(taken), PyArray_DATA(newest), window, cap, (size_t)n,
-                      PyArray_DATA(out));
+                      NULL, &sp);
+        out = Py_BuildValue("(NN)", oldest, near);
+    } else {
+        Py_XDECREF(oldest);
+    }
 done:
     Py_XDECREF(taken);
     Py_XDECREF(newest);
-    return (PyObject *)out;
+    return out;
 }
 
 static PyObject *index_reset(StoreIndex *self, PyObject *unused)
@@ -520,8 +538,9 @@ static PyMethodDef index_methods[] = {
      "since(b, lo, taken, cap=-1): body b's rows taken at lo or later (the last cap)."},
     {"count", (PyCFunction)index_count, METH_O, "count(b): body b's rows in the index."},
     {"live", (PyCFunction)index_live, METH_VARARGS,
-     "live(taken, newest, window, cap, n): the rows within their body's window (the last cap "
-     "of them; cap < 0: all), as bools."},
+     "live(taken, newest, window, cap, n, recent=None): the rows within their body's window "
+     "(the last cap of them; cap < 0: all), as bools; with recent, each body code's (oldest, "
+     "near) over them instead."},
     {"reset", (PyCFunction)index_reset, METH_NOARGS, "reset(): every body's index emptied."},
     {"ingest", (PyCFunction)index_ingest, METH_VARARGS,
      "ingest(store, newest, by_source, latency, bodies, body_codes, sources, source_codes, ids, "

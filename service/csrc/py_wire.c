@@ -10,6 +10,7 @@
 
 #include "dq.h"
 #include "fused_wire.h"
+#include "pbwrite.h"
 #include "wire.h"
 #include "py_functions.h"
 
@@ -491,4 +492,53 @@ done:
         PyMem_Free(mem[k]);
     }
     return result;
+}
+
+/* frame_entries(heads, spans, tails): a FrameList's entries (field 1, one FrameInfo each): entry
+ * k is heads[k] (its name, parent and kind, written already), spans[k] as FrameInfo's fields 4,
+ * 5 and 6 (oldest, newest, rate_hz; +0.0 left out), then tails[k] (its sources). */
+PyObject *py_frame_entries(PyObject *self, PyObject *args)
+{
+    PyObject *heads, *so, *tails;
+    if (!PyArg_ParseTuple(args, "O!OO!", &PyList_Type, &heads, &so, &PyList_Type, &tails))
+        return NULL;
+    const Py_ssize_t n = PyList_GET_SIZE(heads);
+    if (PyList_GET_SIZE(tails) != n)
+        return PyErr_Format(PyExc_ValueError, "tails: expected %zd, got %zd", n,
+                            PyList_GET_SIZE(tails));
+    PyObject *spans = double_rows(so, n, 3, "spans");
+    if (!spans) return NULL;
+    const double *d = PyArray_DATA((PyArrayObject *)spans);
+    size_t size = 0;
+    for (Py_ssize_t k = 0; k < n; k++) {
+        PyObject *h = PyList_GET_ITEM(heads, k), *t = PyList_GET_ITEM(tails, k);
+        if (!PyBytes_Check(h) || !PyBytes_Check(t)) {
+            Py_DECREF(spans);
+            return PyErr_Format(PyExc_TypeError, "heads, tails: expected bytes at %zd", k);
+        }
+        /* tag, a length of at most 10 bytes, three doubles of 9 bytes */
+        size += 11 + 27 + (size_t)PyBytes_GET_SIZE(h) + (size_t)PyBytes_GET_SIZE(t);
+    }
+    PyObject *out = PyBytes_FromStringAndSize(NULL, (Py_ssize_t)size);
+    if (!out) {
+        Py_DECREF(spans);
+        return NULL;
+    }
+    uint8_t *p = (uint8_t *)PyBytes_AS_STRING(out), *start = p;
+    for (Py_ssize_t k = 0; k < n; k++) {
+        PyObject *h = PyList_GET_ITEM(heads, k), *t = PyList_GET_ITEM(tails, k);
+        uint8_t body[27], *q = body;
+        for (int f = 0; f < 3; f++) q = put_double(q, 4 + f, d[3 * k + f]);
+        const size_t hn = (size_t)PyBytes_GET_SIZE(h), tn = (size_t)PyBytes_GET_SIZE(t);
+        const size_t bn = (size_t)(q - body);
+        p = put_tag(p, 1, WT_LEN);
+        p = put_varint(p, hn + bn + tn);
+        memcpy(p, PyBytes_AS_STRING(h), hn);
+        memcpy(p + hn, body, bn);
+        memcpy(p + hn + bn, PyBytes_AS_STRING(t), tn);
+        p += hn + bn + tn;
+    }
+    Py_DECREF(spans);
+    if (_PyBytes_Resize(&out, (Py_ssize_t)(p - start)) < 0) return NULL;
+    return out;
 }

@@ -70,11 +70,15 @@ size_t dq_store_count(const dq_store_index *x, int64_t body)
 }
 
 void dq_store_live(const dq_store_index *x, const double *taken, const double *newest,
-                   double window, long cap, size_t n, unsigned char *live)
+                   double window, long cap, size_t n, unsigned char *live, dq_store_spans *s)
 {
-    memset(live, 0, n);
+    if (live) memset(live, 0, n);
     for (size_t k = 0; k < x->count; k++) {
         const dq_store_body *b = &x->bodies[k];
+        if (s) {
+            s->oldest[k] = HUGE_VAL;
+            s->near[k] = 0;
+        }
         if (!b->used) continue;
         double lo = newest[k] - window;
         long kept = 0;
@@ -82,7 +86,11 @@ void dq_store_live(const dq_store_index *x, const double *taken, const double *n
             int64_t r = b->rows[i];
             if ((size_t)r >= n || !(taken[r] >= lo)) continue;
             if (cap >= 0 && kept >= cap) continue;
-            live[r] = 1;
+            if (live) live[r] = 1;
+            if (s) {
+                if (taken[r] < s->oldest[k]) s->oldest[k] = taken[r];
+                s->near[k] += taken[r] >= newest[k] - s->recent;
+            }
             kept++;
         }
     }
@@ -207,7 +215,7 @@ static int room_check(dq_store_index *x, dq_store_cols *cols, const dq_store_sta
     if (cols->n) {
         unsigned char *live = malloc(cols->n);
         if (!live) return -1;
-        dq_store_live(x, cols->taken, st->newest, r->window, r->cap, cols->n, live);
+        dq_store_live(x, cols->taken, st->newest, r->window, r->cap, cols->n, live, NULL);
         int rc = dq_store_keep(x, cols, live);
         free(live);
         if (rc < 0) return rc;

@@ -103,9 +103,16 @@ size_t dq_store_count(const dq_store_index *x, int64_t body);
 
 /* live[r] for rows 0 .. n - 1 (body[r], taken[r]): taken within `window` of its body's newest
  * (taken >= newest[body] - window) and, with cap >= 0, among the last `cap` such rows of its
- * body in arrival order. Every row must be in the index (each body's newest given). */
+ * body in arrival order. Every row must be in the index (each body's newest given). live and s
+ * may each be NULL; s: each body's span over those rows (ListFrames'). */
+typedef struct {
+    double recent;  /* in: seconds before a body's newest that count as near */
+    double *oldest; /* out, one a body of the index: its live rows' oldest taken (HUGE_VAL) */
+    int64_t *near;  /* out: its live rows taken within `recent` of its newest */
+} dq_store_spans;
+
 void dq_store_live(const dq_store_index *x, const double *taken, const double *newest,
-                   double window, long cap, size_t n, unsigned char *live);
+                   double window, long cap, size_t n, unsigned char *live, dq_store_spans *s);
 
 /* A request's rows into the store (service/fusion/tracker.py's Tracker._admit): refused in order
  * (refusals written to out[], at most in->n, *nout of them) those stamped beyond +-max_time; those

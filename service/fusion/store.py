@@ -56,6 +56,13 @@ class _Store:
         the last ``cap`` of those (arrival order) when a cap is given."""
         return self._index.live(self.taken, newest, window, -1 if cap is None else cap, self.n)
 
+    def spans(self, newest: np.ndarray, window: float, cap: Optional[int],
+              recent: float) -> tuple[np.ndarray, np.ndarray]:
+        """Per body code, over its rows of :meth:`live`: the oldest taken (inf: none) and how
+        many were taken within ``recent`` of its newest."""
+        return self._index.live(self.taken, newest, window, -1 if cap is None else cap, self.n,
+                                float(recent))
+
     def rows(self, b: int, newest: np.ndarray, window: float,
              cap: Optional[int] = None) -> np.ndarray:
         """Body ``b``'s rows in its window, in arrival order (the last ``cap`` of them)."""

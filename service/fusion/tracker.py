@@ -211,23 +211,11 @@ class Tracker:
     def spans(self, bodies: Sequence[str], recent: float) -> tuple:
         """:meth:`oldest` and :meth:`newest` of each of ``bodies`` (which have measurements),
         how many of its window's rows were taken within ``recent`` s before its newest, and the
-        names of the sources of :meth:`by_source`, in one pass over the live rows (a list of
-        every body: one body's looks cost ~13 us)."""
+        names of the sources of :meth:`by_source`, in one pass over the live rows (C: a list of
+        every body; one body's looks cost ~13 us)."""
         s = self._store
-        codes = np.array([self._body_codes[b] for b in bodies], np.int64)
-        oldest = np.full(len(self._newest), math.inf)
-        near = np.zeros(len(self._newest), np.int64)
-        if 400 * len(codes) < s.n:      # a few bodies: each one's rows (~4 us a body)
-            for b in codes.tolist():
-                taken = s.taken[s.rows(b, self._newest, self.window, self.cap)]
-                oldest[b] = taken.min()
-                near[b] = np.count_nonzero(taken >= self._newest[b] - recent)
-        else:                           # many: one pass over the live rows (~10 ns a row)
-            rows = np.flatnonzero(s.live(self._newest, self.window, self.cap))
-            body, taken = s.body[rows], s.taken[rows]
-            np.minimum.at(oldest, body, taken)
-            near = np.bincount(body[taken >= self._newest[body] - recent],
-                               minlength=len(self._newest))
+        codes = np.fromiter(map(self._body_codes.__getitem__, bodies), np.int64, len(bodies))
+        oldest, near = s.spans(self._newest, self.window, self.cap, recent)
         # the sources' sets by pattern: few patterns among many bodies
         seen = self._by_source[codes] != -math.inf
         names, fed = self._names, []

@@ -2,19 +2,20 @@
 (the server's), and a ``FrameList`` as :class:`dqpose.frames.FrameInfo` s (the client's)."""
 from __future__ import annotations
 
-import struct
 import weakref
 
+import numpy as np
+
+from dqpose import _dqcore
 from dqpose.frames import FrameInfo, FrameKind
 from dqpose.rpc._proto.dqpose.v1 import world_pb2 as pb
 
 # The FrameList is written field by field (protobuf's wire format: one length-delimited
 # FrameInfo per frame): in a live world every body's span changes between two calls, and a
 # protobuf FrameInfo made and serialized per frame costs ~3.5 us (1,000 frames: 3.5 ms). Per
-# world, the bytes that seldom change are kept: a frame's name, parent and kind, and a list of
-# sources; the span and rate are packed at each call.
+# world, the bytes that seldom change are kept: each frame's name, parent and kind, and each
+# list of sources; the bodies' spans are written in C (_dqcore.frame_entries) at each call.
 _kept: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-_SPAN = struct.Struct("<BdBdBd")        # FrameInfo fields 4, 5, 6: doubles (wire type 1)
 
 
 def _varint(n: int) -> bytes:
@@ -31,10 +32,9 @@ def _text(field: int, s: str) -> bytes:
     return bytes([field << 3 | 2]) + _varint(len(data)) + data if data else b""
 
 
-def _head(f: FrameInfo) -> bytes:
-    kind = f.kind.value
-    return _text(1, f.name) + _text(2, f.parent) + (bytes([3 << 3]) + _varint(kind) if kind
-                                                     else b"")
+def _head(name: str, parent: str, kind: FrameKind) -> bytes:
+    return _text(1, name) + _text(2, parent) + (bytes([3 << 3]) + _varint(kind.value)
+                                                if kind.value else b"")
 
 
 def _sources(sources: tuple[str, ...]) -> bytes:
@@ -44,34 +44,40 @@ def _sources(sources: tuple[str, ...]) -> bytes:
 def list_frames(hub, request: pb.ListFramesRequest) -> bytes:
     """The ``FrameList`` of ``hub``'s world, serialized (beside the world's steps, under its
     read lock, as a Lookup)."""
-    frames = hub.world.frames()
+    world, bodies, fixed = hub.world.frames(columns=True)
+    n = 1 + len(bodies.names) + len(fixed)
     kept = _kept.get(hub)
-    if kept is None or len(kept[0]) > 2 * len(frames) or len(kept[2]) > 4 * len(frames):
+    if kept is None or len(kept[0]) > 2 * n or len(kept[1]) > 4 * n:
         kept = _kept[hub] = ({}, {}, {})     # the frames no longer listed go
-    done: dict[str, tuple[FrameInfo, bytes]] = kept[0]
-    heads: dict[tuple, bytes] = kept[1]
-    lists: dict[tuple[str, ...], bytes] = kept[2]
-    parts = []
-    for f in frames:
-        hit = done.get(f.name)
-        if hit is None or hit[0] is not f:      # the world hands out the same info unchanged
-            hit = done[f.name] = (f, _entry(f, heads, lists))
-        parts.append(hit[1])
-    return b"".join(parts)
+    heads: dict[tuple, bytes] = kept[0]
+    lists: dict[tuple[str, ...], bytes] = kept[1]
 
+    def head(name: str, parent: str, kind: FrameKind) -> bytes:
+        key = (name, parent, kind)
+        got = heads.get(key)
+        if got is None:
+            got = heads[key] = _head(name, parent, kind)
+        return got
 
-def _entry(f: FrameInfo, heads: dict, lists: dict) -> bytes:
-    """``f``'s entry in a FrameList, from the kept bytes of its head and its list of sources."""
-    key = (f.name, f.parent, f.kind)
-    head = heads.get(key)
-    if head is None:
-        head = heads[key] = _head(f)
-    tail = lists.get(f.sources)
-    if tail is None:
-        tail = lists[f.sources] = _sources(f.sources)
-    body = (head + _SPAN.pack(0x21, f.oldest, 0x29, f.newest, 0x31, f.rate_hz) + tail
-            if f.oldest or f.newest or f.rate_hz else head + tail)
-    return b"\x0a" + _varint(len(body)) + body
+    def tail(sources: tuple[str, ...]) -> bytes:
+        got = lists.get(sources)
+        if got is None:
+            got = lists[sources] = _sources(sources)
+        return got
+
+    def body_head(name: str, kind: FrameKind) -> bytes:
+        got = bodies_kept.get(name)
+        if got is None or got[0] is not kind:
+            got = bodies_kept[name] = (kind, head(name, "", kind))
+        return got[1]
+
+    bodies_kept: dict[str, tuple[FrameKind, bytes]] = kept[2]
+    return _dqcore.frame_entries(
+        [head(world.name, world.parent, world.kind)]
+        + list(map(body_head, bodies.names, bodies.kinds))
+        + [head(f.name, f.parent, f.kind) for f in fixed],
+        np.concatenate([np.zeros((1, 3)), bodies.spans, np.zeros((len(fixed), 3))]),
+        [b""] + [tail(s) for s in bodies.sources] + [b""] * len(fixed))
 
 
 def frames_of(msg: pb.FrameList) -> list[FrameInfo]:

@@ -324,11 +324,11 @@ def test_times_beyond_max_time_and_past_the_stream_room_are_refused_by_name():
     assert t.count("box") == 4
 
 
-@pytest.mark.parametrize("bodies", [1, 60])   # one body by its rows, all in one pass
+@pytest.mark.parametrize("bodies", [1, 60])
 def test_spans_are_each_bodys_own_looks(bodies):
-    """Tracker.spans (ListFrames' spans, rates and sources of many bodies at once, by either
-    of its two ways) gives what oldest, newest, rows_ending and by_source give body by body,
-    with measurements late, out of order and past a cap."""
+    """Tracker.spans (ListFrames' spans, rates and sources of many bodies in one C pass) gives
+    what oldest, newest, rows_ending and by_source give body by body, with measurements late,
+    out of order and past a cap."""
     rng = np.random.default_rng(bodies)
     t = Tracker(2.0, bounds=TrackerBounds.of(limits.DEFAULT), robust=False)
     names = [f"b{k}" for k in range(60)]
