@@ -200,7 +200,9 @@ def frames_text(frames) -> str:
         for f in children.get(parent, ()):
             what = [_kind(f.kind)]
             if f.newest or f.oldest:
-                what += [f"{f.rate_hz:g} Hz", f"{f.oldest:.6g} .. {f.newest:.6g} s"]
+                # as tf2's view_frames: the rate, the buffer's length, the newest's time
+                what += [f"{f.rate_hz:g} Hz", f"{f.newest - f.oldest:.3f} s kept",
+                         f"newest {f.newest:.3f} s"]
             if f.sources:
                 what.append("sources " + ", ".join(f.sources))
             lines.append(f"{'  ' * depth}{f.parent or 'world'} -> {f.name}: {'; '.join(what)}")

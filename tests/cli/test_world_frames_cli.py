@@ -32,7 +32,7 @@ def test_world_frames_prints_the_tree_and_its_json(capsys):
         assert code == 0, err
         assert out.splitlines() == [
             "world",
-            "world -> box: body; 33 Hz; 0 .. 1.96875 s; sources cam",
+            "world -> box: body; 33 Hz; 1.969 s kept; newest 1.969 s; sources cam",
             "  box -> tip: static",
             "    tip -> tcp: static",
             "world -> shelf: static body",
