@@ -156,11 +156,11 @@ class ArmProcess(Arm):
                                 "pid": new.pid}))
         return new
 
-    def _request(self, op: str, *args, run: Optional[tuple] = None):
+    def _request(self, op: str, *args, run: Optional[RingRun] = None):
         """The arm process's answer to a request (its error raised here). A request the process
         never got goes to a new one (:meth:`_live`); one it got and did not answer raises
-        ``ArmError``, except a run's start (``run``: the RingRun and its executor), which from then
-        on ends with a final record, not an error."""
+        ``ArmError``, except a run's start (``run``: its RingRun), which from then on ends with a
+        final record, not an error."""
         what = f"{args[0]}()" if op in ("call", "attr") else op
         with self._lock:
             if self._closed:
@@ -169,12 +169,12 @@ class ArmProcess(Arm):
             for _ in range(2):
                 child = self._live()
                 if run is not None:
-                    child.adopt(*run)
+                    child.adopt(run)
                 try:
                     child.conn.send((op, *args))
                 except BaseException as e:
                     if run is not None:
-                        child.take(run[0].id)
+                        child.take(run.id)
                     if not isinstance(e, OSError):
                         raise
                     child.lost = True           # not delivered: to a new process
@@ -187,16 +187,16 @@ class ArmProcess(Arm):
                         raise ArmError(f"arm: the process of {self.spec!r} ended "
                                        f"({child.how()}) during {what}; its next use opens it "
                                        f"again") from None
-                    status, value, end = "ok", None, child.take(run[0].id)
+                    status, value, end = "ok", None, child.take(run.id)
                     break
                 if run is not None:
-                    end = child.answered(run[0].id, status == "ok")
+                    end = child.answered(run.id, status == "ok")
                 break
             else:
                 raise ArmError(f"arm: the process of {self.spec!r} ended ({child.how()}) "
                                f"before it took {what}")
         if end is not None:
-            end_run(end[0], end[1], child.how())
+            end_run(end[0], child.how())
         if status == "error":
             raise value
         return value
@@ -213,9 +213,9 @@ class ArmProcess(Arm):
             return value
         return lambda *a, **kw: self.call(name, *a, **kw)
 
-    def start_run(self, ex) -> RingRun:
-        """What an :class:`~drivers.executor.Executor` calls: its run in the child."""
-        return RingRun(self, ex, next(self._ids))
+    def open_run(self, settings, busy_timeout: float, outcome) -> RingRun:
+        """An :class:`~drivers.executor.Executor`'s run: its loop in the child."""
+        return RingRun(self, settings, busy_timeout, outcome, next(self._ids))
 
     # ------------------------------------------------------------------ the Arm interface
     def tool_pose(self):

@@ -1,10 +1,11 @@
 """The owner's side of an arm's process (:mod:`dqpose.drivers.armproc`):
 :class:`ChildProcess`, one process with its pipes and the thread that reads its feedback, and
-:class:`RingRun`, one run handed to it (what an :class:`~dqpose.drivers.executor.Executor`
-calls: ``put`` writes the ring, ``cancel``/``halt`` raise a flag and wake the process's loop
-through a pipe, ``beat`` stamps the heartbeat). Feedback comes back through another pipe,
-written by the process without blocking: an owner that stops reading loses records, never a
-set-point. A process that ends under a run ends it ``ERROR`` saying how (:func:`end_run`).
+:class:`RingRun`, one run handed to it (the :class:`~dqpose.drivers.run.Run` an
+:class:`~dqpose.drivers.executor.Executor` drives: ``put`` writes the ring, ``cancel``/``halt``
+raise a flag and wake the process's loop through a pipe, ``beat`` stamps the heartbeat).
+Feedback comes back through another pipe, written by the process without blocking: an owner
+that stops reading loses records, never a set-point. A process that ends under a run ends it
+``ERROR`` saying how (:func:`end_run`).
 """
 from __future__ import annotations
 
@@ -13,7 +14,6 @@ import pickle
 import signal
 import threading
 import time
-import weakref
 from multiprocessing.connection import wait
 from typing import TYPE_CHECKING, Optional
 
@@ -32,19 +32,20 @@ from dqpose.drivers.armring import (
     Ring,
 )
 from dqpose.drivers.base import ArmError
-from dqpose.drivers.control import Feedback, Result
+from dqpose.drivers.control import Feedback, Result, Settings
+from dqpose.drivers.run import Outcome, Run
 
 if TYPE_CHECKING:
     from dqpose.drivers.armproc import ArmProcess
 
 
-class RingRun:
-    """The parent's side of one run (what :class:`~drivers.executor.Executor` calls)."""
+class RingRun(Run):
+    """The parent's side of one run in the arm's process (``proc``), reporting to ``outcome``."""
 
-    def __init__(self, proc: "ArmProcess", ex, run_id: int):
-        # the executor holds this run; this run holds it weakly (no cycle: see _DequeBuffer),
-        # and the arm process strongly while the run goes
-        self.proc, self._ex, self.id = proc, weakref.ref(ex), run_id
+    def __init__(self, proc: "ArmProcess", settings: Settings, busy_timeout: float,
+                 outcome: Outcome, run_id: int):
+        self.proc, self.settings, self.busy_timeout = proc, settings, busy_timeout
+        self.outcome, self.id = outcome, run_id
         self.ring: Optional[Ring] = None
         self.child: Optional[ChildProcess] = None     # the process it was handed to
         self.last: Optional[Feedback] = None    # its last record from there
@@ -85,29 +86,27 @@ class RingRun:
                     head[WRITTEN] = w + n      # after the slots: publishes them
                     i += n
                     continue
-            time.sleep(self.ex.period)       # full: the arm makes room, a period a slot
+            time.sleep(self.settings.period)    # full: the arm makes room, a period a slot
 
-    @property
-    def ex(self):
-        return self._ex()
-
-    def start(self, trajectory=None) -> None:
+    def _hand_over(self, trajectory) -> None:
         """The run in the child (which waits for the arm and checks the start): on the ring's
         slots, or on ``trajectory``, which the child samples itself (then the ring holds only
         the counters and signals). A refused start frees the ring."""
-        ex = self.ex
-        with self._lock:
-            if trajectory is not None:
-                self._make_ring(0)
         try:
-            self.proc._request("run", self.id, ex.settings, self.ring.name, self.ring.capacity,
-                               trajectory, ex.busy_timeout, run=(self, ex))
+            self.proc._request("run", self.id, self.settings, self.ring.name,
+                               self.ring.capacity, trajectory, self.busy_timeout, run=self)
         except BaseException:
             self.release()
             raise
 
+    def start(self, slots) -> None:
+        self.put(slots)
+        self._hand_over(None)
+
     def start_plan(self, trajectory) -> None:
-        self.start(trajectory)
+        with self._lock:
+            self._make_ring(0)
+        self._hand_over(trajectory)
 
     def finish(self) -> None:
         with self._lock:
@@ -157,7 +156,8 @@ class RingRun:
             h = self.ring.head
             return (int(h[SENT]), int(h[REALTIME]), int(h[WRITTEN] - h[READ]))[k]
 
-    def sent_count(self) -> int:
+    @property
+    def sent(self) -> int:
         return self._count(0)
 
     @property
@@ -195,11 +195,11 @@ def how_ended(exitcode: Optional[int]) -> str:
     return f"exit code {exitcode}"
 
 
-def end_run(run: RingRun, ex, how: str) -> None:
+def end_run(run: RingRun, how: str) -> None:
     """A run whose process ended under it: ``ERROR``, where its last record had it."""
     run.release()
     last = run.last
-    ex._ended(Feedback(0.0 if last is None else last.time, time.time(),
+    run.outcome.ended(Feedback(0.0 if last is None else last.time, time.time(),
                        None if last is None else last.commanded,
                        None if last is None else last.actual, Result.ERROR,
                        f"the arm's process ended ({how}) before the run did; it is opened again "
@@ -208,7 +208,7 @@ def end_run(run: RingRun, ex, how: str) -> None:
 
 class ChildProcess:
     """One process of an :class:`ArmProcess`'s arm: the process, its pipes, the thread that reads
-    its feedback, and the runs handed to it (run id -> [run, executor, accepted]). A run is
+    its feedback, and the runs handed to it (run id -> [run, accepted]). A run is
     accepted once the process has answered its start; until then the request that hands it
     over ends it if the process ends, from then on this reader does (with the process's final
     record, or ``ERROR`` when the process ends first)."""
@@ -282,11 +282,11 @@ class ChildProcess:
             self._how = how_ended(p.exitcode)
         return self._how
 
-    def adopt(self, run: RingRun, ex) -> None:
+    def adopt(self, run: RingRun) -> None:
         """A run about to be handed over; it starts with a fresh heartbeat (the owner may beat
         from the thread that hands it over, which opening the arm again may have held)."""
         with self.lock:
-            self.runs[run.id] = [run, ex, False]
+            self.runs[run.id] = [run, False]
         run.child = self
         run.beat(time.monotonic())
 
@@ -304,11 +304,11 @@ class ChildProcess:
             if not ok or self.dead:
                 del self.runs[rid]
                 return entry if ok else None
-            entry[2] = True
+            entry[1] = True
             return None
 
     def _read(self) -> None:
-        """Feedback records to their runs' executors; once the process has ended, each run
+        """Feedback records to their runs' outcomes; once the process has ended, each run
         it had accepted and not ended ends ``ERROR`` saying how the process ended."""
         while True:
             try:
@@ -319,23 +319,23 @@ class ChildProcess:
             entry = self.runs.get(rid)
             if entry is None:
                 continue
-            run, ex = entry[0], entry[1]
+            run = entry[0]
             fb = Feedback(t, stamp, None if cmd is None else np.asarray(cmd),
                           None if act is None else np.asarray(act), Result(res), msg)
             if fb.result == Result.OK:
                 run.last = fb
-                ex._emit(fb)
+                run.outcome.emit(fb)
             elif self.take(rid) is not None:
                 run.release()
-                ex._ended(fb)
+                run.outcome.ended(fb)
         how = self.how()
         with self.lock:
             self.dead = True
-            ended = [e for e in self.runs.values() if e[2]]
-            for run, _, _ in ended:
+            ended = [run for run, accepted in self.runs.values() if accepted]
+            for run in ended:
                 del self.runs[run.id]
-        for run, ex, _ in ended:
-            end_run(run, ex, how)
+        for run in ended:
+            end_run(run, how)
         # the runs are released: no signal goes to this process's wake pipe any more
         self.wake.close()
         self.fb.close()

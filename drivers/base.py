@@ -13,14 +13,18 @@ import abc
 import dataclasses
 import math
 import numbers
+import threading
 import time
 from dataclasses import dataclass, field
-from typing import Iterator, Optional
+from typing import TYPE_CHECKING, Callable, Iterator, Optional
 
 import numpy as np
 
 from dqpose import dq, trajectory
 from dqpose.drivers.rotvec import rotvec_from_quat
+
+if TYPE_CHECKING:
+    from dqpose.drivers.run import Run
 
 
 @dataclass(frozen=True)
@@ -303,6 +307,58 @@ class Pacer:
         return start
 
 
+class ServoStream:
+    """An arm's stream of ``servo()`` set-points as its :class:`Limits` judge it: the last
+    set-point sent (None: the next one starts a stream, from rest at the measured pose) and its
+    step, and for the watchdog whether a stream is under way and when its last set-point went.
+    Any thread may call it; its lock is held for no call out."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.setpoint: Optional[np.ndarray] = None
+        self.step = np.zeros(6)
+        self.active = False
+        self.sent_at = -math.inf        # time.monotonic()
+
+    def previous(self) -> tuple[Optional[np.ndarray], np.ndarray]:
+        with self._lock:
+            return self.setpoint, self.step.copy()
+
+    def sent(self, target: np.ndarray, step: np.ndarray, ok: bool = True) -> None:
+        """``target`` went out with ``step``; not ``ok`` (the controller refused it): the stream
+        is no longer watched and the last set-point sent stays the one before."""
+        with self._lock:
+            if ok:
+                self.setpoint, self.step = target, step
+            self.active = ok
+            self.sent_at = time.monotonic()
+
+    def end(self, forget: bool = True) -> bool:
+        """No stream under way any more (a stop, a hold, a move, a fault), hence nothing for the
+        watchdog; with ``forget`` the next set-point starts from rest. Whether one was."""
+        with self._lock:
+            was, self.active = self.active, False
+            if forget:
+                self.setpoint = None
+            return was
+
+    def forget(self) -> bool:
+        """The next set-point starts from rest (the arm was stopped, or moved by other means);
+        whether a set-point was kept."""
+        with self._lock:
+            kept, self.setpoint = self.setpoint is not None, None
+            return kept
+
+    def stalled(self, watchdog: float) -> bool:
+        """A stream under way whose last set-point is more than ``watchdog`` s old: no longer
+        watched, and True (the arm is the caller's to stop)."""
+        with self._lock:
+            if self.active and time.monotonic() - self.sent_at > watchdog:
+                self.active = False
+                return True
+            return False
+
+
 class Arm(abc.ABC):
     """An arm commanded in tool space.
 
@@ -330,6 +386,9 @@ class Arm(abc.ABC):
     #: attribute of the same name (``stale_after``, ``max_tracking``, ``heartbeat``, ...)
     options: dict = {}
 
+    #: the servo stream :meth:`_checked_setpoint` judges (made by a backend that servos)
+    _stream: ServoStream
+
     def _set_options(self, kind: str, given: dict) -> None:
         """The keys of :data:`~drivers.spec.ARM_KEYS` from ``given`` (checked), the defaults of
         ``kind`` for the rest, as :attr:`options` and attributes."""
@@ -342,6 +401,15 @@ class Arm(abc.ABC):
     def process_problem(cls, channel: str) -> Optional[str]:
         """Why an arm on ``channel`` cannot be opened in a process of its own (its connection
         does not reach across processes), or None."""
+        return None
+
+    def open_run(self, settings, busy_timeout: float, outcome) -> Optional["Run"]:
+        """Where a run of the control loop goes, asked once by each
+        :class:`~dqpose.drivers.executor.Executor` made on this arm (its
+        :class:`~dqpose.drivers.control.Settings`, ``busy_timeout``, and the
+        :class:`~dqpose.drivers.run.Outcome` the run reports to): a :class:`~dqpose.drivers.run.Run`
+        of the arm's own (an arm in its own process runs the loop there), or None, the default:
+        a thread of the caller's process runs it (:class:`~dqpose.drivers.run.LocalRun`)."""
         return None
 
     @abc.abstractmethod
@@ -361,6 +429,29 @@ class Arm(abc.ABC):
                 raise ValueError(f"covariance: expected a finite 6x6 matrix, got shape "
                                  f"{covariance.shape}")
         return Measurement(source=self.name, time=stamp, pose=pose, covariance=covariance)
+
+    def _checked_setpoint(self, target: np.ndarray,
+                          here: Callable[[], np.ndarray]) -> np.ndarray:
+        """The step of servo set-point ``target`` by :meth:`Limits.check_servo`, from the last
+        set-point of the stream under way (:class:`ServoStream`, ``self._stream``, which a
+        backend that servos makes), or from rest at ``here()``, the measured pose, when it
+        starts one. A set-point over a limit ends the stream, stops the arm
+        (:meth:`_refused`) and raises the :class:`LimitError`. The backend records what it
+        sends (``self._stream.sent``)."""
+        prev, prev_step = self._stream.previous()
+        if prev is None:
+            prev, prev_step = here(), np.zeros(6)
+        try:
+            return self.limits.check_servo(target, prev, prev_step, self.period)
+        except LimitError:
+            self._refused(self._stream.end())
+            raise
+
+    def _refused(self, streaming: bool) -> None:
+        """Bring the arm to a controlled stop after a refused set-point (``streaming``: a stream
+        was under way)."""
+        if streaming:
+            self.stop()
 
     def servo(self, pose: np.ndarray) -> None:
         """Send one set-point and return at the end of its cycle; call once per ``period``."""

@@ -78,7 +78,7 @@ class Settings:
 
 class Buffer:
     """The set-points as the control loop sees them, and the owner's signals; one per kind of
-    transport (:class:`dqpose.drivers.executor._DequeBuffer`,
+    transport (a deque in this process, :class:`dqpose.drivers.run.LocalRun`'s;
     :class:`dqpose.drivers.armchild.RingBuffer`)."""
 
     #: set by the loop: whether it got real-time scheduling

@@ -8,7 +8,8 @@ every set-point against its :class:`~drivers.base.Limits`; between two set-point
 for the cycle's end or a cancel, whichever comes first, so a cancel stops the arm at once rather
 than at the end of the period.
 
-Where the loop runs follows the arm: in a thread of this process for an arm opened here, and in
+Where the loop runs follows the arm (:meth:`Arm.open_run <dqpose.drivers.base.Arm.open_run>`,
+asked once: :mod:`dqpose.drivers.run`): in a thread of this process for an arm opened here, and in
 the arm's own process for one opened with ``drivers.open_arm(spec, process=True)``
 (:class:`dqpose.drivers.armproc.ArmProcess`), where no thread of the caller's (gRPC, the feeder, the
 garbage collector of a large heap) can hold the interpreter lock when a set-point is due. Both
@@ -55,7 +56,6 @@ with ``loop.call_soon_threadsafe``) or, without one, to a queue read with
 """
 from __future__ import annotations
 
-import collections
 import math
 import numbers
 import threading
@@ -66,17 +66,8 @@ import numpy as np
 
 from dqpose import dq
 from dqpose.drivers.base import Arm
-from dqpose.drivers.control import (
-    Buffer,
-    Control,
-    Feedback,
-    PlanSlots,
-    Result,
-    Settings,
-    check_start,
-    claim,
-    plan_start,
-)
+from dqpose.drivers.control import Feedback, Result, Settings
+from dqpose.drivers.run import LocalRun, Outcome, Run
 from dqpose.drivers.spec import ARM_KEYS
 from dqpose.interpolate import interpolate
 from dqpose.trajectory import INTERPOLATIONS
@@ -101,66 +92,6 @@ def _tolerance(name: str, v) -> tuple[float, float]:
 def _key(arm: Arm, name: str) -> float:
     """The arm's value of an arm-spec key (the table's default for an arm without keys)."""
     return float(arm.options.get(name, ARM_KEYS[name].default_for(None)))
-
-
-class _DequeBuffer(Buffer):
-    """The buffer of a loop in the caller's process: the :class:`Executor`'s own deque, or its
-    plan. Made by the loop's thread and dropped with it: held by the executor it would make a
-    reference cycle, and an arm kept alive by a cycle is freed by the garbage collector whenever
-    it runs (``ur_rtde``'s destructors then sleep a second with the interpreter lock held)."""
-
-    def __init__(self, ex: "Executor"):
-        self.ex = ex
-
-    @property
-    def realtime(self):
-        return self.ex._realtime
-
-    @realtime.setter
-    def realtime(self, on):
-        self.ex._realtime = on
-
-    def ready(self, need, timeout):
-        ex = self.ex
-        with ex._cond:
-            return ex._cond.wait_for(lambda: len(ex._slots) >= need or ex._finished_input
-                                     or ex._cancel.is_set() or ex._halt_reason is not None,
-                                     timeout)
-
-    def first(self):
-        ex = self.ex
-        if ex._plan is not None:
-            return ex._plan.first()
-        with ex._cond:
-            return ex._slots[0][1] if ex._slots else None
-
-    def pop(self):
-        ex = self.ex
-        if ex._plan is not None:
-            return ex._plan.pop()
-        with ex._cond:
-            return ex._slots.popleft() if ex._slots else None
-
-    def finished(self):
-        return self.ex._finished_input
-
-    def cancelled(self):
-        return self.ex._cancel.is_set()
-
-    def halted(self):
-        return self.ex._halt_reason
-
-    def beat_age(self):
-        return time.monotonic() - self.ex._beat
-
-    def wait(self, end):
-        self.ex._cancel.wait(max(0.0, end - time.monotonic()))
-
-    def sent(self, n):
-        self.ex._sent = n
-
-    def emit(self, fb, final=False):
-        self.ex._emit(fb)
 
 
 class Executor:
@@ -241,29 +172,17 @@ class Executor:
             max_tracking=_key(arm, "max_tracking"),
             max_tracking_angle=_key(arm, "max_tracking_angle"),
             tracking_lag=_key(arm, "tracking_lag"))
-        self._callback = callback
-
-        self._cond = threading.Condition()      # guards the buffer and the run state
-        self._slots: collections.deque = collections.deque()   # (plan time, pose) per period
-        self._plan: Optional[PlanSlots] = None  # or the whole plan, sampled as the loop goes
+        self._outcome = Outcome(callback, max_feedback)
+        self._cond = threading.Condition()      # guards the input's state below
         self._t0: Optional[float] = None        # plan time of the first set-point
         self._next_slot = 0                     # index of the next slot to resample
         self._tail: Optional[tuple[float, np.ndarray]] = None  # the last pushed sample
         self._finished_input = False
-        self._cancel = threading.Event()
-        self._halt_reason: Optional[str] = None
-        self._beat = time.monotonic()
         self._push_lock = threading.Lock()      # one pusher resamples at a time
-        self._feedback: collections.deque = collections.deque(maxlen=int(max_feedback))
-        self.dropped = 0                        # feedback records that fell out of the queue
-        self.result = Result.OK
-        self.message = ""
-        self._sent = 0
-        self._done = threading.Event()
         self._started = False
-        # an arm in its own process runs the loop there, on a ring in shared memory
-        self._remote = arm.start_run(self) if hasattr(arm, "start_run") else None
-        self._realtime = False
+        # where the loop runs, the arm's to say (an arm in its own process runs it there)
+        self._run: Run = arm.open_run(self.settings, self.busy_timeout, self._outcome) \
+            or LocalRun(arm, self.settings, self.busy_timeout, self._outcome)
 
     @property
     def prefill(self) -> float:
@@ -288,12 +207,26 @@ class Executor:
     @property
     def sent(self) -> int:
         """Set-points sent so far."""
-        return self._remote.sent_count() if self._remote is not None else self._sent
+        return self._run.sent
 
     @property
     def realtime(self) -> bool:
         """Whether the control loop got real-time scheduling (False until it runs)."""
-        return self._remote.realtime if self._remote is not None else self._realtime
+        return self._run.realtime
+
+    @property
+    def result(self) -> Result:
+        """How the run ended (``OK`` while it goes)."""
+        return self._outcome.result
+
+    @property
+    def message(self) -> str:
+        return self._outcome.message
+
+    @property
+    def dropped(self) -> int:
+        """Feedback records that fell out of the queue."""
+        return self._outcome.dropped
 
     # ------------------------------------------------------------------ caller side
     def push(self, times, poses) -> None:
@@ -335,28 +268,17 @@ class Executor:
                                  f"{tail[0]!r}")
             first = t0 is None
             if first:
-                t0 = float(t[0])
-                if self._remote is None:    # (an arm's process claims it when it starts)
-                    self._claim(p[0])
-            try:
-                slots = self._resample(t0, k0, tail, t, p)
-            except BaseException:
-                if first and self._remote is None:
-                    self._run_lock.release()
-                raise
-            if self._remote is not None:
-                self._remote.put(slots)
-                if first:
-                    self._remote.start()    # the arm's process claims it and checks the start
+                t0 = self._outcome.t0 = float(t[0])
+            slots = self._resample(t0, k0, tail, t, p)
+            if first:
+                self._run.start(slots)
+            else:
+                self._run.put(slots)
             with self._cond:
                 self._t0 = t0
                 self._tail = (float(t[-1]), p[-1])
                 self._next_slot = k0 + len(slots)
-                if self._remote is None:
-                    self._slots.extend(slots)
-                self._cond.notify_all()
-            if first:
-                self._start()
+            self._started = True
 
     def push_plan(self, trajectory) -> None:
         """The whole plan at once: ``trajectory`` is a :class:`dqpose.trajectory.Trajectory`
@@ -373,39 +295,19 @@ class Executor:
         with self._push_lock:
             with self._cond:
                 self._check_open("push_plan")
-                if self._tail is not None or self._plan is not None:
+                if self._t0 is not None:
                     raise ValueError("push_plan: samples were already pushed to this executor")
-            if self._remote is not None:
-                self._remote.start_plan(trajectory)
-            else:
-                self._claim(plan_start(trajectory))
+            self._outcome.t0 = 0.0
+            self._run.start_plan(trajectory)
             with self._cond:
-                self._plan = PlanSlots(trajectory, self.period)
                 self._t0 = 0.0
                 self._finished_input = True
-                self._cond.notify_all()
-            self._start()
+            self._started = True
 
     def _check_open(self, what: str) -> None:
-        if self._finished_input or self._done.is_set():
+        if self._finished_input or self._outcome.done.is_set():
             raise ValueError(f"{what}: the plan was already finished or the run has ended "
                              f"({self.result.name})")
-
-    def _claim(self, first: np.ndarray) -> None:
-        """This arm for this run (waiting for a previous run to end), and the plan's start
-        checked against where the arm is once it is ours."""
-        self._run_lock = claim(self.arm, self.busy_timeout)
-        try:
-            check_start(self.arm, first, self.start_tolerance)
-        except BaseException:
-            self._run_lock.release()
-            raise
-
-    def _start(self) -> None:
-        self._started = True
-        self._beat = time.monotonic()
-        if self._remote is None:
-            threading.Thread(target=self._run, name="executor", daemon=True).start()
 
     def _resample(self, t0, k0, tail, t, p) -> list[tuple[float, np.ndarray]]:
         """The period slots from index ``k0`` on that the samples (after ``tail``) cover."""
@@ -425,117 +327,68 @@ class Executor:
     def finish(self) -> None:
         """No more samples: the run ends ``FINISHED`` after the last one. A plan whose end is
         not on the period grid gets one more set-point, on its last pose."""
-        with self._push_lock, self._cond:
-            if self._tail is None and self._plan is None:
-                raise ValueError("finish: no samples were pushed")
-            if self._finished_input:
-                return
-            last_slot = self._t0 + self.period * (self._next_slot - 1)
-            if self._tail[0] - last_slot > 1e-9:
-                slot = (self._t0 + self.period * self._next_slot, self._tail[1])
-                if self._remote is not None:
-                    self._remote.put([slot])
-                else:
-                    self._slots.append(slot)
-                self._next_slot += 1
-            self._finished_input = True
-            if self._remote is not None:
-                self._remote.finish()
-            self._cond.notify_all()
+        with self._push_lock:
+            with self._cond:
+                if self._t0 is None:
+                    raise ValueError("finish: no samples were pushed")
+                if self._finished_input:
+                    return
+                last_slot = self._t0 + self.period * (self._next_slot - 1)
+                slot = (self._t0 + self.period * self._next_slot, self._tail[1]) \
+                    if self._tail[0] - last_slot > 1e-9 else None
+            if slot is not None:
+                self._run.put([slot])
+                with self._cond:
+                    self._next_slot += 1
+            with self._cond:
+                self._finished_input = True
+            self._run.finish()
 
     def beat(self) -> None:
         """The owner is alive: call at least every ``heartbeat`` seconds while the run goes
         (cheap: a clock reading, in an arm's process one shared-memory write)."""
-        self._beat = time.monotonic()
-        if self._remote is not None:
-            self._remote.beat(self._beat)
+        self._run.beat(time.monotonic())
 
     def halt(self, reason: str) -> None:
         """Brake the arm to rest within its limits (as a stall does) and end the run ``STOPPED``,
         its message ``reason`` and how the arm was stopped (a server shutting down). A run not
         started yet ends without moving."""
-        reason = str(reason) or "halted"
-        with self._cond:
-            if self._halt_reason is None:
-                self._halt_reason = reason
-            self._cond.notify_all()
-        if self._remote is not None and not self._done.is_set():
-            self._remote.halt(self._halt_reason)
+        if not self.done:
+            self._run.halt(str(reason) or "halted")
 
     def cancel(self) -> None:
         """Stop the arm (``arm.stop()``) at once, within the period under way; the run ends
         ``STOPPED``."""
-        self._cancel.set()
-        if self._remote is not None and not self._done.is_set():
-            self._remote.cancel()
-        with self._cond:
-            self._cond.notify_all()
+        if not self.done:
+            self._run.cancel()
 
     def wait(self, timeout: Optional[float] = None) -> Optional[Result]:
         """The final result once the run ended, else None after ``timeout`` seconds."""
-        return self.result if self._done.wait(timeout) else None
+        return self.result if self._outcome.done.wait(timeout) else None
 
     @property
     def done(self) -> bool:
-        return self._done.is_set()
+        return self._outcome.done.is_set()
 
     @property
     def buffered(self) -> float:
         """Seconds of the plan buffered (or, of a whole plan, left) and not yet sent."""
-        if self._remote is not None:
-            return self._remote.buffered() * self.period
-        if self._plan is not None:
-            return self._plan.left() * self.period
-        with self._cond:
-            return len(self._slots) * self.period
+        return self._run.buffered() * self.period
 
     def feedback(self, timeout: Optional[float] = None) -> Optional[Feedback]:
         """The oldest unread record (without a ``callback``), waiting up to ``timeout`` s;
         None when there is none (and, once the run ended, none will come)."""
-        with self._cond:
-            if not self._cond.wait_for(lambda: self._feedback or self._done.is_set(), timeout):
-                return None
-            return self._feedback.popleft() if self._feedback else None
+        return self._outcome.next(timeout)
 
     def close(self) -> None:
         """Cancel a run still going and wait for its end."""
-        if self._started and not self._done.is_set():
+        if self._started and not self.done:
             self.cancel()
-            self._done.wait()
-        if self._remote is not None:
-            self._remote.close()
+            self._outcome.done.wait()
+        self._run.close()
 
     def __enter__(self):
         return self
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-    # ------------------------------------------------------------------ results
-    def _emit(self, fb: Feedback) -> None:
-        if self._callback is not None:
-            self._callback(fb)
-            return
-        with self._cond:
-            if len(self._feedback) == self._feedback.maxlen:
-                self.dropped += 1
-            self._feedback.append(fb)
-            self._cond.notify_all()
-
-    def _ended(self, last: Feedback) -> None:
-        """The run's last record: its result is the executor's."""
-        if last.commanded is None and self._t0 is not None:
-            last = Feedback(self._t0, last.stamp, None, last.actual, last.result, last.message)
-        with self._cond:
-            self.result, self.message = last.result, last.message
-        self._emit(last)    # before done: a reader that sees the end has the last record queued
-        self._done.set()
-        with self._cond:
-            self._cond.notify_all()
-
-    def _run(self) -> None:
-        try:
-            last = Control(self.arm, self.settings, _DequeBuffer(self)).run()
-        finally:
-            self._run_lock.release()    # the arm is free before the end is announced
-        self._ended(last)

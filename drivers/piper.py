@@ -25,9 +25,9 @@ from dqpose.drivers.base import (
     Arm,
     ArmError,
     ArmState,
-    LimitError,
     Limits,
     Pacer,
+    ServoStream,
     pose_delta,
     servo_step,
     tool_line,
@@ -178,11 +178,8 @@ class PiperArm(Arm):
         self._fault = (False, False, "")   # describe_status of the last report
         self.reports = 0
         self._mode_sent: Optional[MotionMode] = None
-        # servo stream state
-        self._setpoint: Optional[np.ndarray] = None
-        self._step = np.zeros(6)       # the last servo step (Limits.check_servo)
-        self._last_servo = -math.inf
-        self._servo_active = False
+        self._stream = ServoStream()
+        self._held: Optional[np.ndarray] = None     # the pose the last hold commanded
         self._abort = threading.Event()
         self._closed = threading.Event()
         self._thread = threading.Thread(target=self._receive, name="piper-rx", daemon=True)
@@ -267,8 +264,7 @@ class PiperArm(Arm):
             # it. The arm may have left CAN command mode while stopped, hence the 0x151 re-send.
             with self._cmd_lock:
                 if went_bad:
-                    with self._lock:
-                        self._servo_active = False
+                    self._stream.end()
                 self._mode_sent = None
 
     def _count(self, reason: str) -> None:
@@ -276,15 +272,10 @@ class PiperArm(Arm):
             self.malformed[reason] += 1
 
     def _check_watchdog(self) -> None:
-        if not self._servo_active:   # unlocked peek; decided again under the lock
+        if not self._stream.active:   # unlocked peek; decided again under the lock
             return
         with self._cmd_lock:
-            with self._lock:
-                stalled = (self._servo_active
-                           and time.monotonic() - self._last_servo > self.watchdog)
-                if stalled:
-                    self._servo_active = False
-            if stalled:
+            if self._stream.stalled(self.watchdog):
                 self.watchdog_stops += 1
                 try:
                     self._hold()
@@ -348,11 +339,18 @@ class PiperArm(Arm):
             raise ArmError(f"{what}: not sent, the PiPER reports {error}")
 
     def _hold(self) -> None:
+        """The measured pose commanded: the stream under way ends (the next set-point starts
+        from rest)."""
+        self._stream.end()
         _, pose = self._fresh_pose()
-        with self._lock:
-            self._setpoint = pose
-            self._step = np.zeros(6)
+        self._held = pose
         self._command(pose)
+
+    def _refused(self, streaming: bool) -> None:
+        try:
+            self._hold()
+        except ArmError:
+            pass  # no feedback to hold at; status() reports the loss
 
     def wait_for_feedback(self, timeout: float = 1.0) -> tuple[float, np.ndarray]:
         """Block until fresh end-pose and arm status feedback arrive (or raise ``ArmError``
@@ -397,28 +395,9 @@ class PiperArm(Arm):
 
     def _servo(self, target: np.ndarray) -> None:
         self._check_commandable("servo")
-        with self._lock:
-            active = self._servo_active
-            prev, prev_step = (self._setpoint, self._step.copy()) if active else (None, np.zeros(6))
-        if prev is None:
-            prev = self._fresh_pose()[1]
-        else:
-            self._fresh_pose()
-        try:
-            step = self.limits.check_servo(target, prev, prev_step, self.period)
-        except LimitError:
-            with self._lock:
-                self._servo_active = False
-            try:
-                self._hold()
-            except ArmError:
-                pass  # no feedback to hold at; status() reports the loss
-            raise
-        with self._lock:
-            self._setpoint = target
-            self._step = step
-            self._last_servo = time.monotonic()
-            self._servo_active = True
+        here = self._fresh_pose()[1]        # stale feedback refuses the set-point
+        step = self._checked_setpoint(target, lambda: here)
+        self._stream.sent(target, step)
         self._command(target)
 
     def move(self, pose, speed: float, accel: float, timeout: Optional[float] = None) -> None:
@@ -429,8 +408,7 @@ class PiperArm(Arm):
         target = unit_pose(pose)
         L = self.limits
         L.check_move(target, speed, accel)
-        with self._lock:
-            self._servo_active = False
+        self._stream.end()
         self._abort.clear()
         _, start = self._fresh_pose()
         self._check_commandable("move")
@@ -458,9 +436,6 @@ class PiperArm(Arm):
             if el >= profile.duration:
                 d, a = pose_delta(cur, target)
                 if d <= self.position_tolerance and a <= self.angle_tolerance:
-                    with self._lock:
-                        self._setpoint = target
-                        self._step = np.zeros(6)
                     return
             if now > deadline:
                 d, a = pose_delta(cur, target)
@@ -473,8 +448,6 @@ class PiperArm(Arm):
         """Command the measured pose as the target, ending any servo stream or move."""
         with self._cmd_lock:
             self._abort.set()
-            with self._lock:
-                self._servo_active = False
             self._hold()
 
     def status(self) -> ArmState:
@@ -516,9 +489,7 @@ class PiperArm(Arm):
         if self._closed.is_set():
             return
         try:
-            with self._lock:
-                active = self._servo_active
-            if active:
+            if self._stream.active:
                 self.stop()
         except ArmError:
             pass

@@ -28,7 +28,7 @@ from typing import Optional
 import numpy as np
 
 from dqpose import dq
-from dqpose.drivers.base import Arm, ArmError, ArmState, LimitError, Limits, Pacer, unit_pose
+from dqpose.drivers.base import Arm, ArmError, ArmState, Limits, Pacer, ServoStream, unit_pose
 from dqpose.drivers.rotvec import pose_from_rotvec, rotvec_from_pose, rotvec_from_quat
 from dqpose.drivers.rtde import DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT, request_version
 from dqpose.drivers.ur_connection import (
@@ -152,10 +152,7 @@ class URArm(Arm):
         self._interrupted = False               # a servo stream cut by a lost connection
         self._stopping = threading.Event()      # a servoStop under way in its own thread
         self.reconnects = 0
-        self._last_setpoint = None              # the last servo set-point (dual quaternion)
-        self._last_step = np.zeros(6)           # its displacement from the one before
-        self._last_servo_time = 0.0
-        self._servoing = False
+        self._stream = ServoStream()
         self._moving = False
         self.watchdog_stops = 0
         self._ts, self._ts_changed = self._recv.getTimestamp(), time.monotonic()
@@ -185,13 +182,12 @@ class URArm(Arm):
             with self._state_lock:
                 if fault in _SAFETY_STOPS:
                     self._error = self._error or fault
-                # a faulted controller is not sent a stop (it would wait for data that does
-                # not come, or on a halted program): the next command raises instead
                 faulted = bool(fault or self._error)
-                stalled = (self._servoing and not faulted and
-                           now - self._last_servo_time > self.watchdog)
-                if faulted or stalled:
-                    self._servoing = False
+            # a faulted controller is not sent a stop (it would wait for data that does not
+            # come, or on a halted program): the next command raises instead
+            if faulted:
+                self._stream.end(forget=False)
+            stalled = not faulted and self._stream.stalled(self.watchdog)
             if stalled:
                 self._stop_servo()
                 self.watchdog_stops += 1
@@ -209,9 +205,8 @@ class URArm(Arm):
         side first tries once by itself, and two reconnects at a time crash it."""
         if fault == self._lost():
             self._was_lost = True
-            if self._last_setpoint is not None:     # the stream under way is cut: say so
+            if self._stream.forget():       # the stream under way is cut: say so
                 self._interrupted = True
-                self._last_setpoint = None
         if not (self._was_lost and fault in (self._lost(), self._not_running())):
             self._next_heal = 0.0
             self._was_lost = self._was_lost and bool(fault)
@@ -305,7 +300,7 @@ class URArm(Arm):
                         self._ctrl.servoStop(self.stop_decel)
                     except RuntimeError:
                         pass    # gone meanwhile: a controller that loses its client stops
-                self._last_setpoint = None
+                self._stream.forget()
                 self._interrupted = False
         finally:
             self._stopping.clear()
@@ -339,7 +334,7 @@ class URArm(Arm):
                         raise ArmError("cannot recover: the control script did not start "
                                        "within 2 s")
                     time.sleep(0.01)
-            self._last_setpoint = None
+            self._stream.forget()
             with self._state_lock:
                 self._error = ""
 
@@ -400,34 +395,21 @@ class URArm(Arm):
             self._interrupted = False
             raise ArmError(f"{self._lost()} during this servo stream (and connected again); "
                            "a new stream starts from rest")
-        if self._last_setpoint is None:
-            prev, prev_step = self.tool_pose()[1], np.zeros(6)
-        else:
-            prev, prev_step = self._last_setpoint, self._last_step
-        dt = self.period
-        try:
-            step = self.limits.check_servo(target, prev, prev_step, dt)
-        except LimitError:
-            with self._state_lock:
-                was = self._servoing
-                self._servoing = False
-            if was:
-                self._stop_servo()
-            self._last_setpoint = None
-            raise
+        step = self._checked_setpoint(target, lambda: self.tool_pose()[1])
         with self._lock:
-            ok = self._call("servoL", p6.tolist(), 0.0, 0.0, dt, self.lookahead, self.gain)
-            if ok:
-                self._last_setpoint, self._last_step = target, step
-            with self._state_lock:
-                self._servoing = ok
-                self._last_servo_time = time.monotonic()
+            ok = self._call("servoL", p6.tolist(), 0.0, 0.0, self.period, self.lookahead,
+                            self.gain)
+            self._stream.sent(target, step, ok)
         if not ok:
             self._check()
             raise ArmError("servoL was refused by the controller")
         # ur_rtde's clock comes back as a timedelta of steady_clock, which is CLOCK_MONOTONIC
         # on Linux, as time.monotonic() is
         return self._pacer.cycle(t0.total_seconds()) + self.period
+
+    def _refused(self, streaming: bool) -> None:
+        if streaming:
+            self._stop_servo()
 
     def wait_cycle(self, end: float) -> None:
         """``waitPeriod``: ends one period after the cycle start it is given (sleeping, then
@@ -459,12 +441,12 @@ class URArm(Arm):
                                  f"{L.max_angular_velocity} rad/s limit")
         length = max(float(np.linalg.norm(p6[:3] - here[:3])), angle)
         timeout = 2.0 * (length / speed + speed / accel) + 2.0
+        self._stream.end(forget=False)
         with self._state_lock:
-            self._servoing = False
             self._moving = True
         try:
             with self._lock:
-                self._last_setpoint = None
+                self._stream.forget()
                 op = self._call("getAsyncOperationProgressEx").operationId()
                 if not self._call("moveL", p6.tolist(), float(speed), float(accel), True):
                     self._check()
@@ -490,9 +472,9 @@ class URArm(Arm):
 
     def stop(self) -> None:
         """Stop servoing or a move and decelerate at ``stop_decel`` m/s^2."""
+        servoing = self._stream.end(forget=False)
         with self._state_lock:
-            servoing, moving = self._servoing, self._moving
-            self._servoing = self._moving = False
+            moving, self._moving = self._moving, False
         if moving and not servoing:
             with self._lock:
                 if self._ctrl.isConnected():

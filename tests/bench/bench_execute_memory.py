@@ -56,7 +56,7 @@ def measure(arm, traj, how: str) -> dict:
     took = time.perf_counter() - t0
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
-    ring = getattr(ex._remote, "ring", None)
+    ring = getattr(ex._run, "ring", None)
     shared = 0 if ring is None else ring.head.nbytes + ring.reason.nbytes + ring.slots.nbytes
     ex.cancel()
     ex.wait(10)

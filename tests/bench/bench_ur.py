@@ -52,7 +52,7 @@ def main(argv=None) -> int:
         lags, transport, periods = [], [], []
         for _ in range(reps):
             sim.set_pose(home)
-            arm._last_setpoint = None
+            arm._stream.forget()
             start, tick0 = sim.log()["next"], sim.state()["tick"]
             sent = []
             for p in _ramp(home, 500, 0.05):

@@ -6,9 +6,11 @@ through shared memory). What the arm did is read at the simulator: the set-point
 when they arrived, whether it stands still."""
 from __future__ import annotations
 
+import gc
 import math
 import threading
 import time
+import weakref
 
 import numpy as np
 import pytest
@@ -315,6 +317,23 @@ def test_bad_input_is_refused_by_name(arm):
             Executor(arm, **kw)
     with pytest.raises(ValueError, match="^arm: expected a drivers.base.Arm"):
         Executor(object())
+
+
+def test_an_executor_is_freed_once_its_run_ended_without_the_garbage_collector(rig, arm):
+    # the run reports to an Outcome, never to its executor: nothing (the loop's thread, the
+    # reader of an arm process's feedback) keeps the executor alive, and no cycle does
+    times, poses = _plan(arm, rate=1.0 / arm.period, length=0.01)
+    gc.disable()
+    try:
+        ex = Executor(arm)
+        ex.push(times, poses)
+        ex.finish()
+        assert ex.wait(10) == Result.FINISHED, ex.message
+        gone = weakref.ref(ex)
+        del ex
+        assert gone() is None
+    finally:
+        gc.enable()
 
 
 def test_no_samples_in_time_stalls_without_moving(rig, arm):

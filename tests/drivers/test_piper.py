@@ -336,7 +336,7 @@ def test_move_times_out_and_can_be_stopped(arm, sim):
 def test_stop_ends_motion(arm, sim):
     start, q0, t0 = _servo_along_x(arm, 9, 0.0005)
     arm.stop()
-    held = arm._setpoint            # the measured pose stop() commanded
+    held = arm._held                # the measured pose stop() commanded
     # wait for the hold command itself, not merely for the arm to reach the last servo target
     assert wait_until(lambda: _delta(sim.target, held)[0] < 1e-5)
     assert wait_until(lambda: _delta(sim.pose, sim.target)[0] < 1e-6)

@@ -35,7 +35,7 @@ def arm(sim):
 def home(sim, arm):
     sim.set_pose(HOME)
     assert wait_until(lambda: np.allclose(rotvec_from_pose(arm.tool_pose()[1]), HOME, atol=1e-12))
-    arm._last_setpoint = None       # the arm was teleported; measure the next step from there
+    arm._stream.forget()            # the arm was teleported; measure the next step from there
     return HOME.copy()
 
 
