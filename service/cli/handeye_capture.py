@@ -375,10 +375,10 @@ def _solves_recorded(recorder):
             return
         call = recorder.call("dqpose.v1.HandEye/Calibrate", hpb.CalibrateRequest,
                              hpb.CalibrateResponse)
-        call.measurements(calibrate_msg(np.array(state.flanges), np.array(state.views),
+        call.request(calibrate_msg(np.array(state.flanges), np.array(state.views),
                                         state.setup,
                                         camera_covariance=np.array(state.covariances)))
-        call.fused(calibration_to_msg(state.calibration))
+        call.answer(calibration_to_msg(state.calibration))
         call.end("OK")
     return record
 

@@ -4,8 +4,8 @@
 The rpc layer hands every servicer one recorder (``Calls.recorder``): :data:`NULL`, which does
 nothing, unless ``dqpose serve --record DIR`` opened a :class:`~dqpose.record.recorder.Recorder`
 (:func:`open_recorder`). A servicer records a call as ``rec = recorder.call(rpc, RequestType,
-AnswerType)``, then ``rec.measurements(request)`` for each request as it arrived,
-``rec.fused(answer)`` for each answer, ``rec.end(code)``. This module imports nothing beyond
+AnswerType)``, then ``rec.request(request)`` for each request as it arrived,
+``rec.answer(answer)`` for each answer, ``rec.end(code)``. This module imports nothing beyond
 dqpose; ``dqpose serve --live`` serves the same channels on foxglove-sdk's WebSocket server
 (:mod:`dqpose.record.live`). The recorder needs the ``[record]`` extra (``foxglove-sdk`` writes
 and serves, ``mcap`` reads, ``foxglove-schemas-protobuf`` has Foxglove's schemas, ``rosbags``
@@ -23,10 +23,10 @@ class _NullCall:
     __slots__ = ()
     alive = False
 
-    def measurements(self, request) -> None:
+    def request(self, request) -> None:
         pass
 
-    def fused(self, answer) -> None:
+    def answer(self, answer) -> None:
         pass
 
     def end(self, code: str, details: str = "") -> None:
@@ -46,7 +46,7 @@ class NullRecorder:
 
     def call(self, rpc: str, request_type, answer_type, world: str = "",
              internal: bool = False) -> _NullCall:
-        return _NULL_CALL
+        return NULL_CALL
 
     def plan(self, name: str, dqs) -> None:
         pass
@@ -61,7 +61,8 @@ class NullRecorder:
         pass
 
 
-_NULL_CALL = _NullCall()
+#: a call that records nothing (what :data:`NULL` hands every servicer)
+NULL_CALL = _NullCall()
 NULL = NullRecorder()
 
 #: a recorded plan's poses at most (its samples thinned evenly, the last kept)

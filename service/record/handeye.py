@@ -20,8 +20,6 @@ import numpy as np
 
 from dqpose import dq
 
-CALIBRATE_REQUEST = "dqpose.v1.CalibrateRequest"
-CALIBRATE_RESPONSE = "dqpose.v1.CalibrateResponse"
 TF = ("handeye/flange", "handeye/x", "handeye/z")
 ELLIPSOIDS_TOPIC = "/handeye/ellipsoids"
 FLANGES_TOPIC = "/handeye/flanges"

@@ -44,21 +44,20 @@ _F_SETPIPE_SZ = 1031
 
 
 class CallRecord:
-    """What one call records: :meth:`measurements` (a request as it arrived), :meth:`fused` (an
-    answer, a ``dqpose.v1.FusedPose`` or another message), :meth:`end`. Each takes the message
-    or its wire bytes."""
+    """What one call records: :meth:`request` (a request as it arrived), :meth:`answer` (an
+    answer), :meth:`end`. Each takes the message or its wire bytes."""
 
     __slots__ = ("recorder", "id", "alive")
 
     def __init__(self, recorder: "Recorder", call: int, alive: bool):
         self.recorder, self.id, self.alive = recorder, call, alive
 
-    def measurements(self, request) -> None:
+    def request(self, request) -> None:
         if not isinstance(request, bytes):
             request = request.SerializeToString()
         self.recorder._put(self, frames.REQUEST, self.id, request)
 
-    def fused(self, answer) -> None:
+    def answer(self, answer) -> None:
         if not isinstance(answer, bytes):
             answer = answer.SerializeToString()
         self.recorder._put(self, frames.ANSWER, self.id, answer)
@@ -68,6 +67,25 @@ class CallRecord:
         a refusal, its ``details``."""
         self.recorder._put(self, frames.END, self.id,
                            frames.as_json({"code": code, "details": details}))
+
+
+def _writer_process(directory, max_bytes, max_seconds, live, live_token, live_origins,
+                    live_insecure) -> subprocess.Popen:
+    """The writer process (:mod:`dqpose.record.writer`) started, its input and output pipes."""
+    live_args = [] if live is None else [json.dumps(
+        {"host": live[0], "port": live[1], "origins": list(live_origins),
+         "insecure": live_insecure})]
+    # the token in the writer's environment, which only its user can read (not its argv)
+    env = {k: v for k, v in os.environ.items() if k != LIVE_TOKEN_ENV}
+    if live is not None and live_token is not None:
+        env[LIVE_TOKEN_ENV] = live_token
+    return subprocess.Popen(
+        [sys.executable, "-m", "dqpose.record.writer", directory or "", str(max_bytes),
+         repr(float(max_seconds)), *live_args],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, bufsize=0, env=env,
+        # out of the server's process group: a Ctrl-C at its terminal (SIGINT to the group)
+        # must not end the writer, even while it starts; it ends when its input does
+        start_new_session=True)
 
 
 class Recorder:
@@ -143,20 +161,8 @@ class Recorder:
         self._flushed = 0.0
         self._closed = False
         self._gone = False          # the writer ended before close
-        live_args = [] if live is None else [json.dumps(
-            {"host": live[0], "port": live[1], "origins": list(live_origins),
-             "insecure": live_insecure})]
-        # the token in the writer's environment, which only its user can read (not its argv)
-        env = {k: v for k, v in os.environ.items() if k != LIVE_TOKEN_ENV}
-        if live is not None and live_token is not None:
-            env[LIVE_TOKEN_ENV] = live_token
-        self._proc = subprocess.Popen(
-            [sys.executable, "-m", "dqpose.record.writer", self.directory or "", str(max_bytes),
-             repr(float(max_seconds)), *live_args],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, bufsize=0, env=env,
-            # out of the server's process group: a Ctrl-C at its terminal (SIGINT to the group)
-            # must not end the writer, even while it starts; it ends when its input does
-            start_new_session=True)
+        self._proc = _writer_process(self.directory, max_bytes, max_seconds, live, live_token,
+                                     live_origins, live_insecure)
         assert self._proc.stdin is not None
         self._fd = self._proc.stdin.fileno()
         os.set_blocking(self._fd, False)

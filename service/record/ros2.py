@@ -30,7 +30,8 @@ from rosbags.typesys import Stores, get_typestore
 
 from dqpose import dq, lie
 from dqpose.record.reader import Recording
-from dqpose.record.views import WORLD, WORLD_CONFIG, static_transforms, time_ns
+from dqpose.record.types import FUSED_POSE, WORLD_CONFIG
+from dqpose.record.views import WORLD, static_transforms, time_ns
 
 STORE = Stores.ROS2_HUMBLE
 POSE = "geometry_msgs/msg/PoseWithCovarianceStamped"
@@ -48,8 +49,7 @@ def export(rec: Recording, out_dir: str | os.PathLike) -> dict[str, int]:
     T = ts.types
     counts: dict[str, int] = {}
     paths: dict[str, list] = {}
-    Fused = rec.message_class("dqpose.v1.FusedPose") if "dqpose.v1.FusedPose" in rec.schemas \
-        else None
+    Fused = rec.message_class(FUSED_POSE) if FUSED_POSE in rec.schemas else None
 
     def header(ns: int):
         if not -2**31 <= ns // 10**9 < 2**31:
@@ -91,7 +91,7 @@ def export(rec: Recording, out_dir: str | os.PathLike) -> dict[str, int]:
                     write("/tf_static", TF, e.ns, T[TF](transforms=[
                         transform(header(0), x.parent_frame_id, x.child_frame_id,
                                   x.translation, x.rotation) for x in tfs]), (LATCHED,))
-            if Fused is None or kind != "dqpose.v1.FusedPose":
+            if Fused is None or kind != FUSED_POSE:
                 continue
             f = rec.decode(Fused, e.data, e.ns, e.file)
             if f.HasField("error") or not f.HasField("pose") or len(f.covariance) != 36:

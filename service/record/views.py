@@ -30,12 +30,6 @@ from dqpose import dq, lie
 
 #: the frame every fused pose is in (and an arm's base frame, which plans stand it for)
 WORLD = "world"
-#: the dqpose.v1 messages an arm's views are drawn from
-EXECUTE_REQUEST = "dqpose.v1.ExecuteRequest"
-EXECUTION_FEEDBACK = "dqpose.v1.ExecutionFeedback"
-ARM_STATE = "dqpose.v1.ArmState"
-#: the World's configuration, whose frames a recording shows on ``/tf_static``
-WORLD_CONFIG = "dqpose.v1.WorldConfig"
 #: the ellipsoids' size: the position's n-sigma surface
 ELLIPSOID_SIGMAS = 3.0
 

@@ -22,7 +22,7 @@ import sys
 import time
 from typing import Any
 
-from dqpose.record import LIVE_TOKEN_ENV, cannot_write, describe, frames, handeye, views
+from dqpose.record import LIVE_TOKEN_ENV, cannot_write, describe, frames, handeye, types, views
 from dqpose.record.live import LiveServer
 from dqpose.record.mcapfile import CHUNK_BYTES, McapFile
 from dqpose.record.schemas import message_class
@@ -235,34 +235,20 @@ class Writer:
             began = self.calls.get(call)
             if began is None:
                 return
-            rpc, req, ans, *_ = began
+            rpc, req, ans, world, _ = began
             sinks = self.sinks()
             if kind == frames.REQUEST:
                 for s in sinks:
                     s.write(self.channel(s, requests_topic(rpc), req, call), ns, payload)
-                if req in (views.EXECUTE_REQUEST, handeye.CALIBRATE_REQUEST):
+                if req in KEPT_REQUESTS:
                     self.requests[call] = self.message(req, payload)
             else:
                 for s in sinks:
                     s.write(self.channel(s, answers_topic(rpc), ans, call), ns, payload)
-                if ans == "dqpose.v1.FusedPose":
-                    msg = self.message(ans, payload)
-                    for s in sinks:
-                        self.views(s, ns, msg)
-                elif ans == views.EXECUTION_FEEDBACK and call in self.requests:
-                    msg = self.message(ans, payload)
-                    for s in sinks:
-                        self.feedback_views(s, ns, self.requests[call].arm, msg)
-                elif ans == handeye.CALIBRATE_RESPONSE and call in self.requests:
-                    msg = self.message(ans, payload)
-                    for s in sinks:
-                        self.handeye_views(s, ns, self.requests[call], msg)
-                elif ans == views.WORLD_CONFIG:
-                    self.static_views(sinks, ns, began[3], self.message(ans, payload))
-                elif ans == views.ARM_STATE:
-                    msg = self.message(ans, payload)
-                    for s in sinks:
-                        self.arm_views(s, ns, msg)
+                draw = ANSWER_VIEWS.get(ans)
+                if draw is not None and (ans not in NEEDS_REQUEST or call in self.requests):
+                    draw(self, sinks, ns, self.requests.get(call), world,
+                         self.message(ans, payload))
         elif kind == frames.END:
             d = json.loads(payload)
             sinks = self.sinks()    # first: a file opened now says the call began earlier
@@ -296,7 +282,7 @@ class Writer:
                 s.write(s.channel(plan_topic(name), views.PosesInFrame), ns, data)
 
     @staticmethod
-    def views(s: Sink, ns: int, msg) -> None:
+    def fused_views(s: Sink, ns: int, msg) -> None:
         """The Foxglove views of a fused pose (not of an error entry), logged at its arrival
         ``ns``, stamped with its own time."""
         if msg.HasField("error") or not msg.HasField("pose"):
@@ -392,6 +378,44 @@ class Writer:
         if self.live is not None:
             self.live.close()
             self.live = None
+
+def _fused(w: Writer, sinks, ns: int, request, world: str, msg) -> None:
+    for s in sinks:
+        w.fused_views(s, ns, msg)
+
+
+def _arm_state(w: Writer, sinks, ns: int, request, world: str, msg) -> None:
+    for s in sinks:
+        w.arm_views(s, ns, msg)
+
+
+def _feedback(w: Writer, sinks, ns: int, request, world: str, msg) -> None:
+    for s in sinks:
+        w.feedback_views(s, ns, request.arm, msg)
+
+
+def _calibration(w: Writer, sinks, ns: int, request, world: str, msg) -> None:
+    for s in sinks:
+        w.handeye_views(s, ns, request, msg)
+
+
+def _config(w: Writer, sinks, ns: int, request, world: str, msg) -> None:
+    w.static_views(sinks, ns, world, msg)
+
+
+#: the views an answer draws, by its type: ``draw(writer, sinks, ns, the call's kept request,
+#: its world, the answer)``
+ANSWER_VIEWS = {
+    types.FUSED_POSE: _fused,
+    types.ARM_STATE: _arm_state,
+    types.EXECUTION_FEEDBACK: _feedback,
+    types.CALIBRATE_RESPONSE: _calibration,
+    types.WORLD_CONFIG: _config,
+}
+#: the requests a call's answers' views need (an Execute's arm, a Calibrate's views and setup),
+#: kept until the call ends, and the answers drawn only with them
+KEPT_REQUESTS = (types.EXECUTE_REQUEST, types.CALIBRATE_REQUEST)
+NEEDS_REQUEST = (types.EXECUTION_FEEDBACK, types.CALIBRATE_RESPONSE)
 
 #: how far below the server the writer's scheduling priority is (``nice``)
 WRITER_NICE = 10

@@ -32,7 +32,7 @@ from dqpose.rpc._proto.dqpose.v1 import geometry_pb2 as geo
 from dqpose.rpc._proto.dqpose.v1 import trajectories_pb2 as pb
 from dqpose.rpc.calls import Calls, refused
 from dqpose.rpc.geometry import dq_to_pose
-from dqpose.rpc.peers import SUBSCRIPTION, FellBehind, exhausted
+from dqpose.rpc.peers import SUBSCRIPTION, FellBehind, Slot, exhausted
 from dqpose.rpc.routing import world_of
 from dqpose.rpc.trajectories_convert import plan_from_msg, resolve_frames, world_named
 
@@ -158,15 +158,12 @@ class Arms:
     # ------------------------------------------------------------------ WatchArm
 
     async def watch_arm(self, request, context) -> None:
-        t0 = self.calls.begin()
-        code, sent, details = "OK", 0, ""
         rec = self.calls.recorder.call(f"{self.NAME}/WatchArm", pb.GetArmRequest, pb.ArmState)
-        rec.measurements(request)
+        rec.request(request)
         loop = asyncio.get_running_loop()
         if self._stopping is None:
             self._stopping = asyncio.Event()
-        watch = None
-        try:
+        async with self.calls.stream("WatchArm", context, rec) as call:
             try:
                 slot = self._slot(request.arm)
                 period = 1.0 / self._watch_rate(request.rate_hz)
@@ -174,40 +171,31 @@ class Arms:
                     raise limits.OverLimit(f"WatchArm: {MAX_WATCHERS} watches are open, the "
                                            f"server's most")
             except Exception as e:
-                status, details = refused("WatchArm", e)
-                code = status.name
-                await context.abort(status, details)
-            watch = self.calls.open_stream("WatchArm", context, SUBSCRIPTION)
+                await call.refuse(*refused("WatchArm", e))
+            watch = call.open(SUBSCRIPTION)
             if watch is None:
-                code, details = "RESOURCE_EXHAUSTED", context.details()
                 return
             self.watchers += 1
+            call.on_end(lambda: self._unwatch(watch))
             due = loop.time()
             while not self._stopping.is_set():
                 state = await self._shared_state(slot)
                 try:
                     await self.calls.peers.write(context, state, "WatchArm")
                 except FellBehind as e:
-                    code, details = await exhausted(context, str(e), watch), str(e)
+                    call.code, call.details = await exhausted(context, str(e), watch), str(e)
                     return
-                rec.fused(state)
-                sent += 1
+                rec.answer(state)
+                call.messages += 1
                 # paced on the loop's clock; a client slower than the rate gets fewer states
                 due = max(due + period, loop.time())
                 with contextlib.suppress(asyncio.TimeoutError):
                     await asyncio.wait_for(self._stopping.wait(), due - loop.time())
-            code, details = "UNAVAILABLE", SHUTDOWN
-            context.set_code(_UNAVAILABLE)
-            context.set_details(SHUTDOWN)
-        except asyncio.CancelledError:
-            code = "CANCELLED"
-            raise
-        finally:
-            rec.end(code, details)
-            if watch is not None:
-                self.watchers -= 1
-                watch.end()         # its server slot free at once, its client reading or not
-            self.calls.done("WatchArm", code, t0, context, messages=sent)
+            call.set(_UNAVAILABLE, SHUTDOWN)
+
+    def _unwatch(self, watch: Slot) -> None:
+        self.watchers -= 1
+        watch.end()         # its server slot free at once, its client reading or not
 
     @staticmethod
     def _watch_rate(rate: float) -> float:
@@ -232,55 +220,36 @@ class Arms:
     # ------------------------------------------------------------------ Execute
 
     async def execute(self, request, context) -> None:
-        t0 = self.calls.begin()
-        code, sent, details = "OK", 0, ""
-        run = beat = None
         # the execution feedback recorded (dqpose.record): commanded and actual, the state
         rec = self.calls.recorder.call(f"{self.NAME}/Execute", pb.ExecuteRequest,
                                        pb.ExecutionFeedback)
-        rec.measurements(request)
-        try:
-            if self.calls.open_stream("Execute", context) is None:
-                code, details = "RESOURCE_EXHAUSTED", context.details()
+        rec.request(request)
+        async with self.calls.stream("Execute", context, rec) as call:
+            if call.open() is None:
                 return
             try:
                 slot, args = await self._check(request, world_of(context))
                 deadline = time.monotonic() + FREE_WAIT     # for the arm: free, at rest
                 run = await self._claim(slot, deadline)
+                call.on_end(lambda: _abandon(run))
                 beat = asyncio.create_task(self._beat(run))
+                call.on_end(beat.cancel)
                 await self._start(slot, run, args, request, deadline)
             except Exception as e:
-                status, details = refused("Execute", e)
-                code = status.name
-                await context.abort(status, details)
-            assert run is not None          # claimed above, or the call was aborted
+                await call.refuse(*refused("Execute", e))
             while True:
                 fb = await run.queue.get()
                 msg = _feedback_msg(fb)
                 await context.write(msg)
-                rec.fused(msg)
-                sent += 1
+                rec.answer(msg)
+                call.messages += 1
                 if fb.result != 0:         # the last record: how the run ended
                     break
             state, status = _result(fb)
             if run.halted is not None and state == pb.EXECUTION_STOPPED:
                 status = _UNAVAILABLE
             if status is not _OK:
-                code, details = status.name, f"{fb.result.name}: {fb.message}"
-                context.set_code(status)
-                context.set_details(details)
-        except asyncio.CancelledError:
-            code = "CANCELLED"
-            raise
-        finally:
-            rec.end(code, details)
-            if beat is not None:
-                beat.cancel()
-            if run is not None and not run.ended:
-                run.abandoned = True
-                if run.executor is not None:
-                    run.executor.cancel()   # a client that left stops the arm
-            self.calls.done("Execute", code, t0, context, messages=sent)
+                call.set(status, f"{fb.result.name}: {fb.message}")
 
     async def _check(self, request, world: str = ""):
         """The request's own checks, before the arm is waited for: the arm, the waypoint count
@@ -488,6 +457,14 @@ def _plan_error(e: ValueError, from_current: bool) -> FieldError:
 
     text = _WAYPOINT.sub(name, text)
     return (Precondition if isinstance(e, Infeasible) else FieldError)(text)
+
+
+def _abandon(run) -> None:
+    """A run whose call ended before the run did: a client that left stops the arm."""
+    if not run.ended:
+        run.abandoned = True
+        if run.executor is not None:
+            run.executor.cancel()
 
 
 def _result(fb) -> tuple:

@@ -223,16 +223,11 @@ class Blending(pb_grpc.BlendingServicer):
         # flow control as the client's backpressure, and what a client that stops reading
         # leaves here small. request_iterator stays unused: the reader takes the messages with
         # context.read().
-        code = "OK"
-        i = 0
-        reader = None
-        t0 = self.calls.begin()
-        try:
-            if self.calls.open_stream("BlendStream", context) is None:
-                code = "RESOURCE_EXHAUSTED"
+        async with self.calls.stream("BlendStream", context) as call:
+            if call.open() is None:
                 return
             pending = ReadAhead(STREAM_READ_AHEAD, STREAM_READ_AHEAD_BYTES)
-            reader = asyncio.ensure_future(read_all(context, pending))
+            call.on_end(asyncio.ensure_future(read_all(context, pending)).cancel)
             while True:
                 request = await pending.get()
                 if request is grpc.aio.EOF:
@@ -246,19 +241,6 @@ class Blending(pb_grpc.BlendingServicer):
                     status = refusal(e)
                     if status is None:
                         raise
-                    code = status.name
-                    await context.abort(status, readable(f"requests[{i}].{e}"))
+                    await call.refuse(status, readable(f"requests[{call.messages}].{e}"))
                 await context.write(response)
-                i += 1
-        except asyncio.CancelledError:
-            code = "CANCELLED"
-            raise
-        except grpc.aio.AbortError:
-            raise
-        except Exception as e:
-            code = self.calls.failure_code(e)
-            await self.calls.failed("BlendStream", e, context)
-        finally:
-            if reader is not None:
-                reader.cancel()
-            self.calls.done("BlendStream", code, t0, context, messages=i)
+                call.messages += 1

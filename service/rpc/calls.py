@@ -9,6 +9,7 @@ size (both ``RESOURCE_EXHAUSTED``, see :func:`fit`); anything else is
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import ctypes
 import ctypes.util
 import functools
@@ -19,7 +20,7 @@ import re
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from typing import NoReturn
+from typing import AsyncIterator, Callable, NoReturn
 
 import grpc
 
@@ -265,15 +266,19 @@ class Calls:
             self.flush()
 
     async def unary(self, rpc: str, handle, request, context, counted: bool = False,
-                    status=None, world: str | None = None):
+                    status=None, world: str | None = None, recording=None):
         """One unary call: the response of ``handle(request)`` (awaited when it is a coroutine),
         the :func:`refusal` status for a FieldError or TooLarge, INTERNAL (logged) for anything
         else, and one record either way.
         With ``counted``, ``handle`` returns ``(response, messages)`` and the record counts them.
         ``status(rpc, e)``: a service's own mapping of exceptions (default :func:`refused`).
-        ``world``: the world a World call named, in its record's log line."""
+        ``world``: the world a World call named, in its record's log line. ``recording``: the
+        call's (``recorder.call(...)``), which gets its request, its answer and its end."""
+        rec = record.NULL_CALL if recording is None else recording
+        rec.request(request)
         t0 = self.begin()
-        code = "OK"
+        code, details = "OK", ""
+        ended = "CANCELLED"     # the recording's end unless it was answered or refused
         messages = None
         try:
             response = handle(request)
@@ -281,13 +286,46 @@ class Calls:
                 response = await response
             if counted:
                 response, messages = response
+            rec.answer(response)
+            ended = "OK"
             return response
         except Exception as e:
             code_, details = (status or refused)(rpc, e)
-            code = code_.name
+            code = ended = code_.name
             await context.abort(code_, details)
         finally:
+            rec.end(ended, details)
             self.done(rpc, code, t0, context, messages, world)
+
+    @contextlib.asynccontextmanager
+    async def stream(self, rpc: str, context, recording=None, world: str | None = None,
+                     log_name: str | None = None) -> AsyncIterator[Call]:
+        """One streaming call, ``async with calls.stream(rpc, context, rec) as call:``: counted
+        in (:meth:`begin`), ended with the status the handler set on ``call`` (:class:`Call`),
+        CANCELLED when the client went away, INTERNAL (logged as ``log_name``, default ``rpc``,
+        see :meth:`failed`) for an exception; then ``call``'s cleanups run (last first), its
+        ``recording`` ends with its status and the call gets its one :meth:`done`."""
+        call = Call(self, rpc, context, record.NULL_CALL if recording is None else recording)
+        t0 = self.begin()
+        try:
+            yield call
+        except grpc.aio.AbortError:
+            raise
+        except Exception as e:
+            call.code = self.failure_code(e)
+            await self.failed(log_name or rpc, e, context)
+        except BaseException:   # asyncio.CancelledError: the client went away
+            call.code = "CANCELLED"
+            raise
+        finally:
+            try:
+                for cleanup in reversed(call.cleanups):
+                    if asyncio.iscoroutine(done := cleanup()):
+                        await done
+                if call.recorded_here:
+                    call.end_recording()
+            finally:
+                self.done(rpc, call.code, t0, context, messages=call.messages, world=world)
 
     def open_stream(self, rpc: str, context, kind: str = STREAM,
                     world: str | None = None) -> Slot | None:
@@ -308,6 +346,56 @@ class Calls:
             await context.abort(status, details)
         finally:
             self.done(rpc, status.name, t0, context)
+
+
+class Call:
+    """What a streaming call's handler tells :meth:`Calls.stream`: the status it ends with
+    (``code``, "OK" unless set, and a refusal's ``details``), its ``messages`` (its log line's
+    count), the cleanups to run when it ends (:meth:`on_end`); ``rec``: its recording."""
+
+    __slots__ = ("calls", "rpc", "context", "rec", "code", "details", "messages", "cleanups",
+                 "recorded_here")
+
+    def __init__(self, calls: Calls, rpc: str, context, rec):
+        self.calls, self.rpc, self.context, self.rec = calls, rpc, context, rec
+        self.code, self.details, self.messages = "OK", "", 0
+        self.cleanups: list[Callable] = []
+        self.recorded_here = True
+
+    def open(self, kind: str = STREAM, world: str | None = None) -> Slot | None:
+        """The stream's slot (:meth:`Calls.open_stream`); None when a bound is reached, the call
+        then set to end RESOURCE_EXHAUSTED naming it, for the handler to return at once."""
+        slot = self.calls.open_stream(self.rpc, self.context, kind, world)
+        if slot is None:
+            self.code, self.details = "RESOURCE_EXHAUSTED", self.context.details() or ""
+        return slot
+
+    def on_end(self, cleanup: Callable) -> None:
+        """``cleanup()`` (awaited when it returns a coroutine) when the call ends, before its
+        recording does; cleanups run last first."""
+        self.cleanups.append(cleanup)
+
+    async def refuse(self, status: grpc.StatusCode, details: str) -> NoReturn:
+        """Ends the call with ``status`` and ``details`` (an abort: raises)."""
+        self.code, self.details = status.name, details
+        await self.context.abort(status, details)
+        raise AssertionError("unreachable: abort raises")
+
+    def set(self, status: grpc.StatusCode, details: str) -> None:
+        """The status the call ends with when its handler returns (not raising)."""
+        self.code, self.details = status.name, details
+        self.context.set_code(status)
+        self.context.set_details(details)
+
+    def end_recording(self) -> None:
+        """The recording's end, with the call's status as it is now."""
+        self.rec.end(self.code, self.details)
+
+    def handed_over(self) -> Callable[[], None]:
+        """The recording's end handed to the caller, who calls what this returns where the end
+        belongs (a world's order); the stream no longer ends it."""
+        self.recorded_here = False
+        return self.end_recording
 
 
 def _libc():

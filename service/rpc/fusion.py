@@ -268,19 +268,12 @@ class Fusion(pb_grpc.FusionServicer):
         # Registered without (de)serializers (register): bytes in and out, parsed and written
         # with the fit, in the worker pool when the request is not small.
         rec = self.calls.recorder.call(FUSE, pb.FuseRequest, pb.FusedPose)
-        rec.measurements(request)
-        try:
-            if len(request) <= limits.INLINE_BYTES:
-                answer = await self.calls.unary("Fuse", self._fuse_small, request, context)
-            else:
-                answer = await self.calls.unary(
-                    "Fuse", lambda r: self.calls.work(self.fuse_bytes, r), request, context)
-        except BaseException:
-            rec.end(_code(context), _details(context))
-            raise
-        rec.fused(answer)
-        rec.end("OK")
-        return answer
+        if len(request) <= limits.INLINE_BYTES:
+            return await self.calls.unary("Fuse", self._fuse_small, request, context,
+                                          recording=rec)
+        return await self.calls.unary(
+            "Fuse", lambda r: self.calls.work(self.fuse_bytes, r), request, context,
+            recording=rec)
 
     def _open_stream(self, data: bytes):
         """The first request of a stream: ``(state, its answers, its number of measurements)``;
@@ -300,39 +293,33 @@ class Fusion(pb_grpc.FusionServicer):
         are fused."""
         if cost <= limits.INLINE_ROWS:
             for answer in answers:
-                rec.fused(answer)
+                rec.answer(answer)
                 await context.write(answer)
             return
         answers = iter(answers)
         while chunk := await self.calls.work(_take, answers, ANSWERS_PER_WORK):
             for answer in chunk:
-                rec.fused(answer)
+                rec.answer(answer)
                 await context.write(answer)
 
     async def StreamFuse(self, request_iterator, context):
-        t0 = self.calls.begin()
-        code = "OK"
-        r = 0
-        next_id = 0
         state = None
-        details = ""
+        next_id = 0
         rec = self.calls.recorder.call(STREAM_FUSE, pb.FuseStreamRequest, pb.FusedPose)
-        try:
-            if self.calls.open_stream("StreamFuse", context) is None:
-                code, details = "RESOURCE_EXHAUSTED", _details(context)
+        async with self.calls.stream("StreamFuse", context, rec) as call:
+            if call.open() is None:
                 return
             # Registered without a deserializer (register): each request arrives as bytes.
             # Decoded on the event loop when small (most of a live stream's messages), else in
             # the worker pool, like the answers (_write).
             async for data in request_iterator:
-                rec.measurements(data)
+                rec.request(data)
+                r = call.messages
                 if state is None:
                     try:
                         state, answers, n = await self.calls.work(self._open_stream, data)
                     except FieldError as e:
-                        status = refusal(e)
-                        code, details = status.name, readable(str(e))
-                        await context.abort(status, details)
+                        await call.refuse(refusal(e), readable(str(e)))
                 elif len(data) <= limits.INLINE_BYTES:
                     answers, n = self.stream_answers_wire(state, data, r, next_id)
                 else:
@@ -340,33 +327,12 @@ class Fusion(pb_grpc.FusionServicer):
                                                        next_id)
                 await self._write(answers, state.cost, context, rec)
                 next_id += n
-                r += 1
-        except grpc.aio.AbortError:
-            raise
-        except Exception as e:
-            code = self.calls.failure_code(e)
-            await self.calls.failed("StreamFuse", e, context)
-        except BaseException:   # asyncio.CancelledError: the client went away
-            code = "CANCELLED"
-            raise
-        finally:
-            rec.end(code, details)
-            self.calls.done("StreamFuse", code, t0, context, messages=r)
+                call.messages += 1
 
 
 #: the full names recordings know the calls by (dqpose.record)
 FUSE = f"{Fusion.NAME}/Fuse"
 STREAM_FUSE = f"{Fusion.NAME}/StreamFuse"
-
-
-def _code(context) -> str:
-    """The status a refused unary call ended with (grpc.aio keeps it on the context)."""
-    code = context.code()
-    return code.name if isinstance(code, grpc.StatusCode) else "UNKNOWN"
-
-
-def _details(context) -> str:
-    return context.details() or ""
 
 
 #: StreamFuse answers fused per turn of the worker pool (when fused there)

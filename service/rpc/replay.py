@@ -24,10 +24,11 @@ import collections
 import dataclasses
 import os
 import time
-from typing import Iterable, Iterator, Optional, Protocol, Union
+from typing import Any, Iterable, Iterator, Optional, Protocol, Union
 
 from dqpose.record import reader
 from dqpose.record.reader import Call, Dropped, End, Event, Recording
+from dqpose.record.types import FUSED_POSE
 from dqpose.rpc import replay_world
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as pb
 from dqpose.rpc.calls import refused
@@ -359,13 +360,14 @@ def compare_outcomes(call: Call, want: Outcome, got: Outcome,
     return tally.finish((want.code, want.details), (got.code, got.details), complete, ("", 0))
 
 
-def _what(a: bytes, b: bytes, answer_type: str = "dqpose.v1.FusedPose") -> str:
+def _what(a: bytes, b: bytes, answer_type: str = FUSED_POSE) -> str:
     """Where two answers differ: the first field (in field order) whose values differ, after
     the body and time of a recorded FusedPose; bytes when they do not parse."""
     from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
 
-    cls = {"dqpose.v1.FusedPose": pb.FusedPose, "dqpose.v1.PublishAck": wpb.PublishAck,
-           "dqpose.v1.WorldConfig": wpb.WorldConfig}.get(answer_type)
+    classes: dict[str, Any] = {c.DESCRIPTOR.full_name: c
+                               for c in (pb.FusedPose, wpb.PublishAck, wpb.WorldConfig)}
+    cls = classes.get(answer_type)
     try:
         x, y = cls.FromString(a), cls.FromString(b)     # type: ignore[union-attr]
     except Exception:

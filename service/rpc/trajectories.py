@@ -4,7 +4,6 @@ WatchArm and ListArms (:mod:`dqpose.rpc.arms`).
 """
 from __future__ import annotations
 
-import asyncio
 from typing import Any
 
 import grpc
@@ -177,30 +176,20 @@ class Trajectories:
                                       request, context)
 
     async def Plan(self, request: bytes, context):
-        t0 = self.calls.begin()
-        code, sent = "OK", 0
-        try:
-            if self.calls.open_stream("Plan", context) is None:
-                code = "RESOURCE_EXHAUSTED"
+        async with self.calls.stream("Plan", context) as call:
+            if call.open() is None:
                 return
             try:
                 traj, samples, resolved = await self.calls.work(self.planned, request,
                                                                 world_of(context))
             except Exception as e:
-                status, details = refused("Plan", e)
-                code = status.name
-                await context.abort(status, details)
+                await call.refuse(*refused("Plan", e))
             # the samples' messages made in the worker pool too, CHUNK at a time
             for i in range(0, len(samples.time), CHUNK):
                 msgs = await self.calls.work(self.sample_chunk, traj, samples, i, resolved)
                 for m in msgs:
                     await context.write(m)
-                sent += len(msgs)
-        except asyncio.CancelledError:
-            code = "CANCELLED"
-            raise
-        finally:
-            self.calls.done("Plan", code, t0, context, messages=sent)
+                call.messages += len(msgs)
 
     async def Execute(self, request, context):
         await self.arms.execute(request, context)

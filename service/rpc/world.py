@@ -26,23 +26,21 @@ import threading
 from typing import Any, Callable
 
 import grpc
-from google.protobuf.message import DecodeError
 
 from dqpose import limits as _limits
 from dqpose import record
 from dqpose import world as domain
 from dqpose.errors import FieldError, Infeasible, WorldInfeasible
 from dqpose.fusion.bounds import TrackerBounds
-from dqpose.hub import Hub, Interest, Rows, Subscription
-from dqpose.rpc import DEFAULT_MAX_POSES, world_wait
+from dqpose.hub import Hub, Interest, Subscription
+from dqpose.rpc import DEFAULT_MAX_POSES, world_publish, world_wait
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from dqpose.rpc._proto.dqpose.v1 import world_pb2 as pb
-from dqpose.rpc.calls import Calls, readable, refused
+from dqpose.rpc.calls import Call, Calls, readable, refused
 from dqpose.rpc.checks import over_count
-from dqpose.rpc.fusion_convert import measurements_to_arrays
 from dqpose.rpc.peers import SUBSCRIPTION, FellBehind, ReadAhead, Slot, exhausted, read_all
 from dqpose.rpc.routing import WORLD_HEADER, world_of
-from dqpose.rpc.wire import messages_wire, publish_from_wire, publish_head, wire_rows
+from dqpose.rpc.wire import messages_wire
 from dqpose.rpc.world_convert import (
     Encoder,
     config_from_msg,
@@ -75,9 +73,6 @@ PUBLISH_READ_AHEAD_BYTES = 1 << 20
 #: restarts (a moved world's state is soft), so size it to the worlds of the whole cluster.
 MAX_WORLDS = 256
 
-
-#: a call's recording when the server records nothing
-NOT_RECORDED = record.NULL.call("", None, None)
 
 
 class UnknownWorld(LookupError):
@@ -207,26 +202,6 @@ def _ready(first: bytes, sub: Subscriber) -> tuple[list, bytes | None]:
     return answers, None
 
 
-def _rows(request: pb.PublishRequest | None, data: bytes | None, field: str,
-          errors: list) -> Rows:
-    """A request's measurements as the world takes them, those refused by their encoding
-    appended to ``errors`` as ``(i, FieldError)``. From ``data`` (its bytes) they are decoded and
-    checked in C where they are plain (the same rows and texts; the rows C passed are not
-    checked again); else from ``request`` (None: parsed from ``data`` here, which may raise
-    ``DecodeError``)."""
-    w = None if data is None else publish_from_wire(data)
-    codes = None
-    if data is None or w is None:
-        if request is None:
-            assert data is not None         # one of the two is given
-            request = pb.PublishRequest.FromString(data)
-        m = measurements_to_arrays(request.measurements, field, errors)
-    else:
-        m, more, codes = wire_rows(data, w, field)
-        errors += more
-    return Rows(m.index, m.bodies, m.sources, m.times, m.poses, m.covariances, codes)
-
-
 class World:
     """The ``dqpose.v1.World`` service: the server's worlds by name (a :class:`dqpose.Hub`
     each; the Trajectories service resolves ``Waypoint.frame`` through the one its call names).
@@ -280,18 +255,18 @@ class World:
     # -- request -> response, no transport
 
     def configure(self, world: Hub, request: pb.WorldConfig,
-                  rec=NOT_RECORDED) -> pb.WorldConfig:
+                  rec=record.NULL_CALL) -> pb.WorldConfig:
         """Configure's answer (or its refusal), recorded with its request as one step of the
         world."""
         try:
             sources, arms, options = config_from_msg(request)
             statics, static_bodies = frames_from_msg(request)
         except Exception as e:
-            rec.measurements(request)
+            rec.request(request)
             _ended(rec, e)
             raise
         try:
-            world.configure(sources, arms, options, hook=lambda: rec.measurements(request),
+            world.configure(sources, arms, options, hook=lambda: rec.request(request),
                             statics=statics, static_bodies=static_bodies)
         except domain.WorldError as e:      # a bound's (e.limit) is RESOURCE_EXHAUSTED
             error = (WorldInfeasible if isinstance(e, Infeasible) else domain.WorldError)(
@@ -300,7 +275,7 @@ class World:
             raise error from None
         answer = frames_msgs(world.world.tree, config_msg(
             world.world.sources, world.world.arms, world.world.options))
-        rec.fused(answer)
+        rec.answer(answer)
         rec.end("OK")
         return answer
 
@@ -313,74 +288,10 @@ class World:
         return world_wait.answer(world, request)
 
     def publish_bytes(self, world: Hub, data: bytes, r: int, anonymous: str,
-                      rec=NOT_RECORDED) -> pb.PublishAck:
-        """Request ``r``'s bytes (``anonymous``: the producer key of a request that names none)
-        as one step of the world, recorded with its ack; bytes that are not a PublishRequest
-        are an ack error. Its producer, sequence and count are read in C where the bytes are
-        plain (``publish_head``), else by protobuf."""
-        head = publish_head(data)
-        try:
-            if head is not None and head[2] <= self.max_poses:
-                ack = self._publish(world, None, *head, r, anonymous, data, rec)
-            else:
-                request = pb.PublishRequest.FromString(data)
-                ack = self.publish(world, request, r, anonymous, data, rec)
-        except DecodeError:     # raised before the world was touched
-            world.count(hook=lambda: rec.measurements(data))
-            ack = pb.PublishAck()
-            ack.errors.add(request=r, measurement=-1, details=(
-                f"requests[{r}]: not a valid dqpose.v1.PublishRequest message; none of it was "
-                f"used"))
-        rec.fused(ack)
-        return ack
-
-    def _publish_all(self, world: Hub, data: list, r: int, anonymous: str,
-                     rec) -> tuple[list, Exception | None]:
-        """:meth:`publish_bytes` of requests ``r``, ``r + 1``, ... in turn (one pool job): their
-        acks, and what the one that failed raised (the acks before it are still sent)."""
-        acks: list = []
-        try:
-            for d in data:
-                acks.append(self.publish_bytes(world, d, r + len(acks), anonymous, rec))
-        except Exception as e:
-            return acks, e
-        return acks, None
-
-    def publish(self, world: Hub, request: pb.PublishRequest, r: int, anonymous: str,
-                data: bytes | None = None, rec=NOT_RECORDED) -> pb.PublishAck:
-        """Request ``r`` of a Publish call applied (:meth:`dqpose.Hub.publish`), its ack
-        returned; never raises for bad input. ``data``: the request's bytes, whose measurements
-        are then read in C."""
-        return self._publish(world, request, request.producer, request.sequence,
-                             len(request.measurements), r, anonymous, data, rec)
-
-    def _publish(self, world: Hub, request: pb.PublishRequest | None, producer: str,
-                 sequence: int, count: int, r: int, anonymous: str, data: bytes | None,
-                 rec) -> pb.PublishAck:
-        """:meth:`publish` of a request read as its ``producer``, ``sequence`` and ``count`` of
-        measurements, from ``request`` or (None) its bytes ``data``; ``DecodeError`` from bytes
-        protobuf would not read, before anything is done."""
-        field = f"requests[{r}].measurements"
-        too_many = over_count(field, count, self.max_poses, "measurements")
-        errors: list = []
-        rows = None if too_many is not None else _rows(request, data, field, errors)
-        applied = world.publish(producer, anonymous, sequence, rows, count,
-                                hook=lambda: rec.measurements(data or request))
-        ack = pb.PublishAck(acked_through=applied.acked_through)
-
-        def error(i: int, text: str) -> None:
-            ack.errors.add(request=r, measurement=i, details=readable(text))
-
-        for e in applied.notes:
-            error(-1, e.named(f"requests[{r}]"))
-        if applied.used:
-            if too_many is not None:
-                error(-1, f"{too_many}; none was used")
-            for i, e in errors:
-                error(i, str(e))
-            for e in applied.errors:
-                error(e.index, e.named(field))
-        return ack
+                      rec=record.NULL_CALL) -> pb.PublishAck:
+        """Request ``r``'s bytes applied to ``world`` as one step, its ack
+        (:func:`world_publish.publish_bytes`): what a Publish call and a replay feed."""
+        return world_publish.publish_bytes(world, data, r, anonymous, self.max_poses, rec)
 
     # -- RPCs
 
@@ -450,25 +361,21 @@ class World:
         self.waits.stop()
 
     async def Publish(self, request_iterator, context):
-        t0 = self.calls.begin()
-        code, r = "OK", 0
         anonymous = f"\0call{id(context)}"
-        hub_ = reader = None
         world = _recorded_world(context)
         # recording: in the world's order (publish_bytes)
         rec = self.calls.recorder.call(f"{self.NAME}/Publish", pb.PublishRequest, pb.PublishAck,
                                        world)
-        try:
+        async with self.calls.stream("Publish", context, rec, world,
+                                     _named("Publish", world)) as call:
             # the slot first: a call refused for its peer's streams makes no world
-            if self.calls.open_stream("Publish", context) is None:
-                code = "RESOURCE_EXHAUSTED"
+            if call.open() is None:
                 return
             try:
                 hub_ = self.called(context, make=True)
             except Exception as e:
-                status, details = status_of(e, _named("Publish", world))
-                code = status.name
-                await context.abort(status, details)
+                await call.refuse(*status_of(e, _named("Publish", world)))
+            call.on_end(lambda: hub_.forget(anonymous))
             # Registered without a deserializer: each request is parsed with its work in the
             # worker pool (publish_bytes), never on the event loop. Requests are read while
             # earlier ones are applied (PUBLISH_READ_AHEAD), and those read meanwhile go to the
@@ -476,36 +383,22 @@ class World:
             # a round trip through the event loop and the pool (which made a producer's rate
             # that round trip's inverse).
             pending = ReadAhead(PUBLISH_READ_AHEAD, PUBLISH_READ_AHEAD_BYTES)
-            reader = asyncio.ensure_future(read_all(context, pending))
+            call.on_end(asyncio.ensure_future(read_all(context, pending)).cancel)
             while True:
                 taken = await pending.take()
                 data = [d for d in taken if isinstance(d, bytes)]
                 acks, failure = ((), None) if not data else await self.calls.work(
-                    self._publish_all, hub_, data, r, anonymous, rec)
+                    world_publish.publish_all, hub_, data, call.messages, anonymous,
+                    self.max_poses, rec)
                 for ack in acks:
                     await context.write(ack)
-                    r += 1
+                    call.messages += 1
                 if failure is not None:
                     raise failure
                 if isinstance(taken[-1], Exception):
                     raise taken[-1]
                 if taken[-1] is grpc.aio.EOF:
                     break
-        except grpc.aio.AbortError:
-            raise
-        except Exception as e:
-            code = self.calls.failure_code(e)
-            await self.calls.failed(_named("Publish", world), e, context)
-        except BaseException:
-            code = "CANCELLED"
-            raise
-        finally:
-            if reader is not None:
-                reader.cancel()
-            if hub_ is not None:
-                hub_.forget(anonymous)
-            rec.end(code)       # recording
-            self.calls.done("Publish", code, t0, context, messages=r, world=world)
 
     async def Subscribe(self, request, context):
         await self._subscribe("Subscribe", request, context)
@@ -516,49 +409,32 @@ class World:
     async def _subscribe(self, rpc: str, request, context):
         """Subscribe, or SubscribeBatches (``rpc``): the answers ready at each write in one
         FusedPoseBatch. Both are recorded as Subscribe: the same answers in the same order."""
-        t0 = self.calls.begin()
-        code, sent = "OK", 0
-        sub = added = hub_ = None
         world = _recorded_world(context)
         # recording: in the world's order (the hub's subscribe and unsubscribe)
         rec = self.calls.recorder.call(f"{self.NAME}/Subscribe", pb.SubscribeRequest,
                                        fpb.FusedPose, world)
-        try:
+        async with self.calls.stream(rpc, context, rec, world, _named(rpc, world)) as call:
             hub_, problem = self._admit(request, context, _named(rpc, world))
             if problem is not None:
-                code = problem[0].name
-                await context.abort(problem[0], problem[1])
+                await call.refuse(*problem)
             assert hub_ is not None
-            slot = self.calls.open_stream(rpc, context, SUBSCRIPTION, hub_.name)
+            slot = call.open(SUBSCRIPTION, hub_.name)
             if slot is None:
-                code = "RESOURCE_EXHAUSTED"
                 return
             sub = Subscriber(interest(request), asyncio.get_running_loop())
             sub.on_end = slot.end
 
             def hook():
-                rec.measurements(request)
+                rec.request(request)
 
             # In the world at once when its lock is free, with nothing since the headers went
             # that yields to another call (dqpose.rpc.replay_remote waits for the headers);
             # else in the pool, never waiting on the event loop for a Publish request's fits.
             added = _at_once(hub_, sub.handle, hook) or asyncio.ensure_future(
                 self.calls.work(hub_.subscribe, sub.handle, hook))
+            call.on_end(lambda: self._leave(added, hub_, sub, call.handed_over()))
             await asyncio.shield(added)
-            sent, code = await self._answers(rpc, sub, slot, context, rec)
-        except asyncio.CancelledError:
-            code = "CANCELLED"
-            raise
-        finally:
-            try:
-                if added is not None:
-                    assert sub is not None and hub_ is not None
-                    sub.end(sub.ended or "the call ended")
-                    await asyncio.shield(self._leave(added, hub_, sub, rec, code))
-                else:
-                    rec.end(code)               # recording
-            finally:
-                self.calls.done(rpc, code, t0, context, messages=sent, world=world)
+            await self._answers(rpc, sub, slot, call)
 
     def _admit(self, request, context, named: str) -> tuple[Hub | None, tuple | None]:
         """The world a Subscribe request names, or why it is refused before it takes a slot:
@@ -583,19 +459,22 @@ class World:
                               "bodies")
         return found, None if too_many is None else (grpc.StatusCode.RESOURCE_EXHAUSTED, too_many)
 
-    async def _leave(self, added, world: Hub, sub: Subscriber, rec, code: str) -> None:
-        """``sub`` out of its world once it is in (the pool may run both at once), its end
-        recorded in the world's order."""
-        await added
-        await self.calls.work(world.unsubscribe, sub.handle, lambda: rec.end(code))
+    async def _leave(self, added, world: Hub, sub: Subscriber, ended) -> None:
+        """``sub`` out of its world once it is in (the pool may run both at once), its
+        recording ``ended`` in the world's order."""
+        sub.end(sub.ended or "the call ended")
+        await asyncio.shield(self._unsubscribe(added, world, sub, ended))
 
-    async def _answers(self, rpc: str, sub: Subscriber, slot: Slot, context,
-                       rec) -> tuple[int, str]:
+    async def _unsubscribe(self, added, world: Hub, sub: Subscriber, ended) -> None:
+        await added
+        await self.calls.work(world.unsubscribe, sub.handle, ended)
+
+    async def _answers(self, rpc: str, sub: Subscriber, slot: Slot, call: Call) -> None:
         """Writes ``sub``'s answers until the server ends it (its client fell behind a bound:
-        RESOURCE_EXHAUSTED, not waiting for the client to read it); ``(answers sent, the
-        status's name)``."""
+        RESOURCE_EXHAUSTED, not waiting for the client to read it), counted in ``call``."""
         batched = rpc == "SubscribeBatches"
-        carry, sent = None, 0
+        carry = None
+        context = call.context
         while sub.ended is None:
             first = carry if carry is not None else await sub.next()
             if first is None:
@@ -606,12 +485,13 @@ class World:
                     context, messages_wire(answers) if batched else first, rpc)
             except FellBehind as e:
                 sub.end(str(e))
-                return sent, await exhausted(context, str(e), slot)
+                call.code = await exhausted(context, str(e), slot)
+                return
             for answer in answers:
-                rec.fused(answer)       # recording
-            sent += len(answers)
-        return sent, await exhausted(context, f"{rpc}: {sub.ended}; subscribe to fewer bodies "
-                                              f"or a lower rate_hz", slot)
+                call.rec.answer(answer)       # recording
+            call.messages += len(answers)
+        call.code = await exhausted(context, f"{rpc}: {sub.ended}; subscribe to fewer bodies "
+                                             f"or a lower rate_hz", slot)
 
 
 def interest(request: pb.SubscribeRequest) -> Interest:
@@ -649,8 +529,8 @@ def _follow(world: Hub, recorder) -> None:
 
     def deliver(answers: list) -> None:
         for answer in answers:
-            rec.fused(answer)
+            rec.answer(answer)
 
     request = pb.SubscribeRequest(rate_hz=recorder.world_rate)
     world.subscribe(Subscription(interest(request), deliver, internal=True),
-                    hook=lambda: rec.measurements(request))
+                    hook=lambda: rec.request(request))

@@ -12,10 +12,14 @@ import numpy as np
 from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
 
 from dqpose import dq
-from dqpose.record.views import ARM_STATE, EXECUTE_REQUEST, EXECUTION_FEEDBACK, pose_of
-
-FUSED_POSE = "dqpose.v1.FusedPose"
-WORLD_CONFIG = "dqpose.v1.WorldConfig"
+from dqpose.record.types import (
+    ARM_STATE,
+    EXECUTE_REQUEST,
+    EXECUTION_FEEDBACK,
+    FUSED_POSE,
+    WORLD_CONFIG,
+)
+from dqpose.record.views import pose_of
 
 
 @dataclasses.dataclass

@@ -125,7 +125,7 @@ def verdict(lo: float, hi: float, control: tuple[float, float], rounds: int) -> 
 
 
 def put_cost(messages: int, rate: float) -> dict:
-    """What a recorded request costs the servicer that records it: ``CallRecord.measurements``
+    """What a recorded request costs the servicer that records it: ``CallRecord.request``
     timed one by one, ``messages`` of the scene's requests at ``rate`` messages/s, with the writer
     process draining the pipe (the flushes included: they happen inside the puts)."""
     from dqpose.record.recorder import Recorder
@@ -144,7 +144,7 @@ def put_cost(messages: int, rate: float) -> dict:
             while time.perf_counter() < due:
                 time.sleep(0.0002)
             t = time.perf_counter()
-            call.measurements(d)
+            call.request(d)
             took[i] = time.perf_counter() - t
         call.end("OK")
         r.close()
@@ -342,7 +342,7 @@ def _print_put_cost(args) -> None:
           f"{args.rate / PER_MESSAGE:.0f}/s, 20,000) | mean us | p50 us | p99 us | max us | "
           f"dropped |")
     print("|---|---|---|---|---|---|")
-    print(f"| CallRecord.measurements (frame, buffer, non-blocking pipe write) | "
+    print(f"| CallRecord.request (frame, buffer, non-blocking pipe write) | "
           f"{put['mean']:.1f} | {put['p50']:.1f} | {put['p99']:.1f} | {put['max']:.0f} | "
           f"{put['dropped']} |")
 

@@ -8,8 +8,8 @@ from dqpose.errors import MissingExtra
 
 def test_the_null_recorder_takes_every_call_and_does_nothing():
     call = record.NULL.call("dqpose.v1.Fusion/StreamFuse", object, object)
-    call.measurements(b"x")
-    call.fused(b"y")
+    call.request(b"x")
+    call.answer(b"y")
     call.end("OK")
     record.NULL.plan("p", [[1, 0, 0, 0, 0, 0, 0, 0]])
     assert record.NULL.written == record.NULL.dropped == 0 and not call.alive

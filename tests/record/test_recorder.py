@@ -27,9 +27,9 @@ RPC = "dqpose.v1.Fusion/StreamFuse"
 def record_stream(recorder, data, answers):
     call = recorder.call(RPC, pb.FuseStreamRequest, pb.FusedPose)
     for d, got in zip(data, answers):
-        call.measurements(d)
+        call.request(d)
         for a in got:
-            call.fused(a)
+            call.answer(a)
     call.end("OK")
     return call
 
@@ -165,10 +165,10 @@ def test_files_rotate_by_age(tmp_path, scene):
     data, answers = scene
     r = Recorder(tmp_path, max_seconds=0.05)
     call = r.call(RPC, pb.FuseStreamRequest, pb.FusedPose)
-    call.measurements(data[0])
+    call.request(data[0])
     wait_until(lambda: len(r.files) == 1 and r.written == 2, 10)
     wait_until(lambda: complete(r.files[0]), 10)    # closed once 0.05 s old
-    call.measurements(data[1])
+    call.request(data[1])
     r.close()
     assert len(r.files) == 2
     assert [e.data for e in read(r.files[1]).events] == [data[1]]
@@ -180,11 +180,11 @@ def test_a_stalled_writer_drops_counts_and_marks_the_file(tmp_path, scene):
     r.stall.set()
     call = r.call(RPC, pb.FuseStreamRequest, pb.FusedPose)
     for d in data:                 # 1 begin + 30 requests into a queue of 10: 21 dropped
-        call.measurements(d)
+        call.request(d)
     assert r.dropped == 21
     r.stall.clear()
     wait_until(lambda: r.written == 10, 10)
-    call.measurements(b"after")    # room again: the marker goes before it
+    call.request(b"after")    # room again: the marker goes before it
     r.close()
     rec = read(r.files[0])
     assert [e.data for e in rec.events] == data[:9] + [b"after"]
@@ -203,7 +203,7 @@ def test_a_call_whose_beginning_was_dropped_records_nothing(tmp_path, scene):
     assert not late.alive
     r.stall.clear()
     wait_until(lambda: r.written == 1, 10)
-    late.measurements(data[0])      # its requests cannot be replayed: dropped too
+    late.request(data[0])      # its requests cannot be replayed: dropped too
     r.close()
     assert r.dropped == 2
     rec = read(r.files[0])
@@ -251,10 +251,10 @@ def test_a_writer_that_dies_is_logged_once_and_what_follows_failed(tmp_path, sce
     r._proc.kill()
     r._proc.wait()
     for d in data:      # none waits: the pipe's end is gone
-        call.measurements(d)
-    wait_until(lambda: (call.measurements(data[0]) or True) and r._closed, 10)
+        call.request(d)
+    wait_until(lambda: (call.request(data[0]) or True) and r._closed, 10)
     before = r.failed
-    call.measurements(data[1])
+    call.request(data[1])
     assert r.failed == before + 1 and r.dropped == 0
     r.close()
     assert heard == ["the writer process ended"] == [r.failure]

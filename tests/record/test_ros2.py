@@ -98,7 +98,7 @@ def test_export_command_writes_the_bag_and_refuses_an_existing_folder(tmp_path):
 def test_error_entries_are_left_out(tmp_path):
     r = Recorder(tmp_path / "rec")
     call = r.call("dqpose.v1.Fusion/StreamFuse", pb.FuseStreamRequest, pb.FusedPose)
-    call.fused(pb.FusedPose(body="box", error=pb.FuseError(details="x")))
+    call.answer(pb.FusedPose(body="box", error=pb.FuseError(details="x")))
     r.close()
     assert export(read(r.files[0]), tmp_path / "bag") == {}
 

@@ -37,8 +37,8 @@ def config() -> wpb.WorldConfig:
 
 def configure(recorder: Recorder, answer: wpb.WorldConfig, world: str = "cell") -> None:
     call = recorder.call(RPC, wpb.WorldConfig, wpb.WorldConfig, world)
-    call.measurements(answer)
-    call.fused(answer)
+    call.request(answer)
+    call.answer(answer)
     call.end("OK")
 
 

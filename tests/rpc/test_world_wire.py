@@ -1,5 +1,5 @@
-"""World.Publish's C path (dqpose.rpc.wire.publish_from_wire, from World.publish_bytes) against
-the protobuf path it replaces: on generated, damaged and re-encoded requests a world fed the
+"""World.Publish's C path (dqpose.rpc.wire.publish_from_wire, from world_publish.publish_bytes)
+against the protobuf path it replaces: on generated, damaged and re-encoded requests a world fed the
 bytes acks exactly what a world fed the parsed messages acks (errors and their texts) and holds
 the same rows, bit for bit."""
 from __future__ import annotations
@@ -9,6 +9,7 @@ from google.protobuf.message import DecodeError
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from dqpose.rpc import world_publish
 from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
 from dqpose.rpc.wire import publish_from_wire, publish_head
 from dqpose.rpc.world import World
@@ -40,7 +41,7 @@ def run_both(datas: list[bytes], decoded: list | None = None) -> None:
         except DecodeError:
             assert got.errors[0].details.startswith(f"requests[{r}]: not a valid")
             continue
-        want = server.publish(by_message, request, r, "anonymous")
+        want = world_publish.publish(by_message, request, r, "anonymous", server.max_poses)
         assert got.SerializeToString() == want.SerializeToString()
         if decoded is not None:
             decoded.append(publish_from_wire(data) is not None)

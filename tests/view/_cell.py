@@ -42,20 +42,20 @@ def record_cell(directory) -> str:
     for arm in BASES:
         dq_to_pose(base(arm), config.sources.add(name=f"{arm}_flange").extrinsic)
     call = recorder.call("dqpose.v1.World/Configure", wpb.WorldConfig, wpb.WorldConfig)
-    call.measurements(config)
-    call.fused(config)
+    call.request(config)
+    call.answer(config)
     call.end("OK")
     level = np.array([[1.0, 0, 0, 0]] * len(PATH))
     for arm in BASES:
         recorder.plan(arm, dq.from_pose(level, PATH))
         run = recorder.call("dqpose.v1.Trajectories/Execute", tpb.ExecuteRequest,
                             tpb.ExecutionFeedback)
-        run.measurements(tpb.ExecuteRequest(arm=arm))
+        run.request(tpb.ExecuteRequest(arm=arm))
         for k, p in enumerate(PATH):
             fb = tpb.ExecutionFeedback(time=0.1 * k, state=tpb.EXECUTION_WORKING)
             dq_to_pose(dq.from_pose([1.0, 0, 0, 0], p), fb.commanded)
             dq_to_pose(dq.from_pose([1.0, 0, 0, 0], p), fb.actual)
-            run.fused(fb)
+            run.answer(fb)
         run.end("OK")
     cov = np.diag([1e-6] * 3 + [SIGMA ** 2] * 3).ravel()
     fuse = recorder.call("dqpose.v1.Fusion/StreamFuse", fpb.FuseStreamRequest, fpb.FusedPose)
@@ -63,7 +63,7 @@ def record_cell(directory) -> str:
         for body, path in BODIES.items():
             answer = fpb.FusedPose(body=body, time=0.1 * k, covariance=cov)
             dq_to_pose(dq.from_pose([1.0, 0, 0, 0], path[k]), answer.pose)
-            fuse.fused(answer)
+            fuse.answer(answer)
     fuse.end("OK")
     recorder.close()
     (f,) = recorder.files

@@ -65,19 +65,19 @@ def record_arm(directory) -> str:
                                                       np.full(30, 0.2)], axis=1)))
     call = recorder.call("dqpose.v1.Trajectories/Execute", tpb.ExecuteRequest,
                          tpb.ExecutionFeedback)
-    call.measurements(tpb.ExecuteRequest(arm="ur"))
+    call.request(tpb.ExecuteRequest(arm="ur"))
     for k, x in enumerate(xs):
         fb = tpb.ExecutionFeedback(time=0.1 * k, state=tpb.EXECUTION_WORKING)
         dq_to_pose(dq.from_pose([1.0, 0, 0, 0], [x, 0.3, 0.2]), fb.commanded)
         dq_to_pose(dq.from_pose([1.0, 0, 0, 0], [x, 0.32, 0.2]), fb.actual)
-        call.fused(fb)
+        call.answer(fb)
     call.end("OK")
     watch = recorder.call("dqpose.v1.Trajectories/WatchArm", tpb.GetArmRequest, tpb.ArmState)
-    watch.measurements(tpb.GetArmRequest(arm="ur"))
+    watch.request(tpb.GetArmRequest(arm="ur"))
     for _ in range(2):
         st = tpb.ArmState(arm="ur", state=tpb.EXECUTION_FINISHED)
         dq_to_pose(dq.from_pose([1.0, 0, 0, 0], [0.6, 0.32, 0.2]), st.pose)
-        watch.fused(st)
+        watch.answer(st)
     watch.end("CANCELLED")
     recorder.close()
     (f,) = recorder.files

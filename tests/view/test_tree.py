@@ -41,15 +41,15 @@ def record_tree(directory) -> str:
                  fpb.Source(name="ur_flange", extrinsic=dq_to_pose(BASE))],
         arms=[wpb.ArmSource(arm="ur", source="ur_flange")])
     call = recorder.call("dqpose.v1.World/Configure", wpb.WorldConfig, wpb.WorldConfig)
-    call.measurements(config)
-    call.fused(config)
+    call.request(config)
+    call.answer(config)
     call.end("OK")
     fuse = recorder.call("dqpose.v1.World/Subscribe", wpb.SubscribeRequest, fpb.FusedPose)
     cov = np.diag([1e-6] * 3 + [1e-8] * 3).ravel()
     for k, T in enumerate(TOOL):
         answer = fpb.FusedPose(body="tool", time=0.1 * k, covariance=cov)
         dq_to_pose(T, answer.pose)
-        fuse.fused(answer)
+        fuse.answer(answer)
     fuse.end("OK")
     recorder.close()
     (f,) = recorder.files
