@@ -403,14 +403,15 @@ class Arm(abc.ABC):
         does not reach across processes), or None."""
         return None
 
-    def open_run(self, settings, busy_timeout: float, outcome) -> Optional["Run"]:
+    def open_run(self, settings, busy_timeout: float, outcome) -> "Run":
         """Where a run of the control loop goes, asked once by each
-        :class:`~dqpose.drivers.executor.Executor` made on this arm (its
+        :class:`~dqpose.drivers.executor.Executor` made on this arm (with its
         :class:`~dqpose.drivers.control.Settings`, ``busy_timeout``, and the
-        :class:`~dqpose.drivers.run.Outcome` the run reports to): a :class:`~dqpose.drivers.run.Run`
-        of the arm's own (an arm in its own process runs the loop there), or None, the default:
-        a thread of the caller's process runs it (:class:`~dqpose.drivers.run.LocalRun`)."""
-        return None
+        :class:`~dqpose.drivers.run.Outcome` the run reports to): by default a thread of this
+        process (:class:`~dqpose.drivers.run.LocalRun`); an arm in its own process runs it
+        there (:class:`~dqpose.drivers.armproc.ArmProcess`)."""
+        from dqpose.drivers.run import LocalRun  # here: run.py imports this module
+        return LocalRun(self, settings, busy_timeout, outcome)
 
     @abc.abstractmethod
     def tool_pose(self) -> tuple[float, np.ndarray]:
