@@ -20,9 +20,9 @@ import numpy as np
 from dqpose import dq, lie
 from dqpose.errors import WorldError
 from dqpose.fusion import Fused
-from dqpose.fusion.results import DOF, _frozen
+from dqpose.fusion.results import DOF, read_only
 from dqpose.fusion.sources import Source, pose_covariance
-from dqpose.fusion.validation import _pose
+from dqpose.fusion.validation import checked_pose
 from dqpose.lookup import composed_independent
 from dqpose.names import name_problem, quoted
 from dqpose.world_bounds import DEFAULT, WorldBounds, over
@@ -89,11 +89,11 @@ def _checked_static(s, k: int) -> Static:
     parent = _named(s.parent, f"statics[{k}].parent", empty=True)
     child = _named(s.child, f"statics[{k}].child")
     try:
-        pose = _pose(s.pose, f"statics[{k}].pose")
+        pose = checked_pose(s.pose, f"statics[{k}].pose")
         cov = pose_covariance(s.covariance, f"statics[{k}].covariance")
     except ValueError as e:
         raise WorldError.of(e) from None
-    return Static(parent, child, _frozen(pose), None if cov is None else _frozen(cov))
+    return Static(parent, child, read_only(pose), None if cov is None else read_only(cov))
 
 
 class FrameTree:
@@ -302,7 +302,7 @@ def relative(world: "World", target: str, source: str, time: float) -> "BodyPose
         Xt, Pt = tree.offset(target, lca)
         Xs, Ps = tree.offset(source, lca)
         X, P = _compose(*_inverse(Xt, Pt), Xs, Ps)
-        return BodyPose(source, at, _frozen(X), _frozen(_ZERO if P is None else P), None)
+        return BodyPose(source, at, read_only(X), read_only(_ZERO if P is None else P), None)
     rel = _roots(world, roots[0], roots[1], at)
     if len(ct) == 1 and len(cs) == 1:
         return rel
@@ -311,7 +311,7 @@ def relative(world: "World", target: str, source: str, time: float) -> "BodyPose
     X, P = _compose(*_inverse(Xt, Pt), rel.pose, rel.covariance)
     X, P = _compose(X, P, Xs, Ps)
     assert P is not None
-    return BodyPose(source, at, _frozen(X), _frozen(P), None)
+    return BodyPose(source, at, read_only(X), read_only(P), None)
 
 
 def _roots(world: "World", target: str, source: str, at: float) -> "BodyPose":

@@ -4,7 +4,7 @@ body's newest if sooner).
 
 Bodies whose rows share a source with an uncertain extrinsic or an estimated latency are fitted
 together (one error per such source), else each alone; the relative pose's covariance is
-``J P Jᵀ`` of their joint covariance (:func:`~dqpose.fusion.extrinsics._relative_covariance`).
+``J P Jᵀ`` of their joint covariance (:func:`~dqpose.fusion.extrinsics.relative_covariance`).
 Where the fit is the constant-twist fit over time (not robust, no ``acceleration_psd`` or
 ``max_skew``, more than one instant, within ``max_extrapolation``) the whole Lookup is one C call
 (``_dqcore.lookup``, service/csrc/lookup.c), which starts each body where its last Lookup left it
@@ -23,9 +23,9 @@ import numpy as np
 from dqpose import _dqcore as _c
 from dqpose import dq
 from dqpose.answers import Kept
-from dqpose.fusion.extrinsics import _relative_covariance
-from dqpose.fusion.results import DOF, _frozen
-from dqpose.fusion.validation import _twist_information
+from dqpose.fusion.extrinsics import relative_covariance
+from dqpose.fusion.results import DOF, read_only
+from dqpose.fusion.validation import twist_information
 
 if TYPE_CHECKING:
     from dqpose.fusion import Tracker
@@ -64,8 +64,8 @@ class Lookups:
                                  {b: w._pose_only(b, at) for b in (target, source) if b})
             from dqpose.world import BodyPose
             Xa, Xb, P = got
-            return BodyPose(source, at, _frozen(dq.mul(dq.conj(Xa), Xb)),
-                            _frozen(_relative_covariance(Xa, Xb, P)), None)
+            return BodyPose(source, at, read_only(dq.mul(dq.conj(Xa), Xb)),
+                            read_only(relative_covariance(Xa, Xb, P)), None)
         if t.exact or not (target and source):
             # nothing uncertain two bodies could share: each body's own pose (a kept fit's)
             kept = {b: w._kept_pose(b, at) for b in (target, source) if b}
@@ -103,7 +103,7 @@ class Lookups:
         for k, rec in zip(keys, made):
             if rec is not None:     # bounded as a world's fits are: ~16 doubles a "row"
                 records.keep(k, rec, rec.size // 16 + 1)
-        return BodyPose(source, at, _frozen(pose), _frozen(cov), None)
+        return BodyPose(source, at, read_only(pose), read_only(cov), None)
 
     def _table(self, t: "Tracker") -> tuple:
         """What ``_dqcore.lookup`` reads of tracker ``t``'s sources, by source code: configured
@@ -136,7 +136,7 @@ class Lookups:
                 info[c] = 0.5 * (inv + inv.T)
         o = t._checked
         twist_w = (None if o.twist_covariance is None
-                   else _twist_information(o.twist_covariance)[1])
+                   else twist_information(o.twist_covariance)[1])
         self._kept = (t._latency[:n].copy(), latency_w, E, info, uncertain, twist_w)
         return self._kept
 
@@ -173,8 +173,8 @@ class Lookups:
         fits = [w._fit_of(b, r, lambda r: t.estimate(None, at, rows=r, fit="start"))
                 for b, r in zip((target, source), rows)]
         (Xa, Xb), P = t.joint(rows, fits, at)
-        return BodyPose(source, at, _frozen(dq.mul(dq.conj(Xa), Xb)),
-                        _frozen(_relative_covariance(Xa, Xb, P)), None)
+        return BodyPose(source, at, read_only(dq.mul(dq.conj(Xa), Xb)),
+                        read_only(relative_covariance(Xa, Xb, P)), None)
 
     def share(self, a: str, b: str, at: float) -> bool:
         """Whether bodies ``a`` and ``b`` have measurements in their windows of a Lookup at
@@ -205,5 +205,5 @@ def composed_independent(target: str, source: str, at: float,
     Xb, Pb = poses[source] if source else (_IDENT, zero)
     P = np.zeros((2 * DOF, 2 * DOF))
     P[:DOF, :DOF], P[DOF:, DOF:] = Pa, Pb
-    return BodyPose(source, at, _frozen(dq.mul(dq.conj(Xa), Xb)),
-                    _frozen(_relative_covariance(Xa, Xb, P)), None)
+    return BodyPose(source, at, read_only(dq.mul(dq.conj(Xa), Xb)),
+                    read_only(relative_covariance(Xa, Xb, P)), None)

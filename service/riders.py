@@ -38,7 +38,7 @@ import numpy as np
 from dqpose import dq, lie
 from dqpose.errors import WorldError, WorldInfeasible, known_from, seconds_text
 from dqpose.frames import frame_pose
-from dqpose.fusion.api import _fuse_joint_rows, _fuse_static_rows, _fuse_world_rows
+from dqpose.fusion.api import fuse_joint_rows, fuse_static_rows, fuse_world_rows
 from dqpose.fusion.results import Dropped, Fused
 from dqpose.limits import ANSWER_ROWS
 
@@ -185,8 +185,8 @@ class Riders:
         kept = c.kept()
         o = self._world._t._checked._replace(table=c.table)
         used = tuple(c.names[k] for k in kept)
-        f = (_fuse_static_rows(c.Z[kept], c.S[kept], used, o) if static else
-             _fuse_world_rows(c.Z[kept], c.S[kept], used, c.times[kept], time, o, nis, joint))
+        f = (fuse_static_rows(c.Z[kept], c.S[kept], used, o) if static else
+             fuse_world_rows(c.Z[kept], c.S[kept], used, c.times[kept], time, o, nis, joint))
         out = np.flatnonzero(~c.keep)
         at = c.at if f.time is None else f.time
         dropped = tuple(Dropped(kept.size + j, c.names[k], float(at - c.taken[k]), 0.0,
@@ -215,9 +215,9 @@ class Riders:
         if not any(n in table and not table[n].exact for n in common):
             return None
         o = t._checked._replace(table=table)
-        starts = [_fuse_world_rows(Z, S, names, times, at, o, False, False)
+        starts = [fuse_world_rows(Z, S, names, times, at, o, False, False)
                   for Z, S, names, times in parts]
-        (Xa, Xb), P = _fuse_joint_rows(parts, starts, at, o)
+        (Xa, Xb), P = fuse_joint_rows(parts, starts, at, o)
         return Xa, Xb, P
 
     def _part(self, rows: np.ndarray, at: float) -> tuple[tuple, dict]:

@@ -42,10 +42,10 @@ from typing import NamedTuple, Optional
 import numpy as np
 
 from dqpose import dq, lie
-from dqpose.fusion.extrinsics import _extrinsics
-from dqpose.fusion.motion import _Model, _motion_jacobian
+from dqpose.fusion.extrinsics import uncertain_extrinsics
+from dqpose.fusion.motion import Model, motion_jacobian
 from dqpose.fusion.results import DOF
-from dqpose.fusion.validation import _seconds, _twist_information
+from dqpose.fusion.validation import checked_seconds, twist_information
 
 IDENTITY = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
 
@@ -77,8 +77,8 @@ def relative_at(world, target: str, time: float, source: str, source_time: float
     target, source = body_name(target, "target"), body_name(source, "source")
     fixed = body_name(fixed, "fixed_frame")
     try:
-        _seconds(time, "time")
-        _seconds(source_time, "source_time")
+        checked_seconds(time, "time")
+        checked_seconds(source_time, "source_time")
     except ValueError as e:
         raise WorldError.of(e) from None
     tree = world.tree
@@ -165,18 +165,18 @@ def _fit(world, body: str, at: float) -> _Fit:
         return _constant(body, f.mean, f.covariance)
     # one instant without a twist prior is the static fit: the pose alone
     twist = f.twist is not None
-    Wp = None if twist_cov is None or not twist else _twist_information(twist_cov)[1]
+    Wp = None if twist_cov is None or not twist else twist_information(twist_cov)[1]
     n = keep.size
-    model = _Model(dt[keep], np.zeros(n), -np.ones(n, dtype=np.int64), np.empty(0), np.empty(0),
+    model = Model(dt[keep], np.zeros(n), -np.ones(n, dtype=np.int64), np.empty(0), np.empty(0),
                    twist, Wp)
     V = np.asarray(f.twist) if twist else np.zeros(DOF)
     r = np.asarray(f.residuals)[keep]
-    ext = _extrinsics([names[i] for i in keep], table)
+    ext = uncertain_extrinsics([names[i] for i in keep], table)
     k = 0 if ext is None else len(ext.names)
     # r_i moves by -G_i for the state and by Jr⁻¹(r_i) A_i for an extrinsic's error
     # (dqpose.fusion.motion, dqpose.fusion.extrinsics)
     J = np.zeros((n, DOF, model.dim + DOF * k))
-    J[:, :, :model.dim] = -_motion_jacobian(V, dt[keep], r, model)
+    J[:, :, :model.dim] = -motion_jacobian(V, dt[keep], r, model)
     H = np.zeros((J.shape[2],) * 2)
     priors = []
     for s in range(k):

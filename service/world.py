@@ -43,9 +43,9 @@ from dqpose.fusion import (
 from dqpose.fusion.bounds import TrackerBounds
 from dqpose.fusion.measurements import Rows, rows_of
 from dqpose.fusion.results import DOF
-from dqpose.fusion.sources import _sources
+from dqpose.fusion.sources import source_table
 from dqpose.fusion.tick import WireTicks
-from dqpose.fusion.validation import _finite_shape, _seconds
+from dqpose.fusion.validation import checked_seconds, finite_shape
 from dqpose.lookup import Lookups
 from dqpose.names import name_problem, quoted
 from dqpose.readwrite import ReadWrite
@@ -161,9 +161,9 @@ class World:
             raise WorldError(None, "options",
                              f"expected WorldOptions, got {type(options).__name__}")
         try:
-            window = _seconds(options.window, "window", "positive")
-            buffer = _seconds(options.buffer, "buffer", "positive")
-            _seconds(options.max_delay, "max_delay", "nonnegative")
+            window = checked_seconds(options.window, "window", "positive")
+            buffer = checked_seconds(options.buffer, "buffer", "positive")
+            checked_seconds(options.max_delay, "max_delay", "nonnegative")
         except ValueError as e:
             raise WorldError.of(e, under="options") from None
         if buffer > b.max_buffer:
@@ -192,7 +192,7 @@ class World:
             self.tracker_bounds, max_window=b.max_measurements_per_body,
             max_rows=b.max_measurements or b.max_bodies * b.max_measurements_per_body)
         try:
-            table = _sources(sources)
+            table = source_table(sources)
         except ValueError as e:
             raise WorldError.of(e) from None
         Riders.check(table, arms, options.acceleration_psd)
@@ -274,9 +274,9 @@ class World:
         if len(sources) != n:
             raise WorldError(None, "sources", f"expected {n} names, got {len(sources)}")
         try:
-            times = _finite_shape(times, "times", (n,))
-            poses = _finite_shape(poses, "poses", (n, 8))
-            covs = _finite_shape(covariances, "covariances", (n, DOF, DOF))
+            times = finite_shape(times, "times", (n,))
+            poses = finite_shape(poses, "poses", (n, 8))
+            covs = finite_shape(covariances, "covariances", (n, DOF, DOF))
         except ValueError as e:
             raise WorldError.of(e) from None
         if codes is not None:
@@ -486,7 +486,7 @@ class World:
         if time is None:
             return self._t.newest(body)
         try:
-            return _seconds(time, "time")
+            return checked_seconds(time, "time")
         except ValueError as e:
             raise WorldError.of(e) from None
 

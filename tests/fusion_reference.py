@@ -17,7 +17,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from dqpose import dq, fusion, lie
+from dqpose import dq, lie
+from dqpose.fusion.motion import motion_evaluate, motion_jacobian
+from dqpose.fusion.process_noise import motion_solve
 
 COST_SLACK = 1e-12
 MAX_HALVINGS = 30
@@ -143,7 +145,7 @@ def motion_twist_start(Z, W, model, inlier, start) -> np.ndarray:
     m = model.take(inlier)
 
     def cost(V):
-        _, r, c = fusion._motion_evaluate(start, V, m.prior, Z[inlier], W[inlier], m)
+        _, r, c = motion_evaluate(start, V, m.prior, Z[inlier], W[inlier], m)
         return float(c.sum()) + m.prior_cost(V, m.prior)
     return V0 if cost(V0) < cost(rest) else rest
 
@@ -164,8 +166,9 @@ def determined_without_each(model, inlier) -> np.ndarray:
 
 def motion_fit(Z, S, model, inlier, start, tested, tol=1e-12, max_iter=100) -> MotionFit:
     """The constant-twist fit (``dq_motion_fit``) of the measurements ``inlier`` selects from
-    ``start`` (``model`` a :class:`dqpose.fusion._Model` without ``accel``): the Gauss-Newton
-    loop of :func:`dqpose.fusion._motion_solve` with the measurements' own (block-diagonal)
+    ``start`` (``model`` a :class:`dqpose.fusion.motion.Model` without ``accel``): the
+    Gauss-Newton loop of :func:`dqpose.fusion.process_noise.motion_solve` with the measurements'
+    own (block-diagonal)
     information; then at the estimate the information ``H = Σ G_iᵀ W_i G_i`` of the inliers
     plus the priors' and, where ``tested``, the leave-one-out NIS ``νᵀ (S + K)⁻¹ ν`` with
     ``K = G Hj⁻¹ Gᵀ``, ``Hj`` the priors' and the other inliers' information (summed, so a
@@ -174,11 +177,11 @@ def motion_fit(Z, S, model, inlier, start, tested, tol=1e-12, max_iter=100) -> M
     W = np.linalg.inv(S)
     W = 0.5 * (W + np.swapaxes(W, 1, 2))
     n, dim = Z.shape[0], model.dim
-    X, V, ell, status, iterations = fusion._motion_solve(
+    X, V, ell, status, iterations = motion_solve(
         Z[inlier], model.take(inlier), start, motion_twist_start(Z, W, model, inlier, start),
         model.prior.copy(), tol, max_iter, W[inlier])
-    dt, r, cost = fusion._motion_evaluate(X, V, ell, Z, W, model)
-    G = fusion._motion_jacobian(V, dt, r, model)
+    dt, r, cost = motion_evaluate(X, V, ell, Z, W, model)
+    G = motion_jacobian(V, dt, r, model)
     Hp, _ = model.prior_terms(V, ell)
     own = np.einsum("nji,njk,nkl->nil", G, W, G) * inlier[:, None, None]
     H = own.sum(axis=0) + Hp
@@ -200,7 +203,7 @@ def motion_fit(Z, S, model, inlier, start, tested, tol=1e-12, max_iter=100) -> M
 
 
 class Prepared(NamedTuple):
-    """A :class:`~dqpose.fusion.extrinsics._Part` with what every iteration uses: the
+    """A :class:`~dqpose.fusion.extrinsics.Part` with what every iteration uses: the
     measurements' information and, for those with an uncertain extrinsic,
     ``A_i = Ad(W_i⁻¹ E_s)`` (a constant of the data)."""
     Z: np.ndarray
@@ -271,7 +274,7 @@ def joint_state(parts, ext, lay, X, V, L, Ehat):
     for k, p in enumerate(parts):
         r, dt = rs[k], dts[k]
         G = np.zeros((len(r), 6, total))
-        G[:, :, lay.columns(k, p.model)] = fusion._motion_jacobian(V[k], dt, r, p.model)
+        G[:, :, lay.columns(k, p.model)] = motion_jacobian(V[k], dt, r, p.model)
         has = p.slot >= 0
         if has.any():
             Ge = -lie.se3_right_jacobian_inv(r[has]) @ p.A

@@ -12,9 +12,6 @@ import pathlib
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 FOLDERS = {"service": ("dqpose",), "drivers": ("dqpose", "drivers")}
 EXEMPT = {"_dqcore", "_proto"}
-# Private names of the fusion engine still imported by its neighbours: they get public names once
-# its tracker's entry points are one (issue 40 item 3); empty this then.
-PENDING = ("dqpose.fusion.",)
 
 
 def sources(root: pathlib.Path = ROOT) -> dict[str, pathlib.Path]:
@@ -114,8 +111,7 @@ def _private_imports_by_file(modules) -> dict[str, list[str]]:
     for path in modules.values():
         rel = path.relative_to(ROOT).as_posix()
         hits = [f"{line}: from {mod} import {name}"
-                for line, mod, name in private_imports(ast.parse(path.read_text()))
-                if not f"{mod}.".startswith(PENDING)]
+                for line, mod, name in private_imports(ast.parse(path.read_text()))]
         if hits:
             out[rel] = hits
     return out

@@ -9,8 +9,8 @@ import pytest
 
 from dqpose import dq, fusion, handeye, lie
 from dqpose.fusion import Measurement, Source
-from dqpose.fusion.alignment import _Start
-from dqpose.fusion.extrinsics import _relative_covariance
+from dqpose.fusion.alignment import Start
+from dqpose.fusion.extrinsics import relative_covariance
 from dqpose.lookup import composed_independent
 from dqpose.world import (
     NotFound,
@@ -576,7 +576,7 @@ def test_a_lookup_between_moving_bodies_starts_them_where_their_own_joint_fits_s
     (Xa, Xb), P = world._t.joint(rows, [own["a"], own["b"]], at)
     T = dq.mul(dq.conj(Xa), Xb)
     assert np.abs(dq.mul(dq.conj(r.pose), T) - [1, 0, 0, 0, 0, 0, 0, 0]).max() < 1e-12
-    C = _relative_covariance(Xa, Xb, P)
+    C = relative_covariance(Xa, Xb, P)
     assert np.abs(r.covariance - C).max() <= 1e-11 * np.abs(C).max()
 
 
@@ -589,7 +589,7 @@ def test_a_joint_fit_from_a_bodys_lean_start_is_the_one_from_its_full_fit_bit_fo
     rows = [world._rows_for(b, at) for b in "ab"]
     lean = [world._t.estimate(None, at, rows=r, fit="start") for r in rows]
     full = [world._t.estimate(None, at, rows=r, nis=False, joint=False) for r in rows]
-    assert all(isinstance(s, _Start) for s in lean)
+    assert all(isinstance(s, Start) for s in lean)
     (Xa, Xb), P = world._t.joint(rows, lean, at)
     (Ya, Yb), Q = world._t.joint(rows, full, at)
     assert (Xa.tobytes(), Xb.tobytes(), P.tobytes()) == (Ya.tobytes(), Yb.tobytes(), Q.tobytes())

@@ -1,6 +1,6 @@
 /*
  * py_store.c — _dqcore.StoreIndex, the Python type of store.h's per-body index, which
- * service/fusion/store.py's _Store keeps beside its columns: rows pushed as they are appended,
+ * service/fusion/store.py's Store keeps beside its columns: rows pushed as they are appended,
  * a body's rows taken since a time, the rows a compaction keeps.
  */
 #include "py_args.h"

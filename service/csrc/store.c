@@ -243,7 +243,7 @@ static int append(dq_store_cols *c, const dq_store_rows *in, size_t k)
     memcpy(c->covs + 36 * n, in->covs + 36 * k, 36 * sizeof(double));
     if (in->wposes) {
         memcpy(c->wposes + 8 * n, in->wposes + 8 * k, 8 * sizeof(double));
-    } else {        /* _in_world's dq.normalize, then _to_world's */
+    } else {        /* _in_world's dq.normalize, then to_world's */
         double once[8];
         if (dq_normalize(in->poses + 8 * k, once) != DQ_OK
             || dq_normalize(once, c->wposes + 8 * n) != DQ_OK)

@@ -1,5 +1,5 @@
 /*
- * store.h — the per-body index of a live stream's store (service/fusion/store.py's _Store keeps
+ * store.h — the per-body index of a live stream's store (service/fusion/store.py's Store keeps
  * the rows' columns; this finds them): each body's rows in arrival order with the running
  * maximum of their taken times, so the rows taken from a time on are found from the first entry
  * whose running maximum reaches it (a window's rows and those that came late, not the body's
@@ -36,7 +36,7 @@ typedef struct {
     int64_t calls;
 } dq_store_index;
 
-/* A store's columns (service/fusion/store.py's _Store): n rows of capacity, row r's id, body and
+/* A store's columns (service/fusion/store.py's Store): n rows of capacity, row r's id, body and
  * source codes, stamp, taken, pose (8), covariance (36), world pose (8), world covariance (36;
  * NULL: the store keeps none). */
 typedef struct {
@@ -48,7 +48,7 @@ typedef struct {
 /* A request's rows offered to dq_store_ingest: n rows (body and source codes, ids, stamps,
  * poses, covariances, checked by fuse's rules), ok[k] whether row k is still offered (refused
  * rows are 0; out: taken in), wposes/wcovs the rows in the world frame (NULL: the poses made unit
- * twice and the covariances as they are, what _to_world makes of rows of a source without
+ * twice and the covariances as they are, what to_world makes of rows of a source without
  * frames), taken[] (n, out) stamp less the source's latency. */
 typedef struct {
     size_t n;

@@ -23,7 +23,7 @@ static void *carve(char **at, size_t bytes)
     return p;
 }
 
-/* The set-up (alignment._setup and _span): per row its latency, when it was taken, its slot
+/* The set-up (alignment.time_setup and _span): per row its latency, when it was taken, its slot
  * among the estimated latencies (sources in order of first appearance); the fusion time; the
  * rows kept (max_skew), their span and the extrapolation. */
 typedef struct {
@@ -53,7 +53,7 @@ static int setup(const dq_tick_options *o, const dq_tick_input *in, tick_setup *
         if (u->local[c] < 0) {
             u->local[c] = (int)u->n_sources;
             u->order[u->n_sources++] = c;
-            if (!o->exact[c]) u->ext[u->n_ext++] = c; /* extrinsics._extrinsics' order */
+            if (!o->exact[c]) u->ext[u->n_ext++] = c; /* extrinsics.uncertain_extrinsics' order */
         }
         long long e = -1;
         for (size_t j = 0; j < u->n_ext; j++)
@@ -109,7 +109,7 @@ static int setup(const dq_tick_options *o, const dq_tick_input *in, tick_setup *
     return 0;
 }
 
-/* consistency._source_stats of the non-robust fit: every kept row (keep NULL: every row) an
+/* consistency.source_stats of the non-robust fit: every kept row (keep NULL: every row) an
  * inlier, the dropped ones neither tested nor rejected. */
 static void source_stats(const dq_tick_options *o, const dq_tick_input *in, const tick_setup *u,
                          const unsigned char *keep, const double *nis,
@@ -163,9 +163,9 @@ typedef struct {
     double *joint; /* the joint fit's memory (the caller frees it), or NULL */
 } tick_fit;
 
-/* With uncertain extrinsics (extrinsics._motion_fit_ext): the joint fit of the one body (its
- * model: the motion model, or static._fit's _static_model) and the extrinsics' errors
- * (extrinsics._joint_fit of one part, as _dqcore.joint_fit runs it, NIS included) of the rows
+/* With uncertain extrinsics (extrinsics.motion_fit_ext): the joint fit of the one body (its
+ * model: the motion model, or static._fit's static_model) and the extrinsics' errors
+ * (extrinsics.joint_fit of one part, as _dqcore.joint_fit runs it, NIS included) of the rows
  * inlier selects, from the fit f, which it replaces (mean, twist, latencies, chi2, status,
  * iterations; t: P, the residuals and the NIS). */
 static int fit_joint(const dq_tick_options *o, const tick_setup *u, const dq_motion_model *mm,
@@ -211,7 +211,7 @@ static int fit_joint(const dq_tick_options *o, const tick_setup *u, const dq_mot
     return DQ_OK;
 }
 
-/* The constant-twist fit (_motion_fit -> _constant_twist_fit, NIS included) into w. */
+/* The constant-twist fit (_motion_fit -> constant_twist_fit, NIS included) into w. */
 static int fit_motion(const dq_tick_options *o, const tick_setup *u, const double *z,
                       const double *s, size_t n, char **at, tick_fit *t, dq_fused_pose *w,
                       double *mean, double *twist)
@@ -286,7 +286,7 @@ static int fit_static(const dq_tick_options *o, const tick_setup *u, const doubl
     w->chi2 = f.chi2;
     w->iterations = (uint32_t)f.iterations;
     w->status = (uint32_t)f.status + 1;
-    if (u->n_ext) { /* static._fit with ext: the joint fit of _static_model from the C fit */
+    if (u->n_ext) { /* static._fit with ext: the joint fit of static_model from the C fit */
         double *zeros = carve(at, sizeof(double) * n), *dt = carve(at, sizeof(double) * n);
         double *cost = carve(at, sizeof(double) * n);
         long long *none = carve(at, sizeof(long long) * n);

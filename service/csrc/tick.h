@@ -1,11 +1,11 @@
 /*
  * tick.h — one tick's answer in one call: a body's rows (the store's columns and the picked row
  * numbers) to the FusedPose bytes of its fit over time (service/fusion/alignment.py's
- * _fuse_in_time, not robust, the constant twist, every extrinsic exact), the same operations in
- * the same order, so the same bits: the set-up (_setup, _span), the fit (dq_motion_run, as
+ * fuse_in_time, not robust, the constant twist, every extrinsic exact), the same operations in
+ * the same order, so the same bits: the set-up (time_setup, _span), the fit (dq_motion_run, as
  * _dqcore.motion_fit runs it; one instant at the fusion time: dq_fuse, as _dqcore.fuse runs
  * it; uncertain extrinsics: dq_joint_fit of one part from that fit, as _dqcore.joint_fit runs
- * it), the result (_result or the static fit's, consistency._source_stats) and the message
+ * it), the result (_result or the static fit's, consistency.source_stats) and the message
  * (fused_wire.h, as wire.fused_pose_bytes writes it). What it does not port (robust and
  * correlated fits are not asked for; any error: the texts are Python's) is DQ_TICK_PYTHON: the
  * caller runs the Python path for that tick.

@@ -55,18 +55,6 @@ from dqpose.fusion.results import (
 from dqpose.fusion.sources import Source
 from dqpose.fusion.tracker import Measurement, Rows, Tracker, Window
 
-# isort: split
-# Private names other modules and the tests use (the rpc layer's wire decoder, hand-eye's
-# checks, the NumPy reference and the benchmarks).
-from dqpose.fusion.motion import (  # noqa: F401
-    _determined_without_each,
-    _Model,
-    _motion_evaluate,
-    _motion_jacobian,
-    _motion_start,
-)
-from dqpose.fusion.process_noise import _kernel, _motion_solve  # noqa: F401
-
 __all__ = ["DOF", "DEFAULT_PROBABILITY", "DEFAULT_MAX_EXTRAPOLATION", "Status", "Verdict", "Source",
            "Rejection", "SourceStats", "Fused", "fuse", "chi2_quantile", "Dropped", "Latency",
            "Measurement", "Rows", "Window", "Tracker"]

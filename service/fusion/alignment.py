@@ -15,27 +15,27 @@ from typing import NamedTuple, Optional
 import numpy as np
 
 from dqpose import dq, lie
-from dqpose.fusion.consistency import _codes, _source_stats
-from dqpose.fusion.extrinsics import _extrinsics, _motion_fit_ext
+from dqpose.fusion.consistency import codes, source_stats
+from dqpose.fusion.extrinsics import motion_fit_ext, uncertain_extrinsics
 from dqpose.fusion.motion import (
-    _constant_twist_fit,
-    _constant_twist_pose,
-    _determined_without_each,
-    _Model,
-    _MotionFit,
+    Model,
+    MotionFit,
+    constant_twist_fit,
+    constant_twist_pose,
+    determined_without_each,
 )
-from dqpose.fusion.process_noise import _correlated_fit, _correlated_nis, _marginal_information
-from dqpose.fusion.results import DOF, Dropped, Fused, Latency, _frozen
-from dqpose.fusion.robust import _consensus, _gate, _rejections
-from dqpose.fusion.static import _fuse_static
-from dqpose.fusion.validation import _acceleration, _seconds, _twist_information
+from dqpose.fusion.process_noise import correlated_fit, correlated_nis, marginal_information
+from dqpose.fusion.results import DOF, Dropped, Fused, Latency, read_only
+from dqpose.fusion.robust import consensus, nis_gate, rejections
+from dqpose.fusion.static import fuse_static
+from dqpose.fusion.validation import checked_acceleration, checked_seconds, twist_information
 
 #: seconds a fused pose's time may lie past its newest measurement (extrapolated on the twist)
 DEFAULT_MAX_EXTRAPOLATION = 0.1
 
 
-def _motion_fit(Z, S, model: _Model, inlier: np.ndarray, tol: float, max_iter: int,
-                nis: bool = True, joint: bool = True) -> _MotionFit:
+def _motion_fit(Z, S, model: Model, inlier: np.ndarray, tol: float, max_iter: int,
+                nis: bool = True, joint: bool = True) -> MotionFit:
     """Fit of the measurements ``inlier`` selects, evaluated at every measurement. The constant
     twist is fitted in C, covariance and (``nis``) leave-one-out NIS included; the correlated
     model in NumPy from the constant-twist fit (its NIS: :func:`_motion_nis`). Without ``nis``
@@ -45,37 +45,37 @@ def _motion_fit(Z, S, model: _Model, inlier: np.ndarray, tol: float, max_iter: i
     if model.extrinsics is not None and joint:
         # the joint fit with the uncertain extrinsics, from the C fit without them (whose NIS
         # nothing uses)
-        first = _constant_twist_fit(Z, S, model, inlier, tol, max_iter, False)
-        return _motion_fit_ext(Z, S, model, model.extrinsics, inlier, first.mean, first.V,
+        first = constant_twist_fit(Z, S, model, inlier, tol, max_iter, False)
+        return motion_fit_ext(Z, S, model, model.extrinsics, inlier, first.mean, first.V,
                                first.ell, tol, max_iter, nis)
     if model.accel is None:
-        return _constant_twist_fit(Z, S, model, inlier, tol, max_iter, nis)
-    return _correlated_fit(Z, S, model, inlier, tol, max_iter)
+        return constant_twist_fit(Z, S, model, inlier, tol, max_iter, nis)
+    return correlated_fit(Z, S, model, inlier, tol, max_iter)
 
 
-def _motion_nis(fit: _MotionFit, S, inlier: np.ndarray, model: _Model):
+def _motion_nis(fit: MotionFit, S, inlier: np.ndarray, model: Model):
     """Each measurement's leave-one-out NIS against the fit of the other inliers
-    (:func:`_correlated_nis` for the joint state; the constant-twist fit computed them with the
+    (:func:`correlated_nis` for the joint state; the constant-twist fit computed them with the
     fit)."""
     if fit.nis is not None:
         return fit.nis, fit.tested
-    return _correlated_nis(fit, S, inlier, model)
+    return correlated_nis(fit, S, inlier, model)
 
 
-def _robust_motion(Z, S, model: _Model, allowed: np.ndarray, gate2, tol, max_iter):
+def _robust_motion(Z, S, model: Model, allowed: np.ndarray, gate2, tol, max_iter):
     """:func:`_robust` over time: the consensus start compares the measurements brought to the
     fusion time with the twist of a first fit of all of them (an outlier biases that twist; the
     gate that follows judges every measurement against the fit of the others)."""
     first = _motion_fit(Z, S, model, allowed, tol, max_iter, False)   # its dt and twist
     back = lie.se3_exp(-first.dt[:, None] * first.V)
-    Wm = _marginal_information(S, first.dt, model.accel)
+    Wm = marginal_information(S, first.dt, model.accel)
     Sm = S if Wm is None else np.linalg.inv(Wm)
     Zt, St = dq.normalize(dq.mul(Z, back)), lie.cov_compose(Sm, back, None)
     inlier = np.zeros_like(allowed)
-    inlier[allowed] = _consensus(Zt[allowed], St[allowed], gate2)
-    if not _determined_without_each(model, inlier)[~inlier].all():
+    inlier[allowed] = consensus(Zt[allowed], St[allowed], gate2)
+    if not determined_without_each(model, inlier)[~inlier].all():
         inlier = allowed.copy()  # the consensus is of one instant: the twist needs more
-    return _gate(inlier, allowed, lambda m: _motion_fit(Z, S, model, m, tol, max_iter),
+    return nis_gate(inlier, allowed, lambda m: _motion_fit(Z, S, model, m, tol, max_iter),
                  lambda fit, m: _motion_nis(fit, S, m, model), gate2)
 
 
@@ -95,7 +95,7 @@ def _span(taken: np.ndarray, time: float, max_skew, max_extrapolation) -> _Span:
     if max_skew is None:
         drop, keep, kept = None, None, taken
     else:
-        max_skew = _seconds(max_skew, "max_skew", "nonnegative")
+        max_skew = checked_seconds(max_skew, "max_skew", "nonnegative")
         drop = np.abs(time - taken) > max_skew
         keep = ~drop
         if not keep.any():
@@ -106,7 +106,7 @@ def _span(taken: np.ndarray, time: float, max_skew, max_extrapolation) -> _Span:
     lo, hi = float(kept.min()), float(kept.max())
     extrapolation = max(0.0, time - hi, lo - time)
     if max_extrapolation is not None:
-        max_extrapolation = _seconds(max_extrapolation, "max_extrapolation", "nonnegative")
+        max_extrapolation = checked_seconds(max_extrapolation, "max_extrapolation", "nonnegative")
         if extrapolation > max_extrapolation:
             raise ValueError(f"time: {time!r} is {extrapolation:.6g} s outside the span "
                              f"[{lo!r}, {hi!r}] of the measurements, beyond max_extrapolation "
@@ -126,7 +126,7 @@ class _Setup(NamedTuple):
     estimated: list
     twist_prior: Optional[np.ndarray]
     Wp: Optional[np.ndarray]
-    model: _Model
+    model: Model
 
     @property
     def one_instant(self) -> bool:
@@ -139,18 +139,18 @@ class _Setup(NamedTuple):
         return np.ones(n, dtype=bool) if self.span.keep is None else self.span.keep
 
 
-def _setup(Z, names, table, times, time, max_skew, max_extrapolation, twist_covariance,
+def time_setup(Z, names, table, times, time, max_skew, max_extrapolation, twist_covariance,
            acceleration_psd) -> _Setup:
-    """The fusion time, the measurements' span and the motion model of :func:`_fuse_in_time`."""
+    """The fusion time, the measurements' span and the motion model of :func:`fuse_in_time`."""
     stamps = times
-    sources, code = _codes(names)
+    sources, code = codes(names)
     latency = np.array([table[s].latency if s in table else 0.0 for s in sources])[code]
     taken = stamps - latency
-    time = float(taken.max()) if time is None else _seconds(time, "time")
-    twist_prior, Wp = (None, None) if twist_covariance is None else _twist_information(
+    time = float(taken.max()) if time is None else checked_seconds(time, "time")
+    twist_prior, Wp = (None, None) if twist_covariance is None else twist_information(
         twist_covariance)
-    accel = _acceleration(acceleration_psd)
-    ext = _extrinsics(names, table)
+    accel = checked_acceleration(acceleration_psd)
+    ext = uncertain_extrinsics(names, table)
     if ext is not None and accel is not None:
         raise ValueError(f"acceleration_psd: not supported with a source's extrinsic_covariance "
                          f"(source {ext.names[0]!r})")
@@ -163,7 +163,7 @@ def _setup(Z, names, table, times, time, max_skew, max_extrapolation, twist_cova
                          f"to {time!r} needs the body's twist, which one instant does not show "
                          f"(give twist_covariance)")
     slot = np.array([estimated.index(s) if s in estimated else -1 for s in sources])[code]
-    model = _Model(
+    model = Model(
         stamp=stamps - time, latency=latency, slot=slot,
         prior=np.array([table[s].latency for s in estimated], dtype=np.float64),
         prior_w=np.array([table[s].latency_sigma ** -2 for s in estimated], dtype=np.float64),
@@ -171,7 +171,7 @@ def _setup(Z, names, table, times, time, max_skew, max_extrapolation, twist_cova
     return _Setup(time, taken, span, sources, code, estimated, twist_prior, Wp, model)
 
 
-def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
+def fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
                   twist_covariance, acceleration_psd, robust, probability, gate2, tol,
                   max_iter, nis: bool = True, joint: bool = True) -> Fused:
     """:func:`dqpose.fusion.fuse` with times, after its checks: the fusion time and the
@@ -182,23 +182,23 @@ def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
     robust, whose gate needs the whole fit) a fit over time with uncertain extrinsics is the
     constant-twist fit it would start from: where a joint fit of several bodies starts (its
     pose, twist, latencies and inliers; its covariance leaves the extrinsics' errors out)."""
-    u = _setup(Z, names, table, times, time, max_skew, max_extrapolation, twist_covariance,
+    u = time_setup(Z, names, table, times, time, max_skew, max_extrapolation, twist_covariance,
                acceleration_psd)
     time, model, Wp, estimated = u.time, u.model, u.Wp, u.estimated
-    # Which fit runs is decided here; for a Lookup's pose alone _pose_in_time (the constant-twist
-    # fit) and _pose_over_time (any fit over time that is not robust) restate it, and
+    # Which fit runs is decided here; for a Lookup's pose alone pose_in_time (the constant-twist
+    # fit) and pose_over_time (any fit over time that is not robust) restate it, and
     # tests/test_world.py holds them to the same bits.
     if u.one_instant:
         # All taken at the fusion time: nothing moves, the answer is the static fit itself (its
         # C core), bit for bit; the twist keeps its prior, each latency its prior (one instant
         # shows neither).
-        f = _fuse_static(Z, S, names, robust, probability, gate2, tol, max_iter,
+        f = fuse_static(Z, S, names, robust, probability, gate2, tol, max_iter,
                          model.extrinsics)
         return replace(
             f, time=time, extrapolation=0.0,
-            twist=None if Wp is None else _frozen(np.zeros(DOF)),
+            twist=None if Wp is None else read_only(np.zeros(DOF)),
             twist_covariance=None if Wp is None or u.twist_prior is None
-            else _frozen(u.twist_prior),
+            else read_only(u.twist_prior),
             latencies=tuple(Latency(s, table[s].latency, table[s].latency_sigma,
                                     table[s].latency, table[s].latency_sigma)
                             for s in estimated))
@@ -214,59 +214,59 @@ def _fuse_in_time(Z, S, names, table, times, time, max_skew, max_extrapolation,
                    u.taken, gate2, probability)
 
 
-_NO_PRIORS = _frozen(np.empty(0))     # shared by every Lookup's model: read-only
+_NO_PRIORS = read_only(np.empty(0))     # shared by every Lookup's model: read-only
 
 
-def _pose_in_time(Z, S, latency: np.ndarray, stamps: np.ndarray, taken: np.ndarray,
+def pose_in_time(Z, S, latency: np.ndarray, stamps: np.ndarray, taken: np.ndarray,
                   time: float, o) -> Optional[tuple[np.ndarray, np.ndarray]]:
-    """The pose and covariance of :func:`_fuse_in_time` (``nis`` False) alone, bit for bit, for
+    """The pose and covariance of :func:`fuse_in_time` (``nis`` False) alone, bit for bit, for
     measurements whose sources' extrinsics and latencies are exact (``latency`` each
     measurement's, ``taken`` = ``stamps - latency``), when its fit is the constant-twist fit:
     not robust, no ``acceleration_psd`` or ``max_skew``, more than one instant. None when
     another fit applies.
     A Lookup of a body needs no more, and the rest of the answer (the sources' names and
     verdicts, the residuals as read-only arrays) cost it a third of its time. ``o``:
-    :class:`dqpose.fusion.api._Checked`."""
+    :class:`dqpose.fusion.api.Checked`."""
     if o.robust or o.acceleration_psd is not None or o.max_skew is not None:
         return None
     span = _span(taken, time, None, o.max_extrapolation)
     if span.lo == span.hi:
         return None
-    Wp = None if o.twist_covariance is None else _twist_information(o.twist_covariance)[1]
-    model = _Model(stamps - time, latency, _no_slots(Z.shape[0]), _NO_PRIORS, _NO_PRIORS, True,
+    Wp = None if o.twist_covariance is None else twist_information(o.twist_covariance)[1]
+    model = Model(stamps - time, latency, _no_slots(Z.shape[0]), _NO_PRIORS, _NO_PRIORS, True,
                    Wp)
     # every measurement an inlier: None tells the C fit so without a mask
-    mean, P = _constant_twist_pose(Z, S, model, None, o.tol, o.max_iter)
-    return _frozen(mean), _frozen(P[:6, :6])
+    mean, P = constant_twist_pose(Z, S, model, None, o.tol, o.max_iter)
+    return read_only(mean), read_only(P[:6, :6])
 
 
-def _pose_over_time(Z, S, names, times, time: float, o) -> Optional[tuple[np.ndarray,
+def pose_over_time(Z, S, names, times, time: float, o) -> Optional[tuple[np.ndarray,
                                                                            np.ndarray]]:
-    """The pose and covariance of :func:`_fuse_in_time` (``nis`` False) alone, bit for bit, for
+    """The pose and covariance of :func:`fuse_in_time` (``nis`` False) alone, bit for bit, for
     any fit over time that is not robust (a source's uncertain extrinsic or estimated latency
-    included, where :func:`_pose_in_time` does not apply): the same set-up and fit, without the
+    included, where :func:`pose_in_time` does not apply): the same set-up and fit, without the
     answer's other fields (the rejections, the sources' verdicts, the latencies). None when the
-    fit is robust or of one instant. ``o``: :class:`dqpose.fusion.api._Checked`."""
+    fit is robust or of one instant. ``o``: :class:`dqpose.fusion.api.Checked`."""
     u = _plain_setup(Z, names, times, time, o)
     if u is None:
         return None
     fit = _motion_fit(Z, S, u.model, u.allowed, o.tol, o.max_iter, False)
-    return _frozen(fit.mean), _frozen(fit.P[:6, :6])
+    return read_only(fit.mean), read_only(fit.P[:6, :6])
 
 
 def _plain_setup(Z, names, times, time: float, o) -> Optional[_Setup]:
-    """:func:`_fuse_in_time`'s set-up when its fit is a fit over time that is not robust (the
+    """:func:`fuse_in_time`'s set-up when its fit is a fit over time that is not robust (the
     one fit over the allowed measurements), else None."""
     if o.robust:
         return None
-    u = _setup(Z, names, o.table, times, time, o.max_skew, o.max_extrapolation,
+    u = time_setup(Z, names, o.table, times, time, o.max_skew, o.max_extrapolation,
                o.twist_covariance, o.acceleration_psd)
     return None if u.one_instant else u
 
 
-class _Start(NamedTuple):
-    """Where a body starts in a joint fit of several bodies: its set-up (:func:`_setup`), and its
-    own fit's pose, twist, latencies and inliers (a mask)."""
+class Start(NamedTuple):
+    """Where a body starts in a joint fit of several bodies: its set-up (:func:`time_setup`), and
+    its own fit's pose, twist, latencies and inliers (a mask)."""
     setup: _Setup
     mean: np.ndarray
     V: np.ndarray
@@ -274,7 +274,7 @@ class _Start(NamedTuple):
     inlier: np.ndarray
 
     @classmethod
-    def of(cls, f: Fused, u: _Setup) -> "_Start":
+    def of(cls, f: Fused, u: _Setup) -> "Start":
         """The start a fit ``f`` (a :class:`~dqpose.fusion.Fused`) of the set-up ``u`` gives."""
         inlier = np.zeros(u.taken.shape[0], dtype=bool)
         inlier[f.inliers] = True
@@ -283,25 +283,25 @@ class _Start(NamedTuple):
                    inlier)
 
 
-def _joint_start(Z, S, names, times, time: float, o) -> Optional[_Start]:
-    """The start of :class:`_Start`.of(:func:`_fuse_in_time` (``nis`` and ``joint`` False)),
+def joint_start(Z, S, names, times, time: float, o) -> Optional[Start]:
+    """The start of :class:`Start`.of(:func:`fuse_in_time` (``nis`` and ``joint`` False)),
     bit for bit, for a fit over time that is not robust, without that answer's other fields;
-    None when the fit is robust or of one instant. ``o``: :class:`dqpose.fusion.api._Checked`."""
+    None when the fit is robust or of one instant. ``o``: :class:`dqpose.fusion.api.Checked`."""
     u = _plain_setup(Z, names, times, time, o)
     if u is None:
         return None
     fit = _motion_fit(Z, S, u.model, u.allowed, o.tol, o.max_iter, False, False)
-    return _Start(u, fit.mean, np.array(fit.V), np.array(fit.ell, dtype=np.float64),
+    return Start(u, fit.mean, np.array(fit.V), np.array(fit.ell, dtype=np.float64),
                   u.allowed.copy())
 
 
 @functools.lru_cache(maxsize=256)
 def _no_slots(n: int) -> np.ndarray:
     """n measurements' slots among the estimated latencies when none is (-1 each), read-only."""
-    return _frozen(np.full(n, -1))
+    return read_only(np.full(n, -1))
 
 
-def _result(gated, span: _Span, model: _Model, names, sources, code, table, estimated,
+def _result(gated, span: _Span, model: Model, names, sources, code, table, estimated,
             time: float, taken: np.ndarray, gate2: float, probability: float) -> Fused:
     """The fit over time as a :class:`~dqpose.fusion.Fused`: ``gated`` is the gate's ``(fit,
     nis, tested, inlier, status)``; the pose's, twist's and latencies' blocks of the joint
@@ -309,7 +309,7 @@ def _result(gated, span: _Span, model: _Model, names, sources, code, table, esti
     fit, nis, tested, inlier, gate_status = gated
     drop, keep, twist = span.drop, span.keep, model.twist
     out = ~inlier if keep is None else ~inlier & keep
-    rejected = _rejections(names, nis, out, gate2, probability)
+    rejected = rejections(names, nis, out, gate2, probability)
     dropped: tuple = ()
     if drop is not None:
         assert span.max_skew is not None    # measurements are dropped by the skew bound only
@@ -325,25 +325,25 @@ def _result(gated, span: _Span, model: _Model, names, sources, code, table, esti
     # unconstrained 6 reduce the degrees of freedom beyond the pose's.
     dof = DOF * (inliers.size - 1) - (DOF if twist and model.twist_w is None else 0)
     # a dropped measurement is neither tested nor counted as rejected by the gate
-    stats = _source_stats(sources, code, nis, tested if keep is None else tested & keep,
+    stats = source_stats(sources, code, nis, tested if keep is None else tested & keep,
                           inlier if drop is None else inlier | drop, probability)
     return Fused(
         status=gate_status if gate_status is not None else fit.status,
-        mean=_frozen(fit.mean),
-        covariance=_frozen(P[:6, :6]),
-        residuals=_frozen(fit.r),
-        distances=_frozen(np.sqrt(fit.cost)),
-        nis=_frozen(nis),
-        tested=_frozen(tested),
-        inliers=_frozen(inliers),
+        mean=read_only(fit.mean),
+        covariance=read_only(P[:6, :6]),
+        residuals=read_only(fit.r),
+        distances=read_only(np.sqrt(fit.cost)),
+        nis=read_only(nis),
+        tested=read_only(tested),
+        inliers=read_only(inliers),
         rejected=rejected,
         chi2=fit.chi2,
         dof=dof,
         iterations=fit.iterations,
         sources=stats,
         time=time,
-        twist=_frozen(fit.V) if twist else None,
-        twist_covariance=_frozen(P[6:12, 6:12]) if twist else None,
+        twist=read_only(fit.V) if twist else None,
+        twist_covariance=read_only(P[6:12, 6:12]) if twist else None,
         extrapolation=float(span.extrapolation),
         dropped=dropped,
         latencies=latencies,

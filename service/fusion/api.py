@@ -13,16 +13,16 @@ import numpy as np
 from dqpose import dq
 from dqpose.fusion.alignment import (
     DEFAULT_MAX_EXTRAPOLATION,
-    _fuse_in_time,
-    _setup,
-    _Start,
+    Start,
+    fuse_in_time,
+    time_setup,
 )
 from dqpose.fusion.chi2 import DEFAULT_PROBABILITY, chi2_quantile
-from dqpose.fusion.extrinsics import _extrinsics, _joint_fit, _no_extrinsics, _Part
+from dqpose.fusion.extrinsics import Part, joint_fit, no_extrinsics, uncertain_extrinsics
 from dqpose.fusion.results import DOF, Fused
-from dqpose.fusion.sources import Source, _sources, _to_world
-from dqpose.fusion.static import _fuse_static
-from dqpose.fusion.validation import _covariances, _names, _poses, finite
+from dqpose.fusion.sources import Source, source_table, to_world
+from dqpose.fusion.static import fuse_static
+from dqpose.fusion.validation import checked_covariances, checked_names, checked_poses, finite
 
 
 def fuse(poses, covariances=None, *, weights=None, names: Optional[Sequence[str]] = None,
@@ -55,11 +55,11 @@ def fuse(poses, covariances=None, *, weights=None, names: Optional[Sequence[str]
     bit); then the twist keeps its prior and each estimated latency its prior, as one instant
     shows neither. Without ``times`` none of this applies and latencies are ignored.
     """
-    Z = _poses(poses)
+    Z = checked_poses(poses)
     n = Z.shape[0]
-    S = _covariances(covariances, weights, n)
-    names = _names(names, n)
-    table = _sources(sources)
+    S = checked_covariances(covariances, weights, n)
+    names = checked_names(names, n)
+    table = source_table(sources)
     for k, src in enumerate(table.values()):
         if src.parent:      # the parent's pose at each measurement's time is a world's fit
             raise ValueError(f"sources[{k}].parent: only a world resolves a parent")
@@ -71,10 +71,10 @@ def fuse(poses, covariances=None, *, weights=None, names: Optional[Sequence[str]
         raise ValueError(f"probability: must be within (0, 1), got {probability!r}")
     tol = dq._as_tol(tol)
     max_iter = dq._as_iter(max_iter)
-    Z, S = _to_world(Z, S, names, table)
+    Z, S = to_world(Z, S, names, table)
     gate2 = chi2_quantile(probability, DOF)
     if times is not None:
-        return _fuse_in_time(Z, S, names, table, finite(times, "times", (), n), time, max_skew,
+        return fuse_in_time(Z, S, names, table, finite(times, "times", (), n), time, max_skew,
                              max_extrapolation, twist_covariance, acceleration_psd, robust,
                              probability, gate2, tol, max_iter)
     for key, value in (("time", time), ("max_skew", max_skew),
@@ -83,11 +83,11 @@ def fuse(poses, covariances=None, *, weights=None, names: Optional[Sequence[str]
         if value is not None:
             raise ValueError(f"{key}: needs the measurements' times (times=...)")
 
-    return _fuse_static(Z, S, names, robust, probability, gate2, tol, max_iter,
-                        _extrinsics(names, table))
+    return fuse_static(Z, S, names, robust, probability, gate2, tol, max_iter,
+                        uncertain_extrinsics(names, table))
 
 
-class _Checked(NamedTuple):
+class Checked(NamedTuple):
     """:func:`fuse`'s options as its checks leave them, for a caller that fuses many times
     with the same options (:class:`Tracker`)."""
     table: dict
@@ -102,57 +102,57 @@ class _Checked(NamedTuple):
     acceleration_psd: Optional[np.ndarray]
 
 
-def _fuse_world_rows(Z, S, names, times, time, o: _Checked, nis: bool = True,
+def fuse_world_rows(Z, S, names, times, time, o: Checked, nis: bool = True,
                      joint: bool = True) -> Fused:
     """:func:`fuse` with times of rows already checked by its rules (finite stamps, unit rigid
     poses, symmetric positive definite covariances symmetrised, names as strings) and brought
-    into the world frame (``_to_world(dq.normalize(Z), S, names, o.table)``, as a
+    into the world frame (``to_world(dq.normalize(Z), S, names, o.table)``, as a
     :class:`~dqpose.fusion.Tracker` keeps them), with checked options: the same result, bit for
     bit, without checking them again (without ``nis``, the leave-one-out NIS left out where the
     answer does not need them; without ``joint``, where a joint fit of several bodies starts:
-    ``_fuse_in_time``)."""
-    return _fuse_in_time(Z, S, names, o.table, times, time, o.max_skew, o.max_extrapolation,
+    ``fuse_in_time``)."""
+    return fuse_in_time(Z, S, names, o.table, times, time, o.max_skew, o.max_extrapolation,
                          o.twist_covariance, o.acceleration_psd, o.robust, o.probability,
                          o.gate2, o.tol, o.max_iter, nis, joint)
 
 
-def _fuse_static_rows(Z, S, names, o: _Checked) -> Fused:
+def fuse_static_rows(Z, S, names, o: Checked) -> Fused:
     """:func:`fuse` without times (one instant: no twist, times ignored) of rows checked and in
-    the world frame as for :func:`_fuse_world_rows`: a body that does not move."""
-    return _fuse_static(Z, S, names, o.robust, o.probability, o.gate2, o.tol, o.max_iter,
-                        _extrinsics(names, o.table))
+    the world frame as for :func:`fuse_world_rows`: a body that does not move."""
+    return fuse_static(Z, S, names, o.robust, o.probability, o.gate2, o.tol, o.max_iter,
+                        uncertain_extrinsics(names, o.table))
 
 
-def _fuse_joint_rows(rows, starts: Sequence, time, o: _Checked):
+def fuse_joint_rows(rows, starts: Sequence, time, o: Checked):
     """Several bodies' rows ``(poses, covariances, names, times)`` (checked and in the world
-    frame as for :func:`_fuse_world_rows`) fitted together, with one error per uncertain
+    frame as for :func:`fuse_world_rows`) fitted together, with one error per uncertain
     extrinsic and one latency per source whose latency is estimated
-    (:func:`dqpose.fusion.extrinsics._joint_fit`), each body started from ``starts``: its own
-    fit (a :class:`Fused`) or a :class:`~dqpose.fusion.alignment._Start`, keeping its inliers:
+    (:func:`dqpose.fusion.extrinsics.joint_fit`), each body started from ``starts``: its own
+    fit (a :class:`Fused`) or a :class:`~dqpose.fusion.alignment.Start`, keeping its inliers:
     the poses and the joint covariance of their right perturbations ``(6k, 6k)``."""
     parts, names_all, begun = [], [], []
     for (Z, S, names, times), st in zip(rows, starts):
         if isinstance(st, Fused):
-            st = _Start.of(st, _setup(Z, names, o.table, times,
+            st = Start.of(st, time_setup(Z, names, o.table, times,
                                       time if time is not None else st.time, o.max_skew,
                                       o.max_extrapolation, o.twist_covariance,
                                       o.acceleration_psd))
         begun.append((Z, S, st))
         names_all.extend(names)
-    ext = _extrinsics(names_all, o.table)
+    ext = uncertain_extrinsics(names_all, o.table)
     latencies = list(dict.fromkeys(s for _, _, st in begun for s in st.setup.estimated))
     if ext is None and not latencies:
         raise ValueError("bodies: no uncertain extrinsic or estimated latency to fit them "
                          "jointly over")
     if ext is None:
-        ext = _no_extrinsics(len(names_all))
+        ext = no_extrinsics(len(names_all))
     start = 0
     for Z, S, st in begun:
         n = Z.shape[0]
         shared = np.array([latencies.index(s) for s in st.setup.estimated], dtype=np.intp)
-        parts.append(_Part(Z, S, st.setup.model, st.inlier, ext.slot[start:start + n], st.mean,
+        parts.append(Part(Z, S, st.setup.model, st.inlier, ext.slot[start:start + n], st.mean,
                            st.V, st.ell, shared))
         start += n
-    fit = _joint_fit(parts, ext, o.tol, o.max_iter)
+    fit = joint_fit(parts, ext, o.tol, o.max_iter)
     idx = np.concatenate([np.arange(off, off + DOF) for off in fit.offsets])
     return fit.X, fit.P[np.ix_(idx, idx)]

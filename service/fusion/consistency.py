@@ -9,11 +9,11 @@ import numpy as np
 from dqpose.fusion.chi2 import chi2_quantile
 from dqpose.fusion.results import DOF, SourceStats, Verdict
 
-#: per probability, the verdict's interval by count (:func:`_verdict_bounds`)
+#: per probability, the verdict's interval by count (:func:`verdict_bounds`)
 _BOUNDS: dict[float, np.ndarray] = {}
 
 
-def _verdict_bounds(probability: float, n: int) -> np.ndarray:
+def verdict_bounds(probability: float, n: int) -> np.ndarray:
     """``(2, c)``, ``c > n``: the mean NIS interval ``[low, high]`` of a consistent source with
     ``count`` tested measurements in column ``count`` (column 0 unused), for ``probability``.
     One table a process (a quantile costs ~1 ms of Python): grown when a window needs more; the
@@ -33,13 +33,13 @@ def _verdict_bounds(probability: float, n: int) -> np.ndarray:
     return grown
 
 
-def _codes(names) -> tuple[tuple[str, ...], np.ndarray]:
+def codes(names) -> tuple[tuple[str, ...], np.ndarray]:
     """Each source once, in order of first appearance, and each measurement's index in that."""
     order = {name: k for k, name in enumerate(dict.fromkeys(names))}
     return tuple(order), np.array([order[s] for s in names], dtype=np.intp)
 
 
-def _source_stats(sources, code, nis, tested, inlier, probability) -> tuple[SourceStats, ...]:
+def source_stats(sources, code, nis, tested, inlier, probability) -> tuple[SourceStats, ...]:
     """Per source (``sources``, measurement i's ``sources[code[i]]``)."""
     out = []
     use = tested & inlier
@@ -56,7 +56,7 @@ def _source_stats(sources, code, nis, tested, inlier, probability) -> tuple[Sour
         counts = np.bincount(code, use, m).astype(np.intp).tolist()
         rejected = np.bincount(code, ~inlier, m).astype(np.intp).tolist()
     sums = np.bincount(code, np.where(use, nis, 0.0), m).tolist()
-    bounds = _verdict_bounds(probability, len(code))
+    bounds = verdict_bounds(probability, len(code))
     for k, name in enumerate(sources):
         count = counts[k]
         if count == 0:

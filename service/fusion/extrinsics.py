@@ -13,7 +13,7 @@ measurement. Gauss–Newton on that joint state (in C, ``dq_joint_fit`` of servi
 tests/fusion_reference.py holds it in NumPy) with exact Jacobians: ``r_i`` moves by
 ``Jr⁻¹(r_i) A_i Δ`` for ``Ê_s Exp(Δ)`` and ``p_s`` by ``Jr⁻¹(p_s) Δ``; the covariance is the inverse
 joint information, so the body's block is the marginal with every ``ε`` integrated out (GLS with
-the shared errors). Several bodies fitted together (:func:`_joint_fit` with several parts) share
+the shared errors). Several bodies fitted together (:func:`joint_fit` with several parts) share
 the ``ε`` of a common source, and one latency per source whose latency is estimated (a camera's
 clock offset is the same whichever body it sees): their joint covariance has the
 cross-covariance both cause.
@@ -31,12 +31,12 @@ import numpy as np
 
 from dqpose import _dqcore as _c
 from dqpose import dq, lie
-from dqpose.fusion.motion import _Model, _MotionFit
+from dqpose.fusion.motion import Model, MotionFit
 from dqpose.fusion.results import DOF, Status
 
 
 @dataclass(frozen=True)
-class _Extrinsics:
+class Extrinsics:
     """The uncertain extrinsics a set of measurements uses: per measurement the slot of its
     source's ``ε`` (-1: an exact extrinsic); per slot the source, its configured extrinsic and
     the prior's covariance and information."""
@@ -47,7 +47,7 @@ class _Extrinsics:
     info: np.ndarray
 
 
-def _extrinsics(names: Sequence[str], table: dict) -> Optional[_Extrinsics]:
+def uncertain_extrinsics(names: Sequence[str], table: dict) -> Optional[Extrinsics]:
     """The uncertain extrinsics of the measurements ``names`` (their sources' in ``table``), in
     order of first appearance; None when none has one."""
     order = [s for s in dict.fromkeys(names)
@@ -60,22 +60,22 @@ def _extrinsics(names: Sequence[str], table: dict) -> Optional[_Extrinsics]:
     E = np.array([ident if table[s].extrinsic is None else table[s].extrinsic for s in order])
     cov = np.array([table[s].extrinsic_covariance for s in order])
     info = np.linalg.inv(cov)
-    return _Extrinsics(slot, tuple(order), E, cov, 0.5 * (info + np.swapaxes(info, 1, 2)))
+    return Extrinsics(slot, tuple(order), E, cov, 0.5 * (info + np.swapaxes(info, 1, 2)))
 
 
-def _no_extrinsics(n: int) -> _Extrinsics:
+def no_extrinsics(n: int) -> Extrinsics:
     """No uncertain extrinsic among ``n`` measurements (a joint fit that shares latencies
     only)."""
-    return _Extrinsics(np.full(n, -1, np.intp), (), np.zeros((0, 8)), np.zeros((0, DOF, DOF)),
+    return Extrinsics(np.full(n, -1, np.intp), (), np.zeros((0, 8)), np.zeros((0, DOF, DOF)),
                        np.zeros((0, DOF, DOF)))
 
 
-class _Part(NamedTuple):
+class Part(NamedTuple):
     """One body in a joint fit: its world-frame measurements, their covariances and model, the
-    inliers, and the slots of its measurements' extrinsics (:class:`_Extrinsics`)."""
+    inliers, and the slots of its measurements' extrinsics (:class:`Extrinsics`)."""
     Z: np.ndarray
     S: np.ndarray
-    model: _Model
+    model: Model
     inlier: np.ndarray
     slot: np.ndarray
     start: np.ndarray   # (8,) the pose the fit starts from
@@ -86,9 +86,9 @@ class _Part(NamedTuple):
     shared: Optional[np.ndarray] = None
 
 
-def _static_model(n: int) -> _Model:
+def static_model(n: int) -> Model:
     """The one-instant fit as a motion model: no twist, no latencies, every stamp at zero."""
-    return _Model(stamp=np.zeros(n), latency=np.zeros(n), slot=np.full(n, -1, np.intp),
+    return Model(stamp=np.zeros(n), latency=np.zeros(n), slot=np.full(n, -1, np.intp),
                   prior=np.zeros(0), prior_w=np.zeros(0), twist=False, twist_w=None)
 
 
@@ -125,7 +125,7 @@ class _Layout(NamedTuple):
     prior_w: np.ndarray
     total: int
 
-    def columns(self, k: int, model: _Model) -> np.ndarray:
+    def columns(self, k: int, model: Model) -> np.ndarray:
         """The joint state's columns of part k's own state vector (pose, twist, latencies)."""
         return np.r_[np.arange(self.offsets[k], self.offsets[k] + model.offset),
                      self.latencies + self.maps[k]].astype(np.intp)
@@ -148,14 +148,14 @@ def _layout(parts, ext) -> _Layout:
                    offsets[-1] + count + DOF * len(ext.names))
 
 
-def _part_slots(p: _Part, m: np.ndarray) -> np.ndarray:
+def _part_slots(p: Part, m: np.ndarray) -> np.ndarray:
     """Part ``p``'s measurements' latencies among the fit's (``m`` its map), -1 where exact."""
     if m.size == 0:
         return np.full(p.model.slot.shape, -1, np.int64)
     return np.where(p.model.slot >= 0, m[np.maximum(p.model.slot, 0)], -1).astype(np.int64)
 
 
-def _joint_fit(parts: Sequence[_Part], ext: _Extrinsics, tol: float, max_iter: int,
+def joint_fit(parts: Sequence[Part], ext: Extrinsics, tol: float, max_iter: int,
                nis: bool = False, jacobians: bool = False) -> _Joint:
     """Gauss-Newton over every part's state and the ε's (the module's docstring), from the
     parts' starts and the configured extrinsics, in C (``dq_joint_fit``, service/csrc/joint.c;
@@ -198,21 +198,21 @@ def _joint_fit(parts: Sequence[_Part], ext: _Extrinsics, tol: float, max_iter: i
                   split(loo), split(tested))
 
 
-def _motion_fit_ext(Z, S, model: _Model, ext: _Extrinsics, inlier: np.ndarray, start, V,
-                    ell, tol: float, max_iter: int, nis: bool = True) -> _MotionFit:
-    """One body's joint fit as a :class:`~dqpose.fusion.motion._MotionFit` (its state's block of
+def motion_fit_ext(Z, S, model: Model, ext: Extrinsics, inlier: np.ndarray, start, V,
+                    ell, tol: float, max_iter: int, nis: bool = True) -> MotionFit:
+    """One body's joint fit as a :class:`~dqpose.fusion.motion.MotionFit` (its state's block of
     the covariance first, the ε's after), leave-one-out NIS included when ``nis`` (else its
     ``nis`` and ``tested`` are None); its ``G`` is None."""
-    part = _Part(Z, S, model, inlier, ext.slot, start, V, ell, None)
-    fit = _joint_fit([part], ext, tol, max_iter, nis)
+    part = Part(Z, S, model, inlier, ext.slot, start, V, ell, None)
+    fit = joint_fit([part], ext, tol, max_iter, nis)
     assert fit.cost is not None
-    return _MotionFit(fit.status, fit.X[0], fit.V[0], fit.ell[0], fit.H, fit.P, fit.dt[0],
+    return MotionFit(fit.status, fit.X[0], fit.V[0], fit.ell[0], fit.H, fit.P, fit.dt[0],
                       fit.r[0], None, fit.cost[0], fit.chi2, fit.iterations,
                       nis=fit.nis[0] if nis and fit.nis else None,
                       tested=fit.tested[0] if nis and fit.tested else None)
 
 
-def _relative_covariance(T_a: np.ndarray, T_b: np.ndarray, P: np.ndarray) -> np.ndarray:
+def relative_covariance(T_a: np.ndarray, T_b: np.ndarray, P: np.ndarray) -> np.ndarray:
     """The covariance of ``T_a⁻¹ T_b`` from the joint covariance ``P`` ``(12, 12)`` of
     ``(δ_a, δ_b)`` (both right perturbations): ``T_a Exp(δ_a)`` and ``T_b Exp(δ_b)`` give
     ``T_ab Exp(δ_b − Ad(T_ab⁻¹) δ_a)`` to first order."""

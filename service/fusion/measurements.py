@@ -10,7 +10,7 @@ import numpy as np
 
 from dqpose.errors import WorldError
 from dqpose.fusion.results import DOF
-from dqpose.fusion.validation import _covariances, _seconds, _shape
+from dqpose.fusion.validation import checked_covariances, checked_seconds, shape_of
 
 
 @dataclass(frozen=True)
@@ -39,21 +39,21 @@ def arrays_of(measurements: Sequence[Measurement]):
             if not isinstance(m, Measurement):
                 raise WorldError(k, "", f"expected a Measurement, got {type(m).__name__}")
             try:
-                times[k] = _seconds(m.time, "time")
+                times[k] = checked_seconds(m.time, "time")
             except ValueError as e:
                 raise WorldError.of(e, k) from None
-            if _shape(m.pose) != (8,):
-                raise WorldError(k, "pose", f"expected shape (8,), got {_shape(m.pose)}")
+            if shape_of(m.pose) != (8,):
+                raise WorldError(k, "pose", f"expected shape (8,), got {shape_of(m.pose)}")
             try:
                 poses[k] = m.pose
             except (TypeError, ValueError):
                 raise WorldError(k, "pose", f"expected numbers, got "
                                             f"{type(m.pose).__name__}") from None
-            if m.covariance is not None and _shape(m.covariance) != (DOF, DOF):
+            if m.covariance is not None and shape_of(m.covariance) != (DOF, DOF):
                 raise WorldError(k, "covariance", f"expected shape (6, 6), "
-                                                  f"got {_shape(m.covariance)}")
+                                                  f"got {shape_of(m.covariance)}")
             try:
-                covs[k] = _covariances(None if m.covariance is None else [m.covariance],
+                covs[k] = checked_covariances(None if m.covariance is None else [m.covariance],
                                        None if m.weight is None else [m.weight], 1)[0]
             except ValueError as e:
                 raise WorldError.of(e, k, {"covariances": "covariance",

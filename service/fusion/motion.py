@@ -24,7 +24,7 @@ from dqpose.fusion.results import DOF, Status
 
 
 @dataclass(frozen=True)
-class _Model:
+class Model:
     """What the motion fit needs besides the poses: per measurement its stamp relative to the
     fusion time, its configured latency and its slot among the estimated latencies (-1: exact);
     per estimated latency its prior; whether the twist is estimated and its prior information."""
@@ -37,7 +37,7 @@ class _Model:
     twist_w: Optional[np.ndarray]
     # the power spectral density of the white-noise acceleration (None: the twist is constant)
     accel: Optional[np.ndarray] = None
-    # the uncertain extrinsics of the measurements (dqpose.fusion.extrinsics._Extrinsics; None:
+    # the uncertain extrinsics of the measurements (dqpose.fusion.extrinsics.Extrinsics; None:
     # every extrinsic exact)
     extrinsics: Optional[Any] = None
 
@@ -49,8 +49,8 @@ class _Model:
     def dim(self) -> int:
         return self.offset + self.prior.size
 
-    def take(self, mask: np.ndarray) -> "_Model":
-        return _Model(self.stamp[mask], self.latency[mask], self.slot[mask], self.prior,
+    def take(self, mask: np.ndarray) -> "Model":
+        return Model(self.stamp[mask], self.latency[mask], self.slot[mask], self.prior,
                       self.prior_w, self.twist, self.twist_w, self.accel)
 
     def dt(self, ell: np.ndarray) -> np.ndarray:
@@ -79,7 +79,7 @@ class _Model:
 
 
 @dataclass(frozen=True)
-class _MotionFit:
+class MotionFit:
     status: Status
     mean: np.ndarray       # the pose at the fusion time
     V: np.ndarray          # the body twist (zeros when not estimated)
@@ -105,13 +105,13 @@ def _evaluate(X: np.ndarray, Z: np.ndarray, W: np.ndarray):
     return r, None if W is None else np.einsum("ni,nij,nj->n", r, W, r)
 
 
-def _motion_evaluate(X, V, ell, Z, W, model: _Model):
+def motion_evaluate(X, V, ell, Z, W, model: Model):
     dt = model.dt(ell)
     r, cost = _evaluate(dq.mul(X, lie.se3_exp(dt[:, None] * V)), Z, W)
     return dt, r, cost
 
 
-def _motion_jacobian(V, dt, r, model: _Model) -> np.ndarray:
+def motion_jacobian(V, dt, r, model: Model) -> np.ndarray:
     """``G_i = Jl⁻¹(r_i) [Ad(Exp(−dt V)), dt Jr(dt V), −V e_slot]``: ``r_i`` moves by ``−G_i Δ``."""
     B = np.zeros(r.shape[:1] + (DOF, model.dim))
     B[:, :, :6] = lie.adjoint(lie.se3_exp(-dt[:, None] * V))
@@ -122,7 +122,7 @@ def _motion_jacobian(V, dt, r, model: _Model) -> np.ndarray:
     return lie.se3_left_jacobian_inv(r) @ B
 
 
-def _motion_start(Z, S, model: _Model, inlier: np.ndarray) -> Optional[np.ndarray]:
+def motion_start(Z, S, model: Model, inlier: np.ndarray) -> Optional[np.ndarray]:
     """Where the motion fit starts: with a twist None, for the C fit's own start (the inlier
     nearest the fusion time, at rest: Gauss-Newton finds the motion); with none (one instant)
     the static fit's start."""
@@ -132,34 +132,34 @@ def _motion_start(Z, S, model: _Model, inlier: np.ndarray) -> Optional[np.ndarra
     return dq.dib(Z[inlier], weights / weights.max())
 
 
-def _constant_twist(Z, S, model: _Model, inlier, tol, max_iter, tested=None):
+def constant_twist(Z, S, model: Model, inlier, tol, max_iter, tested=None):
     """The C constant-twist fit (``dq_motion_fit``): the ``_dqcore.motion_fit`` tuple;
-    ``tested`` True: the NIS of every measurement :func:`_determined_without_each` allows."""
-    return _c.motion_fit(Z, S, inlier, _motion_start(Z, S, model, inlier), model.stamp,
+    ``tested`` True: the NIS of every measurement :func:`determined_without_each` allows."""
+    return _c.motion_fit(Z, S, inlier, motion_start(Z, S, model, inlier), model.stamp,
                          model.latency, model.slot, model.prior, model.prior_w, model.twist,
                          model.twist_w, tested, tol, max_iter)
 
 
-def _constant_twist_fit(Z, S, model: _Model, inlier: np.ndarray, tol: float,
-                        max_iter: int, nis: bool = True) -> _MotionFit:
+def constant_twist_fit(Z, S, model: Model, inlier: np.ndarray, tol: float,
+                        max_iter: int, nis: bool = True) -> MotionFit:
     """The constant-twist fit in C with its covariance, and (``nis``) the leave-one-out NIS
     (without, ``nis`` and ``tested`` are None: a quarter to two fifths of the fit's time
     saved)."""
     (X, V, ell, H, chi2, status, iterations, dt, r, cost, _, loo, tested,
-     P) = _constant_twist(Z, S, model, inlier, tol, max_iter, True if nis else None)
-    return _MotionFit(Status(int(status)), X, V, ell, H, P, dt, r, None, cost, float(chi2),
+     P) = constant_twist(Z, S, model, inlier, tol, max_iter, True if nis else None)
+    return MotionFit(Status(int(status)), X, V, ell, H, P, dt, r, None, cost, float(chi2),
                       int(iterations), nis=loo, tested=tested)
 
 
-def _constant_twist_pose(Z, S, model: _Model, inlier: Optional[np.ndarray], tol: float,
+def constant_twist_pose(Z, S, model: Model, inlier: Optional[np.ndarray], tol: float,
                          max_iter: int) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_constant_twist_fit`'s pose and joint covariance alone (no NIS), for an answer
+    """:func:`constant_twist_fit`'s pose and joint covariance alone (no NIS), for an answer
     that needs no more."""
-    out = _constant_twist(Z, S, model, inlier, tol, max_iter, None)
+    out = constant_twist(Z, S, model, inlier, tol, max_iter, None)
     return out[0], out[-1]
 
 
-def _determined_without_each(model: _Model, inlier: np.ndarray) -> np.ndarray:
+def determined_without_each(model: Model, inlier: np.ndarray) -> np.ndarray:
     """For each measurement: do the inliers other than it determine the state? The twist needs
     two instants unless it has a prior; the latencies always have theirs (in C,
     ``dq_motion_determined``, which the constant-twist fit also runs)."""

@@ -17,7 +17,7 @@ prediction), so the cost is ``rᵀ C⁻¹ r`` with a dense ``C`` (6n × 6n: ≈ 
 measurements in NumPy) and the covariance is the inverse of ``Gᵀ C⁻¹ G``. ``C`` is held at the
 latencies it was evaluated at; estimated latencies are re-solved with it re-evaluated at their
 estimate until they settle. The leave-one-out NIS conditions each measurement on the others'
-residuals as well as on the state (:func:`_correlated_nis`); ``distances`` use the
+residuals as well as on the state (:func:`correlated_nis`); ``distances`` use the
 measurement's own share ``Σ_i + |dt_i|³/3 Q``; ``chi2`` is ``rᵀ C⁻¹ r`` (same dof). A rule of
 thumb: accelerations of size ``a`` held over a window ``L`` change the twist by ``a L``, the
 random walk by ``sqrt(Q L)``, so ``Q ≈ a² L``. ``Q = 0`` is the constant-twist model, computed
@@ -32,12 +32,12 @@ import numpy as np
 from dqpose import dq, lie
 from dqpose._dqcore import COST_SLACK, MAX_HALVINGS
 from dqpose.fusion.motion import (
-    _constant_twist,
-    _determined_without_each,
-    _Model,
-    _motion_evaluate,
-    _motion_jacobian,
-    _MotionFit,
+    Model,
+    MotionFit,
+    constant_twist,
+    determined_without_each,
+    motion_evaluate,
+    motion_jacobian,
 )
 from dqpose.fusion.results import DOF, Status
 
@@ -45,7 +45,7 @@ from dqpose.fusion.results import DOF, Status
 # COST_SLACK (relative) is halved, at most MAX_HALVINGS times.
 
 
-def _kernel(dt: np.ndarray) -> np.ndarray:
+def kernel(dt: np.ndarray) -> np.ndarray:
     """``k(dt_i, dt_j)``: the covariance, per unit power spectral density, of the twice-integrated
     white noise at offsets ``dt_i`` and ``dt_j`` from the fusion time (zero on opposite sides of
     it: given the state there, past and future are independent)."""
@@ -60,7 +60,7 @@ def _model_error(S: np.ndarray, dt: np.ndarray, accel: np.ndarray) -> np.ndarray
     """The joint covariance ``(6n, 6n)`` of the residuals: the measurements' own (block
     diagonal) and the motion model's error, ``k(dt_i, dt_j) · Q`` between measurements i and j."""
     n = S.shape[0]
-    C = np.kron(_kernel(dt), accel)
+    C = np.kron(kernel(dt), accel)
     idx = np.arange(n)
     C.reshape(n, DOF, n, DOF)[idx, :, idx, :] += S
     return 0.5 * (C + C.T)
@@ -71,7 +71,7 @@ def _information(S: np.ndarray, dt: np.ndarray, accel: np.ndarray) -> np.ndarray
     return 0.5 * (C + C.T)
 
 
-def _marginal_information(S: np.ndarray, dt: np.ndarray, accel: Optional[np.ndarray]):
+def marginal_information(S: np.ndarray, dt: np.ndarray, accel: Optional[np.ndarray]):
     """Each measurement's information with its own share of the model error, ``(S_i + dt_i³/3
     Q)⁻¹``: what its distance is measured with."""
     if accel is None:
@@ -102,16 +102,16 @@ def _normal(G: np.ndarray, r: np.ndarray, info: np.ndarray):
     return Gf.T @ CG, CG.T @ r.ravel()
 
 
-def _motion_solve(Z, model: _Model, X, V, ell, tol: float, max_iter: int, info: np.ndarray):
+def motion_solve(Z, model: Model, X, V, ell, tol: float, max_iter: int, info: np.ndarray):
     """Gauss-Newton over pose, twist and latencies in NumPy, for residuals correlated by the
     model error: ``info`` their joint information (held at its value at the start of this
     solve). The step, its halving and the step shorter than ``tol`` left untaken are the C
     constant-twist fit's (``dq_motion_fit``)."""
-    dt, r, _ = _motion_evaluate(X, V, ell, Z, None, model)
+    dt, r, _ = motion_evaluate(X, V, ell, Z, None, model)
     total = _data_cost(r, info) + model.prior_cost(V, ell)
     off = model.offset
     for it in range(1, max_iter + 1):
-        G = _motion_jacobian(V, dt, r, model)
+        G = motion_jacobian(V, dt, r, model)
         Hd, gd = _normal(G, r, info)
         Hp, gp = model.prior_terms(V, ell)
         H = Hd + Hp
@@ -124,7 +124,7 @@ def _motion_solve(Z, model: _Model, X, V, ell, tol: float, max_iter: int, info: 
             X_new = dq.normalize(dq.mul(X, lie.se3_exp(delta[:6])))
             V_new = V + delta[6:12] if model.twist else V
             ell_new = ell + delta[off:]
-            dt_new, r_new, _ = _motion_evaluate(X_new, V_new, ell_new, Z, None, model)
+            dt_new, r_new, _ = motion_evaluate(X_new, V_new, ell_new, Z, None, model)
             total_new = _data_cost(r_new, info) + model.prior_cost(V_new, ell_new)
             if total_new <= total * (1.0 + COST_SLACK) or step < tol:
                 break
@@ -142,35 +142,35 @@ _LATENCY_SETTLED = 1e-9
 _PASSES = 4
 
 
-def _correlated_fit(Z, S, model: _Model, inlier: np.ndarray, tol: float,
-                    max_iter: int) -> _MotionFit:
+def correlated_fit(Z, S, model: Model, inlier: np.ndarray, tol: float,
+                    max_iter: int) -> MotionFit:
     """Fit of the measurements ``inlier`` selects under the model error, evaluated at every
     measurement, started from the constant-twist fit."""
     Zi, Si, mi = Z[inlier], S[inlier], model.take(inlier)
     accel = model.accel
     assert accel is not None        # this fit is the model error's
     # the constant-twist fit starts it: cheap, and near when the model error is small
-    X, V, ell, *_, iterations = _constant_twist(Z, S, model, inlier, tol, max_iter)[:7]
+    X, V, ell, *_, iterations = constant_twist(Z, S, model, inlier, tol, max_iter)[:7]
     iterations = int(iterations)
     at = ell
     Cinv = _information(Si, mi.dt(at), accel)
     for _ in range(_PASSES if ell.size else 1):
-        X, V, ell, status, it = _motion_solve(Zi, mi, X, V, ell, tol, max_iter, Cinv)
+        X, V, ell, status, it = motion_solve(Zi, mi, X, V, ell, tol, max_iter, Cinv)
         iterations += it
         if np.all(np.abs(ell - at) < _LATENCY_SETTLED):
             break
         at = ell
         Cinv = _information(Si, mi.dt(at), accel)
-    dt, r, _ = _motion_evaluate(X, V, ell, Z, None, model)
-    Wm = _marginal_information(S, dt, model.accel)
+    dt, r, _ = motion_evaluate(X, V, ell, Z, None, model)
+    Wm = marginal_information(S, dt, model.accel)
     cost = np.einsum("ni,nij,nj->n", r, Wm, r)
-    G = _motion_jacobian(V, dt, r, model)
+    G = motion_jacobian(V, dt, r, model)
     Hp, _ = model.prior_terms(V, ell)
     Hd, _ = _normal(G[inlier], r[inlier], Cinv)
     H = Hd + Hp
     P = np.linalg.inv(H)
     chi2 = _data_cost(r[inlier], Cinv) + model.prior_cost(V, ell)
-    return _MotionFit(status, X, V, ell, H, 0.5 * (P + P.T), dt, r, G, cost, float(chi2),
+    return MotionFit(status, X, V, ell, H, 0.5 * (P + P.T), dt, r, G, cost, float(chi2),
                       iterations, Cinv)
 
 
@@ -180,7 +180,7 @@ def _blocks(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return np.einsum("mak,mbk->mab", A.reshape(m, DOF, -1), B.reshape(m, DOF, -1))
 
 
-def _correlated_nis(fit: _MotionFit, S, inlier: np.ndarray, model: _Model):
+def correlated_nis(fit: MotionFit, S, inlier: np.ndarray, model: Model):
     """The leave-one-out NIS when the model error correlates the residuals (joint covariance
     ``C``, information ``H`` of the inliers' fit). An inlier i: with ``Ω = C⁻¹ − C⁻¹ G H⁻¹ Gᵀ
     C⁻¹`` over the inliers, ``(Ω r)_iᵀ Ω_ii⁻¹ (Ω r)_i`` is the NIS of its residual against the
@@ -199,7 +199,7 @@ def _correlated_nis(fit: _MotionFit, S, inlier: np.ndarray, model: _Model):
     Hinv = fit.P
     _, gp = model.prior_terms(fit.V, fit.ell)
     w = u - A @ (Hinv @ (A.T @ r[rows] + gp))
-    tested = ~inlier | _determined_without_each(model, inlier)
+    tested = ~inlier | determined_without_each(model, inlier)
     nis = np.zeros(n)
     k = np.flatnonzero(inlier)
     Om = Ci.reshape(k.size, DOF, k.size, DOF)[np.arange(k.size), :, np.arange(k.size), :]

@@ -1,6 +1,6 @@
 """The robust mode's gate, shared by the fit of one instant and the fit over time: a start from the
-largest pairwise-consistent group (:func:`_consensus`), then inliers removed and admitted on their
-leave-one-out NIS against the χ² gate until the set settles (:func:`_gate`). The answer is always
+largest pairwise-consistent group (:func:`consensus`), then inliers removed and admitted on their
+leave-one-out NIS against the χ² gate until the set settles (:func:`nis_gate`). The answer is always
 the plain maximum-likelihood fit of the inliers, so a rejected measurement never moves it.
 """
 from __future__ import annotations
@@ -17,7 +17,7 @@ from dqpose.fusion.results import Rejection, Status
 _CANDIDATES = 64
 
 
-def _consensus(Z: np.ndarray, S: np.ndarray, gate2: float) -> np.ndarray:
+def consensus(Z: np.ndarray, S: np.ndarray, gate2: float) -> np.ndarray:
     """The measurement agreeing with most others, and those: pairwise ``Log(Z_i⁻¹ Z_j)`` against
     ``Σ_i + Σ_j`` (to first order ``Exp(ε_i) Exp(-ε_j)``, both in the body frame), in C. Beyond
     ``_CANDIDATES`` measurements the centre is sought among that many spread over them (any
@@ -38,7 +38,7 @@ def _consensus(Z: np.ndarray, S: np.ndarray, gate2: float) -> np.ndarray:
 _GATE_FITS = 50
 
 
-def _gate(inlier, allowed, fit_of, nis_of, gate2):
+def nis_gate(inlier, allowed, fit_of, nis_of, gate2):
     """From ``inlier``: remove the worst failing inlier, one at a time (an outlier inside pulls
     the others' innovations), then admit every ``allowed`` measurement that passes; until
     nothing changes, a set repeats or ``_GATE_FITS`` fits were made."""
@@ -65,7 +65,7 @@ def _gate(inlier, allowed, fit_of, nis_of, gate2):
     return fit, nis, tested, inlier, status
 
 
-def _rejections(names, nis: np.ndarray, out: np.ndarray, gate2: float,
+def rejections(names, nis: np.ndarray, out: np.ndarray, gate2: float,
                 probability: float) -> tuple[Rejection, ...]:
     """The measurements ``out`` selects, each as the gate rejected it."""
     if not out.any():

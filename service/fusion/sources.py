@@ -12,7 +12,7 @@ import numpy as np
 from dqpose import dq, lie
 from dqpose.errors import rename
 from dqpose.fusion.results import DOF
-from dqpose.fusion.validation import _covariances, _pose, _seconds, _shape
+from dqpose.fusion.validation import checked_covariances, checked_pose, checked_seconds, shape_of
 from dqpose.names import name_problem, quoted
 
 
@@ -58,12 +58,12 @@ _LATENCY_SIGMA = (1e-9, 1e6)
 
 
 def _latency(s: Source, k: int) -> tuple[float, Optional[float]]:
-    latency = _seconds(s.latency, f"sources[{k}].latency")
+    latency = checked_seconds(s.latency, f"sources[{k}].latency")
     if abs(latency) > _MAX_LATENCY:
         raise ValueError(f"sources[{k}].latency: {latency:.6g} s is beyond +-{_MAX_LATENCY:g} s")
     if s.latency_sigma is None:
         return latency, None
-    sigma = _seconds(s.latency_sigma, f"sources[{k}].latency_sigma", "positive")
+    sigma = checked_seconds(s.latency_sigma, f"sources[{k}].latency_sigma", "positive")
     lo, hi = _LATENCY_SIGMA
     if not lo <= sigma <= hi:
         raise ValueError(f"sources[{k}].latency_sigma: {sigma:.6g} s is outside [{lo:g}, "
@@ -82,16 +82,16 @@ def pose_covariance(covariance, name: str) -> Optional[np.ndarray]:
     naming ``name``."""
     if covariance is None:
         return None
-    shape = _shape(covariance)
+    shape = shape_of(covariance)
     if shape != (DOF, DOF):
         raise ValueError(f"{name}: expected shape (6, 6), got {shape}")
     try:
-        return _covariances([covariance], None, 1)[0]
+        return checked_covariances([covariance], None, 1)[0]
     except ValueError as e:
         raise rename(e, {"covariances": name}) from None
 
 
-def _sources(sources: Optional[Iterable[Source]]) -> dict[str, Source]:
+def source_table(sources: Optional[Iterable[Source]]) -> dict[str, Source]:
     table: dict[str, Source] = {}
     for k, s in enumerate(sources or ()):
         if not isinstance(s, Source):
@@ -106,13 +106,15 @@ def _sources(sources: Optional[Iterable[Source]]) -> dict[str, Source]:
             raise ValueError(f"sources[{k}].parent: {problem}")
         table[s.name] = Source(
             s.name,
-            None if s.extrinsic is None else _pose(s.extrinsic, f"sources[{k}].extrinsic"),
-            None if s.body_offset is None else _pose(s.body_offset, f"sources[{k}].body_offset"),
+            None if s.extrinsic is None
+            else checked_pose(s.extrinsic, f"sources[{k}].extrinsic"),
+            None if s.body_offset is None
+            else checked_pose(s.body_offset, f"sources[{k}].body_offset"),
             *_latency(s, k), _extrinsic_covariance(s, k), s.parent)
     return table
 
 
-def _to_world(Z: np.ndarray, S: np.ndarray, names: tuple[str, ...],
+def to_world(Z: np.ndarray, S: np.ndarray, names: tuple[str, ...],
               table: dict[str, Source]) -> tuple[np.ndarray, np.ndarray]:
     """``T_world_frame · Z · T_flange_body`` and the exactly transported covariances."""
     framed = {name: src for name, src in table.items()

@@ -11,10 +11,10 @@ from typing import Optional
 import numpy as np
 
 from dqpose import _dqcore as _c
-from dqpose.fusion.consistency import _codes, _source_stats
-from dqpose.fusion.extrinsics import _Extrinsics, _motion_fit_ext, _static_model
-from dqpose.fusion.results import DOF, Fused, Status, _frozen
-from dqpose.fusion.robust import _consensus, _gate, _rejections
+from dqpose.fusion.consistency import codes, source_stats
+from dqpose.fusion.extrinsics import Extrinsics, motion_fit_ext, static_model
+from dqpose.fusion.results import DOF, Fused, Status, read_only
+from dqpose.fusion.robust import consensus, nis_gate, rejections
 
 
 @dataclass(frozen=True)
@@ -31,7 +31,7 @@ class _Fit:
 
 
 def _fit(Z: np.ndarray, S: np.ndarray, inlier: np.ndarray, tol: float, max_iter: int,
-         ext: Optional[_Extrinsics] = None) -> _Fit:
+         ext: Optional[Extrinsics] = None) -> _Fit:
     """ML fit of the measurements ``inlier`` selects, evaluated at every measurement, with the
     leave-one-out NIS of each: measurement j against the fit of the other inliers (one
     Gauss-Newton step from the optimum; an outlier against all inliers; untested without
@@ -41,7 +41,7 @@ def _fit(Z: np.ndarray, S: np.ndarray, inlier: np.ndarray, tol: float, max_iter:
     if ext is None:
         return _Fit(Status(int(status)), mean, P, r, d, nis, tested, float(chi2),
                     int(iterations))
-    m = _motion_fit_ext(Z, S, _static_model(Z.shape[0]), ext, inlier, mean, np.zeros(DOF),
+    m = motion_fit_ext(Z, S, static_model(Z.shape[0]), ext, inlier, mean, np.zeros(DOF),
                         np.zeros(0), tol, max_iter)
     assert m.nis is not None and m.tested is not None     # the joint fit computes them
     return _Fit(m.status, m.mean, m.P[:DOF, :DOF], m.r, np.sqrt(m.cost), m.nis, m.tested,
@@ -50,13 +50,13 @@ def _fit(Z: np.ndarray, S: np.ndarray, inlier: np.ndarray, tol: float, max_iter:
 
 def _robust(Z, S, gate2, tol, max_iter, ext=None):
     # the C fit computes each measurement's leave-one-out NIS with the fit itself
-    return _gate(_consensus(Z, S, gate2), np.ones(Z.shape[0], dtype=bool),
+    return nis_gate(consensus(Z, S, gate2), np.ones(Z.shape[0], dtype=bool),
                  lambda inlier: _fit(Z, S, inlier, tol, max_iter, ext),
                  lambda fit, inlier: (fit.nis, fit.tested), gate2)
 
 
-def _fuse_static(Z, S, names, robust, probability, gate2, tol, max_iter,
-                 ext: Optional[_Extrinsics] = None) -> Fused:
+def fuse_static(Z, S, names, robust, probability, gate2, tol, max_iter,
+                 ext: Optional[Extrinsics] = None) -> Fused:
     """The fit of one instant: the C core's, robust or not; jointly with the uncertain
     extrinsics ``ext`` when there are any."""
     n = Z.shape[0]
@@ -67,20 +67,20 @@ def _fuse_static(Z, S, names, robust, probability, gate2, tol, max_iter,
         fit = _fit(Z, S, inlier, tol, max_iter, ext)
         nis, tested = fit.nis, fit.tested
         gate_status = None
-    rejected = _rejections(names, nis, ~inlier, gate2, probability)
+    rejected = rejections(names, nis, ~inlier, gate2, probability)
     k = int(np.count_nonzero(inlier))
     return Fused(
         status=gate_status if gate_status is not None else fit.status,
-        mean=_frozen(fit.mean),
-        covariance=_frozen(fit.covariance),
-        residuals=_frozen(fit.r),
-        distances=_frozen(fit.distances),
-        nis=_frozen(nis),
-        tested=_frozen(tested),
-        inliers=_frozen(np.flatnonzero(inlier)),
+        mean=read_only(fit.mean),
+        covariance=read_only(fit.covariance),
+        residuals=read_only(fit.r),
+        distances=read_only(fit.distances),
+        nis=read_only(nis),
+        tested=read_only(tested),
+        inliers=read_only(np.flatnonzero(inlier)),
         rejected=rejected,
         chi2=fit.chi2,
         dof=DOF * (k - 1),
         iterations=fit.iterations,
-        sources=_source_stats(*_codes(names), nis, tested, inlier, probability),
+        sources=source_stats(*codes(names), nis, tested, inlier, probability),
     )

@@ -12,7 +12,7 @@ from dqpose._dqcore import StoreIndex
 from dqpose.fusion.results import DOF
 
 
-class _Store:
+class Store:
     """Every body's measurements in one set of preallocated arrays, in arrival order, each row
     tagged with its body. A message's rows are checked and written by one C call
     (``_index.ingest``: service/csrc/store.h's ``dq_store_ingest``) whatever the number of bodies

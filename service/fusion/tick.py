@@ -12,9 +12,9 @@ from typing import Optional
 import numpy as np
 
 from dqpose import _dqcore
-from dqpose.fusion.consistency import _verdict_bounds
+from dqpose.fusion.consistency import verdict_bounds
 from dqpose.fusion.tracker import Tracker
-from dqpose.fusion.validation import _seconds, _twist_information
+from dqpose.fusion.validation import checked_seconds, twist_information
 
 
 def _options(t: Tracker) -> _dqcore.FitOptions:
@@ -24,9 +24,9 @@ def _options(t: Tracker) -> _dqcore.FitOptions:
     o, table, names = t._checked, t._table, list(t._names)
     srcs = [table.get(name) for name in names]
     sigma = [None if s is None else s.latency_sigma for s in srcs]   # None: not estimated
-    C, Wp = (None, None) if o.twist_covariance is None else _twist_information(
+    C, Wp = (None, None) if o.twist_covariance is None else twist_information(
         o.twist_covariance)
-    # the uncertain extrinsics and their information, as extrinsics._extrinsics makes them
+    # the uncertain extrinsics and their information, as extrinsics.uncertain_extrinsics makes them
     E, info = np.zeros((len(names), 8)), np.zeros((len(names), 6, 6))
     uncertain = [(k, s) for k, s in enumerate(srcs) if s is not None
                  and s.extrinsic_covariance is not None]
@@ -43,8 +43,8 @@ def _options(t: Tracker) -> _dqcore.FitOptions:
         np.array([x is not None for x in sigma], bool),
         np.array([s is None or s.extrinsic_covariance is None for s in srcs], bool), names,
         E.ravel(), info.ravel(),
-        None if o.max_skew is None else _seconds(o.max_skew, "max_skew", "nonnegative"),
-        None if o.max_extrapolation is None else _seconds(
+        None if o.max_skew is None else checked_seconds(o.max_skew, "max_skew", "nonnegative"),
+        None if o.max_extrapolation is None else checked_seconds(
             o.max_extrapolation, "max_extrapolation", "nonnegative"),
         None if Wp is None else np.ascontiguousarray(Wp).ravel(),
         None if C is None else np.ascontiguousarray(C).ravel(), o.probability, o.tol, o.max_iter)
@@ -75,5 +75,5 @@ class WireTicks:
         s = t._store
         return _dqcore.tick(opts, s.wposes, s.wcovs if "wcovs" in s._arrays else s.covs,
                             s.times, s.codes, s.ids, rows, math.nan if time is None else time,
-                            body, request, _verdict_bounds(t._checked.probability, len(rows)),
+                            body, request, verdict_bounds(t._checked.probability, len(rows)),
                             pose, covariance)

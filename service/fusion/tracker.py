@@ -17,28 +17,28 @@ from dqpose._dqcore import REFUSED_FLOOR, REFUSED_JUMP, REFUSED_TIME
 from dqpose.errors import WorldError
 from dqpose.fusion.alignment import (
     DEFAULT_MAX_EXTRAPOLATION,
-    _joint_start,
-    _pose_in_time,
-    _pose_over_time,
+    joint_start,
+    pose_in_time,
+    pose_over_time,
 )
 from dqpose.fusion.api import (
-    _Checked,
-    _fuse_joint_rows,
-    _fuse_static_rows,
-    _fuse_world_rows,
+    Checked,
     fuse,
+    fuse_joint_rows,
+    fuse_static_rows,
+    fuse_world_rows,
 )
 from dqpose.fusion.bounds import TrackerBounds
 from dqpose.fusion.chi2 import DEFAULT_PROBABILITY, chi2_quantile
 from dqpose.fusion.measurements import Measurement, Rows, rows_of
 from dqpose.fusion.results import DOF, Fused
-from dqpose.fusion.sources import Source, _sources, _to_world
-from dqpose.fusion.store import _Store
+from dqpose.fusion.sources import Source, source_table, to_world
+from dqpose.fusion.store import Store
 from dqpose.fusion.validation import (
-    _check_rows,
-    _finite_shape,
-    _named_rows,
-    _seconds,
+    check_rows,
+    checked_seconds,
+    finite_shape,
+    named_rows,
 )
 
 if TYPE_CHECKING:
@@ -89,10 +89,10 @@ class Tracker:
                  max_extrapolation: Optional[float] = DEFAULT_MAX_EXTRAPOLATION,
                  twist_covariance=None, acceleration_psd=None, tol: float = 1e-12,
                  max_iter: int = 100, bounds: Optional[TrackerBounds] = None):
-        self.window = _seconds(window, "window", "positive")
+        self.window = checked_seconds(window, "window", "positive")
         self.bounds = bounds
         self.sources = tuple(sources or ())
-        self._table = _sources(self.sources)
+        self._table = source_table(self.sources)
         # the options' checks are fuse's: one fusion of a placeholder runs them now, not later
         # (its parents a world's, which fuse refuses)
         fuse(np.array([[1.0, 0, 0, 0, 0, 0, 0, 0]]), times=[0.0],
@@ -101,11 +101,11 @@ class Tracker:
              max_extrapolation=max_extrapolation, twist_covariance=twist_covariance,
              acceleration_psd=acceleration_psd, tol=tol, max_iter=max_iter)
         probability = float(probability)
-        self._checked = _Checked(self._table, robust, probability,
+        self._checked = Checked(self._table, robust, probability,
                                  chi2_quantile(probability, DOF), dq._as_tol(tol),
                                  dq._as_iter(max_iter), max_skew, max_extrapolation,
                                  twist_covariance, acceleration_psd)
-        self._store = _Store(world_covs=any(src.body_offset is not None
+        self._store = Store(world_covs=any(src.body_offset is not None
                                             for src in self._table.values()))
         # bodies and sources as small integers in the store: a body's newest taken time, a
         # source's configured latency
@@ -308,12 +308,12 @@ class Tracker:
         s = self._store
         # the rows were checked by fuse's rules when they came in, and brought into the world
         # frame (_in_world)
-        return _fuse_world_rows(*s.world(rows), self._sources_of(rows), s.times[rows],
+        return fuse_world_rows(*s.world(rows), self._sources_of(rows), s.times[rows],
                                 time, self._checked, nis, joint), s.ids[rows]
 
     def _pose(self, rows: np.ndarray, time: float) -> tuple[np.ndarray, np.ndarray]:
-        """The constant-twist fit straight from the rows where it applies (``_pose_in_time``),
-        else any fit over time that is not robust (``_pose_over_time``), else the full fit's."""
+        """The constant-twist fit straight from the rows where it applies (``pose_in_time``),
+        else any fit over time that is not robust (``pose_over_time``), else the full fit's."""
         s = self._store
         codes = s.codes[rows]
         got = None
@@ -322,10 +322,10 @@ class Tracker:
             return f.mean, f.covariance
         if self._all_exact or self._exact[codes].all():
             # taken was stamp less latency when the rows came in: the same bits as fuse's
-            got = _pose_in_time(*s.world(rows), self._latency[codes], s.times[rows],
+            got = pose_in_time(*s.world(rows), self._latency[codes], s.times[rows],
                                 s.taken[rows], time, self._checked)
         if got is None:
-            got = _pose_over_time(*s.world(rows), self._sources_of(rows), s.times[rows], time,
+            got = pose_over_time(*s.world(rows), self._sources_of(rows), s.times[rows], time,
                                   self._checked)
         if got is None:
             f = self._fit(rows, time, False, True)[0]
@@ -334,10 +334,10 @@ class Tracker:
 
     def _start(self, rows: np.ndarray, time: float):
         """The constant-twist fit (where its own joint fit starts) without the rest of an
-        answer where that is the fit (``_joint_start``), else the full fit's (``nis`` and
+        answer where that is the fit (``joint_start``), else the full fit's (``nis`` and
         ``joint`` False)."""
         s = self._store
-        got = _joint_start(*s.world(rows), self._sources_of(rows), s.times[rows], time,
+        got = joint_start(*s.world(rows), self._sources_of(rows), s.times[rows], time,
                            self._checked)
         return got if got is not None else self._fit(rows, time, False, False)[0]
 
@@ -347,7 +347,7 @@ class Tracker:
             if got is not None:
                 return got
         s = self._store
-        return _fuse_static_rows(*s.world(rows), self._sources_of(rows), self._checked), \
+        return fuse_static_rows(*s.world(rows), self._sources_of(rows), self._checked), \
             s.ids[rows]
     def _sources_of(self, rows: np.ndarray) -> tuple[str, ...]:
         """Each row's source name, as the fits take them."""
@@ -358,7 +358,7 @@ class Tracker:
         """``body``'s rows taken in ``[end - window, end]`` (for :meth:`estimate`), in
         arrival order, the last :attr:`cap` of them, among the rows of its window (:meth:`_rows`:
         the last :attr:`cap` of those too). Looked for from the first row whose running maximum
-        of taken reaches ``end - window`` (:meth:`_Store.after`): the rows of that window and
+        of taken reaches ``end - window`` (:meth:`Store.after`): the rows of that window and
         those that came after them late, not the body's whole window, unless more than
         :attr:`cap` of its window's rows are among them (then its cap may leave some out)."""
         b, s, cap = self._code_of(body), self._store, self.cap
@@ -391,7 +391,7 @@ class Tracker:
         their start): the poses and the joint covariance ``(6k, 6k)`` of their right perturbations,
         cross-covariances included."""
         s = self._store
-        return _fuse_joint_rows([(*s.world(r), self._sources_of(r), s.times[r]) for r in rows],
+        return fuse_joint_rows([(*s.world(r), self._sources_of(r), s.times[r]) for r in rows],
                                 fits, time, self._checked)
 
     def _rows_near(self, body: str, time: Optional[float], within: Optional[float]):
@@ -436,19 +436,19 @@ class Tracker:
         return code
 
     def _ingest(self, rows: "Rows", ids, all_or_none: bool, origin, bad: dict):
-        """The rows checked here (:func:`_check_rows`; ``bad`` refused already), then admitted."""
+        """The rows checked here (:func:`check_rows`; ``bad`` refused already), then admitted."""
         bodies, sources = rows.bodies, rows.sources
         n = len(bodies)
         if len(sources) != n:
             raise ValueError(f"sources: expected {n} names, got {len(sources)}")
-        times = _finite_shape(rows.times, "times", (n,))
-        poses = _finite_shape(rows.poses, "poses", (n, 8))
+        times = finite_shape(rows.times, "times", (n,))
+        poses = finite_shape(rows.poses, "poses", (n, 8))
         covs = (np.broadcast_to(np.eye(DOF), (n, DOF, DOF)) if rows.covariances is None
-                else _finite_shape(rows.covariances, "covariances", (n, DOF, DOF)))
+                else finite_shape(rows.covariances, "covariances", (n, DOF, DOF)))
         ids = np.arange(self._count, self._count + n) if ids is None else np.asarray(ids, np.int64)
         if ids.shape != (n,):
             raise ValueError(f"ids: expected shape {(n,)}, got {ids.shape}")
-        ok, errors, covs = _check_rows(bodies, sources, times, poses, covs)
+        ok, errors, covs = check_rows(bodies, sources, times, poses, covs)
         if bad:
             errors.update(bad)
             ok[list(bad)] = False
@@ -460,7 +460,7 @@ class Tracker:
         """What :meth:`ingest` would refuse of these measurements (arrays as it takes them) by
         the checks that need no state (all but the window), each ``(k, WorldError)`` about
         ``measurements[k]``."""
-        return sorted(_check_rows(bodies, sources, np.asarray(times, np.float64),
+        return sorted(check_rows(bodies, sources, np.asarray(times, np.float64),
                                   np.asarray(poses, np.float64),
                                   np.asarray(covariances, np.float64))[1].items())
 
@@ -481,7 +481,7 @@ class Tracker:
         if isinstance(ids, int):
             ids = ids + np.arange(n)
         # a name coded already was checked when it came first (here or by refusals)
-        named = _named_rows(bodies, sources, self._body_codes, self._codes)
+        named = named_rows(bodies, sources, self._body_codes, self._codes)
         if named:       # refused for a name: then named by the check of the row alone
             codes = codes.astype(np.int64)
             codes[named] = -1
@@ -570,7 +570,7 @@ class Tracker:
         idx = None if ok.all() else np.flatnonzero(ok)
         if idx is not None:
             sources, poses, covs = [sources[k] for k in idx.tolist()], poses[idx], covs[idx]
-        wposes, wcovs = _to_world(dq.normalize(poses), covs, tuple(sources), self._table)
+        wposes, wcovs = to_world(dq.normalize(poses), covs, tuple(sources), self._table)
         if idx is not None:
             full = np.zeros((len(ok), 8))
             full[idx] = wposes

@@ -20,7 +20,7 @@ from dqpose.names import bad_names, name_problem
 
 # Relative asymmetry a covariance may have and still be taken as symmetric (its mean with its
 # transpose is used): a product J Σ Jᵀ computed in float64 is asymmetric at ~1e-16.
-_SYMMETRY_TOL = 1e-9
+SYMMETRY_TOL = 1e-9
 # The variances a covariance may have (standard deviations 1e-12 to 1e12 rad or m): beyond them
 # its information cannot be used (service/csrc/fusion.h, which checks the same for StreamFuse).
 MIN_VARIANCE, MAX_VARIANCE = _c.MIN_VARIANCE, _c.MAX_VARIANCE
@@ -44,7 +44,7 @@ def finite(x, name: str, tail: tuple[int, ...], n: Optional[int]) -> np.ndarray:
     return a
 
 
-def _poses(poses) -> np.ndarray:
+def checked_poses(poses) -> np.ndarray:
     Z = finite(poses, "poses", (8,), None)
     if Z.shape[0] == 0:
         raise ValueError("poses: no measurements (expected at least one pose)")
@@ -55,7 +55,7 @@ def _poses(poses) -> np.ndarray:
     return dq.normalize(Z)
 
 
-def _pose(T, name: str) -> np.ndarray:
+def checked_pose(T, name: str) -> np.ndarray:
     a = finite(np.asarray(T, dtype=np.float64)[None] if np.ndim(T) == 1 else T, name, (8,), 1)
     try:
         dq.to_matrix(a)
@@ -64,7 +64,7 @@ def _pose(T, name: str) -> np.ndarray:
     return dq.normalize(a[0])
 
 
-def _covariances(covariances, weights, n: int) -> np.ndarray:
+def checked_covariances(covariances, weights, n: int) -> np.ndarray:
     if covariances is not None and weights is not None:
         raise ValueError("weights: give covariances or weights, not both")
     if weights is not None:
@@ -79,7 +79,7 @@ def _covariances(covariances, weights, n: int) -> np.ndarray:
     S = finite(covariances, "covariances", (DOF, DOF), n)
     scale = np.abs(S).reshape(n, -1).max(axis=1)
     asym = np.abs(S - np.swapaxes(S, 1, 2)).reshape(n, -1).max(axis=1)
-    bad = ~(asym <= _SYMMETRY_TOL * scale)
+    bad = ~(asym <= SYMMETRY_TOL * scale)
     if np.any(bad):
         i = int(np.flatnonzero(bad)[0])
         raise ValueError(f"covariances[{i}]: not symmetric (largest asymmetry {asym[i]:.3g})")
@@ -104,7 +104,7 @@ def _covariances(covariances, weights, n: int) -> np.ndarray:
     return S
 
 
-def _names(names, n: int) -> tuple[str, ...]:
+def checked_names(names, n: int) -> tuple[str, ...]:
     if names is None:
         return ("",) * n
     if isinstance(names, str):
@@ -119,7 +119,7 @@ def _names(names, n: int) -> tuple[str, ...]:
     return out
 
 
-def _seconds(x, name: str, least: Optional[str] = None) -> float:
+def checked_seconds(x, name: str, least: Optional[str] = None) -> float:
     """A finite number of seconds; ``least`` ``"positive"`` or ``"nonnegative"`` bounds it."""
     try:
         v = float(x)
@@ -132,7 +132,7 @@ def _seconds(x, name: str, least: Optional[str] = None) -> float:
     return v
 
 
-def _shape(x):
+def shape_of(x):
     """``np.shape`` that names a ragged sequence rather than raising NumPy's error."""
     try:
         return np.shape(x)
@@ -140,26 +140,26 @@ def _shape(x):
         return "a ragged sequence"
 
 
-def _twist_information(twist_covariance) -> tuple[np.ndarray, np.ndarray]:
+def twist_information(twist_covariance) -> tuple[np.ndarray, np.ndarray]:
     """The twist's zero-mean prior checked like a measurement's covariance, and its
     information."""
-    shape = _shape(twist_covariance)
+    shape = shape_of(twist_covariance)
     if shape != (DOF, DOF):
         raise ValueError(f"twist_covariance: expected shape (6, 6), got {shape}")
     try:
-        C = _covariances([twist_covariance], None, 1)[0]
+        C = checked_covariances([twist_covariance], None, 1)[0]
     except ValueError as e:
         raise rename(e, {"covariances": "twist_covariance"}) from None
     Wp = np.linalg.inv(C)
     return C, 0.5 * (Wp + Wp.T)
 
 
-def _acceleration(acceleration_psd) -> Optional[np.ndarray]:
+def checked_acceleration(acceleration_psd) -> Optional[np.ndarray]:
     """The acceleration's power spectral density, symmetric positive semidefinite; None when
     not given or zero (the constant-twist model, computed as without it)."""
     if acceleration_psd is None:
         return None
-    shape = _shape(acceleration_psd)
+    shape = shape_of(acceleration_psd)
     if shape != (DOF, DOF):
         raise ValueError(f"acceleration_psd: expected shape (6, 6), got {shape}")
     try:
@@ -171,17 +171,17 @@ def _acceleration(acceleration_psd) -> Optional[np.ndarray]:
     scale = float(np.abs(Q).max())
     if scale == 0.0:
         return None
-    if np.abs(Q - Q.T).max() > _SYMMETRY_TOL * scale:
+    if np.abs(Q - Q.T).max() > SYMMETRY_TOL * scale:
         raise ValueError(f"acceleration_psd: not symmetric (largest asymmetry "
                          f"{np.abs(Q - Q.T).max():.3g})")
     Q = 0.5 * (Q + Q.T)
     low = float(np.linalg.eigvalsh(Q).min())
-    if low < -_SYMMETRY_TOL * scale:
+    if low < -SYMMETRY_TOL * scale:
         raise ValueError(f"acceleration_psd: not positive semidefinite (eigenvalue {low:.3g})")
     return Q
 
 
-def _check_rows(bodies, sources, times, poses, covs):
+def check_rows(bodies, sources, times, poses, covs):
     """The checks of :meth:`Tracker.ingest` that need no state: ``(ok, errors, covs)``, ``ok``
     the rows that pass, ``errors`` ``{k: WorldError}`` of the others, ``covs`` a copy with the
     rows that pass symmetrised."""
@@ -210,19 +210,19 @@ def _check_rows(bodies, sources, times, poses, covs):
     for k in np.flatnonzero(~ok).tolist():
         errors.setdefault(k, WorldError(k, "time", f"must be finite, got {float(times[k])!r}"))
     ok[list(errors)] = False
-    # The batch is checked at once in C (the rules of _poses and _covariances); only the rows
-    # it cannot pass are checked here row by row, to name the problem (or pass one too near the
-    # edge of positive definite for the C check to be sure). The poses are kept as given (fuse
-    # normalises them), so that an estimate is exactly fuse of what was given; the covariances
-    # symmetrised (which fuse leaves as they are).
+    # The batch is checked at once in C (the rules of checked_poses and checked_covariances); only
+    # the rows it cannot pass are checked here row by row, to name the problem (or pass one too
+    # near the edge of positive definite for the C check to be sure). The poses are kept as given
+    # (fuse normalises them), so that an estimate is exactly fuse of what was given; the
+    # covariances symmetrised (which fuse leaves as they are).
     rows = np.flatnonzero(ok)
     covs = np.array(covs)
     if len(rows):
-        passed, sym = _c.check_rows(poses[rows], covs[rows], _SYMMETRY_TOL)
+        passed, sym = _c.check_rows(poses[rows], covs[rows], SYMMETRY_TOL)
         covs[rows] = sym        # (a row it cannot pass: the covariance as given)
         rows = rows[~passed]
-    for arrays, check in ((poses.copy(), lambda a: _poses(a)),
-                          (covs, lambda a: _covariances(a, None, len(a)))):
+    for arrays, check in ((poses.copy(), lambda a: checked_poses(a)),
+                          (covs, lambda a: checked_covariances(a, None, len(a)))):
         rows = rows[ok[rows]]
         if not len(rows):
             break
@@ -239,7 +239,7 @@ def _check_rows(bodies, sources, times, poses, covs):
     return ok, errors, covs
 
 
-def _named_rows(bodies, sources, known_bodies=(), known_sources=()) -> list[int]:
+def named_rows(bodies, sources, known_bodies=(), known_sources=()) -> list[int]:
     """The rows whose body or source breaks the name rule (:mod:`dqpose.names`; a source may be
     "", the world frame), for rows that were decoded as strings: each name checked once, none of
     the ``known`` ones (names that passed before)."""
@@ -251,7 +251,7 @@ def _named_rows(bodies, sources, known_bodies=(), known_sources=()) -> list[int]
             if b in bad_bodies or s in bad_sources]
 
 
-def _finite_shape(x, name: str, shape: tuple) -> np.ndarray:
+def finite_shape(x, name: str, shape: tuple) -> np.ndarray:
     """``x`` as float64 of ``shape`` (values unchecked: the rows are checked one by one)."""
     a = np.asarray(x, dtype=np.float64)
     if a.shape != shape:

@@ -15,7 +15,7 @@ import numpy as np
 from dqpose import _dqcore
 from dqpose.errors import FieldError
 from dqpose.fusion import Fused
-from dqpose.fusion.validation import _SYMMETRY_TOL
+from dqpose.fusion.validation import SYMMETRY_TOL
 from dqpose.rpc.fusion_convert import (
     STATUS_ENUMS,
     Measurements,
@@ -355,7 +355,7 @@ def fuse_stream_from_wire(data: bytes) -> WireMeasurements | None:
     ``None`` for anything
     else (options, unknown fields, bytes protobuf would refuse, a measurement on the edge of a
     rule), which the protobuf path then takes."""
-    out = _dqcore.fuse_stream_from_wire(data, _SYMMETRY_TOL)
+    out = _dqcore.fuse_stream_from_wire(data, SYMMETRY_TOL)
     return None if out is None else WireMeasurements(*out)
 
 
@@ -363,7 +363,7 @@ def publish_from_wire(data: bytes) -> WireMeasurements | None:
     """:func:`fuse_stream_from_wire` of a serialized World ``PublishRequest``: its measurements
     (field 1), its producer and sequence skipped (the caller reads them from the parsed
     message, which checks the producer's UTF-8)."""
-    out = _dqcore.fuse_stream_from_wire(data, _SYMMETRY_TOL, True)
+    out = _dqcore.fuse_stream_from_wire(data, SYMMETRY_TOL, True)
     return None if out is None else WireMeasurements(*out)
 
 

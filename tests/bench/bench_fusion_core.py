@@ -36,6 +36,7 @@ import timeit
 import numpy as np
 
 from dqpose import _dqcore, dq, fusion, lie
+from dqpose.fusion.motion import determined_without_each, motion_start
 from tests.bench._table import markdown
 from tests.bench.bench_core import BUILD, CFLAGS, CSRC, HERE, fmt_time
 
@@ -106,9 +107,9 @@ def motion_table(samples: int, count: int = 20):
         args = []
         for Z, S, model in scenes:
             inlier = np.ones(n, bool)
-            tested = ~inlier | fusion._determined_without_each(model, inlier)
+            tested = ~inlier | determined_without_each(model, inlier)
             # the C fit picks its own start where there is a twist (None); the reference needs one
-            args.append((Z, S, model, inlier, fusion._motion_start(Z, S, model, inlier), tested,
+            args.append((Z, S, model, inlier, motion_start(Z, S, model, inlier), tested,
                          ref.motion_start(Z, model, inlier)))
         k = iter(range(10 ** 9))
 

@@ -4,7 +4,9 @@ import numpy as np
 import pytest
 
 from dqpose import _dqcore as _c
-from dqpose import dq, fusion, lie
+from dqpose import dq, lie
+from dqpose.fusion.motion import Model, determined_without_each
+from dqpose.fusion.process_noise import motion_solve
 from tests import fusion_reference as ref
 from tests.fusion._scenes import measure, random_cov, random_pose
 
@@ -198,7 +200,7 @@ def motion_scene(rng, n, estimate=(True, True), twist_prior=False, one_instant=F
     Z = measure(rng, dq.mul(X0, lie.se3_exp((stamp - truth)[:, None] * V0)), S)
     slots = [k for k, e in enumerate(estimate) if e]
     slot = np.array([slots.index(s) if s in slots else -1 for s in source])
-    model = fusion._Model(stamp=stamp, latency=truth, slot=slot,
+    model = Model(stamp=stamp, latency=truth, slot=slot,
                           prior=np.array([0.03, 0.0])[slots], prior_w=np.full(len(slots), 1e4),
                           twist=True, twist_w=np.linalg.inv(np.diag([1, 1, 1, 0.1, 0.1, 0.1]) ** 2)
                           if twist_prior else None)
@@ -265,12 +267,12 @@ def test_motion_fit_starts_from_the_data_twist_and_saves_an_iteration():
         stamp = -np.repeat(np.arange(n // 2), 2) / 30.0
         S = np.broadcast_to(np.diag([np.deg2rad(0.3)] * 3 + [1e-3] * 3) ** 2, (n, 6, 6)).copy()
         Z = measure(rng, dq.mul(X0, lie.se3_exp(stamp[:, None] * V0)), S)
-        model = fusion._Model(stamp=stamp, latency=np.zeros(n), slot=np.full(n, -1),
+        model = Model(stamp=stamp, latency=np.zeros(n), slot=np.full(n, -1),
                               prior=np.zeros(0), prior_w=np.zeros(0), twist=True, twist_w=None)
         inlier = np.ones(n, bool)
         W = np.linalg.inv(S)
         start = ref.motion_start(Z, model, inlier)
-        X, V, _, _, rest = fusion._motion_solve(Z, model, start, np.zeros(6),
+        X, V, _, _, rest = motion_solve(Z, model, start, np.zeros(6),
                                                 model.prior.copy(), 1e-12, 100, W)
         b = motion_core(Z, S, model, inlier, None, None)
         assert np.abs(b["twist"] - V).max() <= 1e-9 * max(1.0, np.abs(V).max())
@@ -301,7 +303,7 @@ def test_motion_fit_agrees_near_pi():
     for k in range(10):
         Z, S, model = motion_scene(rng, 6, twist_prior=True,
                                    cov=lambda r: random_cov(r, (30, 60), (0.05, 0.2)))
-        model = fusion._Model(np.array([-0.05, -0.05, 0.0, 0.0, -0.05, 0.0]), np.zeros(6),
+        model = Model(np.array([-0.05, -0.05, 0.0, 0.0, -0.05, 0.0]), np.zeros(6),
                               model.slot, model.prior, model.prior_w, True, model.twist_w)
         axis = rng.normal(size=3)
         axis /= np.linalg.norm(axis)
@@ -404,9 +406,9 @@ def test_determined_without_each_agrees_with_the_reference_on_shared_instants():
         latency = np.where(rng.random(n) < 0.5, 0.005, 0.0)
         inlier = rng.random(n) < [0.0, 0.3, 0.7, 1.0][trial % 4]
         for twist, prior in ((True, None), (True, np.eye(6)), (False, None)):
-            model = fusion._Model(stamp, latency, np.full(n, -1), np.zeros(0), np.zeros(0),
+            model = Model(stamp, latency, np.full(n, -1), np.zeros(0), np.zeros(0),
                                   twist, prior)
-            got = fusion._determined_without_each(model, inlier)
+            got = determined_without_each(model, inlier)
             assert got.dtype == bool
             assert np.array_equal(got, ref.determined_without_each(model, inlier)), (
                 stamp - latency, inlier, twist, prior is not None)

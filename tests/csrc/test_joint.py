@@ -1,12 +1,13 @@
 """The joint fit with uncertain extrinsics in C (``dq_joint_fit``, bound as
-``_dqcore.joint_fit``, called by ``dqpose.fusion.extrinsics._joint_fit``) against its NumPy
+``_dqcore.joint_fit``, called by ``dqpose.fusion.extrinsics.joint_fit``) against its NumPy
 reference (tests/fusion_reference.py) on random multi-part problems, and its argument checks."""
 import numpy as np
 import pytest
 
 from dqpose import _dqcore as _c
-from dqpose import dq, fusion, lie
-from dqpose.fusion.extrinsics import _Extrinsics, _joint_fit, _Part, _static_model
+from dqpose import dq, lie
+from dqpose.fusion.extrinsics import Extrinsics, Part, joint_fit, static_model
+from dqpose.fusion.motion import Model
 from tests import fusion_reference as ref
 from tests.fusion._scenes import measure, random_cov, random_pose
 
@@ -44,7 +45,7 @@ def problem(rng, parts=3, per=8, outliers=False, one_instant=(), twist_prior=(),
         S = np.array([cov(rng) for _ in range(per)])
         if k in one_instant:
             Z = measure(rng, X0, S)
-            model = _static_model(per)
+            model = static_model(per)
             V, ell, shared = np.zeros(6), np.zeros(0), None
         else:
             truth = np.array([SOURCES[s][2] for s in source])
@@ -54,7 +55,7 @@ def problem(rng, parts=3, per=8, outliers=False, one_instant=(), twist_prior=(),
             slot = np.array([own.index(s) if s in own else -1 for s in source])
             twist_w = (np.linalg.inv(np.diag([1, 1, 1, 0.3, 0.3, 0.3]) ** 2)
                        if k in twist_prior else None)
-            model = fusion._Model(stamp, truth, slot,
+            model = Model(stamp, truth, slot,
                                   np.array([SOURCES[s][2] + 0.01 for s in own]),
                                   np.full(len(own), 1e4), True, twist_w)
             V = V0 + rng.normal(size=6) * 0.05
@@ -70,7 +71,7 @@ def problem(rng, parts=3, per=8, outliers=False, one_instant=(), twist_prior=(),
             Z[~inlier] = dq.mul(Z[~inlier], lie.se3_exp(np.array([0.3, 0, 0, 0.1, 0, 0])))
         slot_e = np.array([uncertain.index(s) if s in uncertain else -1 for s in source])
         start = dq.mul(X0, lie.se3_exp(rng.normal(size=6) * 0.02))
-        out.append(_Part(Z, S, model, inlier, slot_e, start, V, ell, shared))
+        out.append(Part(Z, S, model, inlier, slot_e, start, V, ell, shared))
         slots.append(slot_e)
     # the fit's latencies are those of the sources some body sees, in order of appearance
     seen = list(dict.fromkeys(np.concatenate([p.shared for p in out if p.shared is not None]
@@ -78,7 +79,7 @@ def problem(rng, parts=3, per=8, outliers=False, one_instant=(), twist_prior=(),
     out = [p if p.shared is None else p._replace(shared=np.array(
         [seen.index(j) for j in p.shared], np.intp)) for p in out]
     info = np.linalg.inv(cov_e)
-    ext = _Extrinsics(np.concatenate(slots), tuple(f"s{s}" for s in uncertain), E, cov_e,
+    ext = Extrinsics(np.concatenate(slots), tuple(f"s{s}" for s in uncertain), E, cov_e,
                       0.5 * (info + np.swapaxes(info, 1, 2)))
     return out, ext
 
@@ -90,7 +91,7 @@ def rel(a, b):
 
 def assert_agrees(parts, ext, tol=1e-12, max_iter=100, bound=1e-10):
     a = ref.joint_fit(parts, ext, tol, max_iter)
-    b = _joint_fit(parts, ext, tol, max_iter, nis=True, jacobians=True)
+    b = joint_fit(parts, ext, tol, max_iter, nis=True, jacobians=True)
     assert (b.status, b.iterations) == (a.status, a.iterations)
     assert b.offsets == a.offsets
     for k in range(len(parts)):
@@ -137,9 +138,9 @@ def test_an_outlier_moves_nothing():
     """What inliers exclude changes only its own residual and NIS, not the fit."""
     rng = np.random.default_rng(930)
     parts, ext = problem(rng, parts=2, per=9, outliers=True)
-    b = _joint_fit(parts, ext, 1e-12, 100, nis=True)
+    b = joint_fit(parts, ext, 1e-12, 100, nis=True)
     moved = [p._replace(Z=np.where(p.inlier[:, None], p.Z, random_pose(rng))) for p in parts]
-    c = _joint_fit(moved, ext, 1e-12, 100, nis=True)
+    c = joint_fit(moved, ext, 1e-12, 100, nis=True)
     for k in range(2):
         assert np.array_equal(c.X[k], b.X[k]) and np.array_equal(c.V[k], b.V[k])
     assert np.array_equal(c.P, b.P) and c.chi2 == b.chi2
@@ -198,7 +199,7 @@ def test_hard_case_near_pi_and_tiny_covariances():
         S[:2] = [random_cov(rng, (30, 60), (0.05, 0.2)) for _ in range(2)]
         parts[0] = p._replace(Z=dq.mul(p.Z, lie.se3_exp(xi)), S=S)
         a = ref.joint_fit(parts, ext, 0.0, 15)
-        b = _joint_fit(parts, ext, 0.0, 15, nis=True, jacobians=True)
+        b = joint_fit(parts, ext, 0.0, 15, nis=True, jacobians=True)
         sd = np.sqrt(np.diag(a.P))
         d = np.concatenate([np.r_[lie.se3_log(dq.mul(dq.conj(a.X[k]), b.X[k])), b.V[k] - a.V[k]]
                             for k in range(2)])

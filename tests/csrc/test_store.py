@@ -52,8 +52,8 @@ def test_its_refusals_name_the_argument():
 
 
 def test_ingest_refuses_columns_and_codes_it_cannot_write():
-    from dqpose.fusion.store import _Store
-    s = _Store(capacity=4)
+    from dqpose.fusion.store import Store
+    s = Store(capacity=4)
     newest, seen, latency = np.full(2, -np.inf), np.full((2, 1), -np.inf), np.zeros(1)
 
     def ingest(store=s, body=(0,), ok=None, newest=newest, names=None):
@@ -78,7 +78,7 @@ def test_ingest_refuses_columns_and_codes_it_cannot_write():
         ingest(ok=np.ones(1, np.int8))
     with pytest.raises(ValueError, match="^newest: expected a writeable contiguous 1-d array"):
         ingest(newest=np.zeros(2, np.float32))
-    short = _Store(capacity=4)
+    short = Store(capacity=4)
     short.taken = np.zeros(3)
     with pytest.raises(ValueError, match="^store.taken: expected a writeable contiguous column"):
         ingest(store=short)

@@ -10,7 +10,7 @@ import pytest
 from dqpose import dq, lie
 from dqpose.fusion import Measurement, Source
 from dqpose.fusion.chi2 import chi2_quantile
-from dqpose.fusion.consistency import _verdict_bounds
+from dqpose.fusion.consistency import verdict_bounds
 from dqpose.rpc.world_convert import body_pose_bytes
 from dqpose.world import BodyPose, OutOfRange, World, WorldBounds, WorldOptions
 from tests.fusion._scenes import random_cov, random_pose
@@ -112,7 +112,7 @@ def test_a_capped_window_fits_its_last_rows():
 
 
 def test_the_verdicts_bounds_are_chi2s():
-    b = _verdict_bounds(0.99, 40)
+    b = verdict_bounds(0.99, 40)
     assert b.shape[1] > 40
     for count in (1, 7, 40):
         assert b[0, count] == chi2_quantile(0.005, 6 * count) / count
@@ -191,7 +191,7 @@ def test_the_bindings_refusals_name_the_argument():
     t = w.tracker
     s, rows = t._store, w._tick_rows("box", None)
     w.tick_wire("box", None, 1)
-    opts, bounds = w._wire._options, _verdict_bounds(t._checked.probability, 40)
+    opts, bounds = w._wire._options, verdict_bounds(t._checked.probability, 40)
     args = [opts, s.wposes, s.covs, s.times, s.codes, s.ids, rows, np.nan, "box", 1, bounds]
     for k, bad, name in ((6, np.array([s.n + len(s.ids)]), "rows"),
                          (1, s.wposes[:, :7], "poses"), (10, bounds[:1], "bounds")):

@@ -246,20 +246,20 @@ def test_leave_one_out_nis_is_chi2_6_with_shared_errors():
 def test_leaving_out_the_nis_changes_nothing_else():
     """The joint fit without its leave-one-out NIS (what World.relative and a Lookup ask for)
     gives the same state, covariance and residuals to the last bit as with them (Fuse's)."""
-    from dqpose.fusion.alignment import _setup
-    from dqpose.fusion.extrinsics import _motion_fit_ext
+    from dqpose.fusion.alignment import time_setup
+    from dqpose.fusion.extrinsics import motion_fit_ext
     rng = np.random.default_rng(16)
     src = [Source("a", random_pose(rng), latency=0.01, latency_sigma=0.005,
                   extrinsic_covariance=ext_cov(rng)), Source("b", random_pose(rng))]
     Z, S, N, T = moving(rng, src, None, n_times=6)
     table = {s.name: s for s in src}
-    Zw, Sw = fusion.sources._to_world(Z, S, N, table)
-    u = _setup(Zw, N, table, T, None, None, None, None, None)
+    Zw, Sw = fusion.sources.to_world(Z, S, N, table)
+    u = time_setup(Zw, N, table, T, None, None, None, None, None)
     inlier = np.ones(len(Z), bool)
     start = fusion.fuse(Z, S, names=N, sources=src, times=T)
     args = (Zw, Sw, u.model, u.model.extrinsics, inlier, start.mean, np.array(start.twist),
             np.array([lat.value for lat in start.latencies]), 1e-12, 100)
-    with_nis, without = _motion_fit_ext(*args, nis=True), _motion_fit_ext(*args, nis=False)
+    with_nis, without = motion_fit_ext(*args, nis=True), motion_fit_ext(*args, nis=False)
     for k in ("mean", "V", "ell", "H", "P", "r", "cost"):
         assert getattr(with_nis, k).tobytes() == getattr(without, k).tobytes(), k
     assert without.nis is None and with_nis.nis is not None

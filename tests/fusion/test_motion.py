@@ -3,6 +3,7 @@ import numpy as np
 
 from dqpose import dq, fusion, lie
 from dqpose.fusion import Status
+from dqpose.fusion.motion import Model, motion_evaluate, motion_jacobian
 from tests.fusion._moving import (
     TWIST,
     error,
@@ -16,21 +17,21 @@ def test_the_jacobian_is_exact_for_pose_twist_and_latency():
     rng = np.random.default_rng(70)
     Z, S, names, stamps, T = scene(rng)
     Z, S, names, stamps = Z[::9], S[::9], names[::9], stamps[::9]
-    model = fusion._Model(stamp=stamps - 1.0, latency=np.zeros(len(names)),
+    model = Model(stamp=stamps - 1.0, latency=np.zeros(len(names)),
                           slot=np.array([{"cam_a": 0, "arm": 1}.get(s, -1) for s in names]),
                           prior=np.array([0.03, 0.01]), prior_w=np.array([1e4, 1e4]),
                           twist=True, twist_w=None)
     W = np.linalg.inv(S)
     X, V, ell = T(1.0)[0], TWIST + 0.1, np.array([0.035, 0.002])
-    dt, r, _ = fusion._motion_evaluate(X, V, ell, Z, W, model)
-    G = fusion._motion_jacobian(V, dt, r, model)
+    dt, r, _ = motion_evaluate(X, V, ell, Z, W, model)
+    G = motion_jacobian(V, dt, r, model)
     h = 1e-6
     for k in range(model.dim):
         d = np.zeros(model.dim)
         d[k] = h
         def residual(sign):
             Xs = dq.mul(X, lie.se3_exp(sign * d[:6]))
-            return fusion._motion_evaluate(Xs, V + sign * d[6:12], ell + sign * d[12:], Z, W,
+            return motion_evaluate(Xs, V + sign * d[6:12], ell + sign * d[12:], Z, W,
                                            model)[1]
         numeric = (residual(1) - residual(-1)) / (2 * h)
         np.testing.assert_allclose(-G[:, :, k], numeric, atol=1e-7 * max(1, np.abs(numeric).max()))

@@ -5,6 +5,7 @@ import pytest
 
 from dqpose import dq, fusion, lie
 from dqpose.fusion import Source, Status, Tracker
+from dqpose.fusion.process_noise import kernel
 from tests.fusion._moving import (
     ACCELERATION,
     ARM_LATENCY,
@@ -36,7 +37,7 @@ def random_walk_scene(rng, Q, window=0.1):
     taken = stamps - np.array([{"arm": ARM_LATENCY}.get(s, LATENCY) for s in names])
     dt = taken - taken.max()
     X = lie.se3_exp(rng.normal(size=6))
-    w, U = np.linalg.eigh(fusion._kernel(dt))  # singular at dt = 0
+    w, U = np.linalg.eigh(kernel(dt))  # singular at dt = 0
     A = U * np.sqrt(np.maximum(w, 0.0))
     eps = A @ rng.normal(size=(dt.size, 6)) @ np.linalg.cholesky(Q).T
     truth = dq.mul(dq.mul(X, lie.se3_exp(dt[:, None] * TWIST)), lie.se3_exp(eps))

@@ -7,15 +7,15 @@ import numpy as np
 from dqpose import limits
 from dqpose.fusion import Rows, Source, Tracker
 from dqpose.fusion.bounds import TrackerBounds
-from dqpose.fusion.store import _Store
+from dqpose.fusion.store import Store
 
 
-def _scan(s: _Store, b: int, newest, window: float, cap=None) -> np.ndarray:
+def _scan(s: Store, b: int, newest, window: float, cap=None) -> np.ndarray:
     rows = np.flatnonzero((s.body[:s.n] == b) & (s.taken[:s.n] >= newest[b] - window))
     return rows if cap is None or len(rows) <= cap else rows[len(rows) - cap:]
 
 
-def _append(s: _Store, newest, window: float, body, taken) -> None:
+def _append(s: Store, newest, window: float, body, taken) -> None:
     """Rows of ``body`` taken at ``taken`` into ``s`` as a tracker without bounds takes them
     (``_index.ingest``, newest updated), every one taken in."""
     m = len(body)
@@ -32,7 +32,7 @@ def _append(s: _Store, newest, window: float, body, taken) -> None:
 
 def test_rows_by_index_equal_a_scan_through_growth_compaction_and_removal():
     rng = np.random.default_rng(0)
-    s = _Store(capacity=8)
+    s = Store(capacity=8)
     bodies, window = 7, 0.5
     newest = np.full(bodies, -np.inf)
     t = 0.0
@@ -55,7 +55,7 @@ def test_rows_by_index_equal_a_scan_through_growth_compaction_and_removal():
 
 def test_rows_taken_since_a_time_by_the_running_maximum_equal_a_scan():
     rng = np.random.default_rng(1)
-    s = _Store(capacity=8)
+    s = Store(capacity=8)
     newest = np.full(3, -np.inf)
     for step in range(300):
         m = int(rng.choice([1, 5, 30]))

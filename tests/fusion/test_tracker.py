@@ -256,11 +256,11 @@ def test_rows_checked_in_c_answer_as_numpy_does_each_row():
         Q = np.linalg.qr(rng.normal(size=(6, 6)))[0]       # at the edge of positive definite
         S[k] = (Q * np.r_[np.ones(5), low]) @ Q.T * 1e-4
     bodies, sources = [f"b{k % 3}" for k in range(n)], ["cam"] * n
-    ok, errors, covs = validation._check_rows(bodies, sources, np.zeros(n), Z, S)
+    ok, errors, covs = validation.check_rows(bodies, sources, np.zeros(n), Z, S)
     for k in range(n):
         try:
-            validation._poses(Z[k:k + 1])
-            want = validation._covariances(S[k:k + 1], None, 1)[0]
+            validation.checked_poses(Z[k:k + 1])
+            want = validation.checked_covariances(S[k:k + 1], None, 1)[0]
         except ValueError as e:
             assert not ok[k], k
             assert str(errors[k]) == str(rename(e, {
