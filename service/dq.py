@@ -184,13 +184,14 @@ def dib(dqs, weights=None, tol: float = 1e-12, max_iter: int = 100, *, return_in
     :class:`DIBResult` with the number of steps and the final residual (the norm of the weighted
     log sum at the returned mean; half-twist units: radians and metres).
     """
-    mean, iters, res = _c.blend(dqs, weights, _DIB, _as_tol(tol), _as_iter(max_iter))
+    mean, iters, res = _c.blend(dqs, weights, _DIB, as_tol(tol), as_iter(max_iter))
     if return_info:
         return DIBResult(mean, iters.astype(np.int64), res)
     return mean
 
 
-def _as_iter(max_iter) -> int:
+def as_iter(max_iter) -> int:
+    """``max_iter`` of a blend or a fit checked: a whole number in 0..1000000."""
     try:
         m = int(max_iter)
         whole = m == max_iter and not isinstance(max_iter, (bool, np.bool_))
@@ -203,7 +204,8 @@ def _as_iter(max_iter) -> int:
     return m
 
 
-def _as_tol(tol) -> float:
+def as_tol(tol) -> float:
+    """``tol`` of a blend or a fit checked: finite and >= 0."""
     try:
         t = float(tol)
     except (TypeError, ValueError):
@@ -221,7 +223,7 @@ def lin(dqs, weights=None) -> np.ndarray:
 
 def dec(dqs, weights=None, tol: float = 1e-12, max_iter: int = 100) -> np.ndarray:
     """Rotation (spherical weighted mean) and translation (weighted mean) blended separately."""
-    return _c.blend(dqs, weights, _DEC, _as_tol(tol), _as_iter(max_iter))
+    return _c.blend(dqs, weights, _DEC, as_tol(tol), as_iter(max_iter))
 
 
 def logblend(dqs, weights=None) -> np.ndarray:
@@ -239,5 +241,5 @@ def blend(dqs, weights=None, method: str = "dib", tol: float = 1e-12, max_iter: 
     they are normalised to sum 1.
     """
     code = _method_code(method)
-    out = _c.blend(dqs, weights, code, _as_tol(tol), _as_iter(max_iter))
+    out = _c.blend(dqs, weights, code, as_tol(tol), as_iter(max_iter))
     return out[0] if code == _DIB else out

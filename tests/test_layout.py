@@ -28,16 +28,28 @@ def sources(root: pathlib.Path = ROOT) -> dict[str, pathlib.Path]:
     return out
 
 
-def private_imports(tree: ast.Module) -> list[tuple[int, str, str]]:
-    """``(line, module, name)`` of each ``from dqpose... import _name``, lazy imports included."""
-    found = []
+def _private(name: str) -> bool:
+    return name.startswith("_") and not name.startswith("__") and name not in EXEMPT
+
+
+def private_imports(tree: ast.Module, modules=frozenset()) -> list[tuple[int, str, str]]:
+    """``(line, module, name)`` of each ``from dqpose... import _name`` (lazy imports included)
+    and each ``m._name`` read where ``m`` is one of ``modules`` imported (``from a import m``,
+    ``import a.m as m``)."""
+    found, alias = [], {}
     for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            alias.update({a.asname: a.name for a in node.names if a.asname and a.name in modules})
         if not isinstance(node, ast.ImportFrom) or node.level or not node.module:
             continue
+        alias.update({a.asname or a.name: f"{node.module}.{a.name}" for a in node.names
+                      if f"{node.module}.{a.name}" in modules})
         if node.module.split(".")[0] != "dqpose" or EXEMPT & set(node.module.split(".")):
             continue
-        found += [(node.lineno, node.module, a.name) for a in node.names if a.name not in EXEMPT
-                  and a.name.startswith("_") and not a.name.startswith("__")]
+        found += [(node.lineno, node.module, a.name) for a in node.names if _private(a.name)]
+    found += [(node.lineno, alias[node.value.id], node.attr) for node in ast.walk(tree)
+              if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name)
+              and node.value.id in alias and _private(node.attr)]
     return found
 
 
@@ -110,14 +122,14 @@ def _private_imports_by_file(modules) -> dict[str, list[str]]:
     out = {}
     for path in modules.values():
         rel = path.relative_to(ROOT).as_posix()
-        hits = [f"{line}: from {mod} import {name}"
-                for line, mod, name in private_imports(ast.parse(path.read_text()))]
+        hits = [f"{line}: {mod}.{name}"
+                for line, mod, name in private_imports(ast.parse(path.read_text()), set(modules))]
         if hits:
             out[rel] = hits
     return out
 
 
-def test_no_private_name_is_imported_from_another_module():
+def test_no_private_name_of_another_module_is_used():
     found = _private_imports_by_file(sources())
     assert not found, "give these a public name where they are defined:\n" + "\n".join(
         f"{f}:{h}" for f, hits in sorted(found.items()) for h in hits)
@@ -134,7 +146,8 @@ def test_the_checks_find_what_they_look_for(tmp_path):
     (tmp_path / "drivers").mkdir()
     (tmp_path / "service" / "pkg" / "__init__.py").write_text("")
     (tmp_path / "service" / "pkg" / "a.py").write_text(
-        "from dqpose.pkg.b import _hidden, public\nfrom dqpose import _dqcore\n")
+        "from dqpose.pkg.b import _hidden, public\nfrom dqpose import _dqcore\n"
+        "from dqpose.pkg import b\nb.public, b._inner, _dqcore._c, public._x\n")
     (tmp_path / "service" / "pkg" / "b.py").write_text(
         "import typing\nif typing.TYPE_CHECKING:\n    from dqpose.drivers import x\n"
         "def f():\n    from dqpose.pkg import a\n")
@@ -143,8 +156,9 @@ def test_the_checks_find_what_they_look_for(tmp_path):
     modules = sources(tmp_path)
     assert set(modules) == {"dqpose.pkg", "dqpose.pkg.a", "dqpose.pkg.b", "dqpose.drivers",
                             "dqpose.drivers.x"}
-    hidden = {m: private_imports(ast.parse(p.read_text())) for m, p in modules.items()}
-    assert hidden["dqpose.pkg.a"] == [(1, "dqpose.pkg.b", "_hidden")]
+    hidden = {m: private_imports(ast.parse(p.read_text()), set(modules))
+              for m, p in modules.items()}
+    assert hidden["dqpose.pkg.a"] == [(1, "dqpose.pkg.b", "_hidden"), (4, "dqpose.pkg.b", "_inner")]
     assert hidden["dqpose.drivers"] == [(1, "dqpose.drivers.x", "_y")]
     assert not cycles(import_graph(modules))        # lazy and TYPE_CHECKING imports aside
     (tmp_path / "service" / "pkg" / "b.py").write_text("from dqpose.drivers import x\n")

@@ -69,8 +69,8 @@ def fuse(poses, covariances=None, *, weights=None, names: Optional[Sequence[str]
         probability = float("nan")
     if not 0.0 < probability < 1.0:
         raise ValueError(f"probability: must be within (0, 1), got {probability!r}")
-    tol = dq._as_tol(tol)
-    max_iter = dq._as_iter(max_iter)
+    tol = dq.as_tol(tol)
+    max_iter = dq.as_iter(max_iter)
     Z, S = to_world(Z, S, names, table)
     gate2 = chi2_quantile(probability, DOF)
     if times is not None:

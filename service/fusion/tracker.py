@@ -102,8 +102,8 @@ class Tracker:
              acceleration_psd=acceleration_psd, tol=tol, max_iter=max_iter)
         probability = float(probability)
         self._checked = Checked(self._table, robust, probability,
-                                 chi2_quantile(probability, DOF), dq._as_tol(tol),
-                                 dq._as_iter(max_iter), max_skew, max_extrapolation,
+                                 chi2_quantile(probability, DOF), dq.as_tol(tol),
+                                 dq.as_iter(max_iter), max_skew, max_extrapolation,
                                  twist_covariance, acceleration_psd)
         self._store = Store(world_covs=any(src.body_offset is not None
                                             for src in self._table.values()))
