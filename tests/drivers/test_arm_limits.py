@@ -252,6 +252,20 @@ def test_a_first_setpoint_is_measured_from_rest(arm):
     assert info.value.value == pytest.approx(0.9 * LIMITS.max_linear_velocity / arm.period)
 
 
+def test_a_stream_that_stop_ended_starts_again_from_rest(rig, arm):
+    sent = _stream(arm, fraction=0.5)            # cruising at 0.1 m/s
+    arm.stop()
+    assert wait_until(rig.stopped, timeout=SETTLE)
+    here = arm.tool_pose()[1]
+    q, t = dq.to_pose(here)
+    step = dq.to_pose(sent[-1])[1] - dq.to_pose(sent[-2])[1]
+    # the cruise's step once more, now from rest: an acceleration of |step| / period^2 (after
+    # the last set-point sent it would be the distance the stop braked over, divided likewise)
+    with pytest.raises(LimitError, match="limits.max_linear_acceleration") as info:
+        arm.servo(dq.from_pose(q, t + step))
+    assert info.value.value == pytest.approx(np.linalg.norm(step) / arm.period ** 2)
+
+
 def test_move_and_servo_arguments_are_checked_the_same(arm):
     here = arm.tool_pose()[1]
     q, t = dq.to_pose(here)
