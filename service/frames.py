@@ -246,17 +246,17 @@ def _inverse(X, P) -> tuple[np.ndarray, Optional[np.ndarray]]:
 def static_fit(world: "World", body: str) -> Fused:
     """Static body ``body``'s one constant pose from all its kept measurements (the tracker's
     one-instant fit), kept until its version changes."""
-    t = world._t
-    world._known(body)
+    t = world.tracker
+    world.check_known(body)
     key = (body, None, None)
-    version = world._riders.version(body)
-    hit = world._fits.get(key)
+    version = world.riders.version(body)
+    hit = world.fits.get(key)
     if hit is not None and hit[0] == version:
         return hit[1]
     rows = t.rows_ending(body, t.newest(body), t.window)
-    f, ids = world._fit_of(body, rows,
+    f, ids = world.fit_of(body, rows,
                            lambda r: t.estimate(rows=r, fit="static", ids=True))
-    world._fits.keep(key, (version, f, True, ids), len(f.distances))
+    world.fits.keep(key, (version, f, True, ids), len(f.distances))
     return f
 
 
@@ -265,22 +265,22 @@ def static_tick(world: "World", body: str, time: Optional[float]) -> tuple["Body
     with the ids of the measurements fused."""
     from dqpose.world import BodyPose
     f = static_fit(world, body)
-    return (BodyPose(body, world._tick_time(body, time), f.mean, f.covariance, f),
-            world._fits[(body, None, None)][3])
+    return (BodyPose(body, world.tick_time(body, time), f.mean, f.covariance, f),
+            world.fits[(body, None, None)][3])
 
 
 def _root_pose(world: "World", root: str, at: float) -> tuple[np.ndarray, np.ndarray]:
     if root in world.tree.static_bodies:
         f = static_fit(world, root)
         return f.mean, f.covariance
-    return world._pose_only(root, at)
+    return world.pose_only(root, at)
 
 
 def relative(world: "World", target: str, source: str, time: float) -> "BodyPose":
     """``T_target_source`` at ``time`` of any two frames (0: the newest time both roots'
     bodies are known at; statics, static bodies and the world alone: 0, valid at every time)."""
     from dqpose.world import BodyPose
-    tree, t = world.tree, world._t
+    tree, t = world.tree, world.tracker
     # a body with measurements is that body (a source's name only where no static or rider
     # makes the names one namespace, Publish refusing them there)
     ct = [target] if t.has(target) else tree.chain(target)
@@ -288,17 +288,17 @@ def relative(world: "World", target: str, source: str, time: float) -> "BodyPose
     roots = (ct[-1], cs[-1])
     for r in roots:
         if r and not t.has(r):
-            world._known(r)         # raises, naming what is known
+            world.check_known(r)         # raises, naming what is known
     moving = [r for r in roots if r and r not in tree.static_bodies]
     if time == 0.0:
         at = min(t.newest(r) for r in moving) if moving else 0.0
     else:
-        at = world._at("", time)
+        at = world.fit_time("", time)
     if roots[0] == roots[1]:
         common = set(cs)
         lca = next(f for f in ct if f in common)
         if lca == roots[0] and moving:
-            world._pose_only(lca, at)       # known at that time
+            world.pose_only(lca, at)       # known at that time
         Xt, Pt = tree.offset(target, lca)
         Xs, Ps = tree.offset(source, lca)
         X, P = _compose(*_inverse(Xt, Pt), Xs, Ps)
@@ -323,12 +323,12 @@ def _roots(world: "World", target: str, source: str, at: float) -> "BodyPose":
         return composed_independent(target, source, at,
                          {b: _root_pose(world, b, at) for b in (target, source) if b})
     key = (target, source, at)
-    versions = (world._riders.version(target), world._riders.version(source))
-    hit = world._relatives.get(key)
+    versions = (world.riders.version(target), world.riders.version(source))
+    hit = world.kept_relatives.get(key)
     if hit is not None and hit[0] == versions:
         return hit[1]
-    answer = world._lookups.relative(target, source, at)
-    world._relatives.keep(key, (versions, answer))
+    answer = world.lookups.relative(target, source, at)
+    world.kept_relatives.keep(key, (versions, answer))
     return answer
 
 
@@ -340,7 +340,7 @@ def frame_pose(world: "World", frame: str, at: float) -> "BodyPose":
         f = static_fit(world, frame)
         return BodyPose(frame, at, f.mean, f.covariance, f)
     if frame and world.tree.kind(frame) == FrameKind.BODY:
-        f = world._fit(frame, at, nis=False)
+        f = world.fit_at(frame, at, nis=False)
         assert f.time is not None
         return BodyPose(frame, f.time, f.mean, f.covariance, f)
     p = relative(world, "", frame, at)
@@ -360,7 +360,7 @@ class BodyColumns(NamedTuple):
 def body_columns(world: "World") -> BodyColumns:
     """The bodies' frames (:class:`BodyColumns`), the measured ones' spans, rates and sources
     from one pass over the store's rows (``Tracker.spans``)."""
-    t, tree = world._t, world.tree
+    t, tree = world.tracker, world.tree
     held = list(t.held)
     names = held + [b for b in tree.static_body_names if not t.has(b)]
     spans = np.zeros((len(names), 3))
@@ -368,7 +368,7 @@ def body_columns(world: "World") -> BodyColumns:
     if held:
         oldest, newest, near, fed = t.spans(held, 1.0)
         spans[:len(held)] = np.stack([oldest, newest, near], axis=1)
-        before = world._fed_before      # sources that fed a body under earlier configurations
+        before = world.fed_before      # sources that fed a body under earlier configurations
         sources[:len(held)] = [
             f + tuple(s for s in before[b] if s not in f) if b in before else f
             for b, f in zip(held, fed)]

@@ -53,22 +53,22 @@ class Lookups:
         """``T_target_source`` at the checked time ``at`` of known bodies (either may be "", the
         world frame, not both; not the same body), the world's read lock held."""
         w = self._world
-        t = w._t
-        riders = w._riders
+        t = w.tracker
+        riders = w.riders
         if riders.parents and riders.rides(target, source):
             # a rider's rows composed with its parent's poses (dqpose.riders): the two bodies
             # fitted together over the uncertain sources they share, else each alone
             got = riders.joint(target, source, at) if target and source else None
             if got is None:
                 return composed_independent(target, source, at,
-                                 {b: w._pose_only(b, at) for b in (target, source) if b})
+                                 {b: w.pose_only(b, at) for b in (target, source) if b})
             from dqpose.world import BodyPose
             Xa, Xb, P = got
             return BodyPose(source, at, read_only(dq.mul(dq.conj(Xa), Xb)),
                             read_only(relative_covariance(Xa, Xb, P)), None)
         if t.exact or not (target and source):
             # nothing uncertain two bodies could share: each body's own pose (a kept fit's)
-            kept = {b: w._kept_pose(b, at) for b in (target, source) if b}
+            kept = {b: w.kept_pose(b, at) for b in (target, source) if b}
             poses = {b: k for b, k in kept.items() if k is not None}
             if len(poses) == len(kept):
                 return composed_independent(target, source, at, poses)
@@ -79,10 +79,10 @@ class Lookups:
         """The Lookup in one C call, or None where it is another path's."""
         from dqpose.world import BodyPose
         w = self._world
-        t = w._t
+        t = w.tracker
         latency, latency_w, E, E_info, uncertain, twist_w = self._table(t)
         L, Ehat = self._starts(t, len(latency))
-        rows = [w._rows_for(b, at) if b else None for b in (target, source)]
+        rows = [w.rows_for(b, at) if b else None for b in (target, source)]
         warm = [self._warm_of(b, at) for b in (target, source)]
         s = t._store
         covs = s.wcovs if "wcovs" in s._arrays else s.covs
@@ -161,16 +161,16 @@ class Lookups:
         from dqpose.world import BodyPose
         w = self._world
         if not target:      # the world frame is exact: the body's own pose
-            return BodyPose(source, at, *w._pose_only(source, at), None)
-        if not source or w._t.exact or not self.share(target, source, at):
+            return BodyPose(source, at, *w.pose_only(source, at), None)
+        if not source or w.tracker.exact or not self.share(target, source, at):
             # nothing uncertain that two bodies could share: each body's own pose
             return composed_independent(target, source, at,
-                             {b: w._pose_only(b, at) for b in (target, source) if b})
+                             {b: w.pose_only(b, at) for b in (target, source) if b})
         # each body's start for the joint fit: its constant-twist fit, unless robust (the
         # gate's inliers need the whole fit); kept apart from the body's own fits
-        t = w._t
-        rows = [w._rows_for(b, at) for b in (target, source)]
-        fits = [w._fit_of(b, r, lambda r: t.estimate(None, at, rows=r, fit="start"))
+        t = w.tracker
+        rows = [w.rows_for(b, at) for b in (target, source)]
+        fits = [w.fit_of(b, r, lambda r: t.estimate(None, at, rows=r, fit="start"))
                 for b, r in zip((target, source), rows)]
         (Xa, Xb), P = t.joint(rows, fits, at)
         return BodyPose(source, at, read_only(dq.mul(dq.conj(Xa), Xb)),
@@ -181,9 +181,9 @@ class Lookups:
         ``at`` from a common source whose extrinsic is uncertain or whose latency is estimated
         (errors the two poses then share)."""
         w = self._world
-        t, window = w._t, w.options.window
-        common = (t.sources_of(t.rows_ending(a, w._end(a, at), window))
-                  & t.sources_of(t.rows_ending(b, w._end(b, at), window)))
+        t, window = w.tracker, w.options.window
+        common = (t.sources_of(t.rows_ending(a, w.window_end(a, at), window))
+                  & t.sources_of(t.rows_ending(b, w.window_end(b, at), window)))
         return any(not t._table[s].exact for s in common if s in t._table)
 
 

@@ -4,7 +4,7 @@ A rider's measurement is kept as every measurement is, in its source's frame com
 extrinsic and body offset (``E · Z · O``, :mod:`dqpose.fusion.sources`), which for a rider is its
 parent's frame; it is brought to the world when a fit takes it, never at ingest, so a replay
 stays a function of arrival order: row i becomes ``T_world_P(t_i) · E · Z_i · O`` with the
-parent P's pose at the row's taken time ``t_i`` (P's own fit, :meth:`World._pose_only`). A row
+parent P's pose at the row's taken time ``t_i`` (P's own fit, :meth:`World.pose_only`). A row
 whose time P is not known at is left out of that fit and listed among its dropped measurements
 (a :class:`~dqpose.fusion.Dropped` with its ``why``), after the rows it fitted.
 
@@ -87,13 +87,13 @@ class Riders:
     def rides(self, *bodies: str) -> bool:
         """Whether a rider ever fed one of ``bodies`` ("" the world: none; the lock held)."""
         parents, w = self.parents, self._world
-        return any(s in parents for b in bodies if b for s in w._fed(b))
+        return any(s in parents for b in bodies if b for s in w.fed(b))
 
     def parents_of(self, body: str) -> list[str]:
         """The bodies the riders that ever fed ``body`` ride on (their parents' roots in the
         frame tree: a static's body), once each (the lock held)."""
         parents, w = self.parents, self._world
-        return list(dict.fromkeys(w.tree.root(parents[s]) for s in w._fed(body) if s in parents))
+        return list(dict.fromkeys(w.tree.root(parents[s]) for s in w.fed(body) if s in parents))
 
     @staticmethod
     def check(table: Mapping[str, "Source"], arms: Mapping[str, str], acceleration_psd) -> None:
@@ -118,11 +118,11 @@ class Riders:
         tick of ``body`` waits for (:func:`dqpose.world_ticks.horizon`)."""
         w = self._world
         if not self.parents:
-            return w._fed(body)
-        out: dict = dict(w._fed(body))
+            return w.fed(body)
+        out: dict = dict(w.fed(body))
         for p in self.parents_of(body):
-            if p != body and w._t.has(p):
-                out.update(((p, s), at) for s, at in w._fed(p).items())
+            if p != body and w.tracker.has(p):
+                out.update(((p, s), at) for s, at in w.fed(p).items())
         return out
 
     def cost(self, body: str, rows: np.ndarray) -> int:
@@ -131,7 +131,7 @@ class Riders:
         if not self.parents or not self.rides(body):
             return len(rows)
         w = self._world
-        t = w._t
+        t = w.tracker
         riding = int(np.count_nonzero(t._riding[t._store.codes[rows]]))
         parent = max((len(t.rows_ending(p, t.newest(p), w.options.window))
                       for p in self.parents_of(body) if t.has(p)), default=0)
@@ -140,7 +140,7 @@ class Riders:
     def version(self, body: str):
         """What ``body``'s answers depend on: its version (:meth:`Tracker.version`), and with
         riders its parents' too."""
-        t = self._world._t
+        t = self._world.tracker
         own = t.version(body)
         if not self.parents or not self.rides(body):
             return own
@@ -151,7 +151,7 @@ class Riders:
         parents' poses (the module's docstring) for a fit at ``time`` (None: the rows' newest),
         or None when no row is a rider's."""
         w = self._world
-        t = w._t
+        t = w.tracker
         s = t._store
         names = t._sources_of(rows)
         riding = [k for k, n in enumerate(names) if n in self.parents]
@@ -183,7 +183,7 @@ class Riders:
         if c is None:
             return None
         kept = c.kept()
-        o = self._world._t._checked._replace(table=c.table)
+        o = self._world.tracker._checked._replace(table=c.table)
         used = tuple(c.names[k] for k in kept)
         f = (fuse_static_rows(c.Z[kept], c.S[kept], used, o) if static else
              fuse_world_rows(c.Z[kept], c.S[kept], used, c.times[kept], time, o, nis, joint))
@@ -191,7 +191,7 @@ class Riders:
         at = c.at if f.time is None else f.time
         dropped = tuple(Dropped(kept.size + j, c.names[k], float(at - c.taken[k]), 0.0,
                                 c.why[k]) for j, k in enumerate(out.tolist()))
-        ids = self._world._t._store.ids[rows]
+        ids = self._world.tracker._store.ids[rows]
         return (dataclasses.replace(f, dropped=f.dropped + dropped),
                 np.concatenate([ids[kept], ids[out]]))
 
@@ -201,12 +201,12 @@ class Riders:
         :mod:`dqpose.fusion.extrinsics`): ``(X_a, X_b, P)`` with ``P`` their joint covariance
         ``(12, 12)``; None when they share none (the lock held)."""
         w = self._world
-        t = w._t
+        t = w.tracker
         table = dict(t._checked.table)
         parts: list[tuple] = []
         composed: dict = {}
         for body in (a, b):
-            part, riders = w._fit_of(body, w._rows_for(body, at), lambda r: self._part(r, at))
+            part, riders = w.fit_of(body, w.rows_for(body, at), lambda r: self._part(r, at))
             parts.append(part)
             for name, src in riders.items():
                 composed.setdefault(name, src)       # one extrinsic a source: a's
@@ -225,14 +225,14 @@ class Riders:
         sources as the fit takes them."""
         c = self.compose(rows, at)
         if c is None:
-            t = self._world._t
+            t = self._world.tracker
             Z, S = t._store.world(rows)
             return (Z, S, t._sources_of(rows), t._store.times[rows]), {}
         kept = c.kept()
         return (c.Z[kept], c.S[kept], tuple(c.names[k] for k in kept), c.times[kept]), c.riders
 
     def _body_of(self, rows: np.ndarray) -> str:
-        t = self._world._t
+        t = self._world.tracker
         code = int(t._store.body[rows[0]])
         return next(b for b, c in t._body_codes.items() if c == code)
 
@@ -257,7 +257,7 @@ class Riders:
             good.append(k)
         if not good:
             return None
-        src_ = w._t._checked.table[src]
+        src_ = w.tracker._checked.table[src]
 
         def source(at: float):
             ref = min(good, key=lambda k: abs(float(taken[k]) - at))
@@ -283,17 +283,17 @@ class Riders:
         root = w.tree.root(parent)
         if root == body or root in stack:
             return f"its parent {parent!r} rides on {body!r} (a cycle)"
-        if root and not w._t.has(root):
+        if root and not w.tracker.has(root):
             return (f"its parent {parent!r} is not known at {seconds_text(at)} (no measurement "
                     f"of {root!r})")
         stack.append(body)
         try:
             if parent == root and root not in w.tree.static_bodies:
-                return w._pose_only(parent, at)     # a body: its own fit, the C path
+                return w.pose_only(parent, at)     # a body: its own fit, the C path
             p = frame_pose(w, parent, at)
             return p.pose, p.covariance
         except (LookupError, ValueError):
-            t = w._t
+            t = w.tracker
             return (f"its parent {parent!r} is not known at {seconds_text(at)} ("
                     f"{known_from(root, t.oldest(root), t.newest(root))})")
         finally:

@@ -117,7 +117,7 @@ def _root(world, root: str, at: float, made: dict) -> Optional[_Fit]:
         return None
     if root in world.tree.static_bodies:
         if root not in made:
-            with world._lock.read():
+            with world.lock.read():
                 f = frames.static_fit(world, root)
             made[root] = _constant(root, f.mean, f.covariance)
         return made[root]
@@ -149,17 +149,17 @@ def _constant(name: str, pose: np.ndarray, covariance: np.ndarray) -> _Fit:
 def _fit(world, body: str, at: float) -> _Fit:
     """``body``'s Lookup fit at ``at`` with what its cross-covariance needs (see the module).
     Read under the world's read lock, from its tracker's rows: this module is the World's."""
-    with world._lock.read():
-        world._known(body)
-        t = world._t
-        rows = world._rows_for(body, at)
-        f, ids = world._fit_of(body, rows,
+    with world.lock.read():
+        world.check_known(body)
+        t = world.tracker
+        rows = world.rows_for(body, at)
+        f, ids = world.fit_of(body, rows,
                                lambda r: t.estimate(None, at, rows=r, nis=False, ids=True))
         Z, S = t._store.world(rows)
         names = t._sources_of(rows)
         dt = t.taken_of(rows) - f.time
         twist_cov, table = world.options.twist_covariance, t._table
-        riders = world._riders.rides(body)
+        riders = world.riders.rides(body)
     keep = np.asarray(f.inliers)
     if riders:          # rows composed with a parent's fit: no shared term modelled
         return _constant(body, f.mean, f.covariance)

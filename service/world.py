@@ -131,19 +131,19 @@ class World:
         # bodies are the world's own (bounds)
         self.tracker_bounds = (tracker if tracker is not None
                                else TrackerBounds.of(_limits.DEFAULT))
-        self._lock = ReadWrite()
+        self.lock = ReadWrite()
         # body -> source -> newest taken, of the sources that fed it under earlier
         # configurations (the tracker's own, Tracker.by_source, win)
-        self._fed_before: dict[str, dict[str, float]] = {}
+        self.fed_before: dict[str, dict[str, float]] = {}
         self._tracker: Optional[Tracker] = None
         # answers kept until their bodies change (each body's version, Tracker.version, grows
         # with every request that brought it measurements); fits by (body, time), relatives by
         # (target, source, time)
         self._generation = 0              # configurations made, for stamp()
         self._named: set = set()          # the configured sources and those that fed a body
-        self._fits = Kept()
-        self._relatives = Kept()
-        self._lookups = Lookups(self)
+        self.fits = Kept()
+        self.kept_relatives = Kept()
+        self.lookups = Lookups(self)
         self.configure(sources=sources, arms=arms, options=options)
 
     def configure(self, *, sources: Sequence[Source], arms: Mapping[str, str],
@@ -205,34 +205,34 @@ class World:
                               acceleration_psd=options.acceleration_psd, bounds=bounds)
         except ValueError as e:
             raise WorldError.of(e, under="options") from None
-        with self._lock.write():
+        with self.lock.write():
             if self._tracker is not None:
                 tree.clashes(self._t.held)
             old, self.tree = self._tracker, tree
             self._tracker, self._wire = tracker, WireTicks(tracker)
-            self._riders = Riders(self, tracker._table)
-            tracker.riders = self._riders if self._riders.parents else None
-            self._fits.clear()
-            self._relatives.clear()
+            self.riders = Riders(self, tracker._table)
+            tracker.riders = self.riders if self.riders.parents else None
+            self.fits.clear()
+            self.kept_relatives.clear()
             self._generation += 1
             self._named = {s.name for s in sources}
             self.sources, self.arms, self.options = sources, arms, options
             if old is None:
                 return
-            fed = {body: self._fed(body, old) for body in old.bodies}
-            fed.update((b, seen) for b, seen in self._fed_before.items() if b not in fed)
-            self._fed_before = {}
+            fed = {body: self.fed(body, old) for body in old.bodies}
+            fed.update((b, seen) for b, seen in self.fed_before.items() if b not in fed)
+            self.fed_before = {}
             for body in old.bodies:
                 w = old.window_of(body)
                 n = len(w.ids)
                 self._admit([body] * n, list(w.sources), w.times, w.poses, w.covariances,
                             ids=w.ids)
             # a body's sources are those that ever fed it, across configurations
-            self._fed_before = fed
+            self.fed_before = fed
 
     @property
     def bodies(self) -> tuple[str, ...]:
-        with self._lock.read():
+        with self.lock.read():
             return self._t.bodies
 
     @property
@@ -256,7 +256,7 @@ class World:
         ``producer``: who sent them (a body's time jump is confirmed by another producer than
         the one that made it, ``Tracker``'s origins; None: any)."""
         rows, bad = rows_of(measurements)      # a row refused already: its body ""
-        with self._lock.write():
+        with self.lock.write():
             errors = self._admit(*rows, bad, producer=producer)
         return _published(rows.bodies, errors)
 
@@ -283,7 +283,7 @@ class World:
             codes = np.asarray(codes)
             if codes.shape != (n,):
                 raise WorldError(None, "codes", f"expected shape {(n,)}, got {codes.shape}")
-        with self._lock.write():
+        with self.lock.write():
             errors = self._admit(bodies, sources, times, poses, covs, codes=codes,
                                  producer=producer, ids=ids)
             touched = self._t.touched if len(errors) < n else ()
@@ -324,28 +324,28 @@ class World:
             named.update(sources[k] for k in use if k not in errors)
         return errors
 
-    def _fed(self, body: str, tracker: Optional[Tracker] = None) -> dict[str, float]:
+    def fed(self, body: str, tracker: Optional[Tracker] = None) -> dict[str, float]:
         """Source -> when ``body``'s newest measurement of it was taken, of every source that
         ever fed it (the lock held)."""
         t = self._t if tracker is None else tracker
         seen = t.by_source(body) if t.has(body) else {}
-        for src, at in self._fed_before.get(body, {}).items():
+        for src, at in self.fed_before.get(body, {}).items():
             seen.setdefault(src, at)
         return seen
 
     def sources_of(self, body: str) -> tuple[str, ...]:
         """The sources that ever fed ``body``."""
-        with self._lock.read():
-            self._known(body)
-            return tuple(self._fed(body))
+        with self.lock.read():
+            self.check_known(body)
+            return tuple(self.fed(body))
 
     def newest(self, body: str, source: Optional[str] = None) -> float:
         """When ``body``'s newest measurement (of ``source``) was taken."""
-        with self._lock.read():
-            self._known(body)
+        with self.lock.read():
+            self.check_known(body)
             if source is None:
                 return self._t.newest(body)
-            seen = self._fed(body)
+            seen = self.fed(body)
             if source not in seen:
                 raise NotFound(f"source: {source!r} never fed body {body!r} (its sources: "
                                f"{', '.join(map(repr, seen)) or 'none'})")
@@ -353,36 +353,36 @@ class World:
 
     def horizon(self, body: str) -> float:
         """``body``'s horizon (:func:`dqpose.world_ticks.horizon`) as :meth:`tick_window` has it."""
-        with self._lock.read():
-            return horizon(self._riders.waited(body), self.options.max_delay)
+        with self.lock.read():
+            return horizon(self.riders.waited(body), self.options.max_delay)
 
     def newest_of(self, bodies: Sequence[str]) -> list[float]:
         """When each of ``bodies`` (held) had its newest measurement taken, in one look."""
-        with self._lock.read():
+        with self.lock.read():
             return self._t.newest_of(bodies)
 
     def tick_window(self, body: str, known: Optional[float] = None) -> TickWindow:
         """What ``body``'s ticks would fit now (:meth:`tick`; none for a body not held);
         ``known``: its :meth:`horizon`, when the caller has it."""
-        with self._lock.read():
+        with self.lock.read():
             if not self._t.has(body):
                 return TickWindow(-math.inf, math.inf, 0, False)
             t = self._t
             newest, window = t.newest(body), self.options.window
             rows = t.rows_ending(body, newest, window)
-            return TickWindow(horizon(self._riders.waited(body), self.options.max_delay)
+            return TickWindow(horizon(self.riders.waited(body), self.options.max_delay)
                               if known is None else known, float(t.taken_of(rows).min()),
-                              self._riders.cost(body, rows),
+                              self.riders.cost(body, rows),
                               t.capped(body, window), rows)
 
     def tick(self, body: str, time: Optional[float]) -> tuple[BodyPose, np.ndarray]:
         """``body`` at tick ``time`` (None: its newest measurement's time) from its tick window
         (:meth:`_tick_rows`: StreamFuse's rows), with the fused measurements' ids."""
-        with self._lock.read():
+        with self.lock.read():
             if body in self.tree.static_bodies:        # its one constant pose
                 return _frames.static_tick(self, body, time)
             rows = self._tick_rows(body, time)
-            f, ids = self._fit_of(body, rows,
+            f, ids = self.fit_of(body, rows,
                                   lambda r: self._t.estimate(None, time, rows=r, ids=True))
         assert f.time is not None            # a fit over time
         return BodyPose(body, f.time, f.mean, f.covariance, f), ids
@@ -395,30 +395,30 @@ class World:
         :meth:`relative`, whose refusal comes after the fit's). ``picked``: the rows of
         :meth:`tick_window`, unchanged since, when ``time`` is in its ``[floor, horizon]`` (the
         tick's rows, none of its refusals possible)."""
-        if self._riders.parents and self._riders.rides(body, relative_to):
+        if self.riders.parents and self.riders.rides(body, relative_to):
             return None     # composed in Python (dqpose.riders)
         if body in self.tree.static_bodies:
             return None         # tick's
         if picked is not None and not relative_to:
-            with self._lock.read():
+            with self.lock.read():
                 return self._wire(picked, time, body, request)
         rel = None
         if relative_to:
-            with self._lock.read():
-                at = self._tick_time(body, time)
+            with self.lock.read():
+                at = self.tick_time(body, time)
             try:
                 rel = self.relative(relative_to, body, at)
             except (ValueError, LookupError):
                 return None
-        with self._lock.read():
+        with self.lock.read():
             rows = self._tick_rows(body, time)
             if rel is None:
                 return self._wire(rows, time, body, request)
-            if rel.time != self._tick_time(body, time):   # time 0, or the world moved
+            if rel.time != self.tick_time(body, time):   # time 0, or the world moved
                 return None
             return self._wire(rows, time, body, request, rel.pose, rel.covariance)
 
-    def _tick_time(self, body: str, time: Optional[float]) -> float:
+    def tick_time(self, body: str, time: Optional[float]) -> float:
         """A tick's fusion time (the lock held): ``time``, or its rows' newest taken."""
         return float(time) if time is not None else float(
             self._t.taken_of(self._tick_rows(body, time)).max())
@@ -426,11 +426,11 @@ class World:
     def _tick_rows(self, body: str, time: Optional[float]) -> np.ndarray:
         """A tick's rows (the lock held): those taken within ``window`` of ``body``'s newest,
         the last the tracker's cap of them."""
-        self._known(body)
+        self.check_known(body)
         end = self._t.newest(body)
-        return self._rows_for(body, end if time is None else time, end)
+        return self.rows_for(body, end if time is None else time, end)
 
-    def _known(self, body) -> None:
+    def check_known(self, body) -> None:
         body = body_name(body)
         if not self._t.has(body):
             some = list(self._t.bodies)[:5]
@@ -439,50 +439,50 @@ class World:
                 + (", ..." if len(self._t.bodies) > 5 else "") if some else "no bodies yet")
                 + ")")
 
-    def _end(self, body: str, at: float) -> float:
+    def window_end(self, body: str, at: float) -> float:
         """Where a Lookup's window of ``body`` at ``at`` ends: half a window past ``at``, or at
         its newest (a tick's window when ``at`` is in its newer half)."""
         return min(self._t.newest(body), at + 0.5 * self.options.window)
 
-    def _fit(self, body: str, time: Optional[float], nis: bool = True) -> Fused:
-        """``body``'s fit at ``time`` from the measurements of the window :meth:`_end` ends (the
-        lock held), or ``OutOfRange`` naming what is known. Without ``nis`` (a Lookup, which
+    def fit_at(self, body: str, time: Optional[float], nis: bool = True) -> Fused:
+        """``body``'s fit at ``time`` from the measurements of the window :meth:`window_end` ends
+        (the lock held), or ``OutOfRange`` naming what is known. Without ``nis`` (a Lookup, which
         answers the pose and its covariance) the fit may leave out the leave-one-out NIS
         (:meth:`Tracker.estimate`); a kept fit with them serves both."""
-        at = self._at(body, time)
-        end = self._end(body, at)
+        at = self.fit_time(body, time)
+        end = self.window_end(body, at)
         key = (body, at, end)
-        hit = self._fits.get(key)
-        version = self._riders.version(body)
+        hit = self.fits.get(key)
+        version = self.riders.version(body)
         if hit is not None and hit[0] == version and (hit[2] or not nis):
             return hit[1]       # no new data: it was in range then
         f, ids = self._fitted(body, at, lambda rows: self._t.estimate(None, at, rows=rows, nis=nis,
                                                                       ids=True))
-        self._fits.keep(key, (version, f, nis, ids), len(f.distances))
+        self.fits.keep(key, (version, f, nis, ids), len(f.distances))
         return f
 
-    def _pose_only(self, body: str, at: float) -> tuple[np.ndarray, np.ndarray]:
+    def pose_only(self, body: str, at: float) -> tuple[np.ndarray, np.ndarray]:
         """The known ``body``'s pose and covariance at the checked time ``at`` (the lock held),
-        as :meth:`_fit` would give them: a kept fit's, else only those (``Tracker.estimate``'s
+        as :meth:`fit_at` would give them: a kept fit's, else only those (``Tracker.estimate``'s
         ``fit="pose"``)."""
-        kept = self._kept_pose(body, at)
+        kept = self.kept_pose(body, at)
         if kept is not None:
             return kept
         return self._fitted(body, at,
                             lambda rows: self._t.estimate(None, at, rows=rows, fit="pose"))
 
-    def _kept_pose(self, body: str, at: float) -> Optional[tuple[np.ndarray, np.ndarray]]:
+    def kept_pose(self, body: str, at: float) -> Optional[tuple[np.ndarray, np.ndarray]]:
         """A kept fit's pose and covariance of ``body`` at ``at`` if it is current, else None."""
-        hit = self._fits.get((body, at, self._end(body, at)))
-        if hit is not None and hit[0] == self._riders.version(body):
+        hit = self.fits.get((body, at, self.window_end(body, at)))
+        if hit is not None and hit[0] == self.riders.version(body):
             return hit[1].mean, hit[1].covariance
         return None
 
-    def _at(self, body: str, time: Optional[float]) -> float:
+    def fit_time(self, body: str, time: Optional[float]) -> float:
         """The time of a fit of ``body`` (checked to be known; "" the world frame): ``time``
         checked, None its newest."""
         if body:
-            self._known(body)
+            self.check_known(body)
         if time is None:
             return self._t.newest(body)
         try:
@@ -492,15 +492,15 @@ class World:
 
     def _fitted(self, body: str, at: float, fit):
         """``fit(rows)`` of ``body``'s rows of a Lookup at ``at``, or ``OutOfRange``."""
-        return self._fit_of(body, self._rows_for(body, at), fit)
+        return self.fit_of(body, self.rows_for(body, at), fit)
 
-    def _rows_for(self, body: str, at: float, end: Optional[float] = None) -> np.ndarray:
+    def rows_for(self, body: str, at: float, end: Optional[float] = None) -> np.ndarray:
         """``body``'s rows of a fit at ``at``: taken in ``[end - window, end]`` (``end``: a
-        Lookup's, :meth:`_end`; a tick's, its newest), or ``OutOfRange`` naming what is
+        Lookup's, :meth:`window_end`; a tick's, its newest), or ``OutOfRange`` naming what is
         known."""
         t = self._t
         newest = t.newest(body)
-        end = self._end(body, at) if end is None else end
+        end = self.window_end(body, at) if end is None else end
         rows = t.rows_ending(body, end, self.options.window)
         limit = self.options.max_extrapolation
         # the buffer's oldest is looked for only when the rows do not show it older than ``at``
@@ -509,7 +509,7 @@ class World:
             raise self._out_of_range(body, at, t.oldest(body), newest, end)
         return rows
 
-    def _fit_of(self, body: str, rows: np.ndarray, fit):
+    def fit_of(self, body: str, rows: np.ndarray, fit):
         """``fit(rows)``, or ``OutOfRange`` naming why and what is known."""
         try:
             return fit(rows)
@@ -519,7 +519,7 @@ class World:
 
     def _out_of_range(self, body: str, at: float, oldest: float, newest: float,
                       end: float) -> OutOfRange:
-        """Why :meth:`_fit` cannot fit ``body`` at ``at``, naming what is known."""
+        """Why :meth:`fit_at` cannot fit ``body`` at ``at``, naming what is known."""
         known = _known_from(body, oldest, newest)
         if at < oldest:
             return OutOfRange(f"time: {_s(at)} is before the oldest measurement kept; {known} "
@@ -535,8 +535,8 @@ class World:
         """``T_world_body`` at ``time`` (None: the body's newest): :func:`dqpose.fusion.fuse`
         over its measurements taken in the ``window`` that ends half a window after ``time``,
         or at its newest measurement if sooner."""
-        with self._lock.read():
-            f = self._fit(body, time)
+        with self.lock.read():
+            f = self.fit_at(body, time)
         assert f.time is not None            # a fit over time
         return BodyPose(body, f.time, f.mean, f.covariance, f)
 
@@ -546,19 +546,19 @@ class World:
         an ``extrinsic_covariance`` or an estimated latency are fitted together (one error per
         such source), so the covariance has their cross-covariance (:mod:`dqpose.lookup`)."""
         target, source = body_name(target, "target"), body_name(source, "source")
-        with self._lock.read():
+        with self.lock.read():
             return _frames.relative(self, target, source, time)
 
     def frame_pose(self, frame: str, at: float) -> BodyPose:
         """``T_world_frame`` at ``at`` and its covariance (:func:`dqpose.frames.frame_pose`)."""
         frame = body_name(frame, "frame")
-        with self._lock.read():
+        with self.lock.read():
             return _frames.frame_pose(self, frame, at)
 
     def frames(self, columns: bool = False):
         """The world's frames (:func:`dqpose.frames.frames`); ``columns``: the world's, the
         bodies' (:func:`dqpose.frames.body_columns`), the sources' and statics'."""
-        with self._lock.read():
+        with self.lock.read():
             return ((self.tree.fixed[0][0], _frames.body_columns(self), self.tree.fixed[1])
                     if columns else _frames.frames(self))
 
@@ -573,13 +573,13 @@ class World:
         attribute read, whole under the interpreter lock), so an event loop may call it: an
         answer made between two equal stamps is the answer for as long as the stamp stays
         equal (no measurement of those bodies, no configuration came in)."""
-        t, tree = self._riders, self.tree
+        t, tree = self.riders, self.tree
         return (self._generation,) + tuple(t.version(tree.root(b)) for b in bodies)
 
     def arm_base(self, arm: str) -> BodyPose:
         """``T_world_base`` of ``arm``: the extrinsic of the source ``arms`` names, with its
         ``extrinsic_covariance`` (zeros when exact); it does not move, so ``time`` is 0."""
-        with self._lock.read():
+        with self.lock.read():
             if arm not in self.arms:
                 raise NotFound(f"arm: {arm!r} has no source in the world's arms (" + (
                     ", ".join(map(repr, self.arms)) or "none configured") + ")")

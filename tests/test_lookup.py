@@ -63,9 +63,9 @@ def both_paths(world, target, source, at=None):
     """The Lookup in C (None where it is another path's) and through the tracker's fits."""
     if at is None:
         at = min(world.newest(b) for b in (target, source) if b)
-    with world._lock.read():
-        return (world._lookups._in_c(target, source, at),
-                world._lookups._fitted(target, source, at))
+    with world.lock.read():
+        return (world.lookups._in_c(target, source, at),
+                world.lookups._fitted(target, source, at))
 
 
 @pytest.mark.parametrize("scene", list(SCENES))
@@ -90,7 +90,7 @@ def test_a_warm_start_far_from_the_answer_ends_at_the_answer(shared):
     kws, sees_b = SCENES["a shared uncertain mount" if shared else "exact, each body its own "
                                                                   "cameras"]
     world, publish, _ = moving(np.random.default_rng(4), kws, sees_b)
-    lookups = world._lookups
+    lookups = world.lookups
     for k in range(31, 36):
         both_paths(world, "a", "b")
         assert lookups._records       # the fits' records, from which the next ones start
@@ -121,7 +121,7 @@ def test_a_fit_of_the_same_rows_at_the_same_time_is_its_records(scene):
     world, _, _ = moving(np.random.default_rng(8), *SCENES[scene])
     assert world.newest("a") == world.newest("b")
     first = world.relative("a", "b")
-    lookups = world._lookups
+    lookups = world.lookups
     kept = {k: r.copy() for k, r in lookups._records.items()}
     for target, source in (("", "b"), ("a", ""), ("b", "a")):
         c, f = both_paths(world, target, source)
@@ -129,7 +129,7 @@ def test_a_fit_of_the_same_rows_at_the_same_time_is_its_records(scene):
     if scene.startswith("exact"):      # each body's fit alone: its record made again as it was
         for k in (("a",), ("b",)):
             assert lookups._records[k].tobytes() == kept[k].tobytes()
-    again = world._lookups._in_c("a", "b", first.time)
+    again = world.lookups._in_c("a", "b", first.time)
     assert again.pose.tobytes() == first.pose.tobytes()
     assert again.covariance.tobytes() == first.covariance.tobytes()
 
@@ -142,7 +142,7 @@ def test_the_warm_starts_and_records_are_bounded_as_a_worlds_fits_are(monkeypatc
     world, _, _ = moving(np.random.default_rng(9), *SCENES["exact, each body its own cameras"])
     for target, source in (("a", "b"), ("b", "a"), ("", "a"), ("", "b"), ("a", ""), ("b", "")):
         world.relative(target, source)
-        assert len(world._lookups._records) <= 1 and len(world._lookups._warm) <= 1
+        assert len(world.lookups._records) <= 1 and len(world.lookups._warm) <= 1
 
 
 def test_one_instant_and_a_time_beyond_max_extrapolation_are_the_fits_answers():
@@ -178,7 +178,7 @@ def test_the_relative_covariance_through_a_shared_mount_is_honest_over_time():
 
 def test_rows_that_are_not_the_stores_are_refused_by_name():
     world, _, _ = moving(np.random.default_rng(7), *SCENES["a shared uncertain mount"])
-    lookups, t = world._lookups, world.tracker
+    lookups, t = world.lookups, world.tracker
     table = lookups._table(t)
     L, E = lookups._starts(t, len(table[0]))
     s = t._store

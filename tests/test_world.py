@@ -523,7 +523,7 @@ def test_relative_equals_gtsam_joint_marginal():
     graph.add(gtsam.PriorFactorPose3(2, P3(dq.to_matrix(E)), noise(EXTRINSIC)))
     values.insert(2, P3(dq.to_matrix(E)))
     for key, body in ((0, "a"), (1, "b")):
-        for m in world._t.measurements(body):
+        for m in world.tracker.measurements(body):
             if m.source == "top":
                 graph.add(gtsam.BetweenFactorPose3(2, key, P3(dq.to_matrix(m.pose)),
                                                    noise(m.covariance)))
@@ -567,13 +567,13 @@ def test_a_lookup_between_moving_bodies_starts_them_where_their_own_joint_fits_s
     world = _two_moving_bodies_one_uncertain_camera()
     at = 0.45
     r = world.relative("a", "b", at)
-    rows = [world._rows_for(b, at) for b in "ab"]
-    starts = {b: world._t.estimate(None, at, rows=r, nis=False, joint=False)
+    rows = [world.rows_for(b, at) for b in "ab"]
+    starts = {b: world.tracker.estimate(None, at, rows=r, nis=False, joint=False)
               for b, r in zip("ab", rows)}
-    own = {b: world._fit(b, at, nis=False) for b in "ab"}
+    own = {b: world.fit_at(b, at, nis=False) for b in "ab"}
     # the starts are not the bodies' own (joint) fits: this Lookup took the shorter way
     assert min(np.abs(starts[b].mean - own[b].mean).max() for b in "ab") > 1e-9
-    (Xa, Xb), P = world._t.joint(rows, [own["a"], own["b"]], at)
+    (Xa, Xb), P = world.tracker.joint(rows, [own["a"], own["b"]], at)
     T = dq.mul(dq.conj(Xa), Xb)
     assert np.abs(dq.mul(dq.conj(r.pose), T) - [1, 0, 0, 0, 0, 0, 0, 0]).max() < 1e-12
     C = relative_covariance(Xa, Xb, P)
@@ -586,12 +586,12 @@ def test_a_joint_fit_from_a_bodys_lean_start_is_the_one_from_its_full_fit_bit_fo
     constant-twist fit, to the last bit."""
     world = _two_moving_bodies_one_uncertain_camera()
     at = 0.45
-    rows = [world._rows_for(b, at) for b in "ab"]
-    lean = [world._t.estimate(None, at, rows=r, fit="start") for r in rows]
-    full = [world._t.estimate(None, at, rows=r, nis=False, joint=False) for r in rows]
+    rows = [world.rows_for(b, at) for b in "ab"]
+    lean = [world.tracker.estimate(None, at, rows=r, fit="start") for r in rows]
+    full = [world.tracker.estimate(None, at, rows=r, nis=False, joint=False) for r in rows]
     assert all(isinstance(s, Start) for s in lean)
-    (Xa, Xb), P = world._t.joint(rows, lean, at)
-    (Ya, Yb), Q = world._t.joint(rows, full, at)
+    (Xa, Xb), P = world.tracker.joint(rows, lean, at)
+    (Ya, Yb), Q = world.tracker.joint(rows, full, at)
     assert (Xa.tobytes(), Xb.tobytes(), P.tobytes()) == (Ya.tobytes(), Yb.tobytes(), Q.tobytes())
 
 

@@ -45,7 +45,7 @@ def run_both(datas: list[bytes], decoded: list | None = None) -> None:
         assert got.SerializeToString() == want.SerializeToString()
         if decoded is not None:
             decoded.append(publish_from_wire(data) is not None)
-    a, b = by_bytes.world._t, by_message.world._t
+    a, b = by_bytes.world.tracker, by_message.world.tracker
     assert by_bytes.measurements == by_message.measurements
     assert a.bodies == b.bodies
     for body in a.bodies:
