@@ -49,7 +49,7 @@ def stream_fuse(rate: float, data: list[Batch]) -> list[fpb.FusedPose]:
     f = Fusion()
     first = fpb.FuseStreamRequest(output_rate=rate, options=options_msg(
         sources=[SOURCE], window=WINDOW, twist_covariance=TWIST)).SerializeToString()
-    state, answers, n = f._open_stream(first)
+    state, answers, n = f.start_stream(first)
     out, next_id = list(answers), n
     for r, b in enumerate(data, start=1):
         got, n = f.stream_step_wire(state, measurements_wire(*b), r, next_id)

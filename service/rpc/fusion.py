@@ -275,7 +275,7 @@ class Fusion(pb_grpc.FusionServicer):
             "Fuse", lambda r: self.calls.work(self.fuse_bytes, r), request, context,
             recording=rec)
 
-    def _open_stream(self, data: bytes):
+    def start_stream(self, data: bytes):
         """The first request of a stream: ``(state, its answers, its number of measurements)``;
         a FieldError (or OverLimit) for options the stream cannot start with."""
         try:
@@ -317,7 +317,7 @@ class Fusion(pb_grpc.FusionServicer):
                 r = call.messages
                 if state is None:
                     try:
-                        state, answers, n = await self.calls.work(self._open_stream, data)
+                        state, answers, n = await self.calls.work(self.start_stream, data)
                     except FieldError as e:
                         await call.refuse(refusal(e), readable(str(e)))
                 elif len(data) <= limits.INLINE_BYTES:

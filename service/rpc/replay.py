@@ -141,7 +141,7 @@ class _StreamFuse(_Player):
         self.r += 1
         if self.state is None:
             try:
-                self.state, got, n = self.fusion._open_stream(data)
+                self.state, got, n = self.fusion.start_stream(data)
             except Exception as e:
                 status, details = refused("StreamFuse", e)
                 self.status = (status.name, details)

@@ -56,7 +56,7 @@ def answers(data: list[bytes]) -> list[list[pb.FusedPose]]:
     out, next_id = [], 0
     for r, d in enumerate(data):
         if state is None:
-            state, first, n = servicer._open_stream(d)
+            state, first, n = servicer.start_stream(d)
         else:
             first, n = servicer.stream_answers_wire(state, d, r, next_id)
         got = [pb.FusedPose.FromString(a) for a in first]     # served as bytes

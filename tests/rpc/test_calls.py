@@ -61,7 +61,7 @@ def _subscribe(c: Client):
 
 @pytest.mark.parametrize("rpc, owner, name, call", [
     ("BlendStream", Blending, "blend_wire", _blend_stream),
-    ("StreamFuse", Fusion, "_open_stream", _stream_fuse),
+    ("StreamFuse", Fusion, "start_stream", _stream_fuse),
     ("Publish", Hub, "publish", _publish),
     # (these two ended UNKNOWN with the defect's text before Calls.stream)
     ("Plan", Trajectories, "sample_chunk", _plan),
