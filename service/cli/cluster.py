@@ -21,6 +21,8 @@ import tempfile
 import threading
 import time
 
+from dqpose.events import say_err
+
 #: each proxy: its executable, the Debian package that has it, the shipped configuration
 PROXIES = {"haproxy": ("haproxy", "haproxy", "haproxy.cfg"),
            "nginx": ("nginx", "nginx-light", "nginx.conf")}
@@ -253,11 +255,8 @@ def _serve(args, config: str) -> int:
                                     echo=sys.stderr))
         proxy = Proxy(args.proxy, config, [(r.name, r.address) for r in replicas],
                       f"{args.host}:{args.port}")
-        print(json.dumps({"event": "cluster", "address": proxy.target, "proxy": args.proxy,
-                          "config": config, "replicas": {r.name: {"address": r.address,
-                                                                  "pid": r.proc.pid}
-                                                         for r in replicas}}),
-              file=sys.stderr, flush=True)
+        say_err(event="cluster", address=proxy.target, proxy=args.proxy, config=config,
+                replicas={r.name: {"address": r.address, "pid": r.proc.pid} for r in replicas})
         print(f"cluster: {args.proxy} on {proxy.target} in front of "
               + ", ".join(f"{r.name} {r.address} (pid {r.proc.pid})" for r in replicas)
               + f"; Client({proxy.target!r}, world='cell-1', reconnect=5.0); Ctrl-C stops it",
@@ -269,8 +268,7 @@ def _serve(args, config: str) -> int:
             for r in replicas:      # the proxy sends its worlds to the others meanwhile
                 if r.name not in ended and r.proc.poll() is not None:
                     ended.add(r.name)
-                    print(json.dumps({"event": "replica_ended", "replica": r.name,
-                                      "code": r.proc.returncode}), file=sys.stderr, flush=True)
+                    say_err(event="replica_ended", replica=r.name, code=r.proc.returncode)
         return 0
     except (OSError, RuntimeError, ValueError) as e:
         return fail("cluster", str(e))

@@ -6,13 +6,13 @@ a ``serve --live`` WebSocket. Serves until Ctrl-C; says where on standard error 
 ``viewing``, its ``url``, the bodies, plans and arms)."""
 from __future__ import annotations
 
-import json
 import os
 import signal
 import sys
 import threading
 
 from dqpose.cli.common import fail, missing_extra, read
+from dqpose.events import say_err
 
 
 def configure(name: str, p) -> None:
@@ -77,10 +77,9 @@ def _view(args) -> int:
               f"{'s' if len(runs[-1]) > 1 else ''}); name a file to see another",
               file=sys.stderr)
     page = Page(tl, host=args.host, port=args.port)
-    print(json.dumps({"event": "viewing", "url": f"http://{args.host}:{page.port}",
-                      "files": runs[-1], "bodies": sorted(tl.tracks), "plans": page.plan_names,
-                      "arms": sorted(tl.arms),
-                      "seconds": (tl.end - tl.start) * 1e-9}), file=sys.stderr, flush=True)
+    say_err(event="viewing", url=f"http://{args.host}:{page.port}", files=runs[-1],
+            bodies=sorted(tl.tracks), plans=page.plan_names, arms=sorted(tl.arms),
+            seconds=(tl.end - tl.start) * 1e-9)
     _serve_until_done(threading.Event())
     page.close()
     return 0
@@ -120,8 +119,7 @@ def _watch(args, Scene, token: str | None) -> int:
 
     scene = Scene(host=args.host, port=args.port)
     watcher = Watcher(args.server, scene, token=token)
-    print(json.dumps({"event": "viewing", "url": f"http://{args.host}:{scene.port}",
-                      "server": args.server}), file=sys.stderr, flush=True)
+    say_err(event="viewing", url=f"http://{args.host}:{scene.port}", server=args.server)
     try:
         watcher.start()
     except RpcError as e:
@@ -160,8 +158,7 @@ def _follow(args, Scene, token: str | None) -> int:
             why.append(f"--live {host}:{port}: {e}")
         done.set()
 
-    print(json.dumps({"event": "viewing", "url": f"http://{args.host}:{scene.port}",
-                      "server": f"ws://{host}:{port}"}), file=sys.stderr, flush=True)
+    say_err(event="viewing", url=f"http://{args.host}:{scene.port}", server=f"ws://{host}:{port}")
     threading.Thread(target=follow, name="dqpose-view-follow", daemon=True).start()
     _serve_until_done(done)
     scene.close()

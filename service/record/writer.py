@@ -22,6 +22,7 @@ import sys
 import time
 from typing import Any
 
+from dqpose.events import say
 from dqpose.record import LIVE_TOKEN_ENV, cannot_write, describe, frames, handeye, types, views
 from dqpose.record.live import LiveServer
 from dqpose.record.mcapfile import CHUNK_BYTES, McapFile
@@ -46,11 +47,6 @@ from dqpose.record.topics import (
     requests_topic,
     stats_topic,
 )
-
-
-def say(**event) -> None:
-    print(json.dumps(event), flush=True)
-
 
 #: while the files cannot be written, a new one is tried this often (s), once a probe file can be
 RETRY_PERIOD = 1.0

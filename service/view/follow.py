@@ -16,9 +16,9 @@ from websockets.sync.client import connect
 from websockets.typing import Subprotocol
 
 from dqpose import dq
+from dqpose.events import say_err as say
 from dqpose.record.topics import ELLIPSOIDS_TOPIC, TF_STATIC_TOPIC, TF_TOPIC, plan_topic
 from dqpose.record.views import WORLD
-from dqpose.view.events import say
 from dqpose.view.page import WORLD_PLAN, Scene
 
 SUBPROTOCOL = "foxglove.sdk.v1"

@@ -20,7 +20,7 @@ import ipaddress
 import socket
 from urllib.parse import urlsplit
 
-from dqpose.view.events import say
+from dqpose.events import say_err as say
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 WILDCARD = ("0.0.0.0", "::", "")

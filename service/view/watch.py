@@ -17,8 +17,8 @@ from collections import deque
 import numpy as np
 
 from dqpose import dq
+from dqpose.events import say_err as say
 from dqpose.record.views import ELLIPSOID_SIGMAS, ellipsoid_axes
-from dqpose.view.events import say
 from dqpose.view.page import Scene
 
 #: WatchArm's rate: states a second per arm

@@ -1,4 +1,4 @@
-"""dqpose.view.events: event lines said by many threads at once each come out whole (a view
+"""dqpose.events: event lines said by many threads at once each come out whole (a view
 follows a server's world and its arms on threads of their own)."""
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from tests.cli._cli import ROOT
 
 SAYERS = """
 import sys, threading
-from dqpose.view.events import say
+from dqpose.events import say_err as say
 def run(k):
     for i in range(2000):
         say(event="drawn", body=f"body{k}", i=i, pad="x" * (k * 37 % 200))
