@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Iterable, Mapping, NamedTuple, Optional, Seque
 import numpy as np
 
 from dqpose import dq, lie
+from dqpose.body_pose import BodyPose
 from dqpose.errors import WorldError
 from dqpose.fusion import Fused
 from dqpose.fusion.results import DOF, read_only
@@ -28,7 +29,7 @@ from dqpose.names import name_problem, quoted
 from dqpose.world_bounds import DEFAULT, WorldBounds, over
 
 if TYPE_CHECKING:
-    from dqpose.world import BodyPose, World
+    from dqpose.world import World
 
 __all__ = ["Static", "FrameTree", "FrameKind", "FrameInfo", "RESERVED"]
 
@@ -260,10 +261,9 @@ def static_fit(world: "World", body: str) -> Fused:
     return f
 
 
-def static_tick(world: "World", body: str, time: Optional[float]) -> tuple["BodyPose", np.ndarray]:
+def static_tick(world: "World", body: str, time: Optional[float]) -> tuple[BodyPose, np.ndarray]:
     """Static body ``body``'s tick at ``time`` (None: its newest measurement's): its one pose,
     with the ids of the measurements fused."""
-    from dqpose.world import BodyPose
     f = static_fit(world, body)
     return (BodyPose(body, world.tick_time(body, time), f.mean, f.covariance, f),
             world.fits[(body, None, None)][3])
@@ -276,10 +276,9 @@ def _root_pose(world: "World", root: str, at: float) -> tuple[np.ndarray, np.nda
     return world.pose_only(root, at)
 
 
-def relative(world: "World", target: str, source: str, time: float) -> "BodyPose":
+def relative(world: "World", target: str, source: str, time: float) -> BodyPose:
     """``T_target_source`` at ``time`` of any two frames (0: the newest time both roots'
     bodies are known at; statics, static bodies and the world alone: 0, valid at every time)."""
-    from dqpose.world import BodyPose
     tree, t = world.tree, world.tracker
     # a body with measurements is that body (a source's name only where no static or rider
     # makes the names one namespace, Publish refusing them there)
@@ -314,7 +313,7 @@ def relative(world: "World", target: str, source: str, time: float) -> "BodyPose
     return BodyPose(source, at, read_only(X), read_only(P), None)
 
 
-def _roots(world: "World", target: str, source: str, at: float) -> "BodyPose":
+def _roots(world: "World", target: str, source: str, at: float) -> BodyPose:
     """``T_target_source`` of two different roots ("", bodies, static bodies): two bodies'
     Lookup (their joint fit where they share an uncertain source), kept until either
     changes; a static body's own pose composed."""
@@ -332,10 +331,9 @@ def _roots(world: "World", target: str, source: str, at: float) -> "BodyPose":
     return answer
 
 
-def frame_pose(world: "World", frame: str, at: float) -> "BodyPose":
+def frame_pose(world: "World", frame: str, at: float) -> BodyPose:
     """``T_world_frame`` at ``at`` with its covariance; a body's and a static body's own fit
     (``fused``), any other frame composed."""
-    from dqpose.world import BodyPose
     if frame in world.tree.static_bodies:
         f = static_fit(world, frame)
         return BodyPose(frame, at, f.mean, f.covariance, f)

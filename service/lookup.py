@@ -23,13 +23,14 @@ import numpy as np
 from dqpose import _dqcore as _c
 from dqpose import dq
 from dqpose.answers import Kept
+from dqpose.body_pose import BodyPose
 from dqpose.fusion.extrinsics import relative_covariance
 from dqpose.fusion.results import DOF, read_only
 from dqpose.fusion.validation import twist_information
 
 if TYPE_CHECKING:
     from dqpose.fusion import Tracker
-    from dqpose.world import BodyPose, World
+    from dqpose.world import World
 
 _IDENT = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
 
@@ -49,7 +50,7 @@ class Lookups:
         self._L = np.empty(0)
         self._E = np.empty((0, 8))
 
-    def relative(self, target: str, source: str, at: float) -> "BodyPose":
+    def relative(self, target: str, source: str, at: float) -> BodyPose:
         """``T_target_source`` at the checked time ``at`` of known bodies (either may be "", the
         world frame, not both; not the same body), the world's read lock held."""
         w = self._world
@@ -62,7 +63,6 @@ class Lookups:
             if got is None:
                 return composed_independent(target, source, at,
                                  {b: w.pose_only(b, at) for b in (target, source) if b})
-            from dqpose.world import BodyPose
             Xa, Xb, P = got
             return BodyPose(source, at, read_only(dq.mul(dq.conj(Xa), Xb)),
                             read_only(relative_covariance(Xa, Xb, P)), None)
@@ -75,9 +75,8 @@ class Lookups:
         answer = self._in_c(target, source, at) if _plain(t) else None
         return answer if answer is not None else self._fitted(target, source, at)
 
-    def _in_c(self, target: str, source: str, at: float) -> Optional["BodyPose"]:
+    def _in_c(self, target: str, source: str, at: float) -> Optional[BodyPose]:
         """The Lookup in one C call, or None where it is another path's."""
-        from dqpose.world import BodyPose
         w = self._world
         t = w.tracker
         latency, latency_w, E, E_info, uncertain, twist_w = self._table(t)
@@ -155,10 +154,9 @@ class Lookups:
             return None
         return warm
 
-    def _fitted(self, target: str, source: str, at: float) -> "BodyPose":
+    def _fitted(self, target: str, source: str, at: float) -> BodyPose:
         """The Lookup through the tracker's fits (robust, ``acceleration_psd``, ``max_skew``,
         one instant, extrapolation, and their errors)."""
-        from dqpose.world import BodyPose
         w = self._world
         if not target:      # the world frame is exact: the body's own pose
             return BodyPose(source, at, *w.pose_only(source, at), None)
@@ -195,11 +193,10 @@ def _plain(t: "Tracker") -> bool:
 
 
 def composed_independent(target: str, source: str, at: float,
-              poses: Mapping[str, tuple[np.ndarray, np.ndarray]]) -> "BodyPose":
+              poses: Mapping[str, tuple[np.ndarray, np.ndarray]]) -> BodyPose:
     """``T_target_source`` composed of the two bodies' own poses and covariances (``poses``),
     as if their errors were independent (the world frame "" is exact): the answer when they
     share no uncertain extrinsic, and the comparison the benchmark shows when they do."""
-    from dqpose.world import BodyPose
     zero = np.zeros((DOF, DOF))
     Xa, Pa = poses[target] if target else (_IDENT, zero)
     Xb, Pb = poses[source] if source else (_IDENT, zero)

@@ -42,6 +42,8 @@ from typing import NamedTuple, Optional
 import numpy as np
 
 from dqpose import dq, lie
+from dqpose.body_pose import BodyPose, body_name
+from dqpose.errors import WorldError
 from dqpose.fusion.extrinsics import uncertain_extrinsics
 from dqpose.fusion.motion import Model, motion_jacobian
 from dqpose.fusion.results import DOF
@@ -71,9 +73,6 @@ def relative_at(world, target: str, time: float, source: str, source_time: float
     """``T_target(time)_source(source_time)`` through ``fixed`` (see the module) as a
     :class:`dqpose.world.BodyPose` at ``time``: ``WorldError``, ``NotFound`` or ``OutOfRange``
     as :meth:`World.relative` names them."""
-    from dqpose.errors import WorldError
-    from dqpose.world import BodyPose, body_name
-
     target, source = body_name(target, "target"), body_name(source, "source")
     fixed = body_name(fixed, "fixed_frame")
     try:

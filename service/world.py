@@ -29,6 +29,7 @@ from dqpose import dq
 from dqpose import frames as _frames
 from dqpose import limits as _limits
 from dqpose.answers import Kept
+from dqpose.body_pose import BodyPose, body_name
 from dqpose.errors import NotFound, NotYet, OutOfRange, WorldError
 from dqpose.errors import known_from as _known_from
 from dqpose.errors import seconds_text as _s
@@ -96,27 +97,6 @@ class TickWindow(NamedTuple):
     rows: int
     capped: bool
     picked: Optional[np.ndarray] = None
-
-
-@dataclass(frozen=True)
-class BodyPose:
-    """A pose at ``time``: ``pose`` ``(8,)`` (``T_world_body``, or ``T_target_source``),
-    ``covariance`` ``(6, 6)`` in the convention of :mod:`dqpose.fusion`; ``fused`` the full
-    fusion result when the answer is one body's own fit, ``None`` for a composed pose."""
-    body: str
-    time: float
-    pose: np.ndarray
-    covariance: np.ndarray
-    fused: Optional[Fused]
-
-
-def body_name(body, field: str = "body") -> str:
-    """``body`` when it is a body's name or "" (the world frame), else a ``WorldError`` naming
-    ``field``."""
-    problem = name_problem(body, empty=True)
-    if problem is not None:
-        raise WorldError(None, field, problem)
-    return body
 
 
 class World:
