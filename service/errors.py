@@ -1,19 +1,66 @@
 """Errors named after the caller's fields, and the one error for a missing optional dependency.
 
-The core names its own arguments (``q[3]: zero quaternion``); a layer that knows where ``q[3]``
-came from (a proto field, a file's key) renames it with :func:`rename`. What needs a module of an
-extra that is not installed raises :class:`MissingExtra` (:func:`require`), whose text says how to
-install it.
+A domain check raises a :class:`FieldError` as data: the argument it is about (``q``), the
+element (``3``), the path below it and the problem; its text ``q[3]: zero quaternion``. A layer
+that knows where ``q[3]`` came from (a proto field, a file's key) renames it with :func:`rename`,
+reading those fields, not the text. What needs a module of an extra that is not installed raises
+:class:`MissingExtra` (:func:`require`), whose text says how to install it.
 """
 from __future__ import annotations
 
 import re
 
-_INDEXED = re.compile(r"^(\w+)(\[\d+\])?(.*)$", re.S)
+# A path as the domain writes it, ``name[i].rest``. Read only where no field was given as data:
+# the C core's messages (service/csrc, through dqpose._dqcore, ``name[i]: problem``), the
+# messages of modules that still write their path into their text (``FieldError(message)``:
+# trajectory, lie, interpolate, smoothing, handeye) and a world's call-level paths
+# (``WorldError.field`` "options.window", "sources[2]": :meth:`FieldError.of`).
+_PATH = re.compile(r"^(\w+)(?:\[(\d+)\])?(.*)$", re.S)
 
 
 class FieldError(ValueError):
-    """Invalid input, with a message that starts with the caller's field path."""
+    """Invalid input as data: ``field`` the argument or field path it is about
+    (``"covariances"``; ``""`` none), ``index`` its element (None: the whole), ``tail`` the path
+    below that element (``".latency"``), ``text`` the problem. Its message is
+    ``field[index]tail: text`` (``text`` alone without a path). ``FieldError(message)`` alone:
+    a message whose path is written in it (not :attr:`given`)."""
+
+    def __init__(self, field: str, text: str | None = None, index: int | None = None,
+                 tail: str = ""):
+        self.given = text is not None       # the fields given as data
+        if text is None:
+            field, text = "", field
+        self.field, self.text, self.index, self.tail = field, text, index, tail
+        path = self.path()
+        ValueError.__init__(self, f"{path}: {text}" if path else text)
+
+    def path(self) -> str:
+        """``field[index]tail``."""
+        return self.field + ("" if self.index is None else f"[{self.index}]") + self.tail
+
+    def within(self, field: str, index: int | None = None) -> "FieldError":
+        """The same problem about ``field[index]``'s part this one names: ``sources[3].latency``
+        of a source's ``latency``."""
+        path = self.path()
+        return _kind(self)(field, self.text, index, f".{path}" if path else "")
+
+    @staticmethod
+    def of(e: ValueError) -> "FieldError":
+        """``e`` as data: itself when its fields were given, else read from its path (a
+        :class:`WorldError`'s) or its message (``name[i]: problem``; any other text: no
+        path)."""
+        if isinstance(e, WorldError):
+            path, text = e.path(), e.text
+        elif isinstance(e, FieldError) and e.given:
+            return e
+        else:
+            path, sep, text = str(e).partition(": ")
+            if not sep:
+                path, text = "", str(e)
+        m = _PATH.match(path)
+        if m is None:
+            return _kind(e)(path, text)
+        return _kind(e)(m[1], text, None if m[2] is None else int(m[2]), m[3])
 
 
 class WorldError(FieldError):
@@ -29,7 +76,8 @@ class WorldError(FieldError):
                  about: str | None = None):
         self.index, self.field, self.text, self.limit, self.about = (
             index, field, text, limit, about)
-        super().__init__(self.named())
+        self.tail, self.given = "", True
+        ValueError.__init__(self, self.named())
 
     def path(self, under: str = "", index: int | None = None) -> str:
         """The field's path below ``under``: ``under[index].field`` for a row's (``index``
@@ -61,17 +109,16 @@ class WorldError(FieldError):
     @classmethod
     def of(cls, e: ValueError, index: int | None = None,
            field: str | dict[str, str] | None = None, under: str = "") -> "WorldError":
-        """A domain check's ``ValueError`` (``"name[i]: problem"``, the argument it names first)
+        """A domain check's error (a :class:`FieldError`, or the C core's, :meth:`FieldError.of`)
         as data about row ``index``'s ``field``: a dict maps the argument named to the field;
-        None: the argument named itself, below ``under`` when given."""
-        named, sep, text = str(e).partition(": ")
-        if not sep:
-            named, text = "", str(e)
+        None: the error's path itself, below ``under`` when given."""
+        f = FieldError.of(e)
+        named = f.path()
         if isinstance(field, dict):
-            field = field.get(named.split("[")[0], named)
+            field = field.get(f.field, named)
         elif field is None:
             field = f"{under}.{named}" if under else named
-        return cls(index, field, text)
+        return cls(index, field, f.text)
 
 
 class NotFound(LookupError):
@@ -114,15 +161,20 @@ class WorldInfeasible(WorldError, Infeasible):
 
 
 def rename(err: ValueError, names: dict[str, str]) -> FieldError:
-    """``"q[3]: x"`` with ``{"q": "poses{}.orientation"}`` -> ``"poses[3].orientation: x"``.
+    """``"q[3]: x"`` with ``{"q": "poses{}.orientation"}`` -> ``"poses[3].orientation: x"``, from
+    the error's fields (:meth:`FieldError.of`).
 
-    ``{}`` in a target marks where the core's index goes; an unknown name is kept as it is.
+    ``{}`` in a target marks where the index goes (without one, the index is left out); an
+    unknown name is kept as it is.
     """
-    msg = str(err)
-    m = _INDEXED.match(msg)
-    if m and m.group(1) in names:
-        msg = names[m.group(1)].replace("{}", m.group(2) or "") + m.group(3)
-    return _same_kind(err, msg)
+    e = FieldError.of(err)
+    target = names.get(e.field) if e.field else None
+    if target is None:
+        return _kind(err)(e.field, e.text, e.index, e.tail)
+    head, brace, rest = target.partition("{}")
+    if brace:
+        return _kind(err)(head, e.text, e.index, rest + e.tail)
+    return _kind(err)(target, e.text, None, e.tail)
 
 
 def rename_all(err: ValueError, names: dict[str, str]) -> FieldError:
@@ -135,7 +187,11 @@ def rename_all(err: ValueError, names: dict[str, str]) -> FieldError:
 
 
 def _same_kind(err: ValueError, msg: str) -> FieldError:
-    return FieldInfeasible(msg) if isinstance(err, Infeasible) else FieldError(msg)
+    return _kind(err)(msg)
+
+
+def _kind(err: ValueError) -> type[FieldError]:
+    return FieldInfeasible if isinstance(err, Infeasible) else FieldError
 
 
 # ---- optional dependencies -----------------------------------------------------------------------

@@ -56,7 +56,7 @@ def check_name(name: object, field: str, empty: bool = False) -> str:
     """``name`` when it is a name (:func:`name_problem`), else a FieldError naming ``field``."""
     problem = name_problem(name, empty)
     if problem is not None:
-        raise FieldError(f"{field}: {problem}")
+        raise FieldError(field, problem)
     return name      # type: ignore[return-value]   # a str: name_problem said so
 
 

@@ -40,6 +40,40 @@ def test_a_world_error_is_data_named_under_any_field_path():
         "options.max_skew: must be nonnegative"
 
 
+def test_domain_errors_are_data_and_their_readers_read_the_fields():
+    """A domain check raises a FieldError carrying its field, index, tail and text (its message
+    the same as ever); rename, WorldError.of and the Fuse converter read those, not the text: a
+    text that looks like a path stays text (a plain ValueError, the C core's, is read)."""
+    import numpy as np
+    import pytest
+
+    from dqpose import fusion
+    from dqpose.errors import WorldError
+    from dqpose.rpc.fusion_convert import _domain_error
+    with pytest.raises(FieldError) as info:
+        fusion.Tracker(1.0, sources=[fusion.Source("cam"), fusion.Source("b", latency=np.nan)])
+    e = info.value
+    assert (e.field, e.index, e.tail, e.text) == ("sources", 1, ".latency",
+                                                  "must be finite, got nan")
+    assert str(e) == "sources[1].latency: must be finite, got nan"
+    assert str(rename(e, {"sources": "config.sources{}"})) == \
+        "config.sources[1].latency: must be finite, got nan"
+    with pytest.raises(FieldError) as info:
+        fusion.fuse(np.tile([1.0, 0, 0, 0, 0, 0, 0, 0], (2, 1)), weights=[1.0, -2.0])
+    assert (info.value.field, info.value.index) == ("weights", 1)
+    # no path: the text is not read as one
+    plain = FieldError("", "q[1]: not a path")
+    assert str(rename(plain, {"q": "poses{}"})) == "q[1]: not a path"
+    assert str(rename(ValueError("q[1]: the core's"), {"q": "poses{}"})) == "poses[1]: the core's"
+    got = WorldError.of(plain, 2)
+    assert (got.field, got.text) == ("", "q[1]: not a path")
+    row = _domain_error(FieldError("poses", "not a unit dual quaternion", 1), np.array([4, 9]),
+                        "measurements", "options")
+    assert str(row) == "measurements[9].pose: not a unit dual quaternion"
+    assert str(_domain_error(plain, np.array([4, 9]), "measurements", "options")) == \
+        "q[1]: not a path"
+
+
 def test_each_optional_module_is_in_the_extra_it_is_said_to_be_in():
     """EXTRA_OF against the installed metadata (pyproject.toml's lists): a hint never names an
     extra that does not bring the module."""

@@ -15,6 +15,7 @@ from typing import NamedTuple, Optional
 import numpy as np
 
 from dqpose import dq, lie
+from dqpose.errors import FieldError
 from dqpose.fusion.consistency import codes, source_stats
 from dqpose.fusion.extrinsics import motion_fit_ext, uncertain_extrinsics
 from dqpose.fusion.motion import (
@@ -100,7 +101,7 @@ def _span(taken: np.ndarray, time: float, max_skew, max_extrapolation) -> _Span:
         keep = ~drop
         if not keep.any():
             nearest = float(np.abs(time - taken).min())
-            raise ValueError(f"max_skew: every measurement was taken more than {max_skew:g} s "
+            raise FieldError("max_skew", f"every measurement was taken more than {max_skew:g} s "
                              f"from the fusion time {time!r} (the nearest {nearest:.6g} s)")
         kept = taken[keep]
     lo, hi = float(kept.min()), float(kept.max())
@@ -108,7 +109,7 @@ def _span(taken: np.ndarray, time: float, max_skew, max_extrapolation) -> _Span:
     if max_extrapolation is not None:
         max_extrapolation = checked_seconds(max_extrapolation, "max_extrapolation", "nonnegative")
         if extrapolation > max_extrapolation:
-            raise ValueError(f"time: {time!r} is {extrapolation:.6g} s outside the span "
+            raise FieldError("time", f"{time!r} is {extrapolation:.6g} s outside the span "
                              f"[{lo!r}, {hi!r}] of the measurements, beyond max_extrapolation "
                              f"{max_extrapolation:g} s")
     return _Span(drop, keep, lo, hi, extrapolation, max_skew)
@@ -152,14 +153,14 @@ def time_setup(Z, names, table, times, time, max_skew, max_extrapolation, twist_
     accel = checked_acceleration(acceleration_psd)
     ext = uncertain_extrinsics(names, table)
     if ext is not None and accel is not None:
-        raise ValueError(f"acceleration_psd: not supported with a source's extrinsic_covariance "
+        raise FieldError("acceleration_psd", f"not supported with a source's extrinsic_covariance "
                          f"(source {ext.names[0]!r})")
     span = _span(taken, time, max_skew, max_extrapolation)
     estimated = [s for s in sources if s in table and table[s].latency_sigma is not None]
     one_instant = span.lo == span.hi
     twist = Wp is not None or not one_instant
     if not twist and span.extrapolation > 0.0:
-        raise ValueError(f"time: the measurements were all taken at {span.lo!r}; bringing them "
+        raise FieldError("time", f"the measurements were all taken at {span.lo!r}; bringing them "
                          f"to {time!r} needs the body's twist, which one instant does not show "
                          f"(give twist_covariance)")
     slot = np.array([estimated.index(s) if s in estimated else -1 for s in sources])[code]

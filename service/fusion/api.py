@@ -11,6 +11,7 @@ from typing import Iterable, NamedTuple, Optional, Sequence
 import numpy as np
 
 from dqpose import dq
+from dqpose.errors import FieldError
 from dqpose.fusion.alignment import (
     DEFAULT_MAX_EXTRAPOLATION,
     Start,
@@ -62,13 +63,13 @@ def fuse(poses, covariances=None, *, weights=None, names: Optional[Sequence[str]
     table = source_table(sources)
     for k, src in enumerate(table.values()):
         if src.parent:      # the parent's pose at each measurement's time is a world's fit
-            raise ValueError(f"sources[{k}].parent: only a world resolves a parent")
+            raise FieldError("sources", "only a world resolves a parent", k, ".parent")
     try:
         probability = float(probability)
     except (TypeError, ValueError):
         probability = float("nan")
     if not 0.0 < probability < 1.0:
-        raise ValueError(f"probability: must be within (0, 1), got {probability!r}")
+        raise FieldError("probability", f"must be within (0, 1), got {probability!r}")
     tol = dq.as_tol(tol)
     max_iter = dq.as_iter(max_iter)
     Z, S = to_world(Z, S, names, table)
@@ -81,7 +82,7 @@ def fuse(poses, covariances=None, *, weights=None, names: Optional[Sequence[str]
                        ("twist_covariance", twist_covariance),
                        ("acceleration_psd", acceleration_psd)):
         if value is not None:
-            raise ValueError(f"{key}: needs the measurements' times (times=...)")
+            raise FieldError(key, "needs the measurements' times (times=...)")
 
     return fuse_static(Z, S, names, robust, probability, gate2, tol, max_iter,
                         uncertain_extrinsics(names, table))
@@ -142,7 +143,7 @@ def fuse_joint_rows(rows, starts: Sequence, time, o: Checked):
     ext = uncertain_extrinsics(names_all, o.table)
     latencies = list(dict.fromkeys(s for _, _, st in begun for s in st.setup.estimated))
     if ext is None and not latencies:
-        raise ValueError("bodies: no uncertain extrinsic or estimated latency to fit them "
+        raise FieldError("bodies", "no uncertain extrinsic or estimated latency to fit them "
                          "jointly over")
     if ext is None:
         ext = no_extrinsics(len(names_all))

@@ -7,6 +7,8 @@ from __future__ import annotations
 import math
 from functools import lru_cache
 
+from dqpose.errors import FieldError
+
 #: the χ² probability of the robust gate and of a fused pose's consistency verdict
 DEFAULT_PROBABILITY = 0.999
 
@@ -48,9 +50,9 @@ def gamma_p(a: float, x: float) -> float:
 def chi2_quantile(probability: float, dof: int) -> float:
     """The ``probability`` quantile of the χ² distribution with ``dof`` degrees of freedom."""
     if not 0.0 < probability < 1.0:
-        raise ValueError(f"probability: must be within (0, 1), got {probability!r}")
+        raise FieldError("probability", f"must be within (0, 1), got {probability!r}")
     if dof < 1:
-        raise ValueError(f"dof: must be >= 1, got {dof!r}")
+        raise FieldError("dof", f"must be >= 1, got {dof!r}")
     a = 0.5 * dof
     lo, hi = 0.0, max(1.0, float(dof))
     while gamma_p(a, 0.5 * hi) < probability:

@@ -10,7 +10,7 @@ from typing import Iterable, Optional
 import numpy as np
 
 from dqpose import dq, lie
-from dqpose.errors import rename
+from dqpose.errors import FieldError, rename
 from dqpose.fusion.results import DOF
 from dqpose.fusion.validation import checked_covariances, checked_pose, checked_seconds, shape_of
 from dqpose.names import name_problem, quoted
@@ -57,34 +57,28 @@ _MAX_LATENCY = 1e6
 _LATENCY_SIGMA = (1e-9, 1e6)
 
 
-def _latency(s: Source, k: int) -> tuple[float, Optional[float]]:
-    latency = checked_seconds(s.latency, f"sources[{k}].latency")
+def _latency(s: Source) -> tuple[float, Optional[float]]:
+    latency = checked_seconds(s.latency, "latency")
     if abs(latency) > _MAX_LATENCY:
-        raise ValueError(f"sources[{k}].latency: {latency:.6g} s is beyond +-{_MAX_LATENCY:g} s")
+        raise FieldError("latency", f"{latency:.6g} s is beyond +-{_MAX_LATENCY:g} s")
     if s.latency_sigma is None:
         return latency, None
-    sigma = checked_seconds(s.latency_sigma, f"sources[{k}].latency_sigma", "positive")
+    sigma = checked_seconds(s.latency_sigma, "latency_sigma", "positive")
     lo, hi = _LATENCY_SIGMA
     if not lo <= sigma <= hi:
-        raise ValueError(f"sources[{k}].latency_sigma: {sigma:.6g} s is outside [{lo:g}, "
-                         f"{hi:g}] s")
+        raise FieldError("latency_sigma", f"{sigma:.6g} s is outside [{lo:g}, {hi:g}] s")
     return latency, sigma
-
-
-def _extrinsic_covariance(s: Source, k: int) -> Optional[np.ndarray]:
-    """The source's extrinsic covariance by :func:`pose_covariance`'s rule."""
-    return pose_covariance(s.extrinsic_covariance, f"sources[{k}].extrinsic_covariance")
 
 
 def pose_covariance(covariance, name: str) -> Optional[np.ndarray]:
     """A fixed pose's covariance (an extrinsic's, a static's; None: exact) by the measurements'
-    rule (symmetric, variances within bounds, positive definite), symmetrised; a ValueError
+    rule (symmetric, variances within bounds, positive definite), symmetrised; a FieldError
     naming ``name``."""
     if covariance is None:
         return None
     shape = shape_of(covariance)
     if shape != (DOF, DOF):
-        raise ValueError(f"{name}: expected shape (6, 6), got {shape}")
+        raise FieldError(name, f"expected shape (6, 6), got {shape}")
     try:
         return checked_covariances([covariance], None, 1)[0]
     except ValueError as e:
@@ -94,24 +88,31 @@ def pose_covariance(covariance, name: str) -> Optional[np.ndarray]:
 def source_table(sources: Optional[Iterable[Source]]) -> dict[str, Source]:
     table: dict[str, Source] = {}
     for k, s in enumerate(sources or ()):
-        if not isinstance(s, Source):
-            raise ValueError(f"sources[{k}]: expected a Source, got {type(s).__name__}")
-        problem = name_problem(s.name)
-        if problem is not None:
-            raise ValueError(f"sources[{k}].name: {problem}")
-        if s.name in table:
-            raise ValueError(f"sources[{k}]: source {quoted(s.name)} given twice")
-        problem = name_problem(s.parent, empty=True)
-        if problem is not None:
-            raise ValueError(f"sources[{k}].parent: {problem}")
-        table[s.name] = Source(
-            s.name,
-            None if s.extrinsic is None
-            else checked_pose(s.extrinsic, f"sources[{k}].extrinsic"),
-            None if s.body_offset is None
-            else checked_pose(s.body_offset, f"sources[{k}].body_offset"),
-            *_latency(s, k), _extrinsic_covariance(s, k), s.parent)
+        try:
+            table[s.name] = _source(s, table)
+        except FieldError as e:
+            raise e.within("sources", k) from None
     return table
+
+
+def _source(s: Source, table: dict[str, Source]) -> Source:
+    """``s`` checked (its fields' errors named by field; one of ``table``'s names: refused), its
+    poses normalised."""
+    if not isinstance(s, Source):
+        raise FieldError("", f"expected a Source, got {type(s).__name__}")
+    problem = name_problem(s.name)
+    if problem is not None:
+        raise FieldError("name", problem)
+    if s.name in table:
+        raise FieldError("", f"source {quoted(s.name)} given twice")
+    problem = name_problem(s.parent, empty=True)
+    if problem is not None:
+        raise FieldError("parent", problem)
+    return Source(s.name,
+                  None if s.extrinsic is None else checked_pose(s.extrinsic, "extrinsic"),
+                  None if s.body_offset is None else checked_pose(s.body_offset, "body_offset"),
+                  *_latency(s), pose_covariance(s.extrinsic_covariance, "extrinsic_covariance"),
+                  s.parent)
 
 
 def to_world(Z: np.ndarray, S: np.ndarray, names: tuple[str, ...],

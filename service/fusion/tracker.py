@@ -14,7 +14,7 @@ import numpy as np
 from dqpose import dq
 from dqpose import limits as _limits
 from dqpose._dqcore import REFUSED_FLOOR, REFUSED_JUMP, REFUSED_TIME
-from dqpose.errors import WorldError
+from dqpose.errors import FieldError, WorldError
 from dqpose.fusion.alignment import (
     DEFAULT_MAX_EXTRAPOLATION,
     joint_start,
@@ -283,7 +283,7 @@ class Tracker:
         ``time``."""
         if rows is None:
             if body is None:
-                raise ValueError("body: give a body or its rows")
+                raise FieldError("body", "give a body or its rows")
             rows = self._rows_near(body, time, within)
         if fit == "pose":
             assert time is not None
@@ -296,7 +296,7 @@ class Tracker:
         elif fit == "full":
             got = self._fit(rows, time, nis, joint)
         else:
-            raise ValueError(f"fit: expected 'full', 'static', 'pose' or 'start', got {fit!r}")
+            raise FieldError("fit", f"expected 'full', 'static', 'pose' or 'start', got {fit!r}")
         return got if ids else got[0]
 
     def _fit(self, rows: np.ndarray, time: Optional[float], nis: bool,
@@ -403,7 +403,7 @@ class Tracker:
 
     def _code_of(self, body: str) -> int:
         if body not in self._active:
-            raise ValueError(f"body: no measurements of {body!r}")
+            raise FieldError("body", f"no measurements of {body!r}")
         return self._body_codes[body]
 
     def _rows(self, body: str) -> np.ndarray:
@@ -440,14 +440,14 @@ class Tracker:
         bodies, sources = rows.bodies, rows.sources
         n = len(bodies)
         if len(sources) != n:
-            raise ValueError(f"sources: expected {n} names, got {len(sources)}")
+            raise FieldError("sources", f"expected {n} names, got {len(sources)}")
         times = finite_shape(rows.times, "times", (n,))
         poses = finite_shape(rows.poses, "poses", (n, 8))
         covs = (np.broadcast_to(np.eye(DOF), (n, DOF, DOF)) if rows.covariances is None
                 else finite_shape(rows.covariances, "covariances", (n, DOF, DOF)))
         ids = np.arange(self._count, self._count + n) if ids is None else np.asarray(ids, np.int64)
         if ids.shape != (n,):
-            raise ValueError(f"ids: expected shape {(n,)}, got {ids.shape}")
+            raise FieldError("ids", f"expected shape {(n,)}, got {ids.shape}")
         ok, errors, covs = check_rows(bodies, sources, times, poses, covs)
         if bad:
             errors.update(bad)

@@ -1,9 +1,9 @@
-"""The checks of fusion's input, each a ``ValueError`` naming the argument and the index: poses
-(finite, unit rigid motions), covariances (the rule of the convention in :mod:`dqpose.fusion`:
-symmetric, variances within bounds, positive definite; service/csrc/fusion.h applies the same rule
-for StreamFuse) or scalar weights, source names, seconds, the twist's prior and the acceleration's
-spectral density, and the rows of a live stream (:meth:`dqpose.fusion.Tracker.ingest`), each
-refused alone.
+"""The checks of fusion's input, each a :class:`~dqpose.errors.FieldError` (as data: the argument,
+the index, the problem): poses (finite, unit rigid motions), covariances (the rule of the
+convention in :mod:`dqpose.fusion`: symmetric, variances within bounds, positive definite;
+service/csrc/fusion.h applies the same rule for StreamFuse) or scalar weights, source names,
+seconds, the twist's prior and the acceleration's spectral density, and the rows of a live stream
+(:meth:`dqpose.fusion.Tracker.ingest`), each refused alone.
 """
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import numpy as np
 
 from dqpose import _dqcore as _c
 from dqpose import dq
-from dqpose.errors import WorldError, rename
+from dqpose.errors import FieldError, WorldError, rename
 from dqpose.fusion.results import DOF
 from dqpose.names import bad_names, name_problem
 
@@ -30,24 +30,24 @@ def finite(x, name: str, tail: tuple[int, ...], n: Optional[int]) -> np.ndarray:
     try:
         a = np.asarray(x, dtype=np.float64)
     except (TypeError, ValueError):
-        raise ValueError(f"{name}: expected numbers, got {type(x).__name__}") from None
+        raise FieldError(name, f"expected numbers, got {type(x).__name__}") from None
     want = ((n,) if n is not None else (None,)) + tail
     if a.ndim != len(want) or any(w is not None and s != w for s, w in zip(a.shape, want)):
         shape = ", ".join("n" if w is None else str(w) for w in want)
         got = f"{a.shape}" + (f" for {n} poses" if n is not None else "")
-        raise ValueError(f"{name}: expected shape ({shape}), got {got}")
+        raise FieldError(name, f"expected shape ({shape}), got {got}")
     if a.size == 0:
         return a
     bad = ~np.isfinite(a).reshape(a.shape[0], -1).all(axis=1)
     if np.any(bad):
-        raise ValueError(f"{name}[{int(np.flatnonzero(bad)[0])}]: contains NaN or infinity")
+        raise FieldError(name, "contains NaN or infinity", int(np.flatnonzero(bad)[0]))
     return a
 
 
 def checked_poses(poses) -> np.ndarray:
     Z = finite(poses, "poses", (8,), None)
     if Z.shape[0] == 0:
-        raise ValueError("poses: no measurements (expected at least one pose)")
+        raise FieldError("poses", "no measurements (expected at least one pose)")
     try:
         dq.to_matrix(Z)  # the core's unit and rigidity checks, with the index
     except ValueError as e:
@@ -60,19 +60,19 @@ def checked_pose(T, name: str) -> np.ndarray:
     try:
         dq.to_matrix(a)
     except ValueError as e:
-        raise ValueError(f"{name}: {str(e).split(': ', 1)[-1]}") from None
+        raise FieldError(name, FieldError.of(e).text) from None
     return dq.normalize(a[0])
 
 
 def checked_covariances(covariances, weights, n: int) -> np.ndarray:
     if covariances is not None and weights is not None:
-        raise ValueError("weights: give covariances or weights, not both")
+        raise FieldError("weights", "give covariances or weights, not both")
     if weights is not None:
         w = finite(weights, "weights", (), n)
         bad = ~(w > 0.0)
         if np.any(bad):
             i = int(np.flatnonzero(bad)[0])
-            raise ValueError(f"weights[{i}]: must be positive, got {w[i]!r}")
+            raise FieldError("weights", f"must be positive, got {w[i]!r}", i)
         return np.eye(DOF) / w[:, None, None]
     if covariances is None:
         return np.broadcast_to(np.eye(DOF), (n, DOF, DOF)).copy()
@@ -82,16 +82,16 @@ def checked_covariances(covariances, weights, n: int) -> np.ndarray:
     bad = ~(asym <= SYMMETRY_TOL * scale)
     if np.any(bad):
         i = int(np.flatnonzero(bad)[0])
-        raise ValueError(f"covariances[{i}]: not symmetric (largest asymmetry {asym[i]:.3g})")
+        raise FieldError("covariances", f"not symmetric (largest asymmetry {asym[i]:.3g})", i)
     var = np.diagonal(S, axis1=1, axis2=2)
     out = (var > 0.0) & ~((var >= MIN_VARIANCE) & (var <= MAX_VARIANCE))   # <= 0: not SPD
     bad = out.any(axis=1)
     if np.any(bad):
         i = int(np.flatnonzero(bad)[0])
         v = var[i][out[i]][0]
-        raise ValueError(f"covariances[{i}]: variance {v:.6g} outside [{MIN_VARIANCE:g}, "
+        raise FieldError("covariances", f"variance {v:.6g} outside [{MIN_VARIANCE:g}, "
                          f"{MAX_VARIANCE:g}] (standard deviations 1e-12 to 1e+12 rad or m): "
-                         f"its information cannot be used")
+                         f"its information cannot be used", i)
     S = 0.5 * (S + np.swapaxes(S, 1, 2))
     try:
         np.linalg.cholesky(S)
@@ -100,7 +100,7 @@ def checked_covariances(covariances, weights, n: int) -> np.ndarray:
             try:
                 np.linalg.cholesky(S[i])
             except np.linalg.LinAlgError:
-                raise ValueError(f"covariances[{i}]: not positive definite") from None
+                raise FieldError("covariances", "not positive definite", i) from None
     return S
 
 
@@ -108,14 +108,14 @@ def checked_names(names, n: int) -> tuple[str, ...]:
     if names is None:
         return ("",) * n
     if isinstance(names, str):
-        raise ValueError("names: expected one source name per measurement, got a string")
+        raise FieldError("names", "expected one source name per measurement, got a string")
     out = tuple(names)
     if len(out) != n:
-        raise ValueError(f"names: expected {n} source names, got {len(out)}")
+        raise FieldError("names", f"expected {n} source names, got {len(out)}")
     for i, s in enumerate(out):
         problem = name_problem(s, empty=True)      # "": the world frame
         if problem is not None:
-            raise ValueError(f"names[{i}]: {problem}")
+            raise FieldError("names", problem, i)
     return out
 
 
@@ -124,11 +124,11 @@ def checked_seconds(x, name: str, least: Optional[str] = None) -> float:
     try:
         v = float(x)
     except (TypeError, ValueError):
-        raise ValueError(f"{name}: expected seconds, got {type(x).__name__}") from None
+        raise FieldError(name, f"expected seconds, got {type(x).__name__}") from None
     if not math.isfinite(v):
-        raise ValueError(f"{name}: must be finite, got {v!r}")
+        raise FieldError(name, f"must be finite, got {v!r}")
     if (least == "positive" and not v > 0.0) or (least == "nonnegative" and v < 0.0):
-        raise ValueError(f"{name}: must be {least}, got {v!r}")
+        raise FieldError(name, f"must be {least}, got {v!r}")
     return v
 
 
@@ -145,7 +145,7 @@ def twist_information(twist_covariance) -> tuple[np.ndarray, np.ndarray]:
     information."""
     shape = shape_of(twist_covariance)
     if shape != (DOF, DOF):
-        raise ValueError(f"twist_covariance: expected shape (6, 6), got {shape}")
+        raise FieldError("twist_covariance", f"expected shape (6, 6), got {shape}")
     try:
         C = checked_covariances([twist_covariance], None, 1)[0]
     except ValueError as e:
@@ -161,23 +161,23 @@ def checked_acceleration(acceleration_psd) -> Optional[np.ndarray]:
         return None
     shape = shape_of(acceleration_psd)
     if shape != (DOF, DOF):
-        raise ValueError(f"acceleration_psd: expected shape (6, 6), got {shape}")
+        raise FieldError("acceleration_psd", f"expected shape (6, 6), got {shape}")
     try:
         Q = np.asarray(acceleration_psd, dtype=np.float64)
     except (TypeError, ValueError):
-        raise ValueError("acceleration_psd: expected numbers") from None
+        raise FieldError("acceleration_psd", "expected numbers") from None
     if not np.isfinite(Q).all():
-        raise ValueError("acceleration_psd: contains NaN or infinity")
+        raise FieldError("acceleration_psd", "contains NaN or infinity")
     scale = float(np.abs(Q).max())
     if scale == 0.0:
         return None
     if np.abs(Q - Q.T).max() > SYMMETRY_TOL * scale:
-        raise ValueError(f"acceleration_psd: not symmetric (largest asymmetry "
-                         f"{np.abs(Q - Q.T).max():.3g})")
+        raise FieldError("acceleration_psd", f"not symmetric (largest asymmetry "
+                                             f"{np.abs(Q - Q.T).max():.3g})")
     Q = 0.5 * (Q + Q.T)
     low = float(np.linalg.eigvalsh(Q).min())
     if low < -SYMMETRY_TOL * scale:
-        raise ValueError(f"acceleration_psd: not positive semidefinite (eigenvalue {low:.3g})")
+        raise FieldError("acceleration_psd", f"not positive semidefinite (eigenvalue {low:.3g})")
     return Q
 
 
@@ -255,5 +255,5 @@ def finite_shape(x, name: str, shape: tuple) -> np.ndarray:
     """``x`` as float64 of ``shape`` (values unchecked: the rows are checked one by one)."""
     a = np.asarray(x, dtype=np.float64)
     if a.shape != shape:
-        raise ValueError(f"{name}: expected shape {shape}, got {a.shape}")
+        raise FieldError(name, f"expected shape {shape}, got {a.shape}")
     return a

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import re
 from typing import Callable, NamedTuple
 
 import numpy as np
@@ -370,7 +369,6 @@ _MEASUREMENT_FIELDS = {"poses": "pose", "covariances": "covariance", "times": "t
                        "names": "source"}
 _OPTION_FIELDS = ("probability", "time", "max_skew", "max_extrapolation", "window",
                   "twist_covariance", "acceleration_psd")
-_INDEXED = re.compile(r"^(\w+)\[(\d+)\]")
 
 
 def options_error(e: ValueError, field: str) -> FieldError:
@@ -382,17 +380,17 @@ def options_error(e: ValueError, field: str) -> FieldError:
 def _domain_error(e: ValueError, index: np.ndarray, field: str, options: str) -> FieldError:
     """The domain's ``ValueError`` about row ``k`` of the arrays it was given, naming the
     message's measurement ``index[k]``; one about all of them (the fit's information), naming
-    ``field``; one about the options, naming the option."""
-    hit = _INDEXED.match(str(e))
-    if hit is not None and hit[1] in _MEASUREMENT_FIELDS:
-        k = int(hit[2])
-        return rename(e, {hit[1]: f"{field}[{int(index[k])}].{_MEASUREMENT_FIELDS[hit[1]]}"})
-    text = str(e)
-    if text.startswith("covariances: "):     # the fit of them all, not one covariance
-        return FieldError(f"{field}: {text[len('covariances: '):]} (the measurements' "
-                          f"covariances and times, with the options' priors, leave the pose, "
-                          f"twist or latencies undetermined)")
-    return options_error(e, options)
+    ``field``; one about the options, naming the option (read from the error's fields,
+    :meth:`FieldError.of`)."""
+    f = FieldError.of(e)
+    if f.field in _MEASUREMENT_FIELDS and f.index is not None:
+        at = f"{field}[{int(index[f.index])}].{_MEASUREMENT_FIELDS[f.field]}"
+        return rename(f, {f.field: at})
+    if f.path() == "covariances":     # the fit of them all, not one covariance
+        return FieldError(field, f"{f.text} (the measurements' covariances and times, with the "
+                                 f"options' priors, leave the pose, twist or latencies "
+                                 f"undetermined)")
+    return options_error(f, options)
 
 
 def unknown_sources(m: Measurements, options: Options, field: str) -> list:
