@@ -35,7 +35,7 @@ __all__ = ["Static", "FrameTree", "FrameKind", "FrameInfo", "RESERVED"]
 
 #: the name no frame may have: the CLI's word for "", the world frame
 RESERVED = "world"
-_IDENT = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
+_IDENT = dq.identity()
 _ZERO = np.zeros((DOF, DOF))
 
 

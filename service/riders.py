@@ -46,7 +46,7 @@ if TYPE_CHECKING:
     from dqpose.fusion import Source
     from dqpose.world import World
 
-_IDENT = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
+_IDENT = dq.identity()
 
 
 class _Composed(NamedTuple):

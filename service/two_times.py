@@ -49,7 +49,7 @@ from dqpose.fusion.motion import Model, motion_jacobian
 from dqpose.fusion.results import DOF
 from dqpose.fusion.validation import checked_seconds, twist_information
 
-IDENTITY = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
+IDENTITY = dq.identity()
 
 
 class _Fit(NamedTuple):

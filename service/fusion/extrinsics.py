@@ -56,7 +56,7 @@ def uncertain_extrinsics(names: Sequence[str], table: dict) -> Optional[Extrinsi
         return None
     index = {s: k for k, s in enumerate(order)}
     slot = np.array([index.get(s, -1) for s in names], dtype=np.intp)
-    ident = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
+    ident = dq.identity()
     E = np.array([ident if table[s].extrinsic is None else table[s].extrinsic for s in order])
     cov = np.array([table[s].extrinsic_covariance for s in order])
     info = np.linalg.inv(cov)

@@ -8,6 +8,7 @@ from typing import NamedTuple, Optional, Sequence
 
 import numpy as np
 
+from dqpose import dq
 from dqpose.errors import WorldError
 from dqpose.fusion.results import DOF
 from dqpose.fusion.validation import checked_covariances, checked_seconds, shape_of
@@ -60,7 +61,7 @@ def arrays_of(measurements: Sequence[Measurement]):
                                            "weights": "weight"}) from None
         except WorldError as e:
             errors[k] = e
-            poses[k] = (1.0, 0, 0, 0, 0, 0, 0, 0)
+            poses[k] = dq.identity()
             covs[k] = np.eye(DOF)
             times[k] = 0.0
     return poses, covs, times, errors

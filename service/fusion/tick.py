@@ -11,7 +11,7 @@ from typing import Optional
 
 import numpy as np
 
-from dqpose import _dqcore
+from dqpose import _dqcore, dq
 from dqpose.fusion.consistency import verdict_bounds
 from dqpose.fusion.tracker import Tracker
 from dqpose.fusion.validation import checked_seconds, twist_information
@@ -31,7 +31,7 @@ def _options(t: Tracker) -> _dqcore.FitOptions:
     uncertain = [(k, s) for k, s in enumerate(srcs) if s is not None
                  and s.extrinsic_covariance is not None]
     if uncertain:
-        ident = np.array([1.0, 0, 0, 0, 0, 0, 0, 0])
+        ident = dq.identity()
         at = [k for k, _ in uncertain]
         E[at] = np.array([ident if s.extrinsic is None else s.extrinsic for _, s in uncertain])
         inv = np.linalg.inv(np.array([s.extrinsic_covariance for _, s in uncertain]))

@@ -95,7 +95,7 @@ class Tracker:
         self._table = source_table(self.sources)
         # the options' checks are fuse's: one fusion of a placeholder runs them now, not later
         # (its parents a world's, which fuse refuses)
-        fuse(np.array([[1.0, 0, 0, 0, 0, 0, 0, 0]]), times=[0.0],
+        fuse(dq.identity((1,)), times=[0.0],
              sources=[dataclasses.replace(s, parent="") for s in self._table.values()],
              robust=robust, probability=probability, max_skew=max_skew,
              max_extrapolation=max_extrapolation, twist_covariance=twist_covariance,
