@@ -30,8 +30,9 @@ import sys
 import threading
 import time
 
-from dqpose.record import LIVE_TOKEN_ENV, LiveFailed, cannot_write, frames, live_problem
+from dqpose.record import frames
 from dqpose.record.schemas import descriptor_set
+from dqpose.record.settings import LIVE_TOKEN_ENV, LiveFailed, cannot_write, live_problem
 
 log = logging.getLogger("dqpose.record")
 

@@ -23,10 +23,11 @@ import time
 from typing import Any
 
 from dqpose.events import say
-from dqpose.record import LIVE_TOKEN_ENV, cannot_write, describe, frames, handeye, types, views
+from dqpose.record import frames, handeye, types, views
 from dqpose.record.live import LiveServer
 from dqpose.record.mcapfile import CHUNK_BYTES, McapFile
 from dqpose.record.schemas import message_class
+from dqpose.record.settings import LIVE_TOKEN_ENV, cannot_write, describe
 from dqpose.record.sink import Sink
 from dqpose.record.topics import (
     ARM_STATE_FIELDS,
