@@ -21,8 +21,8 @@ if os.environ.get("DQPOSE_WERROR") == "1":
 
 # The pure C99 core, then the CPython/NumPy bindings (py_*.c) and the module's table (module.c).
 CORE_SOURCES = ("dq.c", "blend.c", "wire.c", "fused_wire.c", "linalg6.c", "se3.c", "gn.c",
-                "fusion.c", "motion.c", "joint.c", "joint_nis.c", "traj_law.c", "traj_plan.c",
-                "traj_eval.c", "store.c", "lookup.c", "tick.c")
+                "fusion.c", "motion.c", "motion_rows.c", "motion_nis.c", "joint.c", "joint_nis.c",
+                "traj_law.c", "traj_plan.c", "traj_eval.c", "store.c", "lookup.c", "tick.c")
 BINDING_SOURCES = ("py_args.c", "py_dq.c", "py_wire.c", "py_fusion.c", "py_joint.c", "py_se3.c",
                    "py_trajectory.c", "py_store.c", "py_lookup.c", "py_tick.c", "module.c")
 
