@@ -83,9 +83,9 @@ class Lookups:
         L, Ehat = self._starts(t, len(latency))
         rows = [w.rows_for(b, at) if b else None for b in (target, source)]
         warm = [self._warm_of(b, at) for b in (target, source)]
-        s = t._store
-        covs = s.wcovs if "wcovs" in s._arrays else s.covs
-        o = t._checked
+        s = t.store
+        covs = s.wcovs if "wcovs" in s.arrays else s.covs
+        o = t.options
         limit = o.max_extrapolation
         keys = ((target,), (source,), (target, source))
         records = self._records
@@ -114,7 +114,7 @@ class Lookups:
             self._warm.clear()
             self._records.clear()
             self._L, self._E = np.empty(0), np.empty((0, 8))
-        names = t._names
+        names = t.source_names
         kept = self._kept
         if kept is not None and len(kept[0]) == len(names):
             return kept
@@ -122,7 +122,7 @@ class Lookups:
         latency_w, E = np.zeros(n), np.tile(_IDENT, (n, 1))
         info, uncertain = np.zeros((n, DOF, DOF)), np.zeros(n, bool)
         for c, name in enumerate(names):
-            src = t._table.get(name)
+            src = t.table.get(name)
             if src is None:
                 continue
             if src.latency_sigma is not None:
@@ -133,10 +133,10 @@ class Lookups:
                 uncertain[c] = True
                 inv = np.linalg.inv(src.extrinsic_covariance)
                 info[c] = 0.5 * (inv + inv.T)
-        o = t._checked
+        o = t.options
         twist_w = (None if o.twist_covariance is None
                    else twist_information(o.twist_covariance)[1])
-        self._kept = (t._latency[:n].copy(), latency_w, E, info, uncertain, twist_w)
+        self._kept = (t.latencies[:n].copy(), latency_w, E, info, uncertain, twist_w)
         return self._kept
 
     def _starts(self, t: "Tracker", codes: int) -> tuple[np.ndarray, np.ndarray]:
@@ -182,13 +182,13 @@ class Lookups:
         t, window = w.tracker, w.options.window
         common = (t.sources_of(t.rows_ending(a, w.window_end(a, at), window))
                   & t.sources_of(t.rows_ending(b, w.window_end(b, at), window)))
-        return any(not t._table[s].exact for s in common if s in t._table)
+        return any(not t.table[s].exact for s in common if s in t.table)
 
 
 def _plain(t: "Tracker") -> bool:
     """Whether tracker ``t``'s fit over time is the constant-twist fit ``_dqcore.lookup`` runs
     (not robust, no ``acceleration_psd``, no ``max_skew``)."""
-    o = t._checked
+    o = t.options
     return not o.robust and o.acceleration_psd is None and o.max_skew is None
 
 

@@ -132,7 +132,7 @@ class Riders:
             return len(rows)
         w = self._world
         t = w.tracker
-        riding = int(np.count_nonzero(t._riding[t._store.codes[rows]]))
+        riding = int(np.count_nonzero(t.riding[t.store.codes[rows]]))
         parent = max((len(t.rows_ending(p, t.newest(p), w.options.window))
                       for p in self.parents_of(body) if t.has(p)), default=0)
         return len(rows) + riding * (parent + ANSWER_ROWS)
@@ -152,8 +152,8 @@ class Riders:
         or None when no row is a rider's."""
         w = self._world
         t = w.tracker
-        s = t._store
-        names = t._sources_of(rows)
+        s = t.store
+        names = t.row_sources(rows)
         riding = [k for k, n in enumerate(names) if n in self.parents]
         if not riding:
             return None
@@ -162,7 +162,7 @@ class Riders:
         at = float(taken.max()) if time is None else float(time)
         keep = np.ones(len(rows), bool)
         why: dict[int, str] = {}
-        table = dict(t._checked.table)
+        table = dict(t.options.table)
         body = self._body_of(rows)
         riders = {}
         for src in dict.fromkeys(names[k] for k in riding):
@@ -183,7 +183,7 @@ class Riders:
         if c is None:
             return None
         kept = c.kept()
-        o = self._world.tracker._checked._replace(table=c.table)
+        o = self._world.tracker.options._replace(table=c.table)
         used = tuple(c.names[k] for k in kept)
         f = (fuse_static_rows(c.Z[kept], c.S[kept], used, o) if static else
              fuse_world_rows(c.Z[kept], c.S[kept], used, c.times[kept], time, o, nis, joint))
@@ -191,7 +191,7 @@ class Riders:
         at = c.at if f.time is None else f.time
         dropped = tuple(Dropped(kept.size + j, c.names[k], float(at - c.taken[k]), 0.0,
                                 c.why[k]) for j, k in enumerate(out.tolist()))
-        ids = self._world.tracker._store.ids[rows]
+        ids = self._world.tracker.store.ids[rows]
         return (dataclasses.replace(f, dropped=f.dropped + dropped),
                 np.concatenate([ids[kept], ids[out]]))
 
@@ -202,7 +202,7 @@ class Riders:
         ``(12, 12)``; None when they share none (the lock held)."""
         w = self._world
         t = w.tracker
-        table = dict(t._checked.table)
+        table = dict(t.options.table)
         parts: list[tuple] = []
         composed: dict = {}
         for body in (a, b):
@@ -214,7 +214,7 @@ class Riders:
         common = set(parts[0][2]) & set(parts[1][2])
         if not any(n in table and not table[n].exact for n in common):
             return None
-        o = t._checked._replace(table=table)
+        o = t.options._replace(table=table)
         starts = [fuse_world_rows(Z, S, names, times, at, o, False, False)
                   for Z, S, names, times in parts]
         (Xa, Xb), P = fuse_joint_rows(parts, starts, at, o)
@@ -226,15 +226,15 @@ class Riders:
         c = self.compose(rows, at)
         if c is None:
             t = self._world.tracker
-            Z, S = t._store.world(rows)
-            return (Z, S, t._sources_of(rows), t._store.times[rows]), {}
+            Z, S = t.store.world(rows)
+            return (Z, S, t.row_sources(rows), t.store.times[rows]), {}
         kept = c.kept()
         return (c.Z[kept], c.S[kept], tuple(c.names[k] for k in kept), c.times[kept]), c.riders
 
     def _body_of(self, rows: np.ndarray) -> str:
         t = self._world.tracker
-        code = int(t._store.body[rows[0]])
-        return next(b for b, c in t._body_codes.items() if c == code)
+        code = int(t.store.body[rows[0]])
+        return next(b for b, c in t.body_codes.items() if c == code)
 
     def _compose(self, src: str, body: str, idx: list, taken: np.ndarray, Z: np.ndarray,
                  why: dict):
@@ -257,7 +257,7 @@ class Riders:
             good.append(k)
         if not good:
             return None
-        src_ = w.tracker._checked.table[src]
+        src_ = w.tracker.options.table[src]
 
         def source(at: float):
             ref = min(good, key=lambda k: abs(float(taken[k]) - at))

@@ -154,10 +154,10 @@ def _fit(world, body: str, at: float) -> _Fit:
         rows = world.rows_for(body, at)
         f, ids = world.fit_of(body, rows,
                                lambda r: t.estimate(None, at, rows=r, nis=False, ids=True))
-        Z, S = t._store.world(rows)
-        names = t._sources_of(rows)
+        Z, S = t.store.world(rows)
+        names = t.row_sources(rows)
         dt = t.taken_of(rows) - f.time
-        twist_cov, table = world.options.twist_covariance, t._table
+        twist_cov, table = world.options.twist_covariance, t.table
         riders = world.riders.rides(body)
     keep = np.asarray(f.inliers)
     if riders:          # rows composed with a parent's fit: no shared term modelled

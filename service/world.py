@@ -190,7 +190,7 @@ class World:
                 tree.clashes(self._t.held)
             old, self.tree = self._tracker, tree
             self._tracker, self._wire = tracker, WireTicks(tracker)
-            self.riders = Riders(self, tracker._table)
+            self.riders = Riders(self, tracker.table)
             tracker.riders = self.riders if self.riders.parents else None
             self.fits.clear()
             self.kept_relatives.clear()
@@ -563,7 +563,7 @@ class World:
             if arm not in self.arms:
                 raise NotFound(f"arm: {arm!r} has no source in the world's arms (" + (
                     ", ".join(map(repr, self.arms)) or "none configured") + ")")
-            src = self._t._table[self.arms[arm]]
+            src = self._t.table[self.arms[arm]]
         cov = src.extrinsic_covariance
         return BodyPose(f"arm:{arm}", 0.0, dq.identity() if src.extrinsic is None else
                         src.extrinsic, np.zeros((DOF, DOF)) if cov is None else cov, None)

@@ -181,7 +181,7 @@ def test_rows_that_are_not_the_stores_are_refused_by_name():
     lookups, t = world.lookups, world.tracker
     table = lookups._table(t)
     L, E = lookups._starts(t, len(table[0]))
-    s = t._store
+    s = t.store
     for bad in (np.array([s.n]), np.array([-1])):
         with pytest.raises(ValueError, match=r"rows_a\[0\]"):
             _dqcore.lookup(s.ids, s.wposes, s.covs, s.times[:s.n], s.codes, *table[:5], bad,

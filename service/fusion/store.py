@@ -31,10 +31,10 @@ class Store:
     _ARRAYS = ("ids", "body", "codes", "times", "taken", "poses", "covs", "wposes")
 
     def __init__(self, capacity: int = 256, world_covs: bool = False):
-        self._arrays = self._ARRAYS + (("wcovs",) if world_covs else ())
+        self.arrays = self._ARRAYS + (("wcovs",) if world_covs else ())
         self.n = 0
         # body -> its rows, ascending, with the running maximum of their taken times (C)
-        self._index = StoreIndex()
+        self.index = StoreIndex()
         self.ids = np.empty(capacity, np.int64)
         self.body = np.empty(capacity, np.int64)
         self.codes = np.empty(capacity, np.int64)
@@ -48,42 +48,42 @@ class Store:
 
     def world(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rows' poses and covariances in the world frame."""
-        covs = self.wcovs if "wcovs" in self._arrays else self.covs
+        covs = self.wcovs if "wcovs" in self.arrays else self.covs
         return self.wposes[rows], covs[rows]
 
     def live(self, newest: np.ndarray, window: float, cap: Optional[int] = None) -> np.ndarray:
         """The rows in their body's window: taken within ``window`` of its newest, and among
         the last ``cap`` of those (arrival order) when a cap is given."""
-        return self._index.live(self.taken, newest, window, -1 if cap is None else cap, self.n)
+        return self.index.live(self.taken, newest, window, -1 if cap is None else cap, self.n)
 
     def spans(self, newest: np.ndarray, window: float, cap: Optional[int],
               recent: float) -> tuple[np.ndarray, np.ndarray]:
         """Per body code, over its rows of :meth:`live`: the oldest taken (inf: none) and how
         many were taken within ``recent`` of its newest."""
-        return self._index.live(self.taken, newest, window, -1 if cap is None else cap, self.n,
+        return self.index.live(self.taken, newest, window, -1 if cap is None else cap, self.n,
                                 float(recent))
 
     def rows(self, b: int, newest: np.ndarray, window: float,
              cap: Optional[int] = None) -> np.ndarray:
         """Body ``b``'s rows in its window, in arrival order (the last ``cap`` of them)."""
-        return self._index.since(b, newest[b] - window, self.taken, -1 if cap is None else cap)
+        return self.index.since(b, newest[b] - window, self.taken, -1 if cap is None else cap)
 
     def since(self, b: int, lo: float) -> np.ndarray:
         """Body ``b``'s rows taken at ``lo`` or later, in arrival order."""
-        return self._index.since(b, lo, self.taken)
+        return self.index.since(b, lo, self.taken)
 
     def after(self, b: int, lo: float) -> np.ndarray:
         """Body ``b``'s rows from its first one whose running maximum of taken reaches ``lo``
         (every earlier row was taken before ``lo``), in arrival order."""
-        return self._index.after(b, lo)
+        return self.index.after(b, lo)
 
     def count(self, b: int) -> int:
         """How many rows body ``b`` has in the store (in its window or not)."""
-        return self._index.count(b)
+        return self.index.count(b)
 
     def keep(self, mask: np.ndarray) -> None:
         """The rows ``mask`` kept, in order, the others dropped (``_index.keep``, C)."""
-        self._index.keep(self, np.asarray(mask, bool))
+        self.index.keep(self, np.asarray(mask, bool))
 
     def reserve(self, m: int, newest: np.ndarray, window: float,
                 cap: Optional[int] = None) -> None:
@@ -94,7 +94,7 @@ class Store:
         self.keep(self.live(newest, window, cap))
         if 2 * (self.n + m) > len(self.ids):
             size = max(2 * len(self.ids), 2 * (self.n + m))
-            for a in self._arrays:
+            for a in self.arrays:
                 old = getattr(self, a)
                 new = np.empty((size,) + old.shape[1:], old.dtype)
                 new[:self.n] = old[:self.n]

@@ -21,7 +21,7 @@ def _options(t: Tracker) -> _dqcore.FitOptions:
     """The C tick's options of tracker ``t``: its checked options and, per source code, the
     source's latency and prior and whether its extrinsic is exact (the numbers the Python set-up
     computes, by the same expressions)."""
-    o, table, names = t._checked, t._table, list(t._names)
+    o, table, names = t.options, t.table, list(t.source_names)
     srcs = [table.get(name) for name in names]
     sigma = [None if s is None else s.latency_sigma for s in srcs]   # None: not estimated
     C, Wp = (None, None) if o.twist_covariance is None else twist_information(
@@ -37,7 +37,7 @@ def _options(t: Tracker) -> _dqcore.FitOptions:
         inv = np.linalg.inv(np.array([s.extrinsic_covariance for _, s in uncertain]))
         info[at] = 0.5 * (inv + np.swapaxes(inv, 1, 2))
     return _dqcore.FitOptions(
-        np.array(t._latency, np.float64),
+        np.array(t.latencies, np.float64),
         np.array([math.nan if x is None else x for x in sigma], np.float64),
         np.array([math.nan if x is None else x ** -2 for x in sigma], np.float64),
         np.array([x is not None for x in sigma], bool),
@@ -56,7 +56,7 @@ class WireTicks:
 
     def __init__(self, tracker: Tracker):
         self.tracker = tracker
-        o = tracker._checked
+        o = tracker.options
         self.plain = not o.robust and (o.acceleration_psd is None
                                        or not np.any(o.acceleration_psd))
         self._options: Optional[_dqcore.FitOptions] = None
@@ -70,10 +70,10 @@ class WireTicks:
             return None
         t = self.tracker
         opts = self._options
-        if opts is None or opts.sources != len(t._names):
+        if opts is None or opts.sources != len(t.source_names):
             opts = self._options = _options(t)
-        s = t._store
-        return _dqcore.tick(opts, s.wposes, s.wcovs if "wcovs" in s._arrays else s.covs,
+        s = t.store
+        return _dqcore.tick(opts, s.wposes, s.wcovs if "wcovs" in s.arrays else s.covs,
                             s.times, s.codes, s.ids, rows, math.nan if time is None else time,
-                            body, request, verdict_bounds(t._checked.probability, len(rows)),
+                            body, request, verdict_bounds(t.options.probability, len(rows)),
                             pose, covariance)

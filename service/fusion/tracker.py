@@ -92,46 +92,47 @@ class Tracker:
         self.window = checked_seconds(window, "window", "positive")
         self.bounds = bounds
         self.sources = tuple(sources or ())
-        self._table = source_table(self.sources)
+        self.table = source_table(self.sources)      # name -> Source, read by the world's modules
         # the options' checks are fuse's: one fusion of a placeholder runs them now, not later
         # (its parents a world's, which fuse refuses)
         fuse(dq.identity((1,)), times=[0.0],
-             sources=[dataclasses.replace(s, parent="") for s in self._table.values()],
+             sources=[dataclasses.replace(s, parent="") for s in self.table.values()],
              robust=robust, probability=probability, max_skew=max_skew,
              max_extrapolation=max_extrapolation, twist_covariance=twist_covariance,
              acceleration_psd=acceleration_psd, tol=tol, max_iter=max_iter)
         probability = float(probability)
-        self._checked = Checked(self._table, robust, probability,
+        # every fit's options (fusion.api.Checked), the checked ones of the arguments above
+        self.options = Checked(self.table, robust, probability,
                                  chi2_quantile(probability, DOF), dq.as_tol(tol),
                                  dq.as_iter(max_iter), max_skew, max_extrapolation,
                                  twist_covariance, acceleration_psd)
-        self._store = Store(world_covs=any(src.body_offset is not None
-                                            for src in self._table.values()))
+        self.store = Store(world_covs=any(src.body_offset is not None
+                                            for src in self.table.values()))
         # bodies and sources as small integers in the store: a body's newest taken time, a
         # source's configured latency
-        self._body_codes: dict[str, int] = {}
+        self.body_codes: dict[str, int] = {}
         self._active: dict[str, None] = {}        # bodies with measurements, in order
         self._newest = np.full(16, -math.inf)
         # per body code and source code: the newest measurement of that source taken
         self._by_source = np.full((16, 4), -math.inf)
         self._codes: dict[str, int] = {}
-        self._names: list[str] = []
-        self._latency = np.empty(0)
+        self.source_names: list[str] = []
+        self.latencies = np.empty(0)
         # per source code: its extrinsic and latency exact (no extrinsic_covariance, no
         # latency_sigma), for estimate's fit="pose"
         self._exact = np.empty(0, dtype=bool)
-        self._all_exact = all(src.exact for src in self._table.values())
+        self._all_exact = all(src.exact for src in self.table.values())
         # a World's riders (dqpose.riders.Riders: rows composed with their parents' poses when
         # fitted) and, per source code, whether it is one
         self.riders: Optional[Riders] = None
-        self._riding = np.empty(0, dtype=bool)
+        self.riding = np.empty(0, dtype=bool)
         self._count = 0            # measurements offered so far: the default ids
         # the bodies of the last ingest's measurements taken in, once each, in order
         self.touched: tuple = ()
         # rows whose source has frames are brought to the world frame in NumPy (_in_world), the
         # others by the store's C (unit poses, covariances as they are)
         self._framed = any(src.body_offset is not None or src.extrinsic is not None
-                           for src in self._table.values())
+                           for src in self.table.values())
         self.cap = None            # measurements a body's window holds (None: all)
         if bounds is not None:
             self.cap = bounds.cap(robust, bool(acceleration_psd is not None
@@ -160,14 +161,14 @@ class Tracker:
     def version(self, body: str) -> int:
         """How many requests (calls of :meth:`ingest`) brought ``body``
         measurements (0: none): a body's answers change only when this does."""
-        code = self._body_codes.get(body)
-        return 0 if code is None else self._store._index.version(code)
+        code = self.body_codes.get(body)
+        return 0 if code is None else self.store.index.version(code)
 
     def window_of(self, body: str) -> Window:
         """``body``'s window as arrays, in the order of its :meth:`estimate`'s indices."""
-        s, rows = self._store, self._rows(body)
-        return Window(s.ids[rows], tuple(self._names[c] for c in s.codes[rows]), s.times[rows],
-                      s.taken[rows], s.poses[rows], s.covs[rows])
+        s, rows = self.store, self._rows(body)
+        return Window(s.ids[rows], tuple(self.source_names[c] for c in s.codes[rows]),
+                      s.times[rows], s.taken[rows], s.poses[rows], s.covs[rows])
 
     def measurements(self, body: str) -> tuple[Measurement, ...]:
         """``body``'s window, in the order of the indices in its :meth:`estimate`."""
@@ -183,12 +184,12 @@ class Tracker:
         """When ``body``'s newest measurement of each source that fed it was taken (those whose
         measurements it holds or held)."""
         row = self._by_source[self._code_of(body)].tolist()
-        names = self._names
+        names = self.source_names
         return {names[c]: t for c, t in enumerate(row) if t != -math.inf}
 
     def newest_of(self, bodies: Iterable[str]) -> list[float]:
         """:meth:`newest` of each of ``bodies`` (which have measurements), in one go."""
-        codes = self._body_codes
+        codes = self.body_codes
         return self._newest[[codes[b] for b in bodies]].tolist()
 
     def count(self, body: str) -> int:
@@ -200,25 +201,25 @@ class Tracker:
         :attr:`window`) leaves measurements out for its ``cap``."""
         if self.cap is None:
             return False
-        s = self._store
+        s = self.store
         return len(s.rows(self._code_of(body), self._newest,
                           self.window if within is None else within)) > self.cap
 
     def oldest(self, body: str) -> float:
         """When the oldest measurement in ``body``'s window was taken."""
-        return float(self._store.taken[self._rows(body)].min())
+        return float(self.store.taken[self._rows(body)].min())
 
     def spans(self, bodies: Sequence[str], recent: float) -> tuple:
         """:meth:`oldest` and :meth:`newest` of each of ``bodies`` (which have measurements),
         how many of its window's rows were taken within ``recent`` s before its newest, and the
         names of the sources of :meth:`by_source`, in one pass over the live rows (C: a list of
         every body; one body's looks cost ~13 us)."""
-        s = self._store
-        codes = np.fromiter(map(self._body_codes.__getitem__, bodies), np.int64, len(bodies))
+        s = self.store
+        codes = np.fromiter(map(self.body_codes.__getitem__, bodies), np.int64, len(bodies))
         oldest, near = s.spans(self._newest, self.window, self.cap, recent)
         # the sources' sets by pattern: few patterns among many bodies
         seen = self._by_source[codes] != -math.inf
-        names, fed = self._names, []
+        names, fed = self.source_names, []
         if len(codes):
             if seen.shape[1] <= 62:     # each row's pattern as one integer
                 _, first, which = np.unique(seen @ (1 << np.arange(seen.shape[1])),
@@ -232,11 +233,11 @@ class Tracker:
 
     def remove(self, body: str) -> None:
         b = self._code_of(body)
-        s = self._store
+        s = self.store
         s.keep(s.body[:s.n] != b)
         self._newest[b] = -math.inf
         self._by_source[b] = -math.inf
-        s._index.forget(b)
+        s.index.forget(b)
         del self._active[body]
 
     def ingest(self, rows: "Rows | Sequence[Measurement]", *, ids=None, origin=None,
@@ -305,28 +306,28 @@ class Tracker:
             got = self.riders.fit(rows, time, nis, joint)
             if got is not None:
                 return got
-        s = self._store
+        s = self.store
         # the rows were checked by fuse's rules when they came in, and brought into the world
         # frame (_in_world)
-        return fuse_world_rows(*s.world(rows), self._sources_of(rows), s.times[rows],
-                                time, self._checked, nis, joint), s.ids[rows]
+        return fuse_world_rows(*s.world(rows), self.row_sources(rows), s.times[rows],
+                                time, self.options, nis, joint), s.ids[rows]
 
     def _pose(self, rows: np.ndarray, time: float) -> tuple[np.ndarray, np.ndarray]:
         """The constant-twist fit straight from the rows where it applies (``pose_in_time``),
         else any fit over time that is not robust (``pose_over_time``), else the full fit's."""
-        s = self._store
+        s = self.store
         codes = s.codes[rows]
         got = None
-        if self.riders is not None and self._riding[codes].any():
+        if self.riders is not None and self.riding[codes].any():
             f = self._fit(rows, time, False, True)[0]
             return f.mean, f.covariance
         if self._all_exact or self._exact[codes].all():
             # taken was stamp less latency when the rows came in: the same bits as fuse's
-            got = pose_in_time(*s.world(rows), self._latency[codes], s.times[rows],
-                                s.taken[rows], time, self._checked)
+            got = pose_in_time(*s.world(rows), self.latencies[codes], s.times[rows],
+                                s.taken[rows], time, self.options)
         if got is None:
-            got = pose_over_time(*s.world(rows), self._sources_of(rows), s.times[rows], time,
-                                  self._checked)
+            got = pose_over_time(*s.world(rows), self.row_sources(rows), s.times[rows], time,
+                                  self.options)
         if got is None:
             f = self._fit(rows, time, False, True)[0]
             got = f.mean, f.covariance
@@ -336,9 +337,9 @@ class Tracker:
         """The constant-twist fit (where its own joint fit starts) without the rest of an
         answer where that is the fit (``joint_start``), else the full fit's (``nis`` and
         ``joint`` False)."""
-        s = self._store
-        got = joint_start(*s.world(rows), self._sources_of(rows), s.times[rows], time,
-                           self._checked)
+        s = self.store
+        got = joint_start(*s.world(rows), self.row_sources(rows), s.times[rows], time,
+                           self.options)
         return got if got is not None else self._fit(rows, time, False, False)[0]
 
     def _static(self, rows: np.ndarray) -> tuple[Fused, np.ndarray]:
@@ -346,13 +347,13 @@ class Tracker:
             got = self.riders.fit(rows, None, True, True, static=True)
             if got is not None:
                 return got
-        s = self._store
-        return fuse_static_rows(*s.world(rows), self._sources_of(rows), self._checked), \
+        s = self.store
+        return fuse_static_rows(*s.world(rows), self.row_sources(rows), self.options), \
             s.ids[rows]
-    def _sources_of(self, rows: np.ndarray) -> tuple[str, ...]:
+    def row_sources(self, rows: np.ndarray) -> tuple[str, ...]:
         """Each row's source name, as the fits take them."""
-        names = self._names
-        return tuple([names[c] for c in self._store.codes[rows].tolist()])
+        names = self.source_names
+        return tuple([names[c] for c in self.store.codes[rows].tolist()])
 
     def rows_ending(self, body: str, end: float, window: float) -> np.ndarray:
         """``body``'s rows taken in ``[end - window, end]`` (for :meth:`estimate`), in
@@ -361,7 +362,7 @@ class Tracker:
         of taken reaches ``end - window`` (:meth:`Store.after`): the rows of that window and
         those that came after them late, not the body's whole window, unless more than
         :attr:`cap` of its window's rows are among them (then its cap may leave some out)."""
-        b, s, cap = self._code_of(body), self._store, self.cap
+        b, s, cap = self._code_of(body), self.store, self.cap
         lo, floor = end - window, self._newest[b] - self.window
         rows = s.after(b, lo) if lo > floor else None
         if rows is None or (cap is not None and len(rows) > cap
@@ -373,11 +374,11 @@ class Tracker:
 
     def taken_of(self, rows: np.ndarray) -> np.ndarray:
         """When ``rows`` were taken."""
-        return self._store.taken[rows]
+        return self.store.taken[rows]
 
     def sources_of(self, rows: np.ndarray) -> set[str]:
         """The sources of ``rows``."""
-        return {self._names[c] for c in np.unique(self._store.codes[rows]).tolist()}
+        return {self.source_names[c] for c in np.unique(self.store.codes[rows]).tolist()}
 
     def has(self, body: str) -> bool:
         """Whether ``body`` has measurements."""
@@ -390,43 +391,43 @@ class Tracker:
         each from its own :meth:`estimate` ``fits`` (its ``fit="start"``'s: their inliers,
         their start): the poses and the joint covariance ``(6k, 6k)`` of their right perturbations,
         cross-covariances included."""
-        s = self._store
-        return fuse_joint_rows([(*s.world(r), self._sources_of(r), s.times[r]) for r in rows],
-                                fits, time, self._checked)
+        s = self.store
+        return fuse_joint_rows([(*s.world(r), self.row_sources(r), s.times[r]) for r in rows],
+                                fits, time, self.options)
 
     def _rows_near(self, body: str, time: Optional[float], within: Optional[float]):
         rows = self._rows(body)
         if within is None:
             return rows
         t = self.newest(body) if time is None else time
-        return rows[np.abs(self._store.taken[rows] - t) <= within]
+        return rows[np.abs(self.store.taken[rows] - t) <= within]
 
     def _code_of(self, body: str) -> int:
         if body not in self._active:
             raise FieldError("body", f"no measurements of {body!r}")
-        return self._body_codes[body]
+        return self.body_codes[body]
 
     def _rows(self, body: str) -> np.ndarray:
-        return self._store.rows(self._code_of(body), self._newest, self.window, self.cap)
+        return self.store.rows(self._code_of(body), self._newest, self.window, self.cap)
 
     def _source_code(self, source: str) -> int:
         code = self._codes.get(source)
         if code is None:
-            code = self._codes[source] = len(self._names)
-            self._names.append(source)
-            src = self._table.get(source)
-            self._latency = np.append(self._latency, src.latency if src is not None else 0.0)
+            code = self._codes[source] = len(self.source_names)
+            self.source_names.append(source)
+            src = self.table.get(source)
+            self.latencies = np.append(self.latencies, src.latency if src is not None else 0.0)
             self._exact = np.append(self._exact, src is None or src.exact)
-            self._riding = np.append(self._riding, src is not None and bool(src.parent))
+            self.riding = np.append(self.riding, src is not None and bool(src.parent))
             if code >= self._by_source.shape[1]:
                 self._by_source = np.pad(self._by_source, ((0, 0), (0, code + 1)),
                                          constant_values=-math.inf)
         return code
 
     def _body_code(self, body: str) -> int:
-        code = self._body_codes.get(body)
+        code = self.body_codes.get(body)
         if code is None:
-            code = self._body_codes[body] = len(self._body_codes)
+            code = self.body_codes[body] = len(self.body_codes)
             if code >= len(self._newest):
                 self._newest = np.concatenate([self._newest, np.full(len(self._newest),
                                                                      -math.inf)])
@@ -481,7 +482,7 @@ class Tracker:
         if isinstance(ids, int):
             ids = ids + np.arange(n)
         # a name coded already was checked when it came first (here or by refusals)
-        named = named_rows(bodies, sources, self._body_codes, self._codes)
+        named = named_rows(bodies, sources, self.body_codes, self._codes)
         if named:       # refused for a name: then named by the check of the row alone
             codes = codes.astype(np.int64)
             codes[named] = -1
@@ -506,15 +507,15 @@ class Tracker:
         the window floor, the room, then the store), its refusals named here (:meth:`_refusal`).
         A body or source new to the tracker is coded first (unless not ``new_names``: then None,
         nothing done)."""
-        s = self._store
+        s = self.store
         s.reserve(len(bodies), self._newest, self.window, self.cap)
         wposes = wcovs = None
         if self._framed and (ok is None or ok.any()):
             wposes, wcovs = self._in_world(sources, poses, covs,
                                            np.ones(len(bodies), bool) if ok is None else ok)
         rules = self._rules + (None if origin is None else hash(origin), all_or_none)
-        got = s._index.ingest(s, self._newest, self._by_source, self._latency, bodies,
-                              self._body_codes, sources, self._codes, ids, times, poses, covs, ok,
+        got = s.index.ingest(s, self._newest, self._by_source, self.latencies, bodies,
+                              self.body_codes, sources, self._codes, ids, times, poses, covs, ok,
                               wposes, wcovs, *rules)
         if got is None:         # a name new to the tracker: coded, sources first, in row order
             if not new_names:
@@ -526,8 +527,8 @@ class Tracker:
             for u, body in zip(use, bodies):
                 if u:
                     self._body_code(body)
-            got = s._index.ingest(s, self._newest, self._by_source, self._latency, bodies,
-                                  self._body_codes, sources, self._codes, ids, times, poses, covs,
+            got = s.index.ingest(s, self._newest, self._by_source, self.latencies, bodies,
+                                  self.body_codes, sources, self._codes, ids, times, poses, covs,
                                   ok, wposes, wcovs, *rules)
         refused, fresh, self.touched = got
         for k, code, x, y in refused:
@@ -570,7 +571,7 @@ class Tracker:
         idx = None if ok.all() else np.flatnonzero(ok)
         if idx is not None:
             sources, poses, covs = [sources[k] for k in idx.tolist()], poses[idx], covs[idx]
-        wposes, wcovs = to_world(dq.normalize(poses), covs, tuple(sources), self._table)
+        wposes, wcovs = to_world(dq.normalize(poses), covs, tuple(sources), self.table)
         if idx is not None:
             full = np.zeros((len(ok), 8))
             full[idx] = wposes
@@ -578,4 +579,4 @@ class Tracker:
             fullc = np.zeros((len(ok), DOF, DOF))
             fullc[idx] = wcovs
             wcovs = fullc
-        return wposes, wcovs if "wcovs" in self._store._arrays else None
+        return wposes, wcovs if "wcovs" in self.store.arrays else None

@@ -58,7 +58,7 @@ def test_ingest_refuses_columns_and_codes_it_cannot_write():
 
     def ingest(store=s, body=(0,), ok=None, newest=newest, names=None):
         m = len(body)
-        return store._index.ingest(
+        return store.index.ingest(
             store, newest, seen, latency, list(body) if names is None else names,
             {0: 0, 1: 1, 2: 2}, ["s"] * m, {"s": 0}, np.arange(m), np.zeros(m),
             np.tile(np.eye(1, 8)[0], (m, 1)), np.tile(np.eye(6), (m, 1, 1)),

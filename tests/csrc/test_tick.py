@@ -189,9 +189,9 @@ def test_the_bindings_refusals_name_the_argument():
     w = world_of(np.random.default_rng(9), [Source("cam")], WorldOptions(window=0.3),
                  np.arange(10) * 0.02)
     t = w.tracker
-    s, rows = t._store, w._tick_rows("box", None)
+    s, rows = t.store, w._tick_rows("box", None)
     w.tick_wire("box", None, 1)
-    opts, bounds = w._wire._options, verdict_bounds(t._checked.probability, 40)
+    opts, bounds = w._wire._options, verdict_bounds(t.options.probability, 40)
     args = [opts, s.wposes, s.covs, s.times, s.codes, s.ids, rows, np.nan, "box", 1, bounds]
     for k, bad, name in ((6, np.array([s.n + len(s.ids)]), "rows"),
                          (1, s.wposes[:, :7], "poses"), (10, bounds[:1], "bounds")):

@@ -22,7 +22,7 @@ def _append(s: Store, newest, window: float, body, taken) -> None:
     s.reserve(m, newest, window)
     ok = np.ones(m, bool)
     codes = {b: b for b in range(len(newest))}          # bodies named by their codes
-    refused, _, _ = s._index.ingest(
+    refused, _, _ = s.index.ingest(
         s, newest, np.full((len(newest), 1), -np.inf), np.zeros(1), np.asarray(body).tolist(),
         codes, ["s"] * m, {"s": 0}, np.arange(m), taken, np.tile(np.eye(1, 8)[0], (m, 1)),
         np.tile(np.eye(6), (m, 1, 1)), ok, None, None, window, -1, np.inf, np.inf, -1, None,
