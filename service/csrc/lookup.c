@@ -219,6 +219,35 @@ static int rows_linearized(const dq_joint_model *m0, const size_t *cnt, const do
     return rc;
 }
 
+/* lookup_refine's start: the record's state (X0, V0, L0, E0, changed here) moved by the step
+ * delta, each body's pose carried d s on its twist, into f's start; f unchanged when a step
+ * fails. */
+static void refine_step(fit_arrays *f, int K, const double *delta, double d, double *X0,
+                        double *V0, double *L0, double *E0)
+{
+    for (int q = 0; q < K; q++) {
+        double X[8], h[6], M[8];
+        if (dq_retract(X0 + 8 * q, delta + 12 * q, X)) return;
+        for (int j = 0; j < 6; j++) V0[6 * q + j] += delta[12 * q + 6 + j];
+        for (int j = 0; j < 6; j++) h[j] = 0.5 * (d * V0[6 * q + j]);
+        dq_exp(h, M);
+        dq_mul(X, M, X0 + 8 * q);
+    }
+    for (size_t j = 0; j < f->k; j++) L0[j] += delta[12 * K + j];
+    for (size_t j = 0; j < f->m; j++) {
+        double X[8];
+        if (dq_retract(E0 + 8 * j, delta + 12 * K + f->k + 6 * j, X)) return;
+        memcpy(E0 + 8 * j, X, sizeof X);
+    }
+    double Xn[16];
+    for (int q = 0; q < K; q++)
+        if (dq_normalize(X0 + 8 * q, Xn + 8 * q)) return;
+    memcpy(f->X, Xn, sizeof(double) * 8 * (size_t)K);
+    for (int q = 0; q < K; q++) memcpy(f->V + 6 * q, V0 + 6 * q, 6 * sizeof(double));
+    memcpy(f->L, L0, sizeof(double) * f->k);
+    memcpy(f->Ehat, E0, sizeof(double) * 8 * f->m);
+}
+
 /* The start from the record rec of this fit's last run: its state moved by one Newton step of
  * the normal equations there (its own time's parametrisation, the rows' stamps from that time:
  * the record's H and g, exact there, less the rows that left, plus those that came), then
@@ -309,26 +338,7 @@ static void lookup_refine(const dq_lookup_store *s, dq_lookup_body *const *parts
     for (size_t j = 0; j < D; j++) g[j] -= ga[j];
     double len;
     if (dq_newton_step(H, g, (int)D, Lh, dh, delta, &len) || !(len < 1.0)) goto done;
-    for (int q = 0; q < K; q++) {
-        double X[8], h[6], M[8];
-        if (dq_retract(X0c + 8 * q, delta + 12 * q, X)) goto done;
-        for (int j = 0; j < 6; j++) V0c[6 * q + j] += delta[12 * q + 6 + j];
-        for (int j = 0; j < 6; j++) h[j] = 0.5 * (d * V0c[6 * q + j]);
-        dq_exp(h, M);
-        dq_mul(X, M, X0c + 8 * q);
-    }
-    for (size_t j = 0; j < f->k; j++) L0c[j] += delta[12 * K + j];
-    for (size_t j = 0; j < f->m; j++) {
-        double X[8];
-        if (dq_retract(E0c + 8 * j, delta + 12 * K + f->k + 6 * j, X)) goto done;
-        memcpy(E0c + 8 * j, X, sizeof X);
-    }
-    for (int q = 0; q < K; q++) {
-        if (dq_normalize(X0c + 8 * q, f->X + 8 * q)) goto done;
-        memcpy(f->V + 6 * q, V0c + 6 * q, 6 * sizeof(double));
-    }
-    memcpy(f->L, L0c, sizeof(double) * f->k);
-    memcpy(f->Ehat, E0c, sizeof(double) * 8 * f->m);
+    refine_step(f, K, delta, d, X0c, V0c, L0c, E0c);
 done:
     free(mem);
 }

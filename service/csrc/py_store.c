@@ -398,16 +398,16 @@ static void rows_used(PyArrayObject *ok, int consecutive, long long first, PyArr
  * unused); origin None: a stream's rows. */
 static PyObject *index_ingest(StoreIndex *self, PyObject *args)
 {
-    PyObject *store, *no, *so, *lo, *bn, *bc, *sn, *sc, *io, *to, *po, *vo, *oko, *wpo, *wco;
-    PyObject *origin;
+    PyObject *store, *no, *so, *lo, *bn, *bc, *sn, *sc, *io, *to, *po, *vo, *oko, *wpo, *wco,
+        *origin;
     dq_store_rules r = {0};
     Py_ssize_t max_rows;
     int all_or_none;
     if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOOOOdlddnOp", &store, &no, &so, &lo, &bn, &bc, &sn,
                           &sc, &io, &to, &po, &vo, &oko, &wpo, &wco, &r.window, &r.cap,
-                          &r.max_time, &r.jump, &max_rows, &origin, &all_or_none))
+                          &r.max_time, &r.jump, &max_rows, &origin, &all_or_none) ||
+        rules_of(&r, max_rows, all_or_none, origin) < 0)
         return NULL;
-    if (rules_of(&r, max_rows, all_or_none, origin) < 0) return NULL;
     dq_store_cols cols;
     if (columns(store, &cols) < 0) return NULL;
     PyArrayObject *newest = writeable(no, NPY_FLOAT64, 1, "newest");
@@ -474,8 +474,7 @@ static PyObject *index_ingest(StoreIndex *self, PyObject *args)
                         wposes ? PyArray_DATA(wposes) : NULL,
                         wcovs ? PyArray_DATA(wcovs) : NULL, use, taken};
     size_t nout = 0;
-    int fresh = 0;
-    int rc = dq_store_ingest(&self->x, &cols, &st, &in, &r, refused, &nout, &fresh);
+    int fresh = 0, rc = dq_store_ingest(&self->x, &cols, &st, &in, &r, refused, &nout, &fresh);
     if (set_n(store, cols.n) < 0 || ingest_failed(rc)) goto done;
     if (!(list = refusal_list(refused, nout))) goto done;
     if (ok) memcpy(PyArray_DATA(ok), use, (size_t)n);
