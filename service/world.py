@@ -18,7 +18,6 @@ pose, :meth:`World.pose`, is its own fit, which estimates the latency from its m
 alone). Not modelled: errors of a source's ``body_offset``, correlated noises of one image."""
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Mapping, NamedTuple, Optional, Sequence
@@ -168,9 +167,9 @@ class World:
                                  f"source {quoted(src)} is not among the world's sources")
         # the tracker's window is the buffer, which holds a body's measurements up to the
         # world's bound (not a stream's max_window)
-        bounds = dataclasses.replace(
-            self.tracker_bounds, max_window=b.max_measurements_per_body,
-            max_rows=b.max_measurements or b.max_bodies * b.max_measurements_per_body)
+        bounds = self.tracker_bounds.holding(
+            b.max_measurements_per_body,
+            b.max_measurements or b.max_bodies * b.max_measurements_per_body)
         try:
             table = source_table(sources)
         except ValueError as e:

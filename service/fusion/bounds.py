@@ -3,6 +3,7 @@ own bounds, which a server fills from its :class:`dqpose.limits.Limits`
 (:meth:`TrackerBounds.of`) and a world from its own bounds besides."""
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 
@@ -29,6 +30,11 @@ class TrackerBounds:
                                                   "max_time", "max_time_jump",
                                                   "max_fused_per_request")}
         return cls(**{**fields, "max_rows": limits.max_stream_measurements, **bounds})
+
+    def holding(self, per_body: int, rows: int) -> "TrackerBounds":
+        """These bounds for a tracker whose bodies hold ``per_body`` measurements each (a world's
+        buffer, not a stream's ``max_window``) and ``rows`` in all."""
+        return dataclasses.replace(self, max_window=per_body, max_rows=rows)
 
     def cap(self, robust: bool, correlated: bool) -> int:
         """Measurements one body's fit takes at most (its window's latest)."""

@@ -91,6 +91,23 @@ def test_tracker_time_going_back_beyond_the_window_is_an_error_naming_the_measur
     tracker.ingest([Measurement("arm", "other", 0.0, X)], all_or_none=True)
 
 
+def test_measurements_ingested_one_by_one_keep_the_good_and_name_the_others():
+    """ingest of Measurement objects (not all or none): a row that is not one, and one whose pose
+    has the wrong shape, are answered by index and kept out; the good rows are taken in."""
+    tracker = Tracker(WINDOW, sources=SOURCES)
+    X = lie.se3_exp(np.full(6, 0.1))
+    errors = tracker.ingest([Measurement("arm", "box", 1.0, X), "not one",
+                             Measurement("arm", "box", 1.01, X[:7]),
+                             Measurement("arm", "box", 1.02, X)])
+    assert [(k, str(e)) for k, e in errors] == [
+        (1, "measurements[1]: expected a Measurement, got str"),
+        (2, "measurements[2].pose: expected shape (8,), got (7,)")]
+    assert tracker.window_of("box").times.tolist() == [1.0, 1.02]
+    with pytest.raises(ValueError, match=r"^measurements\[1\]: expected a Measurement"):
+        tracker.ingest([Measurement("arm", "box", 1.03, X), 5], all_or_none=True)
+    assert tracker.count("box") == 2
+
+
 def test_tracker_bodies_are_independent():
     rng = np.random.default_rng(73)
     Ta = trajectory(lie.se3_exp(rng.normal(size=6)), False)
