@@ -62,7 +62,9 @@ def test_lost_data_fails_that_call_unavailable_and_the_next_one_works(rig):
     r, c, _ = rig
     it = c.execute(r.name, [r.home, offset(r.home, dx=0.06)], SLOW)
     assert next(it).state == "WORKING"
-    r.lose_data(2 * STALE_AFTER)
+    # 4 x stale_after: a loaded machine can starve the arm's loop for a whole 1 s loss (the
+    # PiPER's run then FINISHED, never having looked while the data was stale)
+    r.lose_data(4 * STALE_AFTER)
     got, err = run_out(it)
     assert err is not None and err.code.name == "UNAVAILABLE", got[-1:]
     assert got[-1].state == "ERROR" and err.details == f"ERROR: {got[-1].message}"
