@@ -3,11 +3,14 @@ another ``dqpose`` module, and no import cycle between ``dqpose`` modules.
 
 Read over ``ast`` from the sources (``service/`` is ``dqpose``, ``drivers/`` is ``dqpose.drivers``),
 nothing imported. Exempt: the generated stubs (``dqpose.rpc._proto``), the C extension
-(``dqpose._dqcore``), third-party modules, and the tests themselves."""
+(``dqpose._dqcore``), third-party modules, and the tests themselves.
+
+And DEVELOPERS.md kept a map: no line over ``MAX_LINE`` characters, every source file named."""
 from __future__ import annotations
 
 import ast
 import pathlib
+import re
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 FOLDERS = {"service": ("dqpose",), "drivers": ("dqpose", "drivers")}
@@ -15,6 +18,7 @@ EXEMPT = {"_dqcore", "_proto"}
 # Import cycles through imports inside functions still among the drivers (the registry of
 # backends, the arm's process): the one package a lazy cycle may lie in until they go.
 LAZY_PENDING = "dqpose.drivers"
+MAX_LINE = 200
 
 
 def sources(root: pathlib.Path = ROOT) -> dict[str, pathlib.Path]:
@@ -172,3 +176,50 @@ def test_the_checks_find_what_they_look_for(tmp_path):
     assert cycles(import_graph(modules, lazy=True)) == [["dqpose.pkg.a", "dqpose.pkg.b"]]
     (tmp_path / "service" / "pkg" / "b.py").write_text("from dqpose.drivers import x\n")
     assert cycles(import_graph(sources(tmp_path))) == [["dqpose.drivers.x", "dqpose.pkg.b"]]
+
+
+def documented(text: str) -> set[str]:
+    """The paths DEVELOPERS.md names: each backticked ``dir/file``, and a bare backticked file name
+    in the folder of its line's first path (``service/csrc/dq.h``, ``dq.c``)."""
+    out: set[str] = set()
+    for line in text.splitlines():
+        folder = None
+        for tok in re.findall(r"`([\w./*-]+)`", line):
+            if "/" in tok:
+                out.add(tok)
+                folder = folder or tok.rsplit("/", 1)[0]
+            elif folder and re.fullmatch(r"[\w-]+(\.\w+)+", tok):
+                out.add(f"{folder}/{tok}")
+    return out
+
+
+def undocumented(root: pathlib.Path, text: str) -> list[str]:
+    """Source files (service/, drivers/: .py .c .h; proto/: .proto) that ``text`` does not name,
+    the generated stubs aside."""
+    files = [p for folder in ("service", "drivers") for p in (root / folder).rglob("*")
+             if p.suffix in (".py", ".c", ".h") and "_proto" not in p.parts]
+    files += list((root / "proto").rglob("*.proto"))
+    named = documented(text)
+    return sorted(rel for rel in (p.relative_to(root).as_posix() for p in files) if rel not in named)
+
+
+def long_lines(text: str) -> list[int]:
+    return [n for n, line in enumerate(text.splitlines(), 1) if len(line) > MAX_LINE]
+
+
+def test_developers_md_is_short_lines_naming_every_source_file():
+    text = (ROOT / "DEVELOPERS.md").read_text()
+    long, missing = long_lines(text), undocumented(ROOT, text)
+    assert not long, f"DEVELOPERS.md lines over {MAX_LINE} characters: {long}"
+    assert not missing, f"give these a line in DEVELOPERS.md: {missing}"
+
+
+def test_the_map_checks_find_what_they_look_for(tmp_path):
+    for rel in ("service/a.py", "service/c/b.h", "service/c/b.c", "service/rpc/_proto/x_pb2.py",
+                "drivers/sim/d.py", "proto/dqpose/v1/e.proto", "proto/dqpose/v1/README.md"):
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_text("")
+    text = "| `service/c/b.h`, `b.c` | `x` |\n| `drivers/sim/` | d.py |\n" + "y" * (MAX_LINE + 1)
+    assert undocumented(tmp_path, text) == ["drivers/sim/d.py", "proto/dqpose/v1/e.proto",
+                                            "service/a.py"]
+    assert long_lines(text) == [3]
