@@ -199,8 +199,7 @@ def undocumented(root: pathlib.Path, text: str) -> list[str]:
     files = [p for folder in ("service", "drivers") for p in (root / folder).rglob("*")
              if p.suffix in (".py", ".c", ".h") and "_proto" not in p.parts]
     files += list((root / "proto").rglob("*.proto"))
-    named = documented(text)
-    return sorted(rel for rel in (p.relative_to(root).as_posix() for p in files) if rel not in named)
+    return sorted({p.relative_to(root).as_posix() for p in files} - documented(text))
 
 
 def long_lines(text: str) -> list[int]:
