@@ -98,6 +98,46 @@ class TickWindow(NamedTuple):
     picked: Optional[np.ndarray] = None
 
 
+def _checked_times(options: WorldOptions, b: WorldBounds) -> float:
+    """``options``' window, buffer and max_delay checked (a ``WorldError`` naming the field);
+    the buffer in seconds."""
+    if not isinstance(options, WorldOptions):
+        raise WorldError(None, "options", f"expected WorldOptions, got {type(options).__name__}")
+    try:
+        window = checked_seconds(options.window, "window", "positive")
+        buffer = checked_seconds(options.buffer, "buffer", "positive")
+        checked_seconds(options.max_delay, "max_delay", "nonnegative")
+    except ValueError as e:
+        raise WorldError.of(e, under="options") from None
+    if buffer > b.max_buffer:
+        raise over("options.buffer", buffer, "max_buffer", b.max_buffer, "s")
+    if window > buffer:
+        raise WorldError(None, "options.window",
+                         f"{window:.6g} s is longer than options.buffer {buffer:.6g} s (a "
+                         f"fit uses measurements the buffer keeps)")
+    if options.max_delay > window:
+        raise WorldError(None, "options.max_delay",
+                         f"{options.max_delay:.6g} s is longer than options.window "
+                         f"{window:.6g} s (a tick waits at most that long for slower "
+                         f"sources, its window then holding its data)")
+    return buffer
+
+
+def _checked_arms(arms: Mapping[str, str], sources: Sequence[Source]) -> dict[str, str]:
+    """``arms`` (arm -> the source that sees its base) as a dict, each arm's name and source
+    checked (a ``WorldError`` naming the field)."""
+    names = {s.name for s in sources if isinstance(s, Source)}
+    arms = dict(arms)
+    for arm, src in arms.items():
+        problem = name_problem(arm)
+        if problem is not None:
+            raise WorldError(None, "arms", problem)
+        if src not in names:
+            raise WorldError(None, f"arms[{arm!r}]",
+                             f"source {quoted(src)} is not among the world's sources")
+    return arms
+
+
 class World:
     """Named bodies and sources; see the module's docstring. Every public method takes the
     world's lock, to write or to read, so producers and readers may call from any thread."""
@@ -136,35 +176,8 @@ class World:
         b = self.bounds
         if len(sources) > b.max_sources:
             raise over("sources", len(sources), "max_sources", b.max_sources)
-        if not isinstance(options, WorldOptions):
-            raise WorldError(None, "options",
-                             f"expected WorldOptions, got {type(options).__name__}")
-        try:
-            window = checked_seconds(options.window, "window", "positive")
-            buffer = checked_seconds(options.buffer, "buffer", "positive")
-            checked_seconds(options.max_delay, "max_delay", "nonnegative")
-        except ValueError as e:
-            raise WorldError.of(e, under="options") from None
-        if buffer > b.max_buffer:
-            raise over("options.buffer", buffer, "max_buffer", b.max_buffer, "s")
-        if window > buffer:
-            raise WorldError(None, "options.window",
-                             f"{window:.6g} s is longer than options.buffer {buffer:.6g} s (a "
-                             f"fit uses measurements the buffer keeps)")
-        if options.max_delay > window:
-            raise WorldError(None, "options.max_delay",
-                             f"{options.max_delay:.6g} s is longer than options.window "
-                             f"{window:.6g} s (a tick waits at most that long for slower "
-                             f"sources, its window then holding its data)")
-        names = {s.name for s in sources if isinstance(s, Source)}
-        arms = dict(arms)
-        for arm, src in arms.items():
-            problem = name_problem(arm)
-            if problem is not None:
-                raise WorldError(None, "arms", problem)
-            if src not in names:
-                raise WorldError(None, f"arms[{arm!r}]",
-                                 f"source {quoted(src)} is not among the world's sources")
+        buffer = _checked_times(options, b)
+        arms = _checked_arms(arms, sources)
         # the tracker's window is the buffer, which holds a body's measurements up to the
         # world's bound (not a stream's max_window)
         bounds = self.tracker_bounds.holding(

@@ -70,19 +70,26 @@ def test_without_noise_the_box_is_the_composition():
                                atol=1e-9)
 
 
-def box_nees(seed: int = 39, trials: int = 200) -> float:
-    """The box's mean NEES over ``trials``: each draws the true extrinsic ``X·Exp(ε)`` and the
-    noises, the box's fused world pose against the truth under its covariance."""
+def mean_nees(seed: int, trials: int, trial) -> float:
+    """The mean NEES of ``trial(rng, x_true) -> (answer, truth)`` over ``trials``, each with the
+    camera's true extrinsic ``X·Exp(ε)`` drawn first (one generator seeded ``seed``)."""
     rng = np.random.default_rng(seed)
     nees = []
     for _ in range(trials):
-        x_true = dq.mul(X, draw(rng, COV_X))
-        w = world()
-        w.publish(scene(rng, x_true=x_true))
-        p = w.pose("box")
-        e = error(p.pose, BOX)
+        p, truth = trial(rng, dq.mul(X, draw(rng, COV_X)))
+        e = error(p.pose, truth)
         nees.append(e @ np.linalg.solve(p.covariance, e))
     return float(np.mean(nees))
+
+
+def box_nees(seed: int = 39, trials: int = 200) -> float:
+    """The box's mean NEES over ``trials``: each draws the true extrinsic ``X·Exp(ε)`` and the
+    noises, the box's fused world pose against the truth under its covariance."""
+    def trial(rng, x_true):
+        w = world()
+        w.publish(scene(rng, x_true=x_true))
+        return w.pose("box"), BOX
+    return mean_nees(seed, trials, trial)
 
 
 def test_eye_in_hand_box_nees_over_200_trials():
@@ -121,10 +128,7 @@ CUP = lie.se3_exp(np.array([0.2, 0.0, -0.1, 0.45, 0.3, 0.05]))   # T_world_cup
 def box_cup_nees(seed: int = 8, trials: int = 200) -> float:
     """The Lookup of the cup in the box's frame (both fixed, seen by the camera on the tool)
     over ``trials``: its mean NEES, the shared extrinsic's and tool's errors cancelling."""
-    rng = np.random.default_rng(seed)
-    nees = []
-    for _ in range(trials):
-        x_true = dq.mul(X, draw(rng, COV_X))
+    def trial(rng, x_true):
         ms = scene(rng, x_true=x_true)
         for m in ms[1::2]:     # the cup in the same images
             cam = dq.conj(dq.mul(tool_at(m.time), x_true))
@@ -132,10 +136,8 @@ def box_cup_nees(seed: int = 8, trials: int = 200) -> float:
                                                                 draw(rng, COV_CAM)), COV_CAM))
         w = world()
         w.publish(ms)
-        r = w.relative("box", "cup")
-        e = error(r.pose, dq.mul(dq.conj(BOX), CUP))
-        nees.append(e @ np.linalg.solve(r.covariance, e))
-    return float(np.mean(nees))
+        return w.relative("box", "cup"), dq.mul(dq.conj(BOX), CUP)
+    return mean_nees(seed, trials, trial)
 
 
 def test_two_bodies_seen_by_the_camera_on_the_tool_share_its_errors():

@@ -177,16 +177,16 @@ def test_endpoints_exact(wps, mode):
     assert not s.linear_velocity[[0, -1]].any() and not s.angular_velocity[[0, -1]].any()
 
 
-def _waypoints_no_blend(wps):
-    return [Waypoint(w.pose) for w in wps]
+def _planned_no_blend(wps, mode: str):
+    """The plan through ``wps``' poses without their blends, and its samples at RATE."""
+    tr = plan([Waypoint(w.pose) for w in wps], LIMITS, mode)
+    return tr, tr.at_rate(RATE)
 
 
 @slow
 @given(paths())
 def test_tool_linear_is_straight(wps):
-    wps = _waypoints_no_blend(wps)
-    tr = plan(wps, LIMITS, "tool_linear")
-    s = tr.at_rate(RATE)
+    tr, s = _planned_no_blend(wps, "tool_linear")
     p = translation(s.pose)
     worst = 0.0
     for k, seg in enumerate(tr.segments):
@@ -202,9 +202,7 @@ def test_tool_linear_is_straight(wps):
 @slow
 @given(paths())
 def test_screw_equals_sclerp(wps):
-    wps = _waypoints_no_blend(wps)
-    tr = plan(wps, LIMITS, "screw")
-    s = tr.at_rate(RATE)
+    tr, s = _planned_no_blend(wps, "screw")
     for k, seg in enumerate(tr.segments):
         inside = (s.time >= seg.start) & (s.time <= seg.start + seg.duration)
         a, b = dq.normalize(wps[k].pose), dq.normalize(wps[k + 1].pose)

@@ -121,7 +121,11 @@ def _limits(args, from_file: dict):
     return trajectory.Limits(**values)
 
 
-def _write(args, text: str) -> None:
+def _write(args, times, poses, velocities) -> None:
+    """The samples in --output (JSON when it ends in .json, else CSV), or CSV on stdout."""
+    from dqpose.cli.posefile import format_trajectory
+    fmt = "json" if (args.output or "").lower().endswith(".json") else "csv"
+    text = format_trajectory(times, poses, velocities, fmt)
     if args.output:
         with open(args.output, "w", encoding="utf-8") as f:
             f.write(text)
@@ -129,17 +133,30 @@ def _write(args, text: str) -> None:
         sys.stdout.write(text)
 
 
+def _read(args, reader):
+    """The input file read with ``reader`` and its limits (the flags' first); matplotlib
+    checked for --plot before the work, not after it."""
+    if args.plot:
+        require("matplotlib")
+    f = reader(args.file, args.quaternion_order)
+    return f, _limits(args, f.limits)
+
+
+def _plot(args, action: str, times, poses, limits, **kw) -> None:
+    """The motion plotted into --plot (the [plot] extra), its file said on stderr."""
+    from dqpose.cli.plots import plot_motion
+    plot_motion(args.plot, times, poses, limits, title=f"dqpose {action} {args.file}", **kw)
+    print(f"plot: {args.plot}", file=sys.stderr)
+
+
 def _plan(args) -> int:
     import numpy as np
 
     from dqpose import trajectory
-    from dqpose.cli.posefile import format_trajectory, read_plan
+    from dqpose.cli.posefile import read_plan
 
     try:
-        if args.plot:       # before the work, not after it
-            require("matplotlib")
-        f = read_plan(args.file, args.quaternion_order)
-        limits = _limits(args, f.limits)
+        f, limits = _read(args, read_plan)
         rate = args.rate or f.rate_hz or 125.0
         mode = args.interpolation or f.mode or "tool_linear"
         waypoints = [trajectory.Waypoint(pose=p, time=t, blend_radius=r)
@@ -155,16 +172,13 @@ def _plan(args) -> int:
                 p = c.plan(waypoints, limits, rate, mode)
             times, poses, duration, segments = p.time, p.pose, p.duration, p.segments
             vel = np.concatenate([p.linear_velocity, p.angular_velocity], axis=1)
-        fmt = "json" if (args.output or "").lower().endswith(".json") else "csv"
-        _write(args, format_trajectory(times, poses, vel, fmt))
+        _write(args, times, poses, vel)
         print(f"duration {duration:.4f} s, {len(times)} samples at {rate:g} Hz", file=sys.stderr)
         for i, seg in enumerate(segments):
             print(f"  segment {i}: {seg.start:.4f} .. {seg.start + seg.duration:.4f} s, "
                   f"bound by {seg.binding}", file=sys.stderr)
         if args.plot:
-            from dqpose.cli.plots import plot_motion
-            plot_motion(args.plot, times, poses, limits, title=f"dqpose plan {args.file}")
-            print(f"plot: {args.plot}", file=sys.stderr)
+            _plot(args, "plan", times, poses, limits)
     except Exception as e:
         return failure("plan", args, e)
     return 0
@@ -172,13 +186,10 @@ def _plan(args) -> int:
 
 def _smooth(args) -> int:
     from dqpose import smoothing
-    from dqpose.cli.posefile import format_trajectory, read_stamped
+    from dqpose.cli.posefile import read_stamped
 
     try:
-        if args.plot:       # before the work, not after it
-            require("matplotlib")
-        f = read_stamped(args.file, args.quaternion_order)
-        limits = _limits(args, f.limits)
+        f, limits = _read(args, read_stamped)
         weight = args.smoothing or f.smoothing or 1.0
         rate = args.rate or f.rate_hz or 0.0
         if args.local:
@@ -188,15 +199,11 @@ def _smooth(args) -> int:
             with client(args) as c:
                 times, poses = c.smooth(f.times, f.dqs, limits, weight, rate,
                                         free_ends=args.free_ends)
-        fmt = "json" if (args.output or "").lower().endswith(".json") else "csv"
-        _write(args, format_trajectory(times, poses, None, fmt))
+        _write(args, times, poses, None)
         note = ends_note(f.dqs, poses, args.free_ends)
         print(note, file=sys.stderr)
         if args.plot:
-            from dqpose.cli.plots import plot_motion
-            plot_motion(args.plot, times, poses, limits, title=f"dqpose smooth {args.file}",
-                        raw=(f.times, f.dqs), note=note)
-            print(f"plot: {args.plot}", file=sys.stderr)
+            _plot(args, "smooth", times, poses, limits, raw=(f.times, f.dqs), note=note)
     except Exception as e:
         return failure("smooth", args, e)
     return 0

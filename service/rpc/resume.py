@@ -24,7 +24,8 @@ import random
 import threading
 import time
 from collections import deque
-from typing import Callable, Generator, Iterable, Iterator, Optional
+from contextlib import closing
+from typing import Any, Callable, Generator, Iterable, Iterator, Optional
 
 import grpc
 
@@ -219,30 +220,17 @@ class Resuming:
             self._unacked.clear()
 
     def answers(self) -> Generator[tuple[int, bytes], None, None]:
-        link = self.link
-        while True:
-            indices: list[int] = []
-            call = None
-            try:
-                link.reopening()
-                call = self._open(self._requests(self._generation, indices),
-                                  metadata=self._metadata)
-                for k, data in enumerate(call):
-                    link.answered(call)
-                    index = indices[k if self._acked is None else self._acked(data)]
-                    self._ack(index)
-                    yield index, data
-                return
-            except grpc.RpcError as e:
-                if self.failed:
-                    raise
-                if not link.broke(e):
-                    raise link.given_up(e) from None
-            finally:
-                if call is not None:
-                    call.cancel()
-            link.back_off()
-            self._reopen()
+        indices: list[int] = []      # the open stream's requests, by their number in it
+
+        def open_call():
+            nonlocal indices
+            indices = []
+            return self._open(self._requests(self._generation, indices), metadata=self._metadata)
+        with closing(self.link.streams(open_call, lambda: bool(self.failed), self._reopen)) as each:
+            for k, data in each:
+                index = indices[k if self._acked is None else self._acked(data)]
+                self._ack(index)
+                yield index, data
 
 
 class Reconnecting:
@@ -298,6 +286,34 @@ class Reconnecting:
         time.sleep(self._wait * random.uniform(0.5, 1.0))   # jitter: reopenings spread out
         self._wait = min(2 * self._wait, BACKOFF_MAX)
 
+    def streams(self, open_call: Callable[[], Any],
+                failed: Callable[[], bool] = lambda: False,
+                after: Callable[[], object] = lambda: None
+                ) -> Generator[tuple[int, bytes], None, None]:
+        """``(k, answer)``: the k-th answer of the stream ``open_call()`` opened, opened again
+        after each break (:meth:`broke`) once backed off and ``after()`` was called, until a
+        stream ends; a break not reopened raises :meth:`given_up`'s error (the break itself
+        when ``failed()``). The stream open is cancelled however this ends."""
+        while True:
+            call = None
+            try:
+                self.reopening()
+                call = open_call()
+                for k, data in enumerate(call):
+                    self.answered(call)
+                    yield k, data
+                return
+            except grpc.RpcError as e:
+                if failed():
+                    raise
+                if not self.broke(e):
+                    raise self.given_up(e) from None
+            finally:
+                if call is not None:
+                    call.cancel()
+            self.back_off()
+            after()
+
     def _moved(self, replica: Optional[str], gap: float) -> None:
         """A log line when the stream came back, naming the replica it left and the one it
         reached (its world moved when they differ)."""
@@ -316,20 +332,6 @@ def reopened(open_call: Callable, reconnect: float,
     after a :func:`resumable` break with backoff for up to ``reconnect`` s without an answer
     (``before()`` first each time); the answers of each stream as they come (none is resent:
     the request is the call's one message)."""
-    link = Reconnecting(reconnect, before, world, seen)
-    while True:
-        call = None
-        try:
-            link.reopening()
-            call = open_call()
-            for data in call:
-                link.answered(call)
-                yield data
-            return
-        except grpc.RpcError as e:
-            if not link.broke(e):
-                raise link.given_up(e) from None
-        finally:
-            if call is not None:
-                call.cancel()
-        link.back_off()
+    with closing(Reconnecting(reconnect, before, world, seen).streams(open_call)) as each:
+        for _, data in each:
+            yield data

@@ -114,6 +114,16 @@ class Command:
             f"exited {self.exit_after:.3f} s after the Ctrl-C, CPU-bound work {self.slowdown:.2f} "
             f"times slower than on an idle core meanwhile:\n{self.stderr[-3000:]}")
 
+    def interrupted_when(self, predicate, what: str) -> int:
+        """One Ctrl-C once ``predicate()`` holds (``what`` it waits for); the exit code. The
+        command is killed whatever happens."""
+        try:
+            self.wait_for(predicate, what)
+            self.interrupt()
+            return self.wait()
+        finally:
+            self.kill()
+
     def kill(self) -> None:
         if self.proc.poll() is None:
             os.killpg(self.proc.pid, signal.SIGKILL)

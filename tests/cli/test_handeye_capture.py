@@ -46,12 +46,7 @@ def interrupted(tmp_path_factory):
     """A capture of 8 views interrupted by one Ctrl-C once three views were taken."""
     folder = str(tmp_path_factory.mktemp("resume") / "calib")
     cmd = Command("handeye", "capture", folder, "--views", "8")
-    try:
-        cmd.wait_for(lambda: "view 3:" in cmd.stderr, "three views taken")
-        cmd.interrupt()
-        code = cmd.wait()
-    finally:
-        cmd.kill()
+    code = cmd.interrupted_when(lambda: "view 3:" in cmd.stderr, "three views taken")
     return folder, code, cmd.stderr
 
 

@@ -111,12 +111,7 @@ def test_ctrl_c_ends_handeye_capture_with_the_arm_stopped(tmp_path):
 
 def test_ctrl_c_ends_sim_ur():
     cmd = Command("sim", "ur", "--host", "127.0.0.251")
-    try:
-        cmd.wait_for(lambda: "ursim" in cmd.stdout, "the simulator ready")
-        cmd.interrupt()
-        code = cmd.wait()
-    finally:
-        cmd.kill()
+    code = cmd.interrupted_when(lambda: "ursim" in cmd.stdout, "the simulator ready")
     assert code == 0, cmd.stderr
     _clean(cmd)
     cmd.assert_prompt()

@@ -147,12 +147,6 @@ def rig(request):
     r.close()
 
 
-@pytest.fixture
-def arm(rig):
-    rig.reset()
-    return rig.arm
-
-
 def _stream(arm, fraction: float = 1.0, length: float = 0.02, turn: float = 0.05,
             speed: float = 0.1, accel: float = 1.0):
     """Servo the first ``fraction`` of a trapezoidal move of ``length`` m along (1, 1, -1)/sqrt(3)

@@ -18,7 +18,7 @@ from dqpose.drivers.base import ArmError, pose_delta, servo_step
 from dqpose.drivers.executor import Executor, Result
 from tests._polling import wait_until
 from tests.drivers.test_arm_limits import LIMITS
-from tests.drivers.test_executor import PiperExec, URExec, _plan, arm, rig, run_parent  # noqa: F401 (fixtures)
+from tests.drivers.test_executor import PiperExec, URExec, _plan, rig, run_parent  # noqa: F401 (fixture)
 
 
 def _running(arm, **plan):

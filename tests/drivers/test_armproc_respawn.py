@@ -29,12 +29,6 @@ def rig(request):
     r.close()
 
 
-@pytest.fixture
-def arm(rig):
-    rig.reset()
-    return rig.arm
-
-
 def _kill(arm):
     """SIGKILL the arm's process, as a crash ends it, and wait until it has exited; the
     process."""

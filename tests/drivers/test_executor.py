@@ -95,12 +95,6 @@ def rig(request):
     r.close()
 
 
-@pytest.fixture
-def arm(rig):
-    rig.reset()
-    return rig.arm
-
-
 def _plan(arm, rate: float, length: float = 0.03, speed: float = 0.1, accel: float = 1.0,
           direction=(1.0, 0.5, -0.5)):
     """A trapezoidal straight move from where the arm stands, turning 2 rad per metre about

@@ -4,6 +4,7 @@ from /proc, and the probe's requests as messages."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -16,6 +17,7 @@ import numpy as np
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from dqpose.rpc import geometry
+from tests._proc import rss_mb
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 # Long enough for a loaded 2-core machine to answer a health check; far shorter than any of
@@ -57,11 +59,9 @@ class Served:
         return health_pb2.HealthCheckResponse.ServingStatus.Name(status)
 
     def rss_mb(self) -> float:
-        with open(f"/proc/{self.pid}/status") as f:
-            for line in f:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) / 1024
-        raise AssertionError("no VmRSS")
+        mb = rss_mb(self.pid)
+        assert not math.isnan(mb), "no VmRSS"
+        return mb
 
     def stop(self) -> int | None:
         """SIGTERM, then the exit code (None: it ignored SIGTERM and was killed)."""

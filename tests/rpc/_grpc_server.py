@@ -37,6 +37,20 @@ class ServerThread:
         self.stop()
 
 
+def read_in_thread(stream, into: list, ends, on_error) -> threading.Thread:
+    """A daemon thread (started) that appends each item of ``stream`` to ``into``; an exception
+    of type ``ends`` that ends the stream goes to ``on_error``."""
+    def run() -> None:
+        try:
+            for item in stream:
+                into.append(item)
+        except ends as e:
+            on_error(e)
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    return thread
+
+
 def make_pki() -> dict[str, bytes]:
     """A CA, a server certificate for 127.0.0.1/localhost and a client certificate (PEM), plus a
     second, unrelated CA with its own client certificate."""

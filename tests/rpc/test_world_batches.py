@@ -4,8 +4,6 @@ as few messages as the byte bound allows, and a subscriber that falls behind end
 way."""
 from __future__ import annotations
 
-import threading
-
 import grpc
 import pytest
 
@@ -14,7 +12,7 @@ from dqpose.rpc import world as servicer
 from dqpose.rpc._proto.dqpose.v1 import fusion_pb2 as fpb
 from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
 from tests._polling import wait_until
-from tests.rpc._grpc_server import ServerThread
+from tests.rpc._grpc_server import ServerThread, read_in_thread
 from tests.rpc.test_world_service import (  # noqa: F401 (the fixture client)
     SOURCES,
     TWIST,
@@ -44,15 +42,10 @@ class Raw:
             wpb.SubscribeRequest(**request))
         self.messages: list[bytes] = []
         self.error: grpc.RpcError | None = None
-        self.thread = threading.Thread(target=self._run, daemon=True)
-        self.thread.start()
+        self.thread = read_in_thread(self.call, self.messages, grpc.RpcError, self._ended)
 
-    def _run(self) -> None:
-        try:
-            for data in self.call:
-                self.messages.append(data)
-        except grpc.RpcError as e:
-            self.error = e
+    def _ended(self, e: grpc.RpcError) -> None:
+        self.error = e
 
     def stop(self) -> None:
         self.call.cancel()

@@ -17,7 +17,7 @@ from dqpose.fusion import Source
 from dqpose.rpc._proto.dqpose.v1 import world_pb2 as wpb
 from dqpose.rpc.client import Batch, Client, InvalidArgument, RpcError
 from tests._polling import wait_until
-from tests.rpc._grpc_server import ServerThread
+from tests.rpc._grpc_server import ServerThread, read_in_thread
 
 T_BOX = dq.from_pose([np.cos(0.2), 0.0, 0.0, np.sin(0.2)], [0.5, 0.1, 0.3])
 EXTRINSICS = {"cam1": dq.from_pose([1.0, 0, 0, 0], [0.0, -1.0, 1.0]),
@@ -81,16 +81,11 @@ class Collector:
         self.answers: list = []
         self.error: Exception | None = None
         self.stream = self.client.subscribe(**kw)
-        self.thread = threading.Thread(target=self._run, daemon=True)
-        self.thread.start()
+        self.thread = read_in_thread(self.stream, self.answers, RpcError, self._ended)
 
-    def _run(self) -> None:
-        try:
-            for a in self.stream:
-                self.answers.append(a)
-        except RpcError as e:
-            if e.code != grpc.StatusCode.CANCELLED:
-                self.error = e
+    def _ended(self, e: RpcError) -> None:
+        if e.code != grpc.StatusCode.CANCELLED:
+            self.error = e
 
     def stop(self) -> list:
         self.client.close()
