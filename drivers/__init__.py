@@ -12,20 +12,11 @@ from __future__ import annotations
 import importlib
 from typing import Optional
 
+from dqpose.drivers.backends import ARMS, SOURCES, split_backend
+from dqpose.drivers.spec import ARM_KEYS, ArmSpec, arm_class, open_here, parse_arm_spec
+
 __all__ = ["ARMS", "SOURCES", "ARM_KEYS", "ArmSpec", "parse_arm_spec", "open_arm", "open_source",
            "process_problem"]
-
-#: arm backends: name -> "module:class"; the class's ``open(channel, **kwargs)`` makes one
-ARMS = {
-    "ur": "dqpose.drivers.ur:URArm",
-    "piper": "dqpose.drivers.piper:PiperArm",
-}
-#: pose source backends, the same way
-SOURCES = {
-    "charuco": "dqpose.drivers.camera:CharucoCamera",
-}
-
-from dqpose.drivers.spec import ARM_KEYS, ArmSpec, parse_arm_spec  # noqa: E402  (needs ARMS)
 
 
 def _open(kind: str, table: dict, spec: str, kwargs: dict):
@@ -42,25 +33,6 @@ def _backend(kind: str, table: dict, spec: str) -> tuple[str, str, str]:
     return module, cls, channel
 
 
-def split_backend(kind: str, table: dict, spec: str, whole: Optional[str] = None,
-                   grammar: str = "<backend>:<channel>") -> tuple[str, str]:
-    """``spec``'s backend (a name in ``table``) and channel, else ``ValueError`` naming ``kind``
-    and ``whole`` (the text ``spec`` is part of; ``grammar``: how it is written)."""
-    whole = spec if whole is None else whole
-    name, sep, channel = spec.partition(":")
-    if name not in table:
-        raise ValueError(f"{kind}: unknown backend {name!r} in {whole!r}; known: "
-                         f"{', '.join(sorted(table))} (as '{grammar}')")
-    if not sep or not channel:
-        raise ValueError(f"{kind}: {whole!r} has no channel; expected '{name}:<channel>'")
-    return name, channel
-
-
-def _arm_class(spec: ArmSpec):
-    module, cls = ARMS[spec.kind].split(":")
-    return getattr(importlib.import_module(module), cls)
-
-
 def process_problem(spec: str) -> Optional[str]:
     """Why the arm ``spec`` cannot live in a process of its own on this machine (the
     processor's store order, or a connection that does not reach across processes), or None."""
@@ -71,7 +43,7 @@ def process_problem(spec: str) -> Optional[str]:
     except ArmError as e:
         return str(e)
     s = parse_arm_spec(spec)
-    return _arm_class(s).process_problem(s.target)
+    return arm_class(s).process_problem(s.target)
 
 
 def open_arm(spec, process: bool = False, **kwargs):
@@ -86,11 +58,10 @@ def open_arm(spec, process: bool = False, **kwargs):
     (:class:`dqpose.drivers.armproc.ArmProcess`; its bus must reach across processes: not
     python-can's ``virtual``)."""
     s = spec if isinstance(spec, ArmSpec) else parse_arm_spec(spec)
-    kw = {**s.options, **kwargs}
     if process:
         from dqpose.drivers.armproc import ArmProcess
-        return ArmProcess(s.channel, **kw)
-    return _arm_class(s).open(s.target, **kw)
+        return ArmProcess(s.channel, **{**s.options, **kwargs})
+    return open_here(s, **kwargs)
 
 
 def open_source(spec: str, **kwargs):

@@ -198,9 +198,9 @@ def child_main(spec: str, kwargs: dict, conn, wake, feedback, parent: int) -> No
     # is gone is noticed here all the same (a dry ring, a closed pipe, re-parenting).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    from dqpose.drivers import open_arm
+    from dqpose.drivers.spec import open_here
     try:
-        arm = open_arm(spec, **kwargs)
+        arm = open_here(spec, **kwargs)
     except BaseException as e:
         conn.send(("error", _picklable(e)))
         return

@@ -403,15 +403,15 @@ class Arm(abc.ABC):
         does not reach across processes), or None."""
         return None
 
-    def open_run(self, settings, busy_timeout: float, outcome) -> "Run":
+    def open_run(self, settings, busy_timeout: float, outcome) -> Optional["Run"]:
         """Where a run of the control loop goes, asked once by each
         :class:`~dqpose.drivers.executor.Executor` made on this arm (with its
         :class:`~dqpose.drivers.control.Settings`, ``busy_timeout``, and the
-        :class:`~dqpose.drivers.run.Outcome` the run reports to): by default a thread of this
-        process (:class:`~dqpose.drivers.run.LocalRun`); an arm in its own process runs it
-        there (:class:`~dqpose.drivers.armproc.ArmProcess`)."""
-        from dqpose.drivers.run import LocalRun  # here: run.py imports this module
-        return LocalRun(self, settings, busy_timeout, outcome)
+        :class:`~dqpose.drivers.run.Outcome` the run reports to): None by default, a thread of
+        this process (the executor's :class:`~dqpose.drivers.run.LocalRun`: run.py imports this
+        module, so this one names no run); an arm in its own process runs it there
+        (:class:`~dqpose.drivers.armproc.ArmProcess`)."""
+        return None
 
     @abc.abstractmethod
     def tool_pose(self) -> tuple[float, np.ndarray]:

@@ -67,7 +67,7 @@ import numpy as np
 from dqpose import dq
 from dqpose.drivers.base import Arm
 from dqpose.drivers.control import Feedback, Result, Settings
-from dqpose.drivers.run import Outcome, Run
+from dqpose.drivers.run import LocalRun, Outcome, Run
 from dqpose.drivers.spec import ARM_KEYS
 from dqpose.interpolate import interpolate
 from dqpose.trajectory import INTERPOLATIONS
@@ -180,8 +180,11 @@ class Executor:
         self._finished_input = False
         self._push_lock = threading.Lock()      # one pusher resamples at a time
         self._started = False
-        # where the loop runs, the arm's to say (an arm in its own process runs it there)
-        self._run: Run = arm.open_run(self.settings, self.busy_timeout, self._outcome)
+        # where the loop runs, the arm's to say (an arm in its own process runs it there; None:
+        # a thread of this process)
+        run = arm.open_run(self.settings, self.busy_timeout, self._outcome)
+        self._run: Run = run if run is not None else LocalRun(
+            arm, self.settings, self.busy_timeout, self._outcome)
 
     @property
     def prefill(self) -> float:

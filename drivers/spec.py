@@ -11,12 +11,16 @@ the arm as attributes of the same name (``arm.stale_after``, ``arm.max_tracking`
 from __future__ import annotations
 
 import difflib
+import importlib
 import math
 import numbers
 from dataclasses import dataclass, field
 from typing import Optional
 
-__all__ = ["ArmKey", "ARM_KEYS", "ArmSpec", "parse_arm_spec", "key_table", "resolve"]
+from dqpose.drivers.backends import ARMS, split_backend
+
+__all__ = ["ArmKey", "ARM_KEYS", "ArmSpec", "parse_arm_spec", "key_table", "resolve", "arm_class",
+           "open_here"]
 
 GRAMMAR = "KIND:TARGET[?key=value&key=value...]"
 
@@ -122,7 +126,6 @@ def _nearest(name: str) -> str:
 def parse_arm_spec(text: str) -> ArmSpec:
     """``KIND:TARGET[?key=value&...]`` to an :class:`ArmSpec`; ``ValueError`` for an unknown kind
     or key (naming the nearest known key) or a bad value (naming the key and the value)."""
-    from dqpose.drivers import ARMS, split_backend
     if not isinstance(text, str):
         raise ValueError(f"arm: expected '{GRAMMAR}', got {text!r}")
     body, question, query = text.partition("?")
@@ -142,3 +145,16 @@ def parse_arm_spec(text: str) -> ArmSpec:
                 raise ValueError(f"{name}: given twice in {text!r}")
             options[name] = ARM_KEYS[name].parse(value)
     return ArmSpec(kind, target, options)
+
+
+def arm_class(spec: ArmSpec):
+    """The backend class of ``spec``'s kind (its module imported now)."""
+    module, cls = ARMS[spec.kind].split(":")
+    return getattr(importlib.import_module(module), cls)
+
+
+def open_here(spec, **kwargs):
+    """The arm of ``spec`` (an :class:`ArmSpec` or its text) opened in this process: its
+    backend's ``open(target, **keys)``, the spec's keys and ``kwargs`` (which win)."""
+    s = spec if isinstance(spec, ArmSpec) else parse_arm_spec(spec)
+    return arm_class(s).open(s.target, **{**s.options, **kwargs})
