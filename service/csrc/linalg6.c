@@ -72,11 +72,12 @@ void dq_upper_solve6(const double *L, const double *di, const double *b, double 
     upper_solve_m(L, di, b, x, 6);
 }
 
-/* Row by row, each row a whole 6-vector, which vectorises. */
-void dq_lower_solve_matrix6(const double *L, const double *di, const double *M,
-                            double *restrict B)
+/* Rows first..5 of B = D^-1 L^-1 M (rows before first already in B), row by row, each row a
+ * whole 6-vector, which vectorises. */
+static void lower_rows6(const double *L, const double *di, const double *M, double *restrict B,
+                        int first)
 {
-    for (int i = 0; i < 6; i++) {
+    for (int i = first; i < 6; i++) {
         double row[6];
         for (int c = 0; c < 6; c++) row[c] = M[6 * i + c];
         for (int k = 0; k < i; k++) {
@@ -85,6 +86,12 @@ void dq_lower_solve_matrix6(const double *L, const double *di, const double *M,
         }
         for (int c = 0; c < 6; c++) B[6 * i + c] = row[c] * di[i];
     }
+}
+
+void dq_lower_solve_matrix6(const double *L, const double *di, const double *M,
+                            double *restrict B)
+{
+    lower_rows6(L, di, M, B, 0);
 }
 
 void dq_whiten_jacobian6(const double *L, const double *di, const double *A, double *restrict B)
@@ -98,15 +105,7 @@ void dq_whiten_jacobian6(const double *L, const double *di, const double *A, dou
         for (int c = 0; c < 3; c++) B[6 * i + c] = row[c] * di[i];
         B[6 * i + 3] = B[6 * i + 4] = B[6 * i + 5] = 0.0;
     }
-    for (int i = 3; i < 6; i++) {
-        double row[6];
-        for (int c = 0; c < 6; c++) row[c] = A[6 * i + c];
-        for (int k = 0; k < i; k++) {
-            double l = L[6 * i + k];
-            for (int c = 0; c < 6; c++) row[c] -= l * B[6 * k + c];
-        }
-        for (int c = 0; c < 6; c++) B[6 * i + c] = row[c] * di[i];
-    }
+    lower_rows6(L, di, A, B, 3);
 }
 
 void dq_add_gram_whitened6(const double *restrict B, double *restrict G)
