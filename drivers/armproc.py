@@ -156,7 +156,7 @@ class ArmProcess(Arm):
                                 "pid": new.pid}))
         return new
 
-    def _request(self, op: str, *args, run: Optional[RingRun] = None):
+    def request_child(self, op: str, *args, run: Optional[RingRun] = None):
         """The arm process's answer to a request (its error raised here). A request the process
         never got goes to a new one (:meth:`_live`); one it got and did not answer raises
         ``ArmError``, except a run's start (``run``: its RingRun), which from then on ends with a
@@ -203,12 +203,12 @@ class ArmProcess(Arm):
 
     def call(self, name: str, *args, **kwargs):
         """The child arm's method ``name`` with these arguments; its result."""
-        return self._request("call", name, args, kwargs)
+        return self.request_child("call", name, args, kwargs)
 
     def __getattr__(self, name: str):
         if name.startswith("_"):
             raise AttributeError(name)
-        kind, value = self._request("attr", name)
+        kind, value = self.request_child("attr", name)
         if kind == "value":
             return value
         return lambda *a, **kw: self.call(name, *a, **kw)

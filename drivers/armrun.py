@@ -93,7 +93,7 @@ class RingRun(Run):
         slots, or on ``trajectory``, which the child samples itself (then the ring holds only
         the counters and signals). A refused start frees the ring."""
         try:
-            self.proc._request("run", self.id, self.settings, self.ring.name,
+            self.proc.request_child("run", self.id, self.settings, self.ring.name,
                                self.ring.capacity, trajectory, self.busy_timeout, run=self)
         except BaseException:
             self.release()
