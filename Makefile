@@ -59,6 +59,7 @@ lint: setup
 	rm -rf build/mypy && mkdir -p build/mypy/dqpose
 	ln -s $(CURDIR)/service/* build/mypy/dqpose/ && ln -s $(CURDIR)/drivers build/mypy/dqpose/drivers
 	cd build/mypy && $(CURDIR)/$(BIN)/mypy --config-file $(CURDIR)/pyproject.toml
+	$(BIN)/python -m pytest -q -p no:cacheprovider tests/test_lengths.py tests/test_layout.py
 
 # The inner loop: the suite without the slow modules (tests/conftest.py), the heaviest requests
 # and the installs; a few minutes. `make test` still runs everything.
